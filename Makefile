@@ -1,0 +1,27 @@
+# Two commands do all the set-up on a fresh machine with Python 3.11:
+#   make demo   -- create .venv, install canrls, run the demo on the simulated drive
+#   make test   -- create .venv, install canrls with its test extras, run the tests
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   ?= .venv
+BIN     = $(VENV)/bin
+
+.PHONY: demo test bench clean
+
+$(BIN)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test,report]'
+	touch $@
+
+demo: $(BIN)/.installed
+	$(BIN)/canrls demo
+
+test: $(BIN)/.installed
+	$(BIN)/python -m pytest -q
+
+bench: $(BIN)/.installed
+	$(BIN)/python -m pip install --quiet -e '.[bench]'
+	$(BIN)/python tools/bench_rls.py
+
+clean:
+	rm -rf $(VENV) build src/*.egg-info .pytest_cache

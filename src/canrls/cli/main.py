@@ -1,0 +1,72 @@
+"""Entry point of the ``canrls`` console script."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from canrls import __version__
+from canrls.errors import CanrlsError
+
+#: Subcommand modules, in the order ``--help`` lists them.
+SUBCOMMANDS: tuple[str, ...] = (
+    "demo",
+    "sim",
+    "fit",
+    "diagnose",
+    "fixed_sweep",
+    "run",
+    "monitor",
+)
+
+log = logging.getLogger("canrls")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="canrls",
+        description="Identify the physics of an electric drive over CAN with recursive least squares.",
+    )
+    parser.add_argument("--version", action="version", version=f"canrls {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the full traceback of an error instead of one 'error:' line")
+    parser.add_argument("--log-level", default="WARNING",
+                        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                        help="logging level of messages written to stderr (default: WARNING)")
+    sub = parser.add_subparsers(title="subcommands", dest="command", metavar="SUBCOMMAND")
+    for name in SUBCOMMANDS:
+        try:
+            module = importlib.import_module(f"canrls.cli.{name}")
+        except ModuleNotFoundError as e:
+            if e.name and e.name.startswith("canrls.cli."):
+                continue  # subcommand not written yet
+            log.debug("subcommand %s disabled: %s", name, e)
+            continue
+        module.add_subparser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=getattr(logging, args.log_level), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except CanrlsError as e:
+        if args.debug:
+            raise
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
