@@ -1,0 +1,812 @@
+r"""The identification model: which effects, which equations, which regressors.
+
+A :class:`Model` holds the axis, the target, the effects and their options, the
+state-variable filter settings, the user terms and the signal ranges. It is validated
+once, when built, and then yields its :class:`Equation`\ s: the mechanical one
+(whenever a mechanical effect is present) and the electrical one (when ``electrical``
+is). Each equation knows its parameters and builds the regressors the estimators
+consume, through a stateful :class:`RegressorBuilder`.
+
+Configuration (TOML, the ``[model]`` table)
+-------------------------------------------
+.. code-block:: toml
+
+    [model]
+    axis = "rotary"            # "rotary" (rad, rad/s, N·m) or "linear" (m, m/s, N)
+    pitch = 1.0                # linear only: metres per period of unbalance/cogging terms
+    wrap = 0.2                 # linear only, optional: position wraps with this period [m]
+    kt = 0.12                  # optional: Kt [N·m/A] (linear Kf [N/A]); without it the
+                               # mechanical target is the current and parameters read A
+    effects = ["inertia", "viscous", "coulomb", "cogging:24", "user:drag"]
+
+    [model.filter]
+    cutoff_hz = 25.0           # SVF cutoff, 0 < cutoff_hz < sample rate / 2
+    zeta = 0.7071              # SVF damping
+    held = ["voltage"]         # signals whose sample k is applied over [t_k, t_k + dt)
+                               # (zero-order hold); the others are samples of continuous
+                               # quantities (straight-line hold). See "Holds" below.
+
+    [model.coulomb]
+    band = 0.01                # smoothing band of sgn_e (Coulomb and Stribeck) [rad/s, m/s]
+
+    [model.stribeck]
+    speed = 1.0                # Stribeck speed ws [rad/s, m/s]
+
+    [[model.terms]]
+    name = "drag"              # used as user:drag
+    expr = "omega * abs(omega)"
+    unit = "rad²/s²"           # unit of the expression's value (default "1")
+    equation = "mechanical"    # or "electrical"
+    range = [-1e4, 1e4]        # optional: [lo, hi] of the expression, for normalisation
+
+    [model.ranges]             # [lo, hi] of the signals, for normalisation
+    current = [-10.0, 10.0]    # A      (default [-10, 10])
+    speed = [-100.0, 100.0]    # rad/s  (default [-100, 100], linear [-1, 1] m/s)
+    voltage = [-50.0, 50.0]    # V      (default [-50, 50])
+    position = [-1.0, 1.0]     # optional, only used to bound user terms
+    acceleration = [-500.0, 500.0]  # optional [rad/s², m/s²]: tightens the inertia column
+    current_rate = [-1e4, 1e4]      # optional [A/s]: tightens the inductance column
+
+Every key is checked; an unknown key, a wrong type or a bad value raises
+:class:`~canrls.errors.ConfigError` (an unknown or unusable effect
+:class:`~canrls.errors.EffectError`) naming the file, the key and the value.
+
+Regressors
+----------
+For an equation ``y = sum_j theta_j phi_j``, the builder computes per sample the raw
+target (``Kt*i``, ``i`` or ``u``) and raw columns (value columns, or the signal a
+derivative column differentiates), filters all of them with one SVF (value columns and
+target through ``F``, derivative columns through ``sF``) and scales them by exact
+powers of two: ``phi_j = F[.] * 2**-s_j``, ``y = F[target] * 2**-s_y``. The exponents
+(:attr:`Equation.scaling`) are the smallest making the filtered signals' worst-case
+bound at most 1, from the ranges and the filter's L1 gains (``canrls.svf``): a value
+column with raw range ``[lo, hi]`` is bounded by ``|mid| + F_GAIN * half``, a
+derivative column by ``SF_GAIN * half`` (``half = (hi - lo) / 2``), or, when the range
+of the derivative itself is configured (``acceleration``, ``current_rate``), by the
+smaller of that and the value bound of the derivative's range. The physical
+parameters are ``theta_phys_j = theta_j * 2**(s_y - s_j)``
+(:meth:`Equation.to_physical`).
+
+Holds
+-----
+The SVF reconstructs each signal between samples before filtering it
+(:mod:`canrls.svf`). A *held* signal is constant over ``[t_k, t_k + dt)`` (an inverter
+voltage, or the current of an ideal current source such as the simulated drive without
+the ``electrical`` effect: then set ``held = ["current", "voltage"]``); any other signal is
+a sample of a continuous quantity and is joined by straight lines. The target and each
+column are filtered with the hold of the signals they are computed from (a zero-order
+hold as soon as one of them is held), which keeps the filtered equation exact; a wrong
+choice misaligns target and columns by half a sample and biases the estimates.
+
+The position is unwrapped with an integer turn count carried between blocks (rotary:
+period 2 pi; linear: only when ``wrap`` is set), so every block size gives the same
+regressors bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from canrls.effects import (
+    DEFAULT_BAND,
+    DEFAULT_PITCH,
+    DEFAULT_STRIBECK_SPEED,
+    ELECTRICAL,
+    MECHANICAL,
+    Axis,
+    Column,
+    Effect,
+    Frame,
+    ParameterSpec,
+    UserTerm,
+    parse_effect,
+    target_unit,
+)
+from canrls.errors import ConfigError, EffectError, SignalError
+from canrls.svf import DEFAULT_CUTOFF_HZ, DEFAULT_ZETA, SVF, gain_bounds
+
+__all__ = [
+    "Model",
+    "Equation",
+    "TargetSpec",
+    "Scaling",
+    "RegressorBlock",
+    "RegressorBuilder",
+    "PositionUnwrapper",
+    "ParameterSpec",
+    "DEFAULT_RANGES",
+]
+
+F64 = npt.NDArray[np.float64]
+Range = tuple[float, float]
+
+#: Default signal ranges for normalisation (rotary; linear speed is [-1, 1] m/s).
+DEFAULT_RANGES: Mapping[str, Range] = {
+    "current": (-10.0, 10.0),
+    "speed": (-100.0, 100.0),
+    "voltage": (-50.0, 50.0),
+}
+_LINEAR_SPEED: Range = (-1.0, 1.0)
+_RANGE_KEYS = ("current", "speed", "voltage", "position", "acceleration", "current_rate")
+_ALWAYS = frozenset({"t", "current", "speed"})
+_MODEL_KEYS = ("axis", "pitch", "wrap", "kt", "effects", "filter", "coulomb", "stribeck",
+               "terms", "ranges")
+_HELD_ROLES = ("current", "speed", "position", "voltage")
+_SUBKEYS: Mapping[str, tuple[str, ...]] = {
+    "filter": ("cutoff_hz", "zeta", "held"),
+    "coulomb": ("band",),
+    "stribeck": ("speed",),
+}
+
+
+def _fmt(source: str, key: str, value: Any, problem: str) -> str:
+    return f"{source}: {key} = {value!r}: {problem}"
+
+
+def _number(source: str, key: str, value: Any, *, positive: bool = False,
+            nonzero: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
+        raise ConfigError(_fmt(source, key, value, "must be a number"))
+    v = float(value)
+    if not math.isfinite(v):
+        raise ConfigError(_fmt(source, key, value, "must be finite"))
+    if positive and v <= 0.0:
+        raise ConfigError(_fmt(source, key, value, "must be > 0"))
+    if nonzero and v == 0.0:
+        raise ConfigError(_fmt(source, key, value, "must not be 0"))
+    return v
+
+
+def _canonical(spec: Any) -> str:
+    """An effect name as :attr:`Effect.name` spells it (``" Cogging:06"`` -> ``"cogging:6"``)."""
+    if isinstance(spec, Effect):
+        return spec.name
+    base, sep, arg = str(spec).strip().partition(":")
+    arg = arg.strip()
+    if base.strip().lower() == "cogging" and arg.isdigit():
+        arg = str(int(arg))
+    return base.strip().lower() + sep + arg
+
+
+def _exponent(bound: float) -> int:
+    """Smallest s with bound <= 2**s (0 for a zero bound)."""
+    if bound <= 0.0:
+        return 0
+    m, e = math.frexp(bound)  # bound = m * 2**e, 0.5 <= m < 1
+    return e - 1 if m == 0.5 else e
+
+
+# ------------------------------------------------------------------------- results
+@dataclass(frozen=True)
+class TargetSpec:
+    """The left-hand side of an equation: ``gain * signal``."""
+
+    equation: str
+    description: str
+    unit: str
+    signal: str
+    gain: float
+
+
+@dataclass(frozen=True)
+class Scaling:
+    """Power-of-two normalisation: ``phi_j = F[.] * 2**-columns[j]``, ``y = F[.] * 2**-target``.
+
+    ``column_bounds`` / ``target_bound`` are the worst-case magnitudes of the filtered
+    signals the exponents were chosen from.
+    """
+
+    columns: tuple[int, ...]
+    target: int
+    column_bounds: tuple[float, ...]
+    target_bound: float
+
+    @property
+    def factors(self) -> F64:
+        """``2**(s_y - s_j)``: multiply normalised parameters by these."""
+        return np.ldexp(np.ones(len(self.columns)),
+                        np.array([self.target - s for s in self.columns], dtype=np.int64))
+
+
+@dataclass(frozen=True)
+class RegressorBlock:
+    """Normalised regressors of one block: ``y[k] ~ phi[k] @ theta``.
+
+    ``phi`` is ``(N, n)`` float64, ``y`` is ``(N,)`` float64, ``t`` the sample times.
+    """
+
+    phi: F64
+    y: F64
+    t: F64
+
+    def __len__(self) -> int:
+        return len(self.y)
+
+
+class PositionUnwrapper:
+    """Unwrap a wrapping position with an integer turn count carried between blocks.
+
+    A step larger than half a period between consecutive samples counts as a wrap.
+    ``period=None`` passes positions through unchanged.
+    """
+
+    def __init__(self, period: float | None) -> None:
+        self.period = period
+        self.turns = 0
+        self._last: float | None = None
+
+    def reset(self) -> None:
+        self.turns = 0
+        self._last = None
+
+    def process(self, p: F64) -> F64:
+        p = np.ascontiguousarray(p, dtype=np.float64)
+        if self.period is None or len(p) == 0:
+            return p
+        prev = np.empty_like(p)
+        prev[0] = p[0] if self._last is None else self._last
+        prev[1:] = p[:-1]
+        d = p - prev
+        ok = np.isfinite(d)
+        # one wrap per half-period jump, opposite to the jump
+        jumps = np.zeros(len(p), dtype=np.int64)
+        jumps[ok] = -np.rint(d[ok] / self.period).astype(np.int64)
+        turns = self.turns + np.cumsum(jumps)
+        self.turns = int(turns[-1])
+        if math.isfinite(float(p[-1])):
+            self._last = float(p[-1])
+        # theta = p + turns * period (turns exact integers: the same whatever the blocks)
+        return p + turns.astype(np.float64) * self.period
+
+
+# ------------------------------------------------------------------------- equation
+class Equation:
+    """One regression equation of a model: its target, columns and parameters."""
+
+    def __init__(self, model: Model, name: str, effects: tuple[Effect, ...]) -> None:
+        self.model = model
+        #: ``"mechanical"`` or ``"electrical"``.
+        self.name = name
+        #: 0 mechanical, 1 electrical (the DBC ``Equation`` bit).
+        self.index = 1 if name == ELECTRICAL else 0
+        self.effects = effects
+        axis = model.axis
+        if name == ELECTRICAL:
+            self.target = TargetSpec(name, "q-axis voltage u", "V", "voltage", 1.0)
+        elif model.kt is None:
+            self.target = TargetSpec(name, "q-axis current i (Kt unknown)", "A", "current", 1.0)
+        else:
+            what = "motor torque Kt*i" if axis == "rotary" else "motor force Kf*i"
+            self.target = TargetSpec(name, what, target_unit(name, axis, True), "current",
+                                     model.kt)
+        cols: list[Column] = []
+        params: list[ParameterSpec] = []
+        for e in effects:
+            cols.extend(e.columns())
+            params.extend(e.parameters(kt_known=model.kt is not None or name == ELECTRICAL))
+        self.columns: tuple[Column, ...] = tuple(cols)
+        self.parameters: tuple[ParameterSpec, ...] = tuple(params)
+        self.n = len(self.columns)
+        req = {self.target.signal}
+        for e in effects:
+            req |= e.requires
+        #: Signal roles this equation reads.
+        self.requires: frozenset[str] = frozenset(req)
+        self.needs_position = "position" in self.requires
+        self.scaling = self._scaling()
+        self._factors = self.scaling.factors
+
+    def __repr__(self) -> str:
+        return (f"Equation({self.name!r}, target={self.target.description!r}, "
+                f"parameters={[p.name for p in self.parameters]})")
+
+    @property
+    def holds(self) -> tuple[str, ...]:
+        """SVF hold of the target and of every column: ``"zoh"`` when it reads a held signal."""
+        held = self.model.held
+        out = ["zoh" if self.target.signal in held else "foh"]
+        out += ["zoh" if c.reads & held else "foh" for c in self.columns]
+        return tuple(out)
+
+    @property
+    def derivative_mask(self) -> tuple[bool, ...]:
+        """Which columns go through ``sF`` (True) rather than ``F``."""
+        return tuple(c.derivative for c in self.columns)
+
+    def _scaling(self) -> Scaling:
+        m = self.model
+        f_gain, sf_gain = gain_bounds(m.cutoff_hz, m.zeta)
+        r = m.ranges
+        lo, hi = r[self.target.signal]
+        g = self.target.gain
+        ty = self._filtered_bound(g * lo, g * hi, False, f_gain, sf_gain)
+        bounds = []
+        for col, p in zip(self.columns, self.parameters, strict=True):
+            clo, chi = col.range(r)
+            b = self._filtered_bound(clo, chi, col.derivative, f_gain, sf_gain)
+            if col.derivative and col.rate is not None and col.rate in r:
+                # sF[w] = F[dw/dt]: a configured derivative range bounds it too
+                b = min(b, self._filtered_bound(*r[col.rate], False, f_gain, sf_gain))
+            if not math.isfinite(b):
+                raise ConfigError(
+                    f"{m.source}: column {p.name} has no finite range "
+                    f"({clo!r}, {chi!r}) for normalisation; give the term a range = [lo, hi]"
+                    f" or set the ranges of the signals it reads in [model.ranges]")
+            bounds.append(b)
+        return Scaling(columns=tuple(_exponent(b) for b in bounds), target=_exponent(ty),
+                       column_bounds=tuple(bounds), target_bound=ty)
+
+    @staticmethod
+    def _filtered_bound(lo: float, hi: float, derivative: bool, f_gain: float,
+                        sf_gain: float) -> float:
+        lo, hi = min(lo, hi), max(lo, hi)
+        half = 0.5 * (hi - lo)
+        if derivative:
+            return sf_gain * half
+        return abs(0.5 * (lo + hi)) + f_gain * half
+
+    def builder(self, dt: float) -> RegressorBuilder:
+        """A fresh stateful regressor builder for sample period ``dt`` [s]."""
+        return RegressorBuilder(self, dt)
+
+    def to_physical(self, theta_norm: npt.ArrayLike) -> F64:
+        """Physical parameters from normalised ones: ``theta_j * 2**(s_y - s_j)``.
+
+        Works on ``(n,)`` and on ``(..., n)`` traces; exact (powers of two).
+        """
+        th = np.asarray(theta_norm, dtype=np.float64)
+        return th * self._factors  # type: ignore[no-any-return]
+
+    def sigma_to_physical(self, std_norm: npt.ArrayLike) -> F64:
+        """Standard deviations of the parameters in physical units (same factors)."""
+        return self.to_physical(std_norm)
+
+    def to_normalised(self, theta_phys: npt.ArrayLike) -> F64:
+        """Inverse of :meth:`to_physical` (e.g. to start an estimator from known values)."""
+        th = np.asarray(theta_phys, dtype=np.float64)
+        return th / self._factors  # type: ignore[no-any-return]
+
+    def target_to_physical(self, y_norm: npt.ArrayLike) -> F64:
+        """A normalised target or residual in the target unit: ``y * 2**s_y``."""
+        return np.ldexp(np.asarray(y_norm, dtype=np.float64), self.scaling.target)
+
+
+class RegressorBuilder:
+    """Stateful: turns :class:`~canrls.signals.Signals` blocks into :class:`RegressorBlock`\\ s.
+
+    ``process`` may be called with blocks of any size (including empty); the SVF state
+    and the position turn count are carried, so the concatenated output is bit-identical
+    to processing everything at once. ``reset`` restarts the filter and the unwrapping.
+    """
+
+    def __init__(self, equation: Equation, dt: float) -> None:
+        m = equation.model
+        self.equation = equation
+        try:
+            self.svf = SVF(m.cutoff_hz, dt, m.zeta, equation.holds)
+        except ConfigError as e:
+            raise ConfigError(f"{m.source}: model.filter.cutoff_hz = {m.cutoff_hz!r} with "
+                              f"dt = {dt!r}: {e}") from e
+        self.dt = self.svf.dt
+        period = 2.0 * math.pi if m.axis == "rotary" else m.wrap
+        self.unwrapper = PositionUnwrapper(period)
+        self._deriv_idx = np.flatnonzero([False, *equation.derivative_mask])
+        self._neg_exp = -np.array([equation.scaling.target, *equation.scaling.columns],
+                                  dtype=np.int64)
+
+    @property
+    def n(self) -> int:
+        return self.equation.n
+
+    def reset(self) -> None:
+        self.svf.reset()
+        self.unwrapper.reset()
+
+    def _frame(self, signals: Any) -> Frame:
+        eq = self.equation
+        for role in eq.requires:
+            if getattr(signals, role, None) is None:
+                users = [e.name for e in eq.effects if role in e.requires] or ["target"]
+                raise SignalError(
+                    f"{eq.model.source}: the {eq.name} equation needs signal {role!r} "
+                    f"(for {', '.join(users)}), which this block does not carry")
+
+        def arr(v: Any) -> F64 | None:
+            return None if v is None else np.ascontiguousarray(v, dtype=np.float64)
+
+        pos = arr(getattr(signals, "position", None))
+        angle = None
+        if pos is not None and eq.needs_position:
+            raw = pos
+            pos = self.unwrapper.process(raw)
+            m = eq.model
+            angle = raw if m.axis == "rotary" else Frame.phase(pos, m.axis, m.pitch)
+        return Frame(t=arr(signals.t), current=arr(signals.current),  # type: ignore[arg-type]
+                     speed=arr(signals.speed), position=pos,  # type: ignore[arg-type]
+                     voltage=arr(getattr(signals, "voltage", None)), angle=angle)
+
+    def process(self, signals: Any) -> RegressorBlock:
+        """Regressors of one block (see the module docstring)."""
+        eq = self.equation
+        frame = self._frame(signals)
+        n = len(frame.t)
+        raw = np.empty((n, eq.n + 1))
+        tgt = frame.get(eq.target.signal)
+        # target: Kt * i (torque), i, or u
+        raw[:, 0] = tgt * eq.target.gain if eq.target.gain != 1.0 else tgt
+        for j, col in enumerate(eq.columns):
+            raw[:, j + 1] = col.raw(frame)
+        f, sf = self.svf.process(raw)
+        # value columns and target through F, derivative columns through sF
+        if self._deriv_idx.size:
+            f[:, self._deriv_idx] = sf[:, self._deriv_idx]
+        # exact power-of-two normalisation
+        np.ldexp(f, self._neg_exp, out=f)
+        return RegressorBlock(phi=np.ascontiguousarray(f[:, 1:]), y=f[:, 0].copy(), t=frame.t)
+
+
+# ---------------------------------------------------------------------------- model
+class Model:
+    """Effects, target and filter settings; validated once when built.
+
+    :param effects: effect names (``"inertia"``, ``"cogging:24"``, ``"user:NAME"``) or
+        :class:`~canrls.effects.Effect` objects, in column order.
+    :param axis: ``"rotary"`` or ``"linear"``.
+    :param kt: torque (force) constant; ``None``: the mechanical target is the current.
+    :param pitch: linear axis: metres per period of the periodic terms.
+    :param wrap: linear axis: wrap period of the measured position, or ``None``.
+    :param cutoff_hz, zeta: SVF settings (:class:`canrls.svf.SVF`).
+    :param held: signal roles held constant over each sample period (zero-order hold);
+        default ``("voltage",)``.
+    :param coulomb_band: smoothing band of ``sgn_e``; :param stribeck_speed: ``ws``.
+    :param terms: user terms, ``{NAME: {"expr", "unit", "equation", "range"}}`` or a list of
+        tables with a ``name`` key (as ``[[model.terms]]``).
+    :param ranges: ``{role: (lo, hi)}`` for ``current``, ``speed``, ``voltage``
+        (``position`` optional), merged over the defaults.
+    :param available_signals: signal roles the drive sends (``position``, ``voltage``;
+        ``current`` and ``speed`` are always there); ``None``: all.
+    :param source: where the configuration came from, for error messages.
+    :raises ConfigError: an invalid setting; :class:`EffectError` for effects.
+    """
+
+    def __init__(self, effects: Iterable[str | Effect] = (), *, axis: str = "rotary",
+                 kt: float | None = None, pitch: float = DEFAULT_PITCH,
+                 wrap: float | None = None, cutoff_hz: float = DEFAULT_CUTOFF_HZ,
+                 zeta: float = DEFAULT_ZETA, held: Iterable[str] = ("voltage",),
+                 coulomb_band: float = DEFAULT_BAND,
+                 stribeck_speed: float = DEFAULT_STRIBECK_SPEED,
+                 terms: Mapping[str, Mapping[str, Any]] | Sequence[Mapping[str, Any]]
+                 | None = None,
+                 ranges: Mapping[str, Sequence[float]] | None = None,
+                 available_signals: Iterable[str] | None = None,
+                 source: str = "<model>") -> None:
+        self.source = source
+        if axis not in ("rotary", "linear"):
+            raise ConfigError(_fmt(source, "model.axis", axis, "must be 'rotary' or 'linear'"))
+        self.axis: Axis = axis  # type: ignore[assignment]
+        self.kt = None if kt is None else _number(source, "model.kt", kt, nonzero=True)
+        self.pitch = _number(source, "model.pitch", pitch, positive=True)
+        self.wrap = None if wrap is None else _number(source, "model.wrap", wrap, positive=True)
+        if self.wrap is not None and self.axis == "rotary":
+            raise ConfigError(_fmt(source, "model.wrap", wrap,
+                                   "only for a linear axis (rotary positions wrap at 2 pi)"))
+        self.cutoff_hz = _number(source, "model.filter.cutoff_hz", cutoff_hz, positive=True)
+        self.zeta = _number(source, "model.filter.zeta", zeta, positive=True)
+        if isinstance(held, str) or not isinstance(held, Iterable):
+            raise ConfigError(_fmt(source, "model.filter.held", held,
+                                   f"must be a list of signals ({', '.join(_HELD_ROLES)})"))
+        held = tuple(held)
+        for h in held:
+            if h not in _HELD_ROLES:
+                raise ConfigError(_fmt(source, "model.filter.held", list(held),
+                                       f"unknown signal {h!r} (valid: "
+                                       f"{', '.join(_HELD_ROLES)})"))
+        #: Signal roles held over each sample period (filtered with a zero-order hold).
+        self.held: frozenset[str] = frozenset(held)
+        self.coulomb_band = _number(source, "model.coulomb.band", coulomb_band, positive=True)
+        self.stribeck_speed = _number(source, "model.stribeck.speed", stribeck_speed,
+                                      positive=True)
+        self.terms = self._check_terms(terms)
+        self.ranges = self._check_ranges(ranges)
+        if available_signals is None:
+            self.available_signals: frozenset[str] | None = None
+        else:
+            av = frozenset(available_signals)
+            bad = sorted(av - {"t", "current", "speed", "position", "voltage"})
+            if bad:
+                raise ConfigError(_fmt(source, "available_signals", sorted(av),
+                                       f"unknown role(s) {bad}"))
+            self.available_signals = av | _ALWAYS
+        self.effects: tuple[Effect, ...] = self._build_effects(effects)
+        self.equations: tuple[Equation, ...] = self._build_equations()
+
+    # -- validation -------------------------------------------------------------------
+    @property
+    def effect_options(self) -> dict[str, Any]:
+        """The shared options :func:`canrls.effects.parse_effect` builds effects with."""
+        return {"axis": self.axis, "pitch": self.pitch, "band": self.coulomb_band,
+                "speed": self.stribeck_speed, "terms": self.terms}
+
+    def _check_terms(self, terms: Any) -> dict[str, dict[str, Any]]:
+        src = self.source
+        if terms is None:
+            return {}
+        out: dict[str, dict[str, Any]] = {}
+        if isinstance(terms, Mapping):
+            items = [(str(k), v, f"model.terms.{k}") for k, v in terms.items()]
+        elif isinstance(terms, Sequence) and not isinstance(terms, str):
+            items = []
+            for i, t in enumerate(terms):
+                key = f"model.terms[{i}]"
+                if not isinstance(t, Mapping) or "name" not in t:
+                    raise ConfigError(_fmt(src, key, t, "must be a table with a 'name'"))
+                items.append((t["name"], {k: v for k, v in t.items() if k != "name"}, key))
+        else:
+            raise ConfigError(_fmt(src, "model.terms", terms, "must be a list of tables"))
+        for name, t, key in items:
+            if not isinstance(t, Mapping):
+                raise ConfigError(_fmt(src, key, t, "must be a table"))
+            if not isinstance(name, str) or not name.isidentifier():
+                raise ConfigError(_fmt(src, f"{key}.name", name, "must be an identifier"))
+            if name in out:
+                raise ConfigError(_fmt(src, f"{key}.name", name, "duplicate term name"))
+            bad = sorted(set(t) - {"expr", "unit", "equation", "range"})
+            if bad:
+                raise ConfigError(_fmt(src, f"{key}.{bad[0]}", t[bad[0]],
+                                       "unknown key (valid: name, expr, unit, equation, "
+                                       "range)"))
+            if not isinstance(t.get("expr"), str):
+                raise ConfigError(_fmt(src, f"{key}.expr", t.get("expr"),
+                                       "required, a string expression"))
+            try:  # compile now so that a bad term fails at load time, even if unused
+                UserTerm(name, axis=self.axis, pitch=self.pitch,
+                         **{k: (tuple(v) if k == "range" and isinstance(v, list) else v)
+                            for k, v in t.items()})
+            except ConfigError as e:
+                raise type(e)(f"{src}: {key} ({name}): {e}") from e
+            out[name] = dict(t)
+        return out
+
+    def _check_ranges(self, ranges: Any) -> dict[str, Range]:
+        src = self.source
+        out: dict[str, Range] = dict(DEFAULT_RANGES)
+        if self.axis == "linear":
+            out["speed"] = _LINEAR_SPEED
+        if ranges is None:
+            return out
+        if not isinstance(ranges, Mapping):
+            raise ConfigError(_fmt(src, "model.ranges", ranges, "must be a table"))
+        for k, v in ranges.items():
+            key = f"model.ranges.{k}"
+            if k not in _RANGE_KEYS:
+                raise ConfigError(_fmt(src, key, v, f"unknown signal (valid: "
+                                                    f"{', '.join(_RANGE_KEYS)})"))
+            if (not isinstance(v, Sequence) or isinstance(v, str) or len(v) != 2):
+                raise ConfigError(_fmt(src, key, v, "must be [lo, hi]"))
+            lo = _number(src, key, v[0])
+            hi = _number(src, key, v[1])
+            if not lo < hi:
+                raise ConfigError(_fmt(src, key, v, "must be [lo, hi] with lo < hi"))
+            out[k] = (lo, hi)
+        return out
+
+    def _build_effects(self, effects: Iterable[str | Effect]) -> tuple[Effect, ...]:
+        src = self.source
+        if isinstance(effects, str):
+            raise ConfigError(_fmt(src, "model.effects", effects, "must be a list of names"))
+        out: list[Effect] = []
+        seen: set[str] = set()
+        for i, spec in enumerate(effects):
+            key = f"model.effects[{i}]"
+            if isinstance(spec, Effect):
+                eff = spec
+                if eff.axis != self.axis:
+                    raise EffectError(_fmt(src, key, eff.name,
+                                           f"effect built for the {eff.axis} axis, "
+                                           f"the model is {self.axis}"))
+                try:
+                    same = parse_effect(eff.name, self.effect_options) == eff
+                except ConfigError:
+                    same = False
+                if not same:
+                    raise EffectError(_fmt(src, key, eff, "its options differ from the "
+                                           "model's; set pitch, band, speed and terms on the "
+                                           "model (one source of truth)"))
+            elif isinstance(spec, str):
+                try:
+                    eff = parse_effect(spec, self.effect_options)
+                except EffectError as e:
+                    raise EffectError(_fmt(src, key, spec, str(e))) from e
+                except ConfigError as e:  # an expression error in a user term
+                    raise type(e)(_fmt(src, key, spec, str(e))) from e
+            else:
+                raise EffectError(_fmt(src, key, spec, "must be an effect name"))
+            if eff.name in seen:
+                raise EffectError(_fmt(src, key, spec, f"duplicate effect {eff.name!r}"))
+            seen.add(eff.name)
+            if self.available_signals is not None:
+                missing = sorted(eff.requires - self.available_signals)
+                if missing:
+                    raise EffectError(_fmt(src, key, eff.name,
+                                           f"needs signal(s) {missing}, which the drive "
+                                           f"does not send (available: "
+                                           f"{sorted(self.available_signals)})"))
+            out.append(eff)
+        if not out:
+            raise ConfigError(_fmt(src, "model.effects", [], "no effects: give at least one"))
+        names = {e.name for e in out}
+        if "electrical" not in names:
+            for i, e in enumerate(out):
+                if e.equation == ELECTRICAL:
+                    raise EffectError(_fmt(src, f"model.effects[{i}]", e.name,
+                                           "belongs to the electrical equation; add "
+                                           "'electrical' to the effects"))
+        return tuple(out)
+
+    def _build_equations(self) -> tuple[Equation, ...]:
+        eqs = []
+        mech = tuple(e for e in self.effects if e.equation == MECHANICAL)
+        elec = tuple(e for e in self.effects if e.equation == ELECTRICAL)
+        if mech:
+            eqs.append(Equation(self, MECHANICAL, mech))
+        if elec:
+            eqs.append(Equation(self, ELECTRICAL, elec))
+        return tuple(eqs)
+
+    # -- views ------------------------------------------------------------------------
+    def __repr__(self) -> str:
+        return (f"Model(effects={[e.name for e in self.effects]}, axis={self.axis!r}, "
+                f"kt={self.kt!r}, source={self.source!r})")
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Model) and other.to_dict() == self.to_dict()
+
+    __hash__ = None  # type: ignore[assignment]
+
+    @property
+    def held_list(self) -> list[str]:
+        """:attr:`held` in a fixed order (as the configuration writes it)."""
+        return [r for r in _HELD_ROLES if r in self.held]
+
+    @property
+    def effect_names(self) -> tuple[str, ...]:
+        return tuple(e.name for e in self.effects)
+
+    @property
+    def parameters(self) -> tuple[ParameterSpec, ...]:
+        """All parameters, equation by equation (mechanical first)."""
+        return tuple(p for eq in self.equations for p in eq.parameters)
+
+    @property
+    def active_effects(self) -> int:
+        """Bit ``EffectId - 1`` set for every effect kind present (DBC ``ActiveEffects``)."""
+        bits = 0
+        for e in self.effects:
+            bits |= 1 << (e.effect_id - 1)
+        return bits
+
+    def equation(self, name: str) -> Equation:
+        """The equation called ``name`` (``"mechanical"`` or ``"electrical"``)."""
+        for eq in self.equations:
+            if eq.name == name:
+                return eq
+        raise KeyError(f"model has no {name!r} equation (has: "
+                       f"{[e.name for e in self.equations]})")
+
+    # -- derivation -------------------------------------------------------------------
+    def _kwargs(self) -> dict[str, Any]:
+        return dict(axis=self.axis, kt=self.kt, pitch=self.pitch, wrap=self.wrap,
+                    cutoff_hz=self.cutoff_hz, zeta=self.zeta, held=self.held_list,
+                    coulomb_band=self.coulomb_band, stribeck_speed=self.stribeck_speed,
+                    terms=self.terms, ranges=self.ranges,
+                    available_signals=self.available_signals, source=self.source)
+
+    def with_effects(self, add: Iterable[str | Effect] = (),
+                     remove: Iterable[str] = ()) -> Model:
+        """A new model with effects removed and added (appended, in order); validated.
+
+        :raises EffectError: removing an effect the model does not have, adding one it
+            already has, or any error building the new effects.
+        """
+        current = list(self.effects)
+        for name in remove:
+            key = _canonical(name)
+            idx = [i for i, e in enumerate(current) if e.name == key]
+            if not idx:
+                raise EffectError(f"{self.source}: cannot remove effect {name!r}: not in the "
+                                  f"model (effects: {', '.join(e.name for e in current)})")
+            del current[idx[0]]
+        names = {e.name for e in current}
+        new: list[str | Effect] = list(current)
+        for spec in add:
+            eff = spec if isinstance(spec, Effect) else parse_effect(spec, self.effect_options)
+            if eff.name in names:
+                raise EffectError(f"{self.source}: cannot add effect {eff.name!r}: already in "
+                                  f"the model")
+            names.add(eff.name)
+            new.append(eff)
+        return Model(new, **self._kwargs())
+
+    # -- configuration ----------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """The ``[model]`` table that rebuilds this model (``Model.from_dict``)."""
+        d: dict[str, Any] = {"axis": self.axis, "pitch": self.pitch}
+        if self.wrap is not None:
+            d["wrap"] = self.wrap
+        if self.kt is not None:
+            d["kt"] = self.kt
+        d["effects"] = [e.name for e in self.effects]
+        d["filter"] = {"cutoff_hz": self.cutoff_hz, "zeta": self.zeta, "held": self.held_list}
+        d["coulomb"] = {"band": self.coulomb_band}
+        d["stribeck"] = {"speed": self.stribeck_speed}
+        d["terms"] = [{"name": k, **{kk: (list(vv) if kk == "range" else vv)
+                                     for kk, vv in v.items()}} for k, v in self.terms.items()]
+        d["ranges"] = {k: [lo, hi] for k, (lo, hi) in self.ranges.items()}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], *, source: str = "<dict>",
+                  available_signals: Iterable[str] | None = None) -> Model:
+        """Build from the contents of a ``[model]`` table (see the module docstring)."""
+        if not isinstance(d, Mapping):
+            raise ConfigError(_fmt(source, "model", d, "must be a table"))
+        for k in d:
+            if k not in _MODEL_KEYS:
+                raise ConfigError(_fmt(source, f"model.{k}", d[k],
+                                       f"unknown key (valid: {', '.join(_MODEL_KEYS)})"))
+        kw: dict[str, Any] = {}
+        for k in ("axis", "pitch", "wrap", "kt"):
+            if k in d:
+                kw[k] = d[k]
+        for sub, keys in _SUBKEYS.items():
+            if sub not in d:
+                continue
+            t = d[sub]
+            if not isinstance(t, Mapping):
+                raise ConfigError(_fmt(source, f"model.{sub}", t, "must be a table"))
+            for k, v in t.items():
+                if k not in keys:
+                    raise ConfigError(_fmt(source, f"model.{sub}.{k}", v,
+                                           f"unknown key (valid: {', '.join(keys)})"))
+            if sub == "filter":
+                kw.update({k: t[k] for k in keys if k in t})
+            elif sub == "coulomb" and "band" in t:
+                kw["coulomb_band"] = t["band"]
+            elif sub == "stribeck" and "speed" in t:
+                kw["stribeck_speed"] = t["speed"]
+        if "effects" in d:
+            eff = d["effects"]
+            if isinstance(eff, str) or not isinstance(eff, Sequence):
+                raise ConfigError(_fmt(source, "model.effects", eff, "must be a list of names"))
+            kw["effects"] = list(eff)
+        else:
+            raise ConfigError(_fmt(source, "model.effects", None, "required"))
+        if "terms" in d:
+            kw["terms"] = d["terms"]
+        if "ranges" in d:
+            kw["ranges"] = d["ranges"]
+        return cls(**kw, available_signals=available_signals, source=source)
+
+    @classmethod
+    def from_toml(cls, path: str | Path, *,
+                  available_signals: Iterable[str] | None = None) -> Model:
+        """Build from the ``[model]`` table of a TOML file."""
+        p = Path(path)
+        try:
+            with p.open("rb") as fh:
+                doc = tomllib.load(fh)
+        except OSError as e:
+            raise ConfigError(f"{p}: cannot read: {e}") from e
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"{p}: invalid TOML: {e}") from e
+        if "model" not in doc:
+            raise ConfigError(f"{p}: no [model] table")
+        return cls.from_dict(doc["model"], source=str(p), available_signals=available_signals)
