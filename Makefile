@@ -14,7 +14,10 @@ $(BIN)/.installed: pyproject.toml
 	touch $@
 
 demo: $(BIN)/.installed
-	$(BIN)/canrls demo
+	mkdir -p out
+	$(BIN)/canrls sim --out out/drive.log --duration 30 --seed 1 --effects inertia,viscous,coulomb,offset
+	$(BIN)/canrls fit out/drive.log --kt 0.1 --effects inertia,viscous,coulomb
+	$(BIN)/canrls fit out/drive.log --kt 0.1 --effects inertia,viscous,coulomb,offset
 
 test: $(BIN)/.installed
 	$(BIN)/python -m pytest -q

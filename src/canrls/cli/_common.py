@@ -1,0 +1,92 @@
+"""Options shared by the subcommands (one helper, as python-can's ``can.cli`` does for buses)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Callable
+from typing import Any
+
+from canrls.config import AppConfig, load_config
+
+__all__ = ["add_model_options", "add_bus_options", "setup", "print_json", "Progress"]
+
+
+def add_model_options(p: argparse.ArgumentParser) -> None:
+    """``--config --dbc --signal --effects --kt --lambda --alpha --json``."""
+    g = p.add_argument_group("model and protocol (each also settable in --config)")
+    g.add_argument("--config", "-C", metavar="FILE",
+                   help="TOML configuration ([model], [estimator], [fixed], [can], [signals])")
+    g.add_argument("--dbc", metavar="FILE",
+                   help="DBC of the drive (default: the DBC shipped with canrls)")
+    g.add_argument("--signal", action="append", metavar="ROLE=MESSAGE.SIGNAL[:UNIT]",
+                   help="which signal carries a role: current, speed, position, voltage "
+                        "(repeatable; also counter=MESSAGE.SIGNAL, crc=MESSAGE.SIGNAL)")
+    g.add_argument("--effects", "-e", metavar="NAME,...",
+                   help="effects of the model: inertia, viscous, coulomb, stribeck, offset, "
+                        "unbalance, cogging:K, electrical, user:NAME "
+                        "(default: inertia,viscous,coulomb)")
+    g.add_argument("--kt", type=float, metavar="VALUE",
+                   help="torque constant Kt [N·m/A] (linear: N/A); without it the target is "
+                        "the current and parameters are per ampere")
+    g.add_argument("--lambda", dest="lam", type=float, metavar="L",
+                   help="forgetting factor in (0.5, 1]; 1 keeps all data (default 1 offline; the daemon defaults to [daemon] lambda)")
+    g.add_argument("--alpha", type=float, metavar="A",
+                   help="ridge weight, P0 = I/alpha, normalised units (default 0.1)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+
+def add_bus_options(p: argparse.ArgumentParser) -> None:
+    """python-can's own bus arguments (``-i/-c/-b``, ``--bus-kwargs``)."""
+    import can.cli
+
+    can.cli.add_bus_arguments(p, group_title="CAN bus (python-can; overrides [can] of --config)")
+
+
+def setup(args: argparse.Namespace) -> AppConfig:
+    """The configuration file with the command line applied on top."""
+    return load_config(getattr(args, "config", None), args)
+
+
+def _clean(x: Any) -> Any:
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_clean(v) for v in x]
+    return x
+
+
+def print_json(obj: Any) -> None:
+    """JSON on stdout (non-finite numbers become null: JSON has no NaN)."""
+    json.dump(_clean(obj), sys.stdout, indent=2, ensure_ascii=False)
+    sys.stdout.write("\n")
+
+
+class Progress:
+    """A progress bar on stderr when it is a terminal; silent otherwise."""
+
+    def __init__(self, label: str, enabled: bool | None = None) -> None:
+        self.label = label
+        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        self._last = -1
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled or total <= 0:
+            return
+        pct = int(100 * done / total)
+        if pct == self._last:
+            return
+        self._last = pct
+        bar = "#" * (pct // 4)
+        sys.stderr.write(f"\r{self.label} [{bar:<25}] {pct:3d} %")
+        if done >= total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+    @property
+    def callback(self) -> Callable[[int, int], None] | None:
+        return self if self.enabled else None

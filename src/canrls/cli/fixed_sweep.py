@@ -1,0 +1,126 @@
+"""``canrls fixed-sweep``: fixed-point parameter error against word length and Q formats.
+
+Replays a log (or simulates a scenario) through the pipeline, keeps the normalised
+regressors of every used sample, computes the float reference on them and runs the
+fixed-point kernel for every combination of state word (``--word``), accumulator
+(``--acc``) and input word (``--input``), Q formats chosen automatically for each.
+Prints the largest relative parameter error of each configuration against float, its
+saturations, and recommends the smallest configuration within ``--tol`` (0.1 %).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+import numpy as np
+
+from canrls.cli._common import Progress, add_model_options, print_json, setup
+from canrls.errors import ConfigError
+
+__all__ = ["add_subparser", "run"]
+
+
+def _bits(text: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of bits") \
+            from None
+
+
+def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "fixed-sweep", help="fixed-point error against word length and Q formats",
+        description="Run the fixed-point RLS for several word lengths on a log (or a "
+                    "simulated scenario), print each configuration's largest relative "
+                    "parameter error against the float reference, and recommend one.")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("log", nargs="?", metavar="LOG", help="CAN log to replay")
+    src.add_argument("--scenario", metavar="NAME",
+                     help="simulate this scenario instead (standard, linear, poor)")
+    p.add_argument("--duration", type=float, default=30.0,
+                   help="simulated seconds with --scenario (default 30)")
+    p.add_argument("--seed", type=int, default=0, help="seed with --scenario (default 0)")
+    p.add_argument("--word", type=_bits, default=[16, 24, 32], metavar="BITS,...",
+                   help="state word lengths (default 16,24,32)")
+    p.add_argument("--acc", type=_bits, default=[32, 48, 64], metavar="BITS,...",
+                   help="accumulator lengths (default 32,48,64)")
+    p.add_argument("--input", type=_bits, default=[16, 32], metavar="BITS,...",
+                   help="input word lengths of phi and y (default 16,32)")
+    p.add_argument("--tol", type=float, default=1e-3,
+                   help="tolerance on every parameter's relative error (default 1e-3)")
+    p.add_argument("--max-samples", type=int, default=200_000,
+                   help="use at most this many samples (default 200000)")
+    add_model_options(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from canrls.fixed import sweep
+    from canrls.pipeline import Pipeline
+    from canrls.replay import FrameProcessor, prepare
+    from canrls.rls import RLS
+
+    cfg = setup(args)
+    if args.scenario:
+        from canrls.ranges import scan_ranges
+        from canrls.sim.scenario import scenario, simulate
+
+        effects = cfg.model.get("effects")
+        res = simulate(scenario(args.scenario, effects=",".join(effects) if effects else None,
+                                seed=args.seed, duration=args.duration))
+        protocol = cfg.protocol()
+        model0 = cfg.model_for(protocol)
+        dt = res.scenario.dt if hasattr(res, "scenario") else 1e-3
+        model = cfg.model_for(protocol, scan_ranges([res.measured], dt, model0.cutoff_hz,
+                                                    model0.zeta))
+        pipe = Pipeline(model, dt, cfg.settings())
+        blocks = [pipe.process(res.measured, record=True)]
+        source = f"scenario {args.scenario} ({args.duration:g} s, seed {args.seed})"
+    else:
+        from canrls.logs import read_frames
+
+        protocol, model, settings = prepare(cfg, args.log)
+        proc = FrameProcessor(protocol, model, settings)
+        pipe = proc.pipeline
+        blocks = []
+        for fb in read_frames(args.log, progress=Progress("replay").callback):
+            blocks.append(proc.process(fb, record=True))
+            if sum(b.samples for b in blocks) >= args.max_samples:
+                break
+        blocks.append(proc.flush(record=True))
+        source = args.log
+    settings = pipe.settings
+    out: dict[str, Any] = {"source": source, "equations": {}}
+    text = [f"{source}"]
+    for k, est in enumerate(pipe.estimators):
+        eq = est.equation
+        phi = np.concatenate([b.equations[k].phi[b.equations[k].used] for b in blocks])
+        y = np.concatenate([np.ldexp(b.equations[k].y[b.equations[k].used], -eq.scaling.target)
+                            for b in blocks])
+        phi, y = phi[: args.max_samples], y[: args.max_samples]
+        if len(y) == 0:
+            raise ConfigError(f"{source}: no samples to sweep")
+        ref = RLS(eq.n, lam=settings.lam, alpha=settings.alpha, trace_max=settings.trace_max)
+        ref.run(phi, y, record=False)
+        res_sw = sweep(phi, y, ref.theta, lam=settings.lam, alpha=settings.alpha,
+                       trace_max=settings.trace_max, word_bits=args.word, acc_bits=args.acc,
+                       input_bits=args.input, theta_max=settings.theta_max, tol=args.tol)
+        d = res_sw.to_dict()
+        d["parameters"] = [p.name for p in eq.parameters]
+        d["samples"] = len(y)
+        out["equations"][eq.name] = d
+        text.append(f"\n{eq.name} equation: {len(y)} samples, parameters "
+                    f"{', '.join(p.name for p in eq.parameters)}")
+        text.append(str(res_sw))
+        if res_sw.recommended is not None and res_sw.recommended.config is not None:
+            c = res_sw.recommended.config
+            text.append("  Q formats: " + ", ".join(f"{n}={q}" for n, q in c.formats().items()))
+    if args.json:
+        print_json(out)
+    else:
+        sys.stdout.write("\n".join(text) + "\n")
+    return 0

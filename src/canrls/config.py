@@ -1,0 +1,252 @@
+"""The canrls configuration file (TOML) and how command-line options override it.
+
+.. code-block:: toml
+
+    [model]                    # the model: see canrls.model (effects, kt, axis, filter, ...)
+    effects = ["inertia", "viscous", "coulomb"]
+    kt = 0.1
+    [model.filter]
+    held = ["current", "voltage"]   # the default here (canrls.model.Model's is ["voltage"])
+
+    [estimator]
+    lambda = 1.0               # forgetting factor (0.5, 1]; 1 keeps all data (default)
+    alpha = 0.1                # ridge, P0 = I/alpha (normalised units; default)
+    trace_max = 80.0           # bound on trace P (default n/alpha)
+    warmup_s = 0.05            # filter warm-up not used for estimation (default 5 SVF time constants)
+    gap_periods = 3.5          # a sample gap longer than this many periods restarts the filter
+    rms_time_s = 1.0           # time constant of the running residual RMS
+
+    [fixed]
+    word_bits = 32             # state word
+    acc_bits = 64              # accumulators
+    input_bits = 32            # phi and y (16 possible)
+    theta_max = 16.0           # bound of the normalised parameters (default)
+    [fixed.formats]            # optional Q-format overrides: [bits, frac]
+    P = [32, 20]
+
+    [can]
+    dbc = "my_drive.dbc"       # default: the DBC shipped with canrls
+    period = 0.001             # control period [s] (default: the DBC's GenMsgCycleTime)
+    strict_range = true        # named opt-outs of strict decoding
+    check_crc = true
+    check_counter = true
+    interface = "socketcan"    # live bus (canrls run / monitor)
+    channel = "can0"
+    bitrate = 1000000
+
+    [signals]                  # which message and signal carry each role (canrls.protocol)
+    current = "DriveCurrent.Current"
+    speed = { signal = "DriveSpeed.Speed", unit = "rpm" }
+
+    [daemon]                   # canrls run (see docs/daemon.md)
+
+Relative paths (``can.dbc``) are relative to the configuration file. Every key is
+checked: an unknown key or a bad value is a :class:`~canrls.errors.ConfigError`
+naming the file, the key and the value.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from canrls.errors import ConfigError
+from canrls.fixed import QFormat
+from canrls.model import Model
+from canrls.pipeline import EstimatorSettings
+from canrls.protocol import Protocol, SignalMapping
+
+__all__ = ["AppConfig", "DEFAULT_EFFECTS", "load_config"]
+
+#: Effects of the model when neither the configuration nor ``--effects`` name any.
+DEFAULT_EFFECTS: tuple[str, ...] = ("inertia", "viscous", "coulomb")
+
+#: ``[model.filter] held`` when the configuration does not set it: a cascaded drive holds
+#: its current reference over the control period and its fast current loop tracks it, and
+#: the inverter holds its voltage (the built-in simulated drive does the same).
+DEFAULT_HELD: tuple[str, ...] = ("current", "voltage")
+
+_SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor")
+_ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
+                   "warmup_s": "warmup_s", "gap_periods": "gap_periods",
+                   "rms_time_s": "rms_time_s"}
+_FIXED_KEYS = ("word_bits", "acc_bits", "input_bits", "theta_max", "formats")
+_CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
+             "channel", "bitrate", "fd", "data_bitrate")
+
+
+@dataclass
+class AppConfig:
+    """The raw tables of a configuration file, with where they came from."""
+
+    source: str = "<defaults>"
+    base_dir: Path = field(default_factory=Path.cwd)
+    model: dict[str, Any] = field(default_factory=dict)
+    estimator: dict[str, Any] = field(default_factory=dict)
+    fixed: dict[str, Any] = field(default_factory=dict)
+    can: dict[str, Any] = field(default_factory=dict)
+    signals: dict[str, Any] = field(default_factory=dict)
+    daemon: dict[str, Any] = field(default_factory=dict)
+    monitor: dict[str, Any] = field(default_factory=dict)
+    signal_overrides: list[str] = field(default_factory=list)
+
+    # -- loading ----------------------------------------------------------------------
+    @classmethod
+    def load(cls, path: str | Path | None) -> AppConfig:
+        """Read a TOML file (``None``: all defaults)."""
+        if path is None:
+            return cls()
+        p = Path(path)
+        try:
+            text = p.read_bytes()
+        except OSError as e:
+            raise ConfigError(f"cannot read configuration file {p}: {e.strerror or e}") from e
+        try:
+            d = tomllib.loads(text.decode("utf-8"))
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+            raise ConfigError(f"{p}: not valid TOML: {e}") from e
+        cfg = cls(source=str(p), base_dir=p.resolve().parent)
+        for key, value in d.items():
+            if key not in _SECTIONS:
+                raise ConfigError(f"{p}: unknown section [{key}] (valid: {', '.join(_SECTIONS)})")
+            if not isinstance(value, dict):
+                raise ConfigError(f"{p}: {key} must be a table, got {value!r}")
+            setattr(cfg, key, dict(value))
+        cfg._check()
+        return cfg
+
+    def _check(self) -> None:
+        src = self.source
+        for k in self.estimator:
+            if k not in _ESTIMATOR_KEYS:
+                raise ConfigError(f"{src}: unknown key estimator.{k} = {self.estimator[k]!r} "
+                                  f"(valid: {', '.join(_ESTIMATOR_KEYS)})")
+        for k in self.fixed:
+            if k not in _FIXED_KEYS:
+                raise ConfigError(f"{src}: unknown key fixed.{k} = {self.fixed[k]!r} "
+                                  f"(valid: {', '.join(_FIXED_KEYS)})")
+        for k in self.can:
+            if k not in _CAN_KEYS:
+                raise ConfigError(f"{src}: unknown key can.{k} = {self.can[k]!r} "
+                                  f"(valid: {', '.join(_CAN_KEYS)})")
+
+    # -- command line -----------------------------------------------------------------
+    def apply_args(self, args: argparse.Namespace) -> AppConfig:
+        """Let the options of :func:`canrls.cli._common.add_model_options` override the file."""
+        if getattr(args, "dbc", None):
+            self.can["dbc"] = str(Path(args.dbc).resolve())
+        if getattr(args, "signal", None):
+            self.signal_overrides = list(args.signal)
+        if getattr(args, "effects", None):
+            self.model["effects"] = [e.strip() for e in args.effects.split(",") if e.strip()]
+        if getattr(args, "kt", None) is not None:
+            self.model["kt"] = args.kt
+        if getattr(args, "lam", None) is not None:
+            self.estimator["lambda"] = args.lam
+        if getattr(args, "alpha", None) is not None:
+            self.estimator["alpha"] = args.alpha
+        return self
+
+    # -- building ---------------------------------------------------------------------
+    def _where(self, key: str) -> str:
+        return f"{self.source}: {key}"
+
+    def dbc_path(self) -> Path | None:
+        dbc = self.can.get("dbc")
+        if dbc is None:
+            return None
+        if not isinstance(dbc, str):
+            raise ConfigError(f"{self._where('can.dbc')} = {dbc!r}: must be a file path")
+        p = Path(dbc)
+        return p if p.is_absolute() else self.base_dir / p
+
+    def protocol(self) -> Protocol:
+        """The DBC and signal mapping (``--signal`` options replace roles of ``[signals]``)."""
+        mapping: SignalMapping | None = None
+        if self.signals:
+            mapping = SignalMapping.from_config(self.signals, source=f"{self.source} [signals]")
+        if self.signal_overrides:
+            base = mapping if mapping is not None else (
+                SignalMapping.default() if self.dbc_path() is None else None)
+            mapping = SignalMapping.from_strings(self.signal_overrides, base=base)
+        period = self.can.get("period")
+        opts = {k: self.can[k] for k in ("strict_range", "check_crc", "check_counter")
+                if k in self.can}
+        for k, v in opts.items():
+            if not isinstance(v, bool):
+                raise ConfigError(f"{self._where('can.' + k)} = {v!r}: must be true or false")
+        if period is not None and not isinstance(period, int | float):
+            raise ConfigError(f"{self._where('can.period')} = {period!r}: must be seconds")
+        return Protocol.load(self.dbc_path(), mapping, period=period, **opts)
+
+    def model_for(self, protocol: Protocol | None = None,
+                  data_ranges: Mapping[str, Any] | None = None) -> Model:
+        """The model. Signal ranges for normalisation, by priority: ``[model.ranges]``,
+        then ``data_ranges`` (measured, :mod:`canrls.ranges`), then the DBC's min/max."""
+        d = dict(self.model)
+        d.setdefault("effects", list(DEFAULT_EFFECTS))
+        filt = d.get("filter", {})
+        if isinstance(filt, Mapping):
+            filt = dict(filt)
+            filt.setdefault("held", list(DEFAULT_HELD))
+            d["filter"] = filt
+        available = None
+        ranges = dict(d.get("ranges", {})) if isinstance(d.get("ranges", {}), Mapping) else None
+        if protocol is not None:
+            available = [r for r in ("current", "speed", "position", "voltage")
+                         if protocol.has(r)]
+        if ranges is not None:
+            for role, r in (data_ranges or {}).items():
+                ranges.setdefault(role, list(r))
+            for role in ("current", "speed", "voltage"):
+                if role in ranges or protocol is None or not protocol.has(role):
+                    continue
+                info = protocol.roles[role]
+                lo, hi = info.codec.minimum, info.codec.maximum
+                if lo is None or hi is None or not lo < hi:
+                    continue
+                a, b = sorted((lo * info.si_scale, hi * info.si_scale))
+                ranges[role] = [a, b]
+            d["ranges"] = ranges
+        return Model.from_dict(d, source=self.source, available_signals=available)
+
+    def settings(self) -> EstimatorSettings:
+        kw: dict[str, Any] = {}
+        for k, v in self.estimator.items():
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ConfigError(f"{self._where('estimator.' + k)} = {v!r}: must be a number")
+            kw[_ESTIMATOR_KEYS[k]] = v
+        for k in ("word_bits", "acc_bits", "input_bits"):
+            if k in self.fixed:
+                v = self.fixed[k]
+                if isinstance(v, bool) or not isinstance(v, int):
+                    raise ConfigError(f"{self._where('fixed.' + k)} = {v!r}: must be an integer")
+                kw[k] = v
+        if "theta_max" in self.fixed:
+            kw["theta_max"] = float(self.fixed["theta_max"])
+        formats = self.fixed.get("formats", {})
+        if not isinstance(formats, Mapping):
+            raise ConfigError(f"{self._where('fixed.formats')} = {formats!r}: must be a table")
+        overrides = {}
+        for name, v in formats.items():
+            if (not isinstance(v, list) or len(v) != 2
+                    or not all(isinstance(x, int) and not isinstance(x, bool) for x in v)):
+                raise ConfigError(f"{self._where('fixed.formats.' + name)} = {v!r}: "
+                                  f"must be [bits, frac]")
+            overrides[name] = QFormat(v[0], v[1])
+        kw["fixed_overrides"] = overrides
+        try:
+            return EstimatorSettings(**kw)
+        except ConfigError as e:
+            raise ConfigError(f"{self.source}: {e}") from e
+
+
+def load_config(path: str | Path | None, args: argparse.Namespace | None = None) -> AppConfig:
+    """Read the file (if any) and apply command-line overrides."""
+    cfg = AppConfig.load(path)
+    return cfg.apply_args(args) if args is not None else cfg

@@ -1,0 +1,1545 @@
+r"""Fixed-point recursive least squares: the bit-exact specification of the embedded kernel.
+
+:class:`FixedRLS` runs the recursion of :class:`canrls.rls.RLS` the way a
+microcontroller runs it: integers end to end, every quantity in a signed Q format
+chosen from the ranges of the problem, explicit rounding, saturation with a counter
+on every store, one integer division per update. The kernel
+(:func:`canrls._rls_fixed.fixed_block`) is pure ``int64`` arithmetic with explicit
+shifts, so the same inputs give the same integers on every platform, and per-sample
+:meth:`FixedRLS.update` and block :meth:`FixedRLS.run` give the same bits.
+
+.. math::
+
+    \varepsilon &= y - \varphi^\top\theta \\
+    h &= P\varphi, \qquad g = 1/(\lambda + \varphi^\top h) \\
+    K &= g\,h \\
+    \theta &\leftarrow \theta + K\varepsilon \\
+    P &\leftarrow (P - K h^\top)/\lambda
+    \qquad\text{upper triangle only;}\quad P_0 = I/\alpha
+
+Inputs are the pipeline's normalised regressors: every column and the target are
+scaled by exact powers of two so that :math:`|\varphi_j| \le 1`, :math:`|y| \le 1`
+nominally; ``alpha`` is in the same units.
+
+Q formats
+---------
+``QFormat(bits, frac)`` is a signed two's-complement word of ``bits`` bits whose
+integer ``q`` stands for ``q * 2**-frac``; ``Q{m}.{frac}`` in the usual notation with
+``m = bits - 1 - frac`` integer bits besides the sign. :meth:`FixedConfig.auto`
+gives every quantity the smallest number of integer bits that holds its bound
+(:meth:`QFormat.for_range`: :math:`2^m >` bound) and all the remaining bits to the
+fraction. The bounds (``n`` parameters, :math:`\bar\varphi_j` = ``phi_max``,
+:math:`\|\bar\varphi\|_2` their Euclidean norm) are:
+
+==========  =======================================================================
+quantity    bound and reason
+==========  =======================================================================
+``phi``     ``max(phi_max)`` (one format for all columns, as one MAC loop needs)
+``y``       ``y_max``
+``P``       :math:`\bar P = 1/\alpha` for :math:`\lambda = 1` (:math:`P \preceq P_0`:
+            information only accumulates); otherwise
+            :math:`\max(n/\alpha, \mathrm{trace\_max})`: the trace bound caps
+            :math:`\mathrm{tr}P`, and every :math:`|P_{ij}| \le \lambda_{max}(P)
+            \le \mathrm{tr}P` for a positive semi-definite :math:`P`
+``h``       :math:`\bar P\,\|\bar\varphi\|_2` (Cauchy-Schwarz in the :math:`P` inner
+            product: :math:`|h_i| \le \sqrt{P_{ii}}\sqrt{\varphi^\top P\varphi}`)
+``den``     :math:`1 + \bar P\,\|\bar\varphi\|_2^2` (:math:`\lambda + \varphi^\top P\varphi`)
+``g``       :math:`1/\lambda < 2` (:math:`\varphi^\top P\varphi \ge 0`); its fraction
+            is also limited so that the dividend ``1 << (frac_g + frac_den)`` fits
+            the accumulator
+``K``       :math:`\min\big(\sqrt{\bar P}/(2\sqrt\lambda),\ \bar P\|\bar\varphi\|_2/\lambda\big)`:
+            :math:`|K_i| \le \sqrt{P_{ii}}\sqrt{s}/(\lambda+s) \le \sqrt{P_{ii}}/(2\sqrt\lambda)`
+            with :math:`s = \varphi^\top P\varphi` (much tighter than :math:`P|\varphi|/\lambda`)
+``theta``   ``theta_max``, default :math:`4\,y_{max}/\min_j\bar\varphi_j`: with
+            normalised columns each term :math:`\theta_j\varphi_j` is of the size of
+            the target, :math:`|\theta_j| \lesssim y_{max}/\bar\varphi_j`; two more
+            bits leave room for terms that partly cancel and for the start-up
+            transient. Pass the real range when known.
+``eps``     :math:`4\,y_{max}`: the a-priori error starts at :math:`y`
+            (:math:`\theta_0 = 0`) and shrinks to the noise; a larger error during a
+            transient is clipped (counted), which only limits that one correction,
+            like a robust (Huber) RLS
+``lam``     :math:`\lambda \le 1` and :math:`1/\lambda < 2`, so ``Q1.(bits-2)``
+            (requires :math:`\lambda > 1/2`; typical :math:`[0.98, 1]`)
+==========  =======================================================================
+
+``phi`` and ``y`` use ``input_bits``, everything else ``word_bits``. Any format can be
+overridden: ``FixedConfig.auto(..., P=QFormat(32, 24))`` or
+``dataclasses.replace(config, P=...)``; a saturation then shows in the counters.
+
+Rounding and saturation
+-----------------------
+Every product of two words is exact (at most 32 x 32 bits). A value leaves an
+accumulator through a *rounding right shift*: round half up, by adding
+``1 << (s-1)`` before the arithmetic right shift, as a DSP does with its rounding
+constant (bias +1/2 LSB only on exact ties). It is then clamped to its word, and
+each clamp increments the counter of its site (:data:`SITES`): ``phi_in``, ``y_in``
+(inputs outside their word), ``eps``, ``h``, ``den``, ``div``, ``K``, ``theta``,
+``P``. Nothing ever wraps.
+
+Accumulators (guard bits)
+-------------------------
+An accumulator of ``acc_bits`` never overflows, by construction rather than by a
+check: for each multiply-accumulate the plan pre-shifts every product right (with
+rounding) by the smallest ``ps`` for which the sum of all its products at their
+*largest representable* magnitude (``2**(b1-1) * 2**(b2-1)`` each), plus the
+additive term aligned to the accumulator and the final rounding constant, is below
+``2**(acc_bits-1)``. Because every operand is a saturated word, this holds for every
+possible input, including corrupted state; with 32-bit words, 32-bit inputs and
+64-bit accumulators it costs 3-4 bits of a 62-bit product that is then rounded to 32
+bits anyway. The ``acc`` counter is kept so every site is listed, and stays 0; the
+pure-Python reference :func:`canrls._rls_fixed.reference_block` asserts every
+accumulator value against ``acc_bits``.
+
+Division
+--------
+One per update, modelled as the target does it: ``g = (1 << (frac_g + frac_den)) / d``,
+an ``acc_bits`` dividend over a word divisor, truncated toward zero (C semantics).
+Everything else multiplies: :math:`1/\lambda` is a Q constant computed once (exactly,
+from the rational value of ``lam``) when the estimator is built.
+
+Trace bound and flags
+---------------------
+Like :class:`canrls.rls.RLS`: a step that would take :math:`\mathrm{tr}P` above
+``trace_max`` is taken with :math:`\lambda = 1` (no division by :math:`\lambda`; flag
+``WINDUP``). Decided before the division with the equivalent division-free test
+:math:`(\mathrm{tr}P - \lambda\,\mathrm{trace\_max})(\lambda+\varphi^\top P\varphi) >
+|P\varphi|^2`, so there is still one division. ``trace_max=None`` means
+:math:`n/\alpha`, the prior's trace. ``LOW_EXCITATION`` is set by the kernel when
+the sample's information :math:`g h_i^2` rounds to zero on the whole diagonal of
+:math:`P` (the resolution of ``P`` is exhausted: with :math:`\lambda = 1` and a long
+run this is where the fixed-point estimate stops following the float one).
+``SATURATION`` when any counter moved during the step, ``FROZEN`` after
+:meth:`FixedRLS.freeze`.
+
+``update="literal"`` runs the textbook full-matrix :math:`P - K(\varphi^\top P)`
+with :math:`\varphi^\top P` computed as written; it loses symmetry and is kept only
+to show why the embedded kernel does not use it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import operator
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from fractions import Fraction
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from canrls import _rls_fixed as _k
+from canrls.errors import CheckpointError, EstimatorError, FixedPointError
+
+__all__ = [
+    "QFormat",
+    "FixedConfig",
+    "FixedFlag",
+    "SaturationCounts",
+    "FixedStep",
+    "FixedTrace",
+    "FixedRLS",
+    "SweepRow",
+    "SweepResult",
+    "sweep",
+    "SITES",
+]
+
+IntArray = npt.NDArray[np.int64]
+FloatArray = npt.NDArray[np.float64]
+
+#: Saturation sites, in counter order.
+SITES: tuple[str, ...] = _k.SITES
+
+#: Format tag of :meth:`FixedRLS.state` dictionaries.
+STATE_FORMAT = "canrls.fixed/1"
+
+_UPDATES = {"symmetric": _k.MODE_SYMMETRIC, "literal": _k.MODE_LITERAL}
+#: Quantities that have a Q format in :class:`FixedConfig`, in table order.
+_QUANTITIES = ("phi", "y", "theta", "P", "K", "eps", "h", "den", "g", "lam")
+_MAX_WORD = 32  # products of two words must be exact in int64
+
+
+# ---------------------------------------------------------------- Q formats
+@dataclass(frozen=True, slots=True)
+class QFormat:
+    """A signed two's-complement fixed-point format: ``bits`` bits, ``frac`` fraction bits.
+
+    The integer ``q`` represents ``q * 2**-frac``; its range is
+    ``[-2**(bits-1), 2**(bits-1) - 1]``.
+
+    Parameters
+    ----------
+    bits : int
+        Word length, 2..64.
+    frac : int
+        Number of fraction bits (may exceed ``bits - 1`` for small quantities, or be
+        negative for a coarse one).
+
+    Examples
+    --------
+    >>> q = QFormat(16, 14)
+    >>> str(q), q.lo, q.hi, q.max
+    ('Q1.14', -32768, 32767, 1.99993896484375)
+    """
+
+    bits: int
+    frac: int
+
+    def __post_init__(self) -> None:
+        for name in ("bits", "frac"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer):
+                raise FixedPointError(f"QFormat {name} must be an integer, got {v!r}")
+            object.__setattr__(self, name, int(v))
+        if not 2 <= self.bits <= 64:
+            raise FixedPointError(f"QFormat bits must be in 2..64, got {self.bits}")
+        if not -64 <= self.frac <= 126:
+            raise FixedPointError(f"QFormat frac must be in -64..126, got {self.frac}")
+
+    @classmethod
+    def for_range(cls, max_abs: float, bits: int) -> QFormat:
+        """The format of ``bits`` bits with the most fraction bits that holds ``±max_abs``.
+
+        The integer bits ``m`` are the smallest with ``2**m > max_abs``, so
+        ``max_abs`` itself is representable (``1.0`` gets ``Q1.(bits-2)``).
+        """
+        x = float(max_abs)
+        if not (x > 0.0 and math.isfinite(x)):
+            raise FixedPointError(f"range of a Q format must be finite and > 0, got {max_abs!r}")
+        m = math.frexp(x)[1]  # x = f 2^m, 0.5 <= f < 1  ->  2^(m-1) <= x < 2^m
+        return cls(bits, bits - 1 - m)
+
+    @property
+    def int_bits(self) -> int:
+        """Integer bits besides the sign, ``bits - 1 - frac``."""
+        return self.bits - 1 - self.frac
+
+    @property
+    def lo(self) -> int:
+        """Smallest integer, ``-2**(bits-1)``."""
+        return -(1 << (self.bits - 1))
+
+    @property
+    def hi(self) -> int:
+        """Largest integer, ``2**(bits-1) - 1``."""
+        return (1 << (self.bits - 1)) - 1
+
+    @property
+    def lsb(self) -> float:
+        """Value of one LSB, ``2**-frac``."""
+        return math.ldexp(1.0, -self.frac)
+
+    @property
+    def max(self) -> float:
+        """Largest representable value, ``hi * 2**-frac``."""
+        return math.ldexp(float(self.hi), -self.frac)
+
+    def to_int(self, x: float | Fraction) -> int:
+        """``x`` rounded half up to this format, exactly (no saturation)."""
+        v = Fraction(x) * (Fraction(2) ** self.frac)
+        return math.floor(v + Fraction(1, 2))
+
+    def to_float(self, q: int | npt.ArrayLike) -> Any:
+        """The real value of integer(s) ``q`` (float64)."""
+        return np.ldexp(np.asarray(q, dtype=np.float64), -self.frac)
+
+    def quantize(self, x: npt.ArrayLike) -> tuple[IntArray, int]:
+        """Round float(s) to nearest (half up) and saturate to the word.
+
+        Returns
+        -------
+        (q, saturated) : (ndarray of int64, int)
+            The integers and how many values were clamped (``±inf`` clamp too).
+
+        Raises
+        ------
+        FixedPointError
+            A value is NaN.
+        """
+        a = np.asarray(x, dtype=np.float64)
+        if np.isnan(a).any():
+            raise FixedPointError(f"cannot quantize NaN to {self}")
+        # x 2^frac is exact (power of two); floor(v + 1/2) is exact for |v| < 2^52,
+        # and larger values saturate anyway
+        v = np.floor(np.ldexp(a, self.frac) + 0.5)
+        lo, hi = float(self.lo), float(self.hi)
+        nsat = int(np.count_nonzero((v < lo) | (v > hi)))
+        q = np.clip(v, lo, hi).astype(np.int64)
+        return q, nsat
+
+    def __str__(self) -> str:
+        return f"Q{self.int_bits}.{self.frac}"
+
+    def to_dict(self) -> dict[str, int]:
+        """``{"bits": ..., "frac": ...}``."""
+        return {"bits": self.bits, "frac": self.frac}
+
+
+# -------------------------------------------------------------- the config
+def _as_qformat(name: str, v: object) -> QFormat:
+    if isinstance(v, QFormat):
+        return v
+    if isinstance(v, Mapping):
+        try:
+            return QFormat(v["bits"], v["frac"])
+        except KeyError as e:
+            raise FixedPointError(f"Q format of {name!r} lacks key {e}") from e
+    if isinstance(v, tuple | list) and len(v) == 2:
+        return QFormat(v[0], v[1])
+    raise FixedPointError(f"Q format of {name!r} must be a QFormat, got {v!r}")
+
+
+@dataclass(frozen=True)
+class FixedConfig:
+    r"""Word lengths and the Q format of every quantity of the fixed-point RLS.
+
+    Build it with :meth:`auto` from the ranges of the problem; override any format
+    with keywords of :meth:`auto` or with :func:`dataclasses.replace`.
+
+    Attributes
+    ----------
+    word_bits : int
+        State word (``theta``, ``P``, ``K``, ``eps``, ``h``, ``den``, ``g``, ``lam``),
+        8..32.
+    acc_bits : int
+        Accumulator of multiply-accumulates and dividend of the division, 16..64.
+    input_bits : int
+        Input word of ``phi`` and ``y``, 2..32.
+    phi, y, theta, P, K, eps, h, den, g, lam : QFormat
+        Regressors, target, estimate, :math:`P`, gain, a-priori error,
+        :math:`h = P\varphi`, :math:`d = \lambda + \varphi^\top P\varphi`, the
+        reciprocal :math:`g = 1/d`, and :math:`\lambda`, :math:`1/\lambda`.
+
+    Raises
+    ------
+    FixedPointError
+        A word is wider than the limits above, or a format has a negative fraction
+        or a fraction beyond 62 bits (the message names the quantity and format).
+    """
+
+    word_bits: int
+    acc_bits: int
+    input_bits: int
+    phi: QFormat
+    y: QFormat
+    theta: QFormat
+    P: QFormat
+    K: QFormat
+    eps: QFormat
+    h: QFormat
+    den: QFormat
+    g: QFormat
+    lam: QFormat
+
+    def __post_init__(self) -> None:
+        for name, lo, hi in (("word_bits", 8, 32), ("acc_bits", 16, 64), ("input_bits", 2, 32)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or not lo <= v <= hi:
+                raise FixedPointError(f"FixedConfig {name} must be an integer in {lo}..{hi}, got {v!r}")
+            object.__setattr__(self, name, int(v))
+        for name in _QUANTITIES:
+            q = _as_qformat(name, getattr(self, name))
+            object.__setattr__(self, name, q)
+            if q.bits > _MAX_WORD:
+                raise FixedPointError(
+                    f"FixedConfig {name} format {q} has {q.bits} bits; words are at most "
+                    f"{_MAX_WORD} bits (products must be exact in 64 bits)"
+                )
+            if not 0 <= q.frac <= 62:
+                raise FixedPointError(
+                    f"FixedConfig {name} format {q} ({q.bits} bits) has {q.frac} fraction "
+                    f"bits; the range of {name} needs more integer bits than the word has"
+                )
+
+    @classmethod
+    def auto(
+        cls,
+        n: int,
+        alpha: float,
+        lam: float,
+        phi_max: float | Sequence[float] | npt.ArrayLike = 1.0,
+        y_max: float = 1.0,
+        theta_max: float | None = None,
+        word_bits: int = 32,
+        acc_bits: int = 64,
+        input_bits: int | None = None,
+        trace_max: float | None = None,
+        **overrides: QFormat,
+    ) -> FixedConfig:
+        r"""Choose every Q format from the ranges of the problem (module docstring table).
+
+        Parameters
+        ----------
+        n : int
+            Number of parameters.
+        alpha : float
+            Ridge weight, :math:`P_0 = I/\alpha` (normalised units, typical 1e-3..1e-1).
+        lam : float
+            Forgetting factor, :math:`1/2 < \lambda \le 1` (typical 0.98..1).
+        phi_max : float or sequence of n floats, default 1.0
+            Nominal :math:`\max|\varphi_j|`, one for all columns or one per column.
+        y_max : float, default 1.0
+            Nominal :math:`\max|y|`.
+        theta_max : float or None
+            Bound on :math:`|\theta_j|`; ``None``: :math:`4\,y_{max}/\min_j\bar\varphi_j`.
+        word_bits, acc_bits : int, default 32, 64
+            State word and accumulator.
+        input_bits : int or None
+            Input word of ``phi`` and ``y``; ``None``: ``word_bits``.
+        trace_max : float or None
+            The trace bound the estimator will use (``None``: :math:`n/\alpha`, the
+            default of :class:`FixedRLS`); it bounds :math:`P` when :math:`\lambda < 1`.
+        **overrides : QFormat
+            Formats to use instead of the derived ones (``P=QFormat(32, 20)``, ...).
+
+        Returns
+        -------
+        FixedConfig
+
+        Raises
+        ------
+        FixedPointError
+            A range does not fit its word (names the quantity and the format).
+        """
+        n_i = _check_n(n)
+        alpha_f = _check_alpha(alpha)
+        lam_f = _check_lam(lam)
+        W = word_bits
+        In = W if input_bits is None else input_bits
+        pm = np.broadcast_to(np.asarray(phi_max, dtype=np.float64), (n_i,))
+        if not (np.all(np.isfinite(pm)) and np.all(pm > 0)):
+            raise FixedPointError(f"phi_max must be finite and > 0, got {phi_max!r}")
+        ym = float(y_max)
+        if not (math.isfinite(ym) and ym > 0):
+            raise FixedPointError(f"y_max must be finite and > 0, got {y_max!r}")
+        tm = 4.0 * ym / float(pm.min()) if theta_max is None else float(theta_max)
+        tr = n_i / alpha_f if trace_max is None or not math.isfinite(trace_max) else float(trace_max)
+        # bound on every |P_ij| (and on the largest eigenvalue of P)
+        P_bar = 1.0 / alpha_f if lam_f == 1.0 else max(n_i / alpha_f, tr)
+        phi_norm = float(np.sqrt(np.sum(pm * pm)))
+        den_max = 1.0 + P_bar * phi_norm * phi_norm
+        K_max = min(math.sqrt(P_bar) / (2.0 * math.sqrt(lam_f)), P_bar * phi_norm / lam_f)
+
+        def fmt(name: str, bound: float, bits: int) -> QFormat:
+            try:
+                return QFormat.for_range(bound, bits)
+            except FixedPointError as e:
+                raise FixedPointError(f"range of {name}: {e}") from e
+
+        formats: dict[str, QFormat] = {
+            "phi": fmt("phi", float(pm.max()), In),
+            "y": fmt("y", ym, In),
+            "theta": fmt("theta", tm, W),
+            "P": fmt("P", P_bar, W),
+            "K": fmt("K", K_max, W),
+            "eps": fmt("eps", 4.0 * ym, W),
+            "h": fmt("h", P_bar * phi_norm, W),
+            "den": fmt("den", den_max, W),
+            "lam": QFormat(W, W - 2),
+        }
+        # g = 1/d <= 1/lambda < 2; the dividend 1 << (frac_g + frac_den) must fit the accumulator
+        den_q = overrides.get("den", formats["den"])
+        den_q = _as_qformat("den", den_q)
+        formats["g"] = QFormat(W, min(W - 2, acc_bits - 2 - den_q.frac))
+        unknown = set(overrides) - set(_QUANTITIES)
+        if unknown:
+            raise FixedPointError(
+                f"FixedConfig.auto got unknown override(s) {sorted(unknown)}; "
+                f"formats are {list(_QUANTITIES)}"
+            )
+        formats.update({k: _as_qformat(k, v) for k, v in overrides.items()})
+        return cls(word_bits=W, acc_bits=acc_bits, input_bits=In, **formats)
+
+    def formats(self) -> dict[str, QFormat]:
+        """The Q format of every quantity, in table order."""
+        return {name: getattr(self, name) for name in _QUANTITIES}
+
+    def quantize_inputs(
+        self, Phi: npt.ArrayLike, Y: npt.ArrayLike
+    ) -> tuple[IntArray, IntArray, SaturationCounts]:
+        """Round normalised float inputs to the ``phi`` and ``y`` formats, saturating.
+
+        Round to nearest (half up), then clamp to the input word; a value outside is
+        counted, never wrapped. This runs at the edge (a host or the CAN decoder),
+        not in the kernel.
+
+        Returns
+        -------
+        (Phi_int, Y_int, saturations)
+            ``int64`` arrays of the shapes of ``Phi`` and ``Y``, and the counts
+            (``phi_in``, ``y_in``).
+        """
+        Pq, n_phi = self.phi.quantize(Phi)
+        Yq, n_y = self.y.quantize(Y)
+        return Pq, Yq, SaturationCounts.of({"phi_in": n_phi, "y_in": n_y})
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-able dict (``from_dict`` inverts it)."""
+        d: dict[str, Any] = {
+            "word_bits": self.word_bits,
+            "acc_bits": self.acc_bits,
+            "input_bits": self.input_bits,
+        }
+        d.update({name: q.to_dict() for name, q in self.formats().items()})
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> FixedConfig:
+        """Rebuild a config from :meth:`to_dict`."""
+        try:
+            kw = {name: _as_qformat(name, d[name]) for name in _QUANTITIES}
+            return cls(
+                word_bits=d["word_bits"], acc_bits=d["acc_bits"], input_bits=d["input_bits"], **kw
+            )
+        except KeyError as e:
+            raise FixedPointError(f"FixedConfig dict lacks key {e}") from e
+
+    @property
+    def label(self) -> str:
+        """Short name of the word lengths, e.g. ``W32/A64/I16``."""
+        return f"W{self.word_bits}/A{self.acc_bits}/I{self.input_bits}"
+
+    def __str__(self) -> str:
+        lines = [f"FixedConfig {self.label}"]
+        for name, q in self.formats().items():
+            lines.append(
+                f"  {name:<6} {q!s:<8} {q.bits:>2} bit  lsb {q.lsb:.3g}  max {q.max:.6g}"
+            )
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------- validation
+def _check_n(n: object) -> int:
+    if isinstance(n, bool):
+        raise EstimatorError(f"FixedRLS n must be a positive integer, got {n!r}")
+    try:
+        v = operator.index(n)  # type: ignore[arg-type]
+    except TypeError as e:
+        raise EstimatorError(f"FixedRLS n must be a positive integer, got {n!r}") from e
+    if v < 1:
+        raise EstimatorError(f"FixedRLS n must be a positive integer, got {n!r}")
+    return v
+
+
+def _real(name: str, value: object) -> float:
+    if isinstance(value, bool):
+        raise EstimatorError(f"FixedRLS {name} must be a real number, got {value!r}")
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError) as e:
+        raise EstimatorError(f"FixedRLS {name} must be a real number, got {value!r}") from e
+
+
+def _check_lam(lam: object) -> float:
+    x = _real("lam", lam)
+    if not (0.5 < x <= 1.0):
+        raise EstimatorError(
+            f"FixedRLS lam (forgetting factor) must be in (0.5, 1] (1/lam is a Q1 word), "
+            f"got {lam!r}"
+        )
+    return x
+
+
+def _check_alpha(alpha: object) -> float:
+    x = _real("alpha", alpha)
+    if not (0.0 < x < math.inf):
+        raise EstimatorError(f"FixedRLS alpha (ridge) must be finite and > 0, got {alpha!r}")
+    return x
+
+
+# --------------------------------------------------------------------- plan
+def _ceil_log2(m: int) -> int:
+    return (m - 1).bit_length()
+
+
+def _mac(
+    acc_bits: int,
+    a: QFormat,
+    b: QFormat,
+    m: int,
+    out: QFormat | None,
+    term: QFormat | None = None,
+) -> tuple[int, int, int]:
+    """Shifts of one multiply-accumulate ``[term] + sum of m products a*b -> out``.
+
+    Returns ``(ps, ts, os)``: product pre-shift (>= 0), alignment of the term to the
+    accumulator (> 0: left), output shift (> 0: rounding right shift). ``ps`` is the
+    smallest that keeps the worst case (every operand at the largest magnitude its
+    word holds) plus the rounding constants below ``2**(acc_bits - 1)``.
+    """
+    lim = (1 << (acc_bits - 1)) - 1
+    pmax = (1 << (a.bits - 1)) * (1 << (b.bits - 1))
+    for ps in range(0, 127):
+        pm = (pmax + ((1 << (ps - 1)) if ps else 0)) >> ps
+        fa = a.frac + b.frac - ps
+        total = m * pm
+        ts = 0
+        if term is not None:
+            ts = fa - term.frac
+            tmag = 1 << (term.bits - 1)
+            total += tmag << ts if ts >= 0 else (tmag + (1 << (-ts - 1))) >> -ts
+        os = 0 if out is None else fa - out.frac
+        if os > 0:
+            total += 1 << (os - 1)
+        if total <= lim:
+            return ps, ts, os
+    raise FixedPointError("no product pre-shift fits the accumulator")  # pragma: no cover
+
+
+def _mac2(
+    acc_bits: int, p1: tuple[QFormat, QFormat], p2: tuple[QFormat, QFormat], out: QFormat
+) -> tuple[int, int, int]:
+    """Shifts of ``p1[0]*p1[1] - p2[0]*p2[1] -> out``: two products of different scales.
+
+    Returns ``(ps1, ps2, os)``: the pre-shifts that bring both products to one
+    accumulator scale (the finest that fits, as in :func:`_mac`) and the output shift.
+    """
+    lim = (1 << (acc_bits - 1)) - 1
+    F1 = p1[0].frac + p1[1].frac
+    F2 = p2[0].frac + p2[1].frac
+    m1 = (1 << (p1[0].bits - 1)) * (1 << (p1[1].bits - 1))
+    m2 = (1 << (p2[0].bits - 1)) * (1 << (p2[1].bits - 1))
+    for fa in range(min(F1, F2), min(F1, F2) - 127, -1):
+        ps1, ps2 = F1 - fa, F2 - fa
+        total = (m1 + ((1 << (ps1 - 1)) if ps1 else 0)) >> ps1
+        total += (m2 + ((1 << (ps2 - 1)) if ps2 else 0)) >> ps2
+        os = fa - out.frac
+        if os > 0:
+            total += 1 << (os - 1)
+        if total <= lim:
+            return ps1, ps2, os
+    raise FixedPointError("no product pre-shift fits the accumulator")  # pragma: no cover
+
+
+def _build_plan(
+    cfg: FixedConfig, n: int, lam: float, trace_max: float
+) -> tuple[IntArray, dict[str, int]]:
+    """The kernel's integer constants (``_rls_fixed.I_*`` layout) and a named copy."""
+    A = cfg.acc_bits
+    p = np.zeros(_k.NPARAM, dtype=np.int64)
+    named: dict[str, int] = {}
+
+    def put(i: int, name: str, v: int) -> None:
+        if not -(1 << 63) <= v < (1 << 63):  # pragma: no cover - guarded by the checks
+            raise FixedPointError(f"plan constant {name} = {v} does not fit 64 bits")
+        p[i] = v
+        named[name] = int(v)
+
+    for q, lo_i, name in (
+        (cfg.phi, _k.I_PHI_LO, "phi"), (cfg.y, _k.I_Y_LO, "y"), (cfg.eps, _k.I_EPS_LO, "eps"),
+        (cfg.h, _k.I_H_LO, "h"), (cfg.den, _k.I_DEN_LO, "den"), (cfg.g, _k.I_G_LO, "g"),
+        (cfg.K, _k.I_K_LO, "K"), (cfg.theta, _k.I_TH_LO, "theta"), (cfg.P, _k.I_P_LO, "P"),
+    ):  # fmt: skip
+        put(lo_i, f"{name}_lo", q.lo)
+        put(lo_i + 1, f"{name}_hi", q.hi)
+
+    # eps = y - phi' theta
+    ps, ts, os = _mac(A, cfg.phi, cfg.theta, n, cfg.eps, cfg.y)
+    put(_k.I_EPS_PS, "eps_ps", ps)
+    put(_k.I_EPS_TS, "eps_ts", ts)
+    put(_k.I_EPS_OS, "eps_os", os)
+    # h = P phi
+    ps, _, os = _mac(A, cfg.P, cfg.phi, n, cfg.h)
+    put(_k.I_H_PS, "h_ps", ps)
+    put(_k.I_H_OS, "h_os", os)
+    # d = lambda_k + phi' h   (lambda_k in {lambda, 1} aligned from the lam format)
+    ps, ts, os = _mac(A, cfg.phi, cfg.h, n, cfg.den, cfg.lam)
+    put(_k.I_S_PS, "s_ps", ps)
+    put(_k.I_S_OS, "s_os", os)
+    lam_q = cfg.lam.to_int(Fraction(lam))
+    one_q = 1 << cfg.lam.frac
+    if not (0 < lam_q <= cfg.lam.hi and one_q <= cfg.lam.hi):
+        raise FixedPointError(f"lam = {lam!r} (and 1) must fit the lam format {cfg.lam}")
+
+    def aligned(x: int, s: int) -> int:
+        return x << s if s >= 0 else (x + (1 << (-s - 1))) >> -s
+
+    put(_k.I_S_LAM, "s_lam", aligned(lam_q, ts))
+    put(_k.I_S_ONE, "s_one", aligned(one_q, ts))
+    # g = DIVIDEND / d
+    fdiv = cfg.g.frac + cfg.den.frac
+    if fdiv > A - 2:
+        raise FixedPointError(
+            f"dividend 1 << (frac_g + frac_den) = 1 << {fdiv} of g {cfg.g} / den {cfg.den} "
+            f"does not fit the {A}-bit accumulator"
+        )
+    put(_k.I_DIVIDEND, "dividend", 1 << fdiv)
+    # K = g h
+    ps, _, os = _mac(A, cfg.h, cfg.g, 1, cfg.K)
+    put(_k.I_K_PS, "K_ps", ps)
+    put(_k.I_K_OS, "K_os", os)
+    # theta + K eps
+    ps, ts, os = _mac(A, cfg.K, cfg.eps, 1, cfg.theta, cfg.theta)
+    put(_k.I_TH_PS, "theta_ps", ps)
+    put(_k.I_TH_TS, "theta_ts", ts)
+    put(_k.I_TH_OS, "theta_os", os)
+    # Kl = K * (1/lambda_k)
+    inv_q = cfg.lam.to_int(1 / Fraction(lam))
+    if inv_q > cfg.lam.hi:
+        raise FixedPointError(f"1/lam = {1 / lam!r} does not fit the lam format {cfg.lam}")
+    put(_k.I_INV_LAM, "inv_lam", inv_q)
+    put(_k.I_ONE_L, "one_lam", one_q)
+    ps, _, os = _mac(A, cfg.K, cfg.lam, 1, cfg.K)
+    put(_k.I_KL_PS, "Kl_ps", ps)
+    put(_k.I_KL_OS, "Kl_os", os)
+    # P <- P * (1/lambda_k) - Kl h'
+    ps1, ps2, os = _mac2(A, (cfg.P, cfg.lam), (cfg.K, cfg.h), cfg.P)
+    put(_k.I_P_PS1, "P_ps1", ps1)
+    put(_k.I_P_PS2, "P_ps2", ps2)
+    put(_k.I_P_OS, "P_os", os)
+    # trace bound: tr P summed with pre-shift tr_ps; 2 n terms must fit (T = tr - tmax)
+    lim = (1 << (A - 1)) - 1
+    tr_ps = 0
+    while 2 * n * (((1 << (cfg.P.bits - 1)) + ((1 << (tr_ps - 1)) if tr_ps else 0)) >> tr_ps) > lim:
+        tr_ps += 1
+    put(_k.I_TR_PS, "trace_ps", tr_ps)
+    tr_cap = n * (((1 << (cfg.P.bits - 1)) + ((1 << (tr_ps - 1)) if tr_ps else 0)) >> tr_ps)
+    if math.isinf(trace_max):
+        tmax = tr_cap  # the trace can never exceed what its accumulator holds
+    else:
+        tq = Fraction(lam_q, one_q) * Fraction(trace_max) * Fraction(2) ** (cfg.P.frac - tr_ps)
+        tmax = min(math.floor(tq), tr_cap)
+    put(_k.I_TMAX, "trace_max_lam", tmax)
+    # h' w with pre-shift, compared with (trP - lambda trace_max) d
+    vw_ps, _, _ = _mac(A, cfg.h, cfg.h, n, None)
+    lhs_ps, _, _ = _mac(A, cfg.P, cfg.den, 1, None)
+    put(_k.I_VW_PS, "vw_ps", vw_ps)
+    put(_k.I_LHS_PS, "lhs_ps", lhs_ps)
+    f_lhs = cfg.P.frac - tr_ps + cfg.den.frac - lhs_ps
+    f_vw = 2 * cfg.h.frac - vw_ps
+    put(_k.I_CMP_SL, "cmp_lhs_shift", max(0, f_lhs - f_vw))
+    put(_k.I_CMP_SR, "cmp_vw_shift", max(0, f_vw - f_lhs))
+    return p, named
+
+
+# --------------------------------------------------------- result objects
+class FixedFlag(enum.IntFlag):
+    """Per-step status bits; the values of :class:`canrls.rls.RLSFlag`."""
+
+    NONE = 0
+    #: The trace bound held this step: taken with lambda = 1.
+    WINDUP = _k.FLAG_WINDUP
+    #: The sample's information rounded to zero on the diagonal of P.
+    LOW_EXCITATION = _k.FLAG_LOW_EXCITATION
+    #: A value saturated during this step (see :attr:`FixedRLS.saturations`).
+    SATURATION = _k.FLAG_SATURATION
+    #: The estimator is frozen: the error was computed, the state left untouched.
+    FROZEN = _k.FLAG_FROZEN
+
+
+_FLAGS: tuple[FixedFlag, ...] = tuple(FixedFlag(i) for i in range(16))
+
+
+class SaturationCounts(Mapping[str, int]):
+    """Read-only counts of saturations per site (a ``Mapping[str, int]`` over :data:`SITES`).
+
+    Examples
+    --------
+    >>> c = SaturationCounts.of({"theta": 2})
+    >>> c["theta"], c["P"], c.total
+    (2, 0, 2)
+    """
+
+    __slots__ = ("_v",)
+
+    def __init__(self, values: Sequence[int] | npt.ArrayLike) -> None:
+        v = tuple(int(x) for x in np.asarray(values, dtype=np.int64).ravel())
+        if len(v) != len(SITES):
+            raise EstimatorError(f"SaturationCounts needs {len(SITES)} values, got {len(v)}")
+        self._v = v
+
+    @classmethod
+    def of(cls, d: Mapping[str, int]) -> SaturationCounts:
+        """Counts from a partial ``{site: count}`` mapping (missing sites are 0)."""
+        bad = set(d) - set(SITES)
+        if bad:
+            raise EstimatorError(f"unknown saturation site(s) {sorted(bad)}; sites are {SITES}")
+        return cls([int(d.get(s, 0)) for s in SITES])
+
+    def __getitem__(self, key: str) -> int:
+        try:
+            return self._v[SITES.index(key)]
+        except ValueError:
+            raise KeyError(key) from None
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(SITES)
+
+    def __len__(self) -> int:
+        return len(SITES)
+
+    def __add__(self, other: SaturationCounts) -> SaturationCounts:
+        return SaturationCounts([a + b for a, b in zip(self._v, other._v, strict=True)])
+
+    def __sub__(self, other: SaturationCounts) -> SaturationCounts:
+        return SaturationCounts([a - b for a, b in zip(self._v, other._v, strict=True)])
+
+    def __eq__(self, other: object) -> bool:
+        if isinstance(other, SaturationCounts):
+            return self._v == other._v
+        return Mapping.__eq__(self, other)
+
+    def __hash__(self) -> int:
+        return hash(self._v)
+
+    @property
+    def total(self) -> int:
+        """Sum over all sites."""
+        return sum(self._v)
+
+    def nonzero(self) -> dict[str, int]:
+        """The sites that saturated, ``{site: count}``."""
+        return {s: v for s, v in zip(SITES, self._v, strict=True) if v}
+
+    def __repr__(self) -> str:
+        return f"SaturationCounts({self.nonzero()})"
+
+
+@dataclass(frozen=True)
+class FixedStep:
+    """The result of one :meth:`FixedRLS.update` (integers in the config's formats).
+
+    Attributes
+    ----------
+    eps : int
+        A-priori error (``eps`` format).
+    K : ndarray of int64, shape (n,)
+        Gain applied this step (``K`` format; zeros when frozen).
+    theta : ndarray of int64, shape (n,)
+        Estimate after the step (``theta`` format, a copy).
+    trace_P : int
+        :math:`\\mathrm{tr}\\,P` after the step, in LSBs of the ``P`` format.
+    flags : FixedFlag
+        Status bits of the step.
+    """
+
+    eps: int
+    K: IntArray
+    theta: IntArray
+    trace_P: int
+    flags: FixedFlag
+
+
+@dataclass(frozen=True)
+class FixedTrace:
+    """The record of one :meth:`FixedRLS.run` over N samples (integers).
+
+    Attributes
+    ----------
+    eps : ndarray of int64, shape (N,)
+        A-priori errors (``eps`` format).
+    theta : ndarray of int64, shape (N, n) or None
+        Estimate after each sample (``theta`` format); ``None`` with ``record=False``.
+    trace_P : ndarray of int64, shape (N,)
+        :math:`\\mathrm{tr}\\,P` after each sample (``P`` LSBs).
+    flags : ndarray of uint8, shape (N,)
+        :class:`FixedFlag` bits per sample.
+    theta_final : ndarray of int64, shape (n,)
+        Estimate at the end of the block.
+    applied : int
+        Samples that updated the state.
+    saturations : SaturationCounts
+        Saturations that happened during this block.
+    config : FixedConfig
+        The formats, to convert the integers (:meth:`theta_float`, :meth:`eps_float`).
+    """
+
+    eps: IntArray
+    theta: IntArray | None
+    trace_P: IntArray
+    flags: npt.NDArray[np.uint8]
+    theta_final: IntArray
+    applied: int
+    saturations: SaturationCounts
+    config: FixedConfig
+
+    def __len__(self) -> int:
+        return int(self.eps.shape[0])
+
+    def count(self, flag: FixedFlag) -> int:
+        """Number of samples whose flags contain every bit of ``flag``."""
+        f = int(flag)
+        return int(np.count_nonzero((self.flags & f) == f))
+
+    def theta_float(self) -> FloatArray:
+        """``theta`` (or ``theta_final`` if not recorded) as floats."""
+        t = self.theta if self.theta is not None else self.theta_final
+        return np.asarray(self.config.theta.to_float(t))
+
+    def eps_float(self) -> FloatArray:
+        """``eps`` as floats."""
+        return np.asarray(self.config.eps.to_float(self.eps))
+
+
+# ---------------------------------------------------------------- estimator
+def _int_array(name: str, x: npt.ArrayLike, shape: tuple[int, ...]) -> IntArray:
+    a = np.asarray(x)
+    if a.dtype == object:
+        try:
+            a = a.astype(np.int64)
+        except (OverflowError, TypeError, ValueError) as e:
+            raise EstimatorError(f"FixedRLS {name} must hold 64-bit integers: {e}") from e
+    if a.dtype.kind not in "iu" or a.dtype == np.bool_:
+        raise EstimatorError(
+            f"FixedRLS {name} must be integers (Q format), got dtype {a.dtype}; "
+            f"convert floats with quantize_inputs()"
+        )
+    if a.shape != shape:
+        raise EstimatorError(f"FixedRLS {name} must have shape {shape}, got {a.shape}")
+    if a.dtype == np.uint64 and a.size and int(a.max()) > np.iinfo(np.int64).max:
+        raise EstimatorError(f"FixedRLS {name} has values beyond 64-bit signed integers")
+    if a.ndim == 0:
+        return np.asarray(a, dtype=np.int64)
+    return np.ascontiguousarray(a, dtype=np.int64)
+
+
+class FixedRLS:
+    r"""Fixed-point recursive least squares (integers in, integers out).
+
+    Parameters
+    ----------
+    config : FixedConfig
+        Word lengths and Q formats (:meth:`FixedConfig.auto`).
+    n : int
+        Number of parameters.
+    lam : float
+        Forgetting factor, :math:`1/2 < \lambda \le 1`, stored as Q integers
+        :math:`\lambda` and :math:`1/\lambda` (rounded half up, exactly).
+    alpha : float
+        Ridge weight: :math:`P_0 = I/\alpha`, rounded to the ``P`` format.
+    trace_max : float or None, default None
+        Trace bound; ``None`` is :math:`n/\alpha` (the prior's trace), ``math.inf``
+        disables it.
+    update : {"symmetric", "literal"}, default "symmetric"
+        ``"literal"``: full-matrix :math:`P - K\varphi^\top P`, for comparison only.
+
+    Raises
+    ------
+    EstimatorError
+        An argument is out of range.
+    FixedPointError
+        ``config`` cannot represent :math:`P_0`, :math:`\lambda` or :math:`1/\lambda`,
+        or its formats leave no valid shifts (names the quantity and format).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> cfg = FixedConfig.auto(n=2, alpha=1e-2, lam=0.99)
+    >>> rls = FixedRLS(cfg, n=2, lam=0.99, alpha=1e-2)
+    >>> rng = np.random.default_rng(0)
+    >>> Phi = rng.uniform(-1, 1, size=(2000, 2))
+    >>> Phi_q, Y_q, sat = rls.quantize_inputs(Phi, Phi @ np.array([0.5, -0.25]))
+    >>> trace = rls.run(Phi_q, Y_q)
+    >>> np.round(rls.theta_float, 6)
+    array([ 0.5 , -0.25])
+    """
+
+    def __init__(
+        self,
+        config: FixedConfig,
+        n: int,
+        lam: float,
+        alpha: float,
+        trace_max: float | None = None,
+        update: str = "symmetric",
+    ) -> None:
+        if not isinstance(config, FixedConfig):
+            raise EstimatorError(f"FixedRLS config must be a FixedConfig, got {config!r}")
+        n_i = _check_n(n)
+        lam_f = _check_lam(lam)
+        alpha_f = _check_alpha(alpha)
+        if update not in _UPDATES:
+            raise EstimatorError(f"FixedRLS update must be one of {sorted(_UPDATES)}, got {update!r}")
+        if trace_max is None:
+            tm = n_i / alpha_f
+        else:
+            tm = _real("trace_max", trace_max)
+            if not tm > 0.0:
+                raise EstimatorError(f"FixedRLS trace_max must be > 0 (or None), got {trace_max!r}")
+        p0 = config.P.to_int(1 / Fraction(alpha_f))
+        if not 0 < p0 <= config.P.hi:
+            raise FixedPointError(
+                f"P0 = 1/alpha = {1 / alpha_f:.6g} does not fit the P format {config.P} "
+                f"({config.P.bits} bit, max {config.P.max:.6g})"
+            )
+        self._config = config
+        self._n = n_i
+        self._alpha = alpha_f
+        self._trace_max = tm
+        self._update = update
+        self._mode = _UPDATES[update]
+        self._p0 = p0
+        self._lam = lam_f
+        self._plan, self._named = _build_plan(config, n_i, lam_f, tm)
+        self._theta = np.zeros(n_i, np.int64)
+        self._P = np.zeros((n_i, n_i), np.int64)
+        self._work = np.zeros((5, n_i), np.int64)
+        self._counts = np.zeros(len(SITES), np.int64)
+        self._frozen = False
+        self.count = 0
+        self._reset_arrays()
+        # one-row buffers of update()
+        self._phi1 = np.zeros((1, n_i), np.int64)
+        self._y1 = np.zeros(1, np.int64)
+        self._eps1 = np.zeros(1, np.int64)
+        self._tr1 = np.zeros(1, np.int64)
+        self._flags1 = np.zeros(1, np.uint8)
+        self._norec = np.zeros((0, n_i), np.int64)
+
+    def _reset_arrays(self) -> None:
+        # P0 = I / alpha ; theta0 = 0
+        self._P[...] = 0
+        self._P[np.diag_indices(self._n)] = self._p0
+        self._theta[...] = 0
+        self._work[...] = 0
+
+    # ----------------------------------------------------------- properties
+    @property
+    def config(self) -> FixedConfig:
+        """Word lengths and Q formats."""
+        return self._config
+
+    @property
+    def n(self) -> int:
+        """Number of parameters."""
+        return self._n
+
+    @property
+    def lam(self) -> float:
+        """Forgetting factor (change it with :meth:`set_lambda`)."""
+        return self._lam
+
+    @property
+    def alpha(self) -> float:
+        """Ridge weight of the prior :math:`P_0 = I/\\alpha`."""
+        return self._alpha
+
+    @property
+    def trace_max(self) -> float:
+        """Trace bound (``inf``: none)."""
+        return self._trace_max
+
+    @property
+    def update_form(self) -> str:
+        """``"symmetric"`` or ``"literal"``."""
+        return self._update
+
+    @property
+    def frozen(self) -> bool:
+        """Whether updates leave the state untouched."""
+        return self._frozen
+
+    @property
+    def constants(self) -> dict[str, int]:
+        """Every integer constant of the kernel by name (shifts, ranges, :math:`\\lambda`, ...).
+
+        With :attr:`config` this is all an embedded implementation needs to
+        reproduce the kernel bit for bit.
+        """
+        return dict(self._named)
+
+    @property
+    def theta(self) -> IntArray:
+        """Estimate in the ``theta`` format, shape (n,) (read-only live view)."""
+        v = self._theta.view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def P(self) -> IntArray:
+        """:math:`P` in the ``P`` format, shape (n, n) (a copy; the symmetric form's
+        lower triangle, which the kernel never stores, is mirrored in)."""
+        P = self._P.copy()
+        if self._mode == _k.MODE_SYMMETRIC:
+            il = np.tril_indices(self._n, -1)
+            P[il] = P.T[il]
+        return P
+
+    @property
+    def theta_float(self) -> FloatArray:
+        """Estimate as float64 (normalised units)."""
+        return np.asarray(self._config.theta.to_float(self._theta))
+
+    @property
+    def P_float(self) -> FloatArray:
+        """:math:`P` as float64, shape (n, n)."""
+        return np.asarray(self._config.P.to_float(self.P))
+
+    @property
+    def saturations(self) -> SaturationCounts:
+        """Saturations per site since construction or :meth:`reset` (a snapshot)."""
+        return SaturationCounts(self._counts)
+
+    def std(self, sigma2: float) -> FloatArray:
+        r"""Parameter standard deviations :math:`\sqrt{\sigma^2\,\mathrm{diag}\,P}` (float).
+
+        Parameters
+        ----------
+        sigma2 : float
+            Noise variance of :math:`y` in normalised units (e.g. the float
+            estimator's :attr:`canrls.rls.RLS.sigma2`).
+
+        Returns
+        -------
+        ndarray, shape (n,)
+            ``nan`` where the diagonal of :math:`P` is negative (a broken literal P).
+        """
+        s2 = _real("sigma2", sigma2)
+        if not s2 >= 0.0:
+            raise EstimatorError(f"FixedRLS sigma2 must be >= 0, got {sigma2!r}")
+        d = np.diag(self.P_float)
+        with np.errstate(invalid="ignore"):
+            return np.sqrt(s2 * d)
+
+    # -------------------------------------------------------------- control
+    def reset(self) -> None:
+        """Return to :math:`P_0 = I/\\alpha`, :math:`\\theta_0 = 0`; zero the counters and count.
+
+        The frozen state, ``lam`` and ``trace_max`` are kept.
+        """
+        self._reset_arrays()
+        self._counts[...] = 0
+        self.count = 0
+
+    def freeze(self) -> None:
+        """Stop adapting: updates compute :math:`\\varepsilon` only, flagged ``FROZEN``."""
+        self._frozen = True
+
+    def resume(self) -> None:
+        """Adapt again after :meth:`freeze`."""
+        self._frozen = False
+
+    def set_lambda(self, lam: float) -> None:
+        """Change the forgetting factor (new Q constants; validated like the constructor's)."""
+        lam_f = _check_lam(lam)
+        self._plan, self._named = _build_plan(self._config, self._n, lam_f, self._trace_max)
+        self._lam = lam_f
+
+    # -------------------------------------------------------------- updates
+    def quantize_inputs(
+        self, Phi: npt.ArrayLike, Y: npt.ArrayLike, count: bool = True
+    ) -> tuple[IntArray, IntArray, SaturationCounts]:
+        """Round normalised float inputs to the input formats (:meth:`FixedConfig.quantize_inputs`).
+
+        Parameters
+        ----------
+        Phi : array_like, shape (N, n) (or (n,))
+        Y : array_like, shape (N,) (or scalar)
+        count : bool, default True
+            Add the input saturations to this estimator's ``phi_in``/``y_in``
+            counters (the values handed to :meth:`run` are then in range, so the
+            kernel does not count them again).
+
+        Returns
+        -------
+        (Phi_int, Y_int, saturations)
+        """
+        Pq, Yq, sat = self._config.quantize_inputs(Phi, Y)
+        if Pq.ndim not in (1, 2) or Pq.shape[-1] != self._n:
+            raise EstimatorError(f"FixedRLS Phi must have shape (N, {self._n}), got {Pq.shape}")
+        if count:
+            self._counts[_k.S_PHI] += sat["phi_in"]
+            self._counts[_k.S_Y] += sat["y_in"]
+        return Pq, Yq, sat
+
+    def update(self, phi_int: npt.ArrayLike, y_int: int) -> FixedStep:
+        r"""Process one sample: a block of one row of the same kernel as :meth:`run`.
+
+        Parameters
+        ----------
+        phi_int : array_like of int, shape (n,)
+            Regressor in the ``phi`` format (clamped to it if outside, counted).
+        y_int : int
+            Target in the ``y`` format.
+
+        Returns
+        -------
+        FixedStep
+        """
+        self._phi1[0] = _int_array("phi_int", phi_int, (self._n,))
+        self._y1[0] = _int_array("y_int", y_int, ())
+        self.count += _k.fixed_block(
+            self._phi1, self._y1, self._theta, self._P, self._work, self._counts,
+            self._plan, self._mode, self._frozen, False,
+            self._eps1, self._norec, self._tr1, self._flags1,
+        )  # fmt: skip
+        return FixedStep(
+            eps=int(self._eps1[0]),
+            K=self._work[3].copy(),
+            theta=self._theta.copy(),
+            trace_P=int(self._tr1[0]),
+            flags=_FLAGS[self._flags1[0]],
+        )
+
+    def run(self, Phi_int: npt.ArrayLike, Y_int: npt.ArrayLike, record: bool = True) -> FixedTrace:
+        r"""Process a block of samples with the compiled kernel, carrying the state.
+
+        Parameters
+        ----------
+        Phi_int : array_like of int, shape (N, n)
+            Regressor rows in the ``phi`` format.
+        Y_int : array_like of int, shape (N,)
+            Targets in the ``y`` format.
+        record : bool, default True
+            Keep :math:`\theta` after every sample.
+
+        Returns
+        -------
+        FixedTrace
+        """
+        Phi_a = np.asarray(Phi_int)
+        if Phi_a.ndim != 2 or Phi_a.shape[1] != self._n:
+            raise EstimatorError(
+                f"FixedRLS Phi_int must have shape (N, {self._n}), got {Phi_a.shape}"
+            )
+        N = Phi_a.shape[0]
+        Phi_c = _int_array("Phi_int", Phi_a, (N, self._n))
+        Y_c = _int_array("Y_int", Y_int, (N,))
+        eps = np.empty(N, np.int64)
+        trace_P = np.empty(N, np.int64)
+        flags = np.empty(N, np.uint8)
+        theta_out = np.empty((N, self._n), np.int64) if record else self._norec
+        before = SaturationCounts(self._counts)
+        applied = _k.fixed_block(
+            Phi_c, Y_c, self._theta, self._P, self._work, self._counts,
+            self._plan, self._mode, self._frozen, bool(record),
+            eps, theta_out, trace_P, flags,
+        )  # fmt: skip
+        self.count += applied
+        return FixedTrace(
+            eps=eps,
+            theta=theta_out if record else None,
+            trace_P=trace_P,
+            flags=flags,
+            theta_final=self._theta.copy(),
+            applied=int(applied),
+            saturations=SaturationCounts(self._counts) - before,
+            config=self._config,
+        )
+
+    # ----------------------------------------------------------- checkpoint
+    def state(self) -> dict[str, Any]:
+        """The complete state as a plain dict (ints, strings, int64 arrays).
+
+        Survives ``np.savez``/``np.load`` and JSON (after ``.tolist()``);
+        :meth:`from_state` continues bit for bit.
+        """
+        return {
+            "format": STATE_FORMAT,
+            "config": self._config.to_dict(),
+            "n": self._n,
+            "lam": self._lam,
+            "alpha": self._alpha,
+            "trace_max": self._trace_max,
+            "update": self._update,
+            "frozen": self._frozen,
+            "count": self.count,
+            "theta": self._theta.copy(),
+            "P": self._P.copy(),
+            "counts": self._counts.copy(),
+        }
+
+    @classmethod
+    def from_state(cls, d: Mapping[str, Any] | Any) -> FixedRLS:
+        """Rebuild an estimator from :meth:`state`.
+
+        Raises
+        ------
+        CheckpointError
+            A key is missing or malformed, or a value lies outside its word.
+        """
+
+        def get(key: str) -> Any:
+            try:
+                v = d[key]
+            except KeyError as e:
+                raise CheckpointError(f"FixedRLS checkpoint lacks key {key!r}") from e
+            if isinstance(v, np.ndarray) and v.ndim == 0:
+                return v.item()
+            return v
+
+        fmt = get("format")
+        if fmt != STATE_FORMAT:
+            raise CheckpointError(
+                f"FixedRLS checkpoint format is {fmt!r}, expected {STATE_FORMAT!r}"
+            )
+        try:
+            cfg_d = get("config")
+            if isinstance(cfg_d, str):
+                import json
+
+                cfg_d = json.loads(cfg_d)
+            rls = cls(
+                FixedConfig.from_dict(cfg_d),
+                get("n"),
+                lam=get("lam"),
+                alpha=get("alpha"),
+                trace_max=get("trace_max"),
+                update=get("update"),
+            )
+        except (EstimatorError, TypeError, ValueError) as e:
+            raise CheckpointError(f"FixedRLS checkpoint is invalid: {e}") from e
+        n = rls.n
+        cfg = rls.config
+        for key, target, shape, q in (
+            ("theta", rls._theta, (n,), cfg.theta),
+            ("P", rls._P, (n, n), cfg.P),
+            ("counts", rls._counts, (len(SITES),), None),
+        ):
+            try:
+                src = _int_array(key, get(key), shape)
+            except EstimatorError as e:
+                raise CheckpointError(f"FixedRLS checkpoint key {key!r}: {e}") from e
+            lo, hi = (q.lo, q.hi) if q is not None else (0, np.iinfo(np.int64).max)
+            if src.size and (int(src.min()) < lo or int(src.max()) > hi):
+                raise CheckpointError(
+                    f"FixedRLS checkpoint key {key!r} has values outside [{lo}, {hi}]"
+                )
+            target[...] = src
+        rls._frozen = bool(get("frozen"))
+        rls.count = int(get("count"))
+        return rls
+
+    def __repr__(self) -> str:
+        return (
+            f"FixedRLS({self._config.label}, n={self._n}, lam={self._lam!r}, "
+            f"alpha={self._alpha!r}, trace_max={self._trace_max!r}, update={self._update!r}, "
+            f"count={self.count}, frozen={self._frozen})"
+        )
+
+
+# -------------------------------------------------------------------- sweep
+@dataclass(frozen=True)
+class SweepRow:
+    """One configuration of a :func:`sweep`.
+
+    Attributes
+    ----------
+    label : str
+        ``W{word}/A{acc}/I{input}`` or the name given with the config.
+    config : FixedConfig or None
+        ``None`` when the word lengths cannot represent the problem (see ``error``).
+    max_rel_error : float
+        Largest relative parameter error against ``theta_ref`` (``inf`` if not run).
+    rel_errors : tuple of float
+        Relative error per parameter.
+    theta : tuple of float
+        Final fixed-point estimate (float, normalised units).
+    saturations : SaturationCounts
+        Saturations over the run (inputs included).
+    ok : bool
+        ``max_rel_error <= tol``.
+    error : str or None
+        Why the configuration could not be run.
+    """
+
+    label: str
+    config: FixedConfig | None
+    max_rel_error: float
+    rel_errors: tuple[float, ...]
+    theta: tuple[float, ...]
+    saturations: SaturationCounts
+    ok: bool
+    error: str | None = None
+
+    @property
+    def cost(self) -> tuple[int, int, int]:
+        """Sort key of "smallest": (state word, accumulator, input word)."""
+        c = self.config
+        return (c.word_bits, c.acc_bits, c.input_bits) if c is not None else (99, 99, 99)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict (``inf``/``nan`` as ``None``)."""
+
+        def num(x: float) -> float | None:
+            return x if math.isfinite(x) else None
+
+        return {
+            "label": self.label,
+            "word_bits": self.config.word_bits if self.config else None,
+            "acc_bits": self.config.acc_bits if self.config else None,
+            "input_bits": self.config.input_bits if self.config else None,
+            "max_rel_error": num(self.max_rel_error),
+            "rel_errors": [num(x) for x in self.rel_errors],
+            "theta": [num(x) for x in self.theta],
+            "saturations": dict(self.saturations),
+            "ok": self.ok,
+            "error": self.error,
+            "config": self.config.to_dict() if self.config else None,
+        }
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    """The outcome of :func:`sweep`: one row per configuration and a recommendation.
+
+    ``str(result)`` is a text table; :meth:`to_dict` is JSON-able.
+
+    Attributes
+    ----------
+    rows : tuple of SweepRow
+        In the order run.
+    tol : float
+        Relative tolerance on every parameter.
+    floor : float
+        Parameters smaller than this are measured against it instead.
+    theta_ref : tuple of float
+        The float reference.
+    recommended : SweepRow or None
+        The smallest configuration (by :attr:`SweepRow.cost`) within ``tol``.
+    """
+
+    rows: tuple[SweepRow, ...]
+    tol: float
+    floor: float
+    theta_ref: tuple[float, ...]
+    recommended: SweepRow | None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict."""
+        return {
+            "tol": self.tol,
+            "floor": self.floor,
+            "theta_ref": list(self.theta_ref),
+            "recommended": self.recommended.label if self.recommended else None,
+            "rows": [r.to_dict() for r in self.rows],
+        }
+
+    def __str__(self) -> str:
+        head = f"{'config':<16} {'word':>4} {'acc':>4} {'input':>5} {'max rel err':>12}  {'ok':<3} saturations"
+        lines = [head, "-" * len(head)]
+        for r in self.rows:
+            c = r.config
+            if c is None:
+                lines.append(f"{r.label:<16} {'':>4} {'':>4} {'':>5} {'n/a':>12}  {'no':<3} {r.error}")
+                continue
+            sat = ", ".join(f"{k}={v}" for k, v in r.saturations.nonzero().items()) or "-"
+            lines.append(
+                f"{r.label:<16} {c.word_bits:>4} {c.acc_bits:>4} {c.input_bits:>5} "
+                f"{r.max_rel_error:>12.3e}  {'yes' if r.ok else 'no':<3} {sat}"
+            )
+        if self.recommended is not None:
+            lines.append(
+                f"recommended: {self.recommended.label} (max relative error "
+                f"{self.recommended.max_rel_error:.3e} <= {self.tol:.3g})"
+            )
+        else:
+            lines.append(f"recommended: none meets the tolerance {self.tol:.3g}")
+        return "\n".join(lines)
+
+
+def sweep(
+    Phi: npt.ArrayLike,
+    Y: npt.ArrayLike,
+    theta_ref: npt.ArrayLike,
+    configs: Sequence[FixedConfig] | Mapping[str, FixedConfig] | None = None,
+    *,
+    lam: float = 1.0,
+    alpha: float = 1e-2,
+    trace_max: float | None = None,
+    word_bits: Sequence[int] = (16, 24, 32),
+    acc_bits: Sequence[int] = (32, 48, 64),
+    input_bits: Sequence[int] = (16, 32),
+    phi_max: float | Sequence[float] = 1.0,
+    y_max: float = 1.0,
+    theta_max: float | None = None,
+    tol: float = 1e-3,
+    floor: float | None = None,
+    update: str = "symmetric",
+) -> SweepResult:
+    r"""Run the fixed-point RLS for several word lengths and compare with a float reference.
+
+    Parameters
+    ----------
+    Phi : array_like, shape (N, n)
+        Normalised regressors (float).
+    Y : array_like, shape (N,)
+        Normalised targets (float).
+    theta_ref : array_like, shape (n,)
+        Float reference estimate on the same data (e.g. ``canrls.rls.RLS`` with the
+        same ``lam``, ``alpha``, ``trace_max``).
+    configs : sequence or mapping of FixedConfig, optional
+        Explicit configurations (a mapping gives them labels). Default: every
+        combination of ``word_bits`` x ``acc_bits`` x ``input_bits`` through
+        :meth:`FixedConfig.auto`.
+    lam, alpha, trace_max : float
+        Estimator settings (as for :class:`FixedRLS`).
+    word_bits, acc_bits, input_bits : sequences of int
+        The grid of word lengths (when ``configs`` is not given).
+    phi_max, y_max, theta_max : float
+        Ranges for :meth:`FixedConfig.auto`.
+    tol : float, default 1e-3
+        Tolerance on every parameter's relative error (0.1 %).
+    floor : float or None
+        A parameter smaller than this is measured against ``floor`` instead of its
+        own size (so a zero parameter does not fail everything); ``None``: 1 % of
+        the largest :math:`|\theta_{ref}|`.
+    update : {"symmetric", "literal"}
+
+    Returns
+    -------
+    SweepResult
+        Per configuration: relative errors and saturations; the recommended (smallest
+        by state word, then accumulator, then input word) configuration within ``tol``.
+    """
+    Phi_a = np.asarray(Phi, dtype=np.float64)
+    Y_a = np.asarray(Y, dtype=np.float64)
+    ref = np.asarray(theta_ref, dtype=np.float64)
+    if Phi_a.ndim != 2:
+        raise EstimatorError(f"sweep Phi must have shape (N, n), got {Phi_a.shape}")
+    N, n = Phi_a.shape
+    if Y_a.shape != (N,) or ref.shape != (n,):
+        raise EstimatorError(
+            f"sweep Y must have shape ({N},) and theta_ref ({n},), got {Y_a.shape}, {ref.shape}"
+        )
+    fl = 0.01 * float(np.max(np.abs(ref))) if floor is None else float(floor)
+    if not fl > 0:
+        fl = np.finfo(np.float64).tiny
+    scale = np.maximum(np.abs(ref), fl)
+
+    todo: list[tuple[str, FixedConfig | None, str | None]] = []
+    if configs is None:
+        for W in word_bits:
+            for A in acc_bits:
+                for In in input_bits:
+                    label = f"W{W}/A{A}/I{In}"
+                    try:
+                        cfg = FixedConfig.auto(
+                            n, alpha, lam, phi_max=phi_max, y_max=y_max, theta_max=theta_max,
+                            word_bits=W, acc_bits=A, input_bits=In, trace_max=trace_max,
+                        )  # fmt: skip
+                        todo.append((label, cfg, None))
+                    except FixedPointError as e:
+                        todo.append((label, None, str(e)))
+    elif isinstance(configs, Mapping):
+        todo = [(str(k), v, None) for k, v in configs.items()]
+    else:
+        todo = [(c.label, c, None) for c in configs]
+
+    rows: list[SweepRow] = []
+    zero = SaturationCounts.of({})
+    for label, cfg, err in todo:
+        if cfg is not None:
+            try:
+                est = FixedRLS(cfg, n, lam, alpha, trace_max=trace_max, update=update)
+            except FixedPointError as e:
+                cfg, err = None, str(e)
+        if cfg is None:
+            rows.append(SweepRow(label, None, math.inf, (), (), zero, False, err))
+            continue
+        Pq, Yq, _ = est.quantize_inputs(Phi_a, Y_a)
+        est.run(Pq, Yq, record=False)
+        th = est.theta_float
+        rel = np.abs(th - ref) / scale
+        mx = float(rel.max())
+        rows.append(
+            SweepRow(label, cfg, mx, tuple(float(x) for x in rel), tuple(float(x) for x in th),
+                     est.saturations, bool(mx <= tol))
+        )  # fmt: skip
+    ok = [r for r in rows if r.ok]
+    rec = min(ok, key=lambda r: r.cost) if ok else None
+    return SweepResult(tuple(rows), float(tol), fl, tuple(float(x) for x in ref), rec)

@@ -1,0 +1,585 @@
+"""Estimator, status and command frames (0x300..0x321 of the default DBC).
+
+The daemon publishes what it estimates and how healthy the estimation is, and
+accepts commands, through frames described in ``canrls/data/canrls.dbc``; every
+frame is encoded and decoded through cantools' model of that DBC, so
+``cantools monitor`` shows exactly what canrls sends.
+
+==============  ======  ==========================================================
+frame           ID      content
+==============  ======  ==========================================================
+RlsEstimate     0x300   fixed-point estimate of parameter Index (float32), Valid
+RlsSigma        0x301   standard deviation of parameter Index (float32)
+RlsReference    0x302   float reference estimate of parameter Index (float32)
+RlsParamInfo    0x303   what parameter Index is: effect, component, order, equation
+RlsStatus       0x310   residual RMS, number of updates
+RlsHealth       0x311   health flags, active effects, float-vs-fixed divergence
+RlsCounters     0x312   rejected / lost frames, saturations, dropped transmissions
+RlsCommand      0x320   command to the daemon (from a tool)
+RlsCommandAck   0x321   result of the last command
+==============  ======  ==========================================================
+
+Parameter ``Index`` i is described by (``EffectId``, ``Component``, ``Order``,
+``Equation``); its name follows :data:`COMPONENTS`: component c of effect e is
+``COMPONENTS[e][c]``, e.g. (electrical, 2) is ``electrical.Ke`` and (cogging, 1,
+order 24) is ``cogging:24.cos``. ``Order`` is the harmonic order of ``cogging``
+and the 1-based index of a user term in the configuration, 0 otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from enum import IntEnum
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import can
+import cantools
+
+from canrls.errors import CommandError
+from canrls.protocol import DEFAULT_DBC, EncodeError
+
+__all__ = [
+    "EffectId",
+    "Equation",
+    "CommandCode",
+    "CommandResult",
+    "COMPONENTS",
+    "FLAG_NAMES",
+    "ParameterReport",
+    "StatusReport",
+    "Command",
+    "CommandAck",
+    "CommandFrameError",
+    "parameter_name",
+    "parse_effect",
+    "encode_parameters",
+    "encode_param_info",
+    "encode_status",
+    "encode_command",
+    "encode_ack",
+    "decode_command",
+    "FrameDecoder",
+]
+
+
+class EffectId(IntEnum):
+    """Effect identifiers, as in the DBC value table of ``EffectId``."""
+
+    NONE = 0
+    INERTIA = 1
+    VISCOUS = 2
+    COULOMB = 3
+    STRIBECK = 4
+    OFFSET = 5
+    UNBALANCE = 6
+    COGGING = 7
+    ELECTRICAL = 8
+    USER = 9
+
+    @property
+    def effect_name(self) -> str:
+        """The effect's name on the command line (``"inertia"``, ``"cogging"``...)."""
+        return self.name.lower()
+
+
+class Equation(IntEnum):
+    """The equation a parameter belongs to."""
+
+    MECHANICAL = 0
+    ELECTRICAL = 1
+
+
+class CommandCode(IntEnum):
+    """Commands a tool can send in ``RlsCommand``."""
+
+    RESET = 1
+    FREEZE = 2
+    RESUME = 3
+    ADD_EFFECT = 4
+    REMOVE_EFFECT = 5
+    SET_LAMBDA = 6
+
+
+class CommandResult(IntEnum):
+    """Result codes of ``RlsCommandAck``."""
+
+    OK = 0
+    UNKNOWN_COMMAND = 1
+    MALFORMED = 2
+    DISABLED = 3
+    UNKNOWN_EFFECT = 4
+    BAD_VALUE = 5
+    NOT_APPLICABLE = 6
+
+
+#: Component symbols of each effect (component index -> parameter symbol).
+COMPONENTS: dict[EffectId, tuple[str, ...]] = {
+    EffectId.INERTIA: ("J",),
+    EffectId.VISCOUS: ("B",),
+    EffectId.COULOMB: ("Tc",),
+    EffectId.STRIBECK: ("Ts",),
+    EffectId.OFFSET: ("T0",),
+    EffectId.UNBALANCE: ("sin", "cos"),
+    EffectId.COGGING: ("sin", "cos"),
+    EffectId.ELECTRICAL: ("R", "L", "Ke"),
+    EffectId.USER: ("c",),
+}
+
+#: Health flags of ``RlsHealth``, in bit order (StatusReport field names).
+FLAG_NAMES: tuple[str, ...] = ("windup", "low_excitation", "saturation", "frame_loss",
+                               "frozen", "diverged", "bus_fault")
+_FLAG_SIGNALS = ("Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen", "Diverged",
+                 "BusFault")
+
+
+def parameter_name(effect: EffectId, component: int, order: int = 0,
+                   user_names: Sequence[str] = ()) -> str:
+    """Parameter name from its (effect, component, order): ``"cogging:24.sin"``, ``"viscous.B"``.
+
+    User terms are named ``user:NAME.c`` with NAME = ``user_names[order - 1]`` when
+    given, else ``user:ORDER.c``.
+    """
+    effect = EffectId(effect)
+    syms = COMPONENTS.get(effect, ())
+    sym = syms[component] if 0 <= component < len(syms) else f"c{component}"
+    if effect is EffectId.COGGING:
+        return f"cogging:{order}.{sym}"
+    if effect is EffectId.USER:
+        label = user_names[order - 1] if 0 < order <= len(user_names) else str(order)
+        return f"user:{label}.{sym}"
+    return f"{effect.effect_name}.{sym}"
+
+
+def parse_effect(name: str) -> tuple[EffectId, int]:
+    """``"cogging:24"`` -> (COGGING, 24); ``"viscous"`` -> (VISCOUS, 0); ``"user:3"`` -> (USER, 3).
+
+    Raises :class:`CommandError` (result UNKNOWN_EFFECT / BAD_VALUE) for an unknown name
+    or a missing / malformed order.
+    """
+    base, _, arg = name.strip().partition(":")
+    try:
+        eid = EffectId[base.upper()]
+    except KeyError:
+        eid = EffectId.NONE
+    if eid is EffectId.NONE:
+        raise CommandFrameError(f"unknown effect {name!r} (expected one of "
+                                f"{', '.join(e.effect_name for e in EffectId if e)})",
+                                CommandResult.UNKNOWN_EFFECT)
+    if eid in (EffectId.COGGING, EffectId.USER):
+        if not arg.isdigit() or not 0 < int(arg) <= 0xFFFF:
+            raise CommandFrameError(f"effect {name!r}: {eid.effect_name} needs an order "
+                                    f"1..65535 ({eid.effect_name}:K)", CommandResult.BAD_VALUE)
+        return eid, int(arg)
+    if arg:
+        raise CommandFrameError(f"effect {name!r}: {eid.effect_name} takes no order",
+                                CommandResult.BAD_VALUE)
+    return eid, 0
+
+
+class CommandFrameError(CommandError):
+    """A command frame is rejected; ``result`` is the :class:`CommandResult` to acknowledge
+    with and ``code`` the raw command byte (None when the frame has none)."""
+
+    def __init__(self, message: str, result: CommandResult, code: int | None = None) -> None:
+        super().__init__(message)
+        self.result = result
+        self.code = code
+
+
+# ---------------------------------------------------------------------------
+# Value objects
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ParameterReport:
+    """One estimated parameter, as published on the bus (float32 precision on the wire).
+
+    ``fixed_value`` is the fixed-point estimate converted to SI, ``float_value`` the
+    float reference, ``sigma`` its standard deviation; ``None`` when unknown.
+    ``valid`` is False while the estimate is not meaningful (sent as Valid = 0).
+    """
+
+    index: int
+    name: str = ""
+    effect_id: EffectId = EffectId.NONE
+    component: int = 0
+    order: int = 0
+    equation: Equation = Equation.MECHANICAL
+    fixed_value: float | None = None
+    sigma: float | None = None
+    float_value: float | None = None
+    unit: str = ""
+    valid: bool = True
+
+
+@dataclass(frozen=True)
+class StatusReport:
+    """Estimator health as published in RlsStatus, RlsHealth and RlsCounters.
+
+    ``active_effects`` is a bitmask: bit ``EffectId - 1`` set when the effect is in
+    the model. The four counters wrap at 16 bits on the wire, ``update_count`` at 32.
+    """
+
+    residual_rms: float = 0.0
+    update_count: int = 0
+    windup: bool = False
+    low_excitation: bool = False
+    saturation: bool = False
+    frame_loss: bool = False
+    frozen: bool = False
+    diverged: bool = False
+    bus_fault: bool = False
+    active_effects: int = 0
+    divergence: float = 0.0
+    frames_rejected: int = 0
+    frames_lost: int = 0
+    saturations: int = 0
+    tx_dropped: int = 0
+
+    @property
+    def flags(self) -> tuple[str, ...]:
+        """Names of the health flags that are set."""
+        return tuple(f for f in FLAG_NAMES if getattr(self, f))
+
+    def effects(self) -> frozenset[EffectId]:
+        """The active effects (decoded bitmask)."""
+        return frozenset(e for e in EffectId if e and self.active_effects >> (e - 1) & 1)
+
+    @staticmethod
+    def effect_mask(effects: Iterable[EffectId | int]) -> int:
+        """Bitmask of ``effects`` (bit EffectId - 1)."""
+        mask = 0
+        for e in effects:
+            e = EffectId(e)
+            if e:
+                mask |= 1 << (e - 1)
+        return mask
+
+
+@dataclass(frozen=True)
+class Command:
+    """A command to the daemon: ``code`` with its effect and order, or lambda."""
+
+    code: CommandCode
+    effect: EffectId = EffectId.NONE
+    order: int = 0
+    lam: float = 0.0
+
+    def __str__(self) -> str:
+        c = self.code.name.lower()
+        if self.code in (CommandCode.ADD_EFFECT, CommandCode.REMOVE_EFFECT):
+            e = self.effect.effect_name + (f":{self.order}" if self.order else "")
+            return f"{c} {e}"
+        if self.code is CommandCode.SET_LAMBDA:
+            return f"{c} {self.lam:.9g}"
+        return c
+
+
+@dataclass(frozen=True)
+class CommandAck:
+    """The acknowledgement of a command (``command`` is the raw code, maybe unknown)."""
+
+    command: int
+    result: CommandResult
+    counter: int = 0
+
+
+# ---------------------------------------------------------------------------
+# Encoding
+# ---------------------------------------------------------------------------
+
+
+@cache
+def _database(path: str) -> Any:
+    return cantools.database.load_file(path, database_format="dbc", strict=True)
+
+
+def _db(dbc: str | Path | None = None) -> Any:
+    return _database(str(DEFAULT_DBC if dbc is None else dbc))
+
+
+def _f32(x: float | None, lo: float, hi: float) -> float:
+    """A float for a float32 signal: None -> NaN, NaN kept, saturated into [lo, hi]."""
+    if x is None:
+        return math.nan
+    x = float(x)
+    if math.isnan(x):
+        return x
+    return min(max(x, lo), hi)
+
+
+def _message(name: str, values: dict[str, Any], timestamp: float, dbc: str | Path | None
+             ) -> can.Message:
+    msg = _db(dbc).get_message_by_name(name)
+    try:
+        data = msg.encode(values, scaling=True, strict=True)
+    except (cantools.database.EncodeError, KeyError, ValueError) as e:
+        raise EncodeError(f"cannot encode {name}: {e}", reason="range") from e
+    return can.Message(arbitration_id=msg.frame_id, is_extended_id=msg.is_extended_frame,
+                       data=data, dlc=msg.length, timestamp=timestamp)
+
+
+def _index(report: ParameterReport) -> int:
+    if not 0 <= report.index <= 255:
+        raise EncodeError(f"parameter {report.name or report.index}: index {report.index} "
+                          f"outside 0..255", reason="range")
+    return report.index
+
+
+_F32_MAX = 3.4e38
+
+
+def encode_parameters(reports: Iterable[ParameterReport], counter: int, *,
+                      timestamp: float = 0.0, dbc: str | Path | None = None
+                      ) -> list[can.Message]:
+    """RlsEstimate, RlsSigma and RlsReference of every parameter (3 frames per index).
+
+    All frames carry ``counter`` mod 16. An estimate that is ``None``/NaN or not
+    ``valid`` is sent as 0 with Valid = 0; values are saturated to the float32 range
+    of the DBC; an unknown sigma or float value is sent as NaN.
+    """
+    c = counter % 16
+    out = []
+    for r in reports:
+        i = _index(r)
+        fixed = r.fixed_value
+        valid = bool(r.valid) and fixed is not None and not math.isnan(fixed)
+        out.append(_message("RlsEstimate", {
+            "Index": i, "Counter": c, "Valid": int(valid),
+            "FixedValue": _f32(fixed, -_F32_MAX, _F32_MAX) if valid else 0.0}, timestamp, dbc))
+        out.append(_message("RlsSigma", {
+            "Index": i, "Counter": c, "Sigma": _f32(r.sigma, 0.0, _F32_MAX)}, timestamp, dbc))
+        out.append(_message("RlsReference", {
+            "Index": i, "Counter": c,
+            "FloatValue": _f32(r.float_value, -_F32_MAX, _F32_MAX)}, timestamp, dbc))
+    return out
+
+
+def encode_param_info(reports: Sequence[ParameterReport], *, timestamp: float = 0.0,
+                      dbc: str | Path | None = None) -> list[can.Message]:
+    """RlsParamInfo of every parameter (Count = ``len(reports)``)."""
+    n = len(reports)
+    if n > 255:
+        raise EncodeError(f"{n} parameters: RlsParamInfo.Count holds at most 255",
+                          reason="range")
+    return [_message("RlsParamInfo", {
+        "Index": _index(r), "Count": n, "EffectId": int(r.effect_id),
+        "Component": r.component, "Order": r.order, "Equation": int(r.equation)},
+        timestamp, dbc) for r in reports]
+
+
+def encode_status(status: StatusReport, counter: int, *, timestamp: float = 0.0,
+                  dbc: str | Path | None = None) -> list[can.Message]:
+    """RlsStatus, RlsHealth and RlsCounters (counters wrap at 16 bits, UpdateCount at 32)."""
+    s = status
+    health: dict[str, Any] = {sig: int(bool(getattr(s, f)))
+                              for f, sig in zip(FLAG_NAMES, _FLAG_SIGNALS, strict=True)}
+    health.update(Counter=counter % 16, ActiveEffects=s.active_effects & 0xFFFF,
+                  Divergence=_f32(s.divergence, 0.0, _F32_MAX))
+    return [
+        _message("RlsStatus", {"ResidualRms": _f32(s.residual_rms, 0.0, _F32_MAX),
+                               "UpdateCount": s.update_count % (1 << 32)}, timestamp, dbc),
+        _message("RlsHealth", health, timestamp, dbc),
+        _message("RlsCounters", {"FramesRejected": s.frames_rejected % 65536,
+                                 "FramesLost": s.frames_lost % 65536,
+                                 "Saturations": s.saturations % 65536,
+                                 "TxDropped": s.tx_dropped % 65536}, timestamp, dbc),
+    ]
+
+
+def encode_command(command: Command | CommandCode | int, effect: EffectId | int = 0,
+                   order: int = 0, lam: float = 0.0, *, timestamp: float = 0.0,
+                   dbc: str | Path | None = None) -> can.Message:
+    """An RlsCommand frame: ``encode_command(Command(...))`` or ``encode_command(code, ...)``.
+
+    >>> encode_command(CommandCode.SET_LAMBDA, lam=0.999).data.hex()
+    '0600000077be7f3f'
+    """
+    if isinstance(command, Command):
+        code, effect, order, lam = int(command.code), command.effect, command.order, command.lam
+    else:
+        code = int(command)
+    return _message("RlsCommand", {"Command": code, "EffectId": int(effect), "Order": int(order),
+                                   "Lambda": float(lam)}, timestamp, dbc)
+
+
+def encode_ack(command: int, result: CommandResult | int, counter: int, *,
+               timestamp: float = 0.0, dbc: str | Path | None = None) -> can.Message:
+    """An RlsCommandAck frame for the raw command code ``command``."""
+    return _message("RlsCommandAck", {"Command": int(command) & 0xFF, "Result": int(result),
+                                      "Counter": counter % 16}, timestamp, dbc)
+
+
+# ---------------------------------------------------------------------------
+# Decoding
+# ---------------------------------------------------------------------------
+
+
+def decode_command(msg: can.Message, *, dbc: str | Path | None = None) -> Command:
+    """Validate and decode an RlsCommand frame.
+
+    Raises :class:`CommandFrameError` (a :class:`~canrls.errors.CommandError`) with
+    ``.result``: MALFORMED for another ID, a remote/error frame or a DLC other than 8;
+    UNKNOWN_COMMAND for an unknown command code; UNKNOWN_EFFECT for an effect id
+    outside 1..9 (add/remove); BAD_VALUE for a missing or spurious order (cogging and
+    user need one, others take none) or a lambda outside (0, 1].
+    """
+    m = _db(dbc).get_message_by_name("RlsCommand")
+    if msg.arbitration_id != m.frame_id or msg.is_extended_id != m.is_extended_frame:
+        raise CommandFrameError(f"frame 0x{msg.arbitration_id:X} is not RlsCommand "
+                                f"(0x{m.frame_id:X})", CommandResult.MALFORMED)
+    if msg.is_error_frame or msg.is_remote_frame:
+        raise CommandFrameError("RlsCommand: remote or error frame", CommandResult.MALFORMED)
+    data = bytes(msg.data)
+    code = data[0] if data else None
+    if len(data) != m.length:
+        raise CommandFrameError(f"RlsCommand: DLC {len(data)}, expected {m.length}",
+                                CommandResult.MALFORMED, code)
+    v = m.decode(data, decode_choices=False, scaling=True)
+    try:
+        cc = CommandCode(int(v["Command"]))
+    except ValueError:
+        raise CommandFrameError(f"RlsCommand: unknown command code {v['Command']}",
+                                CommandResult.UNKNOWN_COMMAND, code) from None
+    if cc in (CommandCode.ADD_EFFECT, CommandCode.REMOVE_EFFECT):
+        eid, order = int(v["EffectId"]), int(v["Order"])
+        if _enum(EffectId, eid, EffectId.NONE) is EffectId.NONE:
+            raise CommandFrameError(f"RlsCommand {cc.name.lower()}: unknown effect id {eid}",
+                                    CommandResult.UNKNOWN_EFFECT, code)
+        effect = EffectId(eid)
+        needs = effect in (EffectId.COGGING, EffectId.USER)
+        if needs and order == 0:
+            raise CommandFrameError(f"RlsCommand {cc.name.lower()} {effect.effect_name}: "
+                                    f"order 0, {effect.effect_name} needs an order >= 1",
+                                    CommandResult.BAD_VALUE, code)
+        if not needs and order != 0:
+            raise CommandFrameError(f"RlsCommand {cc.name.lower()} {effect.effect_name}: "
+                                    f"order {order}, {effect.effect_name} takes none",
+                                    CommandResult.BAD_VALUE, code)
+        return Command(cc, effect, order)
+    if cc is CommandCode.SET_LAMBDA:
+        lam = float(v["Lambda"])
+        if not (0.0 < lam <= 1.0):  # also rejects NaN
+            raise CommandFrameError(f"RlsCommand set_lambda: lambda = {lam!r} outside (0, 1]",
+                                    CommandResult.BAD_VALUE, code)
+        return Command(cc, lam=lam)
+    return Command(cc)
+
+
+@dataclass
+class FrameDecoder:
+    """Turn received estimator frames back into objects (for the monitor).
+
+    Feed every received ``can.Message`` to :meth:`feed`; frames of the same parameter
+    index accumulate into one :class:`ParameterReport` (``parameters``), the three
+    status frames into one :class:`StatusReport` (``status``). Acknowledgements go to
+    ``acks`` (the latest last) and commands seen on the bus to ``commands``. Frames
+    of other IDs are counted in ``ignored``; frames of a known ID that cantools
+    cannot decode (wrong length) in ``malformed``.
+
+    ``user_names`` name user terms by their order (1-based); ``units`` maps parameter
+    names to units for the reports.
+    """
+
+    user_names: Sequence[str] = ()
+    units: Mapping[str, str] = field(default_factory=dict)
+    dbc: str | Path | None = None
+    parameters: dict[int, ParameterReport] = field(default_factory=dict)
+    status: StatusReport | None = None
+    count: int | None = None
+    acks: list[CommandAck] = field(default_factory=list)
+    commands: list[Command] = field(default_factory=list)
+    ignored: int = 0
+    malformed: int = 0
+
+    def __post_init__(self) -> None:
+        db = _db(self.dbc)
+        self._by_id = {m.frame_id: m for m in db.messages if m.frame_id >= 0x300}
+
+    def feed(self, msg: can.Message
+             ) -> ParameterReport | StatusReport | CommandAck | Command | None:
+        """Take one frame; return the object it updated (None if ignored or malformed)."""
+        m = self._by_id.get(msg.arbitration_id)
+        if m is None or msg.is_extended_id != m.is_extended_frame or msg.is_error_frame \
+                or msg.is_remote_frame:
+            self.ignored += 1
+            return None
+        if m.name == "RlsCommand":
+            try:
+                cmd = decode_command(msg, dbc=self.dbc)
+            except CommandError:
+                self.malformed += 1
+                return None
+            self.commands.append(cmd)
+            return cmd
+        try:
+            v = m.decode(bytes(msg.data), decode_choices=False, scaling=True)
+        except cantools.database.DecodeError:
+            self.malformed += 1
+            return None
+        name = m.name
+        if name in ("RlsEstimate", "RlsSigma", "RlsReference", "RlsParamInfo"):
+            i = int(v["Index"])
+            r = self.parameters.get(i) or ParameterReport(i)
+            if name == "RlsEstimate":
+                valid = bool(v["Valid"])
+                r = replace(r, fixed_value=float(v["FixedValue"]) if valid else None, valid=valid)
+            elif name == "RlsSigma":
+                r = replace(r, sigma=_nan_none(v["Sigma"]))
+            elif name == "RlsReference":
+                r = replace(r, float_value=_nan_none(v["FloatValue"]))
+            else:
+                self.count = int(v["Count"])
+                eid = _enum(EffectId, v["EffectId"], EffectId.NONE)
+                comp, order = int(v["Component"]), int(v["Order"])
+                pname = parameter_name(eid, comp, order, self.user_names) if eid else ""
+                r = replace(r, effect_id=eid, component=comp, order=order,
+                            equation=Equation(int(v["Equation"])), name=pname,
+                            unit=self.units.get(pname, r.unit))
+            self.parameters[i] = r
+            return r
+        if name == "RlsCommandAck":
+            res = int(v["Result"])
+            ack = CommandAck(int(v["Command"]), _enum(CommandResult, res, CommandResult.MALFORMED),
+                             int(v["Counter"]))
+            self.acks.append(ack)
+            return ack
+        s = self.status or StatusReport()
+        if name == "RlsStatus":
+            s = replace(s, residual_rms=float(v["ResidualRms"]), update_count=int(v["UpdateCount"]))
+        elif name == "RlsHealth":
+            flags = {f: bool(v[sig]) for f, sig in zip(FLAG_NAMES, _FLAG_SIGNALS, strict=True)}
+            s = replace(s, active_effects=int(v["ActiveEffects"]),
+                        divergence=float(v["Divergence"]), **flags)
+        else:  # RlsCounters
+            s = replace(s, frames_rejected=int(v["FramesRejected"]),
+                        frames_lost=int(v["FramesLost"]), saturations=int(v["Saturations"]),
+                        tx_dropped=int(v["TxDropped"]))
+        self.status = s
+        return s
+
+    def feed_all(self, messages: Iterable[can.Message]) -> None:
+        """Feed many frames."""
+        for m in messages:
+            self.feed(m)
+
+    def table(self) -> list[ParameterReport]:
+        """The parameters sorted by index."""
+        return [self.parameters[i] for i in sorted(self.parameters)]
+
+
+def _enum(kind: Any, value: Any, default: Any) -> Any:
+    try:
+        return kind(int(value))
+    except ValueError:
+        return default
+
+
+def _nan_none(x: Any) -> float | None:
+    f = float(x)
+    return None if math.isnan(f) else f

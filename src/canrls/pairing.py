@@ -1,0 +1,333 @@
+"""Pairing: from decoded feedback frames to samples, one per control period.
+
+Current and speed arrive in separate frames (``DriveCurrent`` and ``DriveSpeed`` in
+the default DBC), each once per control period. :class:`Pairer` groups the frames
+of one period and emits a :class:`~canrls.signals.Signals` row when every mapped
+message of that period is present. The rules:
+
+* **Same period.** Two frames belong to the same period when their timestamps lie
+  within ``tolerance`` of each other (default: half the period, from the DBC's
+  ``GenMsgCycleTime`` or configured) and, when both carry an alive counter, their
+  counters are equal (the drive sends one counter value per period).
+* **Complete or nothing.** A sample needs a frame of every mapped message of its
+  period (current, speed, and the messages of position and voltage if they are
+  mapped elsewhere). A half without its partner is dropped and counted
+  (``unpaired``; the missing frames count as ``lost``); a sample is never built
+  from the data of another period.
+* **Waiting.** An incomplete period waits for its partners until a frame newer
+  than ``tolerance + hold * period`` after it arrives (``hold`` = 1: a frame
+  swapped with its neighbour of the next period still pairs). Samples are emitted
+  in time order, so a complete period waits behind an older incomplete one.
+* **Faults.** A second frame of the same message for a period is ``duplicated``; a
+  frame whose period was already emitted or given up is ``late``; both are dropped.
+  A frame accepted after a frame of a later period had arrived counts as
+  ``reordered`` (it still pairs). Whole periods missing between two emitted or
+  dropped periods count as ``lost`` frames (one per mapped message).
+* **Timestamp.** A sample's timestamp is that of the later partner (the time at
+  which the sample became complete).
+
+The pairer is chunk-invariant: frames are processed one at a time in stream order
+(``MessageFrames.index``) with state carried across :meth:`Pairer.push` calls, so
+splitting the stream anywhere gives the same samples (after :meth:`Pairer.flush`
+at the end of the stream).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+import numpy.typing as npt
+
+from canrls.errors import ConfigError
+from canrls.protocol import DecodedFrames, Protocol
+from canrls.signals import ROLES, Signals
+
+__all__ = ["Pairer", "PairingCounts", "PAIRING_KINDS"]
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+#: What :class:`PairingCounts` counts per message (frames).
+PAIRING_KINDS: tuple[str, ...] = ("unpaired", "lost", "duplicated", "reordered", "late")
+_UNPAIRED, _LOST, _DUP, _REORD, _LATE = range(5)
+
+_CAPACITY = 64  # open periods kept at most (the oldest is forced out beyond that)
+
+
+@dataclass
+class PairingCounts:
+    """Counts of a :class:`Pairer` (running totals).
+
+    ``samples`` emitted; frames ``unpaired`` (dropped: their period never completed),
+    ``lost`` (frames the pairer never saw: missing partners and whole missing
+    periods -- lost on the bus or rejected by the decoder), ``duplicated`` and
+    ``late`` (dropped), ``reordered`` (arrived after a later period's frame, still
+    paired). ``per_message[name][kind]`` splits the frame counts by message.
+    """
+
+    samples: int = 0
+    per_message: dict[str, dict[str, int]] = field(default_factory=dict)
+
+    def _total(self, kind: str) -> int:
+        return sum(m[kind] for m in self.per_message.values())
+
+    @property
+    def unpaired(self) -> int:
+        return self._total("unpaired")
+
+    @property
+    def lost(self) -> int:
+        return self._total("lost")
+
+    @property
+    def duplicated(self) -> int:
+        return self._total("duplicated")
+
+    @property
+    def reordered(self) -> int:
+        return self._total("reordered")
+
+    @property
+    def late(self) -> int:
+        return self._total("late")
+
+    def as_dict(self) -> dict[str, int]:
+        """``{"samples": .., "unpaired": .., "lost": .., ...}`` (totals)."""
+        return {"samples": self.samples, **{k: self._total(k) for k in PAIRING_KINDS}}
+
+    def summary(self) -> str:
+        return ", ".join(f"{k} {v}" for k, v in self.as_dict().items())
+
+
+@numba.njit(cache=True, nogil=True)
+def _pair_kernel(msg: I64, t: F64, cnt: I64, vals: F64, role_msg: I64, n_msg: int,
+                 tol: float, wait: float, period: float, flush: bool,
+                 gf: F64, gi: I64, sf: F64, si: I64, counts: I64,
+                 out_t: F64, out_v: F64) -> int:  # pragma: no cover
+    """Process frames one at a time; return the number of samples written to out_*.
+
+    Open periods are the slots 0 .. gi[0, 0]-1 (kept compact):
+    gi[1 + g] = [unused, counter (-1: none), mask of messages present];
+    gf[g] = [t_min, t_max, values of the roles...].
+    sf = [newest frame time, t_min and t_max of the last finalised period, whether there
+    is one (0/1)]; si = per message: -2 if absent from that period, else its counter
+    (-1: none).
+    counts[kind, message].
+    """
+    n_roles = len(role_msg)
+    full = (1 << n_msg) - 1
+    n_out = 0
+    G = gf.shape[0]
+    n = len(t)
+    for f in range(n + (1 if flush else 0)):
+        if f < n:
+            m = msg[f]
+            tf = t[f]
+            cf = cnt[f]
+            newest = sf[0]
+            # --- find the open period this frame belongs to (closest in time)
+            best = -1
+            best_d = np.inf
+            for g in range(gi[0, 0]):
+                if tf < gf[g, 1] - tol or tf > gf[g, 0] + tol:
+                    continue
+                if cf >= 0 and gi[1 + g, 1] >= 0 and gi[1 + g, 1] != cf:
+                    continue
+                d = abs(tf - gf[g, 0])
+                if d < best_d:
+                    best_d = d
+                    best = g
+            if best >= 0:
+                if gi[1 + best, 2] & (1 << m):
+                    counts[2, m] += 1  # duplicated
+                    continue
+                g = best
+            else:
+                if sf[3] > 0 and tf <= sf[1] + tol:
+                    # at or before the last finalised period: a repeat of its frame, or late
+                    if (si[m] != -2 and tf >= sf[2] - tol
+                            and (cf < 0 or si[m] < 0 or si[m] == cf)):
+                        counts[2, m] += 1
+                    else:
+                        counts[4, m] += 1
+                    continue
+                if tf < newest - wait:
+                    counts[4, m] += 1  # would be given up at once
+                    continue
+                # a free slot exists: finalisation keeps fewer than G periods open
+                g = gi[0, 0]
+                gi[0, 0] += 1
+                gi[1 + g, 1] = -1
+                gi[1 + g, 2] = 0
+                gf[g, 0] = tf
+                gf[g, 1] = tf
+                for r in range(n_roles):
+                    gf[g, 2 + r] = np.nan
+            if tf + tol < newest:
+                counts[3, m] += 1  # reordered: a later period's frame came first
+            gi[1 + g, 2] |= 1 << m
+            if cf >= 0 and gi[1 + g, 1] < 0:
+                gi[1 + g, 1] = cf
+            if tf < gf[g, 0]:
+                gf[g, 0] = tf
+            if tf > gf[g, 1]:
+                gf[g, 1] = tf
+            for r in range(n_roles):
+                if role_msg[r] == m:
+                    gf[g, 2 + r] = vals[f, r]
+            if tf > newest:
+                sf[0] = tf
+        # --- finalise periods in time order
+        while True:
+            oldest = -1
+            n_open = gi[0, 0]
+            for g in range(n_open):
+                if oldest < 0 or gf[g, 0] < gf[oldest, 0]:
+                    oldest = g
+            if oldest < 0:
+                break
+            g = oldest
+            complete = gi[1 + g, 2] == full
+            expired = sf[0] - gf[g, 0] > wait
+            if not (complete or expired or (f >= n) or n_open >= G):
+                break
+            if sf[3] > 0 and period > 0.0:
+                gap = int(np.floor((gf[g, 0] - sf[1]) / period + 0.5)) - 1
+                if gap > 0:
+                    for k in range(n_msg):
+                        counts[1, k] += gap
+            if complete:
+                out_t[n_out] = gf[g, 1]
+                for r in range(n_roles):
+                    out_v[n_out, r] = gf[g, 2 + r]
+                n_out += 1
+            else:
+                for k in range(n_msg):
+                    if gi[1 + g, 2] & (1 << k):
+                        counts[0, k] += 1
+                    else:
+                        counts[1, k] += 1
+            sf[1] = gf[g, 0]
+            sf[2] = gf[g, 1]
+            sf[3] = 1.0
+            for k in range(n_msg):
+                si[k] = gi[1 + g, 1] if (gi[1 + g, 2] >> k) & 1 else -2
+            last = n_open - 1  # keep the open slots compact: move the last one here
+            if g != last:
+                gf[g, :] = gf[last, :]
+                gi[1 + g, :] = gi[1 + last, :]
+            gi[0, 0] = last
+    return n_out
+
+
+class Pairer:
+    """Pair decoded feedback frames into samples (see the module docstring for the rules).
+
+    Parameters
+    ----------
+    protocol : the :class:`~canrls.protocol.Protocol` whose messages are paired.
+    period : control period [s]; default: the mapped messages' ``GenMsgCycleTime``.
+    tolerance : largest time difference [s] between frames of one period
+        (default ``period / 2``).
+    hold : periods an incomplete period waits for a late partner (default 1).
+    match_counters : require equal alive counters within a period when the messages
+        carry counters of the same range (default True).
+
+    Raises
+    ------
+    ConfigError
+        No period is configured and the DBC gives no ``GenMsgCycleTime``.
+    """
+
+    def __init__(self, protocol: Protocol, *, period: float | None = None,
+                 tolerance: float | None = None, hold: int = 1,
+                 match_counters: bool = True) -> None:
+        self.protocol = protocol
+        per = period if period is not None else protocol.period
+        if per is None or not np.isfinite(per) or per <= 0:
+            raise ConfigError(
+                f"pairing needs the control period: DBC {protocol.dbc_path} gives no "
+                f"GenMsgCycleTime for {', '.join(m.name for m in protocol.messages)}; "
+                f"configure the period")
+        self.period = float(per)
+        self.tolerance = float(tolerance) if tolerance is not None else self.period / 2
+        if not (0 < self.tolerance < self.period):
+            raise ConfigError(f"pairing tolerance must lie in (0, period={self.period}), "
+                              f"got {self.tolerance}")
+        if hold < 0:
+            raise ConfigError(f"pairing hold must be >= 0 periods, got {hold}")
+        self.hold = int(hold)
+        self.messages: tuple[str, ...] = tuple(m.name for m in protocol.messages)
+        self.roles: tuple[str, ...] = tuple(r for r in ROLES if protocol.has(r))
+        self._msg_index = {name: k for k, name in enumerate(self.messages)}
+        self._role_msg = np.array([self._msg_index[protocol.roles[r].message]
+                                   for r in self.roles], np.int64)
+        moduli = {m.counter_modulo for m in protocol.messages}
+        self.match_counters = bool(match_counters) and None not in moduli and len(moduli) == 1
+        K, R = len(self.messages), len(self.roles)
+        self._gf = np.zeros((_CAPACITY, 2 + R), np.float64)
+        self._gi = np.zeros((_CAPACITY + 1, 3), np.int64)
+        self._sf = np.array([-np.inf, np.nan, np.nan, 0.0])
+        self._si = np.full(K, -2, np.int64)
+        self._counts = np.zeros((len(PAIRING_KINDS), K), np.int64)
+        self._samples = 0
+
+    @property
+    def counts(self) -> PairingCounts:
+        """Running totals (a snapshot)."""
+        return PairingCounts(self._samples, {
+            name: {kind: int(self._counts[j, k]) for j, kind in enumerate(PAIRING_KINDS)}
+            for k, name in enumerate(self.messages)})
+
+    @property
+    def pending(self) -> int:
+        """Periods still open (waiting for a partner or behind an older open period)."""
+        return int(self._gi[0, 0])
+
+    def push(self, decoded: DecodedFrames) -> Signals:
+        """Add one decoded block; return the samples completed by it (possibly none)."""
+        return self._run(decoded, flush=False)
+
+    def flush(self) -> Signals:
+        """End of stream: emit the complete periods still waiting, drop the incomplete ones."""
+        return self._run(None, flush=True)
+
+    def _run(self, decoded: DecodedFrames | None, flush: bool) -> Signals:
+        K, R = len(self.messages), len(self.roles)
+        if decoded is None:
+            msg = np.zeros(0, np.int64)
+            t = np.zeros(0)
+            cnt = np.zeros(0, np.int64)
+            vals = np.zeros((0, R))
+        else:
+            parts = [decoded[name] for name in self.messages]
+            index = np.concatenate([p.index for p in parts])
+            order = np.argsort(index, kind="stable")
+            msg = np.concatenate([np.full(len(p), k, np.int64)
+                                  for k, p in enumerate(parts)])[order]
+            t = np.concatenate([p.t for p in parts])[order]
+            if self.match_counters:
+                cnt = np.concatenate([p.counter for p in parts])[order]
+            else:
+                cnt = np.full(len(t), -1, np.int64)
+            vals = np.full((len(t), R), np.nan)
+            start = 0
+            for p in parts:
+                for j, role in enumerate(self.roles):
+                    if role in p.values:
+                        vals[start:start + len(p), j] = p.values[role]
+                start += len(p)
+            vals = vals[order]
+        cap = len(t) + _CAPACITY
+        out_t = np.empty(cap)
+        out_v = np.empty((cap, R))
+        n = _pair_kernel(msg, t, cnt, vals, self._role_msg, K, self.tolerance,
+                         self.tolerance + self.hold * self.period, self.period, flush,
+                         self._gf, self._gi, self._sf, self._si, self._counts, out_t, out_v)
+        self._samples += n
+        cols: Mapping[str, F64] = {role: out_v[:n, j].copy() for j, role in enumerate(self.roles)}
+        return Signals(out_t[:n].copy(), cols["current"], cols["speed"],
+                       cols.get("position"), cols.get("voltage"))

@@ -1,0 +1,554 @@
+r"""The pure pipeline: samples -> regressors -> float and fixed RLS -> estimates.
+
+:class:`Pipeline` is shared by the live daemon (``canrls run``) and the offline replay
+(``canrls fit``, ``canrls diagnose``). It takes :class:`~canrls.signals.Signals`
+blocks of any size and carries every state across them, sample by sample in compiled
+kernels, so the same samples give the same parameters bit for bit whatever the block
+sizes (the replay reads 64 k frames at a time, the daemon whatever has arrived).
+
+Per equation of the model (mechanical, and electrical when present):
+
+1. the :class:`~canrls.model.RegressorBuilder` filters target and columns with the
+   state-variable filter and normalises them by powers of two;
+2. samples inside the filter's warm-up (after the start, a reset or a gap in the
+   sample times) are not used: the filter's zero initial state does not match the
+   signals there, so the filtered equation does not hold yet;
+3. the float reference :class:`~canrls.rls.RLS` and the fixed-point
+   :class:`~canrls.fixed.FixedRLS` (inputs quantised at the boundary) update on the
+   same rows;
+4. the sufficient statistics (``sum phi phi'``, ``sum phi y``, ``sum y^2``) accumulate,
+   so that the residual of the final estimate over all data, the fit and
+   :math:`R^2` come without a second pass, in memory independent of the log length.
+
+Goodness of fit, as MATLAB's ``compare``:
+
+.. math::
+
+    \mathrm{fit} = 100\,\Big(1 - \frac{\lVert y - \Phi\hat\theta\rVert}
+                                    {\lVert y - \bar y\rVert}\Big), \qquad
+    R^2 = 1 - \frac{\lVert y - \Phi\hat\theta\rVert^2}{\lVert y - \bar y\rVert^2}
+
+computed on the filtered target, in the target's unit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numba
+import numpy as np
+import numpy.typing as npt
+
+from canrls.errors import ConfigError
+from canrls.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
+from canrls.model import Equation, Model
+from canrls.rls import RLS, RLSFlag
+from canrls.signals import Signals
+
+__all__ = [
+    "EstimatorSettings",
+    "ParameterEstimate",
+    "EquationFit",
+    "Estimates",
+    "EquationBlock",
+    "PipelineBlock",
+    "EquationEstimator",
+    "Pipeline",
+]
+
+F64 = npt.NDArray[np.float64]
+
+
+# ------------------------------------------------------------------------ settings
+@dataclass(frozen=True)
+class EstimatorSettings:
+    """Estimator settings shared by the float and the fixed-point RLS.
+
+    Attributes
+    ----------
+    lam : forgetting factor :math:`\\lambda \\in (1/2, 1]` (memory ``1/(1-lam)`` samples)
+    alpha : ridge weight, :math:`P_0 = I/\\alpha`, in normalised units
+    trace_max : bound on trace P (``None``: ``n/alpha``, the prior's trace)
+    word_bits, acc_bits, input_bits : fixed-point words (``input_bits=None``: ``word_bits``)
+    theta_max : bound of the normalised parameters for the fixed-point theta format
+    fixed_overrides : Q formats overriding the automatic choice (``{"P": QFormat(32, 24)}``)
+    warmup_s : seconds of filter warm-up not used for estimation (``None``: 5 time
+        constants of the SVF, ``5 / (zeta * wc)``)
+    gap_periods : a sample-time step larger than this many periods restarts the filter
+    rms_time_s : time constant of the running residual RMS reported live [s]
+    """
+
+    lam: float = 1.0
+    alpha: float = 0.1
+    trace_max: float | None = None
+    word_bits: int = 32
+    acc_bits: int = 64
+    input_bits: int | None = None
+    theta_max: float = 16.0
+    fixed_overrides: Mapping[str, QFormat] = field(default_factory=dict)
+    warmup_s: float | None = None
+    gap_periods: float = 3.5
+    rms_time_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.lam, int | float) and 0.5 < self.lam <= 1.0):
+            raise ConfigError(f"estimator.lambda = {self.lam!r}: must be in (0.5, 1]")
+        if not (isinstance(self.alpha, int | float) and self.alpha > 0 and
+                math.isfinite(self.alpha)):
+            raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be > 0")
+        if self.gap_periods <= 1.0:
+            raise ConfigError(f"estimator.gap_periods = {self.gap_periods!r}: must be > 1")
+        if self.rms_time_s <= 0:
+            raise ConfigError(f"estimator.rms_time_s = {self.rms_time_s!r}: must be > 0")
+
+    def fixed_config(self, n: int) -> FixedConfig:
+        """The automatic fixed-point configuration for ``n`` parameters."""
+        return FixedConfig.auto(n, self.alpha, self.lam, theta_max=self.theta_max,
+                                word_bits=self.word_bits, acc_bits=self.acc_bits,
+                                input_bits=self.input_bits, trace_max=self.trace_max,
+                                **dict(self.fixed_overrides))
+
+
+# ------------------------------------------------------------------------- kernels
+@numba.njit(cache=True)
+def _accumulate(phi: F64, y: F64, use: npt.NDArray[np.bool_], M: F64, v: F64,
+                s: F64) -> None:  # pragma: no cover - compiled
+    """Sequential sums over used rows: M += phi phi', v += phi y, s = [N, sum y, sum y^2]."""
+    n = phi.shape[1]
+    for k in range(phi.shape[0]):
+        if not use[k]:
+            continue
+        yk = y[k]
+        for i in range(n):
+            pi = phi[k, i]
+            v[i] += pi * yk
+            for j in range(i, n):
+                M[i, j] += pi * phi[k, j]
+        s[0] += 1.0
+        s[1] += yk
+        s[2] += yk * yk
+
+
+@numba.njit(cache=True)
+def _ew_rms(eps: F64, use: npt.NDArray[np.bool_], beta: float, state: F64,
+            out: F64) -> None:  # pragma: no cover - compiled
+    """Exponentially weighted mean square: r <- r + beta (eps^2 - r) on used rows."""
+    r = state[0]
+    for k in range(eps.shape[0]):
+        if use[k]:
+            r += beta * (eps[k] * eps[k] - r)
+        out[k] = r
+    state[0] = r
+
+
+@numba.njit(cache=True)
+def _warmup_mask(t: F64, gap: float, warm: int, state: F64,
+                 restart: npt.NDArray[np.bool_], use: npt.NDArray[np.bool_]) -> None:
+    # pragma: no cover - compiled
+    """Mark gaps (restart the filter there) and the warm-up rows after every restart.
+
+    state = [last t (nan: none yet), samples left in the warm-up]
+    """
+    last = state[0]
+    left = state[1]
+    for k in range(t.shape[0]):
+        if last != last or t[k] - last > gap or t[k] < last:
+            restart[k] = True
+            left = warm
+        last = t[k]
+        if left > 0:
+            use[k] = False
+            left -= 1
+        else:
+            use[k] = True
+    state[0] = last
+    state[1] = left
+
+
+# ------------------------------------------------------------------------- results
+@dataclass(frozen=True)
+class ParameterEstimate:
+    """One physical parameter: float reference, fixed point, standard deviation."""
+
+    name: str
+    unit: str
+    effect: str
+    equation: str
+    description: str
+    value: float
+    sigma: float
+    fixed: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"value": self.value, "sigma": self.sigma, "unit": self.unit,
+                "fixed": self.fixed, "effect": self.effect, "equation": self.equation,
+                "description": self.description}
+
+
+@dataclass(frozen=True)
+class EquationFit:
+    """How well one equation fits, with the final estimate over all used samples."""
+
+    equation: str
+    target: str
+    unit: str
+    samples: int
+    residual_rms: float
+    fit_percent: float
+    r2: float
+    target_rms: float
+    online_rms: float
+    divergence: float
+    saturations: Mapping[str, int]
+    windup_steps: int
+    low_excitation: bool
+    condition: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"equation": self.equation, "target": self.target, "unit": self.unit,
+                "samples": self.samples, "residual_rms": self.residual_rms,
+                "fit_percent": self.fit_percent, "r2": self.r2,
+                "target_rms": self.target_rms, "online_rms": self.online_rms,
+                "divergence": self.divergence, "saturations": dict(self.saturations),
+                "windup_steps": self.windup_steps, "low_excitation": self.low_excitation,
+                "condition": self.condition}
+
+
+@dataclass(frozen=True)
+class Estimates:
+    """The estimates of every parameter and the fit of every equation."""
+
+    parameters: tuple[ParameterEstimate, ...]
+    equations: tuple[EquationFit, ...]
+    effects: tuple[str, ...]
+
+    @property
+    def residual_rms(self) -> float:
+        """Residual RMS of the first (mechanical) equation, in its target unit."""
+        return self.equations[0].residual_rms if self.equations else math.nan
+
+    @property
+    def fit_percent(self) -> float:
+        return self.equations[0].fit_percent if self.equations else math.nan
+
+    @property
+    def samples(self) -> int:
+        return self.equations[0].samples if self.equations else 0
+
+    def __getitem__(self, name: str) -> ParameterEstimate:
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise KeyError(f"no parameter {name!r} (have: {[p.name for p in self.parameters]})")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "effects": list(self.effects),
+            "parameters": {p.name: p.to_dict() for p in self.parameters},
+            "residual_rms": self.residual_rms,
+            "fit_percent": self.fit_percent,
+            "samples": self.samples,
+            "equations": {e.equation: e.to_dict() for e in self.equations},
+        }
+
+    def format(self) -> str:
+        """A text table: every parameter with float value, sigma, fixed value and unit."""
+        lines = []
+        w = max([len(p.name) for p in self.parameters] + [9])
+        lines.append(f"{'parameter':<{w}}  {'float':>13}  {'± sigma':>11}  {'fixed':>13}  unit")
+        for p in self.parameters:
+            lines.append(f"{p.name:<{w}}  {p.value:>13.6g}  {p.sigma:>11.3g}  {p.fixed:>13.6g}"
+                         f"  {p.unit}")
+        for e in self.equations:
+            lines.append(
+                f"{e.equation}: residual RMS {e.residual_rms:.4g} {e.unit}, fit {e.fit_percent:.2f} %,"
+                f" R² {e.r2:.5f}, {e.samples} samples, fixed-vs-float divergence "
+                f"{e.divergence:.2e}"
+                + (f", saturations {dict(e.saturations)}" if e.saturations else "")
+                + (", LOW EXCITATION" if e.low_excitation else ""))
+        return "\n".join(lines)
+
+    __str__ = format
+
+
+@dataclass(frozen=True)
+class EquationBlock:
+    """What one block did to one equation (recorded with ``record=True``).
+
+    ``y`` and ``eps``/``eps_fixed`` are in the target unit; ``theta``/``theta_fixed``
+    are physical parameters after each sample; ``used`` marks the rows that updated
+    the estimators (not in a warm-up).
+    """
+
+    equation: str
+    t: F64
+    y: F64
+    eps: F64
+    eps_fixed: F64
+    used: npt.NDArray[np.bool_]
+    online_rms: F64
+    flags: npt.NDArray[np.uint8]
+    theta: F64 | None
+    theta_fixed: F64 | None
+    phi: F64 | None
+
+
+@dataclass(frozen=True)
+class PipelineBlock:
+    """Per-equation results of one :meth:`Pipeline.process` call."""
+
+    samples: int
+    equations: tuple[EquationBlock, ...]
+
+
+# ----------------------------------------------------------------------- estimator
+class EquationEstimator:
+    """Builder, float RLS, fixed RLS and statistics of one equation."""
+
+    def __init__(self, equation: Equation, dt: float, settings: EstimatorSettings) -> None:
+        self.equation = equation
+        self.settings = settings
+        self.dt = float(dt)
+        self.builder = equation.builder(dt)
+        n = equation.n
+        s = settings
+        self.rls = RLS(n, lam=s.lam, alpha=s.alpha, trace_max=s.trace_max)
+        self.fixed_config = s.fixed_config(n)
+        self.frls = FixedRLS(self.fixed_config, n, lam=s.lam, alpha=s.alpha,
+                             trace_max=s.trace_max)
+        m = equation.model
+        wc = 2 * math.pi * m.cutoff_hz
+        warm_s = 5.0 / (m.zeta * wc) if s.warmup_s is None else s.warmup_s
+        self.warmup = int(math.ceil(warm_s / self.dt))
+        self.gap = s.gap_periods * self.dt
+        self.beta = min(1.0, self.dt / s.rms_time_s)
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the prior; statistics cleared; the filter restarts."""
+        n = self.equation.n
+        self.builder.reset()
+        self.rls.reset()
+        self.frls.reset()
+        self._M = np.zeros((n, n))
+        self._v = np.zeros(n)
+        self._s = np.zeros(3)
+        self._rms_state = np.zeros(1)
+        self._mask_state = np.array([np.nan, 0.0])
+        self.windup_steps = 0
+
+    def process(self, signals: Signals, record: bool = False) -> EquationBlock:
+        eq = self.equation
+        t = np.ascontiguousarray(signals.t, dtype=np.float64)
+        N = len(t)
+        restart = np.zeros(N, np.bool_)
+        use = np.zeros(N, np.bool_)
+        _warmup_mask(t, self.gap, self.warmup, self._mask_state, restart, use)
+        # the filter restarts at every gap (and at the start): split the block there
+        bounds = [int(k) for k in np.flatnonzero(restart)] + [N]
+        if not bounds or bounds[0] != 0:
+            bounds.insert(0, 0)
+        parts = []
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            if b <= a:
+                continue
+            if restart[a]:
+                self.builder.reset()
+            parts.append(self.builder.process(signals.slice(a, b)))
+        phi = np.concatenate([p.phi for p in parts]) if parts else np.zeros((0, eq.n))
+        y = np.concatenate([p.y for p in parts]) if parts else np.zeros(0)
+        rows = np.flatnonzero(use)
+        phi_u = phi[rows]
+        y_u = y[rows]
+        tr = self.rls.run(phi_u, y_u, record=record)
+        Pq, Yq, _ = self.frls.quantize_inputs(phi_u, y_u)
+        ftr = self.frls.run(Pq, Yq, record=record)
+        self.windup_steps += tr.count(RLSFlag.WINDUP)
+        _accumulate(phi, y, use, self._M, self._v, self._s)
+        eps = np.zeros(N)
+        eps[rows] = tr.eps
+        eps_fixed = np.zeros(N)
+        eps_fixed[rows] = self.fixed_config.eps.to_float(ftr.eps)
+        ew = np.empty(N)
+        _ew_rms(eps, use, self.beta, self._rms_state, ew)
+        flags = np.zeros(N, np.uint8)
+        flags[rows] = tr.flags | ftr.flags
+        theta = theta_fixed = None
+        if record:
+            theta = np.full((N, eq.n), np.nan)
+            theta_fixed = np.full((N, eq.n), np.nan)
+            # rows in a warm-up did not update: they stay nan
+            if tr.theta is not None and len(rows):
+                theta[rows] = eq.to_physical(tr.theta)
+                theta_fixed[rows] = eq.to_physical(ftr.theta_float())
+        return EquationBlock(
+            equation=eq.name, t=t, y=eq.target_to_physical(y),
+            eps=eq.target_to_physical(eps), eps_fixed=eq.target_to_physical(eps_fixed),
+            used=use, online_rms=eq.target_to_physical(np.sqrt(ew)),
+            flags=flags, theta=theta, theta_fixed=theta_fixed,
+            phi=phi if record else None)
+
+    # -- results ----------------------------------------------------------------------
+    @property
+    def samples(self) -> int:
+        return int(self._s[0])
+
+    def residual_stats(self, theta_norm: F64 | None = None) -> tuple[float, float, float, float]:
+        """(residual RMS, fit %, R², target RMS) of ``theta_norm`` (default: the float estimate)."""
+        eq = self.equation
+        th = self.rls.theta if theta_norm is None else theta_norm
+        N, sy, syy = self._s
+        if N == 0:
+            return math.nan, math.nan, math.nan, math.nan
+        M = np.triu(self._M) + np.triu(self._M, 1).T
+        # RSS = sum y^2 - 2 theta' sum(phi y) + theta' (sum phi phi') theta
+        rss = max(0.0, float(syy - 2.0 * th @ self._v + th @ M @ th))
+        # TSS = sum (y - mean y)^2
+        tss = max(0.0, float(syy - sy * sy / N))
+        scale = math.ldexp(1.0, eq.scaling.target)
+        rms = math.sqrt(rss / N) * scale
+        fit = 100.0 * (1.0 - math.sqrt(rss / tss)) if tss > 0 else math.nan
+        r2 = 1.0 - rss / tss if tss > 0 else math.nan
+        return rms, fit, r2, math.sqrt(syy / N) * scale
+
+    def divergence(self) -> float:
+        """Largest fixed-vs-float difference relative to max(|float|, 3 sigma) over parameters."""
+        th = self.rls.theta
+        fx = self.frls.theta_float
+        sd = self.rls.std()
+        ref = np.maximum(np.abs(th), 3.0 * np.nan_to_num(sd, nan=0.0))
+        ref = np.where(ref > 0, ref, 1.0)
+        return float(np.max(np.abs(fx - th) / ref)) if len(th) else 0.0
+
+    def estimates(self) -> tuple[list[ParameterEstimate], EquationFit]:
+        eq = self.equation
+        value = eq.to_physical(self.rls.theta)
+        sigma = eq.sigma_to_physical(self.rls.std())
+        fixed = eq.to_physical(self.frls.theta_float)
+        params = [ParameterEstimate(p.name, p.unit, p.effect, eq.name, p.description,
+                                    float(v), float(s), float(f))
+                  for p, v, s, f in zip(eq.parameters, value, sigma, fixed, strict=True)]
+        rms, fit, r2, trms = self.residual_stats()
+        exc = self.rls.excitation()
+        fit_obj = EquationFit(
+            equation=eq.name, target=eq.target.description, unit=eq.target.unit,
+            samples=self.samples, residual_rms=rms, fit_percent=fit, r2=r2,
+            target_rms=trms,
+            online_rms=math.sqrt(self._rms_state[0]) * math.ldexp(1.0, eq.scaling.target),
+            divergence=self.divergence(), saturations=self.frls.saturations.nonzero(),
+            windup_steps=self.windup_steps, low_excitation=bool(exc.low),
+            condition=float(exc.cond))
+        return params, fit_obj
+
+    def state(self) -> dict[str, Any]:
+        return {"rls": self.rls.state(), "fixed": self.frls.state(), "M": self._M.copy(),
+                "v": self._v.copy(), "s": self._s.copy(), "rms": self._rms_state.copy(),
+                "windup_steps": self.windup_steps}
+
+    def restore(self, d: Mapping[str, Any]) -> None:
+        """Continue from :meth:`state` (the filter restarts: the next samples warm it up)."""
+        self.rls = RLS.from_state(d["rls"])
+        self.frls = FixedRLS.from_state(d["fixed"])
+        self._M = np.array(d["M"], dtype=np.float64)
+        self._v = np.array(d["v"], dtype=np.float64)
+        self._s = np.array(d["s"], dtype=np.float64)
+        self._rms_state = np.array(d["rms"], dtype=np.float64)
+        self.windup_steps = int(d["windup_steps"])
+        self.builder.reset()
+        self._mask_state = np.array([np.nan, 0.0])
+
+
+class Pipeline:
+    """Samples in, estimates out: one :class:`EquationEstimator` per model equation.
+
+    Parameters
+    ----------
+    model : the model to identify
+    dt : sample period [s] (the control period of the drive)
+    settings : estimator settings (:class:`EstimatorSettings`)
+    """
+
+    def __init__(self, model: Model, dt: float, settings: EstimatorSettings | None = None) -> None:
+        if not (dt > 0 and math.isfinite(dt)):
+            raise ConfigError(f"sample period dt = {dt!r}: must be > 0")
+        self.model = model
+        self.dt = float(dt)
+        self.settings = settings or EstimatorSettings()
+        self.estimators = tuple(EquationEstimator(eq, self.dt, self.settings)
+                                for eq in model.equations)
+        self.samples = 0
+
+    def process(self, signals: Signals, record: bool = False) -> PipelineBlock:
+        """Feed a block of samples (any size, including 0)."""
+        blocks = tuple(e.process(signals, record) for e in self.estimators)
+        self.samples += len(signals)
+        return PipelineBlock(len(signals), blocks)
+
+    def run(self, blocks: Iterable[Signals]) -> Estimates:
+        """Process every block, then return :meth:`estimates`."""
+        for b in blocks:
+            self.process(b)
+        return self.estimates()
+
+    def estimates(self) -> Estimates:
+        params: list[ParameterEstimate] = []
+        fits: list[EquationFit] = []
+        for e in self.estimators:
+            p, f = e.estimates()
+            params.extend(p)
+            fits.append(f)
+        return Estimates(tuple(params), tuple(fits), self.model.effect_names)
+
+    # -- control (command frames) ---------------------------------------------------
+    def reset(self) -> None:
+        for e in self.estimators:
+            e.reset()
+
+    def freeze(self) -> None:
+        for e in self.estimators:
+            e.rls.freeze()
+            e.frls.freeze()
+
+    def resume(self) -> None:
+        for e in self.estimators:
+            e.rls.resume()
+            e.frls.resume()
+
+    @property
+    def frozen(self) -> bool:
+        return any(e.rls.frozen for e in self.estimators)
+
+    def set_lambda(self, lam: float) -> None:
+        """Change the forgetting factor of both estimators (validated)."""
+        if not (0.5 < lam <= 1.0):
+            raise ConfigError(f"lambda = {lam!r}: must be in (0.5, 1]")
+        for e in self.estimators:
+            e.rls.set_lambda(lam)
+            e.frls.set_lambda(lam)
+
+    def with_model(self, model: Model) -> Pipeline:
+        """A new pipeline for ``model`` (e.g. an effect added), starting from the prior."""
+        return Pipeline(model, self.dt, self.settings)
+
+    @property
+    def saturations(self) -> SaturationCounts:
+        total = None
+        for e in self.estimators:
+            total = e.frls.saturations if total is None else total + e.frls.saturations
+        assert total is not None
+        return total
+
+    def state(self) -> dict[str, Any]:
+        return {"samples": self.samples, "model": self.model.to_dict(),
+                "estimators": [e.state() for e in self.estimators]}
+
+    def restore(self, d: Mapping[str, Any]) -> None:
+        ests = d["estimators"]
+        if len(ests) != len(self.estimators):
+            raise ConfigError("checkpoint has a different number of equations than the model")
+        for e, s in zip(self.estimators, ests, strict=True):
+            e.restore(s)
+        self.samples = int(d["samples"])

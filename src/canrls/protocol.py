@@ -1,0 +1,1221 @@
+"""The feedback protocol: DBC, signal mapping and a strict, vectorised codec.
+
+canrls reads motor current, speed, position and voltage from CAN frames described
+by a DBC file. :class:`Protocol` ties three things together:
+
+* the DBC, loaded with cantools (the default one, ``canrls/data/canrls.dbc``, or
+  the user's);
+* a :class:`SignalMapping` that says which ``MESSAGE.SIGNAL`` carries each role
+  (``current``, ``speed``, ``position``, ``voltage``), its scale to SI and which
+  signals of each message are the alive counter and the CRC;
+* one compiled codec per mapped message, built once from cantools' ``Signal``
+  objects (start bit, length, byte order, signedness, scale, offset, minimum,
+  maximum, float), that decodes whole :class:`~canrls.frameblock.FrameBlock`
+  arrays with numpy and encodes SI arrays back into frames.
+
+Decoding is strict by default: a frame with the wrong length, a bad CRC, a
+repeated or stale counter, a NaN/inf float, a value outside its DBC range, an
+error frame or a remote frame is rejected, counted by reason
+(:class:`RejectCounts`) and never passed on. The opt-outs are named:
+``strict_range=False``, ``check_crc=False``, ``check_counter=False``.
+
+>>> proto = Protocol.load()                       # default DBC and mapping
+>>> enc = FeedbackEncoder(proto)
+>>> block = enc.encode([0.0, 0.001], current=[1.5, 1.6], speed=[10.0, 10.1])
+>>> dec = proto.decoder().decode(block)
+>>> dec["DriveCurrent"].values["current"].tolist()
+[1.5, 1.6]
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import math
+import re
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import cantools
+import numba
+import numpy as np
+import numpy.typing as npt
+
+from canrls.e2e import CRC8_TABLE
+from canrls.errors import ConfigError, DecodeError, SignalError
+from canrls.frameblock import FrameBlock
+from canrls.signals import ROLES
+from canrls.units import axis_of, si_factor
+
+__all__ = [
+    "DEFAULT_DBC",
+    "REQUIRED_ROLES",
+    "REJECT_REASONS",
+    "RoleSpec",
+    "SignalMapping",
+    "SignalCodec",
+    "MessageCodec",
+    "Protocol",
+    "RejectCounts",
+    "MessageFrames",
+    "DecodedFrames",
+    "Decoder",
+    "EncodeError",
+    "FeedbackEncoder",
+]
+
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+U8 = npt.NDArray[np.uint8]
+U64 = npt.NDArray[np.uint64]
+
+#: The DBC shipped with canrls (same content as ``dbc/canrls.dbc`` in the repository).
+DEFAULT_DBC: Path = Path(str(resources.files("canrls") / "data" / "canrls.dbc"))
+
+#: Roles every mapping must fill; ``position`` and ``voltage`` are optional.
+REQUIRED_ROLES: tuple[str, ...] = ("current", "speed")
+
+#: Rejection reasons, in the order the checks run (a frame counts under the first that fails).
+REJECT_REASONS: tuple[str, ...] = (
+    "error_frame",  # a CAN error frame (bus error, bus-off notification)
+    "remote",       # a remote frame carrying a mapped message's ID
+    "length",       # DLC differs from the DBC message length
+    "crc",          # E2E CRC mismatch
+    "repeated",     # same alive counter as the previous accepted frame of the message
+    "stale",        # counter jumped backwards (by less than half its range)
+    "nan",          # a float signal is NaN or infinite
+    "range",        # a physical value lies outside the DBC [minimum, maximum]
+)
+_R = {r: k + 1 for k, r in enumerate(REJECT_REASONS)}  # reason -> code (0 = accepted)
+
+
+class EncodeError(DecodeError):
+    """A value cannot be encoded into a frame (outside the DBC range or the bit field, NaN).
+
+    A :class:`~canrls.errors.DecodeError` with ``reason`` ``"range"`` or ``"nan"``, so
+    that callers treat it like the matching rejection on the receiving side.
+    """
+
+
+# ---------------------------------------------------------------------------
+# Mapping
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RoleSpec:
+    """Where one role lives: ``message.signal``, with an optional unit or explicit scale.
+
+    ``unit`` overrides the DBC's unit string; ``scale`` (SI per DBC physical unit)
+    overrides both. ``optional`` roles are dropped silently when the DBC lacks the
+    message or signal (used by the default mapping for position and voltage).
+    """
+
+    message: str
+    signal: str
+    unit: str | None = None
+    scale: float | None = None
+    optional: bool = False
+
+    def __str__(self) -> str:
+        return f"{self.message}.{self.signal}"
+
+
+_UNSET: Any = object()
+_ROLE_KEYS = {"signal", "message", "unit", "scale", "counter", "crc", "optional"}
+_MSG_KEYS = {"counter", "crc"}
+_CLI_RE = re.compile(r"^\s*(?P<key>[A-Za-z_]+)\s*=\s*(?P<msg>[^.\s:]+)\.(?P<sig>[^.\s:]+)"
+                     r"(?::(?P<unit>.+))?\s*$")
+
+
+@dataclass(frozen=True)
+class SignalMapping:
+    """Role -> :class:`RoleSpec`, plus the alive-counter and CRC signal of each message.
+
+    ``counters`` / ``crcs`` map a message name to a signal name, or to ``None`` for
+    "this message has none". A message absent from them has a counter/CRC only
+    when the DBC is the default one and has signals named ``Counter`` / ``CRC``
+    (auto-detection never applies to user DBCs).
+    """
+
+    roles: Mapping[str, RoleSpec]
+    counters: Mapping[str, str | None] = field(default_factory=dict)
+    crcs: Mapping[str, str | None] = field(default_factory=dict)
+
+    @staticmethod
+    def default() -> SignalMapping:
+        """The default DBC's mapping: DriveCurrent.Current/Voltage, DriveSpeed.Speed/Position."""
+        return SignalMapping(roles={
+            "current": RoleSpec("DriveCurrent", "Current"),
+            "speed": RoleSpec("DriveSpeed", "Speed"),
+            "position": RoleSpec("DriveSpeed", "Position", optional=True),
+            "voltage": RoleSpec("DriveCurrent", "Voltage", optional=True),
+        })
+
+    @staticmethod
+    def from_config(config: Mapping[str, Any], *, source: str = "signal mapping") -> SignalMapping:
+        """Build from a config table (e.g. the ``[signals]`` table of a TOML file).
+
+        Each role is ``"MESSAGE.SIGNAL"`` or a table with ``signal = "MESSAGE.SIGNAL"``
+        (or ``message`` + ``signal``) and optional ``unit``, ``scale``, ``counter``,
+        ``crc``. ``counter``/``crc`` are a signal name of the role's message or
+        ``false``. A ``messages`` table may give ``counter``/``crc`` per message::
+
+            current = "Feedback.Iq"
+            speed = { signal = "Feedback.Speed", unit = "rpm", counter = "Alive", crc = false }
+            [messages.Feedback]
+            counter = "Alive"
+
+        ``source`` names the file or table in error messages.
+        """
+        if not isinstance(config, Mapping):
+            raise ConfigError(f"{source}: expected a table of roles, got {type(config).__name__}")
+        roles: dict[str, RoleSpec] = {}
+        counters: dict[str, str | None] = {}
+        crcs: dict[str, str | None] = {}
+
+        def e2e(kind: str, table: dict[str, str | None], message: str, value: Any,
+                where: str) -> None:
+            if value is False or value is None:
+                name = None
+            elif isinstance(value, str) and value:
+                name = value.split(".", 1)[1] if value.startswith(message + ".") else value
+            else:
+                raise ConfigError(f"{source}: {where}.{kind} must be a signal name or false, "
+                                  f"got {value!r}")
+            if message in table and table[message] != name:
+                raise ConfigError(f"{source}: {kind} of message {message} given twice "
+                                  f"({table[message]!r} and {name!r})")
+            table[message] = name
+
+        for key, value in config.items():
+            if key == "messages":
+                if not isinstance(value, Mapping):
+                    raise ConfigError(f"{source}: messages must be a table of message names")
+                for msg, t in value.items():
+                    if not isinstance(t, Mapping):
+                        raise ConfigError(f"{source}: messages.{msg} must be a table")
+                    for k in t:
+                        if k not in _MSG_KEYS:
+                            raise ConfigError(f"{source}: unknown key messages.{msg}.{k} "
+                                              f"(expected counter, crc)")
+                    if "counter" in t:
+                        e2e("counter", counters, msg, t["counter"], f"messages.{msg}")
+                    if "crc" in t:
+                        e2e("crc", crcs, msg, t["crc"], f"messages.{msg}")
+                continue
+            if key not in ROLES:
+                raise ConfigError(f"{source}: unknown key {key!r} (expected one of "
+                                  f"{', '.join(ROLES)}, messages)")
+            if isinstance(value, str):
+                msg, sig = _split_ref(value, f"{source}: {key}")
+                roles[key] = RoleSpec(msg, sig)
+                continue
+            if not isinstance(value, Mapping):
+                raise ConfigError(f"{source}: {key} must be \"MESSAGE.SIGNAL\" or a table, "
+                                  f"got {value!r}")
+            for k in value:
+                if k not in _ROLE_KEYS:
+                    raise ConfigError(f"{source}: unknown key {key}.{k} "
+                                      f"(expected {', '.join(sorted(_ROLE_KEYS))})")
+            ref = value.get("signal")
+            if not isinstance(ref, str):
+                raise ConfigError(f"{source}: {key}.signal is required (\"MESSAGE.SIGNAL\")")
+            if "message" in value:
+                msg, sig = str(value["message"]), ref
+            else:
+                msg, sig = _split_ref(ref, f"{source}: {key}.signal")
+            unit = value.get("unit")
+            if unit is not None and not isinstance(unit, str):
+                raise ConfigError(f"{source}: {key}.unit must be a string, got {unit!r}")
+            scale = value.get("scale")
+            if scale is not None:
+                if isinstance(scale, bool) or not isinstance(scale, (int, float)) \
+                        or not math.isfinite(scale) or scale == 0:
+                    raise ConfigError(f"{source}: {key}.scale must be a finite non-zero number, "
+                                      f"got {scale!r}")
+                scale = float(scale)
+            roles[key] = RoleSpec(msg, sig, unit=unit, scale=scale,
+                                  optional=bool(value.get("optional", False)))
+            if "counter" in value:
+                e2e("counter", counters, msg, value["counter"], key)
+            if "crc" in value:
+                e2e("crc", crcs, msg, value["crc"], key)
+        return SignalMapping(roles=roles, counters=counters, crcs=crcs)
+
+    @staticmethod
+    def from_strings(items: Iterable[str], *, base: SignalMapping | None = None) -> SignalMapping:
+        """Build from command-line strings ``ROLE=MESSAGE.SIGNAL[:UNIT_OR_SCALE]``.
+
+        ``counter=MESSAGE.SIGNAL`` and ``crc=MESSAGE.SIGNAL`` name a message's alive
+        counter and CRC; ``counter=MESSAGE.none`` says it has none. Roles given here
+        replace those of ``base`` (default: an empty mapping).
+
+        >>> m = SignalMapping.from_strings(["current=Fb.Iq:mA", "speed=Fb.Spd:rpm"])
+        >>> m.roles["current"]
+        RoleSpec(message='Fb', signal='Iq', unit='mA', scale=None, optional=False)
+        """
+        roles = dict(base.roles) if base else {}
+        counters = dict(base.counters) if base else {}
+        crcs = dict(base.crcs) if base else {}
+        for item in items:
+            m = _CLI_RE.match(item)
+            if not m:
+                raise ConfigError(f"signal mapping {item!r}: expected ROLE=MESSAGE.SIGNAL[:UNIT] "
+                                  f"with ROLE in {', '.join(ROLES)}, counter, crc")
+            key, msg, sig, extra = m["key"], m["msg"], m["sig"], m["unit"]
+            if key in ("counter", "crc"):
+                if extra:
+                    raise ConfigError(f"signal mapping {item!r}: {key} takes no unit")
+                (counters if key == "counter" else crcs)[msg] = \
+                    None if sig.lower() in ("none", "false") else sig
+                continue
+            if key not in ROLES:
+                raise ConfigError(f"signal mapping {item!r}: unknown role {key!r} "
+                                  f"(expected one of {', '.join(ROLES)}, counter, crc)")
+            unit: str | None = None
+            scale: float | None = None
+            if extra:
+                try:
+                    scale = float(extra)
+                except ValueError:
+                    unit = extra.strip()
+                else:
+                    if not math.isfinite(scale) or scale == 0:
+                        raise ConfigError(f"signal mapping {item!r}: scale must be finite "
+                                          f"and non-zero")
+            roles[key] = RoleSpec(msg, sig, unit=unit, scale=scale)
+        return SignalMapping(roles=roles, counters=counters, crcs=crcs)
+
+    def describe(self) -> str:
+        """One line per role, e.g. ``current = DriveCurrent.Current``."""
+        return "\n".join(f"{r} = {self.roles[r]}" for r in ROLES if r in self.roles)
+
+
+def _split_ref(ref: str, where: str) -> tuple[str, str]:
+    parts = ref.strip().split(".")
+    if len(parts) != 2 or not all(parts):
+        raise ConfigError(f"{where}: expected \"MESSAGE.SIGNAL\", got {ref!r}")
+    return parts[0], parts[1]
+
+
+# ---------------------------------------------------------------------------
+# Signal and message codecs
+# ---------------------------------------------------------------------------
+
+
+class SignalCodec:
+    """Vectorised codec of one DBC signal, built from a cantools ``Signal``.
+
+    The signal's bits are gathered byte by byte: ``byte_index[j]`` is the payload byte
+    holding bits ``8*j - shift .. 8*j - shift + 7`` of the raw value (least significant
+    byte first), for both byte orders. Physical values are in the DBC unit.
+    """
+
+    __slots__ = ("name", "message", "length", "byte_order", "is_signed", "is_float", "scale",
+                 "offset", "minimum", "maximum", "unit", "byte_index", "shift", "tol",
+                 "raw_min", "raw_max", "enc_lo", "enc_hi")
+
+    def __init__(self, signal: Any, message: str) -> None:
+        conv = signal.conversion
+        self.name: str = signal.name
+        self.message = message
+        self.length: int = int(signal.length)
+        self.byte_order: str = signal.byte_order
+        self.is_signed: bool = bool(signal.is_signed)
+        self.is_float: bool = bool(conv.is_float)
+        self.scale = conv.scale
+        self.offset = conv.offset
+        self.minimum: float | None = signal.minimum
+        self.maximum: float | None = signal.maximum
+        self.unit: str = signal.unit or ""
+        L = self.length
+        if self.is_float and L not in (16, 32, 64):
+            raise SignalError(f"{message}.{self.name}: float signals must be 16, 32 or 64 bits, "
+                              f"not {L}")
+        if not 1 <= L <= 64:
+            raise SignalError(f"{message}.{self.name}: length {L} outside 1..64 bits")
+        if self.byte_order == "little_endian":
+            first = signal.start // 8
+            self.shift = signal.start % 8
+            nb = (self.shift + L + 7) // 8
+            self.byte_index: tuple[int, ...] = tuple(first + j for j in range(nb))
+        else:
+            msb = 8 * (signal.start // 8) + 7 - signal.start % 8  # sequential bit number
+            last = msb + L - 1
+            self.shift = 7 - last % 8
+            nb = (self.shift + L + 7) // 8
+            self.byte_index = tuple(last // 8 - j for j in range(nb))
+        # tolerance of the range check, the same as cantools' encoder
+        self.tol = abs(float(self.scale)) * 1e-6
+        if self.is_signed:
+            self.raw_min, self.raw_max = -(1 << (L - 1)), (1 << (L - 1)) - 1
+        else:
+            self.raw_min, self.raw_max = 0, (1 << L) - 1
+        self.enc_lo, self.enc_hi = self._encodable_raw_range()
+
+    def __repr__(self) -> str:
+        return (f"SignalCodec({self.message}.{self.name}, {self.length} bit {self.byte_order}, "
+                f"{'float' if self.is_float else 'signed' if self.is_signed else 'unsigned'}, "
+                f"scale={self.scale}, offset={self.offset}, "
+                f"[{self.minimum}, {self.maximum}] {self.unit!r})")
+
+    @property
+    def qualname(self) -> str:
+        return f"{self.message}.{self.name}"
+
+    # -- decoding ---------------------------------------------------------
+    def extract(self, data: U8) -> U64:
+        """Raw bit field of each row of ``data`` (N, W) as uint64 (not sign-extended)."""
+        acc = np.zeros(data.shape[0], np.uint64)
+        for j, b in enumerate(self.byte_index):
+            col = data[:, b].astype(np.uint64)
+            sh = 8 * j - self.shift
+            if sh < 0:
+                acc |= col >> np.uint64(-sh)
+            elif sh < 64:
+                acc |= col << np.uint64(sh)
+        if self.length < 64:
+            acc &= np.uint64((1 << self.length) - 1)
+        return acc
+
+    def raw(self, data: U8) -> npt.NDArray[Any]:
+        """Raw values: int64 (signed, or unsigned up to 63 bits), uint64 (64 bits) or float."""
+        acc = self.extract(data)
+        L = self.length
+        if self.is_float:
+            if L == 32:
+                return acc.astype(np.uint32).view(np.float32)
+            if L == 64:
+                return acc.view(np.float64)
+            return acc.astype(np.uint16).view(np.float16)
+        if self.is_signed:
+            sh = np.uint64(64 - L)
+            return (acc << sh).view(np.int64) >> np.int64(64 - L)
+        return acc if L == 64 else acc.view(np.int64)
+
+    def physical(self, data: U8) -> F64:
+        """Physical values in the DBC unit: ``raw * scale + offset`` (float64).
+
+        Computed as cantools does: in float for a float scale or offset, exactly in
+        integers (then rounded once to float64) for an integer scale and offset.
+        """
+        raw = self.raw(data)
+        if self.is_float or not (isinstance(self.scale, int) and isinstance(self.offset, int)):
+            # float signals may hold (signalling) NaN or overflow when scaled: rejected later
+            with np.errstate(invalid="ignore", over="ignore"):
+                r = raw.astype(np.float64)
+                if self.scale == 1 and self.offset == 0:
+                    return r
+                return r * float(self.scale) + float(self.offset)
+        if self.scale == 1 and self.offset == 0:
+            return raw.astype(np.float64)
+        if (1 << self.length) * abs(self.scale) + abs(self.offset) < (1 << 63):
+            return (raw.astype(np.int64) * self.scale + self.offset).astype(np.float64)
+        exact = [int(x) * self.scale + self.offset for x in raw.tolist()]  # beyond int64
+        return np.array([float(x) for x in exact], np.float64)
+
+    def out_of_range(self, phys: F64) -> npt.NDArray[np.bool_]:
+        """True where a physical value lies outside [minimum, maximum] (cantools' tolerance)."""
+        bad = np.zeros(phys.shape, np.bool_)
+        if self.minimum is not None:
+            bad |= phys < self.minimum - self.tol
+        if self.maximum is not None:
+            bad |= phys > self.maximum + self.tol
+        return bad
+
+    # -- encoding ---------------------------------------------------------
+    def _encodable_raw_range(self) -> tuple[int, int]:
+        """Raw values whose decoded value lies in the DBC range and that fit the bit field."""
+        lo, hi = self.raw_min, min(self.raw_max, (1 << 63) - 1)
+        if self.is_float:
+            return lo, hi
+        s, o = float(self.scale), float(self.offset)
+
+        def above_min(r: int) -> bool:
+            return self.minimum is None or float(r) * s + o >= self.minimum - self.tol
+
+        def below_max(r: int) -> bool:
+            return self.maximum is None or float(r) * s + o <= self.maximum + self.tol
+
+        # rising: false then true as r grows; falling: true then false (float rounding is monotone)
+        rising, falling = (above_min, below_max) if s > 0 else (below_max, above_min)
+        a, b = lo, hi + 1          # smallest r in [lo, hi] with rising(r), else hi + 1
+        while a < b:
+            mid = (a + b) // 2
+            a, b = (a, mid) if rising(mid) else (mid + 1, b)
+        new_lo = a
+        a, b = lo - 1, hi          # largest r in [lo, hi] with falling(r), else lo - 1
+        while a < b:
+            mid = (a + b + 1) // 2
+            a, b = (mid, b) if falling(mid) else (a, mid - 1)
+        return new_lo, a
+
+    def to_raw(self, values: F64, clip: bool = False,
+               wrap: bool = False) -> tuple[npt.NDArray[Any], int]:
+        """Physical values (DBC unit) -> raw values rounded to nearest (half to even, as cantools).
+
+        ``wrap=True`` reduces integer raw values modulo the bit field (a full-turn angle).
+
+        Returns the raw array (int64, or float for float signals) and the number of
+        values clipped (only with ``clip=True``; otherwise out-of-range values raise
+        :class:`EncodeError` naming the signal, the value and the limits).
+        """
+        v = np.asarray(values, np.float64)
+        bad_nan = ~np.isfinite(v)
+        if bad_nan.any():
+            k = int(np.flatnonzero(bad_nan)[0])
+            raise EncodeError(f"cannot encode {self.qualname} = {v[k]} {self.unit} (sample {k})",
+                              reason="nan")
+        if self.is_float:
+            lo = -np.inf if self.minimum is None else self.minimum - self.tol
+            hi = np.inf if self.maximum is None else self.maximum + self.tol
+            if self.length == 32:
+                f32 = float(np.finfo(np.float32).max)
+                lo, hi = max(lo, -f32), min(hi, f32)
+            bad = (v < lo) | (v > hi)
+            n_clip = int(bad.sum())
+            if n_clip:
+                if not clip:
+                    self._raise_range(v, bad)
+                v = np.clip(v, lo, hi)
+            r = v if self.scale == 1 and self.offset == 0 else \
+                (v - float(self.offset)) / float(self.scale)
+            return r, n_clip
+        if self.scale == 1 and self.offset == 0:
+            r = np.rint(v)
+        else:
+            r = np.rint((v - float(self.offset)) / float(self.scale))
+        if wrap:
+            # a full-turn position field: encode modulo one turn
+            r = np.mod(r - self.raw_min, float(1 << self.length)) + self.raw_min
+        lo, hi = float(self.enc_lo), float(self.enc_hi)
+        bad = (r < lo) | (r > hi)
+        n_clip = int(bad.sum())
+        if n_clip:
+            if not clip:
+                self._raise_range(v, bad)
+            r = np.clip(r, lo, hi)
+        return r.astype(np.int64), n_clip
+
+    def _raise_range(self, v: F64, bad: npt.NDArray[np.bool_]) -> None:
+        k = int(np.flatnonzero(bad)[0])
+        x = float(v[k])
+        lo, hi = self.minimum, self.maximum
+        if (lo is None or x >= lo - self.tol) and (hi is None or x <= hi + self.tol):
+            what = (f"does not fit the {self.length}-bit field "
+                    f"(raw {self.raw_min} .. {self.raw_max}, scale {self.scale}, "
+                    f"offset {self.offset})")
+        else:
+            what = (f"outside [{_fmt(lo) if lo is not None else '-inf'}, "
+                    f"{_fmt(hi) if hi is not None else 'inf'}] {self.unit}")
+        raise EncodeError(f"cannot encode {self.qualname} = {_fmt(x)} {self.unit}: {what} "
+                          f"(sample {k})", reason="range")
+
+    def insert(self, data: U8, raw: npt.NDArray[Any]) -> None:
+        """OR the raw values into the rows of ``data`` (N, W), in place."""
+        if self.is_float:
+            f = np.asarray(raw, np.float64)
+            if self.length == 32:
+                u = f.astype(np.float32).view(np.uint32).astype(np.uint64)
+            elif self.length == 64:
+                u = f.view(np.uint64)
+            else:
+                u = f.astype(np.float16).view(np.uint16).astype(np.uint64)
+        else:
+            u = np.asarray(raw, np.int64).view(np.uint64)
+            if self.length < 64:
+                u = u & np.uint64((1 << self.length) - 1)
+        for j, b in enumerate(self.byte_index):
+            sh = 8 * j - self.shift
+            part = (u << np.uint64(-sh)) if sh < 0 else (u >> np.uint64(sh))
+            data[:, b] |= (part & np.uint64(0xFF)).astype(np.uint8)
+
+
+def _fmt(x: float) -> str:
+    return f"{float(x):.6g}"
+
+
+def _crc_vector(frame_id: int, data: U8, length: int) -> U8:
+    """E2E CRC (:func:`canrls.e2e.e2e_crc`) of every row: over the ID, then bytes 1..length-1."""
+    c = np.full(data.shape[0], 0xFF, np.uint8)
+    c = CRC8_TABLE[c ^ np.uint8(frame_id & 0xFF)]
+    c = CRC8_TABLE[c ^ np.uint8((frame_id >> 8) & 0xFF)]
+    for j in range(1, length):
+        c = CRC8_TABLE[c ^ data[:, j]]
+    return c ^ np.uint8(0xFF)
+
+
+@dataclass(frozen=True)
+class RoleInfo:
+    """A resolved role: its signal codec and the factor from the DBC unit to SI."""
+
+    role: str
+    codec: SignalCodec
+    si_scale: float
+    unit: str
+
+    @property
+    def message(self) -> str:
+        return self.codec.message
+
+    @property
+    def signal(self) -> str:
+        return self.codec.name
+
+
+@dataclass(frozen=True)
+class MessageCodec:
+    """A mapped DBC message: ID, length, cycle time, its roles and E2E signals."""
+
+    name: str
+    frame_id: int
+    is_extended: bool
+    length: int
+    cycle_time: float | None          # [s], from GenMsgCycleTime (or the configured period)
+    roles: tuple[RoleInfo, ...]
+    counter: SignalCodec | None
+    crc: SignalCodec | None
+    message: Any                      # the cantools Message
+
+    @property
+    def counter_modulo(self) -> int | None:
+        return None if self.counter is None else 1 << self.counter.length
+
+
+# ---------------------------------------------------------------------------
+# Protocol
+# ---------------------------------------------------------------------------
+
+
+@functools.cache
+def _default_hash() -> str:
+    return hashlib.sha256(DEFAULT_DBC.read_bytes()).hexdigest()
+
+
+class Protocol:
+    """A loaded DBC with its signal mapping and the compiled codec of each mapped message.
+
+    Build it with :meth:`load`. Attributes: ``db`` (the cantools database),
+    ``dbc_path``, ``is_default_dbc``, ``mapping``, ``roles`` (role ->
+    :class:`RoleInfo`), ``messages`` (the mapped :class:`MessageCodec`, the current's
+    message first, then the speed's, position's and voltage's), ``strict_range``,
+    ``check_crc``, ``check_counter``.
+    """
+
+    def __init__(self, db: Any, dbc_path: Path, is_default_dbc: bool, mapping: SignalMapping,
+                 roles: dict[str, RoleInfo], messages: tuple[MessageCodec, ...], *,
+                 strict_range: bool, check_crc: bool, check_counter: bool) -> None:
+        self.db = db
+        self.dbc_path = dbc_path
+        self.is_default_dbc = is_default_dbc
+        self.mapping = mapping
+        self.roles = roles
+        self.messages = messages
+        self.strict_range = strict_range
+        self.check_crc = check_crc
+        self.check_counter = check_counter
+
+    def __repr__(self) -> str:
+        roles = ", ".join(f"{r}={i.message}.{i.signal}" for r, i in self.roles.items())
+        return f"Protocol({self.dbc_path.name}: {roles})"
+
+    @staticmethod
+    def load(dbc: str | Path | None = None,
+             mapping: SignalMapping | Mapping[str, Any] | Sequence[str] | None = None, *,
+             strict_range: bool = True, check_crc: bool = True, check_counter: bool = True,
+             period: float | None = None) -> Protocol:
+        """Load a DBC (default: the one shipped with canrls) and resolve a signal mapping.
+
+        Parameters
+        ----------
+        dbc : path of the DBC file, or ``None`` for the default DBC.
+        mapping : a :class:`SignalMapping`, a config table (see
+            :meth:`SignalMapping.from_config`), a sequence of ``ROLE=MESSAGE.SIGNAL``
+            strings, or ``None`` for the default mapping.
+        strict_range, check_crc, check_counter : named opt-outs of the strict checks.
+        period : control period [s] of the feedback messages, overriding their
+            ``GenMsgCycleTime``.
+
+        Raises
+        ------
+        ConfigError
+            The DBC cannot be read or parsed, or the mapping is malformed.
+        SignalError
+            The DBC lacks a mapped message or signal, or a unit cannot be converted.
+        """
+        path = DEFAULT_DBC if dbc is None else Path(dbc)
+        try:
+            raw = path.read_bytes()
+        except OSError as e:
+            raise ConfigError(f"cannot read DBC file {path}: {e.strerror or e}") from e
+        try:
+            db = cantools.database.load_file(str(path), database_format="dbc", strict=True)
+        except Exception as e:  # cantools raises several parse error types
+            raise ConfigError(f"cannot parse DBC file {path}: {e}") from e
+        is_default = hashlib.sha256(raw).hexdigest() == _default_hash()
+        if mapping is None:
+            mp = SignalMapping.default()
+        elif isinstance(mapping, SignalMapping):
+            mp = mapping
+        elif isinstance(mapping, Mapping):
+            mp = SignalMapping.from_config(mapping)
+        elif isinstance(mapping, Sequence) and not isinstance(mapping, (str, bytes)):
+            mp = SignalMapping.from_strings(mapping)
+        else:
+            raise ConfigError(f"signal mapping must be a SignalMapping, a table or a list of "
+                              f"ROLE=MESSAGE.SIGNAL strings, got {type(mapping).__name__}")
+        if period is not None and not (math.isfinite(period) and period > 0):
+            raise ConfigError(f"period must be a positive number of seconds, got {period!r}")
+        roles, messages = _resolve(db, path, is_default, mp, period)
+        return Protocol(db, path, is_default, mp, roles, messages, strict_range=strict_range,
+                        check_crc=check_crc, check_counter=check_counter)
+
+    def has(self, role: str) -> bool:
+        """True when ``role`` is mapped."""
+        return role in self.roles
+
+    def message(self, name: str) -> MessageCodec:
+        """The mapped message ``name``."""
+        for m in self.messages:
+            if m.name == name:
+                return m
+        raise KeyError(name)
+
+    def message_of(self, role: str) -> MessageCodec:
+        """The mapped message carrying ``role``."""
+        return self.message(self.roles[role].message)
+
+    @property
+    def period(self) -> float | None:
+        """Control period [s]: the smallest cycle time of the mapped messages (None: unknown)."""
+        ts = [m.cycle_time for m in self.messages if m.cycle_time]
+        return min(ts) if ts else None
+
+    def decoder(self) -> Decoder:
+        """A new stateful strict decoder (counters carried across blocks)."""
+        return Decoder(self)
+
+    def encoder(self, **kwargs: Any) -> FeedbackEncoder:
+        """A new :class:`FeedbackEncoder` (keyword arguments passed on)."""
+        return FeedbackEncoder(self, **kwargs)
+
+
+def _resolve(db: Any, path: Path, is_default: bool, mp: SignalMapping,
+             period: float | None) -> tuple[dict[str, RoleInfo], tuple[MessageCodec, ...]]:
+    where = f"DBC {path}"
+    names = {m.name for m in db.messages}
+    roles: dict[str, RoleInfo] = {}
+    for role in ROLES:
+        spec = mp.roles.get(role)
+        if spec is None:
+            continue
+        if spec.message not in names:
+            if spec.optional:
+                continue
+            raise SignalError(f"{where} has no message {spec.message!r} (mapped to {role} = "
+                              f"{spec}); its messages are {', '.join(sorted(names))}")
+        msg = db.get_message_by_name(spec.message)
+        sigs = {s.name: s for s in msg.signals}
+        if spec.signal not in sigs:
+            if spec.optional:
+                continue
+            raise SignalError(f"{where}: message {spec.message} has no signal {spec.signal!r} "
+                              f"(mapped to {role}); its signals are {', '.join(sigs)}")
+        sig = sigs[spec.signal]
+        if sig.multiplexer_ids or sig.is_multiplexer:
+            raise SignalError(f"{where}: {spec} is multiplexed; canrls maps plain signals only")
+        if msg.is_container:
+            raise SignalError(f"{where}: message {spec.message} is a container message")
+        codec = SignalCodec(sig, msg.name)
+        unit = spec.unit if spec.unit is not None else (sig.unit or "")
+        factor = si_factor(role, unit, message=msg.name, signal=sig.name, scale=spec.scale)
+        roles[role] = RoleInfo(role, codec, factor, unit)
+    for role in REQUIRED_ROLES:
+        if role not in roles:
+            raise SignalError(f"signal mapping for {where} lacks the required role {role} "
+                              f"(give {role}=MESSAGE.SIGNAL)")
+    if "position" in roles:
+        ax_s, ax_p = axis_of(roles["speed"].unit), axis_of(roles["position"].unit)
+        if ax_s and ax_p and ax_s != ax_p:
+            raise SignalError(f"{where}: speed {roles['speed'].message}.{roles['speed'].signal} "
+                              f"is {ax_s} ({roles['speed'].unit}) but position "
+                              f"{roles['position'].message}.{roles['position'].signal} is "
+                              f"{ax_p} ({roles['position'].unit})")
+
+    mapped = list(dict.fromkeys(r.message for r in roles.values()))
+    for table, kind in ((mp.counters, "counter"), (mp.crcs, "CRC")):
+        for mname in table:
+            if mname not in mapped:
+                raise ConfigError(f"{kind} configured for message {mname!r}, which no role "
+                                  f"maps (mapped: {', '.join(mapped)})")
+    messages = []
+    for mname in mapped:
+        msg = db.get_message_by_name(mname)
+        sigs = {s.name: s for s in msg.signals}
+        role_signals = {r.signal for r in roles.values() if r.message == mname}
+
+        auto = is_default
+        counter = _e2e_signal(where, mname, sigs, role_signals, mp.counters, "Counter" if auto
+                              else None, "counter")
+        crc = _e2e_signal(where, mname, sigs, role_signals, mp.crcs, "CRC" if auto else None,
+                          "CRC")
+        if counter is not None and crc is not None and counter.byte_index == (0,):
+            raise SignalError(f"{where}: counter {mname}.{counter.name} overlaps the CRC byte")
+        cycle = period if period is not None else (
+            msg.cycle_time / 1000.0 if msg.cycle_time else None)
+        messages.append(MessageCodec(
+            name=mname, frame_id=int(msg.frame_id), is_extended=bool(msg.is_extended_frame),
+            length=int(msg.length), cycle_time=cycle,
+            roles=tuple(r for r in roles.values() if r.message == mname),
+            counter=counter, crc=crc, message=msg))
+    return roles, tuple(messages)
+
+
+def _e2e_signal(where: str, mname: str, sigs: Mapping[str, Any], role_signals: set[str],
+                table: Mapping[str, str | None], auto: str | None, kind: str
+                ) -> SignalCodec | None:
+    """The counter or CRC codec of message ``mname``: as configured, else auto-detected by name."""
+    if mname in table:
+        sname = table[mname]
+    else:
+        sname = auto if auto in sigs else None
+    if sname is None:
+        return None
+    if sname not in sigs:
+        raise SignalError(f"{where}: message {mname} has no {kind} signal {sname!r}; "
+                          f"its signals are {', '.join(sigs)}")
+    if sname in role_signals:
+        raise SignalError(f"{where}: {mname}.{sname} is mapped to a role and cannot "
+                          f"also be the {kind}")
+    c = SignalCodec(sigs[sname], mname)
+    if c.is_float or c.is_signed or c.scale != 1 or c.offset != 0:
+        raise SignalError(f"{where}: {kind} {mname}.{sname} must be an unsigned integer "
+                          f"with scale 1 and offset 0")
+    if kind == "CRC" and (c.length != 8 or c.byte_index != (0,) or c.shift != 0):
+        raise SignalError(f"{where}: CRC {mname}.{sname} must be the 8 bits of byte 0 "
+                          f"(E2E profile 1 layout, see canrls.e2e)")
+    return c
+
+
+# ---------------------------------------------------------------------------
+# Decoding
+# ---------------------------------------------------------------------------
+
+
+class RejectCounts(Mapping[str, int]):
+    """Rejected frames: a mapping reason -> count (every reason of :data:`REJECT_REASONS`).
+
+    ``per_message[name][reason]`` splits the counts by message (error frames, which
+    belong to no message, are filed under ``"*"``); ``examples[reason]`` keeps the
+    earliest (in stream order) human-readable example of each reason, e.g.
+    ``"DriveSpeed.Speed = 830.5 rad/s outside [-800, 800] (t=1.234000 s)"``.
+    """
+
+    def __init__(self) -> None:
+        self._counts: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
+        self.per_message: dict[str, dict[str, int]] = {}
+        self.examples: dict[str, str] = {}
+        self._example_key: dict[str, int] = {}
+
+    def __getitem__(self, reason: str) -> int:
+        return self._counts[reason]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._counts)
+
+    def __len__(self) -> int:
+        return len(self._counts)
+
+    @property
+    def total(self) -> int:
+        return sum(self._counts.values())
+
+    def add(self, reason: str, message: str, n: int = 1, example: str | None = None,
+            key: int = 0) -> None:
+        """Count ``n`` rejections; ``example`` is kept if it is the earliest (smallest ``key``)."""
+        if n <= 0:
+            return
+        self._counts[reason] += n
+        per = self.per_message.setdefault(message, dict.fromkeys(REJECT_REASONS, 0))
+        per[reason] += n
+        if example is not None and self.wants_example(reason, key):
+            self.examples[reason] = example
+            self._example_key[reason] = key
+
+    def wants_example(self, reason: str, key: int) -> bool:
+        """True when an example of ``reason`` at position ``key`` would replace the kept one."""
+        return reason not in self._example_key or key < self._example_key[reason]
+
+    def merge(self, other: RejectCounts) -> None:
+        """Add ``other``'s counts (and its examples where they come earlier) into this one."""
+        for msg, per in other.per_message.items():
+            for reason, n in per.items():
+                self.add(reason, msg, n)
+        for reason, ex in other.examples.items():
+            key = other._example_key[reason]
+            if self.wants_example(reason, key):
+                self.examples[reason] = ex
+                self._example_key[reason] = key
+
+    def summary(self) -> str:
+        """One line per reason with a non-zero count, with its example."""
+        lines = []
+        for r in REJECT_REASONS:
+            if self._counts[r]:
+                ex = self.examples.get(r)
+                lines.append(f"{r}: {self._counts[r]}" + (f"  e.g. {ex}" if ex else ""))
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        nz = {r: n for r, n in self._counts.items() if n}
+        return f"RejectCounts({nz})"
+
+
+@dataclass(frozen=True)
+class MessageFrames:
+    """The accepted frames of one mapped message in a block.
+
+    ``index`` is each frame's position in the whole stream (0-based, across blocks),
+    ``counter`` the raw alive counter (0 .. ``counter_modulo``-1) or, when the message
+    has none, a running sequence number of its accepted frames (``counter_modulo`` is
+    then ``None``); ``values`` maps each role of the message to SI values.
+    """
+
+    name: str
+    t: F64
+    index: I64
+    counter: I64
+    values: dict[str, F64]
+    counter_modulo: int | None
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+@dataclass(frozen=True)
+class DecodedFrames:
+    """Result of decoding one block: the accepted frames of each mapped message and the counts.
+
+    ``rejected`` and ``lost`` (message -> frames missing according to the counter) and
+    ``foreign`` (frames of other IDs, ignored) count this block only; the
+    :class:`Decoder` keeps running totals.
+    """
+
+    messages: dict[str, MessageFrames]
+    rejected: RejectCounts
+    lost: dict[str, int]
+    foreign: int
+
+    def __getitem__(self, name: str) -> MessageFrames:
+        return self.messages[name]
+
+    def __iter__(self) -> Iterator[MessageFrames]:
+        return iter(self.messages.values())
+
+    @property
+    def accepted(self) -> int:
+        return sum(len(m) for m in self.messages.values())
+
+
+_STATUS_OK, _STATUS_REPEATED, _STATUS_STALE = 0, 1, 2
+
+
+@numba.njit(cache=True, nogil=True)
+def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
+                    state: I64, state_t: F64
+                    ) -> tuple[npt.NDArray[np.int8], I64]:  # pragma: no cover
+    """Classify alive counters one frame at a time, carrying state across blocks.
+
+    state = [last counter (-1: none yet), consecutive stale frames, counter of the last
+    stale frame]; state_t = [time of the last accepted frame].
+    d = (c - last) mod M: d == 0 repeated; d >= M - window stale (a jump backwards),
+    unless the time since the last accepted frame shows that d - 1 frames were lost;
+    otherwise d - 1 frames lost (plus whole counter wraps the time gap implies).
+    Three consecutive stale frames that count up by one resynchronise.
+    """
+    n = len(c)
+    status = np.zeros(n, np.int8)
+    lost = np.zeros(n, np.int64)
+    last = state[0]
+    run = state[1]
+    prev_stale = state[2]
+    last_t = state_t[0]
+    for i in range(n):
+        ci = c[i]
+        if last < 0:
+            last = ci
+            last_t = t[i]
+            run = 0
+            continue
+        d = (ci - last) % mod
+        dt = t[i] - last_t
+        timed = period > 0.0 and np.isfinite(dt)
+        if d == 0 and not (timed and dt >= (mod - 0.5) * period):
+            status[i] = _STATUS_REPEATED
+            continue
+        if d == 0:
+            d = mod
+        if d >= mod - window and not (timed and dt >= (d - 0.5) * period):
+            if run > 0 and ci == (prev_stale + 1) % mod:
+                run += 1
+            else:
+                run = 1
+            prev_stale = ci
+            if run < 3:
+                status[i] = _STATUS_STALE
+                continue
+            d = 1  # resynchronise on a consistent new sequence (loss unknown)
+        gap = d
+        if timed:
+            k = int(np.floor((dt / period - d) / mod + 0.5))
+            if k > 0:
+                gap += k * mod
+        lost[i] = gap - 1
+        last = ci
+        last_t = t[i]
+        run = 0
+    state[0] = last
+    state[1] = run
+    state[2] = prev_stale
+    state_t[0] = last_t
+    return status, lost
+
+
+class Decoder:
+    """Stateful strict decoder of the mapped feedback messages (see :meth:`Protocol.decoder`).
+
+    Running totals: ``rejected`` (:class:`RejectCounts`), ``lost`` (message -> frames
+    missing by counter), ``accepted`` (message -> frames passed on), ``foreign``
+    (frames of other IDs) and ``frames`` (all frames seen). Decoding is chunk-invariant:
+    the alive-counter state is carried from block to block.
+    """
+
+    def __init__(self, protocol: Protocol) -> None:
+        self.protocol = protocol
+        self.rejected = RejectCounts()
+        self.lost: dict[str, int] = {m.name: 0 for m in protocol.messages}
+        self.accepted: dict[str, int] = {m.name: 0 for m in protocol.messages}
+        self.foreign = 0
+        self.frames = 0
+        self._state = {m.name: (np.array([-1, 0, -1], np.int64), np.zeros(1, np.float64))
+                       for m in protocol.messages}
+        self._seq = {m.name: 0 for m in protocol.messages}
+
+    def decode(self, block: FrameBlock) -> DecodedFrames:
+        """Decode one block; rejected frames are counted and dropped, never passed on."""
+        p = self.protocol
+        n = len(block)
+        base = self.frames
+        self.frames += n
+        rej = RejectCounts()
+        err = block.is_error
+        n_err = int(err.sum())
+        if n_err:
+            k = int(np.flatnonzero(err)[0])
+            rej.add("error_frame", "*", n_err, f"error frame at t={block.t[k]:.6f} s", base + k)
+        mine = np.zeros(n, np.bool_)
+        out: dict[str, MessageFrames] = {}
+        lost_block: dict[str, int] = {}
+        for m in p.messages:
+            sel = (block.arbitration_id == m.frame_id) & (block.is_extended == m.is_extended) & ~err
+            mine |= sel
+            rows = np.flatnonzero(sel)
+            frames, lost = self._decode_message(m, block, rows, base, rej)
+            out[m.name] = frames
+            lost_block[m.name] = lost
+            self.lost[m.name] += lost
+            self.accepted[m.name] += len(frames)
+        foreign = int(n - n_err - mine.sum())
+        self.foreign += foreign
+        self.rejected.merge(rej)
+        return DecodedFrames(out, rej, lost_block, foreign)
+
+    def _decode_message(self, m: MessageCodec, block: FrameBlock, rows: npt.NDArray[np.intp],
+                        base: int, rej: RejectCounts) -> tuple[MessageFrames, int]:
+        p = self.protocol
+        t = block.t[rows]
+        reason = np.zeros(len(rows), np.int8)
+
+        def reject(mask: npt.NDArray[np.bool_], name: str, example: Any) -> None:
+            mask = mask & (reason == 0)
+            if mask.any():
+                k = int(np.flatnonzero(mask)[0])
+                reason[mask] = _R[name]
+                key = base + int(rows[k])
+                want = self.rejected.wants_example(name, key) and rej.wants_example(name, key)
+                rej.add(name, m.name, int(mask.sum()), example(k) if want else None, key)
+
+        reject(block.is_remote[rows], "remote",
+               lambda k: f"{m.name}: remote frame (t={t[k]:.6f} s)")
+        dlc = block.dlc[rows]
+        reject(dlc != m.length, "length",
+               lambda k: f"{m.name}: {dlc[k]} bytes, expected {m.length} (t={t[k]:.6f} s)")
+        ok = np.flatnonzero(reason == 0)
+        data = block.data[rows[ok], :m.length] if len(ok) else np.zeros((0, m.length), np.uint8)
+        if m.crc is not None and p.check_crc and len(ok):
+            crc = _crc_vector(m.frame_id, data, m.length)
+            bad = np.zeros(len(rows), np.bool_)
+            bad[ok] = crc != data[:, 0]
+
+            def crc_example(k: int) -> str:
+                good = int(_crc_vector(m.frame_id, block.data[rows[k:k + 1], :m.length],
+                                       m.length)[0])
+                return (f"{m.name}: CRC 0x{block.data[rows[k], 0]:02X}, computed 0x{good:02X} "
+                        f"(t={t[k]:.6f} s)")
+
+            reject(bad, "crc", crc_example)
+        lost_total = 0
+        counter_all = np.zeros(len(rows), np.int64)
+        modulo = m.counter_modulo
+        if m.counter is not None:
+            ok = np.flatnonzero(reason == 0)
+            if len(ok):
+                counter_all[ok] = m.counter.raw(block.data[rows[ok], :m.length])
+            if p.check_counter and len(ok):
+                state, state_t = self._state[m.name]
+                before = int(state[0])
+                status, lost = _counter_kernel(counter_all[ok], t[ok], int(modulo),
+                                               max(1, int(modulo) // 2 - 1),
+                                               float(m.cycle_time or 0.0), state, state_t)
+                lost_total = int(lost.sum())
+
+                def previous(k: int) -> int:
+                    j = np.flatnonzero((ok < k) & (status == _STATUS_OK))
+                    return int(counter_all[ok[j[-1]]]) if len(j) else before
+
+                for code, name in ((_STATUS_REPEATED, "repeated"), (_STATUS_STALE, "stale")):
+                    bad = np.zeros(len(rows), np.bool_)
+                    bad[ok] = status == code
+                    reject(bad, name, lambda k, name=name: (
+                        f"{m.name}: counter {counter_all[k]} {name} after counter "
+                        f"{previous(k)} (t={t[k]:.6f} s)"))
+        # values of the mapped roles
+        ok = np.flatnonzero(reason == 0)
+        data = block.data[rows[ok], :m.length] if len(ok) else np.zeros((0, m.length), np.uint8)
+        phys: dict[str, F64] = {}
+        for r in m.roles:
+            phys[r.role] = r.codec.physical(data)
+        for r in m.roles:
+            v = phys[r.role]
+            if r.codec.is_float:
+                bad = np.zeros(len(rows), np.bool_)
+                bad[ok] = ~np.isfinite(v)
+                reject(bad, "nan", lambda k, r=r: (
+                    f"{r.codec.qualname} = {_phys_at(r.codec, block, rows, k, m.length)} "
+                    f"{r.codec.unit} (t={t[k]:.6f} s)"))
+        if p.strict_range:
+            for r in m.roles:
+                bad = np.zeros(len(rows), np.bool_)
+                bad[ok] = r.codec.out_of_range(phys[r.role])
+                c = r.codec
+                reject(bad, "range", lambda k, c=c: (
+                    f"{c.qualname} = {_fmt(_phys_at(c, block, rows, k, m.length))} {c.unit} "
+                    f"outside [{_fmt(c.minimum) if c.minimum is not None else '-inf'}, "
+                    f"{_fmt(c.maximum) if c.maximum is not None else 'inf'}] (t={t[k]:.6f} s)"))
+        keep_local = reason[ok] == 0
+        keep = ok[keep_local]
+        values = {r.role: phys[r.role][keep_local] * r.si_scale for r in m.roles}
+        if modulo is not None:
+            counter = counter_all[keep]
+        else:
+            s0 = self._seq[m.name]
+            counter = np.arange(s0, s0 + len(keep), dtype=np.int64)
+            self._seq[m.name] = s0 + len(keep)
+        frames = MessageFrames(m.name, t[keep], base + rows[keep].astype(np.int64), counter,
+                               values, modulo)
+        return frames, lost_total
+
+
+def _phys_at(c: SignalCodec, block: FrameBlock, rows: npt.NDArray[np.intp], k: int,
+             length: int) -> float:
+    return float(c.physical(block.data[rows[k:k + 1], :length])[0])
+
+
+# ---------------------------------------------------------------------------
+# Encoding
+# ---------------------------------------------------------------------------
+
+
+class FeedbackEncoder:
+    """Encode SI arrays into the mapped feedback frames (the inverse of :class:`Decoder`).
+
+    One frame per mapped message and period, interleaved in the protocol's message
+    order (the current's message first); every message of a period carries the same
+    alive counter (mod its range), and the E2E CRC is computed as
+    :func:`canrls.e2e.e2e_crc` does. Raw values are rounded to nearest (half to even,
+    as cantools) and checked against the DBC range: out of range raises
+    :class:`EncodeError` naming the signal and the value, unless ``clip=True``, which
+    clips and counts in ``clipped`` (signal -> count).
+
+    A position signal whose bit field spans exactly one turn (e.g. 16 bits of
+    2*pi/65536 rad) is encoded modulo one turn, so unwrapped angles can be passed.
+
+    Parameters
+    ----------
+    protocol : the :class:`Protocol` (its feedback messages and mapping).
+    clip : clip out-of-range values instead of raising (for the simulator).
+    counter : alive counter of the first period.
+    stagger : time [s] between the frames of one period (message k at ``t + k*stagger``).
+    """
+
+    def __init__(self, protocol: Protocol, *, clip: bool = False, counter: int = 0,
+                 stagger: float = 0.0) -> None:
+        self.protocol = protocol
+        self.clip = clip
+        self.counter = int(counter)
+        self.stagger = float(stagger)
+        self.clipped: dict[str, int] = {}
+        #: roles encoded modulo one turn (a full-turn position field)
+        self.wrapping: frozenset[str] = frozenset(
+            r.role for r in protocol.roles.values()
+            if r.role == "position" and not r.codec.is_float and axis_of(r.unit) == "rotary"
+            and abs((1 << r.codec.length) * abs(float(r.codec.scale)) * r.si_scale - 2 * math.pi)
+            <= 1e-9 * 2 * math.pi)
+        self._width = max(8, max(m.length for m in protocol.messages))
+
+    def encode(self, t: npt.ArrayLike, current: npt.ArrayLike, speed: npt.ArrayLike,
+               position: npt.ArrayLike | None = None,
+               voltage: npt.ArrayLike | None = None) -> FrameBlock:
+        """Frames of ``len(t)`` periods (``len(t) * len(protocol.messages)`` frames).
+
+        Values are SI (A, rad/s, rad, V). A mapped role given as ``None`` is sent as
+        raw 0; a role given but not mapped is ignored.
+        """
+        p = self.protocol
+        tt = np.asarray(t, np.float64).ravel()
+        n = len(tt)
+        si = {"current": current, "speed": speed, "position": position, "voltage": voltage}
+        m_count = len(p.messages)
+        block = FrameBlock.allocate(n * m_count, self._width)
+        seq = self.counter + np.arange(n, dtype=np.int64)
+        for k, m in enumerate(p.messages):
+            data = np.zeros((n, self._width), np.uint8)
+            for r in m.roles:
+                v = si[r.role]
+                if v is None:
+                    continue
+                arr = np.asarray(v, np.float64).ravel()
+                if len(arr) != n:
+                    raise ValueError(f"{r.role} has {len(arr)} samples, t has {n}")
+                dbc_units = arr / r.si_scale if r.si_scale != 1.0 else arr
+                raw, n_clip = r.codec.to_raw(dbc_units, clip=self.clip,
+                                             wrap=r.role in self.wrapping)
+                if n_clip:
+                    self.clipped[r.codec.qualname] = self.clipped.get(r.codec.qualname, 0) + n_clip
+                r.codec.insert(data, raw)
+            if m.counter is not None:
+                m.counter.insert(data, seq % (1 << m.counter.length))
+            if m.crc is not None:
+                data[:, 0] = _crc_vector(m.frame_id, data, m.length)
+            sl = slice(k, None, m_count)
+            block.t[sl] = tt + k * self.stagger
+            block.arbitration_id[sl] = m.frame_id
+            block.is_extended[sl] = m.is_extended
+            block.dlc[sl] = m.length
+            block.data[sl] = data
+        self.counter += n
+        return block

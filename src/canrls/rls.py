@@ -1,0 +1,702 @@
+r"""Float recursive least squares with forgetting and a ridge prior: the reference estimator.
+
+:class:`RLS` minimises, after :math:`N` samples,
+
+.. math::
+
+    J_N(\theta) = \sum_{k=1}^{N} \lambda^{N-k} (y_k - \theta^\top\varphi_k)^2
+                  + \lambda^N \alpha |\theta|^2
+
+whose minimiser is the batch closed form
+
+.. math::
+
+    \theta_N = \Big(\sum_{k=1}^{N} \lambda^{N-k}\varphi_k\varphi_k^\top
+               + \lambda^N \alpha I\Big)^{-1} \sum_{k=1}^{N} \lambda^{N-k}\varphi_k y_k .
+
+The ridge term is the prior :math:`P_0 = I/\alpha`, :math:`\theta_0 = 0`; it is
+forgotten like any other data (hence :math:`\lambda^N\alpha`), so it regularises the
+start-up and the directions that are never excited, and fades elsewhere. The
+recursion, per sample:
+
+.. math::
+
+    \varepsilon &= y - \varphi^\top\theta \\
+    K &= P\varphi / (\lambda + \varphi^\top P\varphi) \\
+    \theta &\leftarrow \theta + K\varepsilon \\
+    P &\leftarrow (P - K\varphi^\top P)/\lambda
+
+Written literally, the last line forms :math:`P\varphi` (in :math:`K`) and
+:math:`\varphi^\top P` separately, and rounding makes :math:`P` asymmetric. The
+default ``update="symmetric"`` computes instead
+
+.. math::
+
+    P \leftarrow \big(P - g\,(P\varphi)(P\varphi)^\top\big)/\lambda,
+    \qquad g = 1/(\lambda + \varphi^\top P\varphi)
+
+so :math:`P` is symmetric bit for bit after every step (the same bits as the upper
+triangle mirrored; see :mod:`canrls._rls_float`) and :math:`P\varphi` is computed
+once. What the literal form costs, measured (``tests/test_rls.py``): to first
+order its antisymmetric error propagates like the symmetric one,
+:math:`A \leftarrow (I - K\varphi^\top) A (I - K\varphi^\top)^\top/\lambda`, so it is
+damped while all directions are excited (float64, :math:`10^6` samples: rounding
+level, no drift; float32 with persistent excitation: ~1e-7 relative), but it grows
+with windup: in float32 with :math:`\lambda = 0.98 \dots 0.995` and standstills of
+:math:`7/(1-\lambda)` samples, the relative asymmetry reaches 1.5e-3 to 4e-3
+(the symmetric form: 0), while the estimates of both forms stay within 2e-6 of the
+float64 closed form. We did not observe the literal form diverge where the
+symmetric one does not.
+
+Neither form keeps :math:`P` positive definite when the information matrix is
+conditioned beyond the arithmetic (:math:`\mathrm{cond}\,R \gtrsim 1/\epsilon`, about
+1e7 in float32), or when :math:`P` winds up without bound (in float64 too: the
+trace bound below prevents that). A factorised (UD) update would keep :math:`P`
+definite there, at roughly twice the work per update and without the element-wise
+form that ``canrls.fixed`` shares; :meth:`RLS.excitation` reports ``cond`` and
+``positive_definite`` so that such data can be recognised. ``update="literal"`` is
+kept only for comparison.
+
+The recursion runs in the compiled kernel :func:`canrls._rls_float.rls_block_symmetric`;
+:meth:`RLS.update` (one sample) and :meth:`RLS.run` (a block) call it alike, so the
+results are identical bit for bit whatever the block sizes.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import operator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from canrls import _rls_float
+from canrls.errors import CheckpointError, EstimatorError
+
+__all__ = ["RLS", "RLSFlag", "RLSStep", "RLSTrace", "Excitation"]
+
+FloatArray = npt.NDArray[np.floating[Any]]
+
+#: Format tag of :meth:`RLS.state` dictionaries.
+STATE_FORMAT = "canrls.rls/1"
+
+_DTYPES = (np.dtype(np.float64), np.dtype(np.float32))
+
+
+class RLSFlag(enum.IntFlag):
+    """Per-step status bits of an estimator update.
+
+    The values are part of the estimator CAN frames: never renumber them.
+    """
+
+    #: Nothing to report: a regular update.
+    NONE = 0
+    #: The trace bound held this step: it was taken without forgetting.
+    WINDUP = 1
+    #: Excitation is poor (set from :meth:`RLS.excitation`, not by the update).
+    LOW_EXCITATION = 2
+    #: Reserved for the fixed-point estimator: an arithmetic result saturated.
+    SATURATION = 4
+    #: The estimator is frozen: the error was computed, the state left untouched.
+    FROZEN = 8
+    #: The sample was rejected (NaN/inf in phi or y, or overflow); state untouched.
+    NONFINITE = 16
+
+
+# Types accepted as a scalar y without asking numpy (the per-sample path is hot).
+_SCALARS = (float, int, np.floating, np.integer)
+
+# Every combination of the bits the kernel sets, built once (IntFlag() is slow).
+_FLAGS: tuple[RLSFlag, ...] = tuple(RLSFlag(i) for i in range(32))
+
+
+@dataclass(frozen=True)
+class RLSStep:
+    r"""The result of one :meth:`RLS.update`.
+
+    Attributes
+    ----------
+    eps : float
+        A-priori error :math:`\varepsilon = y - \varphi^\top\theta` (before the update).
+    K : ndarray, shape (n,)
+        The gain applied this step (zeros when the step was not applied).
+    theta : ndarray, shape (n,)
+        The estimate after the step (a copy).
+    trace_P : float
+        :math:`\mathrm{tr}\,P` after the step.
+    flags : RLSFlag
+        Status bits of the step.
+    """
+
+    eps: float
+    K: FloatArray
+    theta: FloatArray
+    trace_P: float
+    flags: RLSFlag
+
+
+@dataclass(frozen=True)
+class RLSTrace:
+    r"""The record of one :meth:`RLS.run` over a block of N samples.
+
+    Attributes
+    ----------
+    eps : ndarray, shape (N,)
+        A-priori errors.
+    theta : ndarray, shape (N, n) or None
+        Estimate after each sample; ``None`` when run with ``record=False``.
+    trace_P : ndarray, shape (N,)
+        :math:`\mathrm{tr}\,P` after each sample.
+    flags : ndarray of uint8, shape (N,)
+        :class:`RLSFlag` bits of each sample.
+    theta_final : ndarray, shape (n,)
+        Estimate at the end of the block (a copy).
+    applied : int
+        Number of samples that updated the state.
+    """
+
+    eps: FloatArray
+    theta: FloatArray | None
+    trace_P: FloatArray
+    flags: npt.NDArray[np.uint8]
+    theta_final: FloatArray
+    applied: int
+
+    def __len__(self) -> int:
+        return int(self.eps.shape[0])
+
+    def count(self, flag: RLSFlag) -> int:
+        """Number of samples whose flags contain every bit of ``flag``.
+
+        ``count(RLSFlag.NONE)`` is the number of samples without any flag.
+        """
+        f = int(flag)
+        if f == 0:
+            return int(np.count_nonzero(self.flags == 0))
+        return int(np.count_nonzero((self.flags & f) == f))
+
+
+@dataclass(frozen=True)
+class Excitation:
+    r"""How well the data excite the parameters: see :meth:`RLS.excitation`.
+
+    Attributes
+    ----------
+    cond : float
+        Condition number of the information matrix :math:`R = P^{-1}`
+        (``inf`` if :math:`P` is not positive definite).
+    min_eig, max_eig : float
+        Smallest and largest eigenvalue of :math:`R` (``nan`` if :math:`P` is not
+        positive definite).
+    positive_definite : bool
+        Whether :math:`P` is (numerically) positive definite.
+    cond_max, info_min : float
+        The thresholds that were applied.
+    low : bool
+        ``cond > cond_max`` or ``min_eig < info_min`` or :math:`P` not positive definite.
+    """
+
+    cond: float
+    min_eig: float
+    max_eig: float
+    positive_definite: bool
+    cond_max: float
+    info_min: float
+    low: bool
+
+    @property
+    def flags(self) -> RLSFlag:
+        """``RLSFlag.LOW_EXCITATION`` when excitation is low, else ``RLSFlag.NONE``."""
+        return RLSFlag.LOW_EXCITATION if self.low else RLSFlag.NONE
+
+
+def _real(name: str, value: object) -> float:
+    """``value`` as a float, or EstimatorError naming ``name``."""
+    if isinstance(value, bool):
+        raise EstimatorError(f"RLS {name} must be a real number, got {value!r}")
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError) as e:
+        raise EstimatorError(f"RLS {name} must be a real number, got {value!r}") from e
+
+
+def _check_lam(lam: object) -> float:
+    x = _real("lam", lam)
+    if not (0.0 < x <= 1.0):
+        raise EstimatorError(f"RLS lam (forgetting factor) must be in (0, 1], got {lam!r}")
+    return x
+
+
+def _check_alpha(alpha: object) -> float:
+    x = _real("alpha", alpha)
+    if not (0.0 < x < math.inf):
+        raise EstimatorError(f"RLS alpha (ridge) must be finite and > 0, got {alpha!r}")
+    return x
+
+
+class RLS:
+    r"""Recursive least squares with forgetting, ridge prior and windup guard.
+
+    Parameters
+    ----------
+    n : int
+        Number of parameters (length of :math:`\varphi`), >= 1.
+    lam : float, default 1.0
+        Forgetting factor :math:`\lambda \in (0, 1]`; ``1`` keeps all data.
+        In float32 the kernel uses ``lam`` rounded to float32.
+    alpha : float, default 1e-3
+        Ridge weight :math:`\alpha > 0`: :math:`P_0 = I/\alpha`.
+    trace_max : float or None, default None
+        Bound on :math:`\mathrm{tr}\,P`. When a step would take the trace above it,
+        the step is taken with :math:`\lambda = 1` (no forgetting) and flagged
+        ``WINDUP``. ``None`` means :math:`\mathrm{tr}\,P_0 = n/\alpha`: forgetting
+        may bring the uncertainty back up to the prior's, never beyond it, so a
+        direction that is not excited keeps the prior instead of blowing up
+        (exponential windup, :math:`P \propto \lambda^{-N}`). Pass ``math.inf`` to
+        disable the bound (then :math:`J_N` above is minimised exactly).
+    update : {"symmetric", "literal"}, default "symmetric"
+        The covariance update; ``"literal"`` only for comparison (module docstring).
+    dtype : np.float64 or np.float32, default np.float64
+        Arithmetic of the state and of the kernel. Inputs are converted to it.
+
+    Raises
+    ------
+    EstimatorError
+        A parameter is out of range; the message names it and its value.
+
+    Notes
+    -----
+    Flags. ``WINDUP``, ``FROZEN`` and ``NONFINITE`` are set per step by the kernel.
+    ``LOW_EXCITATION`` is not computed in the hot loop (it needs an eigen
+    decomposition): call :meth:`excitation` at the rate you report (e.g. with each
+    status frame) and OR its ``flags`` in.
+
+    Trace bound. The decision uses the trace the step would give, computed in O(n)
+    before the step; the trace summed after it may exceed ``trace_max`` by rounding
+    (about n ulps), never by more. A step taken with :math:`\lambda = 1` is still an
+    exact RLS step: the closed form holds with :math:`\lambda_k = 1` at those steps.
+
+    Rejected samples. ``NONFINITE``: NaN or inf in ``phi`` or ``y``, values that
+    overflow the dtype when converted (float32), or a :math:`\varphi^\top P\varphi`
+    that overflows. The state is untouched and :attr:`count` (the number of applied
+    updates since :meth:`reset`) does not advance; the same holds for frozen steps.
+
+    Noise. The kernel keeps the minimised weighted cost and the weight sum,
+
+    .. math::
+
+        V_N = \lambda V_{N-1} + \varepsilon\, e_{post}, \quad
+        e_{post} = \varepsilon\,\lambda/(\lambda + \varphi^\top P\varphi), \quad
+        W_N = \lambda W_{N-1} + 1,
+
+    where :math:`e_{post} = y - \varphi^\top\theta_{new}` is the a-posteriori error.
+    :math:`V_N = J_N(\theta_N)` exactly (the product :math:`\varepsilon e_{post}`
+    is the exact increment of the minimised cost; the square :math:`e_{post}^2`
+    would be biased low), and :attr:`sigma2` is :math:`V_N/(W_N - n)`: for
+    :math:`\lambda = 1` the classical unbiased estimate with :math:`N - n`
+    degrees of freedom (plus the fading ridge term), for :math:`\lambda < 1` the
+    same with :math:`W_N \to 1/(1-\lambda)` effective samples (an approximation).
+    Steps held by the trace bound use :math:`\lambda = 1` here too.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rls = RLS(2, lam=0.99)
+    >>> rng = np.random.default_rng(0)
+    >>> Phi = rng.normal(size=(500, 2))
+    >>> trace = rls.run(Phi, Phi @ np.array([2.0, -1.0]))
+    >>> np.round(rls.theta, 6)
+    array([ 2., -1.])
+    """
+
+    def __init__(
+        self,
+        n: int,
+        lam: float = 1.0,
+        alpha: float = 1e-3,
+        trace_max: float | None = None,
+        update: str = "symmetric",
+        dtype: type[np.floating[Any]] | np.dtype[Any] | str = np.float64,
+    ) -> None:
+        if isinstance(n, bool):
+            raise EstimatorError(f"RLS n must be a positive integer, got {n!r}")
+        try:
+            n_int = operator.index(n)
+        except TypeError as e:
+            raise EstimatorError(f"RLS n must be a positive integer, got {n!r}") from e
+        if n_int < 1:
+            raise EstimatorError(f"RLS n must be a positive integer, got {n!r}")
+        lam_f = _check_lam(lam)
+        alpha_f = _check_alpha(alpha)
+        if not isinstance(update, str) or update not in _rls_float.KERNELS:
+            raise EstimatorError(
+                f"RLS update must be one of {sorted(_rls_float.KERNELS)}, got {update!r}"
+            )
+        try:
+            dt = np.dtype(dtype)
+        except TypeError as e:
+            raise EstimatorError(f"RLS dtype must be float64 or float32, got {dtype!r}") from e
+        if dt not in _DTYPES:
+            raise EstimatorError(f"RLS dtype must be float64 or float32, got {dtype!r}")
+        self._n = n_int
+        self._alpha = alpha_f
+        self._dtype = dt
+        self._narrow = dt == np.float32  # casts into it may overflow to inf
+        self._update = update
+        self._kernel = _rls_float.KERNELS[update]
+        # state
+        self._theta = np.zeros(n_int, dt)
+        self._P = np.zeros((n_int, n_int), dt)
+        self._acc = np.zeros(2, dt)
+        self._work = np.zeros((3, n_int), dt)
+        self._frozen = False
+        self.count = 0
+        self._reset_arrays()
+        if trace_max is None:
+            # the prior's trace, summed in the kernel's order and dtype
+            tm = float(_rls_float.trace_of(self._P, dt.type(0)))
+        else:
+            tm = _real("trace_max", trace_max)
+            if not tm > 0.0:
+                raise EstimatorError(f"RLS trace_max must be > 0 (or None), got {trace_max!r}")
+        self._trace_max = tm
+        self._trace_max_d = dt.type(tm)
+        self._lam = lam_f
+        self._lam_d = dt.type(lam_f)
+        # buffers of the one-row block used by update()
+        self._phi1 = np.zeros((1, n_int), dt)
+        self._y1 = np.zeros(1, dt)
+        self._eps1 = np.zeros(1, dt)
+        self._tr1 = np.zeros(1, dt)
+        self._flags1 = np.zeros(1, np.uint8)
+        self._norec = np.zeros((0, n_int), dt)
+
+    # ------------------------------------------------------------------ state
+    def _reset_arrays(self) -> None:
+        # P0 = I / alpha ; theta0 = 0
+        self._P[...] = 0
+        self._P[np.diag_indices(self._n)] = self._dtype.type(1.0 / self._alpha)
+        self._theta[...] = 0
+        self._acc[...] = 0
+        self._work[...] = 0
+
+    @property
+    def n(self) -> int:
+        """Number of parameters."""
+        return self._n
+
+    @property
+    def lam(self) -> float:
+        r"""Forgetting factor :math:`\lambda` (change it with :meth:`set_lambda`)."""
+        return self._lam
+
+    @property
+    def alpha(self) -> float:
+        r"""Ridge weight :math:`\alpha` of the prior :math:`P_0 = I/\alpha`."""
+        return self._alpha
+
+    @property
+    def trace_max(self) -> float:
+        r"""Bound on :math:`\mathrm{tr}\,P` (``inf``: no bound)."""
+        return self._trace_max
+
+    @property
+    def update_form(self) -> str:
+        """``"symmetric"`` or ``"literal"``."""
+        return self._update
+
+    @property
+    def dtype(self) -> np.dtype[Any]:
+        """Arithmetic of the state and kernel."""
+        return self._dtype
+
+    @property
+    def theta(self) -> FloatArray:
+        r"""Current estimate :math:`\theta`, shape (n,) (read-only live view)."""
+        v = self._theta.view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def P(self) -> FloatArray:
+        """Current :math:`P`, shape (n, n) (read-only live view)."""
+        v = self._P.view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def frozen(self) -> bool:
+        """Whether updates currently leave the state untouched."""
+        return self._frozen
+
+    @property
+    def sigma2(self) -> float:
+        r"""Residual variance estimate :math:`V_N / (W_N - n)` (class Notes).
+
+        ``nan`` until more than ``n`` (weighted) samples have been applied.
+        """
+        V = float(self._acc[0])
+        W = float(self._acc[1])
+        return V / (W - self._n) if W > self._n else math.nan
+
+    def std(self) -> npt.NDArray[np.float64]:
+        r"""Parameter standard deviations :math:`\sqrt{\hat\sigma^2\,\mathrm{diag}\,P}`.
+
+        In the estimator's (normalised) units. Exact in the Gaussian
+        :math:`\lambda = 1` case; with forgetting, :math:`\hat\sigma^2 P` is the usual
+        approximation of the covariance. ``nan`` where undefined (see :attr:`sigma2`,
+        or a negative diagonal of a broken literal :math:`P`).
+        """
+        d = np.diag(self._P).astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            return np.sqrt(self.sigma2 * d)
+
+    def reset(self) -> None:
+        r"""Return to the prior :math:`P_0 = I/\alpha`, :math:`\theta_0 = 0` (count 0).
+
+        The frozen state, ``lam`` and ``trace_max`` are kept.
+        """
+        self._reset_arrays()
+        self.count = 0
+
+    def freeze(self) -> None:
+        r"""Stop adapting: updates compute :math:`\varepsilon` only, flagged ``FROZEN``."""
+        self._frozen = True
+
+    def resume(self) -> None:
+        """Adapt again after :meth:`freeze`."""
+        self._frozen = False
+
+    def set_lambda(self, lam: float) -> None:
+        """Change the forgetting factor (validated like the constructor's ``lam``)."""
+        lam_f = _check_lam(lam)
+        self._lam = lam_f
+        self._lam_d = self._dtype.type(lam_f)
+
+    # ----------------------------------------------------------------- update
+    def update(self, phi: npt.ArrayLike, y: float) -> RLSStep:
+        r"""Process one sample (a block of one row of the same kernel as :meth:`run`).
+
+        Parameters
+        ----------
+        phi : array_like, shape (n,)
+            Regressor :math:`\varphi`.
+        y : float
+            Target.
+
+        Returns
+        -------
+        RLSStep
+            Error, gain, estimate, trace and flags of this step.
+        """
+        phi_a = np.asarray(phi)
+        if phi_a.shape != (self._n,):
+            raise EstimatorError(f"RLS phi must have shape ({self._n},), got {phi_a.shape}")
+        if not isinstance(y, _SCALARS) and np.ndim(y) != 0:
+            raise EstimatorError(f"RLS y must be a scalar, got shape {np.shape(y)}")
+        try:
+            if self._narrow:
+                with np.errstate(over="ignore"):  # out of float32 range -> inf -> rejected
+                    self._phi1[0] = phi_a
+                    self._y1[0] = y
+            else:
+                self._phi1[0] = phi_a
+                self._y1[0] = y
+        except (TypeError, ValueError, OverflowError) as e:
+            raise EstimatorError(f"RLS phi and y must be real numbers: {e}") from e
+        self.count += self._kernel(
+            self._phi1, self._y1, self._theta, self._P, self._work, self._acc,
+            self._lam_d, self._trace_max_d, self._frozen, False,
+            self._eps1, self._norec, self._tr1, self._flags1,
+        )  # fmt: skip
+        return RLSStep(
+            eps=float(self._eps1[0]),
+            K=self._work[1].copy(),
+            theta=self._theta.copy(),
+            trace_P=float(self._tr1[0]),
+            flags=_FLAGS[self._flags1[0]],
+        )
+
+    def run(self, Phi: npt.ArrayLike, Y: npt.ArrayLike, record: bool = True) -> RLSTrace:
+        r"""Process a block of samples, carrying the state across calls.
+
+        Parameters
+        ----------
+        Phi : array_like, shape (N, n)
+            Regressor rows.
+        Y : array_like, shape (N,)
+            Targets.
+        record : bool, default True
+            Keep :math:`\theta` after every sample (``RLSTrace.theta``).
+
+        Returns
+        -------
+        RLSTrace
+            Errors, traces, flags (and estimates) per sample.
+        """
+        Phi_a = np.asarray(Phi)
+        Y_a = np.asarray(Y)
+        if Phi_a.ndim != 2 or Phi_a.shape[1] != self._n:
+            raise EstimatorError(f"RLS Phi must have shape (N, {self._n}), got {Phi_a.shape}")
+        N = Phi_a.shape[0]
+        if Y_a.shape != (N,):
+            raise EstimatorError(f"RLS Y must have shape ({N},) to match Phi, got {Y_a.shape}")
+        try:
+            with np.errstate(over="ignore"):  # float32: out of range -> inf -> rejected
+                Phi_c = np.ascontiguousarray(Phi_a, dtype=self._dtype)
+                Y_c = np.ascontiguousarray(Y_a, dtype=self._dtype)
+        except (TypeError, ValueError, OverflowError) as e:
+            raise EstimatorError(f"RLS Phi and Y must be real numbers: {e}") from e
+        eps = np.empty(N, self._dtype)
+        trace_P = np.empty(N, self._dtype)
+        flags = np.empty(N, np.uint8)
+        theta_out = np.empty((N, self._n), self._dtype) if record else self._norec
+        applied = self._kernel(
+            Phi_c, Y_c, self._theta, self._P, self._work, self._acc,
+            self._lam_d, self._trace_max_d, self._frozen, bool(record),
+            eps, theta_out, trace_P, flags,
+        )  # fmt: skip
+        self.count += applied
+        return RLSTrace(
+            eps=eps,
+            theta=theta_out if record else None,
+            trace_P=trace_P,
+            flags=flags,
+            theta_final=self._theta.copy(),
+            applied=int(applied),
+        )
+
+    # ------------------------------------------------------------- diagnosis
+    def excitation(self, cond_max: float = 1e8, info_min: float | None = None) -> Excitation:
+        r"""Measure the excitation from the information matrix :math:`R = P^{-1}`.
+
+        :math:`R = \sum_k w_k\varphi_k\varphi_k^\top + w_0\alpha I` (weights
+        :math:`w_k = \lambda^{N-k}`) includes the ridge prior. Computed on demand
+        (eigenvalues of :math:`P`, O(n³)), never in the update loop.
+
+        Parameters
+        ----------
+        cond_max : float, default 1e8
+            Excitation is low above this condition number of :math:`R`.
+        info_min : float or None, default None
+            Excitation is low when the weakest direction carries less information
+            than this; ``None`` means ``10 * alpha``: a direction known barely better
+            than from the prior alone. (The trace bound keeps unexcited directions at
+            the prior, so the condition number alone may stay moderate there.)
+
+        Returns
+        -------
+        Excitation
+        """
+        cm = _real("cond_max", cond_max)
+        if not cm >= 1.0:
+            raise EstimatorError(f"RLS cond_max must be >= 1, got {cond_max!r}")
+        im = 10.0 * self._alpha if info_min is None else _real("info_min", info_min)
+        if not im >= 0.0:
+            raise EstimatorError(f"RLS info_min must be >= 0, got {info_min!r}")
+        P = self._P.astype(np.float64)
+        if not np.all(np.isfinite(P)):
+            return Excitation(math.inf, math.nan, math.nan, False, cm, im, True)
+        # eigenvalues of P (ascending); R = P^-1 has the reciprocals
+        p = np.linalg.eigvalsh(0.5 * (P + P.T))
+        if not p[0] > 0.0:
+            return Excitation(math.inf, math.nan, math.nan, False, cm, im, True)
+        r_min = 1.0 / float(p[-1])
+        r_max = 1.0 / float(p[0])
+        cond = float(p[-1] / p[0])
+        return Excitation(cond, r_min, r_max, True, cm, im, bool(cond > cm or r_min < im))
+
+    # ------------------------------------------------------------ checkpoint
+    def state(self) -> dict[str, Any]:
+        """The complete state as a plain dict (numpy arrays, numbers, strings).
+
+        It survives ``np.savez``/``np.load``; :meth:`from_state` restores it so that
+        the continuation is identical bit for bit.
+        """
+        return {
+            "format": STATE_FORMAT,
+            "n": self._n,
+            "lam": self._lam,
+            "alpha": self._alpha,
+            "trace_max": self._trace_max,
+            "update": self._update,
+            "dtype": self._dtype.name,
+            "frozen": self._frozen,
+            "count": self.count,
+            "theta": self._theta.copy(),
+            "P": self._P.copy(),
+            "acc": self._acc.copy(),
+        }
+
+    @classmethod
+    def from_state(cls, d: dict[str, Any] | Any) -> RLS:
+        """Rebuild an estimator from :meth:`state` (also from an ``np.load`` archive).
+
+        Raises
+        ------
+        CheckpointError
+            A key is missing, has the wrong shape, or cannot be represented exactly.
+        """
+
+        def get(key: str) -> Any:
+            try:
+                value = d[key]
+            except KeyError as e:
+                raise CheckpointError(f"RLS checkpoint lacks key {key!r}") from e
+            if isinstance(value, np.ndarray) and value.ndim == 0:
+                return value.item()
+            return value
+
+        fmt = get("format")
+        if fmt != STATE_FORMAT:
+            raise CheckpointError(f"RLS checkpoint format is {fmt!r}, expected {STATE_FORMAT!r}")
+        try:
+            rls = cls(
+                get("n"),
+                lam=get("lam"),
+                alpha=get("alpha"),
+                trace_max=get("trace_max"),
+                update=get("update"),
+                dtype=get("dtype"),
+            )
+        except EstimatorError as e:
+            raise CheckpointError(f"RLS checkpoint is invalid: {e}") from e
+        n = rls.n
+        for key, target, shape in (
+            ("theta", rls._theta, (n,)),
+            ("P", rls._P, (n, n)),
+            ("acc", rls._acc, (2,)),
+        ):
+            src = np.asarray(get(key))
+            if src.shape != shape:
+                raise CheckpointError(
+                    f"RLS checkpoint key {key!r} has shape {src.shape}, expected {shape}"
+                )
+            try:
+                cast = src.astype(rls.dtype)
+                exact = np.array_equal(cast.astype(src.dtype), src, equal_nan=True)
+            except (TypeError, ValueError) as e:
+                raise CheckpointError(f"RLS checkpoint key {key!r} is not numeric: {e}") from e
+            if not exact:
+                raise CheckpointError(
+                    f"RLS checkpoint key {key!r} ({src.dtype}) is not exact in {rls.dtype}"
+                )
+            target[...] = cast
+        count = get("count")
+        if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
+            raise CheckpointError(
+                f"RLS checkpoint key 'count' must be an integer >= 0, got {count!r}"
+            )
+        rls._frozen = bool(get("frozen"))
+        rls.count = int(count)
+        return rls
+
+    def __repr__(self) -> str:
+        return (
+            f"RLS(n={self._n}, lam={self._lam!r}, alpha={self._alpha!r}, "
+            f"trace_max={self._trace_max!r}, update={self._update!r}, "
+            f"dtype={self._dtype.name}, count={self.count}, frozen={self._frozen})"
+        )
