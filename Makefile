@@ -14,10 +14,7 @@ $(BIN)/.installed: pyproject.toml
 	touch $@
 
 demo: $(BIN)/.installed
-	mkdir -p out
-	$(BIN)/canrls sim --out out/drive.log --duration 30 --seed 1 --effects inertia,viscous,coulomb,offset
-	$(BIN)/canrls fit out/drive.log --kt 0.1 --effects inertia,viscous,coulomb
-	$(BIN)/canrls fit out/drive.log --kt 0.1 --effects inertia,viscous,coulomb,offset
+	$(BIN)/canrls demo
 
 test: $(BIN)/.installed
 	$(BIN)/python -m pytest -q

@@ -132,3 +132,29 @@ def test_bad_inputs_are_clear_errors(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert "none.log" in capsys.readouterr().err
     with pytest.raises(EffectError):
         _setup("inertia,electrical,nonsense")
+
+
+def test_calibration_from_the_first_seconds_matches_a_prescan(
+        sim_log: tuple[Path, object]) -> None:
+    """No ranges configured: the first seconds of samples calibrate them (they must be
+    representative: the standard excitation reaches full speed after about 15 s)."""
+    path, res = sim_log
+    cfg = AppConfig()
+    cfg.model = {"effects": EFFECTS.split(","), "kt": 0.1}
+    prot = cfg.protocol()
+    default_model = cfg.model_for(prot)
+    proc = FrameProcessor(prot, default_model, cfg.settings(),
+                          calibrate=lambda r: cfg.model_for(prot, r), calibrate_s=16.0)
+    assert proc.calibrating
+    blocks = list(read_frames(path, chunk_size=1000))
+    proc.process(blocks[0])
+    assert proc.calibrating and proc.pipeline.samples == 0  # held back
+    for b in blocks[1:]:
+        proc.process(b)
+    proc.flush()
+    assert not proc.calibrating
+    assert proc.model.ranges["current"] != default_model.ranges["current"]
+    fit = proc.result("calibrated")
+    for p in fit.parameters:
+        assert p.value == pytest.approx(res.truth.params[p.name], rel=0.02), p  # type: ignore[attr-defined]
+        assert p.fixed == pytest.approx(p.value, rel=1e-3), p

@@ -9,49 +9,83 @@ bit-exact specification of the embedded kernel: every operation below is one a
 
 Integer operations (all on ``int64``, no floating point anywhere)
 ----------------------------------------------------------------
-* **product**: ``a * b`` of two words (at most 32 bits each), exact in 63 bits.
-* **pre-shift** of a product before it enters an accumulator,
-  ``(a*b + (1 << (ps-1))) >> ps`` (``ps = 0``: none). ``ps`` is chosen by the plan so
-  that the sum of all products of a multiply-accumulate, plus its aligned additive
-  term and the rounding constant of the final shift, provably stays inside
-  ``acc_bits`` for *every* pair of operands that their words can hold. Accumulators
-  therefore never overflow (the guard-bit argument of :mod:`canrls.fixed`), and the
-  ``acc`` saturation counter stays 0 by construction; the pure-Python reference
-  :func:`reference_block` asserts this on every accumulator value.
-* **rounding right shift**: round half up, ``(x + (1 << (s-1))) >> s`` with an
-  arithmetic (floor) shift, as a DSP does with its rounding constant.
+* **product**: ``a * b`` of two words (at most 32 bits each), exact: the
+  multiplier's double-width output.
+* **rounding right shift** ``rsh(x, s)``: round half up,
+  ``(x + (1 << (s-1))) >> s`` with an arithmetic (floor) shift, as a DSP does with
+  its rounding constant.
 * **store to a word**: after the rounding shift the value is clamped to the word
   ``[lo, hi]``; every clamp increments the counter of its site. A negative output
-  shift (a store to a *finer* format) is a left shift that saturates before shifting,
-  so it cannot wrap either.
+  shift (a store to a *finer* format) is a left shift that saturates before
+  shifting, so it cannot wrap either.
+* **single product to a word** (``K``, ``theta``, ``P``, ...): the exact product is
+  rounded once to the destination's scale and added to the destination with
+  saturation, e.g. ``P_ij <- sat(P_ij - rsh(K_i h_j, s))``.
+* **multiply-accumulate** (``eps``, ``h``, ``phi' h``): sums of up to ``n`` products
+  live in an accumulator of ``acc_bits``. It never overflows, by construction: the
+  regressor operand is pre-shifted right (rounded) by the plan's guard shift
+  ``ps`` so that ``n`` products at the largest magnitudes their words can hold, plus
+  the additive term and the final rounding constant, stay below
+  ``2**(acc_bits-1)`` for *every* input (the guard-bit argument of
+  :mod:`canrls.fixed`). The ``acc`` saturation counter therefore stays 0; the
+  pure-Python reference :func:`reference_block` asserts every accumulator value.
 * **division**: exactly one per update, ``g = DIVIDEND // d`` with a dividend of
   ``acc_bits`` (``1 << (frac_g + frac_d)``) and a positive word divisor: C's
   truncating division (operands are positive, so floor and truncation agree; a
   non-positive divisor, possible only when :math:`P` has lost positive definiteness,
   gives ``g = hi`` and counts ``div``).
 
+Scaled P (block exponent and forgetting scale)
+----------------------------------------------
+:math:`P` shrinks by orders of magnitude from :math:`P_0 = I/\alpha` as data arrive,
+and grows by :math:`1/\lambda` per step in directions without data. It is stored as
+
+.. math::
+
+    P = c\,\tilde P\,2^{-(f_P + e)}, \qquad \tfrac12 < c \le 1, \quad e \ge 0
+
+with integer words :math:`\tilde P`, a block exponent ``e`` and a forgetting scale
+``c`` (a ``lam``-format word). :math:`h = P\varphi` and :math:`K` carry the same
+exponent ``e``.
+
+* Forgetting multiplies ``c`` by :math:`1/\lambda` (one product per step) instead
+  of every word of :math:`P`; when ``c`` exceeds 1 it is halved and ``e`` lowered
+  (the words do not move), or, at ``e = 0``, folded into the words
+  (:math:`\tilde P \leftarrow c\tilde P`, ``c = 1``).
+* After each update, when :math:`\mathrm{tr}\tilde P` has fallen to a quarter of the
+  positive word range or below, the words are shifted left (exactly) and ``e``
+  raised, so the trace sits in ``(range/4, range/2]``.
+
+Every use of ``e`` is a shift, so this is still integer arithmetic; it keeps about
+``word_bits - 3`` significant bits on :math:`\mathrm{tr}P` however small :math:`P`
+becomes, and costs one product per step for forgetting.
+
 Saturation sites
 ----------------
 ``SITES`` lists the counters in the order of the ``counts`` array: inputs
-(``phi_in``, ``y_in``), then every store: ``eps``, ``h`` (:math:`P\varphi` and, in the
-literal form, :math:`P^\top\varphi`), ``den`` (:math:`\lambda + \varphi^\top P\varphi`),
-``div`` (the quotient), ``K``, ``theta``, ``P``, and ``acc`` (always 0, see above).
+(``phi_in``, ``y_in``), then every store: ``eps``, ``h`` (:math:`\tilde P\varphi` and,
+in the literal form, :math:`\tilde P^\top\varphi`), ``den`` (:math:`\varphi^\top\tilde
+P\varphi` and :math:`d`), ``div`` (the quotient and :math:`g c`), ``K``, ``theta``,
+``P`` (including ``c``), and ``acc`` (always 0, see above).
 
 Per sample
 ----------
 .. math::
 
     \varepsilon &= y - \varphi^\top\theta \\
-    h &= P\varphi, \quad d = \lambda_k + \varphi^\top h, \quad g = 1/d \\
-    K &= g\,h \\
+    \tilde h &= \tilde P\varphi, \quad d = \lambda_k + c\,\varphi^\top\tilde h,
+        \quad g = 1/d \\
+    K &= (g c)\,\tilde h \qquad (= P\varphi/(\lambda_k + \varphi^\top P\varphi)) \\
     \theta &\leftarrow \theta + K\varepsilon \\
-    P &\leftarrow (P - K h^\top)/\lambda_k \quad\text{(upper triangle only)}
+    \tilde P &\leftarrow \tilde P - K\tilde h^\top \quad\text{(upper triangle only)},
+        \qquad c \leftarrow c/\lambda_k
 
+which is :math:`P \leftarrow (P - g\,hh^\top)/\lambda_k` with :math:`h = c\tilde h`.
 :math:`\lambda_k = 1` instead of :math:`\lambda` when the trace the step would give,
 :math:`(\mathrm{tr}P - g\,h^\top h)/\lambda`, exceeds ``trace_max`` (flag ``WINDUP``),
 the rule of :mod:`canrls.rls`. To keep a single division it is decided before
 dividing, from the equivalent division-free test
-:math:`(\mathrm{tr}P - \lambda\,\mathrm{trace\_max})\,(\lambda + \varphi^\top h) > h^\top h`.
+:math:`(\mathrm{tr}P - \lambda\,\mathrm{trace\_max})\,(\lambda + \varphi^\top P\varphi) > h^\top h`.
 """
 
 from __future__ import annotations
@@ -65,6 +99,7 @@ __all__ = [
     "NPARAM",
     "MODE_SYMMETRIC",
     "MODE_LITERAL",
+    "MODE_NAIVE",
     "FLAG_WINDUP",
     "FLAG_LOW_EXCITATION",
     "FLAG_SATURATION",
@@ -90,6 +125,9 @@ S_PHI, S_Y, S_EPS, S_H, S_DEN, S_DIV, S_K, S_TH, S_P, S_ACC = range(NSITES)
 MODE_SYMMETRIC = 0
 #: ``mode``: the textbook full-matrix update ``P - K (phi' P)``, for comparison only.
 MODE_LITERAL = 1
+#: ``mode``: the full-matrix update with ``phi' P`` taken as ``(P phi)'`` (equal only
+#: while P is symmetric), as embedded code often writes it; for comparison only.
+MODE_NAIVE = 2
 
 # Flag bits: the values of canrls.rls.RLSFlag (checked by a test).
 FLAG_WINDUP = 1
@@ -98,43 +136,45 @@ FLAG_SATURATION = 4
 FLAG_FROZEN = 8
 
 # ---------------------------------------------------------------- plan layout
-# Word ranges [lo, hi] of every stored quantity.
+# Word ranges [lo, hi] of every stored quantity (c, the forgetting scale, is a lam word).
 I_PHI_LO, I_PHI_HI, I_Y_LO, I_Y_HI = 0, 1, 2, 3
 I_EPS_LO, I_EPS_HI, I_H_LO, I_H_HI = 4, 5, 6, 7
 I_DEN_LO, I_DEN_HI, I_G_LO, I_G_HI = 8, 9, 10, 11
 I_K_LO, I_K_HI, I_TH_LO, I_TH_HI = 12, 13, 14, 15
-I_P_LO, I_P_HI = 16, 17
-# eps = y - phi' theta: product pre-shift, alignment of y (>0: left), output shift
-I_EPS_PS, I_EPS_TS, I_EPS_OS = 18, 19, 20
-# h = P phi (and w = P' phi)
-I_H_PS, I_H_OS = 21, 22
-# d = lambda_k + phi' h: lambda and 1 at the accumulator's scale
-I_S_PS, I_S_OS, I_S_LAM, I_S_ONE = 23, 24, 25, 26
-# g = DIVIDEND // d
-I_DIVIDEND = 27
-# K = g h
-I_K_PS, I_K_OS = 28, 29
-# theta + K eps
-I_TH_PS, I_TH_TS, I_TH_OS = 30, 31, 32
-# Kl = K * (1/lambda_k)
-I_KL_PS, I_KL_OS = 33, 34
-# P <- P * (1/lambda_k) - Kl h': pre-shifts of the two products, output shift
-I_P_PS1, I_P_PS2, I_P_OS = 35, 36, 37
-# 1/lambda and 1 in the lam format
-I_INV_LAM, I_ONE_L = 38, 39
-# trace bound: trace pre-shift, lambda*trace_max at the trace's scale, h'h pre-shift,
-# pre-shift of the product (trP - lambda trace_max) d, right shifts of the two sides
-I_TR_PS, I_TMAX, I_VW_PS, I_LHS_PS, I_CMP_SL, I_CMP_SR = 40, 41, 42, 43, 44, 45
-NPARAM = 46
+I_P_LO, I_P_HI, I_L_LO, I_L_HI = 16, 17, 18, 19
+# eps = y - phi' theta: guard shift of phi, alignment of y (>0: left), output shift
+I_EPS_PS, I_EPS_TS, I_EPS_OS = 20, 21, 22
+# h = P~ phi (and w = P~' phi): guard shift of phi, output shift
+I_H_PS, I_H_OS = 23, 24
+# s~ = phi' h at lambda's scale: guard shift of phi, output shift (after >> e)
+I_S_PS, I_S_OS = 25, 26
+# s = c s~ (shift of the product), lambda and 1 in the den format
+I_SC_S, I_LAM_D, I_ONE_D = 27, 28, 29
+# g = DIVIDEND // d ; gc = g c
+I_DIVIDEND, I_GC_S = 30, 31
+# single products rounded to their destination: K = gc h~, theta += K eps (+ e),
+# P~ -= K h~' (+ e)
+I_K_S, I_TH_S, I_P_S = 32, 33, 34
+# c <- c / lambda_k: 1/lambda and 1 in the lam format, shift of the product
+I_INV_LAM, I_ONE_L, I_C_S = 35, 36, 37
+# trace bound: guard shift of the diagonal, lambda trace_max at the trace's scale,
+# limit of lambda trace_max 2^e, shift of tr c
+I_TR_PS, I_TMAX, I_TMAX_LIM, I_TC_S = 38, 39, 40, 41
+# windup test: shift of h~ c, pre-shift of h_i w_i, of (tr P - lambda trace_max) d,
+# scale difference of the two sides at e = 0
+I_HC_S, I_VW_PS, I_LHS_PS, I_CMP_DF = 42, 43, 44, 45
+# block exponent: largest e, and tr P~ is kept in (TR_HI/2, TR_HI] once e > 0
+I_E_MAX, I_TR_HI = 46, 47
+NPARAM = 48
 
 
 # ------------------------------------------------------- Q-format arithmetic
 @numba.njit(cache=True, nogil=True, inline="always")
 def round_shift(x: int, s: int) -> int:  # pragma: no cover - compiled
-    """``x / 2**s`` rounded half up for ``s > 0`` (``x`` itself for ``s = 0``).
+    """``x / 2**s`` rounded half up for ``s > 0`` (``x`` itself for ``s <= 0``).
 
     ``(x + (1 << (s-1))) >> s`` with an arithmetic shift. The caller guarantees
-    ``|x| + 2**(s-1) < 2**63`` (the plan's guard bits do).
+    ``|x| + 2**(s-1) < 2**63`` and ``s <= 62`` (the plan's guard bits do).
     """
     if s <= 0:
         return x
@@ -160,15 +200,18 @@ def store(x: int, s: int, lo: int, hi: int) -> tuple[int, int]:  # pragma: no co
             x = (x + (np.int64(1) << (s - 1))) >> s
         v = min(max(x, lo), hi)
         return v, np.int64(v != x)
-    t = -s
+    if x == 0:
+        return x, np.int64(0)
+    t = min(-s, 63)
+    # x 2^t > hi  <=>  x > floor(hi / 2^t) ;  x 2^t < lo  <=>  x < ceil(lo / 2^t)
     if x > (hi >> t):
         return hi, np.int64(1)
-    if x < (lo >> t):
+    if x < -((-lo) >> t):
         return lo, np.int64(1)
     return x << t, np.int64(0)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def sat_mul(a: int, b: int, s: int, lo: int, hi: int) -> tuple[int, int]:  # pragma: no cover
     """Saturating Q multiply: the product ``a*b`` stored with output shift ``s``.
 
@@ -177,7 +220,7 @@ def sat_mul(a: int, b: int, s: int, lo: int, hi: int) -> tuple[int, int]:  # pra
     return store(a * b, s, lo, hi)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def sat_add(a: int, b: int, lo: int, hi: int) -> tuple[int, int]:  # pragma: no cover
     """Saturating add ``a + b`` clamped to ``[lo, hi]`` (``|a|, |b| < 2**62``)."""
     return saturate(a + b, lo, hi)
@@ -192,6 +235,21 @@ def div_trunc(a: int, b: int) -> int:  # pragma: no cover - compiled
     return q
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _half(s: int) -> int:  # pragma: no cover - compiled
+    """Rounding constant ``1 << (s-1)`` of a right shift by ``s`` (0 for ``s <= 0``)."""
+    if s > 0:
+        return np.int64(1) << (s - 1)
+    return np.int64(0)
+
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _rsh(x: int, s: int) -> int:  # pragma: no cover - compiled
+    """Rounding right shift for ``0 <= s <= 62`` (``x`` itself for ``s = 0``)."""
+    return (x + _half(s)) >> s
+
+
 # -------------------------------------------------------------------- kernel
 @numba.njit(cache=True, nogil=True)
 def fixed_block(
@@ -199,6 +257,7 @@ def fixed_block(
     Y: np.ndarray,
     theta: np.ndarray,
     P: np.ndarray,
+    scale: np.ndarray,
     work: np.ndarray,
     counts: np.ndarray,
     prm: np.ndarray,
@@ -208,6 +267,7 @@ def fixed_block(
     eps_out: np.ndarray,
     theta_out: np.ndarray,
     trace_out: np.ndarray,
+    exp_out: np.ndarray,
     flags_out: np.ndarray,
 ) -> int:  # pragma: no cover - compiled
     r"""Run the fixed-point recursion over the rows of ``Phi``, in place.
@@ -221,25 +281,29 @@ def fixed_block(
     theta : ndarray of int64, shape (n,)
         Estimate in the ``theta`` format, updated in place.
     P : ndarray of int64, shape (n, n)
-        :math:`P` in the ``P`` format, updated in place. ``MODE_SYMMETRIC`` reads and
+        The words :math:`\tilde P`, updated in place. ``MODE_SYMMETRIC`` reads and
         writes the upper triangle only (the lower one is never touched).
-    work : ndarray of int64, shape (5, n)
-        Scratch rows ``phi`` (saturated input), ``h = P phi``, ``w = P' phi``,
-        ``K`` and an accumulator row. On return ``work[3]`` holds the gain of the
-        last row (zeros when it was not applied).
+    scale : ndarray of int64, shape (2,)
+        ``[e, c]``: block exponent and forgetting scale (module docstring),
+        updated in place.
+    work : ndarray of int64, shape (8, n)
+        Scratch rows: ``phi`` (saturated input), ``phi`` pre-shifted for ``eps``,
+        ``h`` and ``s``, ``h~``, ``w~``, ``K`` and an accumulator row. On return
+        ``work[6]`` holds the gain of the last row (zeros when it was not applied).
     counts : ndarray of int64, shape (NSITES,)
         Saturation counters, incremented in place.
     prm : ndarray of int64, shape (NPARAM,)
         The plan (``I_*`` layout), built by :class:`canrls.fixed.FixedRLS`.
     mode : int
-        ``MODE_SYMMETRIC`` or ``MODE_LITERAL``.
+        ``MODE_SYMMETRIC``, ``MODE_LITERAL`` or ``MODE_NAIVE``.
     frozen : bool
-        Compute :math:`\varepsilon` only; ``theta`` and ``P`` stay untouched.
+        Compute :math:`\varepsilon` only; ``theta``, ``P`` and ``scale`` stay untouched.
     record : bool
         Write ``theta`` after each row into ``theta_out`` (shape (N, n)).
-    eps_out, trace_out : ndarray of int64, shape (N,)
-        A-priori error (``eps`` format) and :math:`\mathrm{tr}P` (``P`` LSBs, exact
-        sum) after each row.
+    eps_out : ndarray of int64, shape (N,)
+        A-priori error (``eps`` format) of each row.
+    trace_out, exp_out : ndarray of int64, shape (N,)
+        :math:`\mathrm{tr}P\,2^{f_P - ps_{tr} + e}` (rounded) and ``e`` after each row.
     flags_out : ndarray of uint8, shape (N,)
         ``FLAG_*`` bits of each row.
 
@@ -250,11 +314,13 @@ def fixed_block(
     """
     n = theta.shape[0]
     phi = work[0]
-    h = work[1]
-    w = work[2]
-    K = work[3]
-    acc_row = work[4]
-    Kl = work[4]  # shares the accumulator row (h is stored before Kl is written)
+    phe = work[1]
+    phh = work[2]
+    phs = work[3]
+    h = work[4]
+    w = work[5]
+    K = work[6]
+    acc = work[7]
     # ---- the plan, as locals
     phi_lo = prm[I_PHI_LO]
     phi_hi = prm[I_PHI_HI]
@@ -266,6 +332,7 @@ def fixed_block(
     h_hi = prm[I_H_HI]
     den_lo = prm[I_DEN_LO]
     den_hi = prm[I_DEN_HI]
+    g_lo = prm[I_G_LO]
     g_hi = prm[I_G_HI]
     K_lo = prm[I_K_LO]
     K_hi = prm[I_K_HI]
@@ -273,48 +340,43 @@ def fixed_block(
     th_hi = prm[I_TH_HI]
     P_lo = prm[I_P_LO]
     P_hi = prm[I_P_HI]
-    one = np.int64(1)
+    l_hi = prm[I_L_HI]
     eps_ps = prm[I_EPS_PS]
-    eps_pr = (one << (eps_ps - 1)) if eps_ps > 0 else np.int64(0)
     eps_ts = prm[I_EPS_TS]
     eps_os = prm[I_EPS_OS]
     h_ps = prm[I_H_PS]
-    h_pr = (one << (h_ps - 1)) if h_ps > 0 else np.int64(0)
     h_os = prm[I_H_OS]
     s_ps = prm[I_S_PS]
-    s_pr = (one << (s_ps - 1)) if s_ps > 0 else np.int64(0)
     s_os = prm[I_S_OS]
-    s_lam = prm[I_S_LAM]
-    s_one = prm[I_S_ONE]
+    sc_s = prm[I_SC_S]
+    lam_d = prm[I_LAM_D]
+    one_d = prm[I_ONE_D]
     dividend = prm[I_DIVIDEND]
-    K_ps = prm[I_K_PS]
-    K_pr = (one << (K_ps - 1)) if K_ps > 0 else np.int64(0)
-    K_os = prm[I_K_OS]
-    th_ps = prm[I_TH_PS]
-    th_pr = (one << (th_ps - 1)) if th_ps > 0 else np.int64(0)
-    th_ts = prm[I_TH_TS]
-    th_os = prm[I_TH_OS]
-    kl_ps = prm[I_KL_PS]
-    kl_pr = (one << (kl_ps - 1)) if kl_ps > 0 else np.int64(0)
-    kl_os = prm[I_KL_OS]
-    p1_ps = prm[I_P_PS1]
-    p1_pr = (one << (p1_ps - 1)) if p1_ps > 0 else np.int64(0)
-    p2_ps = prm[I_P_PS2]
-    p2_pr = (one << (p2_ps - 1)) if p2_ps > 0 else np.int64(0)
-    p_os = prm[I_P_OS]
+    gc_s = prm[I_GC_S]
+    K_s = prm[I_K_S]
+    th_s0 = prm[I_TH_S]
+    P_s0 = prm[I_P_S]
     inv_lam = prm[I_INV_LAM]
     one_l = prm[I_ONE_L]
+    c_s = prm[I_C_S]
     tr_ps = prm[I_TR_PS]
-    tr_pr = (one << (tr_ps - 1)) if tr_ps > 0 else np.int64(0)
     tmax = prm[I_TMAX]
+    tmax_lim = prm[I_TMAX_LIM]
+    tc_s = prm[I_TC_S]
+    hc_s = prm[I_HC_S]
     vw_ps = prm[I_VW_PS]
-    vw_pr = (one << (vw_ps - 1)) if vw_ps > 0 else np.int64(0)
     lhs_ps = prm[I_LHS_PS]
-    lhs_pr = (one << (lhs_ps - 1)) if lhs_ps > 0 else np.int64(0)
-    cmp_sl = prm[I_CMP_SL]
-    cmp_sr = prm[I_CMP_SR]
+    cmp_df = prm[I_CMP_DF]
+    e_max = prm[I_E_MAX]
+    tr_hi = prm[I_TR_HI]
     symmetric = mode == MODE_SYMMETRIC
+    e = scale[0]
+    c = scale[1]
     applied = 0
+    # the diagonal of P~ summed >> tr_ps (carried from row to row)
+    trw = np.int64(0)
+    for i in range(n):
+        trw += _rsh(P[i, i], tr_ps)
 
     for k in range(Phi.shape[0]):
         # per-step saturation counts, added to ``counts`` once per step
@@ -335,87 +397,104 @@ def fixed_block(
             v = min(max(x, phi_lo), phi_hi)
             c_phi += v != x
             phi[j] = v
+            # phi >> ps: the guard bits of the three multiply-accumulates
+            phe[j] = _rsh(v, eps_ps)
+            phh[j] = _rsh(v, h_ps)
+            phs[j] = _rsh(v, s_ps)
         x = Y[k]
         yk = min(max(x, y_lo), y_hi)
         c_y += yk != x
 
         # eps = y - phi' theta
-        a = (yk << eps_ts) if eps_ts >= 0 else round_shift(yk, -eps_ts)
+        a = (yk << eps_ts) if eps_ts >= 0 else _rsh(yk, -eps_ts)
         for j in range(n):
-            a -= (phi[j] * theta[j] + eps_pr) >> eps_ps
-        eps, c = store(a, eps_os, eps_lo, eps_hi)
-        c_eps += c
+            a -= phe[j] * theta[j]
+        eps, cc = store(a, eps_os, eps_lo, eps_hi)
+        c_eps += cc
 
         if frozen:
             flag = FLAG_FROZEN
             for i in range(n):
                 K[i] = 0
         else:
-            # h = P phi   (symmetric: P_ij read from the upper triangle only)
+            # h~ = P~ phi   (symmetric: P~_ij read from the upper triangle only)
             if symmetric:
                 for i in range(n):
-                    acc_row[i] = 0
+                    acc[i] = 0
                 for i in range(n):
-                    pi_ = phi[i]
-                    # diagonal term P_ii phi_i
-                    acc_row[i] += (P[i, i] * pi_ + h_pr) >> h_ps
+                    pi_ = phh[i]
+                    # h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i
+                    a = acc[i] + P[i, i] * pi_
                     for j in range(i + 1, n):
                         Pij = P[i, j]
                         # P_ij phi_j -> h_i ;  P_ji phi_i = P_ij phi_i -> h_j
-                        acc_row[i] += (Pij * phi[j] + h_pr) >> h_ps
-                        acc_row[j] += (Pij * pi_ + h_pr) >> h_ps
-                for i in range(n):
-                    v, c = store(acc_row[i], h_os, h_lo, h_hi)
-                    c_h += c
+                        a += Pij * phh[j]
+                        acc[j] += Pij * pi_
+                    v, cc = store(a, h_os, h_lo, h_hi)
+                    c_h += cc
                     h[i] = v
                     w[i] = v
             else:
-                # h = P phi (rows), w = P' phi (columns): P may have lost its symmetry
+                # h~ = P~ phi (rows): P~ may have lost its symmetry
                 for i in range(n):
                     a = np.int64(0)
                     for j in range(n):
-                        a += (P[i, j] * phi[j] + h_pr) >> h_ps
-                    v, c = store(a, h_os, h_lo, h_hi)
-                    c_h += c
+                        a += P[i, j] * phh[j]
+                    v, cc = store(a, h_os, h_lo, h_hi)
+                    c_h += cc
                     h[i] = v
-                for i in range(n):
-                    acc_row[i] = 0
-                for j in range(n):
-                    pj = phi[j]
-                    for i in range(n):
-                        acc_row[i] += (P[j, i] * pj + h_pr) >> h_ps
-                for i in range(n):
-                    v, c = store(acc_row[i], h_os, h_lo, h_hi)
-                    c_h += c
                     w[i] = v
+                if mode == MODE_LITERAL:
+                    # w~ = P~' phi (columns), i.e. the row phi' P~ as written
+                    for i in range(n):
+                        acc[i] = 0
+                    for j in range(n):
+                        pj = phh[j]
+                        for i in range(n):
+                            acc[i] += P[j, i] * pj
+                    for i in range(n):
+                        v, cc = store(acc[i], h_os, h_lo, h_hi)
+                        c_h += cc
+                        w[i] = v
 
-            # s = phi' h   (accumulator; d = lambda_k + s below)
-            a_s = np.int64(0)
+            # s~ = phi' h~, brought from the scale of P (exponent e) to that of lambda
+            a = np.int64(0)
             for i in range(n):
-                a_s += (phi[i] * h[i] + s_pr) >> s_ps
+                a += phs[i] * h[i]
+            st, cc = store(_rsh(a, e), s_os, den_lo, den_hi)
+            c_den += cc
+            # s = phi' P phi = c s~
+            sv, cc = saturate(_rsh(st * c, sc_s), den_lo, den_hi)
+            c_den += cc
 
-            # tr P, at the scale of the trace bound
-            trP = np.int64(0)
-            for i in range(n):
-                trP += (P[i, i] + tr_pr) >> tr_ps
             # windup <=> (tr P - g h'w)/lambda > trace_max
             #        <=> (tr P - lambda trace_max) (lambda + phi'P phi) > h'w
-            lam_k = s_lam
-            T = trP - tmax
-            if T > 0:
-                d_lam, c = store(a_s + s_lam, s_os, den_lo, den_hi)
-                a_vw = np.int64(0)
-                for i in range(n):
-                    a_vw += (h[i] * w[i] + vw_pr) >> vw_ps
-                Tw = min(T, P_hi)
-                lhs = (Tw * d_lam + lhs_pr) >> lhs_ps
-                if (lhs >> cmp_sl) > (a_vw >> cmp_sr):
-                    lam_k = s_one
-                    flag = FLAG_WINDUP
+            lam_k = lam_d
+            if tmax <= (tmax_lim >> e):
+                # tr P = c tr P~   (trw: the diagonal summed >> tr_ps, kept from the last row)
+                T = _rsh(trw * c, tc_s) - (tmax << e)
+                if T > 0:
+                    d_lam, cc = saturate(lam_d + sv, den_lo, den_hi)
+                    a_vw = np.int64(0)
+                    for i in range(n):
+                        # h = c h~ ; w = c w~
+                        hi_ = _rsh(h[i] * c, hc_s)
+                        wi_ = _rsh(w[i] * c, hc_s)
+                        a_vw += _rsh(hi_ * wi_, vw_ps)
+                    lhs = _rsh(min(T, P_hi) * d_lam, lhs_ps)
+                    # the two sides differ in scale by cmp_df - e bits
+                    df = cmp_df - e
+                    if df >= 0:
+                        up = (lhs >> min(df, 63)) > a_vw
+                    else:
+                        up = lhs > (a_vw >> min(-df, 63))
+                    if up:
+                        lam_k = one_d
+                        flag = FLAG_WINDUP
 
             # d = lambda_k + phi' P phi
-            d, c = store(a_s + lam_k, s_os, den_lo, den_hi)
-            c_den += c
+            d, cc = saturate(lam_k + sv, den_lo, den_hi)
+            c_den += cc
             # g = 1 / d     (the one division: acc-width dividend, word divisor, C truncation)
             if d <= 0:
                 g = g_hi
@@ -425,58 +504,86 @@ def fixed_block(
                 if g > g_hi:
                     g = g_hi
                     c_div += 1
+            # gc = g c
+            gc, cc = saturate(_rsh(g * c, gc_s), g_lo, g_hi)
+            c_div += cc
 
-            # K = P phi / (lambda + phi' P phi) = g h
-            for i in range(n):
-                v, c = store((h[i] * g + K_pr) >> K_ps, K_os, K_lo, K_hi)
-                c_K += c
-                K[i] = v
-
-            # theta <- theta + K eps
-            for i in range(n):
-                ti = theta[i]
-                a = (ti << th_ts) if th_ts >= 0 else round_shift(ti, -th_ts)
-                a += (K[i] * eps + th_pr) >> th_ps
-                v, c = store(a, th_os, th_lo, th_hi)
-                c_th += c
-                theta[i] = v
-
-            # 1/lambda_k
-            il = one_l if flag == FLAG_WINDUP else inv_lam
-            # Kl = K / lambda_k
-            for i in range(n):
-                v, c = store((K[i] * il + kl_pr) >> kl_ps, kl_os, K_lo, K_hi)
-                c_K += c
-                Kl[i] = v
-            # low excitation: the information Kl_i h_i rounds to zero on the whole diagonal
+            th_s = th_s0 + e
+            # K h~' has exponent 2e, P~ exponent e
+            P_s = P_s0 + e
             low = True
             for i in range(n):
-                v, c = store((Kl[i] * w[i] + p2_pr) >> p2_ps, p_os, P_lo, P_hi)
-                if v != 0:
+                # K = P phi / (lambda + phi' P phi) = (g c) h~
+                Ki, cc = saturate(_rsh(h[i] * gc, K_s), K_lo, K_hi)
+                c_K += cc
+                K[i] = Ki
+                # theta <- theta + K eps      (K carries the exponent e: shifted out here)
+                v, cc = saturate(theta[i] + _rsh(Ki * eps, th_s), th_lo, th_hi)
+                c_th += cc
+                theta[i] = v
+                # low excitation: the information K_i w~_i rounds to zero on the whole diagonal
+                if _rsh(Ki * w[i], P_s) != 0:
                     low = False
             if symmetric:
-                # P <- (P - g (P phi)(P phi)') / lambda = P/lambda - Kl h'   upper triangle
+                # P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle
                 for i in range(n):
-                    Kli = Kl[i]
+                    Ki = K[i]
                     for j in range(i, n):
-                        # P_ij / lambda - Kl_i h_j
-                        a = ((P[i, j] * il + p1_pr) >> p1_ps) - ((Kli * h[j] + p2_pr) >> p2_ps)
-                        v, c = store(a, p_os, P_lo, P_hi)
-                        c_P += c
+                        v, cc = saturate(P[i, j] - _rsh(Ki * h[j], P_s), P_lo, P_hi)
+                        c_P += cc
                         P[i, j] = v
             else:
-                # P <- (P - K phi' P) / lambda = P/lambda - Kl w', full matrix as written
+                # P <- (P - K phi' P) / lambda:  P~ <- P~ - K w~', full matrix as written
+                # (naive: w~ = h~, the row phi' P taken as (P phi)')
                 for i in range(n):
-                    Kli = Kl[i]
+                    Ki = K[i]
                     for j in range(n):
-                        # P_ij / lambda - Kl_i (phi' P)_j
-                        a = ((P[i, j] * il + p1_pr) >> p1_ps) - ((Kli * w[j] + p2_pr) >> p2_ps)
-                        v, c = store(a, p_os, P_lo, P_hi)
-                        c_P += c
+                        v, cc = saturate(P[i, j] - _rsh(Ki * w[j], P_s), P_lo, P_hi)
+                        c_P += cc
                         P[i, j] = v
             if low:
-                # the sample's information g h_i^2 rounds to zero on the whole diagonal
                 flag |= FLAG_LOW_EXCITATION
+
+            # c <- c / lambda_k
+            il = one_l if flag & FLAG_WINDUP else inv_lam
+            c, cc = saturate(_rsh(c * il, c_s), np.int64(0), l_hi)
+            c_P += cc
+            if c > one_l:
+                if e > 0:
+                    # c/2 and 2^-e x 2: the words do not move
+                    c = _rsh(c, 1)
+                    e -= 1
+                else:
+                    # fold c into the words: P~ <- c P~, c = 1
+                    for i in range(n):
+                        for j in range(i if symmetric else 0, n):
+                            v, cc = saturate(_rsh(P[i, j] * c, c_s), P_lo, P_hi)
+                            c_P += cc
+                            P[i, j] = v
+                    c = one_l
+
+            # block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh
+            tr = np.int64(0)
+            trw = np.int64(0)
+            for i in range(n):
+                Pii = P[i, i]
+                tr += Pii
+                trw += _rsh(Pii, tr_ps)
+            if tr > 0 and tr <= (tr_hi >> 1) and e < e_max:
+                sh = 1
+                while (tr << (sh + 1)) <= tr_hi and e + sh < e_max:
+                    sh += 1
+                for i in range(n):
+                    for j in range(i if symmetric else 0, n):
+                        v, cc = store(P[i, j], -sh, P_lo, P_hi)
+                        c_P += cc
+                        P[i, j] = v
+                e += sh
+                trw = np.int64(0)
+                for i in range(n):
+                    trw += _rsh(P[i, i], tr_ps)
+            scale[0] = e
+            scale[1] = c
             applied += 1
 
         nsat = c_phi + c_y + c_eps + c_h + c_den + c_div + c_K + c_th + c_P
@@ -491,11 +598,10 @@ def fixed_block(
             counts[S_K] += c_K
             counts[S_TH] += c_th
             counts[S_P] += c_P
-        trace = np.int64(0)
-        for i in range(n):
-            trace += P[i, i]
+        # tr P = c tr P~, recorded at the scale 2^-(f_P - tr_ps + e)
         eps_out[k] = eps
-        trace_out[k] = trace
+        trace_out[k] = _rsh(trw * c, tc_s)
+        exp_out[k] = e
         flags_out[k] = flag
         if record:
             for i in range(n):
@@ -509,75 +615,73 @@ def reference_block(
     Y: list[int],
     theta: list[int],
     P: list[list[int]],
+    scale: list[int],
     counts: list[int],
     prm: list[int],
     acc_bits: int,
     mode: int = MODE_SYMMETRIC,
-) -> tuple[list[int], list[int], list[int]]:
+) -> tuple[list[int], list[int], list[int], list[int]]:
     r"""The same recursion in plain Python integers: the slow, readable specification.
 
-    Written independently of :func:`fixed_block` (unbounded Python ints, no shared
-    helpers, no in-place tricks) so that a test can prove the compiled kernel
-    bit-exact. Every accumulator value is checked against ``acc_bits``: an
-    ``AssertionError`` here would disprove the guard-bit argument.
+    Written independently of :func:`fixed_block` (unbounded Python ints, floor
+    division instead of shifts, no shared helpers) so that a test can prove the
+    compiled kernel bit-exact. Every accumulator value is checked against
+    ``acc_bits`` and every product against 63 bits: an ``AssertionError`` here would
+    disprove the guard-bit argument.
 
     Parameters
     ----------
     Phi, Y : lists of int
         Rows of regressors and targets (Q integers, possibly out of range).
-    theta, P, counts : lists of int
-        State and counters, updated in place (``P`` as a list of rows).
+    theta, P, scale, counts : lists of int
+        State (``P`` as a list of rows, ``scale = [e, c]``) and counters, updated
+        in place.
     prm : list of int
         The plan (``I_*`` layout).
     acc_bits : int
         Accumulator width the plan was built for.
     mode : int
-        ``MODE_SYMMETRIC`` or ``MODE_LITERAL``.
+        ``MODE_SYMMETRIC``, ``MODE_LITERAL`` or ``MODE_NAIVE`` (frozen is not modelled).
 
     Returns
     -------
-    (eps, trace, flags) : lists of int, one per row
+    (eps, trace, exp, flags) : lists of int, one per row
     """
     n = len(theta)
     lim = 1 << (acc_bits - 1)
+    p = prm
 
     def chk(a: int) -> int:
-        # every accumulator value must fit in acc_bits (the guard-bit argument)
+        # an accumulator value must fit in acc_bits (the guard-bit argument)
         assert -lim <= a < lim, f"accumulator {a} outside {acc_bits} bits"
         return a
 
-    def mul(a: int, b: int, ps: int) -> int:
-        # product of two words (exact), pre-shifted with rounding half up into the accumulator
-        p = a * b
-        assert abs(p) < (1 << 62) + 1, "product of two words exceeds 63 bits"
-        if ps > 0:
-            p = (p + (1 << (ps - 1))) // (1 << ps)
-        return chk(p)
+    def mul(a: int, b: int) -> int:
+        # product of two words: exact, and within the 64-bit product register
+        assert abs(a) <= (1 << 32) and abs(b) <= (1 << 32), "operand wider than a word"
+        x = a * b
+        assert abs(x) < (1 << 63)
+        return x
 
-    def align(x: int, s: int) -> int:
-        # additive term brought to the accumulator scale
-        if s >= 0:
-            return chk(x * (1 << s))
-        return chk((x + (1 << (-s - 1))) // (1 << -s))
+    def rsh(x: int, s: int) -> int:
+        # x / 2^s rounded half up: floor(x / 2^s + 1/2)
+        assert 0 <= s <= 62
+        return (x + (1 << (s - 1))) // (1 << s) if s > 0 else x
 
-    def put(a: int, s: int, lo: int, hi: int, site: int | None) -> int:
-        # store the accumulator a into a word: rounding half up, then saturation
-        chk(a)
-        if s > 0:
-            v = chk(a + (1 << (s - 1))) // (1 << s)
-        else:
-            v = a * (1 << -s)
-        if v > hi or v < lo:
+    def sat(x: int, lo: int, hi: int, site: int | None) -> int:
+        if x > hi or x < lo:
             if site is not None:
                 counts[site] += 1
-            v = hi if v > hi else lo
-        return v
-
-    def clamp(x: int, lo: int, hi: int, site: int) -> int:
-        if x > hi or x < lo:
-            counts[site] += 1
             return hi if x > hi else lo
         return x
+
+    def put(a: int, s: int, lo: int, hi: int, site: int) -> int:
+        # store an accumulator into a word: rounding half up (s > 0) or exact left shift
+        chk(a)
+        if s > 0:
+            chk(a + (1 << (s - 1)))
+            return sat(rsh(a, s), lo, hi, site)
+        return sat(a * (1 << -s), lo, hi, site)
 
     def Pget(i: int, j: int) -> int:
         # symmetric form: only the upper triangle exists
@@ -585,96 +689,122 @@ def reference_block(
             return P[j][i]
         return P[i][j]
 
-    eps_l: list[int] = []
-    tr_l: list[int] = []
-    fl_l: list[int] = []
+    out_eps: list[int] = []
+    out_tr: list[int] = []
+    out_e: list[int] = []
+    out_fl: list[int] = []
     for row, y_raw in zip(Phi, Y, strict=True):
+        e, c = scale
         before = sum(counts)
         flag = 0
-        phi = [clamp(int(x), prm[I_PHI_LO], prm[I_PHI_HI], S_PHI) for x in row]
-        y = clamp(int(y_raw), prm[I_Y_LO], prm[I_Y_HI], S_Y)
+        phi = [sat(int(x), p[I_PHI_LO], p[I_PHI_HI], S_PHI) for x in row]
+        y = sat(int(y_raw), p[I_Y_LO], p[I_Y_HI], S_Y)
+        phe = [rsh(x, p[I_EPS_PS]) for x in phi]
+        phh = [rsh(x, p[I_H_PS]) for x in phi]
+        phs = [rsh(x, p[I_S_PS]) for x in phi]
         # eps = y - phi' theta
-        a = align(y, prm[I_EPS_TS])
+        a = chk(y * (1 << p[I_EPS_TS]) if p[I_EPS_TS] >= 0 else rsh(y, -p[I_EPS_TS]))
         for j in range(n):
-            a = chk(a - mul(phi[j], theta[j], prm[I_EPS_PS]))
-        eps = put(a, prm[I_EPS_OS], prm[I_EPS_LO], prm[I_EPS_HI], S_EPS)
-        # h = P phi ; w = P' phi
+            a = chk(a - mul(phe[j], theta[j]))
+        eps = put(a, p[I_EPS_OS], p[I_EPS_LO], p[I_EPS_HI], S_EPS)
+        # h~ = P~ phi ; w~ = P~' phi
         h: list[int] = []
         w: list[int] = []
         for i in range(n):
             a = 0
             for j in range(n):
-                a = chk(a + mul(Pget(i, j), phi[j], prm[I_H_PS]))
-            h.append(put(a, prm[I_H_OS], prm[I_H_LO], prm[I_H_HI], S_H))
-        if mode == MODE_SYMMETRIC:
+                a = chk(a + mul(Pget(i, j), phh[j]))
+            h.append(put(a, p[I_H_OS], p[I_H_LO], p[I_H_HI], S_H))
+        if mode != MODE_LITERAL:
             w = list(h)
         else:
             for i in range(n):
                 a = 0
                 for j in range(n):
-                    a = chk(a + mul(Pget(j, i), phi[j], prm[I_H_PS]))
-                w.append(put(a, prm[I_H_OS], prm[I_H_LO], prm[I_H_HI], S_H))
-        # s = phi' h
-        a_s = 0
+                    a = chk(a + mul(Pget(j, i), phh[j]))
+                w.append(put(a, p[I_H_OS], p[I_H_LO], p[I_H_HI], S_H))
+        # s~ = phi' h~ at lambda's scale ; s = c s~
+        a = 0
         for i in range(n):
-            a_s = chk(a_s + mul(phi[i], h[i], prm[I_S_PS]))
-        # windup <=> (tr P - lambda trace_max) (lambda + s) > h' w
-        trP = 0
-        for i in range(n):
-            trP = chk(trP + align(P[i][i], -prm[I_TR_PS]))
-        lam_k = prm[I_S_LAM]
-        T = trP - prm[I_TMAX]
-        if T > 0:
-            d_lam = put(chk(a_s + lam_k), prm[I_S_OS], prm[I_DEN_LO], prm[I_DEN_HI], None)
-            a_vw = 0
+            a = chk(a + mul(phs[i], h[i]))
+        if e > 0:
+            chk(a + (1 << (e - 1)))
+        st = put(rsh(a, e), p[I_S_OS], p[I_DEN_LO], p[I_DEN_HI], S_DEN)
+        sv = sat(rsh(mul(st, c), p[I_SC_S]), p[I_DEN_LO], p[I_DEN_HI], S_DEN)
+        # windup <=> (c tr P~ - lambda trace_max) (lambda + s) > h' w
+        lam_k = p[I_LAM_D]
+        if p[I_TMAX] <= (p[I_TMAX_LIM] >> e):
+            trw = 0
             for i in range(n):
-                a_vw = chk(a_vw + mul(h[i], w[i], prm[I_VW_PS]))
-            lhs = mul(min(T, prm[I_P_HI]), d_lam, prm[I_LHS_PS])
-            if lhs // (1 << prm[I_CMP_SL]) > a_vw // (1 << prm[I_CMP_SR]):
-                lam_k = prm[I_S_ONE]
-                flag = FLAG_WINDUP
-        # d = lambda_k + phi' P phi
-        d = put(chk(a_s + lam_k), prm[I_S_OS], prm[I_DEN_LO], prm[I_DEN_HI], S_DEN)
-        # g = 1 / d: C division, truncation toward zero
+                trw = chk(trw + rsh(P[i][i], p[I_TR_PS]))
+            T = chk(rsh(mul(trw, c), p[I_TC_S]) - p[I_TMAX] * (1 << e))
+            if T > 0:
+                d_lam = sat(lam_k + sv, p[I_DEN_LO], p[I_DEN_HI], None)
+                a_vw = 0
+                for i in range(n):
+                    hi_ = rsh(mul(h[i], c), p[I_HC_S])
+                    wi_ = rsh(mul(w[i], c), p[I_HC_S])
+                    a_vw = chk(a_vw + rsh(mul(hi_, wi_), p[I_VW_PS]))
+                lhs = chk(rsh(mul(min(T, p[I_P_HI]), d_lam), p[I_LHS_PS]))
+                df = p[I_CMP_DF] - e
+                if df >= 0:
+                    up = lhs // (1 << min(df, 63)) > a_vw
+                else:
+                    up = lhs > a_vw // (1 << min(-df, 63))
+                if up:
+                    lam_k = p[I_ONE_D]
+                    flag = FLAG_WINDUP
+        # d = lambda_k + s ; g = 1/d (C division, both operands positive)
+        d = sat(lam_k + sv, p[I_DEN_LO], p[I_DEN_HI], S_DEN)
         if d <= 0:
-            g = prm[I_G_HI]
+            g = p[I_G_HI]
             counts[S_DIV] += 1
         else:
-            g = prm[I_DIVIDEND] // d
-            if g > prm[I_G_HI]:
-                g = prm[I_G_HI]
-                counts[S_DIV] += 1
-        # K = g h
-        K = [
-            put(mul(h[i], g, prm[I_K_PS]), prm[I_K_OS], prm[I_K_LO], prm[I_K_HI], S_K)
-            for i in range(n)
-        ]
+            g = sat(p[I_DIVIDEND] // d, p[I_G_LO], p[I_G_HI], S_DIV)
+        gc = sat(rsh(mul(g, c), p[I_GC_S]), p[I_G_LO], p[I_G_HI], S_DIV)
+        # K = (g c) h~
+        K = [sat(rsh(mul(h[i], gc), p[I_K_S]), p[I_K_LO], p[I_K_HI], S_K) for i in range(n)]
         # theta <- theta + K eps
         for i in range(n):
-            a = chk(align(theta[i], prm[I_TH_TS]) + mul(K[i], eps, prm[I_TH_PS]))
-            theta[i] = put(a, prm[I_TH_OS], prm[I_TH_LO], prm[I_TH_HI], S_TH)
-        # Kl = K / lambda_k
-        il = prm[I_ONE_L] if flag == FLAG_WINDUP else prm[I_INV_LAM]
-        Kl = [
-            put(mul(K[i], il, prm[I_KL_PS]), prm[I_KL_OS], prm[I_K_LO], prm[I_K_HI], S_K)
-            for i in range(n)
-        ]
-        # low excitation: Kl_i w_i rounds to zero in P for every i
-        low = all(
-            put(mul(Kl[i], w[i], prm[I_P_PS2]), prm[I_P_OS], prm[I_P_LO], prm[I_P_HI], None) == 0
-            for i in range(n)
-        )
-        # P <- P / lambda_k - Kl w'   (upper triangle, or the full matrix for literal)
+            t = rsh(mul(K[i], eps), p[I_TH_S] + e)
+            theta[i] = sat(theta[i] + t, p[I_TH_LO], p[I_TH_HI], S_TH)
+        # P~ <- P~ - K w~'   (upper triangle, or the full matrix for literal)
+        ps = p[I_P_S] + e
+        low = all(rsh(mul(K[i], w[i]), ps) == 0 for i in range(n))
         for i in range(n):
             for j in range(i if mode == MODE_SYMMETRIC else 0, n):
-                a = chk(mul(P[i][j], il, prm[I_P_PS1]) - mul(Kl[i], w[j], prm[I_P_PS2]))
-                P[i][j] = put(a, prm[I_P_OS], prm[I_P_LO], prm[I_P_HI], S_P)
+                P[i][j] = sat(P[i][j] - rsh(mul(K[i], w[j]), ps), p[I_P_LO], p[I_P_HI], S_P)
         if low:
             flag |= FLAG_LOW_EXCITATION
+        # c <- c / lambda_k ; c > 1: halve it (e - 1) or fold it into the words (e = 0)
+        il = p[I_ONE_L] if flag & FLAG_WINDUP else p[I_INV_LAM]
+        c = sat(rsh(mul(c, il), p[I_C_S]), 0, p[I_L_HI], S_P)
+        if c > p[I_ONE_L]:
+            if e > 0:
+                c = rsh(c, 1)
+                e -= 1
+            else:
+                for i in range(n):
+                    for j in range(i if mode == MODE_SYMMETRIC else 0, n):
+                        P[i][j] = sat(rsh(mul(P[i][j], c), p[I_C_S]), p[I_P_LO], p[I_P_HI], S_P)
+                c = p[I_ONE_L]
+        # block exponent: the largest left shift keeping tr P~ <= TR_HI
+        tr = sum(P[i][i] for i in range(n))
+        up_ = 0
+        while 0 < tr * (1 << up_) and 2 * tr * (1 << up_) <= p[I_TR_HI] and e + up_ < p[I_E_MAX]:
+            up_ += 1
+        if up_:
+            for i in range(n):
+                for j in range(i if mode == MODE_SYMMETRIC else 0, n):
+                    P[i][j] = sat(P[i][j] * (1 << up_), p[I_P_LO], p[I_P_HI], S_P)
+            e += up_
+        scale[0], scale[1] = e, c
         if sum(counts) > before:
             flag |= FLAG_SATURATION
         assert counts[S_ACC] == 0
-        eps_l.append(eps)
-        tr_l.append(sum(P[i][i] for i in range(n)))
-        fl_l.append(flag)
-    return eps_l, tr_l, fl_l
+        out_eps.append(eps)
+        trw = sum(rsh(P[i][i], p[I_TR_PS]) for i in range(n))
+        out_tr.append(rsh(mul(trw, c), p[I_TC_S]))
+        out_e.append(e)
+        out_fl.append(flag)
+    return out_eps, out_tr, out_e, out_fl

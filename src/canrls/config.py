@@ -15,6 +15,9 @@
     warmup_s = 0.05            # filter warm-up not used for estimation (default 5 SVF time constants)
     gap_periods = 3.5          # a sample gap longer than this many periods restarts the filter
     rms_time_s = 1.0           # time constant of the running residual RMS
+    max_phase_step = 0.3       # skip samples where a periodic column advances more [rad]
+    min_speed = 0.05           # with friction effects: skip samples slower than this
+                               # (default 5 x the Coulomb band)
 
     [fixed]
     word_bits = 32             # state word
@@ -74,7 +77,8 @@ DEFAULT_HELD: tuple[str, ...] = ("current", "voltage")
 _SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor")
 _ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
                    "warmup_s": "warmup_s", "gap_periods": "gap_periods",
-                   "rms_time_s": "rms_time_s"}
+                   "rms_time_s": "rms_time_s", "max_phase_step": "max_phase_step",
+                   "min_speed": "min_speed"}
 _FIXED_KEYS = ("word_bits", "acc_bits", "input_bits", "theta_max", "formats")
 _CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
              "channel", "bitrate", "fd", "data_bitrate")
@@ -186,8 +190,15 @@ class AppConfig:
 
     def model_for(self, protocol: Protocol | None = None,
                   data_ranges: Mapping[str, Any] | None = None) -> Model:
-        """The model. Signal ranges for normalisation, by priority: ``[model.ranges]``,
-        then ``data_ranges`` (measured, :mod:`canrls.ranges`), then the DBC's min/max."""
+        """The model.
+
+        Signal ranges for the normalisation, by priority: ``[model.ranges]``, then
+        ``data_ranges`` (measured on the data, :mod:`canrls.ranges`), then the defaults
+        of :data:`canrls.model.DEFAULT_RANGES`. The DBC's min/max are the protocol's
+        limits (often ten times what the drive reaches) and serve strict decoding only:
+        normalising by them would leave the regressors tiny, costing fixed-point
+        resolution and letting the ridge prior bias the weakly scaled parameters.
+        """
         d = dict(self.model)
         d.setdefault("effects", list(DEFAULT_EFFECTS))
         filt = d.get("filter", {})
@@ -196,22 +207,14 @@ class AppConfig:
             filt.setdefault("held", list(DEFAULT_HELD))
             d["filter"] = filt
         available = None
-        ranges = dict(d.get("ranges", {})) if isinstance(d.get("ranges", {}), Mapping) else None
         if protocol is not None:
             available = [r for r in ("current", "speed", "position", "voltage")
                          if protocol.has(r)]
-        if ranges is not None:
-            for role, r in (data_ranges or {}).items():
+        ranges = d.get("ranges", {})
+        if isinstance(ranges, Mapping) and data_ranges:
+            ranges = dict(ranges)
+            for role, r in data_ranges.items():
                 ranges.setdefault(role, list(r))
-            for role in ("current", "speed", "voltage"):
-                if role in ranges or protocol is None or not protocol.has(role):
-                    continue
-                info = protocol.roles[role]
-                lo, hi = info.codec.minimum, info.codec.maximum
-                if lo is None or hi is None or not lo < hi:
-                    continue
-                a, b = sorted((lo * info.si_scale, hi * info.si_scale))
-                ranges[role] = [a, b]
             d["ranges"] = ranges
         return Model.from_dict(d, source=self.source, available_signals=available)
 

@@ -29,7 +29,9 @@ integer ``q`` stands for ``q * 2**-frac``; ``Q{m}.{frac}`` in the usual notation
 gives every quantity the smallest number of integer bits that holds its bound
 (:meth:`QFormat.for_range`: :math:`2^m >` bound) and all the remaining bits to the
 fraction. The bounds (``n`` parameters, :math:`\bar\varphi_j` = ``phi_max``,
-:math:`\|\bar\varphi\|_2` their Euclidean norm) are:
+:math:`\|\bar\varphi\|_2` their Euclidean norm, :math:`\bar P_h` half the range of
+the ``P`` format, the largest :math:`\mathrm{tr}\tilde P` the block exponent allows)
+are:
 
 ==========  =======================================================================
 quantity    bound and reason
@@ -41,15 +43,20 @@ quantity    bound and reason
             :math:`\max(n/\alpha, \mathrm{trace\_max})`: the trace bound caps
             :math:`\mathrm{tr}P`, and every :math:`|P_{ij}| \le \lambda_{max}(P)
             \le \mathrm{tr}P` for a positive semi-definite :math:`P`
-``h``       :math:`\bar P\,\|\bar\varphi\|_2` (Cauchy-Schwarz in the :math:`P` inner
-            product: :math:`|h_i| \le \sqrt{P_{ii}}\sqrt{\varphi^\top P\varphi}`)
-``den``     :math:`1 + \bar P\,\|\bar\varphi\|_2^2` (:math:`\lambda + \varphi^\top P\varphi`)
-``g``       :math:`1/\lambda < 2` (:math:`\varphi^\top P\varphi \ge 0`); its fraction
-            is also limited so that the dividend ``1 << (frac_g + frac_den)`` fits
-            the accumulator
-``K``       :math:`\min\big(\sqrt{\bar P}/(2\sqrt\lambda),\ \bar P\|\bar\varphi\|_2/\lambda\big)`:
+``h``       :math:`\max(\bar P, \bar P_h)\,\|\bar\varphi\|_2` (Cauchy-Schwarz in the
+            :math:`P` inner product: :math:`|h_i| \le \sqrt{P_{ii}}\sqrt{\varphi^\top
+            P\varphi} \le \lambda_{max}(P)\|\varphi\|_2`)
+``den``     :math:`1 + \max(\bar P, \bar P_h)\,\|\bar\varphi\|_2^2`
+            (:math:`\lambda + \varphi^\top P\varphi`)
+``g``       :math:`1/\lambda < 2` (:math:`\varphi^\top P\varphi \ge 0`), ``Q1``; its
+            fraction is limited so that the dividend ``1 << (frac_g + frac_den)``
+            fits the accumulator (with a narrow accumulator the fractions of ``g`` and
+            ``den`` are balanced for equal relative precision)
+``K``       :math:`\max\big(\min(\sqrt{\bar P}/(2\sqrt\lambda),\ \bar P\|\bar\varphi\|_2/\lambda),\
+            \bar P_h\|\bar\varphi\|_2/\lambda\big)`: at ``e = 0``,
             :math:`|K_i| \le \sqrt{P_{ii}}\sqrt{s}/(\lambda+s) \le \sqrt{P_{ii}}/(2\sqrt\lambda)`
-            with :math:`s = \varphi^\top P\varphi` (much tighter than :math:`P|\varphi|/\lambda`)
+            (:math:`s = \varphi^\top P\varphi`); once scaled by :math:`2^e`, ``K``
+            grows with :math:`P` again, :math:`|K_i| \le |h_i|/\lambda`
 ``theta``   ``theta_max``, default :math:`4\,y_{max}/\min_j\bar\varphi_j`: with
             normalised columns each term :math:`\theta_j\varphi_j` is of the size of
             the target, :math:`|\theta_j| \lesssim y_{max}/\bar\varphi_j`; two more
@@ -59,62 +66,96 @@ quantity    bound and reason
             (:math:`\theta_0 = 0`) and shrinks to the noise; a larger error during a
             transient is clipped (counted), which only limits that one correction,
             like a robust (Huber) RLS
-``lam``     :math:`\lambda \le 1` and :math:`1/\lambda < 2`, so ``Q1.(bits-2)``
-            (requires :math:`\lambda > 1/2`; typical :math:`[0.98, 1]`)
+``lam``     :math:`\lambda \le 1`, :math:`1/\lambda < 2` and the forgetting scale
+            :math:`c \le 1`: ``Q1.(bits-2)`` (requires :math:`\lambda > 1/2`; typical
+            :math:`[0.98, 1]`)
 ==========  =======================================================================
 
 ``phi`` and ``y`` use ``input_bits``, everything else ``word_bits``. Any format can be
 overridden: ``FixedConfig.auto(..., P=QFormat(32, 24))`` or
 ``dataclasses.replace(config, P=...)``; a saturation then shows in the counters.
 
+Scaled P
+--------
+:math:`P` falls by many orders of magnitude from :math:`P_0 = I/\alpha` once data
+arrive (and rises by :math:`1/\lambda` per step where they do not), far more than a
+fixed Q format resolves. It is therefore held as :math:`P = c\,\tilde P\,2^{-(f_P +
+e)}`: words :math:`\tilde P` in the ``P`` format, an integer block exponent
+``e >= 0`` and a forgetting scale :math:`1/2 < c \le 1` (a ``lam`` word).
+Forgetting multiplies ``c`` by :math:`1/\lambda` (one product per step, not one per
+element); ``c > 1`` trades a factor 2 with ``e``, or at ``e = 0`` is folded into the
+words. When :math:`\mathrm{tr}\tilde P` falls to a quarter of the word range the
+words shift left and ``e`` rises. :math:`h = \tilde P\varphi` and ``K`` carry the
+same ``e``, removed by shifts where they meet ``theta`` and ``den``. All of it is
+integer arithmetic; it keeps about ``word_bits - 3`` significant bits on
+:math:`\mathrm{tr}P` for any :math:`\alpha` and run length (without it, 32-bit
+words lose the small eigenvalues of :math:`P` at :math:`\alpha = 10^{-3}`,
+:math:`\lambda < 1`, and stall with :math:`\lambda = 1` once :math:`g h_i^2` falls
+below half an LSB). The ``P`` format is the one at ``e = 0``.
+
 Rounding and saturation
 -----------------------
-Every product of two words is exact (at most 32 x 32 bits). A value leaves an
-accumulator through a *rounding right shift*: round half up, by adding
-``1 << (s-1)`` before the arithmetic right shift, as a DSP does with its rounding
-constant (bias +1/2 LSB only on exact ties). It is then clamped to its word, and
-each clamp increments the counter of its site (:data:`SITES`): ``phi_in``, ``y_in``
-(inputs outside their word), ``eps``, ``h``, ``den``, ``div``, ``K``, ``theta``,
-``P``. Nothing ever wraps.
+Every product of two words is exact (at most 32 x 32 bits: the multiplier's
+double-width result). A value is brought to a coarser scale by a *rounding right
+shift*: round half up, by adding ``1 << (s-1)`` before the arithmetic right shift, as
+a DSP does with its rounding constant (bias +1/2 LSB only on exact ties). It is
+then clamped to its word, and each clamp increments the counter of its site
+(:data:`SITES`): ``phi_in``, ``y_in`` (inputs outside their word), ``eps``, ``h``,
+``den``, ``div``, ``K``, ``theta``, ``P``. Nothing ever wraps. A single product
+(``K``, ``theta``, ``P`` updates) is rounded once to its destination and added with
+saturation, e.g. :math:`\tilde P_{ij} \leftarrow \mathrm{sat}(\tilde P_{ij} -
+\mathrm{rsh}(K_i \tilde h_j))`.
 
 Accumulators (guard bits)
 -------------------------
-An accumulator of ``acc_bits`` never overflows, by construction rather than by a
-check: for each multiply-accumulate the plan pre-shifts every product right (with
-rounding) by the smallest ``ps`` for which the sum of all its products at their
-*largest representable* magnitude (``2**(b1-1) * 2**(b2-1)`` each), plus the
-additive term aligned to the accumulator and the final rounding constant, is below
-``2**(acc_bits-1)``. Because every operand is a saturated word, this holds for every
-possible input, including corrupted state; with 32-bit words, 32-bit inputs and
-64-bit accumulators it costs 3-4 bits of a 62-bit product that is then rounded to 32
-bits anyway. The ``acc`` counter is kept so every site is listed, and stays 0; the
-pure-Python reference :func:`canrls._rls_fixed.reference_block` asserts every
-accumulator value against ``acc_bits``.
+The multiply-accumulates (:math:`\varphi^\top\theta`, :math:`\tilde P\varphi`,
+:math:`\varphi^\top\tilde h`) sum ``n`` products in ``acc_bits``. They never overflow,
+by construction rather than by a check: the plan shifts the regressor operand right
+(rounded) by the smallest guard shift for which ``n`` products at the *largest
+representable* magnitudes of their words, plus the additive term and the final
+rounding constant, stay below ``2**(acc_bits-1)``. Because every operand is a
+saturated word this holds for every input, including a corrupted state; with 32-bit
+words and inputs and 64-bit accumulators it costs 3-4 of the 30 fraction bits of
+:math:`\varphi`, far below the LSB of the results. The ``acc`` counter is kept so
+every site is listed, and stays 0; the pure-Python reference
+:func:`canrls._rls_fixed.reference_block` asserts every accumulator value against
+``acc_bits``.
 
 Division
 --------
 One per update, modelled as the target does it: ``g = (1 << (frac_g + frac_den)) / d``,
 an ``acc_bits`` dividend over a word divisor, truncated toward zero (C semantics).
-Everything else multiplies: :math:`1/\lambda` is a Q constant computed once (exactly,
-from the rational value of ``lam``) when the estimator is built.
+Everything else multiplies: :math:`\lambda` and :math:`1/\lambda` are Q constants
+computed once, exactly, from the rational value of ``lam`` (Python fractions, no
+floating point) when the estimator is built (:attr:`FixedRLS.constants`).
 
 Trace bound and flags
 ---------------------
 Like :class:`canrls.rls.RLS`: a step that would take :math:`\mathrm{tr}P` above
-``trace_max`` is taken with :math:`\lambda = 1` (no division by :math:`\lambda`; flag
-``WINDUP``). Decided before the division with the equivalent division-free test
+``trace_max`` is taken with :math:`\lambda = 1` (no forgetting; flag ``WINDUP``).
+Decided before the division with the equivalent division-free test
 :math:`(\mathrm{tr}P - \lambda\,\mathrm{trace\_max})(\lambda+\varphi^\top P\varphi) >
 |P\varphi|^2`, so there is still one division. ``trace_max=None`` means
 :math:`n/\alpha`, the prior's trace. ``LOW_EXCITATION`` is set by the kernel when
-the sample's information :math:`g h_i^2` rounds to zero on the whole diagonal of
-:math:`P` (the resolution of ``P`` is exhausted: with :math:`\lambda = 1` and a long
-run this is where the fixed-point estimate stops following the float one).
-``SATURATION`` when any counter moved during the step, ``FROZEN`` after
-:meth:`FixedRLS.freeze`.
+the sample's information :math:`K_i h_i` rounds to zero on the whole diagonal of
+:math:`\tilde P` (the sample changed nothing the words can hold). ``SATURATION``
+when any counter moved during the step, ``FROZEN`` after :meth:`FixedRLS.freeze`.
 
-``update="literal"`` runs the textbook full-matrix :math:`P - K(\varphi^\top P)`
-with :math:`\varphi^\top P` computed as written; it loses symmetry and is kept only
-to show why the embedded kernel does not use it.
+Update forms
+------------
+``update="symmetric"`` (default) is the embedded form: upper triangle only, so
+:math:`P` is symmetric by construction at half the work. ``"literal"`` is the
+textbook full-matrix :math:`P - K(\varphi^\top P)` with :math:`\varphi^\top P`
+computed as written (as :mod:`canrls.rls` does); its rounding loses symmetry, but
+its error propagates like the symmetric form's (to first order
+:math:`\delta P \mapsto (I - K\varphi^\top)\,\delta P\,(I - \varphi K^\top)/\lambda`
+for any :math:`\delta P`), so it stays close while costing twice the work.
+``"naive"`` is the full-matrix update with :math:`\varphi^\top P` taken as
+:math:`(P\varphi)^\top`, as embedded code often writes it: there the antisymmetric
+part of the rounding error is not damped at all, :math:`A \mapsto A/\lambda`, so it
+grows as :math:`\lambda^{-k}` and the estimator diverges within a few thousand
+samples for any :math:`\lambda < 1` (``tests/test_fixed.py``). Both are kept only
+for comparison.
 """
 
 from __future__ import annotations
@@ -157,7 +198,11 @@ SITES: tuple[str, ...] = _k.SITES
 #: Format tag of :meth:`FixedRLS.state` dictionaries.
 STATE_FORMAT = "canrls.fixed/1"
 
-_UPDATES = {"symmetric": _k.MODE_SYMMETRIC, "literal": _k.MODE_LITERAL}
+_UPDATES = {
+    "symmetric": _k.MODE_SYMMETRIC,
+    "literal": _k.MODE_LITERAL,
+    "naive": _k.MODE_NAIVE,
+}
 #: Quantities that have a Q format in :class:`FixedConfig`, in table order.
 _QUANTITIES = ("phi", "y", "theta", "P", "K", "eps", "h", "den", "g", "lam")
 _MAX_WORD = 32  # products of two words must be exact in int64
@@ -421,8 +466,6 @@ class FixedConfig:
         # bound on every |P_ij| (and on the largest eigenvalue of P)
         P_bar = 1.0 / alpha_f if lam_f == 1.0 else max(n_i / alpha_f, tr)
         phi_norm = float(np.sqrt(np.sum(pm * pm)))
-        den_max = 1.0 + P_bar * phi_norm * phi_norm
-        K_max = min(math.sqrt(P_bar) / (2.0 * math.sqrt(lam_f)), P_bar * phi_norm / lam_f)
 
         def fmt(name: str, bound: float, bits: int) -> QFormat:
             try:
@@ -430,20 +473,38 @@ class FixedConfig:
             except FixedPointError as e:
                 raise FixedPointError(f"range of {name}: {e}") from e
 
+        P_q = _as_qformat("P", overrides["P"]) if "P" in overrides else fmt("P", P_bar, W)
+        # with the block exponent e > 0, tr P (words) <= half the range of P
+        P_top = math.ldexp(1.0, P_q.int_bits - 1)
+        # phi' P~ phi, with P~ = P / c (1/2 < c <= 1) bounded by P_bar or half its range
+        den_max = 1.0 + max(P_bar, P_top) * phi_norm * phi_norm
+        K_max = max(
+            min(math.sqrt(P_bar) / (2.0 * math.sqrt(lam_f)), P_bar * phi_norm / lam_f),
+            P_top * phi_norm / lam_f,
+        )
         formats: dict[str, QFormat] = {
             "phi": fmt("phi", float(pm.max()), In),
             "y": fmt("y", ym, In),
             "theta": fmt("theta", tm, W),
-            "P": fmt("P", P_bar, W),
+            "P": P_q,
             "K": fmt("K", K_max, W),
             "eps": fmt("eps", 4.0 * ym, W),
-            "h": fmt("h", P_bar * phi_norm, W),
+            "h": fmt("h", max(P_bar, P_top) * phi_norm, W),
             "den": fmt("den", den_max, W),
             "lam": QFormat(W, W - 2),
         }
-        # g = 1/d <= 1/lambda < 2; the dividend 1 << (frac_g + frac_den) must fit the accumulator
-        den_q = overrides.get("den", formats["den"])
-        den_q = _as_qformat("den", den_q)
+        # g = 1/d <= 1/lambda < 2: Q1.(W-2). The dividend 1 << (frac_g + frac_den) must fit
+        # the accumulator; when it does not, the fractions are balanced so that d (at its
+        # smallest, lambda) and g (at its smallest, 1/den_max) lose the same relative
+        # precision: frac_den = frac_g - int_bits_den.
+        if "den" in overrides:
+            den_q = _as_qformat("den", overrides["den"])
+        else:
+            den_q = formats["den"]
+            if den_q.frac + (W - 2) > acc_bits - 2:
+                fg = min(W - 2, (acc_bits - 2 + den_q.int_bits) // 2)
+                den_q = QFormat(W, min(den_q.frac, acc_bits - 2 - fg))
+                formats["den"] = den_q
         formats["g"] = QFormat(W, min(W - 2, acc_bits - 2 - den_q.frac))
         unknown = set(overrides) - set(_QUANTITIES)
         if unknown:
@@ -552,31 +613,29 @@ def _check_alpha(alpha: object) -> float:
 
 
 # --------------------------------------------------------------------- plan
-def _ceil_log2(m: int) -> int:
-    return (m - 1).bit_length()
-
-
 def _mac(
     acc_bits: int,
-    a: QFormat,
+    phi: QFormat,
     b: QFormat,
     m: int,
     out: QFormat | None,
     term: QFormat | None = None,
+    extra: int = 0,
 ) -> tuple[int, int, int]:
-    """Shifts of one multiply-accumulate ``[term] + sum of m products a*b -> out``.
+    """Shifts of one multiply-accumulate ``[term] + sum of m products (phi >> ps) * b -> out``.
 
-    Returns ``(ps, ts, os)``: product pre-shift (>= 0), alignment of the term to the
-    accumulator (> 0: left), output shift (> 0: rounding right shift). ``ps`` is the
-    smallest that keeps the worst case (every operand at the largest magnitude its
-    word holds) plus the rounding constants below ``2**(acc_bits - 1)``.
+    Returns ``(ps, ts, os)``: the guard shift of the ``phi`` operand (>= 0), the
+    alignment of the term to the accumulator (> 0: left) and the output shift (> 0:
+    rounding right shift). ``ps`` is the smallest for which the worst case (every
+    operand at the largest magnitude its word holds) plus the rounding constant stays
+    at or below ``2**(acc_bits - 1 - extra) - 1``.
     """
-    lim = (1 << (acc_bits - 1)) - 1
-    pmax = (1 << (a.bits - 1)) * (1 << (b.bits - 1))
-    for ps in range(0, 127):
-        pm = (pmax + ((1 << (ps - 1)) if ps else 0)) >> ps
-        fa = a.frac + b.frac - ps
-        total = m * pm
+    lim = ((1 << (acc_bits - 1)) - 1) >> extra
+    bmax = 1 << (b.bits - 1)
+    for ps in range(0, 63):
+        phimax = ((1 << (phi.bits - 1)) + ((1 << (ps - 1)) if ps else 0)) >> ps
+        fa = phi.frac - ps + b.frac
+        total = m * phimax * bmax
         ts = 0
         if term is not None:
             ts = fa - term.frac
@@ -587,38 +646,29 @@ def _mac(
             total += 1 << (os - 1)
         if total <= lim:
             return ps, ts, os
-    raise FixedPointError("no product pre-shift fits the accumulator")  # pragma: no cover
+    raise FixedPointError(  # pragma: no cover - only absurd formats
+        f"no guard shift of {phi} fits a {acc_bits}-bit accumulator"
+    )
 
 
-def _mac2(
-    acc_bits: int, p1: tuple[QFormat, QFormat], p2: tuple[QFormat, QFormat], out: QFormat
-) -> tuple[int, int, int]:
-    """Shifts of ``p1[0]*p1[1] - p2[0]*p2[1] -> out``: two products of different scales.
-
-    Returns ``(ps1, ps2, os)``: the pre-shifts that bring both products to one
-    accumulator scale (the finest that fits, as in :func:`_mac`) and the output shift.
-    """
+def _pre(acc_bits: int, a: QFormat, b: QFormat, m: int) -> int:
+    """Pre-shift of each product of a rarely used multiply-accumulate (windup test)."""
     lim = (1 << (acc_bits - 1)) - 1
-    F1 = p1[0].frac + p1[1].frac
-    F2 = p2[0].frac + p2[1].frac
-    m1 = (1 << (p1[0].bits - 1)) * (1 << (p1[1].bits - 1))
-    m2 = (1 << (p2[0].bits - 1)) * (1 << (p2[1].bits - 1))
-    for fa in range(min(F1, F2), min(F1, F2) - 127, -1):
-        ps1, ps2 = F1 - fa, F2 - fa
-        total = (m1 + ((1 << (ps1 - 1)) if ps1 else 0)) >> ps1
-        total += (m2 + ((1 << (ps2 - 1)) if ps2 else 0)) >> ps2
-        os = fa - out.frac
-        if os > 0:
-            total += 1 << (os - 1)
-        if total <= lim:
-            return ps1, ps2, os
-    raise FixedPointError("no product pre-shift fits the accumulator")  # pragma: no cover
+    pmax = (1 << (a.bits - 1)) * (1 << (b.bits - 1))
+    for ps in range(0, 63):
+        if m * ((pmax + ((1 << (ps - 1)) if ps else 0)) >> ps) <= lim:
+            return ps
+    raise FixedPointError("no pre-shift fits the accumulator")  # pragma: no cover
 
 
 def _build_plan(
     cfg: FixedConfig, n: int, lam: float, trace_max: float
 ) -> tuple[IntArray, dict[str, int]]:
-    """The kernel's integer constants (``_rls_fixed.I_*`` layout) and a named copy."""
+    """The kernel's integer constants (``_rls_fixed.I_*`` layout) and a named copy.
+
+    Every constant is an exact function of the config, ``n``, the rational value of
+    ``lam`` and ``trace_max``: Python integers and fractions, no floating point.
+    """
     A = cfg.acc_bits
     p = np.zeros(_k.NPARAM, dtype=np.int64)
     named: dict[str, int] = {}
@@ -633,34 +683,33 @@ def _build_plan(
         (cfg.phi, _k.I_PHI_LO, "phi"), (cfg.y, _k.I_Y_LO, "y"), (cfg.eps, _k.I_EPS_LO, "eps"),
         (cfg.h, _k.I_H_LO, "h"), (cfg.den, _k.I_DEN_LO, "den"), (cfg.g, _k.I_G_LO, "g"),
         (cfg.K, _k.I_K_LO, "K"), (cfg.theta, _k.I_TH_LO, "theta"), (cfg.P, _k.I_P_LO, "P"),
+        (cfg.lam, _k.I_L_LO, "lam"),
     ):  # fmt: skip
         put(lo_i, f"{name}_lo", q.lo)
         put(lo_i + 1, f"{name}_hi", q.hi)
 
-    # eps = y - phi' theta
+    # eps = y - (phi >> ps)' theta
     ps, ts, os = _mac(A, cfg.phi, cfg.theta, n, cfg.eps, cfg.y)
     put(_k.I_EPS_PS, "eps_ps", ps)
     put(_k.I_EPS_TS, "eps_ts", ts)
     put(_k.I_EPS_OS, "eps_os", os)
-    # h = P phi
-    ps, _, os = _mac(A, cfg.P, cfg.phi, n, cfg.h)
+    # h~ = P~ (phi >> ps)
+    ps, _, os = _mac(A, cfg.phi, cfg.P, n, cfg.h)
     put(_k.I_H_PS, "h_ps", ps)
     put(_k.I_H_OS, "h_os", os)
-    # d = lambda_k + phi' h   (lambda_k in {lambda, 1} aligned from the lam format)
-    ps, ts, os = _mac(A, cfg.phi, cfg.h, n, cfg.den, cfg.lam)
+    # s~ = (phi >> ps)' h~ >> e   (one extra guard bit: the sum is rounded by e bits)
+    ps, _, os = _mac(A, cfg.phi, cfg.h, n, cfg.den, extra=1)
     put(_k.I_S_PS, "s_ps", ps)
     put(_k.I_S_OS, "s_os", os)
-    lam_q = cfg.lam.to_int(Fraction(lam))
-    one_q = 1 << cfg.lam.frac
-    if not (0 < lam_q <= cfg.lam.hi and one_q <= cfg.lam.hi):
-        raise FixedPointError(f"lam = {lam!r} (and 1) must fit the lam format {cfg.lam}")
-
-    def aligned(x: int, s: int) -> int:
-        return x << s if s >= 0 else (x + (1 << (-s - 1))) >> -s
-
-    put(_k.I_S_LAM, "s_lam", aligned(lam_q, ts))
-    put(_k.I_S_ONE, "s_one", aligned(one_q, ts))
-    # g = DIVIDEND / d
+    # s = c s~ ; lambda and 1 in the den format
+    put(_k.I_SC_S, "sc_s", cfg.lam.frac)
+    lam_d = cfg.den.to_int(Fraction(lam))
+    one_d = cfg.den.to_int(1)
+    if not 0 < lam_d <= one_d <= cfg.den.hi:
+        raise FixedPointError(f"lam = {lam!r} and 1 must fit the den format {cfg.den}")
+    put(_k.I_LAM_D, "lam_den", lam_d)
+    put(_k.I_ONE_D, "one_den", one_d)
+    # g = DIVIDEND // d ; gc = g c
     fdiv = cfg.g.frac + cfg.den.frac
     if fdiv > A - 2:
         raise FixedPointError(
@@ -668,51 +717,61 @@ def _build_plan(
             f"does not fit the {A}-bit accumulator"
         )
     put(_k.I_DIVIDEND, "dividend", 1 << fdiv)
-    # K = g h
-    ps, _, os = _mac(A, cfg.h, cfg.g, 1, cfg.K)
-    put(_k.I_K_PS, "K_ps", ps)
-    put(_k.I_K_OS, "K_os", os)
-    # theta + K eps
-    ps, ts, os = _mac(A, cfg.K, cfg.eps, 1, cfg.theta, cfg.theta)
-    put(_k.I_TH_PS, "theta_ps", ps)
-    put(_k.I_TH_TS, "theta_ts", ts)
-    put(_k.I_TH_OS, "theta_os", os)
-    # Kl = K * (1/lambda_k)
-    inv_q = cfg.lam.to_int(1 / Fraction(lam))
-    if inv_q > cfg.lam.hi:
+    put(_k.I_GC_S, "gc_s", cfg.lam.frac)
+    # single products rounded to their destination
+    put(_k.I_K_S, "K_s", cfg.h.frac + cfg.g.frac - cfg.K.frac)
+    put(_k.I_TH_S, "theta_s", cfg.K.frac + cfg.eps.frac - cfg.theta.frac)
+    put(_k.I_P_S, "P_s", cfg.K.frac + cfg.h.frac - cfg.P.frac)
+    # c <- c / lambda_k
+    one_l = 1 << cfg.lam.frac
+    inv_l = cfg.lam.to_int(1 / Fraction(lam))
+    if not one_l <= inv_l <= cfg.lam.hi:
         raise FixedPointError(f"1/lam = {1 / lam!r} does not fit the lam format {cfg.lam}")
-    put(_k.I_INV_LAM, "inv_lam", inv_q)
-    put(_k.I_ONE_L, "one_lam", one_q)
-    ps, _, os = _mac(A, cfg.K, cfg.lam, 1, cfg.K)
-    put(_k.I_KL_PS, "Kl_ps", ps)
-    put(_k.I_KL_OS, "Kl_os", os)
-    # P <- P * (1/lambda_k) - Kl h'
-    ps1, ps2, os = _mac2(A, (cfg.P, cfg.lam), (cfg.K, cfg.h), cfg.P)
-    put(_k.I_P_PS1, "P_ps1", ps1)
-    put(_k.I_P_PS2, "P_ps2", ps2)
-    put(_k.I_P_OS, "P_os", os)
-    # trace bound: tr P summed with pre-shift tr_ps; 2 n terms must fit (T = tr - tmax)
-    lim = (1 << (A - 1)) - 1
+    put(_k.I_INV_LAM, "inv_lam", inv_l)
+    put(_k.I_ONE_L, "one_lam", one_l)
+    put(_k.I_C_S, "c_s", cfg.lam.frac)
+    # trace bound: the diagonal summed >> tr_ps must fit a word of min(P bits, A - 3) bits
+    tw = min(cfg.P.bits, A - 3)
     tr_ps = 0
-    while 2 * n * (((1 << (cfg.P.bits - 1)) + ((1 << (tr_ps - 1)) if tr_ps else 0)) >> tr_ps) > lim:
+    while n * (((1 << (cfg.P.bits - 1)) + ((1 << (tr_ps - 1)) if tr_ps else 0)) >> tr_ps) >= (
+        1 << (tw - 1)
+    ):
         tr_ps += 1
     put(_k.I_TR_PS, "trace_ps", tr_ps)
-    tr_cap = n * (((1 << (cfg.P.bits - 1)) + ((1 << (tr_ps - 1)) if tr_ps else 0)) >> tr_ps)
+    put(_k.I_TC_S, "tc_s", cfg.lam.frac)
+    tr_cap = (1 << (tw - 1)) - 1  # tr P (times c <= 1) can never exceed this
     if math.isinf(trace_max):
-        tmax = tr_cap  # the trace can never exceed what its accumulator holds
+        tmax = tr_cap
     else:
-        tq = Fraction(lam_q, one_q) * Fraction(trace_max) * Fraction(2) ** (cfg.P.frac - tr_ps)
+        lam_q = Fraction(cfg.lam.to_int(Fraction(lam)), one_l)
+        tq = lam_q * Fraction(trace_max) * Fraction(2) ** (cfg.P.frac - tr_ps)
         tmax = min(math.floor(tq), tr_cap)
     put(_k.I_TMAX, "trace_max_lam", tmax)
-    # h' w with pre-shift, compared with (trP - lambda trace_max) d
-    vw_ps, _, _ = _mac(A, cfg.h, cfg.h, n, None)
-    lhs_ps, _, _ = _mac(A, cfg.P, cfg.den, 1, None)
+    put(_k.I_TMAX_LIM, "trace_max_lim", 1 << (A - 3))
+    # windup test: h = c h~, h'w pre-shifted, (tr P - lambda trace_max) d pre-shifted
+    put(_k.I_HC_S, "hc_s", cfg.lam.frac)
+    vw_ps = _pre(A, cfg.h, cfg.h, n)
+    lhs_ps = _pre(A, cfg.P, cfg.den, 1)
     put(_k.I_VW_PS, "vw_ps", vw_ps)
     put(_k.I_LHS_PS, "lhs_ps", lhs_ps)
     f_lhs = cfg.P.frac - tr_ps + cfg.den.frac - lhs_ps
     f_vw = 2 * cfg.h.frac - vw_ps
-    put(_k.I_CMP_SL, "cmp_lhs_shift", max(0, f_lhs - f_vw))
-    put(_k.I_CMP_SR, "cmp_vw_shift", max(0, f_vw - f_lhs))
+    put(_k.I_CMP_DF, "cmp_scale_diff", f_lhs - f_vw)
+    # block exponent of P: the window (tr_hi/2, tr_hi], and the largest exponent so
+    # that every shift by (s + e) stays <= 62 and s~ >> e keeps its guard bit
+    put(_k.I_TR_HI, "trace_hi", 1 << (cfg.P.bits - 2))
+    e_max = min(A - 3, 62 - named["theta_s"], 62 - named["P_s"])
+    put(_k.I_E_MAX, "e_max", e_max)
+    for name, v in named.items():
+        if name.endswith(("_ps", "_s")) and not 0 <= v <= 62:
+            raise FixedPointError(
+                f"shift {name} = {v} is outside 0..62: the Q formats of this configuration "
+                f"are too far apart (or too close) for a {A}-bit accumulator"
+            )
+        if name.endswith(("_os", "_ts")) and abs(v) > 62:
+            raise FixedPointError(f"shift {name} = {v} exceeds 62 bits")
+    if e_max < 0:  # pragma: no cover - only absurd formats
+        raise FixedPointError(f"no room for the block exponent of P {cfg.P}")
     return p, named
 
 
@@ -808,11 +867,17 @@ class FixedStep:
     eps : int
         A-priori error (``eps`` format).
     K : ndarray of int64, shape (n,)
-        Gain applied this step (``K`` format; zeros when frozen).
+        Gain applied this step, :math:`K\\,2^{f_K + e}` with ``e = P_exp`` before the
+        renormalisation of this step (zeros when frozen).
     theta : ndarray of int64, shape (n,)
         Estimate after the step (``theta`` format, a copy).
     trace_P : int
-        :math:`\\mathrm{tr}\\,P` after the step, in LSBs of the ``P`` format.
+        :math:`\\mathrm{tr}\\,P\\,2^{f_{tr} + e}` after the step, with
+        :math:`f_{tr}` = ``trace_frac``.
+    P_exp : int
+        Block exponent ``e`` of ``P`` after the step.
+    trace_frac : int
+        Fraction bits of ``trace_P`` at ``e = 0`` (``P.frac`` less the trace guard shift).
     flags : FixedFlag
         Status bits of the step.
     """
@@ -821,7 +886,14 @@ class FixedStep:
     K: IntArray
     theta: IntArray
     trace_P: int
+    P_exp: int
+    trace_frac: int
     flags: FixedFlag
+
+    @property
+    def trace_float(self) -> float:
+        """:math:`\\mathrm{tr}\\,P` after the step as a float."""
+        return math.ldexp(float(self.trace_P), -(self.trace_frac + self.P_exp))
 
 
 @dataclass(frozen=True)
@@ -835,7 +907,11 @@ class FixedTrace:
     theta : ndarray of int64, shape (N, n) or None
         Estimate after each sample (``theta`` format); ``None`` with ``record=False``.
     trace_P : ndarray of int64, shape (N,)
-        :math:`\\mathrm{tr}\\,P` after each sample (``P`` LSBs).
+        :math:`\\mathrm{tr}\\,P\\,2^{f_{tr}+e}` after each sample (:meth:`trace_float`).
+    P_exp : ndarray of int64, shape (N,)
+        Block exponent ``e`` of ``P`` after each sample.
+    trace_frac : int
+        :math:`f_{tr}`: fraction bits of ``trace_P`` at ``e = 0``.
     flags : ndarray of uint8, shape (N,)
         :class:`FixedFlag` bits per sample.
     theta_final : ndarray of int64, shape (n,)
@@ -851,6 +927,8 @@ class FixedTrace:
     eps: IntArray
     theta: IntArray | None
     trace_P: IntArray
+    P_exp: IntArray
+    trace_frac: int
     flags: npt.NDArray[np.uint8]
     theta_final: IntArray
     applied: int
@@ -873,6 +951,10 @@ class FixedTrace:
     def eps_float(self) -> FloatArray:
         """``eps`` as floats."""
         return np.asarray(self.config.eps.to_float(self.eps))
+
+    def trace_float(self) -> FloatArray:
+        """:math:`\\mathrm{tr}\\,P` after each sample as floats."""
+        return np.ldexp(self.trace_P.astype(np.float64), -(self.trace_frac + self.P_exp))
 
 
 # ---------------------------------------------------------------- estimator
@@ -914,8 +996,10 @@ class FixedRLS:
     trace_max : float or None, default None
         Trace bound; ``None`` is :math:`n/\alpha` (the prior's trace), ``math.inf``
         disables it.
-    update : {"symmetric", "literal"}, default "symmetric"
-        ``"literal"``: full-matrix :math:`P - K\varphi^\top P`, for comparison only.
+    update : {"symmetric", "literal", "naive"}, default "symmetric"
+        ``"literal"``: full-matrix :math:`P - K\varphi^\top P`; ``"naive"``: full
+        matrix with :math:`\varphi^\top P` taken as :math:`(P\varphi)^\top`. Both for
+        comparison only (module docstring, *Update forms*).
 
     Raises
     ------
@@ -975,9 +1059,11 @@ class FixedRLS:
         self._p0 = p0
         self._lam = lam_f
         self._plan, self._named = _build_plan(config, n_i, lam_f, tm)
+        self._trace_frac = config.P.frac - self._named["trace_ps"]
         self._theta = np.zeros(n_i, np.int64)
         self._P = np.zeros((n_i, n_i), np.int64)
-        self._work = np.zeros((5, n_i), np.int64)
+        self._scale = np.zeros(2, np.int64)  # [e, c]
+        self._work = np.zeros((8, n_i), np.int64)
         self._counts = np.zeros(len(SITES), np.int64)
         self._frozen = False
         self.count = 0
@@ -987,6 +1073,7 @@ class FixedRLS:
         self._y1 = np.zeros(1, np.int64)
         self._eps1 = np.zeros(1, np.int64)
         self._tr1 = np.zeros(1, np.int64)
+        self._exp1 = np.zeros(1, np.int64)
         self._flags1 = np.zeros(1, np.uint8)
         self._norec = np.zeros((0, n_i), np.int64)
 
@@ -994,6 +1081,8 @@ class FixedRLS:
         # P0 = I / alpha ; theta0 = 0
         self._P[...] = 0
         self._P[np.diag_indices(self._n)] = self._p0
+        self._scale[0] = 0
+        self._scale[1] = 1 << self._config.lam.frac
         self._theta[...] = 0
         self._work[...] = 0
 
@@ -1025,7 +1114,7 @@ class FixedRLS:
 
     @property
     def update_form(self) -> str:
-        """``"symmetric"`` or ``"literal"``."""
+        """``"symmetric"``, ``"literal"`` or ``"naive"``."""
         return self._update
 
     @property
@@ -1050,9 +1139,22 @@ class FixedRLS:
         return v
 
     @property
+    def P_exp(self) -> int:
+        """Block exponent ``e`` of :math:`P = c\\tilde P 2^{-(f_P + e)}`."""
+        return int(self._scale[0])
+
+    @property
+    def P_scale(self) -> int:
+        """Forgetting scale ``c`` of :math:`P = c\\tilde P 2^{-(f_P + e)}` (``lam`` format)."""
+        return int(self._scale[1])
+
+    @property
     def P(self) -> IntArray:
-        """:math:`P` in the ``P`` format, shape (n, n) (a copy; the symmetric form's
-        lower triangle, which the kernel never stores, is mirrored in)."""
+        """The words :math:`\\tilde P` of :math:`P = c\\tilde P 2^{-(f_P + e)}`, shape (n, n).
+
+        A copy; the symmetric form's lower triangle, which the kernel never stores,
+        is mirrored in. See :attr:`P_exp`, :attr:`P_scale`, :attr:`P_float`.
+        """
         P = self._P.copy()
         if self._mode == _k.MODE_SYMMETRIC:
             il = np.tril_indices(self._n, -1)
@@ -1067,7 +1169,8 @@ class FixedRLS:
     @property
     def P_float(self) -> FloatArray:
         """:math:`P` as float64, shape (n, n)."""
-        return np.asarray(self._config.P.to_float(self.P))
+        c = self._config.lam.to_float(self.P_scale)
+        return c * np.ldexp(self.P.astype(np.float64), -(self._config.P.frac + self.P_exp))
 
     @property
     def saturations(self) -> SaturationCounts:
@@ -1163,15 +1266,17 @@ class FixedRLS:
         self._phi1[0] = _int_array("phi_int", phi_int, (self._n,))
         self._y1[0] = _int_array("y_int", y_int, ())
         self.count += _k.fixed_block(
-            self._phi1, self._y1, self._theta, self._P, self._work, self._counts,
+            self._phi1, self._y1, self._theta, self._P, self._scale, self._work, self._counts,
             self._plan, self._mode, self._frozen, False,
-            self._eps1, self._norec, self._tr1, self._flags1,
+            self._eps1, self._norec, self._tr1, self._exp1, self._flags1,
         )  # fmt: skip
         return FixedStep(
             eps=int(self._eps1[0]),
-            K=self._work[3].copy(),
+            K=self._work[6].copy(),
             theta=self._theta.copy(),
             trace_P=int(self._tr1[0]),
+            P_exp=int(self._exp1[0]),
+            trace_frac=self._trace_frac,
             flags=_FLAGS[self._flags1[0]],
         )
 
@@ -1201,19 +1306,22 @@ class FixedRLS:
         Y_c = _int_array("Y_int", Y_int, (N,))
         eps = np.empty(N, np.int64)
         trace_P = np.empty(N, np.int64)
+        P_exp = np.empty(N, np.int64)
         flags = np.empty(N, np.uint8)
         theta_out = np.empty((N, self._n), np.int64) if record else self._norec
         before = SaturationCounts(self._counts)
         applied = _k.fixed_block(
-            Phi_c, Y_c, self._theta, self._P, self._work, self._counts,
+            Phi_c, Y_c, self._theta, self._P, self._scale, self._work, self._counts,
             self._plan, self._mode, self._frozen, bool(record),
-            eps, theta_out, trace_P, flags,
+            eps, theta_out, trace_P, P_exp, flags,
         )  # fmt: skip
         self.count += applied
         return FixedTrace(
             eps=eps,
             theta=theta_out if record else None,
             trace_P=trace_P,
+            P_exp=P_exp,
+            trace_frac=self._trace_frac,
             flags=flags,
             theta_final=self._theta.copy(),
             applied=int(applied),
@@ -1240,6 +1348,8 @@ class FixedRLS:
             "count": self.count,
             "theta": self._theta.copy(),
             "P": self._P.copy(),
+            "P_exp": int(self._scale[0]),
+            "P_scale": int(self._scale[1]),
             "counts": self._counts.copy(),
         }
 
@@ -1300,6 +1410,24 @@ class FixedRLS:
                     f"FixedRLS checkpoint key {key!r} has values outside [{lo}, {hi}]"
                 )
             target[...] = src
+        e = get("P_exp")
+        if isinstance(e, bool) or not isinstance(e, int | np.integer) or not (
+            0 <= int(e) <= rls._named["e_max"]
+        ):
+            raise CheckpointError(
+                f"FixedRLS checkpoint key 'P_exp' = {e!r} is not an integer in "
+                f"0..{rls._named['e_max']}"
+            )
+        c = get("P_scale")
+        if isinstance(c, bool) or not isinstance(c, int | np.integer) or not (
+            0 < int(c) <= rls._named["one_lam"]
+        ):
+            raise CheckpointError(
+                f"FixedRLS checkpoint key 'P_scale' = {c!r} is not an integer in "
+                f"1..{rls._named['one_lam']}"
+            )
+        rls._scale[0] = int(e)
+        rls._scale[1] = int(c)
         rls._frozen = bool(get("frozen"))
         rls.count = int(get("count"))
         return rls
@@ -1478,7 +1606,7 @@ def sweep(
         A parameter smaller than this is measured against ``floor`` instead of its
         own size (so a zero parameter does not fail everything); ``None``: 1 % of
         the largest :math:`|\theta_{ref}|`.
-    update : {"symmetric", "literal"}
+    update : {"symmetric", "literal", "naive"}
 
     Returns
     -------

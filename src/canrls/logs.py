@@ -28,25 +28,15 @@ import can
 import numpy as np
 import numpy.typing as npt
 
+from canrls import _candump
 from canrls.errors import LogFormatError
 from canrls.frameblock import FrameBlock
 
 __all__ = ["LogReadStats", "read_frames", "write_candump", "write_log", "CAN_ERR_FLAG"]
 
 #: Linux SocketCAN error-frame flag in the 32-bit CAN ID (candump writes it in the ID).
-CAN_ERR_FLAG = 0x20000000
-_EFF_MASK = 0x1FFFFFFF
-
-_HEX = np.full(256, 255, dtype=np.uint8)
-for _c, _v in zip(b"0123456789", range(10), strict=True):
-    _HEX[_c] = _v
-for _c, _v in zip(b"ABCDEF", range(10, 16), strict=True):
-    _HEX[_c] = _v
-for _c, _v in zip(b"abcdef", range(10, 16), strict=True):
-    _HEX[_c] = _v
-_DIGIT = np.full(256, 255, dtype=np.uint8)
-for _c, _v in zip(b"0123456789", range(10), strict=True):
-    _DIGIT[_c] = _v
+CAN_ERR_FLAG = _candump.CAN_ERR_FLAG
+_EFF_MASK = _candump.EFF_MASK
 
 
 @dataclass
@@ -94,156 +84,89 @@ def read_frames(
 
 def _read_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats,
                   progress: Callable[[int, int], None] | None) -> Iterator[FrameBlock]:
-    # ~40 bytes per line in a typical classic-CAN candump file
-    read_bytes = max(4096, chunk_size * 40)
+    """Blocks of at most ``chunk_size`` frames, read into one reusable buffer.
+
+    The compiled parser (:func:`canrls._candump.parse`) takes every line of the common
+    layout; the others come back as "slow" lines with the row they precede, go through
+    :func:`_parse_candump_line` and are inserted there, so the file's order is kept.
+    """
+    cap = max(1, int(chunk_size))
+    # ~40 bytes per line in a typical classic-CAN candump file; a bit more so that one
+    # buffer usually fills a whole block
+    buf = np.empty(max(1 << 16, cap * 48), np.uint8)
+    fill = 0
+    eof = False
     line_no = 0
-    with open(path, "rb") as f:
-        tail = b""
+    slow = np.empty((cap, 4), np.int64)
+    with open(path, "rb", buffering=0) as f:
         while True:
-            buf = f.read(read_bytes)
-            if not buf:
-                data = tail
-                tail = b""
-            else:
-                data = tail + buf
-                cut = data.rfind(b"\n")
-                if cut < 0:
-                    tail = data
-                    continue
-                tail = data[cut + 1:]
-                data = data[: cut + 1]
-            if data:
-                block, nlines = _parse_candump_bytes(data, path, line_no, skip_bad, st)
-                line_no += nlines
-                st.lines += nlines
-                st.bytes_read += len(data)
-                if len(block):
-                    st.frames += len(block)
-                    yield block
-                if progress is not None:
-                    progress(st.bytes_read, st.total_bytes)
-            if not buf:
-                break
-
-
-def _parse_candump_bytes(data: bytes, path: Path, line0: int, skip_bad: bool,
-                         st: LogReadStats) -> tuple[FrameBlock, int]:
-    """Parse whole lines; returns the block and the number of lines consumed."""
-    raw = np.frombuffer(data, dtype=np.uint8)
-    nl = np.flatnonzero(raw == 10)
-    if len(data) and data[-1:] != b"\n":
-        nl = np.append(nl, len(raw))
-    starts = np.empty(len(nl), dtype=np.int64)
-    starts[0:1] = 0
-    starts[1:] = nl[:-1] + 1
-    ends = nl.copy()
-    # strip a trailing carriage return
-    cr = (ends > starts) & (raw[np.maximum(ends - 1, 0)] == 13)
-    ends[cr] -= 1
-    lengths = ends - starts
-    nlines = len(starts)
-    order_parts: list[np.ndarray] = []
-    blocks: list[FrameBlock] = []
-    slow: list[int] = []
-    for length in np.unique(lengths):
-        idx = np.flatnonzero(lengths == length)
-        if length == 0:
-            continue  # blank lines carry nothing
-        got = _parse_group(raw, starts[idx], int(length))
-        if got is None:
-            slow.extend(idx.tolist())
-            continue
-        ok, block = got
-        if not ok.all():
-            slow.extend(idx[~ok].tolist())
-            block = block.take(ok)
-            idx = idx[ok]
-        blocks.append(block)
-        order_parts.append(idx)
-    if slow:
-        slow.sort()
-        msgs: list[can.Message] = []
-        kept: list[int] = []
-        for k in slow:
-            text = data[starts[k]:ends[k]].decode("ascii", errors="replace")
-            if not text.strip() or text.lstrip().startswith("#"):
+            if not eof and fill < len(buf):
+                got = f.readinto(memoryview(buf)[fill:])
+                if not got:
+                    eof = True
+                else:
+                    fill += got
+            b = FrameBlock(np.empty(cap, np.float64), np.empty(cap, np.uint32),
+                           np.empty(cap, np.bool_), np.zeros(cap, np.bool_),
+                           np.empty(cap, np.bool_), np.empty(cap, np.uint8),
+                           np.empty((cap, 8), np.uint8))
+            used, rows, nslow, nlines = _candump.parse(
+                buf, fill, eof, b.t, b.arbitration_id, b.is_extended, b.is_error, b.dlc,
+                b.data, slow)
+            if used == 0:
+                if eof:
+                    break
+                if fill == len(buf):  # a line longer than the buffer
+                    buf = np.concatenate([buf, np.empty(len(buf), np.uint8)])
                 continue
-            try:
-                msgs.append(_parse_candump_line(text))
-                kept.append(k)
-            except ValueError as e:
-                if skip_bad:
-                    st.bad_lines += 1
-                    continue
-                raise LogFormatError(
-                    f"{path}:{line0 + k + 1}: not a candump line ({e}): {text[:80]!r}") from e
-        if msgs:
-            blocks.append(FrameBlock.from_messages(msgs))
-            order_parts.append(np.asarray(kept, dtype=np.int64))
-    if not blocks:
-        return FrameBlock.empty(), nlines
-    merged = FrameBlock.concat(blocks)
-    order = np.argsort(np.concatenate(order_parts), kind="stable")
-    return merged.take(order), nlines
+            block = b if rows == cap else b.take(slice(0, rows))
+            if nslow:
+                block = _with_slow_lines(block, buf, slow[:nslow], path, line_no, skip_bad, st)
+            line_no += nlines
+            st.lines += nlines
+            st.bytes_read += used
+            if used < fill:
+                buf[:fill - used] = buf[used:fill]
+            fill -= used
+            if len(block):
+                st.frames += len(block)
+                yield block
+            if progress is not None:
+                progress(st.bytes_read, st.total_bytes)
 
 
-def _parse_group(raw: npt.NDArray[np.uint8], starts: npt.NDArray[np.int64],
-                 length: int) -> tuple[npt.NDArray[np.bool_], FrameBlock] | None:
-    """Vectorised parse of lines that share one length (and, checked here, one layout)."""
-    if length < 8:
-        return None
-    rows = raw[starts[:, None] + np.arange(length)[None, :]]
-    first = rows[0]
-    line = first.tobytes()
-    # layout from the first line: "(" ts ")" " " channel " " id "#" data
-    if line[:1] != b"(":
-        return None
-    close = line.find(b")")
-    dot = line.find(b".", 0, close)
-    sp2 = line.find(b" ", close + 2)
-    hash_ = line.find(b"#", sp2)
-    if close < 0 or dot < 0 or sp2 < 0 or hash_ < 0 or line[close + 1:close + 2] != b" ":
-        return None
-    id_len = hash_ - sp2 - 1
-    nhex = length - hash_ - 1
-    if id_len not in (3, 8) or nhex % 2 or nhex > 16:
-        return None
-    # every line must share the separators and the channel text of the first
-    fixed_cols = np.r_[0, close, close + 1, np.arange(close + 2, sp2 + 1), hash_]
-    ok = (rows[:, fixed_cols] == first[fixed_cols]).all(axis=1)
-    ip = rows[:, 1:dot]
-    fp = rows[:, dot + 1:close]
-    idc = rows[:, sp2 + 1:hash_]
-    dc = rows[:, hash_ + 1:]
-    di, df, hi, hd = _DIGIT[ip], _DIGIT[fp], _HEX[idc], _HEX[dc]
-    ok &= (di != 255).all(axis=1) & (df != 255).all(axis=1)
-    ok &= (hi != 255).all(axis=1) & (hd != 255).all(axis=1)
-    n = len(starts)
-    ip_v = np.zeros(n, np.int64)
-    for c in range(di.shape[1]):
-        ip_v = ip_v * 10 + di[:, c]
-    fp_v = np.zeros(n, np.int64)
-    for c in range(df.shape[1]):
-        fp_v = fp_v * 10 + df[:, c]
-    scale = 10 ** df.shape[1]
-    # (int * 10^d + frac) is exact in int64 and < 2**53; one correctly rounded division
-    # then gives the same float as float("int.frac").
-    t = (ip_v * scale + fp_v).astype(np.float64) / float(scale)
-    ids = np.zeros(n, np.int64)
-    for c in range(hi.shape[1]):
-        ids = ids * 16 + hi[:, c]
-    nbytes = nhex // 2
-    b = FrameBlock.allocate(n, 8)
-    b.t[:] = t
-    ext = id_len == 8
-    is_err = (ids & CAN_ERR_FLAG) != 0 if ext else np.zeros(n, np.bool_)
-    b.arbitration_id[:] = (ids & _EFF_MASK).astype(np.uint32)
-    b.is_extended[:] = ext & ~is_err
-    b.is_error[:] = is_err
-    b.dlc[:] = nbytes
-    if nbytes:
-        b.data[:, :nbytes] = hd[:, 0::2] * 16 + hd[:, 1::2]
-    return ok, b
+def _with_slow_lines(block: FrameBlock, buf: npt.NDArray[np.uint8],
+                     slow: npt.NDArray[np.int64], path: Path, line0: int, skip_bad: bool,
+                     st: LogReadStats) -> FrameBlock:
+    """Parse the lines the compiled parser left (per line, as python-can) and insert them."""
+    msgs: list[can.Message] = []
+    before: list[int] = []
+    for row, a, e, k in slow.tolist():
+        text = buf[a:e].tobytes().decode("ascii", errors="replace")
+        if not text.strip() or text.lstrip().startswith("#"):
+            continue
+        try:
+            msgs.append(_parse_candump_line(text))
+            before.append(row)
+        except ValueError as err:
+            if skip_bad:
+                st.bad_lines += 1
+                continue
+            raise LogFormatError(
+                f"{path}:{line0 + k + 1}: not a candump line ({err}): {text[:80]!r}") from err
+    if not msgs:
+        return block
+    extra = FrameBlock.from_messages(msgs)
+    pos = np.asarray(before, np.intp)
+    width = max(block.data.shape[1], extra.data.shape[1])
+
+    def pad(d: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+        return d if d.shape[1] == width else np.pad(d, ((0, 0), (0, width - d.shape[1])))
+
+    return FrameBlock(*(np.insert(getattr(block, name), pos, getattr(extra, name), axis=0)
+                        for name in ("t", "arbitration_id", "is_extended", "is_remote",
+                                     "is_error", "dlc")),
+                      np.insert(pad(block.data), pos, pad(extra.data), axis=0))
 
 
 def _parse_candump_line(text: str) -> can.Message:
@@ -317,6 +240,7 @@ def _read_python_can(path: Path, chunk_size: int, st: LogReadStats,
 
 
 def _candump_lines(block: FrameBlock, channel: str) -> str:
+    """Per-row formatting (the reference for :func:`_candump_bytes`, and its fallback)."""
     out = []
     for k in range(len(block)):
         cid = int(block.arbitration_id[k])
@@ -337,6 +261,52 @@ def _candump_lines(block: FrameBlock, channel: str) -> str:
     return "".join(out)
 
 
+def _split_timestamps(t: npt.NDArray[np.float64]
+                      ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None:
+    """Exact ``(seconds, microseconds)`` of ``f"{t:f}"`` per row, or None (use the fallback).
+
+    ``rint(t * 1e6)`` is the correctly rounded microsecond count unless ``t * 1e6`` lies
+    within a few ulps of a half-integer (its own rounding error could then flip the
+    tie); those rows take Python's formatting, which rounds the exact binary value.
+    """
+    t = np.ascontiguousarray(t, np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        x = t * 1e6
+        ok = (t >= 0.0) & (x < 2.0 ** 52)
+        fr = x - np.floor(x)
+        near = np.abs(fr - 0.5) <= 8.0 * np.spacing(x)
+    if not ok.all():
+        return None
+    us = np.rint(x).astype(np.int64)
+    for k in np.flatnonzero(near).tolist():
+        whole, _, frac = f"{t[k]:f}".partition(".")
+        us[k] = int(whole) * 1_000_000 + int(frac)
+    return us // 1_000_000, us % 1_000_000
+
+
+def _candump_bytes(block: FrameBlock, channel: bytes) -> bytes:
+    """The candump lines of a block, formatted by the compiled kernel."""
+    n = len(block)
+    if n == 0:
+        return b""
+    split = _split_timestamps(block.t)
+    if split is None:  # negative or huge timestamps: rare, formatted per row
+        return _candump_lines(block, channel.decode("ascii")).encode("ascii")
+    sec, usec = split
+    width = block.data.shape[1]
+    # "(" sec "." usec ") " channel " " id(<= 8) "#" "#0"? data "\n"
+    longest = 1 + 16 + 1 + 6 + 2 + len(channel) + 1 + 8 + 1 + 2 + 2 * width + 1
+    out = np.empty(n * longest, np.uint8)
+    size = _candump.format_lines(
+        sec, usec, np.ascontiguousarray(block.arbitration_id, np.uint32),
+        np.ascontiguousarray(block.is_extended, np.bool_),
+        np.ascontiguousarray(block.is_remote, np.bool_),
+        np.ascontiguousarray(block.is_error, np.bool_),
+        np.ascontiguousarray(block.dlc, np.uint8), np.ascontiguousarray(block.data, np.uint8),
+        np.frombuffer(channel, np.uint8), out)
+    return out[:size].tobytes()
+
+
 def write_candump(path: str | os.PathLike[str], blocks: Iterable[FrameBlock],
                   channel: str = "can0") -> int:
     """Write blocks as a candump ``.log`` file (atomically: temp file, then rename).
@@ -344,12 +314,13 @@ def write_candump(path: str | os.PathLike[str], blocks: Iterable[FrameBlock],
     Returns the number of frames written.
     """
     p = Path(path)
+    ch = channel.encode("ascii")
     tmp = p.with_name(p.name + ".part")
     n = 0
     try:
-        with open(tmp, "w", encoding="ascii", newline="\n") as f:
+        with open(tmp, "wb") as f:
             for block in blocks:
-                f.write(_candump_lines(block, channel))
+                f.write(_candump_bytes(block, ch))
                 n += len(block)
         os.replace(tmp, p)
     finally:

@@ -401,6 +401,12 @@ class RegressorBuilder:
         self._deriv_idx = np.flatnonzero([False, *equation.derivative_mask])
         self._neg_exp = -np.array([equation.scaling.target, *equation.scaling.columns],
                                   dtype=np.int64)
+        # the same normalisation as factors: x * 2**-s is x scaled exactly as ldexp does
+        # (one rounding of the exact product), as long as 2**-s is a double
+        self._deriv = np.array([False, *equation.derivative_mask], dtype=np.bool_)
+        self._scale: F64 | None = None
+        if np.all((self._neg_exp >= -1074) & (self._neg_exp <= 1023)):
+            self._scale = np.ldexp(np.ones(len(self._neg_exp)), self._neg_exp)
 
     @property
     def n(self) -> int:
@@ -444,6 +450,12 @@ class RegressorBuilder:
         raw[:, 0] = tgt * eq.target.gain if eq.target.gain != 1.0 else tgt
         for j, col in enumerate(eq.columns):
             raw[:, j + 1] = col.raw(frame)
+        if self._scale is not None:
+            # filter, pick F or sF and normalise in one pass (same values as below)
+            y = np.empty(n)
+            phi = np.empty((n, eq.n))
+            self.svf._process_scaled(raw, self._deriv, self._scale, y, phi)
+            return RegressorBlock(phi=phi, y=y, t=frame.t)
         f, sf = self.svf.process(raw)
         # value columns and target through F, derivative columns through sF
         if self._deriv_idx.size:

@@ -42,7 +42,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.errors import ConfigError
-from canrls.protocol import DecodedFrames, Protocol
+from canrls.protocol import DecodedFrames, MessageFrames, Protocol
 from canrls.signals import ROLES, Signals
 
 __all__ = ["Pairer", "PairingCounts", "PAIRING_KINDS"]
@@ -223,6 +223,36 @@ def _pair_kernel(msg: I64, t: F64, cnt: I64, vals: F64, role_msg: I64, n_msg: in
     return n_out
 
 
+@numba.njit(cache=True, nogil=True)
+def _merge_kernel(index: I64, offsets: I64, t: F64, cnt: I64, vals: F64, out_msg: I64,
+                  out_t: F64, out_cnt: I64, out_vals: F64) -> bool:  # pragma: no cover
+    """K-way merge of the messages' frames (rows offsets[k]:offsets[k+1] of the inputs,
+    each sorted by ``index``) into stream order; equal indices keep message order,
+    as a stable sort of the concatenation would. False (nothing valid written) when a
+    message's indices are not ascending.
+    """
+    K = len(offsets) - 1
+    for k in range(K):
+        for i in range(offsets[k] + 1, offsets[k + 1]):
+            if index[i] < index[i - 1]:
+                return False
+    pos = offsets[:-1].copy()
+    R = vals.shape[1]
+    for o in range(offsets[K]):
+        best = -1
+        for k in range(K):
+            if pos[k] < offsets[k + 1] and (best < 0 or index[pos[k]] < index[pos[best]]):
+                best = k
+        i = pos[best]
+        pos[best] += 1
+        out_msg[o] = best
+        out_t[o] = t[i]
+        out_cnt[o] = cnt[i]
+        for r in range(R):
+            out_vals[o, r] = vals[i, r]
+    return True
+
+
 class Pairer:
     """Pair decoded feedback frames into samples (see the module docstring for the rules).
 
@@ -295,6 +325,34 @@ class Pairer:
         """End of stream: emit the complete periods still waiting, drop the incomplete ones."""
         return self._run(None, flush=True)
 
+    def _merge(self, parts: list[MessageFrames], R: int) -> tuple[I64, F64, I64, F64]:
+        """The frames of all messages in stream order (by ``index``; ties: message order)."""
+        lens = np.array([0] + [len(p) for p in parts], np.int64)
+        offsets = np.cumsum(lens)
+        n = int(offsets[-1])
+        index = np.concatenate([p.index for p in parts]).astype(np.int64, copy=False)
+        t = np.concatenate([p.t for p in parts]).astype(np.float64, copy=False)
+        if self.match_counters:
+            cnt = np.concatenate([p.counter for p in parts]).astype(np.int64, copy=False)
+        else:
+            cnt = np.full(n, -1, np.int64)
+        vals = np.full((n, R), np.nan)
+        for k, p in enumerate(parts):
+            a, b = int(offsets[k]), int(offsets[k + 1])
+            for j, role in enumerate(self.roles):
+                if role in p.values:
+                    vals[a:b, j] = p.values[role]
+        out_msg = np.empty(n, np.int64)
+        out_t = np.empty(n, np.float64)
+        out_cnt = np.empty(n, np.int64)
+        out_vals = np.empty((n, R), np.float64)
+        if _merge_kernel(index, offsets, t, cnt, vals, out_msg, out_t, out_cnt, out_vals):
+            return out_msg, out_t, out_cnt, out_vals
+        # a message's frames out of stream order: a stable sort does the same
+        order = np.argsort(index, kind="stable")
+        msg = np.repeat(np.arange(len(parts), dtype=np.int64), lens[1:])
+        return msg[order], t[order], cnt[order], vals[order]
+
     def _run(self, decoded: DecodedFrames | None, flush: bool) -> Signals:
         K, R = len(self.messages), len(self.roles)
         if decoded is None:
@@ -304,23 +362,7 @@ class Pairer:
             vals = np.zeros((0, R))
         else:
             parts = [decoded[name] for name in self.messages]
-            index = np.concatenate([p.index for p in parts])
-            order = np.argsort(index, kind="stable")
-            msg = np.concatenate([np.full(len(p), k, np.int64)
-                                  for k, p in enumerate(parts)])[order]
-            t = np.concatenate([p.t for p in parts])[order]
-            if self.match_counters:
-                cnt = np.concatenate([p.counter for p in parts])[order]
-            else:
-                cnt = np.full(len(t), -1, np.int64)
-            vals = np.full((len(t), R), np.nan)
-            start = 0
-            for p in parts:
-                for j, role in enumerate(self.roles):
-                    if role in p.values:
-                        vals[start:start + len(p), j] = p.values[role]
-                start += len(p)
-            vals = vals[order]
+            msg, t, cnt, vals = self._merge(parts, R)
         cap = len(t) + _CAPACITY
         out_t = np.empty(cap)
         out_v = np.empty((cap, R))

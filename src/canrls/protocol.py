@@ -541,12 +541,23 @@ def _fmt(x: float) -> str:
 
 def _crc_vector(frame_id: int, data: U8, length: int) -> U8:
     """E2E CRC (:func:`canrls.e2e.e2e_crc`) of every row: over the ID, then bytes 1..length-1."""
-    c = np.full(data.shape[0], 0xFF, np.uint8)
-    c = CRC8_TABLE[c ^ np.uint8(frame_id & 0xFF)]
-    c = CRC8_TABLE[c ^ np.uint8((frame_id >> 8) & 0xFF)]
-    for j in range(1, length):
-        c = CRC8_TABLE[c ^ data[:, j]]
-    return c ^ np.uint8(0xFF)
+    out = np.empty(data.shape[0], np.uint8)
+    _crc_kernel(int(frame_id), data, int(length), CRC8_TABLE, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _crc_kernel(frame_id: int, data: U8, length: int, table: U8,
+                out: U8) -> None:  # pragma: no cover - compiled
+    """CRC-8 table walk per row: init 0xFF, ID low then high byte, payload bytes, xor 0xFF."""
+    lo = frame_id & 0xFF
+    hi = (frame_id >> 8) & 0xFF
+    for k in range(data.shape[0]):
+        c = table[0xFF ^ lo]
+        c = table[c ^ hi]
+        for j in range(1, length):
+            c = table[c ^ data[k, j]]
+        out[k] = c ^ 0xFF
 
 
 @dataclass(frozen=True)
@@ -985,6 +996,54 @@ def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
     return status, lost
 
 
+@numba.njit(cache=True, nogil=True)
+def _select_rows(arbitration_id: npt.NDArray[np.uint32], is_extended: npt.NDArray[np.bool_],
+                 is_error: npt.NDArray[np.bool_], frame_id: int, extended: bool,
+                 mine: npt.NDArray[np.bool_]) -> npt.NDArray[np.intp]:  # pragma: no cover
+    """Rows with this ID and format that are not error frames (marked in ``mine``)."""
+    n = arbitration_id.shape[0]
+    out = np.empty(n, np.intp)
+    c = 0
+    for k in range(n):
+        if arbitration_id[k] == frame_id and is_extended[k] == extended and not is_error[k]:
+            out[c] = k
+            c += 1
+            mine[k] = True
+    return out[:c].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather_check(data: U8, rows: npt.NDArray[np.intp], length: int,
+                  is_remote: npt.NDArray[np.bool_], dlc: U8, check_crc: bool, frame_id: int,
+                  table: U8, out: U8, flags: U8) -> int:  # pragma: no cover
+    """Copy ``data[rows, :length]`` into ``out``; flag the first check each row fails:
+    1 remote, 2 length (DLC), 4 CRC (only when ``check_crc``). Returns the flagged rows.
+    """
+    lo = frame_id & 0xFF
+    hi = (frame_id >> 8) & 0xFF
+    bad = 0
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        for j in range(length):
+            out[i, j] = data[r, j]
+        f = 0
+        if is_remote[r]:
+            f = 1
+        elif dlc[r] != length:
+            f = 2
+        elif check_crc:
+            c = table[0xFF ^ lo]
+            c = table[c ^ hi]
+            for j in range(1, length):
+                c = table[c ^ data[r, j]]
+            if (c ^ 0xFF) != data[r, 0]:
+                f = 4
+        flags[i] = f
+        if f:
+            bad += 1
+    return bad
+
+
 class Decoder:
     """Stateful strict decoder of the mapped feedback messages (see :meth:`Protocol.decoder`).
 
@@ -1021,9 +1080,9 @@ class Decoder:
         out: dict[str, MessageFrames] = {}
         lost_block: dict[str, int] = {}
         for m in p.messages:
-            sel = (block.arbitration_id == m.frame_id) & (block.is_extended == m.is_extended) & ~err
-            mine |= sel
-            rows = np.flatnonzero(sel)
+            # rows of this message: its ID and format, not an error frame (mine |= them)
+            rows = _select_rows(block.arbitration_id, block.is_extended, err, int(m.frame_id),
+                                bool(m.is_extended), mine)
             frames, lost = self._decode_message(m, block, rows, base, rej)
             out[m.name] = frames
             lost_block[m.name] = lost
@@ -1049,32 +1108,61 @@ class Decoder:
                 want = self.rejected.wants_example(name, key) and rej.wants_example(name, key)
                 rej.add(name, m.name, int(mask.sum()), example(k) if want else None, key)
 
-        reject(block.is_remote[rows], "remote",
-               lambda k: f"{m.name}: remote frame (t={t[k]:.6f} s)")
-        dlc = block.dlc[rows]
-        reject(dlc != m.length, "length",
-               lambda k: f"{m.name}: {dlc[k]} bytes, expected {m.length} (t={t[k]:.6f} s)")
-        ok = np.flatnonzero(reason == 0)
-        data = block.data[rows[ok], :m.length] if len(ok) else np.zeros((0, m.length), np.uint8)
-        if m.crc is not None and p.check_crc and len(ok):
-            crc = _crc_vector(m.frame_id, data, m.length)
-            bad = np.zeros(len(rows), np.bool_)
-            bad[ok] = crc != data[:, 0]
+        n_rows = len(rows)
+        crc_on = m.crc is not None and p.check_crc
+        if block.data.shape[1] >= m.length:
+            # one compiled pass: payload bytes of every row, and the first of remote /
+            # length / CRC that fails (flags 1, 2, 4; 0: passed)
+            gathered = np.empty((n_rows, m.length), np.uint8)
+            flags = np.empty(n_rows, np.uint8)
+            n_bad = _gather_check(block.data, rows, m.length, block.is_remote, block.dlc,
+                                  crc_on, int(m.frame_id), CRC8_TABLE, gathered, flags)
+        else:  # payload narrower than the message: every row fails the length check
+            gathered, flags, n_bad = None, None, n_rows
+        # payload bytes of the rows still accepted; the rows only ever shrink, so the
+        # same count means the same rows and the gathered bytes can be reused
+        cache: list[Any] = [np.arange(n_rows), gathered] if n_bad == 0 else [None, None]
 
-            def crc_example(k: int) -> str:
-                good = int(_crc_vector(m.frame_id, block.data[rows[k:k + 1], :m.length],
-                                       m.length)[0])
-                return (f"{m.name}: CRC 0x{block.data[rows[k], 0]:02X}, computed 0x{good:02X} "
-                        f"(t={t[k]:.6f} s)")
+        def accepted() -> tuple[npt.NDArray[np.intp], U8]:
+            ok = np.flatnonzero(reason == 0)
+            if cache[0] is None or len(cache[0]) != len(ok):
+                cache[0] = ok
+                if not len(ok):
+                    cache[1] = np.zeros((0, m.length), np.uint8)
+                elif gathered is not None:
+                    cache[1] = gathered[ok]
+                else:
+                    cache[1] = block.data[rows[ok], :m.length]
+            return cache[0], cache[1]
 
-            reject(bad, "crc", crc_example)
+        if n_bad:
+            reject(block.is_remote[rows], "remote",
+                   lambda k: f"{m.name}: remote frame (t={t[k]:.6f} s)")
+            dlc = block.dlc[rows]
+            reject(dlc != m.length, "length",
+                   lambda k: f"{m.name}: {dlc[k]} bytes, expected {m.length} (t={t[k]:.6f} s)")
+            ok, data = accepted()
+            if crc_on and len(ok):
+                if flags is not None:
+                    bad = flags == 4
+                else:
+                    bad = np.zeros(len(rows), np.bool_)
+                    bad[ok] = _crc_vector(m.frame_id, data, m.length) != data[:, 0]
+
+                def crc_example(k: int) -> str:
+                    good = int(_crc_vector(m.frame_id, block.data[rows[k:k + 1], :m.length],
+                                           m.length)[0])
+                    return (f"{m.name}: CRC 0x{block.data[rows[k], 0]:02X}, computed "
+                            f"0x{good:02X} (t={t[k]:.6f} s)")
+
+                reject(bad, "crc", crc_example)
         lost_total = 0
         counter_all = np.zeros(len(rows), np.int64)
         modulo = m.counter_modulo
         if m.counter is not None:
-            ok = np.flatnonzero(reason == 0)
+            ok, data = accepted()
             if len(ok):
-                counter_all[ok] = m.counter.raw(block.data[rows[ok], :m.length])
+                counter_all[ok] = m.counter.raw(data)
             if p.check_counter and len(ok):
                 state, state_t = self._state[m.name]
                 before = int(state[0])
@@ -1088,45 +1176,58 @@ class Decoder:
                     return int(counter_all[ok[j[-1]]]) if len(j) else before
 
                 for code, name in ((_STATUS_REPEATED, "repeated"), (_STATUS_STALE, "stale")):
+                    if not status.any():
+                        break
                     bad = np.zeros(len(rows), np.bool_)
                     bad[ok] = status == code
                     reject(bad, name, lambda k, name=name: (
                         f"{m.name}: counter {counter_all[k]} {name} after counter "
                         f"{previous(k)} (t={t[k]:.6f} s)"))
         # values of the mapped roles
-        ok = np.flatnonzero(reason == 0)
-        data = block.data[rows[ok], :m.length] if len(ok) else np.zeros((0, m.length), np.uint8)
+        ok, data = accepted()
         phys: dict[str, F64] = {}
         for r in m.roles:
             phys[r.role] = r.codec.physical(data)
         for r in m.roles:
             v = phys[r.role]
             if r.codec.is_float:
+                nan = ~np.isfinite(v)
+                if not nan.any():
+                    continue
                 bad = np.zeros(len(rows), np.bool_)
-                bad[ok] = ~np.isfinite(v)
+                bad[ok] = nan
                 reject(bad, "nan", lambda k, r=r: (
                     f"{r.codec.qualname} = {_phys_at(r.codec, block, rows, k, m.length)} "
                     f"{r.codec.unit} (t={t[k]:.6f} s)"))
         if p.strict_range:
             for r in m.roles:
+                oor = r.codec.out_of_range(phys[r.role])
+                if not oor.any():
+                    continue
                 bad = np.zeros(len(rows), np.bool_)
-                bad[ok] = r.codec.out_of_range(phys[r.role])
+                bad[ok] = oor
                 c = r.codec
                 reject(bad, "range", lambda k, c=c: (
                     f"{c.qualname} = {_fmt(_phys_at(c, block, rows, k, m.length))} {c.unit} "
                     f"outside [{_fmt(c.minimum) if c.minimum is not None else '-inf'}, "
                     f"{_fmt(c.maximum) if c.maximum is not None else 'inf'}] (t={t[k]:.6f} s)"))
         keep_local = reason[ok] == 0
-        keep = ok[keep_local]
-        values = {r.role: phys[r.role][keep_local] * r.si_scale for r in m.roles}
-        if modulo is not None:
-            counter = counter_all[keep]
+        if len(ok) == n_rows and keep_local.all():  # every row accepted
+            keep = ok
+            values = {r.role: phys[r.role] * r.si_scale for r in m.roles}
+            t_keep = t
+            counter = counter_all if modulo is not None else None
         else:
+            keep = ok[keep_local]
+            values = {r.role: phys[r.role][keep_local] * r.si_scale for r in m.roles}
+            t_keep = t[keep]
+            counter = counter_all[keep] if modulo is not None else None
+        if counter is None:
             s0 = self._seq[m.name]
             counter = np.arange(s0, s0 + len(keep), dtype=np.int64)
             self._seq[m.name] = s0 + len(keep)
-        frames = MessageFrames(m.name, t[keep], base + rows[keep].astype(np.int64), counter,
-                               values, modulo)
+        index = base + (rows if len(keep) == n_rows else rows[keep]).astype(np.int64)
+        frames = MessageFrames(m.name, t_keep, index, counter, values, modulo)
         return frames, lost_total
 
 

@@ -96,15 +96,63 @@ class FrameProcessor:
 
     Used by the offline replay (blocks of a log) and by the daemon (blocks of the frames
     that arrived).
+
+    Parameters
+    ----------
+    protocol, model, settings : what to decode and estimate
+    period : control period [s] (default: the DBC's cycle time)
+    calibrate : ``ranges -> Model``; when given, the first ``calibrate_s`` seconds of
+        samples are held back, their ranges measured (:mod:`canrls.ranges`), the model
+        rebuilt with them, and estimation starts on those samples. This is how the
+        daemon normalises from the data when the configuration gives no ranges; an
+        offline replay measures the whole log instead (:func:`scan_log_ranges`).
+    calibrate_s : seconds of samples the calibration uses (default 2)
     """
 
     def __init__(self, protocol: Protocol, model: Model,
-                 settings: EstimatorSettings | None = None, period: float | None = None) -> None:
+                 settings: EstimatorSettings | None = None, period: float | None = None,
+                 calibrate: Callable[[dict[str, list[float]]], Model] | None = None,
+                 calibrate_s: float = 2.0) -> None:
         self.protocol = protocol
         self.decoder = protocol.decoder()
         self.pairer = Pairer(protocol, period=period)
         self.pipeline = Pipeline(model, self.pairer.period, settings)
         self.frames = 0
+        self._calibrate = calibrate
+        self._held: list[Signals] = []
+        self._held_n = 0
+        self._calibrate_n = max(1, int(round(calibrate_s / self.pairer.period)))
+
+    @property
+    def calibrating(self) -> bool:
+        """True while samples are held back for the range calibration."""
+        return self._calibrate is not None
+
+    def with_model(self, model: Model) -> Pipeline:
+        """Switch to a new pipeline for ``model`` (starting from the prior); returns it."""
+        self.pipeline = self.pipeline.with_model(model)
+        return self.pipeline
+
+    def _feed(self, samples: Signals, record: bool) -> PipelineBlock:
+        if self._calibrate is None:
+            return self.pipeline.process(samples, record)
+        if len(samples):
+            self._held.append(samples)
+            self._held_n += len(samples)
+        if self._held_n < self._calibrate_n:
+            return self.pipeline.process(samples.slice(0, 0), record)
+        return self._finish_calibration(record)
+
+    def _finish_calibration(self, record: bool) -> PipelineBlock:
+        held = Signals.concat(self._held)
+        model = self.model
+        sc = RangeScanner(self.pipeline.dt, model.cutoff_hz, model.zeta)
+        sc.update(held)
+        calibrate, self._calibrate, self._held = self._calibrate, None, []
+        assert calibrate is not None
+        self.pipeline = Pipeline(calibrate(sc.ranges()), self.pipeline.dt,
+                                 self.pipeline.settings)
+        return self.pipeline.process(held, record)
 
     @property
     def model(self) -> Model:
@@ -116,11 +164,15 @@ class FrameProcessor:
         return self.pairer.push(self.decoder.decode(block))
 
     def process(self, block: FrameBlock, record: bool = False) -> PipelineBlock:
-        return self.pipeline.process(self.samples(block), record)
+        return self._feed(self.samples(block), record)
 
     def flush(self, record: bool = False) -> PipelineBlock:
-        """End of stream: complete periods still waiting for a partner go through."""
-        return self.pipeline.process(self.pairer.flush(), record)
+        """End of stream: complete periods still waiting for a partner go through
+        (and a calibration still collecting uses what it has)."""
+        out = self._feed(self.pairer.flush(), record)
+        if self._calibrate is not None and self._held:
+            out = self._finish_calibration(record)
+        return out
 
     @property
     def rejected(self) -> RejectCounts:

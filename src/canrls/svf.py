@@ -222,6 +222,40 @@ def _svf_kernel(u, Ad, G0, G1, x1, x2, up, primed, f, sf):  # pragma: no cover -
             sf[k, j] = x2[j]
 
 
+@numba.njit(cache=True)
+def _svf_scaled_kernel(u, Ad, G0, G1, x1, x2, up, primed, deriv, scale, y,
+                       phi):  # pragma: no cover - compiled
+    """:func:`_svf_kernel` writing one output per column: ``x2`` where ``deriv`` else
+    ``x1``, times ``scale``; column 0 into ``y``, the others into ``phi``.
+    """
+    n, m = u.shape
+    a11 = Ad[0, 0]
+    a12 = Ad[0, 1]
+    a21 = Ad[1, 0]
+    a22 = Ad[1, 1]
+    for k in range(n):
+        if primed[0] == 0:
+            # start at rest on the first sample: x = [u0, 0]
+            for j in range(m):
+                x1[j] = u[k, j]
+                x2[j] = 0.0
+                up[j] = u[k, j]
+            primed[0] = 1
+        else:
+            for j in range(m):
+                uk = u[k, j]
+                # x[k] = Ad x[k-1] + G0 u[k-1] + G1 u[k]
+                n1 = a11 * x1[j] + a12 * x2[j] + G0[j, 0] * up[j] + G1[j, 0] * uk
+                n2 = a21 * x1[j] + a22 * x2[j] + G0[j, 1] * up[j] + G1[j, 1] * uk
+                x1[j] = n1
+                x2[j] = n2
+                up[j] = uk
+        v = (x2[0] if deriv[0] else x1[0]) * scale[0]
+        y[k] = v
+        for j in range(1, m):
+            phi[k, j - 1] = (x2[j] if deriv[j] else x1[j]) * scale[j]
+
+
 class SVF:
     r"""Second-order state-variable filter applied column-wise with carried state.
 
@@ -325,7 +359,17 @@ class SVF:
         if a.ndim != 2:
             raise ValueError(f"SVF.process: expected a 1-D or 2-D array, got shape {a.shape}")
         a = np.ascontiguousarray(a)
-        m = a.shape[1]
+        self._prepare(a.shape[1])
+        f = np.empty_like(a)
+        sf = np.empty_like(a)
+        _svf_kernel(a, self.Ad, self._G0, self._G1, self._x1, self._x2, self._up,
+                    self._primed, f, sf)
+        if one_d:
+            return f[:, 0], sf[:, 0]
+        return f, sf
+
+    def _prepare(self, m: int) -> None:
+        """Coefficients and state for ``m`` columns (created on the first call)."""
         if self._G0 is None or self._G1 is None:
             holds = [self.hold] * m if isinstance(self.hold, str) else list(self.hold)
             if len(holds) != m:
@@ -343,10 +387,15 @@ class SVF:
         elif self._x1.shape[0] != m:
             raise ValueError(
                 f"SVF.process: got {m} columns, the filter state has {self._x1.shape[0]}")
-        f = np.empty_like(a)
-        sf = np.empty_like(a)
-        _svf_kernel(a, self.Ad, self._G0, self._G1, self._x1, self._x2, self._up,
-                    self._primed, f, sf)
-        if one_d:
-            return f[:, 0], sf[:, 0]
-        return f, sf
+
+    def _process_scaled(self, u: F64, derivative: npt.NDArray[np.bool_], scale: F64,
+                        y: F64, phi: F64) -> None:
+        """:meth:`process` for the regressors, fused: column ``j`` of ``u`` (N, m) gives
+        ``sF[u_j]`` where ``derivative[j]`` else ``F[u_j]``, times ``scale[j]``; column 0
+        goes to ``y`` (N,), the others to ``phi`` (N, m-1). The same arithmetic and state
+        as :meth:`process` (``scale`` holds exact powers of two).
+        """
+        a = np.ascontiguousarray(u, dtype=np.float64)
+        self._prepare(a.shape[1])
+        _svf_scaled_kernel(a, self.Ad, self._G0, self._G1, self._x1, self._x2, self._up,
+                           self._primed, derivative, scale, y, phi)

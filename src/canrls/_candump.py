@@ -1,0 +1,234 @@
+"""Compiled candump kernels: bytes -> frame arrays, and frame arrays -> bytes.
+
+Private to :mod:`canrls.logs`. Both kernels handle the common layout only and leave
+everything else to the per-line Python path there, which follows python-can:
+
+parse
+    ``(SECONDS.FRACTION) CHANNEL ID#DATA`` with a 3- or 8-digit hex ID and 0..8 data
+    bytes, single spaces, an optional ``\\r`` before the ``\\n``. The timestamp is
+    exact: the digits form an integer ``N < 2**53`` and ``N / 10**d`` is one correctly
+    rounded division of two exact doubles, which is what ``float("SECONDS.FRACTION")``
+    returns. Any other non-blank line (remote ``R``, CAN FD ``##``, error-flag bits in
+    a 3-digit ID, odd spacing, comments, junk) is handed back as a "slow" line, with
+    the row it belongs before, so that the caller keeps the file's order.
+format
+    one line per frame exactly as ``f"({t:f}) {channel} {id}#{data}\\n"`` writes it;
+    the timestamp arrives already split into exact integer seconds and microseconds.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["parse", "format_lines", "CAN_ERR_FLAG", "EFF_MASK"]
+
+#: Linux SocketCAN error-frame flag in the 32-bit CAN ID (candump writes it in the ID).
+CAN_ERR_FLAG = 0x20000000
+EFF_MASK = 0x1FFFFFFF
+
+# exact powers of ten as doubles (10**22 is the largest exactly representable one)
+_POW10 = np.array([10.0 ** k for k in range(23)], np.float64)
+_HEXCHARS = np.frombuffer(b"0123456789ABCDEF", np.uint8).copy()
+# value of a hex digit, -1 for any other byte
+_HEXVAL = np.full(256, -1, np.int64)
+for _k, _c in enumerate(b"0123456789ABCDEF"):
+    _HEXVAL[_c] = _k
+for _k, _c in enumerate(b"abcdef"):
+    _HEXVAL[_c] = 10 + _k
+#: most digits of a timestamp on the compiled path: 10**15 < 2**53, so the digits
+#: form an exact double
+_MAX_DIGITS = 15
+
+
+@numba.njit(cache=True, nogil=True)
+def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,
+          t: npt.NDArray[np.float64], aid: npt.NDArray[np.uint32],
+          ext: npt.NDArray[np.bool_], err: npt.NDArray[np.bool_],
+          dlc: npt.NDArray[np.uint8], data: npt.NDArray[np.uint8],
+          slow: npt.NDArray[np.int64]) -> tuple[int, int, int, int]:  # pragma: no cover
+    """Parse whole lines of ``buf[:stop]`` into the rows of the output arrays.
+
+    Stops at the last complete line (``final``: the end of ``stop`` ends a line too)
+    or when rows plus slow lines reach the capacity ``len(t)``. ``slow[k]`` =
+    [row it precedes, start, end, line number] of the k-th slow line (end excludes
+    the newline and a carriage return before it). ``data`` must be 8 bytes wide.
+
+    Returns (bytes consumed, rows written, slow lines, lines consumed).
+    """
+    cap = t.shape[0]
+    hexv = _HEXVAL
+    pow10 = _POW10
+    p = 0
+    rows = 0
+    nslow = 0
+    lines = 0
+    while p < stop and rows + nslow < cap:
+        e = p
+        while e < stop and buf[e] != 10:
+            e += 1
+        if e == stop and not final:
+            break
+        nxt = e + 1
+        if e > p and buf[e - 1] == 13:  # "\r\n"
+            e -= 1
+        ok = False
+        # "(" digits [. digits] ")"
+        if e - p >= 8 and buf[p] == 40:
+            q = p + 1
+            num = 0
+            nd = 0
+            frac = 0
+            dot = False
+            while q < e:
+                c = buf[q]
+                if 48 <= c <= 57:
+                    num = num * 10 + (c - 48)
+                    nd += 1
+                    frac += dot
+                elif c == 46 and not dot:
+                    dot = True
+                else:
+                    break
+                q += 1
+            if 0 < nd <= _MAX_DIGITS and q + 2 < e and buf[q] == 41 and buf[q + 1] == 32:
+                # " " channel (printable, no space) " "
+                q += 2
+                c0 = q
+                while q < e and 33 <= buf[q] <= 126:
+                    q += 1
+                if c0 < q < e and buf[q] == 32:
+                    # 3 or 8 hex digits "#"
+                    q += 1
+                    i0 = q
+                    ident = 0
+                    while q < e:
+                        v = hexv[buf[q]]
+                        if v < 0:
+                            break
+                        ident = ident * 16 + v
+                        q += 1
+                    nid = q - i0
+                    if (nid == 3 or nid == 8) and q < e and buf[q] == 35:
+                        # 0..8 data bytes, two hex digits each, to the end of the line
+                        q += 1
+                        nhex = e - q
+                        if nhex % 2 == 0 and nhex <= 16:
+                            nb = nhex // 2
+                            bad = 0
+                            for j in range(nb):
+                                hi = hexv[buf[q + 2 * j]]
+                                lo = hexv[buf[q + 2 * j + 1]]
+                                bad |= hi | lo
+                                data[rows, j] = (hi * 16 + lo) & 255
+                            if bad >= 0:
+                                for j in range(nb, 8):
+                                    data[rows, j] = 0
+                                # float("int.frac"): (int * 10^d + frac) / 10^d, both
+                                # exact doubles, one correctly rounded division
+                                t[rows] = float(num) / pow10[frac]
+                                is_err = nid == 8 and (ident & CAN_ERR_FLAG) != 0
+                                aid[rows] = ident & EFF_MASK
+                                ext[rows] = nid == 8 and not is_err
+                                err[rows] = is_err
+                                dlc[rows] = nb
+                                ok = True
+        if e > p:
+            if ok:
+                rows += 1
+            else:
+                slow[nslow, 0] = rows
+                slow[nslow, 1] = p
+                slow[nslow, 2] = e
+                slow[nslow, 3] = lines
+                nslow += 1
+        lines += 1
+        p = nxt
+    return min(p, stop), rows, nslow, lines
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _put_uint(out, o, v, width):  # pragma: no cover - compiled
+    """Decimal digits of v >= 0, at least ``width`` of them (zero-padded)."""
+    n = 1
+    x = v // 10
+    while x > 0:
+        n += 1
+        x //= 10
+    if n < width:
+        n = width
+    for k in range(n - 1, -1, -1):
+        out[o + k] = 48 + v % 10
+        v //= 10
+    return o + n
+
+
+@numba.njit(cache=True, nogil=True)
+def format_lines(sec: npt.NDArray[np.int64], usec: npt.NDArray[np.int64],
+                 aid: npt.NDArray[np.uint32], ext: npt.NDArray[np.bool_],
+                 rtr: npt.NDArray[np.bool_], err: npt.NDArray[np.bool_],
+                 dlc: npt.NDArray[np.uint8], data: npt.NDArray[np.uint8],
+                 channel: npt.NDArray[np.uint8],
+                 out: npt.NDArray[np.uint8]) -> int:  # pragma: no cover - compiled
+    """Write ``(sec.usec) channel ID#DATA\\n`` per row into ``out``; return the length.
+
+    ID: ``%08X`` of ``id | CAN_ERR_FLAG`` for error frames, ``%08X`` extended,
+    ``%03X`` standard. DATA: ``R`` remote, ``0`` + hex after a second ``#`` beyond 8
+    bytes (CAN FD), else the hex bytes. ``out`` must hold the longest line per row.
+    """
+    hexc = _HEXCHARS
+    width = data.shape[1]
+    o = 0
+    for k in range(sec.shape[0]):
+        out[o] = 40  # "("
+        o = _put_uint(out, o + 1, sec[k], 1)
+        out[o] = 46  # "."
+        o = _put_uint(out, o + 1, usec[k], 6)
+        out[o] = 41
+        out[o + 1] = 32
+        o += 2
+        for j in range(channel.shape[0]):
+            out[o + j] = channel[j]
+        o += channel.shape[0]
+        out[o] = 32
+        o += 1
+        cid = np.int64(aid[k])
+        w = 3
+        if err[k]:
+            cid = cid | CAN_ERR_FLAG
+            w = 8
+        elif ext[k]:
+            w = 8
+        n = 1
+        x = cid >> 4
+        while x > 0:
+            n += 1
+            x >>= 4
+        if n < w:
+            n = w
+        for j in range(n - 1, -1, -1):
+            out[o + j] = hexc[cid & 15]
+            cid >>= 4
+        o += n
+        out[o] = 35  # "#"
+        o += 1
+        d = np.int64(dlc[k])
+        if rtr[k]:
+            out[o] = 82  # "R"
+            o += 1
+        else:
+            if d > 8:
+                out[o] = 35
+                out[o + 1] = 48
+                o += 2
+            if d > width:
+                d = width
+            for j in range(d):
+                b = data[k, j]
+                out[o] = hexc[b >> 4]
+                out[o + 1] = hexc[b & 15]
+                o += 2
+        out[o] = 10
+        o += 1
+    return o

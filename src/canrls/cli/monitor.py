@@ -1,0 +1,147 @@
+"""``canrls monitor``: a live view of a running daemon, from any python-can interface.
+
+    canrls monitor -i socketcan -c can0 --config canrls.toml
+    canrls monitor -i remote -c ws://127.0.0.1:54701/ --once --json
+    canrls monitor -i socketcan -c can0 --command "add cogging:6"
+
+On a terminal the view is redrawn in place every ``--interval`` seconds; otherwise
+(a pipe, a log, journald) a plain-text block is printed each interval. ``--once``
+waits for one complete publication (every parameter and a status), prints it and
+exits (status 1 if none came within ``--timeout``); ``--duration S`` stops after S
+seconds. ``--command`` sends an ``RlsCommand`` (``reset``, ``freeze``, ``resume``,
+``add EFFECT``, ``remove EFFECT``, ``lambda L``) and prints the acknowledgement.
+Units come from the effect library with the axis, ``kt`` and user terms of
+``--config``/``--kt`` (the daemon's model).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from typing import Any
+
+from canrls.cli._common import add_bus_options, add_model_options, print_json, setup
+from canrls.errors import ConfigError
+
+__all__ = ["add_subparser", "run"]
+
+
+def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "monitor", help="live view of the daemon's parameter and status frames",
+        description="Show every parameter the daemon publishes (fixed, ±σ, float, unit), the "
+                    "residual RMS and its trend, frame rates, counters and health flags.")
+    add_model_options(p)
+    add_bus_options(p)
+    g = p.add_argument_group("view")
+    g.add_argument("--once", action="store_true",
+                   help="print one complete view and exit")
+    g.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    g.add_argument("--interval", type=float, default=1.0, metavar="S",
+                   help="seconds between refreshes (default 1)")
+    g.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                   help="--once/--command: give up after S seconds (default 10)")
+    g.add_argument("--plain", action="store_true",
+                   help="plain text even on a terminal (no redraw, no colour)")
+    g.add_argument("--command", action="append", default=[], metavar="CMD",
+                   help="send a command first: reset, freeze, resume, 'add EFFECT', "
+                        "'remove EFFECT', 'lambda L' (repeatable)")
+    p.set_defaults(func=run)
+    return p
+
+
+def _positive(name: str, v: float | None) -> None:
+    if v is not None and not (math.isfinite(v) and v > 0):
+        raise ConfigError(f"{name}: {v!r} must be a positive number of seconds")
+
+
+def run(args: argparse.Namespace) -> int:
+    import can
+
+    from canrls.daemon import bus_config, open_bus
+    from canrls.frames import encode_command
+    from canrls.monitor import LibraryUnits, Monitor, parse_command_text
+
+    for name in ("duration", "interval", "timeout"):
+        _positive(f"--{name}", getattr(args, name))
+    commands = [parse_command_text(c) for c in args.command]
+    cfg = setup(args)
+    try:
+        protocol = cfg.protocol()
+        model = cfg.model_for(protocol)
+        units = LibraryUnits.for_model(model)
+        feedback = [m.frame_id for m in protocol.messages]
+        user_names = list(model.terms)
+    except ConfigError:
+        if cfg.model or cfg.signals or cfg.can.get("dbc"):
+            raise
+        units, feedback, user_names = LibraryUnits(), [0x101, 0x102], []
+    conf = bus_config(cfg, args)
+    tty = sys.stdout.isatty() and not args.plain and not args.json
+    mon = Monitor(units=units, user_names=user_names, feedback_ids=feedback,
+                  source=f"{conf.get('interface')}:{conf.get('channel')}")
+    bus = open_bus(conf)
+    status = 0
+    try:
+        with can.Notifier(bus, [mon], timeout=0.1):
+            for text, (code, eid, order, lam) in zip(args.command, commands, strict=True):
+                before = len(mon.acks)
+                bus.send(encode_command(code, eid, order, lam), timeout=1.0)
+                ack = mon.wait_ack(before, args.timeout)
+                if ack is None:
+                    print(f"error: no acknowledgement of {text!r} within "
+                          f"{args.timeout:g} s", file=sys.stderr)
+                    return 1
+                print(f"{code.name.lower()}: {ack.result.name.lower()}")
+                if ack.result:
+                    status = 1
+            if commands and not (args.once or args.duration):
+                return status
+            status = max(status, _watch(args, mon, tty))
+    finally:
+        bus.shutdown()
+    return status
+
+
+def _watch(args: argparse.Namespace, mon: Any, tty: bool) -> int:
+    start = time.monotonic()
+    end = None if args.duration is None else start + args.duration
+    if args.once:
+        deadline = start + args.timeout
+        while time.monotonic() < deadline:
+            view = mon.snapshot()
+            if view.complete:
+                time.sleep(min(0.3, max(0.0, deadline - time.monotonic())))  # rates settle
+                _emit(args, mon.snapshot(), tty=False)
+                return 0
+            if mon.error is not None:
+                break
+            time.sleep(0.05)
+        print(f"error: no complete publication from a canrls daemon within {args.timeout:g} s "
+              f"on {mon.source}" + (f" ({mon.error})" if mon.error else ""), file=sys.stderr)
+        return 1
+    try:
+        while end is None or time.monotonic() < end:
+            nxt = time.monotonic() + args.interval
+            if end is not None:
+                nxt = min(nxt, end)
+            time.sleep(max(0.0, nxt - time.monotonic()))
+            _emit(args, mon.snapshot(), tty)
+            if mon.error is not None:
+                print(f"error: bus failed: {mon.error}", file=sys.stderr)
+                return 1
+    except KeyboardInterrupt:
+        pass
+    return 0
+
+
+def _emit(args: argparse.Namespace, view: Any, tty: bool) -> None:
+    if args.json:
+        print_json(view.to_dict())
+    elif tty:
+        sys.stdout.write("\x1b[H\x1b[2J" + view.format(color=True) + "\n")
+    else:
+        sys.stdout.write(view.format() + "\n\n")
+    sys.stdout.flush()

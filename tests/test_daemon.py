@@ -1,0 +1,529 @@
+"""The daemon in one process on python-can's virtual bus (and the simulated drive)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import can
+import cantools
+import numpy as np
+import pytest
+from can.interfaces.virtual import VirtualBus
+
+from canrls.config import AppConfig
+from canrls.daemon import Daemon, DaemonSettings, bus_config, messages_to_block, open_bus
+from canrls.errors import BusError, ConfigError
+from canrls.frameblock import FrameBlock
+from canrls.frames import (
+    CommandCode,
+    CommandResult,
+    EffectId,
+    FrameDecoder,
+    encode_command,
+)
+from canrls.logs import read_frames
+from canrls.replay import FrameProcessor
+from canrls.sdnotify import SystemdNotifier
+
+ROOT = Path(__file__).resolve().parent.parent
+DBC = ROOT / "dbc" / "canrls.dbc"
+BASE = ["inertia", "viscous", "coulomb"]
+_ids = itertools.count()
+
+
+def _chan(name: str) -> str:
+    return f"test-daemon-{name}-{os.getpid()}-{next(_ids)}"
+
+
+def _setup(effects: list[str] = BASE) -> tuple:
+    cfg = AppConfig()
+    cfg.model = {"effects": list(effects), "kt": 0.1}
+    protocol = cfg.protocol()
+    return protocol, cfg.model_for(protocol), cfg.settings()
+
+
+def _sim(channel: str, effects: str = "inertia,viscous,coulomb", **kw: Any) -> dict[str, Any]:
+    return dict(interface="canrls-sim", channel=channel, effects=effects, seed=3,
+                excitation="slow", realtime=False, start_time=0.0, **kw)
+
+
+def _collect(reader: can.BufferedReader) -> list[can.Message]:
+    out = []
+    while (m := reader.get_message(0.0)) is not None:
+        out.append(m)
+    return out
+
+
+class _Tool:
+    """A virtual bus on the daemon's channel that keeps the daemon's frames."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel, ignore_config=True)
+        self.bus.set_filters([{"can_id": 0x300, "can_mask": 0x700}])
+        self.reader = can.BufferedReader()
+        self.notifier = can.Notifier(self.bus, [self.reader], timeout=0.05)
+        self.frames: list[can.Message] = []
+
+    def take(self) -> list[can.Message]:
+        new = _collect(self.reader)
+        self.frames += new
+        return new
+
+    def command(self, msg: can.Message, timeout: float = 5.0) -> CommandResult | None:
+        self.take()
+        self.bus.send(msg)
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            for m in self.take():
+                if m.arbitration_id == 0x321:
+                    return CommandResult(m.data[1])
+            time.sleep(0.01)
+        return None
+
+    def close(self) -> None:
+        self.notifier.stop()
+        self.bus.shutdown()
+
+
+# ------------------------------------------------------------------ end to end
+def test_end_to_end_frames_decode_in_cantools(tmp_path: Path) -> None:
+    protocol, model, settings = _setup()
+    ch = _chan("e2e")
+    tool = _Tool(ch)
+    d = Daemon(protocol, model, settings,
+               DaemonSettings(publish_interval=0.02, info_interval=0.2), bus=_sim(ch),
+               backpressure=True)
+    try:
+        d.start()
+        assert d.wait_for(lambda x: x.pipeline.samples > 3000, 60)
+        time.sleep(0.3)
+        tool.command(encode_command(CommandCode.FREEZE))
+        time.sleep(0.1)
+    finally:
+        d.stop()
+        tool.take()
+        tool.close()
+    frames = tool.frames
+    ids = {m.arbitration_id for m in frames}
+    assert {0x300, 0x301, 0x302, 0x303, 0x310, 0x311, 0x312, 0x321} <= ids
+    db = cantools.database.load_file(str(DBC))
+    for m in frames:  # strict: raises on anything outside the DBC
+        db.decode_message(m.arbitration_id, bytes(m.data), decode_choices=False)
+    dec = FrameDecoder(units={p.name: p.unit for p in model.parameters})
+    dec.feed_all(frames)
+    names = [p.name for p in dec.table()]
+    assert names == [p.name for p in model.parameters] and dec.count == 3
+    final = d.parameter_reports()
+    for got, want in zip(dec.table(), final, strict=True):
+        assert got.unit == want.unit
+        assert got.float_value == pytest.approx(want.float_value, rel=1e-6)
+    assert dec.status is not None and dec.status.frozen
+    assert dec.status.active_effects == model.active_effects
+    assert dec.status.update_count > 0 and math.isfinite(dec.status.residual_rms)
+
+
+def test_replayed_log_gives_bit_identical_parameters(tmp_path: Path) -> None:
+    protocol, model, settings = _setup()
+    ch = _chan("replay")
+    log = tmp_path / "seen.log"
+    d = Daemon(protocol, model, settings, DaemonSettings(record=log, block_interval=0.002),
+               bus=_sim(ch, faults="drop=0.01,dup=0.005"), backpressure=True)
+    try:
+        d.start()
+        assert d.wait_for(lambda x: x.pipeline.samples > 6000, 60)
+    finally:
+        d.stop()
+    live = d.estimates()
+    assert d.stats().blocks > 3
+    for chunk in (997, 65536):
+        proc = FrameProcessor(protocol, model, settings)
+        for block in read_frames(log, chunk):
+            proc.process(block)
+        assert proc.frames == d.stats().frames
+        off = proc.pipeline.estimates()
+        for a, b in zip(live.parameters, off.parameters, strict=True):
+            assert (a.name, a.value, a.sigma, a.fixed) == (b.name, b.value, b.sigma, b.fixed)
+        assert off.residual_rms == live.residual_rms
+        assert proc.rejected.total == d.processor.rejected.total
+
+
+# ------------------------------------------------------------------ commands
+def _cmd(code: int, effect: int = 0, order: int = 0, lam: float = 0.0) -> can.Message:
+    return encode_command(code, effect, order, lam)
+
+
+def _raw(data: bytes) -> can.Message:
+    return can.Message(arbitration_id=0x320, is_extended_id=False, data=data)
+
+
+def test_commands_good_and_bad() -> None:
+    protocol, model, settings = _setup()
+    ch = _chan("cmd")
+    tool = _Tool(ch)
+    d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=1.0),
+               bus={"interface": "virtual", "channel": ch})
+    R = CommandResult
+    try:
+        d.start()
+
+        def state() -> tuple:
+            e = d.pipeline.estimators[0]
+            return d.model.effect_names, d.pipeline.frozen, e.rls.lam, e.frls.state()["lam"]
+
+        bad = [
+            (_raw(b"\x01\x00\x00"), R.MALFORMED),
+            (_raw(b""), R.MALFORMED),
+            (_raw(bytes([9, 0, 0, 0, 0, 0, 0, 0])), R.UNKNOWN_COMMAND),
+            (_cmd(CommandCode.ADD_EFFECT, 12), R.UNKNOWN_EFFECT),
+            (_cmd(CommandCode.ADD_EFFECT, EffectId.COGGING, 0), R.BAD_VALUE),
+            (_cmd(CommandCode.ADD_EFFECT, EffectId.OFFSET, 3), R.BAD_VALUE),
+            (_raw(bytes([6, 0, 0, 0]) + np.float32(1.5).tobytes()), R.BAD_VALUE),
+            (_cmd(CommandCode.SET_LAMBDA, lam=0.25), R.BAD_VALUE),
+            (_cmd(CommandCode.ADD_EFFECT, EffectId.USER, 1), R.UNKNOWN_EFFECT),
+            (_cmd(CommandCode.ADD_EFFECT, EffectId.INERTIA), R.NOT_APPLICABLE),
+            (_cmd(CommandCode.REMOVE_EFFECT, EffectId.UNBALANCE), R.NOT_APPLICABLE),
+            (_cmd(CommandCode.RESUME), R.NOT_APPLICABLE),
+        ]
+        before = state()
+        for msg, want in bad:
+            assert tool.command(msg) is want, (msg, want)
+            assert state() == before  # a rejected command changes nothing
+        assert d.stats().commands_rejected == len(bad)
+
+        assert tool.command(_cmd(CommandCode.FREEZE)) is R.OK and d.pipeline.frozen
+        assert tool.command(_cmd(CommandCode.FREEZE)) is R.NOT_APPLICABLE
+        assert tool.command(_cmd(CommandCode.RESUME)) is R.OK and not d.pipeline.frozen
+        assert tool.command(_cmd(CommandCode.SET_LAMBDA, lam=0.999)) is R.OK
+        assert d.pipeline.estimators[0].rls.lam == pytest.approx(0.999)
+        assert tool.command(_cmd(CommandCode.ADD_EFFECT, EffectId.COGGING, 6)) is R.OK
+        assert d.model.effect_names == (*BASE, "cogging:6")
+        assert tool.command(_cmd(CommandCode.REMOVE_EFFECT, EffectId.VISCOUS)) is R.OK
+        assert d.model.effect_names == ("inertia", "coulomb", "cogging:6")
+        assert tool.command(_cmd(CommandCode.RESET)) is R.OK
+        # the parameter info follows the new model at once
+        time.sleep(0.1)
+        tool.take()
+        dec = FrameDecoder()
+        dec.feed_all(tool.frames)
+        assert dec.count == 4
+    finally:
+        d.stop()
+        tool.close()
+
+
+def test_commands_can_be_disabled() -> None:
+    protocol, model, settings = _setup()
+    ch = _chan("disabled")
+    tool = _Tool(ch)
+    d = Daemon(protocol, model, settings, DaemonSettings(commands=False, publish_interval=1.0),
+               bus={"interface": "virtual", "channel": ch})
+    try:
+        d.start()
+        for msg in (_cmd(CommandCode.RESET), _cmd(CommandCode.ADD_EFFECT, EffectId.OFFSET),
+                    _cmd(CommandCode.FREEZE)):
+            assert tool.command(msg) is CommandResult.DISABLED
+        assert tool.command(_raw(b"\x01")) is CommandResult.MALFORMED
+        assert d.model.effect_names == tuple(BASE) and not d.pipeline.frozen
+    finally:
+        d.stop()
+        tool.close()
+
+
+def _mean(xs: list[float]) -> float:
+    xs = [x for x in xs if math.isfinite(x)]
+    return sum(xs) / len(xs)
+
+
+def test_adding_the_missing_effect_makes_the_status_rms_fall() -> None:
+    protocol, model, settings = _setup()
+    ch = _chan("rms")
+    tool = _Tool(ch)
+    d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=0.01),
+               bus=_sim(ch, effects="inertia,viscous,coulomb,unbalance"), backpressure=True)
+    rms: list[tuple[int, float]] = []  # (frames processed, RlsStatus.ResidualRms)
+
+    def sample(until: float) -> None:
+        end = time.monotonic() + 90
+        while d.stats().frames < until * 2000 and time.monotonic() < end:
+            for m in tool.take():
+                if m.arbitration_id == 0x310:
+                    rms.append((d.stats().frames, float(np.frombuffer(m.data[:4], "<f4")[0])))
+            time.sleep(0.005)
+
+    try:
+        d.start()
+        sample(12.0)
+        assert tool.command(_cmd(CommandCode.ADD_EFFECT, EffectId.UNBALANCE)) is CommandResult.OK
+        fix = d.stats().frames
+        sample(24.0)
+    finally:
+        d.stop()
+        tool.close()
+    before = _mean([r for n, r in rms if 6 * 2000 <= n <= fix])
+    after = _mean([r for n, r in rms if n >= fix + 6 * 2000])
+    assert after < 0.5 * before, (before, after)
+
+
+# ------------------------------------------------------------------ bus faults
+class _FlakyBus(VirtualBus):
+    """A virtual bus whose send and recv can be made to fail."""
+
+    send_fails = False
+    recv_fails = False
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if type(self).send_fails:
+            raise can.CanOperationError("transmit buffer full (test)")
+        super().send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if type(self).recv_fails:
+            raise can.CanOperationError("network is down (test)")
+        return super()._recv_internal(timeout)
+
+
+def test_error_frames_pause_sending_and_recover() -> None:
+    protocol, model, settings = _setup()
+    ch = _chan("errframes")
+    tool = _Tool(ch)
+    tool.bus.set_filters(None)
+    d = Daemon(protocol, model, settings,
+               DaemonSettings(publish_interval=0.01, fault_hold_s=0.5),
+               bus={"interface": "virtual", "channel": ch})
+    try:
+        d.start()
+        time.sleep(0.2)
+        assert any(m.arbitration_id == 0x310 for m in tool.take())
+        tool.bus.send(can.Message(is_error_frame=True, arbitration_id=0x40, data=bytes(8)))
+        time.sleep(0.1)  # frames in flight
+        tool.take()
+        time.sleep(0.25)
+        assert not [m for m in tool.take() if m.arbitration_id == 0x310]  # paused
+        assert d.status().bus_fault and d.stats().tx_paused > 0
+        time.sleep(0.5)
+        resumed = [m for m in tool.take() if m.arbitration_id == 0x311]
+        assert resumed and not resumed[-1].data[0] & 0x40  # BusFault cleared on the wire
+        # bus-off ended at once by the controller's restart notification
+        tool.bus.send(can.Message(is_error_frame=True, arbitration_id=0x40, data=bytes(8)))
+        assert d.wait_for(lambda x: x.status().bus_fault, 2)
+        tool.bus.send(can.Message(is_error_frame=True, arbitration_id=0x100, data=bytes(8)))
+        assert d.wait_for(lambda x: not x.status().bus_fault, 0.4)
+        assert d.stats().error_frames == 3
+    finally:
+        d.stop()
+        tool.close()
+
+
+def test_full_transmit_queue_drops_and_counts() -> None:
+    protocol, model, settings = _setup()
+    ch = _chan("txfull")
+
+    class Bus(_FlakyBus):
+        send_fails = True
+
+    d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=0.01),
+               bus_factory=lambda: Bus(channel=ch))
+    feeder = can.Bus(interface="canrls-sim", channel=ch, seed=1, realtime=False,
+                     start_time=0.0, duration=2.0, excitation="slow")
+    try:
+        d.start()
+        while feeder.recv(0) is not None:  # pump the drive's 2 s into the channel
+            pass
+        assert d.wait_for(lambda x: x.stats().frames >= 4000 and x.stats().tx_dropped > 50, 30)
+        assert d.pipeline.samples > 1500  # the estimator was never held up
+        assert d.status().tx_dropped == d.stats().tx_dropped and not d.status().bus_fault
+    finally:
+        d.stop()
+        feeder.shutdown()
+
+
+def test_vanished_interface_is_reopened_with_backoff() -> None:
+    protocol, model, settings = _setup()
+    ch = _chan("vanish")
+    attempts: list[float] = []
+    fail_opens = [0]
+
+    class Bus(_FlakyBus):
+        pass
+
+    def factory() -> can.BusABC:
+        attempts.append(time.monotonic())
+        if fail_opens[0] > 0:
+            fail_opens[0] -= 1
+            raise BusError("cannot open CAN interface 'test' channel 'x': gone")
+        return Bus(channel=ch)
+
+    tool = _Tool(ch)
+    d = Daemon(protocol, model, settings,
+               DaemonSettings(publish_interval=0.02, reopen_min_s=0.05, reopen_max_s=0.2),
+               bus_factory=factory)
+    try:
+        d.start()
+        fail_opens[0] = 3
+        Bus.recv_fails = True
+        assert d.wait_for(lambda x: len(attempts) >= 3, 10)
+        Bus.recv_fails = False
+        assert d.wait_for(lambda x: x.stats().bus_reopens == 1, 10)
+        gaps = np.diff(attempts[1:])
+        assert gaps[0] >= 0.04 and all(g >= 0.04 for g in gaps)  # backoff, not a spin
+        tool.take()
+        time.sleep(0.2)
+        assert any(m.arbitration_id == 0x310 for m in tool.take())  # publishing again
+        # frames still reach the estimator through the new notifier
+        tool.bus.send(encode_command(CommandCode.FREEZE))
+        assert d.wait_for(lambda x: x.pipeline.frozen, 5)
+    finally:
+        Bus.recv_fails = False
+        d.stop()
+        tool.close()
+
+
+# ------------------------------------------------------------------ configuration
+def test_bus_config_ignores_python_can_config(monkeypatch: pytest.MonkeyPatch,
+                                              tmp_path: Path) -> None:
+    monkeypatch.setenv("CAN_INTERFACE", "socketcan")
+    monkeypatch.setenv("CAN_CHANNEL", "can9")
+    monkeypatch.setenv("CAN_BITRATE", "125000")
+    monkeypatch.setenv("CAN_CONFIG", json.dumps({"receive_own_messages": True}))
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / ".canrc").write_text("[default]\ninterface = socketcan\nchannel = can7\n")
+    monkeypatch.setattr(can, "rc", {"interface": "socketcan", "channel": "can8"})
+    cfg = AppConfig()
+    with pytest.raises(ConfigError, match="no CAN interface"):
+        bus_config(cfg)
+    cfg.can = {"interface": "virtual", "channel": "cfg-chan", "bitrate": 500000}
+    conf = bus_config(cfg)
+    assert conf == {"interface": "virtual", "channel": "cfg-chan", "bitrate": 500000}
+    with open_bus(conf) as bus:
+        assert isinstance(bus, VirtualBus)
+        assert bus.channel_id == "cfg-chan" and not bus.receive_own_messages
+    cfg.can["bitrate"] = "fast"
+    with pytest.raises(ConfigError, match="can.bitrate"):
+        bus_config(cfg)
+    with pytest.raises(BusError, match="nosuch"):
+        open_bus({"interface": "socketcan_nosuch", "channel": "x"})
+
+
+def test_daemon_settings_are_validated(tmp_path: Path) -> None:
+    s = DaemonSettings.from_table({"publish_interval": 0.5, "commands": False,
+                                   "checkpoint": "state/cp.bin"}, "f.toml", tmp_path)
+    assert s.publish_interval == 0.5 and not s.commands
+    assert s.checkpoint == tmp_path / "state" / "cp.bin"
+    for table, msg in (({"publish_rate": 1}, "unknown key"),
+                       ({"commands": "yes"}, "true or false"),
+                       ({"publish_interval": -1}, "publish_interval"),
+                       ({"queue_size": 0}, "queue_size"),
+                       ({"reopen_min_s": 5, "reopen_max_s": 1}, "reopen_max_s"),
+                       ({"checkpoint": 3}, "file path")):
+        with pytest.raises(ConfigError, match=msg) as e:
+            DaemonSettings.from_table(table, "f.toml")
+        assert "f.toml" in str(e.value)
+
+
+def test_messages_to_block_matches_from_messages() -> None:
+    msgs = [
+        can.Message(timestamp=1.5, arbitration_id=0x101, data=bytes(range(8))),
+        can.Message(timestamp=1.6, arbitration_id=0x1ABCDEF, is_extended_id=True, data=b"\x01"),
+        can.Message(timestamp=1.7, arbitration_id=0x102, is_remote_frame=True, dlc=8),
+        can.Message(timestamp=1.8, is_error_frame=True, arbitration_id=0x40, data=bytes(8)),
+        can.Message(timestamp=1.9, arbitration_id=0x7FF, is_fd=True, data=bytes(range(12))),
+    ]
+    for sel in (msgs, msgs[:1], msgs[:4], []):
+        a, b = messages_to_block(sel), FrameBlock.from_messages(sel)
+        for f in ("t", "arbitration_id", "is_extended", "is_remote", "is_error", "dlc", "data"):
+            assert np.array_equal(getattr(a, f), getattr(b, f)), f
+            assert getattr(a, f).dtype == getattr(b, f).dtype, f
+
+
+# ------------------------------------------------------------------ systemd, signals
+def test_sd_notify_datagrams(tmp_path: Path) -> None:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    addr = str(tmp_path / "n.sock")
+    sock.bind(addr)
+    sock.settimeout(1.0)
+    try:
+        n = SystemdNotifier(environ={"NOTIFY_SOCKET": addr, "WATCHDOG_USEC": "2000000"})
+        assert n.enabled and n.watchdog_interval == 2.0
+        assert n.ready("up") and sock.recv(100) == b"READY=1\nSTATUS=up"
+        assert n.watchdog() and sock.recv(100) == b"WATCHDOG=1"
+        assert n.reloading() and sock.recv(100).startswith(b"RELOADING=1\nMONOTONIC_USEC=")
+        n.close()
+    finally:
+        sock.close()
+    off = SystemdNotifier(environ={})
+    assert not off.enabled and not off.ready() and off.watchdog_interval is None
+    other = SystemdNotifier(environ={"NOTIFY_SOCKET": "@x", "WATCHDOG_USEC": "5",
+                                     "WATCHDOG_PID": "1"})
+    assert other.watchdog_interval is None  # the watchdog is another process's
+    missing = SystemdNotifier(environ={"NOTIFY_SOCKET": str(tmp_path / "none.sock")})
+    assert missing.notify("READY=1") is False  # logged, never raised
+    missing.close()
+
+
+def _datagrams(sock: socket.socket, want: str, timeout: float) -> list[str]:
+    got: list[str] = []
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            got.append(sock.recv(4096).decode())
+        except TimeoutError:
+            continue
+        if want in got[-1]:
+            break
+    return got
+
+
+@pytest.mark.slow
+def test_sighup_reloads_model_and_sigterm_checkpoints(tmp_path: Path) -> None:
+    conf = tmp_path / "canrls.toml"
+    ckpt = tmp_path / "cp.bin"
+    conf.write_text('[model]\neffects = ["inertia", "viscous", "coulomb"]\nkt = 0.1\n'
+                    '[can]\ninterface = "canrls-sim"\nchannel = "sighup"\n'
+                    f'[daemon]\ncheckpoint = "{ckpt.name}"\npublish_interval = 0.05\n')
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    addr = str(tmp_path / "notify.sock")
+    sock.bind(addr)
+    sock.settimeout(0.2)
+    env = dict(os.environ, NOTIFY_SOCKET=addr, WATCHDOG_USEC="300000")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-C", str(conf),
+         "--bus-kwargs", "effects=inertia,viscous,coulomb,unbalance", "excitation=slow",
+         "seed=2", "--json"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert any("READY=1" in g for g in _datagrams(sock, "READY=1", 60))
+        assert any("WATCHDOG=1" in g for g in _datagrams(sock, "WATCHDOG=1", 5))
+        time.sleep(1.0)
+        conf.write_text(conf.read_text().replace('"coulomb"]', '"coulomb", "unbalance"]'))
+        proc.send_signal(signal.SIGHUP)
+        got = _datagrams(sock, "READY=1", 10)
+        assert any("RELOADING=1" in g for g in got) and "READY=1" in got[-1]
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        sock.close()
+    assert proc.returncode == 0, err
+    res = json.loads(out)
+    assert res["effects"] == [*BASE, "unbalance"]
+    assert res["daemon"]["reloads"] == 1 and res["daemon"]["checkpoints"] >= 1
+    assert "reload: model is now inertia,viscous,coulomb,unbalance" in err
+    from canrls.checkpoint import load_checkpoint
+
+    cp = load_checkpoint(ckpt)  # written at SIGTERM, after the last frame
+    assert cp.model["effects"] == [*BASE, "unbalance"]
+    assert cp.config_model["effects"] == [*BASE, "unbalance"]
+    assert cp.state["samples"] == res["daemon"]["samples"]

@@ -1,0 +1,135 @@
+"""The pure pipeline on the standard simulated scenario: float vs fixed, chunking, gaps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from canrls.config import AppConfig
+from canrls.pipeline import EstimatorSettings, Pipeline
+from canrls.ranges import scan_ranges
+from canrls.signals import Signals
+from canrls.sim.scenario import scenario, simulate
+
+EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"
+
+
+@pytest.fixture(scope="module")
+def standard() -> object:
+    return simulate(scenario("standard", effects=EFFECTS, seed=11, duration=30.0))
+
+
+def _model(res: object, effects: str = EFFECTS, **model: object):
+    cfg = AppConfig()
+    cfg.model = {"effects": effects.split(","), "kt": 0.1, **model}
+    prot = cfg.protocol()
+    m0 = cfg.model_for(prot)
+    ranges = scan_ranges([res.measured], 1e-3, m0.cutoff_hz, m0.zeta)  # type: ignore[attr-defined]
+    return cfg.model_for(prot, ranges)
+
+
+@pytest.mark.parametrize("lam", [1.0, 0.9995])
+def test_fixed_point_within_0p1_percent_of_float_on_the_standard_scenario(
+        standard: object, lam: float) -> None:
+    pipe = Pipeline(_model(standard), 1e-3, EstimatorSettings(lam=lam))
+    pipe.process(standard.measured)  # type: ignore[attr-defined]
+    est = pipe.estimates()
+    for p in est.parameters:
+        assert p.fixed == pytest.approx(p.value, rel=1e-3), p
+    assert not pipe.saturations.nonzero()
+    assert est.equations[0].divergence < 1e-3
+
+
+def test_true_parameters_come_back(standard: object) -> None:
+    pipe = Pipeline(_model(standard), 1e-3)
+    est = pipe.run([standard.measured])  # type: ignore[attr-defined]
+    truth = standard.truth.params  # type: ignore[attr-defined]
+    for p in est.parameters:
+        assert p.value == pytest.approx(truth[p.name], rel=0.02), p
+        # the true value lies within a few standard deviations (plus 0.5 % model error)
+        assert abs(p.value - truth[p.name]) < 6 * p.sigma + 5e-3 * abs(truth[p.name]), p
+    assert est.residual_rms < 1.5 * standard.noise_floor  # type: ignore[attr-defined]
+
+
+def test_any_block_sizes_give_the_same_bits(standard: object) -> None:
+    sig: Signals = standard.measured  # type: ignore[attr-defined]
+    model = _model(standard)
+    a = Pipeline(model, 1e-3)
+    a.process(sig)
+    b = Pipeline(model, 1e-3)
+    rng = np.random.default_rng(3)
+    k = 0
+    while k < len(sig):
+        step = int(rng.integers(1, 2000))
+        b.process(sig.slice(k, k + step))
+        k += step
+    ea, eb = a.estimates(), b.estimates()
+    for pa, pb in zip(ea.parameters, eb.parameters, strict=True):
+        assert (pa.value, pa.fixed, pa.sigma) == (pb.value, pb.fixed, pb.sigma)
+    assert ea.residual_rms == eb.residual_rms
+
+
+def test_a_gap_restarts_the_filter_and_skips_its_warm_up(standard: object) -> None:
+    sig: Signals = standard.measured  # type: ignore[attr-defined]
+    # without friction effects only the warm-ups are skipped
+    pipe = Pipeline(_model(standard, "inertia,viscous,offset"), 1e-3)
+    warm = pipe.estimators[0].warmup
+    first = pipe.process(sig.slice(0, 5000)).equations[0]
+    assert not first.used[:warm].any() and first.used[warm:].all()
+    # 0.5 s of silence: the next samples warm the filter up again
+    blk = pipe.process(sig.slice(5500, 9000)).equations[0]
+    assert not blk.used[:warm].any() and blk.used[warm:].all()
+    # with friction, standstill is skipped too, and the estimate survives the gap
+    full = Pipeline(_model(standard), 1e-3)
+    full.process(sig.slice(0, 5000))
+    blk = full.process(sig.slice(5500, len(sig))).equations[0]
+    assert not blk.used[:warm].any()
+    slow = np.abs(sig.speed[5500:]) < full.estimators[0].min_speed
+    assert not blk.used[slow].any()
+    truth = standard.truth.params  # type: ignore[attr-defined]
+    assert full.estimates()["coulomb.Tc"].value == pytest.approx(truth["coulomb.Tc"], rel=0.02)
+
+
+def test_a_missing_effect_raises_the_residual_and_adding_it_lowers_it(standard: object) -> None:
+    sig = standard.measured  # type: ignore[attr-defined]
+    lacking = Pipeline(_model(standard, "inertia,viscous,coulomb,offset,unbalance"), 1e-3)
+    full = Pipeline(lacking.model.with_effects(add=["cogging:6"]), 1e-3)
+    r_lacking = lacking.run([sig]).residual_rms
+    r_full = full.run([sig]).residual_rms
+    assert r_full < 0.5 * r_lacking
+    assert r_full < 1.5 * standard.noise_floor  # type: ignore[attr-defined]
+
+
+def test_reset_freeze_resume_and_lambda(standard: object) -> None:
+    sig = standard.measured  # type: ignore[attr-defined]
+    pipe = Pipeline(_model(standard), 1e-3, EstimatorSettings(lam=0.9995))
+    pipe.process(sig.slice(0, 10000))
+    before = pipe.estimates()["inertia.J"].value
+    pipe.freeze()
+    assert pipe.frozen
+    pipe.process(sig.slice(10000, 15000))
+    assert pipe.estimates()["inertia.J"].value == before
+    pipe.resume()
+    pipe.set_lambda(0.999)
+    pipe.process(sig.slice(15000, 20000))
+    assert pipe.estimates()["inertia.J"].value != before
+    pipe.reset()
+    assert pipe.estimates()["inertia.J"].value == 0.0
+    with pytest.raises(ValueError, match="lambda"):
+        pipe.set_lambda(1.5)
+
+
+def test_state_round_trip_continues_identically(standard: object) -> None:
+    sig = standard.measured  # type: ignore[attr-defined]
+    model = _model(standard)
+    a = Pipeline(model, 1e-3)
+    a.process(sig.slice(0, 12000))
+    b = Pipeline(model, 1e-3)
+    b.restore(a.state())
+    # both continue after a restart of the filter (a restored daemon warms up again)
+    a2 = Pipeline(model, 1e-3)
+    a2.restore(a.state())
+    for p in (b, a2):
+        p.process(sig.slice(12000, 20000))
+    for pa, pb in zip(a2.estimates().parameters, b.estimates().parameters, strict=True):
+        assert (pa.value, pa.fixed) == (pb.value, pb.fixed)

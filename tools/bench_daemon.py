@@ -1,0 +1,205 @@
+"""Speed of the daemon on python-can's virtual bus, the simulated drive in the same process.
+
+Prints figures; it is not a test. The drive's frames are simulated and encoded before
+the timed part (or in the feeder thread for the memory run) and put on the virtual
+channel by a feeder thread at a fixed rate, so the simulator's CPU is not the daemon's.
+
+* **throughput**: for each offered rate (frames/s), ``--seconds`` of traffic; a rate
+  is sustained when no frame is lost (the daemon's queue holds at most half a second
+  of frames, overflow counts as loss) and the backlog drains within a second.
+* **CPU per frame**: thread CPU time (``time.thread_time``) of the daemon's bus
+  listener (python-can's notifier thread) and estimator thread, divided by frames.
+* **latency**: at ``--latency-rate`` frames/s with ``publish_interval = 0`` and
+  ``block_interval = 0`` (publish after every block): from the moment a feedback frame
+  is put on the bus to the moment the parameter frames that include it are sent;
+  p50 and p99.
+* **memory**: resident set size while ``--memory-sim-s`` seconds of simulated traffic
+  (default one hour) go through as fast as the daemon takes them.
+
+Usage::
+
+    python tools/bench_daemon.py [--n 8] [--rates 9000,18000,27000] [--seconds 5]
+                                 [--latency-rate 9000] [--memory-sim-s 3600]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+from collections.abc import Callable
+
+import can
+import numpy as np
+from can.interfaces import virtual as _virtual
+
+from canrls.config import AppConfig
+from canrls.daemon import Daemon, DaemonSettings
+from canrls.sim.scenario import Simulator, scenario
+
+#: n = 8: inertia, viscous, coulomb, offset, unbalance (2), cogging:6 (2)
+EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"
+_ch = itertools.count()
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def _messages(seconds: float, seed: int = 1) -> list[can.Message]:
+    sc = scenario("standard", effects=EFFECTS, seed=seed, duration=seconds, excitation="slow")
+    out: list[can.Message] = []
+    for b in Simulator(sc, t0=0.0).frames(20000):
+        out += b.to_messages()
+    return out
+
+
+def _daemon(channel: str, settings: DaemonSettings,
+            on_publish: Callable[[int, float], None] | None = None) -> Daemon:
+    cfg = AppConfig()
+    cfg.model = {"effects": EFFECTS.split(","), "kt": 0.1}
+    protocol = cfg.protocol()
+    model = cfg.model_for(protocol)
+    assert len(model.parameters) == 8
+    return Daemon(protocol, model, cfg.settings(), settings,
+                  bus={"interface": "virtual", "channel": channel}, on_publish=on_publish)
+
+
+def _feed(channel: str, msgs: list[can.Message], rate: float,
+          sent_at: np.ndarray | None = None) -> float:
+    """Put ``msgs`` on the channel at ``rate`` frames/s (1 ms ticks); returns the duration."""
+    with _virtual.channels_lock:
+        queues = list(_virtual.channels[channel])
+    per_tick = rate / 1000.0
+    t0 = time.perf_counter()
+    k = 0
+    n = len(msgs)
+    tick = 0
+    while k < n:
+        tick += 1
+        target = min(n, int(tick * per_tick))
+        now = time.perf_counter()
+        for i in range(k, target):
+            if sent_at is not None:
+                sent_at[i] = now
+            for q in queues:
+                q.put_nowait(msgs[i])
+        k = target
+        wait = t0 + tick / 1000.0 - time.perf_counter()
+        if wait > 0:
+            time.sleep(wait)
+    return time.perf_counter() - t0
+
+
+def bench_rate(msgs: list[can.Message], rate: float) -> dict[str, float]:
+    ch = f"bench-{next(_ch)}"
+    d = _daemon(ch, DaemonSettings(queue_size=max(1000, int(rate * 0.5))))
+    d.start()
+    try:
+        time.sleep(0.3)
+        est0, rx0 = d.stats().estimator_cpu_s, d.stats().listener_cpu_s
+        took = _feed(ch, msgs, rate)
+        drained = d.wait_for(lambda x: x.stats().frames >= len(msgs) - x.stats().rx_overflow
+                             and x.stats().backlog == 0, 1.0)
+        s = d.stats()
+    finally:
+        d.stop()
+    lost = s.rx_overflow + s.counters["frames_lost"]
+    return {"offered": len(msgs) / took, "frames": s.frames, "lost": lost,
+            "drained": float(drained),
+            "cpu_us": (s.estimator_cpu_s - est0 + s.listener_cpu_s - rx0) / max(s.frames, 1) * 1e6,
+            "est_us": (s.estimator_cpu_s - est0) / max(s.frames, 1) * 1e6,
+            "rx_us": (s.listener_cpu_s - rx0) / max(s.frames, 1) * 1e6,
+            "blocks": s.blocks}
+
+
+def bench_latency(msgs: list[can.Message], rate: float) -> tuple[float, float, int]:
+    ch = f"bench-lat-{next(_ch)}"
+    sent_at = np.full(len(msgs), np.nan)
+    pubs: list[tuple[int, float]] = []
+    d = _daemon(ch, DaemonSettings(publish_interval=0.0, block_interval=0.0),
+                on_publish=lambda n, t: pubs.append((n, t)))
+    d.start()
+    try:
+        time.sleep(0.3)
+        base = d.stats().frames
+        _feed(ch, msgs, rate, sent_at)
+        d.wait_for(lambda x: x.stats().frames >= base + len(msgs), 2.0)
+    finally:
+        d.stop()
+    lat = np.full(len(msgs), np.nan)
+    prev = 0
+    for n, t in pubs:
+        n -= base
+        if n > prev:
+            lat[prev:n] = t - sent_at[prev:n]
+            prev = n
+    lat = lat[np.isfinite(lat)] * 1e3
+    return float(np.percentile(lat, 50)), float(np.percentile(lat, 99)), len(lat)
+
+
+def bench_memory(sim_seconds: float, report_every: float) -> list[tuple[float, float]]:
+    ch = f"bench-mem-{next(_ch)}"
+    d = _daemon(ch, DaemonSettings(queue_size=200000))
+    sc = scenario("standard", effects=EFFECTS, seed=2, duration=sim_seconds,
+                  excitation="standard")
+    sim = Simulator(sc, t0=0.0)
+    rows: list[tuple[float, float]] = []
+    d.start()
+    try:
+        with _virtual.channels_lock:
+            queues = list(_virtual.channels[ch])
+        next_report = 0.0
+        for block in sim.frames(10000):
+            for m in block.to_messages():
+                for q in queues:
+                    q.put_nowait(m)
+            while d.stats().backlog > 20000:  # as fast as the daemon takes them
+                time.sleep(0.01)
+            t = float(block.t[-1])
+            if t >= next_report:
+                rows.append((t, _rss_mb()))
+                next_report += report_every
+        d.wait_for(lambda x: x.stats().backlog == 0, 30)
+        rows.append((sim_seconds, _rss_mb()))
+    finally:
+        d.stop()
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rates", default="9000,18000,27000")
+    ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--latency-rate", type=float, default=9000.0)
+    ap.add_argument("--memory-sim-s", type=float, default=3600.0)
+    ap.add_argument("--skip-memory", action="store_true")
+    args = ap.parse_args()
+    rates = [float(r) for r in args.rates.split(",")]
+    print(f"daemon on the virtual bus, n = 8 ({EFFECTS}), float + fixed RLS")
+    print(f"RSS at start {_rss_mb():.0f} MB")
+    for rate in rates:
+        msgs = _messages(args.seconds * rate / 2000.0)
+        r = bench_rate(msgs, rate)
+        ok = "sustained" if r["lost"] == 0 and r["drained"] else "NOT sustained"
+        print(f"offered {r['offered']:8.0f} frames/s: {ok:13s} lost {r['lost']:.0f}, "
+              f"daemon CPU {r['cpu_us']:.1f} us/frame (listener {r['rx_us']:.1f}, "
+              f"estimator {r['est_us']:.1f}), {r['frames'] / max(r['blocks'], 1):.0f} frames/block")
+    msgs = _messages(args.seconds * args.latency_rate / 2000.0, seed=3)
+    p50, p99, n = bench_latency(msgs, args.latency_rate)
+    print(f"latency feedback frame -> parameter frame at {args.latency_rate:.0f} frames/s "
+          f"(publish after every block): p50 {p50:.2f} ms, p99 {p99:.2f} ms ({n} frames)")
+    if not args.skip_memory:
+        t0 = time.perf_counter()
+        rows = bench_memory(args.memory_sim_s, args.memory_sim_s / 6)
+        wall = time.perf_counter() - t0
+        print(f"memory over {args.memory_sim_s:g} s of simulated traffic ({wall:.0f} s wall): "
+              + ", ".join(f"{t:.0f} s: {m:.0f} MB" for t, m in rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,315 @@
+"""End-to-end offline replay throughput, against the loop a user would write by hand.
+
+Prints figures; it is not a test. On a candump log of the simulated drive (1 kHz,
+two frames per period: one hour is 7.2 M frames), in one run:
+
+* canrls, each the best of ``--repeat`` runs after a warm-up (JIT compilation and the
+  first read of the file are not timed):
+
+  - ``read_frames`` alone (parse the candump text into frame blocks),
+  - read + strict decode + pairing (``FrameProcessor.samples``),
+  - the prescan ``scan_log_ranges`` that ``prepare(cfg, log)`` runs to measure the
+    signal ranges (a second pass over the log; configured ranges skip it),
+  - ``fit_log``: read, decode, pair, regressors, float and fixed-point RLS -- the
+    figure the issue's target (>= 1 M frames/s) is about;
+
+* the straightforward loop: ``can.LogReader`` -> ``cantools`` ``decode_message`` ->
+  pairing by alive counter in a dict -> regressors per sample in Python ->
+  ``padasip.filters.FilterRLS.adapt``. It does less than canrls (no CRC or counter
+  checks, finite differences instead of the state-variable filter, float only, no
+  fixed point), so the ratio is on the low side. It runs on the first
+  ``--naive-frames`` frames and is extrapolated to the whole log (said in the output);
+
+* peak RSS (``resource.getrusage``) of a fresh process that runs ``prepare`` and
+  ``fit_log`` on a log of ``duration / 6`` and on the full log, and its RSS before
+  the replay: the same figure for both shows that memory is flat in the log's length.
+
+Times are wall clock; the process CPU time is printed beside each, since the machine
+may be shared (CPU time leaves out the time the process waited for a core).
+
+The log is generated with :mod:`canrls.sim` (``Simulator`` chunks written by
+``write_candump``, the write timed on its own) and cached, by duration, seed and
+effects, under the system's temporary directory (or ``--log``).
+
+Usage::
+
+    python tools/bench_replay.py [--duration 3600] [--log PATH] [--seed 2]
+                                 [--effects inertia,viscous,...] [--naive-frames 100000]
+                                 [--repeat 3] [--chunk-size 65536] [--no-memory]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from canrls.config import AppConfig
+from canrls.frameblock import FrameBlock
+from canrls.logs import read_frames, write_candump
+from canrls.replay import FrameProcessor, fit_log, prepare, scan_log_ranges
+
+EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"
+KT = 0.1  # the standard scenario's torque constant [N·m/A]
+
+
+# ------------------------------------------------------------------------------ log
+def log_path(duration: float, seed: int, effects: str) -> Path:
+    """Where the generated log of these settings is cached."""
+    tag = hashlib.sha1(effects.encode()).hexdigest()[:8]
+    return Path(tempfile.gettempdir()) / f"canrls-bench-{duration:g}s-seed{seed}-{tag}.log"
+
+
+def ensure_log(path: Path, duration: float, seed: int, effects: str) -> None:
+    """Simulate the drive and write its candump log, unless ``path`` exists."""
+    if path.exists():
+        print(f"log: {path} (cached, {path.stat().st_size / 1e6:.0f} MB)")
+        return
+    from canrls.sim.scenario import Simulator, scenario
+
+    sc = scenario("standard", effects=effects, duration=duration, seed=seed)
+    sim = Simulator(sc)
+    sim_time = [0.0]
+
+    def blocks() -> Iterator[FrameBlock]:
+        it = sim.frames(65536)
+        while True:
+            t0 = time.perf_counter()
+            b = next(it, None)
+            sim_time[0] += time.perf_counter() - t0
+            if b is None:
+                return
+            yield b
+
+    t0 = time.perf_counter()
+    n = write_candump(path, blocks())
+    total = time.perf_counter() - t0
+    write = total - sim_time[0]
+    print(f"log: {path} generated: {n} frames, {path.stat().st_size / 1e6:.0f} MB in "
+          f"{total:.1f} s (simulation {sim_time[0]:.1f} s, write_candump {write:.1f} s = "
+          f"{n / write / 1e6:.2f} M frames/s)")
+
+
+def configure(path: Path, effects: str) -> tuple[Any, Any, Any]:
+    """Protocol, model and settings as ``canrls fit`` builds them (ranges from the log)."""
+    cfg = AppConfig()
+    cfg.model = {"effects": effects.split(","), "kt": KT}
+    return prepare(cfg, path)
+
+
+# -------------------------------------------------------------------------- timing
+def best_of(fn: Callable[[], Any], repeat: int) -> tuple[float, float, Any]:
+    """(best wall time, CPU time of that run, result) over ``repeat`` runs after a warm-up."""
+    out = fn()
+    best = (math.inf, math.inf)
+    for _ in range(repeat):
+        w0, c0 = time.perf_counter(), time.process_time()
+        out = fn()
+        w, c = time.perf_counter() - w0, time.process_time() - c0
+        if w < best[0]:
+            best = (w, c)
+    return best[0], best[1], out
+
+
+def line(what: str, frames: int, wall: float, cpu: float) -> str:
+    return (f"  {what:<44} {wall:7.2f} s  {frames / wall / 1e6:5.2f} M frames/s"
+            f"   (CPU {cpu:6.2f} s, {frames / cpu / 1e6:5.2f} M frames/s)")
+
+
+def bench_canrls(path: Path, effects: str, repeat: int,
+                 chunk_size: int) -> tuple[int, float, float]:
+    """Time the canrls stages; returns (frames, wall, CPU) of ``fit_log``."""
+    protocol, model, settings = configure(path, effects)
+
+    def read() -> int:
+        return sum(len(b) for b in read_frames(path, chunk_size))
+
+    def samples() -> int:
+        proc = FrameProcessor(protocol, model, settings)
+        n = sum(len(proc.samples(b)) for b in read_frames(path, chunk_size))
+        return n + len(proc.pairer.flush())
+
+    def prescan() -> dict[str, list[float]]:
+        return scan_log_ranges(path, protocol, model, chunk_size=chunk_size)
+
+    def fit() -> Any:
+        return fit_log(path, protocol, model, settings, chunk_size=chunk_size)
+
+    print(f"canrls (best of {repeat}, chunk_size {chunk_size}; wall clock, CPU time in "
+          f"brackets):")
+    wall, cpu, frames = best_of(read, repeat)
+    print(line("read_frames", frames, wall, cpu))
+    wall, cpu, n_samples = best_of(samples, repeat)
+    print(line("read + decode + pair", frames, wall, cpu))
+    wall, cpu, _ = best_of(prescan, repeat)
+    print(line("prescan scan_log_ranges (prepare(cfg, log))", frames, wall, cpu))
+    wall, cpu, res = best_of(fit, repeat)
+    print(line("fit_log: read, decode, pair, regress, RLS", frames, wall, cpu))
+    print(f"  ({res.frames} frames, {n_samples} samples, {res.estimates.samples} used; "
+          f"float and fixed-point RLS, {len(res.parameters)} parameters; "
+          f"{'target >= 1 M frames/s met' if frames / wall >= 1e6 else 'BELOW 1 M frames/s'}"
+          f" on the wall clock)")
+    return res.frames, wall, cpu
+
+
+# ------------------------------------------------------------------- the naive loop
+def naive_loop(path: Path, max_frames: int, effects: str) -> tuple[int, int, list[float]]:
+    """What a user would write: python-can reader, cantools decode, padasip RLS.
+
+    Returns (frames read, samples fitted, weights).
+    """
+    import can
+    import cantools
+    import numpy as np
+    import padasip
+
+    from canrls.protocol import DEFAULT_DBC
+
+    db = cantools.database.load_file(str(DEFAULT_DBC))
+    cur_id = db.get_message_by_name("DriveCurrent").frame_id
+    spd_id = db.get_message_by_name("DriveSpeed").frame_id
+    orders = [int(e.split(":")[1]) for e in effects.split(",") if e.startswith("cogging:")]
+    n = 4 + 2 + 2 * len(orders)  # J, B, Tc, T0, unbalance sin/cos, cogging sin/cos
+    rls = padasip.filters.FilterRLS(n, mu=1.0, w="zeros")
+    halves: dict[int, dict[str, Any]] = {}
+    last: tuple[float, float] | None = None
+    frames = samples = 0
+    with can.LogReader(str(path)) as reader:
+        for msg in reader:
+            if frames >= max_frames:
+                break
+            frames += 1
+            if msg.arbitration_id not in (cur_id, spd_id):
+                continue
+            sig = db.decode_message(msg.arbitration_id, msg.data)
+            half = halves.setdefault(sig["Counter"], {})
+            half.update(sig)
+            half["t"] = msg.timestamp
+            if "Current" not in half or "Speed" not in half:
+                continue
+            del halves[sig["Counter"]]
+            w, theta, t = half["Speed"], half["Position"], half["t"]
+            if last is not None and t > last[0]:
+                acc = (w - last[1]) / (t - last[0])
+                x = [acc, w, math.tanh(w / 0.01), 1.0, math.sin(theta), math.cos(theta)]
+                for k in orders:
+                    x += [math.sin(k * theta), math.cos(k * theta)]
+                rls.adapt(KT * half["Current"], np.array(x))
+                samples += 1
+            last = (t, w)
+    return frames, samples, list(rls.w)
+
+
+def bench_naive(path: Path, max_frames: int, effects: str, total: int) -> tuple[float, float]:
+    """Time the naive loop on the first frames; returns (wall, CPU) extrapolated to ``total``."""
+    try:
+        import padasip  # noqa: F401
+    except ImportError:
+        print("naive loop: padasip is not installed (pip install canrls[bench])")
+        return math.nan, math.nan
+    w0, c0 = time.perf_counter(), time.process_time()
+    frames, samples, _ = naive_loop(path, max_frames, effects)
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    print(f"naive loop (can.LogReader -> cantools decode_message -> padasip FilterRLS.adapt), "
+          f"run on the first {frames} frames ({samples} samples) and extrapolated:")
+    print(line(f"{frames} frames", frames, wall, cpu))
+    scale = total / frames
+    print(f"  extrapolated to {total} frames: {wall * scale:.0f} s "
+          f"(CPU {cpu * scale:.0f} s)")
+    return wall * scale, cpu * scale
+
+
+# -------------------------------------------------------------------------- memory
+def rss_child(path: Path, effects: str, chunk_size: int) -> None:
+    """In a fresh process: RSS once set up, then peak RSS after prepare + fit_log."""
+    from canrls.ranges import RangeScanner
+
+    # imports, protocol and the compiled kernels (run on a few frames): the baseline
+    cfg = AppConfig()
+    cfg.model = {"effects": effects.split(","), "kt": KT}
+    protocol = cfg.protocol()
+    proc = FrameProcessor(protocol, cfg.model_for(protocol), cfg.settings())
+    for b in read_frames(path, 4096):
+        RangeScanner(proc.pairer.period, 25.0, 0.7071).update(proc.samples(b))
+        proc.process(b)
+        break
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    protocol, model, settings = configure(path, effects)
+    res = fit_log(path, protocol, model, settings, chunk_size=chunk_size)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(json.dumps({"frames": res.frames, "base_kb": base, "peak_kb": peak}))
+
+
+def bench_memory(logs: list[tuple[float, Path]], effects: str, chunk_size: int) -> None:
+    print("memory (peak RSS, resource.getrusage ru_maxrss, of a fresh process: imports, "
+          "kernels compiled, then prepare (prescan) + fit_log):")
+    for duration, path in logs:
+        out = subprocess.run(
+            [sys.executable, os.path.abspath(__file__), "--rss-child", str(path),
+             "--effects", effects, "--chunk-size", str(chunk_size)],
+            check=True, capture_output=True, text=True)
+        d = json.loads(out.stdout.strip().splitlines()[-1])
+        print(f"  {duration / 60:5.0f} min log ({d['frames'] / 1e6:4.1f} M frames):  "
+              f"peak {d['peak_kb'] / 1024:6.1f} MB  (before the replay "
+              f"{d['base_kb'] / 1024:6.1f} MB: the replay adds "
+              f"{(d['peak_kb'] - d['base_kb']) / 1024:5.1f} MB)")
+
+
+# ---------------------------------------------------------------------------- main
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--duration", type=float, default=3600.0,
+                    help="seconds of drive in the log (default 3600: 7.2 M frames)")
+    ap.add_argument("--log", type=Path, default=None,
+                    help="log to use (generated there if missing; default: cached under "
+                         f"{tempfile.gettempdir()})")
+    ap.add_argument("--seed", type=int, default=2)
+    ap.add_argument("--effects", default=EFFECTS, help=f"true and fitted effects ({EFFECTS})")
+    ap.add_argument("--naive-frames", type=int, default=100_000,
+                    help="frames given to the naive loop (default 100000)")
+    ap.add_argument("--repeat", type=int, default=3, help="timed runs per figure (default 3)")
+    ap.add_argument("--chunk-size", type=int, default=65536,
+                    help="frames per block (fit_log's default 65536)")
+    ap.add_argument("--no-memory", action="store_true", help="skip the peak-RSS runs")
+    ap.add_argument("--rss-child", type=Path, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.rss_child is not None:
+        rss_child(args.rss_child, args.effects, args.chunk_size)
+        return 0
+    if not (args.duration > 0) or args.repeat < 1 or args.naive_frames < 1:
+        ap.error("--duration, --repeat and --naive-frames must be positive")
+
+    path = args.log or log_path(args.duration, args.seed, args.effects)
+    ensure_log(path, args.duration, args.seed, args.effects)
+    print(f"machine: {os.cpu_count()} CPUs, load average "
+          f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    frames, wall, cpu = bench_canrls(path, args.effects, args.repeat, args.chunk_size)
+    naive_wall, naive_cpu = bench_naive(path, min(args.naive_frames, frames), args.effects,
+                                        frames)
+    if math.isfinite(naive_wall):
+        print(f"ratio fit_log / naive loop: {naive_wall / wall:.0f} x on the wall clock "
+              f"({naive_cpu / cpu:.0f} x in CPU time)")
+    if not args.no_memory:
+        logs = []
+        if args.log is None:
+            short = args.duration / 6
+            spath = log_path(short, args.seed, args.effects)
+            ensure_log(spath, short, args.seed, args.effects)
+            logs.append((short, spath))
+        logs.append((args.duration, path))
+        bench_memory(logs, args.effects, args.chunk_size)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
