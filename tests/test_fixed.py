@@ -246,6 +246,9 @@ def test_auto_formats_follow_the_documented_bounds() -> None:
     # 16-bit inputs, 24-bit state
     c16 = FixedConfig.auto(4, 1e-1, 0.99, word_bits=24, acc_bits=48, input_bits=16)
     assert (c16.phi.bits, c16.theta.bits, str(c16.phi)) == (16, 24, "Q1.14")
+    # per-column ranges: one phi format from the largest, theta from the smallest
+    cp = FixedConfig.auto(3, 1e-2, 0.99, phi_max=[1.0, 0.5, 0.25])
+    assert (str(cp.phi), str(cp.theta)) == ("Q1.30", "Q5.26")  # 4 y_max / 0.25 = 16
     # a narrow accumulator balances the fractions of den and g (dividend fits)
     c32 = FixedConfig.auto(8, 1e-2, 0.999, acc_bits=32)
     assert c32.g.frac + c32.den.frac <= 30 and c32.g.frac > 16
@@ -266,6 +269,9 @@ def test_formats_are_overridable() -> None:
         FixedRLS(FixedConfig.auto(4, 1e-2, 0.99, word_bits=16), 4, 0.99, 1e-5)
     with pytest.raises(FixedPointError, match="range of P"):
         FixedConfig.auto(4, 1e-9, 0.99, word_bits=16)
+    with pytest.raises(FixedPointError, match="32-bit accumulator cannot sum"):
+        # 32 x 32-bit products do not fit a 32-bit accumulator at all
+        FixedRLS(FixedConfig.auto(4, 1e-2, 0.99, acc_bits=32), 4, 0.99, 1e-2)
 
 
 def test_constants_are_exact_integers_from_the_rational_lambda() -> None:
@@ -291,14 +297,14 @@ CONFIGS = [
     (32, 64, 16, 1.0, 3, 1e-3, 3.0),
     (24, 48, 16, 0.98, 5, 1e-1, 0.5),
     (16, 32, 16, 0.995, 3, 1e-1, 0.3),
-    (32, 32, 32, 0.99, 3, 1e-2, 0.3),  # narrow accumulator: large guard shifts
+    (24, 32, 16, 0.99, 3, 1e-2, 0.3),  # narrow accumulator: large guard shifts
 ]
 
 
 @pytest.mark.parametrize("update", UPDATES)
-@pytest.mark.parametrize("W, A, I, lam, n, alpha, tm", CONFIGS)
+@pytest.mark.parametrize("W, A, In, lam, n, alpha, tm", CONFIGS)
 def test_kernel_is_bit_exact_against_python_integers(
-    update: str, W: int, A: int, I: int, lam: float, n: int, alpha: float, tm: float
+    update: str, W: int, A: int, In: int, lam: float, n: int, alpha: float, tm: float
 ) -> None:
     """numba kernel == the pure-Python reference, integer for integer, on inputs that
     saturate (raw integers beyond the word, outliers), wind up and excite poorly.
@@ -306,9 +312,9 @@ def test_kernel_is_bit_exact_against_python_integers(
     The reference also asserts every accumulator value against ``acc_bits``: the
     guard-bit argument holds on these inputs.
     """
-    seed = hash((update, W, A, I, n)) % 2**32
+    seed = sum(map(ord, update)) * 1000 + W * 100 + A + In + n
     rng = np.random.default_rng(seed)
-    cfg = FixedConfig.auto(n, alpha, lam, word_bits=W, acc_bits=A, input_bits=I,
+    cfg = FixedConfig.auto(n, alpha, lam, word_bits=W, acc_bits=A, input_bits=In,
                            trace_max=tm * n / alpha)  # fmt: skip
     rls = FixedRLS(cfg, n, lam, alpha, trace_max=tm * n / alpha, update=update)
     Pq, Yq = random_block(rng, cfg, 500, n)
@@ -388,8 +394,16 @@ def test_fixed_tracks_float_on_a_drive_regression(n: int, lam: float, alpha: flo
     assert err.max() <= 500 * cfg.theta.lsb, err.max() / cfg.theta.lsb
     assert rls.saturations.total == 0 and sat.total == 0
     assert tr.P_exp[-1] > 0  # P has shrunk far below its Q format: the block exponent
-    np.testing.assert_allclose(rls.P_float, _float_P(Phi, lam, alpha, n / alpha), rtol=1e-3,
-                               atol=1e-6 * np.abs(rls.P_float).max())  # fmt: skip
+    # P itself, in the metric of the float P (eigenvalues of L^-1 P_fixed L^-T, P = L L'):
+    # within 0.5 % (measured <= 0.12 %, at lambda = 1 and alpha = 1e-3)
+    assert info_error(rls.P_float, _float_P(Phi, lam, alpha, n / alpha)) < 5e-3
+
+
+def info_error(P_fixed: F64, P_ref: F64) -> float:
+    """Largest relative error of P_fixed in the metric of P_ref: max |eig(L^-1 P L^-T) - 1|."""
+    Li = np.linalg.inv(np.linalg.cholesky(P_ref))
+    ev = np.linalg.eigvalsh(Li @ (0.5 * (P_fixed + P_fixed.T)) @ Li.T)
+    return float(np.abs(ev - 1.0).max())
 
 
 def _float_P(Phi: F64, lam: float, alpha: float, trace_max: float) -> F64:
@@ -495,7 +509,7 @@ def test_out_of_range_inputs_saturate_with_a_count_never_wrap() -> None:
     cfg = FixedConfig.auto(n, 1e-2, 0.99, input_bits=16)
     rls = FixedRLS(cfg, n, 0.99, 1e-2)
     Phi = np.array([[0.5, 2.5, -0.1], [-3.0, 0.2, 1.99], [1.0, 1.0, 1.0]])
-    Y = np.array([0.1, 5.0, -2.0])
+    Y = np.array([0.1, 5.0, -2.5])
     Pq, Yq, sat = rls.quantize_inputs(Phi, Y)
     assert sat.nonzero() == {"phi_in": 2, "y_in": 2}
     assert Pq[0, 1] == cfg.phi.hi and Pq[1, 0] == cfg.phi.lo and Yq[1] == cfg.y.hi
@@ -584,7 +598,8 @@ def test_std_and_float_views() -> None:
     rls.run(*rls.quantize_inputs(Phi, Y)[:2])
     P = _float_P(Phi, lam, alpha, n / alpha)
     np.testing.assert_allclose(rls.std(4e-6), np.sqrt(4e-6 * np.diag(P)), rtol=1e-4)
-    np.testing.assert_allclose(rls.P_float, P, rtol=1e-4, atol=1e-12)
+    assert info_error(rls.P_float, P) < 1e-3  # measured 1.5e-4
+    assert np.array_equal(rls.P_float, rls.P_float.T)
     with pytest.raises(EstimatorError):
         rls.std(-1.0)
 
@@ -665,6 +680,7 @@ def test_sweep_reports_and_recommends_the_smallest_configuration() -> None:
     assert isinstance(res, SweepResult) and len(res.rows) == 9
     by = {r.label: r for r in res.rows}
     assert not by["W16/A32/I16"].ok
+    assert by["W32/A32/I16"].config is None and "cannot sum" in str(by["W32/A32/I16"].error)
     assert by["W32/A64/I16"].ok and by["W32/A64/I16"].max_rel_error < 1e-4
     assert res.recommended is not None and res.recommended.config is not None
     assert res.recommended.config.word_bits == 24

@@ -142,30 +142,33 @@ I_EPS_LO, I_EPS_HI, I_H_LO, I_H_HI = 4, 5, 6, 7
 I_DEN_LO, I_DEN_HI, I_G_LO, I_G_HI = 8, 9, 10, 11
 I_K_LO, I_K_HI, I_TH_LO, I_TH_HI = 12, 13, 14, 15
 I_P_LO, I_P_HI, I_L_LO, I_L_HI = 16, 17, 18, 19
-# eps = y - phi' theta: guard shift of phi, alignment of y (>0: left), output shift
-I_EPS_PS, I_EPS_TS, I_EPS_OS = 20, 21, 22
-# h = P~ phi (and w = P~' phi): guard shift of phi, output shift
-I_H_PS, I_H_OS = 23, 24
-# s~ = phi' h at lambda's scale: guard shift of phi, output shift (after >> e)
-I_S_PS, I_S_OS = 25, 26
+# the guard shift of phi shared by the three multiply-accumulates (phi' theta, P~ phi,
+# phi' h~): phi >> PHI_PS enters every sum
+I_PHI_PS = 20
+# eps = y - phi' theta: alignment of y (>0: left), output shift
+I_EPS_TS, I_EPS_OS = 21, 22
+# h = P~ phi (and w = P~' phi): output shift
+I_H_OS = 23
+# s~ = phi' h at lambda's scale: output shift (after >> e)
+I_S_OS = 24
 # s = c s~ (shift of the product), lambda and 1 in the den format
-I_SC_S, I_LAM_D, I_ONE_D = 27, 28, 29
+I_SC_S, I_LAM_D, I_ONE_D = 25, 26, 27
 # g = DIVIDEND // d ; gc = g c
-I_DIVIDEND, I_GC_S = 30, 31
+I_DIVIDEND, I_GC_S = 28, 29
 # single products rounded to their destination: K = gc h~, theta += K eps (+ e),
 # P~ -= K h~' (+ e)
-I_K_S, I_TH_S, I_P_S = 32, 33, 34
+I_K_S, I_TH_S, I_P_S = 30, 31, 32
 # c <- c / lambda_k: 1/lambda and 1 in the lam format, shift of the product
-I_INV_LAM, I_ONE_L, I_C_S = 35, 36, 37
+I_INV_LAM, I_ONE_L, I_C_S = 33, 34, 35
 # trace bound: guard shift of the diagonal, lambda trace_max at the trace's scale,
 # limit of lambda trace_max 2^e, shift of tr c
-I_TR_PS, I_TMAX, I_TMAX_LIM, I_TC_S = 38, 39, 40, 41
+I_TR_PS, I_TMAX, I_TMAX_LIM, I_TC_S = 36, 37, 38, 39
 # windup test: shift of h~ c, pre-shift of h_i w_i, of (tr P - lambda trace_max) d,
 # scale difference of the two sides at e = 0
-I_HC_S, I_VW_PS, I_LHS_PS, I_CMP_DF = 42, 43, 44, 45
+I_HC_S, I_VW_PS, I_LHS_PS, I_CMP_DF = 40, 41, 42, 43
 # block exponent: largest e, and tr P~ is kept in (TR_HI/2, TR_HI] once e > 0
-I_E_MAX, I_TR_HI = 46, 47
-NPARAM = 48
+I_E_MAX, I_TR_HI = 44, 45
+NPARAM = 46
 
 
 # ------------------------------------------------------- Q-format arithmetic
@@ -243,7 +246,6 @@ def _half(s: int) -> int:  # pragma: no cover - compiled
     return np.int64(0)
 
 
-
 @numba.njit(cache=True, nogil=True, inline="always")
 def _rsh(x: int, s: int) -> int:  # pragma: no cover - compiled
     """Rounding right shift for ``0 <= s <= 62`` (``x`` itself for ``s = 0``)."""
@@ -286,10 +288,10 @@ def fixed_block(
     scale : ndarray of int64, shape (2,)
         ``[e, c]``: block exponent and forgetting scale (module docstring),
         updated in place.
-    work : ndarray of int64, shape (8, n)
-        Scratch rows: ``phi`` (saturated input), ``phi`` pre-shifted for ``eps``,
-        ``h`` and ``s``, ``h~``, ``w~``, ``K`` and an accumulator row. On return
-        ``work[6]`` holds the gain of the last row (zeros when it was not applied).
+    work : ndarray of int64, shape (6, n)
+        Scratch rows: ``phi`` (saturated input), ``phi >> ps`` (the guard shift),
+        ``h~``, ``w~``, ``K`` and an accumulator row. On return ``work[4]`` holds the
+        gain of the last row (zeros when it was not applied).
     counts : ndarray of int64, shape (NSITES,)
         Saturation counters, incremented in place.
     prm : ndarray of int64, shape (NPARAM,)
@@ -314,13 +316,11 @@ def fixed_block(
     """
     n = theta.shape[0]
     phi = work[0]
-    phe = work[1]
-    phh = work[2]
-    phs = work[3]
-    h = work[4]
-    w = work[5]
-    K = work[6]
-    acc = work[7]
+    phg = work[1]
+    h = work[2]
+    w = work[3]
+    K = work[4]
+    acc = work[5]
     # ---- the plan, as locals
     phi_lo = prm[I_PHI_LO]
     phi_hi = prm[I_PHI_HI]
@@ -341,12 +341,10 @@ def fixed_block(
     P_lo = prm[I_P_LO]
     P_hi = prm[I_P_HI]
     l_hi = prm[I_L_HI]
-    eps_ps = prm[I_EPS_PS]
+    phi_ps = prm[I_PHI_PS]
     eps_ts = prm[I_EPS_TS]
     eps_os = prm[I_EPS_OS]
-    h_ps = prm[I_H_PS]
     h_os = prm[I_H_OS]
-    s_ps = prm[I_S_PS]
     s_os = prm[I_S_OS]
     sc_s = prm[I_SC_S]
     lam_d = prm[I_LAM_D]
@@ -397,10 +395,8 @@ def fixed_block(
             v = min(max(x, phi_lo), phi_hi)
             c_phi += v != x
             phi[j] = v
-            # phi >> ps: the guard bits of the three multiply-accumulates
-            phe[j] = _rsh(v, eps_ps)
-            phh[j] = _rsh(v, h_ps)
-            phs[j] = _rsh(v, s_ps)
+            # phi >> ps: the guard bits of the multiply-accumulates
+            phg[j] = _rsh(v, phi_ps)
         x = Y[k]
         yk = min(max(x, y_lo), y_hi)
         c_y += yk != x
@@ -408,7 +404,7 @@ def fixed_block(
         # eps = y - phi' theta
         a = (yk << eps_ts) if eps_ts >= 0 else _rsh(yk, -eps_ts)
         for j in range(n):
-            a -= phe[j] * theta[j]
+            a -= phg[j] * theta[j]
         eps, cc = store(a, eps_os, eps_lo, eps_hi)
         c_eps += cc
 
@@ -422,13 +418,13 @@ def fixed_block(
                 for i in range(n):
                     acc[i] = 0
                 for i in range(n):
-                    pi_ = phh[i]
+                    pi_ = phg[i]
                     # h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i
                     a = acc[i] + P[i, i] * pi_
                     for j in range(i + 1, n):
                         Pij = P[i, j]
                         # P_ij phi_j -> h_i ;  P_ji phi_i = P_ij phi_i -> h_j
-                        a += Pij * phh[j]
+                        a += Pij * phg[j]
                         acc[j] += Pij * pi_
                     v, cc = store(a, h_os, h_lo, h_hi)
                     c_h += cc
@@ -439,7 +435,7 @@ def fixed_block(
                 for i in range(n):
                     a = np.int64(0)
                     for j in range(n):
-                        a += P[i, j] * phh[j]
+                        a += P[i, j] * phg[j]
                     v, cc = store(a, h_os, h_lo, h_hi)
                     c_h += cc
                     h[i] = v
@@ -449,7 +445,7 @@ def fixed_block(
                     for i in range(n):
                         acc[i] = 0
                     for j in range(n):
-                        pj = phh[j]
+                        pj = phg[j]
                         for i in range(n):
                             acc[i] += P[j, i] * pj
                     for i in range(n):
@@ -460,7 +456,7 @@ def fixed_block(
             # s~ = phi' h~, brought from the scale of P (exponent e) to that of lambda
             a = np.int64(0)
             for i in range(n):
-                a += phs[i] * h[i]
+                a += phg[i] * h[i]
             st, cc = store(_rsh(a, e), s_os, den_lo, den_hi)
             c_den += cc
             # s = phi' P phi = c s~
@@ -699,13 +695,11 @@ def reference_block(
         flag = 0
         phi = [sat(int(x), p[I_PHI_LO], p[I_PHI_HI], S_PHI) for x in row]
         y = sat(int(y_raw), p[I_Y_LO], p[I_Y_HI], S_Y)
-        phe = [rsh(x, p[I_EPS_PS]) for x in phi]
-        phh = [rsh(x, p[I_H_PS]) for x in phi]
-        phs = [rsh(x, p[I_S_PS]) for x in phi]
+        phg = [rsh(x, p[I_PHI_PS]) for x in phi]
         # eps = y - phi' theta
         a = chk(y * (1 << p[I_EPS_TS]) if p[I_EPS_TS] >= 0 else rsh(y, -p[I_EPS_TS]))
         for j in range(n):
-            a = chk(a - mul(phe[j], theta[j]))
+            a = chk(a - mul(phg[j], theta[j]))
         eps = put(a, p[I_EPS_OS], p[I_EPS_LO], p[I_EPS_HI], S_EPS)
         # h~ = P~ phi ; w~ = P~' phi
         h: list[int] = []
@@ -713,7 +707,7 @@ def reference_block(
         for i in range(n):
             a = 0
             for j in range(n):
-                a = chk(a + mul(Pget(i, j), phh[j]))
+                a = chk(a + mul(Pget(i, j), phg[j]))
             h.append(put(a, p[I_H_OS], p[I_H_LO], p[I_H_HI], S_H))
         if mode != MODE_LITERAL:
             w = list(h)
@@ -721,12 +715,12 @@ def reference_block(
             for i in range(n):
                 a = 0
                 for j in range(n):
-                    a = chk(a + mul(Pget(j, i), phh[j]))
+                    a = chk(a + mul(Pget(j, i), phg[j]))
                 w.append(put(a, p[I_H_OS], p[I_H_LO], p[I_H_HI], S_H))
         # s~ = phi' h~ at lambda's scale ; s = c s~
         a = 0
         for i in range(n):
-            a = chk(a + mul(phs[i], h[i]))
+            a = chk(a + mul(phg[i], h[i]))
         if e > 0:
             chk(a + (1 << (e - 1)))
         st = put(rsh(a, e), p[I_S_OS], p[I_DEN_LO], p[I_DEN_HI], S_DEN)

@@ -111,12 +111,14 @@ Accumulators (guard bits)
 The multiply-accumulates (:math:`\varphi^\top\theta`, :math:`\tilde P\varphi`,
 :math:`\varphi^\top\tilde h`) sum ``n`` products in ``acc_bits``. They never overflow,
 by construction rather than by a check: the plan shifts the regressor operand right
-(rounded) by the smallest guard shift for which ``n`` products at the *largest
-representable* magnitudes of their words, plus the additive term and the final
-rounding constant, stay below ``2**(acc_bits-1)``. Because every operand is a
-saturated word this holds for every input, including a corrupted state; with 32-bit
-words and inputs and 64-bit accumulators it costs 3-4 of the 30 fraction bits of
-:math:`\varphi`, far below the LSB of the results. The ``acc`` counter is kept so
+(rounded, once per sample, shared by the three sums) by the smallest guard shift for
+which ``n`` products at the *largest representable* magnitudes of their words, plus
+the additive term and the final rounding constant, stay below ``2**(acc_bits-1)``
+(``constants["phi_ps"]``). Because every operand is a saturated word this holds for
+every input, including a corrupted state; with 32-bit words and inputs and 64-bit
+accumulators it costs 4-5 of the 30 fraction bits of :math:`\varphi`, far below the
+LSB of the results. A configuration whose accumulator cannot hold the products at all
+(32-bit words with a 32-bit accumulator) is rejected. The ``acc`` counter is kept so
 every site is listed, and stays 0; the pure-Python reference
 :func:`canrls._rls_fixed.reference_block` asserts every accumulator value against
 ``acc_bits``.
@@ -160,7 +162,6 @@ for comparison.
 
 from __future__ import annotations
 
-import dataclasses
 import enum
 import math
 import operator
@@ -384,7 +385,9 @@ class FixedConfig:
         for name, lo, hi in (("word_bits", 8, 32), ("acc_bits", 16, 64), ("input_bits", 2, 32)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | np.integer) or not lo <= v <= hi:
-                raise FixedPointError(f"FixedConfig {name} must be an integer in {lo}..{hi}, got {v!r}")
+                raise FixedPointError(
+                    f"FixedConfig {name} must be an integer in {lo}..{hi}, got {v!r}"
+                )
             object.__setattr__(self, name, int(v))
         for name in _QUANTITIES:
             q = _as_qformat(name, getattr(self, name))
@@ -462,7 +465,8 @@ class FixedConfig:
         if not (math.isfinite(ym) and ym > 0):
             raise FixedPointError(f"y_max must be finite and > 0, got {y_max!r}")
         tm = 4.0 * ym / float(pm.min()) if theta_max is None else float(theta_max)
-        tr = n_i / alpha_f if trace_max is None or not math.isfinite(trace_max) else float(trace_max)
+        finite = trace_max is not None and math.isfinite(trace_max)
+        tr = float(trace_max) if finite else n_i / alpha_f  # type: ignore[arg-type]
         # bound on every |P_ij| (and on the largest eigenvalue of P)
         P_bar = 1.0 / alpha_f if lam_f == 1.0 else max(n_i / alpha_f, tr)
         phi_norm = float(np.sqrt(np.sum(pm * pm)))
@@ -567,9 +571,7 @@ class FixedConfig:
     def __str__(self) -> str:
         lines = [f"FixedConfig {self.label}"]
         for name, q in self.formats().items():
-            lines.append(
-                f"  {name:<6} {q!s:<8} {q.bits:>2} bit  lsb {q.lsb:.3g}  max {q.max:.6g}"
-            )
+            lines.append(f"  {name:<6} {q!s:<8} {q.bits:>2} bit  lsb {q.lsb:.3g}  max {q.max:.6g}")
         return "\n".join(lines)
 
 
@@ -688,19 +690,26 @@ def _build_plan(
         put(lo_i, f"{name}_lo", q.lo)
         put(lo_i + 1, f"{name}_hi", q.hi)
 
-    # eps = y - (phi >> ps)' theta
-    ps, ts, os = _mac(A, cfg.phi, cfg.theta, n, cfg.eps, cfg.y)
-    put(_k.I_EPS_PS, "eps_ps", ps)
-    put(_k.I_EPS_TS, "eps_ts", ts)
-    put(_k.I_EPS_OS, "eps_os", os)
-    # h~ = P~ (phi >> ps)
-    ps, _, os = _mac(A, cfg.phi, cfg.P, n, cfg.h)
-    put(_k.I_H_PS, "h_ps", ps)
-    put(_k.I_H_OS, "h_os", os)
-    # s~ = (phi >> ps)' h~ >> e   (one extra guard bit: the sum is rounded by e bits)
-    ps, _, os = _mac(A, cfg.phi, cfg.h, n, cfg.den, extra=1)
-    put(_k.I_S_PS, "s_ps", ps)
-    put(_k.I_S_OS, "s_os", os)
+    # the guard shift of phi: the largest the three multiply-accumulates need,
+    #   eps = y - (phi >> ps)' theta ;  h~ = P~ (phi >> ps) ;  s~ = (phi >> ps)' h~ >> e
+    # (s~ keeps one extra guard bit: the sum is then rounded by e bits)
+    ps = max(
+        _mac(A, cfg.phi, cfg.theta, n, cfg.eps, cfg.y)[0],
+        _mac(A, cfg.phi, cfg.P, n, cfg.h)[0],
+        _mac(A, cfg.phi, cfg.h, n, cfg.den, extra=1)[0],
+    )
+    if ps >= cfg.phi.bits - 1:
+        raise FixedPointError(
+            f"a {A}-bit accumulator cannot sum {n} products of phi {cfg.phi} "
+            f"({cfg.phi.bits} bit) with {cfg.P.bits}-bit words: the guard shift {ps} "
+            f"leaves no bit of phi"
+        )
+    put(_k.I_PHI_PS, "phi_ps", ps)
+    fa = cfg.phi.frac - ps + cfg.theta.frac
+    put(_k.I_EPS_TS, "eps_ts", fa - cfg.y.frac)
+    put(_k.I_EPS_OS, "eps_os", fa - cfg.eps.frac)
+    put(_k.I_H_OS, "h_os", cfg.phi.frac - ps + cfg.P.frac - cfg.h.frac)
+    put(_k.I_S_OS, "s_os", cfg.phi.frac - ps + cfg.h.frac - cfg.den.frac)
     # s = c s~ ; lambda and 1 in the den format
     put(_k.I_SC_S, "sc_s", cfg.lam.frac)
     lam_d = cfg.den.to_int(Fraction(lam))
@@ -1037,7 +1046,9 @@ class FixedRLS:
         lam_f = _check_lam(lam)
         alpha_f = _check_alpha(alpha)
         if update not in _UPDATES:
-            raise EstimatorError(f"FixedRLS update must be one of {sorted(_UPDATES)}, got {update!r}")
+            raise EstimatorError(
+                f"FixedRLS update must be one of {sorted(_UPDATES)}, got {update!r}"
+            )
         if trace_max is None:
             tm = n_i / alpha_f
         else:
@@ -1063,7 +1074,7 @@ class FixedRLS:
         self._theta = np.zeros(n_i, np.int64)
         self._P = np.zeros((n_i, n_i), np.int64)
         self._scale = np.zeros(2, np.int64)  # [e, c]
-        self._work = np.zeros((8, n_i), np.int64)
+        self._work = np.zeros((6, n_i), np.int64)
         self._counts = np.zeros(len(SITES), np.int64)
         self._frozen = False
         self.count = 0
@@ -1263,8 +1274,18 @@ class FixedRLS:
         -------
         FixedStep
         """
-        self._phi1[0] = _int_array("phi_int", phi_int, (self._n,))
-        self._y1[0] = _int_array("y_int", y_int, ())
+        if (
+            type(phi_int) is np.ndarray
+            and phi_int.dtype == np.int64
+            and phi_int.shape == (self._n,)
+        ):
+            self._phi1[0] = phi_int  # the common case, without conversions
+        else:
+            self._phi1[0] = _int_array("phi_int", phi_int, (self._n,))
+        if type(y_int) is int and -(1 << 63) <= y_int < (1 << 63):
+            self._y1[0] = y_int
+        else:
+            self._y1[0] = _int_array("y_int", y_int, ())
         self.count += _k.fixed_block(
             self._phi1, self._y1, self._theta, self._P, self._scale, self._work, self._counts,
             self._plan, self._mode, self._frozen, False,
@@ -1272,7 +1293,7 @@ class FixedRLS:
         )  # fmt: skip
         return FixedStep(
             eps=int(self._eps1[0]),
-            K=self._work[6].copy(),
+            K=self._work[4].copy(),
             theta=self._theta.copy(),
             trace_P=int(self._tr1[0]),
             P_exp=int(self._exp1[0]),
@@ -1411,16 +1432,20 @@ class FixedRLS:
                 )
             target[...] = src
         e = get("P_exp")
-        if isinstance(e, bool) or not isinstance(e, int | np.integer) or not (
-            0 <= int(e) <= rls._named["e_max"]
+        if (
+            isinstance(e, bool)
+            or not isinstance(e, int | np.integer)
+            or not (0 <= int(e) <= rls._named["e_max"])
         ):
             raise CheckpointError(
                 f"FixedRLS checkpoint key 'P_exp' = {e!r} is not an integer in "
                 f"0..{rls._named['e_max']}"
             )
         c = get("P_scale")
-        if isinstance(c, bool) or not isinstance(c, int | np.integer) or not (
-            0 < int(c) <= rls._named["one_lam"]
+        if (
+            isinstance(c, bool)
+            or not isinstance(c, int | np.integer)
+            or not (0 < int(c) <= rls._named["one_lam"])
         ):
             raise CheckpointError(
                 f"FixedRLS checkpoint key 'P_scale' = {c!r} is not an integer in "
@@ -1538,12 +1563,16 @@ class SweepResult:
         }
 
     def __str__(self) -> str:
-        head = f"{'config':<16} {'word':>4} {'acc':>4} {'input':>5} {'max rel err':>12}  {'ok':<3} saturations"
+        head = (
+            f"{'config':<16} {'word':>4} {'acc':>4} {'input':>5} {'max rel err':>12}  "
+            f"{'ok':<3} saturations"
+        )
         lines = [head, "-" * len(head)]
         for r in self.rows:
             c = r.config
             if c is None:
-                lines.append(f"{r.label:<16} {'':>4} {'':>4} {'':>5} {'n/a':>12}  {'no':<3} {r.error}")
+                blank = f"{'':>4} {'':>4} {'':>5}"
+                lines.append(f"{r.label:<16} {blank} {'n/a':>12}  {'no':<3} {r.error}")
                 continue
             sat = ", ".join(f"{k}={v}" for k, v in r.saturations.nonzero().items()) or "-"
             lines.append(
