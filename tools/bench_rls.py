@@ -141,8 +141,41 @@ def bench_float(n: int, rows: int, padasip_rows: int, lam: float, repeat: int) -
     print(f"  ratio update / padasip         {per_sample / rate:10.1f} x")
 
 
-# Fixed point: a ``bench_fixed(n, rows, ...)`` section for canrls.fixed.FixedRLS
-# goes here, called from main() after bench_float (not imported here).
+def bench_fixed(n: int, rows: int, lam: float, repeat: int) -> None:
+    """Print the fixed-point section for one n: the same data, quantised at the boundary."""
+    from canrls.fixed import FixedConfig, FixedRLS
+
+    Phi, Y = make_data(rows, n, seed=n)
+    scale = float(np.abs(Phi).max())
+    Phi, Y = Phi / scale, Y / max(float(np.abs(Y).max()), 1e-300)
+    alpha = 1e-1
+    cfg = FixedConfig.auto(n, alpha, lam)
+    rls = FixedRLS(cfg, n, lam, alpha)
+    Pq, Yq, _ = rls.quantize_inputs(Phi, Y)
+    rls.run(Pq[:10], Yq[:10], record=False)  # compile or load the cache outside the timing
+
+    def run_block() -> None:
+        rls.run(Pq, Yq, record=False)
+
+    batch = best_rate(run_block, rows, repeat)
+    m = min(rows, 100_000)
+    items = [(Pq[k], int(Yq[k])) for k in range(m)]
+
+    def per_sample() -> None:
+        for phi, y in items:
+            rls.update(phi, y)
+
+    single = best_rate(per_sample, m, max(1, repeat // 2))
+    # the per-sample path and the block path give the same integers
+    a = FixedRLS(cfg, n, lam, alpha)
+    b = FixedRLS(cfg, n, lam, alpha)
+    a.run(Pq[:5000], Yq[:5000], record=False)
+    for k in range(5000):
+        b.update(Pq[k], int(Yq[k]))
+    same = bool(np.array_equal(a.theta, b.theta) and np.array_equal(a.P, b.P))
+    print(f"  FixedRLS.update, per sample    {single / 1e3:10.1f} k updates/s  ({m})")
+    print(f"  FixedRLS.run {cfg.label:<17} {batch / 1e6:10.2f} M updates/s"
+          f"  (per-sample == block: {same})")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -166,6 +199,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--rows, --padasip-rows and --repeat must be >= 1")
     for n in (4, 8):
         bench_float(n, args.rows, min(args.padasip_rows, args.rows), args.lam, args.repeat)
+        bench_fixed(n, args.rows, args.lam, args.repeat)
     return 0
 
 
