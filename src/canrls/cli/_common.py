@@ -32,7 +32,8 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                    help="torque constant Kt [N·m/A] (linear: N/A); without it the target is "
                         "the current and parameters are per ampere")
     g.add_argument("--lambda", dest="lam", type=float, metavar="L",
-                   help="forgetting factor in (0.5, 1]; 1 keeps all data (default 1 offline; the daemon defaults to [daemon] lambda)")
+                   help="forgetting factor in (0.5, 1] (default 1: all data weigh the same; "
+                        "below 1 the estimate tracks changes, memory 1/(1-L) samples)")
     g.add_argument("--alpha", type=float, metavar="A",
                    help="ridge weight, P0 = I/alpha, normalised units (default 0.1)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")

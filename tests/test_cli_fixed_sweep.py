@@ -1,0 +1,45 @@
+"""`canrls fixed-sweep`: error against word length, with a recommendation."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from canrls.cli.main import main
+from canrls.logs import write_candump
+from canrls.sim.scenario import scenario, simulate
+
+
+def test_sweep_on_a_log_recommends_a_configuration(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    res = simulate(scenario("standard", effects="inertia,viscous,coulomb,offset", seed=2,
+                            duration=12.0))
+    log = tmp_path / "drive.log"
+    write_candump(log, [res.frames])
+    assert main(["fixed-sweep", str(log), "--kt", "0.1", "--effects",
+                 "inertia,viscous,coulomb,offset", "--word", "16,32", "--acc", "64",
+                 "--input", "16,32", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    mech = d["equations"]["mechanical"]
+    rows = {r["label"]: r for r in mech["rows"]}
+    assert set(rows) == {"W16/A64/I16", "W16/A64/I32", "W32/A64/I16", "W32/A64/I32"}
+    # 32-bit state meets 0.1 %; 16-bit state does not; the smallest that meets it wins
+    assert rows["W32/A64/I32"]["ok"] and rows["W32/A64/I32"]["max_rel_error"] < 1e-3
+    assert not rows["W16/A64/I16"]["ok"]
+    assert mech["recommended"] == "W32/A64/I16"
+    assert mech["parameters"] == ["inertia.J", "viscous.B", "coulomb.Tc", "offset.T0"]
+    # text mode prints the table and the chosen Q formats
+    assert main(["fixed-sweep", str(log), "--kt", "0.1", "--effects",
+                 "inertia,viscous,coulomb,offset", "--word", "32", "--acc", "64",
+                 "--input", "32"]) == 0
+    out = capsys.readouterr().out
+    assert "recommended: W32/A64/I32" in out and "Q formats:" in out
+
+
+def test_sweep_on_a_scenario(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["fixed-sweep", "--scenario", "standard", "--duration", "8", "--kt", "0.1",
+                 "--word", "24,32", "--acc", "64", "--input", "32", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["equations"]["mechanical"]["recommended"] in ("W24/A64/I32", "W32/A64/I32")
