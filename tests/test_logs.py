@@ -95,3 +95,131 @@ def test_progress_reaches_the_end(tmp_path: Path) -> None:
     seen: list[tuple[int, int]] = []
     list(read_frames(path, chunk_size=100, progress=lambda d, t: seen.append((d, t))))
     assert len(seen) > 1 and seen[-1][0] == seen[-1][1] == path.stat().st_size
+
+
+# ----------------------------------------------------------------- compiled candump paths
+
+
+def _per_line(path: Path) -> tuple[FrameBlock, int, int]:
+    """Reference: every line through the per-line reader (python-can's rules).
+
+    Returns the frames, the number of lines and of unreadable lines.
+    """
+    from canrls.logs import _parse_candump_line
+
+    raw = path.read_bytes().split(b"\n")
+    if raw[-1] == b"":
+        raw.pop()
+    msgs, bad = [], 0
+    for line in raw:
+        text = line.removesuffix(b"\r").decode("ascii", errors="replace")
+        if not text.strip() or text.lstrip().startswith("#"):
+            continue
+        try:
+            msgs.append(_parse_candump_line(text))
+        except ValueError:
+            bad += 1
+    return FrameBlock.from_messages(msgs), len(raw), bad
+
+
+def _identical(a: FrameBlock, b: FrameBlock) -> None:
+    assert len(a) == len(b)
+    for name in ("t", "arbitration_id", "is_extended", "is_remote", "is_error", "dlc"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    w = max(a.data.shape[1], b.data.shape[1])
+    np.testing.assert_array_equal(np.pad(a.data, ((0, 0), (0, w - a.data.shape[1]))),
+                                  np.pad(b.data, ((0, 0), (0, w - b.data.shape[1]))))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_reader_agrees_with_the_per_line_reader_on_damaged_lines(
+        tmp_path: Path, seed: int) -> None:
+    """Regular lines (one layout) with single bytes damaged: every line, whichever path
+    takes it, reads as the per-line reader reads it; damaged lines are counted."""
+    rng = np.random.default_rng(seed)
+    n = 2000
+    t = np.cumsum(rng.integers(1, 300, n)) * 1e-4 + [0.0, 9.9, 99999.0][seed % 3]
+    end = "\r" if seed % 2 else ""
+    lines = [f"({t[k]:.6f}) can0 {'101' if k % 2 else '102'}#{rng.bytes(8).hex().upper()}{end}"
+             for k in range(n)]
+    alphabet = b"0123456789abcdefABCDEFxyz .#()R\r\t-+e"
+    for k in rng.choice(n, 80, replace=False):
+        b = bytearray(lines[k].encode())
+        b[rng.integers(0, len(b))] = alphabet[rng.integers(0, len(alphabet))]
+        lines[k] = b.decode()
+    lines[5] = "(1.0) can1 101#0011"           # another channel and length
+    lines[6] = lines[7].replace("can0", "can1")  # another channel, same length
+    path = tmp_path / "damaged.log"
+    path.write_bytes(("\n".join(lines) + ("\n" if seed % 3 else "")).encode())
+    ref, n_lines, n_bad = _per_line(path)
+    for chunk in (1, 7, 999, 65536):
+        stats = LogReadStats()
+        got = FrameBlock.concat(read_frames(path, chunk, skip_bad_lines=True, stats=stats))
+        _identical(got, ref)
+        assert (stats.frames, stats.lines, stats.bad_lines) == (len(ref), n_lines, n_bad)
+        assert stats.bytes_read == path.stat().st_size
+
+
+def test_candump_odd_but_valid_lines_follow_python_can(tmp_path: Path) -> None:
+    path = tmp_path / "odd.log"
+    path.write_bytes(
+        b"(1700000000.123456) can0 101#0a0b\r\n"       # CRLF, lower-case hex
+        b"(1.1111111111111111111111111) can0 101#\n"    # more digits than a double holds
+        b"(123456789012345678.5) can0 1FFFFFFF#01\n"    # beyond 2**53
+        b"(7) vcan1 7FF#0102030405060708\n"             # no fraction
+        b"(.5) can0 123#11\n"                           # no integer part
+        b"(2.5) can0 12345678##0001122334455667788990011\n"  # CAN FD, 12 bytes
+        b"(3.25) can0 101#R\n"                          # remote
+        b"(4.0) can0 101#00")                           # no newline at the end
+    got = FrameBlock.concat(read_frames(path, chunk_size=3)).to_messages()
+    ref = list(can.LogReader(str(path)))
+    assert len(got) == len(ref) == 8
+    for a, b in zip(got, ref, strict=True):
+        assert a.timestamp == b.timestamp  # bit-identical
+        assert a.equals(b, timestamp_delta=None, check_channel=False), (a, b)
+
+
+def test_candump_line_longer_than_the_read_buffer(tmp_path: Path) -> None:
+    path = tmp_path / "long.log"
+    path.write_text("(1.0) can0 101#01\n# " + "x" * 300_000 + "\n(2.0) can0 102#02\n")
+    stats = LogReadStats()
+    got = FrameBlock.concat(read_frames(path, chunk_size=2, stats=stats))
+    assert got.t.tolist() == [1.0, 2.0] and stats.lines == 3
+
+
+def _format_reference(block: FrameBlock, channel: str) -> str:
+    """candump lines as ``f"({t:f}) {channel} {id}#{data}"`` writes them."""
+    out = []
+    for k in range(len(block)):
+        cid = int(block.arbitration_id[k])
+        if block.is_error[k]:
+            ids = f"{cid | 0x20000000:08X}"
+        else:
+            ids = f"{cid:08X}" if block.is_extended[k] else f"{cid:03X}"
+        n = int(block.dlc[k])
+        body = block.data[k, :n].tobytes().hex().upper()
+        body = "R" if block.is_remote[k] else ("#0" + body if n > 8 else body)
+        out.append(f"({block.t[k]:f}) {channel} {ids}#{body}\n")
+    return "".join(out)
+
+
+@pytest.mark.parametrize("width", [8, 64])
+def test_write_candump_formats_as_python_does(tmp_path: Path, width: int) -> None:
+    rng = np.random.default_rng(width)
+    n = 20_000
+    b = FrameBlock.allocate(n, width)
+    b.t[:] = np.cumsum(rng.integers(1, 2000, n)) * 1e-6 + rng.choice([0.0, 1.7e9, 12.3456785])
+    b.t[::7] = np.round(b.t[::7], 6) + 5e-7          # halfway between two microseconds
+    b.t[::11] = rng.integers(0, 10**6, len(b.t[::11])) / 2**20  # exact binary fractions
+    b.arbitration_id[:] = rng.choice([0x0, 0x101, 0x7FF, 0x1234, 0x1FFFFFFF], n)
+    b.is_extended[:] = rng.random(n) < 0.3
+    b.is_error[:] = rng.random(n) < 0.05
+    b.is_remote[:] = rng.random(n) < 0.05
+    b.dlc[:] = rng.integers(0, width + 1, n)
+    b.data[:] = rng.integers(0, 256, (n, width))
+    path = tmp_path / "w.log"
+    assert write_candump(path, [b.take(slice(0, 1234)), b.take(slice(1234, n))], "vcan0") == n
+    assert path.read_text() == _format_reference(b, "vcan0")
+    b.t[3] = -1.25  # negative timestamps take Python's formatting
+    write_candump(path, [b], "vcan0")
+    assert path.read_text() == _format_reference(b, "vcan0")

@@ -12,6 +12,8 @@ two frames per period: one hour is 7.2 M frames), in one run:
     signal ranges (a second pass over the log; configured ranges skip it),
   - ``fit_log``: read, decode, pair, regressors, float and fixed-point RLS -- the
     figure the issue's target (>= 1 M frames/s) is about;
+  - ``write_candump`` re-writing the frames read (the read time subtracted), and
+    whether that gives the log back byte for byte;
 
 * the straightforward loop: ``can.LogReader`` -> ``cantools`` ``decode_message`` ->
   pairing by alive counter in a dict -> regressors per sample in Python ->
@@ -159,7 +161,35 @@ def bench_canrls(path: Path, effects: str, repeat: int,
           f"float and fixed-point RLS, {len(res.parameters)} parameters; "
           f"{'target >= 1 M frames/s met' if frames / wall >= 1e6 else 'BELOW 1 M frames/s'}"
           f" on the wall clock)")
+    # the writer, on the same frames: read + write, minus the read
+    w_wall, w_cpu, same = best_of(lambda: rewrite(path, chunk_size), 1)
+    r_wall, r_cpu, _ = best_of(read, 1)
+    print(line("write_candump (read time subtracted)", frames, max(w_wall - r_wall, 1e-9),
+               max(w_cpu - r_cpu, 1e-9)))
+    print(f"  (the re-written log is {'byte for byte' if same else 'NOT'} the original)")
     return res.frames, wall, cpu
+
+
+def rewrite(path: Path, chunk_size: int) -> bool:
+    """Read the log and write it again with write_candump; True if the bytes are the same."""
+    out = path.with_name(path.name + ".rewrite")
+    try:
+        write_candump(out, read_frames(path, chunk_size))
+        return same_bytes(path, out)
+    finally:
+        out.unlink(missing_ok=True)
+
+
+def same_bytes(a: Path, b: Path) -> bool:
+    if a.stat().st_size != b.stat().st_size:
+        return False
+    with open(a, "rb") as fa, open(b, "rb") as fb:
+        while True:
+            x, y = fa.read(1 << 22), fb.read(1 << 22)
+            if x != y:
+                return False
+            if not x:
+                return True
 
 
 # ------------------------------------------------------------------- the naive loop
@@ -217,11 +247,11 @@ def bench_naive(path: Path, max_frames: int, effects: str, total: int) -> tuple[
     except ImportError:
         print("naive loop: padasip is not installed (pip install canrls[bench])")
         return math.nan, math.nan
-    w0, c0 = time.perf_counter(), time.process_time()
-    frames, samples, _ = naive_loop(path, max_frames, effects)
-    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    wall, cpu, (frames, samples, _) = best_of(
+        lambda: naive_loop(path, max_frames, effects), 1)
     print(f"naive loop (can.LogReader -> cantools decode_message -> padasip FilterRLS.adapt), "
-          f"run on the first {frames} frames ({samples} samples) and extrapolated:")
+          f"run on the first {frames} frames ({samples} samples; timed after a warm-up run) "
+          f"and extrapolated:")
     print(line(f"{frames} frames", frames, wall, cpu))
     scale = total / frames
     print(f"  extrapolated to {total} frames: {wall * scale:.0f} s "
@@ -244,25 +274,38 @@ def rss_child(path: Path, effects: str, chunk_size: int) -> None:
         proc.process(b)
         break
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    now = current_rss_kb()
     protocol, model, settings = configure(path, effects)
     res = fit_log(path, protocol, model, settings, chunk_size=chunk_size)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(json.dumps({"frames": res.frames, "base_kb": base, "peak_kb": peak}))
+    print(json.dumps({"frames": res.frames, "base_kb": base, "now_kb": now, "peak_kb": peak}))
 
 
-def bench_memory(logs: list[tuple[float, Path]], effects: str, chunk_size: int) -> None:
+def current_rss_kb() -> int | None:
+    """Resident set size now [kB] (Linux ``/proc/self/status``), or None."""
+    try:
+        with open("/proc/self/status") as f:
+            for text in f:
+                if text.startswith("VmRSS:"):
+                    return int(text.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def bench_memory(logs: list[tuple[str, Path]], effects: str, chunk_size: int) -> None:
     print("memory (peak RSS, resource.getrusage ru_maxrss, of a fresh process: imports, "
           "kernels compiled, then prepare (prescan) + fit_log):")
-    for duration, path in logs:
+    for label, path in logs:
         out = subprocess.run(
             [sys.executable, os.path.abspath(__file__), "--rss-child", str(path),
              "--effects", effects, "--chunk-size", str(chunk_size)],
             check=True, capture_output=True, text=True)
         d = json.loads(out.stdout.strip().splitlines()[-1])
-        print(f"  {duration / 60:5.0f} min log ({d['frames'] / 1e6:4.1f} M frames):  "
-              f"peak {d['peak_kb'] / 1024:6.1f} MB  (before the replay "
-              f"{d['base_kb'] / 1024:6.1f} MB: the replay adds "
-              f"{(d['peak_kb'] - d['base_kb']) / 1024:5.1f} MB)")
+        now = "" if d["now_kb"] is None else f"RSS {d['now_kb'] / 1024:.1f} MB, "
+        print(f"  {label:>10} ({d['frames'] / 1e6:4.1f} M frames):  "
+              f"peak RSS {d['peak_kb'] / 1024:6.1f} MB   (before the replay: {now}"
+              f"peak {d['base_kb'] / 1024:.1f} MB)")
 
 
 # ---------------------------------------------------------------------------- main
@@ -305,8 +348,8 @@ def main(argv: list[str] | None = None) -> int:
             short = args.duration / 6
             spath = log_path(short, args.seed, args.effects)
             ensure_log(spath, short, args.seed, args.effects)
-            logs.append((short, spath))
-        logs.append((args.duration, path))
+            logs.append((f"{short / 60:g} min log", spath))
+        logs.append((f"{args.duration / 60:g} min log" if args.log is None else path.name, path))
         bench_memory(logs, args.effects, args.chunk_size)
     return 0
 

@@ -1,19 +1,23 @@
 """Compiled candump kernels: bytes -> frame arrays, and frame arrays -> bytes.
 
-Private to :mod:`canrls.logs`. Both kernels handle the common layout only and leave
-everything else to the per-line Python path there, which follows python-can:
+Private to :mod:`canrls.logs`, which keeps a per-line Python path (following
+python-can) for whatever these do not take:
 
 parse
     ``(SECONDS.FRACTION) CHANNEL ID#DATA`` with a 3- or 8-digit hex ID and 0..8 data
     bytes, single spaces, an optional ``\\r`` before the ``\\n``. The timestamp is
-    exact: the digits form an integer ``N < 2**53`` and ``N / 10**d`` is one correctly
-    rounded division of two exact doubles, which is what ``float("SECONDS.FRACTION")``
-    returns. Any other non-blank line (remote ``R``, CAN FD ``##``, error-flag bits in
-    a 3-digit ID, odd spacing, comments, junk) is handed back as a "slow" line, with
-    the row it belongs before, so that the caller keeps the file's order.
+    exact: its (at most 15) digits form an integer ``N < 2**53``, and ``N / 10**d`` is
+    one correctly rounded division of two exact doubles, which is what
+    ``float("SECONDS.FRACTION")`` returns. Any other non-blank line (remote ``R``, CAN
+    FD ``##``, IDs of other lengths, longer timestamps, odd spacing, comments, junk) is
+    handed back as a "slow" line, with the row it belongs before, so that the caller
+    keeps the file's order. A line with the layout of the line before it (the same
+    length and separators at the same places, as almost every line of a log) is read
+    at fixed offsets, every byte still checked.
 format
     one line per frame exactly as ``f"({t:f}) {channel} {id}#{data}\\n"`` writes it;
-    the timestamp arrives already split into exact integer seconds and microseconds.
+    the timestamp arrives already split into exact integer seconds and microseconds
+    (negative or huge timestamps are formatted in Python).
 """
 
 from __future__ import annotations
@@ -64,14 +68,82 @@ def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,
     rows = 0
     nslow = 0
     lines = 0
+    # layout of the last line parsed, relative to its start ``lay_p``: lines of a log
+    # mostly share it, and a line that has it (checked byte by byte) is read at fixed
+    # offsets without searching. lay_nl < 0: none yet.
+    lay_p = 0
+    lay_nl = -1
+    lay_cr = False
+    lay_dot = -1
+    lay_close = 0
+    lay_sp2 = 0
+    lay_hash = 0
     while p < stop and rows + nslow < cap:
+        if lay_nl >= 0:
+            nl = p + lay_nl
+            good = (nl < stop and buf[nl] == 10 and (buf[nl - 1] == 13) == lay_cr
+                    and buf[p] == 40 and buf[p + lay_close] == 41
+                    and buf[p + lay_close + 1] == 32 and buf[p + lay_sp2] == 32
+                    and buf[p + lay_hash] == 35)
+            num = 0
+            if good:
+                for i in range(1, lay_close):
+                    c = np.int64(buf[p + i])
+                    if i == lay_dot:
+                        if c != 46:
+                            good = False
+                            break
+                    elif 48 <= c <= 57:
+                        num = num * 10 + (c - 48)
+                    else:
+                        good = False
+                        break
+            if good:
+                for i in range(lay_close + 2, lay_sp2):  # the same channel
+                    if buf[p + i] != buf[lay_p + i]:
+                        good = False
+                        break
+            ident = 0
+            if good:
+                for i in range(lay_sp2 + 1, lay_hash):
+                    v = hexv[buf[p + i]]
+                    if v < 0:
+                        good = False
+                        break
+                    ident = ident * 16 + v
+            if good:
+                d0 = p + lay_hash + 1
+                nb = (lay_nl - lay_cr - lay_hash - 1) // 2
+                bad = 0
+                for j in range(nb):
+                    hi = hexv[buf[d0 + 2 * j]]
+                    lo = hexv[buf[d0 + 2 * j + 1]]
+                    bad |= hi | lo
+                    data[rows, j] = (hi * 16 + lo) & 255
+                if bad >= 0:
+                    for j in range(nb, 8):
+                        data[rows, j] = 0
+                    nid = lay_hash - lay_sp2 - 1
+                    frac = lay_close - lay_dot - 1 if lay_dot >= 0 else 0
+                    t[rows] = float(num) / pow10[frac]
+                    is_err = nid == 8 and (ident & CAN_ERR_FLAG) != 0
+                    aid[rows] = ident & EFF_MASK
+                    ext[rows] = nid == 8 and not is_err
+                    err[rows] = is_err
+                    dlc[rows] = nb
+                    rows += 1
+                    lines += 1
+                    lay_p = p
+                    p = nl + 1
+                    continue
         e = p
         while e < stop and buf[e] != 10:
             e += 1
         if e == stop and not final:
             break
         nxt = e + 1
-        if e > p and buf[e - 1] == 13:  # "\r\n"
+        cr = e > p and buf[e - 1] == 13
+        if cr:  # "\r\n"
             e -= 1
         ok = False
         # "(" digits [. digits] ")"
@@ -80,25 +152,27 @@ def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,
             num = 0
             nd = 0
             frac = 0
-            dot = False
+            dot = -1
             while q < e:
                 c = buf[q]
                 if 48 <= c <= 57:
                     num = num * 10 + (c - 48)
                     nd += 1
-                    frac += dot
-                elif c == 46 and not dot:
-                    dot = True
+                    frac += dot >= 0
+                elif c == 46 and dot < 0:
+                    dot = q - p
                 else:
                     break
                 q += 1
             if 0 < nd <= _MAX_DIGITS and q + 2 < e and buf[q] == 41 and buf[q + 1] == 32:
+                close = q - p
                 # " " channel (printable, no space) " "
                 q += 2
                 c0 = q
                 while q < e and 33 <= buf[q] <= 126:
                     q += 1
                 if c0 < q < e and buf[q] == 32:
+                    sp2 = q - p
                     # 3 or 8 hex digits "#"
                     q += 1
                     i0 = q
@@ -111,6 +185,7 @@ def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,
                         q += 1
                     nid = q - i0
                     if (nid == 3 or nid == 8) and q < e and buf[q] == 35:
+                        hash_ = q - p
                         # 0..8 data bytes, two hex digits each, to the end of the line
                         q += 1
                         nhex = e - q
@@ -134,6 +209,15 @@ def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,
                                 err[rows] = is_err
                                 dlc[rows] = nb
                                 ok = True
+                                if nxt <= stop:
+                                    # a newline ends it: remember the layout
+                                    lay_p = p
+                                    lay_nl = nxt - 1 - p
+                                    lay_cr = cr
+                                    lay_dot = dot
+                                    lay_close = close
+                                    lay_sp2 = sp2
+                                    lay_hash = hash_
         if e > p:
             if ok:
                 rows += 1

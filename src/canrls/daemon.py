@@ -854,7 +854,7 @@ class Daemon:
 
     # ------------------------------------------------------------------ model changes
     def _set_model(self, model: Model, why: str) -> None:
-        self._proc.pipeline = self._proc.pipeline.with_model(model)
+        self._proc.with_model(model)
         self._online_rms = [math.nan] * len(self._proc.pipeline.estimators)
         self._info_due = time.monotonic()  # tell monitors about the new parameters now
         self._publish_now = True

@@ -4,10 +4,14 @@ Formats
 -------
 ``.log``
     candump (``(1700000000.123456) can0 101#0011223344556677``). Parsed by canrls's
-    own reader, vectorised with numpy over lines of the same layout, because the
-    offline replay must reach millions of frames per second; lines of any other
-    layout (remote frames ``R``, CAN FD ``##``, odd spacing) take a per-line path that
-    follows python-can's ``CanutilsLogReader``. Both paths give the same frames.
+    own reader, because the offline replay must reach millions of frames per second:
+    the file is read into one reusable buffer and a compiled pass
+    (:mod:`canrls._candump`) turns the bytes into frame arrays; lines of any other
+    layout (remote frames ``R``, CAN FD ``##``, odd spacing, comments) take a per-line
+    path that follows python-can's ``CanutilsLogReader``, and keep their place in the
+    file. Both paths give the same frames, timestamps bit for bit
+    (``float("1700000000.123456")``). Writing is compiled too, and writes exactly what
+    ``f"({t:f}) {channel} {id}#{data}"`` would.
 ``.asc``, ``.blf``, ``.trc``, ``.csv`` (and anything else ``can.LogReader`` knows)
     read through python-can's readers, packed into blocks.
 
@@ -92,42 +96,49 @@ def _read_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats,
     """
     cap = max(1, int(chunk_size))
     # ~40 bytes per line in a typical classic-CAN candump file; a bit more so that one
-    # buffer usually fills a whole block
+    # buffer usually fills a whole block. Unparsed bytes are buf[start:fill].
     buf = np.empty(max(1 << 16, cap * 48), np.uint8)
-    fill = 0
+    start = fill = 0
     eof = False
+    need = True  # read before parsing (the buffer holds no complete line)
     line_no = 0
     slow = np.empty((cap, 4), np.int64)
     with open(path, "rb", buffering=0) as f:
         while True:
-            if not eof and fill < len(buf):
+            if not eof and (need or fill - start < len(buf) // 2):
+                if start:
+                    buf[:fill - start] = buf[start:fill]
+                    fill -= start
+                    start = 0
+                if fill == len(buf):  # a line longer than the buffer
+                    buf = np.concatenate([buf, np.empty(len(buf), np.uint8)])
                 got = f.readinto(memoryview(buf)[fill:])
-                if not got:
-                    eof = True
-                else:
+                if got:
                     fill += got
+                else:
+                    eof = True
+                need = False
+            view = buf[start:fill]
             b = FrameBlock(np.empty(cap, np.float64), np.empty(cap, np.uint32),
                            np.empty(cap, np.bool_), np.zeros(cap, np.bool_),
                            np.empty(cap, np.bool_), np.empty(cap, np.uint8),
                            np.empty((cap, 8), np.uint8))
             used, rows, nslow, nlines = _candump.parse(
-                buf, fill, eof, b.t, b.arbitration_id, b.is_extended, b.is_error, b.dlc,
-                b.data, slow)
+                view, len(view), eof, b.t, b.arbitration_id, b.is_extended, b.is_error,
+                b.dlc, b.data, slow)
             if used == 0:
                 if eof:
                     break
-                if fill == len(buf):  # a line longer than the buffer
-                    buf = np.concatenate([buf, np.empty(len(buf), np.uint8)])
+                need = True
                 continue
             block = b if rows == cap else b.take(slice(0, rows))
             if nslow:
-                block = _with_slow_lines(block, buf, slow[:nslow], path, line_no, skip_bad, st)
+                block = _with_slow_lines(block, view, slow[:nslow], path, line_no, skip_bad,
+                                         st)
             line_no += nlines
             st.lines += nlines
             st.bytes_read += used
-            if used < fill:
-                buf[:fill - used] = buf[used:fill]
-            fill -= used
+            start += used
             if len(block):
                 st.frames += len(block)
                 yield block

@@ -376,7 +376,11 @@ class Equation:
 
     def target_to_physical(self, y_norm: npt.ArrayLike) -> F64:
         """A normalised target or residual in the target unit: ``y * 2**s_y``."""
-        return np.ldexp(np.asarray(y_norm, dtype=np.float64), self.scaling.target)
+        s = self.scaling.target
+        if -1074 <= s <= 1023:
+            # multiplying by the exact power of two rounds once, as ldexp does (and faster)
+            return np.asarray(y_norm, dtype=np.float64) * math.ldexp(1.0, s)
+        return np.ldexp(np.asarray(y_norm, dtype=np.float64), s)
 
 
 class RegressorBuilder:
@@ -407,6 +411,7 @@ class RegressorBuilder:
         self._scale: F64 | None = None
         if np.all((self._neg_exp >= -1074) & (self._neg_exp <= 1023)):
             self._scale = np.ldexp(np.ones(len(self._neg_exp)), self._neg_exp)
+        self._raw = np.empty((0, equation.n + 1))
 
     @property
     def n(self) -> int:
@@ -444,7 +449,11 @@ class RegressorBuilder:
         eq = self.equation
         frame = self._frame(signals)
         n = len(frame.t)
-        raw = np.empty((n, eq.n + 1))
+        # unfiltered target and columns, in a buffer kept between blocks (it never leaves
+        # here; a fresh one per block would cost page faults)
+        if self._raw.shape[0] < n:
+            self._raw = np.empty((max(n, (self._raw.shape[0] * 3) // 2), eq.n + 1))
+        raw = self._raw[:n]
         tgt = frame.get(eq.target.signal)
         # target: Kt * i (torque), i, or u
         raw[:, 0] = tgt * eq.target.gain if eq.target.gain != 1.0 else tgt

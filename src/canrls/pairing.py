@@ -304,6 +304,7 @@ class Pairer:
         self._si = np.full(K, -2, np.int64)
         self._counts = np.zeros((len(PAIRING_KINDS), K), np.int64)
         self._samples = 0
+        self._scratch: dict[str, npt.NDArray[np.generic]] = {}
 
     @property
     def counts(self) -> PairingCounts:
@@ -325,27 +326,41 @@ class Pairer:
         """End of stream: emit the complete periods still waiting, drop the incomplete ones."""
         return self._run(None, flush=True)
 
+    def _work(self, name: str, n: int, width: int = 0,
+              dtype: type = np.float64) -> npt.NDArray[np.generic]:
+        """Scratch array ``name`` of ``n`` rows (and ``width`` columns), kept between
+        calls: large fresh arrays on every block cost page faults. Internal only: no
+        view of it leaves the pairer."""
+        a = self._scratch.get(name)
+        if a is None or a.shape[0] < n:
+            rows = max(n, (a.shape[0] * 3) // 2 if a is not None else n)
+            a = np.empty((rows, width) if width else rows, dtype)
+            self._scratch[name] = a
+        return a[:n]
+
     def _merge(self, parts: list[MessageFrames], R: int) -> tuple[I64, F64, I64, F64]:
         """The frames of all messages in stream order (by ``index``; ties: message order)."""
         lens = np.array([0] + [len(p) for p in parts], np.int64)
         offsets = np.cumsum(lens)
         n = int(offsets[-1])
-        index = np.concatenate([p.index for p in parts]).astype(np.int64, copy=False)
-        t = np.concatenate([p.t for p in parts]).astype(np.float64, copy=False)
+        index = np.concatenate([p.index for p in parts], out=self._work("index", n, 0, np.int64))
+        t = np.concatenate([p.t for p in parts], out=self._work("t", n))
+        cnt = self._work("cnt", n, 0, np.int64)
         if self.match_counters:
-            cnt = np.concatenate([p.counter for p in parts]).astype(np.int64, copy=False)
+            np.concatenate([p.counter for p in parts], out=cnt)
         else:
-            cnt = np.full(n, -1, np.int64)
-        vals = np.full((n, R), np.nan)
+            cnt[:] = -1
+        vals = self._work("vals", n, R)
+        vals[:] = np.nan
         for k, p in enumerate(parts):
             a, b = int(offsets[k]), int(offsets[k + 1])
             for j, role in enumerate(self.roles):
                 if role in p.values:
                     vals[a:b, j] = p.values[role]
-        out_msg = np.empty(n, np.int64)
-        out_t = np.empty(n, np.float64)
-        out_cnt = np.empty(n, np.int64)
-        out_vals = np.empty((n, R), np.float64)
+        out_msg = self._work("m_msg", n, 0, np.int64)
+        out_t = self._work("m_t", n)
+        out_cnt = self._work("m_cnt", n, 0, np.int64)
+        out_vals = self._work("m_vals", n, R)
         if _merge_kernel(index, offsets, t, cnt, vals, out_msg, out_t, out_cnt, out_vals):
             return out_msg, out_t, out_cnt, out_vals
         # a message's frames out of stream order: a stable sort does the same
@@ -364,8 +379,8 @@ class Pairer:
             parts = [decoded[name] for name in self.messages]
             msg, t, cnt, vals = self._merge(parts, R)
         cap = len(t) + _CAPACITY
-        out_t = np.empty(cap)
-        out_v = np.empty((cap, R))
+        out_t = self._work("out_t", cap)
+        out_v = self._work("out_v", cap, R)
         n = _pair_kernel(msg, t, cnt, vals, self._role_msg, K, self.tolerance,
                          self.tolerance + self.hold * self.period, self.period, flush,
                          self._gf, self._gi, self._sf, self._si, self._counts, out_t, out_v)

@@ -317,7 +317,7 @@ class SignalCodec:
 
     __slots__ = ("name", "message", "length", "byte_order", "is_signed", "is_float", "scale",
                  "offset", "minimum", "maximum", "unit", "byte_index", "shift", "tol",
-                 "raw_min", "raw_max", "enc_lo", "enc_hi")
+                 "raw_min", "raw_max", "enc_lo", "enc_hi", "_bytes")
 
     def __init__(self, signal: Any, message: str) -> None:
         conv = signal.conversion
@@ -356,6 +356,7 @@ class SignalCodec:
         else:
             self.raw_min, self.raw_max = 0, (1 << L) - 1
         self.enc_lo, self.enc_hi = self._encodable_raw_range()
+        self._bytes = np.array(self.byte_index, np.int64)
 
     def __repr__(self) -> str:
         return (f"SignalCodec({self.message}.{self.name}, {self.length} bit {self.byte_order}, "
@@ -370,16 +371,9 @@ class SignalCodec:
     # -- decoding ---------------------------------------------------------
     def extract(self, data: U8) -> U64:
         """Raw bit field of each row of ``data`` (N, W) as uint64 (not sign-extended)."""
-        acc = np.zeros(data.shape[0], np.uint64)
-        for j, b in enumerate(self.byte_index):
-            col = data[:, b].astype(np.uint64)
-            sh = 8 * j - self.shift
-            if sh < 0:
-                acc |= col >> np.uint64(-sh)
-            elif sh < 64:
-                acc |= col << np.uint64(sh)
-        if self.length < 64:
-            acc &= np.uint64((1 << self.length) - 1)
+        acc = np.empty(data.shape[0], np.uint64)
+        if data.shape[0]:
+            _extract_kernel(data, self._bytes, self.shift, self.length, acc)
         return acc
 
     def raw(self, data: U8) -> npt.NDArray[Any]:
@@ -533,6 +527,24 @@ class SignalCodec:
             sh = 8 * j - self.shift
             part = (u << np.uint64(-sh)) if sh < 0 else (u >> np.uint64(sh))
             data[:, b] |= (part & np.uint64(0xFF)).astype(np.uint8)
+
+
+@numba.njit(cache=True, nogil=True)
+def _extract_kernel(data: U8, byte_index: I64, shift: int, length: int,
+                    out: U64) -> None:  # pragma: no cover - compiled
+    """Per row: OR of byte ``byte_index[j]`` shifted by ``8 j - shift`` (least significant
+    byte first), masked to ``length`` bits."""
+    mask = np.uint64(0xFFFFFFFFFFFFFFFF) if length >= 64 else np.uint64((1 << length) - 1)
+    for k in range(data.shape[0]):
+        acc = np.uint64(0)
+        for j in range(byte_index.shape[0]):
+            col = np.uint64(data[k, byte_index[j]])
+            sh = 8 * j - shift
+            if sh < 0:
+                acc |= col >> np.uint64(-sh)
+            elif sh < 64:
+                acc |= col << np.uint64(sh)
+        out[k] = acc & mask
 
 
 def _fmt(x: float) -> str:
@@ -1002,14 +1014,18 @@ def _select_rows(arbitration_id: npt.NDArray[np.uint32], is_extended: npt.NDArra
                  mine: npt.NDArray[np.bool_]) -> npt.NDArray[np.intp]:  # pragma: no cover
     """Rows with this ID and format that are not error frames (marked in ``mine``)."""
     n = arbitration_id.shape[0]
-    out = np.empty(n, np.intp)
+    c = 0
+    for k in range(n):
+        if arbitration_id[k] == frame_id and is_extended[k] == extended and not is_error[k]:
+            c += 1
+            mine[k] = True
+    out = np.empty(c, np.intp)
     c = 0
     for k in range(n):
         if arbitration_id[k] == frame_id and is_extended[k] == extended and not is_error[k]:
             out[c] = k
             c += 1
-            mine[k] = True
-    return out[:c].copy()
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -1117,11 +1133,13 @@ class Decoder:
             flags = np.empty(n_rows, np.uint8)
             n_bad = _gather_check(block.data, rows, m.length, block.is_remote, block.dlc,
                                   crc_on, int(m.frame_id), CRC8_TABLE, gathered, flags)
-        else:  # payload narrower than the message: every row fails the length check
+        else:  # a block narrower than the message: the checks below, one by one
             gathered, flags, n_bad = None, None, n_rows
         # payload bytes of the rows still accepted; the rows only ever shrink, so the
         # same count means the same rows and the gathered bytes can be reused
-        cache: list[Any] = [np.arange(n_rows), gathered] if n_bad == 0 else [None, None]
+        cache: list[Any] = [None, None]
+        if n_bad == 0 and gathered is not None:
+            cache = [np.arange(n_rows), gathered]
 
         def accepted() -> tuple[npt.NDArray[np.intp], U8]:
             ok = np.flatnonzero(reason == 0)
@@ -1226,7 +1244,7 @@ class Decoder:
             s0 = self._seq[m.name]
             counter = np.arange(s0, s0 + len(keep), dtype=np.int64)
             self._seq[m.name] = s0 + len(keep)
-        index = base + (rows if len(keep) == n_rows else rows[keep]).astype(np.int64)
+        index = (rows if len(keep) == n_rows else rows[keep]).astype(np.int64, copy=False) + base
         frames = MessageFrames(m.name, t_keep, index, counter, values, modulo)
         return frames, lost_total
 
