@@ -241,6 +241,7 @@ def test_commands_can_be_disabled() -> None:
 
 def _mean(xs: list[float]) -> float:
     xs = [x for x in xs if math.isfinite(x)]
+    assert xs, "no finite residual RMS in the status frames of this window"
     return sum(xs) / len(xs)
 
 
@@ -252,9 +253,16 @@ def test_adding_the_missing_effect_makes_the_status_rms_fall() -> None:
                bus=_sim(ch, effects="inertia,viscous,coulomb,unbalance"), backpressure=True)
     rms: list[tuple[int, float]] = []  # (frames processed, RlsStatus.ResidualRms)
 
-    def sample(until: float) -> None:
+    def sample(until: float, since: int) -> None:
+        """Collect status frames until ``until`` s of frames, and at least 5 finite values
+        after frame ``since`` (a loaded machine processes in larger blocks)."""
         end = time.monotonic() + 90
-        while d.stats().frames < until * 2000 and time.monotonic() < end:
+
+        def enough() -> bool:
+            got = sum(1 for n, r in rms if n >= since and math.isfinite(r))
+            return d.stats().frames >= until * 2000 and got >= 5
+
+        while not enough() and time.monotonic() < end:
             for m in tool.take():
                 if m.arbitration_id == 0x310:
                     rms.append((d.stats().frames, float(np.frombuffer(m.data[:4], "<f4")[0])))
@@ -262,10 +270,10 @@ def test_adding_the_missing_effect_makes_the_status_rms_fall() -> None:
 
     try:
         d.start()
-        sample(12.0)
+        sample(12.0, 6 * 2000)
         assert tool.command(_cmd(CommandCode.ADD_EFFECT, EffectId.UNBALANCE)) is CommandResult.OK
         fix = d.stats().frames
-        sample(24.0)
+        sample(24.0, fix + 6 * 2000)
     finally:
         d.stop()
         tool.close()

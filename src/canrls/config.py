@@ -16,6 +16,7 @@
     gap_periods = 3.5          # a sample gap longer than this many periods restarts the filter
     rms_time_s = 1.0           # time constant of the running residual RMS
     max_phase_step = 0.3       # skip samples where a periodic column advances more [rad]
+                               # (default: no limit)
     min_speed = 0.05           # with friction effects: skip samples slower than this
                                # (default 5 x the Coulomb band)
 

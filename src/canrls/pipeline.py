@@ -83,9 +83,12 @@ class EstimatorSettings:
         position-periodic column (``k * |omega| * dt`` for ``cogging:k``, unbalance
         ``k = 1``) at which a sample is used. Between samples the filter joins the
         samples of ``sin(k theta)`` by straight lines; that underestimates a sinusoid
-        advancing by ``d`` rad per sample by about ``d^2/12``, so faster samples (and the
-        filter's settling after them) are skipped: 0.3 rad keeps the error below 1 %.
-        ``inf`` switches the guard off.
+        advancing by ``d`` rad per sample by about ``d^2/12``; samples faster than the
+        limit (and the filter's settling after them) are skipped. Default ``inf`` (off):
+        at such speeds the filter attenuates the periodic column so much that the
+        error is negligible, while skipping the samples costs the speed-dependent
+        parameters their fast data (``viscous.B`` came back 4-16 % off with
+        ``cogging:24``/``36`` and a 0.3 rad guard).
     min_speed : samples with ``|omega|`` below this [rad/s, m/s] (and the filter's
         settling after them) are not used when the model has Coulomb or Stribeck
         friction: near standstill the measured speed's sign is noise and the drive
@@ -103,7 +106,7 @@ class EstimatorSettings:
     warmup_s: float | None = None
     gap_periods: float = 3.5
     rms_time_s: float = 1.0
-    max_phase_step: float = 0.3
+    max_phase_step: float = math.inf
     min_speed: float | None = None
 
     def __post_init__(self) -> None:

@@ -1,0 +1,100 @@
+"""``canrls diagnose LOG``: where the model fails, which effect is missing, before and after.
+
+Takes every option of ``canrls fit`` (the same replay: same samples, same parameters),
+plus::
+
+    --add NAME       add an effect and refit (repeatable); ``cogging`` alone takes the
+                     order the search found
+    --report DIR     write DIR/index.html with PNG figures (needs matplotlib)
+    --max-order K    highest cogging order searched (default 64)
+
+Text by default; ``--json`` prints one object (``docs/diagnose.md`` documents every key)::
+
+    {
+      "before": {"effects": [...], "residual_rms": 0.0168, "fit_percent": 78.6, "r2": ...,
+                 "whiteness": {...}, "parameters": {"coulomb.Tc": {"value": ..., "sigma": ...,
+                 "unit": "N·m", "fixed": ...}, ...}, "equations": {...}, ...},
+      "after": {...} or null,          # with --add
+      "added": ["coulomb"],
+      "candidates": [{"effect": "coulomb", "explained": 0.91, "delta_bic": -5195.0,
+                      "rms_after": 0.0050, "identifiable": true, "suggested": true,
+                      "description": ..., "evidence": [...], ...}, ...],   # best first
+      "suggestion": {"add": ["coulomb", "offset"], "rms_after": ..., "steps": [...]},
+      "regions": [...], "orders": {...}, "structure": [...], "excitation": {...},
+      "identifiable": true, "verdict": "...", "frames": {...}, "source": "drive.log", ...
+    }
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from canrls.cli._common import Progress, add_model_options, print_json, setup
+
+__all__ = ["add_subparser", "run"]
+
+
+def _order(text: str) -> int:
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if k < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
+    return k
+
+
+def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
+    from canrls.diagnose import DEFAULT_MAX_ORDER
+
+    p = subparsers.add_parser(
+        "diagnose", help="compare the model with a log: where it fails, which effect is missing",
+        description="Replay a CAN log as 'canrls fit' does, compare the model with the "
+                    "measurements (fit, residual RMS, whiteness), show where it fails (speed, "
+                    "position, current, acceleration, time, rotation order), rank the "
+                    "effects of the library the model lacks, and with --add refit and print "
+                    "before and after side by side.")
+    p.add_argument("log", metavar="LOG", help="CAN log: .log (candump), .asc, .blf, .trc, .csv")
+    add_model_options(p)
+    p.add_argument("--skip-bad-lines", action="store_true",
+                   help="count unparsable log lines instead of stopping at the first")
+    g = p.add_argument_group("diagnosis")
+    g.add_argument("--add", action="append", default=[], metavar="NAME",
+                   help="add an effect and refit (repeatable), e.g. --add coulomb "
+                        "--add cogging:24; 'cogging' alone takes the order the search found")
+    g.add_argument("--report", metavar="DIR",
+                   help="write DIR/index.html with PNG figures (needs matplotlib: "
+                        "pip install 'canrls[report]')")
+    g.add_argument("--max-order", type=_order, default=DEFAULT_MAX_ORDER, metavar="K",
+                   help=f"highest cogging order searched (default {DEFAULT_MAX_ORDER})")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from canrls.diagnose import diagnose_log
+    from canrls.replay import prepare
+
+    if args.report:
+        # fail before the long part when the figures cannot be drawn
+        from canrls.report import _matplotlib
+
+        _matplotlib()
+    cfg = setup(args)
+    protocol, model, settings = prepare(cfg, args.log, args.skip_bad_lines)
+    rep = diagnose_log(args.log, protocol, model, settings, add=args.add,
+                       progress=Progress("diagnose").callback, max_order=args.max_order,
+                       skip_bad_lines=args.skip_bad_lines)
+    page = rep.write_html(args.report) if args.report else None
+    if args.json:
+        d = rep.to_dict()
+        if page is not None:
+            d["report"] = str(page)
+        print_json(d)
+    else:
+        sys.stdout.write(rep.format() + "\n")
+        if page is not None:
+            sys.stdout.write(f"\nreport: {page}\n")
+    return 0
