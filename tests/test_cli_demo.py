@@ -14,21 +14,21 @@ from canrls.errors import ConfigError
 
 def test_demo_finds_and_fixes_the_hidden_effect() -> None:
     out = io.StringIO()
-    res = run_demo(duration=30.0, seed=2, hidden="unbalance", excitation="slow", out=out)
+    res = run_demo(duration=40.0, seed=2, hidden="unbalance", out=out)
     text = out.getvalue()
     for piece in ("1. Estimating with the incomplete model", "2. Diagnosis",
                   "3. Sending RlsCommand add_effect", "RlsCommandAck: ok",
                   "4. Estimating with the completed model", "the residual RMS falls from",
                   "unbalance.sin", "truth"):
         assert piece in text, piece
-    assert res.ack == "ok" and res.added in ("unbalance", res.diagnosed)
+    assert res.ack == "ok" and res.diagnosed == res.added == "unbalance"
     assert res.improvement > 0.4, text
     assert res.parameters["unbalance.sin"]["truth"] == 0.008
     assert res.parameters["unbalance.sin"]["float"] == pytest.approx(0.008, rel=0.25)
 
 
 def test_demo_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["demo", "--duration", "20", "--seed", "3", "--hidden", "cogging:6", "--excitation", "slow",
+    assert main(["demo", "--duration", "40", "--seed", "3", "--hidden", "cogging:6",
                  "--json"]) == 0
     cap = capsys.readouterr()
     res = json.loads(cap.out)

@@ -321,8 +321,13 @@ class _RxListener(can.Listener):
         self.recorder: can.Listener | None = None
         self._cpu0: float | None = None
         self.cpu = 0.0
+        #: open while set; :meth:`Daemon.hold_input` closes it
+        self.gate = threading.Event()
+        self.gate.set()
 
     def on_message_received(self, msg: can.Message) -> None:
+        while not self.gate.is_set() and not self.daemon._stopping.is_set():
+            self.gate.wait(0.05)
         q = self.queue
         if len(q) >= self.limit:
             if not self.block:
@@ -851,6 +856,20 @@ class Daemon:
                 self._online_rms[k] = float(eb.online_rms[-1])
             if len(eb.flags) and np.any(eb.flags & int(RLSFlag.WINDUP)):
                 self._window_windup = True
+
+    # ------------------------------------------------------------------ input gate
+    def hold_input(self, hold: bool) -> None:
+        """Stop (``True``) or restart taking frames from the bus listener.
+
+        The notifier's thread waits while the input is held, so a simulated drive with
+        ``realtime=False`` (frames made as they are read) pauses with it: the demo
+        holds the drive while it computes the diagnosis. On a real bus frames would
+        pile up in the interface's buffer: do not hold a live bus for long.
+        """
+        if hold:
+            self._rx.gate.clear()
+        else:
+            self._rx.gate.set()
 
     # ------------------------------------------------------------------ model changes
     def _set_model(self, model: Model, why: str) -> None:

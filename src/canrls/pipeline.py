@@ -567,9 +567,41 @@ class Pipeline:
             e.rls.set_lambda(lam)
             e.frls.set_lambda(lam)
 
-    def with_model(self, model: Model) -> Pipeline:
-        """A new pipeline for ``model`` (e.g. an effect added), starting from the prior."""
-        return Pipeline(model, self.dt, self.settings)
+    def with_model(self, model: Model, warm: bool = True) -> Pipeline:
+        """A new pipeline for ``model`` (e.g. an effect added or removed).
+
+        With ``warm`` (default) the parameters both models share start from their
+        current estimates (float and fixed point alike) instead of zero, so adding an
+        effect does not make the others converge again; the covariance restarts from
+        the prior :math:`P_0 = I/\\alpha` for every parameter, so all of them adapt.
+        """
+        new = Pipeline(model, self.dt, self.settings)
+        if not warm:
+            return new
+        old = {e.equation.name: e for e in self.estimators}
+        for est in new.estimators:
+            prev = old.get(est.equation.name)
+            if prev is None:
+                continue
+            names = [p.name for p in prev.equation.parameters]
+            phys = prev.equation.to_physical(prev.rls.theta)
+            phys_fx = prev.equation.to_physical(prev.frls.theta_float)
+            eq = est.equation
+            th = np.zeros(eq.n)
+            th_fx = np.zeros(eq.n)
+            for j, p in enumerate(eq.parameters):
+                if p.name in names:
+                    k = names.index(p.name)
+                    th[j], th_fx[j] = phys[k], phys_fx[k]
+            st = est.rls.state()
+            st["theta"] = np.asarray(eq.to_normalised(th), dtype=st["theta"].dtype)
+            est.rls = RLS.from_state(st)
+            fst = est.frls.state()
+            q = est.fixed_config.theta
+            fst["theta"] = np.array([max(q.lo, min(q.hi, q.to_int(float(v))))
+                                     for v in eq.to_normalised(th_fx)], dtype=np.int64)
+            est.frls = FixedRLS.from_state(fst)
+        return new
 
     @property
     def saturations(self) -> SaturationCounts:

@@ -51,9 +51,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--hidden", default="unbalance", metavar="EFFECT",
                    help="the effect the drive has and the model lacks: unbalance, cogging:K, "
                         "offset, stribeck (default unbalance)")
-    p.add_argument("--excitation", default="standard", metavar="PROFILE",
-                   help="speed profile of the drive (default standard: slow and fast "
-                        "reversals, a chirp and a PRBS; see docs/simulator.md)")
+    p.add_argument("--excitation", default="reversals+chirp", metavar="PROFILE",
+                   help="speed profile of the drive (default reversals+chirp: reversals at "
+                        "20 rad/s plus a chirp, every few seconds alike; see docs/simulator.md)")
     p.add_argument("--json", action="store_true", help="print one JSON summary at the end")
     p.set_defaults(func=run)
     return p
@@ -134,7 +134,7 @@ def _wait_sim(tl: _Timeline, t: float, timeout: float,
 
 
 def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
-             excitation: str = "standard", out: TextIO | None = None,
+             excitation: str = "reversals+chirp", out: TextIO | None = None,
              timeout: float = 600.0) -> DemoResult:
     """Run the demo; print the story to ``out`` (default stdout); return the figures."""
     import can
@@ -175,10 +175,10 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
         _counter += 1
         channel = f"canrls-demo-{os.getpid()}-{_counter}"
     sim = dict(interface="canrls-sim", channel=channel, effects=effects, seed=seed,
-               excitation=excitation, realtime=False, start_time=0.0, duration=duration)
+               excitation=excitation, realtime=False, start_time=0.0, duration=None)
     fix_at = 0.4 * duration
     say(f"canrls demo: a simulated drive ({sc.truth.summary()}),")
-    say(f"seed {seed}, excitation '{excitation}', {duration:g} s simulated, faster than real time.")
+    say(f"seed {seed}, excitation '{excitation}', about {duration:g} s simulated, faster than real time.")
     say(f"The model knows only {', '.join(_BASE)}: the drive's {hidden} is hidden from it.")
     say()
     daemon = Daemon(protocol, model, settings,
@@ -210,7 +210,8 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
             f"({before / floor:.0f}x the sensor noise of {floor:.2g} {unit}): "
             f"something is missing.")
         say()
-        say("2. Diagnosis of the feedback recorded from the bus:")
+        say("2. Diagnosis of the feedback recorded from the bus (the drive is held meanwhile):")
+        daemon.hold_input(True)
         frames = list(tl.frames)
         tl.frames.clear()
         add = hidden
@@ -225,13 +226,18 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
             proc = FrameProcessor(protocol, model, settings)
             signals = proc.samples(FrameBlock.from_messages(frames))
             try:
-                report = diag.diagnose(signals, model, settings, proc.pipeline.dt)
+                report = diag.diagnose(signals, model, settings, dt=proc.pipeline.dt,
+                                       source="the bus")
                 say("   " + report.format().replace("\n", "\n   "))
-                diagnosed = str(report.candidates[0].effect)
-                add = diagnosed
-                say(f"   -> the diagnosis names {diagnosed}"
-                    + (" (the hidden effect)" if diagnosed == hidden else
-                       f" (the drive hides {hidden})"))
+                if report.suggestion:
+                    diagnosed = str(report.suggestion[0])
+                    add = diagnosed
+                    say(f"   -> the diagnosis names {diagnosed}"
+                        + (" (the hidden effect)" if diagnosed == hidden else
+                           f" (the drive hides {hidden})"))
+                else:
+                    say(f"   -> the diagnosis names no effect from these data; adding the one "
+                        f"the simulated drive hides, {hidden}, to show the error fall")
             except Exception as e:  # the demo goes on: the user still sees the fix
                 say(f"   diagnosis failed ({e}); using the hidden effect {hidden}")
         del frames
@@ -241,19 +247,23 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
             f"--command 'add {add}' would):")
         n_acks = len(mon.acks)
         bus.send(encode_command(4, eid, order))
+        daemon.hold_input(False)
         ack = mon.wait_ack(n_acks, 30.0)
         ack_text = None if ack is None else ack.result.name.lower()
         say(f"   RlsCommandAck: {ack_text or 'none received'}; the daemon now estimates "
             f"{', '.join(daemon.model.effect_names)}")
         t_fix = tl.sim_t
+        # the drive ran on while the diagnosis was computed: give the completed model the
+        # same time the incomplete one had after it
+        end_t = t_fix + (duration - fix_at)
         say()
-        say(f"4. Estimating with the completed model (until {duration:g} s):")
-        _wait_sim(tl, duration - 0.05, timeout, tick)
+        say(f"4. Estimating with the completed model (until {end_t:.0f} s):")
+        _wait_sim(tl, end_t - 0.05, timeout, tick)
         deadline = time.monotonic() + 5.0
         while daemon.stats().backlog and time.monotonic() < deadline:
             time.sleep(0.01)
         time.sleep(0.15)
-        after = tl.mean_rms(t_fix + (duration - t_fix) / 2, duration)
+        after = tl.mean_rms(t_fix + (end_t - t_fix) / 2, end_t)
         view = mon.snapshot()
     finally:
         notifier.stop()
@@ -274,10 +284,10 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
                           "truth": tv, "unit": p.unit}
         say(f"  {p.name:<{width}}  {_g(p.fixed_value):>11}  ± {_g(p.sigma):>9}  "
             f"{_g(p.float_value):>11}  truth {_g(tv):>10}  {p.unit}")
-    say(f"({wall:.1f} s wall clock for {duration:g} s of simulated drive)")
+    say(f"({wall:.1f} s wall clock for {tl.sim_t:.0f} s of simulated drive)")
     return DemoResult(hidden=hidden, diagnosed=diagnosed, added=add, ack=ack_text,
                       rms_before=before, rms_after=after, unit=unit, wall_s=wall,
-                      sim_s=duration, parameters=params)
+                      sim_s=tl.sim_t, parameters=params)
 
 
 def _g(x: float | None) -> str:
