@@ -12,11 +12,13 @@ working for callers who do not know canrls::
     │   └── SignalError                 a DBC mapping names a message or signal that
     │                                   is missing, or a unit that cannot convert
     ├── DecodeError (ValueError)        a CAN frame is rejected (``reason`` says why)
+    │   └── protocol.EncodeError        a value cannot be encoded into its DBC signal
     ├── LogFormatError (ValueError)     a log file cannot be read (names file and line)
     ├── EstimatorError (ArithmeticError)
     │   └── FixedPointError             a fixed-point configuration cannot represent
     │                                   the problem (names the quantity and Q format)
     ├── CommandError (ValueError)       a command frame is unknown or malformed
+    │   └── frames.CommandFrameError    carries the CommandResult code for the ack
     ├── CheckpointError (ValueError)    a checkpoint is corrupted or does not match
     └── BusError (OSError)              the CAN interface failed or vanished
 
