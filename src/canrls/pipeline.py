@@ -329,6 +329,74 @@ class PipelineBlock:
     equations: tuple[EquationBlock, ...]
 
 
+# ----------------------------------------------------------------------- gaps
+class GapFiller:
+    r"""Fill short gaps in the sample times so the filter keeps its time base.
+
+    A lost frame leaves its period without a sample; the filter, which assumes one
+    sample per period, would then stretch the signals in time and bias the derivative
+    columns (inertia). A gap of ``m`` missing periods, up to ``max_gap`` seconds, is
+    filled with ``m`` rows interpolated on a straight line (the position along the
+    shorter way round its wrap period). Filled rows pass through the filter but never
+    update the estimators; longer gaps restart the filter instead. The previous sample
+    is carried between blocks, so the result does not depend on the block sizes.
+    """
+
+    def __init__(self, dt: float, max_gap: float, period: float | None) -> None:
+        self.dt = dt
+        self.max_gap = max_gap
+        self.period = period
+        self._last: dict[str, float] | None = None
+
+    def reset(self) -> None:
+        self._last = None
+
+    def fill(self, s: Signals) -> tuple[Signals, npt.NDArray[np.bool_]]:
+        """(signals with the gaps filled, mask of the real rows)."""
+        n = len(s)
+        if n == 0:
+            return s, np.ones(0, np.bool_)
+        roles = [r for r in ("current", "speed", "position", "voltage") if s.has(r)]
+        t = np.asarray(s.t, dtype=np.float64)
+        prev_t = np.empty(n)
+        prev_t[1:] = t[:-1]
+        last = self._last
+        prev_t[0] = last["t"] if last is not None else t[0]
+        gap = t - prev_t
+        missing = np.rint(gap / self.dt).astype(np.int64) - 1
+        missing[(gap > self.max_gap) | (gap <= 0) | (missing < 0)] = 0
+        self._last = {"t": float(t[-1]), **{r: float(getattr(s, r)[-1]) for r in roles}}
+        if not missing.any():
+            return s, np.ones(n, np.bool_)
+        total = n + int(missing.sum())
+        # row k of the input lands at k + (filled rows before it)
+        dest = np.arange(n) + np.cumsum(missing)
+        real = np.zeros(total, np.bool_)
+        real[dest] = True
+        out: dict[str, npt.NDArray[np.float64]] = {}
+        for r in ["t", *roles]:
+            v = np.asarray(getattr(s, r), dtype=np.float64)
+            pv = np.empty(n)
+            pv[1:] = v[:-1]
+            pv[0] = last[r] if last is not None and r in last else v[0]
+            col = np.empty(total)
+            col[dest] = v
+            step = v - pv
+            wrap = self.period if r == "position" else None
+            if wrap is not None:
+                step = np.mod(step + 0.5 * wrap, wrap) - 0.5 * wrap
+            for k in np.flatnonzero(missing):
+                m = int(missing[k])
+                frac = np.arange(1, m + 1) / (m + 1)
+                vals = pv[k] + step[k] * frac
+                if wrap is not None:
+                    vals = np.mod(vals, wrap)
+                col[dest[k] - m: dest[k]] = vals
+            out[r] = col
+        return Signals(out["t"], out["current"], out["speed"], out.get("position"),
+                       out.get("voltage")), real
+
+
 # ----------------------------------------------------------------------- estimator
 class EquationEstimator:
     """Builder, float RLS, fixed RLS and statistics of one equation."""
@@ -349,6 +417,8 @@ class EquationEstimator:
         warm_s = 5.0 / (m.zeta * wc) if s.warmup_s is None else s.warmup_s
         self.warmup = int(math.ceil(warm_s / self.dt))
         self.gap = s.gap_periods * self.dt
+        period = 2.0 * math.pi if m.axis == "rotary" else m.wrap
+        self.filler = GapFiller(self.dt, self.gap, period)
         # k * |omega| * dt <= max_phase_step for the highest position order k
         k_max = max([e.order for e in equation.effects] + [0])
         self.max_speed = (s.max_phase_step / (k_max * self.dt)) if k_max else math.inf
@@ -374,9 +444,27 @@ class EquationEstimator:
         self._s = np.zeros(3)
         self._rms_state = np.zeros(1)
         self._mask_state = np.array([np.nan, 0.0])
+        self.filler.reset()
         self.windup_steps = 0
 
     def process(self, signals: Signals, record: bool = False) -> EquationBlock:
+        filled, real = self.filler.fill(signals)
+        out = self._process(filled, real, record)
+        if real.all():
+            return out
+        # report the real samples only (the filled rows only kept the filter's time base)
+
+        def pick(a: Any) -> Any:
+            return None if a is None else a[real]
+
+        return EquationBlock(
+            equation=out.equation, t=out.t[real], y=out.y[real], eps=out.eps[real],
+            eps_fixed=out.eps_fixed[real], used=out.used[real],
+            online_rms=out.online_rms[real], flags=out.flags[real],
+            theta=pick(out.theta), theta_fixed=pick(out.theta_fixed), phi=pick(out.phi))
+
+    def _process(self, signals: Signals, real: npt.NDArray[np.bool_],
+                 record: bool) -> EquationBlock:
         eq = self.equation
         t = np.ascontiguousarray(signals.t, dtype=np.float64)
         N = len(t)
@@ -385,6 +473,7 @@ class EquationEstimator:
         omega = np.ascontiguousarray(signals.speed, dtype=np.float64)
         _warmup_mask(t, omega, self.gap, self.warmup, self.min_speed, self.max_speed,
                      self._mask_state, restart, use)
+        use &= real
         # the filter restarts at every gap (and at the start): split the block there
         bounds = [int(k) for k in np.flatnonzero(restart)] + [N]
         if not bounds or bounds[0] != 0:
@@ -497,6 +586,7 @@ class EquationEstimator:
         self.windup_steps = int(d["windup_steps"])
         self.builder.reset()
         self._mask_state = np.array([np.nan, 0.0])
+        self.filler.reset()
 
 
 class Pipeline:
