@@ -12,7 +12,7 @@
     lambda = 1.0               # forgetting factor (0.5, 1]; 1 keeps all data (default)
     alpha = 0.1                # ridge, P0 = I/alpha (normalised units; default)
     trace_max = 80.0           # bound on trace P (default n/alpha)
-    warmup_s = 0.05            # filter warm-up not used for estimation (default 5 SVF time constants)
+    warmup_s = 0.05            # filter warm-up not used (default 5 SVF time constants)
     gap_periods = 3.5          # a sample gap longer than this many periods restarts the filter
     rms_time_s = 1.0           # time constant of the running residual RMS
     max_phase_step = 0.3       # skip samples where a periodic column advances more [rad]

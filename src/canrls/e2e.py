@@ -6,7 +6,8 @@ rest of the payload, and a 4-bit counter increments by one (mod 16) per frame.
 
 .. math::
 
-    \\mathrm{crc} = \\mathrm{CRC8}_{0x1D}(\\mathrm{id}_{lo}, \\mathrm{id}_{hi}, d_1, \\ldots, d_{n-1})
+    \\mathrm{crc} = \\mathrm{CRC8}_{0x1D}(\\mathrm{id}_{lo}, \\mathrm{id}_{hi},
+                                   d_1, \\ldots, d_{n-1})
 
 with initial value 0xFF and final XOR 0xFF (check value ``CRC8(b"123456789") == 0x4B``).
 """
@@ -46,6 +47,9 @@ def crc8(data: bytes | bytearray | memoryview, init: int = 0xFF, xorout: int = 0
 
 
 def e2e_crc(frame_id: int, payload: bytes | bytearray) -> int:
-    """The CRC byte of a protected frame: over the ID (2 bytes, little endian), then bytes 1.. of the payload."""
+    """The CRC byte of a protected frame.
+
+    Computed over the frame ID (2 bytes, little endian), then payload bytes 1 and on.
+    """
     head = bytes((frame_id & 0xFF, (frame_id >> 8) & 0xFF))
     return crc8(head + bytes(payload[1:]))

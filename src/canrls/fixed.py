@@ -175,6 +175,9 @@ import numpy.typing as npt
 
 from canrls import _rls_fixed as _k
 from canrls.errors import CheckpointError, EstimatorError, FixedPointError
+from canrls.rls import _check_alpha as _rls_check_alpha
+from canrls.rls import _check_lam as _rls_check_lam
+from canrls.rls import _real as _rls_real
 
 __all__ = [
     "QFormat",
@@ -589,29 +592,15 @@ def _check_n(n: object) -> int:
 
 
 def _real(name: str, value: object) -> float:
-    if isinstance(value, bool):
-        raise EstimatorError(f"FixedRLS {name} must be a real number, got {value!r}")
-    try:
-        return float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError) as e:
-        raise EstimatorError(f"FixedRLS {name} must be a real number, got {value!r}") from e
+    return _rls_real(name, value, "FixedRLS")
 
 
 def _check_lam(lam: object) -> float:
-    x = _real("lam", lam)
-    if not (0.5 < x <= 1.0):
-        raise EstimatorError(
-            f"FixedRLS lam (forgetting factor) must be in (0.5, 1] (1/lam is a Q1 word), "
-            f"got {lam!r}"
-        )
-    return x
+    return _rls_check_lam(lam, "FixedRLS", 0.5, " (1/lam is a Q1 word)")
 
 
 def _check_alpha(alpha: object) -> float:
-    x = _real("alpha", alpha)
-    if not (0.0 < x < math.inf):
-        raise EstimatorError(f"FixedRLS alpha (ridge) must be finite and > 0, got {alpha!r}")
-    return x
+    return _rls_check_alpha(alpha, "FixedRLS")
 
 
 # --------------------------------------------------------------------- plan

@@ -46,7 +46,8 @@ class FrameBlock:
         n = len(self.t)
         for name in ("arbitration_id", "is_extended", "is_remote", "is_error", "dlc"):
             if len(getattr(self, name)) != n:
-                raise ValueError(f"FrameBlock.{name} has {len(getattr(self, name))} rows, t has {n}")
+                raise ValueError(f"FrameBlock.{name} has {len(getattr(self, name))} rows, "
+                                 f"t has {n}")
         if self.data.ndim != 2 or self.data.shape[0] != n:
             raise ValueError(f"FrameBlock.data must be (N, W) with N={n}, got {self.data.shape}")
 

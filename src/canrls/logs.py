@@ -219,26 +219,31 @@ def _read_python_can(path: Path, chunk_size: int, st: LogReadStats,
     except (ValueError, OSError, NotImplementedError) as e:
         raise LogFormatError(f"{path}: cannot read this log format ({e})") from e
     buf: list[can.Message] = []
-    try:
-        with reader:
-            it = iter(reader)
-            while True:
-                try:
-                    msg = next(it)
-                except StopIteration:
-                    break
-                except Exception as e:  # python-can readers raise many kinds on bad input
-                    raise LogFormatError(
-                        f"{path}: unreadable after frame {st.frames + len(buf)} ({e})") from e
-                buf.append(msg)
-                if len(buf) >= chunk_size:
-                    st.frames += len(buf)
-                    yield FrameBlock.from_messages(buf)
-                    buf = []
-                    if progress is not None:
-                        progress(min(st.frames, st.total_bytes), st.total_bytes)
-    finally:
-        pass
+
+    def position() -> int:
+        """Bytes read so far, where the reader's file tells (binary formats may not)."""
+        try:
+            return min(int(reader.file.tell()), st.total_bytes)  # type: ignore[union-attr]
+        except (AttributeError, OSError, ValueError):
+            return 0
+
+    with reader:
+        it = iter(reader)
+        while True:
+            try:
+                msg = next(it)
+            except StopIteration:
+                break
+            except Exception as e:  # python-can readers raise many kinds on bad input
+                raise LogFormatError(
+                    f"{path}: unreadable after frame {st.frames + len(buf)} ({e})") from e
+            buf.append(msg)
+            if len(buf) >= chunk_size:
+                st.frames += len(buf)
+                yield FrameBlock.from_messages(buf)
+                buf = []
+                if progress is not None:
+                    progress(position(), st.total_bytes)
     if buf:
         st.frames += len(buf)
         yield FrameBlock.from_messages(buf)

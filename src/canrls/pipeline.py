@@ -289,7 +289,8 @@ class Estimates:
                          f"  {p.unit}")
         for e in self.equations:
             lines.append(
-                f"{e.equation}: residual RMS {e.residual_rms:.4g} {e.unit}, fit {e.fit_percent:.2f} %,"
+                f"{e.equation}: residual RMS {e.residual_rms:.4g} {e.unit}, "
+                f"fit {e.fit_percent:.2f} %,"
                 f" R² {e.r2:.5f}, {e.samples} samples, fixed-vs-float divergence "
                 f"{e.divergence:.2e}"
                 + (f", saturations {dict(e.saturations)}" if e.saturations else "")

@@ -213,27 +213,29 @@ class Excitation:
         return RLSFlag.LOW_EXCITATION if self.low else RLSFlag.NONE
 
 
-def _real(name: str, value: object) -> float:
-    """``value`` as a float, or EstimatorError naming ``name``."""
+def _real(name: str, value: object, who: str = "RLS") -> float:
+    """``value`` as a float, or EstimatorError naming ``who`` and ``name``."""
     if isinstance(value, bool):
-        raise EstimatorError(f"RLS {name} must be a real number, got {value!r}")
+        raise EstimatorError(f"{who} {name} must be a real number, got {value!r}")
     try:
         return float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError) as e:
-        raise EstimatorError(f"RLS {name} must be a real number, got {value!r}") from e
+        raise EstimatorError(f"{who} {name} must be a real number, got {value!r}") from e
 
 
-def _check_lam(lam: object) -> float:
-    x = _real("lam", lam)
-    if not (0.0 < x <= 1.0):
-        raise EstimatorError(f"RLS lam (forgetting factor) must be in (0, 1], got {lam!r}")
+def _check_lam(lam: object, who: str = "RLS", low: float = 0.0, why: str = "") -> float:
+    """The forgetting factor in ``(low, 1]`` (``why`` explains a ``low`` above 0)."""
+    x = _real("lam", lam, who)
+    if not (low < x <= 1.0):
+        raise EstimatorError(
+            f"{who} lam (forgetting factor) must be in ({low:g}, 1]{why}, got {lam!r}")
     return x
 
 
-def _check_alpha(alpha: object) -> float:
-    x = _real("alpha", alpha)
+def _check_alpha(alpha: object, who: str = "RLS") -> float:
+    x = _real("alpha", alpha, who)
     if not (0.0 < x < math.inf):
-        raise EstimatorError(f"RLS alpha (ridge) must be finite and > 0, got {alpha!r}")
+        raise EstimatorError(f"{who} alpha (ridge) must be finite and > 0, got {alpha!r}")
     return x
 
 

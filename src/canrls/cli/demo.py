@@ -178,7 +178,8 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
                excitation=excitation, realtime=False, start_time=0.0, duration=None)
     fix_at = 0.4 * duration
     say(f"canrls demo: a simulated drive ({sc.truth.summary()}),")
-    say(f"seed {seed}, excitation '{excitation}', about {duration:g} s simulated, faster than real time.")
+    say(f"seed {seed}, excitation '{excitation}', about {duration:g} s simulated, "
+        "faster than real time.")
     say(f"The model knows only {', '.join(_BASE)}: the drive's {hidden} is hidden from it.")
     say()
     daemon = Daemon(protocol, model, settings,

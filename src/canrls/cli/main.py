@@ -28,7 +28,8 @@ log = logging.getLogger("canrls")
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="canrls",
-        description="Identify the physics of an electric drive over CAN with recursive least squares.",
+        description="Identify the physics of an electric drive over CAN with recursive "
+                    "least squares.",
     )
     parser.add_argument("--version", action="version", version=f"canrls {__version__}")
     parser.add_argument("--debug", action="store_true",
