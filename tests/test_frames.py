@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import struct
 from pathlib import Path
+from typing import Any
 
 import can
 import cantools
@@ -26,6 +29,7 @@ from canrls.frames import (
     FrameDecoder,
     ParameterReport,
     StatusReport,
+    _codec,
     decode_command,
     encode_ack,
     encode_command,
@@ -254,3 +258,346 @@ def test_frame_decoder_ignores_and_counts() -> None:
 def test_encode_out_of_range_names_frame() -> None:
     with pytest.raises(EncodeError, match="RlsCommand"):
         encode_command(CommandCode.SET_LAMBDA, lam=2.0)
+
+
+# ---------------------------------------------------------------------------
+# Compiled encoders: byte for byte what cantools' strict encode gives
+# ---------------------------------------------------------------------------
+
+F32_MAX = 3.4e38
+MESSAGES = [m.name for m in cantools.database.load_file(str(REPO_DBC)).messages]
+HYPOTHESIS = settings(max_examples=200, deadline=None, derandomize=True, database=None)
+
+
+def cantools_encode(msg: Any, values: dict[str, Any]) -> bytes | None:
+    """``Message.encode(values, scaling=True, strict=True)``; None where it refuses them."""
+    try:
+        return bytes(msg.encode(values, scaling=True, strict=True))
+    except (cantools.database.EncodeError, OverflowError, ValueError):
+        return None
+
+
+def f32_of_bits(bits: int) -> float:
+    return float(struct.unpack("<f", struct.pack("<I", bits))[0])
+
+
+def identity(s: Any) -> bool:
+    return s.conversion.scale == 1 and s.conversion.offset == 0
+
+
+def signal_values(s: Any) -> st.SearchStrategy[Any]:
+    """Values of signal ``s``: inside its range, its limits, beyond them, NaN and inf."""
+    lo, hi = s.minimum, s.maximum
+    special = [math.nan, -math.nan, math.inf, -math.inf]
+    if s.is_float:
+        return st.one_of(st.floats(lo, hi),
+                         st.sampled_from([float(lo), float(hi), -0.0, *special]),
+                         st.integers(0, 2**32 - 1).map(f32_of_bits),  # every float32, NaN payloads
+                         st.floats())
+    if identity(s):
+        return st.one_of(st.integers(lo, hi), st.sampled_from([lo, hi]),
+                         st.integers(lo - 2, hi + 2), st.sampled_from(special))
+    return st.one_of(st.floats(lo, hi), st.sampled_from([float(lo), float(hi), *special]),
+                     st.floats(lo - 1.0, hi + 1.0))
+
+
+def natural(s: Any, v: Any) -> bool:
+    """Whether ``v`` has the type the fast path takes for ``s``."""
+    if s.is_float:
+        return type(v) is float
+    return type(v) is int or not identity(s) and type(v) is float
+
+
+def first_refused(msg: Any, values: dict[str, Any]) -> Any:
+    """The first signal (in message order) whose value cantools refuses on its own."""
+    ok = {s.name: float(s.minimum) if s.is_float or not identity(s) else s.minimum
+          for s in msg.signals}
+    return next(s for s in msg.signals
+                if cantools_encode(msg, {**ok, s.name: values[s.name]}) is None)
+
+
+def test_every_shipped_message_takes_the_fast_path() -> None:
+    assert len(MESSAGES) == 11
+    assert all(_codec(None, name)._fast for name in MESSAGES)
+
+
+@pytest.mark.parametrize("name", MESSAGES)
+@HYPOTHESIS
+@given(data=st.data())
+def test_codec_encodes_like_cantools(db, name: str, data: st.DataObject) -> None:
+    msg = db.get_message_by_name(name)
+    codec = _codec(None, name)
+    values = {s.name: data.draw(signal_values(s), label=s.name) for s in msg.signals}
+    want = cantools_encode(msg, values)
+    if want is not None:
+        assert codec.encode(values) == want
+        if all(natural(s, values[s.name]) for s in msg.signals):
+            assert codec._pack(values) == want  # the fast path itself, not the fallback
+        return
+    with pytest.raises(EncodeError) as e:
+        codec.encode(values)
+    bad = first_refused(msg, values)
+    v = values[bad.name]
+    assert f"cannot encode {name}.{bad.name} = {v!r}: " in str(e.value)
+    nan = not bad.is_float and isinstance(v, float) and not math.isfinite(v)
+    assert e.value.reason == ("nan" if nan else "range")
+
+
+def test_codec_errors_name_signal_value_and_limits() -> None:
+    sigma = _codec(None, "RlsSigma")
+    with pytest.raises(EncodeError, match=r"RlsSigma\.Sigma = -1\.0: outside \[0, 3\.4e\+38\]"):
+        sigma.encode({"Index": 1, "Counter": 0, "Sigma": -1.0})
+    with pytest.raises(EncodeError, match=r"RlsSigma\.Index = 256: outside \[0, 255\]") as e:
+        sigma.encode({"Index": 256, "Counter": 0, "Sigma": 1.0})
+    assert e.value.reason == "range"
+    with pytest.raises(EncodeError, match=r"RlsSigma\.Counter = nan: .*finite") as e:
+        sigma.encode({"Index": 1, "Counter": math.nan, "Sigma": 1.0})
+    assert e.value.reason == "nan"
+    with pytest.raises(EncodeError, match=r"RlsCommand\.Lambda = 2\.0: outside \[0, 1\]"):
+        encode_command(CommandCode.SET_LAMBDA, lam=2.0)
+
+
+def test_codec_takes_what_cantools_takes(db) -> None:
+    """Other value types go through cantools: same bytes, or its error as an EncodeError."""
+    for name, values in [
+        ("RlsEstimate", {"Index": 7, "Counter": True, "Valid": True, "FixedValue": 3}),
+        ("RlsCommand", {"Command": "set_lambda", "EffectId": "cogging", "Order": 24.0,
+                        "Lambda": np.float64(0.5)}),
+        ("RlsCommandAck", {"Command": 2.4, "Result": 2.6, "Counter": 3.5}),
+    ]:
+        want = cantools_encode(db.get_message_by_name(name), values)
+        assert want is not None and _codec(None, name).encode(values) == want
+    ack = _codec(None, "RlsCommandAck")
+    with pytest.raises(EncodeError, match="RlsCommandAck.*Counter.*required"):
+        ack.encode({"Command": 1, "Result": 0})
+    with pytest.raises(EncodeError, match="RlsCommandAck.*Counter.*required"):
+        ack.encode({"Command": 1, "Result": 0, "Extra": 1})  # as many signals, one wrong
+    with pytest.raises(EncodeError, match="RlsCommandAck.*Extra"):
+        ack.encode({"Command": 1, "Result": 0, "Counter": 1, "Extra": 1})
+    with pytest.raises(EncodeError, match="RlsCommandAck"):
+        ack.encode({"Command": "no such command", "Result": 0, "Counter": 1})
+
+
+def test_frames_are_the_messages_python_can_would_build() -> None:
+    (m,) = [encode_ack(3, CommandResult.OK, 1, timestamp=12.5)]
+    want = can.Message(arbitration_id=0x321, is_extended_id=False, data=bytes(m.data), dlc=8,
+                       timestamp=12.5)
+    for a in can.Message.__slots__:
+        if a != "__weakref__":
+            assert getattr(m, a) == getattr(want, a), a
+    assert type(m.data) is bytearray
+
+
+ESTIMATES = st.one_of(st.none(), st.floats(), st.sampled_from(
+    [0.0, -0.0, math.nan, -math.nan, math.inf, -math.inf, 1e39, -1e39, F32_MAX, -F32_MAX,
+     3.5e38, 1e-45]))
+
+
+def reference_parameters(db, reports: list[ParameterReport], counter: int
+                         ) -> list[tuple[int, bytes]]:
+    """What encode_parameters sends, spelled out with cantools' strict encode."""
+    def f32(x: float | None, lo: float, hi: float) -> float:
+        return math.nan if x is None else min(max(float(x), lo), hi)  # NaN stays NaN
+
+    out = []
+    for r in reports:
+        c = counter % 16
+        valid = r.valid and r.fixed_value is not None and not math.isnan(r.fixed_value)
+        for name, values in [
+            ("RlsEstimate", {"Index": r.index, "Counter": c, "Valid": int(valid),
+                             "FixedValue": f32(r.fixed_value, -F32_MAX, F32_MAX) if valid
+                             else 0.0}),
+            ("RlsSigma", {"Index": r.index, "Counter": c, "Sigma": f32(r.sigma, 0.0, F32_MAX)}),
+            ("RlsReference", {"Index": r.index, "Counter": c,
+                              "FloatValue": f32(r.float_value, -F32_MAX, F32_MAX)})]:
+            m = db.get_message_by_name(name)
+            out.append((m.frame_id, bytes(m.encode(values, scaling=True, strict=True))))
+    return out
+
+
+@HYPOTHESIS
+@given(st.lists(st.builds(ParameterReport, index=st.integers(0, 255), fixed_value=ESTIMATES,
+                          sigma=ESTIMATES, float_value=ESTIMATES, valid=st.booleans()),
+                max_size=10),
+       st.integers(0, 10**6))
+def test_parameter_frames_are_cantools_bytes(db, reports: list[ParameterReport],
+                                             counter: int) -> None:
+    """Saturation (inf, beyond float32, negative sigma), NaN, None and Valid: same bytes."""
+    msgs = encode_parameters(reports, counter, timestamp=3.0)
+    assert [(m.arbitration_id, bytes(m.data)) for m in msgs] == \
+        reference_parameters(db, reports, counter)
+    assert all(m.dlc == 8 and not m.is_extended_id and m.timestamp == 3.0 for m in msgs)
+
+
+def test_saturated_and_nan_estimates_on_the_wire() -> None:
+    r = ParameterReport(9, fixed_value=math.inf, sigma=-1.0, float_value=-math.nan)
+    est, sig, ref = (bytes(m.data) for m in encode_parameters([r], 2))
+    assert est == bytes([9, 0x12, 0, 0]) + struct.pack("<f", F32_MAX)
+    assert sig == bytes([9, 2, 0, 0]) + struct.pack("<f", 0.0)
+    assert ref == bytes([9, 2, 0, 0]) + struct.pack("<f", -math.nan)
+    r = ParameterReport(9, fixed_value=math.nan, sigma=-0.0, float_value=-1e39)
+    est, sig, ref = (bytes(m.data) for m in encode_parameters([r], 2))
+    assert est == bytes([9, 2]) + bytes(6)  # Valid = 0, value 0
+    assert sig[4:] == struct.pack("<f", -0.0) and ref[4:] == struct.pack("<f", -F32_MAX)
+
+
+@HYPOTHESIS
+@given(st.builds(
+    StatusReport, residual_rms=ESTIMATES.filter(lambda x: x is not None),
+    update_count=st.integers(0, 2**70), windup=st.booleans(), low_excitation=st.booleans(),
+    saturation=st.booleans(), frame_loss=st.booleans(), frozen=st.booleans(),
+    diverged=st.booleans(), bus_fault=st.booleans(), active_effects=st.integers(0, 2**20),
+    divergence=ESTIMATES.filter(lambda x: x is not None),
+    frames_rejected=st.integers(0, 2**40), frames_lost=st.integers(0, 2**40),
+    saturations=st.integers(0, 2**40), tx_dropped=st.integers(0, 2**40)),
+    st.integers(0, 10**6))
+def test_status_frames_are_cantools_bytes(db, status: StatusReport, counter: int) -> None:
+    def f32(x: float) -> float:
+        return min(max(x, 0.0), F32_MAX)
+
+    s = status
+    health = {sig: int(getattr(s, f)) for f, sig in zip(FLAG_NAMES, (
+        "Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen", "Diverged", "BusFault"),
+        strict=True)}
+    want = [("RlsStatus", {"ResidualRms": f32(s.residual_rms),
+                           "UpdateCount": s.update_count % 2**32}),
+            ("RlsHealth", {**health, "Counter": counter % 16,
+                           "ActiveEffects": s.active_effects % 2**16,
+                           "Divergence": f32(s.divergence)}),
+            ("RlsCounters", {"FramesRejected": s.frames_rejected % 2**16,
+                             "FramesLost": s.frames_lost % 2**16,
+                             "Saturations": s.saturations % 2**16,
+                             "TxDropped": s.tx_dropped % 2**16})]
+    got = encode_status(status, counter)
+    assert [bytes(m.data) for m in got] == [
+        bytes(db.get_message_by_name(n).encode(v, scaling=True, strict=True)) for n, v in want]
+
+
+@HYPOTHESIS
+@given(st.lists(st.builds(ParameterReport, index=st.integers(0, 255),
+                          effect_id=st.sampled_from(EffectId), component=st.integers(0, 255),
+                          order=st.integers(0, 65535), equation=st.sampled_from(Equation)),
+                max_size=5),
+       st.integers(0, 600), st.sampled_from(CommandResult), st.integers(0, 10**6),
+       st.sampled_from(CommandCode), st.sampled_from(EffectId), st.integers(0, 65535),
+       st.one_of(st.floats(0.0, 1.0), st.floats(), st.sampled_from([0.0, 1.0, -0.0])))
+def test_info_ack_and_command_frames_are_cantools_bytes(
+        db, reports: list[ParameterReport], code: int, result: CommandResult, counter: int,
+        command: CommandCode, effect: EffectId, order: int, lam: float) -> None:
+    def enc(name: str, values: dict[str, Any]) -> bytes | None:
+        return cantools_encode(db.get_message_by_name(name), values)
+
+    assert [bytes(m.data) for m in encode_param_info(reports)] == [
+        enc("RlsParamInfo", {"Index": r.index, "Count": len(reports),
+                             "EffectId": int(r.effect_id), "Component": r.component,
+                             "Order": r.order, "Equation": int(r.equation)})
+        for r in reports]
+    assert bytes(encode_ack(code, result, counter).data) == enc(
+        "RlsCommandAck", {"Command": code & 0xFF, "Result": int(result),
+                          "Counter": counter % 16})
+    want = enc("RlsCommand", {"Command": int(command), "EffectId": int(effect), "Order": order,
+                              "Lambda": lam})
+    if want is None:  # lambda outside [0, 1] or NaN... no: NaN passes cantools' range check
+        with pytest.raises(EncodeError, match=r"RlsCommand\.Lambda"):
+            encode_command(command, effect, order, lam)
+    else:
+        assert bytes(encode_command(command, effect, order, lam).data) == want
+
+
+USER_DBC = """VERSION ""
+
+NS_ :
+
+BS_:
+
+BU_: Canrls Tool
+
+BO_ 801 RlsCommandAck: 8 Canrls
+ SG_ Command : 7|8@0+ (1,0) [0|255] "" Tool
+ SG_ Result : 15|8@0+ (1,0) [0|255] "" Tool
+ SG_ Counter : 19|4@0+ (1,0) [0|15] "" Tool
+
+BO_ 16 Mixed: 8 Tool
+ SG_ Speed : 7|16@0- (0.5,-10) [-1000|1000] "rad/s" Canrls
+ SG_ Mode : 16|8@1+ (1,0) [0|10] "" Canrls
+ SG_ Gain : 32|32@1- (1,0) [-10|10] "" Canrls
+
+BO_ 17 Muxed: 8 Tool
+ SG_ Sel M : 0|8@1+ (1,0) [0|1] "" Canrls
+ SG_ A m0 : 8|16@1+ (1,0) [0|1000] "" Canrls
+ SG_ B m1 : 8|8@1- (1,0) [-100|100] "" Canrls
+
+BO_ 18 Modes: 2 Tool
+ SG_ Mode : 0|8@1+ (1,0) [0|10] "" Canrls
+ SG_ Wide : 8|8@1+ (1,0) [0|1000] "" Canrls
+
+SIG_VALTYPE_ 16 Gain : 1;
+VAL_ 16 Mode 200 "special" ;
+VAL_ 18 Mode 200 "special" ;
+"""
+
+
+@pytest.fixture
+def user_dbc(tmp_path: Path) -> Path:
+    path = tmp_path / "user.dbc"
+    path.write_text(USER_DBC)
+    return path
+
+
+def test_big_endian_and_multiplexed_messages_fall_back_to_cantools(user_dbc: Path) -> None:
+    db = cantools.database.load_file(str(user_dbc))
+    codecs = {m.name: _codec(user_dbc, m.name) for m in db.messages}
+    assert {n: c._fast for n, c in codecs.items()} == {
+        "RlsCommandAck": False, "Mixed": False, "Muxed": False, "Modes": True}
+    # the public encoders work with a user DBC whose RlsCommandAck is big-endian
+    m = encode_ack(CommandCode.SET_LAMBDA, CommandResult.BAD_VALUE, 21, dbc=user_dbc)
+    assert bytes(m.data) == db.get_message_by_name("RlsCommandAck").encode(
+        {"Command": 6, "Result": 5, "Counter": 5}, scaling=True, strict=True)
+    assert m.data[0] == 6 and m.data[1] == 5  # Motorola: MSB first
+    rng = np.random.default_rng(7)
+    mixed = db.get_message_by_name("Mixed")
+    for _ in range(500):
+        values = {"Speed": float(rng.uniform(-1010, 1010)), "Mode": int(rng.integers(0, 12)),
+                  "Gain": float(rng.uniform(-11, 11))}
+        want = cantools_encode(mixed, values)
+        if want is None:
+            with pytest.raises(EncodeError, match=r"Mixed\.(Speed|Mode|Gain) = "):
+                codecs["Mixed"].encode(values)
+        else:
+            assert codecs["Mixed"].encode(values) == want
+    for values in ({"Sel": 0, "A": 999}, {"Sel": 1, "B": -100}, {"Sel": 1, "B": 7}):
+        assert codecs["Muxed"].encode(values) == cantools_encode(
+            db.get_message_by_name("Muxed"), values)
+    with pytest.raises(EncodeError, match=r"Muxed\.B = 101: outside \[-100, 100\]"):
+        codecs["Muxed"].encode({"Sel": 1, "B": 101})
+    with pytest.raises(EncodeError, match="cannot encode Muxed"):
+        codecs["Muxed"].encode({"Sel": 0, "B": 1})
+
+
+def test_value_table_and_bit_field_beyond_the_range(user_dbc: Path) -> None:
+    db = cantools.database.load_file(str(user_dbc))
+    modes, msg = _codec(user_dbc, "Modes"), db.get_message_by_name("Modes")
+    # a value of the value table outside [minimum, maximum]: cantools takes it, so do we
+    assert modes.encode({"Mode": 200, "Wide": 3}) == msg.encode({"Mode": 200, "Wide": 3}) \
+        == bytes([200, 3])
+    assert modes._pack({"Mode": 200, "Wide": 3}) is None  # through the careful path
+    with pytest.raises(EncodeError, match=r"Modes\.Mode = 11: outside \[0, 10\]"):
+        modes.encode({"Mode": 11, "Wide": 0})
+    # within the DBC range but not the 8-bit field: cantools fails with an OverflowError
+    with pytest.raises(OverflowError):
+        msg.encode({"Mode": 0, "Wide": 300}, scaling=True, strict=True)
+    with pytest.raises(EncodeError, match=r"Modes\.Wide = 300: raw value 300 does not fit "
+                                          r"the 8-bit field \(0 \.\. 255\)"):
+        modes.encode({"Mode": 0, "Wide": 300})
+
+
+def test_with_estimates_is_replace() -> None:
+    blank = ParameterReport(3, "cogging:24.sin", EffectId.COGGING, 0, 24, Equation.MECHANICAL,
+                            unit="N·m")
+    r = blank.with_estimates(1.5, None, -2.0, False)
+    want = dataclasses.replace(blank, fixed_value=1.5, sigma=None, float_value=-2.0,
+                               valid=False)
+    assert r == want and hash(r) == hash(want) and repr(r) == repr(want)
+    assert blank.fixed_value is None and blank.valid  # unchanged
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        r.sigma = 1.0  # type: ignore[misc]
