@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from canrls.errors import ConfigError
 from canrls.frameblock import FrameBlock
 from canrls.pairing import PAIRING_KINDS, Pairer
-from canrls.protocol import FeedbackEncoder, Protocol
+from canrls.protocol import DecodedFrames, FeedbackEncoder, MessageFrames, Protocol
 from canrls.signals import Signals
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -271,3 +271,53 @@ def test_chunk_invariant_and_sound(name: str, time_only: bool, data: st.DataObje
     assert sum(dec_w.accepted.values()) == K * c.samples + c.unpaired + c.duplicated + c.late
     assert set(c.per_message["DriveCurrent" if name != "user-3-messages" else "InverterFb1"]) \
         == set(PAIRING_KINDS)
+
+
+# ---------------------------------------------------------------------------
+# Input the decoder does not produce: frames out of stream order, strided arrays
+# ---------------------------------------------------------------------------
+
+
+def rebuilt(d: DecodedFrames, order: dict[str, np.ndarray], strided: set[str]) -> DecodedFrames:
+    """``d`` with each message's frames in ``order[name]`` and, for the messages in
+    ``strided``, every array a non-contiguous view."""
+    msgs = {}
+    for name, m in d.messages.items():
+        o = order[name]
+
+        def arr(x: np.ndarray, o: np.ndarray = o, name: str = name) -> np.ndarray:
+            return np.repeat(x[o], 2)[::2] if name in strided else x[o]
+
+        msgs[name] = MessageFrames(name, arr(m.t), arr(m.index), arr(m.counter),
+                                   {r: arr(v) for r, v in m.values.items()}, m.counter_modulo)
+    return DecodedFrames(msgs, d.rejected, d.lost, d.foreign)
+
+
+def pair_all(p: Protocol, blocks: list[DecodedFrames]) -> tuple[Signals, Pairer]:
+    pr = Pairer(p)
+    out = [pr.push(d) for d in blocks]
+    return Signals.concat([*out, pr.flush()]), pr
+
+
+@pytest.mark.parametrize("name", sorted(PROTOCOLS))
+def test_frames_out_of_stream_order_or_strided_pair_as_sorted(name: str) -> None:
+    """A message's frames out of stream order pair as a stable sort by stream index puts
+    them; arrays may be strided views, some messages' and not others'."""
+    p = protocol(name)
+    rng = np.random.default_rng(1)
+    order = np.array([0, 2, 1, 3, 4, 5, 7, 6] + list(range(8, 3 * 20)))[:len(p.messages) * 20]
+    decoded = [p.decoder().decode(clean(p, 20).take(order))]
+    ref, pr_ref = pair_all(p, decoded)
+    assert len(ref) > 10
+    names = [m.name for m in p.messages]
+    cases = [
+        ({n: rng.permutation(len(decoded[0][n])) for n in names}, set()),
+        ({n: np.arange(len(decoded[0][n])) for n in names}, {names[0]}),
+        ({n: rng.permutation(len(decoded[0][n])) for n in names}, set(names)),
+    ]
+    for perm, strided in cases:
+        got, pr = pair_all(p, [rebuilt(d, perm, strided) for d in decoded])
+        for attr in ("t", "current", "speed", "position", "voltage"):
+            a, b = getattr(ref, attr), getattr(got, attr)
+            assert (a is None and b is None) or a.tobytes() == b.tobytes()
+        assert pr.counts == pr_ref.counts

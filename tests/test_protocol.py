@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -20,12 +21,16 @@ from canrls.frameblock import FrameBlock
 from canrls.protocol import (
     DEFAULT_DBC,
     REJECT_REASONS,
+    DecodedFrames,
+    Decoder,
     EncodeError,
     FeedbackEncoder,
+    MessageFrames,
     Protocol,
     SignalCodec,
     SignalMapping,
 )
+from canrls.sim.faults import inject
 
 DATA = Path(__file__).resolve().parent / "data"
 USER_DBC = DATA / "proto_user.dbc"
@@ -661,3 +666,275 @@ def test_toml_mapping_of_the_docs() -> None:
     assert p.roles["current"].si_scale == 1e-3
     assert p.message("InverterFb1").crc.name == "Chk"
     assert p.message("InverterFb3").counter is None
+
+
+# ---------------------------------------------------------------------------
+# The compiled fast path (Decoder._decode_fast) against the careful path
+# ---------------------------------------------------------------------------
+
+
+def careful_decoder(proto: Protocol) -> Decoder:
+    """A decoder that takes the careful path only (no fast plan)."""
+    dec = proto.decoder()
+    dec._plan = None
+    return dec
+
+
+def assert_same_frames(a: DecodedFrames, b: DecodedFrames) -> None:
+    """Same accepted frames bit for bit (dtypes too), same rejections and counts."""
+    assert list(a.messages) == list(b.messages)
+    for name, x in a.messages.items():
+        y = b.messages[name]
+        assert (x.name, x.counter_modulo) == (y.name, y.counter_modulo)
+        for u, v in [(x.t, y.t), (x.index, y.index), (x.counter, y.counter),
+                     *((x.values[r], y.values[r]) for r in y.values)]:
+            assert u.dtype == v.dtype and u.tobytes() == v.tobytes()
+        assert list(x.values) == list(y.values)
+    assert (a.lost, a.foreign) == (b.lost, b.foreign)
+    assert dict(a.rejected) == dict(b.rejected)
+    assert a.rejected.per_message == b.rejected.per_message
+    assert a.rejected.examples == b.rejected.examples
+
+
+def assert_same_decoder(a: Decoder, b: Decoder) -> None:
+    assert dict(a.rejected) == dict(b.rejected)
+    assert a.rejected.per_message == b.rejected.per_message
+    assert a.rejected.examples == b.rejected.examples
+    assert (a.lost, a.accepted, a.foreign, a.frames) == (b.lost, b.accepted, b.foreign, b.frames)
+
+
+def decode_in_blocks(dec: Decoder, b: FrameBlock, size: int) -> list[DecodedFrames]:
+    return [dec.decode(b.take(slice(a, a + size))) for a in range(0, max(len(b), 1), size)]
+
+
+FAST_PROTOCOLS = {
+    "default": lambda: Protocol.load(),
+    "no-crc": lambda: Protocol.load(check_crc=False),
+    "no-counter": lambda: Protocol.load(check_counter=False),
+    "no-range": lambda: Protocol.load(strict_range=False),
+    "user": lambda: Protocol.load(USER_DBC, USER_MAPPING),  # big endian, float, 3 messages
+}
+
+
+def sprinkle_faults(proto: Protocol, b: FrameBlock, rng: np.random.Generator,
+                    rate: float) -> FrameBlock:
+    """``b`` through the simulator's fault injection, then error, remote, foreign, short,
+    out-of-range and NaN frames here and there (resealed where they carry a CRC)."""
+    b, _ = inject(b, f"drop={rate},dup={rate},reorder={rate},corrupt={rate}",
+                  seed=int(rng.integers(1 << 31)))
+    b = with_row(b, 0)  # a writable copy
+    by_id = {m.frame_id: m for m in proto.messages}
+    for k in np.flatnonzero(rng.random(len(b)) < rate * 3):
+        m = by_id.get(int(b.arbitration_id[k]))
+        kind = rng.integers(6)
+        if kind == 0:
+            b.is_error[k] = True
+        elif kind == 1:
+            b.is_remote[k] = True
+        elif kind == 2:
+            b.arbitration_id[k] = 0x7FF
+        elif kind == 3:
+            b.dlc[k] = 7
+        elif m is not None:  # a value out of range (or NaN, or any bit pattern)
+            r = m.roles[int(rng.integers(len(m.roles)))].codec
+            for j in r.byte_index:
+                b.data[k, j] = 0x7F if kind == 4 else 0xFF
+            if m.crc is not None:
+                b.data[k, 0] = e2e_crc(int(b.arbitration_id[k]), b.data[k, :m.length].tobytes())
+    return b
+
+
+def random_stream(proto: Protocol, n: int, seed: int) -> FrameBlock:
+    """n periods of in-range feedback (every mapped message), SI units."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * (proto.period or 1e-3)
+    lim = {"current": 0.8, "speed": 0.8, "position": 0.9, "voltage": 0.9}
+    si = {}
+    for role, info in proto.roles.items():
+        c = info.codec
+        lo, hi = (c.minimum, c.maximum) if c.minimum is not None else (-100.0, 100.0)
+        mid, half = (lo + hi) / 2, (hi - lo) / 2 * lim[role]
+        si[role] = (mid + rng.uniform(-half, half, n)) * info.si_scale
+    return FeedbackEncoder(proto, stagger=1e-4, counter=int(rng.integers(16))).encode(
+        t, si["current"], si["speed"], si.get("position"), si.get("voltage"))
+
+
+@pytest.mark.parametrize("name", sorted(FAST_PROTOCOLS))
+@pytest.mark.parametrize("rate", [0.0, 0.002, 0.02])
+def test_fast_path_equals_careful_path_on_faulty_streams(name: str, rate: float) -> None:
+    """Seeded streams with faults sprinkled in, decoded in blocks of 1..N frames and whole:
+    the fast path gives the careful path's output, block by block and in total."""
+    proto = FAST_PROTOCOLS[name]()
+    assert proto.decoder()._plan is not None
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        b = sprinkle_faults(proto, random_stream(proto, 150, seed), rng, rate)
+        ref = careful_decoder(proto)
+        whole = ref.decode(b)
+        for size in (1, 2, 3, 4, 5, 7, 10, 33, 64, len(b)):
+            fast, slow = proto.decoder(), careful_decoder(proto)
+            for x, y in zip(decode_in_blocks(fast, b, size), decode_in_blocks(slow, b, size),
+                            strict=True):
+                assert_same_frames(x, y)
+            assert_same_decoder(fast, slow)
+            assert_same_decoder(fast, ref)
+        assert_same_frames(proto.decoder().decode(b), whole)
+
+
+def test_fast_path_decodes_clean_blocks_alone(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Clean blocks (foreign frames included) never reach the careful path."""
+    for make in FAST_PROTOCOLS.values():
+        proto = make()
+        b = random_stream(proto, 40, 0)
+        b = with_row(b, 3, arbitration_id=0x7FF)
+        ref = careful_decoder(proto).decode(b)
+        dec = proto.decoder()
+
+        def no_careful(*args: object) -> None:
+            raise AssertionError("careful path used")
+
+        monkeypatch.setattr(dec, "_decode_careful", no_careful)
+        assert_same_frames(dec.decode(b), ref)
+        assert ref.foreign == 1 and ref.rejected.total == 0
+
+
+def test_fast_path_hands_over_at_the_first_bad_frame(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The frames before the first bad one stay decoded; the rest go the careful way."""
+    proto = Protocol.load()
+    b = with_row(frames(proto, 10), 13, dlc=6)  # frame 13 of 20 is short
+    dec, ref = proto.decoder(), careful_decoder(proto)
+    calls: list[tuple[int, int]] = []
+    careful = dec._decode_careful
+
+    def spy(block: FrameBlock, base: int) -> DecodedFrames:
+        calls.append((len(block), base))
+        return careful(block, base)
+
+    monkeypatch.setattr(dec, "_decode_careful", spy)
+    for part in (slice(0, 3), slice(3, None)):
+        assert_same_frames(dec.decode(b.take(part)), ref.decode(b.take(part)))
+    assert calls == [(7, 13)]  # frames 13..19 of the stream
+    assert dec.rejected["length"] == 1 and len(dec.rejected.examples) == 1
+
+
+def test_fast_path_declined_where_it_cannot_match_bit_for_bit(tmp_path: Path) -> None:
+    """A field beyond payload byte 7, a 16-bit float or an integer scaling beyond int64:
+    no fast plan (the careful path decodes)."""
+    def proto(sig: Signal, length: int = 8) -> Protocol:
+        other = Signal("S", 0, 8, unit="A")
+        db = cantools.database.can.Database(messages=[
+            Message(0x123, "M", length, [sig], is_fd=length > 8, strict=True),
+            Message(0x124, "N", 8, [other], strict=True)])
+        f = tmp_path / "m.dbc"
+        f.write_text(db.as_dbc_string())
+        return Protocol.load(f, {"current": "M.S", "speed": {"signal": "N.S", "unit": "rad/s"}})
+
+    assert proto(Signal("S", 0, 16, unit="A")).decoder()._plan is not None
+    assert proto(Signal("S", 64, 16, unit="A"), length=12).decoder()._plan is None
+    assert proto(Signal("S", 0, 64, conversion=BaseConversion.factory(scale=3, offset=0),
+                        unit="A")).decoder()._plan is None
+    half = SignalCodec(Signal("S", 0, 16, conversion=BaseConversion.factory(
+        scale=1, offset=0, is_float=True), unit="A"), "M")
+    assert half.scaling() is None
+
+
+@st.composite
+def two_message_protocols(draw: st.DrawFn) -> tuple[str, dict[str, object]]:
+    """DBC text with current and speed in two messages of random layouts and scalings."""
+    msgs = []
+    for k, name in enumerate(("M", "N")):
+        msg, sig = draw(signal_layouts())
+        if draw(st.booleans()):  # a range, both limits (cantools writes a missing one as 0)
+            lo = draw(st.floats(-1e6, 1e6))
+            sig.minimum, sig.maximum = lo, lo + draw(st.floats(0, 1e6))
+        msgs.append(Message(0x123 + k, name, msg.length, [sig], is_fd=msg.length > 8,
+                            strict=True))
+    unit = draw(st.sampled_from(["A", "mA"]))
+    mapping = {"current": {"signal": "M.S", "unit": unit},
+               "speed": {"signal": "N.S", "unit": draw(st.sampled_from(["rad/s", "rpm"]))}}
+    return cantools.database.can.Database(messages=msgs).as_dbc_string(), mapping
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(two_message_protocols(), st.data())
+def test_fast_path_equals_careful_path_on_random_layouts(tmp_path_factory, layout, data) -> None:
+    """Any field layout and scaling (identity, integer, float; 32/64-bit floats), random
+    payloads (NaN, out of range): the same values bit for bit, the same rejections."""
+    text, mapping = layout
+    f = tmp_path_factory.mktemp("dbc") / "m.dbc"
+    f.write_text(text)
+    proto = Protocol.load(f, mapping)
+    n = data.draw(st.integers(1, 24))
+    width = max(m.length for m in proto.messages)
+    payloads = data.draw(st.lists(st.binary(min_size=width, max_size=width), min_size=n,
+                                  max_size=n))
+    b = FrameBlock.allocate(n, width)
+    for k, p in enumerate(payloads):
+        m = proto.messages[k % 2]
+        b.t[k], b.arbitration_id[k], b.dlc[k] = k * 1e-3, m.frame_id, m.length
+        b.is_extended[k] = m.is_extended
+        b.data[k] = np.frombuffer(p, np.uint8)
+    size = data.draw(st.integers(1, n))
+    fast, slow = proto.decoder(), careful_decoder(proto)
+    for x, y in zip(decode_in_blocks(fast, b, size), decode_in_blocks(slow, b, size),
+                    strict=True):
+        assert_same_frames(x, y)
+    assert_same_decoder(fast, slow)
+
+
+def test_decoded_frames_stay_frozen_dataclasses() -> None:
+    d = Protocol.load().decoder().decode(frames(Protocol.load(), 2))
+    m = d["DriveCurrent"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        m.t = m.t  # type: ignore[misc]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        d.foreign = 1  # type: ignore[misc]
+    assert dataclasses.replace(m, name="x").name == "x" and dataclasses.replace(m) == m
+    assert [f.name for f in dataclasses.fields(MessageFrames)] == [
+        "name", "t", "index", "counter", "values", "counter_modulo"]
+    assert repr(d).startswith("DecodedFrames(messages={'DriveCurrent': MessageFrames(")
+
+
+WIDE_FIELDS = [  # (start, length, byte order, signed, float, scale, offset, scaling mode)
+    (0, 55, "little_endian", True, False, 3, -7, "int"),        # raw * scale beyond 2**53
+    (2, 60, "little_endian", False, False, 5, 11, "int"),
+    (7, 57, "big_endian", True, False, -2, 1, "int"),
+    (0, 64, "little_endian", True, False, 1, 0, "identity"),
+    (0, 64, "little_endian", False, False, 1, 0, "identity"),  # uint64 -> float64
+    (7, 64, "big_endian", False, False, 1e-3, 0.5, "float"),
+    (1, 63, "little_endian", False, False, 0.1, 0.5, "float"),
+    (0, 64, "little_endian", True, True, -5.0, 0.0, "float"),
+    (0, 32, "little_endian", True, True, 2.0, 3.0, "float"),
+    (7, 32, "big_endian", True, True, 1, 0, "identity"),
+]
+
+
+@pytest.mark.parametrize("field", WIDE_FIELDS, ids=lambda f: f"{f[1]}bit-{f[2][0]}-{f[7]}")
+def test_fast_path_scaling_of_wide_fields(tmp_path: Path, field: tuple) -> None:
+    """Every scaling mode on fields wide enough that float arithmetic would round where
+    SignalCodec.physical computes exactly (and back): bit for bit the careful values."""
+    start, length, order, signed, is_float, scale, offset, mode = field
+    sig = Signal("S", start, length, byte_order=order, is_signed=signed, unit="A",
+                 conversion=BaseConversion.factory(scale=scale, offset=offset, is_float=is_float))
+    db = cantools.database.can.Database(messages=[
+        Message(0x123, "M", 8, [sig], strict=True),
+        Message(0x124, "N", 8, [Signal("S", 0, 8, unit="A")], strict=True)])
+    f = tmp_path / "wide.dbc"
+    f.write_text(db.as_dbc_string())
+    proto = Protocol.load(f, {"current": "M.S", "speed": {"signal": "N.S", "unit": "rad/s"}})
+    codec = proto.roles["current"].codec
+    assert codec.scaling()[0] == {"identity": 0, "int": 1, "float": 2}[mode]
+    n = 400
+    b = FrameBlock.allocate(n, 8)
+    b.t[:] = np.arange(n) * 1e-3
+    b.arbitration_id[:] = np.where(np.arange(n) % 2, 0x124, 0x123)
+    b.dlc[:] = 8
+    b.data[:] = np.random.default_rng(length).integers(0, 256, (n, 8), dtype=np.uint8)
+    for size in (1, 3, n):
+        fast, slow = proto.decoder(), careful_decoder(proto)
+        for x, y in zip(decode_in_blocks(fast, b, size), decode_in_blocks(slow, b, size),
+                        strict=True):
+            assert_same_frames(x, y)
+    got = proto.decoder().decode(b)["M"]
+    want = codec.physical(b.data[got.index]) * proto.roles["current"].si_scale
+    assert got.values["current"].tobytes() == want.tobytes() and len(got) > n // 4

@@ -34,15 +34,15 @@ at the end of the stream).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 import numpy.typing as npt
+from numba import literal_unroll
 
 from canrls.errors import ConfigError
-from canrls.protocol import DecodedFrames, MessageFrames, Protocol
+from canrls.protocol import DecodedFrames, Protocol
 from canrls.signals import ROLES, Signals
 
 __all__ = ["Pairer", "PairingCounts", "PAIRING_KINDS"]
@@ -253,6 +253,65 @@ def _merge_kernel(index: I64, offsets: I64, t: F64, cnt: I64, vals: F64, out_msg
     return True
 
 
+@numba.njit(cache=True, nogil=True)
+def _push_kernel(index: tuple[I64, ...], t: tuple[F64, ...], cnt: tuple[I64, ...],
+                 vals: tuple[F64, ...], use_counters: bool, role_msg: I64, times: F64,
+                 flush: bool, gf: F64, gi: I64, sf: F64, si: I64, counts: I64,
+                 iwork: I64, fwork: F64, vwork: F64) -> F64:  # pragma: no cover
+    """One push: the frames of each message (``index``, ``t``, ``cnt``: one array per
+    message; ``vals``: one array per role, of the role's message) in stream order
+    (:func:`_merge_kernel`, else a stable sort by ``index``), through :func:`_pair_kernel`
+    (``times`` = [tolerance, wait, period]). Counters are ignored (-1) unless
+    ``use_counters``. ``iwork`` (4, C), ``fwork`` (3, C) and ``vwork`` (3, C, R) are
+    scratch space for C >= frames + open-period capacity. Returns the completed samples
+    as rows [t, role values...].
+    """
+    K = len(index)
+    offsets = np.zeros(K + 1, np.int64)
+    k = 0
+    for a in literal_unroll(index):
+        offsets[k + 1] = offsets[k] + len(a)
+        k += 1
+    n = offsets[K]
+    all_index, all_cnt, msg, m_cnt = iwork[0, :n], iwork[1, :n], iwork[2, :n], iwork[3, :n]
+    all_t, m_t, out_t = fwork[0, :n], fwork[1, :n], fwork[2]
+    all_vals, m_vals, out_v = vwork[0, :n], vwork[1, :n], vwork[2]
+    k = 0
+    for a in literal_unroll(index):
+        all_index[offsets[k]:offsets[k + 1]] = a
+        k += 1
+    k = 0
+    for b in literal_unroll(t):
+        all_t[offsets[k]:offsets[k + 1]] = b
+        k += 1
+    all_cnt[:] = -1
+    if use_counters:
+        k = 0
+        for c in literal_unroll(cnt):
+            all_cnt[offsets[k]:offsets[k + 1]] = c
+            k += 1
+    all_vals[:] = np.nan
+    j = 0
+    for v in literal_unroll(vals):
+        all_vals[offsets[role_msg[j]]:offsets[role_msg[j] + 1], j] = v
+        j += 1
+    if not _merge_kernel(all_index, offsets, all_t, all_cnt, all_vals, msg, m_t, m_cnt, m_vals):
+        # a message's frames out of stream order: a stable sort does the same
+        order = np.argsort(all_index, kind="mergesort")
+        for k in range(K):
+            all_index[offsets[k]:offsets[k + 1]] = k
+        msg[:] = all_index[order]
+        m_t[:] = all_t[order]
+        m_cnt[:] = all_cnt[order]
+        m_vals[:] = all_vals[order]
+    n_out = _pair_kernel(msg, m_t, m_cnt, m_vals, role_msg, K, times[0], times[1], times[2],
+                         flush, gf, gi, sf, si, counts, out_t, out_v)
+    out = np.empty((1 + len(role_msg), n_out), np.float64)
+    out[0] = out_t[:n_out]
+    out[1:] = out_v[:n_out].T
+    return out
+
+
 class Pairer:
     """Pair decoded feedback frames into samples (see the module docstring for the rules).
 
@@ -293,8 +352,11 @@ class Pairer:
         self.messages: tuple[str, ...] = tuple(m.name for m in protocol.messages)
         self.roles: tuple[str, ...] = tuple(r for r in ROLES if protocol.has(r))
         self._msg_index = {name: k for k, name in enumerate(self.messages)}
-        self._role_msg = np.array([self._msg_index[protocol.roles[r].message]
-                                   for r in self.roles], np.int64)
+        # each role with the position of its message; row of each of ROLES in the output
+        self._role_parts = tuple((r, self._msg_index[protocol.roles[r].message])
+                                 for r in self.roles)
+        self._role_msg = np.array([k for _, k in self._role_parts], np.int64)
+        self._rows = tuple(1 + self.roles.index(r) if r in self.roles else None for r in ROLES)
         moduli = {m.counter_modulo for m in protocol.messages}
         self.match_counters = bool(match_counters) and None not in moduli and len(moduli) == 1
         K, R = len(self.messages), len(self.roles)
@@ -304,7 +366,13 @@ class Pairer:
         self._si = np.full(K, -2, np.int64)
         self._counts = np.zeros((len(PAIRING_KINDS), K), np.int64)
         self._samples = 0
-        self._scratch: dict[str, npt.NDArray[np.generic]] = {}
+        self._times = np.array([self.tolerance, self.tolerance + self.hold * self.period,
+                                self.period])
+        # the input of a flush: no frames
+        none_i, none_f = np.zeros(0, np.int64), np.zeros(0, np.float64)
+        self._no_frames = ((none_i,) * K, (none_f,) * K, (none_i,) * K, (none_f,) * R)
+        self._iwork = np.empty((4, 0), np.int64)
+        self._work(0)
 
     @property
     def counts(self) -> PairingCounts:
@@ -326,65 +394,31 @@ class Pairer:
         """End of stream: emit the complete periods still waiting, drop the incomplete ones."""
         return self._run(None, flush=True)
 
-    def _work(self, name: str, n: int, width: int = 0,
-              dtype: type = np.float64) -> npt.NDArray[np.generic]:
-        """Scratch array ``name`` of ``n`` rows (and ``width`` columns), kept between
-        calls: large fresh arrays on every block cost page faults. Internal only: no
-        view of it leaves the pairer."""
-        a = self._scratch.get(name)
-        if a is None or a.shape[0] < n:
-            rows = max(n, (a.shape[0] * 3) // 2 if a is not None else n)
-            a = np.empty((rows, width) if width else rows, dtype)
-            self._scratch[name] = a
-        return a[:n]
-
-    def _merge(self, parts: list[MessageFrames], R: int) -> tuple[I64, F64, I64, F64]:
-        """The frames of all messages in stream order (by ``index``; ties: message order)."""
-        lens = np.array([0] + [len(p) for p in parts], np.int64)
-        offsets = np.cumsum(lens)
-        n = int(offsets[-1])
-        index = np.concatenate([p.index for p in parts], out=self._work("index", n, 0, np.int64))
-        t = np.concatenate([p.t for p in parts], out=self._work("t", n))
-        cnt = self._work("cnt", n, 0, np.int64)
-        if self.match_counters:
-            np.concatenate([p.counter for p in parts], out=cnt)
-        else:
-            cnt[:] = -1
-        vals = self._work("vals", n, R)
-        vals[:] = np.nan
-        for k, p in enumerate(parts):
-            a, b = int(offsets[k]), int(offsets[k + 1])
-            for j, role in enumerate(self.roles):
-                if role in p.values:
-                    vals[a:b, j] = p.values[role]
-        out_msg = self._work("m_msg", n, 0, np.int64)
-        out_t = self._work("m_t", n)
-        out_cnt = self._work("m_cnt", n, 0, np.int64)
-        out_vals = self._work("m_vals", n, R)
-        if _merge_kernel(index, offsets, t, cnt, vals, out_msg, out_t, out_cnt, out_vals):
-            return out_msg, out_t, out_cnt, out_vals
-        # a message's frames out of stream order: a stable sort does the same
-        order = np.argsort(index, kind="stable")
-        msg = np.repeat(np.arange(len(parts), dtype=np.int64), lens[1:])
-        return msg[order], t[order], cnt[order], vals[order]
+    def _work(self, n: int) -> None:
+        """Scratch space of :func:`_push_kernel` for ``n`` frames, kept between calls and
+        grown as needed: large fresh arrays on every block cost page faults."""
+        cols = max(n + _CAPACITY, self._iwork.shape[1] * 3 // 2)
+        self._iwork = np.empty((4, cols), np.int64)
+        self._fwork = np.empty((3, cols), np.float64)
+        self._vwork = np.empty((3, cols, len(self.roles)), np.float64)
 
     def _run(self, decoded: DecodedFrames | None, flush: bool) -> Signals:
-        K, R = len(self.messages), len(self.roles)
         if decoded is None:
-            msg = np.zeros(0, np.int64)
-            t = np.zeros(0)
-            cnt = np.zeros(0, np.int64)
-            vals = np.zeros((0, R))
+            index, t, cnt, vals = self._no_frames
         else:
-            parts = [decoded[name] for name in self.messages]
-            msg, t, cnt, vals = self._merge(parts, R)
-        cap = len(t) + _CAPACITY
-        out_t = self._work("out_t", cap)
-        out_v = self._work("out_v", cap, R)
-        n = _pair_kernel(msg, t, cnt, vals, self._role_msg, K, self.tolerance,
-                         self.tolerance + self.hold * self.period, self.period, flush,
-                         self._gf, self._gi, self._sf, self._si, self._counts, out_t, out_v)
-        self._samples += n
-        cols: Mapping[str, F64] = {role: out_v[:n, j].copy() for j, role in enumerate(self.roles)}
-        return Signals(out_t[:n].copy(), cols["current"], cols["speed"],
-                       cols.get("position"), cols.get("voltage"))
+            # one array per message (per role for the values): the kernel merges them
+            parts = [decoded.messages[name] for name in self.messages]
+            index = tuple([p.index for p in parts])
+            t = tuple([p.t for p in parts])
+            cnt = tuple([p.counter for p in parts])
+            vals = tuple([parts[k].values[role] for role, k in self._role_parts])
+        n = sum([len(a) for a in index])
+        if n + _CAPACITY > self._iwork.shape[1]:
+            self._work(n)
+        out = _push_kernel(index, t, cnt, vals, self.match_counters, self._role_msg, self._times,
+                           flush, self._gf, self._gi, self._sf, self._si, self._counts,
+                           self._iwork, self._fwork, self._vwork)
+        self._samples += out.shape[1]
+        c, s, p, v = self._rows
+        return Signals(out[0], out[c], out[s], None if p is None else out[p],
+                       None if v is None else out[v])

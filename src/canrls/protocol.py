@@ -90,6 +90,11 @@ REJECT_REASONS: tuple[str, ...] = (
     "range",        # a physical value lies outside the DBC [minimum, maximum]
 )
 _R = {r: k + 1 for k, r in enumerate(REJECT_REASONS)}  # reason -> code (0 = accepted)
+_NO_REJECTS = dict.fromkeys(REJECT_REASONS, 0)
+
+
+#: :meth:`SignalCodec.scaling` modes
+_PHYS_IDENTITY, _PHYS_INT, _PHYS_FLOAT = 0, 1, 2
 
 
 class EncodeError(DecodeError):
@@ -412,6 +417,27 @@ class SignalCodec:
         exact = [int(x) * self.scale + self.offset for x in raw.tolist()]  # beyond int64
         return np.array([float(x) for x in exact], np.float64)
 
+    def scaling(self) -> tuple[int, int | float, int | float] | None:
+        """How :meth:`physical` scales, for the fused decoding kernel: ``(mode, scale,
+        offset)`` with mode :data:`_PHYS_IDENTITY` (the raw value as float64),
+        :data:`_PHYS_INT` (``raw * scale + offset`` in int64, then float64; integer
+        ``scale`` and ``offset``) or :data:`_PHYS_FLOAT` (``float64(raw) * scale +
+        offset``; float ``scale`` and ``offset``). ``None`` where the kernel cannot
+        reproduce :meth:`physical` bit for bit: 16-bit floats, and integer scalings
+        that overflow int64.
+        """
+        if self.is_float or not (isinstance(self.scale, int) and isinstance(self.offset, int)):
+            if self.is_float and self.length == 16:
+                return None
+            if self.scale == 1 and self.offset == 0:
+                return _PHYS_IDENTITY, 1.0, 0.0
+            return _PHYS_FLOAT, float(self.scale), float(self.offset)
+        if self.scale == 1 and self.offset == 0:
+            return _PHYS_IDENTITY, 1, 0
+        if (1 << self.length) * abs(self.scale) + abs(self.offset) < (1 << 63):
+            return _PHYS_INT, int(self.scale), int(self.offset)
+        return None
+
     def out_of_range(self, phys: F64) -> npt.NDArray[np.bool_]:
         """True where a physical value lies outside [minimum, maximum] (cantools' tolerance)."""
         bad = np.zeros(phys.shape, np.bool_)
@@ -558,18 +584,24 @@ def _crc_vector(frame_id: int, data: U8, length: int) -> U8:
     return out
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _crc_row(frame_id: int, data: U8, k: int, length: int,
+             table: U8) -> int:  # pragma: no cover - compiled
+    """CRC-8 table walk of row ``k``: init 0xFF, ID low then high byte, payload bytes
+    1..length-1, xor 0xFF."""
+    c = table[0xFF ^ (frame_id & 0xFF)]
+    c = table[c ^ ((frame_id >> 8) & 0xFF)]
+    for j in range(1, length):
+        c = table[c ^ data[k, j]]
+    return c ^ 0xFF
+
+
 @numba.njit(cache=True, nogil=True)
 def _crc_kernel(frame_id: int, data: U8, length: int, table: U8,
                 out: U8) -> None:  # pragma: no cover - compiled
-    """CRC-8 table walk per row: init 0xFF, ID low then high byte, payload bytes, xor 0xFF."""
-    lo = frame_id & 0xFF
-    hi = (frame_id >> 8) & 0xFF
+    """:func:`_crc_row` of every row."""
     for k in range(data.shape[0]):
-        c = table[0xFF ^ lo]
-        c = table[c ^ hi]
-        for j in range(1, length):
-            c = table[c ^ data[k, j]]
-        out[k] = c ^ 0xFF
+        out[k] = _crc_row(frame_id, data, k, length, table)
 
 
 @dataclass(frozen=True)
@@ -839,7 +871,7 @@ class RejectCounts(Mapping[str, int]):
     """
 
     def __init__(self) -> None:
-        self._counts: dict[str, int] = dict.fromkeys(REJECT_REASONS, 0)
+        self._counts: dict[str, int] = _NO_REJECTS.copy()
         self.per_message: dict[str, dict[str, int]] = {}
         self.examples: dict[str, str] = {}
         self._example_key: dict[str, int] = {}
@@ -898,7 +930,7 @@ class RejectCounts(Mapping[str, int]):
         return f"RejectCounts({nz})"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class MessageFrames:
     """The accepted frames of one mapped message in a block.
 
@@ -915,11 +947,19 @@ class MessageFrames:
     values: dict[str, F64]
     counter_modulo: int | None
 
+    def __init__(self, name: str, t: F64, index: I64, counter: I64, values: dict[str, F64],
+                 counter_modulo: int | None) -> None:
+        # the fields go straight into the instance dict: a frozen dataclass's own
+        # __init__ sets each through object.__setattr__, microseconds per live block
+        d = self.__dict__
+        d["name"], d["t"], d["index"], d["counter"] = name, t, index, counter
+        d["values"], d["counter_modulo"] = values, counter_modulo
+
     def __len__(self) -> int:
         return len(self.t)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class DecodedFrames:
     """Result of decoding one block: the accepted frames of each mapped message and the counts.
 
@@ -932,6 +972,11 @@ class DecodedFrames:
     rejected: RejectCounts
     lost: dict[str, int]
     foreign: int
+
+    def __init__(self, messages: dict[str, MessageFrames], rejected: RejectCounts,
+                 lost: dict[str, int], foreign: int) -> None:
+        d = self.__dict__  # as MessageFrames.__init__
+        d["messages"], d["rejected"], d["lost"], d["foreign"] = messages, rejected, lost, foreign
 
     def __getitem__(self, name: str) -> MessageFrames:
         return self.messages[name]
@@ -947,18 +992,56 @@ class DecodedFrames:
 _STATUS_OK, _STATUS_REPEATED, _STATUS_STALE = 0, 1, 2
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _counter_step(c: int, t: float, mod: int, window: int, period: float, last: int, run: int,
+                  prev_stale: int, last_t: float
+                  ) -> tuple[int, int, int, int, int, float]:  # pragma: no cover
+    """Classify one alive counter ``c`` received at ``t``.
+
+    State: ``last`` counter (-1: none yet), ``run`` of consecutive stale frames,
+    ``prev_stale`` counter of the last stale frame, ``last_t`` time of the last accepted
+    frame. d = (c - last) mod M: d == 0 repeated; d >= M - window stale (a jump
+    backwards), unless the time since the last accepted frame shows that d - 1 frames
+    were lost; otherwise d - 1 frames lost (plus whole counter wraps the time gap
+    implies). Three consecutive stale frames that count up by one resynchronise.
+
+    Returns (status, frames lost, last, run, prev_stale, last_t): the status and the
+    new state.
+    """
+    if last < 0:
+        return _STATUS_OK, 0, c, 0, prev_stale, t
+    d = (c - last) % mod
+    dt = t - last_t
+    timed = period > 0.0 and np.isfinite(dt)
+    if d == 0 and not (timed and dt >= (mod - 0.5) * period):
+        return _STATUS_REPEATED, 0, last, run, prev_stale, last_t
+    if d == 0:
+        d = mod
+    if d >= mod - window and not (timed and dt >= (d - 0.5) * period):
+        if run > 0 and c == (prev_stale + 1) % mod:
+            run += 1
+        else:
+            run = 1
+        prev_stale = c
+        if run < 3:
+            return _STATUS_STALE, 0, last, run, prev_stale, last_t
+        d = 1  # resynchronise on a consistent new sequence (loss unknown)
+    gap = d
+    if timed:
+        k = int(np.floor((dt / period - d) / mod + 0.5))
+        if k > 0:
+            gap += k * mod
+    return _STATUS_OK, gap - 1, c, 0, prev_stale, t
+
+
 @numba.njit(cache=True, nogil=True)
 def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
                     state: I64, state_t: F64
                     ) -> tuple[npt.NDArray[np.int8], I64]:  # pragma: no cover
-    """Classify alive counters one frame at a time, carrying state across blocks.
-
-    state = [last counter (-1: none yet), consecutive stale frames, counter of the last
-    stale frame]; state_t = [time of the last accepted frame].
-    d = (c - last) mod M: d == 0 repeated; d >= M - window stale (a jump backwards),
-    unless the time since the last accepted frame shows that d - 1 frames were lost;
-    otherwise d - 1 frames lost (plus whole counter wraps the time gap implies).
-    Three consecutive stale frames that count up by one resynchronise.
+    """Classify alive counters one frame at a time (:func:`_counter_step`), carrying
+    state across blocks: state = [last counter (-1: none yet), consecutive stale frames,
+    counter of the last stale frame]; state_t = [time of the last accepted frame].
+    Returns the status and the frames lost before each frame.
     """
     n = len(c)
     status = np.zeros(n, np.int8)
@@ -968,39 +1051,8 @@ def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
     prev_stale = state[2]
     last_t = state_t[0]
     for i in range(n):
-        ci = c[i]
-        if last < 0:
-            last = ci
-            last_t = t[i]
-            run = 0
-            continue
-        d = (ci - last) % mod
-        dt = t[i] - last_t
-        timed = period > 0.0 and np.isfinite(dt)
-        if d == 0 and not (timed and dt >= (mod - 0.5) * period):
-            status[i] = _STATUS_REPEATED
-            continue
-        if d == 0:
-            d = mod
-        if d >= mod - window and not (timed and dt >= (d - 0.5) * period):
-            if run > 0 and ci == (prev_stale + 1) % mod:
-                run += 1
-            else:
-                run = 1
-            prev_stale = ci
-            if run < 3:
-                status[i] = _STATUS_STALE
-                continue
-            d = 1  # resynchronise on a consistent new sequence (loss unknown)
-        gap = d
-        if timed:
-            k = int(np.floor((dt / period - d) / mod + 0.5))
-            if k > 0:
-                gap += k * mod
-        lost[i] = gap - 1
-        last = ci
-        last_t = t[i]
-        run = 0
+        status[i], lost[i], last, run, prev_stale, last_t = _counter_step(
+            c[i], t[i], mod, window, period, last, run, prev_stale, last_t)
     state[0] = last
     state[1] = run
     state[2] = prev_stale
@@ -1035,8 +1087,6 @@ def _gather_check(data: U8, rows: npt.NDArray[np.intp], length: int,
     """Copy ``data[rows, :length]`` into ``out``; flag the first check each row fails:
     1 remote, 2 length (DLC), 4 CRC (only when ``check_crc``). Returns the flagged rows.
     """
-    lo = frame_id & 0xFF
-    hi = (frame_id >> 8) & 0xFF
     bad = 0
     for i in range(rows.shape[0]):
         r = rows[i]
@@ -1047,17 +1097,261 @@ def _gather_check(data: U8, rows: npt.NDArray[np.intp], length: int,
             f = 1
         elif dlc[r] != length:
             f = 2
-        elif check_crc:
-            c = table[0xFF ^ lo]
-            c = table[c ^ hi]
-            for j in range(1, length):
-                c = table[c ^ data[r, j]]
-            if (c ^ 0xFF) != data[r, 0]:
-                f = 4
+        elif check_crc and _crc_row(frame_id, data, r, length, table) != data[r, 0]:
+            f = 4
         flags[i] = f
         if f:
             bad += 1
     return bad
+
+
+def _counter_params(m: MessageCodec) -> tuple[int, int, float]:
+    """Counter modulo M, stale window (half the range, less one) and period [s] (0: none)
+    that :func:`_counter_step` takes for message ``m`` (which has a counter)."""
+    modulo = int(m.counter_modulo or 0)
+    return modulo, max(1, modulo // 2 - 1), float(m.cycle_time or 0.0)
+
+
+# columns of _FastPlan.msg, one row per message
+(_M_ID, _M_EXT, _M_LEN, _M_CRC, _M_CHECK, _M_MOD, _M_WINDOW, _M_COUNTER, _M_SIG0, _M_SIG1,
+ _M_TROW, _M_COLS) = range(12)
+# columns of _FastPlan.sig, one row per signal (the roles, then the counters): where the
+# field is (bit _S_POS of the 64-bit little-endian word of payload bytes 0..7, or of the
+# big-endian one when _S_BE), how it scales (SignalCodec.scaling) and the row of its SI
+# values in the float output
+(_S_SIGNED, _S_FLOAT, _S_MODE, _S_LEN, _S_BE, _S_POS, _S_SCALE, _S_OFFSET, _S_ROW,
+ _S_COLS) = range(10)
+# columns of _FastPlan.sig_f: float scale and offset, range limits in the DBC unit, SI factor
+_F_SCALE, _F_OFFSET, _F_LO, _F_HI, _F_SI, _F_COLS = range(6)
+
+
+class _NoFastPath(Exception):
+    """A mapped signal that :func:`_fast_kernel` cannot decode (see :meth:`_FastPlan.build`)."""
+
+
+class _FastPlan:
+    """The constants of :func:`_fast_kernel` for one protocol and its options.
+
+    ``msg`` / ``sig`` / ``sig_f`` are the packed message and signal tables (columns
+    ``_M_*``, ``_S_*``, ``_F_*``); ``period`` the counters' periods [s]. The kernel
+    writes, per message k, the times to row ``layout[k][1]`` of its float output and
+    the SI values of the roles ``layout[k][2]`` to the rows after it, the stream indices
+    and the counters to rows 2k and 2k + 1 of its integer output; ``counts`` receives
+    the frames accepted (K) and lost (K) of each message, then the foreign frames.
+    Build with :meth:`build`.
+
+    The kernel takes each field from the 64-bit words of payload bytes 0..7 (one shift
+    and mask, much faster in the frame loop than :func:`_extract_kernel`'s byte loop): a
+    field beyond byte 7 (CAN FD) leaves the protocol to the careful path.
+    """
+
+    __slots__ = ("options", "msg", "period", "sig", "sig_f", "n_float", "layout", "counts",
+                 "out_f", "out_i")
+
+    def __init__(self, p: Protocol) -> None:
+        self.options = (p.strict_range, p.check_crc, p.check_counter)
+        K = len(p.messages)
+        roles = [r for m in p.messages for r in m.roles]
+        counters = [m.counter for m in p.messages if m.counter is not None]
+        self.msg = np.full((K, _M_COLS), -1, np.int64)
+        self.period = np.zeros(K, np.float64)
+        self.sig = np.zeros((len(roles) + len(counters), _S_COLS), np.int64)
+        self.sig_f = np.zeros((len(roles), _F_COLS), np.float64)
+        layout = []
+        s, q, row = 0, len(roles), 0
+        for k, m in enumerate(p.messages):
+            mk = self.msg[k]
+            mk[_M_ID], mk[_M_EXT], mk[_M_LEN] = m.frame_id, m.is_extended, m.length
+            mk[_M_CRC], mk[_M_CHECK] = m.crc is not None and p.check_crc, p.check_counter
+            if m.counter is not None:
+                mk[_M_MOD], mk[_M_WINDOW], self.period[k] = _counter_params(m)
+                mk[_M_COUNTER] = q
+                self._locate(q, m.counter)
+                q += 1
+            mk[_M_SIG0], mk[_M_SIG1], mk[_M_TROW] = s, s + len(m.roles), row
+            for r in m.roles:
+                row += 1
+                self._locate(s, r.codec)
+                self._scaling(s, r, p.strict_range)
+                self.sig[s, _S_ROW] = row
+                s += 1
+            row += 1
+            layout.append((m.name, int(mk[_M_TROW]), tuple(r.role for r in m.roles),
+                           m.counter_modulo))
+        self.n_float = row
+        self.layout: tuple[tuple[str, int, tuple[str, ...], int | None], ...] = tuple(layout)
+        self.counts = np.zeros(2 * K + 1, np.int64)
+        self.out_f = np.empty((self.n_float, 0), np.float64)
+        self.out_i = np.empty((2 * K, 0), np.int64)
+
+    def outputs(self, n: int) -> tuple[F64, I64]:
+        """The kernel's float and integer outputs for ``n`` frames: kept between blocks and
+        grown as needed (fresh large arrays on every block cost page faults)."""
+        if self.out_f.shape[1] < n:
+            cols = max(n, self.out_f.shape[1] * 3 // 2)
+            self.out_f = np.empty((self.n_float, cols), np.float64)
+            self.out_i = np.empty((self.out_i.shape[0], cols), np.int64)
+        return self.out_f, self.out_i
+
+    def _locate(self, s: int, c: SignalCodec) -> None:
+        """Row ``s`` of ``sig``: where the field of ``c`` lies in the payload words."""
+        if max(c.byte_index) > 7:
+            raise _NoFastPath(c.qualname)
+        row = self.sig[s]
+        row[_S_SIGNED], row[_S_FLOAT], row[_S_LEN] = c.is_signed, c.is_float, c.length
+        # raw bit b is bit (b + shift) % 8 of byte byte_index[(b + shift) // 8] (SignalCodec):
+        # ascending bytes (little endian) or descending (big endian) from byte_index[0]
+        row[_S_BE] = c.byte_order != "little_endian"
+        row[_S_POS] = 8 * (7 - c.byte_index[0] if row[_S_BE] else c.byte_index[0]) + c.shift
+
+    def _scaling(self, s: int, r: RoleInfo, strict_range: bool) -> None:
+        """Rows ``s`` of ``sig`` and ``sig_f``: how role ``r`` scales, its range check."""
+        c = r.codec
+        scaling = c.scaling()
+        if scaling is None:
+            raise _NoFastPath(c.qualname)
+        mode, scale, offset = scaling
+        self.sig[s, _S_MODE] = mode
+        if mode == _PHYS_INT:
+            self.sig[s, _S_SCALE], self.sig[s, _S_OFFSET] = scale, offset
+        else:
+            self.sig_f[s, _F_SCALE], self.sig_f[s, _F_OFFSET] = scale, offset
+        # the bounds SignalCodec.out_of_range compares with
+        on_min = strict_range and c.minimum is not None
+        on_max = strict_range and c.maximum is not None
+        self.sig_f[s, _F_LO] = c.minimum - c.tol if on_min else -np.inf
+        self.sig_f[s, _F_HI] = c.maximum + c.tol if on_max else np.inf
+        self.sig_f[s, _F_SI] = r.si_scale
+
+    @staticmethod
+    def build(p: Protocol) -> _FastPlan | None:
+        """The plan, or None when a mapped signal is beyond the kernel (a field beyond
+        payload byte 7, a scaling :meth:`SignalCodec.scaling` declines)."""
+        try:
+            return _FastPlan(p)
+        except _NoFastPath:
+            return None
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _field(le: np.uint64, be: np.uint64, sig: I64, s: int) -> np.uint64:  # pragma: no cover
+    """Raw bit field of signal ``s`` of a :class:`_FastPlan` (not sign-extended), from the
+    little- and big-endian words ``le`` and ``be`` of payload bytes 0..7."""
+    L = sig[s, _S_LEN]
+    mask = np.uint64(0xFFFFFFFFFFFFFFFF) if L >= 64 else np.uint64((1 << L) - 1)
+    return ((be if sig[s, _S_BE] else le) >> np.uint64(sig[s, _S_POS])) & mask
+
+
+@numba.njit(cache=True, nogil=True)
+def _fast_kernel(t: F64, arbitration_id: npt.NDArray[np.uint32],
+                 is_extended: npt.NDArray[np.bool_], is_remote: npt.NDArray[np.bool_],
+                 is_error: npt.NDArray[np.bool_], dlc: U8, data: U8, msg: I64, period: F64,
+                 sig: I64, sig_f: F64, table: U8, state: I64, state_t: F64, base: int,
+                 out_f: F64, out_i: I64, counts: I64) -> int:  # pragma: no cover - compiled
+    """Decode the frames of a block in one pass, up to the first that is not well-formed.
+
+    Frames in stream order; a frame belongs to the message (row of ``msg``) with its ID
+    and format. Per frame of a message: not remote, DLC = the message length, CRC
+    (:func:`_crc_row`), alive counter in sequence (:func:`_counter_step`), each role's
+    physical value ``raw * scale + offset`` (as :meth:`SignalCodec.physical` computes it,
+    see :meth:`SignalCodec.scaling`) finite and within [lo, hi]; then the time, stream
+    index ``base + i``, counter (or running sequence number) and SI values ``physical *
+    si_scale`` go to the outputs (see :class:`_FastPlan`). ``state`` = per message [last
+    counter, stale run, last stale counter, sequence number], ``state_t`` = [time of the
+    last accepted frame].
+
+    Stops at the first error frame or frame of a mapped message that fails a check, and
+    returns the number of frames decoded: outputs, counts and state are those of the
+    frames before it, and the caller decodes the rest the careful way.
+    """
+    K = msg.shape[0]
+    counts[:] = 0
+    n = t.shape[0]
+    bits32 = np.empty(1, np.uint32)  # to reinterpret a float signal's bits
+    as_f32 = bits32.view(np.float32)
+    bits64 = np.empty(1, np.uint64)
+    as_f64 = bits64.view(np.float64)
+    done = n
+    for i in range(n):
+        if is_error[i]:
+            done = i
+            break
+        k = 0
+        while k < K and not (arbitration_id[i] == msg[k, _M_ID]
+                             and is_extended[i] == (msg[k, _M_EXT] != 0)):
+            k += 1
+        if k == K:
+            counts[2 * K] += 1  # foreign
+            continue
+        length = msg[k, _M_LEN]
+        if is_remote[i] or dlc[i] != length or data.shape[1] < length or (
+                msg[k, _M_CRC] and _crc_row(msg[k, _M_ID], data, i, length, table) != data[i, 0]):
+            done = i
+            break
+        le = np.uint64(0)  # payload bytes 0..7 as little- and big-endian words
+        be = np.uint64(0)
+        for j in range(min(length, 8)):
+            b = np.uint64(data[i, j])
+            le |= b << np.uint64(8 * j)
+            be |= b << np.uint64(56 - 8 * j)
+        c = counts[k]
+        q = msg[k, _M_COUNTER]
+        check = q >= 0 and msg[k, _M_CHECK] != 0
+        status, lost, last, run, prev_stale, last_t = (
+            _STATUS_OK, 0, state[k, 0], state[k, 1], state[k, 2], state_t[k])
+        if q >= 0:
+            counter = np.int64(_field(le, be, sig, q))
+            if check:
+                status, lost, last, run, prev_stale, last_t = _counter_step(
+                    counter, t[i], msg[k, _M_MOD], msg[k, _M_WINDOW], period[k], last, run,
+                    prev_stale, last_t)
+        else:
+            counter = state[k, 3] + c
+        if status != _STATUS_OK:
+            done = i
+            break
+        ok = True
+        for s in range(msg[k, _M_SIG0], msg[k, _M_SIG1]):
+            acc = _field(le, be, sig, s)
+            L = sig[s, _S_LEN]
+            if sig[s, _S_FLOAT]:
+                if L == 32:
+                    bits32[0] = np.uint32(acc)
+                    x = np.float64(as_f32[0])
+                else:
+                    bits64[0] = acc
+                    x = as_f64[0]
+            elif sig[s, _S_SIGNED]:
+                raw = np.int64(acc << np.uint64(64 - L)) >> (64 - L)
+                x = np.float64(raw)
+            else:
+                raw = np.int64(acc)  # exact below 64 bits: all unsigned _PHYS_INT fields
+                x = np.float64(acc)
+            mode = sig[s, _S_MODE]
+            if mode == _PHYS_INT:
+                v = np.float64(raw * sig[s, _S_SCALE] + sig[s, _S_OFFSET])
+            elif mode == _PHYS_FLOAT:
+                v = x * sig_f[s, _F_SCALE] + sig_f[s, _F_OFFSET]
+            else:
+                v = x
+            if not np.isfinite(v) or v < sig_f[s, _F_LO] or v > sig_f[s, _F_HI]:
+                ok = False
+                break
+            out_f[sig[s, _S_ROW], c] = v * sig_f[s, _F_SI]
+        if not ok:
+            done = i
+            break
+        if check:
+            state[k, 0], state[k, 1], state[k, 2], state_t[k] = last, run, prev_stale, last_t
+            counts[K + k] += lost
+        out_f[msg[k, _M_TROW], c] = t[i]
+        out_i[2 * k, c] = base + i
+        out_i[2 * k + 1, c] = counter
+        counts[k] = c + 1
+    for k in range(K):
+        if msg[k, _M_COUNTER] < 0:
+            state[k, 3] += counts[k]
+    return done
 
 
 class Decoder:
@@ -1076,16 +1370,45 @@ class Decoder:
         self.accepted: dict[str, int] = {m.name: 0 for m in protocol.messages}
         self.foreign = 0
         self.frames = 0
-        self._state = {m.name: (np.array([-1, 0, -1], np.int64), np.zeros(1, np.float64))
-                       for m in protocol.messages}
-        self._seq = {m.name: 0 for m in protocol.messages}
+        # per message: [last counter, stale run, last stale counter] (see _counter_step),
+        # then the running sequence number of a message without counter; time of the last
+        # accepted frame. The careful path works on views of the rows.
+        K = len(protocol.messages)
+        self._counters = np.tile(np.array([-1, 0, -1, 0], np.int64), (K, 1))
+        self._counters_t = np.zeros(K, np.float64)
+        self._state = {m.name: (self._counters[k, :3], self._counters_t[k:k + 1])
+                       for k, m in enumerate(protocol.messages)}
+        self._seq = {m.name: self._counters[k, 3:] for k, m in enumerate(protocol.messages)}
+        self._plan = _FastPlan.build(protocol)
 
     def decode(self, block: FrameBlock) -> DecodedFrames:
-        """Decode one block; rejected frames are counted and dropped, never passed on."""
+        """Decode one block; rejected frames are counted and dropped, never passed on.
+
+        The frames up to the first that is not well-formed (all of them, commonly) are
+        decoded in one compiled pass (:func:`_fast_kernel`); the rest the careful way,
+        check by check, which also names each rejection. Decoding being chunk-invariant,
+        the result is that of the careful way on the whole block.
+        """
         p = self.protocol
         n = len(block)
         base = self.frames
         self.frames += n
+        plan = self._plan
+        if plan is not None and plan.options != (p.strict_range, p.check_crc, p.check_counter):
+            plan = self._plan = _FastPlan.build(p)
+        if plan is None:
+            return self._decode_careful(block, base)
+        fast, done = self._decode_fast(plan, block, base)
+        if done == n:
+            return fast
+        rest = self._decode_careful(block.take(slice(done, None)) if done else block,
+                                    base + done)
+        return _joined(fast, rest) if done else rest
+
+    def _decode_careful(self, block: FrameBlock, base: int) -> DecodedFrames:
+        """Decode a block check by check (the frames numbered from ``base`` in the stream)."""
+        p = self.protocol
+        n = len(block)
         rej = RejectCounts()
         err = block.is_error
         n_err = int(err.sum())
@@ -1108,6 +1431,32 @@ class Decoder:
         self.foreign += foreign
         self.rejected.merge(rej)
         return DecodedFrames(out, rej, lost_block, foreign)
+
+    def _decode_fast(self, plan: _FastPlan, block: FrameBlock,
+                     base: int) -> tuple[DecodedFrames, int]:
+        """:func:`_fast_kernel` on the block: the decoded frames (counted in the running
+        totals) and how many of the block's frames they cover."""
+        out_f, out_i = plan.outputs(len(block))
+        done = _fast_kernel(block.t, block.arbitration_id, block.is_extended, block.is_remote,
+                            block.is_error, block.dlc, block.data, plan.msg, plan.period,
+                            plan.sig, plan.sig_f, CRC8_TABLE, self._counters, self._counters_t,
+                            base, out_f, out_i, plan.counts)
+        counts = plan.counts.tolist()
+        K = len(plan.layout)
+        out: dict[str, MessageFrames] = {}
+        lost: dict[str, int] = {}
+        for k, (name, t_row, roles, modulo) in enumerate(plan.layout):
+            c = counts[k]
+            f = out_f[t_row:t_row + 1 + len(roles), :c].copy()  # times, then the roles
+            i = out_i[2 * k:2 * k + 2, :c].copy()  # stream indices, counters
+            out[name] = MessageFrames(name, f[0], i[0], i[1],
+                                      {role: f[1 + j] for j, role in enumerate(roles)}, modulo)
+            lost[name] = counts[K + k]
+            self.lost[name] += counts[K + k]
+            self.accepted[name] += c
+        foreign = counts[2 * K]
+        self.foreign += foreign
+        return DecodedFrames(out, RejectCounts(), lost, foreign), done
 
     def _decode_message(self, m: MessageCodec, block: FrameBlock, rows: npt.NDArray[np.intp],
                         base: int, rej: RejectCounts) -> tuple[MessageFrames, int]:
@@ -1184,9 +1533,8 @@ class Decoder:
             if p.check_counter and len(ok):
                 state, state_t = self._state[m.name]
                 before = int(state[0])
-                status, lost = _counter_kernel(counter_all[ok], t[ok], int(modulo),
-                                               max(1, int(modulo) // 2 - 1),
-                                               float(m.cycle_time or 0.0), state, state_t)
+                status, lost = _counter_kernel(counter_all[ok], t[ok], *_counter_params(m),
+                                               state, state_t)
                 lost_total = int(lost.sum())
 
                 def previous(k: int) -> int:
@@ -1241,12 +1589,27 @@ class Decoder:
             t_keep = t[keep]
             counter = counter_all[keep] if modulo is not None else None
         if counter is None:
-            s0 = self._seq[m.name]
+            seq = self._seq[m.name]
+            s0 = int(seq[0])
             counter = np.arange(s0, s0 + len(keep), dtype=np.int64)
-            self._seq[m.name] = s0 + len(keep)
+            seq[0] = s0 + len(keep)
         index = (rows if len(keep) == n_rows else rows[keep]).astype(np.int64, copy=False) + base
         frames = MessageFrames(m.name, t_keep, index, counter, values, modulo)
         return frames, lost_total
+
+
+def _joined(a: DecodedFrames, b: DecodedFrames) -> DecodedFrames:
+    """Two consecutive parts of a block decoded as one; ``a`` has no rejections."""
+    cat = np.concatenate
+    out = {}
+    for name, x in a.messages.items():
+        y = b.messages[name]
+        out[name] = MessageFrames(name, cat([x.t, y.t]), cat([x.index, y.index]),
+                                  cat([x.counter, y.counter]),
+                                  {r: cat([v, y.values[r]]) for r, v in x.values.items()},
+                                  x.counter_modulo)
+    return DecodedFrames(out, b.rejected, {k: v + b.lost[k] for k, v in a.lost.items()},
+                         a.foreign + b.foreign)
 
 
 def _phys_at(c: SignalCodec, block: FrameBlock, rows: npt.NDArray[np.intp], k: int,
