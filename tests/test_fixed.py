@@ -693,3 +693,34 @@ def test_sweep_reports_and_recommends_the_smallest_configuration() -> None:
     cfgs = {"mine": FixedConfig.auto(n, alpha, lam)}
     res2 = sweep(Phi, Y, ref, cfgs, lam=lam, alpha=alpha)
     assert [r.label for r in res2.rows] == ["mine"] and res2.rows[0].ok
+
+
+def _quantize_numpy(q: QFormat, x: npt.ArrayLike) -> tuple[npt.NDArray[np.int64], int]:
+    """The numpy formulation of :meth:`QFormat.quantize` (before its compiled kernel)."""
+    a = np.asarray(x, dtype=np.float64)
+    with np.errstate(over="ignore"):
+        v = np.floor(np.ldexp(a, q.frac) + 0.5)
+    lo, hi = float(q.lo), float(q.hi)
+    return np.clip(v, lo, hi).astype(np.int64), int(np.count_nonzero((v < lo) | (v > hi)))
+
+
+def test_quantize_gives_what_the_numpy_formulation_gives() -> None:
+    """Seeded random arrays of every shape (0-d, empty, 2-D, strided) and magnitude, with
+    ties, infinities and subnormals: the same integers, types and saturation counts."""
+    rng = np.random.default_rng(5)
+    shapes: list[tuple[int, ...]] = [(), (0,), (1,), (5,), (3, 4), (4, 1)]
+    for i in range(3000):
+        q = QFormat(int(rng.integers(2, 54)), int(rng.integers(-64, 127)))
+        x = rng.normal(size=shapes[i % len(shapes)]) * 2.0 ** int(rng.integers(-80, 80))
+        if x.size:
+            lsb = 2.0 ** -q.frac
+            x.flat[0] = rng.choice([math.inf, -math.inf, 0.5 * lsb, -0.5 * lsb, 2.5 * lsb,
+                                    5e-324, -0.0, float(x.flat[0])])
+        if x.ndim == 2 and i % 2:
+            x = x.T  # not contiguous
+        got, nsat = q.quantize(x)
+        want, wsat = _quantize_numpy(q, x)
+        assert type(got) is type(want) and np.shape(got) == np.shape(want)
+        assert np.asarray(got).tobytes() == np.asarray(want).tobytes() and nsat == wsat
+    with pytest.raises(FixedPointError, match="NaN"):
+        QFormat(16, 14).quantize([[0.25, 0.5], [math.nan, 0.0]])

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from canrls.config import AppConfig
-from canrls.pipeline import EstimatorSettings, Pipeline
+from canrls.pipeline import EstimatorSettings, Pipeline, divergence
 from canrls.ranges import scan_ranges
 from canrls.signals import Signals
 from canrls.sim.scenario import scenario, simulate
@@ -133,3 +135,71 @@ def test_state_round_trip_continues_identically(standard: object) -> None:
         p.process(sig.slice(12000, 20000))
     for pa, pb in zip(a2.estimates().parameters, b.estimates().parameters, strict=True):
         assert (pa.value, pa.fixed) == (pb.value, pb.fixed)
+
+
+_ROW_FIELDS = ("t", "y", "eps", "eps_fixed", "used", "online_rms", "flags", "theta",
+               "theta_fixed", "phi")
+
+
+@pytest.mark.parametrize("record", [False, True])
+@pytest.mark.parametrize("case", ["plain", "saturating"])
+def test_blocks_of_0_to_5_samples_give_the_rows_of_one_block(
+        standard: object, record: bool, case: str) -> None:
+    """The short cuts of small blocks (empty blocks, every row or no row used, nothing to
+    fill, no restart inside) give the rows and the state of one large block bit for bit."""
+    sig: Signals = standard.measured.slice(0, 8000)  # type: ignore[attr-defined]
+    rng = np.random.default_rng(17)
+    keep = np.ones(len(sig), bool)
+    for c in rng.integers(100, len(sig) - 10, 40):  # lost samples: filled
+        keep[c:c + int(rng.integers(1, 3))] = False
+    keep[3000:3020] = False  # a long gap: the filter restarts
+    idx = np.flatnonzero(keep)
+    t = sig.t[idx].copy()
+    t[5000] = t[4990]  # time going back: the filter restarts
+    current = sig.current[idx] * (40.0 if case == "saturating" else 1.0)
+    s = Signals(t, current, sig.speed[idx], sig.position[idx])
+    settings = EstimatorSettings(lam=0.998 if case == "saturating" else 1.0)
+    whole = Pipeline(_model(standard), 1e-3, settings)
+    ref = whole.process(s, record=record).equations[0]
+    parts = Pipeline(_model(standard), 1e-3, settings)
+    blocks = []
+    k = 0
+    while k < len(s):
+        n = int(rng.integers(0, 6))
+        blocks.append(parts.process(s.slice(k, k + n), record=record).equations[0])
+        k += n
+    for name in _ROW_FIELDS:
+        want = getattr(ref, name)
+        if want is None:
+            assert all(getattr(b, name) is None for b in blocks), name
+            continue
+        got = np.concatenate([getattr(b, name) for b in blocks])
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes(), name
+    a, b = whole.estimators[0], parts.estimators[0]
+    sa, sb = a.state(), b.state()
+    for key in ("M", "v", "s", "rms"):
+        assert sa[key].tobytes() == sb[key].tobytes(), key
+    assert sa["windup_steps"] == sb["windup_steps"]
+    for est in ("rls", "fixed"):
+        for key, va in sa[est].items():
+            assert np.array_equal(va, sb[est][key]), (est, key)
+    if case == "saturating":
+        assert whole.saturations.nonzero() and sa["windup_steps"] > 0
+    assert whole.saturations == parts.saturations
+
+
+def test_divergence_matches_its_formula_with_nan_and_zero() -> None:
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        n = int(rng.integers(0, 6))
+        th = rng.normal(size=n) * rng.choice([0.0, 1.0, 1e3], size=n)
+        fx = th + rng.normal(size=n) * 1e-3
+        sd = np.abs(rng.normal(size=n))
+        sd[rng.random(n) < 0.3] = np.nan  # not known yet: counts as 0
+        # max_j |fx - th| / max(|th|, 3 sd), a zero reference counting as 1
+        ref = np.maximum(np.abs(th), 3.0 * np.nan_to_num(sd, nan=0.0))
+        ref = np.where(ref > 0, ref, 1.0)
+        want = float(np.max(np.abs(fx - th) / ref)) if n else 0.0
+        assert divergence(th.tolist(), fx.tolist(), sd.tolist()) == want
+    assert math.isnan(divergence([1.0, np.nan], [1.0, 2.0], [0.1, 0.1]))
+    assert divergence([0.0], [0.5], [np.nan]) == 0.5

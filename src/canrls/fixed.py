@@ -170,6 +170,7 @@ from dataclasses import dataclass
 from fractions import Fraction
 from typing import Any
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -213,6 +214,56 @@ _MAX_WORD = 32  # products of two words must be exact in int64
 
 
 # ---------------------------------------------------------------- Q formats
+@numba.njit(cache=True, nogil=True)
+def _round_saturate(x: npt.NDArray[np.float64], scale: float, lo: float, hi: float,
+                    out: IntArray) -> int:  # pragma: no cover - compiled
+    """``out = clip(floor(x * scale + 1/2), lo, hi)``; the number clamped, or -1 on a NaN.
+
+    ``scale`` is the exact power of two ``2**frac``, so ``x * scale`` is ``ldexp(x, frac)``
+    (one rounding of the exact product, as ldexp does).
+    """
+    nsat = 0
+    for i in range(x.shape[0]):
+        xi = x[i]
+        if xi != xi:
+            return -1
+        # round half up: floor(x 2^frac + 1/2)
+        v = np.floor(xi * scale + 0.5)
+        # saturate to the word, counted (never wrap)
+        if v < lo:
+            v = lo
+            nsat += 1
+        elif v > hi:
+            v = hi
+            nsat += 1
+        out[i] = np.int64(v)
+    return nsat
+
+
+@numba.njit(cache=True, nogil=True)
+def _round_inputs(Phi: npt.NDArray[np.float64], Y: npt.NDArray[np.float64],
+                  fmt: npt.NDArray[np.float64], Pq: IntArray, Yq: IntArray,
+                  counts: IntArray) -> int:  # pragma: no cover - compiled
+    """:func:`_round_saturate` of ``Phi`` (flat) and ``Y`` (``fmt`` rows: ``[2**frac, lo,
+    hi]`` of phi and y), the clamps added to the ``phi_in`` and ``y_in`` counters; 1 or 2
+    when ``Phi`` or ``Y`` holds a NaN (then nothing is counted), else 0.
+    """
+    n_phi = _round_saturate(Phi, fmt[0, 0], fmt[0, 1], fmt[0, 2], Pq)
+    if n_phi < 0:
+        return 1
+    n_y = _round_saturate(Y, fmt[1, 0], fmt[1, 1], fmt[1, 2], Yq)
+    if n_y < 0:
+        return 2
+    counts[_k.S_PHI] += n_phi
+    counts[_k.S_Y] += n_y
+    return 0
+
+
+def _nan_error(q: QFormat) -> FixedPointError:
+    """The error of a NaN handed to :meth:`QFormat.quantize` (or the inputs of the RLS)."""
+    return FixedPointError(f"cannot quantize NaN to {q}")
+
+
 @dataclass(frozen=True, slots=True)
 class QFormat:
     """A signed two's-complement fixed-point format: ``bits`` bits, ``frac`` fraction bits.
@@ -310,15 +361,17 @@ class QFormat:
             A value is NaN.
         """
         a = np.asarray(x, dtype=np.float64)
-        if np.isnan(a).any():
-            raise FixedPointError(f"cannot quantize NaN to {self}")
+        q = np.empty(a.shape, np.int64)
         # x 2^frac is exact (power of two); floor(v + 1/2) is exact for |v| < 2^52,
         # and larger values saturate anyway
-        v = np.floor(np.ldexp(a, self.frac) + 0.5)
-        lo, hi = float(self.lo), float(self.hi)
-        nsat = int(np.count_nonzero((v < lo) | (v > hi)))
-        q = np.clip(v, lo, hi).astype(np.int64)
-        return q, nsat
+        nsat = _round_saturate(a.ravel(), *self._rounding(), q.reshape(-1))
+        if nsat < 0:
+            raise _nan_error(self)
+        return (q[()] if q.ndim == 0 else q), nsat
+
+    def _rounding(self) -> tuple[float, float, float]:
+        """``(2**frac, lo, hi)`` as floats: the constants of :meth:`quantize`."""
+        return math.ldexp(1.0, self.frac), float(self.lo), float(self.hi)
 
     def __str__(self) -> str:
         return f"Q{self.int_bits}.{self.frac}"
@@ -543,7 +596,10 @@ class FixedConfig:
         """
         Pq, n_phi = self.phi.quantize(Phi)
         Yq, n_y = self.y.quantize(Y)
-        return Pq, Yq, SaturationCounts.of({"phi_in": n_phi, "y_in": n_y})
+        counts = [0] * _k.NSITES
+        counts[_k.S_PHI] = n_phi
+        counts[_k.S_Y] = n_y
+        return Pq, Yq, SaturationCounts(counts)
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-able dict (``from_dict`` inverts it)."""
@@ -804,7 +860,7 @@ class SaturationCounts(Mapping[str, int]):
     __slots__ = ("_v",)
 
     def __init__(self, values: Sequence[int] | npt.ArrayLike) -> None:
-        v = tuple(int(x) for x in np.asarray(values, dtype=np.int64).ravel())
+        v = tuple(np.asarray(values, dtype=np.int64).ravel().tolist())
         if len(v) != len(SITES):
             raise EstimatorError(f"SaturationCounts needs {len(SITES)} values, got {len(v)}")
         self._v = v
@@ -957,6 +1013,9 @@ class FixedTrace:
 
 # ---------------------------------------------------------------- estimator
 def _int_array(name: str, x: npt.ArrayLike, shape: tuple[int, ...]) -> IntArray:
+    if (type(x) is np.ndarray and x.dtype == np.int64 and x.shape == shape
+            and x.flags.c_contiguous):
+        return x  # the common case (quantize_inputs output), as it is
     a = np.asarray(x)
     if a.dtype == object:
         try:
@@ -1060,6 +1119,7 @@ class FixedRLS:
         self._lam = lam_f
         self._plan, self._named = _build_plan(config, n_i, lam_f, tm)
         self._trace_frac = config.P.frac - self._named["trace_ps"]
+        self._in_fmt = np.array([config.phi._rounding(), config.y._rounding()])
         self._theta = np.zeros(n_i, np.int64)
         self._P = np.zeros((n_i, n_i), np.int64)
         self._scale = np.zeros(2, np.int64)  # [e, c]
@@ -1249,6 +1309,16 @@ class FixedRLS:
             self._counts[_k.S_Y] += sat["y_in"]
         return Pq, Yq, sat
 
+    def _quantize(self, Phi: FloatArray, Y: FloatArray) -> tuple[IntArray, IntArray]:
+        """:meth:`quantize_inputs` (counted) without the checks, for a caller that built
+        ``Phi`` (N, n) and ``Y`` (N,) itself, C-contiguous float64."""
+        Pq = np.empty(Phi.shape, np.int64)
+        Yq = np.empty(Y.shape, np.int64)
+        nan = _round_inputs(Phi.reshape(-1), Y, self._in_fmt, Pq.reshape(-1), Yq, self._counts)
+        if nan:
+            raise _nan_error(self._config.phi if nan == 1 else self._config.y)
+        return Pq, Yq
+
     def update(self, phi_int: npt.ArrayLike, y_int: int) -> FixedStep:
         r"""Process one sample: a block of one row of the same kernel as :meth:`run`.
 
@@ -1314,30 +1384,42 @@ class FixedRLS:
         N = Phi_a.shape[0]
         Phi_c = _int_array("Phi_int", Phi_a, (N, self._n))
         Y_c = _int_array("Y_int", Y_int, (N,))
-        eps = np.empty(N, np.int64)
-        trace_P = np.empty(N, np.int64)
-        P_exp = np.empty(N, np.int64)
-        flags = np.empty(N, np.uint8)
-        theta_out = np.empty((N, self._n), np.int64) if record else self._norec
-        before = SaturationCounts(self._counts)
-        applied = _k.fixed_block(
-            Phi_c, Y_c, self._theta, self._P, self._scale, self._work, self._counts,
-            self._plan, self._mode, self._frozen, bool(record),
-            eps, theta_out, trace_P, P_exp, flags,
-        )  # fmt: skip
-        self.count += applied
+        before = self._counts.copy()
+        eps, theta, trace_P, P_exp, flags, applied = self._run(Phi_c, Y_c, bool(record))
         return FixedTrace(
             eps=eps,
-            theta=theta_out if record else None,
+            theta=theta,
             trace_P=trace_P,
             P_exp=P_exp,
             trace_frac=self._trace_frac,
             flags=flags,
             theta_final=self._theta.copy(),
-            applied=int(applied),
-            saturations=SaturationCounts(self._counts) - before,
+            applied=applied,
+            saturations=SaturationCounts(self._counts - before),
             config=self._config,
         )
+
+    def _run(
+        self, Phi_int: IntArray, Y_int: IntArray, record: bool
+    ) -> tuple[IntArray, IntArray | None, IntArray, IntArray, npt.NDArray[np.uint8], int]:
+        """:meth:`run` without the checks, for a caller that built the arrays itself.
+
+        ``Phi_int`` (N, n) and ``Y_int`` (N,) are C-contiguous ``int64``. Returns
+        ``(eps, theta or None, trace_P, P_exp, flags, applied)`` as in :class:`FixedTrace`.
+        """
+        N = Phi_int.shape[0]
+        eps = np.empty(N, np.int64)
+        trace_P = np.empty(N, np.int64)
+        P_exp = np.empty(N, np.int64)
+        flags = np.empty(N, np.uint8)
+        theta_out = np.empty((N, self._n), np.int64) if record else self._norec
+        applied = int(_k.fixed_block(
+            Phi_int, Y_int, self._theta, self._P, self._scale, self._work, self._counts,
+            self._plan, self._mode, self._frozen, record,
+            eps, theta_out, trace_P, P_exp, flags,
+        ))  # fmt: skip
+        self.count += applied
+        return eps, (theta_out if record else None), trace_P, P_exp, flags, applied
 
     # ----------------------------------------------------------- checkpoint
     def state(self) -> dict[str, Any]:

@@ -92,6 +92,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -231,6 +232,23 @@ class RegressorBlock:
         return len(self.y)
 
 
+@numba.njit(cache=True, nogil=True)
+def _unwrap(p: F64, period: float, turns: int, last: float,
+            out: F64) -> int:  # pragma: no cover - compiled
+    """Unwrapped ``p`` into ``out``, from the turn count ``turns`` and the previous sample
+    ``last`` (nan: none, no jump before the first sample); returns the turn count at the end."""
+    prev = p[0] if last != last else last
+    for k in range(p.shape[0]):
+        d = p[k] - prev
+        if np.isfinite(d):
+            # one wrap per half-period jump, opposite to the jump
+            turns -= np.int64(np.rint(d / period))
+        # theta = p + turns * period (turns exact integers: the same whatever the blocks)
+        out[k] = p[k] + np.float64(turns) * period
+        prev = p[k]
+    return turns
+
+
 class PositionUnwrapper:
     """Unwrap a wrapping position with an integer turn count carried between blocks.
 
@@ -251,20 +269,12 @@ class PositionUnwrapper:
         p = np.ascontiguousarray(p, dtype=np.float64)
         if self.period is None or len(p) == 0:
             return p
-        prev = np.empty_like(p)
-        prev[0] = p[0] if self._last is None else self._last
-        prev[1:] = p[:-1]
-        d = p - prev
-        ok = np.isfinite(d)
-        # one wrap per half-period jump, opposite to the jump
-        jumps = np.zeros(len(p), dtype=np.int64)
-        jumps[ok] = -np.rint(d[ok] / self.period).astype(np.int64)
-        turns = self.turns + np.cumsum(jumps)
-        self.turns = int(turns[-1])
+        out = np.empty_like(p)
+        last = math.nan if self._last is None else self._last
+        self.turns = int(_unwrap(p, self.period, self.turns, last, out))
         if math.isfinite(float(p[-1])):
             self._last = float(p[-1])
-        # theta = p + turns * period (turns exact integers: the same whatever the blocks)
-        return p + turns.astype(np.float64) * self.period
+        return out
 
 
 # ------------------------------------------------------------------------- equation
@@ -446,6 +456,11 @@ class RegressorBuilder:
 
     def process(self, signals: Any) -> RegressorBlock:
         """Regressors of one block (see the module docstring)."""
+        phi, y, t = self._regressors(signals)
+        return RegressorBlock(phi=phi, y=y, t=t)
+
+    def _regressors(self, signals: Any) -> tuple[F64, F64, F64]:
+        """``(phi, y, t)`` of :meth:`process`, without the result object."""
         eq = self.equation
         frame = self._frame(signals)
         n = len(frame.t)
@@ -456,7 +471,10 @@ class RegressorBuilder:
         raw = self._raw[:n]
         tgt = frame.get(eq.target.signal)
         # target: Kt * i (torque), i, or u
-        raw[:, 0] = tgt * eq.target.gain if eq.target.gain != 1.0 else tgt
+        if eq.target.gain != 1.0:
+            np.multiply(tgt, eq.target.gain, out=raw[:, 0])
+        else:
+            raw[:, 0] = tgt
         for j, col in enumerate(eq.columns):
             raw[:, j + 1] = col.raw(frame)
         if self._scale is not None:
@@ -464,14 +482,14 @@ class RegressorBuilder:
             y = np.empty(n)
             phi = np.empty((n, eq.n))
             self.svf._process_scaled(raw, self._deriv, self._scale, y, phi)
-            return RegressorBlock(phi=phi, y=y, t=frame.t)
+            return phi, y, frame.t
         f, sf = self.svf.process(raw)
         # value columns and target through F, derivative columns through sF
         if self._deriv_idx.size:
             f[:, self._deriv_idx] = sf[:, self._deriv_idx]
         # exact power-of-two normalisation
         np.ldexp(f, self._neg_exp, out=f)
-        return RegressorBlock(phi=np.ascontiguousarray(f[:, 1:]), y=f[:, 0].copy(), t=frame.t)
+        return np.ascontiguousarray(f[:, 1:]), f[:, 0].copy(), frame.t
 
 
 # ---------------------------------------------------------------------------- model

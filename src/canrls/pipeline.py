@@ -34,7 +34,7 @@ computed on the filtered target, in the target's unit.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -46,7 +46,7 @@ from canrls.errors import ConfigError
 from canrls.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
 from canrls.model import Equation, Model
 from canrls.rls import RLS, RLSFlag
-from canrls.signals import Signals
+from canrls.signals import ROLES, Signals
 
 __all__ = [
     "EstimatorSettings",
@@ -57,6 +57,7 @@ __all__ = [
     "PipelineBlock",
     "EquationEstimator",
     "Pipeline",
+    "divergence",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -150,24 +151,64 @@ def _accumulate(phi: F64, y: F64, use: npt.NDArray[np.bool_], M: F64, v: F64,
         s[2] += yk * yk
 
 
+_WINDUP = int(RLSFlag.WINDUP)
+
+
 @numba.njit(cache=True)
-def _ew_rms(eps: F64, use: npt.NDArray[np.bool_], beta: float, state: F64,
-            out: F64) -> None:  # pragma: no cover - compiled
-    """Exponentially weighted mean square: r <- r + beta (eps^2 - r) on used rows."""
-    r = state[0]
-    for k in range(eps.shape[0]):
+def _bookkeeping(phi: F64, y: F64, use: npt.NDArray[np.bool_], eps_u: F64,
+                 epsq_u: npt.NDArray[np.int64], lsb: float, flags_u: npt.NDArray[np.uint8],
+                 flagsq_u: npt.NDArray[np.uint8], M: F64, v: F64, s: F64, beta: float,
+                 rms_state: F64, s_y: int, y_out: F64, eps: F64, eps_fixed: F64,
+                 flags: npt.NDArray[np.uint8], rms: F64) -> int:  # pragma: no cover - compiled
+    """After the estimators, row by row: spread the used rows' errors and flags over the
+    block (0 elsewhere), run the residual RMS, write ``y``, the errors and the RMS in the
+    target unit (``x 2**s_y``); accumulate the sums. Returns the float WINDUP count.
+
+    ``eps_u``, ``flags_u`` (float) and ``epsq_u``, ``flagsq_u`` (fixed point) hold the
+    used rows only; the fixed-point error is ``epsq * lsb`` with ``lsb = 2**-frac``, exact.
+    """
+    # x 2**s_y: the product with the exact power of two rounds once, as ldexp does
+    exact = -1074 <= s_y <= 1023
+    unit = math.ldexp(1.0, s_y) if exact else 0.0
+    r = rms_state[0]
+    windup = 0
+    i = 0
+    for k in range(use.shape[0]):
+        e = 0.0
+        ef = 0.0
+        f = 0
         if use[k]:
-            r += beta * (eps[k] * eps[k] - r)
-        out[k] = r
-    state[0] = r
+            e = np.float64(eps_u[i])
+            ef = epsq_u[i] * lsb
+            f = flags_u[i] | flagsq_u[i]
+            if flags_u[i] & _WINDUP:
+                windup += 1
+            # exponentially weighted mean square: r <- r + beta (eps^2 - r) on used rows
+            r += beta * (e * e - r)
+            i += 1
+        flags[k] = f
+        if exact:
+            y_out[k] = y[k] * unit
+            eps[k] = e * unit
+            eps_fixed[k] = ef * unit
+            rms[k] = np.sqrt(r) * unit
+        else:
+            y_out[k] = math.ldexp(y[k], s_y)
+            eps[k] = math.ldexp(e, s_y)
+            eps_fixed[k] = math.ldexp(ef, s_y)
+            rms[k] = math.ldexp(np.sqrt(r), s_y)
+    rms_state[0] = r
+    _accumulate(phi, y, use, M, v, s)
+    return windup
 
 
 @numba.njit(cache=True)
 def _warmup_mask(t: F64, omega: F64, gap: float, warm: int, min_speed: float,
                  max_speed: float, state: F64,
-                 restart: npt.NDArray[np.bool_], use: npt.NDArray[np.bool_]) -> None:
-    # pragma: no cover - compiled
-    """Mark gaps (restart the filter there) and the rows not to use.
+                 restart: npt.NDArray[np.bool_],
+                 use: npt.NDArray[np.bool_]) -> tuple[int, int]:  # pragma: no cover - compiled
+    """Mark gaps (restart the filter there) and the rows not to use; return the number
+    of restarts and of rows to use.
 
     A row is not used in the warm-up after a restart, nor while ``|omega| > max_speed``
     (periodic columns advance too fast per sample) or ``|omega| < min_speed`` (friction
@@ -176,9 +217,12 @@ def _warmup_mask(t: F64, omega: F64, gap: float, warm: int, min_speed: float,
     """
     last = state[0]
     left = state[1]
+    restarts = 0
+    used = 0
     for k in range(t.shape[0]):
         if last != last or t[k] - last > gap or t[k] < last:
             restart[k] = True
+            restarts += 1
             left = warm
         last = t[k]
         w = abs(omega[k])
@@ -189,11 +233,49 @@ def _warmup_mask(t: F64, omega: F64, gap: float, warm: int, min_speed: float,
             left -= 1
         else:
             use[k] = True
+            used += 1
     state[0] = last
     state[1] = left
+    return restarts, used
+
+
+@numba.njit(cache=True)
+def _nothing_to_fill(t: F64, has_last: bool, last_t: float, dt: float,
+                     max_gap: float) -> bool:  # pragma: no cover - compiled
+    """True when no step between samples (from ``last_t`` if ``has_last``) misses a
+    period: each rounds to at most one period, is longer than ``max_gap`` or is not
+    forward (a nan step is left to :meth:`GapFiller.fill`)."""
+    prev = last_t if has_last else t[0]
+    for k in range(t.shape[0]):
+        gap = t[k] - prev
+        prev = t[k]
+        if not (gap > max_gap or gap <= 0.0 or np.rint(gap / dt) <= 1.0):
+            return False
+    return True
 
 
 # ------------------------------------------------------------------------- results
+def divergence(theta: Sequence[float], fixed: Sequence[float], sigma: Sequence[float]) -> float:
+    """Fixed point against float: ``max_j |fixed_j - theta_j| / max(|theta_j|, 3 sigma_j)``.
+
+    A NaN sigma (not known yet) counts as 0, a zero or NaN reference as 1; a NaN
+    difference makes the result NaN; no parameter gives 0. Pure Python: for the few
+    parameters of a model this is several times faster than numpy.
+    """
+    worst = 0.0
+    for th, fx, sd in zip(theta, fixed, sigma, strict=True):
+        ref = abs(th)
+        if 3.0 * sd > ref:
+            ref = 3.0 * sd
+        if not ref > 0:
+            ref = 1.0
+        d = abs(fx - th) / ref
+        if math.isnan(d):
+            return math.nan
+        worst = max(worst, d)
+    return worst
+
+
 @dataclass(frozen=True)
 class ParameterEstimate:
     """One physical parameter: float reference, fixed point, standard deviation."""
@@ -352,28 +434,36 @@ class GapFiller:
     def reset(self) -> None:
         self._last = None
 
-    def fill(self, s: Signals) -> tuple[Signals, npt.NDArray[np.bool_]]:
-        """(signals with the gaps filled, mask of the real rows)."""
+    def fill(self, s: Signals) -> tuple[Signals, npt.NDArray[np.bool_] | None]:
+        """(signals with the gaps filled, mask of the real rows or ``None``: nothing filled)."""
         n = len(s)
         if n == 0:
-            return s, np.ones(0, np.bool_)
-        roles = [r for r in ("current", "speed", "position", "voltage") if s.has(r)]
-        t = np.asarray(s.t, dtype=np.float64)
+            return s, None
+        t = np.ascontiguousarray(s.t, dtype=np.float64)
+        last = self._last
+        row = {"t": float(t[-1])}
+        for r in ROLES:
+            v = getattr(s, r)
+            if v is not None:
+                row[r] = float(v[-1])
+        self._last = row
+        if _nothing_to_fill(t, last is not None, last["t"] if last is not None else 0.0,
+                            self.dt, self.max_gap):
+            return s, None
         prev_t = np.empty(n)
         prev_t[1:] = t[:-1]
-        last = self._last
         prev_t[0] = last["t"] if last is not None else t[0]
         gap = t - prev_t
         missing = np.rint(gap / self.dt).astype(np.int64) - 1
         missing[(gap > self.max_gap) | (gap <= 0) | (missing < 0)] = 0
-        self._last = {"t": float(t[-1]), **{r: float(getattr(s, r)[-1]) for r in roles}}
         if not missing.any():
-            return s, np.ones(n, np.bool_)
+            return s, None
         total = n + int(missing.sum())
         # row k of the input lands at k + (filled rows before it)
         dest = np.arange(n) + np.cumsum(missing)
         real = np.zeros(total, np.bool_)
         real[dest] = True
+        roles = [r for r in ROLES if s.has(r)]
         out: dict[str, npt.NDArray[np.float64]] = {}
         for r in ["t", *roles]:
             v = np.asarray(getattr(s, r), dtype=np.float64)
@@ -451,7 +541,7 @@ class EquationEstimator:
     def process(self, signals: Signals, record: bool = False) -> EquationBlock:
         filled, real = self.filler.fill(signals)
         out = self._process(filled, real, record)
-        if real.all():
+        if real is None:
             return out
         # report the real samples only (the filled rows only kept the filter's time base)
 
@@ -464,59 +554,84 @@ class EquationEstimator:
             online_rms=out.online_rms[real], flags=out.flags[real],
             theta=pick(out.theta), theta_fixed=pick(out.theta_fixed), phi=pick(out.phi))
 
-    def _process(self, signals: Signals, real: npt.NDArray[np.bool_],
+    def _regressors(self, signals: Signals, restart: npt.NDArray[np.bool_],
+                    restarts: int) -> tuple[F64, F64]:
+        """(phi, y) of the block, the filter restarted at the ``restart`` rows."""
+        N = len(restart)
+        if restarts == 0 or (restarts == 1 and restart[0]):
+            # one piece (the common case): no slicing, no joining
+            if restarts:
+                self.builder.reset()
+            phi, y, _ = self.builder._regressors(signals)
+            return phi, y
+        # the filter restarts at every gap (and at the start): split the block there
+        bounds = [int(k) for k in np.flatnonzero(restart)] + [N]
+        if bounds[0] != 0:
+            bounds.insert(0, 0)
+        parts = []
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            if restart[a]:
+                self.builder.reset()
+            parts.append(self.builder.process(signals.slice(a, b)))
+        return np.concatenate([p.phi for p in parts]), np.concatenate([p.y for p in parts])
+
+    def _process(self, signals: Signals, real: npt.NDArray[np.bool_] | None,
                  record: bool) -> EquationBlock:
         eq = self.equation
         t = np.ascontiguousarray(signals.t, dtype=np.float64)
         N = len(t)
+        use = np.empty(N, np.bool_)
+        if N == 0:
+            # nothing to filter or estimate
+            e = np.zeros(0)
+            return EquationBlock(
+                equation=eq.name, t=t, y=e, eps=e.copy(), eps_fixed=e.copy(), used=use,
+                online_rms=e.copy(), flags=np.zeros(0, np.uint8),
+                theta=np.zeros((0, eq.n)) if record else None,
+                theta_fixed=np.zeros((0, eq.n)) if record else None,
+                phi=np.zeros((0, eq.n)) if record else None)
         restart = np.zeros(N, np.bool_)
-        use = np.zeros(N, np.bool_)
         omega = np.ascontiguousarray(signals.speed, dtype=np.float64)
-        _warmup_mask(t, omega, self.gap, self.warmup, self.min_speed, self.max_speed,
-                     self._mask_state, restart, use)
-        use &= real
-        # the filter restarts at every gap (and at the start): split the block there
-        bounds = [int(k) for k in np.flatnonzero(restart)] + [N]
-        if not bounds or bounds[0] != 0:
-            bounds.insert(0, 0)
-        parts = []
-        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
-            if b <= a:
-                continue
-            if restart[a]:
-                self.builder.reset()
-            parts.append(self.builder.process(signals.slice(a, b)))
-        phi = np.concatenate([p.phi for p in parts]) if parts else np.zeros((0, eq.n))
-        y = np.concatenate([p.y for p in parts]) if parts else np.zeros(0)
-        rows = np.flatnonzero(use)
-        phi_u = phi[rows]
-        y_u = y[rows]
-        tr = self.rls.run(phi_u, y_u, record=record)
-        Pq, Yq, _ = self.frls.quantize_inputs(phi_u, y_u)
-        ftr = self.frls.run(Pq, Yq, record=record)
-        self.windup_steps += tr.count(RLSFlag.WINDUP)
-        _accumulate(phi, y, use, self._M, self._v, self._s)
-        eps = np.zeros(N)
-        eps[rows] = tr.eps
-        eps_fixed = np.zeros(N)
-        eps_fixed[rows] = self.fixed_config.eps.to_float(ftr.eps)
-        ew = np.empty(N)
-        _ew_rms(eps, use, self.beta, self._rms_state, ew)
-        flags = np.zeros(N, np.uint8)
-        flags[rows] = tr.flags | ftr.flags
+        restarts, used = _warmup_mask(t, omega, self.gap, self.warmup, self.min_speed,
+                                      self.max_speed, self._mask_state, restart, use)
+        if real is not None:
+            use &= real
+            used = int(np.count_nonzero(use))
+        phi, y = self._regressors(signals, restart, restarts)
+        # the used rows (None: all of them, or none)
+        rows = np.flatnonzero(use) if 0 < used < N else None
+        if used:
+            phi_u = phi if rows is None else phi[rows]
+            y_u = y if rows is None else y[rows]
+            eps_u, theta_u, _, flags_u, _ = self.rls._run(phi_u, y_u, record)
+            Pq, Yq = self.frls._quantize(phi_u, y_u)
+            epsq_u, thetaq_u, _, _, flagsq_u, _ = self.frls._run(Pq, Yq, record)
+        else:
+            # no row updates the estimators (all in a warm-up): they are left as they are
+            eps_u, epsq_u = np.zeros(0), np.zeros(0, np.int64)
+            flags_u = flagsq_u = np.zeros(0, np.uint8)
+            theta_u = thetaq_u = None
+        y_out = np.empty(N)
+        eps = np.empty(N)
+        eps_fixed = np.empty(N)
+        flags = np.empty(N, np.uint8)
+        rms = np.empty(N)
+        self.windup_steps += _bookkeeping(
+            phi, y, use, eps_u, epsq_u, self.fixed_config.eps.lsb, flags_u, flagsq_u,
+            self._M, self._v, self._s, self.beta, self._rms_state, eq.scaling.target,
+            y_out, eps, eps_fixed, flags, rms)
         theta = theta_fixed = None
         if record:
+            # rows in a warm-up did not update: they stay nan
             theta = np.full((N, eq.n), np.nan)
             theta_fixed = np.full((N, eq.n), np.nan)
-            # rows in a warm-up did not update: they stay nan
-            if tr.theta is not None and len(rows):
-                theta[rows] = eq.to_physical(tr.theta)
-                theta_fixed[rows] = eq.to_physical(ftr.theta_float())
+            if theta_u is not None and thetaq_u is not None:
+                at = slice(None) if rows is None else rows
+                theta[at] = eq.to_physical(theta_u)
+                theta_fixed[at] = eq.to_physical(self.frls.config.theta.to_float(thetaq_u))
         return EquationBlock(
-            equation=eq.name, t=t, y=eq.target_to_physical(y),
-            eps=eq.target_to_physical(eps), eps_fixed=eq.target_to_physical(eps_fixed),
-            used=use, online_rms=eq.target_to_physical(np.sqrt(ew)),
-            flags=flags, theta=theta, theta_fixed=theta_fixed,
+            equation=eq.name, t=t, y=y_out, eps=eps, eps_fixed=eps_fixed, used=use,
+            online_rms=rms, flags=flags, theta=theta, theta_fixed=theta_fixed,
             phi=phi if record else None)
 
     # -- results ----------------------------------------------------------------------
@@ -543,13 +658,10 @@ class EquationEstimator:
         return rms, fit, r2, math.sqrt(syy / N) * scale
 
     def divergence(self) -> float:
-        """Largest fixed-vs-float difference relative to max(|float|, 3 sigma) over parameters."""
-        th = self.rls.theta
-        fx = self.frls.theta_float
-        sd = self.rls.std()
-        ref = np.maximum(np.abs(th), 3.0 * np.nan_to_num(sd, nan=0.0))
-        ref = np.where(ref > 0, ref, 1.0)
-        return float(np.max(np.abs(fx - th) / ref)) if len(th) else 0.0
+        """Largest fixed-vs-float difference relative to max(|float|, 3 sigma) over parameters
+        (:func:`divergence`)."""
+        return divergence(self.rls.theta.tolist(), self.frls.theta_float.tolist(),
+                          self.rls.std().tolist())
 
     def estimates(self) -> tuple[list[ParameterEstimate], EquationFit]:
         eq = self.equation

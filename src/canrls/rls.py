@@ -546,30 +546,51 @@ class RLS:
         N = Phi_a.shape[0]
         if Y_a.shape != (N,):
             raise EstimatorError(f"RLS Y must have shape ({N},) to match Phi, got {Y_a.shape}")
-        try:
+        if Phi_a.dtype == self._dtype and Y_a.dtype == self._dtype:
+            # already the state's dtype: no cast, nothing can overflow
+            Phi_c = np.ascontiguousarray(Phi_a)
+            Y_c = np.ascontiguousarray(Y_a)
+        else:
+            try:
+                with np.errstate(over="ignore"):  # float32: out of range -> inf -> rejected
+                    Phi_c = np.ascontiguousarray(Phi_a, dtype=self._dtype)
+                    Y_c = np.ascontiguousarray(Y_a, dtype=self._dtype)
+            except (TypeError, ValueError, OverflowError) as e:
+                raise EstimatorError(f"RLS Phi and Y must be real numbers: {e}") from e
+        eps, theta, trace_P, flags, applied = self._run(Phi_c, Y_c, bool(record))
+        return RLSTrace(
+            eps=eps,
+            theta=theta,
+            trace_P=trace_P,
+            flags=flags,
+            theta_final=self._theta.copy(),
+            applied=applied,
+        )
+
+    def _run(
+        self, Phi: FloatArray, Y: FloatArray, record: bool
+    ) -> tuple[FloatArray, FloatArray | None, FloatArray, npt.NDArray[np.uint8], int]:
+        """:meth:`run` without the checks, for a caller that built the arrays itself.
+
+        ``Phi`` (N, n) and ``Y`` (N,) are C-contiguous float64 or state-dtype arrays.
+        Returns ``(eps, theta or None, trace_P, flags, applied)`` as in :class:`RLSTrace`.
+        """
+        if Phi.dtype != self._dtype or Y.dtype != self._dtype:
             with np.errstate(over="ignore"):  # float32: out of range -> inf -> rejected
-                Phi_c = np.ascontiguousarray(Phi_a, dtype=self._dtype)
-                Y_c = np.ascontiguousarray(Y_a, dtype=self._dtype)
-        except (TypeError, ValueError, OverflowError) as e:
-            raise EstimatorError(f"RLS Phi and Y must be real numbers: {e}") from e
+                Phi = Phi.astype(self._dtype)
+                Y = Y.astype(self._dtype)
+        N = Phi.shape[0]
         eps = np.empty(N, self._dtype)
         trace_P = np.empty(N, self._dtype)
         flags = np.empty(N, np.uint8)
         theta_out = np.empty((N, self._n), self._dtype) if record else self._norec
-        applied = self._kernel(
-            Phi_c, Y_c, self._theta, self._P, self._work, self._acc,
-            self._lam_d, self._trace_max_d, self._frozen, bool(record),
+        applied = int(self._kernel(
+            Phi, Y, self._theta, self._P, self._work, self._acc,
+            self._lam_d, self._trace_max_d, self._frozen, record,
             eps, theta_out, trace_P, flags,
-        )  # fmt: skip
+        ))  # fmt: skip
         self.count += applied
-        return RLSTrace(
-            eps=eps,
-            theta=theta_out if record else None,
-            trace_P=trace_P,
-            flags=flags,
-            theta_final=self._theta.copy(),
-            applied=int(applied),
-        )
+        return eps, (theta_out if record else None), trace_P, flags, applied
 
     # ------------------------------------------------------------- diagnosis
     def excitation(self, cond_max: float = 1e8, info_min: float | None = None) -> Excitation:
