@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import itertools
 import json
 import math
@@ -436,6 +437,31 @@ def test_daemon_settings_are_validated(tmp_path: Path) -> None:
         with pytest.raises(ConfigError, match=msg) as e:
             DaemonSettings.from_table(table, "f.toml")
         assert "f.toml" in str(e.value)
+
+
+def test_running_daemons_shorten_the_switch_interval_and_freeze_the_heap() -> None:
+    protocol, model, settings = _setup()
+    before = sys.getswitchinterval()
+    assert gc.get_freeze_count() == 0
+    a = Daemon(protocol, model, settings, DaemonSettings(switch_interval=0.0003),
+               bus={"interface": "virtual", "channel": _chan("gil-a")})
+    b = Daemon(protocol, model, settings, DaemonSettings(switch_interval=0.0003),
+               bus={"interface": "virtual", "channel": _chan("gil-b")})
+    a.start()
+    try:
+        assert sys.getswitchinterval() == pytest.approx(0.0003)
+        assert gc.get_freeze_count() > 1000  # the imported modules, out of the collector's way
+        b.start()
+        a.stop()  # another daemon still runs: the settings stay
+        assert sys.getswitchinterval() == pytest.approx(0.0003)
+        assert gc.get_freeze_count() > 1000
+    finally:
+        a.stop()
+        b.stop()
+    assert sys.getswitchinterval() == before
+    assert gc.get_freeze_count() == 0
+    with pytest.raises(ConfigError, match="switch_interval"):
+        DaemonSettings.from_table({"switch_interval": -1.0}, "f.toml")
 
 
 def test_messages_to_block_matches_from_messages() -> None:

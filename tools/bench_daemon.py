@@ -14,18 +14,25 @@ channel by a feeder thread at a fixed rate, so the simulator's CPU is not the da
   is put on the bus to the moment the parameter frames that include it are sent;
   p50 and p99.
 * **memory**: resident set size while ``--memory-sim-s`` seconds of simulated traffic
-  (default one hour) go through as fast as the daemon takes them.
+  (default one hour) go through as fast as the daemon takes them; first, the floor of
+  a fresh process that only imports the daemon and builds one (no simulator, no
+  frame), step by step (numpy + python-can + cantools, numba, canrls, one daemon).
+
+Every daemon warms up at start (``Daemon.start``: the compiled kernels are loaded
+before the bus opens), so the figures are those of a running service.
 
 Usage::
 
-    python tools/bench_daemon.py [--n 8] [--rates 9000,18000,27000] [--seconds 5]
-                                 [--latency-rate 9000] [--memory-sim-s 3600]
+    python tools/bench_daemon.py [--rates 9000,18000,27000] [--seconds 5] [--tick 0.001]
+                                 [--latency-rate 9000] [--memory-sim-s 3600] [--skip-memory]
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 
@@ -70,39 +77,43 @@ def _daemon(channel: str, settings: DaemonSettings,
 
 
 def _feed(channel: str, msgs: list[can.Message], rate: float,
-          sent_at: np.ndarray | None = None) -> float:
-    """Put ``msgs`` on the channel at ``rate`` frames/s (1 ms ticks); returns the duration."""
+          sent_at: np.ndarray | None = None, tick: float = 1e-3) -> float:
+    """Put ``msgs`` on the channel at ``rate`` frames/s; returns the duration.
+
+    Every ``tick`` seconds (as closely as ``time.sleep`` allows) the frames due by then
+    go out: 1 ms is how a USB adapter delivers them; a shorter tick spreads them out
+    as on a bus seen through SocketCAN, and makes the bus reader wake once per frame.
+    """
     with _virtual.channels_lock:
         queues = list(_virtual.channels[channel])
-    per_tick = rate / 1000.0
     t0 = time.perf_counter()
     k = 0
     n = len(msgs)
-    tick = 0
+    step = 0
     while k < n:
-        tick += 1
-        target = min(n, int(tick * per_tick))
+        step += 1
         now = time.perf_counter()
+        target = min(n, int((now - t0) * rate) + 1)
         for i in range(k, target):
             if sent_at is not None:
                 sent_at[i] = now
             for q in queues:
                 q.put_nowait(msgs[i])
-        k = target
-        wait = t0 + tick / 1000.0 - time.perf_counter()
+        k = max(k, target)
+        wait = t0 + step * tick - time.perf_counter()
         if wait > 0:
             time.sleep(wait)
     return time.perf_counter() - t0
 
 
-def bench_rate(msgs: list[can.Message], rate: float) -> dict[str, float]:
+def bench_rate(msgs: list[can.Message], rate: float, tick: float = 1e-3) -> dict[str, float]:
     ch = f"bench-{next(_ch)}"
     d = _daemon(ch, DaemonSettings(queue_size=max(1000, int(rate * 0.5))))
     d.start()
     try:
         time.sleep(0.3)
         est0, rx0 = d.stats().estimator_cpu_s, d.stats().listener_cpu_s
-        took = _feed(ch, msgs, rate)
+        took = _feed(ch, msgs, rate, tick=tick)
         drained = d.wait_for(lambda x: x.stats().frames >= len(msgs) - x.stats().rx_overflow
                              and x.stats().backlog == 0, 1.0)
         s = d.stats()
@@ -117,7 +128,8 @@ def bench_rate(msgs: list[can.Message], rate: float) -> dict[str, float]:
             "blocks": s.blocks}
 
 
-def bench_latency(msgs: list[can.Message], rate: float) -> tuple[float, float, int]:
+def bench_latency(msgs: list[can.Message], rate: float,
+                  tick: float = 1e-3) -> tuple[float, float, int]:
     ch = f"bench-lat-{next(_ch)}"
     sent_at = np.full(len(msgs), np.nan)
     pubs: list[tuple[int, float]] = []
@@ -127,7 +139,7 @@ def bench_latency(msgs: list[can.Message], rate: float) -> tuple[float, float, i
     try:
         time.sleep(0.3)
         base = d.stats().frames
-        _feed(ch, msgs, rate, sent_at)
+        _feed(ch, msgs, rate, sent_at, tick)
         d.wait_for(lambda x: x.stats().frames >= base + len(msgs), 2.0)
     finally:
         d.stop()
@@ -140,6 +152,35 @@ def bench_latency(msgs: list[can.Message], rate: float) -> tuple[float, float, i
             prev = n
     lat = lat[np.isfinite(lat)] * 1e3
     return float(np.percentile(lat, 50)), float(np.percentile(lat, 99)), len(lat)
+
+
+_FLOOR = """
+import numpy, can, cantools
+def rss():
+    return int([l for l in open("/proc/self/status") if l.startswith("VmRSS")][0].split()[1])
+a = rss()
+import numba
+b = rss()
+from canrls.config import AppConfig
+from canrls.daemon import Daemon, DaemonSettings
+c = rss()
+cfg = AppConfig()
+cfg.model = {"effects": %r, "kt": 0.1}
+protocol = cfg.protocol()
+Daemon(protocol, cfg.model_for(protocol), cfg.settings(), DaemonSettings(),
+       bus={"interface": "virtual", "channel": "floor"})
+print(a, b, c, rss())
+"""
+
+
+def memory_floor() -> tuple[float, float, float, float]:
+    """RSS [MB] of a fresh process: numpy + python-can + cantools imported, then numba,
+    then canrls' daemon modules, then one daemon built (numba's compiler context and
+    the cached kernels loaded); no simulator, no frame yet."""
+    out = subprocess.run([sys.executable, "-c", _FLOOR % EFFECTS.split(",")],
+                         capture_output=True, text=True, check=True).stdout.split()
+    a, b, c, d = (int(x) / 1024.0 for x in out)
+    return a, b, c, d
 
 
 def bench_memory(sim_seconds: float, report_every: float) -> list[tuple[float, float]]:
@@ -178,22 +219,29 @@ def main() -> None:
     ap.add_argument("--latency-rate", type=float, default=9000.0)
     ap.add_argument("--memory-sim-s", type=float, default=3600.0)
     ap.add_argument("--skip-memory", action="store_true")
+    ap.add_argument("--tick", type=float, default=1e-3,
+                    help="seconds between the feeder's hand-overs (default 1 ms, as USB)")
     args = ap.parse_args()
     rates = [float(r) for r in args.rates.split(",")]
-    print(f"daemon on the virtual bus, n = 8 ({EFFECTS}), float + fixed RLS")
+    print(f"daemon on the virtual bus, n = 8 ({EFFECTS}), float + fixed RLS; "
+          f"frames handed over every {args.tick * 1e3:g} ms")
     print(f"RSS at start {_rss_mb():.0f} MB")
     for rate in rates:
         msgs = _messages(args.seconds * rate / 2000.0)
-        r = bench_rate(msgs, rate)
+        r = bench_rate(msgs, rate, args.tick)
         ok = "sustained" if r["lost"] == 0 and r["drained"] else "NOT sustained"
         print(f"offered {r['offered']:8.0f} frames/s: {ok:13s} lost {r['lost']:.0f}, "
               f"daemon CPU {r['cpu_us']:.1f} us/frame (listener {r['rx_us']:.1f}, "
               f"estimator {r['est_us']:.1f}), {r['frames'] / max(r['blocks'], 1):.0f} frames/block")
     msgs = _messages(args.seconds * args.latency_rate / 2000.0, seed=3)
-    p50, p99, n = bench_latency(msgs, args.latency_rate)
+    p50, p99, n = bench_latency(msgs, args.latency_rate, args.tick)
     print(f"latency feedback frame -> parameter frame at {args.latency_rate:.0f} frames/s "
           f"(publish after every block): p50 {p50:.2f} ms, p99 {p99:.2f} ms ({n} frames)")
     if not args.skip_memory:
+        a, b, c, d = memory_floor()
+        print(f"memory floor of the daemon alone (fresh process, before any frame): "
+              f"numpy + python-can + cantools {a:.0f} MB, + numba {b:.0f} MB, "
+              f"+ canrls {c:.0f} MB, one daemon built {d:.0f} MB")
         t0 = time.perf_counter()
         rows = bench_memory(args.memory_sim_s, args.memory_sim_s / 6)
         wall = time.perf_counter() - t0

@@ -38,10 +38,12 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import gc
 import json
 import logging
 import math
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -72,8 +74,14 @@ from canrls.frames import (
     encode_status,
 )
 from canrls.model import Model
-from canrls.pipeline import Estimates, EstimatorSettings, Pipeline, PipelineBlock
-from canrls.protocol import Protocol
+from canrls.pipeline import (
+    Estimates,
+    EstimatorSettings,
+    Pipeline,
+    PipelineBlock,
+    divergence,
+)
+from canrls.protocol import FeedbackEncoder, Protocol
 from canrls.replay import FrameProcessor
 from canrls.rls import RLSFlag
 from canrls.sdnotify import SystemdNotifier
@@ -115,6 +123,7 @@ _DAEMON_KEYS: dict[str, str] = {
     "divergence_limit": "float-vs-fixed divergence above which the Diverged flag is set",
     "record": "log file of every frame received (python-can writer by suffix: .log, .asc, .blf)",
     "model_file": "TOML file whose [model] replaces the configuration's (re-read on SIGHUP)",
+    "switch_interval": "Python's thread switch interval while running, seconds (0: leave it)",
 }
 
 
@@ -138,10 +147,11 @@ class DaemonSettings:
     divergence_limit: float = 0.1
     record: Path | None = None
     model_file: Path | None = None
+    switch_interval: float = 0.001
 
     def __post_init__(self) -> None:
         src = "daemon"
-        for k in ("publish_interval", "block_interval", "send_timeout"):
+        for k in ("publish_interval", "block_interval", "send_timeout", "switch_interval"):
             v = getattr(self, k)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{src}.{k} = {v!r}: must be >= 0 seconds")
@@ -305,6 +315,48 @@ def fingerprint(settings: EstimatorSettings, dt: float) -> dict[str, Any]:
     return _plain(d)
 
 
+# ----------------------------------------------------------------------- interpreter
+class _InterpreterTuning:
+    """Process-wide settings for latency while at least one daemon runs.
+
+    * The bus reader (python-can's notifier thread) and the estimator share the GIL.
+      With CPython's default switch interval (5 ms) a thread that is ready waits up
+      to 5 ms while another runs Python code without blocking, e.g. the notifier
+      taking frames already queued by python-can's virtual bus. ``switch_interval``
+      (``sys.setswitchinterval``) shortens that wait.
+    * ``gc.freeze()`` moves every object alive at start (imported modules, numba's
+      registries: some 65 000 objects) out of the cyclic collector's reach, so an
+      occasional full collection no longer costs tens of milliseconds.
+
+    The first daemon to start applies them, the last to stop restores the
+    interpreter's settings (``gc.unfreeze()``).
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._users = 0
+        self._saved = 0.0
+
+    def tune(self, switch_interval: float) -> None:
+        with self._lock:
+            self._users += 1
+            if self._users == 1:
+                self._saved = sys.getswitchinterval()
+                if switch_interval > 0:
+                    sys.setswitchinterval(switch_interval)
+                gc.freeze()
+
+    def restore(self) -> None:
+        with self._lock:
+            self._users -= 1
+            if self._users == 0:
+                sys.setswitchinterval(self._saved)
+                gc.unfreeze()
+
+
+_interpreter = _InterpreterTuning()
+
+
 # ----------------------------------------------------------------------- listener
 class _RxListener(can.Listener):
     """Runs in the notifier's thread: queues each frame, nothing more."""
@@ -439,6 +491,7 @@ class Daemon:
         self._threads: list[threading.Thread] = []
         self._recorder: can.Listener | None = None
         self._started = False
+        self._tuned = False
         self._heartbeat = time.monotonic()
         # counters
         self._c: dict[str, int] = collections.Counter()
@@ -508,7 +561,7 @@ class Daemon:
 
     def parameter_reports(self) -> list[ParameterReport]:
         with self._lock:
-            return self._reports()
+            return self._reports()[0]
 
     # ------------------------------------------------------------------ checkpoint
     def _resume(self, path: Path) -> None:
@@ -568,6 +621,7 @@ class Daemon:
         if self._started:
             raise RuntimeError("daemon already started")
         self._started = True
+        self._warm_up()
         if self.config.record is not None:
             self._recorder = can.Logger(str(self.config.record))
             self._rx.recorder = self._recorder
@@ -577,6 +631,8 @@ class Daemon:
             self._close_recorder()
             raise
         self._heartbeat = time.monotonic()
+        _interpreter.tune(self.config.switch_interval)
+        self._tuned = True
         for target, name in ((self._estimator_loop, "canrls estimator"),
                              (self._supervisor_loop, "canrls supervisor")):
             t = threading.Thread(target=target, name=name, daemon=True)
@@ -584,6 +640,37 @@ class Daemon:
             self._threads.append(t)
         log.info("canrls daemon running on %s: effects %s, %d parameters", self._bus_info(),
                  ",".join(self.model.effect_names), len(self.model.parameters))
+
+    def _warm_up(self) -> None:
+        """Run the hot path once on made-up frames, before the bus opens.
+
+        numba loads each compiled kernel from its cache at its first call (some
+        100 ms in all), and the frame codecs are built at their first use: without
+        this, the first frames after start would wait that long for their parameter
+        frames. A throwaway processor takes the frames and nothing is sent: the
+        daemon's own state does not change.
+        """
+        proc = FrameProcessor(self.protocol, self.model, self._proc.pipeline.settings,
+                              period=self._proc.pairer.period)
+        pipe = proc.pipeline
+        n = max(e.warmup for e in pipe.estimators) + 64  # past the filter's warm-up
+        t = np.arange(n) * pipe.dt
+        hi = abs(self.model.ranges.get("speed", (0.0, 1.0))[1])
+        # moving both ways at half the speed range, so every estimator updates
+        omega = 0.5 * hi * np.sin(2 * math.pi * t / (t[-1] + pipe.dt))
+        signals = {"current": 0.1 * np.cos(t), "speed": omega,
+                   "position": np.cumsum(omega) * pipe.dt, "voltage": 0.1 * omega}
+        proc.process(FeedbackEncoder(self.protocol, clip=True).encode(t, **signals))
+        proc.flush()
+        reports: list[ParameterReport] = []
+        for e in pipe.estimators:
+            e.rls.excitation()
+        for b in self._layout_of(self._proc.pipeline)[1]:
+            reports += [r.with_estimates(0.0, 0.0, 0.0, True) for r in b]
+        encode_parameters(reports, 0)
+        encode_status(StatusReport(), 0)
+        encode_param_info(reports)
+        encode_ack(0, CommandResult.OK, 0)
 
     def stop(self) -> None:
         """Stop reading, process what was queued, checkpoint, close the bus. Idempotent."""
@@ -605,6 +692,9 @@ class Daemon:
         self.checkpoint()
         self._close_bus()
         self._close_recorder()
+        if self._tuned:
+            self._tuned = False
+            _interpreter.restore()
         self._stopped.set()
         log.info("canrls daemon stopped: %s", self.stats().to_dict())
 
@@ -961,21 +1051,46 @@ class Daemon:
             self._set_model(model, f"command {cmd}")
 
     # ------------------------------------------------------------------ publication
-    def _reports(self) -> list[ParameterReport]:
+    #: (pipeline, its parameters as reports without estimates (a tuple per equation), its
+    #: model's ActiveEffects): made again when the model changes, see _layout_of
+    _layout: tuple[Pipeline | None, tuple[tuple[ParameterReport, ...], ...], int] = (None, (), 0)
+
+    def _layout_of(self, pipe: Pipeline
+                   ) -> tuple[Pipeline | None, tuple[tuple[ParameterReport, ...], ...], int]:
+        """:attr:`_layout` for ``pipe``: what its parameters are, computed once per model."""
+        layout = self._layout
+        if layout[0] is not pipe:
+            rows: list[tuple[ParameterReport, ...]] = []
+            i = 0
+            for e in pipe.estimators:
+                params = e.equation.parameters
+                rows.append(tuple(
+                    ParameterReport(index=i + k, name=p.name, effect_id=EffectId(p.effect_id),
+                                    component=p.component, order=p.order,
+                                    equation=Equation(p.equation_index), unit=p.unit)
+                    for k, p in enumerate(params)))
+                i += len(params)
+            layout = (pipe, tuple(rows), pipe.model.active_effects)
+            self._layout = layout
+        return layout
+
+    def _reports(self) -> tuple[list[ParameterReport], float]:
+        """The parameters as published, and the largest float-vs-fixed divergence."""
+        pipe = self._proc.pipeline
         out: list[ParameterReport] = []
-        for e in self._proc.pipeline.estimators:
+        divs: list[float] = []
+        for e, blanks in zip(pipe.estimators, self._layout_of(pipe)[1], strict=True):
             eq = e.equation
-            value = eq.to_physical(e.rls.theta)
-            sigma = eq.sigma_to_physical(e.rls.std())
-            fixed = eq.to_physical(e.frls.theta_float)
+            th, sd, fx = e.rls.theta, e.rls.std(), e.frls.theta_float
+            # as EquationEstimator.divergence (normalised units), from the same arrays
+            divs.append(divergence(th.tolist(), fx.tolist(), sd.tolist()))
+            value = eq.to_physical(th).tolist()
+            sigma = eq.sigma_to_physical(sd).tolist()
+            fixed = eq.to_physical(fx).tolist()
             valid = e.frls.count > 0
-            for p, v, s, f in zip(eq.parameters, value, sigma, fixed, strict=True):
-                out.append(ParameterReport(
-                    index=len(out), name=p.name, effect_id=EffectId(p.effect_id),
-                    component=p.component, order=p.order, equation=Equation(p.equation_index),
-                    fixed_value=float(f), sigma=float(s), float_value=float(v), unit=p.unit,
-                    valid=valid and math.isfinite(f)))
-        return out
+            out += [b.with_estimates(f, s, v, valid and math.isfinite(f))
+                    for b, v, s, f in zip(blanks, value, sigma, fixed, strict=True)]
+        return out, max(divs, default=0.0)
 
     def _wire_counters(self) -> dict[str, int]:
         d = self._proc.decoder
@@ -988,7 +1103,8 @@ class Daemon:
             "tx_dropped": self._c["tx_dropped"] + b.get("tx_dropped", 0),
         }
 
-    def _status(self, now: float) -> StatusReport:
+    def _status(self, now: float, div: float | None = None) -> StatusReport:
+        """The status; ``div``: the divergence if known (:meth:`_reports`)."""
         pipe = self._proc.pipeline
         counters = self._wire_counters()
         lost = counters["frames_lost"]
@@ -998,7 +1114,8 @@ class Daemon:
         if not fault and self._fault_active:
             self._fault_active = False
             log.info("CAN bus fault cleared: transmission resumed")
-        div = max((e.divergence() for e in pipe.estimators), default=0.0)
+        if div is None:
+            div = max((e.divergence() for e in pipe.estimators), default=0.0)
         first = pipe.estimators[0]
         return StatusReport(
             residual_rms=self._online_rms[0],
@@ -1010,7 +1127,7 @@ class Daemon:
             frozen=pipe.frozen,
             diverged=div > self.config.divergence_limit,
             bus_fault=fault,
-            active_effects=self.model.active_effects,
+            active_effects=self._layout_of(pipe)[2],
             divergence=div if math.isfinite(div) else 0.0,
             **counters)
 
@@ -1019,12 +1136,12 @@ class Daemon:
         if info:
             self._low_excitation = any(bool(e.rls.excitation().low)
                                        for e in self._proc.pipeline.estimators)
-        status = self._status(now)
+        reports, div = self._reports()
+        status = self._status(now, div)
         self._window_windup = False
         self._last_lost = status.frames_lost
         self._last_sat = status.saturations
         self.last_status = status
-        reports = self._reports()
         ts = time.time()
         self._pub_counter = (self._pub_counter + 1) % 16
         msgs = encode_parameters(reports, self._pub_counter, timestamp=ts)
