@@ -464,6 +464,21 @@ def test_running_daemons_shorten_the_switch_interval_and_freeze_the_heap() -> No
         DaemonSettings.from_table({"switch_interval": -1.0}, "f.toml")
 
 
+def test_warm_up_runs_every_estimator_and_changes_nothing() -> None:
+    protocol, model, settings = _setup(BASE + ["unbalance", "cogging:6"])
+    ch = _chan("warm")
+    d = Daemon(protocol, model, settings, DaemonSettings(),
+               bus={"interface": "virtual", "channel": ch})
+    with VirtualBus(channel=ch) as observer:
+        proc = d._warm_up()
+        assert observer.recv(0.05) is None  # nothing sent
+    assert proc is not d.processor
+    assert all(e.rls.count > 0 and e.frls.count > 0 for e in proc.pipeline.estimators)
+    assert d.processor.frames == 0
+    assert all(e.rls.count == 0 and e.frls.count == 0 for e in d.pipeline.estimators)
+    assert d.stats().frames == 0
+
+
 def test_messages_to_block_matches_from_messages() -> None:
     msgs = [
         can.Message(timestamp=1.5, arbitration_id=0x101, data=bytes(range(8))),

@@ -621,7 +621,10 @@ class Daemon:
         if self._started:
             raise RuntimeError("daemon already started")
         self._started = True
-        self._warm_up()
+        try:
+            self._warm_up()
+        except Exception as e:  # only a speed-up: never a reason not to start
+            log.warning("warm-up skipped (the first frames will be slower): %s", e)
         if self.config.record is not None:
             self._recorder = can.Logger(str(self.config.record))
             self._rx.recorder = self._recorder
@@ -641,8 +644,9 @@ class Daemon:
         log.info("canrls daemon running on %s: effects %s, %d parameters", self._bus_info(),
                  ",".join(self.model.effect_names), len(self.model.parameters))
 
-    def _warm_up(self) -> None:
-        """Run the hot path once on made-up frames, before the bus opens.
+    def _warm_up(self) -> FrameProcessor:
+        """Run the hot path once on made-up frames, before the bus opens; returns the
+        throwaway processor.
 
         numba loads each compiled kernel from its cache at its first call (some
         100 ms in all), and the frame codecs are built at their first use: without
@@ -671,6 +675,7 @@ class Daemon:
         encode_status(StatusReport(), 0)
         encode_param_info(reports)
         encode_ack(0, CommandResult.OK, 0)
+        return proc
 
     def stop(self) -> None:
         """Stop reading, process what was queued, checkpoint, close the bus. Idempotent."""
