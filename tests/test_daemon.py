@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import itertools
 import json
+import logging
 import math
 import os
 import signal
@@ -301,7 +302,8 @@ class _FlakyBus(VirtualBus):
         return super()._recv_internal(timeout)
 
 
-def test_error_frames_pause_sending_and_recover() -> None:
+def test_error_frames_pause_sending_and_recover(caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO, logger="canrls.daemon")
     protocol, model, settings = _setup()
     ch = _chan("errframes")
     tool = _Tool(ch)
@@ -322,6 +324,9 @@ def test_error_frames_pause_sending_and_recover() -> None:
         time.sleep(0.5)
         resumed = [m for m in tool.take() if m.arbitration_id == 0x311]
         assert resumed and not resumed[-1].data[0] & 0x40  # BusFault cleared on the wire
+        # the estimator thread alone ends the fault state, logged once
+        assert [r.message for r in caplog.records].count(
+            "CAN bus fault cleared: transmission resumed") == 1
         # bus-off ended at once by the controller's restart notification
         tool.bus.send(can.Message(is_error_frame=True, arbitration_id=0x40, data=bytes(8)))
         assert d.wait_for(lambda x: x.status().bus_fault, 2)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from canrls.config import AppConfig
+from canrls.fixed import QFormat
 from canrls.pipeline import EstimatorSettings, Pipeline, divergence
 from canrls.ranges import scan_ranges
 from canrls.signals import Signals
@@ -203,3 +204,62 @@ def test_divergence_matches_its_formula_with_nan_and_zero() -> None:
         assert divergence(th.tolist(), fx.tolist(), sd.tolist()) == want
     assert math.isnan(divergence([1.0, np.nan], [1.0, 2.0], [0.1, 0.1]))
     assert divergence([0.0], [0.5], [np.nan]) == 0.5
+
+
+def test_restored_state_keeps_its_own_fixed_point_formats(standard: object) -> None:
+    """A state saved with other Q formats continues in them: eps_fixed and theta_fixed
+    are both read in the formats of the restored fixed-point estimator."""
+    sig = standard.measured  # type: ignore[attr-defined]
+    model = _model(standard)
+    coarse = EstimatorSettings(fixed_overrides={"eps": QFormat(32, 8)})
+    a = Pipeline(model, 1e-3, coarse)
+    a.process(sig.slice(0, 12000))
+    b = Pipeline(model, 1e-3)  # the default formats
+    b.restore(a.state())
+    a.restore(a.state())  # the same restart of the filter
+    oa, ob = (p.process(sig.slice(12000, 14000)) for p in (a, b))
+    ea, eb = oa.equations[0], ob.equations[0]
+    assert b.estimators[0].fixed_config == a.estimators[0].fixed_config
+    assert np.array_equal(ea.eps_fixed, eb.eps_fixed)
+    # on the coarse grid of the restored format (lsb 2**-8 in normalised units)
+    lsb = math.ldexp(2.0**-8, model.equations[0].scaling.target)
+    assert np.allclose(eb.eps_fixed[eb.used] / lsb, np.round(eb.eps_fixed[eb.used] / lsb))
+
+
+def test_a_term_outside_its_domain_skips_those_samples_and_the_filter_recovers(
+        standard: object) -> None:
+    """sqrt(speed) is NaN whenever the drive turns backwards: those samples (and the
+    filter's warm-up after each stretch) are left out; the NaN never reaches the
+    filter's state, so the estimator goes on updating and the true parameters come back
+    (only forward motion is used, so Coulomb friction and the load offset are seen
+    as their sum)."""
+    sig: Signals = standard.measured  # type: ignore[attr-defined]
+    model = _model(standard, EFFECTS + ",user:root",
+                   terms={"root": {"expr": "sqrt(omega)", "range": [0.0, 10.0]}})
+    pipe = Pipeline(model, 1e-3)
+    out = pipe.process(sig)
+    est = pipe.estimators[0]
+    eb = out.equations[0]
+    backwards = sig.speed < 0
+    assert 0.2 < backwards.mean() < 0.8
+    assert est.nonfinite_rows == int(np.count_nonzero(backwards))
+    assert not eb.used[backwards].any()
+    # after each backward stretch, the next warm-up rows are left out too
+    ends = np.flatnonzero(backwards[:-1] & ~backwards[1:]) + 1
+    assert not eb.used[ends[ends + est.warmup < len(sig)]].any()
+    assert np.isfinite(eb.eps[eb.used]).all() and est.rls.count >= eb.used.sum() * 0.99
+    truth = standard.truth.params  # type: ignore[attr-defined]
+    fit = pipe.estimates()
+    got = {p.name: p.value for p in fit.parameters}
+    assert all(np.isfinite([p.value, p.fixed, p.sigma]).all() for p in fit.parameters)
+    for name, value in got.items():
+        if name in truth and name.split(".")[0] not in ("coulomb", "offset"):
+            assert value == pytest.approx(truth[name], rel=0.05), name
+    both = [n for n in got if n.split(".")[0] in ("coulomb", "offset")]
+    assert sum(got[n] for n in both) == pytest.approx(sum(truth[n] for n in both), rel=0.05)
+    assert fit.equations[0].nonfinite_rows == est.nonfinite_rows
+    # blocks of any size give the same bits (the held value is carried)
+    b = Pipeline(model, 1e-3)
+    for k in range(0, len(sig), 777):
+        b.process(sig.slice(k, k + 777))
+    assert b.estimates().parameters == fit.parameters

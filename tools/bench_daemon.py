@@ -49,10 +49,13 @@ EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"
 _ch = itertools.count()
 
 
-def _rss_mb() -> float:
+def _rss_mb(field: str = "VmRSS") -> float:
+    """``VmRSS`` of this process [MB], or another field of /proc/self/status
+    (``RssAnon``: private memory; ``RssFile``: pages of mapped files such as the shared
+    libraries, which the kernel can drop and read again)."""
     with open("/proc/self/status") as fh:
         for line in fh:
-            if line.startswith("VmRSS:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) / 1024.0
     return float("nan")
 
@@ -156,8 +159,8 @@ def bench_latency(msgs: list[can.Message], rate: float,
 
 _FLOOR = """
 import numpy, can, cantools
-def rss():
-    return int([l for l in open("/proc/self/status") if l.startswith("VmRSS")][0].split()[1])
+def rss(field="VmRSS"):
+    return int([l for l in open("/proc/self/status") if l.startswith(field)][0].split()[1])
 a = rss()
 import numba
 b = rss()
@@ -169,27 +172,28 @@ cfg.model = {"effects": %r, "kt": 0.1}
 protocol = cfg.protocol()
 Daemon(protocol, cfg.model_for(protocol), cfg.settings(), DaemonSettings(),
        bus={"interface": "virtual", "channel": "floor"})
-print(a, b, c, rss())
+print(a, b, c, rss(), rss("RssAnon"), rss("RssFile"))
 """
 
 
-def memory_floor() -> tuple[float, float, float, float]:
+def memory_floor() -> tuple[float, ...]:
     """RSS [MB] of a fresh process: numpy + python-can + cantools imported, then numba,
     then canrls' daemon modules, then one daemon built (numba's compiler context and
-    the cached kernels loaded); no simulator, no frame yet."""
+    the cached kernels loaded; then also split into private and file-backed pages); no
+    simulator, no frame yet."""
     out = subprocess.run([sys.executable, "-c", _FLOOR % EFFECTS.split(",")],
                          capture_output=True, text=True, check=True).stdout.split()
-    a, b, c, d = (int(x) / 1024.0 for x in out)
-    return a, b, c, d
+    return tuple(int(x) / 1024.0 for x in out)
 
 
-def bench_memory(sim_seconds: float, report_every: float) -> list[tuple[float, float]]:
+def bench_memory(sim_seconds: float, report_every: float
+                 ) -> list[tuple[float, float, float]]:
     ch = f"bench-mem-{next(_ch)}"
     d = _daemon(ch, DaemonSettings(queue_size=200000))
     sc = scenario("standard", effects=EFFECTS, seed=2, duration=sim_seconds,
                   excitation="standard")
     sim = Simulator(sc, t0=0.0)
-    rows: list[tuple[float, float]] = []
+    rows: list[tuple[float, float, float]] = []
     d.start()
     try:
         with _virtual.channels_lock:
@@ -203,10 +207,10 @@ def bench_memory(sim_seconds: float, report_every: float) -> list[tuple[float, f
                 time.sleep(0.01)
             t = float(block.t[-1])
             if t >= next_report:
-                rows.append((t, _rss_mb()))
+                rows.append((t, _rss_mb(), _rss_mb("RssAnon")))
                 next_report += report_every
         d.wait_for(lambda x: x.stats().backlog == 0, 30)
-        rows.append((sim_seconds, _rss_mb()))
+        rows.append((sim_seconds, _rss_mb(), _rss_mb("RssAnon")))
     finally:
         d.stop()
     return rows
@@ -238,15 +242,17 @@ def main() -> None:
     print(f"latency feedback frame -> parameter frame at {args.latency_rate:.0f} frames/s "
           f"(publish after every block): p50 {p50:.2f} ms, p99 {p99:.2f} ms ({n} frames)")
     if not args.skip_memory:
-        a, b, c, d = memory_floor()
+        a, b, c, d, anon, file = memory_floor()
         print(f"memory floor of the daemon alone (fresh process, before any frame): "
               f"numpy + python-can + cantools {a:.0f} MB, + numba {b:.0f} MB, "
-              f"+ canrls {c:.0f} MB, one daemon built {d:.0f} MB")
+              f"+ canrls {c:.0f} MB, one daemon built {d:.0f} MB "
+              f"({anon:.0f} MB private, {file:.0f} MB of mapped files)")
         t0 = time.perf_counter()
         rows = bench_memory(args.memory_sim_s, args.memory_sim_s / 6)
         wall = time.perf_counter() - t0
-        print(f"memory over {args.memory_sim_s:g} s of simulated traffic ({wall:.0f} s wall): "
-              + ", ".join(f"{t:.0f} s: {m:.0f} MB" for t, m in rows))
+        print(f"memory over {args.memory_sim_s:g} s of simulated traffic ({wall:.0f} s wall), "
+              f"RSS (of which private): "
+              + ", ".join(f"{t:.0f} s: {m:.0f} ({a:.0f}) MB" for t, m, a in rows))
 
 
 if __name__ == "__main__":

@@ -103,6 +103,7 @@ log = logging.getLogger(__name__)
 #: Arbitration ID of ``RlsCommand`` in the default DBC.
 COMMAND_ID = 0x320
 _COUNTERS_ID = 0x312
+_WINDUP = int(RLSFlag.WINDUP)
 # SocketCAN error classes (linux/can/error.h) in an error frame's arbitration ID
 _CAN_ERR_BUSOFF = 0x40
 _CAN_ERR_RESTARTED = 0x100
@@ -452,7 +453,8 @@ class Daemon:
     :param backpressure: when the queue is full, make the bus reader wait instead of
         dropping frames (only for simulated buses, whose drive then waits too).
     :param on_publish: called in the estimator thread after each publication with
-        ``(frames processed so far, time.monotonic())`` (benchmarks).
+        ``(frames processed so far, time.monotonic() when its parameter frames had
+        been sent)`` (benchmarks).
     """
 
     def __init__(self, protocol: Protocol, model: Model,
@@ -949,7 +951,7 @@ class Daemon:
         for k, eb in enumerate(out.equations):
             if len(eb.online_rms):
                 self._online_rms[k] = float(eb.online_rms[-1])
-            if len(eb.flags) and np.any(eb.flags & int(RLSFlag.WINDUP)):
+            if len(eb.flags) and (eb.flags & _WINDUP).any():
                 self._window_windup = True
 
     # ------------------------------------------------------------------ input gate
@@ -1108,17 +1110,27 @@ class Daemon:
             "tx_dropped": self._c["tx_dropped"] + b.get("tx_dropped", 0),
         }
 
+    def _bus_fault(self, now: float) -> bool:
+        """Whether transmission is paused: an error frame less than ``fault_hold_s`` ago,
+        or no usable bus."""
+        return now < self._fault_until or self._failed.is_set() or self._bus is None
+
+    def _settle_fault(self, now: float) -> None:
+        """Estimator thread: once ``fault_hold_s`` passed without an error frame, the
+        bus-off and fault states end (logged once)."""
+        if self._bus_off and now >= self._fault_until:
+            self._bus_off = False  # no error frame for fault_hold_s: recovered
+        if self._fault_active and not self._bus_fault(now):
+            self._fault_active = False
+            log.info("CAN bus fault cleared: transmission resumed")
+
     def _status(self, now: float, div: float | None = None) -> StatusReport:
-        """The status; ``div``: the divergence if known (:meth:`_reports`)."""
+        """The status (no side effect: :meth:`status` calls it from any thread);
+        ``div``: the divergence if known (:meth:`_reports`)."""
         pipe = self._proc.pipeline
         counters = self._wire_counters()
         lost = counters["frames_lost"]
-        if self._bus_off and now >= self._fault_until:
-            self._bus_off = False  # no error frame for fault_hold_s: recovered
-        fault = now < self._fault_until or self._failed.is_set() or self._bus is None
-        if not fault and self._fault_active:
-            self._fault_active = False
-            log.info("CAN bus fault cleared: transmission resumed")
+        fault = self._bus_fault(now)
         if div is None:
             div = max((e.divergence() for e in pipe.estimators), default=0.0)
         first = pipe.estimators[0]
@@ -1137,25 +1149,29 @@ class Daemon:
             **counters)
 
     def _publish(self, now: float) -> None:
+        """Send the parameter frames, then the status frames (and, every
+        ``info_interval``, RlsParamInfo and RlsCounters)."""
         info = now >= self._info_due
+        self._settle_fault(now)
+        reports, div = self._reports()
+        ts = time.time()
+        self._pub_counter = (self._pub_counter + 1) % 16
+        self._send(encode_parameters(reports, self._pub_counter, timestamp=ts))
+        sent = time.monotonic()
         if info:
             self._low_excitation = any(bool(e.rls.excitation().low)
                                        for e in self._proc.pipeline.estimators)
-        reports, div = self._reports()
         status = self._status(now, div)
         self._window_windup = False
         self._last_lost = status.frames_lost
         self._last_sat = status.saturations
         self.last_status = status
-        ts = time.time()
-        self._pub_counter = (self._pub_counter + 1) % 16
-        msgs = encode_parameters(reports, self._pub_counter, timestamp=ts)
-        msgs += [m for m in encode_status(status, self._pub_counter, timestamp=ts)
-                 if info or m.arbitration_id != _COUNTERS_ID]
+        msgs = [m for m in encode_status(status, self._pub_counter, timestamp=ts)
+                if info or m.arbitration_id != _COUNTERS_ID]
         if info:
             msgs += encode_param_info(reports, timestamp=ts)
             self._info_due = now + self.config.info_interval
         self._send(msgs)
         self._c["publications"] += 1
         if self._on_publish is not None:
-            self._on_publish(self._proc.frames, time.monotonic())
+            self._on_publish(self._proc.frames, sent)

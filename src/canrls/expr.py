@@ -22,7 +22,9 @@ comprehensions, other names or functions) raises
 position. The compiled expression is evaluated elementwise with numpy, so evaluating
 a block in chunks gives the same values bit for bit. Values outside a function's
 domain (``log`` of a negative speed, division by zero) become ``nan``/``inf`` without a
-warning; keep the expression finite over the operating range.
+warning; the pipeline then leaves those samples out (see
+:class:`~canrls.model.RegressorBuilder`). Keep the expression finite over the
+operating range.
 """
 
 from __future__ import annotations

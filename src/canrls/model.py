@@ -222,11 +222,14 @@ class RegressorBlock:
     """Normalised regressors of one block: ``y[k] ~ phi[k] @ theta``.
 
     ``phi`` is ``(N, n)`` float64, ``y`` is ``(N,)`` float64, ``t`` the sample times.
+    ``nonfinite`` marks the rows where the target or a column was not finite before
+    the filter (``None``: none was); see :class:`RegressorBuilder`.
     """
 
     phi: F64
     y: F64
     t: F64
+    nonfinite: npt.NDArray[np.bool_] | None = None
 
     def __len__(self) -> int:
         return len(self.y)
@@ -399,6 +402,12 @@ class RegressorBuilder:
     ``process`` may be called with blocks of any size (including empty); the SVF state
     and the position turn count are carried, so the concatenated output is bit-identical
     to processing everything at once. ``reset`` restarts the filter and the unwrapping.
+
+    A value that is not finite (a user term outside its domain, ``1/speed`` at rest)
+    would stay in the filter's state for good. Such a value is replaced by the last
+    finite value of its column before it enters the filter, and the row is marked in
+    ``nonfinite``: the rows after it carry the held value through the filter for a
+    while, and the pipeline leaves them out as after a gap.
     """
 
     def __init__(self, equation: Equation, dt: float) -> None:
@@ -422,6 +431,7 @@ class RegressorBuilder:
         if np.all((self._neg_exp >= -1074) & (self._neg_exp <= 1023)):
             self._scale = np.ldexp(np.ones(len(self._neg_exp)), self._neg_exp)
         self._raw = np.empty((0, equation.n + 1))
+        self._last_finite = np.zeros(equation.n + 1)
 
     @property
     def n(self) -> int:
@@ -430,6 +440,24 @@ class RegressorBuilder:
     def reset(self) -> None:
         self.svf.reset()
         self.unwrapper.reset()
+        self._last_finite = np.zeros(self.equation.n + 1)
+
+    def _hold_nonfinite(self, raw: F64) -> npt.NDArray[np.bool_] | None:
+        """Replace each non-finite value of ``raw`` by the last finite value of its column
+        (carried between blocks; 0 before any); the rows that had one, or ``None``."""
+        finite = np.isfinite(raw)
+        if finite.all():
+            if len(raw):
+                self._last_finite = raw[-1].copy()
+            return None
+        n = len(raw)
+        rows = np.arange(n)
+        for j in np.flatnonzero(~finite.all(axis=0)):
+            # the row of the last finite value at or before each row (-1: none in this block)
+            at = np.maximum.accumulate(np.where(finite[:, j], rows, -1))
+            raw[:, j] = np.where(at >= 0, raw[np.maximum(at, 0), j], self._last_finite[j])
+        self._last_finite = raw[-1].copy()
+        return ~finite.all(axis=1)
 
     def _frame(self, signals: Any) -> Frame:
         eq = self.equation
@@ -456,11 +484,12 @@ class RegressorBuilder:
 
     def process(self, signals: Any) -> RegressorBlock:
         """Regressors of one block (see the module docstring)."""
-        phi, y, t = self._regressors(signals)
-        return RegressorBlock(phi=phi, y=y, t=t)
+        phi, y, t, nonfinite = self._regressors(signals)
+        return RegressorBlock(phi=phi, y=y, t=t, nonfinite=nonfinite)
 
-    def _regressors(self, signals: Any) -> tuple[F64, F64, F64]:
-        """``(phi, y, t)`` of :meth:`process`, without the result object."""
+    def _regressors(self, signals: Any
+                    ) -> tuple[F64, F64, F64, npt.NDArray[np.bool_] | None]:
+        """``(phi, y, t, nonfinite)`` of :meth:`process`, without the result object."""
         eq = self.equation
         frame = self._frame(signals)
         n = len(frame.t)
@@ -477,19 +506,20 @@ class RegressorBuilder:
             raw[:, 0] = tgt
         for j, col in enumerate(eq.columns):
             raw[:, j + 1] = col.raw(frame)
+        nonfinite = self._hold_nonfinite(raw)
         if self._scale is not None:
             # filter, pick F or sF and normalise in one pass (same values as below)
             y = np.empty(n)
             phi = np.empty((n, eq.n))
             self.svf._process_scaled(raw, self._deriv, self._scale, y, phi)
-            return phi, y, frame.t
+            return phi, y, frame.t, nonfinite
         f, sf = self.svf.process(raw)
         # value columns and target through F, derivative columns through sF
         if self._deriv_idx.size:
             f[:, self._deriv_idx] = sf[:, self._deriv_idx]
         # exact power-of-two normalisation
         np.ldexp(f, self._neg_exp, out=f)
-        return np.ascontiguousarray(f[:, 1:]), f[:, 0].copy(), frame.t
+        return np.ascontiguousarray(f[:, 1:]), f[:, 0].copy(), frame.t, nonfinite
 
 
 # ---------------------------------------------------------------------------- model

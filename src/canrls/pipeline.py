@@ -313,6 +313,9 @@ class EquationFit:
     windup_steps: int
     low_excitation: bool
     condition: float
+    #: samples left out because the target or a column was not finite (and the
+    #: filter's warm-up after each)
+    nonfinite_rows: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return {"equation": self.equation, "target": self.target, "unit": self.unit,
@@ -321,7 +324,7 @@ class EquationFit:
                 "target_rms": self.target_rms, "online_rms": self.online_rms,
                 "divergence": self.divergence, "saturations": dict(self.saturations),
                 "windup_steps": self.windup_steps, "low_excitation": self.low_excitation,
-                "condition": self.condition}
+                "condition": self.condition, "nonfinite_rows": self.nonfinite_rows}
 
 
 @dataclass(frozen=True)
@@ -537,6 +540,9 @@ class EquationEstimator:
         self._mask_state = np.array([np.nan, 0.0])
         self.filler.reset()
         self.windup_steps = 0
+        #: rows left out because a value was not finite (see RegressorBuilder)
+        self.nonfinite_rows = 0
+        self._since_nonfinite = self.warmup + 1  # rows since the last one
 
     def process(self, signals: Signals, record: bool = False) -> EquationBlock:
         filled, real = self.filler.fill(signals)
@@ -554,16 +560,17 @@ class EquationEstimator:
             online_rms=out.online_rms[real], flags=out.flags[real],
             theta=pick(out.theta), theta_fixed=pick(out.theta_fixed), phi=pick(out.phi))
 
-    def _regressors(self, signals: Signals, restart: npt.NDArray[np.bool_],
-                    restarts: int) -> tuple[F64, F64]:
-        """(phi, y) of the block, the filter restarted at the ``restart`` rows."""
+    def _regressors(self, signals: Signals, restart: npt.NDArray[np.bool_], restarts: int
+                    ) -> tuple[F64, F64, npt.NDArray[np.bool_] | None]:
+        """(phi, y, rows with a non-finite value or None) of the block, the filter
+        restarted at the ``restart`` rows."""
         N = len(restart)
         if restarts == 0 or (restarts == 1 and restart[0]):
             # one piece (the common case): no slicing, no joining
             if restarts:
                 self.builder.reset()
-            phi, y, _ = self.builder._regressors(signals)
-            return phi, y
+            phi, y, _, nonfinite = self.builder._regressors(signals)
+            return phi, y, nonfinite
         # the filter restarts at every gap (and at the start): split the block there
         bounds = [int(k) for k in np.flatnonzero(restart)] + [N]
         if bounds[0] != 0:
@@ -573,7 +580,26 @@ class EquationEstimator:
             if restart[a]:
                 self.builder.reset()
             parts.append(self.builder.process(signals.slice(a, b)))
-        return np.concatenate([p.phi for p in parts]), np.concatenate([p.y for p in parts])
+        nonfinite = None
+        if any(p.nonfinite is not None for p in parts):
+            nonfinite = np.concatenate([np.zeros(len(p), np.bool_) if p.nonfinite is None
+                                        else p.nonfinite for p in parts])
+        return (np.concatenate([p.phi for p in parts]), np.concatenate([p.y for p in parts]),
+                nonfinite)
+
+    def _skip_nonfinite(self, nonfinite: npt.NDArray[np.bool_] | None,
+                        use: npt.NDArray[np.bool_]) -> None:
+        """Leave out of ``use`` the rows that had a non-finite value (held by the builder)
+        and the ``warmup`` rows after each, as after a gap; counted in ``nonfinite_rows``."""
+        rows = np.arange(len(use))
+        if nonfinite is None:
+            since = self._since_nonfinite + 1 + rows
+        else:
+            self.nonfinite_rows += int(np.count_nonzero(nonfinite))
+            last = np.maximum.accumulate(np.where(nonfinite, rows, -1))
+            since = np.where(last >= 0, rows - last, self._since_nonfinite + 1 + rows)
+        use &= since > self.warmup
+        self._since_nonfinite = int(since[-1])
 
     def _process(self, signals: Signals, real: npt.NDArray[np.bool_] | None,
                  record: bool) -> EquationBlock:
@@ -597,7 +623,10 @@ class EquationEstimator:
         if real is not None:
             use &= real
             used = int(np.count_nonzero(use))
-        phi, y = self._regressors(signals, restart, restarts)
+        phi, y, nonfinite = self._regressors(signals, restart, restarts)
+        if nonfinite is not None or self._since_nonfinite <= self.warmup:
+            self._skip_nonfinite(nonfinite, use)
+            used = int(np.count_nonzero(use))
         # the used rows (None: all of them, or none)
         rows = np.flatnonzero(use) if 0 < used < N else None
         if used:
@@ -680,23 +709,26 @@ class EquationEstimator:
             online_rms=math.sqrt(self._rms_state[0]) * math.ldexp(1.0, eq.scaling.target),
             divergence=self.divergence(), saturations=self.frls.saturations.nonzero(),
             windup_steps=self.windup_steps, low_excitation=bool(exc.low),
-            condition=float(exc.cond))
+            condition=float(exc.cond), nonfinite_rows=self.nonfinite_rows)
         return params, fit_obj
 
     def state(self) -> dict[str, Any]:
         return {"rls": self.rls.state(), "fixed": self.frls.state(), "M": self._M.copy(),
                 "v": self._v.copy(), "s": self._s.copy(), "rms": self._rms_state.copy(),
-                "windup_steps": self.windup_steps}
+                "windup_steps": self.windup_steps, "nonfinite_rows": self.nonfinite_rows}
 
     def restore(self, d: Mapping[str, Any]) -> None:
         """Continue from :meth:`state` (the filter restarts: the next samples warm it up)."""
         self.rls = RLS.from_state(d["rls"])
         self.frls = FixedRLS.from_state(d["fixed"])
+        self.fixed_config = self.frls.config  # the formats the restored state is in
         self._M = np.array(d["M"], dtype=np.float64)
         self._v = np.array(d["v"], dtype=np.float64)
         self._s = np.array(d["s"], dtype=np.float64)
         self._rms_state = np.array(d["rms"], dtype=np.float64)
         self.windup_steps = int(d["windup_steps"])
+        self.nonfinite_rows = int(d.get("nonfinite_rows", 0))
+        self._since_nonfinite = self.warmup + 1
         self.builder.reset()
         self._mask_state = np.array([np.nan, 0.0])
         self.filler.reset()
