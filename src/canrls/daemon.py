@@ -262,13 +262,13 @@ def messages_to_block(msgs: Sequence[can.Message]) -> FrameBlock:
     n = len(msgs)
     if n == 0:
         return FrameBlock.empty()
-    datas = [bytes(m.data) for m in msgs]
+    datas = [m.data for m in msgs]
     lens = [len(d) for d in datas]
     width = max(8, max(lens))
     if min(lens) == width:
         data = np.frombuffer(b"".join(datas), np.uint8).reshape(n, width).copy()
     else:
-        data = np.frombuffer(b"".join(d.ljust(width, b"\0") for d in datas),
+        data = np.frombuffer(b"".join(bytes(d).ljust(width, b"\0") for d in datas),
                              np.uint8).reshape(n, width).copy()
     return FrameBlock(
         t=np.array([m.timestamp for m in msgs], np.float64),

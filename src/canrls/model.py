@@ -445,12 +445,16 @@ class RegressorBuilder:
     def _hold_nonfinite(self, raw: F64) -> npt.NDArray[np.bool_] | None:
         """Replace each non-finite value of ``raw`` by the last finite value of its column
         (carried between blocks; 0 before any); the rows that had one, or ``None``."""
-        finite = np.isfinite(raw)
-        if finite.all():
-            if len(raw):
-                self._last_finite = raw[-1].copy()
-            return None
         n = len(raw)
+        if n == 0:
+            return None
+        if math.isfinite(raw.sum()):  # a NaN or an infinity makes the sum one too
+            np.copyto(self._last_finite, raw[-1])
+            return None
+        finite = np.isfinite(raw)
+        if finite.all():  # only the sum overflowed
+            np.copyto(self._last_finite, raw[-1])
+            return None
         rows = np.arange(n)
         for j in np.flatnonzero(~finite.all(axis=0)):
             # the row of the last finite value at or before each row (-1: none in this block)

@@ -452,9 +452,9 @@ class RLS:
         approximation of the covariance. ``nan`` where undefined (see :attr:`sigma2`,
         or a negative diagonal of a broken literal :math:`P`).
         """
-        d = np.diag(self._P).astype(np.float64)
-        with np.errstate(invalid="ignore"):
-            return np.sqrt(self.sigma2 * d)
+        v = self.sigma2 * np.diag(self._P).astype(np.float64)
+        out = np.full(len(v), np.nan)
+        return np.sqrt(v, out=out, where=v >= 0)  # NaN stays NaN (fails v >= 0)
 
     def reset(self) -> None:
         r"""Return to the prior :math:`P_0 = I/\alpha`, :math:`\theta_0 = 0` (count 0).
