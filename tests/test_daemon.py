@@ -581,3 +581,25 @@ def test_sighup_reloads_model_and_sigterm_checkpoints(tmp_path: Path) -> None:
     assert cp.model["effects"] == [*BASE, "unbalance"]
     assert cp.config_model["effects"] == [*BASE, "unbalance"]
     assert cp.state["samples"] == res["daemon"]["samples"]
+
+
+def test_a_term_outside_its_domain_is_logged_once_and_the_estimator_goes_on(
+        caplog: pytest.LogCaptureFixture) -> None:
+    from canrls.sim.scenario import Simulator, scenario
+
+    caplog.set_level(logging.WARNING, logger="canrls.daemon")
+    cfg = AppConfig()
+    cfg.model = {"effects": ["inertia", "viscous", "coulomb", "user:root"], "kt": 0.1,
+                 "terms": {"root": {"expr": "sqrt(omega)", "range": [0.0, 10.0]}}}
+    protocol = cfg.protocol()
+    d = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), DaemonSettings(),
+               bus={"interface": "virtual", "channel": _chan("nonfinite")})
+    sim = Simulator(scenario("standard", effects="inertia,viscous,coulomb", seed=4,
+                             duration=8.0, excitation="standard"), t0=0.0)
+    for block in sim.frames(500):
+        d._process(block.to_messages())
+    est = d.pipeline.estimators[0]
+    assert est.nonfinite_rows > 1000 and est.rls.count > 1000
+    assert all(math.isfinite(p.value) for p in d.estimates().parameters)
+    warned = [r for r in caplog.records if "non-finite term value" in r.message]
+    assert len(warned) == 1 and "mechanical equation" in warned[0].message

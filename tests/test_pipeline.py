@@ -258,7 +258,9 @@ def test_a_term_outside_its_domain_skips_those_samples_and_the_filter_recovers(
     both = [n for n in got if n.split(".")[0] in ("coulomb", "offset")]
     assert sum(got[n] for n in both) == pytest.approx(sum(truth[n] for n in both), rel=0.05)
     assert fit.equations[0].nonfinite_rows == est.nonfinite_rows
-    # blocks of any size give the same bits (the held value is carried)
+    assert f"{est.nonfinite_rows} samples with a non-finite term left out" in fit.format()
+    assert fit.equations[0].to_dict()["nonfinite_rows"] == est.nonfinite_rows
+    # blocks of any size give the same bits (the last finite value is carried)
     b = Pipeline(model, 1e-3)
     for k in range(0, len(sig), 777):
         b.process(sig.slice(k, k + 777))

@@ -46,6 +46,7 @@ import signal
 import sys
 import threading
 import time
+import weakref
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -505,6 +506,8 @@ class Daemon:
         self._bus_off = False
         self._fault_active = False
         self._window_windup = False
+        #: estimators whose non-finite samples were logged (once each)
+        self._warned_nonfinite: weakref.WeakSet[Any] = weakref.WeakSet()
         self._last_lost = 0
         self._last_sat = 0
         self._low_excitation = False
@@ -953,6 +956,12 @@ class Daemon:
                 self._online_rms[k] = float(eb.online_rms[-1])
             if len(eb.flags) and (eb.flags & _WINDUP).any():
                 self._window_windup = True
+        for e in self._proc.pipeline.estimators:
+            if e.nonfinite_rows and e not in self._warned_nonfinite:
+                self._warned_nonfinite.add(e)
+                log.warning("the %s equation met a non-finite term value (a user term "
+                            "outside its domain?): such samples, and the filter's warm-up "
+                            "after each, are left out", e.equation.name)
 
     # ------------------------------------------------------------------ input gate
     def hold_input(self, hold: bool) -> None:

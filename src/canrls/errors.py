@@ -14,9 +14,9 @@ working for callers who do not know canrls::
     ├── DecodeError (ValueError)        a CAN frame is rejected (``reason`` says why)
     │   └── protocol.EncodeError        a value cannot be encoded into its DBC signal
     ├── LogFormatError (ValueError)     a log file cannot be read (names file and line)
-    ├── EstimatorError (ArithmeticError)
+    ├── EstimatorError (ValueError)     an estimator is configured or used inconsistently
     │   └── FixedPointError             a fixed-point configuration cannot represent
-    │                                   the problem (names the quantity and Q format)
+    │       (also ArithmeticError)      the problem (names the quantity and Q format)
     ├── CommandError (ValueError)       a command frame is unknown or malformed
     │   └── frames.CommandFrameError    carries the CommandResult code for the ack
     ├── CheckpointError (ValueError)    a checkpoint is corrupted or does not match
@@ -80,11 +80,11 @@ class LogFormatError(CanrlsError, ValueError):
     """A log file cannot be read."""
 
 
-class EstimatorError(CanrlsError, ArithmeticError):
+class EstimatorError(CanrlsError, ValueError):
     """An estimator was configured or used inconsistently."""
 
 
-class FixedPointError(EstimatorError):
+class FixedPointError(EstimatorError, ArithmeticError):
     """A fixed-point configuration cannot represent the problem."""
 
 

@@ -406,8 +406,8 @@ class RegressorBuilder:
     A value that is not finite (a user term outside its domain, ``1/speed`` at rest)
     would stay in the filter's state for good. Such a value is replaced by the last
     finite value of its column before it enters the filter, and the row is marked in
-    ``nonfinite``: the rows after it carry the held value through the filter for a
-    while, and the pipeline leaves them out as after a gap.
+    ``nonfinite``: the stand-in value stays in the filter's output for a while, so
+    the pipeline leaves out that row and the filter's warm-up after it, as after a gap.
     """
 
     def __init__(self, equation: Equation, dt: float) -> None:

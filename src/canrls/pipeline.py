@@ -379,7 +379,9 @@ class Estimates:
                 f" R² {e.r2:.5f}, {e.samples} samples, fixed-vs-float divergence "
                 f"{e.divergence:.2e}"
                 + (f", saturations {dict(e.saturations)}" if e.saturations else "")
-                + (", LOW EXCITATION" if e.low_excitation else ""))
+                + (", LOW EXCITATION" if e.low_excitation else "")
+                + (f", {e.nonfinite_rows} samples with a non-finite term left out "
+                   f"(with the filter's warm-up after each)" if e.nonfinite_rows else ""))
         return "\n".join(lines)
 
     __str__ = format
@@ -589,8 +591,9 @@ class EquationEstimator:
 
     def _skip_nonfinite(self, nonfinite: npt.NDArray[np.bool_] | None,
                         use: npt.NDArray[np.bool_]) -> None:
-        """Leave out of ``use`` the rows that had a non-finite value (held by the builder)
-        and the ``warmup`` rows after each, as after a gap; counted in ``nonfinite_rows``."""
+        """Leave out of ``use`` the rows that had a non-finite value (replaced by the
+        builder) and the ``warmup`` rows after each, as after a gap; counted in
+        ``nonfinite_rows``."""
         rows = np.arange(len(use))
         if nonfinite is None:
             since = self._since_nonfinite + 1 + rows
