@@ -254,6 +254,36 @@ def test_sample_by_sample_is_bit_identical_and_reset_restarts() -> None:
     assert len(b.process(s.slice(0, 0))) == 0
 
 
+def test_a_non_finite_value_never_enters_the_filter() -> None:
+    """log(omega) is -inf at rest and nan backwards: each such value is replaced by the
+    last finite value of its column (0 before any, carried between blocks) and its row
+    marked; the output stays finite, and any chunking gives the same bits."""
+    model = Model(["inertia", "user:lg"], kt=0.1, ranges=RANGES,
+                  terms={"lg": {"expr": "log(omega)", "range": [-10.0, 10.0]}})
+    eq = model.equations[0]
+    s = CHUNK_SIGNALS.slice(0, 2000)
+    speed = np.asarray(s.speed, dtype=np.float64).copy()
+    speed[[5, 6, 700]] = 0.0
+    s = Signals(s.t, s.current, speed, s.position, s.voltage)
+    one = eq.builder(DT).process(s)
+    bad = ~(speed > 0)
+    assert bad.any() and (~bad).any()
+    assert one.nonfinite is not None and np.array_equal(one.nonfinite, bad)
+    assert np.isfinite(one.phi).all() and np.isfinite(one.y).all()
+    for cuts in ([1, 6, 7, 699, 701], list(range(0, 2000, 37))):
+        many = _run(eq.builder(DT), s, cuts)
+        assert np.array_equal(one.phi, many.phi) and np.array_equal(one.y, many.y)
+    # what the filter saw: the last finite log(omega) before each bad row
+    col = np.log(np.where(speed > 0, speed, np.nan))
+    last = np.maximum.accumulate(np.where(np.isfinite(col), np.arange(len(col)), -1))
+    seen = np.where(last >= 0, col[np.maximum(last, 0)], 0.0)
+    ref = Model(["inertia", "user:x"], kt=0.1, ranges=RANGES,
+                terms={"x": {"expr": "omega", "range": [-10.0, 10.0]}}).equations[0]
+    want = ref.builder(DT).process(Signals(s.t, s.current, seen, s.position, s.voltage))
+    assert np.array_equal(one.phi[:, 1], want.phi[:, 1]) and np.array_equal(one.y, want.y)
+    assert eq.builder(DT).process(CHUNK_SIGNALS.slice(0, 50)).nonfinite is None
+
+
 def test_position_conventions_single_turn_and_multi_turn_agree() -> None:
     d = profile(n=6000)
     model = Model(["unbalance", "cogging:5", "user:p"], ranges=RANGES,

@@ -442,7 +442,7 @@ class RegressorBuilder:
         self.unwrapper.reset()
         self._last_finite = np.zeros(self.equation.n + 1)
 
-    def _hold_nonfinite(self, raw: F64) -> npt.NDArray[np.bool_] | None:
+    def _replace_nonfinite(self, raw: F64) -> npt.NDArray[np.bool_] | None:
         """Replace each non-finite value of ``raw`` by the last finite value of its column
         (carried between blocks; 0 before any); the rows that had one, or ``None``."""
         n = len(raw)
@@ -510,7 +510,7 @@ class RegressorBuilder:
             raw[:, 0] = tgt
         for j, col in enumerate(eq.columns):
             raw[:, j + 1] = col.raw(frame)
-        nonfinite = self._hold_nonfinite(raw)
+        nonfinite = self._replace_nonfinite(raw)
         if self._scale is not None:
             # filter, pick F or sF and normalise in one pass (same values as below)
             y = np.empty(n)

@@ -313,8 +313,8 @@ class EquationFit:
     windup_steps: int
     low_excitation: bool
     condition: float
-    #: samples left out because the target or a column was not finite (and the
-    #: filter's warm-up after each)
+    #: samples whose target or a column was not finite: left out, with the filter's
+    #: warm-up after each (see :class:`~canrls.model.RegressorBuilder`)
     nonfinite_rows: int = 0
 
     def to_dict(self) -> dict[str, Any]:
