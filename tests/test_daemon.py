@@ -241,6 +241,39 @@ def test_commands_can_be_disabled() -> None:
         tool.close()
 
 
+def test_a_command_does_not_wait_for_the_block_interval() -> None:
+    """Frames gather for block_interval (here the 3 s publish interval), but a command
+    frame is taken at once: each of several commands back to back is acknowledged long
+    before the interval."""
+    protocol, model, settings = _setup()
+    ch = _chan("hurry")
+    tool = _Tool(ch)
+    d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=3.0),
+               bus={"interface": "virtual", "channel": ch})
+    assert d.config.block_s == 3.0
+    try:
+        d.start()
+        for code in (CommandCode.FREEZE, CommandCode.RESUME, CommandCode.FREEZE):
+            t0 = time.monotonic()
+            assert tool.command(_cmd(code)) is CommandResult.OK
+            assert time.monotonic() - t0 < 1.0
+        assert d.pipeline.frozen
+    finally:
+        d.stop()
+        tool.close()
+
+
+def test_block_interval_follows_the_publish_interval() -> None:
+    assert DaemonSettings().block_s == DaemonSettings().publish_interval == 0.1
+    assert DaemonSettings(publish_interval=0.5).block_s == 0.5
+    assert DaemonSettings(publish_interval=0.5, block_interval=0.01).block_s == 0.01
+    assert DaemonSettings(publish_interval=0.0).block_s == 0.0
+    assert DaemonSettings.from_table({"publish_interval": 0.2}).block_s == 0.2
+    assert DaemonSettings.from_table({"block_interval": 0}).block_s == 0.0
+    with pytest.raises(ConfigError, match="block_interval"):
+        DaemonSettings.from_table({"block_interval": -1}, "f.toml")
+
+
 def _mean(xs: list[float]) -> float:
     xs = [x for x in xs if math.isfinite(x)]
     assert xs, "no finite residual RMS in the status frames of this window"

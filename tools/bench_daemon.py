@@ -12,7 +12,7 @@ channel by a feeder thread at a fixed rate, so the simulator's CPU is not the da
 * **latency**: at ``--latency-rate`` frames/s with ``publish_interval = 0`` and
   ``block_interval = 0`` (publish after every block): from the moment a feedback frame
   is put on the bus to the moment the parameter frames that include it are sent;
-  p50 and p99.
+  p50 and p99 of each of ``--latency-runs`` runs.
 * **memory**: resident set size while ``--memory-sim-s`` seconds of simulated traffic
   (default one hour) go through as fast as the daemon takes them; first, the floor of
   a fresh process that only imports the daemon and builds one (no simulator, no
@@ -24,12 +24,14 @@ before the bus opens), so the figures are those of a running service.
 Usage::
 
     python tools/bench_daemon.py [--rates 9000,18000,27000] [--seconds 5] [--tick 0.001]
-                                 [--latency-rate 9000] [--memory-sim-s 3600] [--skip-memory]
+                                 [--latency-rate 9000] [--latency-runs 3]
+                                 [--memory-sim-s 3600] [--skip-memory]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import subprocess
 import sys
@@ -109,9 +111,13 @@ def _feed(channel: str, msgs: list[can.Message], rate: float,
     return time.perf_counter() - t0
 
 
-def bench_rate(msgs: list[can.Message], rate: float, tick: float = 1e-3) -> dict[str, float]:
+def bench_rate(msgs: list[can.Message], rate: float, tick: float = 1e-3,
+               block_interval: float | None = None) -> dict[str, float]:
     ch = f"bench-{next(_ch)}"
-    d = _daemon(ch, DaemonSettings(queue_size=max(1000, int(rate * 0.5))))
+    settings = DaemonSettings(queue_size=max(1000, int(rate * 0.5)))
+    if block_interval is not None:
+        settings = dataclasses.replace(settings, block_interval=block_interval)
+    d = _daemon(ch, settings)
     d.start()
     try:
         time.sleep(0.3)
@@ -221,8 +227,12 @@ def main() -> None:
     ap.add_argument("--rates", default="9000,18000,27000")
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--latency-rate", type=float, default=9000.0)
+    ap.add_argument("--latency-runs", type=int, default=3,
+                    help="latency runs, each with other frames (the host's speed varies)")
     ap.add_argument("--memory-sim-s", type=float, default=3600.0)
     ap.add_argument("--skip-memory", action="store_true")
+    ap.add_argument("--block-interval", type=float, default=None,
+                    help="[daemon] block_interval of the throughput runs (default: its default)")
     ap.add_argument("--tick", type=float, default=1e-3,
                     help="seconds between the feeder's hand-overs (default 1 ms, as USB)")
     args = ap.parse_args()
@@ -232,15 +242,19 @@ def main() -> None:
     print(f"RSS at start {_rss_mb():.0f} MB")
     for rate in rates:
         msgs = _messages(args.seconds * rate / 2000.0)
-        r = bench_rate(msgs, rate, args.tick)
+        r = bench_rate(msgs, rate, args.tick, args.block_interval)
         ok = "sustained" if r["lost"] == 0 and r["drained"] else "NOT sustained"
         print(f"offered {r['offered']:8.0f} frames/s: {ok:13s} lost {r['lost']:.0f}, "
               f"daemon CPU {r['cpu_us']:.1f} us/frame (listener {r['rx_us']:.1f}, "
               f"estimator {r['est_us']:.1f}), {r['frames'] / max(r['blocks'], 1):.0f} frames/block")
-    msgs = _messages(args.seconds * args.latency_rate / 2000.0, seed=3)
-    p50, p99, n = bench_latency(msgs, args.latency_rate, args.tick)
+    runs = []
+    for k in range(args.latency_runs):
+        msgs = _messages(args.seconds * args.latency_rate / 2000.0, seed=3 + k)
+        runs.append(bench_latency(msgs, args.latency_rate, args.tick))
     print(f"latency feedback frame -> parameter frame at {args.latency_rate:.0f} frames/s "
-          f"(publish after every block): p50 {p50:.2f} ms, p99 {p99:.2f} ms ({n} frames)")
+          f"(publish after every block), p50 / p99 of each run: "
+          + ", ".join(f"{p50:.2f} / {p99:.2f} ms" for p50, p99, _ in runs)
+          + f" ({runs[0][2]} frames a run)")
     if not args.skip_memory:
         a, b, c, d, anon, file = memory_floor()
         print(f"memory floor of the daemon alone (fresh process, before any frame): "
