@@ -23,7 +23,7 @@ before the bus opens), so the figures are those of a running service.
 
 Usage::
 
-    python tools/bench_daemon.py [--rates 9000,18000,27000] [--seconds 5] [--tick 0.001]
+    python tools/bench_daemon.py [--rates 9000,18000,27000,54000,90000] [--seconds 5] [--tick 0.001]
                                  [--latency-rate 9000] [--latency-runs 3]
                                  [--memory-sim-s 3600] [--skip-memory]
 """
@@ -224,7 +224,7 @@ def bench_memory(sim_seconds: float, report_every: float
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--rates", default="9000,18000,27000")
+    ap.add_argument("--rates", default="9000,18000,27000,54000,90000")
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--latency-rate", type=float, default=9000.0)
     ap.add_argument("--latency-runs", type=int, default=3,
