@@ -38,7 +38,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     g.add_argument("--checkpoint-interval", type=float, metavar="S",
                    help="seconds between checkpoints (default 60)")
     g.add_argument("--publish-interval", type=float, metavar="S",
-                   help="seconds between parameter publications (default 0.1)")
+                   help="seconds between parameter publications (default 0.1; frames are "
+                        "processed in blocks as often, unless [daemon] block_interval is set)")
     g.add_argument("--no-commands", action="store_true",
                    help="answer every command frame with 'disabled'")
     g.add_argument("--record", metavar="LOG", help="write every received frame to LOG")
