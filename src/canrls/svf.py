@@ -189,34 +189,39 @@ def _discretise(wc: float, zeta: float, dt: float, hold: Hold) -> tuple[F64, F64
     return Ad, G0, G1
 
 
-@numba.njit(cache=True)
-def _svf_kernel(u, Ad, G0, G1, x1, x2, up, primed, f, sf):  # pragma: no cover - compiled
-    """Filter every column of ``u`` (N, m) sample by sample, carrying (x1, x2, up).
+@numba.njit(cache=True, inline="always")
+def _svf_step(u, k, Ad, G0, G1, x1, x2, up, primed):  # pragma: no cover - compiled
+    """Advance every column's state (x1, x2) and previous input ``up`` to sample ``k``
+    of ``u`` (N, m); the first sample ever (``primed[0] == 0``) starts at rest.
 
     ``G0``, ``G1`` are (m, 2): the input coefficients of each column's hold.
     """
+    m = u.shape[1]
+    if primed[0] == 0:
+        # start at rest on the first sample: x = [u0, 0]
+        for j in range(m):
+            x1[j] = u[k, j]
+            x2[j] = 0.0
+            up[j] = u[k, j]
+        primed[0] = 1
+        return
+    for j in range(m):
+        uk = u[k, j]
+        # x[k] = Ad x[k-1] + G0 u[k-1] + G1 u[k]
+        n1 = Ad[0, 0] * x1[j] + Ad[0, 1] * x2[j] + G0[j, 0] * up[j] + G1[j, 0] * uk
+        n2 = Ad[1, 0] * x1[j] + Ad[1, 1] * x2[j] + G0[j, 1] * up[j] + G1[j, 1] * uk
+        x1[j] = n1
+        x2[j] = n2
+        up[j] = uk
+
+
+@numba.njit(cache=True)
+def _svf_kernel(u, Ad, G0, G1, x1, x2, up, primed, f, sf):  # pragma: no cover - compiled
+    """Filter every column of ``u`` (N, m) sample by sample (:func:`_svf_step`),
+    carrying (x1, x2, up); ``f`` gets x1 and ``sf`` x2 of every sample."""
     n, m = u.shape
-    a11 = Ad[0, 0]
-    a12 = Ad[0, 1]
-    a21 = Ad[1, 0]
-    a22 = Ad[1, 1]
     for k in range(n):
-        if primed[0] == 0:
-            # start at rest on the first sample: x = [u0, 0]
-            for j in range(m):
-                x1[j] = u[k, j]
-                x2[j] = 0.0
-                up[j] = u[k, j]
-            primed[0] = 1
-        else:
-            for j in range(m):
-                uk = u[k, j]
-                # x[k] = Ad x[k-1] + G0 u[k-1] + G1 u[k]
-                n1 = a11 * x1[j] + a12 * x2[j] + G0[j, 0] * up[j] + G1[j, 0] * uk
-                n2 = a21 * x1[j] + a22 * x2[j] + G0[j, 1] * up[j] + G1[j, 1] * uk
-                x1[j] = n1
-                x2[j] = n2
-                up[j] = uk
+        _svf_step(u, k, Ad, G0, G1, x1, x2, up, primed)
         for j in range(m):
             f[k, j] = x1[j]
             sf[k, j] = x2[j]
@@ -229,29 +234,9 @@ def _svf_scaled_kernel(u, Ad, G0, G1, x1, x2, up, primed, deriv, scale, y,
     ``x1``, times ``scale``; column 0 into ``y``, the others into ``phi``.
     """
     n, m = u.shape
-    a11 = Ad[0, 0]
-    a12 = Ad[0, 1]
-    a21 = Ad[1, 0]
-    a22 = Ad[1, 1]
     for k in range(n):
-        if primed[0] == 0:
-            # start at rest on the first sample: x = [u0, 0]
-            for j in range(m):
-                x1[j] = u[k, j]
-                x2[j] = 0.0
-                up[j] = u[k, j]
-            primed[0] = 1
-        else:
-            for j in range(m):
-                uk = u[k, j]
-                # x[k] = Ad x[k-1] + G0 u[k-1] + G1 u[k]
-                n1 = a11 * x1[j] + a12 * x2[j] + G0[j, 0] * up[j] + G1[j, 0] * uk
-                n2 = a21 * x1[j] + a22 * x2[j] + G0[j, 1] * up[j] + G1[j, 1] * uk
-                x1[j] = n1
-                x2[j] = n2
-                up[j] = uk
-        v = (x2[0] if deriv[0] else x1[0]) * scale[0]
-        y[k] = v
+        _svf_step(u, k, Ad, G0, G1, x1, x2, up, primed)
+        y[k] = (x2[0] if deriv[0] else x1[0]) * scale[0]
         for j in range(1, m):
             phi[k, j - 1] = (x2[j] if deriv[j] else x1[j]) * scale[j]
 
