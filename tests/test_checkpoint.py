@@ -14,7 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canrls.checkpoint import (
+from canrls.config import AppConfig
+from canrls.errors import CheckpointError
+from canrls.estimation.pipeline import Pipeline
+from canrls.live.checkpoint import (
     FORMAT,
     MAGIC,
     Checkpoint,
@@ -22,11 +25,8 @@ from canrls.checkpoint import (
     save_checkpoint,
     set_aside,
 )
-from canrls.config import AppConfig
-from canrls.daemon import Daemon, DaemonSettings, fingerprint
-from canrls.errors import CheckpointError
-from canrls.pipeline import Pipeline
-from canrls.replay import FrameProcessor
+from canrls.live.daemon import Daemon, DaemonSettings, fingerprint
+from canrls.processor import FrameProcessor
 from canrls.sim import scenario
 from canrls.sim.scenario import Simulator
 
@@ -131,7 +131,7 @@ def test_daemon_resumes_and_sets_aside_mismatches(tmp_path: Path,
     assert d.stats().frames == 7
     # another configured model: set aside, never loaded
     _, model2, _ = _setup(EFFECTS + ["offset"])
-    with caplog.at_level("ERROR", logger="canrls.daemon"):
+    with caplog.at_level("ERROR", logger="canrls.live.daemon"):
         d2 = _daemon(protocol, model2, settings, path)
     assert d2.resumed_from is None and d2.pipeline.samples == 0
     assert not path.exists() and len(list(tmp_path.glob("cp.bin.bad-*"))) == 1

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from canrls.can.logs import write_candump
 from canrls.cli.main import main
-from canrls.logs import write_candump
 from canrls.sim.scenario import scenario, simulate
 
 

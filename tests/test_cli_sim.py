@@ -8,9 +8,9 @@ import can
 import numpy as np
 import pytest
 
+from canrls.can.frameblock import FrameBlock
+from canrls.can.protocol import Protocol
 from canrls.cli.main import main
-from canrls.frameblock import FrameBlock
-from canrls.protocol import Protocol
 from canrls.sim import simulate
 
 

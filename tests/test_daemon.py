@@ -22,20 +22,20 @@ import numpy as np
 import pytest
 from can.interfaces.virtual import VirtualBus
 
-from canrls.config import AppConfig
-from canrls.daemon import Daemon, DaemonSettings, bus_config, messages_to_block, open_bus
-from canrls.errors import BusError, ConfigError
-from canrls.frameblock import FrameBlock
-from canrls.frames import (
+from canrls.can.frameblock import FrameBlock
+from canrls.can.frames import (
     CommandCode,
     CommandResult,
     EffectId,
     FrameDecoder,
     encode_command,
 )
-from canrls.logs import read_frames
-from canrls.replay import FrameProcessor
-from canrls.sdnotify import SystemdNotifier
+from canrls.can.logs import read_frames
+from canrls.config import AppConfig
+from canrls.errors import BusError, ConfigError
+from canrls.live.daemon import Daemon, DaemonSettings, bus_config, messages_to_block, open_bus
+from canrls.live.sdnotify import SystemdNotifier
+from canrls.processor import FrameProcessor
 
 ROOT = Path(__file__).resolve().parent.parent
 DBC = ROOT / "dbc" / "canrls.dbc"
@@ -336,7 +336,7 @@ class _FlakyBus(VirtualBus):
 
 
 def test_error_frames_pause_sending_and_recover(caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.INFO, logger="canrls.daemon")
+    caplog.set_level(logging.INFO, logger="canrls.live.daemon")
     protocol, model, settings = _setup()
     ch = _chan("errframes")
     tool = _Tool(ch)
@@ -608,7 +608,7 @@ def test_sighup_reloads_model_and_sigterm_checkpoints(tmp_path: Path) -> None:
     assert res["effects"] == [*BASE, "unbalance"]
     assert res["daemon"]["reloads"] == 1 and res["daemon"]["checkpoints"] >= 1
     assert "reload: model is now inertia,viscous,coulomb,unbalance" in err
-    from canrls.checkpoint import load_checkpoint
+    from canrls.live.checkpoint import load_checkpoint
 
     cp = load_checkpoint(ckpt)  # written at SIGTERM, after the last frame
     assert cp.model["effects"] == [*BASE, "unbalance"]
@@ -620,7 +620,7 @@ def test_a_term_outside_its_domain_is_logged_once_and_the_estimator_goes_on(
         caplog: pytest.LogCaptureFixture) -> None:
     from canrls.sim.scenario import Simulator, scenario
 
-    caplog.set_level(logging.WARNING, logger="canrls.daemon")
+    caplog.set_level(logging.WARNING, logger="canrls.live.daemon")
     cfg = AppConfig()
     cfg.model = {"effects": ["inertia", "viscous", "coulomb", "user:root"], "kt": 0.1,
                  "terms": {"root": {"expr": "sqrt(omega)", "range": [0.0, 10.0]}}}

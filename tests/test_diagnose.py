@@ -1,4 +1,4 @@
-"""Unit tests of canrls.diagnose and canrls.report (the acceptance is in
+"""Unit tests of canrls.diagnosis.analysis and canrls.diagnosis.report (the acceptance is in
 test_diagnose_acceptance.py, the command line in test_cli_diagnose.py)."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 
 from canrls.cli._common import _clean
 from canrls.config import DEFAULT_HELD
-from canrls.diagnose import (
+from canrls.diagnosis.analysis import (
     DiagnosisReport,
     _bin,
     _chi2_sf,
@@ -22,9 +22,9 @@ from canrls.diagnose import (
     diagnose,
 )
 from canrls.errors import ConfigError, EffectError
-from canrls.model import Model
-from canrls.pipeline import EstimatorSettings, Pipeline
-from canrls.ranges import scan_ranges
+from canrls.estimation.model import Model
+from canrls.estimation.pipeline import EstimatorSettings, Pipeline
+from canrls.processor import scan_ranges
 from canrls.signals import Signals
 from canrls.sim.scenario import SimResult, scenario, simulate
 
@@ -308,7 +308,7 @@ def test_bins_and_share() -> None:
 # ------------------------------------------------------------------------ figures
 def test_html_report(offset_run: Any, tmp_path: Any) -> None:
     pytest.importorskip("matplotlib")
-    from canrls.report import FIGURES
+    from canrls.diagnosis.report import FIGURES
 
     _, _, rep = offset_run
     page = rep.write_html(tmp_path / "rep")

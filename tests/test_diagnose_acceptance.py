@@ -44,10 +44,10 @@ import numpy as np
 import pytest
 
 from canrls.config import DEFAULT_HELD
-from canrls.diagnose import DiagnosisReport, diagnose
-from canrls.model import Model
-from canrls.pipeline import EstimatorSettings
-from canrls.ranges import scan_ranges
+from canrls.diagnosis.analysis import DiagnosisReport, diagnose
+from canrls.estimation.model import Model
+from canrls.estimation.pipeline import EstimatorSettings
+from canrls.processor import scan_ranges
 from canrls.sim.scenario import SimResult, scenario, simulate
 
 DURATION = 40.0

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import canrls
-from canrls.effects import (
+from canrls.errors import ConfigError, EffectError, ExpressionError
+from canrls.estimation.effects import (
     EFFECT_IDS,
     EFFECT_NAMES,
     OPTION_KEYS,
@@ -20,7 +21,6 @@ from canrls.effects import (
     library,
     parse_effect,
 )
-from canrls.errors import ConfigError, EffectError, ExpressionError
 from canrls.signals import Signals
 
 ROLES = {"t", "current", "speed", "position", "voltage"}

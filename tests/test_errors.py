@@ -17,8 +17,8 @@ from canrls.errors import (
     FixedPointError,
     LogFormatError,
 )
-from canrls.fixed import QFormat
-from canrls.rls import RLS
+from canrls.estimation.fixed import QFormat
+from canrls.estimation.rls import RLS
 
 
 def test_every_error_derives_from_the_root_and_a_builtin() -> None:

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import canrls.expr as expr_module
+import canrls.estimation.expr as expr_module
 from canrls.errors import ConfigError, ExpressionError
-from canrls.expr import DEFAULT_NAMES, FUNCTIONS, compile_expression
+from canrls.estimation.expr import DEFAULT_NAMES, FUNCTIONS, compile_expression
 from canrls.signals import Signals
 
 RNG = np.random.default_rng(0)

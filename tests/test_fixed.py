@@ -1,6 +1,6 @@
 """The fixed-point RLS: Q arithmetic, bit-exactness, accuracy against float, guards.
 
-Every random draw is seeded. The float reference is :class:`canrls.rls.RLS` when it
+Every random draw is seeded. The float reference is :class:`canrls.estimation.rls.RLS` when it
 is importable, otherwise the same recursion written out below in numpy float64.
 Bounds are stated in the docstrings, relative and in LSBs of the ``theta`` format.
 """
@@ -19,9 +19,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canrls import _rls_fixed as K
 from canrls.errors import CheckpointError, EstimatorError, FixedPointError
-from canrls.fixed import (
+from canrls.estimation import fixed_kernels as K
+from canrls.estimation.fixed import (
     SITES,
     FixedConfig,
     FixedFlag,
@@ -40,10 +40,10 @@ UPDATES = ["symmetric", "literal", "naive"]
 
 # --------------------------------------------------------------------- helpers
 def float_rls(Phi: F64, Y: F64, lam: float, alpha: float, trace_max: float) -> F64:
-    """Final estimate of the float64 reference RLS (canrls.rls, or the recursion here)."""
+    """Final estimate of the float64 reference RLS (canrls.estimation.rls, or the recursion here)."""
     try:
-        from canrls.rls import RLS
-    except ImportError:  # pragma: no cover - only before canrls.rls exists
+        from canrls.estimation.rls import RLS
+    except ImportError:  # pragma: no cover - only before canrls.estimation.rls exists
         n = Phi.shape[1]
         theta = np.zeros(n)
         P = np.eye(n) / alpha
@@ -285,7 +285,7 @@ def test_constants_are_exact_integers_from_the_rational_lambda() -> None:
 
 
 def test_flag_values_match_the_float_estimator() -> None:
-    rls_mod = pytest.importorskip("canrls.rls")
+    rls_mod = pytest.importorskip("canrls.estimation.rls")
     for name in ("WINDUP", "LOW_EXCITATION", "SATURATION", "FROZEN"):
         assert int(getattr(FixedFlag, name)) == int(getattr(rls_mod.RLSFlag, name))
 
@@ -407,7 +407,7 @@ def info_error(P_fixed: F64, P_ref: F64) -> float:
 
 
 def _float_P(Phi: F64, lam: float, alpha: float, trace_max: float) -> F64:
-    from canrls.rls import RLS
+    from canrls.estimation.rls import RLS
 
     rls = RLS(Phi.shape[1], lam=lam, alpha=alpha, trace_max=trace_max)
     rls.run(Phi, np.zeros(len(Phi)), record=False)

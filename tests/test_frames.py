@@ -1,4 +1,4 @@
-"""canrls.frames: estimator, status and command frames through cantools."""
+"""canrls.can.frames: estimator, status and command frames through cantools."""
 
 from __future__ import annotations
 
@@ -15,8 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canrls.errors import CommandError
-from canrls.frames import (
+from canrls.can.frames import (
     COMPONENTS,
     FLAG_NAMES,
     Command,
@@ -39,7 +38,8 @@ from canrls.frames import (
     parameter_name,
     parse_effect,
 )
-from canrls.protocol import EncodeError
+from canrls.can.protocol import EncodeError
+from canrls.errors import CommandError
 
 REPO_DBC = Path(__file__).resolve().parent.parent / "dbc" / "canrls.dbc"
 

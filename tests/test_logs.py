@@ -8,9 +8,9 @@ import can
 import numpy as np
 import pytest
 
+from canrls.can.frameblock import FrameBlock
+from canrls.can.logs import LogReadStats, read_frames, write_candump, write_log
 from canrls.errors import LogFormatError
-from canrls.frameblock import FrameBlock
-from canrls.logs import LogReadStats, read_frames, write_candump, write_log
 
 
 def random_block(n: int, seed: int = 0) -> FrameBlock:
@@ -105,7 +105,7 @@ def _per_line(path: Path) -> tuple[FrameBlock, int, int]:
 
     Returns the frames, the number of lines and of unreadable lines.
     """
-    from canrls.logs import _parse_candump_line
+    from canrls.can.logs import _parse_candump_line
 
     raw = path.read_bytes().split(b"\n")
     if raw[-1] == b"":

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from canrls.errors import ConfigError, EffectError, ExpressionError, SignalError
-from canrls.model import Model, PositionUnwrapper, RegressorBlock
+from canrls.estimation.model import Model, PositionUnwrapper, RegressorBlock
 from canrls.signals import Signals
 
 DT = 1e-3
@@ -346,7 +346,7 @@ def test_scaling_keeps_regressors_within_one_and_maps_back_exactly() -> None:
     assert eq.to_physical(np.tile(theta, (3, 1))).shape == (3, eq.n)
     assert eq.target_to_physical(0.5) == 0.5 * 2.0**sc.target
     # the inertia column (sF of speed) is bounded by the documented SF gain
-    from canrls.svf import gain_bounds
+    from canrls.estimation.svf import gain_bounds
     assert sc.column_bounds[0] == pytest.approx(gain_bounds(25.0)[1] * 40.0)
 
 
@@ -567,7 +567,7 @@ def test_with_effects_returns_a_new_validated_model() -> None:
 
 
 def test_effect_objects_are_accepted() -> None:
-    from canrls.effects import parse_effect
+    from canrls.estimation.effects import parse_effect
     m = Model([parse_effect("inertia"), "viscous"])
     assert m.effect_names == ("inertia", "viscous")
     with pytest.raises(EffectError, match="linear"):

@@ -9,11 +9,7 @@ import os
 import can
 import pytest
 
-from canrls.cli.main import main
-from canrls.config import AppConfig
-from canrls.daemon import Daemon, DaemonSettings
-from canrls.errors import ConfigError
-from canrls.frames import (
+from canrls.can.frames import (
     CommandCode,
     CommandResult,
     EffectId,
@@ -25,7 +21,11 @@ from canrls.frames import (
     encode_parameters,
     encode_status,
 )
-from canrls.monitor import LibraryUnits, Monitor, parse_command_text
+from canrls.cli.main import main
+from canrls.config import AppConfig
+from canrls.errors import ConfigError
+from canrls.live.daemon import Daemon, DaemonSettings
+from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
 
 _ids = itertools.count()
 

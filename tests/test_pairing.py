@@ -1,4 +1,4 @@
-"""canrls.pairing: frames of one period -> one sample; faults counted; chunk-invariant."""
+"""canrls.can.pairing: frames of one period -> one sample; faults counted; chunk-invariant."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from canrls.can.frameblock import FrameBlock
+from canrls.can.pairing import PAIRING_KINDS, Pairer
+from canrls.can.protocol import DecodedFrames, FeedbackEncoder, MessageFrames, Protocol
 from canrls.errors import ConfigError
-from canrls.frameblock import FrameBlock
-from canrls.pairing import PAIRING_KINDS, Pairer
-from canrls.protocol import DecodedFrames, FeedbackEncoder, MessageFrames, Protocol
 from canrls.signals import Signals
 
 DATA = Path(__file__).resolve().parent / "data"

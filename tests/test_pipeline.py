@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from canrls.config import AppConfig
-from canrls.fixed import QFormat
-from canrls.pipeline import EstimatorSettings, Pipeline, divergence
-from canrls.ranges import scan_ranges
+from canrls.estimation.fixed import QFormat
+from canrls.estimation.pipeline import EstimatorSettings, Pipeline, divergence
+from canrls.processor import scan_ranges
 from canrls.signals import Signals
 from canrls.sim.scenario import scenario, simulate
 

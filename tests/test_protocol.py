@@ -1,4 +1,4 @@
-"""canrls.protocol: mapping, vectorised codec against cantools, strict decoding, FeedbackEncoder."""
+"""canrls.can.protocol: mapping, vectorised codec against cantools, strict decoding, FeedbackEncoder."""
 
 from __future__ import annotations
 
@@ -15,10 +15,9 @@ from cantools.database.conversion import BaseConversion
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from canrls.e2e import e2e_crc
-from canrls.errors import ConfigError, DecodeError, SignalError
-from canrls.frameblock import FrameBlock
-from canrls.protocol import (
+from canrls.can.e2e import e2e_crc
+from canrls.can.frameblock import FrameBlock
+from canrls.can.protocol import (
     DEFAULT_DBC,
     REJECT_REASONS,
     DecodedFrames,
@@ -30,6 +29,7 @@ from canrls.protocol import (
     SignalCodec,
     SignalMapping,
 )
+from canrls.errors import ConfigError, DecodeError, SignalError
 from canrls.sim.faults import inject
 
 DATA = Path(__file__).resolve().parent / "data"

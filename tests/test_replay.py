@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from canrls.can.frameblock import FrameBlock
+from canrls.can.logs import read_frames, write_candump
 from canrls.cli.main import main
 from canrls.config import AppConfig
 from canrls.errors import ConfigError, EffectError
-from canrls.frameblock import FrameBlock
-from canrls.logs import read_frames, write_candump
-from canrls.replay import FrameProcessor, fit_frames, fit_log, prepare
+from canrls.processor import FrameProcessor
+from canrls.replay import fit_frames, fit_log, prepare
 from canrls.sim.scenario import scenario, simulate
 
 EFFECTS = "inertia,viscous,coulomb,offset"

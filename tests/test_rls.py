@@ -16,9 +16,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canrls import _rls_float
 from canrls.errors import CheckpointError, EstimatorError
-from canrls.rls import RLS, RLSFlag, RLSStep, RLSTrace
+from canrls.estimation import float_kernels
+from canrls.estimation.rls import RLS, RLSFlag, RLSStep, RLSTrace
 
 F64 = npt.NDArray[np.float64]
 DTYPES = [np.float64, np.float32]
@@ -393,9 +393,9 @@ def test_flag_values_are_stable() -> None:
         ("FROZEN", 8),
         ("NONFINITE", 16),
     ]
-    assert _rls_float.FLAG_WINDUP == RLSFlag.WINDUP
-    assert _rls_float.FLAG_FROZEN == RLSFlag.FROZEN
-    assert _rls_float.FLAG_NONFINITE == RLSFlag.NONFINITE
+    assert float_kernels.FLAG_WINDUP == RLSFlag.WINDUP
+    assert float_kernels.FLAG_FROZEN == RLSFlag.FROZEN
+    assert float_kernels.FLAG_NONFINITE == RLSFlag.NONFINITE
 
 
 # ------------------------------------------- 3. literal update vs symmetric

@@ -15,10 +15,10 @@ import cantools
 import numpy as np
 import pytest
 
-from canrls.e2e import e2e_crc
+from canrls.can.e2e import e2e_crc
+from canrls.can.frameblock import FrameBlock
+from canrls.can.protocol import Protocol
 from canrls.errors import ConfigError, EffectError
-from canrls.frameblock import FrameBlock
-from canrls.protocol import Protocol
 from canrls.sim import simulate
 
 ROOT = Path(__file__).resolve().parent.parent

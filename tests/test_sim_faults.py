@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from canrls.can.frameblock import FrameBlock
+from canrls.can.protocol import Protocol
 from canrls.errors import ConfigError
-from canrls.frameblock import FrameBlock
-from canrls.protocol import Protocol
 from canrls.sim import FaultInjector, FaultSpec, inject, simulate
 from canrls.sim.faults import Silence
 

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from canrls.errors import ConfigError
-from canrls.svf import SVF, gain_bounds
+from canrls.estimation.svf import SVF, gain_bounds
 
 DT = 1e-3
 

@@ -1,4 +1,4 @@
-"""canrls.units: DBC unit strings -> SI factors, per role."""
+"""canrls.can.units: DBC unit strings -> SI factors, per role."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import math
 
 import pytest
 
-import canrls.frames
-import canrls.pairing
-import canrls.protocol
-import canrls.units
+import canrls.can.frames
+import canrls.can.pairing
+import canrls.can.protocol
+import canrls.can.units
+from canrls.can.units import SI_UNITS, UNITS, axis_of, known_units, si_factor
 from canrls.errors import ConfigError, SignalError
-from canrls.units import SI_UNITS, UNITS, axis_of, known_units, si_factor
 
 
 @pytest.mark.parametrize("role, unit, factor", [
@@ -70,7 +70,7 @@ def test_axis() -> None:
     assert axis_of("A") is None and axis_of(None) is None
 
 
-@pytest.mark.parametrize("module", [canrls.units, canrls.protocol, canrls.pairing, canrls.frames])
+@pytest.mark.parametrize("module", [canrls.can.units, canrls.can.protocol, canrls.can.pairing, canrls.can.frames])
 def test_doctests(module) -> None:
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
     assert result.failed == 0

@@ -43,7 +43,7 @@ import numpy as np
 from can.interfaces import virtual as _virtual
 
 from canrls.config import AppConfig
-from canrls.daemon import Daemon, DaemonSettings
+from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.sim.scenario import Simulator, scenario
 
 #: n = 8: inertia, viscous, coulomb, offset, unbalance (2), cogging:6 (2)
@@ -171,7 +171,7 @@ a = rss()
 import numba
 b = rss()
 from canrls.config import AppConfig
-from canrls.daemon import Daemon, DaemonSettings
+from canrls.live.daemon import Daemon, DaemonSettings
 c = rss()
 cfg = AppConfig()
 cfg.model = {"effects": %r, "kt": 0.1}

@@ -4,7 +4,7 @@ Prints, for n = 4 and n = 8 (32-bit state, 64-bit accumulators, 32-bit inputs,
 lambda = 0.999): updates per second of the per-sample path (``FixedRLS.update``,
 one Python call per sample) and of the batch path (``FixedRLS.run`` over a block,
 ``record=False``), each the best of several repeats. The target is >= 3 M
-updates/s in batch at n = 8. Then runs :func:`canrls.fixed.sweep` on a drive-like
+updates/s in batch at n = 8. Then runs :func:`canrls.estimation.fixed.sweep` on a drive-like
 regression and prints its table.
 
 Usage::
@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from canrls.fixed import FixedConfig, FixedRLS, sweep
+from canrls.estimation.fixed import FixedConfig, FixedRLS, sweep
 
 TARGET_BATCH_N8 = 3e6
 
@@ -90,7 +90,7 @@ def main() -> int:
     print(f"target batch n = 8: >= {TARGET_BATCH_N8:,.0f} update/s: {'met' if ok else 'NOT met'}")
 
     if not args.no_sweep:
-        from canrls.rls import RLS
+        from canrls.estimation.rls import RLS
 
         n, lam, alpha = 8, 0.999, 1e-1
         Phi, Y = drive_data(50_000, n)

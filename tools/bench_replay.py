@@ -56,10 +56,11 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from canrls.can.frameblock import FrameBlock
+from canrls.can.logs import read_frames, write_candump
 from canrls.config import AppConfig
-from canrls.frameblock import FrameBlock
-from canrls.logs import read_frames, write_candump
-from canrls.replay import FrameProcessor, fit_log, prepare, scan_log_ranges
+from canrls.processor import FrameProcessor
+from canrls.replay import fit_log, prepare, scan_log_ranges
 
 EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"
 KT = 0.1  # the standard scenario's torque constant [N·m/A]
@@ -203,7 +204,7 @@ def naive_loop(path: Path, max_frames: int, effects: str) -> tuple[int, int, lis
     import numpy as np
     import padasip
 
-    from canrls.protocol import DEFAULT_DBC
+    from canrls.can.protocol import DEFAULT_DBC
 
     db = cantools.database.load_file(str(DEFAULT_DBC))
     cur_id = db.get_message_by_name("DriveCurrent").frame_id
@@ -262,7 +263,7 @@ def bench_naive(path: Path, max_frames: int, effects: str, total: int) -> tuple[
 # -------------------------------------------------------------------------- memory
 def rss_child(path: Path, effects: str, chunk_size: int) -> None:
     """In a fresh process: RSS once set up, then peak RSS after prepare + fit_log."""
-    from canrls.ranges import RangeScanner
+    from canrls.processor import RangeScanner
 
     # imports, protocol and the compiled kernels (run on a few frames): the baseline
     cfg = AppConfig()

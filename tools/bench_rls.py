@@ -30,7 +30,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from canrls.rls import RLS
+from canrls.estimation.rls import RLS
 
 F64 = npt.NDArray[np.float64]
 
@@ -143,7 +143,7 @@ def bench_float(n: int, rows: int, padasip_rows: int, lam: float, repeat: int) -
 
 def bench_fixed(n: int, rows: int, lam: float, repeat: int) -> None:
     """Print the fixed-point section for one n: the same data, quantised at the boundary."""
-    from canrls.fixed import FixedConfig, FixedRLS
+    from canrls.estimation.fixed import FixedConfig, FixedRLS
 
     Phi, Y = make_data(rows, n, seed=n)
     scale = float(np.abs(Phi).max())

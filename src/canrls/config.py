@@ -2,11 +2,11 @@
 
 .. code-block:: toml
 
-    [model]                    # the model: see canrls.model (effects, kt, axis, filter, ...)
+    [model]                    # the model: see canrls.estimation.model (effects, kt, axis, filter, ...)
     effects = ["inertia", "viscous", "coulomb"]
     kt = 0.1
     [model.filter]
-    held = ["current", "voltage"]   # the default here (canrls.model.Model's is ["voltage"])
+    held = ["current", "voltage"]   # the default here (canrls.estimation.model.Model's is ["voltage"])
 
     [estimator]
     lambda = 1.0               # forgetting factor (0.5, 1]; 1 keeps all data (default)
@@ -38,7 +38,7 @@
     channel = "can0"
     bitrate = 1000000
 
-    [signals]                  # which message and signal carry each role (canrls.protocol)
+    [signals]                  # which message and signal carry each role (canrls.can.protocol)
     current = "DriveCurrent.Current"
     speed = { signal = "DriveSpeed.Speed", unit = "rpm" }
 
@@ -59,11 +59,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from canrls.can.protocol import Protocol, SignalMapping
 from canrls.errors import ConfigError
-from canrls.fixed import QFormat
-from canrls.model import Model
-from canrls.pipeline import EstimatorSettings
-from canrls.protocol import Protocol, SignalMapping
+from canrls.estimation.fixed import QFormat
+from canrls.estimation.model import Model
+from canrls.estimation.pipeline import EstimatorSettings
 
 __all__ = ["AppConfig", "DEFAULT_EFFECTS", "load_config"]
 
@@ -194,8 +194,8 @@ class AppConfig:
         """The model.
 
         Signal ranges for the normalisation, by priority: ``[model.ranges]``, then
-        ``data_ranges`` (measured on the data, :mod:`canrls.ranges`), then the defaults
-        of :data:`canrls.model.DEFAULT_RANGES`. The DBC's min/max are the protocol's
+        ``data_ranges`` (measured on the data, :class:`canrls.processor.RangeScanner`), then the defaults
+        of :data:`canrls.estimation.model.DEFAULT_RANGES`. The DBC's min/max are the protocol's
         limits (often ten times what the drive reaches) and serve strict decoding only:
         normalising by them would leave the regressors tiny, costing fixed-point
         resolution and letting the ridge prior bias the weakly scaled parameters.

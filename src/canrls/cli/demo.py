@@ -10,7 +10,7 @@ daemon publishes like any tool would. The demo prints, as readable text:
 
 1. the model failing: the residual RMS from the daemon's status frames, well above
    what the sensors explain;
-2. the diagnosis naming the missing effect (``canrls.diagnose`` on the feedback
+2. the diagnosis naming the missing effect (``canrls.diagnosis.analysis`` on the feedback
    frames recorded from the bus; without it, the demo says so and uses the
    simulated drive's hidden effect);
 3. the effect added with an ``RlsCommand`` frame, acknowledged by the daemon;
@@ -139,12 +139,12 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     """Run the demo; print the story to ``out`` (default stdout); return the figures."""
     import can
 
+    from canrls.can.frameblock import FrameBlock
+    from canrls.can.frames import encode_command, parse_effect
     from canrls.config import AppConfig
-    from canrls.daemon import Daemon, DaemonSettings
-    from canrls.frameblock import FrameBlock
-    from canrls.frames import encode_command, parse_effect
-    from canrls.monitor import LibraryUnits, Monitor
-    from canrls.replay import FrameProcessor
+    from canrls.live.daemon import Daemon, DaemonSettings
+    from canrls.live.monitor import LibraryUnits, Monitor
+    from canrls.processor import FrameProcessor
     from canrls.sim.plant import parse_effects
     from canrls.sim.scenario import scenario
 
@@ -217,11 +217,11 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
         tl.frames.clear()
         add = hidden
         try:
-            diag = importlib.import_module("canrls.diagnose")
+            diag = importlib.import_module("canrls.diagnosis.analysis")
         except ModuleNotFoundError:
             diag = None
         if diag is None:
-            say("   (canrls.diagnose is not available in this build: using the effect the "
+            say("   (canrls.diagnosis.analysis is not available in this build: using the effect the "
                 f"simulated drive hides, {hidden})")
         else:
             proc = FrameProcessor(protocol, model, settings)

@@ -47,7 +47,7 @@ def _order(text: str) -> int:
 
 
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
-    from canrls.diagnose import DEFAULT_MAX_ORDER
+    from canrls.diagnosis.analysis import DEFAULT_MAX_ORDER
 
     p = subparsers.add_parser(
         "diagnose", help="compare the model with a log: where it fails, which effect is missing",
@@ -74,12 +74,12 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.diagnose import diagnose_log
+    from canrls.diagnosis.analysis import diagnose_log
     from canrls.replay import prepare
 
     if args.report:
         # fail before the long part when the figures cannot be drawn
-        from canrls.report import _matplotlib
+        from canrls.diagnosis.report import _matplotlib
 
         _matplotlib()
     cfg = setup(args)

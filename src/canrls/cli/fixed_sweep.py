@@ -59,14 +59,15 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.fixed import sweep
-    from canrls.pipeline import Pipeline
-    from canrls.replay import FrameProcessor, prepare
-    from canrls.rls import RLS
+    from canrls.estimation.fixed import sweep
+    from canrls.estimation.pipeline import Pipeline
+    from canrls.estimation.rls import RLS
+    from canrls.processor import FrameProcessor
+    from canrls.replay import prepare
 
     cfg = setup(args)
     if args.scenario:
-        from canrls.ranges import scan_ranges
+        from canrls.processor import scan_ranges
         from canrls.sim.scenario import scenario, simulate
 
         effects = cfg.model.get("effects")
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         blocks = [pipe.process(res.measured, record=True)]
         source = f"scenario {args.scenario} ({args.duration:g} s, seed {args.seed})"
     else:
-        from canrls.logs import read_frames
+        from canrls.can.logs import read_frames
 
         protocol, model, settings = prepare(cfg, args.log)
         proc = FrameProcessor(protocol, model, settings)

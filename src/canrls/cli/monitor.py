@@ -60,9 +60,9 @@ def _positive(name: str, v: float | None) -> None:
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from canrls.daemon import bus_config, open_bus
-    from canrls.frames import encode_command
-    from canrls.monitor import LibraryUnits, Monitor, parse_command_text
+    from canrls.can.frames import encode_command
+    from canrls.live.daemon import bus_config, open_bus
+    from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
 
     for name in ("duration", "interval", "timeout"):
         _positive(f"--{name}", getattr(args, name))

@@ -81,10 +81,10 @@ def _model_table(path: Path) -> dict[str, Any]:
 
 
 def build_daemon(args: argparse.Namespace) -> Any:
-    """The :class:`~canrls.daemon.Daemon` the command line describes (not started)."""
+    """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started)."""
     from canrls.config import load_config
-    from canrls.daemon import Daemon, DaemonSettings, bus_config
-    from canrls.model import Model
+    from canrls.estimation.model import Model
+    from canrls.live.daemon import Daemon, DaemonSettings, bus_config
 
     cfg = setup(args)
     dset = DaemonSettings.from_table(_daemon_table(cfg, args), cfg.source, cfg.base_dir)

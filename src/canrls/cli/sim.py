@@ -67,7 +67,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.logs import write_log
+    from canrls.can.logs import write_log
     from canrls.sim.scenario import Simulator, scenario
 
     if not (math.isfinite(args.duration) and args.duration > 0):

@@ -41,8 +41,8 @@ import can
 from can.interfaces import virtual as _virtual
 from can.interfaces.virtual import VirtualBus
 
+from canrls.can.frameblock import FrameBlock
 from canrls.errors import ConfigError
-from canrls.frameblock import FrameBlock
 from canrls.sim.faults import FaultLog, FaultSpec
 from canrls.sim.scenario import DEFAULT_EFFECTS, SCENARIOS, Scenario, Simulator, scenario
 

@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from canrls.can.frameblock import FrameBlock
 from canrls.errors import ConfigError
-from canrls.frameblock import FrameBlock
 
 __all__ = ["Silence", "FaultSpec", "FaultLog", "FaultInjector", "inject"]
 

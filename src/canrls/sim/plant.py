@@ -1,7 +1,7 @@
 r"""The simulated drive's physics: true parameters, load torque, controllers, sensors.
 
 The plant follows the conventions of ``docs/architecture.md`` exactly (they are a
-contract shared with :mod:`canrls.effects`)::
+contract shared with :mod:`canrls.estimation.effects`)::
 
     Kt*i = J*domega/dt + B*omega + Tc*sgn_e(omega) + Ts*sgn_e(omega)*exp(-(omega/ws)^2)
            + T0 + Tg_sin*sin(theta) + Tg_cos*cos(theta)

@@ -62,8 +62,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.can.frameblock import FrameBlock
 from canrls.errors import ConfigError, EffectError
-from canrls.frameblock import FrameBlock
 from canrls.signals import Signals
 from canrls.sim.excitation import Excitation
 from canrls.sim.excitation import excitation as make_excitation
@@ -318,7 +318,7 @@ def _chunk(b: PlantBlock) -> SimChunk:
 
 @functools.lru_cache(maxsize=1)
 def _default_protocol() -> Any:
-    from canrls.protocol import Protocol
+    from canrls.can.protocol import Protocol
     return Protocol.load()
 
 
@@ -332,7 +332,7 @@ class Simulator:
 
     The output does not depend on how the run is split into steps. :meth:`frames`
     encodes the measured samples into the feedback frames of the default DBC
-    (``canrls.protocol.FeedbackEncoder``) and applies the scenario's faults
+    (``canrls.can.protocol.FeedbackEncoder``) and applies the scenario's faults
     (``fault_log`` counts them). ``t0`` offsets the frame timestamps (the samples
     keep ``t = k*dt``).
     """
@@ -382,7 +382,7 @@ class Simulator:
     def encode(self, chunk: SimChunk) -> FrameBlock:
         """The feedback frames of ``chunk`` (timestamps ``t0 + t``), faults applied."""
         if self._encoder is None:
-            from canrls.protocol import FeedbackEncoder
+            from canrls.can.protocol import FeedbackEncoder
             proto = self._protocol or _default_protocol()
             self._encoder = FeedbackEncoder(proto, clip=True, stagger=FRAME_STAGGER)
         m = chunk.measured

@@ -36,7 +36,7 @@ default ``update="symmetric"`` computes instead
     \qquad g = 1/(\lambda + \varphi^\top P\varphi)
 
 so :math:`P` is symmetric bit for bit after every step (the same bits as the upper
-triangle mirrored; see :mod:`canrls._rls_float`) and :math:`P\varphi` is computed
+triangle mirrored; see :mod:`canrls.estimation.float_kernels`) and :math:`P\varphi` is computed
 once. What the literal form costs, measured (``tests/test_rls.py``): to first
 order its antisymmetric error propagates like the symmetric one,
 :math:`A \leftarrow (I - K\varphi^\top) A (I - K\varphi^\top)^\top/\lambda`, so it is
@@ -53,11 +53,11 @@ conditioned beyond the arithmetic (:math:`\mathrm{cond}\,R \gtrsim 1/\epsilon`, 
 1e7 in float32), or when :math:`P` winds up without bound (in float64 too: the
 trace bound below prevents that). A factorised (UD) update would keep :math:`P`
 definite there, at roughly twice the work per update and without the element-wise
-form that ``canrls.fixed`` shares; :meth:`RLS.excitation` reports ``cond`` and
+form that ``canrls.estimation.fixed`` shares; :meth:`RLS.excitation` reports ``cond`` and
 ``positive_definite`` so that such data can be recognised. ``update="literal"`` is
 kept only for comparison.
 
-The recursion runs in the compiled kernel :func:`canrls._rls_float.rls_block_symmetric`;
+The recursion runs in the compiled kernel :func:`canrls.estimation.float_kernels.rls_block_symmetric`;
 :meth:`RLS.update` (one sample) and :meth:`RLS.run` (a block) call it alike, so the
 results are identical bit for bit whatever the block sizes.
 """
@@ -73,8 +73,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls import _rls_float
 from canrls.errors import CheckpointError, EstimatorError
+from canrls.estimation import float_kernels
 
 __all__ = ["RLS", "RLSFlag", "RLSStep", "RLSTrace", "Excitation"]
 
@@ -333,9 +333,9 @@ class RLS:
             raise EstimatorError(f"RLS n must be a positive integer, got {n!r}")
         lam_f = _check_lam(lam)
         alpha_f = _check_alpha(alpha)
-        if not isinstance(update, str) or update not in _rls_float.KERNELS:
+        if not isinstance(update, str) or update not in float_kernels.KERNELS:
             raise EstimatorError(
-                f"RLS update must be one of {sorted(_rls_float.KERNELS)}, got {update!r}"
+                f"RLS update must be one of {sorted(float_kernels.KERNELS)}, got {update!r}"
             )
         try:
             dt = np.dtype(dtype)
@@ -348,7 +348,7 @@ class RLS:
         self._dtype = dt
         self._narrow = dt == np.float32  # casts into it may overflow to inf
         self._update = update
-        self._kernel = _rls_float.KERNELS[update]
+        self._kernel = float_kernels.KERNELS[update]
         # state
         self._theta = np.zeros(n_int, dt)
         self._P = np.zeros((n_int, n_int), dt)
@@ -359,7 +359,7 @@ class RLS:
         self._reset_arrays()
         if trace_max is None:
             # the prior's trace, summed in the kernel's order and dtype
-            tm = float(_rls_float.trace_of(self._P, dt.type(0)))
+            tm = float(float_kernels.trace_of(self._P, dt.type(0)))
         else:
             tm = _real("trace_max", trace_max)
             if not tm > 0.0:

@@ -59,7 +59,7 @@ derivative column differentiates), filters all of them with one SVF (value colum
 target through ``F``, derivative columns through ``sF``) and scales them by exact
 powers of two: ``phi_j = F[.] * 2**-s_j``, ``y = F[target] * 2**-s_y``. The exponents
 (:attr:`Equation.scaling`) are the smallest making the filtered signals' worst-case
-bound at most 1, from the ranges and the filter's L1 gains (``canrls.svf``): a value
+bound at most 1, from the ranges and the filter's L1 gains (``canrls.estimation.svf``): a value
 column with raw range ``[lo, hi]`` is bounded by ``|mid| + F_GAIN * half``, a
 derivative column by ``SF_GAIN * half`` (``half = (hi - lo) / 2``), or, when the range
 of the derivative itself is configured (``acceleration``, ``current_rate``), by the
@@ -70,7 +70,7 @@ parameters are ``theta_phys_j = theta_j * 2**(s_y - s_j)``
 Holds
 -----
 The SVF reconstructs each signal between samples before filtering it
-(:mod:`canrls.svf`). A *held* signal is constant over ``[t_k, t_k + dt)`` (an inverter
+(:mod:`canrls.estimation.svf`). A *held* signal is constant over ``[t_k, t_k + dt)`` (an inverter
 voltage, or the current of an ideal current source such as the simulated drive without
 the ``electrical`` effect: then set ``held = ["current", "voltage"]``); any other signal is
 a sample of a continuous quantity and is joined by straight lines. The target and each
@@ -96,7 +96,8 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from canrls.effects import (
+from canrls.errors import ConfigError, EffectError, SignalError
+from canrls.estimation.effects import (
     DEFAULT_BAND,
     DEFAULT_PITCH,
     DEFAULT_STRIBECK_SPEED,
@@ -111,8 +112,7 @@ from canrls.effects import (
     parse_effect,
     target_unit,
 )
-from canrls.errors import ConfigError, EffectError, SignalError
-from canrls.svf import DEFAULT_CUTOFF_HZ, DEFAULT_ZETA, SVF, gain_bounds
+from canrls.estimation.svf import DEFAULT_CUTOFF_HZ, DEFAULT_ZETA, SVF, gain_bounds
 
 __all__ = [
     "Model",
@@ -531,12 +531,12 @@ class Model:
     """Effects, target and filter settings; validated once when built.
 
     :param effects: effect names (``"inertia"``, ``"cogging:24"``, ``"user:NAME"``) or
-        :class:`~canrls.effects.Effect` objects, in column order.
+        :class:`~canrls.estimation.effects.Effect` objects, in column order.
     :param axis: ``"rotary"`` or ``"linear"``.
     :param kt: torque (force) constant; ``None``: the mechanical target is the current.
     :param pitch: linear axis: metres per period of the periodic terms.
     :param wrap: linear axis: wrap period of the measured position, or ``None``.
-    :param cutoff_hz, zeta: SVF settings (:class:`canrls.svf.SVF`).
+    :param cutoff_hz, zeta: SVF settings (:class:`canrls.estimation.svf.SVF`).
     :param held: signal roles held constant over each sample period (zero-order hold);
         default ``("voltage",)``.
     :param coulomb_band: smoothing band of ``sgn_e``; :param stribeck_speed: ``ws``.
@@ -604,7 +604,7 @@ class Model:
     # -- validation -------------------------------------------------------------------
     @property
     def effect_options(self) -> dict[str, Any]:
-        """The shared options :func:`canrls.effects.parse_effect` builds effects with."""
+        """The shared options :func:`canrls.estimation.effects.parse_effect` builds effects with."""
         return {"axis": self.axis, "pitch": self.pitch, "band": self.coulomb_band,
                 "speed": self.stribeck_speed, "terms": self.terms}
 

@@ -8,13 +8,13 @@ sizes (the replay reads 64 k frames at a time, the daemon whatever has arrived).
 
 Per equation of the model (mechanical, and electrical when present):
 
-1. the :class:`~canrls.model.RegressorBuilder` filters target and columns with the
+1. the :class:`~canrls.estimation.model.RegressorBuilder` filters target and columns with the
    state-variable filter and normalises them by powers of two;
 2. samples inside the filter's warm-up (after the start, a reset or a gap in the
    sample times) are not used: the filter's zero initial state does not match the
    signals there, so the filtered equation does not hold yet;
-3. the float reference :class:`~canrls.rls.RLS` and the fixed-point
-   :class:`~canrls.fixed.FixedRLS` (inputs quantised at the boundary) update on the
+3. the float reference :class:`~canrls.estimation.rls.RLS` and the fixed-point
+   :class:`~canrls.estimation.fixed.FixedRLS` (inputs quantised at the boundary) update on the
    same rows;
 4. the sufficient statistics (``sum phi phi'``, ``sum phi y``, ``sum y^2``) accumulate,
    so that the residual of the final estimate over all data, the fit and
@@ -43,9 +43,9 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.errors import ConfigError
-from canrls.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
-from canrls.model import Equation, Model
-from canrls.rls import RLS, RLSFlag
+from canrls.estimation.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
+from canrls.estimation.model import Equation, Model
+from canrls.estimation.rls import RLS, RLSFlag
 from canrls.signals import ROLES, Signals
 
 __all__ = [
@@ -314,7 +314,7 @@ class EquationFit:
     low_excitation: bool
     condition: float
     #: samples whose target or a column was not finite: left out, with the filter's
-    #: warm-up after each (see :class:`~canrls.model.RegressorBuilder`)
+    #: warm-up after each (see :class:`~canrls.estimation.model.RegressorBuilder`)
     nonfinite_rows: int = 0
 
     def to_dict(self) -> dict[str, Any]:

@@ -1,8 +1,8 @@
 r"""Compiled kernel of the fixed-point recursive least squares (private).
 
-:class:`canrls.fixed.FixedRLS` owns the state, validates every argument and derives
+:class:`canrls.estimation.fixed.FixedRLS` owns the state, validates every argument and derives
 the integer constants of the kernel (the *plan*, an ``int64`` vector indexed by the
-``I_*`` constants below) from its :class:`~canrls.fixed.FixedConfig`. This module
+``I_*`` constants below) from its :class:`~canrls.estimation.fixed.FixedConfig`. This module
 only runs the recursion, in place, on preallocated ``int64`` arrays. It is the
 bit-exact specification of the embedded kernel: every operation below is one a
 32-bit microcontroller or DSP performs with the same result.
@@ -27,7 +27,7 @@ Integer operations (all on ``int64``, no floating point anywhere)
   ``ps`` so that ``n`` products at the largest magnitudes their words can hold, plus
   the additive term and the final rounding constant, stay below
   ``2**(acc_bits-1)`` for *every* input (the guard-bit argument of
-  :mod:`canrls.fixed`). The ``acc`` saturation counter therefore stays 0; the
+  :mod:`canrls.estimation.fixed`). The ``acc`` saturation counter therefore stays 0; the
   pure-Python reference :func:`reference_block` asserts every accumulator value.
 * **division**: exactly one per update, ``g = DIVIDEND // d`` with a dividend of
   ``acc_bits`` (``1 << (frac_g + frac_d)``) and a positive word divisor: C's
@@ -83,7 +83,7 @@ Per sample
 which is :math:`P \leftarrow (P - g\,hh^\top)/\lambda_k` with :math:`h = c\tilde h`.
 :math:`\lambda_k = 1` instead of :math:`\lambda` when the trace the step would give,
 :math:`(\mathrm{tr}P - g\,h^\top h)/\lambda`, exceeds ``trace_max`` (flag ``WINDUP``),
-the rule of :mod:`canrls.rls`. To keep a single division it is decided before
+the rule of :mod:`canrls.estimation.rls`. To keep a single division it is decided before
 dividing, from the equivalent division-free test
 :math:`(\mathrm{tr}P - \lambda\,\mathrm{trace\_max})\,(\lambda + \varphi^\top P\varphi) > h^\top h`.
 """
@@ -129,7 +129,7 @@ MODE_LITERAL = 1
 #: while P is symmetric), as embedded code often writes it; for comparison only.
 MODE_NAIVE = 2
 
-# Flag bits: the values of canrls.rls.RLSFlag (checked by a test).
+# Flag bits: the values of canrls.estimation.rls.RLSFlag (checked by a test).
 FLAG_WINDUP = 1
 FLAG_LOW_EXCITATION = 2
 FLAG_SATURATION = 4
@@ -295,7 +295,7 @@ def fixed_block(
     counts : ndarray of int64, shape (NSITES,)
         Saturation counters, incremented in place.
     prm : ndarray of int64, shape (NPARAM,)
-        The plan (``I_*`` layout), built by :class:`canrls.fixed.FixedRLS`.
+        The plan (``I_*`` layout), built by :class:`canrls.estimation.fixed.FixedRLS`.
     mode : int
         ``MODE_SYMMETRIC``, ``MODE_LITERAL`` or ``MODE_NAIVE``.
     frozen : bool

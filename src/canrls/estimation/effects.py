@@ -23,7 +23,7 @@ mechanical target is the raw current and every mechanical parameter is divided b
 Every effect class documents its equation, its parameters with units for both axes
 and both targets, the signals it needs, its DBC ``EFFECT_ID`` and its
 ``RESIDUAL_SIGNATURE``: how its absence shows in the residual, which
-:mod:`canrls.diagnose` looks for.
+:mod:`canrls.diagnosis.analysis` looks for.
 
 Names as the command line gives them are parsed by :func:`parse_effect`:
 ``inertia``, ``viscous``, ``coulomb``, ``stribeck``, ``offset``, ``unbalance``,
@@ -43,7 +43,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.errors import EffectError
-from canrls.expr import CompiledExpression, compile_expression
+from canrls.estimation.expr import CompiledExpression, compile_expression
 
 __all__ = [
     "Axis",
@@ -656,7 +656,7 @@ class UserTerm(Effect):
 
     .. math:: \tau = c_u\, f_u(\omega, \theta, i, u, t)
 
-    ``f_u`` is compiled by :func:`canrls.expr.compile_expression` from the term's
+    ``f_u`` is compiled by :func:`canrls.estimation.expr.compile_expression` from the term's
     ``expr``. Options: ``expr`` (required), ``unit`` of ``f_u`` (default ``"1"``),
     ``equation`` (``"mechanical"`` default, or ``"electrical"``), ``range = [lo, hi]`` of
     ``f_u`` for normalisation (default: derived from the signal ranges by interval

@@ -23,7 +23,7 @@ position. The compiled expression is evaluated elementwise with numpy, so evalua
 a block in chunks gives the same values bit for bit. Values outside a function's
 domain (``log`` of a negative speed, division by zero) become ``nan``/``inf`` without a
 warning; the pipeline then leaves those samples out (see
-:class:`~canrls.model.RegressorBuilder`). Keep the expression finite over the
+:class:`~canrls.estimation.model.RegressorBuilder`). Keep the expression finite over the
 operating range.
 """
 

@@ -29,9 +29,7 @@ from typing import Any
 
 import can
 
-from canrls.effects import parse_effect, target_unit
-from canrls.errors import ConfigError
-from canrls.frames import (
+from canrls.can.frames import (
     CommandAck,
     CommandCode,
     EffectId,
@@ -39,7 +37,9 @@ from canrls.frames import (
     ParameterReport,
     StatusReport,
 )
-from canrls.model import Model
+from canrls.errors import ConfigError
+from canrls.estimation.effects import parse_effect, target_unit
+from canrls.estimation.model import Model
 
 __all__ = ["LibraryUnits", "Monitor", "MonitorView", "parse_command_text"]
 
@@ -353,7 +353,7 @@ def parse_command_text(text: str) -> tuple[CommandCode, EffectId, int, float]:
     Returns (code, effect, order, lambda). Raises :class:`ConfigError` when it does not
     parse.
     """
-    from canrls.frames import parse_effect as parse_effect_id
+    from canrls.can.frames import parse_effect as parse_effect_id
 
     words = text.strip().split()
     if not words:

@@ -41,8 +41,8 @@ from typing import Any
 import can
 import cantools
 
+from canrls.can.protocol import DEFAULT_DBC, EncodeError
 from canrls.errors import CommandError
-from canrls.protocol import DEFAULT_DBC, EncodeError
 
 __all__ = [
     "EffectId",

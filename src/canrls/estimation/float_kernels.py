@@ -1,6 +1,6 @@
 r"""Compiled kernels of the float recursive least squares (private).
 
-:class:`canrls.rls.RLS` owns the state and validates every argument; these
+:class:`canrls.estimation.rls.RLS` owns the state and validates every argument; these
 functions only run the recursion over a block of samples, in place, on
 preallocated arrays and plain scalars. ``RLS.update`` calls its kernel
 (:func:`rls_block_symmetric`, or :func:`rls_block_literal` for comparison) with a
@@ -62,7 +62,7 @@ __all__ = [
     "trace_of",
 ]
 
-# Flag bits; the same values as canrls.rls.RLSFlag (checked by a test).
+# Flag bits; the same values as canrls.estimation.rls.RLSFlag (checked by a test).
 FLAG_WINDUP = 1
 FLAG_FROZEN = 8
 FLAG_NONFINITE = 16
@@ -260,7 +260,7 @@ def rls_block_literal(
 
     Kept for comparison: here ``P phi`` and ``phi' P`` are formed separately and
     differ once rounding has made ``P`` asymmetric; the asymmetry grows with
-    windup (see :mod:`canrls.rls`).
+    windup (see :mod:`canrls.estimation.rls`).
     """
     n = theta.shape[0]
     N = Phi.shape[0]

@@ -1,6 +1,6 @@
 """Compiled candump kernels: bytes -> frame arrays, and frame arrays -> bytes.
 
-Private to :mod:`canrls.logs`, which keeps a per-line Python path (following
+Private to :mod:`canrls.can.logs`, which keeps a per-line Python path (following
 python-can) for whatever these do not take:
 
 parse

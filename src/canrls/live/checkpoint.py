@@ -61,7 +61,7 @@ class Checkpoint:
     config_model : the model the configuration defined when the daemon started; a
         checkpoint resumes only under the same configured model
     fingerprint : what else must match to resume: estimator settings, sample period
-    state : :meth:`canrls.pipeline.Pipeline.state` (theta, P, statistics, counts)
+    state : :meth:`canrls.estimation.pipeline.Pipeline.state` (theta, P, statistics, counts)
     counters : the daemon's counters (frames, commands, transmissions...)
     saved_at : wall-clock time of the save [s since the epoch]
     version : the canrls version that wrote it

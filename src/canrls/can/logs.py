@@ -1,4 +1,4 @@
-"""Reading and writing CAN logs as streams of :class:`~canrls.frameblock.FrameBlock`.
+"""Reading and writing CAN logs as streams of :class:`~canrls.can.frameblock.FrameBlock`.
 
 Formats
 -------
@@ -6,7 +6,7 @@ Formats
     candump (``(1700000000.123456) can0 101#0011223344556677``). Parsed by canrls's
     own reader, because the offline replay must reach millions of frames per second:
     the file is read into one reusable buffer and a compiled pass
-    (:mod:`canrls._candump`) turns the bytes into frame arrays; lines of any other
+    (:mod:`canrls.can.candump`) turns the bytes into frame arrays; lines of any other
     layout (remote frames ``R``, CAN FD ``##``, odd spacing, comments) take a per-line
     path that follows python-can's ``CanutilsLogReader``, and keep their place in the
     file. Both paths give the same frames, timestamps bit for bit
@@ -32,15 +32,15 @@ import can
 import numpy as np
 import numpy.typing as npt
 
-from canrls import _candump
+from canrls.can import candump
+from canrls.can.frameblock import FrameBlock
 from canrls.errors import LogFormatError
-from canrls.frameblock import FrameBlock
 
 __all__ = ["LogReadStats", "read_frames", "write_candump", "write_log", "CAN_ERR_FLAG"]
 
 #: Linux SocketCAN error-frame flag in the 32-bit CAN ID (candump writes it in the ID).
-CAN_ERR_FLAG = _candump.CAN_ERR_FLAG
-_EFF_MASK = _candump.EFF_MASK
+CAN_ERR_FLAG = candump.CAN_ERR_FLAG
+_EFF_MASK = candump.EFF_MASK
 
 
 @dataclass
@@ -90,7 +90,7 @@ def _read_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats,
                   progress: Callable[[int, int], None] | None) -> Iterator[FrameBlock]:
     """Blocks of at most ``chunk_size`` frames, read into one reusable buffer.
 
-    The compiled parser (:func:`canrls._candump.parse`) takes every line of the common
+    The compiled parser (:func:`canrls.can.candump.parse`) takes every line of the common
     layout; the others come back as "slow" lines with the row they precede, go through
     :func:`_parse_candump_line` and are inserted there, so the file's order is kept.
     """
@@ -123,7 +123,7 @@ def _read_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats,
                            np.empty(cap, np.bool_), np.zeros(cap, np.bool_),
                            np.empty(cap, np.bool_), np.empty(cap, np.uint8),
                            np.empty((cap, 8), np.uint8))
-            used, rows, nslow, nlines = _candump.parse(
+            used, rows, nslow, nlines = candump.parse(
                 view, len(view), eof, b.t, b.arbitration_id, b.is_extended, b.is_error,
                 b.dlc, b.data, slow)
             if used == 0:
@@ -313,7 +313,7 @@ def _candump_bytes(block: FrameBlock, channel: bytes) -> bytes:
     # "(" sec "." usec ") " channel " " id(<= 8) "#" "#0"? data "\n"
     longest = 1 + 16 + 1 + 6 + 2 + len(channel) + 1 + 8 + 1 + 2 + 2 * width + 1
     out = np.empty(n * longest, np.uint8)
-    size = _candump.format_lines(
+    size = candump.format_lines(
         sec, usec, np.ascontiguousarray(block.arbitration_id, np.uint32),
         np.ascontiguousarray(block.is_extended, np.bool_),
         np.ascontiguousarray(block.is_remote, np.bool_),

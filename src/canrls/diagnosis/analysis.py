@@ -1,14 +1,14 @@
 r"""Diagnosis: compare the model with the measurements, see where it fails, name the missing effect.
 
 :func:`diagnose` (samples in memory) and :func:`diagnose_log` (a recorded CAN log) run
-the model through the same :class:`~canrls.pipeline.Pipeline` as ``canrls fit`` and
+the model through the same :class:`~canrls.estimation.pipeline.Pipeline` as ``canrls fit`` and
 return a :class:`DiagnosisReport`: a result object that renders to text
 (:meth:`DiagnosisReport.format`), to a JSON-able dict (:meth:`DiagnosisReport.to_dict`)
 and to an HTML page with figures (:meth:`DiagnosisReport.write_html`,
-:mod:`canrls.report`). ``docs/diagnose.md`` documents the JSON and the figures.
+:mod:`canrls.diagnosis.report`). ``docs/diagnose.md`` documents the JSON and the figures.
 
 Everything is computed on the *filtered* equation the estimators see (the state-variable
-filter applied to target and columns, :mod:`canrls.svf`), over the samples the estimators
+filter applied to target and columns, :mod:`canrls.estimation.svf`), over the samples the estimators
 used (not in a filter warm-up), in the target's unit:
 
 1. **Compare.** The residual of the final float estimate :math:`\hat\theta` over the
@@ -21,7 +21,7 @@ used (not in a filter warm-up), in the target's unit:
    rotation-order spectrum (:class:`OrderSpectrum`).
 3. **Which effect is missing.** Every effect of the library that is not in the model is
    tried as an extra set of columns :math:`G`, built through the same
-   :class:`~canrls.model.Model` / regressor path (``model.with_effects(add=[...])``).
+   :class:`~canrls.estimation.model.Model` / regressor path (``model.with_effects(add=[...])``).
    With :math:`r_0` the least-squares residual of the current columns :math:`\Phi` and
    :math:`\tilde G = (I - \Phi\Phi^+) G` the candidate orthogonalised against them,
    the *error-reduction ratio*
@@ -78,10 +78,10 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from canrls.effects import ELECTRICAL, MECHANICAL, Cogging, Effect, UserTerm, library
 from canrls.errors import ConfigError, EffectError
-from canrls.model import Equation, Model, PositionUnwrapper
-from canrls.pipeline import (
+from canrls.estimation.effects import ELECTRICAL, MECHANICAL, Cogging, Effect, UserTerm, library
+from canrls.estimation.model import Equation, Model, PositionUnwrapper
+from canrls.estimation.pipeline import (
     EquationBlock,
     EquationEstimator,
     EquationFit,
@@ -89,9 +89,9 @@ from canrls.pipeline import (
     EstimatorSettings,
     Pipeline,
 )
-from canrls.rls import RLS
+from canrls.estimation.rls import RLS
+from canrls.estimation.svf import SVF
 from canrls.signals import Signals
-from canrls.svf import SVF
 
 __all__ = [
     "DEFAULT_MAX_ORDER",
@@ -718,7 +718,7 @@ class DiagnosisReport:
         :raises ConfigError: matplotlib (the ``report`` extra) is not installed.
         :returns: the path of ``index.html``.
         """
-        from canrls.report import write_html
+        from canrls.diagnosis.report import write_html
 
         return write_html(self, directory)
 
@@ -783,12 +783,12 @@ def diagnose_log(path: str | os.PathLike[str], protocol: Any, model: Model,
     """Diagnose ``model`` on a recorded CAN log (``.log`` candump, ``.asc``, ``.blf``, ...).
 
     The frames are decoded and paired exactly as ``canrls fit`` does
-    (:class:`~canrls.replay.FrameProcessor`), so ``before`` holds the same parameters as
+    (:class:`~canrls.processor.FrameProcessor`), so ``before`` holds the same parameters as
     ``canrls fit`` prints, bit for bit. The samples are kept in memory (five float64
     arrays) for the second pass that ``add`` needs.
     """
-    from canrls.logs import LogReadStats, read_frames
-    from canrls.replay import FrameProcessor
+    from canrls.can.logs import LogReadStats, read_frames
+    from canrls.processor import FrameProcessor
 
     # validate the additions before reading
     for a in add:
@@ -856,7 +856,7 @@ class _Context:
         n = len(t)
         gap = settings.gap_periods * dt
         # the pipeline restarts the filter at the first sample, at gaps and when time
-        # goes backwards (canrls.pipeline._warmup_mask)
+        # goes backwards (canrls.estimation.pipeline._warmup_mask)
         restart = np.zeros(n, np.bool_)
         if n:
             restart[0] = True
@@ -963,7 +963,7 @@ class _Context:
 
     def speed_keep(self, lo: float, hi: float, warm: int) -> B:
         """Rows with ``lo <= |omega| <= hi`` and not within ``warm`` samples after one
-        outside (the pipeline's rule for the samples it uses, :mod:`canrls.pipeline`)."""
+        outside (the pipeline's rule for the samples it uses, :mod:`canrls.estimation.pipeline`)."""
         key = (float(lo), float(hi), int(warm))
         if key not in self._keep:
             n = len(self.signals)

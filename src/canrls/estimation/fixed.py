@@ -1,10 +1,10 @@
 r"""Fixed-point recursive least squares: the bit-exact specification of the embedded kernel.
 
-:class:`FixedRLS` runs the recursion of :class:`canrls.rls.RLS` the way a
+:class:`FixedRLS` runs the recursion of :class:`canrls.estimation.rls.RLS` the way a
 microcontroller runs it: integers end to end, every quantity in a signed Q format
 chosen from the ranges of the problem, explicit rounding, saturation with a counter
 on every store, one integer division per update. The kernel
-(:func:`canrls._rls_fixed.fixed_block`) is pure ``int64`` arithmetic with explicit
+(:func:`canrls.estimation.fixed_kernels.fixed_block`) is pure ``int64`` arithmetic with explicit
 shifts, so the same inputs give the same integers on every platform, and per-sample
 :meth:`FixedRLS.update` and block :meth:`FixedRLS.run` give the same bits.
 
@@ -120,7 +120,7 @@ accumulators it costs 4-5 of the 30 fraction bits of :math:`\varphi`, far below 
 LSB of the results. A configuration whose accumulator cannot hold the products at all
 (32-bit words with a 32-bit accumulator) is rejected. The ``acc`` counter is kept so
 every site is listed, and stays 0; the pure-Python reference
-:func:`canrls._rls_fixed.reference_block` asserts every accumulator value against
+:func:`canrls.estimation.fixed_kernels.reference_block` asserts every accumulator value against
 ``acc_bits``.
 
 Division
@@ -133,7 +133,7 @@ floating point) when the estimator is built (:attr:`FixedRLS.constants`).
 
 Trace bound and flags
 ---------------------
-Like :class:`canrls.rls.RLS`: a step that would take :math:`\mathrm{tr}P` above
+Like :class:`canrls.estimation.rls.RLS`: a step that would take :math:`\mathrm{tr}P` above
 ``trace_max`` is taken with :math:`\lambda = 1` (no forgetting; flag ``WINDUP``).
 Decided before the division with the equivalent division-free test
 :math:`(\mathrm{tr}P - \lambda\,\mathrm{trace\_max})(\lambda+\varphi^\top P\varphi) >
@@ -148,7 +148,7 @@ Update forms
 ``update="symmetric"`` (default) is the embedded form: upper triangle only, so
 :math:`P` is symmetric by construction at half the work. ``"literal"`` is the
 textbook full-matrix :math:`P - K(\varphi^\top P)` with :math:`\varphi^\top P`
-computed as written (as :mod:`canrls.rls` does); its rounding loses symmetry, but
+computed as written (as :mod:`canrls.estimation.rls` does); its rounding loses symmetry, but
 its error propagates like the symmetric form's (to first order
 :math:`\delta P \mapsto (I - K\varphi^\top)\,\delta P\,(I - \varphi K^\top)/\lambda`
 for any :math:`\delta P`), so it stays close while costing twice the work.
@@ -174,11 +174,11 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from canrls import _rls_fixed as _k
 from canrls.errors import CheckpointError, EstimatorError, FixedPointError
-from canrls.rls import _check_alpha as _rls_check_alpha
-from canrls.rls import _check_lam as _rls_check_lam
-from canrls.rls import _real as _rls_real
+from canrls.estimation import fixed_kernels as kernels
+from canrls.estimation.rls import _check_alpha as _rls_check_alpha
+from canrls.estimation.rls import _check_lam as _rls_check_lam
+from canrls.estimation.rls import _real as _rls_real
 
 __all__ = [
     "QFormat",
@@ -198,15 +198,15 @@ IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
 
 #: Saturation sites, in counter order.
-SITES: tuple[str, ...] = _k.SITES
+SITES: tuple[str, ...] = kernels.SITES
 
 #: Format tag of :meth:`FixedRLS.state` dictionaries.
 STATE_FORMAT = "canrls.fixed/1"
 
 _UPDATES = {
-    "symmetric": _k.MODE_SYMMETRIC,
-    "literal": _k.MODE_LITERAL,
-    "naive": _k.MODE_NAIVE,
+    "symmetric": kernels.MODE_SYMMETRIC,
+    "literal": kernels.MODE_LITERAL,
+    "naive": kernels.MODE_NAIVE,
 }
 #: Quantities that have a Q format in :class:`FixedConfig`, in table order.
 _QUANTITIES = ("phi", "y", "theta", "P", "K", "eps", "h", "den", "g", "lam")
@@ -254,8 +254,8 @@ def _round_inputs(Phi: npt.NDArray[np.float64], Y: npt.NDArray[np.float64],
     n_y = _round_saturate(Y, fmt[1, 0], fmt[1, 1], fmt[1, 2], Yq)
     if n_y < 0:
         return 2
-    counts[_k.S_PHI] += n_phi
-    counts[_k.S_Y] += n_y
+    counts[kernels.S_PHI] += n_phi
+    counts[kernels.S_Y] += n_y
     return 0
 
 
@@ -596,9 +596,9 @@ class FixedConfig:
         """
         Pq, n_phi = self.phi.quantize(Phi)
         Yq, n_y = self.y.quantize(Y)
-        counts = [0] * _k.NSITES
-        counts[_k.S_PHI] = n_phi
-        counts[_k.S_Y] = n_y
+        counts = [0] * kernels.NSITES
+        counts[kernels.S_PHI] = n_phi
+        counts[kernels.S_Y] = n_y
         return Pq, Yq, SaturationCounts(counts)
 
     def to_dict(self) -> dict[str, Any]:
@@ -711,13 +711,13 @@ def _pre(acc_bits: int, a: QFormat, b: QFormat, m: int) -> int:
 def _build_plan(
     cfg: FixedConfig, n: int, lam: float, trace_max: float
 ) -> tuple[IntArray, dict[str, int]]:
-    """The kernel's integer constants (``_rls_fixed.I_*`` layout) and a named copy.
+    """The kernel's integer constants (``fixed_kernels.I_*`` layout) and a named copy.
 
     Every constant is an exact function of the config, ``n``, the rational value of
     ``lam`` and ``trace_max``: Python integers and fractions, no floating point.
     """
     A = cfg.acc_bits
-    p = np.zeros(_k.NPARAM, dtype=np.int64)
+    p = np.zeros(kernels.NPARAM, dtype=np.int64)
     named: dict[str, int] = {}
 
     def put(i: int, name: str, v: int) -> None:
@@ -727,10 +727,10 @@ def _build_plan(
         named[name] = int(v)
 
     for q, lo_i, name in (
-        (cfg.phi, _k.I_PHI_LO, "phi"), (cfg.y, _k.I_Y_LO, "y"), (cfg.eps, _k.I_EPS_LO, "eps"),
-        (cfg.h, _k.I_H_LO, "h"), (cfg.den, _k.I_DEN_LO, "den"), (cfg.g, _k.I_G_LO, "g"),
-        (cfg.K, _k.I_K_LO, "K"), (cfg.theta, _k.I_TH_LO, "theta"), (cfg.P, _k.I_P_LO, "P"),
-        (cfg.lam, _k.I_L_LO, "lam"),
+        (cfg.phi, kernels.I_PHI_LO, "phi"), (cfg.y, kernels.I_Y_LO, "y"), (cfg.eps, kernels.I_EPS_LO, "eps"),
+        (cfg.h, kernels.I_H_LO, "h"), (cfg.den, kernels.I_DEN_LO, "den"), (cfg.g, kernels.I_G_LO, "g"),
+        (cfg.K, kernels.I_K_LO, "K"), (cfg.theta, kernels.I_TH_LO, "theta"), (cfg.P, kernels.I_P_LO, "P"),
+        (cfg.lam, kernels.I_L_LO, "lam"),
     ):  # fmt: skip
         put(lo_i, f"{name}_lo", q.lo)
         put(lo_i + 1, f"{name}_hi", q.hi)
@@ -749,20 +749,20 @@ def _build_plan(
             f"({cfg.phi.bits} bit) with {cfg.P.bits}-bit words: the guard shift {ps} "
             f"leaves no bit of phi"
         )
-    put(_k.I_PHI_PS, "phi_ps", ps)
+    put(kernels.I_PHI_PS, "phi_ps", ps)
     fa = cfg.phi.frac - ps + cfg.theta.frac
-    put(_k.I_EPS_TS, "eps_ts", fa - cfg.y.frac)
-    put(_k.I_EPS_OS, "eps_os", fa - cfg.eps.frac)
-    put(_k.I_H_OS, "h_os", cfg.phi.frac - ps + cfg.P.frac - cfg.h.frac)
-    put(_k.I_S_OS, "s_os", cfg.phi.frac - ps + cfg.h.frac - cfg.den.frac)
+    put(kernels.I_EPS_TS, "eps_ts", fa - cfg.y.frac)
+    put(kernels.I_EPS_OS, "eps_os", fa - cfg.eps.frac)
+    put(kernels.I_H_OS, "h_os", cfg.phi.frac - ps + cfg.P.frac - cfg.h.frac)
+    put(kernels.I_S_OS, "s_os", cfg.phi.frac - ps + cfg.h.frac - cfg.den.frac)
     # s = c s~ ; lambda and 1 in the den format
-    put(_k.I_SC_S, "sc_s", cfg.lam.frac)
+    put(kernels.I_SC_S, "sc_s", cfg.lam.frac)
     lam_d = cfg.den.to_int(Fraction(lam))
     one_d = cfg.den.to_int(1)
     if not 0 < lam_d <= one_d <= cfg.den.hi:
         raise FixedPointError(f"lam = {lam!r} and 1 must fit the den format {cfg.den}")
-    put(_k.I_LAM_D, "lam_den", lam_d)
-    put(_k.I_ONE_D, "one_den", one_d)
+    put(kernels.I_LAM_D, "lam_den", lam_d)
+    put(kernels.I_ONE_D, "one_den", one_d)
     # g = DIVIDEND // d ; gc = g c
     fdiv = cfg.g.frac + cfg.den.frac
     if fdiv > A - 2:
@@ -770,20 +770,20 @@ def _build_plan(
             f"dividend 1 << (frac_g + frac_den) = 1 << {fdiv} of g {cfg.g} / den {cfg.den} "
             f"does not fit the {A}-bit accumulator"
         )
-    put(_k.I_DIVIDEND, "dividend", 1 << fdiv)
-    put(_k.I_GC_S, "gc_s", cfg.lam.frac)
+    put(kernels.I_DIVIDEND, "dividend", 1 << fdiv)
+    put(kernels.I_GC_S, "gc_s", cfg.lam.frac)
     # single products rounded to their destination
-    put(_k.I_K_S, "K_s", cfg.h.frac + cfg.g.frac - cfg.K.frac)
-    put(_k.I_TH_S, "theta_s", cfg.K.frac + cfg.eps.frac - cfg.theta.frac)
-    put(_k.I_P_S, "P_s", cfg.K.frac + cfg.h.frac - cfg.P.frac)
+    put(kernels.I_K_S, "K_s", cfg.h.frac + cfg.g.frac - cfg.K.frac)
+    put(kernels.I_TH_S, "theta_s", cfg.K.frac + cfg.eps.frac - cfg.theta.frac)
+    put(kernels.I_P_S, "P_s", cfg.K.frac + cfg.h.frac - cfg.P.frac)
     # c <- c / lambda_k
     one_l = 1 << cfg.lam.frac
     inv_l = cfg.lam.to_int(1 / Fraction(lam))
     if not one_l <= inv_l <= cfg.lam.hi:
         raise FixedPointError(f"1/lam = {1 / lam!r} does not fit the lam format {cfg.lam}")
-    put(_k.I_INV_LAM, "inv_lam", inv_l)
-    put(_k.I_ONE_L, "one_lam", one_l)
-    put(_k.I_C_S, "c_s", cfg.lam.frac)
+    put(kernels.I_INV_LAM, "inv_lam", inv_l)
+    put(kernels.I_ONE_L, "one_lam", one_l)
+    put(kernels.I_C_S, "c_s", cfg.lam.frac)
     # trace bound: the diagonal summed >> tr_ps must fit a word of min(P bits, A - 3) bits
     tw = min(cfg.P.bits, A - 3)
     tr_ps = 0
@@ -791,8 +791,8 @@ def _build_plan(
         1 << (tw - 1)
     ):
         tr_ps += 1
-    put(_k.I_TR_PS, "trace_ps", tr_ps)
-    put(_k.I_TC_S, "tc_s", cfg.lam.frac)
+    put(kernels.I_TR_PS, "trace_ps", tr_ps)
+    put(kernels.I_TC_S, "tc_s", cfg.lam.frac)
     tr_cap = (1 << (tw - 1)) - 1  # tr P (times c <= 1) can never exceed this
     if math.isinf(trace_max):
         tmax = tr_cap
@@ -800,22 +800,22 @@ def _build_plan(
         lam_q = Fraction(cfg.lam.to_int(Fraction(lam)), one_l)
         tq = lam_q * Fraction(trace_max) * Fraction(2) ** (cfg.P.frac - tr_ps)
         tmax = min(math.floor(tq), tr_cap)
-    put(_k.I_TMAX, "trace_max_lam", tmax)
-    put(_k.I_TMAX_LIM, "trace_max_lim", 1 << (A - 3))
+    put(kernels.I_TMAX, "trace_max_lam", tmax)
+    put(kernels.I_TMAX_LIM, "trace_max_lim", 1 << (A - 3))
     # windup test: h = c h~, h'w pre-shifted, (tr P - lambda trace_max) d pre-shifted
-    put(_k.I_HC_S, "hc_s", cfg.lam.frac)
+    put(kernels.I_HC_S, "hc_s", cfg.lam.frac)
     vw_ps = _pre(A, cfg.h, cfg.h, n)
     lhs_ps = _pre(A, cfg.P, cfg.den, 1)
-    put(_k.I_VW_PS, "vw_ps", vw_ps)
-    put(_k.I_LHS_PS, "lhs_ps", lhs_ps)
+    put(kernels.I_VW_PS, "vw_ps", vw_ps)
+    put(kernels.I_LHS_PS, "lhs_ps", lhs_ps)
     f_lhs = cfg.P.frac - tr_ps + cfg.den.frac - lhs_ps
     f_vw = 2 * cfg.h.frac - vw_ps
-    put(_k.I_CMP_DF, "cmp_scale_diff", f_lhs - f_vw)
+    put(kernels.I_CMP_DF, "cmp_scale_diff", f_lhs - f_vw)
     # block exponent of P: the window (tr_hi/2, tr_hi], and the largest exponent so
     # that every shift by (s + e) stays <= 62 and s~ >> e keeps its guard bit
-    put(_k.I_TR_HI, "trace_hi", 1 << (cfg.P.bits - 2))
+    put(kernels.I_TR_HI, "trace_hi", 1 << (cfg.P.bits - 2))
     e_max = min(A - 3, 62 - named["theta_s"], 62 - named["P_s"])
-    put(_k.I_E_MAX, "e_max", e_max)
+    put(kernels.I_E_MAX, "e_max", e_max)
     for name, v in named.items():
         if name.endswith(("_ps", "_s")) and not 0 <= v <= 62:
             raise FixedPointError(
@@ -831,17 +831,17 @@ def _build_plan(
 
 # --------------------------------------------------------- result objects
 class FixedFlag(enum.IntFlag):
-    """Per-step status bits; the values of :class:`canrls.rls.RLSFlag`."""
+    """Per-step status bits; the values of :class:`canrls.estimation.rls.RLSFlag`."""
 
     NONE = 0
     #: The trace bound held this step: taken with lambda = 1.
-    WINDUP = _k.FLAG_WINDUP
+    WINDUP = kernels.FLAG_WINDUP
     #: The sample's information rounded to zero on the diagonal of P.
-    LOW_EXCITATION = _k.FLAG_LOW_EXCITATION
+    LOW_EXCITATION = kernels.FLAG_LOW_EXCITATION
     #: A value saturated during this step (see :attr:`FixedRLS.saturations`).
-    SATURATION = _k.FLAG_SATURATION
+    SATURATION = kernels.FLAG_SATURATION
     #: The estimator is frozen: the error was computed, the state left untouched.
-    FROZEN = _k.FLAG_FROZEN
+    FROZEN = kernels.FLAG_FROZEN
 
 
 _FLAGS: tuple[FixedFlag, ...] = tuple(FixedFlag(i) for i in range(16))
@@ -1216,7 +1216,7 @@ class FixedRLS:
         is mirrored in. See :attr:`P_exp`, :attr:`P_scale`, :attr:`P_float`.
         """
         P = self._P.copy()
-        if self._mode == _k.MODE_SYMMETRIC:
+        if self._mode == kernels.MODE_SYMMETRIC:
             il = np.tril_indices(self._n, -1)
             P[il] = P.T[il]
         return P
@@ -1244,7 +1244,7 @@ class FixedRLS:
         ----------
         sigma2 : float
             Noise variance of :math:`y` in normalised units (e.g. the float
-            estimator's :attr:`canrls.rls.RLS.sigma2`).
+            estimator's :attr:`canrls.estimation.rls.RLS.sigma2`).
 
         Returns
         -------
@@ -1305,8 +1305,8 @@ class FixedRLS:
         if Pq.ndim not in (1, 2) or Pq.shape[-1] != self._n:
             raise EstimatorError(f"FixedRLS Phi must have shape (N, {self._n}), got {Pq.shape}")
         if count:
-            self._counts[_k.S_PHI] += sat["phi_in"]
-            self._counts[_k.S_Y] += sat["y_in"]
+            self._counts[kernels.S_PHI] += sat["phi_in"]
+            self._counts[kernels.S_Y] += sat["y_in"]
         return Pq, Yq, sat
 
     def _quantize(self, Phi: FloatArray, Y: FloatArray) -> tuple[IntArray, IntArray]:
@@ -1345,7 +1345,7 @@ class FixedRLS:
             self._y1[0] = y_int
         else:
             self._y1[0] = _int_array("y_int", y_int, ())
-        self.count += _k.fixed_block(
+        self.count += kernels.fixed_block(
             self._phi1, self._y1, self._theta, self._P, self._scale, self._work, self._counts,
             self._plan, self._mode, self._frozen, False,
             self._eps1, self._norec, self._tr1, self._exp1, self._flags1,
@@ -1413,7 +1413,7 @@ class FixedRLS:
         P_exp = np.empty(N, np.int64)
         flags = np.empty(N, np.uint8)
         theta_out = np.empty((N, self._n), np.int64) if record else self._norec
-        applied = int(_k.fixed_block(
+        applied = int(kernels.fixed_block(
             Phi_int, Y_int, self._theta, self._P, self._scale, self._work, self._counts,
             self._plan, self._mode, self._frozen, record,
             eps, theta_out, trace_P, P_exp, flags,
@@ -1688,7 +1688,7 @@ def sweep(
     Y : array_like, shape (N,)
         Normalised targets (float).
     theta_ref : array_like, shape (n,)
-        Float reference estimate on the same data (e.g. ``canrls.rls.RLS`` with the
+        Float reference estimate on the same data (e.g. ``canrls.estimation.rls.RLS`` with the
         same ``lam``, ``alpha``, ``trace_max``).
     configs : sequence or mapping of FixedConfig, optional
         Explicit configurations (a mapping gives them labels). Default: every

@@ -14,7 +14,7 @@ Threads: python-can's :class:`~can.Notifier` reads the bus and hands every frame
 a listener that only queues it; the estimator thread takes whatever has arrived (at
 most every ``block_interval``, by default the publish interval, and right before each
 publication; at once when a command frame waits) and processes it as one block through
-:class:`~canrls.replay.FrameProcessor`, so a log of the frames the daemon saw,
+:class:`~canrls.processor.FrameProcessor`, so a log of the frames the daemon saw,
 replayed offline, gives the same parameters bit for bit. Command frames are applied
 in stream order between the frames around them. Nothing the estimator does waits
 for the bus: frames are sent with ``timeout=send_timeout`` (0: non-blocking) and a
@@ -56,11 +56,8 @@ from typing import Any
 import can
 import numpy as np
 
-from canrls.checkpoint import Checkpoint, load_checkpoint, save_checkpoint, set_aside
-from canrls.config import AppConfig
-from canrls.errors import BusError, CheckpointError, ConfigError
-from canrls.frameblock import FrameBlock
-from canrls.frames import (
+from canrls.can.frameblock import FrameBlock
+from canrls.can.frames import (
     Command,
     CommandCode,
     CommandFrameError,
@@ -75,18 +72,21 @@ from canrls.frames import (
     encode_parameters,
     encode_status,
 )
-from canrls.model import Model
-from canrls.pipeline import (
+from canrls.can.protocol import FeedbackEncoder, Protocol
+from canrls.config import AppConfig
+from canrls.errors import BusError, CheckpointError, ConfigError
+from canrls.estimation.model import Model
+from canrls.estimation.pipeline import (
     Estimates,
     EstimatorSettings,
     Pipeline,
     PipelineBlock,
     divergence,
 )
-from canrls.protocol import FeedbackEncoder, Protocol
-from canrls.replay import FrameProcessor
-from canrls.rls import RLSFlag
-from canrls.sdnotify import SystemdNotifier
+from canrls.estimation.rls import RLSFlag
+from canrls.live.checkpoint import Checkpoint, load_checkpoint, save_checkpoint, set_aside
+from canrls.live.sdnotify import SystemdNotifier
+from canrls.processor import FrameProcessor
 
 __all__ = [
     "DaemonSettings",

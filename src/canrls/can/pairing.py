@@ -41,8 +41,8 @@ import numpy as np
 import numpy.typing as npt
 from numba import literal_unroll
 
+from canrls.can.protocol import DecodedFrames, Protocol
 from canrls.errors import ConfigError
-from canrls.protocol import DecodedFrames, Protocol
 from canrls.signals import ROLES, Signals
 
 __all__ = ["Pairer", "PairingCounts", "PAIRING_KINDS"]
@@ -317,7 +317,7 @@ class Pairer:
 
     Parameters
     ----------
-    protocol : the :class:`~canrls.protocol.Protocol` whose messages are paired.
+    protocol : the :class:`~canrls.can.protocol.Protocol` whose messages are paired.
     period : control period [s]; default: the mapped messages' ``GenMsgCycleTime``.
     tolerance : largest time difference [s] between frames of one period
         (default ``period / 2``).

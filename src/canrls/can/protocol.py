@@ -10,7 +10,7 @@ by a DBC file. :class:`Protocol` ties three things together:
   signals of each message are the alive counter and the CRC;
 * one compiled codec per mapped message, built once from cantools' ``Signal``
   objects (start bit, length, byte order, signedness, scale, offset, minimum,
-  maximum, float), that decodes whole :class:`~canrls.frameblock.FrameBlock`
+  maximum, float), that decodes whole :class:`~canrls.can.frameblock.FrameBlock`
   arrays with numpy and encodes SI arrays back into frames.
 
 Decoding is strict by default: a frame with the wrong length, a bad CRC, a
@@ -44,11 +44,11 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-from canrls.e2e import CRC8_TABLE
+from canrls.can.e2e import CRC8_TABLE
+from canrls.can.frameblock import FrameBlock
+from canrls.can.units import axis_of, si_factor
 from canrls.errors import ConfigError, DecodeError, SignalError
-from canrls.frameblock import FrameBlock
 from canrls.signals import ROLES
-from canrls.units import axis_of, si_factor
 
 __all__ = [
     "DEFAULT_DBC",
@@ -578,7 +578,7 @@ def _fmt(x: float) -> str:
 
 
 def _crc_vector(frame_id: int, data: U8, length: int) -> U8:
-    """E2E CRC (:func:`canrls.e2e.e2e_crc`) of every row: over the ID, then bytes 1..length-1."""
+    """E2E CRC (:func:`canrls.can.e2e.e2e_crc`) of every row: over the ID, then bytes 1..length-1."""
     out = np.empty(data.shape[0], np.uint8)
     _crc_kernel(int(frame_id), data, int(length), CRC8_TABLE, out)
     return out
@@ -852,7 +852,7 @@ def _e2e_signal(where: str, mname: str, sigs: Mapping[str, Any], role_signals: s
                           f"with scale 1 and offset 0")
     if kind == "CRC" and (c.length != 8 or c.byte_index != (0,) or c.shift != 0):
         raise SignalError(f"{where}: CRC {mname}.{sname} must be the 8 bits of byte 0 "
-                          f"(E2E profile 1 layout, see canrls.e2e)")
+                          f"(E2E profile 1 layout, see canrls.can.e2e)")
     return c
 
 
@@ -1628,7 +1628,7 @@ class FeedbackEncoder:
     One frame per mapped message and period, interleaved in the protocol's message
     order (the current's message first); every message of a period carries the same
     alive counter (mod its range), and the E2E CRC is computed as
-    :func:`canrls.e2e.e2e_crc` does. Raw values are rounded to nearest (half to even,
+    :func:`canrls.can.e2e.e2e_crc` does. Raw values are rounded to nearest (half to even,
     as cantools) and checked against the DBC range: out of range raises
     :class:`EncodeError` naming the signal and the value, unless ``clip=True``, which
     clips and counts in ``clipped`` (signal -> count).

@@ -39,7 +39,7 @@ import numpy as np
 from canrls.errors import ConfigError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from canrls.diagnose import Analysis, DiagnosisReport, EquationDiagnosis
+    from canrls.diagnosis.analysis import Analysis, DiagnosisReport, EquationDiagnosis
 
 __all__ = ["write_html", "FIGURES"]
 
