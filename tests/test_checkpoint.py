@@ -16,7 +16,7 @@ import pytest
 
 from canrls.config import AppConfig
 from canrls.errors import CheckpointError
-from canrls.estimation.pipeline import Pipeline
+from canrls.estimation.model import Model
 from canrls.live.checkpoint import (
     FORMAT,
     MAGIC,
@@ -45,10 +45,10 @@ def _frames(seconds: float, seed: int = 1) -> list:
     return list(Simulator(sc, t0=0.0).frames(500))
 
 
-def _checkpoint_of(pipe: Pipeline, model, settings) -> Checkpoint:
-    return Checkpoint(model=json.loads(json.dumps(model.to_dict())),
+def _checkpoint_of(proc: FrameProcessor, model, settings) -> Checkpoint:
+    return Checkpoint(model=json.loads(json.dumps(proc.model.to_dict())),
                       config_model=json.loads(json.dumps(model.to_dict())),
-                      fingerprint=fingerprint(settings, pipe.dt), state=pipe.state(),
+                      fingerprint=fingerprint(settings, proc.dt), state=proc.state(),
                       counters={"frames": 7}, saved_at=123.5)
 
 
@@ -59,16 +59,17 @@ def test_roundtrip_continues_bit_for_bit(tmp_path: Path) -> None:
     for b in blocks[:4]:
         a.process(b)
     path = tmp_path / "cp.bin"
-    n = save_checkpoint(path, _checkpoint_of(a.pipeline, model, settings))
+    n = save_checkpoint(path, _checkpoint_of(a, model, settings))
     assert path.stat().st_size == n
     assert path.read_bytes().startswith(MAGIC)
     assert [p.name for p in tmp_path.iterdir()] == ["cp.bin"]  # no temporary left
     cp = load_checkpoint(path)
     assert cp.counters == {"frames": 7} and cp.saved_at == 123.5
     b = FrameProcessor(protocol, model, settings)
-    b.pipeline.restore(cp.state)
+    b.restore(cp.state, Model.from_dict(cp.model))
+    assert b.calibration == a.calibration and b.model.exponents == a.model.exponents
     # the same continuation from the original and from the restored state
-    a.pipeline.restore(a.pipeline.state())  # both restart their filters alike
+    a.restore(a.state(), a.model)  # both restart their filters alike
     for blk in blocks[4:]:
         a.process(blk)
         b.process(blk)
@@ -83,7 +84,7 @@ def test_roundtrip_continues_bit_for_bit(tmp_path: Path) -> None:
 @pytest.mark.parametrize("damage", ["flip", "truncate", "magic", "format", "header"])
 def test_corruption_is_detected(tmp_path: Path, damage: str) -> None:
     protocol, model, settings = _setup()
-    pipe = Pipeline(model, 1e-3, settings)
+    pipe = FrameProcessor(protocol, model, settings)
     path = tmp_path / "cp.bin"
     save_checkpoint(path, _checkpoint_of(pipe, model, settings))
     raw = bytearray(path.read_bytes())
@@ -124,7 +125,7 @@ def test_daemon_resumes_and_sets_aside_mismatches(tmp_path: Path,
     proc = FrameProcessor(protocol, model, settings)
     for b in _frames(2.0):
         proc.process(b)
-    save_checkpoint(path, _checkpoint_of(proc.pipeline, model, settings))
+    save_checkpoint(path, _checkpoint_of(proc, model, settings))
     d = _daemon(protocol, model, settings, path)
     assert d.resumed_from == str(path)
     assert d.pipeline.samples == proc.pipeline.samples > 0
@@ -137,13 +138,13 @@ def test_daemon_resumes_and_sets_aside_mismatches(tmp_path: Path,
     assert not path.exists() and len(list(tmp_path.glob("cp.bin.bad-*"))) == 1
     assert "another configured model" in caplog.text
     # other estimator settings: also a mismatch
-    save_checkpoint(path, _checkpoint_of(proc.pipeline, model, settings))
+    save_checkpoint(path, _checkpoint_of(proc, model, settings))
     cfg = AppConfig()
     cfg.estimator = {"alpha": 0.5}
     d3 = _daemon(protocol, model, cfg.settings(), path)
     assert d3.resumed_from is None and len(list(tmp_path.glob("cp.bin.bad-*"))) == 2
     # a corrupted file
-    save_checkpoint(path, _checkpoint_of(proc.pipeline, model, settings))
+    save_checkpoint(path, _checkpoint_of(proc, model, settings))
     raw = bytearray(path.read_bytes())
     raw[-5] ^= 0xFF
     path.write_bytes(bytes(raw))
@@ -154,7 +155,7 @@ def test_daemon_resumes_and_sets_aside_mismatches(tmp_path: Path,
 def test_effect_added_by_command_survives_a_restart(tmp_path: Path) -> None:
     protocol, model, settings = _setup()
     path = tmp_path / "cp.bin"
-    pipe = Pipeline(model.with_effects(add=["unbalance"]), 1e-3, settings)
+    pipe = FrameProcessor(protocol, model.with_effects(add=["unbalance"]), settings)
     cp = _checkpoint_of(pipe, model.with_effects(add=["unbalance"]), settings)
     cp.config_model = json.loads(json.dumps(model.to_dict()))
     save_checkpoint(path, cp)
@@ -208,7 +209,7 @@ def test_kill_9_loses_at_most_one_interval(tmp_path: Path) -> None:
     assert proc.returncode == -signal.SIGKILL
     cp = load_checkpoint(path)  # intact despite the kill
     assert killed - cp.saved_at <= interval + 0.5  # at most one interval (+ scheduling slack)
-    assert cp.state["samples"] > 500
+    assert cp.state["pipeline"]["samples"] > 500
     leftovers = [p.name for p in tmp_path.iterdir() if p.name.startswith(".cp.bin.tmp")]
     assert len(leftovers) <= 1  # a write cut short leaves at most its temporary file
     # resume from it
@@ -217,4 +218,4 @@ def test_kill_9_loses_at_most_one_interval(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)
     assert res["daemon"]["resumed_from"] == str(path)
-    assert res["samples"] >= cp.state["samples"]
+    assert res["samples"] >= cp.state["pipeline"]["samples"]

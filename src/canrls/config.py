@@ -10,10 +10,11 @@
 
     [estimator]
     lambda = 1.0               # forgetting factor (0.5, 1]; 1 keeps all data (default)
-    alpha = 0.1                # ridge, P0 = I/alpha (normalised units; default)
-    trace_max = 80.0           # bound on trace P (default n/alpha)
+    alpha = 0.01               # ridge: the prior weighs like alpha samples of each column
+    trace_max = 80.0           # bound on trace P (default: the prior's trace)
     warmup_s = 0.05            # filter warm-up not used (default 5 SVF time constants)
     gap_periods = 3.5          # a sample gap longer than this many periods restarts the filter
+    calibration_s = 2.0        # seconds at the start that calibrate normalisation and prior
     rms_time_s = 1.0           # time constant of the running residual RMS
     max_phase_step = 0.3       # skip samples where a periodic column advances more [rad]
                                # (default: no limit)
@@ -79,7 +80,7 @@ _SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor
 _ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
                    "warmup_s": "warmup_s", "gap_periods": "gap_periods",
                    "rms_time_s": "rms_time_s", "max_phase_step": "max_phase_step",
-                   "min_speed": "min_speed"}
+                   "min_speed": "min_speed", "calibration_s": "calibration_s"}
 _FIXED_KEYS = ("word_bits", "acc_bits", "input_bits", "theta_max", "formats")
 _CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
              "channel", "bitrate", "fd", "data_bitrate")

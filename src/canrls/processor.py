@@ -1,40 +1,63 @@
 r"""The front end shared by the live daemon and the offline replay.
 
-``frames -> strict decode -> pairing -> samples -> Pipeline``
+``frames -> strict decode -> pairing -> samples -> calibration -> Pipeline``
 
 :class:`FrameProcessor` takes :class:`~canrls.can.frameblock.FrameBlock` objects of any
-size, so a log replayed offline gives the same parameters as the daemon fed the same
-frames, bit for bit. It is the one place that decides the signal ranges (and with them
-the normalisation of the regressors).
+size, so a log replayed offline (``canrls fit``, ``canrls diagnose``) gives the same
+parameters as the daemon (``canrls run``, ``canrls demo``) fed the same frames, bit for
+bit. It is the one place that decides the signal ranges, the normalisation of the
+regressors and the scale of the ridge prior, by one causal rule that a live stream
+follows as well as a log:
+
+The calibration rule
+--------------------
+1. The first ``calibration_s`` seconds of samples (``[estimator] calibration_s``,
+   default 2 s; counted in control periods) are held back: the *calibration window*.
+2. Signal ranges: a range given in the configuration (``[model.ranges]``; the model's
+   :attr:`~canrls.estimation.model.Model.ranges_given`) is kept; every other range is
+   measured on the window by :class:`RangeScanner` (below); a signal the window does not
+   show keeps its default. The normalisation of every column follows from the ranges.
+3. Column energies: the mean square :math:`\bar e_j` of every normalised column over
+   the window's rows that the pipeline uses (:func:`column_energy`). The ridge prior is
+   scaled with them, :math:`P_0 = \mathrm{diag}(1/(\alpha\,\bar e_j))`
+   (:meth:`~canrls.estimation.pipeline.EstimatorSettings.ridge`): its penalty
+   :math:`\alpha\sum_j \bar e_j\theta_j^2` is ``alpha`` times the mean square of each
+   term :math:`\theta_j\varphi_j`, the same in any normalisation. So the ranges, whoever
+   chose them, change rounding, never the answer; and the prior weighs like ``alpha``
+   samples of data (default 0.01) whatever the run length.
+4. The result (:class:`Calibration`) is frozen and recorded: in ``canrls fit``'s text
+   and JSON, in the daemon's checkpoint. The estimators then start on the held
+   samples, so none is lost. A model changed later (an effect added live) gets the
+   energies of its columns on the same stored window.
 
 Signal ranges from the data
 ---------------------------
-The normalisation (:attr:`canrls.estimation.model.Equation.scaling`) is chosen from signal ranges.
 The DBC's min/max are the protocol's limits, often far wider than the drive ever
 goes (±800 A for a 10 A servo), and the bound of a derivative column derived from
 the speed range alone is the worst case of the filter; both leave the regressors
-small, which costs resolution in the fixed-point kernel and lets the ridge prior
-:math:`\alpha` weigh on the weakly scaled parameters. :class:`RangeScanner` measures
+small, which costs resolution in the fixed-point kernel. :class:`RangeScanner` measures
 the ranges the filtered signals actually reach, including the filtered derivatives
-(acceleration, current rate), so that the normalisation uses the data:
+(acceleration, current rate):
 
 .. math::
 
     r_x = m \cdot \max_k |x_k|, \qquad
     r_{\dot\omega} = m \cdot \max_k |sF[\omega]_k|
 
-with a headroom factor ``m`` (default 2: one bit). Signals beyond the scanned range
-later are not clipped in float; in fixed point they saturate and are counted.
+with a headroom factor ``m`` (:data:`HEADROOM`, 4: two bits, since the window sees only
+the start of the stream). Signals beyond the range later are not clipped in float; in
+fixed point they saturate and are counted.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.pairing import Pairer, PairingCounts
@@ -44,7 +67,26 @@ from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline, P
 from canrls.estimation.svf import SVF
 from canrls.signals import Signals
 
-__all__ = ["FitResult", "FrameProcessor", "RangeScanner", "scan_ranges"]
+__all__ = ["Calibration", "FitResult", "FrameProcessor", "RMS_HEADROOM",
+           "RangeScanner", "SampleProcessor", "UNEXCITED", "calibrate", "dbc_ranges",
+           "scan_ranges"]
+
+#: Signals whose DBC range bounds the normalisation (position enters only through
+#: periodic columns, bounded by 1, and is unwrapped beyond its DBC range).
+_DBC_ROLES = ("current", "speed", "voltage")
+
+_SIGNALS = ("t", "current", "speed", "position", "voltage")
+
+#: A column (or target) whose RMS on the calibration window is below this fraction of
+#: its bound counts as not excited there.
+UNEXCITED = 2.0 ** -20
+
+#: The normalisation puts each column's RMS on the window in (1/32, 1/16] of the
+#: fixed-point range (|phi| <= 1): room for crest factors and for signals that grow
+#: beyond what the window showed (else they saturate, counted, in the fixed-point
+#: estimator only), and normalised energies in (2**-10, 2**-8], so that the prior
+#: P0 = diag(1/(alpha e_j)) stays below 2**10/alpha.
+RMS_HEADROOM = 16.0
 
 
 @dataclass(frozen=True)
@@ -60,6 +102,7 @@ class FitResult:
     lost: dict[str, int]
     source: str
     model: Model
+    calibration: Calibration | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -82,6 +125,7 @@ class FitResult:
                        "lost": self.lost, "foreign": self.foreign,
                        "pairing": self.pairing},
             "unit": self.estimates.equations[0].unit if self.estimates.equations else None,
+            "calibration": None if self.calibration is None else self.calibration.to_dict(),
         })
         d.update(self.extra)
         return d
@@ -100,6 +144,8 @@ class FitResult:
         odd = {k: v for k, v in self.pairing.items() if v and k != "samples"}
         if odd:
             lines.append("pairing: " + ", ".join(f"{k} {v}" for k, v in odd.items()))
+        if self.calibration is not None:
+            lines.append(self.calibration.format())
         lines.append(self.estimates.format())
         return "\n".join(lines)
 
@@ -151,50 +197,211 @@ def scan_ranges(blocks: Iterable[Signals], dt: float, cutoff_hz: float, zeta: fl
     return sc.ranges()
 
 
-class FrameProcessor:
-    """Frames in, estimates out: decoder + pairer + pipeline, all stateful.
+@dataclass(frozen=True)
+class Calibration:
+    """The front end's one decision about ranges and scaling, frozen after the window.
 
-    Used by the offline replay (blocks of a log) and by the daemon (blocks of the frames
-    that arrived).
+    Attributes
+    ----------
+    t_start, t_end : time of the first and last sample of the window [s]
+    samples : samples in the window
+    ranges : the signal ranges that bound the signals, ``{role: (lo, hi)}``
+    sources : where each range comes from: ``"config"``, ``"dbc"`` or ``"default"``
+    scaling : ``{equation: [s_y, s_1, ..., s_n]}``, the normalisation's exponents
+    energy : ``{equation: mean square of each normalised column}`` on the window
+    alpha : the ridge weight ``alpha`` (samples' worth of each column in the prior)
+    """
+
+    t_start: float
+    t_end: float
+    samples: int
+    ranges: dict[str, tuple[float, float]]
+    sources: dict[str, str]
+    scaling: dict[str, tuple[int, ...]]
+    energy: dict[str, tuple[float, ...]]
+    alpha: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"window": {"t_start": self.t_start, "t_end": self.t_end,
+                           "samples": self.samples},
+                "ranges": {k: {"range": list(v), "source": self.sources.get(k, "default")}
+                           for k, v in self.ranges.items()},
+                "scaling": {k: list(v) for k, v in self.scaling.items()},
+                "energy": {k: list(v) for k, v in self.energy.items()},
+                "alpha": self.alpha}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Calibration:
+        """Inverse of :meth:`to_dict` (a checkpoint)."""
+        w = d["window"]
+        return cls(t_start=float(w["t_start"]), t_end=float(w["t_end"]),
+                   samples=int(w["samples"]),
+                   ranges={k: (float(v["range"][0]), float(v["range"][1]))
+                           for k, v in d["ranges"].items()},
+                   sources={k: str(v["source"]) for k, v in d["ranges"].items()},
+                   scaling={k: tuple(int(s) for s in v) for k, v in d["scaling"].items()},
+                   energy={k: tuple(float(e) for e in v) for k, v in d["energy"].items()},
+                   alpha=float(d["alpha"]))
+
+    def format(self) -> str:
+        rng = ", ".join(f"{k} ±{max(abs(lo), abs(hi)):.4g} ({self.sources.get(k, 'default')})"
+                        for k, (lo, hi) in self.ranges.items()
+                        if self.sources.get(k) != "default")
+        return (f"calibration: first {self.samples} samples ({self.t_end - self.t_start:.3g} s)"
+                f"; ranges {rng or 'all default'}; ridge alpha {self.alpha:g} x column energy")
+
+
+def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSettings
+              ) -> tuple[Model, dict[str, tuple[float, ...]]]:
+    r"""The normalisation and the column energies of ``model`` on ``window``.
+
+    The columns and the target are filtered as the pipeline does (same gap filling and
+    sample selection) and measured over the rows it uses (all rows where it uses none).
+    Each gets the smallest power-of-two exponent that puts its RMS at most
+    1/:data:`RMS_HEADROOM` of full scale, unless the model's configuration gives the exponents (``[model.scaling]``); a column
+    the window does not excite (RMS below :data:`UNEXCITED` of its bound) keeps the
+    exponent of its bound and the energy of a column at a quarter of it. Returns the model with those exponents
+    (:meth:`~canrls.estimation.model.Model.with_scaling`) and
+    ``{equation: mean square of each normalised column}`` (:math:`\bar e_j`).
+    """
+    probe = Pipeline(model, dt, settings)
+    block = probe.process(window, record=True)
+    exponents: dict[str, list[int]] = {}
+    energy: dict[str, tuple[float, ...]] = {}
+    for eq, b in zip(model.equations, block.equations, strict=True):
+        sc = eq.scaling
+        phi = b.phi if b.phi is not None else np.zeros((0, eq.n))
+        rows = b.used if np.any(b.used) else np.ones(len(phi), np.bool_)
+        # the target and every column in physical units, on the rows used
+        y = b.y[rows]
+        cols = np.ldexp(phi[rows], np.array(sc.columns, dtype=np.int64))
+        given = eq.name in model.exponents  # configured ([model.scaling]): kept
+        s_y = sc.target if given else _scale_exponent(y, sc.target_bound, sc.target)
+        s_cols, e_cols = [], []
+        for j in range(eq.n):
+            c = cols[:, j]
+            s = sc.columns[j] if given else _scale_exponent(c, sc.column_bounds[j], None)
+            if s is None:
+                # not excited on the window: the exponent of its bound, and the energy
+                # of a column at a quarter of it
+                s_cols.append(sc.columns[j])
+                e_cols.append(1.0 / 16.0)
+                continue
+            s_cols.append(s)
+            # e_j = mean_k (c_kj 2**-s_j)^2
+            e_cols.append(float(np.mean(np.ldexp(c, -s) ** 2)))
+        exponents[eq.name] = [sc.target if s_y is None else s_y, *s_cols]
+        energy[eq.name] = tuple(e_cols)
+    return model.with_scaling(exponents), energy
+
+
+def _scale_exponent(x: npt.NDArray[np.float64], bound: float, default: int | None
+                    ) -> int | None:
+    """Smallest s with RMS_HEADROOM rms(x) <= 2**s; ``default`` when x is below
+    :data:`UNEXCITED` of ``bound`` (not excited)."""
+    if len(x) == 0:
+        return default
+    rms = float(np.sqrt(np.mean(x * x)))
+    if not (rms > UNEXCITED * bound):
+        return default
+    m, e = math.frexp(RMS_HEADROOM * rms)
+    return e - 1 if m == 0.5 else e
+
+
+def dbc_ranges(model: Model, protocol: Protocol) -> dict[str, tuple[float, float]]:
+    """The DBC's range (:meth:`Protocol.signal_range`) of every mapped signal whose
+    range the model's configuration does not give."""
+    dbc: dict[str, tuple[float, float]] = {}
+    for role in _DBC_ROLES:
+        if protocol.has(role) and role not in model.ranges_given:
+            r = protocol.signal_range(role)
+            if r is not None and r[0] < r[1]:
+                dbc[role] = r
+    return dbc
+
+
+class SampleProcessor:
+    """Samples in, estimates out: the calibration rule (module docstring) and the pipeline.
+
+    :class:`FrameProcessor` feeds it the samples it decodes and pairs; a diagnosis or a
+    simulation feeds it samples directly, with the same result for the same samples.
 
     Parameters
     ----------
-    protocol, model, settings : what to decode and estimate
-    period : control period [s] (default: the DBC's cycle time)
-    calibrate : ``ranges -> Model``; when given, the first ``calibrate_s`` seconds of
-        samples are held back, their ranges measured (:class:`canrls.processor.RangeScanner`), the model
-        rebuilt with them, and estimation starts on those samples. This is how the
-        daemon normalises from the data when the configuration gives no ranges; an
-        offline replay measures the whole log instead (:func:`scan_log_ranges`).
-    calibrate_s : seconds of samples the calibration uses (default 2)
+    model, dt, settings : the model (its ranges not in
+        :attr:`~canrls.estimation.model.Model.ranges_given` are measured on the window),
+        the control period [s] and the estimator settings
     """
 
-    def __init__(self, protocol: Protocol, model: Model,
-                 settings: EstimatorSettings | None = None, period: float | None = None,
-                 calibrate: Callable[[dict[str, list[float]]], Model] | None = None,
-                 calibrate_s: float = 2.0) -> None:
-        self.protocol = protocol
-        self.decoder = protocol.decoder()
-        self.pairer = Pairer(protocol, period=period)
-        self.pipeline = Pipeline(model, self.pairer.period, settings)
-        self.frames = 0
-        self._calibrate = calibrate
+    def __init__(self, model: Model, dt: float, settings: EstimatorSettings | None = None,
+                 sources: Mapping[str, str] | None = None) -> None:
+        self.settings = settings or EstimatorSettings()
+        self._sources = dict(sources) if sources is not None else {
+            k: ("config" if k in model.ranges_given else "default") for k in model.ranges}
+        self.pipeline = Pipeline(model, dt, self.settings)
+        #: the frozen calibration (None while the window is being collected)
+        self.calibration: Calibration | None = None
         self._held: list[Signals] = []
         self._held_n = 0
-        self._calibrate_n = max(1, int(round(calibrate_s / self.pairer.period)))
+        self._window: Signals | None = None
+        self._calibrate_n = max(1, int(round(self.settings.calibration_s / self.pipeline.dt)))
 
     @property
     def calibrating(self) -> bool:
-        """True while samples are held back for the range calibration."""
-        return self._calibrate is not None
+        """True while samples are held back for the calibration window."""
+        return self.calibration is None
+
+    @property
+    def dt(self) -> float:
+        return self.pipeline.dt
+
+    @property
+    def model(self) -> Model:
+        return self.pipeline.model
+
+    @property
+    def window(self) -> Signals | None:
+        """The calibration window's samples (None before the calibration)."""
+        return self._window
 
     def with_model(self, model: Model) -> Pipeline:
-        """Switch to a new pipeline for ``model`` (starting from the prior); returns it."""
-        self.pipeline = self.pipeline.with_model(model)
+        """Switch to ``model`` (an effect added or removed): its ranges are the frozen
+        ones, its column energies measured on the stored window, and the parameters both
+        models share start from their estimates (:meth:`Pipeline.with_model`)."""
+        if self.calibration is None or self._window is None:
+            self.pipeline = Pipeline(model, self.dt, self.settings)
+            return self.pipeline
+        model, energy = calibrate(self._window, model.with_ranges(self.calibration.ranges),
+                                  self.dt, self.settings)
+        self.pipeline = self.pipeline.with_model(model, energy=energy)
         return self.pipeline
 
-    def _feed(self, samples: Signals, record: bool) -> PipelineBlock:
-        if self._calibrate is None:
+    def state(self) -> dict[str, Any]:
+        """What a checkpoint needs to continue: the frozen calibration and its window
+        (or the samples held so far), and the pipeline's state."""
+        window = self._window if self.calibration is not None else Signals.concat(self._held)
+        return {"calibration": None if self.calibration is None else self.calibration.to_dict(),
+                "window": {k: v for k in _SIGNALS if (v := getattr(window, k)) is not None},
+                "pipeline": self.pipeline.state()}
+
+    def restore(self, state: Mapping[str, Any], model: Model) -> None:
+        """Continue from :meth:`state` with ``model`` (the model that was running)."""
+        w = state["window"]
+        window = Signals(**{k: np.asarray(w[k], dtype=np.float64) for k in _SIGNALS if k in w})
+        cal = state.get("calibration")
+        if cal is None:
+            self.calibration, self._window = None, None
+            self._held, self._held_n = ([window], len(window)) if len(window) else ([], 0)
+            self.pipeline = Pipeline(model, self.dt, self.settings)
+        else:
+            self.calibration, self._window = Calibration.from_dict(cal), window
+            self._held, self._held_n = [], 0
+            self.pipeline = Pipeline(model, self.dt, self.settings, self.calibration.energy)
+        self.pipeline.restore(state["pipeline"])
+
+    def process(self, samples: Signals, record: bool = False) -> PipelineBlock:
+        """Feed a block of samples (any size); held back while the window fills."""
+        if self.calibration is not None:
             return self.pipeline.process(samples, record)
         if len(samples):
             self._held.append(samples)
@@ -203,20 +410,95 @@ class FrameProcessor:
             return self.pipeline.process(samples.slice(0, 0), record)
         return self._finish_calibration(record)
 
+    def finish(self, record: bool = False) -> PipelineBlock:
+        """End of stream: a calibration still collecting uses what it has."""
+        if self.calibration is None and self._held:
+            return self._finish_calibration(record)
+        return self.pipeline.process(Signals.concat([]), record)
+
+    def run(self, samples: Signals, record: bool = False) -> PipelineBlock:
+        """A whole stream at once (calibration included): one block of every sample."""
+        out = self.process(samples, record)
+        return self.finish(record) if self.calibration is None else out
+
     def _finish_calibration(self, record: bool) -> PipelineBlock:
         held = Signals.concat(self._held)
-        model = self.model
-        sc = RangeScanner(self.pipeline.dt, model.cutoff_hz, model.zeta)
-        sc.update(held)
-        calibrate, self._calibrate, self._held = self._calibrate, None, []
-        assert calibrate is not None
-        self.pipeline = Pipeline(calibrate(sc.ranges()), self.pipeline.dt,
-                                 self.pipeline.settings)
+        self._held, self._held_n = [], 0
+        window = held.slice(0, min(len(held), self._calibrate_n))
+        model, energy = calibrate(window, self.model, self.dt, self.settings)
+        t = window.t
+        self.calibration = Calibration(
+            t_start=float(t[0]) if len(t) else math.nan,
+            t_end=float(t[-1]) if len(t) else math.nan, samples=len(window),
+            ranges={k: (float(lo), float(hi)) for k, (lo, hi) in model.ranges.items()},
+            sources=dict(self._sources),
+            scaling={k: tuple(v) for k, v in model.exponents.items()},
+            energy=energy, alpha=float(self.settings.alpha))
+        self._window = window
+        self.pipeline = Pipeline(model, self.dt, self.settings, energy)
         return self.pipeline.process(held, record)
+
+
+class FrameProcessor:
+    """Frames in, estimates out: decoder, pairer and :class:`SampleProcessor`, all stateful.
+
+    Used by the offline replay (blocks of a log) and by the daemon (blocks of the frames
+    that arrived), with the same calibration rule (module docstring).
+
+    Parameters
+    ----------
+    protocol, model, settings : what to decode and estimate
+    period : control period [s] (default: the DBC's cycle time)
+    """
+
+    def __init__(self, protocol: Protocol, model: Model,
+                 settings: EstimatorSettings | None = None,
+                 period: float | None = None) -> None:
+        self.protocol = protocol
+        self.decoder = protocol.decoder()
+        self.pairer = Pairer(protocol, period=period)
+        dbc = dbc_ranges(model, protocol)
+        sources = {k: ("config" if k in model.ranges_given else "dbc" if k in dbc else
+                       "default") for k in model.ranges}
+        self.sampler = SampleProcessor(model.with_ranges(dbc) if dbc else model,
+                                       self.pairer.period, settings, sources)
+        self.frames = 0
+
+    @property
+    def pipeline(self) -> Pipeline:
+        return self.sampler.pipeline
+
+    @property
+    def settings(self) -> EstimatorSettings:
+        return self.sampler.settings
+
+    @property
+    def calibration(self) -> Calibration | None:
+        return self.sampler.calibration
+
+    @property
+    def calibrating(self) -> bool:
+        return self.sampler.calibrating
+
+    @property
+    def dt(self) -> float:
+        return self.sampler.dt
 
     @property
     def model(self) -> Model:
-        return self.pipeline.model
+        return self.sampler.model
+
+    def with_model(self, model: Model) -> Pipeline:
+        """:meth:`SampleProcessor.with_model`."""
+        return self.sampler.with_model(model)
+
+    def state(self) -> dict[str, Any]:
+        """:meth:`SampleProcessor.state` (the decoder and pairer restart after a restore)."""
+        return self.sampler.state()
+
+    def restore(self, state: Mapping[str, Any], model: Model) -> None:
+        """:meth:`SampleProcessor.restore`."""
+        self.sampler.restore(state, model)
 
     def samples(self, block: FrameBlock) -> Signals:
         """Decode and pair one block of frames (no estimation)."""
@@ -224,14 +506,18 @@ class FrameProcessor:
         return self.pairer.push(self.decoder.decode(block))
 
     def process(self, block: FrameBlock, record: bool = False) -> PipelineBlock:
-        return self._feed(self.samples(block), record)
+        return self.sampler.process(self.samples(block), record)
+
+    def process_samples(self, samples: Signals, record: bool = False) -> PipelineBlock:
+        """Samples already paired (a simulation) through the same rule."""
+        return self.sampler.process(samples, record)
 
     def flush(self, record: bool = False) -> PipelineBlock:
-        """End of stream: complete periods still waiting for a partner go through
-        (and a calibration still collecting uses what it has)."""
-        out = self._feed(self.pairer.flush(), record)
-        if self._calibrate is not None and self._held:
-            out = self._finish_calibration(record)
+        """End of stream: complete periods still waiting for a partner go through, and a
+        calibration still collecting uses what it has."""
+        out = self.sampler.process(self.pairer.flush(), record)
+        if self.sampler.calibrating:
+            out = self.sampler.finish(record)
         return out
 
     @property
@@ -244,10 +530,11 @@ class FrameProcessor:
 
     def result(self, source: str) -> FitResult:
         rej = self.rejected
+        extra: dict[str, Any] = {}
         return FitResult(
             estimates=self.pipeline.estimates(), frames=self.frames,
             rejected={k: int(v) for k, v in rej.items()},
             rejected_examples=dict(getattr(rej, "examples", {}) or {}),
             pairing=self.pairing.as_dict(), foreign=int(self.decoder.foreign),
             lost={k: int(v) for k, v in self.decoder.lost.items()},
-            source=source, model=self.model)
+            source=source, model=self.model, calibration=self.calibration, extra=extra)

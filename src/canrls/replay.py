@@ -1,6 +1,6 @@
 """Offline replay: a recorded CAN log through the same pipeline as the live daemon.
 
-``frames (log) -> strict decode -> pairing -> Pipeline -> FitResult``
+``frames (log) -> strict decode -> pairing -> calibration -> Pipeline -> FitResult``
 
 The log is streamed in blocks (:func:`canrls.can.logs.read_frames`), so memory stays
 flat in the log's length. :class:`FrameProcessor` is the part shared with the live
@@ -17,17 +17,15 @@ from typing import TYPE_CHECKING
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, read_frames
-from canrls.can.pairing import Pairer
 from canrls.can.protocol import Protocol
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings, PipelineBlock
-from canrls.processor import FitResult, FrameProcessor, RangeScanner
+from canrls.processor import FitResult, FrameProcessor
 
 if TYPE_CHECKING:
     from canrls.config import AppConfig
 
-__all__ = ["FitResult", "FrameProcessor", "fit_frames", "fit_log", "scan_log_ranges",
-           "prepare"]
+__all__ = ["FitResult", "FrameProcessor", "fit_frames", "fit_log", "prepare"]
 
 
 def fit_frames(blocks: Iterable[FrameBlock], protocol: Protocol, model: Model,
@@ -62,29 +60,9 @@ def fit_log(path: str | os.PathLike[str], protocol: Protocol, model: Model,
     return res
 
 
-def scan_log_ranges(path: str | os.PathLike[str], protocol: Protocol, model: Model,
-                    *, chunk_size: int = 65536, headroom: float = 2.0,
-                    skip_bad_lines: bool = False) -> dict[str, list[float]]:
-    """First pass over a log: the ranges its samples reach (:class:`canrls.processor.RangeScanner`).
-
-    Decodes and pairs only (no estimation); memory stays flat.
-    """
-    decoder = protocol.decoder()
-    pairer = Pairer(protocol)
-    sc = RangeScanner(pairer.period, model.cutoff_hz, model.zeta, headroom)
-    for block in read_frames(path, chunk_size, skip_bad_lines=skip_bad_lines):
-        sc.update(pairer.push(decoder.decode(block)))
-    sc.update(pairer.flush())
-    return sc.ranges()
-
-
-def prepare(cfg: AppConfig, log: str | os.PathLike[str] | None = None,
-            skip_bad_lines: bool = False) -> tuple[Protocol, Model, EstimatorSettings]:
-    """Protocol, model and settings from a configuration; with ``log``, the signal ranges
-    the configuration does not give are measured on the log (a first pass)."""
+def prepare(cfg: AppConfig) -> tuple[Protocol, Model, EstimatorSettings]:
+    """Protocol, model and settings from a configuration. The ranges it does not give
+    are measured by the front end on the calibration window (:mod:`canrls.processor`),
+    as the live daemon does: no first pass over the log."""
     protocol = cfg.protocol()
-    model = cfg.model_for(protocol)
-    if log is not None:
-        ranges = scan_log_ranges(log, protocol, model, skip_bad_lines=skip_bad_lines)
-        model = cfg.model_for(protocol, ranges)
-    return protocol, model, cfg.settings()
+    return protocol, cfg.model_for(protocol), cfg.settings()

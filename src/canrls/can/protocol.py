@@ -733,6 +733,26 @@ class Protocol:
         """True when ``role`` is mapped."""
         return role in self.roles
 
+    def signal_range(self, role: str) -> tuple[float, float] | None:
+        """The range ``(lo, hi)`` in SI units that a decoded ``role`` value cannot leave:
+        the DBC's [minimum, maximum] under strict decoding, else (and where the DBC gives
+        none) what the signal's raw integers can represent; None for a float signal
+        without both limits."""
+        info = self.roles[role]
+        c = info.codec
+        if c.is_float:
+            if not (self.strict_range and c.minimum is not None and c.maximum is not None):
+                return None
+            a, b = float(c.minimum), float(c.maximum)
+        else:
+            a, b = c.raw_min * c.scale + c.offset, c.raw_max * c.scale + c.offset
+        lo, hi = min(a, b), max(a, b)
+        if self.strict_range:
+            lo = lo if c.minimum is None else max(lo, float(c.minimum))
+            hi = hi if c.maximum is None else min(hi, float(c.maximum))
+        a, b = lo * info.si_scale, hi * info.si_scale
+        return (min(a, b), max(a, b))
+
     def message(self, name: str) -> MessageCodec:
         """The mapped message ``name``."""
         for m in self.messages:

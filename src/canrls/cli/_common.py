@@ -35,7 +35,8 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                    help="forgetting factor in (0.5, 1] (default 1: all data weigh the same; "
                         "below 1 the estimate tracks changes, memory 1/(1-L) samples)")
     g.add_argument("--alpha", type=float, metavar="A",
-                   help="ridge weight, P0 = I/alpha, normalised units (default 0.1)")
+                   help="ridge weight: the prior weighs like A samples of each column, "
+                        "P0 = diag(1/(A e_j)) with e_j its mean square (default 0.01)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
 

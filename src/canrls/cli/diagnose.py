@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
 
         _matplotlib()
     cfg = setup(args)
-    protocol, model, settings = prepare(cfg, args.log, args.skip_bad_lines)
+    protocol, model, settings = prepare(cfg)
     rep = diagnose_log(args.log, protocol, model, settings, add=args.add,
                        progress=Progress("diagnose").callback, max_order=args.max_order,
                        skip_bad_lines=args.skip_bad_lines)

@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from canrls.replay import fit_log, prepare
 
     cfg = setup(args)
-    protocol, model, settings = prepare(cfg, args.log, args.skip_bad_lines)
+    protocol, model, settings = prepare(cfg)
     res = fit_log(args.log, protocol, model, settings,
                   progress=Progress("replay").callback, skip_bad_lines=args.skip_bad_lines)
     if args.json:

@@ -60,40 +60,32 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from canrls.estimation.fixed import sweep
-    from canrls.estimation.pipeline import Pipeline
     from canrls.estimation.rls import RLS
     from canrls.processor import FrameProcessor
     from canrls.replay import prepare
 
     cfg = setup(args)
+    protocol, model, settings = prepare(cfg)
+    proc = FrameProcessor(protocol, model, settings)
+    blocks = []
     if args.scenario:
-        from canrls.processor import scan_ranges
         from canrls.sim.scenario import scenario, simulate
 
         effects = cfg.model.get("effects")
         res = simulate(scenario(args.scenario, effects=",".join(effects) if effects else None,
                                 seed=args.seed, duration=args.duration))
-        protocol = cfg.protocol()
-        model0 = cfg.model_for(protocol)
-        dt = res.scenario.dt if hasattr(res, "scenario") else 1e-3
-        model = cfg.model_for(protocol, scan_ranges([res.measured], dt, model0.cutoff_hz,
-                                                    model0.zeta))
-        pipe = Pipeline(model, dt, cfg.settings())
-        blocks = [pipe.process(res.measured, record=True)]
+        blocks.append(proc.process_samples(res.measured, record=True))
         source = f"scenario {args.scenario} ({args.duration:g} s, seed {args.seed})"
     else:
         from canrls.can.logs import read_frames
 
-        protocol, model, settings = prepare(cfg, args.log)
-        proc = FrameProcessor(protocol, model, settings)
-        pipe = proc.pipeline
-        blocks = []
         for fb in read_frames(args.log, progress=Progress("replay").callback):
             blocks.append(proc.process(fb, record=True))
             if sum(b.samples for b in blocks) >= args.max_samples:
                 break
-        blocks.append(proc.flush(record=True))
         source = args.log
+    blocks.append(proc.flush(record=True))
+    pipe = proc.pipeline
     settings = pipe.settings
     out: dict[str, Any] = {"source": source, "equations": {}}
     text = [f"{source}"]
@@ -105,9 +97,9 @@ def run(args: argparse.Namespace) -> int:
         phi, y = phi[: args.max_samples], y[: args.max_samples]
         if len(y) == 0:
             raise ConfigError(f"{source}: no samples to sweep")
-        ref = RLS(eq.n, lam=settings.lam, alpha=settings.alpha, trace_max=settings.trace_max)
+        ref = RLS(eq.n, lam=settings.lam, alpha=est.ridge, trace_max=settings.trace_max)
         ref.run(phi, y, record=False)
-        res_sw = sweep(phi, y, ref.theta, lam=settings.lam, alpha=settings.alpha,
+        res_sw = sweep(phi, y, ref.theta, lam=settings.lam, alpha=est.ridge,
                        trace_max=settings.trace_max, word_bits=args.word, acc_bits=args.acc,
                        input_bits=args.input, theta_max=settings.theta_max, tol=args.tol)
         d = res_sw.to_dict()

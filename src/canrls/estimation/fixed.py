@@ -176,9 +176,9 @@ import numpy.typing as npt
 
 from canrls.errors import CheckpointError, EstimatorError, FixedPointError
 from canrls.estimation import fixed_kernels as kernels
-from canrls.estimation.rls import _check_alpha as _rls_check_alpha
-from canrls.estimation.rls import _check_lam as _rls_check_lam
-from canrls.estimation.rls import _real as _rls_real
+from canrls.estimation.rls import check_lam as _rls_check_lam
+from canrls.estimation.rls import check_real as _rls_real
+from canrls.estimation.rls import check_ridge, ridge_value
 
 __all__ = [
     "QFormat",
@@ -463,7 +463,7 @@ class FixedConfig:
     def auto(
         cls,
         n: int,
-        alpha: float,
+        alpha: float | npt.ArrayLike,
         lam: float,
         phi_max: float | Sequence[float] | npt.ArrayLike = 1.0,
         y_max: float = 1.0,
@@ -480,8 +480,10 @@ class FixedConfig:
         ----------
         n : int
             Number of parameters.
-        alpha : float
-            Ridge weight, :math:`P_0 = I/\alpha` (normalised units, typical 1e-3..1e-1).
+        alpha : float or sequence of n floats
+            Ridge weight, :math:`P_0 = I/\alpha` (normalised units, typical 1e-3..1e-1),
+            or one per parameter, :math:`P_0 = \mathrm{diag}(1/\alpha_j)`: the bounds
+            then use :math:`\max_j 1/\alpha_j` and :math:`\sum_j 1/\alpha_j`.
         lam : float
             Forgetting factor, :math:`1/2 < \lambda \le 1` (typical 0.98..1).
         phi_max : float or sequence of n floats, default 1.0
@@ -495,7 +497,7 @@ class FixedConfig:
         input_bits : int or None
             Input word of ``phi`` and ``y``; ``None``: ``word_bits``.
         trace_max : float or None
-            The trace bound the estimator will use (``None``: :math:`n/\alpha`, the
+            The trace bound the estimator will use (``None``: :math:`\sum_j 1/\alpha_j`, the
             default of :class:`FixedRLS`); it bounds :math:`P` when :math:`\lambda < 1`.
         **overrides : QFormat
             Formats to use instead of the derived ones (``P=QFormat(32, 20)``, ...).
@@ -510,7 +512,7 @@ class FixedConfig:
             A range does not fit its word (names the quantity and the format).
         """
         n_i = _check_n(n)
-        alpha_f = _check_alpha(alpha)
+        ridge = _check_ridge(alpha, n_i)
         lam_f = _check_lam(lam)
         W = word_bits
         In = W if input_bits is None else input_bits
@@ -522,9 +524,10 @@ class FixedConfig:
             raise FixedPointError(f"y_max must be finite and > 0, got {y_max!r}")
         tm = 4.0 * ym / float(pm.min()) if theta_max is None else float(theta_max)
         finite = trace_max is not None and math.isfinite(trace_max)
-        tr = float(trace_max) if finite else n_i / alpha_f  # type: ignore[arg-type]
+        p0_sum = float(np.sum(1.0 / ridge))
+        tr = float(trace_max) if finite else p0_sum  # type: ignore[arg-type]
         # bound on every |P_ij| (and on the largest eigenvalue of P)
-        P_bar = 1.0 / alpha_f if lam_f == 1.0 else max(n_i / alpha_f, tr)
+        P_bar = float(np.max(1.0 / ridge)) if lam_f == 1.0 else max(p0_sum, tr)
         phi_norm = float(np.sqrt(np.sum(pm * pm)))
 
         def fmt(name: str, bound: float, bits: int) -> QFormat:
@@ -655,8 +658,8 @@ def _check_lam(lam: object) -> float:
     return _rls_check_lam(lam, "FixedRLS", 0.5, " (1/lam is a Q1 word)")
 
 
-def _check_alpha(alpha: object) -> float:
-    return _rls_check_alpha(alpha, "FixedRLS")
+def _check_ridge(alpha: object, n: int) -> npt.NDArray[np.float64]:
+    return check_ridge(alpha, n, "FixedRLS")
 
 
 # --------------------------------------------------------------------- plan
@@ -1048,10 +1051,11 @@ class FixedRLS:
     lam : float
         Forgetting factor, :math:`1/2 < \lambda \le 1`, stored as Q integers
         :math:`\lambda` and :math:`1/\lambda` (rounded half up, exactly).
-    alpha : float
-        Ridge weight: :math:`P_0 = I/\alpha`, rounded to the ``P`` format.
+    alpha : float or sequence of n floats
+        Ridge weight: :math:`P_0 = I/\alpha`, or one per parameter,
+        :math:`P_0 = \mathrm{diag}(1/\alpha_j)`; each rounded to the ``P`` format.
     trace_max : float or None, default None
-        Trace bound; ``None`` is :math:`n/\alpha` (the prior's trace), ``math.inf``
+        Trace bound; ``None`` is :math:`\sum_j 1/\alpha_j` (the prior's trace), ``math.inf``
         disables it.
     update : {"symmetric", "literal", "naive"}, default "symmetric"
         ``"literal"``: full-matrix :math:`P - K\varphi^\top P`; ``"naive"``: full
@@ -1084,7 +1088,7 @@ class FixedRLS:
         config: FixedConfig,
         n: int,
         lam: float,
-        alpha: float,
+        alpha: float | npt.ArrayLike,
         trace_max: float | None = None,
         update: str = "symmetric",
     ) -> None:
@@ -1092,26 +1096,27 @@ class FixedRLS:
             raise EstimatorError(f"FixedRLS config must be a FixedConfig, got {config!r}")
         n_i = _check_n(n)
         lam_f = _check_lam(lam)
-        alpha_f = _check_alpha(alpha)
+        ridge = _check_ridge(alpha, n_i)
         if update not in _UPDATES:
             raise EstimatorError(
                 f"FixedRLS update must be one of {sorted(_UPDATES)}, got {update!r}"
             )
         if trace_max is None:
-            tm = n_i / alpha_f
+            tm = float(np.sum(1.0 / ridge))
         else:
             tm = _real("trace_max", trace_max)
             if not tm > 0.0:
                 raise EstimatorError(f"FixedRLS trace_max must be > 0 (or None), got {trace_max!r}")
-        p0 = config.P.to_int(1 / Fraction(alpha_f))
-        if not 0 < p0 <= config.P.hi:
+        # P0_jj = 1/alpha_j, exactly rounded to the P format
+        p0 = np.array([config.P.to_int(1 / Fraction(float(a))) for a in ridge], np.int64)
+        if not np.all((p0 > 0) & (p0 <= config.P.hi)):
             raise FixedPointError(
-                f"P0 = 1/alpha = {1 / alpha_f:.6g} does not fit the P format {config.P} "
-                f"({config.P.bits} bit, max {config.P.max:.6g})"
+                f"P0 = 1/alpha = {float(np.max(1.0 / ridge)):.6g} does not fit the P format "
+                f"{config.P} ({config.P.bits} bit, max {config.P.max:.6g})"
             )
         self._config = config
         self._n = n_i
-        self._alpha = alpha_f
+        self._ridge = ridge
         self._trace_max = tm
         self._update = update
         self._mode = _UPDATES[update]
@@ -1138,7 +1143,7 @@ class FixedRLS:
         self._norec = np.zeros((0, n_i), np.int64)
 
     def _reset_arrays(self) -> None:
-        # P0 = I / alpha ; theta0 = 0
+        # P0 = diag(1 / alpha_j) ; theta0 = 0
         self._P[...] = 0
         self._P[np.diag_indices(self._n)] = self._p0
         self._scale[0] = 0
@@ -1163,9 +1168,10 @@ class FixedRLS:
         return self._lam
 
     @property
-    def alpha(self) -> float:
-        """Ridge weight of the prior :math:`P_0 = I/\\alpha`."""
-        return self._alpha
+    def alpha(self) -> float | npt.NDArray[np.float64]:
+        """Ridge weight of the prior :math:`P_0 = I/\\alpha` (one float), or the weights
+        :math:`\\alpha_j` of :math:`P_0 = \\mathrm{diag}(1/\\alpha_j)`."""
+        return ridge_value(self._ridge)
 
     @property
     def trace_max(self) -> float:
@@ -1433,7 +1439,7 @@ class FixedRLS:
             "config": self._config.to_dict(),
             "n": self._n,
             "lam": self._lam,
-            "alpha": self._alpha,
+            "alpha": ridge_value(self._ridge),
             "trace_max": self._trace_max,
             "update": self._update,
             "frozen": self._frozen,
@@ -1531,7 +1537,7 @@ class FixedRLS:
     def __repr__(self) -> str:
         return (
             f"FixedRLS({self._config.label}, n={self._n}, lam={self._lam!r}, "
-            f"alpha={self._alpha!r}, trace_max={self._trace_max!r}, update={self._update!r}, "
+            f"alpha={ridge_value(self._ridge)!r}, trace_max={self._trace_max!r}, update={self._update!r}, "
             f"count={self.count}, frozen={self._frozen})"
         )
 
@@ -1667,7 +1673,7 @@ def sweep(
     configs: Sequence[FixedConfig] | Mapping[str, FixedConfig] | None = None,
     *,
     lam: float = 1.0,
-    alpha: float = 1e-2,
+    alpha: float | npt.ArrayLike = 1e-2,
     trace_max: float | None = None,
     word_bits: Sequence[int] = (16, 24, 32),
     acc_bits: Sequence[int] = (32, 48, 64),

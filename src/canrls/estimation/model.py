@@ -139,7 +139,7 @@ _LINEAR_SPEED: Range = (-1.0, 1.0)
 _RANGE_KEYS = ("current", "speed", "voltage", "position", "acceleration", "current_rate")
 _ALWAYS = frozenset({"t", "current", "speed"})
 _MODEL_KEYS = ("axis", "pitch", "wrap", "kt", "effects", "filter", "coulomb", "stribeck",
-               "terms", "ranges")
+               "terms", "ranges", "scaling")
 _HELD_ROLES = ("current", "speed", "position", "voltage")
 _SUBKEYS: Mapping[str, tuple[str, ...]] = {
     "filter": ("cutoff_hz", "zeta", "held"),
@@ -354,6 +354,11 @@ class Equation:
                     f"({clo!r}, {chi!r}) for normalisation; give the term a range = [lo, hi]"
                     f" or set the ranges of the signals it reads in [model.ranges]")
             bounds.append(b)
+        given = m.exponents.get(self.name)
+        if given is not None and len(given) == self.n + 1:
+            # exponents frozen by a calibration (canrls.processor), [s_y, s_1, ..., s_n]
+            return Scaling(columns=tuple(int(s) for s in given[1:]), target=int(given[0]),
+                           column_bounds=tuple(bounds), target_bound=ty)
         return Scaling(columns=tuple(_exponent(b) for b in bounds), target=_exponent(ty),
                        column_bounds=tuple(bounds), target_bound=ty)
 
@@ -560,7 +565,9 @@ class Model:
                  | None = None,
                  ranges: Mapping[str, Sequence[float]] | None = None,
                  available_signals: Iterable[str] | None = None,
-                 source: str = "<model>") -> None:
+                 source: str = "<model>",
+                 ranges_given: Iterable[str] | None = None,
+                 scaling: Mapping[str, Sequence[int]] | None = None) -> None:
         self.source = source
         if axis not in ("rotary", "linear"):
             raise ConfigError(_fmt(source, "model.axis", axis, "must be 'rotary' or 'linear'"))
@@ -589,6 +596,11 @@ class Model:
                                       positive=True)
         self.terms = self._check_terms(terms)
         self.ranges = self._check_ranges(ranges)
+        self.exponents = self._check_exponents(scaling)
+        #: Signal roles whose range was given (configured, or frozen by a calibration);
+        #: the others hold defaults that the front end replaces by measured ones.
+        self.ranges_given: frozenset[str] = frozenset(
+            (ranges or {}) if ranges_given is None else ranges_given) & frozenset(self.ranges)
         if available_signals is None:
             self.available_signals: frozenset[str] | None = None
         else:
@@ -646,6 +658,25 @@ class Model:
             except ConfigError as e:
                 raise type(e)(f"{src}: {key} ({name}): {e}") from e
             out[name] = dict(t)
+        return out
+
+    def _check_exponents(self, scaling: Any) -> dict[str, tuple[int, ...]]:
+        if scaling is None:
+            return {}
+        if not isinstance(scaling, Mapping):
+            raise ConfigError(_fmt(self.source, "model.scaling", scaling, "must be a table"))
+        out = {}
+        for k, v in scaling.items():
+            key = f"model.scaling.{k}"
+            if k not in ("mechanical", ELECTRICAL):
+                raise ConfigError(_fmt(self.source, key, v, "unknown equation (valid: "
+                                                            f"mechanical, {ELECTRICAL})"))
+            if (isinstance(v, str) or not isinstance(v, Sequence) or not v
+                    or not all(isinstance(s, int) and not isinstance(s, bool)
+                               and -1000 <= s <= 1000 for s in v)):
+                raise ConfigError(_fmt(self.source, key, v,
+                                       "must be a list of integer exponents [s_y, s_1, ...]"))
+            out[k] = tuple(int(s) for s in v)
         return out
 
     def _check_ranges(self, ranges: Any) -> dict[str, Range]:
@@ -780,7 +811,27 @@ class Model:
                     cutoff_hz=self.cutoff_hz, zeta=self.zeta, held=self.held_list,
                     coulomb_band=self.coulomb_band, stribeck_speed=self.stribeck_speed,
                     terms=self.terms, ranges=self.ranges,
-                    available_signals=self.available_signals, source=self.source)
+                    available_signals=self.available_signals, source=self.source,
+                    ranges_given=self.ranges_given)
+
+    def with_scaling(self, exponents: Mapping[str, Sequence[int]]) -> Model:
+        """A new model whose equations use the given power-of-two exponents,
+        ``{equation: [s_y, s_1, ..., s_n]}`` (:attr:`Equation.scaling`), instead of the
+        ones its ranges give. The ranges still bound the signals (fixed-point formats)."""
+        kw = self._kwargs()
+        kw["scaling"] = exponents
+        return Model(self.effects, **kw)
+
+    def with_ranges(self, measured: Mapping[str, Sequence[float]]) -> Model:
+        """A new model whose signal ranges not given (:attr:`ranges_given`) are
+        ``measured``; every range of the new model counts as given (it is frozen)."""
+        ranges = {k: (tuple(measured[k]) if k in measured and k not in self.ranges_given
+                      else v) for k, v in self.ranges.items()}
+        ranges.update({k: tuple(v) for k, v in measured.items()
+                       if k not in ranges and k in _RANGE_KEYS})
+        kw = self._kwargs()
+        kw.update(ranges=ranges, ranges_given=frozenset(ranges))
+        return Model(self.effects, **kw, scaling=self.exponents)
 
     def with_effects(self, add: Iterable[str | Effect] = (),
                      remove: Iterable[str] = ()) -> Model:
@@ -823,6 +874,8 @@ class Model:
         d["terms"] = [{"name": k, **{kk: (list(vv) if kk == "range" else vv)
                                      for kk, vv in v.items()}} for k, v in self.terms.items()]
         d["ranges"] = {k: [lo, hi] for k, (lo, hi) in self.ranges.items()}
+        if self.exponents:
+            d["scaling"] = {k: list(v) for k, v in self.exponents.items()}
         return d
 
     @classmethod
@@ -866,6 +919,8 @@ class Model:
             kw["terms"] = d["terms"]
         if "ranges" in d:
             kw["ranges"] = d["ranges"]
+        if "scaling" in d:
+            kw["scaling"] = d["scaling"]
         return cls(**kw, available_signals=available_signals, source=source)
 
     @classmethod

@@ -49,6 +49,7 @@ from canrls.estimation.rls import RLS, RLSFlag
 from canrls.signals import ROLES, Signals
 
 __all__ = [
+    "ENERGY_FLOOR",
     "EstimatorSettings",
     "ParameterEstimate",
     "EquationFit",
@@ -62,6 +63,12 @@ __all__ = [
 
 F64 = npt.NDArray[np.float64]
 
+#: Smallest column energy (mean square, normalised units) the ridge is scaled with: a
+#: column with less on the calibration window was not excited there, and its prior
+#: then weighs as for a column at 2**-10 of full scale (P0 = 2**20/alpha, which the
+#: fixed-point formats still hold for up to 12 columns).
+ENERGY_FLOOR = 2.0 ** -20
+
 
 # ------------------------------------------------------------------------ settings
 @dataclass(frozen=True)
@@ -71,8 +78,14 @@ class EstimatorSettings:
     Attributes
     ----------
     lam : forgetting factor :math:`\\lambda \\in (1/2, 1]` (memory ``1/(1-lam)`` samples)
-    alpha : ridge weight, :math:`P_0 = I/\\alpha`, in normalised units
-    trace_max : bound on trace P (``None``: ``n/alpha``, the prior's trace)
+    alpha : ridge weight: the prior weighs like ``alpha`` samples of each column
+        (:math:`P_0 = \\mathrm{diag}(1/(\\alpha\\,\\bar e_j))` with the column's mean
+        square :math:`\\bar e_j` on the calibration window, :class:`Pipeline`); without
+        column energies, :math:`P_0 = I/\\alpha` in normalised units
+    trace_max : bound on trace P (``None``: the prior's trace)
+    calibration_s : seconds of samples at the start of a stream on which the front end
+        (:mod:`canrls.processor`) measures the signal ranges the configuration does not
+        give and the column energies of the prior; frozen and recorded
     word_bits, acc_bits, input_bits : fixed-point words (``input_bits=None``: ``word_bits``)
     theta_max : bound of the normalised parameters for the fixed-point theta format
     fixed_overrides : Q formats overriding the automatic choice (``{"P": QFormat(32, 24)}``)
@@ -97,7 +110,7 @@ class EstimatorSettings:
     """
 
     lam: float = 1.0
-    alpha: float = 0.1
+    alpha: float = 0.01
     trace_max: float | None = None
     word_bits: int = 32
     acc_bits: int = 64
@@ -109,6 +122,7 @@ class EstimatorSettings:
     rms_time_s: float = 1.0
     max_phase_step: float = math.inf
     min_speed: float | None = None
+    calibration_s: float = 2.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.lam, int | float) and 0.5 < self.lam <= 1.0):
@@ -122,10 +136,32 @@ class EstimatorSettings:
             raise ConfigError(f"estimator.max_phase_step = {self.max_phase_step!r}: must be > 0")
         if self.rms_time_s <= 0:
             raise ConfigError(f"estimator.rms_time_s = {self.rms_time_s!r}: must be > 0")
+        if not (self.calibration_s > 0 and math.isfinite(self.calibration_s)):
+            raise ConfigError(
+                f"estimator.calibration_s = {self.calibration_s!r}: must be > 0 seconds")
 
-    def fixed_config(self, n: int) -> FixedConfig:
-        """The automatic fixed-point configuration for ``n`` parameters."""
-        return FixedConfig.auto(n, self.alpha, self.lam, theta_max=self.theta_max,
+    def ridge(self, n: int, energy: npt.ArrayLike | None = None) -> F64:
+        r"""The ridge weight of each of ``n`` columns: :math:`\alpha_j = \alpha\,\bar e_j`.
+
+        ``energy`` holds the columns' mean squares :math:`\bar e_j` in normalised units
+        (``None``: 1 each, the prior :math:`P_0 = I/\alpha`), floored at
+        :data:`ENERGY_FLOOR`. The penalty :math:`\alpha\sum_j \bar e_j\theta_j^2` is
+        then ``alpha`` times the mean square of each term :math:`\varphi_j\theta_j`:
+        the same in any normalisation, so the scaling changes rounding, never the prior.
+        """
+        if energy is None:
+            return np.full(n, float(self.alpha))
+        e = np.asarray(energy, dtype=np.float64)
+        if e.shape != (n,) or not np.all(np.isfinite(e)):
+            raise ConfigError(f"column energies {energy!r}: need {n} finite values")
+        # alpha_j = alpha * max(e_j, floor)
+        return float(self.alpha) * np.maximum(e, ENERGY_FLOOR)
+
+    def fixed_config(self, n: int, ridge: npt.ArrayLike | None = None) -> FixedConfig:
+        """The automatic fixed-point configuration for ``n`` parameters (``ridge``: the
+        weights :math:`\alpha_j`, default ``alpha`` for all)."""
+        alpha = self.alpha if ridge is None else ridge
+        return FixedConfig.auto(n, alpha, self.lam, theta_max=self.theta_max,
                                 word_bits=self.word_bits, acc_bits=self.acc_bits,
                                 input_bits=self.input_bits, trace_max=self.trace_max,
                                 **dict(self.fixed_overrides))
@@ -497,16 +533,19 @@ class GapFiller:
 class EquationEstimator:
     """Builder, float RLS, fixed RLS and statistics of one equation."""
 
-    def __init__(self, equation: Equation, dt: float, settings: EstimatorSettings) -> None:
+    def __init__(self, equation: Equation, dt: float, settings: EstimatorSettings,
+                 energy: npt.ArrayLike | None = None) -> None:
         self.equation = equation
         self.settings = settings
         self.dt = float(dt)
         self.builder = equation.builder(dt)
         n = equation.n
         s = settings
-        self.rls = RLS(n, lam=s.lam, alpha=s.alpha, trace_max=s.trace_max)
-        self.fixed_config = s.fixed_config(n)
-        self.frls = FixedRLS(self.fixed_config, n, lam=s.lam, alpha=s.alpha,
+        #: ridge weight of each column, alpha_j = alpha * e_j (EstimatorSettings.ridge)
+        self.ridge = s.ridge(n, energy)
+        self.rls = RLS(n, lam=s.lam, alpha=self.ridge, trace_max=s.trace_max)
+        self.fixed_config = s.fixed_config(n, self.ridge)
+        self.frls = FixedRLS(self.fixed_config, n, lam=s.lam, alpha=self.ridge,
                              trace_max=s.trace_max)
         m = equation.model
         wc = 2 * math.pi * m.cutoff_hz
@@ -745,16 +784,26 @@ class Pipeline:
     model : the model to identify
     dt : sample period [s] (the control period of the drive)
     settings : estimator settings (:class:`EstimatorSettings`)
+    energy : ``{equation name: mean square of each normalised column}`` measured on
+        the calibration window (:func:`canrls.processor.calibrate`); the ridge prior
+        is scaled with it (:meth:`EstimatorSettings.ridge`). ``None``:
+        :math:`P_0 = I/\alpha` in normalised units, which weighs on the parameters of
+        weakly scaled columns and so depends on the ranges.
     """
 
-    def __init__(self, model: Model, dt: float, settings: EstimatorSettings | None = None) -> None:
+    def __init__(self, model: Model, dt: float, settings: EstimatorSettings | None = None,
+                 energy: Mapping[str, npt.ArrayLike] | None = None) -> None:
         if not (dt > 0 and math.isfinite(dt)):
             raise ConfigError(f"sample period dt = {dt!r}: must be > 0")
         self.model = model
         self.dt = float(dt)
         self.settings = settings or EstimatorSettings()
-        self.estimators = tuple(EquationEstimator(eq, self.dt, self.settings)
-                                for eq in model.equations)
+        self.energy = None if energy is None else {
+            k: np.asarray(v, dtype=np.float64).copy() for k, v in energy.items()}
+        self.estimators = tuple(
+            EquationEstimator(eq, self.dt, self.settings,
+                              None if energy is None else energy[eq.name])
+            for eq in model.equations)
         self.samples = 0
 
     def process(self, signals: Signals, record: bool = False) -> PipelineBlock:
@@ -805,15 +854,17 @@ class Pipeline:
             e.rls.set_lambda(lam)
             e.frls.set_lambda(lam)
 
-    def with_model(self, model: Model, warm: bool = True) -> Pipeline:
+    def with_model(self, model: Model, warm: bool = True,
+                   energy: Mapping[str, npt.ArrayLike] | None = None) -> Pipeline:
         """A new pipeline for ``model`` (e.g. an effect added or removed).
 
         With ``warm`` (default) the parameters both models share start from their
         current estimates (float and fixed point alike) instead of zero, so adding an
         effect does not make the others converge again; the covariance restarts from
-        the prior :math:`P_0 = I/\\alpha` for every parameter, so all of them adapt.
+        the prior for every parameter, so all of them adapt. ``energy``: the new
+        model's column energies (as for :class:`Pipeline`).
         """
-        new = Pipeline(model, self.dt, self.settings)
+        new = Pipeline(model, self.dt, self.settings, energy)
         if not warm:
             return new
         old = {e.equation.name: e for e in self.estimators}

@@ -213,7 +213,7 @@ class Excitation:
         return RLSFlag.LOW_EXCITATION if self.low else RLSFlag.NONE
 
 
-def _real(name: str, value: object, who: str = "RLS") -> float:
+def check_real(name: str, value: object, who: str = "RLS") -> float:
     """``value`` as a float, or EstimatorError naming ``who`` and ``name``."""
     if isinstance(value, bool):
         raise EstimatorError(f"{who} {name} must be a real number, got {value!r}")
@@ -223,20 +223,40 @@ def _real(name: str, value: object, who: str = "RLS") -> float:
         raise EstimatorError(f"{who} {name} must be a real number, got {value!r}") from e
 
 
-def _check_lam(lam: object, who: str = "RLS", low: float = 0.0, why: str = "") -> float:
+def check_lam(lam: object, who: str = "RLS", low: float = 0.0, why: str = "") -> float:
     """The forgetting factor in ``(low, 1]`` (``why`` explains a ``low`` above 0)."""
-    x = _real("lam", lam, who)
+    x = check_real("lam", lam, who)
     if not (low < x <= 1.0):
         raise EstimatorError(
             f"{who} lam (forgetting factor) must be in ({low:g}, 1]{why}, got {lam!r}")
     return x
 
 
-def _check_alpha(alpha: object, who: str = "RLS") -> float:
-    x = _real("alpha", alpha, who)
-    if not (0.0 < x < math.inf):
+def check_ridge(alpha: object, n: int, who: str = "RLS") -> npt.NDArray[np.float64]:
+    r"""The ridge weights :math:`\alpha_j` as ``n`` float64 values, each finite and > 0.
+
+    ``alpha`` is one weight for every parameter (:math:`P_0 = I/\alpha`) or one per
+    parameter (:math:`P_0 = \mathrm{diag}(1/\alpha_j)`).
+    """
+    if isinstance(alpha, bool):
+        raise EstimatorError(f"{who} alpha (ridge) must be a number, got {alpha!r}")
+    try:
+        a = np.array(alpha, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise EstimatorError(f"{who} alpha (ridge) must be a number, got {alpha!r}") from e
+    if a.ndim == 0:
+        a = np.full(n, float(a))
+    if a.shape != (n,):
+        raise EstimatorError(
+            f"{who} alpha (ridge) must be one number or {n} numbers, got shape {a.shape}")
+    if not np.all((a > 0.0) & np.isfinite(a)):
         raise EstimatorError(f"{who} alpha (ridge) must be finite and > 0, got {alpha!r}")
-    return x
+    return a
+
+
+def ridge_value(ridge: npt.NDArray[np.float64]) -> float | npt.NDArray[np.float64]:
+    """One float when every weight is the same (``alpha`` as given), else the weights."""
+    return float(ridge[0]) if np.all(ridge == ridge[0]) else ridge.copy()
 
 
 class RLS:
@@ -249,12 +269,14 @@ class RLS:
     lam : float, default 1.0
         Forgetting factor :math:`\lambda \in (0, 1]`; ``1`` keeps all data.
         In float32 the kernel uses ``lam`` rounded to float32.
-    alpha : float, default 1e-3
-        Ridge weight :math:`\alpha > 0`: :math:`P_0 = I/\alpha`.
+    alpha : float or sequence of n floats, default 1e-3
+        Ridge weight :math:`\alpha > 0`: :math:`P_0 = I/\alpha`; one weight per
+        parameter gives :math:`P_0 = \mathrm{diag}(1/\alpha_j)` (the pipeline scales
+        them with the data so that the prior does not depend on the normalisation).
     trace_max : float or None, default None
         Bound on :math:`\mathrm{tr}\,P`. When a step would take the trace above it,
         the step is taken with :math:`\lambda = 1` (no forgetting) and flagged
-        ``WINDUP``. ``None`` means :math:`\mathrm{tr}\,P_0 = n/\alpha`: forgetting
+        ``WINDUP``. ``None`` means :math:`\mathrm{tr}\,P_0 = \sum_j 1/\alpha_j`: forgetting
         may bring the uncertainty back up to the prior's, never beyond it, so a
         direction that is not excited keeps the prior instead of blowing up
         (exponential windup, :math:`P \propto \lambda^{-N}`). Pass ``math.inf`` to
@@ -318,7 +340,7 @@ class RLS:
         self,
         n: int,
         lam: float = 1.0,
-        alpha: float = 1e-3,
+        alpha: float | npt.ArrayLike = 1e-3,
         trace_max: float | None = None,
         update: str = "symmetric",
         dtype: type[np.floating[Any]] | np.dtype[Any] | str = np.float64,
@@ -331,8 +353,8 @@ class RLS:
             raise EstimatorError(f"RLS n must be a positive integer, got {n!r}") from e
         if n_int < 1:
             raise EstimatorError(f"RLS n must be a positive integer, got {n!r}")
-        lam_f = _check_lam(lam)
-        alpha_f = _check_alpha(alpha)
+        lam_f = check_lam(lam)
+        ridge = check_ridge(alpha, n_int)
         if not isinstance(update, str) or update not in float_kernels.KERNELS:
             raise EstimatorError(
                 f"RLS update must be one of {sorted(float_kernels.KERNELS)}, got {update!r}"
@@ -344,7 +366,7 @@ class RLS:
         if dt not in _DTYPES:
             raise EstimatorError(f"RLS dtype must be float64 or float32, got {dtype!r}")
         self._n = n_int
-        self._alpha = alpha_f
+        self._ridge = ridge
         self._dtype = dt
         self._narrow = dt == np.float32  # casts into it may overflow to inf
         self._update = update
@@ -361,7 +383,7 @@ class RLS:
             # the prior's trace, summed in the kernel's order and dtype
             tm = float(float_kernels.trace_of(self._P, dt.type(0)))
         else:
-            tm = _real("trace_max", trace_max)
+            tm = check_real("trace_max", trace_max)
             if not tm > 0.0:
                 raise EstimatorError(f"RLS trace_max must be > 0 (or None), got {trace_max!r}")
         self._trace_max = tm
@@ -378,9 +400,9 @@ class RLS:
 
     # ------------------------------------------------------------------ state
     def _reset_arrays(self) -> None:
-        # P0 = I / alpha ; theta0 = 0
+        # P0 = diag(1 / alpha_j) ; theta0 = 0
         self._P[...] = 0
-        self._P[np.diag_indices(self._n)] = self._dtype.type(1.0 / self._alpha)
+        self._P[np.diag_indices(self._n)] = (1.0 / self._ridge).astype(self._dtype)
         self._theta[...] = 0
         self._acc[...] = 0
         self._work[...] = 0
@@ -396,9 +418,15 @@ class RLS:
         return self._lam
 
     @property
-    def alpha(self) -> float:
-        r"""Ridge weight :math:`\alpha` of the prior :math:`P_0 = I/\alpha`."""
-        return self._alpha
+    def alpha(self) -> float | npt.NDArray[np.float64]:
+        r"""Ridge weight :math:`\alpha` of the prior :math:`P_0 = I/\alpha` (one float),
+        or the weights :math:`\alpha_j` of :math:`P_0 = \mathrm{diag}(1/\alpha_j)`."""
+        return ridge_value(self._ridge)
+
+    @property
+    def ridge(self) -> npt.NDArray[np.float64]:
+        r"""The ridge weight of every parameter, :math:`\alpha_j` (a copy)."""
+        return self._ridge.copy()
 
     @property
     def trace_max(self) -> float:
@@ -474,7 +502,7 @@ class RLS:
 
     def set_lambda(self, lam: float) -> None:
         """Change the forgetting factor (validated like the constructor's ``lam``)."""
-        lam_f = _check_lam(lam)
+        lam_f = check_lam(lam)
         self._lam = lam_f
         self._lam_d = self._dtype.type(lam_f)
 
@@ -606,18 +634,23 @@ class RLS:
             Excitation is low above this condition number of :math:`R`.
         info_min : float or None, default None
             Excitation is low when the weakest direction carries less information
-            than this; ``None`` means ``10 * alpha``: a direction known barely better
-            than from the prior alone. (The trace bound keeps unexcited directions at
-            the prior, so the condition number alone may stay moderate there.)
+            than this; ``None`` means ten times the prior's information: a direction
+            known barely better than from the prior alone (``10 * alpha``). (The trace
+            bound keeps unexcited directions at the prior, so the condition number
+            alone may stay moderate there.) With one ridge weight per parameter the
+            default test and ``cond_max`` apply to the information relative to the
+            prior, :math:`D^{-1/2} R D^{-1/2}` with :math:`D = \mathrm{diag}(\alpha_j)`,
+            which does not depend on how the columns are scaled.
 
         Returns
         -------
         Excitation
         """
-        cm = _real("cond_max", cond_max)
+        cm = check_real("cond_max", cond_max)
         if not cm >= 1.0:
             raise EstimatorError(f"RLS cond_max must be >= 1, got {cond_max!r}")
-        im = 10.0 * self._alpha if info_min is None else _real("info_min", info_min)
+        uniform = bool(np.all(self._ridge == self._ridge[0]))
+        im = 10.0 * float(self._ridge.min()) if info_min is None else check_real("info_min", info_min)
         if not im >= 0.0:
             raise EstimatorError(f"RLS info_min must be >= 0, got {info_min!r}")
         P = self._P.astype(np.float64)
@@ -630,7 +663,13 @@ class RLS:
         r_min = 1.0 / float(p[-1])
         r_max = 1.0 / float(p[0])
         cond = float(p[-1] / p[0])
-        return Excitation(cond, r_min, r_max, True, cm, im, bool(cond > cm or r_min < im))
+        if uniform or info_min is not None:
+            return Excitation(cond, r_min, r_max, True, cm, im, bool(cond > cm or r_min < im))
+        # relative to the prior: eigenvalues of D^(1/2) P D^(1/2), D = diag(alpha_j)
+        w = np.sqrt(self._ridge)
+        pw = np.linalg.eigvalsh(0.5 * (P + P.T) * w[:, None] * w[None, :])
+        low = bool(pw[-1] / pw[0] > cm or 1.0 / pw[-1] < 10.0)
+        return Excitation(cond, r_min, r_max, True, cm, im, low)
 
     # ------------------------------------------------------------ checkpoint
     def state(self) -> dict[str, Any]:
@@ -643,7 +682,7 @@ class RLS:
             "format": STATE_FORMAT,
             "n": self._n,
             "lam": self._lam,
-            "alpha": self._alpha,
+            "alpha": ridge_value(self._ridge),
             "trace_max": self._trace_max,
             "update": self._update,
             "dtype": self._dtype.name,
@@ -719,7 +758,7 @@ class RLS:
 
     def __repr__(self) -> str:
         return (
-            f"RLS(n={self._n}, lam={self._lam!r}, alpha={self._alpha!r}, "
+            f"RLS(n={self._n}, lam={self._lam!r}, alpha={ridge_value(self._ridge)!r}, "
             f"trace_max={self._trace_max!r}, update={self._update!r}, "
             f"dtype={self._dtype.name}, count={self.count}, frozen={self._frozen})"
         )

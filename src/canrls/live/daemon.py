@@ -603,13 +603,12 @@ class Daemon:
                                       f"settings ({', '.join(diff)})")
             model = Model.from_dict(cp.model, source=f"{path} (checkpoint)",
                                     available_signals=self.config_model.available_signals)
-            pipeline = Pipeline(model, self.dt, self.settings)
-            pipeline.restore(cp.state)
+            self._proc.restore(cp.state, model)
+            pipeline = self._proc.pipeline
         except (CheckpointError, ConfigError, KeyError, ValueError, TypeError, IndexError) as e:
             where = set_aside(path)
             log.error("checkpoint %s not loaded (%s); set aside as %s", path, e, where)
             return
-        self._proc.pipeline = pipeline
         self._online_rms = [math.nan] * len(pipeline.estimators)
         self._base = dict(cp.counters)
         self.resumed_from = str(path)
@@ -627,7 +626,7 @@ class Daemon:
             counters["frames"] = self._proc.frames + self._base.get("frames", 0)
             cp = Checkpoint(model=_plain(self.model.to_dict()),
                             config_model=_plain(self.config_model.to_dict()),
-                            fingerprint=self._fingerprint, state=self._proc.pipeline.state(),
+                            fingerprint=self._fingerprint, state=self._proc.state(),
                             counters=counters, saved_at=time.time())
         try:
             save_checkpoint(path, cp)

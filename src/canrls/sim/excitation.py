@@ -332,7 +332,7 @@ def chirp(amplitude: float, f0: float, f1: float, sweep_time: float,
 def standard(seed: int = 0) -> Sequence:
     """The identification profile (see the module docstring)."""
     return Sequence([
-        phases([0.5, 2.0, 10.0, 40.0, 100.0], accel=300.0, holds=[3.0, 3.0, 2.0, 2.0, 1.5]),
+        phases([100.0, 40.0, 10.0, 2.0, 0.5], accel=300.0, holds=[1.5, 2.0, 2.0, 3.0, 3.0]),
         chirp(20.0, 0.2, 15.0, 10.0),
         prbs(5.0, 0.04, order=7, accel=1000.0, seed=seed),
     ], name="standard")

@@ -1,0 +1,248 @@
+"""The layers of the tree, kept by a test (docs/architecture.md).
+
+Dependencies run one way::
+
+    core (canrls, errors, signals)
+      -> can (DBC, decoding, logs, pairing, frames)   estimation (effects ... RLS, pipeline)
+      -> config, processor                             (the front end: one calibration rule)
+      -> replay, diagnosis, live                       (offline, analysis, the daemon)
+      -> cli                                           (one module per subcommand)
+
+``sim`` (the simulated drive) sits at the edge: it uses ``core`` and ``can`` and only
+``cli`` uses it. ``can`` and ``estimation`` never import each other, and neither
+``estimation`` nor ``core`` imports an I/O package (python-can, cantools). No import
+circle, and no module reaches into another module's underscore names.
+
+The checks read the source (ast), so they also see imports inside functions.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+PKG = SRC / "canrls"
+
+#: layer of each top-level part, and the layers it may import (besides itself)
+LAYER = {
+    "canrls": "core", "canrls.errors": "core", "canrls.signals": "core",
+    "canrls.can": "can", "canrls.estimation": "estimation",
+    "canrls.config": "front", "canrls.processor": "front",
+    "canrls.replay": "app", "canrls.diagnosis": "app", "canrls.live": "app",
+    "canrls.sim": "sim", "canrls.cli": "cli", "canrls.__main__": "cli",
+}
+ALLOWED = {
+    "core": {"core"},
+    "can": {"core"},
+    "estimation": {"core"},
+    "front": {"core", "can", "estimation", "front"},
+    "app": {"core", "can", "estimation", "front", "app"},
+    "sim": {"core", "can"},
+    "cli": {"core", "can", "estimation", "front", "app", "sim", "cli"},
+}
+#: third-party I/O packages the pure layers must not import
+IO_PACKAGES = {"can", "cantools"}
+#: underscore names of the standard library's own protocols (namedtuple, enum)
+STD_PRIVATE = {"_replace", "_asdict", "_fields", "_make", "_value_", "_name_", "_missing_",
+               "_generate_next_value_", "_member_map_", "_exit", "_getframe"}
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(SRC).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def modules() -> dict[str, ast.Module]:
+    return {module_name(p): ast.parse(p.read_text(), str(p)) for p in sorted(PKG.rglob("*.py"))}
+
+
+def layer_of(mod: str) -> str:
+    best = max((k for k in LAYER if mod == k or mod.startswith(k + ".")), key=len)
+    return LAYER[best]
+
+
+def imports(tree: ast.Module, mod: str) -> Iterator[tuple[str, int]]:
+    """Every imported module name (absolute) with its line."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                yield a.name, node.lineno
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                pkg = mod.split(".")[: len(mod.split(".")) - node.level + (
+                    1 if (PKG / Path(*mod.split(".")[1:]) / "__init__.py").exists() else 0)]
+                base = ".".join([*pkg, base] if base else pkg)
+            yield base, node.lineno
+            for a in node.names:
+                yield f"{base}.{a.name}", node.lineno
+
+
+def canrls_imports(tree: ast.Module, mod: str, known: set[str]) -> set[tuple[str, int]]:
+    """The canrls modules ``mod`` imports (``from canrls.x import y``: ``canrls.x.y`` if that
+    is a module, else ``canrls.x``)."""
+    out = set()
+    for name, line in imports(tree, mod):
+        if name == "canrls" or name.startswith("canrls."):
+            while name not in known and "." in name:
+                name = name.rsplit(".", 1)[0]
+            if name != mod:
+                out.add((name, line))
+    return out
+
+
+@pytest.fixture(scope="module")
+def tree() -> dict[str, ast.Module]:
+    return modules()
+
+
+def test_every_module_has_a_layer(tree: dict[str, ast.Module]) -> None:
+    for mod in tree:
+        assert layer_of(mod) in ALLOWED, mod
+
+
+def test_imports_go_one_way(tree: dict[str, ast.Module]) -> None:
+    known = set(tree)
+    bad = []
+    for mod, t in tree.items():
+        mine = layer_of(mod)
+        for dep, line in canrls_imports(t, mod, known):
+            if dep == "canrls" and mine != "cli":
+                continue  # the package root (__version__) belongs to every layer
+            theirs = layer_of(dep)
+            if theirs != mine and theirs not in ALLOWED[mine]:
+                bad.append(f"{mod}:{line} ({mine}) imports {dep} ({theirs})")
+    assert not bad, "imports against the layers:\n" + "\n".join(sorted(bad))
+
+
+def test_nothing_imports_the_cli(tree: dict[str, ast.Module]) -> None:
+    known = set(tree)
+    bad = [f"{mod}:{line} imports {dep}" for mod, t in tree.items()
+           if layer_of(mod) != "cli" for dep, line in canrls_imports(t, mod, known)
+           if layer_of(dep) == "cli"]
+    assert not bad, bad
+
+
+def test_pure_layers_import_no_io(tree: dict[str, ast.Module]) -> None:
+    bad = []
+    for mod, t in tree.items():
+        if layer_of(mod) not in ("core", "estimation"):
+            continue
+        for name, line in imports(t, mod):
+            if name.split(".")[0] in IO_PACKAGES:
+                bad.append(f"{mod}:{line} imports {name}")
+    assert not bad, bad
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(n: str) -> list[str] | None:
+        state[n] = 1
+        stack.append(n)
+        for m in sorted(graph.get(n, ())):
+            if state.get(m) == 1:
+                return stack[stack.index(m):] + [m]
+            if m not in state:
+                found = visit(m)
+                if found:
+                    return found
+        stack.pop()
+        state[n] = 2
+        return None
+
+    for n in sorted(graph):
+        if n not in state:
+            found = visit(n)
+            if found:
+                return found
+    return None
+
+
+def test_no_import_circles(tree: dict[str, ast.Module]) -> None:
+    known = set(tree)
+    graph = {}
+    for mod, t in tree.items():
+        # a package's __init__ importing its own modules is how packages work, not a circle
+        graph[mod] = {d for d, _ in canrls_imports(t, mod, known)
+                      if d != "canrls" and not mod.startswith(d + ".")}
+    assert find_cycle(graph) is None, " -> ".join(find_cycle(graph) or [])
+
+
+def private_names(t: ast.Module) -> set[str]:
+    """Underscore names a module defines: functions, classes, methods, attributes."""
+    out = set()
+    for node in ast.walk(t):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            out.add(node.name)
+        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store):
+            out.add(node.attr)
+        elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            out.add(node.id)
+        elif isinstance(node, ast.arg):
+            out.add(node.arg)
+    return {n for n in out if n.startswith("_") and not n.startswith("__")}
+
+
+def private_uses(t: ast.Module) -> Iterator[tuple[str, int, bool]]:
+    """``x._name`` with ``x`` not ``self``/``cls`` (and whether ``x`` is a plain name, such
+    as another instance of the same class, rather than an attribute such as
+    ``self.builder``), and ``from m import _name``."""
+    for node in ast.walk(t):
+        if (isinstance(node, ast.Attribute) and node.attr.startswith("_")
+                and not node.attr.startswith("__")
+                and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))):
+            yield node.attr, node.lineno, isinstance(node.value, ast.Name)
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("canrls"):
+            for a in node.names:
+                if a.name.startswith("_") and not a.name.startswith("__"):
+                    yield "import " + a.name, node.lineno, True
+
+
+def test_no_module_uses_another_modules_private_names(tree: dict[str, ast.Module]) -> None:
+    defined = {mod: private_names(t) for mod, t in tree.items()}
+    bad = []
+    for mod, t in tree.items():
+        own = defined[mod]
+        elsewhere = set().union(*(v for k, v in defined.items() if k != mod))
+        for name, line, plain in private_uses(t):
+            if name in STD_PRIVATE:
+                continue
+            if name.startswith("import "):
+                bad.append(f"{mod}:{line}: {name}")
+            elif name not in own:
+                bad.append(f"{mod}:{line}: .{name} is not defined in {mod}")
+            elif not plain and name in elsewhere:
+                # self.builder._regressors: a name this module defines too, reached
+                # through another object that another module defines it on
+                bad.append(f"{mod}:{line}: .{name} of an attribute, also defined elsewhere")
+    assert not bad, "private names used across modules:\n" + "\n".join(sorted(bad))
+
+
+# -- the checks themselves fail where they should ------------------------------------------
+def test_the_checks_catch_a_wrong_import_a_circle_and_a_private_call() -> None:
+    a = ast.parse("from canrls.cli.main import main\nimport canrls.estimation.model\n")
+    deps = {d for d, _ in canrls_imports(a, "canrls.can.protocol",
+                                         {"canrls.cli.main", "canrls.estimation.model"})}
+    assert layer_of("canrls.can.protocol") == "can"
+    assert {layer_of(d) for d in deps} == {"cli", "estimation"}
+    assert not ({layer_of(d) for d in deps} & ALLOWED["can"])
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set()}) is None
+    t = ast.parse("def f(builder):\n    return builder._regressors(1)\n"
+                  "from canrls.estimation.model import _exponent\n")
+    uses = {name: plain for name, _, plain in private_uses(t)}
+    assert "_regressors" in uses and "import _exponent" in uses
+    t2 = ast.parse("class E:\n    def _regressors(self):\n        return self.builder._regressors()\n")
+    assert {name: plain for name, _, plain in private_uses(t2)} == {"_regressors": False}
+    assert "_regressors" not in private_names(t)
+    assert "_x" in private_names(ast.parse("class A:\n    def _x(self):\n        pass\n"))
+    io = ast.parse("import cantools\n")
+    assert [n for n, _ in imports(io, "canrls.estimation.rls")] == ["cantools"]
