@@ -293,10 +293,10 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
     sigma = np.zeros((0, n))
     tfx = np.zeros((0, n))
     if npts:
-        # re-run the float RLS on the same rows (bit-identical to the pipeline's) and
-        # sample theta and sigma = sqrt(sigma2 diag P) at npts instants
-        s = est.settings
-        rls = RLS(n, lam=s.lam, alpha=s.alpha, trace_max=s.trace_max)
+        # re-run the pipeline's float RLS, back at its prior, on the same rows
+        # (bit-identical) and sample theta and sigma = sqrt(sigma2 diag P) at npts instants
+        rls = RLS.from_state(est.rls.state())
+        rls.reset()
         phi_u = np.ascontiguousarray(eb.phi[rows])
         y_u = np.ldexp(eb.y[rows], -eq.scaling.target)
         cuts = np.unique(np.linspace(0, len(rows), npts + 1).astype(np.int64))[1:]

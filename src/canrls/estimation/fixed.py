@@ -176,9 +176,9 @@ import numpy.typing as npt
 
 from canrls.errors import CheckpointError, EstimatorError, FixedPointError
 from canrls.estimation import fixed_kernels as kernels
-from canrls.estimation.rls import _check_alpha as _rls_check_alpha
-from canrls.estimation.rls import _check_lam as _rls_check_lam
-from canrls.estimation.rls import _real as _rls_real
+from canrls.estimation.rls import check_alpha as _rls_check_alpha
+from canrls.estimation.rls import check_lam as _rls_check_lam
+from canrls.estimation.rls import check_real as _rls_real
 
 __all__ = [
     "QFormat",

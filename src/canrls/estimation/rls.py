@@ -213,7 +213,7 @@ class Excitation:
         return RLSFlag.LOW_EXCITATION if self.low else RLSFlag.NONE
 
 
-def _real(name: str, value: object, who: str = "RLS") -> float:
+def check_real(name: str, value: object, who: str = "RLS") -> float:
     """``value`` as a float, or EstimatorError naming ``who`` and ``name``."""
     if isinstance(value, bool):
         raise EstimatorError(f"{who} {name} must be a real number, got {value!r}")
@@ -223,17 +223,17 @@ def _real(name: str, value: object, who: str = "RLS") -> float:
         raise EstimatorError(f"{who} {name} must be a real number, got {value!r}") from e
 
 
-def _check_lam(lam: object, who: str = "RLS", low: float = 0.0, why: str = "") -> float:
+def check_lam(lam: object, who: str = "RLS", low: float = 0.0, why: str = "") -> float:
     """The forgetting factor in ``(low, 1]`` (``why`` explains a ``low`` above 0)."""
-    x = _real("lam", lam, who)
+    x = check_real("lam", lam, who)
     if not (low < x <= 1.0):
         raise EstimatorError(
             f"{who} lam (forgetting factor) must be in ({low:g}, 1]{why}, got {lam!r}")
     return x
 
 
-def _check_alpha(alpha: object, who: str = "RLS") -> float:
-    x = _real("alpha", alpha, who)
+def check_alpha(alpha: object, who: str = "RLS") -> float:
+    x = check_real("alpha", alpha, who)
     if not (0.0 < x < math.inf):
         raise EstimatorError(f"{who} alpha (ridge) must be finite and > 0, got {alpha!r}")
     return x
@@ -331,8 +331,8 @@ class RLS:
             raise EstimatorError(f"RLS n must be a positive integer, got {n!r}") from e
         if n_int < 1:
             raise EstimatorError(f"RLS n must be a positive integer, got {n!r}")
-        lam_f = _check_lam(lam)
-        alpha_f = _check_alpha(alpha)
+        lam_f = check_lam(lam)
+        alpha_f = check_alpha(alpha)
         if not isinstance(update, str) or update not in float_kernels.KERNELS:
             raise EstimatorError(
                 f"RLS update must be one of {sorted(float_kernels.KERNELS)}, got {update!r}"
@@ -361,7 +361,7 @@ class RLS:
             # the prior's trace, summed in the kernel's order and dtype
             tm = float(float_kernels.trace_of(self._P, dt.type(0)))
         else:
-            tm = _real("trace_max", trace_max)
+            tm = check_real("trace_max", trace_max)
             if not tm > 0.0:
                 raise EstimatorError(f"RLS trace_max must be > 0 (or None), got {trace_max!r}")
         self._trace_max = tm
@@ -474,7 +474,7 @@ class RLS:
 
     def set_lambda(self, lam: float) -> None:
         """Change the forgetting factor (validated like the constructor's ``lam``)."""
-        lam_f = _check_lam(lam)
+        lam_f = check_lam(lam)
         self._lam = lam_f
         self._lam_d = self._dtype.type(lam_f)
 
@@ -614,10 +614,10 @@ class RLS:
         -------
         Excitation
         """
-        cm = _real("cond_max", cond_max)
+        cm = check_real("cond_max", cond_max)
         if not cm >= 1.0:
             raise EstimatorError(f"RLS cond_max must be >= 1, got {cond_max!r}")
-        im = 10.0 * self._alpha if info_min is None else _real("info_min", info_min)
+        im = 10.0 * self._alpha if info_min is None else check_real("info_min", info_min)
         if not im >= 0.0:
             raise EstimatorError(f"RLS info_min must be >= 0, got {info_min!r}")
         P = self._P.astype(np.float64)
