@@ -13,14 +13,8 @@ import pytest
 
 from canrls.cli._common import _clean
 from canrls.config import DEFAULT_HELD
-from canrls.diagnosis.analysis import (
-    DiagnosisReport,
-    _bin,
-    _chi2_sf,
-    _nice_magnitudes,
-    _whiteness,
-    diagnose,
-)
+from canrls.diagnosis.analysis import DiagnosisReport, diagnose
+from canrls.diagnosis.residual import bin_residual, chi2_sf, nice_magnitudes, whiteness
 from canrls.errors import ConfigError, EffectError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings, Pipeline
@@ -263,10 +257,10 @@ def test_errors(plain: SimResult) -> None:
 # ------------------------------------------------------------------ building blocks
 def test_chi2_tail() -> None:
     # chi-square(20) quantiles: 37.566 (p = 0.01), 19.337 (p = 0.5), 45.315 (p = 0.001)
-    assert _chi2_sf(37.566, 20) == pytest.approx(0.01, abs=0.001)
-    assert _chi2_sf(19.337, 20) == pytest.approx(0.5, abs=0.01)
-    assert _chi2_sf(45.315, 20) == pytest.approx(0.001, abs=0.0003)
-    assert _chi2_sf(0.0, 20) == 1.0
+    assert chi2_sf(37.566, 20) == pytest.approx(0.01, abs=0.001)
+    assert chi2_sf(19.337, 20) == pytest.approx(0.5, abs=0.01)
+    assert chi2_sf(45.315, 20) == pytest.approx(0.001, abs=0.0003)
+    assert chi2_sf(0.0, 20) == 1.0
 
 
 def test_whiteness_of_white_and_coloured_residuals() -> None:
@@ -275,18 +269,18 @@ def test_whiteness_of_white_and_coloured_residuals() -> None:
     used = np.ones(n, np.bool_)
     white = rng.normal(size=n)
     u = {"input": rng.normal(size=n)}
-    w = _whiteness(white, used, u, np.array([1.0]), 20)
+    w = whiteness(white, used, u, np.array([1.0]), 20)
     assert w is not None and w.decimation == 1
     assert w.white and w.independent
     assert w.bound == pytest.approx(2.5758 / math.sqrt(n), rel=1e-4)
     coloured = np.convolve(white, np.ones(5) / 5, mode="same")
-    w2 = _whiteness(coloured, used, {"input": white}, np.array([1.0]), 20)
+    w2 = whiteness(coloured, used, {"input": white}, np.array([1.0]), 20)
     assert w2 is not None and not w2.white and w2.outside >= 3
     assert not w2.independent  # the residual is made of the input
     # through a low pass, the decimation takes the filter's own colour out
     h = np.exp(-np.arange(60) / 6.0)
     filt = np.convolve(white, h)[:n]
-    w3 = _whiteness(filt, used, u, h, 20)
+    w3 = whiteness(filt, used, u, h, 20)
     assert w3 is not None and w3.decimation > 10 and w3.white
 
 
@@ -295,12 +289,12 @@ def test_bins_and_share() -> None:
     x = rng.uniform(-1, 1, 4000)
     edges = np.linspace(-1, 1, 11)
     step = np.where(x > 0, 1.0, -1.0)
-    b = _bin(x, step, edges, "speed", "speed", "rad/s")
+    b = bin_residual(x, step, edges, "speed", "speed", "rad/s")
     assert b.share == pytest.approx(1.0)
     np.testing.assert_allclose(b.mean, [-1] * 5 + [1] * 5)
-    noise = _bin(x, rng.normal(size=4000), edges, "speed", "speed", "rad/s")
+    noise = bin_residual(x, rng.normal(size=4000), edges, "speed", "speed", "rad/s")
     assert noise.share < 0.01
-    mags = _nice_magnitudes(100.0)
+    mags = nice_magnitudes(100.0)
     assert mags[0] == 0.0 and mags[-1] >= 100.0
     assert list(mags[1:4]) == [0.5, 1.0, 2.0]
 

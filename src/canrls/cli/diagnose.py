@@ -79,9 +79,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.report:
         # fail before the long part when the figures cannot be drawn
-        from canrls.diagnosis.report import _matplotlib
+        from canrls.diagnosis.figures import require_matplotlib
 
-        _matplotlib()
+        require_matplotlib()
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
     rep = diagnose_log(args.log, protocol, model, settings, add=args.add,

@@ -1,409 +1,154 @@
-"""The diagnosis as an HTML page with PNG figures (``canrls diagnose --report DIR``).
+"""The report object and its renderings: text, JSON-able dict, HTML page with figures.
 
-:func:`write_html` writes ``index.html`` and its figures into a directory:
-
-``timeline.png``
-    the filtered target (measured) against the model over time, and the residual below
-    (before, and after the added effects);
-``speed.png``, ``position.png``
-    the residual against speed (both directions, symmetric-log axis) and against the
-    position in the revolution (or along the travel of a linear axis): every sample in
-    grey, the bin means with their RMS as bars, before and after;
-``candidates.png``
-    the share of the residual variance each candidate effect explains, best first;
-``orders.png``
-    the residual's rotation-order spectrum: the amplitude of each order (multiples of
-    the rotation frequency) fitted to the residual;
-``convergence.png``
-    every parameter over time, float estimate with its ±σ band and the fixed-point
-    estimate dashed;
-``fixed.png``
-    fixed point against float: ``|fixed - float|`` relative to ``max(|float|, σ)``.
-
-matplotlib is an optional dependency (the ``report`` extra): it is imported here, when
-a report is written, and its absence is a :class:`~canrls.errors.ConfigError` naming
-the package. The figures use matplotlib's object API (no pyplot, no global state).
+:class:`DiagnosisReport` is what :func:`canrls.diagnosis.analysis.diagnose` returns. It
+renders to text (:meth:`DiagnosisReport.format`), to a dict of plain types
+(:meth:`DiagnosisReport.to_dict`, documented in ``docs/diagnose.md``) and to a
+directory with ``index.html`` and PNG figures (:func:`write_html`): the page comes from
+the jinja2 template ``templates/report.html.j2`` shipped with the package, the figures
+from :mod:`canrls.diagnosis.figures` (matplotlib, the ``report`` extra).
 """
 
 from __future__ import annotations
 
-import html
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import numpy as np
+import jinja2
 
+from canrls.diagnosis.figures import FIGURES, Figures, require_matplotlib
+from canrls.diagnosis.results import (
+    Analysis,
+    Candidate,
+    EquationDiagnosis,
+    share_text,
+    value_text,
+)
 from canrls.errors import ConfigError
+from canrls.estimation.model import Model
+from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
 
-if TYPE_CHECKING:  # pragma: no cover
-    from canrls.diagnosis.analysis import Analysis, DiagnosisReport, EquationDiagnosis
-
-__all__ = ["write_html", "FIGURES"]
-
-#: The figures :func:`write_html` writes (without an ``after`` some show ``before`` only).
-FIGURES: tuple[str, ...] = ("timeline.png", "speed.png", "position.png", "candidates.png",
-                            "orders.png", "convergence.png", "fixed.png")
-
-_BEFORE = "#c0392b"
-_AFTER = "#1f6fb4"
-_GREY = "#9a9a9a"
-_MAX_POINTS = 20000
+__all__ = ["DiagnosisReport", "FIGURES", "write_html"]
 
 
-def _matplotlib() -> tuple[Any, Any]:
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError as e:
-        raise ConfigError("the HTML report needs matplotlib, which is not installed: "
-                          "pip install 'canrls[report]' (or pip install matplotlib)") from e
-    return Figure, FigureCanvasAgg
+class DiagnosisReport:
+    """What :func:`diagnose` found: ``before`` (the model as given), ``after`` (with
+    ``added`` effects, or None), the candidates and the verdict.
 
-
-def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Path:
-    """Write ``index.html`` and the PNG figures of ``report`` into ``directory``.
-
-    :raises ConfigError: matplotlib is missing, or the directory cannot be written.
-    :returns: the path of ``index.html``.
+    Renders to text (:meth:`format`), to a JSON-able dict (:meth:`to_dict`) and to an
+    HTML page with PNG figures (:meth:`write_html`, needs matplotlib).
     """
-    Figure, Canvas = _matplotlib()
-    out = Path(directory)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"--report {out}: cannot create the directory: {e}") from e
-    figs = _Figures(Figure, Canvas, out)
-    b = report.before.primary
-    a = report.after.primary if report.after is not None else None
-    written: dict[str, str] = {}
-    written["timeline.png"] = figs.timeline(b, a)
-    written["speed.png"] = figs.binned(b, a, "speed")
-    if b.traces.position is not None:
-        written["position.png"] = figs.binned(b, a, "position")
-    if b.candidates:
-        written["candidates.png"] = figs.candidates(b)
-    if b.spectrum is not None:
-        written["orders.png"] = figs.orders(b, a)
-    final = report.after if report.after is not None else report.before
-    written["convergence.png"] = figs.convergence(final.primary, final is report.after)
-    written["fixed.png"] = figs.fixed(final.primary)
-    page = out / "index.html"
-    try:
-        page.write_text(_page(report, written), encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(f"--report {out}: cannot write index.html: {e}") from e
-    return page
+
+    def __init__(self, *, source: str, dt: float, samples: int, duration: float,
+                 before: Analysis, after: Analysis | None, added: tuple[str, ...],
+                 settings: EstimatorSettings, max_order: int,
+                 frames: Mapping[str, Any] | None = None) -> None:
+        self.source = source
+        self.dt = dt
+        self.samples = samples
+        self.duration = duration
+        self.before = before
+        self.after = after
+        self.added = added
+        self.settings = settings
+        self.frames = dict(frames) if frames is not None else None
+        self.max_order = max_order
+
+    # -- shortcuts ----------------------------------------------------------------------
+    @property
+    def model(self) -> Model:
+        return self.before.model
+
+    @property
+    def unit(self) -> str:
+        return self.before.primary.unit
+
+    @property
+    def candidates(self) -> tuple[Candidate, ...]:
+        """The before model's candidates, best first (identifiable ones first)."""
+        return self.before.candidates
+
+    @property
+    def suggestion(self) -> tuple[str, ...]:
+        """The effects the forward selection suggests adding (empty: nothing to add)."""
+        return self.before.suggestion
+
+    @property
+    def verdict(self) -> str:
+        return " ".join(e.verdict for e in self.before.equations)
+
+    @property
+    def identifiable(self) -> bool:
+        return all(e.identifiable for e in self.before.equations)
+
+    def __repr__(self) -> str:
+        after = f", after={list(self.after.effects)}" if self.after else ""
+        return (f"<DiagnosisReport {self.source}: {self.samples} samples, "
+                f"before={list(self.before.effects)}{after}, "
+                f"suggestion={list(self.suggestion)}>")
+
+    # -- JSON ---------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """Everything as plain types (``docs/diagnose.md`` documents every key)."""
+        p = self.before.primary
+        d: dict[str, Any] = {
+            "source": self.source,
+            "samples": self.samples,
+            "duration": self.duration,
+            "dt": self.dt,
+            "axis": self.model.axis,
+            "unit": p.unit,
+            "max_order": self.max_order,
+            "before": self.before.to_dict(),
+            "added": list(self.added),
+            "after": None if self.after is None else self.after.to_dict(),
+            "candidates": [c.to_dict() for c in self.candidates],
+            "not_applicable": [{"effect": e, "reason": r}
+                               for q in self.before.equations for e, r in q.not_applicable],
+            "suggestion": p.suggestion.to_dict(),
+            "regions": [r.to_dict() for r in p.regions],
+            "orders": None if p.spectrum is None else p.spectrum.to_dict(),
+            "structure": [s.to_dict() for s in p.structure],
+            "excitation": p.excitation.to_dict(),
+            "identifiable": self.identifiable,
+            "identifiability": [r for q in self.before.equations for r in q.identifiability],
+            "verdict": self.verdict,
+        }
+        if self.frames is not None:
+            d["frames"] = self.frames
+        return d
+
+    # -- text ---------------------------------------------------------------------------
+    def format(self) -> str:
+        """The report as text: compare, where it fails, candidates, verdict, before/after."""
+        out: list[str] = []
+        b = self.before
+        out.append(f"{self.source}: {self.samples} samples ({self.duration:.1f} s), "
+                   f"model {', '.join(b.effects)}")
+        for q in b.equations:
+            out.extend(_format_equation(q, self.model.axis))
+        if self.after is not None:
+            out.append("")
+            out.extend(_format_before_after(self.before, self.after, self.added))
+        return "\n".join(out)
+
+    __str__ = format
+
+    # -- figures ------------------------------------------------------------------------
+    def write_html(self, directory: str | os.PathLike[str]) -> Path:
+        """Write ``index.html`` and its PNG figures into ``directory`` (created).
+
+        :raises ConfigError: matplotlib (the ``report`` extra) is not installed.
+        :returns: the path of ``index.html``.
+        """
+        return write_html(self, directory)
 
 
-# ------------------------------------------------------------------------------ figures
-def _decimate(n: int) -> slice:
-    return slice(None, None, max(1, int(math.ceil(n / _MAX_POINTS))))
-
-
-class _Figures:
-    def __init__(self, Figure: Any, Canvas: Any, out: Path) -> None:
-        self.Figure = Figure
-        self.Canvas = Canvas
-        self.out = out
-
-    def _save(self, fig: Any, name: str) -> str:
-        self.Canvas(fig)
-        try:
-            fig.savefig(self.out / name, dpi=110)
-        except OSError as e:
-            raise ConfigError(f"--report {self.out}: cannot write {name}: {e}") from e
-        return name
-
-    def timeline(self, b: EquationDiagnosis, a: EquationDiagnosis | None) -> str:
-        tr = b.traces
-        fig = self.Figure(figsize=(11, 6.4), layout="constrained")
-        ax1, ax2 = fig.subplots(2, 1, sharex=True, height_ratios=[3, 2])
-        s = _decimate(len(tr.t))
-        u = b.unit
-        y = np.where(tr.used, tr.y, np.nan)
-        ax1.plot(tr.t[s], y[s], color="black", lw=0.8, label="measured (filtered target)")
-        ax1.plot(tr.t[s], np.where(tr.used, tr.yhat, np.nan)[s], color=_BEFORE, lw=0.7,
-                 alpha=0.85, label="model before")
-        if a is not None:
-            ta = a.traces
-            ax1.plot(ta.t[s], np.where(ta.used, ta.yhat, np.nan)[s], color=_AFTER, lw=0.7,
-                     alpha=0.85, label="model after")
-        ax1.set_ylabel(f"{b.target} [{u}]")
-        ax1.set_title(f"{b.equation} equation: measured against model "
-                      f"(fit {b.fit_percent:.1f} %"
-                      + (f" before, {a.fit_percent:.1f} % after)" if a is not None else ")"))
-        ax1.legend(loc="upper right", fontsize=8)
-        ax1.grid(alpha=0.3)
-        ax2.plot(tr.t[s], np.where(tr.used, tr.residual, np.nan)[s], color=_BEFORE, lw=0.6,
-                 label=f"residual before (RMS {b.residual_rms:.3g} {u})")
-        if a is not None:
-            ta = a.traces
-            ax2.plot(ta.t[s], np.where(ta.used, ta.residual, np.nan)[s], color=_AFTER,
-                     lw=0.6, label=f"residual after (RMS {a.residual_rms:.3g} {u})")
-        ax2.axhline(0.0, color="black", lw=0.5)
-        ax2.set_xlabel("time [s]")
-        ax2.set_ylabel(f"residual [{u}]")
-        ax2.legend(loc="upper right", fontsize=8)
-        ax2.grid(alpha=0.3)
-        return self._save(fig, "timeline.png")
-
-    def binned(self, b: EquationDiagnosis, a: EquationDiagnosis | None,
-               quantity: str) -> str:
-        panels = [("before", b, _BEFORE)] + ([("after", a, _AFTER)] if a is not None else [])
-        fig = self.Figure(figsize=(11 if a is not None else 7, 4.4), layout="constrained")
-        axes = fig.subplots(1, len(panels), sharey=True, sharex=True, squeeze=False)[0]
-        from matplotlib.lines import Line2D
-
-        handles = [Line2D([], [], marker="o", ls="", ms=4, color=_GREY, label="samples")]
-        vmax = float(np.nanmax(np.abs(b.traces.speed[b.traces.used]))) \
-            if quantity == "speed" and b.traces.used.any() else 1.0
-        u = b.unit
-        lim = 0.0
-        for ax, (label, q, color) in zip(axes, panels, strict=True):
-            tr = q.traces
-            if quantity == "speed":
-                x = tr.speed
-            elif tr.position is None:
-                continue
-            elif q.bins.get("position") is not None and q.bins["position"].unit == "rad":
-                x = np.mod(tr.position, 2 * math.pi)
-            else:
-                x = tr.position
-            used = tr.used
-            xs, rs = x[used], tr.residual[used]
-            s = _decimate(len(xs))
-            ax.scatter(xs[s], rs[s], s=1, color=_GREY, alpha=0.25, rasterized=True)
-            bn = q.bins.get(quantity)
-            if bn is not None:
-                ok = np.isfinite(bn.mean)
-                # bars: the spread in the bin, sqrt(RMS^2 - mean^2)
-                sd = np.sqrt(np.maximum(bn.rms[ok] ** 2 - bn.mean[ok] ** 2, 0.0))
-                ax.errorbar(bn.centers[ok], bn.mean[ok], yerr=sd, fmt="o-", ms=3,
-                            lw=1.2, color=color, ecolor=color, elinewidth=0.6, capsize=2)
-                handles.append(Line2D([], [], marker="o", ms=4, color=color,
-                                      label=f"{label}: bin mean ± spread"))
-                if np.any(ok):
-                    lim = max(lim, float(np.nanmax(np.abs(bn.mean[ok]) + sd)))
-            ax.axhline(0.0, color="black", lw=0.5)
-            if quantity == "speed":
-                _symlog_speed(ax, vmax)
-                ax.set_xlabel(f"speed (filtered) [{bn.unit if bn else ''}], negative: "
-                              f"moving backward")
-            else:
-                ax.set_xlabel(f"{bn.label if bn else 'position'} [{bn.unit if bn else ''}]")
-            ax.set_title(f"{label}: residual RMS {q.residual_rms:.3g} {u}", fontsize=10)
-            ax.grid(alpha=0.3)
-            ax.legend(handles=[handles[0], handles[-1]], loc="upper left", fontsize=8)
-        axes[0].set_ylabel(f"residual [{u}]")
-        if lim > 0:
-            axes[0].set_ylim(-1.6 * lim, 1.6 * lim)
-        what = "speed (both directions)" if quantity == "speed" else (
-            "position in the revolution" if b.traces.angle is not None and
-            (b.bins.get("position") is not None and b.bins["position"].unit == "rad")
-            else "position along the travel")
-        fig.suptitle(f"Residual against {what}")
-        return self._save(fig, f"{quantity}.png")
-
-    def candidates(self, q: EquationDiagnosis) -> str:
-        cands = list(q.candidates[:12])
-        fig = self.Figure(figsize=(11, 0.45 * len(cands) + 1.6), layout="constrained")
-        ax = fig.subplots()
-        ypos = np.arange(len(cands))[::-1]
-        vals = [100 * c.explained for c in cands]
-        colors = [_AFTER if c.suggested else (_GREY if not c.identifiable else "#7fa7cf")
-                  for c in cands]
-        ax.barh(ypos, vals, color=colors)
-        ax.set_yticks(ypos, [c.effect for c in cands])
-        ax.set_xlim(0, 150)
-        ax.set_xticks([0, 20, 40, 60, 80, 100])
-        steps = {st.effect: (i, st) for i, st in enumerate(q.suggestion.steps)}
-        for y0, c, v in zip(ypos, cands, vals, strict=True):
-            note = ("not identifiable" if not c.identifiable else "")
-            if c.effect in steps:
-                i, st = steps[c.effect]
-                note = (f"suggested, step {i + 1}: {100 * st.explained:.1f} % of what is left"
-                        if i else "suggested, step 1")
-            ax.text(v + 1, y0, f"{v:.1f} %  ΔBIC {c.delta_bic:.3g}  RMS after "
-                                f"{c.rms_after:.3g} {q.unit}  {note}",
-                    va="center", fontsize=8)
-        ax.set_xlabel("share of the residual variance explained when added alone [%]")
-        ax.set_title("Which effect is missing: candidates, best first "
-                     "(dark blue: suggested, grey: not identifiable)", fontsize=10)
-        ax.grid(axis="x", alpha=0.3)
-        return self._save(fig, "candidates.png")
-
-    def orders(self, b: EquationDiagnosis, a: EquationDiagnosis | None) -> str:
-        sp = b.spectrum
-        assert sp is not None
-        fig = self.Figure(figsize=(11, 4.2), layout="constrained")
-        ax = fig.subplots()
-        ax.plot(sp.orders, sp.amplitude, color=_BEFORE, lw=0.9, label="before")
-        if a is not None and a.spectrum is not None:
-            ax.plot(a.spectrum.orders, a.spectrum.amplitude, color=_AFTER, lw=0.9,
-                    label="after")
-        for p in sp.peaks[:4]:
-            amp, ex = sp.at(p)
-            ax.annotate(f"order {p:g}\n{amp:.2g} {b.unit}, {100 * ex:.0f} %", (p, amp),
-                        textcoords="offset points", xytext=(4, 6), fontsize=8,
-                        color=_BEFORE)
-        ax.set_xlabel(f"rotation order (periods per {sp.per})")
-        ax.set_ylabel(f"fitted amplitude [{sp.unit}]")
-        ax.set_xlim(0, float(sp.orders[-1]) + 0.5)
-        top = float(np.nanmax(sp.amplitude)) if len(sp.amplitude) else 0.0
-        if top > 0:
-            ax.set_ylim(0, 1.3 * top)
-        ax.set_title("Residual spectrum against rotation order (a position-periodic effect "
-                     "shows as a peak at its order)", fontsize=10)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-        return self._save(fig, "orders.png")
-
-    def convergence(self, q: EquationDiagnosis, after: bool) -> str:
-        tr = q.traces
-        n = len(tr.names)
-        cols = 2 if n > 1 else 1
-        rows = int(math.ceil(n / cols))
-        fig = self.Figure(figsize=(11, 2.3 * rows + 0.8), layout="constrained")
-        axes = np.atleast_1d(fig.subplots(rows, cols, sharex=True, squeeze=False).ravel())
-        for j, ax in enumerate(axes):
-            if j >= n:
-                ax.set_visible(False)
-                continue
-            th = tr.theta[:, j] if len(tr.theta) else np.zeros(0)
-            sd = tr.sigma[:, j] if len(tr.sigma) else np.zeros(0)
-            fx = tr.theta_fixed[:, j] if len(tr.theta_fixed) else np.zeros(0)
-            ax.fill_between(tr.conv_t, th - sd, th + sd, color=_AFTER, alpha=0.25, lw=0,
-                            label="float ± σ")
-            ax.plot(tr.conv_t, th, color=_AFTER, lw=1.0, label="float")
-            ax.plot(tr.conv_t, fx, color="black", lw=0.9, ls="--", label="fixed point")
-            if len(th):
-                fin = th[-1]
-                span = max(abs(fin) * 0.5, 4 * float(sd[-1]) if np.isfinite(sd[-1]) else 0.0,
-                           1e-30)
-                ax.set_ylim(fin - span, fin + span)
-                ax.axhline(fin, color=_GREY, lw=0.6)
-            ax.set_title(f"{tr.names[j]} [{tr.units[j]}]", fontsize=9)
-            ax.grid(alpha=0.3)
-            if j == 0:
-                ax.legend(fontsize=7, loc="lower right")
-        for ax in axes[-cols:]:
-            ax.set_xlabel("time [s]")
-        fig.suptitle("Parameter convergence (" + ("after" if after else "model as given")
-                     + "; y axis: final value ± 50 %)", fontsize=11)
-        return self._save(fig, "convergence.png")
-
-    def fixed(self, q: EquationDiagnosis) -> str:
-        tr = q.traces
-        fig = self.Figure(figsize=(11, 4.2), layout="constrained")
-        ax = fig.subplots()
-        floor = 1e-9
-        for j, name in enumerate(tr.names):
-            if not len(tr.theta):
-                break
-            th, fx, sd = tr.theta[:, j], tr.theta_fixed[:, j], tr.sigma[:, j]
-            ref = np.maximum(np.abs(th), np.nan_to_num(sd, nan=0.0))
-            ref = np.where(ref > 0, ref, 1.0)
-            rel = np.abs(fx - th) / ref
-            ax.plot(tr.conv_t, np.maximum(np.nan_to_num(rel, nan=floor), floor), lw=1.0,
-                    label=name)
-        ax.axhline(1e-3, color="black", ls=":", lw=0.8, label="0.1 %")
-        ax.set_yscale("log")
-        ax.set_xlabel("time [s]")
-        ax.set_ylabel("|fixed − float| / max(|float|, σ)")
-        ax.set_title("Fixed point against float, every parameter", fontsize=10)
-        ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7, ncol=3)
-        return self._save(fig, "fixed.png")
-
-
-def _symlog_speed(ax: Any, vmax: float) -> None:
-    """Symmetric-log speed axis: linear within two decades below the top speed."""
-    if not (vmax > 0 and math.isfinite(vmax)):
-        return
-    top = math.ceil(math.log10(vmax))
-    lin = 10.0 ** (top - 2)
-    ax.set_xscale("symlog", linthresh=lin, linscale=0.6)
-    ticks = [0.0] + [s * 10.0 ** k for k in range(top - 2, top + 1) for s in (-1, 1)]
-    ax.set_xticks(sorted(ticks), [f"{t:g}" for t in sorted(ticks)])
-    ax.set_xlim(-1.05 * vmax, 1.05 * vmax)
-
-
-# --------------------------------------------------------------------------------- page
-def _e(x: Any) -> str:
-    return html.escape(str(x))
-
-
-def _num(x: float, fmt: str = ".4g") -> str:
-    return "—" if x is None or not math.isfinite(x) else format(x, fmt)
-
-
-def _params_table(before: Analysis, after: Analysis | None) -> str:
-    pb = {p.name: p for p in before.estimates.parameters}
-    pa = {p.name: p for p in after.estimates.parameters} if after is not None else {}
-    names = list(pb) + [n for n in pa if n not in pb]
-    head = "<tr><th>parameter</th><th>before</th><th>± σ</th><th>fixed</th>"
-    if after is not None:
-        head += "<th>after</th><th>± σ</th><th>fixed</th>"
-    head += "<th>unit</th></tr>"
-    rows = [head]
-    for n in names:
-        b, a = pb.get(n), pa.get(n)
-        cells = [f"<td>{_e(n)}</td>"]
-        for p in ([b, a] if after is not None else [b]):
-            if p is None:
-                cells += ["<td>—</td>"] * 3
-            else:
-                cells += [f"<td>{_num(p.value, '.6g')}</td>", f"<td>{_num(p.sigma, '.2g')}</td>",
-                          f"<td>{_num(p.fixed, '.6g')}</td>"]
-        unit = (a or b).unit  # type: ignore[union-attr]
-        cells.append(f"<td>{_e(unit)}</td>")
-        rows.append("<tr>" + "".join(cells) + "</tr>")
-    return "<table>" + "".join(rows) + "</table>"
-
-
-def _summary_table(report: DiagnosisReport) -> str:
-    cols: Sequence[tuple[str, Any]] = [("before", report.before)] + (
-        [("after", report.after)] if report.after is not None else [])
-    rows = ["<tr><th></th>" + "".join(f"<th>{c}</th>" for c, _ in cols) + "</tr>"]
-
-    def row(label: str, f: Any) -> str:
-        return f"<tr><td>{label}</td>" + "".join(f"<td>{f(a.primary)}</td>"
-                                                   for _, a in cols) + "</tr>"
-
-    u = report.unit
-    rows.append(row("effects", lambda q: _e(", ".join(
-        p for p in (report.before.effects if q is report.before.primary
-                    else report.after.effects)))))  # type: ignore[union-attr]
-    rows.append(row("residual RMS", lambda q: f"{_num(q.residual_rms)} {_e(u)}"))
-    rows.append(row("fit", lambda q: f"{_num(q.fit_percent, '.2f')} %"))
-    rows.append(row("R²", lambda q: _num(q.fit.r2, '.5f')))
-    rows.append(row("whiteness", lambda q: "n/a" if q.whiteness is None else _e(
-        ("white" if q.whiteness.white else "not white")
-        + f" ({q.whiteness.outside}/{q.whiteness.lags} lags outside, p "
-        + _num(q.whiteness.p_value, '.2g') + ")")))
-    rows.append(row("fixed-point RMS", lambda q: f"{_num(q.residual_rms_fixed)} {_e(u)}"))
-    return "<table>" + "".join(rows) + "</table>"
-
-
-def _candidates_table(q: EquationDiagnosis) -> str:
-    rows = ["<tr><th>rank</th><th>effect</th><th>explained</th><th>ΔBIC</th>"
-            f"<th>RMS after [{_e(q.unit)}]</th><th>what it is, and the evidence</th></tr>"]
-    for i, c in enumerate(q.candidates, 1):
-        tag = " <b>suggested</b>" if c.suggested else (
-            " <i>not identifiable</i>" if not c.identifiable else "")
-        ev = "".join(f"<li>{_e(x)}</li>" for x in c.evidence)
-        why = f"<li><i>{_e(c.reason)}</i></li>" if c.reason else ""
-        rows.append(f"<tr><td>{i}</td><td><code>{_e(c.effect)}</code>{tag}</td>"
-                    f"<td>{100 * c.explained:.2f} %</td><td>{_num(c.delta_bic, '.4g')}</td>"
-                    f"<td>{_num(c.rms_after)}</td><td>{_e(c.description)}<ul>{why}{ev}</ul>"
-                    f"</td></tr>")
-    return "<table>" + "".join(rows) + "</table>"
-
-
-_CAPTIONS = {
+# ------------------------------------------------------------------------------ HTML
+#: What each figure shows, under it on the page.
+CAPTIONS = {
     "timeline.png": "Measured against model over time: the filtered target (black) and the "
                     "model's value with the final float estimate; below, the residual.",
     "speed.png": "Residual against speed, both directions (symmetric-log axis, negative: "
@@ -426,47 +171,165 @@ _CAPTIONS = {
 }
 
 
-def _page(report: DiagnosisReport, written: dict[str, str]) -> str:
+def _num(x: float | None, spec: str = ".4g") -> str:
+    return "—" if x is None or not math.isfinite(x) else format(x, spec)
+
+
+def _template() -> jinja2.Template:
+    env = jinja2.Environment(
+        loader=jinja2.PackageLoader("canrls.diagnosis", "templates"),
+        autoescape=True, trim_blocks=True, lstrip_blocks=True,
+        undefined=jinja2.StrictUndefined)
+    env.filters["num"] = _num
+    env.filters["fmt"] = format
+    return env.get_template("report.html.j2")
+
+
+def _parameter_rows(before: Analysis, after: Analysis | None
+                    ) -> list[tuple[str, list[ParameterEstimate | None], str]]:
+    """(name, [estimate before, estimate after], unit) of every parameter of either model."""
+    pb = {p.name: p for p in before.estimates.parameters}
+    pa = {p.name: p for p in after.estimates.parameters} if after is not None else {}
+    rows = []
+    for n in list(pb) + [n for n in pa if n not in pb]:
+        b, a = pb.get(n), pa.get(n)
+        unit = (a or b).unit  # type: ignore[union-attr]
+        rows.append((n, [b, a] if after is not None else [b], unit))
+    return rows
+
+
+def render_html(report: DiagnosisReport, written: Mapping[str, str]) -> str:
+    """The page of ``report`` with the figures ``written`` (``{figure: file name}``)."""
+    figures = [(written[name], CAPTIONS[name]) for name in FIGURES if name in written]
+    return _template().render(r=report, b=report.before.primary, figures=figures,
+                              params=_parameter_rows(report.before, report.after))
+
+
+def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Path:
+    """Write ``index.html`` and the PNG figures of ``report`` into ``directory``.
+
+    :raises ConfigError: matplotlib is missing, or the directory cannot be written.
+    :returns: the path of ``index.html``.
+    """
+    Figure, Canvas = require_matplotlib()
+    out = Path(directory)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"--report {out}: cannot create the directory: {e}") from e
+    figs = Figures(Figure, Canvas, out)
     b = report.before.primary
-    parts = [
-        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
-        f"<title>canrls diagnosis: {_e(report.source)}</title>",
-        "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto;color:#222}"
-        "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;"
-        "padding:3px 8px;vertical-align:top;font-size:90%}th{background:#f0f0f0}"
-        "img{max-width:100%;border:1px solid #ddd}figure{margin:1.5em 0}"
-        "figcaption{color:#555;font-size:90%}.verdict{background:#f6f8ff;padding:.8em;"
-        "border-left:4px solid #1f6fb4}ul{margin:.2em 0}</style></head><body>",
-        f"<h1>Diagnosis of {_e(report.source)}</h1>",
-        f"<p>{report.samples} samples, {report.duration:.1f} s, sample period "
-        f"{report.dt * 1e3:.3g} ms; model <code>{_e(', '.join(report.before.effects))}</code>"
-        + (f"; added <code>{_e(', '.join(report.added))}</code>" if report.added else "")
-        + f"; {_e(b.equation)} equation, target {_e(b.target)} [{_e(b.unit)}].</p>",
-        f"<p class='verdict'><b>Verdict.</b> {_e(report.verdict)}</p>",
-    ]
-    if report.after is not None:
-        parts.append(f"<p class='verdict'><b>After adding.</b> "
-                     f"{_e(' '.join(e.verdict for e in report.after.equations))}</p>")
-    parts += ["<h2>Compare</h2>", _summary_table(report)]
-    parts.append("<h2>Where it fails</h2><ul>")
-    for r in b.regions:
-        parts.append(f"<li>{_e(r.text)} ({100 * r.share:.3g} % of the residual energy)</li>")
-    if not b.regions:
-        parts.append("<li>no region stands out</li>")
-    parts.append("</ul>")
-    if b.structure:
-        parts.append("<p>Structure left" + (" after the suggestion" if b.suggestion else "")
-                     + ":</p><ul>" + "".join(f"<li>{_e(s.text)}</li>" for s in b.structure)
-                     + "</ul>")
-    parts += ["<h2>Which effect is missing</h2>", _candidates_table(b)]
-    if b.not_applicable:
-        parts.append("<ul>" + "".join(f"<li><code>{_e(e)}</code>: {_e(r)}</li>"
-                                      for e, r in b.not_applicable) + "</ul>")
-    parts += ["<h2>Parameters</h2>", _params_table(report.before, report.after)]
-    parts.append("<h2>Figures</h2>")
-    for name in FIGURES:
-        if name in written:
-            parts.append(f"<figure><img src='{_e(written[name])}' alt='{_e(name)}'>"
-                         f"<figcaption>{_e(_CAPTIONS[name])}</figcaption></figure>")
-    parts.append("</body></html>")
-    return "\n".join(parts)
+    a = report.after.primary if report.after is not None else None
+    written: dict[str, str] = {}
+    written["timeline.png"] = figs.timeline(b, a)
+    written["speed.png"] = figs.binned(b, a, "speed")
+    if b.traces.position is not None:
+        written["position.png"] = figs.binned(b, a, "position")
+    if b.candidates:
+        written["candidates.png"] = figs.candidates(b)
+    if b.spectrum is not None:
+        written["orders.png"] = figs.orders(b, a)
+    final = report.after if report.after is not None else report.before
+    written["convergence.png"] = figs.convergence(final.primary, final is report.after)
+    written["fixed.png"] = figs.fixed(final.primary)
+    page = out / "index.html"
+    try:
+        page.write_text(render_html(report, written), encoding="utf-8")
+    except OSError as e:
+        raise ConfigError(f"--report {out}: cannot write index.html: {e}") from e
+    return page
+
+
+# ------------------------------------------------------------------------------ text
+def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
+    u = q.unit
+    f = q.fit
+    out = ["", f"== {q.equation} equation: {q.target} [{u}]", "",
+           "Compare (final float estimate over the whole record, filtered equation)",
+           f"  residual RMS {value_text(f.residual_rms, u)}, fit {f.fit_percent:.2f} %, "
+           f"R² {f.r2:.5f}, {f.samples} samples"
+           f" (fixed point: residual RMS {value_text(q.residual_rms_fixed, u)})"]
+    if q.whiteness is not None:
+        out.append(f"  whiteness: {q.whiteness.describe()}")
+    out += ["", "Where it fails"]
+    if q.regions:
+        for reg in q.regions:
+            out.append(f"  - {reg.text} ({share_text(reg.share)} of the residual energy)")
+    else:
+        out.append("  no region stands out: the binned means of the residual are small")
+    if q.spectrum is not None and q.spectrum.peaks:
+        pk = ", ".join(f"{p:g} ({value_text(q.spectrum.at(p)[0], u)}, "
+                       f"{share_text(q.spectrum.at(p)[1])})" for p in q.spectrum.peaks[:3])
+        out.append(f"  rotation-order spectrum peaks (order per {q.spectrum.per}): {pk}")
+    facts = q.excitation.facts()
+    if facts:
+        out.append("  excitation: " + "; ".join(facts))
+    out += ["", "Which effect is missing (adding each alone to the model)"]
+    if q.candidates:
+        w = max(len(c.effect) for c in q.candidates)
+        out.append(f"  {'rank':<4}  {'effect':<{w}}  {'explained':>9}  {'ΔBIC':>9}  "
+                   f"{'RMS after':>11}")
+        steps = {st.effect: (i, st) for i, st in enumerate(q.suggestion.steps)}
+        for i, c in enumerate(q.candidates, 1):
+            flag = "" if c.identifiable else "  (not identifiable)"
+            if c.effect in steps:
+                k, st = steps[c.effect]
+                flag = "  <- suggested" + (f" (step {k + 1}: {100 * st.explained:.3g} % of what "
+                                           f"the steps before leave)" if k else "")
+            out.append(f"  {i:<4}  {c.effect:<{w}}  {100 * c.explained:>8.2f}%  "
+                       f"{c.delta_bic:>9.4g}  {c.rms_after:>11.4g}{flag}")
+            out.append(f"        {c.description}")
+            if not c.identifiable:
+                out.append(f"        {c.reason}")
+            for e in c.evidence[:3]:
+                out.append(f"        evidence: {e}")
+    else:
+        out.append("  no candidate: every effect of the library is in the model")
+    for e, r in q.not_applicable:
+        out.append(f"  ({e}: {r})")
+    if q.structure:
+        out += ["", "Structure left " + ("after the suggestion" if q.suggestion else "")]
+        for s in q.structure:
+            out.append(f"  - {s.text}")
+    out += ["", "Verdict: " + q.verdict]
+    return out
+
+
+def _format_before_after(before: Analysis, after: Analysis,
+                         added: Sequence[str]) -> list[str]:
+    out = [f"== Before and after --add {' --add '.join(added)}", ""]
+    bq, aq = before.primary, after.primary
+    u = bq.unit
+
+    def white(q: EquationDiagnosis) -> str:
+        if q.whiteness is None:
+            return "n/a"
+        return f"{'white' if q.whiteness.white else 'not white'} ({q.whiteness.outside}/" \
+               f"{q.whiteness.lags})"
+
+    rows = [("residual RMS", value_text(bq.residual_rms, u), value_text(aq.residual_rms, u)),
+            ("fit", f"{bq.fit_percent:.2f} %", f"{aq.fit_percent:.2f} %"),
+            ("R²", f"{bq.fit.r2:.5f}", f"{aq.fit.r2:.5f}"),
+            ("whiteness", white(bq), white(aq)),
+            ("fixed-point RMS", value_text(bq.residual_rms_fixed, u),
+             value_text(aq.residual_rms_fixed, u))]
+    out.append(f"  {'':<16}  {'before':>24}  {'after':>24}")
+    for name, x, y in rows:
+        out.append(f"  {name:<16}  {x:>24}  {y:>24}")
+    out.append("")
+    pb = {p.name: p for p in before.estimates.parameters}
+    pa = {p.name: p for p in after.estimates.parameters}
+    names = list(pb) + [n for n in pa if n not in pb]
+    w = max([len(n) for n in names] + [9])
+    out.append(f"  {'parameter':<{w}}  {'before ± σ':>26}  {'after ± σ':>26}  "
+               f"{'fixed after':>12}  unit")
+    for n in names:
+        b = pb.get(n)
+        a = pa.get(n)
+        bs = f"{b.value:.6g} ± {b.sigma:.2g}" if b else "—"
+        as_ = f"{a.value:.6g} ± {a.sigma:.2g}" if a else "—"
+        fx = f"{a.fixed:.6g}" if a else "—"
+        unit = (a or b).unit  # type: ignore[union-attr]
+        out.append(f"  {n:<{w}}  {bs:>26}  {as_:>26}  {fx:>12}  {unit}")
+    out += ["", "After: " + " ".join(e.verdict for e in after.equations)]
+    return out

@@ -1315,7 +1315,7 @@ class FixedRLS:
             self._counts[kernels.S_Y] += sat["y_in"]
         return Pq, Yq, sat
 
-    def _quantize(self, Phi: FloatArray, Y: FloatArray) -> tuple[IntArray, IntArray]:
+    def quantize_block(self, Phi: FloatArray, Y: FloatArray) -> tuple[IntArray, IntArray]:
         """:meth:`quantize_inputs` (counted) without the checks, for a caller that built
         ``Phi`` (N, n) and ``Y`` (N,) itself, C-contiguous float64."""
         Pq = np.empty(Phi.shape, np.int64)
@@ -1391,7 +1391,7 @@ class FixedRLS:
         Phi_c = _int_array("Phi_int", Phi_a, (N, self._n))
         Y_c = _int_array("Y_int", Y_int, (N,))
         before = self._counts.copy()
-        eps, theta, trace_P, P_exp, flags, applied = self._run(Phi_c, Y_c, bool(record))
+        eps, theta, trace_P, P_exp, flags, applied = self.run_block(Phi_c, Y_c, bool(record))
         return FixedTrace(
             eps=eps,
             theta=theta,
@@ -1405,7 +1405,7 @@ class FixedRLS:
             config=self._config,
         )
 
-    def _run(
+    def run_block(
         self, Phi_int: IntArray, Y_int: IntArray, record: bool
     ) -> tuple[IntArray, IntArray | None, IntArray, IntArray, npt.NDArray[np.uint8], int]:
         """:meth:`run` without the checks, for a caller that built the arrays itself.

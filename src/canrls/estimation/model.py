@@ -493,10 +493,10 @@ class RegressorBuilder:
 
     def process(self, signals: Any) -> RegressorBlock:
         """Regressors of one block (see the module docstring)."""
-        phi, y, t, nonfinite = self._regressors(signals)
+        phi, y, t, nonfinite = self.regressors(signals)
         return RegressorBlock(phi=phi, y=y, t=t, nonfinite=nonfinite)
 
-    def _regressors(self, signals: Any
+    def regressors(self, signals: Any
                     ) -> tuple[F64, F64, F64, npt.NDArray[np.bool_] | None]:
         """``(phi, y, t, nonfinite)`` of :meth:`process`, without the result object."""
         eq = self.equation
@@ -520,7 +520,7 @@ class RegressorBuilder:
             # filter, pick F or sF and normalise in one pass (same values as below)
             y = np.empty(n)
             phi = np.empty((n, eq.n))
-            self.svf._process_scaled(raw, self._deriv, self._scale, y, phi)
+            self.svf.process_scaled(raw, self._deriv, self._scale, y, phi)
             return phi, y, frame.t, nonfinite
         f, sf = self.svf.process(raw)
         # value columns and target through F, derivative columns through sF

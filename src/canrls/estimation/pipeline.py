@@ -12,7 +12,8 @@ Per equation of the model (mechanical, and electrical when present):
    state-variable filter and normalises them by powers of two;
 2. samples inside the filter's warm-up (after the start, a reset or a gap in the
    sample times) are not used: the filter's zero initial state does not match the
-   signals there, so the filtered equation does not hold yet;
+   signals there, so the filtered equation does not hold yet (short gaps are filled;
+   :class:`~canrls.estimation.selection.SamplePolicy` decides, for the diagnosis too);
 3. the float reference :class:`~canrls.estimation.rls.RLS` and the fixed-point
    :class:`~canrls.estimation.fixed.FixedRLS` (inputs quantised at the boundary) update on the
    same rows;
@@ -46,7 +47,8 @@ from canrls.errors import ConfigError
 from canrls.estimation.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
 from canrls.estimation.model import Equation, Model
 from canrls.estimation.rls import RLS, RLSFlag
-from canrls.signals import ROLES, Signals
+from canrls.estimation.selection import SamplePolicy
+from canrls.signals import Signals
 
 __all__ = [
     "ENERGY_FLOOR",
@@ -238,58 +240,6 @@ def _bookkeeping(phi: F64, y: F64, use: npt.NDArray[np.bool_], eps_u: F64,
     return windup
 
 
-@numba.njit(cache=True)
-def _warmup_mask(t: F64, omega: F64, gap: float, warm: int, min_speed: float,
-                 max_speed: float, state: F64,
-                 restart: npt.NDArray[np.bool_],
-                 use: npt.NDArray[np.bool_]) -> tuple[int, int]:  # pragma: no cover - compiled
-    """Mark gaps (restart the filter there) and the rows not to use; return the number
-    of restarts and of rows to use.
-
-    A row is not used in the warm-up after a restart, nor while ``|omega| > max_speed``
-    (periodic columns advance too fast per sample) or ``|omega| < min_speed`` (friction
-    near standstill), nor in the warm-up after those.
-    state = [last t (nan: none yet), samples left in the warm-up]
-    """
-    last = state[0]
-    left = state[1]
-    restarts = 0
-    used = 0
-    for k in range(t.shape[0]):
-        if last != last or t[k] - last > gap or t[k] < last:
-            restart[k] = True
-            restarts += 1
-            left = warm
-        last = t[k]
-        w = abs(omega[k])
-        if w > max_speed or w < min_speed:
-            left = warm + 1
-        if left > 0:
-            use[k] = False
-            left -= 1
-        else:
-            use[k] = True
-            used += 1
-    state[0] = last
-    state[1] = left
-    return restarts, used
-
-
-@numba.njit(cache=True)
-def _nothing_to_fill(t: F64, has_last: bool, last_t: float, dt: float,
-                     max_gap: float) -> bool:  # pragma: no cover - compiled
-    """True when no step between samples (from ``last_t`` if ``has_last``) misses a
-    period: each rounds to at most one period, is longer than ``max_gap`` or is not
-    forward (a nan step is left to :meth:`GapFiller.fill`)."""
-    prev = last_t if has_last else t[0]
-    for k in range(t.shape[0]):
-        gap = t[k] - prev
-        prev = t[k]
-        if not (gap > max_gap or gap <= 0.0 or np.rint(gap / dt) <= 1.0):
-            return False
-    return True
-
-
 # ------------------------------------------------------------------------- results
 def divergence(theta: Sequence[float], fixed: Sequence[float], sigma: Sequence[float]) -> float:
     """Fixed point against float: ``max_j |fixed_j - theta_j| / max(|theta_j|, 3 sigma_j)``.
@@ -453,82 +403,6 @@ class PipelineBlock:
     equations: tuple[EquationBlock, ...]
 
 
-# ----------------------------------------------------------------------- gaps
-class GapFiller:
-    r"""Fill short gaps in the sample times so the filter keeps its time base.
-
-    A lost frame leaves its period without a sample; the filter, which assumes one
-    sample per period, would then stretch the signals in time and bias the derivative
-    columns (inertia). A gap of ``m`` missing periods, up to ``max_gap`` seconds, is
-    filled with ``m`` rows interpolated on a straight line (the position along the
-    shorter way round its wrap period). Filled rows pass through the filter but never
-    update the estimators; longer gaps restart the filter instead. The previous sample
-    is carried between blocks, so the result does not depend on the block sizes.
-    """
-
-    def __init__(self, dt: float, max_gap: float, period: float | None) -> None:
-        self.dt = dt
-        self.max_gap = max_gap
-        self.period = period
-        self._last: dict[str, float] | None = None
-
-    def reset(self) -> None:
-        self._last = None
-
-    def fill(self, s: Signals) -> tuple[Signals, npt.NDArray[np.bool_] | None]:
-        """(signals with the gaps filled, mask of the real rows or ``None``: nothing filled)."""
-        n = len(s)
-        if n == 0:
-            return s, None
-        t = np.ascontiguousarray(s.t, dtype=np.float64)
-        last = self._last
-        row = {"t": float(t[-1])}
-        for r in ROLES:
-            v = getattr(s, r)
-            if v is not None:
-                row[r] = float(v[-1])
-        self._last = row
-        if _nothing_to_fill(t, last is not None, last["t"] if last is not None else 0.0,
-                            self.dt, self.max_gap):
-            return s, None
-        prev_t = np.empty(n)
-        prev_t[1:] = t[:-1]
-        prev_t[0] = last["t"] if last is not None else t[0]
-        gap = t - prev_t
-        missing = np.rint(gap / self.dt).astype(np.int64) - 1
-        missing[(gap > self.max_gap) | (gap <= 0) | (missing < 0)] = 0
-        if not missing.any():
-            return s, None
-        total = n + int(missing.sum())
-        # row k of the input lands at k + (filled rows before it)
-        dest = np.arange(n) + np.cumsum(missing)
-        real = np.zeros(total, np.bool_)
-        real[dest] = True
-        roles = [r for r in ROLES if s.has(r)]
-        out: dict[str, npt.NDArray[np.float64]] = {}
-        for r in ["t", *roles]:
-            v = np.asarray(getattr(s, r), dtype=np.float64)
-            pv = np.empty(n)
-            pv[1:] = v[:-1]
-            pv[0] = last[r] if last is not None and r in last else v[0]
-            col = np.empty(total)
-            col[dest] = v
-            step = v - pv
-            wrap = self.period if r == "position" else None
-            if wrap is not None:
-                step = np.mod(step + 0.5 * wrap, wrap) - 0.5 * wrap
-            for k in np.flatnonzero(missing):
-                m = int(missing[k])
-                frac = np.arange(1, m + 1) / (m + 1)
-                vals = pv[k] + step[k] * frac
-                if wrap is not None:
-                    vals = np.mod(vals, wrap)
-                col[dest[k] - m: dest[k]] = vals
-            out[r] = col
-        return Signals(out["t"], out["current"], out["speed"], out.get("position"),
-                       out.get("voltage")), real
-
-
 # ----------------------------------------------------------------------- estimator
 class EquationEstimator:
     """Builder, float RLS, fixed RLS and statistics of one equation."""
@@ -547,26 +421,25 @@ class EquationEstimator:
         self.fixed_config = s.fixed_config(n, self.ridge)
         self.frls = FixedRLS(self.fixed_config, n, lam=s.lam, alpha=self.ridge,
                              trace_max=s.trace_max)
-        m = equation.model
-        wc = 2 * math.pi * m.cutoff_hz
-        warm_s = 5.0 / (m.zeta * wc) if s.warmup_s is None else s.warmup_s
-        self.warmup = int(math.ceil(warm_s / self.dt))
-        self.gap = s.gap_periods * self.dt
-        period = 2.0 * math.pi if m.axis == "rotary" else m.wrap
-        self.filler = GapFiller(self.dt, self.gap, period)
-        # k * |omega| * dt <= max_phase_step for the highest position order k
-        k_max = max([e.order for e in equation.effects] + [0])
-        self.max_speed = (s.max_phase_step / (k_max * self.dt)) if k_max else math.inf
-        if m.axis == "linear" and k_max:
-            # the phase of a linear axis advances 2 pi / pitch per metre
-            self.max_speed *= m.pitch / (2 * math.pi)
-        friction = any(e.name in ("coulomb", "stribeck") for e in equation.effects)
-        if not friction:
-            self.min_speed = 0.0
-        else:
-            self.min_speed = 5.0 * m.coulomb_band if s.min_speed is None else s.min_speed
+        #: which samples update the estimators (warm-up, gaps, speed limits)
+        self.policy = SamplePolicy.for_equation(equation, self.dt, s)
+        self.filler = self.policy.filler()
+        self.selector = self.policy.selector()
         self.beta = min(1.0, self.dt / s.rms_time_s)
         self.reset()
+
+    @property
+    def warmup(self) -> int:
+        """Samples of filter warm-up not used (:attr:`SamplePolicy.warmup`)."""
+        return self.policy.warmup
+
+    @property
+    def min_speed(self) -> float:
+        return self.policy.min_speed
+
+    @property
+    def max_speed(self) -> float:
+        return self.policy.max_speed
 
     def reset(self) -> None:
         """Back to the prior; statistics cleared; the filter restarts."""
@@ -578,7 +451,7 @@ class EquationEstimator:
         self._v = np.zeros(n)
         self._s = np.zeros(3)
         self._rms_state = np.zeros(1)
-        self._mask_state = np.array([np.nan, 0.0])
+        self.selector.reset()
         self.filler.reset()
         self.windup_steps = 0
         #: rows left out because a value was not finite (see RegressorBuilder)
@@ -610,7 +483,7 @@ class EquationEstimator:
             # one piece (the common case): no slicing, no joining
             if restarts:
                 self.builder.reset()
-            phi, y, _, nonfinite = self.builder._regressors(signals)
+            phi, y, _, nonfinite = self.builder.regressors(signals)
             return phi, y, nonfinite
         # the filter restarts at every gap (and at the start): split the block there
         bounds = [int(k) for k in np.flatnonzero(restart)] + [N]
@@ -658,10 +531,8 @@ class EquationEstimator:
                 theta=np.zeros((0, eq.n)) if record else None,
                 theta_fixed=np.zeros((0, eq.n)) if record else None,
                 phi=np.zeros((0, eq.n)) if record else None)
-        restart = np.zeros(N, np.bool_)
-        omega = np.ascontiguousarray(signals.speed, dtype=np.float64)
-        restarts, used = _warmup_mask(t, omega, self.gap, self.warmup, self.min_speed,
-                                      self.max_speed, self._mask_state, restart, use)
+        sel = self.selector.select(t, signals.speed)
+        restart, use, restarts, used = sel.restart, sel.use, sel.restarts, sel.used
         if real is not None:
             use &= real
             used = int(np.count_nonzero(use))
@@ -674,9 +545,9 @@ class EquationEstimator:
         if used:
             phi_u = phi if rows is None else phi[rows]
             y_u = y if rows is None else y[rows]
-            eps_u, theta_u, _, flags_u, _ = self.rls._run(phi_u, y_u, record)
-            Pq, Yq = self.frls._quantize(phi_u, y_u)
-            epsq_u, thetaq_u, _, _, flagsq_u, _ = self.frls._run(Pq, Yq, record)
+            eps_u, theta_u, _, flags_u, _ = self.rls.run_block(phi_u, y_u, record)
+            Pq, Yq = self.frls.quantize_block(phi_u, y_u)
+            epsq_u, thetaq_u, _, _, flagsq_u, _ = self.frls.run_block(Pq, Yq, record)
         else:
             # no row updates the estimators (all in a warm-up): they are left as they are
             eps_u, epsq_u = np.zeros(0), np.zeros(0, np.int64)
@@ -772,7 +643,7 @@ class EquationEstimator:
         self.nonfinite_rows = int(d.get("nonfinite_rows", 0))
         self._since_nonfinite = self.warmup + 1
         self.builder.reset()
-        self._mask_state = np.array([np.nan, 0.0])
+        self.selector.reset()
         self.filler.reset()
 
 

@@ -585,7 +585,7 @@ class RLS:
                     Y_c = np.ascontiguousarray(Y_a, dtype=self._dtype)
             except (TypeError, ValueError, OverflowError) as e:
                 raise EstimatorError(f"RLS Phi and Y must be real numbers: {e}") from e
-        eps, theta, trace_P, flags, applied = self._run(Phi_c, Y_c, bool(record))
+        eps, theta, trace_P, flags, applied = self.run_block(Phi_c, Y_c, bool(record))
         return RLSTrace(
             eps=eps,
             theta=theta,
@@ -595,7 +595,7 @@ class RLS:
             applied=applied,
         )
 
-    def _run(
+    def run_block(
         self, Phi: FloatArray, Y: FloatArray, record: bool
     ) -> tuple[FloatArray, FloatArray | None, FloatArray, npt.NDArray[np.uint8], int]:
         """:meth:`run` without the checks, for a caller that built the arrays itself.

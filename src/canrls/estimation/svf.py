@@ -373,7 +373,7 @@ class SVF:
             raise ValueError(
                 f"SVF.process: got {m} columns, the filter state has {self._x1.shape[0]}")
 
-    def _process_scaled(self, u: F64, derivative: npt.NDArray[np.bool_], scale: F64,
+    def process_scaled(self, u: F64, derivative: npt.NDArray[np.bool_], scale: F64,
                         y: F64, phi: F64) -> None:
         """:meth:`process` for the regressors, fused: column ``j`` of ``u`` (N, m) gives
         ``sF[u_j]`` where ``derivative[j]`` else ``F[u_j]``, times ``scale[j]``; column 0

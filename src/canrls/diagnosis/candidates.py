@@ -1,0 +1,647 @@
+r"""Which effect is missing: the candidates, their ranking and identifiability.
+
+Every effect of the library that is not in the model is
+tried as an extra set of columns :math:`G`, built through the same
+:class:`~canrls.estimation.model.Model` / regressor path (``model.with_effects(add=[...])``).
+With :math:`r_0` the least-squares residual of the current columns :math:`\Phi` and
+:math:`\tilde G = (I - \Phi\Phi^+) G` the candidate orthogonalised against them,
+the *error-reduction ratio*
+
+.. math::
+
+    \mathrm{ERR} = \frac{r_0^\top \tilde G (\tilde G^\top\tilde G)^{-1}
+                         \tilde G^\top r_0}{r_0^\top r_0}
+
+is the share of the residual variance the candidate explains (one column:
+:math:`(\tilde g^\top r_0)^2 / (\tilde g^\top\tilde g\; r_0^\top r_0)`); the
+residual RMS after adding it is :math:`\sqrt{(1-\mathrm{ERR})\,r_0^\top r_0/N}` and
+the change of the Bayesian information criterion
+
+.. math::
+
+    \Delta\mathrm{BIC} = N_e \ln(1 - \mathrm{ERR}) + p \ln N_e,
+    \qquad N_e = N\,\lVert h\rVert_2^2
+
+counts the :math:`N_e` independent samples the filter's impulse response :math:`h`
+(DC gain 1) leaves of :math:`N` (white noise through :math:`F` is correlated over
+about :math:`1/\lVert h\rVert_2^2` samples, 18 at the defaults). All of it comes
+from the Gram matrix of ``[Phi, G, y]`` accumulated block by block, so memory
+does not grow with the number of candidates. The cogging order is searched over
+:math:`k = 2 \dots K_{max}` (order 1 is ``unbalance``). A greedy forward selection
+(orthogonal least squares) adds the best candidate, re-ranks the others against the
+enlarged model and stops when the next one explains less than
+:data:`MIN_EXPLAINED` of what is left or does not lower the BIC: that is the
+:class:`Suggestion`. A candidate whose column is not excited, or (nearly) collinear
+with the model's columns (less than :data:`MIN_INDEPENDENCE` of it outside their
+span: a variance inflation above 100), is *not identifiable from this data* and is
+never suggested; the reason is stated (one direction of motion only, nearly constant
+speed, less than a revolution covered, ...).
+
+:func:`rank_candidates` also checks the model's own columns (excited, not collinear),
+what structure is left after the suggestion and writes the verdict.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from canrls.diagnosis.residual import MIN_BIN, MIN_EXPLAINED, residual_structure
+from canrls.diagnosis.results import (
+    Binned,
+    Candidate,
+    ExcitationSummary,
+    OrderSpectrum,
+    Step,
+    StructureItem,
+    Suggestion,
+    share_text,
+    value_text,
+)
+from canrls.diagnosis.samples import RecordSamples
+from canrls.errors import ConfigError
+from canrls.estimation.effects import MECHANICAL, Cogging, Effect, UserTerm, library
+from canrls.estimation.model import Equation, Model
+from canrls.estimation.pipeline import EquationBlock
+from canrls.signals import Signals
+
+__all__ = [
+    "DEFAULT_MAX_ORDER",
+    "MIN_EXPLAINED",
+    "MIN_TOTAL",
+    "MIN_INDEPENDENCE",
+    "MIN_EXCITATION",
+    "MAX_COHERENCE",
+    "CandidateResult",
+    "rank_candidates",
+]
+
+F64 = npt.NDArray[np.float64]
+B = npt.NDArray[np.bool_]
+
+#: Highest cogging order searched (``cogging:2`` ... ``cogging:K``).
+DEFAULT_MAX_ORDER = 64
+#: Share of the residual variance a suggestion must explain in total when structure is
+#: left after it; below, it is withdrawn (partial explainers of something outside the
+#: library are not what is missing).
+MIN_TOTAL = 0.8
+#: Fraction of a candidate's column energy that must lie outside the span of the model's
+#: columns (1/VIF) for it to be identifiable.
+MIN_INDEPENDENCE = 0.01
+#: RMS of a normalised column (fraction of its full scale) below which it is treated as
+#: zero (not excited at all); the physical checks (acceleration against the speed-sensor
+#: noise, time below the Stribeck speed, revolutions covered) come first.
+MIN_EXCITATION = 1e-6
+#: Coherence of a periodic column with a sinusoid in time above which a position-periodic
+#: effect cannot be told from a disturbance periodic in time
+#: (see :meth:`RecordSamples.coherence`).
+MAX_COHERENCE = 0.9
+
+
+def _eval_rows(ctx: RecordSamples, model: Model, eq: Equation, names: Sequence[str],
+               used: B, periodic: bool = False) -> B:
+    """The samples the candidates are compared on.
+
+    The pipeline's own samples for the model (``used``), less those it would not use
+    once the non-periodic candidates are added (e.g. near standstill when Coulomb or
+    Stribeck friction joins the model): the rows the pipeline's sample policy uses for
+    that model (:meth:`RecordSamples.used`). Periodic candidates are masked column by
+    column instead (:meth:`RecordSamples.keep`), unless ``periodic``: then their limits
+    count too (the samples of the refit with them).
+    """
+    nonper = [nm for nm in names
+              if periodic or not nm.startswith(("cogging:", "unbalance"))]
+    m = model.with_effects(add=nonper) if nonper else model
+    return used & ctx.used(m.equation(eq.name))
+
+
+@dataclass
+class CandidateResult:
+    """What :func:`rank_candidates` found for one equation."""
+
+    candidates: tuple[Candidate, ...]
+    not_applicable: tuple[tuple[str, str], ...]
+    suggestion: Suggestion
+    structure: tuple[StructureItem, ...]
+    identifiable: bool
+    identifiability: tuple[str, ...]
+    verdict: str
+    rms_ls: float
+
+
+class _Gram:
+    r"""Least squares from the Gram matrix of ``[columns..., y]`` (columns equilibrated).
+
+    ``rss(S)`` is the residual sum of squares of y regressed on the columns ``S``
+    (normalised units); pseudo-inverses drop directions below 1e-12 of the largest.
+    """
+
+    def __init__(self, A: F64) -> None:
+        self.m = A.shape[0] - 1
+        d = np.sqrt(np.maximum(np.diag(A), 0.0))
+        self.zero = d[: self.m] <= 1e-300
+        d = np.where(d > 1e-300, d, 1.0)
+        self.d = d
+        self.An = A / np.outer(d, d)
+        self.yy = float(A[-1, -1])
+
+    def solve(self, S: Sequence[int]) -> tuple[float, dict[int, float]]:
+        """(RSS, {column: coefficient in the column's units}) of y on columns S."""
+        S = [j for j in S if not self.zero[j]]
+        if not S:
+            return self.yy, {}
+        Ass = self.An[np.ix_(S, S)]
+        b = self.An[S, -1]
+        w, V = np.linalg.eigh(Ass)
+        keep = w > 1e-12 * max(float(w[-1]), 1e-300)
+        x = V[:, keep] @ ((V[:, keep].T @ b) / w[keep])
+        rss = (float(self.An[-1, -1]) - float(b @ x)) * self.d[-1] ** 2
+        coef = x * self.d[-1] / self.d[S]
+        return max(rss, 0.0), {j: float(c) for j, c in zip(S, coef, strict=True)}
+
+    def independence(self, S: Sequence[int], C: Sequence[int]) -> float:
+        """Smallest eigenvalue of the equilibrated Schur complement of C in [C, S]: the
+        fraction of the worst direction of S outside the span of C (1/VIF)."""
+        S = [j for j in S if not self.zero[j]]
+        if not S:
+            return 0.0
+        Ass = self.An[np.ix_(S, S)]
+        C = [j for j in C if not self.zero[j]]
+        if C:
+            Acc = self.An[np.ix_(C, C)]
+            Acs = self.An[np.ix_(C, S)]
+            w, V = np.linalg.eigh(Acc)
+            keep = w > 1e-12 * max(float(w[-1]), 1e-300)
+            X = V[:, keep] @ ((V[:, keep].T @ Acs) / w[keep][:, None])
+            Ass = Ass - Acs.T @ X
+        # relative to the columns' own energy (their equilibrated Gram)
+        w0 = np.linalg.eigvalsh(self.An[np.ix_(S, S)])
+        ws = np.linalg.eigvalsh(0.5 * (Ass + Ass.T))
+        return float(max(ws[0], 0.0) / max(w0[-1], 1e-300))
+
+    def corr(self, i: int, j: int) -> float:
+        return float(self.An[i, j])
+
+
+def _candidate_names(model: Model, eq: Equation, signals: Signals,
+                     max_order: int) -> tuple[list[str], list[tuple[str, str]]]:
+    """The library effects (and configured user terms) not in the model, for this equation."""
+    have = set(model.effect_names)
+    names: list[str] = []
+    na: list[tuple[str, str]] = []
+    has_pos = signals.position is not None
+    for cls in library():
+        base = cls.NAME
+        if base == "user":
+            for term, t in sorted(model.terms.items()):
+                nm = f"user:{term}"
+                if nm in have or t.get("equation", MECHANICAL) != eq.name:
+                    continue
+                names.append(nm)
+            continue
+        if cls.EQUATION != eq.name:
+            if base == "electrical" and "electrical" not in have:
+                if signals.voltage is None:
+                    na.append((base, "needs the voltage signal, which the data do not carry"))
+                else:
+                    na.append((base, "a second (voltage) equation: it cannot explain the "
+                                     "mechanical residual; add it to identify R, L and Ke"))
+            continue
+        if base == "cogging":
+            if not has_pos:
+                na.append(("cogging:K", "needs the position, which the data do not carry"))
+                continue
+            names.extend(f"cogging:{k}" for k in range(2, max_order + 1)
+                         if f"cogging:{k}" not in have)
+            continue
+        if base in have:
+            continue
+        if "position" in cls.REQUIRES and not has_pos:
+            na.append((base, "needs the position, which the data do not carry"))
+            continue
+        names.append(base)
+    # drop what the model cannot take (e.g. a signal the drive does not send)
+    ok: list[str] = []
+    tried_cog: bool | None = None
+    for nm in names:
+        if nm.startswith("cogging:"):
+            if tried_cog is None:
+                try:
+                    model.with_effects(add=[nm])
+                    tried_cog = True
+                except ConfigError as e:
+                    tried_cog = False
+                    na.append(("cogging:K", str(e)))
+            if tried_cog:
+                ok.append(nm)
+            continue
+        try:
+            model.with_effects(add=[nm])
+        except ConfigError as e:
+            na.append((nm, str(e)))
+            continue
+        if nm.startswith("user:"):
+            eff = model.with_effects(add=[nm]).effects[-1]
+            miss = [r for r in eff.requires if getattr(signals, r, None) is None]
+            if miss:
+                na.append((nm, f"reads {', '.join(miss)}, which the data do not carry"))
+                continue
+        ok.append(nm)
+    return ok, na
+
+
+def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: EquationBlock, r: F64,
+                used: B, N: int, h2: float, unit: str, bins: Mapping[str, Binned],
+                spectrum: OrderSpectrum | None,
+                exc: ExcitationSummary) -> CandidateResult:
+    names, na = _candidate_names(model, eq, ctx.signals, ctx.max_order)
+    # compare on the samples the pipeline would use with the candidates
+    used = _eval_rows(ctx, model, eq, names, used)
+    N = int(used.sum())
+    n = eq.n
+    cur_names = [p.name for p in eq.parameters]
+    aug_model = model.with_effects(add=names) if names else model
+    aug = aug_model.equation(eq.name)
+    if [p.name for p in aug.parameters[:n]] != cur_names:  # pragma: no cover - contract
+        raise AssertionError("with_effects did not keep the model's columns first")
+    A = ctx.gram(aug, used, n)
+    G = _Gram(A)
+    C = list(range(n))
+    # groups of columns per candidate effect
+    groups: dict[str, list[int]] = {}
+    for j, p in enumerate(aug.parameters[n:], start=n):
+        groups.setdefault(p.effect, []).append(j)
+    factors = aug.scaling.factors
+    scale_y = math.ldexp(1.0, aug.scaling.target)
+    rss0, th0 = G.solve(C)
+    Ne = max(N * h2, 2.0)
+    rms_ls = math.sqrt(rss0 / N) * scale_y if N else math.nan
+
+    def rms_of(rss: float) -> float:
+        return math.sqrt(rss / N) * scale_y if N else math.nan
+
+    def bic(rss_new: float, rss_old: float, p: int) -> float:
+        # dBIC = Ne ln(RSS'/RSS) + p ln Ne
+        if rss_old <= 0:
+            return math.inf
+        return Ne * math.log(max(rss_new, 1e-300 * rss_old) / rss_old) + p * math.log(Ne)
+
+    col_rms = np.sqrt(np.maximum(np.diag(A)[:-1], 0.0) / max(N, 1))
+    # -- the model's own columns -------------------------------------------------------
+    model_issues: list[str] = []
+    for j in C:
+        others = [i for i in C if i != j]
+        ind = G.independence([j], others) if others else 1.0
+        why = _unexcited_reason(cur_names[j], exc, model)
+        if col_rms[j] < MIN_EXCITATION or why:
+            model_issues.append(f"{cur_names[j]} is " + (why or "not excited: its column is "
+                                                          "practically zero").replace(
+                "not excited", "not excited", 1))
+        elif ind < MIN_INDEPENDENCE:
+            partners = sorted(others, key=lambda i: -abs(G.corr(i, j)))[:2]
+            model_issues.append(
+                f"{cur_names[j]} is (nearly) collinear with "
+                f"{' and '.join(cur_names[i] for i in partners)} "
+                f"({share_text(ind)} of its column independent)")
+    # -- every candidate alone ---------------------------------------------------------
+    evaluated: dict[str, dict[str, Any]] = {}
+    for name, cols in groups.items():
+        exc_c = float(np.max(col_rms[cols]))
+        ind = G.independence(cols, C)
+        rss, x = G.solve(C + cols)
+        expl = (rss0 - rss) / rss0 if rss0 > 0 else 0.0
+        expl = min(max(expl, 0.0), 1.0)
+        reason = ""
+        order = aug.parameters[cols[0]].order
+        unexcited = _unexcited_reason(name, exc, model)
+        if exc_c < MIN_EXCITATION:
+            reason = unexcited or "not excited: its column is practically zero over the record"
+        elif unexcited:
+            reason = unexcited
+        elif ind < MIN_INDEPENDENCE:
+            reason = _collinear_reason(name, cols, C, G, cur_names, ind, exc)
+        elif order > 0 and ctx.angle_raw is not None:
+            coh, f_hz = ctx.coherence(order, used)
+            if coh >= MAX_COHERENCE:
+                reason = (f"not identifiable from this data: the speed is nearly constant, so "
+                          f"order {order} in position is a sinusoid of {f_hz:.3g} Hz in time "
+                          f"(coherence {coh:.2f}); it cannot be told from a disturbance "
+                          f"periodic in time: vary the speed")
+        th = {}
+        for j in cols:
+            p = aug.parameters[j]
+            th[p.name] = (float(x.get(j, 0.0) * factors[j]), p.unit)
+        evaluated[name] = dict(cols=cols, explained=expl, rss=rss,
+                               dbic=bic(rss, rss0, len(cols)), ind=ind, exc=exc_c,
+                               reason=reason, params=th)
+    # -- the cogging order -------------------------------------------------------------
+    cog = [nm for nm in evaluated if nm.startswith("cogging:")]
+    best_cog = max(cog, key=lambda nm: (evaluated[nm]["explained"], -int(nm[8:]))) \
+        if cog else None
+    # -- forward selection ---------------------------------------------------------------
+    steps: list[Step] = []
+    sel: list[int] = []
+    chosen: list[str] = []
+    rss_cur = rss0
+    pool = [nm for nm, ev in evaluated.items() if not ev["reason"]]
+    for _ in range(8):
+        best = None
+        for nm in pool:
+            if nm in chosen:
+                continue
+            cols = evaluated[nm]["cols"]
+            if G.independence(cols, C + sel) < MIN_INDEPENDENCE:
+                continue
+            rss, _ = G.solve(C + sel + cols)
+            if best is None or rss < best[1]:
+                best = (nm, rss)
+        if best is None or rss_cur <= 0:
+            break
+        nm, rss = best
+        expl = (rss_cur - rss) / rss_cur
+        db = bic(rss, rss_cur, len(evaluated[nm]["cols"]))
+        if expl < MIN_EXPLAINED or db >= 0:
+            break
+        chosen.append(nm)
+        sel += evaluated[nm]["cols"]
+        steps.append(Step(nm, float(expl), float(db), rms_of(rss)))
+        rss_cur = rss
+    suggestion = Suggestion(tuple(steps), rms_ls)
+    # -- what structure is left after the suggestion ---------------------------------------
+    partial: Suggestion | None = None
+    structure: tuple[StructureItem, ...] = ()
+    if chosen:
+        # the model with the suggestion, on the samples the pipeline will use for it
+        # (periodic effects drop the fast samples there, instead of being masked)
+        m2 = model.with_effects(add=chosen)
+        eq2 = m2.equation(eq.name)
+        rows2 = _eval_rows(ctx, model, eq, chosen, eb.used, periodic=True)
+        phi2, y2 = ctx.columns(eq2)
+        theta2 = np.linalg.lstsq(phi2[rows2], y2[rows2], rcond=None)[0]
+        r_left = eq2.target_to_physical(y2 - phi2 @ theta2)
+        if int(rows2.sum()):
+            suggestion = Suggestion(suggestion.steps, suggestion.rms_before,
+                                    float(np.sqrt(np.mean(r_left[rows2] ** 2))))
+        structure = residual_structure(ctx, r_left, rows2, unit, h2, None, eq.target.signal)
+        total = 1.0 - rss_cur / rss0 if rss0 > 0 else 0.0
+        if structure and total < MIN_TOTAL:
+            # the best candidates explain part of the structure and leave the rest: they
+            # are not what is missing; say so instead of suggesting them
+            partial, suggestion, chosen = suggestion, Suggestion((), rms_ls), []
+    if not chosen:
+        # nothing to add: the least-squares residual of the model as it is (structure the
+        # model's own columns can absorb is the estimator's, not a missing effect)
+        assert eb.phi is not None
+        th_ls = np.array([th0.get(j, 0.0) for j in C])
+        r_ls = eq.target_to_physical(np.ldexp(eb.y, -eq.scaling.target) - eb.phi @ th_ls)
+        d = (r_ls - r)[used]
+        # the displayed spectrum (of r) serves when r_ls is practically r
+        same = (float(np.dot(d, d)) <= 0.01 * float(np.dot(r_ls[used], r_ls[used]))
+                and N == int(eb.used.sum()))
+        structure = residual_structure(ctx, r_ls, used, unit, h2, spectrum if same else None,
+                               eq.target.signal)
+    # -- which candidates to list --------------------------------------------------------
+    # every effect once; of the cogging orders the best one and those suggested
+    listed = [nm for nm in evaluated if not nm.startswith("cogging:")]
+    extra_cog = [nm for nm in cog if nm in chosen]
+    if best_cog is not None and best_cog not in extra_cog:
+        extra_cog.insert(0, best_cog)
+    listed += extra_cog
+    ev_ctx = _EvidenceContext(ctx, bins, spectrum, unit, eb, used, A, G, C, aug, evaluated,
+                              best_cog, cog, model)
+    cands = []
+    for nm in listed:
+        ev = evaluated[nm]
+        eff = aug_model.effects[[e.name for e in aug_model.effects].index(nm)]
+        cands.append(Candidate(
+            effect=nm, equation=eq.name, description=_description(eff),
+            signature=type(eff).RESIDUAL_SIGNATURE, explained=float(ev["explained"]),
+            delta_bic=float(ev["dbic"]), rms_after=rms_of(ev["rss"]),
+            identifiable=not ev["reason"], suggested=nm in chosen, reason=ev["reason"],
+            evidence=tuple(_evidence(nm, ev_ctx)), parameters=ev["params"],
+            independence=float(ev["ind"]), excitation=float(ev["exc"])))
+    # best first: the suggestion in the order it was chosen, then by share explained
+    # (identifiable ones before the others)
+    cands.sort(key=lambda c: (chosen.index(c.effect) if c.suggested else len(chosen),
+                              0 if c.identifiable else 1, -c.explained))
+    # -- identifiability and verdict -------------------------------------------------------
+    not_ident = [c for c in cands if not c.identifiable]
+    reasons = list(model_issues)
+    for c in not_ident:
+        reasons.append(f"{c.effect}: {c.reason}")
+    identifiable = not model_issues and not not_ident
+    rms_final = math.sqrt(float(np.mean(r[used] ** 2))) if N else math.nan
+    verdict = _verdict(eq, suggestion, cands, structure, model_issues, not_ident, exc, unit,
+                       rms_ls, partial)
+    if rms_final > 1.1 * rms_ls:
+        verdict += (f" Note: the final estimate leaves a residual RMS of "
+                    f"{value_text(rms_final, unit)}"
+                    f", {100 * (rms_final / rms_ls - 1):.0f} % more than the least-squares fit "
+                    f"of the same model over the whole record ({value_text(rms_ls, unit)}): the "
+                    f"estimator has not converged, or forgetting or the ridge prior bias it "
+                    f"(see the parameter convergence).")
+    return CandidateResult(tuple(cands), tuple(na), suggestion, structure, identifiable,
+                            tuple(reasons), verdict, rms_ls)
+
+
+def _description(eff: Effect) -> str:
+    doc = (type(eff).__doc__ or "").strip().splitlines()
+    first = doc[0].strip() if doc else eff.name
+    if isinstance(eff, UserTerm):
+        return f"user term {eff.term}: c * ({eff.expr})"
+    if isinstance(eff, Cogging):
+        k = str(eff.k)
+        return f"{first.replace('``k``', k)} ({eff.EQUATION_TEXT.replace('k', k)})"
+    return f"{first} ({type(eff).EQUATION_TEXT})"
+
+
+def _unexcited_reason(name: str, exc: ExcitationSummary, model: Model) -> str:
+    """Why an effect's column is not excited by these data ("" when it is)."""
+    u = exc.speed_unit
+    base = name.split(":")[0].split(".")[0]
+    if base == "stribeck" and exc.low_speed < 0.005:
+        return (f"not excited: the speed is below twice the Stribeck speed "
+                f"({2 * model.stribeck_speed:g} {u}) in only {share_text(exc.low_speed)} of "
+                f"the samples")
+    if base == "inertia" and not exc.accelerating:
+        return (f"not excited: the acceleration is at the level of the speed-sensor noise "
+                f"(RMS {exc.acceleration_rms:.3g} {u}/s against {exc.acceleration_noise:.3g} "
+                f"{u}/s)")
+    if base in ("unbalance", "cogging") and exc.revolutions is not None \
+            and exc.revolutions < 1.0:
+        return f"not excited: the position covers only {exc.revolutions:.2f} {exc.per}s"
+    return ""
+
+
+def _collinear_reason(name: str, cols: Sequence[int], C: Sequence[int], G: _Gram,
+                      cur: Sequence[str], ind: float, exc: ExcitationSummary) -> str:
+    partners = sorted(C, key=lambda i: -max(abs(G.corr(i, j)) for j in cols))
+    strong = [cur[i] for i in partners if max(abs(G.corr(i, j)) for j in cols) > 0.9][:2]
+    what = (f"(nearly) collinear with {' and '.join(strong)}" if strong
+            else "(nearly) collinear with the model's columns")
+    why = exc.facts()
+    text = f"not identifiable from this data: its column is {what} ({share_text(ind)} " \
+           f"independent)"
+    if why:
+        text += "; " + "; ".join(why)
+    return text
+
+
+@dataclass
+class _EvidenceContext:
+    ctx: RecordSamples
+    bins: Mapping[str, Binned]
+    spectrum: OrderSpectrum | None
+    unit: str
+    eb: EquationBlock
+    used: B
+    A: F64
+    G: _Gram
+    C: list[int]
+    aug: Equation
+    evaluated: Mapping[str, Mapping[str, Any]]
+    best_cog: str | None
+    cog: list[str]
+    model: Model
+
+
+def _speed_sides(b: Binned) -> list[tuple[float, float, float, int, float, int]]:
+    """(lo, hi, mean forward, n forward, mean backward, n backward) per magnitude band."""
+    nm = (len(b.edges) - 1) // 2
+    out = []
+    for j in range(nm):
+        f, bk = nm + j, nm - 1 - j
+        out.append((float(b.edges[f]), float(b.edges[f + 1]), float(b.mean[f]),
+                    int(b.count[f]), float(b.mean[bk]), int(b.count[bk])))
+    return out
+
+
+def _pooled(rows: Sequence[tuple[float, float, float, int, float, int]],
+            side: int) -> float:
+    m_i, n_i = (2, 3) if side > 0 else (4, 5)
+    tot = sum(r[n_i] for r in rows if r[n_i] >= MIN_BIN)
+    if not tot:
+        return math.nan
+    return sum(r[m_i] * r[n_i] for r in rows if r[n_i] >= MIN_BIN) / tot
+
+
+def _evidence(name: str, ec: _EvidenceContext) -> list[str]:
+    ev = ec.evaluated[name]
+    u = ec.unit
+    su = ec.ctx.speed_unit
+    out: list[str] = []
+    base = name.split(":")[0]
+    sb = ec.bins.get("speed")
+    rows = _speed_sides(sb) if sb is not None else []
+    if base in ("coulomb", "viscous", "stribeck", "offset") and rows:
+        vmax = rows[-1][1]
+        ws = ec.model.stribeck_speed
+        if base == "coulomb":
+            far = [r for r in rows if r[0] >= min(3 * ws, 0.3 * vmax)]
+            mf, mb = _pooled(far, 1), _pooled(far, -1)
+            out.append(f"above {min(3 * ws, 0.3 * vmax):.3g} {su} the residual is "
+                       f"{value_text(mf, u, True)} moving forward and "
+                       f"{value_text(mb, u, True)} moving backward: a step at zero speed, "
+                       f"signed with the direction")
+        elif base == "stribeck":
+            near = [r for r in rows if r[1] <= ws * 1.0001]
+            far = [r for r in rows if r[0] >= 3 * ws]
+            out.append(f"below {ws:g} {su}: {value_text(_pooled(near, 1), u, True)} forward, "
+                       f"{value_text(_pooled(near, -1), u, True)} backward; above {3 * ws:g} {su}: "
+                       f"{value_text(_pooled(far, 1), u, True)} forward, "
+                       f"{value_text(_pooled(far, -1), u, True)} backward")
+        elif base == "viscous":
+            top = [r for r in rows if r[0] >= 0.3 * vmax]
+            lowr = [r for r in rows if r[1] <= 0.1 * vmax]
+            out.append(f"above {0.3 * vmax:.3g} {su}: "
+                       f"{value_text(_pooled(top, 1), u, True)} forward,"
+                       f" {value_text(_pooled(top, -1), u, True)} backward; below "
+                       f"{0.1 * vmax:.3g} {su}: {value_text(_pooled(lowr, 1), u, True)} forward, "
+                       f"{value_text(_pooled(lowr, -1), u, True)} backward (linear and odd in "
+                       f"speed)")
+        elif base == "offset":
+            out.append(f"mean residual {value_text(_pooled(rows, 1), u, True)} moving forward and "
+                       f"{value_text(_pooled(rows, -1), u, True)} moving backward")
+    if base in ("unbalance", "cogging") and ec.spectrum is not None:
+        k = 1 if base == "unbalance" else int(name.split(":")[1])
+        a, e = ec.spectrum.at(k)
+        txt = (f"order {k} of the rotation-order spectrum: amplitude {value_text(a, u)} "
+               f"({share_text(e)} of the residual variance)")
+        if base == "cogging" and name == ec.best_cog:
+            others = sorted((nm for nm in ec.cog if nm != name),
+                            key=lambda nm: -ec.evaluated[nm]["explained"])
+            if others:
+                o = others[0]
+                txt += (f"; the strongest order of the search k = 2..{ec.ctx.max_order}, next "
+                        f"{o.split(':')[1]} ({share_text(ec.evaluated[o]['explained'])})")
+        out.append(txt)
+    if base == "inertia":
+        ab = ec.bins.get("acceleration")
+        if ab is not None:
+            ok = ab.count >= MIN_BIN
+            if np.any(ok):
+                lo_j = int(np.flatnonzero(ok)[0])
+                hi_j = int(np.flatnonzero(ok)[-1])
+                out.append(f"at {ab.centers[hi_j]:.3g} {ab.unit} the residual is "
+                           f"{value_text(float(ab.mean[hi_j]), u, True)}, at "
+                           f"{ab.centers[lo_j]:.3g} {ab.unit} "
+                           f"{value_text(float(ab.mean[lo_j]), u, True)}")
+    # the candidate's own column against the residual
+    if ev["explained"] > 0:
+        out.append(f"explains {100 * ev['explained']:.3g} % of the residual variance "
+                   f"(correlation {math.sqrt(ev['explained']):.2f} with its orthogonalised "
+                   f"column)")
+    vals = ", ".join(f"{k} ≈ {v:.4g} {un}" for k, (v, un) in ev["params"].items())
+    if vals:
+        out.append(f"would be {vals}")
+    return out
+
+
+def _verdict(eq: Equation, suggestion: Suggestion, cands: Sequence[Candidate],
+             structure: Sequence[StructureItem], model_issues: Sequence[str],
+             not_ident: Sequence[Candidate], exc: ExcitationSummary, unit: str,
+             rms_ls: float, partial: Suggestion | None = None) -> str:
+    name = eq.name
+    if suggestion:
+        adds = " ".join(f"--add {a}" for a in suggestion.add)
+        first = suggestion.steps[0]
+        text = (f"{name}: missing {', '.join(suggestion.add)}; {first.effect} explains "
+                f"{100 * first.explained:.3g} % of the residual variance. Add it: {adds} "
+                f"(predicted residual RMS {value_text(rms_ls, unit)} -> "
+                f"{value_text(suggestion.rms_after, unit)}).")
+        if structure:
+            text += " Left after that: " + "; ".join(s.text for s in structure[:2]) + "."
+        return text
+    parts = []
+    if model_issues or not_ident:
+        why = list(model_issues)
+        if not_ident:
+            why.append(f"{', '.join(c.effect for c in not_ident)} cannot be told apart from "
+                       f"the model's columns or are not excited")
+        facts = exc.facts()
+        parts.append(f"{name}: not identifiable from this data: {'; '.join(why)}"
+                     + (f" ({'; '.join(facts)})" if facts else "") + ".")
+    if structure:
+        what = "; ".join(s.text for s in structure[:3])
+        if model_issues or not_ident:
+            parts.append(f"Structure left in the residual: {what}; it may come from an "
+                         f"effect that these data cannot identify.")
+        else:
+            parts.append(f"{name}: no effect of the library explains the structure left: "
+                         f"{what}.")
+        if partial:
+            tot = 1.0 - (partial.rms_after / partial.rms_before) ** 2 \
+                if partial.rms_before > 0 else 0.0
+            parts.append(f"The closest candidates ({', '.join(partial.add)}) would explain "
+                         f"only {share_text(tot)} of it together.")
+    if not parts:
+        best = next((c for c in cands if c.identifiable), None)
+        tail = (f" (largest: {best.effect}, {share_text(best.explained)})" if best else "")
+        parts.append(f"{name}: the model is complete for this data: no effect of the library "
+                     f"explains a significant share of the residual{tail}.")
+    return " ".join(parts)

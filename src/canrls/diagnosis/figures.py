@@ -1,0 +1,298 @@
+"""The figures of the HTML report (``canrls diagnose --report DIR``), as PNG files.
+
+:class:`Figures` draws each figure of a diagnosis into a directory:
+
+``timeline.png``
+    the filtered target (measured) against the model over time, and the residual below
+    (before, and after the added effects);
+``speed.png``, ``position.png``
+    the residual against speed (both directions, symmetric-log axis) and against the
+    position in the revolution (or along the travel of a linear axis): every sample in
+    grey, the bin means with their RMS as bars, before and after;
+``candidates.png``
+    the share of the residual variance each candidate effect explains, best first;
+``orders.png``
+    the residual's rotation-order spectrum: the amplitude of each order (multiples of
+    the rotation frequency) fitted to the residual;
+``convergence.png``
+    every parameter over time, float estimate with its ±σ band and the fixed-point
+    estimate dashed;
+``fixed.png``
+    fixed point against float: ``|fixed - float|`` relative to ``max(|float|, σ)``.
+
+matplotlib is an optional dependency (the ``report`` extra): it is imported here
+(:func:`require_matplotlib`), when a report is written, and its absence is a
+:class:`~canrls.errors.ConfigError` naming the package. The figures use matplotlib's
+object API (no pyplot, no global state).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from canrls.diagnosis.results import EquationDiagnosis
+from canrls.errors import ConfigError
+
+__all__ = ["FIGURES", "Figures", "require_matplotlib"]
+
+#: The figures a report holds (without an ``after`` some show ``before`` only).
+FIGURES: tuple[str, ...] = ("timeline.png", "speed.png", "position.png", "candidates.png",
+                            "orders.png", "convergence.png", "fixed.png")
+
+_BEFORE = "#c0392b"
+_AFTER = "#1f6fb4"
+_GREY = "#9a9a9a"
+_MAX_POINTS = 20000
+
+
+def require_matplotlib() -> tuple[Any, Any]:
+    """matplotlib's ``(Figure, FigureCanvasAgg)``.
+
+    :raises ConfigError: matplotlib (the ``report`` extra) is not installed.
+    """
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError as e:
+        raise ConfigError("the HTML report needs matplotlib, which is not installed: "
+                          "pip install 'canrls[report]' (or pip install matplotlib)") from e
+    return Figure, FigureCanvasAgg
+
+
+def _decimate(n: int) -> slice:
+    return slice(None, None, max(1, int(math.ceil(n / _MAX_POINTS))))
+
+
+class Figures:
+    """Draws the figures into ``out`` with matplotlib's ``Figure`` and canvas classes
+    (:func:`require_matplotlib`); each method returns the file name it wrote."""
+
+    def __init__(self, Figure: Any, Canvas: Any, out: Path) -> None:
+        self.Figure = Figure
+        self.Canvas = Canvas
+        self.out = out
+
+    def _save(self, fig: Any, name: str) -> str:
+        self.Canvas(fig)
+        try:
+            fig.savefig(self.out / name, dpi=110)
+        except OSError as e:
+            raise ConfigError(f"--report {self.out}: cannot write {name}: {e}") from e
+        return name
+
+    def timeline(self, b: EquationDiagnosis, a: EquationDiagnosis | None) -> str:
+        tr = b.traces
+        fig = self.Figure(figsize=(11, 6.4), layout="constrained")
+        ax1, ax2 = fig.subplots(2, 1, sharex=True, height_ratios=[3, 2])
+        s = _decimate(len(tr.t))
+        u = b.unit
+        y = np.where(tr.used, tr.y, np.nan)
+        ax1.plot(tr.t[s], y[s], color="black", lw=0.8, label="measured (filtered target)")
+        ax1.plot(tr.t[s], np.where(tr.used, tr.yhat, np.nan)[s], color=_BEFORE, lw=0.7,
+                 alpha=0.85, label="model before")
+        if a is not None:
+            ta = a.traces
+            ax1.plot(ta.t[s], np.where(ta.used, ta.yhat, np.nan)[s], color=_AFTER, lw=0.7,
+                     alpha=0.85, label="model after")
+        ax1.set_ylabel(f"{b.target} [{u}]")
+        ax1.set_title(f"{b.equation} equation: measured against model "
+                      f"(fit {b.fit_percent:.1f} %"
+                      + (f" before, {a.fit_percent:.1f} % after)" if a is not None else ")"))
+        ax1.legend(loc="upper right", fontsize=8)
+        ax1.grid(alpha=0.3)
+        ax2.plot(tr.t[s], np.where(tr.used, tr.residual, np.nan)[s], color=_BEFORE, lw=0.6,
+                 label=f"residual before (RMS {b.residual_rms:.3g} {u})")
+        if a is not None:
+            ta = a.traces
+            ax2.plot(ta.t[s], np.where(ta.used, ta.residual, np.nan)[s], color=_AFTER,
+                     lw=0.6, label=f"residual after (RMS {a.residual_rms:.3g} {u})")
+        ax2.axhline(0.0, color="black", lw=0.5)
+        ax2.set_xlabel("time [s]")
+        ax2.set_ylabel(f"residual [{u}]")
+        ax2.legend(loc="upper right", fontsize=8)
+        ax2.grid(alpha=0.3)
+        return self._save(fig, "timeline.png")
+
+    def binned(self, b: EquationDiagnosis, a: EquationDiagnosis | None,
+               quantity: str) -> str:
+        panels = [("before", b, _BEFORE)] + ([("after", a, _AFTER)] if a is not None else [])
+        fig = self.Figure(figsize=(11 if a is not None else 7, 4.4), layout="constrained")
+        axes = fig.subplots(1, len(panels), sharey=True, sharex=True, squeeze=False)[0]
+        from matplotlib.lines import Line2D
+
+        handles = [Line2D([], [], marker="o", ls="", ms=4, color=_GREY, label="samples")]
+        vmax = float(np.nanmax(np.abs(b.traces.speed[b.traces.used]))) \
+            if quantity == "speed" and b.traces.used.any() else 1.0
+        u = b.unit
+        lim = 0.0
+        for ax, (label, q, color) in zip(axes, panels, strict=True):
+            tr = q.traces
+            if quantity == "speed":
+                x = tr.speed
+            elif tr.position is None:
+                continue
+            elif q.bins.get("position") is not None and q.bins["position"].unit == "rad":
+                x = np.mod(tr.position, 2 * math.pi)
+            else:
+                x = tr.position
+            used = tr.used
+            xs, rs = x[used], tr.residual[used]
+            s = _decimate(len(xs))
+            ax.scatter(xs[s], rs[s], s=1, color=_GREY, alpha=0.25, rasterized=True)
+            bn = q.bins.get(quantity)
+            if bn is not None:
+                ok = np.isfinite(bn.mean)
+                # bars: the spread in the bin, sqrt(RMS^2 - mean^2)
+                sd = np.sqrt(np.maximum(bn.rms[ok] ** 2 - bn.mean[ok] ** 2, 0.0))
+                ax.errorbar(bn.centers[ok], bn.mean[ok], yerr=sd, fmt="o-", ms=3,
+                            lw=1.2, color=color, ecolor=color, elinewidth=0.6, capsize=2)
+                handles.append(Line2D([], [], marker="o", ms=4, color=color,
+                                      label=f"{label}: bin mean ± spread"))
+                if np.any(ok):
+                    lim = max(lim, float(np.nanmax(np.abs(bn.mean[ok]) + sd)))
+            ax.axhline(0.0, color="black", lw=0.5)
+            if quantity == "speed":
+                _symlog_speed(ax, vmax)
+                ax.set_xlabel(f"speed (filtered) [{bn.unit if bn else ''}], negative: "
+                              f"moving backward")
+            else:
+                ax.set_xlabel(f"{bn.label if bn else 'position'} [{bn.unit if bn else ''}]")
+            ax.set_title(f"{label}: residual RMS {q.residual_rms:.3g} {u}", fontsize=10)
+            ax.grid(alpha=0.3)
+            ax.legend(handles=[handles[0], handles[-1]], loc="upper left", fontsize=8)
+        axes[0].set_ylabel(f"residual [{u}]")
+        if lim > 0:
+            axes[0].set_ylim(-1.6 * lim, 1.6 * lim)
+        what = "speed (both directions)" if quantity == "speed" else (
+            "position in the revolution" if b.traces.angle is not None and
+            (b.bins.get("position") is not None and b.bins["position"].unit == "rad")
+            else "position along the travel")
+        fig.suptitle(f"Residual against {what}")
+        return self._save(fig, f"{quantity}.png")
+
+    def candidates(self, q: EquationDiagnosis) -> str:
+        cands = list(q.candidates[:12])
+        fig = self.Figure(figsize=(11, 0.45 * len(cands) + 1.6), layout="constrained")
+        ax = fig.subplots()
+        ypos = np.arange(len(cands))[::-1]
+        vals = [100 * c.explained for c in cands]
+        colors = [_AFTER if c.suggested else (_GREY if not c.identifiable else "#7fa7cf")
+                  for c in cands]
+        ax.barh(ypos, vals, color=colors)
+        ax.set_yticks(ypos, [c.effect for c in cands])
+        ax.set_xlim(0, 150)
+        ax.set_xticks([0, 20, 40, 60, 80, 100])
+        steps = {st.effect: (i, st) for i, st in enumerate(q.suggestion.steps)}
+        for y0, c, v in zip(ypos, cands, vals, strict=True):
+            note = ("not identifiable" if not c.identifiable else "")
+            if c.effect in steps:
+                i, st = steps[c.effect]
+                note = (f"suggested, step {i + 1}: {100 * st.explained:.1f} % of what is left"
+                        if i else "suggested, step 1")
+            ax.text(v + 1, y0, f"{v:.1f} %  ΔBIC {c.delta_bic:.3g}  RMS after "
+                                f"{c.rms_after:.3g} {q.unit}  {note}",
+                    va="center", fontsize=8)
+        ax.set_xlabel("share of the residual variance explained when added alone [%]")
+        ax.set_title("Which effect is missing: candidates, best first "
+                     "(dark blue: suggested, grey: not identifiable)", fontsize=10)
+        ax.grid(axis="x", alpha=0.3)
+        return self._save(fig, "candidates.png")
+
+    def orders(self, b: EquationDiagnosis, a: EquationDiagnosis | None) -> str:
+        sp = b.spectrum
+        assert sp is not None
+        fig = self.Figure(figsize=(11, 4.2), layout="constrained")
+        ax = fig.subplots()
+        ax.plot(sp.orders, sp.amplitude, color=_BEFORE, lw=0.9, label="before")
+        if a is not None and a.spectrum is not None:
+            ax.plot(a.spectrum.orders, a.spectrum.amplitude, color=_AFTER, lw=0.9,
+                    label="after")
+        for p in sp.peaks[:4]:
+            amp, ex = sp.at(p)
+            ax.annotate(f"order {p:g}\n{amp:.2g} {b.unit}, {100 * ex:.0f} %", (p, amp),
+                        textcoords="offset points", xytext=(4, 6), fontsize=8,
+                        color=_BEFORE)
+        ax.set_xlabel(f"rotation order (periods per {sp.per})")
+        ax.set_ylabel(f"fitted amplitude [{sp.unit}]")
+        ax.set_xlim(0, float(sp.orders[-1]) + 0.5)
+        top = float(np.nanmax(sp.amplitude)) if len(sp.amplitude) else 0.0
+        if top > 0:
+            ax.set_ylim(0, 1.3 * top)
+        ax.set_title("Residual spectrum against rotation order (a position-periodic effect "
+                     "shows as a peak at its order)", fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        return self._save(fig, "orders.png")
+
+    def convergence(self, q: EquationDiagnosis, after: bool) -> str:
+        tr = q.traces
+        n = len(tr.names)
+        cols = 2 if n > 1 else 1
+        rows = int(math.ceil(n / cols))
+        fig = self.Figure(figsize=(11, 2.3 * rows + 0.8), layout="constrained")
+        axes = np.atleast_1d(fig.subplots(rows, cols, sharex=True, squeeze=False).ravel())
+        for j, ax in enumerate(axes):
+            if j >= n:
+                ax.set_visible(False)
+                continue
+            th = tr.theta[:, j] if len(tr.theta) else np.zeros(0)
+            sd = tr.sigma[:, j] if len(tr.sigma) else np.zeros(0)
+            fx = tr.theta_fixed[:, j] if len(tr.theta_fixed) else np.zeros(0)
+            ax.fill_between(tr.conv_t, th - sd, th + sd, color=_AFTER, alpha=0.25, lw=0,
+                            label="float ± σ")
+            ax.plot(tr.conv_t, th, color=_AFTER, lw=1.0, label="float")
+            ax.plot(tr.conv_t, fx, color="black", lw=0.9, ls="--", label="fixed point")
+            if len(th):
+                fin = th[-1]
+                span = max(abs(fin) * 0.5, 4 * float(sd[-1]) if np.isfinite(sd[-1]) else 0.0,
+                           1e-30)
+                ax.set_ylim(fin - span, fin + span)
+                ax.axhline(fin, color=_GREY, lw=0.6)
+            ax.set_title(f"{tr.names[j]} [{tr.units[j]}]", fontsize=9)
+            ax.grid(alpha=0.3)
+            if j == 0:
+                ax.legend(fontsize=7, loc="lower right")
+        for ax in axes[-cols:]:
+            ax.set_xlabel("time [s]")
+        fig.suptitle("Parameter convergence (" + ("after" if after else "model as given")
+                     + "; y axis: final value ± 50 %)", fontsize=11)
+        return self._save(fig, "convergence.png")
+
+    def fixed(self, q: EquationDiagnosis) -> str:
+        tr = q.traces
+        fig = self.Figure(figsize=(11, 4.2), layout="constrained")
+        ax = fig.subplots()
+        floor = 1e-9
+        for j, name in enumerate(tr.names):
+            if not len(tr.theta):
+                break
+            th, fx, sd = tr.theta[:, j], tr.theta_fixed[:, j], tr.sigma[:, j]
+            ref = np.maximum(np.abs(th), np.nan_to_num(sd, nan=0.0))
+            ref = np.where(ref > 0, ref, 1.0)
+            rel = np.abs(fx - th) / ref
+            ax.plot(tr.conv_t, np.maximum(np.nan_to_num(rel, nan=floor), floor), lw=1.0,
+                    label=name)
+        ax.axhline(1e-3, color="black", ls=":", lw=0.8, label="0.1 %")
+        ax.set_yscale("log")
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("|fixed − float| / max(|float|, σ)")
+        ax.set_title("Fixed point against float, every parameter", fontsize=10)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7, ncol=3)
+        return self._save(fig, "fixed.png")
+
+
+def _symlog_speed(ax: Any, vmax: float) -> None:
+    """Symmetric-log speed axis: linear within two decades below the top speed."""
+    if not (vmax > 0 and math.isfinite(vmax)):
+        return
+    top = math.ceil(math.log10(vmax))
+    lin = 10.0 ** (top - 2)
+    ax.set_xscale("symlog", linthresh=lin, linscale=0.6)
+    ticks = [0.0] + [s * 10.0 ** k for k in range(top - 2, top + 1) for s in (-1, 1)]
+    ax.set_xticks(sorted(ticks), [f"{t:g}" for t in sorted(ticks)])
+    ax.set_xlim(-1.05 * vmax, 1.05 * vmax)

@@ -1,0 +1,559 @@
+r"""Where the model fails: statistics of the residual over the used samples.
+
+Everything is computed on the *filtered* equation the estimators see (the state-variable
+filter applied to target and columns, :mod:`canrls.estimation.svf`), over the samples the
+estimators used (:class:`~canrls.diagnosis.samples.RecordSamples`), in the target's unit:
+
+* :func:`whiteness`: whiteness of the residual and its cross-correlation with the
+  inputs (:class:`~canrls.diagnosis.results.Whiteness`);
+* :func:`all_bins`: residual mean and RMS binned by speed (both directions), position
+  (one revolution, or the travel of a linear axis), current, acceleration and time
+  (:class:`~canrls.diagnosis.results.Binned`), :func:`find_regions` the worst regions in
+  words;
+* :func:`order_spectrum`: the residual's rotation-order spectrum, from
+  :func:`harmonic_fit`;
+* :func:`excitation_summary`: how the data excite the model (directions, reversals,
+  acceleration against the speed-sensor noise, revolutions covered);
+* :func:`residual_structure`: structure left in a residual (a constant offset,
+  dependence on speed, position, current, acceleration, drift in time, periodicity).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numba
+import numpy as np
+import numpy.typing as npt
+
+from canrls.diagnosis.results import (
+    Binned,
+    ExcitationSummary,
+    OrderSpectrum,
+    Region,
+    StructureItem,
+    Whiteness,
+    share_text,
+    value_text,
+)
+from canrls.diagnosis.samples import BLOCK, RecordSamples
+from canrls.estimation.model import Model
+from canrls.estimation.svf import SVF
+
+__all__ = [
+    "MIN_BIN",
+    "MIN_EXPLAINED",
+    "MIN_STRUCTURE",
+    "ORDER_STEP",
+    "WHITENESS_LAGS",
+    "Z99",
+    "all_bins",
+    "bin_residual",
+    "chi2_sf",
+    "excitation_summary",
+    "find_regions",
+    "harmonic_fit",
+    "nice_magnitudes",
+    "order_spectrum",
+    "residual_structure",
+    "spectrum_orders",
+    "spectrum_peaks",
+    "whiteness",
+]
+
+F64 = npt.NDArray[np.float64]
+B = npt.NDArray[np.bool_]
+
+#: Share of the residual variance a candidate (or an order of the spectrum left in the
+#: residual) must explain to be suggested (reported).
+MIN_EXPLAINED = 0.05
+#: Share of the residual variance a binned mean or an order must explain to count as
+#: structure.
+MIN_STRUCTURE = 0.25
+#: Two-sided 99 % point of the standard normal distribution.
+Z99 = 2.5758293035489004
+#: Lags of the whiteness test (in decimated samples).
+WHITENESS_LAGS = 20
+#: Orders per unit of the rotation-order spectrum.
+ORDER_STEP = 0.25
+#: Fewest samples in a bin for its mean to count.
+MIN_BIN = 20
+
+
+# ----------------------------------------------------------------------------- whiteness
+def chi2_sf(q: float, k: int) -> float:
+    """Upper tail of chi-square with k degrees of freedom (Wilson-Hilferty)."""
+    if k <= 0 or not math.isfinite(q):
+        return math.nan
+    if q <= 0:
+        return 1.0
+    c = 2.0 / (9.0 * k)
+    z = ((q / k) ** (1.0 / 3.0) - (1.0 - c)) / math.sqrt(c)
+    return 0.5 * math.erfc(z / math.sqrt(2.0))
+
+
+def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
+               lags: int) -> Whiteness | None:
+    # decimation: the lag after which |rho_h| stays below 0.02
+    hh = float(np.dot(h, h))
+    if hh <= 0:
+        return None
+    m = len(h)
+    rho = np.array([float(np.dot(h[: m - k], h[k:])) / hh for k in range(m)])
+    big = np.flatnonzero(np.abs(rho) >= 0.02)
+    D = int(big[-1]) + 1 if len(big) else 1
+    x = r[used][::D]
+    N = len(x)
+    if N < 3 * lags + 10:
+        return None
+    x = x - x.mean()
+    den = float(np.dot(x, x))
+    if den <= 0:
+        return None
+    ac = np.array([float(np.dot(x[: N - k], x[k:])) / den for k in range(1, lags + 1)])
+    bound = Z99 / math.sqrt(N)
+    q = float(N * (N + 2) * np.sum(ac * ac / (N - np.arange(1, lags + 1))))
+    p = chi2_sf(q, lags)
+    cross: dict[str, F64] = {}
+    outside: dict[str, int] = {}
+    for name, sig in inputs.items():
+        u = sig[used][::D]
+        u = u - u.mean()
+        du = float(np.dot(u, u))
+        if du <= 0:
+            continue
+        norm = math.sqrt(den * du)
+        cc = np.empty(2 * lags + 1)
+        for j, k in enumerate(range(-lags, lags + 1)):
+            # rho_ru(k) = sum r[i] u[i - k] / sqrt(sum r^2 sum u^2)
+            cc[j] = (float(np.dot(x[k:], u[: N - k])) if k >= 0
+                     else float(np.dot(x[: N + k], u[-k:]))) / norm
+        cross[name] = cc
+        outside[name] = int(np.sum(np.abs(cc) > bound))
+    return Whiteness(decimation=D, lags=lags, samples=N, autocorr=ac, bound=bound,
+                     outside=int(np.sum(np.abs(ac) > bound)), q=q, p_value=p,
+                     white=bool(p >= 0.01), cross=cross, cross_outside=outside)
+
+
+# ----------------------------------------------------------------------------- binning
+def nice_magnitudes(vmax: float) -> F64:
+    """Bin edges in |value|: 0, 1-2-5 steps from vmax/300 to vmax, closed at the top."""
+    if not (vmax > 0 and math.isfinite(vmax)):
+        return np.array([0.0, 1.0])
+    out = [0.0]
+    lo = vmax / 300.0
+    e = math.floor(math.log10(lo))
+    while True:
+        for m in (1.0, 2.0, 5.0):
+            v = m * 10.0 ** e
+            if v <= lo:
+                continue
+            if v >= vmax * 0.8:
+                out.append(vmax * (1 + 1e-9))
+                return np.array(out)
+            out.append(v)
+        e += 1
+
+
+def bin_residual(values: F64, r: F64, edges: F64, quantity: str, label: str,
+         unit: str) -> Binned:
+    nb = len(edges) - 1
+    idx = np.searchsorted(edges, values, side="right") - 1
+    # the end bins are closed at the extremes
+    idx = np.where(values == edges[-1], nb - 1, idx)
+    ok = (idx >= 0) & (idx < nb) & np.isfinite(values)
+    idx = idx[ok]
+    rr = r[ok]
+    cnt = np.bincount(idx, minlength=nb).astype(np.int64)
+    s1 = np.bincount(idx, weights=rr, minlength=nb)
+    s2 = np.bincount(idx, weights=rr * rr, minlength=nb)
+    good = cnt >= MIN_BIN
+    mean = np.full(nb, np.nan)
+    rms = np.full(nb, np.nan)
+    mean[good] = s1[good] / cnt[good]
+    rms[good] = np.sqrt(s2[good] / cnt[good])
+    tot = int(cnt[good].sum())
+    share = 0.0
+    if tot > 1:
+        mu = float(s1[good].sum()) / tot
+        ss = float(s2[good].sum()) - tot * mu * mu
+        between = float(np.sum(cnt[good] * (mean[good] - mu) ** 2))
+        share = between / ss if ss > 0 else 0.0
+    return Binned(quantity, label, unit, edges, cnt, mean, rms, min(max(share, 0.0), 1.0))
+
+
+def _edges_linear(v: F64, nb: int) -> F64:
+    lo, hi = np.percentile(v, [0.5, 99.5])
+    vmin, vmax = float(np.min(v)), float(np.max(v))
+    if not hi > lo:
+        lo, hi = vmin, vmax
+    if not hi > lo:
+        return np.array([vmin - 0.5, vmin + 0.5])
+    inner = np.linspace(lo, hi, nb + 1)
+    inner[0] = min(vmin, lo)
+    inner[-1] = max(vmax, hi)
+    return inner
+
+
+def all_bins(ctx: RecordSamples, r: F64, used: B, unit: str) -> dict[str, Binned]:
+    ru = r[used]
+    out: dict[str, Binned] = {}
+    if not len(ru):
+        return out
+    sp = ctx.speed[used]
+    vmax = float(np.max(np.abs(sp)))
+    mags = nice_magnitudes(vmax)
+    edges = np.concatenate([-mags[:0:-1], mags])
+    out["speed"] = bin_residual(sp, ru, edges, "speed", "speed", ctx.speed_unit)
+    if ctx.position is not None:
+        if ctx.axis == "rotary":
+            pos = np.mod(ctx.position[used], 2.0 * math.pi)
+            pe = np.linspace(0.0, 2.0 * math.pi, 37)
+            out["position"] = bin_residual(pos, ru, pe, "position", "position in the revolution",
+                                   "rad")
+        else:
+            pos = ctx.position[used]
+            out["position"] = bin_residual(pos, ru, _edges_linear(pos, 40), "position",
+                                   "position along the travel", "m")
+    out["current"] = bin_residual(ctx.current[used], ru, _edges_linear(ctx.current[used], 20),
+                          "current", "current", "A")
+    out["acceleration"] = bin_residual(ctx.acceleration[used], ru,
+                               _edges_linear(ctx.acceleration[used], 20), "acceleration",
+                               "acceleration", ctx.acc_unit)
+    t = ctx.signals.t[used]
+    te = np.linspace(float(t[0]), float(t[-1]), 21) if len(t) > 1 else np.array([0.0, 1.0])
+    if not te[-1] > te[0]:
+        te = np.array([te[0] - 0.5, te[0] + 0.5])
+    out["time"] = bin_residual(t, ru, te, "time", "time", "s")
+    return out
+
+
+def _range_text(quantity: str, lo: float, hi: float, full_lo: float, full_hi: float,
+                unit: str) -> str:
+    lo_end = lo <= full_lo
+    hi_end = hi >= full_hi
+    if quantity == "time":
+        if lo_end and hi_end:
+            return "over the whole record"
+        return f"from {lo:.3g} s to {hi:.3g} s"
+    noun = {"speed": "speed", "position": "position", "current": "current",
+            "acceleration": "acceleration"}[quantity]
+    if lo_end and hi_end:
+        return f"at every {noun}"
+    if quantity == "speed":
+        if lo <= 0.0:
+            return f"below {hi:.3g} {unit}"
+        if hi_end:
+            return f"above {lo:.3g} {unit}"
+        return f"between {lo:.3g} and {hi:.3g} {unit}"
+    plural = {"position": "positions", "current": "currents",
+              "acceleration": "accelerations"}[quantity]
+    if lo_end:
+        return f"at {plural} below {hi:.3g} {unit}"
+    if hi_end:
+        return f"at {plural} above {lo:.3g} {unit}"
+    return f"at {plural} between {lo:.3g} and {hi:.3g} {unit}"
+
+
+def _notable(mean: float, n: int, sd: float, rms: float, tau: float) -> bool:
+    """A bin mean that stands out: large against the residual and not noise."""
+    if not (n >= MIN_BIN and math.isfinite(mean)):
+        return False
+    se = sd / math.sqrt(max(n / tau, 1.0))
+    return abs(mean) >= 0.2 * rms and abs(mean) >= 4.0 * se
+
+
+def find_regions(bins: Mapping[str, Binned], ru: F64, tau: float, unit: str,
+             ctx: RecordSamples) -> tuple[Region, ...]:
+    if not len(ru):
+        return ()
+    energy = float(np.dot(ru, ru))
+    rms = math.sqrt(energy / len(ru))
+    if energy <= 0:
+        return ()
+    sd = float(np.std(ru))
+    found: list[Region] = []
+    # speed: magnitude bands with the mean forward and backward
+    sb = bins.get("speed")
+    if sb is not None:
+        nm = (len(sb.edges) - 1) // 2
+        mags = sb.edges[nm:]
+        bands = []
+        for j in range(nm):
+            f = nm + j
+            bk = nm - 1 - j
+            nf, nb_ = int(sb.count[f]), int(sb.count[bk])
+            mf, mb = float(sb.mean[f]), float(sb.mean[bk])
+            sig_f = _notable(mf, nf, sd, rms, tau)
+            sig_b = _notable(mb, nb_, sd, rms, tau)
+            key = (int(np.sign(mf)) if sig_f else 0, int(np.sign(mb)) if sig_b else 0)
+            bands.append((j, key, nf, mf, nb_, mb))
+        groups: list[list[tuple[int, tuple[int, int], int, float, int, float]]] = []
+        for band in bands:
+            if band[1] == (0, 0):
+                continue
+            if groups and groups[-1][-1][0] == band[0] - 1 and groups[-1][-1][1] == band[1]:
+                groups[-1].append(band)
+            else:
+                groups.append([band])
+        for g in groups:
+            nf = sum(x[2] for x in g if x[2] >= MIN_BIN)
+            nb_ = sum(x[4] for x in g if x[4] >= MIN_BIN)
+            mf = (sum(x[2] * x[3] for x in g if x[2] >= MIN_BIN) / nf) if nf else math.nan
+            mb = (sum(x[4] * x[5] for x in g if x[4] >= MIN_BIN) / nb_) if nb_ else math.nan
+            share = ((nf * mf * mf if nf else 0.0) + (nb_ * mb * mb if nb_ else 0.0)) / energy
+            lo, hi = float(mags[g[0][0]]), float(mags[g[-1][0] + 1])
+            rt = _range_text("speed", lo, hi, 0.0, float(mags[-1]), ctx.speed_unit)
+            parts = []
+            parts.append(f"{value_text(mf, unit, True)} moving forward" if nf
+                         else "no samples moving forward")
+            parts.append(f"{value_text(mb, unit, True)} moving backward" if nb_
+                         else "no samples moving backward")
+            text = f"{rt} the residual is {parts[0]} and {parts[1]}"
+            found.append(Region("speed", text, lo, hi, share, nf + nb_,
+                                mean_forward=None if not nf else mf,
+                                mean_backward=None if not nb_ else mb))
+    # the other quantities: runs of notable bins of the same sign
+    for qn in ("position", "current", "acceleration", "time"):
+        bq = bins.get(qn)
+        if bq is None:
+            continue
+        nbins = len(bq.count)
+        runs: list[list[int]] = []
+        for j in range(nbins):
+            m = float(bq.mean[j])
+            if not _notable(m, int(bq.count[j]), sd, rms, tau):
+                continue
+            if runs and runs[-1][-1] == j - 1 and np.sign(bq.mean[runs[-1][-1]]) == np.sign(m):
+                runs[-1].append(j)
+            else:
+                runs.append([j])
+        qr = []
+        for run in runs:
+            n = int(sum(bq.count[j] for j in run))
+            m = float(sum(bq.count[j] * bq.mean[j] for j in run)) / n
+            lo, hi = float(bq.edges[run[0]]), float(bq.edges[run[-1] + 1])
+            rt = _range_text(qn, lo, hi, float(bq.edges[0]), float(bq.edges[-1]), bq.unit)
+            text = f"{rt} the residual is {value_text(m, unit, True)}"
+            if qn == "position" and ctx.axis == "rotary":
+                text = text.replace("at positions", "at angles")
+            qr.append(Region(qn, text, lo, hi, n * m * m / energy, n, mean=m))
+        qr.sort(key=lambda x: -x.share)
+        found.extend(qr[:3])
+    found.sort(key=lambda x: -x.share)
+    # one whole-range statement is enough (an offset shows in every quantity)
+    out: list[Region] = []
+    whole = False
+    for reg in found:
+        is_whole = ("every" in reg.text or "whole record" in reg.text)
+        if is_whole and whole:
+            continue
+        whole = whole or is_whole
+        out.append(reg)
+    return tuple(out[:6])
+
+
+# --------------------------------------------------------------------- order spectrum
+def order_spectrum(ctx: RecordSamples, r: F64, used: B, unit: str) -> OrderSpectrum:
+    assert ctx.angle_raw is not None
+    K = ctx.max_order
+    orders = spectrum_orders(K)
+    amp, expl = harmonic_fit(ctx, r, used, orders)
+    peaks = spectrum_peaks(orders, expl)
+    return OrderSpectrum(orders, amp, expl, peaks, unit, ctx.per)
+
+
+@numba.njit(cache=True)
+def _sincos(a: F64, qs: F64, out: F64) -> None:  # pragma: no cover - compiled
+    """out[i, 2j] = sin(q_j a_i), out[i, 2j + 1] = cos(q_j a_i)."""
+    for i in range(a.shape[0]):
+        for j in range(qs.shape[0]):
+            x = qs[j] * a[i]
+            out[i, 2 * j] = math.sin(x)
+            out[i, 2 * j + 1] = math.cos(x)
+
+
+def spectrum_orders(max_order: int) -> F64:
+    """Steps of 1/4 up to order 16 (fractional orders: gears, belts), integers above."""
+    fine = np.arange(1, int(round(min(max_order, 16) / ORDER_STEP)) + 1) * ORDER_STEP
+    coarse = np.arange(17, max_order + 1, dtype=np.float64)
+    return np.concatenate([fine, coarse])
+
+
+def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64, F64]:
+    """Per order q: LS fit of r by a constant, F[sin q a] and F[cos q a].
+
+    Returns the amplitude of the sine/cosine pair (target unit) and the share of the
+    residual's variance (about its mean) it explains. The columns are built and filtered
+    in blocks of rows (the filter's state carried), so memory does not grow with the
+    record; only sums over the used rows are kept.
+    """
+    assert ctx.angle_filled is not None
+    n_used = int(used.sum())
+    amp = np.zeros(len(orders))
+    expl = np.zeros(len(orders))
+    if n_used < 3:
+        return amp, expl
+    rc = r - float(np.mean(r[used]))  # centred on the used rows
+    den = float(np.dot(rc[used], rc[used]))
+    if den <= 0:
+        return amp, expl
+    # filtered on the filled record, as the pipeline filters its columns
+    used = ctx.spread(used)
+    rc = ctx.spread_values(rc)
+    a = np.ascontiguousarray(ctx.angle_filled, dtype=np.float64)
+    chunk = 32
+    for c0 in range(0, len(orders), chunk):
+        qs = np.ascontiguousarray(orders[c0:c0 + chunk], dtype=np.float64)
+        m = len(qs)
+        # sums over the used rows: g, g g' (per order: ss, cc, sc), g r
+        s1 = np.zeros(2 * m)
+        ss = np.zeros(m)
+        cc = np.zeros(m)
+        sc = np.zeros(m)
+        sr = np.zeros(m)
+        cr = np.zeros(m)
+        svf = SVF(ctx.cutoff_hz, ctx.dt, ctx.zeta, ctx.position_hold)
+        for sa, sb in ctx.segments():
+            svf.reset()
+            for b0 in range(sa, sb, BLOCK):
+                b1 = min(sb, b0 + BLOCK)
+                raw = np.empty((b1 - b0, 2 * m))
+                _sincos(a[b0:b1], qs, raw)
+                f, _ = svf.process(raw)
+                u = used[b0:b1]
+                if not u.any():
+                    continue
+                G = f[u]
+                ru = rc[b0:b1][u]
+                gs, gc = G[:, 0::2], G[:, 1::2]
+                s1 += G.sum(axis=0)
+                ss += np.einsum("ij,ij->j", gs, gs)
+                cc += np.einsum("ij,ij->j", gc, gc)
+                sc += np.einsum("ij,ij->j", gs, gc)
+                sr += gs.T @ ru
+                cr += gc.T @ ru
+        # centre the columns: sum (g - mean g)(h - mean h) = sum g h - n mean g mean h
+        ms, mc = s1[0::2] / n_used, s1[1::2] / n_used
+        ss -= n_used * ms * ms
+        cc -= n_used * mc * mc
+        sc -= n_used * ms * mc
+        # normal equations per order: [[ss sc] [sc cc]] x = [sr cr]
+        det = ss * cc - sc * sc
+        ok = det > 1e-12 * np.maximum(ss * cc, 1e-300)
+        xs = np.zeros(m)
+        xc = np.zeros(m)
+        xs[ok] = (cc[ok] * sr[ok] - sc[ok] * cr[ok]) / det[ok]
+        xc[ok] = (ss[ok] * cr[ok] - sc[ok] * sr[ok]) / det[ok]
+        amp[c0:c0 + chunk] = np.hypot(xs, xc)
+        expl[c0:c0 + chunk] = np.clip((xs * sr + xc * cr) / den, 0.0, 1.0)
+    return amp, expl
+
+
+def spectrum_peaks(orders: F64, expl: F64, limit: int = 5) -> tuple[float, ...]:
+    if not len(expl):
+        return ()
+    med = float(np.median(expl))
+    out = []
+    for j in range(len(expl)):
+        e = expl[j]
+        left = expl[j - 1] if j > 0 else -1.0
+        right = expl[j + 1] if j + 1 < len(expl) else -1.0
+        if e >= left and e >= right and e >= 0.01 and e >= 10.0 * med:
+            out.append((float(e), float(orders[j])))
+    out.sort(reverse=True)
+    return tuple(o for _, o in out[:limit])
+
+
+# ------------------------------------------------------------------------- excitation
+def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationSummary:
+    sp = ctx.speed[used]
+    if not len(sp):
+        return ExcitationSummary(0.0, 0.0, 0, math.nan, math.nan, math.nan, math.nan,
+                                 math.nan, math.nan, None, None, ctx.speed_unit, ctx.per)
+    vmax = float(np.percentile(np.abs(sp), 99.0))
+    eps = max(model.coulomb_band, 0.01 * vmax)
+    fwd = float(np.mean(sp > eps))
+    bwd = float(np.mean(sp < -eps))
+    s = np.sign(sp[np.abs(sp) > eps])
+    rev = int(np.sum(s[1:] != s[:-1])) if len(s) > 1 else 0
+    # samples where the Stribeck shape exp(-(w/ws)^2) is more than e^-4
+    low = float(np.mean(np.abs(sp) < 2.0 * model.stribeck_speed))
+    # speed-sensor noise from the second differences of the measured speed (robust:
+    # var(w[k+1] - 2 w[k] + w[k-1]) = 6 sigma^2 for white noise), through sF
+    w = np.asarray(ctx.signals.speed, dtype=np.float64)
+    d2 = w[2:] - 2.0 * w[1:-1] + w[:-2]
+    sigma_w = 1.4826 * float(np.median(np.abs(d2))) / math.sqrt(6.0) if len(d2) else 0.0
+    h_sf = ctx.impulse(ctx.speed_hold, derivative=True)
+    acc_noise = sigma_w * float(np.sqrt(np.dot(h_sf, h_sf)))
+    revs = cov = None
+    if ctx.angle is not None:
+        a = ctx.angle[used]
+        revs = float(np.sum(np.abs(np.diff(a)))) / (2 * math.pi) if len(a) > 1 else 0.0
+        cov = float(np.max(a) - np.min(a)) / (2 * math.pi)
+    return ExcitationSummary(
+        forward=fwd, backward=bwd, reversals=rev, speed_mean=float(np.mean(sp)),
+        speed_std=float(np.std(sp)), speed_max=float(np.max(np.abs(sp))),
+        acceleration_rms=float(np.sqrt(np.mean(ctx.acceleration[used] ** 2))),
+        acceleration_noise=acc_noise, low_speed=low, revolutions=revs, coverage=cov,
+        speed_unit=ctx.speed_unit, per=ctx.per)
+
+
+# ------------------------------------------------------------------------- structure
+def residual_structure(ctx: RecordSamples, r: F64, used: B, unit: str, h2: float,
+               spectrum: OrderSpectrum | None,
+               target: str = "current") -> tuple[StructureItem, ...]:
+    """Structure of the residual ``r`` (``spectrum``: its order spectrum, if computed).
+
+    The residual is not tested against the equation's own target signal (``target``):
+    it holds the target's noise, so its bin means follow the target trivially.
+    """
+    ru = r[used]
+    out: list[StructureItem] = []
+    if not len(ru):
+        return ()
+    energy = float(np.dot(ru, ru))
+    if energy <= 0:
+        return ()
+    mu = float(np.mean(ru))
+    tau = 1.0 / h2 if h2 > 0 else 1.0
+    sd = float(np.std(ru))
+    share_mean = len(ru) * mu * mu / energy
+    if share_mean >= MIN_STRUCTURE and abs(mu) >= 4 * sd / math.sqrt(len(ru) / tau):
+        out.append(StructureItem("offset", f"a constant offset: mean residual "
+                                           f"{value_text(mu, unit, True)}", share_mean))
+    bins = all_bins(ctx, r, used, unit)
+    words = {"speed": "speed-dependent", "position": "position-dependent",
+             "current": "current-dependent", "acceleration": "acceleration-dependent",
+             "time": "drifting in time"}
+    for qn, b in bins.items():
+        if b.share < MIN_STRUCTURE or qn == target:
+            continue
+        ok = b.count >= MIN_BIN
+        c = b.centers[ok]
+        m = b.mean[ok]
+        jmin, jmax = int(np.argmin(m)), int(np.argmax(m))
+        text = (f"{words[qn]}: the mean residual ranges from "
+                f"{value_text(float(m[jmin]), unit, True)}"
+                f" (at {c[jmin]:.3g} {b.unit}) to {value_text(float(m[jmax]), unit, True)} (at "
+                f"{c[jmax]:.3g} {b.unit}); {share_text(b.share)} of the variance")
+        out.append(StructureItem(qn, text, b.share))
+    if ctx.angle_raw is not None:
+        if spectrum is not None:
+            orders, expl = spectrum.orders, spectrum.explained
+        else:
+            orders = spectrum_orders(ctx.max_order)
+            _, expl = harmonic_fit(ctx, r, used, orders)
+        for q in spectrum_peaks(orders, expl, 3):
+            e = float(expl[int(np.argmin(np.abs(orders - q)))])
+            if e < MIN_EXPLAINED:
+                continue
+            integer = abs(q - round(q)) < 1e-9
+            tag = "" if not integer else (
+                " (unbalance)" if round(q) == 1 else f" (cogging:{int(round(q))})")
+            out.append(StructureItem(
+                "periodic", f"periodic at order {q:g} per {ctx.per}{tag}: "
+                            f"{share_text(e)} of the variance", e))
+    out.sort(key=lambda s: -s.share)
+    return tuple(out)

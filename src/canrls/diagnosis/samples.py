@@ -1,0 +1,247 @@
+"""The record as the pipeline sees it: the samples, rows and filtered signals the
+diagnosis works on.
+
+:class:`RecordSamples` selects the samples with the pipeline's own
+:class:`~canrls.estimation.selection.SamplePolicy`: the gaps of lost frames are filled,
+the filter restarts where the pipeline restarts it, and the used rows are the rows the
+pipeline uses. Everything is filtered on the filled record (the filter keeps its time
+base, as in the pipeline) and handed out on the measured rows, the rows of the
+pipeline's :class:`~canrls.estimation.pipeline.EquationBlock`, so the columns and used
+masks of the diagnosis are the pipeline's, bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from canrls.estimation.model import Equation, Model, PositionUnwrapper
+from canrls.estimation.pipeline import EstimatorSettings
+from canrls.estimation.selection import SamplePolicy
+from canrls.estimation.svf import SVF
+from canrls.signals import Signals
+
+__all__ = ["BLOCK", "RecordSamples"]
+
+F64 = npt.NDArray[np.float64]
+B = npt.NDArray[np.bool_]
+
+#: Rows filtered at a time where a pass over the record builds many columns.
+BLOCK = 32768
+
+
+class RecordSamples:
+    """What both analyses (before and after) share: samples, restarts, filtered signals.
+
+    Attributes (measured rows): ``signals`` (as given), ``speed``, ``acceleration``,
+    ``current`` (through the filter), ``position`` (unwrapped, filtered), ``angle``
+    (phase of periodic terms, filtered) and ``angle_raw`` (unfiltered), ``None``
+    without position. ``selected`` holds the filled record
+    (:class:`~canrls.estimation.selection.SelectedSamples`).
+    """
+
+    def __init__(self, model: Model, signals: Signals, dt: float,
+                 settings: EstimatorSettings, max_order: int) -> None:
+        self.signals = signals
+        self.dt = dt
+        self.settings = settings
+        self.max_order = max_order
+        self.axis = model.axis
+        self.pitch = model.pitch
+        # gap filling and restarts are the same for every equation of the model
+        self.policy = SamplePolicy.for_equation(model.equations[0], dt, settings)
+        self.selected = self.policy.apply(signals)
+        filled = self.selected.signals
+        n = len(filled)
+        self.speed_unit = "rad/s" if model.axis == "rotary" else "m/s"
+        self.position_unit = "rad" if model.axis == "rotary" else "m"
+        self.acc_unit = "rad/s²" if model.axis == "rotary" else "m/s²"
+        self.per = "revolution" if model.axis == "rotary" else "pitch"
+        held = model.held
+        hold = {r: ("zoh" if r in held else "foh") for r in ("speed", "current", "position")}
+        self.speed_hold = hold["speed"]
+        self.position_hold = hold["position"]
+        self.cutoff_hz, self.zeta = model.cutoff_hz, model.zeta
+        measured = self.selected.measured
+        # F[speed], sF[speed], F[current]
+        raw = np.column_stack([filled.speed, filled.current]).astype(np.float64)
+        svf = SVF(model.cutoff_hz, dt, model.zeta, (hold["speed"], hold["current"]))
+        f, sf = self._filter(svf, raw)
+        self.speed: F64 = measured(f[:, 0])
+        self.acceleration: F64 = measured(sf[:, 0])
+        self.current: F64 = measured(f[:, 1])
+        # the unwrapped position (as the model unwraps it) and the phase of periodic terms
+        self.position: F64 | None = None
+        self.angle_raw: F64 | None = None
+        self.angle: F64 | None = None
+        #: the phase of periodic terms on the filled record (rows of ``selected``)
+        self.angle_filled: F64 | None = None
+        if filled.position is not None:
+            period = 2.0 * math.pi if model.axis == "rotary" else model.wrap
+            unw = PositionUnwrapper(period)
+            pos = np.empty(n)
+            for a, b in self.segments():
+                unw.reset()
+                pos[a:b] = unw.process(np.asarray(filled.position[a:b], dtype=np.float64))
+            k = 1.0 if model.axis == "rotary" else 2.0 * math.pi / model.pitch
+            self.angle_filled = k * pos
+            self.angle_raw = measured(self.angle_filled)
+            svp = SVF(model.cutoff_hz, dt, model.zeta, hold["position"])
+            fp, _ = self._filter(svp, pos.reshape(-1, 1))
+            self.position = measured(fp[:, 0])
+            self.angle = k * self.position
+        self._h: dict[str, F64] = {}
+        self._use: dict[tuple[int, float, float], B] = {}
+        self._coh: dict[tuple[int, int], tuple[F64, float]] = {}
+
+    # -- rows ---------------------------------------------------------------------------
+    def segments(self) -> list[tuple[int, int]]:
+        """Runs of rows of the filled record without a filter restart."""
+        return self.selected.segments()
+
+    def spread(self, used: B) -> B:
+        """A mask over the measured rows as a mask over the filled record."""
+        return self.selected.filled(used)
+
+    def spread_values(self, v: F64) -> F64:
+        """Values on the measured rows placed on the filled record (0 on filled rows)."""
+        real = self.selected.real
+        if real is None:
+            return v
+        out = np.zeros(len(real))
+        out[real] = v
+        return out
+
+    def _filled_use(self, policy: SamplePolicy) -> B:
+        """The rows of the filled record ``policy`` uses (the pipeline's rule)."""
+        key = (policy.warmup, policy.min_speed, policy.max_speed)
+        if key not in self._use:
+            filled = self.selected.signals
+            use = policy.selector().select(filled.t, filled.speed).use
+            if self.selected.real is not None:
+                use &= self.selected.real
+            self._use[key] = use
+        return self._use[key]
+
+    def used(self, equation: Equation) -> B:
+        """The measured rows the pipeline uses for ``equation`` (without the rows of a
+        non-finite column, which the builder finds)."""
+        policy = SamplePolicy.for_equation(equation, self.dt, self.settings)
+        return self.selected.measured(self._filled_use(policy))
+
+    def _keep_filled(self, order: int) -> B:
+        return self._filled_use(self.policy.for_order(order))
+
+    def keep(self, order: int) -> B:
+        """Measured rows where a periodic column of ``order`` is sampled finely enough.
+
+        The pipeline skips the samples where the fastest periodic column advances more
+        than ``max_phase_step`` rad per sample (and the filter warm-up after them): the
+        straight line between samples no longer follows ``sin(k theta)`` there, and near
+        ``k omega dt = 2 pi`` the samples alias to low frequencies that pass the filter.
+        A candidate periodic column is set to zero on the other rows (not the rows
+        dropped: the other candidates are compared on the same samples).
+        """
+        return self.selected.measured(self._keep_filled(order))
+
+    # -- filtered signals and columns -----------------------------------------------------
+    def _filter(self, svf: SVF, raw: F64) -> tuple[F64, F64]:
+        f = np.empty_like(raw)
+        sf = np.empty_like(raw)
+        for a, b in self.segments():
+            svf.reset()
+            f[a:b], sf[a:b] = svf.process(raw[a:b])
+        return f, sf
+
+    def _mask_periodic(self, eq: Equation, first: int, phi: F64, a: int) -> None:
+        """Zero candidate periodic columns (index >= ``first``) of the filled rows
+        ``a:a+len(phi)`` where :meth:`keep` says so."""
+        for j in range(first, eq.n):
+            k = eq.parameters[j].order
+            if k > 0:
+                keep = self._keep_filled(k)[a:a + len(phi)]
+                if not keep.all():
+                    phi[~keep, j] = 0.0
+
+    def columns(self, eq: Equation, first: int | None = None) -> tuple[F64, F64]:
+        """(phi, y) of an equation on the measured rows (normalised), as the pipeline
+        builds them (gaps filled, restarts); periodic columns from ``first`` on (default:
+        none) zeroed where :meth:`keep` says so."""
+        builder = eq.builder(self.dt)
+        filled = self.selected.signals
+        n = len(filled)
+        phi = np.empty((n, eq.n))
+        y = np.empty(n)
+        for a, b in self.segments():
+            builder.reset()
+            rb = builder.process(filled.slice(a, b))
+            phi[a:b] = rb.phi
+            y[a:b] = rb.y
+        self._mask_periodic(eq, eq.n if first is None else first, phi, 0)
+        return self.selected.measured(phi), self.selected.measured(y)
+
+    def gram(self, eq: Equation, used: B, first: int) -> F64:
+        """Gram matrix of [phi, y] over the ``used`` measured rows, block by block
+        (periodic columns from ``first`` on masked as in :meth:`columns`)."""
+        builder = eq.builder(self.dt)
+        filled = self.selected.signals
+        used_f = self.spread(used)
+        m = eq.n + 1
+        A = np.zeros((m, m))
+        for a, b in self.segments():
+            builder.reset()
+            for c0 in range(a, b, BLOCK):
+                c1 = min(b, c0 + BLOCK)
+                rb = builder.process(filled.slice(c0, c1))
+                phi = rb.phi
+                self._mask_periodic(eq, first, phi, c0)
+                u = used_f[c0:c1]
+                Z = np.column_stack([phi[u], rb.y[u]])
+                A += Z.T @ Z
+        return A
+
+    def impulse(self, hold: str, derivative: bool = False) -> F64:
+        """Impulse response of F (DC gain 1), or of sF, for a hold, long enough to decay."""
+        key = hold + ("/s" if derivative else "")
+        if key not in self._h:
+            svf = SVF(self.cutoff_hz, self.dt, self.zeta, hold)
+            wc = 2 * math.pi * self.cutoff_hz
+            m = int(math.ceil(40.0 / (min(self.zeta, 1.0) * wc * self.dt))) + 8
+            u = np.zeros(m + 2)
+            u[2] = 1.0  # the filter starts at rest on u[0] = 0
+            f, sf = svf.process(u)
+            self._h[hold] = f[2:]
+            self._h[hold + "/s"] = sf[2:]
+        return self._h[key]
+
+    def coherence(self, order: int, used: B) -> tuple[float, float]:
+        r"""How much a periodic column of ``order`` looks like a sinusoid in time.
+
+        :math:`c_k = |\overline{e^{ik(\vartheta - \bar\omega t)}}|` with
+        :math:`\bar\omega` the least-squares slope of the angle against time: 1 when the
+        axis turns at a constant speed (order ``k`` in position is then the frequency
+        :math:`k\bar\omega/2\pi` in time), near 0 when the speed varies. Returns
+        ``(c_k, frequency [Hz])``.
+        """
+        assert self.angle_raw is not None
+        key = (int(used.sum()), hash(used.tobytes()))
+        if key not in self._coh:
+            a = self.angle_raw[used]
+            t = self.signals.t[used]
+            c = np.ones(self.max_order + 1)
+            w = 0.0
+            if len(a) >= 3:
+                tc = t - t.mean()
+                den = float(np.dot(tc, tc))
+                w = float(np.dot(tc, a - a.mean())) / den if den > 0 else 0.0
+                z1 = np.exp(1j * (a - w * t))
+                zk = np.ones_like(z1)
+                for k in range(1, self.max_order + 1):
+                    zk *= z1
+                    c[k] = abs(complex(np.mean(zk)))
+            self._coh[key] = (c, w)
+        c, w = self._coh[key]
+        cc = float(c[order]) if order < len(c) else 0.0
+        return cc, abs(order * w) / (2 * math.pi)

@@ -1,0 +1,353 @@
+r"""Which samples update the estimators: the one sample-selection policy.
+
+The live daemon, the offline replay and the diagnosis all decide with
+:class:`SamplePolicy`, so a recording gives the same used samples (and the same
+filtered columns) wherever it is processed:
+
+1. **Gap filling.** A lost frame leaves its period without a sample; a gap of ``m``
+   missing periods, up to ``gap`` seconds, is filled with ``m`` interpolated rows
+   (:class:`GapFiller`). Filled rows pass through the filter but never update the
+   estimators; a longer gap (or time going backwards) restarts the filter.
+2. **Warm-up.** After the start and after every restart, ``warmup`` samples are not
+   used: the filter's zero initial state does not match the signals there.
+3. **Speed limits.** A sample with ``|omega| < min_speed`` (sign-dependent friction
+   near a reversal: the measured speed's sign is noise and the drive sticks) or
+   ``|omega| > max_speed`` (the fastest position-periodic column advances more than
+   ``max_phase_step`` rad per sample) is not used, nor are the ``warmup`` samples after
+   it.
+
+With the highest position order :math:`k` among the equation's effects,
+
+.. math::
+
+    \omega_{max} = \frac{\Delta\vartheta_{max}}{k\,T_s}
+    \quad(\text{linear axis: } \times\,\text{pitch}/2\pi), \qquad
+    n_{warm} = \Big\lceil \frac{5}{\zeta\,\omega_c\,T_s} \Big\rceil
+
+(:math:`\omega_c = 2\pi f_c` of the state-variable filter) unless the settings give
+them. The policy is a frozen value; the state carried between blocks lives in the
+:class:`GapFiller` and :class:`SampleSelector` it makes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numba
+import numpy as np
+import numpy.typing as npt
+
+from canrls.estimation.model import Equation
+from canrls.signals import ROLES, Signals
+
+__all__ = ["SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector", "Selection",
+           "SelectedSamples"]
+
+F64 = npt.NDArray[np.float64]
+B = npt.NDArray[np.bool_]
+
+
+class SelectionSettings(Protocol):
+    """The estimator settings the policy reads
+    (:class:`canrls.estimation.pipeline.EstimatorSettings` has them)."""
+
+    @property
+    def warmup_s(self) -> float | None: ...
+
+    @property
+    def gap_periods(self) -> float: ...
+
+    @property
+    def max_phase_step(self) -> float: ...
+
+    @property
+    def min_speed(self) -> float | None: ...
+
+
+# ------------------------------------------------------------------------- kernels
+@numba.njit(cache=True)
+def _select(t: F64, omega: F64, gap: float, warm: int, min_speed: float,
+            max_speed: float, state: F64, restart: B,
+            use: B) -> tuple[int, int]:  # pragma: no cover - compiled
+    """Mark gaps (restart the filter there) and the rows not to use; return the number
+    of restarts and of rows to use.
+
+    A row is not used in the warm-up after a restart, nor while ``|omega| > max_speed``
+    (periodic columns advance too fast per sample) or ``|omega| < min_speed`` (friction
+    near standstill), nor in the warm-up after those.
+    state = [last t (nan: none yet), samples left in the warm-up]
+    """
+    last = state[0]
+    left = state[1]
+    restarts = 0
+    used = 0
+    for k in range(t.shape[0]):
+        if last != last or t[k] - last > gap or t[k] < last:
+            restart[k] = True
+            restarts += 1
+            left = warm
+        last = t[k]
+        w = abs(omega[k])
+        if w > max_speed or w < min_speed:
+            left = warm + 1
+        if left > 0:
+            use[k] = False
+            left -= 1
+        else:
+            use[k] = True
+            used += 1
+    state[0] = last
+    state[1] = left
+    return restarts, used
+
+
+@numba.njit(cache=True)
+def _nothing_to_fill(t: F64, has_last: bool, last_t: float, dt: float,
+                     max_gap: float) -> bool:  # pragma: no cover - compiled
+    """True when no step between samples (from ``last_t`` if ``has_last``) misses a
+    period: each rounds to at most one period, is longer than ``max_gap`` or is not
+    forward (a nan step is left to :meth:`GapFiller.fill`)."""
+    prev = last_t if has_last else t[0]
+    for k in range(t.shape[0]):
+        gap = t[k] - prev
+        prev = t[k]
+        if not (gap > max_gap or gap <= 0.0 or np.rint(gap / dt) <= 1.0):
+            return False
+    return True
+
+
+def _phase_speed_limit(max_phase_step: float, order: int, dt: float,
+                       pitch: float | None) -> float:
+    """Largest |speed| at which a column of position ``order`` advances at most
+    ``max_phase_step`` rad per sample (``inf`` for order 0)."""
+    if not order:
+        return math.inf
+    # k * |omega| * dt <= max_phase_step
+    limit = max_phase_step / (order * dt)
+    if pitch is not None:
+        # the phase of a linear axis advances 2 pi / pitch per metre
+        limit *= pitch / (2 * math.pi)
+    return limit
+
+
+# -------------------------------------------------------------------------- policy
+@dataclass(frozen=True)
+class SamplePolicy:
+    """What decides which samples update the estimators of one equation.
+
+    Attributes
+    ----------
+    dt : sample period [s]
+    warmup : samples not used after a (re)start of the filter, and after a sample
+        outside the speed limits
+    gap : a step of the sample times longer than this [s] (or backwards) restarts the
+        filter; shorter gaps are filled
+    wrap : period of the measured position (the shorter way round when filling), or
+        ``None``
+    min_speed, max_speed : the used samples have ``min_speed <= |omega| <= max_speed``
+    max_phase_step : largest phase advance per sample of a periodic column [rad]
+    pitch : linear axis: metres per period of the periodic terms (``None``: rotary)
+    """
+
+    dt: float
+    warmup: int
+    gap: float
+    wrap: float | None
+    min_speed: float = 0.0
+    max_speed: float = math.inf
+    max_phase_step: float = math.inf
+    pitch: float | None = None
+
+    @classmethod
+    def for_equation(cls, equation: Equation, dt: float,
+                     settings: SelectionSettings) -> SamplePolicy:
+        """The policy of ``equation`` sampled every ``dt`` seconds, with ``settings``
+        (:class:`~canrls.estimation.pipeline.EstimatorSettings`)."""
+        s = settings
+        dt = float(dt)
+        m = equation.model
+        wc = 2 * math.pi * m.cutoff_hz
+        warm_s = 5.0 / (m.zeta * wc) if s.warmup_s is None else s.warmup_s
+        pitch = m.pitch if m.axis == "linear" else None
+        k_max = max([e.order for e in equation.effects] + [0])
+        friction = any(e.name in ("coulomb", "stribeck") for e in equation.effects)
+        if not friction:
+            min_speed = 0.0
+        else:
+            min_speed = 5.0 * m.coulomb_band if s.min_speed is None else s.min_speed
+        return cls(dt=dt, warmup=int(math.ceil(warm_s / dt)), gap=s.gap_periods * dt,
+                   wrap=2.0 * math.pi if m.axis == "rotary" else m.wrap,
+                   min_speed=min_speed,
+                   max_speed=_phase_speed_limit(s.max_phase_step, k_max, dt, pitch),
+                   max_phase_step=s.max_phase_step, pitch=pitch)
+
+    def for_order(self, order: int) -> SamplePolicy:
+        """The policy for a periodic column of position ``order`` alone: no low-speed
+        limit, the high-speed limit of that order."""
+        return dataclasses.replace(
+            self, min_speed=0.0,
+            max_speed=_phase_speed_limit(self.max_phase_step, order, self.dt, self.pitch))
+
+    def filler(self) -> GapFiller:
+        """A new gap filler (state: the previous sample) for a stream of blocks."""
+        return GapFiller(self.dt, self.gap, self.wrap)
+
+    def selector(self) -> SampleSelector:
+        """A new selector (state: last sample time, warm-up left) for a stream of blocks."""
+        return SampleSelector(self)
+
+    def apply(self, signals: Signals) -> SelectedSamples:
+        """A whole record at once, as a pipeline fed it in one block selects it: gaps
+        filled, restarts and used rows marked (the filled rows never used)."""
+        filled, real = self.filler().fill(signals)
+        sel = self.selector().select(filled.t, filled.speed)
+        use = sel.use if real is None else sel.use & real
+        return SelectedSamples(signals=filled, real=real, restart=sel.restart, use=use)
+
+
+# --------------------------------------------------------------------------- state
+@dataclass(frozen=True)
+class Selection:
+    """The rows of one block: where the filter restarts, which rows are used."""
+
+    restart: B
+    use: B
+    restarts: int
+    used: int
+
+
+class SampleSelector:
+    """Applies a :class:`SamplePolicy` block by block (the last sample time and the
+    warm-up left are carried over, so the result does not depend on the block sizes)."""
+
+    def __init__(self, policy: SamplePolicy) -> None:
+        self.policy = policy
+        self.reset()
+
+    def reset(self) -> None:
+        """The next sample starts the filter."""
+        self._state = np.array([np.nan, 0.0])
+
+    def select(self, t: npt.ArrayLike, omega: npt.ArrayLike) -> Selection:
+        """Restarts and used rows of a block with sample times ``t`` and speed ``omega``."""
+        p = self.policy
+        t_c = np.ascontiguousarray(t, dtype=np.float64)
+        w = np.ascontiguousarray(omega, dtype=np.float64)
+        n = len(t_c)
+        restart = np.zeros(n, np.bool_)
+        use = np.empty(n, np.bool_)
+        restarts, used = _select(t_c, w, p.gap, p.warmup, p.min_speed, p.max_speed,
+                                 self._state, restart, use)
+        return Selection(restart, use, int(restarts), int(used))
+
+
+class GapFiller:
+    r"""Fill short gaps in the sample times so the filter keeps its time base.
+
+    A lost frame leaves its period without a sample; the filter, which assumes one
+    sample per period, would then stretch the signals in time and bias the derivative
+    columns (inertia). A gap of ``m`` missing periods, up to ``max_gap`` seconds, is
+    filled with ``m`` rows interpolated on a straight line (the position along the
+    shorter way round its wrap period). Filled rows pass through the filter but never
+    update the estimators; longer gaps restart the filter instead. The previous sample
+    is carried between blocks, so the result does not depend on the block sizes.
+    """
+
+    def __init__(self, dt: float, max_gap: float, period: float | None) -> None:
+        self.dt = dt
+        self.max_gap = max_gap
+        self.period = period
+        self._last: dict[str, float] | None = None
+
+    def reset(self) -> None:
+        self._last = None
+
+    def fill(self, s: Signals) -> tuple[Signals, B | None]:
+        """(signals with the gaps filled, mask of the real rows or ``None``: nothing filled)."""
+        n = len(s)
+        if n == 0:
+            return s, None
+        t = np.ascontiguousarray(s.t, dtype=np.float64)
+        last = self._last
+        row = {"t": float(t[-1])}
+        for r in ROLES:
+            v = getattr(s, r)
+            if v is not None:
+                row[r] = float(v[-1])
+        self._last = row
+        if _nothing_to_fill(t, last is not None, last["t"] if last is not None else 0.0,
+                            self.dt, self.max_gap):
+            return s, None
+        prev_t = np.empty(n)
+        prev_t[1:] = t[:-1]
+        prev_t[0] = last["t"] if last is not None else t[0]
+        gap = t - prev_t
+        missing = np.rint(gap / self.dt).astype(np.int64) - 1
+        missing[(gap > self.max_gap) | (gap <= 0) | (missing < 0)] = 0
+        if not missing.any():
+            return s, None
+        total = n + int(missing.sum())
+        # row k of the input lands at k + (filled rows before it)
+        dest = np.arange(n) + np.cumsum(missing)
+        real = np.zeros(total, np.bool_)
+        real[dest] = True
+        roles = [r for r in ROLES if s.has(r)]
+        out: dict[str, npt.NDArray[np.float64]] = {}
+        for r in ["t", *roles]:
+            v = np.asarray(getattr(s, r), dtype=np.float64)
+            pv = np.empty(n)
+            pv[1:] = v[:-1]
+            pv[0] = last[r] if last is not None and r in last else v[0]
+            col = np.empty(total)
+            col[dest] = v
+            step = v - pv
+            wrap = self.period if r == "position" else None
+            if wrap is not None:
+                step = np.mod(step + 0.5 * wrap, wrap) - 0.5 * wrap
+            for k in np.flatnonzero(missing):
+                m = int(missing[k])
+                frac = np.arange(1, m + 1) / (m + 1)
+                vals = pv[k] + step[k] * frac
+                if wrap is not None:
+                    vals = np.mod(vals, wrap)
+                col[dest[k] - m: dest[k]] = vals
+            out[r] = col
+        return Signals(out["t"], out["current"], out["speed"], out.get("position"),
+                       out.get("voltage")), real
+
+
+# ------------------------------------------------------------------ a whole record
+@dataclass(frozen=True)
+class SelectedSamples:
+    """A record after :meth:`SamplePolicy.apply`, in the rows of the filled record.
+
+    ``signals`` has the gaps filled; ``real`` marks the measured rows (``None``: nothing
+    was filled, every row is real); ``restart`` the rows where the filter restarts;
+    ``use`` the rows that update the estimators.
+    """
+
+    signals: Signals
+    real: B | None
+    restart: B
+    use: B
+
+    def segments(self) -> list[tuple[int, int]]:
+        """``[start, stop)`` of each run of rows the filter goes through without a restart."""
+        starts = [int(k) for k in np.flatnonzero(self.restart)]
+        ends = starts[1:] + [len(self.restart)]
+        return [(a, b) for a, b in zip(starts, ends, strict=True) if b > a]
+
+    def measured(self, a: npt.NDArray[np.generic]) -> npt.NDArray[np.generic]:
+        """The measured rows of ``a`` (rows of the filled record)."""
+        return a if self.real is None else a[self.real]
+
+    def filled(self, mask: B) -> B:
+        """A mask over the measured rows spread over the filled record (filled rows False)."""
+        if self.real is None:
+            return mask
+        out = np.zeros(len(self.real), np.bool_)
+        out[self.real] = mask
+        return out
