@@ -613,7 +613,7 @@ def test_sighup_reloads_model_and_sigterm_checkpoints(tmp_path: Path) -> None:
     cp = load_checkpoint(ckpt)  # written at SIGTERM, after the last frame
     assert cp.model["effects"] == [*BASE, "unbalance"]
     assert cp.config_model["effects"] == [*BASE, "unbalance"]
-    assert cp.state["samples"] == res["daemon"]["samples"]
+    assert cp.state["pipeline"]["samples"] == res["daemon"]["samples"]
 
 
 def test_a_term_outside_its_domain_is_logged_once_and_the_estimator_goes_on(

@@ -203,8 +203,9 @@ def test_ridge_does_not_bias_and_scaling_changes_rounding_only(
     # 2**3): the float parameters agree to the rounding of the worse-scaled problem,
     # far inside 0.1 sigma (the fixed-point ones saturate: the exponents leave no room)
     s = eq.scaling
-    far = {"mechanical": [s.target + 3, *[c + (5 if j % 2 else -5)
-                                          for j, c in enumerate(s.columns)]]}
+    far = {"mechanical": {"target": s.target + 3,
+                          **{p.name: c + (5 if j % 2 else -5) for j, (p, c) in
+                             enumerate(zip(eq.parameters, s.columns, strict=True))}}}
     other, _, eq2 = _recorded_fit(path, {"scaling": far})
     assert eq2.scaling.columns != eq.scaling.columns
     for a, b in zip(est.parameters, other.parameters, strict=True):

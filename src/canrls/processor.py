@@ -207,7 +207,8 @@ class Calibration:
     samples : samples in the window
     ranges : the signal ranges that bound the signals, ``{role: (lo, hi)}``
     sources : where each range comes from: ``"config"``, ``"dbc"`` or ``"default"``
-    scaling : ``{equation: [s_y, s_1, ..., s_n]}``, the normalisation's exponents
+    scaling : ``{equation: {"target": s_y, parameter: s_j}}``, the normalisation's
+        exponents
     energy : ``{equation: mean square of each normalised column}`` on the window
     alpha : the ridge weight ``alpha`` (samples' worth of each column in the prior)
     """
@@ -217,7 +218,7 @@ class Calibration:
     samples: int
     ranges: dict[str, tuple[float, float]]
     sources: dict[str, str]
-    scaling: dict[str, tuple[int, ...]]
+    scaling: dict[str, dict[str, int]]
     energy: dict[str, tuple[float, ...]]
     alpha: float
 
@@ -226,7 +227,7 @@ class Calibration:
                            "samples": self.samples},
                 "ranges": {k: {"range": list(v), "source": self.sources.get(k, "default")}
                            for k, v in self.ranges.items()},
-                "scaling": {k: list(v) for k, v in self.scaling.items()},
+                "scaling": {k: dict(v) for k, v in self.scaling.items()},
                 "energy": {k: list(v) for k, v in self.energy.items()},
                 "alpha": self.alpha}
 
@@ -239,7 +240,8 @@ class Calibration:
                    ranges={k: (float(v["range"][0]), float(v["range"][1]))
                            for k, v in d["ranges"].items()},
                    sources={k: str(v["source"]) for k, v in d["ranges"].items()},
-                   scaling={k: tuple(int(s) for s in v) for k, v in d["scaling"].items()},
+                   scaling={k: {n: int(s) for n, s in v.items()}
+                            for k, v in d["scaling"].items()},
                    energy={k: tuple(float(e) for e in v) for k, v in d["energy"].items()},
                    alpha=float(d["alpha"]))
 
@@ -266,7 +268,7 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
     """
     probe = Pipeline(model, dt, settings)
     block = probe.process(window, record=True)
-    exponents: dict[str, list[int]] = {}
+    exponents: dict[str, dict[str, int]] = {}
     energy: dict[str, tuple[float, ...]] = {}
     for eq, b in zip(model.equations, block.equations, strict=True):
         sc = eq.scaling
@@ -275,12 +277,15 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
         # the target and every column in physical units, on the rows used
         y = b.y[rows]
         cols = np.ldexp(phi[rows], np.array(sc.columns, dtype=np.int64))
-        given = eq.name in model.exponents  # configured ([model.scaling]): kept
-        s_y = sc.target if given else _scale_exponent(y, sc.target_bound, sc.target)
+        # exponents the model gives (configured, or frozen by an earlier calibration) stay
+        given = model.exponents.get(eq.name, {})
+        s_y = (sc.target if "target" in given
+               else _scale_exponent(y, sc.target_bound, sc.target))
         s_cols, e_cols = [], []
-        for j in range(eq.n):
+        for j, par in enumerate(eq.parameters):
             c = cols[:, j]
-            s = sc.columns[j] if given else _scale_exponent(c, sc.column_bounds[j], None)
+            s = (sc.columns[j] if par.name in given
+                 else _scale_exponent(c, sc.column_bounds[j], None))
             if s is None:
                 # not excited on the window: the exponent of its bound, and the energy
                 # of a column at a quarter of it
@@ -290,7 +295,8 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
             s_cols.append(s)
             # e_j = mean_k (c_kj 2**-s_j)^2
             e_cols.append(float(np.mean(np.ldexp(c, -s) ** 2)))
-        exponents[eq.name] = [sc.target if s_y is None else s_y, *s_cols]
+        exponents[eq.name] = {"target": sc.target if s_y is None else s_y,
+                              **{p.name: s for p, s in zip(eq.parameters, s_cols, strict=True)}}
         energy[eq.name] = tuple(e_cols)
     return model.with_scaling(exponents), energy
 
@@ -432,7 +438,7 @@ class SampleProcessor:
             t_end=float(t[-1]) if len(t) else math.nan, samples=len(window),
             ranges={k: (float(lo), float(hi)) for k, (lo, hi) in model.ranges.items()},
             sources=dict(self._sources),
-            scaling={k: tuple(v) for k, v in model.exponents.items()},
+            scaling={k: dict(v) for k, v in model.exponents.items()},
             energy=energy, alpha=float(self.settings.alpha))
         self._window = window
         self.pipeline = Pipeline(model, self.dt, self.settings, energy)

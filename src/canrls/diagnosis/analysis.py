@@ -76,9 +76,9 @@ from canrls.estimation.pipeline import (
     EquationEstimator,
     EquationFit,
     EstimatorSettings,
-    Pipeline,
 )
 from canrls.estimation.rls import RLS
+from canrls.processor import SampleProcessor
 from canrls.signals import Signals
 
 __all__ = ["DEFAULT_MAX_ORDER", "DiagnosisReport", "LogSamples", "diagnose", "diagnose_log",
@@ -149,6 +149,8 @@ class LogSamples:
     dt: float
     #: frame statistics (total, rejected, lost, foreign, pairing, bad_lines)
     frames: dict[str, Any]
+    #: the model with the ranges the front end gives it (the DBC's where not configured)
+    model: Model
 
 
 def read_log_samples(path: str | os.PathLike[str], protocol: Any, model: Model,
@@ -161,7 +163,7 @@ def read_log_samples(path: str | os.PathLike[str], protocol: Any, model: Model,
     :raises ConfigError: fewer than two samples.
     """
     from canrls.can.logs import LogReadStats, read_frames
-    from canrls.processor import FrameProcessor
+    from canrls.processor import FrameProcessor  # noqa: PLC0415
 
     stats = LogReadStats()
     proc = FrameProcessor(protocol, model, settings)
@@ -185,7 +187,7 @@ def read_log_samples(path: str | os.PathLike[str], protocol: Any, model: Model,
     if len(signals) < 2:
         raise ConfigError(f"{path}: {len(signals)} samples after decoding and pairing "
                           f"{proc.frames} frames; nothing to diagnose")
-    return LogSamples(signals, proc.pairer.period, frames)
+    return LogSamples(signals, proc.pairer.period, frames, proc.model)
 
 
 def diagnose_log(path: str | os.PathLike[str], protocol: Any, model: Model,
@@ -206,8 +208,8 @@ def diagnose_log(path: str | os.PathLike[str], protocol: Any, model: Model,
             model.with_effects(add=[a])
     log = read_log_samples(path, protocol, model, settings, progress=progress,
                            chunk_size=chunk_size, skip_bad_lines=skip_bad_lines)
-    return diagnose(log.signals, model, settings, dt=log.dt, add=add, max_order=max_order,
-                    source=str(path), frames=log.frames)
+    return diagnose(log.signals, log.model, settings, dt=log.dt, add=add,
+                    max_order=max_order, source=str(path), frames=log.frames)
 
 
 # ============================================================================ internals
@@ -229,8 +231,10 @@ def _resolve_add(spec: str, before: Analysis) -> str:
 
 # ------------------------------------------------------------------------- the analysis
 def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
-    pipe = Pipeline(model, ctx.dt, ctx.settings)
-    block = pipe.process(ctx.signals, record=True)
+    # the front end's calibration rule, as canrls fit and the daemon follow it
+    proc = SampleProcessor(model, ctx.dt, ctx.settings)
+    block = proc.run(ctx.signals, record=True)
+    pipe, model = proc.pipeline, proc.model
     est = pipe.estimates()
     eqs = []
     for e, eb, fit in zip(pipe.estimators, block.equations, est.equations, strict=True):

@@ -354,13 +354,14 @@ class Equation:
                     f"({clo!r}, {chi!r}) for normalisation; give the term a range = [lo, hi]"
                     f" or set the ranges of the signals it reads in [model.ranges]")
             bounds.append(b)
-        given = m.exponents.get(self.name)
-        if given is not None and len(given) == self.n + 1:
-            # exponents frozen by a calibration (canrls.processor), [s_y, s_1, ..., s_n]
-            return Scaling(columns=tuple(int(s) for s in given[1:]), target=int(given[0]),
-                           column_bounds=tuple(bounds), target_bound=ty)
-        return Scaling(columns=tuple(_exponent(b) for b in bounds), target=_exponent(ty),
-                       column_bounds=tuple(bounds), target_bound=ty)
+        # exponents given (frozen by a calibration, canrls.processor, or configured) win
+        # over those of the bounds, column by column: {"target": s_y, parameter: s_j}
+        given = m.exponents.get(self.name, {})
+        return Scaling(
+            columns=tuple(given.get(p.name, _exponent(b))
+                          for p, b in zip(self.parameters, bounds, strict=True)),
+            target=given.get("target", _exponent(ty)),
+            column_bounds=tuple(bounds), target_bound=ty)
 
     @staticmethod
     def _filtered_bound(lo: float, hi: float, derivative: bool, f_gain: float,
@@ -567,7 +568,7 @@ class Model:
                  available_signals: Iterable[str] | None = None,
                  source: str = "<model>",
                  ranges_given: Iterable[str] | None = None,
-                 scaling: Mapping[str, Sequence[int]] | None = None) -> None:
+                 scaling: Mapping[str, Mapping[str, int]] | None = None) -> None:
         self.source = source
         if axis not in ("rotary", "linear"):
             raise ConfigError(_fmt(source, "model.axis", axis, "must be 'rotary' or 'linear'"))
@@ -660,7 +661,7 @@ class Model:
             out[name] = dict(t)
         return out
 
-    def _check_exponents(self, scaling: Any) -> dict[str, tuple[int, ...]]:
+    def _check_exponents(self, scaling: Any) -> dict[str, dict[str, int]]:
         if scaling is None:
             return {}
         if not isinstance(scaling, Mapping):
@@ -671,12 +672,14 @@ class Model:
             if k not in ("mechanical", ELECTRICAL):
                 raise ConfigError(_fmt(self.source, key, v, "unknown equation (valid: "
                                                             f"mechanical, {ELECTRICAL})"))
-            if (isinstance(v, str) or not isinstance(v, Sequence) or not v
-                    or not all(isinstance(s, int) and not isinstance(s, bool)
-                               and -1000 <= s <= 1000 for s in v)):
-                raise ConfigError(_fmt(self.source, key, v,
-                                       "must be a list of integer exponents [s_y, s_1, ...]"))
-            out[k] = tuple(int(s) for s in v)
+            if not isinstance(v, Mapping):
+                raise ConfigError(_fmt(self.source, key, v, 'must be a table of exponents '
+                                                            '{"target" = s_y, PARAMETER = s}'))
+            for name, s in v.items():
+                if isinstance(s, bool) or not isinstance(s, int) or not -1000 <= s <= 1000:
+                    raise ConfigError(_fmt(self.source, f"{key}.{name}", s,
+                                           "must be an integer exponent in [-1000, 1000]"))
+            out[k] = {str(name): int(s) for name, s in v.items()}
         return out
 
     def _check_ranges(self, ranges: Any) -> dict[str, Range]:
@@ -812,12 +815,12 @@ class Model:
                     coulomb_band=self.coulomb_band, stribeck_speed=self.stribeck_speed,
                     terms=self.terms, ranges=self.ranges,
                     available_signals=self.available_signals, source=self.source,
-                    ranges_given=self.ranges_given)
+                    ranges_given=self.ranges_given, scaling=self.exponents)
 
-    def with_scaling(self, exponents: Mapping[str, Sequence[int]]) -> Model:
+    def with_scaling(self, exponents: Mapping[str, Mapping[str, int]]) -> Model:
         """A new model whose equations use the given power-of-two exponents,
-        ``{equation: [s_y, s_1, ..., s_n]}`` (:attr:`Equation.scaling`), instead of the
-        ones its ranges give. The ranges still bound the signals (fixed-point formats)."""
+        ``{equation: {"target": s_y, parameter name: s_j}}`` (:attr:`Equation.scaling`),
+        instead of the ones its ranges give; a column not named keeps its bound's."""
         kw = self._kwargs()
         kw["scaling"] = exponents
         return Model(self.effects, **kw)
@@ -831,7 +834,7 @@ class Model:
                        if k not in ranges and k in _RANGE_KEYS})
         kw = self._kwargs()
         kw.update(ranges=ranges, ranges_given=frozenset(ranges))
-        return Model(self.effects, **kw, scaling=self.exponents)
+        return Model(self.effects, **kw)
 
     def with_effects(self, add: Iterable[str | Effect] = (),
                      remove: Iterable[str] = ()) -> Model:
@@ -875,7 +878,7 @@ class Model:
                                      for kk, vv in v.items()}} for k, v in self.terms.items()]
         d["ranges"] = {k: [lo, hi] for k, (lo, hi) in self.ranges.items()}
         if self.exponents:
-            d["scaling"] = {k: list(v) for k, v in self.exponents.items()}
+            d["scaling"] = {k: dict(v) for k, v in self.exponents.items()}
         return d
 
     @classmethod
