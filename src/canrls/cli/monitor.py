@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     import can
 
     from canrls.can.frames import encode_command
-    from canrls.live.daemon import bus_config, open_bus
+    from canrls.live.bus import bus_config, open_bus
     from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
 
     for name in ("duration", "interval", "timeout"):
