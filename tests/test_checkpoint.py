@@ -21,11 +21,12 @@ from canrls.live.checkpoint import (
     FORMAT,
     MAGIC,
     Checkpoint,
+    fingerprint,
     load_checkpoint,
     save_checkpoint,
     set_aside,
 )
-from canrls.live.daemon import Daemon, DaemonSettings, fingerprint
+from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.processor import FrameProcessor
 from canrls.sim import scenario
 from canrls.sim.scenario import Simulator
@@ -132,7 +133,7 @@ def test_daemon_resumes_and_sets_aside_mismatches(tmp_path: Path,
     assert d.stats().frames == 7
     # another configured model: set aside, never loaded
     _, model2, _ = _setup(EFFECTS + ["offset"])
-    with caplog.at_level("ERROR", logger="canrls.live.daemon"):
+    with caplog.at_level("ERROR", logger="canrls.live"):
         d2 = _daemon(protocol, model2, settings, path)
     assert d2.resumed_from is None and d2.pipeline.samples == 0
     assert not path.exists() and len(list(tmp_path.glob("cp.bin.bad-*"))) == 1

@@ -33,7 +33,8 @@ from canrls.can.frames import (
 from canrls.can.logs import read_frames
 from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
-from canrls.live.daemon import Daemon, DaemonSettings, bus_config, messages_to_block, open_bus
+from canrls.live.bus import bus_config, messages_to_block, open_bus
+from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.processor import FrameProcessor
 
@@ -336,7 +337,7 @@ class _FlakyBus(VirtualBus):
 
 
 def test_error_frames_pause_sending_and_recover(caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.INFO, logger="canrls.live.daemon")
+    caplog.set_level(logging.INFO, logger="canrls.live")
     protocol, model, settings = _setup()
     ch = _chan("errframes")
     tool = _Tool(ch)
@@ -508,12 +509,12 @@ def test_warm_up_runs_every_estimator_and_changes_nothing() -> None:
     d = Daemon(protocol, model, settings, DaemonSettings(),
                bus={"interface": "virtual", "channel": ch})
     with VirtualBus(channel=ch) as observer:
-        proc = d._warm_up()
+        proc = d.warm_up()
         assert observer.recv(0.05) is None  # nothing sent
     assert proc is not d.processor
-    assert all(e.rls.count > 0 and e.frls.count > 0 for e in proc.pipeline.estimators)
+    assert all(f > 0 and q > 0 for f, q in proc.pipeline.update_counts())
     assert d.processor.frames == 0
-    assert all(e.rls.count == 0 and e.frls.count == 0 for e in d.pipeline.estimators)
+    assert all(f == 0 and q == 0 for f, q in d.pipeline.update_counts())
     assert d.stats().frames == 0
 
 
@@ -620,7 +621,7 @@ def test_a_term_outside_its_domain_is_logged_once_and_the_estimator_goes_on(
         caplog: pytest.LogCaptureFixture) -> None:
     from canrls.sim.scenario import Simulator, scenario
 
-    caplog.set_level(logging.WARNING, logger="canrls.live.daemon")
+    caplog.set_level(logging.WARNING, logger="canrls.live")
     cfg = AppConfig()
     cfg.model = {"effects": ["inertia", "viscous", "coulomb", "user:root"], "kt": 0.1,
                  "terms": {"root": {"expr": "sqrt(omega)", "range": [0.0, 10.0]}}}
@@ -630,9 +631,14 @@ def test_a_term_outside_its_domain_is_logged_once_and_the_estimator_goes_on(
     sim = Simulator(scenario("standard", effects="inertia,viscous,coulomb", seed=4,
                              duration=8.0, excitation="standard"), t0=0.0)
     for block in sim.frames(500):
-        d._process(block.to_messages())
+        d.process(block.to_messages())
+    assert not [r for r in caplog.records if "non-finite" in r.message]  # told when published
+    d.publisher.publish(time.monotonic())
     est = d.pipeline.estimators[0]
     assert est.nonfinite_rows > 1000 and est.rls.count > 1000
     assert all(math.isfinite(p.value) for p in d.estimates().parameters)
     warned = [r for r in caplog.records if "non-finite term value" in r.message]
     assert len(warned) == 1 and "mechanical equation" in warned[0].message
+    d.publisher.model_changed()  # the parameter info is due: the fit is looked at again
+    d.publisher.publish(time.monotonic())
+    assert len([r for r in caplog.records if "non-finite term value" in r.message]) == 1

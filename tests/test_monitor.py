@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import sys
 
 import can
 import pytest
@@ -149,3 +150,20 @@ def test_cli_once_times_out_without_a_daemon(capsys: pytest.CaptureFixture[str])
     ch = f"test-monitor-empty-{os.getpid()}"
     assert main(["monitor", "-i", "virtual", "-c", ch, "--once", "--timeout", "0.3"]) == 1
     assert "no complete publication" in capsys.readouterr().err
+
+
+def test_cli_on_a_terminal_redraws_in_place(running_daemon: tuple[Daemon, str],
+                                            capsys: pytest.CaptureFixture[str],
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    d, ch = running_daemon
+    monkeypatch.setattr(sys.stdout, "isatty", lambda: True)
+    assert main(["monitor", "-i", "virtual", "-c", ch, "--kt", "0.1", "--duration", "0.5",
+                 "--interval", "0.2"]) == 0
+    out = capsys.readouterr().out
+    views = out.split("\x1b[H")
+    assert views[0] == "" and len(views) >= 3  # each view starts at the cursor's home
+    for v in views[1:]:
+        assert v.startswith("canrls monitor  virtual:" + ch) and v.endswith("\x1b[K\n\x1b[J")
+        # every line clears what a longer line of the previous view left
+        assert all(line.endswith("\x1b[K") for line in v.split("\n")[:-1])
+    assert "\x1b[2J" not in out  # the screen is never blanked first: no flicker

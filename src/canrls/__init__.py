@@ -6,12 +6,86 @@ The package is layered so that dependencies run one way::
 
 The daemon (``canrls run``) and the offline replay (``canrls fit``) call the same
 pipeline, so a replayed log gives the same parameters as the live run, bit for bit.
+
+Importing canrls chooses where numba keeps the compiled kernels (:func:`use_cache_dir`)
+before any kernel module imports numba: nothing is written into the installed package.
 """
 
 from __future__ import annotations
+
+import atexit
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
 
 from canrls.errors import CanrlsError
 
 __version__ = "0.1.0"
 
-__all__ = ["CanrlsError", "__version__"]
+__all__ = ["CanrlsError", "__version__", "use_cache_dir"]
+
+#: ``$NUMBA_CACHE_DIR`` as the user set it before canrls was imported ("": not set)
+_USER_CACHE_DIR = os.environ.get("NUMBA_CACHE_DIR", "")
+#: the temporary fallback of this process, made at most once
+_temp_cache: Path | None = None
+
+
+def _usable(d: Path) -> bool:
+    """``d`` exists (made if needed) and this process may write into it."""
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return False
+    return os.access(d, os.W_OK | os.X_OK)
+
+
+def _temporary() -> Path:
+    global _temp_cache
+    if _temp_cache is None:
+        _temp_cache = Path(tempfile.mkdtemp(prefix="canrls-numba-"))  # mode 0700
+        atexit.register(shutil.rmtree, _temp_cache, ignore_errors=True)
+    return _temp_cache
+
+
+def use_cache_dir(path: str | os.PathLike[str] | None = None) -> Path | None:
+    """Point numba's cache of compiled kernels away from the installed package.
+
+    The directory is ``$NUMBA_CACHE_DIR`` if the user set it (left as it is); else
+    ``path`` (``[daemon] cache_dir``); else ``$XDG_CACHE_HOME/canrls/numba`` or
+    ``~/.cache/canrls/numba``. One that cannot be made or written (a read-only home, a
+    hardened systemd unit) gives way to a fresh temporary directory, removed at exit,
+    so that every command starts. Returns the directory (None: no temporary directory
+    could be made either; numba then decides).
+
+    numba fixes a kernel's cache directory when the kernel's module is imported, so
+    this runs when canrls is imported; ``canrls`` applies ``[daemon] cache_dir`` of
+    ``--config`` before the kernels load (:mod:`canrls.live.cache`). A later call
+    affects the kernels imported after it.
+    """
+    if _USER_CACHE_DIR:
+        return Path(_USER_CACHE_DIR)
+    if path is not None:
+        d = Path(path).expanduser()
+    else:
+        xdg = os.environ.get("XDG_CACHE_HOME", "")
+        try:
+            base = Path(xdg) if os.path.isabs(xdg) else Path("~/.cache").expanduser()
+        except RuntimeError:  # no home directory at all
+            base = Path("/nonexistent")
+        d = base / "canrls" / "numba"
+    if not _usable(d):
+        try:
+            d = _temporary()
+        except OSError:
+            return None
+    os.environ["NUMBA_CACHE_DIR"] = str(d)
+    if "numba" in sys.modules:  # imported before canrls: numba re-reads its environment
+        from numba.core.config import reload_config
+
+        reload_config()
+    return d
+
+
+use_cache_dir()

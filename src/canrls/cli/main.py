@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 from canrls import __version__
 from canrls.errors import CanrlsError
+from canrls.live.cache import preload as preload_cache_dir
 
 #: Subcommand modules, in the order ``--help`` lists them.
 SUBCOMMANDS: tuple[str, ...] = (
@@ -51,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    preload_cache_dir(sys.argv[1:] if argv is None else argv)  # before the kernels load
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=getattr(logging, args.log_level), stream=sys.stderr,

@@ -4,7 +4,8 @@
     canrls monitor -i remote -c ws://127.0.0.1:54701/ --once --json
     canrls monitor -i socketcan -c can0 --command "add cogging:6"
 
-On a terminal the view is redrawn in place every ``--interval`` seconds; otherwise
+On a terminal the view is redrawn in place every ``--interval`` seconds (plain ANSI
+cursor-home and clear-to-end sequences: no curses, no extra dependency); otherwise
 (a pipe, a log, journald) a plain-text block is printed each interval. ``--once``
 waits for one complete publication (every parameter and a status), prints it and
 exits (status 1 if none came within ``--timeout``); ``--duration S`` stops after S
@@ -26,6 +27,9 @@ from canrls.cli._common import add_bus_options, add_model_options, print_json, s
 from canrls.errors import ConfigError
 
 __all__ = ["add_subparser", "run"]
+
+#: end of a line on the terminal: clear what an older, longer line left, then newline
+_EOL = "\x1b[K\n"
 
 
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
@@ -61,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     import can
 
     from canrls.can.frames import encode_command
-    from canrls.live.daemon import bus_config, open_bus
+    from canrls.live.bus import bus_config, open_bus
     from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
 
     for name in ("duration", "interval", "timeout"):
@@ -141,7 +145,10 @@ def _emit(args: argparse.Namespace, view: Any, tty: bool) -> None:
     if args.json:
         print_json(view.to_dict())
     elif tty:
-        sys.stdout.write("\x1b[H\x1b[2J" + view.format(color=True) + "\n")
+        # cursor home, every line cleared to its end, then the rest of the screen: the
+        # view is redrawn in place without the flicker of clearing the screen first
+        text = view.format(color=True).replace("\n", _EOL)
+        sys.stdout.write(f"\x1b[H{text}{_EOL}\x1b[J")
     else:
         sys.stdout.write(view.format() + "\n\n")
     sys.stdout.flush()

@@ -84,7 +84,8 @@ def build_daemon(args: argparse.Namespace) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started)."""
     from canrls.config import load_config
     from canrls.estimation.model import Model
-    from canrls.live.daemon import Daemon, DaemonSettings, bus_config
+    from canrls.live.bus import bus_config
+    from canrls.live.daemon import Daemon, DaemonSettings
 
     cfg = setup(args)
     dset = DaemonSettings.from_table(_daemon_table(cfg, args), cfg.source, cfg.base_dir)

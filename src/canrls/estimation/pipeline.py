@@ -605,14 +605,19 @@ class EquationEstimator:
         return divergence(self.rls.theta.tolist(), self.frls.theta_float.tolist(),
                           self.rls.std().tolist())
 
-    def estimates(self) -> tuple[list[ParameterEstimate], EquationFit]:
+    def parameters(self) -> list[ParameterEstimate]:
+        """The parameter estimates alone, without the fit statistics of :meth:`estimates`."""
         eq = self.equation
         value = eq.to_physical(self.rls.theta)
         sigma = eq.sigma_to_physical(self.rls.std())
         fixed = eq.to_physical(self.frls.theta_float)
-        params = [ParameterEstimate(p.name, p.unit, p.effect, eq.name, p.description,
-                                    float(v), float(s), float(f))
-                  for p, v, s, f in zip(eq.parameters, value, sigma, fixed, strict=True)]
+        return [ParameterEstimate(p.name, p.unit, p.effect, eq.name, p.description, v, s, f)
+                for p, v, s, f in zip(eq.parameters, value.tolist(), sigma.tolist(),
+                                      fixed.tolist(), strict=True)]
+
+    def estimates(self) -> tuple[list[ParameterEstimate], EquationFit]:
+        eq = self.equation
+        params = self.parameters()
         rms, fit, r2, trms = self.residual_stats()
         exc = self.rls.excitation()
         fit_obj = EquationFit(
@@ -716,6 +721,16 @@ class Pipeline:
     @property
     def frozen(self) -> bool:
         return any(e.rls.frozen for e in self.estimators)
+
+    def parameters(self) -> tuple[tuple[ParameterEstimate, ...], ...]:
+        """Each equation's parameter estimates, without the fit statistics of
+        :meth:`estimates` (a third of its cost: what a live publication needs)."""
+        return tuple(tuple(e.parameters()) for e in self.estimators)
+
+    def update_counts(self) -> tuple[tuple[int, int], ...]:
+        """Updates applied since the last reset, ``(float, fixed)`` per equation (frozen
+        steps and overflowing steps do not count)."""
+        return tuple((int(e.rls.count), int(e.frls.count)) for e in self.estimators)
 
     def set_lambda(self, lam: float) -> None:
         """Change the forgetting factor of both estimators (validated)."""

@@ -22,27 +22,39 @@ or the new checkpoint, never a torn one.
 Reading checks the magic, the format, the size and the checksum; anything else is a
 :class:`~canrls.errors.CheckpointError`. :func:`set_aside` renames a bad file
 (``NAME.bad-YYYYmmdd-HHMMSS``) so that it is kept for inspection but never loaded.
+
+:class:`Checkpointer` is the daemon's use of them: resume at start (only under the
+same configured model and :func:`fingerprint`), save every ``checkpoint_interval``
+and at stop.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
 import json
+import logging
 import os
 import time
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from canrls import __version__
-from canrls.errors import CheckpointError
+from canrls.errors import CheckpointError, ConfigError
+from canrls.estimation.model import Model
+from canrls.estimation.pipeline import EstimatorSettings
 
-__all__ = ["FORMAT", "MAGIC", "Checkpoint", "save_checkpoint", "load_checkpoint", "set_aside"]
+__all__ = ["FORMAT", "MAGIC", "Checkpoint", "Checkpointer", "fingerprint", "save_checkpoint",
+           "load_checkpoint", "set_aside"]
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 #: Format identifier in the header; another value is refused.
 FORMAT = "canrls.checkpoint/1"
@@ -223,3 +235,103 @@ def set_aside(path: str | os.PathLike[str]) -> Path:
         k += 1
     os.replace(p, target)
     return target
+
+
+# ------------------------------------------------------------------ the daemon's use
+def _plain(d: Any) -> Any:
+    """A JSON round trip: tuples become lists, as a checkpoint stores them."""
+    return json.loads(json.dumps(d, allow_nan=True))
+
+
+def fingerprint(settings: EstimatorSettings, dt: float) -> dict[str, Any]:
+    """What besides the model must match for a checkpoint to resume: ``dt`` and every
+    estimator setting (the forgetting factor too: ``set_lambda`` lives in the state)."""
+    d: dict[str, Any] = {"dt": dt}
+    for f in dataclasses.fields(settings):
+        v = getattr(settings, f.name)
+        if isinstance(v, Mapping):
+            v = {str(k): repr(x) for k, x in sorted(v.items())}
+        elif not (v is None or isinstance(v, bool | int | float | str)):
+            v = repr(v)
+        d[f.name] = v
+    return _plain(d)
+
+
+class Checkpointer:
+    """Resume from and save to one checkpoint file, periodically.
+
+    :param path: the checkpoint file (``[daemon] checkpoint``; None: no checkpoints).
+    :param config_model: the model the configuration defines; a checkpoint resumes
+        only under the same one.
+    :param settings, dt: the estimator settings and sample period (:func:`fingerprint`).
+    :param interval: seconds between periodic saves.
+    """
+
+    def __init__(self, path: Path | None, config_model: Model, settings: EstimatorSettings,
+                 dt: float, interval: float) -> None:
+        self.path = path
+        self.config_model = config_model
+        self.fingerprint = fingerprint(settings, dt)
+        self.interval = interval
+        self.next_at = 0.0
+        #: checkpoints written
+        self.saved = 0
+
+    def resume(self, restore: Callable[[Model, dict[str, Any]], T]
+               ) -> tuple[T, Checkpoint] | None:
+        """Load the checkpoint and rebuild from it: ``restore(model, state)``.
+
+        None when there is none, or when it does not fit (another configured model,
+        other settings, a damaged file, a state ``restore`` refuses): such a file is
+        set aside (:func:`set_aside`) and the estimator starts from the prior.
+        """
+        path = self.path
+        if path is None:
+            return None
+        if not path.exists():
+            log.info("no checkpoint at %s: starting from the prior", path)
+            return None
+        try:
+            cp = load_checkpoint(path)
+            if cp.config_model != _plain(self.config_model.to_dict()):
+                raise CheckpointError(f"{path}: checkpoint was taken with another configured "
+                                      f"model ({cp.config_model.get('effects')})")
+            mine = self.fingerprint
+            if cp.fingerprint != mine:
+                diff = sorted(k for k in set(cp.fingerprint) | set(mine)
+                              if cp.fingerprint.get(k) != mine.get(k))
+                raise CheckpointError(f"{path}: checkpoint was taken with other estimator "
+                                      f"settings ({', '.join(diff)})")
+            model = Model.from_dict(cp.model, source=f"{path} (checkpoint)",
+                                    available_signals=self.config_model.available_signals)
+            restored = restore(model, cp.state)
+        except (CheckpointError, ConfigError, KeyError, ValueError, TypeError, IndexError) as e:
+            where = set_aside(path)
+            log.error("checkpoint %s not loaded (%s); set aside as %s", path, e, where)
+            return None
+        log.info("resumed from checkpoint %s (%d samples, effects %s, saved %s)", path,
+                 int(cp.state.get("samples", 0)), ",".join(model.effect_names),
+                 time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(cp.saved_at)))
+        return restored, cp
+
+    def due(self, now: float) -> bool:
+        return now >= self.next_at
+
+    def save(self, model: Model, state: dict[str, Any], counters: dict[str, int]) -> Path | None:
+        """Write a checkpoint now (None: no checkpoint file configured, or it could not
+        be written: logged, the daemon goes on)."""
+        path = self.path
+        if path is None:
+            return None
+        cp = Checkpoint(model=_plain(model.to_dict()),
+                        config_model=_plain(self.config_model.to_dict()),
+                        fingerprint=self.fingerprint, state=state, counters=counters,
+                        saved_at=time.time())
+        try:
+            save_checkpoint(path, cp)
+        except OSError as e:
+            log.error("checkpoint %s: cannot write: %s", path, e)
+            return None
+        self.saved += 1
+        log.debug("checkpoint written to %s", path)
+        return path

@@ -1,0 +1,352 @@
+"""The daemon's side of the CAN bus: opening it, frames in, frames out, faults.
+
+::
+
+    bus --python-can Notifier--> FrameQueue (a Listener: queues, nothing more)
+                                     | take(): a list of frames, a block
+    BusLink: opens the bus (and the notifier), reopens it with backoff when recv
+             raises, sends without blocking, pauses transmission on error frames
+
+The bus is opened with ``can.Bus(..., ignore_config=True)`` from the ``[can]`` table
+and the command line only: python-can's own configuration sources (``can.rc``,
+``$CAN_INTERFACE``/``$CAN_CHANNEL``/``$CAN_BITRATE``/``$CAN_CONFIG``, ``/etc/can.conf``,
+``~/.can``, ``~/.canrc``) are never read, so a stray file cannot redirect the service.
+
+Faults: an error frame (SocketCAN delivers them, bus-off included) pauses transmission
+for ``fault_hold_s`` after the last one (a ``CAN_ERR_RESTARTED`` frame ends a bus-off
+pause at once). An exception from the bus's ``recv`` (interface gone: unplugged
+adapter, ``ip link set can0 down``) marks the link failed; :meth:`BusLink.reopen`
+then stops the notifier, shuts the bus down and opens it again with exponential
+backoff from ``reopen_min_s`` to ``reopen_max_s``. The queue survives a reopening.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import can
+import numpy as np
+
+from canrls.can.frameblock import FrameBlock
+from canrls.config import AppConfig
+from canrls.errors import BusError, ConfigError
+from canrls.live.settings import DaemonSettings
+
+__all__ = ["BusLink", "FrameQueue", "bus_config", "is_command", "messages_to_block",
+           "open_bus", "COMMAND_ID"]
+
+log = logging.getLogger(__name__)
+
+#: Arbitration ID of ``RlsCommand`` in the default DBC.
+COMMAND_ID = 0x320
+# SocketCAN error classes (linux/can/error.h) in an error frame's arbitration ID
+_CAN_ERR_BUSOFF = 0x40
+_CAN_ERR_RESTARTED = 0x100
+_BUS_KEYS = ("interface", "channel", "bitrate", "fd", "data_bitrate")
+
+
+def bus_config(cfg: AppConfig | None = None, args: Any = None) -> dict[str, Any]:
+    """Every argument of the bus, explicitly: ``[can]`` overridden by the command line.
+
+    ``args`` is a namespace from :func:`canrls.cli._common.add_bus_options`
+    (``-i -c -b --fd --data-bitrate --timing --bus-kwargs``).
+
+    :raises ConfigError: no interface, or a value of the wrong type.
+    """
+    conf: dict[str, Any] = {}
+    src = cfg.source if cfg is not None else "<command line>"
+    if cfg is not None:
+        for k in _BUS_KEYS:
+            if k in cfg.can:
+                conf[k] = cfg.can[k]
+    if args is not None:
+        for k in (*_BUS_KEYS, "timing"):
+            if getattr(args, k, None) is not None:
+                conf[k] = getattr(args, k)
+        conf.update(getattr(args, "bus_kwargs", None) or {})
+    if not conf.get("interface"):
+        raise ConfigError(f"{src}: no CAN interface: set can.interface in the configuration or "
+                          f"-i/--interface (socketcan, virtual, canrls-sim, remote, ...)")
+    if not isinstance(conf["interface"], str):
+        raise ConfigError(f"{src}: can.interface = {conf['interface']!r}: must be a string")
+    for k in ("bitrate", "data_bitrate"):
+        v = conf.get(k)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v <= 0):
+            raise ConfigError(f"{src}: can.{k} = {v!r}: must be a positive integer (bit/s)")
+    if "fd" in conf and not isinstance(conf["fd"], bool):
+        raise ConfigError(f"{src}: can.fd = {conf['fd']!r}: must be true or false")
+    return conf
+
+
+def open_bus(config: Mapping[str, Any]) -> can.BusABC:
+    """``can.Bus(**config, ignore_config=True)``: python-can's config files and
+    environment variables are not consulted.
+
+    :raises BusError: the interface cannot be opened (names interface and channel).
+    """
+    conf = dict(config)
+    try:
+        return can.Bus(ignore_config=True, **conf)
+    except (can.CanError, OSError, ValueError, ImportError, TypeError, NotImplementedError) as e:
+        raise BusError(f"cannot open CAN interface {conf.get('interface')!r} channel "
+                       f"{conf.get('channel')!r}: {e}") from e
+
+
+def messages_to_block(msgs: Sequence[can.Message]) -> FrameBlock:
+    """:meth:`FrameBlock.from_messages`, vectorised (the same block, field for field)."""
+    n = len(msgs)
+    if n == 0:
+        return FrameBlock.empty()
+    datas = [m.data for m in msgs]
+    lens = [len(d) for d in datas]
+    width = max(8, max(lens))
+    if min(lens) == width:
+        data = np.frombuffer(b"".join(datas), np.uint8).reshape(n, width).copy()
+    else:
+        data = np.frombuffer(b"".join(bytes(d).ljust(width, b"\0") for d in datas),
+                             np.uint8).reshape(n, width).copy()
+    return FrameBlock(
+        t=np.array([m.timestamp for m in msgs], np.float64),
+        arbitration_id=np.array([m.arbitration_id for m in msgs], np.uint32),
+        is_extended=np.array([m.is_extended_id for m in msgs], np.bool_),
+        is_remote=np.array([m.is_remote_frame for m in msgs], np.bool_),
+        is_error=np.array([m.is_error_frame for m in msgs], np.bool_),
+        dlc=np.array(lens, np.uint8),
+        data=data,
+    )
+
+
+def is_command(msg: can.Message) -> bool:
+    """``msg`` is an ``RlsCommand`` frame."""
+    return msg.arbitration_id == COMMAND_ID and not msg.is_extended_id
+
+
+class FrameQueue(can.Listener):
+    """Runs in the notifier's thread: queues each frame, nothing more.
+
+    :param limit: frames held; beyond, a frame is dropped and counted in
+        :attr:`overflow` (or, with ``block``, the notifier's thread waits for room).
+    :param stopping: set when the daemon stops (a waiting notifier gives up).
+    :param on_error: called with the exception when the bus's ``recv`` raises.
+    """
+
+    def __init__(self, limit: int, block: bool, stopping: threading.Event,
+                 on_error: Callable[[BaseException], None]) -> None:
+        self.queue: collections.deque[can.Message] = collections.deque()
+        #: set when a frame is queued
+        self.wake = threading.Event()
+        #: set when a command frame is queued (or the input closes): the estimator
+        #: stops letting frames gather and takes them at once
+        self.hurry = threading.Event()
+        self.space = threading.Event()
+        self.limit = limit
+        self.block = block
+        self.received = 0
+        self.overflow = 0
+        #: gets every frame too (``[daemon] record``)
+        self.recorder: can.Listener | None = None
+        self._stopping = stopping
+        self._on_error = on_error
+        self._cpu0: float | None = None
+        #: thread CPU time of the notifier's thread since the first frame [s]
+        self.cpu = 0.0
+        #: open while set (:meth:`hold`)
+        self.gate = threading.Event()
+        self.gate.set()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        while not self.gate.is_set() and not self._stopping.is_set():
+            self.gate.wait(0.05)
+        q = self.queue
+        if len(q) >= self.limit:
+            if not self.block:
+                self.overflow += 1
+                return
+            while len(q) >= self.limit and not self._stopping.is_set():
+                self.space.clear()
+                self.space.wait(0.05)
+        q.append(msg)
+        if is_command(msg):
+            self.hurry.set()
+        if self.recorder is not None:
+            self.recorder.on_message_received(msg)
+        self.received += 1
+        if self.received & 255 == 1:
+            now = time.thread_time()
+            if self._cpu0 is None:
+                self._cpu0 = now
+            self.cpu = now - self._cpu0
+        if not self.wake.is_set():
+            self.wake.set()
+
+    def on_error(self, exc: Exception) -> None:
+        self._on_error(exc)
+        time.sleep(0.05)  # the notifier retries recv at once: do not spin
+
+    def stop(self) -> None:
+        """The notifier stops (bus reopened or daemon stopping): the queue stays."""
+
+    def hold(self, hold: bool) -> None:
+        """Close (``True``) or open the gate: while closed the notifier's thread waits."""
+        if hold:
+            self.gate.clear()
+        else:
+            self.gate.set()
+
+    def take(self, most: int) -> list[can.Message]:
+        """Up to ``most`` frames, oldest first, off the queue (a block)."""
+        q = self.queue
+        pop = q.popleft
+        msgs = [pop() for _ in range(min(len(q), most))]
+        self.space.set()
+        return msgs
+
+    def wake_all(self) -> None:
+        """Wake a waiting estimator and a waiting notifier (stopping)."""
+        self.space.set()
+        self.hurry.set()
+        self.wake.set()
+
+
+class BusLink:
+    """The bus and its notifier: open, reopen, send, and the transmit pause of faults.
+
+    :param queue: the listener the notifier feeds (kept across reopenings).
+    :param factory: opens the bus (called again to reopen).
+    :param config: ``send_timeout``, ``fault_hold_s``, ``reopen_min_s``/``reopen_max_s``.
+    :param describe: what the bus is called in log lines when it has no ``channel_info``.
+    """
+
+    def __init__(self, queue: FrameQueue, factory: Callable[[], can.BusABC],
+                 config: DaemonSettings, describe: str = "bus") -> None:
+        self.queue = queue
+        self.factory = factory
+        self.config = config
+        self.describe = describe
+        self.bus: can.BusABC | None = None
+        self._notifier: can.Notifier | None = None
+        #: set in the notifier's thread when ``recv`` raised
+        self.failed = threading.Event()
+        self._fail_exc: BaseException | None = None
+        self._fault_until = 0.0
+        self.bus_off = False
+        self._fault_active = False
+        #: frames_sent, tx_dropped, tx_paused, error_frames, bus_reopens
+        self.counts: collections.Counter[str] = collections.Counter()
+
+    def info(self) -> str:
+        return str(getattr(self.bus, "channel_info", None) or self.describe)
+
+    # ------------------------------------------------------------------ open, close
+    def open(self) -> None:
+        """Open the bus and start the notifier (``BusError`` if it cannot be opened)."""
+        bus = self.factory()
+        self.bus = bus
+        self.failed.clear()
+        self._notifier = can.Notifier(bus, [self.queue], timeout=0.1)
+
+    def close_notifier(self) -> None:
+        n, self._notifier = self._notifier, None
+        if n is not None:
+            n.stop(timeout=5.0)
+
+    def close(self) -> None:
+        """Stop the notifier and shut the bus down."""
+        self.close_notifier()
+        b, self.bus = self.bus, None
+        if b is not None:
+            try:
+                b.shutdown()
+            except (can.CanError, OSError) as e:
+                log.debug("bus shutdown: %s", e)
+
+    def recv_failed(self, exc: BaseException) -> None:
+        """Called in the notifier's thread when ``recv`` raises."""
+        if not self.failed.is_set():
+            self._fail_exc = exc
+            self.failed.set()
+
+    def reopen(self, stopping: threading.Event) -> None:
+        """Close the failed bus and open it again, with backoff, until it opens or
+        ``stopping`` is set."""
+        log.warning("CAN bus %s failed (%s): reopening", self.info(), self._fail_exc)
+        self.close()
+        delay = self.config.reopen_min_s
+        while not stopping.is_set():
+            try:
+                self.open()
+            except BusError as e:
+                log.warning("%s; next attempt in %.3g s", e, delay)
+                if stopping.wait(delay):
+                    return
+                delay = min(delay * 2.0, self.config.reopen_max_s)
+                continue
+            self.counts["bus_reopens"] += 1
+            log.info("CAN bus reopened: %s", self.info())
+            return
+
+    # ------------------------------------------------------------------ transmit
+    def send(self, msgs: Sequence[can.Message]) -> int:
+        """Send without blocking the caller; a refused frame is dropped and counted."""
+        bus = self.bus
+        now = time.monotonic()
+        c = self.counts
+        if bus is None or now < self._fault_until or self.failed.is_set():
+            c["tx_paused"] += len(msgs)  # not attempted: the bus is faulty
+            return 0
+        sent = 0
+        timeout = self.config.send_timeout
+        for i, m in enumerate(msgs):
+            try:
+                bus.send(m, timeout=timeout)
+                sent += 1
+            except can.CanOperationError:
+                c["tx_dropped"] += 1  # transmit queue full (ENOBUFS) or similar
+            except (can.CanError, OSError) as e:
+                # the interface refuses to send at all: pause like an error frame
+                c["tx_dropped"] += len(msgs) - i
+                self._fault(now, f"send failed: {e}")
+                break
+        c["frames_sent"] += sent
+        return sent
+
+    # ------------------------------------------------------------------ faults
+    def paused(self, now: float) -> bool:
+        """Whether transmission is paused: an error frame less than ``fault_hold_s`` ago,
+        or no usable bus."""
+        return now < self._fault_until or self.failed.is_set() or self.bus is None
+
+    def settle(self, now: float) -> None:
+        """Once ``fault_hold_s`` passed without an error frame, the bus-off and fault
+        states end (logged once). Called by the thread that sends."""
+        if self.bus_off and now >= self._fault_until:
+            self.bus_off = False  # no error frame for fault_hold_s: recovered
+        if self._fault_active and not self.paused(now):
+            self._fault_active = False
+            log.info("CAN bus fault cleared: transmission resumed")
+
+    def _fault(self, now: float, why: str) -> None:
+        if not self._fault_active:
+            log.warning("CAN bus fault (%s): transmission paused", why)
+        self._fault_active = True
+        self._fault_until = now + self.config.fault_hold_s
+
+    def error_frame(self, msg: can.Message) -> None:
+        """An error frame arrived (in stream order with the others)."""
+        self.counts["error_frames"] += 1
+        now = time.monotonic()
+        cls = msg.arbitration_id
+        if cls & _CAN_ERR_RESTARTED and not cls & _CAN_ERR_BUSOFF:
+            if self.bus_off:
+                log.info("CAN controller restarted after bus-off")
+            self.bus_off = False
+            self._fault_until = now  # resume at once
+            return
+        if cls & _CAN_ERR_BUSOFF:
+            self.bus_off = True
+        self._fault(now, f"error frame 0x{cls:X}{' (bus-off)' if self.bus_off else ''}")

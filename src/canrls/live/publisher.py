@@ -1,0 +1,232 @@
+"""What the daemon says on the bus, on schedule: parameters, status, parameter info.
+
+Every ``publish_interval`` (0: after every block): ``RlsEstimate``/``RlsSigma``/
+``RlsReference`` (every parameter: fixed point, sigma, float), then ``RlsStatus`` and
+``RlsHealth``; every ``info_interval`` (and at once after a model change) also
+``RlsParamInfo`` and ``RlsCounters``. Everything comes from the public results of the
+pipeline (:meth:`~canrls.estimation.pipeline.Pipeline.estimates`) and of each block
+(:class:`~canrls.estimation.pipeline.PipelineBlock`); the frames go out through
+:meth:`canrls.live.bus.BusLink.send`, which never blocks.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+
+from canrls.can.frames import (
+    CommandResult,
+    EffectId,
+    Equation,
+    ParameterReport,
+    StatusReport,
+    encode_ack,
+    encode_param_info,
+    encode_parameters,
+    encode_status,
+)
+from canrls.estimation.pipeline import Estimates, Pipeline, PipelineBlock, divergence
+from canrls.estimation.rls import RLSFlag
+from canrls.live.bus import BusLink
+from canrls.live.settings import DaemonSettings
+from canrls.processor import FrameProcessor
+
+__all__ = ["Publisher", "parameter_layout"]
+
+log = logging.getLogger(__name__)
+
+_COUNTERS_ID = 0x312
+_WINDUP = int(RLSFlag.WINDUP)
+#: the longest the estimator sleeps without a publication due [s]
+_IDLE_S = 0.25
+
+
+def parameter_layout(pipeline: Pipeline) -> tuple[tuple[ParameterReport, ...], ...]:
+    """The pipeline's parameters as reports without estimates, a tuple per equation."""
+    rows: list[tuple[ParameterReport, ...]] = []
+    i = 0
+    for eq in pipeline.model.equations:
+        params = eq.parameters
+        rows.append(tuple(
+            ParameterReport(index=i + k, name=p.name, effect_id=EffectId(p.effect_id),
+                            component=p.component, order=p.order,
+                            equation=Equation(p.equation_index), unit=p.unit)
+            for k, p in enumerate(params)))
+        i += len(params)
+    return tuple(rows)
+
+
+class Publisher:
+    """Parameter and status frames of one processor, on schedule.
+
+    :param processor: whose pipeline is published (its model may change).
+    :param config: ``publish_interval``, ``info_interval``, ``divergence_limit``.
+    :param link: sends the frames and tells whether transmission is paused.
+    :param counters: the wire counters (``frames_rejected``, ``frames_lost``,
+        ``saturations``, ``tx_dropped``) as ``RlsCounters`` carries them.
+    :param on_publish: called after each publication with ``(frames processed so far,
+        time.monotonic() when its parameter frames had been sent)`` (benchmarks).
+    """
+
+    def __init__(self, processor: FrameProcessor, config: DaemonSettings, link: BusLink,
+                 counters: Callable[[], dict[str, int]],
+                 on_publish: Callable[[int, float], None] | None = None) -> None:
+        self.processor = processor
+        self.config = config
+        self.link = link
+        self.counters = counters
+        self.on_publish = on_publish
+        #: publications sent
+        self.publications = 0
+        #: the status of the last publication
+        self.last_status: StatusReport | None = None
+        self.next_at = 0.0
+        self.info_due = 0.0
+        self._asap = False
+        self._counter = 0
+        self._online_rms = [math.nan] * len(processor.model.equations)
+        self._window_windup = False
+        self._low_excitation = False
+        self._last_lost = 0
+        self._last_sat = 0
+        #: (pipeline, parameter_layout, active effects), made again when the model changes
+        self._layout: tuple[Pipeline | None, tuple[tuple[ParameterReport, ...], ...], int] = (
+            None, (), 0)
+        #: (pipeline, equations whose non-finite samples were logged)
+        self._warned: tuple[Pipeline | None, set[str]] = (None, set())
+
+    # ------------------------------------------------------------------ schedule
+    def start(self, now: float) -> None:
+        """The first publication after one interval; the parameter info at once."""
+        self.next_at = now + self.config.publish_interval
+        self.info_due = now
+
+    def deadline(self, now: float) -> float:
+        """When the next publication (or parameter info) is due, at the latest."""
+        pub = self.next_at if self.config.publish_interval > 0 else now + _IDLE_S
+        return min(pub, self.info_due)
+
+    def due(self, now: float) -> bool:
+        return self.config.publish_interval == 0 or now >= self.next_at or self._asap
+
+    # ------------------------------------------------------------------ inputs
+    def absorb(self, out: PipelineBlock) -> None:
+        """Keep what the status carries from a processed block: online RMS, windup."""
+        for k, eb in enumerate(out.equations):
+            if len(eb.online_rms):
+                self._online_rms[k] = float(eb.online_rms[-1])
+            if len(eb.flags) and (eb.flags & _WINDUP).any():
+                self._window_windup = True
+
+    def clear_rms(self) -> None:
+        """The estimators restarted (reset): no online RMS yet."""
+        self._online_rms = [math.nan] * len(self.processor.model.equations)
+
+    def model_changed(self) -> None:
+        """A new model runs: publish, with its parameter info, at once."""
+        self.clear_rms()
+        self.info_due = time.monotonic()
+        self._asap = True
+
+    # ------------------------------------------------------------------ content
+    def _layout_of(self, pipe: Pipeline
+                   ) -> tuple[Pipeline | None, tuple[tuple[ParameterReport, ...], ...], int]:
+        layout = self._layout
+        if layout[0] is not pipe:
+            layout = (pipe, parameter_layout(pipe), pipe.model.active_effects)
+            self._layout = layout
+        return layout
+
+    def reports(self) -> tuple[list[ParameterReport], float]:
+        """The parameters as published, and the largest float-vs-fixed divergence."""
+        pipe = self.processor.pipeline
+        out: list[ParameterReport] = []
+        divs: list[float] = []
+        for blanks, params, (_, fixed_updates) in zip(
+                self._layout_of(pipe)[1], pipe.parameters(), pipe.update_counts(), strict=True):
+            valid = fixed_updates > 0
+            out += [b.with_estimates(p.fixed, p.sigma, p.value, valid and math.isfinite(p.fixed))
+                    for b, p in zip(blanks, params, strict=True)]
+            # in physical units: the same as in normalised ones (powers of two apart)
+            divs.append(divergence([p.value for p in params], [p.fixed for p in params],
+                                   [p.sigma for p in params]))
+        return out, max(divs, default=0.0)
+
+    def status(self, now: float, div: float | None = None) -> StatusReport:
+        """The status as the next publication would carry it (no side effect);
+        ``div``: the divergence if known (:meth:`reports`)."""
+        pipe = self.processor.pipeline
+        counters = self.counters()
+        if div is None:
+            div = self.reports()[1]
+        return StatusReport(
+            residual_rms=self._online_rms[0],
+            update_count=pipe.update_counts()[0][0],
+            windup=self._window_windup,
+            low_excitation=self._low_excitation,
+            saturation=counters["saturations"] > self._last_sat,
+            frame_loss=counters["frames_lost"] > self._last_lost,
+            frozen=pipe.frozen,
+            diverged=div > self.config.divergence_limit,
+            bus_fault=self.link.paused(now),
+            active_effects=self._layout_of(pipe)[2],
+            divergence=div if math.isfinite(div) else 0.0,
+            **counters)
+
+    def _warn_nonfinite(self, est: Estimates) -> None:
+        pipe = self.processor.pipeline
+        if self._warned[0] is not pipe:
+            self._warned = (pipe, set())
+        warned = self._warned[1]
+        for fit in est.equations:
+            if fit.nonfinite_rows and fit.equation not in warned:
+                warned.add(fit.equation)
+                log.warning("the %s equation met a non-finite term value (a user term "
+                            "outside its domain?): such samples, and the filter's warm-up "
+                            "after each, are left out", fit.equation)
+
+    # ------------------------------------------------------------------ sending
+    def publish(self, now: float) -> None:
+        """Send the parameter frames, then the status frames (and, every
+        ``info_interval``, RlsParamInfo and RlsCounters)."""
+        info = now >= self.info_due
+        self.link.settle(now)
+        reports, div = self.reports()
+        ts = time.time()
+        self._counter = (self._counter + 1) % 16
+        self.link.send(encode_parameters(reports, self._counter, timestamp=ts))
+        sent = time.monotonic()
+        if info:
+            est = self.processor.pipeline.estimates()  # the fit statistics, once in a while
+            self._low_excitation = any(f.low_excitation for f in est.equations)
+            self._warn_nonfinite(est)
+        status = self.status(now, div)
+        self._window_windup = False
+        self._last_lost = status.frames_lost
+        self._last_sat = status.saturations
+        self.last_status = status
+        msgs = [m for m in encode_status(status, self._counter, timestamp=ts)
+                if info or m.arbitration_id != _COUNTERS_ID]
+        if info:
+            msgs += encode_param_info(reports, timestamp=ts)
+            self.info_due = now + self.config.info_interval
+        self.link.send(msgs)
+        self.publications += 1
+        self._asap = False
+        if self.config.publish_interval > 0:
+            self.next_at = max(self.next_at + self.config.publish_interval, now)
+        if self.on_publish is not None:
+            self.on_publish(self.processor.frames, sent)
+
+    def rehearse(self) -> None:
+        """Encode every kind of frame once (the codecs are built at their first use),
+        sending nothing: part of the daemon's warm-up."""
+        reports: list[ParameterReport] = []
+        for blanks in parameter_layout(self.processor.pipeline):
+            reports += [r.with_estimates(0.0, 0.0, 0.0, True) for r in blanks]
+        encode_parameters(reports, 0)
+        encode_status(StatusReport(), 0)
+        encode_param_info(reports)
+        encode_ack(0, CommandResult.OK, 0)

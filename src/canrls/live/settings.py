@@ -1,0 +1,141 @@
+"""The ``[daemon]`` table of the configuration, validated once (``docs/daemon.md``).
+
+Imports nothing that imports numba: :mod:`canrls.live.cache` reads ``cache_dir`` with
+it before the kernels load.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from canrls.errors import ConfigError
+
+if TYPE_CHECKING:  # importing the configuration imports numba's kernels: not here
+    from canrls.config import AppConfig
+
+__all__ = ["DaemonSettings", "DAEMON_KEYS", "resolve_path"]
+
+DAEMON_KEYS: dict[str, str] = {
+    "publish_interval": "seconds between parameter/status publications (0: after every block)",
+    "info_interval": "seconds between RlsParamInfo and RlsCounters",
+    "block_interval": "seconds the estimator lets frames gather before processing them "
+                      "(default: publish_interval)",
+    "commands": "accept RlsCommand frames (false: every command is answered 'disabled')",
+    "checkpoint": "checkpoint file ('' or absent: none)",
+    "checkpoint_interval": "seconds between checkpoints",
+    "queue_size": "frames held between the bus and the estimator; beyond, dropped and counted",
+    "max_block": "most frames processed in one block",
+    "send_timeout": "seconds a transmission may wait (0: never block)",
+    "fault_hold_s": "seconds transmission stays paused after the last error frame",
+    "reopen_min_s": "first delay before reopening a vanished bus",
+    "reopen_max_s": "longest delay between reopening attempts",
+    "divergence_limit": "float-vs-fixed divergence above which the Diverged flag is set",
+    "record": "log file of every frame received (python-can writer by suffix: .log, .asc, .blf)",
+    "model_file": "TOML file whose [model] replaces the configuration's (re-read on SIGHUP)",
+    "switch_interval": "Python's thread switch interval while running, seconds (0: leave it)",
+    "cache_dir": "directory of numba's compiled kernels (default: $XDG_CACHE_HOME/canrls/numba; "
+                 "read before the kernels load, see canrls.live.cache)",
+}
+
+
+@dataclass(frozen=True)
+class DaemonSettings:
+    """The ``[daemon]`` table (see :data:`DAEMON_KEYS` and ``docs/daemon.md``)."""
+
+    publish_interval: float = 0.1
+    info_interval: float = 1.0
+    #: ``None``: the publish interval (see :attr:`block_s`)
+    block_interval: float | None = None
+    commands: bool = True
+    checkpoint: Path | None = None
+    checkpoint_interval: float = 60.0
+    queue_size: int = 1_000_000
+    max_block: int = 65536
+    send_timeout: float = 0.0
+    fault_hold_s: float = 1.0
+    reopen_min_s: float = 0.5
+    reopen_max_s: float = 30.0
+    divergence_limit: float = 0.1
+    record: Path | None = None
+    model_file: Path | None = None
+    switch_interval: float = 0.001
+    cache_dir: Path | None = None
+
+    def __post_init__(self) -> None:
+        src = "daemon"
+        for k in ("publish_interval", "block_interval", "send_timeout", "switch_interval"):
+            v = getattr(self, k)
+            if k == "block_interval" and v is None:
+                continue
+            if not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"{src}.{k} = {v!r}: must be >= 0 seconds")
+        for k in ("info_interval", "checkpoint_interval", "fault_hold_s", "reopen_min_s",
+                  "reopen_max_s", "divergence_limit"):
+            v = getattr(self, k)
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"{src}.{k} = {v!r}: must be > 0")
+        if self.reopen_max_s < self.reopen_min_s:
+            raise ConfigError(f"{src}.reopen_max_s = {self.reopen_max_s!r}: must be >= "
+                              f"reopen_min_s ({self.reopen_min_s!r})")
+        for k in ("queue_size", "max_block"):
+            if getattr(self, k) < 1:
+                raise ConfigError(f"{src}.{k} = {getattr(self, k)!r}: must be >= 1")
+
+    @property
+    def block_s(self) -> float:
+        """Seconds the estimator lets frames gather: ``block_interval``, by default the
+        publish interval. Each block has a fixed cost of its own (some 1 ms of CPU on
+        the development machine, the caches being cold after the wait), so blocks more
+        frequent than publications cost CPU without fresher parameter frames."""
+        return self.publish_interval if self.block_interval is None else self.block_interval
+
+    @classmethod
+    def from_table(cls, table: Mapping[str, Any], source: str = "<config>",
+                   base_dir: Path | None = None) -> DaemonSettings:
+        """Validate a ``[daemon]`` table; errors name the file, the key and the value."""
+        kw: dict[str, Any] = {}
+        for k, v in table.items():
+            key = f"{source}: daemon.{k}"
+            if k not in DAEMON_KEYS:
+                raise ConfigError(f"{key} = {v!r}: unknown key (valid: "
+                                  f"{', '.join(DAEMON_KEYS)})")
+            if k == "commands":
+                if not isinstance(v, bool):
+                    raise ConfigError(f"{key} = {v!r}: must be true or false")
+                kw[k] = v
+            elif k in ("queue_size", "max_block"):
+                if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                    raise ConfigError(f"{key} = {v!r}: must be an integer >= 1")
+                kw[k] = v
+            elif k in _PATH_KEYS:
+                if not isinstance(v, str):
+                    what = "directory" if k == "cache_dir" else "file"
+                    raise ConfigError(f"{key} = {v!r}: must be a {what} path")
+                if v:
+                    kw[k] = resolve_path(v, base_dir)
+            else:
+                if isinstance(v, bool) or not isinstance(v, int | float):
+                    raise ConfigError(f"{key} = {v!r}: must be a number of seconds")
+                kw[k] = float(v)
+        try:
+            return cls(**kw)
+        except ConfigError as e:
+            raise ConfigError(f"{source}: {e}") from e
+
+    @classmethod
+    def from_config(cls, cfg: AppConfig) -> DaemonSettings:
+        return cls.from_table(cfg.daemon, cfg.source, cfg.base_dir)
+
+
+_PATH_KEYS = ("checkpoint", "record", "model_file", "cache_dir")
+
+
+def resolve_path(value: str, base_dir: Path | None) -> Path:
+    """A path of the ``[daemon]`` table: ``~`` expanded, relative to the configuration's
+    directory (``base_dir``; None: as given)."""
+    p = Path(value).expanduser()
+    return p if p.is_absolute() or base_dir is None else base_dir / p
