@@ -146,7 +146,7 @@ def dropped(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, AppConfig]:
 def test_diagnosis_uses_the_pipeline_samples_and_columns_with_dropped_frames(
         dropped: tuple[Path, AppConfig]) -> None:
     path, cfg = dropped
-    protocol, model, _ = prepare(cfg, path)
+    protocol, model, _ = prepare(cfg)
     # speed limits on: the periodic column's max speed, and friction's min speed below
     settings = EstimatorSettings(max_phase_step=0.5)
     log = read_log_samples(path, protocol, model, settings)

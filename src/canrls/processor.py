@@ -62,14 +62,14 @@ import numpy.typing as npt
 from canrls.can.frameblock import FrameBlock
 from canrls.can.pairing import Pairer, PairingCounts
 from canrls.can.protocol import Protocol, RejectCounts
-from canrls.estimation.model import Model
+from canrls.estimation.model import Equation, Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline, PipelineBlock
 from canrls.estimation.svf import SVF
 from canrls.signals import Signals
 
 __all__ = ["Calibration", "FitResult", "FrameProcessor", "RMS_HEADROOM",
-           "RangeScanner", "SampleProcessor", "UNEXCITED", "calibrate", "dbc_ranges",
-           "scan_ranges"]
+           "MIN_ENERGY", "RangeScanner", "SampleProcessor", "UNEXCITED", "calibrate",
+           "dbc_ranges", "intrinsic", "scan_ranges"]
 
 #: Signals whose DBC range bounds the normalisation (position enters only through
 #: periodic columns, bounded by 1, and is unwrapped beyond its DBC range).
@@ -80,6 +80,12 @@ _SIGNALS = ("t", "current", "speed", "position", "voltage")
 #: A column (or target) whose RMS on the calibration window is below this fraction of
 #: its bound counts as not excited there.
 UNEXCITED = 2.0 ** -20
+
+#: Smallest energy (normalised mean square) a calibrated column's prior is scaled with:
+#: a column with an RMS of 1/32 of full scale, the least the RMS rule gives. It bounds
+#: P0 by 2**10/alpha, which the fixed-point formats hold, and weighs only where the
+#: window barely excites a column bounded by its own function.
+MIN_ENERGY = 2.0 ** -10
 
 #: The normalisation puts each column's RMS on the window in (1/32, 1/16] of the
 #: fixed-point range (|phi| <= 1): room for crest factors and for signals that grow
@@ -259,12 +265,23 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
 
     The columns and the target are filtered as the pipeline does (same gap filling and
     sample selection) and measured over the rows it uses (all rows where it uses none).
-    Each gets the smallest power-of-two exponent that puts its RMS at most
-    1/:data:`RMS_HEADROOM` of full scale, unless the model's configuration gives the exponents (``[model.scaling]``); a column
-    the window does not excite (RMS below :data:`UNEXCITED` of its bound) keeps the
-    exponent of its bound and the energy of a column at a quarter of it. Returns the model with those exponents
-    (:meth:`~canrls.estimation.model.Model.with_scaling`) and
-    ``{equation: mean square of each normalised column}`` (:math:`\bar e_j`).
+    The exponent of each (``phi_j = F[.] 2**-s_j``), unless the model gives it
+    (``[model.scaling]``, or frozen by an earlier calibration):
+
+    * a column bounded by its own function (``tanh``, ``sin``, a constant, a user term
+      with a configured range; :func:`intrinsic`): the exponent of its bound, so that
+      no value can saturate, whatever the window showed;
+    * the target and the columns bounded by signal ranges (speed, acceleration, ...):
+      the smallest exponent that puts the window's RMS at most 1/:data:`RMS_HEADROOM`
+      of full scale, since those ranges (the DBC's) are far wider than the drive goes;
+      the exponent of the bound where the window shows nothing (RMS below
+      :data:`UNEXCITED` of the bound).
+
+    The energy :math:`\bar e_j` is the window's mean square of the normalised column, at
+    least :data:`MIN_ENERGY` (which the RMS rule always gives: it only weighs for a
+    column the window barely excites); configured exponents take the energy as it is.
+    Returns the model with the exponents
+    (:meth:`~canrls.estimation.model.Model.with_scaling`) and ``{equation: energies}``.
     """
     probe = Pipeline(model, dt, settings)
     block = probe.process(window, record=True)
@@ -281,33 +298,43 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
         given = model.exponents.get(eq.name, {})
         s_y = (sc.target if "target" in given
                else _scale_exponent(y, sc.target_bound, sc.target))
+        own = intrinsic(eq)
         s_cols, e_cols = [], []
         for j, par in enumerate(eq.parameters):
             c = cols[:, j]
-            s = (sc.columns[j] if par.name in given
-                 else _scale_exponent(c, sc.column_bounds[j], None))
-            if s is None:
-                # not excited on the window: the exponent of its bound, and the energy
-                # of a column at a quarter of it
-                s_cols.append(sc.columns[j])
-                e_cols.append(1.0 / 16.0)
-                continue
-            s_cols.append(s)
+            if par.name in given:
+                s, floor = sc.columns[j], 0.0
+            elif own[j]:
+                s, floor = sc.columns[j], MIN_ENERGY
+            else:
+                s = _scale_exponent(c, sc.column_bounds[j], sc.columns[j])
+                floor = MIN_ENERGY
             # e_j = mean_k (c_kj 2**-s_j)^2
-            e_cols.append(float(np.mean(np.ldexp(c, -s) ** 2)))
-        exponents[eq.name] = {"target": sc.target if s_y is None else s_y,
+            e = float(np.mean(np.ldexp(c, -s) ** 2)) if len(c) else 0.0
+            s_cols.append(s)
+            e_cols.append(max(e, floor))
+        exponents[eq.name] = {"target": s_y,
                               **{p.name: s for p, s in zip(eq.parameters, s_cols, strict=True)}}
         energy[eq.name] = tuple(e_cols)
     return model.with_scaling(exponents), energy
 
 
-def _scale_exponent(x: npt.NDArray[np.float64], bound: float, default: int | None
-                    ) -> int | None:
+def intrinsic(eq: Equation) -> list[bool]:
+    """Which columns of ``eq`` are bounded by their own function rather than by the
+    signal ranges: their bound is the same with every range doubled."""
+    r = eq.model.ranges
+    doubled = {k: (2.0 * lo, 2.0 * hi) for k, (lo, hi) in r.items()}
+    out = []
+    for col in eq.columns:
+        a, b = col.range(r), col.range(doubled)
+        out.append(not col.derivative and tuple(map(float, a)) == tuple(map(float, b)))
+    return out
+
+
+def _scale_exponent(x: npt.NDArray[np.float64], bound: float, default: int) -> int:
     """Smallest s with RMS_HEADROOM rms(x) <= 2**s; ``default`` when x is below
     :data:`UNEXCITED` of ``bound`` (not excited)."""
-    if len(x) == 0:
-        return default
-    rms = float(np.sqrt(np.mean(x * x)))
+    rms = float(np.sqrt(np.mean(x * x))) if len(x) else 0.0
     if not (rms > UNEXCITED * bound):
         return default
     m, e = math.frexp(RMS_HEADROOM * rms)
