@@ -24,7 +24,7 @@ from canrls.can.frames import (
     CommandFrameError,
     CommandResult,
     EffectId,
-    Equation,
+    EquationId,
     FrameDecoder,
     ParameterReport,
     StatusReport,
@@ -65,7 +65,7 @@ def test_enums_match_the_dbc_value_tables(db) -> None:
     assert table("RlsCommand", "Command") == {int(c): c.name.lower() for c in CommandCode}
     assert table("RlsCommandAck", "Command") == {int(c): c.name.lower() for c in CommandCode}
     assert table("RlsCommandAck", "Result") == {int(c): c.name.lower() for c in CommandResult}
-    assert table("RlsParamInfo", "Equation") == {int(e): e.name.lower() for e in Equation}
+    assert table("RlsParamInfo", "Equation") == {int(e): e.name.lower() for e in EquationId}
     assert (EffectId.INERTIA, EffectId.ELECTRICAL, EffectId.USER) == (1, 8, 9)
 
 
@@ -93,11 +93,11 @@ def test_parse_effect() -> None:
 
 
 REPORTS = [
-    ParameterReport(0, "inertia.J", EffectId.INERTIA, 0, 0, Equation.MECHANICAL,
+    ParameterReport(0, "inertia.J", EffectId.INERTIA, 0, 0, EquationId.MECHANICAL,
                     1.25e-3, 2e-6, 1.2501e-3, "kg·m²"),
-    ParameterReport(1, "cogging:24.sin", EffectId.COGGING, 0, 24, Equation.MECHANICAL,
+    ParameterReport(1, "cogging:24.sin", EffectId.COGGING, 0, 24, EquationId.MECHANICAL,
                     -0.03, 1e-4, -0.0301, "N·m"),
-    ParameterReport(2, "electrical.Ke", EffectId.ELECTRICAL, 2, 0, Equation.ELECTRICAL,
+    ParameterReport(2, "electrical.Ke", EffectId.ELECTRICAL, 2, 0, EquationId.ELECTRICAL,
                     0.12, None, 0.1201, "V·s/rad"),
 ]
 
@@ -318,7 +318,7 @@ def first_refused(msg: Any, values: dict[str, Any]) -> Any:
 
 def test_every_shipped_message_takes_the_fast_path() -> None:
     assert len(MESSAGES) == 11
-    assert all(_codec(None, name)._fast for name in MESSAGES)
+    assert all(_codec(None, name).fast for name in MESSAGES)
 
 
 @pytest.mark.parametrize("name", MESSAGES)
@@ -476,7 +476,7 @@ def test_status_frames_are_cantools_bytes(db, status: StatusReport, counter: int
 @HYPOTHESIS
 @given(st.lists(st.builds(ParameterReport, index=st.integers(0, 255),
                           effect_id=st.sampled_from(EffectId), component=st.integers(0, 255),
-                          order=st.integers(0, 65535), equation=st.sampled_from(Equation)),
+                          order=st.integers(0, 65535), equation=st.sampled_from(EquationId)),
                 max_size=5),
        st.integers(0, 600), st.sampled_from(CommandResult), st.integers(0, 10**6),
        st.sampled_from(CommandCode), st.sampled_from(EffectId), st.integers(0, 65535),
@@ -523,7 +523,7 @@ BO_ 16 Mixed: 8 Tool
  SG_ Gain : 32|32@1- (1,0) [-10|10] "" Canrls
 
 BO_ 17 Muxed: 8 Tool
- SG_ Sel M : 0|8@1+ (1,0) [0|1] "" Canrls
+ SG_ Sel M : 0|8@1+ (1,0) [0|3] "" Canrls
  SG_ A m0 : 8|16@1+ (1,0) [0|1000] "" Canrls
  SG_ B m1 : 8|8@1- (1,0) [-100|100] "" Canrls
 
@@ -547,8 +547,8 @@ def user_dbc(tmp_path: Path) -> Path:
 def test_big_endian_and_multiplexed_messages_fall_back_to_cantools(user_dbc: Path) -> None:
     db = cantools.database.load_file(str(user_dbc))
     codecs = {m.name: _codec(user_dbc, m.name) for m in db.messages}
-    assert {n: c._fast for n, c in codecs.items()} == {
-        "RlsCommandAck": False, "Mixed": False, "Muxed": False, "Modes": True}
+    assert {n: c.fast for n, c in codecs.items()} == {
+        "RlsCommandAck": False, "Mixed": False, "Muxed": True, "Modes": True}
     # the public encoders work with a user DBC whose RlsCommandAck is big-endian
     m = encode_ack(CommandCode.SET_LAMBDA, CommandResult.BAD_VALUE, 21, dbc=user_dbc)
     assert bytes(m.data) == db.get_message_by_name("RlsCommandAck").encode(
@@ -566,8 +566,12 @@ def test_big_endian_and_multiplexed_messages_fall_back_to_cantools(user_dbc: Pat
         else:
             assert codecs["Mixed"].encode(values) == want
     for values in ({"Sel": 0, "A": 999}, {"Sel": 1, "B": -100}, {"Sel": 1, "B": 7}):
-        assert codecs["Muxed"].encode(values) == cantools_encode(
-            db.get_message_by_name("Muxed"), values)
+        want = cantools_encode(db.get_message_by_name("Muxed"), values)
+        assert codecs["Muxed"].encode(values) == codecs["Muxed"]._pack(values) == want
+    for values in ({"Sel": 0, "A": 1, "B": 1}, {"Sel": 1}, {"Sel": 0, "B": 1}):
+        assert codecs["Muxed"]._pack(values) is None  # the signals of another value
+    with pytest.raises(EncodeError, match="cannot encode Muxed.*multiplexer"):
+        codecs["Muxed"].encode({"Sel": 2, "A": 1})  # within Sel's range, but no signals
     with pytest.raises(EncodeError, match=r"Muxed\.B = 101: outside \[-100, 100\]"):
         codecs["Muxed"].encode({"Sel": 1, "B": 101})
     with pytest.raises(EncodeError, match="cannot encode Muxed"):
@@ -592,7 +596,7 @@ def test_value_table_and_bit_field_beyond_the_range(user_dbc: Path) -> None:
 
 
 def test_with_estimates_is_replace() -> None:
-    blank = ParameterReport(3, "cogging:24.sin", EffectId.COGGING, 0, 24, Equation.MECHANICAL,
+    blank = ParameterReport(3, "cogging:24.sin", EffectId.COGGING, 0, 24, EquationId.MECHANICAL,
                             unit="N·m")
     r = blank.with_estimates(1.5, None, -2.0, False)
     want = dataclasses.replace(blank, fixed_value=1.5, sigma=None, float_value=-2.0,

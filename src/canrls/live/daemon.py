@@ -63,7 +63,7 @@ from canrls.can.frames import (
     CommandFrameError,
     CommandResult,
     EffectId,
-    Equation,
+    EquationId,
     ParameterReport,
     StatusReport,
     decode_command,
@@ -1107,7 +1107,7 @@ class Daemon:
                 rows.append(tuple(
                     ParameterReport(index=i + k, name=p.name, effect_id=EffectId(p.effect_id),
                                     component=p.component, order=p.order,
-                                    equation=Equation(p.equation_index), unit=p.unit)
+                                    equation=EquationId(p.equation_index), unit=p.unit)
                     for k, p in enumerate(params)))
                 i += len(params)
             layout = (pipe, tuple(rows), pipe.model.active_effects)
