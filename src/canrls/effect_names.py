@@ -131,15 +131,16 @@ def parse_effect_name(spec: str, *, user: Literal["name", "index"] = "name") -> 
         raise EffectError(f"unknown effect {spec!r}; valid effects: {VALID_EFFECTS}")
     if effect is EffectId.COGGING or (effect is EffectId.USER and user == "index"):
         if effect is EffectId.COGGING:
-            need, letter, example = "a harmonic order", "K", "cogging:24"
+            what, letter, example = "harmonic order", "K", "cogging:24"
         else:
-            need, letter, example = "a term index", "N", "user:1"
+            what, letter, example = "term index", "N", "user:1"
+        form = f"{effect.effect_name}:{letter}"
         if not sep or not arg:
-            raise EffectError(f"effect {spec!r} needs {need}: {effect.effect_name}:{letter} "
-                              f"with {letter} an integer >= 1 (e.g. {example})")
+            raise EffectError(f"effect {spec!r} needs a {what}: {form} with {letter} an "
+                              f"integer >= 1 (e.g. {example})")
         if not _INTEGER.fullmatch(arg) or int(arg) < 1:
-            raise EffectError(f"effect {spec!r}: order {letter} = {arg!r} must be an "
-                              f"integer >= 1")
+            raise EffectError(f"effect {spec!r}: {what} {letter} = {arg!r} must be an "
+                              f"integer >= 1 ({form})")
         return EffectName(effect, order=int(arg))
     if effect is EffectId.USER:
         if not sep or not arg:

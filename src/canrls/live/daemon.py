@@ -71,6 +71,7 @@ from canrls.can.frames import (
     encode_param_info,
     encode_parameters,
     encode_status,
+    frame_ids,
 )
 from canrls.can.protocol import FeedbackEncoder, Protocol
 from canrls.config import AppConfig
@@ -103,8 +104,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Arbitration ID of ``RlsCommand`` in the default DBC.
-COMMAND_ID = 0x320
-_COUNTERS_ID = 0x312
+COMMAND_ID = frame_ids().command
+_COUNTERS_ID = frame_ids().counters
 _WINDUP = int(RLSFlag.WINDUP)
 # SocketCAN error classes (linux/can/error.h) in an error frame's arbitration ID
 _CAN_ERR_BUSOFF = 0x40
