@@ -437,17 +437,17 @@ class _Codec:
     :meth:`encode` gives the bytes of ``Message.encode(values, scaling=True,
     strict=True)``. Messages of little-endian (Intel) signals, plain or multiplexed by
     one multiplexer at the top level (the estimator frames' ``Index``), take a fast
-    path: a :class:`_Layout` of the signals always present and one per multiplexer
-    value (shared by the values that select the same signals), the frame built as one
-    integer. Whatever that path does not cover (big-endian signals, nested
+    path: a :class:`_Layout` of all signals, or for a multiplexed message one per
+    multiplexer value of the signals it selects and those always present (shared by the
+    values that select the same signals), the frame built as one integer. Whatever that path does not cover (big-endian signals, nested
     multiplexing, an unknown multiplexer value, a value of another type, out of range
     or only allowed by a value table) takes the careful path: the limits checked again
     with an :class:`EncodeError` naming the message, the signal, the value and the
     limits, then cantools itself.
     """
 
-    __slots__ = ("message", "name", "frame_id", "is_extended", "length", "_root", "_mux",
-                 "_children", "_checks")
+    __slots__ = ("message", "name", "frame_id", "is_extended", "length", "_layout", "_mux",
+                 "_by_mux", "_checks")
 
     def __init__(self, message: Any) -> None:
         self.message = message
@@ -457,11 +457,11 @@ class _Codec:
         self.length: int = message.length
         signals = message.signals
         self._checks = tuple((s, *_limits(s)) for s in signals)
-        #: None: no fast path; else the layout of the signals outside the multiplexing
-        self._root: _Layout | None = None
-        #: the multiplexer's name (None: not multiplexed) and its value -> child layout
+        #: the layout of a message without multiplexing (None: multiplexed, or no fast path)
+        self._layout: _Layout | None = None
+        #: the multiplexer's name and its value -> the layout of the signals it selects
         self._mux: str | None = None
-        self._children: dict[int, _Layout] = {}
+        self._by_mux: dict[int, _Layout] = {}
         if message.is_container or not all(
                 s.byte_order == "little_endian" and (not s.is_float or s.length in _FLOAT_PACKERS)
                 for s in signals):
@@ -469,7 +469,7 @@ class _Codec:
         root = [s for s in signals if s.multiplexer_signal is None]
         muxes = [s for s in root if s.is_multiplexer]
         if not muxes:
-            self._root = _Layout(signals)
+            self._layout = _Layout(signals)
             return
         mux = muxes[0]
         children = [s for s in signals if s.multiplexer_signal is not None]
@@ -483,18 +483,17 @@ class _Codec:
             ids.update(s.multiplexer_ids or ())
         shared: dict[tuple[str, ...], _Layout] = {}
         for k in sorted(ids):
-            sel = [s for s in children if k in s.multiplexer_ids]
+            sel = [s for s in signals if s.multiplexer_signal is None or k in s.multiplexer_ids]
             key = tuple(s.name for s in sel)
             if key not in shared:
                 shared[key] = _Layout(sel)
-            self._children[k] = shared[key]
-        self._root = _Layout(root)
+            self._by_mux[k] = shared[key]
         self._mux = mux.name
 
     @property
     def fast(self) -> bool:
         """Whether the message has a fast path (values of the right types then take it)."""
-        return self._root is not None
+        return self._layout is not None or self._mux is not None
 
     def frame(self, values: dict[str, Any], timestamp: float) -> can.Message:
         """The ``can.Message`` of ``values`` (data as :meth:`encode`)."""
@@ -517,31 +516,24 @@ class _Codec:
 
     def _pack(self, values: dict[str, Any]) -> bytes | None:
         """The fast path; None when it does not apply."""
-        root = self._root
-        if root is None:
+        layout = self._layout
+        if layout is None:
+            if self._mux is None:
+                return None
+            k = values.get(self._mux)
+            # the layout checks k again (type, range) among its plain integers
+            layout = self._by_mux.get(k) if type(k) is int else None  # type: ignore[arg-type]
+            if layout is None:
+                return None
+        if len(values) != layout.count:
             return None
         try:
-            word = root.word(values)
-            if word is None:
-                return None
-            count = root.count
-            if self._mux is not None:
-                # the multiplexer is a plain integer of the root: checked just above
-                child = self._children.get(values[self._mux])
-                if child is None:
-                    return None
-                part = child.word(values)
-                if part is None:
-                    return None
-                word |= part
-                count += child.count
+            word = layout.word(values)
         except KeyError:  # a signal missing (and another one too many)
             return None
         except OverflowError:  # inf met a conversion, or beyond float32: cantools decides
             return None
-        if len(values) != count:  # a signal too many
-            return None
-        return word.to_bytes(self.length, "little")
+        return None if word is None else word.to_bytes(self.length, "little")
 
     def _careful(self, values: dict[str, Any]) -> bytes:
         """Strict encoding the slow way: the checks of :meth:`_check`, then cantools."""

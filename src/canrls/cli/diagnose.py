@@ -92,8 +92,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = setup(args)
     protocol, model, settings = prepare(cfg, args.log, args.skip_bad_lines)
     rep = diagnose_log(args.log, protocol, model, settings, add=args.add,
-                       progress=Progress("diagnose", quiet=args.quiet).callback, max_order=args.max_order,
-                       skip_bad_lines=args.skip_bad_lines)
+                       progress=Progress("diagnose", quiet=args.quiet).callback,
+                       max_order=args.max_order, skip_bad_lines=args.skip_bad_lines)
     page = rep.write_html(args.report) if args.report else None
     if args.json:
         d = rep.to_dict()

@@ -59,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = setup(args)
     protocol, model, settings = prepare(cfg, args.log, args.skip_bad_lines)
     res = fit_log(args.log, protocol, model, settings,
-                  progress=Progress("replay", quiet=args.quiet).callback, skip_bad_lines=args.skip_bad_lines)
+                  progress=Progress("replay", quiet=args.quiet).callback,
+                  skip_bad_lines=args.skip_bad_lines)
     if args.json:
         print_json(res.to_dict())
     else:

@@ -42,7 +42,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import numpy.typing as npt
 
-from canrls.effect_names import VALID_EFFECTS, EffectId, EquationId, parse_effect_name
+from canrls.effect_names import EffectId, EquationId, parse_effect_name
 from canrls.errors import EffectError
 from canrls.estimation.expr import CompiledExpression, compile_expression
 
