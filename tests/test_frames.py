@@ -35,6 +35,7 @@ from canrls.can.frames import (
     encode_param_info,
     encode_parameters,
     encode_status,
+    frame_ids,
     parameter_name,
     parse_effect,
 )
@@ -42,6 +43,8 @@ from canrls.can.protocol import EncodeError
 from canrls.errors import CommandError
 
 REPO_DBC = Path(__file__).resolve().parent.parent / "dbc" / "canrls.dbc"
+#: the frame IDs, read from the DBC (tests/test_dbc.py pins them to docs/protocol.md)
+IDS = frame_ids()
 
 
 @pytest.fixture(scope="module")
@@ -104,7 +107,8 @@ REPORTS = [
 
 def test_parameter_frames_round_trip(db) -> None:
     msgs = encode_parameters(REPORTS, counter=21) + encode_param_info(REPORTS)
-    assert [m.arbitration_id for m in msgs] == [0x300, 0x301, 0x302] * 3 + [0x303] * 3
+    assert [m.arbitration_id for m in msgs] == (
+        [IDS.estimate, IDS.sigma, IDS.reference] * 3 + [IDS.param_info] * 3)
     for m in msgs:  # cantools decodes every frame we produce
         d = db.decode_message(m.arbitration_id, m.data)
         if "Counter" in d:
@@ -145,11 +149,11 @@ def test_invalid_estimates() -> None:
     tx_dropped=st.integers(0, 10**6)), st.integers(0, 1000))
 def test_status_round_trip(status: StatusReport, counter: int) -> None:
     msgs = encode_status(status, counter)
-    assert [m.arbitration_id for m in msgs] == [0x310, 0x311, 0x312]
+    assert [m.arbitration_id for m in msgs] == [IDS.status, IDS.health, IDS.counters]
     db = cantools.database.load_file(str(REPO_DBC))
     for m in msgs:
         db.decode_message(m.arbitration_id, m.data)
-    assert db.decode_message(0x311, msgs[1].data)["Counter"] == counter % 16
+    assert db.decode_message(IDS.health, msgs[1].data)["Counter"] == counter % 16
     fd = FrameDecoder()
     fd.feed_all(msgs)
     s = fd.status
@@ -184,7 +188,7 @@ def test_status_effect_mask() -> None:
 ])
 def test_command_round_trip(db, cmd: Command) -> None:
     m = encode_command(cmd)
-    assert m.arbitration_id == 0x320
+    assert m.arbitration_id == IDS.command
     d = db.decode_message(m.arbitration_id, m.data, decode_choices=True)
     assert str(d["Command"]) == cmd.code.name.lower()
     assert decode_command(m) == cmd
@@ -199,7 +203,7 @@ def test_command_str() -> None:
 def raw_command(code: int, effect: int = 0, order: int = 0, lam: float = 0.0,
                 dlc: int = 8) -> can.Message:
     data = bytes([code, effect]) + order.to_bytes(2, "little") + np.float32(lam).tobytes()
-    return can.Message(arbitration_id=0x320, is_extended_id=False, data=data[:dlc], dlc=dlc)
+    return can.Message(arbitration_id=IDS.command, is_extended_id=False, data=data[:dlc], dlc=dlc)
 
 
 @pytest.mark.parametrize("msg, result, match", [
@@ -214,11 +218,11 @@ def raw_command(code: int, effect: int = 0, order: int = 0, lam: float = 0.0,
     (raw_command(5, effect=10), CommandResult.UNKNOWN_EFFECT, "unknown effect id 10"),
     (raw_command(4, effect=7), CommandResult.BAD_VALUE, "cogging needs an order"),
     (raw_command(4, effect=1, order=3), CommandResult.BAD_VALUE, "order 3, inertia takes none"),
-    (can.Message(arbitration_id=0x321, data=bytes(8)), CommandResult.MALFORMED,
+    (can.Message(arbitration_id=IDS.ack, data=bytes(8)), CommandResult.MALFORMED,
      "not RlsCommand"),
-    (can.Message(arbitration_id=0x320, is_extended_id=True, data=bytes(8)),
+    (can.Message(arbitration_id=IDS.command, is_extended_id=True, data=bytes(8)),
      CommandResult.MALFORMED, "not RlsCommand"),
-    (can.Message(arbitration_id=0x320, is_extended_id=False, is_remote_frame=True, dlc=8),
+    (can.Message(arbitration_id=IDS.command, is_extended_id=False, is_remote_frame=True, dlc=8),
      CommandResult.MALFORMED, "remote"),
 ])
 def test_decode_command_rejects(msg: can.Message, result: CommandResult, match: str) -> None:
@@ -250,8 +254,9 @@ def test_ack_round_trip(db) -> None:
 
 def test_frame_decoder_ignores_and_counts() -> None:
     fd = FrameDecoder()
-    assert fd.feed(can.Message(arbitration_id=0x101, data=bytes(8))) is None
-    assert fd.feed(can.Message(arbitration_id=0x300, is_extended_id=False, data=bytes(3))) is None
+    assert fd.feed(can.Message(arbitration_id=IDS.feedback[0], data=bytes(8))) is None
+    assert fd.feed(can.Message(arbitration_id=IDS.estimate, is_extended_id=False,
+                               data=bytes(3))) is None
     assert (fd.ignored, fd.malformed) == (1, 1)
 
 
@@ -380,7 +385,7 @@ def test_codec_takes_what_cantools_takes(db) -> None:
 
 def test_frames_are_the_messages_python_can_would_build() -> None:
     (m,) = [encode_ack(3, CommandResult.OK, 1, timestamp=12.5)]
-    want = can.Message(arbitration_id=0x321, is_extended_id=False, data=bytes(m.data), dlc=8,
+    want = can.Message(arbitration_id=IDS.ack, is_extended_id=False, data=bytes(m.data), dlc=8,
                        timestamp=12.5)
     for a in can.Message.__slots__:
         if a != "__weakref__":

@@ -439,11 +439,11 @@ class _Codec:
     one multiplexer at the top level (the estimator frames' ``Index``), take a fast
     path: a :class:`_Layout` of all signals, or for a multiplexed message one per
     multiplexer value of the signals it selects and those always present (shared by the
-    values that select the same signals), the frame built as one integer. Whatever that path does not cover (big-endian signals, nested
-    multiplexing, an unknown multiplexer value, a value of another type, out of range
-    or only allowed by a value table) takes the careful path: the limits checked again
-    with an :class:`EncodeError` naming the message, the signal, the value and the
-    limits, then cantools itself.
+    values that select the same signals), the frame built as one integer. Whatever that
+    path does not cover (big-endian signals, nested multiplexing, an unknown multiplexer
+    value, a value of another type, out of range or only allowed by a value table) takes
+    the careful path: the limits checked again with an :class:`EncodeError` naming the
+    message, the signal, the value and the limits, then cantools itself.
     """
 
     __slots__ = ("message", "name", "frame_id", "is_extended", "length", "_layout", "_mux",
