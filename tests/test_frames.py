@@ -24,7 +24,7 @@ from canrls.can.frames import (
     CommandFrameError,
     CommandResult,
     EffectId,
-    Equation,
+    EquationId,
     FrameDecoder,
     ParameterReport,
     StatusReport,
@@ -35,6 +35,7 @@ from canrls.can.frames import (
     encode_param_info,
     encode_parameters,
     encode_status,
+    frame_ids,
     parameter_name,
     parse_effect,
 )
@@ -42,6 +43,8 @@ from canrls.can.protocol import EncodeError
 from canrls.errors import CommandError
 
 REPO_DBC = Path(__file__).resolve().parent.parent / "dbc" / "canrls.dbc"
+#: the frame IDs, read from the DBC (tests/test_dbc.py pins them to docs/protocol.md)
+IDS = frame_ids()
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +68,7 @@ def test_enums_match_the_dbc_value_tables(db) -> None:
     assert table("RlsCommand", "Command") == {int(c): c.name.lower() for c in CommandCode}
     assert table("RlsCommandAck", "Command") == {int(c): c.name.lower() for c in CommandCode}
     assert table("RlsCommandAck", "Result") == {int(c): c.name.lower() for c in CommandResult}
-    assert table("RlsParamInfo", "Equation") == {int(e): e.name.lower() for e in Equation}
+    assert table("RlsParamInfo", "Equation") == {int(e): e.name.lower() for e in EquationId}
     assert (EffectId.INERTIA, EffectId.ELECTRICAL, EffectId.USER) == (1, 8, 9)
 
 
@@ -93,18 +96,19 @@ def test_parse_effect() -> None:
 
 
 REPORTS = [
-    ParameterReport(0, "inertia.J", EffectId.INERTIA, 0, 0, Equation.MECHANICAL,
+    ParameterReport(0, "inertia.J", EffectId.INERTIA, 0, 0, EquationId.MECHANICAL,
                     1.25e-3, 2e-6, 1.2501e-3, "kg·m²"),
-    ParameterReport(1, "cogging:24.sin", EffectId.COGGING, 0, 24, Equation.MECHANICAL,
+    ParameterReport(1, "cogging:24.sin", EffectId.COGGING, 0, 24, EquationId.MECHANICAL,
                     -0.03, 1e-4, -0.0301, "N·m"),
-    ParameterReport(2, "electrical.Ke", EffectId.ELECTRICAL, 2, 0, Equation.ELECTRICAL,
+    ParameterReport(2, "electrical.Ke", EffectId.ELECTRICAL, 2, 0, EquationId.ELECTRICAL,
                     0.12, None, 0.1201, "V·s/rad"),
 ]
 
 
 def test_parameter_frames_round_trip(db) -> None:
     msgs = encode_parameters(REPORTS, counter=21) + encode_param_info(REPORTS)
-    assert [m.arbitration_id for m in msgs] == [0x300, 0x301, 0x302] * 3 + [0x303] * 3
+    assert [m.arbitration_id for m in msgs] == (
+        [IDS.estimate, IDS.sigma, IDS.reference] * 3 + [IDS.param_info] * 3)
     for m in msgs:  # cantools decodes every frame we produce
         d = db.decode_message(m.arbitration_id, m.data)
         if "Counter" in d:
@@ -145,11 +149,11 @@ def test_invalid_estimates() -> None:
     tx_dropped=st.integers(0, 10**6)), st.integers(0, 1000))
 def test_status_round_trip(status: StatusReport, counter: int) -> None:
     msgs = encode_status(status, counter)
-    assert [m.arbitration_id for m in msgs] == [0x310, 0x311, 0x312]
+    assert [m.arbitration_id for m in msgs] == [IDS.status, IDS.health, IDS.counters]
     db = cantools.database.load_file(str(REPO_DBC))
     for m in msgs:
         db.decode_message(m.arbitration_id, m.data)
-    assert db.decode_message(0x311, msgs[1].data)["Counter"] == counter % 16
+    assert db.decode_message(IDS.health, msgs[1].data)["Counter"] == counter % 16
     fd = FrameDecoder()
     fd.feed_all(msgs)
     s = fd.status
@@ -184,7 +188,7 @@ def test_status_effect_mask() -> None:
 ])
 def test_command_round_trip(db, cmd: Command) -> None:
     m = encode_command(cmd)
-    assert m.arbitration_id == 0x320
+    assert m.arbitration_id == IDS.command
     d = db.decode_message(m.arbitration_id, m.data, decode_choices=True)
     assert str(d["Command"]) == cmd.code.name.lower()
     assert decode_command(m) == cmd
@@ -199,7 +203,7 @@ def test_command_str() -> None:
 def raw_command(code: int, effect: int = 0, order: int = 0, lam: float = 0.0,
                 dlc: int = 8) -> can.Message:
     data = bytes([code, effect]) + order.to_bytes(2, "little") + np.float32(lam).tobytes()
-    return can.Message(arbitration_id=0x320, is_extended_id=False, data=data[:dlc], dlc=dlc)
+    return can.Message(arbitration_id=IDS.command, is_extended_id=False, data=data[:dlc], dlc=dlc)
 
 
 @pytest.mark.parametrize("msg, result, match", [
@@ -214,11 +218,11 @@ def raw_command(code: int, effect: int = 0, order: int = 0, lam: float = 0.0,
     (raw_command(5, effect=10), CommandResult.UNKNOWN_EFFECT, "unknown effect id 10"),
     (raw_command(4, effect=7), CommandResult.BAD_VALUE, "cogging needs an order"),
     (raw_command(4, effect=1, order=3), CommandResult.BAD_VALUE, "order 3, inertia takes none"),
-    (can.Message(arbitration_id=0x321, data=bytes(8)), CommandResult.MALFORMED,
+    (can.Message(arbitration_id=IDS.ack, data=bytes(8)), CommandResult.MALFORMED,
      "not RlsCommand"),
-    (can.Message(arbitration_id=0x320, is_extended_id=True, data=bytes(8)),
+    (can.Message(arbitration_id=IDS.command, is_extended_id=True, data=bytes(8)),
      CommandResult.MALFORMED, "not RlsCommand"),
-    (can.Message(arbitration_id=0x320, is_extended_id=False, is_remote_frame=True, dlc=8),
+    (can.Message(arbitration_id=IDS.command, is_extended_id=False, is_remote_frame=True, dlc=8),
      CommandResult.MALFORMED, "remote"),
 ])
 def test_decode_command_rejects(msg: can.Message, result: CommandResult, match: str) -> None:
@@ -250,8 +254,9 @@ def test_ack_round_trip(db) -> None:
 
 def test_frame_decoder_ignores_and_counts() -> None:
     fd = FrameDecoder()
-    assert fd.feed(can.Message(arbitration_id=0x101, data=bytes(8))) is None
-    assert fd.feed(can.Message(arbitration_id=0x300, is_extended_id=False, data=bytes(3))) is None
+    assert fd.feed(can.Message(arbitration_id=IDS.feedback[0], data=bytes(8))) is None
+    assert fd.feed(can.Message(arbitration_id=IDS.estimate, is_extended_id=False,
+                               data=bytes(3))) is None
     assert (fd.ignored, fd.malformed) == (1, 1)
 
 
@@ -318,7 +323,7 @@ def first_refused(msg: Any, values: dict[str, Any]) -> Any:
 
 def test_every_shipped_message_takes_the_fast_path() -> None:
     assert len(MESSAGES) == 11
-    assert all(_codec(None, name)._fast for name in MESSAGES)
+    assert all(_codec(None, name).fast for name in MESSAGES)
 
 
 @pytest.mark.parametrize("name", MESSAGES)
@@ -380,7 +385,7 @@ def test_codec_takes_what_cantools_takes(db) -> None:
 
 def test_frames_are_the_messages_python_can_would_build() -> None:
     (m,) = [encode_ack(3, CommandResult.OK, 1, timestamp=12.5)]
-    want = can.Message(arbitration_id=0x321, is_extended_id=False, data=bytes(m.data), dlc=8,
+    want = can.Message(arbitration_id=IDS.ack, is_extended_id=False, data=bytes(m.data), dlc=8,
                        timestamp=12.5)
     for a in can.Message.__slots__:
         if a != "__weakref__":
@@ -476,7 +481,7 @@ def test_status_frames_are_cantools_bytes(db, status: StatusReport, counter: int
 @HYPOTHESIS
 @given(st.lists(st.builds(ParameterReport, index=st.integers(0, 255),
                           effect_id=st.sampled_from(EffectId), component=st.integers(0, 255),
-                          order=st.integers(0, 65535), equation=st.sampled_from(Equation)),
+                          order=st.integers(0, 65535), equation=st.sampled_from(EquationId)),
                 max_size=5),
        st.integers(0, 600), st.sampled_from(CommandResult), st.integers(0, 10**6),
        st.sampled_from(CommandCode), st.sampled_from(EffectId), st.integers(0, 65535),
@@ -523,7 +528,7 @@ BO_ 16 Mixed: 8 Tool
  SG_ Gain : 32|32@1- (1,0) [-10|10] "" Canrls
 
 BO_ 17 Muxed: 8 Tool
- SG_ Sel M : 0|8@1+ (1,0) [0|1] "" Canrls
+ SG_ Sel M : 0|8@1+ (1,0) [0|3] "" Canrls
  SG_ A m0 : 8|16@1+ (1,0) [0|1000] "" Canrls
  SG_ B m1 : 8|8@1- (1,0) [-100|100] "" Canrls
 
@@ -547,8 +552,8 @@ def user_dbc(tmp_path: Path) -> Path:
 def test_big_endian_and_multiplexed_messages_fall_back_to_cantools(user_dbc: Path) -> None:
     db = cantools.database.load_file(str(user_dbc))
     codecs = {m.name: _codec(user_dbc, m.name) for m in db.messages}
-    assert {n: c._fast for n, c in codecs.items()} == {
-        "RlsCommandAck": False, "Mixed": False, "Muxed": False, "Modes": True}
+    assert {n: c.fast for n, c in codecs.items()} == {
+        "RlsCommandAck": False, "Mixed": False, "Muxed": True, "Modes": True}
     # the public encoders work with a user DBC whose RlsCommandAck is big-endian
     m = encode_ack(CommandCode.SET_LAMBDA, CommandResult.BAD_VALUE, 21, dbc=user_dbc)
     assert bytes(m.data) == db.get_message_by_name("RlsCommandAck").encode(
@@ -566,8 +571,12 @@ def test_big_endian_and_multiplexed_messages_fall_back_to_cantools(user_dbc: Pat
         else:
             assert codecs["Mixed"].encode(values) == want
     for values in ({"Sel": 0, "A": 999}, {"Sel": 1, "B": -100}, {"Sel": 1, "B": 7}):
-        assert codecs["Muxed"].encode(values) == cantools_encode(
-            db.get_message_by_name("Muxed"), values)
+        want = cantools_encode(db.get_message_by_name("Muxed"), values)
+        assert codecs["Muxed"].encode(values) == codecs["Muxed"]._pack(values) == want
+    for values in ({"Sel": 0, "A": 1, "B": 1}, {"Sel": 1}, {"Sel": 0, "B": 1}):
+        assert codecs["Muxed"]._pack(values) is None  # the signals of another value
+    with pytest.raises(EncodeError, match="cannot encode Muxed.*multiplexer"):
+        codecs["Muxed"].encode({"Sel": 2, "A": 1})  # within Sel's range, but no signals
     with pytest.raises(EncodeError, match=r"Muxed\.B = 101: outside \[-100, 100\]"):
         codecs["Muxed"].encode({"Sel": 1, "B": 101})
     with pytest.raises(EncodeError, match="cannot encode Muxed"):
@@ -592,7 +601,7 @@ def test_value_table_and_bit_field_beyond_the_range(user_dbc: Path) -> None:
 
 
 def test_with_estimates_is_replace() -> None:
-    blank = ParameterReport(3, "cogging:24.sin", EffectId.COGGING, 0, 24, Equation.MECHANICAL,
+    blank = ParameterReport(3, "cogging:24.sin", EffectId.COGGING, 0, 24, EquationId.MECHANICAL,
                             unit="N·m")
     r = blank.with_estimates(1.5, None, -2.0, False)
     want = dataclasses.replace(blank, fixed_value=1.5, sigma=None, float_value=-2.0,

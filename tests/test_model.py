@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from canrls.config import load_model
 from canrls.errors import ConfigError, EffectError, ExpressionError, SignalError
 from canrls.estimation.model import Model, PositionUnwrapper, RegressorBlock
 from canrls.signals import Signals
@@ -409,7 +410,7 @@ def _write(tmp_path: Path, text: str, name: str = "drive.toml") -> Path:
 
 
 def test_from_toml_builds_the_documented_schema(tmp_path: Path) -> None:
-    m = Model.from_toml(_write(tmp_path, GOOD))
+    m = load_model(_write(tmp_path, GOOD))
     assert m.effect_names == ("inertia", "viscous", "coulomb", "cogging:24", "user:drag")
     assert (m.kt, m.cutoff_hz, m.zeta, m.coulomb_band, m.stribeck_speed) == (
         0.12, 30.0, 0.8, 0.02, 2.0)
@@ -496,7 +497,7 @@ def test_configuration_errors_name_file_key_and_value(tmp_path: Path, body: str,
                                                       fragments: list[str]) -> None:
     path = _write(tmp_path, "[model]\n" + body + "\n", name="bad_drive.toml")
     with pytest.raises(exc) as info:
-        Model.from_toml(path)
+        load_model(path)
     msg = str(info.value)
     assert "bad_drive.toml" in msg
     for f in fragments:
@@ -507,25 +508,25 @@ def test_missing_signals_are_reported_at_build_time(tmp_path: Path) -> None:
     path = _write(tmp_path, '[model]\neffects = ["inertia", "cogging:12", "electrical"]\n',
                   name="nopos.toml")
     with pytest.raises(EffectError) as info:
-        Model.from_toml(path, available_signals=["voltage"])
+        load_model(path, available_signals=["voltage"])
     msg = str(info.value)
     assert all(f in msg for f in ("nopos.toml", "model.effects[1]", "cogging:12", "position"))
     with pytest.raises(EffectError, match=r"model.effects\[2\].*voltage"):
-        Model.from_toml(path, available_signals=["position"])
+        load_model(path, available_signals=["position"])
     with pytest.raises(EffectError, match=r"user:th.*position"):
         Model(["user:th"], available_signals=[], terms={"th": {"expr": "sin(theta)"}})
     with pytest.raises(ConfigError, match="'torque'"):
         Model(["inertia"], available_signals=["torque"])
-    assert Model.from_toml(path, available_signals=["position", "voltage"]).equations
+    assert load_model(path, available_signals=["position", "voltage"]).equations
 
 
 def test_toml_and_table_errors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="broken.toml.*invalid TOML"):
-        Model.from_toml(_write(tmp_path, "[model\n", name="broken.toml"))
+        load_model(_write(tmp_path, "[model\n", name="broken.toml"))
     with pytest.raises(ConfigError, match="nomodel.toml.*no \\[model\\]"):
-        Model.from_toml(_write(tmp_path, "[bus]\n", name="nomodel.toml"))
+        load_model(_write(tmp_path, "[bus]\n", name="nomodel.toml"))
     with pytest.raises(ConfigError, match="missing.toml.*cannot read"):
-        Model.from_toml(tmp_path / "missing.toml")
+        load_model(tmp_path / "missing.toml")
     with pytest.raises(ConfigError, match=r"cfg: model.filter = 3"):
         Model.from_dict({"effects": ["inertia"], "filter": 3}, source="cfg")
 

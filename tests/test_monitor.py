@@ -14,7 +14,7 @@ from canrls.can.frames import (
     CommandCode,
     CommandResult,
     EffectId,
-    Equation,
+    EquationId,
     ParameterReport,
     StatusReport,
     encode_ack,
@@ -38,7 +38,7 @@ def _reports() -> list[ParameterReport]:
         ParameterReport(1, effect_id=EffectId.COGGING, component=1, order=6,
                         fixed_value=0.0015, sigma=2e-5, float_value=0.0016),
         ParameterReport(2, effect_id=EffectId.ELECTRICAL, component=0,
-                        equation=Equation.ELECTRICAL, fixed_value=None, valid=False,
+                        equation=EquationId.ELECTRICAL, fixed_value=None, valid=False,
                         sigma=None, float_value=0.5),
     ]
 

@@ -657,11 +657,9 @@ def proto_default() -> Protocol:
 
 
 def test_toml_mapping_of_the_docs() -> None:
-    import tomllib
+    from canrls.config import read_toml
 
-    with open(DATA / "proto_user_mapping.toml", "rb") as f:
-        table = tomllib.load(f)["signals"]
-    p = Protocol.load(USER_DBC, table)
+    p = Protocol.load(USER_DBC, read_toml(DATA / "proto_user_mapping.toml", "signals"))
     assert p.roles["position"].si_scale == pytest.approx(math.pi / 180)
     assert p.roles["current"].si_scale == 1e-3
     assert p.message("InverterFb1").crc.name == "Chk"

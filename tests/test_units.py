@@ -11,6 +11,7 @@ import canrls.can.frames
 import canrls.can.pairing
 import canrls.can.protocol
 import canrls.can.units
+import canrls.effect_names
 from canrls.can.units import SI_UNITS, UNITS, axis_of, known_units, si_factor
 from canrls.errors import ConfigError, SignalError
 
@@ -70,7 +71,8 @@ def test_axis() -> None:
     assert axis_of("A") is None and axis_of(None) is None
 
 
-@pytest.mark.parametrize("module", [canrls.can.units, canrls.can.protocol, canrls.can.pairing, canrls.can.frames])
+@pytest.mark.parametrize("module", [canrls.can.units, canrls.can.protocol, canrls.can.pairing,
+                                    canrls.can.frames, canrls.effect_names])
 def test_doctests(module) -> None:
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
     assert result.failed == 0

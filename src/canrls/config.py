@@ -55,7 +55,7 @@ from __future__ import annotations
 import argparse
 import math
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -66,7 +66,7 @@ from canrls.estimation.fixed import QFormat
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings
 
-__all__ = ["AppConfig", "DEFAULT_EFFECTS", "load_config"]
+__all__ = ["AppConfig", "DEFAULT_EFFECTS", "load_config", "read_toml", "load_model"]
 
 #: Effects of the model when neither the configuration nor ``--effects`` name any.
 DEFAULT_EFFECTS: tuple[str, ...] = ("inertia", "viscous", "coulomb")
@@ -84,6 +84,38 @@ _ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
 _FIXED_KEYS = ("word_bits", "acc_bits", "input_bits", "theta_max", "formats")
 _CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
              "channel", "bitrate", "fd", "data_bitrate")
+
+
+def read_toml(path: str | Path, table: str | None = None, *, key: str | None = None
+              ) -> dict[str, Any]:
+    """The document of TOML file ``path``, or its ``[table]`` when ``table`` is given.
+
+    The one TOML reader of canrls. Every error is a :class:`ConfigError` whose message
+    begins with the configuration ``key`` that named the file, if any, and the file:
+    ``"daemon.model_file = m.toml: invalid TOML: Expected ']' ... (at line 1, column 7)"``,
+    ``"drive.toml: cannot read: No such file or directory"``, ``"x.toml: no [model] table"``.
+    """
+    p = Path(path)
+    where = f"{key} = {p}" if key else str(p)
+    try:
+        text = p.read_bytes()
+    except OSError as e:
+        raise ConfigError(f"{where}: cannot read: {e.strerror or e}") from e
+    try:
+        doc = tomllib.loads(text.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{where}: invalid TOML: {e}") from e
+    if table is None:
+        return doc
+    if not isinstance(doc.get(table), dict):
+        raise ConfigError(f"{where}: no [{table}] table")
+    return dict(doc[table])
+
+
+def load_model(path: str | Path, *, available_signals: Iterable[str] | None = None) -> Model:
+    """The model of the ``[model]`` table of TOML file ``path`` (errors name the file)."""
+    return Model.from_dict(read_toml(path, "model"), source=str(path),
+                           available_signals=available_signals)
 
 
 @dataclass
@@ -108,14 +140,7 @@ class AppConfig:
         if path is None:
             return cls()
         p = Path(path)
-        try:
-            text = p.read_bytes()
-        except OSError as e:
-            raise ConfigError(f"cannot read configuration file {p}: {e.strerror or e}") from e
-        try:
-            d = tomllib.loads(text.decode("utf-8"))
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-            raise ConfigError(f"{p}: not valid TOML: {e}") from e
+        d = read_toml(p)
         cfg = cls(source=str(p), base_dir=p.resolve().parent)
         for key, value in d.items():
             if key not in _SECTIONS:

@@ -20,11 +20,18 @@ RlsCommand      0x320   command to the daemon (from a tool)
 RlsCommandAck   0x321   result of the last command
 ==============  ======  ==========================================================
 
+``Index`` is the DBC multiplexer of the four parameter frames (``Index M``; their
+per-parameter signals are multiplexed on every index 0..255 through ``SG_MUL_VAL_``), so
+``cantools monitor`` shows one line per parameter. The IDs come from the DBC
+(:func:`frame_ids`), never typed again; the table above is what the shipped DBC says.
+
 Parameter ``Index`` i is described by (``EffectId``, ``Component``, ``Order``,
-``Equation``); its name follows :data:`COMPONENTS`: component c of effect e is
-``COMPONENTS[e][c]``, e.g. (electrical, 2) is ``electrical.Ke`` and (cogging, 1,
-order 24) is ``cogging:24.cos``. ``Order`` is the harmonic order of ``cogging``
-and the 1-based index of a user term in the configuration, 0 otherwise.
+``Equation``: :class:`~canrls.effect_names.EffectId` and
+:class:`~canrls.effect_names.EquationId`); its name follows :data:`COMPONENTS`:
+component c of effect e is ``COMPONENTS[e][c]``, e.g. (electrical, 2) is
+``electrical.Ke`` and (cogging, 1, order 24) is ``cogging:24.cos``. ``Order`` is the
+harmonic order of ``cogging`` and the 1-based index of a user term in the
+configuration, 0 otherwise.
 """
 
 from __future__ import annotations
@@ -41,12 +48,13 @@ from typing import Any
 import can
 import cantools
 
-from canrls.can.protocol import DEFAULT_DBC, EncodeError
-from canrls.errors import CommandError
+from canrls.can.protocol import DEFAULT_DBC, EncodeError, SignalMapping
+from canrls.effect_names import EffectId, EquationId, parse_effect_name
+from canrls.errors import CommandError, EffectError
 
 __all__ = [
     "EffectId",
-    "Equation",
+    "EquationId",
     "CommandCode",
     "CommandResult",
     "COMPONENTS",
@@ -65,34 +73,9 @@ __all__ = [
     "encode_ack",
     "decode_command",
     "FrameDecoder",
+    "FrameIds",
+    "frame_ids",
 ]
-
-
-class EffectId(IntEnum):
-    """Effect identifiers, as in the DBC value table of ``EffectId``."""
-
-    NONE = 0
-    INERTIA = 1
-    VISCOUS = 2
-    COULOMB = 3
-    STRIBECK = 4
-    OFFSET = 5
-    UNBALANCE = 6
-    COGGING = 7
-    ELECTRICAL = 8
-    USER = 9
-
-    @property
-    def effect_name(self) -> str:
-        """The effect's name on the command line (``"inertia"``, ``"cogging"``...)."""
-        return self.name.lower()
-
-
-class Equation(IntEnum):
-    """The equation a parameter belongs to."""
-
-    MECHANICAL = 0
-    ELECTRICAL = 1
 
 
 class CommandCode(IntEnum):
@@ -159,27 +142,21 @@ def parameter_name(effect: EffectId, component: int, order: int = 0,
 def parse_effect(name: str) -> tuple[EffectId, int]:
     """``"cogging:24"`` -> (COGGING, 24); ``"viscous"`` -> (VISCOUS, 0); ``"user:3"`` -> (USER, 3).
 
-    Raises :class:`CommandError` (result UNKNOWN_EFFECT / BAD_VALUE) for an unknown name
-    or a missing / malformed order.
+    The grammar of :func:`canrls.effect_names.parse_effect_name`, with the user term given
+    by its 1-based index (as the ``Order`` field carries it). Raises
+    :class:`CommandFrameError` (result UNKNOWN_EFFECT / BAD_VALUE) for an unknown name or
+    a missing / malformed order, or an order beyond the 16-bit ``Order`` field.
     """
-    base, _, arg = name.strip().partition(":")
     try:
-        eid = EffectId[base.upper()]
-    except KeyError:
-        eid = EffectId.NONE
-    if eid is EffectId.NONE:
-        raise CommandFrameError(f"unknown effect {name!r} (expected one of "
-                                f"{', '.join(e.effect_name for e in EffectId if e)})",
-                                CommandResult.UNKNOWN_EFFECT)
-    if eid in (EffectId.COGGING, EffectId.USER):
-        if not arg.isdigit() or not 0 < int(arg) <= 0xFFFF:
-            raise CommandFrameError(f"effect {name!r}: {eid.effect_name} needs an order "
-                                    f"1..65535 ({eid.effect_name}:K)", CommandResult.BAD_VALUE)
-        return eid, int(arg)
-    if arg:
-        raise CommandFrameError(f"effect {name!r}: {eid.effect_name} takes no order",
-                                CommandResult.BAD_VALUE)
-    return eid, 0
+        parsed = parse_effect_name(name, user="index")
+    except EffectError as e:
+        unknown = EffectId.from_name(str(name).partition(":")[0]) is EffectId.NONE
+        raise CommandFrameError(str(e), CommandResult.UNKNOWN_EFFECT if unknown
+                                else CommandResult.BAD_VALUE) from e
+    if parsed.order > 0xFFFF:
+        raise CommandFrameError(f"effect {name!r}: order {parsed.order} does not fit the "
+                                f"16-bit Order field (1..65535)", CommandResult.BAD_VALUE)
+    return parsed.effect, parsed.order
 
 
 class CommandFrameError(CommandError):
@@ -211,7 +188,7 @@ class ParameterReport:
     effect_id: EffectId = EffectId.NONE
     component: int = 0
     order: int = 0
-    equation: Equation = Equation.MECHANICAL
+    equation: EquationId = EquationId.MECHANICAL
     fixed_value: float | None = None
     sigma: float | None = None
     float_value: float | None = None
@@ -322,6 +299,57 @@ def _db(dbc: str | Path | None = None) -> Any:
     return _database(str(DEFAULT_DBC if dbc is None else dbc))
 
 
+#: DBC message names of the frames canrls publishes, in the order of :class:`FrameIds`.
+_PUBLISHED = ("RlsEstimate", "RlsSigma", "RlsReference", "RlsParamInfo", "RlsStatus",
+              "RlsHealth", "RlsCounters")
+
+
+@dataclass(frozen=True)
+class FrameIds:
+    """Arbitration IDs of canrls' frames, read from the DBC (:func:`frame_ids`).
+
+    One field per estimator, status and command frame; ``feedback`` holds the drive's
+    frames of the default signal mapping (``DriveCurrent`` then ``DriveSpeed``), those of
+    the DBC's messages that exist. Every ID is a standard (11-bit) one.
+    """
+
+    estimate: int
+    sigma: int
+    reference: int
+    param_info: int
+    status: int
+    health: int
+    counters: int
+    command: int
+    ack: int
+    feedback: tuple[int, ...]
+
+    @property
+    def published(self) -> frozenset[int]:
+        """The frames the daemon publishes every cycle (parameters and status, not the ack)."""
+        return frozenset((self.estimate, self.sigma, self.reference, self.param_info,
+                          self.status, self.health, self.counters))
+
+
+@cache
+def _frame_ids(path: str) -> FrameIds:
+    db = _database(path)
+    ids = [db.get_message_by_name(n).frame_id for n in (*_PUBLISHED, "RlsCommand",
+                                                          "RlsCommandAck")]
+    names = dict.fromkeys(r.message for r in SignalMapping.default().roles.values())
+    present = {m.name: m.frame_id for m in db.messages}
+    return FrameIds(*ids, feedback=tuple(present[n] for n in names if n in present))
+
+
+def frame_ids(dbc: str | Path | None = None) -> FrameIds:
+    """The IDs of canrls' frames in ``dbc`` (default: the shipped DBC), read once.
+
+    >>> hex(frame_ids().command)
+    '0x320'
+    """
+    return _frame_ids(str(DEFAULT_DBC if dbc is None else dbc))
+
+
 def _f32(x: float | None, lo: float, hi: float) -> float:
     """A float for a float32 signal: None -> NaN, NaN kept, saturated into [lo, hi]."""
     if x is None:
@@ -333,49 +361,24 @@ def _f32(x: float | None, lo: float, hi: float) -> float:
 _FLOAT_PACKERS = {32: struct.Struct("<f").pack, 64: struct.Struct("<d").pack}
 
 
-class _Codec:
-    """Strict encoder of one DBC message, compiled once from its cantools ``Message``.
+class _Layout:
+    """The fast path of one set of little-endian signals: positions, masks, limits, packers.
 
-    :meth:`encode` gives the bytes of ``Message.encode(values, scaling=True,
-    strict=True)``. Messages of little-endian (Intel) signals without multiplexing take
-    a fast path: bit positions, masks, limits and float packers computed here, the
-    frame built as one integer. Whatever that path does not cover (big-endian
-    signals, multiplexing, a value of another type, out of range or only allowed by a
-    value table) takes the careful path: the limits checked again with an
-    :class:`EncodeError` naming the message, the signal, the value and the limits,
-    then cantools itself.
+    ``plain``: (name, shift, mask, lo, hi) of integers whose raw value is the value (lo,
+    hi: the DBC range and the bit field together); ``scaled``: (..., to_raw, raw_lo,
+    raw_hi) of scaled integers; ``floats``: (name, shift, lo, hi, pack, to_raw | None).
     """
 
-    __slots__ = ("message", "name", "frame_id", "is_extended", "length", "_fast", "_count",
-                 "_plain", "_scaled", "_floats", "_checks")
+    __slots__ = ("count", "plain", "scaled", "floats")
 
-    def __init__(self, message: Any) -> None:
-        self.message = message
-        self.name: str = message.name
-        self.frame_id: int = message.frame_id
-        self.is_extended: bool = message.is_extended_frame
-        self.length: int = message.length
-        signals = message.signals
-        self._count = len(signals)
-        self._fast = not (message.is_container or message.is_multiplexed()) and all(
-            s.byte_order == "little_endian" and (not s.is_float or s.length in _FLOAT_PACKERS)
-            for s in signals)
-        # fast path: (name, shift, mask, lo, hi) of integers whose raw value is the value
-        # (lo, hi: the DBC range and the bit field together), (..., to_raw, raw_lo, raw_hi)
-        # of scaled integers, (name, shift, lo, hi, pack, to_raw | None) of floats
+    def __init__(self, signals: Sequence[Any]) -> None:
+        self.count = len(signals)
         plain: list[tuple[str, int, int, int, int]] = []
         scaled: list[tuple[str, int, int, float, float, Any, int, int]] = []
         floats: list[tuple[str, int, float, float, Any, Any]] = []
-        checks: list[tuple[Any, float, float, int, int]] = []
         for s in signals:
             conv = s.conversion
-            tol = abs(conv.scale) * 1e-6  # cantools' tolerance on the limits
-            lo = -math.inf if s.minimum is None else s.minimum - tol
-            hi = math.inf if s.maximum is None else s.maximum + tol
-            if s.is_signed:
-                raw_lo, raw_hi = -(1 << s.length - 1), (1 << s.length - 1) - 1
-            else:
-                raw_lo, raw_hi = 0, (1 << s.length) - 1
+            lo, hi, raw_lo, raw_hi = _limits(s)
             identity = conv.scale == 1 and conv.offset == 0
             mask = (1 << s.length) - 1
             if s.is_float:
@@ -388,11 +391,109 @@ class _Codec:
             else:
                 scaled.append((s.name, s.start, mask, lo, hi, conv.numeric_scaled_to_raw,
                                raw_lo, raw_hi))
-            checks.append((s, lo, hi, raw_lo, raw_hi))
-        self._plain = tuple(plain)
-        self._scaled = tuple(scaled)
-        self._floats = tuple(floats)
-        self._checks = tuple(checks)
+        self.plain = tuple(plain)
+        self.scaled = tuple(scaled)
+        self.floats = tuple(floats)
+
+    def word(self, values: dict[str, Any]) -> int | None:
+        """These signals of ``values`` as one little-endian integer; None when a value is
+        not of the fast path. Raises KeyError for a missing signal, OverflowError when
+        inf meets a conversion or a value is beyond float32."""
+        word = 0
+        for name, shift, mask, lo, hi in self.plain:
+            v = values[name]
+            if type(v) is not int or v < lo or v > hi:
+                return None
+            word |= (v & mask) << shift
+        for name, shift, mask, lo, hi, to_raw, raw_lo, raw_hi in self.scaled:
+            v = values[name]
+            if type(v) is not int and type(v) is not float or not lo <= v <= hi:
+                return None
+            raw = to_raw(v)
+            if raw < raw_lo or raw > raw_hi:
+                return None
+            word |= (raw & mask) << shift
+        for name, shift, lo, hi, pack, to_raw in self.floats:
+            v = values[name]
+            if type(v) is not float or v < lo or v > hi:  # NaN passes, as in cantools
+                return None
+            word |= int.from_bytes(pack(v if to_raw is None else to_raw(v)), "little") << shift
+        return word
+
+
+def _limits(s: Any) -> tuple[float, float, int, int]:
+    """(lo, hi) of a signal's value with cantools' tolerance, (raw_lo, raw_hi) of its field."""
+    tol = abs(s.conversion.scale) * 1e-6  # cantools' tolerance on the limits
+    lo = -math.inf if s.minimum is None else s.minimum - tol
+    hi = math.inf if s.maximum is None else s.maximum + tol
+    if s.is_signed:
+        return lo, hi, -(1 << s.length - 1), (1 << s.length - 1) - 1
+    return lo, hi, 0, (1 << s.length) - 1
+
+
+class _Codec:
+    """Strict encoder of one DBC message, compiled once from its cantools ``Message``.
+
+    :meth:`encode` gives the bytes of ``Message.encode(values, scaling=True,
+    strict=True)``. Messages of little-endian (Intel) signals, plain or multiplexed by
+    one multiplexer at the top level (the estimator frames' ``Index``), take a fast
+    path: a :class:`_Layout` of all signals, or for a multiplexed message one per
+    multiplexer value of the signals it selects and those always present (shared by the
+    values that select the same signals), the frame built as one integer. Whatever that
+    path does not cover (big-endian signals, nested multiplexing, an unknown multiplexer
+    value, a value of another type, out of range or only allowed by a value table) takes
+    the careful path: the limits checked again with an :class:`EncodeError` naming the
+    message, the signal, the value and the limits, then cantools itself.
+    """
+
+    __slots__ = ("message", "name", "frame_id", "is_extended", "length", "_layout", "_mux",
+                 "_by_mux", "_checks")
+
+    def __init__(self, message: Any) -> None:
+        self.message = message
+        self.name: str = message.name
+        self.frame_id: int = message.frame_id
+        self.is_extended: bool = message.is_extended_frame
+        self.length: int = message.length
+        signals = message.signals
+        self._checks = tuple((s, *_limits(s)) for s in signals)
+        #: the layout of a message without multiplexing (None: multiplexed, or no fast path)
+        self._layout: _Layout | None = None
+        #: the multiplexer's name and its value -> the layout of the signals it selects
+        self._mux: str | None = None
+        self._by_mux: dict[int, _Layout] = {}
+        if message.is_container or not all(
+                s.byte_order == "little_endian" and (not s.is_float or s.length in _FLOAT_PACKERS)
+                for s in signals):
+            return
+        root = [s for s in signals if s.multiplexer_signal is None]
+        muxes = [s for s in root if s.is_multiplexer]
+        if not muxes:
+            self._layout = _Layout(signals)
+            return
+        mux = muxes[0]
+        children = [s for s in signals if s.multiplexer_signal is not None]
+        conv = mux.conversion
+        if (len(muxes) > 1 or any(s.is_multiplexer or s.multiplexer_signal != mux.name
+                                  for s in children)
+                or mux.is_float or conv.scale != 1 or conv.offset != 0):
+            return  # nested or several multiplexers: cantools alone
+        ids: set[int] = set(conv.choices or ())  # cantools accepts these even without signals
+        for s in children:
+            ids.update(s.multiplexer_ids or ())
+        shared: dict[tuple[str, ...], _Layout] = {}
+        for k in sorted(ids):
+            sel = [s for s in signals if s.multiplexer_signal is None or k in s.multiplexer_ids]
+            key = tuple(s.name for s in sel)
+            if key not in shared:
+                shared[key] = _Layout(sel)
+            self._by_mux[k] = shared[key]
+        self._mux = mux.name
+
+    @property
+    def fast(self) -> bool:
+        """Whether the message has a fast path (values of the right types then take it)."""
+        return self._layout is not None or self._mux is not None
 
     def frame(self, values: dict[str, Any], timestamp: float) -> can.Message:
         """The ``can.Message`` of ``values`` (data as :meth:`encode`)."""
@@ -407,41 +508,32 @@ class _Codec:
 
         Raises :class:`EncodeError` (reason ``"range"``, or ``"nan"`` for a non-finite
         value of an integer signal) naming the message, the signal, the value and the
-        limits, or wrapping cantools' error (missing or unknown signal, bad choice).
+        limits, or wrapping cantools' error (missing or unknown signal, bad choice,
+        multiplexer value without signals).
         """
         data = self._pack(values)
         return self._careful(values) if data is None else data
 
     def _pack(self, values: dict[str, Any]) -> bytes | None:
         """The fast path; None when it does not apply."""
-        if not self._fast or len(values) != self._count:
+        layout = self._layout
+        if layout is None:
+            if self._mux is None:
+                return None
+            k = values.get(self._mux)
+            # the layout checks k again (type, range) among its plain integers
+            layout = self._by_mux.get(k) if type(k) is int else None  # type: ignore[arg-type]
+            if layout is None:
+                return None
+        if len(values) != layout.count:
             return None
-        word = 0
         try:
-            for name, shift, mask, lo, hi in self._plain:
-                v = values[name]
-                if type(v) is not int or v < lo or v > hi:
-                    return None
-                word |= (v & mask) << shift
-            for name, shift, mask, lo, hi, to_raw, raw_lo, raw_hi in self._scaled:
-                v = values[name]
-                if type(v) is not int and type(v) is not float or not lo <= v <= hi:
-                    return None
-                raw = to_raw(v)
-                if raw < raw_lo or raw > raw_hi:
-                    return None
-                word |= (raw & mask) << shift
-            for name, shift, lo, hi, pack, to_raw in self._floats:
-                v = values[name]
-                if type(v) is not float or v < lo or v > hi:  # NaN passes, as in cantools
-                    return None
-                word |= int.from_bytes(pack(v if to_raw is None else to_raw(v)),
-                                       "little") << shift
+            word = layout.word(values)
         except KeyError:  # a signal missing (and another one too many)
             return None
         except OverflowError:  # inf met a conversion, or beyond float32: cantools decides
             return None
-        return word.to_bytes(self.length, "little")
+        return None if word is None else word.to_bytes(self.length, "little")
 
     def _careful(self, values: dict[str, Any]) -> bytes:
         """Strict encoding the slow way: the checks of :meth:`_check`, then cantools."""
@@ -659,7 +751,8 @@ class FrameDecoder:
 
     def __post_init__(self) -> None:
         db = _db(self.dbc)
-        self._by_id = {m.frame_id: m for m in db.messages if m.frame_id >= 0x300}
+        names = {*_PUBLISHED, "RlsCommand", "RlsCommandAck"}
+        self._by_id = {m.frame_id: m for m in db.messages if m.name in names}
 
     def feed(self, msg: can.Message
              ) -> ParameterReport | StatusReport | CommandAck | Command | None:
@@ -699,7 +792,7 @@ class FrameDecoder:
                 comp, order = int(v["Component"]), int(v["Order"])
                 pname = parameter_name(eid, comp, order, self.user_names) if eid else ""
                 r = replace(r, effect_id=eid, component=comp, order=order,
-                            equation=Equation(int(v["Equation"])), name=pname,
+                            equation=EquationId(int(v["Equation"])), name=pname,
                             unit=self.units.get(pname, r.unit))
             self.parameters[i] = r
             return r

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -11,7 +12,8 @@ from typing import Any
 
 from canrls.config import AppConfig, load_config
 
-__all__ = ["add_model_options", "add_bus_options", "setup", "print_json", "Progress"]
+__all__ = ["add_model_options", "add_bus_options", "add_progress_option", "setup",
+           "print_json", "Progress"]
 
 
 def add_model_options(p: argparse.ArgumentParser) -> None:
@@ -38,6 +40,12 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                    help="ridge weight: the prior weighs like A samples of each column, "
                         "P0 = diag(1/(A e_j)) with e_j its mean square (default 0.01)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+
+def add_progress_option(p: argparse.ArgumentParser) -> None:
+    """``--quiet``: no progress bar (there is none either when stderr is not a terminal)."""
+    p.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress bar on stderr (none either when stderr is not a terminal)")
 
 
 def add_bus_options(p: argparse.ArgumentParser) -> None:
@@ -68,26 +76,52 @@ def print_json(obj: Any) -> None:
     sys.stdout.write("\n")
 
 
-class Progress:
-    """A progress bar on stderr when it is a terminal; silent otherwise."""
+@functools.cache
+def _bar_class() -> Any:
+    """tqdm without its monitor thread (the readers call back often enough); imported
+    only when a bar is drawn."""
+    from tqdm import tqdm
 
-    def __init__(self, label: str, enabled: bool | None = None) -> None:
+    class Bar(tqdm):  # type: ignore[type-arg]
+        monitor_interval = 0
+
+    return Bar
+
+
+class Progress:
+    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr (sizes in bytes).
+
+    Silent with ``quiet`` (``--quiet``) or when stderr is not a terminal: then
+    :attr:`callback` is None and the reader skips the calls. The bar appears at the first
+    call and closes when ``done`` reaches ``total`` (or with :meth:`close`).
+
+    tqdm, not a bar of our own: rate, time left and the terminal's width come with it,
+    for one small pure-Python dependency.
+    """
+
+    def __init__(self, label: str, *, quiet: bool = False, enabled: bool | None = None
+                 ) -> None:
         self.label = label
-        self.enabled = sys.stderr.isatty() if enabled is None else enabled
-        self._last = -1
+        self.enabled = (not quiet and sys.stderr.isatty()) if enabled is None else enabled
+        self._bar: Any = None
 
     def __call__(self, done: int, total: int) -> None:
         if not self.enabled or total <= 0:
             return
-        pct = int(100 * done / total)
-        if pct == self._last:
-            return
-        self._last = pct
-        bar = "#" * (pct // 4)
-        sys.stderr.write(f"\r{self.label} [{bar:<25}] {pct:3d} %")
+        bar = self._bar
+        if bar is None:
+            bar = self._bar = _bar_class()(desc=self.label, total=total, unit="B", unit_scale=True,
+                                   unit_divisor=1024, file=sys.stderr, dynamic_ncols=True)
+        bar.total = total
+        bar.update(done - bar.n)
         if done >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
+            self.close()
+
+    def close(self) -> None:
+        """Close the bar (leaving its last state on the terminal); a next call starts anew."""
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
 
     @property
     def callback(self) -> Callable[[int, int], None] | None:

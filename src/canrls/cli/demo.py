@@ -93,7 +93,10 @@ class _Timeline:
     residual RMS of every RlsStatus, and the feedback frames for the diagnosis."""
 
     def __init__(self, feedback_ids: frozenset[int]) -> None:
+        from canrls.can.frames import frame_ids
+
         self.feedback_ids = feedback_ids
+        self.status_id = frame_ids().status
         self.sim_t = 0.0
         self.rms: list[tuple[float, float]] = []
         self.frames: list[Any] = []
@@ -106,7 +109,7 @@ class _Timeline:
             self.sim_t = msg.timestamp
             if self.keep:
                 self.frames.append(msg)
-        elif aid == 0x310 and not msg.is_error_frame:
+        elif aid == self.status_id and not msg.is_error_frame:
             import struct
 
             rms = struct.unpack_from("<f", bytes(msg.data), 0)[0]

@@ -31,7 +31,13 @@ import argparse
 import sys
 from typing import Any
 
-from canrls.cli._common import Progress, add_model_options, print_json, setup
+from canrls.cli._common import (
+    Progress,
+    add_model_options,
+    add_progress_option,
+    print_json,
+    setup,
+)
 
 __all__ = ["add_subparser", "run"]
 
@@ -58,6 +64,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                     "before and after side by side.")
     p.add_argument("log", metavar="LOG", help="CAN log: .log (candump), .asc, .blf, .trc, .csv")
     add_model_options(p)
+    add_progress_option(p)
     p.add_argument("--skip-bad-lines", action="store_true",
                    help="count unparsable log lines instead of stopping at the first")
     g = p.add_argument_group("diagnosis")
@@ -85,8 +92,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
     rep = diagnose_log(args.log, protocol, model, settings, add=args.add,
-                       progress=Progress("diagnose").callback, max_order=args.max_order,
-                       skip_bad_lines=args.skip_bad_lines)
+                       progress=Progress("diagnose", quiet=args.quiet).callback,
+                       max_order=args.max_order, skip_bad_lines=args.skip_bad_lines)
     page = rep.write_html(args.report) if args.report else None
     if args.json:
         d = rep.to_dict()

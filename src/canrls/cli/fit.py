@@ -27,7 +27,13 @@ import argparse
 import sys
 from typing import Any
 
-from canrls.cli._common import Progress, add_model_options, print_json, setup
+from canrls.cli._common import (
+    Progress,
+    add_model_options,
+    add_progress_option,
+    print_json,
+    setup,
+)
 
 __all__ = ["add_subparser", "run"]
 
@@ -40,6 +46,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                     "the fit.")
     p.add_argument("log", metavar="LOG", help="CAN log: .log (candump), .asc, .blf, .trc, .csv")
     add_model_options(p)
+    add_progress_option(p)
     p.add_argument("--skip-bad-lines", action="store_true",
                    help="count unparsable log lines instead of stopping at the first")
     p.set_defaults(func=run)
@@ -52,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
     res = fit_log(args.log, protocol, model, settings,
-                  progress=Progress("replay").callback, skip_bad_lines=args.skip_bad_lines)
+                  progress=Progress("replay", quiet=args.quiet).callback,
+                  skip_bad_lines=args.skip_bad_lines)
     if args.json:
         print_json(res.to_dict())
     else:

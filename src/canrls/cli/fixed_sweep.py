@@ -16,7 +16,13 @@ from typing import Any
 
 import numpy as np
 
-from canrls.cli._common import Progress, add_model_options, print_json, setup
+from canrls.cli._common import (
+    Progress,
+    add_model_options,
+    add_progress_option,
+    print_json,
+    setup,
+)
 from canrls.errors import ConfigError
 
 __all__ = ["add_subparser", "run"]
@@ -54,6 +60,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--max-samples", type=int, default=200_000,
                    help="use at most this many samples (default 200000)")
     add_model_options(p)
+    add_progress_option(p)
     p.set_defaults(func=run)
     return p
 
@@ -79,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         from canrls.can.logs import read_frames
 
-        for fb in read_frames(args.log, progress=Progress("replay").callback):
+        for fb in read_frames(args.log, progress=Progress("replay", quiet=args.quiet).callback):
             blocks.append(proc.process(fb, record=True))
             if sum(b.samples for b in blocks) >= args.max_samples:
                 break

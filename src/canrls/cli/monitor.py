@@ -64,7 +64,7 @@ def _positive(name: str, v: float | None) -> None:
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from canrls.can.frames import encode_command
+    from canrls.can.frames import encode_command, frame_ids
     from canrls.live.bus import bus_config, open_bus
     from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
 
@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError:
         if cfg.model or cfg.signals or cfg.can.get("dbc"):
             raise
-        units, feedback, user_names = LibraryUnits(), [0x101, 0x102], []
+        units, feedback, user_names = LibraryUnits(), list(frame_ids().feedback), []
     conf = bus_config(cfg, args)
     tty = sys.stdout.isatty() and not args.plain and not args.json
     mon = Monitor(units=units, user_names=user_names, feedback_ids=feedback,

@@ -65,24 +65,9 @@ def _daemon_table(cfg: Any, args: argparse.Namespace) -> dict[str, Any]:
     return table
 
 
-def _model_table(path: Path) -> dict[str, Any]:
-    import tomllib
-
-    try:
-        with path.open("rb") as fh:
-            doc = tomllib.load(fh)
-    except OSError as e:
-        raise ConfigError(f"daemon.model_file {path}: cannot read: {e.strerror or e}") from e
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"daemon.model_file {path}: not valid TOML: {e}") from e
-    if not isinstance(doc.get("model"), dict):
-        raise ConfigError(f"daemon.model_file {path}: no [model] table")
-    return dict(doc["model"])
-
-
 def build_daemon(args: argparse.Namespace) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started)."""
-    from canrls.config import load_config
+    from canrls.config import load_config, read_toml
     from canrls.estimation.model import Model
     from canrls.live.bus import bus_config
     from canrls.live.daemon import Daemon, DaemonSettings
@@ -94,7 +79,7 @@ def build_daemon(args: argparse.Namespace) -> Any:
     def configured_model() -> Model:
         c = load_config(getattr(args, "config", None), args)
         if dset.model_file is not None:
-            c.model = _model_table(dset.model_file)
+            c.model = read_toml(dset.model_file, "model", key="daemon.model_file")
             c.apply_args(args)
         return c.model_for(protocol)
 

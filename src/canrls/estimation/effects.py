@@ -42,6 +42,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import numpy.typing as npt
 
+from canrls.effect_names import EffectId, EquationId, parse_effect_name
 from canrls.errors import EffectError
 from canrls.estimation.expr import CompiledExpression, compile_expression
 
@@ -80,8 +81,8 @@ F64 = npt.NDArray[np.float64]
 Axis = Literal["rotary", "linear"]
 Range = tuple[float, float]
 
-MECHANICAL = "mechanical"
-ELECTRICAL = "electrical"
+MECHANICAL = EquationId.MECHANICAL.label
+ELECTRICAL = EquationId.ELECTRICAL.label
 #: Coulomb smoothing band epsilon [rad/s or m/s].
 DEFAULT_BAND = 0.01
 #: Stribeck speed omega_s [rad/s or m/s].
@@ -171,9 +172,9 @@ class ParameterSpec:
     equation: str
 
     @property
-    def equation_index(self) -> int:
-        """0 for the mechanical equation, 1 for the electrical one (DBC ``Equation``)."""
-        return 1 if self.equation == ELECTRICAL else 0
+    def equation_index(self) -> EquationId:
+        """MECHANICAL (0) or ELECTRICAL (1): the DBC ``Equation`` of :attr:`equation`."""
+        return EquationId.from_label(self.equation)
 
 
 @dataclass(frozen=True)
@@ -260,7 +261,7 @@ class Effect:
     #: Base name on the command line.
     NAME: ClassVar[str] = ""
     #: Identifier in the DBC (``EffectId``).
-    EFFECT_ID: ClassVar[int] = 0
+    EFFECT_ID: ClassVar[EffectId] = EffectId.NONE
     #: Which equation the effect belongs to (``"mechanical"`` or ``"electrical"``).
     EQUATION: ClassVar[str] = MECHANICAL
     #: The term, as text.
@@ -396,7 +397,7 @@ class Inertia(Effect):
     """
 
     NAME = "inertia"
-    EFFECT_ID = 1
+    EFFECT_ID = EffectId.INERTIA
     EQUATION_TEXT = "J * domega/dt"
     RESIDUAL_SIGNATURE = ("residual correlated with the acceleration domega/dt: largest "
                           "while speeding up or slowing down, zero at constant speed")
@@ -418,7 +419,7 @@ class Viscous(Effect):
     """
 
     NAME = "viscous"
-    EFFECT_ID = 2
+    EFFECT_ID = EffectId.VISCOUS
     EQUATION_TEXT = "B * omega"
     RESIDUAL_SIGNATURE = ("residual linear in speed and odd: proportional to omega, "
                           "changing sign with the direction")
@@ -443,7 +444,7 @@ class Coulomb(Effect):
     """
 
     NAME = "coulomb"
-    EFFECT_ID = 3
+    EFFECT_ID = EffectId.COULOMB
     EQUATION_TEXT = "Tc * tanh(omega / band)"
     RESIDUAL_SIGNATURE = ("a step in the residual at zero speed whose sign follows the "
                           "direction of motion, constant in magnitude away from zero")
@@ -479,7 +480,7 @@ class Stribeck(Effect):
     """
 
     NAME = "stribeck"
-    EFFECT_ID = 4
+    EFFECT_ID = EffectId.STRIBECK
     EQUATION_TEXT = "Ts * tanh(omega / band) * exp(-(omega / speed)**2)"
     RESIDUAL_SIGNATURE = ("a bump near zero speed, signed with the direction, decaying "
                           "with |omega| over the Stribeck speed")
@@ -515,7 +516,7 @@ class Offset(Effect):
     """
 
     NAME = "offset"
-    EFFECT_ID = 5
+    EFFECT_ID = EffectId.OFFSET
     EQUATION_TEXT = "T0"
     RESIDUAL_SIGNATURE = ("a constant non-zero mean of the residual, independent of "
                           "speed, direction and position")
@@ -558,7 +559,7 @@ class Unbalance(_Periodic):
     """
 
     NAME = "unbalance"
-    EFFECT_ID = 6
+    EFFECT_ID = EffectId.UNBALANCE
     EQUATION_TEXT = "Tg_sin * sin(theta) + Tg_cos * cos(theta)"
     RESIDUAL_SIGNATURE = ("order 1 in position: the residual repeats once per revolution "
                           "(once per pitch on a linear axis), a peak at rotation order 1 "
@@ -585,7 +586,7 @@ class Cogging(_Periodic):
     """
 
     NAME = "cogging"
-    EFFECT_ID = 7
+    EFFECT_ID = EffectId.COGGING
     EQUATION_TEXT = "Tk_sin * sin(k * theta) + Tk_cos * cos(k * theta)"
     RESIDUAL_SIGNATURE = ("a peak at rotation order k of the residual spectrum (k periods "
                           "per revolution, per pitch on a linear axis)")
@@ -624,7 +625,7 @@ class Electrical(Effect):
     """
 
     NAME = "electrical"
-    EFFECT_ID = 8
+    EFFECT_ID = EffectId.ELECTRICAL
     EQUATION = ELECTRICAL
     EQUATION_TEXT = "u = R * i + L * di/dt + Ke * omega"
     RESIDUAL_SIGNATURE = ("in the voltage equation: a residual proportional to the current "
@@ -664,7 +665,7 @@ class UserTerm(Effect):
     """
 
     NAME = "user"
-    EFFECT_ID = 9
+    EFFECT_ID = EffectId.USER
     EQUATION_TEXT = "c * f(signals)"
     RESIDUAL_SIGNATURE = ("the residual follows the user function f(signals): it "
                           "correlates with the term's own column")
@@ -746,8 +747,6 @@ _CLASSES: tuple[type[Effect], ...] = (Inertia, Viscous, Coulomb, Stribeck, Offse
 EFFECT_NAMES: tuple[str, ...] = tuple(c.NAME for c in _CLASSES)
 #: Base name -> DBC ``EffectId``.
 EFFECT_IDS: Mapping[str, int] = {c.NAME: c.EFFECT_ID for c in _CLASSES}
-_VALID = ("inertia, viscous, coulomb, stribeck, offset, unbalance, cogging:K, "
-          "electrical, user:NAME")
 
 
 def library() -> tuple[type[Effect], ...]:
@@ -791,27 +790,13 @@ def parse_effect(spec: str, options: Mapping[str, Any] | None = None) -> Effect:
     if unknown:
         raise EffectError(f"effect {spec!r}: unknown option(s) {unknown}; "
                           f"valid options: {sorted(OPTION_KEYS)}")
-    if not isinstance(spec, str):
-        raise EffectError(f"effect {spec!r}: must be a string; valid effects: {_VALID}")
-    text = spec.strip()
-    base, sep, arg = text.partition(":")
-    base = base.strip().lower()
-    arg = arg.strip()
     common: dict[str, Any] = {k: opts[k] for k in ("axis", "pitch") if k in opts}
-    if base not in EFFECT_IDS:
-        raise EffectError(f"unknown effect {spec!r}; valid effects: {_VALID}")
-    if base == "cogging":
-        if not sep or not arg:
-            raise EffectError(f"effect {spec!r} needs a harmonic order: cogging:K with K an "
-                              f"integer >= 1 (e.g. cogging:24)")
-        if not re.fullmatch(r"[0-9]+", arg) or int(arg) < 1:
-            raise EffectError(f"effect {spec!r}: order K = {arg!r} must be an integer >= 1")
-        return Cogging(int(arg), **common)
-    if base == "user":
+    name = parse_effect_name(spec)
+    if name.effect is EffectId.COGGING:
+        return Cogging(name.order, **common)
+    if name.effect is EffectId.USER:
+        arg = name.term
         terms = opts.get("terms") or {}
-        if not sep or not arg:
-            raise EffectError(f"effect {spec!r} needs a term name: user:NAME, with NAME "
-                              f"defined in [[model.terms]]")
         if arg not in terms:
             defined = ", ".join(sorted(terms)) or "none"
             raise EffectError(f"effect {spec!r}: user term {arg!r} is not defined "
@@ -827,12 +812,9 @@ def parse_effect(spec: str, options: Mapping[str, Any] | None = None) -> Effect:
             raise EffectError(f"effect {spec!r}: term {arg!r} has no 'expr'")
         kw = {k: t[k] for k in ("unit", "equation", "range") if k in t}
         return UserTerm(arg, expr=t["expr"], **kw, **common)
-    if sep:
-        raise EffectError(f"effect {spec!r}: {base!r} takes no argument after ':'; "
-                          f"valid effects: {_VALID}")
-    if base == "coulomb":
+    if name.effect is EffectId.COULOMB:
         return Coulomb(**common, **{k: opts[k] for k in ("band",) if k in opts})
-    if base == "stribeck":
+    if name.effect is EffectId.STRIBECK:
         return Stribeck(**common, **{k: opts[k] for k in ("band", "speed") if k in opts})
-    cls = {c.NAME: c for c in _CLASSES}[base]
+    cls = {c.EFFECT_ID: c for c in _CLASSES}[name.effect]
     return cls(**common)

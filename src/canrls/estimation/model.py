@@ -86,16 +86,15 @@ regressors bit for bit.
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numba
 import numpy as np
 import numpy.typing as npt
 
+from canrls.effect_names import EquationId
 from canrls.errors import ConfigError, EffectError, SignalError
 from canrls.estimation.effects import (
     DEFAULT_BAND,
@@ -288,8 +287,8 @@ class Equation:
         self.model = model
         #: ``"mechanical"`` or ``"electrical"``.
         self.name = name
-        #: 0 mechanical, 1 electrical (the DBC ``Equation`` bit).
-        self.index = 1 if name == ELECTRICAL else 0
+        #: MECHANICAL (0) or ELECTRICAL (1), the DBC ``Equation`` bit.
+        self.index = EquationId.from_label(name)
         self.effects = effects
         axis = model.axis
         if name == ELECTRICAL:
@@ -925,19 +924,3 @@ class Model:
         if "scaling" in d:
             kw["scaling"] = d["scaling"]
         return cls(**kw, available_signals=available_signals, source=source)
-
-    @classmethod
-    def from_toml(cls, path: str | Path, *,
-                  available_signals: Iterable[str] | None = None) -> Model:
-        """Build from the ``[model]`` table of a TOML file."""
-        p = Path(path)
-        try:
-            with p.open("rb") as fh:
-                doc = tomllib.load(fh)
-        except OSError as e:
-            raise ConfigError(f"{p}: cannot read: {e}") from e
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(f"{p}: invalid TOML: {e}") from e
-        if "model" not in doc:
-            raise ConfigError(f"{p}: no [model] table")
-        return cls.from_dict(doc["model"], source=str(p), available_signals=available_signals)

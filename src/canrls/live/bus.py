@@ -33,6 +33,7 @@ import can
 import numpy as np
 
 from canrls.can.frameblock import FrameBlock
+from canrls.can.frames import frame_ids
 from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
 from canrls.live.settings import DaemonSettings
@@ -43,7 +44,7 @@ __all__ = ["BusLink", "FrameQueue", "bus_config", "is_command", "messages_to_blo
 log = logging.getLogger(__name__)
 
 #: Arbitration ID of ``RlsCommand`` in the default DBC.
-COMMAND_ID = 0x320
+COMMAND_ID = frame_ids().command
 # SocketCAN error classes (linux/can/error.h) in an error frame's arbitration ID
 _CAN_ERR_BUSOFF = 0x40
 _CAN_ERR_RESTARTED = 0x100

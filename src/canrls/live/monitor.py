@@ -36,6 +36,7 @@ from canrls.can.frames import (
     FrameDecoder,
     ParameterReport,
     StatusReport,
+    frame_ids,
 )
 from canrls.errors import ConfigError
 from canrls.estimation.effects import parse_effect, target_unit
@@ -43,9 +44,10 @@ from canrls.estimation.model import Model
 
 __all__ = ["LibraryUnits", "Monitor", "MonitorView", "parse_command_text"]
 
-_ESTIMATOR_IDS = frozenset({0x300, 0x301, 0x302, 0x303, 0x310, 0x311, 0x312})
-_COMMAND_ID = 0x320
-_ACK_ID = 0x321
+_IDS = frame_ids()  # of the default DBC, which the daemon publishes with
+_ESTIMATOR_IDS = _IDS.published
+_COMMAND_ID = _IDS.command
+_ACK_ID = _IDS.ack
 _KINDS = ("feedback", "estimator", "command", "error", "other")
 
 
@@ -240,7 +242,7 @@ class Monitor(can.Listener):
     """
 
     def __init__(self, units: Mapping[str, str] | None = None, user_names: Sequence[str] = (),
-                 feedback_ids: Sequence[int] = (0x101, 0x102), window_s: float = 2.0,
+                 feedback_ids: Sequence[int] = _IDS.feedback, window_s: float = 2.0,
                  trend_s: float = 10.0, rms_unit: str | None = None,
                  source: str = "") -> None:
         self.decoder = FrameDecoder(user_names=tuple(user_names),
@@ -285,7 +287,7 @@ class Monitor(can.Listener):
                 q.popleft()
             if kind in ("estimator", "command"):
                 out = self.decoder.feed(msg)
-                if aid == 0x310 and isinstance(out, StatusReport):
+                if aid == _IDS.status and isinstance(out, StatusReport):
                     self._rms.append((now, out.residual_rms))
                     while self._rms and self._rms[0][0] < now - 3 * self.trend_s:
                         self._rms.popleft()

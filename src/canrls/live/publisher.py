@@ -19,13 +19,14 @@ from collections.abc import Callable
 from canrls.can.frames import (
     CommandResult,
     EffectId,
-    Equation,
+    EquationId,
     ParameterReport,
     StatusReport,
     encode_ack,
     encode_param_info,
     encode_parameters,
     encode_status,
+    frame_ids,
 )
 from canrls.estimation.pipeline import Estimates, Pipeline, PipelineBlock, divergence
 from canrls.estimation.rls import RLSFlag
@@ -37,7 +38,7 @@ __all__ = ["Publisher", "parameter_layout"]
 
 log = logging.getLogger(__name__)
 
-_COUNTERS_ID = 0x312
+_COUNTERS_ID = frame_ids().counters
 _WINDUP = int(RLSFlag.WINDUP)
 #: the longest the estimator sleeps without a publication due [s]
 _IDLE_S = 0.25
@@ -52,7 +53,7 @@ def parameter_layout(pipeline: Pipeline) -> tuple[tuple[ParameterReport, ...], .
         rows.append(tuple(
             ParameterReport(index=i + k, name=p.name, effect_id=EffectId(p.effect_id),
                             component=p.component, order=p.order,
-                            equation=Equation(p.equation_index), unit=p.unit)
+                            equation=EquationId(p.equation_index), unit=p.unit)
             for k, p in enumerate(params)))
         i += len(params)
     return tuple(rows)
