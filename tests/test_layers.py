@@ -2,7 +2,7 @@
 
 Dependencies run one way::
 
-    core (canrls, errors, signals)
+    core (canrls, errors, signals, effect_names)
       -> can (DBC, decoding, logs, pairing, frames)   estimation (effects ... RLS, pipeline)
       -> config, processor                             (the front end: one calibration rule)
       -> replay, diagnosis, live                       (offline, analysis, the daemon)
@@ -30,6 +30,7 @@ PKG = SRC / "canrls"
 #: layer of each top-level part, and the layers it may import (besides itself)
 LAYER = {
     "canrls": "core", "canrls.errors": "core", "canrls.signals": "core",
+    "canrls.effect_names": "core",
     "canrls.can": "can", "canrls.estimation": "estimation",
     "canrls.config": "front", "canrls.processor": "front",
     "canrls.replay": "app", "canrls.diagnosis": "app", "canrls.live": "app",
