@@ -124,9 +124,9 @@ typedef struct {
     int32_t one_lam;        /**< 1 in the lam format */
     int32_t c_s;            /**< shift of c (1/lambda_k) and of the fold c Pw */
     int32_t trace_ps;       /**< guard shift of each diagonal word in the trace */
+    int32_t tc_s;           /**< shift of c tr Pw */
     int32_t trace_max_lam;  /**< lambda trace_max at the trace's scale (e = 0) */
     int64_t trace_max_lim;  /**< the windup test runs while trace_max_lam << e <= this */
-    int32_t tc_s;           /**< shift of c tr Pw */
     int32_t hc_s;           /**< shift of c h (windup test) */
     int32_t vw_ps;          /**< pre-shift of h_i h_i (windup test) */
     int32_t lhs_ps;         /**< pre-shift of (tr P - lambda trace_max) d (windup test) */
