@@ -180,6 +180,26 @@ def count_instructions(elf: Path, work: Path, timeout: float = 300.0) -> list[in
     return counts
 
 
+#: Samples run in Python before the steady-state instruction counts.
+WARM = 3000
+
+
+def update_counts(n: int, warm: int, work: Path, samples: int = 64) -> list[int]:
+    """Instructions of each update over a synthetic stream (``gen_ckernel.synthetic_stream``),
+    started after ``warm`` samples; the run must be bit-exact with Python."""
+    import gen_ckernel as gen
+
+    s = gen.synthetic_stream(n, samples, warm=warm)
+    h = work / f"n{n}_w{warm}.h"
+    h.write_text(gen.stream_header(s))
+    e = work / f"count_n{n}_w{warm}.elf"
+    build_example(h, e)
+    rc, _ = run_example(e)
+    if rc != 0:
+        raise TargetError(f"n = {n}: not bit-exact with Python")
+    return count_instructions(e, work)
+
+
 # ------------------------------------------------------------------ main
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -207,20 +227,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(text.rstrip())
         if rc != 0:
             raise TargetError(f"the example is not bit-exact with Python (exit status {rc})")
-        print("\ninstructions per canrls_update_q31 (QEMU, Cortex-M4 Thumb-2, -O2):")
-        print(f"  {'n':>3} {'mean':>7} {'min':>6} {'max':>6}  calls")
+        print("\ninstructions per canrls_update_q31 (QEMU, Cortex-M4 Thumb-2, -O2; lam = 0.99,")
+        print(f"64 samples from the prior (start-up) and after {WARM} samples (steady state)):")
+        print(f"  {'n':>3} {'start-up mean':>14} {'steady mean':>12} {'min':>6} {'max':>6}")
         with tempfile.TemporaryDirectory() as tmp:
             for n in (int(x) for x in a.sizes.split(",")):
-                s = gen.synthetic_stream(n, 64)
-                h = Path(tmp) / f"n{n}.h"
-                h.write_text(gen.stream_header(s))
-                e = Path(tmp) / f"count_n{n}.elf"
-                build_example(h, e)
-                rc, _ = run_example(e)
-                if rc != 0:
-                    raise TargetError(f"n = {n}: not bit-exact with Python")
-                c = count_instructions(e, Path(tmp))
-                print(f"  {n:>3} {sum(c) / len(c):>7.0f} {min(c):>6} {max(c):>6}  {len(c)}")
+                start, steady = (update_counts(n, w, Path(tmp)) for w in (0, WARM))
+                print(f"  {n:>3} {sum(start) / len(start):>14.0f} "
+                      f"{sum(steady) / len(steady):>12.0f} {min(steady):>6} {max(steady):>6}")
     except TargetError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

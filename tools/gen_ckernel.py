@@ -119,16 +119,23 @@ class Stream:
 
 
 def synthetic_stream(n: int, samples: int, lam: float = 0.99, alpha: float = 1e-2,
-                     seed: int = 0) -> Stream:
-    """A seeded, well-excited regression ``y = phi' theta + noise`` quantised for ``n``."""
+                     seed: int = 0, warm: int = 0) -> Stream:
+    """A seeded, well-excited regression ``y = phi' theta + noise`` quantised for ``n``.
+
+    ``warm`` samples run in Python first: the stream then starts from that state (the
+    steady state of the recursion rather than its start-up).
+    """
     rng = np.random.default_rng(seed)
     cfg = FixedConfig.auto(n, alpha, lam)
     est = FixedRLS(cfg, n, lam, alpha)
-    Phi = rng.uniform(-1, 1, (samples, n))
+    Phi = rng.uniform(-1, 1, (warm + samples, n))
     theta = rng.uniform(-0.5, 0.5, n) / n
-    Y = Phi @ theta + 1e-3 * rng.standard_normal(samples)
+    Y = Phi @ theta + 1e-3 * rng.standard_normal(warm + samples)
     Pq, Yq, _ = cfg.quantize_inputs(Phi, Y)
-    return Stream(est, Pq, Yq, f"synthetic n={n} lam={lam} alpha={alpha} seed={seed}")
+    if warm:
+        est.run(Pq[:warm], Yq[:warm], record=False)
+    return Stream(est, Pq[warm:], Yq[warm:],
+                  f"synthetic n={n} lam={lam} alpha={alpha} seed={seed} after {warm} samples")
 
 
 def log_stream(log: Path | None = None, effects: str = "inertia,viscous,coulomb,offset",
@@ -153,6 +160,10 @@ def log_stream(log: Path | None = None, effects: str = "inertia,viscous,coulomb,
                                     duration=duration))
             log = Path(tmp) / "drive.log"
             write_candump(log, [res.frames])
+            source = (f"the simulated drive (standard scenario, {effects}, seed {seed}, "
+                      f"{duration:g} s) recorded as a candump log")
+        else:
+            source = str(log)
         cfg = AppConfig()
         cfg.model = {"effects": effects.split(","), "kt": 0.1}
         prot, model, settings = prepare(cfg, log)
@@ -173,7 +184,6 @@ def log_stream(log: Path | None = None, effects: str = "inertia,viscous,coulomb,
         for frames in read_frames(log):
             keep(proc.process(frames, True))
         keep(proc.flush(True))
-        source = str(log)
     Phi = np.concatenate(rows) if rows else np.zeros((0, eq.n))
     Y = np.concatenate(ys) if ys else np.zeros(0)
     f = est0.frls
@@ -188,17 +198,18 @@ def log_stream(log: Path | None = None, effects: str = "inertia,viscous,coulomb,
 
 
 def stream_header(s: Stream, limit: int | None = None, guard: str = "CANRLS_STREAM_H") -> str:
-    """A C header: plan, initial diagonal of P and exponent, samples, Python's final state.
+    """A C header: plan, initial state, samples, and the state Python reaches on them.
 
-    The final ``theta``, ``P``, ``e``, ``c`` and counters are those of the Python
-    estimator after the same samples (``FixedRLS.run``).
+    The initial state is ``s.est``'s (``theta``, the packed upper triangle of ``P``,
+    ``e``, ``c``: the C side restores it with ``canrls_restore_q31``); the final
+    ``theta``, ``P``, ``e``, ``c`` and counters are those of the Python estimator after
+    the same samples (``FixedRLS.run``), counted from zero.
     """
     Phi, Y = (s.Phi, s.Y) if limit is None else (s.Phi[:limit], s.Y[:limit])
-    est = FixedRLS.from_state(s.est.state())
-    P0 = est.P
-    if np.any(P0 != np.diag(np.diag(P0))) or np.any(est.theta != 0):
-        raise ValueError("stream_header needs an estimator in a diagonal initial state")
-    e0 = est.P_exp
+    st = s.est.state()
+    st["counts"] = np.zeros_like(st["counts"])
+    est = FixedRLS.from_state(st)
+    theta0, P0, e0, c0 = est.theta.copy(), upper(est.P), est.P_exp, est.P_scale
     est.run(Phi, Y, record=False)
     n = est.n
     cnt = est.saturations
@@ -208,10 +219,11 @@ def stream_header(s: Stream, limit: int | None = None, guard: str = "CANRLS_STRE
         f"alpha = {est.alpha!r}, {len(Y)} samples */\n",
         f"#ifndef {guard}\n#define {guard}\n\n#include \"canrls_fixed.h\"\n\n",
         f"#define STREAM_N {n}u\n#define STREAM_SAMPLES {len(Y)}u\n"
-        f"#define STREAM_E0 {e0}\n#define STREAM_E_FINAL {est.P_exp}\n"
-        f"#define STREAM_C_FINAL {est.P_scale}\n\n",
+        f"#define STREAM_E0 {e0}\n#define STREAM_C0 {c0}\n"
+        f"#define STREAM_E_FINAL {est.P_exp}\n#define STREAM_C_FINAL {est.P_scale}\n\n",
         plan_c(est.constants, "stream_plan"),
-        c_array("stream_p0", np.diag(P0)),
+        c_array("stream_theta0", theta0),
+        c_array("stream_P0", P0),
         c_array("stream_phi", Phi),
         c_array("stream_y", Y),
         c_array("stream_theta_final", est.theta),
@@ -235,12 +247,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     sy.add_argument("--samples", type=int, default=64)
     sy.add_argument("--lam", type=float, default=0.99)
     sy.add_argument("--alpha", type=float, default=1e-2)
+    sy.add_argument("--warm", type=int, default=0, help="samples run in Python first")
     a = ap.parse_args(argv)
     if a.cmd == "example":
         s = log_stream(a.log)
         a.out.write_text(stream_header(s, a.limit))
     else:
-        s = synthetic_stream(a.n, a.samples, a.lam, a.alpha)
+        s = synthetic_stream(a.n, a.samples, a.lam, a.alpha, warm=a.warm)
         a.out.write_text(stream_header(s))
     print(f"{a.out}: {s.source}", file=sys.stderr)
     return 0

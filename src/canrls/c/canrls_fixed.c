@@ -17,24 +17,78 @@
 typedef char canrls_needs_arithmetic_shift[((-8 >> 1) == -4) ? 1 : -1];
 typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1];
 
+/* The helpers below are meant to disappear into their callers (the shift class of
+ * mul_rsh must be a constant there); GCC and Clang are told so. */
+#if defined(__GNUC__)
+#define INLINE static inline __attribute__((always_inline))
+#else
+#define INLINE static inline
+#endif
+
 /* ------------------------------------------------------- Q-format arithmetic */
 
 /* rsh(x, s) = x / 2^s rounded half up, (x + 2^(s-1)) >> s, for 0 <= s <= 62
  * (Python _rsh; the caller guarantees |x| + 2^(s-1) < 2^63). */
-static inline int64_t rsh(int64_t x, int32_t s)
+INLINE int64_t rsh(int64_t x, int32_t s)
 {
     return s > 0 ? (x + ((int64_t)1 << (s - 1))) >> s : x;
 }
 
 /* rsh of a word: ((x >> (s-1)) + 1) >> 1 equals (x + 2^(s-1)) >> s and cannot overflow. */
-static inline int32_t rsh32(int32_t x, int32_t s)
+INLINE int32_t rsh32(int32_t x, int32_t s)
 {
     return s > 0 ? ((x >> (s - 1)) + 1) >> 1 : x;
 }
 
-/* sat(x) = x clamped to [lo, hi]; a clamp increments *n (Python saturate). */
-static inline int32_t sat(int64_t x, int32_t lo, int32_t hi, uint32_t *n)
+/* How rsh(x, s) is computed on a 32-bit machine (all three give the same integers):
+ * SHIFT_ANY  any 0 <= s <= 62: the 64-bit formula;
+ * SHIFT_LOW  1 <= s <= 31: x + 2^(s-1) in two words, shifted as two words, and the
+ *            result a word in the common case;
+ * SHIFT_HIGH s >= 32: the high word of x + 2^(s-1) shifted by s - 32: always a word.
+ * Where the class is a constant (an inline loop called once per class), the compiler
+ * makes one loop per class and the choice is made once per step, not per element. */
+enum { SHIFT_ANY = 0, SHIFT_LOW = 1, SHIFT_HIGH = 2 };
+
+INLINE int shift_class(int32_t s)
 {
+    return s >= 32 ? SHIFT_HIGH : s >= 1 ? SHIFT_LOW : SHIFT_ANY;
+}
+
+/* rsh(x, s) = (x + 2^(s-1)) >> s, computed as its class says */
+INLINE int64_t rsh_c(int64_t x, int32_t s, int cls)
+{
+    if (cls == SHIFT_HIGH) {
+        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        return (int32_t)(uint32_t)(u >> 32) >> (s - 32);
+    }
+    if (cls == SHIFT_LOW) {
+        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        const uint32_t lo = (uint32_t)u;
+        const int32_t hi = (int32_t)(uint32_t)(u >> 32);
+        const uint32_t rlo = (lo >> s) | ((uint32_t)hi << (32 - s));
+        const int32_t rhi = hi >> s;
+        if (rhi == ((int32_t)rlo >> 31)) {
+            return (int32_t)rlo; /* the result fits a word: the common case */
+        }
+        return (int64_t)(((uint64_t)(uint32_t)rhi << 32) | rlo);
+    }
+    return rsh(x, s);
+}
+
+/* rsh(a b, s): a product of two words rounded half up by s bits */
+INLINE int64_t mul_rsh(int32_t a, int32_t b, int32_t s, int cls)
+{
+    return rsh_c((int64_t)a * b, s, cls);
+}
+
+/* sat(x) = x clamped to [lo, hi]; a clamp increments *n (Python saturate). */
+INLINE int32_t sat(int64_t x, int32_t lo, int32_t hi, uint32_t *n)
+{
+    /* the common case in 32-bit compares: x fits a word and lies in [lo, hi] */
+    if ((int64_t)(int32_t)x == x
+        && (uint32_t)(int32_t)x - (uint32_t)lo <= (uint32_t)hi - (uint32_t)lo) {
+        return (int32_t)x;
+    }
     if (x > hi) {
         *n += 1u;
         return hi;
@@ -49,11 +103,11 @@ static inline int32_t sat(int64_t x, int32_t lo, int32_t hi, uint32_t *n)
 /* Store an accumulator x (scale 2^-(f+s)) into a word of scale 2^-f (Python store):
  * s >= 0: rounding right shift then clamp; s < 0: a left shift that clamps before
  * shifting, so it never wraps. */
-static inline int32_t store(int64_t x, int32_t s, int32_t lo, int32_t hi, uint32_t *n)
+INLINE int32_t store(int64_t x, int32_t s, int32_t lo, int32_t hi, uint32_t *n)
 {
     int32_t t;
     if (s >= 0) {
-        return sat(rsh(x, s), lo, hi, n);
+        return sat(rsh_c(x, s, shift_class(s)), lo, hi, n);
     }
     if (x == 0) {
         return 0;
@@ -71,6 +125,61 @@ static inline int32_t store(int64_t x, int32_t s, int32_t lo, int32_t hi, uint32
     return (int32_t)(x * ((int64_t)1 << t));
 }
 
+/* Number of leading zero bits of v != 0. */
+static inline int32_t nlz(uint32_t v)
+{
+#if defined(__GNUC__)
+    return (int32_t)__builtin_clz(v);
+#else
+    int32_t k = 0;
+    while ((v & 0x80000000u) == 0u) {
+        v <<= 1;
+        k += 1;
+    }
+    return k;
+#endif
+}
+
+/* u / v truncated, for u < 2^32 v (the quotient fits 32 bits) and v > 0: two 32/32
+ * divisions on 16-bit digits of the normalised operands (Knuth's algorithm D as in
+ * Hacker's Delight, divlu), exact, instead of a 64/64 library division. */
+static uint32_t div_u64_u32(uint64_t u, uint32_t v)
+{
+    const uint32_t b = 65536u;
+    const int32_t s = nlz(v);
+    uint32_t u1 = (uint32_t)(u >> 32), u0 = (uint32_t)u;
+    uint32_t vn1, vn0, un32, un21, un10, un1, un0, q1, q0, rhat;
+    v <<= s;
+    vn1 = v >> 16;
+    vn0 = v & 0xFFFFu;
+    un32 = s > 0 ? (u1 << s) | (u0 >> (32 - s)) : u1;
+    un10 = u0 << s;
+    un1 = un10 >> 16;
+    un0 = un10 & 0xFFFFu;
+    /* first digit */
+    q1 = un32 / vn1;
+    rhat = un32 - q1 * vn1;
+    while (q1 >= b || q1 * vn0 > b * rhat + un1) {
+        q1 -= 1u;
+        rhat += vn1;
+        if (rhat >= b) {
+            break;
+        }
+    }
+    un21 = un32 * b + un1 - q1 * v;
+    /* second digit */
+    q0 = un21 / vn1;
+    rhat = un21 - q0 * vn1;
+    while (q0 >= b || q0 * vn0 > b * rhat + un0) {
+        q0 -= 1u;
+        rhat += vn1;
+        if (rhat >= b) {
+            break;
+        }
+    }
+    return q1 * b + q0;
+}
+
 /* ------------------------------------------------------------------- set-up */
 
 /* trw = sum_i rsh(Pw_ii, trace_ps): the trace at the windup test's scale */
@@ -80,7 +189,7 @@ static int32_t trace_words(const canrls_rls_q31 *S)
     int64_t trw = 0;
     uint32_t i;
     for (i = 0; i < S->n; i++) {
-        trw += rsh(*Pii, S->plan->trace_ps);
+        trw += rsh32(*Pii, S->plan->trace_ps);
         Pii += S->n - i; /* the next diagonal word of the packed rows */
     }
     return (int32_t)trw;
@@ -145,6 +254,34 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P
 
 /* ------------------------------------------------------------------- kernel */
 
+/* P~ <- P~ - K h~'  (upper triangle). ``cls`` (a constant at each call) is the shift
+ * class of P_s (see rsh_c). Returns the low-excitation test of the specification,
+ * "rsh(K_i h~_i, P_s) == 0 for every i": those are the diagonal terms of this update,
+ * so they are tested here rather than computed twice. */
+INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls)
+{
+    const uint32_t n = S->n;
+    const int32_t *const h = S->h;
+    const int32_t *const K = S->K;
+    /* the plan, as locals (a store to P~ cannot change them) */
+    const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
+    int32_t *Pw = S->P; /* row i of the packed upper triangle */
+    uint32_t i, j;
+    int low = 1;
+    for (i = 0; i < n; i++) {
+        const int32_t Ki = K[i];
+        /* the diagonal: information K_i h~_i */
+        const int64_t r = mul_rsh(Ki, h[i], P_s, cls);
+        low &= r == 0;
+        Pw[0] = sat(Pw[0] - r, P_lo, P_hi, c_P);
+        for (j = i + 1; j < n; j++) {
+            Pw[j - i] = sat(Pw[j - i] - mul_rsh(Ki, h[j], P_s, cls), P_lo, P_hi, c_P);
+        }
+        Pw += n - i;
+    }
+    return low;
+}
+
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                       canrls_step_q31 *step)
 {
@@ -155,7 +292,6 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     int32_t *const h = S->h;
     int32_t *const K = S->K;
     int32_t *const phg = S->phg;
-    int64_t *const acc = S->acc;
     int32_t e = S->e;
     int32_t c = S->c;
     int32_t trw = S->trw;
@@ -164,15 +300,20 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
              c_th = 0, c_P = 0;
     uint32_t flag = 0;
     uint32_t i, j;
+    /* the plan, as locals (stores to the state cannot change them) */
+    const int32_t phi_lo = p->phi_lo, phi_hi = p->phi_hi, phi_ps = p->phi_ps;
+    const int32_t h_lo = p->h_lo, h_hi = p->h_hi, h_os = p->h_os;
+    const int32_t K_lo = p->K_lo, K_hi = p->K_hi, K_s = p->K_s;
+    const int32_t th_lo = p->theta_lo, th_hi = p->theta_hi, tr_ps = p->trace_ps;
     int32_t yk, eps;
     int64_t a;
     int applied = 0;
 
     /* phi, y <- sat(phi), sat(y)       inputs clamped to their words */
     for (j = 0; j < n; j++) {
-        int32_t v = sat(phi[j], p->phi_lo, p->phi_hi, &c_phi);
+        int32_t v = sat(phi[j], phi_lo, phi_hi, &c_phi);
         /* phi >> ps: the guard bits of the multiply-accumulates */
-        phg[j] = rsh32(v, p->phi_ps);
+        phg[j] = rsh32(v, phi_ps);
     }
     yk = sat(y, p->y_lo, p->y_hi, &c_y);
 
@@ -188,27 +329,25 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         memset(K, 0, n * sizeof *K);
     } else {
         const int32_t *Pr; /* row i of the packed upper triangle (read) */
-        int32_t *Pw;       /* row i of the packed upper triangle (written) */
         int32_t st, sv, lam_k, d, g, gc, th_s, P_s;
         int32_t il;
         int low;
 
         /* h~ = P~ phi   (symmetric: P~_ij read from the upper triangle only) */
-        for (i = 0; i < n; i++) {
-            acc[i] = 0;
-        }
         Pr = P;
         for (i = 0; i < n; i++) {
-            const int32_t pi_ = phg[i];
-            /* h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i */
-            a = acc[i] + (int64_t)Pr[0] * pi_;
-            for (j = i + 1; j < n; j++) {
-                const int32_t Pij = Pr[j - i];
-                /* P_ij phi_j -> h_i ;  P_ji phi_i = P_ij phi_i -> h_j */
-                a += (int64_t)Pij * phg[j];
-                acc[j] += (int64_t)Pij * pi_;
+            /* h_i = sum_{j<i} P_ji phi_j (column i above the diagonal) + sum_{j>=i} P_ij phi_j
+             * (the exact sum of the specification's scattered accumulators) */
+            const int32_t *Pji = P + i;
+            a = 0;
+            for (j = 0; j < i; j++) {
+                a += (int64_t)*Pji * phg[j];
+                Pji += n - 1u - j; /* P_(j+1)i: the next row is one word shorter */
             }
-            h[i] = store(a, p->h_os, p->h_lo, p->h_hi, &c_h);
+            for (j = i; j < n; j++) {
+                a += (int64_t)Pr[j - i] * phg[j];
+            }
+            h[i] = store(a, h_os, h_lo, h_hi, &c_h);
             Pr += n - i;
         }
 
@@ -217,16 +356,16 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         for (i = 0; i < n; i++) {
             a += (int64_t)phg[i] * h[i];
         }
-        st = store(rsh(a, e), p->s_os, p->den_lo, p->den_hi, &c_den);
+        st = store(rsh_c(a, e, shift_class(e)), p->s_os, p->den_lo, p->den_hi, &c_den);
         /* s = phi' P phi = c s~ */
-        sv = sat(rsh((int64_t)st * c, p->sc_s), p->den_lo, p->den_hi, &c_den);
+        sv = sat(mul_rsh(st, c, p->sc_s, shift_class(p->sc_s)), p->den_lo, p->den_hi, &c_den);
 
         /* windup <=> (tr P - g h'h)/lambda > trace_max
          *        <=> (tr P - lambda trace_max) (lambda + phi'P phi) > h'h */
         lam_k = p->lam_den;
         if (p->trace_max_lam <= (p->trace_max_lim >> e)) {
             /* tr P = c tr P~   (trw: the diagonal summed >> tr_ps, kept from the last row) */
-            int64_t T = rsh((int64_t)trw * c, p->tc_s)
+            int64_t T = mul_rsh(trw, c, p->tc_s, shift_class(p->tc_s))
                         - (int64_t)p->trace_max_lam * ((int64_t)1 << e);
             if (T > 0) {
                 uint32_t none = 0; /* d_lam is not counted */
@@ -262,42 +401,42 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             g = p->g_hi;
             c_div += 1u;
         } else {
-            int64_t q = p->dividend / d;
-            if (q > p->g_hi) {
+            /* DIVIDEND // d > g_hi  <=>  DIVIDEND >= (g_hi + 1) d : then the quotient
+             * fits 32 bits, and a 64/32 division gives it */
+            if (p->dividend >= ((int64_t)p->g_hi + 1) * d) {
                 g = p->g_hi;
                 c_div += 1u;
             } else {
-                g = (int32_t)q;
+                g = (int32_t)div_u64_u32((uint64_t)p->dividend, (uint32_t)d);
             }
         }
         /* gc = g c */
-        gc = sat(rsh((int64_t)g * c, p->gc_s), p->g_lo, p->g_hi, &c_div);
+        gc = sat(mul_rsh(g, c, p->gc_s, shift_class(p->gc_s)), p->g_lo, p->g_hi, &c_div);
 
         th_s = p->theta_s + e;
         /* K h~' has exponent 2e, P~ exponent e */
         P_s = p->P_s + e;
-        low = 1;
         for (i = 0; i < n; i++) {
             /* K = P phi / (lambda + phi' P phi) = (g c) h~ */
-            const int32_t Ki = sat(rsh((int64_t)h[i] * gc, p->K_s), p->K_lo, p->K_hi, &c_K);
+            const int32_t Ki = sat(mul_rsh(h[i], gc, K_s, shift_class(K_s)), K_lo, K_hi, &c_K);
             K[i] = Ki;
             /* theta <- theta + K eps      (K carries the exponent e: shifted out here) */
-            theta[i] = sat(theta[i] + rsh((int64_t)Ki * eps, th_s), p->theta_lo,
-                           p->theta_hi, &c_th);
-            /* low excitation: the information K_i h~_i rounds to zero on the whole diagonal */
-            if (rsh((int64_t)Ki * h[i], P_s) != 0) {
-                low = 0;
-            }
+            theta[i] = sat(theta[i] + mul_rsh(Ki, eps, th_s, shift_class(th_s)), th_lo, th_hi,
+                           &c_th);
         }
-        /* P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle */
-        Pw = P;
-        for (i = 0; i < n; i++) {
-            const int32_t Ki = K[i];
-            for (j = i; j < n; j++) {
-                Pw[j - i] = sat(Pw[j - i] - rsh((int64_t)Ki * h[j], P_s), p->P_lo, p->P_hi,
-                                &c_P);
-            }
-            Pw += n - i;
+        /* P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle
+         * (in a loop made for the shift class of this step); low excitation: the
+         * information K_i h~_i rounds to zero on the whole diagonal */
+        switch (shift_class(P_s)) {
+        case SHIFT_HIGH:
+            low = P_step(S, P_s, &c_P, SHIFT_HIGH);
+            break;
+        case SHIFT_LOW:
+            low = P_step(S, P_s, &c_P, SHIFT_LOW);
+            break;
+        default:
+            low = P_step(S, P_s, &c_P, SHIFT_ANY);
+            break;
         }
         if (low) {
             flag |= CANRLS_FLAG_LOW_EXCITATION;
@@ -305,7 +444,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
         /* c <- c / lambda_k */
         il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
-        c = sat(rsh((int64_t)c * il, p->c_s), 0, p->lam_hi, &c_P);
+        c = sat(mul_rsh(c, il, p->c_s, shift_class(p->c_s)), 0, p->lam_hi, &c_P);
         if (c > p->one_lam) {
             if (e > 0) {
                 /* c/2 and 2^-e x 2: the words do not move */
@@ -327,7 +466,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             const int32_t *Pii = P;
             for (i = 0; i < n; i++) {
                 tr += *Pii;
-                trw64 += rsh(*Pii, p->trace_ps);
+                trw64 += rsh32(*Pii, tr_ps);
                 Pii += n - i;
             }
             trw = (int32_t)trw64;
@@ -368,7 +507,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     if (step != NULL) {
         /* tr P = c tr P~, recorded at the scale 2^-(f_P - tr_ps + e) */
         step->eps = eps;
-        step->trace = (int32_t)rsh((int64_t)trw * c, p->tc_s);
+        step->trace = (int32_t)mul_rsh(trw, c, p->tc_s, shift_class(p->tc_s));
         step->e = e;
         step->flags = flag;
     }

@@ -153,7 +153,6 @@ typedef struct {
     int32_t K[CANRLS_N_MAX];     /**< gain of the last step (K 2^(f_K + e)), 0 when frozen */
     int32_t h[CANRLS_N_MAX];     /**< scratch: h = Pw phi (h format) */
     int32_t phg[CANRLS_N_MAX];   /**< scratch: phi >> phi_ps */
-    int64_t acc[CANRLS_N_MAX];   /**< scratch: the accumulators of h */
     uint32_t counts[CANRLS_NSITES]; /**< saturations per site (canrls_site), wrap at 2^32 */
 } canrls_rls_q31;
 
