@@ -140,15 +140,31 @@ static inline int32_t nlz(uint32_t v)
 #endif
 }
 
+/* One 16-bit digit of a long division: num / (vn1 b + vn0) with b = 2^16, ``next`` the
+ * next 16-bit digit of the dividend; the estimate num / vn1 corrected (at most twice). */
+static uint32_t div_digit(uint32_t num, uint32_t next, uint32_t vn1, uint32_t vn0)
+{
+    const uint32_t b = 65536u;
+    uint32_t q = num / vn1;
+    uint32_t rhat = num - q * vn1;
+    while (q >= b || q * vn0 > b * rhat + next) {
+        q -= 1u;
+        rhat += vn1;
+        if (rhat >= b) {
+            break;
+        }
+    }
+    return q;
+}
+
 /* u / v truncated, for u < 2^32 v (the quotient fits 32 bits) and v > 0: two 32/32
  * divisions on 16-bit digits of the normalised operands (Knuth's algorithm D as in
  * Hacker's Delight, divlu), exact, instead of a 64/64 library division. */
 static uint32_t div_u64_u32(uint64_t u, uint32_t v)
 {
-    const uint32_t b = 65536u;
     const int32_t s = nlz(v);
-    uint32_t u1 = (uint32_t)(u >> 32), u0 = (uint32_t)u;
-    uint32_t vn1, vn0, un32, un21, un10, un1, un0, q1, q0, rhat;
+    const uint32_t u1 = (uint32_t)(u >> 32), u0 = (uint32_t)u;
+    uint32_t vn1, vn0, un32, un21, un10, un1, un0, q1, q0;
     v <<= s;
     vn1 = v >> 16;
     vn0 = v & 0xFFFFu;
@@ -156,28 +172,11 @@ static uint32_t div_u64_u32(uint64_t u, uint32_t v)
     un10 = u0 << s;
     un1 = un10 >> 16;
     un0 = un10 & 0xFFFFu;
-    /* first digit */
-    q1 = un32 / vn1;
-    rhat = un32 - q1 * vn1;
-    while (q1 >= b || q1 * vn0 > b * rhat + un1) {
-        q1 -= 1u;
-        rhat += vn1;
-        if (rhat >= b) {
-            break;
-        }
-    }
-    un21 = un32 * b + un1 - q1 * v;
-    /* second digit */
-    q0 = un21 / vn1;
-    rhat = un21 - q0 * vn1;
-    while (q0 >= b || q0 * vn0 > b * rhat + un0) {
-        q0 -= 1u;
-        rhat += vn1;
-        if (rhat >= b) {
-            break;
-        }
-    }
-    return q1 * b + q0;
+    /* first digit, the remainder, second digit */
+    q1 = div_digit(un32, un1, vn1, vn0);
+    un21 = un32 * 65536u + un1 - q1 * v;
+    q0 = div_digit(un21, un0, vn1, vn0);
+    return q1 * 65536u + q0;
 }
 
 /* ------------------------------------------------------------------- set-up */
