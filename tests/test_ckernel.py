@@ -291,7 +291,7 @@ def test_cortex_m4_example_matches_python_on_a_recorded_log(m4_tools: None, tmp_
     assert rc == 0, text
     assert "bit-exact with the Python FixedRLS: PASS" in text
     theta = [int(line.split("=")[1]) for line in text.splitlines() if "theta[" in line]
-    assert theta == s.est.__class__.from_state(s.est.state()).run(
+    assert theta == FixedRLS.from_state(s.est.state()).run(
         s.Phi, s.Y, record=False).theta_final.tolist()
     # the example fails loudly when a final word differs
     bad = hdr.read_text().replace("#define STREAM_C_FINAL ", "#define STREAM_C_FINAL 1 + ")
