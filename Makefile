@@ -5,7 +5,7 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   ?= .venv
 BIN     = $(VENV)/bin
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench target clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,6 +22,12 @@ test: $(BIN)/.installed
 bench: $(BIN)/.installed
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/python tools/bench_rls.py
+
+# the C kernel (src/canrls/c) for a Cortex-M4: size, stack, the bare-metal example on
+# QEMU mps2-an386 checked bit for bit against the Python FixedRLS, instructions per update
+# (installs gcc-arm-none-eabi, libnewlib-arm-none-eabi, qemu-system-arm via apt-get as root)
+target: $(BIN)/.installed
+	$(BIN)/python tools/build_target.py --out build/target
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info .pytest_cache

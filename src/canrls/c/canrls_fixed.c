@@ -1,0 +1,514 @@
+/*
+ * canrls_fixed.c -- fixed-point recursive least squares, the embedded kernel.
+ *
+ * SPDX-License-Identifier: MIT
+ *
+ * Line for line the symmetric form of the Python specification
+ * (canrls.estimation.fixed_kernels.fixed_block): the same names, the same order of
+ * operations, the equation beside each line. See canrls_fixed.h for the numbers.
+ */
+#include "canrls_fixed.h"
+
+#include <string.h>
+
+/* The kernel needs an arithmetic (floor) right shift of negative values, which C99
+ * leaves to the implementation; every compiler for a DSP or a microcontroller has it.
+ * Refuse to build where it is missing. */
+typedef char canrls_needs_arithmetic_shift[((-8 >> 1) == -4) ? 1 : -1];
+typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1];
+
+/* The helpers below are meant to disappear into their callers (the shift class of
+ * mul_rsh must be a constant there); GCC and Clang are told so. */
+#if defined(__GNUC__)
+#define INLINE static inline __attribute__((always_inline))
+#else
+#define INLINE static inline
+#endif
+
+/* ------------------------------------------------------- Q-format arithmetic */
+
+/* rsh(x, s) = x / 2^s rounded half up, (x + 2^(s-1)) >> s, for 0 <= s <= 62
+ * (Python _rsh; the caller guarantees |x| + 2^(s-1) < 2^63). */
+INLINE int64_t rsh(int64_t x, int32_t s)
+{
+    return s > 0 ? (x + ((int64_t)1 << (s - 1))) >> s : x;
+}
+
+/* rsh of a word: ((x >> (s-1)) + 1) >> 1 equals (x + 2^(s-1)) >> s and cannot overflow. */
+INLINE int32_t rsh32(int32_t x, int32_t s)
+{
+    return s > 0 ? ((x >> (s - 1)) + 1) >> 1 : x;
+}
+
+/* How rsh(x, s) is computed on a 32-bit machine (all three give the same integers):
+ * SHIFT_ANY  any 0 <= s <= 62: the 64-bit formula;
+ * SHIFT_LOW  1 <= s <= 31: x + 2^(s-1) in two words, shifted as two words, and the
+ *            result a word in the common case;
+ * SHIFT_HIGH s >= 32: the high word of x + 2^(s-1) shifted by s - 32: always a word.
+ * Where the class is a constant (an inline loop called once per class), the compiler
+ * makes one loop per class and the choice is made once per step, not per element. */
+enum { SHIFT_ANY = 0, SHIFT_LOW = 1, SHIFT_HIGH = 2 };
+
+INLINE int shift_class(int32_t s)
+{
+    return s >= 32 ? SHIFT_HIGH : s >= 1 ? SHIFT_LOW : SHIFT_ANY;
+}
+
+/* rsh(x, s) = (x + 2^(s-1)) >> s, computed as its class says */
+INLINE int64_t rsh_c(int64_t x, int32_t s, int cls)
+{
+    if (cls == SHIFT_HIGH) {
+        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        return (int32_t)(uint32_t)(u >> 32) >> (s - 32);
+    }
+    if (cls == SHIFT_LOW) {
+        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        const uint32_t lo = (uint32_t)u;
+        const int32_t hi = (int32_t)(uint32_t)(u >> 32);
+        const uint32_t rlo = (lo >> s) | ((uint32_t)hi << (32 - s));
+        const int32_t rhi = hi >> s;
+        if (rhi == ((int32_t)rlo >> 31)) {
+            return (int32_t)rlo; /* the result fits a word: the common case */
+        }
+        return (int64_t)(((uint64_t)(uint32_t)rhi << 32) | rlo);
+    }
+    return rsh(x, s);
+}
+
+/* rsh(a b, s): a product of two words rounded half up by s bits */
+INLINE int64_t mul_rsh(int32_t a, int32_t b, int32_t s, int cls)
+{
+    return rsh_c((int64_t)a * b, s, cls);
+}
+
+/* sat(x) = x clamped to [lo, hi]; a clamp increments *n (Python saturate). */
+INLINE int32_t sat(int64_t x, int32_t lo, int32_t hi, uint32_t *n)
+{
+    /* the common case in 32-bit compares: x fits a word and lies in [lo, hi] */
+    if ((int64_t)(int32_t)x == x
+        && (uint32_t)(int32_t)x - (uint32_t)lo <= (uint32_t)hi - (uint32_t)lo) {
+        return (int32_t)x;
+    }
+    if (x > hi) {
+        *n += 1u;
+        return hi;
+    }
+    if (x < lo) {
+        *n += 1u;
+        return lo;
+    }
+    return (int32_t)x;
+}
+
+/* Store an accumulator x (scale 2^-(f+s)) into a word of scale 2^-f (Python store):
+ * s >= 0: rounding right shift then clamp; s < 0: a left shift that clamps before
+ * shifting, so it never wraps. */
+INLINE int32_t store(int64_t x, int32_t s, int32_t lo, int32_t hi, uint32_t *n)
+{
+    int32_t t;
+    if (s >= 0) {
+        return sat(rsh_c(x, s, shift_class(s)), lo, hi, n);
+    }
+    if (x == 0) {
+        return 0;
+    }
+    t = -s < 63 ? -s : 63;
+    /* x 2^t > hi  <=>  x > floor(hi / 2^t) ;  x 2^t < lo  <=>  x < ceil(lo / 2^t) */
+    if (x > ((int64_t)hi >> t)) {
+        *n += 1u;
+        return hi;
+    }
+    if (x < -((-(int64_t)lo) >> t)) {
+        *n += 1u;
+        return lo;
+    }
+    return (int32_t)(x * ((int64_t)1 << t));
+}
+
+/* Number of leading zero bits of v != 0. */
+static inline int32_t nlz(uint32_t v)
+{
+#if defined(__GNUC__)
+    return (int32_t)__builtin_clz(v);
+#else
+    int32_t k = 0;
+    while ((v & 0x80000000u) == 0u) {
+        v <<= 1;
+        k += 1;
+    }
+    return k;
+#endif
+}
+
+/* One 16-bit digit of a long division: num / (vn1 b + vn0) with b = 2^16, ``next`` the
+ * next 16-bit digit of the dividend; the estimate num / vn1 corrected (at most twice). */
+static uint32_t div_digit(uint32_t num, uint32_t next, uint32_t vn1, uint32_t vn0)
+{
+    const uint32_t b = 65536u;
+    uint32_t q = num / vn1;
+    uint32_t rhat = num - q * vn1;
+    while (q >= b || q * vn0 > b * rhat + next) {
+        q -= 1u;
+        rhat += vn1;
+        if (rhat >= b) {
+            break;
+        }
+    }
+    return q;
+}
+
+/* u / v truncated, for u < 2^32 v (the quotient fits 32 bits) and v > 0: two 32/32
+ * divisions on 16-bit digits of the normalised operands (Knuth's algorithm D as in
+ * Hacker's Delight, divlu), exact, instead of a 64/64 library division. */
+static uint32_t div_u64_u32(uint64_t u, uint32_t v)
+{
+    const int32_t s = nlz(v);
+    const uint32_t u1 = (uint32_t)(u >> 32), u0 = (uint32_t)u;
+    uint32_t vn1, vn0, un32, un21, un10, un1, un0, q1, q0;
+    v <<= s;
+    vn1 = v >> 16;
+    vn0 = v & 0xFFFFu;
+    un32 = s > 0 ? (u1 << s) | (u0 >> (32 - s)) : u1;
+    un10 = u0 << s;
+    un1 = un10 >> 16;
+    un0 = un10 & 0xFFFFu;
+    /* first digit, the remainder, second digit */
+    q1 = div_digit(un32, un1, vn1, vn0);
+    un21 = un32 * 65536u + un1 - q1 * v;
+    q0 = div_digit(un21, un0, vn1, vn0);
+    return q1 * 65536u + q0;
+}
+
+/* ------------------------------------------------------------------- set-up */
+
+/* trw = sum_i rsh(Pw_ii, trace_ps): the trace at the windup test's scale */
+static int32_t trace_words(const canrls_rls_q31 *S)
+{
+    const int32_t *Pii = S->P;
+    int64_t trw = 0;
+    uint32_t i;
+    for (i = 0; i < S->n; i++) {
+        trw += rsh32(*Pii, S->plan->trace_ps);
+        Pii += S->n - i; /* the next diagonal word of the packed rows */
+    }
+    return (int32_t)trw;
+}
+
+int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
+                    const int32_t *p0, int32_t e0)
+{
+    uint32_t i;
+    if (S == NULL || plan == NULL || p0 == NULL || n < 1u || n > CANRLS_N_MAX
+        || e0 < 0 || e0 > plan->e_max) {
+        return CANRLS_EINVAL;
+    }
+    for (i = 0; i < n; i++) {
+        if (p0[i] < plan->P_lo || p0[i] > plan->P_hi) {
+            return CANRLS_EINVAL;
+        }
+    }
+    memset(S, 0, sizeof *S);
+    S->plan = plan;
+    S->n = n;
+    /* P0 = diag(p0) 2^-(f_P + e0), c = 1 ; theta0 = 0 */
+    for (i = 0; i < n; i++) {
+        S->P[canrls_tri_index(n, i, i)] = p0[i];
+    }
+    S->e = e0;
+    S->c = plan->one_lam;
+    S->trw = trace_words(S);
+    return CANRLS_OK;
+}
+
+int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P_up,
+                       int32_t e, int32_t c)
+{
+    const canrls_plan_q31 *p;
+    uint32_t i, m;
+    if (S == NULL || S->plan == NULL || theta == NULL || P_up == NULL) {
+        return CANRLS_EINVAL;
+    }
+    p = S->plan;
+    m = CANRLS_TRI(S->n);
+    if (e < 0 || e > p->e_max || c < 1 || c > p->one_lam) {
+        return CANRLS_EINVAL;
+    }
+    for (i = 0; i < S->n; i++) {
+        if (theta[i] < p->theta_lo || theta[i] > p->theta_hi) {
+            return CANRLS_EINVAL;
+        }
+    }
+    for (i = 0; i < m; i++) {
+        if (P_up[i] < p->P_lo || P_up[i] > p->P_hi) {
+            return CANRLS_EINVAL;
+        }
+    }
+    memcpy(S->theta, theta, S->n * sizeof *theta);
+    memcpy(S->P, P_up, m * sizeof *P_up);
+    S->e = e;
+    S->c = c;
+    S->trw = trace_words(S);
+    return CANRLS_OK;
+}
+
+/* ------------------------------------------------------------------- kernel */
+
+/* P~ <- P~ - K h~'  (upper triangle). ``cls`` (a constant at each call) is the shift
+ * class of P_s (see rsh_c). Returns the low-excitation test of the specification,
+ * "rsh(K_i h~_i, P_s) == 0 for every i": those are the diagonal terms of this update,
+ * so they are tested here rather than computed twice. */
+INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls)
+{
+    const uint32_t n = S->n;
+    const int32_t *const h = S->h;
+    const int32_t *const K = S->K;
+    /* the plan, as locals (a store to P~ cannot change them) */
+    const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
+    int32_t *Pw = S->P; /* row i of the packed upper triangle */
+    uint32_t i, j;
+    int low = 1;
+    for (i = 0; i < n; i++) {
+        const int32_t Ki = K[i];
+        /* the diagonal: information K_i h~_i */
+        const int64_t r = mul_rsh(Ki, h[i], P_s, cls);
+        low &= r == 0;
+        Pw[0] = sat(Pw[0] - r, P_lo, P_hi, c_P);
+        for (j = i + 1; j < n; j++) {
+            Pw[j - i] = sat(Pw[j - i] - mul_rsh(Ki, h[j], P_s, cls), P_lo, P_hi, c_P);
+        }
+        Pw += n - i;
+    }
+    return low;
+}
+
+int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
+                      canrls_step_q31 *step)
+{
+    const canrls_plan_q31 *p = S->plan;
+    const uint32_t n = S->n;
+    int32_t *const theta = S->theta;
+    int32_t *const P = S->P;
+    int32_t *const h = S->h;
+    int32_t *const K = S->K;
+    int32_t *const phg = S->phg;
+    int32_t e = S->e;
+    int32_t c = S->c;
+    int32_t trw = S->trw;
+    /* per-step saturation counts, added to S->counts once per step */
+    uint32_t c_phi = 0, c_y = 0, c_eps = 0, c_h = 0, c_den = 0, c_div = 0, c_K = 0,
+             c_th = 0, c_P = 0;
+    uint32_t flag = 0;
+    uint32_t i, j;
+    /* the plan, as locals (stores to the state cannot change them) */
+    const int32_t phi_lo = p->phi_lo, phi_hi = p->phi_hi, phi_ps = p->phi_ps;
+    const int32_t h_lo = p->h_lo, h_hi = p->h_hi, h_os = p->h_os;
+    const int32_t K_lo = p->K_lo, K_hi = p->K_hi, K_s = p->K_s;
+    const int32_t th_lo = p->theta_lo, th_hi = p->theta_hi, tr_ps = p->trace_ps;
+    int32_t yk, eps;
+    int64_t a;
+    int applied = 0;
+
+    /* phi, y <- sat(phi), sat(y)       inputs clamped to their words */
+    for (j = 0; j < n; j++) {
+        int32_t v = sat(phi[j], phi_lo, phi_hi, &c_phi);
+        /* phi >> ps: the guard bits of the multiply-accumulates */
+        phg[j] = rsh32(v, phi_ps);
+    }
+    yk = sat(y, p->y_lo, p->y_hi, &c_y);
+
+    /* eps = y - phi' theta */
+    a = p->eps_ts >= 0 ? (int64_t)yk * ((int64_t)1 << p->eps_ts) : rsh(yk, -p->eps_ts);
+    for (j = 0; j < n; j++) {
+        a -= (int64_t)phg[j] * theta[j];
+    }
+    eps = store(a, p->eps_os, p->eps_lo, p->eps_hi, &c_eps);
+
+    if (S->frozen) {
+        flag = CANRLS_FLAG_FROZEN;
+        memset(K, 0, n * sizeof *K);
+    } else {
+        const int32_t *Pr; /* row i of the packed upper triangle (read) */
+        int32_t st, sv, lam_k, d, g, gc, th_s, P_s;
+        int32_t il;
+        int low;
+
+        /* h~ = P~ phi   (symmetric: P~_ij read from the upper triangle only) */
+        Pr = P;
+        for (i = 0; i < n; i++) {
+            /* h_i = sum_{j<i} P_ji phi_j (column i above the diagonal) + sum_{j>=i} P_ij phi_j
+             * (the exact sum of the specification's scattered accumulators) */
+            const int32_t *Pji = P + i;
+            a = 0;
+            for (j = 0; j < i; j++) {
+                a += (int64_t)*Pji * phg[j];
+                Pji += n - 1u - j; /* P_(j+1)i: the next row is one word shorter */
+            }
+            for (j = i; j < n; j++) {
+                a += (int64_t)Pr[j - i] * phg[j];
+            }
+            h[i] = store(a, h_os, h_lo, h_hi, &c_h);
+            Pr += n - i;
+        }
+
+        /* s~ = phi' h~, brought from the scale of P (exponent e) to that of lambda */
+        a = 0;
+        for (i = 0; i < n; i++) {
+            a += (int64_t)phg[i] * h[i];
+        }
+        st = store(rsh_c(a, e, shift_class(e)), p->s_os, p->den_lo, p->den_hi, &c_den);
+        /* s = phi' P phi = c s~ */
+        sv = sat(mul_rsh(st, c, p->sc_s, shift_class(p->sc_s)), p->den_lo, p->den_hi, &c_den);
+
+        /* windup <=> (tr P - g h'h)/lambda > trace_max
+         *        <=> (tr P - lambda trace_max) (lambda + phi'P phi) > h'h */
+        lam_k = p->lam_den;
+        if (p->trace_max_lam <= (p->trace_max_lim >> e)) {
+            /* tr P = c tr P~   (trw: the diagonal summed >> tr_ps, kept from the last row) */
+            int64_t T = mul_rsh(trw, c, p->tc_s, shift_class(p->tc_s))
+                        - (int64_t)p->trace_max_lam * ((int64_t)1 << e);
+            if (T > 0) {
+                uint32_t none = 0; /* d_lam is not counted */
+                int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
+                int64_t a_vw = 0, lhs;
+                int32_t df;
+                int up;
+                for (i = 0; i < n; i++) {
+                    /* h = c h~ ; w = c w~ = h */
+                    int64_t hi_ = rsh((int64_t)h[i] * c, p->hc_s);
+                    int64_t wi_ = rsh((int64_t)h[i] * c, p->hc_s);
+                    a_vw += rsh(hi_ * wi_, p->vw_ps);
+                }
+                lhs = rsh((T < p->P_hi ? T : p->P_hi) * d_lam, p->lhs_ps);
+                /* the two sides differ in scale by cmp_df - e bits */
+                df = p->cmp_scale_diff - e;
+                if (df >= 0) {
+                    up = (lhs >> (df < 63 ? df : 63)) > a_vw;
+                } else {
+                    up = lhs > (a_vw >> (-df < 63 ? -df : 63));
+                }
+                if (up) {
+                    lam_k = p->one_den;
+                    flag = CANRLS_FLAG_WINDUP;
+                }
+            }
+        }
+
+        /* d = lambda_k + phi' P phi */
+        d = sat((int64_t)lam_k + sv, p->den_lo, p->den_hi, &c_den);
+        /* g = 1 / d     (the one division: acc-width dividend, word divisor, C truncation) */
+        if (d <= 0) {
+            g = p->g_hi;
+            c_div += 1u;
+        } else {
+            /* DIVIDEND // d > g_hi  <=>  DIVIDEND >= (g_hi + 1) d : then the quotient
+             * fits 32 bits, and a 64/32 division gives it */
+            if (p->dividend >= ((int64_t)p->g_hi + 1) * d) {
+                g = p->g_hi;
+                c_div += 1u;
+            } else {
+                g = (int32_t)div_u64_u32((uint64_t)p->dividend, (uint32_t)d);
+            }
+        }
+        /* gc = g c */
+        gc = sat(mul_rsh(g, c, p->gc_s, shift_class(p->gc_s)), p->g_lo, p->g_hi, &c_div);
+
+        th_s = p->theta_s + e;
+        /* K h~' has exponent 2e, P~ exponent e */
+        P_s = p->P_s + e;
+        for (i = 0; i < n; i++) {
+            /* K = P phi / (lambda + phi' P phi) = (g c) h~ */
+            const int32_t Ki = sat(mul_rsh(h[i], gc, K_s, shift_class(K_s)), K_lo, K_hi, &c_K);
+            K[i] = Ki;
+            /* theta <- theta + K eps      (K carries the exponent e: shifted out here) */
+            theta[i] = sat(theta[i] + mul_rsh(Ki, eps, th_s, shift_class(th_s)), th_lo, th_hi,
+                           &c_th);
+        }
+        /* P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle
+         * (in a loop made for the shift class of this step); low excitation: the
+         * information K_i h~_i rounds to zero on the whole diagonal */
+        switch (shift_class(P_s)) {
+        case SHIFT_HIGH:
+            low = P_step(S, P_s, &c_P, SHIFT_HIGH);
+            break;
+        case SHIFT_LOW:
+            low = P_step(S, P_s, &c_P, SHIFT_LOW);
+            break;
+        default:
+            low = P_step(S, P_s, &c_P, SHIFT_ANY);
+            break;
+        }
+        if (low) {
+            flag |= CANRLS_FLAG_LOW_EXCITATION;
+        }
+
+        /* c <- c / lambda_k */
+        il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
+        c = sat(mul_rsh(c, il, p->c_s, shift_class(p->c_s)), 0, p->lam_hi, &c_P);
+        if (c > p->one_lam) {
+            if (e > 0) {
+                /* c/2 and 2^-e x 2: the words do not move */
+                c = rsh32(c, 1);
+                e -= 1;
+            } else {
+                /* fold c into the words: P~ <- c P~, c = 1 */
+                for (i = 0; i < CANRLS_TRI(n); i++) {
+                    P[i] = sat(rsh((int64_t)P[i] * c, p->c_s), p->P_lo, p->P_hi, &c_P);
+                }
+                c = p->one_lam;
+            }
+        }
+
+        /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh */
+        {
+            int64_t tr = 0;
+            int64_t trw64 = 0;
+            const int32_t *Pii = P;
+            for (i = 0; i < n; i++) {
+                tr += *Pii;
+                trw64 += rsh32(*Pii, tr_ps);
+                Pii += n - i;
+            }
+            trw = (int32_t)trw64;
+            if (tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max) {
+                int32_t sh = 1;
+                while ((tr << (sh + 1)) <= p->trace_hi && e + sh < p->e_max) {
+                    sh += 1;
+                }
+                for (i = 0; i < CANRLS_TRI(n); i++) {
+                    P[i] = store(P[i], -sh, p->P_lo, p->P_hi, &c_P);
+                }
+                e += sh;
+                trw = trace_words(S);
+            }
+        }
+        S->e = e;
+        S->c = c;
+        S->trw = trw;
+        applied = 1;
+    }
+
+    {
+        const uint32_t nsat = c_phi + c_y + c_eps + c_h + c_den + c_div + c_K + c_th + c_P;
+        if (nsat > 0u) {
+            uint32_t *const cnt = S->counts;
+            flag |= CANRLS_FLAG_SATURATION;
+            cnt[CANRLS_S_PHI_IN] += c_phi;
+            cnt[CANRLS_S_Y_IN] += c_y;
+            cnt[CANRLS_S_EPS] += c_eps;
+            cnt[CANRLS_S_H] += c_h;
+            cnt[CANRLS_S_DEN] += c_den;
+            cnt[CANRLS_S_DIV] += c_div;
+            cnt[CANRLS_S_K] += c_K;
+            cnt[CANRLS_S_THETA] += c_th;
+            cnt[CANRLS_S_P] += c_P;
+        }
+    }
+    if (step != NULL) {
+        /* tr P = c tr P~, recorded at the scale 2^-(f_P - tr_ps + e) */
+        step->eps = eps;
+        step->trace = (int32_t)mul_rsh(trw, c, p->tc_s, shift_class(p->tc_s));
+        step->e = e;
+        step->flags = flag;
+    }
+    return applied;
+}

@@ -1,0 +1,220 @@
+/*
+ * canrls_fixed.h -- fixed-point recursive least squares, the embedded kernel.
+ *
+ * SPDX-License-Identifier: MIT
+ *
+ * A portable C99 transcription of the Python specification
+ * (src/canrls/estimation/fixed.py, fixed_kernels.py: fixed_block, update="symmetric").
+ * For the same plan, state and quantised inputs it produces the same integers, bit
+ * for bit (tests/test_ckernel.py proves it on x86-64 and 32-bit ARM).
+ *
+ * Shape (CMSIS-DSP): the caller owns an instance struct (canrls_rls_q31), fills it
+ * with canrls_init_q31() (or canrls_restore_q31() from a checkpoint) and calls
+ * canrls_update_q31() once per sample. No malloc, no floating point, no libc beyond
+ * <stdint.h>, <stddef.h>; the model size is bounded at compile time by CANRLS_N_MAX.
+ *
+ * Numbers
+ * -------
+ * Every quantity is a signed two's-complement word of at most 32 bits held in an
+ * int32_t ("q31" here means "a word of <= 32 bits in an int32_t"; its Q format,
+ * Qm.f with f fraction bits, is the one the Python FixedConfig chose and is stated
+ * below per quantity). Products of two words are exact (int64_t). A value is brought
+ * to a coarser scale by a rounding right shift, round half up:
+ *     rsh(x, s) = (x + 2^(s-1)) >> s          (arithmetic shift)
+ * then clamped to its word [lo, hi]; every clamp increments the counter of its site
+ * (canrls_site). Nothing wraps. Multiply-accumulates sum at most n products in an
+ * int64_t accumulator that cannot overflow: the plan's guard shift phi_ps makes it
+ * so for every input.
+ *
+ * The covariance is held scaled:  P = c * Pw * 2^-(f_P + e)
+ *   Pw  words in the P format (upper triangle only, packed by rows),
+ *   e   block exponent, 0 <= e <= e_max,
+ *   c   forgetting scale in the lam format, 1/2 < c <= 1 (one_lam = 1.0).
+ *
+ * Per sample (the equation of each line is beside it in canrls_fixed.c):
+ *   eps   = y - phi' theta
+ *   h     = Pw phi,  d = lambda_k + c phi' h,  g = 1/d   (one division)
+ *   K     = (g c) h
+ *   theta = theta + K eps
+ *   Pw    = Pw - K h'   (upper triangle),  c = c / lambda_k
+ * with lambda_k = 1 (flag WINDUP) when the step would take tr P above trace_max.
+ *
+ * Constants
+ * ---------
+ * The kernel never derives a constant: every shift, range and Q constant of
+ * lambda is in canrls_plan_q31, with the names of the Python FixedRLS.constants.
+ * tools/gen_ckernel.py writes it as a C initialiser from a Python FixedRLS.
+ */
+#ifndef CANRLS_FIXED_H
+#define CANRLS_FIXED_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/** Largest number of parameters (compile-time bound of the instance arrays). */
+#ifndef CANRLS_N_MAX
+#define CANRLS_N_MAX 12
+#endif
+
+/** Packed upper triangle of an n x n matrix: n (n + 1) / 2 words. */
+#define CANRLS_TRI(n) ((n) * ((n) + 1) / 2)
+
+/** Saturation sites, in the order of canrls_rls_q31.counts (Python SITES). */
+enum canrls_site {
+    CANRLS_S_PHI_IN = 0, /**< an input phi_j outside its word */
+    CANRLS_S_Y_IN,       /**< the target y outside its word */
+    CANRLS_S_EPS,        /**< a-priori error */
+    CANRLS_S_H,          /**< h = Pw phi */
+    CANRLS_S_DEN,        /**< phi' h and d = lambda_k + phi' P phi */
+    CANRLS_S_DIV,        /**< the quotient g = 1/d and g c */
+    CANRLS_S_K,          /**< the gain K */
+    CANRLS_S_THETA,      /**< theta + K eps */
+    CANRLS_S_P,          /**< Pw - K h', c, the fold of c and the block-exponent shift */
+    CANRLS_S_ACC,        /**< accumulators: 0 by construction (kept so every site is listed) */
+    CANRLS_NSITES
+};
+
+/** Flag bits of a step (the values of Python FixedFlag / RLSFlag). */
+#define CANRLS_FLAG_WINDUP         1u /**< trace bound held: step taken with lambda = 1 */
+#define CANRLS_FLAG_LOW_EXCITATION 2u /**< K_i h_i rounded to 0 on the whole diagonal */
+#define CANRLS_FLAG_SATURATION     4u /**< a counter moved during this step */
+#define CANRLS_FLAG_FROZEN         8u /**< frozen: eps computed, state untouched */
+
+/** Return codes of canrls_init_q31() and canrls_restore_q31(). */
+#define CANRLS_OK        0
+#define CANRLS_EINVAL  (-1)
+
+/**
+ * The kernel's integer constants: Python FixedRLS.constants, same names.
+ *
+ * `*_lo`, `*_hi`: the range of each word, -2^(bits-1) and 2^(bits-1) - 1.
+ * `*_s`, `*_os`, `*_ps`: shifts (>= 0 unless stated), `*_ts`: alignment (> 0: left).
+ * Built from the FixedConfig, n, the rational value of lambda and trace_max; a
+ * change of lambda is a new plan.
+ */
+typedef struct {
+    int32_t phi_lo, phi_hi;     /**< regressor word */
+    int32_t y_lo, y_hi;         /**< target word */
+    int32_t eps_lo, eps_hi;     /**< a-priori error word */
+    int32_t h_lo, h_hi;         /**< h = Pw phi word */
+    int32_t den_lo, den_hi;     /**< phi' P phi and d word */
+    int32_t g_lo, g_hi;         /**< g = 1/d word (Q1) */
+    int32_t K_lo, K_hi;         /**< gain word */
+    int32_t theta_lo, theta_hi; /**< estimate word */
+    int32_t P_lo, P_hi;         /**< covariance word */
+    int32_t lam_lo, lam_hi;     /**< lambda, 1/lambda and c word (Q1) */
+    int32_t phi_ps;         /**< guard shift of phi in the three multiply-accumulates */
+    int32_t eps_ts;         /**< alignment of y to the phi' theta accumulator (may be < 0) */
+    int32_t eps_os;         /**< output shift of eps (may be < 0) */
+    int32_t h_os;           /**< output shift of h (may be < 0) */
+    int32_t s_os;           /**< output shift of phi' h after >> e (may be < 0) */
+    int32_t sc_s;           /**< shift of c s~ */
+    int32_t lam_den;        /**< lambda in the den format */
+    int32_t one_den;        /**< 1 in the den format */
+    int64_t dividend;       /**< 1 << (frac_g + frac_den) */
+    int32_t gc_s;           /**< shift of g c */
+    int32_t K_s;            /**< shift of (g c) h */
+    int32_t theta_s;        /**< shift of K eps at e = 0 */
+    int32_t P_s;            /**< shift of K h at e = 0 */
+    int32_t inv_lam;        /**< 1/lambda in the lam format */
+    int32_t one_lam;        /**< 1 in the lam format */
+    int32_t c_s;            /**< shift of c (1/lambda_k) and of the fold c Pw */
+    int32_t trace_ps;       /**< guard shift of each diagonal word in the trace */
+    int32_t tc_s;           /**< shift of c tr Pw */
+    int32_t trace_max_lam;  /**< lambda trace_max at the trace's scale (e = 0) */
+    int64_t trace_max_lim;  /**< the windup test runs while trace_max_lam << e <= this */
+    int32_t hc_s;           /**< shift of c h (windup test) */
+    int32_t vw_ps;          /**< pre-shift of h_i h_i (windup test) */
+    int32_t lhs_ps;         /**< pre-shift of (tr P - lambda trace_max) d (windup test) */
+    int32_t cmp_scale_diff; /**< scale difference of the two sides at e = 0 (may be < 0) */
+    int32_t trace_hi;       /**< tr Pw is kept in (trace_hi/2, trace_hi] once e > 0 */
+    int32_t e_max;          /**< largest block exponent */
+} canrls_plan_q31;
+
+/**
+ * Instance of the fixed-point RLS: owned by the caller, filled by canrls_init_q31().
+ *
+ * The state fields may be read at any time (theta, P, e, c, counts, K); write them
+ * only through canrls_restore_q31(), except `frozen` and `counts` (plain fields).
+ */
+typedef struct {
+    const canrls_plan_q31 *plan; /**< constants (not copied: keep it alive) */
+    uint32_t n;                  /**< number of parameters, 1..CANRLS_N_MAX */
+    uint32_t frozen;             /**< nonzero: updates compute eps only (flag FROZEN) */
+    int32_t e;                   /**< block exponent of P */
+    int32_t c;                   /**< forgetting scale of P (lam format) */
+    int32_t trw;                 /**< sum of rsh(Pw_ii, trace_ps) (kept from step to step) */
+    int32_t theta[CANRLS_N_MAX]; /**< estimate, theta format */
+    int32_t P[CANRLS_TRI(CANRLS_N_MAX)]; /**< Pw, upper triangle packed by rows, P format */
+    int32_t K[CANRLS_N_MAX];     /**< gain of the last step (K 2^(f_K + e)), 0 when frozen */
+    int32_t h[CANRLS_N_MAX];     /**< scratch: h = Pw phi (h format) */
+    int32_t phg[CANRLS_N_MAX];   /**< scratch: phi >> phi_ps */
+    uint32_t counts[CANRLS_NSITES]; /**< saturations per site (canrls_site), wrap at 2^32 */
+} canrls_rls_q31;
+
+/** What one update returns (Python FixedStep without K and theta, which stay in the instance). */
+typedef struct {
+    int32_t eps;    /**< a-priori error, eps format (saturated, counted) */
+    int32_t trace;  /**< tr P after the step, 2^-(f_P - trace_ps + e) scale */
+    int32_t e;      /**< block exponent after the step */
+    uint32_t flags; /**< CANRLS_FLAG_* bits */
+} canrls_step_q31;
+
+/**
+ * Initialise: theta = 0, Pw = diag(p0[0..n-1]), block exponent e0, c = 1
+ * (plan->one_lam), counters 0, not frozen.
+ *
+ * @param S     instance to fill
+ * @param plan  constants (kept by pointer)
+ * @param n     number of parameters, 1..CANRLS_N_MAX
+ * @param p0    n diagonal words of the initial covariance, P format, in [P_lo, P_hi]
+ *              (P0_jj = p0[j] 2^-(f_P + e0)); the off-diagonal words are 0
+ * @param e0    initial block exponent, 0..plan->e_max
+ * @return CANRLS_OK, or CANRLS_EINVAL for an n, p0 or e0 out of range (S untouched)
+ */
+int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
+                    const int32_t *p0, int32_t e0);
+
+/**
+ * Restore a checkpoint (Python FixedRLS.state()): theta, the upper triangle of Pw,
+ * e and c. Counters and `frozen` are left as they are (plain fields).
+ *
+ * @param theta  n words, theta format
+ * @param P_up   n (n + 1) / 2 words of Pw's upper triangle packed by rows, P format
+ * @param e      block exponent, 0..plan->e_max
+ * @param c      forgetting scale, lam format, 1..plan->one_lam
+ * @return CANRLS_OK or CANRLS_EINVAL (a value outside its word; S untouched)
+ */
+int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P_up,
+                       int32_t e, int32_t c);
+
+/**
+ * One sample: the recursion of the module comment, in place.
+ *
+ * @param S     instance (state updated unless S->frozen)
+ * @param phi   n regressor words, phi format (clamped to [phi_lo, phi_hi], counted phi_in)
+ * @param y     target word, y format (clamped to [y_lo, y_hi], counted y_in)
+ * @param step  optional result (eps, trace, e, flags); NULL to skip
+ * @return 1 if the state was updated, 0 if frozen
+ *
+ * Saturates (each counted at its site): eps, h, phi' h and d (den), g and g c (div),
+ * K, theta, Pw and c (P). S->K holds the gain of this step.
+ */
+int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
+                      canrls_step_q31 *step);
+
+/** Index of Pw_ij (i <= j) in the packed upper triangle of an n x n matrix. */
+static inline size_t canrls_tri_index(uint32_t n, uint32_t i, uint32_t j)
+{
+    return (size_t)i * n - (size_t)i * (i - 1u) / 2u + (j - i);
+}
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* CANRLS_FIXED_H */
