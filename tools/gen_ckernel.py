@@ -166,16 +166,16 @@ def log_stream(log: Path | None = None, effects: str = "inertia,viscous,coulomb,
             source = str(log)
         cfg = AppConfig()
         cfg.model = {"effects": effects.split(","), "kt": 0.1}
-        prot, model, settings = prepare(cfg, log)
+        prot, model, settings = prepare(cfg)
         from canrls.can.logs import read_frames
 
         proc = FrameProcessor(prot, model, settings)
-        est0 = proc.pipeline.estimators[0]
-        eq = est0.equation
         rows: list[npt.NDArray[np.float64]] = []
         ys: list[npt.NDArray[np.float64]] = []
 
         def keep(block: object) -> None:
+            # the pipeline after the calibration window (its normalisation is frozen then)
+            eq = proc.pipeline.estimators[0].equation
             b = block.equations[0]  # type: ignore[attr-defined]
             if b.phi is not None and len(b.used):
                 rows.append(b.phi[b.used])
@@ -184,6 +184,8 @@ def log_stream(log: Path | None = None, effects: str = "inertia,viscous,coulomb,
         for frames in read_frames(log):
             keep(proc.process(frames, True))
         keep(proc.flush(True))
+    est0 = proc.pipeline.estimators[0]
+    eq = est0.equation
     Phi = np.concatenate(rows) if rows else np.zeros((0, eq.n))
     Y = np.concatenate(ys) if ys else np.zeros(0)
     f = est0.frls
