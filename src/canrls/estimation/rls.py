@@ -14,9 +14,12 @@ whose minimiser is the batch closed form
     \theta_N = \Big(\sum_{k=1}^{N} \lambda^{N-k}\varphi_k\varphi_k^\top
                + \lambda^N \alpha I\Big)^{-1} \sum_{k=1}^{N} \lambda^{N-k}\varphi_k y_k .
 
-The ridge term is the prior :math:`P_0 = I/\alpha`, :math:`\theta_0 = 0`; it is
-forgotten like any other data (hence :math:`\lambda^N\alpha`), so it regularises the
-start-up and the directions that are never excited, and fades elsewhere. The
+The ridge term is the prior :math:`P_0 = I/\alpha`, :math:`\theta_0 = 0` (or one weight
+per parameter, :math:`P_0 = \mathrm{diag}(1/\alpha_j)` and :math:`\sum_j\alpha_j\theta_j^2`:
+the pipeline scales :math:`\alpha_j` with each column's energy so that the prior does
+not depend on how the columns are normalised); it is forgotten like any other data
+(hence :math:`\lambda^N\alpha`), so it regularises the start-up and the directions
+that are never excited, and fades elsewhere. The
 recursion, per sample:
 
 .. math::
