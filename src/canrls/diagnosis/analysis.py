@@ -298,7 +298,9 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
     tfx = np.zeros((0, n))
     if npts:
         # re-run the pipeline's float RLS, back at its prior, on the same rows
-        # (bit-identical) and sample theta and sigma = sqrt(sigma2 diag P) at npts instants
+        # (bit-identical) and sample theta and sigma = sqrt(kappa sigma2 diag P) at npts
+        # instants (kappa: the colour of the final residual, as the estimates report it)
+        root_kappa = math.sqrt(est.sigma_inflation())
         rls = RLS.from_state(est.rls.state())
         rls.reset()
         phi_u = np.ascontiguousarray(eb.phi[rows])
@@ -309,7 +311,7 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
         for c in cuts:
             rls.run(phi_u[a:c], y_u[a:c], record=False)
             th_l.append(eq.to_physical(np.array(rls.theta)))
-            sd_l.append(eq.sigma_to_physical(rls.std()))
+            sd_l.append(eq.sigma_to_physical(rls.std() * root_kappa))
             a = int(c)
         k = rows[cuts - 1]
         conv_t = eb.t[k]

@@ -44,6 +44,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.errors import ConfigError
+from canrls.estimation.colour import ResidualTail
 from canrls.estimation.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
 from canrls.estimation.model import Equation, Model
 from canrls.estimation.rls import RLS, RLSFlag
@@ -302,6 +303,9 @@ class EquationFit:
     #: samples whose target or a column was not finite: left out, with the filter's
     #: warm-up after each (see :class:`~canrls.estimation.model.RegressorBuilder`)
     nonfinite_rows: int = 0
+    #: factor the residual's colour puts on the variances (kappa >= 1; the sigmas
+    #: reported are multiplied by its square root; :mod:`canrls.estimation.colour`)
+    sigma_inflation: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
         return {"equation": self.equation, "target": self.target, "unit": self.unit,
@@ -310,7 +314,8 @@ class EquationFit:
                 "target_rms": self.target_rms, "online_rms": self.online_rms,
                 "divergence": self.divergence, "saturations": dict(self.saturations),
                 "windup_steps": self.windup_steps, "low_excitation": self.low_excitation,
-                "condition": self.condition, "nonfinite_rows": self.nonfinite_rows}
+                "condition": self.condition, "nonfinite_rows": self.nonfinite_rows,
+                "sigma_inflation": self.sigma_inflation}
 
 
 @dataclass(frozen=True)
@@ -426,6 +431,8 @@ class EquationEstimator:
         self.filler = self.policy.filler()
         self.selector = self.policy.selector()
         self.beta = min(1.0, self.dt / s.rms_time_s)
+        #: the last used rows, for the colour of the residual (sigma); lags: the warm-up
+        self.tail = ResidualTail(n, self.policy.warmup)
         self.reset()
 
     @property
@@ -453,6 +460,7 @@ class EquationEstimator:
         self._rms_state = np.zeros(1)
         self.selector.reset()
         self.filler.reset()
+        self.tail.reset()
         self.windup_steps = 0
         #: rows left out because a value was not finite (see RegressorBuilder)
         self.nonfinite_rows = 0
@@ -546,6 +554,7 @@ class EquationEstimator:
             phi_u = phi if rows is None else phi[rows]
             y_u = y if rows is None else y[rows]
             eps_u, theta_u, _, flags_u, _ = self.rls.run_block(phi_u, y_u, record)
+            self.tail.push(phi_u, y_u)
             Pq, Yq = self.frls.quantize_block(phi_u, y_u)
             epsq_u, thetaq_u, _, _, flagsq_u, _ = self.frls.run_block(Pq, Yq, record)
         else:
@@ -609,7 +618,8 @@ class EquationEstimator:
         """The parameter estimates alone, without the fit statistics of :meth:`estimates`."""
         eq = self.equation
         value = eq.to_physical(self.rls.theta)
-        sigma = eq.sigma_to_physical(self.rls.std())
+        # sigma = sqrt(kappa sigma^2 diag P): the RLS formula, widened by the colour
+        sigma = eq.sigma_to_physical(self.rls.std() * math.sqrt(self.sigma_inflation()))
         fixed = eq.to_physical(self.frls.theta_float)
         return [ParameterEstimate(p.name, p.unit, p.effect, eq.name, p.description, v, s, f)
                 for p, v, s, f in zip(eq.parameters, value.tolist(), sigma.tolist(),
@@ -627,13 +637,19 @@ class EquationEstimator:
             online_rms=math.sqrt(self._rms_state[0]) * math.ldexp(1.0, eq.scaling.target),
             divergence=self.divergence(), saturations=self.frls.saturations.nonzero(),
             windup_steps=self.windup_steps, low_excitation=bool(exc.low),
-            condition=float(exc.cond), nonfinite_rows=self.nonfinite_rows)
+            condition=float(exc.cond), nonfinite_rows=self.nonfinite_rows,
+            sigma_inflation=self.sigma_inflation())
         return params, fit_obj
+
+    def sigma_inflation(self) -> float:
+        """``kappa`` of the current float estimate (:class:`ResidualTail`)."""
+        return self.tail.inflation(np.asarray(self.rls.theta, dtype=np.float64))
 
     def state(self) -> dict[str, Any]:
         return {"rls": self.rls.state(), "fixed": self.frls.state(), "M": self._M.copy(),
                 "v": self._v.copy(), "s": self._s.copy(), "rms": self._rms_state.copy(),
-                "windup_steps": self.windup_steps, "nonfinite_rows": self.nonfinite_rows}
+                "windup_steps": self.windup_steps, "nonfinite_rows": self.nonfinite_rows,
+                "tail": self.tail.state()}
 
     def restore(self, d: Mapping[str, Any]) -> None:
         """Continue from :meth:`state` (the filter restarts: the next samples warm it up)."""
@@ -647,6 +663,8 @@ class EquationEstimator:
         self.windup_steps = int(d["windup_steps"])
         self.nonfinite_rows = int(d.get("nonfinite_rows", 0))
         self._since_nonfinite = self.warmup + 1
+        if "tail" in d:
+            self.tail.restore(d["tail"])
         self.builder.reset()
         self.selector.reset()
         self.filler.reset()

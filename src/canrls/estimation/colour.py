@@ -1,0 +1,101 @@
+r"""How much the residual's colour inflates the parameters' standard deviations.
+
+The RLS covariance :math:`\hat\sigma^2 P` assumes independent residuals. After the
+state-variable filter they are not: noise on the target and on the columns leaves the
+filter low-passed, so neighbouring residuals are correlated and ``N`` samples carry the
+information of fewer. With the residual's autocorrelation :math:`\rho_l`, the variance of
+a least-squares estimate grows by about
+
+.. math::
+
+    \kappa = 1 + 2\sum_{l=1}^{L}\rho_l \qquad (\kappa \ge 1),
+
+the inverse of the effective share of samples :math:`N_{eff}/N`, with ``L`` the
+filter's memory (its warm-up: five time constants). :class:`ResidualTail` keeps the
+last ``window`` used rows :math:`(\varphi, y)`, so :math:`\rho_l` is measured on the
+residual of the current estimate, :math:`r = y - \varphi^\top\theta`, when asked
+(a publication, a fit result), never in the per-sample loop. It is carried across
+blocks, so any cut of the stream gives the same value (live and offline alike).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["ResidualTail"]
+
+F64 = npt.NDArray[np.float64]
+
+
+class ResidualTail:
+    """The last ``window`` used rows of one equation, for :meth:`inflation`.
+
+    Parameters
+    ----------
+    n : number of columns
+    lags : ``L``, the longest lag summed (the filter's memory in samples)
+    window : rows kept (default ``64 L``, at least 256)
+    """
+
+    def __init__(self, n: int, lags: int, window: int | None = None) -> None:
+        self.lags = max(1, int(lags))
+        self.window = max(256, 64 * self.lags) if window is None else int(window)
+        self._phi = np.zeros((self.window, n))
+        self._y = np.zeros(self.window)
+        self._next = 0      # ring position of the next row
+        self.rows = 0       # rows held (<= window)
+
+    def reset(self) -> None:
+        self._next = 0
+        self.rows = 0
+
+    def push(self, phi: F64, y: F64) -> None:
+        """Append used rows (normalised), oldest first."""
+        k = len(y)
+        if k >= self.window:
+            phi, y, k = phi[-self.window:], y[-self.window:], self.window
+        first = min(k, self.window - self._next)
+        self._phi[self._next:self._next + first] = phi[:first]
+        self._y[self._next:self._next + first] = y[:first]
+        self._phi[:k - first] = phi[first:]
+        self._y[:k - first] = y[first:]
+        self._next = (self._next + k) % self.window
+        self.rows = min(self.window, self.rows + k)
+
+    def _ordered(self) -> tuple[F64, F64]:
+        if self.rows < self.window:
+            return self._phi[:self.rows], self._y[:self.rows]
+        order = np.r_[self._next:self.window, 0:self._next]
+        return self._phi[order], self._y[order]
+
+    def inflation(self, theta: F64) -> float:
+        r"""``kappa`` of the residual of ``theta`` on the rows held (1 with fewer than
+        ``4 L`` rows: too few to tell)."""
+        L = self.lags
+        if self.rows < 4 * L:
+            return 1.0
+        phi, y = self._ordered()
+        # r = y - phi theta, about its mean
+        r = y - phi @ theta
+        r = r - r.mean()
+        c0 = float(r @ r)
+        if not c0 > 0.0:
+            return 1.0
+        # kappa = 1 + 2 sum_{l=1..L} rho_l,  rho_l = sum_k r_k r_{k-l} / sum_k r_k^2
+        s = sum(float(r[lag:] @ r[:-lag]) for lag in range(1, L + 1))
+        return max(1.0, 1.0 + 2.0 * s / c0)
+
+    def state(self) -> dict[str, Any]:
+        phi, y = self._ordered()
+        return {"phi": phi.copy(), "y": y.copy()}
+
+    def restore(self, d: Mapping[str, Any]) -> None:
+        self.reset()
+        phi = np.asarray(d["phi"], dtype=np.float64)
+        y = np.asarray(d["y"], dtype=np.float64)
+        if phi.ndim == 2 and phi.shape[1] == self._phi.shape[1] and len(y) == len(phi):
+            self.push(phi, y)
