@@ -241,7 +241,8 @@ def test_the_checks_catch_a_wrong_import_a_circle_and_a_private_call() -> None:
                   "from canrls.estimation.model import _exponent\n")
     uses = {name: plain for name, _, plain in private_uses(t)}
     assert "_regressors" in uses and "import _exponent" in uses
-    t2 = ast.parse("class E:\n    def _regressors(self):\n        return self.builder._regressors()\n")
+    t2 = ast.parse("class E:\n    def _regressors(self):\n"
+                   "        return self.builder._regressors()\n")
     assert {name: plain for name, _, plain in private_uses(t2)} == {"_regressors": False}
     assert "_regressors" not in private_names(t)
     assert "_x" in private_names(ast.parse("class A:\n    def _x(self):\n        pass\n"))

@@ -8,8 +8,6 @@ two frames per period: one hour is 7.2 M frames), in one run:
 
   - ``read_frames`` alone (parse the candump text into frame blocks),
   - read + strict decode + pairing (``FrameProcessor.samples``),
-  - the prescan ``scan_log_ranges`` that ``prepare(cfg, log)`` runs to measure the
-    signal ranges (a second pass over the log; configured ranges skip it),
   - ``fit_log``: read, decode, pair, regressors, float and fixed-point RLS -- the
     figure the issue's target (>= 1 M frames/s) is about;
   - ``write_candump`` re-writing the frames read (the read time subtracted), and
@@ -60,7 +58,7 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import read_frames, write_candump
 from canrls.config import AppConfig
 from canrls.processor import FrameProcessor
-from canrls.replay import fit_log, prepare, scan_log_ranges
+from canrls.replay import fit_log, prepare
 
 EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"
 KT = 0.1  # the standard scenario's torque constant [N·m/A]
@@ -104,10 +102,11 @@ def ensure_log(path: Path, duration: float, seed: int, effects: str) -> None:
 
 
 def configure(path: Path, effects: str) -> tuple[Any, Any, Any]:
-    """Protocol, model and settings as ``canrls fit`` builds them (ranges from the log)."""
+    """Protocol, model and settings as ``canrls fit`` builds them (the front end then
+    calibrates on the log's first seconds: no pass over the log beforehand)."""
     cfg = AppConfig()
     cfg.model = {"effects": effects.split(","), "kt": KT}
-    return prepare(cfg, path)
+    return prepare(cfg)
 
 
 # -------------------------------------------------------------------------- timing
@@ -142,9 +141,6 @@ def bench_canrls(path: Path, effects: str, repeat: int,
         n = sum(len(proc.samples(b)) for b in read_frames(path, chunk_size))
         return n + len(proc.pairer.flush())
 
-    def prescan() -> dict[str, list[float]]:
-        return scan_log_ranges(path, protocol, model, chunk_size=chunk_size)
-
     def fit() -> Any:
         return fit_log(path, protocol, model, settings, chunk_size=chunk_size)
 
@@ -154,8 +150,6 @@ def bench_canrls(path: Path, effects: str, repeat: int,
     print(line("read_frames", frames, wall, cpu))
     wall, cpu, n_samples = best_of(samples, repeat)
     print(line("read + decode + pair", frames, wall, cpu))
-    wall, cpu, _ = best_of(prescan, repeat)
-    print(line("prescan scan_log_ranges (prepare(cfg, log))", frames, wall, cpu))
     wall, cpu, res = best_of(fit, repeat)
     print(line("fit_log: read, decode, pair, regress, RLS", frames, wall, cpu))
     print(f"  ({res.frames} frames, {n_samples} samples, {res.estimates.samples} used; "
@@ -263,15 +257,12 @@ def bench_naive(path: Path, max_frames: int, effects: str, total: int) -> tuple[
 # -------------------------------------------------------------------------- memory
 def rss_child(path: Path, effects: str, chunk_size: int) -> None:
     """In a fresh process: RSS once set up, then peak RSS after prepare + fit_log."""
-    from canrls.processor import RangeScanner
-
     # imports, protocol and the compiled kernels (run on a few frames): the baseline
     cfg = AppConfig()
     cfg.model = {"effects": effects.split(","), "kt": KT}
     protocol = cfg.protocol()
     proc = FrameProcessor(protocol, cfg.model_for(protocol), cfg.settings())
     for b in read_frames(path, 4096):
-        RangeScanner(proc.pairer.period, 25.0, 0.7071).update(proc.samples(b))
         proc.process(b)
         break
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -296,7 +287,7 @@ def current_rss_kb() -> int | None:
 
 def bench_memory(logs: list[tuple[str, Path]], effects: str, chunk_size: int) -> None:
     print("memory (peak RSS, resource.getrusage ru_maxrss, of a fresh process: imports, "
-          "kernels compiled, then prepare (prescan) + fit_log):")
+          "kernels compiled, then prepare + fit_log):")
     for label, path in logs:
         out = subprocess.run(
             [sys.executable, os.path.abspath(__file__), "--rss-child", str(path),

@@ -220,7 +220,7 @@ class AppConfig:
         """The model.
 
         Signal ranges for the normalisation, by priority: ``[model.ranges]``, then
-        ``data_ranges`` (measured on the data, :class:`canrls.processor.RangeScanner`), then the defaults
+        ``data_ranges`` (e.g. :func:`canrls.processor.scan_ranges`), then the defaults
         of :data:`canrls.estimation.model.DEFAULT_RANGES`. The DBC's min/max are the protocol's
         limits (often ten times what the drive reaches) and serve strict decoding only:
         normalising by them would leave the regressors tiny, costing fixed-point

@@ -30,23 +30,14 @@ The calibration rule
    samples, so none is lost. A model changed later (an effect added live) gets the
    energies of its columns on the same stored window.
 
-Signal ranges from the data
+Measuring ranges on samples
 ---------------------------
-The DBC's min/max are the protocol's limits, often far wider than the drive ever
-goes (±800 A for a 10 A servo), and the bound of a derivative column derived from
-the speed range alone is the worst case of the filter; both leave the regressors
-small, which costs resolution in the fixed-point kernel. :class:`RangeScanner` measures
-the ranges the filtered signals actually reach, including the filtered derivatives
-(acceleration, current rate):
-
-.. math::
-
-    r_x = m \cdot \max_k |x_k|, \qquad
-    r_{\dot\omega} = m \cdot \max_k |sF[\omega]_k|
-
-with a headroom factor ``m`` (:data:`HEADROOM`, 4: two bits, since the window sees only
-the start of the stream). Signals beyond the range later are not clipped in float; in
-fixed point they saturate and are counted.
+:class:`RangeScanner` (and :func:`scan_ranges`) measure the ranges a block of samples
+reaches, including the filtered derivatives (acceleration, current rate):
+``r_x = m max_k |x_k|``, ``r_dw = m max_k |sF[w]_k|`` with a headroom ``m`` (2: one
+bit). The front end does not use them (its rule above needs no pass over the data);
+they build a model whose ranges fit given samples, for a pipeline used on its own
+(tests, tools).
 """
 
 from __future__ import annotations

@@ -60,7 +60,8 @@ form that ``canrls.estimation.fixed`` shares; :meth:`RLS.excitation` reports ``c
 ``positive_definite`` so that such data can be recognised. ``update="literal"`` is
 kept only for comparison.
 
-The recursion runs in the compiled kernel :func:`canrls.estimation.float_kernels.rls_block_symmetric`;
+The recursion runs in the compiled kernel
+:func:`canrls.estimation.float_kernels.rls_block_symmetric`;
 :meth:`RLS.update` (one sample) and :meth:`RLS.run` (a block) call it alike, so the
 results are identical bit for bit whatever the block sizes.
 """
@@ -653,7 +654,8 @@ class RLS:
         if not cm >= 1.0:
             raise EstimatorError(f"RLS cond_max must be >= 1, got {cond_max!r}")
         uniform = bool(np.all(self._ridge == self._ridge[0]))
-        im = 10.0 * float(self._ridge.min()) if info_min is None else check_real("info_min", info_min)
+        im = (10.0 * float(self._ridge.min()) if info_min is None
+              else check_real("info_min", info_min))
         if not im >= 0.0:
             raise EstimatorError(f"RLS info_min must be >= 0, got {info_min!r}")
         P = self._P.astype(np.float64)
