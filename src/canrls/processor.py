@@ -61,9 +61,11 @@ import numpy.typing as npt
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.pairing import Pairer, PairingCounts
-from canrls.can.protocol import Protocol, RejectCounts
+from canrls.can.period import MIN_INTERVALS, PeriodEstimate, PeriodMeter, check_period
+from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
 from canrls.estimation.model import Equation, Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline, PipelineBlock
+from canrls.errors import ConfigError
 from canrls.estimation.svf import SVF
 from canrls.signals import Signals
 
@@ -93,6 +95,10 @@ MIN_ENERGY = 2.0 ** -10
 #: estimator only), and normalised energies in (2**-10, 2**-8], so that the prior
 #: P0 = diag(1/(alpha e_j)) stays below 2**10/alpha.
 RMS_HEADROOM = 16.0
+
+#: The period of the placeholder estimator of a :class:`FrameProcessor` whose period is
+#: still being measured (no sample ever reaches it).
+_PLACEHOLDER_DT = 1e-3
 
 
 @dataclass(frozen=True)
@@ -476,26 +482,98 @@ class FrameProcessor:
     """Frames in, estimates out: decoder, pairer and :class:`SampleProcessor`, all stateful.
 
     Used by the offline replay (blocks of a log) and by the daemon (blocks of the frames
-    that arrived), with the same calibration rule (module docstring).
+    that arrived), with the same calibration rule (module docstring) and the same
+    control period rule (docs/architecture.md, "Control period"): the period is measured
+    on the first :data:`~canrls.can.period.PERIOD_FRAMES` frames of each mapped message
+    (:class:`~canrls.can.period.PeriodMeter`); a stated period (``period``, else the
+    protocol's: ``[can] period``/``--period``, else the DBC's ``GenMsgCycleTime``) is used
+    from the first frame and must agree with the measured one within 10 %; without one
+    the decoded frames are held until the period is measured, then paired. This is the
+    one place that decides the period.
 
     Parameters
     ----------
     protocol, model, settings : what to decode and estimate
-    period : control period [s] (default: the DBC's cycle time)
+    period : control period [s] (default: the protocol's, else measured)
+    period_source : who states ``period`` (named in errors; default the protocol's)
     """
 
     def __init__(self, protocol: Protocol, model: Model,
                  settings: EstimatorSettings | None = None,
-                 period: float | None = None) -> None:
+                 period: float | None = None, period_source: str | None = None) -> None:
         self.protocol = protocol
         self.decoder = protocol.decoder()
-        self.pairer = Pairer(protocol, period=period)
-        dbc = dbc_ranges(model, protocol)
+        self.frames = 0
+        stated = period if period is not None else protocol.period
+        #: who states the period (None: measured)
+        self.period_source: str | None = (
+            (period_source or "the period given") if period is not None
+            else protocol.period_source if stated is not None else None)
+        if stated is not None and not (math.isfinite(stated) and stated > 0):
+            raise ConfigError(f"{self.period_source}: the control period must be a positive "
+                              f"number of seconds, got {stated!r}")
+        self._model0, self._settings0 = model, settings
+        self._meter: PeriodMeter | None = PeriodMeter([m.name for m in protocol.messages])
+        #: the period measured on the first frames (None until then, or too few frames)
+        self.period_estimate: PeriodEstimate | None = None
+        self._held: list[DecodedFrames] = []
+        self._seen_ids: dict[int, int] = {}
+        self.pairer: Pairer | None = None
+        if stated is not None:
+            self._start(float(stated))
+        else:
+            # a placeholder until the period is measured: no sample reaches it, so its
+            # period is never used (the daemon may publish its empty state meanwhile)
+            self.sampler = SampleProcessor(model, _PLACEHOLDER_DT, settings)
+
+    def _start(self, period: float) -> None:
+        """Pairer and sample processor for the decided period."""
+        model = self._model0
+        self.pairer = Pairer(self.protocol, period=period)
+        dbc = dbc_ranges(model, self.protocol)
         sources = {k: ("config" if k in model.ranges_given else "dbc" if k in dbc else
                        "default") for k in model.ranges}
         self.sampler = SampleProcessor(model.with_ranges(dbc) if dbc else model,
-                                       self.pairer.period, settings, sources)
-        self.frames = 0
+                                       self.pairer.period, self._settings0, sources)
+
+    @property
+    def period(self) -> float | None:
+        """The control period [s] pairing uses (None while it is being measured)."""
+        return None if self.pairer is None else self.pairer.period
+
+    def _measured(self, final: bool) -> None:
+        """The meter has its frames (or the stream ended): check or adopt the period."""
+        assert self._meter is not None
+        est = self._meter.estimate()
+        counts = self._meter.counts()
+        self._meter = None
+        self.period_estimate = est
+        if self.pairer is not None:
+            if est is not None:
+                check_period(self.pairer.period, self.period_source or "the period", est)
+            return
+        if est is None:
+            if not any(counts.values()):
+                raise self._foreign_error()
+            raise ConfigError(
+                "cannot measure the control period: the log has only "
+                + ", ".join(f"{n} frames of {m}" for m, n in counts.items())
+                + f" (at least {MIN_INTERVALS + 1} of one message are needed); "
+                  "state it with --period SECONDS")
+        self._start(est.period)
+
+    def _foreign_error(self) -> ConfigError:
+        """None of the mapped messages was decoded: name what was expected and seen."""
+        want = ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in self.protocol.messages)
+        seen = sorted(self._seen_ids.items(), key=lambda kv: -kv[1])[:8]
+        seen_text = ", ".join(f"0x{i:X} ({n})" for i, n in seen) if seen else "none"
+        rej = {k: int(v) for k, v in self.decoder.rejected.items() if v}
+        why = ("; rejected: " + ", ".join(f"{k} {v}" for k, v in rej.items())) if rej else ""
+        return ConfigError(
+            f"none of the mapped messages occurs in the {self.frames} frames read: expected "
+            f"{want} (DBC {self.protocol.dbc_path.name}); most frequent IDs seen "
+            f"(frames): {seen_text}{why}. Map the right messages with --signal "
+            f"ROLE=MESSAGE.SIGNAL or give the drive's DBC with --dbc")
 
     @property
     def pipeline(self) -> Pipeline:
@@ -536,10 +614,44 @@ class FrameProcessor:
     def samples(self, block: FrameBlock) -> Signals:
         """Decode and pair one block of frames (no estimation)."""
         self.frames += len(block)
-        return self.pairer.push(self.decoder.decode(block))
+        decoded = self.decoder.decode(block)
+        if self._meter is not None:
+            times = {name: decoded.messages[name].t for name in decoded.messages}
+            self._meter.add(times)
+            if not any(self._meter.counts().values()) and len(block):
+                ids, n = np.unique(block.arbitration_id, return_counts=True)
+                for i, k in zip(ids.tolist(), n.tolist(), strict=True):
+                    self._seen_ids[i] = self._seen_ids.get(i, 0) + k
+            if self._meter.done:
+                self._measured(final=False)
+        if self.pairer is None:
+            self._held.append(decoded)
+            return Signals.concat([])
+        return self._push(decoded)
+
+    def _push(self, decoded: DecodedFrames | None) -> Signals:
+        """Pair the held blocks (if any), then ``decoded`` (None: the end of stream)."""
+        assert self.pairer is not None
+        held, self._held = self._held, []
+        parts = [self.pairer.push(d) for d in held]
+        parts.append(self.pairer.push(decoded) if decoded is not None else self.pairer.flush())
+        if len(parts) == 1:
+            return parts[0]
+        return Signals.concat([p for p in parts if len(p)]) if any(len(p) for p in parts) \
+            else parts[-1]
+
+    def flush_samples(self) -> Signals:
+        """End of stream, no estimation: the period decided with what came (an error if
+        it cannot be, or if none of the mapped messages came), and the samples still open."""
+        if self._meter is not None:
+            if not any(self._meter.counts().values()):
+                raise self._foreign_error()
+            self._measured(final=True)
+        return self._push(None)
 
     def process(self, block: FrameBlock, record: bool = False) -> PipelineBlock:
-        return self.sampler.process(self.samples(block), record)
+        samples = self.samples(block)  # first: it may start the sample processor
+        return self.sampler.process(samples, record)
 
     def process_samples(self, samples: Signals, record: bool = False) -> PipelineBlock:
         """Samples already paired (a simulation) through the same rule."""
@@ -548,7 +660,8 @@ class FrameProcessor:
     def flush(self, record: bool = False) -> PipelineBlock:
         """End of stream: complete periods still waiting for a partner go through, and a
         calibration still collecting uses what it has."""
-        out = self.sampler.process(self.pairer.flush(), record)
+        samples = self.flush_samples()  # first: it may start the sample processor
+        out = self.sampler.process(samples, record)
         if self.sampler.calibrating:
             out = self.sampler.finish(record)
         return out
@@ -559,11 +672,19 @@ class FrameProcessor:
 
     @property
     def pairing(self) -> PairingCounts:
-        return self.pairer.counts
+        return self.pairer.counts if self.pairer is not None else PairingCounts()
+
+    def period_info(self) -> dict[str, Any]:
+        """The period used, who stated it and what the frames measured (text and JSON)."""
+        est = self.period_estimate
+        return {"value": self.period, "source": self.period_source or "measured",
+                "measured": None if est is None else est.period,
+                "jitter": None if est is None else est.jitter,
+                "intervals": None if est is None else sum(est.intervals.values())}
 
     def result(self, source: str) -> FitResult:
         rej = self.rejected
-        extra: dict[str, Any] = {}
+        extra: dict[str, Any] = {"period": self.period_info()}
         return FitResult(
             estimates=self.pipeline.estimates(), frames=self.frames,
             rejected={k: int(v) for k, v in rej.items()},

@@ -171,7 +171,7 @@ def read_log_samples(path: str | os.PathLike[str], protocol: Any, model: Model,
     for block in read_frames(path, chunk_size, skip_bad_lines=skip_bad_lines, stats=stats,
                              progress=progress):
         parts.append(proc.samples(block))
-    parts.append(proc.pairer.flush())
+    parts.append(proc.flush_samples())
     signals = Signals.concat([p for p in parts if len(p)]) if any(len(p) for p in parts) \
         else Signals.concat([])
     rej = proc.rejected
@@ -187,7 +187,7 @@ def read_log_samples(path: str | os.PathLike[str], protocol: Any, model: Model,
     if len(signals) < 2:
         raise ConfigError(f"{path}: {len(signals)} samples after decoding and pairing "
                           f"{proc.frames} frames; nothing to diagnose")
-    return LogSamples(signals, proc.pairer.period, frames, proc.model)
+    return LogSamples(signals, proc.dt, frames, proc.model)
 
 
 def diagnose_log(path: str | os.PathLike[str], protocol: Any, model: Model,
