@@ -101,7 +101,14 @@ def run(args: argparse.Namespace) -> int:
             d["report"] = str(page)
         print_json(d)
     else:
-        sys.stdout.write(rep.format() + "\n")
+        head = []
+        frames = getattr(rep, "frames", None) or {}
+        if (frames.get("start") or {}).get("date"):
+            head.append(f"log starts {frames['start']['date']}; times below are from that start")
+        per = frames.get("period") or {}
+        if per.get("value"):
+            head.append(f"control period {per['value'] * 1e3:.6g} ms ({per.get('source')})")
+        sys.stdout.write("".join(h + "\n" for h in head) + rep.format() + "\n")
         if page is not None:
             sys.stdout.write(f"\nreport: {page}\n")
     return 0

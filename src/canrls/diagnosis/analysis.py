@@ -166,7 +166,7 @@ def read_log_samples(path: str | os.PathLike[str], protocol: Any, model: Model,
     from canrls.processor import FrameProcessor  # noqa: PLC0415
 
     stats = LogReadStats()
-    proc = FrameProcessor(protocol, model, settings)
+    proc = FrameProcessor(protocol, model, settings, relative_time=True)
     parts = []
     for block in read_frames(path, chunk_size, skip_bad_lines=skip_bad_lines, stats=stats,
                              progress=progress):
@@ -181,6 +181,8 @@ def read_log_samples(path: str | os.PathLike[str], protocol: Any, model: Model,
         "lost": {k: int(v) for k, v in proc.decoder.lost.items()},
         "foreign": int(proc.decoder.foreign),
         "pairing": proc.pairing.as_dict(),
+        "period": proc.period_info(),
+        "start": proc.start_info(),
     }
     if stats.bad_lines:
         frames["bad_lines"] = stats.bad_lines

@@ -1,0 +1,297 @@
+"""A user's own drive: their DBC and logs, no configuration file, from the command line.
+
+The user DBCs are written here (DBC text, as a user's tool writes it): no
+``GenMsgCycleTime``, 29-bit IDs, Motorola byte order, scaled integer units (mA,
+0.01 rpm, 0.01 deg, mm, 0.01 mm/s). The same simulated data is encoded once in the
+user's DBC and once in canrls's own, and both fits must give the same parameters
+within their sigma.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from canrls.can.logs import LogReadStats, read_frames, write_log
+from canrls.can.period import estimate_period
+from canrls.can.protocol import Protocol
+from canrls.cli.main import main
+from canrls.sim.scenario import Simulator, scenario
+
+ROTARY_DBC = '''VERSION ""
+
+NS_ :
+
+BS_:
+
+BU_: Drive
+
+BO_ 2566914305 MotorFeedback: 8 Drive
+ SG_ PhaseCurrent : 7|16@0- (1,0) [-32000|32000] "mA" Vector__XXX
+ SG_ MotorSpeed : 23|32@0- (0.01,0) [-2000000|2000000] "rpm" Vector__XXX
+
+BO_ 2566914306 MotorAngle: 2 Drive
+ SG_ Angle : 7|16@0+ (0.01,0) [0|360] "deg" Vector__XXX
+'''
+ROTARY_SIGNALS = ["current=MotorFeedback.PhaseCurrent", "speed=MotorFeedback.MotorSpeed",
+                  "position=MotorAngle.Angle"]
+
+LINEAR_DBC = '''VERSION ""
+
+NS_ :
+
+BS_:
+
+BU_: Axis
+
+BO_ 2566914561 AxisCurrent: 2 Axis
+ SG_ Iq : 7|16@0- (1,0) [-32000|32000] "mA" Vector__XXX
+
+BO_ 2566914562 AxisMotion: 8 Axis
+ SG_ Velocity : 7|32@0- (0.01,0) [-2000000|2000000] "mm/s" Vector__XXX
+ SG_ Pos : 39|32@0- (0.001,0) [-2000000|2000000] "mm" Vector__XXX
+'''
+LINEAR_SIGNALS = ["current=AxisCurrent.Iq", "speed=AxisMotion.Velocity",
+                  "position=AxisMotion.Pos"]
+
+EPOCH = 1_700_000_000.25
+DURATION = 8.0
+
+
+def _flags(dbc: Path, signals: list[str]) -> list[str]:
+    return ["--dbc", str(dbc), *[a for s in signals for a in ("--signal", s)]]
+
+
+def _fit(capsys: pytest.CaptureFixture[str], args: list[str]) -> dict[str, Any]:
+    assert main(["fit", *args, "--quiet", "--json"]) == 0
+    out: dict[str, Any] = json.loads(capsys.readouterr().out)
+    return out
+
+
+def _same(a: dict[str, Any], b: dict[str, Any]) -> None:
+    """The same parameters within their sigma (the two sigmas added)."""
+    assert a["parameters"].keys() == b["parameters"].keys()
+    for name, pa in a["parameters"].items():
+        pb = b["parameters"][name]
+        assert abs(pa["value"] - pb["value"]) <= pa["sigma"] + pb["sigma"], (name, pa, pb)
+        assert pa["unit"] == pb["unit"]
+
+
+@pytest.fixture(scope="module")
+def rotary(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("rotary")
+    dbc = d / "servo.dbc"
+    dbc.write_text(ROTARY_DBC)
+    user = Protocol.load(dbc, ROTARY_SIGNALS)
+    sc = scenario("standard", seed=5, duration=DURATION)
+    out = {"dbc": dbc, "own": d / "own.log", "epoch": d / "candump-2023.log",
+           "blf": d / "servo.blf"}
+    write_log(out["own"], Simulator(sc).frames())
+    write_log(out["epoch"], Simulator(sc, t0=EPOCH, protocol=user).frames())
+    write_log(out["blf"], Simulator(sc, protocol=user).frames())
+    return out
+
+
+@pytest.fixture(scope="module")
+def linear(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("linear")
+    dbc = d / "axis.dbc"
+    dbc.write_text(LINEAR_DBC)
+    user = Protocol.load(dbc, LINEAR_SIGNALS)
+    sc = scenario("linear", seed=6, duration=DURATION)
+    out = {"dbc": dbc, "own": d / "own.log", "asc": d / "axis.asc"}
+    write_log(out["own"], Simulator(sc).frames())
+    write_log(out["asc"], Simulator(sc, protocol=user).frames())
+    return out
+
+
+def test_the_user_dbc_has_what_a_user_dbc_has(rotary: dict[str, Path]) -> None:
+    p = Protocol.load(rotary["dbc"], ROTARY_SIGNALS)
+    assert p.period is None and p.period_source is None  # no GenMsgCycleTime
+    assert all(m.is_extended for m in p.messages)
+    assert p.messages[0].frame_id == 0x19000101
+    assert p.db.get_message_by_name("MotorFeedback").signals[0].byte_order == "big_endian"
+    assert p.axis == "rotary"
+    assert Protocol.load(Path(str(rotary["dbc"]).replace("servo", "servo")), ROTARY_SIGNALS)
+
+
+def test_rotary_epoch_candump_log_fits_as_with_the_own_dbc(
+        rotary: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    own = _fit(capsys, [str(rotary["own"])])
+    user = _fit(capsys, [str(rotary["epoch"]), *_flags(rotary["dbc"], ROTARY_SIGNALS)])
+    _same(own, user)
+    assert user["period"]["source"] == "measured"
+    assert user["period"]["value"] == pytest.approx(1e-3, rel=1e-6)
+    assert user["start"]["t0"] == pytest.approx(EPOCH)
+    assert user["start"]["date"].startswith("2023-11-14 22:13:20.25")
+    # times relative to the start of the log
+    assert user["calibration"]["window"]["t_start"] < 1.0
+    assert user["axis"]["axis"] == "rotary"
+    assert user["parameters"]["inertia.J"]["unit"] == "A·s²/rad"
+
+
+def test_rotary_text_names_date_period_axis_and_defaults(
+        rotary: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["fit", str(rotary["epoch"]), *_flags(rotary["dbc"], ROTARY_SIGNALS),
+                 "--kt", "0.1", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "log starts 2023-11-14 22:13:20.250000 UTC" in out
+    assert "1.7e+09" not in out
+    assert "control period 1 ms (measured on the timestamps)" in out
+    assert "axis rotary (DBC units: current mA, speed rpm, position deg)" in out
+    assert "defaults from the data: Coulomb band" in out
+    assert "kg·m²" in out and "N·m" in out
+
+
+def test_blf_log_of_the_user_dbc(rotary: dict[str, Path],
+                                 capsys: pytest.CaptureFixture[str]) -> None:
+    own = _fit(capsys, [str(rotary["own"])])
+    user = _fit(capsys, [str(rotary["blf"]), *_flags(rotary["dbc"], ROTARY_SIGNALS)])
+    _same(own, user)
+
+
+def test_linear_asc_log_in_mm_fits_as_with_the_own_dbc(
+        linear: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    own = _fit(capsys, [str(linear["own"]), "--axis", "linear", "--kt", "20"])
+    user = _fit(capsys, [str(linear["asc"]), *_flags(linear["dbc"], LINEAR_SIGNALS),
+                         "--kt", "20"])
+    _same(own, user)
+    assert user["axis"]["axis"] == "linear"  # from the DBC's mm and mm/s
+    units = {k: v["unit"] for k, v in user["parameters"].items()}
+    assert units == {"inertia.J": "kg", "viscous.B": "N·s/m", "coulomb.Tc": "N"}
+    # the truth: m = 2 kg, B = 5 N·s/m, Fc = 3 N
+    p = user["parameters"]
+    assert p["inertia.J"]["value"] == pytest.approx(2.0, rel=0.01)
+    assert p["coulomb.Tc"]["value"] == pytest.approx(3.0, rel=0.01)
+    # defaults scaled from the data (speed noise 1e-4 m/s), not 0.01 "rad/s or m/s"
+    band = user["calibration"]["defaults"]["coulomb_band"]
+    assert 1e-4 < band < 1e-3
+    assert user["calibration"]["defaults"]["pitch"] == 1.0  # 0.9 m of travel rounded up
+
+
+def test_diagnose_a_user_log_without_configuration(
+        linear: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["diagnose", str(linear["asc"]), *_flags(linear["dbc"], LINEAR_SIGNALS),
+                 "--kt", "20", "--quiet", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["frames"]["period"]["source"] == "measured"
+    assert d["before"]["parameters"]["coulomb.Tc"]["unit"] == "N"
+
+
+# ------------------------------------------------------------------ clear errors
+
+
+def test_a_wrong_period_is_refused_naming_both(rotary: dict[str, Path],
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["fit", str(rotary["epoch"]), *_flags(rotary["dbc"], ROTARY_SIGNALS),
+                 "--period", "0.0018", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "--period 0.0018 gives a control period of 1.8 ms" in err
+    assert "timestamps say 1 ms" in err
+    # within 10 %: accepted, and used
+    d = _fit(capsys, [str(rotary["epoch"]), *_flags(rotary["dbc"], ROTARY_SIGNALS),
+                      "--period", "0.00102"])
+    assert d["period"]["value"] == 0.00102 and d["period"]["source"] == "--period 0.00102"
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--kt", "-0.1"], "--kt -0.1: the torque constant must be positive"),
+    (["--kt", "0"], "--kt 0: the torque constant must be positive"),
+    (["--period", "0"], "--period 0: the control period must be a positive number"),
+    (["--period=-1e-3"], "--period -1e-3: the control period must be a positive number"),
+    (["--effects", "inertia,viscous,colomb"], "--effects inertia,viscous,colomb: unknown "
+                                              "effect 'colomb'"),
+    (["--lambda", "2"], "--lambda 2: must be in (0.5, 1]"),
+])
+def test_command_line_mistakes_name_the_flag(rotary: dict[str, Path], args: list[str],
+                                             message: str,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["fit", str(rotary["own"]), *args, "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {message}"), err
+    assert "<defaults>" not in err
+
+
+def test_a_foreign_log_names_expected_and_seen_ids(
+        rotary: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    # the user's log read with canrls's own DBC
+    assert main(["fit", str(rotary["epoch"]), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "none of the mapped messages occurs" in err
+    assert "expected 0x101 (DriveCurrent), 0x102 (DriveSpeed)" in err
+    assert "0x19000101 (8000)" in err and "0x19000102 (8000)" in err
+    assert main(["diagnose", str(rotary["epoch"]), "--quiet"]) == 1
+    assert "0x19000101 (8000)" in capsys.readouterr().err
+
+
+def test_too_few_usable_samples_says_how_many_and_why(
+        tmp_path: Path, rotary: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    short = tmp_path / "short.log"
+    blocks = list(read_frames(rotary["own"]))
+    write_log(short, [blocks[0].take(slice(0, 120))])
+    assert main(["fit", str(short), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert re.search(r"too few usable samples: the mechanical equation used \d+, its 3 "
+                     r"parameters need at least 30; 120 frames gave 60 samples", err), err
+    assert "warm-up" in err
+
+
+def test_an_empty_log_is_an_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    empty = tmp_path / "empty.log"
+    empty.write_text("")
+    assert main(["fit", str(empty), "--quiet"]) == 1
+    assert "no CAN frames" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ timestamps
+
+
+def test_epoch_candump_takes_the_fast_path(rotary: dict[str, Path]) -> None:
+    st = LogReadStats()
+    blocks = list(read_frames(rotary["epoch"], stats=st))
+    assert st.slow_lines == 0 and st.frames == 2 * int(DURATION / 1e-3)
+    t = np.concatenate([b.t for b in blocks])
+    # exactly float() of the text
+    with open(rotary["epoch"]) as f:
+        ref = [float(line[1:line.index(")")]) for line in f]
+    assert t.tolist() == ref
+
+
+@pytest.mark.parametrize("kind", ["jitter", "drops", "bursts"])
+def test_period_from_timestamps_is_robust(kind: str) -> None:
+    rng = np.random.default_rng(3)
+    p = 2e-3
+    t = EPOCH + p * np.arange(2000)
+    if kind == "jitter":
+        t = t + rng.normal(0, 0.1 * p, len(t))
+    elif kind == "drops":
+        t = t[rng.random(len(t)) > 0.3]
+    else:  # groups of 8 frames queued and sent within 10 µs
+        t = t[(np.arange(len(t)) // 8) * 8] + 1e-6 * (np.arange(len(t)) % 8)
+    est = estimate_period({"m": np.sort(t)})
+    assert est is not None
+    assert est.period == pytest.approx(p, rel=0.01)
+
+
+def test_the_period_is_the_same_live_and_offline(rotary: dict[str, Path]) -> None:
+    """The daemon's front end measures the period on the first frames as they come, in
+    blocks of any size: the same period and parameters as one block."""
+    from canrls.config import AppConfig
+    from canrls.replay import fit_frames
+
+    cfg = AppConfig(can={"dbc": str(rotary["dbc"])}, signal_overrides=ROTARY_SIGNALS)
+    protocol = cfg.protocol()
+    model, settings = cfg.model_for(protocol), cfg.settings()
+    whole = list(read_frames(rotary["epoch"]))
+    small = [b.take(slice(i, i + 37)) for b in whole for i in range(0, len(b), 37)]
+    a = fit_frames(whole, protocol, model, settings)
+    b = fit_frames(small, protocol, model, settings)
+    assert a.extra["period"] == b.extra["period"]
+    for pa, pb in zip(a.parameters, b.parameters, strict=True):
+        assert pa.value == pb.value or (math.isnan(pa.value) and math.isnan(pb.value))
