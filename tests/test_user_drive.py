@@ -295,3 +295,45 @@ def test_the_period_is_the_same_live_and_offline(rotary: dict[str, Path]) -> Non
     assert a.extra["period"] == b.extra["period"]
     for pa, pb in zip(a.parameters, b.parameters, strict=True):
         assert pa.value == pb.value or (math.isnan(pa.value) and math.isnan(pb.value))
+
+
+def test_bench_epoch_runs(tmp_path: Path) -> None:
+    """tools/bench_epoch.py on a short log: both logs read, neither on the slow path."""
+    import subprocess
+    import sys
+
+    tool = Path(__file__).resolve().parents[1] / "tools" / "bench_epoch.py"
+    out = subprocess.run([sys.executable, str(tool), "--duration", "2", "--repeat", "1",
+                          "--dir", str(tmp_path)], capture_output=True, text=True, check=True,
+                         timeout=300).stdout
+    lines = out.splitlines()
+    assert [ln.split(":")[0].strip() for ln in lines if "first line" in ln] == \
+        ["zero-based", "epoch"]
+    assert "(1700000000.000000) can0" in out
+    assert "slow path" not in out
+    assert out.count("fit_log:") == 2
+
+
+def test_a_checkpoint_restored_before_the_period_is_measured(rotary: dict[str, Path]) -> None:
+    """The daemon restores a checkpoint at start, before the first frames have told the
+    period: the restored calibration holds once the period is measured."""
+    from canrls.config import AppConfig
+    from canrls.processor import FrameProcessor
+
+    cfg = AppConfig(can={"dbc": str(rotary["dbc"])}, signal_overrides=ROTARY_SIGNALS)
+    protocol = cfg.protocol()
+    model, settings = cfg.model_for(protocol), cfg.settings()
+    blocks = [b.take(slice(i, i + 1000)) for b in read_frames(rotary["epoch"])
+              for i in range(0, len(b), 1000)]
+    a = FrameProcessor(protocol, model, settings)
+    for b in blocks[:8]:
+        a.process(b)
+    assert a.calibration is not None and a.period == pytest.approx(1e-3)
+    b2 = FrameProcessor(protocol, model, settings)
+    assert b2.period is None
+    b2.restore(a.state(), a.model)
+    for b in blocks[8:]:
+        b2.process(b)
+    assert b2.period == pytest.approx(1e-3)
+    assert b2.calibration == a.calibration
+    assert b2.pipeline.estimates().samples > 0

@@ -5,12 +5,15 @@ default DBC's feedback frames of a ``--duration`` second run at 1 kHz, two frame
 period: 10 minutes are 1.2 M frames), one with times from 0 and one from an epoch time
 (``--epoch``, 1.7e9 s, as ``candump -l`` writes), then reads each with
 :func:`canrls.can.logs.read_frames` warm (after one untimed read: JIT compilation and
-the first read of the file are not timed) and prints frames/s, best of ``--repeat``.
-Both should take the compiled fast path; the goal is at least 1 M frames/s each.
+the first read of the file are not timed) and prints frames/s, best of ``--repeat``;
+then the whole replay, ``fit_log`` (read, decode, measure and check the period, pair,
+estimate), the same way. Both logs should take the compiled fast path and replay at the
+same speed; the goal is at least 1 M frames/s each.
 
 Usage::
 
     python tools/bench_epoch.py [--duration 600] [--epoch 1.7e9] [--repeat 3] [--dir DIR]
+                                [--no-fit]
 """
 
 from __future__ import annotations
@@ -57,12 +60,30 @@ def read_rate(path: Path, repeat: int) -> tuple[float, int, int]:
     return n / best, n, slow
 
 
+def fit_rate(path: Path, repeat: int) -> tuple[float, int]:
+    """(best frames/s of ``fit_log``, samples used)."""
+    from canrls.config import AppConfig
+    from canrls.replay import fit_log, prepare
+
+    protocol, model, settings = prepare(AppConfig())
+    best = math.inf
+    used = 0
+    for i in range(repeat + 1):
+        t = time.perf_counter()
+        res = fit_log(path, protocol, model, settings)
+        el = time.perf_counter() - t
+        best = min(best, el) if i else best
+        used = res.estimates.samples
+    return res.frames / best, used
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=600.0)
     ap.add_argument("--epoch", type=float, default=1.7e9)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--dir", type=Path, default=None)
+    ap.add_argument("--no-fit", action="store_true", help="time the reader only")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         d = a.dir or Path(tmp)
@@ -75,6 +96,10 @@ def main() -> None:
             print(f"{name:>10}: {n} frames ({path.stat().st_size / 2**20:.0f} MiB), "
                   f"{rate / 1e6:.2f} M frames/s warm, first line {first!r}"
                   + (f", {slow} lines on the slow path" if slow else ""))
+            if not a.no_fit:
+                frate, used = fit_rate(path, a.repeat)
+                print(f"{'':>10}  fit_log: {frate / 1e6:.2f} M frames/s warm ({used} samples "
+                      f"used)")
 
 
 if __name__ == "__main__":

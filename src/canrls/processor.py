@@ -628,6 +628,7 @@ class FrameProcessor:
         self.period_estimate: PeriodEstimate | None = None
         self._held: list[DecodedFrames] = []
         self._seen_ids: dict[int, int] = {}
+        self._restore: tuple[Mapping[str, Any], Model] | None = None
         self.pairer: Pairer | None = None
         if stated is not None:
             self._start(float(stated))
@@ -645,6 +646,9 @@ class FrameProcessor:
                        "default") for k in model.ranges}
         self.sampler = SampleProcessor(model.with_ranges(dbc) if dbc else model,
                                        self.pairer.period, self._settings0, sources)
+        if self._restore is not None:  # a checkpoint restored while the period was measured
+            self.sampler.restore(*self._restore)
+            self._restore = None
 
     @property
     def period(self) -> float | None:
@@ -710,7 +714,10 @@ class FrameProcessor:
         return self.sampler.model
 
     def with_model(self, model: Model) -> Pipeline:
-        """:meth:`SampleProcessor.with_model`."""
+        """:meth:`SampleProcessor.with_model` (before the period is known: the model the
+        sample processor will start with)."""
+        if self.pairer is None:
+            self._model0 = model
         return self.sampler.with_model(model)
 
     def state(self) -> dict[str, Any]:
@@ -718,7 +725,10 @@ class FrameProcessor:
         return self.sampler.state()
 
     def restore(self, state: Mapping[str, Any], model: Model) -> None:
-        """:meth:`SampleProcessor.restore`."""
+        """:meth:`SampleProcessor.restore` (before the period is known: once it is)."""
+        if self.pairer is None:
+            self._model0 = model
+            self._restore = (state, model)
         self.sampler.restore(state, model)
 
     def samples(self, block: FrameBlock) -> Signals:

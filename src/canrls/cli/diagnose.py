@@ -108,6 +108,13 @@ def run(args: argparse.Namespace) -> int:
         per = frames.get("period") or {}
         if per.get("value"):
             head.append(f"control period {per['value'] * 1e3:.6g} ms ({per.get('source')})")
+        m = getattr(rep, "model", None)
+        if m is not None:
+            u = "m/s" if m.axis == "linear" else "rad/s"
+            head.append(f"axis {m.axis}; values used: Coulomb band {m.coulomb_band:.4g} {u} "
+                        f"(minimum speed {5 * m.coulomb_band:.4g} {u} unless configured), "
+                        f"Stribeck speed {m.stribeck_speed:.4g} {u}"
+                        + (f", pitch {m.pitch:.4g} m" if m.axis == "linear" else ""))
         sys.stdout.write("".join(h + "\n" for h in head) + rep.format() + "\n")
         if page is not None:
             sys.stdout.write(f"\nreport: {page}\n")
