@@ -24,13 +24,10 @@ from canrls.can.protocol import Protocol
 from canrls.cli.main import main
 from canrls.sim.scenario import Simulator, scenario
 
-ROTARY_DBC = '''VERSION ""
+#: what every DBC begins with
+HEADER = 'VERSION ""\n\nNS_ :\n\nBS_:\n\n'
 
-NS_ :
-
-BS_:
-
-BU_: Drive
+ROTARY_DBC = HEADER + '''BU_: Drive
 
 BO_ 2566914305 MotorFeedback: 8 Drive
  SG_ PhaseCurrent : 7|16@0- (1,0) [-32000|32000] "mA" Vector__XXX
@@ -42,13 +39,7 @@ BO_ 2566914306 MotorAngle: 2 Drive
 ROTARY_SIGNALS = ["current=MotorFeedback.PhaseCurrent", "speed=MotorFeedback.MotorSpeed",
                   "position=MotorAngle.Angle"]
 
-LINEAR_DBC = '''VERSION ""
-
-NS_ :
-
-BS_:
-
-BU_: Axis
+LINEAR_DBC = HEADER + '''BU_: Axis
 
 BO_ 2566914561 AxisCurrent: 2 Axis
  SG_ Iq : 7|16@0- (1,0) [-32000|32000] "mA" Vector__XXX
@@ -83,32 +74,32 @@ def _same(a: dict[str, Any], b: dict[str, Any]) -> None:
         assert pa["unit"] == pb["unit"]
 
 
+def _logs(d: Path, dbc_text: str, signals: list[str], name: str, seed: int,
+          logs: dict[str, tuple[str, float]]) -> dict[str, Path]:
+    """The user's DBC and, of one simulated run, a log in canrls's own DBC (``own``) and
+    logs ``{key: (file name, t0)}`` in the user's."""
+    dbc = d / "user.dbc"
+    dbc.write_text(dbc_text)
+    user = Protocol.load(dbc, signals)
+    sc = scenario(name, seed=seed, duration=DURATION)
+    out = {"dbc": dbc, "own": d / "own.log"}
+    write_log(out["own"], Simulator(sc).frames())
+    for key, (fname, t0) in logs.items():
+        out[key] = d / fname
+        write_log(out[key], Simulator(sc, t0=t0, protocol=user).frames())
+    return out
+
+
 @pytest.fixture(scope="module")
 def rotary(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    d = tmp_path_factory.mktemp("rotary")
-    dbc = d / "servo.dbc"
-    dbc.write_text(ROTARY_DBC)
-    user = Protocol.load(dbc, ROTARY_SIGNALS)
-    sc = scenario("standard", seed=5, duration=DURATION)
-    out = {"dbc": dbc, "own": d / "own.log", "epoch": d / "candump-2023.log",
-           "blf": d / "servo.blf"}
-    write_log(out["own"], Simulator(sc).frames())
-    write_log(out["epoch"], Simulator(sc, t0=EPOCH, protocol=user).frames())
-    write_log(out["blf"], Simulator(sc, protocol=user).frames())
-    return out
+    return _logs(tmp_path_factory.mktemp("rotary"), ROTARY_DBC, ROTARY_SIGNALS, "standard", 5,
+                 {"epoch": ("candump-2023.log", EPOCH), "blf": ("servo.blf", 0.0)})
 
 
 @pytest.fixture(scope="module")
 def linear(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    d = tmp_path_factory.mktemp("linear")
-    dbc = d / "axis.dbc"
-    dbc.write_text(LINEAR_DBC)
-    user = Protocol.load(dbc, LINEAR_SIGNALS)
-    sc = scenario("linear", seed=6, duration=DURATION)
-    out = {"dbc": dbc, "own": d / "own.log", "asc": d / "axis.asc"}
-    write_log(out["own"], Simulator(sc).frames())
-    write_log(out["asc"], Simulator(sc, protocol=user).frames())
-    return out
+    return _logs(tmp_path_factory.mktemp("linear"), LINEAR_DBC, LINEAR_SIGNALS, "linear", 6,
+                 {"asc": ("axis.asc", 0.0)})
 
 
 def test_the_user_dbc_has_what_a_user_dbc_has(rotary: dict[str, Path]) -> None:
@@ -118,7 +109,6 @@ def test_the_user_dbc_has_what_a_user_dbc_has(rotary: dict[str, Path]) -> None:
     assert p.messages[0].frame_id == 0x19000101
     assert p.db.get_message_by_name("MotorFeedback").signals[0].byte_order == "big_endian"
     assert p.axis == "rotary"
-    assert Protocol.load(Path(str(rotary["dbc"]).replace("servo", "servo")), ROTARY_SIGNALS)
 
 
 def test_rotary_epoch_candump_log_fits_as_with_the_own_dbc(
@@ -240,6 +230,8 @@ def test_too_few_usable_samples_says_how_many_and_why(
     assert re.search(r"too few usable samples: the mechanical equation used \d+, its 3 "
                      r"parameters need at least 30; 120 frames gave 60 samples", err), err
     assert "warm-up" in err
+    assert main(["diagnose", str(short), "--quiet"]) == 1
+    assert "too few usable samples" in capsys.readouterr().err
 
 
 def test_an_empty_log_is_an_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

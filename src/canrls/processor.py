@@ -65,9 +65,9 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.pairing import Pairer, PairingCounts
 from canrls.can.period import MIN_INTERVALS, PeriodEstimate, PeriodMeter, check_period
 from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
+from canrls.errors import ConfigError
 from canrls.estimation.model import DATA_OPTIONS, Equation, Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline, PipelineBlock
-from canrls.errors import ConfigError
 from canrls.estimation.svf import SVF
 from canrls.signals import Signals
 

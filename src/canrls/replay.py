@@ -13,15 +13,15 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Iterable, Mapping
+from typing import TYPE_CHECKING, Any
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, read_frames
 from canrls.can.protocol import Protocol
 from canrls.errors import EstimatorError, LogFormatError
 from canrls.estimation.model import Model
-from canrls.estimation.pipeline import EstimatorSettings, PipelineBlock
+from canrls.estimation.pipeline import Estimates, EstimatorSettings, PipelineBlock
 from canrls.estimation.selection import SamplePolicy
 from canrls.processor import FitResult, FrameProcessor
 
@@ -65,7 +65,8 @@ def fit_log(path: str | os.PathLike[str], protocol: Protocol, model: Model,
         raise LogFormatError(f"{path}: no CAN frames in the log"
                              + (f" ({stats.bad_lines} unparsable lines skipped)"
                                 if stats.bad_lines else ""))
-    few = too_few_samples(res, settings)
+    few = too_few_samples(res.model, res.estimates, res.to_dict()["frames"],
+                          res.extra["period"]["value"], settings)
     if few is not None:
         raise EstimatorError(f"{path}: {few}")
     return res
@@ -75,28 +76,33 @@ def fit_log(path: str | os.PathLike[str], protocol: Protocol, model: Model,
 MIN_SAMPLES_PER_PARAMETER = 10
 
 
-def too_few_samples(res: FitResult, settings: EstimatorSettings | None = None) -> str | None:
-    """Why ``res`` has too few usable samples to be an answer (fewer than
-    :data:`MIN_SAMPLES_PER_PARAMETER` per parameter in an equation), or None."""
+def too_few_samples(model: Model, estimates: Estimates, frames: Mapping[str, Any],
+                    dt: float | None, settings: EstimatorSettings | None = None) -> str | None:
+    """Why ``estimates`` rest on too few usable samples to be an answer (fewer than
+    :data:`MIN_SAMPLES_PER_PARAMETER` per parameter in an equation), or None.
+    ``frames``: the frame counts of a fit's or a diagnosis's JSON (``total``,
+    ``rejected``, ``pairing``, ``foreign``); ``dt`` the control period."""
     st = settings or EstimatorSettings()
-    dt = (res.extra.get("period") or {}).get("value") or math.nan
-    for eq, fit in zip(res.model.equations, res.estimates.equations, strict=False):
+    dt = dt if dt else math.nan
+    for eq, fit in zip(model.equations, estimates.equations, strict=False):
         need = MIN_SAMPLES_PER_PARAMETER * len(eq.parameters)
         if fit.samples >= need:
             continue
-        paired = res.pairing.get("samples", 0)
-        lost = {k: v for k, v in res.pairing.items() if v and k != "samples"}
-        rej = {k: v for k, v in res.rejected.items() if v}
-        frames = (f"{res.frames} frames gave {paired} samples"
+        pairing = frames.get("pairing") or {}
+        paired = pairing.get("samples", 0)
+        lost = {k: v for k, v in pairing.items() if v and k != "samples"}
+        rej = {k: v for k, v in (frames.get("rejected") or {}).items() if v}
+        foreign = frames.get("foreign", 0)
+        text = (f"{frames.get('total', 0)} frames gave {paired} samples"
                   + (f" (frames rejected: {', '.join(f'{k} {v}' for k, v in rej.items())})"
                      if rej else "")
                   + (f" (pairing: {', '.join(f'{k} {v}' for k, v in lost.items())})"
                      if lost else "")
-                  + (f"; {res.foreign} frames of other messages" if res.foreign else ""))
+                  + (f"; {foreign} frames of other messages" if foreign else ""))
         why = ""
         if math.isfinite(dt):
             pol = SamplePolicy.for_equation(eq, dt, st)
-            u = "m/s" if res.model.axis == "linear" else "rad/s"
+            u = "m/s" if model.axis == "linear" else "rad/s"
             why = (f"; the others are left out in the filter's warm-up ({pol.warmup} samples "
                    f"after the start, after each gap over {pol.gap * 1e3:.3g} ms and after "
                    f"each sample outside the speed limits)"
@@ -105,7 +111,7 @@ def too_few_samples(res: FitResult, settings: EstimatorSettings | None = None) -
                    + (f", above {pol.max_speed:.4g} {u} (periodic terms)"
                       if math.isfinite(pol.max_speed) else ""))
         return (f"too few usable samples: the {eq.name} equation used {fit.samples}, its "
-                f"{len(eq.parameters)} parameters need at least {need}; {frames}{why}")
+                f"{len(eq.parameters)} parameters need at least {need}; {text}{why}")
     return None
 
 
