@@ -329,3 +329,38 @@ def test_a_checkpoint_restored_before_the_period_is_measured(rotary: dict[str, P
     assert b2.period == pytest.approx(1e-3)
     assert b2.calibration == a.calibration
     assert b2.pipeline.estimates().samples > 0
+
+
+@pytest.mark.parametrize(("cycle_ms", "ok"), [(1, True), (2, False)])
+def test_the_dbc_cycle_time_is_checked_against_the_timestamps(
+        tmp_path: Path, rotary: dict[str, Path], cycle_ms: int, ok: bool,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    dbc = tmp_path / "cycle.dbc"
+    dbc.write_text(ROTARY_DBC + '\nBA_DEF_ BO_ "GenMsgCycleTime" INT 0 65535;\n'
+                   'BA_DEF_DEF_ "GenMsgCycleTime" 0;\n'
+                   f'BA_ "GenMsgCycleTime" BO_ 2566914305 {cycle_ms};\n'
+                   f'BA_ "GenMsgCycleTime" BO_ 2566914306 {cycle_ms};\n')
+    code = main(["fit", str(rotary["epoch"]), *_flags(dbc, ROTARY_SIGNALS), "--quiet",
+                 "--json"])
+    out, err = capsys.readouterr()
+    if ok:
+        assert code == 0
+        assert json.loads(out)["period"]["source"] == "the GenMsgCycleTime of DBC cycle.dbc"
+    else:
+        assert code == 1
+        assert err.startswith("error: the GenMsgCycleTime of DBC cycle.dbc gives a control "
+                              "period of 2 ms but the log's timestamps say 1 ms"), err
+
+
+@pytest.mark.parametrize(("unit", "axis", "factor"), [
+    ("rpm", "rotary", 2 * math.pi / 60), ("deg", "rotary", math.pi / 180),
+    ("rad/s", "rotary", 1.0), ("rev", "rotary", 2 * math.pi), ("mrad", "rotary", 1e-3),
+    ("m", "linear", 1.0), ("mm", "linear", 1e-3), ("mm/s", "linear", 1e-3),
+    ("m/min", "linear", 1 / 60), ("µm", "linear", 1e-6), ("cm/s", "linear", 1e-2),
+])
+def test_every_motion_unit_names_its_axis(unit: str, axis: str, factor: float) -> None:
+    from canrls.can.units import axis_of, si_factor
+
+    assert axis_of(unit) == axis
+    role = "speed" if "/" in unit or unit == "rpm" else "position"
+    assert si_factor(role, unit) == pytest.approx(factor)

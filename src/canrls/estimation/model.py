@@ -13,7 +13,9 @@ Configuration (TOML, the ``[model]`` table)
 
     [model]
     axis = "rotary"            # "rotary" (rad, rad/s, N·m) or "linear" (m, m/s, N)
+                               # (canrls fit/diagnose/run: default from the DBC units)
     pitch = 1.0                # linear only: metres per period of unbalance/cogging terms
+                               # (default: scaled from the data, see DATA_OPTIONS)
     wrap = 0.2                 # linear only, optional: position wraps with this period [m]
     kt = 0.12                  # optional: Kt [N·m/A] (linear Kf [N/A]); without it the
                                # mechanical target is the current and parameters read A
@@ -28,9 +30,10 @@ Configuration (TOML, the ``[model]`` table)
 
     [model.coulomb]
     band = 0.01                # smoothing band of sgn_e (Coulomb and Stribeck) [rad/s, m/s]
+                               # (default: twice the measured speed noise, DATA_OPTIONS)
 
     [model.stribeck]
-    speed = 1.0                # Stribeck speed ws [rad/s, m/s]
+    speed = 1.0                # Stribeck speed ws [rad/s, m/s] (default: from the data)
 
     [[model.terms]]
     name = "drag"              # used as user:drag
