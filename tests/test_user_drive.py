@@ -364,3 +364,68 @@ def test_every_motion_unit_names_its_axis(unit: str, axis: str, factor: float) -
     assert axis_of(unit) == axis
     role = "speed" if "/" in unit or unit == "rpm" else "position"
     assert si_factor(role, unit) == pytest.approx(factor)
+
+
+# ------------------------------------------------------------------ real measurements
+
+HSM150 = Path(__file__).resolve().parents[2] / "shared" / "data" / "hsm150"
+
+
+def _loadmat(path: Path) -> dict[str, np.ndarray]:
+    """The numeric matrices of a MATLAB v5 file (compressed or not): enough of the format
+    for the HSM150 runs, without scipy."""
+    import struct
+    import zlib
+
+    kinds = {1: np.int8, 2: np.uint8, 3: np.int16, 4: np.uint16, 5: np.int32, 6: np.uint32,
+             7: np.float32, 9: np.float64, 12: np.int64, 13: np.uint64}
+
+    def elements(buf: bytes, p: int = 0) -> list[tuple[int, bytes]]:
+        out = []
+        while p + 8 <= len(buf):
+            ty, n = struct.unpack("<II", buf[p:p + 8])
+            if ty >> 16:  # small element: size and type in 4 bytes, data in the next 4
+                out.append((ty & 0xFFFF, buf[p + 4:p + 4 + (ty >> 16)]))
+                p += 8
+            else:  # data padded to 8 bytes, except a compressed element's
+                out.append((ty, buf[p + 8:p + 8 + n]))
+                p += 8 + (n if ty == 15 else (n + 7) // 8 * 8)
+        return out
+
+    found: dict[str, np.ndarray] = {}
+    todo = elements(path.read_bytes(), 128)
+    while todo:
+        ty, data = todo.pop(0)
+        if ty == 15:  # miCOMPRESSED
+            todo[:0] = elements(zlib.decompress(data))
+        elif ty == 14:  # miMATRIX: flags, dims, name, real part
+            parts = elements(data)
+            if parts[0][1][0] >= 6 and len(parts) >= 4:  # numeric classes
+                dims = struct.unpack(f"<{len(parts[1][1]) // 4}i", parts[1][1])
+                kind, raw = parts[3]
+                found[parts[2][1].decode()] = np.frombuffer(raw, kinds[kind]).reshape(
+                    dims, order="F").astype(np.float64)
+    return found
+
+
+@pytest.mark.skipif(not HSM150.is_dir(), reason=f"real measurements not found at {HSM150}")
+def test_real_measurements_in_a_user_dbc_fit_as_in_the_own(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An HSM150 run (1 kHz, 20 s) sent as a user's drive would send it (mA, 0.01 rpm,
+    0.01 deg, 29-bit Motorola frames, candump -l epoch times) and in canrls's own DBC:
+    the same parameters within their sigma, with no configuration."""
+    d = _loadmat(HSM150 / "idf_neg_0.045_1.mat")["data"]
+    t, position, speed, current = d[:, 0], d[:, 2], d[:, 3], d[:, 6]
+    angle = np.mod(position, 2 * np.pi)
+    dbc = tmp_path / "servo.dbc"
+    dbc.write_text(ROTARY_DBC)
+    user = Protocol.load(dbc, ROTARY_SIGNALS).encoder(stagger=1e-4)
+    write_log(tmp_path / "user.log", [user.encode(EPOCH + t, current, speed, angle)])
+    own = Protocol.load().encoder(stagger=1e-4)
+    write_log(tmp_path / "own.log", [own.encode(t, current, speed, angle, np.zeros_like(t))])
+    flags = ["--kt", "0.0458", "--effects", "inertia,viscous,offset"]
+    a = _fit(capsys, [str(tmp_path / "own.log"), *flags])
+    b = _fit(capsys, [str(tmp_path / "user.log"), *_flags(dbc, ROTARY_SIGNALS), *flags])
+    _same(a, b)
+    assert b["period"]["value"] == pytest.approx(1e-3, rel=1e-6)
+    assert b["parameters"]["inertia.J"]["unit"] == "kg·m²"
