@@ -429,3 +429,52 @@ def test_real_measurements_in_a_user_dbc_fit_as_in_the_own(
     _same(a, b)
     assert b["period"]["value"] == pytest.approx(1e-3, rel=1e-6)
     assert b["parameters"]["inertia.J"]["unit"] == "kg·m²"
+
+
+def test_messages_at_different_periods_are_named() -> None:
+    from canrls.errors import ConfigError
+
+    t = np.arange(500) * 1e-3
+    with pytest.raises(ConfigError, match=r"MotorFeedback every 1 ms, MotorAngle every 10 ms"):
+        estimate_period({"MotorFeedback": t, "MotorAngle": t[::10]})
+    est = estimate_period({"MotorFeedback": t, "MotorAngle": t + 1e-4})
+    assert est is not None and est.period == pytest.approx(1e-3)
+
+
+def test_the_daemon_measures_the_period_as_the_replay_does(tmp_path: Path) -> None:
+    """``canrls run`` with a DBC without cycle times: the daemon's front end measures the
+    period on the first frames; replaying what it saw gives the same period and the same
+    parameters bit for bit."""
+    import os
+
+    from canrls.can.protocol import DEFAULT_DBC, SignalMapping
+    from canrls.config import AppConfig
+    from canrls.live.daemon import Daemon, DaemonSettings
+    from canrls.processor import FrameProcessor
+
+    dbc = tmp_path / "no_cycle.dbc"
+    dbc.write_text("".join(ln for ln in DEFAULT_DBC.read_text().splitlines(keepends=True)
+                           if not ln.startswith('BA_ "GenMsgCycleTime" BO_ 25')))
+    protocol = Protocol.load(dbc, SignalMapping.default())
+    assert protocol.period is None
+    cfg = AppConfig(model={"effects": ["inertia", "viscous", "coulomb"], "kt": 0.1})
+    model, settings = cfg.model_for(protocol), cfg.settings()
+    log = tmp_path / "seen.log"
+    d = Daemon(protocol, model, settings, DaemonSettings(record=log, block_interval=0.002),
+               bus=dict(interface="canrls-sim", channel=f"user-period-{os.getpid()}",
+                        effects="inertia,viscous,coulomb", seed=3, excitation="slow",
+                        realtime=False, start_time=0.0), backpressure=True)
+    try:
+        d.start()
+        assert d.wait_for(lambda x: x.pipeline.samples > 4000, 60)
+    finally:
+        d.stop()
+    assert d.processor.period == pytest.approx(1e-3, rel=1e-6)
+    live = d.estimates()
+    proc = FrameProcessor(protocol, model, settings)
+    for block in read_frames(log, 997):
+        proc.process(block)
+    assert proc.period == d.processor.period
+    off = proc.pipeline.estimates()
+    for a, b in zip(live.parameters, off.parameters, strict=True):
+        assert (a.name, a.value, a.sigma) == (b.name, b.value, b.sigma)

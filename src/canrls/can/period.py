@@ -18,7 +18,9 @@ the mean interval :math:`p = (t_n - t_0)/n` and iterate
 Jitter rounds to one period (:math:`k_i = 1`), a dropped frame to two, a burst (frames
 queued and sent back to back) to zero for the queued frames and to several periods for
 the gap before them: the count of periods over the span stays right in each case. The
-period of the mapped messages is the median of theirs.
+mapped messages must share the period (pairing takes one frame of each per period): the
+period is the shortest of theirs, and messages whose periods differ by more than half
+are an error that names each message with its period.
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ class PeriodEstimate:
     period: float
     jitter: float
     intervals: Mapping[str, int] = field(default_factory=dict)
+    per_message: Mapping[str, float] = field(default_factory=dict)
 
     def format(self) -> str:
         n = sum(self.intervals.values())
@@ -91,9 +94,16 @@ def estimate_period(times: Mapping[str, Sequence[float] | F64]) -> PeriodEstimat
     got = {name: r for name, t in times.items() if (r := _one(np.asarray(t))) is not None}
     if not got:
         return None
-    p = float(np.median([r[0] for r in got.values()]))
-    jit = float(np.median([r[1] for r in got.values()]))
-    return PeriodEstimate(p, jit, {name: len(times[name]) - 1 for name in got})
+    periods = {name: r[0] for name, r in got.items()}
+    p = min(periods.values())
+    if max(periods.values()) > 1.5 * p:
+        raise ConfigError(
+            "the mapped messages come at different periods ("
+            + ", ".join(f"{name} every {v * 1e3:.4g} ms" for name, v in periods.items())
+            + "); pairing needs one frame of each per control period: map signals of "
+              "messages sent at the control period")
+    jit = float(max(r[1] for r in got.values()))
+    return PeriodEstimate(p, jit, {name: len(times[name]) - 1 for name in got}, periods)
 
 
 def check_period(stated: float, source: str, measured: PeriodEstimate) -> None:
