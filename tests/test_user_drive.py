@@ -198,6 +198,7 @@ def test_a_wrong_period_is_refused_naming_both(rotary: dict[str, Path],
     (["--effects", "inertia,viscous,colomb"], "--effects inertia,viscous,colomb: unknown "
                                               "effect 'colomb'"),
     (["--lambda", "2"], "--lambda 2: must be in (0.5, 1]"),
+    (["--signal", "current"], "--signal current: expected ROLE=MESSAGE.SIGNAL"),
 ])
 def test_command_line_mistakes_name_the_flag(rotary: dict[str, Path], args: list[str],
                                              message: str,

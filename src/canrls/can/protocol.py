@@ -269,17 +269,17 @@ class SignalMapping:
         for item in items:
             m = _CLI_RE.match(item)
             if not m:
-                raise ConfigError(f"signal mapping {item!r}: expected ROLE=MESSAGE.SIGNAL[:UNIT] "
+                raise ConfigError(f"--signal {item}: expected ROLE=MESSAGE.SIGNAL[:UNIT] "
                                   f"with ROLE in {', '.join(ROLES)}, counter, crc")
             key, msg, sig, extra = m["key"], m["msg"], m["sig"], m["unit"]
             if key in ("counter", "crc"):
                 if extra:
-                    raise ConfigError(f"signal mapping {item!r}: {key} takes no unit")
+                    raise ConfigError(f"--signal {item}: {key} takes no unit")
                 (counters if key == "counter" else crcs)[msg] = \
                     None if sig.lower() in ("none", "false") else sig
                 continue
             if key not in ROLES:
-                raise ConfigError(f"signal mapping {item!r}: unknown role {key!r} "
+                raise ConfigError(f"--signal {item}: unknown role {key!r} "
                                   f"(expected one of {', '.join(ROLES)}, counter, crc)")
             unit: str | None = None
             scale: float | None = None
@@ -290,7 +290,7 @@ class SignalMapping:
                     unit = extra.strip()
                 else:
                     if not math.isfinite(scale) or scale == 0:
-                        raise ConfigError(f"signal mapping {item!r}: scale must be finite "
+                        raise ConfigError(f"--signal {item}: scale must be finite "
                                           f"and non-zero")
             roles[key] = RoleSpec(msg, sig, unit=unit, scale=scale)
         return SignalMapping(roles=roles, counters=counters, crcs=crcs)
