@@ -749,7 +749,8 @@ class FrameProcessor:
             if self._meter.done:
                 self._measured()
         if self.pairer is None:
-            self._held.append(decoded)
+            if any(len(m.t) for m in decoded.messages.values()):  # a foreign bus: nothing
+                self._held.append(decoded)
             return Signals.concat([])
         return self._push(decoded)
 
