@@ -31,7 +31,8 @@
 
     [can]
     dbc = "my_drive.dbc"       # default: the DBC shipped with canrls
-    period = 0.001             # control period [s] (default: the DBC's GenMsgCycleTime)
+    period = 0.001             # control period [s] (default: the DBC's GenMsgCycleTime, else
+                               # measured on the log's timestamps; checked against them)
     strict_range = true        # named opt-outs of strict decoding
     check_crc = true
     check_counter = true
@@ -54,6 +55,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -82,6 +84,10 @@ _ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
                    "rms_time_s": "rms_time_s", "max_phase_step": "max_phase_step",
                    "min_speed": "min_speed", "calibration_s": "calibration_s"}
 _FIXED_KEYS = ("word_bits", "acc_bits", "input_bits", "theta_max", "formats")
+#: options of the command line that set a configuration key: (attribute, flag, table, key)
+_FLAGS = (("kt", "--kt", "model", "kt"), ("axis", "--axis", "model", "axis"),
+          ("lam", "--lambda", "estimator", "lambda"), ("alpha", "--alpha", "estimator", "alpha"),
+          ("period", "--period", "can", "period"))
 _CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
              "channel", "bitrate", "fd", "data_bitrate")
 
@@ -132,6 +138,9 @@ class AppConfig:
     daemon: dict[str, Any] = field(default_factory=dict)
     monitor: dict[str, Any] = field(default_factory=dict)
     signal_overrides: list[str] = field(default_factory=list)
+    #: configuration keys set from the command line, with the flag and value typed
+    #: (``{"model.effects": "--effects inertia,foo"}``): errors name those, not the key
+    flags: dict[str, str] = field(default_factory=dict)
 
     # -- loading ----------------------------------------------------------------------
     @classmethod
@@ -175,13 +184,23 @@ class AppConfig:
             self.signal_overrides = list(args.signal)
         if getattr(args, "effects", None):
             self.model["effects"] = [e.strip() for e in args.effects.split(",") if e.strip()]
-        if getattr(args, "kt", None) is not None:
-            self.model["kt"] = args.kt
-        if getattr(args, "lam", None) is not None:
-            self.estimator["lambda"] = args.lam
-        if getattr(args, "alpha", None) is not None:
-            self.estimator["alpha"] = args.alpha
+            self.flags["model.effects"] = f"--effects {args.effects}"
+        for attr, flag, section, key in _FLAGS:
+            v = getattr(args, attr, None)
+            if v is not None:
+                getattr(self, section)[key] = v
+                self.flags[f"{section}.{key}"] = f"{flag} {v}"
         return self
+
+    def _flagged(self, e: ConfigError) -> ConfigError:
+        """``e`` with a configuration key set from the command line replaced by the flag
+        and value typed: ``"--effects inertia,foo: unknown effect 'foo'..."``."""
+        msg = str(e)
+        for key, flag in self.flags.items():
+            m = re.match(re.escape(f"{self.source}: {key}") + r"(\[\d+\])?( = .*?)?: ", msg)
+            if m:
+                return type(e)(f"{flag}: {msg[m.end():]}")
+        return e
 
     # -- building ---------------------------------------------------------------------
     def _where(self, key: str) -> str:
@@ -211,9 +230,13 @@ class AppConfig:
         for k, v in opts.items():
             if not isinstance(v, bool):
                 raise ConfigError(f"{self._where('can.' + k)} = {v!r}: must be true or false")
-        if period is not None and not isinstance(period, int | float):
-            raise ConfigError(f"{self._where('can.period')} = {period!r}: must be seconds")
-        return Protocol.load(self.dbc_path(), mapping, period=period, **opts)
+        where = self.flags.get("can.period") or self._where("can.period")
+        if period is not None and (isinstance(period, bool) or not isinstance(period, int | float)
+                                   or not (math.isfinite(period) and period > 0)):
+            raise ConfigError(f"{where}{'' if 'can.period' in self.flags else f' = {period!r}'}"
+                              f": the control period must be a positive number of seconds")
+        return Protocol.load(self.dbc_path(), mapping, period=period,
+                             period_source=where, **opts)
 
     def model_for(self, protocol: Protocol | None = None,
                   data_ranges: Mapping[str, Any] | None = None) -> Model:
@@ -228,6 +251,13 @@ class AppConfig:
         """
         d = dict(self.model)
         d.setdefault("effects", list(DEFAULT_EFFECTS))
+        kt = d.get("kt")
+        if isinstance(kt, int | float) and not isinstance(kt, bool) and not kt > 0:
+            where = self.flags.get("model.kt") or f"{self._where('model.kt')} = {kt!r}"
+            raise ConfigError(f"{where}: the torque constant must be positive (a motor "
+                              f"turning the other way: swap the sign of the current signal)")
+        if "axis" not in d and protocol is not None and protocol.axis is not None:
+            d["axis"] = protocol.axis  # from the DBC units of speed and position
         filt = d.get("filter", {})
         if isinstance(filt, Mapping):
             filt = dict(filt)
@@ -243,7 +273,10 @@ class AppConfig:
             for role, r in data_ranges.items():
                 ranges.setdefault(role, list(r))
             d["ranges"] = ranges
-        return Model.from_dict(d, source=self.source, available_signals=available)
+        try:
+            return Model.from_dict(d, source=self.source, available_signals=available)
+        except ConfigError as e:
+            raise self._flagged(e) from e
 
     def settings(self) -> EstimatorSettings:
         kw: dict[str, Any] = {}
@@ -273,7 +306,7 @@ class AppConfig:
         try:
             return EstimatorSettings(**kw)
         except ConfigError as e:
-            raise ConfigError(f"{self.source}: {e}") from e
+            raise self._flagged(ConfigError(f"{self.source}: {e}")) from e
 
 
 def load_config(path: str | Path | None, args: argparse.Namespace | None = None) -> AppConfig:

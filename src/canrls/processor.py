@@ -42,6 +42,8 @@ they build a model whose ranges fit given samples, for a pipeline used on its ow
 
 from __future__ import annotations
 
+import dataclasses
+import datetime
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -52,15 +54,17 @@ import numpy.typing as npt
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.pairing import Pairer, PairingCounts
-from canrls.can.protocol import Protocol, RejectCounts
-from canrls.estimation.model import Equation, Model
+from canrls.can.period import MIN_INTERVALS, PeriodEstimate, PeriodMeter, check_period
+from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
+from canrls.errors import ConfigError
+from canrls.estimation.model import DATA_OPTIONS, Equation, Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline, PipelineBlock
 from canrls.estimation.svf import SVF
 from canrls.signals import Signals
 
 __all__ = ["Calibration", "FitResult", "FrameProcessor", "RMS_HEADROOM",
            "MIN_ENERGY", "RangeScanner", "SampleProcessor", "UNEXCITED", "calibrate",
-           "dbc_ranges", "intrinsic", "scan_ranges"]
+           "data_defaults", "dbc_ranges", "epoch_date", "intrinsic", "scan_ranges"]
 
 #: Signals whose DBC range bounds the normalisation (position enters only through
 #: periodic columns, bounded by 1, and is unwrapped beyond its DBC range).
@@ -84,6 +88,10 @@ MIN_ENERGY = 2.0 ** -10
 #: estimator only), and normalised energies in (2**-10, 2**-8], so that the prior
 #: P0 = diag(1/(alpha e_j)) stays below 2**10/alpha.
 RMS_HEADROOM = 16.0
+
+#: The period of the placeholder estimator of a :class:`FrameProcessor` whose period is
+#: still being measured (no sample ever reaches it).
+_PLACEHOLDER_DT = 1e-3
 
 
 @dataclass(frozen=True)
@@ -129,6 +137,20 @@ class FitResult:
 
     def format(self) -> str:
         lines = [f"{self.source}: {self.frames} frames, {self.estimates.samples} samples used"]
+        start = self.extra.get("start") or {}
+        if start.get("date"):
+            lines.append(f"log starts {start['date']}; times below are from that start")
+        ax = self.extra.get("axis") or {}
+        if ax.get("axis"):
+            units = ", ".join(f"{r} {u}" for r, u in (ax.get("units") or {}).items() if u)
+            lines.append(f"axis {ax['axis']}" + (f" (DBC units: {units})" if units else ""))
+        per = self.extra.get("period") or {}
+        if per.get("value"):
+            meas = per.get("measured")
+            how = ("measured on the timestamps" if per.get("source") == "measured" else
+                   f"from {per.get('source')}"
+                   + (f", timestamps say {meas * 1e3:.6g} ms" if meas else ""))
+            lines.append(f"control period {per['value'] * 1e3:.6g} ms ({how})")
         rej = sum(self.rejected.values())
         if rej:
             lines.append(f"rejected frames: {rej} ("
@@ -148,6 +170,15 @@ class FitResult:
 
     __str__ = format
 
+
+
+def epoch_date(t: float | None) -> str | None:
+    """``"2023-11-14 22:13:20.123456 UTC"`` for a timestamp that is an epoch time (after
+    1973), else None (a log whose times start near zero)."""
+    if t is None or not (1e8 < t < 1e11):
+        return None
+    d = datetime.datetime.fromtimestamp(t, tz=datetime.UTC)
+    return d.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
 
 
 class RangeScanner:
@@ -208,6 +239,7 @@ class Calibration:
         exponents
     energy : ``{equation: mean square of each normalised column}`` on the window
     alpha : the ridge weight ``alpha`` (samples' worth of each column in the prior)
+    defaults : the model's options scaled from the window (:func:`data_defaults`)
     """
 
     t_start: float
@@ -218,6 +250,7 @@ class Calibration:
     scaling: dict[str, dict[str, int]]
     energy: dict[str, tuple[float, ...]]
     alpha: float
+    defaults: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {"window": {"t_start": self.t_start, "t_end": self.t_end,
@@ -226,7 +259,7 @@ class Calibration:
                            for k, v in self.ranges.items()},
                 "scaling": {k: dict(v) for k, v in self.scaling.items()},
                 "energy": {k: list(v) for k, v in self.energy.items()},
-                "alpha": self.alpha}
+                "alpha": self.alpha, "defaults": dict(self.defaults)}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Calibration:
@@ -240,14 +273,85 @@ class Calibration:
                    scaling={k: {n: int(s) for n, s in v.items()}
                             for k, v in d["scaling"].items()},
                    energy={k: tuple(float(e) for e in v) for k, v in d["energy"].items()},
-                   alpha=float(d["alpha"]))
+                   alpha=float(d["alpha"]),
+                   defaults={k: float(v) for k, v in d.get("defaults", {}).items()})
 
     def format(self) -> str:
         rng = ", ".join(f"{k} ±{max(abs(lo), abs(hi)):.4g} ({self.sources.get(k, 'default')})"
                         for k, (lo, hi) in self.ranges.items()
                         if self.sources.get(k) != "default")
-        return (f"calibration: first {self.samples} samples ({self.t_end - self.t_start:.3g} s)"
+        text = (f"calibration: first {self.samples} samples ({self.t_end - self.t_start:.3g} s)"
                 f"; ranges {rng or 'all default'}; ridge alpha {self.alpha:g} x column energy")
+        if self.defaults:
+            names = {"coulomb_band": "Coulomb band", "stribeck_speed": "Stribeck speed",
+                     "pitch": "pitch"}
+            text += ("\ndefaults from the data: "
+                     + ", ".join(f"{names.get(k, k)} {v:.4g}" for k, v in self.defaults.items())
+                     + ("" if "coulomb_band" not in self.defaults else
+                        f" (minimum speed 5 bands = {5 * self.defaults['coulomb_band']:.4g})"))
+        return text
+
+
+def _round_up_125(x: float) -> float:
+    """The smallest of 1, 2, 5 times a power of ten that is at least ``x`` (> 0)."""
+    e = math.floor(math.log10(x))
+    for m in (1.0, 2.0, 5.0, 10.0):
+        if m * 10.0 ** e >= x * (1 - 1e-12):
+            return m * 10.0 ** e
+    return 10.0 ** (e + 1)  # pragma: no cover
+
+
+def data_defaults(window: Signals, model: Model) -> tuple[Model, dict[str, float]]:
+    r"""The model's options that its configuration does not give
+    (:data:`~canrls.estimation.model.DATA_OPTIONS`), scaled from the calibration window
+    rather than set in a unit: the defaults of a rotary servo in rad/s would discard a
+    linear axis's samples in m/s, and the other way round.
+
+    * Speed noise :math:`\sigma_\omega`: from the second difference of the speed, which
+      removes the motion (:math:`\Delta^2\omega` of white noise has variance
+      :math:`6\sigma^2`), robustly,
+      :math:`\sigma_\omega = 1.4826\,\mathrm{median}|\Delta^2\omega| / \sqrt 6`.
+    * Coulomb band (``sgn_e(w) = tanh(w/e)``): :math:`e = 2\sigma_\omega`, at least the
+      speed's resolution (the smallest step seen): below it the sign of a measured speed
+      is noise. The minimum speed of sign-dependent friction follows (5 bands,
+      :class:`~canrls.estimation.selection.SamplePolicy`).
+    * Stribeck speed: 1 % of the window's peak speed, at least 2 bands.
+    * Pitch (linear axis: metres per period of unbalance and cogging, the longest period
+      searched for harmonics): the window's travel rounded up to 1, 2 or 5 times a
+      power of ten.
+
+    Returns the model with those options (:meth:`Model.with_options`, now given) and
+    ``{option: value}`` of the ones set (recorded in :class:`Calibration`).
+    """
+    todo = [k for k in DATA_OPTIONS if k not in model.options_given]
+    w = window.speed[np.isfinite(window.speed)] if len(window) else np.zeros(0)
+    if not todo or len(w) < 16:
+        return model, {}
+    out: dict[str, float] = {}
+    # sigma = 1.4826 median|d2 w| / sqrt(6)
+    sigma = 1.4826 * float(np.median(np.abs(np.diff(w, 2)))) / math.sqrt(6.0)
+    steps = np.abs(np.diff(w))
+    steps = steps[steps > 0]
+    resolution = float(steps.min()) if len(steps) else 0.0
+    band = max(2.0 * sigma, resolution)
+    if "coulomb_band" in todo and band > 0:
+        out["coulomb_band"] = band
+    band_used = out.get("coulomb_band", model.coulomb_band)
+    peak = float(np.max(np.abs(w)))
+    if "stribeck_speed" in todo and peak > 0:
+        out["stribeck_speed"] = max(0.01 * peak, 2.0 * band_used)
+    if "pitch" in todo and model.axis == "linear" and window.position is not None:
+        x = window.position[np.isfinite(window.position)]
+        travel = float(np.ptp(x)) if len(x) else 0.0
+        if travel > 0:
+            out["pitch"] = _round_up_125(travel)
+    return (model.with_options(**out) if out else model), out
+
+
+def _frozen_defaults(model: Model, cal: Calibration) -> Model:
+    """``model`` with the options a calibration scaled from the data, where not given."""
+    todo = {k: v for k, v in cal.defaults.items() if k not in model.options_given}
+    return model.with_options(**todo) if todo else model
 
 
 def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSettings
@@ -395,6 +499,7 @@ class SampleProcessor:
         if self.calibration is None or self._window is None:
             self.pipeline = Pipeline(model, self.dt, self.settings)
             return self.pipeline
+        model = _frozen_defaults(model, self.calibration)
         model, energy = calibrate(self._window, model.with_ranges(self.calibration.ranges),
                                   self.dt, self.settings)
         self.pipeline = self.pipeline.with_model(model, energy=energy)
@@ -419,6 +524,7 @@ class SampleProcessor:
             self.pipeline = Pipeline(model, self.dt, self.settings)
         else:
             self.calibration, self._window = Calibration.from_dict(cal), window
+            model = _frozen_defaults(model, self.calibration)
             self._held, self._held_n = [], 0
             self.pipeline = Pipeline(model, self.dt, self.settings, self.calibration.energy)
         self.pipeline.restore(state["pipeline"])
@@ -449,7 +555,8 @@ class SampleProcessor:
         held = Signals.concat(self._held)
         self._held, self._held_n = [], 0
         window = held.slice(0, min(len(held), self._calibrate_n))
-        model, energy = calibrate(window, self.model, self.dt, self.settings)
+        model, defaults = data_defaults(window, self.model)
+        model, energy = calibrate(window, model, self.dt, self.settings)
         t = window.t
         self.calibration = Calibration(
             t_start=float(t[0]) if len(t) else math.nan,
@@ -457,7 +564,7 @@ class SampleProcessor:
             ranges={k: (float(lo), float(hi)) for k, (lo, hi) in model.ranges.items()},
             sources=dict(self._sources),
             scaling={k: dict(v) for k, v in model.exponents.items()},
-            energy=energy, alpha=float(self.settings.alpha))
+            energy=energy, alpha=float(self.settings.alpha), defaults=defaults)
         self._window = window
         self.pipeline = Pipeline(model, self.dt, self.settings, energy)
         return self.pipeline.process(held, record)
@@ -467,26 +574,111 @@ class FrameProcessor:
     """Frames in, estimates out: decoder, pairer and :class:`SampleProcessor`, all stateful.
 
     Used by the offline replay (blocks of a log) and by the daemon (blocks of the frames
-    that arrived), with the same calibration rule (module docstring).
+    that arrived), with the same calibration rule (module docstring) and the same
+    control period rule (docs/architecture.md, "Control period"): the period is measured
+    on the first :data:`~canrls.can.period.PERIOD_FRAMES` frames of each mapped message
+    (:class:`~canrls.can.period.PeriodMeter`); a stated period (``period``, else the
+    protocol's: ``[can] period``/``--period``, else the DBC's ``GenMsgCycleTime``) is used
+    from the first frame and must agree with the measured one within 10 %; without one
+    the decoded frames are held until the period is measured, then paired. This is the
+    one place that decides the period.
 
     Parameters
     ----------
     protocol, model, settings : what to decode and estimate
-    period : control period [s] (default: the DBC's cycle time)
+    period : control period [s] (default: the protocol's, else measured)
+    period_source : who states ``period`` (named in errors; default the protocol's)
+    relative_time : times relative to the first frame's (:attr:`origin`): a log of
+        ``candump -l`` carries epoch timestamps (1.7e9 s), which text and figures would
+        show as such. The subtraction is exact (two doubles within a factor of two), so
+        the estimates are the same either way.
     """
 
     def __init__(self, protocol: Protocol, model: Model,
                  settings: EstimatorSettings | None = None,
-                 period: float | None = None) -> None:
+                 period: float | None = None, period_source: str | None = None, *,
+                 relative_time: bool = False) -> None:
         self.protocol = protocol
+        self.relative_time = bool(relative_time)
+        #: the first frame's timestamp [s] (None before it; with ``relative_time`` the
+        #: times of samples and results are relative to it)
+        self.origin: float | None = None
         self.decoder = protocol.decoder()
-        self.pairer = Pairer(protocol, period=period)
-        dbc = dbc_ranges(model, protocol)
+        self.frames = 0
+        stated = period if period is not None else protocol.period
+        #: who states the period (None: measured)
+        self.period_source: str | None = (
+            (period_source or "the period given") if period is not None
+            else protocol.period_source if stated is not None else None)
+        if stated is not None and not (math.isfinite(stated) and stated > 0):
+            raise ConfigError(f"{self.period_source}: the control period must be a positive "
+                              f"number of seconds, got {stated!r}")
+        self._model0, self._settings0 = model, settings
+        self._meter: PeriodMeter | None = PeriodMeter([m.name for m in protocol.messages])
+        #: the period measured on the first frames (None until then, or too few frames)
+        self.period_estimate: PeriodEstimate | None = None
+        self._held: list[DecodedFrames] = []
+        self._seen_ids: dict[int, int] = {}
+        self._restore: tuple[Mapping[str, Any], Model] | None = None
+        self.pairer: Pairer | None = None
+        if stated is not None:
+            self._start(float(stated))
+        else:
+            # a placeholder until the period is measured: no sample reaches it, so its
+            # period is never used (the daemon may publish its empty state meanwhile)
+            self.sampler = SampleProcessor(model, _PLACEHOLDER_DT, settings)
+
+    def _start(self, period: float) -> None:
+        """Pairer and sample processor for the decided period."""
+        model = self._model0
+        self.pairer = Pairer(self.protocol, period=period)
+        dbc = dbc_ranges(model, self.protocol)
         sources = {k: ("config" if k in model.ranges_given else "dbc" if k in dbc else
                        "default") for k in model.ranges}
         self.sampler = SampleProcessor(model.with_ranges(dbc) if dbc else model,
-                                       self.pairer.period, settings, sources)
-        self.frames = 0
+                                       self.pairer.period, self._settings0, sources)
+        if self._restore is not None:  # a checkpoint restored while the period was measured
+            self.sampler.restore(*self._restore)
+            self._restore = None
+
+    @property
+    def period(self) -> float | None:
+        """The control period [s] pairing uses (None while it is being measured)."""
+        return None if self.pairer is None else self.pairer.period
+
+    def _measured(self) -> None:
+        """The meter has its frames (or the stream ended): check or adopt the period."""
+        assert self._meter is not None
+        est = self._meter.estimate()
+        counts = self._meter.counts()
+        self._meter = None
+        self.period_estimate = est
+        if self.pairer is not None:
+            if est is not None:
+                check_period(self.pairer.period, self.period_source or "the period", est)
+            return
+        if est is None:
+            if not any(counts.values()):
+                raise self._foreign_error()
+            raise ConfigError(
+                "cannot measure the control period: the log has only "
+                + ", ".join(f"{n} frames of {m}" for m, n in counts.items())
+                + f" (at least {MIN_INTERVALS + 1} of one message are needed); "
+                  "state it with --period SECONDS")
+        self._start(est.period)
+
+    def _foreign_error(self) -> ConfigError:
+        """None of the mapped messages was decoded: name what was expected and seen."""
+        want = ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in self.protocol.messages)
+        seen = sorted(self._seen_ids.items(), key=lambda kv: -kv[1])[:8]
+        seen_text = ", ".join(f"0x{i:X} ({n})" for i, n in seen) if seen else "none"
+        rej = {k: int(v) for k, v in self.decoder.rejected.items() if v}
+        why = ("; rejected: " + ", ".join(f"{k} {v}" for k, v in rej.items())) if rej else ""
+        return ConfigError(
+            f"none of the mapped messages occurs in the {self.frames} frames read: expected "
+            f"{want} (DBC {self.protocol.dbc_path.name}); most frequent IDs seen "
+            f"(frames): {seen_text}{why}. Map the right messages with --signal "
+            f"ROLE=MESSAGE.SIGNAL or give the drive's DBC with --dbc")
 
     @property
     def pipeline(self) -> Pipeline:
@@ -513,7 +705,10 @@ class FrameProcessor:
         return self.sampler.model
 
     def with_model(self, model: Model) -> Pipeline:
-        """:meth:`SampleProcessor.with_model`."""
+        """:meth:`SampleProcessor.with_model` (before the period is known: the model the
+        sample processor will start with)."""
+        if self.pairer is None:
+            self._model0 = model
         return self.sampler.with_model(model)
 
     def state(self) -> dict[str, Any]:
@@ -521,16 +716,60 @@ class FrameProcessor:
         return self.sampler.state()
 
     def restore(self, state: Mapping[str, Any], model: Model) -> None:
-        """:meth:`SampleProcessor.restore`."""
+        """:meth:`SampleProcessor.restore` (before the period is known: once it is)."""
+        if self.pairer is None:
+            self._model0 = model
+            self._restore = (state, model)
         self.sampler.restore(state, model)
 
     def samples(self, block: FrameBlock) -> Signals:
         """Decode and pair one block of frames (no estimation)."""
+        if self.origin is None and len(block):
+            self.origin = float(block.t[0])
+        if self.relative_time and self.origin:
+            block = dataclasses.replace(block, t=block.t - self.origin)
         self.frames += len(block)
-        return self.pairer.push(self.decoder.decode(block))
+        decoded = self.decoder.decode(block)
+        if self._meter is not None:
+            times = {name: decoded.messages[name].t for name in decoded.messages}
+            self._meter.add(times)
+            if not any(self._meter.counts().values()) and len(block):
+                ids, n = np.unique(block.arbitration_id, return_counts=True)
+                for i, k in zip(ids.tolist(), n.tolist(), strict=True):
+                    self._seen_ids[i] = self._seen_ids.get(i, 0) + k
+            if self._meter.done:
+                self._measured()
+        if self.pairer is None:
+            if any(len(m.t) for m in decoded.messages.values()):  # a foreign bus: nothing
+                self._held.append(decoded)
+            return Signals.concat([])
+        return self._push(decoded)
+
+    def _push(self, decoded: DecodedFrames | None) -> Signals:
+        """Pair the held blocks (if any), then ``decoded`` (None: the end of stream)."""
+        assert self.pairer is not None
+        held, self._held = self._held, []
+        parts = [self.pairer.push(d) for d in held]
+        parts.append(self.pairer.push(decoded) if decoded is not None else self.pairer.flush())
+        if len(parts) == 1:
+            return parts[0]
+        return Signals.concat([p for p in parts if len(p)]) if any(len(p) for p in parts) \
+            else parts[-1]
+
+    def flush_samples(self) -> Signals:
+        """End of stream, no estimation: the period decided with what came (an error if
+        it cannot be, or if none of the mapped messages came), and the samples still open."""
+        if self._meter is not None and self.frames:
+            if not any(self._meter.counts().values()):
+                raise self._foreign_error()
+            self._measured()
+        if self.pairer is None:  # no frame at all (samples fed directly, or none yet)
+            return Signals.concat([])
+        return self._push(None)
 
     def process(self, block: FrameBlock, record: bool = False) -> PipelineBlock:
-        return self.sampler.process(self.samples(block), record)
+        samples = self.samples(block)  # first: it may start the sample processor
+        return self.sampler.process(samples, record)
 
     def process_samples(self, samples: Signals, record: bool = False) -> PipelineBlock:
         """Samples already paired (a simulation) through the same rule."""
@@ -539,7 +778,8 @@ class FrameProcessor:
     def flush(self, record: bool = False) -> PipelineBlock:
         """End of stream: complete periods still waiting for a partner go through, and a
         calibration still collecting uses what it has."""
-        out = self.sampler.process(self.pairer.flush(), record)
+        samples = self.flush_samples()  # first: it may start the sample processor
+        out = self.sampler.process(samples, record)
         if self.sampler.calibrating:
             out = self.sampler.finish(record)
         return out
@@ -550,11 +790,30 @@ class FrameProcessor:
 
     @property
     def pairing(self) -> PairingCounts:
-        return self.pairer.counts
+        return self.pairer.counts if self.pairer is not None else PairingCounts()
+
+    def period_info(self) -> dict[str, Any]:
+        """The period used, who stated it and what the frames measured (text and JSON)."""
+        est = self.period_estimate
+        return {"value": self.period, "source": self.period_source or "measured",
+                "measured": None if est is None else est.period,
+                "jitter": None if est is None else est.jitter,
+                "intervals": None if est is None else sum(est.intervals.values())}
+
+    def axis_info(self) -> dict[str, Any]:
+        """The model's axis and the DBC units of the signals it was read from."""
+        return {"axis": self.model.axis, "dbc_axis": self.protocol.axis,
+                "units": {r: i.unit for r, i in self.protocol.roles.items()}}
+
+    def start_info(self) -> dict[str, Any]:
+        """The first frame's timestamp and, for an epoch time, its date (UTC)."""
+        return {"t0": self.origin, "date": epoch_date(self.origin),
+                "relative": self.relative_time}
 
     def result(self, source: str) -> FitResult:
         rej = self.rejected
-        extra: dict[str, Any] = {}
+        extra: dict[str, Any] = {"period": self.period_info(), "start": self.start_info(),
+                                 "axis": self.axis_info()}
         return FitResult(
             estimates=self.pipeline.estimates(), frames=self.frames,
             rejected={k: int(v) for k, v in rej.items()},

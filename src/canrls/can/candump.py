@@ -6,7 +6,8 @@ python-can) for whatever these do not take:
 parse
     ``(SECONDS.FRACTION) CHANNEL ID#DATA`` with a 3- or 8-digit hex ID and 0..8 data
     bytes, single spaces, an optional ``\\r`` before the ``\\n``. The timestamp is
-    exact: its (at most 15) digits form an integer ``N < 2**53``, and ``N / 10**d`` is
+    exact: its (at most 16) digits form an integer ``N <= 2**53`` (an epoch time of
+    ``candump -l``, ``1700000000.123456``, has 16), and ``N / 10**d`` is
     one correctly rounded division of two exact doubles, which is what
     ``float("SECONDS.FRACTION")`` returns. Any other non-blank line (remote ``R``, CAN
     FD ``##``, IDs of other lengths, longer timestamps, odd spacing, comments, junk) is
@@ -41,9 +42,10 @@ for _k, _c in enumerate(b"0123456789ABCDEF"):
     _HEXVAL[_c] = _k
 for _k, _c in enumerate(b"abcdef"):
     _HEXVAL[_c] = 10 + _k
-#: most digits of a timestamp on the compiled path: 10**15 < 2**53, so the digits
-#: form an exact double
-_MAX_DIGITS = 15
+#: most digits of a timestamp on the compiled path; the digits must also form an
+#: integer of at most 2**53 (:data:`_MAX_EXACT`), an exact double
+_MAX_DIGITS = 16
+_MAX_EXACT = 2 ** 53
 
 
 @numba.njit(cache=True, nogil=True)
@@ -98,6 +100,7 @@ def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,
                     else:
                         good = False
                         break
+                good = good and num <= _MAX_EXACT
             if good:
                 for i in range(lay_close + 2, lay_sp2):  # the same channel
                     if buf[p + i] != buf[lay_p + i]:
@@ -164,7 +167,8 @@ def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,
                 else:
                     break
                 q += 1
-            if 0 < nd <= _MAX_DIGITS and q + 2 < e and buf[q] == 41 and buf[q + 1] == 32:
+            if (0 < nd <= _MAX_DIGITS and num <= _MAX_EXACT and q + 2 < e and buf[q] == 41
+                    and buf[q + 1] == 32):
                 close = q - p
                 # " " channel (printable, no space) " "
                 q += 2

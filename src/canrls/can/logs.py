@@ -50,6 +50,8 @@ class LogReadStats:
     frames: int = 0
     lines: int = 0
     bad_lines: int = 0
+    #: candump lines the compiled parser handed back to the per-line Python path
+    slow_lines: int = 0
     bytes_read: int = 0
     total_bytes: int = 0
 
@@ -133,6 +135,7 @@ def _read_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats,
                 continue
             block = b if rows == cap else b.take(slice(0, rows))
             if nslow:
+                st.slow_lines += nslow
                 block = _with_slow_lines(block, view, slow[:nslow], path, line_no, skip_bad,
                                          st)
             line_no += nlines

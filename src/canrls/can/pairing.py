@@ -340,7 +340,8 @@ class Pairer:
             raise ConfigError(
                 f"pairing needs the control period: DBC {protocol.dbc_path} gives no "
                 f"GenMsgCycleTime for {', '.join(m.name for m in protocol.messages)}; "
-                f"configure the period")
+                f"state the period (--period, [can] period) or let the front end measure it "
+                f"(canrls.processor.FrameProcessor)")
         self.period = float(per)
         self.tolerance = float(tolerance) if tolerance is not None else self.period / 2
         if not (0 < self.tolerance < self.period):

@@ -269,17 +269,17 @@ class SignalMapping:
         for item in items:
             m = _CLI_RE.match(item)
             if not m:
-                raise ConfigError(f"signal mapping {item!r}: expected ROLE=MESSAGE.SIGNAL[:UNIT] "
+                raise ConfigError(f"--signal {item}: expected ROLE=MESSAGE.SIGNAL[:UNIT] "
                                   f"with ROLE in {', '.join(ROLES)}, counter, crc")
             key, msg, sig, extra = m["key"], m["msg"], m["sig"], m["unit"]
             if key in ("counter", "crc"):
                 if extra:
-                    raise ConfigError(f"signal mapping {item!r}: {key} takes no unit")
+                    raise ConfigError(f"--signal {item}: {key} takes no unit")
                 (counters if key == "counter" else crcs)[msg] = \
                     None if sig.lower() in ("none", "false") else sig
                 continue
             if key not in ROLES:
-                raise ConfigError(f"signal mapping {item!r}: unknown role {key!r} "
+                raise ConfigError(f"--signal {item}: unknown role {key!r} "
                                   f"(expected one of {', '.join(ROLES)}, counter, crc)")
             unit: str | None = None
             scale: float | None = None
@@ -290,7 +290,7 @@ class SignalMapping:
                     unit = extra.strip()
                 else:
                     if not math.isfinite(scale) or scale == 0:
-                        raise ConfigError(f"signal mapping {item!r}: scale must be finite "
+                        raise ConfigError(f"--signal {item}: scale must be finite "
                                           f"and non-zero")
             roles[key] = RoleSpec(msg, sig, unit=unit, scale=scale)
         return SignalMapping(roles=roles, counters=counters, crcs=crcs)
@@ -658,8 +658,11 @@ class Protocol:
     ``dbc_path``, ``is_default_dbc``, ``mapping``, ``roles`` (role ->
     :class:`RoleInfo`), ``messages`` (the mapped :class:`MessageCodec`, the current's
     message first, then the speed's, position's and voltage's), ``strict_range``,
-    ``check_crc``, ``check_counter``.
+    ``check_crc``, ``check_counter``, ``period_source`` (who states :attr:`period`: the
+    configuration's name for it, ``"the DBC's GenMsgCycleTime"``, or None).
     """
+
+    period_source: str | None = None
 
     def __init__(self, db: Any, dbc_path: Path, is_default_dbc: bool, mapping: SignalMapping,
                  roles: dict[str, RoleInfo], messages: tuple[MessageCodec, ...], *,
@@ -682,7 +685,8 @@ class Protocol:
     def load(dbc: str | Path | None = None,
              mapping: SignalMapping | Mapping[str, Any] | Sequence[str] | None = None, *,
              strict_range: bool = True, check_crc: bool = True, check_counter: bool = True,
-             period: float | None = None) -> Protocol:
+             period: float | None = None, period_source: str = "the configured period"
+             ) -> Protocol:
         """Load a DBC (default: the one shipped with canrls) and resolve a signal mapping.
 
         Parameters
@@ -693,7 +697,7 @@ class Protocol:
             strings, or ``None`` for the default mapping.
         strict_range, check_crc, check_counter : named opt-outs of the strict checks.
         period : control period [s] of the feedback messages, overriding their
-            ``GenMsgCycleTime``.
+            ``GenMsgCycleTime``; ``period_source`` names it in messages (``"--period"``).
 
         Raises
         ------
@@ -726,8 +730,13 @@ class Protocol:
         if period is not None and not (math.isfinite(period) and period > 0):
             raise ConfigError(f"period must be a positive number of seconds, got {period!r}")
         roles, messages = _resolve(db, path, is_default, mp, period)
-        return Protocol(db, path, is_default, mp, roles, messages, strict_range=strict_range,
-                        check_crc=check_crc, check_counter=check_counter)
+        proto = Protocol(db, path, is_default, mp, roles, messages, strict_range=strict_range,
+                         check_crc=check_crc, check_counter=check_counter)
+        if period is not None:
+            proto.period_source = period_source
+        elif proto.period is not None:
+            proto.period_source = f"the GenMsgCycleTime of DBC {path.name}"
+        return proto
 
     def has(self, role: str) -> bool:
         """True when ``role`` is mapped."""
@@ -769,6 +778,15 @@ class Protocol:
         """Control period [s]: the smallest cycle time of the mapped messages (None: unknown)."""
         ts = [m.cycle_time for m in self.messages if m.cycle_time]
         return min(ts) if ts else None
+
+    @property
+    def axis(self) -> str | None:
+        """``"rotary"`` or ``"linear"`` from the DBC units of the speed and position
+        signals (:func:`~canrls.can.units.axis_of`); None when the units do not say."""
+        for role in ("speed", "position"):
+            if role in self.roles and (ax := axis_of(self.roles[role].unit)) is not None:
+                return ax
+        return None
 
     def decoder(self) -> Decoder:
         """A new stateful strict decoder (counters carried across blocks)."""

@@ -34,11 +34,13 @@ UNITS: dict[str, dict[str, float]] = {
     "speed": {
         "rad/s": 1.0, "rpm": _TWO_PI / 60.0, "1/min": _TWO_PI / 60.0,
         "rps": _TWO_PI, "deg/s": _DEG,
-        "m/s": 1.0, "mm/s": 1e-3,
+        "mrad/s": 1e-3,
+        "m/s": 1.0, "cm/s": 1e-2, "mm/s": 1e-3, "um/s": 1e-6,
+        "m/min": 1.0 / 60.0, "mm/min": 1e-3 / 60.0,
     },
     "position": {
-        "rad": 1.0, "deg": _DEG, "rev": _TWO_PI,
-        "m": 1.0, "mm": 1e-3, "um": 1e-6,
+        "rad": 1.0, "mrad": 1e-3, "deg": _DEG, "rev": _TWO_PI,
+        "m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6,
     },
     "voltage": {"V": 1.0, "mV": 1e-3, "kV": 1e3},
 }
@@ -47,13 +49,15 @@ UNITS: dict[str, dict[str, float]] = {
 _ALIASES: dict[str, str] = {
     "r/min": "rpm", "U/min": "rpm", "min^-1": "1/min", "min-1": "1/min",
     "rev/s": "rps", "r/s": "rps", "°/s": "deg/s", "°": "deg", "µm": "um", "μm": "um",
+    "rev/min": "rpm", "RPM": "rpm", "µm/s": "um/s", "μm/s": "um/s", "degree": "deg",
+    "degrees": "deg", "turn": "rev", "turns": "rev",
 }
 
 #: The SI unit of each role (rotary axis; a linear axis uses m/s and m).
 SI_UNITS: dict[str, str] = {"current": "A", "speed": "rad/s", "position": "rad", "voltage": "V"}
 
-_LINEAR = {"m/s", "mm/s", "m", "mm", "um"}
-_ROTARY = {"rad/s", "rpm", "1/min", "rps", "deg/s", "rad", "deg", "rev"}
+_LINEAR = {"m/s", "cm/s", "mm/s", "um/s", "m/min", "mm/min", "m", "cm", "mm", "um"}
+_ROTARY = {"rad/s", "mrad/s", "rpm", "1/min", "rps", "deg/s", "rad", "mrad", "deg", "rev"}
 
 
 def _canonical(unit: str | None) -> str:

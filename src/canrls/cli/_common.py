@@ -16,8 +16,33 @@ __all__ = ["add_model_options", "add_bus_options", "add_progress_option", "setup
            "print_json", "Progress"]
 
 
+class _Typed(float):
+    """A number that prints as the user typed it (``--kt 1e-1`` stays ``1e-1`` in errors)."""
+
+    text: str
+
+    def __new__(cls, text: str) -> _Typed:
+        v = super().__new__(cls, text)
+        v.text = text
+        return v
+
+    def __str__(self) -> str:
+        return self.text
+
+    def __format__(self, spec: str) -> str:
+        return self.text if not spec else super().__format__(spec)
+
+
+def number(text: str) -> float:
+    """argparse type: a float that errors quote as typed."""
+    try:
+        return _Typed(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+
+
 def add_model_options(p: argparse.ArgumentParser) -> None:
-    """``--config --dbc --signal --effects --kt --lambda --alpha --json``."""
+    """``--config --dbc --signal --effects --kt --period --axis --lambda --alpha --json``."""
     g = p.add_argument_group("model and protocol (each also settable in --config)")
     g.add_argument("--config", "-C", metavar="FILE",
                    help="TOML configuration ([model], [estimator], [fixed], [can], [signals])")
@@ -30,13 +55,20 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                    help="effects of the model: inertia, viscous, coulomb, stribeck, offset, "
                         "unbalance, cogging:K, electrical, user:NAME "
                         "(default: inertia,viscous,coulomb)")
-    g.add_argument("--kt", type=float, metavar="VALUE",
+    g.add_argument("--kt", type=number, metavar="VALUE",
                    help="torque constant Kt [N·m/A] (linear: N/A); without it the target is "
                         "the current and parameters are per ampere")
-    g.add_argument("--lambda", dest="lam", type=float, metavar="L",
+    g.add_argument("--period", type=number, metavar="SECONDS",
+                   help="control period [s] (default: the DBC's GenMsgCycleTime, else measured "
+                        "on the log's timestamps; a stated period must agree with them within "
+                        "10 %%)")
+    g.add_argument("--axis", choices=("rotary", "linear"),
+                   help="rotary (rad, rad/s, N·m) or linear (m, m/s, N) axis (default: from "
+                        "the DBC units of the speed and position signals)")
+    g.add_argument("--lambda", dest="lam", type=number, metavar="L",
                    help="forgetting factor in (0.5, 1] (default 1: all data weigh the same; "
                         "below 1 the estimate tracks changes, memory 1/(1-L) samples)")
-    g.add_argument("--alpha", type=float, metavar="A",
+    g.add_argument("--alpha", type=number, metavar="A",
                    help="ridge weight: the prior weighs like A samples of each column, "
                         "P0 = diag(1/(A e_j)) with e_j its mean square (default 0.01)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")

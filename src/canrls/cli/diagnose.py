@@ -82,7 +82,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from canrls.diagnosis.analysis import diagnose_log
-    from canrls.replay import prepare
+    from canrls.errors import EstimatorError
+    from canrls.replay import prepare, too_few_samples
 
     if args.report:
         # fail before the long part when the figures cannot be drawn
@@ -94,6 +95,11 @@ def run(args: argparse.Namespace) -> int:
     rep = diagnose_log(args.log, protocol, model, settings, add=args.add,
                        progress=Progress("diagnose", quiet=args.quiet).callback,
                        max_order=args.max_order, skip_bad_lines=args.skip_bad_lines)
+    frames = rep.frames or {}
+    few = too_few_samples(rep.before.model, rep.before.estimates, frames,
+                          (frames.get("period") or {}).get("value"), settings)
+    if few is not None:
+        raise EstimatorError(f"{args.log}: {few}")
     page = rep.write_html(args.report) if args.report else None
     if args.json:
         d = rep.to_dict()
@@ -101,7 +107,21 @@ def run(args: argparse.Namespace) -> int:
             d["report"] = str(page)
         print_json(d)
     else:
-        sys.stdout.write(rep.format() + "\n")
+        head = []
+        if (frames.get("start") or {}).get("date"):
+            head.append(f"log starts {frames['start']['date']}; times below are from that start")
+        per = frames.get("period") or {}
+        if per.get("value"):
+            head.append(f"control period {per['value'] * 1e3:.6g} ms ({per.get('source')})")
+        m = getattr(rep, "model", None)
+        if m is not None:
+            u = "m/s" if m.axis == "linear" else "rad/s"
+            ms = settings.min_speed if settings.min_speed is not None else 5 * m.coulomb_band
+            head.append(f"axis {m.axis}; values used: Coulomb band {m.coulomb_band:.4g} {u} "
+                        f"(minimum speed {ms:.4g} {u} with sign-dependent friction), "
+                        f"Stribeck speed {m.stribeck_speed:.4g} {u}"
+                        + (f", pitch {m.pitch:.4g} m" if m.axis == "linear" else ""))
+        sys.stdout.write("".join(h + "\n" for h in head) + rep.format() + "\n")
         if page is not None:
             sys.stdout.write(f"\nreport: {page}\n")
     return 0

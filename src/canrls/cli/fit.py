@@ -17,8 +17,20 @@ parameter (float, ±σ, fixed, unit), the residual RMS and fit %.
       "equations": {"mechanical": {...}, "electrical": {...}},
       "frames": {"total": ..., "rejected": {reason: n}, "lost": {...}, "foreign": n,
                  "pairing": {...}},
+      "period": {"value": 0.001, "source": "measured",   # or "--period 0.001", the DBC
+                 "measured": 0.001, "jitter": 1e-07, "intervals": 510},
+      "start": {"t0": 1700000000.123, "date": "2023-11-14 22:13:20.123000 UTC",
+                "relative": true},                      # times are from the log's start
+      "axis": {"axis": "rotary", "dbc_axis": "rotary", "units": {"current": "mA", ...}},
+      "calibration": {..., "defaults": {"coulomb_band": 0.04, "stribeck_speed": 1.0}},
       "source": "drive.log"
     }
+
+With no configuration file, ``--dbc`` and ``--signal`` are all a user's drive needs: the
+period comes from the timestamps, the axis from the DBC units, and the defaults that
+depend on a unit from the data (docs/architecture.md, "Control period" and "Defaults
+from the data"). A log without the mapped messages, too few usable samples or an
+impossible value is an error (exit 1) that says what it found.
 """
 
 from __future__ import annotations

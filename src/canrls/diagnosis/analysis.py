@@ -166,12 +166,12 @@ def read_log_samples(path: str | os.PathLike[str], protocol: Any, model: Model,
     from canrls.processor import FrameProcessor  # noqa: PLC0415
 
     stats = LogReadStats()
-    proc = FrameProcessor(protocol, model, settings)
+    proc = FrameProcessor(protocol, model, settings, relative_time=True)
     parts = []
     for block in read_frames(path, chunk_size, skip_bad_lines=skip_bad_lines, stats=stats,
                              progress=progress):
         parts.append(proc.samples(block))
-    parts.append(proc.pairer.flush())
+    parts.append(proc.flush_samples())
     signals = Signals.concat([p for p in parts if len(p)]) if any(len(p) for p in parts) \
         else Signals.concat([])
     rej = proc.rejected
@@ -181,13 +181,15 @@ def read_log_samples(path: str | os.PathLike[str], protocol: Any, model: Model,
         "lost": {k: int(v) for k, v in proc.decoder.lost.items()},
         "foreign": int(proc.decoder.foreign),
         "pairing": proc.pairing.as_dict(),
+        "period": proc.period_info(),
+        "start": proc.start_info(),
     }
     if stats.bad_lines:
         frames["bad_lines"] = stats.bad_lines
     if len(signals) < 2:
         raise ConfigError(f"{path}: {len(signals)} samples after decoding and pairing "
                           f"{proc.frames} frames; nothing to diagnose")
-    return LogSamples(signals, proc.pairer.period, frames, proc.model)
+    return LogSamples(signals, proc.dt, frames, proc.model)
 
 
 def diagnose_log(path: str | os.PathLike[str], protocol: Any, model: Model,

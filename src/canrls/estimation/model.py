@@ -13,7 +13,9 @@ Configuration (TOML, the ``[model]`` table)
 
     [model]
     axis = "rotary"            # "rotary" (rad, rad/s, N·m) or "linear" (m, m/s, N)
+                               # (canrls fit/diagnose/run: default from the DBC units)
     pitch = 1.0                # linear only: metres per period of unbalance/cogging terms
+                               # (default: scaled from the data, see DATA_OPTIONS)
     wrap = 0.2                 # linear only, optional: position wraps with this period [m]
     kt = 0.12                  # optional: Kt [N·m/A] (linear Kf [N/A]); without it the
                                # mechanical target is the current and parameters read A
@@ -28,9 +30,10 @@ Configuration (TOML, the ``[model]`` table)
 
     [model.coulomb]
     band = 0.01                # smoothing band of sgn_e (Coulomb and Stribeck) [rad/s, m/s]
+                               # (default: twice the measured speed noise, DATA_OPTIONS)
 
     [model.stribeck]
-    speed = 1.0                # Stribeck speed ws [rad/s, m/s]
+    speed = 1.0                # Stribeck speed ws [rad/s, m/s] (default: from the data)
 
     [[model.terms]]
     name = "drag"              # used as user:drag
@@ -114,6 +117,7 @@ from canrls.estimation.effects import (
 from canrls.estimation.svf import DEFAULT_CUTOFF_HZ, DEFAULT_ZETA, SVF, gain_bounds
 
 __all__ = [
+    "DATA_OPTIONS",
     "Model",
     "Equation",
     "TargetSpec",
@@ -129,6 +133,11 @@ F64 = npt.NDArray[np.float64]
 Range = tuple[float, float]
 
 #: Default signal ranges for normalisation (rotary; linear speed is [-1, 1] m/s).
+#: Options that are scaled from the data when the configuration does not give them
+#: (:func:`canrls.processor.data_defaults`): the Coulomb smoothing band (and with it
+#: the minimum speed, 5 bands), the Stribeck speed and, on a linear axis, the pitch.
+DATA_OPTIONS: tuple[str, ...] = ("coulomb_band", "stribeck_speed", "pitch")
+
 DEFAULT_RANGES: Mapping[str, Range] = {
     "current": (-10.0, 10.0),
     "speed": (-100.0, 100.0),
@@ -567,8 +576,14 @@ class Model:
                  available_signals: Iterable[str] | None = None,
                  source: str = "<model>",
                  ranges_given: Iterable[str] | None = None,
-                 scaling: Mapping[str, Mapping[str, int]] | None = None) -> None:
+                 scaling: Mapping[str, Mapping[str, int]] | None = None,
+                 options_given: Iterable[str] | None = None) -> None:
         self.source = source
+        #: Which of :data:`DATA_OPTIONS` were given (configured, or frozen by a
+        #: calibration); the front end scales the others from the data
+        #: (:func:`canrls.processor.data_defaults`). Default: all given.
+        self.options_given: frozenset[str] = frozenset(
+            DATA_OPTIONS if options_given is None else options_given) & frozenset(DATA_OPTIONS)
         if axis not in ("rotary", "linear"):
             raise ConfigError(_fmt(source, "model.axis", axis, "must be 'rotary' or 'linear'"))
         self.axis: Axis = axis  # type: ignore[assignment]
@@ -814,7 +829,20 @@ class Model:
                     coulomb_band=self.coulomb_band, stribeck_speed=self.stribeck_speed,
                     terms=self.terms, ranges=self.ranges,
                     available_signals=self.available_signals, source=self.source,
-                    ranges_given=self.ranges_given, scaling=self.exponents)
+                    ranges_given=self.ranges_given, scaling=self.exponents,
+                    options_given=self.options_given)
+
+    def with_options(self, **values: float) -> Model:
+        """A new model with some of :data:`DATA_OPTIONS` set (``coulomb_band=0.04``);
+        those count as given from then on. The effects are rebuilt with them."""
+        bad = sorted(set(values) - set(DATA_OPTIONS))
+        if bad:
+            raise ConfigError(f"{self.source}: with_options: unknown option(s) {bad} "
+                              f"(valid: {', '.join(DATA_OPTIONS)})")
+        kw = self._kwargs()
+        kw.update(values)
+        kw["options_given"] = self.options_given | frozenset(values)
+        return Model([e.name for e in self.effects], **kw)
 
     def with_scaling(self, exponents: Mapping[str, Mapping[str, int]]) -> Model:
         """A new model whose equations use the given power-of-two exponents,
@@ -923,4 +951,6 @@ class Model:
             kw["ranges"] = d["ranges"]
         if "scaling" in d:
             kw["scaling"] = d["scaling"]
-        return cls(**kw, available_signals=available_signals, source=source)
+        given = {k for k in ("coulomb_band", "stribeck_speed", "pitch") if k in kw}
+        return cls(**kw, available_signals=available_signals, source=source,
+                   options_given=given)

@@ -1,0 +1,153 @@
+r"""The control period from the frames' timestamps.
+
+A user's DBC rarely states ``GenMsgCycleTime``, and a stated period can be wrong; the
+timestamps of the feedback frames say it. :class:`PeriodMeter` measures it on the first
+:data:`PERIOD_FRAMES` frames of each mapped message, causally, so the live daemon (no log
+ahead) and the offline replay (the same frames from a file) measure the same period. The
+front end (:class:`canrls.processor.FrameProcessor`) is the one place that runs it and
+decides the period (docs/architecture.md, "Control period").
+
+The estimate, per message, robust to jitter, dropped frames and bursts: with the frame
+times :math:`t_0 < \dots < t_n` and the intervals :math:`d_i = t_i - t_{i-1}`, start from
+the mean interval :math:`p = (t_n - t_0)/n` and iterate
+
+.. math::
+
+    k_i = \operatorname{round}(d_i / p), \qquad p = (t_n - t_0) / \textstyle\sum_i k_i
+
+Jitter rounds to one period (:math:`k_i = 1`), a dropped frame to two, a burst (frames
+queued and sent back to back) to zero for the queued frames and to several periods for
+the gap before them: the count of periods over the span stays right in each case. The
+mapped messages must share the period (pairing takes one frame of each per period): the
+period is the shortest of theirs, and messages whose periods differ by more than half
+are an error that names each message with its period.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from canrls.errors import ConfigError
+
+__all__ = ["PERIOD_FRAMES", "PERIOD_TOLERANCE", "MIN_INTERVALS", "PeriodEstimate",
+           "PeriodMeter", "estimate_period", "check_period"]
+
+#: Frames of each mapped message the period is measured on (the first ones).
+PERIOD_FRAMES = 256
+
+#: Largest relative difference between a stated period and the measured one.
+PERIOD_TOLERANCE = 0.10
+
+#: Fewest intervals of a message that give it a measured period.
+MIN_INTERVALS = 8
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PeriodEstimate:
+    """The measured period [s], its jitter (RMS of the intervals' deviation from whole
+    periods, [s]) and what it was measured on (``{message: intervals}``)."""
+
+    period: float
+    jitter: float
+    intervals: Mapping[str, int] = field(default_factory=dict)
+    per_message: Mapping[str, float] = field(default_factory=dict)
+
+    def format(self) -> str:
+        n = sum(self.intervals.values())
+        return (f"{self.period * 1e3:.6g} ms (measured on {n} frame intervals of "
+                f"{', '.join(self.intervals)}; jitter {self.jitter * 1e6:.3g} µs RMS)")
+
+
+def _one(t: F64) -> tuple[float, float] | None:
+    """(period, jitter) of one message's frame times, None if too few or no span."""
+    t = np.sort(np.asarray(t, np.float64))
+    if len(t) < MIN_INTERVALS + 1:
+        return None
+    d = np.diff(t)
+    span = float(t[-1] - t[0])
+    if not span > 0:
+        return None
+    p = span / len(d)
+    for _ in range(20):
+        k = np.rint(d / p)
+        total = float(k.sum())
+        if total <= 0:
+            return None
+        p_new = span / total
+        if p_new == p:
+            break
+        p = p_new
+    k = np.rint(d / p)
+    jitter = float(np.sqrt(np.mean((d - k * p) ** 2)))
+    return p, jitter
+
+
+def estimate_period(times: Mapping[str, Sequence[float] | F64]) -> PeriodEstimate | None:
+    """The period of frames ``{message: times}`` (module docstring); None when no message
+    has :data:`MIN_INTERVALS` intervals over a span."""
+    got = {name: r for name, t in times.items() if (r := _one(np.asarray(t))) is not None}
+    if not got:
+        return None
+    periods = {name: r[0] for name, r in got.items()}
+    p = min(periods.values())
+    if max(periods.values()) > 1.5 * p:
+        raise ConfigError(
+            "the mapped messages come at different periods ("
+            + ", ".join(f"{name} every {v * 1e3:.4g} ms" for name, v in periods.items())
+            + "); pairing needs one frame of each per control period: map signals of "
+              "messages sent at the control period")
+    jit = float(max(r[1] for r in got.values()))
+    return PeriodEstimate(p, jit, {name: len(times[name]) - 1 for name in got}, periods)
+
+
+def check_period(stated: float, source: str, measured: PeriodEstimate) -> None:
+    """Raise :class:`ConfigError` naming ``source`` (``--period``, the DBC...) when the
+    stated period and the measured one differ by more than :data:`PERIOD_TOLERANCE`."""
+    rel = abs(stated - measured.period) / measured.period
+    if rel > PERIOD_TOLERANCE:
+        raise ConfigError(
+            f"{source} gives a control period of {stated * 1e3:.6g} ms but the log's "
+            f"timestamps say {measured.format()}: they differ by {rel:.0%} (more than "
+            f"{PERIOD_TOLERANCE:.0%}); state the right period (--period SECONDS) or leave it "
+            f"out to use the measured one")
+
+
+class PeriodMeter:
+    """Collects the times of the first :data:`PERIOD_FRAMES` frames of each message.
+
+    :meth:`add` takes a block's frame times per message; :attr:`done` once every message
+    has its frames (or one of them has, and a message that never came is not waited
+    for past ``4 * PERIOD_FRAMES`` frames of the others); :meth:`estimate` measures.
+    """
+
+    def __init__(self, messages: Sequence[str], frames: int = PERIOD_FRAMES) -> None:
+        self.frames = int(frames)
+        self._t: dict[str, list[F64]] = {m: [] for m in messages}
+        self._n: dict[str, int] = dict.fromkeys(messages, 0)
+
+    @property
+    def done(self) -> bool:
+        n = self._n.values()
+        return all(k >= self.frames for k in n) or max(n, default=0) >= 4 * self.frames
+
+    def add(self, times: Mapping[str, F64]) -> None:
+        for m, t in times.items():
+            if m in self._n and self._n[m] < self.frames and len(t):
+                take = np.asarray(t[: self.frames - self._n[m]], np.float64)
+                self._t[m].append(take)
+                self._n[m] += len(take)
+            elif m in self._n:
+                self._n[m] += len(t)  # counted for the cut-off of `done`
+
+    def estimate(self) -> PeriodEstimate | None:
+        return estimate_period({m: np.concatenate(v) for m, v in self._t.items() if v})
+
+    def counts(self) -> dict[str, int]:
+        """Frames seen per message (measured or not)."""
+        return dict(self._n)
