@@ -135,3 +135,48 @@ def test_fit_agrees_with_batch(logs: dict[str, Path], name: str,
     sj = p["inertia.J"]["sigma"]
     assert sj > 0.03 * abs(got[0])
     assert abs(got[0] - ref[0]) < 2 * sj
+
+
+FOUR = ("idf_pos_0.06", "idf_neg_0.04", "idf_pos_0.065", "idf_neg_0.045")
+
+
+def test_both_directions_agree_with_batch_coulomb_plus_offset(
+        logs: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    """One model from a positive and a negative run: Coulomb friction plus an offset
+    (friction that differs with direction), within 3 % of the batch fit."""
+    names = ["idf_pos_0.06_1", "idf_neg_0.04_1"]
+    res = canrls("fit", *(str(logs[n]) for n in names), "--effects",
+                 "inertia,viscous,coulomb,offset", capsys=capsys)
+    p = res["parameters"]
+    ref = batch_fit(names, offset=True)
+    got = np.array([p[k]["value"] for k in ("inertia.J", "viscous.B", "coulomb.Tc",
+                                            "offset.T0")])
+    assert np.allclose(got[:3], ref[:3], rtol=0.03, atol=0), (got, ref)
+    # the offset is a small difference of two frictions: 5 % of it, 0.3 mN·m
+    assert got[3] == pytest.approx(ref[3], rel=0.05)
+    # friction differs with direction: Tc + T0 forward, Tc - T0 backward, both > 0
+    assert got[2] > 0.03 and 0.003 < got[3] < 0.01
+
+
+def test_cross_validation_on_runs_not_used(logs: dict[str, Path], tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """Identify on runs 1 and 2 of every case (both directions), validate on runs 3."""
+    m = tmp_path / "hsm150.json"
+    train = [str(logs[f"{c}_{k}"]) for c in FOUR for k in (1, 2)]
+    test = [str(logs[f"{c}_3"]) for c in FOUR]
+    fit = canrls("fit", *train, "--effects", "inertia,viscous,coulomb,offset",
+                 "--save-model", str(m), capsys=capsys)
+    val = canrls("validate", *test, "--model", str(m), capsys=capsys)
+    assert val["parameters"] == json.loads(m.read_text())["parameters"]
+    # the unseen runs are predicted about as well as the runs it learnt from
+    assert val["residual_rms"] < 1.15 * fit["residual_rms"]
+    assert val["fit_percent"] > fit["fit_percent"] - 3.0
+    files = val["equations"]["mechanical"]["files"]
+    assert [f["source"] for f in files] == test
+    for f in files:
+        assert f["residual_rms"] < 1.3 * fit["residual_rms"], f
+    # a one-direction model does not carry over to the other direction
+    one = tmp_path / "pos.json"
+    canrls("fit", str(logs["idf_pos_0.06_1"]), "--save-model", str(one), capsys=capsys)
+    neg = canrls("validate", *test[1::2], "--model", str(one), capsys=capsys)
+    assert neg["residual_rms"] > 2 * val["residual_rms"]
