@@ -180,3 +180,24 @@ def test_cross_validation_on_runs_not_used(logs: dict[str, Path], tmp_path: Path
     canrls("fit", str(logs["idf_pos_0.06_1"]), "--save-model", str(one), capsys=capsys)
     neg = canrls("validate", *test[1::2], "--model", str(one), capsys=capsys)
     assert neg["residual_rms"] > 2 * val["residual_rms"]
+
+
+def test_diagnosis_one_direction_cannot_separate_coulomb_and_offset(
+        logs: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    d = canrls("diagnose", str(logs["idf_pos_0.06_1"]), "--effects", "inertia,viscous",
+               "--max-order", "8", capsys=capsys)
+    c = {x["effect"]: x for x in d["candidates"]}
+    for name in ("coulomb", "offset"):
+        assert not c[name]["identifiable"] and not c[name]["suggested"]
+        assert "record a run in both directions" in c[name]["reason"]
+    assert d["suggestion"]["add"] == []
+    assert "cannot be separated; record a run in both directions" in d["verdict"]
+
+
+def test_diagnosis_both_directions_finds_the_friction(
+        logs: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    d = canrls("diagnose", str(logs["idf_pos_0.06_1"]), str(logs["idf_neg_0.04_1"]),
+               "--effects", "inertia,viscous", "--max-order", "8", capsys=capsys)
+    assert d["suggestion"]["add"][:2] == ["coulomb", "offset"]
+    c = {x["effect"]: x for x in d["candidates"]}
+    assert c["coulomb"]["identifiable"] and c["offset"]["identifiable"]

@@ -77,6 +77,9 @@ __all__ = [
     "MIN_INDEPENDENCE",
     "MIN_EXCITATION",
     "MAX_COHERENCE",
+    "MIN_PERIODS",
+    "SIGN_PAIR",
+    "SIGN_PAIR_TEXT",
     "CandidateResult",
     "rank_candidates",
 ]
@@ -88,6 +91,9 @@ B = npt.NDArray[np.bool_]
 SIGN_PAIR = frozenset({"coulomb", "offset"})
 SIGN_PAIR_TEXT = ("the speed never reverses: Coulomb friction and offset cannot be "
                   "separated; record a run in both directions")
+#: Periods of a position harmonic the travel covered (span of the position) must hold for
+#: it to be identifiable: with fewer, it fits any slow trend along the position.
+MIN_PERIODS = 2.0
 #: Share of the residual variance above which a candidate, identifiable or not, is named
 #: by the verdict (a model is never called complete while one would cut this much).
 MENTION_EXPLAINED = 0.2
@@ -524,12 +530,14 @@ def _unexcited_reason(name: str, exc: ExcitationSummary, model: Model) -> str:
         return f"not excited: the position covers only {exc.revolutions:.2f} {exc.per}s"
     if base in ("unbalance", "cogging") and exc.coverage is not None:
         k = 1 if base == "unbalance" else int(name.split(".")[0].split(":")[1])
-        if exc.coverage * k < 1.0:
+        if exc.coverage * k < MIN_PERIODS:
             period = f"one {exc.per}" if k == 1 else f"1/{k} {exc.per}"
-            return (f"not identifiable from this data: its period ({period}) is longer than "
+            longer = "longer than" if exc.coverage * k < 1.0 else \
+                f"not short against (fewer than {MIN_PERIODS:g} periods in)"
+            return (f"not identifiable from this data: its period ({period}) is {longer} "
                     f"the travel covered ({exc.coverage:.3g} {exc.per}s), so it fits any slow "
                     f"trend along the position; record more travel (at least "
-                    f"{2.0 / k:.3g} {exc.per}s)")
+                    f"{MIN_PERIODS / k:.3g} {exc.per}s)")
     return ""
 
 
@@ -709,6 +717,11 @@ def _verdict(eq: Equation, suggestion: Suggestion, cands: Sequence[Candidate],
             why.append(f"{c.effect} is collinear with the model's "
                        f"{next(iter(SIGN_PAIR - {c.effect}))}: {SIGN_PAIR_TEXT}")
         rest = [c for c in rest if SIGN_PAIR_TEXT not in c.reason]
+        for c in [c for c in rest if c.explained >= MENTION_EXPLAINED]:
+            reason = c.reason.removeprefix("not identifiable from this data: ")
+            why.append(f"{c.effect} would explain {share_text(c.explained)} of the residual "
+                       f"variance, but {reason}")
+        rest = [c for c in rest if c.explained < MENTION_EXPLAINED]
         if rest:
             why.append(f"{', '.join(c.effect for c in rest)} cannot be told apart from "
                        f"the model's columns or are not excited")
