@@ -32,7 +32,8 @@ LAYER = {
     "canrls": "core", "canrls.errors": "core", "canrls.signals": "core",
     "canrls.effect_names": "core",
     "canrls.can": "can", "canrls.estimation": "estimation",
-    "canrls.config": "front", "canrls.processor": "front",
+    "canrls.config": "front", "canrls.processor": "front", "canrls.modelfile": "front",
+    "canrls.validate": "app",
     "canrls.replay": "app", "canrls.diagnosis": "app", "canrls.live": "app",
     "canrls.sim": "sim", "canrls.cli": "cli", "canrls.__main__": "cli",
 }

@@ -11,12 +11,12 @@ import pytest
 
 from canrls.can.logs import write_candump
 from canrls.config import AppConfig
-from canrls.diagnosis.analysis import diagnose, read_log_samples
+from canrls.diagnosis.analysis import diagnose
 from canrls.diagnosis.samples import RecordSamples
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings, Pipeline
 from canrls.estimation.selection import GapFiller, SamplePolicy
-from canrls.replay import prepare
+from canrls.replay import prepare, read_logs
 from canrls.signals import Signals
 from canrls.sim.scenario import scenario, simulate
 
@@ -149,7 +149,7 @@ def test_diagnosis_uses_the_pipeline_samples_and_columns_with_dropped_frames(
     protocol, model, _ = prepare(cfg)
     # speed limits on: the periodic column's max speed, and friction's min speed below
     settings = EstimatorSettings(max_phase_step=0.5)
-    log = read_log_samples(path, protocol, model, settings)
+    log = read_logs([path], protocol, model, settings)
     ctx = RecordSamples(model, log.signals, log.dt, settings, max_order=8)
     real = ctx.selected.real
     assert real is not None and np.count_nonzero(~real) > 50  # lost frames were filled

@@ -11,25 +11,34 @@ for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, read_frames
+from canrls.can.pairing import Pairer
 from canrls.can.protocol import Protocol
-from canrls.errors import EstimatorError, LogFormatError
+from canrls.errors import ConfigError, EstimatorError, LogFormatError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, PipelineBlock
 from canrls.estimation.selection import SamplePolicy
 from canrls.processor import FitResult, FrameProcessor
+from canrls.signals import Signals
 
 if TYPE_CHECKING:
     from canrls.config import AppConfig
 
-__all__ = ["FitResult", "FrameProcessor", "MIN_SAMPLES_PER_PARAMETER", "fit_frames", "fit_log",
-           "prepare", "too_few_samples"]
+__all__ = ["FILE_GAP_S", "FitResult", "FrameProcessor", "LogFiles", "LogsSamples",
+           "MIN_SAMPLES_PER_PARAMETER", "fit_frames", "fit_log", "fit_logs", "prepare",
+           "read_logs", "too_few_samples"]
+
+#: Several logs are joined into one record with at least this gap [s] between the end of
+#: one and the start of the next (:class:`LogFiles`): longer than any sample gap the
+#: pipeline fills, so the filter restarts at every file and no segment is bridged.
+FILE_GAP_S = 1.0
 
 
 def fit_frames(blocks: Iterable[FrameBlock], protocol: Protocol, model: Model,
@@ -53,23 +62,15 @@ def fit_log(path: str | os.PathLike[str], protocol: Protocol, model: Model,
             progress: Callable[[int, int], None] | None = None,
             on_block: Callable[[PipelineBlock], None] | None = None,
             record: bool = False, skip_bad_lines: bool = False) -> FitResult:
-    """Replay a log file (candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ``.csv``)."""
-    stats = LogReadStats()
-    blocks = read_frames(path, chunk_size, skip_bad_lines=skip_bad_lines, stats=stats,
-                         progress=progress)
-    res = fit_frames(blocks, protocol, model, settings, source=str(path), on_block=on_block,
-                     record=record)
-    if stats.bad_lines:
-        res.extra["bad_lines"] = stats.bad_lines
-    if res.frames == 0:
-        raise LogFormatError(f"{path}: no CAN frames in the log"
-                             + (f" ({stats.bad_lines} unparsable lines skipped)"
-                                if stats.bad_lines else ""))
-    few = too_few_samples(res.model, res.estimates, res.to_dict()["frames"],
-                          res.extra["period"]["value"], settings)
-    if few is not None:
-        raise EstimatorError(f"{path}: {few}")
-    return res
+    """Replay a log file (candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ``.csv``):
+    :func:`fit_logs` of one log.
+
+    :raises LogFormatError: no CAN frame in the log.
+    :raises EstimatorError: too few usable samples (:func:`too_few_samples`).
+    """
+    return fit_logs([path], protocol, model, settings, chunk_size=chunk_size,
+                    progress=progress, on_block=on_block, record=record,
+                    skip_bad_lines=skip_bad_lines)
 
 
 #: Fewest used samples per parameter of an equation that a fit reports rather than refuses.
@@ -121,3 +122,188 @@ def prepare(cfg: AppConfig) -> tuple[Protocol, Model, EstimatorSettings]:
     as the live daemon does: no first pass over the log."""
     protocol = cfg.protocol()
     return protocol, cfg.model_for(protocol), cfg.settings()
+
+
+class LogFiles:
+    """The samples of several logs, in turn, through one :class:`FrameProcessor`.
+
+    Segments are never bridged across files: before each file the processor's decoder
+    and pairer restart (no counter or pairing state carried over), and a file that does
+    not start at least :data:`FILE_GAP_S` after the previous one ended (the same time,
+    earlier, or straight after) is moved in time to start exactly that much later, so
+    the estimator sees a gap and restarts its filter there, and the joined record's time
+    stays increasing. The calibration window is the start of the first file (the first
+    ``calibration_s`` of samples; when the first file is shorter, it continues into the
+    next). The frame counts of :meth:`frames` are the totals over the files.
+    """
+
+    def __init__(self, paths: Sequence[str | os.PathLike[str]], proc: FrameProcessor, *,
+                 chunk_size: int = 65536, progress: Callable[[int, int], None] | None = None,
+                 skip_bad_lines: bool = False) -> None:
+        self.paths = [str(p) for p in paths]
+        self.proc = proc
+        self.chunk_size = chunk_size
+        self.progress = progress
+        self.skip_bad_lines = skip_bad_lines
+        self.stats = LogReadStats()
+        #: time shift of each file read so far [s]
+        self.shifts: list[float] = []
+        #: samples of each file read so far (in the order of the joined record)
+        self.sizes: list[int] = []
+        self._counts: list[dict[str, Any]] = []
+        self._end: float | None = None
+        self._file = 0
+
+    def _file_counts(self) -> dict[str, Any]:
+        p = self.proc
+        return {"rejected": {k: int(v) for k, v in p.rejected.items()},
+                "examples": dict(getattr(p.rejected, "examples", {}) or {}),
+                "lost": {k: int(v) for k, v in p.decoder.lost.items()},
+                "foreign": int(p.decoder.foreign), "pairing": p.pairing.as_dict()}
+
+    def _shifted(self, s: Signals) -> Signals:
+        self.sizes[-1] += len(s)
+        if not len(s):
+            return s
+        if len(self.shifts) < self._file:
+            t0 = float(s.t[0])
+            shift = 0.0 if self._end is None or t0 >= self._end + FILE_GAP_S \
+                else self._end + FILE_GAP_S - t0
+            self.shifts.append(shift)
+        shift = self.shifts[-1]
+        if shift:
+            s = dataclasses.replace(s, t=s.t + shift)
+        self._end = float(s.t[-1])
+        return s
+
+    def samples(self) -> Iterator[Signals]:
+        """Every file's samples in turn (the caller estimates on them)."""
+        for k, path in enumerate(self.paths):
+            self._file = k + 1
+            self.sizes.append(0)
+            if k:
+                self._counts.append(self._file_counts())
+                proc = self.proc
+                proc.decoder = proc.protocol.decoder()
+                if proc.pairer is not None:
+                    proc.pairer = Pairer(proc.protocol, period=proc.pairer.period)
+            frames = self.proc.frames
+            for block in read_frames(path, self.chunk_size, skip_bad_lines=self.skip_bad_lines,
+                                     stats=self.stats, progress=self.progress):
+                yield self._shifted(self.proc.samples(block))
+            if self.proc.frames == frames:
+                raise LogFormatError(f"{path}: no CAN frames in the log"
+                                     + (f" ({self.stats.bad_lines} unparsable lines skipped)"
+                                        if self.stats.bad_lines else ""))
+            # the end of the file: the period is decided with what came (the first file
+            # measures it), and the samples still open are paired
+            yield self._shifted(self.proc.flush_samples())
+            if len(self.shifts) < self._file:
+                self.shifts.append(0.0)  # a file without samples
+
+    def frames(self) -> dict[str, Any]:
+        """Frame statistics summed over the files (as :meth:`FitResult.to_dict` has them)."""
+        parts = [*self._counts, self._file_counts()]
+
+        def total(key: str) -> dict[str, int]:
+            out: dict[str, int] = {}
+            for c in parts:
+                for k, v in c[key].items():
+                    out[k] = out.get(k, 0) + int(v)
+            return out
+
+        examples: dict[str, str] = {}
+        for c in parts:
+            for k, v in c["examples"].items():
+                examples.setdefault(k, v)
+        d: dict[str, Any] = {"total": self.proc.frames, "rejected": total("rejected"),
+                             "examples": examples, "lost": total("lost"),
+                             "foreign": sum(c["foreign"] for c in parts),
+                             "pairing": total("pairing")}
+        if self.stats.bad_lines:
+            d["bad_lines"] = self.stats.bad_lines
+        return d
+
+
+@dataclasses.dataclass(frozen=True)
+class LogsSamples:
+    """The samples of several logs as one record (:class:`LogFiles`), in memory."""
+
+    signals: Signals
+    #: sample period [s] (the pairer's)
+    dt: float
+    #: frame statistics summed over the files (total, rejected, lost, foreign, pairing)
+    frames: dict[str, Any]
+    #: the model with the ranges the front end gives it (the DBC's where not configured)
+    model: Model
+    #: samples of each file, in order
+    sizes: tuple[int, ...]
+
+
+def read_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model: Model,
+              settings: EstimatorSettings | None = None, *, chunk_size: int = 65536,
+              progress: Callable[[int, int], None] | None = None,
+              skip_bad_lines: bool = False) -> LogsSamples:
+    """Decode and pair several logs as :func:`fit_logs` does, keeping the samples (for a
+    diagnosis of them all: :func:`canrls.diagnosis.analysis.diagnose`).
+
+    :raises LogFormatError: a log without any CAN frame.
+    :raises ConfigError: fewer than two samples in all.
+    """
+    proc = FrameProcessor(protocol, model, settings, relative_time=True)
+    files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
+                     skip_bad_lines=skip_bad_lines)
+    parts = [s for s in files.samples() if len(s)]
+    signals = Signals.concat(parts)
+    if len(signals) < 2:
+        raise ConfigError(f"{', '.join(files.paths)}: {len(signals)} samples after decoding "
+                          f"and pairing {proc.frames} frames; nothing to analyse")
+    frames = files.frames()
+    frames.pop("examples", None)
+    frames["period"] = proc.period_info()
+    frames["start"] = proc.start_info()
+    assert proc.period is not None  # decided at the end of the first file
+    return LogsSamples(signals, proc.period, frames, proc.model, tuple(files.sizes))
+
+
+def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model: Model,
+             settings: EstimatorSettings | None = None, *, chunk_size: int = 65536,
+             progress: Callable[[int, int], None] | None = None,
+             on_block: Callable[[PipelineBlock], None] | None = None,
+             record: bool = False, skip_bad_lines: bool = False) -> FitResult:
+    """One model from several logs (:class:`LogFiles`: no segment bridged across files).
+
+    The result's ``source`` is the logs joined by ``", "``; ``extra["files"]`` lists each
+    log with its time shift.
+
+    :raises LogFormatError: a log without any CAN frame.
+    :raises EstimatorError: too few usable samples (:func:`too_few_samples`).
+    """
+    if not paths:
+        raise ValueError("fit_logs: no log given")
+    proc = FrameProcessor(protocol, model, settings, relative_time=True)
+    files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
+                     skip_bad_lines=skip_bad_lines)
+    for s in files.samples():
+        out = proc.process_samples(s, record)
+        if on_block is not None:
+            on_block(out)
+    out = proc.flush(record)
+    if on_block is not None:
+        on_block(out)
+    res = proc.result(", ".join(files.paths))
+    fr = files.frames()
+    extra = dict(res.extra)
+    if fr.get("bad_lines"):
+        extra["bad_lines"] = fr["bad_lines"]
+    if len(files.paths) > 1:
+        extra["files"] = [{"path": p, "time_shift_s": sh}
+                          for p, sh in zip(files.paths, files.shifts, strict=True)]
+    res = dataclasses.replace(res, frames=fr["total"], rejected=fr["rejected"],
+                              rejected_examples=fr["examples"], pairing=fr["pairing"],
+                              foreign=fr["foreign"], lost=fr["lost"], extra=extra)
+    few = too_few_samples(res.model, res.estimates, res.to_dict()["frames"],
+                          res.extra["period"]["value"], settings)
+    if few is not None:
+        raise EstimatorError(f"{res.source}: {few}")
+    return res

@@ -1,4 +1,7 @@
-"""``canrls diagnose LOG``: where the model fails, which effect is missing, before and after.
+"""``canrls diagnose LOG [LOG ...]``: where the model fails, which effect is missing.
+
+Several logs are diagnosed as one record (:class:`canrls.replay.LogFiles`: no segment
+bridged across files; the calibration window is the start of the first log).
 
 Takes every option of ``canrls fit`` (the same replay: same samples, same parameters),
 plus::
@@ -62,7 +65,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                     "position, current, acceleration, time, rotation order), rank the "
                     "effects of the library the model lacks, and with --add refit and print "
                     "before and after side by side.")
-    p.add_argument("log", metavar="LOG", help="CAN log: .log (candump), .asc, .blf, .trc, .csv")
+    p.add_argument("log", metavar="LOG", nargs="+",
+                   help="CAN log(s): .log (candump), .asc, .blf, .trc, .csv; several logs "
+                        "are diagnosed as one record (segments never bridged across files)")
     add_model_options(p)
     add_progress_option(p)
     p.add_argument("--skip-bad-lines", action="store_true",
@@ -74,6 +79,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     g.add_argument("--report", metavar="DIR",
                    help="write DIR/index.html with PNG figures (needs matplotlib: "
                         "pip install 'canrls[report]')")
+    g.add_argument("--save-model", metavar="FILE",
+                   help="write the model (after --add, if any) with its parameters as JSON "
+                        "for 'canrls validate' (as 'canrls fit --save-model')")
     g.add_argument("--max-order", type=_order, default=DEFAULT_MAX_ORDER, metavar="K",
                    help=f"highest cogging order searched (default {DEFAULT_MAX_ORDER})")
     p.set_defaults(func=run)
@@ -99,12 +107,21 @@ def run(args: argparse.Namespace) -> int:
     few = too_few_samples(rep.before.model, rep.before.estimates, frames,
                           (frames.get("period") or {}).get("value"), settings)
     if few is not None:
-        raise EstimatorError(f"{args.log}: {few}")
+        raise EstimatorError(f"{', '.join(args.log)}: {few}")
     page = rep.write_html(args.report) if args.report else None
+    saved = None
+    if args.save_model:
+        from canrls.modelfile import SavedModel
+
+        final = rep.after if rep.after is not None else rep.before
+        saved = SavedModel.from_parts(final.model, final.estimates, None, cfg,
+                                      list(args.log)).save(args.save_model)
     if args.json:
         d = rep.to_dict()
         if page is not None:
             d["report"] = str(page)
+        if saved is not None:
+            d["saved_model"] = str(saved)
         print_json(d)
     else:
         head = []
@@ -124,4 +141,6 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write("".join(h + "\n" for h in head) + rep.format() + "\n")
         if page is not None:
             sys.stdout.write(f"\nreport: {page}\n")
+        if saved is not None:
+            sys.stdout.write(f"model saved: {saved}\n")
     return 0

@@ -1,4 +1,9 @@
-"""``canrls fit LOG``: replay a recorded CAN log and print every identified parameter.
+"""``canrls fit LOG [LOG ...]``: replay recorded CAN logs and print every identified parameter.
+
+Several logs identify one model from all of them (:class:`canrls.replay.LogFiles`: the
+decoder, pairer and filter restart at every file, no segment is bridged; the calibration
+window is the start of the first log). ``--save-model FILE`` writes the identified model
+as JSON (:mod:`canrls.modelfile`, ``docs/model_file.md``) for ``canrls validate``.
 
 Reads candump ``.log`` (and ``.asc``, ``.blf``, ``.trc``, ``.csv`` through python-can),
 decodes the feedback frames strictly with the DBC, pairs them into samples, and runs the
@@ -56,8 +61,13 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
         description="Replay a CAN log through the estimation pipeline (float and fixed-point "
                     "RLS) and print every parameter with unit and sigma, the residual RMS and "
                     "the fit.")
-    p.add_argument("log", metavar="LOG", help="CAN log: .log (candump), .asc, .blf, .trc, .csv")
+    p.add_argument("log", metavar="LOG", nargs="+",
+                   help="CAN log(s): .log (candump), .asc, .blf, .trc, .csv; several logs "
+                        "identify one model (segments never bridged across files)")
     add_model_options(p)
+    p.add_argument("--save-model", metavar="FILE",
+                   help="write the identified model (effects, parameters with sigma and "
+                        "unit, configuration, calibration) as JSON for 'canrls validate'")
     add_progress_option(p)
     p.add_argument("--skip-bad-lines", action="store_true",
                    help="count unparsable log lines instead of stopping at the first")
@@ -66,15 +76,25 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.replay import fit_log, prepare
+    from canrls.replay import fit_logs, prepare
 
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
-    res = fit_log(args.log, protocol, model, settings,
-                  progress=Progress("replay", quiet=args.quiet).callback,
-                  skip_bad_lines=args.skip_bad_lines)
+    res = fit_logs(args.log, protocol, model, settings,
+                   progress=Progress("replay", quiet=args.quiet).callback,
+                   skip_bad_lines=args.skip_bad_lines)
+    saved = None
+    if args.save_model:
+        from canrls.modelfile import SavedModel
+
+        saved = SavedModel.from_fit(res, cfg, list(args.log)).save(args.save_model)
     if args.json:
-        print_json(res.to_dict())
+        d = res.to_dict()
+        if saved is not None:
+            d["saved_model"] = str(saved)
+        print_json(d)
     else:
         sys.stdout.write(res.format() + "\n")
+        if saved is not None:
+            sys.stdout.write(f"model saved: {saved}\n")
     return 0

@@ -18,6 +18,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "sim",
     "fit",
     "diagnose",
+    "validate",
     "fixed_sweep",
     "run",
     "monitor",

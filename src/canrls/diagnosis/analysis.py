@@ -50,7 +50,6 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -81,8 +80,7 @@ from canrls.estimation.rls import RLS
 from canrls.processor import SampleProcessor
 from canrls.signals import Signals
 
-__all__ = ["DEFAULT_MAX_ORDER", "DiagnosisReport", "LogSamples", "diagnose", "diagnose_log",
-           "read_log_samples"]
+__all__ = ["DEFAULT_MAX_ORDER", "DiagnosisReport", "diagnose", "diagnose_log"]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
@@ -140,78 +138,33 @@ def diagnose(data: Signals | Iterable[Signals], model: Model,
                            max_order=max_order, frames=frames)
 
 
-@dataclass(frozen=True)
-class LogSamples:
-    """The samples of a log as ``canrls fit`` decodes and pairs them."""
-
-    signals: Signals
-    #: sample period [s] (the pairer's)
-    dt: float
-    #: frame statistics (total, rejected, lost, foreign, pairing, bad_lines)
-    frames: dict[str, Any]
-    #: the model with the ranges the front end gives it (the DBC's where not configured)
-    model: Model
-
-
-def read_log_samples(path: str | os.PathLike[str], protocol: Any, model: Model,
-                     settings: EstimatorSettings | None = None, *,
-                     progress: Callable[[int, int], None] | None = None,
-                     chunk_size: int = 65536, skip_bad_lines: bool = False) -> LogSamples:
-    """Decode and pair the frames of a log exactly as ``canrls fit`` does
-    (:class:`~canrls.processor.FrameProcessor`), keeping the samples in memory.
-
-    :raises ConfigError: fewer than two samples.
-    """
-    from canrls.can.logs import LogReadStats, read_frames
-    from canrls.processor import FrameProcessor  # noqa: PLC0415
-
-    stats = LogReadStats()
-    proc = FrameProcessor(protocol, model, settings, relative_time=True)
-    parts = []
-    for block in read_frames(path, chunk_size, skip_bad_lines=skip_bad_lines, stats=stats,
-                             progress=progress):
-        parts.append(proc.samples(block))
-    parts.append(proc.flush_samples())
-    signals = Signals.concat([p for p in parts if len(p)]) if any(len(p) for p in parts) \
-        else Signals.concat([])
-    rej = proc.rejected
-    frames: dict[str, Any] = {
-        "total": proc.frames,
-        "rejected": {k: int(v) for k, v in rej.items()},
-        "lost": {k: int(v) for k, v in proc.decoder.lost.items()},
-        "foreign": int(proc.decoder.foreign),
-        "pairing": proc.pairing.as_dict(),
-        "period": proc.period_info(),
-        "start": proc.start_info(),
-    }
-    if stats.bad_lines:
-        frames["bad_lines"] = stats.bad_lines
-    if len(signals) < 2:
-        raise ConfigError(f"{path}: {len(signals)} samples after decoding and pairing "
-                          f"{proc.frames} frames; nothing to diagnose")
-    return LogSamples(signals, proc.dt, frames, proc.model)
-
-
-def diagnose_log(path: str | os.PathLike[str], protocol: Any, model: Model,
-                 settings: EstimatorSettings | None = None, *, add: Sequence[str] = (),
-                 progress: Callable[[int, int], None] | None = None,
+def diagnose_log(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+                 protocol: Any, model: Model, settings: EstimatorSettings | None = None, *,
+                 add: Sequence[str] = (), progress: Callable[[int, int], None] | None = None,
                  max_order: int = DEFAULT_MAX_ORDER, chunk_size: int = 65536,
                  skip_bad_lines: bool = False) -> DiagnosisReport:
-    """Diagnose ``model`` on a recorded CAN log (``.log`` candump, ``.asc``, ``.blf``, ...).
+    """Diagnose ``model`` on one recorded CAN log or several (``.log`` candump, ``.asc``,
+    ``.blf``, ...; several are one record, no segment bridged:
+    :class:`canrls.replay.LogFiles`).
 
     The frames are decoded and paired exactly as ``canrls fit`` does
-    (:func:`read_log_samples`), so ``before`` holds the same parameters as ``canrls fit``
-    prints, bit for bit. The samples are kept in memory (five float64 arrays) for the
-    second pass that ``add`` needs.
+    (:func:`canrls.replay.read_logs`), so ``before`` holds the same parameters as
+    ``canrls fit`` prints, bit for bit. The samples are kept in memory (five float64
+    arrays) for the second pass that ``add`` needs.
     """
+    from canrls.replay import read_logs
+
+    if isinstance(paths, str | os.PathLike):
+        paths = [paths]
     # validate the additions before reading
     for a in add:
         if not _bare_cogging(a):
             model.with_effects(add=[a])
-    log = read_log_samples(path, protocol, model, settings, progress=progress,
-                           chunk_size=chunk_size, skip_bad_lines=skip_bad_lines)
+    log = read_logs(paths, protocol, model, settings, progress=progress,
+                    chunk_size=chunk_size, skip_bad_lines=skip_bad_lines)
     return diagnose(log.signals, log.model, settings, dt=log.dt, add=add,
-                    max_order=max_order, source=str(path), frames=log.frames)
+                    max_order=max_order, source=", ".join(str(p) for p in paths),
+                    frames=log.frames)
 
 
 # ============================================================================ internals

@@ -77,12 +77,26 @@ __all__ = [
     "MIN_INDEPENDENCE",
     "MIN_EXCITATION",
     "MAX_COHERENCE",
+    "MIN_PERIODS",
+    "SIGN_PAIR",
+    "SIGN_PAIR_TEXT",
     "CandidateResult",
     "rank_candidates",
 ]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
+
+#: Coulomb friction and a constant offset: one column when the speed keeps one sign.
+SIGN_PAIR = frozenset({"coulomb", "offset"})
+SIGN_PAIR_TEXT = ("the speed never reverses: Coulomb friction and offset cannot be "
+                  "separated; record a run in both directions")
+#: Periods of a position harmonic the travel covered (span of the position) must hold for
+#: it to be identifiable: with fewer, it fits any slow trend along the position.
+MIN_PERIODS = 2.0
+#: Share of the residual variance above which a candidate, identifiable or not, is named
+#: by the verdict (a model is never called complete while one would cut this much).
+MENTION_EXPLAINED = 0.2
 
 #: Highest cogging order searched (``cogging:2`` ... ``cogging:K``).
 DEFAULT_MAX_ORDER = 64
@@ -304,10 +318,13 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
                 "not excited", "not excited", 1))
         elif ind < MIN_INDEPENDENCE:
             partners = sorted(others, key=lambda i: -abs(G.corr(i, j)))[:2]
+            pair = {cur_names[j].split(".")[0], cur_names[partners[0]].split(".")[0]}
+            experiment = (f"; {SIGN_PAIR_TEXT}" if pair == SIGN_PAIR and exc.one_direction
+                          else "")
             model_issues.append(
                 f"{cur_names[j]} is (nearly) collinear with "
                 f"{' and '.join(cur_names[i] for i in partners)} "
-                f"({share_text(ind)} of its column independent)")
+                f"({share_text(ind)} of its column independent){experiment}")
     # -- every candidate alone ---------------------------------------------------------
     evaluated: dict[str, dict[str, Any]] = {}
     for name, cols in groups.items():
@@ -339,6 +356,8 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
         evaluated[name] = dict(cols=cols, explained=expl, rss=rss,
                                dbic=bic(rss, rss0, len(cols)), ind=ind, exc=exc_c,
                                reason=reason, params=th)
+    # -- candidates that cannot be told apart from one another ---------------------------
+    inseparable = _inseparable(evaluated, G, C, exc)
     # -- the cogging order -------------------------------------------------------------
     cog = [nm for nm in evaluated if nm.startswith("cogging:")]
     best_cog = max(cog, key=lambda nm: (evaluated[nm]["explained"], -int(nm[8:]))) \
@@ -437,7 +456,7 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
     identifiable = not model_issues and not not_ident
     rms_final = math.sqrt(float(np.mean(r[used] ** 2))) if N else math.nan
     verdict = _verdict(eq, suggestion, cands, structure, model_issues, not_ident, exc, unit,
-                       rms_ls, partial)
+                       rms_ls, partial, inseparable, na)
     if rms_final > 1.1 * rms_ls:
         verdict += (f" Note: the final estimate leaves a residual RMS of "
                     f"{value_text(rms_final, unit)}"
@@ -447,6 +466,40 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
                     f"(see the parameter convergence).")
     return CandidateResult(tuple(cands), tuple(na), suggestion, structure, identifiable,
                             tuple(reasons), verdict, rms_ls)
+
+
+def _inseparable(evaluated: dict[str, dict[str, Any]], G: _Gram, C: Sequence[int],
+                 exc: ExcitationSummary) -> list[tuple[str, str, float]]:
+    """Pairs of candidates, each identifiable against the model alone, that cannot be
+    told apart from one another on these data (less than :data:`MIN_INDEPENDENCE` of
+    one outside the span of the model and the other). Both are marked not identifiable,
+    with the experiment that would separate them; returns ``(a, b, explained)`` with
+    the share of the residual variance the pair explains together. Cogging orders are
+    compared with the other effects only (orders are orthogonal to one another)."""
+    names = [nm for nm, ev in evaluated.items() if not ev["reason"]]
+    out: list[tuple[str, str, float]] = []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            if a.startswith("cogging:") and b.startswith("cogging:"):
+                continue
+            ca, cb = evaluated[a]["cols"], evaluated[b]["cols"]
+            ind = min(G.independence(ca, [*C, *cb]), G.independence(cb, [*C, *ca]))
+            if ind >= MIN_INDEPENDENCE:
+                continue
+            expl = max(evaluated[a]["explained"], evaluated[b]["explained"])
+            out.append((a, b, expl))
+            for x, y in ((a, b), (b, a)):
+                if {x, y} == SIGN_PAIR and exc.one_direction:
+                    why = f"not identifiable from this data: {SIGN_PAIR_TEXT}"
+                else:
+                    why = (f"not identifiable from this data: it cannot be told apart from "
+                           f"{y} ({share_text(ind)} independent)")
+                    facts = exc.facts()
+                    if facts:
+                        why += "; " + "; ".join(facts)
+                if not evaluated[x]["reason"] or x == a:
+                    evaluated[x]["reason"] = why
+    return out
 
 
 def _description(eff: Effect) -> str:
@@ -473,8 +526,18 @@ def _unexcited_reason(name: str, exc: ExcitationSummary, model: Model) -> str:
                 f"(RMS {exc.acceleration_rms:.3g} {u}/s against {exc.acceleration_noise:.3g} "
                 f"{u}/s)")
     if base in ("unbalance", "cogging") and exc.revolutions is not None \
-            and exc.revolutions < 1.0:
+            and exc.revolutions < 1.0 and exc.coverage is None:
         return f"not excited: the position covers only {exc.revolutions:.2f} {exc.per}s"
+    if base in ("unbalance", "cogging") and exc.coverage is not None:
+        k = 1 if base == "unbalance" else int(name.split(".")[0].split(":")[1])
+        if exc.coverage * k < MIN_PERIODS:
+            period = f"one {exc.per}" if k == 1 else f"1/{k} {exc.per}"
+            longer = "longer than" if exc.coverage * k < 1.0 else \
+                f"not short against (fewer than {MIN_PERIODS:g} periods in)"
+            return (f"not identifiable from this data: its period ({period}) is {longer} "
+                    f"the travel covered ({exc.coverage:.3g} {exc.per}s), so it fits any slow "
+                    f"trend along the position; record more travel (at least "
+                    f"{MIN_PERIODS / k:.3g} {exc.per}s)")
     return ""
 
 
@@ -482,6 +545,9 @@ def _collinear_reason(name: str, cols: Sequence[int], C: Sequence[int], G: _Gram
                       cur: Sequence[str], ind: float, exc: ExcitationSummary) -> str:
     partners = sorted(C, key=lambda i: -max(abs(G.corr(i, j)) for j in cols))
     strong = [cur[i] for i in partners if max(abs(G.corr(i, j)) for j in cols) > 0.9][:2]
+    if exc.one_direction and strong and {name, strong[0].split(".")[0]} == SIGN_PAIR:
+        return (f"not identifiable from this data: its column is (nearly) collinear with "
+                f"{strong[0]} ({share_text(ind)} independent): {SIGN_PAIR_TEXT}")
     what = (f"(nearly) collinear with {' and '.join(strong)}" if strong
             else "(nearly) collinear with the model's columns")
     why = exc.facts()
@@ -568,7 +634,7 @@ def _evidence(name: str, ec: _EvidenceContext) -> list[str]:
             out.append(f"mean residual {value_text(_pooled(rows, 1), u, True)} moving forward and "
                        f"{value_text(_pooled(rows, -1), u, True)} moving backward")
     if base in ("unbalance", "cogging") and ec.spectrum is not None:
-        k = 1 if base == "unbalance" else int(name.split(":")[1])
+        k = 1 if base == "unbalance" else int(name.split(".")[0].split(":")[1])
         a, e = ec.spectrum.at(k)
         txt = (f"order {k} of the rotation-order spectrum: amplitude {value_text(a, u)} "
                f"({share_text(e)} of the residual variance)")
@@ -602,11 +668,34 @@ def _evidence(name: str, ec: _EvidenceContext) -> list[str]:
     return out
 
 
+def _untested(na: Sequence[tuple[str, str]]) -> str:
+    """The effects no test could reach, grouped by reason (the electrical equation is
+    another equation's business and left out)."""
+    by: dict[str, list[str]] = {}
+    for nm, why in na:
+        if nm != "electrical":
+            by.setdefault(why, []).append(nm)
+    if not by:
+        return ""
+    return " Untested: " + "; ".join(f"{', '.join(v)} ({k})" for k, v in by.items()) + "."
+
+
 def _verdict(eq: Equation, suggestion: Suggestion, cands: Sequence[Candidate],
              structure: Sequence[StructureItem], model_issues: Sequence[str],
              not_ident: Sequence[Candidate], exc: ExcitationSummary, unit: str,
-             rms_ls: float, partial: Suggestion | None = None) -> str:
+             rms_ls: float, partial: Suggestion | None = None,
+             inseparable: Sequence[tuple[str, str, float]] = (),
+             na: Sequence[tuple[str, str]] = ()) -> str:
     name = eq.name
+    tail = _untested(na)
+    # what cannot be separated but would explain much: always said, with the experiment
+    pairs = [(a, b, e) for a, b, e in inseparable if e >= MENTION_EXPLAINED]
+    pair_text = ""
+    for a, b, e in pairs:
+        how = SIGN_PAIR_TEXT if {a, b} == SIGN_PAIR and exc.one_direction else \
+            f"these data cannot tell {a} from {b}; vary the excitation"
+        pair_text += (f" {a} or {b} would explain {share_text(e)} of the residual variance, "
+                      f"but {how}.")
     if suggestion:
         adds = " ".join(f"--add {a}" for a in suggestion.add)
         first = suggestion.steps[0]
@@ -616,16 +705,31 @@ def _verdict(eq: Equation, suggestion: Suggestion, cands: Sequence[Candidate],
                 f"{value_text(suggestion.rms_after, unit)}).")
         if structure:
             text += " Left after that: " + "; ".join(s.text for s in structure[:2]) + "."
-        return text
+        return text + pair_text + tail
     parts = []
+    if pair_text:
+        parts.append(f"{name}:{pair_text}")
     if model_issues or not_ident:
         why = list(model_issues)
-        if not_ident:
-            why.append(f"{', '.join(c.effect for c in not_ident)} cannot be told apart from "
+        paired = {x for a, b, _ in pairs for x in (a, b)}
+        rest = [c for c in not_ident if c.effect not in paired]
+        for c in [c for c in rest if SIGN_PAIR_TEXT in c.reason]:
+            why.append(f"{c.effect} is collinear with the model's "
+                       f"{next(iter(SIGN_PAIR - {c.effect}))}: {SIGN_PAIR_TEXT}")
+        rest = [c for c in rest if SIGN_PAIR_TEXT not in c.reason]
+        for c in [c for c in rest if c.explained >= MENTION_EXPLAINED]:
+            reason = c.reason.removeprefix("not identifiable from this data: ")
+            why.append(f"{c.effect} would explain {share_text(c.explained)} of the residual "
+                       f"variance, but {reason}")
+        rest = [c for c in rest if c.explained < MENTION_EXPLAINED]
+        if rest:
+            why.append(f"{', '.join(c.effect for c in rest)} cannot be told apart from "
                        f"the model's columns or are not excited")
         facts = exc.facts()
-        parts.append(f"{name}: not identifiable from this data: {'; '.join(why)}"
-                     + (f" ({'; '.join(facts)})" if facts else "") + ".")
+        if why:
+            lead = "Also not" if parts else f"{name}: not"
+            parts.append(f"{lead} identifiable from this data: {'; '.join(why)}"
+                         + (f" ({'; '.join(facts)})" if facts else "") + ".")
     if structure:
         what = "; ".join(s.text for s in structure[:3])
         if model_issues or not_ident:
@@ -641,7 +745,16 @@ def _verdict(eq: Equation, suggestion: Suggestion, cands: Sequence[Candidate],
                          f"only {share_text(tot)} of it together.")
     if not parts:
         best = next((c for c in cands if c.identifiable), None)
-        tail = (f" (largest: {best.effect}, {share_text(best.explained)})" if best else "")
-        parts.append(f"{name}: the model is complete for this data: no effect of the library "
-                     f"explains a significant share of the residual{tail}.")
-    return " ".join(parts)
+        large = (f" (largest: {best.effect}, {share_text(best.explained)})" if best else "")
+        tested = "no effect of the library that these data could test" if tail else \
+            "no effect of the library"
+        parts.append(f"{name}: the model is complete for this data: {tested} explains a "
+                     f"significant share of the residual{large}.")
+        big = [c for c in cands if c.explained >= MENTION_EXPLAINED]
+        if big:
+            parts[-1] = (f"{name}: no effect to add, yet "
+                         + ", ".join(f"{c.effect} would explain {share_text(c.explained)}"
+                                     for c in big)
+                         + " of the residual variance (not suggested: it does not lower the "
+                           "information criterion enough).")
+    return " ".join(parts) + tail

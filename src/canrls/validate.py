@@ -1,0 +1,213 @@
+"""Validation: a saved model predicts other logs, without estimating anything.
+
+``canrls validate LOG [LOG ...] --model FILE`` (:mod:`canrls.cli.validate`). The logs are
+decoded and paired as ``canrls fit`` does (:class:`canrls.replay.LogFiles`: one record,
+no segment bridged across files), the model's filtered columns are built with the
+saved ranges and scaling (the same columns the estimator saw), and the saved physical
+parameters predict the filtered target:
+
+.. math::
+
+    \\hat y = \\Phi \\theta_{saved}, \\qquad r = y - \\hat y, \\qquad
+    \\mathrm{fit} = 100 \\left(1 - \\frac{\\lVert r \\rVert}{\\lVert y - \\bar y \\rVert}\\right)
+
+on the rows the estimator would use (its warm-up, gap and speed rules). Where it fails
+is told by the diagnosis's machinery (:func:`canrls.diagnosis.residual.find_regions`:
+residual binned by speed, position, current, acceleration and time).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from canrls.can.protocol import Protocol
+from canrls.diagnosis.residual import all_bins, find_regions
+from canrls.diagnosis.results import Region
+from canrls.diagnosis.samples import RecordSamples
+from canrls.errors import ConfigError
+from canrls.modelfile import SavedModel
+from canrls.replay import read_logs
+from canrls.signals import Signals
+
+__all__ = ["EquationValidation", "FileFit", "ValidationReport", "validate_logs",
+           "validate_signals"]
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class FileFit:
+    """Fit of the saved model on one log."""
+
+    source: str
+    samples: int
+    residual_rms: float
+    fit_percent: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"source": self.source, "samples": self.samples,
+                "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent)}
+
+
+@dataclass(frozen=True)
+class EquationValidation:
+    """The saved model against the data, for one equation."""
+
+    equation: str
+    unit: str
+    samples: int
+    residual_rms: float
+    fit_percent: float
+    r2: float
+    #: residual RMS when the model was identified (the saved file's), for comparison
+    identified_rms: float | None
+    files: tuple[FileFit, ...]
+    regions: tuple[Region, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"equation": self.equation, "unit": self.unit, "samples": self.samples,
+                "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent),
+                "r2": _num(self.r2), "identified_rms": _num(self.identified_rms),
+                "files": [f.to_dict() for f in self.files],
+                "regions": [r.to_dict() for r in self.regions]}
+
+
+@dataclass(frozen=True)
+class ValidationReport:
+    """What ``canrls validate`` prints (text with :meth:`format`, JSON with :meth:`to_dict`)."""
+
+    model_file: str
+    sources: tuple[str, ...]
+    identified_on: tuple[str, ...]
+    parameters: dict[str, dict[str, Any]]
+    equations: tuple[EquationValidation, ...]
+    frames: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def fit_percent(self) -> float:
+        return self.equations[0].fit_percent if self.equations else math.nan
+
+    @property
+    def residual_rms(self) -> float:
+        return self.equations[0].residual_rms if self.equations else math.nan
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"model_file": self.model_file, "sources": list(self.sources),
+                "identified_on": list(self.identified_on),
+                "parameters": self.parameters,
+                "fit_percent": _num(self.fit_percent), "residual_rms": _num(self.residual_rms),
+                "equations": {e.equation: e.to_dict() for e in self.equations},
+                "frames": self.frames}
+
+    def format(self) -> str:
+        lines = [f"model {self.model_file} (identified on {', '.join(self.identified_on) or '?'})",
+                 f"validated on {', '.join(self.sources)} without re-estimating:"]
+        for name, p in self.parameters.items():
+            lines.append(f"  {name:<14} {p['value']:12.6g} ± {p.get('sigma') or 0:9.3g} "
+                         f"{p.get('unit', '')}")
+        for e in self.equations:
+            ident = "" if e.identified_rms is None else \
+                f" (identification: {e.identified_rms:.4g} {e.unit})"
+            lines.append(f"{e.equation}: fit {e.fit_percent:.2f} %, residual RMS "
+                         f"{e.residual_rms:.4g} {e.unit}{ident}, R² {e.r2:.4f}, "
+                         f"{e.samples} samples")
+            if len(e.files) > 1:
+                for f in e.files:
+                    lines.append(f"  {f.source}: fit {f.fit_percent:.2f} %, residual RMS "
+                                 f"{f.residual_rms:.4g} {e.unit}, {f.samples} samples")
+            if e.regions:
+                lines.append("  where it fails:")
+                lines.extend(f"    {r.text}" for r in e.regions)
+            else:
+                lines.append("  no region where the residual's mean stands out")
+        return "\n".join(lines)
+
+    __str__ = format
+
+
+def _num(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def _fit(r: F64, y: F64) -> tuple[float, float, float]:
+    """(rms, fit %, R²) of residual ``r`` against target ``y``."""
+    if not len(r):
+        return math.nan, math.nan, math.nan
+    dev = y - np.mean(y)
+    nd = float(np.sqrt(np.dot(dev, dev)))
+    nr = float(np.sqrt(np.dot(r, r)))
+    rms = nr / math.sqrt(len(r))
+    fit = 100.0 * (1.0 - nr / nd) if nd > 0 else math.nan
+    r2 = 1.0 - (nr * nr) / (nd * nd) if nd > 0 else math.nan
+    return rms, fit, r2
+
+
+def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
+                     sizes: Sequence[int] = (), sources: Sequence[str] = (),
+                     model_file: str = "<model>", frames: dict[str, Any] | None = None
+                     ) -> ValidationReport:
+    """Predict ``signals`` with ``saved`` (no estimation); ``sizes``/``sources`` split
+    the record into its files for the per-file fit."""
+    if len(signals) < 2:
+        raise ConfigError(f"validate: {len(signals)} samples; nothing to validate")
+    model = saved.build_model([r for r in ("current", "speed", "position", "voltage")
+                               if signals.has(r)])
+    settings = saved.config().settings()
+    ctx = RecordSamples(model, signals, dt, settings, 1)
+    bounds = np.cumsum([0, *sizes]) if sizes else np.array([0, len(signals)])
+    names = list(sources) if sources else ["<signals>"]
+    out = []
+    for eq in model.equations:
+        try:
+            theta = np.array([float(saved.parameters[p.name]["value"])
+                              for p in eq.parameters])
+        except KeyError as e:
+            raise ConfigError(f"{model_file}: no value for parameter {e.args[0]}") from None
+        phi, y = ctx.columns(eq)
+        used = ctx.used(eq) & np.isfinite(y) & np.all(np.isfinite(phi), axis=1)
+        # r = y - Phi theta, normalised columns and parameters, then in the target unit
+        r = eq.target_to_physical(y - phi @ eq.to_normalised(theta))
+        yt = eq.target_to_physical(y)
+        rms, fit, r2 = _fit(r[used], yt[used])
+        files = []
+        for k, name in enumerate(names):
+            a, b = int(bounds[k]), int(bounds[k + 1])
+            u = used[a:b]
+            f_rms, f_fit, _ = _fit(r[a:b][u], yt[a:b][u])
+            files.append(FileFit(name, int(u.sum()), f_rms, f_fit))
+        unit = eq.target.unit
+        regions: tuple[Region, ...] = ()
+        if used.any():
+            bins = all_bins(ctx, r, used, unit)
+            h = ctx.impulse(eq.holds[0])
+            h2 = float(np.sum(h * h))
+            regions = find_regions(bins, r[used], 1.0 / h2 if h2 > 0 else 1.0, unit, ctx)
+        ident = saved.fit.get(eq.name, {}).get("residual_rms")
+        out.append(EquationValidation(
+            equation=eq.name, unit=unit, samples=int(used.sum()), residual_rms=rms,
+            fit_percent=fit, r2=r2, identified_rms=None if ident is None else float(ident),
+            files=tuple(files), regions=tuple(regions)))
+    return ValidationReport(model_file=model_file, sources=tuple(names),
+                            identified_on=tuple(saved.sources), parameters=saved.parameters,
+                            equations=tuple(out), frames=dict(frames or {}))
+
+
+def validate_logs(paths: Sequence[str | os.PathLike[str]], saved: SavedModel,
+                  protocol: Protocol, *, model_file: str = "<model>",
+                  progress: Callable[[int, int], None] | None = None,
+                  chunk_size: int = 65536, skip_bad_lines: bool = False) -> ValidationReport:
+    """Decode and pair the logs as ``canrls fit`` does, then :func:`validate_signals`."""
+    available = [r for r in ("current", "speed", "position", "voltage") if protocol.has(r)]
+    model = saved.build_model(available)
+    log = read_logs(paths, protocol, model, saved.config().settings(), progress=progress,
+                    chunk_size=chunk_size, skip_bad_lines=skip_bad_lines)
+    return validate_signals(log.signals, saved, log.dt, sizes=log.sizes,
+                            sources=[str(p) for p in paths], model_file=model_file,
+                            frames=log.frames)

@@ -1,0 +1,122 @@
+"""Honest identifiability (issue 13, item 1): no suggestion the data cannot support.
+
+Simulated cases with known truth, each a way the data can fail to show an effect:
+the speed never reverses (Coulomb friction and an offset are one column), the travel
+is shorter than a harmonic's period (it fits any slow trend), no position signal
+(position effects cannot be tested at all).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import pytest
+
+from canrls.config import AppConfig
+from canrls.diagnosis.analysis import diagnose
+from canrls.diagnosis.candidates import MIN_PERIODS, SIGN_PAIR_TEXT
+from canrls.sim.excitation import chirp
+from canrls.sim.scenario import scenario, simulate
+
+QUICK = 8
+
+
+def _model(effects: str) -> Any:
+    cfg = AppConfig()
+    cfg.model = {"effects": effects.split(","), "kt": 0.1}
+    return cfg.model_for(), cfg.settings()
+
+
+def _run(truth: str, effects: str, exc: Any, duration: float = 12.0, seed: int = 5,
+         drop_position: bool = False) -> Any:
+    res = simulate(scenario("standard", effects=truth, excitation=exc, duration=duration,
+                            seed=seed))
+    sig = res.measured
+    if drop_position:
+        sig = dataclasses.replace(sig, position=None)
+    model, settings = _model(effects)
+    return diagnose(sig, model, settings, dt=0.001, max_order=QUICK)
+
+
+def _cands(rep: Any) -> dict[str, Any]:
+    return {c.effect: c for c in rep.before.primary.candidates}
+
+
+@pytest.fixture(scope="module")
+def one_direction() -> Any:
+    # 20 .. 40 rad/s, accelerating (a chirp around 30 rad/s): never reverses
+    return chirp(10.0, 0.2, 5.0, 10.0, offset=30.0)
+
+
+def test_one_direction_coulomb_and_offset_cannot_be_separated(one_direction: Any) -> None:
+    rep = _run("inertia,viscous,coulomb", "inertia,viscous", one_direction)
+    c = _cands(rep)
+    for name in ("coulomb", "offset"):
+        assert not c[name].identifiable and not c[name].suggested, c[name]
+        assert SIGN_PAIR_TEXT in c[name].reason
+        assert c[name].explained > 0.5  # it would explain much: said, not hidden
+    assert not rep.before.primary.suggestion.add
+    verdict = rep.before.primary.verdict
+    assert "record a run in both directions" in verdict
+    assert "--add coulomb" not in verdict and "--add offset" not in verdict
+    assert "complete" not in verdict
+    d = rep.to_dict()
+    assert d["suggestion"]["add"] == []
+
+
+def test_one_direction_offset_against_the_models_coulomb(one_direction: Any) -> None:
+    rep = _run("inertia,viscous,coulomb,offset", "inertia,viscous,coulomb", one_direction)
+    c = _cands(rep)["offset"]
+    assert not c.identifiable and not c.suggested
+    assert SIGN_PAIR_TEXT in c.reason
+    assert "record a run in both directions" in rep.before.primary.verdict
+
+
+def test_both_directions_find_coulomb_and_offset() -> None:
+    rep = _run("inertia,viscous,coulomb,offset", "inertia,viscous", "standard", duration=20.0)
+    sug = rep.before.primary.suggestion.add
+    assert "coulomb" in sug and "offset" in sug
+    c = _cands(rep)
+    assert c["coulomb"].identifiable and c["offset"].identifiable
+
+
+def test_short_travel_harmonics_are_not_identifiable() -> None:
+    # +-2 rad/s at 0.5 .. 3 Hz around standstill: the position covers a fraction of a turn
+    exc = chirp(2.0, 0.5, 3.0, 10.0)
+    rep = _run("inertia,viscous,coulomb,unbalance", "inertia,viscous,coulomb", exc)
+    prim = rep.before.primary
+    cov = prim.excitation.coverage
+    assert cov is not None and cov < 0.5
+    c = _cands(rep)
+    assert not c["unbalance"].identifiable and not c["unbalance"].suggested
+    assert "record more travel" in c["unbalance"].reason
+    assert "longer than the travel covered" in c["unbalance"].reason
+    for name, cand in c.items():
+        if name.startswith("cogging:") and int(name[8:]) * cov < MIN_PERIODS:
+            assert not cand.identifiable and "record more travel" in cand.reason
+    # the harmonic that fits the slow trend best is not suggested, nor any other whose
+    # period the travel does not hold twice
+    assert c["unbalance"].explained > 0.9
+    for a in prim.suggestion.add:
+        if a.startswith("cogging:"):
+            assert int(a[8:]) * cov >= MIN_PERIODS
+        assert not a.startswith("unbalance")
+    assert "record more travel" in prim.verdict
+
+
+def test_no_position_complete_names_what_was_not_tested() -> None:
+    rep = _run("inertia,viscous,coulomb", "inertia,viscous,coulomb", "standard",
+               duration=20.0, drop_position=True)
+    prim = rep.before.primary
+    assert not prim.suggestion.add
+    v = prim.verdict
+    assert "no effect of the library that these data could test" in v
+    assert "Untested:" in v and "unbalance" in v and "cogging" in v and "position" in v
+
+
+def test_complete_with_position_says_so_plainly() -> None:
+    rep = _run("inertia,viscous,coulomb", "inertia,viscous,coulomb", "standard",
+               duration=20.0)
+    v = rep.before.primary.verdict
+    assert "complete" in v and "Untested" not in v
