@@ -47,14 +47,21 @@ def fit_frames(blocks: Iterable[FrameBlock], protocol: Protocol, model: Model,
                record: bool = False) -> FitResult:
     """Run blocks of frames through decoder, pairer and pipeline."""
     proc = FrameProcessor(protocol, model, settings, relative_time=True)
-    for b in blocks:
-        out = proc.process(b, record)
+    _estimate(proc, (proc.samples(b) for b in blocks), on_block, record)
+    return proc.result(source)
+
+
+def _estimate(proc: FrameProcessor, samples: Iterable[Signals],
+              on_block: Callable[[PipelineBlock], None] | None, record: bool) -> None:
+    """Estimate on ``samples`` (paired by ``proc`` as they are drawn), then the end of
+    the stream; every block's output to ``on_block``."""
+    for s in samples:
+        out = proc.process_samples(s, record)
         if on_block is not None:
             on_block(out)
     out = proc.flush(record)
     if on_block is not None:
         on_block(out)
-    return proc.result(source)
 
 
 def fit_log(path: str | os.PathLike[str], protocol: Protocol, model: Model,
@@ -284,13 +291,7 @@ def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model:
     proc = FrameProcessor(protocol, model, settings, relative_time=True)
     files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
                      skip_bad_lines=skip_bad_lines)
-    for s in files.samples():
-        out = proc.process_samples(s, record)
-        if on_block is not None:
-            on_block(out)
-    out = proc.flush(record)
-    if on_block is not None:
-        on_block(out)
+    _estimate(proc, files.samples(), on_block, record)
     res = proc.result(", ".join(files.paths))
     fr = files.frames()
     extra = dict(res.extra)
