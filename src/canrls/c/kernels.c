@@ -294,7 +294,7 @@ static int is_single(PyObject *o)
     return single;
 }
 
-#define MAX_BUFS 16
+#define MAX_BUFS 20
 
 /* The buffers one call holds (released together by release()). */
 typedef struct {
@@ -315,6 +315,10 @@ static void release(Args *a)
 static Py_buffer *buf(Args *a, PyObject *o, const char *name, enum kind k, int ndim,
                       int writable)
 {
+    if (a->count == MAX_BUFS) {
+        PyErr_Format(PyExc_SystemError, "%s: more than %d arrays", a->fn, MAX_BUFS);
+        return NULL;
+    }
     Py_buffer *b = &a->b[a->count];
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
     if (PyObject_GetBuffer(o, b, flags) < 0) {

@@ -2,7 +2,8 @@ r"""The pure pipeline: samples -> regressors -> float and fixed RLS -> estimates
 
 :class:`Pipeline` is shared by the live daemon (``canrls run``) and the offline replay
 (``canrls fit``, ``canrls diagnose``). It takes :class:`~canrls.signals.Signals`
-blocks of any size and carries every state across them, sample by sample in compiled
+blocks of any size and carries every state across them, sample by sample in the C
+kernels of ``canrls._kernels`` (``src/canrls/c/kernels.c``) and in the fixed-point
 kernels, so the same samples give the same parameters bit for bit whatever the block
 sizes (the replay reads 64 k frames at a time, the daemon whatever has arrived).
 
