@@ -18,11 +18,12 @@ from canrls.live.settings import DaemonSettings
 ROOT = Path(__file__).resolve().parent.parent
 SRC = ROOT / "src"
 
-#: compiles one small kernel (cache=True) and prints where numba caches it
+#: compiles one small kernel (cache=True) and prints where numba caches it (a kernel of
+#: the simulated drive, which stays in numba; the estimation's kernels are C)
 COMPILE = """
-import numba, numpy as np
-from canrls.estimation.model import PositionUnwrapper
-PositionUnwrapper(1.0).process(np.linspace(0.0, 3.0, 7))
+import numba
+from canrls.sim.plant import _quantise
+_quantise(1.0, 0.1)
 print(numba.config.CACHE_DIR)
 """
 

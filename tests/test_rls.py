@@ -16,8 +16,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from canrls import _kernels
 from canrls.errors import CheckpointError, EstimatorError
-from canrls.estimation import float_kernels
 from canrls.estimation.rls import RLS, RLSFlag, RLSStep, RLSTrace
 
 F64 = npt.NDArray[np.float64]
@@ -393,9 +393,9 @@ def test_flag_values_are_stable() -> None:
         ("FROZEN", 8),
         ("NONFINITE", 16),
     ]
-    assert float_kernels.FLAG_WINDUP == RLSFlag.WINDUP
-    assert float_kernels.FLAG_FROZEN == RLSFlag.FROZEN
-    assert float_kernels.FLAG_NONFINITE == RLSFlag.NONFINITE
+    assert _kernels.FLAG_WINDUP == RLSFlag.WINDUP
+    assert _kernels.FLAG_FROZEN == RLSFlag.FROZEN
+    assert _kernels.FLAG_NONFINITE == RLSFlag.NONFINITE
 
 
 # ------------------------------------------- 3. literal update vs symmetric

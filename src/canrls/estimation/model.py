@@ -93,10 +93,10 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from canrls import _kernels
 from canrls.effect_names import EquationId
 from canrls.errors import ConfigError, EffectError, SignalError
 from canrls.estimation.effects import (
@@ -243,28 +243,16 @@ class RegressorBlock:
         return len(self.y)
 
 
-@numba.njit(cache=True, nogil=True)
-def _unwrap(p: F64, period: float, turns: int, last: float,
-            out: F64) -> int:  # pragma: no cover - compiled
-    """Unwrapped ``p`` into ``out``, from the turn count ``turns`` and the previous sample
-    ``last`` (nan: none, no jump before the first sample); returns the turn count at the end."""
-    prev = p[0] if last != last else last
-    for k in range(p.shape[0]):
-        d = p[k] - prev
-        if np.isfinite(d):
-            # one wrap per half-period jump, opposite to the jump
-            turns -= np.int64(np.rint(d / period))
-        # theta = p + turns * period (turns exact integers: the same whatever the blocks)
-        out[k] = p[k] + np.float64(turns) * period
-        prev = p[k]
-    return turns
-
-
 class PositionUnwrapper:
     """Unwrap a wrapping position with an integer turn count carried between blocks.
 
     A step larger than half a period between consecutive samples counts as a wrap.
     ``period=None`` passes positions through unchanged.
+
+    Per sample, in C (``canrls._kernels.unwrap``): ``d = p[k] - p[k-1]``; if ``d`` is
+    finite, ``turns -= rint(d / period)`` (one wrap per half-period jump, opposite to
+    the jump); ``theta[k] = p[k] + turns * period`` (the turns exact integers, so the
+    result does not depend on the blocks).
     """
 
     def __init__(self, period: float | None) -> None:
@@ -282,7 +270,7 @@ class PositionUnwrapper:
             return p
         out = np.empty_like(p)
         last = math.nan if self._last is None else self._last
-        self.turns = int(_unwrap(p, self.period, self.turns, last, out))
+        self.turns = _kernels.unwrap(p, self.period, self.turns, last, out)
         if math.isfinite(float(p[-1])):
             self._last = float(p[-1])
         return out

@@ -2,7 +2,8 @@ r"""The pure pipeline: samples -> regressors -> float and fixed RLS -> estimates
 
 :class:`Pipeline` is shared by the live daemon (``canrls run``) and the offline replay
 (``canrls fit``, ``canrls diagnose``). It takes :class:`~canrls.signals.Signals`
-blocks of any size and carries every state across them, sample by sample in compiled
+blocks of any size and carries every state across them, sample by sample in the C
+kernels of ``canrls._kernels`` (``src/canrls/c/kernels.c``) and in the fixed-point
 kernels, so the same samples give the same parameters bit for bit whatever the block
 sizes (the replay reads 64 k frames at a time, the daemon whatever has arrived).
 
@@ -39,15 +40,15 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from canrls import _kernels
 from canrls.errors import ConfigError
 from canrls.estimation.colour import ResidualTail
 from canrls.estimation.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
 from canrls.estimation.model import Equation, Model
-from canrls.estimation.rls import RLS, RLSFlag
+from canrls.estimation.rls import RLS
 from canrls.estimation.selection import SamplePolicy
 from canrls.signals import Signals
 
@@ -168,77 +169,6 @@ class EstimatorSettings:
                                 word_bits=self.word_bits, acc_bits=self.acc_bits,
                                 input_bits=self.input_bits, trace_max=self.trace_max,
                                 **dict(self.fixed_overrides))
-
-
-# ------------------------------------------------------------------------- kernels
-@numba.njit(cache=True)
-def _accumulate(phi: F64, y: F64, use: npt.NDArray[np.bool_], M: F64, v: F64,
-                s: F64) -> None:  # pragma: no cover - compiled
-    """Sequential sums over used rows: M += phi phi', v += phi y, s = [N, sum y, sum y^2]."""
-    n = phi.shape[1]
-    for k in range(phi.shape[0]):
-        if not use[k]:
-            continue
-        yk = y[k]
-        for i in range(n):
-            pi = phi[k, i]
-            v[i] += pi * yk
-            for j in range(i, n):
-                M[i, j] += pi * phi[k, j]
-        s[0] += 1.0
-        s[1] += yk
-        s[2] += yk * yk
-
-
-_WINDUP = int(RLSFlag.WINDUP)
-
-
-@numba.njit(cache=True)
-def _bookkeeping(phi: F64, y: F64, use: npt.NDArray[np.bool_], eps_u: F64,
-                 epsq_u: npt.NDArray[np.int64], lsb: float, flags_u: npt.NDArray[np.uint8],
-                 flagsq_u: npt.NDArray[np.uint8], M: F64, v: F64, s: F64, beta: float,
-                 rms_state: F64, s_y: int, y_out: F64, eps: F64, eps_fixed: F64,
-                 flags: npt.NDArray[np.uint8], rms: F64) -> int:  # pragma: no cover - compiled
-    """After the estimators, row by row: spread the used rows' errors and flags over the
-    block (0 elsewhere), run the residual RMS, write ``y``, the errors and the RMS in the
-    target unit (``x 2**s_y``); accumulate the sums. Returns the float WINDUP count.
-
-    ``eps_u``, ``flags_u`` (float) and ``epsq_u``, ``flagsq_u`` (fixed point) hold the
-    used rows only; the fixed-point error is ``epsq * lsb`` with ``lsb = 2**-frac``, exact.
-    """
-    # x 2**s_y: the product with the exact power of two rounds once, as ldexp does
-    exact = -1074 <= s_y <= 1023
-    unit = math.ldexp(1.0, s_y) if exact else 0.0
-    r = rms_state[0]
-    windup = 0
-    i = 0
-    for k in range(use.shape[0]):
-        e = 0.0
-        ef = 0.0
-        f = 0
-        if use[k]:
-            e = np.float64(eps_u[i])
-            ef = epsq_u[i] * lsb
-            f = flags_u[i] | flagsq_u[i]
-            if flags_u[i] & _WINDUP:
-                windup += 1
-            # exponentially weighted mean square: r <- r + beta (eps^2 - r) on used rows
-            r += beta * (e * e - r)
-            i += 1
-        flags[k] = f
-        if exact:
-            y_out[k] = y[k] * unit
-            eps[k] = e * unit
-            eps_fixed[k] = ef * unit
-            rms[k] = np.sqrt(r) * unit
-        else:
-            y_out[k] = math.ldexp(y[k], s_y)
-            eps[k] = math.ldexp(e, s_y)
-            eps_fixed[k] = math.ldexp(ef, s_y)
-            rms[k] = math.ldexp(np.sqrt(r), s_y)
-    rms_state[0] = r
-    _accumulate(phi, y, use, M, v, s)
-    return windup
 
 
 # ------------------------------------------------------------------------- results
@@ -567,7 +497,12 @@ class EquationEstimator:
         eps_fixed = np.empty(N)
         flags = np.empty(N, np.uint8)
         rms = np.empty(N)
-        self.windup_steps += _bookkeeping(
+        # after the estimators, row by row in C (canrls._kernels.bookkeeping): spread the
+        # used rows' errors (the fixed-point one is epsq * lsb, exact) and flags over the
+        # block, 0 elsewhere; the residual mean square r <- r + beta (eps^2 - r) on used
+        # rows; y, the errors and sqrt(r) in the target unit (x 2**s_y, one rounding);
+        # the sums M += phi phi' (upper triangle), v += phi y, s += [1, y, y^2]
+        self.windup_steps += _kernels.bookkeeping(
             phi, y, use, eps_u, epsq_u, self.fixed_config.eps.lsb, flags_u, flagsq_u,
             self._M, self._v, self._s, self.beta, self._rms_state, eq.scaling.target,
             y_out, eps, eps_fixed, flags, rms)

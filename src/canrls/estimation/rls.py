@@ -39,7 +39,7 @@ default ``update="symmetric"`` computes instead
     \qquad g = 1/(\lambda + \varphi^\top P\varphi)
 
 so :math:`P` is symmetric bit for bit after every step (the same bits as the upper
-triangle mirrored; see :mod:`canrls.estimation.float_kernels`) and :math:`P\varphi` is computed
+triangle mirrored; see ``src/canrls/c/kernels_rls.h``) and :math:`P\varphi` is computed
 once. What the literal form costs, measured (``tests/test_rls.py``): to first
 order its antisymmetric error propagates like the symmetric one,
 :math:`A \leftarrow (I - K\varphi^\top) A (I - K\varphi^\top)^\top/\lambda`, so it is
@@ -60,10 +60,29 @@ form that ``canrls.estimation.fixed`` shares; :meth:`RLS.excitation` reports ``c
 ``positive_definite`` so that such data can be recognised. ``update="literal"`` is
 kept only for comparison.
 
-The recursion runs in the compiled kernel
-:func:`canrls.estimation.float_kernels.rls_block_symmetric`;
-:meth:`RLS.update` (one sample) and :meth:`RLS.run` (a block) call it alike, so the
-results are identical bit for bit whatever the block sizes.
+The recursion runs in the C kernel ``canrls._kernels.rls_block_symmetric`` (source
+``src/canrls/c/kernels_rls.h``: float64 and float32, every operation in the state's
+dtype, no fused multiply-add); :meth:`RLS.update` (one sample) and :meth:`RLS.run`
+(a block) call it alike, so the results are identical bit for bit whatever the block
+sizes, and the live daemon and the offline replay run the same machine code.
+
+Per sample, with :math:`\lambda_k \in \{\lambda, 1\}`:
+
+.. math::
+
+    \varepsilon &= y - \varphi^\top\theta \\
+    v &= P\varphi, \quad g = 1 / (\lambda_k + \varphi^\top v) \\
+    K &= g\, v, \quad \theta \leftarrow \theta + K\varepsilon \\
+    P &\leftarrow (P - g\, v v^\top) / \lambda_k
+
+Trace bound: the trace the step would give, :math:`(\mathrm{tr}P - g|v|^2)/\lambda`,
+costs O(n) from quantities already at hand. When it exceeds ``trace_max`` the step
+is taken with :math:`\lambda_k = 1` (forgetting switched off for that step, flag
+``WINDUP``): still an exact RLS step, just without forgetting, so the directions that
+are not excited keep their uncertainty instead of winding up. The kernel also keeps
+the noise accumulators :math:`V \leftarrow \lambda_k V + \varepsilon e_{post}` (the
+minimised weighted cost, :math:`e_{post} = \varepsilon\lambda_k g`) and
+:math:`W \leftarrow \lambda_k W + 1`.
 """
 
 from __future__ import annotations
@@ -77,8 +96,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls import _kernels
 from canrls.errors import CheckpointError, EstimatorError
-from canrls.estimation import float_kernels
 
 __all__ = ["RLS", "RLSFlag", "RLSStep", "RLSTrace", "Excitation"]
 
@@ -88,6 +107,12 @@ FloatArray = npt.NDArray[np.floating[Any]]
 STATE_FORMAT = "canrls.rls/1"
 
 _DTYPES = (np.dtype(np.float64), np.dtype(np.float32))
+
+#: The block kernel of each ``RLS(update=...)`` (C, float64 or float32 by the state's
+#: dtype). Arguments: ``Phi, Y, theta, P, work, acc, lam, trace_max, frozen, record,
+#: eps_out, theta_out, trace_out, flags_out``; ``work`` (3, n) is scratch whose row 1
+#: holds the gain of the last row, ``acc`` = [V, W]; returns the rows applied.
+KERNELS = {"symmetric": _kernels.rls_block_symmetric, "literal": _kernels.rls_block_literal}
 
 
 class RLSFlag(enum.IntFlag):
@@ -359,9 +384,9 @@ class RLS:
             raise EstimatorError(f"RLS n must be a positive integer, got {n!r}")
         lam_f = check_lam(lam)
         ridge = check_ridge(alpha, n_int)
-        if not isinstance(update, str) or update not in float_kernels.KERNELS:
+        if not isinstance(update, str) or update not in KERNELS:
             raise EstimatorError(
-                f"RLS update must be one of {sorted(float_kernels.KERNELS)}, got {update!r}"
+                f"RLS update must be one of {sorted(KERNELS)}, got {update!r}"
             )
         try:
             dt = np.dtype(dtype)
@@ -374,7 +399,7 @@ class RLS:
         self._dtype = dt
         self._narrow = dt == np.float32  # casts into it may overflow to inf
         self._update = update
-        self._kernel = float_kernels.KERNELS[update]
+        self._kernel = KERNELS[update]
         # state
         self._theta = np.zeros(n_int, dt)
         self._P = np.zeros((n_int, n_int), dt)
@@ -385,7 +410,7 @@ class RLS:
         self._reset_arrays()
         if trace_max is None:
             # the prior's trace, summed in the kernel's order and dtype
-            tm = float(float_kernels.trace_of(self._P, dt.type(0)))
+            tm = _kernels.trace_of(self._P)
         else:
             tm = check_real("trace_max", trace_max)
             if not tm > 0.0:

@@ -36,10 +36,10 @@ import math
 from dataclasses import dataclass
 from typing import Protocol
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from canrls import _kernels
 from canrls.estimation.model import Equation
 from canrls.signals import ROLES, Signals
 
@@ -65,58 +65,6 @@ class SelectionSettings(Protocol):
 
     @property
     def min_speed(self) -> float | None: ...
-
-
-# ------------------------------------------------------------------------- kernels
-@numba.njit(cache=True)
-def _select(t: F64, omega: F64, gap: float, warm: int, min_speed: float,
-            max_speed: float, state: F64, restart: B,
-            use: B) -> tuple[int, int]:  # pragma: no cover - compiled
-    """Mark gaps (restart the filter there) and the rows not to use; return the number
-    of restarts and of rows to use.
-
-    A row is not used in the warm-up after a restart, nor while ``|omega| > max_speed``
-    (periodic columns advance too fast per sample) or ``|omega| < min_speed`` (friction
-    near standstill), nor in the warm-up after those.
-    state = [last t (nan: none yet), samples left in the warm-up]
-    """
-    last = state[0]
-    left = state[1]
-    restarts = 0
-    used = 0
-    for k in range(t.shape[0]):
-        if last != last or t[k] - last > gap or t[k] < last:
-            restart[k] = True
-            restarts += 1
-            left = warm
-        last = t[k]
-        w = abs(omega[k])
-        if w > max_speed or w < min_speed:
-            left = warm + 1
-        if left > 0:
-            use[k] = False
-            left -= 1
-        else:
-            use[k] = True
-            used += 1
-    state[0] = last
-    state[1] = left
-    return restarts, used
-
-
-@numba.njit(cache=True)
-def _nothing_to_fill(t: F64, has_last: bool, last_t: float, dt: float,
-                     max_gap: float) -> bool:  # pragma: no cover - compiled
-    """True when no step between samples (from ``last_t`` if ``has_last``) misses a
-    period: each rounds to at most one period, is longer than ``max_gap`` or is not
-    forward (a nan step is left to :meth:`GapFiller.fill`)."""
-    prev = last_t if has_last else t[0]
-    for k in range(t.shape[0]):
-        gap = t[k] - prev
-        prev = t[k]
-        if not (gap > max_gap or gap <= 0.0 or np.rint(gap / dt) <= 1.0):
-            return False
-    return True
 
 
 def _phase_speed_limit(max_phase_step: float, order: int, dt: float,
@@ -239,8 +187,11 @@ class SampleSelector:
         n = len(t_c)
         restart = np.zeros(n, np.bool_)
         use = np.empty(n, np.bool_)
-        restarts, used = _select(t_c, w, p.gap, p.warmup, p.min_speed, p.max_speed,
-                                 self._state, restart, use)
+        # the C loop (canrls._kernels.select): a row restarts the filter when the time is
+        # the first, steps back or jumps by more than ``gap``; it is not used while
+        # ``warmup`` samples after a restart or after a speed out of limits are left
+        restarts, used = _kernels.select(t_c, w, p.gap, p.warmup, p.min_speed, p.max_speed,
+                                         self._state, restart, use)
         return Selection(restart, use, int(restarts), int(used))
 
 
@@ -278,8 +229,11 @@ class GapFiller:
             if v is not None:
                 row[r] = float(v[-1])
         self._last = row
-        if _nothing_to_fill(t, last is not None, last["t"] if last is not None else 0.0,
-                            self.dt, self.max_gap):
+        # the common case, decided in C (canrls._kernels.nothing_to_fill): no step misses
+        # a period (each rounds to at most one, is longer than max_gap or not forward)
+        if _kernels.nothing_to_fill(t, last is not None,
+                                    last["t"] if last is not None else 0.0,
+                                    self.dt, self.max_gap):
             return s, None
         prev_t = np.empty(n)
         prev_t[1:] = t[:-1]

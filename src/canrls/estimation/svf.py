@@ -47,8 +47,10 @@ had been constant before), which is linear in ``u`` and so keeps the filtered eq
 exact for value terms from the first sample; terms through ``sF`` settle within the
 filter transient (about ``4 / (zeta w_c)``).
 
-Columns are filtered sample by sample in one compiled kernel with the state carried
-between calls, so any chunking of the input gives bit-identical output.
+Columns are filtered sample by sample in one C kernel (``canrls._kernels.svf``, source
+``src/canrls/c/kernels.c``: per column, ``x1 = Ad00 x1 + Ad01 x2 + G0 u[k-1] + G1 u[k]``
+summed left to right, likewise ``x2``) with the state carried between calls, so any
+chunking of the input gives bit-identical output.
 
 Choosing the cutoff
 -------------------
@@ -83,10 +85,10 @@ import math
 from collections.abc import Sequence
 from typing import Literal
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from canrls import _kernels
 from canrls.errors import ConfigError
 
 __all__ = ["SVF", "gain_bounds", "DEFAULT_CUTOFF_HZ", "DEFAULT_ZETA"]
@@ -187,58 +189,6 @@ def _discretise(wc: float, zeta: float, dt: float, hold: Hold) -> tuple[F64, F64
     G1 = Gw / dt
     G0 = Gu - G1
     return Ad, G0, G1
-
-
-@numba.njit(cache=True, inline="always")
-def _svf_step(u, k, Ad, G0, G1, x1, x2, up, primed):  # pragma: no cover - compiled
-    """Advance every column's state (x1, x2) and previous input ``up`` to sample ``k``
-    of ``u`` (N, m); the first sample ever (``primed[0] == 0``) starts at rest.
-
-    ``G0``, ``G1`` are (m, 2): the input coefficients of each column's hold.
-    """
-    m = u.shape[1]
-    if primed[0] == 0:
-        # start at rest on the first sample: x = [u0, 0]
-        for j in range(m):
-            x1[j] = u[k, j]
-            x2[j] = 0.0
-            up[j] = u[k, j]
-        primed[0] = 1
-        return
-    for j in range(m):
-        uk = u[k, j]
-        # x[k] = Ad x[k-1] + G0 u[k-1] + G1 u[k]
-        n1 = Ad[0, 0] * x1[j] + Ad[0, 1] * x2[j] + G0[j, 0] * up[j] + G1[j, 0] * uk
-        n2 = Ad[1, 0] * x1[j] + Ad[1, 1] * x2[j] + G0[j, 1] * up[j] + G1[j, 1] * uk
-        x1[j] = n1
-        x2[j] = n2
-        up[j] = uk
-
-
-@numba.njit(cache=True)
-def _svf_kernel(u, Ad, G0, G1, x1, x2, up, primed, f, sf):  # pragma: no cover - compiled
-    """Filter every column of ``u`` (N, m) sample by sample (:func:`_svf_step`),
-    carrying (x1, x2, up); ``f`` gets x1 and ``sf`` x2 of every sample."""
-    n, m = u.shape
-    for k in range(n):
-        _svf_step(u, k, Ad, G0, G1, x1, x2, up, primed)
-        for j in range(m):
-            f[k, j] = x1[j]
-            sf[k, j] = x2[j]
-
-
-@numba.njit(cache=True)
-def _svf_scaled_kernel(u, Ad, G0, G1, x1, x2, up, primed, deriv, scale, y,
-                       phi):  # pragma: no cover - compiled
-    """:func:`_svf_kernel` writing one output per column: ``x2`` where ``deriv`` else
-    ``x1``, times ``scale``; column 0 into ``y``, the others into ``phi``.
-    """
-    n, m = u.shape
-    for k in range(n):
-        _svf_step(u, k, Ad, G0, G1, x1, x2, up, primed)
-        y[k] = (x2[0] if deriv[0] else x1[0]) * scale[0]
-        for j in range(1, m):
-            phi[k, j - 1] = (x2[j] if deriv[j] else x1[j]) * scale[j]
 
 
 class SVF:
@@ -347,8 +297,8 @@ class SVF:
         self._prepare(a.shape[1])
         f = np.empty_like(a)
         sf = np.empty_like(a)
-        _svf_kernel(a, self.Ad, self._G0, self._G1, self._x1, self._x2, self._up,
-                    self._primed, f, sf)
+        _kernels.svf(a, self.Ad, self._G0, self._G1, self._x1, self._x2, self._up,
+                     self._primed, f, sf)
         if one_d:
             return f[:, 0], sf[:, 0]
         return f, sf
@@ -382,5 +332,5 @@ class SVF:
         """
         a = np.ascontiguousarray(u, dtype=np.float64)
         self._prepare(a.shape[1])
-        _svf_scaled_kernel(a, self.Ad, self._G0, self._G1, self._x1, self._x2, self._up,
-                           self._primed, derivative, scale, y, phi)
+        _kernels.svf_scaled(a, self.Ad, self._G0, self._G1, self._x1, self._x2, self._up,
+                            self._primed, derivative, scale, y, phi)

@@ -1,0 +1,844 @@
+/*
+ * kernels.c -- canrls._kernels: the per-sample float kernels of the estimation.
+ *
+ * SPDX-License-Identifier: MIT
+ *
+ * One implementation for the live daemon and the offline replay: the float RLS
+ * (symmetric and literal, float64 and float32), the state-variable filter, the sample
+ * selection, the position unwrapping and the pipeline's bookkeeping sums. Each kernel
+ * is the loop the Python module describes, with the same operations in the same order
+ * (the equation beside each line), so a recording gives the same bits wherever it is
+ * processed. Built with -ffp-contract=off and without -ffast-math: no fused
+ * multiply-add, no reassociation.
+ *
+ * Arrays come in through the buffer protocol (any C-contiguous buffer of the right
+ * item type: numpy arrays in practice), so building needs only the Python headers,
+ * not numpy's. Each wrapper checks the item type, the number of dimensions and the
+ * sizes it indexes (a wrong call raises TypeError or ValueError, it never reads out
+ * of bounds); the semantic checks stay in the Python classes. The loops run without
+ * the GIL.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <float.h>
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#if !defined(FLT_EVAL_METHOD) || FLT_EVAL_METHOD != 0
+#error "the float32 kernels need FLT_EVAL_METHOD == 0 (float arithmetic in float)"
+#endif
+
+/* Flag bits; the same values as canrls.estimation.rls.RLSFlag (checked by a test). */
+#define FLAG_WINDUP 1
+#define FLAG_FROZEN 8
+#define FLAG_NONFINITE 16
+
+/* ------------------------------------------------------------------ float RLS */
+#define REAL double
+#define RLS(name) name##_f64
+#include "kernels_rls.h"
+#undef REAL
+#undef RLS
+
+#define REAL float
+#define RLS(name) name##_f32
+#include "kernels_rls.h"
+#undef REAL
+#undef RLS
+
+/* ------------------------------------------------------- state-variable filter */
+/* Advance every column's state (x1, x2) and previous input up to row u (m values);
+ * the first sample ever (*primed == 0) starts at rest. G0, G1 are (m, 2): the input
+ * coefficients of each column's hold, Ad is (2, 2). */
+static void svf_step(Py_ssize_t m, const double *u, const double *Ad, const double *G0,
+                     const double *G1, double *x1, double *x2, double *up, int64_t *primed)
+{
+    if (*primed == 0) {
+        /* start at rest on the first sample: x = [u0, 0] */
+        for (Py_ssize_t j = 0; j < m; j++) {
+            x1[j] = u[j];
+            x2[j] = 0.0;
+            up[j] = u[j];
+        }
+        *primed = 1;
+        return;
+    }
+    for (Py_ssize_t j = 0; j < m; j++) {
+        const double uk = u[j];
+        /* x[k] = Ad x[k-1] + G0 u[k-1] + G1 u[k] */
+        const double n1 = Ad[0] * x1[j] + Ad[1] * x2[j] + G0[2 * j] * up[j] + G1[2 * j] * uk;
+        const double n2 = Ad[2] * x1[j] + Ad[3] * x2[j] + G0[2 * j + 1] * up[j]
+                          + G1[2 * j + 1] * uk;
+        x1[j] = n1;
+        x2[j] = n2;
+        up[j] = uk;
+    }
+}
+
+/* Filter every column of u (N, m) row by row; f gets x1 and sf x2 of every row. */
+static void svf(Py_ssize_t N, Py_ssize_t m, const double *u, const double *Ad,
+                const double *G0, const double *G1, double *x1, double *x2, double *up,
+                int64_t *primed, double *f, double *sf)
+{
+    for (Py_ssize_t k = 0; k < N; k++) {
+        svf_step(m, u + k * m, Ad, G0, G1, x1, x2, up, primed);
+        for (Py_ssize_t j = 0; j < m; j++) {
+            f[k * m + j] = x1[j];
+            sf[k * m + j] = x2[j];
+        }
+    }
+}
+
+/* svf() writing one output per column: x2 where deriv else x1, times scale (exact
+ * powers of two); column 0 into y (N), the others into phi (N, m-1). */
+static void svf_scaled(Py_ssize_t N, Py_ssize_t m, const double *u, const double *Ad,
+                       const double *G0, const double *G1, double *x1, double *x2,
+                       double *up, int64_t *primed, const uint8_t *deriv,
+                       const double *scale, double *y, double *phi)
+{
+    for (Py_ssize_t k = 0; k < N; k++) {
+        svf_step(m, u + k * m, Ad, G0, G1, x1, x2, up, primed);
+        y[k] = (deriv[0] ? x2[0] : x1[0]) * scale[0];
+        for (Py_ssize_t j = 1; j < m; j++)
+            phi[k * (m - 1) + j - 1] = (deriv[j] ? x2[j] : x1[j]) * scale[j];
+    }
+}
+
+/* ------------------------------------------------------------ sample selection */
+/* Mark gaps (restart the filter there) and the rows not to use; count both.
+ * A row is not used in the warm-up after a restart, nor while |omega| > max_speed or
+ * |omega| < min_speed, nor in the warm-up after those.
+ * state = [last t (nan: none yet), samples left in the warm-up] */
+static void select_rows(Py_ssize_t N, const double *t, const double *omega, double gap,
+                        int64_t warm, double min_speed, double max_speed, double *state,
+                        uint8_t *restart, uint8_t *use, Py_ssize_t *restarts,
+                        Py_ssize_t *used)
+{
+    double last = state[0];
+    double left = state[1];
+    Py_ssize_t r = 0, u = 0;
+    for (Py_ssize_t k = 0; k < N; k++) {
+        if (last != last || t[k] - last > gap || t[k] < last) {
+            restart[k] = 1;
+            r++;
+            left = (double)warm;
+        }
+        last = t[k];
+        const double w = fabs(omega[k]);
+        if (w > max_speed || w < min_speed)
+            left = (double)(warm + 1);
+        if (left > 0) {
+            use[k] = 0;
+            left -= 1;
+        } else {
+            use[k] = 1;
+            u++;
+        }
+    }
+    state[0] = last;
+    state[1] = left;
+    *restarts = r;
+    *used = u;
+}
+
+/* True when no step between samples (from last_t if has_last) misses a period: each
+ * rounds to at most one period, is longer than max_gap or is not forward (a nan step
+ * is left to GapFiller.fill). */
+static int nothing_to_fill(Py_ssize_t N, const double *t, int has_last, double last_t,
+                           double dt, double max_gap)
+{
+    double prev = has_last ? last_t : t[0];
+    for (Py_ssize_t k = 0; k < N; k++) {
+        const double gap = t[k] - prev;
+        prev = t[k];
+        if (!(gap > max_gap || gap <= 0.0 || rint(gap / dt) <= 1.0))
+            return 0;
+    }
+    return 1;
+}
+
+/* -------------------------------------------------------------- unwrapping */
+/* Unwrapped p into out, from the turn count turns and the previous sample last (nan:
+ * none, no jump before the first sample); returns the turn count at the end. */
+static int64_t unwrap(Py_ssize_t N, const double *p, double period, int64_t turns,
+                      double last, double *out)
+{
+    double prev = last != last ? p[0] : last;
+    for (Py_ssize_t k = 0; k < N; k++) {
+        const double d = p[k] - prev;
+        if (isfinite(d))
+            /* one wrap per half-period jump, opposite to the jump */
+            turns -= (int64_t)rint(d / period);
+        /* theta = p + turns * period (turns exact integers: the same whatever the blocks) */
+        out[k] = p[k] + (double)turns * period;
+        prev = p[k];
+    }
+    return turns;
+}
+
+/* ------------------------------------------------------------ pipeline sums */
+/* Sequential sums over used rows: M += phi phi' (upper triangle), v += phi y,
+ * s = [N, sum y, sum y^2]. */
+static void accumulate(Py_ssize_t N, Py_ssize_t n, const double *phi, const double *y,
+                       const uint8_t *use, double *M, double *v, double *s)
+{
+    for (Py_ssize_t k = 0; k < N; k++) {
+        if (!use[k])
+            continue;
+        const double yk = y[k];
+        const double *row = phi + k * n;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double pi = row[i];
+            /* v += phi y */
+            v[i] += pi * yk;
+            for (Py_ssize_t j = i; j < n; j++)
+                /* M += phi phi' */
+                M[i * n + j] += pi * row[j];
+        }
+        s[0] += 1.0;
+        s[1] += yk;
+        s[2] += yk * yk;
+    }
+}
+
+/* After the estimators, row by row: spread the used rows' errors and flags over the
+ * block (0 elsewhere), run the residual RMS, write y, the errors and the RMS in the
+ * target unit (x 2**s_y); accumulate the sums. Returns the float WINDUP count.
+ * eps_u, flags_u (float) and epsq_u, flagsq_u (fixed point) hold the used rows only;
+ * the fixed-point error is epsq * lsb with lsb = 2**-frac, exact. */
+static Py_ssize_t bookkeeping(Py_ssize_t N, Py_ssize_t n, const double *phi,
+                              const double *y, const uint8_t *use, const double *eps_u,
+                              const int64_t *epsq_u, double lsb, const uint8_t *flags_u,
+                              const uint8_t *flagsq_u, double *M, double *v, double *s,
+                              double beta, double *rms_state, int64_t s_y, double *y_out,
+                              double *eps, double *eps_fixed, uint8_t *flags, double *rms)
+{
+    /* x 2**s_y: the product with the exact power of two rounds once, as ldexp does */
+    const int exact = -1074 <= s_y && s_y <= 1023;
+    const double unit = exact ? ldexp(1.0, (int)s_y) : 0.0;
+    /* ldexp's exponent as an int (an exponent beyond these gives 0 or inf all the same) */
+    const int sy = s_y < -4000 ? -4000 : s_y > 4000 ? 4000 : (int)s_y;
+    double r = rms_state[0];
+    Py_ssize_t windup = 0;
+    Py_ssize_t i = 0;
+    for (Py_ssize_t k = 0; k < N; k++) {
+        double e = 0.0;
+        double ef = 0.0;
+        uint8_t f = 0;
+        if (use[k]) {
+            e = eps_u[i];
+            /* eps_fixed = epsq 2**-frac */
+            ef = (double)epsq_u[i] * lsb;
+            f = flags_u[i] | flagsq_u[i];
+            if (flags_u[i] & FLAG_WINDUP)
+                windup++;
+            /* exponentially weighted mean square: r <- r + beta (eps^2 - r) on used rows */
+            r += beta * (e * e - r);
+            i++;
+        }
+        flags[k] = f;
+        if (exact) {
+            y_out[k] = y[k] * unit;
+            eps[k] = e * unit;
+            eps_fixed[k] = ef * unit;
+            rms[k] = sqrt(r) * unit;
+        } else {
+            y_out[k] = ldexp(y[k], sy);
+            eps[k] = ldexp(e, sy);
+            eps_fixed[k] = ldexp(ef, sy);
+            rms[k] = ldexp(sqrt(r), sy);
+        }
+    }
+    rms_state[0] = r;
+    accumulate(N, n, phi, y, use, M, v, s);
+    return windup;
+}
+
+/* ================================================================= Python glue */
+/* The item types the wrappers take: float64, float32, int64, uint8 and bool. */
+enum kind { F64, F32, I64, U8, BOOL };
+
+static const char *kind_name[] = {"float64", "float32", "int64", "uint8", "bool"};
+
+/* Whether a buffer's format and item size are those of kind k (native byte order). */
+static int is_kind(const Py_buffer *b, enum kind k)
+{
+    const char *f = b->format ? b->format : "B";
+    if (*f == '@' || *f == '=')
+        f++;
+    if (f[0] == '\0' || f[1] != '\0')
+        return 0;
+    switch (k) {
+    case F64: return f[0] == 'd' && b->itemsize == 8;
+    case F32: return f[0] == 'f' && b->itemsize == 4;
+    case I64: return (f[0] == 'q' || f[0] == 'l') && b->itemsize == 8;
+    case U8: return f[0] == 'B' && b->itemsize == 1;
+    case BOOL: return f[0] == '?' && b->itemsize == 1;
+    }
+    return 0;
+}
+
+/* Whether o is a float32 buffer (the precision of an RLS state; anything else is
+ * taken as float64, and buf() says what is wrong with it). */
+static int is_single(PyObject *o)
+{
+    Py_buffer b;
+    if (PyObject_GetBuffer(o, &b, PyBUF_FORMAT | PyBUF_ND) < 0) {
+        PyErr_Clear();
+        return 0;
+    }
+    const int single = is_kind(&b, F32);
+    PyBuffer_Release(&b);
+    return single;
+}
+
+#define MAX_BUFS 20
+
+/* The buffers one call holds (released together by release()). */
+typedef struct {
+    const char *fn;
+    Py_buffer b[MAX_BUFS];
+    int count;
+} Args;
+
+static void release(Args *a)
+{
+    for (int i = 0; i < a->count; i++)
+        PyBuffer_Release(&a->b[i]);
+    a->count = 0;
+}
+
+/* The C-contiguous buffer of argument `name` with item type k and ndim dimensions
+ * (written to when `writable`); NULL with an exception set otherwise. */
+static Py_buffer *buf(Args *a, PyObject *o, const char *name, enum kind k, int ndim,
+                      int writable)
+{
+    if (a->count == MAX_BUFS) {
+        PyErr_Format(PyExc_SystemError, "%s: more than %d arrays", a->fn, MAX_BUFS);
+        return NULL;
+    }
+    Py_buffer *b = &a->b[a->count];
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(o, b, flags) < 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError,
+                     "%s: %s must be a C-contiguous%s %s array, got %.100s", a->fn, name,
+                     writable ? " writable" : "", kind_name[k], Py_TYPE(o)->tp_name);
+        return NULL;
+    }
+    a->count++;
+    if (!is_kind(b, k)) {
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a %s array, got format '%s'", a->fn,
+                     name, kind_name[k], b->format ? b->format : "B");
+        return NULL;
+    }
+    if (b->ndim != ndim) {
+        PyErr_Format(PyExc_ValueError, "%s: %s must have %d dimension(s), got %d", a->fn,
+                     name, ndim, b->ndim);
+        return NULL;
+    }
+    return b;
+}
+
+/* Size of dimension d of a buffer (1 for a 0-d one). */
+static Py_ssize_t dim(const Py_buffer *b, int d)
+{
+    return d < b->ndim ? b->shape[d] : 1;
+}
+
+static int bad_shape(Args *a, const char *name, const char *what)
+{
+    PyErr_Format(PyExc_ValueError, "%s: %s must have %s", a->fn, name, what);
+    return -1;
+}
+
+/* Shape check: buffer b has `rows` rows (dimension 0) and, when cols >= 0, `cols`
+ * columns (dimension 1). */
+static int need(Args *a, const Py_buffer *b, const char *name, Py_ssize_t rows,
+                Py_ssize_t cols)
+{
+    if (dim(b, 0) != rows || (cols >= 0 && dim(b, 1) != cols)) {
+        char what[96];
+        if (cols >= 0)
+            PyOS_snprintf(what, sizeof what, "shape (%zd, %zd)", rows, cols);
+        else
+            PyOS_snprintf(what, sizeof what, "shape (%zd,)", rows);
+        return bad_shape(a, name, what);
+    }
+    return 0;
+}
+
+static int nargs_ok(const char *fn, Py_ssize_t nargs, Py_ssize_t want)
+{
+    if (nargs != want) {
+        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", fn, want,
+                     nargs);
+        return 0;
+    }
+    return 1;
+}
+
+static int as_double(PyObject *o, double *x)
+{
+    *x = PyFloat_AsDouble(o);
+    return !(*x == -1.0 && PyErr_Occurred());
+}
+
+static int as_int64(PyObject *o, int64_t *x)
+{
+    long long v = PyLong_AsLongLong(o);
+    if (v == -1 && PyErr_Occurred())
+        return 0;
+    *x = (int64_t)v;
+    return 1;
+}
+
+static int as_bool(PyObject *o, int *x)
+{
+    *x = PyObject_IsTrue(o);
+    return *x >= 0;
+}
+
+#define D(b) ((double *)(b)->buf)
+#define F(b) ((float *)(b)->buf)
+#define U(b) ((uint8_t *)(b)->buf)
+#define I(b) ((int64_t *)(b)->buf)
+
+/* ------------------------------------------------------------------ RLS glue */
+typedef Py_ssize_t (*rls64_fn)(Py_ssize_t, Py_ssize_t, const double *, const double *,
+                               double *, double *, double *, double *, double, double, int,
+                               int, double *, double *, double *, uint8_t *);
+typedef Py_ssize_t (*rls32_fn)(Py_ssize_t, Py_ssize_t, const float *, const float *,
+                               float *, float *, float *, float *, float, float, int, int,
+                               float *, float *, float *, uint8_t *);
+
+static PyObject *rls_call(const char *fn, rls64_fn k64, rls32_fn k32, PyObject *const *args,
+                          Py_ssize_t nargs)
+{
+    if (!nargs_ok(fn, nargs, 14))
+        return NULL;
+    Args a = {.fn = fn, .count = 0};
+    double lam, trace_max;
+    int frozen, record;
+    Py_ssize_t applied = 0;
+    if (!as_double(args[6], &lam) || !as_double(args[7], &trace_max)
+        || !as_bool(args[8], &frozen) || !as_bool(args[9], &record))
+        return NULL;
+    const int single = is_single(args[2]);
+    const enum kind r = single ? F32 : F64;
+    Py_buffer *Phi = buf(&a, args[0], "Phi", r, 2, 0);
+    Py_buffer *Y = Phi ? buf(&a, args[1], "Y", r, 1, 0) : NULL;
+    Py_buffer *theta = Y ? buf(&a, args[2], "theta", r, 1, 1) : NULL;
+    Py_buffer *P = theta ? buf(&a, args[3], "P", r, 2, 1) : NULL;
+    Py_buffer *work = P ? buf(&a, args[4], "work", r, 2, 1) : NULL;
+    Py_buffer *acc = work ? buf(&a, args[5], "acc", r, 1, 1) : NULL;
+    Py_buffer *eps = acc ? buf(&a, args[10], "eps_out", r, 1, 1) : NULL;
+    Py_buffer *th = eps ? buf(&a, args[11], "theta_out", r, 2, 1) : NULL;
+    Py_buffer *tr = th ? buf(&a, args[12], "trace_out", r, 1, 1) : NULL;
+    Py_buffer *fl = tr ? buf(&a, args[13], "flags_out", U8, 1, 1) : NULL;
+    if (!fl)
+        goto fail;
+    const Py_ssize_t n = dim(theta, 0), N = dim(Phi, 0);
+    if (need(&a, Phi, "Phi", N, n) || need(&a, Y, "Y", N, -1) || need(&a, P, "P", n, n)
+        || need(&a, work, "work", 3, n) || need(&a, acc, "acc", 2, -1)
+        || need(&a, eps, "eps_out", N, -1) || need(&a, tr, "trace_out", N, -1)
+        || need(&a, fl, "flags_out", N, -1)
+        || need(&a, th, "theta_out", record ? N : dim(th, 0), n))
+        goto fail;
+    Py_BEGIN_ALLOW_THREADS
+    if (single)
+        applied = k32(N, n, F(Phi), F(Y), F(theta), F(P), F(work), F(acc), (float)lam,
+                      (float)trace_max, frozen, record, F(eps), F(th), F(tr), U(fl));
+    else
+        applied = k64(N, n, D(Phi), D(Y), D(theta), D(P), D(work), D(acc), lam, trace_max,
+                      frozen, record, D(eps), D(th), D(tr), U(fl));
+    Py_END_ALLOW_THREADS
+    release(&a);
+    return PyLong_FromSsize_t(applied);
+fail:
+    release(&a);
+    return NULL;
+}
+
+PyDoc_STRVAR(rls_block_symmetric_doc,
+"rls_block_symmetric(Phi, Y, theta, P, work, acc, lam, trace_max, frozen, record,\n"
+"                    eps_out, theta_out, trace_out, flags_out) -> int\n\n"
+"The symmetric RLS update over the rows of Phi, in place; the number of rows applied.\n"
+"float64 or float32 (theta's dtype; every array the same). See\n"
+"canrls.estimation.rls.KERNELS for the arguments.");
+
+static PyObject *py_rls_block_symmetric(PyObject *self, PyObject *const *args,
+                                        Py_ssize_t nargs)
+{
+    (void)self;
+    return rls_call("rls_block_symmetric", rls_block_symmetric_f64, rls_block_symmetric_f32,
+                    args, nargs);
+}
+
+PyDoc_STRVAR(rls_block_literal_doc,
+"rls_block_literal(...) -> int\n\n"
+"The textbook RLS update; the arguments of rls_block_symmetric.");
+
+static PyObject *py_rls_block_literal(PyObject *self, PyObject *const *args,
+                                      Py_ssize_t nargs)
+{
+    (void)self;
+    return rls_call("rls_block_literal", rls_block_literal_f64, rls_block_literal_f32,
+                    args, nargs);
+}
+
+PyDoc_STRVAR(trace_of_doc,
+"trace_of(P) -> float\n\n"
+"Trace of the square float64 or float32 matrix P, summed in index order in its dtype.");
+
+static PyObject *py_trace_of(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (!nargs_ok("trace_of", nargs, 1))
+        return NULL;
+    Args a = {.fn = "trace_of", .count = 0};
+    const int single = is_single(args[0]);
+    Py_buffer *P = buf(&a, args[0], "P", single ? F32 : F64, 2, 0);
+    if (!P || need(&a, P, "P", dim(P, 1), dim(P, 1))) {
+        release(&a);
+        return NULL;
+    }
+    const double tr = single ? (double)trace_of_f32(dim(P, 0), F(P))
+                             : trace_of_f64(dim(P, 0), D(P));
+    release(&a);
+    return PyFloat_FromDouble(tr);
+}
+
+/* ------------------------------------------------------------------ SVF glue */
+/* The arguments svf() and svf_scaled() share: u, Ad, G0, G1, x1, x2, up, primed. */
+static int svf_args(Args *a, PyObject *const *args, Py_buffer **u, Py_buffer **Ad,
+                    Py_buffer **G0, Py_buffer **G1, Py_buffer **x1, Py_buffer **x2,
+                    Py_buffer **up, Py_buffer **primed)
+{
+    if (!(*u = buf(a, args[0], "u", F64, 2, 0)) || !(*Ad = buf(a, args[1], "Ad", F64, 2, 0))
+        || !(*G0 = buf(a, args[2], "G0", F64, 2, 0))
+        || !(*G1 = buf(a, args[3], "G1", F64, 2, 0))
+        || !(*x1 = buf(a, args[4], "x1", F64, 1, 1))
+        || !(*x2 = buf(a, args[5], "x2", F64, 1, 1))
+        || !(*up = buf(a, args[6], "up", F64, 1, 1))
+        || !(*primed = buf(a, args[7], "primed", I64, 1, 1)))
+        return -1;
+    const Py_ssize_t m = dim(*u, 1);
+    if (need(a, *Ad, "Ad", 2, 2) || need(a, *G0, "G0", m, 2) || need(a, *G1, "G1", m, 2)
+        || need(a, *x1, "x1", m, -1) || need(a, *x2, "x2", m, -1)
+        || need(a, *up, "up", m, -1) || need(a, *primed, "primed", 1, -1))
+        return -1;
+    return 0;
+}
+
+PyDoc_STRVAR(svf_doc,
+"svf(u, Ad, G0, G1, x1, x2, up, primed, f, sf) -> None\n\n"
+"Filter every column of u (N, m) row by row, carrying (x1, x2, up) and primed;\n"
+"f gets x1 and sf x2 of every row. See canrls.estimation.svf.");
+
+static PyObject *py_svf(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (!nargs_ok("svf", nargs, 10))
+        return NULL;
+    Args a = {.fn = "svf", .count = 0};
+    Py_buffer *u, *Ad, *G0, *G1, *x1, *x2, *up, *primed, *f, *sf;
+    if (svf_args(&a, args, &u, &Ad, &G0, &G1, &x1, &x2, &up, &primed)
+        || !(f = buf(&a, args[8], "f", F64, 2, 1)) || !(sf = buf(&a, args[9], "sf", F64, 2, 1)))
+        goto fail;
+    const Py_ssize_t N = dim(u, 0), m = dim(u, 1);
+    if (need(&a, f, "f", N, m) || need(&a, sf, "sf", N, m))
+        goto fail;
+    Py_BEGIN_ALLOW_THREADS
+    svf(N, m, D(u), D(Ad), D(G0), D(G1), D(x1), D(x2), D(up), I(primed), D(f), D(sf));
+    Py_END_ALLOW_THREADS
+    release(&a);
+    Py_RETURN_NONE;
+fail:
+    release(&a);
+    return NULL;
+}
+
+PyDoc_STRVAR(svf_scaled_doc,
+"svf_scaled(u, Ad, G0, G1, x1, x2, up, primed, deriv, scale, y, phi) -> None\n\n"
+"svf() writing one output per column: x2 where deriv (bool, m) else x1, times\n"
+"scale (m); column 0 into y (N), the others into phi (N, m-1).");
+
+static PyObject *py_svf_scaled(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (!nargs_ok("svf_scaled", nargs, 12))
+        return NULL;
+    Args a = {.fn = "svf_scaled", .count = 0};
+    Py_buffer *u, *Ad, *G0, *G1, *x1, *x2, *up, *primed, *deriv, *scale, *y, *phi;
+    if (svf_args(&a, args, &u, &Ad, &G0, &G1, &x1, &x2, &up, &primed)
+        || !(deriv = buf(&a, args[8], "deriv", BOOL, 1, 0))
+        || !(scale = buf(&a, args[9], "scale", F64, 1, 0))
+        || !(y = buf(&a, args[10], "y", F64, 1, 1))
+        || !(phi = buf(&a, args[11], "phi", F64, 2, 1)))
+        goto fail;
+    const Py_ssize_t N = dim(u, 0), m = dim(u, 1);
+    if (m < 1) {
+        bad_shape(&a, "u", "at least one column (the target)");
+        goto fail;
+    }
+    if (need(&a, deriv, "deriv", m, -1) || need(&a, scale, "scale", m, -1)
+        || need(&a, y, "y", N, -1) || need(&a, phi, "phi", N, m - 1))
+        goto fail;
+    Py_BEGIN_ALLOW_THREADS
+    svf_scaled(N, m, D(u), D(Ad), D(G0), D(G1), D(x1), D(x2), D(up), I(primed), U(deriv),
+               D(scale), D(y), D(phi));
+    Py_END_ALLOW_THREADS
+    release(&a);
+    Py_RETURN_NONE;
+fail:
+    release(&a);
+    return NULL;
+}
+
+/* ------------------------------------------------------------ selection glue */
+PyDoc_STRVAR(select_doc,
+"select(t, omega, gap, warm, min_speed, max_speed, state, restart, use)\n"
+"    -> (restarts, used)\n\n"
+"Mark the restarts (gaps) and the rows to use of a block; state = [last t, warm-up\n"
+"left] is carried. See canrls.estimation.selection.");
+
+static PyObject *py_select(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (!nargs_ok("select", nargs, 9))
+        return NULL;
+    Args a = {.fn = "select", .count = 0};
+    double gap, min_speed, max_speed;
+    int64_t warm;
+    Py_ssize_t restarts = 0, used = 0;
+    if (!as_double(args[2], &gap) || !as_int64(args[3], &warm)
+        || !as_double(args[4], &min_speed) || !as_double(args[5], &max_speed))
+        return NULL;
+    Py_buffer *t, *w, *state, *restart, *use;
+    if (!(t = buf(&a, args[0], "t", F64, 1, 0)) || !(w = buf(&a, args[1], "omega", F64, 1, 0))
+        || !(state = buf(&a, args[6], "state", F64, 1, 1))
+        || !(restart = buf(&a, args[7], "restart", BOOL, 1, 1))
+        || !(use = buf(&a, args[8], "use", BOOL, 1, 1)))
+        goto fail;
+    const Py_ssize_t N = dim(t, 0);
+    if (need(&a, w, "omega", N, -1) || need(&a, state, "state", 2, -1)
+        || need(&a, restart, "restart", N, -1) || need(&a, use, "use", N, -1))
+        goto fail;
+    Py_BEGIN_ALLOW_THREADS
+    select_rows(N, D(t), D(w), gap, warm, min_speed, max_speed, D(state), U(restart), U(use),
+                &restarts, &used);
+    Py_END_ALLOW_THREADS
+    release(&a);
+    return Py_BuildValue("(nn)", restarts, used);
+fail:
+    release(&a);
+    return NULL;
+}
+
+PyDoc_STRVAR(nothing_to_fill_doc,
+"nothing_to_fill(t, has_last, last_t, dt, max_gap) -> bool\n\n"
+"True when no step between the samples t (from last_t if has_last) misses a period.");
+
+static PyObject *py_nothing_to_fill(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (!nargs_ok("nothing_to_fill", nargs, 5))
+        return NULL;
+    Args a = {.fn = "nothing_to_fill", .count = 0};
+    int has_last;
+    double last_t, dt, max_gap;
+    if (!as_bool(args[1], &has_last) || !as_double(args[2], &last_t)
+        || !as_double(args[3], &dt) || !as_double(args[4], &max_gap))
+        return NULL;
+    Py_buffer *t = buf(&a, args[0], "t", F64, 1, 0);
+    if (!t)
+        goto fail;
+    if (dim(t, 0) == 0) {
+        bad_shape(&a, "t", "at least one sample");
+        goto fail;
+    }
+    const int nothing = nothing_to_fill(dim(t, 0), D(t), has_last, last_t, dt, max_gap);
+    release(&a);
+    return PyBool_FromLong(nothing);
+fail:
+    release(&a);
+    return NULL;
+}
+
+/* ------------------------------------------------------------- unwrap glue */
+PyDoc_STRVAR(unwrap_doc,
+"unwrap(p, period, turns, last, out) -> int\n\n"
+"Unwrapped positions p into out from the turn count and the previous sample (nan:\n"
+"none); the turn count at the end. See canrls.estimation.model.PositionUnwrapper.");
+
+static PyObject *py_unwrap(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (!nargs_ok("unwrap", nargs, 5))
+        return NULL;
+    Args a = {.fn = "unwrap", .count = 0};
+    double period, last;
+    int64_t turns;
+    if (!as_double(args[1], &period) || !as_int64(args[2], &turns)
+        || !as_double(args[3], &last))
+        return NULL;
+    Py_buffer *p, *out;
+    if (!(p = buf(&a, args[0], "p", F64, 1, 0)) || !(out = buf(&a, args[4], "out", F64, 1, 1)))
+        goto fail;
+    const Py_ssize_t N = dim(p, 0);
+    if (N == 0) {
+        bad_shape(&a, "p", "at least one sample");
+        goto fail;
+    }
+    if (need(&a, out, "out", N, -1))
+        goto fail;
+    Py_BEGIN_ALLOW_THREADS
+    turns = unwrap(N, D(p), period, turns, last, D(out));
+    Py_END_ALLOW_THREADS
+    release(&a);
+    return PyLong_FromLongLong(turns);
+fail:
+    release(&a);
+    return NULL;
+}
+
+/* ---------------------------------------------------------- pipeline glue */
+PyDoc_STRVAR(accumulate_doc,
+"accumulate(phi, y, use, M, v, s) -> None\n\n"
+"Sums over the used rows: M += phi phi' (upper triangle), v += phi y,\n"
+"s += [1, y, y^2].");
+
+static PyObject *py_accumulate(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (!nargs_ok("accumulate", nargs, 6))
+        return NULL;
+    Args a = {.fn = "accumulate", .count = 0};
+    Py_buffer *phi, *y, *use, *M, *v, *s;
+    if (!(phi = buf(&a, args[0], "phi", F64, 2, 0)) || !(y = buf(&a, args[1], "y", F64, 1, 0))
+        || !(use = buf(&a, args[2], "use", BOOL, 1, 0))
+        || !(M = buf(&a, args[3], "M", F64, 2, 1)) || !(v = buf(&a, args[4], "v", F64, 1, 1))
+        || !(s = buf(&a, args[5], "s", F64, 1, 1)))
+        goto fail;
+    const Py_ssize_t N = dim(phi, 0), n = dim(phi, 1);
+    if (need(&a, y, "y", N, -1) || need(&a, use, "use", N, -1) || need(&a, M, "M", n, n)
+        || need(&a, v, "v", n, -1) || need(&a, s, "s", 3, -1))
+        goto fail;
+    Py_BEGIN_ALLOW_THREADS
+    accumulate(N, n, D(phi), D(y), U(use), D(M), D(v), D(s));
+    Py_END_ALLOW_THREADS
+    release(&a);
+    Py_RETURN_NONE;
+fail:
+    release(&a);
+    return NULL;
+}
+
+PyDoc_STRVAR(bookkeeping_doc,
+"bookkeeping(phi, y, use, eps_u, epsq_u, lsb, flags_u, flagsq_u, M, v, s, beta,\n"
+"            rms_state, s_y, y_out, eps, eps_fixed, flags, rms) -> int\n\n"
+"After the estimators: spread the used rows' errors and flags over the block, run\n"
+"the residual RMS, write the outputs in the target unit (x 2**s_y), accumulate the\n"
+"sums; the float WINDUP count. See canrls.estimation.pipeline.");
+
+static PyObject *py_bookkeeping(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (!nargs_ok("bookkeeping", nargs, 19))
+        return NULL;
+    Args a = {.fn = "bookkeeping", .count = 0};
+    double lsb, beta;
+    int64_t s_y;
+    Py_ssize_t windup = 0;
+    if (!as_double(args[5], &lsb) || !as_double(args[11], &beta) || !as_int64(args[13], &s_y))
+        return NULL;
+    Py_buffer *phi, *y, *use, *eps_u, *epsq_u, *flags_u, *flagsq_u, *M, *v, *s, *rms_state,
+        *y_out, *eps, *eps_fixed, *flags, *rms;
+    if (!(phi = buf(&a, args[0], "phi", F64, 2, 0)) || !(y = buf(&a, args[1], "y", F64, 1, 0))
+        || !(use = buf(&a, args[2], "use", BOOL, 1, 0))
+        || !(eps_u = buf(&a, args[3], "eps_u", F64, 1, 0))
+        || !(epsq_u = buf(&a, args[4], "epsq_u", I64, 1, 0))
+        || !(flags_u = buf(&a, args[6], "flags_u", U8, 1, 0))
+        || !(flagsq_u = buf(&a, args[7], "flagsq_u", U8, 1, 0))
+        || !(M = buf(&a, args[8], "M", F64, 2, 1)) || !(v = buf(&a, args[9], "v", F64, 1, 1))
+        || !(s = buf(&a, args[10], "s", F64, 1, 1))
+        || !(rms_state = buf(&a, args[12], "rms_state", F64, 1, 1))
+        || !(y_out = buf(&a, args[14], "y_out", F64, 1, 1))
+        || !(eps = buf(&a, args[15], "eps", F64, 1, 1))
+        || !(eps_fixed = buf(&a, args[16], "eps_fixed", F64, 1, 1))
+        || !(flags = buf(&a, args[17], "flags", U8, 1, 1))
+        || !(rms = buf(&a, args[18], "rms", F64, 1, 1)))
+        goto fail;
+    const Py_ssize_t N = dim(phi, 0), n = dim(phi, 1);
+    if (need(&a, y, "y", N, -1) || need(&a, use, "use", N, -1) || need(&a, M, "M", n, n)
+        || need(&a, v, "v", n, -1) || need(&a, s, "s", 3, -1)
+        || need(&a, rms_state, "rms_state", 1, -1) || need(&a, y_out, "y_out", N, -1)
+        || need(&a, eps, "eps", N, -1) || need(&a, eps_fixed, "eps_fixed", N, -1)
+        || need(&a, flags, "flags", N, -1) || need(&a, rms, "rms", N, -1))
+        goto fail;
+    /* the used rows: as many as eps_u and the others hold */
+    Py_ssize_t used = 0;
+    for (Py_ssize_t k = 0; k < N; k++)
+        used += U(use)[k] != 0;
+    if (used > 0 && (dim(eps_u, 0) < used || dim(epsq_u, 0) < used || dim(flags_u, 0) < used
+                     || dim(flagsq_u, 0) < used)) {
+        PyErr_Format(PyExc_ValueError,
+                     "bookkeeping: eps_u, epsq_u, flags_u and flagsq_u must hold the %zd "
+                     "used rows", used);
+        goto fail;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    windup = bookkeeping(N, n, D(phi), D(y), U(use), D(eps_u), I(epsq_u), lsb, U(flags_u),
+                         U(flagsq_u), D(M), D(v), D(s), beta, D(rms_state), s_y, D(y_out),
+                         D(eps), D(eps_fixed), U(flags), D(rms));
+    Py_END_ALLOW_THREADS
+    release(&a);
+    return PyLong_FromSsize_t(windup);
+fail:
+    release(&a);
+    return NULL;
+}
+
+/* ================================================================== module */
+static PyMethodDef methods[] = {
+    {"rls_block_symmetric", (PyCFunction)(void (*)(void))py_rls_block_symmetric,
+     METH_FASTCALL, rls_block_symmetric_doc},
+    {"rls_block_literal", (PyCFunction)(void (*)(void))py_rls_block_literal, METH_FASTCALL,
+     rls_block_literal_doc},
+    {"trace_of", (PyCFunction)(void (*)(void))py_trace_of, METH_FASTCALL, trace_of_doc},
+    {"svf", (PyCFunction)(void (*)(void))py_svf, METH_FASTCALL, svf_doc},
+    {"svf_scaled", (PyCFunction)(void (*)(void))py_svf_scaled, METH_FASTCALL, svf_scaled_doc},
+    {"select", (PyCFunction)(void (*)(void))py_select, METH_FASTCALL, select_doc},
+    {"nothing_to_fill", (PyCFunction)(void (*)(void))py_nothing_to_fill, METH_FASTCALL,
+     nothing_to_fill_doc},
+    {"unwrap", (PyCFunction)(void (*)(void))py_unwrap, METH_FASTCALL, unwrap_doc},
+    {"accumulate", (PyCFunction)(void (*)(void))py_accumulate, METH_FASTCALL, accumulate_doc},
+    {"bookkeeping", (PyCFunction)(void (*)(void))py_bookkeeping, METH_FASTCALL,
+     bookkeeping_doc},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT,
+    .m_name = "canrls._kernels",
+    .m_doc = "The per-sample float kernels of canrls's estimation (C, see src/canrls/c/kernels.c).",
+    .m_size = 0,
+    .m_methods = methods,
+};
+
+PyMODINIT_FUNC PyInit__kernels(void)
+{
+    PyObject *m = PyModule_Create(&module);
+    if (!m)
+        return NULL;
+    if (PyModule_AddIntConstant(m, "FLAG_WINDUP", FLAG_WINDUP) < 0
+        || PyModule_AddIntConstant(m, "FLAG_FROZEN", FLAG_FROZEN) < 0
+        || PyModule_AddIntConstant(m, "FLAG_NONFINITE", FLAG_NONFINITE) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}
