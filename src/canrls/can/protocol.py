@@ -570,7 +570,7 @@ def _fmt(x: float) -> str:
 def _crc_vector(frame_id: int, data: U8, length: int) -> U8:
     """E2E CRC (:func:`canrls.can.e2e.e2e_crc`) of every row: over the ID, then bytes 1..length-1."""
     out = np.empty(data.shape[0], np.uint8)
-    d = np.ascontiguousarray(data)
+    d = np.ascontiguousarray(data, np.uint8)
     _can.crc8(int(frame_id), d, d.shape[1], int(length), CRC8_TABLE, out)
     return out
 
@@ -1046,10 +1046,11 @@ def _gather_check(data: U8, rows: npt.NDArray[np.intp], length: int,
     """Copy ``data[rows, :length]`` into ``out``; flag the first check each row fails:
     1 remote, 2 length (DLC), 4 CRC (only when ``check_crc``). Returns the flagged rows.
     """
-    d = np.ascontiguousarray(data)
-    return int(_can.gather_check(d, d.shape[1], np.ascontiguousarray(rows, np.int64), length,
-                                 np.ascontiguousarray(is_remote), np.ascontiguousarray(dlc),
-                                 check_crc, frame_id, table, out, flags))
+    c = np.ascontiguousarray  # a no-op for the arrays of a FrameBlock
+    d = c(data, np.uint8)
+    return int(_can.gather_check(d, d.shape[1], c(rows, np.int64), length,
+                                 c(is_remote, np.bool_), c(dlc, np.uint8), check_crc,
+                                 frame_id, table, out, flags))
 
 
 def _counter_params(m: MessageCodec) -> tuple[int, int, float]:
@@ -1201,11 +1202,13 @@ def _fast_kernel(t: F64, arbitration_id: npt.NDArray[np.uint32],
     returns the number of frames decoded: outputs, counts and state are those of the
     frames before it, and the caller decodes the rest the careful way.
     """
-    c = np.ascontiguousarray
-    d = c(data)
-    return int(_can.decode_fast(c(t), c(arbitration_id), c(is_extended), c(is_remote),
-                                c(is_error), c(dlc), d, d.shape[1], msg, period, sig, sig_f,
-                                table, state, state_t, int(base), out_f, out_i, counts))
+    c = np.ascontiguousarray  # a no-op for the arrays of a FrameBlock
+    d = c(data, np.uint8)
+    return int(_can.decode_fast(c(t, np.float64), c(arbitration_id, np.uint32),
+                                c(is_extended, np.bool_), c(is_remote, np.bool_),
+                                c(is_error, np.bool_), c(dlc, np.uint8), d, d.shape[1], msg,
+                                period, sig, sig_f, table, state, state_t, int(base), out_f,
+                                out_i, counts))
 
 
 class Decoder:
