@@ -18,6 +18,9 @@ EXTENSIONS: list[Extension] = [
     # one implementation for the daemon and the offline replay
     Extension("canrls._kernels", sources=["src/canrls/c/kernels.c"],
               depends=["src/canrls/c/kernels_rls.h"], extra_compile_args=CFLAGS),
+    # the per-frame loops of the CAN layer (strict decoding, counters, CRC, pairing):
+    # canrls.can, live and offline
+    Extension("canrls._can", sources=["src/canrls/c/can.c"], extra_compile_args=CFLAGS),
 ]
 
 setup(ext_modules=EXTENSIONS)

@@ -65,7 +65,8 @@ def test_the_cache_is_in_the_users_cache_directory_not_in_the_package() -> None:
 def test_xdg_cache_home_and_a_user_setting(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     env.update(XDG_CACHE_HOME=str(tmp_path / "xdg"), PYTHONPATH=str(SRC))
-    show = [sys.executable, "-c", "import canrls, os; print(os.environ['NUMBA_CACHE_DIR'])"]
+    show = [sys.executable, "-c",
+            "import canrls, numba, os; print(os.environ['NUMBA_CACHE_DIR'])"]
     out = subprocess.run(show, env=env, capture_output=True, text=True, check=True).stdout
     assert Path(out.strip()) == tmp_path / "xdg" / "canrls" / "numba"
     assert (tmp_path / "xdg" / "canrls" / "numba").is_dir()
@@ -131,3 +132,40 @@ def test_daemon_cache_dir_is_read_before_the_kernels_load(tmp_path: Path) -> Non
     assert r.returncode == 0, r.stderr
     assert Path(r.stdout.strip().splitlines()[-1]) == tmp_path / "etc" / "kernels"
     assert any(p.suffix == ".nbi" for p in _files(tmp_path / "etc" / "kernels"))
+
+
+def test_importing_canrls_makes_no_cache_directory(tmp_path: Path) -> None:
+    """The directory is chosen (and made) when numba loads, not when canrls does: a
+    process that never imports numba (the daemon) touches no cache directory."""
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env.update(XDG_CACHE_HOME=str(tmp_path / "xdg"), PYTHONPATH=str(SRC))
+    code = ("import os, canrls, canrls.can.pairing, canrls.live.cache\n"
+            "print(os.environ.get('NUMBA_CACHE_DIR', ''))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=True).stdout
+    assert out.strip() == ""
+    assert not (tmp_path / "xdg").exists()
+
+
+@pytest.mark.parametrize("how", ["read-only", "not-a-directory"])
+def test_the_daemon_starts_with_read_only_cache_and_home(tmp_path: Path, how: str) -> None:
+    """``canrls run`` (a virtual bus, two seconds), ``canrls --version`` and ``canrls fit
+    --help`` with HOME and XDG_CACHE_HOME where nothing can be written: all start and
+    write nothing there (what ``ProtectSystem=strict`` without a cache directory gives)."""
+    home = _blocked_home(tmp_path, how)
+    env = _env(home, SRC)
+    before = _files(tmp_path)
+    try:
+        run = subprocess.run([sys.executable, "-m", "canrls", "run", "-i", "virtual", "-c",
+                              f"canrls-ro-{os.getpid()}-{how}", "--duration", "2", "--json"],
+                             env=env, capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        assert '"frames"' in run.stdout
+        for cmd in (["--version"], ["fit", "--help"]):
+            r = subprocess.run([sys.executable, "-m", "canrls", *cmd], env=env,
+                               capture_output=True, text=True, timeout=300)
+            assert r.returncode == 0, r.stderr
+        assert _files(tmp_path) == before
+    finally:
+        if home.is_dir():
+            home.chmod(0o755)

@@ -7,29 +7,37 @@ The package is layered so that dependencies run one way::
 The daemon (``canrls run``) and the offline replay (``canrls fit``) call the same
 pipeline, so a replayed log gives the same parameters as the live run, bit for bit.
 
-Importing canrls chooses where numba keeps the compiled kernels (:func:`use_cache_dir`)
-before any kernel module imports numba: nothing is written into the installed package.
+The daemon's per-frame work runs in C extensions and numpy, without a JIT compiler.
+The offline commands' kernels that numba compiles are cached in the user's cache
+directory (:func:`use_cache_dir`), chosen when numba is first imported: importing
+canrls writes nothing, and nothing is written into the installed package.
 """
 
 from __future__ import annotations
 
 import atexit
+import importlib.abc
+import importlib.machinery
 import os
 import shutil
 import sys
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
 
 from canrls.errors import CanrlsError
 
 __version__ = "0.1.0"
 
-__all__ = ["CanrlsError", "__version__", "use_cache_dir"]
+__all__ = ["CanrlsError", "__version__", "prefer_cache_dir", "use_cache_dir"]
 
 #: ``$NUMBA_CACHE_DIR`` as the user set it before canrls was imported ("": not set)
 _USER_CACHE_DIR = os.environ.get("NUMBA_CACHE_DIR", "")
 #: the temporary fallback of this process, made at most once
 _temp_cache: Path | None = None
+#: the directory :func:`prefer_cache_dir` asked for (None: the default)
+_preferred: Path | None = None
 
 
 def _usable(d: Path) -> bool:
@@ -81,11 +89,43 @@ def use_cache_dir(path: str | os.PathLike[str] | None = None) -> Path | None:
         except OSError:
             return None
     os.environ["NUMBA_CACHE_DIR"] = str(d)
-    if "numba" in sys.modules:  # imported before canrls: numba re-reads its environment
+    if "numba" in sys.modules:  # already imported: numba re-reads its environment
         from numba.core.config import reload_config
 
         reload_config()
     return d
 
 
-use_cache_dir()
+def prefer_cache_dir(path: str | os.PathLike[str] | None) -> Path | None:
+    """Cache numba's kernels in ``path`` (None: the default of :func:`use_cache_dir`).
+
+    Applied when numba is first imported, so a process that never imports it (the
+    daemon) makes no directory at all; at once (returning :func:`use_cache_dir`'s
+    answer) when numba is already loaded. Returns None when deferred.
+    """
+    global _preferred
+    _preferred = None if path is None else Path(path).expanduser()
+    if "numba" in sys.modules:
+        return use_cache_dir(_preferred)
+    return None
+
+
+class _NumbaCacheHook(importlib.abc.MetaPathFinder):
+    """Runs :func:`use_cache_dir` right before the first import of numba (numba reads
+    ``$NUMBA_CACHE_DIR`` when it loads), then gets out of the way: it finds nothing
+    itself."""
+
+    done = False
+
+    def find_spec(self, fullname: str, path: Sequence[str] | None = None,
+                  target: ModuleType | None = None) -> importlib.machinery.ModuleSpec | None:
+        if fullname == "numba" and not self.done:
+            self.done = True
+            use_cache_dir(_preferred)
+        return None
+
+
+if "numba" in sys.modules:  # imported before canrls
+    use_cache_dir()
+elif not any(isinstance(f, _NumbaCacheHook) for f in sys.meta_path):
+    sys.meta_path.insert(0, _NumbaCacheHook())

@@ -36,11 +36,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 import numpy.typing as npt
-from numba import literal_unroll
 
+from canrls import _can
 from canrls.can.protocol import DecodedFrames, Protocol
 from canrls.errors import ConfigError
 from canrls.signals import ROLES, Signals
@@ -102,213 +101,35 @@ class PairingCounts:
         return ", ".join(f"{k} {v}" for k, v in self.as_dict().items())
 
 
-@numba.njit(cache=True, nogil=True)
-def _pair_kernel(msg: I64, t: F64, cnt: I64, vals: F64, role_msg: I64, n_msg: int,
-                 tol: float, wait: float, period: float, flush: bool,
-                 gf: F64, gi: I64, sf: F64, si: I64, counts: I64,
-                 out_t: F64, out_v: F64) -> int:  # pragma: no cover
-    """Process frames one at a time; return the number of samples written to out_*.
-
-    Open periods are the slots 0 .. gi[0, 0]-1 (kept compact):
-    gi[1 + g] = [unused, counter (-1: none), mask of messages present];
-    gf[g] = [t_min, t_max, values of the roles...].
-    sf = [newest frame time, t_min and t_max of the last finalised period, whether there
-    is one (0/1)]; si = per message: -2 if absent from that period, else its counter
-    (-1: none).
-    counts[kind, message].
-    """
-    n_roles = len(role_msg)
-    full = (1 << n_msg) - 1
-    n_out = 0
-    G = gf.shape[0]
-    n = len(t)
-    for f in range(n + (1 if flush else 0)):
-        if f < n:
-            m = msg[f]
-            tf = t[f]
-            cf = cnt[f]
-            newest = sf[0]
-            # --- find the open period this frame belongs to (closest in time)
-            best = -1
-            best_d = np.inf
-            for g in range(gi[0, 0]):
-                if tf < gf[g, 1] - tol or tf > gf[g, 0] + tol:
-                    continue
-                if cf >= 0 and gi[1 + g, 1] >= 0 and gi[1 + g, 1] != cf:
-                    continue
-                d = abs(tf - gf[g, 0])
-                if d < best_d:
-                    best_d = d
-                    best = g
-            if best >= 0:
-                if gi[1 + best, 2] & (1 << m):
-                    counts[2, m] += 1  # duplicated
-                    continue
-                g = best
-            else:
-                if sf[3] > 0 and tf <= sf[1] + tol:
-                    # at or before the last finalised period: a repeat of its frame, or late
-                    if (si[m] != -2 and tf >= sf[2] - tol
-                            and (cf < 0 or si[m] < 0 or si[m] == cf)):
-                        counts[2, m] += 1
-                    else:
-                        counts[4, m] += 1
-                    continue
-                if tf < newest - wait:
-                    counts[4, m] += 1  # would be given up at once
-                    continue
-                # a free slot exists: finalisation keeps fewer than G periods open
-                g = gi[0, 0]
-                gi[0, 0] += 1
-                gi[1 + g, 1] = -1
-                gi[1 + g, 2] = 0
-                gf[g, 0] = tf
-                gf[g, 1] = tf
-                for r in range(n_roles):
-                    gf[g, 2 + r] = np.nan
-            if tf + tol < newest:
-                counts[3, m] += 1  # reordered: a later period's frame came first
-            gi[1 + g, 2] |= 1 << m
-            if cf >= 0 and gi[1 + g, 1] < 0:
-                gi[1 + g, 1] = cf
-            if tf < gf[g, 0]:
-                gf[g, 0] = tf
-            if tf > gf[g, 1]:
-                gf[g, 1] = tf
-            for r in range(n_roles):
-                if role_msg[r] == m:
-                    gf[g, 2 + r] = vals[f, r]
-            if tf > newest:
-                sf[0] = tf
-        # --- finalise periods in time order
-        while True:
-            oldest = -1
-            n_open = gi[0, 0]
-            for g in range(n_open):
-                if oldest < 0 or gf[g, 0] < gf[oldest, 0]:
-                    oldest = g
-            if oldest < 0:
-                break
-            g = oldest
-            complete = gi[1 + g, 2] == full
-            expired = sf[0] - gf[g, 0] > wait
-            if not (complete or expired or (f >= n) or n_open >= G):
-                break
-            if sf[3] > 0 and period > 0.0:
-                gap = int(np.floor((gf[g, 0] - sf[1]) / period + 0.5)) - 1
-                if gap > 0:
-                    for k in range(n_msg):
-                        counts[1, k] += gap
-            if complete:
-                out_t[n_out] = gf[g, 1]
-                for r in range(n_roles):
-                    out_v[n_out, r] = gf[g, 2 + r]
-                n_out += 1
-            else:
-                for k in range(n_msg):
-                    if gi[1 + g, 2] & (1 << k):
-                        counts[0, k] += 1
-                    else:
-                        counts[1, k] += 1
-            sf[1] = gf[g, 0]
-            sf[2] = gf[g, 1]
-            sf[3] = 1.0
-            for k in range(n_msg):
-                si[k] = gi[1 + g, 1] if (gi[1 + g, 2] >> k) & 1 else -2
-            last = n_open - 1  # keep the open slots compact: move the last one here
-            if g != last:
-                gf[g, :] = gf[last, :]
-                gi[1 + g, :] = gi[1 + last, :]
-            gi[0, 0] = last
-    return n_out
-
-
-@numba.njit(cache=True, nogil=True)
-def _merge_kernel(index: I64, offsets: I64, t: F64, cnt: I64, vals: F64, out_msg: I64,
-                  out_t: F64, out_cnt: I64, out_vals: F64) -> bool:  # pragma: no cover
-    """K-way merge of the messages' frames (rows offsets[k]:offsets[k+1] of the inputs,
-    each sorted by ``index``) into stream order; equal indices keep message order,
-    as a stable sort of the concatenation would. False (nothing valid written) when a
-    message's indices are not ascending.
-    """
-    K = len(offsets) - 1
-    for k in range(K):
-        for i in range(offsets[k] + 1, offsets[k + 1]):
-            if index[i] < index[i - 1]:
-                return False
-    pos = offsets[:-1].copy()
-    R = vals.shape[1]
-    for o in range(offsets[K]):
-        best = -1
-        for k in range(K):
-            if pos[k] < offsets[k + 1] and (best < 0 or index[pos[k]] < index[pos[best]]):
-                best = k
-        i = pos[best]
-        pos[best] += 1
-        out_msg[o] = best
-        out_t[o] = t[i]
-        out_cnt[o] = cnt[i]
-        for r in range(R):
-            out_vals[o, r] = vals[i, r]
-    return True
-
-
-@numba.njit(cache=True, nogil=True)
 def _push_kernel(index: tuple[I64, ...], t: tuple[F64, ...], cnt: tuple[I64, ...],
                  vals: tuple[F64, ...], use_counters: bool, role_msg: I64, times: F64,
                  flush: bool, gf: F64, gi: I64, sf: F64, si: I64, counts: I64,
-                 iwork: I64, fwork: F64, vwork: F64) -> F64:  # pragma: no cover
-    """One push: the frames of each message (``index``, ``t``, ``cnt``: one array per
-    message; ``vals``: one array per role, of the role's message) in stream order
-    (:func:`_merge_kernel`, else a stable sort by ``index``), through :func:`_pair_kernel`
-    (``times`` = [tolerance, wait, period]). Counters are ignored (-1) unless
-    ``use_counters``. ``iwork`` (4, C), ``fwork`` (3, C) and ``vwork`` (3, C, R) are
-    scratch space for C >= frames + open-period capacity. Returns the completed samples
-    as rows [t, role values...].
+                 iwork: I64, fwork: F64, vwork: F64) -> F64:
+    """One push (``push`` in ``src/canrls/c/can.c``): the frames of each message
+    (``index``, ``t``, ``cnt``: one array per message; ``vals``: one array per role, of
+    the role's message) merged into stream order (a stable sort by ``index`` when a
+    message's frames are out of order), then processed one at a time (``times`` =
+    [tolerance, wait, period]). Counters are ignored (-1) unless ``use_counters``.
+    ``iwork`` (4, C), ``fwork`` (3, C) and ``vwork`` (3, C, R) are scratch space for C >=
+    frames + open-period capacity. Returns the completed samples as rows [t, role
+    values...].
+
+    State: the open periods are the slots 0 .. gi[0, 0]-1 (kept compact): gi[1 + g] =
+    [unused, counter (-1: none), mask of messages present]; gf[g] = [t_min, t_max,
+    values of the roles...]. sf = [newest frame time, t_min and t_max of the last
+    finalised period, whether there is one (0/1)]; si = per message: -2 if absent from
+    that period, else its counter (-1: none). counts[kind, message] (kinds in the order
+    of :data:`PAIRING_KINDS`).
     """
-    K = len(index)
-    offsets = np.zeros(K + 1, np.int64)
-    k = 0
-    for a in literal_unroll(index):
-        offsets[k + 1] = offsets[k] + len(a)
-        k += 1
-    n = offsets[K]
-    all_index, all_cnt, msg, m_cnt = iwork[0, :n], iwork[1, :n], iwork[2, :n], iwork[3, :n]
-    all_t, m_t, out_t = fwork[0, :n], fwork[1, :n], fwork[2]
-    all_vals, m_vals, out_v = vwork[0, :n], vwork[1, :n], vwork[2]
-    k = 0
-    for a in literal_unroll(index):
-        all_index[offsets[k]:offsets[k + 1]] = a
-        k += 1
-    k = 0
-    for b in literal_unroll(t):
-        all_t[offsets[k]:offsets[k + 1]] = b
-        k += 1
-    all_cnt[:] = -1
-    if use_counters:
-        k = 0
-        for c in literal_unroll(cnt):
-            all_cnt[offsets[k]:offsets[k + 1]] = c
-            k += 1
-    all_vals[:] = np.nan
-    j = 0
-    for v in literal_unroll(vals):
-        all_vals[offsets[role_msg[j]]:offsets[role_msg[j] + 1], j] = v
-        j += 1
-    if not _merge_kernel(all_index, offsets, all_t, all_cnt, all_vals, msg, m_t, m_cnt, m_vals):
-        # a message's frames out of stream order: a stable sort does the same
-        order = np.argsort(all_index, kind="mergesort")
-        for k in range(K):
-            all_index[offsets[k]:offsets[k + 1]] = k
-        msg[:] = all_index[order]
-        m_t[:] = all_t[order]
-        m_cnt[:] = all_cnt[order]
-        m_vals[:] = all_vals[order]
-    n_out = _pair_kernel(msg, m_t, m_cnt, m_vals, role_msg, K, times[0], times[1], times[2],
-                         flush, gf, gi, sf, si, counts, out_t, out_v)
+    c = np.ascontiguousarray
+    n_out = _can.push(tuple([c(a, np.int64) for a in index]),
+                      tuple([c(a, np.float64) for a in t]),
+                      tuple([c(a, np.int64) for a in cnt]),
+                      tuple([c(a, np.float64) for a in vals]), use_counters, role_msg, times,
+                      flush, gf, gi, sf, si, counts, iwork, fwork, vwork)
     out = np.empty((1 + len(role_msg), n_out), np.float64)
-    out[0] = out_t[:n_out]
-    out[1:] = out_v[:n_out].T
+    out[0] = fwork[2, :n_out]
+    out[1:] = vwork[2, :n_out].T
     return out
 
 

@@ -40,10 +40,10 @@ from pathlib import Path
 from typing import Any
 
 import cantools
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from canrls import _can
 from canrls.can.e2e import CRC8_TABLE
 from canrls.can.frameblock import FrameBlock
 from canrls.can.units import axis_of, si_factor
@@ -322,7 +322,7 @@ class SignalCodec:
 
     __slots__ = ("name", "message", "length", "byte_order", "is_signed", "is_float", "scale",
                  "offset", "minimum", "maximum", "unit", "byte_index", "shift", "tol",
-                 "raw_min", "raw_max", "enc_lo", "enc_hi", "_bytes")
+                 "raw_min", "raw_max", "enc_lo", "enc_hi")
 
     def __init__(self, signal: Any, message: str) -> None:
         conv = signal.conversion
@@ -361,7 +361,6 @@ class SignalCodec:
         else:
             self.raw_min, self.raw_max = 0, (1 << L) - 1
         self.enc_lo, self.enc_hi = self._encodable_raw_range()
-        self._bytes = np.array(self.byte_index, np.int64)
 
     def __repr__(self) -> str:
         return (f"SignalCodec({self.message}.{self.name}, {self.length} bit {self.byte_order}, "
@@ -376,9 +375,18 @@ class SignalCodec:
     # -- decoding ---------------------------------------------------------
     def extract(self, data: U8) -> U64:
         """Raw bit field of each row of ``data`` (N, W) as uint64 (not sign-extended)."""
-        acc = np.empty(data.shape[0], np.uint64)
-        if data.shape[0]:
-            _extract_kernel(data, self._bytes, self.shift, self.length, acc)
+        # the OR of byte byte_index[j] shifted by 8 j - shift (least significant byte
+        # first), masked to the field's length
+        acc = np.zeros(data.shape[0], np.uint64)
+        for j, b in enumerate(self.byte_index):
+            sh = 8 * j - self.shift
+            col = data[:, b].astype(np.uint64)
+            if sh < 0:
+                acc |= col >> np.uint64(-sh)
+            elif sh < 64:
+                acc |= col << np.uint64(sh)
+        if self.length < 64:
+            acc &= np.uint64((1 << self.length) - 1)
         return acc
 
     def raw(self, data: U8) -> npt.NDArray[Any]:
@@ -555,24 +563,6 @@ class SignalCodec:
             data[:, b] |= (part & np.uint64(0xFF)).astype(np.uint8)
 
 
-@numba.njit(cache=True, nogil=True)
-def _extract_kernel(data: U8, byte_index: I64, shift: int, length: int,
-                    out: U64) -> None:  # pragma: no cover - compiled
-    """Per row: OR of byte ``byte_index[j]`` shifted by ``8 j - shift`` (least significant
-    byte first), masked to ``length`` bits."""
-    mask = np.uint64(0xFFFFFFFFFFFFFFFF) if length >= 64 else np.uint64((1 << length) - 1)
-    for k in range(data.shape[0]):
-        acc = np.uint64(0)
-        for j in range(byte_index.shape[0]):
-            col = np.uint64(data[k, byte_index[j]])
-            sh = 8 * j - shift
-            if sh < 0:
-                acc |= col >> np.uint64(-sh)
-            elif sh < 64:
-                acc |= col << np.uint64(sh)
-        out[k] = acc & mask
-
-
 def _fmt(x: float) -> str:
     return f"{float(x):.6g}"
 
@@ -580,28 +570,9 @@ def _fmt(x: float) -> str:
 def _crc_vector(frame_id: int, data: U8, length: int) -> U8:
     """E2E CRC (:func:`canrls.can.e2e.e2e_crc`) of every row: over the ID, then bytes 1..length-1."""
     out = np.empty(data.shape[0], np.uint8)
-    _crc_kernel(int(frame_id), data, int(length), CRC8_TABLE, out)
+    d = np.ascontiguousarray(data, np.uint8)
+    _can.crc8(int(frame_id), d, d.shape[1], int(length), CRC8_TABLE, out)
     return out
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _crc_row(frame_id: int, data: U8, k: int, length: int,
-             table: U8) -> int:  # pragma: no cover - compiled
-    """CRC-8 table walk of row ``k``: init 0xFF, ID low then high byte, payload bytes
-    1..length-1, xor 0xFF."""
-    c = table[0xFF ^ (frame_id & 0xFF)]
-    c = table[c ^ ((frame_id >> 8) & 0xFF)]
-    for j in range(1, length):
-        c = table[c ^ data[k, j]]
-    return c ^ 0xFF
-
-
-@numba.njit(cache=True, nogil=True)
-def _crc_kernel(frame_id: int, data: U8, length: int, table: U8,
-                out: U8) -> None:  # pragma: no cover - compiled
-    """:func:`_crc_row` of every row."""
-    for k in range(data.shape[0]):
-        out[k] = _crc_row(frame_id, data, k, length, table)
 
 
 @dataclass(frozen=True)
@@ -1030,122 +1001,61 @@ class DecodedFrames:
 _STATUS_OK, _STATUS_REPEATED, _STATUS_STALE = 0, 1, 2
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _counter_step(c: int, t: float, mod: int, window: int, period: float, last: int, run: int,
-                  prev_stale: int, last_t: float
-                  ) -> tuple[int, int, int, int, int, float]:  # pragma: no cover
-    """Classify one alive counter ``c`` received at ``t``.
-
-    State: ``last`` counter (-1: none yet), ``run`` of consecutive stale frames,
-    ``prev_stale`` counter of the last stale frame, ``last_t`` time of the last accepted
-    frame. d = (c - last) mod M: d == 0 repeated; d >= M - window stale (a jump
-    backwards), unless the time since the last accepted frame shows that d - 1 frames
-    were lost; otherwise d - 1 frames lost (plus whole counter wraps the time gap
-    implies). Three consecutive stale frames that count up by one resynchronise.
-
-    Returns (status, frames lost, last, run, prev_stale, last_t): the status and the
-    new state.
-    """
-    if last < 0:
-        return _STATUS_OK, 0, c, 0, prev_stale, t
-    d = (c - last) % mod
-    dt = t - last_t
-    timed = period > 0.0 and np.isfinite(dt)
-    if d == 0 and not (timed and dt >= (mod - 0.5) * period):
-        return _STATUS_REPEATED, 0, last, run, prev_stale, last_t
-    if d == 0:
-        d = mod
-    if d >= mod - window and not (timed and dt >= (d - 0.5) * period):
-        if run > 0 and c == (prev_stale + 1) % mod:
-            run += 1
-        else:
-            run = 1
-        prev_stale = c
-        if run < 3:
-            return _STATUS_STALE, 0, last, run, prev_stale, last_t
-        d = 1  # resynchronise on a consistent new sequence (loss unknown)
-    gap = d
-    if timed:
-        k = int(np.floor((dt / period - d) / mod + 0.5))
-        if k > 0:
-            gap += k * mod
-    return _STATUS_OK, gap - 1, c, 0, prev_stale, t
-
-
-@numba.njit(cache=True, nogil=True)
 def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
-                    state: I64, state_t: F64
-                    ) -> tuple[npt.NDArray[np.int8], I64]:  # pragma: no cover
-    """Classify alive counters one frame at a time (:func:`_counter_step`), carrying
-    state across blocks: state = [last counter (-1: none yet), consecutive stale frames,
-    counter of the last stale frame]; state_t = [time of the last accepted frame].
-    Returns the status and the frames lost before each frame.
+                    state: I64, state_t: F64) -> tuple[npt.NDArray[np.int8], I64]:
+    """Classify alive counters one frame at a time (``counter_step`` in
+    ``src/canrls/c/can.c``), carrying state across blocks: state = [last counter (-1:
+    none yet), consecutive stale frames, counter of the last stale frame]; state_t =
+    [time of the last accepted frame]. Returns the status and the frames lost before
+    each frame.
+
+    Per frame, counter ``c`` received at ``t``: d = (c - last) mod M; d == 0 is
+    repeated, d >= M - window stale (a jump backwards), unless the time dt since the
+    last accepted frame shows that the counter went round (repeated: dt >= (M - 0.5)
+    period; stale: dt >= (d - 0.5) period); otherwise d - 1 frames were lost, plus
+    k M when the time gap implies k = floor((dt / period - d) / M + 0.5) > 0 whole
+    wraps. Three consecutive stale frames that count up by one resynchronise (loss
+    unknown).
     """
     n = len(c)
-    status = np.zeros(n, np.int8)
-    lost = np.zeros(n, np.int64)
-    last = state[0]
-    run = state[1]
-    prev_stale = state[2]
-    last_t = state_t[0]
-    for i in range(n):
-        status[i], lost[i], last, run, prev_stale, last_t = _counter_step(
-            c[i], t[i], mod, window, period, last, run, prev_stale, last_t)
-    state[0] = last
-    state[1] = run
-    state[2] = prev_stale
-    state_t[0] = last_t
-    return status, lost
+    status = np.empty(n, np.uint8)
+    lost = np.empty(n, np.int64)
+    st = np.ascontiguousarray(state, np.int64)
+    st_t = np.ascontiguousarray(state_t, np.float64)
+    _can.counters(np.ascontiguousarray(c, np.int64), np.ascontiguousarray(t, np.float64),
+                  int(mod), int(window), float(period), st, st_t, status, lost)
+    if st is not state:
+        state[:] = st
+    if st_t is not state_t:
+        state_t[:] = st_t
+    return status.view(np.int8), lost
 
 
-@numba.njit(cache=True, nogil=True)
 def _select_rows(arbitration_id: npt.NDArray[np.uint32], is_extended: npt.NDArray[np.bool_],
                  is_error: npt.NDArray[np.bool_], frame_id: int, extended: bool,
-                 mine: npt.NDArray[np.bool_]) -> npt.NDArray[np.intp]:  # pragma: no cover
+                 mine: npt.NDArray[np.bool_]) -> npt.NDArray[np.intp]:
     """Rows with this ID and format that are not error frames (marked in ``mine``)."""
-    n = arbitration_id.shape[0]
-    c = 0
-    for k in range(n):
-        if arbitration_id[k] == frame_id and is_extended[k] == extended and not is_error[k]:
-            c += 1
-            mine[k] = True
-    out = np.empty(c, np.intp)
-    c = 0
-    for k in range(n):
-        if arbitration_id[k] == frame_id and is_extended[k] == extended and not is_error[k]:
-            out[c] = k
-            c += 1
-    return out
+    rows = (arbitration_id == frame_id) & (is_extended == extended) & ~is_error
+    mine |= rows
+    return np.flatnonzero(rows)
 
 
-@numba.njit(cache=True, nogil=True)
 def _gather_check(data: U8, rows: npt.NDArray[np.intp], length: int,
                   is_remote: npt.NDArray[np.bool_], dlc: U8, check_crc: bool, frame_id: int,
-                  table: U8, out: U8, flags: U8) -> int:  # pragma: no cover
+                  table: U8, out: U8, flags: U8) -> int:
     """Copy ``data[rows, :length]`` into ``out``; flag the first check each row fails:
     1 remote, 2 length (DLC), 4 CRC (only when ``check_crc``). Returns the flagged rows.
     """
-    bad = 0
-    for i in range(rows.shape[0]):
-        r = rows[i]
-        for j in range(length):
-            out[i, j] = data[r, j]
-        f = 0
-        if is_remote[r]:
-            f = 1
-        elif dlc[r] != length:
-            f = 2
-        elif check_crc and _crc_row(frame_id, data, r, length, table) != data[r, 0]:
-            f = 4
-        flags[i] = f
-        if f:
-            bad += 1
-    return bad
+    c = np.ascontiguousarray  # a no-op for the arrays of a FrameBlock
+    d = c(data, np.uint8)
+    return int(_can.gather_check(d, d.shape[1], c(rows, np.int64), length,
+                                 c(is_remote, np.bool_), c(dlc, np.uint8), check_crc,
+                                 frame_id, table, out, flags))
 
 
 def _counter_params(m: MessageCodec) -> tuple[int, int, float]:
     """Counter modulo M, stale window (half the range, less one) and period [s] (0: none)
-    that :func:`_counter_step` takes for message ``m`` (which has a counter)."""
+    that :func:`_counter_kernel` takes for message ``m`` (which has a counter)."""
     modulo = int(m.counter_modulo or 0)
     return modulo, max(1, modulo // 2 - 1), float(m.cycle_time or 0.0)
 
@@ -1179,7 +1089,7 @@ class _FastPlan:
     Build with :meth:`build`.
 
     The kernel takes each field from the 64-bit words of payload bytes 0..7 (one shift
-    and mask, much faster in the frame loop than :func:`_extract_kernel`'s byte loop): a
+    and mask, much faster in the frame loop than :meth:`SignalCodec.extract`'s byte loop): a
     field beyond byte 7 (CAN FD) leaves the protocol to the careful path.
     """
 
@@ -1271,26 +1181,16 @@ class _FastPlan:
             return None
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _field(le: np.uint64, be: np.uint64, sig: I64, s: int) -> np.uint64:  # pragma: no cover
-    """Raw bit field of signal ``s`` of a :class:`_FastPlan` (not sign-extended), from the
-    little- and big-endian words ``le`` and ``be`` of payload bytes 0..7."""
-    L = sig[s, _S_LEN]
-    mask = np.uint64(0xFFFFFFFFFFFFFFFF) if L >= 64 else np.uint64((1 << L) - 1)
-    return ((be if sig[s, _S_BE] else le) >> np.uint64(sig[s, _S_POS])) & mask
-
-
-@numba.njit(cache=True, nogil=True)
 def _fast_kernel(t: F64, arbitration_id: npt.NDArray[np.uint32],
                  is_extended: npt.NDArray[np.bool_], is_remote: npt.NDArray[np.bool_],
                  is_error: npt.NDArray[np.bool_], dlc: U8, data: U8, msg: I64, period: F64,
                  sig: I64, sig_f: F64, table: U8, state: I64, state_t: F64, base: int,
-                 out_f: F64, out_i: I64, counts: I64) -> int:  # pragma: no cover - compiled
+                 out_f: F64, out_i: I64, counts: I64) -> int:
     """Decode the frames of a block in one pass, up to the first that is not well-formed.
 
     Frames in stream order; a frame belongs to the message (row of ``msg``) with its ID
     and format. Per frame of a message: not remote, DLC = the message length, CRC
-    (:func:`_crc_row`), alive counter in sequence (:func:`_counter_step`), each role's
+    (:func:`_crc_vector`), alive counter in sequence (:func:`_counter_kernel`), each role's
     physical value ``raw * scale + offset`` (as :meth:`SignalCodec.physical` computes it,
     see :meth:`SignalCodec.scaling`) finite and within [lo, hi]; then the time, stream
     index ``base + i``, counter (or running sequence number) and SI values ``physical *
@@ -1302,94 +1202,13 @@ def _fast_kernel(t: F64, arbitration_id: npt.NDArray[np.uint32],
     returns the number of frames decoded: outputs, counts and state are those of the
     frames before it, and the caller decodes the rest the careful way.
     """
-    K = msg.shape[0]
-    counts[:] = 0
-    n = t.shape[0]
-    bits32 = np.empty(1, np.uint32)  # to reinterpret a float signal's bits
-    as_f32 = bits32.view(np.float32)
-    bits64 = np.empty(1, np.uint64)
-    as_f64 = bits64.view(np.float64)
-    done = n
-    for i in range(n):
-        if is_error[i]:
-            done = i
-            break
-        k = 0
-        while k < K and not (arbitration_id[i] == msg[k, _M_ID]
-                             and is_extended[i] == (msg[k, _M_EXT] != 0)):
-            k += 1
-        if k == K:
-            counts[2 * K] += 1  # foreign
-            continue
-        length = msg[k, _M_LEN]
-        if is_remote[i] or dlc[i] != length or data.shape[1] < length or (
-                msg[k, _M_CRC] and _crc_row(msg[k, _M_ID], data, i, length, table) != data[i, 0]):
-            done = i
-            break
-        le = np.uint64(0)  # payload bytes 0..7 as little- and big-endian words
-        be = np.uint64(0)
-        for j in range(min(length, 8)):
-            b = np.uint64(data[i, j])
-            le |= b << np.uint64(8 * j)
-            be |= b << np.uint64(56 - 8 * j)
-        c = counts[k]
-        q = msg[k, _M_COUNTER]
-        check = q >= 0 and msg[k, _M_CHECK] != 0
-        status, lost, last, run, prev_stale, last_t = (
-            _STATUS_OK, 0, state[k, 0], state[k, 1], state[k, 2], state_t[k])
-        if q >= 0:
-            counter = np.int64(_field(le, be, sig, q))
-            if check:
-                status, lost, last, run, prev_stale, last_t = _counter_step(
-                    counter, t[i], msg[k, _M_MOD], msg[k, _M_WINDOW], period[k], last, run,
-                    prev_stale, last_t)
-        else:
-            counter = state[k, 3] + c
-        if status != _STATUS_OK:
-            done = i
-            break
-        ok = True
-        for s in range(msg[k, _M_SIG0], msg[k, _M_SIG1]):
-            acc = _field(le, be, sig, s)
-            L = sig[s, _S_LEN]
-            if sig[s, _S_FLOAT]:
-                if L == 32:
-                    bits32[0] = np.uint32(acc)
-                    x = np.float64(as_f32[0])
-                else:
-                    bits64[0] = acc
-                    x = as_f64[0]
-            elif sig[s, _S_SIGNED]:
-                raw = np.int64(acc << np.uint64(64 - L)) >> (64 - L)
-                x = np.float64(raw)
-            else:
-                raw = np.int64(acc)  # exact below 64 bits: all unsigned _PHYS_INT fields
-                x = np.float64(acc)
-            mode = sig[s, _S_MODE]
-            if mode == _PHYS_INT:
-                v = np.float64(raw * sig[s, _S_SCALE] + sig[s, _S_OFFSET])
-            elif mode == _PHYS_FLOAT:
-                v = x * sig_f[s, _F_SCALE] + sig_f[s, _F_OFFSET]
-            else:
-                v = x
-            if not np.isfinite(v) or v < sig_f[s, _F_LO] or v > sig_f[s, _F_HI]:
-                ok = False
-                break
-            out_f[sig[s, _S_ROW], c] = v * sig_f[s, _F_SI]
-        if not ok:
-            done = i
-            break
-        if check:
-            state[k, 0], state[k, 1], state[k, 2], state_t[k] = last, run, prev_stale, last_t
-            counts[K + k] += lost
-        out_f[msg[k, _M_TROW], c] = t[i]
-        out_i[2 * k, c] = base + i
-        out_i[2 * k + 1, c] = counter
-        counts[k] = c + 1
-    for k in range(K):
-        if msg[k, _M_COUNTER] < 0:
-            state[k, 3] += counts[k]
-    return done
+    c = np.ascontiguousarray  # a no-op for the arrays of a FrameBlock
+    d = c(data, np.uint8)
+    return int(_can.decode_fast(c(t, np.float64), c(arbitration_id, np.uint32),
+                                c(is_extended, np.bool_), c(is_remote, np.bool_),
+                                c(is_error, np.bool_), c(dlc, np.uint8), d, d.shape[1], msg,
+                                period, sig, sig_f, table, state, state_t, int(base), out_f,
+                                out_i, counts))
 
 
 class Decoder:
@@ -1408,7 +1227,7 @@ class Decoder:
         self.accepted: dict[str, int] = {m.name: 0 for m in protocol.messages}
         self.foreign = 0
         self.frames = 0
-        # per message: [last counter, stale run, last stale counter] (see _counter_step),
+        # per message: [last counter, stale run, last stale counter] (see _counter_kernel),
         # then the running sequence number of a message without counter; time of the last
         # accepted frame. The careful path works on views of the rows.
         K = len(protocol.messages)

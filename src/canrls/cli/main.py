@@ -27,7 +27,20 @@ SUBCOMMANDS: tuple[str, ...] = (
 log = logging.getLogger("canrls")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def named_command(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names (None: none, or not one of :data:`SUBCOMMANDS`)."""
+    args = iter(argv)
+    for a in args:
+        if a == "--log-level":
+            next(args, None)
+        elif not a.startswith("-"):
+            return a if a in SUBCOMMANDS else None
+    return None
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every subcommand, or of ``only`` (its module alone is imported:
+    ``canrls run`` loads neither the simulator nor the diagnosis)."""
     parser = argparse.ArgumentParser(
         prog="canrls",
         description="Identify the physics of an electric drive over CAN with recursive "
@@ -40,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
                         choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                         help="logging level of messages written to stderr (default: WARNING)")
     sub = parser.add_subparsers(title="subcommands", dest="command", metavar="SUBCOMMAND")
-    for name in SUBCOMMANDS:
+    for name in SUBCOMMANDS if only is None else (only,):
         try:
             module = importlib.import_module(f"canrls.cli.{name}")
         except ModuleNotFoundError as e:
@@ -53,8 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    preload_cache_dir(sys.argv[1:] if argv is None else argv)  # before the kernels load
-    parser = build_parser()
+    given = sys.argv[1:] if argv is None else argv
+    preload_cache_dir(given)  # before the kernels load
+    parser = build_parser(named_command(given))
     args = parser.parse_args(argv)
     logging.basicConfig(level=getattr(logging, args.log_level), stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -1,12 +1,13 @@
 """``[daemon] cache_dir``, applied before numba's kernels load.
 
 numba fixes the cache directory of a compiled kernel when the module defining it is
-imported, and the command line imports every subcommand (and with them the kernels)
-before it parses its arguments. So :func:`preload` looks for ``-C/--config FILE`` in
-the arguments first and, when that file's ``[daemon]`` table names a ``cache_dir``,
-points the cache there (:func:`canrls.use_cache_dir`; ``$NUMBA_CACHE_DIR`` set by the
-user still wins). It imports nothing that imports numba. A file that cannot be read
-is left to the configuration loader, which reports it properly.
+imported, and the command line may import kernels before it parses its arguments. So
+:func:`preload` looks for ``-C/--config FILE`` in the arguments first and, when that
+file's ``[daemon]`` table names a ``cache_dir``, asks for the cache there
+(:func:`canrls.prefer_cache_dir`: applied when numba loads, so the daemon, which runs
+without numba, makes no directory; ``$NUMBA_CACHE_DIR`` set by the user still wins).
+It imports nothing that imports numba. A file that cannot be read is left to the
+configuration loader, which reports it properly.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import tomllib
 from collections.abc import Sequence
 from pathlib import Path
 
-from canrls import use_cache_dir
+from canrls import prefer_cache_dir
 from canrls.live.settings import resolve_path
 
 __all__ = ["configured_cache_dir", "preload"]
@@ -39,8 +40,8 @@ def configured_cache_dir(config: str | Path) -> Path | None:
 
 
 def preload(argv: Sequence[str]) -> Path | None:
-    """Apply ``[daemon] cache_dir`` of the ``-C/--config`` named in ``argv``; returns
-    the cache directory then in use (None: no such key)."""
+    """Ask for ``[daemon] cache_dir`` of the ``-C/--config`` named in ``argv`` as numba's
+    cache (:func:`canrls.prefer_cache_dir`); returns that directory (None: no such key)."""
     pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False, exit_on_error=False)
     pre.add_argument("-C", "--config")
     try:
@@ -50,4 +51,6 @@ def preload(argv: Sequence[str]) -> Path | None:
     if not known.config:
         return None
     d = configured_cache_dir(known.config)
-    return None if d is None else use_cache_dir(d)
+    if d is not None:
+        prefer_cache_dir(d)
+    return d

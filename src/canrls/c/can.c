@@ -1,0 +1,879 @@
+/* canrls._can: the per-frame loops of the CAN layer (strict decoding and pairing).
+ *
+ * The live path (canrls run) runs these instead of JIT-compiled kernels, and the
+ * offline replay runs the same code, so a log replayed offline gives the samples the
+ * daemon built, bit for bit. Each function is the loop of one Python caller, which
+ * owns the arrays (allocation, growth, dtypes) and documents the layout:
+ *
+ *   crc8          canrls.can.protocol._crc_vector     E2E CRC-8 of every row
+ *   gather_check  canrls.can.protocol.Decoder         payload bytes + remote/length/CRC
+ *   counters      canrls.can.protocol._counter_kernel alive-counter classification
+ *   decode_fast   canrls.can.protocol._fast_kernel    one-pass decoding of a block
+ *   push          canrls.can.pairing.Pairer           merge into stream order + pairing
+ *
+ * Arrays arrive through the buffer protocol (C-contiguous numpy arrays; each checked
+ * for its item size, format and length before the loop, which runs without the GIL).
+ * Floating point: IEEE double, no contraction (-ffp-contract=off), the operations in
+ * the order the Python documentation of each function states.
+ */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* ------------------------------------------------------------------------- */
+/* buffers                                                                     */
+/* ------------------------------------------------------------------------- */
+
+enum { K_U8, K_BOOL, K_U32, K_I64, K_F64 };
+
+typedef struct {
+    Py_buffer view;
+    int held;
+} Buf;
+
+static int kind_ok(const Py_buffer *v, int kind)
+{
+    const char *f = v->format ? v->format : "B";
+    if (*f == '<' || *f == '=' || *f == '@')
+        f++;
+    switch (kind) {
+    case K_U8:
+        return v->itemsize == 1 && (strcmp(f, "B") == 0);
+    case K_BOOL:
+        return v->itemsize == 1 && (strcmp(f, "?") == 0 || strcmp(f, "B") == 0);
+    case K_U32:
+        return v->itemsize == 4 && (strcmp(f, "I") == 0 || strcmp(f, "L") == 0);
+    case K_I64:
+        return v->itemsize == 8 && (strcmp(f, "l") == 0 || strcmp(f, "q") == 0 ||
+                                    strcmp(f, "n") == 0);
+    case K_F64:
+        return v->itemsize == 8 && strcmp(f, "d") == 0;
+    }
+    return 0;
+}
+
+/* Take the buffer of ``obj``: C-contiguous, of ``kind``, at least ``min_items`` items,
+ * writable when asked. Sets a Python error and returns 0 on failure. */
+static int get(Buf *b, PyObject *obj, int kind, Py_ssize_t min_items, int writable,
+               const char *name)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    b->held = 0;
+    if (PyObject_GetBuffer(obj, &b->view, flags) < 0)
+        return 0;
+    b->held = 1;
+    if (!kind_ok(&b->view, kind)) {
+        PyErr_Format(PyExc_TypeError, "canrls._can: %s has the wrong dtype (format %s)",
+                     name, b->view.format ? b->view.format : "?");
+        return 0;
+    }
+    if (b->view.len / b->view.itemsize < min_items) {
+        PyErr_Format(PyExc_ValueError, "canrls._can: %s holds %zd items, needs %zd", name,
+                     b->view.len / b->view.itemsize, min_items);
+        return 0;
+    }
+    return 1;
+}
+
+static Py_ssize_t items(const Buf *b) { return b->view.len / b->view.itemsize; }
+
+static void release(Buf *bufs, int n)
+{
+    for (int k = 0; k < n; k++)
+        if (bufs[k].held) {
+            PyBuffer_Release(&bufs[k].view);
+            bufs[k].held = 0;
+        }
+}
+
+#define U8P(b) ((uint8_t *)(b).view.buf)
+#define I64P(b) ((int64_t *)(b).view.buf)
+#define F64P(b) ((double *)(b).view.buf)
+#define U32P(b) ((uint32_t *)(b).view.buf)
+
+/* Python's floor modulo for a positive modulus */
+static int64_t pymod(int64_t a, int64_t m)
+{
+    int64_t r = a % m;
+    return r < 0 ? r + m : r;
+}
+
+/* ------------------------------------------------------------------------- */
+/* CRC (canrls.can.e2e.e2e_crc)                                                */
+/* ------------------------------------------------------------------------- */
+
+/* CRC-8 table walk of one payload row: init 0xFF, ID low then high byte, payload bytes
+ * 1..length-1, xor 0xFF. */
+static uint8_t crc_row(int64_t frame_id, const uint8_t *row, int64_t length,
+                       const uint8_t *table)
+{
+    uint8_t c = table[0xFF ^ (frame_id & 0xFF)];
+    c = table[c ^ ((frame_id >> 8) & 0xFF)];
+    for (int64_t j = 1; j < length; j++)
+        c = table[c ^ row[j]];
+    return (uint8_t)(c ^ 0xFF);
+}
+
+/* crc8(frame_id, data (N, W) uint8, width W, length, table (256,) uint8, out (N,) uint8) */
+static PyObject *py_crc8(PyObject *self, PyObject *args)
+{
+    (void)self;
+    long long frame_id, width, length;
+    PyObject *o_data, *o_table, *o_out;
+    if (!PyArg_ParseTuple(args, "LOLLOO", &frame_id, &o_data, &width, &length, &o_table,
+                          &o_out))
+        return NULL;
+    Buf b[3];
+    memset(b, 0, sizeof b);
+    if (!get(&b[0], o_data, K_U8, 0, 0, "data") || !get(&b[1], o_table, K_U8, 256, 0, "table") ||
+        !get(&b[2], o_out, K_U8, 0, 1, "out"))
+        goto fail;
+    Py_ssize_t n = items(&b[2]);
+    if (width < length || length < 1 || items(&b[0]) < n * width) {
+        PyErr_SetString(PyExc_ValueError, "canrls._can.crc8: data too small");
+        goto fail;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t k = 0; k < n; k++)
+        U8P(b[2])[k] = crc_row(frame_id, U8P(b[0]) + k * width, length, U8P(b[1]));
+    Py_END_ALLOW_THREADS
+    release(b, 3);
+    Py_RETURN_NONE;
+fail:
+    release(b, 3);
+    return NULL;
+}
+
+/* ------------------------------------------------------------------------- */
+/* gather and check (Decoder._decode_message)                                  */
+/* ------------------------------------------------------------------------- */
+
+/* gather_check(data (N, W), width, rows (R,) int64, length, is_remote (N,), dlc (N,),
+ *              check_crc, frame_id, table, out (R, length) uint8, flags (R,) uint8) -> int
+ * Copy data[rows, :length] into out; flag the first check each row fails: 1 remote,
+ * 2 length (DLC), 4 CRC (only when check_crc). Returns the flagged rows. */
+static PyObject *py_gather_check(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o_data, *o_rows, *o_remote, *o_dlc, *o_table, *o_out, *o_flags;
+    long long width, length, frame_id;
+    int check_crc;
+    if (!PyArg_ParseTuple(args, "OLOLOOpLOOO", &o_data, &width, &o_rows, &length, &o_remote,
+                          &o_dlc, &check_crc, &frame_id, &o_table, &o_out, &o_flags))
+        return NULL;
+    Buf b[7];
+    memset(b, 0, sizeof b);
+    if (!get(&b[0], o_data, K_U8, 0, 0, "data") || !get(&b[1], o_rows, K_I64, 0, 0, "rows") ||
+        !get(&b[2], o_remote, K_BOOL, 0, 0, "is_remote") ||
+        !get(&b[3], o_dlc, K_U8, 0, 0, "dlc") || !get(&b[4], o_table, K_U8, 256, 0, "table"))
+        goto fail;
+    Py_ssize_t n_rows = items(&b[1]);
+    if (!get(&b[5], o_out, K_U8, n_rows * length, 1, "out") ||
+        !get(&b[6], o_flags, K_U8, n_rows, 1, "flags"))
+        goto fail;
+    Py_ssize_t n = items(&b[2]);
+    if (items(&b[3]) < n || items(&b[0]) < n * width || width < length) {
+        PyErr_SetString(PyExc_ValueError, "canrls._can.gather_check: arrays too small");
+        goto fail;
+    }
+    const int64_t *rows = I64P(b[1]);
+    for (Py_ssize_t i = 0; i < n_rows; i++)
+        if (rows[i] < 0 || rows[i] >= n) {
+            PyErr_SetString(PyExc_IndexError, "canrls._can.gather_check: row out of range");
+            goto fail;
+        }
+    long long bad = 0;
+    Py_BEGIN_ALLOW_THREADS
+    const uint8_t *data = U8P(b[0]), *remote = U8P(b[2]), *dlc = U8P(b[3]);
+    uint8_t *out = U8P(b[5]), *flags = U8P(b[6]);
+    for (Py_ssize_t i = 0; i < n_rows; i++) {
+        int64_t r = rows[i];
+        const uint8_t *row = data + r * width;
+        memcpy(out + i * length, row, (size_t)length);
+        uint8_t f = 0;
+        if (remote[r])
+            f = 1;
+        else if (dlc[r] != length)
+            f = 2;
+        else if (check_crc && crc_row(frame_id, row, length, U8P(b[4])) != row[0])
+            f = 4;
+        flags[i] = f;
+        if (f)
+            bad++;
+    }
+    Py_END_ALLOW_THREADS
+    release(b, 7);
+    return PyLong_FromLongLong(bad);
+fail:
+    release(b, 7);
+    return NULL;
+}
+
+/* ------------------------------------------------------------------------- */
+/* alive counters (canrls.can.protocol._counter_step)                          */
+/* ------------------------------------------------------------------------- */
+
+enum { STATUS_OK = 0, STATUS_REPEATED = 1, STATUS_STALE = 2 };
+
+typedef struct {
+    int64_t last, run, prev_stale;
+    double last_t;
+} CounterState;
+
+/* Classify one alive counter c received at t (see _counter_step's docstring); updates
+ * the state, returns the status and sets *lost. */
+static int counter_step(int64_t c, double t, int64_t mod, int64_t window, double period,
+                        CounterState *s, int64_t *lost)
+{
+    *lost = 0;
+    if (s->last < 0) {
+        s->last = c;
+        s->run = 0;
+        s->last_t = t;
+        return STATUS_OK;
+    }
+    int64_t d = pymod(c - s->last, mod);
+    double dt = t - s->last_t;
+    int timed = period > 0.0 && isfinite(dt);
+    if (d == 0 && !(timed && dt >= ((double)mod - 0.5) * period))
+        return STATUS_REPEATED;
+    if (d == 0)
+        d = mod;
+    if (d >= mod - window && !(timed && dt >= ((double)d - 0.5) * period)) {
+        int64_t run = s->run;
+        if (run > 0 && c == pymod(s->prev_stale + 1, mod))
+            run += 1;
+        else
+            run = 1;
+        s->run = run;
+        s->prev_stale = c;
+        if (run < 3)
+            return STATUS_STALE;
+        d = 1; /* resynchronise on a consistent new sequence (loss unknown) */
+    }
+    int64_t gap = d;
+    if (timed) {
+        int64_t k = (int64_t)floor((dt / period - (double)d) / (double)mod + 0.5);
+        if (k > 0)
+            gap += k * mod;
+    }
+    *lost = gap - 1;
+    s->last = c;
+    s->run = 0;
+    s->last_t = t;
+    return STATUS_OK;
+}
+
+/* counters(c (N,) int64, t (N,) f64, mod, window, period, state (3,) int64,
+ *          state_t (1,) f64, status (N,) uint8, lost (N,) int64) */
+static PyObject *py_counters(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o_c, *o_t, *o_state, *o_state_t, *o_status, *o_lost;
+    long long mod, window;
+    double period;
+    if (!PyArg_ParseTuple(args, "OOLLdOOOO", &o_c, &o_t, &mod, &window, &period, &o_state,
+                          &o_state_t, &o_status, &o_lost))
+        return NULL;
+    Buf b[6];
+    memset(b, 0, sizeof b);
+    if (!get(&b[0], o_c, K_I64, 0, 0, "c"))
+        goto fail;
+    Py_ssize_t n = items(&b[0]);
+    if (!get(&b[1], o_t, K_F64, n, 0, "t") || !get(&b[2], o_state, K_I64, 3, 1, "state") ||
+        !get(&b[3], o_state_t, K_F64, 1, 1, "state_t") ||
+        !get(&b[4], o_status, K_U8, n, 1, "status") || !get(&b[5], o_lost, K_I64, n, 1, "lost"))
+        goto fail;
+    if (mod < 1) {
+        PyErr_SetString(PyExc_ValueError, "canrls._can.counters: modulo must be >= 1");
+        goto fail;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    int64_t *st = I64P(b[2]);
+    CounterState s = {st[0], st[1], st[2], F64P(b[3])[0]};
+    const int64_t *c = I64P(b[0]);
+    const double *t = F64P(b[1]);
+    for (Py_ssize_t i = 0; i < n; i++)
+        U8P(b[4])[i] = (uint8_t)counter_step(c[i], t[i], mod, window, period, &s,
+                                             &I64P(b[5])[i]);
+    st[0] = s.last;
+    st[1] = s.run;
+    st[2] = s.prev_stale;
+    F64P(b[3])[0] = s.last_t;
+    Py_END_ALLOW_THREADS
+    release(b, 6);
+    Py_RETURN_NONE;
+fail:
+    release(b, 6);
+    return NULL;
+}
+
+/* ------------------------------------------------------------------------- */
+/* one-pass decoding (canrls.can.protocol._FastPlan)                           */
+/* ------------------------------------------------------------------------- */
+
+/* columns of _FastPlan.msg */
+enum { M_ID, M_EXT, M_LEN, M_CRC, M_CHECK, M_MOD, M_WINDOW, M_COUNTER, M_SIG0, M_SIG1, M_TROW,
+       M_COLS };
+/* columns of _FastPlan.sig */
+enum { S_SIGNED, S_FLOAT, S_MODE, S_LEN, S_BE, S_POS, S_SCALE, S_OFFSET, S_ROW, S_COLS };
+/* columns of _FastPlan.sig_f */
+enum { F_SCALE, F_OFFSET, F_LO, F_HI, F_SI, F_COLS };
+/* SignalCodec.scaling modes */
+enum { PHYS_IDENTITY, PHYS_INT, PHYS_FLOAT };
+
+static uint64_t field(uint64_t le, uint64_t be, const int64_t *sig)
+{
+    int64_t L = sig[S_LEN];
+    uint64_t mask = L >= 64 ? UINT64_MAX : (((uint64_t)1 << L) - 1);
+    return ((sig[S_BE] ? be : le) >> sig[S_POS]) & mask;
+}
+
+/* decode_fast(t, arbitration_id, is_extended, is_remote, is_error, dlc, data, width,
+ *             msg (K, M_COLS), period (K,), sig (S, S_COLS), sig_f (S, F_COLS), table,
+ *             state (K, 4) int64, state_t (K,), base, out_f (n_float, cols),
+ *             out_i (2K, cols), counts (2K + 1,)) -> frames decoded
+ * See canrls.can.protocol._fast_kernel. */
+static PyObject *py_decode_fast(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o[17];
+    long long width, base;
+    if (!PyArg_ParseTuple(args, "OOOOOOOLOOOOOOOLOOO", &o[0], &o[1], &o[2], &o[3], &o[4],
+                          &o[5], &o[6], &width, &o[7], &o[8], &o[9], &o[10], &o[11], &o[12],
+                          &o[13], &base, &o[14], &o[15], &o[16]))
+        return NULL;
+    Buf b[17];
+    memset(b, 0, sizeof b);
+    long long done = 0;
+    if (!get(&b[0], o[0], K_F64, 0, 0, "t"))
+        goto fail;
+    Py_ssize_t n = items(&b[0]);
+    if (!get(&b[1], o[1], K_U32, n, 0, "arbitration_id") ||
+        !get(&b[2], o[2], K_BOOL, n, 0, "is_extended") ||
+        !get(&b[3], o[3], K_BOOL, n, 0, "is_remote") ||
+        !get(&b[4], o[4], K_BOOL, n, 0, "is_error") || !get(&b[5], o[5], K_U8, n, 0, "dlc") ||
+        !get(&b[6], o[6], K_U8, n * width, 0, "data") || !get(&b[7], o[7], K_I64, 0, 0, "msg"))
+        goto fail;
+    Py_ssize_t K = items(&b[7]) / M_COLS;
+    if (!get(&b[8], o[8], K_F64, K, 0, "period") || !get(&b[9], o[9], K_I64, 0, 0, "sig") ||
+        !get(&b[10], o[10], K_F64, 0, 0, "sig_f") || !get(&b[11], o[11], K_U8, 256, 0, "table") ||
+        !get(&b[12], o[12], K_I64, 4 * K, 1, "state") ||
+        !get(&b[13], o[13], K_F64, K, 1, "state_t") || !get(&b[14], o[14], K_F64, 0, 1, "out_f") ||
+        !get(&b[15], o[15], K_I64, 0, 1, "out_i") ||
+        !get(&b[16], o[16], K_I64, 2 * K + 1, 1, "counts"))
+        goto fail;
+    Py_ssize_t S = items(&b[9]) / S_COLS;
+    Py_ssize_t cols = K ? items(&b[15]) / (2 * K) : 0;
+    const int64_t *msg = I64P(b[7]), *sig = I64P(b[9]);
+    /* every index the loop takes from the tables lies in its array */
+    for (Py_ssize_t k = 0; k < K; k++) {
+        const int64_t *mk = msg + k * M_COLS;
+        if (mk[M_SIG0] < 0 || mk[M_SIG1] > S || mk[M_SIG0] > mk[M_SIG1] || mk[M_COUNTER] >= S ||
+            mk[M_TROW] < 0 || (mk[M_TROW] + 1) * cols > items(&b[14]) ||
+            (mk[M_COUNTER] >= 0 && mk[M_MOD] < 1) || mk[M_LEN] < 0) {
+            PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: bad message table");
+            goto fail;
+        }
+    }
+    for (Py_ssize_t s = 0; s < S; s++) {
+        const int64_t *ss = sig + s * S_COLS;
+        if (ss[S_LEN] < 1 || ss[S_LEN] > 64 || ss[S_POS] < 0 || ss[S_POS] > 63 || ss[S_ROW] < 0 ||
+            (ss[S_ROW] + 1) * cols > items(&b[14])) {
+            PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: bad signal table");
+            goto fail;
+        }
+    }
+    for (Py_ssize_t k = 0; k < K; k++)
+        for (int64_t s = msg[k * M_COLS + M_SIG0]; s < msg[k * M_COLS + M_SIG1]; s++)
+            if ((s + 1) * F_COLS > items(&b[10])) {
+                PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: sig_f too small");
+                goto fail;
+            }
+    if (cols < n) {
+        PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: outputs too small");
+        goto fail;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    const double *t = F64P(b[0]);
+    const uint32_t *aid = U32P(b[1]);
+    const uint8_t *ext = U8P(b[2]), *rtr = U8P(b[3]), *err = U8P(b[4]), *dlc = U8P(b[5]);
+    const uint8_t *data = U8P(b[6]), *table = U8P(b[11]);
+    const double *period = F64P(b[8]), *sig_f = F64P(b[10]);
+    int64_t *state = I64P(b[12]), *out_i = I64P(b[15]), *counts = I64P(b[16]);
+    double *state_t = F64P(b[13]), *out_f = F64P(b[14]);
+    for (Py_ssize_t k = 0; k < 2 * K + 1; k++)
+        counts[k] = 0;
+    done = n;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (err[i]) {
+            done = i;
+            break;
+        }
+        Py_ssize_t k = 0;
+        while (k < K && !((int64_t)aid[i] == msg[k * M_COLS + M_ID] &&
+                          (ext[i] != 0) == (msg[k * M_COLS + M_EXT] != 0)))
+            k++;
+        if (k == K) {
+            counts[2 * K] += 1; /* foreign */
+            continue;
+        }
+        const int64_t *mk = msg + k * M_COLS;
+        int64_t length = mk[M_LEN];
+        const uint8_t *row = data + i * width;
+        if (rtr[i] || dlc[i] != length || width < length ||
+            (mk[M_CRC] && crc_row(mk[M_ID], row, length, table) != row[0])) {
+            done = i;
+            break;
+        }
+        uint64_t le = 0, be = 0; /* payload bytes 0..7 as little- and big-endian words */
+        for (int64_t j = 0; j < (length < 8 ? length : 8); j++) {
+            uint64_t byte = row[j];
+            le |= byte << (8 * j);
+            be |= byte << (56 - 8 * j);
+        }
+        int64_t c = counts[k];
+        int64_t q = mk[M_COUNTER];
+        int check = q >= 0 && mk[M_CHECK] != 0;
+        int64_t *sk = state + 4 * k;
+        CounterState cs = {sk[0], sk[1], sk[2], state_t[k]};
+        int64_t lost = 0, counter;
+        int status = STATUS_OK;
+        if (q >= 0) {
+            counter = (int64_t)field(le, be, sig + q * S_COLS);
+            if (check)
+                status = counter_step(counter, t[i], mk[M_MOD], mk[M_WINDOW], period[k], &cs,
+                                      &lost);
+        } else {
+            counter = sk[3] + c;
+        }
+        if (status != STATUS_OK) {
+            done = i;
+            break;
+        }
+        int ok = 1;
+        for (int64_t s = mk[M_SIG0]; s < mk[M_SIG1]; s++) {
+            const int64_t *ss = sig + s * S_COLS;
+            const double *sf = sig_f + s * F_COLS;
+            uint64_t acc = field(le, be, ss);
+            int64_t L = ss[S_LEN];
+            int64_t raw = 0;
+            double x, v;
+            if (ss[S_FLOAT]) {
+                if (L == 32) {
+                    uint32_t u = (uint32_t)acc;
+                    float f;
+                    memcpy(&f, &u, sizeof f);
+                    x = (double)f;
+                } else {
+                    memcpy(&x, &acc, sizeof x);
+                }
+            } else if (ss[S_SIGNED]) {
+                uint64_t u = acc << (64 - L);
+                memcpy(&raw, &u, sizeof raw);
+                raw >>= (64 - L); /* arithmetic shift: sign extension */
+                x = (double)raw;
+            } else {
+                raw = (int64_t)acc; /* exact below 64 bits: all unsigned PHYS_INT fields */
+                x = (double)acc;
+            }
+            int64_t mode = ss[S_MODE];
+            if (mode == PHYS_INT)
+                v = (double)(int64_t)((uint64_t)raw * (uint64_t)ss[S_SCALE] +
+                                      (uint64_t)ss[S_OFFSET]);
+            else if (mode == PHYS_FLOAT)
+                v = x * sf[F_SCALE] + sf[F_OFFSET];
+            else
+                v = x;
+            if (!isfinite(v) || v < sf[F_LO] || v > sf[F_HI]) {
+                ok = 0;
+                break;
+            }
+            out_f[ss[S_ROW] * cols + c] = v * sf[F_SI];
+        }
+        if (!ok) {
+            done = i;
+            break;
+        }
+        if (check) {
+            sk[0] = cs.last;
+            sk[1] = cs.run;
+            sk[2] = cs.prev_stale;
+            state_t[k] = cs.last_t;
+            counts[K + k] += lost;
+        }
+        out_f[mk[M_TROW] * cols + c] = t[i];
+        out_i[2 * k * cols + c] = base + i;
+        out_i[(2 * k + 1) * cols + c] = counter;
+        counts[k] = c + 1;
+    }
+    for (Py_ssize_t k = 0; k < K; k++)
+        if (msg[k * M_COLS + M_COUNTER] < 0)
+            state[4 * k + 3] += counts[k];
+    Py_END_ALLOW_THREADS
+    release(b, 17);
+    return PyLong_FromLongLong(done);
+fail:
+    release(b, 17);
+    return NULL;
+}
+
+/* ------------------------------------------------------------------------- */
+/* pairing (canrls.can.pairing)                                                */
+/* ------------------------------------------------------------------------- */
+
+#define GI(g, c) gi[3 * (g) + (c)]
+#define GF(g, c) gf[gcols * (g) + (c)]
+
+/* Process frames one at a time; return the number of samples written to out_*.
+ * See canrls.can.pairing (the module docstring and Pairer) for the rules and the state:
+ * open periods are the slots 0 .. gi[0]-1 (kept compact): gi row 1 + g = [unused,
+ * counter (-1: none), mask of messages present]; gf row g = [t_min, t_max, values of the
+ * roles...]; sf = [newest frame time, t_min and t_max of the last finalised period,
+ * whether there is one]; si = per message: -2 if absent from that period, else its
+ * counter (-1: none); counts[kind, message]. */
+static int64_t pair_frames(const int64_t *msg, const double *t, const int64_t *cnt,
+                           const double *vals, const int64_t *role_msg, int64_t n_roles,
+                           int64_t n_msg, double tol, double wait, double period, int flush,
+                           int64_t n, double *gf, int64_t G, int64_t *gi, double *sf,
+                           int64_t *si, int64_t *counts, double *out_t, double *out_v)
+{
+    const int64_t gcols = 2 + n_roles;
+    const int64_t full = ((int64_t)1 << n_msg) - 1;
+    int64_t n_out = 0;
+    int64_t *open = &gi[0];
+    gi += 3; /* GI(g, .) is row 1 + g */
+    for (int64_t f = 0; f < n + (flush ? 1 : 0); f++) {
+        if (f < n) {
+            int64_t m = msg[f];
+            double tf = t[f];
+            int64_t cf = cnt[f];
+            double newest = sf[0];
+            /* --- find the open period this frame belongs to (closest in time) */
+            int64_t best = -1;
+            double best_d = INFINITY;
+            for (int64_t g = 0; g < *open; g++) {
+                if (tf < GF(g, 1) - tol || tf > GF(g, 0) + tol)
+                    continue;
+                if (cf >= 0 && GI(g, 1) >= 0 && GI(g, 1) != cf)
+                    continue;
+                double d = fabs(tf - GF(g, 0));
+                if (d < best_d) {
+                    best_d = d;
+                    best = g;
+                }
+            }
+            int64_t g;
+            if (best >= 0) {
+                if (GI(best, 2) & ((int64_t)1 << m)) {
+                    counts[2 * n_msg + m] += 1; /* duplicated */
+                    continue;
+                }
+                g = best;
+            } else {
+                if (sf[3] > 0 && tf <= sf[1] + tol) {
+                    /* at or before the last finalised period: a repeat of its frame, or late */
+                    if (si[m] != -2 && tf >= sf[2] - tol && (cf < 0 || si[m] < 0 || si[m] == cf))
+                        counts[2 * n_msg + m] += 1;
+                    else
+                        counts[4 * n_msg + m] += 1;
+                    continue;
+                }
+                if (tf < newest - wait) {
+                    counts[4 * n_msg + m] += 1; /* would be given up at once */
+                    continue;
+                }
+                /* a free slot exists: finalisation keeps fewer than G periods open */
+                g = *open;
+                *open += 1;
+                GI(g, 1) = -1;
+                GI(g, 2) = 0;
+                GF(g, 0) = tf;
+                GF(g, 1) = tf;
+                for (int64_t r = 0; r < n_roles; r++)
+                    GF(g, 2 + r) = NAN;
+            }
+            if (tf + tol < newest)
+                counts[3 * n_msg + m] += 1; /* reordered: a later period's frame came first */
+            GI(g, 2) |= (int64_t)1 << m;
+            if (cf >= 0 && GI(g, 1) < 0)
+                GI(g, 1) = cf;
+            if (tf < GF(g, 0))
+                GF(g, 0) = tf;
+            if (tf > GF(g, 1))
+                GF(g, 1) = tf;
+            for (int64_t r = 0; r < n_roles; r++)
+                if (role_msg[r] == m)
+                    GF(g, 2 + r) = vals[f * n_roles + r];
+            if (tf > newest)
+                sf[0] = tf;
+        }
+        /* --- finalise periods in time order */
+        for (;;) {
+            int64_t oldest = -1;
+            int64_t n_open = *open;
+            for (int64_t g = 0; g < n_open; g++)
+                if (oldest < 0 || GF(g, 0) < GF(oldest, 0))
+                    oldest = g;
+            if (oldest < 0)
+                break;
+            int64_t g = oldest;
+            int complete = GI(g, 2) == full;
+            int expired = sf[0] - GF(g, 0) > wait;
+            if (!(complete || expired || f >= n || n_open >= G))
+                break;
+            if (sf[3] > 0 && period > 0.0) {
+                int64_t gap = (int64_t)floor((GF(g, 0) - sf[1]) / period + 0.5) - 1;
+                if (gap > 0)
+                    for (int64_t k = 0; k < n_msg; k++)
+                        counts[1 * n_msg + k] += gap;
+            }
+            if (complete) {
+                out_t[n_out] = GF(g, 1);
+                for (int64_t r = 0; r < n_roles; r++)
+                    out_v[n_out * n_roles + r] = GF(g, 2 + r);
+                n_out++;
+            } else {
+                for (int64_t k = 0; k < n_msg; k++) {
+                    if (GI(g, 2) & ((int64_t)1 << k))
+                        counts[0 * n_msg + k] += 1;
+                    else
+                        counts[1 * n_msg + k] += 1;
+                }
+            }
+            sf[1] = GF(g, 0);
+            sf[2] = GF(g, 1);
+            sf[3] = 1.0;
+            for (int64_t k = 0; k < n_msg; k++)
+                si[k] = ((GI(g, 2) >> k) & 1) ? GI(g, 1) : -2;
+            int64_t last = n_open - 1; /* keep the open slots compact: move the last one here */
+            if (g != last) {
+                for (int64_t c = 0; c < gcols; c++)
+                    GF(g, c) = GF(last, c);
+                for (int64_t c = 0; c < 3; c++)
+                    GI(g, c) = GI(last, c);
+            }
+            *open = last;
+        }
+    }
+    return n_out;
+}
+
+/* K-way merge of the messages' frames (rows offsets[k]:offsets[k+1], each sorted by
+ * index) into stream order; equal indices keep message order, as a stable sort of the
+ * concatenation would. 0 (nothing written) when a message's indices are not ascending. */
+static int merge(const int64_t *index, const int64_t *offsets, int64_t K, const double *t,
+                 const int64_t *cnt, const double *vals, int64_t R, int64_t *out_msg,
+                 double *out_t, int64_t *out_cnt, double *out_vals)
+{
+    for (int64_t k = 0; k < K; k++)
+        for (int64_t i = offsets[k] + 1; i < offsets[k + 1]; i++)
+            if (index[i] < index[i - 1])
+                return 0;
+    int64_t pos[64];
+    for (int64_t k = 0; k < K; k++)
+        pos[k] = offsets[k];
+    for (int64_t o = 0; o < offsets[K]; o++) {
+        int64_t best = -1;
+        for (int64_t k = 0; k < K; k++)
+            if (pos[k] < offsets[k + 1] && (best < 0 || index[pos[k]] < index[pos[best]]))
+                best = k;
+        int64_t i = pos[best]++;
+        out_msg[o] = best;
+        out_t[o] = t[i];
+        out_cnt[o] = cnt[i];
+        memcpy(out_vals + o * R, vals + i * R, (size_t)R * sizeof(double));
+    }
+    return 1;
+}
+
+/* Stable merge sort of the positions 0..n-1 by key[]: order (n,), tmp (n,) scratch. */
+static void stable_order(const int64_t *key, int64_t n, int64_t *order, int64_t *tmp)
+{
+    for (int64_t i = 0; i < n; i++)
+        order[i] = i;
+    for (int64_t w = 1; w < n; w *= 2) {
+        for (int64_t lo = 0; lo < n; lo += 2 * w) {
+            int64_t mid = lo + w < n ? lo + w : n, hi = lo + 2 * w < n ? lo + 2 * w : n;
+            int64_t a = lo, b = mid, o = lo;
+            while (a < mid && b < hi)
+                tmp[o++] = key[order[b]] < key[order[a]] ? order[b++] : order[a++];
+            while (a < mid)
+                tmp[o++] = order[a++];
+            while (b < hi)
+                tmp[o++] = order[b++];
+        }
+        memcpy(order, tmp, (size_t)n * sizeof(int64_t));
+    }
+}
+
+/* push(index, t, cnt, vals (tuples: one array per message, vals one per role),
+ *      use_counters, role_msg (R,), times [tolerance, wait, period], flush,
+ *      gf (G, 2 + R), gi (G + 1, 3), sf (4,), si (K,), counts (5, K),
+ *      iwork (4, C) int64, fwork (3, C), vwork (3, C, R)) -> samples
+ * The frames of one push in stream order (merge, else a stable sort by index), through
+ * the pairing; the samples are in fwork[2, :samples] (times) and vwork[2, :samples]. */
+static PyObject *py_push(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o_index, *o_t, *o_cnt, *o_vals, *o_role, *o_times, *o_gf, *o_gi, *o_sf, *o_si,
+        *o_counts, *o_iwork, *o_fwork, *o_vwork;
+    int use_counters, flush;
+    if (!PyArg_ParseTuple(args, "O!O!O!O!pOOpOOOOOOOO", &PyTuple_Type, &o_index, &PyTuple_Type,
+                          &o_t, &PyTuple_Type, &o_cnt, &PyTuple_Type, &o_vals, &use_counters,
+                          &o_role, &o_times, &flush, &o_gf, &o_gi, &o_sf, &o_si, &o_counts,
+                          &o_iwork, &o_fwork, &o_vwork))
+        return NULL;
+    Py_ssize_t K = PyTuple_GET_SIZE(o_index), R = PyTuple_GET_SIZE(o_vals);
+    if (K < 1 || K > 62 || PyTuple_GET_SIZE(o_t) != K || PyTuple_GET_SIZE(o_cnt) != K) {
+        PyErr_SetString(PyExc_ValueError, "canrls._can.push: index, t, cnt: one per message "
+                                          "(1..62)");
+        return NULL;
+    }
+    Py_ssize_t nb = 3 * K + R + 10;
+    Buf *b = calloc((size_t)nb, sizeof(Buf));
+    int64_t *offsets = calloc((size_t)K + 1, sizeof(int64_t));
+    int64_t *sort = NULL;
+    long long n_out = -1;
+    if (!b || !offsets) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    Buf *bi = b, *bt = b + K, *bc = b + 2 * K, *bv = b + 3 * K, *rest = b + 3 * K + R;
+    for (Py_ssize_t k = 0; k < K; k++) {
+        if (!get(&bi[k], PyTuple_GET_ITEM(o_index, k), K_I64, 0, 0, "index"))
+            goto done;
+        offsets[k + 1] = offsets[k] + items(&bi[k]);
+        if (!get(&bt[k], PyTuple_GET_ITEM(o_t, k), K_F64, items(&bi[k]), 0, "t") ||
+            (use_counters &&
+             !get(&bc[k], PyTuple_GET_ITEM(o_cnt, k), K_I64, items(&bi[k]), 0, "cnt")))
+            goto done;
+    }
+    Py_ssize_t n = offsets[K];
+    if (!get(&rest[0], o_role, K_I64, R, 0, "role_msg") ||
+        !get(&rest[1], o_times, K_F64, 3, 0, "times"))
+        goto done;
+    const int64_t *role_msg = I64P(rest[0]);
+    for (Py_ssize_t j = 0; j < R; j++) {
+        int64_t m = role_msg[j];
+        if (m < 0 || m >= K) {
+            PyErr_SetString(PyExc_ValueError, "canrls._can.push: role_msg out of range");
+            goto done;
+        }
+        if (!get(&bv[j], PyTuple_GET_ITEM(o_vals, j), K_F64, offsets[m + 1] - offsets[m], 0,
+                 "vals"))
+            goto done;
+    }
+    if (!get(&rest[2], o_gf, K_F64, 0, 1, "gf"))
+        goto done;
+    Py_ssize_t G = items(&rest[2]) / (2 + R);
+    if (!get(&rest[3], o_gi, K_I64, 3 * (G + 1), 1, "gi") ||
+        !get(&rest[4], o_sf, K_F64, 4, 1, "sf") || !get(&rest[5], o_si, K_I64, K, 1, "si") ||
+        !get(&rest[6], o_counts, K_I64, 5 * K, 1, "counts") ||
+        !get(&rest[7], o_iwork, K_I64, 0, 1, "iwork"))
+        goto done;
+    Py_ssize_t C = items(&rest[7]) / 4;
+    if (!get(&rest[8], o_fwork, K_F64, 3 * C, 1, "fwork") ||
+        !get(&rest[9], o_vwork, K_F64, 3 * C * R, 1, "vwork"))
+        goto done;
+    if (C < n + G || G < 1) {
+        PyErr_SetString(PyExc_ValueError, "canrls._can.push: scratch space too small");
+        goto done;
+    }
+    {
+        int64_t *gi = I64P(rest[3]);
+        if (gi[0] < 0 || gi[0] > G) {
+            PyErr_SetString(PyExc_ValueError, "canrls._can.push: bad open-period count");
+            goto done;
+        }
+    }
+    int sorted = 1;
+    Py_BEGIN_ALLOW_THREADS
+    int64_t *iw = I64P(rest[7]);
+    double *fw = F64P(rest[8]), *vw = F64P(rest[9]);
+    int64_t *all_index = iw, *all_cnt = iw + C, *msg = iw + 2 * C, *m_cnt = iw + 3 * C;
+    double *all_t = fw, *m_t = fw + C, *out_t = fw + 2 * C;
+    double *all_vals = vw, *m_vals = vw + C * R, *out_v = vw + 2 * C * R;
+    for (Py_ssize_t k = 0; k < K; k++) {
+        Py_ssize_t len = offsets[k + 1] - offsets[k];
+        memcpy(all_index + offsets[k], bi[k].view.buf, (size_t)len * sizeof(int64_t));
+        memcpy(all_t + offsets[k], bt[k].view.buf, (size_t)len * sizeof(double));
+        if (use_counters)
+            memcpy(all_cnt + offsets[k], bc[k].view.buf, (size_t)len * sizeof(int64_t));
+        else
+            for (Py_ssize_t i = 0; i < len; i++)
+                all_cnt[offsets[k] + i] = -1;
+    }
+    for (Py_ssize_t i = 0; i < n * R; i++)
+        all_vals[i] = NAN;
+    for (Py_ssize_t j = 0; j < R; j++) {
+        int64_t m = role_msg[j];
+        const double *v = F64P(bv[j]);
+        for (int64_t i = offsets[m]; i < offsets[m + 1]; i++)
+            all_vals[i * R + j] = v[i - offsets[m]];
+    }
+    if (!merge(all_index, offsets, K, all_t, all_cnt, all_vals, R, msg, m_t, m_cnt, m_vals)) {
+        /* a message's frames out of stream order: a stable sort does the same */
+        sort = malloc(2 * (size_t)(n > 0 ? n : 1) * sizeof(int64_t));
+        if (!sort) {
+            sorted = 0;
+        } else {
+            int64_t *order = sort, *tmp = sort + n;
+            stable_order(all_index, n, order, tmp);
+            for (Py_ssize_t k = 0; k < K; k++)
+                for (int64_t i = offsets[k]; i < offsets[k + 1]; i++)
+                    tmp[i] = k;
+            for (Py_ssize_t o = 0; o < n; o++) {
+                int64_t i = order[o];
+                msg[o] = tmp[i];
+                m_t[o] = all_t[i];
+                m_cnt[o] = all_cnt[i];
+                memcpy(m_vals + o * R, all_vals + i * R, (size_t)R * sizeof(double));
+            }
+        }
+    }
+    if (sorted) {
+        const double *times = F64P(rest[1]);
+        n_out = pair_frames(msg, m_t, m_cnt, m_vals, role_msg, R, K, times[0], times[1],
+                            times[2], flush, n, F64P(rest[2]), G, I64P(rest[3]), F64P(rest[4]),
+                            I64P(rest[5]), I64P(rest[6]), out_t, out_v);
+    }
+    Py_END_ALLOW_THREADS
+    if (!sorted) {
+        PyErr_NoMemory();
+        n_out = -1;
+    }
+done:
+    if (b)
+        release(b, (int)nb);
+    free(b);
+    free(offsets);
+    free(sort);
+    return n_out < 0 ? NULL : PyLong_FromLongLong(n_out);
+}
+
+/* ------------------------------------------------------------------------- */
+
+static PyMethodDef methods[] = {
+    {"crc8", py_crc8, METH_VARARGS, "E2E CRC-8 of every payload row."},
+    {"gather_check", py_gather_check, METH_VARARGS,
+     "Gather the payload of rows and flag the first failing check (remote, length, CRC)."},
+    {"counters", py_counters, METH_VARARGS, "Classify alive counters, carrying state."},
+    {"decode_fast", py_decode_fast, METH_VARARGS,
+     "Decode a block in one pass up to the first frame that is not well-formed."},
+    {"push", py_push, METH_VARARGS, "Merge frames into stream order and pair them."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "canrls._can",
+    "The per-frame loops of canrls' CAN layer (strict decoding, pairing) in C.", -1, methods,
+    NULL, NULL, NULL, NULL,
+};
+
+PyMODINIT_FUNC PyInit__can(void) { return PyModule_Create(&module); }
