@@ -168,7 +168,15 @@ def test_python_can_logger_runs_against_it(tmp_path: Path) -> None:
             line = proc.stdout.readline()
             if "Can Logger" in line or not line:
                 break
-        time.sleep(1.0)
+        # the simulated 0.2 s (400 frames) come as fast as the simulator makes them (a cold
+        # simulator compiles first): stop once the log has grown and then stayed the same
+        # size for a second (the writer's buffer is flushed at the stop)
+        size, still = -1, 0.0
+        while time.monotonic() < deadline and still < 1.0:
+            now = out.stat().st_size if out.exists() else 0
+            still = still + 0.1 if now == size and now > 0 else 0.0
+            size = now
+            time.sleep(0.1)
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=30)
     finally:
