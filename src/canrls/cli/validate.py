@@ -5,6 +5,9 @@ without re-estimating anything (:mod:`canrls.validate`), and reports fit %, resi
 (overall and per log) and where the model fails, as the diagnosis does. The DBC and
 signal mapping default to those saved in the model file; ``--dbc``/``--signal``/
 ``--config`` replace them (logs of another drive with the same mechanics).
+``--report DIR`` writes ``DIR/index.html`` with PNG figures (needs matplotlib): per log
+the measured target against the prediction and the residual over time, and the
+residual binned by speed and, where a position is logged, by position.
 
 ``--json`` prints one object::
 
@@ -15,7 +18,7 @@ signal mapping default to those saved in the model file; ``--dbc``/``--signal``/
                    "files": [{"source": ..., "samples": ..., "residual_rms": ...,
                               "fit_percent": ...}, ...],
                    "regions": [{"quantity": "speed", "text": ..., ...}, ...]}},
-     "frames": {...}}
+     "frames": {...}, "report": "DIR/index.html"}   # "report" with --report
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                    help="CAN log(s): .log (candump), .asc, .blf, .trc, .csv")
     p.add_argument("--model", "-m", required=True, metavar="FILE",
                    help="model file written by 'canrls fit --save-model'")
+    p.add_argument("--report", metavar="DIR",
+                   help="write DIR/index.html with PNG figures (needs matplotlib: "
+                        "pip install 'canrls[report]')")
     add_model_options(p)
     add_progress_option(p)
     p.add_argument("--skip-bad-lines", action="store_true",
@@ -52,6 +58,11 @@ def run(args: argparse.Namespace) -> int:
     from canrls.modelfile import SavedModel
     from canrls.validate import validate_logs
 
+    if args.report:
+        # fail before the long part when the figures cannot be drawn
+        from canrls.diagnosis.figures import require_matplotlib
+
+        require_matplotlib()
     saved = SavedModel.load(args.model)
     base = saved.config()
     cfg = AppConfig.load(args.config) if args.config else AppConfig()
@@ -65,8 +76,14 @@ def run(args: argparse.Namespace) -> int:
     rep = validate_logs(args.log, saved, cfg.protocol(), model_file=args.model,
                         progress=Progress("validate", quiet=args.quiet).callback,
                         skip_bad_lines=args.skip_bad_lines)
+    page = rep.write_html(args.report) if args.report else None
     if args.json:
-        print_json(rep.to_dict())
+        d = rep.to_dict()
+        if page is not None:
+            d["report"] = str(page)
+        print_json(d)
     else:
         sys.stdout.write(rep.format() + "\n")
+        if page is not None:
+            sys.stdout.write(f"\nreport: {page}\n")
     return 0

@@ -30,7 +30,7 @@ from canrls.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
 
-__all__ = ["DiagnosisReport", "FIGURES", "write_html"]
+__all__ = ["CAPTIONS", "DiagnosisReport", "FIGURES", "page_template", "write_html"]
 
 
 class DiagnosisReport:
@@ -176,13 +176,19 @@ def _num(x: float | None, spec: str = ".4g") -> str:
 
 
 def _template() -> jinja2.Template:
+    return page_template("report.html.j2")
+
+
+def page_template(name: str) -> jinja2.Template:
+    """The jinja2 template ``name`` shipped under ``diagnosis/templates``, with the
+    report's filters (``num``, ``fmt``); also the page of ``canrls validate``."""
     env = jinja2.Environment(
         loader=jinja2.PackageLoader("canrls.diagnosis", "templates"),
         autoescape=True, trim_blocks=True, lstrip_blocks=True,
         undefined=jinja2.StrictUndefined)
     env.filters["num"] = _num
     env.filters["fmt"] = format
-    return env.get_template("report.html.j2")
+    return env.get_template(name)
 
 
 def _parameter_rows(before: Analysis, after: Analysis | None
