@@ -555,6 +555,11 @@ def _collinear_reason(name: str, cols: Sequence[int], C: Sequence[int], G: _Gram
            f"independent)"
     if why:
         text += "; " + "; ".join(why)
+    # the experiment that would separate it
+    todo = (["record a run in both directions"] if exc.one_direction and name in SIGN_PAIR
+            else []) + (["vary the speed"] if exc.constant_speed else [])
+    if todo:
+        text += "; " + " and ".join(todo)
     return text
 
 
