@@ -221,3 +221,20 @@ def test_validate_report_without_matplotlib_is_a_clear_error(
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "matplotlib" in err
     assert not (tmp_path / "r").exists()
+
+
+def test_validate_refuses_options_that_would_change_the_model(
+        logs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    m = tmp_path / "m.json"
+    _json(capsys, ["fit", str(logs["s1"]), *MODEL, "--quiet", "--json", "--save-model",
+                   str(m)])
+    capsys.readouterr()
+    assert main(["validate", str(logs["s3"]), "--model", str(m), "--quiet", "--kt", "0.2",
+                 "--effects", "inertia"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: validate: --effects, --kt:") and str(m) in err
+    # the help says what it does, with a plain per cent sign
+    with pytest.raises(SystemExit):
+        main(["validate", "--help"])
+    out = capsys.readouterr().out
+    assert "report fit %, residual RMS" in out and "%%" not in out and "--report DIR" in out

@@ -4,7 +4,9 @@ Predicts the logs with the parameters of a model saved by ``canrls fit --save-mo
 without re-estimating anything (:mod:`canrls.validate`), and reports fit %, residual RMS
 (overall and per log) and where the model fails, as the diagnosis does. The DBC and
 signal mapping default to those saved in the model file; ``--dbc``/``--signal``/
-``--config`` replace them (logs of another drive with the same mechanics).
+``--config`` replace them (logs of another drive with the same mechanics); the
+options that would change the model (``--effects``, ``--kt``, ``--axis``, ``--lambda``,
+``--alpha``) are refused: the model is the file's.
 ``--report DIR`` writes ``DIR/index.html`` with PNG figures (needs matplotlib): per log
 the measured target against the prediction and the residual over time, and the
 residual binned by speed and, where a position is logged, by position.
@@ -36,7 +38,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "validate", help="predict other logs with a saved model (no re-estimation)",
         description="Predict CAN logs with the parameters of a model saved by 'canrls fit "
-                    "--save-model', without re-estimating, and report fit %%, residual RMS "
+                    "--save-model', without re-estimating, and report fit %, residual RMS "
                     "and where the model fails.")
     p.add_argument("log", metavar="LOG", nargs="+",
                    help="CAN log(s): .log (candump), .asc, .blf, .trc, .csv")
@@ -63,6 +65,16 @@ def run(args: argparse.Namespace) -> int:
         from canrls.diagnosis.figures import require_matplotlib
 
         require_matplotlib()
+    from canrls.errors import ConfigError
+
+    # the model is the file's: options that would change it are refused, not ignored
+    given = [flag for flag, value in (("--effects", args.effects), ("--kt", args.kt),
+                                      ("--axis", args.axis), ("--lambda", args.lam),
+                                      ("--alpha", args.alpha)) if value is not None]
+    if given:
+        raise ConfigError(f"validate: {', '.join(given)}: the model, its parameters and "
+                          f"settings are the saved file's ({args.model}); to change them, "
+                          f"fit again with 'canrls fit ... --save-model'")
     saved = SavedModel.load(args.model)
     base = saved.config()
     cfg = AppConfig.load(args.config) if args.config else AppConfig()
