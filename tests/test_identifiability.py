@@ -221,3 +221,18 @@ def test_whiteness_passes_yet_a_candidate_explains_most_so_not_complete() -> Non
     v = prim.verdict
     assert "complete" not in v
     assert best.effect in v and "would explain" in v
+
+
+def test_complete_names_the_candidates_these_data_could_not_excite() -> None:
+    # 8 s of the standard profile never dwell near standstill: Stribeck friction is not
+    # excited. The right model is complete for what could be tested, and says which
+    # effect could not be.
+    rep = _run("inertia,viscous,coulomb", "inertia,viscous,coulomb", "standard",
+               duration=8.0)
+    prim = rep.before.primary
+    strib = next(c for c in prim.candidates if c.effect == "stribeck")
+    assert not strib.identifiable and strib.explained < 0.05
+    v = prim.verdict
+    assert "complete for this data" in v and "could test" in v
+    assert "Untested: stribeck (not excited" in v
+    assert "not identifiable from this data" not in v

@@ -692,6 +692,15 @@ def _verdict(eq: Equation, suggestion: Suggestion, cands: Sequence[Candidate],
              inseparable: Sequence[tuple[str, str, float]] = (),
              na: Sequence[tuple[str, str]] = ()) -> str:
     name = eq.name
+    if (not model_issues and not structure and not suggestion and not_ident
+            and all(c.explained < MENTION_EXPLAINED and SIGN_PAIR_TEXT not in c.reason
+                    for c in not_ident)):
+        # the model's own parameters are identified and nothing is left: the candidates
+        # these data could not test (not excited, too little travel) are untested, named
+        # as such beside "complete", not a verdict of "not identifiable"
+        na = [*na, *((c.effect, c.reason.removeprefix("not identifiable from this data: "))
+                     for c in not_ident)]
+        not_ident = []
     tail = _untested(na)
     # what cannot be separated but would explain much: always said, with the experiment
     pairs = [(a, b, e) for a, b, e in inseparable if e >= MENTION_EXPLAINED]
