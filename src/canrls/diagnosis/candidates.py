@@ -537,7 +537,7 @@ def _unexcited_reason(name: str, exc: ExcitationSummary, model: Model) -> str:
             return (f"not identifiable from this data: its period ({period}) is {longer} "
                     f"the travel covered ({exc.coverage:.3g} {exc.per}s), so it fits any slow "
                     f"trend along the position; record more travel (at least "
-                    f"{MIN_PERIODS / k:.3g} {exc.per}s)")
+                    f"{MIN_PERIODS / k:.3g} {exc.per}{'' if MIN_PERIODS == k else 's'})")
     return ""
 
 
