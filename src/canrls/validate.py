@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can.protocol import Protocol
-from canrls.diagnosis.figures import Figures, require_matplotlib
+from canrls.diagnosis.figures import figures_in
 from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
 from canrls.diagnosis.results import Binned, Region, Traces
@@ -292,13 +292,8 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
     :raises ConfigError: matplotlib is missing, or the directory cannot be written.
     :returns: the path of ``index.html``.
     """
-    Figure, Canvas = require_matplotlib()
-    out = Path(directory)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"--report {out}: cannot create the directory: {e}") from e
-    figs = Figures(Figure, Canvas, out)
+    figs = figures_in(directory)
+    out = figs.out
     sections = []
     for e in report.equations:
         if e.traces is None:

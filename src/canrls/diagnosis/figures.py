@@ -29,6 +29,7 @@ object API (no pyplot, no global state).
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +38,7 @@ import numpy as np
 from canrls.diagnosis.results import EquationDiagnosis
 from canrls.errors import ConfigError
 
-__all__ = ["FIGURES", "Figures", "require_matplotlib"]
+__all__ = ["FIGURES", "Figures", "figures_in", "require_matplotlib"]
 
 #: The figures a report holds (without an ``after`` some show ``before`` only).
 FIGURES: tuple[str, ...] = ("timeline.png", "speed.png", "position.png", "candidates.png",
@@ -61,6 +62,20 @@ def require_matplotlib() -> tuple[Any, Any]:
         raise ConfigError("the HTML report needs matplotlib, which is not installed: "
                           "pip install 'canrls[report]' (or pip install matplotlib)") from e
     return Figure, FigureCanvasAgg
+
+
+def figures_in(directory: str | os.PathLike[str]) -> Figures:
+    """:class:`Figures` drawing into ``directory`` (created), for a report's page.
+
+    :raises ConfigError: matplotlib is missing, or the directory cannot be created.
+    """
+    Figure, Canvas = require_matplotlib()
+    out = Path(directory)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"--report {out}: cannot create the directory: {e}") from e
+    return Figures(Figure, Canvas, out)
 
 
 def _decimate(n: int) -> slice:

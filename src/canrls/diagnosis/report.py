@@ -18,7 +18,7 @@ from typing import Any
 
 import jinja2
 
-from canrls.diagnosis.figures import FIGURES, Figures, require_matplotlib
+from canrls.diagnosis.figures import FIGURES, figures_in
 from canrls.diagnosis.results import (
     Analysis,
     Candidate,
@@ -217,13 +217,8 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
     :raises ConfigError: matplotlib is missing, or the directory cannot be written.
     :returns: the path of ``index.html``.
     """
-    Figure, Canvas = require_matplotlib()
-    out = Path(directory)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"--report {out}: cannot create the directory: {e}") from e
-    figs = Figures(Figure, Canvas, out)
+    figs = figures_in(directory)
+    out = figs.out
     b = report.before.primary
     a = report.after.primary if report.after is not None else None
     written: dict[str, str] = {}
