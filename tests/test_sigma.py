@@ -89,6 +89,16 @@ def test_one_direction_parameters_are_not_identifiable_in_the_fit(
     out = capsys.readouterr().out
     assert "coulomb.Tc" in out and "NOT IDENTIFIABLE" in out
     assert "not identifiable from these data: coulomb.Tc, offset.T0" in out
+    # and the saved model carries it to 'canrls validate'
+    m = tmp_path / "two.json"
+    assert main([*argv, "--json", "--save-model", str(m)]) == 0
+    saved = json.loads(m.read_text())["parameters"]
+    assert not saved["offset.T0"]["identifiable"] and saved["inertia.J"]["identifiable"]
+    capsys.readouterr()
+    assert main(["validate", str(log), "--model", str(m), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    marked = [ln.split()[0] for ln in out.splitlines() if "NOT IDENTIFIABLE" in ln]
+    assert marked == ["coulomb.Tc", "offset.T0"]
 
 
 def test_inflation_of_white_and_coloured_residuals() -> None:

@@ -126,7 +126,9 @@ class ValidationReport:
                  f"validated on {', '.join(self.sources)} without re-estimating:"]
         for name, p in self.parameters.items():
             lines.append(f"  {name:<14} {p['value']:12.6g} ± {p.get('sigma') or 0:9.3g} "
-                         f"{p.get('unit', '')}")
+                         f"{p.get('unit', '')}"
+                         + ("  NOT IDENTIFIABLE from the logs it was identified on"
+                            if p.get("identifiable") is False else ""))
         for e in self.equations:
             ident = "" if e.identified_rms is None else \
                 f" (identification: {e.identified_rms:.4g} {e.unit})"
