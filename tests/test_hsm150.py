@@ -168,7 +168,15 @@ def test_cross_validation_on_runs_not_used(logs: dict[str, Path], tmp_path: Path
     test = [str(logs[f"{c}_3"]) for c in FOUR]
     fit = canrls("fit", *train, "--effects", "inertia,viscous,coulomb,offset",
                  "--save-model", str(m), capsys=capsys)
-    val = canrls("validate", *test, "--model", str(m), capsys=capsys)
+    report = ["--report", str(tmp_path / "val")] \
+        if importlib.util.find_spec("matplotlib") is not None else []
+    val = canrls("validate", *test, "--model", str(m), *report, capsys=capsys)
+    if report:  # the figures of every unseen run, as the diagnosis draws them
+        html = (tmp_path / "val" / "index.html").read_text(encoding="utf-8")
+        for k in range(1, len(test) + 1):
+            assert f"mechanical-timeline-{k}.png" in html
+            assert (tmp_path / "val" / f"mechanical-timeline-{k}.png").is_file()
+        assert (tmp_path / "val" / "mechanical-speed.png").is_file()
     assert val["parameters"] == json.loads(m.read_text())["parameters"]
     # the unseen runs are predicted about as well as the runs it learnt from
     assert val["residual_rms"] < 1.15 * fit["residual_rms"]

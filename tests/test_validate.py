@@ -232,7 +232,10 @@ def test_validate_refuses_options_that_would_change_the_model(
     assert main(["validate", str(logs["s3"]), "--model", str(m), "--quiet", "--kt", "0.2",
                  "--effects", "inertia"]) == 1
     err = capsys.readouterr().err
-    assert err.startswith("error: validate: --effects, --kt:") and str(m) in err
+    assert err.startswith(f"error: validate: --effects inertia (saved: {EFFECTS}); "
+                          "--kt 0.2 (saved: 0.1)") and str(m) in err
+    # the values saved are accepted (one set of options for fit and validate)
+    assert main(["validate", str(logs["s3"]), "--model", str(m), "--quiet", *MODEL]) == 0
     # the help says what it does, with a plain per cent sign
     with pytest.raises(SystemExit):
         main(["validate", "--help"])

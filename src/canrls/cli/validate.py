@@ -6,7 +6,7 @@ without re-estimating anything (:mod:`canrls.validate`), and reports fit %, resi
 signal mapping default to those saved in the model file; ``--dbc``/``--signal``/
 ``--config`` replace them (logs of another drive with the same mechanics); the
 options that would change the model (``--effects``, ``--kt``, ``--axis``, ``--lambda``,
-``--alpha``) are refused: the model is the file's.
+``--alpha`` with another value than the file's) are refused: the model is the file's.
 ``--report DIR`` writes ``DIR/index.html`` with PNG figures (needs matplotlib): per log
 the measured target against the prediction and the residual over time, and the
 residual binned by speed and, where a position is logged, by position.
@@ -67,15 +67,23 @@ def run(args: argparse.Namespace) -> int:
         require_matplotlib()
     from canrls.errors import ConfigError
 
+    saved = SavedModel.load(args.model)
     # the model is the file's: options that would change it are refused, not ignored
-    given = [flag for flag, value in (("--effects", args.effects), ("--kt", args.kt),
-                                      ("--axis", args.axis), ("--lambda", args.lam),
-                                      ("--alpha", args.alpha)) if value is not None]
-    if given:
-        raise ConfigError(f"validate: {', '.join(given)}: the model, its parameters and "
+    # (the same value as saved is accepted: scripts pass one set of options to all)
+    settings = saved.config().settings()
+    effects = None if args.effects is None else \
+        [e.strip() for e in args.effects.split(",") if e.strip()]
+    differ = [f"{flag} {typed} (saved: {have})" for flag, typed, want, have in (
+        ("--effects", args.effects, effects, ",".join(saved.effects)),
+        ("--kt", args.kt, args.kt, saved.model.get("kt")),
+        ("--axis", args.axis, args.axis, saved.model.get("axis")),
+        ("--lambda", args.lam, args.lam, settings.lam),
+        ("--alpha", args.alpha, args.alpha, settings.alpha))
+        if typed is not None and want != (saved.effects if flag == "--effects" else have)]
+    if differ:
+        raise ConfigError(f"validate: {'; '.join(differ)}: the model, its parameters and "
                           f"settings are the saved file's ({args.model}); to change them, "
                           f"fit again with 'canrls fit ... --save-model'")
-    saved = SavedModel.load(args.model)
     base = saved.config()
     cfg = AppConfig.load(args.config) if args.config else AppConfig()
     # the protocol: the saved one, unless the command line or --config gives another
