@@ -221,6 +221,11 @@ def test_whiteness_passes_yet_a_candidate_explains_most_so_not_complete() -> Non
     v = prim.verdict
     assert "complete" not in v
     assert best.effect in v and "would explain" in v
+    # and the text does not let "white" stand alone
+    text = rep.format()
+    white = next(i for i, ln in enumerate(text.splitlines()) if "whiteness: white" in ln)
+    assert f"white, yet not complete: {best.effect} would explain" in \
+        text.splitlines()[white + 1]
 
 
 def test_complete_names_the_candidates_these_data_could_not_excite() -> None:

@@ -18,6 +18,7 @@ from typing import Any
 
 import jinja2
 
+from canrls.diagnosis.candidates import MENTION_EXPLAINED
 from canrls.diagnosis.figures import FIGURES, figures_in
 from canrls.diagnosis.results import (
     Analysis,
@@ -30,7 +31,8 @@ from canrls.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
 
-__all__ = ["CAPTIONS", "DiagnosisReport", "FIGURES", "page_template", "write_html"]
+__all__ = ["CAPTIONS", "DiagnosisReport", "FIGURES", "page_template", "white_caveat",
+           "write_html"]
 
 
 class DiagnosisReport:
@@ -188,6 +190,7 @@ def page_template(name: str) -> jinja2.Template:
         undefined=jinja2.StrictUndefined)
     env.filters["num"] = _num
     env.filters["fmt"] = format
+    env.filters["white_caveat"] = white_caveat
     return env.get_template(name)
 
 
@@ -242,6 +245,22 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
 
 
 # ------------------------------------------------------------------------------ text
+def white_caveat(q: EquationDiagnosis) -> str:
+    """What a white residual does not show ("" when nothing to say): a candidate that
+    would explain much of a residual the whiteness test passes (a hidden effect whose
+    filtered column is itself white, such as Coulomb friction when the speed's sign
+    flips faster than the test's decimation). The verdict follows the candidates."""
+    w = q.whiteness
+    if w is None or not w.white:
+        return ""
+    big = [c for c in q.candidates if c.explained >= MENTION_EXPLAINED]
+    if not big:
+        return ""
+    best = max(big, key=lambda c: c.explained)
+    return (f"white, yet not complete: {best.effect} would explain "
+            f"{share_text(best.explained)} of this residual (see the verdict)")
+
+
 def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
     u = q.unit
     f = q.fit
@@ -252,6 +271,9 @@ def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
            f" (fixed point: residual RMS {value_text(q.residual_rms_fixed, u)})"]
     if q.whiteness is not None:
         out.append(f"  whiteness: {q.whiteness.describe()}")
+        caveat = white_caveat(q)
+        if caveat:
+            out.append(f"  {caveat}")
     out += ["", "Where it fails"]
     if q.regions:
         for reg in q.regions:
