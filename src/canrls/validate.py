@@ -38,7 +38,7 @@ from canrls.can.protocol import Protocol
 from canrls.diagnosis.figures import figures_in
 from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
-from canrls.diagnosis.results import Binned, Region, Traces
+from canrls.diagnosis.results import Binned, Region, Traces, share_text
 from canrls.diagnosis.samples import RecordSamples
 from canrls.errors import ConfigError
 from canrls.modelfile import SavedModel
@@ -141,7 +141,8 @@ class ValidationReport:
                                  f"{f.residual_rms:.4g} {e.unit}, {f.samples} samples")
             if e.regions:
                 lines.append("  where it fails:")
-                lines.extend(f"    {r.text}" for r in e.regions)
+                lines.extend(f"    - {r.text} ({share_text(r.share)} of the residual energy)"
+                             for r in e.regions)
             else:
                 lines.append("  no region where the residual's mean stands out")
         return "\n".join(lines)
