@@ -68,11 +68,13 @@ def batch_fit(names: Sequence[str], offset: bool, fc: float = 25.0, zeta: float 
         bf, af = scipy_signal.bilinear([wc * wc], den, 1000.0)       # F(s)
         bd, ad = scipy_signal.bilinear([wc * wc, 0.0], den, 1000.0)  # s F(s)
 
-        def F(u: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-            return np.asarray(scipy_signal.lfilter(bf, af, u - u[0]) + u[0])
+        def F(u: npt.NDArray[np.float64], b: Any = bf, a: Any = af
+              ) -> npt.NDArray[np.float64]:
+            return np.asarray(scipy_signal.lfilter(b, a, u - u[0]) + u[0])
 
-        def sF(u: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-            return np.asarray(scipy_signal.lfilter(bd, ad, u - u[0]))
+        def sF(u: npt.NDArray[np.float64], b: Any = bd, a: Any = ad
+               ) -> npt.NDArray[np.float64]:
+            return np.asarray(scipy_signal.lfilter(b, a, u - u[0]))
 
         cols = [sF(w), F(w), F(np.sign(w))] + ([F(np.ones_like(w))] if offset else [])
         use = t >= warm_s
@@ -105,10 +107,10 @@ def test_dbc_file_is_what_the_tool_writes(tmp_path: Path) -> None:
 
 def test_log_decodes_to_the_run(logs: dict[str, Path]) -> None:
     """The CAN log carries the run at the DBC's resolution (1 mA, 0.01 rpm, 1 mrad)."""
-    from canrls.can.protocol import Protocol, SignalMapping
-    from canrls.replay import FrameProcessor
     from canrls.can.logs import read_frames
+    from canrls.can.protocol import Protocol, SignalMapping
     from canrls.estimation.model import Model
+    from canrls.replay import FrameProcessor
 
     proto = Protocol.load(DBC, SignalMapping.from_strings(TOOL.SIGNALS))
     proc = FrameProcessor(proto, Model(effects=["inertia"]))
@@ -166,7 +168,15 @@ def test_cross_validation_on_runs_not_used(logs: dict[str, Path], tmp_path: Path
     test = [str(logs[f"{c}_3"]) for c in FOUR]
     fit = canrls("fit", *train, "--effects", "inertia,viscous,coulomb,offset",
                  "--save-model", str(m), capsys=capsys)
-    val = canrls("validate", *test, "--model", str(m), capsys=capsys)
+    report = ["--report", str(tmp_path / "val")] \
+        if importlib.util.find_spec("matplotlib") is not None else []
+    val = canrls("validate", *test, "--model", str(m), *report, capsys=capsys)
+    if report:  # the figures of every unseen run, as the diagnosis draws them
+        html = (tmp_path / "val" / "index.html").read_text(encoding="utf-8")
+        for k in range(1, len(test) + 1):
+            assert f"mechanical-timeline-{k}.png" in html
+            assert (tmp_path / "val" / f"mechanical-timeline-{k}.png").is_file()
+        assert (tmp_path / "val" / "mechanical-speed.png").is_file()
     assert val["parameters"] == json.loads(m.read_text())["parameters"]
     # the unseen runs are predicted about as well as the runs it learnt from
     assert val["residual_rms"] < 1.15 * fit["residual_rms"]

@@ -169,3 +169,75 @@ def test_bad_model_files_are_clear_errors(logs: dict[str, Path], tmp_path: Path,
     assert "invalid JSON" in capsys.readouterr().err
     with pytest.raises(ConfigError, match="cannot read"):
         SavedModel.load(tmp_path / "missing.json")
+
+
+def test_validate_report_html_with_figures(logs: dict[str, Path], tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("matplotlib")
+    import re
+
+    m = tmp_path / "m.json"
+    _json(capsys, ["fit", str(logs["s1"]), "--kt", "0.1", "--effects", "inertia,viscous",
+                   "--quiet", "--json", "--save-model", str(m)])
+    out = tmp_path / "report"
+    d = _json(capsys, ["validate", str(logs["s2"]), str(logs["s3"]), "--model", str(m),
+                       "--quiet", "--json", "--report", str(out)])
+    page = out / "index.html"
+    assert d["report"] == str(page)
+    html = page.read_text(encoding="utf-8")
+    pngs = re.findall(r"<img src='([^']+)'", html)
+    # per log the prediction over time, then the residual by speed and by position
+    assert pngs == ["mechanical-timeline-1.png", "mechanical-timeline-2.png",
+                    "mechanical-speed.png", "mechanical-position.png"]
+    for name in pngs:
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    # the page says what the text says: fit, per-log rows, where it fails
+    for f in d["equations"]["mechanical"]["files"]:
+        assert f["source"] in html
+    assert "Where it fails" in html and "without re-estimating" in html
+    regions = d["equations"]["mechanical"]["regions"]
+    assert regions and regions[0]["text"].split(":")[0] in html
+    # text mode names the page
+    capsys.readouterr()
+    assert main(["validate", str(logs["s3"]), "--model", str(m), "--quiet", "--report",
+                 str(tmp_path / "r2")]) == 0
+    assert f"report: {tmp_path / 'r2' / 'index.html'}" in capsys.readouterr().out
+
+
+def test_validate_report_without_matplotlib_is_a_clear_error(
+        logs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    m = tmp_path / "m.json"
+    _json(capsys, ["fit", str(logs["s1"]), *MODEL, "--quiet", "--json", "--save-model",
+                   str(m)])
+    for mod in [k for k in sys.modules if k == "matplotlib" or k.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, mod)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    capsys.readouterr()
+    assert main(["validate", str(logs["s3"]), "--model", str(m), "--quiet", "--report",
+                 str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "matplotlib" in err
+    assert not (tmp_path / "r").exists()
+
+
+def test_validate_refuses_options_that_would_change_the_model(
+        logs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    m = tmp_path / "m.json"
+    _json(capsys, ["fit", str(logs["s1"]), *MODEL, "--quiet", "--json", "--save-model",
+                   str(m)])
+    capsys.readouterr()
+    assert main(["validate", str(logs["s3"]), "--model", str(m), "--quiet", "--kt", "0.2",
+                 "--effects", "inertia"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: validate: --effects inertia (saved: {EFFECTS}); "
+                          "--kt 0.2 (saved: 0.1)") and str(m) in err
+    # the values saved are accepted (one set of options for fit and validate)
+    assert main(["validate", str(logs["s3"]), "--model", str(m), "--quiet", *MODEL]) == 0
+    # the help says what it does, with a plain per cent sign
+    with pytest.raises(SystemExit):
+        main(["validate", "--help"])
+    out = capsys.readouterr().out
+    assert "report fit %, residual RMS" in out and "%%" not in out and "--report DIR" in out

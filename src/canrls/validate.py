@@ -14,22 +14,31 @@ parameters predict the filtered target:
 on the rows the estimator would use (its warm-up, gap and speed rules). Where it fails
 is told by the diagnosis's machinery (:func:`canrls.diagnosis.residual.find_regions`:
 residual binned by speed, position, current, acceleration and time).
+
+The report renders as the diagnosis's does: text (:meth:`ValidationReport.format`), a
+dict of plain types (:meth:`ValidationReport.to_dict`) and a directory with
+``index.html`` and PNG figures (:func:`write_html`, ``canrls validate --report DIR``),
+drawn by the diagnosis's :class:`~canrls.diagnosis.figures.Figures` into the page
+``templates/validate.html.j2``.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from canrls.can.protocol import Protocol
+from canrls.diagnosis.figures import figures_in
+from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
-from canrls.diagnosis.results import Region
+from canrls.diagnosis.results import Binned, Region, Traces, share_text
 from canrls.diagnosis.samples import RecordSamples
 from canrls.errors import ConfigError
 from canrls.modelfile import SavedModel
@@ -37,7 +46,7 @@ from canrls.replay import read_logs
 from canrls.signals import Signals
 
 __all__ = ["EquationValidation", "FileFit", "ValidationReport", "validate_logs",
-           "validate_signals"]
+           "validate_signals", "write_html"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -70,6 +79,12 @@ class EquationValidation:
     identified_rms: float | None
     files: tuple[FileFit, ...]
     regions: tuple[Region, ...]
+    #: the filtered target's name, and the arrays and bins the figures draw (not in JSON)
+    target: str = ""
+    traces: Traces | None = field(default=None, repr=False, compare=False)
+    bins: Mapping[str, Binned] = field(default_factory=dict, repr=False, compare=False)
+    #: first row of each file in ``traces`` (and the end)
+    bounds: tuple[int, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {"equation": self.equation, "unit": self.unit, "samples": self.samples,
@@ -111,7 +126,9 @@ class ValidationReport:
                  f"validated on {', '.join(self.sources)} without re-estimating:"]
         for name, p in self.parameters.items():
             lines.append(f"  {name:<14} {p['value']:12.6g} ± {p.get('sigma') or 0:9.3g} "
-                         f"{p.get('unit', '')}")
+                         f"{p.get('unit', '')}"
+                         + ("  NOT IDENTIFIABLE from the logs it was identified on"
+                            if p.get("identifiable") is False else ""))
         for e in self.equations:
             ident = "" if e.identified_rms is None else \
                 f" (identification: {e.identified_rms:.4g} {e.unit})"
@@ -124,12 +141,21 @@ class ValidationReport:
                                  f"{f.residual_rms:.4g} {e.unit}, {f.samples} samples")
             if e.regions:
                 lines.append("  where it fails:")
-                lines.extend(f"    {r.text}" for r in e.regions)
+                lines.extend(f"    - {r.text} ({share_text(r.share)} of the residual energy)"
+                             for r in e.regions)
             else:
                 lines.append("  no region where the residual's mean stands out")
         return "\n".join(lines)
 
     __str__ = format
+
+    def write_html(self, directory: str | os.PathLike[str]) -> Path:
+        """Write ``index.html`` and its PNG figures into ``directory`` (created).
+
+        :raises ConfigError: matplotlib (the ``report`` extra) is not installed.
+        :returns: the path of ``index.html``.
+        """
+        return write_html(self, directory)
 
 
 def _num(x: float | None) -> float | None:
@@ -189,11 +215,21 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
             h = ctx.impulse(eq.holds[0])
             h2 = float(np.sum(h * h))
             regions = find_regions(bins, r[used], 1.0 / h2 if h2 > 0 else 1.0, unit, ctx)
+        else:
+            bins = {}
         ident = saved.fit.get(eq.name, {}).get("residual_rms")
+        traces = Traces(
+            t=ctx.signals.t, used=used, y=yt, yhat=yt - r, residual=r, speed=ctx.speed,
+            acceleration=ctx.acceleration, current=ctx.current, position=ctx.position,
+            angle=ctx.angle, conv_t=np.zeros(0), theta=np.zeros((0, 0)),
+            sigma=np.zeros((0, 0)), theta_fixed=np.zeros((0, 0)),
+            names=tuple(p.name for p in eq.parameters),
+            units=tuple(p.unit for p in eq.parameters))
         out.append(EquationValidation(
             equation=eq.name, unit=unit, samples=int(used.sum()), residual_rms=rms,
             fit_percent=fit, r2=r2, identified_rms=None if ident is None else float(ident),
-            files=tuple(files), regions=tuple(regions)))
+            files=tuple(files), regions=tuple(regions), target=eq.target.description,
+            traces=traces, bins=bins, bounds=tuple(int(b) for b in bounds)))
     return ValidationReport(model_file=model_file, sources=tuple(names),
                             identified_on=tuple(saved.sources), parameters=saved.parameters,
                             equations=tuple(out), frames=dict(frames or {}))
@@ -211,3 +247,86 @@ def validate_logs(paths: Sequence[str | os.PathLike[str]], saved: SavedModel,
     return validate_signals(log.signals, saved, log.dt, sizes=log.sizes,
                             sources=[str(p) for p in paths], model_file=model_file,
                             frames=log.frames)
+
+
+# ------------------------------------------------------------------------------ HTML
+@dataclass(frozen=True)
+class _Panel:
+    """What :class:`~canrls.diagnosis.figures.Figures` draws of one equation (the
+    diagnosis's figures take any object with these attributes)."""
+
+    equation: str
+    target: str
+    unit: str
+    fit_percent: float
+    residual_rms: float
+    traces: Traces
+    bins: Mapping[str, Binned]
+
+
+def _slice(tr: Traces, a: int, b: int) -> Traces:
+    """The rows ``a:b`` (one log), its time counted from the log's first sample."""
+    def cut(x: F64 | None) -> F64 | None:
+        return None if x is None else x[a:b]
+    t = tr.t[a:b]
+    return Traces(t=t - (t[0] if len(t) else 0.0), used=tr.used[a:b], y=tr.y[a:b],
+                  yhat=tr.yhat[a:b], residual=tr.residual[a:b], speed=tr.speed[a:b],
+                  acceleration=tr.acceleration[a:b], current=tr.current[a:b],
+                  position=cut(tr.position), angle=cut(tr.angle), conv_t=tr.conv_t,
+                  theta=tr.theta, sigma=tr.sigma, theta_fixed=tr.theta_fixed,
+                  names=tr.names, units=tr.units)
+
+
+#: What each figure of the validation page shows.
+VALIDATE_CAPTIONS = {
+    "timeline": "Measured against the saved model's prediction over time (no "
+                "re-estimation): the filtered target (black) and the prediction; below, the "
+                "residual. Time from the log's first sample.",
+    "speed": CAPTIONS["speed.png"],
+    "position": CAPTIONS["position.png"],
+}
+
+
+def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> Path:
+    """Write ``index.html`` and the PNG figures of ``report`` into ``directory``: per
+    equation, per log the measured target against the prediction and the residual over
+    time, and over all logs the residual binned by speed and (where logged) by position.
+
+    :raises ConfigError: matplotlib is missing, or the directory cannot be written.
+    :returns: the path of ``index.html``.
+    """
+    figs = figures_in(directory)
+    out = figs.out
+    sections = []
+    for e in report.equations:
+        if e.traces is None:
+            continue
+        figures: list[tuple[str, str]] = []
+        for k, f in enumerate(e.files):
+            a, b = e.bounds[k], e.bounds[k + 1]
+            if not f.samples:
+                continue
+            p = _Panel(e.equation, e.target, e.unit, f.fit_percent, f.residual_rms,
+                       _slice(e.traces, a, b), e.bins)
+            name = figs.timeline(p, None, name=f"{e.equation}-timeline-{k + 1}.png",  # type: ignore[arg-type]
+                                 label="saved, not re-estimated")
+            figures.append((name, f"{f.source}: {VALIDATE_CAPTIONS['timeline']}"))
+        whole = _Panel(e.equation, e.target, e.unit, e.fit_percent, e.residual_rms,
+                       e.traces, e.bins)
+        if "speed" in e.bins:
+            figures.append((figs.binned(whole, None, "speed",  # type: ignore[arg-type]
+                                        name=f"{e.equation}-speed.png", label="saved model"),
+                            VALIDATE_CAPTIONS["speed"]))
+        if "position" in e.bins and e.traces.position is not None:
+            figures.append((figs.binned(whole, None, "position",  # type: ignore[arg-type]
+                                        name=f"{e.equation}-position.png",
+                                        label="saved model"),
+                            VALIDATE_CAPTIONS["position"]))
+        sections.append((e, figures))
+    page = out / "index.html"
+    try:
+        page.write_text(page_template("validate.html.j2").render(r=report, sections=sections),
+                        encoding="utf-8")
+    except OSError as e:
+        raise ConfigError(f"--report {out}: cannot write index.html: {e}") from e
+    return page

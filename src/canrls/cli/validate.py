@@ -4,7 +4,12 @@ Predicts the logs with the parameters of a model saved by ``canrls fit --save-mo
 without re-estimating anything (:mod:`canrls.validate`), and reports fit %, residual RMS
 (overall and per log) and where the model fails, as the diagnosis does. The DBC and
 signal mapping default to those saved in the model file; ``--dbc``/``--signal``/
-``--config`` replace them (logs of another drive with the same mechanics).
+``--config`` replace them (logs of another drive with the same mechanics); the
+options that would change the model (``--effects``, ``--kt``, ``--axis``, ``--lambda``,
+``--alpha`` with another value than the file's) are refused: the model is the file's.
+``--report DIR`` writes ``DIR/index.html`` with PNG figures (needs matplotlib): per log
+the measured target against the prediction and the residual over time, and the
+residual binned by speed and, where a position is logged, by position.
 
 ``--json`` prints one object::
 
@@ -15,7 +20,7 @@ signal mapping default to those saved in the model file; ``--dbc``/``--signal``/
                    "files": [{"source": ..., "samples": ..., "residual_rms": ...,
                               "fit_percent": ...}, ...],
                    "regions": [{"quantity": "speed", "text": ..., ...}, ...]}},
-     "frames": {...}}
+     "frames": {...}, "report": "DIR/index.html"}   # "report" with --report
 """
 
 from __future__ import annotations
@@ -33,12 +38,15 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "validate", help="predict other logs with a saved model (no re-estimation)",
         description="Predict CAN logs with the parameters of a model saved by 'canrls fit "
-                    "--save-model', without re-estimating, and report fit %%, residual RMS "
+                    "--save-model', without re-estimating, and report fit %, residual RMS "
                     "and where the model fails.")
     p.add_argument("log", metavar="LOG", nargs="+",
                    help="CAN log(s): .log (candump), .asc, .blf, .trc, .csv")
     p.add_argument("--model", "-m", required=True, metavar="FILE",
                    help="model file written by 'canrls fit --save-model'")
+    p.add_argument("--report", metavar="DIR",
+                   help="write DIR/index.html with PNG figures (needs matplotlib: "
+                        "pip install 'canrls[report]')")
     add_model_options(p)
     add_progress_option(p)
     p.add_argument("--skip-bad-lines", action="store_true",
@@ -52,7 +60,30 @@ def run(args: argparse.Namespace) -> int:
     from canrls.modelfile import SavedModel
     from canrls.validate import validate_logs
 
+    if args.report:
+        # fail before the long part when the figures cannot be drawn
+        from canrls.diagnosis.figures import require_matplotlib
+
+        require_matplotlib()
+    from canrls.errors import ConfigError
+
     saved = SavedModel.load(args.model)
+    # the model is the file's: options that would change it are refused, not ignored
+    # (the same value as saved is accepted: scripts pass one set of options to all)
+    settings = saved.config().settings()
+    effects = None if args.effects is None else \
+        [e.strip() for e in args.effects.split(",") if e.strip()]
+    differ = [f"{flag} {typed} (saved: {have})" for flag, typed, want, have in (
+        ("--effects", args.effects, effects, ",".join(saved.effects)),
+        ("--kt", args.kt, args.kt, saved.model.get("kt")),
+        ("--axis", args.axis, args.axis, saved.model.get("axis")),
+        ("--lambda", args.lam, args.lam, settings.lam),
+        ("--alpha", args.alpha, args.alpha, settings.alpha))
+        if typed is not None and want != (saved.effects if flag == "--effects" else have)]
+    if differ:
+        raise ConfigError(f"validate: {'; '.join(differ)}: the model, its parameters and "
+                          f"settings are the saved file's ({args.model}); to change them, "
+                          f"fit again with 'canrls fit ... --save-model'")
     base = saved.config()
     cfg = AppConfig.load(args.config) if args.config else AppConfig()
     # the protocol: the saved one, unless the command line or --config gives another
@@ -65,8 +96,14 @@ def run(args: argparse.Namespace) -> int:
     rep = validate_logs(args.log, saved, cfg.protocol(), model_file=args.model,
                         progress=Progress("validate", quiet=args.quiet).callback,
                         skip_bad_lines=args.skip_bad_lines)
+    page = rep.write_html(args.report) if args.report else None
     if args.json:
-        print_json(rep.to_dict())
+        d = rep.to_dict()
+        if page is not None:
+            d["report"] = str(page)
+        print_json(d)
     else:
         sys.stdout.write(rep.format() + "\n")
+        if page is not None:
+            sys.stdout.write(f"\nreport: {page}\n")
     return 0

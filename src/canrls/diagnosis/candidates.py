@@ -537,7 +537,7 @@ def _unexcited_reason(name: str, exc: ExcitationSummary, model: Model) -> str:
             return (f"not identifiable from this data: its period ({period}) is {longer} "
                     f"the travel covered ({exc.coverage:.3g} {exc.per}s), so it fits any slow "
                     f"trend along the position; record more travel (at least "
-                    f"{MIN_PERIODS / k:.3g} {exc.per}s)")
+                    f"{MIN_PERIODS / k:.3g} {exc.per}{'' if MIN_PERIODS == k else 's'})")
     return ""
 
 
@@ -555,6 +555,11 @@ def _collinear_reason(name: str, cols: Sequence[int], C: Sequence[int], G: _Gram
            f"independent)"
     if why:
         text += "; " + "; ".join(why)
+    # the experiment that would separate it
+    todo = (["record a run in both directions"] if exc.one_direction and name in SIGN_PAIR
+            else []) + (["vary the speed"] if exc.constant_speed else [])
+    if todo:
+        text += "; " + " and ".join(todo)
     return text
 
 
@@ -687,6 +692,15 @@ def _verdict(eq: Equation, suggestion: Suggestion, cands: Sequence[Candidate],
              inseparable: Sequence[tuple[str, str, float]] = (),
              na: Sequence[tuple[str, str]] = ()) -> str:
     name = eq.name
+    if (not model_issues and not structure and not suggestion and not_ident
+            and all(c.explained < MENTION_EXPLAINED and SIGN_PAIR_TEXT not in c.reason
+                    for c in not_ident)):
+        # the model's own parameters are identified and nothing is left: the candidates
+        # these data could not test (not excited, too little travel) are untested, named
+        # as such beside "complete", not a verdict of "not identifiable"
+        na = [*na, *((c.effect, c.reason.removeprefix("not identifiable from this data: "))
+                     for c in not_ident)]
+        not_ident = []
     tail = _untested(na)
     # what cannot be separated but would explain much: always said, with the experiment
     pairs = [(a, b, e) for a, b, e in inseparable if e >= MENTION_EXPLAINED]

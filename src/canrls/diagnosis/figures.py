@@ -29,6 +29,7 @@ object API (no pyplot, no global state).
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +38,7 @@ import numpy as np
 from canrls.diagnosis.results import EquationDiagnosis
 from canrls.errors import ConfigError
 
-__all__ = ["FIGURES", "Figures", "require_matplotlib"]
+__all__ = ["FIGURES", "Figures", "figures_in", "require_matplotlib"]
 
 #: The figures a report holds (without an ``after`` some show ``before`` only).
 FIGURES: tuple[str, ...] = ("timeline.png", "speed.png", "position.png", "candidates.png",
@@ -63,6 +64,20 @@ def require_matplotlib() -> tuple[Any, Any]:
     return Figure, FigureCanvasAgg
 
 
+def figures_in(directory: str | os.PathLike[str]) -> Figures:
+    """:class:`Figures` drawing into ``directory`` (created), for a report's page.
+
+    :raises ConfigError: matplotlib is missing, or the directory cannot be created.
+    """
+    Figure, Canvas = require_matplotlib()
+    out = Path(directory)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"--report {out}: cannot create the directory: {e}") from e
+    return Figures(Figure, Canvas, out)
+
+
 def _decimate(n: int) -> slice:
     return slice(None, None, max(1, int(math.ceil(n / _MAX_POINTS))))
 
@@ -84,7 +99,10 @@ class Figures:
             raise ConfigError(f"--report {self.out}: cannot write {name}: {e}") from e
         return name
 
-    def timeline(self, b: EquationDiagnosis, a: EquationDiagnosis | None) -> str:
+    def timeline(self, b: EquationDiagnosis, a: EquationDiagnosis | None, *,
+                 name: str = "timeline.png", label: str = "before") -> str:
+        """Measured against model, residual below; ``label`` names ``b``'s model (a
+        saved model's prediction for ``canrls validate``), ``name`` the file."""
         tr = b.traces
         fig = self.Figure(figsize=(11, 6.4), layout="constrained")
         ax1, ax2 = fig.subplots(2, 1, sharex=True, height_ratios=[3, 2])
@@ -93,7 +111,7 @@ class Figures:
         y = np.where(tr.used, tr.y, np.nan)
         ax1.plot(tr.t[s], y[s], color="black", lw=0.8, label="measured (filtered target)")
         ax1.plot(tr.t[s], np.where(tr.used, tr.yhat, np.nan)[s], color=_BEFORE, lw=0.7,
-                 alpha=0.85, label="model before")
+                 alpha=0.85, label=f"model {label}")
         if a is not None:
             ta = a.traces
             ax1.plot(ta.t[s], np.where(ta.used, ta.yhat, np.nan)[s], color=_AFTER, lw=0.7,
@@ -101,11 +119,11 @@ class Figures:
         ax1.set_ylabel(f"{b.target} [{u}]")
         ax1.set_title(f"{b.equation} equation: measured against model "
                       f"(fit {b.fit_percent:.1f} %"
-                      + (f" before, {a.fit_percent:.1f} % after)" if a is not None else ")"))
+                      + (f" {label}, {a.fit_percent:.1f} % after)" if a is not None else ")"))
         ax1.legend(loc="upper right", fontsize=8)
         ax1.grid(alpha=0.3)
         ax2.plot(tr.t[s], np.where(tr.used, tr.residual, np.nan)[s], color=_BEFORE, lw=0.6,
-                 label=f"residual before (RMS {b.residual_rms:.3g} {u})")
+                 label=f"residual {label} (RMS {b.residual_rms:.3g} {u})")
         if a is not None:
             ta = a.traces
             ax2.plot(ta.t[s], np.where(ta.used, ta.residual, np.nan)[s], color=_AFTER,
@@ -115,11 +133,13 @@ class Figures:
         ax2.set_ylabel(f"residual [{u}]")
         ax2.legend(loc="upper right", fontsize=8)
         ax2.grid(alpha=0.3)
-        return self._save(fig, "timeline.png")
+        return self._save(fig, name)
 
     def binned(self, b: EquationDiagnosis, a: EquationDiagnosis | None,
-               quantity: str) -> str:
-        panels = [("before", b, _BEFORE)] + ([("after", a, _AFTER)] if a is not None else [])
+               quantity: str, *, name: str | None = None, label: str = "before") -> str:
+        """Residual against ``quantity`` ("speed" or "position"), in ``name``
+        (default ``{quantity}.png``); ``label`` names ``b``'s panel."""
+        panels = [(label, b, _BEFORE)] + ([("after", a, _AFTER)] if a is not None else [])
         fig = self.Figure(figsize=(11 if a is not None else 7, 4.4), layout="constrained")
         axes = fig.subplots(1, len(panels), sharey=True, sharex=True, squeeze=False)[0]
         from matplotlib.lines import Line2D
@@ -172,7 +192,7 @@ class Figures:
             (b.bins.get("position") is not None and b.bins["position"].unit == "rad")
             else "position along the travel")
         fig.suptitle(f"Residual against {what}")
-        return self._save(fig, f"{quantity}.png")
+        return self._save(fig, name or f"{quantity}.png")
 
     def candidates(self, q: EquationDiagnosis) -> str:
         cands = list(q.candidates[:12])

@@ -18,7 +18,8 @@ from typing import Any
 
 import jinja2
 
-from canrls.diagnosis.figures import FIGURES, Figures, require_matplotlib
+from canrls.diagnosis.candidates import MENTION_EXPLAINED
+from canrls.diagnosis.figures import FIGURES, figures_in
 from canrls.diagnosis.results import (
     Analysis,
     Candidate,
@@ -30,7 +31,8 @@ from canrls.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
 
-__all__ = ["DiagnosisReport", "FIGURES", "write_html"]
+__all__ = ["CAPTIONS", "DiagnosisReport", "FIGURES", "page_template", "white_caveat",
+           "write_html"]
 
 
 class DiagnosisReport:
@@ -176,13 +178,20 @@ def _num(x: float | None, spec: str = ".4g") -> str:
 
 
 def _template() -> jinja2.Template:
+    return page_template("report.html.j2")
+
+
+def page_template(name: str) -> jinja2.Template:
+    """The jinja2 template ``name`` shipped under ``diagnosis/templates``, with the
+    report's filters (``num``, ``fmt``); also the page of ``canrls validate``."""
     env = jinja2.Environment(
         loader=jinja2.PackageLoader("canrls.diagnosis", "templates"),
         autoescape=True, trim_blocks=True, lstrip_blocks=True,
         undefined=jinja2.StrictUndefined)
     env.filters["num"] = _num
     env.filters["fmt"] = format
-    return env.get_template("report.html.j2")
+    env.filters["white_caveat"] = white_caveat
+    return env.get_template(name)
 
 
 def _parameter_rows(before: Analysis, after: Analysis | None
@@ -211,13 +220,8 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
     :raises ConfigError: matplotlib is missing, or the directory cannot be written.
     :returns: the path of ``index.html``.
     """
-    Figure, Canvas = require_matplotlib()
-    out = Path(directory)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"--report {out}: cannot create the directory: {e}") from e
-    figs = Figures(Figure, Canvas, out)
+    figs = figures_in(directory)
+    out = figs.out
     b = report.before.primary
     a = report.after.primary if report.after is not None else None
     written: dict[str, str] = {}
@@ -241,6 +245,22 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
 
 
 # ------------------------------------------------------------------------------ text
+def white_caveat(q: EquationDiagnosis) -> str:
+    """What a white residual does not show ("" when nothing to say): a candidate that
+    would explain much of a residual the whiteness test passes (a hidden effect whose
+    filtered column is itself white, such as Coulomb friction when the speed's sign
+    flips faster than the test's decimation). The verdict follows the candidates."""
+    w = q.whiteness
+    if w is None or not w.white:
+        return ""
+    big = [c for c in q.candidates if c.explained >= MENTION_EXPLAINED]
+    if not big:
+        return ""
+    best = max(big, key=lambda c: c.explained)
+    return (f"white, yet not complete: {best.effect} would explain "
+            f"{share_text(best.explained)} of this residual (see the verdict)")
+
+
 def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
     u = q.unit
     f = q.fit
@@ -251,6 +271,9 @@ def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
            f" (fixed point: residual RMS {value_text(q.residual_rms_fixed, u)})"]
     if q.whiteness is not None:
         out.append(f"  whiteness: {q.whiteness.describe()}")
+        caveat = white_caveat(q)
+        if caveat:
+            out.append(f"  {caveat}")
     out += ["", "Where it fails"]
     if q.regions:
         for reg in q.regions:

@@ -16,6 +16,22 @@ last ``window`` used rows :math:`(\varphi, y)`, so :math:`\rho_l` is measured on
 residual of the current estimate, :math:`r = y - \varphi^\top\theta`, when asked
 (a publication, a fit result), never in the per-sample loop. It is carried across
 blocks, so any cut of the stream gives the same value (live and offline alike).
+
+What no sigma can make honest: a parameter the data cannot tell apart from the others
+(Coulomb friction and an offset while the speed never reverses). Along that direction
+the estimate is the ridge prior's, and its sigma is the prior's width scaled by the
+residual noise, not knowledge. :func:`prior_share` measures, per parameter, the share
+of its variance the prior still holds,
+
+.. math::
+
+    s_j = \alpha_j P_{jj} = \frac{\alpha_j}{\alpha_j + d_j}
+
+(:math:`P_0 = \mathrm{diag}(1/\alpha_j)`, :math:`d_j` the information the data add to
+parameter ``j`` once the others are estimated too); above :data:`MAX_PRIOR_SHARE` (the
+data added less than ten times the prior's information, the test of
+:meth:`canrls.estimation.rls.RLS.excitation` taken per parameter) the parameter is
+reported as not identifiable from these data, beside its value and sigma.
 """
 
 from __future__ import annotations
@@ -26,7 +42,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["ResidualTail"]
+__all__ = ["MAX_PRIOR_SHARE", "ResidualTail", "prior_share"]
+
+#: Share of a parameter's variance the prior may hold at most for the parameter to be
+#: identified by the data: the data added at least ten times the prior's information.
+MAX_PRIOR_SHARE = 1.0 / 11.0
 
 F64 = npt.NDArray[np.float64]
 
@@ -99,3 +119,11 @@ class ResidualTail:
         y = np.asarray(d["y"], dtype=np.float64)
         if phi.ndim == 2 and phi.shape[1] == self._phi.shape[1] and len(y) == len(phi):
             self.push(phi, y)
+
+
+def prior_share(P: npt.ArrayLike, ridge: npt.ArrayLike) -> F64:
+    """``alpha_j P_jj`` of every parameter: 1 where the data said nothing about it (its
+    value is the prior's), near 0 where the data alone determine it."""
+    # s_j = alpha_j P_jj  (P0 = diag(1 / alpha_j))
+    d = np.diag(np.asarray(P, dtype=np.float64)) * np.asarray(ridge, dtype=np.float64)
+    return np.where(np.isfinite(d), d, 1.0)

@@ -44,7 +44,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.errors import ConfigError
-from canrls.estimation.colour import ResidualTail
+from canrls.estimation.colour import MAX_PRIOR_SHARE, ResidualTail, prior_share
 from canrls.estimation.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
 from canrls.estimation.model import Equation, Model
 from canrls.estimation.rls import RLS, RLSFlag
@@ -275,11 +275,20 @@ class ParameterEstimate:
     value: float
     sigma: float
     fixed: float
+    #: share of the variance the ridge prior still holds (:func:`~canrls.estimation.
+    #: colour.prior_share`): above :data:`~canrls.estimation.colour.MAX_PRIOR_SHARE` the
+    #: data cannot tell the parameter from the others, and value and sigma are the prior's
+    prior_share: float = 0.0
+
+    @property
+    def identifiable(self) -> bool:
+        return self.prior_share <= MAX_PRIOR_SHARE
 
     def to_dict(self) -> dict[str, Any]:
         return {"value": self.value, "sigma": self.sigma, "unit": self.unit,
                 "fixed": self.fixed, "effect": self.effect, "equation": self.equation,
-                "description": self.description}
+                "description": self.description, "identifiable": self.identifiable,
+                "prior_share": self.prior_share}
 
 
 @dataclass(frozen=True)
@@ -362,7 +371,16 @@ class Estimates:
         lines.append(f"{'parameter':<{w}}  {'float':>13}  {'± sigma':>11}  {'fixed':>13}  unit")
         for p in self.parameters:
             lines.append(f"{p.name:<{w}}  {p.value:>13.6g}  {p.sigma:>11.3g}  {p.fixed:>13.6g}"
-                         f"  {p.unit}")
+                         f"  {p.unit}"
+                         + ("" if p.identifiable else
+                            f"  NOT IDENTIFIABLE ({100 * p.prior_share:.0f} % prior)"))
+        weak = [p.name for p in self.parameters if not p.identifiable]
+        if weak:
+            lines.append(f"not identifiable from these data: {', '.join(weak)}: the data "
+                         f"cannot tell {'them' if len(weak) > 1 else 'it'} from the other "
+                         f"parameters, value and sigma are the prior's (e.g. Coulomb "
+                         f"friction and an offset while the speed never reverses; "
+                         f"'canrls diagnose' names the experiment)")
         for e in self.equations:
             lines.append(
                 f"{e.equation}: residual RMS {e.residual_rms:.4g} {e.unit}, "
@@ -621,9 +639,11 @@ class EquationEstimator:
         # sigma = sqrt(kappa sigma^2 diag P): the RLS formula, widened by the colour
         sigma = eq.sigma_to_physical(self.rls.std() * math.sqrt(self.sigma_inflation()))
         fixed = eq.to_physical(self.frls.theta_float)
-        return [ParameterEstimate(p.name, p.unit, p.effect, eq.name, p.description, v, s, f)
-                for p, v, s, f in zip(eq.parameters, value.tolist(), sigma.tolist(),
-                                      fixed.tolist(), strict=True)]
+        share = prior_share(self.rls.P, self.rls.ridge)
+        return [ParameterEstimate(p.name, p.unit, p.effect, eq.name, p.description, v, s, f,
+                                  float(sh))
+                for p, v, s, f, sh in zip(eq.parameters, value.tolist(), sigma.tolist(),
+                                          fixed.tolist(), share.tolist(), strict=True)]
 
     def estimates(self) -> tuple[list[ParameterEstimate], EquationFit]:
         eq = self.equation
