@@ -140,6 +140,14 @@ static inline int32_t nlz(uint32_t v)
 #endif
 }
 
+/* The left shift that brings 0 <= m < 2^31 to 30 bits: 30 - bit_length(m), at least 0
+ * (30 for m = 0); x << norm_shift(m) lies in [-2^30, 2^30) for every |x| "<=" m. */
+static inline int32_t norm_shift(uint32_t m)
+{
+    const int32_t k = m == 0u ? 30 : nlz(m) - 2;
+    return k > 0 ? k : 0;
+}
+
 /* One 16-bit digit of a long division: num / (vn1 b + vn0) with b = 2^16, ``next`` the
  * next 16-bit digit of the dividend; the estimate num / vn1 corrected (at most twice). */
 static uint32_t div_digit(uint32_t num, uint32_t next, uint32_t vn1, uint32_t vn0)
@@ -253,6 +261,26 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P
 
 /* ------------------------------------------------------------------- kernel */
 
+/* K = (g c) h~ as the high word of (h~ 2^kn)(gc 2^g_up), rounded half up;
+ * theta <- theta + K eps. ``cls`` (a constant at each call) is the shift class of th_s. */
+INLINE void K_step(canrls_rls_q31 *S, int32_t gcn, int32_t epn, int32_t th_s,
+                   uint32_t *c_th, int cls)
+{
+    const uint32_t n = S->n;
+    const int32_t *const h = S->h;
+    int32_t *const K = S->K;
+    int32_t *const theta = S->theta;
+    const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
+    uint32_t i;
+    for (i = 0; i < n; i++) {
+        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
+        const int32_t Ki = (int32_t)mul_rsh(h[i], gcn, 32, SHIFT_HIGH);
+        K[i] = Ki;
+        /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
+        theta[i] = sat(theta[i] + mul_rsh(Ki, epn, th_s, cls), th_lo, th_hi, c_th);
+    }
+}
+
 /* P~ <- P~ - K h~'  (upper triangle). ``cls`` (a constant at each call) is the shift
  * class of P_s (see rsh_c). Returns the low-excitation test of the specification,
  * "rsh(K_i h~_i, P_s) == 0 for every i": those are the diagonal terms of this update,
@@ -295,15 +323,14 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     int32_t c = S->c;
     int32_t trw = S->trw;
     /* per-step saturation counts, added to S->counts once per step */
-    uint32_t c_phi = 0, c_y = 0, c_eps = 0, c_h = 0, c_den = 0, c_div = 0, c_K = 0,
-             c_th = 0, c_P = 0;
+    uint32_t c_phi = 0, c_y = 0, c_eps = 0, c_h = 0, c_den = 0, c_div = 0, c_th = 0,
+             c_P = 0;
     uint32_t flag = 0;
     uint32_t i, j;
     /* the plan, as locals (stores to the state cannot change them) */
     const int32_t phi_lo = p->phi_lo, phi_hi = p->phi_hi, phi_ps = p->phi_ps;
     const int32_t h_lo = p->h_lo, h_hi = p->h_hi, h_os = p->h_os;
-    const int32_t K_lo = p->K_lo, K_hi = p->K_hi, K_s = p->K_s;
-    const int32_t th_lo = p->theta_lo, th_hi = p->theta_hi, tr_ps = p->trace_ps;
+    const int32_t tr_ps = p->trace_ps;
     int32_t yk, eps;
     int64_t a;
     int applied = 0;
@@ -328,7 +355,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         memset(K, 0, n * sizeof *K);
     } else {
         const int32_t *Pr; /* row i of the packed upper triangle (read) */
-        int32_t st, sv, lam_k, d, g, gc, th_s, P_s;
+        int32_t st, sv, lam_k, d, g, gc, gcn, epn, th_s, P_s;
         int32_t il;
         int low;
 
@@ -412,16 +439,42 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         /* gc = g c */
         gc = sat(mul_rsh(g, c, p->gc_s, shift_class(p->gc_s)), p->g_lo, p->g_hi, &c_div);
 
-        th_s = p->theta_s + e;
-        /* K h~' has exponent 2e, P~ exponent e */
-        P_s = p->P_s + e;
-        for (i = 0; i < n; i++) {
-            /* K = P phi / (lambda + phi' P phi) = (g c) h~ */
-            const int32_t Ki = sat(mul_rsh(h[i], gc, K_s, shift_class(K_s)), K_lo, K_hi, &c_K);
-            K[i] = Ki;
-            /* theta <- theta + K eps      (K carries the exponent e: shifted out here) */
-            theta[i] = sat(theta[i] + mul_rsh(Ki, eps, th_s, shift_class(th_s)), th_lo, th_hi,
-                           &c_th);
+        /* normalisation of the updates (once per step): h~ and eps shifted left (exactly)
+         * to 31 bits, so that K is the high word of a 32 x 32 product and the theta and
+         * P updates shift by 32 or more (docs/fixed_point.md) */
+        {
+            uint32_t m = 0;
+            int32_t kn, ke, lim;
+            for (i = 0; i < n; i++) {
+                m |= (uint32_t)(h[i] ^ (h[i] >> 31));
+            }
+            kn = norm_shift(m);
+            lim = (62 - p->P_s - e) >> 1;
+            kn = kn < lim ? kn : lim;
+            lim = 62 - p->theta_s - e;
+            kn = kn < lim ? kn : lim;
+            ke = norm_shift((uint32_t)(eps ^ (eps >> 31)));
+            lim = 62 - p->theta_s - e - kn;
+            ke = ke < lim ? ke : lim;
+            epn = (int32_t)((uint32_t)eps << ke);
+            gcn = (int32_t)((uint32_t)gc << p->g_up);
+            th_s = p->theta_s + e + kn + ke;
+            /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each */
+            P_s = p->P_s + e + 2 * kn;
+            for (i = 0; i < n; i++) {
+                h[i] = (int32_t)((uint32_t)h[i] << kn);
+            }
+        }
+        switch (shift_class(th_s)) {
+        case SHIFT_HIGH:
+            K_step(S, gcn, epn, th_s, &c_th, SHIFT_HIGH);
+            break;
+        case SHIFT_LOW:
+            K_step(S, gcn, epn, th_s, &c_th, SHIFT_LOW);
+            break;
+        default:
+            K_step(S, gcn, epn, th_s, &c_th, SHIFT_ANY);
+            break;
         }
         /* P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle
          * (in a loop made for the shift class of this step); low excitation: the
@@ -488,7 +541,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     }
 
     {
-        const uint32_t nsat = c_phi + c_y + c_eps + c_h + c_den + c_div + c_K + c_th + c_P;
+        const uint32_t nsat = c_phi + c_y + c_eps + c_h + c_den + c_div + c_th + c_P;
         if (nsat > 0u) {
             uint32_t *const cnt = S->counts;
             flag |= CANRLS_FLAG_SATURATION;
@@ -498,7 +551,6 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             cnt[CANRLS_S_H] += c_h;
             cnt[CANRLS_S_DEN] += c_den;
             cnt[CANRLS_S_DIV] += c_div;
-            cnt[CANRLS_S_K] += c_K;
             cnt[CANRLS_S_THETA] += c_th;
             cnt[CANRLS_S_P] += c_P;
         }

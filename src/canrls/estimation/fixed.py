@@ -776,9 +776,13 @@ def _build_plan(
     put(kernels.I_DIVIDEND, "dividend", 1 << fdiv)
     put(kernels.I_GC_S, "gc_s", cfg.lam.frac)
     # single products rounded to their destination
-    put(kernels.I_K_S, "K_s", cfg.h.frac + cfg.g.frac - cfg.K.frac)
-    put(kernels.I_TH_S, "theta_s", cfg.K.frac + cfg.eps.frac - cfg.theta.frac)
-    put(kernels.I_P_S, "P_s", cfg.K.frac + cfg.h.frac - cfg.P.frac)
+    # K = rsh((h~ << k)(gc << g_up), 32): the high word of the product, with gc brought to
+    # 32 bits; its fraction is then f_K' = f_h + k + f_g + g_up - 32 (exponent e)
+    g_up = 32 - cfg.g.bits
+    f_Kn = cfg.h.frac + cfg.g.frac + g_up - 32
+    put(kernels.I_G_UP, "g_up", g_up)
+    put(kernels.I_TH_S, "theta_s", f_Kn + cfg.eps.frac - cfg.theta.frac)
+    put(kernels.I_P_S, "P_s", f_Kn + cfg.h.frac - cfg.P.frac)
     # c <- c / lambda_k
     one_l = 1 << cfg.lam.frac
     inv_l = cfg.lam.to_int(1 / Fraction(lam))
@@ -924,8 +928,10 @@ class FixedStep:
     eps : int
         A-priori error (``eps`` format).
     K : ndarray of int64, shape (n,)
-        Gain applied this step, :math:`K\\,2^{f_K + e}` with ``e = P_exp`` before the
-        renormalisation of this step (zeros when frozen).
+        Gain applied this step, the high word of :math:`(\\tilde h\\,2^{k})(g c\\,2^{g_{up}})`:
+        :math:`K\\,2^{f_h + f_g + g_{up} - 32 + e + k}` with ``e = P_exp`` before the
+        renormalisation of this step and ``k`` the step's normalisation shift of
+        :math:`\\tilde h` (zeros when frozen).
     theta : ndarray of int64, shape (n,)
         Estimate after the step (``theta`` format, a copy).
     trace_P : int
