@@ -87,6 +87,8 @@ def write_vectors(path: Path, est: FixedRLS, Phi: IntArray, Y: IntArray,
     """
     N, n = Phi.shape
     fz = np.zeros(N, bool) if frozen is None else np.asarray(frozen, bool)
+    # the expected lines come from the specification (numba), never the C extension
+    est.backend = "spec"
     k = est.constants
     lines = [f"plan {len(k)}", *(f"{name} {v}" for name, v in k.items()),
              f"n {n}", "state " + " ".join(map(str, state_words(est))), f"steps {N}"]
@@ -212,6 +214,7 @@ def stream_header(s: Stream, limit: int | None = None, guard: str = "CANRLS_STRE
     st["counts"] = np.zeros_like(st["counts"])
     est = FixedRLS.from_state(st)
     theta0, P0, e0, c0 = est.theta.copy(), upper(est.P), est.P_exp, est.P_scale
+    est.backend = "spec"  # the final state of the specification, never the C extension
     est.run(Phi, Y, record=False)
     n = est.n
     cnt = est.saturations
