@@ -34,6 +34,7 @@ LAYER = {
     "canrls.can": "can", "canrls.estimation": "estimation",
     "canrls.config": "front", "canrls.processor": "front",
     "canrls.replay": "app", "canrls.diagnosis": "app", "canrls.live": "app",
+    "canrls.c_export": "app",
     "canrls.sim": "sim", "canrls.cli": "cli", "canrls.__main__": "cli",
 }
 ALLOWED = {

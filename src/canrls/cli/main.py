@@ -19,6 +19,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "fit",
     "diagnose",
     "fixed_sweep",
+    "export_c",
     "run",
     "monitor",
 )
