@@ -100,12 +100,77 @@ INLINE int32_t sat(int64_t x, int32_t lo, int32_t hi, uint32_t *n)
     return (int32_t)x;
 }
 
+/* A word r (already a word: an int32_t) clamped to [lo, hi], counted. */
+INLINE int32_t clamp32(int32_t r, int32_t lo, int32_t hi, uint32_t *n)
+{
+    if ((uint32_t)r - (uint32_t)lo <= (uint32_t)hi - (uint32_t)lo) {
+        return r;
+    }
+    *n += 1u;
+    return r > hi ? hi : lo;
+}
+
+/* sat(x) for a 64-bit x given as its two words: the common case in 32-bit compares */
+INLINE int32_t sat2(int32_t rhi, uint32_t rlo, int32_t lo, int32_t hi, uint32_t *n)
+{
+    if (rhi == ((int32_t)rlo >> 31)) {
+        return clamp32((int32_t)rlo, lo, hi, n); /* x fits a word */
+    }
+    *n += 1u;
+    return rhi < 0 ? lo : hi;
+}
+
+/* sat(a - b) of two words, counted (a - b computed without overflow) */
+INLINE int32_t sub_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n)
+{
+#if defined(__GNUC__)
+    int32_t r;
+    if (__builtin_sub_overflow(a, b, &r)) {
+        *n += 1u;
+        return b < 0 ? hi : lo; /* beyond the int32_t range, so beyond [lo, hi] */
+    }
+    return clamp32(r, lo, hi, n);
+#else
+    return sat((int64_t)a - b, lo, hi, n);
+#endif
+}
+
+/* sat(a + b) of two words, counted */
+INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n)
+{
+#if defined(__GNUC__)
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *n += 1u;
+        return b > 0 ? hi : lo;
+    }
+    return clamp32(r, lo, hi, n);
+#else
+    return sat((int64_t)a + b, lo, hi, n);
+#endif
+}
+
+/* rsh(a b, s) for 32 <= s <= 62: the high word of a b + 2^(s-1), shifted by s - 32
+ * (rnd = 2^(s-1), computed once per loop) */
+INLINE int32_t mul_rsh_hi(int32_t a, int32_t b, uint64_t rnd, int32_t s)
+{
+    const uint64_t u = (uint64_t)((int64_t)a * b) + rnd;
+    return (int32_t)(uint32_t)(u >> 32) >> (s - 32);
+}
+
 /* Store an accumulator x (scale 2^-(f+s)) into a word of scale 2^-f (Python store):
  * s >= 0: rounding right shift then clamp; s < 0: a left shift that clamps before
  * shifting, so it never wraps. */
 INLINE int32_t store(int64_t x, int32_t s, int32_t lo, int32_t hi, uint32_t *n)
 {
     int32_t t;
+    if ((uint32_t)(s - 1) < 31u) {
+        /* 1 <= s <= 31 (the common case): x + 2^(s-1) shifted as two words */
+        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        const uint32_t ulo = (uint32_t)u;
+        const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
+        return sat2(uhi >> s, (ulo >> s) | ((uint32_t)uhi << (32 - s)), lo, hi, n);
+    }
     if (s >= 0) {
         return sat(rsh_c(x, s, shift_class(s)), lo, hi, n);
     }
@@ -261,23 +326,32 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P
 
 /* ------------------------------------------------------------------- kernel */
 
-/* K = (g c) h~ as the high word of (h~ 2^kn)(gc 2^g_up), rounded half up;
+/* h~ <- h~ 2^kn; K = (g c) h~ as the high word of (h~ 2^kn)(gc 2^g_up), rounded half up;
  * theta <- theta + K eps. ``cls`` (a constant at each call) is the shift class of th_s. */
-INLINE void K_step(canrls_rls_q31 *S, int32_t gcn, int32_t epn, int32_t th_s,
+INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
                    uint32_t *c_th, int cls)
 {
     const uint32_t n = S->n;
-    const int32_t *const h = S->h;
+    int32_t *const h = S->h;
     int32_t *const K = S->K;
     int32_t *const theta = S->theta;
     const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
+    const uint64_t half = (uint64_t)1 << 31;
+    const uint64_t rnd = (uint64_t)1 << ((th_s > 0 ? th_s : 1) - 1);
     uint32_t i;
     for (i = 0; i < n; i++) {
+        /* h~ <- h~ 2^kn (exact: the normalisation) */
+        const int32_t hn = (int32_t)((uint32_t)h[i] << kn);
         /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
-        const int32_t Ki = (int32_t)mul_rsh(h[i], gcn, 32, SHIFT_HIGH);
+        const int32_t Ki = mul_rsh_hi(hn, gcn, half, 32);
+        h[i] = hn;
         K[i] = Ki;
         /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
-        theta[i] = sat(theta[i] + mul_rsh(Ki, epn, th_s, cls), th_lo, th_hi, c_th);
+        if (cls == SHIFT_HIGH) {
+            theta[i] = add_sat(theta[i], mul_rsh_hi(Ki, epn, rnd, th_s), th_lo, th_hi, c_th);
+        } else {
+            theta[i] = sat(theta[i] + mul_rsh(Ki, epn, th_s, cls), th_lo, th_hi, c_th);
+        }
     }
 }
 
@@ -292,21 +366,32 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls)
     const int32_t *const K = S->K;
     /* the plan, as locals (a store to P~ cannot change them) */
     const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
+    const uint64_t rnd = (uint64_t)1 << ((P_s > 0 ? P_s : 1) - 1);
     int32_t *Pw = S->P; /* row i of the packed upper triangle */
     uint32_t i, j;
-    int low = 1;
+    uint32_t nz = 0; /* nonzero once a diagonal term is */
     for (i = 0; i < n; i++) {
         const int32_t Ki = K[i];
-        /* the diagonal: information K_i h~_i */
-        const int64_t r = mul_rsh(Ki, h[i], P_s, cls);
-        low &= r == 0;
-        Pw[0] = sat(Pw[0] - r, P_lo, P_hi, c_P);
-        for (j = i + 1; j < n; j++) {
-            Pw[j - i] = sat(Pw[j - i] - mul_rsh(Ki, h[j], P_s, cls), P_lo, P_hi, c_P);
+        if (cls == SHIFT_HIGH) {
+            /* the diagonal: information K_i h~_i */
+            const int32_t r = mul_rsh_hi(Ki, h[i], rnd, P_s);
+            nz |= (uint32_t)r;
+            Pw[0] = sub_sat(Pw[0], r, P_lo, P_hi, c_P);
+            for (j = i + 1; j < n; j++) {
+                Pw[j - i] = sub_sat(Pw[j - i], mul_rsh_hi(Ki, h[j], rnd, P_s), P_lo, P_hi,
+                                    c_P);
+            }
+        } else {
+            const int64_t r = mul_rsh(Ki, h[i], P_s, cls);
+            nz |= (uint32_t)(r != 0);
+            Pw[0] = sat(Pw[0] - r, P_lo, P_hi, c_P);
+            for (j = i + 1; j < n; j++) {
+                Pw[j - i] = sat(Pw[j - i] - mul_rsh(Ki, h[j], P_s, cls), P_lo, P_hi, c_P);
+            }
         }
         Pw += n - i;
     }
-    return low;
+    return nz == 0u;
 }
 
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
@@ -335,13 +420,19 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     int64_t a;
     int applied = 0;
 
-    /* phi, y <- sat(phi), sat(y)       inputs clamped to their words */
-    for (j = 0; j < n; j++) {
-        int32_t v = sat(phi[j], phi_lo, phi_hi, &c_phi);
-        /* phi >> ps: the guard bits of the multiply-accumulates */
-        phg[j] = rsh32(v, phi_ps);
+    /* phi, y <- sat(phi), sat(y)       inputs clamped to their words;
+     * phi >> ps: the guard bits of the multiply-accumulates */
+    if (phi_ps > 0) {
+        for (j = 0; j < n; j++) {
+            const int32_t v = clamp32(phi[j], phi_lo, phi_hi, &c_phi);
+            phg[j] = ((v >> (phi_ps - 1)) + 1) >> 1;
+        }
+    } else {
+        for (j = 0; j < n; j++) {
+            phg[j] = clamp32(phi[j], phi_lo, phi_hi, &c_phi);
+        }
     }
-    yk = sat(y, p->y_lo, p->y_hi, &c_y);
+    yk = clamp32(y, p->y_lo, p->y_hi, &c_y);
 
     /* eps = y - phi' theta */
     a = p->eps_ts >= 0 ? (int64_t)yk * ((int64_t)1 << p->eps_ts) : rsh(yk, -p->eps_ts);
@@ -355,25 +446,39 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         memset(K, 0, n * sizeof *K);
     } else {
         const int32_t *Pr; /* row i of the packed upper triangle (read) */
-        int32_t st, sv, lam_k, d, g, gc, gcn, epn, th_s, P_s;
+        int64_t acc[CANRLS_N_MAX]; /* the scattered column sums of h~ */
+        uint32_t m = 0;
+        int32_t st, sv, lam_k, d, g, gc, gcn, epn, th_s, P_s, kn;
         int32_t il;
         int low;
 
-        /* h~ = P~ phi   (symmetric: P~_ij read from the upper triangle only) */
+        /* h~ = P~ phi   (symmetric: each P~_ij of the upper triangle read once);
+         * m = OR of |h~_i| (one's complement) for the normalisation below */
         Pr = P;
         for (i = 0; i < n; i++) {
-            /* h_i = sum_{j<i} P_ji phi_j (column i above the diagonal) + sum_{j>=i} P_ij phi_j
-             * (the exact sum of the specification's scattered accumulators) */
-            const int32_t *Pji = P + i;
-            a = 0;
-            for (j = 0; j < i; j++) {
-                a += (int64_t)*Pji * phg[j];
-                Pji += n - 1u - j; /* P_(j+1)i: the next row is one word shorter */
+            const int32_t pi_ = phg[i];
+            int32_t hi_;
+            /* h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i */
+            if (i == 0) {
+                a = (int64_t)Pr[0] * pi_;
+                for (j = 1; j < n; j++) {
+                    const int32_t Pij = Pr[j];
+                    /* P_0j phi_j -> h_0 ;  P_j0 phi_0 = P_0j phi_0 -> h_j */
+                    a += (int64_t)Pij * phg[j];
+                    acc[j] = (int64_t)Pij * pi_;
+                }
+            } else {
+                a = acc[i] + (int64_t)Pr[0] * pi_;
+                for (j = i + 1; j < n; j++) {
+                    const int32_t Pij = Pr[j - i];
+                    /* P_ij phi_j -> h_i ;  P_ji phi_i = P_ij phi_i -> h_j */
+                    a += (int64_t)Pij * phg[j];
+                    acc[j] += (int64_t)Pij * pi_;
+                }
             }
-            for (j = i; j < n; j++) {
-                a += (int64_t)Pr[j - i] * phg[j];
-            }
-            h[i] = store(a, h_os, h_lo, h_hi, &c_h);
+            hi_ = store(a, h_os, h_lo, h_hi, &c_h);
+            h[i] = hi_;
+            m |= (uint32_t)(hi_ ^ (hi_ >> 31));
             Pr += n - i;
         }
 
@@ -443,11 +548,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
          * to 31 bits, so that K is the high word of a 32 x 32 product and the theta and
          * P updates shift by 32 or more (docs/fixed_point.md) */
         {
-            uint32_t m = 0;
-            int32_t kn, ke, lim;
-            for (i = 0; i < n; i++) {
-                m |= (uint32_t)(h[i] ^ (h[i] >> 31));
-            }
+            int32_t ke, lim;
             kn = norm_shift(m);
             lim = (62 - p->P_s - e) >> 1;
             kn = kn < lim ? kn : lim;
@@ -461,19 +562,16 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             th_s = p->theta_s + e + kn + ke;
             /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each */
             P_s = p->P_s + e + 2 * kn;
-            for (i = 0; i < n; i++) {
-                h[i] = (int32_t)((uint32_t)h[i] << kn);
-            }
         }
         switch (shift_class(th_s)) {
         case SHIFT_HIGH:
-            K_step(S, gcn, epn, th_s, &c_th, SHIFT_HIGH);
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH);
             break;
         case SHIFT_LOW:
-            K_step(S, gcn, epn, th_s, &c_th, SHIFT_LOW);
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_LOW);
             break;
         default:
-            K_step(S, gcn, epn, th_s, &c_th, SHIFT_ANY);
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_ANY);
             break;
         }
         /* P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle
@@ -527,8 +625,23 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                 while ((tr << (sh + 1)) <= p->trace_hi && e + sh < p->e_max) {
                     sh += 1;
                 }
-                for (i = 0; i < CANRLS_TRI(n); i++) {
-                    P[i] = store(P[i], -sh, p->P_lo, p->P_hi, &c_P);
+                {
+                    /* P~ <- P~ 2^sh, clamped before shifting (Python store with s = -sh):
+                     * x 2^sh > hi <=> x > floor(hi / 2^sh), x 2^sh < lo <=> x < ceil(lo / 2^sh) */
+                    const int32_t up_hi = p->P_hi >> sh;
+                    const int32_t up_lo = (int32_t)(-((-(int64_t)p->P_lo) >> sh));
+                    for (i = 0; i < CANRLS_TRI(n); i++) {
+                        const int32_t x = P[i];
+                        if (x > up_hi) {
+                            P[i] = p->P_hi;
+                            c_P += 1u;
+                        } else if (x < up_lo) {
+                            P[i] = p->P_lo;
+                            c_P += 1u;
+                        } else {
+                            P[i] = (int32_t)((uint32_t)x << sh);
+                        }
+                    }
                 }
                 e += sh;
                 trw = trace_words(S);
