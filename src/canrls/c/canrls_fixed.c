@@ -21,8 +21,10 @@ typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1
  * mul_rsh must be a constant there); GCC and Clang are told so. */
 #if defined(__GNUC__)
 #define INLINE static inline __attribute__((always_inline))
+#define NOINLINE static __attribute__((noinline))
 #else
 #define INLINE static inline
+#define NOINLINE static
 #endif
 
 /* ------------------------------------------------------- Q-format arithmetic */
@@ -120,8 +122,9 @@ INLINE int32_t sat2(int32_t rhi, uint32_t rlo, int32_t lo, int32_t hi, uint32_t 
     return rhi < 0 ? lo : hi;
 }
 
-/* sat(a - b) of two words, counted (a - b computed without overflow) */
-INLINE int32_t sub_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n)
+/* sat(a - b) of two words, counted (a - b computed without overflow); ``full``: the
+ * word is the whole int32_t (lo = INT32_MIN, hi = INT32_MAX), a constant at each call */
+INLINE int32_t sub_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n, int full)
 {
 #if defined(__GNUC__)
     int32_t r;
@@ -129,8 +132,9 @@ INLINE int32_t sub_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
         *n += 1u;
         return b < 0 ? hi : lo; /* beyond the int32_t range, so beyond [lo, hi] */
     }
-    return clamp32(r, lo, hi, n);
+    return full ? r : clamp32(r, lo, hi, n);
 #else
+    (void)full;
     return sat((int64_t)a - b, lo, hi, n);
 #endif
 }
@@ -326,6 +330,35 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P
 
 /* ------------------------------------------------------------------- kernel */
 
+/* acc = P~ phi as exact 64-bit sums (symmetric: each P~_ij of the packed upper
+ * triangle read once; its two products go to h_i and, scattered, to h_j) */
+static void h_sums(const int32_t *Pr, const int32_t *phg, uint32_t n, int64_t *acc)
+{
+    uint32_t i, j;
+    for (i = 0; i < n; i++) {
+        const int32_t pi_ = phg[i];
+        /* h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i */
+        int64_t a = (i == 0 ? 0 : acc[i]) + (int64_t)Pr[0] * pi_;
+        if (i == 0) {
+            for (j = 1; j < n; j++) {
+                const int32_t Pij = Pr[j];
+                /* P_0j phi_j -> h_0 ;  P_j0 phi_0 = P_0j phi_0 -> h_j */
+                a += (int64_t)Pij * phg[j];
+                acc[j] = (int64_t)Pij * pi_;
+            }
+        } else {
+            for (j = i + 1; j < n; j++) {
+                const int32_t Pij = Pr[j - i];
+                /* P_ij phi_j -> h_i ;  P_ji phi_i = P_ij phi_i -> h_j */
+                a += (int64_t)Pij * phg[j];
+                acc[j] += (int64_t)Pij * pi_;
+            }
+        }
+        acc[i] = a;
+        Pr += n - i;
+    }
+}
+
 /* h~ <- h~ 2^kn; K = (g c) h~ as the high word of (h~ 2^kn)(gc 2^g_up), rounded half up;
  * theta <- theta + K eps. ``cls`` (a constant at each call) is the shift class of th_s. */
 INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
@@ -359,7 +392,7 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
  * class of P_s (see rsh_c). Returns the low-excitation test of the specification,
  * "rsh(K_i h~_i, P_s) == 0 for every i": those are the diagonal terms of this update,
  * so they are tested here rather than computed twice. */
-INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls)
+INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int full)
 {
     const uint32_t n = S->n;
     const int32_t *const h = S->h;
@@ -376,10 +409,10 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls)
             /* the diagonal: information K_i h~_i */
             const int32_t r = mul_rsh_hi(Ki, h[i], rnd, P_s);
             nz |= (uint32_t)r;
-            Pw[0] = sub_sat(Pw[0], r, P_lo, P_hi, c_P);
+            Pw[0] = sub_sat(Pw[0], r, P_lo, P_hi, c_P, full);
             for (j = i + 1; j < n; j++) {
                 Pw[j - i] = sub_sat(Pw[j - i], mul_rsh_hi(Ki, h[j], rnd, P_s), P_lo, P_hi,
-                                    c_P);
+                                    c_P, full);
             }
         } else {
             const int64_t r = mul_rsh(Ki, h[i], P_s, cls);
@@ -445,41 +478,33 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         flag = CANRLS_FLAG_FROZEN;
         memset(K, 0, n * sizeof *K);
     } else {
-        const int32_t *Pr; /* row i of the packed upper triangle (read) */
         int64_t acc[CANRLS_N_MAX]; /* the scattered column sums of h~ */
         uint32_t m = 0;
         int32_t st, sv, lam_k, d, g, gc, gcn, epn, th_s, P_s, kn;
         int32_t il;
         int low;
 
-        /* h~ = P~ phi   (symmetric: each P~_ij of the upper triangle read once);
-         * m = OR of |h~_i| (one's complement) for the normalisation below */
-        Pr = P;
-        for (i = 0; i < n; i++) {
-            const int32_t pi_ = phg[i];
-            int32_t hi_;
-            /* h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i */
-            if (i == 0) {
-                a = (int64_t)Pr[0] * pi_;
-                for (j = 1; j < n; j++) {
-                    const int32_t Pij = Pr[j];
-                    /* P_0j phi_j -> h_0 ;  P_j0 phi_0 = P_0j phi_0 -> h_j */
-                    a += (int64_t)Pij * phg[j];
-                    acc[j] = (int64_t)Pij * pi_;
-                }
-            } else {
-                a = acc[i] + (int64_t)Pr[0] * pi_;
-                for (j = i + 1; j < n; j++) {
-                    const int32_t Pij = Pr[j - i];
-                    /* P_ij phi_j -> h_i ;  P_ji phi_i = P_ij phi_i -> h_j */
-                    a += (int64_t)Pij * phg[j];
-                    acc[j] += (int64_t)Pij * pi_;
-                }
+        /* h~ = P~ phi   (symmetric: each P~_ij of the upper triangle read once) */
+        h_sums(P, phg, n, acc);
+        /* m = OR of |h~_i| (one's complement) for the normalisation below */
+        if ((uint32_t)(h_os - 1) < 31u) {
+            /* 1 <= h_os <= 31 (the common case): each sum rounded in two words */
+            const uint64_t rnd = (uint64_t)1 << (h_os - 1);
+            for (i = 0; i < n; i++) {
+                const uint64_t u = (uint64_t)acc[i] + rnd;
+                const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
+                const int32_t hi_ = sat2(uhi >> h_os,
+                                         ((uint32_t)u >> h_os) | ((uint32_t)uhi << (32 - h_os)),
+                                         h_lo, h_hi, &c_h);
+                h[i] = hi_;
+                m |= (uint32_t)(hi_ ^ (hi_ >> 31));
             }
-            hi_ = store(a, h_os, h_lo, h_hi, &c_h);
-            h[i] = hi_;
-            m |= (uint32_t)(hi_ ^ (hi_ >> 31));
-            Pr += n - i;
+        } else {
+            for (i = 0; i < n; i++) {
+                const int32_t hi_ = store(acc[i], h_os, h_lo, h_hi, &c_h);
+                h[i] = hi_;
+                m |= (uint32_t)(hi_ ^ (hi_ >> 31));
+            }
         }
 
         /* s~ = phi' h~, brought from the scale of P (exponent e) to that of lambda */
@@ -579,13 +604,18 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
          * information K_i h~_i rounds to zero on the whole diagonal */
         switch (shift_class(P_s)) {
         case SHIFT_HIGH:
-            low = P_step(S, P_s, &c_P, SHIFT_HIGH);
+            /* words of 32 bits: the overflow test is the clamp */
+            if (p->P_lo == INT32_MIN && p->P_hi == INT32_MAX) {
+                low = P_step(S, P_s, &c_P, SHIFT_HIGH, 1);
+            } else {
+                low = P_step(S, P_s, &c_P, SHIFT_HIGH, 0);
+            }
             break;
         case SHIFT_LOW:
-            low = P_step(S, P_s, &c_P, SHIFT_LOW);
+            low = P_step(S, P_s, &c_P, SHIFT_LOW, 0);
             break;
         default:
-            low = P_step(S, P_s, &c_P, SHIFT_ANY);
+            low = P_step(S, P_s, &c_P, SHIFT_ANY, 0);
             break;
         }
         if (low) {
