@@ -487,6 +487,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         /* h~ = P~ phi   (symmetric: each P~_ij of the upper triangle read once) */
         h_sums(P, phg, n, acc);
         /* m = OR of |h~_i| (one's complement) for the normalisation below */
+        a = 0;
         if ((uint32_t)(h_os - 1) < 31u) {
             /* 1 <= h_os <= 31 (the common case): each sum rounded in two words */
             const uint64_t rnd = (uint64_t)1 << (h_os - 1);
@@ -498,23 +499,24 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                                          h_lo, h_hi, &c_h);
                 h[i] = hi_;
                 m |= (uint32_t)(hi_ ^ (hi_ >> 31));
+                /* s~ = phi' h~ (summed as h~ is stored) */
+                a += (int64_t)phg[i] * hi_;
             }
         } else {
             for (i = 0; i < n; i++) {
                 const int32_t hi_ = store(acc[i], h_os, h_lo, h_hi, &c_h);
                 h[i] = hi_;
                 m |= (uint32_t)(hi_ ^ (hi_ >> 31));
+                a += (int64_t)phg[i] * hi_;
             }
         }
 
-        /* s~ = phi' h~, brought from the scale of P (exponent e) to that of lambda */
-        a = 0;
-        for (i = 0; i < n; i++) {
-            a += (int64_t)phg[i] * h[i];
-        }
-        st = store(rsh_c(a, e, shift_class(e)), p->s_os, p->den_lo, p->den_hi, &c_den);
+        /* s~ = phi' h~ (a, summed above), brought from the scale of P (exponent e) to
+         * that of lambda */
+        st = store((uint32_t)(e - 1) < 31u ? rsh_c(a, e, SHIFT_LOW) : rsh_c(a, e, shift_class(e)),
+                   p->s_os, p->den_lo, p->den_hi, &c_den);
         /* s = phi' P phi = c s~ */
-        sv = sat(mul_rsh(st, c, p->sc_s, shift_class(p->sc_s)), p->den_lo, p->den_hi, &c_den);
+        sv = store((int64_t)st * c, p->sc_s, p->den_lo, p->den_hi, &c_den);
 
         /* windup <=> (tr P - g h'h)/lambda > trace_max
          *        <=> (tr P - lambda trace_max) (lambda + phi'P phi) > h'h */
@@ -567,7 +569,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             }
         }
         /* gc = g c */
-        gc = sat(mul_rsh(g, c, p->gc_s, shift_class(p->gc_s)), p->g_lo, p->g_hi, &c_div);
+        gc = store((int64_t)g * c, p->gc_s, p->g_lo, p->g_hi, &c_div);
 
         /* normalisation of the updates (once per step): h~ and eps shifted left (exactly)
          * to 31 bits, so that K is the high word of a 32 x 32 product and the theta and
@@ -624,7 +626,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
         /* c <- c / lambda_k */
         il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
-        c = sat(mul_rsh(c, il, p->c_s, shift_class(p->c_s)), 0, p->lam_hi, &c_P);
+        c = store((int64_t)c * il, p->c_s, 0, p->lam_hi, &c_P);
         if (c > p->one_lam) {
             if (e > 0) {
                 /* c/2 and 2^-e x 2: the words do not move */
@@ -642,14 +644,23 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh */
         {
             int64_t tr = 0;
-            int64_t trw64 = 0;
+            uint32_t trw32 = 0; /* the sum modulo 2^32: trw is a word */
             const int32_t *Pii = P;
-            for (i = 0; i < n; i++) {
-                tr += *Pii;
-                trw64 += rsh32(*Pii, tr_ps);
-                Pii += n - i;
+            if (tr_ps > 0) {
+                for (i = 0; i < n; i++) {
+                    const int32_t x = *Pii;
+                    tr += x;
+                    trw32 += (uint32_t)(((x >> (tr_ps - 1)) + 1) >> 1);
+                    Pii += n - i;
+                }
+            } else {
+                for (i = 0; i < n; i++) {
+                    tr += *Pii;
+                    trw32 += (uint32_t)*Pii;
+                    Pii += n - i;
+                }
             }
-            trw = (int32_t)trw64;
+            trw = (int32_t)trw32;
             if (tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max) {
                 int32_t sh = 1;
                 while ((tr << (sh + 1)) <= p->trace_hi && e + sh < p->e_max) {
