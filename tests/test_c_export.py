@@ -70,7 +70,7 @@ def test_exported_plan_runs_like_the_pipelines_estimator(exported: Path, tmp_pat
     gcc = shutil.which("gcc")
     if gcc is None:
         pytest.skip("gcc not installed")
-    cfg = AppConfig.load(tmp_path / "drive.toml")
+    cfg, _, _, _ = load_source(tmp_path / "drive.toml")
     protocol = cfg.protocol()
     pipe = Pipeline(cfg.model_for(protocol), protocol.period or 1e-3, cfg.settings())
     est = pipe.estimators[0].frls

@@ -24,6 +24,7 @@ import re
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -153,14 +154,19 @@ def _frames_files(dbc: Path, source: str) -> tuple[str, str]:
 
 
 def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
-             dt: float | None = None, source: str = "the configuration") -> Export:
+             dt: float | None = None, energy: Mapping[str, Sequence[float]] | None = None,
+             source: str = "the configuration") -> Export:
     """Write the kernel, the configuration of ``model`` (default: the configuration's) and
-    the frame codecs into ``out`` (created); see the module docstring."""
+    the frame codecs into ``out`` (created); see the module docstring.
+
+    ``energy`` (``{equation: column energies}``, a calibration's) scales the prior as the
+    service does after its calibration window; without it the prior is the ridge alone
+    (every column energy 1), the prior of an estimator that has not calibrated."""
     out = Path(out)
     protocol = cfg.protocol()
     model = cfg.model_for(protocol) if model is None else model
     period = protocol.period if dt is None else dt
-    pipeline = Pipeline(model, period or 1e-3, cfg.settings())
+    pipeline = Pipeline(model, period or 1e-3, cfg.settings(), energy)
     out.mkdir(parents=True, exist_ok=True)
     files: list[Path] = []
     kernel = resources.files("canrls") / "c"
@@ -178,9 +184,11 @@ def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
     return Export(out, tuple(files), tuple(e.equation.name for e in pipeline.estimators))
 
 
-def load_source(path: str | Path) -> tuple[AppConfig, Model | None, str]:
+def load_source(path: str | Path) -> tuple[AppConfig, Model | None,
+                                           dict[str, list[float]] | None, str]:
     """A configuration (TOML) or a saved model (JSON of ``canrls fit --save-model``):
-    the configuration, the model to export (None: the configuration's) and a label."""
+    the configuration, the model to export (None: the configuration's), the column
+    energies of its calibration (None for a configuration) and a label."""
     path = Path(path)
     if path.suffix.lower() == ".json":
         try:
@@ -188,5 +196,6 @@ def load_source(path: str | Path) -> tuple[AppConfig, Model | None, str]:
         except ImportError as e:  # the saved-model format is not in this build
             raise ConfigError(f"{path}: saved models need canrls.modelfile") from e
         saved: Any = SavedModel.load(path)
-        return saved.config(), saved.build_model(), f"the saved model {path.name}"
-    return AppConfig.load(path), None, f"the configuration {path.name}"
+        energy = (saved.calibration or {}).get("energy")
+        return saved.config(), saved.build_model(), energy, f"the saved model {path.name}"
+    return AppConfig.load(path), None, None, f"the configuration {path.name}"

@@ -37,6 +37,6 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from canrls.c_export import export_c, load_source
 
-    cfg, model, source = load_source(args.model)
-    print(export_c(cfg, args.out, model=model, dt=args.dt, source=source))
+    cfg, model, energy, source = load_source(args.model)
+    print(export_c(cfg, args.out, model=model, dt=args.dt, energy=energy, source=source))
     return 0
