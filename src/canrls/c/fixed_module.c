@@ -110,42 +110,44 @@ static PyObject *run_block(PyObject *self, PyObject *args)
         PyErr_Format(PyExc_ValueError, "n = %zd outside 1..%d", n, CANRLS_N_MAX);
         return NULL;
     }
-#define GET(idx, size, count, w, name)                                  \
-    do {                                                                \
-        if (get_buf(o[idx], &b[nb], size, count, w, name) != 0) {       \
-            goto done;                                                  \
-        }                                                               \
-        nb++;                                                           \
-    } while (0)
-    GET(0, 8, N * n, 0, "Phi");
-    Phi = b[nb - 1].buf;
-    GET(1, 8, N, 0, "Y");
-    Y = b[nb - 1].buf;
-    GET(2, 8, n, 1, "theta");
-    theta = b[nb - 1].buf;
-    GET(3, 8, n * n, 1, "P");
-    P = b[nb - 1].buf;
-    GET(4, 8, 2, 1, "scale");
-    scale = b[nb - 1].buf;
-    GET(5, 8, n, 1, "K");
-    K = b[nb - 1].buf;
-    GET(6, 8, CANRLS_NSITES, 1, "counts");
-    counts = b[nb - 1].buf;
-    GET(7, 8, NPLAN, 0, "plan");
-    pv = b[nb - 1].buf;
-    GET(8, 8, N, 1, "eps");
-    eps = b[nb - 1].buf;
-    if (o[9] != Py_None) {
-        GET(9, 8, N * n, 1, "theta_out");
-        tho = b[nb - 1].buf;
+    {
+        /* the buffers: argument index, item size, item count, writable, name */
+        const struct { int idx, size; Py_ssize_t count; int w; const char *name; } spec[] = {
+            {0, 8, N * n, 0, "Phi"},   {1, 8, N, 0, "Y"},
+            {2, 8, n, 1, "theta"},     {3, 8, n * n, 1, "P"},
+            {4, 8, 2, 1, "scale"},     {5, 8, n, 1, "K"},
+            {6, 8, CANRLS_NSITES, 1, "counts"}, {7, 8, NPLAN, 0, "plan"},
+            {8, 8, N, 1, "eps"},       {9, 8, N * n, 1, "theta_out"},
+            {10, 8, N, 1, "trace"},    {11, 8, N, 1, "exp"},
+            {12, 1, N, 1, "flags"},
+        };
+        void *ptr[13];
+        int k2;
+        for (k2 = 0; k2 < 13; k2++) {
+            ptr[k2] = NULL;
+            if (spec[k2].idx == 9 && o[9] == Py_None) {
+                continue; /* theta_out: None when not recorded */
+            }
+            if (get_buf(o[spec[k2].idx], &b[nb], spec[k2].size, spec[k2].count, spec[k2].w,
+                        spec[k2].name) != 0) {
+                goto done;
+            }
+            ptr[k2] = b[nb++].buf;
+        }
+        Phi = ptr[0];
+        Y = ptr[1];
+        theta = ptr[2];
+        P = ptr[3];
+        scale = ptr[4];
+        K = ptr[5];
+        counts = ptr[6];
+        pv = ptr[7];
+        eps = ptr[8];
+        tho = ptr[9];
+        trace = ptr[10];
+        ex = ptr[11];
+        flags = ptr[12];
     }
-    GET(10, 8, N, 1, "trace");
-    trace = b[nb - 1].buf;
-    GET(11, 8, N, 1, "exp");
-    ex = b[nb - 1].buf;
-    GET(12, 1, N, 1, "flags");
-    flags = b[nb - 1].buf;
-#undef GET
 
     /* the plan, field by field; every value must fit its field */
     k = 0;
