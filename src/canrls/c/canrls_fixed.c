@@ -455,7 +455,12 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
     /* phi, y <- sat(phi), sat(y)       inputs clamped to their words;
      * phi >> ps: the guard bits of the multiply-accumulates */
-    if (phi_ps > 0) {
+    if (phi_ps > 0 && phi_lo == INT32_MIN && phi_hi == INT32_MAX) {
+        /* 32-bit words: nothing to clamp */
+        for (j = 0; j < n; j++) {
+            phg[j] = ((phi[j] >> (phi_ps - 1)) + 1) >> 1;
+        }
+    } else if (phi_ps > 0) {
         for (j = 0; j < n; j++) {
             const int32_t v = clamp32(phi[j], phi_lo, phi_hi, &c_phi);
             phg[j] = ((v >> (phi_ps - 1)) + 1) >> 1;
@@ -468,10 +473,13 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     yk = clamp32(y, p->y_lo, p->y_hi, &c_y);
 
     /* eps = y - phi' theta */
+    /* (summed as phi' theta - y, multiply-accumulates, then negated: the same integer) */
     a = p->eps_ts >= 0 ? (int64_t)yk * ((int64_t)1 << p->eps_ts) : rsh(yk, -p->eps_ts);
+    a = -a;
     for (j = 0; j < n; j++) {
-        a -= (int64_t)phg[j] * theta[j];
+        a += (int64_t)phg[j] * theta[j];
     }
+    a = -a;
     eps = store(a, p->eps_os, p->eps_lo, p->eps_hi, &c_eps);
 
     if (S->frozen) {

@@ -43,7 +43,8 @@
  * ---------
  * The kernel never derives a constant: every shift, range and Q constant of
  * lambda is in canrls_plan_q31, with the names of the Python FixedRLS.constants.
- * tools/gen_ckernel.py writes it as a C initialiser from a Python FixedRLS.
+ * canrls.c_export.plan_c (and `canrls export-c`) writes it as a C initialiser from a
+ * Python FixedRLS.
  */
 #ifndef CANRLS_FIXED_H
 #define CANRLS_FIXED_H
