@@ -102,9 +102,16 @@ a DSP does with its rounding constant (bias +1/2 LSB only on exact ties). It is
 then clamped to its word, and each clamp increments the counter of its site
 (:data:`SITES`): ``phi_in``, ``y_in`` (inputs outside their word), ``eps``, ``h``,
 ``den``, ``div``, ``K``, ``theta``, ``P``. Nothing ever wraps. A single product
-(``K``, ``theta``, ``P`` updates) is rounded once to its destination and added with
+(``theta``, ``P`` updates) is rounded once to its destination and added with
 saturation, e.g. :math:`\tilde P_{ij} \leftarrow \mathrm{sat}(\tilde P_{ij} -
-\mathrm{rsh}(K_i \tilde h_j))`.
+\mathrm{rsh}(K_i \tilde h_j))`. The gain is *normalised*: once per step
+:math:`\tilde h` and :math:`\varepsilon` are shifted left, exactly, to 31 bits (shifts
+``k`` and ``ke``, bounded so that no later shift exceeds 62) and :math:`K` is the high
+word of :math:`(\tilde h\,2^k)(g c\,2^{g_{up}})`, rounded half up: it cannot saturate
+(its counter stays 0), its scale moves with ``k``, and the ``theta`` and ``P`` updates
+shift by ``theta_s + e + k + ke`` and ``P_s + e + 2k``, at least 32 in the steady
+state, so that the target takes the high word of each product (docs/fixed_point.md).
+The ``K`` format of :class:`FixedConfig` no longer enters the arithmetic.
 
 Accumulators (guard bits)
 -------------------------

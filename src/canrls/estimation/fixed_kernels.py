@@ -75,7 +75,8 @@ Per sample
     \varepsilon &= y - \varphi^\top\theta \\
     \tilde h &= \tilde P\varphi, \quad d = \lambda_k + c\,\varphi^\top\tilde h,
         \quad g = 1/d \\
-    K &= (g c)\,\tilde h \qquad (= P\varphi/(\lambda_k + \varphi^\top P\varphi)) \\
+    K &= (g c)\,\tilde h \qquad (= P\varphi/(\lambda_k + \varphi^\top P\varphi);
+        \text{the high word of } (\tilde h\,2^k)(g c\,2^{g_{up}})) \\
     \theta &\leftarrow \theta + K\varepsilon \\
     \tilde P &\leftarrow \tilde P - K\tilde h^\top \quad\text{(upper triangle only)},
         \qquad c \leftarrow c/\lambda_k
