@@ -139,8 +139,8 @@ INLINE int32_t sub_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
 #endif
 }
 
-/* sat(a + b) of two words, counted */
-INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n)
+/* sat(a + b) of two words, counted; ``full`` as for sub_sat */
+INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n, int full)
 {
 #if defined(__GNUC__)
     int32_t r;
@@ -148,8 +148,9 @@ INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
         *n += 1u;
         return b > 0 ? hi : lo;
     }
-    return clamp32(r, lo, hi, n);
+    return full ? r : clamp32(r, lo, hi, n);
 #else
+    (void)full;
     return sat((int64_t)a + b, lo, hi, n);
 #endif
 }
@@ -362,7 +363,7 @@ static void h_sums(const int32_t *Pr, const int32_t *phg, uint32_t n, int64_t *a
 /* h~ <- h~ 2^kn; K = (g c) h~ as the high word of (h~ 2^kn)(gc 2^g_up), rounded half up;
  * theta <- theta + K eps. ``cls`` (a constant at each call) is the shift class of th_s. */
 INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
-                   uint32_t *c_th, int cls)
+                   uint32_t *c_th, int cls, int full)
 {
     const uint32_t n = S->n;
     int32_t *const h = S->h;
@@ -381,7 +382,8 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         K[i] = Ki;
         /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
         if (cls == SHIFT_HIGH) {
-            theta[i] = add_sat(theta[i], mul_rsh_hi(Ki, epn, rnd, th_s), th_lo, th_hi, c_th);
+            theta[i] = add_sat(theta[i], mul_rsh_hi(Ki, epn, rnd, th_s), th_lo, th_hi, c_th,
+                               full);
         } else {
             theta[i] = sat(theta[i] + mul_rsh(Ki, epn, th_s, cls), th_lo, th_hi, c_th);
         }
@@ -600,13 +602,18 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         }
         switch (shift_class(th_s)) {
         case SHIFT_HIGH:
-            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH);
+            /* words of 32 bits: the overflow test is the clamp */
+            if (p->theta_lo == INT32_MIN && p->theta_hi == INT32_MAX) {
+                K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 1);
+            } else {
+                K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 0);
+            }
             break;
         case SHIFT_LOW:
-            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_LOW);
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_LOW, 0);
             break;
         default:
-            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_ANY);
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_ANY, 0);
             break;
         }
         /* P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle
