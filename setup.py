@@ -21,6 +21,12 @@ EXTENSIONS: list[Extension] = [
     # the per-frame loops of the CAN layer (strict decoding, counters, CRC, pairing):
     # canrls.can, live and offline
     Extension("canrls._can", sources=["src/canrls/c/can.c"], extra_compile_args=CFLAGS),
+    # the fixed-point RLS kernel (canrls_fixed.c, the target's code) for
+    # canrls.estimation.fixed.FixedRLS
+    Extension("canrls._fixed",
+              sources=["src/canrls/c/fixed_module.c", "src/canrls/c/canrls_fixed.c"],
+              include_dirs=["src/canrls/c"], depends=["src/canrls/c/canrls_fixed.h"],
+              extra_compile_args=CFLAGS),
 ]
 
 setup(ext_modules=EXTENSIONS)

@@ -36,6 +36,7 @@ LAYER = {
     "canrls.config": "front", "canrls.processor": "front", "canrls.modelfile": "front",
     "canrls.validate": "app",
     "canrls.replay": "app", "canrls.diagnosis": "app", "canrls.live": "app",
+    "canrls.c_export": "app",
     "canrls.sim": "sim", "canrls.cli": "cli", "canrls.__main__": "cli",
 }
 ALLOWED = {

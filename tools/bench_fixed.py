@@ -1,9 +1,11 @@
 """Benchmark of the fixed-point RLS kernel, and a word-length sweep demonstration.
 
 Prints, for n = 4 and n = 8 (32-bit state, 64-bit accumulators, 32-bit inputs,
-lambda = 0.999): updates per second of the per-sample path (``FixedRLS.update``,
-one Python call per sample) and of the batch path (``FixedRLS.run`` over a block,
-``record=False``), each the best of several repeats. The target is >= 3 M
+lambda = 0.999) and each backend of ``FixedRLS`` (``c``: the C kernel through the
+extension ``canrls._fixed``, the default; ``spec``: the numba specification): updates
+per second of the per-sample path (``FixedRLS.update``, one Python call per sample) and
+of the batch path (``FixedRLS.run`` over a block, ``record=False``), each the best of
+several repeats. The target is >= 3 M
 updates/s in batch at n = 8. Then runs :func:`canrls.estimation.fixed.sweep` on a drive-like
 regression and prints its table.
 
@@ -27,14 +29,15 @@ from canrls.estimation.fixed import FixedConfig, FixedRLS, sweep
 TARGET_BATCH_N8 = 3e6
 
 
-def bench(n: int, samples: int, repeats: int) -> tuple[float, float]:
-    """(per-sample updates/s, batch updates/s) for ``n`` parameters."""
+def bench(n: int, samples: int, repeats: int, backend: str = "auto") -> tuple[float, float]:
+    """(per-sample updates/s, batch updates/s) for ``n`` parameters on ``backend``."""
     lam, alpha = 0.999, 1e-2
     rng = np.random.default_rng(n)
     Phi = rng.uniform(-1.0, 1.0, size=(samples, n))
     Y = Phi @ rng.uniform(-0.2, 0.2, n) + 0.01 * rng.normal(size=samples)
     cfg = FixedConfig.auto(n, alpha, lam)
     rls = FixedRLS(cfg, n, lam, alpha)
+    rls.backend = backend
     Pq, Yq, _ = rls.quantize_inputs(Phi, Y)
     rls.run(Pq[:10], Yq[:10])  # compile (or load the cache) outside the timing
     rls.update(Pq[0], int(Yq[0]))
@@ -80,13 +83,16 @@ def main() -> int:
     args = ap.parse_args()
 
     print("fixed-point RLS, W32/A64/I32, lambda = 0.999, update='symmetric'")
-    print(f"{'n':>3} {'per-sample update/s':>20} {'batch run() update/s':>21}")
+    print(f"{'n':>3} {'backend':>8} {'per-sample update/s':>20} {'batch run() update/s':>21}")
     ok = True
     for n in (4, 8):
-        single, batch = bench(n, args.samples, args.repeats)
-        print(f"{n:>3} {single:>20,.0f} {batch:>21,.0f}")
-        if n == 8:
-            ok = batch >= TARGET_BATCH_N8
+        for backend in ("auto", "spec"):
+            single, batch = bench(n, args.samples, args.repeats, backend)
+            name = FixedRLS(FixedConfig.auto(n, 1e-2, 0.999), n, 0.999, 1e-2).backend \
+                if backend == "auto" else "spec"
+            print(f"{n:>3} {name:>8} {single:>20,.0f} {batch:>21,.0f}")
+            if n == 8 and backend == "auto":
+                ok = batch >= TARGET_BATCH_N8
     print(f"target batch n = 8: >= {TARGET_BATCH_N8:,.0f} update/s: {'met' if ok else 'NOT met'}")
 
     if not args.no_sweep:

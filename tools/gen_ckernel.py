@@ -1,5 +1,9 @@
 """Generate what the C kernel (src/canrls/c/) is built and checked with, from the Python spec.
 
+The C text of a plan (:func:`canrls.c_export.plan_c`) is the package's, which
+``canrls export-c`` writes for a user's model; this script adds the test vectors and
+the sample streams of ``make target``.
+
 The Python :class:`canrls.estimation.fixed.FixedRLS` is the specification; this script
 only writes its integers in forms C reads:
 
@@ -30,30 +34,13 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from canrls.c_export import PLAN_64, c_int, plan_c  # noqa: F401 - PLAN_64 re-exported
 from canrls.estimation.fixed import SITES, FixedConfig, FixedRLS
 
 IntArray = npt.NDArray[np.int64]
 
-#: Constants of the plan held in 64 bits in ``canrls_plan_q31`` (all others: int32_t).
-PLAN_64 = frozenset({"dividend", "trace_max_lim"})
-
 
 # ------------------------------------------------------------------ C text
-def c_int(v: int, bits: int = 32) -> str:
-    """``v`` as a C constant expression of ``bits`` bits (the most negative value as
-    ``-MAX - 1``, which C has no literal for)."""
-    if v == -(1 << (bits - 1)):
-        return f"(-{-(v + 1)}{'LL' if bits == 64 else ''} - 1)"
-    return f"{v}LL" if bits == 64 else str(v)
-
-
-def plan_c(constants: dict[str, int], name: str = "canrls_plan") -> str:
-    """The plan as ``static const canrls_plan_q31 NAME = {.field = value, ...};``."""
-    body = ",\n".join(f"    .{k} = {c_int(v, 64 if k in PLAN_64 else 32)}"
-                      for k, v in constants.items())
-    return f"static const canrls_plan_q31 {name} = {{\n{body},\n}};\n"
-
-
 def c_array(name: str, values: Sequence[int] | npt.ArrayLike, per_line: int = 8,
             ctype: str = "int32_t") -> str:
     """``static const CTYPE NAME[] = {...};``."""
@@ -87,6 +74,8 @@ def write_vectors(path: Path, est: FixedRLS, Phi: IntArray, Y: IntArray,
     """
     N, n = Phi.shape
     fz = np.zeros(N, bool) if frozen is None else np.asarray(frozen, bool)
+    # the expected lines come from the specification (numba), never the C extension
+    est.backend = "spec"
     k = est.constants
     lines = [f"plan {len(k)}", *(f"{name} {v}" for name, v in k.items()),
              f"n {n}", "state " + " ".join(map(str, state_words(est))), f"steps {N}"]
@@ -212,6 +201,7 @@ def stream_header(s: Stream, limit: int | None = None, guard: str = "CANRLS_STRE
     st["counts"] = np.zeros_like(st["counts"])
     est = FixedRLS.from_state(st)
     theta0, P0, e0, c0 = est.theta.copy(), upper(est.P), est.P_exp, est.P_scale
+    est.backend = "spec"  # the final state of the specification, never the C extension
     est.run(Phi, Y, record=False)
     n = est.n
     cnt = est.saturations

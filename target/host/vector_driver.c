@@ -39,7 +39,7 @@ static const struct {
     FIELD(eps_ts, int32_t), FIELD(eps_os, int32_t), FIELD(h_os, int32_t),
     FIELD(s_os, int32_t), FIELD(sc_s, int32_t), FIELD(lam_den, int32_t),
     FIELD(one_den, int32_t), FIELD(dividend, int64_t), FIELD(gc_s, int32_t),
-    FIELD(K_s, int32_t), FIELD(theta_s, int32_t), FIELD(P_s, int32_t),
+    FIELD(g_up, int32_t), FIELD(theta_s, int32_t), FIELD(P_s, int32_t),
     FIELD(inv_lam, int32_t), FIELD(one_lam, int32_t), FIELD(c_s, int32_t),
     FIELD(trace_ps, int32_t), FIELD(trace_max_lam, int32_t),
     FIELD(trace_max_lim, int64_t), FIELD(tc_s, int32_t), FIELD(hc_s, int32_t),

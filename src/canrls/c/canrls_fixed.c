@@ -21,8 +21,10 @@ typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1
  * mul_rsh must be a constant there); GCC and Clang are told so. */
 #if defined(__GNUC__)
 #define INLINE static inline __attribute__((always_inline))
+#define NOINLINE static __attribute__((noinline))
 #else
 #define INLINE static inline
+#define NOINLINE static
 #endif
 
 /* ------------------------------------------------------- Q-format arithmetic */
@@ -100,12 +102,80 @@ INLINE int32_t sat(int64_t x, int32_t lo, int32_t hi, uint32_t *n)
     return (int32_t)x;
 }
 
+/* A word r (already a word: an int32_t) clamped to [lo, hi], counted. */
+INLINE int32_t clamp32(int32_t r, int32_t lo, int32_t hi, uint32_t *n)
+{
+    if ((uint32_t)r - (uint32_t)lo <= (uint32_t)hi - (uint32_t)lo) {
+        return r;
+    }
+    *n += 1u;
+    return r > hi ? hi : lo;
+}
+
+/* sat(x) for a 64-bit x given as its two words: the common case in 32-bit compares */
+INLINE int32_t sat2(int32_t rhi, uint32_t rlo, int32_t lo, int32_t hi, uint32_t *n)
+{
+    if (rhi == ((int32_t)rlo >> 31)) {
+        return clamp32((int32_t)rlo, lo, hi, n); /* x fits a word */
+    }
+    *n += 1u;
+    return rhi < 0 ? lo : hi;
+}
+
+/* sat(a - b) of two words, counted (a - b computed without overflow); ``full``: the
+ * word is the whole int32_t (lo = INT32_MIN, hi = INT32_MAX), a constant at each call */
+INLINE int32_t sub_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n, int full)
+{
+#if defined(__GNUC__)
+    int32_t r;
+    if (__builtin_sub_overflow(a, b, &r)) {
+        *n += 1u;
+        return b < 0 ? hi : lo; /* beyond the int32_t range, so beyond [lo, hi] */
+    }
+    return full ? r : clamp32(r, lo, hi, n);
+#else
+    (void)full;
+    return sat((int64_t)a - b, lo, hi, n);
+#endif
+}
+
+/* sat(a + b) of two words, counted; ``full`` as for sub_sat */
+INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n, int full)
+{
+#if defined(__GNUC__)
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *n += 1u;
+        return b > 0 ? hi : lo;
+    }
+    return full ? r : clamp32(r, lo, hi, n);
+#else
+    (void)full;
+    return sat((int64_t)a + b, lo, hi, n);
+#endif
+}
+
+/* rsh(a b, s) for 32 <= s <= 62: the high word of a b + 2^(s-1), shifted by s - 32
+ * (rnd = 2^(s-1), computed once per loop) */
+INLINE int32_t mul_rsh_hi(int32_t a, int32_t b, uint64_t rnd, int32_t s)
+{
+    const uint64_t u = (uint64_t)((int64_t)a * b) + rnd;
+    return (int32_t)(uint32_t)(u >> 32) >> (s - 32);
+}
+
 /* Store an accumulator x (scale 2^-(f+s)) into a word of scale 2^-f (Python store):
  * s >= 0: rounding right shift then clamp; s < 0: a left shift that clamps before
  * shifting, so it never wraps. */
 INLINE int32_t store(int64_t x, int32_t s, int32_t lo, int32_t hi, uint32_t *n)
 {
     int32_t t;
+    if ((uint32_t)(s - 1) < 31u) {
+        /* 1 <= s <= 31 (the common case): x + 2^(s-1) shifted as two words */
+        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        const uint32_t ulo = (uint32_t)u;
+        const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
+        return sat2(uhi >> s, (ulo >> s) | ((uint32_t)uhi << (32 - s)), lo, hi, n);
+    }
     if (s >= 0) {
         return sat(rsh_c(x, s, shift_class(s)), lo, hi, n);
     }
@@ -138,6 +208,14 @@ static inline int32_t nlz(uint32_t v)
     }
     return k;
 #endif
+}
+
+/* The left shift that brings 0 <= m < 2^31 to 30 bits: 30 - bit_length(m), at least 0
+ * (30 for m = 0); x << norm_shift(m) lies in [-2^30, 2^30) for every |x| "<=" m. */
+static inline int32_t norm_shift(uint32_t m)
+{
+    const int32_t k = m == 0u ? 30 : nlz(m) - 2;
+    return k > 0 ? k : 0;
 }
 
 /* One 16-bit digit of a long division: num / (vn1 b + vn0) with b = 2^16, ``next`` the
@@ -253,32 +331,102 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P
 
 /* ------------------------------------------------------------------- kernel */
 
+/* acc = P~ phi as exact 64-bit sums (symmetric: each P~_ij of the packed upper
+ * triangle read once; its two products go to h_i and, scattered, to h_j) */
+static void h_sums(const int32_t *Pr, const int32_t *phg, uint32_t n, int64_t *acc)
+{
+    uint32_t i, j;
+    for (i = 0; i < n; i++) {
+        const int32_t pi_ = phg[i];
+        /* h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i */
+        int64_t a = (i == 0 ? 0 : acc[i]) + (int64_t)Pr[0] * pi_;
+        if (i == 0) {
+            for (j = 1; j < n; j++) {
+                const int32_t Pij = Pr[j];
+                /* P_0j phi_j -> h_0 ;  P_j0 phi_0 = P_0j phi_0 -> h_j */
+                a += (int64_t)Pij * phg[j];
+                acc[j] = (int64_t)Pij * pi_;
+            }
+        } else {
+            for (j = i + 1; j < n; j++) {
+                const int32_t Pij = Pr[j - i];
+                /* P_ij phi_j -> h_i ;  P_ji phi_i = P_ij phi_i -> h_j */
+                a += (int64_t)Pij * phg[j];
+                acc[j] += (int64_t)Pij * pi_;
+            }
+        }
+        acc[i] = a;
+        Pr += n - i;
+    }
+}
+
+/* h~ <- h~ 2^kn; K = (g c) h~ as the high word of (h~ 2^kn)(gc 2^g_up), rounded half up;
+ * theta <- theta + K eps. ``cls`` (a constant at each call) is the shift class of th_s. */
+INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                   uint32_t *c_th, int cls, int full)
+{
+    const uint32_t n = S->n;
+    int32_t *const h = S->h;
+    int32_t *const K = S->K;
+    int32_t *const theta = S->theta;
+    const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
+    const uint64_t half = (uint64_t)1 << 31;
+    const uint64_t rnd = (uint64_t)1 << ((th_s > 0 ? th_s : 1) - 1);
+    uint32_t i;
+    for (i = 0; i < n; i++) {
+        /* h~ <- h~ 2^kn (exact: the normalisation) */
+        const int32_t hn = (int32_t)((uint32_t)h[i] << kn);
+        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
+        const int32_t Ki = mul_rsh_hi(hn, gcn, half, 32);
+        h[i] = hn;
+        K[i] = Ki;
+        /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
+        if (cls == SHIFT_HIGH) {
+            theta[i] = add_sat(theta[i], mul_rsh_hi(Ki, epn, rnd, th_s), th_lo, th_hi, c_th,
+                               full);
+        } else {
+            theta[i] = sat(theta[i] + mul_rsh(Ki, epn, th_s, cls), th_lo, th_hi, c_th);
+        }
+    }
+}
+
 /* P~ <- P~ - K h~'  (upper triangle). ``cls`` (a constant at each call) is the shift
  * class of P_s (see rsh_c). Returns the low-excitation test of the specification,
  * "rsh(K_i h~_i, P_s) == 0 for every i": those are the diagonal terms of this update,
  * so they are tested here rather than computed twice. */
-INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls)
+INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int full)
 {
     const uint32_t n = S->n;
     const int32_t *const h = S->h;
     const int32_t *const K = S->K;
     /* the plan, as locals (a store to P~ cannot change them) */
     const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
+    const uint64_t rnd = (uint64_t)1 << ((P_s > 0 ? P_s : 1) - 1);
     int32_t *Pw = S->P; /* row i of the packed upper triangle */
     uint32_t i, j;
-    int low = 1;
+    uint32_t nz = 0; /* nonzero once a diagonal term is */
     for (i = 0; i < n; i++) {
         const int32_t Ki = K[i];
-        /* the diagonal: information K_i h~_i */
-        const int64_t r = mul_rsh(Ki, h[i], P_s, cls);
-        low &= r == 0;
-        Pw[0] = sat(Pw[0] - r, P_lo, P_hi, c_P);
-        for (j = i + 1; j < n; j++) {
-            Pw[j - i] = sat(Pw[j - i] - mul_rsh(Ki, h[j], P_s, cls), P_lo, P_hi, c_P);
+        if (cls == SHIFT_HIGH) {
+            /* the diagonal: information K_i h~_i */
+            const int32_t r = mul_rsh_hi(Ki, h[i], rnd, P_s);
+            nz |= (uint32_t)r;
+            Pw[0] = sub_sat(Pw[0], r, P_lo, P_hi, c_P, full);
+            for (j = i + 1; j < n; j++) {
+                Pw[j - i] = sub_sat(Pw[j - i], mul_rsh_hi(Ki, h[j], rnd, P_s), P_lo, P_hi,
+                                    c_P, full);
+            }
+        } else {
+            const int64_t r = mul_rsh(Ki, h[i], P_s, cls);
+            nz |= (uint32_t)(r != 0);
+            Pw[0] = sat(Pw[0] - r, P_lo, P_hi, c_P);
+            for (j = i + 1; j < n; j++) {
+                Pw[j - i] = sat(Pw[j - i] - mul_rsh(Ki, h[j], P_s, cls), P_lo, P_hi, c_P);
+            }
         }
         Pw += n - i;
     }
-    return low;
+    return nz == 0u;
 }
 
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
@@ -295,69 +443,90 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     int32_t c = S->c;
     int32_t trw = S->trw;
     /* per-step saturation counts, added to S->counts once per step */
-    uint32_t c_phi = 0, c_y = 0, c_eps = 0, c_h = 0, c_den = 0, c_div = 0, c_K = 0,
-             c_th = 0, c_P = 0;
+    uint32_t c_phi = 0, c_y = 0, c_eps = 0, c_h = 0, c_den = 0, c_div = 0, c_th = 0,
+             c_P = 0;
     uint32_t flag = 0;
     uint32_t i, j;
     /* the plan, as locals (stores to the state cannot change them) */
     const int32_t phi_lo = p->phi_lo, phi_hi = p->phi_hi, phi_ps = p->phi_ps;
     const int32_t h_lo = p->h_lo, h_hi = p->h_hi, h_os = p->h_os;
-    const int32_t K_lo = p->K_lo, K_hi = p->K_hi, K_s = p->K_s;
-    const int32_t th_lo = p->theta_lo, th_hi = p->theta_hi, tr_ps = p->trace_ps;
+    const int32_t tr_ps = p->trace_ps;
     int32_t yk, eps;
     int64_t a;
     int applied = 0;
 
-    /* phi, y <- sat(phi), sat(y)       inputs clamped to their words */
-    for (j = 0; j < n; j++) {
-        int32_t v = sat(phi[j], phi_lo, phi_hi, &c_phi);
-        /* phi >> ps: the guard bits of the multiply-accumulates */
-        phg[j] = rsh32(v, phi_ps);
+    /* phi, y <- sat(phi), sat(y)       inputs clamped to their words;
+     * phi >> ps: the guard bits of the multiply-accumulates */
+    if (phi_ps > 0 && phi_lo == INT32_MIN && phi_hi == INT32_MAX) {
+        /* 32-bit words: nothing to clamp */
+        for (j = 0; j < n; j++) {
+            phg[j] = ((phi[j] >> (phi_ps - 1)) + 1) >> 1;
+        }
+    } else if (phi_ps > 0) {
+        for (j = 0; j < n; j++) {
+            const int32_t v = clamp32(phi[j], phi_lo, phi_hi, &c_phi);
+            phg[j] = ((v >> (phi_ps - 1)) + 1) >> 1;
+        }
+    } else {
+        for (j = 0; j < n; j++) {
+            phg[j] = clamp32(phi[j], phi_lo, phi_hi, &c_phi);
+        }
     }
-    yk = sat(y, p->y_lo, p->y_hi, &c_y);
+    yk = clamp32(y, p->y_lo, p->y_hi, &c_y);
 
     /* eps = y - phi' theta */
+    /* (summed as phi' theta - y, multiply-accumulates, then negated: the same integer) */
     a = p->eps_ts >= 0 ? (int64_t)yk * ((int64_t)1 << p->eps_ts) : rsh(yk, -p->eps_ts);
+    a = -a;
     for (j = 0; j < n; j++) {
-        a -= (int64_t)phg[j] * theta[j];
+        a += (int64_t)phg[j] * theta[j];
     }
+    a = -a;
     eps = store(a, p->eps_os, p->eps_lo, p->eps_hi, &c_eps);
 
     if (S->frozen) {
         flag = CANRLS_FLAG_FROZEN;
         memset(K, 0, n * sizeof *K);
     } else {
-        const int32_t *Pr; /* row i of the packed upper triangle (read) */
-        int32_t st, sv, lam_k, d, g, gc, th_s, P_s;
+        int64_t acc[CANRLS_N_MAX]; /* the scattered column sums of h~ */
+        uint32_t m = 0;
+        int32_t st, sv, lam_k, d, g, gc, gcn, epn, th_s, P_s, kn;
         int32_t il;
         int low;
 
-        /* h~ = P~ phi   (symmetric: P~_ij read from the upper triangle only) */
-        Pr = P;
-        for (i = 0; i < n; i++) {
-            /* h_i = sum_{j<i} P_ji phi_j (column i above the diagonal) + sum_{j>=i} P_ij phi_j
-             * (the exact sum of the specification's scattered accumulators) */
-            const int32_t *Pji = P + i;
-            a = 0;
-            for (j = 0; j < i; j++) {
-                a += (int64_t)*Pji * phg[j];
-                Pji += n - 1u - j; /* P_(j+1)i: the next row is one word shorter */
+        /* h~ = P~ phi   (symmetric: each P~_ij of the upper triangle read once) */
+        h_sums(P, phg, n, acc);
+        /* m = OR of |h~_i| (one's complement) for the normalisation below */
+        a = 0;
+        if ((uint32_t)(h_os - 1) < 31u) {
+            /* 1 <= h_os <= 31 (the common case): each sum rounded in two words */
+            const uint64_t rnd = (uint64_t)1 << (h_os - 1);
+            for (i = 0; i < n; i++) {
+                const uint64_t u = (uint64_t)acc[i] + rnd;
+                const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
+                const int32_t hi_ = sat2(uhi >> h_os,
+                                         ((uint32_t)u >> h_os) | ((uint32_t)uhi << (32 - h_os)),
+                                         h_lo, h_hi, &c_h);
+                h[i] = hi_;
+                m |= (uint32_t)(hi_ ^ (hi_ >> 31));
+                /* s~ = phi' h~ (summed as h~ is stored) */
+                a += (int64_t)phg[i] * hi_;
             }
-            for (j = i; j < n; j++) {
-                a += (int64_t)Pr[j - i] * phg[j];
+        } else {
+            for (i = 0; i < n; i++) {
+                const int32_t hi_ = store(acc[i], h_os, h_lo, h_hi, &c_h);
+                h[i] = hi_;
+                m |= (uint32_t)(hi_ ^ (hi_ >> 31));
+                a += (int64_t)phg[i] * hi_;
             }
-            h[i] = store(a, h_os, h_lo, h_hi, &c_h);
-            Pr += n - i;
         }
 
-        /* s~ = phi' h~, brought from the scale of P (exponent e) to that of lambda */
-        a = 0;
-        for (i = 0; i < n; i++) {
-            a += (int64_t)phg[i] * h[i];
-        }
-        st = store(rsh_c(a, e, shift_class(e)), p->s_os, p->den_lo, p->den_hi, &c_den);
+        /* s~ = phi' h~ (a, summed above), brought from the scale of P (exponent e) to
+         * that of lambda */
+        st = store((uint32_t)(e - 1) < 31u ? rsh_c(a, e, SHIFT_LOW) : rsh_c(a, e, shift_class(e)),
+                   p->s_os, p->den_lo, p->den_hi, &c_den);
         /* s = phi' P phi = c s~ */
-        sv = sat(mul_rsh(st, c, p->sc_s, shift_class(p->sc_s)), p->den_lo, p->den_hi, &c_den);
+        sv = store((int64_t)st * c, p->sc_s, p->den_lo, p->den_hi, &c_den);
 
         /* windup <=> (tr P - g h'h)/lambda > trace_max
          *        <=> (tr P - lambda trace_max) (lambda + phi'P phi) > h'h */
@@ -410,31 +579,60 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             }
         }
         /* gc = g c */
-        gc = sat(mul_rsh(g, c, p->gc_s, shift_class(p->gc_s)), p->g_lo, p->g_hi, &c_div);
+        gc = store((int64_t)g * c, p->gc_s, p->g_lo, p->g_hi, &c_div);
 
-        th_s = p->theta_s + e;
-        /* K h~' has exponent 2e, P~ exponent e */
-        P_s = p->P_s + e;
-        for (i = 0; i < n; i++) {
-            /* K = P phi / (lambda + phi' P phi) = (g c) h~ */
-            const int32_t Ki = sat(mul_rsh(h[i], gc, K_s, shift_class(K_s)), K_lo, K_hi, &c_K);
-            K[i] = Ki;
-            /* theta <- theta + K eps      (K carries the exponent e: shifted out here) */
-            theta[i] = sat(theta[i] + mul_rsh(Ki, eps, th_s, shift_class(th_s)), th_lo, th_hi,
-                           &c_th);
+        /* normalisation of the updates (once per step): h~ and eps shifted left (exactly)
+         * to 31 bits, so that K is the high word of a 32 x 32 product and the theta and
+         * P updates shift by 32 or more (docs/fixed_point.md) */
+        {
+            int32_t ke, lim;
+            kn = norm_shift(m);
+            lim = (62 - p->P_s - e) >> 1;
+            kn = kn < lim ? kn : lim;
+            lim = 62 - p->theta_s - e;
+            kn = kn < lim ? kn : lim;
+            ke = norm_shift((uint32_t)(eps ^ (eps >> 31)));
+            lim = 62 - p->theta_s - e - kn;
+            ke = ke < lim ? ke : lim;
+            epn = (int32_t)((uint32_t)eps << ke);
+            gcn = (int32_t)((uint32_t)gc << p->g_up);
+            th_s = p->theta_s + e + kn + ke;
+            /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each */
+            P_s = p->P_s + e + 2 * kn;
+        }
+        switch (shift_class(th_s)) {
+        case SHIFT_HIGH:
+            /* words of 32 bits: the overflow test is the clamp */
+            if (p->theta_lo == INT32_MIN && p->theta_hi == INT32_MAX) {
+                K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 1);
+            } else {
+                K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 0);
+            }
+            break;
+        case SHIFT_LOW:
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_LOW, 0);
+            break;
+        default:
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_ANY, 0);
+            break;
         }
         /* P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle
          * (in a loop made for the shift class of this step); low excitation: the
          * information K_i h~_i rounds to zero on the whole diagonal */
         switch (shift_class(P_s)) {
         case SHIFT_HIGH:
-            low = P_step(S, P_s, &c_P, SHIFT_HIGH);
+            /* words of 32 bits: the overflow test is the clamp */
+            if (p->P_lo == INT32_MIN && p->P_hi == INT32_MAX) {
+                low = P_step(S, P_s, &c_P, SHIFT_HIGH, 1);
+            } else {
+                low = P_step(S, P_s, &c_P, SHIFT_HIGH, 0);
+            }
             break;
         case SHIFT_LOW:
-            low = P_step(S, P_s, &c_P, SHIFT_LOW);
+            low = P_step(S, P_s, &c_P, SHIFT_LOW, 0);
             break;
         default:
-            low = P_step(S, P_s, &c_P, SHIFT_ANY);
+            low = P_step(S, P_s, &c_P, SHIFT_ANY, 0);
             break;
         }
         if (low) {
@@ -443,7 +641,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
         /* c <- c / lambda_k */
         il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
-        c = sat(mul_rsh(c, il, p->c_s, shift_class(p->c_s)), 0, p->lam_hi, &c_P);
+        c = store((int64_t)c * il, p->c_s, 0, p->lam_hi, &c_P);
         if (c > p->one_lam) {
             if (e > 0) {
                 /* c/2 and 2^-e x 2: the words do not move */
@@ -461,21 +659,45 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh */
         {
             int64_t tr = 0;
-            int64_t trw64 = 0;
+            uint32_t trw32 = 0; /* the sum modulo 2^32: trw is a word */
             const int32_t *Pii = P;
-            for (i = 0; i < n; i++) {
-                tr += *Pii;
-                trw64 += rsh32(*Pii, tr_ps);
-                Pii += n - i;
+            if (tr_ps > 0) {
+                for (i = 0; i < n; i++) {
+                    const int32_t x = *Pii;
+                    tr += x;
+                    trw32 += (uint32_t)(((x >> (tr_ps - 1)) + 1) >> 1);
+                    Pii += n - i;
+                }
+            } else {
+                for (i = 0; i < n; i++) {
+                    tr += *Pii;
+                    trw32 += (uint32_t)*Pii;
+                    Pii += n - i;
+                }
             }
-            trw = (int32_t)trw64;
+            trw = (int32_t)trw32;
             if (tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max) {
                 int32_t sh = 1;
                 while ((tr << (sh + 1)) <= p->trace_hi && e + sh < p->e_max) {
                     sh += 1;
                 }
-                for (i = 0; i < CANRLS_TRI(n); i++) {
-                    P[i] = store(P[i], -sh, p->P_lo, p->P_hi, &c_P);
+                {
+                    /* P~ <- P~ 2^sh, clamped before shifting (Python store with s = -sh):
+                     * x 2^sh > hi <=> x > floor(hi / 2^sh), x 2^sh < lo <=> x < ceil(lo / 2^sh) */
+                    const int32_t up_hi = p->P_hi >> sh;
+                    const int32_t up_lo = (int32_t)(-((-(int64_t)p->P_lo) >> sh));
+                    for (i = 0; i < CANRLS_TRI(n); i++) {
+                        const int32_t x = P[i];
+                        if (x > up_hi) {
+                            P[i] = p->P_hi;
+                            c_P += 1u;
+                        } else if (x < up_lo) {
+                            P[i] = p->P_lo;
+                            c_P += 1u;
+                        } else {
+                            P[i] = (int32_t)((uint32_t)x << sh);
+                        }
+                    }
                 }
                 e += sh;
                 trw = trace_words(S);
@@ -488,7 +710,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     }
 
     {
-        const uint32_t nsat = c_phi + c_y + c_eps + c_h + c_den + c_div + c_K + c_th + c_P;
+        const uint32_t nsat = c_phi + c_y + c_eps + c_h + c_den + c_div + c_th + c_P;
         if (nsat > 0u) {
             uint32_t *const cnt = S->counts;
             flag |= CANRLS_FLAG_SATURATION;
@@ -498,7 +720,6 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             cnt[CANRLS_S_H] += c_h;
             cnt[CANRLS_S_DEN] += c_den;
             cnt[CANRLS_S_DIV] += c_div;
-            cnt[CANRLS_S_K] += c_K;
             cnt[CANRLS_S_THETA] += c_th;
             cnt[CANRLS_S_P] += c_P;
         }

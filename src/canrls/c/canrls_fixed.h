@@ -34,7 +34,7 @@
  * Per sample (the equation of each line is beside it in canrls_fixed.c):
  *   eps   = y - phi' theta
  *   h     = Pw phi,  d = lambda_k + c phi' h,  g = 1/d   (one division)
- *   K     = (g c) h
+ *   K     = (g c) h     (the high word of (h 2^kn)(g c 2^g_up), kn normalising h)
  *   theta = theta + K eps
  *   Pw    = Pw - K h'   (upper triangle),  c = c / lambda_k
  * with lambda_k = 1 (flag WINDUP) when the step would take tr P above trace_max.
@@ -43,7 +43,8 @@
  * ---------
  * The kernel never derives a constant: every shift, range and Q constant of
  * lambda is in canrls_plan_q31, with the names of the Python FixedRLS.constants.
- * tools/gen_ckernel.py writes it as a C initialiser from a Python FixedRLS.
+ * canrls.c_export.plan_c (and `canrls export-c`) writes it as a C initialiser from a
+ * Python FixedRLS.
  */
 #ifndef CANRLS_FIXED_H
 #define CANRLS_FIXED_H
@@ -117,9 +118,9 @@ typedef struct {
     int32_t one_den;        /**< 1 in the den format */
     int64_t dividend;       /**< 1 << (frac_g + frac_den) */
     int32_t gc_s;           /**< shift of g c */
-    int32_t K_s;            /**< shift of (g c) h */
-    int32_t theta_s;        /**< shift of K eps at e = 0 */
-    int32_t P_s;            /**< shift of K h at e = 0 */
+    int32_t g_up;           /**< left shift of g c to 32 bits (K: the high word) */
+    int32_t theta_s;        /**< shift of K eps at e = kn = ke = 0 (+ e + kn + ke) */
+    int32_t P_s;            /**< shift of K h at e = kn = 0 (+ e + 2 kn) */
     int32_t inv_lam;        /**< 1/lambda in the lam format */
     int32_t one_lam;        /**< 1 in the lam format */
     int32_t c_s;            /**< shift of c (1/lambda_k) and of the fold c Pw */
@@ -202,7 +203,7 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P
  * @return 1 if the state was updated, 0 if frozen
  *
  * Saturates (each counted at its site): eps, h, phi' h and d (den), g and g c (div),
- * K, theta, Pw and c (P). S->K holds the gain of this step.
+ * theta, Pw and c (P); K cannot (the high word of two normalised 31-bit words). S->K holds the gain of this step.
  */
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                       canrls_step_q31 *step);

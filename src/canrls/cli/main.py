@@ -20,6 +20,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "diagnose",
     "validate",
     "fixed_sweep",
+    "export_c",
     "run",
     "monitor",
 )

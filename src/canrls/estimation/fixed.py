@@ -102,9 +102,16 @@ a DSP does with its rounding constant (bias +1/2 LSB only on exact ties). It is
 then clamped to its word, and each clamp increments the counter of its site
 (:data:`SITES`): ``phi_in``, ``y_in`` (inputs outside their word), ``eps``, ``h``,
 ``den``, ``div``, ``K``, ``theta``, ``P``. Nothing ever wraps. A single product
-(``K``, ``theta``, ``P`` updates) is rounded once to its destination and added with
+(``theta``, ``P`` updates) is rounded once to its destination and added with
 saturation, e.g. :math:`\tilde P_{ij} \leftarrow \mathrm{sat}(\tilde P_{ij} -
-\mathrm{rsh}(K_i \tilde h_j))`.
+\mathrm{rsh}(K_i \tilde h_j))`. The gain is *normalised*: once per step
+:math:`\tilde h` and :math:`\varepsilon` are shifted left, exactly, to 31 bits (shifts
+``k`` and ``ke``, bounded so that no later shift exceeds 62) and :math:`K` is the high
+word of :math:`(\tilde h\,2^k)(g c\,2^{g_{up}})`, rounded half up: it cannot saturate
+(its counter stays 0), its scale moves with ``k``, and the ``theta`` and ``P`` updates
+shift by ``theta_s + e + k + ke`` and ``P_s + e + 2k``, at least 32 in the steady
+state, so that the target takes the high word of each product (docs/fixed_point.md).
+The ``K`` format of :class:`FixedConfig` no longer enters the arithmetic.
 
 Accumulators (guard bits)
 -------------------------
@@ -170,12 +177,14 @@ from dataclasses import dataclass
 from fractions import Fraction
 from typing import Any
 
-import numba
+import importlib
+from types import ModuleType
+
 import numpy as np
 import numpy.typing as npt
 
 from canrls.errors import CheckpointError, EstimatorError, FixedPointError
-from canrls.estimation import fixed_kernels as kernels
+from canrls.estimation import fixed_layout as kernels
 from canrls.estimation.rls import check_lam as _rls_check_lam
 from canrls.estimation.rls import check_real as _rls_real
 from canrls.estimation.rls import check_ridge, ridge_value
@@ -214,36 +223,27 @@ _MAX_WORD = 32  # products of two words must be exact in int64
 
 
 # ---------------------------------------------------------------- Q formats
-@numba.njit(cache=True, nogil=True)
 def _round_saturate(x: npt.NDArray[np.float64], scale: float, lo: float, hi: float,
-                    out: IntArray) -> int:  # pragma: no cover - compiled
+                    out: IntArray) -> int:
     """``out = clip(floor(x * scale + 1/2), lo, hi)``; the number clamped, or -1 on a NaN.
 
     ``scale`` is the exact power of two ``2**frac``, so ``x * scale`` is ``ldexp(x, frac)``
     (one rounding of the exact product, as ldexp does).
     """
-    nsat = 0
-    for i in range(x.shape[0]):
-        xi = x[i]
-        if xi != xi:
-            return -1
-        # round half up: floor(x 2^frac + 1/2)
-        v = np.floor(xi * scale + 0.5)
-        # saturate to the word, counted (never wrap)
-        if v < lo:
-            v = lo
-            nsat += 1
-        elif v > hi:
-            v = hi
-            nsat += 1
-        out[i] = np.int64(v)
+    if np.isnan(x).any():
+        return -1
+    # round half up: floor(x 2^frac + 1/2)
+    v = np.floor(x * scale + 0.5)
+    # saturate to the word, counted (never wrap)
+    nsat = int(np.count_nonzero((v < lo) | (v > hi)))
+    np.clip(v, lo, hi, out=v)
+    out[...] = v
     return nsat
 
 
-@numba.njit(cache=True, nogil=True)
 def _round_inputs(Phi: npt.NDArray[np.float64], Y: npt.NDArray[np.float64],
                   fmt: npt.NDArray[np.float64], Pq: IntArray, Yq: IntArray,
-                  counts: IntArray) -> int:  # pragma: no cover - compiled
+                  counts: IntArray) -> int:
     """:func:`_round_saturate` of ``Phi`` (flat) and ``Y`` (``fmt`` rows: ``[2**frac, lo,
     hi]`` of phi and y), the clamps added to the ``phi_in`` and ``y_in`` counters; 1 or 2
     when ``Phi`` or ``Y`` holds a NaN (then nothing is counted), else 0.
@@ -257,6 +257,24 @@ def _round_inputs(Phi: npt.NDArray[np.float64], Y: npt.NDArray[np.float64],
     counts[kernels.S_PHI] += n_phi
     counts[kernels.S_Y] += n_y
     return 0
+
+
+def _c_kernel() -> ModuleType | None:
+    """The compiled C kernel ``canrls._fixed`` (built by ``pip install``), or None."""
+    try:
+        return importlib.import_module("canrls._fixed")
+    except ImportError:
+        return None
+
+
+_CFIXED = _c_kernel()
+
+
+def _spec_kernels() -> ModuleType:
+    """The numba specification (:mod:`canrls.estimation.fixed_kernels`), imported on first
+    use only: the literal and naive forms, a model larger than the C kernel's bound, or a
+    machine without the extension."""
+    return importlib.import_module("canrls.estimation.fixed_kernels")
 
 
 def _nan_error(q: QFormat) -> FixedPointError:
@@ -776,9 +794,13 @@ def _build_plan(
     put(kernels.I_DIVIDEND, "dividend", 1 << fdiv)
     put(kernels.I_GC_S, "gc_s", cfg.lam.frac)
     # single products rounded to their destination
-    put(kernels.I_K_S, "K_s", cfg.h.frac + cfg.g.frac - cfg.K.frac)
-    put(kernels.I_TH_S, "theta_s", cfg.K.frac + cfg.eps.frac - cfg.theta.frac)
-    put(kernels.I_P_S, "P_s", cfg.K.frac + cfg.h.frac - cfg.P.frac)
+    # K = rsh((h~ << k)(gc << g_up), 32): the high word of the product, with gc brought to
+    # 32 bits; its fraction is then f_K' = f_h + k + f_g + g_up - 32 (exponent e)
+    g_up = 32 - cfg.g.bits
+    f_Kn = cfg.h.frac + cfg.g.frac + g_up - 32
+    put(kernels.I_G_UP, "g_up", g_up)
+    put(kernels.I_TH_S, "theta_s", f_Kn + cfg.eps.frac - cfg.theta.frac)
+    put(kernels.I_P_S, "P_s", f_Kn + cfg.h.frac - cfg.P.frac)
     # c <- c / lambda_k
     one_l = 1 << cfg.lam.frac
     inv_l = cfg.lam.to_int(1 / Fraction(lam))
@@ -924,8 +946,10 @@ class FixedStep:
     eps : int
         A-priori error (``eps`` format).
     K : ndarray of int64, shape (n,)
-        Gain applied this step, :math:`K\\,2^{f_K + e}` with ``e = P_exp`` before the
-        renormalisation of this step (zeros when frozen).
+        Gain applied this step, the high word of :math:`(\\tilde h\\,2^{k})(g c\\,2^{g_{up}})`:
+        :math:`K\\,2^{f_h + f_g + g_{up} - 32 + e + k}` with ``e = P_exp`` before the
+        renormalisation of this step and ``k`` the step's normalisation shift of
+        :math:`\\tilde h` (zeros when frozen).
     theta : ndarray of int64, shape (n,)
         Estimate after the step (``theta`` format, a copy).
     trace_P : int
@@ -1123,6 +1147,9 @@ class FixedRLS:
         self._p0 = p0
         self._lam = lam_f
         self._plan, self._named = _build_plan(config, n_i, lam_f, tm)
+        self._cplan: IntArray = self._plan
+        self._cplan_of: IntArray | None = None  # the plan self._cplan was built from
+        self._force_spec = False
         self._trace_frac = config.P.frac - self._named["trace_ps"]
         self._in_fmt = np.array([config.phi._rounding(), config.y._rounding()])
         self._theta = np.zeros(n_i, np.int64)
@@ -1351,10 +1378,9 @@ class FixedRLS:
             self._y1[0] = y_int
         else:
             self._y1[0] = _int_array("y_int", y_int, ())
-        self.count += kernels.fixed_block(
-            self._phi1, self._y1, self._theta, self._P, self._scale, self._work, self._counts,
-            self._plan, self._mode, self._frozen, False,
-            self._eps1, self._norec, self._tr1, self._exp1, self._flags1,
+        self.count += self._block(
+            self._phi1, self._y1, False, self._eps1, self._norec, self._tr1, self._exp1,
+            self._flags1,
         )  # fmt: skip
         return FixedStep(
             eps=int(self._eps1[0]),
@@ -1419,13 +1445,50 @@ class FixedRLS:
         P_exp = np.empty(N, np.int64)
         flags = np.empty(N, np.uint8)
         theta_out = np.empty((N, self._n), np.int64) if record else self._norec
-        applied = int(kernels.fixed_block(
-            Phi_int, Y_int, self._theta, self._P, self._scale, self._work, self._counts,
+        applied = self._block(Phi_int, Y_int, record, eps, theta_out, trace_P, P_exp, flags)
+        self.count += applied
+        return eps, (theta_out if record else None), trace_P, P_exp, flags, applied
+
+    @property
+    def backend(self) -> str:
+        """``"c"``: the blocks run in the C kernel (``canrls._fixed``, the symmetric form
+        with ``n <= N_MAX``); ``"spec"``: in the numba specification
+        (:func:`canrls.estimation.fixed_kernels.fixed_block`). Both give the same integers.
+
+        Set it to ``"spec"`` to run the specification (a test's reference), or to
+        ``"auto"`` for the C kernel wherever it applies (the default).
+        """
+        if (not self._force_spec and _CFIXED is not None
+                and self._mode == kernels.MODE_SYMMETRIC and self._n <= _CFIXED.N_MAX):
+            return "c"
+        return "spec"
+
+    @backend.setter
+    def backend(self, value: str) -> None:
+        if value not in ("spec", "auto"):
+            raise EstimatorError(f"FixedRLS backend must be 'spec' or 'auto', got {value!r}")
+        self._force_spec = value == "spec"
+
+    def _block(self, Phi: IntArray, Y: IntArray, record: bool, eps: IntArray,
+               theta_out: IntArray, trace_P: IntArray, P_exp: IntArray,
+               flags: npt.NDArray[np.uint8]) -> int:
+        """Run the kernel (:attr:`backend`) over a block, in place; rows applied."""
+        if self.backend == "c":
+            assert _CFIXED is not None
+            if self._cplan_of is not self._plan:
+                # the plan in the order of the C struct's fields (canrls_plan_q31)
+                self._cplan = np.array([self._named[f] for f in _CFIXED.PLAN_FIELDS], np.int64)
+                self._cplan_of = self._plan
+            return int(_CFIXED.run_block(
+                Phi, Y, self._theta, self._P, self._scale, self._work[4], self._counts,
+                self._cplan, self._frozen, eps, theta_out if record else None, trace_P,
+                P_exp, flags,
+            ))  # fmt: skip
+        return int(_spec_kernels().fixed_block(
+            Phi, Y, self._theta, self._P, self._scale, self._work, self._counts,
             self._plan, self._mode, self._frozen, record,
             eps, theta_out, trace_P, P_exp, flags,
         ))  # fmt: skip
-        self.count += applied
-        return eps, (theta_out if record else None), trace_P, P_exp, flags, applied
 
     # ----------------------------------------------------------- checkpoint
     def state(self) -> dict[str, Any]:

@@ -75,7 +75,8 @@ Per sample
     \varepsilon &= y - \varphi^\top\theta \\
     \tilde h &= \tilde P\varphi, \quad d = \lambda_k + c\,\varphi^\top\tilde h,
         \quad g = 1/d \\
-    K &= (g c)\,\tilde h \qquad (= P\varphi/(\lambda_k + \varphi^\top P\varphi)) \\
+    K &= (g c)\,\tilde h \qquad (= P\varphi/(\lambda_k + \varphi^\top P\varphi);
+        \text{the high word of } (\tilde h\,2^k)(g c\,2^{g_{up}})) \\
     \theta &\leftarrow \theta + K\varepsilon \\
     \tilde P &\leftarrow \tilde P - K\tilde h^\top \quad\text{(upper triangle only)},
         \qquad c \leftarrow c/\lambda_k
@@ -114,61 +115,74 @@ __all__ = [
     "reference_block",
 ]
 
-#: Saturation counters, in the order of the ``counts`` array.
-SITES: tuple[str, ...] = (
-    "phi_in", "y_in", "eps", "h", "den", "div", "K", "theta", "P", "acc",
-)  # fmt: skip
-NSITES = len(SITES)
-S_PHI, S_Y, S_EPS, S_H, S_DEN, S_DIV, S_K, S_TH, S_P, S_ACC = range(NSITES)
-
-#: ``mode``: symmetric update on the upper triangle (the embedded form).
-MODE_SYMMETRIC = 0
-#: ``mode``: the textbook full-matrix update ``P - K (phi' P)``, for comparison only.
-MODE_LITERAL = 1
-#: ``mode``: the full-matrix update with ``phi' P`` taken as ``(P phi)'`` (equal only
-#: while P is symmetric), as embedded code often writes it; for comparison only.
-MODE_NAIVE = 2
-
-# Flag bits: the values of canrls.estimation.rls.RLSFlag (checked by a test).
-FLAG_WINDUP = 1
-FLAG_LOW_EXCITATION = 2
-FLAG_SATURATION = 4
-FLAG_FROZEN = 8
-
-# ---------------------------------------------------------------- plan layout
-# Word ranges [lo, hi] of every stored quantity (c, the forgetting scale, is a lam word).
-I_PHI_LO, I_PHI_HI, I_Y_LO, I_Y_HI = 0, 1, 2, 3
-I_EPS_LO, I_EPS_HI, I_H_LO, I_H_HI = 4, 5, 6, 7
-I_DEN_LO, I_DEN_HI, I_G_LO, I_G_HI = 8, 9, 10, 11
-I_K_LO, I_K_HI, I_TH_LO, I_TH_HI = 12, 13, 14, 15
-I_P_LO, I_P_HI, I_L_LO, I_L_HI = 16, 17, 18, 19
-# the guard shift of phi shared by the three multiply-accumulates (phi' theta, P~ phi,
-# phi' h~): phi >> PHI_PS enters every sum
-I_PHI_PS = 20
-# eps = y - phi' theta: alignment of y (>0: left), output shift
-I_EPS_TS, I_EPS_OS = 21, 22
-# h = P~ phi (and w = P~' phi): output shift
-I_H_OS = 23
-# s~ = phi' h at lambda's scale: output shift (after >> e)
-I_S_OS = 24
-# s = c s~ (shift of the product), lambda and 1 in the den format
-I_SC_S, I_LAM_D, I_ONE_D = 25, 26, 27
-# g = DIVIDEND // d ; gc = g c
-I_DIVIDEND, I_GC_S = 28, 29
-# single products rounded to their destination: K = gc h~, theta += K eps (+ e),
-# P~ -= K h~' (+ e)
-I_K_S, I_TH_S, I_P_S = 30, 31, 32
-# c <- c / lambda_k: 1/lambda and 1 in the lam format, shift of the product
-I_INV_LAM, I_ONE_L, I_C_S = 33, 34, 35
-# trace bound: guard shift of the diagonal, lambda trace_max at the trace's scale,
-# limit of lambda trace_max 2^e, shift of tr c
-I_TR_PS, I_TMAX, I_TMAX_LIM, I_TC_S = 36, 37, 38, 39
-# windup test: shift of h~ c, pre-shift of h_i w_i, of (tr P - lambda trace_max) d,
-# scale difference of the two sides at e = 0
-I_HC_S, I_VW_PS, I_LHS_PS, I_CMP_DF = 40, 41, 42, 43
-# block exponent: largest e, and tr P~ is kept in (TR_HI/2, TR_HI] once e > 0
-I_E_MAX, I_TR_HI = 44, 45
-NPARAM = 46
+from canrls.estimation.fixed_layout import (  # noqa: F401 - the layout, re-exported
+    SITES,
+    NSITES,
+    S_PHI,
+    S_Y,
+    S_EPS,
+    S_H,
+    S_DEN,
+    S_DIV,
+    S_K,
+    S_TH,
+    S_P,
+    S_ACC,
+    MODE_SYMMETRIC,
+    MODE_LITERAL,
+    MODE_NAIVE,
+    FLAG_WINDUP,
+    FLAG_LOW_EXCITATION,
+    FLAG_SATURATION,
+    FLAG_FROZEN,
+    I_PHI_LO,
+    I_PHI_HI,
+    I_Y_LO,
+    I_Y_HI,
+    I_EPS_LO,
+    I_EPS_HI,
+    I_H_LO,
+    I_H_HI,
+    I_DEN_LO,
+    I_DEN_HI,
+    I_G_LO,
+    I_G_HI,
+    I_K_LO,
+    I_K_HI,
+    I_TH_LO,
+    I_TH_HI,
+    I_P_LO,
+    I_P_HI,
+    I_L_LO,
+    I_L_HI,
+    I_PHI_PS,
+    I_EPS_TS,
+    I_EPS_OS,
+    I_H_OS,
+    I_S_OS,
+    I_SC_S,
+    I_LAM_D,
+    I_ONE_D,
+    I_DIVIDEND,
+    I_GC_S,
+    I_G_UP,
+    I_TH_S,
+    I_P_S,
+    I_INV_LAM,
+    I_ONE_L,
+    I_C_S,
+    I_TR_PS,
+    I_TMAX,
+    I_TMAX_LIM,
+    I_TC_S,
+    I_HC_S,
+    I_VW_PS,
+    I_LHS_PS,
+    I_CMP_DF,
+    I_E_MAX,
+    I_TR_HI,
+    NPARAM,
+)
 
 
 # ------------------------------------------------------- Q-format arithmetic
@@ -244,6 +258,20 @@ def _half(s: int) -> int:  # pragma: no cover - compiled
     if s > 0:
         return np.int64(1) << (s - 1)
     return np.int64(0)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _norm_shift(m: int) -> int:  # pragma: no cover - compiled
+    """The left shift that brings ``0 <= m < 2**31`` to 30 bits: ``30 - bit_length(m)``.
+
+    ``x << k`` then lies in ``[-2**30, 2**30)`` for every ``x`` with ``x ^ (x >> 63) <= m``
+    (on the target: ``clz(m) - 2``; 30 for ``m = 0``).
+    """
+    k = 30
+    while m > 0:
+        m >>= 1
+        k -= 1
+    return max(k, 0)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -334,8 +362,6 @@ def fixed_block(
     den_hi = prm[I_DEN_HI]
     g_lo = prm[I_G_LO]
     g_hi = prm[I_G_HI]
-    K_lo = prm[I_K_LO]
-    K_hi = prm[I_K_HI]
     th_lo = prm[I_TH_LO]
     th_hi = prm[I_TH_HI]
     P_lo = prm[I_P_LO]
@@ -351,7 +377,7 @@ def fixed_block(
     one_d = prm[I_ONE_D]
     dividend = prm[I_DIVIDEND]
     gc_s = prm[I_GC_S]
-    K_s = prm[I_K_S]
+    g_up = prm[I_G_UP]
     th_s0 = prm[I_TH_S]
     P_s0 = prm[I_P_S]
     inv_lam = prm[I_INV_LAM]
@@ -504,17 +530,32 @@ def fixed_block(
             gc, cc = saturate(_rsh(g * c, gc_s), g_lo, g_hi)
             c_div += cc
 
-            th_s = th_s0 + e
-            # K h~' has exponent 2e, P~ exponent e
-            P_s = P_s0 + e
+            # normalisation of the updates (once per step): h~, w~ and eps shifted left
+            # (exactly) to 31 bits, so that the theta and P updates take the high word
+            # of their products (shifts >= 32 in the steady state; docs/fixed_point.md)
+            m = np.int64(0)
+            for i in range(n):
+                m |= h[i] ^ (h[i] >> 63)
+                m |= w[i] ^ (w[i] >> 63)
+            kn = _norm_shift(m)
+            kn = min(kn, (62 - P_s0 - e) >> 1, 62 - th_s0 - e)
+            ke = min(_norm_shift(eps ^ (eps >> 63)), 62 - th_s0 - e - kn)
+            epn = eps << ke
+            gcn = gc << g_up
+            th_s = th_s0 + e + kn + ke
+            # K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each
+            P_s = P_s0 + e + 2 * kn
             low = True
             for i in range(n):
-                # K = P phi / (lambda + phi' P phi) = (g c) h~
-                Ki, cc = saturate(_rsh(h[i] * gc, K_s), K_lo, K_hi)
-                c_K += cc
+                hs = h[i] << kn
+                h[i] = hs
+                w[i] = w[i] << kn
+            for i in range(n):
+                # K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded
+                Ki = (h[i] * gcn + (np.int64(1) << 31)) >> 32
                 K[i] = Ki
-                # theta <- theta + K eps      (K carries the exponent e: shifted out here)
-                v, cc = saturate(theta[i] + _rsh(Ki * eps, th_s), th_lo, th_hi)
+                # theta <- theta + K eps      (K carries the exponent e + kn: shifted out here)
+                v, cc = saturate(theta[i] + _rsh(Ki * epn, th_s), th_lo, th_hi)
                 c_th += cc
                 theta[i] = v
                 # low excitation: the information K_i w~_i rounds to zero on the whole diagonal
@@ -756,18 +797,33 @@ def reference_block(
         else:
             g = sat(p[I_DIVIDEND] // d, p[I_G_LO], p[I_G_HI], S_DIV)
         gc = sat(rsh(mul(g, c), p[I_GC_S]), p[I_G_LO], p[I_G_HI], S_DIV)
-        # K = (g c) h~
-        K = [sat(rsh(mul(h[i], gc), p[I_K_S]), p[I_K_LO], p[I_K_HI], S_K) for i in range(n)]
+        # normalisation: h~, w~ and eps shifted left to 31 bits (k, ke)
+        def norm(m: int) -> int:
+            assert 0 <= m < (1 << 31)
+            return max(30 - m.bit_length(), 0)
+
+        m = 0
+        for x in h + w:
+            m |= x if x >= 0 else -x - 1
+        e0 = e
+        k = min(norm(m), (62 - p[I_P_S] - e0) // 2, 62 - p[I_TH_S] - e0)
+        ke = min(norm(eps if eps >= 0 else -eps - 1), 62 - p[I_TH_S] - e0 - k)
+        hs = [x * (1 << k) for x in h]
+        ws = [x * (1 << k) for x in w]
+        gcn = gc * (1 << p[I_G_UP])
+        assert all(-(1 << 31) <= x < (1 << 31) for x in hs + ws) and 0 <= gcn < (1 << 31)
+        # K = (g c) h~: the high word of the product, rounded half up
+        K = [rsh(mul(hs[i], gcn), 32) for i in range(n)]
         # theta <- theta + K eps
         for i in range(n):
-            t = rsh(mul(K[i], eps), p[I_TH_S] + e)
+            t = rsh(mul(K[i], eps * (1 << ke)), p[I_TH_S] + e + k + ke)
             theta[i] = sat(theta[i] + t, p[I_TH_LO], p[I_TH_HI], S_TH)
         # P~ <- P~ - K w~'   (upper triangle, or the full matrix for literal)
-        ps = p[I_P_S] + e
-        low = all(rsh(mul(K[i], w[i]), ps) == 0 for i in range(n))
+        ps = p[I_P_S] + e + 2 * k
+        low = all(rsh(mul(K[i], ws[i]), ps) == 0 for i in range(n))
         for i in range(n):
             for j in range(i if mode == MODE_SYMMETRIC else 0, n):
-                P[i][j] = sat(P[i][j] - rsh(mul(K[i], w[j]), ps), p[I_P_LO], p[I_P_HI], S_P)
+                P[i][j] = sat(P[i][j] - rsh(mul(K[i], ws[j]), ps), p[I_P_LO], p[I_P_HI], S_P)
         if low:
             flag |= FLAG_LOW_EXCITATION
         # c <- c / lambda_k ; c > 1: halve it (e - 1) or fold it into the words (e = 0)

@@ -1,0 +1,120 @@
+"""The compiled extension ``canrls._fixed`` (the C kernel in the service) against the spec.
+
+:class:`FixedRLS` runs its blocks through the extension (``backend == "c"``); these tests
+run the same blocks through the numba specification (``backend = "spec"``) and the
+pure-Python :func:`reference_block`, and require the same integers: eps, trace, exponent,
+flags, theta after every row, every word of P, the forgetting scale, K and the counters.
+The cases are the C kernel's test vectors (tests/test_ckernel.py).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from canrls.estimation.fixed import FixedConfig, FixedRLS
+
+cfixed = pytest.importorskip(
+    "canrls._fixed", reason="the C extension is not built (pip install builds it)"
+)
+
+import test_ckernel  # noqa: E402  (the vector cases)
+
+
+def _run(est: FixedRLS, Phi: np.ndarray, Y: np.ndarray, frozen: np.ndarray) -> list[object]:
+    """Run the rows in blocks split where ``frozen`` changes; everything observable."""
+    out: list[object] = []
+    k = 0
+    while k < len(Y):
+        j = k
+        while j < len(Y) and frozen[j] == frozen[k]:
+            j += 1
+        est.freeze() if frozen[k] else est.resume()
+        tr = est.run(Phi[k:j], Y[k:j], record=True)
+        out += [tr.eps, tr.theta, tr.trace_P, tr.P_exp, tr.flags, tr.applied]
+        k = j
+    st = est.state()
+    out += [st["theta"], np.triu(st["P"]), st["P_exp"], st["P_scale"], st["counts"]]
+    return out
+
+
+def _same(a: list[object], b: list[object]) -> None:
+    assert len(a) == len(b)
+    for i, (x, y) in enumerate(zip(a, b, strict=True)):
+        assert np.array_equal(np.asarray(x), np.asarray(y)), f"item {i} differs"
+
+
+@pytest.mark.parametrize("case", test_ckernel._all_cases(), ids=lambda c: c.name)
+def test_extension_equals_spec_on_the_vectors(case: test_ckernel.Case) -> None:
+    c_est = FixedRLS.from_state(case.est.state())
+    s_est = FixedRLS.from_state(case.est.state())
+    s_est.backend = "spec"
+    assert c_est.backend == "c" and s_est.backend == "spec"
+    _same(_run(c_est, case.Phi, case.Y, case.frozen), _run(s_est, case.Phi, case.Y, case.frozen))
+
+
+@pytest.mark.parametrize("case", test_ckernel._all_cases()[:4], ids=lambda c: c.name)
+def test_update_equals_spec_step_by_step(case: test_ckernel.Case) -> None:
+    c_est = FixedRLS.from_state(case.est.state())
+    s_est = FixedRLS.from_state(case.est.state())
+    s_est.backend = "spec"
+    for k in range(len(case.Y)):
+        for est in (c_est, s_est):
+            est.freeze() if case.frozen[k] else est.resume()
+        a = c_est.update(case.Phi[k], int(case.Y[k]))
+        b = s_est.update(case.Phi[k], int(case.Y[k]))
+        assert (a.eps, a.trace_P, a.P_exp, a.flags) == (b.eps, b.trace_P, b.P_exp, b.flags)
+        assert np.array_equal(a.K, b.K) and np.array_equal(a.theta, b.theta)
+    assert np.array_equal(c_est.P, s_est.P) and c_est.saturations == s_est.saturations
+
+
+def test_inputs_beyond_int32_are_clamped_and_counted_as_the_spec_does() -> None:
+    n = 3
+    cfg = FixedConfig.auto(n, 1e-2, 0.99)
+    rng = np.random.default_rng(7)
+    Phi = rng.integers(-(1 << 40), 1 << 40, (50, n))
+    Y = rng.integers(-(1 << 40), 1 << 40, 50)
+    a, b = FixedRLS(cfg, n, 0.99, 1e-2), FixedRLS(cfg, n, 0.99, 1e-2)
+    b.backend = "spec"
+    _same(_run(a, Phi, Y, np.zeros(50, bool)), _run(b, Phi, Y, np.zeros(50, bool)))
+    assert a.saturations["phi_in"] == 150 and a.saturations["y_in"] == 50
+
+
+def test_literal_and_large_models_use_the_spec() -> None:
+    cfg = FixedConfig.auto(3, 1e-2, 0.99)
+    assert FixedRLS(cfg, 3, 0.99, 1e-2, update="literal").backend == "spec"
+    n = cfixed.N_MAX + 1
+    assert FixedRLS(FixedConfig.auto(n, 1e-2, 0.99), n, 0.99, 1e-2).backend == "spec"
+    with pytest.raises(ValueError, match="backend"):
+        FixedRLS(cfg, 3, 0.99, 1e-2).backend = "fast"
+
+
+def test_fixed_runs_without_importing_the_numba_spec() -> None:
+    """fixed.py itself imports no numba: the spec kernels load only when needed."""
+    code = (
+        "import sys\n"
+        "import numpy as np\n"
+        "from canrls.estimation.fixed import FixedConfig, FixedRLS\n"
+        "cfg = FixedConfig.auto(3, 1e-2, 0.99)\n"
+        "est = FixedRLS(cfg, 3, 0.99, 1e-2)\n"
+        "Pq, Yq = est.quantize_block(np.ones((4, 3)), np.ones(4))\n"
+        "est.run(Pq, Yq)\n"
+        "print('canrls.estimation.fixed_kernels' in sys.modules)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       check=True)
+    assert r.stdout.strip() == "False"
+
+
+def test_run_block_names_a_wrong_buffer() -> None:
+    n, N = 3, 4
+    z = np.zeros
+    args = [z((N, n), np.int64), z(N, np.int64), z(n, np.int64), z((n, n), np.int64),
+            z(2, np.int64), z(n, np.int64), z(cfixed.NSITES, np.int64),
+            z(len(cfixed.PLAN_FIELDS), np.int64), False, z(N, np.int64), None,
+            z(N, np.int64), z(N + 1, np.int64), z(N, np.uint8)]
+    with pytest.raises(ValueError, match="exp: expected 4 items"):
+        cfixed.run_block(*args)
