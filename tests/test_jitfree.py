@@ -65,9 +65,6 @@ def test_the_can_layer_imports_no_jit() -> None:
         f"the CAN layer loaded {report['jit']}, imported at {', '.join(report['where'])}")
 
 
-@pytest.mark.xfail(strict=True, reason="the estimation kernels (canrls.estimation: model, "
-                   "svf, selection, float_kernels, fixed, fixed_kernels, pipeline) still "
-                   "import numba until the C extension canrls._kernels replaces them")
 def test_the_daemon_imports_no_jit() -> None:
     code = f"CHANNEL = 'canrls-jitfree-{os.getpid()}'\n" + DAEMON
     report = _jit_report(code)
