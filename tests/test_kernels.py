@@ -146,14 +146,18 @@ def run_unwrap(K: Any) -> list[Any]:
     return out
 
 
-def run_bookkeeping(K: Any) -> list[Any]:
+def bookkeeping_inputs() -> tuple[F64, F64, npt.NDArray[np.bool_], F64, npt.NDArray[np.int64]]:
+    """phi (300, 5), y, use, and the float and fixed-point errors of the used rows."""
     N, n = 300, 5
-    phi = uniform(8, N * n).reshape(N, n)
-    y = uniform(9, N)
     use = uniform(10, N) < 0.4
     u = int(use.sum())
-    eps_u = uniform(12, u)
-    epsq_u = (uniform(13, u) * 2.0**31).astype(np.int64)
+    return (uniform(8, N * n).reshape(N, n), uniform(9, N), use, uniform(12, u),
+            (uniform(13, u) * 2.0**31).astype(np.int64))
+
+
+def run_bookkeeping(K: Any) -> list[Any]:
+    phi, y, use, eps_u, epsq_u = bookkeeping_inputs()
+    (N, n), u = phi.shape, len(eps_u)
     flags_u = ((uniform(14, u) + 1.0) * 16).astype(np.uint8)
     flagsq_u = ((uniform(15, u) + 1.0) * 2).astype(np.uint8)
     out: list[Any] = []
@@ -283,13 +287,8 @@ def test_unwrap_is_the_documented_rule() -> None:
 
 
 def test_bookkeeping_is_the_documented_sums() -> None:
-    N, n = 300, 5
-    phi = uniform(8, N * n).reshape(N, n)
-    y = uniform(9, N)
-    use = uniform(10, N) < 0.4
-    u = int(use.sum())
-    eps_u = uniform(12, u)
-    epsq_u = (uniform(13, u) * 2.0**31).astype(np.int64)
+    phi, y, use, eps_u, epsq_u = bookkeeping_inputs()
+    N, n = phi.shape
     M, v, s = [[0.0] * n for _ in range(n)], [0.0] * n, [0.0, 0.0, 0.0]
     r, i, e_out, ef_out, rms = 0.5, 0, [], [], []
     for k in range(N):
@@ -372,7 +371,7 @@ def test_the_wrappers_refuse_wrong_arrays_with_named_errors() -> None:
                      *(np.zeros(2) for _ in range(3)), np.zeros(1, np.int64),
                      np.zeros((5, 2)), np.zeros((5, 2)))
     use = np.ones(4, np.bool_)
-    with pytest.raises(ValueError, match="must hold the 4 used rows"):
+    with pytest.raises(ValueError, match="eps_u must have as many rows as use has used rows"):
         _kernels.bookkeeping(np.zeros((4, 2)), np.zeros(4), use, np.zeros(3),
                              np.zeros(4, np.int64), 1.0, np.zeros(4, np.uint8),
                              np.zeros(4, np.uint8), np.zeros((2, 2)), np.zeros(2),

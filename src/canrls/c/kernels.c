@@ -257,8 +257,9 @@ static Py_ssize_t bookkeeping(Py_ssize_t N, Py_ssize_t n, const double *phi,
 }
 
 /* ================================================================= Python glue */
-/* The item types the wrappers take: float64, float32, int64, uint8 and bool. */
-enum kind { F64, F32, I64, U8, BOOL };
+/* The item types the wrappers take: float64, float32, int64, uint8, bool, and REAL:
+ * the precision of the call (an RLS state's dtype, float64 elsewhere). */
+enum kind { F64, F32, I64, U8, BOOL, REAL_ };
 
 static const char *kind_name[] = {"float64", "float32", "int64", "uint8", "bool"};
 
@@ -276,12 +277,13 @@ static int is_kind(const Py_buffer *b, enum kind k)
     case I64: return (f[0] == 'q' || f[0] == 'l') && b->itemsize == 8;
     case U8: return f[0] == 'B' && b->itemsize == 1;
     case BOOL: return f[0] == '?' && b->itemsize == 1;
+    case REAL_: break;
     }
     return 0;
 }
 
 /* Whether o is a float32 buffer (the precision of an RLS state; anything else is
- * taken as float64, and buf() says what is wrong with it). */
+ * taken as float64, and take() says what is wrong with it). */
 static int is_single(PyObject *o)
 {
     Py_buffer b;
@@ -295,6 +297,16 @@ static int is_single(PyObject *o)
 }
 
 #define MAX_BUFS 20
+enum { RO = 0, RW = 1 };
+
+/* One array argument: its position, name, item type, dimensions, whether written. */
+typedef struct {
+    int arg;
+    const char *name;
+    enum kind kind;
+    int ndim;
+    int writable;
+} Spec;
 
 /* The buffers one call holds (released together by release()). */
 typedef struct {
@@ -310,74 +322,83 @@ static void release(Args *a)
     a->count = 0;
 }
 
-/* The C-contiguous buffer of argument `name` with item type k and ndim dimensions
- * (written to when `writable`); NULL with an exception set otherwise. */
-static Py_buffer *buf(Args *a, PyObject *o, const char *name, enum kind k, int ndim,
-                      int writable)
+/* Whether the call has `want` arguments (TypeError otherwise). */
+static int start(Args *a, Py_ssize_t nargs, Py_ssize_t want)
 {
-    if (a->count == MAX_BUFS) {
-        PyErr_Format(PyExc_SystemError, "%s: more than %d arrays", a->fn, MAX_BUFS);
-        return NULL;
-    }
-    Py_buffer *b = &a->b[a->count];
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(o, b, flags) < 0) {
-        PyErr_Clear();
-        PyErr_Format(PyExc_TypeError,
-                     "%s: %s must be a C-contiguous%s %s array, got %.100s", a->fn, name,
-                     writable ? " writable" : "", kind_name[k], Py_TYPE(o)->tp_name);
-        return NULL;
-    }
-    a->count++;
-    if (!is_kind(b, k)) {
-        PyErr_Format(PyExc_TypeError, "%s: %s must be a %s array, got format '%s'", a->fn,
-                     name, kind_name[k], b->format ? b->format : "B");
-        return NULL;
-    }
-    if (b->ndim != ndim) {
-        PyErr_Format(PyExc_ValueError, "%s: %s must have %d dimension(s), got %d", a->fn,
-                     name, ndim, b->ndim);
-        return NULL;
-    }
-    return b;
+    if (nargs == want)
+        return 1;
+    PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", a->fn, want, nargs);
+    return 0;
 }
 
-/* Size of dimension d of a buffer (1 for a 0-d one). */
+/* The C-contiguous buffers of the array arguments in spec, into b[0..count) (REAL_
+ * items are `real`); 0 with TypeError or ValueError set when one is not as spec says. */
+static int take(Args *a, PyObject *const *args, const Spec *spec, int count,
+                Py_buffer **b, enum kind real)
+{
+    for (int i = 0; i < count; i++) {
+        const Spec *s = &spec[i];
+        const enum kind k = s->kind == REAL_ ? real : s->kind;
+        PyObject *o = args[s->arg];
+        if (a->count == MAX_BUFS) {
+            PyErr_Format(PyExc_SystemError, "%s: more than %d arrays", a->fn, MAX_BUFS);
+            return 0;
+        }
+        Py_buffer *v = &a->b[a->count];
+        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (s->writable ? PyBUF_WRITABLE : 0);
+        if (PyObject_GetBuffer(o, v, flags) < 0) {
+            PyErr_Clear();
+            PyErr_Format(PyExc_TypeError,
+                         "%s: %s must be a C-contiguous%s %s array, got %.100s", a->fn,
+                         s->name, s->writable ? " writable" : "", kind_name[k],
+                         Py_TYPE(o)->tp_name);
+            return 0;
+        }
+        a->count++;
+        if (!is_kind(v, k)) {
+            PyErr_Format(PyExc_TypeError, "%s: %s must be a %s array, got format '%s'",
+                         a->fn, s->name, kind_name[k], v->format ? v->format : "B");
+            return 0;
+        }
+        if (v->ndim != s->ndim) {
+            PyErr_Format(PyExc_ValueError, "%s: %s must have %d dimension(s), got %d", a->fn,
+                         s->name, s->ndim, v->ndim);
+            return 0;
+        }
+        b[i] = v;
+    }
+    return 1;
+}
+
+/* Size of dimension d of a buffer (1 beyond its dimensions). */
 static Py_ssize_t dim(const Py_buffer *b, int d)
 {
     return d < b->ndim ? b->shape[d] : 1;
 }
 
-static int bad_shape(Args *a, const char *name, const char *what)
-{
-    PyErr_Format(PyExc_ValueError, "%s: %s must have %s", a->fn, name, what);
-    return -1;
-}
-
-/* Shape check: buffer b has `rows` rows (dimension 0) and, when cols >= 0, `cols`
- * columns (dimension 1). */
+/* Whether buffer b has `rows` rows (dimension 0) and, when cols >= 0, `cols` columns
+ * (dimension 1); ValueError naming the shape otherwise. */
 static int need(Args *a, const Py_buffer *b, const char *name, Py_ssize_t rows,
                 Py_ssize_t cols)
 {
-    if (dim(b, 0) != rows || (cols >= 0 && dim(b, 1) != cols)) {
-        char what[96];
-        if (cols >= 0)
-            PyOS_snprintf(what, sizeof what, "shape (%zd, %zd)", rows, cols);
-        else
-            PyOS_snprintf(what, sizeof what, "shape (%zd,)", rows);
-        return bad_shape(a, name, what);
-    }
+    if (dim(b, 0) == rows && (cols < 0 || dim(b, 1) == cols))
+        return 1;
+    if (cols >= 0)
+        PyErr_Format(PyExc_ValueError, "%s: %s must have shape (%zd, %zd)", a->fn, name, rows,
+                     cols);
+    else
+        PyErr_Format(PyExc_ValueError, "%s: %s must have shape (%zd,)", a->fn, name, rows);
     return 0;
 }
 
-static int nargs_ok(const char *fn, Py_ssize_t nargs, Py_ssize_t want)
+/* Whether buffer b has at least `rows` rows (ValueError saying `what` otherwise). */
+static int at_least(Args *a, const Py_buffer *b, const char *name, Py_ssize_t rows,
+                    const char *what)
 {
-    if (nargs != want) {
-        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", fn, want,
-                     nargs);
-        return 0;
-    }
-    return 1;
+    if (dim(b, 0) >= rows)
+        return 1;
+    PyErr_Format(PyExc_ValueError, "%s: %s must have %s", a->fn, name, what);
+    return 0;
 }
 
 static int as_double(PyObject *o, double *x)
@@ -405,6 +426,7 @@ static int as_bool(PyObject *o, int *x)
 #define F(b) ((float *)(b)->buf)
 #define U(b) ((uint8_t *)(b)->buf)
 #define I(b) ((int64_t *)(b)->buf)
+#define COUNT(spec) ((int)(sizeof spec / sizeof spec[0]))
 
 /* ------------------------------------------------------------------ RLS glue */
 typedef Py_ssize_t (*rls64_fn)(Py_ssize_t, Py_ssize_t, const double *, const double *,
@@ -417,49 +439,45 @@ typedef Py_ssize_t (*rls32_fn)(Py_ssize_t, Py_ssize_t, const float *, const floa
 static PyObject *rls_call(const char *fn, rls64_fn k64, rls32_fn k32, PyObject *const *args,
                           Py_ssize_t nargs)
 {
-    if (!nargs_ok(fn, nargs, 14))
-        return NULL;
+    static const Spec spec[] = {
+        {0, "Phi", REAL_, 2, RO}, {1, "Y", REAL_, 1, RO}, {2, "theta", REAL_, 1, RW},
+        {3, "P", REAL_, 2, RW}, {4, "work", REAL_, 2, RW}, {5, "acc", REAL_, 1, RW},
+        {10, "eps_out", REAL_, 1, RW}, {11, "theta_out", REAL_, 2, RW},
+        {12, "trace_out", REAL_, 1, RW}, {13, "flags_out", U8, 1, RW},
+    };
     Args a = {.fn = fn, .count = 0};
+    Py_buffer *b[COUNT(spec)];
     double lam, trace_max;
     int frozen, record;
-    Py_ssize_t applied = 0;
-    if (!as_double(args[6], &lam) || !as_double(args[7], &trace_max)
+    PyObject *res = NULL;
+    if (!start(&a, nargs, 14) || !as_double(args[6], &lam) || !as_double(args[7], &trace_max)
         || !as_bool(args[8], &frozen) || !as_bool(args[9], &record))
         return NULL;
+    /* the dtype of the state decides the precision: theta's */
     const int single = is_single(args[2]);
-    const enum kind r = single ? F32 : F64;
-    Py_buffer *Phi = buf(&a, args[0], "Phi", r, 2, 0);
-    Py_buffer *Y = Phi ? buf(&a, args[1], "Y", r, 1, 0) : NULL;
-    Py_buffer *theta = Y ? buf(&a, args[2], "theta", r, 1, 1) : NULL;
-    Py_buffer *P = theta ? buf(&a, args[3], "P", r, 2, 1) : NULL;
-    Py_buffer *work = P ? buf(&a, args[4], "work", r, 2, 1) : NULL;
-    Py_buffer *acc = work ? buf(&a, args[5], "acc", r, 1, 1) : NULL;
-    Py_buffer *eps = acc ? buf(&a, args[10], "eps_out", r, 1, 1) : NULL;
-    Py_buffer *th = eps ? buf(&a, args[11], "theta_out", r, 2, 1) : NULL;
-    Py_buffer *tr = th ? buf(&a, args[12], "trace_out", r, 1, 1) : NULL;
-    Py_buffer *fl = tr ? buf(&a, args[13], "flags_out", U8, 1, 1) : NULL;
-    if (!fl)
-        goto fail;
-    const Py_ssize_t n = dim(theta, 0), N = dim(Phi, 0);
-    if (need(&a, Phi, "Phi", N, n) || need(&a, Y, "Y", N, -1) || need(&a, P, "P", n, n)
-        || need(&a, work, "work", 3, n) || need(&a, acc, "acc", 2, -1)
-        || need(&a, eps, "eps_out", N, -1) || need(&a, tr, "trace_out", N, -1)
-        || need(&a, fl, "flags_out", N, -1)
-        || need(&a, th, "theta_out", record ? N : dim(th, 0), n))
-        goto fail;
-    Py_BEGIN_ALLOW_THREADS
-    if (single)
-        applied = k32(N, n, F(Phi), F(Y), F(theta), F(P), F(work), F(acc), (float)lam,
-                      (float)trace_max, frozen, record, F(eps), F(th), F(tr), U(fl));
-    else
-        applied = k64(N, n, D(Phi), D(Y), D(theta), D(P), D(work), D(acc), lam, trace_max,
-                      frozen, record, D(eps), D(th), D(tr), U(fl));
-    Py_END_ALLOW_THREADS
+    if (take(&a, args, spec, COUNT(spec), b, single ? F32 : F64)) {
+        Py_buffer *Phi = b[0], *Y = b[1], *theta = b[2], *P = b[3], *work = b[4], *acc = b[5],
+                  *eps = b[6], *th = b[7], *tr = b[8], *fl = b[9];
+        const Py_ssize_t n = dim(theta, 0), N = dim(Phi, 0);
+        if (need(&a, Phi, "Phi", N, n) && need(&a, Y, "Y", N, -1) && need(&a, P, "P", n, n)
+            && need(&a, work, "work", 3, n) && need(&a, acc, "acc", 2, -1)
+            && need(&a, eps, "eps_out", N, -1) && need(&a, tr, "trace_out", N, -1)
+            && need(&a, fl, "flags_out", N, -1)
+            && need(&a, th, "theta_out", record ? N : dim(th, 0), n)) {
+            Py_ssize_t applied;
+            Py_BEGIN_ALLOW_THREADS
+            if (single)
+                applied = k32(N, n, F(Phi), F(Y), F(theta), F(P), F(work), F(acc), (float)lam,
+                              (float)trace_max, frozen, record, F(eps), F(th), F(tr), U(fl));
+            else
+                applied = k64(N, n, D(Phi), D(Y), D(theta), D(P), D(work), D(acc), lam,
+                              trace_max, frozen, record, D(eps), D(th), D(tr), U(fl));
+            Py_END_ALLOW_THREADS
+            res = PyLong_FromSsize_t(applied);
+        }
+    }
     release(&a);
-    return PyLong_FromSsize_t(applied);
-fail:
-    release(&a);
-    return NULL;
+    return res;
 }
 
 PyDoc_STRVAR(rls_block_symmetric_doc,
@@ -495,42 +513,36 @@ PyDoc_STRVAR(trace_of_doc,
 
 static PyObject *py_trace_of(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    (void)self;
-    if (!nargs_ok("trace_of", nargs, 1))
-        return NULL;
+    static const Spec spec[] = {{0, "P", REAL_, 2, RO}};
     Args a = {.fn = "trace_of", .count = 0};
-    const int single = is_single(args[0]);
-    Py_buffer *P = buf(&a, args[0], "P", single ? F32 : F64, 2, 0);
-    if (!P || need(&a, P, "P", dim(P, 1), dim(P, 1))) {
-        release(&a);
-        return NULL;
+    Py_buffer *P;
+    PyObject *res = NULL;
+    (void)self;
+    if (start(&a, nargs, 1)) {
+        const int single = is_single(args[0]);
+        if (take(&a, args, spec, 1, &P, single ? F32 : F64)
+            && need(&a, P, "P", dim(P, 1), dim(P, 1)))
+            res = PyFloat_FromDouble(single ? (double)trace_of_f32(dim(P, 0), F(P))
+                                            : trace_of_f64(dim(P, 0), D(P)));
     }
-    const double tr = single ? (double)trace_of_f32(dim(P, 0), F(P))
-                             : trace_of_f64(dim(P, 0), D(P));
     release(&a);
-    return PyFloat_FromDouble(tr);
+    return res;
 }
 
 /* ------------------------------------------------------------------ SVF glue */
-/* The arguments svf() and svf_scaled() share: u, Ad, G0, G1, x1, x2, up, primed. */
-static int svf_args(Args *a, PyObject *const *args, Py_buffer **u, Py_buffer **Ad,
-                    Py_buffer **G0, Py_buffer **G1, Py_buffer **x1, Py_buffer **x2,
-                    Py_buffer **up, Py_buffer **primed)
+/* The arrays svf() and svf_scaled() share (arguments 0 to 7), checked against u (N, m). */
+static const Spec svf_spec[] = {
+    {0, "u", F64, 2, RO}, {1, "Ad", F64, 2, RO}, {2, "G0", F64, 2, RO}, {3, "G1", F64, 2, RO},
+    {4, "x1", F64, 1, RW}, {5, "x2", F64, 1, RW}, {6, "up", F64, 1, RW},
+    {7, "primed", I64, 1, RW},
+};
+
+static int svf_shapes(Args *a, Py_buffer **b)
 {
-    if (!(*u = buf(a, args[0], "u", F64, 2, 0)) || !(*Ad = buf(a, args[1], "Ad", F64, 2, 0))
-        || !(*G0 = buf(a, args[2], "G0", F64, 2, 0))
-        || !(*G1 = buf(a, args[3], "G1", F64, 2, 0))
-        || !(*x1 = buf(a, args[4], "x1", F64, 1, 1))
-        || !(*x2 = buf(a, args[5], "x2", F64, 1, 1))
-        || !(*up = buf(a, args[6], "up", F64, 1, 1))
-        || !(*primed = buf(a, args[7], "primed", I64, 1, 1)))
-        return -1;
-    const Py_ssize_t m = dim(*u, 1);
-    if (need(a, *Ad, "Ad", 2, 2) || need(a, *G0, "G0", m, 2) || need(a, *G1, "G1", m, 2)
-        || need(a, *x1, "x1", m, -1) || need(a, *x2, "x2", m, -1)
-        || need(a, *up, "up", m, -1) || need(a, *primed, "primed", 1, -1))
-        return -1;
-    return 0;
+    const Py_ssize_t m = dim(b[0], 1);
+    return need(a, b[1], "Ad", 2, 2) && need(a, b[2], "G0", m, 2) && need(a, b[3], "G1", m, 2)
+           && need(a, b[4], "x1", m, -1) && need(a, b[5], "x2", m, -1)
+           && need(a, b[6], "up", m, -1) && need(a, b[7], "primed", 1, -1);
 }
 
 PyDoc_STRVAR(svf_doc,
@@ -540,25 +552,25 @@ PyDoc_STRVAR(svf_doc,
 
 static PyObject *py_svf(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    (void)self;
-    if (!nargs_ok("svf", nargs, 10))
-        return NULL;
+    static const Spec out_spec[] = {{8, "f", F64, 2, RW}, {9, "sf", F64, 2, RW}};
     Args a = {.fn = "svf", .count = 0};
-    Py_buffer *u, *Ad, *G0, *G1, *x1, *x2, *up, *primed, *f, *sf;
-    if (svf_args(&a, args, &u, &Ad, &G0, &G1, &x1, &x2, &up, &primed)
-        || !(f = buf(&a, args[8], "f", F64, 2, 1)) || !(sf = buf(&a, args[9], "sf", F64, 2, 1)))
-        goto fail;
-    const Py_ssize_t N = dim(u, 0), m = dim(u, 1);
-    if (need(&a, f, "f", N, m) || need(&a, sf, "sf", N, m))
-        goto fail;
-    Py_BEGIN_ALLOW_THREADS
-    svf(N, m, D(u), D(Ad), D(G0), D(G1), D(x1), D(x2), D(up), I(primed), D(f), D(sf));
-    Py_END_ALLOW_THREADS
+    Py_buffer *b[COUNT(svf_spec) + COUNT(out_spec)];
+    Py_buffer **o = b + COUNT(svf_spec);
+    PyObject *res = NULL;
+    (void)self;
+    if (start(&a, nargs, 10) && take(&a, args, svf_spec, COUNT(svf_spec), b, F64)
+        && take(&a, args, out_spec, COUNT(out_spec), o, F64) && svf_shapes(&a, b)) {
+        const Py_ssize_t N = dim(b[0], 0), m = dim(b[0], 1);
+        if (need(&a, o[0], "f", N, m) && need(&a, o[1], "sf", N, m)) {
+            Py_BEGIN_ALLOW_THREADS
+            svf(N, m, D(b[0]), D(b[1]), D(b[2]), D(b[3]), D(b[4]), D(b[5]), D(b[6]), I(b[7]),
+                D(o[0]), D(o[1]));
+            Py_END_ALLOW_THREADS
+            res = Py_NewRef(Py_None);
+        }
+    }
     release(&a);
-    Py_RETURN_NONE;
-fail:
-    release(&a);
-    return NULL;
+    return res;
 }
 
 PyDoc_STRVAR(svf_scaled_doc,
@@ -568,34 +580,29 @@ PyDoc_STRVAR(svf_scaled_doc,
 
 static PyObject *py_svf_scaled(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    (void)self;
-    if (!nargs_ok("svf_scaled", nargs, 12))
-        return NULL;
+    static const Spec out_spec[] = {{8, "deriv", BOOL, 1, RO}, {9, "scale", F64, 1, RO},
+                                    {10, "y", F64, 1, RW}, {11, "phi", F64, 2, RW}};
     Args a = {.fn = "svf_scaled", .count = 0};
-    Py_buffer *u, *Ad, *G0, *G1, *x1, *x2, *up, *primed, *deriv, *scale, *y, *phi;
-    if (svf_args(&a, args, &u, &Ad, &G0, &G1, &x1, &x2, &up, &primed)
-        || !(deriv = buf(&a, args[8], "deriv", BOOL, 1, 0))
-        || !(scale = buf(&a, args[9], "scale", F64, 1, 0))
-        || !(y = buf(&a, args[10], "y", F64, 1, 1))
-        || !(phi = buf(&a, args[11], "phi", F64, 2, 1)))
-        goto fail;
-    const Py_ssize_t N = dim(u, 0), m = dim(u, 1);
-    if (m < 1) {
-        bad_shape(&a, "u", "at least one column (the target)");
-        goto fail;
+    Py_buffer *b[COUNT(svf_spec) + COUNT(out_spec)];
+    Py_buffer **o = b + COUNT(svf_spec);
+    PyObject *res = NULL;
+    (void)self;
+    if (start(&a, nargs, 12) && take(&a, args, svf_spec, COUNT(svf_spec), b, F64)
+        && take(&a, args, out_spec, COUNT(out_spec), o, F64) && svf_shapes(&a, b)) {
+        const Py_ssize_t N = dim(b[0], 0), m = dim(b[0], 1);
+        if (m < 1)
+            PyErr_Format(PyExc_ValueError, "svf_scaled: u must have a column (the target)");
+        else if (need(&a, o[0], "deriv", m, -1) && need(&a, o[1], "scale", m, -1)
+                 && need(&a, o[2], "y", N, -1) && need(&a, o[3], "phi", N, m - 1)) {
+            Py_BEGIN_ALLOW_THREADS
+            svf_scaled(N, m, D(b[0]), D(b[1]), D(b[2]), D(b[3]), D(b[4]), D(b[5]), D(b[6]),
+                       I(b[7]), U(o[0]), D(o[1]), D(o[2]), D(o[3]));
+            Py_END_ALLOW_THREADS
+            res = Py_NewRef(Py_None);
+        }
     }
-    if (need(&a, deriv, "deriv", m, -1) || need(&a, scale, "scale", m, -1)
-        || need(&a, y, "y", N, -1) || need(&a, phi, "phi", N, m - 1))
-        goto fail;
-    Py_BEGIN_ALLOW_THREADS
-    svf_scaled(N, m, D(u), D(Ad), D(G0), D(G1), D(x1), D(x2), D(up), I(primed), U(deriv),
-               D(scale), D(y), D(phi));
-    Py_END_ALLOW_THREADS
     release(&a);
-    Py_RETURN_NONE;
-fail:
-    release(&a);
-    return NULL;
+    return res;
 }
 
 /* ------------------------------------------------------------ selection glue */
@@ -607,35 +614,31 @@ PyDoc_STRVAR(select_doc,
 
 static PyObject *py_select(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    (void)self;
-    if (!nargs_ok("select", nargs, 9))
-        return NULL;
+    static const Spec spec[] = {{0, "t", F64, 1, RO}, {1, "omega", F64, 1, RO},
+                                {6, "state", F64, 1, RW}, {7, "restart", BOOL, 1, RW},
+                                {8, "use", BOOL, 1, RW}};
     Args a = {.fn = "select", .count = 0};
+    Py_buffer *b[COUNT(spec)];
     double gap, min_speed, max_speed;
     int64_t warm;
-    Py_ssize_t restarts = 0, used = 0;
-    if (!as_double(args[2], &gap) || !as_int64(args[3], &warm)
-        || !as_double(args[4], &min_speed) || !as_double(args[5], &max_speed))
-        return NULL;
-    Py_buffer *t, *w, *state, *restart, *use;
-    if (!(t = buf(&a, args[0], "t", F64, 1, 0)) || !(w = buf(&a, args[1], "omega", F64, 1, 0))
-        || !(state = buf(&a, args[6], "state", F64, 1, 1))
-        || !(restart = buf(&a, args[7], "restart", BOOL, 1, 1))
-        || !(use = buf(&a, args[8], "use", BOOL, 1, 1)))
-        goto fail;
-    const Py_ssize_t N = dim(t, 0);
-    if (need(&a, w, "omega", N, -1) || need(&a, state, "state", 2, -1)
-        || need(&a, restart, "restart", N, -1) || need(&a, use, "use", N, -1))
-        goto fail;
-    Py_BEGIN_ALLOW_THREADS
-    select_rows(N, D(t), D(w), gap, warm, min_speed, max_speed, D(state), U(restart), U(use),
-                &restarts, &used);
-    Py_END_ALLOW_THREADS
+    PyObject *res = NULL;
+    (void)self;
+    if (start(&a, nargs, 9) && as_double(args[2], &gap) && as_int64(args[3], &warm)
+        && as_double(args[4], &min_speed) && as_double(args[5], &max_speed)
+        && take(&a, args, spec, COUNT(spec), b, F64)) {
+        const Py_ssize_t N = dim(b[0], 0);
+        if (need(&a, b[1], "omega", N, -1) && need(&a, b[2], "state", 2, -1)
+            && need(&a, b[3], "restart", N, -1) && need(&a, b[4], "use", N, -1)) {
+            Py_ssize_t restarts, used;
+            Py_BEGIN_ALLOW_THREADS
+            select_rows(N, D(b[0]), D(b[1]), gap, warm, min_speed, max_speed, D(b[2]),
+                        U(b[3]), U(b[4]), &restarts, &used);
+            Py_END_ALLOW_THREADS
+            res = Py_BuildValue("(nn)", restarts, used);
+        }
+    }
     release(&a);
-    return Py_BuildValue("(nn)", restarts, used);
-fail:
-    release(&a);
-    return NULL;
+    return res;
 }
 
 PyDoc_STRVAR(nothing_to_fill_doc,
@@ -644,28 +647,19 @@ PyDoc_STRVAR(nothing_to_fill_doc,
 
 static PyObject *py_nothing_to_fill(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    (void)self;
-    if (!nargs_ok("nothing_to_fill", nargs, 5))
-        return NULL;
+    static const Spec spec[] = {{0, "t", F64, 1, RO}};
     Args a = {.fn = "nothing_to_fill", .count = 0};
+    Py_buffer *t;
     int has_last;
     double last_t, dt, max_gap;
-    if (!as_bool(args[1], &has_last) || !as_double(args[2], &last_t)
-        || !as_double(args[3], &dt) || !as_double(args[4], &max_gap))
-        return NULL;
-    Py_buffer *t = buf(&a, args[0], "t", F64, 1, 0);
-    if (!t)
-        goto fail;
-    if (dim(t, 0) == 0) {
-        bad_shape(&a, "t", "at least one sample");
-        goto fail;
-    }
-    const int nothing = nothing_to_fill(dim(t, 0), D(t), has_last, last_t, dt, max_gap);
+    PyObject *res = NULL;
+    (void)self;
+    if (start(&a, nargs, 5) && as_bool(args[1], &has_last) && as_double(args[2], &last_t)
+        && as_double(args[3], &dt) && as_double(args[4], &max_gap)
+        && take(&a, args, spec, 1, &t, F64) && at_least(&a, t, "t", 1, "at least one sample"))
+        res = PyBool_FromLong(nothing_to_fill(dim(t, 0), D(t), has_last, last_t, dt, max_gap));
     release(&a);
-    return PyBool_FromLong(nothing);
-fail:
-    release(&a);
-    return NULL;
+    return res;
 }
 
 /* ------------------------------------------------------------- unwrap glue */
@@ -676,36 +670,36 @@ PyDoc_STRVAR(unwrap_doc,
 
 static PyObject *py_unwrap(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    (void)self;
-    if (!nargs_ok("unwrap", nargs, 5))
-        return NULL;
+    static const Spec spec[] = {{0, "p", F64, 1, RO}, {4, "out", F64, 1, RW}};
     Args a = {.fn = "unwrap", .count = 0};
+    Py_buffer *b[COUNT(spec)];
     double period, last;
     int64_t turns;
-    if (!as_double(args[1], &period) || !as_int64(args[2], &turns)
-        || !as_double(args[3], &last))
-        return NULL;
-    Py_buffer *p, *out;
-    if (!(p = buf(&a, args[0], "p", F64, 1, 0)) || !(out = buf(&a, args[4], "out", F64, 1, 1)))
-        goto fail;
-    const Py_ssize_t N = dim(p, 0);
-    if (N == 0) {
-        bad_shape(&a, "p", "at least one sample");
-        goto fail;
+    PyObject *res = NULL;
+    (void)self;
+    if (start(&a, nargs, 5) && as_double(args[1], &period) && as_int64(args[2], &turns)
+        && as_double(args[3], &last) && take(&a, args, spec, COUNT(spec), b, F64)
+        && at_least(&a, b[0], "p", 1, "at least one sample")
+        && need(&a, b[1], "out", dim(b[0], 0), -1)) {
+        Py_BEGIN_ALLOW_THREADS
+        turns = unwrap(dim(b[0], 0), D(b[0]), period, turns, last, D(b[1]));
+        Py_END_ALLOW_THREADS
+        res = PyLong_FromLongLong(turns);
     }
-    if (need(&a, out, "out", N, -1))
-        goto fail;
-    Py_BEGIN_ALLOW_THREADS
-    turns = unwrap(N, D(p), period, turns, last, D(out));
-    Py_END_ALLOW_THREADS
     release(&a);
-    return PyLong_FromLongLong(turns);
-fail:
-    release(&a);
-    return NULL;
+    return res;
 }
 
 /* ---------------------------------------------------------- pipeline glue */
+/* The arrays accumulate() and bookkeeping() share: phi (N, n), y, use, M, v, s. */
+static int sums_shapes(Args *a, Py_buffer *phi, Py_buffer *y, Py_buffer *use, Py_buffer *M,
+                       Py_buffer *v, Py_buffer *s)
+{
+    const Py_ssize_t N = dim(phi, 0), n = dim(phi, 1);
+    return need(a, y, "y", N, -1) && need(a, use, "use", N, -1) && need(a, M, "M", n, n)
+           && need(a, v, "v", n, -1) && need(a, s, "s", 3, -1);
+}
+
 PyDoc_STRVAR(accumulate_doc,
 "accumulate(phi, y, use, M, v, s) -> None\n\n"
 "Sums over the used rows: M += phi phi' (upper triangle), v += phi y,\n"
@@ -713,28 +707,23 @@ PyDoc_STRVAR(accumulate_doc,
 
 static PyObject *py_accumulate(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    (void)self;
-    if (!nargs_ok("accumulate", nargs, 6))
-        return NULL;
+    static const Spec spec[] = {{0, "phi", F64, 2, RO}, {1, "y", F64, 1, RO},
+                                {2, "use", BOOL, 1, RO}, {3, "M", F64, 2, RW},
+                                {4, "v", F64, 1, RW}, {5, "s", F64, 1, RW}};
     Args a = {.fn = "accumulate", .count = 0};
-    Py_buffer *phi, *y, *use, *M, *v, *s;
-    if (!(phi = buf(&a, args[0], "phi", F64, 2, 0)) || !(y = buf(&a, args[1], "y", F64, 1, 0))
-        || !(use = buf(&a, args[2], "use", BOOL, 1, 0))
-        || !(M = buf(&a, args[3], "M", F64, 2, 1)) || !(v = buf(&a, args[4], "v", F64, 1, 1))
-        || !(s = buf(&a, args[5], "s", F64, 1, 1)))
-        goto fail;
-    const Py_ssize_t N = dim(phi, 0), n = dim(phi, 1);
-    if (need(&a, y, "y", N, -1) || need(&a, use, "use", N, -1) || need(&a, M, "M", n, n)
-        || need(&a, v, "v", n, -1) || need(&a, s, "s", 3, -1))
-        goto fail;
-    Py_BEGIN_ALLOW_THREADS
-    accumulate(N, n, D(phi), D(y), U(use), D(M), D(v), D(s));
-    Py_END_ALLOW_THREADS
+    Py_buffer *b[COUNT(spec)];
+    PyObject *res = NULL;
+    (void)self;
+    if (start(&a, nargs, 6) && take(&a, args, spec, COUNT(spec), b, F64)
+        && sums_shapes(&a, b[0], b[1], b[2], b[3], b[4], b[5])) {
+        Py_BEGIN_ALLOW_THREADS
+        accumulate(dim(b[0], 0), dim(b[0], 1), D(b[0]), D(b[1]), U(b[2]), D(b[3]), D(b[4]),
+                   D(b[5]));
+        Py_END_ALLOW_THREADS
+        res = Py_NewRef(Py_None);
+    }
     release(&a);
-    Py_RETURN_NONE;
-fail:
-    release(&a);
-    return NULL;
+    return res;
 }
 
 PyDoc_STRVAR(bookkeeping_doc,
@@ -746,60 +735,47 @@ PyDoc_STRVAR(bookkeeping_doc,
 
 static PyObject *py_bookkeeping(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    (void)self;
-    if (!nargs_ok("bookkeeping", nargs, 19))
-        return NULL;
+    static const Spec spec[] = {
+        {0, "phi", F64, 2, RO}, {1, "y", F64, 1, RO}, {2, "use", BOOL, 1, RO},
+        {8, "M", F64, 2, RW}, {9, "v", F64, 1, RW}, {10, "s", F64, 1, RW},
+        {3, "eps_u", F64, 1, RO}, {4, "epsq_u", I64, 1, RO}, {6, "flags_u", U8, 1, RO},
+        {7, "flagsq_u", U8, 1, RO}, {12, "rms_state", F64, 1, RW}, {14, "y_out", F64, 1, RW},
+        {15, "eps", F64, 1, RW}, {16, "eps_fixed", F64, 1, RW}, {17, "flags", U8, 1, RW},
+        {18, "rms", F64, 1, RW},
+    };
     Args a = {.fn = "bookkeeping", .count = 0};
+    Py_buffer *b[COUNT(spec)];
     double lsb, beta;
     int64_t s_y;
-    Py_ssize_t windup = 0;
-    if (!as_double(args[5], &lsb) || !as_double(args[11], &beta) || !as_int64(args[13], &s_y))
-        return NULL;
-    Py_buffer *phi, *y, *use, *eps_u, *epsq_u, *flags_u, *flagsq_u, *M, *v, *s, *rms_state,
-        *y_out, *eps, *eps_fixed, *flags, *rms;
-    if (!(phi = buf(&a, args[0], "phi", F64, 2, 0)) || !(y = buf(&a, args[1], "y", F64, 1, 0))
-        || !(use = buf(&a, args[2], "use", BOOL, 1, 0))
-        || !(eps_u = buf(&a, args[3], "eps_u", F64, 1, 0))
-        || !(epsq_u = buf(&a, args[4], "epsq_u", I64, 1, 0))
-        || !(flags_u = buf(&a, args[6], "flags_u", U8, 1, 0))
-        || !(flagsq_u = buf(&a, args[7], "flagsq_u", U8, 1, 0))
-        || !(M = buf(&a, args[8], "M", F64, 2, 1)) || !(v = buf(&a, args[9], "v", F64, 1, 1))
-        || !(s = buf(&a, args[10], "s", F64, 1, 1))
-        || !(rms_state = buf(&a, args[12], "rms_state", F64, 1, 1))
-        || !(y_out = buf(&a, args[14], "y_out", F64, 1, 1))
-        || !(eps = buf(&a, args[15], "eps", F64, 1, 1))
-        || !(eps_fixed = buf(&a, args[16], "eps_fixed", F64, 1, 1))
-        || !(flags = buf(&a, args[17], "flags", U8, 1, 1))
-        || !(rms = buf(&a, args[18], "rms", F64, 1, 1)))
-        goto fail;
-    const Py_ssize_t N = dim(phi, 0), n = dim(phi, 1);
-    if (need(&a, y, "y", N, -1) || need(&a, use, "use", N, -1) || need(&a, M, "M", n, n)
-        || need(&a, v, "v", n, -1) || need(&a, s, "s", 3, -1)
-        || need(&a, rms_state, "rms_state", 1, -1) || need(&a, y_out, "y_out", N, -1)
-        || need(&a, eps, "eps", N, -1) || need(&a, eps_fixed, "eps_fixed", N, -1)
-        || need(&a, flags, "flags", N, -1) || need(&a, rms, "rms", N, -1))
-        goto fail;
-    /* the used rows: as many as eps_u and the others hold */
-    Py_ssize_t used = 0;
-    for (Py_ssize_t k = 0; k < N; k++)
-        used += U(use)[k] != 0;
-    if (used > 0 && (dim(eps_u, 0) < used || dim(epsq_u, 0) < used || dim(flags_u, 0) < used
-                     || dim(flagsq_u, 0) < used)) {
-        PyErr_Format(PyExc_ValueError,
-                     "bookkeeping: eps_u, epsq_u, flags_u and flagsq_u must hold the %zd "
-                     "used rows", used);
-        goto fail;
+    PyObject *res = NULL;
+    (void)self;
+    if (start(&a, nargs, 19) && as_double(args[5], &lsb) && as_double(args[11], &beta)
+        && as_int64(args[13], &s_y) && take(&a, args, spec, COUNT(spec), b, F64)
+        && sums_shapes(&a, b[0], b[1], b[2], b[3], b[4], b[5])) {
+        const Py_ssize_t N = dim(b[0], 0);
+        /* the used rows: as many as eps_u and the others must hold */
+        Py_ssize_t used = 0;
+        for (Py_ssize_t k = 0; k < N; k++)
+            used += U(b[2])[k] != 0;
+        const char *what = "as many rows as use has used rows";
+        if (at_least(&a, b[6], "eps_u", used, what) && at_least(&a, b[7], "epsq_u", used, what)
+            && at_least(&a, b[8], "flags_u", used, what)
+            && at_least(&a, b[9], "flagsq_u", used, what)
+            && need(&a, b[10], "rms_state", 1, -1) && need(&a, b[11], "y_out", N, -1)
+            && need(&a, b[12], "eps", N, -1) && need(&a, b[13], "eps_fixed", N, -1)
+            && need(&a, b[14], "flags", N, -1) && need(&a, b[15], "rms", N, -1)) {
+            Py_ssize_t windup;
+            Py_BEGIN_ALLOW_THREADS
+            windup = bookkeeping(N, dim(b[0], 1), D(b[0]), D(b[1]), U(b[2]), D(b[6]), I(b[7]),
+                                 lsb, U(b[8]), U(b[9]), D(b[3]), D(b[4]), D(b[5]), beta,
+                                 D(b[10]), s_y, D(b[11]), D(b[12]), D(b[13]), U(b[14]),
+                                 D(b[15]));
+            Py_END_ALLOW_THREADS
+            res = PyLong_FromSsize_t(windup);
+        }
     }
-    Py_BEGIN_ALLOW_THREADS
-    windup = bookkeeping(N, n, D(phi), D(y), U(use), D(eps_u), I(epsq_u), lsb, U(flags_u),
-                         U(flagsq_u), D(M), D(v), D(s), beta, D(rms_state), s_y, D(y_out),
-                         D(eps), D(eps_fixed), U(flags), D(rms));
-    Py_END_ALLOW_THREADS
     release(&a);
-    return PyLong_FromSsize_t(windup);
-fail:
-    release(&a);
-    return NULL;
+    return res;
 }
 
 /* ================================================================== module */

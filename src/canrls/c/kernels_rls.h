@@ -60,6 +60,82 @@ static void RLS(p_phi)(Py_ssize_t n, const REAL *P, const REAL *phi, REAL *v)
     }
 }
 
+/* a' b summed in index order. */
+static REAL RLS(dot)(Py_ssize_t n, const REAL *a, const REAL *b)
+{
+    REAL s = (REAL)0;
+    for (Py_ssize_t i = 0; i < n; i++)
+        s += a[i] * b[i];
+    return s;
+}
+
+/* The flags of a row before its step: NONFINITE when the error or phi' P phi is not
+ * finite (non-finite phi or y, or an overflow: the row is rejected, the state stays
+ * untouched), FROZEN when the estimator is frozen (the error only). */
+static uint8_t RLS(row_flags)(REAL eps, REAL s, int frozen)
+{
+    uint8_t flag = 0;
+    if (!(isfinite(eps) && isfinite(s)))
+        flag = FLAG_NONFINITE;
+    if (frozen)
+        flag |= FLAG_FROZEN;
+    return flag;
+}
+
+/* The step's gain g and forgetting lambda_k (with il = 1 / lambda_k): g = 1/(lambda + s)
+ * and lambda_k = lambda, unless the trace the step would give, (tr P - g q) / lambda,
+ * exceeds trace_max: then lambda_k = 1, g = 1/(1 + s) and the flag WINDUP is returned.
+ * q = |P phi|^2 (symmetric form) or (P phi)'(phi' P)' (literal form). */
+static uint8_t RLS(gain)(REAL trP, REAL s, REAL q, REAL lam, REAL inv_lam, REAL trace_max,
+                         REAL *g, REAL *lam_k, REAL *il)
+{
+    const REAL one = (REAL)1;
+    *lam_k = lam;
+    *il = inv_lam;
+    /* g = 1 / (lambda + phi' P phi) */
+    *g = one / (lam + s);
+    /* tr P_new = (tr P - g q) / lambda */
+    if ((trP - *g * q) * inv_lam > trace_max) {
+        /* trace bound: take this step with lambda_k = 1 (no forgetting) */
+        *lam_k = one;
+        *il = one;
+        *g = one / (one + s);
+        return FLAG_WINDUP;
+    }
+    return 0;
+}
+
+/* The step's gain and estimate, and the noise accumulators: K = g P phi,
+ * theta <- theta + K eps, V <- lambda_k V + eps e_post, W <- lambda_k W + 1. */
+static void RLS(gain_step)(Py_ssize_t n, const REAL *v, REAL g, REAL lam_k, REAL eps,
+                           REAL *K, REAL *theta, REAL *acc)
+{
+    /* K = P phi / (lambda + phi' P phi) */
+    for (Py_ssize_t i = 0; i < n; i++)
+        K[i] = g * v[i];
+    /* theta <- theta + K eps */
+    for (Py_ssize_t i = 0; i < n; i++)
+        theta[i] += K[i] * eps;
+    /* e_post = y - phi' theta_new = eps lambda / (lambda + phi' P phi) */
+    const REAL e_post = eps * (lam_k * g);
+    /* V <- lambda V + eps e_post   (the minimised weighted cost, exactly) */
+    acc[0] = lam_k * acc[0] + eps * e_post;
+    /* W <- lambda W + 1            (the sum of the weights) */
+    acc[1] = lam_k * acc[1] + (REAL)1;
+}
+
+/* The outputs of row k: its error, trace of P, flags and (when recording) theta. */
+static void RLS(put_row)(Py_ssize_t n, Py_ssize_t k, REAL eps, REAL trP, uint8_t flag,
+                         int record, const REAL *theta, REAL *eps_out, REAL *trace_out,
+                         uint8_t *flags_out, REAL *theta_out)
+{
+    eps_out[k] = eps;
+    trace_out[k] = trP;
+    flags_out[k] = flag;
+    if (record)
+        memcpy(theta_out + k * n, theta, (size_t)n * sizeof(REAL));
+}
+
 /* The symmetric update over the N rows of Phi; returns the number of rows applied.
  * Row i of P is computed as (P[i][j] - g (v[i] v[j])) / lambda_k for every j, so P
  * stays symmetric bit for bit, and the pass that writes row i also accumulates
@@ -72,9 +148,7 @@ static Py_ssize_t RLS(rls_block_symmetric)(
     REAL *v = work;              /* P phi of this row */
     REAL *K = work + n;          /* gain of the last row */
     REAL *vn = work + 2 * n;     /* P phi of the next row, accumulated while P is updated */
-    const REAL zero = (REAL)0;
-    const REAL one = (REAL)1;
-    const REAL inv_lam = one / lam;
+    const REAL inv_lam = (REAL)1 / lam;
     REAL trP = RLS(trace_of)(n, P);
     Py_ssize_t applied = 0;
     if (N > 0)
@@ -84,56 +158,27 @@ static Py_ssize_t RLS(rls_block_symmetric)(
     for (Py_ssize_t k = 0; k < N; k++) {
         const REAL *phi = Phi + k * n;
         /* eps = y - phi' theta */
-        REAL yhat = zero;
-        for (Py_ssize_t j = 0; j < n; j++)
-            yhat += phi[j] * theta[j];
-        const REAL eps = Y[k] - yhat;
+        const REAL eps = Y[k] - RLS(dot)(n, phi, theta);
         /* s = phi' P phi */
-        REAL s = zero;
-        for (Py_ssize_t i = 0; i < n; i++)
-            s += phi[i] * v[i];
-
-        uint8_t flag = 0;
-        if (!(isfinite(eps) && isfinite(s)))
-            /* non-finite phi or y (or overflow): reject, state untouched */
-            flag = FLAG_NONFINITE;
-        if (frozen)
-            flag |= FLAG_FROZEN;
+        const REAL s = RLS(dot)(n, phi, v);
+        uint8_t flag = RLS(row_flags)(eps, s, frozen);
         const int has_next = k + 1 < N;
 
         if (flag != 0) {
-            for (Py_ssize_t i = 0; i < n; i++)
-                K[i] = zero;
+            memset(K, 0, (size_t)n * sizeof(REAL));
             if (has_next)
                 /* v_next = P phi_next   (P unchanged) */
                 RLS(p_phi)(n, P, Phi + (k + 1) * n, vn);
         } else {
-            REAL lam_k = lam;
-            REAL il = inv_lam;
-            /* g = 1 / (lambda + phi' P phi) */
-            REAL g = one / (lam + s);
-            /* tr P_new = (tr P - g |P phi|^2) / lambda */
-            REAL vv = zero;
-            for (Py_ssize_t i = 0; i < n; i++)
-                vv += v[i] * v[i];
-            if ((trP - g * vv) * inv_lam > trace_max) {
-                /* trace bound: take this step with lambda_k = 1 (no forgetting) */
-                lam_k = one;
-                il = one;
-                g = one / (one + s);
-                flag = FLAG_WINDUP;
-            }
-            /* K = P phi / (lambda + phi' P phi) */
-            for (Py_ssize_t i = 0; i < n; i++)
-                K[i] = g * v[i];
-            /* theta <- theta + K eps */
-            for (Py_ssize_t i = 0; i < n; i++)
-                theta[i] += K[i] * eps;
+            REAL g, lam_k, il;
+            /* the trace bound with q = |P phi|^2 */
+            flag = RLS(gain)(trP, s, RLS(dot)(n, v, v), lam, inv_lam, trace_max, &g, &lam_k,
+                             &il);
+            RLS(gain_step)(n, v, g, lam_k, eps, K, theta, acc);
             /* the next row's phi (on the last row: this row, the result is unused) */
             const REAL *phin = Phi + (has_next ? k + 1 : k) * n;
-            for (Py_ssize_t i = 0; i < n; i++)
-                vn[i] = zero;
-            trP = zero;
+            memset(vn, 0, (size_t)n * sizeof(REAL));
+            trP = (REAL)0;
             for (Py_ssize_t i = 0; i < n; i++) {
                 const REAL vi = v[i];
                 const REAL pni = phin[i];
@@ -147,24 +192,13 @@ static Py_ssize_t RLS(rls_block_symmetric)(
                 }
                 trP += Pi[i];
             }
-            /* e_post = y - phi' theta_new = eps lambda / (lambda + phi' P phi) */
-            const REAL e_post = eps * (lam_k * g);
-            /* V <- lambda V + eps e_post   (the minimised weighted cost, exactly) */
-            acc[0] = lam_k * acc[0] + eps * e_post;
-            /* W <- lambda W + 1            (the sum of the weights) */
-            acc[1] = lam_k * acc[1] + one;
             applied++;
         }
         REAL *swap = v;
         v = vn;
         vn = swap;
-
-        eps_out[k] = eps;
-        trace_out[k] = trP;
-        flags_out[k] = flag;
-        if (record)
-            for (Py_ssize_t i = 0; i < n; i++)
-                theta_out[k * n + i] = theta[i];
+        RLS(put_row)(n, k, eps, trP, flag, record, theta, eps_out, trace_out, flags_out,
+                     theta_out);
     }
     return applied;
 }
@@ -179,63 +213,31 @@ static Py_ssize_t RLS(rls_block_literal)(
     REAL *v = work;              /* P phi */
     REAL *K = work + n;
     REAL *w = work + 2 * n;      /* (phi' P)' */
-    const REAL zero = (REAL)0;
-    const REAL one = (REAL)1;
-    const REAL inv_lam = one / lam;
+    const REAL inv_lam = (REAL)1 / lam;
     REAL trP = RLS(trace_of)(n, P);
     Py_ssize_t applied = 0;
 
     for (Py_ssize_t k = 0; k < N; k++) {
         const REAL *phi = Phi + k * n;
         /* eps = y - phi' theta */
-        REAL yhat = zero;
-        for (Py_ssize_t j = 0; j < n; j++)
-            yhat += phi[j] * theta[j];
-        const REAL eps = Y[k] - yhat;
-        /* v = P phi */
-        for (Py_ssize_t i = 0; i < n; i++) {
-            REAL a = zero;
-            for (Py_ssize_t j = 0; j < n; j++)
-                a += P[i * n + j] * phi[j];
-            v[i] = a;
-        }
+        const REAL eps = Y[k] - RLS(dot)(n, phi, theta);
+        /* v = P phi   (row dot products) */
+        for (Py_ssize_t i = 0; i < n; i++)
+            v[i] = RLS(dot)(n, P + i * n, phi);
         /* w' = phi' P */
         RLS(p_phi)(n, P, phi, w);
         /* s = phi' P phi */
-        REAL s = zero;
-        for (Py_ssize_t i = 0; i < n; i++)
-            s += phi[i] * v[i];
-
-        uint8_t flag = 0;
-        if (!(isfinite(eps) && isfinite(s)))
-            flag = FLAG_NONFINITE;
-        if (frozen)
-            flag |= FLAG_FROZEN;
+        const REAL s = RLS(dot)(n, phi, v);
+        uint8_t flag = RLS(row_flags)(eps, s, frozen);
         if (flag != 0) {
-            for (Py_ssize_t i = 0; i < n; i++)
-                K[i] = zero;
+            memset(K, 0, (size_t)n * sizeof(REAL));
         } else {
-            REAL lam_k = lam;
-            REAL il = inv_lam;
-            /* g = 1 / (lambda + phi' P phi) */
-            REAL g = one / (lam + s);
-            /* tr P_new = (tr P - g tr(v w')) / lambda */
-            REAL vw = zero;
-            for (Py_ssize_t i = 0; i < n; i++)
-                vw += v[i] * w[i];
-            if ((trP - g * vw) * inv_lam > trace_max) {
-                lam_k = one;
-                il = one;
-                g = one / (one + s);
-                flag = FLAG_WINDUP;
-            }
-            /* K = P phi / (lambda + phi' P phi) */
-            for (Py_ssize_t i = 0; i < n; i++)
-                K[i] = g * v[i];
-            /* theta <- theta + K eps */
-            for (Py_ssize_t i = 0; i < n; i++)
-                theta[i] += K[i] * eps;
-            trP = zero;
+            REAL g, lam_k, il;
+            /* the trace bound with q = tr(v w') */
+            flag = RLS(gain)(trP, s, RLS(dot)(n, v, w), lam, inv_lam, trace_max, &g, &lam_k,
+                             &il);
+            RLS(gain_step)(n, v, g, lam_k, eps, K, theta, acc);
+            trP = (REAL)0;
             for (Py_ssize_t i = 0; i < n; i++) {
                 const REAL Ki = K[i];
                 REAL *Pi = P + i * n;
@@ -244,19 +246,10 @@ static Py_ssize_t RLS(rls_block_literal)(
                     Pi[j] = (Pi[j] - Ki * w[j]) * il;
                 trP += Pi[i];
             }
-            /* e_post = eps lambda / (lambda + phi' P phi) ; V, W as in the symmetric form */
-            const REAL e_post = eps * (lam_k * g);
-            acc[0] = lam_k * acc[0] + eps * e_post;
-            acc[1] = lam_k * acc[1] + one;
             applied++;
         }
-
-        eps_out[k] = eps;
-        trace_out[k] = trP;
-        flags_out[k] = flag;
-        if (record)
-            for (Py_ssize_t i = 0; i < n; i++)
-                theta_out[k * n + i] = theta[i];
+        RLS(put_row)(n, k, eps, trP, flag, record, theta, eps_out, trace_out, flags_out,
+                     theta_out);
     }
     return applied;
 }
