@@ -79,7 +79,7 @@ def test_the_daemon_imports_no_jit() -> None:
 
 
 def test_c_module_rejects_wrong_dtypes_and_short_arrays() -> None:
-    table = np.zeros(256, np.uint8)
+    table = np.zeros((8, 256), np.uint8)
     data = np.zeros((4, 8), np.uint8)
     with pytest.raises(TypeError, match="dtype"):
         _can.crc8(0x100, data.astype(np.int64), 8, 8, table, np.empty(4, np.uint8))
