@@ -586,7 +586,8 @@ _CRC8_POWERS = _crc_powers()
 
 
 def _crc_vector(frame_id: int, data: U8, length: int) -> U8:
-    """E2E CRC (:func:`canrls.can.e2e.e2e_crc`) of every row: over the ID, then bytes 1..length-1."""
+    """E2E CRC (:func:`canrls.can.e2e.e2e_crc`) of every row: over the ID, then bytes
+    1..length-1."""
     out = np.empty(data.shape[0], np.uint8)
     d = np.ascontiguousarray(data, np.uint8)
     _can.crc8(int(frame_id), d, d.shape[1], int(length), _CRC8_POWERS, out)
