@@ -147,22 +147,47 @@ def test_importing_canrls_makes_no_cache_directory(tmp_path: Path) -> None:
     assert not (tmp_path / "xdg").exists()
 
 
-@pytest.mark.parametrize("how", ["read-only", "not-a-directory"])
+#: runs a command with the directory $RO mounted read-only (a mount namespace of its own)
+READ_ONLY_MOUNT = 'mount --bind "$RO" "$RO" && mount -o remount,bind,ro "$RO" && exec "$@"'
+
+
+def _read_only_mount(home: Path) -> list[str]:
+    """The prefix that runs a command with ``home`` on a read-only mount (skips the test
+    where this machine cannot make one)."""
+    home.mkdir()
+    (home / "cache").mkdir()
+    unshare = shutil.which("unshare")
+    if unshare is None:
+        pytest.skip("no unshare(1) for a read-only mount")
+    prefix = [unshare, "-m", "sh", "-c", READ_ONLY_MOUNT, "sh"]
+    probe = subprocess.run([*prefix, "touch", str(home / "cache" / "probe")],
+                           env={**os.environ, "RO": str(home)}, capture_output=True, text=True)
+    if "Read-only file system" not in probe.stderr:
+        pytest.skip(f"cannot make a read-only mount here: {probe.stderr.strip()}")
+    return prefix
+
+
+@pytest.mark.parametrize("how", ["read-only", "not-a-directory", "read-only mount"])
 def test_the_daemon_starts_with_read_only_cache_and_home(tmp_path: Path, how: str) -> None:
     """``canrls run`` (a virtual bus, two seconds), ``canrls --version`` and ``canrls fit
     --help`` with HOME and XDG_CACHE_HOME where nothing can be written: all start and
-    write nothing there (what ``ProtectSystem=strict`` without a cache directory gives)."""
-    home = _blocked_home(tmp_path, how)
-    env = _env(home, SRC)
+    write nothing there (what ``ProtectSystem=strict`` without a cache directory gives).
+    As root, permissions do not stop writes: a read-only mount does."""
+    if how == "read-only mount":
+        home = tmp_path / "home"
+        prefix = _read_only_mount(home)
+    else:
+        home, prefix = _blocked_home(tmp_path, how), []
+    env = {**_env(home, SRC), "RO": str(home)}
     before = _files(tmp_path)
     try:
-        run = subprocess.run([sys.executable, "-m", "canrls", "run", "-i", "virtual", "-c",
-                              f"canrls-ro-{os.getpid()}-{how}", "--duration", "2", "--json"],
-                             env=env, capture_output=True, text=True, timeout=300)
+        run = subprocess.run([*prefix, sys.executable, "-m", "canrls", "run", "-i", "virtual",
+                              "-c", f"canrls-ro-{os.getpid()}-{how}", "--duration", "2",
+                              "--json"], env=env, capture_output=True, text=True, timeout=300)
         assert run.returncode == 0, run.stderr
         assert '"frames"' in run.stdout
         for cmd in (["--version"], ["fit", "--help"]):
-            r = subprocess.run([sys.executable, "-m", "canrls", *cmd], env=env,
+            r = subprocess.run([*prefix, sys.executable, "-m", "canrls", *cmd], env=env,
                                capture_output=True, text=True, timeout=300)
             assert r.returncode == 0, r.stderr
         assert _files(tmp_path) == before

@@ -96,6 +96,18 @@ static void release(Buf *bufs, int n)
 #define F64P(b) ((double *)(b).view.buf)
 #define U32P(b) ((uint32_t *)(b).view.buf)
 
+/* messages of a protocol, at most (the pairing keeps a bit mask of them), and roles */
+#define MAX_MESSAGES 62
+#define MAX_ROLES 64
+
+#if defined(__GNUC__)
+#define NOINLINE __attribute__((noinline)) /* a loop in a function of its own: registers */
+#define INLINE __attribute__((always_inline)) inline /* a step of a frame loop */
+#else
+#define NOINLINE
+#define INLINE inline
+#endif
+
 /* Python's floor modulo for a positive modulus */
 static int64_t pymod(int64_t a, int64_t m)
 {
@@ -107,19 +119,44 @@ static int64_t pymod(int64_t a, int64_t m)
 /* CRC (canrls.can.e2e.e2e_crc)                                                */
 /* ------------------------------------------------------------------------- */
 
-/* CRC-8 table walk of one payload row: init 0xFF, ID low then high byte, payload bytes
- * 1..length-1, xor 0xFF. */
-static uint8_t crc_row(int64_t frame_id, const uint8_t *row, int64_t length,
-                       const uint8_t *table)
+/* The CRC is a table walk, c = T[c ^ byte], with the table T of canrls.can.e2e. T is
+ * linear over GF(2) (T[a ^ b] = T[a] ^ T[b]), so the register after the bytes b_1..b_m
+ * from c is T^m[c ^ b_1] ^ T^(m-1)[b_2] ^ ... ^ T[b_m]: for m <= 8 the lookups are
+ * independent instead of a chain. ``powers`` (8, 256) holds T, T^2, ..., T^8
+ * (canrls.can.protocol._CRC8_POWERS); row k - 1 is T^k. */
+#define CRC_POWERS 8
+
+/* The CRC-8 register after the frame ID: init 0xFF, ID low then high byte. */
+static uint8_t crc_id(int64_t frame_id, const uint8_t *powers)
 {
-    uint8_t c = table[0xFF ^ (frame_id & 0xFF)];
-    c = table[c ^ ((frame_id >> 8) & 0xFF)];
+    uint8_t c = powers[0xFF ^ (frame_id & 0xFF)];
+    return powers[c ^ ((frame_id >> 8) & 0xFF)];
+}
+
+/* The CRC byte of a payload row from the register ``c`` after the ID (crc_id): payload
+ * bytes 1..length-1, xor 0xFF. */
+static INLINE uint8_t crc_payload(uint8_t c, const uint8_t *restrict row, int64_t length,
+                                  const uint8_t *restrict powers)
+{
+    int64_t m = length - 1;
+    if (m >= 1 && m <= CRC_POWERS) {
+        uint8_t x = powers[256 * (m - 1) + (uint8_t)(c ^ row[1])];
+        for (int64_t j = 2; j <= m; j++)
+            x ^= powers[256 * (m - j) + row[j]];
+        return (uint8_t)(x ^ 0xFF);
+    }
     for (int64_t j = 1; j < length; j++)
-        c = table[c ^ row[j]];
+        c = powers[c ^ row[j]];
     return (uint8_t)(c ^ 0xFF);
 }
 
-/* crc8(frame_id, data (N, W) uint8, width W, length, table (256,) uint8, out (N,) uint8) */
+static uint8_t crc_row(int64_t frame_id, const uint8_t *row, int64_t length,
+                       const uint8_t *powers)
+{
+    return crc_payload(crc_id(frame_id, powers), row, length, powers);
+}
+
+/* crc8(frame_id, data (N, W) uint8, width W, length, powers (8, 256) uint8, out (N,) uint8) */
 static PyObject *py_crc8(PyObject *self, PyObject *args)
 {
     (void)self;
@@ -130,7 +167,7 @@ static PyObject *py_crc8(PyObject *self, PyObject *args)
         return NULL;
     Buf b[3];
     memset(b, 0, sizeof b);
-    if (!get(&b[0], o_data, K_U8, 0, 0, "data") || !get(&b[1], o_table, K_U8, 256, 0, "table") ||
+    if (!get(&b[0], o_data, K_U8, 0, 0, "data") || !get(&b[1], o_table, K_U8, 256 * CRC_POWERS, 0, "powers") ||
         !get(&b[2], o_out, K_U8, 0, 1, "out"))
         goto fail;
     Py_ssize_t n = items(&b[2]);
@@ -154,7 +191,7 @@ fail:
 /* ------------------------------------------------------------------------- */
 
 /* gather_check(data (N, W), width, rows (R,) int64, length, is_remote (N,), dlc (N,),
- *              check_crc, frame_id, table, out (R, length) uint8, flags (R,) uint8) -> int
+ *              check_crc, frame_id, powers, out (R, length) uint8, flags (R,) uint8) -> int
  * Copy data[rows, :length] into out; flag the first check each row fails: 1 remote,
  * 2 length (DLC), 4 CRC (only when check_crc). Returns the flagged rows. */
 static PyObject *py_gather_check(PyObject *self, PyObject *args)
@@ -170,7 +207,7 @@ static PyObject *py_gather_check(PyObject *self, PyObject *args)
     memset(b, 0, sizeof b);
     if (!get(&b[0], o_data, K_U8, 0, 0, "data") || !get(&b[1], o_rows, K_I64, 0, 0, "rows") ||
         !get(&b[2], o_remote, K_BOOL, 0, 0, "is_remote") ||
-        !get(&b[3], o_dlc, K_U8, 0, 0, "dlc") || !get(&b[4], o_table, K_U8, 256, 0, "table"))
+        !get(&b[3], o_dlc, K_U8, 0, 0, "dlc") || !get(&b[4], o_table, K_U8, 256 * CRC_POWERS, 0, "powers"))
         goto fail;
     Py_ssize_t n_rows = items(&b[1]);
     if (!get(&b[5], o_out, K_U8, n_rows * length, 1, "out") ||
@@ -227,7 +264,7 @@ typedef struct {
 
 /* Classify one alive counter c received at t (see _counter_step's docstring); updates
  * the state, returns the status and sets *lost. */
-static int counter_step(int64_t c, double t, int64_t mod, int64_t window, double period,
+static INLINE int counter_step(int64_t c, double t, int64_t mod, int64_t window, double period,
                         CounterState *s, int64_t *lost)
 {
     *lost = 0;
@@ -258,9 +295,10 @@ static int counter_step(int64_t c, double t, int64_t mod, int64_t window, double
     }
     int64_t gap = d;
     if (timed) {
-        int64_t k = (int64_t)floor((dt / period - (double)d) / (double)mod + 0.5);
-        if (k > 0)
-            gap += k * mod;
+        /* k = floor((dt / period - d) / M + 0.5) whole wraps, when k > 0 (x >= 1) */
+        double x = (dt / period - (double)d) / (double)mod + 0.5;
+        if (x >= 1.0)
+            gap += (int64_t)floor(x) * mod;
     }
     *lost = gap - 1;
     s->last = c;
@@ -327,95 +365,65 @@ enum { F_SCALE, F_OFFSET, F_LO, F_HI, F_SI, F_COLS };
 /* SignalCodec.scaling modes */
 enum { PHYS_IDENTITY, PHYS_INT, PHYS_FLOAT };
 
-static uint64_t field(uint64_t le, uint64_t be, const int64_t *sig)
+static INLINE uint64_t field(uint64_t le, uint64_t be, const int64_t *sig)
 {
     int64_t L = sig[S_LEN];
     uint64_t mask = L >= 64 ? UINT64_MAX : (((uint64_t)1 << L) - 1);
     return ((sig[S_BE] ? be : le) >> sig[S_POS]) & mask;
 }
 
-/* decode_fast(t, arbitration_id, is_extended, is_remote, is_error, dlc, data, width,
- *             msg (K, M_COLS), period (K,), sig (S, S_COLS), sig_f (S, F_COLS), table,
- *             state (K, 4) int64, state_t (K,), base, out_f (n_float, cols),
- *             out_i (2K, cols), counts (2K + 1,)) -> frames decoded
- * See canrls.can.protocol._fast_kernel. */
-static PyObject *py_decode_fast(PyObject *self, PyObject *args)
+/* The payload bytes 0..7 of a row (``length`` of them, the rest zero) as the
+ * little-endian word ``*le`` and the big-endian word ``*be``. */
+static INLINE void payload_words(const uint8_t *restrict row, int64_t length, int64_t width,
+                          uint64_t *le, uint64_t *be)
 {
-    (void)self;
-    PyObject *o[17];
-    long long width, base;
-    if (!PyArg_ParseTuple(args, "OOOOOOOLOOOOOOOLOOO", &o[0], &o[1], &o[2], &o[3], &o[4],
-                          &o[5], &o[6], &width, &o[7], &o[8], &o[9], &o[10], &o[11], &o[12],
-                          &o[13], &base, &o[14], &o[15], &o[16]))
-        return NULL;
-    Buf b[17];
-    memset(b, 0, sizeof b);
-    long long done = 0;
-    if (!get(&b[0], o[0], K_F64, 0, 0, "t"))
-        goto fail;
-    Py_ssize_t n = items(&b[0]);
-    if (!get(&b[1], o[1], K_U32, n, 0, "arbitration_id") ||
-        !get(&b[2], o[2], K_BOOL, n, 0, "is_extended") ||
-        !get(&b[3], o[3], K_BOOL, n, 0, "is_remote") ||
-        !get(&b[4], o[4], K_BOOL, n, 0, "is_error") || !get(&b[5], o[5], K_U8, n, 0, "dlc") ||
-        !get(&b[6], o[6], K_U8, n * width, 0, "data") || !get(&b[7], o[7], K_I64, 0, 0, "msg"))
-        goto fail;
-    Py_ssize_t K = items(&b[7]) / M_COLS;
-    if (!get(&b[8], o[8], K_F64, K, 0, "period") || !get(&b[9], o[9], K_I64, 0, 0, "sig") ||
-        !get(&b[10], o[10], K_F64, 0, 0, "sig_f") || !get(&b[11], o[11], K_U8, 256, 0, "table") ||
-        !get(&b[12], o[12], K_I64, 4 * K, 1, "state") ||
-        !get(&b[13], o[13], K_F64, K, 1, "state_t") || !get(&b[14], o[14], K_F64, 0, 1, "out_f") ||
-        !get(&b[15], o[15], K_I64, 0, 1, "out_i") ||
-        !get(&b[16], o[16], K_I64, 2 * K + 1, 1, "counts"))
-        goto fail;
-    Py_ssize_t S = items(&b[9]) / S_COLS;
-    Py_ssize_t cols = K ? items(&b[15]) / (2 * K) : 0;
-    const int64_t *msg = I64P(b[7]), *sig = I64P(b[9]);
-    /* every index the loop takes from the tables lies in its array */
-    for (Py_ssize_t k = 0; k < K; k++) {
-        const int64_t *mk = msg + k * M_COLS;
-        if (mk[M_SIG0] < 0 || mk[M_SIG1] > S || mk[M_SIG0] > mk[M_SIG1] || mk[M_COUNTER] >= S ||
-            mk[M_TROW] < 0 || (mk[M_TROW] + 1) * cols > items(&b[14]) ||
-            (mk[M_COUNTER] >= 0 && mk[M_MOD] < 1) || mk[M_LEN] < 0) {
-            PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: bad message table");
-            goto fail;
-        }
+#if defined(__GNUC__) && defined(__BYTE_ORDER__) && __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__
+    if (width >= 8) { /* one load, one byte swap */
+        uint64_t w;
+        memcpy(&w, row, 8);
+        if (length < 8)
+            w &= ((uint64_t)1 << (8 * length)) - 1;
+        *le = w;
+        *be = __builtin_bswap64(w);
+        return;
     }
-    for (Py_ssize_t s = 0; s < S; s++) {
-        const int64_t *ss = sig + s * S_COLS;
-        if (ss[S_LEN] < 1 || ss[S_LEN] > 64 || ss[S_POS] < 0 || ss[S_POS] > 63 || ss[S_ROW] < 0 ||
-            (ss[S_ROW] + 1) * cols > items(&b[14])) {
-            PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: bad signal table");
-            goto fail;
-        }
+#else
+    (void)width;
+#endif
+    uint64_t l = 0, b = 0;
+    for (int64_t j = 0; j < (length < 8 ? length : 8); j++) {
+        uint64_t byte = row[j];
+        l |= byte << (8 * j);
+        b |= byte << (56 - 8 * j);
     }
-    for (Py_ssize_t k = 0; k < K; k++)
-        for (int64_t s = msg[k * M_COLS + M_SIG0]; s < msg[k * M_COLS + M_SIG1]; s++)
-            if ((s + 1) * F_COLS > items(&b[10])) {
-                PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: sig_f too small");
-                goto fail;
-            }
-    if (cols < n) {
-        PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: outputs too small");
-        goto fail;
-    }
-    Py_BEGIN_ALLOW_THREADS
-    const double *t = F64P(b[0]);
-    const uint32_t *aid = U32P(b[1]);
-    const uint8_t *ext = U8P(b[2]), *rtr = U8P(b[3]), *err = U8P(b[4]), *dlc = U8P(b[5]);
-    const uint8_t *data = U8P(b[6]), *table = U8P(b[11]);
-    const double *period = F64P(b[8]), *sig_f = F64P(b[10]);
-    int64_t *state = I64P(b[12]), *out_i = I64P(b[15]), *counts = I64P(b[16]);
-    double *state_t = F64P(b[13]), *out_f = F64P(b[14]);
-    for (Py_ssize_t k = 0; k < 2 * K + 1; k++)
+    *le = l;
+    *be = b;
+}
+
+/* The loop of decode_fast over the n frames of a block: returns the frames decoded. */
+NOINLINE static int64_t decode_block(int64_t n, const double *restrict t, const uint32_t *restrict aid,
+                            const uint8_t *restrict ext, const uint8_t *restrict rtr,
+                            const uint8_t *restrict err, const uint8_t *restrict dlc,
+                            const uint8_t *restrict data, int64_t width, int64_t K,
+                            const int64_t *restrict msg, const double *restrict period,
+                            const int64_t *restrict sig, const double *restrict sig_f,
+                            const uint8_t *restrict table, int64_t *restrict state,
+                            double *restrict state_t, int64_t base, double *restrict out_f,
+                            int64_t cols, int64_t *restrict out_i, int64_t *restrict counts)
+{
+    int64_t done;
+    uint8_t crc0[MAX_MESSAGES]; /* the CRC register after each message's ID */
+    for (int64_t k = 0; k < K; k++)
+        crc0[k] = crc_id(msg[k * M_COLS + M_ID], table);
+    for (int64_t k = 0; k < 2 * K + 1; k++)
         counts[k] = 0;
     done = n;
-    for (Py_ssize_t i = 0; i < n; i++) {
+    for (int64_t i = 0; i < n; i++) {
         if (err[i]) {
             done = i;
             break;
         }
-        Py_ssize_t k = 0;
+        int64_t k = 0;
         while (k < K && !((int64_t)aid[i] == msg[k * M_COLS + M_ID] &&
                           (ext[i] != 0) == (msg[k * M_COLS + M_EXT] != 0)))
             k++;
@@ -427,16 +435,12 @@ static PyObject *py_decode_fast(PyObject *self, PyObject *args)
         int64_t length = mk[M_LEN];
         const uint8_t *row = data + i * width;
         if (rtr[i] || dlc[i] != length || width < length ||
-            (mk[M_CRC] && crc_row(mk[M_ID], row, length, table) != row[0])) {
+            (mk[M_CRC] && crc_payload(crc0[k], row, length, table) != row[0])) {
             done = i;
             break;
         }
-        uint64_t le = 0, be = 0; /* payload bytes 0..7 as little- and big-endian words */
-        for (int64_t j = 0; j < (length < 8 ? length : 8); j++) {
-            uint64_t byte = row[j];
-            le |= byte << (8 * j);
-            be |= byte << (56 - 8 * j);
-        }
+        uint64_t le, be; /* payload bytes 0..7 as little- and big-endian words */
+        payload_words(row, length, width, &le, &be);
         int64_t c = counts[k];
         int64_t q = mk[M_COUNTER];
         int check = q >= 0 && mk[M_CHECK] != 0;
@@ -512,9 +516,86 @@ static PyObject *py_decode_fast(PyObject *self, PyObject *args)
         out_i[(2 * k + 1) * cols + c] = counter;
         counts[k] = c + 1;
     }
-    for (Py_ssize_t k = 0; k < K; k++)
+    for (int64_t k = 0; k < K; k++)
         if (msg[k * M_COLS + M_COUNTER] < 0)
             state[4 * k + 3] += counts[k];
+    return done;
+}
+
+/* decode_fast(t, arbitration_id, is_extended, is_remote, is_error, dlc, data, width,
+ *             msg (K, M_COLS), period (K,), sig (S, S_COLS), sig_f (S, F_COLS), powers,
+ *             state (K, 4) int64, state_t (K,), base, out_f (n_float, cols),
+ *             out_i (2K, cols), counts (2K + 1,)) -> frames decoded
+ * See canrls.can.protocol._fast_kernel. */
+static PyObject *py_decode_fast(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o[17];
+    long long width, base;
+    if (!PyArg_ParseTuple(args, "OOOOOOOLOOOOOOOLOOO", &o[0], &o[1], &o[2], &o[3], &o[4],
+                          &o[5], &o[6], &width, &o[7], &o[8], &o[9], &o[10], &o[11], &o[12],
+                          &o[13], &base, &o[14], &o[15], &o[16]))
+        return NULL;
+    Buf b[17];
+    memset(b, 0, sizeof b);
+    long long done = 0;
+    if (!get(&b[0], o[0], K_F64, 0, 0, "t"))
+        goto fail;
+    Py_ssize_t n = items(&b[0]);
+    if (!get(&b[1], o[1], K_U32, n, 0, "arbitration_id") ||
+        !get(&b[2], o[2], K_BOOL, n, 0, "is_extended") ||
+        !get(&b[3], o[3], K_BOOL, n, 0, "is_remote") ||
+        !get(&b[4], o[4], K_BOOL, n, 0, "is_error") || !get(&b[5], o[5], K_U8, n, 0, "dlc") ||
+        !get(&b[6], o[6], K_U8, n * width, 0, "data") || !get(&b[7], o[7], K_I64, 0, 0, "msg"))
+        goto fail;
+    Py_ssize_t K = items(&b[7]) / M_COLS;
+    if (K > MAX_MESSAGES) {
+        PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: too many messages");
+        goto fail;
+    }
+    if (!get(&b[8], o[8], K_F64, K, 0, "period") || !get(&b[9], o[9], K_I64, 0, 0, "sig") ||
+        !get(&b[10], o[10], K_F64, 0, 0, "sig_f") || !get(&b[11], o[11], K_U8, 256 * CRC_POWERS, 0, "powers") ||
+        !get(&b[12], o[12], K_I64, 4 * K, 1, "state") ||
+        !get(&b[13], o[13], K_F64, K, 1, "state_t") || !get(&b[14], o[14], K_F64, 0, 1, "out_f") ||
+        !get(&b[15], o[15], K_I64, 0, 1, "out_i") ||
+        !get(&b[16], o[16], K_I64, 2 * K + 1, 1, "counts"))
+        goto fail;
+    Py_ssize_t S = items(&b[9]) / S_COLS;
+    Py_ssize_t cols = K ? items(&b[15]) / (2 * K) : 0;
+    const int64_t *msg = I64P(b[7]), *sig = I64P(b[9]);
+    /* every index the loop takes from the tables lies in its array */
+    for (Py_ssize_t k = 0; k < K; k++) {
+        const int64_t *mk = msg + k * M_COLS;
+        if (mk[M_SIG0] < 0 || mk[M_SIG1] > S || mk[M_SIG0] > mk[M_SIG1] || mk[M_COUNTER] >= S ||
+            mk[M_TROW] < 0 || (mk[M_TROW] + 1) * cols > items(&b[14]) ||
+            (mk[M_COUNTER] >= 0 && mk[M_MOD] < 1) || mk[M_LEN] < 0) {
+            PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: bad message table");
+            goto fail;
+        }
+    }
+    for (Py_ssize_t s = 0; s < S; s++) {
+        const int64_t *ss = sig + s * S_COLS;
+        if (ss[S_LEN] < 1 || ss[S_LEN] > 64 || ss[S_POS] < 0 || ss[S_POS] > 63 || ss[S_ROW] < 0 ||
+            (ss[S_ROW] + 1) * cols > items(&b[14])) {
+            PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: bad signal table");
+            goto fail;
+        }
+    }
+    for (Py_ssize_t k = 0; k < K; k++)
+        for (int64_t s = msg[k * M_COLS + M_SIG0]; s < msg[k * M_COLS + M_SIG1]; s++)
+            if ((s + 1) * F_COLS > items(&b[10])) {
+                PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: sig_f too small");
+                goto fail;
+            }
+    if (cols < n) {
+        PyErr_SetString(PyExc_ValueError, "canrls._can.decode_fast: outputs too small");
+        goto fail;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    done = decode_block(n, F64P(b[0]), U32P(b[1]), U8P(b[2]), U8P(b[3]), U8P(b[4]), U8P(b[5]),
+                        U8P(b[6]), width, K, I64P(b[7]), F64P(b[8]), I64P(b[9]), F64P(b[10]),
+                        U8P(b[11]), I64P(b[12]), F64P(b[13]), base, F64P(b[14]), cols,
+                        I64P(b[15]), I64P(b[16]));
     Py_END_ALLOW_THREADS
     release(b, 17);
     return PyLong_FromLongLong(done);
@@ -537,17 +618,20 @@ fail:
  * roles...]; sf = [newest frame time, t_min and t_max of the last finalised period,
  * whether there is one]; si = per message: -2 if absent from that period, else its
  * counter (-1: none); counts[kind, message]. */
-static int64_t pair_frames(const int64_t *msg, const double *t, const int64_t *cnt,
-                           const double *vals, const int64_t *role_msg, int64_t n_roles,
-                           int64_t n_msg, double tol, double wait, double period, int flush,
-                           int64_t n, double *gf, int64_t G, int64_t *gi, double *sf,
-                           int64_t *si, int64_t *counts, double *out_t, double *out_v)
+NOINLINE static int64_t pair_frames(const int64_t *restrict msg, const double *restrict t,
+                           const int64_t *restrict cnt, const double *restrict vals,
+                           const int64_t *restrict role_msg, int64_t n_roles, int64_t n_msg,
+                           double tol, double wait, double period, int flush, int64_t n,
+                           double *restrict gf, int64_t G, int64_t *restrict gi_all,
+                           double *restrict sf, int64_t *restrict si, int64_t *restrict counts,
+                           double *restrict out_t, double *restrict out_v)
 {
     const int64_t gcols = 2 + n_roles;
     const int64_t full = ((int64_t)1 << n_msg) - 1;
     int64_t n_out = 0;
-    int64_t *open = &gi[0];
-    gi += 3; /* GI(g, .) is row 1 + g */
+    int64_t open_slots = gi_all[0];
+    int64_t *open = &open_slots;
+    int64_t *restrict gi = gi_all + 3; /* GI(g, .) is row 1 + g */
     for (int64_t f = 0; f < n + (flush ? 1 : 0); f++) {
         if (f < n) {
             int64_t m = msg[f];
@@ -628,10 +712,14 @@ static int64_t pair_frames(const int64_t *msg, const double *t, const int64_t *c
             if (!(complete || expired || f >= n || n_open >= G))
                 break;
             if (sf[3] > 0 && period > 0.0) {
-                int64_t gap = (int64_t)floor((GF(g, 0) - sf[1]) / period + 0.5) - 1;
-                if (gap > 0)
+                /* gap = floor((t_min - t_min of the last period) / period + 0.5) - 1 whole
+                 * periods missing, when gap > 0 (y >= 2) */
+                double y = (GF(g, 0) - sf[1]) / period + 0.5;
+                if (y >= 2.0) {
+                    int64_t gap = (int64_t)floor(y) - 1;
                     for (int64_t k = 0; k < n_msg; k++)
                         counts[1 * n_msg + k] += gap;
+                }
             }
             if (complete) {
                 out_t[n_out] = GF(g, 1);
@@ -661,33 +749,46 @@ static int64_t pair_frames(const int64_t *msg, const double *t, const int64_t *c
             *open = last;
         }
     }
+    gi_all[0] = open_slots;
     return n_out;
 }
 
-/* K-way merge of the messages' frames (rows offsets[k]:offsets[k+1], each sorted by
- * index) into stream order; equal indices keep message order, as a stable sort of the
- * concatenation would. 0 (nothing written) when a message's indices are not ascending. */
-static int merge(const int64_t *index, const int64_t *offsets, int64_t K, const double *t,
-                 const int64_t *cnt, const double *vals, int64_t R, int64_t *out_msg,
-                 double *out_t, int64_t *out_cnt, double *out_vals)
+/* K-way merge of the messages' frames, each sorted by stream index, into stream order;
+ * equal indices keep message order, as a stable sort of the concatenation would. The
+ * inputs are the arrays of each message (lens[k] frames of message k: idx[k], t[k],
+ * cnt[k], or -1 without counters; vals[j] of role j, of message role_msg[j], NaN in the
+ * rows of the other messages). 0 (nothing written) when a message's indices are not
+ * ascending. */
+NOINLINE static int merge_messages(int64_t K, const int64_t *restrict lens,
+                                   const int64_t *const *idx, const double *const *t,
+                                   const int64_t *const *cnt, int64_t R,
+                                   const int64_t *restrict role_msg,
+                                   const double *const *vals, int64_t *restrict out_msg,
+                                   double *restrict out_t, int64_t *restrict out_cnt,
+                                   double *restrict out_vals)
 {
-    for (int64_t k = 0; k < K; k++)
-        for (int64_t i = offsets[k] + 1; i < offsets[k + 1]; i++)
-            if (index[i] < index[i - 1])
+    int64_t pos[MAX_MESSAGES], n = 0;
+    for (int64_t k = 0; k < K; k++) {
+        const int64_t *ix = idx[k];
+        for (int64_t i = 1; i < lens[k]; i++)
+            if (ix[i] < ix[i - 1])
                 return 0;
-    int64_t pos[64];
-    for (int64_t k = 0; k < K; k++)
-        pos[k] = offsets[k];
-    for (int64_t o = 0; o < offsets[K]; o++) {
-        int64_t best = -1;
+        pos[k] = 0;
+        n += lens[k];
+    }
+    for (int64_t o = 0; o < n; o++) {
+        int64_t best = -1, best_index = 0;
         for (int64_t k = 0; k < K; k++)
-            if (pos[k] < offsets[k + 1] && (best < 0 || index[pos[k]] < index[pos[best]]))
+            if (pos[k] < lens[k] && (best < 0 || idx[k][pos[k]] < best_index)) {
                 best = k;
+                best_index = idx[k][pos[k]];
+            }
         int64_t i = pos[best]++;
         out_msg[o] = best;
-        out_t[o] = t[i];
-        out_cnt[o] = cnt[i];
-        memcpy(out_vals + o * R, vals + i * R, (size_t)R * sizeof(double));
+        out_t[o] = t[best][i];
+        out_cnt[o] = cnt ? cnt[best][i] : -1;
+        for (int64_t r = 0; r < R; r++)
+            out_vals[o * R + r] = role_msg[r] == best ? vals[r][i] : NAN;
     }
     return 1;
 }
@@ -730,7 +831,7 @@ static PyObject *py_push(PyObject *self, PyObject *args)
                           &o_iwork, &o_fwork, &o_vwork))
         return NULL;
     Py_ssize_t K = PyTuple_GET_SIZE(o_index), R = PyTuple_GET_SIZE(o_vals);
-    if (K < 1 || K > 62 || PyTuple_GET_SIZE(o_t) != K || PyTuple_GET_SIZE(o_cnt) != K) {
+    if (K < 1 || K > MAX_MESSAGES || PyTuple_GET_SIZE(o_t) != K || PyTuple_GET_SIZE(o_cnt) != K) {
         PyErr_SetString(PyExc_ValueError, "canrls._can.push: index, t, cnt: one per message "
                                           "(1..62)");
         return NULL;
@@ -792,6 +893,21 @@ static PyObject *py_push(PyObject *self, PyObject *args)
             goto done;
         }
     }
+    if (R > MAX_ROLES) {
+        PyErr_SetString(PyExc_ValueError, "canrls._can.push: too many roles");
+        goto done;
+    }
+    const int64_t *idx_p[MAX_MESSAGES], *cnt_p[MAX_MESSAGES];
+    const double *t_p[MAX_MESSAGES], *val_p[MAX_ROLES];
+    int64_t lens[MAX_MESSAGES];
+    for (Py_ssize_t k = 0; k < K; k++) {
+        lens[k] = offsets[k + 1] - offsets[k];
+        idx_p[k] = I64P(bi[k]);
+        t_p[k] = F64P(bt[k]);
+        cnt_p[k] = use_counters ? I64P(bc[k]) : NULL;
+    }
+    for (Py_ssize_t j = 0; j < R; j++)
+        val_p[j] = F64P(bv[j]);
     int sorted = 1;
     Py_BEGIN_ALLOW_THREADS
     int64_t *iw = I64P(rest[7]);
@@ -799,26 +915,23 @@ static PyObject *py_push(PyObject *self, PyObject *args)
     int64_t *all_index = iw, *all_cnt = iw + C, *msg = iw + 2 * C, *m_cnt = iw + 3 * C;
     double *all_t = fw, *m_t = fw + C, *out_t = fw + 2 * C;
     double *all_vals = vw, *m_vals = vw + C * R, *out_v = vw + 2 * C * R;
-    for (Py_ssize_t k = 0; k < K; k++) {
-        Py_ssize_t len = offsets[k + 1] - offsets[k];
-        memcpy(all_index + offsets[k], bi[k].view.buf, (size_t)len * sizeof(int64_t));
-        memcpy(all_t + offsets[k], bt[k].view.buf, (size_t)len * sizeof(double));
-        if (use_counters)
-            memcpy(all_cnt + offsets[k], bc[k].view.buf, (size_t)len * sizeof(int64_t));
-        else
+    if (!merge_messages(K, lens, idx_p, t_p, use_counters ? cnt_p : NULL, R, role_msg, val_p,
+                        msg, m_t, m_cnt, m_vals)) {
+        /* a message's frames out of stream order: a stable sort of the concatenation */
+        for (Py_ssize_t k = 0; k < K; k++) {
+            Py_ssize_t len = lens[k];
+            memcpy(all_index + offsets[k], idx_p[k], (size_t)len * sizeof(int64_t));
+            memcpy(all_t + offsets[k], t_p[k], (size_t)len * sizeof(double));
             for (Py_ssize_t i = 0; i < len; i++)
-                all_cnt[offsets[k] + i] = -1;
-    }
-    for (Py_ssize_t i = 0; i < n * R; i++)
-        all_vals[i] = NAN;
-    for (Py_ssize_t j = 0; j < R; j++) {
-        int64_t m = role_msg[j];
-        const double *v = F64P(bv[j]);
-        for (int64_t i = offsets[m]; i < offsets[m + 1]; i++)
-            all_vals[i * R + j] = v[i - offsets[m]];
-    }
-    if (!merge(all_index, offsets, K, all_t, all_cnt, all_vals, R, msg, m_t, m_cnt, m_vals)) {
-        /* a message's frames out of stream order: a stable sort does the same */
+                all_cnt[offsets[k] + i] = use_counters ? cnt_p[k][i] : -1;
+        }
+        for (Py_ssize_t i = 0; i < n * R; i++)
+            all_vals[i] = NAN;
+        for (Py_ssize_t j = 0; j < R; j++) {
+            int64_t m = role_msg[j];
+            for (int64_t i = offsets[m]; i < offsets[m + 1]; i++)
+                all_vals[i * R + j] = val_p[j][i - offsets[m]];
+        }
         sort = malloc(2 * (size_t)(n > 0 ? n : 1) * sizeof(int64_t));
         if (!sort) {
             sorted = 0;

@@ -567,11 +567,30 @@ def _fmt(x: float) -> str:
     return f"{float(x):.6g}"
 
 
+def _crc_powers() -> U8:
+    """T, T^2, ..., T^8 of the CRC table T (:data:`canrls.can.e2e.CRC8_TABLE`), rows of a
+    (8, 256) array: the C loops look bytes up in parallel (``src/canrls/c/can.c``)."""
+    powers = np.empty((8, 256), np.uint8)
+    powers[0] = CRC8_TABLE
+    for k in range(1, 8):
+        powers[k] = CRC8_TABLE[powers[k - 1]]
+    x = np.arange(256)
+    bits = [CRC8_TABLE[x & (1 << b)] for b in range(8)]
+    if not (np.bitwise_xor.reduce(bits) == CRC8_TABLE).all():  # pragma: no cover
+        raise AssertionError("the CRC table is not linear")
+    return powers
+
+
+#: :func:`_crc_powers`, computed once
+_CRC8_POWERS = _crc_powers()
+
+
 def _crc_vector(frame_id: int, data: U8, length: int) -> U8:
-    """E2E CRC (:func:`canrls.can.e2e.e2e_crc`) of every row: over the ID, then bytes 1..length-1."""
+    """E2E CRC (:func:`canrls.can.e2e.e2e_crc`) of every row: over the ID, then bytes
+    1..length-1."""
     out = np.empty(data.shape[0], np.uint8)
     d = np.ascontiguousarray(data, np.uint8)
-    _can.crc8(int(frame_id), d, d.shape[1], int(length), CRC8_TABLE, out)
+    _can.crc8(int(frame_id), d, d.shape[1], int(length), _CRC8_POWERS, out)
     return out
 
 
@@ -1042,7 +1061,7 @@ def _select_rows(arbitration_id: npt.NDArray[np.uint32], is_extended: npt.NDArra
 
 def _gather_check(data: U8, rows: npt.NDArray[np.intp], length: int,
                   is_remote: npt.NDArray[np.bool_], dlc: U8, check_crc: bool, frame_id: int,
-                  table: U8, out: U8, flags: U8) -> int:
+                  powers: U8, out: U8, flags: U8) -> int:
     """Copy ``data[rows, :length]`` into ``out``; flag the first check each row fails:
     1 remote, 2 length (DLC), 4 CRC (only when ``check_crc``). Returns the flagged rows.
     """
@@ -1050,7 +1069,7 @@ def _gather_check(data: U8, rows: npt.NDArray[np.intp], length: int,
     d = c(data, np.uint8)
     return int(_can.gather_check(d, d.shape[1], c(rows, np.int64), length,
                                  c(is_remote, np.bool_), c(dlc, np.uint8), check_crc,
-                                 frame_id, table, out, flags))
+                                 frame_id, powers, out, flags))
 
 
 def _counter_params(m: MessageCodec) -> tuple[int, int, float]:
@@ -1184,7 +1203,7 @@ class _FastPlan:
 def _fast_kernel(t: F64, arbitration_id: npt.NDArray[np.uint32],
                  is_extended: npt.NDArray[np.bool_], is_remote: npt.NDArray[np.bool_],
                  is_error: npt.NDArray[np.bool_], dlc: U8, data: U8, msg: I64, period: F64,
-                 sig: I64, sig_f: F64, table: U8, state: I64, state_t: F64, base: int,
+                 sig: I64, sig_f: F64, powers: U8, state: I64, state_t: F64, base: int,
                  out_f: F64, out_i: I64, counts: I64) -> int:
     """Decode the frames of a block in one pass, up to the first that is not well-formed.
 
@@ -1207,7 +1226,7 @@ def _fast_kernel(t: F64, arbitration_id: npt.NDArray[np.uint32],
     return int(_can.decode_fast(c(t, np.float64), c(arbitration_id, np.uint32),
                                 c(is_extended, np.bool_), c(is_remote, np.bool_),
                                 c(is_error, np.bool_), c(dlc, np.uint8), d, d.shape[1], msg,
-                                period, sig, sig_f, table, state, state_t, int(base), out_f,
+                                period, sig, sig_f, powers, state, state_t, int(base), out_f,
                                 out_i, counts))
 
 
@@ -1296,7 +1315,7 @@ class Decoder:
         out_f, out_i = plan.outputs(len(block))
         done = _fast_kernel(block.t, block.arbitration_id, block.is_extended, block.is_remote,
                             block.is_error, block.dlc, block.data, plan.msg, plan.period,
-                            plan.sig, plan.sig_f, CRC8_TABLE, self._counters, self._counters_t,
+                            plan.sig, plan.sig_f, _CRC8_POWERS, self._counters, self._counters_t,
                             base, out_f, out_i, plan.counts)
         counts = plan.counts.tolist()
         K = len(plan.layout)
@@ -1338,7 +1357,7 @@ class Decoder:
             gathered = np.empty((n_rows, m.length), np.uint8)
             flags = np.empty(n_rows, np.uint8)
             n_bad = _gather_check(block.data, rows, m.length, block.is_remote, block.dlc,
-                                  crc_on, int(m.frame_id), CRC8_TABLE, gathered, flags)
+                                  crc_on, int(m.frame_id), _CRC8_POWERS, gathered, flags)
         else:  # a block narrower than the message: the checks below, one by one
             gathered, flags, n_bad = None, None, n_rows
         # payload bytes of the rows still accepted; the rows only ever shrink, so the
