@@ -17,7 +17,14 @@ the mean interval :math:`p = (t_n - t_0)/n` and iterate
 
 Jitter rounds to one period (:math:`k_i = 1`), a dropped frame to two, a burst (frames
 queued and sent back to back) to zero for the queued frames and to several periods for
-the gap before them: the count of periods over the span stays right in each case. The
+the gap before them: the count of periods over the span stays right in each case.
+Frames relayed in groups (a gateway, a websocket, a USB adapter polled every few
+periods) arrive with many intervals near zero and gaps blurred by the relay's latency,
+and there the rounding drifts; when more than :data:`BURST_SHARE` of the intervals are
+shorter than half the mean interval, every frame is taken as one period and the period
+is the least-squares slope of :math:`t_i` against :math:`i` (frames dropped inside such a
+stream lengthen it by their share of the frames, which the 10 % check against a stated
+period tolerates up to one frame in eleven). The
 mapped messages must share the period (pairing takes one frame of each per period): the
 period is the shortest of theirs, and messages whose periods differ by more than half
 are an error that names each message with its period.
@@ -33,7 +40,7 @@ import numpy.typing as npt
 
 from canrls.errors import ConfigError
 
-__all__ = ["PERIOD_FRAMES", "PERIOD_TOLERANCE", "MIN_INTERVALS", "PeriodEstimate",
+__all__ = ["PERIOD_FRAMES", "PERIOD_TOLERANCE", "MIN_INTERVALS", "BURST_SHARE", "PeriodEstimate",
            "PeriodMeter", "estimate_period", "check_period"]
 
 #: Frames of each mapped message the period is measured on (the first ones).
@@ -44,6 +51,10 @@ PERIOD_TOLERANCE = 0.10
 
 #: Fewest intervals of a message that give it a measured period.
 MIN_INTERVALS = 8
+
+#: Share of intervals shorter than half the mean interval above which a message's frames
+#: are taken as relayed in groups (module docstring): the period is the mean interval.
+BURST_SHARE = 0.05
 
 F64 = npt.NDArray[np.float64]
 
@@ -74,6 +85,15 @@ def _one(t: F64) -> tuple[float, float] | None:
     if not span > 0:
         return None
     p = span / len(d)
+    if float(np.mean(d < 0.5 * p)) > BURST_SHARE:
+        # relayed in groups: one period per frame, p the slope of the times against the
+        # frame index (least squares: a group's frames wait for its last, a saw tooth
+        # that the slope averages out, where the end points alone would carry it)
+        i = np.arange(len(t), dtype=np.float64)
+        i -= i.mean()
+        p = float(np.dot(i, t - t.mean()) / np.dot(i, i))
+        dev = t - t.mean() - p * i  # the relay's latency: the jitter
+        return p, float(np.sqrt(np.mean(dev * dev)))
     for _ in range(20):
         k = np.rint(d / p)
         total = float(k.sum())
