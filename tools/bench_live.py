@@ -151,7 +151,10 @@ class Setup:
         json.loads(p.stdout.readline())  # ready: frames simulated, connected
         return p
 
-    def daemon(self, duration: float, cold: bool) -> subprocess.Popen[str]:
+    def daemon(self, duration: float, cold: bool, period: float | None = None
+               ) -> subprocess.Popen[str]:
+        """``canrls run``; ``period``: the control period the sender's rate makes (the
+        DBC's 1 ms holds only at 2,000 frames/s, and the daemon checks it)."""
         env = dict(os.environ)
         if cold:  # a fresh home: no cache of compiled kernels anywhere
             home = self.tmp / f"home-{len(self.procs)}"
@@ -160,7 +163,8 @@ class Setup:
             env.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"))
         p = subprocess.Popen([PY, "-m", "canrls", "run", "-i", "remote", "-c", self.url,
                               "--effects", EFFECTS, "--kt", "0.1", "--duration", f"{duration:g}",
-                              "--json"], env=env, stdout=subprocess.PIPE,
+                              "--json", *(["--period", repr(period)] if period else [])],
+                             env=env, stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)
         self.procs.append(p)
         return p
@@ -226,7 +230,7 @@ def run_1khz(duration: float) -> dict[str, float]:
 def run_fast(rate: float, seconds: float) -> dict[str, float]:
     with tempfile.TemporaryDirectory() as tmp, Setup(Path(tmp)) as s:
         sender = s.sender(rate, seconds, seed=2)
-        d = s.daemon(seconds + 60.0, cold=False)
+        d = s.daemon(seconds + 60.0, cold=False, period=2.0 / rate)
         time.sleep(8.0)  # the daemon's start (warm)
         _, _, cpu1 = _proc(d)
         _go(sender)
