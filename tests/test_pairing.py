@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -187,21 +186,6 @@ def test_no_cycle_time_needs_period(tmp_path: Path) -> None:
     assert Pairer(p, period=1e-3).period == 1e-3
     assert Pairer(Protocol.load(f, ["current=InverterFb1.Iq", "speed=InverterFb2.MotorSpeed"],
                                 period=5e-3)).period == 5e-3
-
-
-def test_pairing_speed() -> None:
-    p = protocol("default")
-    n = 500_000
-    k = np.arange(n, dtype=np.float64)
-    b = FeedbackEncoder(p).encode(k * 1e-3, k % 100, k % 50)
-    d = p.decoder().decode(b)
-    Pairer(p).push(p.decoder().decode(b.take(slice(0, 10))))
-    pr = Pairer(p)
-    t0 = time.perf_counter()
-    s = pr.push(d)
-    dt = time.perf_counter() - t0
-    assert len(s) == n
-    assert dt < 1.0, f"1 M frames paired in {dt:.3f} s"
 
 
 # ---------------------------------------------------------------------------
