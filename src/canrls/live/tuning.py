@@ -17,8 +17,8 @@ class InterpreterTuning:
       to 5 ms while another runs Python code without blocking, e.g. the notifier
       taking frames already queued by python-can's virtual bus. ``switch_interval``
       (``sys.setswitchinterval``) shortens that wait.
-    * ``gc.freeze()`` moves every object alive at start (imported modules, numba's
-      registries: some 65 000 objects) out of the cyclic collector's reach, so an
+    * ``gc.freeze()`` moves every object alive at start (imported modules, the
+      DBC encoders) out of the cyclic collector's reach, so an
       occasional full collection no longer costs tens of milliseconds.
 
     The first daemon to start applies them, the last to stop restores the
