@@ -74,6 +74,22 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
 
+def add_log_arguments(p: argparse.ArgumentParser, several: str) -> None:
+    """The LOG arguments of the commands that read logs, and ``--skip-bad-lines``;
+    ``several`` says what the command makes of several logs."""
+    p.add_argument("log", metavar="LOG", nargs="+",
+                   help=f"CAN log(s): .log (candump), .asc, .blf, .trc, .csv; {several}")
+    p.add_argument("--skip-bad-lines", action="store_true",
+                   help="count unparsable log lines instead of stopping at the first")
+
+
+def add_report_option(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """``--report DIR``: the HTML page with figures."""
+    p.add_argument("--report", metavar="DIR",
+                   help="write DIR/index.html with PNG figures (needs matplotlib: "
+                        "pip install 'canrls[report]')")
+
+
 def add_progress_option(p: argparse.ArgumentParser) -> None:
     """``--quiet``: no progress bar (there is none either when stderr is not a terminal)."""
     p.add_argument("--quiet", "-q", action="store_true",

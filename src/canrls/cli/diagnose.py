@@ -36,8 +36,10 @@ from typing import Any
 
 from canrls.cli._common import (
     Progress,
+    add_log_arguments,
     add_model_options,
     add_progress_option,
+    add_report_option,
     print_json,
     setup,
 )
@@ -65,20 +67,15 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                     "position, current, acceleration, time, rotation order), rank the "
                     "effects of the library the model lacks, and with --add refit and print "
                     "before and after side by side.")
-    p.add_argument("log", metavar="LOG", nargs="+",
-                   help="CAN log(s): .log (candump), .asc, .blf, .trc, .csv; several logs "
-                        "are diagnosed as one record (segments never bridged across files)")
+    add_log_arguments(p, "several logs are diagnosed as one record (segments never "
+                         "bridged across files)")
     add_model_options(p)
     add_progress_option(p)
-    p.add_argument("--skip-bad-lines", action="store_true",
-                   help="count unparsable log lines instead of stopping at the first")
     g = p.add_argument_group("diagnosis")
     g.add_argument("--add", action="append", default=[], metavar="NAME",
                    help="add an effect and refit (repeatable), e.g. --add coulomb "
                         "--add cogging:24; 'cogging' alone takes the order the search found")
-    g.add_argument("--report", metavar="DIR",
-                   help="write DIR/index.html with PNG figures (needs matplotlib: "
-                        "pip install 'canrls[report]')")
+    add_report_option(g)
     g.add_argument("--save-model", metavar="FILE",
                    help="write the model (after --add, if any) with its parameters as JSON "
                         "for 'canrls validate' (as 'canrls fit --save-model')")

@@ -46,6 +46,7 @@ from typing import Any
 
 from canrls.cli._common import (
     Progress,
+    add_log_arguments,
     add_model_options,
     add_progress_option,
     print_json,
@@ -61,16 +62,13 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
         description="Replay a CAN log through the estimation pipeline (float and fixed-point "
                     "RLS) and print every parameter with unit and sigma, the residual RMS and "
                     "the fit.")
-    p.add_argument("log", metavar="LOG", nargs="+",
-                   help="CAN log(s): .log (candump), .asc, .blf, .trc, .csv; several logs "
-                        "identify one model (segments never bridged across files)")
+    add_log_arguments(p, "several logs identify one model (segments never bridged "
+                         "across files)")
     add_model_options(p)
     p.add_argument("--save-model", metavar="FILE",
                    help="write the identified model (effects, parameters with sigma and "
                         "unit, configuration, calibration) as JSON for 'canrls validate'")
     add_progress_option(p)
-    p.add_argument("--skip-bad-lines", action="store_true",
-                   help="count unparsable log lines instead of stopping at the first")
     p.set_defaults(func=run)
     return p
 

@@ -29,7 +29,14 @@ import argparse
 import sys
 from typing import Any
 
-from canrls.cli._common import Progress, add_model_options, add_progress_option, print_json
+from canrls.cli._common import (
+    Progress,
+    add_log_arguments,
+    add_model_options,
+    add_progress_option,
+    add_report_option,
+    print_json,
+)
 
 __all__ = ["add_subparser", "run"]
 
@@ -40,17 +47,13 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
         description="Predict CAN logs with the parameters of a model saved by 'canrls fit "
                     "--save-model', without re-estimating, and report fit %, residual RMS "
                     "and where the model fails.")
-    p.add_argument("log", metavar="LOG", nargs="+",
-                   help="CAN log(s): .log (candump), .asc, .blf, .trc, .csv")
+    add_log_arguments(p, "several logs are predicted as one record (segments never "
+                         "bridged across files)")
     p.add_argument("--model", "-m", required=True, metavar="FILE",
                    help="model file written by 'canrls fit --save-model'")
-    p.add_argument("--report", metavar="DIR",
-                   help="write DIR/index.html with PNG figures (needs matplotlib: "
-                        "pip install 'canrls[report]')")
+    add_report_option(p)
     add_model_options(p)
     add_progress_option(p)
-    p.add_argument("--skip-bad-lines", action="store_true",
-                   help="count unparsable log lines instead of stopping at the first")
     p.set_defaults(func=run)
     return p
 
