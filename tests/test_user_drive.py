@@ -139,6 +139,17 @@ def test_rotary_text_names_date_period_axis_and_defaults(
     assert "kg·m²" in out and "N·m" in out
 
 
+def test_diagnosis_page_of_an_epoch_log_names_its_start_date(
+        rotary: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("matplotlib")
+    assert main(["diagnose", str(rotary["epoch"]), *_flags(rotary["dbc"], ROTARY_SIGNALS),
+                 "--report", str(tmp_path / "page"), "--quiet"]) == 0
+    capsys.readouterr()
+    html = (tmp_path / "page" / "index.html").read_text(encoding="utf-8")
+    assert "The log starts 2023-11-14 22:13:20.250000 UTC" in html
+    assert "1.7e+09" not in html and "1.70e+09" not in html
+
+
 def test_blf_log_of_the_user_dbc(rotary: dict[str, Path],
                                  capsys: pytest.CaptureFixture[str]) -> None:
     own = _fit(capsys, [str(rotary["own"])])
