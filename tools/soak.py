@@ -60,18 +60,19 @@ from can.interfaces import virtual as _virtual
 
 from canrls.can.frames import FrameDecoder, ParameterReport, frame_ids
 from canrls.config import AppConfig
+from canrls.errors import CanrlsError
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.sim.faults import FaultLog, FaultSpec
 from canrls.sim.scenario import Simulator, scenario
 
 #: n = 8 parameters, as tools/bench_daemon.py
 EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"
-#: about 7 000 faults of every kind to the hour of 7.2 million frames, a clock step
-#: and a command burst every 100 s on average, an error frame every 20 s, and half a
-#: second of silence every 5 minutes
+#: 3 600 to 7 200 faults of every kind to the hour of 7.2 million frames, a clock step
+#: every 50 s and a burst of up to 64 commands every 30 s on average, an error frame
+#: every 15 s, and half a second of silence every 5 minutes
 FAULTS = ("drop=0.001,dup=0.0005,reorder=0.0005,corrupt=0.001,silence=0.5s@100s/300s,"
-          "counter=0.001,dlc=0.0005,tstep=1.4e-6,tstep_max=0.5s,cmd=1.4e-6,cmd_burst=64,"
-          "errframe=7e-6")
+          "counter=0.001,dlc=0.0005,tstep=3e-6,tstep_max=0.5s,cmd=5e-6,cmd_burst=64,"
+          "errframe=1e-5")
 #: the kinds printed, in order, with what the daemon has to count for each
 KINDS = ("dropped", "silenced", "corrupted", "miscounted", "resized", "duplicated",
          "reordered", "clock_steps", "commands", "error_frames")
@@ -336,15 +337,18 @@ def report(args: argparse.Namespace, a: RunResult, b: RunResult) -> bool:
         fx = next(r for r in rows if r[0] == name and r[1] == "fixed_value")
         fv = next(r for r in rows if r[0] == name and r[1] == "float_value")
         ref = b.params[name]
-        print(f"  {name:16s} fixed {fx[3]: .6g} vs {ref.fixed_value if ref.fixed_value is not None else float('nan'): .6g}: "
-              f"{fx[2]:+6.2f} sigma {fx[4]:14s} float {fv[2]:+6.2f} sigma {fv[4]:14s} "
-              f"(sigma {ref.sigma if ref.sigma is not None else float('nan'):.3g})")
+        sigma = ref.sigma if ref.sigma is not None and ref.sigma > 0 else math.nan
+        rfix = ref.fixed_value if ref.fixed_value is not None else math.nan
+        rflt = ref.float_value if ref.float_value is not None else math.nan
+        print(f"  {name:16s} fixed {fx[3]: .7g} vs {rfix: .7g}: {fx[2]:+7.2f} sigma "
+              f"{fx[4]:15s} float {fv[2]:+7.2f} sigma {fv[4]:15s} (sigma {sigma:.3g}; "
+              f"fault-free fixed - float {(rfix - rflt) / sigma:+.2f} sigma)")
     rss = a.rss
     half = [m for t, m in rss if t >= args.duration / 2 - 1e-9]
     growth = (rss[-1][1] - half[0]) if half else float("nan")
     slope = slope_mb_per_h(rss)
     print("RSS [MB] at each tenth of the run: "
-          + ", ".join(f"{t:.0f} s {m:.1f}" for t, m in rss))
+          + ", ".join(f"{t:.4g} s {m:.1f}" for t, m in rss))
     print(f"RSS peak {a.rss_peak:.1f} MB, final {rss[-1][1]:.1f} MB; slope from the first tenth "
           f"on {slope:+.2f} MB per simulated hour; growth over the second half {growth:+.1f} MB")
     checks = {
@@ -379,9 +383,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="frames queued before the feeder waits (default 40000)")
     ap.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     args = ap.parse_args(argv)
-    if not args.duration > 0:
-        ap.error(f"--duration {args.duration:g}: must be > 0")
-    FaultSpec.parse(args.faults)  # a bad spec: ConfigError before anything runs
+    if not (math.isfinite(args.duration) and args.duration > 0):
+        ap.error(f"--duration {args.duration:g}: must be a number of seconds > 0")
+    try:
+        FaultSpec.parse(args.faults)  # a bad spec: one line before anything runs
+    except CanrlsError as e:
+        ap.error(f"--faults: {e}")
 
     def progress(line: str) -> None:
         if not args.quiet:
