@@ -147,7 +147,7 @@ def test_simulate_applies_scenario_faults() -> None:
     assert sum(dec.lost.values()) == log.dropped + log.corrupted
 
 
-# --------------------------------------------------------------------------- the hostile rest of a bus
+# ----------------------------------------------------------------- the hostile rest of a bus
 
 
 def test_parse_bus_faults() -> None:

@@ -140,7 +140,9 @@ def test_soak_smoke_run_counts_every_fault_and_judges(tmp_path: Path) -> None:
     for kind in ("dropped", "silenced", "corrupted", "miscounted", "resized", "duplicated",
                  "reordered", "clock_steps", "commands", "error_frames"):
         assert int(counts[kind]) > 0, kind
-    total = int(re.search(r"^faults injected: (\d+)", out, re.M).group(1))  # type: ignore[union-attr]
+    injected = re.search(r"^faults injected: (\d+)", out, re.M)
+    assert injected is not None, out
+    total = int(injected.group(1))
     assert total == sum(int(v) for v in counts.values())
     assert re.search(rf"^faults survived: {total} of {total}$", out, re.M), out
     # the daemon answered every injected command and saw every error frame

@@ -181,12 +181,15 @@ def run(label: str, duration: float, seed: int, faults: str, effects: str,
     d = make_daemon(ch, effects)
     watcher = Published()
     t_wall = time.perf_counter()
-    d.start()
-    listener_bus = can.Bus(interface="virtual", channel=ch, ignore_config=True)
-    notifier = can.Notifier(listener_bus, [watcher], timeout=0.1)
+    listener_bus: can.BusABC | None = None
+    notifier: can.Notifier | None = None
     try:
+        d.start()
+        listener_bus = can.Bus(interface="virtual", channel=ch, ignore_config=True)
+        notifier = can.Notifier(listener_bus, [watcher], timeout=0.1)
+        own = listener_bus.queue  # type: ignore[attr-defined]  # a VirtualBus's receive queue
         with _virtual.channels_lock:  # the daemon's receive queue, not the listener's
-            queues = [q for q in _virtual.channels[ch] if q is not listener_bus.queue]
+            queues = [q for q in _virtual.channels[ch] if q is not own]
         res.rss.append((0.0, rss_mb()))
         next_mark = duration / tenths
         offered = 0
@@ -254,8 +257,10 @@ def run(label: str, duration: float, seed: int, faults: str, effects: str,
         res.params = watcher.table()
         res.acks = dict(watcher.acks)
     finally:
-        notifier.stop()
-        listener_bus.shutdown()
+        if notifier is not None:
+            notifier.stop()
+        if listener_bus is not None:
+            listener_bus.shutdown()
         d.stop()
         logging.getLogger("canrls").removeHandler(counter)
     res.log_records = dict(counter.counts)
@@ -325,9 +330,9 @@ def report(args: argparse.Namespace, a: RunResult, b: RunResult) -> bool:
           f"{st.get('tx_paused')}; bus reopened {st.get('bus_reopens')} times; queue overflow "
           f"{st.get('rx_overflow')}; log records {a.log_records or '{}'}")
     surv = sum(a.survived.get(k, 0) for k in KINDS)
+    why = f"stopped: {a.why}" if a.why else "published nothing after the end"
     print(f"faults survived: {surv} of {total}"
-          + ("" if a.alive and a.published_after_end else
-             f" (the daemon {'stopped: ' + a.why if a.why else 'published nothing after the end'})"))
+          + ("" if a.alive and a.published_after_end else f" (the daemon {why})"))
     rows = compare(a, b)
     lost = sorted({r[0] for r in rows if r[4]})
     print(f"parameters lost: {len(lost)} of {len(b.params)}"

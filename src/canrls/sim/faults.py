@@ -38,7 +38,8 @@ stream without them: a valid command that changes the model or the estimator sta
 sent, and a ``freeze`` is always followed at once by its ``resume``. A soak can then
 compare the final parameters with a fault-free run (``tools/soak.py``).
 
-Probabilities are in [0, 1]; ``cmd_burst`` is a whole number >= 1. Times take ``s``, ``ms`` or no suffix (seconds).
+Probabilities are in [0, 1]; ``cmd_burst`` is a whole number >= 1. Times take ``s``,
+``ms`` or no suffix (seconds).
 ``none`` or an empty string means no faults. A malformed spec is a
 :class:`~canrls.errors.ConfigError` naming the field and the value.
 
