@@ -145,3 +145,118 @@ def test_simulate_applies_scenario_faults() -> None:
     assert dec.rejected["crc"] == log.corrupted
     # a frame rejected for its CRC leaves a gap in the alive counter, as a dropped one does
     assert sum(dec.lost.values()) == log.dropped + log.corrupted
+
+
+# ----------------------------------------------------------------- the hostile rest of a bus
+
+
+def test_parse_bus_faults() -> None:
+    s = FaultSpec.parse("counter=0.01,dlc=0.002,tstep=1e-4,tstep_max=200ms,cmd=1e-3,"
+                        "cmd_burst=8,errframe=1e-3")
+    assert (s.counter, s.dlc, s.tstep, s.tstep_max, s.cmd, s.cmd_burst, s.errframe) == \
+        (0.01, 0.002, 1e-4, 0.2, 1e-3, 8, 1e-3)
+    assert s.active and FaultSpec.parse(str(s)) == s
+
+
+@pytest.mark.parametrize(("spec", "field"), [
+    ("counter=1.5", "counter"),
+    ("dlc=x", "dlc"),
+    ("tstep_max=0s", "tstep_max"),
+    ("tstep_max=soon", "tstep_max"),
+    ("cmd_burst=0", "cmd_burst"),
+    ("cmd_burst=2.5", "cmd_burst"),
+    ("errframe=-1", "errframe"),
+    ("cmd=0.1,cmd=0.2", "cmd"),
+])
+def test_bad_bus_fault_spec_names_the_field(spec: str, field: str) -> None:
+    with pytest.raises(ConfigError, match=field):
+        FaultSpec.parse(spec)
+
+
+def test_counter_fault_keeps_the_crc_valid(frames: FrameBlock) -> None:
+    out, log = inject(frames, "counter=0.01", seed=11)
+    assert log.miscounted > 0 and len(out) == len(frames)
+    changed = np.flatnonzero(np.any(out.data != frames.data, axis=1))
+    assert len(changed) == log.miscounted
+    # only the CRC byte and the counter nibble change; the counter always moves
+    assert np.array_equal(out.data[changed, 2:], frames.data[changed, 2:])
+    assert np.array_equal(out.data[changed, 1] & 0xF0, frames.data[changed, 1] & 0xF0)
+    assert np.all((out.data[changed, 1] & 0x0F) != (frames.data[changed, 1] & 0x0F))
+    dec = _decode(out)
+    assert dec.rejected["crc"] == 0  # the CRC holds: only the counter check can tell
+    assert dec.rejected["stale"] + dec.rejected["repeated"] + sum(dec.lost.values()) > 0
+
+
+def test_dlc_fault_is_rejected_for_its_length(frames: FrameBlock) -> None:
+    out, log = inject(frames, "dlc=0.005", seed=12)
+    assert log.resized > 0
+    changed = np.flatnonzero(out.dlc != frames.dlc)
+    assert len(changed) == log.resized and np.all(out.dlc <= 8)
+    dec = _decode(out)
+    assert dec.rejected["length"] == log.resized
+
+
+def test_clock_steps_add_up_across_blocks(frames: FrameBlock) -> None:
+    inj = FaultInjector("tstep=0.0005,tstep_max=0.3s", seed=13)
+    halves = [frames.take(slice(0, 20000)), frames.take(slice(20000, None))]
+    out = FrameBlock.concat([inj.apply(b) for b in halves])
+    shift = out.t - frames.t
+    jumps = np.flatnonzero(np.abs(np.diff(shift)) > 1e-9)
+    steps = np.diff(shift)[jumps]
+    assert inj.log.clock_steps == len(jumps) + int(abs(shift[0]) > 1e-9) > 2
+    assert np.any(steps < 0) and np.any(steps > 0) and np.all(np.abs(steps) <= 0.3)
+    assert shift[-1] == pytest.approx(inj.log.clock_offset)
+    assert np.array_equal(out.data, frames.data)  # only the receive times move
+
+
+def test_error_frames_and_command_bursts_are_inserted(frames: FrameBlock) -> None:
+    from canrls.sim.faults import ERROR_CLASSES
+    out, log = inject(frames, "errframe=0.001,cmd=0.0005,cmd_burst=5", seed=14)
+    err = out.is_error
+    cmd = out.arbitration_id == 0x320
+    assert err.sum() == log.error_frames > 0 and cmd.sum() == log.commands > 0
+    assert set(out.arbitration_id[err].tolist()) <= set(ERROR_CLASSES)
+    assert log.command_bursts <= log.commands <= 2 * 5 * log.command_bursts
+    assert len(out) == log.frames_out == len(frames) + log.inserted
+    # the drive's frames are all there, in their order, and time never runs backwards
+    assert np.array_equal(out.data[~err & ~cmd], frames.data)
+    assert np.all(np.diff(out.t) >= 0)
+
+
+def test_injected_commands_leave_the_estimates_as_they_were(frames: FrameBlock) -> None:
+    """Every injected command is random (refused) or valid but harmless: a daemon that
+    processes the stream with them ends with the estimates of the stream without them,
+    bit for bit, and answers every one."""
+    from canrls.can.frames import CommandCode, CommandError, decode_command
+    from canrls.config import AppConfig
+    from canrls.live.daemon import Daemon, DaemonSettings
+
+    out, log = inject(frames, "cmd=0.002,cmd_burst=6", seed=15)
+    msgs = out.to_messages()
+    codes = []
+    for m in msgs:
+        if m.arbitration_id == 0x320:
+            try:
+                codes.append(decode_command(m).code)
+            except CommandError:
+                codes.append(None)
+    assert codes.count(None) > 0 and CommandCode.FREEZE in codes
+    assert CommandCode.RESET not in codes and CommandCode.REMOVE_EFFECT not in codes
+
+    def run(stream: list) -> tuple[np.ndarray, int]:  # type: ignore[type-arg]
+        cfg = AppConfig()
+        cfg.model = {"effects": ["inertia", "viscous", "coulomb"], "kt": 0.1}
+        protocol = cfg.protocol()
+        d = Daemon(protocol, cfg.model_for(protocol), cfg.settings(),
+                   DaemonSettings(commands=True), bus={"interface": "virtual",
+                                                       "channel": "never-opened"})
+        for k in range(0, len(stream), 5000):
+            d.process(stream[k:k + 5000])
+        theta = np.array([p.value for eq in d.pipeline.parameters() for p in eq]
+                         + [p.fixed for eq in d.pipeline.parameters() for p in eq])
+        return theta, d.stats().commands
+
+    with_cmds, answered = run(msgs)
+    without, none = run(frames.to_messages())
+    assert answered == log.commands > 0 and none == 0
+    assert np.array_equal(with_cmds, without)

@@ -1,18 +1,21 @@
-"""tools/: the SocketCAN set-up script and the systemd unit.
+"""tools/: the SocketCAN set-up script, the systemd unit, and a smoke run of the soak.
 
 This kernel has no CAN support, so ``setup_can.sh`` runs against stand-ins for ``ip``
 and ``modprobe`` placed first on PATH: they record their arguments (and answer ``ip
 link show`` as the test says), and the test checks the exact commands the script
 would give on a real machine. The unit file goes through ``systemd-analyze verify``
-where that tool is installed.
+where that tool is installed. ``tools/soak.py`` runs for a few simulated seconds (the
+hour-long soak is not part of the test run).
 """
 
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import stat
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -103,3 +106,60 @@ def test_systemd_unit_is_notify_with_watchdog_and_restart() -> None:
     assert lines["Type"] == "notify" and lines["Restart"] == "on-failure"
     assert lines["WatchdogSec"].endswith("s") and lines["KillSignal"] == "SIGTERM"
     assert "--log-level" in lines["ExecStart"] and " run " in lines["ExecStart"]
+
+
+# --------------------------------------------------------------------------- tools/soak.py
+
+SOAK = TOOLS / "soak.py"
+SRC = TOOLS.parent / "src"
+#: every kind of fault, often enough to occur in a few simulated seconds
+_SMOKE_FAULTS = ("drop=0.01,dup=0.01,reorder=0.01,corrupt=0.01,counter=0.01,dlc=0.01,"
+                 "silence=0.2s@1s,tstep=0.0005,tstep_max=0.2s,cmd=0.001,cmd_burst=4,"
+                 "errframe=0.001")
+
+
+def _soak(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        p for p in (str(SRC), os.environ.get("PYTHONPATH", "")) if p)}
+    return subprocess.run([sys.executable, str(SOAK), "--quiet", *args], env=env,
+                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
+
+
+def test_soak_smoke_run_counts_every_fault_and_judges(tmp_path: Path) -> None:
+    """A few simulated seconds of the soak: the daemon takes every frame, every kind of
+    fault is injected and counted, every parameter is compared, and the run ends with a
+    verdict (the figures themselves are the tool's output, not asserted here)."""
+    r = _soak(tmp_path, "--duration", "4", "--seed", "3", "--faults", _SMOKE_FAULTS)
+    out = r.stdout
+    assert r.returncode in (0, 1), r.stderr
+    m = re.search(r"^frames processed: (\d+) of (\d+) offered \(twin: (\d+) of (\d+)\)", out,
+                  re.M)
+    assert m is not None, out
+    assert m.group(1) == m.group(2) and m.group(3) == m.group(4) == "8000"
+    counts = dict(re.findall(r"^  (\w+) +(\d+)$", out, re.M))
+    for kind in ("dropped", "silenced", "corrupted", "miscounted", "resized", "duplicated",
+                 "reordered", "clock_steps", "commands", "error_frames"):
+        assert int(counts[kind]) > 0, kind
+    injected = re.search(r"^faults injected: (\d+)", out, re.M)
+    assert injected is not None, out
+    total = int(injected.group(1))
+    assert total == sum(int(v) for v in counts.values())
+    assert re.search(rf"^faults survived: {total} of {total}$", out, re.M), out
+    # the daemon answered every injected command and saw every error frame
+    assert re.search(rf"commands {counts['commands']} \(rejected \d+\), acknowledgements",
+                     out), out
+    assert f"error frames {counts['error_frames']};" in out
+    params = re.findall(r"^  (\S+) +fixed .* sigma", out, re.M)
+    assert len(params) == 3 + 2 + 2 + 1  # n = 8 of the default model
+    assert re.search(r"^RSS \[MB\] at each tenth of the run: 0 s [\d.]+(, [\d.]+ s [\d.]+){10}$",
+                     out, re.M), out
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("PASSED: " if r.returncode == 0 else "FAILED: not met: ")
+    assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+def test_soak_bad_fault_spec_is_one_line(tmp_path: Path) -> None:
+    r = _soak(tmp_path, "--duration", "1", "--faults", "drop=2")
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1].startswith("soak.py: error: --faults:")
+    assert "drop" in r.stderr and "Traceback" not in r.stderr

@@ -1,4 +1,5 @@
-"""Fault injection on frame streams: drop, duplicate, reorder, corrupt, silence.
+"""Fault injection on frame streams: drop, duplicate, reorder, corrupt, silence, and the
+hostile rest of a bus: bad counters and DLCs, clock steps, command floods, error frames.
 
 A :class:`FaultSpec` says what to inject; it parses from a short string::
 
@@ -14,19 +15,43 @@ A :class:`FaultSpec` says what to inject; it parses from a short string::
 ``silence=D@T``    no frame at all for D seconds from T seconds after the stream's start;
                    ``silence=D@T/E`` repeats every E seconds; the key may be given again
                    (``silence=0.5s@10s,silence=2s@30s``) or joined with ``+``
+``counter=P``      the alive counter of an E2E-protected frame (``protected`` IDs: byte 0
+                   CRC-8, low nibble of byte 1 counter, as the default DBC) is moved by
+                   1..15 and the CRC made valid again: only the counter check can see it
+``dlc=P``          the frame's DLC is changed to another value in 0..8 (bytes beyond the
+                   new DLC read as zeros)
+``tstep=P``        the receive clock steps at this frame with probability P, by a random
+                   amount of either sign, at most ``tstep_max`` (default 0.5 s): this
+                   frame and every later one carry the shifted time (steps add up)
+``cmd=P``          after a frame, with probability P, a burst of 1..``cmd_burst`` (default
+                   16) command frames (``command_id``, default RlsCommand 0x320), each
+                   either random (an unknown command code, a DLC other than 8, or a remote
+                   frame) or valid but harmless (see :data:`HARMLESS_COMMANDS`)
+``errframe=P``     after a frame, with probability P, a bus error frame
+                   (``is_error_frame``; its ID a SocketCAN error class of
+                   :data:`ERROR_CLASSES`)
 =================  ==========================================================================
 
-Probabilities are in [0, 1]. Times take ``s``, ``ms`` or no suffix (seconds).
+The commands are chosen so that the estimates they leave behind are those of the same
+stream without them: a valid command that changes the model or the estimator state
+(reset, add or remove an effect the model has or lacks, a valid lambda) is never
+sent, and a ``freeze`` is always followed at once by its ``resume``. A soak can then
+compare the final parameters with a fault-free run (``tools/soak.py``).
+
+Probabilities are in [0, 1]; ``cmd_burst`` is a whole number >= 1. Times take ``s``,
+``ms`` or no suffix (seconds).
 ``none`` or an empty string means no faults. A malformed spec is a
 :class:`~canrls.errors.ConfigError` naming the field and the value.
 
-Faults apply in this order: silence, drop, corrupt, reorder, duplicate. Each frame
+Faults apply in this order: silence, drop, corrupt, counter, dlc, reorder, duplicate,
+tstep, then the inserted command and error frames. Each frame
 is affected by a given fault at most once; a corrupted frame that is then
 duplicated is delivered twice, corrupted. :class:`FaultInjector` applies a spec
 block after block with one ``numpy.random.default_rng(seed)`` and keeps a
 :class:`FaultLog` of what it injected, so tests can check a decoder's counters.
-Frame timestamps keep their order: reordering swaps the contents of two frames,
-not their receive times; a duplicate has its original's timestamp.
+Without ``tstep``, frame timestamps keep their order: reordering swaps the contents of
+two frames, not their receive times; a duplicate, an inserted command or error frame
+has the timestamp of the frame it follows.
 """
 
 from __future__ import annotations
@@ -34,16 +59,45 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from canrls.can.e2e import CRC8_TABLE
 from canrls.can.frameblock import FrameBlock
 from canrls.errors import ConfigError
 
-__all__ = ["Silence", "FaultSpec", "FaultLog", "FaultInjector", "inject"]
+__all__ = ["Silence", "FaultSpec", "FaultLog", "FaultInjector", "inject", "ERROR_CLASSES",
+           "HARMLESS_COMMANDS"]
 
-_KINDS = ("silenced", "dropped", "corrupted", "reordered", "duplicated")
+_KINDS = ("silenced", "dropped", "corrupted", "reordered", "duplicated", "miscounted",
+          "resized", "clock_steps", "commands", "error_frames")
+_PROBS = ("drop", "dup", "reorder", "corrupt", "counter", "dlc", "tstep", "cmd", "errframe")
+
+#: E2E-protected frames of the default DBC (DriveCurrent, DriveSpeed)
+DEFAULT_PROTECTED = frozenset({0x101, 0x102})
+#: RlsCommand in the default DBC
+DEFAULT_COMMAND_ID = 0x320
+#: SocketCAN error classes (linux/can/error.h) of injected error frames: lost
+#: arbitration, controller problems, protocol violation, transceiver status, no ACK,
+#: bus-off, bus error, controller restarted
+ERROR_CLASSES = (0x002, 0x004, 0x008, 0x010, 0x020, 0x040, 0x080, 0x100)
+#: Valid command frames (8 bytes: code, effect id, order (u16 LE), lambda (f32 LE)) that
+#: leave the estimates as they were: freeze then resume at once (both ok), resume while
+#: running (not_applicable), a lambda outside (0.5, 1] or NaN (bad_value), an unknown
+#: effect id (unknown_effect), cogging without an order and viscous with one (bad_value)
+HARMLESS_COMMANDS: tuple[tuple[bytes, ...], ...] = (
+    (bytes((2, 0, 0, 0)) + np.float32(0).tobytes(),
+     bytes((3, 0, 0, 0)) + np.float32(0).tobytes()),
+    (bytes((3, 0, 0, 0)) + np.float32(0).tobytes(),),
+    (bytes((6, 0, 0, 0)) + np.float32(0.3).tobytes(),),
+    (bytes((6, 0, 0, 0)) + np.float32(np.nan).tobytes(),),
+    (bytes((4, 0, 0, 0)) + np.float32(0).tobytes(),),
+    (bytes((4, 200, 0, 0)) + np.float32(0).tobytes(),),
+    (bytes((4, 7, 0, 0)) + np.float32(0).tobytes(),),
+    (bytes((5, 2, 3, 0)) + np.float32(0).tobytes(),),
+)
 
 
 @dataclass(frozen=True)
@@ -88,12 +142,26 @@ class FaultSpec:
     reorder: float = 0.0
     corrupt: float = 0.0
     silence: tuple[Silence, ...] = ()
+    counter: float = 0.0
+    dlc: float = 0.0
+    tstep: float = 0.0
+    tstep_max: float = 0.5
+    cmd: float = 0.0
+    cmd_burst: int = 16
+    errframe: float = 0.0
 
     def __post_init__(self) -> None:
-        for key in ("drop", "dup", "reorder", "corrupt"):
+        for key in _PROBS:
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 1.0):
                 raise ConfigError(f"fault spec: {key}: probability {v!r} is not in [0, 1]")
+        if not (isinstance(self.tstep_max, (int, float)) and math.isfinite(self.tstep_max)
+                and self.tstep_max > 0):
+            raise ConfigError(f"fault spec: tstep_max: {self.tstep_max!r} is not a time > 0")
+        if isinstance(self.cmd_burst, bool) or not isinstance(self.cmd_burst, int) \
+                or self.cmd_burst < 1:
+            raise ConfigError(f"fault spec: cmd_burst: {self.cmd_burst!r} is not a whole "
+                              "number >= 1")
         for s in self.silence:
             if not (s.duration > 0 and s.start >= 0 and (s.every is None or s.every > s.duration)):
                 raise ConfigError(f"fault spec: silence: {s} needs duration > 0, start >= 0 "
@@ -109,7 +177,7 @@ class FaultSpec:
         text = str(spec).strip()
         if text.lower() in ("", "none", "off"):
             return FaultSpec()
-        values: dict[str, float] = {}
+        values: dict[str, Any] = {}
         silences: list[Silence] = []
         for item in text.split(","):
             item = item.strip()
@@ -119,9 +187,18 @@ class FaultSpec:
             key, val = key.strip(), val.strip()
             if not eq:
                 raise ConfigError(f"fault spec {text!r}: {item!r} is not KEY=VALUE")
-            if key in ("drop", "dup", "reorder", "corrupt"):
-                if key in values:
-                    raise ConfigError(f"fault spec {text!r}: {key} given twice")
+            if key in values:
+                raise ConfigError(f"fault spec {text!r}: {key} given twice")
+            if key == "tstep_max":
+                values[key] = _seconds(val, key, text)
+                if values[key] <= 0:
+                    raise ConfigError(f"fault spec {text!r}: tstep_max: {val!r} is not > 0")
+            elif key == "cmd_burst":
+                if not re.fullmatch(r"[0-9]+", val) or int(val) < 1:
+                    raise ConfigError(f"fault spec {text!r}: cmd_burst: {val!r} is not a whole "
+                                      "number >= 1")
+                values[key] = int(val)
+            elif key in _PROBS:
                 try:
                     p = float(val)
                 except ValueError as e:
@@ -145,18 +222,23 @@ class FaultSpec:
                                           "duration > 0 (and EVERY longer than it)")
                     silences.append(Silence(d, s, e))
             else:
-                raise ConfigError(f"fault spec {text!r}: unknown fault {key!r}; known: drop, dup, "
-                                  "reorder, corrupt, silence")
+                raise ConfigError(f"fault spec {text!r}: unknown fault {key!r}; known: "
+                                  f"{', '.join(_PROBS)}, silence, tstep_max, cmd_burst")
         return FaultSpec(silence=tuple(silences), **values)
 
     @property
     def active(self) -> bool:
-        return bool(self.drop or self.dup or self.reorder or self.corrupt or self.silence)
+        return bool(self.silence) or any(getattr(self, k) for k in _PROBS)
 
     def __str__(self) -> str:
         parts = [f"{k}={getattr(self, k):g}" for k in ("drop", "dup", "reorder", "corrupt")
                  if getattr(self, k)]
         parts += [f"silence={s}" for s in self.silence]
+        parts += [f"{k}={getattr(self, k):g}" for k in _PROBS[4:] if getattr(self, k)]
+        if self.tstep and self.tstep_max != 0.5:
+            parts.append(f"tstep_max={self.tstep_max:g}s")
+        if self.cmd and self.cmd_burst != 16:
+            parts.append(f"cmd_burst={self.cmd_burst}")
         return ",".join(parts) or "none"
 
 
@@ -165,7 +247,10 @@ class FaultLog:
     """What an injector did: frames in and out, and the count of each fault.
 
     ``per_id[kind][arbitration_id]`` splits each count by frame ID. Frames lost to the
-    receiver are ``dropped + silenced``; ``frames_out = frames_in - lost + duplicated``.
+    receiver are ``dropped + silenced``; ``frames_out = frames_in - lost + duplicated +
+    inserted`` (``inserted``: the command and error frames). ``commands`` counts command
+    frames, ``command_bursts`` the bursts they came in; ``clock_steps`` the steps,
+    ``clock_offset`` the sum of the steps so far [s].
     """
 
     frames_in: int = 0
@@ -175,11 +260,27 @@ class FaultLog:
     corrupted: int = 0
     reordered: int = 0  # swaps (each moves two frames)
     duplicated: int = 0
+    miscounted: int = 0
+    resized: int = 0
+    clock_steps: int = 0
+    commands: int = 0
+    error_frames: int = 0
+    command_bursts: int = 0
+    clock_offset: float = 0.0
     per_id: dict[str, dict[int, int]] = field(default_factory=lambda: {k: {} for k in _KINDS})
 
     @property
     def lost(self) -> int:
         return self.dropped + self.silenced
+
+    @property
+    def inserted(self) -> int:
+        """Frames the injector added: commands and error frames."""
+        return self.commands + self.error_frames
+
+    def counts(self) -> dict[str, int]:
+        """Each kind of fault and its count (``reordered``: swaps; ``commands``: frames)."""
+        return {k: int(getattr(self, k)) for k in _KINDS}
 
     def _count(self, kind: str, ids: npt.NDArray[np.uint32]) -> None:
         setattr(self, kind, getattr(self, kind) + len(ids))
@@ -188,16 +289,19 @@ class FaultLog:
             d[int(i)] = d.get(int(i), 0) + int(c)
 
     def merge(self, other: FaultLog) -> None:
-        for k in ("frames_in", "frames_out", *_KINDS):
+        for k in ("frames_in", "frames_out", *_KINDS, "command_bursts", "clock_offset"):
             setattr(self, k, getattr(self, k) + getattr(other, k))
         for kind in _KINDS:
             for i, c in other.per_id[kind].items():
                 self.per_id[kind][i] = self.per_id[kind].get(i, 0) + c
 
     def summary(self) -> str:
-        return (f"{self.frames_in} frames in, {self.frames_out} out: {self.dropped} dropped, "
+        text = (f"{self.frames_in} frames in, {self.frames_out} out: {self.dropped} dropped, "
                 f"{self.silenced} silenced, {self.corrupted} corrupted, {self.reordered} "
                 f"reordered, {self.duplicated} duplicated")
+        extra = [f"{getattr(self, k)} {k.replace('_', ' ')}" for k in _KINDS[5:]
+                 if getattr(self, k)]
+        return text + "".join(", " + e for e in extra)
 
 
 class FaultInjector:
@@ -205,14 +309,20 @@ class FaultInjector:
 
     ``t0`` is the stream's start for silence windows (default: the first frame's time).
     Reordering pairs frames within a block (the last frame of an ID in a block is never
-    swapped with one of the next block).
+    swapped with one of the next block). ``protected``: the IDs whose byte 0 is the
+    E2E CRC and byte 1's low nibble the alive counter (``counter`` faults);
+    ``command_id``: the ID of the inserted command frames.
     """
 
     def __init__(self, spec: FaultSpec | str | None, seed: int | None = 0,
-                 t0: float | None = None) -> None:
+                 t0: float | None = None, *,
+                 protected: frozenset[int] = DEFAULT_PROTECTED,
+                 command_id: int = DEFAULT_COMMAND_ID) -> None:
         self.spec = FaultSpec.parse(spec)
         self.rng = np.random.default_rng(seed)
         self.t0 = t0
+        self.protected = frozenset(int(i) for i in protected)
+        self.command_id = int(command_id)
         self.log = FaultLog()
 
     def apply(self, block: FrameBlock) -> FrameBlock:
@@ -251,6 +361,10 @@ class FaultInjector:
                 bit = int(b) % nbits
                 block.data[k, bit // 8] ^= np.uint8(1 << (bit % 8))
             log._count("corrupted", block.arbitration_id[hit])
+        if spec.counter:
+            self._miscount(block)
+        if spec.dlc:
+            self._resize(block)
         # reorder: swap a frame with the next frame of the same ID
         if spec.reorder:
             pick = rng.random(len(block)) < spec.reorder
@@ -273,8 +387,114 @@ class FaultInjector:
             twice = rng.random(len(block)) < spec.dup
             log._count("duplicated", block.arbitration_id[twice])
             block = block.take(np.repeat(np.arange(len(block)), 1 + twice.astype(np.intp)))
+        if spec.tstep or log.clock_offset:
+            block = self._clock_steps(block)
+        if spec.cmd or spec.errframe:
+            block = self._insert(block)
         log.frames_out += len(block)
         return block
+
+    def _data_rows(self, block: FrameBlock, p: float) -> npt.NDArray[np.intp]:
+        """Rows of data frames (not remote, not error) hit with probability ``p``."""
+        return np.flatnonzero((self.rng.random(len(block)) < p) & ~block.is_remote
+                              & ~block.is_error)
+
+    def _miscount(self, block: FrameBlock) -> None:
+        """Move the alive counter of protected frames by 1..15; the CRC stays valid."""
+        hit = self._data_rows(block, self.spec.counter)
+        ok = np.isin(block.arbitration_id[hit], np.array(sorted(self.protected), np.uint32)) \
+            & (block.dlc[hit] >= 2)
+        hit = hit[ok]
+        moves = self.rng.integers(1, 16, size=len(hit))
+        for k, mv in zip(hit, moves, strict=True):
+            d = block.data[k]
+            d[1] = (d[1] & 0xF0) | ((int(d[1]) + int(mv)) & 0x0F)
+            # crc = CRC8_0x1D(id_lo, id_hi, d_1 .. d_{n-1}), init 0xFF, xorout 0xFF
+            fid = int(block.arbitration_id[k])
+            c = 0xFF
+            for b in (fid & 0xFF, (fid >> 8) & 0xFF, *d[1:int(block.dlc[k])].tolist()):
+                c = int(CRC8_TABLE[c ^ b])
+            d[0] = c ^ 0xFF
+        self.log._count("miscounted", block.arbitration_id[hit])
+
+    def _resize(self, block: FrameBlock) -> None:
+        """Give frames another DLC in 0..8; bytes beyond it read as zeros."""
+        hit = self._data_rows(block, self.spec.dlc)
+        shift = self.rng.integers(1, 9, size=len(hit))
+        for k, sh in zip(hit, shift, strict=True):
+            new = (int(block.dlc[k]) + int(sh)) % 9  # never the old DLC (if it was <= 8)
+            block.dlc[k] = new
+            block.data[k, new:] = 0
+        self.log._count("resized", block.arbitration_id[hit])
+
+    def _clock_steps(self, block: FrameBlock) -> FrameBlock:
+        """Shift the receive times by the steps so far, and by this block's steps."""
+        spec, log = self.spec, self.log
+        n = len(block)
+        steps = np.zeros(n, np.float64)
+        if spec.tstep:
+            hit = np.flatnonzero(self.rng.random(n) < spec.tstep)
+            size = self.rng.uniform(0.0, spec.tstep_max, size=len(hit))
+            sign = np.where(self.rng.random(len(hit)) < 0.5, -1.0, 1.0)
+            steps[hit] = sign * np.maximum(size, 1e-6)
+            log._count("clock_steps", block.arbitration_id[hit])
+        # t_k <- t_k + offset + sum_{j <= k} step_j
+        shift = log.clock_offset + np.cumsum(steps)
+        if n:
+            log.clock_offset = float(shift[-1])
+        return FrameBlock(block.t + shift, block.arbitration_id, block.is_extended,
+                          block.is_remote, block.is_error, block.dlc, block.data)
+
+    def _insert(self, block: FrameBlock) -> FrameBlock:
+        """Command bursts and error frames after randomly chosen frames."""
+        spec, rng, log = self.spec, self.rng, self.log
+        n = len(block)
+        after: list[int] = []  # the row each new frame follows
+        new: list[tuple[int, bool, bool, bytes]] = []  # id, remote, error, payload
+        if spec.cmd:
+            for k in np.flatnonzero(rng.random(n) < spec.cmd):
+                log.command_bursts += 1
+                for _ in range(int(rng.integers(1, spec.cmd_burst + 1))):
+                    for frame in self._command(rng):
+                        after.append(int(k))
+                        new.append((self.command_id, frame is None, False, frame or b""))
+        if spec.errframe:
+            for k in np.flatnonzero(rng.random(n) < spec.errframe):
+                after.append(int(k))
+                cls = ERROR_CLASSES[int(rng.integers(0, len(ERROR_CLASSES)))]
+                new.append((cls, False, True, bytes(8)))
+        if not new:
+            return block
+        m = len(new)
+        extra = FrameBlock.allocate(m, block.data.shape[1])
+        for j, (fid, remote, err, payload) in enumerate(new):
+            extra.arbitration_id[j] = fid
+            extra.is_remote[j] = remote
+            extra.is_error[j] = err
+            extra.dlc[j] = 8 if remote else len(payload)
+            extra.data[j, :len(payload)] = np.frombuffer(payload, np.uint8)
+        pos = np.array(after, np.intp)
+        extra.t[:] = block.t[pos]
+        ids = extra.arbitration_id
+        log._count("commands", ids[~extra.is_error])
+        log._count("error_frames", ids[extra.is_error])
+        # stable merge: each new frame right after the frame it follows, in order
+        key = np.concatenate([np.arange(n, dtype=np.float64),
+                              pos + 0.5 + np.arange(m) / (2.0 * (m + 1))])
+        order = np.argsort(key, kind="stable")
+        return FrameBlock.concat([block, extra]).take(order)
+
+    @staticmethod
+    def _command(rng: np.random.Generator) -> tuple[bytes | None, ...]:
+        """One command: random (unknown code, DLC not 8, or remote: None) or harmless."""
+        kind = int(rng.integers(0, 4))
+        if kind == 0:  # unknown command code, 8 bytes
+            return (bytes((int(rng.integers(7, 256)),)) + rng.bytes(7),)
+        if kind == 1:  # a DLC other than 8, any bytes
+            return (rng.bytes(int(rng.integers(0, 8))),)
+        if kind == 2 and rng.random() < 0.25:
+            return (None,)  # a remote frame
+        return HARMLESS_COMMANDS[int(rng.integers(0, len(HARMLESS_COMMANDS)))]
 
 
 def inject(block: FrameBlock, spec: FaultSpec | str | None, seed: int | None = 0,
