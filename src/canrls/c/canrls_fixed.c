@@ -84,7 +84,7 @@ INLINE int64_t rsh_c(int64_t x, int32_t s, int cls)
         return (int32_t)(uint32_t)(u >> 32) >> (s - 32);
     }
     if (cls == SHIFT_LOW) {
-        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        const uint64_t u = (uint64_t)x + (uint32_t)((uint32_t)1 << (s - 1)); /* s <= 31 */
         const uint32_t lo = (uint32_t)u;
         const int32_t hi = (int32_t)(uint32_t)(u >> 32);
         const uint32_t rlo = (lo >> s) | ((uint32_t)hi << (32 - s));
@@ -93,6 +93,15 @@ INLINE int64_t rsh_c(int64_t x, int32_t s, int cls)
             return (int32_t)rlo; /* the result fits a word: the common case */
         }
         return (int64_t)(((uint64_t)(uint32_t)rhi << 32) | rlo);
+    }
+    return rsh(x, s);
+}
+
+/* rsh(x, s) for any 0 <= s <= 62, the half added in one word when 1 <= s <= 31 */
+INLINE int64_t rsh_w(int64_t x, int32_t s)
+{
+    if ((uint32_t)(s - 1) < 31u) {
+        return (int64_t)((uint64_t)x + (uint32_t)((uint32_t)1 << (s - 1))) >> s;
     }
     return rsh(x, s);
 }
@@ -212,7 +221,7 @@ INLINE int32_t store(int64_t x, int32_t s, int32_t lo, int32_t hi, uint32_t *n)
     int32_t t;
     if ((uint32_t)(s - 1) < 31u) {
         /* 1 <= s <= 31 (the common case): x + 2^(s-1) shifted as two words */
-        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        const uint64_t u = (uint64_t)x + (uint32_t)((uint32_t)1 << (s - 1)); /* s <= 31 */
         const uint32_t ulo = (uint32_t)u;
         const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
         return sat2(uhi >> s, (ulo >> s) | ((uint32_t)uhi << (32 - s)), lo, hi, n);
@@ -341,6 +350,16 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
     S->e = e0;
     S->c = plan->one_lam;
     S->trw = trace_words(S);
+    /* the e for which the windup test runs: trace_max_lim >> e is monotonic in e, so
+     * they form an interval (empty: wu_lo > wu_hi) */
+    S->wu_lo = plan->e_max + 1;
+    S->wu_hi = -1;
+    for (i = 0; i <= (uint32_t)plan->e_max; i++) {
+        if (plan->trace_max_lam <= (plan->trace_max_lim >> i)) {
+            S->wu_lo = S->wu_lo < (int32_t)i ? S->wu_lo : (int32_t)i;
+            S->wu_hi = (int32_t)i;
+        }
+    }
     return CANRLS_OK;
 }
 
@@ -436,6 +455,11 @@ INLINE int64_t h_rows(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t
     const int64_t rnd = (int64_t)1 << (h_os - 1);
     int64_t s = 0;
     uint32_t i, j, mm = 0;
+    int32_t ph[CANRLS_N]; /* phi >> phi_ps, held in registers over the rows */
+    UNROLL
+    for (j = 0; j < n; j++) {
+        ph[j] = phg[j];
+    }
     UNROLL
     for (i = 0; i < n; i++) {
         int64_t a = rnd;
@@ -444,7 +468,7 @@ INLINE int64_t h_rows(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t
         for (j = 0; j < n; j++) {
             const uint32_t r = i < j ? i : j, q = i < j ? j : i;
             /* h~_i = sum_j P~_ij phi_j   (P~_ij = P~_ji: the upper triangle) */
-            a += (int64_t)Pr[r * n - r * (r - 1u) / 2u + (q - r)] * phg[j];
+            a += (int64_t)Pr[r * n - r * (r - 1u) / 2u + (q - r)] * ph[j];
         }
         hi_ = h_word((uint64_t)a, h_os, lo, hi, c_h, full);
         h[i] = hi_;
@@ -453,7 +477,7 @@ INLINE int64_t h_rows(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t
     UNROLL
     for (i = 0; i < n; i++) {
         /* s~ = phi' h~ */
-        s += (int64_t)phg[i] * h[i];
+        s += (int64_t)ph[i] * h[i];
     }
     *m = mm;
     return s;
@@ -510,7 +534,11 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
 INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int full)
 {
     const uint32_t n = NPAR(S);
+#ifdef CANRLS_N
+    int32_t h[CANRLS_N]; /* h~ held in registers over the rows */
+#else
     const int32_t *const h = S->h;
+#endif
     const int32_t *const K = S->K;
     /* the plan, as locals (a store to P~ cannot change them) */
     const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
@@ -518,6 +546,12 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int fu
     int32_t *Pw = S->P; /* row i of the packed upper triangle */
     uint32_t i, j;
     uint32_t nz = 0; /* nonzero once a diagonal term is */
+#ifdef CANRLS_N
+    UNROLL
+    for (i = 0; i < n; i++) {
+        h[i] = S->h[i];
+    }
+#endif
     UNROLL
     for (i = 0; i < n; i++) {
         const int32_t Ki = K[i];
@@ -542,6 +576,13 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int fu
         Pw += n - i;
     }
     return nz == 0u;
+}
+
+/* the common instance of P_step (32-bit words, shifts of 33 or more), out of line: the
+ * update of the triangle gets the registers to itself */
+NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
+{
+    return P_step(S, P_s, c_P, SHIFT_HIGH, 1);
 }
 
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
@@ -654,9 +695,9 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         /* windup <=> (tr P - g h'h)/lambda > trace_max
          *        <=> (tr P - lambda trace_max) (lambda + phi'P phi) > h'h */
         lam_k = p->lam_den;
-        if (p->trace_max_lam <= (p->trace_max_lim >> e)) {
+        if (e >= S->wu_lo && e <= S->wu_hi) { /* trace_max_lam <= trace_max_lim >> e */
             /* tr P = c tr P~   (trw: the diagonal summed >> tr_ps, kept from the last row) */
-            int64_t T = mul_rsh(trw, c, p->tc_s, shift_class(p->tc_s))
+            int64_t T = rsh_w((int64_t)trw * c, p->tc_s)
                         - (int64_t)p->trace_max_lam * ((int64_t)1 << e);
             if (T > 0) {
                 uint32_t none = 0; /* d_lam is not counted */
@@ -686,7 +727,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         }
 
         /* d = lambda_k + phi' P phi */
-        d = sat((int64_t)lam_k + sv, p->den_lo, p->den_hi, &c_den);
+        d = add_sat(lam_k, sv, p->den_lo, p->den_hi, &c_den, 0);
         /* g = 1 / d     (the one division: acc-width dividend, word divisor, C truncation) */
         if (d <= 0) {
             g = p->g_hi;
@@ -749,7 +790,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         case SHIFT_HIGH:
             /* words of 32 bits: the overflow test is the clamp */
             if (p->P_lo == INT32_MIN && p->P_hi == INT32_MAX) {
-                low = P_step(S, P_s, &c_P, SHIFT_HIGH, 1);
+                low = P_step_high_full(S, P_s, &c_P);
             } else {
                 low = P_step(S, P_s, &c_P, SHIFT_HIGH, 0);
             }
