@@ -22,9 +22,13 @@ typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1
 #if defined(__GNUC__)
 #define INLINE static inline __attribute__((always_inline))
 #define NOINLINE static __attribute__((noinline))
+#define LIKELY(x) __builtin_expect(!!(x), 1)
+#define UNLIKELY(x) __builtin_expect(!!(x), 0)
 #else
 #define INLINE static inline
 #define NOINLINE static
+#define LIKELY(x) (x)
+#define UNLIKELY(x) (x)
 #endif
 
 /* n: the instance's, or the constant CANRLS_N where the build fixes it (-DCANRLS_N=6:
@@ -97,6 +101,19 @@ INLINE int64_t rsh_c(int64_t x, int32_t s, int cls)
     return rsh(x, s);
 }
 
+/* a b, the exact product of two words (one SMULL: written out on Thumb-2, where GCC
+ * otherwise keeps the sign word of a long-lived c and multiplies 64 x 64) */
+INLINE int64_t mul_ww(int32_t a, int32_t b)
+{
+#if defined(__GNUC__) && defined(__thumb2__)
+    uint32_t lo, hi;
+    __asm__("smull %0, %1, %2, %3" : "=&r"(lo), "=&r"(hi) : "r"(a), "r"(b));
+    return (int64_t)(((uint64_t)hi << 32) | lo);
+#else
+    return (int64_t)a * b;
+#endif
+}
+
 /* rsh(x, s) for any 0 <= s <= 62, the half added in one word when 1 <= s <= 31 */
 INLINE int64_t rsh_w(int64_t x, int32_t s)
 {
@@ -134,7 +151,7 @@ INLINE int32_t sat(int64_t x, int32_t lo, int32_t hi, uint32_t *n)
 /* A word r (already a word: an int32_t) clamped to [lo, hi], counted. */
 INLINE int32_t clamp32(int32_t r, int32_t lo, int32_t hi, uint32_t *n)
 {
-    if ((uint32_t)r - (uint32_t)lo <= (uint32_t)hi - (uint32_t)lo) {
+    if (LIKELY((uint32_t)r - (uint32_t)lo <= (uint32_t)hi - (uint32_t)lo)) {
         return r;
     }
     *n += 1u;
@@ -144,7 +161,7 @@ INLINE int32_t clamp32(int32_t r, int32_t lo, int32_t hi, uint32_t *n)
 /* sat(x) for a 64-bit x given as its two words: the common case in 32-bit compares */
 INLINE int32_t sat2(int32_t rhi, uint32_t rlo, int32_t lo, int32_t hi, uint32_t *n)
 {
-    if (rhi == ((int32_t)rlo >> 31)) {
+    if (LIKELY(rhi == ((int32_t)rlo >> 31))) {
         return clamp32((int32_t)rlo, lo, hi, n); /* x fits a word */
     }
     *n += 1u;
@@ -157,7 +174,7 @@ INLINE int32_t sub_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
 {
 #if defined(__GNUC__)
     int32_t r;
-    if (__builtin_sub_overflow(a, b, &r)) {
+    if (UNLIKELY(__builtin_sub_overflow(a, b, &r))) {
         *n += 1u;
         return b < 0 ? hi : lo; /* beyond the int32_t range, so beyond [lo, hi] */
     }
@@ -173,7 +190,7 @@ INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
 {
 #if defined(__GNUC__)
     int32_t r;
-    if (__builtin_add_overflow(a, b, &r)) {
+    if (UNLIKELY(__builtin_add_overflow(a, b, &r))) {
         *n += 1u;
         return b > 0 ? hi : lo;
     }
@@ -219,7 +236,7 @@ INLINE int32_t mul_rsh_w(int32_t a, int32_t b, int32_t rh, int32_t s, int cls)
 INLINE int32_t store(int64_t x, int32_t s, int32_t lo, int32_t hi, uint32_t *n)
 {
     int32_t t;
-    if ((uint32_t)(s - 1) < 31u) {
+    if (LIKELY((uint32_t)(s - 1) < 31u)) {
         /* 1 <= s <= 31 (the common case): x + 2^(s-1) shifted as two words */
         const uint64_t u = (uint64_t)x + (uint32_t)((uint32_t)1 << (s - 1)); /* s <= 31 */
         const uint32_t ulo = (uint32_t)u;
@@ -405,7 +422,7 @@ INLINE int32_t h_word(uint64_t u, int32_t h_os, int32_t lo, int32_t hi, uint32_t
 {
     const uint32_t ulo = (uint32_t)u;
     const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
-    if ((uint32_t)uhi + ((uint32_t)1 << (h_os - 1)) < ((uint32_t)1 << h_os)) {
+    if (LIKELY((uint32_t)uhi + ((uint32_t)1 << (h_os - 1)) < ((uint32_t)1 << h_os))) {
         const int32_t r = (int32_t)((ulo >> h_os) | ((uint32_t)uhi << (32 - h_os)));
         return full ? r : clamp32(r, lo, hi, c_h);
     }
@@ -452,7 +469,7 @@ INLINE int64_t h_rows(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t
                       int32_t lo, int32_t hi, uint32_t *c_h, uint32_t *m, int full)
 {
     const uint32_t n = CANRLS_N;
-    const int64_t rnd = (int64_t)1 << (h_os - 1);
+    const int64_t rnd = (int64_t)((uint32_t)1 << (h_os - 1)); /* h_os <= 31: one word */
     int64_t s = 0;
     uint32_t i, j, mm = 0;
     int32_t ph[CANRLS_N]; /* phi >> phi_ps, held in registers over the rows */
@@ -585,6 +602,47 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
     return P_step(S, P_s, c_P, SHIFT_HIGH, 1);
 }
 
+#ifdef CANRLS_N
+/* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
+ * th_s and P_s >= 33), out of line: h~ 2^kn and K stay in registers from one to the
+ * other (the same integers; S->h keeps h~ without the normalisation, it is scratch).
+ * Returns the low-excitation test, as P_step. */
+NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
+                               int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
+{
+    const uint32_t n = CANRLS_N;
+    const int32_t rt = (int32_t)1 << (th_s - 33), rp = (int32_t)1 << (P_s - 33);
+    int32_t hn[CANRLS_N], K[CANRLS_N];
+    int32_t *Pw = S->P; /* row i of the packed upper triangle */
+    uint32_t i, j, nz = 0;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* h~ <- h~ 2^kn (exact: the normalisation) */
+        hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
+        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
+        K[i] = mul_rsh32(hn[i], gcn);
+        S->K[i] = K[i];
+        /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
+        S->theta[i] = add_sat(S->theta[i], mul_rsh_hi(K[i], epn, rt, th_s), INT32_MIN,
+                              INT32_MAX, c_th, 1);
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* P~ <- P~ - K h~'  (upper triangle); the diagonal: information K_i h~_i */
+        const int32_t r = mul_rsh_hi(K[i], hn[i], rp, P_s);
+        nz |= (uint32_t)r;
+        Pw[0] = sub_sat(Pw[0], r, INT32_MIN, INT32_MAX, c_P, 1);
+        UNROLL
+        for (j = i + 1; j < n; j++) {
+            Pw[j - i] = sub_sat(Pw[j - i], mul_rsh_hi(K[i], hn[j], rp, P_s), INT32_MIN,
+                                INT32_MAX, c_P, 1);
+        }
+        Pw += n - i;
+    }
+    return nz == 0u;
+}
+#endif
+
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                       canrls_step_q31 *step)
 {
@@ -633,7 +691,11 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
     /* eps = y - phi' theta */
     /* (summed as phi' theta - y, multiply-accumulates, then negated: the same integer) */
-    a = p->eps_ts >= 0 ? (int64_t)yk * ((int64_t)1 << p->eps_ts) : rsh(yk, -p->eps_ts);
+    if ((uint32_t)p->eps_ts <= 30u) {
+        a = (int64_t)yk * ((int32_t)1 << p->eps_ts); /* y 2^ts: one multiply */
+    } else {
+        a = p->eps_ts >= 0 ? (int64_t)yk * ((int64_t)1 << p->eps_ts) : rsh(yk, -p->eps_ts);
+    }
     a = -a;
     UNROLL
     for (j = 0; j < n; j++) {
@@ -690,15 +752,17 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         st = store((uint32_t)(e - 1) < 31u ? rsh_c(a, e, SHIFT_LOW) : rsh_c(a, e, shift_class(e)),
                    p->s_os, p->den_lo, p->den_hi, &c_den);
         /* s = phi' P phi = c s~ */
-        sv = store((int64_t)st * c, p->sc_s, p->den_lo, p->den_hi, &c_den);
+        sv = store(mul_ww(st, c), p->sc_s, p->den_lo, p->den_hi, &c_den);
 
         /* windup <=> (tr P - g h'h)/lambda > trace_max
          *        <=> (tr P - lambda trace_max) (lambda + phi'P phi) > h'h */
         lam_k = p->lam_den;
         if (e >= S->wu_lo && e <= S->wu_hi) { /* trace_max_lam <= trace_max_lim >> e */
             /* tr P = c tr P~   (trw: the diagonal summed >> tr_ps, kept from the last row) */
-            int64_t T = rsh_w((int64_t)trw * c, p->tc_s)
-                        - (int64_t)p->trace_max_lam * ((int64_t)1 << e);
+            /* (lambda trace_max 2^e: within trace_max_lim for these e, so the shift is
+             * the product) */
+            int64_t T = rsh_w(mul_ww(trw, c), p->tc_s)
+                        - (int64_t)((uint64_t)(int64_t)p->trace_max_lam << e);
             if (T > 0) {
                 uint32_t none = 0; /* d_lam is not counted */
                 int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
@@ -735,7 +799,8 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         } else {
             /* DIVIDEND // d > g_hi  <=>  DIVIDEND >= (g_hi + 1) d : then the quotient
              * fits 32 bits, and a 64/32 division gives it */
-            if (p->dividend >= ((int64_t)p->g_hi + 1) * d) {
+            /* (g_hi + 1) d: 0 < g_hi + 1 <= 2^31 and 0 < d < 2^31, one 32 x 32 product */
+            if ((uint64_t)p->dividend >= (uint64_t)((uint32_t)p->g_hi + 1u) * (uint32_t)d) {
                 g = p->g_hi;
                 c_div += 1u;
             } else {
@@ -743,7 +808,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             }
         }
         /* gc = g c */
-        gc = store((int64_t)g * c, p->gc_s, p->g_lo, p->g_hi, &c_div);
+        gc = store(mul_ww(g, c), p->gc_s, p->g_lo, p->g_hi, &c_div);
 
         /* normalisation of the updates (once per step): h~ and eps shifted left (exactly)
          * to 31 bits, so that K is the high word of a 32 x 32 product and the theta and
@@ -764,6 +829,14 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each */
             P_s = p->P_s + e + 2 * kn;
         }
+#ifdef CANRLS_N
+        if (th_s >= 33 && P_s >= 33 && p->theta_lo == INT32_MIN && p->theta_hi == INT32_MAX
+            && p->P_lo == INT32_MIN && p->P_hi == INT32_MAX) {
+            /* the common case in one piece */
+            low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, &c_th, &c_P);
+        } else
+#endif
+        {
         switch (shift_class(th_s)) {
         case SHIFT_HIGH:
             /* words of 32 bits: the overflow test is the clamp */
@@ -805,13 +878,14 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             low = P_step(S, P_s, &c_P, SHIFT_ANY, 0);
             break;
         }
+        }
         if (low) {
             flag |= CANRLS_FLAG_LOW_EXCITATION;
         }
 
         /* c <- c / lambda_k */
         il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
-        c = store((int64_t)c * il, p->c_s, 0, p->lam_hi, &c_P);
+        c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, &c_P);
         if (c > p->one_lam) {
             if (e > 0) {
                 /* c/2 and 2^-e x 2: the words do not move */
