@@ -326,6 +326,14 @@ static uint32_t div_u64_u32(uint64_t u, uint32_t v)
 
 /* ------------------------------------------------------------------- set-up */
 
+/* bits of canrls_rls_q31.wide: the word is the whole int32_t (nothing to clamp) */
+enum { WIDE_PHI = 1, WIDE_H = 2, WIDE_THETA = 4, WIDE_P = 8 };
+
+INLINE uint32_t wide_bit(int32_t lo, int32_t hi, uint32_t bit)
+{
+    return lo == INT32_MIN && hi == INT32_MAX ? bit : 0u;
+}
+
 /* trw = sum_i rsh(Pw_ii, trace_ps): the trace at the windup test's scale */
 static int32_t trace_words(const canrls_rls_q31 *S)
 {
@@ -377,6 +385,10 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
             S->wu_hi = (int32_t)i;
         }
     }
+    S->wide = wide_bit(plan->phi_lo, plan->phi_hi, WIDE_PHI)
+              | wide_bit(plan->h_lo, plan->h_hi, WIDE_H)
+              | wide_bit(plan->theta_lo, plan->theta_hi, WIDE_THETA)
+              | wide_bit(plan->P_lo, plan->P_hi, WIDE_P);
     return CANRLS_OK;
 }
 
@@ -526,7 +538,6 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
     const int32_t rh = (int32_t)1 << ((th_s >= 33 ? th_s : 33) - 33);
     uint32_t i;
-    UNROLL
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
         const int32_t hn = (int32_t)((uint32_t)h[i] << kn);
@@ -551,11 +562,7 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
 INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int full)
 {
     const uint32_t n = NPAR(S);
-#ifdef CANRLS_N
-    int32_t h[CANRLS_N]; /* h~ held in registers over the rows */
-#else
     const int32_t *const h = S->h;
-#endif
     const int32_t *const K = S->K;
     /* the plan, as locals (a store to P~ cannot change them) */
     const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
@@ -563,13 +570,6 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int fu
     int32_t *Pw = S->P; /* row i of the packed upper triangle */
     uint32_t i, j;
     uint32_t nz = 0; /* nonzero once a diagonal term is */
-#ifdef CANRLS_N
-    UNROLL
-    for (i = 0; i < n; i++) {
-        h[i] = S->h[i];
-    }
-#endif
-    UNROLL
     for (i = 0; i < n; i++) {
         const int32_t Ki = K[i];
         if (cls == SHIFT_HIGH || cls == SHIFT_32) {
@@ -577,7 +577,6 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int fu
             const int32_t r = mul_rsh_w(Ki, h[i], rh, P_s, cls);
             nz |= (uint32_t)r;
             Pw[0] = sub_sat(Pw[0], r, P_lo, P_hi, c_P, full);
-            UNROLL
             for (j = i + 1; j < n; j++) {
                 Pw[j - i] = sub_sat(Pw[j - i], mul_rsh_w(Ki, h[j], rh, P_s, cls), P_lo,
                                     P_hi, c_P, full);
@@ -671,7 +670,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
     /* phi, y <- sat(phi), sat(y)       inputs clamped to their words;
      * phi >> ps: the guard bits of the multiply-accumulates */
-    if (phi_ps > 0 && phi_lo == INT32_MIN && phi_hi == INT32_MAX) {
+    if (phi_ps > 0 && (S->wide & WIDE_PHI)) {
         /* 32-bit words: nothing to clamp */
         UNROLL
         for (j = 0; j < n; j++) {
@@ -720,7 +719,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         if ((uint32_t)(h_os - 1) < 31u) {
             /* 1 <= h_os <= 31 (the common case): each sum rounded in two words */
 #ifdef CANRLS_N
-            if (h_lo == INT32_MIN && h_hi == INT32_MAX) {
+            if (S->wide & WIDE_H) {
                 a = h_rows_full(P, phg, h, h_os, &c_h, &m);
             } else {
                 a = h_rows_word(P, phg, h, h_os, h_lo, h_hi, &c_h, &m);
@@ -830,8 +829,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             P_s = p->P_s + e + 2 * kn;
         }
 #ifdef CANRLS_N
-        if (th_s >= 33 && P_s >= 33 && p->theta_lo == INT32_MIN && p->theta_hi == INT32_MAX
-            && p->P_lo == INT32_MIN && p->P_hi == INT32_MAX) {
+        if (th_s >= 33 && P_s >= 33 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
             /* the common case in one piece */
             low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, &c_th, &c_P);
         } else
@@ -840,7 +838,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         switch (shift_class(th_s)) {
         case SHIFT_HIGH:
             /* words of 32 bits: the overflow test is the clamp */
-            if (p->theta_lo == INT32_MIN && p->theta_hi == INT32_MAX) {
+            if (S->wide & WIDE_THETA) {
                 K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 1);
             } else {
                 K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 0);
@@ -862,7 +860,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         switch (shift_class(P_s)) {
         case SHIFT_HIGH:
             /* words of 32 bits: the overflow test is the clamp */
-            if (p->P_lo == INT32_MIN && p->P_hi == INT32_MAX) {
+            if (S->wide & WIDE_P) {
                 low = P_step_high_full(S, P_s, &c_P);
             } else {
                 low = P_step(S, P_s, &c_P, SHIFT_HIGH, 0);

@@ -152,6 +152,8 @@ typedef struct {
     int32_t wu_lo, wu_hi;        /**< the windup test runs for wu_lo <= e <= wu_hi: the e with
                                       trace_max_lam <= trace_max_lim >> e (an interval, set
                                       by canrls_init_q31 from the plan) */
+    uint32_t wide;               /**< bits 0..3: the phi, h, theta, P words are the whole
+                                      int32_t (set by canrls_init_q31 from the plan) */
     int32_t theta[CANRLS_N_MAX]; /**< estimate, theta format */
     int32_t P[CANRLS_TRI(CANRLS_N_MAX)]; /**< Pw, upper triangle packed by rows, P format */
     int32_t K[CANRLS_N_MAX];     /**< gain of the last step (K 2^(f_K + e)), 0 when frozen */
