@@ -18,7 +18,7 @@ import os
 import shutil
 import subprocess
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -245,6 +245,40 @@ def test_c_kernel_is_bit_exact_on_32_bit_arm(vectors: list, tmp_path: Path) -> N
                    capture_output=True)
     _run_all(lambda i, o: subprocess.run([qemu, str(exe), str(i), str(o)], check=True,
                                          timeout=120), vectors, tmp_path)
+
+
+def _run_fixed_n(cc: str, wrap: list[str], vectors: list, tmp_path: Path,
+                 extra: Sequence[str] = ()) -> None:
+    """Each case through a driver built with -DCANRLS_N = its n (loops unrolled, h~ summed
+    by rows, the SMMULR path on ARM): bit for bit the same lines; a driver built for
+    another n refuses the state (canrls_init_q31 takes only n = CANRLS_N)."""
+    n_of = {c.name: c.est.n for c in _all_cases()}
+    by_n: dict[int, list] = {}
+    for v in vectors:
+        by_n.setdefault(n_of[v[0]], []).append(v)
+    for n, vs in sorted(by_n.items()):
+        exe = tmp_path / f"vector_driver_n{n}"
+        subprocess.run([cc, *CFLAGS, *extra, f"-DCANRLS_N={n}", "-I", str(KERNEL),
+                        str(DRIVER), str(KERNEL / "canrls_fixed.c"), "-o", str(exe)],
+                       check=True, capture_output=True)
+        _run_all(lambda i, o: subprocess.run([*wrap, str(exe), str(i), str(o)], check=True,
+                                             timeout=120), vs, tmp_path)
+        other = next(v for m, w in by_n.items() if m != n for v in w)
+        r = subprocess.run([*wrap, str(exe), str(other[1]), str(tmp_path / "o")],
+                           capture_output=True, text=True)
+        assert r.returncode == 2 and "canrls_init_q31 refused" in r.stderr
+
+
+def test_c_kernel_with_a_fixed_n_is_bit_exact_on_x86_64(vectors: list, tmp_path: Path
+                                                        ) -> None:
+    _run_fixed_n(_need("gcc", ["gcc"]), [], vectors, tmp_path)
+
+
+def test_c_kernel_with_a_fixed_n_is_bit_exact_on_32_bit_arm(vectors: list, tmp_path: Path
+                                                            ) -> None:
+    cc = _need("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    qemu = _need("qemu-arm", ["qemu-user"])
+    _run_fixed_n(cc, [qemu], vectors, tmp_path, ["-static"])
 
 
 def test_driver_refuses_a_plan_without_a_constant(host_driver: Path, vectors: list,

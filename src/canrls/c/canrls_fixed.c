@@ -22,9 +22,32 @@ typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1
 #if defined(__GNUC__)
 #define INLINE static inline __attribute__((always_inline))
 #define NOINLINE static __attribute__((noinline))
+#define LIKELY(x) __builtin_expect(!!(x), 1)
+#define UNLIKELY(x) __builtin_expect(!!(x), 0)
 #else
 #define INLINE static inline
 #define NOINLINE static
+#define LIKELY(x) (x)
+#define UNLIKELY(x) (x)
+#endif
+
+/* n: the instance's, or the constant CANRLS_N where the build fixes it (-DCANRLS_N=6:
+ * the loops over n unrolled, h~ summed row by row; canrls_init_q31 then takes only
+ * n = CANRLS_N) */
+#ifdef CANRLS_N
+typedef char canrls_n_within_n_max[(CANRLS_N >= 1 && CANRLS_N <= CANRLS_N_MAX) ? 1 : -1];
+#define NPAR(S) ((uint32_t)CANRLS_N)
+#else
+#define NPAR(S) ((S)->n)
+#endif
+
+/* loops over n unrolled completely where n is a constant (CANRLS_N) */
+#if defined(CANRLS_N) && defined(__GNUC__) && !defined(__clang__)
+#define UNROLL _Pragma("GCC unroll 16")
+#elif defined(CANRLS_N) && defined(__clang__)
+#define UNROLL _Pragma("unroll")
+#else
+#define UNROLL
 #endif
 
 /* ------------------------------------------------------- Q-format arithmetic */
@@ -49,22 +72,23 @@ INLINE int32_t rsh32(int32_t x, int32_t s)
  * SHIFT_HIGH s >= 32: the high word of x + 2^(s-1) shifted by s - 32: always a word.
  * Where the class is a constant (an inline loop called once per class), the compiler
  * makes one loop per class and the choice is made once per step, not per element. */
-enum { SHIFT_ANY = 0, SHIFT_LOW = 1, SHIFT_HIGH = 2 };
+enum { SHIFT_ANY = 0, SHIFT_LOW = 1, SHIFT_HIGH = 2, SHIFT_32 = 3 };
 
+/* SHIFT_32: s = 32 exactly (rounded in the low word); SHIFT_HIGH: 33 <= s <= 62 */
 INLINE int shift_class(int32_t s)
 {
-    return s >= 32 ? SHIFT_HIGH : s >= 1 ? SHIFT_LOW : SHIFT_ANY;
+    return s >= 33 ? SHIFT_HIGH : s == 32 ? SHIFT_32 : s >= 1 ? SHIFT_LOW : SHIFT_ANY;
 }
 
 /* rsh(x, s) = (x + 2^(s-1)) >> s, computed as its class says */
 INLINE int64_t rsh_c(int64_t x, int32_t s, int cls)
 {
-    if (cls == SHIFT_HIGH) {
+    if (cls == SHIFT_HIGH || cls == SHIFT_32) {
         const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
         return (int32_t)(uint32_t)(u >> 32) >> (s - 32);
     }
     if (cls == SHIFT_LOW) {
-        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        const uint64_t u = (uint64_t)x + (uint32_t)((uint32_t)1 << (s - 1)); /* s <= 31 */
         const uint32_t lo = (uint32_t)u;
         const int32_t hi = (int32_t)(uint32_t)(u >> 32);
         const uint32_t rlo = (lo >> s) | ((uint32_t)hi << (32 - s));
@@ -73,6 +97,28 @@ INLINE int64_t rsh_c(int64_t x, int32_t s, int cls)
             return (int32_t)rlo; /* the result fits a word: the common case */
         }
         return (int64_t)(((uint64_t)(uint32_t)rhi << 32) | rlo);
+    }
+    return rsh(x, s);
+}
+
+/* a b, the exact product of two words (one SMULL: written out on Thumb-2, where GCC
+ * otherwise keeps the sign word of a long-lived c and multiplies 64 x 64) */
+INLINE int64_t mul_ww(int32_t a, int32_t b)
+{
+#if defined(__GNUC__) && defined(__thumb2__)
+    uint32_t lo, hi;
+    __asm__("smull %0, %1, %2, %3" : "=&r"(lo), "=&r"(hi) : "r"(a), "r"(b));
+    return (int64_t)(((uint64_t)hi << 32) | lo);
+#else
+    return (int64_t)a * b;
+#endif
+}
+
+/* rsh(x, s) for any 0 <= s <= 62, the half added in one word when 1 <= s <= 31 */
+INLINE int64_t rsh_w(int64_t x, int32_t s)
+{
+    if ((uint32_t)(s - 1) < 31u) {
+        return (int64_t)((uint64_t)x + (uint32_t)((uint32_t)1 << (s - 1))) >> s;
     }
     return rsh(x, s);
 }
@@ -105,7 +151,7 @@ INLINE int32_t sat(int64_t x, int32_t lo, int32_t hi, uint32_t *n)
 /* A word r (already a word: an int32_t) clamped to [lo, hi], counted. */
 INLINE int32_t clamp32(int32_t r, int32_t lo, int32_t hi, uint32_t *n)
 {
-    if ((uint32_t)r - (uint32_t)lo <= (uint32_t)hi - (uint32_t)lo) {
+    if (LIKELY((uint32_t)r - (uint32_t)lo <= (uint32_t)hi - (uint32_t)lo)) {
         return r;
     }
     *n += 1u;
@@ -115,7 +161,7 @@ INLINE int32_t clamp32(int32_t r, int32_t lo, int32_t hi, uint32_t *n)
 /* sat(x) for a 64-bit x given as its two words: the common case in 32-bit compares */
 INLINE int32_t sat2(int32_t rhi, uint32_t rlo, int32_t lo, int32_t hi, uint32_t *n)
 {
-    if (rhi == ((int32_t)rlo >> 31)) {
+    if (LIKELY(rhi == ((int32_t)rlo >> 31))) {
         return clamp32((int32_t)rlo, lo, hi, n); /* x fits a word */
     }
     *n += 1u;
@@ -128,7 +174,7 @@ INLINE int32_t sub_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
 {
 #if defined(__GNUC__)
     int32_t r;
-    if (__builtin_sub_overflow(a, b, &r)) {
+    if (UNLIKELY(__builtin_sub_overflow(a, b, &r))) {
         *n += 1u;
         return b < 0 ? hi : lo; /* beyond the int32_t range, so beyond [lo, hi] */
     }
@@ -144,7 +190,7 @@ INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
 {
 #if defined(__GNUC__)
     int32_t r;
-    if (__builtin_add_overflow(a, b, &r)) {
+    if (UNLIKELY(__builtin_add_overflow(a, b, &r))) {
         *n += 1u;
         return b > 0 ? hi : lo;
     }
@@ -155,12 +201,33 @@ INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
 #endif
 }
 
-/* rsh(a b, s) for 32 <= s <= 62: the high word of a b + 2^(s-1), shifted by s - 32
- * (rnd = 2^(s-1), computed once per loop) */
-INLINE int32_t mul_rsh_hi(int32_t a, int32_t b, uint64_t rnd, int32_t s)
+/* rsh(a b, 32): the high word of a b + 2^31 (one SMMULR on a core with the DSP
+ * extension) */
+INLINE int32_t mul_rsh32(int32_t a, int32_t b)
 {
-    const uint64_t u = (uint64_t)((int64_t)a * b) + rnd;
-    return (int32_t)(uint32_t)(u >> 32) >> (s - 32);
+#if defined(__GNUC__) && defined(__ARM_FEATURE_DSP) && defined(__thumb2__)
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(a), "r"(b));
+    return r;
+#else
+    return (int32_t)(uint32_t)(((uint64_t)((int64_t)a * b) + ((uint64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* rsh(a b, s) for 33 <= s <= 62 from the high word H of a b = H 2^32 + L, 0 <= L < 2^32:
+ * (a b + 2^(s-1)) >> s = (H + 2^(s-33)) >> (s - 32), L cannot carry into a multiple of
+ * 2^(s-32); |H| <= 2^30 and rh = 2^(s-33) <= 2^29, so the sum is a word */
+INLINE int32_t mul_rsh_hi(int32_t a, int32_t b, int32_t rh, int32_t s)
+{
+    return ((int32_t)(((int64_t)a * b) >> 32) + rh) >> (s - 32);
+}
+
+/* rsh(a b, s) for 32 <= s <= 62 (``cls`` SHIFT_32 or SHIFT_HIGH, a constant there) */
+INLINE int32_t mul_rsh_w(int32_t a, int32_t b, int32_t rh, int32_t s, int cls);
+
+INLINE int32_t mul_rsh_w(int32_t a, int32_t b, int32_t rh, int32_t s, int cls)
+{
+    return cls == SHIFT_32 ? mul_rsh32(a, b) : mul_rsh_hi(a, b, rh, s);
 }
 
 /* Store an accumulator x (scale 2^-(f+s)) into a word of scale 2^-f (Python store):
@@ -169,9 +236,9 @@ INLINE int32_t mul_rsh_hi(int32_t a, int32_t b, uint64_t rnd, int32_t s)
 INLINE int32_t store(int64_t x, int32_t s, int32_t lo, int32_t hi, uint32_t *n)
 {
     int32_t t;
-    if ((uint32_t)(s - 1) < 31u) {
+    if (LIKELY((uint32_t)(s - 1) < 31u)) {
         /* 1 <= s <= 31 (the common case): x + 2^(s-1) shifted as two words */
-        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        const uint64_t u = (uint64_t)x + (uint32_t)((uint32_t)1 << (s - 1)); /* s <= 31 */
         const uint32_t ulo = (uint32_t)u;
         const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
         return sat2(uhi >> s, (ulo >> s) | ((uint32_t)uhi << (32 - s)), lo, hi, n);
@@ -259,6 +326,14 @@ static uint32_t div_u64_u32(uint64_t u, uint32_t v)
 
 /* ------------------------------------------------------------------- set-up */
 
+/* bits of canrls_rls_q31.wide: the word is the whole int32_t (nothing to clamp) */
+enum { WIDE_PHI = 1, WIDE_H = 2, WIDE_THETA = 4, WIDE_P = 8 };
+
+INLINE uint32_t wide_bit(int32_t lo, int32_t hi, uint32_t bit)
+{
+    return lo == INT32_MIN && hi == INT32_MAX ? bit : 0u;
+}
+
 /* trw = sum_i rsh(Pw_ii, trace_ps): the trace at the windup test's scale */
 static int32_t trace_words(const canrls_rls_q31 *S)
 {
@@ -280,6 +355,11 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
         || e0 < 0 || e0 > plan->e_max) {
         return CANRLS_EINVAL;
     }
+#ifdef CANRLS_N
+    if (n != (uint32_t)CANRLS_N) {
+        return CANRLS_EINVAL;
+    }
+#endif
     for (i = 0; i < n; i++) {
         if (p0[i] < plan->P_lo || p0[i] > plan->P_hi) {
             return CANRLS_EINVAL;
@@ -295,6 +375,20 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
     S->e = e0;
     S->c = plan->one_lam;
     S->trw = trace_words(S);
+    /* the e for which the windup test runs: trace_max_lim >> e is monotonic in e, so
+     * they form an interval (empty: wu_lo > wu_hi) */
+    S->wu_lo = plan->e_max + 1;
+    S->wu_hi = -1;
+    for (i = 0; i <= (uint32_t)plan->e_max; i++) {
+        if (plan->trace_max_lam <= (plan->trace_max_lim >> i)) {
+            S->wu_lo = S->wu_lo < (int32_t)i ? S->wu_lo : (int32_t)i;
+            S->wu_hi = (int32_t)i;
+        }
+    }
+    S->wide = wide_bit(plan->phi_lo, plan->phi_hi, WIDE_PHI)
+              | wide_bit(plan->h_lo, plan->h_hi, WIDE_H)
+              | wide_bit(plan->theta_lo, plan->theta_hi, WIDE_THETA)
+              | wide_bit(plan->P_lo, plan->P_hi, WIDE_P);
     return CANRLS_OK;
 }
 
@@ -331,21 +425,40 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P
 
 /* ------------------------------------------------------------------- kernel */
 
-/* acc = P~ phi as exact 64-bit sums (symmetric: each P~_ij of the packed upper
- * triangle read once; its two products go to h_i and, scattered, to h_j) */
-static void h_sums(const int32_t *Pr, const int32_t *phg, uint32_t n, int64_t *acc)
+/* h~_i from its sum u = acc_i + 2^(h_os-1) (the rounding half already added), for
+ * 1 <= h_os <= 31: u >> h_os fits a word iff the high word of u lies in
+ * [-2^(h_os-1), 2^(h_os-1)); then it is the two words shifted. ``full``: the h word is
+ * the whole int32_t (a constant at each call). */
+INLINE int32_t h_word(uint64_t u, int32_t h_os, int32_t lo, int32_t hi, uint32_t *c_h,
+                      int full)
+{
+    const uint32_t ulo = (uint32_t)u;
+    const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
+    if (LIKELY((uint32_t)uhi + ((uint32_t)1 << (h_os - 1)) < ((uint32_t)1 << h_os))) {
+        const int32_t r = (int32_t)((ulo >> h_os) | ((uint32_t)uhi << (32 - h_os)));
+        return full ? r : clamp32(r, lo, hi, c_h);
+    }
+    *c_h += 1u;
+    return uhi < 0 ? lo : hi;
+}
+
+/* acc = P~ phi + rnd as exact 64-bit sums (the rounding half rnd of the store of h~
+ * added once to each). Symmetric: each P~_ij of the packed upper triangle read once;
+ * its two products go to h_i and, scattered, to h_j. */
+INLINE void h_sums(const int32_t *Pr, const int32_t *phg, uint32_t n, int64_t rnd,
+                   int64_t *acc)
 {
     uint32_t i, j;
     for (i = 0; i < n; i++) {
         const int32_t pi_ = phg[i];
         /* h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i */
-        int64_t a = (i == 0 ? 0 : acc[i]) + (int64_t)Pr[0] * pi_;
+        int64_t a = (i == 0 ? rnd : acc[i]) + (int64_t)Pr[0] * pi_;
         if (i == 0) {
             for (j = 1; j < n; j++) {
                 const int32_t Pij = Pr[j];
                 /* P_0j phi_j -> h_0 ;  P_j0 phi_0 = P_0j phi_0 -> h_j */
                 a += (int64_t)Pij * phg[j];
-                acc[j] = (int64_t)Pij * pi_;
+                acc[j] = rnd + (int64_t)Pij * pi_;
             }
         } else {
             for (j = i + 1; j < n; j++) {
@@ -360,29 +473,81 @@ static void h_sums(const int32_t *Pr, const int32_t *phg, uint32_t n, int64_t *a
     }
 }
 
+#ifdef CANRLS_N
+/* n a constant (CANRLS_N): h~ = P~ phi row by row, each P~_ij at a constant index of
+ * the packed upper triangle (the same exact sums as h_sums), stored as it is summed;
+ * returns s~ = phi' h~ and m = OR of |h~_i| (one's complement). 1 <= h_os <= 31. */
+INLINE int64_t h_rows(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t h_os,
+                      int32_t lo, int32_t hi, uint32_t *c_h, uint32_t *m, int full)
+{
+    const uint32_t n = CANRLS_N;
+    const int64_t rnd = (int64_t)((uint32_t)1 << (h_os - 1)); /* h_os <= 31: one word */
+    int64_t s = 0;
+    uint32_t i, j, mm = 0;
+    int32_t ph[CANRLS_N]; /* phi >> phi_ps, held in registers over the rows */
+    UNROLL
+    for (j = 0; j < n; j++) {
+        ph[j] = phg[j];
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        int64_t a = rnd;
+        int32_t hi_;
+        UNROLL
+        for (j = 0; j < n; j++) {
+            const uint32_t r = i < j ? i : j, q = i < j ? j : i;
+            /* h~_i = sum_j P~_ij phi_j   (P~_ij = P~_ji: the upper triangle) */
+            a += (int64_t)Pr[r * n - r * (r - 1u) / 2u + (q - r)] * ph[j];
+        }
+        hi_ = h_word((uint64_t)a, h_os, lo, hi, c_h, full);
+        h[i] = hi_;
+        mm |= (uint32_t)(hi_ ^ (hi_ >> 31));
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* s~ = phi' h~ */
+        s += (int64_t)ph[i] * h[i];
+    }
+    *m = mm;
+    return s;
+}
+
+/* the two instances, out of line: each loop gets the registers to itself */
+NOINLINE int64_t h_rows_full(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t h_os,
+                             uint32_t *c_h, uint32_t *m)
+{
+    return h_rows(Pr, phg, h, h_os, INT32_MIN, INT32_MAX, c_h, m, 1);
+}
+
+NOINLINE int64_t h_rows_word(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t h_os,
+                             int32_t lo, int32_t hi, uint32_t *c_h, uint32_t *m)
+{
+    return h_rows(Pr, phg, h, h_os, lo, hi, c_h, m, 0);
+}
+#endif
+
 /* h~ <- h~ 2^kn; K = (g c) h~ as the high word of (h~ 2^kn)(gc 2^g_up), rounded half up;
  * theta <- theta + K eps. ``cls`` (a constant at each call) is the shift class of th_s. */
 INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
                    uint32_t *c_th, int cls, int full)
 {
-    const uint32_t n = S->n;
+    const uint32_t n = NPAR(S);
     int32_t *const h = S->h;
     int32_t *const K = S->K;
     int32_t *const theta = S->theta;
     const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
-    const uint64_t half = (uint64_t)1 << 31;
-    const uint64_t rnd = (uint64_t)1 << ((th_s > 0 ? th_s : 1) - 1);
+    const int32_t rh = (int32_t)1 << ((th_s >= 33 ? th_s : 33) - 33);
     uint32_t i;
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
         const int32_t hn = (int32_t)((uint32_t)h[i] << kn);
         /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
-        const int32_t Ki = mul_rsh_hi(hn, gcn, half, 32);
+        const int32_t Ki = mul_rsh32(hn, gcn);
         h[i] = hn;
         K[i] = Ki;
         /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
-        if (cls == SHIFT_HIGH) {
-            theta[i] = add_sat(theta[i], mul_rsh_hi(Ki, epn, rnd, th_s), th_lo, th_hi, c_th,
+        if (cls == SHIFT_HIGH || cls == SHIFT_32) {
+            theta[i] = add_sat(theta[i], mul_rsh_w(Ki, epn, rh, th_s, cls), th_lo, th_hi, c_th,
                                full);
         } else {
             theta[i] = sat(theta[i] + mul_rsh(Ki, epn, th_s, cls), th_lo, th_hi, c_th);
@@ -396,25 +561,25 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
  * so they are tested here rather than computed twice. */
 INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int full)
 {
-    const uint32_t n = S->n;
+    const uint32_t n = NPAR(S);
     const int32_t *const h = S->h;
     const int32_t *const K = S->K;
     /* the plan, as locals (a store to P~ cannot change them) */
     const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
-    const uint64_t rnd = (uint64_t)1 << ((P_s > 0 ? P_s : 1) - 1);
+    const int32_t rh = (int32_t)1 << ((P_s >= 33 ? P_s : 33) - 33);
     int32_t *Pw = S->P; /* row i of the packed upper triangle */
     uint32_t i, j;
     uint32_t nz = 0; /* nonzero once a diagonal term is */
     for (i = 0; i < n; i++) {
         const int32_t Ki = K[i];
-        if (cls == SHIFT_HIGH) {
+        if (cls == SHIFT_HIGH || cls == SHIFT_32) {
             /* the diagonal: information K_i h~_i */
-            const int32_t r = mul_rsh_hi(Ki, h[i], rnd, P_s);
+            const int32_t r = mul_rsh_w(Ki, h[i], rh, P_s, cls);
             nz |= (uint32_t)r;
             Pw[0] = sub_sat(Pw[0], r, P_lo, P_hi, c_P, full);
             for (j = i + 1; j < n; j++) {
-                Pw[j - i] = sub_sat(Pw[j - i], mul_rsh_hi(Ki, h[j], rnd, P_s), P_lo, P_hi,
-                                    c_P, full);
+                Pw[j - i] = sub_sat(Pw[j - i], mul_rsh_w(Ki, h[j], rh, P_s, cls), P_lo,
+                                    P_hi, c_P, full);
             }
         } else {
             const int64_t r = mul_rsh(Ki, h[i], P_s, cls);
@@ -429,11 +594,59 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int fu
     return nz == 0u;
 }
 
+/* the common instance of P_step (32-bit words, shifts of 33 or more), out of line: the
+ * update of the triangle gets the registers to itself */
+NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
+{
+    return P_step(S, P_s, c_P, SHIFT_HIGH, 1);
+}
+
+#ifdef CANRLS_N
+/* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
+ * th_s and P_s >= 33), out of line: h~ 2^kn and K stay in registers from one to the
+ * other (the same integers; S->h keeps h~ without the normalisation, it is scratch).
+ * Returns the low-excitation test, as P_step. */
+NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
+                               int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
+{
+    const uint32_t n = CANRLS_N;
+    const int32_t rt = (int32_t)1 << (th_s - 33), rp = (int32_t)1 << (P_s - 33);
+    int32_t hn[CANRLS_N], K[CANRLS_N];
+    int32_t *Pw = S->P; /* row i of the packed upper triangle */
+    uint32_t i, j, nz = 0;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* h~ <- h~ 2^kn (exact: the normalisation) */
+        hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
+        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
+        K[i] = mul_rsh32(hn[i], gcn);
+        S->K[i] = K[i];
+        /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
+        S->theta[i] = add_sat(S->theta[i], mul_rsh_hi(K[i], epn, rt, th_s), INT32_MIN,
+                              INT32_MAX, c_th, 1);
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* P~ <- P~ - K h~'  (upper triangle); the diagonal: information K_i h~_i */
+        const int32_t r = mul_rsh_hi(K[i], hn[i], rp, P_s);
+        nz |= (uint32_t)r;
+        Pw[0] = sub_sat(Pw[0], r, INT32_MIN, INT32_MAX, c_P, 1);
+        UNROLL
+        for (j = i + 1; j < n; j++) {
+            Pw[j - i] = sub_sat(Pw[j - i], mul_rsh_hi(K[i], hn[j], rp, P_s), INT32_MIN,
+                                INT32_MAX, c_P, 1);
+        }
+        Pw += n - i;
+    }
+    return nz == 0u;
+}
+#endif
+
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                       canrls_step_q31 *step)
 {
     const canrls_plan_q31 *p = S->plan;
-    const uint32_t n = S->n;
+    const uint32_t n = NPAR(S);
     int32_t *const theta = S->theta;
     int32_t *const P = S->P;
     int32_t *const h = S->h;
@@ -457,8 +670,9 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
     /* phi, y <- sat(phi), sat(y)       inputs clamped to their words;
      * phi >> ps: the guard bits of the multiply-accumulates */
-    if (phi_ps > 0 && phi_lo == INT32_MIN && phi_hi == INT32_MAX) {
+    if (phi_ps > 0 && (S->wide & WIDE_PHI)) {
         /* 32-bit words: nothing to clamp */
+        UNROLL
         for (j = 0; j < n; j++) {
             phg[j] = ((phi[j] >> (phi_ps - 1)) + 1) >> 1;
         }
@@ -476,8 +690,13 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
     /* eps = y - phi' theta */
     /* (summed as phi' theta - y, multiply-accumulates, then negated: the same integer) */
-    a = p->eps_ts >= 0 ? (int64_t)yk * ((int64_t)1 << p->eps_ts) : rsh(yk, -p->eps_ts);
+    if ((uint32_t)p->eps_ts <= 30u) {
+        a = (int64_t)yk * ((int32_t)1 << p->eps_ts); /* y 2^ts: one multiply */
+    } else {
+        a = p->eps_ts >= 0 ? (int64_t)yk * ((int64_t)1 << p->eps_ts) : rsh(yk, -p->eps_ts);
+    }
     a = -a;
+    UNROLL
     for (j = 0; j < n; j++) {
         a += (int64_t)phg[j] * theta[j];
     }
@@ -494,25 +713,31 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         int32_t il;
         int low;
 
-        /* h~ = P~ phi   (symmetric: each P~_ij of the upper triangle read once) */
-        h_sums(P, phg, n, acc);
-        /* m = OR of |h~_i| (one's complement) for the normalisation below */
+        /* h~ = P~ phi, rounded and stored; m = OR of |h~_i| (one's complement) for the
+         * normalisation below; s~ = phi' h~ (a) summed as h~ is stored */
         a = 0;
         if ((uint32_t)(h_os - 1) < 31u) {
             /* 1 <= h_os <= 31 (the common case): each sum rounded in two words */
-            const uint64_t rnd = (uint64_t)1 << (h_os - 1);
+#ifdef CANRLS_N
+            if (S->wide & WIDE_H) {
+                a = h_rows_full(P, phg, h, h_os, &c_h, &m);
+            } else {
+                a = h_rows_word(P, phg, h, h_os, h_lo, h_hi, &c_h, &m);
+            }
+#else
+            /* h~ = P~ phi (+ the rounding half)   (symmetric: each P~_ij read once) */
+            h_sums(P, phg, n, (int64_t)1 << (h_os - 1), acc);
             for (i = 0; i < n; i++) {
-                const uint64_t u = (uint64_t)acc[i] + rnd;
-                const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
-                const int32_t hi_ = sat2(uhi >> h_os,
-                                         ((uint32_t)u >> h_os) | ((uint32_t)uhi << (32 - h_os)),
-                                         h_lo, h_hi, &c_h);
+                const int32_t hi_ = h_word((uint64_t)acc[i], h_os, h_lo, h_hi, &c_h, 0);
                 h[i] = hi_;
                 m |= (uint32_t)(hi_ ^ (hi_ >> 31));
                 /* s~ = phi' h~ (summed as h~ is stored) */
                 a += (int64_t)phg[i] * hi_;
             }
+#endif
         } else {
+            /* h~ = P~ phi   (symmetric: each P~_ij of the upper triangle read once) */
+            h_sums(P, phg, n, 0, acc);
             for (i = 0; i < n; i++) {
                 const int32_t hi_ = store(acc[i], h_os, h_lo, h_hi, &c_h);
                 h[i] = hi_;
@@ -526,15 +751,17 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         st = store((uint32_t)(e - 1) < 31u ? rsh_c(a, e, SHIFT_LOW) : rsh_c(a, e, shift_class(e)),
                    p->s_os, p->den_lo, p->den_hi, &c_den);
         /* s = phi' P phi = c s~ */
-        sv = store((int64_t)st * c, p->sc_s, p->den_lo, p->den_hi, &c_den);
+        sv = store(mul_ww(st, c), p->sc_s, p->den_lo, p->den_hi, &c_den);
 
         /* windup <=> (tr P - g h'h)/lambda > trace_max
          *        <=> (tr P - lambda trace_max) (lambda + phi'P phi) > h'h */
         lam_k = p->lam_den;
-        if (p->trace_max_lam <= (p->trace_max_lim >> e)) {
+        if (e >= S->wu_lo && e <= S->wu_hi) { /* trace_max_lam <= trace_max_lim >> e */
             /* tr P = c tr P~   (trw: the diagonal summed >> tr_ps, kept from the last row) */
-            int64_t T = mul_rsh(trw, c, p->tc_s, shift_class(p->tc_s))
-                        - (int64_t)p->trace_max_lam * ((int64_t)1 << e);
+            /* (lambda trace_max 2^e: within trace_max_lim for these e, so the shift is
+             * the product) */
+            int64_t T = rsh_w(mul_ww(trw, c), p->tc_s)
+                        - (int64_t)((uint64_t)(int64_t)p->trace_max_lam << e);
             if (T > 0) {
                 uint32_t none = 0; /* d_lam is not counted */
                 int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
@@ -563,7 +790,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         }
 
         /* d = lambda_k + phi' P phi */
-        d = sat((int64_t)lam_k + sv, p->den_lo, p->den_hi, &c_den);
+        d = add_sat(lam_k, sv, p->den_lo, p->den_hi, &c_den, 0);
         /* g = 1 / d     (the one division: acc-width dividend, word divisor, C truncation) */
         if (d <= 0) {
             g = p->g_hi;
@@ -571,7 +798,8 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         } else {
             /* DIVIDEND // d > g_hi  <=>  DIVIDEND >= (g_hi + 1) d : then the quotient
              * fits 32 bits, and a 64/32 division gives it */
-            if (p->dividend >= ((int64_t)p->g_hi + 1) * d) {
+            /* (g_hi + 1) d: 0 < g_hi + 1 <= 2^31 and 0 < d < 2^31, one 32 x 32 product */
+            if ((uint64_t)p->dividend >= (uint64_t)((uint32_t)p->g_hi + 1u) * (uint32_t)d) {
                 g = p->g_hi;
                 c_div += 1u;
             } else {
@@ -579,7 +807,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             }
         }
         /* gc = g c */
-        gc = store((int64_t)g * c, p->gc_s, p->g_lo, p->g_hi, &c_div);
+        gc = store(mul_ww(g, c), p->gc_s, p->g_lo, p->g_hi, &c_div);
 
         /* normalisation of the updates (once per step): h~ and eps shifted left (exactly)
          * to 31 bits, so that K is the high word of a 32 x 32 product and the theta and
@@ -600,14 +828,24 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each */
             P_s = p->P_s + e + 2 * kn;
         }
+#ifdef CANRLS_N
+        if (th_s >= 33 && P_s >= 33 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
+            /* the common case in one piece */
+            low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, &c_th, &c_P);
+        } else
+#endif
+        {
         switch (shift_class(th_s)) {
         case SHIFT_HIGH:
             /* words of 32 bits: the overflow test is the clamp */
-            if (p->theta_lo == INT32_MIN && p->theta_hi == INT32_MAX) {
+            if (S->wide & WIDE_THETA) {
                 K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 1);
             } else {
                 K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 0);
             }
+            break;
+        case SHIFT_32:
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_32, 0);
             break;
         case SHIFT_LOW:
             K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_LOW, 0);
@@ -622,11 +860,14 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         switch (shift_class(P_s)) {
         case SHIFT_HIGH:
             /* words of 32 bits: the overflow test is the clamp */
-            if (p->P_lo == INT32_MIN && p->P_hi == INT32_MAX) {
-                low = P_step(S, P_s, &c_P, SHIFT_HIGH, 1);
+            if (S->wide & WIDE_P) {
+                low = P_step_high_full(S, P_s, &c_P);
             } else {
                 low = P_step(S, P_s, &c_P, SHIFT_HIGH, 0);
             }
+            break;
+        case SHIFT_32:
+            low = P_step(S, P_s, &c_P, SHIFT_32, 0);
             break;
         case SHIFT_LOW:
             low = P_step(S, P_s, &c_P, SHIFT_LOW, 0);
@@ -635,13 +876,14 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             low = P_step(S, P_s, &c_P, SHIFT_ANY, 0);
             break;
         }
+        }
         if (low) {
             flag |= CANRLS_FLAG_LOW_EXCITATION;
         }
 
         /* c <- c / lambda_k */
         il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
-        c = store((int64_t)c * il, p->c_s, 0, p->lam_hi, &c_P);
+        c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, &c_P);
         if (c > p->one_lam) {
             if (e > 0) {
                 /* c/2 and 2^-e x 2: the words do not move */
@@ -662,6 +904,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             uint32_t trw32 = 0; /* the sum modulo 2^32: trw is a word */
             const int32_t *Pii = P;
             if (tr_ps > 0) {
+                UNROLL
                 for (i = 0; i < n; i++) {
                     const int32_t x = *Pii;
                     tr += x;

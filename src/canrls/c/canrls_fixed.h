@@ -12,6 +12,9 @@
  * with canrls_init_q31() (or canrls_restore_q31() from a checkpoint) and calls
  * canrls_update_q31() once per sample. No malloc, no floating point, no libc beyond
  * <stdint.h>, <stddef.h>; the model size is bounded at compile time by CANRLS_N_MAX.
+ * Built with -DCANRLS_N=n (1 <= n <= CANRLS_N_MAX), the kernel is made for that one n:
+ * its loops over n unrolled for the common case, the same integers, and
+ * canrls_init_q31() accepting only n = CANRLS_N (docs/fixed_point.md, "A fixed n").
  *
  * Numbers
  * -------
@@ -43,6 +46,9 @@
  * ---------
  * The kernel never derives a constant: every shift, range and Q constant of
  * lambda is in canrls_plan_q31, with the names of the Python FixedRLS.constants.
+ * canrls_init_q31() only evaluates, once, two tests of the plan the update would
+ * otherwise repeat (which words are the whole int32_t; for which block exponents the
+ * windup test runs) and keeps the answers in the instance.
  * canrls.c_export.plan_c (and `canrls export-c`) writes it as a C initialiser from a
  * Python FixedRLS.
  */
@@ -149,10 +155,15 @@ typedef struct {
     int32_t e;                   /**< block exponent of P */
     int32_t c;                   /**< forgetting scale of P (lam format) */
     int32_t trw;                 /**< sum of rsh(Pw_ii, trace_ps) (kept from step to step) */
+    int32_t wu_lo, wu_hi;        /**< the windup test runs for wu_lo <= e <= wu_hi: the e with
+                                      trace_max_lam <= trace_max_lim >> e (an interval, set
+                                      by canrls_init_q31 from the plan) */
+    uint32_t wide;               /**< bits 0..3: the phi, h, theta, P words are the whole
+                                      int32_t (set by canrls_init_q31 from the plan) */
     int32_t theta[CANRLS_N_MAX]; /**< estimate, theta format */
     int32_t P[CANRLS_TRI(CANRLS_N_MAX)]; /**< Pw, upper triangle packed by rows, P format */
     int32_t K[CANRLS_N_MAX];     /**< gain of the last step (K 2^(f_K + e)), 0 when frozen */
-    int32_t h[CANRLS_N_MAX];     /**< scratch: h = Pw phi (h format) */
+    int32_t h[CANRLS_N_MAX];     /**< scratch: h = Pw phi (h format, normalised or not) */
     int32_t phg[CANRLS_N_MAX];   /**< scratch: phi >> phi_ps */
     uint32_t counts[CANRLS_NSITES]; /**< saturations per site (canrls_site), wrap at 2^32 */
 } canrls_rls_q31;
@@ -175,7 +186,8 @@ typedef struct {
  * @param p0    n diagonal words of the initial covariance, P format, in [P_lo, P_hi]
  *              (P0_jj = p0[j] 2^-(f_P + e0)); the off-diagonal words are 0
  * @param e0    initial block exponent, 0..plan->e_max
- * @return CANRLS_OK, or CANRLS_EINVAL for an n, p0 or e0 out of range (S untouched)
+ * @return CANRLS_OK, or CANRLS_EINVAL for an n, p0 or e0 out of range, or an n other
+ *         than CANRLS_N where the build fixes it (S untouched)
  */
 int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
                     const int32_t *p0, int32_t e0);
