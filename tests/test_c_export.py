@@ -19,6 +19,7 @@ from canrls.cli.main import main
 from canrls.config import AppConfig
 from canrls.errors import ConfigError
 from canrls.estimation.pipeline import Pipeline
+from debian import need_tool
 
 CFLAGS = ["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic"]
 TOML = """\
@@ -57,9 +58,7 @@ def test_exported_directory_compiles_with_gcc(exported: Path) -> None:
 
 
 def test_exported_directory_compiles_for_the_cortex_m4(exported: Path) -> None:
-    cc = shutil.which("arm-none-eabi-gcc")
-    if cc is None:
-        pytest.skip("arm-none-eabi-gcc not installed")
+    cc = need_tool("arm-none-eabi-gcc", ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"])
     for c in sorted(exported.glob("*.c")):
         subprocess.run([cc, "-mcpu=cortex-m4", "-mthumb", *CFLAGS, "-c", str(c), "-o",
                         str(c.with_suffix(".m4.o"))], check=True, capture_output=True)

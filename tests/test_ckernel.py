@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import functools
 import importlib.util
-import os
-import shutil
 import subprocess
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -26,6 +24,7 @@ import numpy as np
 import pytest
 
 from canrls.estimation.fixed import SITES, FixedConfig, FixedFlag, FixedRLS, QFormat
+from debian import need_tool
 
 ROOT = Path(__file__).resolve().parent.parent
 KERNEL = ROOT / "src" / "canrls" / "c"
@@ -44,29 +43,6 @@ def _load(name: str) -> object:
 
 gen = _load("gen_ckernel")
 build_target = _load("build_target")
-
-_apt_updated = False
-
-
-def _need(tool: str, packages: list[str]) -> str:
-    """Path of ``tool``; installed from Debian when missing and root, else skip."""
-    global _apt_updated
-    path = shutil.which(tool)
-    if path is None and hasattr(os, "geteuid") and os.geteuid() == 0 \
-            and shutil.which("apt-get"):
-        env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-        if not _apt_updated:
-            subprocess.run(["apt-get", "update", "-qq"], env=env, capture_output=True,
-                           timeout=600)
-            _apt_updated = True
-        subprocess.run(["apt-get", "install", "-y", "-qq", *packages], env=env,
-                       capture_output=True, timeout=1200)
-        path = shutil.which(tool)
-    if path is None:
-        pytest.skip(f"{tool} is missing and could not be installed (Debian: "
-                    f"{' '.join(packages)})")
-    return path
-
 
 # ------------------------------------------------------------------ vectors
 @dataclass
@@ -223,7 +199,7 @@ def test_vectors_cover_every_flag_and_saturation_site() -> None:
 
 @pytest.fixture(scope="module")
 def host_driver(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    cc = _need("gcc", ["gcc"])
+    cc = need_tool("gcc", ["gcc"])
     exe = tmp_path_factory.mktemp("host") / "vector_driver"
     subprocess.run([cc, *CFLAGS, "-I", str(KERNEL), str(DRIVER), str(KERNEL / "canrls_fixed.c"),
                     "-o", str(exe)], check=True, capture_output=True)
@@ -237,8 +213,8 @@ def test_c_kernel_is_bit_exact_on_x86_64(host_driver: Path, vectors: list, tmp_p
 
 
 def test_c_kernel_is_bit_exact_on_32_bit_arm(vectors: list, tmp_path: Path) -> None:
-    cc = _need("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
-    qemu = _need("qemu-arm", ["qemu-user"])
+    cc = need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    qemu = need_tool("qemu-arm", ["qemu-user"])
     exe = tmp_path / "vector_driver_arm"
     subprocess.run([cc, *CFLAGS, "-static", "-I", str(KERNEL), str(DRIVER),
                     str(KERNEL / "canrls_fixed.c"), "-o", str(exe)], check=True,
@@ -261,7 +237,7 @@ def _run_fixed_n(cc: str, wrap: list[str], vectors: list, tmp_path: Path,
         subprocess.run([cc, *CFLAGS, *extra, f"-DCANRLS_N={n}", "-I", str(KERNEL),
                         str(DRIVER), str(KERNEL / "canrls_fixed.c"), "-o", str(exe)],
                        check=True, capture_output=True)
-        _run_all(lambda i, o: subprocess.run([*wrap, str(exe), str(i), str(o)], check=True,
+        _run_all(lambda i, o, exe=exe: subprocess.run([*wrap, str(exe), str(i), str(o)], check=True,
                                              timeout=120), vs, tmp_path)
         other = next(v for m, w in by_n.items() if m != n for v in w)
         r = subprocess.run([*wrap, str(exe), str(other[1]), str(tmp_path / "o")],
@@ -271,13 +247,13 @@ def _run_fixed_n(cc: str, wrap: list[str], vectors: list, tmp_path: Path,
 
 def test_c_kernel_with_a_fixed_n_is_bit_exact_on_x86_64(vectors: list, tmp_path: Path
                                                         ) -> None:
-    _run_fixed_n(_need("gcc", ["gcc"]), [], vectors, tmp_path)
+    _run_fixed_n(need_tool("gcc", ["gcc"]), [], vectors, tmp_path)
 
 
 def test_c_kernel_with_a_fixed_n_is_bit_exact_on_32_bit_arm(vectors: list, tmp_path: Path
                                                             ) -> None:
-    cc = _need("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
-    qemu = _need("qemu-arm", ["qemu-user"])
+    cc = need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    qemu = need_tool("qemu-arm", ["qemu-user"])
     _run_fixed_n(cc, [qemu], vectors, tmp_path, ["-static"])
 
 
@@ -310,8 +286,8 @@ def test_plan_names_are_the_python_constants() -> None:
 # ------------------------------------------------------------------ Cortex-M4
 @pytest.fixture(scope="module")
 def m4_tools() -> Iterator[None]:
-    _need("arm-none-eabi-gcc", ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"])
-    _need("qemu-system-arm", ["qemu-system-arm"])
+    need_tool("arm-none-eabi-gcc", ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"])
+    need_tool("qemu-system-arm", ["qemu-system-arm"])
     yield
 
 
