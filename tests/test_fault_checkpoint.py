@@ -21,6 +21,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -360,7 +361,6 @@ def _nonsense(running: tuple) -> dict[str, bytes]:
         meta = json.dumps({**good_doc, "state": {"__array__": "a0"}}).encode()
         buf = io.BytesIO()
         np.savez(buf, __meta__=np.frombuffer(meta, np.uint8))
-        import zipfile
         with zipfile.ZipFile(buf, "a") as zf:
             zf.writestr("a0.npy", raw.getvalue())
         return _envelope(buf.getvalue())
@@ -417,6 +417,8 @@ def test_a_valid_checksum_around_nonsense_is_set_aside(tmp_path: Path, running: 
         assert _checkpointer(running, path).resume(_restore(running)) is None
     assert not path.exists() and len(list(tmp_path.glob("cp.bin.bad-*"))) == 1
     assert "not loaded" in caplog.text
+    # refused by the checks, not by the last resort around the restore
+    assert "does not fit the model" not in caplog.text
     if case not in ("theta of another shape", "P of another shape", "samples a string",
                     "calibration is a list", "window is a number", "estimators is a string",
                     "rls is a list", "state is a list"):
@@ -577,6 +579,15 @@ def test_the_fingerprint_holds_no_placeholder_period(tmp_path: Path) -> None:
     assert d2.dt == stated[0].period == pytest.approx(1e-3)
 
 
+def test_the_state_records_its_period() -> None:
+    _, model, settings = _setup()
+    state = SampleProcessor(model, 1e-3, settings).state()
+    assert state["dt"] == 1e-3
+    SampleProcessor(model, 1.004e-3, settings).restore(state, model)  # within 1 %
+    with pytest.raises(CheckpointError, match="control period of 0.001 s, the frames give 2 ms"):
+        SampleProcessor(model, 2e-3, settings).restore(state, model)
+
+
 @pytest.mark.parametrize(("period", "kept"), [(1e-3, True), (2e-3, False)])
 def test_a_deferred_restore_checks_the_measured_period(
         tmp_path: Path, period: float, kept: bool, caplog: pytest.LogCaptureFixture) -> None:
@@ -666,3 +677,63 @@ def test_the_reader_raises_nothing_but_checkpoint_errors(
                 buf[i] = data.draw(st.integers(0, 255))
             raw = bytes(whole) if how == "flip" else _envelope(bytes(payload))
     _read(tmp, raw)
+
+
+def _paths(obj: Any, path: tuple = ()) -> Iterator[tuple]:
+    yield path
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _paths(v, (*path, k))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _paths(v, (*path, i))
+
+
+_arrays = st.builds(lambda shape, kind, fill: np.full(shape, fill, dtype=kind),
+                    st.sampled_from([(0,), (1,), (3,), (7,), (3, 3), (2, 2), (3, 1)]),
+                    st.sampled_from(["f8", "i8", "u1", "?"]),
+                    st.sampled_from([0, 1, 3]))
+
+
+@settings(max_examples=120, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_a_mutated_state_is_resumed_or_set_aside_never_fatal(
+        tmp_path_factory: pytest.TempPathFactory, running: tuple, data: st.DataObject,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Any one value of a real state replaced by any JSON value or array: the daemon's
+    resume either restores it or sets the file aside; nothing escapes."""
+    cp = _checkpoint(running)
+    state = copy.deepcopy(cp.state)
+    where = data.draw(st.sampled_from([p for p in _paths(state) if p]))
+    parent = state
+    for k in where[:-1]:
+        parent = parent[k]
+    parent[where[-1]] = data.draw(_json_values | _arrays)
+    tmp = tmp_path_factory.mktemp("mut", numbered=True)
+    path = tmp / "cp.bin"
+    path.write_bytes(_forge_checkpoint(Checkpoint(**{**vars(cp), "state": state})))
+    caplog.clear()
+    with caplog.at_level(logging.ERROR, logger="canrls"):
+        out = _checkpointer(running, path).resume(_restore(running))
+    if out is None:
+        assert not path.exists() and "not loaded" in caplog.text
+    else:
+        assert path.exists()
+
+
+def test_a_link_placed_while_running_is_not_written_through(tmp_path: Path,
+                                                            running: tuple) -> None:
+    """A link put at the path after the start: that save fails with a logged error, the
+    link and its target stay as they are, and saves resume once the link is gone."""
+    target = _outside(tmp_path)
+    path = tmp_path / "cp.bin"
+    d = _daemon(running, path)
+    assert d.checkpoint() == path
+    path.unlink()
+    path.symlink_to(target)
+    assert d.checkpoint() is None
+    assert path.is_symlink() and target.read_bytes() == PRECIOUS
+    path.unlink()
+    assert d.checkpoint() == path and load_checkpoint(path).state
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600

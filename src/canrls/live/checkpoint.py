@@ -261,6 +261,18 @@ def _check_values(obj: Any, path: str, samples: bool) -> None:
         raise CheckpointError(f"{path or '/'}: {type(obj).__name__}")
 
 
+def _plain_json(obj: Any, path: str) -> None:
+    """``obj`` holds no array (a model, a fingerprint: JSON only)."""
+    if isinstance(obj, np.ndarray):
+        raise CheckpointError(f"{path} is an array")
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            _plain_json(v, f"{path}/{k}")
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            _plain_json(v, f"{path}/{i}")
+
+
 def _document(doc: Any) -> Checkpoint:
     """The fields of a :class:`Checkpoint`, each of its type."""
     if not isinstance(doc, dict):
@@ -271,6 +283,8 @@ def _document(doc: Any) -> Checkpoint:
     for k in ("model", "config_model", "fingerprint", "state", "counters"):
         if not isinstance(doc[k], dict):
             raise CheckpointError(f"{k} is a {type(doc[k]).__name__}, not an object")
+    for k in ("model", "config_model", "fingerprint", "counters"):
+        _plain_json(doc[k], k)
     for k, v in doc["counters"].items():
         if isinstance(v, bool) or not isinstance(v, int):
             raise CheckpointError(f"counter {k!r} = {v!r} is not an integer")
@@ -538,6 +552,68 @@ def clean_temporaries(path: str | os.PathLike[str]) -> list[Path]:
 
 
 # ------------------------------------------------------------------ the daemon's use
+def _what(x: Any) -> str:
+    if isinstance(x, np.ndarray):
+        return f"a {x.dtype} array of shape {x.shape}"
+    return f"a {type(x).__name__}"
+
+
+def _field(d: Mapping[str, Any], key: str, path: str, kind: type | tuple[type, ...]) -> Any:
+    if key not in d:
+        raise CheckpointError(f"{path}/{key} is missing")
+    v = d[key]
+    if not isinstance(v, kind) or isinstance(v, bool) and bool not in (
+            kind if isinstance(kind, tuple) else (kind,)):
+        raise CheckpointError(f"{path}/{key} is {_what(v)}")
+    return v
+
+
+def _array(d: Mapping[str, Any], key: str, path: str, shape: tuple[int, ...],
+           kinds: str = "f") -> None:
+    v = _field(d, key, path, np.ndarray)
+    if v.dtype.kind not in kinds or v.shape != shape:
+        raise CheckpointError(f"{path}/{key} is {_what(v)}, expected shape {shape}")
+
+
+def _check_state(state: Mapping[str, Any], model: Model, written_by: Mapping[str, Any]) -> None:
+    """The structure of :meth:`canrls.processor.SampleProcessor.state` for ``model``:
+    types, the shapes of theta, P and the statistics, and the model that wrote it."""
+    dt = state.get("dt")
+    if dt is not None and (isinstance(dt, bool) or not isinstance(dt, int | float)
+                           or not (0 < dt < math.inf)):
+        raise CheckpointError(f"state/dt = {dt!r} is not a period")
+    window = _field(state, "window", "state", dict)
+    lengths = set()
+    for k, v in window.items():
+        if not isinstance(v, np.ndarray) or v.dtype.kind != "f" or v.ndim != 1:
+            raise CheckpointError(f"state/window/{k} is {_what(v)}")
+        lengths.add(len(v))
+    if len(lengths) > 1:
+        raise CheckpointError(f"state/window: signals of {sorted(lengths)} samples")
+    _field(state, "calibration", "state", (dict, type(None)))
+    pipe = _field(state, "pipeline", "state", dict)
+    if _field(pipe, "samples", "state/pipeline", int) < 0:
+        raise CheckpointError("state/pipeline/samples is negative")
+    written = _field(pipe, "model", "state/pipeline", dict)
+    _plain_json(written, "state/pipeline/model")
+    if written != written_by:
+        raise CheckpointError("state/pipeline/model is not the checkpoint's model")
+    ests = _field(pipe, "estimators", "state/pipeline", list)
+    if len(ests) != len(model.equations):
+        raise CheckpointError(f"state/pipeline/estimators: {len(ests)} for "
+                              f"{len(model.equations)} equations")
+    for i, (e, eq) in enumerate(zip(ests, model.equations, strict=True)):
+        where, n = f"state/pipeline/estimators/{i}", eq.n
+        if not isinstance(e, dict):
+            raise CheckpointError(f"{where} is {_what(e)}")
+        for k, kinds in (("rls", "f"), ("fixed", "iu")):
+            sub = _field(e, k, where, dict)
+            _array(sub, "theta", f"{where}/{k}", (n,), kinds)
+            _array(sub, "P", f"{where}/{k}", (n, n), kinds)
+        _array(e, "M", where, (n, n))
+        _array(e, "v", where, (n,))
+
+
 def _plain(d: Any) -> Any:
     """A JSON round trip: tuples become lists, as a checkpoint stores them."""
     return json.loads(json.dumps(d, allow_nan=True))
@@ -652,6 +728,10 @@ class Checkpointer:
                 raise CheckpointError(f"{path}: checkpoint's model has {len(model.parameters)} "
                                       f"parameters, more than the {self.max_parameters} the "
                                       f"daemon publishes")
+            try:
+                _check_state(cp.state, model, cp.model)
+            except CheckpointError as e:
+                raise CheckpointError(f"{path}: checkpoint {e}") from e
             try:
                 restored = restore(model, cp.state)
             except (CheckpointError, ConfigError):
