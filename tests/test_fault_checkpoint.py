@@ -604,7 +604,9 @@ def test_a_deferred_restore_checks_the_measured_period(
     state["dt"] = period  # as a run at that period would have recorded it
     b2 = FrameProcessor(protocol, model, settings)
     assert b2.period is None
-    b2.restore(state, model)
+    running_model = Model.from_dict(json.loads(json.dumps(a.model.to_dict())))
+    assert running_model != model  # calibrated: its ranges and scaling frozen
+    b2.restore(state, running_model)  # as the daemon does
     assert b2.dt == period  # restored at its own period while the frames' is measured
     with caplog.at_level(logging.WARNING, logger="canrls"):
         for b in blocks[5:]:
@@ -619,6 +621,7 @@ def test_a_deferred_restore_checks_the_measured_period(
     else:
         assert b2.restore_refused is not None and "control period" in b2.restore_refused
         assert "starts afresh" in caplog.text
+        assert b2.model == fresh.model  # the configured model, calibrated afresh
         assert b2.calibration == fresh.calibration != a.calibration
         assert b2.pipeline.samples == fresh.pipeline.samples
         assert [(e.value, e.fixed) for e in b2.pipeline.estimates().parameters] == \

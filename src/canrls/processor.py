@@ -640,7 +640,7 @@ class FrameProcessor:
         self.period_estimate: PeriodEstimate | None = None
         self._held: list[DecodedFrames] = []
         self._seen_ids: dict[int, int] = {}
-        self._restore: tuple[Mapping[str, Any], Model] | None = None
+        self._restore: tuple[Mapping[str, Any], Model, Model] | None = None
         #: why a state restored before the period was measured was dropped once it was
         #: (it ran at another period); None: none was
         self.restore_refused: str | None = None
@@ -652,23 +652,29 @@ class FrameProcessor:
             # period is never used (the daemon may publish its empty state meanwhile)
             self.sampler = SampleProcessor(model, _PLACEHOLDER_DT, settings)
 
-    def _start(self, period: float) -> None:
-        """Pairer and sample processor for the decided period."""
-        model = self._model0
-        self.pairer = Pairer(self.protocol, period=period)
+    def _sampler(self, model: Model, period: float) -> SampleProcessor:
         dbc = dbc_ranges(model, self.protocol)
         sources = {k: ("config" if k in model.ranges_given else "dbc" if k in dbc else
                        "default") for k in model.ranges}
-        self.sampler = SampleProcessor(model.with_ranges(dbc) if dbc else model,
-                                       self.pairer.period, self._settings0, sources)
+        return SampleProcessor(model.with_ranges(dbc) if dbc else model, period,
+                               self._settings0, sources)
+
+    def _start(self, period: float) -> None:
+        """Pairer and sample processor for the decided period."""
+        self.pairer = Pairer(self.protocol, period=period)
         if self._restore is not None:  # a checkpoint restored while the period was measured
-            state, model = self._restore
+            state, model, before = self._restore
             self._restore = None
+            self.sampler = self._sampler(model, self.pairer.period)
             try:
                 self.sampler.restore(state, model)
-            except CheckpointError as e:  # another period: the fresh sampler goes on
+                return
+            except CheckpointError as e:  # another period: as if there were no checkpoint
                 self.restore_refused = str(e)
-                log.warning("restored state dropped, estimation starts afresh: %s", e)
+                log.warning("restored state dropped, estimation starts afresh with the "
+                            "configured model: %s", e)
+                self._model0 = before
+        self.sampler = self._sampler(self._model0, self.pairer.period)
 
     @property
     def period(self) -> float | None:
@@ -748,14 +754,16 @@ class FrameProcessor:
         """:meth:`SampleProcessor.restore`. Before the period is known, the state is
         restored at the period it records (its estimates are published meanwhile), and
         again once the period is measured; a state that ran at another period is then
-        dropped with a warning (:attr:`restore_refused`) and estimation starts afresh."""
+        dropped with a warning (:attr:`restore_refused`) and estimation starts afresh
+        with the model given before the restore, as without a checkpoint."""
         if self.pairer is None:
             dt = state.get("dt")
             placeholder = SampleProcessor(model, _PLACEHOLDER_DT if dt is None else dt,
                                           self._settings0)
             placeholder.restore(state, model)
+            before = self._restore[2] if self._restore is not None else self._model0
+            self._restore = (state, model, before)
             self._model0 = model
-            self._restore = (state, model)
             self.sampler = placeholder
             return
         self.sampler.restore(state, model)
