@@ -394,7 +394,13 @@ def _lstat(dfd: int, name: str) -> os.stat_result | None:
 
 def _read_regular(dfd: int, p: Path, max_bytes: int) -> tuple[bytes, os.stat_result]:
     """The bytes of the regular file ``p.name`` in ``dfd`` (never through a link, never
-    blocking on a FIFO, at most ``max_bytes``), and its ``fstat``."""
+    blocking on a FIFO, at most ``max_bytes``), and its ``fstat``. A non-regular file
+    is refused before it is opened (opening a device can act on it)."""
+    before = _lstat(dfd, p.name)
+    if before is None:
+        raise FileNotFoundError(errno.ENOENT, "no checkpoint", str(p))
+    if not stat.S_ISREG(before.st_mode):
+        raise _refuse(p, before.st_mode)
     try:
         fd = os.open(p.name, os.O_RDONLY | _O_NOFOLLOW | _O_NONBLOCK | _O_CLOEXEC, dir_fd=dfd)
     except FileNotFoundError:
