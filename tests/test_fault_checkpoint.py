@@ -8,6 +8,7 @@ device stand-ins are made there, and nothing points the code at a system path.
 from __future__ import annotations
 
 import copy
+import errno
 import hashlib
 import io
 import json
@@ -740,3 +741,29 @@ def test_a_link_placed_while_running_is_not_written_through(tmp_path: Path,
     path.unlink()
     assert d.checkpoint() == path and load_checkpoint(path).state
     assert stat.S_IMODE(path.stat().st_mode) == 0o600
+
+
+def test_a_read_only_location_runs_without_checkpoints(
+        tmp_path: Path, running: tuple, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A read-only file system at the checkpoint's directory (root writes anywhere else,
+    so creating files there is made to fail as EROFS would): one error at start, no
+    crash, no retry at every interval, the existing file untouched."""
+    path = tmp_path / "cp.bin"
+    save_checkpoint(path, _checkpoint(running))
+    before = path.read_bytes()
+    real_open = os.open
+
+    def read_only(file: Any, flags: int, *args: Any, **kw: Any) -> int:
+        if flags & os.O_CREAT:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(file))
+        return real_open(file, flags, *args, **kw)
+    monkeypatch.setattr(os, "open", read_only)
+    with caplog.at_level(logging.ERROR, logger="canrls"):
+        d = _daemon(running, path)
+        assert d.checkpoint() is None and d.checkpoint() is None
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert errors == [f"{path}: cannot write in the checkpoint's directory: Read-only file "
+                      f"system; running without checkpoints"]
+    assert d.resumed_from is None and path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cp.bin"]
