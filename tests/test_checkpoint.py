@@ -219,4 +219,6 @@ def test_kill_9_loses_at_most_one_interval(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)
     assert res["daemon"]["resumed_from"] == str(path)
-    assert res["samples"] >= cp.state["pipeline"]["samples"]
+    # the pipeline goes on counting from the checkpoint (res["samples"] counts the samples
+    # the equation used, fewer by the filter's warm-ups)
+    assert res["daemon"]["samples"] >= cp.state["pipeline"]["samples"]

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import logging
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -56,7 +57,7 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.pairing import Pairer, PairingCounts
 from canrls.can.period import MIN_INTERVALS, PeriodEstimate, PeriodMeter, check_period
 from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
-from canrls.errors import ConfigError
+from canrls.errors import CheckpointError, ConfigError
 from canrls.estimation.model import DATA_OPTIONS, Equation, Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline, PipelineBlock
 from canrls.estimation.svf import SVF
@@ -64,7 +65,10 @@ from canrls.signals import Signals
 
 __all__ = ["Calibration", "FitResult", "FrameProcessor", "RMS_HEADROOM",
            "MIN_ENERGY", "RangeScanner", "SampleProcessor", "UNEXCITED", "calibrate",
-           "data_defaults", "dbc_ranges", "epoch_date", "intrinsic", "scan_ranges"]
+           "data_defaults", "dbc_ranges", "epoch_date", "intrinsic", "scan_ranges",
+           "RESTORE_PERIOD_TOLERANCE"]
+
+log = logging.getLogger(__name__)
 
 #: Signals whose DBC range bounds the normalisation (position enters only through
 #: periodic columns, bounded by 1, and is unwrapped beyond its DBC range).
@@ -92,6 +96,11 @@ RMS_HEADROOM = 16.0
 #: The period of the placeholder estimator of a :class:`FrameProcessor` whose period is
 #: still being measured (no sample ever reaches it).
 _PLACEHOLDER_DT = 1e-3
+
+#: Largest relative difference between the control period a restored state ran at and
+#: the period of the frames it continues on (two measurements of one drive's period
+#: agree far closer; the filters and the statistics of a state depend on the period).
+RESTORE_PERIOD_TOLERANCE = 0.01
 
 
 @dataclass(frozen=True)
@@ -506,15 +515,27 @@ class SampleProcessor:
         return self.pipeline
 
     def state(self) -> dict[str, Any]:
-        """What a checkpoint needs to continue: the frozen calibration and its window
-        (or the samples held so far), and the pipeline's state."""
+        """What a checkpoint needs to continue: the control period ``dt`` [s] the state
+        ran at, the frozen calibration and its window (or the samples held so far), and
+        the pipeline's state."""
         window = self._window if self.calibration is not None else Signals.concat(self._held)
-        return {"calibration": None if self.calibration is None else self.calibration.to_dict(),
+        return {"dt": self.dt,
+                "calibration": None if self.calibration is None else self.calibration.to_dict(),
                 "window": {k: v for k in _SIGNALS if (v := getattr(window, k)) is not None},
                 "pipeline": self.pipeline.state()}
 
     def restore(self, state: Mapping[str, Any], model: Model) -> None:
-        """Continue from :meth:`state` with ``model`` (the model that was running)."""
+        """Continue from :meth:`state` with ``model`` (the model that was running).
+
+        :raises CheckpointError: the state ran at another control period (its ``dt``
+            differs from this processor's by more than :data:`RESTORE_PERIOD_TOLERANCE`).
+        """
+        dt = state.get("dt")  # None: a state of canrls 0.1, which did not record it
+        if dt is not None and not (
+                isinstance(dt, int | float) and dt > 0
+                and abs(dt - self.dt) <= RESTORE_PERIOD_TOLERANCE * self.dt):
+            raise CheckpointError(f"the state ran at a control period of {dt!r} s, the frames "
+                                  f"give {self.dt * 1e3:.6g} ms")
         w = state["window"]
         window = Signals(**{k: np.asarray(w[k], dtype=np.float64) for k in _SIGNALS if k in w})
         cal = state.get("calibration")
@@ -619,7 +640,10 @@ class FrameProcessor:
         self.period_estimate: PeriodEstimate | None = None
         self._held: list[DecodedFrames] = []
         self._seen_ids: dict[int, int] = {}
-        self._restore: tuple[Mapping[str, Any], Model] | None = None
+        self._restore: tuple[Mapping[str, Any], Model, Model] | None = None
+        #: why a state restored before the period was measured was dropped once it was
+        #: (it ran at another period); None: none was
+        self.restore_refused: str | None = None
         self.pairer: Pairer | None = None
         if stated is not None:
             self._start(float(stated))
@@ -628,18 +652,29 @@ class FrameProcessor:
             # period is never used (the daemon may publish its empty state meanwhile)
             self.sampler = SampleProcessor(model, _PLACEHOLDER_DT, settings)
 
-    def _start(self, period: float) -> None:
-        """Pairer and sample processor for the decided period."""
-        model = self._model0
-        self.pairer = Pairer(self.protocol, period=period)
+    def _sampler(self, model: Model, period: float) -> SampleProcessor:
         dbc = dbc_ranges(model, self.protocol)
         sources = {k: ("config" if k in model.ranges_given else "dbc" if k in dbc else
                        "default") for k in model.ranges}
-        self.sampler = SampleProcessor(model.with_ranges(dbc) if dbc else model,
-                                       self.pairer.period, self._settings0, sources)
+        return SampleProcessor(model.with_ranges(dbc) if dbc else model, period,
+                               self._settings0, sources)
+
+    def _start(self, period: float) -> None:
+        """Pairer and sample processor for the decided period."""
+        self.pairer = Pairer(self.protocol, period=period)
         if self._restore is not None:  # a checkpoint restored while the period was measured
-            self.sampler.restore(*self._restore)
+            state, model, before = self._restore
             self._restore = None
+            self.sampler = self._sampler(model, self.pairer.period)
+            try:
+                self.sampler.restore(state, model)
+                return
+            except CheckpointError as e:  # another period: as if there were no checkpoint
+                self.restore_refused = str(e)
+                log.warning("restored state dropped, estimation starts afresh with the "
+                            "configured model: %s", e)
+                self._model0 = before
+        self.sampler = self._sampler(self._model0, self.pairer.period)
 
     @property
     def period(self) -> float | None:
@@ -716,10 +751,21 @@ class FrameProcessor:
         return self.sampler.state()
 
     def restore(self, state: Mapping[str, Any], model: Model) -> None:
-        """:meth:`SampleProcessor.restore` (before the period is known: once it is)."""
+        """:meth:`SampleProcessor.restore`. Before the period is known, the state is
+        restored at the period it records (its estimates are published meanwhile), and
+        again once the period is measured; a state that ran at another period is then
+        dropped with a warning (:attr:`restore_refused`) and estimation starts afresh
+        with the model given before the restore, as without a checkpoint."""
         if self.pairer is None:
+            dt = state.get("dt")
+            placeholder = SampleProcessor(model, _PLACEHOLDER_DT if dt is None else dt,
+                                          self._settings0)
+            placeholder.restore(state, model)
+            before = self._restore[2] if self._restore is not None else self._model0
+            self._restore = (state, model, before)
             self._model0 = model
-            self._restore = (state, model)
+            self.sampler = placeholder
+            return
         self.sampler.restore(state, model)
 
     def samples(self, block: FrameBlock) -> Signals:

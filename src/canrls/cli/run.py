@@ -54,7 +54,7 @@ def _daemon_table(cfg: Any, args: argparse.Namespace) -> dict[str, Any]:
     for opt, key in (("checkpoint", "checkpoint"), ("record", "record")):
         v = getattr(args, opt, None)
         if v:
-            table[key] = str(Path(v).resolve())
+            table[key] = str(Path(v).absolute())  # not resolved: a link stays a link
     for opt, key in (("checkpoint_interval", "checkpoint_interval"),
                      ("publish_interval", "publish_interval")):
         v = getattr(args, opt, None)

@@ -144,7 +144,8 @@ class Daemon:
         self._est_cpu = 0.0
         # the estimator, from a checkpoint if there is one that fits
         proc = make_processor(cfg, protocol, model, self.settings)
-        self.dt = proc.pipeline.dt
+        #: the stated control period [s] (None: measured from the frames, not known yet)
+        self.dt = proc.period
         self._checkpoints = Checkpointer(cfg.checkpoint, model, self.settings, self.dt,
                                          cfg.checkpoint_interval)
         self._base: dict[str, int] = {}
