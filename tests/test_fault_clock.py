@@ -1,0 +1,154 @@
+"""Clock faults and reordering: time is monotonic inside, and faults are visible.
+
+Timestamps that step back (NTP, a merged log) or forward, gaps, absurd timestamps in a
+log and frames swapped with their neighbour: each is detected, counted and published,
+and none stops or biases the estimation (docs/protocol.md, ``RlsRejects``; the
+``ClockFault`` health bit)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from canrls.can.frameblock import FrameBlock
+from canrls.can.logs import LogReadStats, read_frames, write_candump
+from canrls.can.pairing import Pairer
+from canrls.can.period import estimate_period
+from canrls.can.protocol import FeedbackEncoder, Protocol
+from canrls.config import AppConfig
+from canrls.errors import LogFormatError
+from canrls.replay import fit_frames, fit_log, prepare
+from canrls.sim.faults import inject
+from canrls.sim.scenario import scenario, simulate
+
+EFFECTS = "inertia,viscous,coulomb"
+
+
+def _setup() -> tuple:
+    cfg = AppConfig()
+    cfg.model = {"effects": EFFECTS.split(","), "kt": 0.1}
+    return prepare(cfg)
+
+
+@pytest.fixture(scope="module")
+def sim() -> FrameBlock:
+    """8 s of the simulated drive at 1 kHz (clean frames)."""
+    return simulate(scenario("standard", effects=EFFECTS, seed=3, duration=8.0)).frames
+
+
+def _stepped(block: FrameBlock, at: float, by: float) -> FrameBlock:
+    """The frames with every timestamp from the share ``at`` of the log on moved by ``by``."""
+    t = block.t.copy()
+    t[int(at * len(t)):] += by
+    return dataclasses.replace(block, t=t)
+
+
+# --------------------------------------------------------------------------- log lines
+@pytest.mark.parametrize("stamp", ["inf", "-inf", "nan", "1e300", "99999999999.000000"])
+def test_absurd_timestamp_is_a_bad_line_naming_file_and_line(tmp_path: Path,
+                                                            stamp: str) -> None:
+    lines = [f"({1.0 + k * 1e-3:.6f}) can0 101#00112233" for k in range(6)]
+    lines.insert(3, f"({stamp}) can0 101#00112233")
+    path = tmp_path / "bad.log"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(LogFormatError, match=rf"bad\.log:4: .*timestamp"):
+        list(read_frames(path))
+    stats = LogReadStats()
+    got = FrameBlock.concat(read_frames(path, skip_bad_lines=True, stats=stats))
+    assert stats.bad_lines == 1
+    assert got.t.tolist() == [float(f"{1.0 + k * 1e-3:.6f}") for k in range(6)]
+
+
+def test_inf_line_in_a_log_does_not_stop_the_fit(tmp_path: Path, sim: FrameBlock) -> None:
+    """One ``(inf)`` line in the middle, skipped: every other frame is paired."""
+    path = tmp_path / "inf.log"
+    write_candump(path, [sim])
+    lines = path.read_text().splitlines(keepends=True)
+    half = len(lines) // 2
+    lines.insert(half, "(inf) can0 101#0011223344556677\n")
+    path.write_text("".join(lines))
+    with pytest.raises(LogFormatError, match=rf"inf\.log:{half + 1}:"):
+        fit_log(path, *_setup())
+    fit = fit_log(path, *_setup(), skip_bad_lines=True)
+    assert fit.pairing["samples"] == len(sim) // 2
+    assert fit.pairing["late"] == 0
+
+
+# --------------------------------------------------------------------------- steps
+def test_step_back_is_counted_and_estimation_resumes(tmp_path: Path, sim: FrameBlock) -> None:
+    """A 60 s step back in an 8 s log: before, every frame after it was late (half the
+    samples lost); now it is one counted step, and the samples continue."""
+    path = tmp_path / "step.log"
+    write_candump(path, [_stepped(sim, 0.5, -60.0)])
+    fit = fit_log(path, *_setup())
+    clean = fit_frames([sim], *_setup())
+    assert fit.pairing["step_back"] == 1
+    assert fit.pairing["late"] == 0 and fit.pairing["unpaired"] == 0
+    assert fit.pairing["samples"] == clean.pairing["samples"]
+    for a, b in zip(fit.parameters, clean.parameters, strict=True):
+        assert abs(a.value - b.value) < 2 * b.sigma, (a, b)
+
+
+def test_step_forward_is_a_step_not_lost_frames(sim: FrameBlock) -> None:
+    fit = fit_frames([_stepped(sim, 0.5, 60.0)], *_setup())
+    assert fit.pairing["step_forward"] == 1
+    assert fit.pairing["lost"] == 0 and fit.pairing["samples"] == len(sim) // 2
+
+
+def test_sample_times_stay_monotonic_across_steps() -> None:
+    """Steps back and forward, in blocks of any size: the pairer's sample times never go
+    back, and the same samples come out whatever the cuts."""
+    p = Protocol.load()
+    n = 400
+    k = np.arange(n, dtype=np.float64)
+    block = FeedbackEncoder(p, stagger=1e-4).encode(k * p.period, k / 100, k / 50, k / 10,
+                                                    k / 10)
+    block = _stepped(_stepped(block, 0.25, -5.0), 0.75, 3.0)
+    outs = []
+    for cuts in ([], [1, 7, 200, 201, 599, 600, 601]):
+        dec, pr = p.decoder(), Pairer(p)
+        bounds = list(zip([0, *cuts], [*cuts, len(block)], strict=True))
+        parts = [pr.push(dec.decode(block.take(slice(a, b)))) for a, b in bounds]
+        parts.append(pr.flush())
+        t = np.concatenate([s.t for s in parts])
+        cur = np.concatenate([s.current for s in parts])
+        assert np.all(np.diff(t) > 0)
+        assert pr.counts.clock == {"step_back": 1, "step_forward": 1, "gap": 0}
+        outs.append((t, cur))
+    assert np.array_equal(outs[0][0], outs[1][0]) and np.array_equal(outs[0][1], outs[1][1])
+    assert len(outs[0][0]) >= n - 4
+
+
+def test_gap_is_counted_with_its_lost_frames() -> None:
+    p = Protocol.load()
+    k = np.arange(100, dtype=np.float64)
+    k = k[(k < 40) | (k >= 50)]  # 10 periods silent
+    block = FeedbackEncoder(p, stagger=1e-4).encode(k * p.period, k / 100, k / 50, k / 10,
+                                                    k / 10)
+    dec, pr = Protocol.load(check_counter=False).decoder(), Pairer(p)
+    pr.push(dec.decode(block))
+    pr.flush()
+    c = pr.counts
+    assert c.clock == {"step_back": 0, "step_forward": 0, "gap": 1}
+    assert c.lost == 2 * 10 and c.samples == 90
+
+
+# --------------------------------------------------------------------------- period meter
+@pytest.mark.parametrize("by", [-60.0, -0.05, 30.0])
+@pytest.mark.parametrize("kind", ["jitter", "relayed"])
+def test_period_meter_ignores_a_clock_step(by: float, kind: str) -> None:
+    rng = np.random.default_rng(5)
+    p = 2e-3
+    t = 1.7e9 + p * np.arange(257)
+    if kind == "jitter":
+        t = t + rng.normal(0, 0.05 * p, len(t))
+    else:  # groups of 4 frames delivered together, 2 µs apart
+        i = np.arange(len(t))
+        t = t[np.minimum((i // 4) * 4 + 3, len(t) - 1)] + 2e-6 * (i % 4)
+    t[100:] += by
+    est = estimate_period({"DriveCurrent": t, "DriveSpeed": t + 1e-4})
+    assert est is not None
+    assert est.period == pytest.approx(p, rel=0.02)
