@@ -152,3 +152,46 @@ def test_period_meter_ignores_a_clock_step(by: float, kind: str) -> None:
     est = estimate_period({"DriveCurrent": t, "DriveSpeed": t + 1e-4})
     assert est is not None
     assert est.period == pytest.approx(p, rel=0.02)
+
+
+# --------------------------------------------------------------------------- reordering
+@pytest.mark.parametrize("block", [None, 37])
+def test_neighbour_swaps_do_not_bias_the_estimate(sim: FrameBlock, block: int | None) -> None:
+    """20 % of the frames swapped with their neighbour of the same ID (contents move, the
+    receive times stay): put back by their counters, inertia within 1 sigma of the clean
+    log; before, -1.2 % (-59 sigma) with half the samples lost. In blocks of 37 frames
+    (the daemon's blocks are whatever arrived) as in one."""
+    swapped, log = inject(sim, "reorder=0.2", seed=1)
+    assert log.reordered > 0.05 * len(sim)
+    blocks = [swapped] if block is None else [swapped.take(slice(k, k + block))
+                                              for k in range(0, len(swapped), block)]
+    fit = fit_frames(blocks, *_setup())
+    clean = fit_frames([sim], *_setup())
+    assert fit.rejected["stale"] == 0
+    assert fit.pairing["samples"] == clean.pairing["samples"]
+    for a, b in zip(fit.parameters, clean.parameters, strict=True):
+        assert abs(a.value - b.value) <= b.sigma, (a, b)
+
+
+def _counter_block(counters: list[int]) -> tuple[Protocol, FrameBlock]:
+    """DriveCurrent frames (only) with these alive counters, one per period."""
+    p = Protocol.load()
+    k = np.arange(16, dtype=np.float64)
+    b = FeedbackEncoder(p, stagger=1e-4).encode(k * p.period, k / 100, k / 50, k / 10, k / 10)
+    cur = b.take(b.arbitration_id == p.messages[0].frame_id)  # counters 0..15
+    out = cur.take(np.array(counters, np.intp))
+    return p, dataclasses.replace(out, t=cur.t[:len(counters)].copy())
+
+
+def test_reorderer_puts_swaps_back_and_leaves_losses_and_repeats() -> None:
+    from canrls.can.reorder import Reorderer
+
+    p, b = _counter_block([0, 1, 3, 2, 4, 6, 7, 7, 9, 12, 10, 11, 13])
+    r = Reorderer(p.messages)
+    out = FrameBlock.concat([r.push(b.take(slice(0, 3))), r.push(b.take(slice(3, None))),
+                             r.flush()])
+    c = p.messages[0].counter.extract(out.data).astype(int).tolist()
+    # 3,2 swapped back (across the cut); 5 lost; 7 repeated; 12 moved back by two
+    assert c == [0, 1, 2, 3, 4, 6, 7, 7, 9, 10, 11, 12, 13]
+    assert np.array_equal(out.t, b.t)  # the receive times stay where they were
+    assert r.moved == 1 + 2  # frames moved up: 2; 10 and 11

@@ -56,6 +56,7 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.pairing import Pairer, PairingCounts
 from canrls.can.period import MIN_INTERVALS, PeriodEstimate, PeriodMeter, check_period
 from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
+from canrls.can.reorder import Reorderer
 from canrls.errors import ConfigError
 from canrls.estimation.model import DATA_OPTIONS, Equation, Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline, PipelineBlock
@@ -604,6 +605,9 @@ class FrameProcessor:
         #: times of samples and results are relative to it)
         self.origin: float | None = None
         self.decoder = protocol.decoder()
+        #: puts frames swapped on the way back in counter order before the decoder
+        #: (:mod:`canrls.can.reorder`; ``reorder.moved`` counts them)
+        self.reorder = Reorderer(protocol.messages)
         self.frames = 0
         stated = period if period is not None else protocol.period
         #: who states the period (None: measured)
@@ -729,7 +733,11 @@ class FrameProcessor:
         if self.relative_time and self.origin:
             block = dataclasses.replace(block, t=block.t - self.origin)
         self.frames += len(block)
-        decoded = self.decoder.decode(block)
+        # frames swapped on the way put back in counter order, before the strict checks
+        return self._paired(self.decoder.decode(self.reorder.push(block)), block)
+
+    def _paired(self, decoded: DecodedFrames, block: FrameBlock) -> Signals:
+        """The period meter, then pairing, of one decoded ``block``."""
         if self._meter is not None:
             times = {name: decoded.messages[name].t for name in decoded.messages}
             self._meter.add(times)
@@ -759,6 +767,12 @@ class FrameProcessor:
     def flush_samples(self) -> Signals:
         """End of stream, no estimation: the period decided with what came (an error if
         it cannot be, or if none of the mapped messages came), and the samples still open."""
+        held = self.reorder.flush()  # a frame held for its neighbour in a next block
+        head = self._paired(self.decoder.decode(held), held) if len(held) else Signals.concat([])
+        rest = self._flush_samples()
+        return Signals.concat([head, rest]) if len(head) else rest
+
+    def _flush_samples(self) -> Signals:
         if self._meter is not None and self.frames:
             if not any(self._meter.counts().values()):
                 raise self._foreign_error()
