@@ -195,3 +195,72 @@ def test_reorderer_puts_swaps_back_and_leaves_losses_and_repeats() -> None:
     assert c == [0, 1, 2, 3, 4, 6, 7, 7, 9, 10, 11, 12, 13]
     assert np.array_equal(out.t, b.t)  # the receive times stay where they were
     assert r.moved == 1 + 2  # frames moved up: 2; 10 and 11
+
+
+# --------------------------------------------------------------------------- live
+def test_daemon_on_a_bus_with_a_clock_step_keeps_estimating_and_says_so(
+        sim: FrameBlock) -> None:
+    """The daemon on a virtual bus fed frames whose timestamps step back 60 s half-way:
+    every period still becomes a sample and updates the estimators (as the offline front
+    end on the same frames), ClockFault and RlsRejects.ClockSteps go out on the bus, and
+    the monitor shows them."""
+    import itertools
+    import os
+
+    import can
+
+    from canrls.can.frames import FrameDecoder
+    from canrls.live.daemon import Daemon, DaemonSettings
+    from canrls.live.monitor import Monitor
+    from canrls.processor import FrameProcessor
+
+    frames = _stepped(sim, 0.5, -60.0)
+    messages = frames.to_messages()
+    protocol, model, settings = _setup()
+    ch = f"test-fault-clock-{os.getpid()}-{next(itertools.count())}"
+    sender = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
+                     ignore_config=True)
+    tool = can.Bus(interface="virtual", channel=ch, ignore_config=True)
+    tool.set_filters([{"can_id": 0x300, "can_mask": 0x700}])  # the daemon's frames
+    reader = can.BufferedReader()
+    notifier = can.Notifier(tool, [reader], timeout=0.05)
+    d = Daemon(protocol, model, settings,
+               DaemonSettings(publish_interval=0.05, info_interval=0.2),
+               bus={"interface": "virtual", "channel": ch}, backpressure=True)
+    try:
+        d.start()
+        for m in messages:
+            sender.send(m)
+        assert d.wait_for(lambda x: x.stats().frames == len(messages), 120)
+        n = d.stats().publications
+        assert d.wait_for(lambda x: x.stats().publications >= n + 6, 20)
+        live_updates = d.processor.pipeline.update_counts()
+        live_samples = d.stats().samples
+        status = d.status()
+    finally:
+        d.stop()
+        notifier.stop()
+        sender.shutdown()
+        tool.shutdown()
+    offline = FrameProcessor(protocol, model, settings)
+    offline.process(frames)
+    assert live_samples == offline.pipeline.samples == len(sim) // 2
+    assert live_updates == offline.pipeline.update_counts()
+    clean = FrameProcessor(protocol, model, settings)
+    clean.process(sim)
+    # the step costs one warm-up of the filter, not the rest of the log
+    lost = clean.pipeline.update_counts()[0][0] - live_updates[0][0]
+    assert 0 < lost < 0.05 * clean.pipeline.update_counts()[0][0]
+    assert status.rejects["clock_steps"] == 1
+
+    dec, mon, flags = FrameDecoder(), Monitor(), []
+    while (m := reader.get_message(0.0)) is not None:
+        out = dec.feed(m)
+        mon.on_message_received(m)
+        if m.arbitration_id == 0x311 and out is not None:
+            flags.append(out.clock_fault)
+    assert any(flags) and not flags[-1]  # set after the step, cleared after RlsRejects
+    assert dec.status is not None and dec.status.rejects["clock_steps"] == 1
+    view = mon.snapshot()
+    assert view.to_dict()["rejects"]["clock_steps"] == 1
+    assert "clock steps 1" in view.format()

@@ -806,6 +806,17 @@ class FrameProcessor:
     def pairing(self) -> PairingCounts:
         return self.pairer.counts if self.pairer is not None else PairingCounts()
 
+    def reject_counts(self) -> dict[str, int]:
+        """Frames rejected or put back, by reason, and clock events, as ``RlsRejects``
+        carries them (:data:`canrls.can.frames.REJECT_FIELDS`; running totals)."""
+        r, c = self.rejected, self.pairing
+        return {"crc": r["crc"], "malformed": r["remote"] + r["length"],
+                "repeated": r["repeated"], "stale": r["stale"], "range": r["range"] + r["nan"],
+                "unpaired": c.unpaired + c.late + c.duplicated,
+                "reordered": self.reorder.moved,
+                "clock_steps": c.clock["step_back"] + c.clock["step_forward"],
+                "gaps": c.clock["gap"]}
+
     def period_info(self) -> dict[str, Any]:
         """The period used, who stated it and what the frames measured (text and JSON)."""
         est = self.period_estimate
