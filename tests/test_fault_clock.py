@@ -264,3 +264,20 @@ def test_daemon_on_a_bus_with_a_clock_step_keeps_estimating_and_says_so(
     view = mon.snapshot()
     assert view.to_dict()["rejects"]["clock_steps"] == 1
     assert "clock steps 1" in view.format()
+
+
+def test_a_frame_without_a_time_is_dropped_and_pairing_goes_on() -> None:
+    """A non-finite timestamp (a FrameBlock built by hand, a reader without the log
+    check): before, one +inf frame made every later frame late."""
+    p = Protocol.load(check_counter=False)
+    k = np.arange(40, dtype=np.float64)
+    block = FeedbackEncoder(p, stagger=1e-4).encode(k * p.period, k / 100, k / 50, k / 10,
+                                                    k / 10)
+    t = block.t.copy()
+    t[21] = np.inf
+    t[31] = np.nan
+    dec, pr = p.decoder(), Pairer(p)
+    pr.push(dec.decode(dataclasses.replace(block, t=t)))
+    pr.flush()
+    c = pr.counts
+    assert c.samples == 38 and c.late == 2 and c.clock["step_forward"] == 0

@@ -708,6 +708,10 @@ NOINLINE static int64_t pair_frames(const int64_t *restrict msg, const double *r
     for (int64_t f = 0; f < n + (flush ? 1 : 0); f++) {
         if (f < n) {
             int64_t m = msg[f];
+            if (!isfinite(t[f])) {
+                counts[4 * n_msg + m] += 1; /* no time: dropped as late */
+                continue;
+            }
             double tf = t[f] + sf[4];
             int64_t cf = cnt[f];
             double newest = sf[0];

@@ -39,7 +39,7 @@ message of that period is present. The rules:
   across a step no whole periods are counted ``lost``. Each is counted
   (:data:`CLOCK_KINDS`, :attr:`PairingCounts.clock`) and published (``RlsRejects``,
   the ``ClockFault`` health bit). Frames between ``hold`` and ``back`` late stay
-  ``late``.
+  ``late``, and so does a frame without a time (a non-finite timestamp: dropped).
 
 The pairer is chunk-invariant: frames are processed one at a time in stream order
 (``MessageFrames.index``) with state carried across :meth:`Pairer.push` calls, so

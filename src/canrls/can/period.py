@@ -108,6 +108,7 @@ def _one(t: F64) -> tuple[float, float] | None:
     no span. The pieces between clock steps (:func:`_segments`) are measured together:
     their intervals pooled, their spans summed, the slope fitted within each."""
     t = np.asarray(t, np.float64)
+    t = t[np.isfinite(t)]  # a frame without a time says nothing of the period
     if len(t) < MIN_INTERVALS + 1:
         return None
     parts = [piece for piece in _segments(t) if len(piece) >= 2]
