@@ -29,6 +29,7 @@ timestamps within its wait (:mod:`canrls.can.pairing`), whatever their order.
 
 from __future__ import annotations
 
+import heapq
 from collections.abc import Sequence
 
 import numpy as np
@@ -99,30 +100,42 @@ class Reorderer:
                                      ("t", "arbitration_id", "is_extended", "is_remote",
                                       "is_error", "dlc", "data")))
                 copied = True
-            c = c.copy()
-            cur = int(prev[0])
+            src = list(range(len(c)))  # row k takes the contents of row src[k]
+            c = c.tolist()
             n = len(c)
+            first = int(prev[0])
             held_from = n
-            for i in range(n):
-                gap = (int(c[i]) - cur) % mod
-                if 2 <= gap <= 1 + self.window:
-                    want = (cur + 1) % mod
-                    ahead = [j for j in range(i + 1, min(n, i + 1 + self.window))
-                             if int(c[j]) == want]
-                    if ahead:
-                        j = ahead[0]
-                        # rotate the contents of rows i..j: j's up to i, the others down
-                        src = rows[[j, *range(i, j)]]
-                        dst = rows[i:j + 1]
-                        for f in _CONTENT:
-                            a = getattr(block, f)
-                            a[dst] = a[src]
-                        c[i:j + 1] = c[[j, *range(i, j)]]
-                        self.moved += 1
-                    elif i == n - 1:
-                        held_from = i  # its neighbour may be the next block's first
-                        break
-                cur = int(c[i])
+            # only the rows out of sequence are looked at, in order (a heap: a rotation
+            # puts the rows after it up for a look again); row i's predecessor is c[i-1]
+            todo = np.flatnonzero(d != 1).tolist()
+            heapq.heapify(todo)
+            seen = -1
+            while todo:
+                i = heapq.heappop(todo)
+                if i <= seen:
+                    continue
+                seen = i
+                cur = first if i == 0 else c[i - 1]
+                gap = (c[i] - cur) % mod
+                if not 2 <= gap <= 1 + self.window:
+                    continue
+                want = (cur + 1) % mod
+                ahead = [j for j in range(i + 1, min(n, i + 1 + self.window)) if c[j] == want]
+                if ahead:
+                    j = ahead[0]
+                    # rotate the contents of rows i..j: j's up to i, the others down
+                    src[i:j + 1] = [src[j], *src[i:j]]
+                    c[i:j + 1] = [c[j], *c[i:j]]
+                    self.moved += 1
+                    for k in range(i + 1, min(n, j + 2)):
+                        heapq.heappush(todo, k)
+                elif i == n - 1:
+                    held_from = i  # its neighbour may be the next block's first
+            cur = c[held_from - 1] if held_from > 0 else first
+            take = rows[np.asarray(src, np.intp)]
+            for f in _CONTENT:
+                a = getattr(block, f)
+                a[rows] = a[take]
             if held_from < n:
                 hold[rows[held_from:]] = True
             self._last[m.name] = cur  # type: ignore[attr-defined]
