@@ -257,6 +257,10 @@ fail:
 
 enum { STATUS_OK = 0, STATUS_REPEATED = 1, STATUS_STALE = 2 };
 
+/* longest time [s] between two accepted frames from which whole counter wraps are
+ * inferred (canrls.can.pairing.FORWARD_STEP: a longer jump is a clock step) */
+#define COUNTER_MAX_DT 1.0
+
 typedef struct {
     int64_t last, run, prev_stale;
     double last_t;
@@ -276,7 +280,9 @@ static INLINE int counter_step(int64_t c, double t, int64_t mod, int64_t window,
     }
     int64_t d = pymod(c - s->last, mod);
     double dt = t - s->last_t;
-    int timed = period > 0.0 && isfinite(dt);
+    /* the time tells wraps only up to a clock step: a jump beyond COUNTER_MAX_DT is one
+     * (canrls.can.pairing.FORWARD_STEP), not thousands of frames lost */
+    int timed = period > 0.0 && isfinite(dt) && dt <= COUNTER_MAX_DT;
     if (d == 0 && !(timed && dt >= ((double)mod - 0.5) * period))
         return STATUS_REPEATED;
     if (d == 0)
