@@ -138,7 +138,8 @@ def _push_kernel(index: tuple[I64, ...], t: tuple[F64, ...], cnt: tuple[I64, ...
     (``index``, ``t``, ``cnt``: one array per message; ``vals``: one array per role, of
     the role's message) merged into stream order (a stable sort by ``index`` when a
     message's frames are out of order), then processed one at a time (``times`` =
-    [tolerance, wait, period, back, step, gap]: the bounds of the module docstring). Counters are ignored (-1) unless ``use_counters``.
+    [tolerance, wait, period, back, step, gap]: the bounds of the module docstring).
+    Counters are ignored (-1) unless ``use_counters``.
     ``iwork`` (4, C), ``fwork`` (3, C) and ``vwork`` (3, C, R) are scratch space for C >=
     frames + open-period capacity. Returns the completed samples as rows [t, role
     values...].

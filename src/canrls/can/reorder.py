@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import heapq
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -54,10 +55,10 @@ class Reorderer:
     window : :data:`REORDER_WINDOW` (0: pass everything on as it comes).
     """
 
-    def __init__(self, messages: Sequence[object], window: int = REORDER_WINDOW) -> None:
+    def __init__(self, messages: Sequence[Any], window: int = REORDER_WINDOW) -> None:
         self.window = int(window)
         self._msgs = [m for m in messages if getattr(m, "counter", None) is not None]
-        self._last: dict[str, int | None] = {m.name: None for m in self._msgs}  # type: ignore[attr-defined]
+        self._last: dict[str, int | None] = {m.name: None for m in self._msgs}
         self._held: FrameBlock | None = None
         #: frames moved up to their place (a neighbour swap counts one; running total)
         self.moved = 0
@@ -78,22 +79,22 @@ class Reorderer:
         hold = np.zeros(len(block), np.bool_)
         copied = False
         for m in self._msgs:
-            rows = np.flatnonzero((block.arbitration_id == m.frame_id)  # type: ignore[attr-defined]
-                                  & (block.is_extended == m.is_extended)  # type: ignore[attr-defined]
+            rows = np.flatnonzero((block.arbitration_id == m.frame_id)
+                                  & (block.is_extended == m.is_extended)
                                   & ~block.is_error & ~block.is_remote
-                                  & (block.dlc == m.length))  # type: ignore[attr-defined]
+                                  & (block.dlc == m.length))
             if not len(rows):
                 continue
-            codec = m.counter  # type: ignore[attr-defined]
+            codec = m.counter
             mod = 1 << codec.length
             c = codec.extract(block.data[rows]).astype(np.int64)
-            last = self._last[m.name]  # type: ignore[attr-defined]
+            last = self._last[m.name]
             prev = np.empty(len(c), np.int64)
             prev[0] = c[0] - 1 if last is None else last
             prev[1:] = c[:-1]
             d = (c - prev) % mod
             if np.all(d == 1):  # the common case: in order
-                self._last[m.name] = int(c[-1])  # type: ignore[attr-defined]
+                self._last[m.name] = int(c[-1])
                 continue
             if not copied:
                 block = FrameBlock(*(getattr(block, f).copy() for f in
@@ -138,7 +139,7 @@ class Reorderer:
                 a[rows] = a[take]
             if held_from < n:
                 hold[rows[held_from:]] = True
-            self._last[m.name] = cur  # type: ignore[attr-defined]
+            self._last[m.name] = cur
         if hold.any():
             self._held = block.take(hold)
             block = block.take(~hold)

@@ -3,8 +3,8 @@
 Every ``publish_interval`` (0: after every block): ``RlsEstimate``/``RlsSigma``/
 ``RlsReference`` (every parameter: fixed point, sigma, float), then ``RlsStatus`` and
 ``RlsHealth``; every ``info_interval`` (and at once after a model change) also
-``RlsParamInfo``, ``RlsCounters`` and ``RlsRejects``. Everything comes from the public results of the
-pipeline (:meth:`~canrls.estimation.pipeline.Pipeline.estimates`) and of each block
+``RlsParamInfo``, ``RlsCounters`` and ``RlsRejects``. Everything comes from the public
+results of the pipeline (:meth:`~canrls.estimation.pipeline.Pipeline.estimates`) and of each block
 (:class:`~canrls.estimation.pipeline.PipelineBlock`); the frames go out through
 :meth:`canrls.live.bus.BusLink.send`, which never blocks.
 """
