@@ -18,6 +18,8 @@ from hypothesis import strategies as st
 from canrls.can.frames import (
     COMPONENTS,
     FLAG_NAMES,
+    REJECT_FIELDS,
+    REJECT_WRAP,
     Command,
     CommandAck,
     CommandCode,
@@ -143,13 +145,16 @@ def test_invalid_estimates() -> None:
     residual_rms=st.floats(0, 2.0**100, width=32), update_count=st.integers(0, 2**40),
     windup=st.booleans(), low_excitation=st.booleans(), saturation=st.booleans(),
     frame_loss=st.booleans(), frozen=st.booleans(), diverged=st.booleans(),
-    bus_fault=st.booleans(), active_effects=st.integers(0, 511),
+    bus_fault=st.booleans(), clock_fault=st.booleans(), active_effects=st.integers(0, 511),
     divergence=st.floats(0, 2.0**20, width=32), frames_rejected=st.integers(0, 10**6),
     frames_lost=st.integers(0, 10**6), saturations=st.integers(0, 10**6),
-    tx_dropped=st.integers(0, 10**6)), st.integers(0, 1000))
+    tx_dropped=st.integers(0, 10**6),
+    rejects=st.fixed_dictionaries({k: st.integers(0, 10**6) for k in REJECT_FIELDS})),
+    st.integers(0, 1000))
 def test_status_round_trip(status: StatusReport, counter: int) -> None:
     msgs = encode_status(status, counter)
-    assert [m.arbitration_id for m in msgs] == [IDS.status, IDS.health, IDS.counters]
+    assert [m.arbitration_id for m in msgs] == [IDS.status, IDS.health, IDS.counters,
+                                                IDS.rejects]
     db = cantools.database.load_file(str(REPO_DBC))
     for m in msgs:
         db.decode_message(m.arbitration_id, m.data)
@@ -162,6 +167,7 @@ def test_status_round_trip(status: StatusReport, counter: int) -> None:
         assert getattr(s, k) == getattr(status, k) % 65536
     for k in FLAG_NAMES:
         assert getattr(s, k) == getattr(status, k)
+    assert s.rejects == {k: v % REJECT_WRAP[k] for k, v in status.rejects.items()}
     assert s.active_effects == status.active_effects
     assert s.residual_rms == status.residual_rms and s.divergence == status.divergence
 
@@ -322,7 +328,7 @@ def first_refused(msg: Any, values: dict[str, Any]) -> Any:
 
 
 def test_every_shipped_message_takes_the_fast_path() -> None:
-    assert len(MESSAGES) == 11
+    assert len(MESSAGES) == 12
     assert all(_codec(None, name).fast for name in MESSAGES)
 
 
@@ -451,10 +457,12 @@ def test_saturated_and_nan_estimates_on_the_wire() -> None:
     StatusReport, residual_rms=ESTIMATES.filter(lambda x: x is not None),
     update_count=st.integers(0, 2**70), windup=st.booleans(), low_excitation=st.booleans(),
     saturation=st.booleans(), frame_loss=st.booleans(), frozen=st.booleans(),
-    diverged=st.booleans(), bus_fault=st.booleans(), active_effects=st.integers(0, 2**20),
+    diverged=st.booleans(), bus_fault=st.booleans(), clock_fault=st.booleans(),
+    active_effects=st.integers(0, 2**20),
     divergence=ESTIMATES.filter(lambda x: x is not None),
     frames_rejected=st.integers(0, 2**40), frames_lost=st.integers(0, 2**40),
-    saturations=st.integers(0, 2**40), tx_dropped=st.integers(0, 2**40)),
+    saturations=st.integers(0, 2**40), tx_dropped=st.integers(0, 2**40),
+    rejects=st.fixed_dictionaries({k: st.integers(0, 2**40) for k in REJECT_FIELDS})),
     st.integers(0, 10**6))
 def test_status_frames_are_cantools_bytes(db, status: StatusReport, counter: int) -> None:
     def f32(x: float) -> float:
@@ -462,8 +470,8 @@ def test_status_frames_are_cantools_bytes(db, status: StatusReport, counter: int
 
     s = status
     health = {sig: int(getattr(s, f)) for f, sig in zip(FLAG_NAMES, (
-        "Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen", "Diverged", "BusFault"),
-        strict=True)}
+        "Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen", "Diverged", "BusFault",
+        "ClockFault"), strict=True)}
     want = [("RlsStatus", {"ResidualRms": f32(s.residual_rms),
                            "UpdateCount": s.update_count % 2**32}),
             ("RlsHealth", {**health, "Counter": counter % 16,
@@ -472,7 +480,10 @@ def test_status_frames_are_cantools_bytes(db, status: StatusReport, counter: int
             ("RlsCounters", {"FramesRejected": s.frames_rejected % 2**16,
                              "FramesLost": s.frames_lost % 2**16,
                              "Saturations": s.saturations % 2**16,
-                             "TxDropped": s.tx_dropped % 2**16})]
+                             "TxDropped": s.tx_dropped % 2**16}),
+            ("RlsRejects", {sig: s.rejects[k] % REJECT_WRAP[k] for k, sig in zip(
+                REJECT_FIELDS, ("Crc", "Malformed", "Repeated", "Stale", "Range", "Unpaired",
+                                "Reordered", "ClockSteps", "Gaps"), strict=True)})]
     got = encode_status(status, counter)
     assert [bytes(m.data) for m in got] == [
         bytes(db.get_message_by_name(n).encode(v, scaling=True, strict=True)) for n, v in want]

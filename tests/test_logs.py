@@ -165,7 +165,7 @@ def test_candump_odd_but_valid_lines_follow_python_can(tmp_path: Path) -> None:
     path.write_bytes(
         b"(1700000000.123456) can0 101#0a0b\r\n"       # CRLF, lower-case hex
         b"(1.1111111111111111111111111) can0 101#\n"    # more digits than a double holds
-        b"(123456789012345678.5) can0 1FFFFFFF#01\n"    # beyond 2**53
+        b"(1234567890.1234567891) can0 1FFFFFFF#01\n"  # digits beyond 2**53
         b"(7) vcan1 7FF#0102030405060708\n"             # no fraction
         b"(.5) can0 123#11\n"                           # no integer part
         b"(2.5) can0 12345678##0001122334455667788990011\n"  # CAN FD, 12 bytes

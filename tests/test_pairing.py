@@ -70,7 +70,8 @@ def test_clean_stream_pairs_every_period() -> None:
     # timestamp = the later partner (DriveSpeed, sent 0.1 ms after DriveCurrent)
     assert np.allclose(s.t, np.arange(20) * 1e-3 + 1e-4)
     assert pr.counts.as_dict() == {"samples": 20, "unpaired": 0, "lost": 0, "duplicated": 0,
-                                   "reordered": 0, "late": 0}
+                                   "reordered": 0, "late": 0,
+                                   "step_back": 0, "step_forward": 0, "gap": 0}
     assert pr.pending == 0
 
 

@@ -57,6 +57,7 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.pairing import Pairer, PairingCounts
 from canrls.can.period import MIN_INTERVALS, PeriodEstimate, PeriodMeter, check_period
 from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
+from canrls.can.reorder import Reorderer
 from canrls.errors import CheckpointError, ConfigError
 from canrls.estimation.model import DATA_OPTIONS, Equation, Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline, PipelineBlock
@@ -625,6 +626,9 @@ class FrameProcessor:
         #: times of samples and results are relative to it)
         self.origin: float | None = None
         self.decoder = protocol.decoder()
+        #: puts frames swapped on the way back in counter order before the decoder
+        #: (:mod:`canrls.can.reorder`; ``reorder.moved`` counts them)
+        self.reorder = Reorderer(protocol.messages)
         self.frames = 0
         stated = period if period is not None else protocol.period
         #: who states the period (None: measured)
@@ -775,7 +779,11 @@ class FrameProcessor:
         if self.relative_time and self.origin:
             block = dataclasses.replace(block, t=block.t - self.origin)
         self.frames += len(block)
-        decoded = self.decoder.decode(block)
+        # frames swapped on the way put back in counter order, before the strict checks
+        return self._paired(self.decoder.decode(self.reorder.push(block)), block)
+
+    def _paired(self, decoded: DecodedFrames, block: FrameBlock) -> Signals:
+        """The period meter, then pairing, of one decoded ``block``."""
         if self._meter is not None:
             times = {name: decoded.messages[name].t for name in decoded.messages}
             self._meter.add(times)
@@ -805,6 +813,12 @@ class FrameProcessor:
     def flush_samples(self) -> Signals:
         """End of stream, no estimation: the period decided with what came (an error if
         it cannot be, or if none of the mapped messages came), and the samples still open."""
+        held = self.reorder.flush()  # a frame held for its neighbour in a next block
+        head = self._paired(self.decoder.decode(held), held) if len(held) else Signals.concat([])
+        rest = self._flush_samples()
+        return Signals.concat([head, rest]) if len(head) else rest
+
+    def _flush_samples(self) -> Signals:
         if self._meter is not None and self.frames:
             if not any(self._meter.counts().values()):
                 raise self._foreign_error()
@@ -837,6 +851,17 @@ class FrameProcessor:
     @property
     def pairing(self) -> PairingCounts:
         return self.pairer.counts if self.pairer is not None else PairingCounts()
+
+    def reject_counts(self) -> dict[str, int]:
+        """Frames rejected or put back, by reason, and clock events, as ``RlsRejects``
+        carries them (:data:`canrls.can.frames.REJECT_FIELDS`; running totals)."""
+        r, c = self.rejected, self.pairing
+        return {"crc": r["crc"], "malformed": r["remote"] + r["length"],
+                "repeated": r["repeated"], "stale": r["stale"], "range": r["range"] + r["nan"],
+                "unpaired": c.unpaired + c.late + c.duplicated,
+                "reordered": self.reorder.moved,
+                "clock_steps": c.clock["step_back"] + c.clock["step_forward"],
+                "gaps": c.clock["gap"]}
 
     def period_info(self) -> dict[str, Any]:
         """The period used, who stated it and what the frames measured (text and JSON)."""

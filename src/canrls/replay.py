@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, read_frames
 from canrls.can.pairing import Pairer
+from canrls.can.reorder import Reorderer
 from canrls.can.protocol import Protocol
 from canrls.errors import ConfigError, EstimatorError, LogFormatError
 from canrls.estimation.model import Model
@@ -192,6 +193,7 @@ class LogFiles:
                 self._counts.append(self._file_counts())
                 proc = self.proc
                 proc.decoder = proc.protocol.decoder()
+                proc.reorder = Reorderer(proc.protocol.messages)
                 if proc.pairer is not None:
                     proc.pairer = Pairer(proc.protocol, period=proc.pairer.period)
             frames = self.proc.frames

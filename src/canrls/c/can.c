@@ -257,6 +257,10 @@ fail:
 
 enum { STATUS_OK = 0, STATUS_REPEATED = 1, STATUS_STALE = 2 };
 
+/* longest time [s] between two accepted frames from which whole counter wraps are
+ * inferred (canrls.can.pairing.FORWARD_STEP: a longer jump is a clock step) */
+#define COUNTER_MAX_DT 1.0
+
 typedef struct {
     int64_t last, run, prev_stale;
     double last_t;
@@ -276,7 +280,9 @@ static INLINE int counter_step(int64_t c, double t, int64_t mod, int64_t window,
     }
     int64_t d = pymod(c - s->last, mod);
     double dt = t - s->last_t;
-    int timed = period > 0.0 && isfinite(dt);
+    /* the time tells wraps only up to a clock step: a jump beyond COUNTER_MAX_DT is one
+     * (canrls.can.pairing.FORWARD_STEP), not thousands of frames lost */
+    int timed = period > 0.0 && isfinite(dt) && dt <= COUNTER_MAX_DT;
     if (d == 0 && !(timed && dt >= ((double)mod - 0.5) * period))
         return STATUS_REPEATED;
     if (d == 0)
@@ -611,21 +617,94 @@ fail:
 #define GI(g, c) gi[3 * (g) + (c)]
 #define GF(g, c) gf[gcols * (g) + (c)]
 
+/* kinds of clock fault (rows of ``clock``, canrls.can.pairing.CLOCK_KINDS) */
+enum { CLOCK_STEP_BACK, CLOCK_STEP_FORWARD, CLOCK_GAP, CLOCK_KINDS };
+
+/* Finalise the open period in slot g: emit it when complete, else count its frames as
+ * unpaired and its missing ones as lost; whole periods missing since the last finalised
+ * period count as lost (unless the time base was re-anchored since: sf[3] = 0). The
+ * last open slot moves into slot g (the slots stay compact). */
+static INLINE void finalise(int64_t g, double *restrict gf, int64_t gcols,
+                            int64_t *restrict gi, int64_t *restrict open, int64_t n_msg,
+                            int64_t n_roles, int64_t full, double period, double *restrict sf,
+                            int64_t *restrict si, int64_t *restrict counts,
+                            double *restrict out_t, double *restrict out_v,
+                            int64_t *restrict n_out)
+{
+    int complete = GI(g, 2) == full;
+    if (sf[3] > 0 && period > 0.0) {
+        /* gap = floor((t_min - t_min of the last period) / period + 0.5) - 1 whole
+         * periods missing, when gap > 0 (y >= 2) */
+        double y = (GF(g, 0) - sf[1]) / period + 0.5;
+        if (y >= 2.0) {
+            int64_t gap = (int64_t)floor(y) - 1;
+            for (int64_t k = 0; k < n_msg; k++)
+                counts[1 * n_msg + k] += gap;
+        }
+    }
+    if (complete) {
+        out_t[*n_out] = GF(g, 1);
+        for (int64_t r = 0; r < n_roles; r++)
+            out_v[*n_out * n_roles + r] = GF(g, 2 + r);
+        *n_out += 1;
+    } else {
+        for (int64_t k = 0; k < n_msg; k++) {
+            if (GI(g, 2) & ((int64_t)1 << k))
+                counts[0 * n_msg + k] += 1;
+            else
+                counts[1 * n_msg + k] += 1;
+        }
+    }
+    sf[1] = GF(g, 0);
+    sf[2] = GF(g, 1);
+    sf[3] = 1.0;
+    for (int64_t k = 0; k < n_msg; k++)
+        si[k] = ((GI(g, 2) >> k) & 1) ? GI(g, 1) : -2;
+    int64_t last = *open - 1; /* keep the open slots compact: move the last one here */
+    if (g != last) {
+        for (int64_t c = 0; c < gcols; c++)
+            GF(g, c) = GF(last, c);
+        for (int64_t c = 0; c < 3; c++)
+            GI(g, c) = GI(last, c);
+    }
+    *open = last;
+}
+
+/* The open slot with the oldest period (-1: none open). */
+static INLINE int64_t oldest_open(const double *restrict gf, int64_t gcols, int64_t n_open)
+{
+    int64_t oldest = -1;
+    for (int64_t g = 0; g < n_open; g++)
+        if (oldest < 0 || GF(g, 0) < GF(oldest, 0))
+            oldest = g;
+    return oldest;
+}
+
 /* Process frames one at a time; return the number of samples written to out_*.
  * See canrls.can.pairing (the module docstring and Pairer) for the rules and the state:
  * open periods are the slots 0 .. gi[0]-1 (kept compact): gi row 1 + g = [unused,
  * counter (-1: none), mask of messages present]; gf row g = [t_min, t_max, values of the
  * roles...]; sf = [newest frame time, t_min and t_max of the last finalised period,
- * whether there is one]; si = per message: -2 if absent from that period, else its
- * counter (-1: none); counts[kind, message]. */
+ * whether there is one, offset of the time base]; si = per message: -2 if absent from
+ * that period, else its counter (-1: none); counts[kind, message]; clock[kind].
+ *
+ * Time base: a frame's time is its timestamp + sf[4]. A frame more than ``back`` before
+ * the newest is a clock step back: the open periods are finalised, and sf[4] re-anchored
+ * so that the frame lies ``back`` after the newest (time stays monotonic, and the gap
+ * restarts the filter downstream). A frame more than ``fwd`` after the newest is a clock
+ * step forward (or a silence as long), more than ``gap`` a gap: open periods are
+ * finalised; after a step no whole periods are counted lost across it. */
 NOINLINE static int64_t pair_frames(const int64_t *restrict msg, const double *restrict t,
                            const int64_t *restrict cnt, const double *restrict vals,
                            const int64_t *restrict role_msg, int64_t n_roles, int64_t n_msg,
-                           double tol, double wait, double period, int flush, int64_t n,
+                           const double *restrict times, int flush, int64_t n,
                            double *restrict gf, int64_t G, int64_t *restrict gi_all,
                            double *restrict sf, int64_t *restrict si, int64_t *restrict counts,
-                           double *restrict out_t, double *restrict out_v)
+                           int64_t *restrict clock, double *restrict out_t,
+                           double *restrict out_v)
 {
+    const double tol = times[0], wait = times[1], period = times[2];
+    const double back = times[3], fwd = times[4], gapb = times[5];
     const int64_t gcols = 2 + n_roles;
     const int64_t full = ((int64_t)1 << n_msg) - 1;
     int64_t n_out = 0;
@@ -635,9 +714,34 @@ NOINLINE static int64_t pair_frames(const int64_t *restrict msg, const double *r
     for (int64_t f = 0; f < n + (flush ? 1 : 0); f++) {
         if (f < n) {
             int64_t m = msg[f];
-            double tf = t[f];
+            if (!isfinite(t[f])) {
+                counts[4 * n_msg + m] += 1; /* no time: dropped as late */
+                continue;
+            }
+            double tf = t[f] + sf[4];
             int64_t cf = cnt[f];
             double newest = sf[0];
+            /* --- clock steps and gaps (none before the first frame: newest = -inf) */
+            if (isfinite(newest) && (tf < newest - back || tf > newest + gapb)) {
+                int step_back = tf < newest - back;
+                if (step_back) {
+                    clock[CLOCK_STEP_BACK] += 1;
+                    /* re-anchor: tf' = newest + back */
+                    sf[4] = newest + back - t[f];
+                    tf = t[f] + sf[4];
+                } else {
+                    clock[tf > newest + fwd ? CLOCK_STEP_FORWARD : CLOCK_GAP] += 1;
+                }
+                /* the open periods cannot complete across the step: finalise them */
+                int64_t g;
+                while ((g = oldest_open(gf, gcols, *open)) >= 0)
+                    finalise(g, gf, gcols, gi, open, n_msg, n_roles, full, period, sf, si,
+                             counts, out_t, out_v, &n_out);
+                if (step_back || tf > newest + fwd)
+                    sf[3] = 0.0; /* no periods counted lost across a step */
+                sf[0] = tf;
+                newest = tf;
+            }
             /* --- find the open period this frame belongs to (closest in time) */
             int64_t best = -1;
             double best_d = INFINITY;
@@ -699,54 +803,16 @@ NOINLINE static int64_t pair_frames(const int64_t *restrict msg, const double *r
         }
         /* --- finalise periods in time order */
         for (;;) {
-            int64_t oldest = -1;
             int64_t n_open = *open;
-            for (int64_t g = 0; g < n_open; g++)
-                if (oldest < 0 || GF(g, 0) < GF(oldest, 0))
-                    oldest = g;
-            if (oldest < 0)
+            int64_t g = oldest_open(gf, gcols, n_open);
+            if (g < 0)
                 break;
-            int64_t g = oldest;
             int complete = GI(g, 2) == full;
             int expired = sf[0] - GF(g, 0) > wait;
             if (!(complete || expired || f >= n || n_open >= G))
                 break;
-            if (sf[3] > 0 && period > 0.0) {
-                /* gap = floor((t_min - t_min of the last period) / period + 0.5) - 1 whole
-                 * periods missing, when gap > 0 (y >= 2) */
-                double y = (GF(g, 0) - sf[1]) / period + 0.5;
-                if (y >= 2.0) {
-                    int64_t gap = (int64_t)floor(y) - 1;
-                    for (int64_t k = 0; k < n_msg; k++)
-                        counts[1 * n_msg + k] += gap;
-                }
-            }
-            if (complete) {
-                out_t[n_out] = GF(g, 1);
-                for (int64_t r = 0; r < n_roles; r++)
-                    out_v[n_out * n_roles + r] = GF(g, 2 + r);
-                n_out++;
-            } else {
-                for (int64_t k = 0; k < n_msg; k++) {
-                    if (GI(g, 2) & ((int64_t)1 << k))
-                        counts[0 * n_msg + k] += 1;
-                    else
-                        counts[1 * n_msg + k] += 1;
-                }
-            }
-            sf[1] = GF(g, 0);
-            sf[2] = GF(g, 1);
-            sf[3] = 1.0;
-            for (int64_t k = 0; k < n_msg; k++)
-                si[k] = ((GI(g, 2) >> k) & 1) ? GI(g, 1) : -2;
-            int64_t last = n_open - 1; /* keep the open slots compact: move the last one here */
-            if (g != last) {
-                for (int64_t c = 0; c < gcols; c++)
-                    GF(g, c) = GF(last, c);
-                for (int64_t c = 0; c < 3; c++)
-                    GI(g, c) = GI(last, c);
-            }
-            *open = last;
+            finalise(g, gf, gcols, gi, open, n_msg, n_roles, full, period, sf, si, counts,
+                     out_t, out_v, &n_out);
         }
     }
     gi_all[0] = open_slots;
@@ -814,8 +880,8 @@ static void stable_order(const int64_t *key, int64_t n, int64_t *order, int64_t 
 }
 
 /* push(index, t, cnt, vals (tuples: one array per message, vals one per role),
- *      use_counters, role_msg (R,), times [tolerance, wait, period], flush,
- *      gf (G, 2 + R), gi (G + 1, 3), sf (4,), si (K,), counts (5, K),
+ *      use_counters, role_msg (R,), times [tolerance, wait, period, back, fwd, gap], flush,
+ *      gf (G, 2 + R), gi (G + 1, 3), sf (5,), si (K,), counts (5, K), clock (3,),
  *      iwork (4, C) int64, fwork (3, C), vwork (3, C, R)) -> samples
  * The frames of one push in stream order (merge, else a stable sort by index), through
  * the pairing; the samples are in fwork[2, :samples] (times) and vwork[2, :samples]. */
@@ -823,11 +889,11 @@ static PyObject *py_push(PyObject *self, PyObject *args)
 {
     (void)self;
     PyObject *o_index, *o_t, *o_cnt, *o_vals, *o_role, *o_times, *o_gf, *o_gi, *o_sf, *o_si,
-        *o_counts, *o_iwork, *o_fwork, *o_vwork;
+        *o_counts, *o_clock, *o_iwork, *o_fwork, *o_vwork;
     int use_counters, flush;
-    if (!PyArg_ParseTuple(args, "O!O!O!O!pOOpOOOOOOOO", &PyTuple_Type, &o_index, &PyTuple_Type,
+    if (!PyArg_ParseTuple(args, "O!O!O!O!pOOpOOOOOOOOO", &PyTuple_Type, &o_index, &PyTuple_Type,
                           &o_t, &PyTuple_Type, &o_cnt, &PyTuple_Type, &o_vals, &use_counters,
-                          &o_role, &o_times, &flush, &o_gf, &o_gi, &o_sf, &o_si, &o_counts,
+                          &o_role, &o_times, &flush, &o_gf, &o_gi, &o_sf, &o_si, &o_counts, &o_clock,
                           &o_iwork, &o_fwork, &o_vwork))
         return NULL;
     Py_ssize_t K = PyTuple_GET_SIZE(o_index), R = PyTuple_GET_SIZE(o_vals);
@@ -836,7 +902,7 @@ static PyObject *py_push(PyObject *self, PyObject *args)
                                           "(1..62)");
         return NULL;
     }
-    Py_ssize_t nb = 3 * K + R + 10;
+    Py_ssize_t nb = 3 * K + R + 11;
     Buf *b = calloc((size_t)nb, sizeof(Buf));
     int64_t *offsets = calloc((size_t)K + 1, sizeof(int64_t));
     int64_t *sort = NULL;
@@ -857,7 +923,7 @@ static PyObject *py_push(PyObject *self, PyObject *args)
     }
     Py_ssize_t n = offsets[K];
     if (!get(&rest[0], o_role, K_I64, R, 0, "role_msg") ||
-        !get(&rest[1], o_times, K_F64, 3, 0, "times"))
+        !get(&rest[1], o_times, K_F64, 6, 0, "times"))
         goto done;
     const int64_t *role_msg = I64P(rest[0]);
     for (Py_ssize_t j = 0; j < R; j++) {
@@ -874,8 +940,9 @@ static PyObject *py_push(PyObject *self, PyObject *args)
         goto done;
     Py_ssize_t G = items(&rest[2]) / (2 + R);
     if (!get(&rest[3], o_gi, K_I64, 3 * (G + 1), 1, "gi") ||
-        !get(&rest[4], o_sf, K_F64, 4, 1, "sf") || !get(&rest[5], o_si, K_I64, K, 1, "si") ||
+        !get(&rest[4], o_sf, K_F64, 5, 1, "sf") || !get(&rest[5], o_si, K_I64, K, 1, "si") ||
         !get(&rest[6], o_counts, K_I64, 5 * K, 1, "counts") ||
+        !get(&rest[10], o_clock, K_I64, CLOCK_KINDS, 1, "clock") ||
         !get(&rest[7], o_iwork, K_I64, 0, 1, "iwork"))
         goto done;
     Py_ssize_t C = items(&rest[7]) / 4;
@@ -952,9 +1019,9 @@ static PyObject *py_push(PyObject *self, PyObject *args)
     }
     if (sorted) {
         const double *times = F64P(rest[1]);
-        n_out = pair_frames(msg, m_t, m_cnt, m_vals, role_msg, R, K, times[0], times[1],
-                            times[2], flush, n, F64P(rest[2]), G, I64P(rest[3]), F64P(rest[4]),
-                            I64P(rest[5]), I64P(rest[6]), out_t, out_v);
+        n_out = pair_frames(msg, m_t, m_cnt, m_vals, role_msg, R, K, times, flush, n,
+                            F64P(rest[2]), G, I64P(rest[3]), F64P(rest[4]), I64P(rest[5]),
+                            I64P(rest[6]), I64P(rest[10]), out_t, out_v);
     }
     Py_END_ALLOW_THREADS
     if (!sorted) {

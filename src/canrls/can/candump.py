@@ -27,11 +27,17 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["parse", "format_lines", "CAN_ERR_FLAG", "EFF_MASK"]
+__all__ = ["parse", "format_lines", "CAN_ERR_FLAG", "EFF_MASK", "MAX_TIMESTAMP"]
 
 #: Linux SocketCAN error-frame flag in the 32-bit CAN ID (candump writes it in the ID).
 CAN_ERR_FLAG = 0x20000000
 EFF_MASK = 0x1FFFFFFF
+
+#: Largest timestamp [s] a log line may carry (about the year 2286): a line beyond it
+#: (``(1e300)``, ``(inf)``, a corrupted time) is not a frame of this log but a bad line
+#: (:class:`~canrls.errors.LogFormatError` naming the line, skippable with
+#: ``skip_bad_lines``); the compiled parser hands such lines to the per-line path.
+MAX_TIMESTAMP = 1e10
 
 # exact powers of ten as doubles (10**22 is the largest exactly representable one)
 _POW10 = np.array([10.0 ** k for k in range(23)], np.float64)
@@ -123,11 +129,11 @@ def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,
                     lo = hexv[buf[d0 + 2 * j + 1]]
                     bad |= hi | lo
                     data[rows, j] = (hi * 16 + lo) & 255
-                if bad >= 0:
+                frac = lay_close - lay_dot - 1 if lay_dot >= 0 else 0
+                if bad >= 0 and float(num) / pow10[frac] <= MAX_TIMESTAMP:
                     for j in range(nb, 8):
                         data[rows, j] = 0
                     nid = lay_hash - lay_sp2 - 1
-                    frac = lay_close - lay_dot - 1 if lay_dot >= 0 else 0
                     t[rows] = float(num) / pow10[frac]
                     is_err = nid == 8 and (ident & CAN_ERR_FLAG) != 0
                     aid[rows] = ident & EFF_MASK
@@ -201,7 +207,7 @@ def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,
                                 lo = hexv[buf[q + 2 * j + 1]]
                                 bad |= hi | lo
                                 data[rows, j] = (hi * 16 + lo) & 255
-                            if bad >= 0:
+                            if bad >= 0 and float(num) / pow10[frac] <= MAX_TIMESTAMP:
                                 for j in range(nb, 8):
                                     data[rows, j] = 0
                                 # float("int.frac"): (int * 10^d + frac) / 10^d, both

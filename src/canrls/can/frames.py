@@ -16,6 +16,7 @@ RlsParamInfo    0x303   what parameter Index is: effect, component, order, equat
 RlsStatus       0x310   residual RMS, number of updates
 RlsHealth       0x311   health flags, active effects, float-vs-fixed divergence
 RlsCounters     0x312   rejected / lost frames, saturations, dropped transmissions
+RlsRejects      0x313   rejected (and reordered) feedback frames by reason, clock faults
 RlsCommand      0x320   command to the daemon (from a tool)
 RlsCommandAck   0x321   result of the last command
 ==============  ======  ==========================================================
@@ -59,6 +60,8 @@ __all__ = [
     "CommandResult",
     "COMPONENTS",
     "FLAG_NAMES",
+    "REJECT_FIELDS",
+    "REJECT_WRAP",
     "ParameterReport",
     "StatusReport",
     "Command",
@@ -116,9 +119,27 @@ COMPONENTS: dict[EffectId, tuple[str, ...]] = {
 
 #: Health flags of ``RlsHealth``, in bit order (StatusReport field names).
 FLAG_NAMES: tuple[str, ...] = ("windup", "low_excitation", "saturation", "frame_loss",
-                               "frozen", "diverged", "bus_fault")
+                               "frozen", "diverged", "bus_fault", "clock_fault")
 _FLAG_SIGNALS = ("Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen", "Diverged",
-                 "BusFault")
+                 "BusFault", "ClockFault")
+
+#: Counters of ``RlsRejects`` (:attr:`StatusReport.rejects` keys), in signal order: frames
+#: rejected by the decoder (``crc``; ``malformed``: remote or wrong length; ``repeated``
+#: and ``stale`` alive counters; ``range``: outside the DBC range or NaN), dropped by
+#: pairing (``unpaired``: no partner, late, duplicated), put back in order
+#: (``reordered``), and clock events (``clock_steps``: back, or forward beyond
+#: :data:`canrls.can.pairing.FORWARD_STEP`; ``gaps``). They wrap at :data:`REJECT_WRAP`.
+REJECT_FIELDS: tuple[str, ...] = ("crc", "malformed", "repeated", "stale", "range", "unpaired",
+                                  "reordered", "clock_steps", "gaps")
+_REJECT_SIGNALS = ("Crc", "Malformed", "Repeated", "Stale", "Range", "Unpaired", "Reordered",
+                   "ClockSteps", "Gaps")
+#: Where each counter of ``RlsRejects`` wraps (its signal's width).
+REJECT_WRAP: dict[str, int] = {**dict.fromkeys(REJECT_FIELDS, 256), "clock_steps": 16,
+                               "gaps": 16}
+
+
+def _no_rejects() -> dict[str, int]:
+    return dict.fromkeys(REJECT_FIELDS, 0)
 
 
 def parameter_name(effect: EffectId, component: int, order: int = 0,
@@ -215,10 +236,13 @@ class ParameterReport:
 
 @dataclass(frozen=True)
 class StatusReport:
-    """Estimator health as published in RlsStatus, RlsHealth and RlsCounters.
+    """Estimator health as published in RlsStatus, RlsHealth, RlsCounters and RlsRejects.
 
     ``active_effects`` is a bitmask: bit ``EffectId - 1`` set when the effect is in
     the model. The four counters wrap at 16 bits on the wire, ``update_count`` at 32.
+    ``clock_fault``: the frames' timestamps stepped (back, or forward beyond a bound)
+    during the last interval. ``rejects``: ``{reason: frames}`` for every reason of
+    :data:`REJECT_FIELDS` (wrapping on the wire at :data:`REJECT_WRAP`).
     """
 
     residual_rms: float = 0.0
@@ -230,12 +254,14 @@ class StatusReport:
     frozen: bool = False
     diverged: bool = False
     bus_fault: bool = False
+    clock_fault: bool = False
     active_effects: int = 0
     divergence: float = 0.0
     frames_rejected: int = 0
     frames_lost: int = 0
     saturations: int = 0
     tx_dropped: int = 0
+    rejects: Mapping[str, int] = field(default_factory=_no_rejects)
 
     @property
     def flags(self) -> tuple[str, ...]:
@@ -301,7 +327,7 @@ def _db(dbc: str | Path | None = None) -> Any:
 
 #: DBC message names of the frames canrls publishes, in the order of :class:`FrameIds`.
 _PUBLISHED = ("RlsEstimate", "RlsSigma", "RlsReference", "RlsParamInfo", "RlsStatus",
-              "RlsHealth", "RlsCounters")
+              "RlsHealth", "RlsCounters", "RlsRejects")
 
 
 @dataclass(frozen=True)
@@ -320,6 +346,7 @@ class FrameIds:
     status: int
     health: int
     counters: int
+    rejects: int
     command: int
     ack: int
     feedback: tuple[int, ...]
@@ -328,7 +355,7 @@ class FrameIds:
     def published(self) -> frozenset[int]:
         """The frames the daemon publishes every cycle (parameters and status, not the ack)."""
         return frozenset((self.estimate, self.sigma, self.reference, self.param_info,
-                          self.status, self.health, self.counters))
+                          self.status, self.health, self.counters, self.rejects))
 
 
 @cache
@@ -627,7 +654,8 @@ def encode_param_info(reports: Sequence[ParameterReport], *, timestamp: float = 
 
 def encode_status(status: StatusReport, counter: int, *, timestamp: float = 0.0,
                   dbc: str | Path | None = None) -> list[can.Message]:
-    """RlsStatus, RlsHealth and RlsCounters (counters wrap at 16 bits, UpdateCount at 32)."""
+    """RlsStatus, RlsHealth, RlsCounters and RlsRejects (counters wrap at 16 bits,
+    UpdateCount at 32, the reject counters at :data:`REJECT_WRAP`)."""
     s = status
     health: dict[str, Any] = {sig: int(bool(getattr(s, f)))
                               for f, sig in zip(FLAG_NAMES, _FLAG_SIGNALS, strict=True)}
@@ -641,6 +669,9 @@ def encode_status(status: StatusReport, counter: int, *, timestamp: float = 0.0,
                                  "FramesLost": s.frames_lost % 65536,
                                  "Saturations": s.saturations % 65536,
                                  "TxDropped": s.tx_dropped % 65536}, timestamp, dbc),
+        _message("RlsRejects", {sig: int(s.rejects.get(f, 0)) % REJECT_WRAP[f]
+                                for f, sig in zip(REJECT_FIELDS, _REJECT_SIGNALS, strict=True)},
+                 timestamp, dbc),
     ]
 
 
@@ -809,6 +840,9 @@ class FrameDecoder:
             flags = {f: bool(v[sig]) for f, sig in zip(FLAG_NAMES, _FLAG_SIGNALS, strict=True)}
             s = replace(s, active_effects=int(v["ActiveEffects"]),
                         divergence=float(v["Divergence"]), **flags)
+        elif name == "RlsRejects":
+            s = replace(s, rejects={f: int(v[sig]) for f, sig in
+                                    zip(REJECT_FIELDS, _REJECT_SIGNALS, strict=True)})
         else:  # RlsCounters
             s = replace(s, frames_rejected=int(v["FramesRejected"]),
                         frames_lost=int(v["FramesLost"]), saturations=int(v["Saturations"]),

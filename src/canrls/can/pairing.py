@@ -25,6 +25,21 @@ message of that period is present. The rules:
   dropped periods count as ``lost`` frames (one per mapped message).
 * **Timestamp.** A sample's timestamp is that of the later partner (the time at
   which the sample became complete).
+* **Clock faults: time is monotonic inside.** A frame's time is its timestamp plus an
+  offset, 0 until a clock step. A frame more than ``back`` (default
+  :data:`STEP_PERIODS` periods, at least ``tolerance + hold * period``) before the
+  newest frame is a **step back** (NTP, a merged log): the open periods are finalised
+  (nothing pairs across the step) and the offset re-anchored so that the frame lies
+  ``back`` after the newest; the sample times stay monotonic, the jump restarts the
+  filter downstream (:class:`~canrls.estimation.selection.SamplePolicy`) and estimation
+  resumes after its warm-up, where before every frame counted ``late`` for as long as
+  the step. A frame more than ``step`` (default 1 s) after the newest is a **step
+  forward** (or a silence that long: the timestamps cannot tell them apart), more than
+  ``tolerance + (hold + 1) * period`` a **gap**: the open periods are finalised, and
+  across a step no whole periods are counted ``lost``. Each is counted
+  (:data:`CLOCK_KINDS`, :attr:`PairingCounts.clock`) and published (``RlsRejects``,
+  the ``ClockFault`` health bit). Frames between ``hold`` and ``back`` late stay
+  ``late``, and so does a frame without a time (a non-finite timestamp: dropped).
 
 The pairer is chunk-invariant: frames are processed one at a time in stream order
 (``MessageFrames.index``) with state carried across :meth:`Pairer.push` calls, so
@@ -44,7 +59,8 @@ from canrls.can.protocol import DecodedFrames, Protocol
 from canrls.errors import ConfigError
 from canrls.signals import ROLES, Signals
 
-__all__ = ["Pairer", "PairingCounts", "PAIRING_KINDS"]
+__all__ = ["Pairer", "PairingCounts", "PAIRING_KINDS", "CLOCK_KINDS", "STEP_PERIODS",
+           "FORWARD_STEP"]
 
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
@@ -52,6 +68,15 @@ I64 = npt.NDArray[np.int64]
 #: What :class:`PairingCounts` counts per message (frames).
 PAIRING_KINDS: tuple[str, ...] = ("unpaired", "lost", "duplicated", "reordered", "late")
 _UNPAIRED, _LOST, _DUP, _REORD, _LATE = range(5)
+
+#: Clock faults a :class:`Pairer` counts (events, not frames; module docstring).
+CLOCK_KINDS: tuple[str, ...] = ("step_back", "step_forward", "gap")
+
+#: Periods a frame must lie before the newest to be a clock step back (not late).
+STEP_PERIODS = 16
+
+#: Seconds a frame must lie after the newest to be a clock step forward (not a gap).
+FORWARD_STEP = 1.0
 
 _CAPACITY = 64  # open periods kept at most (the oldest is forced out beyond that)
 
@@ -69,6 +94,8 @@ class PairingCounts:
 
     samples: int = 0
     per_message: dict[str, dict[str, int]] = field(default_factory=dict)
+    #: clock faults ``{kind: events}`` (kinds of :data:`CLOCK_KINDS`)
+    clock: dict[str, int] = field(default_factory=lambda: dict.fromkeys(CLOCK_KINDS, 0))
 
     def _total(self, kind: str) -> int:
         return sum(m[kind] for m in self.per_message.values())
@@ -94,8 +121,10 @@ class PairingCounts:
         return self._total("late")
 
     def as_dict(self) -> dict[str, int]:
-        """``{"samples": .., "unpaired": .., "lost": .., ...}`` (totals)."""
-        return {"samples": self.samples, **{k: self._total(k) for k in PAIRING_KINDS}}
+        """``{"samples": .., "unpaired": .., "lost": .., ..., "step_back": .., ...}``
+        (totals: frames of :data:`PAIRING_KINDS`, events of :data:`CLOCK_KINDS`)."""
+        return {"samples": self.samples, **{k: self._total(k) for k in PAIRING_KINDS},
+                **{k: int(self.clock.get(k, 0)) for k in CLOCK_KINDS}}
 
     def summary(self) -> str:
         return ", ".join(f"{k} {v}" for k, v in self.as_dict().items())
@@ -103,13 +132,14 @@ class PairingCounts:
 
 def _push_kernel(index: tuple[I64, ...], t: tuple[F64, ...], cnt: tuple[I64, ...],
                  vals: tuple[F64, ...], use_counters: bool, role_msg: I64, times: F64,
-                 flush: bool, gf: F64, gi: I64, sf: F64, si: I64, counts: I64,
+                 flush: bool, gf: F64, gi: I64, sf: F64, si: I64, counts: I64, clock: I64,
                  iwork: I64, fwork: F64, vwork: F64) -> F64:
     """One push (``push`` in ``src/canrls/c/can.c``): the frames of each message
     (``index``, ``t``, ``cnt``: one array per message; ``vals``: one array per role, of
     the role's message) merged into stream order (a stable sort by ``index`` when a
     message's frames are out of order), then processed one at a time (``times`` =
-    [tolerance, wait, period]). Counters are ignored (-1) unless ``use_counters``.
+    [tolerance, wait, period, back, step, gap]: the bounds of the module docstring).
+    Counters are ignored (-1) unless ``use_counters``.
     ``iwork`` (4, C), ``fwork`` (3, C) and ``vwork`` (3, C, R) are scratch space for C >=
     frames + open-period capacity. Returns the completed samples as rows [t, role
     values...].
@@ -117,16 +147,17 @@ def _push_kernel(index: tuple[I64, ...], t: tuple[F64, ...], cnt: tuple[I64, ...
     State: the open periods are the slots 0 .. gi[0, 0]-1 (kept compact): gi[1 + g] =
     [unused, counter (-1: none), mask of messages present]; gf[g] = [t_min, t_max,
     values of the roles...]. sf = [newest frame time, t_min and t_max of the last
-    finalised period, whether there is one (0/1)]; si = per message: -2 if absent from
-    that period, else its counter (-1: none). counts[kind, message] (kinds in the order
-    of :data:`PAIRING_KINDS`).
+    finalised period, whether there is one (0/1), offset of the time base]; si = per
+    message: -2 if absent from that period, else its counter (-1: none).
+    counts[kind, message] (kinds in the order of :data:`PAIRING_KINDS`); clock[kind]
+    (:data:`CLOCK_KINDS`).
     """
     c = np.ascontiguousarray
     n_out = _can.push(tuple([c(a, np.int64) for a in index]),
                       tuple([c(a, np.float64) for a in t]),
                       tuple([c(a, np.int64) for a in cnt]),
                       tuple([c(a, np.float64) for a in vals]), use_counters, role_msg, times,
-                      flush, gf, gi, sf, si, counts, iwork, fwork, vwork)
+                      flush, gf, gi, sf, si, counts, clock, iwork, fwork, vwork)
     out = np.empty((1 + len(role_msg), n_out), np.float64)
     out[0] = fwork[2, :n_out]
     out[1:] = vwork[2, :n_out].T
@@ -145,6 +176,10 @@ class Pairer:
     hold : periods an incomplete period waits for a late partner (default 1).
     match_counters : require equal alive counters within a period when the messages
         carry counters of the same range (default True).
+    back : a frame this far [s] before the newest is a clock step back (default
+        :data:`STEP_PERIODS` periods, at least the wait of ``hold``).
+    step : a frame this far [s] after the newest is a clock step forward (default
+        :data:`FORWARD_STEP`, at least the gap bound).
 
     Raises
     ------
@@ -154,7 +189,8 @@ class Pairer:
 
     def __init__(self, protocol: Protocol, *, period: float | None = None,
                  tolerance: float | None = None, hold: int = 1,
-                 match_counters: bool = True) -> None:
+                 match_counters: bool = True, back: float | None = None,
+                 step: float | None = None) -> None:
         self.protocol = protocol
         per = period if period is not None else protocol.period
         if per is None or not np.isfinite(per) or per <= 0:
@@ -184,12 +220,22 @@ class Pairer:
         K, R = len(self.messages), len(self.roles)
         self._gf = np.zeros((_CAPACITY, 2 + R), np.float64)
         self._gi = np.zeros((_CAPACITY + 1, 3), np.int64)
-        self._sf = np.array([-np.inf, np.nan, np.nan, 0.0])
+        self._sf = np.array([-np.inf, np.nan, np.nan, 0.0, 0.0])
+        self._clock = np.zeros(len(CLOCK_KINDS), np.int64)
         self._si = np.full(K, -2, np.int64)
         self._counts = np.zeros((len(PAIRING_KINDS), K), np.int64)
         self._samples = 0
-        self._times = np.array([self.tolerance, self.tolerance + self.hold * self.period,
-                                self.period])
+        wait = self.tolerance + self.hold * self.period
+        gap = wait + self.period
+        self.back = float(back) if back is not None else max(wait, STEP_PERIODS * self.period)
+        self.step = float(step) if step is not None else max(gap, FORWARD_STEP)
+        if not (np.isfinite(self.back) and self.back >= wait):
+            raise ConfigError(f"pairing: the clock-step bound back={self.back!r} s must be "
+                              f"at least the wait {wait} s (tolerance + hold periods)")
+        if not (np.isfinite(self.step) and self.step >= gap):
+            raise ConfigError(f"pairing: the clock-step bound step={self.step!r} s must be "
+                              f"at least the gap bound {gap} s")
+        self._times = np.array([self.tolerance, wait, self.period, self.back, self.step, gap])
         # the input of a flush: no frames
         none_i, none_f = np.zeros(0, np.int64), np.zeros(0, np.float64)
         self._no_frames = ((none_i,) * K, (none_f,) * K, (none_i,) * K, (none_f,) * R)
@@ -201,7 +247,14 @@ class Pairer:
         """Running totals (a snapshot)."""
         return PairingCounts(self._samples, {
             name: {kind: int(self._counts[j, k]) for j, kind in enumerate(PAIRING_KINDS)}
-            for k, name in enumerate(self.messages)})
+            for k, name in enumerate(self.messages)},
+            {kind: int(v) for kind, v in zip(CLOCK_KINDS, self._clock.tolist(), strict=True)})
+
+    @property
+    def offset(self) -> float:
+        """The offset [s] of the time base: sample time = timestamp + offset (0 until a
+        clock step back re-anchors it)."""
+        return float(self._sf[4])
 
     @property
     def pending(self) -> int:
@@ -239,7 +292,7 @@ class Pairer:
             self._work(n)
         out = _push_kernel(index, t, cnt, vals, self.match_counters, self._role_msg, self._times,
                            flush, self._gf, self._gi, self._sf, self._si, self._counts,
-                           self._iwork, self._fwork, self._vwork)
+                           self._clock, self._iwork, self._fwork, self._vwork)
         self._samples += out.shape[1]
         c, s, p, v = self._rows
         return Signals(out[0], out[c], out[s], None if p is None else out[p],

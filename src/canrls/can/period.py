@@ -28,6 +28,10 @@ period tolerates up to one frame in eleven). The
 mapped messages must share the period (pairing takes one frame of each per period): the
 period is the shortest of theirs, and messages whose periods differ by more than half
 are an error that names each message with its period.
+
+A clock step among the measured frames (an interval back, or forward far beyond the
+others: NTP, a merged log) is not measured across: the frames on either side are
+measured together, their intervals pooled (:func:`_segments`), so the start does not fail.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ import numpy.typing as npt
 from canrls.errors import ConfigError
 
 __all__ = ["PERIOD_FRAMES", "PERIOD_TOLERANCE", "MIN_INTERVALS", "BURST_SHARE", "PeriodEstimate",
-           "PeriodMeter", "estimate_period", "check_period"]
+           "PeriodMeter", "estimate_period", "check_period", "STEP_BACK", "STEP_FORWARD"]
 
 #: Frames of each mapped message the period is measured on (the first ones).
 PERIOD_FRAMES = 256
@@ -55,6 +59,12 @@ MIN_INTERVALS = 8
 #: Share of intervals shorter than half the mean interval above which a message's frames
 #: are taken as relayed in groups (module docstring): the period is the mean interval.
 BURST_SHARE = 0.05
+
+#: An interval back by more than this many times the 90th percentile of the intervals'
+#: sizes, or forward by more than :data:`STEP_FORWARD` times, is a clock step: the
+#: meter measures on either side of it and never across (:func:`_segments`).
+STEP_BACK = 4.0
+STEP_FORWARD = 100.0
 
 F64 = npt.NDArray[np.float64]
 
@@ -75,24 +85,64 @@ class PeriodEstimate:
                 f"{', '.join(self.intervals)}; jitter {self.jitter * 1e6:.3g} µs RMS)")
 
 
+def _segments(t: F64) -> list[F64]:
+    """A message's frame times in stream order, split at clock steps, each piece sorted.
+
+    A step is an interval back by more than :data:`STEP_BACK` times, or forward by more
+    than :data:`STEP_FORWARD` times, the 90th percentile of the intervals' sizes (a scale
+    that jitter, drops and bursts leave near the period): a clock stepped by NTP or a
+    merged log, measured across, would give the step as a span of periods. Sorting
+    within a piece keeps frames reordered by a period or so measurable."""
+    if len(t) < 2:
+        return [np.sort(t)]
+    d = np.diff(t)
+    q = float(np.quantile(np.abs(d), 0.9))
+    cut = np.flatnonzero((d < -STEP_BACK * q) | (d > STEP_FORWARD * q)) + 1
+    if not len(cut) or not q > 0:
+        return [np.sort(t)]
+    return [np.sort(piece) for piece in np.split(t, cut) if len(piece)]
+
+
 def _one(t: F64) -> tuple[float, float] | None:
-    """(period, jitter) of one message's frame times, None if too few or no span."""
-    t = np.sort(np.asarray(t, np.float64))
+    """(period, jitter) of one message's frame times (stream order), None if too few or
+    no span. The pieces between clock steps (:func:`_segments`) are measured together:
+    their intervals pooled, their spans summed, the slope fitted within each."""
+    t = np.asarray(t, np.float64)
+    t = t[np.isfinite(t)]  # a frame without a time says nothing of the period
     if len(t) < MIN_INTERVALS + 1:
         return None
-    d = np.diff(t)
-    span = float(t[-1] - t[0])
-    if not span > 0:
+    parts = [piece for piece in _segments(t) if len(piece) >= 2]
+    if not parts:
+        return None
+    if len(parts) == 1:
+        t = parts[0]
+        d = np.diff(t)
+        span = float(t[-1] - t[0])
+    else:
+        d = np.concatenate([np.diff(piece) for piece in parts])
+        span = float(sum(float(piece[-1] - piece[0]) for piece in parts))
+    if len(d) < MIN_INTERVALS or not span > 0:
         return None
     p = span / len(d)
     if float(np.mean(d < 0.5 * p)) > BURST_SHARE:
         # relayed in groups: one period per frame, p the slope of the times against the
         # frame index (least squares: a group's frames wait for its last, a saw tooth
-        # that the slope averages out, where the end points alone would carry it)
-        i = np.arange(len(t), dtype=np.float64)
-        i -= i.mean()
-        p = float(np.dot(i, t - t.mean()) / np.dot(i, i))
-        dev = t - t.mean() - p * i  # the relay's latency: the jitter
+        # that the slope averages out, where the end points alone would carry it);
+        # pooled over the pieces, each about its own mean
+        num = den = 0.0
+        devs = []
+        cen = []
+        for piece in parts:
+            i = np.arange(len(piece), dtype=np.float64)
+            i -= i.mean()
+            tc = piece - piece.mean()
+            num += float(np.dot(i, tc))
+            den += float(np.dot(i, i))
+            cen.append((i, tc))
+        p = num / den
+        for i, tc in cen:
+            devs.append(tc - p * i)  # the relay's latency: the jitter
+        dev = np.concatenate(devs)
         return p, float(np.sqrt(np.mean(dev * dev)))
     for _ in range(20):
         k = np.rint(d / p)

@@ -1033,7 +1033,9 @@ def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
     last accepted frame shows that the counter went round (repeated: dt >= (M - 0.5)
     period; stale: dt >= (d - 0.5) period); otherwise d - 1 frames were lost, plus
     k M when the time gap implies k = floor((dt / period - d) / M + 0.5) > 0 whole
-    wraps. Three consecutive stale frames that count up by one resynchronise (loss
+    wraps (only for dt up to 1 s, :data:`canrls.can.pairing.FORWARD_STEP`: a longer
+    jump is a clock step or a silence as long, and the time says nothing of the frames
+    lost in it). Three consecutive stale frames that count up by one resynchronise (loss
     unknown).
     """
     n = len(c)

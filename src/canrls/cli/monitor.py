@@ -36,7 +36,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "monitor", help="live view of the daemon's parameter and status frames",
         description="Show every parameter the daemon publishes (fixed, ±σ, float, unit), the "
-                    "residual RMS and its trend, frame rates, counters and health flags.")
+                    "residual RMS and its trend, frame rates, counters, rejected frames by "
+                    "reason (RlsRejects: CRC, counters, range, unpaired, reordered, clock "
+                    "steps and gaps) and health flags (ClockFault among them).")
     add_model_options(p)
     add_bus_options(p)
     g = p.add_argument_group("view")

@@ -11,10 +11,12 @@ process) and call :meth:`Monitor.snapshot` whenever a view is wanted::
 
 A snapshot has every parameter (fixed-point value, ±σ, float reference, their
 difference, the unit), the residual RMS with its recent trend, frame rates by kind,
-the loss and rejection counters, the health flags, the active effects and the last
-command acknowledgement. Parameter names come from ``RlsParamInfo`` and the units
-from the effect library (:class:`LibraryUnits`), which needs the axis, ``kt`` and the
-user terms of the daemon's model: the monitor takes the same ``--config``.
+the loss and rejection counters (by reason, from ``RlsRejects``, with the clock
+steps and gaps of the feedback's timestamps), the health flags (``clock_fault`` among
+them), the active effects and the last command acknowledgement. Parameter names come
+from ``RlsParamInfo`` and the units from the effect library (:class:`LibraryUnits`),
+which needs the axis, ``kt`` and the user terms of the daemon's model: the monitor
+takes the same ``--config``.
 """
 
 from __future__ import annotations
@@ -153,6 +155,7 @@ class MonitorView:
             "counters": {} if s is None else {
                 "frames_rejected": s.frames_rejected, "frames_lost": s.frames_lost,
                 "saturations": s.saturations, "tx_dropped": s.tx_dropped},
+            "rejects": {} if s is None else dict(s.rejects),
             "rates": dict(self.rates),
             "totals": dict(self.totals),
             "last_ack": None if self.last_ack is None else {
@@ -198,6 +201,9 @@ class MonitorView:
             lines.append(f"  health: {flags or 'ok'}")
             lines.append(f"  counters: rejected {s.frames_rejected}  lost {s.frames_lost}  "
                          f"saturations {s.saturations}  tx dropped {s.tx_dropped}")
+            odd = [f"{k.replace('_', ' ')} {v}" for k, v in s.rejects.items() if v]
+            if odd:  # RlsRejects, by reason (wrapping counters)
+                lines.append(f"  rejects: {'  '.join(odd)}")
         rates = "  ".join(f"{k} {self.rates.get(k, 0.0):.0f}" for k in _KINDS
                           if self.totals.get(k))
         lines.append(f"  frames/s: {rates or '-'}")

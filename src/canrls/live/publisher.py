@@ -3,8 +3,8 @@
 Every ``publish_interval`` (0: after every block): ``RlsEstimate``/``RlsSigma``/
 ``RlsReference`` (every parameter: fixed point, sigma, float), then ``RlsStatus`` and
 ``RlsHealth``; every ``info_interval`` (and at once after a model change) also
-``RlsParamInfo`` and ``RlsCounters``. Everything comes from the public results of the
-pipeline (:meth:`~canrls.estimation.pipeline.Pipeline.estimates`) and of each block
+``RlsParamInfo``, ``RlsCounters`` and ``RlsRejects``. Everything comes from the public
+results of the pipeline (:meth:`~canrls.estimation.pipeline.Pipeline.estimates`) and of each block
 (:class:`~canrls.estimation.pipeline.PipelineBlock`); the frames go out through
 :meth:`canrls.live.bus.BusLink.send`, which never blocks.
 """
@@ -39,6 +39,7 @@ __all__ = ["Publisher", "parameter_layout"]
 log = logging.getLogger(__name__)
 
 _COUNTERS_ID = frame_ids().counters
+_REJECTS_ID = frame_ids().rejects
 _WINDUP = int(RLSFlag.WINDUP)
 #: the longest the estimator sleeps without a publication due [s]
 _IDLE_S = 0.25
@@ -92,6 +93,7 @@ class Publisher:
         self._low_excitation = False
         self._last_lost = 0
         self._last_sat = 0
+        self._last_clock = 0  # clock steps as the last RlsRejects carried them
         #: (pipeline, parameter_layout, active effects), made again when the model changes
         self._layout: tuple[Pipeline | None, tuple[tuple[ParameterReport, ...], ...], int] = (
             None, (), 0)
@@ -160,6 +162,7 @@ class Publisher:
         ``div``: the divergence if known (:meth:`reports`)."""
         pipe = self.processor.pipeline
         counters = self.counters()
+        rejects = self.processor.reject_counts()
         if div is None:
             div = self.reports()[1]
         return StatusReport(
@@ -172,9 +175,10 @@ class Publisher:
             frozen=pipe.frozen,
             diverged=div > self.config.divergence_limit,
             bus_fault=self.link.paused(now),
+            clock_fault=rejects["clock_steps"] > self._last_clock,  # since the last RlsRejects
             active_effects=self._layout_of(pipe)[2],
             divergence=div if math.isfinite(div) else 0.0,
-            **counters)
+            rejects=rejects, **counters)
 
     def _warn_nonfinite(self, est: Estimates) -> None:
         pipe = self.processor.pipeline
@@ -191,7 +195,7 @@ class Publisher:
     # ------------------------------------------------------------------ sending
     def publish(self, now: float) -> None:
         """Send the parameter frames, then the status frames (and, every
-        ``info_interval``, RlsParamInfo and RlsCounters)."""
+        ``info_interval``, RlsParamInfo, RlsCounters and RlsRejects)."""
         info = now >= self.info_due
         self.link.settle(now)
         reports, div = self.reports()
@@ -209,8 +213,9 @@ class Publisher:
         self._last_sat = status.saturations
         self.last_status = status
         msgs = [m for m in encode_status(status, self._counter, timestamp=ts)
-                if info or m.arbitration_id != _COUNTERS_ID]
+                if info or m.arbitration_id not in (_COUNTERS_ID, _REJECTS_ID)]
         if info:
+            self._last_clock = status.rejects["clock_steps"]
             msgs += encode_param_info(reports, timestamp=ts)
             self.info_due = now + self.config.info_interval
         self.link.send(msgs)
