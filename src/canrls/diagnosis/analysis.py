@@ -72,6 +72,7 @@ from canrls.estimation.effects import ELECTRICAL
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import (
     EquationBlock,
+    PipelineBlock,
     EquationEstimator,
     EquationFit,
     EstimatorSettings,
@@ -84,6 +85,10 @@ __all__ = ["DEFAULT_MAX_ORDER", "DiagnosisReport", "diagnose", "diagnose_log"]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
+
+#: Samples per block fed to the pipeline (its working arrays are this long, not the
+#: record's).
+CHUNK = 65536
 
 
 # ========================================================================= entry points
@@ -188,13 +193,74 @@ def _resolve_add(spec: str, before: Analysis) -> str:
 def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
     # the front end's calibration rule, as canrls fit and the daemon follow it
     proc = SampleProcessor(model, ctx.dt, ctx.settings)
-    block = proc.run(ctx.signals, record=True)
+    blocks = _run_in_chunks(proc, ctx.signals)
     pipe, model = proc.pipeline, proc.model
     est = pipe.estimates()
     eqs = []
-    for e, eb, fit in zip(pipe.estimators, block.equations, est.equations, strict=True):
+    for k, (e, fit) in enumerate(zip(pipe.estimators, est.equations, strict=True)):
+        eb = _joined(blocks, k)
         eqs.append(_analyse_equation(ctx, model, e, eb, fit))
+        del eb
     return Analysis(model=model, estimates=est, equations=tuple(eqs))
+
+
+def _run_in_chunks(proc: SampleProcessor, signals: Signals) -> list[EquationBlock]:
+    """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
+    each equation's recorded block, what the diagnosis reads (t, y, used, phi and the
+    fixed-point estimate), as lists of blocks.
+
+    The pipeline carries its state from block to block bit for bit (``canrls fit``
+    replays a log in blocks too), so the result is the one of a single run; but the
+    pipeline's working arrays (errors, flags, running RMS, the float estimate after each
+    sample, the regressor buffer) stay the size of one block instead of the record's.
+    """
+    kept: list[list[EquationBlock]] = []
+
+    def keep(block: PipelineBlock) -> None:
+        if not kept:
+            kept.extend([] for _ in block.equations)
+        for parts, eb in zip(kept, block.equations, strict=True):
+            if len(eb.t):
+                parts.append(_slim(eb))
+
+    n = len(signals)
+    for a in range(0, n, CHUNK):
+        keep(proc.process(signals.slice(a, min(n, a + CHUNK)), record=True))
+    if proc.calibration is None:  # a record shorter than the calibration window
+        keep(proc.finish(record=True))
+    if not kept:
+        keep(proc.process(signals.slice(0, 0), record=True))
+    return [_concat(parts, eq) for parts, eq in
+            zip(kept, (e.equation.name for e in proc.pipeline.estimators), strict=True)]
+
+
+_EMPTY = np.zeros(0)
+
+
+def _slim(eb: EquationBlock) -> EquationBlock:
+    """``eb`` without the arrays the diagnosis does not read."""
+    return EquationBlock(equation=eb.equation, t=eb.t, y=eb.y, eps=_EMPTY, eps_fixed=_EMPTY,
+                         used=eb.used, online_rms=_EMPTY, flags=np.zeros(0, np.uint8),
+                         theta=None, theta_fixed=eb.theta_fixed, phi=eb.phi)
+
+
+def _concat(parts: list[EquationBlock], name: str) -> EquationBlock:
+    if len(parts) == 1:
+        return parts[0]
+    return EquationBlock(
+        equation=name, t=np.concatenate([b.t for b in parts]),
+        y=np.concatenate([b.y for b in parts]), eps=_EMPTY, eps_fixed=_EMPTY,
+        used=np.concatenate([b.used for b in parts]), online_rms=_EMPTY,
+        flags=np.zeros(0, np.uint8), theta=None,
+        theta_fixed=np.concatenate([b.theta_fixed for b in parts  # type: ignore[misc]
+                                    ]),
+        phi=np.concatenate([b.phi for b in parts]))  # type: ignore[misc]
+
+
+def _joined(blocks: list[EquationBlock], k: int) -> EquationBlock:
+    eb = blocks[k]
+    blocks[k] = None  # type: ignore[call-overload]  # the analysis holds the only reference
+    return eb
 
 
 def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
