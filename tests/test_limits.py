@@ -230,3 +230,27 @@ def test_canrls_error_stays_exit_status_1(monkeypatch: pytest.MonkeyPatch,
     _failing(monkeypatch, ConfigError("x.toml: model.kt = 0: must not be 0"))
     assert main(["fit", str(tmp_path / "x.log")]) == 1
     assert capsys.readouterr().err == "error: x.toml: model.kt = 0: must not be 0\n"
+
+
+# ------------------------------------------------------------------------------ diagnose
+def test_max_order_is_bounded(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--max-order 100000000 built 2e8 candidate columns per block of rows (it ran for
+    minutes and then out of memory); now argparse refuses it, naming the limit."""
+    from canrls.diagnosis.candidates import MAX_ORDER_LIMIT
+
+    with pytest.raises(SystemExit) as info:
+        main(["diagnose", "--max-order", "100000000", str(tmp_path / "x.log")])
+    assert info.value.code == 2
+    assert f"must be in 1..{MAX_ORDER_LIMIT}" in capsys.readouterr().err
+
+
+def test_max_order_is_bounded_in_the_api() -> None:
+    from canrls.diagnosis.analysis import diagnose
+    from canrls.diagnosis.candidates import MAX_ORDER_LIMIT
+    from canrls.estimation.model import Model
+    from canrls.signals import Signals
+
+    n = 100
+    sig = Signals(t=np.arange(n) * 1e-3, current=np.zeros(n), speed=np.zeros(n))
+    with pytest.raises(ConfigError, match=f"1..{MAX_ORDER_LIMIT}"):
+        diagnose(sig, Model(["inertia"]), max_order=MAX_ORDER_LIMIT + 1)

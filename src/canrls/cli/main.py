@@ -50,6 +50,9 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         prog="canrls",
         description="Identify the physics of an electric drive over CAN with recursive "
                     "least squares.",
+        epilog="exit status: 0 done, 1 an error in the input (one 'error:' line), 2 usage, "
+               "3 an internal error (one 'internal error:' line; --debug shows the "
+               "traceback), 130 interrupted",
     )
     parser.add_argument("--version", action="version", version=f"canrls {__version__}")
     parser.add_argument("--debug", action="store_true",
