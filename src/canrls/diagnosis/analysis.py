@@ -69,15 +69,15 @@ from canrls.diagnosis.results import Analysis, EquationDiagnosis, Traces
 from canrls.diagnosis.samples import RecordSamples
 from canrls.errors import ConfigError, EffectError
 from canrls.estimation.effects import ELECTRICAL
+from canrls.estimation.fixed import FixedRLS
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import (
     EquationBlock,
-    PipelineBlock,
     EquationEstimator,
     EquationFit,
     EstimatorSettings,
+    PipelineBlock,
 )
-from canrls.estimation.fixed import FixedRLS
 from canrls.estimation.rls import RLS
 from canrls.processor import SampleProcessor
 from canrls.signals import Signals
@@ -202,10 +202,9 @@ def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
     pipe, model = proc.pipeline, proc.model
     est = pipe.estimates()
     eqs = []
-    for k, (e, fit) in enumerate(zip(pipe.estimators, est.equations, strict=True)):
-        eb = _joined(blocks, k)
-        eqs.append(_analyse_equation(ctx, model, e, eb, fit))
-        del eb
+    for e, fit in zip(pipe.estimators, est.equations, strict=True):
+        # popped: each equation's arrays are freed once it is analysed
+        eqs.append(_analyse_equation(ctx, model, e, blocks.pop(0), fit))
     return Analysis(model=model, estimates=est, equations=tuple(eqs))
 
 
@@ -225,7 +224,7 @@ def _run_in_chunks(proc: SampleProcessor, signals: Signals) -> list[EquationBloc
         if not kept:
             kept.extend([] for _ in block.equations)
         for parts, eb in zip(kept, block.equations, strict=True):
-            if len(eb.t):
+            if len(eb.t) or not parts:  # the first, even empty: it gives phi's width
                 parts.append(_slim(eb))
 
     n = len(signals)
@@ -250,6 +249,7 @@ def _slim(eb: EquationBlock) -> EquationBlock:
 
 
 def _concat(parts: list[EquationBlock], name: str) -> EquationBlock:
+    parts = [b for b in parts if len(b.t)] or parts[:1]
     if len(parts) == 1:
         return parts[0]
     return EquationBlock(
@@ -258,12 +258,6 @@ def _concat(parts: list[EquationBlock], name: str) -> EquationBlock:
         used=np.concatenate([b.used for b in parts]), online_rms=_EMPTY,
         flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None,
         phi=np.concatenate([b.phi for b in parts]))  # type: ignore[misc]
-
-
-def _joined(blocks: list[EquationBlock], k: int) -> EquationBlock:
-    eb = blocks[k]
-    blocks[k] = None  # type: ignore[call-overload]  # the analysis holds the only reference
-    return eb
 
 
 def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
