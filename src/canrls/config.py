@@ -68,7 +68,14 @@ from canrls.estimation.fixed import QFormat
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings
 
-__all__ = ["AppConfig", "DEFAULT_EFFECTS", "load_config", "read_toml", "load_model"]
+__all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "load_config",
+           "read_toml", "load_model"]
+
+#: Deepest nesting of tables and arrays a configuration file may have (ours need 3).
+MAX_DEPTH = 16
+#: TOML integers are 64-bit signed (the TOML spec: a value that cannot be represented
+#: losslessly is an error); a longer one is refused with its key, never turned into inf.
+MAX_INT_BITS = 63
 
 #: Effects of the model when neither the configuration nor ``--effects`` name any.
 DEFAULT_EFFECTS: tuple[str, ...] = ("inertia", "viscous", "coulomb")
@@ -111,11 +118,35 @@ def read_toml(path: str | Path, table: str | None = None, *, key: str | None = N
         doc = tomllib.loads(text.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise ConfigError(f"{where}: invalid TOML: {e}") from e
+    except RecursionError as e:  # tomllib recurses once per nested array or inline table
+        raise ConfigError(f"{where}: invalid TOML: nested deeper than {MAX_DEPTH} "
+                          f"levels") from e
+    except ValueError as e:  # e.g. an integer of more than sys.get_int_max_str_digits()
+        raise ConfigError(f"{where}: invalid TOML: {e}") from e
+    _check_limits(doc, where)
     if table is None:
         return doc
     if not isinstance(doc.get(table), dict):
         raise ConfigError(f"{where}: no [{table}] table")
     return dict(doc[table])
+
+
+def _check_limits(doc: dict[str, Any], where: str) -> None:
+    """Refuse nesting deeper than :data:`MAX_DEPTH` and integers beyond 64 bits, naming
+    the key (walked with a stack: no recursion, linear in the document's size)."""
+    stack: list[tuple[str, Any, int]] = [(k, v, 1) for k, v in doc.items()]
+    while stack:
+        key, v, depth = stack.pop()
+        if depth > MAX_DEPTH:
+            raise ConfigError(f"{where}: {key}: nested deeper than {MAX_DEPTH} levels")
+        if isinstance(v, dict):
+            stack.extend((f"{key}.{k}", x, depth + 1) for k, x in v.items())
+        elif isinstance(v, list):
+            stack.extend((f"{key}[{i}]", x, depth + 1) for i, x in enumerate(v))
+        elif (isinstance(v, int) and not isinstance(v, bool)
+              and not -(1 << MAX_INT_BITS) <= v < (1 << MAX_INT_BITS)):
+            raise ConfigError(f"{where}: {key}: integer of {len(str(abs(v)))} digits is "
+                              f"outside the 64-bit range of TOML")
 
 
 def load_model(path: str | Path, *, available_signals: Iterable[str] | None = None) -> Model:
@@ -291,7 +322,12 @@ class AppConfig:
                     raise ConfigError(f"{self._where('fixed.' + k)} = {v!r}: must be an integer")
                 kw[k] = v
         if "theta_max" in self.fixed:
-            kw["theta_max"] = float(self.fixed["theta_max"])
+            v = self.fixed["theta_max"]
+            if (isinstance(v, bool) or not isinstance(v, int | float)
+                    or not (math.isfinite(v) and v > 0)):
+                raise ConfigError(f"{self._where('fixed.theta_max')} = {v!r}: must be a "
+                                  f"positive number")
+            kw["theta_max"] = float(v)
         formats = self.fixed.get("formats", {})
         if not isinstance(formats, Mapping):
             raise ConfigError(f"{self._where('fixed.formats')} = {formats!r}: must be a table")

@@ -16,7 +16,12 @@ import can
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["FrameBlock"]
+from canrls.errors import DecodeError
+
+__all__ = ["FrameBlock", "MAX_DATA_LENGTH"]
+
+#: Most data bytes a CAN frame carries (CAN FD); a longer one is refused, never truncated.
+MAX_DATA_LENGTH = 64
 
 
 @dataclass(frozen=True)
@@ -76,6 +81,11 @@ class FrameBlock:
         """Pack python-can messages into a block."""
         n = len(messages)
         width = max([8] + [len(m.data) for m in messages])
+        if width > MAX_DATA_LENGTH:
+            m = next(m for m in messages if len(m.data) > MAX_DATA_LENGTH)
+            raise DecodeError(f"frame 0x{m.arbitration_id:X} at t = {m.timestamp}: "
+                              f"{len(m.data)} data bytes, a CAN frame carries at most "
+                              f"{MAX_DATA_LENGTH}", reason="length")
         b = FrameBlock.allocate(n, width)
         for k, m in enumerate(messages):
             b.t[k] = m.timestamp

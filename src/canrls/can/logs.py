@@ -36,7 +36,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can import candump
-from canrls.can.frameblock import FrameBlock
+from canrls.can.frameblock import MAX_DATA_LENGTH, FrameBlock
 from canrls.errors import LogFormatError
 
 __all__ = ["LogReadStats", "read_frames", "write_candump", "write_log", "CAN_ERR_FLAG"]
@@ -210,6 +210,9 @@ def _parse_candump_line(text: str) -> can.Message:
         is_remote = True
     else:
         data = bytes.fromhex(rest)
+    if len(data) > MAX_DATA_LENGTH:
+        raise ValueError(f"{len(data)} data bytes, a CAN frame carries at most "
+                         f"{MAX_DATA_LENGTH}")
     is_error = len(can_id_s) > 3 and bool(can_id & CAN_ERR_FLAG)
     return can.Message(timestamp=timestamp, channel=channel,
                        arbitration_id=can_id & _EFF_MASK,

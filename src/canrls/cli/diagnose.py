@@ -9,7 +9,7 @@ plus::
     --add NAME       add an effect and refit (repeatable); ``cogging`` alone takes the
                      order the search found
     --report DIR     write DIR/index.html with PNG figures (needs matplotlib)
-    --max-order K    highest cogging order searched (default 64)
+    --max-order K    highest cogging order searched (default 64, at most 256)
 
 Text by default; ``--json`` prints one object (``docs/diagnose.md`` documents every key)::
 
@@ -48,17 +48,19 @@ __all__ = ["add_subparser", "run"]
 
 
 def _order(text: str) -> int:
+    from canrls.diagnosis.candidates import MAX_ORDER_LIMIT
+
     try:
         k = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if k < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
+    if not 1 <= k <= MAX_ORDER_LIMIT:
+        raise argparse.ArgumentTypeError(f"{text!r} must be in 1..{MAX_ORDER_LIMIT}")
     return k
 
 
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
-    from canrls.diagnosis.analysis import DEFAULT_MAX_ORDER
+    from canrls.diagnosis.analysis import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT
 
     p = subparsers.add_parser(
         "diagnose", help="compare the model with a log: where it fails, which effect is missing",
@@ -80,7 +82,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                    help="write the model (after --add, if any) with its parameters as JSON "
                         "for 'canrls validate' (as 'canrls fit --save-model')")
     g.add_argument("--max-order", type=_order, default=DEFAULT_MAX_ORDER, metavar="K",
-                   help=f"highest cogging order searched (default {DEFAULT_MAX_ORDER})")
+                   help=f"highest cogging order searched (default {DEFAULT_MAX_ORDER}, at most "
+                        f"{MAX_ORDER_LIMIT})")
     p.set_defaults(func=run)
     return p
 

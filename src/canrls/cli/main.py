@@ -27,6 +27,10 @@ SUBCOMMANDS: tuple[str, ...] = (
 
 log = logging.getLogger("canrls")
 
+#: Exit status of an unexpected (non-canrls) exception: distinct from 1 (an error in the
+#: input, a ``CanrlsError``), 2 (usage) and 130 (interrupted).
+INTERNAL_ERROR = 3
+
 
 def named_command(argv: Sequence[str]) -> str | None:
     """The subcommand ``argv`` names (None: none, or not one of :data:`SUBCOMMANDS`)."""
@@ -46,6 +50,9 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         prog="canrls",
         description="Identify the physics of an electric drive over CAN with recursive "
                     "least squares.",
+        epilog="exit status: 0 done, 1 an error in the input (one 'error:' line), 2 usage, "
+               "3 an internal error (one 'internal error:' line; --debug shows the "
+               "traceback), 130 interrupted",
     )
     parser.add_argument("--version", action="version", version=f"canrls {__version__}")
     parser.add_argument("--debug", action="store_true",
@@ -67,24 +74,43 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    given = sys.argv[1:] if argv is None else argv
+    """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status:
+    0 done, 1 a :class:`CanrlsError` (one ``error:`` line), 2 usage, 3 an internal error
+    (one ``internal error:`` line), 130 interrupted. ``--debug`` shows the traceback."""
+    given = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in given[:given.index("--")] if "--" in given else "--debug" in given
+    try:
+        return _run(given)
+    except CanrlsError as e:
+        if debug:
+            raise
+        print(f"error: {_one_line(e)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    except Exception as e:  # a bug of canrls, not of the input: never a silent 0
+        if debug:
+            raise
+        print(f"internal error: {type(e).__name__}: {_one_line(e)} (rerun with --debug "
+              f"for the traceback, and report it)", file=sys.stderr)
+        return INTERNAL_ERROR
+
+
+def _run(given: list[str]) -> int:
     preload_cache_dir(given)  # before the kernels load
     parser = build_parser(named_command(given))
-    args = parser.parse_args(argv)
+    args = parser.parse_args(given)
     logging.basicConfig(level=getattr(logging, args.log_level), stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    try:
-        return int(args.func(args) or 0)
-    except CanrlsError as e:
-        if args.debug:
-            raise
-        print(f"error: {e}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        return 130
+    return int(args.func(args) or 0)
+
+
+def _one_line(e: BaseException) -> str:
+    """The message of ``e`` on one line (a multi-line message joined by " | ")."""
+    return " | ".join(line.strip() for line in str(e).splitlines() if line.strip())
 
 
 if __name__ == "__main__":  # pragma: no cover

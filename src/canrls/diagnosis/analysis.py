@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.diagnosis.candidates import DEFAULT_MAX_ORDER, rank_candidates
+from canrls.diagnosis.candidates import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT, rank_candidates
 from canrls.diagnosis.report import DiagnosisReport
 from canrls.diagnosis.residual import (
     WHITENESS_LAGS,
@@ -69,21 +69,28 @@ from canrls.diagnosis.results import Analysis, EquationDiagnosis, Traces
 from canrls.diagnosis.samples import RecordSamples
 from canrls.errors import ConfigError, EffectError
 from canrls.estimation.effects import ELECTRICAL
+from canrls.estimation.fixed import FixedRLS
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import (
     EquationBlock,
     EquationEstimator,
     EquationFit,
     EstimatorSettings,
+    PipelineBlock,
 )
 from canrls.estimation.rls import RLS
 from canrls.processor import SampleProcessor
 from canrls.signals import Signals
 
-__all__ = ["DEFAULT_MAX_ORDER", "DiagnosisReport", "diagnose", "diagnose_log"]
+__all__ = ["DEFAULT_MAX_ORDER", "MAX_ORDER_LIMIT", "DiagnosisReport", "diagnose",
+           "diagnose_log"]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
+
+#: Samples per block fed to the pipeline (its working arrays are this long, not the
+#: record's).
+CHUNK = 65536
 
 
 # ========================================================================= entry points
@@ -100,7 +107,8 @@ def diagnose(data: Signals | Iterable[Signals], model: Model,
     :param dt: sample period [s] (default: the median step of ``t``).
     :param add: effects to add and refit (``after``); ``cogging`` without an order takes
         the order the search found.
-    :param max_order: highest cogging order searched, and of the order spectrum.
+    :param max_order: highest cogging order searched, and of the order spectrum
+        (1 to :data:`~canrls.diagnosis.candidates.MAX_ORDER_LIMIT`).
     :param source: what the samples are, for the text.
     :param frames: frame statistics of a log replay, copied into the report.
     :raises ConfigError: no samples, a bad ``dt`` or ``max_order``; :class:`EffectError`
@@ -118,8 +126,10 @@ def diagnose(data: Signals | Iterable[Signals], model: Model,
         dt = float(np.median(steps))
     if not (isinstance(dt, int | float) and math.isfinite(dt) and dt > 0):
         raise ConfigError(f"diagnose: dt = {dt!r}: must be > 0 s")
-    if isinstance(max_order, bool) or not isinstance(max_order, int) or max_order < 1:
-        raise ConfigError(f"diagnose: max_order = {max_order!r}: must be an integer >= 1")
+    if (isinstance(max_order, bool) or not isinstance(max_order, int)
+            or not 1 <= max_order <= MAX_ORDER_LIMIT):
+        raise ConfigError(f"diagnose: max_order = {max_order!r}: must be an integer in "
+                          f"1..{MAX_ORDER_LIMIT}")
     settings = settings or EstimatorSettings()
     add = tuple(add)
     # validate the additions before the long part (cogging without K is resolved later)
@@ -188,19 +198,72 @@ def _resolve_add(spec: str, before: Analysis) -> str:
 def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
     # the front end's calibration rule, as canrls fit and the daemon follow it
     proc = SampleProcessor(model, ctx.dt, ctx.settings)
-    block = proc.run(ctx.signals, record=True)
+    blocks = _run_in_chunks(proc, ctx.signals)
     pipe, model = proc.pipeline, proc.model
     est = pipe.estimates()
     eqs = []
-    for e, eb, fit in zip(pipe.estimators, block.equations, est.equations, strict=True):
-        eqs.append(_analyse_equation(ctx, model, e, eb, fit))
+    for e, fit in zip(pipe.estimators, est.equations, strict=True):
+        # popped: each equation's arrays are freed once it is analysed
+        eqs.append(_analyse_equation(ctx, model, e, blocks.pop(0), fit))
     return Analysis(model=model, estimates=est, equations=tuple(eqs))
+
+
+def _run_in_chunks(proc: SampleProcessor, signals: Signals) -> list[EquationBlock]:
+    """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
+    each equation's recorded block, what the diagnosis reads (t, y, used, phi), joined.
+
+    The pipeline carries its state from block to block bit for bit (``canrls fit``
+    replays a log in blocks too), so the result is the one of a single run; but the
+    pipeline's working arrays (errors, flags, running RMS, the estimates after each
+    sample, the regressor buffer) stay the size of one block instead of the record's
+    (:func:`_traces` re-runs the estimators for the convergence figure).
+    """
+    kept: list[list[EquationBlock]] = []
+
+    def keep(block: PipelineBlock) -> None:
+        if not kept:
+            kept.extend([] for _ in block.equations)
+        for parts, eb in zip(kept, block.equations, strict=True):
+            if len(eb.t) or not parts:  # the first, even empty: it gives phi's width
+                parts.append(_slim(eb))
+
+    n = len(signals)
+    for a in range(0, n, CHUNK):
+        keep(proc.process(signals.slice(a, min(n, a + CHUNK)), record=True))
+    if proc.calibration is None:  # a record shorter than the calibration window
+        keep(proc.finish(record=True))
+    if not kept:
+        keep(proc.process(signals.slice(0, 0), record=True))
+    return [_concat(parts, eq) for parts, eq in
+            zip(kept, (e.equation.name for e in proc.pipeline.estimators), strict=True)]
+
+
+_EMPTY = np.zeros(0)
+
+
+def _slim(eb: EquationBlock) -> EquationBlock:
+    """``eb`` without the arrays the diagnosis does not read."""
+    return EquationBlock(equation=eb.equation, t=eb.t, y=eb.y, eps=_EMPTY, eps_fixed=_EMPTY,
+                         used=eb.used, online_rms=_EMPTY, flags=np.zeros(0, np.uint8),
+                         theta=None, theta_fixed=None, phi=eb.phi)
+
+
+def _concat(parts: list[EquationBlock], name: str) -> EquationBlock:
+    parts = [b for b in parts if len(b.t)] or parts[:1]
+    if len(parts) == 1:
+        return parts[0]
+    return EquationBlock(
+        equation=name, t=np.concatenate([b.t for b in parts]),
+        y=np.concatenate([b.y for b in parts]), eps=_EMPTY, eps_fixed=_EMPTY,
+        used=np.concatenate([b.used for b in parts]), online_rms=_EMPTY,
+        flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None,
+        phi=np.concatenate([b.phi for b in parts]))  # type: ignore[misc]
 
 
 def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
                       eb: EquationBlock, fit: EquationFit) -> EquationDiagnosis:
     eq = est.equation
-    assert eb.phi is not None and eb.theta_fixed is not None
+    assert eb.phi is not None
     used = eb.used
     N = int(used.sum())
     unit = eq.target.unit
@@ -214,6 +277,7 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
     r_fx = eq.target_to_physical(y_n - phi @ th_fx)
     r_u = r[used]
     rms_fixed = float(np.sqrt(np.mean(r_fx[used] ** 2))) if N else math.nan
+    del y_n, r_fx  # record-long: not kept through the rest of the analysis
     hold = eq.holds[0]
     h = ctx.impulse(hold)
     h2 = float(np.sum(h * h))
@@ -243,7 +307,7 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
 def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F64,
             used: B) -> Traces:
     eq = est.equation
-    assert eb.phi is not None and eb.theta_fixed is not None
+    assert eb.phi is not None
     rows = np.flatnonzero(used)
     n = eq.n
     npts = min(400, len(rows))
@@ -258,21 +322,28 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
         root_kappa = math.sqrt(est.sigma_inflation())
         rls = RLS.from_state(est.rls.state())
         rls.reset()
+        # the fixed-point RLS too, on the same quantised inputs: its estimate at the
+        # instants, instead of a record-long recording of it after every sample
+        frls = FixedRLS.from_state(est.frls.state())
+        frls.reset()
         phi_u = np.ascontiguousarray(eb.phi[rows])
         y_u = np.ldexp(eb.y[rows], -eq.scaling.target)
         cuts = np.unique(np.linspace(0, len(rows), npts + 1).astype(np.int64))[1:]
-        th_l, sd_l = [], []
+        th_l, sd_l, fx_l = [], [], []
         a = 0
         for c in cuts:
             rls.run(phi_u[a:c], y_u[a:c], record=False)
             th_l.append(eq.to_physical(np.array(rls.theta)))
             sd_l.append(eq.sigma_to_physical(rls.std() * root_kappa))
+            Pq, Yq = frls.quantize_block(phi_u[a:c], np.ascontiguousarray(y_u[a:c]))
+            frls.run_block(Pq, Yq, False)
+            fx_l.append(eq.to_physical(frls.theta_float))
             a = int(c)
         k = rows[cuts - 1]
         conv_t = eb.t[k]
         theta = np.array(th_l)
         sigma = np.array(sd_l)
-        tfx = eb.theta_fixed[k]
+        tfx = np.array(fx_l)
     return Traces(
         t=eb.t, used=used, y=eb.y, yhat=eb.y - r, residual=r, speed=ctx.speed,
         acceleration=ctx.acceleration, current=ctx.current, position=ctx.position,

@@ -100,6 +100,10 @@ MENTION_EXPLAINED = 0.2
 
 #: Highest cogging order searched (``cogging:2`` ... ``cogging:K``).
 DEFAULT_MAX_ORDER = 64
+#: Largest ``max_order`` accepted: every order is two candidate columns, built in blocks
+#: of rows (``BLOCK x (2 K + n)`` float64: 135 MB at K = 256), and the order spectrum
+#: filters the record once per 32 orders.
+MAX_ORDER_LIMIT = 256
 #: Share of the residual variance a suggestion must explain in total when structure is
 #: left after it; below, it is withdrawn (partial explainers of something outside the
 #: library are not what is missing).
@@ -400,9 +404,8 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
         m2 = model.with_effects(add=chosen)
         eq2 = m2.equation(eq.name)
         rows2 = _eval_rows(ctx, model, eq, chosen, eb.used, periodic=True)
-        phi2, y2 = ctx.columns(eq2)
-        theta2 = np.linalg.lstsq(phi2[rows2], y2[rows2], rcond=None)[0]
-        r_left = eq2.target_to_physical(y2 - phi2 @ theta2)
+        # r = y - Phi theta, theta the least squares on rows2 (block by block)
+        r_left = ctx.fit_residual(eq2, rows2)
         if int(rows2.sum()):
             suggestion = Suggestion(suggestion.steps, suggestion.rms_before,
                                     float(np.sqrt(np.mean(r_left[rows2] ** 2))))

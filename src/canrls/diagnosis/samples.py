@@ -13,6 +13,7 @@ masks of the diagnosis are the pipeline's, bit for bit.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 import numpy.typing as npt
@@ -201,6 +202,51 @@ class RecordSamples:
                 Z = np.column_stack([phi[u], rb.y[u]])
                 A += Z.T @ Z
         return A
+
+    def _blocks(self, eq: Equation) -> Iterator[tuple[int, F64, F64, B | None]]:
+        """(first filled row, phi, y, measured rows or None: all) of an equation, block
+        by block over the filled record (the filter restarted at each segment), no
+        periodic column masked: :meth:`columns` in pieces of at most :data:`BLOCK` rows."""
+        builder = eq.builder(self.dt)
+        filled = self.selected.signals
+        real = self.selected.real
+        for a, b in self.segments():
+            builder.reset()
+            for c0 in range(a, b, BLOCK):
+                c1 = min(b, c0 + BLOCK)
+                rb = builder.process(filled.slice(c0, c1))
+                yield c0, rb.phi, rb.y, None if real is None else real[c0:c1]
+
+    def fit_residual(self, eq: Equation, rows: B) -> F64:
+        """Least-squares fit of ``eq`` on the measured ``rows`` and its residual on every
+        measured row, in the target unit: ``r = y - Phi theta`` with ``theta`` from
+        ``lstsq(Phi[rows], y[rows])``, as :meth:`columns` then ``lstsq`` give it, but
+        without the record's whole ``Phi``: the rows of the fit are gathered block by
+        block, the residual computed block by block (memory: the fitted rows, one block
+        and the residual)."""
+        n_rows = int(rows.sum())
+        A = np.empty((n_rows, eq.n))
+        Y = np.empty(n_rows)
+        k = m = 0  # rows of A filled; measured rows passed
+        for _, phi, y, real in self._blocks(eq):
+            if real is not None:
+                phi, y = phi[real], y[real]
+            sel = rows[m:m + len(y)]
+            c = int(sel.sum())
+            A[k:k + c] = phi[sel]
+            Y[k:k + c] = y[sel]
+            k += c
+            m += len(y)
+        theta = np.linalg.lstsq(A, Y, rcond=None)[0]
+        del A, Y
+        r = np.empty(m)
+        m = 0
+        for _, phi, y, real in self._blocks(eq):
+            if real is not None:
+                phi, y = phi[real], y[real]
+            r[m:m + len(y)] = y - phi @ theta
+            m += len(y)
+        return eq.target_to_physical(r)
 
     def impulse(self, hold: str, derivative: bool = False) -> F64:
         """Impulse response of F (DC gain 1), or of sF, for a hold, long enough to decay."""

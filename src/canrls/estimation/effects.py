@@ -689,11 +689,14 @@ class UserTerm(Effect):
         self.unit = unit.strip() or "1"
         self.range: tuple[float, float] | None = None
         if range is not None:
-            try:
-                lo, hi = (float(range[0]), float(range[1]))
-                ok = len(range) == 2 and math.isfinite(lo) and math.isfinite(hi) and lo <= hi
-            except (TypeError, ValueError, IndexError):
-                ok = False
+            # [lo, hi]: a list or tuple of two real numbers (not a table, string or bool)
+            ok = (isinstance(range, list | tuple) and len(range) == 2
+                  and all(isinstance(x, int | float) and not isinstance(x, bool)
+                          and (not isinstance(x, int) or x.bit_length() <= 1023)
+                          for x in range))
+            if ok:
+                lo, hi = float(range[0]), float(range[1])
+                ok = math.isfinite(lo) and math.isfinite(hi) and lo <= hi
             if not ok:
                 raise EffectError(f"effect 'user:{term}': range = {range!r} must be "
                                   f"[lo, hi] with finite lo <= hi")

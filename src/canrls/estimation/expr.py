@@ -297,7 +297,8 @@ class _Compiler:
             v = node.value
             if isinstance(v, bool) or not isinstance(v, int | float):
                 raise self.fail("literal", self.token(node), node, "only numbers")
-            c = float(v)
+            # an int beyond float64 (a 310-digit literal) is as infinite as 1e999
+            c = float(v) if not isinstance(v, int) or v.bit_length() <= 1024 else math.inf
             if not math.isfinite(c):
                 raise self.fail("literal", self.token(node), node, "must be finite")
             cv = np.float64(c)
@@ -307,8 +308,15 @@ class _Compiler:
         if isinstance(node, ast.UnaryOp):
             if isinstance(node.op, ast.USub):
                 f, b, c = self.compile(node.operand, depth + 1)
-                return ((lambda env: np.negative(f(env))),
-                        (lambda rs: (-b(rs)[1], -b(rs)[0])), None if c is None else -c)
+
+                def neg_bound(rs: Mapping[str, Interval]) -> Interval:
+                    # -[lo, hi] = [-hi, -lo]; the operand's bound is evaluated once, so
+                    # bounding is linear in the expression's size (calling it twice
+                    # doubled the time with every nested minus)
+                    lo, hi = b(rs)
+                    return -hi, -lo
+
+                return (lambda env: np.negative(f(env))), neg_bound, None if c is None else -c
             if isinstance(node.op, ast.UAdd):
                 return self.compile(node.operand, depth + 1)
             raise self.fail("operator", _OP_SYMBOL.get(type(node.op), type(node.op).__name__),

@@ -114,7 +114,13 @@ from canrls.estimation.effects import (
     parse_effect,
     target_unit,
 )
-from canrls.estimation.svf import DEFAULT_CUTOFF_HZ, DEFAULT_ZETA, SVF, gain_bounds
+from canrls.estimation.svf import (
+    DEFAULT_CUTOFF_HZ,
+    DEFAULT_ZETA,
+    SVF,
+    ZETA_RANGE,
+    gain_bounds,
+)
 
 __all__ = [
     "DATA_OPTIONS",
@@ -164,7 +170,10 @@ def _number(source: str, key: str, value: Any, *, positive: bool = False,
             nonzero: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
         raise ConfigError(_fmt(source, key, value, "must be a number"))
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # an int too large for a float
+        v = math.inf
     if not math.isfinite(v):
         raise ConfigError(_fmt(source, key, value, "must be finite"))
     if positive and v <= 0.0:
@@ -583,6 +592,10 @@ class Model:
                                    "only for a linear axis (rotary positions wrap at 2 pi)"))
         self.cutoff_hz = _number(source, "model.filter.cutoff_hz", cutoff_hz, positive=True)
         self.zeta = _number(source, "model.filter.zeta", zeta, positive=True)
+        if not ZETA_RANGE[0] <= self.zeta <= ZETA_RANGE[1]:
+            raise ConfigError(_fmt(source, "model.filter.zeta", zeta,
+                                   f"the damping ratio must be in [{ZETA_RANGE[0]:g}, "
+                                   f"{ZETA_RANGE[1]:g}]"))
         if isinstance(held, str) or not isinstance(held, Iterable):
             raise ConfigError(_fmt(source, "model.filter.held", held,
                                    f"must be a list of signals ({', '.join(_HELD_ROLES)})"))

@@ -91,7 +91,8 @@ import numpy.typing as npt
 from canrls import _kernels
 from canrls.errors import ConfigError
 
-__all__ = ["SVF", "gain_bounds", "DEFAULT_CUTOFF_HZ", "DEFAULT_ZETA"]
+__all__ = ["SVF", "gain_bounds", "DEFAULT_CUTOFF_HZ", "DEFAULT_ZETA", "ZETA_RANGE",
+           "MAX_TIME_CONSTANT"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -99,6 +100,14 @@ F64 = npt.NDArray[np.float64]
 DEFAULT_CUTOFF_HZ = 25.0
 #: Default damping ratio (Butterworth).
 DEFAULT_ZETA = 0.7071
+
+#: Damping ratios the filter accepts: far outside, the poles' arithmetic cancels
+#: (``zeta - sqrt(zeta^2 - 1)`` is 0 in float64 at ``zeta = 1e8``) and the filter is useless.
+ZETA_RANGE = (0.05, 10.0)
+#: Longest time constant ``1 / (zeta w_c)`` of the filter, in samples: the warm-up (5 of
+#: them) and the residual's colour window (64 warm-ups) are sized by it, so a cutoff far
+#: below the sample rate (1e-300 Hz) would ask for arrays larger than any memory.
+MAX_TIME_CONSTANT = 5000
 
 Hold = Literal["foh", "zoh"]
 
@@ -113,6 +122,14 @@ def _check_positive(name: str, value: float) -> float:
     return v
 
 
+def _check_zeta(zeta: float) -> float:
+    z = _check_positive("zeta", zeta)
+    if not ZETA_RANGE[0] <= z <= ZETA_RANGE[1]:
+        raise ConfigError(f"SVF zeta = {zeta!r}: the damping ratio must be in "
+                          f"[{ZETA_RANGE[0]:g}, {ZETA_RANGE[1]:g}]")
+    return z
+
+
 def gain_bounds(cutoff_hz: float, zeta: float = DEFAULT_ZETA) -> tuple[float, float]:
     r"""Return ``(F_GAIN, SF_GAIN)``: the L1 norms of the impulse responses of ``F`` and ``sF``.
 
@@ -120,7 +137,7 @@ def gain_bounds(cutoff_hz: float, zeta: float = DEFAULT_ZETA) -> tuple[float, fl
     ``c +- h``. ``F_GAIN`` is dimensionless, ``SF_GAIN`` is in 1/s.
     """
     wc = 2.0 * math.pi * _check_positive("cutoff_hz", cutoff_hz)
-    z = _check_positive("zeta", zeta)
+    z = _check_zeta(zeta)
     if z < 1.0:
         sq = math.sqrt(1.0 - z * z)
         # r = exp(-zeta pi / sqrt(1 - zeta^2)): ratio of successive extrema of f
@@ -196,12 +213,14 @@ class SVF:
 
     :param cutoff_hz: cutoff frequency :math:`f_c` [Hz], ``0 < f_c < 1/(2 dt)``.
     :param dt: sample period [s].
-    :param zeta: damping ratio :math:`\zeta > 0`.
+    :param zeta: damping ratio :math:`\zeta` in :data:`ZETA_RANGE`.
     :param hold: ``"foh"`` (straight line between samples, default) or ``"zoh"`` for every
         column, or a sequence with one of them per column (the column count is then
         fixed to its length).
     :raises ConfigError: a parameter is not a positive finite number, the cutoff is not
-        below Nyquist, or a hold is unknown.
+        below Nyquist or so low that the filter's time constant exceeds
+        :data:`MAX_TIME_CONSTANT` samples, ``zeta`` is outside :data:`ZETA_RANGE`, or a
+        hold is unknown.
 
     The state is created on the first call to :meth:`process` (its column count is then
     fixed) and carried to the next call; :meth:`reset` forgets it.
@@ -211,7 +230,7 @@ class SVF:
                  zeta: float = DEFAULT_ZETA, hold: Hold | Sequence[Hold] = "foh") -> None:
         self.cutoff_hz = _check_positive("cutoff_hz", cutoff_hz)
         self.dt = _check_positive("dt", dt)
-        self.zeta = _check_positive("zeta", zeta)
+        self.zeta = _check_zeta(zeta)
         holds = (hold,) if isinstance(hold, str) else tuple(hold)
         for h in holds:
             if h not in ("foh", "zoh"):
@@ -223,6 +242,14 @@ class SVF:
             raise ConfigError(
                 f"SVF cutoff_hz = {cutoff_hz!r}: must be below the Nyquist frequency "
                 f"{nyquist:g} Hz (dt = {dt!r} s)")
+        # tau = 1 / (zeta w_c), in samples
+        tau = 1.0 / (self.zeta * 2.0 * math.pi * self.cutoff_hz * self.dt)
+        if not tau <= MAX_TIME_CONSTANT:
+            low = 1.0 / (self.zeta * 2.0 * math.pi * MAX_TIME_CONSTANT * self.dt)
+            raise ConfigError(
+                f"SVF cutoff_hz = {cutoff_hz!r}: too low for dt = {dt!r} s, the filter "
+                f"would remember {tau:.3g} samples (at most {MAX_TIME_CONSTANT}: cutoff_hz "
+                f">= {low:.3g} Hz)")
         #: Cutoff angular frequency w_c [rad/s].
         self.wc = 2.0 * math.pi * self.cutoff_hz
         self.Ad, g0f, g1f = _discretise(self.wc, self.zeta, self.dt, "foh")

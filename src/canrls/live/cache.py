@@ -30,7 +30,7 @@ def configured_cache_dir(config: str | Path) -> Path | None:
     try:
         with p.open("rb") as fh:
             doc = tomllib.load(fh)
-    except (OSError, tomllib.TOMLDecodeError):
+    except (OSError, ValueError, RecursionError):  # left to the configuration loader
         return None
     table = doc.get("daemon")
     value = table.get("cache_dir") if isinstance(table, dict) else None

@@ -1,0 +1,90 @@
+"""Memory of ``canrls diagnose``: the peak traced memory (tracemalloc: numpy's arrays
+included) on a simulated log and on one four times longer. A bound on memory, not on
+time: the growth per extra sample must stay below :data:`BYTES_PER_SAMPLE`.
+
+The pipeline's working arrays are one block long (:data:`canrls.diagnosis.analysis.
+CHUNK`), not the record's; what still grows with the record is listed in
+docs/diagnose.md ("Memory").
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import tracemalloc
+from pathlib import Path
+
+import pytest
+
+from canrls.cli.main import main
+from canrls.config import load_config
+from canrls.diagnosis import analysis, residual, samples
+from canrls.diagnosis.analysis import diagnose_log
+from canrls.replay import prepare
+
+#: Bytes of peak memory per sample of the record that the diagnosis may grow by: the
+#: record's own arrays (signals, filtered signals, columns, residuals) and no more.
+#: (374 bytes per sample here before the diagnosis ran the pipeline in blocks, fitted
+#: the residual left block by block and re-ran the fixed-point estimator for its trace;
+#: 150 after.)
+BYTES_PER_SAMPLE = 200
+SHORT_S = 20
+
+
+def _peak(path: Path, chunk: int, monkeypatch: pytest.MonkeyPatch) -> tuple[int, int]:
+    """(samples, peak traced bytes above the start) of diagnosing ``path``."""
+    # every block shorter than the short log, so that only what grows with the record
+    # differs between the two runs (in use the blocks are 32768 and 65536 samples long)
+    monkeypatch.setattr(analysis, "CHUNK", chunk, raising=False)
+    monkeypatch.setattr(samples, "BLOCK", chunk)
+    monkeypatch.setattr(residual, "BLOCK", chunk)
+    cfg = load_config(None)
+    cfg.model["kt"] = 0.1
+    protocol, model, settings = prepare(cfg)
+    gc.collect()
+    tracemalloc.start()
+    try:
+        start, _ = tracemalloc.get_traced_memory()
+        rep = diagnose_log(path, protocol, model, settings, max_order=8)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    return rep.samples, peak - start
+
+
+def test_diagnose_memory_grows_little_with_the_log(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    logs = []
+    for k, seconds in enumerate((SHORT_S, 4 * SHORT_S)):
+        p = tmp_path / f"drive{k}.log"
+        assert main(["sim", "--out", str(p), "--duration", str(seconds), "--seed", "4",
+                     "--effects", "inertia,viscous,coulomb,offset"]) == 0
+        logs.append(p)
+    chunk = 4096
+    _peak(logs[0], chunk, monkeypatch)  # the first run loads and compiles the kernels
+    n1, p1 = _peak(logs[0], chunk, monkeypatch)
+    n4, p4 = _peak(logs[1], chunk, monkeypatch)
+    assert n4 > 3 * n1
+    growth = (p4 - p1) / (n4 - n1)
+    assert growth < BYTES_PER_SAMPLE, (
+        f"peak {p1 / 1e6:.1f} MB for {n1} samples, {p4 / 1e6:.1f} MB for {n4}: "
+        f"{growth:.0f} bytes per extra sample")
+
+
+def test_blocks_give_the_answer_of_one_run(tmp_path: Path,
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """The record run in blocks (with lost frames and a silence: gaps and filter
+    restarts across block boundaries) gives the report of a single run, bit for bit."""
+    p = tmp_path / "gaps.log"
+    assert main(["sim", "--out", str(p), "--duration", "12", "--seed", "6",
+                 "--effects", "inertia,viscous,coulomb,offset",
+                 "--faults", "drop=0.01,dup=0.005,silence=0.3s@5s"]) == 0
+    cfg = load_config(None)
+    cfg.model["kt"] = 0.1
+    protocol, model, settings = prepare(cfg)
+    reports = []
+    for chunk in (1 << 30, 3000):
+        monkeypatch.setattr(analysis, "CHUNK", chunk, raising=False)
+        rep = diagnose_log(p, protocol, model, settings, max_order=8, add=["offset"])
+        reports.append(json.dumps(rep.to_dict(), sort_keys=True, default=str))
+    assert reports[0] == reports[1]
