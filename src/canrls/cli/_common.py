@@ -83,8 +83,8 @@ def add_log_arguments(p: argparse.ArgumentParser, several: str) -> None:
                    help="count unparsable log lines instead of stopping at the first")
 
 
-def add_report_option(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """``--report DIR``: the HTML page with figures."""
+def add_report_option(p: Any) -> None:
+    """``--report DIR`` on a parser or an argument group: the HTML page with figures."""
     p.add_argument("--report", metavar="DIR",
                    help="write DIR/index.html with PNG figures (needs matplotlib: "
                         "pip install 'canrls[report]')")
