@@ -100,7 +100,9 @@ class Publisher:
 
     # ------------------------------------------------------------------ schedule
     def start(self, now: float) -> None:
-        """The first publication after one interval; the parameter info at once."""
+        """The first publication after one interval, then every interval on a fixed grid
+        (``now + k publish_interval``; publications forced by a model change come in
+        between and never move it); the parameter info at once."""
         self.next_at = now + self.config.publish_interval
         self.info_due = now
 
@@ -216,8 +218,13 @@ class Publisher:
         self.link.send(msgs)
         self.publications += 1
         self._asap = False
-        if self.config.publish_interval > 0:
-            self.next_at = max(self.next_at + self.config.publish_interval, now)
+        step = self.config.publish_interval
+        if step > 0 and now >= self.next_at:
+            # the regular schedule is a fixed grid, start + k step: a publication forced
+            # by a model change (before next_at) leaves it alone, and a slot missed by a
+            # long block is skipped, never shifted
+            # next_at <- next_at + (floor((now - next_at) / step) + 1) step
+            self.next_at += (math.floor((now - self.next_at) / step) + 1) * step
         if self.on_publish is not None:
             self.on_publish(self.processor.frames, sent)
 
