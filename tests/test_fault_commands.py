@@ -11,16 +11,29 @@ cleanly with exit status 0.
 
 from __future__ import annotations
 
+import collections
 import itertools
+import json
+import logging
 import os
+import signal
+import socket
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import can
+import numpy as np
+import pytest
 
-from canrls.can.frames import CommandCode, encode_command
+from canrls.can.frames import CommandCode, CommandResult, EffectId, encode_command
 from canrls.config import AppConfig
+from canrls.errors import ConfigError
+from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
 from canrls.live.daemon import Daemon, DaemonSettings
+from canrls.processor import FrameProcessor
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE = ["inertia", "viscous", "coulomb"]
@@ -65,3 +78,255 @@ def test_forced_publications_do_not_move_the_regular_grid() -> None:
     assert abs(pub.next_at - (t0 + 0.2)) < 1e-9
     pub.publish(t0 + 0.4501)  # a long block missed slots: skipped, the grid kept
     assert abs(pub.next_at - (t0 + 0.5)) < 1e-9
+
+
+# ------------------------------------------------------------------ floods in one process
+class _Tool:
+    """A virtual bus on the daemon's channel that keeps what the daemon sends."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel, ignore_config=True)
+        self.bus.set_filters([{"can_id": 0x300, "can_mask": 0x700}])
+        self.reader = can.BufferedReader()
+        self.notifier = can.Notifier(self.bus, [self.reader], timeout=0.05)
+        self.frames: list[can.Message] = []
+
+    def take(self) -> list[can.Message]:
+        new = []
+        while (m := self.reader.get_message(0.0)) is not None:
+            new.append(m)
+        self.frames += new
+        return new
+
+    def acks(self) -> list[can.Message]:
+        return [m for m in self.frames if m.arbitration_id == 0x321]
+
+    def wait_acks(self, n: int, timeout: float = 60.0) -> list[can.Message]:
+        end = time.monotonic() + timeout
+        while len(self.acks()) < n and time.monotonic() < end:
+            self.take()
+            time.sleep(0.01)
+        return self.acks()
+
+    def close(self) -> None:
+        self.notifier.stop()
+        self.bus.shutdown()
+
+
+def _sim(channel: str) -> dict[str, Any]:
+    # feedback frames made as the daemon reads them (with backpressure): the estimator
+    # is always busy while the commands flood in
+    return dict(interface="canrls-sim", channel=channel, effects="inertia,viscous,coulomb",
+                seed=3, excitation="slow", realtime=False, start_time=0.0)
+
+
+def _random_frames(rng: np.random.Generator, n: int) -> list[can.Message]:
+    """Random bytes on the command ID: random DLC 0..8, sometimes a remote frame."""
+    out = []
+    for _ in range(n):
+        dlc = int(rng.integers(0, 9))
+        if rng.random() < 0.05:
+            out.append(can.Message(arbitration_id=0x320, is_extended_id=False,
+                                   is_remote_frame=True, dlc=dlc))
+        else:
+            out.append(can.Message(arbitration_id=0x320, is_extended_id=False,
+                                   data=rng.integers(0, 256, dlc, dtype=np.uint8).tobytes()))
+    return out
+
+
+def test_a_command_flood_is_bounded_answered_and_keeps_the_schedule() -> None:
+    """300 add_effect and 300 random frames as fast as the bus takes them, against a
+    daemon estimating a drive in real time: every frame is answered with its reason,
+    the model never exceeds max_parameters, the parameter frames keep their period and
+    the daemon keeps running."""
+    protocol, model, settings = _setup()
+    ch = _chan("flood")
+    interval = 0.1
+    cfg = DaemonSettings(publish_interval=interval, commands=True, max_parameters=16,
+                         command_rate=2.0, command_burst=10)
+    d = Daemon(protocol, model, settings, cfg, bus=_sim(ch), backpressure=True)
+    tool = _Tool(ch)
+    rng = np.random.default_rng(20261127)
+    adds = [_cmd(CommandCode.ADD_EFFECT, EffectId.COGGING, k) for k in range(1, 301)]
+    junk = _random_frames(rng, 300)
+    flood = [m for pair in zip(adds, junk, strict=True) for m in pair]
+    sizes: list[int] = []
+    try:
+        d.start()
+        assert d.wait_for(lambda x: x.pipeline.samples > 2000, 60)
+        tool.take()
+        t0 = time.time()
+        for k, m in enumerate(flood):
+            tool.bus.send(m)
+            if k % 50 == 0:
+                sizes.append(len(d.model.parameters))
+        acks = tool.wait_acks(len(flood))
+        time.sleep(5 * interval)  # and the schedule after the flood
+        tool.take()
+        t1 = time.time()
+        assert d.failure is None and d.stats().publications > 5
+    finally:
+        d.stop()
+        tool.close()
+    assert len(acks) == len(flood)  # every frame answered
+    results = collections.Counter(CommandResult(m.data[1]).name.lower() for m in acks)
+    # the reasons: the model bound, the rate limit, and what is wrong with the bytes
+    assert results["ok"] >= 6 and results["too_large"] >= 1 and results["rate_limited"] > 200
+    assert results["malformed"] + results["unknown_command"] > 200, results
+    assert d.stats().command_results == dict(results)
+    # bounded: never more than max_parameters, and ended at the bound
+    assert max(sizes) <= 16 and len(d.model.parameters) == 15
+    assert d.model.effect_names[:3] == tuple(BASE)
+    # the regular parameter frames kept their period during the flood (a generous
+    # tolerance for a loaded machine: the fault was seconds of silence)
+    times = [m.timestamp for m in tool.frames if m.arbitration_id == 0x300
+             and m.data[0] == 0 and t0 - interval <= m.timestamp <= t1]
+    gaps = np.diff(times)
+    assert len(times) >= (t1 - t0) / interval * 0.5
+    assert gaps.max() < 10 * interval, gaps.max()
+
+
+def test_commands_are_off_by_default() -> None:
+    protocol, model, settings = _setup()
+    ch = _chan("off")
+    d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=1.0),
+               bus={"interface": "virtual", "channel": ch})
+    tool = _Tool(ch)
+    try:
+        d.start()
+        for m in (_cmd(CommandCode.ADD_EFFECT, EffectId.OFFSET), _cmd(CommandCode.RESET),
+                  can.Message(arbitration_id=0x320, is_extended_id=False, data=b"\x09")):
+            tool.bus.send(m)
+        acks = tool.wait_acks(3)
+    finally:
+        d.stop()
+        tool.close()
+    assert [CommandResult(m.data[1]) for m in acks] == [CommandResult.DISABLED] * 3
+    assert [m.data[0] for m in acks] == [4, 1, 9]  # the raw command byte, as given
+    assert d.model.effect_names == tuple(BASE)
+
+
+def test_the_command_line_enables_commands(tmp_path: Path) -> None:
+    from canrls.cli.main import build_parser
+    from canrls.cli.run import build_daemon
+
+    conf = tmp_path / "c.toml"
+    conf.write_text('[model]\neffects = ["inertia", "viscous", "coulomb"]\nkt = 0.1\n'
+                    '[daemon]\ncommands = true\n')
+    parser = build_parser("run")
+    base = ["run", "-i", "virtual", "-c", _chan("cli")]
+    got = {}
+    for extra in ([], ["--commands"], ["--no-commands"], ["-C", str(conf)],
+                  ["-C", str(conf), "--no-commands"]):
+        got[" ".join(extra)] = build_daemon(parser.parse_args(base + extra)).config.commands
+    assert got == {"": False, "--commands": True, "--no-commands": False,
+                   f"-C {conf}": True, f"-C {conf} --no-commands": False}
+    with pytest.raises(SystemExit):  # not both
+        parser.parse_args(base + ["--commands", "--no-commands"])
+
+
+def test_a_model_the_frames_cannot_carry_is_refused_before_it_runs(tmp_path: Path) -> None:
+    """The fault: ~127 add_effect grew the model past the 255 parameters the frames
+    carry; encoding failed, the daemon stopped (exit status 0) and its checkpoint kept
+    the model, so that every start stopped again. Now the add is answered too_large,
+    the daemon goes on, and its checkpoint resumes."""
+    protocol, model, settings = _setup()
+    ch = _chan("big")
+    ckpt = tmp_path / "cp.bin"
+    cfg = DaemonSettings(publish_interval=0.05, commands=True, max_parameters=255,
+                         command_burst=1000, checkpoint=ckpt)
+    d = Daemon(protocol, model, settings, cfg, bus={"interface": "virtual", "channel": ch})
+    tool = _Tool(ch)
+    n = 130
+    try:
+        d.start()
+        for k in range(1, n + 1):
+            tool.bus.send(_cmd(CommandCode.ADD_EFFECT, EffectId.COGGING, k))
+        acks = tool.wait_acks(n, timeout=120)
+        time.sleep(0.2)
+        assert d.failure is None
+    finally:
+        d.stop()
+        tool.close()
+    results = [CommandResult(m.data[1]) for m in acks]
+    assert results == [CommandResult.OK] * 126 + [CommandResult.TOO_LARGE] * 4
+    assert len(d.model.parameters) == 255
+    assert len(load_checkpoint(ckpt).model["effects"]) == 3 + 126
+    again = Daemon(protocol, model, settings, cfg, bus={"interface": "virtual", "channel": ch})
+    assert again.resumed_from == str(ckpt) and len(again.model.parameters) == 255
+
+
+def test_a_checkpoint_whose_model_cannot_be_published_is_set_aside(tmp_path: Path) -> None:
+    """A checkpoint left by the old daemon with an oversized model is not resumed."""
+    protocol, model, settings = _setup()
+    big = model.with_effects(add=[f"cogging:{k}" for k in range(1, 128)])
+    assert len(big.parameters) == 257
+    proc = FrameProcessor(protocol, big, settings)
+    path = tmp_path / "cp.bin"
+    save_checkpoint(path, Checkpoint(
+        model=json.loads(json.dumps(big.to_dict())),
+        config_model=json.loads(json.dumps(model.to_dict())),
+        fingerprint=fingerprint(settings, proc.dt), state=proc.state(),
+        counters={"frames": 7}, saved_at=123.5))
+    d = Daemon(protocol, model, settings, DaemonSettings(checkpoint=path),
+               bus={"interface": "virtual", "channel": _chan("bigckpt")})
+    assert d.resumed_from is None and d.model.effect_names == tuple(BASE)
+    assert not path.exists() and len(list(tmp_path.glob("cp.bin.bad-*"))) == 1
+    # nor does a configured model beyond max_parameters start
+    with pytest.raises(ConfigError, match="max_parameters = 32"):
+        Daemon(protocol, big, settings, DaemonSettings(),
+               bus={"interface": "virtual", "channel": _chan("bigcfg")})
+
+
+def test_a_reload_beyond_max_parameters_keeps_the_running_model(
+        caplog: pytest.LogCaptureFixture) -> None:
+    protocol, model, settings = _setup()
+    big = model.with_effects(add=["unbalance", "cogging:1", "cogging:2"])
+    d = Daemon(protocol, model, settings, DaemonSettings(max_parameters=8),
+               bus={"interface": "virtual", "channel": _chan("reload")}, reload=lambda: big)
+    caplog.set_level(logging.ERROR, logger="canrls.live")
+    try:
+        d.start()
+        d.request_reload()
+        assert d.wait_for(lambda x: x.stats().reloads == 1, 10)
+        time.sleep(0.1)
+        assert d.failure is None
+    finally:
+        d.stop()
+    assert d.model.effect_names == tuple(BASE)
+    assert any("reload refused" in r.message and "max_parameters = 8" in r.message
+               for r in caplog.records)
+
+
+def test_the_rate_limit_refills() -> None:
+    from canrls.live.commands import TokenBucket
+
+    b = TokenBucket(rate=2.0, burst=3)
+    assert [b.take(10.0) for _ in range(4)] == [True, True, True, False]
+    assert not b.take(10.4)  # 0.8 token
+    assert b.take(10.5) and not b.take(10.5)  # 1 token after 0.5 s
+    assert [b.take(100.0) for _ in range(4)] == [True, True, True, False]  # never > burst
+
+
+# ------------------------------------------------------------------ exit status
+def test_an_exception_in_the_estimator_thread_exits_non_zero(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """The daemon used to log the exception and return 0: systemd's
+    Restart=on-failure then left it stopped. Now run() returns 1, and the state that
+    failed is not checkpointed."""
+    protocol, model, settings = _setup()
+    ckpt = tmp_path / "cp.bin"
+    d = Daemon(protocol, model, settings,
+               DaemonSettings(publish_interval=0.05, checkpoint=ckpt),
+               bus={"interface": "virtual", "channel": _chan("boom")})
+
+    def boom(now: float) -> None:
+        raise RuntimeError("injected publisher fault")
+
+    monkeypatch.setattr(d.publisher, "publish", boom)
+    caplog.set_level(logging.CRITICAL, logger="canrls.live")
+    assert d.run(duration=30.0) == 1
+    assert isinstance(d.failure, RuntimeError)
+    assert not ckpt.exists()
+    assert any("estimator thread failed" in r.message and r.exc_info for r in caplog.records)

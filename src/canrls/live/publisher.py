@@ -28,13 +28,15 @@ from canrls.can.frames import (
     encode_status,
     frame_ids,
 )
+from canrls.errors import CanrlsError, ConfigError
+from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, Pipeline, PipelineBlock, divergence
 from canrls.estimation.rls import RLSFlag
 from canrls.live.bus import BusLink
 from canrls.live.settings import DaemonSettings
 from canrls.processor import FrameProcessor
 
-__all__ = ["Publisher", "parameter_layout"]
+__all__ = ["Publisher", "check_publishable", "model_layout", "parameter_layout"]
 
 log = logging.getLogger(__name__)
 
@@ -46,9 +48,14 @@ _IDLE_S = 0.25
 
 def parameter_layout(pipeline: Pipeline) -> tuple[tuple[ParameterReport, ...], ...]:
     """The pipeline's parameters as reports without estimates, a tuple per equation."""
+    return model_layout(pipeline.model)
+
+
+def model_layout(model: Model) -> tuple[tuple[ParameterReport, ...], ...]:
+    """A model's parameters as reports without estimates, a tuple per equation."""
     rows: list[tuple[ParameterReport, ...]] = []
     i = 0
-    for eq in pipeline.model.equations:
+    for eq in model.equations:
         params = eq.parameters
         rows.append(tuple(
             ParameterReport(index=i + k, name=p.name, effect_id=EffectId(p.effect_id),
@@ -57,6 +64,31 @@ def parameter_layout(pipeline: Pipeline) -> tuple[tuple[ParameterReport, ...], .
             for k, p in enumerate(params)))
         i += len(params)
     return tuple(rows)
+
+
+def check_publishable(model: Model, max_parameters: int, what: str = "the model") -> None:
+    """Raise :class:`~canrls.errors.ConfigError` unless the daemon can publish ``model``:
+    at most ``max_parameters`` parameters (``[daemon] max_parameters``), and every frame
+    it would send encodes (a rehearsal with made-up values; nothing is sent).
+
+    Called before a model becomes the running one (start, command, reload, resume from
+    a checkpoint) and before a checkpoint is written, so that a model that cannot be
+    published never runs, nor comes back at the next start.
+    """
+    n = len(model.parameters)
+    if n > max_parameters:
+        raise ConfigError(f"{what} ({','.join(model.effect_names)}) has {n} parameters, more "
+                          f"than [daemon] max_parameters = {max_parameters}")
+    reports: list[ParameterReport] = []
+    for blanks in model_layout(model):
+        reports += [r.with_estimates(0.0, 0.0, 0.0, True) for r in blanks]
+    try:
+        encode_parameters(reports, 0)
+        encode_param_info(reports)
+        encode_status(StatusReport(active_effects=model.active_effects), 0)
+    except CanrlsError as e:
+        raise ConfigError(f"{what} ({','.join(model.effect_names)}) cannot be published: "
+                          f"{e}") from e
 
 
 class Publisher:
