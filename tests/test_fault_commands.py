@@ -330,3 +330,121 @@ def test_an_exception_in_the_estimator_thread_exits_non_zero(
     assert isinstance(d.failure, RuntimeError)
     assert not ckpt.exists()
     assert any("estimator thread failed" in r.message and r.exc_info for r in caplog.records)
+
+
+# ------------------------------------------------------------------ across processes
+def _notify_socket(tmp_path: Path, name: str) -> tuple[socket.socket, str]:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    addr = str(tmp_path / f"{name}.sock")
+    sock.bind(addr)
+    sock.settimeout(0.2)
+    return sock, addr
+
+
+def _wait_ready(sock: socket.socket, proc: subprocess.Popen[str], timeout: float) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and proc.poll() is None:
+        try:
+            if "READY=1" in sock.recv(4096).decode():
+                return
+        except TimeoutError:
+            continue
+    raise AssertionError(f"the daemon did not get ready (exit status {proc.poll()})")
+
+
+@pytest.mark.slow
+def test_sigterm_after_sigterm_is_still_a_clean_stop(tmp_path: Path) -> None:
+    """SIGTERM every 10 ms until the daemon has exited: it stops gracefully, exit 0
+    (a SIGTERM after the daemon had restored the default handlers killed it: -15)."""
+    ckpt = tmp_path / "cp.bin"
+    sock, addr = _notify_socket(tmp_path, "term")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "canrls", "run", "-i", "canrls-sim", "-c", "standard",
+         "--bus-kwargs", "seed=1", "--kt", "0.1", "--effects", "inertia,viscous,coulomb",
+         "--checkpoint", str(ckpt), "--json"],
+        env=dict(os.environ, NOTIFY_SOCKET=addr), stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_ready(sock, proc, 60)
+        time.sleep(1.0)
+        end = time.monotonic() + 60
+        while proc.poll() is None and time.monotonic() < end:
+            proc.send_signal(signal.SIGTERM)
+            time.sleep(0.01)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        sock.close()
+    assert proc.returncode == 0, err
+    assert json.loads(out)["daemon"]["frames"] > 0 and ckpt.exists()
+
+
+SERVER = """
+import sys
+from can_remote import RemoteServer
+srv = RemoteServer("127.0.0.1", 0, channel="remote-kill9", bustype="canrls-sim", seed=7,
+                   excitation="slow", effects="inertia,viscous,coulomb")
+print(srv.server_port, flush=True)
+srv.serve_forever()
+"""
+
+
+@pytest.mark.slow
+def test_kill_9_at_random_moments_resumes_from_the_checkpoint(tmp_path: Path) -> None:
+    """``canrls run -i remote`` (python-can-remote on 127.0.0.1) killed with -9 at seeded
+    random moments and started again: every start resumes from the checkpoint, whose
+    frame count only grows, and nothing is set aside."""
+    pytest.importorskip("can_remote")
+    script = tmp_path / "server.py"
+    script.write_text(SERVER)
+    server = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
+                              stderr=subprocess.DEVNULL, text=True)
+    rng = np.random.default_rng(9)
+    ckpt = tmp_path / "cp.bin"
+    frames: list[int] = []
+    try:
+        assert server.stdout is not None
+        url = f"ws://127.0.0.1:{int(server.stdout.readline())}/"
+        cmd = [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-i", "remote",
+               "-c", url, "--kt", "0.1", "--effects", "inertia,viscous,coulomb",
+               "--checkpoint", str(ckpt), "--checkpoint-interval", "0.3",
+               "--publish-interval", "0.05", "--json"]
+        for k in range(4):
+            sock, addr = _notify_socket(tmp_path, f"n{k}")
+            log = tmp_path / f"daemon{k}.log"
+            with log.open("w") as err:
+                proc = subprocess.Popen(cmd, env=dict(os.environ, NOTIFY_SOCKET=addr),
+                                        stdout=subprocess.PIPE, stderr=err, text=True)
+                try:
+                    _wait_ready(sock, proc, 60)
+                    if k < 3:
+                        time.sleep(float(rng.uniform(0.8, 2.5)))
+                        proc.kill()
+                        proc.communicate(timeout=30)
+                        assert proc.returncode == -signal.SIGKILL
+                    else:  # the last one stops gracefully
+                        time.sleep(1.0)
+                        proc.send_signal(signal.SIGTERM)
+                        out, _ = proc.communicate(timeout=60)
+                finally:
+                    if proc.poll() is None:
+                        proc.kill()
+                        proc.communicate()
+                    sock.close()
+            text = log.read_text()
+            if k > 0:
+                assert f"resumed from checkpoint {ckpt}" in text, text
+            assert "not loaded" not in text, text
+            frames.append(int(load_checkpoint(ckpt).counters["frames"]))
+    finally:
+        server.terminate()
+        server.wait(10)
+        if server.stdout is not None:
+            server.stdout.close()
+    assert proc.returncode == 0
+    final = json.loads(out)
+    assert final["daemon"]["resumed_from"] == str(ckpt)
+    assert all(b > a for a, b in itertools.pairwise(frames)), frames
+    assert not list(tmp_path.glob("cp.bin.bad-*"))
