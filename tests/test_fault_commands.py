@@ -134,7 +134,8 @@ def _random_frames(rng: np.random.Generator, n: int) -> list[can.Message]:
     return out
 
 
-def test_a_command_flood_is_bounded_answered_and_keeps_the_schedule() -> None:
+def test_a_command_flood_is_bounded_answered_and_keeps_the_schedule(
+        caplog: pytest.LogCaptureFixture) -> None:
     """300 add_effect and 300 random frames as fast as the bus takes them, against a
     daemon estimating a drive in real time: every frame is answered with its reason,
     the model never exceeds max_parameters, the parameter frames keep their period and
@@ -151,6 +152,7 @@ def test_a_command_flood_is_bounded_answered_and_keeps_the_schedule() -> None:
     junk = _random_frames(rng, 300)
     flood = [m for pair in zip(adds, junk, strict=True) for m in pair]
     sizes: list[int] = []
+    caplog.set_level(logging.WARNING, logger="canrls.live.commands")
     try:
         d.start()
         assert d.wait_for(lambda x: x.pipeline.samples > 2000, 60)
@@ -184,6 +186,9 @@ def test_a_command_flood_is_bounded_answered_and_keeps_the_schedule() -> None:
     gaps = np.diff(times)
     assert len(times) >= (t1 - t0) / interval * 0.5
     assert gaps.max() < 10 * interval, gaps.max()
+    # nor does the journal get a line per frame: 10 a second at most
+    logged = [r for r in caplog.records if "rejected (" in r.message]
+    assert 10 <= len(logged) <= 10 * (t1 - t0 + 2) and len(logged) < len(flood) / 4
 
 
 def test_commands_are_off_by_default() -> None:

@@ -42,7 +42,10 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "run", help="run the estimator live on a CAN bus (the daemon)",
         description="Identify the drive's parameters live: read feedback frames from a CAN "
-                    "bus, publish estimates and status, answer commands (see docs/daemon.md).")
+                    "bus, publish estimates and status, answer commands (off unless "
+                    "--commands; see docs/daemon.md). Exit status: 0 after a requested stop "
+                    "(SIGTERM, SIGINT, --duration; a second SIGTERM changes nothing), 1 on "
+                    "an error (configuration, bus, or an internal error of the daemon).")
     add_model_options(p)
     add_bus_options(p)
     g = p.add_argument_group("daemon (each also settable in [daemon] of --config)")

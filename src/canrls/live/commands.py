@@ -36,6 +36,9 @@ __all__ = ["CommandHandler", "TokenBucket", "command_effect_name"]
 
 log = logging.getLogger(__name__)
 
+#: rejected command frames logged per second at most
+_LOG_PER_S = 10
+
 
 def command_effect_name(effect: EffectId, order: int, model: Model) -> str:
     """The model's name of the effect a command means: ``cogging:K``, ``user:NAME``...
@@ -113,6 +116,8 @@ class CommandHandler:
         #: commands, commands_rejected, and one count per result name (``ok``, ...)
         self.counts: collections.Counter[str] = collections.Counter()
         self._ack_counter = 0
+        #: (start of the current second, warnings logged in it, warnings left out)
+        self._log_window = (0.0, 0, 0)
 
     def handle(self, msg: can.Message) -> CommandResult:
         """Decode, apply and acknowledge one command frame; returns the result sent."""
@@ -141,11 +146,27 @@ class CommandHandler:
                 code = e.code
             self.counts["commands_rejected"] += 1
             self.counts[result.name.lower()] += 1
-            log.warning("command frame %s rejected (%s): %s", bytes(msg.data).hex(),
-                        result.name.lower(), e)
+            self._warn(msg, result, e)
         self._ack_counter = (self._ack_counter + 1) % 16
         self.send([encode_ack(code, result, self._ack_counter, timestamp=time.time())])
         return result
+
+    def _warn(self, msg: can.Message, result: CommandResult, e: CommandFrameError) -> None:
+        """Log a rejected frame: at most ``_LOG_PER_S`` a second (a flood must not flood
+        the journal too); the first line after a quiet second says how many were left out."""
+        now = self.clock()
+        start, logged, left_out = self._log_window
+        if now - start >= 1.0:
+            if left_out:
+                log.warning("%d more rejected command frames were not logged", left_out)
+            start, logged, left_out = now, 0, 0
+        if logged < _LOG_PER_S:
+            log.warning("command frame %s rejected (%s): %s", bytes(msg.data).hex(),
+                        result.name.lower(), e)
+            logged += 1
+        else:
+            left_out += 1
+        self._log_window = (start, logged, left_out)
 
     def apply(self, cmd: Command) -> None:
         """Apply a valid command; raise CommandFrameError (changing nothing) otherwise."""
