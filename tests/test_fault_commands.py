@@ -453,3 +453,26 @@ def test_kill_9_at_random_moments_resumes_from_the_checkpoint(tmp_path: Path) ->
     assert final["daemon"]["resumed_from"] == str(ckpt)
     assert all(b > a for a, b in itertools.pairwise(frames)), frames
     assert not list(tmp_path.glob("cp.bin.bad-*"))
+
+
+def test_canrls_run_exits_1_on_an_internal_error(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    from canrls.cli.main import main
+    from canrls.live.publisher import Publisher
+
+    def boom(self: Publisher, now: float) -> None:
+        raise RuntimeError("injected publisher fault")
+
+    monkeypatch.setattr(Publisher, "publish", boom)
+    saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
+    try:
+        status = main(["run", "-i", "virtual", "-c", _chan("cli-boom"), "--kt", "0.1",
+                       "--effects", "inertia,viscous,coulomb", "--duration", "30"])
+        # the command leaves SIGTERM/SIGHUP ignored (it would have ended the process)
+        assert signal.getsignal(signal.SIGTERM) in (signal.SIG_IGN, saved[signal.SIGTERM])
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+    assert status == 1
+    err = capsys.readouterr().err
+    assert "error: the daemon stopped on an internal error: RuntimeError: injected" in err
