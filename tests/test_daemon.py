@@ -104,7 +104,8 @@ def test_end_to_end_frames_decode_in_cantools(tmp_path: Path) -> None:
     ch = _chan("e2e")
     tool = _Tool(ch)
     d = Daemon(protocol, model, settings,
-               DaemonSettings(publish_interval=0.02, info_interval=0.2), bus=_sim(ch),
+               DaemonSettings(publish_interval=0.02, info_interval=0.2, commands=True),
+               bus=_sim(ch),
                backpressure=True)
     try:
         d.start()
@@ -173,7 +174,8 @@ def test_commands_good_and_bad() -> None:
     protocol, model, settings = _setup()
     ch = _chan("cmd")
     tool = _Tool(ch)
-    d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=1.0),
+    d = Daemon(protocol, model, settings,
+               DaemonSettings(publish_interval=1.0, commands=True, command_burst=100),
                bus={"interface": "virtual", "channel": ch})
     R = CommandResult
     try:
@@ -235,7 +237,10 @@ def test_commands_can_be_disabled() -> None:
         for msg in (_cmd(CommandCode.RESET), _cmd(CommandCode.ADD_EFFECT, EffectId.OFFSET),
                     _cmd(CommandCode.FREEZE)):
             assert tool.command(msg) is CommandResult.DISABLED
-        assert tool.command(_raw(b"\x01")) is CommandResult.MALFORMED
+        # whatever the frame holds (it was answered malformed, bad_value...)
+        for raw in (b"\x01", b"", bytes([9, 0, 0, 0, 0, 0, 0, 0]),
+                    bytes([6, 0, 0, 0]) + np.float32(1.5).tobytes()):
+            assert tool.command(_raw(raw)) is CommandResult.DISABLED
         assert d.model.effect_names == tuple(BASE) and not d.pipeline.frozen
     finally:
         d.stop()
@@ -249,7 +254,7 @@ def test_a_command_does_not_wait_for_the_block_interval() -> None:
     protocol, model, settings = _setup()
     ch = _chan("hurry")
     tool = _Tool(ch)
-    d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=3.0),
+    d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=3.0, commands=True),
                bus={"interface": "virtual", "channel": ch})
     assert d.config.block_s == 3.0
     try:
@@ -285,7 +290,7 @@ def test_adding_the_missing_effect_makes_the_status_rms_fall() -> None:
     protocol, model, settings = _setup()
     ch = _chan("rms")
     tool = _Tool(ch)
-    d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=0.01),
+    d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=0.01, commands=True),
                bus=_sim(ch, effects="inertia,viscous,coulomb,unbalance"), backpressure=True)
     rms: list[tuple[int, float]] = []  # (frames processed, RlsStatus.ResidualRms)
 
@@ -413,7 +418,8 @@ def test_vanished_interface_is_reopened_with_backoff() -> None:
 
     tool = _Tool(ch)
     d = Daemon(protocol, model, settings,
-               DaemonSettings(publish_interval=0.02, reopen_min_s=0.05, reopen_max_s=0.2),
+               DaemonSettings(publish_interval=0.02, reopen_min_s=0.05, reopen_max_s=0.2,
+                              commands=True),
                bus_factory=factory)
     try:
         d.start()
@@ -463,6 +469,7 @@ def test_bus_config_ignores_python_can_config(monkeypatch: pytest.MonkeyPatch,
 
 
 def test_daemon_settings_are_validated(tmp_path: Path) -> None:
+    assert not DaemonSettings().commands  # off unless enabled
     s = DaemonSettings.from_table({"publish_interval": 0.5, "commands": False,
                                    "checkpoint": "state/cp.bin"}, "f.toml", tmp_path)
     assert s.publish_interval == 0.5 and not s.commands
@@ -472,7 +479,12 @@ def test_daemon_settings_are_validated(tmp_path: Path) -> None:
                        ({"publish_interval": -1}, "publish_interval"),
                        ({"queue_size": 0}, "queue_size"),
                        ({"reopen_min_s": 5, "reopen_max_s": 1}, "reopen_max_s"),
-                       ({"checkpoint": 3}, "file path")):
+                       ({"checkpoint": 3}, "file path"),
+                       ({"max_parameters": 256}, "max_parameters = 256: must be in 1..255"),
+                       ({"max_parameters": 0}, "max_parameters"),
+                       ({"command_rate": 0}, "command_rate"),
+                       ({"command_rate": "fast"}, "commands per second"),
+                       ({"command_burst": 0.5}, "command_burst")):
         with pytest.raises(ConfigError, match=msg) as e:
             DaemonSettings.from_table(table, "f.toml")
         assert "f.toml" in str(e.value)

@@ -106,7 +106,8 @@ def running_daemon() -> tuple[Daemon, str]:
     sim = dict(interface="canrls-sim", channel=ch, seed=5, excitation="slow", realtime=False,
                start_time=0.0, duration=20.0)
     d = Daemon(protocol, cfg.model_for(protocol), cfg.settings(),
-               DaemonSettings(publish_interval=0.05, info_interval=0.2), bus=sim,
+               DaemonSettings(publish_interval=0.05, info_interval=0.2, commands=True),
+               bus=sim,
                backpressure=True)
     d.start()
     try:

@@ -49,7 +49,8 @@ def test_sim_daemon_monitor_across_processes(remote_server: str, tmp_path: Path)
     assert remote_server.startswith("ws://127.0.0.1:")
     daemon = subprocess.Popen(
         [sys.executable, "-m", "canrls", "run", "-i", "remote", "-c", remote_server,
-         "--kt", "0.1", "--publish-interval", "0.05", "--duration", "60", "--json"],
+         "--kt", "0.1", "--publish-interval", "0.05", "--duration", "60", "--json",
+         "--commands"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         time.sleep(6.0)  # the drive runs in real time: let the estimates settle

@@ -102,6 +102,11 @@ class CommandResult(IntEnum):
     UNKNOWN_EFFECT = 4
     BAD_VALUE = 5
     NOT_APPLICABLE = 6
+    #: the changed model would have more parameters than ``[daemon] max_parameters``
+    #: or than the parameter frames carry
+    TOO_LARGE = 7
+    #: more commands than ``[daemon] command_rate``/``command_burst`` allow: try later
+    RATE_LIMITED = 8
 
 
 #: Component symbols of each effect (component index -> parameter symbol).

@@ -186,7 +186,8 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     say(f"The model knows only {', '.join(_BASE)}: the drive's {hidden} is hidden from it.")
     say()
     daemon = Daemon(protocol, model, settings,
-                    DaemonSettings(publish_interval=0.05, queue_size=20000, block_interval=0.005),
+                    DaemonSettings(publish_interval=0.05, queue_size=20000, block_interval=0.005,
+                                   commands=True),
                     bus=sim, backpressure=True)
     mon = Monitor(units=units, feedback_ids=[m.frame_id for m in protocol.messages],
                   source=f"virtual:{channel}")

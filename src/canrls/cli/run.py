@@ -6,17 +6,29 @@
 
 Reads the drive's feedback frames, runs the same pipeline as ``canrls fit`` (float and
 fixed-point RLS side by side), publishes parameter and status frames, answers command
-frames, checkpoints, and talks to systemd (``Type=notify``, watchdog). SIGTERM/SIGINT
-stop it (with a final checkpoint), SIGHUP re-reads the configuration's model. On exit
-it prints the final estimates (``--json``: one object with the estimates and the
-daemon's counters). Logging goes to stderr (journald under systemd).
+frames (only with ``--commands`` or ``[daemon] commands = true``; otherwise each is
+answered ``disabled``), checkpoints, and talks to systemd (``Type=notify``, watchdog).
+SIGTERM/SIGINT stop it (with a final checkpoint; a second one while it stops changes
+nothing), SIGHUP re-reads the configuration's model. On exit it prints the final
+estimates (``--json``: one object with the estimates and the daemon's counters).
+Logging goes to stderr (journald under systemd).
+
+Exit status: 0 after a requested stop (SIGTERM, SIGINT, ``--duration``), however many
+signals arrive; 1 for an error (one ``error:`` line on stderr): a bad configuration, a
+bus that cannot be opened, or an exception that ended the estimator or supervisor
+thread (logged with its traceback) -- so systemd's ``Restart=on-failure`` restarts it.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import math
+import signal
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +42,10 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "run", help="run the estimator live on a CAN bus (the daemon)",
         description="Identify the drive's parameters live: read feedback frames from a CAN "
-                    "bus, publish estimates and status, answer commands (see docs/daemon.md).")
+                    "bus, publish estimates and status, answer commands (off unless "
+                    "--commands; see docs/daemon.md). Exit status: 0 after a requested stop "
+                    "(SIGTERM, SIGINT, --duration; a second SIGTERM changes nothing), 1 on "
+                    "an error (configuration, bus, or an internal error of the daemon).")
     add_model_options(p)
     add_bus_options(p)
     g = p.add_argument_group("daemon (each also settable in [daemon] of --config)")
@@ -40,8 +55,14 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     g.add_argument("--publish-interval", type=float, metavar="S",
                    help="seconds between parameter publications (default 0.1; frames are "
                         "processed in blocks as often, unless [daemon] block_interval is set)")
-    g.add_argument("--no-commands", action="store_true",
-                   help="answer every command frame with 'disabled'")
+    cmds = g.add_mutually_exclusive_group()
+    cmds.add_argument("--commands", dest="commands", action="store_true", default=None,
+                      help="accept RlsCommand frames (default: off, every command frame is "
+                           "answered 'disabled'; bounded by [daemon] max_parameters, "
+                           "command_rate, command_burst)")
+    cmds.add_argument("--no-commands", dest="commands", action="store_false",
+                      help="answer every command frame with 'disabled' (the default, "
+                           "unless [daemon] commands = true)")
     g.add_argument("--record", metavar="LOG", help="write every received frame to LOG")
     g.add_argument("--duration", type=float, metavar="S",
                    help="stop after S seconds (default: until SIGTERM/SIGINT)")
@@ -60,8 +81,8 @@ def _daemon_table(cfg: Any, args: argparse.Namespace) -> dict[str, Any]:
         v = getattr(args, opt, None)
         if v is not None:
             table[key] = v
-    if getattr(args, "no_commands", False):
-        table["commands"] = False
+    if getattr(args, "commands", None) is not None:
+        table["commands"] = args.commands
     return table
 
 
@@ -88,11 +109,65 @@ def build_daemon(args: argparse.Namespace) -> Any:
                   reload=configured_model)
 
 
+log = logging.getLogger(__name__)
+
+_STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+@contextmanager
+def _signals_for_life(target: list[Any]) -> Iterator[None]:
+    """SIGTERM/SIGINT/SIGHUP for the whole command, not only while the daemon serves.
+
+    Before the daemon exists a stop is remembered (``target[1]``) and a SIGHUP ignored;
+    while it runs, :meth:`Daemon.run` has its own handlers; after it stopped, further
+    signals only log. At the end SIGTERM and SIGHUP are left ignored if they had their
+    default action (the process is exiting: a late SIGTERM must not turn a clean stop
+    into death by signal, exit status -15); other handlers are restored.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, frame: Any) -> None:
+        d = target[0]
+        if d is None:
+            target[1] = True
+        else:
+            d.request_stop()
+        log.info("signal %d: stopping", signum)
+
+    def hup(signum: int, frame: Any) -> None:
+        log.info("SIGHUP: nothing to reload now")
+
+    old = {sig: signal.signal(sig, stop) for sig in _STOP_SIGNALS}
+    old[signal.SIGHUP] = signal.signal(signal.SIGHUP, hup)
+    try:
+        yield
+    finally:
+        for sig, h in old.items():
+            quiet = h is signal.SIG_DFL and sig != signal.SIGINT
+            signal.signal(sig, signal.SIG_IGN if quiet else h)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
-    daemon = build_daemon(args)
-    daemon.run(duration=args.duration)
+    target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
+    with _signals_for_life(target):
+        daemon = build_daemon(args)
+        target[0] = daemon
+        if target[1]:
+            daemon.request_stop()  # run() starts, sees the request and stops cleanly
+        status = daemon.run(duration=args.duration)
+        _report(daemon, args)
+    if daemon.failure is not None:
+        print(f"error: the daemon stopped on an internal error: "
+              f"{type(daemon.failure).__name__}: {daemon.failure}", file=sys.stderr)
+    return status
+
+
+def _report(daemon: Any, args: argparse.Namespace) -> None:
+    """The final estimates on stdout (``--json``: with the daemon's counters)."""
     est = daemon.estimates()
     if args.json:
         d = est.to_dict()
@@ -104,4 +179,3 @@ def run(args: argparse.Namespace) -> int:
         print_json(d)
     else:
         sys.stdout.write(est.format() + "\n")
-    return 0

@@ -46,8 +46,8 @@ from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline
 from canrls.live.bus import BusLink, FrameQueue, is_command, messages_to_block, open_bus
 from canrls.live.checkpoint import Checkpointer
-from canrls.live.commands import CommandHandler
-from canrls.live.publisher import Publisher
+from canrls.live.commands import CommandHandler, TokenBucket
+from canrls.live.publisher import Publisher, check_publishable
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.live.settings import DaemonSettings
 from canrls.live.tuning import interpreter
@@ -81,6 +81,8 @@ class DaemonStats:
     bus_reopens: int = 0
     commands: int = 0
     commands_rejected: int = 0
+    #: acknowledgements sent, by result (``ok``, ``rate_limited``, ``too_large``, ...)
+    command_results: dict[str, int] = field(default_factory=dict)
     reloads: int = 0
     checkpoints: int = 0
     backlog: int = 0
@@ -129,6 +131,8 @@ class Daemon:
         bus_args = dict(bus or {})
         self._reload_fn = reload
         self.sd = notifier if notifier is not None else SystemdNotifier()
+        # a model the frames cannot carry never runs (nor is it checkpointed)
+        check_publishable(model, cfg.max_parameters, "the configured model")
         self.config_model = model
         self._lock = threading.RLock()
         self._stopping = threading.Event()
@@ -141,6 +145,8 @@ class Daemon:
         self._tuned = False
         self._heartbeat = time.monotonic()
         self._c: collections.Counter[str] = collections.Counter()  # blocks, reloads
+        #: the exception that ended the estimator or supervisor thread (None: none)
+        self.failure: BaseException | None = None
         self._est_cpu = 0.0
         # the estimator, from a checkpoint if there is one that fits
         proc = make_processor(cfg, protocol, model, self.settings)
@@ -162,10 +168,18 @@ class Daemon:
         self._link = BusLink(self._queue, bus_factory or (lambda: open_bus(bus_args)), cfg,
                              describe=str(bus_args or "bus"))
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
-        self._commands = CommandHandler(proc, cfg.commands, self._link.send, self._set_model,
-                                        self._publisher.clear_rms)
+        self._commands = CommandHandler(
+            proc, cfg.commands, self._link.send, self._set_model, self._publisher.clear_rms,
+            max_parameters=cfg.max_parameters, check_model=self._check_model,
+            bucket=TokenBucket(cfg.command_rate, cfg.command_burst))
+
+    def _check_model(self, model: Model, what: str = "the model") -> None:
+        """:func:`~canrls.live.publisher.check_publishable` with ``[daemon] max_parameters``."""
+        check_publishable(model, self.config.max_parameters, what)
 
     def _restored(self, model: Model, state: dict[str, Any]) -> FrameProcessor:
+        # a checkpoint whose model cannot be published is set aside, not resumed
+        self._check_model(model, "the checkpoint's model")
         proc = make_processor(self.config, self.protocol, model, self.settings)
         proc.restore(state, model)
         return proc
@@ -228,7 +242,10 @@ class Daemon:
             tx_dropped=counters["tx_dropped"], tx_paused=tx["tx_paused"],
             rx_overflow=q.overflow, error_frames=tx["error_frames"],
             bus_reopens=tx["bus_reopens"], commands=cmd["commands"],
-            commands_rejected=cmd["commands_rejected"], reloads=c["reloads"],
+            commands_rejected=cmd["commands_rejected"],
+            command_results={k: v for k, v in cmd.items()
+                             if k not in ("commands", "commands_rejected")},
+            reloads=c["reloads"],
             checkpoints=self._checkpoints.saved, backlog=len(q.queue),
             estimator_cpu_s=self._est_cpu, listener_cpu_s=q.cpu,
             resumed_from=self.resumed_from, counters=counters)
@@ -243,10 +260,16 @@ class Daemon:
             return self._publisher.reports()[0]
 
     def checkpoint(self) -> Path | None:
-        """Save a checkpoint now (no-op without ``[daemon] checkpoint``)."""
+        """Save a checkpoint now (no-op without ``[daemon] checkpoint``). A model that
+        cannot be published is never saved (logged): it would stop the next start."""
         if self.config.checkpoint is None:
             return None
         with self._lock:
+            try:
+                self._check_model(self.model, "the running model")
+            except ConfigError as e:
+                log.error("checkpoint not written: %s", e)
+                return None
             counters = self._wire_counters()
             counters["frames"] = self._proc.frames + self._base.get("frames", 0)
             model, state = self.model, self._proc.state()
@@ -327,7 +350,11 @@ class Daemon:
         for t in self._threads:
             t.join()
         self._threads.clear()
-        self.checkpoint()
+        if self.failure is None:
+            self.checkpoint()
+        else:  # the state that failed is not saved: the last periodic checkpoint stays
+            log.error("no checkpoint at stop: the daemon failed (%s: %s)",
+                      type(self.failure).__name__, self.failure)
         self._link.close()
         self._close_recorder()
         if self._tuned:
@@ -360,7 +387,10 @@ class Daemon:
     def run(self, duration: float | None = None) -> int:
         """Start, serve until SIGTERM/SIGINT (or ``duration`` s), stop; SIGHUP reloads.
 
-        Signal handlers are installed only when called from the main thread.
+        Returns the exit status: 0 after a requested stop, 1 when an exception ended the
+        estimator or supervisor thread (:attr:`failure`, logged with its traceback; the
+        daemon then stops at once, without a final checkpoint). Signal handlers are
+        installed only when called from the main thread.
         """
         handlers: dict[int, Any] = {}
         if threading.current_thread() is threading.main_thread():
@@ -382,7 +412,7 @@ class Daemon:
             self.stop()
             for sig, old in handlers.items():
                 signal.signal(sig, old)
-        return 0
+        return 0 if self.failure is None else 1
 
     def wait_for(self, predicate: Callable[[Daemon], bool], timeout: float) -> bool:
         """Poll ``predicate(self)`` until true or ``timeout`` seconds (tests, the demo)."""
@@ -404,7 +434,22 @@ class Daemon:
         self._queue.hold(hold)
 
     # ------------------------------------------------------------------ supervisor thread
+    def _failed(self, where: str, exc: BaseException) -> None:
+        """An exception ended a thread: logged, kept (:attr:`failure`), the daemon stops."""
+        log.critical("%s thread failed; stopping the daemon (exit status 1)", where,
+                     exc_info=exc)
+        if self.failure is None:
+            self.failure = exc
+        self._stopping.set()
+        self._queue.wake.set()
+
     def _supervisor_loop(self) -> None:
+        try:
+            self._supervise()
+        except Exception as e:
+            self._failed("supervisor", e)
+
+    def _supervise(self) -> None:
         wd = self.sd.watchdog_interval
         next_ping = 0.0
         while not self._stopping.is_set():
@@ -461,9 +506,8 @@ class Daemon:
                 self._est_cpu = time.thread_time() - cpu0
                 if closed and not q.queue:
                     break
-        except Exception:  # pragma: no cover - must not die silently
-            log.exception("estimator thread failed; stopping the daemon")
-            self._stopping.set()
+        except Exception as e:  # never silently, never exit status 0
+            self._failed("estimator", e)
         finally:
             self._est_cpu = time.thread_time() - cpu0
 
@@ -514,6 +558,13 @@ class Daemon:
             log.error("reload failed, keeping the running model: %s", e)
             self.sd.ready()
             return
+        if new != self.model:
+            try:
+                self._check_model(new, "the reloaded model")
+            except ConfigError as e:
+                log.error("reload refused, keeping the running model: %s", e)
+                self.sd.ready()
+                return
         with self._lock:
             self.config_model = new
             self._checkpoints.config_model = new

@@ -28,13 +28,15 @@ from canrls.can.frames import (
     encode_status,
     frame_ids,
 )
+from canrls.errors import CanrlsError, ConfigError
+from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, Pipeline, PipelineBlock, divergence
 from canrls.estimation.rls import RLSFlag
 from canrls.live.bus import BusLink
 from canrls.live.settings import DaemonSettings
 from canrls.processor import FrameProcessor
 
-__all__ = ["Publisher", "parameter_layout"]
+__all__ = ["Publisher", "check_publishable", "model_layout", "parameter_layout"]
 
 log = logging.getLogger(__name__)
 
@@ -47,9 +49,14 @@ _IDLE_S = 0.25
 
 def parameter_layout(pipeline: Pipeline) -> tuple[tuple[ParameterReport, ...], ...]:
     """The pipeline's parameters as reports without estimates, a tuple per equation."""
+    return model_layout(pipeline.model)
+
+
+def model_layout(model: Model) -> tuple[tuple[ParameterReport, ...], ...]:
+    """A model's parameters as reports without estimates, a tuple per equation."""
     rows: list[tuple[ParameterReport, ...]] = []
     i = 0
-    for eq in pipeline.model.equations:
+    for eq in model.equations:
         params = eq.parameters
         rows.append(tuple(
             ParameterReport(index=i + k, name=p.name, effect_id=EffectId(p.effect_id),
@@ -58,6 +65,31 @@ def parameter_layout(pipeline: Pipeline) -> tuple[tuple[ParameterReport, ...], .
             for k, p in enumerate(params)))
         i += len(params)
     return tuple(rows)
+
+
+def check_publishable(model: Model, max_parameters: int, what: str = "the model") -> None:
+    """Raise :class:`~canrls.errors.ConfigError` unless the daemon can publish ``model``:
+    at most ``max_parameters`` parameters (``[daemon] max_parameters``), and every frame
+    it would send encodes (a rehearsal with made-up values; nothing is sent).
+
+    Called before a model becomes the running one (start, command, reload, resume from
+    a checkpoint) and before a checkpoint is written, so that a model that cannot be
+    published never runs, nor comes back at the next start.
+    """
+    n = len(model.parameters)
+    if n > max_parameters:
+        raise ConfigError(f"{what} ({','.join(model.effect_names)}) has {n} parameters, more "
+                          f"than [daemon] max_parameters = {max_parameters}")
+    reports: list[ParameterReport] = []
+    for blanks in model_layout(model):
+        reports += [r.with_estimates(0.0, 0.0, 0.0, True) for r in blanks]
+    try:
+        encode_parameters(reports, 0)
+        encode_param_info(reports)
+        encode_status(StatusReport(active_effects=model.active_effects), 0)
+    except CanrlsError as e:
+        raise ConfigError(f"{what} ({','.join(model.effect_names)}) cannot be published: "
+                          f"{e}") from e
 
 
 class Publisher:
@@ -102,7 +134,9 @@ class Publisher:
 
     # ------------------------------------------------------------------ schedule
     def start(self, now: float) -> None:
-        """The first publication after one interval; the parameter info at once."""
+        """The first publication after one interval, then every interval on a fixed grid
+        (``now + k publish_interval``; publications forced by a model change come in
+        between and never move it); the parameter info at once."""
         self.next_at = now + self.config.publish_interval
         self.info_due = now
 
@@ -221,8 +255,13 @@ class Publisher:
         self.link.send(msgs)
         self.publications += 1
         self._asap = False
-        if self.config.publish_interval > 0:
-            self.next_at = max(self.next_at + self.config.publish_interval, now)
+        step = self.config.publish_interval
+        if step > 0 and now >= self.next_at:
+            # the regular schedule is a fixed grid, start + k step: a publication forced
+            # by a model change (before next_at) leaves it alone, and a slot missed by a
+            # long block is skipped, never shifted
+            # next_at <- next_at + (floor((now - next_at) / step) + 1) step
+            self.next_at += (math.floor((now - self.next_at) / step) + 1) * step
         if self.on_publish is not None:
             self.on_publish(self.processor.frames, sent)
 

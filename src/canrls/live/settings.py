@@ -17,14 +17,24 @@ from canrls.errors import ConfigError
 if TYPE_CHECKING:  # importing the configuration imports numba's kernels: not here
     from canrls.config import AppConfig
 
-__all__ = ["DaemonSettings", "DAEMON_KEYS", "resolve_path"]
+__all__ = ["DaemonSettings", "DAEMON_KEYS", "FRAME_PARAMETERS", "resolve_path"]
+
+#: the most parameters the frames carry: RlsParamInfo's Index (0..255) and Count
+#: (at most 255) are 8-bit fields of dbc/canrls.dbc
+FRAME_PARAMETERS = 255
 
 DAEMON_KEYS: dict[str, str] = {
     "publish_interval": "seconds between parameter/status publications (0: after every block)",
     "info_interval": "seconds between RlsParamInfo and RlsCounters",
     "block_interval": "seconds the estimator lets frames gather before processing them "
                       "(default: publish_interval)",
-    "commands": "accept RlsCommand frames (false: every command is answered 'disabled')",
+    "commands": "accept RlsCommand frames (default false: every command is answered "
+                "'disabled')",
+    "max_parameters": "most parameters the running model may have; a command or reload "
+                      "beyond is refused (at most 255, what the parameter frames carry)",
+    "command_rate": "commands accepted per second on average (token bucket); beyond, "
+                    "answered 'rate_limited'",
+    "command_burst": "commands accepted at once (the token bucket's depth)",
     "checkpoint": "checkpoint file ('' or absent: none)",
     "checkpoint_interval": "seconds between checkpoints",
     "queue_size": "frames held between the bus and the estimator; beyond, dropped and counted",
@@ -50,7 +60,10 @@ class DaemonSettings:
     info_interval: float = 1.0
     #: ``None``: the publish interval (see :attr:`block_s`)
     block_interval: float | None = None
-    commands: bool = True
+    commands: bool = False
+    max_parameters: int = 32
+    command_rate: float = 2.0
+    command_burst: int = 10
     checkpoint: Path | None = None
     checkpoint_interval: float = 60.0
     queue_size: int = 1_000_000
@@ -81,9 +94,16 @@ class DaemonSettings:
         if self.reopen_max_s < self.reopen_min_s:
             raise ConfigError(f"{src}.reopen_max_s = {self.reopen_max_s!r}: must be >= "
                               f"reopen_min_s ({self.reopen_min_s!r})")
-        for k in ("queue_size", "max_block"):
+        for k in ("queue_size", "max_block", "command_burst"):
             if getattr(self, k) < 1:
                 raise ConfigError(f"{src}.{k} = {getattr(self, k)!r}: must be >= 1")
+        if not 1 <= self.max_parameters <= FRAME_PARAMETERS:
+            raise ConfigError(f"{src}.max_parameters = {self.max_parameters!r}: must be in "
+                              f"1..{FRAME_PARAMETERS} (RlsParamInfo's Index and Count are "
+                              f"8-bit fields)")
+        if not (math.isfinite(self.command_rate) and self.command_rate > 0):
+            raise ConfigError(f"{src}.command_rate = {self.command_rate!r}: must be > 0 "
+                              f"commands per second")
 
     @property
     def block_s(self) -> float:
@@ -107,7 +127,7 @@ class DaemonSettings:
                 if not isinstance(v, bool):
                     raise ConfigError(f"{key} = {v!r}: must be true or false")
                 kw[k] = v
-            elif k in ("queue_size", "max_block"):
+            elif k in ("queue_size", "max_block", "command_burst", "max_parameters"):
                 if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                     raise ConfigError(f"{key} = {v!r}: must be an integer >= 1")
                 kw[k] = v
@@ -119,7 +139,8 @@ class DaemonSettings:
                     kw[k] = resolve_path(v, base_dir)
             else:
                 if isinstance(v, bool) or not isinstance(v, int | float):
-                    raise ConfigError(f"{key} = {v!r}: must be a number of seconds")
+                    unit = "commands per second" if k == "command_rate" else "seconds"
+                    raise ConfigError(f"{key} = {v!r}: must be a number of {unit}")
                 kw[k] = float(v)
         try:
             return cls(**kw)
