@@ -30,7 +30,7 @@ import pytest
 
 from canrls.can.frames import CommandCode, CommandResult, EffectId, encode_command
 from canrls.config import AppConfig
-from canrls.errors import ConfigError
+from canrls.errors import CheckpointError, ConfigError
 from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.processor import FrameProcessor
@@ -396,6 +396,21 @@ srv.serve_forever()
 """
 
 
+def _wait_for_checkpoint_beyond(path: Path, frames: int, proc: subprocess.Popen[str],
+                                timeout: float) -> None:
+    """Until the checkpoint at ``path`` counts more than ``frames`` frames."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, "the daemon stopped"
+        try:
+            if int(load_checkpoint(path).counters["frames"]) > frames:
+                return
+        except (OSError, CheckpointError):
+            pass  # not written yet
+        time.sleep(0.05)
+    raise AssertionError(f"no checkpoint beyond {frames} frames within {timeout} s")
+
+
 @pytest.mark.slow
 def test_kill_9_at_random_moments_resumes_from_the_checkpoint(tmp_path: Path) -> None:
     """``canrls run -i remote`` (python-can-remote on 127.0.0.1) killed with -9 at seeded
@@ -425,7 +440,11 @@ def test_kill_9_at_random_moments_resumes_from_the_checkpoint(tmp_path: Path) ->
                 try:
                     _wait_ready(sock, proc, 60)
                     if k < 3:
-                        time.sleep(float(rng.uniform(0.8, 2.5)))
+                        # a checkpoint newer than the last start's, then a random moment
+                        # (waiting on the file, not the clock: a loaded machine is slow)
+                        _wait_for_checkpoint_beyond(ckpt, frames[-1] if frames else -1,
+                                                    proc, 60)
+                        time.sleep(float(rng.uniform(0.0, 1.5)))
                         proc.kill()
                         proc.communicate(timeout=30)
                         assert proc.returncode == -signal.SIGKILL

@@ -95,9 +95,10 @@ _MAX_HEADER = 4096
 MAX_BYTES = 64 * 2**20
 #: Deepest nesting of the JSON document (a checkpoint of today's states has 7 levels).
 MAX_DEPTH = 32
-#: Most parameters of a checkpointed model: the ``Index`` of the parameter frames
-#: (RlsEstimate, RlsSigma, RlsReference, RlsParamInfo) is 8 bits.
-MAX_PARAMETERS = 256
+#: Most parameters of a checkpointed model: the ``Index`` and ``Count`` of the
+#: parameter frames (RlsEstimate, RlsSigma, RlsReference, RlsParamInfo) are 8 bits
+#: (the daemon passes its ``[daemon] max_parameters``, at most this).
+MAX_PARAMETERS = 255
 #: Subtrees of the state that hold recorded samples, where NaN (a gap) is data.
 _SAMPLE_KEYS = frozenset({"window", "tail", "calibration"})
 _MODE = 0o600

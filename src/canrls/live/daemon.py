@@ -153,7 +153,8 @@ class Daemon:
         #: the stated control period [s] (None: measured from the frames, not known yet)
         self.dt = proc.period
         self._checkpoints = Checkpointer(cfg.checkpoint, model, self.settings, self.dt,
-                                         cfg.checkpoint_interval)
+                                         cfg.checkpoint_interval,
+                                         max_parameters=cfg.max_parameters)
         self._base: dict[str, int] = {}
         self.resumed_from: str | None = None
         resumed = self._checkpoints.resume(self._restored)
