@@ -25,7 +25,7 @@ FRAME_PARAMETERS = 255
 
 DAEMON_KEYS: dict[str, str] = {
     "publish_interval": "seconds between parameter/status publications (0: after every block)",
-    "info_interval": "seconds between RlsParamInfo and RlsCounters",
+    "info_interval": "seconds between RlsParamInfo, RlsCounters and RlsRejects",
     "block_interval": "seconds the estimator lets frames gather before processing them "
                       "(default: publish_interval)",
     "commands": "accept RlsCommand frames (default false: every command is answered "
