@@ -230,6 +230,56 @@ INLINE int32_t mul_rsh_w(int32_t a, int32_t b, int32_t rh, int32_t s, int cls)
     return cls == SHIFT_32 ? mul_rsh32(a, b) : mul_rsh_hi(a, b, rh, s);
 }
 
+/* The 64-bit estimate (Python _theta_add): t 2^32 + *f += floor(p 2^(32-s)), 0 <= s <= 62,
+ * saturated to [lo 2^32, hi 2^32 + 2^32 - 1] (counted): the word t is returned, its
+ * fraction *f (units of 2^-32 LSB) written. The general case (any s, any theta word). */
+INLINE int32_t theta_add(int32_t t, uint32_t *f, int64_t p, int32_t s, int32_t lo, int32_t hi,
+                         uint32_t *n)
+{
+    const int64_t whole = p >> s; /* floor(p / 2^s): whole LSBs */
+    const uint32_t part = s >= 32 ? (uint32_t)(p >> (s - 32)) /* the 32 bits below the LSB */
+                                  : (uint32_t)((uint64_t)p << (32 - s)); /* p mod 2^s, up */
+    const uint64_t fs = (uint64_t)*f + part;
+    const int64_t x = (int64_t)t + whole + (int64_t)(fs >> 32);
+    if (UNLIKELY(x > hi)) {
+        *n += 1u;
+        *f = 0xFFFFFFFFu;
+        return hi;
+    }
+    if (UNLIKELY(x < lo)) {
+        *n += 1u;
+        *f = 0u;
+        return lo;
+    }
+    *f = (uint32_t)fs;
+    return (int32_t)x;
+}
+
+/* theta_add for 33 <= s <= 62 and the whole int32_t word: t:f as one int64_t, p >> k
+ * (k = s - 32 in 1..30, k32 = 32 - k) added to it as two shifted words, saturated where
+ * the 64-bit sum overflows, which is exactly where t leaves the int32_t */
+INLINE int32_t theta_add_full(int32_t t, uint32_t *f, int64_t p, int32_t k, int32_t k32,
+                              uint32_t *n)
+{
+#if defined(__GNUC__)
+    const int32_t ph = (int32_t)(p >> 32);
+    const uint32_t pl = (uint32_t)p;
+    const int64_t u = (int64_t)(((uint64_t)(uint32_t)(ph >> k) << 32)
+                                | ((pl >> k) | ((uint32_t)ph << k32)));
+    int64_t x;
+    if (UNLIKELY(__builtin_add_overflow((int64_t)(((uint64_t)(uint32_t)t << 32) | *f), u, &x))) {
+        *n += 1u;
+        *f = u > 0 ? 0xFFFFFFFFu : 0u;
+        return u > 0 ? INT32_MAX : INT32_MIN;
+    }
+    *f = (uint32_t)x;
+    return (int32_t)(x >> 32);
+#else
+    (void)k32;
+    return theta_add(t, f, p, k + 32, INT32_MIN, INT32_MAX, n);
+#endif
+}
+
 /* Store an accumulator x (scale 2^-(f+s)) into a word of scale 2^-f (Python store):
  * s >= 0: rounding right shift then clamp; s < 0: a left shift that clamps before
  * shifting, so it never wraps. */
@@ -368,7 +418,7 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
     memset(S, 0, sizeof *S);
     S->plan = plan;
     S->n = n;
-    /* P0 = diag(p0) 2^-(f_P + e0), c = 1 ; theta0 = 0 */
+    /* P0 = diag(p0) 2^-(f_P + e0), c = 1 ; theta0 = 0, theta_frac = 0 (the memset) */
     for (i = 0; i < n; i++) {
         S->P[canrls_tri_index(n, i, i)] = p0[i];
     }
@@ -392,8 +442,8 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
     return CANRLS_OK;
 }
 
-int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P_up,
-                       int32_t e, int32_t c)
+int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *theta_frac,
+                       const int32_t *P_up, int32_t e, int32_t c)
 {
     const canrls_plan_q31 *p;
     uint32_t i, m;
@@ -416,6 +466,12 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P
         }
     }
     memcpy(S->theta, theta, S->n * sizeof *theta);
+    /* theta_frac: the fraction below theta's LSB (NULL: 0, the estimate at its word) */
+    if (theta_frac != NULL) {
+        memcpy(S->theta_frac, theta_frac, S->n * sizeof *theta_frac);
+    } else {
+        memset(S->theta_frac, 0, sizeof S->theta_frac);
+    }
     memcpy(S->P, P_up, m * sizeof *P_up);
     S->e = e;
     S->c = c;
@@ -535,8 +591,9 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     int32_t *const h = S->h;
     int32_t *const K = S->K;
     int32_t *const theta = S->theta;
+    uint32_t *const tf = S->theta_frac;
     const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
-    const int32_t rh = (int32_t)1 << ((th_s >= 33 ? th_s : 33) - 33);
+    const int32_t k = th_s >= 32 ? th_s - 32 : 0;
     uint32_t i;
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
@@ -545,12 +602,13 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         const int32_t Ki = mul_rsh32(hn, gcn);
         h[i] = hn;
         K[i] = Ki;
-        /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
-        if (cls == SHIFT_HIGH || cls == SHIFT_32) {
-            theta[i] = add_sat(theta[i], mul_rsh_w(Ki, epn, rh, th_s, cls), th_lo, th_hi, c_th,
-                               full);
+        /* theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored to 2^-32
+         * LSB, so that updates below the LSB accumulate; K carries the exponent e + kn:
+         * shifted out here) */
+        if (cls == SHIFT_HIGH && full) {
+            theta[i] = theta_add_full(theta[i], &tf[i], mul_ww(Ki, epn), k, 32 - k, c_th);
         } else {
-            theta[i] = sat(theta[i] + mul_rsh(Ki, epn, th_s, cls), th_lo, th_hi, c_th);
+            theta[i] = theta_add(theta[i], &tf[i], (int64_t)Ki * epn, th_s, th_lo, th_hi, c_th);
         }
     }
 }
@@ -610,7 +668,7 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
                                int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const int32_t rt = (int32_t)1 << (th_s - 33), rp = (int32_t)1 << (P_s - 33);
+    const int32_t kt = th_s - 32, kt32 = 64 - th_s, rp = (int32_t)1 << (P_s - 33);
     int32_t hn[CANRLS_N], K[CANRLS_N];
     int32_t *Pw = S->P; /* row i of the packed upper triangle */
     uint32_t i, j, nz = 0;
@@ -621,9 +679,10 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
         /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
         K[i] = mul_rsh32(hn[i], gcn);
         S->K[i] = K[i];
-        /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
-        S->theta[i] = add_sat(S->theta[i], mul_rsh_hi(K[i], epn, rt, th_s), INT32_MIN,
-                              INT32_MAX, c_th, 1);
+        /* theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored to 2^-32
+         * LSB; K carries the exponent e + kn: shifted out here) */
+        S->theta[i] = theta_add_full(S->theta[i], &S->theta_frac[i], mul_ww(K[i], epn), kt,
+                                     kt32, c_th);
     }
     UNROLL
     for (i = 0; i < n; i++) {
