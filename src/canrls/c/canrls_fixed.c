@@ -230,15 +230,18 @@ INLINE int32_t mul_rsh_w(int32_t a, int32_t b, int32_t rh, int32_t s, int cls)
     return cls == SHIFT_32 ? mul_rsh32(a, b) : mul_rsh_hi(a, b, rh, s);
 }
 
-/* The 64-bit estimate (Python _theta_add): t 2^32 + *f += floor(p 2^(32-s)), 0 <= s <= 62,
+/* The 64-bit estimate (Python _theta_add): t 2^32 + *f += floor(p 2^(32-s)) for s < 32 and
+ * floor(p / 2^32) 2^(64-s) (the high word of p, exact at this scale) for 32 <= s <= 62,
  * saturated to [lo 2^32, hi 2^32 + 2^32 - 1] (counted): the word t is returned, its
  * fraction *f (units of 2^-32 LSB) written. The general case (any s, any theta word). */
 INLINE int32_t theta_add(int32_t t, uint32_t *f, int64_t p, int32_t s, int32_t lo, int32_t hi,
                          uint32_t *n)
 {
     const int64_t whole = p >> s; /* floor(p / 2^s): whole LSBs */
-    const uint32_t part = s >= 32 ? (uint32_t)(p >> (s - 32)) /* the 32 bits below the LSB */
-                                  : (uint32_t)((uint64_t)p << (32 - s)); /* p mod 2^s, up */
+    /* the 32 bits below the LSB: s >= 32, of the high word of p (p's low word dropped);
+     * s < 32, p mod 2^s moved up */
+    const uint32_t part = s >= 32 ? (uint32_t)((uint64_t)(p >> 32) << (64 - s))
+                                  : (uint32_t)((uint64_t)p << (32 - s));
     const uint64_t fs = (uint64_t)*f + part;
     const int64_t x = (int64_t)t + whole + (int64_t)(fs >> 32);
     if (UNLIKELY(x > hi)) {
@@ -255,28 +258,26 @@ INLINE int32_t theta_add(int32_t t, uint32_t *f, int64_t p, int32_t s, int32_t l
     return (int32_t)x;
 }
 
-/* theta_add for 33 <= s <= 62 and the whole int32_t word: t:f as one int64_t, p >> k
- * (k = s - 32 in 1..30, k32 = 32 - k) added to it as two shifted words, saturated where
- * the 64-bit sum overflows, which is exactly where t leaves the int32_t */
-INLINE int32_t theta_add_full(int32_t t, uint32_t *f, int64_t p, int32_t k, int32_t k32,
+/* theta_add for 33 <= s <= 62 and the whole int32_t word: t:f as one int64_t plus the high
+ * word ph of the product, ph 2^(32-k) (k = s - 32 in 1..30, k32 = 32 - k: ph >> k and
+ * ph << k32 as the two words), saturated where the 64-bit sum overflows, which is exactly
+ * where t leaves the int32_t */
+INLINE int32_t theta_add_full(int32_t t, uint32_t *f, int32_t ph, int32_t k, int32_t k32,
                               uint32_t *n)
 {
 #if defined(__GNUC__)
-    const int32_t ph = (int32_t)(p >> 32);
-    const uint32_t pl = (uint32_t)p;
-    const int64_t u = (int64_t)(((uint64_t)(uint32_t)(ph >> k) << 32)
-                                | ((pl >> k) | ((uint32_t)ph << k32)));
+    const int64_t u = (int64_t)(((uint64_t)(uint32_t)(ph >> k) << 32) | ((uint32_t)ph << k32));
     int64_t x;
     if (UNLIKELY(__builtin_add_overflow((int64_t)(((uint64_t)(uint32_t)t << 32) | *f), u, &x))) {
         *n += 1u;
-        *f = u > 0 ? 0xFFFFFFFFu : 0u;
-        return u > 0 ? INT32_MAX : INT32_MIN;
+        *f = ph > 0 ? 0xFFFFFFFFu : 0u;
+        return ph > 0 ? INT32_MAX : INT32_MIN;
     }
     *f = (uint32_t)x;
     return (int32_t)(x >> 32);
 #else
     (void)k32;
-    return theta_add(t, f, p, k + 32, INT32_MIN, INT32_MAX, n);
+    return theta_add(t, f, (int64_t)ph * 4294967296LL, k + 32, INT32_MIN, INT32_MAX, n);
 #endif
 }
 
@@ -606,7 +607,8 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
          * LSB, so that updates below the LSB accumulate; K carries the exponent e + kn:
          * shifted out here) */
         if (cls == SHIFT_HIGH && full) {
-            theta[i] = theta_add_full(theta[i], &tf[i], mul_ww(Ki, epn), k, 32 - k, c_th);
+            theta[i] = theta_add_full(theta[i], &tf[i], (int32_t)(mul_ww(Ki, epn) >> 32), k,
+                                      32 - k, c_th);
         } else {
             theta[i] = theta_add(theta[i], &tf[i], (int64_t)Ki * epn, th_s, th_lo, th_hi, c_th);
         }
@@ -681,8 +683,8 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
         S->K[i] = K[i];
         /* theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored to 2^-32
          * LSB; K carries the exponent e + kn: shifted out here) */
-        S->theta[i] = theta_add_full(S->theta[i], &S->theta_frac[i], mul_ww(K[i], epn), kt,
-                                     kt32, c_th);
+        S->theta[i] = theta_add_full(S->theta[i], &S->theta_frac[i],
+                                     (int32_t)(mul_ww(K[i], epn) >> 32), kt, kt32, c_th);
     }
     UNROLL
     for (i = 0; i < n; i++) {

@@ -287,11 +287,14 @@ _FRAC_MASK = (1 << 32) - 1
 def _theta_add(
     t: int, f: int, p: int, s: int, lo: int, hi: int
 ) -> tuple[int, int, int]:  # pragma: no cover - compiled
-    """``t:f + floor(p 2^(32-s))`` for the 64-bit estimate ``t 2^32 + f`` (``0 <= f < 2^32``),
-    ``0 <= s <= 62``, saturated to ``[lo 2^32, hi 2^32 + 2^32 - 1]``: ``(t, f, clamped)``."""
+    """The 64-bit estimate ``t 2^32 + f`` (``0 <= f < 2^32``) plus the update ``p 2^-s`` LSB
+    (``0 <= s <= 62``) at ``2^-32`` LSB: ``floor(p 2^(32-s))`` for ``s < 32``; for ``s >= 32``
+    the high word of the product, ``floor(p / 2^32) 2^(64-s)`` (exact at this scale; the
+    low word of ``p`` is dropped, as the target takes the high word of ``SMULL``).
+    Saturated to ``[lo 2^32, hi 2^32 + 2^32 - 1]``. Returns ``(t, f, clamped)``."""
     whole = p >> s  # floor(p / 2^s): whole LSBs
     if s >= 32:
-        part = (p >> (s - 32)) & _FRAC_MASK  # the next 32 bits below the LSB
+        part = ((p >> 32) << (64 - s)) & _FRAC_MASK  # the high word below the LSB
     else:
         part = (p & ((np.int64(1) << s) - 1)) << (32 - s)
     f = f + part
@@ -854,8 +857,11 @@ def reference_block(
         K = [rsh(mul(hs[i], gcn), 32) for i in range(n)]
         # theta 2^32 + tf <- theta 2^32 + tf + floor(K eps 2^32)   (the 64-bit estimate)
         for i in range(n):
-            x = theta[i] * (1 << 32) + tf[i] + mul(K[i], eps * (1 << ke)) * (1 << 32) // (
-                1 << (p[I_TH_S] + e + k + ke))
+            ts = p[I_TH_S] + e + k + ke
+            u = mul(K[i], eps * (1 << ke))
+            if ts >= 32:
+                u = u // (1 << 32) * (1 << 32)  # the high word of the product (s >= 32)
+            x = theta[i] * (1 << 32) + tf[i] + u * (1 << 32) // (1 << ts)
             top = p[I_TH_HI] * (1 << 32) + (1 << 32) - 1
             bot = p[I_TH_LO] * (1 << 32)
             if x > top or x < bot:
