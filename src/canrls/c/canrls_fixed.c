@@ -258,26 +258,26 @@ INLINE int32_t theta_add(int32_t t, uint32_t *f, int64_t p, int32_t s, int32_t l
     return (int32_t)x;
 }
 
-/* theta_add for 33 <= s <= 62 and the whole int32_t word: t:f as one int64_t plus the high
- * word ph of the product, ph 2^(32-k) (k = s - 32 in 1..30, k32 = 32 - k: ph >> k and
- * ph << k32 as the two words), saturated where the 64-bit sum overflows, which is exactly
- * where t leaves the int32_t */
-INLINE int32_t theta_add_full(int32_t t, uint32_t *f, int32_t ph, int32_t k, int32_t k32,
+/* theta_add for 34 <= s <= 62 and the whole int32_t word: t:f as one int64_t plus the high
+ * word ph of the product at 2^-32 LSB, ph 2^(64-s) = ph m (m = 2^(64-s) <= 2^30: one SMULL),
+ * saturated where the 64-bit sum overflows, which is exactly where t leaves the int32_t */
+INLINE int32_t theta_add_full(int32_t t, uint32_t *f, int32_t ph, int32_t m, int32_t s,
                               uint32_t *n)
 {
 #if defined(__GNUC__)
-    const int64_t u = (int64_t)(((uint64_t)(uint32_t)(ph >> k) << 32) | ((uint32_t)ph << k32));
     int64_t x;
-    if (UNLIKELY(__builtin_add_overflow((int64_t)(((uint64_t)(uint32_t)t << 32) | *f), u, &x))) {
+    if (UNLIKELY(__builtin_add_overflow((int64_t)(((uint64_t)(uint32_t)t << 32) | *f),
+                                        mul_ww(ph, m), &x))) {
         *n += 1u;
         *f = ph > 0 ? 0xFFFFFFFFu : 0u;
         return ph > 0 ? INT32_MAX : INT32_MIN;
     }
+    (void)s;
     *f = (uint32_t)x;
     return (int32_t)(x >> 32);
 #else
-    (void)k32;
-    return theta_add(t, f, (int64_t)ph * 4294967296LL, k + 32, INT32_MIN, INT32_MAX, n);
+    (void)m;
+    return theta_add(t, f, (int64_t)ph * 4294967296LL, s, INT32_MIN, INT32_MAX, n);
 #endif
 }
 
@@ -594,7 +594,9 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     int32_t *const theta = S->theta;
     uint32_t *const tf = S->theta_frac;
     const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
-    const int32_t k = th_s >= 32 ? th_s - 32 : 0;
+    /* 2^(64 - th_s): the high word of K eps at 2^-32 LSB (``full`` with SHIFT_HIGH: the
+     * caller guarantees th_s >= 34 and the whole int32_t theta word) */
+    const int32_t m = cls == SHIFT_HIGH && full ? (int32_t)1 << (64 - th_s) : 0;
     uint32_t i;
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
@@ -607,8 +609,8 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
          * LSB, so that updates below the LSB accumulate; K carries the exponent e + kn:
          * shifted out here) */
         if (cls == SHIFT_HIGH && full) {
-            theta[i] = theta_add_full(theta[i], &tf[i], (int32_t)(mul_ww(Ki, epn) >> 32), k,
-                                      32 - k, c_th);
+            theta[i] = theta_add_full(theta[i], &tf[i], (int32_t)(mul_ww(Ki, epn) >> 32), m,
+                                      th_s, c_th);
         } else {
             theta[i] = theta_add(theta[i], &tf[i], (int64_t)Ki * epn, th_s, th_lo, th_hi, c_th);
         }
@@ -663,14 +665,14 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 
 #ifdef CANRLS_N
 /* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
- * th_s and P_s >= 33), out of line: h~ 2^kn and K stay in registers from one to the
+ * th_s >= 34, P_s >= 33), out of line: h~ 2^kn and K stay in registers from one to the
  * other (the same integers; S->h keeps h~ without the normalisation, it is scratch).
  * Returns the low-excitation test, as P_step. */
 NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
                                int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const int32_t kt = th_s - 32, kt32 = 64 - th_s, rp = (int32_t)1 << (P_s - 33);
+    const int32_t mt = (int32_t)1 << (64 - th_s), rp = (int32_t)1 << (P_s - 33);
     int32_t hn[CANRLS_N], K[CANRLS_N];
     int32_t *Pw = S->P; /* row i of the packed upper triangle */
     uint32_t i, j, nz = 0;
@@ -684,7 +686,8 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
         /* theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored to 2^-32
          * LSB; K carries the exponent e + kn: shifted out here) */
         S->theta[i] = theta_add_full(S->theta[i], &S->theta_frac[i],
-                                     (int32_t)(mul_ww(K[i], epn) >> 32), kt, kt32, c_th);
+                                     (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s,
+                                     c_th);
     }
     UNROLL
     for (i = 0; i < n; i++) {
@@ -890,7 +893,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             P_s = p->P_s + e + 2 * kn;
         }
 #ifdef CANRLS_N
-        if (th_s >= 33 && P_s >= 33 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
+        if (th_s >= 34 && P_s >= 33 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
             /* the common case in one piece */
             low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, &c_th, &c_P);
         } else
@@ -898,8 +901,9 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         {
         switch (shift_class(th_s)) {
         case SHIFT_HIGH:
-            /* words of 32 bits: the overflow test is the clamp */
-            if (S->wide & WIDE_THETA) {
+            /* words of 32 bits: the overflow test is the clamp (th_s >= 34: the high word
+             * of K eps times 2^(64 - th_s) is one SMULL) */
+            if ((S->wide & WIDE_THETA) && th_s >= 34) {
                 K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 1);
             } else {
                 K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 0);

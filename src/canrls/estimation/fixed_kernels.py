@@ -18,9 +18,13 @@ Integer operations (all on ``int64``, no floating point anywhere)
   ``[lo, hi]``; every clamp increments the counter of its site. A negative output
   shift (a store to a *finer* format) is a left shift that saturates before
   shifting, so it cannot wrap either.
-* **single product to a word** (``K``, ``theta``, ``P``, ...): the exact product is
+* **single product to a word** (``K``, ``P``, ...): the exact product is
   rounded once to the destination's scale and added to the destination with
-  saturation, e.g. ``P_ij <- sat(P_ij - rsh(K_i h_j, s))``.
+  saturation, e.g. ``P_ij <- sat(P_ij - rsh(K_i h_j, s))``. ``theta`` is the exception:
+  the estimate is 64 bits, the word ``theta`` and a fraction ``theta_frac`` in units of
+  ``2^-32`` LSB, and ``K_i eps`` is added to it floored at ``2^-32`` LSB (from the high
+  word of the product when the shift is 32 or more), then saturated to the word
+  (:func:`_theta_add`): updates smaller than the LSB accumulate instead of rounding to 0.
 * **multiply-accumulate** (``eps``, ``h``, ``phi' h``): sums of up to ``n`` products
   live in an accumulator of ``acc_bits``. It never overflows, by construction: the
   regressor operand is pre-shifted right (rounded) by the plan's guard shift
@@ -77,7 +81,9 @@ Per sample
         \quad g = 1/d \\
     K &= (g c)\,\tilde h \qquad (= P\varphi/(\lambda_k + \varphi^\top P\varphi);
         \text{the high word of } (\tilde h\,2^k)(g c\,2^{g_{up}})) \\
-    \theta &\leftarrow \theta + K\varepsilon \\
+    \theta &\leftarrow \theta + K\varepsilon \qquad\text{(the 64-bit estimate
+        } \theta\,2^{32} + \theta_{frac}\text{, } K\varepsilon \text{ floored to } 2^{-32}
+        \text{ LSB)} \\
     \tilde P &\leftarrow \tilde P - K\tilde h^\top \quad\text{(upper triangle only)},
         \qquad c \leftarrow c/\lambda_k
 
