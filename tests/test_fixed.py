@@ -407,7 +407,7 @@ def test_lambda_1_long_run_keeps_the_updates_below_the_lsb() -> None:
     theta in Q6.25 as the pipeline's ranges give it): the gain falls like 1/N, and the
     update K eps of theta falls to a small fraction of theta's LSB (~0.05 LSB here). Rounded
     to the word each step, most updates became 0: the estimate froze and drifted from
-    the float (measured 0.33 % and 4.4 sigma before the 64-bit estimate). With the fraction
+    the float (measured 0.23 % and 4.4 sigma before the 64-bit estimate). With the fraction
     word ``theta_frac`` the updates accumulate: measured 0.0014 % and 0.02 sigma.
     Bound: 0.1 % (the requirement) and 0.5 sigma of the float estimate."""
     from canrls.estimation.rls import RLS

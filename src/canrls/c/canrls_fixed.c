@@ -667,6 +667,8 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 /* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
  * th_s >= 34, P_s >= 33), out of line: h~ 2^kn and K stay in registers from one to the
  * other (the same integers; S->h keeps h~ without the normalisation, it is scratch).
+ * theta is updated last, when the P loop has freed the registers (the order of the two
+ * updates changes no integer: neither reads what the other writes).
  * Returns the low-excitation test, as P_step. */
 NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
                                int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
@@ -683,11 +685,6 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
         /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
         K[i] = mul_rsh32(hn[i], gcn);
         S->K[i] = K[i];
-        /* theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored to 2^-32
-         * LSB; K carries the exponent e + kn: shifted out here) */
-        S->theta[i] = theta_add_full(S->theta[i], &S->theta_frac[i],
-                                     (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s,
-                                     c_th);
     }
     UNROLL
     for (i = 0; i < n; i++) {
@@ -701,6 +698,14 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
                                 INT32_MAX, c_P, 1);
         }
         Pw += n - i;
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored to 2^-32
+         * LSB; K carries the exponent e + kn: shifted out here) */
+        S->theta[i] = theta_add_full(S->theta[i], &S->theta_frac[i],
+                                     (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s,
+                                     c_th);
     }
     return nz == 0u;
 }
