@@ -123,12 +123,12 @@ The estimate in 64 bits
 :math:`2^{-32}` LSB, floored (from the high word of its product when its shift is 32
 or more, which the target's ``SMULL`` gives), and the sum saturated to the ``theta``
 word. Why: with :math:`\lambda = 1` the gain falls like :math:`1/N`, and after a few
-hundred thousand samples :math:`K\varepsilon` is a small fraction of an LSB (0.03 to
-0.1 LSB on the simulated drive at 1 kHz after 10 min); rounded to the word each step,
+hundred thousand samples :math:`K\varepsilon` is a small fraction of an LSB (about 0.05
+to 0.1 LSB on the simulated drive at 1 kHz after 10 min); rounded to the word each step,
 almost every update became 0 and the estimate froze where it was while the float kept
-converging: 0.15 % and 7 sigma from the float after one hour (``tools/soak.py``),
-against 0.001 % and 0.2 sigma with the fraction (docs/fixed_point.md). It costs one
-word per parameter of state and about 4 instructions per parameter and update.
+converging: 0.15 % and 7 sigma from the float after one hour, against 0.004 % and 0.6
+sigma with the fraction (``canrls fit``; docs/fixed_point.md). It costs one word per
+parameter of state and about 3 instructions per parameter and update on a Cortex-M4.
 
 Accumulators (guard bits)
 -------------------------
