@@ -136,6 +136,10 @@ def _corrupt_case(seed: int, n: int) -> Case:
     s["theta"] = rng.integers(cfg.theta.lo, cfg.theta.hi, n, endpoint=True)
     s["P_exp"] = int(rng.integers(0, 8))
     s["P_scale"] = int(rng.integers(1, est.constants["one_lam"], endpoint=True))
+    # the fractions of theta below its LSB (a generator of their own: the draws above
+    # and below stay those of the cases before the 64-bit estimate)
+    s["theta_frac"] = np.random.default_rng(seed + 100).integers(0, 2**32 - 1, n,
+                                                                   endpoint=True)
     est = FixedRLS.from_state(s)
     Pq = rng.integers(cfg.phi.lo, cfg.phi.hi, (80, n), endpoint=True)
     Yq = rng.integers(cfg.y.lo, cfg.y.hi, 80, endpoint=True)

@@ -112,7 +112,8 @@ def test_fixed_runs_without_importing_the_numba_spec() -> None:
 def test_run_block_names_a_wrong_buffer() -> None:
     n, N = 3, 4
     z = np.zeros
-    args = [z((N, n), np.int64), z(N, np.int64), z(n, np.int64), z((n, n), np.int64),
+    args = [z((N, n), np.int64), z(N, np.int64), z(n, np.int64), z(n, np.int64),
+            z((n, n), np.int64),
             z(2, np.int64), z(n, np.int64), z(cfixed.NSITES, np.int64),
             z(len(cfixed.PLAN_FIELDS), np.int64), False, z(N, np.int64), None,
             z(N, np.int64), z(N + 1, np.int64), z(N, np.uint8)]

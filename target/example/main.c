@@ -61,7 +61,8 @@ int main(void)
         p0[i] = stream_P0[canrls_tri_index(STREAM_N, i, i)];
     }
     if (canrls_init_q31(&rls, &stream_plan, STREAM_N, p0, STREAM_E0) != CANRLS_OK
-        || canrls_restore_q31(&rls, stream_theta0, stream_P0, STREAM_E0, STREAM_C0)
+        || canrls_restore_q31(&rls, stream_theta0, stream_theta_frac0, stream_P0, STREAM_E0,
+                              STREAM_C0)
                != CANRLS_OK) {
         sh_write0("canrls_init_q31 or canrls_restore_q31 failed\n");
         return 1;
@@ -75,6 +76,8 @@ int main(void)
         put_int((int32_t)i);
         sh_write0("]");
         put_line("", rls.theta[i], same);
+        /* the estimate below the word's LSB (2^-32 LSB) */
+        ok &= rls.theta_frac[i] == stream_theta_frac_final[i];
     }
     for (i = 0; i < CANRLS_TRI(STREAM_N); i++) {
         ok &= rls.P[i] == stream_P_final[i];

@@ -8,10 +8,10 @@
  * IN (whitespace-separated text):
  *     plan <count>            then <count> lines "name value" (Python FixedRLS.constants)
  *     n <n>
- *     state theta[n] P_up[n(n+1)/2] e c frozen counts[NSITES]
+ *     state theta[n] theta_frac[n] P_up[n(n+1)/2] e c frozen counts[NSITES]
  *     steps <N>               then N rows "frozen phi[n] y"
  * OUT: one line per step (the layout of tools/gen_ckernel.py expected_lines):
- *     applied eps trace e flags theta[n] P_up[..] c counts[NSITES]
+ *     applied eps trace e flags theta[n] theta_frac[n] P_up[..] c counts[NSITES]
  * Exit status 0, or 2 with a message on stderr for a malformed IN (unknown constant,
  * missing constant, a value the kernel's init/restore refuses).
  */
@@ -74,6 +74,7 @@ int main(int argc, char **argv)
     static canrls_plan_q31 plan;
     static canrls_rls_q31 S;
     int32_t theta[CANRLS_N_MAX], P[CANRLS_TRI(CANRLS_N_MAX)], p0[CANRLS_N_MAX];
+    uint32_t theta_frac[CANRLS_N_MAX];
     int32_t phi[CANRLS_N_MAX], e, c, y;
     char set[NFIELDS];
     char key[64];
@@ -134,6 +135,12 @@ int main(int argc, char **argv)
             return fail("malformed theta");
         }
     }
+    for (i = 0; i < n; i++) {
+        if (!read_i64(in, &v) || v < 0 || v > 0xFFFFFFFFLL) {
+            return fail("malformed theta_frac");
+        }
+        theta_frac[i] = (uint32_t)v;
+    }
     for (i = 0; i < m; i++) {
         if (!read_word(in, &P[i])) {
             return fail("malformed P");
@@ -149,7 +156,7 @@ int main(int argc, char **argv)
     if (canrls_init_q31(&S, &plan, (uint32_t)n, p0, e) != CANRLS_OK) {
         return fail("canrls_init_q31 refused the state");
     }
-    if (canrls_restore_q31(&S, theta, P, e, c) != CANRLS_OK) {
+    if (canrls_restore_q31(&S, theta, theta_frac, P, e, c) != CANRLS_OK) {
         return fail("canrls_restore_q31 refused the state");
     }
     S.frozen = v != 0;
@@ -183,6 +190,9 @@ int main(int argc, char **argv)
                 (unsigned long)st.flags);
         for (i = 0; i < n; i++) {
             fprintf(out, " %ld", (long)S.theta[i]);
+        }
+        for (i = 0; i < n; i++) {
+            fprintf(out, " %lu", (unsigned long)S.theta_frac[i]);
         }
         for (i = 0; i < m; i++) {
             fprintf(out, " %ld", (long)S.P[i]);

@@ -230,6 +230,57 @@ INLINE int32_t mul_rsh_w(int32_t a, int32_t b, int32_t rh, int32_t s, int cls)
     return cls == SHIFT_32 ? mul_rsh32(a, b) : mul_rsh_hi(a, b, rh, s);
 }
 
+/* The 64-bit estimate (Python _theta_add): t 2^32 + *f += floor(p 2^(32-s)) for s < 32 and
+ * floor(p / 2^32) 2^(64-s) (the high word of p, exact at this scale) for 32 <= s <= 62,
+ * saturated to [lo 2^32, hi 2^32 + 2^32 - 1] (counted): the word t is returned, its
+ * fraction *f (units of 2^-32 LSB) written. The general case (any s, any theta word). */
+INLINE int32_t theta_add(int32_t t, uint32_t *f, int64_t p, int32_t s, int32_t lo, int32_t hi,
+                         uint32_t *n)
+{
+    const int64_t whole = p >> s; /* floor(p / 2^s): whole LSBs */
+    /* the 32 bits below the LSB: s >= 32, of the high word of p (p's low word dropped);
+     * s < 32, p mod 2^s moved up */
+    const uint32_t part = s >= 32 ? (uint32_t)((uint64_t)(p >> 32) << (64 - s))
+                                  : (uint32_t)((uint64_t)p << (32 - s));
+    const uint64_t fs = (uint64_t)*f + part;
+    const int64_t x = (int64_t)t + whole + (int64_t)(fs >> 32);
+    if (UNLIKELY(x > hi)) {
+        *n += 1u;
+        *f = 0xFFFFFFFFu;
+        return hi;
+    }
+    if (UNLIKELY(x < lo)) {
+        *n += 1u;
+        *f = 0u;
+        return lo;
+    }
+    *f = (uint32_t)fs;
+    return (int32_t)x;
+}
+
+/* theta_add for 34 <= s <= 62 and the whole int32_t word: t:f as one int64_t plus the high
+ * word ph of the product at 2^-32 LSB, ph 2^(64-s) = ph m (m = 2^(64-s) <= 2^30: one SMULL),
+ * saturated where the 64-bit sum overflows, which is exactly where t leaves the int32_t */
+INLINE int32_t theta_add_full(int32_t t, uint32_t *f, int32_t ph, int32_t m, int32_t s,
+                              uint32_t *n)
+{
+#if defined(__GNUC__)
+    int64_t x;
+    if (UNLIKELY(__builtin_add_overflow((int64_t)(((uint64_t)(uint32_t)t << 32) | *f),
+                                        mul_ww(ph, m), &x))) {
+        *n += 1u;
+        *f = ph > 0 ? 0xFFFFFFFFu : 0u;
+        return ph > 0 ? INT32_MAX : INT32_MIN;
+    }
+    (void)s;
+    *f = (uint32_t)x;
+    return (int32_t)(x >> 32);
+#else
+    (void)m;
+    return theta_add(t, f, (int64_t)ph * 4294967296LL, s, INT32_MIN, INT32_MAX, n);
+#endif
+}
+
 /* Store an accumulator x (scale 2^-(f+s)) into a word of scale 2^-f (Python store):
  * s >= 0: rounding right shift then clamp; s < 0: a left shift that clamps before
  * shifting, so it never wraps. */
@@ -368,7 +419,7 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
     memset(S, 0, sizeof *S);
     S->plan = plan;
     S->n = n;
-    /* P0 = diag(p0) 2^-(f_P + e0), c = 1 ; theta0 = 0 */
+    /* P0 = diag(p0) 2^-(f_P + e0), c = 1 ; theta0 = 0, theta_frac = 0 (the memset) */
     for (i = 0; i < n; i++) {
         S->P[canrls_tri_index(n, i, i)] = p0[i];
     }
@@ -392,8 +443,8 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
     return CANRLS_OK;
 }
 
-int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P_up,
-                       int32_t e, int32_t c)
+int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *theta_frac,
+                       const int32_t *P_up, int32_t e, int32_t c)
 {
     const canrls_plan_q31 *p;
     uint32_t i, m;
@@ -416,6 +467,12 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P
         }
     }
     memcpy(S->theta, theta, S->n * sizeof *theta);
+    /* theta_frac: the fraction below theta's LSB (NULL: 0, the estimate at its word) */
+    if (theta_frac != NULL) {
+        memcpy(S->theta_frac, theta_frac, S->n * sizeof *theta_frac);
+    } else {
+        memset(S->theta_frac, 0, sizeof S->theta_frac);
+    }
     memcpy(S->P, P_up, m * sizeof *P_up);
     S->e = e;
     S->c = c;
@@ -535,8 +592,11 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     int32_t *const h = S->h;
     int32_t *const K = S->K;
     int32_t *const theta = S->theta;
+    uint32_t *const tf = S->theta_frac;
     const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
-    const int32_t rh = (int32_t)1 << ((th_s >= 33 ? th_s : 33) - 33);
+    /* 2^(64 - th_s): the high word of K eps at 2^-32 LSB (``full`` with SHIFT_HIGH: the
+     * caller guarantees th_s >= 34 and the whole int32_t theta word) */
+    const int32_t m = cls == SHIFT_HIGH && full ? (int32_t)1 << (64 - th_s) : 0;
     uint32_t i;
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
@@ -545,12 +605,14 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         const int32_t Ki = mul_rsh32(hn, gcn);
         h[i] = hn;
         K[i] = Ki;
-        /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
-        if (cls == SHIFT_HIGH || cls == SHIFT_32) {
-            theta[i] = add_sat(theta[i], mul_rsh_w(Ki, epn, rh, th_s, cls), th_lo, th_hi, c_th,
-                               full);
+        /* theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored to 2^-32
+         * LSB, so that updates below the LSB accumulate; K carries the exponent e + kn:
+         * shifted out here) */
+        if (cls == SHIFT_HIGH && full) {
+            theta[i] = theta_add_full(theta[i], &tf[i], (int32_t)(mul_ww(Ki, epn) >> 32), m,
+                                      th_s, c_th);
         } else {
-            theta[i] = sat(theta[i] + mul_rsh(Ki, epn, th_s, cls), th_lo, th_hi, c_th);
+            theta[i] = theta_add(theta[i], &tf[i], (int64_t)Ki * epn, th_s, th_lo, th_hi, c_th);
         }
     }
 }
@@ -603,14 +665,16 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 
 #ifdef CANRLS_N
 /* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
- * th_s and P_s >= 33), out of line: h~ 2^kn and K stay in registers from one to the
+ * th_s >= 34, P_s >= 33), out of line: h~ 2^kn and K stay in registers from one to the
  * other (the same integers; S->h keeps h~ without the normalisation, it is scratch).
+ * theta is updated last, when the P loop has freed the registers (the order of the two
+ * updates changes no integer: neither reads what the other writes).
  * Returns the low-excitation test, as P_step. */
 NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
                                int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const int32_t rt = (int32_t)1 << (th_s - 33), rp = (int32_t)1 << (P_s - 33);
+    const int32_t mt = (int32_t)1 << (64 - th_s), rp = (int32_t)1 << (P_s - 33);
     int32_t hn[CANRLS_N], K[CANRLS_N];
     int32_t *Pw = S->P; /* row i of the packed upper triangle */
     uint32_t i, j, nz = 0;
@@ -621,9 +685,6 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
         /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
         K[i] = mul_rsh32(hn[i], gcn);
         S->K[i] = K[i];
-        /* theta <- theta + K eps      (K carries the exponent e + kn: shifted out here) */
-        S->theta[i] = add_sat(S->theta[i], mul_rsh_hi(K[i], epn, rt, th_s), INT32_MIN,
-                              INT32_MAX, c_th, 1);
     }
     UNROLL
     for (i = 0; i < n; i++) {
@@ -637,6 +698,14 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
                                 INT32_MAX, c_P, 1);
         }
         Pw += n - i;
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored to 2^-32
+         * LSB; K carries the exponent e + kn: shifted out here) */
+        S->theta[i] = theta_add_full(S->theta[i], &S->theta_frac[i],
+                                     (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s,
+                                     c_th);
     }
     return nz == 0u;
 }
@@ -829,7 +898,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             P_s = p->P_s + e + 2 * kn;
         }
 #ifdef CANRLS_N
-        if (th_s >= 33 && P_s >= 33 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
+        if (th_s >= 34 && P_s >= 33 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
             /* the common case in one piece */
             low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, &c_th, &c_P);
         } else
@@ -837,8 +906,9 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         {
         switch (shift_class(th_s)) {
         case SHIFT_HIGH:
-            /* words of 32 bits: the overflow test is the clamp */
-            if (S->wide & WIDE_THETA) {
+            /* words of 32 bits: the overflow test is the clamp (th_s >= 34: the high word
+             * of K eps times 2^(64 - th_s) is one SMULL) */
+            if ((S->wide & WIDE_THETA) && th_s >= 34) {
                 K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 1);
             } else {
                 K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 0);

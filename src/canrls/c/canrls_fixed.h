@@ -38,7 +38,7 @@
  *   eps   = y - phi' theta
  *   h     = Pw phi,  d = lambda_k + c phi' h,  g = 1/d   (one division)
  *   K     = (g c) h     (the high word of (h 2^kn)(g c 2^g_up), kn normalising h)
- *   theta = theta + K eps
+ *   theta = theta + K eps   (in 64 bits: the word theta and a fraction theta_frac)
  *   Pw    = Pw - K h'   (upper triangle),  c = c / lambda_k
  * with lambda_k = 1 (flag WINDUP) when the step would take tr P above trace_max.
  *
@@ -160,7 +160,10 @@ typedef struct {
                                       by canrls_init_q31 from the plan) */
     uint32_t wide;               /**< bits 0..3: the phi, h, theta, P words are the whole
                                       int32_t (set by canrls_init_q31 from the plan) */
-    int32_t theta[CANRLS_N_MAX]; /**< estimate, theta format */
+    int32_t theta[CANRLS_N_MAX]; /**< estimate, theta format (the word published and used) */
+    uint32_t theta_frac[CANRLS_N_MAX]; /**< the estimate below theta's LSB, units of 2^-32
+                                            LSB: the estimate is theta 2^32 + theta_frac, so
+                                            that updates smaller than the LSB accumulate */
     int32_t P[CANRLS_TRI(CANRLS_N_MAX)]; /**< Pw, upper triangle packed by rows, P format */
     int32_t K[CANRLS_N_MAX];     /**< gain of the last step (K 2^(f_K + e)), 0 when frozen */
     int32_t h[CANRLS_N_MAX];     /**< scratch: h = Pw phi (h format, normalised or not) */
@@ -193,17 +196,19 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
                     const int32_t *p0, int32_t e0);
 
 /**
- * Restore a checkpoint (Python FixedRLS.state()): theta, the upper triangle of Pw,
- * e and c. Counters and `frozen` are left as they are (plain fields).
+ * Restore a checkpoint (Python FixedRLS.state()): theta, theta_frac, the upper triangle
+ * of Pw, e and c. Counters and `frozen` are left as they are (plain fields).
  *
  * @param theta  n words, theta format
+ * @param theta_frac  n fractions (state "theta_frac"), or NULL for zeros (a checkpoint
+ *               of format canrls.fixed/1, written before the 64-bit estimate)
  * @param P_up   n (n + 1) / 2 words of Pw's upper triangle packed by rows, P format
  * @param e      block exponent, 0..plan->e_max
  * @param c      forgetting scale, lam format, 1..plan->one_lam
  * @return CANRLS_OK or CANRLS_EINVAL (a value outside its word; S untouched)
  */
-int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const int32_t *P_up,
-                       int32_t e, int32_t c);
+int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *theta_frac,
+                       const int32_t *P_up, int32_t e, int32_t c);
 
 /**
  * One sample: the recursion of the module comment, in place.

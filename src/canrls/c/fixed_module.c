@@ -63,10 +63,10 @@ static int32_t clamp_in(int64_t x, int32_t lo, int32_t hi, int64_t *n)
 }
 
 PyDoc_STRVAR(run_block_doc,
-"run_block(Phi, Y, theta, P, scale, K, counts, plan, frozen, eps, theta_out, trace, exp,\n"
-"          flags) -> applied\n\n"
+"run_block(Phi, Y, theta, theta_frac, P, scale, K, counts, plan, frozen, eps, theta_out,\n"
+"          trace, exp, flags) -> applied\n\n"
 "canrls_update_q31 over the N rows of Phi (int64, N x n) and Y (int64, N): theta (int64,\n"
-"n), P (int64, n x n, upper triangle), scale (int64, [e, c]), K (int64, n) and counts\n"
+"n), theta_frac (int64, n, 0..2^32-1), P (int64, n x n, upper triangle), scale (int64, [e, c]), K (int64, n) and counts\n"
 "(int64, NSITES) updated in place; plan: int64 in PLAN_FIELDS order; eps, trace, exp\n"
 "(int64, N) and flags (uint8, N) written; theta_out (int64, N x n) or None.");
 
@@ -81,17 +81,19 @@ static PyObject *run_block(PyObject *self, PyObject *args)
     canrls_rls_q31 S;
     Py_ssize_t N, n, k, i, j, m;
     const int64_t *pv, *Phi, *Y;
-    int64_t *theta, *P, *scale, *K, *counts, *eps, *tho = NULL, *trace, *ex;
+    int64_t *theta, *thf, *P, *scale, *K, *counts, *eps, *tho = NULL, *trace, *ex;
     uint8_t *flags;
     int32_t p0[CANRLS_N_MAX], th32[CANRLS_N_MAX], Pup[CANRLS_TRI(CANRLS_N_MAX)];
+    uint32_t tf32[CANRLS_N_MAX];
     int32_t phi[CANRLS_N_MAX];
     int64_t c_phi = 0, c_y = 0;
     long applied = 0;
     (void)self;
 
     memset(o, 0, sizeof o);
-    if (!PyArg_ParseTuple(args, "OOOOOOOOpOOOOO:run_block", &o[0], &o[1], &o[2], &o[3],
-                          &o[4], &o[5], &o[6], &o[7], &frozen, &o[8], &o[9], &o[10],
+    /* o[13]: theta_frac (the fourth argument) */
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOpOOOOO:run_block", &o[0], &o[1], &o[2], &o[13],
+                          &o[3], &o[4], &o[5], &o[6], &o[7], &frozen, &o[8], &o[9], &o[10],
                           &o[11], &o[12])) {
         return NULL;
     }
@@ -119,11 +121,11 @@ static PyObject *run_block(PyObject *self, PyObject *args)
             {6, 8, CANRLS_NSITES, 1, "counts"}, {7, 8, NPLAN, 0, "plan"},
             {8, 8, N, 1, "eps"},       {9, 8, N * n, 1, "theta_out"},
             {10, 8, N, 1, "trace"},    {11, 8, N, 1, "exp"},
-            {12, 1, N, 1, "flags"},
+            {12, 1, N, 1, "flags"},    {13, 8, n, 1, "theta_frac"},
         };
-        void *ptr[13];
+        void *ptr[14];
         int k2;
-        for (k2 = 0; k2 < 13; k2++) {
+        for (k2 = 0; k2 < 14; k2++) {
             ptr[k2] = NULL;
             if (spec[k2].idx == 9 && o[9] == Py_None) {
                 continue; /* theta_out: None when not recorded */
@@ -147,6 +149,7 @@ static PyObject *run_block(PyObject *self, PyObject *args)
         trace = ptr[10];
         ex = ptr[11];
         flags = ptr[12];
+        thf = ptr[13];
     }
 
     /* the plan, field by field; every value must fit its field */
@@ -166,12 +169,17 @@ static PyObject *run_block(PyObject *self, PyObject *args)
     for (i = 0; i < n; i++) {
         p0[i] = (int32_t)P[i * n + i];
         th32[i] = (int32_t)theta[i];
+        if (thf[i] < 0 || thf[i] > (int64_t)0xFFFFFFFF) {
+            PyErr_SetString(PyExc_ValueError, "theta_frac outside 0..2^32-1");
+            goto done;
+        }
+        tf32[i] = (uint32_t)thf[i];
         for (j = i; j < n; j++) {
             Pup[m++] = (int32_t)P[i * n + j];
         }
     }
     if (canrls_init_q31(&S, &plan, (uint32_t)n, p0, (int32_t)scale[0]) != CANRLS_OK
-        || canrls_restore_q31(&S, th32, Pup, (int32_t)scale[0], (int32_t)scale[1])
+        || canrls_restore_q31(&S, th32, tf32, Pup, (int32_t)scale[0], (int32_t)scale[1])
                != CANRLS_OK) {
         PyErr_SetString(PyExc_ValueError, "state outside the words of the plan");
         goto done;
@@ -202,6 +210,7 @@ static PyObject *run_block(PyObject *self, PyObject *args)
     m = 0;
     for (i = 0; i < n; i++) {
         theta[i] = S.theta[i];
+        thf[i] = S.theta_frac[i];
         K[i] = S.K[i];
         for (j = i; j < n; j++) {
             P[i * n + j] = S.P[m++];

@@ -18,9 +18,13 @@ Integer operations (all on ``int64``, no floating point anywhere)
   ``[lo, hi]``; every clamp increments the counter of its site. A negative output
   shift (a store to a *finer* format) is a left shift that saturates before
   shifting, so it cannot wrap either.
-* **single product to a word** (``K``, ``theta``, ``P``, ...): the exact product is
+* **single product to a word** (``K``, ``P``, ...): the exact product is
   rounded once to the destination's scale and added to the destination with
-  saturation, e.g. ``P_ij <- sat(P_ij - rsh(K_i h_j, s))``.
+  saturation, e.g. ``P_ij <- sat(P_ij - rsh(K_i h_j, s))``. ``theta`` is the exception:
+  the estimate is 64 bits, the word ``theta`` and a fraction ``theta_frac`` in units of
+  ``2^-32`` LSB, and ``K_i eps`` is added to it floored at ``2^-32`` LSB (from the high
+  word of the product when the shift is 32 or more), then saturated to the word
+  (:func:`_theta_add`): updates smaller than the LSB accumulate instead of rounding to 0.
 * **multiply-accumulate** (``eps``, ``h``, ``phi' h``): sums of up to ``n`` products
   live in an accumulator of ``acc_bits``. It never overflows, by construction: the
   regressor operand is pre-shifted right (rounded) by the plan's guard shift
@@ -77,7 +81,9 @@ Per sample
         \quad g = 1/d \\
     K &= (g c)\,\tilde h \qquad (= P\varphi/(\lambda_k + \varphi^\top P\varphi);
         \text{the high word of } (\tilde h\,2^k)(g c\,2^{g_{up}})) \\
-    \theta &\leftarrow \theta + K\varepsilon \\
+    \theta &\leftarrow \theta + K\varepsilon \qquad\text{(the 64-bit estimate
+        } \theta\,2^{32} + \theta_{frac}\text{, } K\varepsilon \text{ floored to } 2^{-32}
+        \text{ LSB)} \\
     \tilde P &\leftarrow \tilde P - K\tilde h^\top \quad\text{(upper triangle only)},
         \qquad c \leftarrow c/\lambda_k
 
@@ -280,12 +286,40 @@ def _rsh(x: int, s: int) -> int:  # pragma: no cover - compiled
     return (x + _half(s)) >> s
 
 
+_FRAC_MASK = (1 << 32) - 1
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _theta_add(
+    t: int, f: int, p: int, s: int, lo: int, hi: int
+) -> tuple[int, int, int]:  # pragma: no cover - compiled
+    """The 64-bit estimate ``t 2^32 + f`` (``0 <= f < 2^32``) plus the update ``p 2^-s`` LSB
+    (``0 <= s <= 62``) at ``2^-32`` LSB: ``floor(p 2^(32-s))`` for ``s < 32``; for ``s >= 32``
+    the high word of the product, ``floor(p / 2^32) 2^(64-s)`` (exact at this scale; the
+    low word of ``p`` is dropped, as the target takes the high word of ``SMULL``).
+    Saturated to ``[lo 2^32, hi 2^32 + 2^32 - 1]``. Returns ``(t, f, clamped)``."""
+    whole = p >> s  # floor(p / 2^s): whole LSBs
+    if s >= 32:
+        part = ((p >> 32) << (64 - s)) & _FRAC_MASK  # the high word below the LSB
+    else:
+        part = (p & ((np.int64(1) << s) - 1)) << (32 - s)
+    f = f + part
+    t = t + whole + (f >> 32)
+    f &= _FRAC_MASK
+    if t > hi:
+        return hi, _FRAC_MASK, 1
+    if t < lo:
+        return lo, 0, 1
+    return t, f, 0
+
+
 # -------------------------------------------------------------------- kernel
 @numba.njit(cache=True, nogil=True)
 def fixed_block(
     Phi: np.ndarray,
     Y: np.ndarray,
     theta: np.ndarray,
+    theta_frac: np.ndarray,
     P: np.ndarray,
     scale: np.ndarray,
     work: np.ndarray,
@@ -310,6 +344,11 @@ def fixed_block(
         Targets in the ``y`` Q format (saturated to it here, counted).
     theta : ndarray of int64, shape (n,)
         Estimate in the ``theta`` format, updated in place.
+    theta_frac : ndarray of int64, shape (n,)
+        The fraction of each estimate below its LSB, in units of :math:`2^{-32}` LSB
+        (``0 <= theta_frac < 2**32``), updated in place: the estimate is the 64-bit
+        ``theta * 2**32 + theta_frac``, of which ``theta`` is the published word
+        (module docstring, *The estimate in 64 bits*).
     P : ndarray of int64, shape (n, n)
         The words :math:`\tilde P`, updated in place. ``MODE_SYMMETRIC`` reads and
         writes the upper triangle only (the lower one is never touched).
@@ -554,10 +593,13 @@ def fixed_block(
                 # K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded
                 Ki = (h[i] * gcn + (np.int64(1) << 31)) >> 32
                 K[i] = Ki
-                # theta <- theta + K eps      (K carries the exponent e + kn: shifted out here)
-                v, cc = saturate(theta[i] + _rsh(Ki * epn, th_s), th_lo, th_hi)
+                # theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored
+                # to 2^-32 LSB, so that updates below the LSB accumulate; K carries the
+                # exponent e + kn: shifted out here)
+                v, f, cc = _theta_add(theta[i], theta_frac[i], Ki * epn, th_s, th_lo, th_hi)
                 c_th += cc
                 theta[i] = v
+                theta_frac[i] = f
                 # low excitation: the information K_i w~_i rounds to zero on the whole diagonal
                 if _rsh(Ki * w[i], P_s) != 0:
                     low = False
@@ -657,6 +699,7 @@ def reference_block(
     prm: list[int],
     acc_bits: int,
     mode: int = MODE_SYMMETRIC,
+    theta_frac: list[int] | None = None,
 ) -> tuple[list[int], list[int], list[int], list[int]]:
     r"""The same recursion in plain Python integers: the slow, readable specification.
 
@@ -679,6 +722,9 @@ def reference_block(
         Accumulator width the plan was built for.
     mode : int
         ``MODE_SYMMETRIC``, ``MODE_LITERAL`` or ``MODE_NAIVE`` (frozen is not modelled).
+    theta_frac : list of int, optional
+        The fractions of ``theta`` in :math:`2^{-32}` LSB (``fixed_block``), updated in
+        place; ``None``: zeros, not returned.
 
     Returns
     -------
@@ -687,6 +733,7 @@ def reference_block(
     n = len(theta)
     lim = 1 << (acc_bits - 1)
     p = prm
+    tf = [0] * n if theta_frac is None else theta_frac
 
     def chk(a: int) -> int:
         # an accumulator value must fit in acc_bits (the guard-bit argument)
@@ -814,10 +861,19 @@ def reference_block(
         assert all(-(1 << 31) <= x < (1 << 31) for x in hs + ws) and 0 <= gcn < (1 << 31)
         # K = (g c) h~: the high word of the product, rounded half up
         K = [rsh(mul(hs[i], gcn), 32) for i in range(n)]
-        # theta <- theta + K eps
+        # theta 2^32 + tf <- theta 2^32 + tf + floor(K eps 2^32)   (the 64-bit estimate)
         for i in range(n):
-            t = rsh(mul(K[i], eps * (1 << ke)), p[I_TH_S] + e + k + ke)
-            theta[i] = sat(theta[i] + t, p[I_TH_LO], p[I_TH_HI], S_TH)
+            ts = p[I_TH_S] + e + k + ke
+            u = mul(K[i], eps * (1 << ke))
+            if ts >= 32:
+                u = u // (1 << 32) * (1 << 32)  # the high word of the product (s >= 32)
+            x = theta[i] * (1 << 32) + tf[i] + u * (1 << 32) // (1 << ts)
+            top = p[I_TH_HI] * (1 << 32) + (1 << 32) - 1
+            bot = p[I_TH_LO] * (1 << 32)
+            if x > top or x < bot:
+                counts[S_TH] += 1
+                x = top if x > top else bot
+            theta[i], tf[i] = x >> 32, x & ((1 << 32) - 1)
         # P~ <- P~ - K w~'   (upper triangle, or the full matrix for literal)
         ps = p[I_P_S] + e + 2 * k
         low = all(rsh(mul(K[i], ws[i]), ps) == 0 for i in range(n))
