@@ -37,6 +37,7 @@ from canrls.live.bus import bus_config, messages_to_block, open_bus
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.processor import FrameProcessor
+from daemon_tool import DaemonTool
 
 ROOT = Path(__file__).resolve().parent.parent
 DBC = ROOT / "dbc" / "canrls.dbc"
@@ -60,49 +61,13 @@ def _sim(channel: str, effects: str = "inertia,viscous,coulomb", **kw: Any) -> d
                 excitation="slow", realtime=False, start_time=0.0, **kw)
 
 
-def _collect(reader: can.BufferedReader) -> list[can.Message]:
-    out = []
-    while (m := reader.get_message(0.0)) is not None:
-        out.append(m)
-    return out
-
-
-class _Tool:
-    """A virtual bus on the daemon's channel that keeps the daemon's frames."""
-
-    def __init__(self, channel: str) -> None:
-        self.bus = can.Bus(interface="virtual", channel=channel, ignore_config=True)
-        self.bus.set_filters([{"can_id": 0x300, "can_mask": 0x700}])
-        self.reader = can.BufferedReader()
-        self.notifier = can.Notifier(self.bus, [self.reader], timeout=0.05)
-        self.frames: list[can.Message] = []
-
-    def take(self) -> list[can.Message]:
-        new = _collect(self.reader)
-        self.frames += new
-        return new
-
-    def command(self, msg: can.Message, timeout: float = 5.0) -> CommandResult | None:
-        self.take()
-        self.bus.send(msg)
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            for m in self.take():
-                if m.arbitration_id == 0x321:
-                    return CommandResult(m.data[1])
-            time.sleep(0.01)
-        return None
-
-    def close(self) -> None:
-        self.notifier.stop()
-        self.bus.shutdown()
 
 
 # ------------------------------------------------------------------ end to end
 def test_end_to_end_frames_decode_in_cantools(tmp_path: Path) -> None:
     protocol, model, settings = _setup()
     ch = _chan("e2e")
-    tool = _Tool(ch)
+    tool = DaemonTool(ch)
     d = Daemon(protocol, model, settings,
                DaemonSettings(publish_interval=0.02, info_interval=0.2, commands=True),
                bus=_sim(ch),
@@ -173,7 +138,7 @@ def _raw(data: bytes) -> can.Message:
 def test_commands_good_and_bad() -> None:
     protocol, model, settings = _setup()
     ch = _chan("cmd")
-    tool = _Tool(ch)
+    tool = DaemonTool(ch)
     d = Daemon(protocol, model, settings,
                DaemonSettings(publish_interval=1.0, commands=True, command_burst=100),
                bus={"interface": "virtual", "channel": ch})
@@ -229,7 +194,7 @@ def test_commands_good_and_bad() -> None:
 def test_commands_can_be_disabled() -> None:
     protocol, model, settings = _setup()
     ch = _chan("disabled")
-    tool = _Tool(ch)
+    tool = DaemonTool(ch)
     d = Daemon(protocol, model, settings, DaemonSettings(commands=False, publish_interval=1.0),
                bus={"interface": "virtual", "channel": ch})
     try:
@@ -253,7 +218,7 @@ def test_a_command_does_not_wait_for_the_block_interval() -> None:
     before the interval."""
     protocol, model, settings = _setup()
     ch = _chan("hurry")
-    tool = _Tool(ch)
+    tool = DaemonTool(ch)
     d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=3.0, commands=True),
                bus={"interface": "virtual", "channel": ch})
     assert d.config.block_s == 3.0
@@ -289,7 +254,7 @@ def _mean(xs: list[float]) -> float:
 def test_adding_the_missing_effect_makes_the_status_rms_fall() -> None:
     protocol, model, settings = _setup()
     ch = _chan("rms")
-    tool = _Tool(ch)
+    tool = DaemonTool(ch)
     d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=0.01, commands=True),
                bus=_sim(ch, effects="inertia,viscous,coulomb,unbalance"), backpressure=True)
     rms: list[tuple[int, float]] = []  # (frames processed, RlsStatus.ResidualRms)
@@ -345,7 +310,7 @@ def test_error_frames_pause_sending_and_recover(caplog: pytest.LogCaptureFixture
     caplog.set_level(logging.INFO, logger="canrls.live")
     protocol, model, settings = _setup()
     ch = _chan("errframes")
-    tool = _Tool(ch)
+    tool = DaemonTool(ch)
     tool.bus.set_filters(None)
     d = Daemon(protocol, model, settings,
                DaemonSettings(publish_interval=0.01, fault_hold_s=0.5),
@@ -416,7 +381,7 @@ def test_vanished_interface_is_reopened_with_backoff() -> None:
             raise BusError("cannot open CAN interface 'test' channel 'x': gone")
         return Bus(channel=ch)
 
-    tool = _Tool(ch)
+    tool = DaemonTool(ch)
     d = Daemon(protocol, model, settings,
                DaemonSettings(publish_interval=0.02, reopen_min_s=0.05, reopen_max_s=0.2,
                               commands=True),

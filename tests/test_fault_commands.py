@@ -34,6 +34,7 @@ from canrls.errors import CheckpointError, ConfigError
 from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.processor import FrameProcessor
+from daemon_tool import DaemonTool
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE = ["inertia", "viscous", "coulomb"]
@@ -81,36 +82,6 @@ def test_forced_publications_do_not_move_the_regular_grid() -> None:
 
 
 # ------------------------------------------------------------------ floods in one process
-class _Tool:
-    """A virtual bus on the daemon's channel that keeps what the daemon sends."""
-
-    def __init__(self, channel: str) -> None:
-        self.bus = can.Bus(interface="virtual", channel=channel, ignore_config=True)
-        self.bus.set_filters([{"can_id": 0x300, "can_mask": 0x700}])
-        self.reader = can.BufferedReader()
-        self.notifier = can.Notifier(self.bus, [self.reader], timeout=0.05)
-        self.frames: list[can.Message] = []
-
-    def take(self) -> list[can.Message]:
-        new = []
-        while (m := self.reader.get_message(0.0)) is not None:
-            new.append(m)
-        self.frames += new
-        return new
-
-    def acks(self) -> list[can.Message]:
-        return [m for m in self.frames if m.arbitration_id == 0x321]
-
-    def wait_acks(self, n: int, timeout: float = 60.0) -> list[can.Message]:
-        end = time.monotonic() + timeout
-        while len(self.acks()) < n and time.monotonic() < end:
-            self.take()
-            time.sleep(0.01)
-        return self.acks()
-
-    def close(self) -> None:
-        self.notifier.stop()
-        self.bus.shutdown()
 
 
 def _sim(channel: str) -> dict[str, Any]:
@@ -146,7 +117,7 @@ def test_a_command_flood_is_bounded_answered_and_keeps_the_schedule(
     cfg = DaemonSettings(publish_interval=interval, commands=True, max_parameters=16,
                          command_rate=2.0, command_burst=10)
     d = Daemon(protocol, model, settings, cfg, bus=_sim(ch), backpressure=True)
-    tool = _Tool(ch)
+    tool = DaemonTool(ch)
     rng = np.random.default_rng(20261127)
     adds = [_cmd(CommandCode.ADD_EFFECT, EffectId.COGGING, k) for k in range(1, 301)]
     junk = _random_frames(rng, 300)
@@ -196,7 +167,7 @@ def test_commands_are_off_by_default() -> None:
     ch = _chan("off")
     d = Daemon(protocol, model, settings, DaemonSettings(publish_interval=1.0),
                bus={"interface": "virtual", "channel": ch})
-    tool = _Tool(ch)
+    tool = DaemonTool(ch)
     try:
         d.start()
         for m in (_cmd(CommandCode.ADD_EFFECT, EffectId.OFFSET), _cmd(CommandCode.RESET),
@@ -241,7 +212,7 @@ def test_a_model_the_frames_cannot_carry_is_refused_before_it_runs(tmp_path: Pat
     cfg = DaemonSettings(publish_interval=0.05, commands=True, max_parameters=255,
                          command_burst=1000, checkpoint=ckpt)
     d = Daemon(protocol, model, settings, cfg, bus={"interface": "virtual", "channel": ch})
-    tool = _Tool(ch)
+    tool = DaemonTool(ch)
     n = 130
     try:
         d.start()
