@@ -210,7 +210,7 @@ def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
 
 def _run_in_chunks(proc: SampleProcessor, signals: Signals) -> list[EquationBlock]:
     """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
-    each equation's recorded block, what the diagnosis reads (t, y, used, phi), joined.
+    each equation's recorded block, what the diagnosis reads (t, used), joined.
 
     The pipeline carries its state from block to block bit for bit (``canrls fit``
     replays a log in blocks too), so the result is the one of a single run; but the
@@ -242,10 +242,13 @@ _EMPTY = np.zeros(0)
 
 
 def _slim(eb: EquationBlock) -> EquationBlock:
-    """``eb`` without the arrays the diagnosis does not read."""
-    return EquationBlock(equation=eb.equation, t=eb.t, y=eb.y, eps=_EMPTY, eps_fixed=_EMPTY,
-                         used=eb.used, online_rms=_EMPTY, flags=np.zeros(0, np.uint8),
-                         theta=None, theta_fixed=None, phi=eb.phi)
+    """``eb`` with only the arrays the diagnosis reads (t, used): the columns and the
+    target are built again block by block where needed
+    (:meth:`RecordSamples.measured_blocks`)."""
+    return EquationBlock(equation=eb.equation, t=eb.t, y=_EMPTY, eps=_EMPTY,
+                         eps_fixed=_EMPTY, used=eb.used, online_rms=_EMPTY,
+                         flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None,
+                         phi=None)
 
 
 def _concat(parts: list[EquationBlock], name: str) -> EquationBlock:
@@ -253,31 +256,25 @@ def _concat(parts: list[EquationBlock], name: str) -> EquationBlock:
     if len(parts) == 1:
         return parts[0]
     return EquationBlock(
-        equation=name, t=np.concatenate([b.t for b in parts]),
-        y=np.concatenate([b.y for b in parts]), eps=_EMPTY, eps_fixed=_EMPTY,
-        used=np.concatenate([b.used for b in parts]), online_rms=_EMPTY,
-        flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None,
-        phi=np.concatenate([b.phi for b in parts]))  # type: ignore[misc]
+        equation=name, t=np.concatenate([b.t for b in parts]), y=_EMPTY, eps=_EMPTY,
+        eps_fixed=_EMPTY, used=np.concatenate([b.used for b in parts]), online_rms=_EMPTY,
+        flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None, phi=None)
 
 
 def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
                       eb: EquationBlock, fit: EquationFit) -> EquationDiagnosis:
     eq = est.equation
-    assert eb.phi is not None
     used = eb.used
     N = int(used.sum())
     unit = eq.target.unit
-    phi = eb.phi
-    s_y = eq.scaling.target
-    y_n = np.ldexp(eb.y, -s_y)  # normalised target (exact)
     th = np.array(est.rls.theta, dtype=np.float64)
     th_fx = np.asarray(est.frls.theta_float, dtype=np.float64)
-    # r = y - Phi theta (final float estimate), in the target unit
-    r = eq.target_to_physical(y_n - phi @ th)
-    r_fx = eq.target_to_physical(y_n - phi @ th_fx)
+    # r = y - Phi theta (final float estimate), in the target unit; Phi and y built
+    # again block by block (the pipeline's, bit for bit), not kept from the run
+    r = ctx.residual(eq, th)
     r_u = r[used]
-    rms_fixed = float(np.sqrt(np.mean(r_fx[used] ** 2))) if N else math.nan
-    del y_n, r_fx  # record-long: not kept through the rest of the analysis
+    # the fixed-point estimate's residual: only its mean square over the used rows
+    rms_fixed = math.sqrt(ctx.mean_square(eq, th_fx, used)) if N else math.nan
     hold = eq.holds[0]
     h = ctx.impulse(hold)
     h2 = float(np.sum(h * h))
@@ -307,7 +304,6 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
 def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F64,
             used: B) -> Traces:
     eq = est.equation
-    assert eb.phi is not None
     rows = np.flatnonzero(used)
     n = eq.n
     npts = min(400, len(rows))
@@ -326,26 +322,38 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
         # instants, instead of a record-long recording of it after every sample
         frls = FixedRLS.from_state(est.frls.state())
         frls.reset()
-        phi_u = np.ascontiguousarray(eb.phi[rows])
-        y_u = np.ldexp(eb.y[rows], -eq.scaling.target)
         cuts = np.unique(np.linspace(0, len(rows), npts + 1).astype(np.int64))[1:]
         th_l, sd_l, fx_l = [], [], []
-        a = 0
-        for c in cuts:
-            rls.run(phi_u[a:c], y_u[a:c], record=False)
-            th_l.append(eq.to_physical(np.array(rls.theta)))
-            sd_l.append(eq.sigma_to_physical(rls.std() * root_kappa))
-            Pq, Yq = frls.quantize_block(phi_u[a:c], np.ascontiguousarray(y_u[a:c]))
-            frls.run_block(Pq, Yq, False)
-            fx_l.append(eq.to_physical(frls.theta_float))
-            a = int(c)
-        k = rows[cuts - 1]
-        conv_t = eb.t[k]
+        k = 0  # used rows fed to the estimators so far
+        ci = 0  # next instant
+        # the used rows block by block (the estimators carry their state bit for bit)
+        for m, phi, y in ctx.measured_blocks(eq):
+            u = used[m:m + len(y)]
+            if ci >= len(cuts) or not u.any():
+                continue
+            phi_u = np.ascontiguousarray(phi[u])
+            y_u = np.ascontiguousarray(y[u])
+            a = 0
+            while a < len(y_u) and ci < len(cuts):
+                c = min(len(y_u), a + int(cuts[ci]) - k)
+                rls.run(phi_u[a:c], y_u[a:c], record=False)
+                Pq, Yq = frls.quantize_block(phi_u[a:c], np.ascontiguousarray(y_u[a:c]))
+                frls.run_block(Pq, Yq, False)
+                k += c - a
+                a = c
+                if k == cuts[ci]:
+                    th_l.append(eq.to_physical(np.array(rls.theta)))
+                    sd_l.append(eq.sigma_to_physical(rls.std() * root_kappa))
+                    fx_l.append(eq.to_physical(frls.theta_float))
+                    ci += 1
+        k_rows = rows[cuts - 1]
+        conv_t = eb.t[k_rows]
         theta = np.array(th_l)
         sigma = np.array(sd_l)
         tfx = np.array(fx_l)
+    y = ctx.target(eq)
     return Traces(
-        t=eb.t, used=used, y=eb.y, yhat=eb.y - r, residual=r, speed=ctx.speed,
+        t=eb.t, used=used, y=y, yhat=y - r, residual=r, speed=ctx.speed,
         acceleration=ctx.acceleration, current=ctx.current, position=ctx.position,
         angle=ctx.angle, conv_t=conv_t, theta=theta, sigma=sigma, theta_fixed=tfx,
         names=tuple(p.name for p in eq.parameters),

@@ -418,9 +418,8 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
     if not chosen:
         # nothing to add: the least-squares residual of the model as it is (structure the
         # model's own columns can absorb is the estimator's, not a missing effect)
-        assert eb.phi is not None
         th_ls = np.array([th0.get(j, 0.0) for j in C])
-        r_ls = eq.target_to_physical(np.ldexp(eb.y, -eq.scaling.target) - eb.phi @ th_ls)
+        r_ls = ctx.residual(eq, th_ls)  # block by block
         d = (r_ls - r)[used]
         # the displayed spectrum (of r) serves when r_ls is practically r
         same = (float(np.dot(d, d)) <= 0.01 * float(np.dot(r_ls[used], r_ls[used]))

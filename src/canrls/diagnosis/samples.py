@@ -217,6 +217,45 @@ class RecordSamples:
                 rb = builder.process(filled.slice(c0, c1))
                 yield c0, rb.phi, rb.y, None if real is None else real[c0:c1]
 
+    def measured_blocks(self, eq: Equation) -> Iterator[tuple[int, F64, F64]]:
+        """(first measured row, phi, y) of an equation on the measured rows, block by
+        block (at most :data:`BLOCK` filled rows each, the filter restarted at each
+        segment, no periodic column masked): the pipeline's columns, bit for bit,
+        without the record's whole ``Phi``."""
+        m = 0
+        for _, phi, y, real in self._blocks(eq):
+            if real is not None:
+                phi, y = phi[real], y[real]
+            yield m, phi, y
+            m += len(y)
+
+    def residual(self, eq: Equation, theta: F64) -> F64:
+        """``r = y - Phi theta`` on every measured row, in the target unit, block by
+        block (``theta`` normalised)."""
+        r = np.empty(len(self.signals))  # the measured rows are the samples given
+        for m, phi, y in self.measured_blocks(eq):
+            r[m:m + len(y)] = y - phi @ theta
+        return eq.target_to_physical(r)
+
+    def target(self, eq: Equation) -> F64:
+        """The target ``y`` of an equation on every measured row, in the target unit
+        (as the pipeline's :class:`~canrls.estimation.pipeline.EquationBlock` holds it)."""
+        y_all = np.empty(len(self.signals))
+        for m, _, y in self.measured_blocks(eq):
+            y_all[m:m + len(y)] = y
+        return eq.target_to_physical(y_all)
+
+    def mean_square(self, eq: Equation, theta: F64, rows: B) -> float:
+        """Mean square of ``r = y - Phi theta`` (target unit) over the measured
+        ``rows``, block by block: nothing record-long."""
+        s = 0.0
+        for m, phi, y in self.measured_blocks(eq):
+            u = rows[m:m + len(y)]
+            if u.any():
+                r = eq.target_to_physical(y[u] - phi[u] @ theta)
+                s += float(np.dot(r, r))
+        return s / max(int(rows.sum()), 1)
+
     def fit_residual(self, eq: Equation, rows: B) -> F64:
         """Least-squares fit of ``eq`` on the measured ``rows`` and its residual on every
         measured row, in the target unit: ``r = y - Phi theta`` with ``theta`` from
@@ -227,26 +266,16 @@ class RecordSamples:
         n_rows = int(rows.sum())
         A = np.empty((n_rows, eq.n))
         Y = np.empty(n_rows)
-        k = m = 0  # rows of A filled; measured rows passed
-        for _, phi, y, real in self._blocks(eq):
-            if real is not None:
-                phi, y = phi[real], y[real]
+        k = 0  # rows of A filled
+        for m, phi, y in self.measured_blocks(eq):
             sel = rows[m:m + len(y)]
             c = int(sel.sum())
             A[k:k + c] = phi[sel]
             Y[k:k + c] = y[sel]
             k += c
-            m += len(y)
         theta = np.linalg.lstsq(A, Y, rcond=None)[0]
         del A, Y
-        r = np.empty(m)
-        m = 0
-        for _, phi, y, real in self._blocks(eq):
-            if real is not None:
-                phi, y = phi[real], y[real]
-            r[m:m + len(y)] = y - phi @ theta
-            m += len(y)
-        return eq.target_to_physical(r)
+        return self.residual(eq, theta)
 
     def impulse(self, hold: str, derivative: bool = False) -> F64:
         """Impulse response of F (DC gain 1), or of sF, for a hold, long enough to decay."""
