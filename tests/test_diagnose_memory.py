@@ -14,6 +14,7 @@ import json
 import tracemalloc
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from canrls.cli.main import main
@@ -88,3 +89,24 @@ def test_blocks_give_the_answer_of_one_run(tmp_path: Path,
         rep = diagnose_log(p, protocol, model, settings, max_order=8, add=["offset"])
         reports.append(json.dumps(rep.to_dict(), sort_keys=True, default=str))
     assert reports[0] == reports[1]
+
+
+@pytest.mark.parametrize("kind", ["normal", "quantised", "heavy", "constant"])
+def test_order_statistics_without_a_copy_are_numpys(kind: str,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bin edges and the noise estimate read exact percentiles and medians block by
+    block (a grid count, then the bin that holds the value): numpy's, bit for bit, also
+    with many equal values and across block boundaries."""
+    rng = np.random.default_rng(11)
+    monkeypatch.setattr(residual, "BLOCK", 1000)
+    for n in (1, 2, 7, 4000, 150_001):
+        x = {"normal": rng.normal(size=n), "quantised": np.round(rng.normal(size=n) * 8) / 8,
+             "heavy": rng.standard_cauchy(size=n), "constant": np.full(n, 2.5)}[kind]
+        for rows in (None, rng.random(n) < 0.7):
+            if rows is not None and not rows.any():
+                continue
+            xs = x if rows is None else x[rows]
+            qs = [0.0, 0.5, 50.0, 99.0, 99.5, 100.0]
+            assert residual.percentiles(x, rows, qs) == [float(v) for v in
+                                                         np.percentile(xs, qs)]
+            assert residual.median(x, rows) == float(np.median(xs))
