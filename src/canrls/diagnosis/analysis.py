@@ -272,7 +272,6 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
     # r = y - Phi theta (final float estimate), in the target unit; Phi and y built
     # again block by block (the pipeline's, bit for bit), not kept from the run
     r = ctx.residual(eq, th)
-    r_u = r[used]
     # the fixed-point estimate's residual: only its mean square over the used rows
     rms_fixed = math.sqrt(ctx.mean_square(eq, th_fx, used)) if N else math.nan
     hold = eq.holds[0]
@@ -286,7 +285,7 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
         inputs = {"speed": ctx.speed, "acceleration": ctx.acceleration}
     wht = whiteness(r, used, inputs, ctx.impulse(hold), WHITENESS_LAGS)
     bins = all_bins(ctx, r, used, unit)
-    regions = find_regions(bins, r_u, tau, unit, ctx)
+    regions = find_regions(bins, r, tau, unit, ctx, rows=used)
     spectrum = order_spectrum(ctx, r, used, unit) if ctx.angle_raw is not None else None
     exc = excitation_summary(ctx, model, used)
     cand = rank_candidates(ctx, model, eq, eb, r, used, N, h2, unit, bins, spectrum, exc)

@@ -54,8 +54,11 @@ __all__ = [
     "excitation_summary",
     "find_regions",
     "harmonic_fit",
+    "median",
+    "moments",
     "nice_magnitudes",
     "order_spectrum",
+    "percentiles",
     "residual_structure",
     "spectrum_orders",
     "spectrum_peaks",
@@ -93,6 +96,18 @@ def chi2_sf(q: float, k: int) -> float:
     return 0.5 * math.erfc(z / math.sqrt(2.0))
 
 
+def _every(x: F64, rows: B, D: int) -> F64:
+    """``x[rows][::D]``, gathered block by block (no copy of ``x[rows]``)."""
+    parts = []
+    seen = 0  # rows passed so far
+    for a in range(0, len(x), BLOCK):
+        idx = np.flatnonzero(rows[a:a + BLOCK])
+        # the rows whose rank among all rows is a multiple of D
+        parts.append(x[a:a + BLOCK][idx[(-seen) % D::D]])
+        seen += len(idx)
+    return np.concatenate(parts) if parts else np.zeros(0)
+
+
 def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
                lags: int) -> Whiteness | None:
     # decimation: the lag after which |rho_h| stays below 0.02
@@ -103,7 +118,7 @@ def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
     rho = np.array([float(np.dot(h[: m - k], h[k:])) / hh for k in range(m)])
     big = np.flatnonzero(np.abs(rho) >= 0.02)
     D = int(big[-1]) + 1 if len(big) else 1
-    x = r[used][::D]
+    x = _every(r, used, D)
     N = len(x)
     if N < 3 * lags + 10:
         return None
@@ -118,7 +133,7 @@ def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
     cross: dict[str, F64] = {}
     outside: dict[str, int] = {}
     for name, sig in inputs.items():
-        u = sig[used][::D]
+        u = _every(sig, used, D)
         u = u - u.mean()
         du = float(np.dot(u, u))
         if du <= 0:
@@ -314,6 +329,25 @@ def _extremes(x: F64, rows: B) -> tuple[float, float]:
     return lo, hi
 
 
+def moments(r: F64, rows: B) -> tuple[int, float, float, float]:
+    """(N, mean, sum of squares, sum of squares about the mean) of ``r[rows]``, block by
+    block (the deviations in a second pass, as ``np.std`` takes them)."""
+    n = int(np.count_nonzero(rows))
+    s1 = s2 = 0.0
+    for a in _spans(len(r)):
+        v = r[a:a + BLOCK][rows[a:a + BLOCK]]
+        s1 += float(np.sum(v))
+        s2 += float(np.dot(v, v))
+    if not n:
+        return 0, math.nan, 0.0, 0.0
+    mu = s1 / n
+    ss = 0.0
+    for a in _spans(len(r)):
+        d = r[a:a + BLOCK][rows[a:a + BLOCK]] - mu
+        ss += float(np.dot(d, d))
+    return n, mu, s2, ss
+
+
 def _edges_linear(v: F64, rows: B, nb: int) -> F64:
     """``nb`` bins from the 0.5 to the 99.5 percentile of ``v[rows]`` (exact:
     :func:`percentiles`), the end bins stretched to the extremes."""
@@ -435,14 +469,18 @@ def _notable(mean: float, n: int, sd: float, rms: float, tau: float) -> bool:
 
 
 def find_regions(bins: Mapping[str, Binned], ru: F64, tau: float, unit: str,
-             ctx: RecordSamples) -> tuple[Region, ...]:
-    if not len(ru):
+                 ctx: RecordSamples, rows: B | None = None) -> tuple[Region, ...]:
+    """The worst regions in words; ``ru`` the residual on the used rows, or with
+    ``rows`` the residual on every row and the used ones (read block by block)."""
+    if rows is None:
+        rows = np.ones(len(ru), np.bool_)
+    n, _, energy, ss = moments(ru, rows)
+    if not n:
         return ()
-    energy = float(np.dot(ru, ru))
-    rms = math.sqrt(energy / len(ru))
+    sd = math.sqrt(ss / n)
+    rms = math.sqrt(energy / n)
     if energy <= 0:
         return ()
-    sd = float(np.std(ru))
     found: list[Region] = []
     # speed: magnitude bands with the mean forward and backward
     sb = bins.get("speed")
@@ -560,18 +598,19 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
     record; only sums over the used rows are kept.
     """
     assert ctx.angle_filled is not None
-    n_used = int(used.sum())
     amp = np.zeros(len(orders))
     expl = np.zeros(len(orders))
+    # den: the centred residual's sum of squares over the used rows
+    n_used, mean_r, _, den = moments(r, used)
     if n_used < 3:
         return amp, expl
-    rc = r - float(np.mean(r[used]))  # centred on the used rows
-    den = float(np.dot(rc[used], rc[used]))
     if den <= 0:
         return amp, expl
-    # filtered on the filled record, as the pipeline filters its columns
+    # filtered on the filled record, as the pipeline filters its columns; the residual
+    # (measured rows) placed on the filled rows block by block: rc = r - mean, 0 on
+    # filled rows
     used = ctx.spread(used)
-    rc = ctx.spread_values(rc)
+    real = ctx.selected.real
     a = np.ascontiguousarray(ctx.angle_filled, dtype=np.float64)
     chunk = 32
     for c0 in range(0, len(orders), chunk):
@@ -585,6 +624,7 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
         sr = np.zeros(m)
         cr = np.zeros(m)
         svf = SVF(ctx.cutoff_hz, ctx.dt, ctx.zeta, ctx.position_hold)
+        m0 = 0  # measured rows before the block
         for sa, sb in ctx.segments():
             svf.reset()
             for b0 in range(sa, sb, BLOCK):
@@ -593,10 +633,17 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
                 _sincos(a[b0:b1], qs, raw)
                 f, _ = svf.process(raw)
                 u = used[b0:b1]
+                if real is None:
+                    rb = r[b0:b1] - mean_r
+                else:
+                    k = int(np.count_nonzero(real[b0:b1]))
+                    rb = np.zeros(b1 - b0)
+                    rb[real[b0:b1]] = r[m0:m0 + k] - mean_r
+                    m0 += k
                 if not u.any():
                     continue
                 G = f[u]
-                ru = rc[b0:b1][u]
+                ru = rb[u]
                 gs, gc = G[:, 0::2], G[:, 1::2]
                 s1 += G.sum(axis=0)
                 ss += np.einsum("ij,ij->j", gs, gs)
@@ -715,18 +762,16 @@ def residual_structure(ctx: RecordSamples, r: F64, used: B, unit: str, h2: float
     The residual is not tested against the equation's own target signal (``target``):
     it holds the target's noise, so its bin means follow the target trivially.
     """
-    ru = r[used]
     out: list[StructureItem] = []
-    if not len(ru):
+    n, mu, energy, ss = moments(r, used)
+    if not n:
         return ()
-    energy = float(np.dot(ru, ru))
+    sd = math.sqrt(ss / n)
     if energy <= 0:
         return ()
-    mu = float(np.mean(ru))
     tau = 1.0 / h2 if h2 > 0 else 1.0
-    sd = float(np.std(ru))
-    share_mean = len(ru) * mu * mu / energy
-    if share_mean >= MIN_STRUCTURE and abs(mu) >= 4 * sd / math.sqrt(len(ru) / tau):
+    share_mean = n * mu * mu / energy
+    if share_mean >= MIN_STRUCTURE and abs(mu) >= 4 * sd / math.sqrt(n / tau):
         out.append(StructureItem("offset", f"a constant offset: mean residual "
                                            f"{value_text(mu, unit, True)}", share_mean))
     bins = all_bins(ctx, r, used, unit)

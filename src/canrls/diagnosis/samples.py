@@ -303,19 +303,37 @@ class RecordSamples:
         assert self.angle_raw is not None
         key = (int(used.sum()), hash(used.tobytes()))
         if key not in self._coh:
-            a = self.angle_raw[used]
-            t = self.signals.t[used]
+            # block by block: the means of t and the angle, the slope from the centred
+            # sums, then the mean of exp(ik(a - w t)) per order (nothing record-long)
+            ang, t = self.angle_raw, self.signals.t
+            n = int(np.count_nonzero(used))
             c = np.ones(self.max_order + 1)
             w = 0.0
-            if len(a) >= 3:
-                tc = t - t.mean()
-                den = float(np.dot(tc, tc))
-                w = float(np.dot(tc, a - a.mean())) / den if den > 0 else 0.0
-                z1 = np.exp(1j * (a - w * t))
-                zk = np.ones_like(z1)
-                for k in range(1, self.max_order + 1):
-                    zk *= z1
-                    c[k] = abs(complex(np.mean(zk)))
+            if n >= 3:
+                def rows() -> Iterator[tuple[F64, F64]]:
+                    for b0 in range(0, len(used), BLOCK):
+                        u = used[b0:b0 + BLOCK]
+                        yield ang[b0:b0 + BLOCK][u], t[b0:b0 + BLOCK][u]
+
+                st = sa = 0.0
+                for a, tt in rows():
+                    st += float(np.sum(tt))
+                    sa += float(np.sum(a))
+                t_mean, a_mean = st / n, sa / n
+                den = num = 0.0
+                for a, tt in rows():
+                    tc = tt - t_mean
+                    den += float(np.dot(tc, tc))
+                    num += float(np.dot(tc, a - a_mean))
+                w = num / den if den > 0 else 0.0
+                z = np.zeros(self.max_order + 1, np.complex128)
+                for a, tt in rows():
+                    z1 = np.exp(1j * (a - w * tt))
+                    zk = np.ones_like(z1)
+                    for k in range(1, self.max_order + 1):
+                        zk *= z1
+                        z[k] += complex(np.sum(zk))
+                c[1:] = np.abs(z[1:] / n)
             self._coh[key] = (c, w)
         c, w = self._coh[key]
         cc = float(c[order]) if order < len(c) else 0.0
