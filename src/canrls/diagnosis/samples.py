@@ -66,13 +66,21 @@ class RecordSamples:
         self.position_hold = hold["position"]
         self.cutoff_hz, self.zeta = model.cutoff_hz, model.zeta
         measured = self.selected.measured
-        # F[speed], sF[speed], F[current]
-        raw = np.column_stack([filled.speed, filled.current]).astype(np.float64)
+        # F[speed], sF[speed], F[current], block by block straight onto the measured rows
+        # (the filter's state carried: the values of one pass over the record)
         svf = SVF(model.cutoff_hz, dt, model.zeta, (hold["speed"], hold["current"]))
-        f, sf = self._filter(svf, raw)
-        self.speed: F64 = measured(f[:, 0])
-        self.acceleration: F64 = measured(sf[:, 0])
-        self.current: F64 = measured(f[:, 1])
+        self.speed: F64 = np.empty(len(signals))
+        self.acceleration: F64 = np.empty(len(signals))
+        self.current: F64 = np.empty(len(signals))
+        for c0, c1, m0, m1, real in self._pieces(svf):
+            raw = np.column_stack([filled.speed[c0:c1], filled.current[c0:c1]]).astype(
+                np.float64)
+            f, sf = svf.process(raw)
+            if real is not None:
+                f, sf = f[real], sf[real]
+            self.speed[m0:m1] = f[:, 0]
+            self.acceleration[m0:m1] = sf[:, 0]
+            self.current[m0:m1] = f[:, 1]
         # the unwrapped position (as the model unwraps it) and the phase of periodic terms
         self.position: F64 | None = None
         self.angle_raw: F64 | None = None
@@ -87,17 +95,40 @@ class RecordSamples:
                 unw.reset()
                 pos[a:b] = unw.process(np.asarray(filled.position[a:b], dtype=np.float64))
             k = 1.0 if model.axis == "rotary" else 2.0 * math.pi / model.pitch
-            self.angle_filled = k * pos
-            self.angle_raw = measured(self.angle_filled)
             svp = SVF(model.cutoff_hz, dt, model.zeta, hold["position"])
-            fp, _ = self._filter(svp, pos.reshape(-1, 1))
-            self.position = measured(fp[:, 0])
-            self.angle = k * self.position
+            self.position = np.empty(len(signals))
+            for c0, c1, m0, m1, real in self._pieces(svp):
+                fp, _ = svp.process(pos[c0:c1].reshape(-1, 1))
+                self.position[m0:m1] = fp[:, 0] if real is None else fp[real, 0]
+            # k x (1.0 on a rotary axis: the same values, no copy)
+            if k != 1.0:
+                pos *= k
+            self.angle_filled = pos
+            self.angle_raw = measured(self.angle_filled)
+            self.angle = self.position if k == 1.0 else k * self.position
         self._h: dict[str, F64] = {}
         self._use: dict[tuple[int, float, float], B] = {}
         self._coh: dict[tuple[int, int], tuple[F64, float]] = {}
 
     # -- rows ---------------------------------------------------------------------------
+    def _pieces(self, svf: SVF) -> Iterator[tuple[int, int, int, int, B | None]]:
+        """(c0, c1, m0, m1, real rows of c0:c1 or None) over the filled record in blocks
+        of at most :data:`BLOCK` rows, ``svf`` reset at each segment: filled rows
+        ``c0:c1`` are measured rows ``m0:m1``."""
+        real = self.selected.real
+        m = 0
+        for a, b in self.segments():
+            svf.reset()
+            for c0 in range(a, b, BLOCK):
+                c1 = min(b, c0 + BLOCK)
+                if real is None:
+                    yield c0, c1, c0, c1, None
+                    continue
+                rb = real[c0:c1]
+                k = int(np.count_nonzero(rb))
+                yield c0, c1, m, m + k, rb
+                m += k
+
     def segments(self) -> list[tuple[int, int]]:
         """Runs of rows of the filled record without a filter restart."""
         return self.selected.segments()
@@ -148,14 +179,6 @@ class RecordSamples:
         return self.selected.measured(self._keep_filled(order))
 
     # -- filtered signals and columns -----------------------------------------------------
-    def _filter(self, svf: SVF, raw: F64) -> tuple[F64, F64]:
-        f = np.empty_like(raw)
-        sf = np.empty_like(raw)
-        for a, b in self.segments():
-            svf.reset()
-            f[a:b], sf[a:b] = svf.process(raw[a:b])
-        return f, sf
-
     def _mask_periodic(self, eq: Equation, first: int, phi: F64, a: int) -> None:
         """Zero candidate periodic columns (index >= ``first``) of the filled rows
         ``a:a+len(phi)`` where :meth:`keep` says so."""
