@@ -65,7 +65,7 @@ from canrls.diagnosis.residual import (
     order_spectrum,
     whiteness,
 )
-from canrls.diagnosis.results import Analysis, EquationDiagnosis, Traces
+from canrls.diagnosis.results import Analysis, EquationDiagnosis, Traces, decimation
 from canrls.diagnosis.samples import RecordSamples
 from canrls.errors import ConfigError, EffectError
 from canrls.estimation.effects import ELECTRICAL
@@ -303,9 +303,9 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
 def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F64,
             used: B) -> Traces:
     eq = est.equation
-    rows = np.flatnonzero(used)
+    n_used = int(np.count_nonzero(used))
     n = eq.n
-    npts = min(400, len(rows))
+    npts = min(400, n_used)
     conv_t = np.zeros(0)
     theta = np.zeros((0, n))
     sigma = np.zeros((0, n))
@@ -321,8 +321,8 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
         # instants, instead of a record-long recording of it after every sample
         frls = FixedRLS.from_state(est.frls.state())
         frls.reset()
-        cuts = np.unique(np.linspace(0, len(rows), npts + 1).astype(np.int64))[1:]
-        th_l, sd_l, fx_l = [], [], []
+        cuts = np.unique(np.linspace(0, n_used, npts + 1).astype(np.int64))[1:]
+        th_l, sd_l, fx_l, t_l = [], [], [], []
         k = 0  # used rows fed to the estimators so far
         ci = 0  # next instant
         # the used rows block by block (the estimators carry their state bit for bit)
@@ -330,8 +330,9 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
             u = used[m:m + len(y)]
             if ci >= len(cuts) or not u.any():
                 continue
-            phi_u = np.ascontiguousarray(phi[u])
-            y_u = np.ascontiguousarray(y[u])
+            at = np.flatnonzero(u)
+            phi_u = np.ascontiguousarray(phi[at])
+            y_u = np.ascontiguousarray(y[at])
             a = 0
             while a < len(y_u) and ci < len(cuts):
                 c = min(len(y_u), a + int(cuts[ci]) - k)
@@ -344,16 +345,40 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
                     th_l.append(eq.to_physical(np.array(rls.theta)))
                     sd_l.append(eq.sigma_to_physical(rls.std() * root_kappa))
                     fx_l.append(eq.to_physical(frls.theta_float))
+                    t_l.append(eb.t[m + int(at[c - 1])])
                     ci += 1
-        k_rows = rows[cuts - 1]
-        conv_t = eb.t[k_rows]
+        conv_t = np.array(t_l)
         theta = np.array(th_l)
         sigma = np.array(sd_l)
         tfx = np.array(fx_l)
-    y = ctx.target(eq)
+    # the points the figures draw, not the record: every k-th sample for the timeline,
+    # every k-th used sample for the scatter plots
+    n_rows = len(used)
+    timeline = np.zeros(n_rows, np.bool_)
+    timeline[::decimation(n_rows)] = True
+    scatter = _every_mask(used, decimation(n_used))
+    pts = np.flatnonzero(timeline | scatter)
+    y = ctx.target_at(eq, pts)
+    res = r[pts]
+
+    def at(x: F64 | None) -> F64 | None:
+        return None if x is None else x[pts]
+
     return Traces(
-        t=eb.t, used=used, y=y, yhat=y - r, residual=r, speed=ctx.speed,
-        acceleration=ctx.acceleration, current=ctx.current, position=ctx.position,
-        angle=ctx.angle, conv_t=conv_t, theta=theta, sigma=sigma, theta_fixed=tfx,
-        names=tuple(p.name for p in eq.parameters),
-        units=tuple(p.unit for p in eq.parameters))
+        t=eb.t[pts], used=used[pts], y=y, yhat=y - res, residual=res, speed=ctx.speed[pts],
+        acceleration=ctx.acceleration[pts], current=ctx.current[pts],
+        position=at(ctx.position), angle=at(ctx.angle), conv_t=conv_t, theta=theta,
+        sigma=sigma, theta_fixed=tfx, names=tuple(p.name for p in eq.parameters),
+        units=tuple(p.unit for p in eq.parameters), timeline=timeline[pts],
+        scatter=scatter[pts], record_used=used)
+
+
+def _every_mask(mask: B, k: int) -> B:
+    """Every ``k``-th true row of ``mask`` (from the first), block by block."""
+    out = np.zeros(len(mask), np.bool_)
+    seen = 0  # true rows before the block
+    for a in range(0, len(mask), CHUNK):
+        idx = np.flatnonzero(mask[a:a + CHUNK])
+        out[a + idx[(-seen) % k::k]] = True
+        seen += len(idx)
+    return out

@@ -260,13 +260,15 @@ class RecordSamples:
             r[m:m + len(y)] = y - phi @ theta
         return eq.target_to_physical(r)
 
-    def target(self, eq: Equation) -> F64:
-        """The target ``y`` of an equation on every measured row, in the target unit
-        (as the pipeline's :class:`~canrls.estimation.pipeline.EquationBlock` holds it)."""
-        y_all = np.empty(len(self.signals))
+    def target_at(self, eq: Equation, rows: npt.NDArray[np.intp]) -> F64:
+        """The target ``y`` of an equation on the measured ``rows`` (sorted), in the
+        target unit (as the pipeline's :class:`~canrls.estimation.pipeline.EquationBlock`
+        holds it)."""
+        out = np.empty(len(rows))
         for m, _, y in self.measured_blocks(eq):
-            y_all[m:m + len(y)] = y
-        return eq.target_to_physical(y_all)
+            a, b = np.searchsorted(rows, [m, m + len(y)])
+            out[a:b] = y[rows[a:b] - m]
+        return eq.target_to_physical(out)
 
     def mean_square(self, eq: Equation, theta: F64, rows: B) -> float:
         """Mean square of ``r = y - Phi theta`` (target unit) over the measured
