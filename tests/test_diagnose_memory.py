@@ -3,8 +3,8 @@ included) on a simulated log and on one four times longer. A bound on memory, no
 time: the growth per extra sample must stay below :data:`BYTES_PER_SAMPLE`.
 
 The pipeline's working arrays are one block long (:data:`canrls.diagnosis.analysis.
-CHUNK`), not the record's; what still grows with the record is listed in
-docs/diagnose.md ("Memory").
+CHUNK`), not the record's, and so are the statistics' (:data:`canrls.diagnosis.samples.
+BLOCK`); what still grows with the record is listed in docs/diagnose.md ("Memory").
 """
 
 from __future__ import annotations
@@ -19,16 +19,18 @@ import pytest
 
 from canrls.cli.main import main
 from canrls.config import load_config
-from canrls.diagnosis import analysis, residual, samples
+from canrls.diagnosis import analysis, residual, results, samples
 from canrls.diagnosis.analysis import diagnose_log
 from canrls.replay import prepare
 
 #: Bytes of peak memory per sample of the record that the diagnosis may grow by: the
-#: record's own arrays (signals, filtered signals, columns, residuals) and no more.
+#: samples (40), the filtered speed, acceleration, current and position (40), the
+#: residual and the one left after the suggestion (16), used masks, and no more.
 #: (374 bytes per sample here before the diagnosis ran the pipeline in blocks, fitted
 #: the residual left block by block and re-ran the fixed-point estimator for its trace;
-#: 150 after.)
-BYTES_PER_SAMPLE = 200
+#: 150 after; 103 since the statistics, columns, traces and filtered signals are built
+#: block by block.)
+BYTES_PER_SAMPLE = 120
 SHORT_S = 20
 
 
@@ -39,6 +41,8 @@ def _peak(path: Path, chunk: int, monkeypatch: pytest.MonkeyPatch) -> tuple[int,
     monkeypatch.setattr(analysis, "CHUNK", chunk, raising=False)
     monkeypatch.setattr(samples, "BLOCK", chunk)
     monkeypatch.setattr(residual, "BLOCK", chunk)
+    # the figures' points too (in use up to 20000 per trace, a fixed amount)
+    monkeypatch.setattr(results, "FIGURE_POINTS", chunk // 4, raising=False)
     cfg = load_config(None)
     cfg.model["kt"] = 0.1
     protocol, model, settings = prepare(cfg)
@@ -46,7 +50,10 @@ def _peak(path: Path, chunk: int, monkeypatch: pytest.MonkeyPatch) -> tuple[int,
     tracemalloc.start()
     try:
         start, _ = tracemalloc.get_traced_memory()
-        rep = diagnose_log(path, protocol, model, settings, max_order=8)
+        # the log read in blocks of frames shorter than the short log too (the
+        # reader's scratch space is one block)
+        rep = diagnose_log(path, protocol, model, settings, max_order=8,
+                           chunk_size=chunk)
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()

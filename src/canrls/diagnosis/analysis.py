@@ -210,7 +210,8 @@ def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
 
 def _run_in_chunks(proc: SampleProcessor, signals: Signals) -> list[EquationBlock]:
     """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
-    each equation's recorded block, what the diagnosis reads (t, used), joined.
+    each equation's recorded block, what the diagnosis reads (used), joined (the times
+    are the samples' own, ``signals.t``, checked block by block).
 
     The pipeline carries its state from block to block bit for bit (``canrls fit``
     replays a log in blocks too), so the result is the one of a single run; but the
@@ -219,12 +220,20 @@ def _run_in_chunks(proc: SampleProcessor, signals: Signals) -> list[EquationBloc
     (:func:`_traces` re-runs the estimators for the convergence figure).
     """
     kept: list[list[EquationBlock]] = []
+    rows: list[int] = []  # rows of each equation so far
 
     def keep(block: PipelineBlock) -> None:
         if not kept:
             kept.extend([] for _ in block.equations)
-        for parts, eb in zip(kept, block.equations, strict=True):
-            if len(eb.t) or not parts:  # the first, even empty: it gives phi's width
+            rows.extend(0 for _ in block.equations)
+        for j, (parts, eb) in enumerate(zip(kept, block.equations, strict=True)):
+            # the pipeline's rows are the samples given (their times: signals.t, not kept)
+            a = rows[j]
+            if not np.array_equal(eb.t, signals.t[a:a + len(eb.t)]):  # pragma: no cover
+                raise AssertionError(f"{eb.equation}: the pipeline's rows {a}.. are not "
+                                     f"the samples")
+            rows[j] += len(eb.t)
+            if len(eb.t) or not parts:  # the first, even empty
                 parts.append(_slim(eb))
 
     n = len(signals)
@@ -242,21 +251,21 @@ _EMPTY = np.zeros(0)
 
 
 def _slim(eb: EquationBlock) -> EquationBlock:
-    """``eb`` with only the arrays the diagnosis reads (t, used): the columns and the
+    """``eb`` with only the array the diagnosis reads (used): the columns and the
     target are built again block by block where needed
-    (:meth:`RecordSamples.measured_blocks`)."""
-    return EquationBlock(equation=eb.equation, t=eb.t, y=_EMPTY, eps=_EMPTY,
+    (:meth:`RecordSamples.measured_blocks`), the times are the samples'."""
+    return EquationBlock(equation=eb.equation, t=_EMPTY, y=_EMPTY, eps=_EMPTY,
                          eps_fixed=_EMPTY, used=eb.used, online_rms=_EMPTY,
                          flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None,
                          phi=None)
 
 
 def _concat(parts: list[EquationBlock], name: str) -> EquationBlock:
-    parts = [b for b in parts if len(b.t)] or parts[:1]
+    parts = [b for b in parts if len(b.used)] or parts[:1]
     if len(parts) == 1:
         return parts[0]
     return EquationBlock(
-        equation=name, t=np.concatenate([b.t for b in parts]), y=_EMPTY, eps=_EMPTY,
+        equation=name, t=_EMPTY, y=_EMPTY, eps=_EMPTY,
         eps_fixed=_EMPTY, used=np.concatenate([b.used for b in parts]), online_rms=_EMPTY,
         flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None, phi=None)
 
@@ -345,7 +354,7 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
                     th_l.append(eq.to_physical(np.array(rls.theta)))
                     sd_l.append(eq.sigma_to_physical(rls.std() * root_kappa))
                     fx_l.append(eq.to_physical(frls.theta_float))
-                    t_l.append(eb.t[m + int(at[c - 1])])
+                    t_l.append(ctx.signals.t[m + int(at[c - 1])])
                     ci += 1
         conv_t = np.array(t_l)
         theta = np.array(th_l)
@@ -365,7 +374,7 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
         return None if x is None else x[pts]
 
     return Traces(
-        t=eb.t[pts], used=used[pts], y=y, yhat=y - res, residual=res, speed=ctx.speed[pts],
+        t=ctx.signals.t[pts], used=used[pts], y=y, yhat=y - res, residual=res, speed=ctx.speed[pts],
         acceleration=ctx.acceleration[pts], current=ctx.current[pts],
         position=at(ctx.position), angle=at(ctx.angle), conv_t=conv_t, theta=theta,
         sigma=sigma, theta_fixed=tfx, names=tuple(p.name for p in eq.parameters),
