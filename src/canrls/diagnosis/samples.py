@@ -283,23 +283,28 @@ class RecordSamples:
 
     def fit_residual(self, eq: Equation, rows: B) -> F64:
         """Least-squares fit of ``eq`` on the measured ``rows`` and its residual on every
-        measured row, in the target unit: ``r = y - Phi theta`` with ``theta`` from
-        ``lstsq(Phi[rows], y[rows])``, as :meth:`columns` then ``lstsq`` give it, but
-        without the record's whole ``Phi``: the rows of the fit are gathered block by
-        block, the residual computed block by block (memory: the fitted rows, one block
-        and the residual)."""
-        n_rows = int(rows.sum())
-        A = np.empty((n_rows, eq.n))
-        Y = np.empty(n_rows)
-        k = 0  # rows of A filled
-        for m, phi, y in self.measured_blocks(eq):
-            sel = rows[m:m + len(y)]
-            c = int(sel.sum())
-            A[k:k + c] = phi[sel]
-            Y[k:k + c] = y[sel]
-            k += c
-        theta = np.linalg.lstsq(A, Y, rcond=None)[0]
-        del A, Y
+        measured row, in the target unit: ``r = y - Phi theta``, ``theta`` the
+        minimum-norm least-squares solution of ``Phi[rows] theta = y[rows]``, without the
+        record's ``Phi`` or its rows: ``[Phi y]`` is reduced block by block to a
+        triangular factor (``R`` of a QR decomposition, the previous one stacked on each
+        block), and ``R theta = Q'y`` solved with ``lstsq`` (the same singular values as
+        ``Phi[rows]``, so the same rank and solution, to rounding)."""
+        m = eq.n + 1
+        Rz = np.zeros((0, m))
+        n_rows = 0
+        for m0, phi, y in self.measured_blocks(eq):
+            sel = rows[m0:m0 + len(y)]
+            if not sel.any():
+                continue
+            n_rows += int(np.count_nonzero(sel))
+            # [R_prev z_prev; Phi_b y_b] = Q [R z]
+            Rz = np.linalg.qr(np.vstack([Rz, np.column_stack([phi[sel], y[sel]])]),
+                              mode="r")
+        if len(Rz) < eq.n:
+            Rz = np.vstack([Rz, np.zeros((eq.n - len(Rz), m))])
+        # the rank cut-off lstsq takes for Phi[rows] (eps x its larger dimension)
+        rcond = np.finfo(np.float64).eps * max(n_rows, eq.n)
+        theta = np.linalg.lstsq(Rz[:eq.n, :eq.n], Rz[:eq.n, eq.n], rcond=rcond)[0]
         return self.residual(eq, theta)
 
     def impulse(self, hold: str, derivative: bool = False) -> F64:
