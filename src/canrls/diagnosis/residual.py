@@ -612,7 +612,7 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
     used = ctx.spread(used)
     real = ctx.selected.real
     a = np.ascontiguousarray(ctx.angle_filled, dtype=np.float64)
-    chunk = 32
+    chunk = 16  # orders at a time: BLOCK x 2 chunk float64 per working array
     for c0 in range(0, len(orders), chunk):
         qs = np.ascontiguousarray(orders[c0:c0 + chunk], dtype=np.float64)
         m = len(qs)
@@ -651,6 +651,8 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
                 sc += np.einsum("ij,ij->j", gs, gc)
                 sr += gs.T @ ru
                 cr += gc.T @ ru
+                # freed before the next block's are made (one block's at a time)
+                del raw, f, _, G, gs, gc, ru
         # centre the columns: sum (g - mean g)(h - mean h) = sum g h - n mean g mean h
         ms, mc = s1[0::2] / n_used, s1[1::2] / n_used
         ss -= n_used * ms * ms
