@@ -24,13 +24,13 @@ from canrls.diagnosis.analysis import diagnose_log
 from canrls.replay import prepare
 
 #: Bytes of peak memory per sample of the record that the diagnosis may grow by: the
-#: samples (40), the filtered speed, acceleration, current and position (40), the
-#: residual and the one left after the suggestion (16), used masks, and no more.
-#: (374 bytes per sample here before the diagnosis ran the pipeline in blocks, fitted
-#: the residual left block by block and re-ran the fixed-point estimator for its trace;
-#: 150 after; 103 since the statistics, columns, traces and filtered signals are built
-#: block by block.)
-BYTES_PER_SAMPLE = 120
+#: samples (40), the unwrapped position (8), the residual and the one left after the
+#: suggestion (16), used masks, and no more. (374 bytes per sample here before the
+#: diagnosis ran the pipeline in blocks, fitted the residual left block by block and
+#: re-ran the fixed-point estimator for its trace; 181 after; 103 with the statistics,
+#: columns and traces built block by block; 73 with the filtered signals filtered again
+#: block by block when read.)
+BYTES_PER_SAMPLE = 90
 SHORT_S = 20
 
 
@@ -117,3 +117,49 @@ def test_order_statistics_without_a_copy_are_numpys(kind: str,
             assert residual.percentiles(x, rows, qs) == [float(v) for v in
                                                          np.percentile(xs, qs)]
             assert residual.median(x, rows) == float(np.median(xs))
+
+
+def test_filtered_signals_read_in_blocks_are_one_pass(tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The filtered speed, acceleration, current and position are not kept: read in
+    slices or at sorted rows they are filtered again block by block from saved filter
+    states, and equal one pass of the filter over the gap-filled record, bit for bit
+    (gaps and filter restarts inside and across blocks)."""
+    from canrls.diagnosis.samples import RecordSamples
+    from canrls.estimation.svf import SVF
+    from canrls.replay import read_logs
+
+    p = tmp_path / "gaps.log"
+    assert main(["sim", "--out", str(p), "--duration", "6", "--seed", "8",
+                 "--faults", "drop=0.02,silence=0.2s@2s"]) == 0
+    cfg = load_config(None)
+    cfg.model["kt"] = 0.1
+    protocol, model, settings = prepare(cfg)
+    log = read_logs([p], protocol, model, settings)
+    monkeypatch.setattr(samples, "BLOCK", 777)
+    ctx = RecordSamples(log.model, log.signals, log.dt, settings, 8)
+    assert ctx.selected.real is not None and len(ctx.segments()) > 1
+    filled = ctx.selected.signals
+    held = log.model.held
+    hold = {r: ("zoh" if r in held else "foh") for r in ("speed", "current", "position")}
+    svf = SVF(log.model.cutoff_hz, log.dt, log.model.zeta, (hold["speed"], hold["current"]))
+    ref = {"speed": np.empty(len(filled)), "acceleration": np.empty(len(filled)),
+           "current": np.empty(len(filled))}
+    for a, b in ctx.segments():
+        svf.reset()
+        f, sf = svf.process(np.column_stack([filled.speed[a:b], filled.current[a:b]]))
+        ref["speed"][a:b], ref["acceleration"][a:b], ref["current"][a:b] = \
+            f[:, 0], sf[:, 0], f[:, 1]
+    rng = np.random.default_rng(3)
+    n = len(log.signals)
+    for name, full in ref.items():
+        want = ctx.selected.measured(full)
+        got = getattr(ctx, name)
+        assert np.array_equal(np.asarray(got), want)
+        for _ in range(20):
+            a, b = sorted(int(x) for x in rng.integers(0, n + 1, 2))
+            assert np.array_equal(got[a:b], want[a:b])
+        idx = np.sort(rng.choice(n, 300, replace=False))
+        assert np.array_equal(got[idx], want[idx])
+    assert ctx.position is not None
+    assert np.array_equal(ctx.position[::1], np.asarray(ctx.position))

@@ -12,8 +12,10 @@ masks of the diagnosis are the pipeline's, bit for bit.
 
 from __future__ import annotations
 
+import copy
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -31,6 +33,96 @@ B = npt.NDArray[np.bool_]
 
 #: Rows filtered at a time where a pass over the record builds many columns.
 BLOCK = 32768
+
+
+class _FilterSource:
+    """Filtered signals on the measured rows, computed block by block when read: the
+    filter's state is saved at the start of each block of filled rows (one pass at
+    construction), a block is filtered again from it when read (the same values, bit
+    for bit: the filter carries its state exactly), the last few blocks cached."""
+
+    CACHE = 4
+
+    def __init__(self, ctx: RecordSamples, svf: SVF,
+                 compute: Callable[[int, int], F64], n: int) -> None:
+        self.svf = svf
+        self.compute = compute
+        self.n = n
+        self.pieces: list[tuple[int, int, int, int, B | None]] = []
+        self.states: list[SVF] = []
+        for c0, c1, m0, m1, real in ctx._pieces(svf):
+            self.pieces.append((c0, c1, m0, m1, real))
+            self.states.append(copy.deepcopy(svf))
+            compute(c0, c1)  # advance the filter
+        self.starts = np.array([p[2] for p in self.pieces], dtype=np.int64)
+        self.cache: dict[int, F64] = {}
+
+    def piece(self, i: int) -> F64:
+        """The measured rows of piece ``i``, all columns."""
+        if i not in self.cache:
+            c0, c1, _, _, real = self.pieces[i]
+            self.svf.__dict__.update(copy.deepcopy(self.states[i]).__dict__)
+            out = self.compute(c0, c1)
+            if real is not None:
+                out = out[real]
+            if len(self.cache) >= self.CACHE:
+                del self.cache[next(iter(self.cache))]
+            self.cache[i] = out
+        return self.cache[i]
+
+    def rows(self, a: int, b: int, col: int) -> F64:
+        """Column ``col`` on the measured rows ``a:b``."""
+        out = np.empty(max(b - a, 0))
+        start = a
+        i = int(np.searchsorted(self.starts, a, side="right")) - 1
+        while a < b:
+            _, _, m0, m1, _ = self.pieces[i]
+            e = min(b, m1)
+            if e > a:
+                out[a - start:e - start] = self.piece(i)[a - m0:e - m0, col]
+                a = e
+            i += 1
+        return out
+
+    def gather(self, idx: npt.NDArray[np.intp], col: int) -> F64:
+        """Column ``col`` on the measured rows ``idx`` (sorted)."""
+        out = np.empty(len(idx))
+        for i, (_, _, m0, m1, _) in enumerate(self.pieces):
+            lo, hi = np.searchsorted(idx, [m0, m1])
+            if hi > lo:
+                out[lo:hi] = self.piece(i)[idx[lo:hi] - m0, col]
+        return out
+
+
+class Filtered:
+    """A filtered signal on the measured rows that is not kept: slices and sorted index
+    arrays are computed block by block (:class:`_FilterSource`); anything else (a mask,
+    ``np.asarray``) makes the whole array first."""
+
+    def __init__(self, source: _FilterSource, col: int) -> None:
+        self.source = source
+        self.col = col
+
+    def __len__(self) -> int:
+        return self.source.n
+
+    @property
+    def shape(self) -> tuple[int]:
+        return (self.source.n,)
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> F64:
+        a = self.source.rows(0, self.source.n, self.col)
+        return a if dtype is None else a.astype(dtype)
+
+    def __getitem__(self, key: Any) -> Any:
+        if isinstance(key, slice):
+            a, b, step = key.indices(self.source.n)
+            if step == 1:
+                return self.source.rows(a, max(a, b), self.col)
+        elif (isinstance(key, np.ndarray) and key.dtype.kind in "iu" and key.ndim == 1
+              and (len(key) < 2 or bool(np.all(key[1:] >= key[:-1])))):
+            return self.source.gather(key, self.col)
+        return np.asarray(self)[key]
 
 
 class RecordSamples:
@@ -66,25 +158,24 @@ class RecordSamples:
         self.position_hold = hold["position"]
         self.cutoff_hz, self.zeta = model.cutoff_hz, model.zeta
         measured = self.selected.measured
-        # F[speed], sF[speed], F[current], block by block straight onto the measured rows
-        # (the filter's state carried: the values of one pass over the record)
+        # F[speed], sF[speed], F[current] and F[position] on the measured rows, computed
+        # block by block when read (:class:`Filtered`): not kept
         svf = SVF(model.cutoff_hz, dt, model.zeta, (hold["speed"], hold["current"]))
-        self.speed: F64 = np.empty(len(signals))
-        self.acceleration: F64 = np.empty(len(signals))
-        self.current: F64 = np.empty(len(signals))
-        for c0, c1, m0, m1, real in self._pieces(svf):
+
+        def speed_current(c0: int, c1: int) -> F64:
             raw = np.column_stack([filled.speed[c0:c1], filled.current[c0:c1]]).astype(
                 np.float64)
             f, sf = svf.process(raw)
-            if real is not None:
-                f, sf = f[real], sf[real]
-            self.speed[m0:m1] = f[:, 0]
-            self.acceleration[m0:m1] = sf[:, 0]
-            self.current[m0:m1] = f[:, 1]
+            return np.column_stack([f[:, 0], sf[:, 0], f[:, 1]])
+
+        sc = _FilterSource(self, svf, speed_current, len(signals))
+        self.speed: Filtered = Filtered(sc, 0)
+        self.acceleration: Filtered = Filtered(sc, 1)
+        self.current: Filtered = Filtered(sc, 2)
         # the unwrapped position (as the model unwraps it) and the phase of periodic terms
-        self.position: F64 | None = None
+        self.position: Filtered | None = None
         self.angle_raw: F64 | None = None
-        self.angle: F64 | None = None
+        self.angle: Filtered | None = None
         #: the phase of periodic terms on the filled record (rows of ``selected``)
         self.angle_filled: F64 | None = None
         if filled.position is not None:
@@ -96,16 +187,19 @@ class RecordSamples:
                 pos[a:b] = unw.process(np.asarray(filled.position[a:b], dtype=np.float64))
             k = 1.0 if model.axis == "rotary" else 2.0 * math.pi / model.pitch
             svp = SVF(model.cutoff_hz, dt, model.zeta, hold["position"])
-            self.position = np.empty(len(signals))
-            for c0, c1, m0, m1, real in self._pieces(svp):
-                fp, _ = svp.process(pos[c0:c1].reshape(-1, 1))
-                self.position[m0:m1] = fp[:, 0] if real is None else fp[real, 0]
+
+            def position(c0: int, c1: int) -> F64:
+                # F[position] and k F[position] (the angle; k = 1 on a rotary axis)
+                fp = svp.process(pos_raw[c0:c1].reshape(-1, 1))[0][:, 0]
+                return np.column_stack([fp, fp if k == 1.0 else k * fp])
+
+            pos_raw = pos
+            ps = _FilterSource(self, svp, position, len(signals))
+            self.position = Filtered(ps, 0)
+            self.angle = Filtered(ps, 1)
             # k x (1.0 on a rotary axis: the same values, no copy)
-            if k != 1.0:
-                pos *= k
-            self.angle_filled = pos
+            self.angle_filled = pos if k == 1.0 else k * pos
             self.angle_raw = measured(self.angle_filled)
-            self.angle = self.position if k == 1.0 else k * self.position
         self._h: dict[str, F64] = {}
         self._use: dict[tuple[int, float, float], B] = {}
         self._coh: dict[tuple[int, int], tuple[F64, float]] = {}
