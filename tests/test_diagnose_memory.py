@@ -24,13 +24,12 @@ from canrls.diagnosis.analysis import diagnose_log
 from canrls.replay import prepare
 
 #: Bytes of peak memory per sample of the record that the diagnosis may grow by: the
-#: samples (40), the unwrapped position (8), the residual and the one left after the
-#: suggestion (16), used masks, and no more. (374 bytes per sample here before the
-#: diagnosis ran the pipeline in blocks, fitted the residual left block by block and
-#: re-ran the fixed-point estimator for its trace; 181 after; 103 with the statistics,
-#: columns and traces built block by block; 73 with the filtered signals filtered again
-#: block by block when read.)
-BYTES_PER_SAMPLE = 90
+#: samples (40), the unwrapped position (8), used masks, and no more. (374 bytes per
+#: sample here before the diagnosis ran the pipeline in blocks, fitted the residual left
+#: block by block and re-ran the fixed-point estimator for its trace; 181 after; 103
+#: with the statistics, columns and traces built block by block; 73 with the filtered
+#: signals filtered again block by block when read; 57 with the residuals too.)
+BYTES_PER_SAMPLE = 70
 SHORT_S = 20
 
 
@@ -163,3 +162,35 @@ def test_filtered_signals_read_in_blocks_are_one_pass(tmp_path: Path,
         assert np.array_equal(got[idx], want[idx])
     assert ctx.position is not None
     assert np.array_equal(ctx.position[::1], np.asarray(ctx.position))
+
+
+def test_residual_read_in_blocks_is_one_pass(tmp_path: Path,
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """The residual is not kept either: read in slices (forward, backward, across
+    restarts) or at sorted rows, the regressor builder runs again from the block last
+    computed or the segment's start; the values are those of one pass, bit for bit."""
+    from canrls.diagnosis.samples import RecordSamples
+    from canrls.replay import read_logs
+
+    p = tmp_path / "gaps.log"
+    assert main(["sim", "--out", str(p), "--duration", "6", "--seed", "9",
+                 "--faults", "drop=0.02,silence=0.2s@2s"]) == 0
+    cfg = load_config(None)
+    cfg.model["kt"] = 0.1
+    protocol, model, settings = prepare(cfg)
+    log = read_logs([p], protocol, model, settings)
+    monkeypatch.setattr(samples, "BLOCK", 613)
+    ctx = RecordSamples(log.model, log.signals, log.dt, settings, 8)
+    eq = log.model.equations[0]
+    theta = np.linspace(0.1, 0.4, eq.n)
+    want = np.concatenate([eq.target_to_physical(y - phi @ theta)
+                           for _, phi, y in ctx.measured_blocks(eq)])
+    r = ctx.residual(eq, theta)
+    assert np.array_equal(np.asarray(r), want)
+    rng = np.random.default_rng(5)
+    n = len(want)
+    for _ in range(30):
+        a, b = sorted(int(x) for x in rng.integers(0, n + 1, 2))
+        assert np.array_equal(r[a:b], want[a:b])
+    idx = np.sort(rng.choice(n, 400, replace=False))
+    assert np.array_equal(r[idx], want[idx])

@@ -36,39 +36,63 @@ BLOCK = 32768
 
 
 class _FilterSource:
-    """Filtered signals on the measured rows, computed block by block when read: the
-    filter's state is saved at the start of each block of filled rows (one pass at
-    construction), a block is filtered again from it when read (the same values, bit
-    for bit: the filter carries its state exactly), the last few blocks cached."""
+    """Filtered signals (or a residual) on the measured rows, computed block by block
+    when read, from the start of the block's segment or from the filter's state saved
+    at the block (``snapshots``: a filter's state is small; a regressor builder's holds
+    a block-long scratch array, so it runs forward instead, from the block last
+    computed or from the segment's start). The values are those of one pass, bit for
+    bit (the filter carries its state exactly); the last few blocks are cached."""
 
     CACHE = 4
 
-    def __init__(self, ctx: RecordSamples, svf: SVF,
-                 compute: Callable[[int, int], F64], n: int) -> None:
+    def __init__(self, ctx: RecordSamples, svf: Any, compute: Callable[[int, int], F64],
+                 n: int, snapshots: bool = True) -> None:
         self.svf = svf
         self.compute = compute
         self.n = n
         self.pieces: list[tuple[int, int, int, int, B | None]] = []
-        self.states: list[SVF] = []
+        self.states: list[Any] | None = [] if snapshots else None
+        #: the first piece of each piece's segment
+        self.first: list[int] = []
+        seg_starts = {a for a, _ in ctx.segments()}
         for c0, c1, m0, m1, real in ctx._pieces(svf):
+            self.first.append(len(self.pieces) if c0 in seg_starts or not self.first
+                              else self.first[-1])
             self.pieces.append((c0, c1, m0, m1, real))
-            self.states.append(copy.deepcopy(svf))
-            compute(c0, c1)  # advance the filter
+            if self.states is not None:
+                self.states.append(copy.deepcopy(svf))
+                compute(c0, c1)  # advance the filter
         self.starts = np.array([p[2] for p in self.pieces], dtype=np.int64)
         self.cache: dict[int, F64] = {}
+        self.pos: int | None = None  # the piece the builder last computed
+
+    def _run(self, i: int) -> F64:
+        c0, c1, _, _, real = self.pieces[i]
+        out = self.compute(c0, c1)
+        if real is not None:
+            out = out[real]
+        if len(self.cache) >= self.CACHE:
+            del self.cache[next(iter(self.cache))]
+        self.cache[i] = out
+        return out
 
     def piece(self, i: int) -> F64:
         """The measured rows of piece ``i``, all columns."""
-        if i not in self.cache:
-            c0, c1, _, _, real = self.pieces[i]
+        if i in self.cache:
+            return self.cache[i]
+        if self.states is not None:
             self.svf.__dict__.update(copy.deepcopy(self.states[i]).__dict__)
-            out = self.compute(c0, c1)
-            if real is not None:
-                out = out[real]
-            if len(self.cache) >= self.CACHE:
-                del self.cache[next(iter(self.cache))]
-            self.cache[i] = out
-        return self.cache[i]
+            return self._run(i)
+        j = self.first[i]
+        if self.pos is not None and j <= self.pos < i:
+            start = self.pos + 1  # forward from the block last computed
+        else:
+            self.svf.reset()
+            start = j
+        for k in range(start, i + 1):
+            out = self._run(k)
+        self.pos = i
+        return out
 
     def rows(self, a: int, b: int, col: int) -> F64:
         """Column ``col`` on the measured rows ``a:b``."""
@@ -346,13 +370,28 @@ class RecordSamples:
             yield m, phi, y
             m += len(y)
 
-    def residual(self, eq: Equation, theta: F64) -> F64:
-        """``r = y - Phi theta`` on every measured row, in the target unit, block by
-        block (``theta`` normalised)."""
-        r = np.empty(len(self.signals))  # the measured rows are the samples given
-        for m, phi, y in self.measured_blocks(eq):
-            r[m:m + len(y)] = y - phi @ theta
-        return eq.target_to_physical(r)
+    def residual(self, eq: Equation, theta: F64) -> Filtered:
+        """``r = y - Phi theta`` on every measured row, in the target unit (``theta``
+        normalised): not kept, computed block by block from the equation's columns
+        when read (:class:`Filtered`; the builder's state saved at each block)."""
+        builder = eq.builder(self.dt)
+        filled = self.selected.signals
+        real = self.selected.real
+
+        def compute(c0: int, c1: int) -> F64:
+            rb = builder.process(filled.slice(c0, c1))
+            phi, y = rb.phi, rb.y
+            out = np.empty((c1 - c0, 1))
+            if real is None:
+                out[:, 0] = eq.target_to_physical(y - phi @ theta)
+            else:
+                # on the measured rows only, as the pipeline's rows are
+                rr = real[c0:c1]
+                out[rr, 0] = eq.target_to_physical(y[rr] - phi[rr] @ theta)
+            return out
+
+        return Filtered(_FilterSource(self, builder, compute, len(self.signals),
+                                      snapshots=False), 0)
 
     def target_at(self, eq: Equation, rows: npt.NDArray[np.intp]) -> F64:
         """The target ``y`` of an equation on the measured ``rows`` (sorted), in the
@@ -375,7 +414,7 @@ class RecordSamples:
                 s += float(np.dot(r, r))
         return s / max(int(rows.sum()), 1)
 
-    def fit_residual(self, eq: Equation, rows: B) -> F64:
+    def fit_residual(self, eq: Equation, rows: B) -> Filtered:
         """Least-squares fit of ``eq`` on the measured ``rows`` and its residual on every
         measured row, in the target unit: ``r = y - Phi theta``, ``theta`` the
         minimum-norm least-squares solution of ``Phi[rows] theta = y[rows]``, without the
