@@ -155,7 +155,9 @@ class RecordSamples:
     Attributes (measured rows): ``signals`` (as given), ``speed``, ``acceleration``,
     ``current`` (through the filter), ``position`` (unwrapped, filtered), ``angle``
     (phase of periodic terms, filtered) and ``angle_raw`` (unfiltered), ``None``
-    without position. ``selected`` holds the filled record
+    without position. The filtered ones are :class:`Filtered`: not kept, filtered
+    again block by block when sliced (read them in slices or at sorted rows;
+    ``np.asarray`` makes the whole array). ``selected`` holds the filled record
     (:class:`~canrls.estimation.selection.SelectedSamples`).
     """
 
