@@ -3,8 +3,8 @@ included) on a simulated log and on one four times longer. A bound on memory, no
 time: the growth per extra sample must stay below :data:`BYTES_PER_SAMPLE`.
 
 The pipeline's working arrays are one block long (:data:`canrls.diagnosis.analysis.
-CHUNK`), not the record's; what still grows with the record is listed in
-docs/diagnose.md ("Memory").
+CHUNK`), not the record's, and so are the statistics' (:data:`canrls.diagnosis.samples.
+BLOCK`); what still grows with the record is listed in docs/diagnose.md ("Memory").
 """
 
 from __future__ import annotations
@@ -14,20 +14,22 @@ import json
 import tracemalloc
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from canrls.cli.main import main
 from canrls.config import load_config
-from canrls.diagnosis import analysis, residual, samples
+from canrls.diagnosis import analysis, residual, results, samples
 from canrls.diagnosis.analysis import diagnose_log
 from canrls.replay import prepare
 
 #: Bytes of peak memory per sample of the record that the diagnosis may grow by: the
-#: record's own arrays (signals, filtered signals, columns, residuals) and no more.
-#: (374 bytes per sample here before the diagnosis ran the pipeline in blocks, fitted
-#: the residual left block by block and re-ran the fixed-point estimator for its trace;
-#: 150 after.)
-BYTES_PER_SAMPLE = 200
+#: samples (40), the unwrapped position (8), used masks, and no more. (374 bytes per
+#: sample here before the diagnosis ran the pipeline in blocks, fitted the residual left
+#: block by block and re-ran the fixed-point estimator for its trace; 181 after; 103
+#: with the statistics, columns and traces built block by block; 73 with the filtered
+#: signals filtered again block by block when read; 57 with the residuals too.)
+BYTES_PER_SAMPLE = 70
 SHORT_S = 20
 
 
@@ -38,6 +40,8 @@ def _peak(path: Path, chunk: int, monkeypatch: pytest.MonkeyPatch) -> tuple[int,
     monkeypatch.setattr(analysis, "CHUNK", chunk, raising=False)
     monkeypatch.setattr(samples, "BLOCK", chunk)
     monkeypatch.setattr(residual, "BLOCK", chunk)
+    # the figures' points too (in use up to 20000 per trace, a fixed amount)
+    monkeypatch.setattr(results, "FIGURE_POINTS", chunk // 4, raising=False)
     cfg = load_config(None)
     cfg.model["kt"] = 0.1
     protocol, model, settings = prepare(cfg)
@@ -45,7 +49,10 @@ def _peak(path: Path, chunk: int, monkeypatch: pytest.MonkeyPatch) -> tuple[int,
     tracemalloc.start()
     try:
         start, _ = tracemalloc.get_traced_memory()
-        rep = diagnose_log(path, protocol, model, settings, max_order=8)
+        # the log read in blocks of frames shorter than the short log too (the
+        # reader's scratch space is one block)
+        rep = diagnose_log(path, protocol, model, settings, max_order=8,
+                           chunk_size=chunk)
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
@@ -88,3 +95,102 @@ def test_blocks_give_the_answer_of_one_run(tmp_path: Path,
         rep = diagnose_log(p, protocol, model, settings, max_order=8, add=["offset"])
         reports.append(json.dumps(rep.to_dict(), sort_keys=True, default=str))
     assert reports[0] == reports[1]
+
+
+@pytest.mark.parametrize("kind", ["normal", "quantised", "heavy", "constant"])
+def test_order_statistics_without_a_copy_are_numpys(kind: str,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bin edges and the noise estimate read exact percentiles and medians block by
+    block (a grid count, then the bin that holds the value): numpy's, bit for bit, also
+    with many equal values and across block boundaries."""
+    rng = np.random.default_rng(11)
+    monkeypatch.setattr(residual, "BLOCK", 1000)
+    for n in (1, 2, 7, 4000, 150_001):
+        x = {"normal": rng.normal(size=n), "quantised": np.round(rng.normal(size=n) * 8) / 8,
+             "heavy": rng.standard_cauchy(size=n), "constant": np.full(n, 2.5)}[kind]
+        for rows in (None, rng.random(n) < 0.7):
+            if rows is not None and not rows.any():
+                continue
+            xs = x if rows is None else x[rows]
+            qs = [0.0, 0.5, 50.0, 99.0, 99.5, 100.0]
+            assert residual.percentiles(x, rows, qs) == [float(v) for v in
+                                                         np.percentile(xs, qs)]
+            assert residual.median(x, rows) == float(np.median(xs))
+
+
+def test_filtered_signals_read_in_blocks_are_one_pass(tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The filtered speed, acceleration, current and position are not kept: read in
+    slices or at sorted rows they are filtered again block by block from saved filter
+    states, and equal one pass of the filter over the gap-filled record, bit for bit
+    (gaps and filter restarts inside and across blocks)."""
+    from canrls.diagnosis.samples import RecordSamples
+    from canrls.estimation.svf import SVF
+    from canrls.replay import read_logs
+
+    p = tmp_path / "gaps.log"
+    assert main(["sim", "--out", str(p), "--duration", "6", "--seed", "8",
+                 "--faults", "drop=0.02,silence=0.2s@2s"]) == 0
+    cfg = load_config(None)
+    cfg.model["kt"] = 0.1
+    protocol, model, settings = prepare(cfg)
+    log = read_logs([p], protocol, model, settings)
+    monkeypatch.setattr(samples, "BLOCK", 777)
+    ctx = RecordSamples(log.model, log.signals, log.dt, settings, 8)
+    assert ctx.selected.real is not None and len(ctx.segments()) > 1
+    filled = ctx.selected.signals
+    held = log.model.held
+    hold = {r: ("zoh" if r in held else "foh") for r in ("speed", "current", "position")}
+    svf = SVF(log.model.cutoff_hz, log.dt, log.model.zeta, (hold["speed"], hold["current"]))
+    ref = {"speed": np.empty(len(filled)), "acceleration": np.empty(len(filled)),
+           "current": np.empty(len(filled))}
+    for a, b in ctx.segments():
+        svf.reset()
+        f, sf = svf.process(np.column_stack([filled.speed[a:b], filled.current[a:b]]))
+        ref["speed"][a:b], ref["acceleration"][a:b], ref["current"][a:b] = \
+            f[:, 0], sf[:, 0], f[:, 1]
+    rng = np.random.default_rng(3)
+    n = len(log.signals)
+    for name, full in ref.items():
+        want = ctx.selected.measured(full)
+        got = getattr(ctx, name)
+        assert np.array_equal(np.asarray(got), want)
+        for _ in range(20):
+            a, b = sorted(int(x) for x in rng.integers(0, n + 1, 2))
+            assert np.array_equal(got[a:b], want[a:b])
+        idx = np.sort(rng.choice(n, 300, replace=False))
+        assert np.array_equal(got[idx], want[idx])
+    assert ctx.position is not None
+    assert np.array_equal(ctx.position[::1], np.asarray(ctx.position))
+
+
+def test_residual_read_in_blocks_is_one_pass(tmp_path: Path,
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """The residual is not kept either: read in slices (forward, backward, across
+    restarts) or at sorted rows, the regressor builder runs again from the block last
+    computed or the segment's start; the values are those of one pass, bit for bit."""
+    from canrls.diagnosis.samples import RecordSamples
+    from canrls.replay import read_logs
+
+    p = tmp_path / "gaps.log"
+    assert main(["sim", "--out", str(p), "--duration", "6", "--seed", "9",
+                 "--faults", "drop=0.02,silence=0.2s@2s"]) == 0
+    cfg = load_config(None)
+    cfg.model["kt"] = 0.1
+    protocol, model, settings = prepare(cfg)
+    log = read_logs([p], protocol, model, settings)
+    monkeypatch.setattr(samples, "BLOCK", 613)
+    ctx = RecordSamples(log.model, log.signals, log.dt, settings, 8)
+    eq = log.model.equations[0]
+    theta = np.linspace(0.1, 0.4, eq.n)
+    want = np.concatenate([eq.target_to_physical(y - phi @ theta)
+                           for _, phi, y in ctx.measured_blocks(eq)])
+    r = ctx.residual(eq, theta)
+    assert np.array_equal(np.asarray(r), want)
+    rng = np.random.default_rng(5)
+    n = len(want)
+    for _ in range(30):
+        a, b = sorted(int(x) for x in rng.integers(0, n + 1, 2))
+        assert np.array_equal(r[a:b], want[a:b])
+    idx = np.sort(rng.choice(n, 400, replace=False))
+    assert np.array_equal(r[idx], want[idx])

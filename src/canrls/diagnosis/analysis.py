@@ -65,7 +65,7 @@ from canrls.diagnosis.residual import (
     order_spectrum,
     whiteness,
 )
-from canrls.diagnosis.results import Analysis, EquationDiagnosis, Traces
+from canrls.diagnosis.results import Analysis, EquationDiagnosis, Traces, decimation
 from canrls.diagnosis.samples import RecordSamples
 from canrls.errors import ConfigError, EffectError
 from canrls.estimation.effects import ELECTRICAL
@@ -210,7 +210,8 @@ def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
 
 def _run_in_chunks(proc: SampleProcessor, signals: Signals) -> list[EquationBlock]:
     """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
-    each equation's recorded block, what the diagnosis reads (t, y, used, phi), joined.
+    each equation's recorded block, what the diagnosis reads (used), joined (the times
+    are the samples' own, ``signals.t``, checked block by block).
 
     The pipeline carries its state from block to block bit for bit (``canrls fit``
     replays a log in blocks too), so the result is the one of a single run; but the
@@ -219,12 +220,20 @@ def _run_in_chunks(proc: SampleProcessor, signals: Signals) -> list[EquationBloc
     (:func:`_traces` re-runs the estimators for the convergence figure).
     """
     kept: list[list[EquationBlock]] = []
+    rows: list[int] = []  # rows of each equation so far
 
     def keep(block: PipelineBlock) -> None:
         if not kept:
             kept.extend([] for _ in block.equations)
-        for parts, eb in zip(kept, block.equations, strict=True):
-            if len(eb.t) or not parts:  # the first, even empty: it gives phi's width
+            rows.extend(0 for _ in block.equations)
+        for j, (parts, eb) in enumerate(zip(kept, block.equations, strict=True)):
+            # the pipeline's rows are the samples given (their times: signals.t, not kept)
+            a = rows[j]
+            if not np.array_equal(eb.t, signals.t[a:a + len(eb.t)]):  # pragma: no cover
+                raise AssertionError(f"{eb.equation}: the pipeline's rows {a}.. are not "
+                                     f"the samples")
+            rows[j] += len(eb.t)
+            if len(eb.t) or not parts:  # the first, even empty
                 parts.append(_slim(eb))
 
     n = len(signals)
@@ -242,42 +251,38 @@ _EMPTY = np.zeros(0)
 
 
 def _slim(eb: EquationBlock) -> EquationBlock:
-    """``eb`` without the arrays the diagnosis does not read."""
-    return EquationBlock(equation=eb.equation, t=eb.t, y=eb.y, eps=_EMPTY, eps_fixed=_EMPTY,
-                         used=eb.used, online_rms=_EMPTY, flags=np.zeros(0, np.uint8),
-                         theta=None, theta_fixed=None, phi=eb.phi)
+    """``eb`` with only the array the diagnosis reads (used): the columns and the
+    target are built again block by block where needed
+    (:meth:`RecordSamples.measured_blocks`), the times are the samples'."""
+    return EquationBlock(equation=eb.equation, t=_EMPTY, y=_EMPTY, eps=_EMPTY,
+                         eps_fixed=_EMPTY, used=eb.used, online_rms=_EMPTY,
+                         flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None,
+                         phi=None)
 
 
 def _concat(parts: list[EquationBlock], name: str) -> EquationBlock:
-    parts = [b for b in parts if len(b.t)] or parts[:1]
+    parts = [b for b in parts if len(b.used)] or parts[:1]
     if len(parts) == 1:
         return parts[0]
     return EquationBlock(
-        equation=name, t=np.concatenate([b.t for b in parts]),
-        y=np.concatenate([b.y for b in parts]), eps=_EMPTY, eps_fixed=_EMPTY,
-        used=np.concatenate([b.used for b in parts]), online_rms=_EMPTY,
-        flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None,
-        phi=np.concatenate([b.phi for b in parts]))  # type: ignore[misc]
+        equation=name, t=_EMPTY, y=_EMPTY, eps=_EMPTY,
+        eps_fixed=_EMPTY, used=np.concatenate([b.used for b in parts]), online_rms=_EMPTY,
+        flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None, phi=None)
 
 
 def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
                       eb: EquationBlock, fit: EquationFit) -> EquationDiagnosis:
     eq = est.equation
-    assert eb.phi is not None
     used = eb.used
     N = int(used.sum())
     unit = eq.target.unit
-    phi = eb.phi
-    s_y = eq.scaling.target
-    y_n = np.ldexp(eb.y, -s_y)  # normalised target (exact)
     th = np.array(est.rls.theta, dtype=np.float64)
     th_fx = np.asarray(est.frls.theta_float, dtype=np.float64)
-    # r = y - Phi theta (final float estimate), in the target unit
-    r = eq.target_to_physical(y_n - phi @ th)
-    r_fx = eq.target_to_physical(y_n - phi @ th_fx)
-    r_u = r[used]
-    rms_fixed = float(np.sqrt(np.mean(r_fx[used] ** 2))) if N else math.nan
-    del y_n, r_fx  # record-long: not kept through the rest of the analysis
+    # r = y - Phi theta (final float estimate), in the target unit; Phi and y built
+    # again block by block (the pipeline's, bit for bit), not kept from the run
+    r = ctx.residual(eq, th)
+    # the fixed-point estimate's residual: only its mean square over the used rows
+    rms_fixed = math.sqrt(ctx.mean_square(eq, th_fx, used)) if N else math.nan
     hold = eq.holds[0]
     h = ctx.impulse(hold)
     h2 = float(np.sum(h * h))
@@ -289,7 +294,7 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
         inputs = {"speed": ctx.speed, "acceleration": ctx.acceleration}
     wht = whiteness(r, used, inputs, ctx.impulse(hold), WHITENESS_LAGS)
     bins = all_bins(ctx, r, used, unit)
-    regions = find_regions(bins, r_u, tau, unit, ctx)
+    regions = find_regions(bins, r, tau, unit, ctx, rows=used)
     spectrum = order_spectrum(ctx, r, used, unit) if ctx.angle_raw is not None else None
     exc = excitation_summary(ctx, model, used)
     cand = rank_candidates(ctx, model, eq, eb, r, used, N, h2, unit, bins, spectrum, exc)
@@ -307,10 +312,9 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
 def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F64,
             used: B) -> Traces:
     eq = est.equation
-    assert eb.phi is not None
-    rows = np.flatnonzero(used)
+    n_used = int(np.count_nonzero(used))
     n = eq.n
-    npts = min(400, len(rows))
+    npts = min(400, n_used)
     conv_t = np.zeros(0)
     theta = np.zeros((0, n))
     sigma = np.zeros((0, n))
@@ -326,27 +330,64 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
         # instants, instead of a record-long recording of it after every sample
         frls = FixedRLS.from_state(est.frls.state())
         frls.reset()
-        phi_u = np.ascontiguousarray(eb.phi[rows])
-        y_u = np.ldexp(eb.y[rows], -eq.scaling.target)
-        cuts = np.unique(np.linspace(0, len(rows), npts + 1).astype(np.int64))[1:]
-        th_l, sd_l, fx_l = [], [], []
-        a = 0
-        for c in cuts:
-            rls.run(phi_u[a:c], y_u[a:c], record=False)
-            th_l.append(eq.to_physical(np.array(rls.theta)))
-            sd_l.append(eq.sigma_to_physical(rls.std() * root_kappa))
-            Pq, Yq = frls.quantize_block(phi_u[a:c], np.ascontiguousarray(y_u[a:c]))
-            frls.run_block(Pq, Yq, False)
-            fx_l.append(eq.to_physical(frls.theta_float))
-            a = int(c)
-        k = rows[cuts - 1]
-        conv_t = eb.t[k]
+        cuts = np.unique(np.linspace(0, n_used, npts + 1).astype(np.int64))[1:]
+        th_l, sd_l, fx_l, t_l = [], [], [], []
+        k = 0  # used rows fed to the estimators so far
+        ci = 0  # next instant
+        # the used rows block by block (the estimators carry their state bit for bit)
+        for m, phi, y in ctx.measured_blocks(eq):
+            u = used[m:m + len(y)]
+            if ci >= len(cuts) or not u.any():
+                continue
+            at = np.flatnonzero(u)
+            phi_u = np.ascontiguousarray(phi[at])
+            y_u = np.ascontiguousarray(y[at])
+            a = 0
+            while a < len(y_u) and ci < len(cuts):
+                c = min(len(y_u), a + int(cuts[ci]) - k)
+                rls.run(phi_u[a:c], y_u[a:c], record=False)
+                Pq, Yq = frls.quantize_block(phi_u[a:c], np.ascontiguousarray(y_u[a:c]))
+                frls.run_block(Pq, Yq, False)
+                k += c - a
+                a = c
+                if k == cuts[ci]:
+                    th_l.append(eq.to_physical(np.array(rls.theta)))
+                    sd_l.append(eq.sigma_to_physical(rls.std() * root_kappa))
+                    fx_l.append(eq.to_physical(frls.theta_float))
+                    t_l.append(ctx.signals.t[m + int(at[c - 1])])
+                    ci += 1
+        conv_t = np.array(t_l)
         theta = np.array(th_l)
         sigma = np.array(sd_l)
         tfx = np.array(fx_l)
+    # the points the figures draw, not the record: every k-th sample for the timeline,
+    # every k-th used sample for the scatter plots
+    n_rows = len(used)
+    timeline = np.zeros(n_rows, np.bool_)
+    timeline[::decimation(n_rows)] = True
+    scatter = _every_mask(used, decimation(n_used))
+    pts = np.flatnonzero(timeline | scatter)
+    y = ctx.target_at(eq, pts)
+    res = r[pts]
+
+    def at(x: F64 | None) -> F64 | None:
+        return None if x is None else x[pts]
+
     return Traces(
-        t=eb.t, used=used, y=eb.y, yhat=eb.y - r, residual=r, speed=ctx.speed,
-        acceleration=ctx.acceleration, current=ctx.current, position=ctx.position,
-        angle=ctx.angle, conv_t=conv_t, theta=theta, sigma=sigma, theta_fixed=tfx,
-        names=tuple(p.name for p in eq.parameters),
-        units=tuple(p.unit for p in eq.parameters))
+        t=ctx.signals.t[pts], used=used[pts], y=y, yhat=y - res, residual=res, speed=ctx.speed[pts],
+        acceleration=ctx.acceleration[pts], current=ctx.current[pts],
+        position=at(ctx.position), angle=at(ctx.angle), conv_t=conv_t, theta=theta,
+        sigma=sigma, theta_fixed=tfx, names=tuple(p.name for p in eq.parameters),
+        units=tuple(p.unit for p in eq.parameters), timeline=timeline[pts],
+        scatter=scatter[pts], record_used=used)
+
+
+def _every_mask(mask: B, k: int) -> B:
+    """Every ``k``-th true row of ``mask`` (from the first), block by block."""
+    out = np.zeros(len(mask), np.bool_)
+    seen = 0  # true rows before the block
+    for a in range(0, len(mask), CHUNK):
+        idx = np.flatnonzero(mask[a:a + CHUNK])
+        out[a + idx[(-seen) % k::k]] = True
+        seen += len(idx)
+    return out

@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.diagnosis.residual import MIN_BIN, MIN_EXPLAINED, residual_structure
+from canrls.diagnosis.residual import MIN_BIN, MIN_EXPLAINED, moments, residual_structure
 from canrls.diagnosis.results import (
     Binned,
     Candidate,
@@ -63,7 +63,7 @@ from canrls.diagnosis.results import (
     share_text,
     value_text,
 )
-from canrls.diagnosis.samples import RecordSamples
+from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Cogging, Effect, UserTerm, library
 from canrls.estimation.model import Equation, Model
@@ -406,9 +406,10 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
         rows2 = _eval_rows(ctx, model, eq, chosen, eb.used, periodic=True)
         # r = y - Phi theta, theta the least squares on rows2 (block by block)
         r_left = ctx.fit_residual(eq2, rows2)
-        if int(rows2.sum()):
+        n2, _, e2, _ = moments(r_left, rows2)
+        if n2:
             suggestion = Suggestion(suggestion.steps, suggestion.rms_before,
-                                    float(np.sqrt(np.mean(r_left[rows2] ** 2))))
+                                    math.sqrt(e2 / n2))
         structure = residual_structure(ctx, r_left, rows2, unit, h2, None, eq.target.signal)
         total = 1.0 - rss_cur / rss0 if rss0 > 0 else 0.0
         if structure and total < MIN_TOTAL:
@@ -418,13 +419,16 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
     if not chosen:
         # nothing to add: the least-squares residual of the model as it is (structure the
         # model's own columns can absorb is the estimator's, not a missing effect)
-        assert eb.phi is not None
         th_ls = np.array([th0.get(j, 0.0) for j in C])
-        r_ls = eq.target_to_physical(np.ldexp(eb.y, -eq.scaling.target) - eb.phi @ th_ls)
-        d = (r_ls - r)[used]
+        r_ls = ctx.residual(eq, th_ls)  # block by block
         # the displayed spectrum (of r) serves when r_ls is practically r
-        same = (float(np.dot(d, d)) <= 0.01 * float(np.dot(r_ls[used], r_ls[used]))
-                and N == int(eb.used.sum()))
+        dd = el = 0.0
+        for a in range(0, len(r), BLOCK):
+            u = used[a:a + BLOCK]
+            x, d = r_ls[a:a + BLOCK][u], (r_ls[a:a + BLOCK] - r[a:a + BLOCK])[u]
+            dd += float(np.dot(d, d))
+            el += float(np.dot(x, x))
+        same = dd <= 0.01 * el and N == int(eb.used.sum())
         structure = residual_structure(ctx, r_ls, used, unit, h2, spectrum if same else None,
                                eq.target.signal)
     # -- which candidates to list --------------------------------------------------------
@@ -457,7 +461,8 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
     for c in not_ident:
         reasons.append(f"{c.effect}: {c.reason}")
     identifiable = not model_issues and not not_ident
-    rms_final = math.sqrt(float(np.mean(r[used] ** 2))) if N else math.nan
+    n_f, _, e_f, _ = moments(r, used)
+    rms_final = math.sqrt(e_f / n_f) if n_f else math.nan
     verdict = _verdict(eq, suggestion, cands, structure, model_issues, not_ident, exc, unit,
                        rms_ls, partial, inseparable, na)
     if rms_final > 1.1 * rms_ls:

@@ -34,8 +34,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
-from canrls.diagnosis.results import EquationDiagnosis
+from canrls.diagnosis.results import EquationDiagnosis, Traces, decimation
 from canrls.errors import ConfigError
 
 __all__ = ["FIGURES", "Figures", "figures_in", "require_matplotlib"]
@@ -47,7 +48,6 @@ FIGURES: tuple[str, ...] = ("timeline.png", "speed.png", "position.png", "candid
 _BEFORE = "#c0392b"
 _AFTER = "#1f6fb4"
 _GREY = "#9a9a9a"
-_MAX_POINTS = 20000
 
 
 def require_matplotlib() -> tuple[Any, Any]:
@@ -79,7 +79,11 @@ def figures_in(directory: str | os.PathLike[str]) -> Figures:
 
 
 def _decimate(n: int) -> slice:
-    return slice(None, None, max(1, int(math.ceil(n / _MAX_POINTS))))
+    return slice(None, None, decimation(n))
+
+
+def _timeline(tr: Traces) -> slice | npt.NDArray[np.bool_]:
+    return _decimate(len(tr.t)) if tr.timeline is None else tr.timeline
 
 
 class Figures:
@@ -106,7 +110,7 @@ class Figures:
         tr = b.traces
         fig = self.Figure(figsize=(11, 6.4), layout="constrained")
         ax1, ax2 = fig.subplots(2, 1, sharex=True, height_ratios=[3, 2])
-        s = _decimate(len(tr.t))
+        s = _timeline(tr)
         u = b.unit
         y = np.where(tr.used, tr.y, np.nan)
         ax1.plot(tr.t[s], y[s], color="black", lw=0.8, label="measured (filtered target)")
@@ -114,7 +118,8 @@ class Figures:
                  alpha=0.85, label=f"model {label}")
         if a is not None:
             ta = a.traces
-            ax1.plot(ta.t[s], np.where(ta.used, ta.yhat, np.nan)[s], color=_AFTER, lw=0.7,
+            sa = _timeline(ta)
+            ax1.plot(ta.t[sa], np.where(ta.used, ta.yhat, np.nan)[sa], color=_AFTER, lw=0.7,
                      alpha=0.85, label="model after")
         ax1.set_ylabel(f"{b.target} [{u}]")
         ax1.set_title(f"{b.equation} equation: measured against model "
@@ -126,7 +131,8 @@ class Figures:
                  label=f"residual {label} (RMS {b.residual_rms:.3g} {u})")
         if a is not None:
             ta = a.traces
-            ax2.plot(ta.t[s], np.where(ta.used, ta.residual, np.nan)[s], color=_AFTER,
+            sa = _timeline(ta)
+            ax2.plot(ta.t[sa], np.where(ta.used, ta.residual, np.nan)[sa], color=_AFTER,
                      lw=0.6, label=f"residual after (RMS {a.residual_rms:.3g} {u})")
         ax2.axhline(0.0, color="black", lw=0.5)
         ax2.set_xlabel("time [s]")
@@ -145,8 +151,12 @@ class Figures:
         from matplotlib.lines import Line2D
 
         handles = [Line2D([], [], marker="o", ls="", ms=4, color=_GREY, label="samples")]
-        vmax = float(np.nanmax(np.abs(b.traces.speed[b.traces.used]))) \
-            if quantity == "speed" and b.traces.used.any() else 1.0
+        if quantity != "speed" or not b.traces.used.any():
+            vmax = 1.0
+        elif b.traces.scatter is not None:  # the points are decimated: the record's max
+            vmax = float(b.excitation.speed_max)  # type: ignore[attr-defined]
+        else:
+            vmax = float(np.nanmax(np.abs(b.traces.speed[b.traces.used])))
         u = b.unit
         lim = 0.0
         for ax, (label, q, color) in zip(axes, panels, strict=True):
@@ -159,10 +169,14 @@ class Figures:
                 x = np.mod(tr.position, 2 * math.pi)
             else:
                 x = tr.position
-            used = tr.used
-            xs, rs = x[used], tr.residual[used]
-            s = _decimate(len(xs))
-            ax.scatter(xs[s], rs[s], s=1, color=_GREY, alpha=0.25, rasterized=True)
+            if tr.scatter is None:
+                used = tr.used
+                xs, rs = x[used], tr.residual[used]
+                s = _decimate(len(xs))
+                xs, rs = xs[s], rs[s]
+            else:
+                xs, rs = x[tr.scatter], tr.residual[tr.scatter]
+            ax.scatter(xs, rs, s=1, color=_GREY, alpha=0.25, rasterized=True)
             bn = q.bins.get(quantity)
             if bn is not None:
                 ok = np.isfinite(bn.mean)

@@ -21,7 +21,7 @@ estimators used (:class:`~canrls.diagnosis.samples.RecordSamples`), in the targe
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import numba
 import numpy as np
@@ -54,8 +54,11 @@ __all__ = [
     "excitation_summary",
     "find_regions",
     "harmonic_fit",
+    "median",
+    "moments",
     "nice_magnitudes",
     "order_spectrum",
+    "percentiles",
     "residual_structure",
     "spectrum_orders",
     "spectrum_peaks",
@@ -93,6 +96,18 @@ def chi2_sf(q: float, k: int) -> float:
     return 0.5 * math.erfc(z / math.sqrt(2.0))
 
 
+def _every(x: F64, rows: B, D: int) -> F64:
+    """``x[rows][::D]``, gathered block by block (no copy of ``x[rows]``)."""
+    parts = []
+    seen = 0  # rows passed so far
+    for a in range(0, len(x), BLOCK):
+        idx = np.flatnonzero(rows[a:a + BLOCK])
+        # the rows whose rank among all rows is a multiple of D
+        parts.append(x[a:a + BLOCK][idx[(-seen) % D::D]])
+        seen += len(idx)
+    return np.concatenate(parts) if parts else np.zeros(0)
+
+
 def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
                lags: int) -> Whiteness | None:
     # decimation: the lag after which |rho_h| stays below 0.02
@@ -103,7 +118,7 @@ def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
     rho = np.array([float(np.dot(h[: m - k], h[k:])) / hh for k in range(m)])
     big = np.flatnonzero(np.abs(rho) >= 0.02)
     D = int(big[-1]) + 1 if len(big) else 1
-    x = r[used][::D]
+    x = _every(r, used, D)
     N = len(x)
     if N < 3 * lags + 10:
         return None
@@ -118,7 +133,7 @@ def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
     cross: dict[str, F64] = {}
     outside: dict[str, int] = {}
     for name, sig in inputs.items():
-        u = sig[used][::D]
+        u = _every(sig, used, D)
         u = u - u.mean()
         du = float(np.dot(u, u))
         if du <= 0:
@@ -135,6 +150,114 @@ def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
                      outside=int(np.sum(np.abs(ac) > bound)), q=q, p_value=p,
                      white=bool(p >= 0.01), cross=cross, cross_outside=outside)
 
+
+
+# ------------------------------------------------------------- record in blocks, exactly
+def _spans(n: int) -> range:
+    """Starts of the blocks of :data:`~canrls.diagnosis.samples.BLOCK` rows."""
+    return range(0, n, BLOCK)
+
+
+def _kth(x: F64, rows: B | None, ks: list[int]) -> list[float]:
+    """The ``k``-th smallest (0-based) of ``x[rows]`` for each ``k`` (finite values),
+    exactly, without the copy of ``x[rows]``: a count on a fixed grid of bins finds the
+    bin that holds the ``k``-th value, the search goes on inside it (its own values'
+    range) until the values left are few (then sorted) or all equal."""
+    n = len(x)
+    grid = 4096
+    few = 65536
+    out = []
+    for k in ks:
+        lo, hi = math.inf, -math.inf
+        for a in _spans(n):
+            v = x[a:a + BLOCK] if rows is None else x[a:a + BLOCK][rows[a:a + BLOCK]]
+            if len(v):
+                lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
+        below = 0  # values < lo
+        while True:
+            if lo == hi:
+                out.append(lo)
+                break
+            scale = grid / (hi - lo)
+            cnt = np.zeros(grid, np.int64)
+
+            def cells(v: F64, lo: float = lo, hi: float = hi,
+                      scale: float = scale) -> tuple[F64, npt.NDArray[np.int64]]:
+                v = v[(v >= lo) & (v <= hi)]
+                return v, np.minimum(((v - lo) * scale).astype(np.int64), grid - 1)
+
+            for a in _spans(n):
+                v = x[a:a + BLOCK] if rows is None else x[a:a + BLOCK][rows[a:a + BLOCK]]
+                cnt += np.bincount(cells(v)[1], minlength=grid)
+            if int(cnt.sum()) <= few:
+                vals = [cells(x[a:a + BLOCK] if rows is None
+                              else x[a:a + BLOCK][rows[a:a + BLOCK]])[0] for a in _spans(n)]
+                out.append(float(np.sort(np.concatenate(vals))[k - below]))
+                break
+            cum = np.cumsum(cnt)
+            b = int(np.searchsorted(cum, k - below, side="right"))
+            below += int(cum[b - 1]) if b else 0
+            nlo, nhi = math.inf, -math.inf
+            for a in _spans(n):
+                v = x[a:a + BLOCK] if rows is None else x[a:a + BLOCK][rows[a:a + BLOCK]]
+                v, c = cells(v)
+                v = v[c == b]
+                if len(v):
+                    nlo, nhi = min(nlo, float(v.min())), max(nhi, float(v.max()))
+            lo, hi = nlo, nhi
+    return out
+
+
+def _finite(x: F64, rows: B | None) -> bool:
+    for a in _spans(len(x)):
+        v = x[a:a + BLOCK] if rows is None else x[a:a + BLOCK][rows[a:a + BLOCK]]
+        if not np.isfinite(v).all():
+            return False
+    return True
+
+
+def _copy(x: F64, rows: B | None) -> F64:
+    return np.concatenate([x[a:a + BLOCK] if rows is None else
+                           x[a:a + BLOCK][rows[a:a + BLOCK]] for a in _spans(len(x))])
+
+
+def percentiles(x: F64, rows: B | None, qs: list[float]) -> list[float]:
+    """``np.percentile(x[rows], qs)`` (its default, linear interpolation), bit for bit,
+    from :func:`_kth` (no record-long copy unless a value is not finite). ``x[rows]``
+    must not be empty."""
+    if not _finite(x, rows):
+        return [float(v) for v in np.percentile(_copy(x, rows), qs)]
+    n = len(x) if rows is None else int(np.count_nonzero(rows))
+    ks: list[tuple[int, int, float]] = []
+    for q in qs:
+        # numpy's virtual index (n - 1) q and its neighbours
+        v = (n - 1) * (q / 100.0)
+        if v >= n - 1:
+            ks.append((n - 1, n - 1, 0.0))
+        else:
+            lo = max(math.floor(v), 0)
+            ks.append((lo, lo + 1, v - lo if v >= 0 else 0.0))
+    want = sorted({k for a, b, _ in ks for k in (a, b)})
+    got = dict(zip(want, _kth(x, rows, want), strict=True))
+    out = []
+    for a, b, g in ks:
+        xa, xb = got[a], got[b]
+        d = xb - xa
+        # numpy's lerp: from the nearer end
+        out.append(xb - d * (1.0 - g) if g >= 0.5 else xa + d * g)
+    return out
+
+
+def median(x: F64, rows: B | None = None) -> float:
+    """``np.median(x[rows])``, bit for bit, without the copy (unless a value is not
+    finite)."""
+    if not _finite(x, rows):
+        return float(np.median(_copy(x, rows)))
+    n = len(x) if rows is None else int(np.count_nonzero(rows))
+    if n % 2:
+        return _kth(x, rows, [n // 2])[0]
+    a, b = _kth(x, rows, [n // 2 - 1, n // 2])
+    return float(np.mean(np.array([a, b])))
 
 # ----------------------------------------------------------------------------- binning
 def nice_magnitudes(vmax: float) -> F64:
@@ -157,17 +280,30 @@ def nice_magnitudes(vmax: float) -> F64:
 
 
 def bin_residual(values: F64, r: F64, edges: F64, quantity: str, label: str,
-         unit: str) -> Binned:
+                 unit: str, rows: B | None = None) -> Binned:
+    """Mean and RMS of ``r[rows]`` in the bins ``edges`` of ``values[rows]`` (every row
+    when ``rows`` is None), block by block: the sums of each bin run in the order of
+    the rows, as one pass over the record adds them (no record-long copy)."""
     nb = len(edges) - 1
-    idx = np.searchsorted(edges, values, side="right") - 1
-    # the end bins are closed at the extremes
-    idx = np.where(values == edges[-1], nb - 1, idx)
-    ok = (idx >= 0) & (idx < nb) & np.isfinite(values)
-    idx = idx[ok]
-    rr = r[ok]
-    cnt = np.bincount(idx, minlength=nb).astype(np.int64)
-    s1 = np.bincount(idx, weights=rr, minlength=nb)
-    s2 = np.bincount(idx, weights=rr * rr, minlength=nb)
+    cnt = np.zeros(nb, np.int64)
+    s1 = np.zeros(nb)
+    s2 = np.zeros(nb)
+    for a in _spans(len(values)):
+        v = values[a:a + BLOCK]
+        rr = r[a:a + BLOCK]
+        if rows is not None:
+            u = rows[a:a + BLOCK]
+            v, rr = v[u], rr[u]
+        idx = np.searchsorted(edges, v, side="right") - 1
+        # the end bins are closed at the extremes
+        idx = np.where(v == edges[-1], nb - 1, idx)
+        ok = (idx >= 0) & (idx < nb) & np.isfinite(v)
+        idx = idx[ok]
+        rr = rr[ok]
+        cnt += np.bincount(idx, minlength=nb)
+        # s1 += r, s2 += r^2 per bin, row after row
+        np.add.at(s1, idx, rr)
+        np.add.at(s2, idx, rr * rr)
     good = cnt >= MIN_BIN
     mean = np.full(nb, np.nan)
     rms = np.full(nb, np.nan)
@@ -183,9 +319,43 @@ def bin_residual(values: F64, r: F64, edges: F64, quantity: str, label: str,
     return Binned(quantity, label, unit, edges, cnt, mean, rms, min(max(share, 0.0), 1.0))
 
 
-def _edges_linear(v: F64, nb: int) -> F64:
-    lo, hi = np.percentile(v, [0.5, 99.5])
-    vmin, vmax = float(np.min(v)), float(np.max(v))
+def _extremes(x: F64, rows: B) -> tuple[float, float]:
+    """(min, max) of ``x[rows]``, block by block."""
+    lo, hi = math.inf, -math.inf
+    for a in _spans(len(x)):
+        v = x[a:a + BLOCK][rows[a:a + BLOCK]]
+        if len(v):
+            lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
+    return lo, hi
+
+
+def moments(r: F64, rows: B) -> tuple[int, float, float, float]:
+    """(N, mean, sum of squares, sum of squares about the mean) of ``r[rows]``, block by
+    block (the deviations in a second pass, as ``np.std`` takes them)."""
+    n = int(np.count_nonzero(rows))
+    s1 = s2 = 0.0
+    for a in _spans(len(r)):
+        v = r[a:a + BLOCK][rows[a:a + BLOCK]]
+        s1 += float(np.sum(v))
+        s2 += float(np.dot(v, v))
+    if not n:
+        return 0, math.nan, 0.0, 0.0
+    mu = s1 / n
+    ss = 0.0
+    for a in _spans(len(r)):
+        d = r[a:a + BLOCK][rows[a:a + BLOCK]] - mu
+        ss += float(np.dot(d, d))
+    return n, mu, s2, ss
+
+
+def _edges_linear(v: F64, rows: B, nb: int) -> F64:
+    """``nb`` bins from the 0.5 to the 99.5 percentile of ``v[rows]`` (exact:
+    :func:`percentiles`), the end bins stretched to the extremes."""
+    if _finite(v, rows):
+        vmin, vmax = _extremes(v, rows)
+    else:  # a non-finite value: numpy's extremes (nan), from the copy
+        vmin, vmax = float(np.min(_copy(v, rows))), float(np.max(_copy(v, rows)))
+    lo, hi = percentiles(v, rows, [0.5, 99.5])
     if not hi > lo:
         lo, hi = vmin, vmax
     if not hi > lo:
@@ -196,36 +366,70 @@ def _edges_linear(v: F64, nb: int) -> F64:
     return inner
 
 
+class _Mapped:
+    """``f(x)`` elementwise, computed on the slices taken (a record-long array's
+    stand-in for :func:`bin_residual` and :func:`percentiles`, which take only slices)."""
+
+    def __init__(self, x: F64, f: Callable[[F64], F64]) -> None:
+        self.x = x
+        self.f = f
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def __getitem__(self, s: slice) -> F64:
+        return self.f(self.x[s])
+
+
+class _SecondDifference:
+    """``|w[k+2] - 2 w[k+1] + w[k]|``, computed on the slices taken."""
+
+    def __init__(self, w: F64) -> None:
+        self.w = w
+
+    def __len__(self) -> int:
+        return max(len(self.w) - 2, 0)
+
+    def __getitem__(self, s: slice) -> F64:
+        a, b, _ = s.indices(len(self))
+        w = self.w
+        return np.abs(w[a + 2:b + 2] - 2.0 * w[a + 1:b + 1] + w[a:b])
+
+
 def all_bins(ctx: RecordSamples, r: F64, used: B, unit: str) -> dict[str, Binned]:
-    ru = r[used]
+    """The residual binned by speed, position, current, acceleration and time over the
+    ``used`` rows, block by block (bin edges from exact extremes and percentiles)."""
     out: dict[str, Binned] = {}
-    if not len(ru):
+    if not used.any():
         return out
-    sp = ctx.speed[used]
-    vmax = float(np.max(np.abs(sp)))
+    lo, hi = _extremes(ctx.speed, used)
+    vmax = max(abs(lo), abs(hi))
     mags = nice_magnitudes(vmax)
     edges = np.concatenate([-mags[:0:-1], mags])
-    out["speed"] = bin_residual(sp, ru, edges, "speed", "speed", ctx.speed_unit)
+    out["speed"] = bin_residual(ctx.speed, r, edges, "speed", "speed", ctx.speed_unit, used)
     if ctx.position is not None:
         if ctx.axis == "rotary":
-            pos = np.mod(ctx.position[used], 2.0 * math.pi)
+            pos = _Mapped(ctx.position, lambda x: np.mod(x, 2.0 * math.pi))
             pe = np.linspace(0.0, 2.0 * math.pi, 37)
-            out["position"] = bin_residual(pos, ru, pe, "position", "position in the revolution",
-                                   "rad")
+            out["position"] = bin_residual(pos, r, pe, "position",  # type: ignore[arg-type]
+                                           "position in the revolution", "rad", used)
         else:
-            pos = ctx.position[used]
-            out["position"] = bin_residual(pos, ru, _edges_linear(pos, 40), "position",
-                                   "position along the travel", "m")
-    out["current"] = bin_residual(ctx.current[used], ru, _edges_linear(ctx.current[used], 20),
-                          "current", "current", "A")
-    out["acceleration"] = bin_residual(ctx.acceleration[used], ru,
-                               _edges_linear(ctx.acceleration[used], 20), "acceleration",
-                               "acceleration", ctx.acc_unit)
-    t = ctx.signals.t[used]
-    te = np.linspace(float(t[0]), float(t[-1]), 21) if len(t) > 1 else np.array([0.0, 1.0])
+            out["position"] = bin_residual(ctx.position, r,
+                                           _edges_linear(ctx.position, used, 40),
+                                           "position", "position along the travel", "m", used)
+    out["current"] = bin_residual(ctx.current, r, _edges_linear(ctx.current, used, 20),
+                                  "current", "current", "A", used)
+    out["acceleration"] = bin_residual(ctx.acceleration, r,
+                                       _edges_linear(ctx.acceleration, used, 20),
+                                       "acceleration", "acceleration", ctx.acc_unit, used)
+    t = ctx.signals.t
+    first = int(np.argmax(used))
+    last = len(used) - 1 - int(np.argmax(used[::-1]))
+    te = (np.linspace(float(t[first]), float(t[last]), 21) if last > first
+          else np.array([0.0, 1.0]))
     if not te[-1] > te[0]:
         te = np.array([te[0] - 0.5, te[0] + 0.5])
-    out["time"] = bin_residual(t, ru, te, "time", "time", "s")
+    out["time"] = bin_residual(t, r, te, "time", "time", "s", used)
     return out
 
 
@@ -265,14 +469,18 @@ def _notable(mean: float, n: int, sd: float, rms: float, tau: float) -> bool:
 
 
 def find_regions(bins: Mapping[str, Binned], ru: F64, tau: float, unit: str,
-             ctx: RecordSamples) -> tuple[Region, ...]:
-    if not len(ru):
+                 ctx: RecordSamples, rows: B | None = None) -> tuple[Region, ...]:
+    """The worst regions in words; ``ru`` the residual on the used rows, or with
+    ``rows`` the residual on every row and the used ones (read block by block)."""
+    if rows is None:
+        rows = np.ones(len(ru), np.bool_)
+    n, _, energy, ss = moments(ru, rows)
+    if not n:
         return ()
-    energy = float(np.dot(ru, ru))
-    rms = math.sqrt(energy / len(ru))
+    sd = math.sqrt(ss / n)
+    rms = math.sqrt(energy / n)
     if energy <= 0:
         return ()
-    sd = float(np.std(ru))
     found: list[Region] = []
     # speed: magnitude bands with the mean forward and backward
     sb = bins.get("speed")
@@ -390,20 +598,21 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
     record; only sums over the used rows are kept.
     """
     assert ctx.angle_filled is not None
-    n_used = int(used.sum())
     amp = np.zeros(len(orders))
     expl = np.zeros(len(orders))
+    # den: the centred residual's sum of squares over the used rows
+    n_used, mean_r, _, den = moments(r, used)
     if n_used < 3:
         return amp, expl
-    rc = r - float(np.mean(r[used]))  # centred on the used rows
-    den = float(np.dot(rc[used], rc[used]))
     if den <= 0:
         return amp, expl
-    # filtered on the filled record, as the pipeline filters its columns
+    # filtered on the filled record, as the pipeline filters its columns; the residual
+    # (measured rows) placed on the filled rows block by block: rc = r - mean, 0 on
+    # filled rows
     used = ctx.spread(used)
-    rc = ctx.spread_values(rc)
+    real = ctx.selected.real
     a = np.ascontiguousarray(ctx.angle_filled, dtype=np.float64)
-    chunk = 32
+    chunk = 16  # orders at a time: BLOCK x 2 chunk float64 per working array
     for c0 in range(0, len(orders), chunk):
         qs = np.ascontiguousarray(orders[c0:c0 + chunk], dtype=np.float64)
         m = len(qs)
@@ -415,6 +624,7 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
         sr = np.zeros(m)
         cr = np.zeros(m)
         svf = SVF(ctx.cutoff_hz, ctx.dt, ctx.zeta, ctx.position_hold)
+        m0 = 0  # measured rows before the block
         for sa, sb in ctx.segments():
             svf.reset()
             for b0 in range(sa, sb, BLOCK):
@@ -423,10 +633,17 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
                 _sincos(a[b0:b1], qs, raw)
                 f, _ = svf.process(raw)
                 u = used[b0:b1]
+                if real is None:
+                    rb = r[b0:b1] - mean_r
+                else:
+                    k = int(np.count_nonzero(real[b0:b1]))
+                    rb = np.zeros(b1 - b0)
+                    rb[real[b0:b1]] = r[m0:m0 + k] - mean_r
+                    m0 += k
                 if not u.any():
                     continue
                 G = f[u]
-                ru = rc[b0:b1][u]
+                ru = rb[u]
                 gs, gc = G[:, 0::2], G[:, 1::2]
                 s1 += G.sum(axis=0)
                 ss += np.einsum("ij,ij->j", gs, gs)
@@ -434,6 +651,8 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
                 sc += np.einsum("ij,ij->j", gs, gc)
                 sr += gs.T @ ru
                 cr += gc.T @ ru
+                # freed before the next block's are made (one block's at a time)
+                del raw, f, _, G, gs, gc, ru
         # centre the columns: sum (g - mean g)(h - mean h) = sum g h - n mean g mean h
         ms, mc = s1[0::2] / n_used, s1[1::2] / n_used
         ss -= n_used * ms * ms
@@ -468,35 +687,71 @@ def spectrum_peaks(orders: F64, expl: F64, limit: int = 5) -> tuple[float, ...]:
 
 # ------------------------------------------------------------------------- excitation
 def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationSummary:
-    sp = ctx.speed[used]
-    if not len(sp):
+    """How the ``used`` rows excite the model, block by block (exact order statistics:
+    :func:`percentiles`, :func:`median`; sums block by block)."""
+    N = int(np.count_nonzero(used))
+    if not N:
         return ExcitationSummary(0.0, 0.0, 0, math.nan, math.nan, math.nan, math.nan,
                                  math.nan, math.nan, None, None, ctx.speed_unit, ctx.per)
-    vmax = float(np.percentile(np.abs(sp), 99.0))
+    speed = ctx.speed
+    vmax = percentiles(_Mapped(speed, np.abs), used, [99.0])[0]  # type: ignore[arg-type]
     eps = max(model.coulomb_band, 0.01 * vmax)
-    fwd = float(np.mean(sp > eps))
-    bwd = float(np.mean(sp < -eps))
-    s = np.sign(sp[np.abs(sp) > eps])
-    rev = int(np.sum(s[1:] != s[:-1])) if len(s) > 1 else 0
-    # samples where the Stribeck shape exp(-(w/ws)^2) is more than e^-4
-    low = float(np.mean(np.abs(sp) < 2.0 * model.stribeck_speed))
+    n_fwd = n_bwd = n_low = rev = 0
+    last_sign = 0.0  # sign of the last sample beyond eps (0: none yet)
+    s_sp = s_acc2 = 0.0
+    sp_max = 0.0
+    for a in _spans(len(speed)):
+        u = used[a:a + BLOCK]
+        sp = speed[a:a + BLOCK][u]
+        if not len(sp):
+            continue
+        n_fwd += int(np.count_nonzero(sp > eps))
+        n_bwd += int(np.count_nonzero(sp < -eps))
+        sg = np.sign(sp[np.abs(sp) > eps])
+        if len(sg):
+            # reversals: sign changes, the previous block's last sign carried
+            rev += int(np.count_nonzero(sg[1:] != sg[:-1])) + int(
+                last_sign != 0.0 and sg[0] != last_sign)
+            last_sign = float(sg[-1])
+        # samples where the Stribeck shape exp(-(w/ws)^2) is more than e^-4
+        n_low += int(np.count_nonzero(np.abs(sp) < 2.0 * model.stribeck_speed))
+        s_sp += float(np.sum(sp))
+        sp_max = max(sp_max, float(np.max(np.abs(sp))))
+        acc = ctx.acceleration[a:a + BLOCK][u]
+        s_acc2 += float(np.dot(acc, acc))
+    mean = s_sp / N
+    ss = 0.0
+    for a in _spans(len(speed)):
+        d = speed[a:a + BLOCK][used[a:a + BLOCK]] - mean
+        ss += float(np.dot(d, d))
     # speed-sensor noise from the second differences of the measured speed (robust:
     # var(w[k+1] - 2 w[k] + w[k-1]) = 6 sigma^2 for white noise), through sF
     w = np.asarray(ctx.signals.speed, dtype=np.float64)
-    d2 = w[2:] - 2.0 * w[1:-1] + w[:-2]
-    sigma_w = 1.4826 * float(np.median(np.abs(d2))) / math.sqrt(6.0) if len(d2) else 0.0
+    d2 = _SecondDifference(w)
+    sigma_w = 1.4826 * median(d2) / math.sqrt(6.0) if len(d2) else 0.0  # type: ignore[arg-type]
     h_sf = ctx.impulse(ctx.speed_hold, derivative=True)
     acc_noise = sigma_w * float(np.sqrt(np.dot(h_sf, h_sf)))
     revs = cov = None
     if ctx.angle is not None:
-        a = ctx.angle[used]
-        revs = float(np.sum(np.abs(np.diff(a)))) / (2 * math.pi) if len(a) > 1 else 0.0
-        cov = float(np.max(a) - np.min(a)) / (2 * math.pi)
+        # sum |diff angle| over the used rows, the previous block's last angle carried
+        tot = 0.0
+        prev: float | None = None
+        for a in _spans(len(speed)):
+            an = ctx.angle[a:a + BLOCK][used[a:a + BLOCK]]
+            if not len(an):
+                continue
+            if prev is not None:
+                tot += abs(float(an[0]) - prev)
+            tot += float(np.sum(np.abs(np.diff(an))))
+            prev = float(an[-1])
+        revs = tot / (2 * math.pi) if N > 1 else 0.0
+        lo, hi = _extremes(ctx.angle, used)
+        cov = (hi - lo) / (2 * math.pi)
     return ExcitationSummary(
-        forward=fwd, backward=bwd, reversals=rev, speed_mean=float(np.mean(sp)),
-        speed_std=float(np.std(sp)), speed_max=float(np.max(np.abs(sp))),
-        acceleration_rms=float(np.sqrt(np.mean(ctx.acceleration[used] ** 2))),
-        acceleration_noise=acc_noise, low_speed=low, revolutions=revs, coverage=cov,
+        forward=n_fwd / N, backward=n_bwd / N, reversals=rev, speed_mean=mean,
+        speed_std=math.sqrt(ss / N), speed_max=sp_max,
+        acceleration_rms=math.sqrt(s_acc2 / N),
+        acceleration_noise=acc_noise, low_speed=n_low / N, revolutions=revs, coverage=cov,
         speed_unit=ctx.speed_unit, per=ctx.per)
 
 
@@ -509,18 +764,16 @@ def residual_structure(ctx: RecordSamples, r: F64, used: B, unit: str, h2: float
     The residual is not tested against the equation's own target signal (``target``):
     it holds the target's noise, so its bin means follow the target trivially.
     """
-    ru = r[used]
     out: list[StructureItem] = []
-    if not len(ru):
+    n, mu, energy, ss = moments(r, used)
+    if not n:
         return ()
-    energy = float(np.dot(ru, ru))
+    sd = math.sqrt(ss / n)
     if energy <= 0:
         return ()
-    mu = float(np.mean(ru))
     tau = 1.0 / h2 if h2 > 0 else 1.0
-    sd = float(np.std(ru))
-    share_mean = len(ru) * mu * mu / energy
-    if share_mean >= MIN_STRUCTURE and abs(mu) >= 4 * sd / math.sqrt(len(ru) / tau):
+    share_mean = n * mu * mu / energy
+    if share_mean >= MIN_STRUCTURE and abs(mu) >= 4 * sd / math.sqrt(n / tau):
         out.append(StructureItem("offset", f"a constant offset: mean residual "
                                            f"{value_text(mu, unit, True)}", share_mean))
     bins = all_bins(ctx, r, used, unit)

@@ -22,6 +22,8 @@ from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EquationFit, Estimates
 
 __all__ = [
+    "FIGURE_POINTS",
+    "decimation",
     "Whiteness",
     "Binned",
     "Region",
@@ -374,9 +376,23 @@ class ExcitationSummary:
                 "speed_unit": self.speed_unit, "per": self.per, "facts": self.facts()}
 
 
+#: Most points a figure draws of the record (the traces keep no more).
+FIGURE_POINTS = 20000
+
+
+def decimation(n: int) -> int:
+    """Every how many of ``n`` samples the figures draw one (at most
+    :data:`FIGURE_POINTS`)."""
+    return max(1, int(math.ceil(n / FIGURE_POINTS)))
+
+
 @dataclass(frozen=True)
 class Traces:
-    """Arrays for the figures (all samples; ``used`` marks the rows outside warm-ups).
+    """Arrays for the figures: the samples at the points the figures draw (``timeline``
+    marks those of the timeline, every k-th sample, ``scatter`` those of the residual
+    scatter plots, every k-th used sample; both ``None``: every sample, the figures
+    decimate), ``used`` marks the points outside warm-ups; ``record_used`` is the
+    mask of used samples over the whole record (``None``: not kept).
 
     ``y``, ``yhat`` and ``residual`` are the filtered target, its model value with the
     final float estimate, and their difference, in the target unit. ``speed``,
@@ -402,6 +418,9 @@ class Traces:
     theta_fixed: F64
     names: tuple[str, ...]
     units: tuple[str, ...]
+    timeline: B | None = None
+    scatter: B | None = None
+    record_used: B | None = None
 
 
 @dataclass(frozen=True)

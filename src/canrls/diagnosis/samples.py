@@ -12,8 +12,10 @@ masks of the diagnosis are the pipeline's, bit for bit.
 
 from __future__ import annotations
 
+import copy
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -33,13 +35,129 @@ B = npt.NDArray[np.bool_]
 BLOCK = 32768
 
 
+class _FilterSource:
+    """Filtered signals (or a residual) on the measured rows, computed block by block
+    when read, from the start of the block's segment or from the filter's state saved
+    at the block (``snapshots``: a filter's state is small; a regressor builder's holds
+    a block-long scratch array, so it runs forward instead, from the block last
+    computed or from the segment's start). The values are those of one pass, bit for
+    bit (the filter carries its state exactly); the last few blocks are cached."""
+
+    CACHE = 4
+
+    def __init__(self, ctx: RecordSamples, svf: Any, compute: Callable[[int, int], F64],
+                 n: int, snapshots: bool = True) -> None:
+        self.svf = svf
+        self.compute = compute
+        self.n = n
+        self.pieces: list[tuple[int, int, int, int, B | None]] = []
+        self.states: list[Any] | None = [] if snapshots else None
+        #: the first piece of each piece's segment
+        self.first: list[int] = []
+        seg_starts = {a for a, _ in ctx.segments()}
+        for c0, c1, m0, m1, real in ctx._pieces(svf):
+            self.first.append(len(self.pieces) if c0 in seg_starts or not self.first
+                              else self.first[-1])
+            self.pieces.append((c0, c1, m0, m1, real))
+            if self.states is not None:
+                self.states.append(copy.deepcopy(svf))
+                compute(c0, c1)  # advance the filter
+        self.starts = np.array([p[2] for p in self.pieces], dtype=np.int64)
+        self.cache: dict[int, F64] = {}
+        self.pos: int | None = None  # the piece the builder last computed
+
+    def _run(self, i: int) -> F64:
+        c0, c1, _, _, real = self.pieces[i]
+        out = self.compute(c0, c1)
+        if real is not None:
+            out = out[real]
+        if len(self.cache) >= self.CACHE:
+            del self.cache[next(iter(self.cache))]
+        self.cache[i] = out
+        return out
+
+    def piece(self, i: int) -> F64:
+        """The measured rows of piece ``i``, all columns."""
+        if i in self.cache:
+            return self.cache[i]
+        if self.states is not None:
+            self.svf.__dict__.update(copy.deepcopy(self.states[i]).__dict__)
+            return self._run(i)
+        j = self.first[i]
+        if self.pos is not None and j <= self.pos < i:
+            start = self.pos + 1  # forward from the block last computed
+        else:
+            self.svf.reset()
+            start = j
+        for k in range(start, i + 1):
+            out = self._run(k)
+        self.pos = i
+        return out
+
+    def rows(self, a: int, b: int, col: int) -> F64:
+        """Column ``col`` on the measured rows ``a:b``."""
+        out = np.empty(max(b - a, 0))
+        start = a
+        i = int(np.searchsorted(self.starts, a, side="right")) - 1
+        while a < b:
+            _, _, m0, m1, _ = self.pieces[i]
+            e = min(b, m1)
+            if e > a:
+                out[a - start:e - start] = self.piece(i)[a - m0:e - m0, col]
+                a = e
+            i += 1
+        return out
+
+    def gather(self, idx: npt.NDArray[np.intp], col: int) -> F64:
+        """Column ``col`` on the measured rows ``idx`` (sorted)."""
+        out = np.empty(len(idx))
+        for i, (_, _, m0, m1, _) in enumerate(self.pieces):
+            lo, hi = np.searchsorted(idx, [m0, m1])
+            if hi > lo:
+                out[lo:hi] = self.piece(i)[idx[lo:hi] - m0, col]
+        return out
+
+
+class Filtered:
+    """A filtered signal on the measured rows that is not kept: slices and sorted index
+    arrays are computed block by block (:class:`_FilterSource`); anything else (a mask,
+    ``np.asarray``) makes the whole array first."""
+
+    def __init__(self, source: _FilterSource, col: int) -> None:
+        self.source = source
+        self.col = col
+
+    def __len__(self) -> int:
+        return self.source.n
+
+    @property
+    def shape(self) -> tuple[int]:
+        return (self.source.n,)
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> F64:
+        a = self.source.rows(0, self.source.n, self.col)
+        return a if dtype is None else a.astype(dtype)
+
+    def __getitem__(self, key: Any) -> Any:
+        if isinstance(key, slice):
+            a, b, step = key.indices(self.source.n)
+            if step == 1:
+                return self.source.rows(a, max(a, b), self.col)
+        elif (isinstance(key, np.ndarray) and key.dtype.kind in "iu" and key.ndim == 1
+              and (len(key) < 2 or bool(np.all(key[1:] >= key[:-1])))):
+            return self.source.gather(key, self.col)
+        return np.asarray(self)[key]
+
+
 class RecordSamples:
     """What both analyses (before and after) share: samples, restarts, filtered signals.
 
     Attributes (measured rows): ``signals`` (as given), ``speed``, ``acceleration``,
     ``current`` (through the filter), ``position`` (unwrapped, filtered), ``angle``
     (phase of periodic terms, filtered) and ``angle_raw`` (unfiltered), ``None``
-    without position. ``selected`` holds the filled record
+    without position. The filtered ones are :class:`Filtered`: not kept, filtered
+    again block by block when sliced (read them in slices or at sorted rows;
+    ``np.asarray`` makes the whole array). ``selected`` holds the filled record
     (:class:`~canrls.estimation.selection.SelectedSamples`).
     """
 
@@ -66,17 +184,24 @@ class RecordSamples:
         self.position_hold = hold["position"]
         self.cutoff_hz, self.zeta = model.cutoff_hz, model.zeta
         measured = self.selected.measured
-        # F[speed], sF[speed], F[current]
-        raw = np.column_stack([filled.speed, filled.current]).astype(np.float64)
+        # F[speed], sF[speed], F[current] and F[position] on the measured rows, computed
+        # block by block when read (:class:`Filtered`): not kept
         svf = SVF(model.cutoff_hz, dt, model.zeta, (hold["speed"], hold["current"]))
-        f, sf = self._filter(svf, raw)
-        self.speed: F64 = measured(f[:, 0])
-        self.acceleration: F64 = measured(sf[:, 0])
-        self.current: F64 = measured(f[:, 1])
+
+        def speed_current(c0: int, c1: int) -> F64:
+            raw = np.column_stack([filled.speed[c0:c1], filled.current[c0:c1]]).astype(
+                np.float64)
+            f, sf = svf.process(raw)
+            return np.column_stack([f[:, 0], sf[:, 0], f[:, 1]])
+
+        sc = _FilterSource(self, svf, speed_current, len(signals))
+        self.speed: Filtered = Filtered(sc, 0)
+        self.acceleration: Filtered = Filtered(sc, 1)
+        self.current: Filtered = Filtered(sc, 2)
         # the unwrapped position (as the model unwraps it) and the phase of periodic terms
-        self.position: F64 | None = None
+        self.position: Filtered | None = None
         self.angle_raw: F64 | None = None
-        self.angle: F64 | None = None
+        self.angle: Filtered | None = None
         #: the phase of periodic terms on the filled record (rows of ``selected``)
         self.angle_filled: F64 | None = None
         if filled.position is not None:
@@ -87,17 +212,43 @@ class RecordSamples:
                 unw.reset()
                 pos[a:b] = unw.process(np.asarray(filled.position[a:b], dtype=np.float64))
             k = 1.0 if model.axis == "rotary" else 2.0 * math.pi / model.pitch
-            self.angle_filled = k * pos
-            self.angle_raw = measured(self.angle_filled)
             svp = SVF(model.cutoff_hz, dt, model.zeta, hold["position"])
-            fp, _ = self._filter(svp, pos.reshape(-1, 1))
-            self.position = measured(fp[:, 0])
-            self.angle = k * self.position
+
+            def position(c0: int, c1: int) -> F64:
+                # F[position] and k F[position] (the angle; k = 1 on a rotary axis)
+                fp = svp.process(pos_raw[c0:c1].reshape(-1, 1))[0][:, 0]
+                return np.column_stack([fp, fp if k == 1.0 else k * fp])
+
+            pos_raw = pos
+            ps = _FilterSource(self, svp, position, len(signals))
+            self.position = Filtered(ps, 0)
+            self.angle = Filtered(ps, 1)
+            # k x (1.0 on a rotary axis: the same values, no copy)
+            self.angle_filled = pos if k == 1.0 else k * pos
+            self.angle_raw = measured(self.angle_filled)
         self._h: dict[str, F64] = {}
         self._use: dict[tuple[int, float, float], B] = {}
         self._coh: dict[tuple[int, int], tuple[F64, float]] = {}
 
     # -- rows ---------------------------------------------------------------------------
+    def _pieces(self, svf: SVF) -> Iterator[tuple[int, int, int, int, B | None]]:
+        """(c0, c1, m0, m1, real rows of c0:c1 or None) over the filled record in blocks
+        of at most :data:`BLOCK` rows, ``svf`` reset at each segment: filled rows
+        ``c0:c1`` are measured rows ``m0:m1``."""
+        real = self.selected.real
+        m = 0
+        for a, b in self.segments():
+            svf.reset()
+            for c0 in range(a, b, BLOCK):
+                c1 = min(b, c0 + BLOCK)
+                if real is None:
+                    yield c0, c1, c0, c1, None
+                    continue
+                rb = real[c0:c1]
+                k = int(np.count_nonzero(rb))
+                yield c0, c1, m, m + k, rb
+                m += k
+
     def segments(self) -> list[tuple[int, int]]:
         """Runs of rows of the filled record without a filter restart."""
         return self.selected.segments()
@@ -148,14 +299,6 @@ class RecordSamples:
         return self.selected.measured(self._keep_filled(order))
 
     # -- filtered signals and columns -----------------------------------------------------
-    def _filter(self, svf: SVF, raw: F64) -> tuple[F64, F64]:
-        f = np.empty_like(raw)
-        sf = np.empty_like(raw)
-        for a, b in self.segments():
-            svf.reset()
-            f[a:b], sf[a:b] = svf.process(raw[a:b])
-        return f, sf
-
     def _mask_periodic(self, eq: Equation, first: int, phi: F64, a: int) -> None:
         """Zero candidate periodic columns (index >= ``first``) of the filled rows
         ``a:a+len(phi)`` where :meth:`keep` says so."""
@@ -217,36 +360,87 @@ class RecordSamples:
                 rb = builder.process(filled.slice(c0, c1))
                 yield c0, rb.phi, rb.y, None if real is None else real[c0:c1]
 
-    def fit_residual(self, eq: Equation, rows: B) -> F64:
-        """Least-squares fit of ``eq`` on the measured ``rows`` and its residual on every
-        measured row, in the target unit: ``r = y - Phi theta`` with ``theta`` from
-        ``lstsq(Phi[rows], y[rows])``, as :meth:`columns` then ``lstsq`` give it, but
-        without the record's whole ``Phi``: the rows of the fit are gathered block by
-        block, the residual computed block by block (memory: the fitted rows, one block
-        and the residual)."""
-        n_rows = int(rows.sum())
-        A = np.empty((n_rows, eq.n))
-        Y = np.empty(n_rows)
-        k = m = 0  # rows of A filled; measured rows passed
-        for _, phi, y, real in self._blocks(eq):
-            if real is not None:
-                phi, y = phi[real], y[real]
-            sel = rows[m:m + len(y)]
-            c = int(sel.sum())
-            A[k:k + c] = phi[sel]
-            Y[k:k + c] = y[sel]
-            k += c
-            m += len(y)
-        theta = np.linalg.lstsq(A, Y, rcond=None)[0]
-        del A, Y
-        r = np.empty(m)
+    def measured_blocks(self, eq: Equation) -> Iterator[tuple[int, F64, F64]]:
+        """(first measured row, phi, y) of an equation on the measured rows, block by
+        block (at most :data:`BLOCK` filled rows each, the filter restarted at each
+        segment, no periodic column masked): the pipeline's columns, bit for bit,
+        without the record's whole ``Phi``."""
         m = 0
         for _, phi, y, real in self._blocks(eq):
             if real is not None:
                 phi, y = phi[real], y[real]
-            r[m:m + len(y)] = y - phi @ theta
+            yield m, phi, y
             m += len(y)
-        return eq.target_to_physical(r)
+
+    def residual(self, eq: Equation, theta: F64) -> Filtered:
+        """``r = y - Phi theta`` on every measured row, in the target unit (``theta``
+        normalised): not kept, computed block by block from the equation's columns
+        when read (:class:`Filtered`; the builder's state saved at each block)."""
+        builder = eq.builder(self.dt)
+        filled = self.selected.signals
+        real = self.selected.real
+
+        def compute(c0: int, c1: int) -> F64:
+            rb = builder.process(filled.slice(c0, c1))
+            phi, y = rb.phi, rb.y
+            out = np.empty((c1 - c0, 1))
+            if real is None:
+                out[:, 0] = eq.target_to_physical(y - phi @ theta)
+            else:
+                # on the measured rows only, as the pipeline's rows are
+                rr = real[c0:c1]
+                out[rr, 0] = eq.target_to_physical(y[rr] - phi[rr] @ theta)
+            return out
+
+        return Filtered(_FilterSource(self, builder, compute, len(self.signals),
+                                      snapshots=False), 0)
+
+    def target_at(self, eq: Equation, rows: npt.NDArray[np.intp]) -> F64:
+        """The target ``y`` of an equation on the measured ``rows`` (sorted), in the
+        target unit (as the pipeline's :class:`~canrls.estimation.pipeline.EquationBlock`
+        holds it)."""
+        out = np.empty(len(rows))
+        for m, _, y in self.measured_blocks(eq):
+            a, b = np.searchsorted(rows, [m, m + len(y)])
+            out[a:b] = y[rows[a:b] - m]
+        return eq.target_to_physical(out)
+
+    def mean_square(self, eq: Equation, theta: F64, rows: B) -> float:
+        """Mean square of ``r = y - Phi theta`` (target unit) over the measured
+        ``rows``, block by block: nothing record-long."""
+        s = 0.0
+        for m, phi, y in self.measured_blocks(eq):
+            u = rows[m:m + len(y)]
+            if u.any():
+                r = eq.target_to_physical(y[u] - phi[u] @ theta)
+                s += float(np.dot(r, r))
+        return s / max(int(rows.sum()), 1)
+
+    def fit_residual(self, eq: Equation, rows: B) -> Filtered:
+        """Least-squares fit of ``eq`` on the measured ``rows`` and its residual on every
+        measured row, in the target unit: ``r = y - Phi theta``, ``theta`` the
+        minimum-norm least-squares solution of ``Phi[rows] theta = y[rows]``, without the
+        record's ``Phi`` or its rows: ``[Phi y]`` is reduced block by block to a
+        triangular factor (``R`` of a QR decomposition, the previous one stacked on each
+        block), and ``R theta = Q'y`` solved with ``lstsq`` (the same singular values as
+        ``Phi[rows]``, so the same rank and solution, to rounding)."""
+        m = eq.n + 1
+        Rz = np.zeros((0, m))
+        n_rows = 0
+        for m0, phi, y in self.measured_blocks(eq):
+            sel = rows[m0:m0 + len(y)]
+            if not sel.any():
+                continue
+            n_rows += int(np.count_nonzero(sel))
+            # [R_prev z_prev; Phi_b y_b] = Q [R z]
+            Rz = np.linalg.qr(np.vstack([Rz, np.column_stack([phi[sel], y[sel]])]),
+                              mode="r")
+        if len(Rz) < eq.n:
+            Rz = np.vstack([Rz, np.zeros((eq.n - len(Rz), m))])
+        # the rank cut-off lstsq takes for Phi[rows] (eps x its larger dimension)
+        rcond = np.finfo(np.float64).eps * max(n_rows, eq.n)
+        theta = np.linalg.lstsq(Rz[:eq.n, :eq.n], Rz[:eq.n, eq.n], rcond=rcond)[0]
+        return self.residual(eq, theta)
 
     def impulse(self, hold: str, derivative: bool = False) -> F64:
         """Impulse response of F (DC gain 1), or of sF, for a hold, long enough to decay."""
@@ -274,19 +468,37 @@ class RecordSamples:
         assert self.angle_raw is not None
         key = (int(used.sum()), hash(used.tobytes()))
         if key not in self._coh:
-            a = self.angle_raw[used]
-            t = self.signals.t[used]
+            # block by block: the means of t and the angle, the slope from the centred
+            # sums, then the mean of exp(ik(a - w t)) per order (nothing record-long)
+            ang, t = self.angle_raw, self.signals.t
+            n = int(np.count_nonzero(used))
             c = np.ones(self.max_order + 1)
             w = 0.0
-            if len(a) >= 3:
-                tc = t - t.mean()
-                den = float(np.dot(tc, tc))
-                w = float(np.dot(tc, a - a.mean())) / den if den > 0 else 0.0
-                z1 = np.exp(1j * (a - w * t))
-                zk = np.ones_like(z1)
-                for k in range(1, self.max_order + 1):
-                    zk *= z1
-                    c[k] = abs(complex(np.mean(zk)))
+            if n >= 3:
+                def rows() -> Iterator[tuple[F64, F64]]:
+                    for b0 in range(0, len(used), BLOCK):
+                        u = used[b0:b0 + BLOCK]
+                        yield ang[b0:b0 + BLOCK][u], t[b0:b0 + BLOCK][u]
+
+                st = sa = 0.0
+                for a, tt in rows():
+                    st += float(np.sum(tt))
+                    sa += float(np.sum(a))
+                t_mean, a_mean = st / n, sa / n
+                den = num = 0.0
+                for a, tt in rows():
+                    tc = tt - t_mean
+                    den += float(np.dot(tc, tc))
+                    num += float(np.dot(tc, a - a_mean))
+                w = num / den if den > 0 else 0.0
+                z = np.zeros(self.max_order + 1, np.complex128)
+                for a, tt in rows():
+                    z1 = np.exp(1j * (a - w * tt))
+                    zk = np.ones_like(z1)
+                    for k in range(1, self.max_order + 1):
+                        zk *= z1
+                        z[k] += complex(np.sum(zk))
+                c[1:] = np.abs(z[1:] / n)
             self._coh[key] = (c, w)
         c, w = self._coh[key]
         cc = float(c[order]) if order < len(c) else 0.0
