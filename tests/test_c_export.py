@@ -87,7 +87,8 @@ def test_exported_plan_runs_like_the_pipelines_estimator(exported: Path, tmp_pat
         "int main(void) {\n  static canrls_rls_q31 S; unsigned k, j;\n"
         "  if (canrls_mechanical_init(&S) != CANRLS_OK) return 2;\n"
         f"  for (k = 0; k < {len(Yq)}u; k++) canrls_update_q31(&S, phi[k], y[k], 0);\n"
-        "  for (j = 0; j < CANRLS_MECHANICAL_N; j++) printf(\"%ld\\n\", (long)S.theta[j]);\n"
+        "  for (j = 0; j < CANRLS_MECHANICAL_N; j++)\n"
+        "    printf(\"%ld\\n\", (long)canrls_theta_q31(&S, j));\n"
         "  return 0;\n}\n")
     exe = tmp_path / "check"
     subprocess.run([gcc, *CFLAGS, "-I", str(exported), str(prog),

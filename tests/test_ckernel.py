@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from canrls.c_export import plan_c
 from canrls.estimation.fixed import SITES, FixedConfig, FixedFlag, FixedRLS, QFormat
 from debian import need_tool
 
@@ -285,6 +286,70 @@ def test_plan_names_are_the_python_constants() -> None:
     est = FixedRLS(FixedConfig.auto(3, 1e-2, 0.99), 3, 0.99, 1e-2)
     assert fields == list(est.constants)
     assert {k for k, v in est.constants.items() if not -2**31 <= v < 2**31} <= gen.PLAN_64
+
+
+_ACCESSORS_C = r"""
+#include <stddef.h>
+#include <stdio.h>
+#include "canrls_fixed.h"
+/* the pair of a parameter: adjacent, 8-byte aligned (one LDRD/STRD on the M4) */
+typedef char pair_is_8_bytes[sizeof(canrls_theta64) == 8 ? 1 : -1];
+typedef char word_after_frac[offsetof(canrls_theta64, word) == 4 ? 1 : -1];
+typedef char aligned_in_instance[offsetof(canrls_rls_q31, theta_q) % 8 == 0 ? 1 : -1];
+PLAN
+int main(void)
+{
+    static canrls_rls_q31 S;
+    const int32_t p0[3] = {P0, P0, P0}, P_up[6] = {P0, 0, 0, P0, 0, P0};
+    const int32_t th[3] = {TH};
+    const uint32_t tf[3] = {TF};
+    uint32_t j;
+    if (canrls_init_q31(&S, &plan, 3, p0, 0) != CANRLS_OK
+        || canrls_restore_q31(&S, th, tf, P_up, 0, ONE) != CANRLS_OK) {
+        return 2;
+    }
+    for (j = 0; j < 3; j++) {
+        printf("%ld %lu\n", (long)canrls_theta_q31(&S, j),
+               (unsigned long)canrls_theta_frac_q31(&S, j));
+    }
+    if (canrls_restore_q31(&S, th, NULL, P_up, 0, ONE) != CANRLS_OK) {
+        return 2;
+    }
+    for (j = 0; j < 3; j++) {
+        printf("%ld %lu\n", (long)canrls_theta_q31(&S, j),
+               (unsigned long)canrls_theta_frac_q31(&S, j));
+    }
+    return 0;
+}
+"""
+
+
+def test_firmware_reads_the_estimate_through_its_accessors(tmp_path: Path) -> None:
+    """The instance holds the 64-bit estimate as canrls_theta64 pairs (theta_q: frac, word;
+    8-byte aligned, so one LDRD/STRD per parameter): no field `theta` of another meaning,
+    and canrls_theta_q31 / canrls_theta_frac_q31 give back the word and the fraction
+    canrls_restore_q31 took (NULL fractions: 0), the checkpoint's "theta"/"theta_frac"."""
+    header = (KERNEL / "canrls_fixed.h").read_text()
+    body = header[header.index("typedef struct {\n    const canrls_plan_q31"):
+                  header.index("} canrls_rls_q31;")]
+    assert "canrls_theta64 theta_q[CANRLS_N_MAX];" in body
+    assert " theta[" not in body and "theta_frac[" not in body
+    est = FixedRLS(FixedConfig.auto(3, 1e-2, 0.99), 3, 0.99, 1e-2)
+    c = est.constants
+    th = [c["theta_hi"], c["theta_lo"], -1]
+    tf = [0xFFFFFFFF, 0, 0x80000001]
+    src = (_ACCESSORS_C.replace("PLAN", plan_c(c, "plan"))
+           .replace("P0", str(int(np.diag(est.P)[0]))).replace("ONE", str(c["one_lam"]))
+           .replace("TH", ", ".join(map(str, th))).replace("TF", ", ".join(f"{v}u" for v in tf)))
+    prog = tmp_path / "accessors.c"
+    prog.write_text(src)
+    exe = tmp_path / "accessors"
+    cc = need_tool("gcc", ["gcc"])
+    subprocess.run([cc, *CFLAGS, "-I", str(KERNEL), str(prog), str(KERNEL / "canrls_fixed.c"),
+                    "-o", str(exe)], check=True, capture_output=True)
+    out = subprocess.run([str(exe)], check=True, capture_output=True, text=True).stdout.split()
+    got = [(int(a), int(b)) for a, b in zip(out[::2], out[1::2], strict=True)]
+    assert got == [*zip(th, tf, strict=True), *zip(th, [0, 0, 0], strict=True)]
 
 
 # ------------------------------------------------------------------ Cortex-M4

@@ -189,10 +189,10 @@ int main(int argc, char **argv)
         fprintf(out, "%d %ld %ld %ld %lu", applied, (long)st.eps, (long)st.trace, (long)st.e,
                 (unsigned long)st.flags);
         for (i = 0; i < n; i++) {
-            fprintf(out, " %ld", (long)S.theta[i]);
+            fprintf(out, " %ld", (long)canrls_theta_q31(&S, i));
         }
         for (i = 0; i < n; i++) {
-            fprintf(out, " %lu", (unsigned long)S.theta_frac[i]);
+            fprintf(out, " %lu", (unsigned long)canrls_theta_frac_q31(&S, i));
         }
         for (i = 0; i < m; i++) {
             fprintf(out, " %ld", (long)S.P[i]);

@@ -230,54 +230,60 @@ INLINE int32_t mul_rsh_w(int32_t a, int32_t b, int32_t rh, int32_t s, int cls)
     return cls == SHIFT_32 ? mul_rsh32(a, b) : mul_rsh_hi(a, b, rh, s);
 }
 
-/* The 64-bit estimate (Python _theta_add): t 2^32 + *f += floor(p 2^(32-s)) for s < 32 and
+/* The 64-bit estimate (Python _theta_add): q = word 2^32 + frac (canrls_theta64: the word
+ * t, its fraction f in units of 2^-32 LSB) += floor(p 2^(32-s)) for s < 32 and
  * floor(p / 2^32) 2^(64-s) (the high word of p, exact at this scale) for 32 <= s <= 62,
- * saturated to [lo 2^32, hi 2^32 + 2^32 - 1] (counted): the word t is returned, its
- * fraction *f (units of 2^-32 LSB) written. The general case (any s, any theta word). */
-INLINE int32_t theta_add(int32_t t, uint32_t *f, int64_t p, int32_t s, int32_t lo, int32_t hi,
-                         uint32_t *n)
+ * saturated to [lo 2^32, hi 2^32 + 2^32 - 1] (counted). The general case (any s, any
+ * theta word). */
+INLINE void theta_add(canrls_theta64 *q, int64_t p, int32_t s, int32_t lo, int32_t hi,
+                      uint32_t *n)
 {
     const int64_t whole = p >> s; /* floor(p / 2^s): whole LSBs */
     /* the 32 bits below the LSB: s >= 32, of the high word of p (p's low word dropped);
      * s < 32, p mod 2^s moved up */
     const uint32_t part = s >= 32 ? (uint32_t)((uint64_t)(p >> 32) << (64 - s))
                                   : (uint32_t)((uint64_t)p << (32 - s));
-    const uint64_t fs = (uint64_t)*f + part;
-    const int64_t x = (int64_t)t + whole + (int64_t)(fs >> 32);
+    const uint64_t fs = (uint64_t)q->frac + part;
+    const int64_t x = (int64_t)q->word + whole + (int64_t)(fs >> 32);
     if (UNLIKELY(x > hi)) {
         *n += 1u;
-        *f = 0xFFFFFFFFu;
-        return hi;
+        q->frac = 0xFFFFFFFFu;
+        q->word = hi;
+        return;
     }
     if (UNLIKELY(x < lo)) {
         *n += 1u;
-        *f = 0u;
-        return lo;
+        q->frac = 0u;
+        q->word = lo;
+        return;
     }
-    *f = (uint32_t)fs;
-    return (int32_t)x;
+    q->frac = (uint32_t)fs;
+    q->word = (int32_t)x;
 }
 
-/* theta_add for 34 <= s <= 62 and the whole int32_t word: t:f as one int64_t plus the high
+/* theta_add for 34 <= s <= 62 and the whole int32_t word: q as one int64_t plus the high
  * word ph of the product at 2^-32 LSB, ph 2^(64-s) = ph m (m = 2^(64-s) <= 2^30: one SMULL),
- * saturated where the 64-bit sum overflows, which is exactly where t leaves the int32_t */
-INLINE int32_t theta_add_full(int32_t t, uint32_t *f, int32_t ph, int32_t m, int32_t s,
-                              uint32_t *n)
+ * saturated where the 64-bit sum overflows, which is exactly where the word leaves the
+ * int32_t. (Written on the two words, not on an int64_t array: GCC then branches on the
+ * overflow flag of ADCS instead of materialising it, and loads and stores the pair with
+ * LDRD/STRD.) */
+INLINE void theta_add_full(canrls_theta64 *q, int32_t ph, int32_t m, int32_t s, uint32_t *n)
 {
 #if defined(__GNUC__)
+    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->frac);
     int64_t x;
-    if (UNLIKELY(__builtin_add_overflow((int64_t)(((uint64_t)(uint32_t)t << 32) | *f),
-                                        mul_ww(ph, m), &x))) {
+    if (UNLIKELY(__builtin_add_overflow(t, mul_ww(ph, m), &x))) {
         *n += 1u;
-        *f = ph > 0 ? 0xFFFFFFFFu : 0u;
-        return ph > 0 ? INT32_MAX : INT32_MIN;
+        q->frac = ph > 0 ? 0xFFFFFFFFu : 0u;
+        q->word = ph > 0 ? INT32_MAX : INT32_MIN;
+        return;
     }
     (void)s;
-    *f = (uint32_t)x;
-    return (int32_t)(x >> 32);
+    q->frac = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
 #else
     (void)m;
-    return theta_add(t, f, (int64_t)ph * 4294967296LL, s, INT32_MIN, INT32_MAX, n);
+    theta_add(q, (int64_t)ph * 4294967296LL, s, INT32_MIN, INT32_MAX, n);
 #endif
 }
 
@@ -419,7 +425,7 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
     memset(S, 0, sizeof *S);
     S->plan = plan;
     S->n = n;
-    /* P0 = diag(p0) 2^-(f_P + e0), c = 1 ; theta0 = 0, theta_frac = 0 (the memset) */
+    /* P0 = diag(p0) 2^-(f_P + e0), c = 1 ; theta0 = 0 with fraction 0 (the memset) */
     for (i = 0; i < n; i++) {
         S->P[canrls_tri_index(n, i, i)] = p0[i];
     }
@@ -466,12 +472,11 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *
             return CANRLS_EINVAL;
         }
     }
-    memcpy(S->theta, theta, S->n * sizeof *theta);
-    /* theta_frac: the fraction below theta's LSB (NULL: 0, the estimate at its word) */
-    if (theta_frac != NULL) {
-        memcpy(S->theta_frac, theta_frac, S->n * sizeof *theta_frac);
-    } else {
-        memset(S->theta_frac, 0, sizeof S->theta_frac);
+    /* theta_q: the word theta and the fraction below its LSB theta_frac (NULL: 0, the
+     * estimate at its word) */
+    for (i = 0; i < S->n; i++) {
+        S->theta_q[i].word = theta[i];
+        S->theta_q[i].frac = theta_frac != NULL ? theta_frac[i] : 0u;
     }
     memcpy(S->P, P_up, m * sizeof *P_up);
     S->e = e;
@@ -591,8 +596,7 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     const uint32_t n = NPAR(S);
     int32_t *const h = S->h;
     int32_t *const K = S->K;
-    int32_t *const theta = S->theta;
-    uint32_t *const tf = S->theta_frac;
+    canrls_theta64 *const theta_q = S->theta_q;
     const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
     /* 2^(64 - th_s): the high word of K eps at 2^-32 LSB (``full`` with SHIFT_HIGH: the
      * caller guarantees th_s >= 34 and the whole int32_t theta word) */
@@ -605,14 +609,13 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         const int32_t Ki = mul_rsh32(hn, gcn);
         h[i] = hn;
         K[i] = Ki;
-        /* theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored to 2^-32
-         * LSB, so that updates below the LSB accumulate; K carries the exponent e + kn:
-         * shifted out here) */
+        /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB, so that
+         * updates below the LSB accumulate; K carries the exponent e + kn: shifted out
+         * here) */
         if (cls == SHIFT_HIGH && full) {
-            theta[i] = theta_add_full(theta[i], &tf[i], (int32_t)(mul_ww(Ki, epn) >> 32), m,
-                                      th_s, c_th);
+            theta_add_full(&theta_q[i], (int32_t)(mul_ww(Ki, epn) >> 32), m, th_s, c_th);
         } else {
-            theta[i] = theta_add(theta[i], &tf[i], (int64_t)Ki * epn, th_s, th_lo, th_hi, c_th);
+            theta_add(&theta_q[i], (int64_t)Ki * epn, th_s, th_lo, th_hi, c_th);
         }
     }
 }
@@ -701,11 +704,9 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
     }
     UNROLL
     for (i = 0; i < n; i++) {
-        /* theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored to 2^-32
-         * LSB; K carries the exponent e + kn: shifted out here) */
-        S->theta[i] = theta_add_full(S->theta[i], &S->theta_frac[i],
-                                     (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s,
-                                     c_th);
+        /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB; K carries
+         * the exponent e + kn: shifted out here; one LDRD, one STRD) */
+        theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s, c_th);
     }
     return nz == 0u;
 }
@@ -716,7 +717,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 {
     const canrls_plan_q31 *p = S->plan;
     const uint32_t n = NPAR(S);
-    int32_t *const theta = S->theta;
+    const canrls_theta64 *const theta_q = S->theta_q;
     int32_t *const P = S->P;
     int32_t *const h = S->h;
     int32_t *const K = S->K;
@@ -767,7 +768,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     a = -a;
     UNROLL
     for (j = 0; j < n; j++) {
-        a += (int64_t)phg[j] * theta[j];
+        a += (int64_t)phg[j] * theta_q[j].word;
     }
     a = -a;
     eps = store(a, p->eps_os, p->eps_lo, p->eps_hi, &c_eps);

@@ -38,7 +38,7 @@
  *   eps   = y - phi' theta
  *   h     = Pw phi,  d = lambda_k + c phi' h,  g = 1/d   (one division)
  *   K     = (g c) h     (the high word of (h 2^kn)(g c 2^g_up), kn normalising h)
- *   theta = theta + K eps   (in 64 bits: the word theta and a fraction theta_frac)
+ *   theta = theta + K eps   (in 64 bits, theta_q: the word theta and its fraction)
  *   Pw    = Pw - K h'   (upper triangle),  c = c / lambda_k
  * with lambda_k = 1 (flag WINDUP) when the step would take tr P above trace_max.
  *
@@ -142,11 +142,33 @@ typedef struct {
     int32_t e_max;          /**< largest block exponent */
 } canrls_plan_q31;
 
+/** 8-byte alignment where the compiler has a way to say it (GCC, Clang): one LDRD/STRD
+ * per canrls_theta64 on Cortex-M. Without it the layout and the integers are the same. */
+#if defined(__GNUC__)
+#define CANRLS_ALIGN8 __attribute__((aligned(8)))
+#else
+#define CANRLS_ALIGN8
+#endif
+
+/**
+ * One parameter of the estimate in 64 bits: the value word 2^32 + frac, in units of
+ * 2^-32 of theta's LSB. `word` is theta_j in the theta format (the word published and
+ * used in eps = y - phi' theta: canrls_theta_q31()); `frac` is the estimate below its
+ * LSB (canrls_theta_frac_q31()), so that updates smaller than the LSB accumulate. The
+ * two words of a parameter are adjacent and 8-byte aligned: the update loads and stores
+ * them together (LDRD/STRD on Cortex-M4).
+ */
+typedef struct {
+    uint32_t frac; /**< the fraction below word's LSB, units of 2^-32 LSB */
+    int32_t word;  /**< theta_j, theta format */
+} CANRLS_ALIGN8 canrls_theta64;
+
 /**
  * Instance of the fixed-point RLS: owned by the caller, filled by canrls_init_q31().
  *
- * The state fields may be read at any time (theta, P, e, c, counts, K); write them
- * only through canrls_restore_q31(), except `frozen` and `counts` (plain fields).
+ * The state fields may be read at any time (theta_q through canrls_theta_q31() and
+ * canrls_theta_frac_q31(), P, e, c, counts, K); write them only through
+ * canrls_restore_q31(), except `frozen` and `counts` (plain fields).
  */
 typedef struct {
     const canrls_plan_q31 *plan; /**< constants (not copied: keep it alive) */
@@ -160,10 +182,9 @@ typedef struct {
                                       by canrls_init_q31 from the plan) */
     uint32_t wide;               /**< bits 0..3: the phi, h, theta, P words are the whole
                                       int32_t (set by canrls_init_q31 from the plan) */
-    int32_t theta[CANRLS_N_MAX]; /**< estimate, theta format (the word published and used) */
-    uint32_t theta_frac[CANRLS_N_MAX]; /**< the estimate below theta's LSB, units of 2^-32
-                                            LSB: the estimate is theta 2^32 + theta_frac, so
-                                            that updates smaller than the LSB accumulate */
+    canrls_theta64 theta_q[CANRLS_N_MAX]; /**< the estimate in 64 bits (see canrls_theta64):
+                                               read it with canrls_theta_q31() and
+                                               canrls_theta_frac_q31() */
     int32_t P[CANRLS_TRI(CANRLS_N_MAX)]; /**< Pw, upper triangle packed by rows, P format */
     int32_t K[CANRLS_N_MAX];     /**< gain of the last step (K 2^(f_K + e)), 0 when frozen */
     int32_t h[CANRLS_N_MAX];     /**< scratch: h = Pw phi (h format, normalised or not) */
@@ -171,7 +192,8 @@ typedef struct {
     uint32_t counts[CANRLS_NSITES]; /**< saturations per site (canrls_site), wrap at 2^32 */
 } canrls_rls_q31;
 
-/** What one update returns (Python FixedStep without K and theta, which stay in the instance). */
+/** What one update returns (Python FixedStep without K and theta, which stay in the instance:
+ * S->K, canrls_theta_q31()). */
 typedef struct {
     int32_t eps;    /**< a-priori error, eps format (saturated, counted) */
     int32_t trace;  /**< tr P after the step, 2^-(f_P - trace_ps + e) scale */
@@ -197,7 +219,8 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
 
 /**
  * Restore a checkpoint (Python FixedRLS.state()): theta, theta_frac, the upper triangle
- * of Pw, e and c. Counters and `frozen` are left as they are (plain fields).
+ * of Pw, e and c (theta_q[j]: word theta[j], frac theta_frac[j]). Counters and `frozen` are
+ * left as they are (plain fields).
  *
  * @param theta  n words, theta format
  * @param theta_frac  n fractions (state "theta_frac"), or NULL for zeros (a checkpoint
@@ -224,6 +247,26 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *
  */
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                       canrls_step_q31 *step);
+
+/**
+ * The published estimate: the word theta_j (theta format) of parameter j
+ * (S->theta_q[j].word). The value to use, log or send (the physical value is theta_j
+ * 2^-f_theta, see the generated header of `canrls export-c`).
+ */
+static inline int32_t canrls_theta_q31(const canrls_rls_q31 *S, uint32_t j)
+{
+    return S->theta_q[j].word;
+}
+
+/**
+ * The fraction of parameter j below theta_j's LSB, in units of 2^-32 LSB
+ * (S->theta_q[j].frac; state "theta_frac" of a checkpoint, with canrls_theta_q31() its
+ * "theta": what canrls_restore_q31() takes back).
+ */
+static inline uint32_t canrls_theta_frac_q31(const canrls_rls_q31 *S, uint32_t j)
+{
+    return S->theta_q[j].frac;
+}
 
 /** Index of Pw_ij (i <= j) in the packed upper triangle of an n x n matrix. */
 static inline size_t canrls_tri_index(uint32_t n, uint32_t i, uint32_t j)

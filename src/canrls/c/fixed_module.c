@@ -201,7 +201,7 @@ static PyObject *run_block(PyObject *self, PyObject *args)
         flags[k] = (uint8_t)(st.flags | (c_phi + c_y > before ? CANRLS_FLAG_SATURATION : 0u));
         if (tho != NULL) {
             for (j = 0; j < n; j++) {
-                tho[k * n + j] = S.theta[j];
+                tho[k * n + j] = canrls_theta_q31(&S, (uint32_t)j);
             }
         }
     }
@@ -209,8 +209,8 @@ static PyObject *run_block(PyObject *self, PyObject *args)
     /* the state back into the Python arrays (P: the upper triangle only) */
     m = 0;
     for (i = 0; i < n; i++) {
-        theta[i] = S.theta[i];
-        thf[i] = S.theta_frac[i];
+        theta[i] = canrls_theta_q31(&S, (uint32_t)i);
+        thf[i] = canrls_theta_frac_q31(&S, (uint32_t)i);
         K[i] = S.K[i];
         for (j = i; j < n; j++) {
             P[i * n + j] = S.P[m++];
