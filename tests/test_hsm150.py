@@ -202,6 +202,12 @@ def test_diagnosis_one_direction_cannot_separate_coulomb_and_offset(
         assert "record a run in both directions" in c[name]["reason"]
     assert d["suggestion"]["add"] == []
     assert "cannot be separated; record a run in both directions" in d["verdict"]
+    # the side without samples is said to have none, never printed as a number
+    texts = [e for x in d["candidates"] for e in x["evidence"]] + \
+        [r["text"] for r in d["regions"]]
+    assert not [t for t in texts if "nan" in t], texts
+    assert any("no samples moving backward" in t for t in texts)
+    assert "one direction only" in " ".join(c["coulomb"]["evidence"])
 
 
 def test_diagnosis_both_directions_finds_the_friction(

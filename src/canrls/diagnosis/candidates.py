@@ -609,6 +609,12 @@ def _pooled(rows: Sequence[tuple[float, float, float, int, float, int]],
     return sum(r[m_i] * r[n_i] for r in rows if r[n_i] >= MIN_BIN) / tot
 
 
+def _side(mean: float, unit: str, way: str) -> str:
+    """``+0.0051 N·m forward``, or ``no samples forward`` where that side has none."""
+    return f"{value_text(mean, unit, True)} {way}" if math.isfinite(mean) \
+        else f"no samples {way}"
+
+
 def _evidence(name: str, ec: _EvidenceContext) -> list[str]:
     ev = ec.evaluated[name]
     u = ec.unit
@@ -623,29 +629,32 @@ def _evidence(name: str, ec: _EvidenceContext) -> list[str]:
         if base == "coulomb":
             far = [r for r in rows if r[0] >= min(3 * ws, 0.3 * vmax)]
             mf, mb = _pooled(far, 1), _pooled(far, -1)
+            both = math.isfinite(mf) and math.isfinite(mb)
             out.append(f"above {min(3 * ws, 0.3 * vmax):.3g} {su} the residual is "
-                       f"{value_text(mf, u, True)} moving forward and "
-                       f"{value_text(mb, u, True)} moving backward: a step at zero speed, "
-                       f"signed with the direction")
+                       f"{_side(mf, u, 'moving forward')} and "
+                       f"{_side(mb, u, 'moving backward')}: "
+                       + ("a step at zero speed, signed with the direction" if both else
+                          "one direction only, where a step signed with the direction "
+                          "cannot be told from an offset"))
         elif base == "stribeck":
             near = [r for r in rows if r[1] <= ws * 1.0001]
             far = [r for r in rows if r[0] >= 3 * ws]
-            out.append(f"below {ws:g} {su}: {value_text(_pooled(near, 1), u, True)} forward, "
-                       f"{value_text(_pooled(near, -1), u, True)} backward; above {3 * ws:g} {su}: "
-                       f"{value_text(_pooled(far, 1), u, True)} forward, "
-                       f"{value_text(_pooled(far, -1), u, True)} backward")
+            out.append(f"below {ws:g} {su}: {_side(_pooled(near, 1), u, 'forward')}, "
+                       f"{_side(_pooled(near, -1), u, 'backward')}; above {3 * ws:g} {su}: "
+                       f"{_side(_pooled(far, 1), u, 'forward')}, "
+                       f"{_side(_pooled(far, -1), u, 'backward')}")
         elif base == "viscous":
             top = [r for r in rows if r[0] >= 0.3 * vmax]
             lowr = [r for r in rows if r[1] <= 0.1 * vmax]
             out.append(f"above {0.3 * vmax:.3g} {su}: "
-                       f"{value_text(_pooled(top, 1), u, True)} forward,"
-                       f" {value_text(_pooled(top, -1), u, True)} backward; below "
-                       f"{0.1 * vmax:.3g} {su}: {value_text(_pooled(lowr, 1), u, True)} forward, "
-                       f"{value_text(_pooled(lowr, -1), u, True)} backward (linear and odd in "
+                       f"{_side(_pooled(top, 1), u, 'forward')},"
+                       f" {_side(_pooled(top, -1), u, 'backward')}; below "
+                       f"{0.1 * vmax:.3g} {su}: {_side(_pooled(lowr, 1), u, 'forward')}, "
+                       f"{_side(_pooled(lowr, -1), u, 'backward')} (linear and odd in "
                        f"speed)")
         elif base == "offset":
-            out.append(f"mean residual {value_text(_pooled(rows, 1), u, True)} moving forward and "
-                       f"{value_text(_pooled(rows, -1), u, True)} moving backward")
+            out.append(f"mean residual {_side(_pooled(rows, 1), u, 'moving forward')} and "
+                       f"{_side(_pooled(rows, -1), u, 'moving backward')}")
     if base in ("unbalance", "cogging") and ec.spectrum is not None:
         k = 1 if base == "unbalance" else int(name.split(".")[0].split(":")[1])
         a, e = ec.spectrum.at(k)

@@ -513,12 +513,14 @@ def find_regions(bins: Mapping[str, Binned], ru: F64, tau: float, unit: str,
             share = ((nf * mf * mf if nf else 0.0) + (nb_ * mb * mb if nb_ else 0.0)) / energy
             lo, hi = float(mags[g[0][0]]), float(mags[g[-1][0] + 1])
             rt = _range_text("speed", lo, hi, 0.0, float(mags[-1]), ctx.speed_unit)
-            parts = []
-            parts.append(f"{value_text(mf, unit, True)} moving forward" if nf
-                         else "no samples moving forward")
-            parts.append(f"{value_text(mb, unit, True)} moving backward" if nb_
-                         else "no samples moving backward")
-            text = f"{rt} the residual is {parts[0]} and {parts[1]}"
+            if nf and nb_:
+                text = (f"{rt} the residual is {value_text(mf, unit, True)} moving forward "
+                        f"and {value_text(mb, unit, True)} moving backward")
+            else:  # one direction: say which, and that the other has no samples
+                m, way, other = (mf, "forward", "backward") if nf else \
+                    (mb, "backward", "forward")
+                text = (f"{rt} the residual is {value_text(m, unit, True)} moving {way}, "
+                        f"with no samples moving {other}")
             found.append(Region("speed", text, lo, hi, share, nf + nb_,
                                 mean_forward=None if not nf else mf,
                                 mean_backward=None if not nb_ else mb))
