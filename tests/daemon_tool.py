@@ -1,18 +1,23 @@
-"""A tool on a daemon's virtual bus: what a monitor or a test bench sees of it.
-
-Shared by the daemon tests: it keeps every frame the daemon sends (the ``0x3xx``
-range), sends command frames and waits for their acknowledgements.
+"""What the daemon tests share: a tool on a daemon's virtual bus (what a monitor or a
+test bench sees: every frame the daemon sends in the ``0x3xx`` range, command frames
+sent and their acknowledgements awaited), and a python-can-remote server hosting the
+simulated drive for the tests across processes.
 """
 
 from __future__ import annotations
 
+import contextlib
+import subprocess
+import sys
 import time
+from collections.abc import Iterator
+from pathlib import Path
 
 import can
 
 from canrls.can.frames import CommandResult
 
-__all__ = ["DaemonTool", "collect"]
+__all__ = ["DaemonTool", "collect", "remote_sim_server"]
 
 #: RlsCommandAck
 ACK_ID = 0x321
@@ -69,3 +74,35 @@ class DaemonTool:
     def close(self) -> None:
         self.notifier.stop()
         self.bus.shutdown()
+
+
+_REMOTE_SERVER = """
+from can_remote import RemoteServer
+srv = RemoteServer("127.0.0.1", 0, channel=%r, bustype="canrls-sim", seed=7,
+                   excitation="slow", effects="inertia,viscous,coulomb")
+print(srv.server_port, flush=True)
+srv.serve_forever()
+"""
+
+
+@contextlib.contextmanager
+def remote_sim_server(directory: Path, channel: str) -> Iterator[str]:
+    """A python-can-remote server on 127.0.0.1 (a free port) hosting the simulated
+    drive in its own process; yields its ``ws://`` URL and stops it on exit (killed
+    when SIGTERM has not ended it within 10 s: a loaded machine)."""
+    script = directory / f"server-{channel}.py"
+    script.write_text(_REMOTE_SERVER % channel)
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert proc.stdout is not None
+        yield f"ws://127.0.0.1:{int(proc.stdout.readline())}/"
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
+        if proc.stdout is not None:
+            proc.stdout.close()

@@ -54,7 +54,7 @@ def test_absurd_timestamp_is_a_bad_line_naming_file_and_line(tmp_path: Path,
     lines.insert(3, f"({stamp}) can0 101#00112233")
     path = tmp_path / "bad.log"
     path.write_text("\n".join(lines) + "\n")
-    with pytest.raises(LogFormatError, match=rf"bad\.log:4: .*timestamp"):
+    with pytest.raises(LogFormatError, match=r"bad\.log:4: .*timestamp"):
         list(read_frames(path))
     stats = LogReadStats()
     got = FrameBlock.concat(read_frames(path, skip_bad_lines=True, stats=stats))

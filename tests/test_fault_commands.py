@@ -34,7 +34,7 @@ from canrls.errors import CheckpointError, ConfigError
 from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.processor import FrameProcessor
-from daemon_tool import DaemonTool
+from daemon_tool import DaemonTool, remote_sim_server
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE = ["inertia", "viscous", "coulomb"]
@@ -357,14 +357,6 @@ def test_sigterm_after_sigterm_is_still_a_clean_stop(tmp_path: Path) -> None:
     assert json.loads(out)["daemon"]["frames"] > 0 and ckpt.exists()
 
 
-SERVER = """
-import sys
-from can_remote import RemoteServer
-srv = RemoteServer("127.0.0.1", 0, channel="remote-kill9", bustype="canrls-sim", seed=7,
-                   excitation="slow", effects="inertia,viscous,coulomb")
-print(srv.server_port, flush=True)
-srv.serve_forever()
-"""
 
 
 def _wait_for_checkpoint_beyond(path: Path, frames: int, proc: subprocess.Popen[str],
@@ -388,16 +380,10 @@ def test_kill_9_at_random_moments_resumes_from_the_checkpoint(tmp_path: Path) ->
     random moments and started again: every start resumes from the checkpoint, whose
     frame count only grows, and nothing is set aside."""
     pytest.importorskip("can_remote")
-    script = tmp_path / "server.py"
-    script.write_text(SERVER)
-    server = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
-                              stderr=subprocess.DEVNULL, text=True)
     rng = np.random.default_rng(9)
     ckpt = tmp_path / "cp.bin"
     frames: list[int] = []
-    try:
-        assert server.stdout is not None
-        url = f"ws://127.0.0.1:{int(server.stdout.readline())}/"
+    with remote_sim_server(tmp_path, "remote-kill9") as url:
         cmd = [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-i", "remote",
                "-c", url, "--kt", "0.1", "--effects", "inertia,viscous,coulomb",
                "--checkpoint", str(ckpt), "--checkpoint-interval", "0.3",
@@ -433,15 +419,6 @@ def test_kill_9_at_random_moments_resumes_from_the_checkpoint(tmp_path: Path) ->
                 assert f"resumed from checkpoint {ckpt}" in text, text
             assert "not loaded" not in text, text
             frames.append(int(load_checkpoint(ckpt).counters["frames"]))
-    finally:
-        server.terminate()
-        try:
-            server.wait(10)
-        except subprocess.TimeoutExpired:  # a loaded machine: the sim's threads linger
-            server.kill()
-            server.wait(10)
-        if server.stdout is not None:
-            server.stdout.close()
     assert proc.returncode == 0
     final = json.loads(out)
     assert final["daemon"]["resumed_from"] == str(ckpt)

@@ -15,37 +15,15 @@ from pathlib import Path
 
 import pytest
 
-pytest.importorskip("can_remote")
+from daemon_tool import remote_sim_server
 
-SERVER = """
-import sys
-from can_remote import RemoteServer
-srv = RemoteServer("127.0.0.1", 0, channel="remote-test", bustype="canrls-sim", seed=7,
-                   excitation="slow", effects="inertia,viscous,coulomb")
-print(srv.server_port, flush=True)
-srv.serve_forever()
-"""
+pytest.importorskip("can_remote")
 
 
 @pytest.fixture
 def remote_server(tmp_path: Path):
-    script = tmp_path / "server.py"
-    script.write_text(SERVER)
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True)
-    try:
-        assert proc.stdout is not None
-        port = int(proc.stdout.readline())
-        yield f"ws://127.0.0.1:{port}/"
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:  # a loaded machine: the sim's threads linger
-            proc.kill()
-            proc.wait(10)
-        if proc.stdout is not None:
-            proc.stdout.close()
+    with remote_sim_server(tmp_path, "remote-test") as url:
+        yield url
 
 
 @pytest.mark.slow
