@@ -80,7 +80,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     given = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in given[:given.index("--")] if "--" in given else "--debug" in given
     try:
-        return _run(given)
+        return _run(given, process=argv is None)
     except CanrlsError as e:
         if debug:
             raise
@@ -96,10 +96,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return INTERNAL_ERROR
 
 
-def _run(given: list[str]) -> int:
+def _run(given: list[str], process: bool) -> int:
     preload_cache_dir(given)  # before the kernels load
     parser = build_parser(named_command(given))
     args = parser.parse_args(given)
+    #: the command is the process's own (the console script, ``python -m canrls``), which
+    #: exits after it; not a call of main() from another program
+    args.process_exits = process
     logging.basicConfig(level=getattr(logging, args.log_level), stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):

@@ -115,14 +115,17 @@ _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 @contextmanager
-def _signals_for_life(target: list[Any]) -> Iterator[None]:
+def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
     """SIGTERM/SIGINT/SIGHUP for the whole command, not only while the daemon serves.
 
     Before the daemon exists a stop is remembered (``target[1]``) and a SIGHUP ignored;
     while it runs, :meth:`Daemon.run` has its own handlers; after it stopped, further
-    signals only log. At the end SIGTERM and SIGHUP are left ignored if they had their
-    default action (the process is exiting: a late SIGTERM must not turn a clean stop
-    into death by signal, exit status -15); other handlers are restored.
+    signals only log. At the end, when the command is the process's own
+    (``process_exits``), SIGTERM and SIGHUP are left ignored if they had their default
+    action (the process is exiting: a late SIGTERM must not turn a clean stop into death
+    by signal, exit status -15; a Python handler would not do, Python resets it to the
+    default while it finalises); otherwise, and for the other signals, the handlers are
+    restored: ``SIG_IGN`` passes to every process started afterwards.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -145,7 +148,7 @@ def _signals_for_life(target: list[Any]) -> Iterator[None]:
         yield
     finally:
         for sig, h in old.items():
-            quiet = h is signal.SIG_DFL and sig != signal.SIGINT
+            quiet = process_exits and h is signal.SIG_DFL and sig != signal.SIGINT
             signal.signal(sig, signal.SIG_IGN if quiet else h)
 
 
@@ -153,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
     target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
-    with _signals_for_life(target):
+    with _signals_for_life(target, getattr(args, "process_exits", False)):
         daemon = build_daemon(args)
         target[0] = daemon
         if target[1]:
