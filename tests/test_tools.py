@@ -163,3 +163,51 @@ def test_soak_bad_fault_spec_is_one_line(tmp_path: Path) -> None:
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1].startswith("soak.py: error: --faults:")
     assert "drop" in r.stderr and "Traceback" not in r.stderr
+
+
+def _soak_module():  # type: ignore[no-untyped-def]
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("_soak_tool", SOAK)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # its dataclasses look their module up
+    try:
+        spec.loader.exec_module(mod)
+    finally:
+        del sys.modules[spec.name]
+    return mod
+
+
+def test_soak_judges_a_parameter_by_the_accuracy_the_faults_cost() -> None:
+    """The soak's verdict per parameter: lost when the faults leave it further from the
+    drive's truth than the fault-free twin by more than 2 sigma; a move of more than
+    2 sigma from the twin that is no less accurate (the twin's own bias reweighted,
+    docs/reliability.md "## Soak") is kept. Without a true value: within 2 sigma of the
+    twin."""
+    from canrls.can.frames import ParameterReport
+    soak = _soak_module()
+
+    def rr(values: dict[str, float], sigma: float = 1e-9) -> object:
+        r = soak.RunResult("x")
+        r.params = {k: ParameterReport(index=i, name=k, fixed_value=v, sigma=sigma,
+                                       float_value=v) for i, (k, v) in enumerate(values.items())}
+        return r
+
+    truth = {"inertia.J": 2.0e-4, "offset.T0": 5e-3, "viscous.B": 1e-4}
+    # the twin 13 sigma above the truth (its bias); the faulted run:
+    free = rr({"inertia.J": 2.0e-4 + 13e-9, "offset.T0": 5e-3, "viscous.B": 1e-4})
+    faulted = rr({"inertia.J": 2.0e-4 + 10.6e-9,   # 2.4 sigma from the twin, closer to truth
+                  "offset.T0": 5e-3 + 2.5e-9,      # 2.5 sigma further from the truth
+                  "viscous.B": 1e-4 - 1.9e-9})     # 1.9 sigma further: kept
+    rows = soak.compare(faulted, free, truth)
+    verdict = {(n, w): v for n, w, _z, _g, v in rows}
+    for which in ("fixed_value", "float_value"):
+        assert verdict[("inertia.J", which)] == ""
+        assert verdict[("viscous.B", which)] == ""
+        assert verdict[("offset.T0", which)].startswith("worse by 2.5 > 2 sigma")
+    z = {n: zz for n, w, zz, _g, _v in rows if w == "float_value"}
+    assert z["inertia.J"] == pytest.approx(-2.4)
+    # no true value (a real drive): the twin is the reference, 2 sigma
+    rows = soak.compare(faulted, free, None)
+    lost = sorted({n for n, _w, _z, _g, v in rows if v})
+    assert lost == ["inertia.J", "offset.T0"]
