@@ -324,7 +324,7 @@ class FilledRecord:
         """The measured position (None without one): tells whether there is one."""
         return self.measured.position
 
-    def _count(self, c: int) -> int:
+    def _measured_before(self, c: int) -> int:
         """Measured rows before filled row ``c``."""
         assert self.real is not None
         k = c // self.STEP
@@ -340,7 +340,7 @@ class FilledRecord:
         real = self.real
         # the measured row at or before c0 (filled row p), through the one at or after
         # c1 - 1: every gap of c0:c1 with both its sides
-        m_lo = self._count(c0)
+        m_lo = self._measured_before(c0)
         if real[c0]:
             p, first = c0, m_lo
         else:
@@ -348,7 +348,7 @@ class FilledRecord:
             while not real[p]:
                 p -= 1
             first = m_lo - 1
-        last = self._count(c1) + (0 if real[c1 - 1] else 1)
+        last = self._measured_before(c1) + (0 if real[c1 - 1] else 1)
         filled, _ = self.policy.filler().fill(self.measured.slice(first, last))
         return filled.slice(c0 - p, c1 - p)
 
