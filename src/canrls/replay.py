@@ -17,20 +17,25 @@ import os
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+import numpy.typing as npt
+
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, read_frames
 from canrls.can.pairing import Pairer
-from canrls.can.reorder import Reorderer
 from canrls.can.protocol import Protocol
+from canrls.can.reorder import Reorderer
 from canrls.errors import ConfigError, EstimatorError, LogFormatError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, PipelineBlock
 from canrls.estimation.selection import SamplePolicy
 from canrls.processor import FitResult, FrameProcessor
-from canrls.signals import Signals
+from canrls.signals import ROLES, Signals
 
 if TYPE_CHECKING:
     from canrls.config import AppConfig
+
+F64 = npt.NDArray[np.float64]
 
 __all__ = ["FILE_GAP_S", "FitResult", "FrameProcessor", "LogFiles", "LogsSamples",
            "MIN_SAMPLES_PER_PARAMETER", "fit_frames", "fit_log", "fit_logs", "prepare",
@@ -249,6 +254,28 @@ class LogsSamples:
     sizes: tuple[int, ...]
 
 
+def _join(blocks: Iterable[Signals]) -> Signals:
+    """:meth:`Signals.concat` of ``blocks`` (the same values), without keeping the larger
+    arrays the blocks' columns are views of, one channel's blocks joined at a time and
+    freed once joined: the peak is the samples and one channel more."""
+    cols: dict[str, list[F64 | None]] = {r: [] for r in ("t", *ROLES)}
+    for b in blocks:
+        for r, parts in cols.items():
+            v = getattr(b, r)
+            # a copy: the block's columns are views of larger arrays, kept alive by them
+            parts.append(None if v is None else np.array(v, dtype=np.float64))
+    if not cols["t"]:
+        return Signals.concat([])
+    out: dict[str, F64 | None] = {}
+    for r in list(cols):
+        parts = cols.pop(r)
+        out[r] = None if any(v is None for v in parts) else np.concatenate(parts)
+        del parts
+    t, current, speed = out["t"], out["current"], out["speed"]
+    assert t is not None and current is not None and speed is not None
+    return Signals(t, current, speed, out.get("position"), out.get("voltage"))
+
+
 def read_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model: Model,
               settings: EstimatorSettings | None = None, *, chunk_size: int = 65536,
               progress: Callable[[int, int], None] | None = None,
@@ -262,8 +289,7 @@ def read_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model
     proc = FrameProcessor(protocol, model, settings, relative_time=True)
     files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
                      skip_bad_lines=skip_bad_lines)
-    parts = [s for s in files.samples() if len(s)]
-    signals = Signals.concat(parts)
+    signals = _join(s for s in files.samples() if len(s))
     if len(signals) < 2:
         raise ConfigError(f"{', '.join(files.paths)}: {len(signals)} samples after decoding "
                           f"and pairing {proc.frames} frames; nothing to analyse")

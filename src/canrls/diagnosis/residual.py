@@ -599,7 +599,7 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
     in blocks of rows (the filter's state carried), so memory does not grow with the
     record; only sums over the used rows are kept.
     """
-    assert ctx.angle_filled is not None
+    assert ctx.angle_raw is not None
     amp = np.zeros(len(orders))
     expl = np.zeros(len(orders))
     # den: the centred residual's sum of squares over the used rows
@@ -613,7 +613,6 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
     # filled rows
     used = ctx.spread(used)
     real = ctx.selected.real
-    a = np.ascontiguousarray(ctx.angle_filled, dtype=np.float64)
     chunk = 16  # orders at a time: BLOCK x 2 chunk float64 per working array
     for c0 in range(0, len(orders), chunk):
         qs = np.ascontiguousarray(orders[c0:c0 + chunk], dtype=np.float64)
@@ -627,34 +626,35 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
         cr = np.zeros(m)
         svf = SVF(ctx.cutoff_hz, ctx.dt, ctx.zeta, ctx.position_hold)
         m0 = 0  # measured rows before the block
-        for sa, sb in ctx.segments():
-            svf.reset()
-            for b0 in range(sa, sb, BLOCK):
-                b1 = min(sb, b0 + BLOCK)
-                raw = np.empty((b1 - b0, 2 * m))
-                _sincos(a[b0:b1], qs, raw)
-                f, _ = svf.process(raw)
-                u = used[b0:b1]
-                if real is None:
-                    rb = r[b0:b1] - mean_r
-                else:
-                    k = int(np.count_nonzero(real[b0:b1]))
-                    rb = np.zeros(b1 - b0)
-                    rb[real[b0:b1]] = r[m0:m0 + k] - mean_r
-                    m0 += k
-                if not u.any():
-                    continue
-                G = f[u]
-                ru = rb[u]
-                gs, gc = G[:, 0::2], G[:, 1::2]
-                s1 += G.sum(axis=0)
-                ss += np.einsum("ij,ij->j", gs, gs)
-                cc += np.einsum("ij,ij->j", gc, gc)
-                sc += np.einsum("ij,ij->j", gs, gc)
-                sr += gs.T @ ru
-                cr += gc.T @ ru
-                # freed before the next block's are made (one block's at a time)
-                del raw, f, _, G, gs, gc, ru
+        seg_starts = {sa for sa, _ in ctx.segments()}
+        # the angle unwrapped again block by block (the blocks of each segment)
+        for b0, b1, ang in ctx.angle_filled_blocks():
+            if b0 in seg_starts:
+                svf.reset()
+            raw = np.empty((b1 - b0, 2 * m))
+            _sincos(ang, qs, raw)
+            f, _ = svf.process(raw)
+            u = used[b0:b1]
+            if real is None:
+                rb = r[b0:b1] - mean_r
+            else:
+                k = int(np.count_nonzero(real[b0:b1]))
+                rb = np.zeros(b1 - b0)
+                rb[real[b0:b1]] = r[m0:m0 + k] - mean_r
+                m0 += k
+            if not u.any():
+                continue
+            G = f[u]
+            ru = rb[u]
+            gs, gc = G[:, 0::2], G[:, 1::2]
+            s1 += G.sum(axis=0)
+            ss += np.einsum("ij,ij->j", gs, gs)
+            cc += np.einsum("ij,ij->j", gc, gc)
+            sc += np.einsum("ij,ij->j", gs, gc)
+            sr += gs.T @ ru
+            cr += gc.T @ ru
+            # freed before the next block's are made (one block's at a time)
+            del raw, f, _, G, gs, gc, ru
         # centre the columns: sum (g - mean g)(h - mean h) = sum g h - n mean g mean h
         ms, mc = s1[0::2] / n_used, s1[1::2] / n_used
         ss -= n_used * ms * ms

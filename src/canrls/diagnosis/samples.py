@@ -118,6 +118,19 @@ class _FilterSource:
         return out
 
 
+class _PositionChain:
+    """The position's unwrapper and filter, reset and saved together (for
+    :class:`_FilterSource`)."""
+
+    def __init__(self, unw: PositionUnwrapper, svf: SVF) -> None:
+        self.unw = unw
+        self.svf = svf
+
+    def reset(self) -> None:
+        self.unw.reset()
+        self.svf.reset()
+
+
 class Filtered:
     """A filtered signal on the measured rows that is not kept: slices and sorted index
     arrays are computed block by block (:class:`_FilterSource`); anything else (a mask,
@@ -155,10 +168,12 @@ class RecordSamples:
     Attributes (measured rows): ``signals`` (as given), ``speed``, ``acceleration``,
     ``current`` (through the filter), ``position`` (unwrapped, filtered), ``angle``
     (phase of periodic terms, filtered) and ``angle_raw`` (unfiltered), ``None``
-    without position. The filtered ones are :class:`Filtered`: not kept, filtered
+    without position. These are :class:`Filtered`: not kept, unwrapped and filtered
     again block by block when sliced (read them in slices or at sorted rows;
     ``np.asarray`` makes the whole array). ``selected`` holds the filled record
-    (:class:`~canrls.estimation.selection.SelectedSamples`).
+    (:class:`~canrls.estimation.selection.SelectedSamples`, itself filled again where
+    read: :class:`~canrls.estimation.selection.FilledRecord`); the phase on the filled
+    rows: :meth:`angle_filled_blocks`.
     """
 
     def __init__(self, model: Model, signals: Signals, dt: float,
@@ -173,7 +188,6 @@ class RecordSamples:
         self.policy = SamplePolicy.for_equation(model.equations[0], dt, settings)
         self.selected = self.policy.apply(signals)
         filled = self.selected.signals
-        n = len(filled)
         self.speed_unit = "rad/s" if model.axis == "rotary" else "m/s"
         self.position_unit = "rad" if model.axis == "rotary" else "m"
         self.acc_unit = "rad/s²" if model.axis == "rotary" else "m/s²"
@@ -183,14 +197,13 @@ class RecordSamples:
         self.speed_hold = hold["speed"]
         self.position_hold = hold["position"]
         self.cutoff_hz, self.zeta = model.cutoff_hz, model.zeta
-        measured = self.selected.measured
         # F[speed], sF[speed], F[current] and F[position] on the measured rows, computed
         # block by block when read (:class:`Filtered`): not kept
         svf = SVF(model.cutoff_hz, dt, model.zeta, (hold["speed"], hold["current"]))
 
         def speed_current(c0: int, c1: int) -> F64:
-            raw = np.column_stack([filled.speed[c0:c1], filled.current[c0:c1]]).astype(
-                np.float64)
+            fb = filled.slice(c0, c1)
+            raw = np.column_stack([fb.speed, fb.current]).astype(np.float64)
             f, sf = svf.process(raw)
             return np.column_stack([f[:, 0], sf[:, 0], f[:, 1]])
 
@@ -198,37 +211,57 @@ class RecordSamples:
         self.speed: Filtered = Filtered(sc, 0)
         self.acceleration: Filtered = Filtered(sc, 1)
         self.current: Filtered = Filtered(sc, 2)
-        # the unwrapped position (as the model unwraps it) and the phase of periodic terms
+        # the unwrapped position (as the model unwraps it) and the phase of periodic terms:
+        # not kept either, unwrapped again block by block when read (the unwrapper's
+        # turn count is saved at each block with the filter's state)
         self.position: Filtered | None = None
-        self.angle_raw: F64 | None = None
+        self.angle_raw: Filtered | None = None
         self.angle: Filtered | None = None
-        #: the phase of periodic terms on the filled record (rows of ``selected``)
-        self.angle_filled: F64 | None = None
+        #: the phase of periodic terms times this is the unwrapped position (1: rotary)
+        self.angle_scale = 1.0
         if filled.position is not None:
             period = 2.0 * math.pi if model.axis == "rotary" else model.wrap
-            unw = PositionUnwrapper(period)
-            pos = np.empty(n)
-            for a, b in self.segments():
-                unw.reset()
-                pos[a:b] = unw.process(np.asarray(filled.position[a:b], dtype=np.float64))
             k = 1.0 if model.axis == "rotary" else 2.0 * math.pi / model.pitch
-            svp = SVF(model.cutoff_hz, dt, model.zeta, hold["position"])
+            self.angle_scale = k
+            self._period = period
+            chain = _PositionChain(
+                PositionUnwrapper(period),
+                SVF(model.cutoff_hz, dt, model.zeta, hold["position"]))
 
             def position(c0: int, c1: int) -> F64:
-                # F[position] and k F[position] (the angle; k = 1 on a rotary axis)
-                fp = svp.process(pos_raw[c0:c1].reshape(-1, 1))[0][:, 0]
-                return np.column_stack([fp, fp if k == 1.0 else k * fp])
+                # F[position], k F[position] (the angle; k = 1 on a rotary axis) and
+                # k position (the angle unfiltered)
+                fb = filled.slice(c0, c1).position
+                assert fb is not None
+                pos = chain.unw.process(np.asarray(fb, dtype=np.float64))
+                fp = chain.svf.process(pos.reshape(-1, 1))[0][:, 0]
+                return np.column_stack([fp, fp if k == 1.0 else k * fp,
+                                        pos if k == 1.0 else k * pos])
 
-            pos_raw = pos
-            ps = _FilterSource(self, svp, position, len(signals))
+            ps = _FilterSource(self, chain, position, len(signals))
             self.position = Filtered(ps, 0)
             self.angle = Filtered(ps, 1)
-            # k x (1.0 on a rotary axis: the same values, no copy)
-            self.angle_filled = pos if k == 1.0 else k * pos
-            self.angle_raw = measured(self.angle_filled)
+            self.angle_raw = Filtered(ps, 2)
         self._h: dict[str, F64] = {}
         self._use: dict[tuple[int, float, float], B] = {}
         self._coh: dict[tuple[int, int], tuple[F64, float]] = {}
+
+    def angle_filled_blocks(self) -> Iterator[tuple[int, int, F64]]:
+        """(b0, b1, the phase of periodic terms on the filled rows ``b0:b1``) over the
+        filled record in blocks of at most :data:`BLOCK` rows from each segment's start,
+        the position unwrapped as the model unwraps it (restarted at each segment)."""
+        assert self.angle_raw is not None
+        filled = self.selected.signals
+        unw = PositionUnwrapper(self._period)
+        k = self.angle_scale
+        for a, b in self.segments():
+            unw.reset()
+            for b0 in range(a, b, BLOCK):
+                b1 = min(b, b0 + BLOCK)
+                fp = filled.slice(b0, b1).position
+                assert fp is not None
+                pos = unw.process(np.asarray(fp, dtype=np.float64))
+                yield b0, b1, pos if k == 1.0 else k * pos
 
     # -- rows ---------------------------------------------------------------------------
     def _pieces(self, svf: SVF) -> Iterator[tuple[int, int, int, int, B | None]]:
@@ -270,8 +303,13 @@ class RecordSamples:
         """The rows of the filled record ``policy`` uses (the pipeline's rule)."""
         key = (policy.warmup, policy.min_speed, policy.max_speed)
         if key not in self._use:
+            # block by block over the filled record (the selector carries its state)
             filled = self.selected.signals
-            use = policy.selector().select(filled.t, filled.speed).use
+            selector = policy.selector()
+            use = np.empty(len(filled), np.bool_)
+            for c0 in range(0, len(filled), BLOCK):
+                fb = filled.slice(c0, c0 + BLOCK)
+                use[c0:c0 + len(fb)] = selector.select(fb.t, fb.speed).use
             if self.selected.real is not None:
                 use &= self.selected.real
             self._use[key] = use

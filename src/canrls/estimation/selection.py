@@ -44,7 +44,7 @@ from canrls.estimation.model import Equation
 from canrls.signals import ROLES, Signals
 
 __all__ = ["SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector", "Selection",
-           "SelectedSamples"]
+           "SelectedSamples", "FilledRecord"]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
@@ -147,13 +147,32 @@ class SamplePolicy:
         """A new selector (state: last sample time, warm-up left) for a stream of blocks."""
         return SampleSelector(self)
 
-    def apply(self, signals: Signals) -> SelectedSamples:
-        """A whole record at once, as a pipeline fed it in one block selects it: gaps
-        filled, restarts and used rows marked (the filled rows never used)."""
-        filled, real = self.filler().fill(signals)
-        sel = self.selector().select(filled.t, filled.speed)
-        use = sel.use if real is None else sel.use & real
-        return SelectedSamples(signals=filled, real=real, restart=sel.restart, use=use)
+    def apply(self, signals: Signals, block: int = 65536) -> SelectedSamples:
+        """A whole record, as a pipeline fed it selects it: gaps filled, restarts and
+        used rows marked (the filled rows never used). The record is filled and
+        selected ``block`` samples at a time (the filler and the selector carry their
+        state, so the masks are those of one block); the filled record is not kept but
+        filled again where read (:class:`FilledRecord`)."""
+        filler, selector = self.filler(), self.selector()
+        reals: list[B] = []
+        restarts: list[B] = []
+        uses: list[B] = []
+        any_filled = False
+        for a in range(0, max(len(signals), 1), block):
+            filled, real = filler.fill(signals.slice(a, min(len(signals), a + block)))
+            sel = selector.select(filled.t, filled.speed)
+            if real is None:
+                real = np.ones(len(filled), np.bool_)
+            else:
+                any_filled = True
+            reals.append(real)
+            restarts.append(sel.restart)
+            uses.append(sel.use & real)
+        real_all = np.concatenate(reals) if any_filled else None
+        del reals
+        return SelectedSamples(signals=FilledRecord(signals, real_all, self),
+                               real=real_all, restart=np.concatenate(restarts),
+                               use=np.concatenate(uses))
 
 
 # --------------------------------------------------------------------------- state
@@ -274,16 +293,77 @@ class GapFiller:
 
 
 # ------------------------------------------------------------------ a whole record
+class FilledRecord:
+    """A record with its gaps filled (:class:`GapFiller`), not kept: the rows
+    ``c0:c1`` are filled again when sliced, from the measured samples around them
+    (each filled gap depends only on the measured rows on its two sides, so the values
+    are those of filling the whole record, bit for bit).
+
+    ``real`` marks the measured rows (``None``: nothing filled, the record itself).
+    """
+
+    #: filled rows per entry of the table of measured rows before them
+    STEP = 65536
+
+    def __init__(self, signals: Signals, real: B | None, policy: SamplePolicy) -> None:
+        self.measured = signals
+        self.real = real
+        self.policy = policy
+        self._n = len(signals) if real is None else len(real)
+        if real is not None:
+            # measured rows before filled row k * STEP
+            self._before = np.concatenate(
+                [[0], np.cumsum([np.count_nonzero(real[a:a + self.STEP])
+                                 for a in range(0, len(real), self.STEP)])]).astype(np.int64)
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def position(self) -> F64 | None:
+        """The measured position (None without one): tells whether there is one."""
+        return self.measured.position
+
+    def _measured_before(self, c: int) -> int:
+        """Measured rows before filled row ``c``."""
+        assert self.real is not None
+        k = c // self.STEP
+        return int(self._before[k]) + int(np.count_nonzero(self.real[k * self.STEP:c]))
+
+    def slice(self, c0: int, c1: int) -> Signals:
+        """Filled rows ``c0:c1`` (a new block)."""
+        if self.real is None:
+            return self.measured.slice(c0, c1)
+        c0, c1 = max(0, c0), min(self._n, c1)
+        if c1 <= c0:
+            return self.measured.slice(0, 0)
+        real = self.real
+        # the measured row at or before c0 (filled row p), through the one at or after
+        # c1 - 1: every gap of c0:c1 with both its sides
+        m_lo = self._measured_before(c0)
+        if real[c0]:
+            p, first = c0, m_lo
+        else:
+            p = c0 - 1
+            while not real[p]:
+                p -= 1
+            first = m_lo - 1
+        last = self._measured_before(c1) + (0 if real[c1 - 1] else 1)
+        filled, _ = self.policy.filler().fill(self.measured.slice(first, last))
+        return filled.slice(c0 - p, c1 - p)
+
+
 @dataclass(frozen=True)
 class SelectedSamples:
     """A record after :meth:`SamplePolicy.apply`, in the rows of the filled record.
 
-    ``signals`` has the gaps filled; ``real`` marks the measured rows (``None``: nothing
+    ``signals`` has the gaps filled (:class:`FilledRecord`: filled again where
+    sliced); ``real`` marks the measured rows (``None``: nothing
     was filled, every row is real); ``restart`` the rows where the filter restarts;
     ``use`` the rows that update the estimators.
     """
 
-    signals: Signals
+    signals: FilledRecord
     real: B | None
     restart: B
     use: B
