@@ -7,6 +7,7 @@ simulated drive for the tests across processes.
 from __future__ import annotations
 
 import contextlib
+import socket
 import subprocess
 import sys
 import time
@@ -17,7 +18,7 @@ import can
 
 from canrls.can.frames import CommandResult
 
-__all__ = ["DaemonTool", "collect", "remote_sim_server"]
+__all__ = ["DaemonTool", "collect", "datagrams", "notify_socket", "remote_sim_server"]
 
 #: RlsCommandAck
 ACK_ID = 0x321
@@ -106,3 +107,28 @@ def remote_sim_server(directory: Path, channel: str) -> Iterator[str]:
             proc.wait(10)
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+def notify_socket(directory: Path, name: str) -> tuple[socket.socket, str]:
+    """A datagram socket standing in for systemd's ``NOTIFY_SOCKET``: (socket, path)."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    addr = str(directory / f"{name}.sock")
+    sock.bind(addr)
+    sock.settimeout(0.2)
+    return sock, addr
+
+
+def datagrams(sock: socket.socket, want: str, timeout: float,
+              proc: subprocess.Popen[str] | None = None) -> list[str]:
+    """The notifications received until one holds ``want`` (or ``timeout``, or ``proc``
+    has exited)."""
+    got: list[str] = []
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and (proc is None or proc.poll() is None):
+        try:
+            got.append(sock.recv(4096).decode())
+        except TimeoutError:
+            continue
+        if want in got[-1]:
+            break
+    return got

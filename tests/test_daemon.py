@@ -37,7 +37,7 @@ from canrls.live.bus import bus_config, messages_to_block, open_bus
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.processor import FrameProcessor
-from daemon_tool import DaemonTool
+from daemon_tool import DaemonTool, datagrams, notify_socket
 
 ROOT = Path(__file__).resolve().parent.parent
 DBC = ROOT / "dbc" / "canrls.dbc"
@@ -511,7 +511,7 @@ def test_messages_to_block_matches_from_messages() -> None:
 
 
 # ------------------------------------------------------------------ systemd, signals
-def test_sd_notify_datagrams(tmp_path: Path) -> None:
+def test_sd_notifydatagrams(tmp_path: Path) -> None:
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     addr = str(tmp_path / "n.sock")
     sock.bind(addr)
@@ -535,19 +535,6 @@ def test_sd_notify_datagrams(tmp_path: Path) -> None:
     missing.close()
 
 
-def _datagrams(sock: socket.socket, want: str, timeout: float) -> list[str]:
-    got: list[str] = []
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        try:
-            got.append(sock.recv(4096).decode())
-        except TimeoutError:
-            continue
-        if want in got[-1]:
-            break
-    return got
-
-
 @pytest.mark.slow
 def test_sighup_reloads_model_and_sigterm_checkpoints(tmp_path: Path) -> None:
     conf = tmp_path / "canrls.toml"
@@ -555,10 +542,7 @@ def test_sighup_reloads_model_and_sigterm_checkpoints(tmp_path: Path) -> None:
     conf.write_text('[model]\neffects = ["inertia", "viscous", "coulomb"]\nkt = 0.1\n'
                     '[can]\ninterface = "canrls-sim"\nchannel = "sighup"\n'
                     f'[daemon]\ncheckpoint = "{ckpt.name}"\npublish_interval = 0.05\n')
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    addr = str(tmp_path / "notify.sock")
-    sock.bind(addr)
-    sock.settimeout(0.2)
+    sock, addr = notify_socket(tmp_path, "notify")
     env = dict(os.environ, NOTIFY_SOCKET=addr, WATCHDOG_USEC="300000")
     proc = subprocess.Popen(
         [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-C", str(conf),
@@ -566,12 +550,12 @@ def test_sighup_reloads_model_and_sigterm_checkpoints(tmp_path: Path) -> None:
          "seed=2", "--json"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert any("READY=1" in g for g in _datagrams(sock, "READY=1", 60))
-        assert any("WATCHDOG=1" in g for g in _datagrams(sock, "WATCHDOG=1", 5))
+        assert any("READY=1" in g for g in datagrams(sock, "READY=1", 60))
+        assert any("WATCHDOG=1" in g for g in datagrams(sock, "WATCHDOG=1", 5))
         time.sleep(1.0)
         conf.write_text(conf.read_text().replace('"coulomb"]', '"coulomb", "unbalance"]'))
         proc.send_signal(signal.SIGHUP)
-        got = _datagrams(sock, "READY=1", 10)
+        got = datagrams(sock, "READY=1", 10)
         assert any("RELOADING=1" in g for g in got) and "READY=1" in got[-1]
         time.sleep(1.0)
         proc.send_signal(signal.SIGTERM)

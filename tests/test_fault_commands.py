@@ -34,7 +34,7 @@ from canrls.errors import CheckpointError, ConfigError
 from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.processor import FrameProcessor
-from daemon_tool import DaemonTool, remote_sim_server
+from daemon_tool import DaemonTool, datagrams, notify_socket, remote_sim_server
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE = ["inertia", "viscous", "coulomb"]
@@ -312,23 +312,9 @@ def test_an_exception_in_the_estimator_thread_exits_non_zero(
 
 
 # ------------------------------------------------------------------ across processes
-def _notify_socket(tmp_path: Path, name: str) -> tuple[socket.socket, str]:
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    addr = str(tmp_path / f"{name}.sock")
-    sock.bind(addr)
-    sock.settimeout(0.2)
-    return sock, addr
-
-
 def _wait_ready(sock: socket.socket, proc: subprocess.Popen[str], timeout: float) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end and proc.poll() is None:
-        try:
-            if "READY=1" in sock.recv(4096).decode():
-                return
-        except TimeoutError:
-            continue
-    raise AssertionError(f"the daemon did not get ready (exit status {proc.poll()})")
+    if not any("READY=1" in g for g in datagrams(sock, "READY=1", timeout, proc)):
+        raise AssertionError(f"the daemon did not get ready (exit status {proc.poll()})")
 
 
 @pytest.mark.slow
@@ -336,7 +322,7 @@ def test_sigterm_after_sigterm_is_still_a_clean_stop(tmp_path: Path) -> None:
     """SIGTERM every 10 ms until the daemon has exited: it stops gracefully, exit 0
     (a SIGTERM after the daemon had restored the default handlers killed it: -15)."""
     ckpt = tmp_path / "cp.bin"
-    sock, addr = _notify_socket(tmp_path, "term")
+    sock, addr = notify_socket(tmp_path, "term")
     proc = subprocess.Popen(
         [sys.executable, "-m", "canrls", "run", "-i", "canrls-sim", "-c", "standard",
          "--bus-kwargs", "seed=1", "--kt", "0.1", "--effects", "inertia,viscous,coulomb",
@@ -392,7 +378,7 @@ def test_kill_9_at_random_moments_resumes_from_the_checkpoint(tmp_path: Path) ->
                "--checkpoint", str(ckpt), "--checkpoint-interval", "0.3",
                "--publish-interval", "0.05", "--json"]
         for k in range(4):
-            sock, addr = _notify_socket(tmp_path, f"n{k}")
+            sock, addr = notify_socket(tmp_path, f"n{k}")
             log = tmp_path / f"daemon{k}.log"
             with log.open("w") as err:
                 proc = subprocess.Popen(cmd, env=dict(os.environ, NOTIFY_SOCKET=addr),
