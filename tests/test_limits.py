@@ -66,6 +66,28 @@ def test_huge_zeta_is_refused_by_its_range(tmp_path: Path, log: Path,
     assert "model.filter.zeta" in line and "damping ratio" in line
 
 
+@pytest.mark.parametrize("value", ["1e308", "1e-320", "nan"])
+def test_alpha_out_of_range_names_the_flag(log: Path, value: str,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    # 1e308 and 1e-320 used to end in "range of P: QFormat frac must be in -64..126",
+    # nan in "<defaults>: estimator.alpha = nan": neither named --alpha
+    line = _error(capsys, ["fit", "--alpha", value, str(log)])
+    assert line.startswith(f"error: --alpha {value}: must be "), line
+
+
+def test_alpha_out_of_range_names_the_key(tmp_path: Path, log: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    line = _fit_with(tmp_path, log, capsys, "[estimator]\nalpha = 1e300\n")
+    assert "estimator.alpha = 1e+300: must be from 1e-09 to 1e+09" in line
+
+
+def test_alpha_too_small_for_the_fixed_point_names_the_ridge(
+        log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # in range, but P0 = 1/(alpha e_j) outgrows the 32-bit words of this data
+    line = _error(capsys, ["fit", "--alpha", "1e-8", str(log)])
+    assert "P0 = diag(1/alpha_j) reaches" in line and "estimator.alpha" in line, line
+
+
 def test_vanishing_cutoff_is_refused_before_allocating(
         tmp_path: Path, log: Path, capsys: pytest.CaptureFixture[str]) -> None:
     line = _fit_with(tmp_path, log, capsys, "[model.filter]\ncutoff_hz = 1e-300\n")

@@ -313,7 +313,8 @@ class AppConfig:
         kw: dict[str, Any] = {}
         for k, v in self.estimator.items():
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-                raise ConfigError(f"{self._where('estimator.' + k)} = {v!r}: must be a number")
+                raise self._flagged(ConfigError(
+                    f"{self._where('estimator.' + k)} = {v!r}: must be a number"))
             kw[_ESTIMATOR_KEYS[k]] = v
         for k in ("word_bits", "acc_bits", "input_bits"):
             if k in self.fixed:

@@ -70,7 +70,8 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                         "below 1 the estimate tracks changes, memory 1/(1-L) samples)")
     g.add_argument("--alpha", type=number, metavar="A",
                    help="ridge weight: the prior weighs like A samples of each column, "
-                        "P0 = diag(1/(A e_j)) with e_j its mean square (default 0.01)")
+                        "P0 = diag(1/(A e_j)) with e_j its mean square; 1e-9 to 1e9 "
+                        "(default 0.01)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
 

@@ -619,7 +619,13 @@ class FixedConfig:
                 f"formats are {list(_QUANTITIES)}"
             )
         formats.update({k: _as_qformat(k, v) for k, v in overrides.items()})
-        return cls(word_bits=W, acc_bits=acc_bits, input_bits=In, **formats)
+        try:
+            return cls(word_bits=W, acc_bits=acc_bits, input_bits=In, **formats)
+        except FixedPointError as e:
+            # P, K, h and den are sized from P0 = diag(1/alpha_j): name the knob
+            raise FixedPointError(
+                f"{e} (the ridge's P0 = diag(1/alpha_j) reaches {P_bar:.3g} here: a larger "
+                f"estimator.alpha, or fixed.word_bits, gives it room)") from e
 
     def formats(self) -> dict[str, QFormat]:
         """The Q format of every quantity, in table order."""

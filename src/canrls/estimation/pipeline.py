@@ -53,6 +53,8 @@ from canrls.estimation.selection import SamplePolicy
 from canrls.signals import Signals
 
 __all__ = [
+    "ALPHA_MAX",
+    "ALPHA_MIN",
     "ENERGY_FLOOR",
     "EstimatorSettings",
     "ParameterEstimate",
@@ -72,6 +74,10 @@ F64 = npt.NDArray[np.float64]
 #: then weighs as for a column at 2**-10 of full scale (P0 = 2**20/alpha, which the
 #: fixed-point formats still hold for up to 12 columns).
 ENERGY_FLOOR = 2.0 ** -20
+#: The ridge weight ``alpha`` (the prior weighs like ``alpha`` samples of each column)
+#: from one billionth of a sample to a billion samples: P0 = diag(1/(alpha e_j)) then
+#: has a fixed-point format at any energy from ENERGY_FLOOR to 1.
+ALPHA_MIN, ALPHA_MAX = 1e-9, 1e9
 
 
 # ------------------------------------------------------------------------ settings
@@ -134,6 +140,12 @@ class EstimatorSettings:
         if not (isinstance(self.alpha, int | float) and self.alpha > 0 and
                 math.isfinite(self.alpha)):
             raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be > 0")
+        if not ALPHA_MIN <= self.alpha <= ALPHA_MAX:
+            # P0 = diag(1 / (alpha e_j)), 2**-10 <= e_j <= 1: beyond these the fixed-point
+            # format of P has no exponent for P0 (and the prior means nothing or all)
+            raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be from {ALPHA_MIN:g} "
+                              f"to {ALPHA_MAX:g} (the prior weighs like alpha samples of "
+                              f"each column)")
         if self.gap_periods <= 1.0:
             raise ConfigError(f"estimator.gap_periods = {self.gap_periods!r}: must be > 1")
         if not self.max_phase_step > 0:
