@@ -64,8 +64,11 @@ def test_exported_directory_compiles_for_the_cortex_m4(exported: Path) -> None:
                         str(c.with_suffix(".m4.o"))], check=True, capture_output=True)
 
 
-def test_exported_plan_runs_like_the_pipelines_estimator(exported: Path, tmp_path: Path) -> None:
-    """A host program with the exported config runs the pipeline's FixedRLS bit for bit."""
+@pytest.mark.parametrize("build", [[], ["-DCANRLS_N=4"]], ids=["any-n", "fixed-n"])
+def test_exported_plan_runs_like_the_pipelines_estimator(exported: Path, tmp_path: Path,
+                                                         build: list[str]) -> None:
+    """A host program with the exported config runs the pipeline's FixedRLS bit for bit,
+    with the kernel built for any n and for the model's n (the header's advice)."""
     gcc = shutil.which("gcc")
     if gcc is None:
         pytest.skip("gcc not installed")
@@ -91,7 +94,7 @@ def test_exported_plan_runs_like_the_pipelines_estimator(exported: Path, tmp_pat
         "    printf(\"%ld\\n\", (long)canrls_theta_q31(&S, j));\n"
         "  return 0;\n}\n")
     exe = tmp_path / "check"
-    subprocess.run([gcc, *CFLAGS, "-I", str(exported), str(prog),
+    subprocess.run([gcc, *CFLAGS, *build, "-I", str(exported), str(prog),
                     str(exported / "canrls_config.c"), str(exported / "canrls_fixed.c"),
                     "-o", str(exe)], check=True, capture_output=True)
     out = subprocess.run([str(exe)], check=True, capture_output=True, text=True).stdout
@@ -117,3 +120,15 @@ def test_export_c_api_names_the_equations(tmp_path: Path) -> None:
     r = export_c(cfg, tmp_path / "out")
     assert r.equations == ("mechanical",) and len(r.files) == 6
     assert "mechanical" in str(r)
+
+
+def test_header_says_the_models_n_and_refuses_another(exported: Path) -> None:
+    gcc = shutil.which("gcc")
+    if gcc is None:
+        pytest.skip("gcc not installed")
+    h = (exported / "canrls_config.h").read_text()
+    assert "-DCANRLS_N=4" in h and "#define CANRLS_CONFIG_N 4" in h
+    c = exported / "canrls_config.c"
+    r = subprocess.run([gcc, *CFLAGS, "-DCANRLS_N=5", "-c", str(c), "-o",
+                        str(c.with_suffix(".o"))], capture_output=True, text=True)
+    assert r.returncode != 0 and "CANRLS_N other than this model's n" in r.stderr
