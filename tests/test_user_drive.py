@@ -351,6 +351,33 @@ def test_a_checkpoint_restored_before_the_period_is_measured(rotary: dict[str, P
     assert b2.pipeline.estimates().samples > 0
 
 
+def test_a_refused_model_switch_before_the_period_keeps_the_model_to_start_with(
+        rotary: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A command's model switch that fails while the period is being measured leaves
+    the model the processor will start with as it was (it was replaced first)."""
+    from canrls.config import AppConfig
+    from canrls.errors import ConfigError
+    from canrls.processor import FrameProcessor, SampleProcessor
+
+    cfg = AppConfig(can={"dbc": str(rotary["dbc"])}, signal_overrides=ROTARY_SIGNALS)
+    protocol = cfg.protocol()
+    model, settings = cfg.model_for(protocol), cfg.settings()
+    proc = FrameProcessor(protocol, model, settings)
+    assert proc.period is None
+
+    def refuse(self: SampleProcessor, m: Any) -> Any:
+        raise ConfigError("refused")
+
+    with monkeypatch.context() as mp:
+        mp.setattr(SampleProcessor, "with_model", refuse)
+        with pytest.raises(ConfigError):
+            proc.with_model(model.with_effects(add=["offset"]))
+    for b in read_frames(rotary["epoch"]):
+        proc.process(b)
+    assert proc.period == pytest.approx(1e-3)
+    assert [p.name for p in proc.model.parameters] == [p.name for p in model.parameters]
+
+
 @pytest.mark.parametrize(("cycle_ms", "ok"), [(1, True), (2, False)])
 def test_the_dbc_cycle_time_is_checked_against_the_timestamps(
         tmp_path: Path, rotary: dict[str, Path], cycle_ms: int, ok: bool,

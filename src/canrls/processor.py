@@ -745,10 +745,11 @@ class FrameProcessor:
 
     def with_model(self, model: Model) -> Pipeline:
         """:meth:`SampleProcessor.with_model` (before the period is known: the model the
-        sample processor will start with)."""
+        sample processor will start with, once the switch succeeded)."""
+        pipeline = self.sampler.with_model(model)
         if self.pairer is None:
             self._model0 = model
-        return self.sampler.with_model(model)
+        return pipeline
 
     def state(self) -> dict[str, Any]:
         """:meth:`SampleProcessor.state` (the decoder and pairer restart after a restore)."""
