@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -33,8 +34,9 @@ from canrls.can.frames import (
 from canrls.can.logs import read_frames
 from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
-from canrls.live.bus import bus_config, messages_to_block, open_bus
+from canrls.live.bus import BusLink, FrameQueue, bus_config, messages_to_block, open_bus
 from canrls.live.daemon import Daemon, DaemonSettings
+from canrls.live.publisher import Publisher
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.processor import FrameProcessor
 from daemon_tool import DaemonTool, datagrams, notify_socket
@@ -243,6 +245,39 @@ def test_block_interval_follows_the_publish_interval() -> None:
     assert DaemonSettings.from_table({"block_interval": 0}).block_s == 0.0
     with pytest.raises(ConfigError, match="block_interval"):
         DaemonSettings.from_table({"block_interval": -1}, "f.toml")
+
+
+def test_the_estimator_sleeps_until_a_publication_is_due() -> None:
+    """The estimator sleeps until :meth:`Publisher.deadline`: a time at which a
+    publication is due. The parameter info rides on the first publication of the grid
+    at or after its own time; that time, falling between two publications (a
+    publication a little late sets it), was a deadline too, already past: the estimator
+    woke again and again with nothing to do, spinning until the next publication."""
+    protocol, model, settings = _setup()
+    cfg = DaemonSettings(publish_interval=0.1, info_interval=1.0)
+    link = BusLink(FrameQueue(10, False, threading.Event(), lambda e: None),
+                   lambda: VirtualBus(_chan("deadline")), cfg)  # never opened: sends nothing
+    counters = {"frames_rejected": 0, "frames_lost": 0, "saturations": 0, "tx_dropped": 0}
+    pub = Publisher(FrameProcessor(protocol, model, settings), cfg, link, lambda: counters)
+    pub.start(100.0)
+    pub.publish(100.1004)  # 0.4 ms late: carries the info, due again at 101.1004
+    for k in range(2, 12):  # the grid, each 0.1 ms late; 101.1001 is before the info
+        pub.publish(100.0 + 0.1 * k + 1e-4)
+    assert pub.next_at == pytest.approx(101.2)
+    for now in (101.1003, 101.1005, 101.15, 101.1999):  # the info's time passes
+        deadline = pub.deadline(now)
+        assert pub.due(deadline), (now, deadline)
+        assert deadline > now  # a sleep, not a spin
+    assert pub.due(101.2) and pub.deadline(101.2) == pytest.approx(101.2)
+    pub.model_changed()  # a new model publishes at once
+    assert pub.deadline(101.25) == 101.25 and pub.due(101.25)
+    # publishing after every block: the info's time is a deadline (idle: every 0.25 s)
+    pub0 = Publisher(pub.processor, DaemonSettings(publish_interval=0.0, info_interval=1.0),
+                     link, lambda: counters)
+    pub0.start(100.0)
+    pub0.publish(100.0)
+    assert pub0.deadline(100.9) == pytest.approx(101.0)
+    assert pub0.deadline(100.5) == pytest.approx(100.75)
 
 
 def _mean(xs: list[float]) -> float:
