@@ -21,7 +21,10 @@ go back to the sender, which counts them. Printed: the daemon's CPU per frame ov
 timed window (the process from /proc, goal 20 us, and its estimator and bus listener
 threads from /proc/PID/task), frames sent against frames processed (goal: none lost),
 the datagrams the socket's receive buffer dropped, the parameter frames sent and
-received. The daemon starts warm (the compiled kernels in their cache).
+received. The daemon starts warm (the compiled kernels in their cache). Then, for
+comparison, the same run with python-can's ``Notifier`` alone on that bus, feeding a
+listener that only counts (:func:`floor_udp`): the CPU per frame of python-can's
+receive path and the operating system's wake-ups, which no daemon can go below.
 
 **python-can-remote, the test transport** (the transport of the tests): four processes
 
@@ -398,13 +401,9 @@ def send_udp(port: int, daemon_port: int, rate: float, seconds: float, seed: int
     print(json.dumps({"received": received}), flush=True)
 
 
-def serve_udp(argv: list[str]) -> int:
-    """The daemon's process of the SocketCAN run: ``canrls run -i socketcan ...`` itself
-    (its command line, ``argv``), with python-can's ``socketcan`` interface built by
-    :func:`udp_socketcan_bus` in this process."""
-    BACKENDS["socketcan"] = ("__main__", "udp_socketcan_bus")
-    # every thread gets its Python name as its OS name (/proc/PID/task/TID/comm), so
-    # the benchmark can read each thread's CPU time over the timed window
+def _name_threads() -> None:
+    """Every thread started from now on gets its Python name as its OS name
+    (/proc/PID/task/TID/comm), so the benchmark can read each thread's CPU time."""
     libc = ctypes.CDLL(None, use_errno=True)
     bootstrap = threading.Thread._bootstrap_inner  # type: ignore[attr-defined]
 
@@ -413,6 +412,40 @@ def serve_udp(argv: list[str]) -> int:
         bootstrap(self)
 
     threading.Thread._bootstrap_inner = named  # type: ignore[attr-defined]
+
+
+class _Count(can.Listener):
+    def __init__(self) -> None:
+        self.n = 0
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.n += 1
+
+
+def floor_udp(channel: str) -> int:
+    """The floor of the SocketCAN run: the same bus, read by python-can's ``Notifier``
+    (as the daemon's ``BusLink`` starts it) into a listener that only counts; no
+    estimator. Prints ready, then, after a line on stdin, the frames counted."""
+    _name_threads()
+    bus = udp_socketcan_bus(channel)
+    count = _Count()
+    notifier = can.Notifier(bus, [count], timeout=0.1)
+    try:
+        print(json.dumps({"ready": True}), flush=True)
+        sys.stdin.readline()
+    finally:
+        notifier.stop()
+        bus.shutdown()
+    print(json.dumps({"daemon": {"frames": count.n}}), flush=True)
+    return 0
+
+
+def serve_udp(argv: list[str]) -> int:
+    """The daemon's process of the SocketCAN run: ``canrls run -i socketcan ...`` itself
+    (its command line, ``argv``), with python-can's ``socketcan`` interface built by
+    :func:`udp_socketcan_bus` in this process."""
+    BACKENDS["socketcan"] = ("__main__", "udp_socketcan_bus")
+    _name_threads()
     from canrls.cli.main import main as canrls_main
     sys.argv = [sys.argv[0], *argv]  # the process's own command line, as the console script
     return int(canrls_main() or 0)
@@ -431,14 +464,14 @@ def _thread_cpu(pid: int) -> dict[str, float]:
     return out
 
 
-def run_socketcan(rate: float, seconds: float, tick: float) -> dict[str, float]:
-    """``canrls run`` on the SocketCAN stand-in, warm, fed ``seconds`` at ``rate``."""
+def run_socketcan(rate: float, seconds: float, tick: float, floor: bool = False
+                  ) -> dict[str, float]:
+    """``canrls run`` on the SocketCAN stand-in, warm, fed ``seconds`` at ``rate``
+    (``floor``: instead of the daemon, python-can's notifier alone, :func:`floor_udp`)."""
     dport, sport = udp_port(), udp_port()
-    msgs_seed = 4
     sender = subprocess.Popen(
         [PY, __file__, "--send-udp", str(sport), "--daemon-port", str(dport),
-         "--rate", str(rate), "--seconds", str(seconds), "--seed", str(msgs_seed),
-         "--tick", str(tick)],
+         "--rate", str(rate), "--seconds", str(seconds), "--seed", "4", "--tick", str(tick)],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert sender.stdout is not None
     try:
@@ -449,14 +482,21 @@ def run_socketcan(rate: float, seconds: float, tick: float) -> dict[str, float]:
         sender.kill()
         sender.wait()
         raise
+    channel = f"{dport}>{sport}"
     period = [] if rate == 2000.0 else ["--period", repr(2.0 / rate)]
-    d = subprocess.Popen(
-        [PY, __file__, "--serve-udp", "run", "-i", "socketcan", "-c", f"{dport}>{sport}",
-         "--effects", EFFECTS, "--kt", "0.1", "--duration", f"{seconds + 120:g}", "--json",
-         *period],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cmd = ([PY, __file__, "--floor-udp", channel] if floor else
+           [PY, __file__, "--serve-udp", "run", "-i", "socketcan", "-c", channel,
+            "--effects", EFFECTS, "--kt", "0.1", "--duration", f"{seconds + 120:g}",
+            "--json", *period])
+    d = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
     try:
-        time.sleep(8.0)  # the daemon's start (warm)
+        if floor:
+            assert d.stdout is not None
+            json.loads(d.stdout.readline())  # ready
+            time.sleep(1.0)
+        else:
+            time.sleep(8.0)  # the daemon's start (warm)
         _, _, cpu1 = _proc(d)
         th1 = _thread_cpu(d.pid)
         _go(sender)
@@ -465,7 +505,10 @@ def run_socketcan(rate: float, seconds: float, tick: float) -> dict[str, float]:
         _, _, cpu2 = _proc(d)
         th2 = _thread_cpu(d.pid)
         drops = udp_drops(dport)
-        d.terminate()
+        if floor:
+            _go(d)
+        else:
+            d.terminate()
         live = _finish(d, 60)["daemon"]
         _go(sender)  # stop reading
         sent.update(_finish(sender, 30))
@@ -480,13 +523,13 @@ def run_socketcan(rate: float, seconds: float, tick: float) -> dict[str, float]:
     def thread(prefix: str) -> float:
         return sum(v - th1.get(k, 0.0) for k, v in th2.items() if k.startswith(prefix)) * per
 
+    est, rx = thread("canrls estimat"), thread("Notifier")
     return {"sent": sent["sent"], "rate": sent["sent"] / sent["seconds"], "frames": frames,
-            "drops": drops, "overflow": live["rx_overflow"],
-            "lost_counter": live["counters"]["frames_lost"],
-            "param_frames": sent["received"], "frames_sent": live["frames_sent"],
-            "cpu_us": (cpu2 - cpu1) * per, "est_us": thread("canrls estimat"),
-            "rx_us": thread("Notifier"),
-            "other_us": (cpu2 - cpu1) * per - thread("canrls estimat") - thread("Notifier")}
+            "drops": drops, "overflow": live.get("rx_overflow", 0),
+            "lost_counter": live.get("counters", {}).get("frames_lost", 0),
+            "param_frames": sent["received"], "frames_sent": live.get("frames_sent", 0),
+            "cpu_us": (cpu2 - cpu1) * per, "est_us": est, "rx_us": rx,
+            "other_us": (cpu2 - cpu1) * per - est - rx}
 
 
 def _verdict(ok: bool) -> str:
@@ -496,6 +539,8 @@ def _verdict(ok: bool) -> str:
 def main() -> int:
     if sys.argv[1:2] == ["--serve-udp"]:  # the daemon's process of the SocketCAN run
         return serve_udp(sys.argv[2:])
+    if sys.argv[1:2] == ["--floor-udp"]:  # python-can's notifier alone on that bus
+        return floor_udp(sys.argv[2])
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--duration", type=float, default=60.0,
                     help="seconds of the 1 kHz run over python-can-remote (default 60)")
@@ -547,6 +592,11 @@ def main() -> int:
                   f"receive buffer {r['drops']}, queue overflow {r['overflow']}, counter "
                   f"gaps {r['lost_counter']}; parameter frames {r['frames_sent']} sent, "
                   f"{r['param_frames']} received)")
+            f = run_socketcan(rate, seconds, args.tick, floor=True)
+            print(f"    for comparison, python-can's Notifier alone on that bus (a listener "
+                  f"that only counts, no estimator): {f['cpu_us']:.1f} us per frame, the "
+                  f"process (its notifier thread {f['rx_us']:.1f} us; {f['frames']} of "
+                  f"{f['sent']} frames)")
     if args.skip_remote:
         return 0
     print("test transport: canrls run -i remote (python-can-remote on 127.0.0.1, a "
