@@ -442,6 +442,46 @@ def test_vanished_interface_is_reopened_with_backoff() -> None:
         tool.close()
 
 
+def test_the_supervisor_sleeps_until_the_bus_fails() -> None:
+    """Without a watchdog the supervisor thread sleeps (it polled the bus's state 20 times
+    a second: a wake-up costs CPU); a failing bus wakes it at once, and it reopens it."""
+    protocol, model, settings = _setup()
+    ch = _chan("sleep")
+    opened: list[_FlakyBus] = []
+
+    class Bus(_FlakyBus):
+        pass
+
+    def factory() -> can.BusABC:
+        opened.append(Bus(channel=ch))
+        return opened[-1]
+
+    d = Daemon(protocol, model, settings, DaemonSettings(reopen_min_s=0.05),
+               bus_factory=factory, notifier=SystemdNotifier(None, environ={}))
+    assert d.sd.watchdog_interval is None
+    looks: list[str] = []  # the supervisor's looks at the bus's state
+    failed = d._link.failed
+    is_set = failed.is_set
+
+    def counted() -> bool:
+        looks.append(threading.current_thread().name)
+        return is_set()
+
+    failed.is_set = counted  # type: ignore[method-assign]
+    try:
+        d.start()
+        # the first look (at once), then one after the idle sleep of 1 s at most
+        time.sleep(0.6)
+        assert looks.count("canrls supervisor") <= 2, looks.count("canrls supervisor")
+        Bus.recv_fails = True
+        assert d.wait_for(lambda x: len(opened) >= 2, 10)  # reopened
+        Bus.recv_fails = False
+        assert d.wait_for(lambda x: x.stats().bus_reopens == 1, 10)
+    finally:
+        Bus.recv_fails = False
+        d.stop()
+
+
 # ------------------------------------------------------------------ configuration
 def test_bus_config_ignores_python_can_config(monkeypatch: pytest.MonkeyPatch,
                                               tmp_path: Path) -> None:
