@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -33,8 +34,9 @@ from canrls.can.frames import (
 from canrls.can.logs import read_frames
 from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
-from canrls.live.bus import bus_config, messages_to_block, open_bus
+from canrls.live.bus import BusLink, FrameQueue, bus_config, messages_to_block, open_bus
 from canrls.live.daemon import Daemon, DaemonSettings
+from canrls.live.publisher import Publisher
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.processor import FrameProcessor
 from daemon_tool import DaemonTool, datagrams, notify_socket
@@ -245,6 +247,39 @@ def test_block_interval_follows_the_publish_interval() -> None:
         DaemonSettings.from_table({"block_interval": -1}, "f.toml")
 
 
+def test_the_estimator_sleeps_until_a_publication_is_due() -> None:
+    """The estimator sleeps until :meth:`Publisher.deadline`: a time at which a
+    publication is due. The parameter info rides on the first publication of the grid
+    at or after its own time; that time, falling between two publications (a
+    publication a little late sets it), was a deadline too, already past: the estimator
+    woke again and again with nothing to do, spinning until the next publication."""
+    protocol, model, settings = _setup()
+    cfg = DaemonSettings(publish_interval=0.1, info_interval=1.0)
+    link = BusLink(FrameQueue(10, False, threading.Event(), lambda e: None),
+                   lambda: VirtualBus(_chan("deadline")), cfg)  # never opened: sends nothing
+    counters = {"frames_rejected": 0, "frames_lost": 0, "saturations": 0, "tx_dropped": 0}
+    pub = Publisher(FrameProcessor(protocol, model, settings), cfg, link, lambda: counters)
+    pub.start(100.0)
+    pub.publish(100.1004)  # 0.4 ms late: carries the info, due again at 101.1004
+    for k in range(2, 12):  # the grid, each 0.1 ms late; 101.1001 is before the info
+        pub.publish(100.0 + 0.1 * k + 1e-4)
+    assert pub.next_at == pytest.approx(101.2)
+    for now in (101.1003, 101.1005, 101.15, 101.1999):  # the info's time passes
+        deadline = pub.deadline(now)
+        assert pub.due(deadline), (now, deadline)
+        assert deadline > now  # a sleep, not a spin
+    assert pub.due(101.2) and pub.deadline(101.2) == pytest.approx(101.2)
+    pub.model_changed()  # a new model publishes at once
+    assert pub.deadline(101.25) == 101.25 and pub.due(101.25)
+    # publishing after every block: the info's time is a deadline (idle: every 0.25 s)
+    pub0 = Publisher(pub.processor, DaemonSettings(publish_interval=0.0, info_interval=1.0),
+                     link, lambda: counters)
+    pub0.start(100.0)
+    pub0.publish(100.0)
+    assert pub0.deadline(100.9) == pytest.approx(101.0)
+    assert pub0.deadline(100.5) == pytest.approx(100.75)
+
+
 def _mean(xs: list[float]) -> float:
     xs = [x for x in xs if math.isfinite(x)]
     assert xs, "no finite residual RMS in the status frames of this window"
@@ -405,6 +440,46 @@ def test_vanished_interface_is_reopened_with_backoff() -> None:
         Bus.recv_fails = False
         d.stop()
         tool.close()
+
+
+def test_the_supervisor_sleeps_until_the_bus_fails() -> None:
+    """Without a watchdog the supervisor thread sleeps (it polled the bus's state 20 times
+    a second: a wake-up costs CPU); a failing bus wakes it at once, and it reopens it."""
+    protocol, model, settings = _setup()
+    ch = _chan("sleep")
+    opened: list[_FlakyBus] = []
+
+    class Bus(_FlakyBus):
+        pass
+
+    def factory() -> can.BusABC:
+        opened.append(Bus(channel=ch))
+        return opened[-1]
+
+    d = Daemon(protocol, model, settings, DaemonSettings(reopen_min_s=0.05),
+               bus_factory=factory, notifier=SystemdNotifier(None, environ={}))
+    assert d.sd.watchdog_interval is None
+    looks: list[str] = []  # the supervisor's looks at the bus's state
+    failed = d._link.failed
+    is_set = failed.is_set
+
+    def counted() -> bool:
+        looks.append(threading.current_thread().name)
+        return is_set()
+
+    failed.is_set = counted  # type: ignore[method-assign]
+    try:
+        d.start()
+        # the first look (at once), then one after the idle sleep of 1 s at most
+        time.sleep(0.6)
+        assert looks.count("canrls supervisor") <= 2, looks.count("canrls supervisor")
+        Bus.recv_fails = True
+        assert d.wait_for(lambda x: len(opened) >= 2, 10)  # reopened
+        Bus.recv_fails = False
+        assert d.wait_for(lambda x: x.stats().bus_reopens == 1, 10)
+    finally:
+        Bus.recv_fails = False
+        d.stop()
 
 
 # ------------------------------------------------------------------ configuration

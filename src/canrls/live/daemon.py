@@ -57,6 +57,13 @@ __all__ = ["Daemon", "DaemonSettings", "DaemonStats", "make_processor"]
 
 log = logging.getLogger(__name__)
 
+#: the longest the supervisor sleeps without a watchdog ping due [s] (a bus failure and
+#: the stop wake it at once)
+_SUPERVISOR_IDLE_S = 1.0
+#: the supervisor's tick [s]: a watchdog ping goes out on the first tick at or after its
+#: time (the cadence of the 50 ms poll the supervisor once was)
+_SUPERVISOR_TICK_S = 0.05
+
 
 def make_processor(config: DaemonSettings, protocol: Protocol, model: Model,
                    settings: EstimatorSettings) -> FrameProcessor:
@@ -136,6 +143,8 @@ class Daemon:
         self.config_model = model
         self._lock = threading.RLock()
         self._stopping = threading.Event()
+        #: wakes the supervisor: the bus failed, or the daemon stops
+        self._attention = threading.Event()
         self._stopped = threading.Event()
         self._rx_closed = threading.Event()
         self._reload_requested = threading.Event()
@@ -187,6 +196,7 @@ class Daemon:
 
     def _recv_failed(self, exc: BaseException) -> None:
         self._link.recv_failed(exc)
+        self._attention.set()
 
     # ------------------------------------------------------------------ properties
     @property
@@ -338,9 +348,11 @@ class Daemon:
         """Stop reading, process what was queued, checkpoint, close the bus. Idempotent."""
         if self._stopped.is_set() or not self._started:
             self._stopping.set()
+            self._attention.set()
             return
         self.sd.stopping()
         self._stopping.set()
+        self._attention.set()
         self._queue.space.set()
         for t in self._threads:  # the supervisor first: no reopening from now on
             if t.name == "canrls supervisor":
@@ -379,6 +391,7 @@ class Daemon:
 
     def request_stop(self) -> None:
         self._stopping.set()
+        self._attention.set()
         self._queue.wake.set()
 
     def request_reload(self) -> None:
@@ -442,6 +455,7 @@ class Daemon:
         if self.failure is None:
             self.failure = exc
         self._stopping.set()
+        self._attention.set()
         self._queue.wake.set()
 
     def _supervisor_loop(self) -> None:
@@ -451,9 +465,14 @@ class Daemon:
             self._failed("supervisor", e)
 
     def _supervise(self) -> None:
+        """Sleeps until the next watchdog ping, a failure of the bus or the stop (not a
+        poll: every wake-up of a thread costs CPU)."""
         wd = self.sd.watchdog_interval
         next_ping = 0.0
-        while not self._stopping.is_set():
+        while True:
+            self._attention.clear()  # before the checks: a later set() cuts the sleep
+            if self._stopping.is_set():
+                return
             if self._link.failed.is_set():
                 self._link.reopen(self._stopping)
                 continue
@@ -463,7 +482,12 @@ class Daemon:
                 if now - self._heartbeat < wd / 2:
                     self.sd.watchdog()
                 next_ping = now + wd / 4
-            self._stopping.wait(0.05)
+            if wd is None:
+                sleep = _SUPERVISOR_IDLE_S
+            else:  # whole ticks up to the next ping
+                ticks = max(1, math.ceil((next_ping - now) / _SUPERVISOR_TICK_S))
+                sleep = min(ticks * _SUPERVISOR_TICK_S, _SUPERVISOR_IDLE_S)
+            self._attention.wait(sleep)
 
     # ------------------------------------------------------------------ estimator thread
     def _estimator_loop(self) -> None:

@@ -141,9 +141,17 @@ class Publisher:
         self.info_due = now
 
     def deadline(self, now: float) -> float:
-        """When the next publication (or parameter info) is due, at the latest."""
-        pub = self.next_at if self.config.publish_interval > 0 else now + _IDLE_S
-        return min(pub, self.info_due)
+        """When the next publication is due, at the latest: a time at which :meth:`due`
+        holds, never one before it (the estimator sleeps until then).
+
+        The parameter info rides on a publication: on the grid (``publish_interval``
+        > 0) it goes with the first publication at or after ``info_due``, so that time
+        is no deadline of its own (it would wake the estimator with nothing due, again
+        and again until the next publication). With ``publish_interval = 0`` every
+        wake-up publishes, so the info's time is one."""
+        if self.config.publish_interval > 0:
+            return self.next_at if not self._asap else now
+        return min(now + _IDLE_S, self.info_due)
 
     def due(self, now: float) -> bool:
         return self.config.publish_interval == 0 or now >= self.next_at or self._asap
