@@ -34,7 +34,8 @@ from canrls.can.frames import (
 from canrls.can.logs import read_frames
 from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
-from canrls.live.bus import BusLink, FrameQueue, bus_config, messages_to_block, open_bus
+from canrls.live.bus import (RX_BATCH, BusLink, BusReader, FrameQueue, bus_config,
+                             messages_to_block, open_bus)
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.live.publisher import Publisher
 from canrls.live.sdnotify import SystemdNotifier
@@ -247,6 +248,93 @@ def test_block_interval_follows_the_publish_interval() -> None:
         DaemonSettings.from_table({"block_interval": -1}, "f.toml")
 
 
+def test_the_bus_reader_sleeps_a_quarter_block_at_most() -> None:
+    assert DaemonSettings().rx_s == 0.005
+    assert DaemonSettings(publish_interval=0.01).rx_s == 0.0025
+    assert DaemonSettings(publish_interval=0.0).rx_s == 0.0  # latency: wake for each frame
+    assert DaemonSettings(block_interval=0.0).rx_s == 0.0
+    assert DaemonSettings(rx_interval=0.02).rx_s == 0.02
+    assert DaemonSettings.from_table({"rx_interval": 0}).rx_s == 0.0
+    with pytest.raises(ConfigError, match="daemon.rx_interval = -1"):
+        DaemonSettings.from_table({"rx_interval": -1}, "f.toml")
+
+
+class _CountingBus(VirtualBus):
+    """A virtual bus that counts the reader's waits (``recv`` with a timeout) and
+    takings (``recv(0)``)."""
+
+    def __init__(self, **kw: Any) -> None:
+        super().__init__(**kw)
+        self.waits = 0
+        self.takes = 0
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        if timeout:
+            self.waits += 1
+        else:
+            self.takes += 1
+        return super().recv(timeout)
+
+
+def test_the_bus_reader_takes_every_frame_waiting_at_one_wake_up() -> None:
+    """Frames already waiting are taken in one wake-up, in order."""
+    ch = _chan("reader")
+    stopping = threading.Event()
+    q = FrameQueue(1000, False, stopping, lambda e: None)
+    bus = _CountingBus(channel=ch)
+    tx = VirtualBus(channel=ch)
+    for i in range(50):
+        tx.send(can.Message(arbitration_id=0x100, data=[i]))
+    reader = BusReader(bus, q, 0.0)
+    try:
+        assert _received_within(q, 50, 5)
+        assert [m.data[0] for m in q.take(100)] == list(range(50))
+        assert bus.takes == 50  # 49 taken and one empty look
+        assert bus.waits <= 2  # one for the 50 (perhaps the wait for the next one)
+    finally:
+        stopping.set()
+        reader.stop()
+        bus.shutdown()
+        tx.shutdown()
+
+
+def _received_within(q: FrameQueue, n: int, seconds: float) -> bool:
+    deadline = time.monotonic() + seconds
+    while q.received < n and time.monotonic() < deadline:
+        time.sleep(0.002)
+    return q.received >= n
+
+
+def test_the_bus_reader_sleeps_on_a_slow_bus_not_on_a_fast_one() -> None:
+    """After a wake-up the reader sleeps ``interval`` while the bus brings fewer than
+    RX_BATCH frames an interval (frames wait in the interface meanwhile); on a faster
+    bus it goes back to recv at once, so the interface's buffer is not slept away."""
+    ch = _chan("reader-sleep")
+    stopping = threading.Event()
+    q = FrameQueue(10000, False, stopping, lambda e: None)
+    bus = VirtualBus(channel=ch)
+    tx = VirtualBus(channel=ch)
+    reader = BusReader(bus, q, 2.0)
+    try:
+        time.sleep(0.3)  # a slow bus: one frame in 0.3 s
+        tx.send(can.Message(arbitration_id=0x100, data=[0]))
+        assert _received_within(q, 1, 5)
+        tx.send(can.Message(arbitration_id=0x100, data=[1]))
+        assert not _received_within(q, 2, 0.8)  # asleep: it waits in the interface
+        assert _received_within(q, 2, 5)
+        # a fast bus: 4 * RX_BATCH frames at once, far more than RX_BATCH in 2 s
+        for i in range(4 * RX_BATCH):
+            tx.send(can.Message(arbitration_id=0x100, data=[i % 256]))
+        assert _received_within(q, 2 + 4 * RX_BATCH, 5)
+        tx.send(can.Message(arbitration_id=0x100, data=[2]))
+        assert _received_within(q, 3 + 4 * RX_BATCH, 0.8)  # no sleep after it
+    finally:
+        stopping.set()
+        reader.stop()
+        bus.shutdown()
+        tx.shutdown()
+
+
 def test_the_estimator_sleeps_until_a_publication_is_due() -> None:
     """The estimator sleeps until :meth:`Publisher.deadline`: a time at which a
     publication is due. The parameter info rides on the first publication of the grid
@@ -433,7 +521,7 @@ def test_vanished_interface_is_reopened_with_backoff() -> None:
         tool.take()
         time.sleep(0.2)
         assert any(m.arbitration_id == 0x310 for m in tool.take())  # publishing again
-        # frames still reach the estimator through the new notifier
+        # frames still reach the estimator through the new reader
         tool.bus.send(encode_command(CommandCode.FREEZE))
         assert d.wait_for(lambda x: x.pipeline.frozen, 5)
     finally:

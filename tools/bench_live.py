@@ -26,7 +26,9 @@ the datagrams the socket's receive buffer dropped, the parameter frames sent and
 received. The daemon starts warm (the compiled kernels in their cache). Then, for
 comparison, the same run with python-can's ``Notifier`` alone on that bus, feeding a
 listener that only counts (:func:`floor_udp`): the CPU per frame of python-can's
-receive path and the operating system's wake-ups, which no daemon can go below.
+receive path and the operating system's wake-ups, one for each hand-over (the daemon's
+reader, ``canrls.live.bus.BusReader``, takes every frame waiting and sleeps
+``rx_interval``, 5 ms, between wake-ups, so it can go below that floor).
 
 **python-can-remote, the test transport** (the transport of the tests): four processes
 
@@ -48,7 +50,7 @@ Two runs:
   ``VmHWM`` beside it); its CPU per frame in the steady state, the whole process from
   /proc, python-can-remote's pure-Python websocket client included (for information:
   the goal of 20 us is the SocketCAN path's), and beside it the daemon's estimator
-  thread and bus listener thread (the notifier, which runs the websocket client) over
+  thread and bus listener thread (the bus reader, which runs the websocket client) over
   the whole run, from ``canrls run --json``.
 * **18,000 frames/s** (twice a saturated 1 Mbit/s bus) for ``--fast-seconds``
   (default 10): frames the sender sent against frames the daemon processed (goal: none
@@ -525,7 +527,7 @@ def run_socketcan(rate: float, seconds: float, tick: float, floor: bool = False
     def thread(prefix: str) -> float:
         return sum(v - th1.get(k, 0.0) for k, v in th2.items() if k.startswith(prefix)) * per
 
-    est, rx = thread("canrls estimat"), thread("Notifier")
+    est, rx = thread("canrls estimat"), thread("Notifier" if floor else "canrls-bus-read")
     return {"sent": sent["sent"], "rate": sent["sent"] / sent["seconds"], "frames": frames,
             "drops": drops, "overflow": live.get("rx_overflow", 0),
             "lost_counter": live.get("counters", {}).get("frames_lost", 0),

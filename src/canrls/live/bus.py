@@ -2,10 +2,17 @@
 
 ::
 
-    bus --python-can Notifier--> FrameQueue (a Listener: queues, nothing more)
-                                     | take(): a list of frames, a block
-    BusLink: opens the bus (and the notifier), reopens it with backoff when recv
+    bus --BusReader--> FrameQueue (a Listener: queues, nothing more)
+                           | take(): a list of frames, a block
+    BusLink: opens the bus (and its reader), reopens it with backoff when recv
              raises, sends without blocking, pauses transmission on error frames
+
+The reader is python-can's :class:`~can.Notifier` loop (``bus.recv``, the listener,
+``on_error``) that takes every frame waiting at each wake-up and then sleeps
+``rx_interval`` (:attr:`DaemonSettings.rx_s <canrls.live.settings.DaemonSettings.rx_s>`,
+5 ms by default): at 1 kHz one wake-up serves some ten frames instead of one or two,
+and a wake-up costs the process more CPU than reading a frame. An idle bus is waited
+for in ``recv``, without polling.
 
 The bus is opened with ``can.Bus(..., ignore_config=True)`` from the ``[can]`` table
 and the command line only: python-can's own configuration sources (``can.rc``,
@@ -16,7 +23,7 @@ Faults: an error frame (SocketCAN delivers them, bus-off included) pauses transm
 for ``fault_hold_s`` after the last one (a ``CAN_ERR_RESTARTED`` frame ends a bus-off
 pause at once). An exception from the bus's ``recv`` (interface gone: unplugged
 adapter, ``ip link set can0 down``) marks the link failed; :meth:`BusLink.reopen`
-then stops the notifier, shuts the bus down and opens it again with exponential
+then stops the reader, shuts the bus down and opens it again with exponential
 backoff from ``reopen_min_s`` to ``reopen_max_s``. The queue survives a reopening.
 """
 
@@ -38,8 +45,8 @@ from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
 from canrls.live.settings import DaemonSettings
 
-__all__ = ["BusLink", "FrameQueue", "bus_config", "is_command", "messages_to_block",
-           "open_bus", "COMMAND_ID"]
+__all__ = ["BusLink", "BusReader", "FrameQueue", "RX_BATCH", "bus_config", "is_command",
+           "messages_to_block", "open_bus", "COMMAND_ID"]
 
 log = logging.getLogger(__name__)
 
@@ -128,11 +135,11 @@ def is_command(msg: can.Message) -> bool:
 
 
 class FrameQueue(can.Listener):
-    """Runs in the notifier's thread: queues each frame, nothing more.
+    """Runs in the reader's thread: queues each frame, nothing more.
 
     :param limit: frames held; beyond, a frame is dropped and counted in
-        :attr:`overflow` (or, with ``block``, the notifier's thread waits for room).
-    :param stopping: set when the daemon stops (a waiting notifier gives up).
+        :attr:`overflow` (or, with ``block``, the reader's thread waits for room).
+    :param stopping: set when the daemon stops (a waiting reader gives up).
     :param on_error: called with the exception when the bus's ``recv`` raises.
     """
 
@@ -154,7 +161,7 @@ class FrameQueue(can.Listener):
         self._stopping = stopping
         self._on_error = on_error
         self._cpu0: float | None = None
-        #: thread CPU time of the notifier's thread since the first frame [s]
+        #: thread CPU time of the reader's thread since the first frame [s]
         self.cpu = 0.0
         #: open while set (:meth:`hold`)
         self.gate = threading.Event()
@@ -187,13 +194,13 @@ class FrameQueue(can.Listener):
 
     def on_error(self, exc: Exception) -> None:
         self._on_error(exc)
-        time.sleep(0.05)  # the notifier retries recv at once: do not spin
+        time.sleep(0.05)  # the reader retries recv at once: do not spin
 
     def stop(self) -> None:
-        """The notifier stops (bus reopened or daemon stopping): the queue stays."""
+        """The reader stops (bus reopened or daemon stopping): the queue stays."""
 
     def hold(self, hold: bool) -> None:
-        """Close (``True``) or open the gate: while closed the notifier's thread waits."""
+        """Close (``True``) or open the gate: while closed the reader's thread waits."""
         if hold:
             self.gate.clear()
         else:
@@ -208,16 +215,87 @@ class FrameQueue(can.Listener):
         return msgs
 
     def wake_all(self) -> None:
-        """Wake a waiting estimator and a waiting notifier (stopping)."""
+        """Wake a waiting estimator and a waiting reader (stopping)."""
         self.space.set()
         self.hurry.set()
         self.wake.set()
 
 
-class BusLink:
-    """The bus and its notifier: open, reopen, send, and the transmit pause of faults.
+#: the reader sleeps ``rx_interval`` after a wake-up while the bus brings fewer frames
+#: than this in an interval (measured since the last wake-up); on a faster bus it does
+#: not sleep: wake-ups fill by themselves, and a sleep would use up the interface's
+#: buffer (a SocketCAN socket's default holds some 270 frames)
+RX_BATCH = 64
 
-    :param queue: the listener the notifier feeds (kept across reopenings).
+
+class BusReader:
+    """The thread that reads the bus into ``listener``: python-can's ``Notifier`` loop,
+    taking every frame waiting at a wake-up, then sleeping ``interval`` seconds.
+
+    An exception from ``recv`` goes to ``listener.on_error`` and the loop goes on, as
+    with a ``Notifier`` whose listener handles errors.
+
+    :param interval: seconds to sleep after a wake-up while the bus brings fewer than
+        :data:`RX_BATCH` frames an interval (0: wait in ``recv`` for each frame, as a
+        ``Notifier`` does).
+    :param timeout: seconds one ``recv`` waits on an idle bus before the loop looks
+        whether it should stop.
+    """
+
+    def __init__(self, bus: can.BusABC, listener: FrameQueue, interval: float,
+                 timeout: float = 0.1) -> None:
+        self.bus = bus
+        self.listener = listener
+        self.interval = float(interval)
+        self.timeout = timeout
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="canrls-bus-reader",
+                                        daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        recv = self.bus.recv
+        on_message = self.listener.on_message_received
+        stop, interval = self._stop, self.interval
+        mark, taken = time.monotonic(), 0  # frames taken since mark
+        while not stop.is_set():
+            try:
+                msg = recv(self.timeout)  # an idle bus: wait here
+                if msg is None:
+                    continue
+                while True:  # every frame already waiting, without waiting
+                    on_message(msg)
+                    taken += 1
+                    if stop.is_set():  # a source that never runs dry (a simulated drive)
+                        return
+                    msg = recv(0.0)
+                    if msg is None:
+                        break
+            except Exception as exc:  # noqa: BLE001 -- as python-can's Notifier
+                self.listener.on_error(exc)
+                continue
+            if interval > 0.0:
+                now = time.monotonic()
+                # frames per interval at the rate since mark: rate * interval < RX_BATCH
+                slow = taken * interval < RX_BATCH * (now - mark)
+                mark, taken = now, 0
+                if slow:
+                    # a slow bus: let frames gather in the interface. A fast one fills
+                    # wake-ups by itself, and the interface's buffer is not slept away
+                    stop.wait(interval)
+                    mark = time.monotonic()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the thread (it finishes the frame in hand) and wait for it."""
+        self._stop.set()
+        self._thread.join(timeout)
+        self.listener.stop()
+
+
+class BusLink:
+    """The bus and its reader: open, reopen, send, and the transmit pause of faults.
+
+    :param queue: the listener the reader feeds (kept across reopenings).
     :param factory: opens the bus (called again to reopen).
     :param config: ``send_timeout``, ``fault_hold_s``, ``reopen_min_s``/``reopen_max_s``.
     :param describe: what the bus is called in log lines when it has no ``channel_info``.
@@ -230,8 +308,8 @@ class BusLink:
         self.config = config
         self.describe = describe
         self.bus: can.BusABC | None = None
-        self._notifier: can.Notifier | None = None
-        #: set in the notifier's thread when ``recv`` raised
+        self._reader: BusReader | None = None
+        #: set in the reader's thread when ``recv`` raised
         self.failed = threading.Event()
         self._fail_exc: BaseException | None = None
         self._fault_until = 0.0
@@ -245,20 +323,20 @@ class BusLink:
 
     # ------------------------------------------------------------------ open, close
     def open(self) -> None:
-        """Open the bus and start the notifier (``BusError`` if it cannot be opened)."""
+        """Open the bus and start its reader (``BusError`` if it cannot be opened)."""
         bus = self.factory()
         self.bus = bus
         self.failed.clear()
-        self._notifier = can.Notifier(bus, [self.queue], timeout=0.1)
+        self._reader = BusReader(bus, self.queue, self.config.rx_s)
 
-    def close_notifier(self) -> None:
-        n, self._notifier = self._notifier, None
-        if n is not None:
-            n.stop(timeout=5.0)
+    def close_reader(self) -> None:
+        r, self._reader = self._reader, None
+        if r is not None:
+            r.stop(timeout=5.0)
 
     def close(self) -> None:
-        """Stop the notifier and shut the bus down."""
-        self.close_notifier()
+        """Stop the reader and shut the bus down."""
+        self.close_reader()
         b, self.bus = self.bus, None
         if b is not None:
             try:
@@ -267,7 +345,7 @@ class BusLink:
                 log.debug("bus shutdown: %s", e)
 
     def recv_failed(self, exc: BaseException) -> None:
-        """Called in the notifier's thread when ``recv`` raises."""
+        """Called in the reader's thread when ``recv`` raises."""
         if not self.failed.is_set():
             self._fail_exc = exc
             self.failed.set()

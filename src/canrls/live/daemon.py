@@ -2,7 +2,7 @@
 
 :class:`Daemon` wires small parts, each with one job::
 
-    bus --Notifier--> FrameQueue ----------------> estimator thread (this module):
+    bus --BusReader--> FrameQueue --------------> estimator thread (this module):
           BusLink: open/reopen, send, faults         blocks of frames through the
                                                      FrameProcessor (make_processor)
         CommandHandler   command frames -> pipeline actions -> RlsCommandAck
@@ -10,7 +10,8 @@
         Checkpointer     resume at start, save every checkpoint_interval and at stop
     supervisor thread: reopens a vanished bus (BusLink.reopen), pings systemd's watchdog
 
-Threads: python-can's :class:`~can.Notifier` reads the bus and hands every frame to a
+Threads: a :class:`~canrls.live.bus.BusReader` (python-can's ``Notifier`` loop, taking
+every frame waiting each ``rx_interval``) reads the bus and hands every frame to a
 :class:`~canrls.live.bus.FrameQueue` that only queues it; the estimator thread takes
 whatever has arrived (at most every ``block_interval``, by default the publish
 interval, and right before each publication; at once when a command frame waits) and
@@ -357,7 +358,7 @@ class Daemon:
         for t in self._threads:  # the supervisor first: no reopening from now on
             if t.name == "canrls supervisor":
                 t.join()
-        self._link.close_notifier()
+        self._link.close_reader()
         self._rx_closed.set()  # the estimator drains the queue, then ends
         self._queue.wake_all()
         for t in self._threads:
@@ -440,7 +441,7 @@ class Daemon:
     def hold_input(self, hold: bool) -> None:
         """Stop (``True``) or restart taking frames from the bus listener.
 
-        The notifier's thread waits while the input is held, so a simulated drive with
+        The bus reader's thread waits while the input is held, so a simulated drive with
         ``realtime=False`` (frames made as they are read) pauses with it: the demo
         holds the drive while it computes the diagnosis. On a real bus frames would
         pile up in the interface's buffer: do not hold a live bus for long.

@@ -12,9 +12,9 @@ __all__ = ["InterpreterTuning", "interpreter"]
 class InterpreterTuning:
     """Process-wide settings for latency while at least one daemon runs.
 
-    * The bus reader (python-can's notifier thread) and the estimator share the GIL.
+    * The bus reader (:class:`canrls.live.bus.BusReader`) and the estimator share the GIL.
       With CPython's default switch interval (5 ms) a thread that is ready waits up
-      to 5 ms while another runs Python code without blocking, e.g. the notifier
+      to 5 ms while another runs Python code without blocking, e.g. the reader
       taking frames already queued by python-can's virtual bus. ``switch_interval``
       (``sys.setswitchinterval``) shortens that wait.
     * ``gc.freeze()`` moves every object alive at start (imported modules, the
