@@ -153,8 +153,17 @@ def test_soak_smoke_run_counts_every_fault_and_judges(tmp_path: Path) -> None:
     assert len(params) == 3 + 2 + 2 + 1  # n = 8 of the default model
     assert re.search(r"^RSS \[MB\] at each tenth of the run: 0 s [\d.]+(, [\d.]+ s [\d.]+){10}$",
                      out, re.M), out
+    # both criteria printed, each parameter judged by both, the verdict's named
+    for c in ("literal", "accuracy"):
+        assert re.search(rf"^criterion {c} \(lost when .*\): (met|not met \(.*\))", out,
+                         re.M), out
+    assert len(re.findall(r"\[literal: (kept|lost)/(kept|lost), accuracy: (kept|lost)/"
+                          r"(kept|lost)\]$", out, re.M)) == len(params)
+    verdicts = re.findall(r"^criterion (\w+) .*; the verdict's$", out, re.M)
+    assert len(verdicts) == 1, out
     last = out.strip().splitlines()[-1]
     assert last.startswith("PASSED: " if r.returncode == 0 else "FAILED: not met: ")
+    assert r.returncode == 1 or f"no parameter lost ({verdicts[0]})" in last
     assert list(tmp_path.iterdir()) == []  # nothing written
 
 
