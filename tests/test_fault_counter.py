@@ -158,3 +158,26 @@ def test_a_swap_without_the_reorderer_costs_one_frame(clean: FrameBlock) -> None
     assert dec.rejected.total == 1 and len(d["DriveCurrent"]) == 39
     # the later frame, which came first, is the one rejected (ahead of its time)
     assert dec.rejected["sequence"] == 1
+
+
+def test_a_clock_step_forward_is_not_counted_as_lost_frames(clean: FrameBlock) -> None:
+    # the time since the last frame implies whole counter wraps only when it agrees with
+    # them (within half a period): a silence does, a receive clock stepping forward by
+    # 0.3004 s does not (it used to count 300 frames lost per message)
+    proto = Protocol.load()
+    step = _copy(clean)
+    step.t[3000:] += 0.3004
+    dec = proto.decoder()
+    dec.decode(step)
+    assert sum(dec.lost.values()) == 0 and dec.rejected.total == 0
+    silent = clean.take(np.r_[0:3000, 3600:6000])  # 300 periods of both messages missing
+    dec = proto.decoder()
+    dec.decode(silent)
+    assert dec.lost == {"DriveCurrent": 300, "DriveSpeed": 300}
+    # and with the receive times jittered by a tenth of a period
+    rng = np.random.default_rng(11)
+    jittered = _copy(silent)
+    jittered.t[:] += rng.uniform(-1e-4, 1e-4, len(jittered))
+    dec = proto.decoder()
+    dec.decode(jittered)
+    assert dec.lost == {"DriveCurrent": 300, "DriveSpeed": 300} and dec.rejected.total == 0

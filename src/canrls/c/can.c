@@ -345,10 +345,15 @@ static INLINE int counter_step(int64_t c, double t, int64_t mod, int64_t window,
     }
     int64_t gap = d;
     if (timed) {
-        /* k = floor((dt / period - d) / M + 0.5) whole wraps, when k > 0 (x >= 1) */
+        /* k = floor((dt / period - d) / M + 0.5) whole wraps, when k > 0 (x >= 1) and the
+         * time agrees with them, |dt / period - d - k M| < 1/2: otherwise the time
+         * stepped (a clock step forward under 1 s) and says nothing of wraps */
         double x = (dt / period - (double)d) / (double)mod + 0.5;
-        if (x >= 1.0)
-            gap += (int64_t)floor(x) * mod;
+        if (x >= 1.0) {
+            double k = floor(x);
+            if (fabs(dt / period - (double)d - k * (double)mod) < 0.5)
+                gap += (int64_t)k * mod;
+        }
     }
     /* lost = gap - 1 - skipped (>= 0): a frame received and rejected is not lost */
     *lost = gap - 1 - s->skipped;

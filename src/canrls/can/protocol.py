@@ -1046,9 +1046,10 @@ def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
       |dt - gap T| < T / 2 when it was accepted; a frame swapped with its neighbour
       arrives a period late and says nothing of the next one's time);
     * otherwise the frame is accepted: gap = d, plus k M when the time implies k =
-      floor((dt / T - d) / M + 0.5) > 0 whole wraps (only for dt up to 1 s,
-      :data:`canrls.can.pairing.FORWARD_STEP`: a longer jump is a clock step or a
-      silence as long, and the time says nothing of the frames lost in it), and
+      floor((dt / T - d) / M + 0.5) > 0 whole wraps and agrees with them, |dt / T - d -
+      k M| < 1/2 (only for dt up to 1 s, :data:`canrls.can.pairing.FORWARD_STEP`: a
+      longer jump is a clock step or a silence as long, and the time says nothing of the
+      frames lost in it; a shorter one off the wraps by more is a clock step too), and
       ``lost = max(0, gap - 1 - skipped)``: the frames of the message rejected since the
       last accepted one (``skipped``: repeated, stale, sequence, and those marked in
       ``skip``) were received, not lost.
