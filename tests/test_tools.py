@@ -220,3 +220,20 @@ def test_soak_judges_a_parameter_by_the_accuracy_the_faults_cost() -> None:
     rows = soak.compare(faulted, free, None)
     lost = sorted({n for n, _w, _z, _g, v in rows if v})
     assert lost == ["inertia.J", "offset.T0"]
+
+
+# ----------------------------------------------------------------- tools/gap_fill_cost.py
+def test_gap_fill_cost_prints_each_variant_against_the_twin(tmp_path: Path) -> None:
+    """A few simulated seconds of the measurement behind docs/reliability.md ("Why not
+    within 2 sigma of the twin"): a row per variant, every parameter in sigma; the
+    patched gap filler is put back."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        p for p in (str(SRC), os.environ.get("PYTHONPATH", "")) if p)}
+    r = subprocess.run([sys.executable, str(TOOLS / "gap_fill_cost.py"), "--duration", "3",
+                        "--fraction", "0.01", "--seeds", "1", "--variants", "line", "oracle"],
+                       env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    rows = re.findall(r"^  (line|oracle|twin-tru)((?:\s+[+-]\d+\.\d\d){8})", r.stdout, re.M)
+    assert [v for v, _ in rows] == ["line", "oracle", "twin-tru"], r.stdout
+    assert "30 single-sample gaps" in r.stdout
+    assert list(tmp_path.iterdir()) == []
