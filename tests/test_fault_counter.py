@@ -181,3 +181,18 @@ def test_a_clock_step_forward_is_not_counted_as_lost_frames(clean: FrameBlock) -
     dec = proto.decoder()
     dec.decode(jittered)
     assert dec.lost == {"DriveCurrent": 300, "DriveSpeed": 300} and dec.rejected.total == 0
+
+
+def test_a_duplicate_takes_no_place_in_the_sequence(clean: FrameBlock) -> None:
+    # a copy delivered with its frame, then the next frame lost: one lost (the copy is
+    # no frame of its own); a frame repeating the last counter a period later took the
+    # place of a genuine one (a wrong counter): nothing lost
+    cur = clean.take(np.flatnonzero(clean.arbitration_id == clean.arbitration_id[0]))
+    s = cur.take(np.r_[0:11, 10, 12:30])  # frame 10 twice, frame 11 lost
+    dec = Protocol.load().decoder()
+    dec.decode(s)
+    assert dec.rejected["repeated"] == 1 and dec.lost["DriveCurrent"] == 1
+    late = _miscount(cur.take(np.arange(30)), 11, 15)  # frame 11 says 10
+    dec = Protocol.load().decoder()
+    dec.decode(late)
+    assert dec.rejected["repeated"] == 1 and dec.lost["DriveCurrent"] == 0

@@ -313,7 +313,10 @@ static INLINE int counter_step(int64_t c, double t, int64_t mod, int64_t window,
      * (canrls.can.pairing.FORWARD_STEP), not thousands of frames lost */
     int timed = period > 0.0 && isfinite(dt) && dt <= COUNTER_MAX_DT;
     if (d == 0 && !(timed && dt >= ((double)mod - 0.5) * period)) {
-        s->skipped += 1;
+        /* a copy of the last frame arrives with it (no place of its own in the
+         * sequence); a period or more later it took a frame's place (a wrong counter) */
+        if (timed && dt >= 0.5 * period)
+            s->skipped += 1;
         return STATUS_REPEATED;
     }
     if (d == 0)

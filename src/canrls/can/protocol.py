@@ -1051,8 +1051,9 @@ def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
       longer jump is a clock step or a silence as long, and the time says nothing of the
       frames lost in it; a shorter one off the wraps by more is a clock step too), and
       ``lost = max(0, gap - 1 - skipped)``: the frames of the message rejected since the
-      last accepted one (``skipped``: repeated, stale, sequence, and those marked in
-      ``skip``) were received, not lost.
+      last accepted one (``skipped``: stale, sequence, repeated half a period or more
+      after the frame it repeats (with a period; a copy arriving with it takes no place
+      in the sequence), and those marked in ``skip``) were received, not lost.
 
     A rejected frame leaves the state as it was, so the next good frame continues the
     sequence of the last accepted one: one wrong counter costs one frame. ``run``
