@@ -287,6 +287,31 @@ def test_the_rate_limit_refills() -> None:
     assert [b.take(100.0) for _ in range(4)] == [True, True, True, False]  # never > burst
 
 
+def test_freeze_and_resume_are_never_rate_limited() -> None:
+    """A resume refused as rate_limited after its freeze left the estimator frozen until
+    the tool asked again (the soak's command bursts, by accident of timing). Freeze and
+    resume grow nothing: the bucket lets them through and they take no token."""
+    from canrls.live.commands import CommandHandler, TokenBucket
+
+    protocol, model, settings = _setup()
+    proc = FrameProcessor(protocol, model, settings, period=1e-3)
+    sent: list[can.Message] = []
+    h = CommandHandler(proc, True, lambda msgs: sent.extend(msgs) or len(msgs),
+                       lambda m, why: None, lambda: None,
+                       bucket=TokenBucket(rate=1.0, burst=2), clock=lambda: 10.0)
+    lam = _cmd(CommandCode.SET_LAMBDA, lam=0.999)
+    assert [h.handle(lam) for _ in range(3)] == [CommandResult.OK, CommandResult.OK,
+                                                 CommandResult.RATE_LIMITED]
+    assert h.handle(_cmd(CommandCode.FREEZE)) is CommandResult.OK
+    assert proc.pipeline.frozen
+    assert h.handle(_cmd(CommandCode.RESUME)) is CommandResult.OK
+    assert not proc.pipeline.frozen
+    # a harmless resume while running is answered for what it is, not rate_limited
+    assert h.handle(_cmd(CommandCode.RESUME)) is CommandResult.NOT_APPLICABLE
+    assert h.handle(lam) is CommandResult.RATE_LIMITED  # the others still wait
+    assert len(sent) == 7 and h.bucket is not None and h.bucket.tokens < 1.0
+
+
 # ------------------------------------------------------------------ exit status
 def test_an_exception_in_the_estimator_thread_exits_non_zero(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch,

@@ -153,8 +153,17 @@ def test_soak_smoke_run_counts_every_fault_and_judges(tmp_path: Path) -> None:
     assert len(params) == 3 + 2 + 2 + 1  # n = 8 of the default model
     assert re.search(r"^RSS \[MB\] at each tenth of the run: 0 s [\d.]+(, [\d.]+ s [\d.]+){10}$",
                      out, re.M), out
+    # both criteria printed, each parameter judged by both, the verdict's named
+    for c in ("literal", "accuracy"):
+        assert re.search(rf"^criterion {c} \(lost when .*\): (met|not met \(.*\))", out,
+                         re.M), out
+    assert len(re.findall(r"\[literal: (kept|lost)/(kept|lost), accuracy: (kept|lost)/"
+                          r"(kept|lost)\]$", out, re.M)) == len(params)
+    verdicts = re.findall(r"^criterion (\w+) .*; the verdict's$", out, re.M)
+    assert len(verdicts) == 1, out
     last = out.strip().splitlines()[-1]
     assert last.startswith("PASSED: " if r.returncode == 0 else "FAILED: not met: ")
+    assert r.returncode == 1 or f"no parameter lost ({verdicts[0]})" in last
     assert list(tmp_path.iterdir()) == []  # nothing written
 
 
@@ -211,3 +220,20 @@ def test_soak_judges_a_parameter_by_the_accuracy_the_faults_cost() -> None:
     rows = soak.compare(faulted, free, None)
     lost = sorted({n for n, _w, _z, _g, v in rows if v})
     assert lost == ["inertia.J", "offset.T0"]
+
+
+# ----------------------------------------------------------------- tools/gap_fill_cost.py
+def test_gap_fill_cost_prints_each_variant_against_the_twin(tmp_path: Path) -> None:
+    """A few simulated seconds of the measurement behind docs/reliability.md ("Why not
+    within 2 sigma of the twin"): a row per variant, every parameter in sigma; the
+    patched gap filler is put back."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        p for p in (str(SRC), os.environ.get("PYTHONPATH", "")) if p)}
+    r = subprocess.run([sys.executable, str(TOOLS / "gap_fill_cost.py"), "--duration", "3",
+                        "--fraction", "0.01", "--seeds", "1", "--variants", "line", "oracle"],
+                       env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    rows = re.findall(r"^  (line|oracle|twin-tru)((?:\s+[+-]\d+\.\d\d){8})", r.stdout, re.M)
+    assert [v for v, _ in rows] == ["line", "oracle", "twin-tru"], r.stdout
+    assert "30 single-sample gaps" in r.stdout
+    assert list(tmp_path.iterdir()) == []

@@ -858,7 +858,8 @@ class FrameProcessor:
         carries them (:data:`canrls.can.frames.REJECT_FIELDS`; running totals)."""
         r, c = self.rejected, self.pairing
         return {"crc": r["crc"], "malformed": r["remote"] + r["length"],
-                "repeated": r["repeated"], "stale": r["stale"], "range": r["range"] + r["nan"],
+                "repeated": r["repeated"], "stale": r["stale"] + r["sequence"],
+                "range": r["range"] + r["nan"],
                 "unpaired": c.unpaired + c.late + c.duplicated,
                 "reordered": self.reorder.moved,
                 "clock_steps": c.clock["step_back"] + c.clock["step_forward"],

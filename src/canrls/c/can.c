@@ -255,18 +255,45 @@ fail:
 /* alive counters (canrls.can.protocol._counter_step)                          */
 /* ------------------------------------------------------------------------- */
 
-enum { STATUS_OK = 0, STATUS_REPEATED = 1, STATUS_STALE = 2 };
+enum { STATUS_OK = 0, STATUS_REPEATED = 1, STATUS_STALE = 2, STATUS_SEQUENCE = 3 };
 
 /* longest time [s] between two accepted frames from which whole counter wraps are
  * inferred (canrls.can.pairing.FORWARD_STEP: a longer jump is a clock step) */
 #define COUNTER_MAX_DT 1.0
 
+/* the counter state of one message, as canrls.can.protocol._counter_kernel lays it out:
+ * [last, run, prev, skipped, trusted] (int64) and last_t (double) */
+enum { ST_LAST, ST_RUN, ST_PREV, ST_SKIPPED, ST_TRUSTED, ST_COUNTER_COLS };
+/* the decoder's row per message: the counter state, then the running sequence number of a
+ * message without counter (canrls.can.protocol.Decoder._counters) */
+enum { ST_SEQ = ST_COUNTER_COLS, ST_COLS };
+
 typedef struct {
-    int64_t last, run, prev_stale;
+    /* last: the counter of the last accepted frame (-1: none yet); run: consecutive frames
+     * rejected for their counter that count up by one, prev: the last one's counter;
+     * skipped: frames received since the last accepted one and rejected (they are not
+     * lost); trusted: the last accepted frame's time agreed with its counter */
+    int64_t last, run, prev, skipped, trusted;
     double last_t;
 } CounterState;
 
-/* Classify one alive counter c received at t (see _counter_step's docstring); updates
+static INLINE CounterState counter_load(const int64_t *st, double t)
+{
+    CounterState s = {st[ST_LAST], st[ST_RUN], st[ST_PREV], st[ST_SKIPPED], st[ST_TRUSTED], t};
+    return s;
+}
+
+static INLINE void counter_store(const CounterState *s, int64_t *st, double *t)
+{
+    st[ST_LAST] = s->last;
+    st[ST_RUN] = s->run;
+    st[ST_PREV] = s->prev;
+    st[ST_SKIPPED] = s->skipped;
+    st[ST_TRUSTED] = s->trusted;
+    *t = s->last_t;
+}
+
+/* Classify one alive counter c received at t (see _counter_kernel's docstring); updates
  * the state, returns the status and sets *lost. */
 static INLINE int counter_step(int64_t c, double t, int64_t mod, int64_t window, double period,
                         CounterState *s, int64_t *lost)
@@ -275,6 +302,8 @@ static INLINE int counter_step(int64_t c, double t, int64_t mod, int64_t window,
     if (s->last < 0) {
         s->last = c;
         s->run = 0;
+        s->skipped = 0;
+        s->trusted = 1;
         s->last_t = t;
         return STATUS_OK;
     }
@@ -283,55 +312,90 @@ static INLINE int counter_step(int64_t c, double t, int64_t mod, int64_t window,
     /* the time tells wraps only up to a clock step: a jump beyond COUNTER_MAX_DT is one
      * (canrls.can.pairing.FORWARD_STEP), not thousands of frames lost */
     int timed = period > 0.0 && isfinite(dt) && dt <= COUNTER_MAX_DT;
-    if (d == 0 && !(timed && dt >= ((double)mod - 0.5) * period))
+    if (d == 0 && !(timed && dt >= ((double)mod - 0.5) * period)) {
+        /* a copy of the last frame arrives with it (no place of its own in the
+         * sequence); a period or more later it took a frame's place (a wrong counter) */
+        if (timed && dt >= 0.5 * period)
+            s->skipped += 1;
         return STATUS_REPEATED;
+    }
     if (d == 0)
         d = mod;
-    if (d >= mod - window && !(timed && dt >= ((double)d - 0.5) * period)) {
+    /* time enough since the last accepted frame for a jump of d: d - 1 frames lost */
+    int in_time = timed && dt >= ((double)d - 0.5) * period;
+    int status = STATUS_OK;
+    if (d >= mod - window && !in_time)
+        status = STATUS_STALE; /* a jump backwards */
+    else if (d >= 2 && timed && s->trusted && !in_time)
+        status = STATUS_SEQUENCE; /* ahead of the time: a wrong counter, not a loss */
+    if (status != STATUS_OK) {
         int64_t run = s->run;
-        if (run > 0 && c == pymod(s->prev_stale + 1, mod))
+        if (run > 0 && c == pymod(s->prev + 1, mod))
             run += 1;
         else
             run = 1;
         s->run = run;
-        s->prev_stale = c;
-        if (run < 3)
-            return STATUS_STALE;
-        d = 1; /* resynchronise on a consistent new sequence (loss unknown) */
+        s->prev = c;
+        if (status == STATUS_STALE && run >= 3) {
+            d = 1; /* resynchronise on a consistent new sequence (loss unknown) */
+        } else if (status == STATUS_SEQUENCE && run >= 2) {
+            /* continues the sequence of the frame rejected before it: frames were lost
+             * after all (timestamps bunched by the receiver), d - 1 less the skipped */
+        } else {
+            s->skipped += 1;
+            return status;
+        }
     }
     int64_t gap = d;
     if (timed) {
-        /* k = floor((dt / period - d) / M + 0.5) whole wraps, when k > 0 (x >= 1) */
+        /* k = floor((dt / period - d) / M + 0.5) whole wraps, when k > 0 (x >= 1) and the
+         * time agrees with them, |dt / period - d - k M| < 1/2: otherwise the time
+         * stepped (a clock step forward under 1 s) and says nothing of wraps */
         double x = (dt / period - (double)d) / (double)mod + 0.5;
-        if (x >= 1.0)
-            gap += (int64_t)floor(x) * mod;
+        if (x >= 1.0) {
+            double k = floor(x);
+            if (fabs(dt / period - (double)d - k * (double)mod) < 0.5)
+                gap += (int64_t)k * mod;
+        }
     }
-    *lost = gap - 1;
+    /* lost = gap - 1 - skipped (>= 0): a frame received and rejected is not lost */
+    *lost = gap - 1 - s->skipped;
+    if (*lost < 0)
+        *lost = 0;
+    /* the next frame's jump is held against this one's time only if this time agrees
+     * with this counter: |dt - gap T| < T / 2 (a swapped frame arrives a period late) */
+    s->trusted = !timed || fabs(dt - (double)gap * period) < 0.5 * period;
     s->last = c;
     s->run = 0;
+    s->skipped = 0;
     s->last_t = t;
     return STATUS_OK;
 }
 
-/* counters(c (N,) int64, t (N,) f64, mod, window, period, state (3,) int64,
- *          state_t (1,) f64, status (N,) uint8, lost (N,) int64) */
+/* counters(c (N,) int64, t (N,) f64, mod, window, period, state (5,) int64,
+ *          state_t (1,) f64, status (N,) uint8, lost (N,) int64[, skip (N,) bool])
+ * skip: frames rejected before the counter check (length, CRC): their counters are not
+ * read, they count as received (CounterState.skipped), status 0 and lost 0. */
 static PyObject *py_counters(PyObject *self, PyObject *args)
 {
     (void)self;
-    PyObject *o_c, *o_t, *o_state, *o_state_t, *o_status, *o_lost;
+    PyObject *o_c, *o_t, *o_state, *o_state_t, *o_status, *o_lost, *o_skip = Py_None;
     long long mod, window;
     double period;
-    if (!PyArg_ParseTuple(args, "OOLLdOOOO", &o_c, &o_t, &mod, &window, &period, &o_state,
-                          &o_state_t, &o_status, &o_lost))
+    if (!PyArg_ParseTuple(args, "OOLLdOOOO|O", &o_c, &o_t, &mod, &window, &period, &o_state,
+                          &o_state_t, &o_status, &o_lost, &o_skip))
         return NULL;
-    Buf b[6];
+    Buf b[7];
     memset(b, 0, sizeof b);
     if (!get(&b[0], o_c, K_I64, 0, 0, "c"))
         goto fail;
     Py_ssize_t n = items(&b[0]);
-    if (!get(&b[1], o_t, K_F64, n, 0, "t") || !get(&b[2], o_state, K_I64, 3, 1, "state") ||
+    if (!get(&b[1], o_t, K_F64, n, 0, "t") ||
+        !get(&b[2], o_state, K_I64, ST_COUNTER_COLS, 1, "state") ||
         !get(&b[3], o_state_t, K_F64, 1, 1, "state_t") ||
         !get(&b[4], o_status, K_U8, n, 1, "status") || !get(&b[5], o_lost, K_I64, n, 1, "lost"))
+        goto fail;
+    if (o_skip != Py_None && !get(&b[6], o_skip, K_BOOL, n, 0, "skip"))
         goto fail;
     if (mod < 1) {
         PyErr_SetString(PyExc_ValueError, "canrls._can.counters: modulo must be >= 1");
@@ -339,21 +403,27 @@ static PyObject *py_counters(PyObject *self, PyObject *args)
     }
     Py_BEGIN_ALLOW_THREADS
     int64_t *st = I64P(b[2]);
-    CounterState s = {st[0], st[1], st[2], F64P(b[3])[0]};
+    CounterState s = counter_load(st, F64P(b[3])[0]);
     const int64_t *c = I64P(b[0]);
     const double *t = F64P(b[1]);
-    for (Py_ssize_t i = 0; i < n; i++)
-        U8P(b[4])[i] = (uint8_t)counter_step(c[i], t[i], mod, window, period, &s,
-                                             &I64P(b[5])[i]);
-    st[0] = s.last;
-    st[1] = s.run;
-    st[2] = s.prev_stale;
-    F64P(b[3])[0] = s.last_t;
+    const uint8_t *skip = o_skip != Py_None ? U8P(b[6]) : NULL;
+    uint8_t *status = U8P(b[4]);
+    int64_t *lost = I64P(b[5]);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (skip && skip[i]) {
+            s.skipped += s.last >= 0; /* received, rejected: not lost */
+            status[i] = STATUS_OK;
+            lost[i] = 0;
+            continue;
+        }
+        status[i] = (uint8_t)counter_step(c[i], t[i], mod, window, period, &s, &lost[i]);
+    }
+    counter_store(&s, st, F64P(b[3]));
     Py_END_ALLOW_THREADS
-    release(b, 6);
+    release(b, 7);
     Py_RETURN_NONE;
 fail:
-    release(b, 6);
+    release(b, 7);
     return NULL;
 }
 
@@ -450,8 +520,8 @@ NOINLINE static int64_t decode_block(int64_t n, const double *restrict t, const 
         int64_t c = counts[k];
         int64_t q = mk[M_COUNTER];
         int check = q >= 0 && mk[M_CHECK] != 0;
-        int64_t *sk = state + 4 * k;
-        CounterState cs = {sk[0], sk[1], sk[2], state_t[k]};
+        int64_t *sk = state + ST_COLS * k;
+        CounterState cs = counter_load(sk, state_t[k]);
         int64_t lost = 0, counter;
         int status = STATUS_OK;
         if (q >= 0) {
@@ -460,7 +530,7 @@ NOINLINE static int64_t decode_block(int64_t n, const double *restrict t, const 
                 status = counter_step(counter, t[i], mk[M_MOD], mk[M_WINDOW], period[k], &cs,
                                       &lost);
         } else {
-            counter = sk[3] + c;
+            counter = sk[ST_SEQ] + c;
         }
         if (status != STATUS_OK) {
             done = i;
@@ -511,10 +581,7 @@ NOINLINE static int64_t decode_block(int64_t n, const double *restrict t, const 
             break;
         }
         if (check) {
-            sk[0] = cs.last;
-            sk[1] = cs.run;
-            sk[2] = cs.prev_stale;
-            state_t[k] = cs.last_t;
+            counter_store(&cs, sk, &state_t[k]);
             counts[K + k] += lost;
         }
         out_f[mk[M_TROW] * cols + c] = t[i];
@@ -524,13 +591,13 @@ NOINLINE static int64_t decode_block(int64_t n, const double *restrict t, const 
     }
     for (int64_t k = 0; k < K; k++)
         if (msg[k * M_COLS + M_COUNTER] < 0)
-            state[4 * k + 3] += counts[k];
+            state[ST_COLS * k + ST_SEQ] += counts[k];
     return done;
 }
 
 /* decode_fast(t, arbitration_id, is_extended, is_remote, is_error, dlc, data, width,
  *             msg (K, M_COLS), period (K,), sig (S, S_COLS), sig_f (S, F_COLS), powers,
- *             state (K, 4) int64, state_t (K,), base, out_f (n_float, cols),
+ *             state (K, 6) int64, state_t (K,), base, out_f (n_float, cols),
  *             out_i (2K, cols), counts (2K + 1,)) -> frames decoded
  * See canrls.can.protocol._fast_kernel. */
 static PyObject *py_decode_fast(PyObject *self, PyObject *args)
@@ -561,7 +628,7 @@ static PyObject *py_decode_fast(PyObject *self, PyObject *args)
     }
     if (!get(&b[8], o[8], K_F64, K, 0, "period") || !get(&b[9], o[9], K_I64, 0, 0, "sig") ||
         !get(&b[10], o[10], K_F64, 0, 0, "sig_f") || !get(&b[11], o[11], K_U8, 256 * CRC_POWERS, 0, "powers") ||
-        !get(&b[12], o[12], K_I64, 4 * K, 1, "state") ||
+        !get(&b[12], o[12], K_I64, ST_COLS * K, 1, "state") ||
         !get(&b[13], o[13], K_F64, K, 1, "state_t") || !get(&b[14], o[14], K_F64, 0, 1, "out_f") ||
         !get(&b[15], o[15], K_I64, 0, 1, "out_i") ||
         !get(&b[16], o[16], K_I64, 2 * K + 1, 1, "counts"))

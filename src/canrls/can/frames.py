@@ -130,7 +130,8 @@ _FLAG_SIGNALS = ("Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen",
 
 #: Counters of ``RlsRejects`` (:attr:`StatusReport.rejects` keys), in signal order: frames
 #: rejected by the decoder (``crc``; ``malformed``: remote or wrong length; ``repeated``
-#: and ``stale`` alive counters; ``range``: outside the DBC range or NaN), dropped by
+#: and ``stale`` alive counters, ``stale`` with the decoder's ``sequence``; ``range``:
+#: outside the DBC range or NaN), dropped by
 #: pairing (``unpaired``: no partner, late, duplicated), put back in order
 #: (``reordered``), and clock events (``clock_steps``: back, or forward beyond
 #: :data:`canrls.can.pairing.FORWARD_STEP`; ``gaps``). They wrap at :data:`REJECT_WRAP`.

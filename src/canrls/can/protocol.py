@@ -14,8 +14,8 @@ by a DBC file. :class:`Protocol` ties three things together:
   arrays with numpy and encodes SI arrays back into frames.
 
 Decoding is strict by default: a frame with the wrong length, a bad CRC, a
-repeated or stale counter, a NaN/inf float, a value outside its DBC range, an
-error frame or a remote frame is rejected, counted by reason
+repeated, stale or out-of-sequence counter, a NaN/inf float, a value outside its DBC
+range, an error frame or a remote frame is rejected, counted by reason
 (:class:`RejectCounts`) and never passed on. The opt-outs are named:
 ``strict_range=False``, ``check_crc=False``, ``check_counter=False``.
 
@@ -86,6 +86,7 @@ REJECT_REASONS: tuple[str, ...] = (
     "crc",          # E2E CRC mismatch
     "repeated",     # same alive counter as the previous accepted frame of the message
     "stale",        # counter jumped backwards (by less than half its range)
+    "sequence",     # counter jumped further ahead than the time since the last frame allows
     "nan",          # a float signal is NaN or infinite
     "range",        # a physical value lies outside the DBC [minimum, maximum]
 )
@@ -1017,26 +1018,49 @@ class DecodedFrames:
         return sum(len(m) for m in self.messages.values())
 
 
-_STATUS_OK, _STATUS_REPEATED, _STATUS_STALE = 0, 1, 2
+_STATUS_OK, _STATUS_REPEATED, _STATUS_STALE, _STATUS_SEQUENCE = 0, 1, 2, 3
+
+#: columns of the counter state of one message (:func:`_counter_kernel`), then the
+#: running sequence number of a message without counter (``Decoder._counters``)
+_ST_COUNTER_COLS, _ST_COLS = 5, 6
 
 
 def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
-                    state: I64, state_t: F64) -> tuple[npt.NDArray[np.int8], I64]:
+                    state: I64, state_t: F64, skip: npt.NDArray[np.bool_] | None = None,
+                    ) -> tuple[npt.NDArray[np.int8], I64]:
     """Classify alive counters one frame at a time (``counter_step`` in
     ``src/canrls/c/can.c``), carrying state across blocks: state = [last counter (-1:
-    none yet), consecutive stale frames, counter of the last stale frame]; state_t =
+    none yet), run, counter of the last frame of the run, skipped, trusted]; state_t =
     [time of the last accepted frame]. Returns the status and the frames lost before
-    each frame.
+    each frame. Frames marked in ``skip`` (rejected before the counter check: length,
+    CRC) are received but not classified (status 0, lost 0): they count as skipped.
 
-    Per frame, counter ``c`` received at ``t``: d = (c - last) mod M; d == 0 is
-    repeated, d >= M - window stale (a jump backwards), unless the time dt since the
-    last accepted frame shows that the counter went round (repeated: dt >= (M - 0.5)
-    period; stale: dt >= (d - 0.5) period); otherwise d - 1 frames were lost, plus
-    k M when the time gap implies k = floor((dt / period - d) / M + 0.5) > 0 whole
-    wraps (only for dt up to 1 s, :data:`canrls.can.pairing.FORWARD_STEP`: a longer
-    jump is a clock step or a silence as long, and the time says nothing of the frames
-    lost in it). Three consecutive stale frames that count up by one resynchronise (loss
-    unknown).
+    Per frame, counter ``c`` received at ``t``: d = (c - last) mod M; with dt the time
+    since the last accepted frame and T the period (0: none),
+
+    * d == 0 is ``repeated``, unless dt >= (M - 0.5) T (the counter went round);
+    * d >= M - window is ``stale`` (a jump backwards), unless dt >= (d - 0.5) T;
+    * 2 <= d < M - window is ``sequence`` (a wrong counter, not a loss: the AUTOSAR E2E
+      receiver's wrong sequence) when the time says fewer periods passed, dt < (d -
+      0.5) T, and the last accepted frame's time agreed with its counter (``trusted``:
+      |dt - gap T| < T / 2 when it was accepted; a frame swapped with its neighbour
+      arrives a period late and says nothing of the next one's time);
+    * otherwise the frame is accepted: gap = d, plus k M when the time implies k =
+      floor((dt / T - d) / M + 0.5) > 0 whole wraps and agrees with them, |dt / T - d -
+      k M| < 1/2 (only for dt up to 1 s, :data:`canrls.can.pairing.FORWARD_STEP`: a
+      longer jump is a clock step or a silence as long, and the time says nothing of the
+      frames lost in it; a shorter one off the wraps by more is a clock step too), and
+      ``lost = max(0, gap - 1 - skipped)``: the frames of the message rejected since the
+      last accepted one (``skipped``: stale, sequence, repeated half a period or more
+      after the frame it repeats (with a period; a copy arriving with it takes no place
+      in the sequence), and those marked in ``skip``) were received, not lost.
+
+    A rejected frame leaves the state as it was, so the next good frame continues the
+    sequence of the last accepted one: one wrong counter costs one frame. ``run``
+    counts consecutive frames rejected for their counter that count up by one: a
+    ``sequence`` frame that continues the one before it is accepted (the jump was a
+    loss after all: timestamps bunched by the receiver), three ``stale`` ones
+    resynchronise (loss unknown). Without a period, a forward jump is always a loss.
     """
     n = len(c)
     status = np.empty(n, np.uint8)
@@ -1044,7 +1068,8 @@ def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
     st = np.ascontiguousarray(state, np.int64)
     st_t = np.ascontiguousarray(state_t, np.float64)
     _can.counters(np.ascontiguousarray(c, np.int64), np.ascontiguousarray(t, np.float64),
-                  int(mod), int(window), float(period), st, st_t, status, lost)
+                  int(mod), int(window), float(period), st, st_t, status, lost,
+                  None if skip is None else np.ascontiguousarray(skip, np.bool_))
     if st is not state:
         state[:] = st
     if st_t is not state_t:
@@ -1215,9 +1240,9 @@ def _fast_kernel(t: F64, arbitration_id: npt.NDArray[np.uint32],
     physical value ``raw * scale + offset`` (as :meth:`SignalCodec.physical` computes it,
     see :meth:`SignalCodec.scaling`) finite and within [lo, hi]; then the time, stream
     index ``base + i``, counter (or running sequence number) and SI values ``physical *
-    si_scale`` go to the outputs (see :class:`_FastPlan`). ``state`` = per message [last
-    counter, stale run, last stale counter, sequence number], ``state_t`` = [time of the
-    last accepted frame].
+    si_scale`` go to the outputs (see :class:`_FastPlan`). ``state`` = per message the
+    counter state of :func:`_counter_kernel`, then the sequence number (``_ST_COLS``
+    columns), ``state_t`` = [time of the last accepted frame].
 
     Stops at the first error frame or frame of a mapped message that fails a check, and
     returns the number of frames decoded: outputs, counts and state are those of the
@@ -1248,15 +1273,17 @@ class Decoder:
         self.accepted: dict[str, int] = {m.name: 0 for m in protocol.messages}
         self.foreign = 0
         self.frames = 0
-        # per message: [last counter, stale run, last stale counter] (see _counter_kernel),
-        # then the running sequence number of a message without counter; time of the last
-        # accepted frame. The careful path works on views of the rows.
+        # per message: [last counter, run, last counter of the run, skipped, trusted] (see
+        # _counter_kernel), then the running sequence number of a message without counter;
+        # time of the last accepted frame. The careful path works on views of the rows.
         K = len(protocol.messages)
-        self._counters = np.tile(np.array([-1, 0, -1, 0], np.int64), (K, 1))
+        self._counters = np.tile(np.array([-1, 0, -1, 0, 1, 0], np.int64), (K, 1))
         self._counters_t = np.zeros(K, np.float64)
-        self._state = {m.name: (self._counters[k, :3], self._counters_t[k:k + 1])
+        self._state = {m.name: (self._counters[k, :_ST_COUNTER_COLS],
+                                self._counters_t[k:k + 1])
                        for k, m in enumerate(protocol.messages)}
-        self._seq = {m.name: self._counters[k, 3:] for k, m in enumerate(protocol.messages)}
+        self._seq = {m.name: self._counters[k, _ST_COUNTER_COLS:]
+                     for k, m in enumerate(protocol.messages)}
         self._plan = _FastPlan.build(protocol)
 
     def decode(self, block: FrameBlock) -> DecodedFrames:
@@ -1408,18 +1435,28 @@ class Decoder:
             ok, data = accepted()
             if len(ok):
                 counter_all[ok] = m.counter.raw(data)
-            if p.check_counter and len(ok):
+            # frames rejected for their length or CRC were received: not lost
+            skip = (reason == _R["length"]) | (reason == _R["crc"])
+            if p.check_counter and (len(ok) or skip.any()):
                 state, state_t = self._state[m.name]
                 before = int(state[0])
-                status, lost = _counter_kernel(counter_all[ok], t[ok], *_counter_params(m),
-                                               state, state_t)
+                if skip.any():  # the accepted rows and those, in stream order
+                    sel = np.flatnonzero((reason == 0) | skip)
+                    status, lost = _counter_kernel(counter_all[sel], t[sel],
+                                                   *_counter_params(m), state, state_t,
+                                                   skip[sel])
+                    status = status[~skip[sel]]
+                else:
+                    status, lost = _counter_kernel(counter_all[ok], t[ok],
+                                                   *_counter_params(m), state, state_t)
                 lost_total = int(lost.sum())
 
                 def previous(k: int) -> int:
                     j = np.flatnonzero((ok < k) & (status == _STATUS_OK))
                     return int(counter_all[ok[j[-1]]]) if len(j) else before
 
-                for code, name in ((_STATUS_REPEATED, "repeated"), (_STATUS_STALE, "stale")):
+                for code, name in ((_STATUS_REPEATED, "repeated"), (_STATUS_STALE, "stale"),
+                                   (_STATUS_SEQUENCE, "sequence")):
                     if not status.any():
                         break
                     bad = np.zeros(len(rows), np.bool_)

@@ -3,7 +3,8 @@
 Commands are off unless enabled (``[daemon] commands = true``, ``canrls run
 --commands``); off, every frame on the command ID is answered ``disabled``, whatever it
 holds. On, a command is decoded strictly (:func:`canrls.can.frames.decode_command`),
-let through a token bucket (``command_rate`` per second, ``command_burst`` at once), a
+let through a token bucket (``command_rate`` per second, ``command_burst`` at once;
+``freeze`` and ``resume`` need no token, :data:`UNLIMITED`), a
 changed model is checked before it is applied (at most ``max_parameters``, and its
 frames rehearsed), and it is always answered: ``ok``, or why not (``malformed``,
 ``unknown_command``, ``unknown_effect``, ``bad_value``, ``not_applicable``,
@@ -32,12 +33,19 @@ from canrls.errors import CanrlsError, ConfigError
 from canrls.estimation.model import Model
 from canrls.processor import FrameProcessor
 
-__all__ = ["CommandHandler", "TokenBucket", "command_effect_name"]
+__all__ = ["CommandHandler", "TokenBucket", "UNLIMITED", "command_effect_name"]
 
 log = logging.getLogger(__name__)
 
 #: rejected command frames logged per second at most
 _LOG_PER_S = 10
+
+#: Commands the token bucket never holds back (nor do they take a token): they grow
+#: nothing (no model to rebuild, no state to drop) and cost what any command frame costs
+#: (it is decoded and answered whatever the bucket says), while a refusal leaves the
+#: estimator in a state the tool did not ask for: a ``resume`` refused after its
+#: ``freeze`` left estimation frozen until the tool asked again.
+UNLIMITED: frozenset[CommandCode] = frozenset({CommandCode.FREEZE, CommandCode.RESUME})
 
 
 def command_effect_name(effect: EffectId, order: int, model: Model) -> str:
@@ -131,7 +139,7 @@ class CommandHandler:
             cmd = decode_command(msg)
             code = int(cmd.code)
             b = self.bucket
-            if b is not None and not b.take(self.clock()):
+            if b is not None and cmd.code not in UNLIMITED and not b.take(self.clock()):
                 raise CommandFrameError(
                     f"{cmd}: more than {b.burst:g} commands at once or {b.rate:g} per second "
                     f"([daemon] command_burst, command_rate); try again later",

@@ -35,8 +35,8 @@ DAEMON_KEYS: dict[str, str] = {
                 "'disabled')",
     "max_parameters": "most parameters the running model may have; a command or reload "
                       "beyond is refused (at most 255, what the parameter frames carry)",
-    "command_rate": "commands accepted per second on average (token bucket); beyond, "
-                    "answered 'rate_limited'",
+    "command_rate": "commands accepted per second on average (token bucket; freeze and "
+                    "resume need no token); beyond, answered 'rate_limited'",
     "command_burst": "commands accepted at once (the token bucket's depth)",
     "checkpoint": "checkpoint file ('' or absent: none)",
     "checkpoint_interval": "seconds between checkpoints",

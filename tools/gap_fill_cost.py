@@ -1,0 +1,135 @@
+#!/usr/bin/env python3
+"""What one lost sample costs the estimate: the straight-line gap fill against the rest.
+
+A measurement, not a test (docs/reliability.md, *Why not "within 2 sigma of the
+twin"*). The simulated drive (``canrls.sim``) runs through the float pipeline of
+``canrls fit`` (``canrls.replay.fit_frames``) once without faults (the twin), then
+with the same ``--fraction`` of its control periods taken away (both frames of each,
+at seeded random places, far apart on average: single-sample gaps) in four ways:
+
+``line``    the frames are dropped: the pipeline fills each gap on a straight line
+            (``canrls.estimation.selection.GapFiller``), the filled row runs through
+            the state-variable filter and never updates the estimators (as in the
+            daemon);
+``oracle``  the frames stay, the filter sees the measured sample, but the row never
+            updates the estimators: the cost of the sample alone;
+``noise``   as ``line``, plus noise of the sensors' size on the filled row;
+``skip``    as ``line``, and the ``--skip`` rows after each filled one (the filter's
+            memory: its warm-up) do not update the estimators either.
+
+Printed: every parameter's difference from the twin in the twin's sigma, and the
+twin's own distance from the drive's truth. The variants other than ``line`` patch
+``GapFiller.fill`` in this process only.
+
+Usage::
+
+    nice python tools/gap_fill_cost.py [--duration 900] [--fraction 0.008] [--seeds 1 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Iterator
+
+import numpy as np
+
+from canrls.can.frameblock import FrameBlock
+from canrls.config import AppConfig
+from canrls.estimation import selection
+from canrls.replay import fit_frames, prepare
+from canrls.signals import Signals
+from canrls.sim.scenario import Simulator, scenario
+
+EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"
+VARIANTS = ("line", "oracle", "noise", "skip")
+#: the simulated speed sensor's noise [rad/s] (canrls.sim: the standard scenario)
+SPEED_NOISE = 0.02
+
+
+def fit(duration: float, seed: int, variant: str | None, fraction: float,
+        skip: int) -> dict[str, tuple[float, float, float]]:
+    """{parameter: (value, sigma, truth)} of one run (``variant`` None: the twin)."""
+    cfg = AppConfig()
+    cfg.model = {"effects": EFFECTS.split(","), "kt": 0.1}
+    protocol, model, settings = prepare(cfg)
+    sc = scenario("standard", effects=EFFECTS, seed=seed, duration=duration,
+                  excitation="standard", faults="none")
+    sim = Simulator(sc)
+    n = sc.periods
+    rng = np.random.default_rng(1000 + seed)
+    gone = np.zeros(n + 16, np.bool_)
+    if variant is not None:
+        gone[rng.choice(np.arange(100, n - 100), int(fraction * n), replace=False)] = True
+    dt = sc.dt
+
+    def period(t: np.ndarray) -> np.ndarray:
+        return np.clip(np.rint(np.asarray(t) / dt).astype(np.int64), 0, n + 15)
+
+    line = selection.GapFiller.fill
+    noise_rng = np.random.default_rng(7 + seed)
+
+    def fill(self: selection.GapFiller, s: Signals) -> tuple[Signals, np.ndarray | None]:
+        if variant == "oracle":  # the measured row stays in the filter, unused
+            real = ~gone[period(s.t)]
+            return s, (None if real.all() else real)
+        out, real = line(self, s)
+        if real is None:
+            return out, None
+        if variant == "noise":
+            f = ~real
+            d = np.diff(s.current)
+            sd_i = float(np.std(d) / math.sqrt(2)) if len(d) > 10 else 0.0
+            out.speed[f] += noise_rng.normal(0.0, SPEED_NOISE, int(f.sum()))
+            out.current[f] += noise_rng.normal(0.0, sd_i, int(f.sum()))
+        elif variant == "skip":
+            real = real.copy()
+            for j in np.flatnonzero(~real):
+                real[j:j + skip + 1] = False
+        return out, real
+
+    def blocks() -> Iterator[FrameBlock]:
+        for b in sim.frames(60000):
+            if variant in ("line", "noise", "skip"):
+                b = b.take(~gone[period(b.t)])  # both frames of a period
+            yield b
+
+    selection.GapFiller.fill = fill  # type: ignore[method-assign]
+    try:
+        res = fit_frames(blocks(), protocol, model, settings)
+    finally:
+        selection.GapFiller.fill = line  # type: ignore[method-assign]
+    return {p.name: (p.value, p.sigma, float(sc.truth.get(p.name, math.nan)))
+            for p in res.estimates.parameters}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--duration", type=float, default=900.0, help="simulated seconds (900)")
+    ap.add_argument("--fraction", type=float, default=0.008,
+                    help="share of the control periods taken away (0.008)")
+    ap.add_argument("--skip", type=int, default=50,
+                    help="rows after a filled one not used in the 'skip' variant (50)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
+    args = ap.parse_args(argv)
+    if not (0.0 < args.fraction < 0.5):
+        ap.error(f"--fraction {args.fraction:g}: must lie in (0, 0.5)")
+    for seed in args.seeds:
+        twin = fit(args.duration, seed, None, args.fraction, args.skip)
+        names = list(twin)
+        print(f"seed {seed}, {args.duration:g} s, {int(args.fraction * args.duration * 1000)} "
+              f"single-sample gaps; faulted minus twin [twin sigma]:")
+        print("  " + " " * 8 + "".join(f"{n:>15s}" for n in names) + "   largest")
+        for v in args.variants:
+            run = fit(args.duration, seed, v, args.fraction, args.skip)
+            z = [(run[n][0] - twin[n][0]) / twin[n][1] for n in names]
+            print(f"  {v:8s}" + "".join(f"{x:+15.2f}" for x in z)
+                  + f"   {max(abs(x) for x in z):.2f}", flush=True)
+        print(f"  {'twin-tru':8s}" + "".join(f"{(twin[n][0] - twin[n][2]) / twin[n][1]:+15.2f}"
+                                           for n in names))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
