@@ -22,6 +22,7 @@ from canrls.config import load_config
 from canrls.diagnosis import analysis, residual, results, samples
 from canrls.diagnosis.analysis import diagnose_log
 from canrls.replay import prepare
+from canrls.signals import SpilledSignals
 
 #: Bytes of peak memory per sample of the record that the diagnosis may grow by: the
 #: samples (40), used masks, and no more. (374 bytes per sample here before the
@@ -43,6 +44,8 @@ def _peak(path: Path, chunk: int, monkeypatch: pytest.MonkeyPatch) -> tuple[int,
     monkeypatch.setattr(residual, "BLOCK", chunk)
     # the figures' points too (in use up to 20000 per trace, a fixed amount)
     monkeypatch.setattr(results, "FIGURE_POINTS", chunk // 4, raising=False)
+    # the chunks of the temporary file of the samples (its write buffer is one chunk)
+    monkeypatch.setattr(SpilledSignals, "ROWS", chunk)
     cfg = load_config(None)
     cfg.model["kt"] = 0.1
     protocol, model, settings = prepare(cfg)

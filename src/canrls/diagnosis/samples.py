@@ -24,7 +24,7 @@ from canrls.estimation.model import Equation, Model, PositionUnwrapper
 from canrls.estimation.pipeline import EstimatorSettings
 from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.svf import SVF
-from canrls.signals import Signals
+from canrls.signals import Signals, SpilledSignals
 
 __all__ = ["BLOCK", "RecordSamples"]
 
@@ -176,7 +176,7 @@ class RecordSamples:
     rows: :meth:`angle_filled_blocks`.
     """
 
-    def __init__(self, model: Model, signals: Signals, dt: float,
+    def __init__(self, model: Model, signals: Signals | SpilledSignals, dt: float,
                  settings: EstimatorSettings, max_order: int) -> None:
         self.signals = signals
         self.dt = dt
@@ -186,7 +186,7 @@ class RecordSamples:
         self.pitch = model.pitch
         # gap filling and restarts are the same for every equation of the model
         self.policy = SamplePolicy.for_equation(model.equations[0], dt, settings)
-        self.selected = self.policy.apply(signals)
+        self.selected = self.policy.apply(signals, BLOCK)
         filled = self.selected.signals
         self.speed_unit = "rad/s" if model.axis == "rotary" else "m/s"
         self.position_unit = "rad" if model.axis == "rotary" else "m"

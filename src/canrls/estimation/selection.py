@@ -41,7 +41,7 @@ import numpy.typing as npt
 
 from canrls import _kernels
 from canrls.estimation.model import Equation
-from canrls.signals import ROLES, Signals
+from canrls.signals import ROLES, Signals, SpilledSignals
 
 __all__ = ["SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector", "Selection",
            "SelectedSamples", "FilledRecord"]
@@ -147,7 +147,7 @@ class SamplePolicy:
         """A new selector (state: last sample time, warm-up left) for a stream of blocks."""
         return SampleSelector(self)
 
-    def apply(self, signals: Signals, block: int = 65536) -> SelectedSamples:
+    def apply(self, signals: Signals | SpilledSignals, block: int = 65536) -> SelectedSamples:
         """A whole record, as a pipeline fed it selects it: gaps filled, restarts and
         used rows marked (the filled rows never used). The record is filled and
         selected ``block`` samples at a time (the filler and the selector carry their
@@ -305,7 +305,8 @@ class FilledRecord:
     #: filled rows per entry of the table of measured rows before them
     STEP = 65536
 
-    def __init__(self, signals: Signals, real: B | None, policy: SamplePolicy) -> None:
+    def __init__(self, signals: Signals | SpilledSignals, real: B | None,
+                 policy: SamplePolicy) -> None:
         self.measured = signals
         self.real = real
         self.policy = policy
