@@ -14,14 +14,14 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Signals", "ROLES", "SpilledSignals", "SpilledColumn", "PackedMask"]
+__all__ = ["Signals", "ROLES", "SpilledSignals", "SpilledColumn", "PackedMask", "MaskPacker"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -307,8 +307,9 @@ class PackedMask:
 
     Read like the mask it packs where read in pieces: ``m[a:b]`` (a step-1 slice) and
     ``m[k]`` unpack only those rows; ``len``, :meth:`count` and :meth:`any` count
-    without unpacking the whole; ``np.asarray(m)`` (and any other index) unpacks it
-    all. Built from a whole mask or block by block (:meth:`from_blocks`).
+    without unpacking the whole; ``np.asarray(m)``, any other index, ``~m`` and
+    ``m & x`` unpack it all (an array). Built from a whole mask or block by block
+    (:meth:`from_blocks`, :class:`MaskPacker`).
     """
 
     def __init__(self, bits: npt.NDArray[np.uint8], n: int) -> None:
@@ -323,19 +324,11 @@ class PackedMask:
 
     @classmethod
     def from_blocks(cls, blocks: Iterable[npt.NDArray[np.bool_]]) -> PackedMask:
-        """The blocks joined end to end, packed as they come (a block's last rows that
-        do not fill a byte wait for the next)."""
-        parts: list[npt.NDArray[np.uint8]] = []
-        tail = np.zeros(0, np.bool_)
-        n = 0
+        """The blocks joined end to end, packed as they come (:class:`MaskPacker`)."""
+        packer = MaskPacker()
         for b in blocks:
-            m = np.concatenate([tail, np.asarray(b, dtype=np.bool_)])
-            whole = len(m) - len(m) % 8
-            parts.append(np.packbits(m[:whole]))
-            tail = m[whole:]
-            n += len(b)
-        parts.append(np.packbits(tail))
-        return cls(np.concatenate(parts), n)
+            packer.append(b)
+        return packer.mask()
 
     def __len__(self) -> int:
         return self.n
@@ -367,6 +360,16 @@ class PackedMask:
                 return self._unpack(a, max(a, b))
         return np.asarray(self)[key]
 
+    def __invert__(self) -> npt.NDArray[np.bool_]:
+        """``~mask`` unpacked (a whole array)."""
+        return ~np.asarray(self)
+
+    def __and__(self, other: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        """``mask & other`` unpacked (a whole array)."""
+        return np.asarray(self) & np.asarray(other, dtype=np.bool_)
+
+    __rand__ = __and__
+
     def count(self, a: int = 0, b: int | None = None) -> int:
         """True rows in ``a:b`` (default: all)."""
         b = self.n if b is None else min(b, self.n)
@@ -387,3 +390,31 @@ class PackedMask:
     @property
     def nbytes(self) -> int:
         return int(self.bits.nbytes)
+
+    def blocks(self, block: int = 65536) -> Iterator[tuple[int, npt.NDArray[np.bool_]]]:
+        """(first row, rows ``a:a+block`` unpacked) over the mask."""
+        for a in range(0, self.n, block):
+            yield a, self._unpack(a, min(self.n, a + block))
+
+
+class MaskPacker:
+    """Packs a mask that comes in blocks (:class:`PackedMask`): the last rows of a block
+    that do not fill a byte wait for the next block."""
+
+    def __init__(self) -> None:
+        self._parts: list[npt.NDArray[np.uint8]] = []
+        self._tail = np.zeros(0, np.bool_)
+        self._n = 0
+
+    def append(self, block: npt.ArrayLike) -> None:
+        """Add the rows of ``block`` at the end."""
+        b = np.asarray(block, dtype=np.bool_)
+        m = np.concatenate([self._tail, b])
+        whole = len(m) - len(m) % 8
+        self._parts.append(np.packbits(m[:whole]))
+        self._tail = m[whole:]
+        self._n += len(b)
+
+    def mask(self) -> PackedMask:
+        """The rows appended so far, packed."""
+        return PackedMask(np.concatenate([*self._parts, np.packbits(self._tail)]), self._n)

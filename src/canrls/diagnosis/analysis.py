@@ -80,7 +80,7 @@ from canrls.estimation.pipeline import (
 )
 from canrls.estimation.rls import RLS
 from canrls.processor import SampleProcessor
-from canrls.signals import Signals, SpilledSignals
+from canrls.signals import PackedMask, Signals, SpilledSignals
 
 __all__ = ["DEFAULT_MAX_ORDER", "MAX_ORDER_LIMIT", "DiagnosisReport", "diagnose",
            "diagnose_log"]
@@ -388,7 +388,7 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
         position=at(ctx.position), angle=at(ctx.angle), conv_t=conv_t, theta=theta,
         sigma=sigma, theta_fixed=tfx, names=tuple(p.name for p in eq.parameters),
         units=tuple(p.unit for p in eq.parameters), timeline=timeline[pts],
-        scatter=scatter[pts], record_used=used)
+        scatter=scatter[pts], record_used=PackedMask.pack(used))
 
 
 def _every_mask(mask: B, k: int) -> B:
