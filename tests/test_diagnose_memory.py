@@ -22,15 +22,18 @@ from canrls.config import load_config
 from canrls.diagnosis import analysis, residual, results, samples
 from canrls.diagnosis.analysis import diagnose_log
 from canrls.replay import prepare
+from canrls.signals import PackedMask, SpilledSignals
 
 #: Bytes of peak memory per sample of the record that the diagnosis may grow by: the
-#: samples (40), used masks, and no more. (374 bytes per sample here before the
-#: diagnosis ran the pipeline in blocks, fitted the residual left block by block and
+#: equation's used masks (a byte a sample) and no more. (374 bytes per sample here before
+#: the diagnosis ran the pipeline in blocks, fitted the residual left block by block and
 #: re-ran the fixed-point estimator for its trace; 181 after; 103 with the statistics,
 #: columns and traces built block by block; 73 with the filtered signals filtered again
 #: block by block when read; 57 with the residuals too (108 with lost frames); 48, and
-#: 51 with lost frames, with the gap-filled record and the unwrapped position not kept.)
-BYTES_PER_SAMPLE = 55
+#: 51 with lost frames, with the gap-filled record and the unwrapped position not kept;
+#: 8.4 and 10.8 with the samples in a temporary file; 4.9 and 5.4 with the masks of
+#: the filled record and of the selection rules packed, one bit a row.)
+BYTES_PER_SAMPLE = 8
 SHORT_S = 20
 
 
@@ -43,6 +46,8 @@ def _peak(path: Path, chunk: int, monkeypatch: pytest.MonkeyPatch) -> tuple[int,
     monkeypatch.setattr(residual, "BLOCK", chunk)
     # the figures' points too (in use up to 20000 per trace, a fixed amount)
     monkeypatch.setattr(results, "FIGURE_POINTS", chunk // 4, raising=False)
+    # the chunks of the temporary file of the samples (its write buffer is one chunk)
+    monkeypatch.setattr(SpilledSignals, "ROWS", chunk)
     cfg = load_config(None)
     cfg.model["kt"] = 0.1
     protocol, model, settings = prepare(cfg)
@@ -227,6 +232,15 @@ def test_filled_record_read_in_slices_is_the_whole_fill(tmp_path: Path) -> None:
     assert got.real is not None and np.array_equal(got.real, real)
     assert np.array_equal(got.restart, sel.restart)
     assert np.array_equal(got.use, sel.use & real)
+    # kept packed, one bit a row
+    for m in (got.real, got.restart, got.use):
+        assert isinstance(m, PackedMask) and m.nbytes == -(-len(whole) // 8)
+    assert got.segments() == [(int(a), int(b)) for a, b in zip(
+        np.flatnonzero(sel.restart), [*np.flatnonzero(sel.restart)[1:], len(whole)],
+        strict=True)]
+    assert np.array_equal(got.measured(whole.speed), log.signals.speed)
+    spread = got.filled(np.ones(len(log.signals), np.bool_))
+    assert isinstance(spread, PackedMask) and np.array_equal(spread, real)
     filled = got.signals
     assert len(filled) == len(whole)
     rng = np.random.default_rng(7)
@@ -239,10 +253,15 @@ def test_filled_record_read_in_slices_is_the_whole_fill(tmp_path: Path) -> None:
             assert np.array_equal(getattr(part, r), getattr(whole, r)[a:b]), (r, a, b)
 
 
-def test_read_logs_keeps_the_samples_once(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("spill", "bound"), [(False, 50), (True, 1)],
+                         ids=["memory", "spilled"])
+def test_read_logs_keeps_the_samples_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                          spill: bool, bound: float) -> None:
     """``read_logs`` keeps the samples (five float64 a sample) and, while joining its
     blocks, one channel more: not the larger arrays the blocks' columns are views of,
-    nor the samples twice (74 bytes per extra sample here before, 39 now)."""
+    nor the samples twice (74 bytes per extra sample here before, 39 now). Spilled to
+    a temporary file, nothing grows in memory (the write buffer is one chunk)."""
+    monkeypatch.setattr(SpilledSignals, "ROWS", 4096)
     from canrls.replay import read_logs
 
     cfg = load_config(None)
@@ -257,13 +276,15 @@ def test_read_logs_keeps_the_samples_once(tmp_path: Path) -> None:
         tracemalloc.start()
         try:
             start, _ = tracemalloc.get_traced_memory()
-            log = read_logs([p], protocol, model, settings, chunk_size=4096)
+            log = read_logs([p], protocol, model, settings, chunk_size=4096, spill=spill)
             _, peak = tracemalloc.get_traced_memory()
         finally:
             tracemalloc.stop()
+        assert isinstance(log.signals, SpilledSignals) == spill
         peaks.append((len(log.signals), peak - start))
+        log.close()
         del log
     (n1, p1), (n4, p4) = peaks
     growth = (p4 - p1) / (n4 - n1)
     print(f"read_logs: {growth:.1f} bytes per extra sample")
-    assert growth < 50, f"{growth:.0f} bytes per extra sample"
+    assert growth < bound, f"{growth:.1f} bytes per extra sample"

@@ -12,8 +12,11 @@ for bit.
 from __future__ import annotations
 
 import dataclasses
+import itertools
+import logging
 import math
 import os
+import tempfile
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -30,12 +33,14 @@ from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, PipelineBlock
 from canrls.estimation.selection import SamplePolicy
 from canrls.processor import FitResult, FrameProcessor
-from canrls.signals import ROLES, Signals
+from canrls.signals import ROLES, Signals, SpilledSignals
 
 if TYPE_CHECKING:
     from canrls.config import AppConfig
 
 F64 = npt.NDArray[np.float64]
+
+log = logging.getLogger(__name__)
 
 __all__ = ["FILE_GAP_S", "FitResult", "FrameProcessor", "LogFiles", "LogsSamples",
            "MIN_SAMPLES_PER_PARAMETER", "fit_frames", "fit_log", "fit_logs", "prepare",
@@ -241,9 +246,11 @@ class LogFiles:
 
 @dataclasses.dataclass(frozen=True)
 class LogsSamples:
-    """The samples of several logs as one record (:class:`LogFiles`), in memory."""
+    """The samples of several logs as one record (:class:`LogFiles`): in memory, or in
+    a temporary file (:class:`~canrls.signals.SpilledSignals`) when read with
+    ``spill=True`` (:meth:`close` frees it)."""
 
-    signals: Signals
+    signals: Signals | SpilledSignals
     #: sample period [s] (the pairer's)
     dt: float
     #: frame statistics summed over the files (total, rejected, lost, foreign, pairing)
@@ -252,6 +259,11 @@ class LogsSamples:
     model: Model
     #: samples of each file, in order
     sizes: tuple[int, ...]
+
+    def close(self) -> None:
+        """Free the temporary file of spilled samples (nothing for samples in memory)."""
+        if isinstance(self.signals, SpilledSignals):
+            self.signals.close()
 
 
 def _join(blocks: Iterable[Signals]) -> Signals:
@@ -276,12 +288,45 @@ def _join(blocks: Iterable[Signals]) -> Signals:
     return Signals(t, current, speed, out.get("position"), out.get("voltage"))
 
 
+def _spill(blocks: Iterable[Signals]) -> Signals | SpilledSignals:
+    """``blocks`` joined in a temporary file (:class:`SpilledSignals`), or in memory
+    (:func:`_join`) with one warning line when the file cannot be made or written (a
+    read-only or full temporary directory): the rows written so far are read back,
+    none is lost."""
+    blocks = iter(blocks)
+    try:
+        rec = SpilledSignals()
+    except OSError as e:
+        log.warning("cannot make a temporary file for the samples in %s (%s): they are "
+                    "kept in memory", tempfile.gettempdir(), e)
+        return _join(blocks)
+    try:
+        for b in blocks:
+            try:
+                rec.append(b)
+            except OSError as e:
+                log.warning("cannot write the temporary file of the samples in %s (%s): "
+                            "they are kept in memory", tempfile.gettempdir(), e)
+                kept = rec.in_memory()
+                rec.close()
+                return _join(itertools.chain([kept, b], blocks))
+    except BaseException:
+        rec.close()  # a log that cannot be read: the file goes at once
+        raise
+    return rec
+
+
 def read_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model: Model,
               settings: EstimatorSettings | None = None, *, chunk_size: int = 65536,
               progress: Callable[[int, int], None] | None = None,
-              skip_bad_lines: bool = False) -> LogsSamples:
+              skip_bad_lines: bool = False, spill: bool = False) -> LogsSamples:
     """Decode and pair several logs as :func:`fit_logs` does, keeping the samples (for a
     diagnosis of them all: :func:`canrls.diagnosis.analysis.diagnose`).
+
+    ``spill=True`` keeps them in an anonymous temporary file instead of memory
+    (:class:`~canrls.signals.SpilledSignals`, 8 bytes per sample and channel, read back
+    in slices; :meth:`LogsSamples.close` frees it); if the file cannot be made or
+    written, in memory after one warning line.
 
     :raises LogFormatError: a log without any CAN frame.
     :raises ConfigError: fewer than two samples in all.
@@ -289,8 +334,11 @@ def read_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model
     proc = FrameProcessor(protocol, model, settings, relative_time=True)
     files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
                      skip_bad_lines=skip_bad_lines)
-    signals = _join(s for s in files.samples() if len(s))
+    blocks = (s for s in files.samples() if len(s))
+    signals = _spill(blocks) if spill else _join(blocks)
     if len(signals) < 2:
+        if isinstance(signals, SpilledSignals):
+            signals.close()
         raise ConfigError(f"{', '.join(files.paths)}: {len(signals)} samples after decoding "
                           f"and pairing {proc.frames} frames; nothing to analyse")
     frames = files.frames()

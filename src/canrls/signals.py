@@ -4,16 +4,24 @@ A :class:`Signals` block holds paired measurements as float64 arrays in SI units
 (rotary axis: rad, rad/s, A, V; linear axis: m, m/s, A, V). Position is as measured
 (single-turn or wrapping); the pipeline unwraps it. Optional channels are ``None``
 when the drive does not send them.
+
+A long record that is read again in slices (the diagnosis) need not stay in memory:
+:class:`SpilledSignals` keeps it in an anonymous temporary file and reads the slices
+back; :class:`PackedMask` keeps a mask over a record at one bit a row.
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Signals", "ROLES"]
+__all__ = ["Signals", "ROLES", "SpilledSignals", "SpilledColumn", "PackedMask", "MaskPacker"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -71,3 +79,342 @@ class Signals:
                        np.concatenate([b.current for b in blocks]),
                        np.concatenate([b.speed for b in blocks]),
                        cat("position"), cat("voltage"))
+
+
+# ------------------------------------------------------------- a record on disk
+class SpilledSignals:
+    """A record of samples in an anonymous temporary file, read back in slices.
+
+    The rows are appended block by block (:meth:`append`) and stored in chunks of
+    :data:`ROWS` rows, each chunk column after column (``ROWS`` float64 of ``t``, then
+    of ``current``, ``speed``, and ``position``, ``voltage`` when present: 8 bytes per
+    row and channel, 40 with all five). A slice is read back with ``os.preadv`` into
+    fresh arrays, so the values are those appended, bit for bit, and only the slices
+    being used are in memory (not ``mmap``: mapped pages would count as the process's
+    resident memory); the file's pages live in the kernel's page cache. The file is
+    made by :func:`tempfile.TemporaryFile` in the usual temporary directory
+    (``TMPDIR``): it has no name (unlinked at once), so it goes with the process, even
+    a killed one; :meth:`close` frees it earlier.
+
+    It has the interface of :class:`Signals` the diagnosis reads: ``len``,
+    :meth:`has`, :meth:`slice` (a :class:`Signals` block in memory) and the channels
+    as :class:`SpilledColumn` (``None`` when absent) that read slices and sorted rows.
+
+    :raises OSError: the temporary file cannot be made (a read-only or full temporary
+        directory); :meth:`append` raises it when the file cannot be written.
+    """
+
+    #: rows per chunk of the file (the write buffer holds one chunk)
+    ROWS = 65536
+
+    def __init__(self, dir: str | None = None) -> None:
+        self._file = tempfile.TemporaryFile(prefix="canrls-samples-", dir=dir)
+        self._fd = self._file.fileno()
+        #: channels stored in the file, in order (known at the first block)
+        self._roles: list[str] = []
+        #: of those, the ones every block had (a channel one block lacks is absent, as
+        #: :meth:`Signals.concat` has it)
+        self._present: set[str] = set()
+        self._buf: npt.NDArray[np.float64] | None = None  # (channels, ROWS): the chunk open
+        self._fill = 0  # rows of the open chunk in the buffer
+        self._chunks = 0  # chunks written to the file
+        self._n = 0  # rows appended
+        #: the channels, read back where indexed (``None``: absent)
+        self.t: SpilledColumn | None = None
+        self.current: SpilledColumn | None = None
+        self.speed: SpilledColumn | None = None
+        self.position: SpilledColumn | None = None
+        self.voltage: SpilledColumn | None = None
+
+    # -- writing -------------------------------------------------------------------
+    def append(self, block: Signals) -> None:
+        """Add the rows of ``block`` at the end. On an ``OSError`` (the file cannot be
+        written) none of the block's rows count: the record is the rows before it."""
+        n = len(block)
+        if not n:
+            return
+        if self._buf is None:
+            self._roles = ["t", *(r for r in ROLES if block.has(r))]
+            self._present = set(self._roles)
+            self._buf = np.empty((len(self._roles), self.ROWS))
+            self._columns()
+        have = {"t", *(r for r in ROLES if block.has(r))}
+        if not self._present <= have:
+            self._present &= have
+            self._columns()
+        cols = [getattr(block, r) if r in self._present else None for r in self._roles]
+        a = 0
+        while a < n:
+            if self._fill == self.ROWS:
+                self._write_chunk()
+            take = min(n - a, self.ROWS - self._fill)
+            for j, v in enumerate(cols):
+                if v is not None:
+                    self._buf[j, self._fill:self._fill + take] = v[a:a + take]
+            self._fill += take
+            a += take
+        self._n += n
+
+    def _columns(self) -> None:
+        for r in ("t", *ROLES):
+            setattr(self, r, SpilledColumn(self, self._roles.index(r))
+                    if r in self._present else None)
+
+    def _write_chunk(self) -> None:
+        assert self._buf is not None
+        off = self._chunks * self._buf.nbytes
+        data = memoryview(self._buf).cast("B")
+        done = 0
+        while done < len(data):
+            done += os.pwrite(self._fd, data[done:], off + done)
+        self._chunks += 1
+        self._fill = 0
+
+    @classmethod
+    def from_blocks(cls, blocks: Iterable[Signals], dir: str | None = None) -> SpilledSignals:
+        """A record of ``blocks`` appended in turn."""
+        out = cls(dir)
+        for b in blocks:
+            out.append(b)
+        return out
+
+    def close(self) -> None:
+        """Free the file (the record cannot be read after)."""
+        self._file.close()
+
+    def __enter__(self) -> SpilledSignals:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- reading -------------------------------------------------------------------
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the file (and of the chunk held for writing)."""
+        return 0 if self._buf is None else (self._chunks + 1) * self._buf.nbytes
+
+    def has(self, role: str) -> bool:
+        """True when the optional channel ``role`` is present."""
+        return role in self._present
+
+    def read(self, col: int, a: int, b: int, out: npt.NDArray[np.float64]) -> None:
+        """Rows ``a:b`` of channel number ``col`` (of the file's) into ``out``."""
+        if self._file.closed:
+            raise ValueError("the record's temporary file is closed")
+        assert self._buf is not None or b <= a
+        rows = self.ROWS
+        while a < b:
+            k = a // rows
+            e = min(b, (k + 1) * rows)
+            dst = out[:e - a]
+            if k == self._chunks:  # the chunk still in the buffer
+                assert self._buf is not None
+                dst[:] = self._buf[col, a - k * rows:e - k * rows]
+            else:
+                view = memoryview(dst).cast("B")
+                off = (k * len(self._roles) + col) * rows * 8 + (a - k * rows) * 8
+                got = 0
+                while got < len(view):
+                    m = os.preadv(self._fd, [view[got:]], off + got)
+                    if m <= 0:
+                        raise OSError(f"the temporary sample file ended at byte {off + got}")
+                    got += m
+            out = out[e - a:]
+            a = e
+
+    def slice(self, start: int, stop: int) -> Signals:
+        """Rows ``start:stop`` as a new block in memory (``stop`` at most the end)."""
+        a, b, _ = slice(start, stop).indices(self._n)
+        b = max(a, b)
+
+        def col(r: str) -> npt.NDArray[np.float64] | None:
+            if r not in self._present:
+                return None
+            out = np.empty(b - a)
+            self.read(self._roles.index(r), a, b, out)
+            return out
+
+        t, current, speed = col("t"), col("current"), col("speed")
+        assert t is not None and current is not None and speed is not None
+        return Signals(t, current, speed, col("position"), col("voltage"))
+
+    def in_memory(self) -> Signals:
+        """The whole record as :class:`Signals`."""
+        return self.slice(0, self._n)
+
+
+class SpilledColumn:
+    """One channel of a :class:`SpilledSignals`, read back where indexed: a slice
+    (step 1) or sorted row numbers read only those rows' chunks; a row gives a float;
+    anything else (``np.asarray``) reads the whole channel."""
+
+    def __init__(self, record: SpilledSignals, col: int) -> None:
+        self.record = record
+        self.col = col
+
+    def __len__(self) -> int:
+        return len(self.record)
+
+    @property
+    def shape(self) -> tuple[int]:
+        return (len(self.record),)
+
+    def _rows(self, a: int, b: int) -> npt.NDArray[np.float64]:
+        out = np.empty(max(b - a, 0))
+        self.record.read(self.col, a, b, out)
+        return out
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> F64:
+        a = self._rows(0, len(self))
+        return a if dtype is None else a.astype(dtype)
+
+    def __getitem__(self, key: Any) -> Any:
+        n = len(self)
+        if isinstance(key, int | np.integer):
+            k = int(key) + (n if key < 0 else 0)
+            if not 0 <= k < n:
+                raise IndexError(f"row {int(key)} of a record of {n}")
+            return float(self._rows(k, k + 1)[0])
+        if isinstance(key, slice):
+            a, b, step = key.indices(n)
+            if step == 1:
+                return self._rows(a, max(a, b))
+        elif (isinstance(key, np.ndarray) and key.dtype.kind in "iu" and key.ndim == 1
+              and (len(key) < 2 or bool(np.all(key[1:] >= key[:-1])))):
+            out = np.empty(len(key))
+            if not len(key):
+                return out
+            if key[0] < 0 or key[-1] >= n:
+                raise IndexError(f"rows {int(key[0])}..{int(key[-1])} of a record of {n}")
+            # the rows of each chunk from one read of the chunk's span
+            rows = self.record.ROWS
+            starts = np.searchsorted(key, np.arange(0, n + rows, rows))
+            for lo, hi in zip(starts[:-1], starts[1:], strict=True):
+                if hi > lo:
+                    a, b = int(key[lo]), int(key[hi - 1]) + 1
+                    out[lo:hi] = self._rows(a, b)[key[lo:hi] - a]
+            return out
+        return np.asarray(self)[key]
+
+
+# ------------------------------------------------------------------ a packed mask
+class PackedMask:
+    """A boolean mask over a record at one bit a row (:func:`numpy.packbits`).
+
+    Read like the mask it packs where read in pieces: ``m[a:b]`` (a step-1 slice) and
+    ``m[k]`` unpack only those rows; ``len``, :meth:`count` and :meth:`any` count
+    without unpacking the whole; ``np.asarray(m)``, any other index, ``~m`` and
+    ``m & x`` unpack it all (an array). Built from a whole mask or block by block
+    (:meth:`from_blocks`, :class:`MaskPacker`).
+    """
+
+    def __init__(self, bits: npt.NDArray[np.uint8], n: int) -> None:
+        self.bits = bits
+        self.n = n
+
+    @classmethod
+    def pack(cls, mask: npt.ArrayLike) -> PackedMask:
+        """``mask`` packed."""
+        m = np.asarray(mask, dtype=np.bool_)
+        return cls(np.packbits(m), len(m))
+
+    @classmethod
+    def from_blocks(cls, blocks: Iterable[npt.NDArray[np.bool_]]) -> PackedMask:
+        """The blocks joined end to end, packed as they come (:class:`MaskPacker`)."""
+        packer = MaskPacker()
+        for b in blocks:
+            packer.append(b)
+        return packer.mask()
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def shape(self) -> tuple[int]:
+        return (self.n,)
+
+    def _unpack(self, a: int, b: int) -> npt.NDArray[np.bool_]:
+        if b <= a:
+            return np.zeros(0, np.bool_)
+        byte = a >> 3
+        u = np.unpackbits(self.bits[byte:(b + 7) >> 3], count=b - (byte << 3))
+        return u[a - (byte << 3):].view(np.bool_)
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> npt.NDArray[Any]:
+        a = self._unpack(0, self.n)
+        return a if dtype is None else a.astype(dtype)
+
+    def __getitem__(self, key: Any) -> Any:
+        if isinstance(key, int | np.integer):
+            k = int(key) + (self.n if key < 0 else 0)
+            if not 0 <= k < self.n:
+                raise IndexError(f"row {int(key)} of a mask of {self.n}")
+            return bool((self.bits[k >> 3] >> (7 - (k & 7))) & 1)
+        if isinstance(key, slice):
+            a, b, step = key.indices(self.n)
+            if step == 1:
+                return self._unpack(a, max(a, b))
+        return np.asarray(self)[key]
+
+    def __invert__(self) -> npt.NDArray[np.bool_]:
+        """``~mask`` unpacked (a whole array)."""
+        return ~np.asarray(self)
+
+    def __and__(self, other: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        """``mask & other`` unpacked (a whole array)."""
+        return np.asarray(self) & np.asarray(other, dtype=np.bool_)
+
+    __rand__ = __and__
+
+    def count(self, a: int = 0, b: int | None = None) -> int:
+        """True rows in ``a:b`` (default: all)."""
+        b = self.n if b is None else min(b, self.n)
+        if b <= a:
+            return 0
+        lo, hi = -(-a // 8), b // 8  # whole bytes inside a:b
+        if hi <= lo:
+            return int(np.count_nonzero(self._unpack(a, b)))
+        whole = int(np.bitwise_count(self.bits[lo:hi]).sum()) if hasattr(np, "bitwise_count") \
+            else int(np.count_nonzero(np.unpackbits(self.bits[lo:hi])))
+        return (whole + int(np.count_nonzero(self._unpack(a, lo * 8)))
+                + int(np.count_nonzero(self._unpack(hi * 8, b))))
+
+    def any(self) -> bool:
+        """True when a row is true."""
+        return bool(self.bits.any())
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.bits.nbytes)
+
+    def blocks(self, block: int = 65536) -> Iterator[tuple[int, npt.NDArray[np.bool_]]]:
+        """(first row, rows ``a:a+block`` unpacked) over the mask."""
+        for a in range(0, self.n, block):
+            yield a, self._unpack(a, min(self.n, a + block))
+
+
+class MaskPacker:
+    """Packs a mask that comes in blocks (:class:`PackedMask`): the last rows of a block
+    that do not fill a byte wait for the next block."""
+
+    def __init__(self) -> None:
+        self._parts: list[npt.NDArray[np.uint8]] = []
+        self._tail = np.zeros(0, np.bool_)
+        self._n = 0
+
+    def append(self, block: npt.ArrayLike) -> None:
+        """Add the rows of ``block`` at the end."""
+        b = np.asarray(block, dtype=np.bool_)
+        m = np.concatenate([self._tail, b])
+        whole = len(m) - len(m) % 8
+        self._parts.append(np.packbits(m[:whole]))
+        self._tail = m[whole:]
+        self._n += len(b)
+
+    def mask(self) -> PackedMask:
+        """The rows appended so far, packed."""
+        return PackedMask(np.concatenate([*self._parts, np.packbits(self._tail)]), self._n)

@@ -68,7 +68,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                     "measurements (fit, residual RMS, whiteness), show where it fails (speed, "
                     "position, current, acceleration, time, rotation order), rank the "
                     "effects of the library the model lacks, and with --add refit and print "
-                    "before and after side by side.")
+                    "before and after side by side. The decoded samples are kept in an "
+                    "anonymous temporary file in TMPDIR (up to 40 bytes a sample, gone on exit), "
+                    "or in memory if none can be made.")
     add_log_arguments(p, "several logs are diagnosed as one record (segments never "
                          "bridged across files)")
     add_model_options(p)

@@ -80,7 +80,7 @@ from canrls.estimation.pipeline import (
 )
 from canrls.estimation.rls import RLS
 from canrls.processor import SampleProcessor
-from canrls.signals import Signals
+from canrls.signals import PackedMask, Signals, SpilledSignals
 
 __all__ = ["DEFAULT_MAX_ORDER", "MAX_ORDER_LIMIT", "DiagnosisReport", "diagnose",
            "diagnose_log"]
@@ -94,14 +94,16 @@ CHUNK = 65536
 
 
 # ========================================================================= entry points
-def diagnose(data: Signals | Iterable[Signals], model: Model,
+def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
              settings: EstimatorSettings | None = None, *, dt: float | None = None,
              add: Sequence[str] = (), max_order: int = DEFAULT_MAX_ORDER,
              source: str = "<signals>",
              frames: Mapping[str, Any] | None = None) -> DiagnosisReport:
     """Diagnose ``model`` on samples: compare, locate the failures, rank the missing effects.
 
-    :param data: a :class:`~canrls.signals.Signals` block, or blocks (joined end to end).
+    :param data: a :class:`~canrls.signals.Signals` block, or blocks (joined end to end),
+        or a record in a temporary file (:class:`~canrls.signals.SpilledSignals`,
+        read in slices).
     :param model: the model to diagnose.
     :param settings: estimator settings (default :class:`EstimatorSettings`).
     :param dt: sample period [s] (default: the median step of ``t``).
@@ -114,7 +116,8 @@ def diagnose(data: Signals | Iterable[Signals], model: Model,
     :raises ConfigError: no samples, a bad ``dt`` or ``max_order``; :class:`EffectError`
         for an effect in ``add`` that is unknown or already in the model.
     """
-    signals = data if isinstance(data, Signals) else Signals.concat(list(data))
+    signals = (data if isinstance(data, Signals | SpilledSignals)
+               else Signals.concat(list(data)))
     n = len(signals)
     if n < 2:
         raise ConfigError(f"diagnose: {source}: {n} samples; need at least a few seconds")
@@ -159,8 +162,10 @@ def diagnose_log(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]
 
     The frames are decoded and paired exactly as ``canrls fit`` does
     (:func:`canrls.replay.read_logs`), so ``before`` holds the same parameters as
-    ``canrls fit`` prints, bit for bit. The samples are kept in memory (five float64
-    arrays) for the second pass that ``add`` needs.
+    ``canrls fit`` prints, bit for bit. The samples are kept in an anonymous temporary
+    file (:class:`~canrls.signals.SpilledSignals`: the statistics read them again in
+    slices, the refit of ``add`` too), freed on return; in memory if the file cannot
+    be made.
     """
     from canrls.replay import read_logs
 
@@ -171,10 +176,13 @@ def diagnose_log(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]
         if not _bare_cogging(a):
             model.with_effects(add=[a])
     log = read_logs(paths, protocol, model, settings, progress=progress,
-                    chunk_size=chunk_size, skip_bad_lines=skip_bad_lines)
-    return diagnose(log.signals, log.model, settings, dt=log.dt, add=add,
-                    max_order=max_order, source=", ".join(str(p) for p in paths),
-                    frames=log.frames)
+                    chunk_size=chunk_size, skip_bad_lines=skip_bad_lines, spill=True)
+    try:
+        return diagnose(log.signals, log.model, settings, dt=log.dt, add=add,
+                        max_order=max_order, source=", ".join(str(p) for p in paths),
+                        frames=log.frames)
+    finally:
+        log.close()
 
 
 # ============================================================================ internals
@@ -208,7 +216,8 @@ def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
     return Analysis(model=model, estimates=est, equations=tuple(eqs))
 
 
-def _run_in_chunks(proc: SampleProcessor, signals: Signals) -> list[EquationBlock]:
+def _run_in_chunks(proc: SampleProcessor,
+                   signals: Signals | SpilledSignals) -> list[EquationBlock]:
     """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
     each equation's recorded block, what the diagnosis reads (used), joined (the times
     are the samples' own, ``signals.t``, checked block by block).
@@ -379,7 +388,7 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
         position=at(ctx.position), angle=at(ctx.angle), conv_t=conv_t, theta=theta,
         sigma=sigma, theta_fixed=tfx, names=tuple(p.name for p in eq.parameters),
         units=tuple(p.unit for p in eq.parameters), timeline=timeline[pts],
-        scatter=scatter[pts], record_used=used)
+        scatter=scatter[pts], record_used=PackedMask.pack(used))
 
 
 def _every_mask(mask: B, k: int) -> B:

@@ -68,7 +68,7 @@ from canrls.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Cogging, Effect, UserTerm, library
 from canrls.estimation.model import Equation, Model
 from canrls.estimation.pipeline import EquationBlock
-from canrls.signals import Signals
+from canrls.signals import Signals, SpilledSignals
 
 __all__ = [
     "DEFAULT_MAX_ORDER",
@@ -206,7 +206,7 @@ class _Gram:
         return float(self.An[i, j])
 
 
-def _candidate_names(model: Model, eq: Equation, signals: Signals,
+def _candidate_names(model: Model, eq: Equation, signals: Signals | SpilledSignals,
                      max_order: int) -> tuple[list[str], list[tuple[str, str]]]:
     """The library effects (and configured user terms) not in the model, for this equation."""
     have = set(model.effect_names)

@@ -728,8 +728,7 @@ def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationS
         ss += float(np.dot(d, d))
     # speed-sensor noise from the second differences of the measured speed (robust:
     # var(w[k+1] - 2 w[k] + w[k-1]) = 6 sigma^2 for white noise), through sF
-    w = np.asarray(ctx.signals.speed, dtype=np.float64)
-    d2 = _SecondDifference(w)
+    d2 = _SecondDifference(ctx.signals.speed)  # read in slices
     sigma_w = 1.4826 * median(d2) / math.sqrt(6.0) if len(d2) else 0.0  # type: ignore[arg-type]
     h_sf = ctx.impulse(ctx.speed_hold, derivative=True)
     acc_noise = sigma_w * float(np.sqrt(np.dot(h_sf, h_sf)))

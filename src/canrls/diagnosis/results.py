@@ -20,6 +20,7 @@ import numpy.typing as npt
 
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EquationFit, Estimates
+from canrls.signals import PackedMask
 
 __all__ = [
     "FIGURE_POINTS",
@@ -392,7 +393,8 @@ class Traces:
     marks those of the timeline, every k-th sample, ``scatter`` those of the residual
     scatter plots, every k-th used sample; both ``None``: every sample, the figures
     decimate), ``used`` marks the points outside warm-ups; ``record_used`` is the
-    mask of used samples over the whole record (``None``: not kept).
+    mask of used samples over the whole record, packed (one bit a sample: slice it, or
+    ``np.asarray``; ``None``: not kept).
 
     ``y``, ``yhat`` and ``residual`` are the filtered target, its model value with the
     final float estimate, and their difference, in the target unit. ``speed``,
@@ -420,7 +422,7 @@ class Traces:
     units: tuple[str, ...]
     timeline: B | None = None
     scatter: B | None = None
-    record_used: B | None = None
+    record_used: PackedMask | None = None
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from canrls.estimation.model import Equation, Model, PositionUnwrapper
 from canrls.estimation.pipeline import EstimatorSettings
 from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.svf import SVF
-from canrls.signals import Signals
+from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals
 
 __all__ = ["BLOCK", "RecordSamples"]
 
@@ -50,15 +50,18 @@ class _FilterSource:
         self.svf = svf
         self.compute = compute
         self.n = n
-        self.pieces: list[tuple[int, int, int, int, B | None]] = []
+        #: (c0, c1, m0, m1): filled rows c0:c1 are measured rows m0:m1
+        self.pieces: list[tuple[int, int, int, int]] = []
+        #: the measured rows of the filled record (packed; None: all), sliced where read
+        self.real = ctx.selected.real
         self.states: list[Any] | None = [] if snapshots else None
         #: the first piece of each piece's segment
         self.first: list[int] = []
         seg_starts = {a for a, _ in ctx.segments()}
-        for c0, c1, m0, m1, real in ctx._pieces(svf):
+        for c0, c1, m0, m1, _ in ctx._pieces(svf):
             self.first.append(len(self.pieces) if c0 in seg_starts or not self.first
                               else self.first[-1])
-            self.pieces.append((c0, c1, m0, m1, real))
+            self.pieces.append((c0, c1, m0, m1))
             if self.states is not None:
                 self.states.append(copy.deepcopy(svf))
                 compute(c0, c1)  # advance the filter
@@ -67,10 +70,10 @@ class _FilterSource:
         self.pos: int | None = None  # the piece the builder last computed
 
     def _run(self, i: int) -> F64:
-        c0, c1, _, _, real = self.pieces[i]
+        c0, c1, _, _ = self.pieces[i]
         out = self.compute(c0, c1)
-        if real is not None:
-            out = out[real]
+        if self.real is not None:
+            out = out[self.real[c0:c1]]
         if len(self.cache) >= self.CACHE:
             del self.cache[next(iter(self.cache))]
         self.cache[i] = out
@@ -100,7 +103,7 @@ class _FilterSource:
         start = a
         i = int(np.searchsorted(self.starts, a, side="right")) - 1
         while a < b:
-            _, _, m0, m1, _ = self.pieces[i]
+            _, _, m0, m1 = self.pieces[i]
             e = min(b, m1)
             if e > a:
                 out[a - start:e - start] = self.piece(i)[a - m0:e - m0, col]
@@ -111,7 +114,7 @@ class _FilterSource:
     def gather(self, idx: npt.NDArray[np.intp], col: int) -> F64:
         """Column ``col`` on the measured rows ``idx`` (sorted)."""
         out = np.empty(len(idx))
-        for i, (_, _, m0, m1, _) in enumerate(self.pieces):
+        for i, (_, _, m0, m1) in enumerate(self.pieces):
             lo, hi = np.searchsorted(idx, [m0, m1])
             if hi > lo:
                 out[lo:hi] = self.piece(i)[idx[lo:hi] - m0, col]
@@ -176,7 +179,7 @@ class RecordSamples:
     rows: :meth:`angle_filled_blocks`.
     """
 
-    def __init__(self, model: Model, signals: Signals, dt: float,
+    def __init__(self, model: Model, signals: Signals | SpilledSignals, dt: float,
                  settings: EstimatorSettings, max_order: int) -> None:
         self.signals = signals
         self.dt = dt
@@ -186,7 +189,7 @@ class RecordSamples:
         self.pitch = model.pitch
         # gap filling and restarts are the same for every equation of the model
         self.policy = SamplePolicy.for_equation(model.equations[0], dt, settings)
-        self.selected = self.policy.apply(signals)
+        self.selected = self.policy.apply(signals, BLOCK)
         filled = self.selected.signals
         self.speed_unit = "rad/s" if model.axis == "rotary" else "m/s"
         self.position_unit = "rad" if model.axis == "rotary" else "m"
@@ -243,7 +246,7 @@ class RecordSamples:
             self.angle = Filtered(ps, 1)
             self.angle_raw = Filtered(ps, 2)
         self._h: dict[str, F64] = {}
-        self._use: dict[tuple[int, float, float], B] = {}
+        self._use: dict[tuple[int, float, float], PackedMask] = {}
         self._coh: dict[tuple[int, int], tuple[F64, float]] = {}
 
     def angle_filled_blocks(self) -> Iterator[tuple[int, int, F64]]:
@@ -286,8 +289,9 @@ class RecordSamples:
         """Runs of rows of the filled record without a filter restart."""
         return self.selected.segments()
 
-    def spread(self, used: B) -> B:
-        """A mask over the measured rows as a mask over the filled record."""
+    def spread(self, used: B) -> B | PackedMask:
+        """A mask over the measured rows as a mask over the filled record (packed when
+        rows were filled: read it in slices)."""
         return self.selected.filled(used)
 
     def spread_values(self, v: F64) -> F64:
@@ -296,23 +300,23 @@ class RecordSamples:
         if real is None:
             return v
         out = np.zeros(len(real))
-        out[real] = v
+        out[np.asarray(real)] = v
         return out
 
-    def _filled_use(self, policy: SamplePolicy) -> B:
-        """The rows of the filled record ``policy`` uses (the pipeline's rule)."""
+    def _filled_use(self, policy: SamplePolicy) -> PackedMask:
+        """The rows of the filled record ``policy`` uses (the pipeline's rule), packed."""
         key = (policy.warmup, policy.min_speed, policy.max_speed)
         if key not in self._use:
             # block by block over the filled record (the selector carries its state)
             filled = self.selected.signals
+            real = self.selected.real
             selector = policy.selector()
-            use = np.empty(len(filled), np.bool_)
+            use = MaskPacker()
             for c0 in range(0, len(filled), BLOCK):
                 fb = filled.slice(c0, c0 + BLOCK)
-                use[c0:c0 + len(fb)] = selector.select(fb.t, fb.speed).use
-            if self.selected.real is not None:
-                use &= self.selected.real
-            self._use[key] = use
+                u = selector.select(fb.t, fb.speed).use
+                use.append(u if real is None else u & real[c0:c0 + len(fb)])
+            self._use[key] = use.mask()
         return self._use[key]
 
     def used(self, equation: Equation) -> B:
@@ -321,7 +325,7 @@ class RecordSamples:
         policy = SamplePolicy.for_equation(equation, self.dt, self.settings)
         return self.selected.measured(self._filled_use(policy))
 
-    def _keep_filled(self, order: int) -> B:
+    def _keep_filled(self, order: int) -> PackedMask:
         return self._filled_use(self.policy.for_order(order))
 
     def keep(self, order: int) -> B:

@@ -41,7 +41,7 @@ import numpy.typing as npt
 
 from canrls import _kernels
 from canrls.estimation.model import Equation
-from canrls.signals import ROLES, Signals
+from canrls.signals import ROLES, MaskPacker, PackedMask, Signals, SpilledSignals
 
 __all__ = ["SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector", "Selection",
            "SelectedSamples", "FilledRecord"]
@@ -147,16 +147,16 @@ class SamplePolicy:
         """A new selector (state: last sample time, warm-up left) for a stream of blocks."""
         return SampleSelector(self)
 
-    def apply(self, signals: Signals, block: int = 65536) -> SelectedSamples:
+    def apply(self, signals: Signals | SpilledSignals, block: int = 65536) -> SelectedSamples:
         """A whole record, as a pipeline fed it selects it: gaps filled, restarts and
         used rows marked (the filled rows never used). The record is filled and
         selected ``block`` samples at a time (the filler and the selector carry their
-        state, so the masks are those of one block); the filled record is not kept but
-        filled again where read (:class:`FilledRecord`)."""
+        state, so the masks are those of one block; they are kept packed, one bit a
+        row); the filled record is not kept but filled again where read
+        (:class:`FilledRecord`)."""
         filler, selector = self.filler(), self.selector()
-        reals: list[B] = []
-        restarts: list[B] = []
-        uses: list[B] = []
+        # the masks packed as they come (one bit a row)
+        reals, restarts, uses = MaskPacker(), MaskPacker(), MaskPacker()
         any_filled = False
         for a in range(0, max(len(signals), 1), block):
             filled, real = filler.fill(signals.slice(a, min(len(signals), a + block)))
@@ -168,11 +168,9 @@ class SamplePolicy:
             reals.append(real)
             restarts.append(sel.restart)
             uses.append(sel.use & real)
-        real_all = np.concatenate(reals) if any_filled else None
-        del reals
+        real_all = reals.mask() if any_filled else None
         return SelectedSamples(signals=FilledRecord(signals, real_all, self),
-                               real=real_all, restart=np.concatenate(restarts),
-                               use=np.concatenate(uses))
+                               real=real_all, restart=restarts.mask(), use=uses.mask())
 
 
 # --------------------------------------------------------------------------- state
@@ -305,7 +303,8 @@ class FilledRecord:
     #: filled rows per entry of the table of measured rows before them
     STEP = 65536
 
-    def __init__(self, signals: Signals, real: B | None, policy: SamplePolicy) -> None:
+    def __init__(self, signals: Signals | SpilledSignals, real: PackedMask | None,
+                 policy: SamplePolicy) -> None:
         self.measured = signals
         self.real = real
         self.policy = policy
@@ -313,7 +312,7 @@ class FilledRecord:
         if real is not None:
             # measured rows before filled row k * STEP
             self._before = np.concatenate(
-                [[0], np.cumsum([np.count_nonzero(real[a:a + self.STEP])
+                [[0], np.cumsum([real.count(a, a + self.STEP)
                                  for a in range(0, len(real), self.STEP)])]).astype(np.int64)
 
     def __len__(self) -> int:
@@ -328,7 +327,7 @@ class FilledRecord:
         """Measured rows before filled row ``c``."""
         assert self.real is not None
         k = c // self.STEP
-        return int(self._before[k]) + int(np.count_nonzero(self.real[k * self.STEP:c]))
+        return int(self._before[k]) + self.real.count(k * self.STEP, c)
 
     def slice(self, c0: int, c1: int) -> Signals:
         """Filled rows ``c0:c1`` (a new block)."""
@@ -360,28 +359,44 @@ class SelectedSamples:
     ``signals`` has the gaps filled (:class:`FilledRecord`: filled again where
     sliced); ``real`` marks the measured rows (``None``: nothing
     was filled, every row is real); ``restart`` the rows where the filter restarts;
-    ``use`` the rows that update the estimators.
+    ``use`` the rows that update the estimators. The masks are packed
+    (:class:`~canrls.signals.PackedMask`: read them in slices; ``np.asarray`` unpacks).
     """
 
     signals: FilledRecord
-    real: B | None
-    restart: B
-    use: B
+    real: PackedMask | None
+    restart: PackedMask
+    use: PackedMask
+
+    #: rows unpacked at a time where a whole mask is read
+    BLOCK = 65536
 
     def segments(self) -> list[tuple[int, int]]:
         """``[start, stop)`` of each run of rows the filter goes through without a restart."""
-        starts = [int(k) for k in np.flatnonzero(self.restart)]
+        starts = [a + int(k) for a, r in self.restart.blocks(self.BLOCK)
+                  for k in np.flatnonzero(r)]
         ends = starts[1:] + [len(self.restart)]
         return [(a, b) for a, b in zip(starts, ends, strict=True) if b > a]
 
-    def measured(self, a: npt.NDArray[np.generic]) -> npt.NDArray[np.generic]:
-        """The measured rows of ``a`` (rows of the filled record)."""
-        return a if self.real is None else a[self.real]
+    def measured(self, a: npt.NDArray[np.generic] | PackedMask) -> npt.NDArray[np.generic]:
+        """The measured rows of ``a`` (rows of the filled record), block by block."""
+        if self.real is None:
+            return np.asarray(a)
+        return np.concatenate([np.asarray(a[:0])]
+                              + [np.asarray(a[c0:c0 + len(r)])[r]
+                                 for c0, r in self.real.blocks(self.BLOCK)])
 
-    def filled(self, mask: B) -> B:
-        """A mask over the measured rows spread over the filled record (filled rows False)."""
+    def filled(self, mask: B) -> B | PackedMask:
+        """A mask over the measured rows spread over the filled record (filled rows
+        False): packed, unless nothing was filled (``mask`` itself)."""
         if self.real is None:
             return mask
-        out = np.zeros(len(self.real), np.bool_)
-        out[self.real] = mask
-        return out
+        out = MaskPacker()
+        m = 0
+        for _, r in self.real.blocks(self.BLOCK):
+            k = int(np.count_nonzero(r))
+            part = np.zeros(len(r), np.bool_)
+            part[r] = mask[m:m + k]
+            out.append(part)
+            m += k
+        return out.mask()
