@@ -698,6 +698,25 @@ def test_sd_notifydatagrams(tmp_path: Path) -> None:
     missing.close()
 
 
+def test_sd_notify_never_waits_on_a_socket_nobody_reads(tmp_path: Path) -> None:
+    """A full notification queue drops the message (it used to block the sender, the
+    supervisor and the stop with it, once some ten datagrams were unread)."""
+    sock, addr = notify_socket(tmp_path, "full")
+    n = SystemdNotifier(environ={"NOTIFY_SOCKET": addr})
+    results: list[bool] = []
+    t = threading.Thread(target=lambda: results.extend(n.watchdog() for _ in range(2000)),
+                         daemon=True)
+    try:
+        t.start()
+        t.join(10)
+        assert not t.is_alive() and len(results) == 2000
+        assert results[0] and not results[-1]  # the first ones queued, then dropped
+    finally:
+        sock.close()  # unblocks a sender that waits (the old code)
+        t.join(5)
+        n.close()
+
+
 @pytest.mark.slow
 def test_sighup_reloads_model_and_sigterm_checkpoints(tmp_path: Path) -> None:
     conf = tmp_path / "canrls.toml"

@@ -44,7 +44,9 @@ class SystemdNotifier:
     :param environ: the environment to read (default ``os.environ``).
 
     ``enabled`` is False when there is no socket: every method then returns False.
-    A failed send is logged once and returns False; it never raises.
+    A failed send is logged once and returns False; it never raises, and never waits:
+    when the socket's queue is full (nobody reads it) the message is dropped, so the
+    daemon's threads cannot hang on it.
     """
 
     def __init__(self, address: str | None = None,
@@ -72,8 +74,14 @@ class SystemdNotifier:
         try:
             if self._sock is None:
                 self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-            self._sock.sendto(state.encode(), _address(self.address))
+            self._sock.sendto(state.encode(), socket.MSG_DONTWAIT, _address(self.address))
             return True
+        except BlockingIOError:
+            if not self._warned:
+                log.warning("sd_notify to %s: its queue is full (nobody reads it): "
+                            "message dropped", self.address)
+                self._warned = True
+            return False
         except OSError as e:
             if not self._warned:
                 log.warning("sd_notify to %s failed: %s", self.address, e)
