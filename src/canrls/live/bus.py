@@ -280,10 +280,10 @@ class BusReader:
                 slow = taken * interval < RX_BATCH * (now - mark)
                 mark, taken = now, 0
                 if slow:
-                    # a slow bus: let frames gather in the interface. A fast one fills
-                    # wake-ups by itself, and the interface's buffer is not slept away
+                    # a slow bus: let frames gather in the interface (they count against
+                    # the time from mark, the sleep included). A fast one fills wake-ups
+                    # by itself, and the interface's buffer is not slept away
                     stop.wait(interval)
-                    mark = time.monotonic()
 
     def stop(self, timeout: float = 5.0) -> None:
         """Stop the thread (it finishes the frame in hand) and wait for it."""
