@@ -119,3 +119,39 @@ def test_run_block_names_a_wrong_buffer() -> None:
             z(N, np.int64), z(N + 1, np.int64), z(N, np.uint8)]
     with pytest.raises(ValueError, match="exp: expected 4 items"):
         cfixed.run_block(*args)
+
+
+def test_run_block_lets_other_threads_run() -> None:
+    """The update loop holds no interpreter lock: the daemon's bus reader keeps taking
+    frames while a block of the fixed-point estimator runs. With a switch interval
+    longer than the block, a thread that needs the lock could not run during it."""
+    import threading
+
+    n, N = 8, 200_000
+    cfg = FixedConfig.auto(n, 1e-2, 0.99)
+    est = FixedRLS(cfg, n, 0.99, 1e-2)
+    assert est.backend != "spec"
+    rng = np.random.default_rng(11)
+    Pq, Yq, _ = cfg.quantize_inputs(rng.uniform(-0.5, 0.5, (N, n)), rng.uniform(-0.5, 0.5, N))
+    count = [0]
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            count[0] += 1
+
+    old = sys.getswitchinterval()
+    t = threading.Thread(target=spin, daemon=True)
+    try:
+        t.start()
+        while count[0] == 0:
+            pass
+        sys.setswitchinterval(1.0)  # from now on this thread keeps the lock unless released
+        before = count[0]
+        est.run(Pq, Yq, record=False)
+        during = count[0] - before
+    finally:
+        sys.setswitchinterval(old)
+        stop.set()
+        t.join(10)
+    assert during > 0

@@ -186,6 +186,9 @@ static PyObject *run_block(PyObject *self, PyObject *args)
     }
     S.frozen = (uint32_t)frozen;
 
+    /* the rows touch only the buffers held above: other threads (the daemon's bus
+     * reader) run meanwhile */
+    Py_BEGIN_ALLOW_THREADS
     for (k = 0; k < N; k++) {
         canrls_step_q31 st;
         const int64_t before = c_phi + c_y;
@@ -205,6 +208,7 @@ static PyObject *run_block(PyObject *self, PyObject *args)
             }
         }
     }
+    Py_END_ALLOW_THREADS
 
     /* the state back into the Python arrays (P: the upper triangle only) */
     m = 0;

@@ -10,9 +10,10 @@
 The reader is python-can's :class:`~can.Notifier` loop (``bus.recv``, the listener,
 ``on_error``) that takes every frame waiting at each wake-up and then sleeps
 ``rx_interval`` (:attr:`DaemonSettings.rx_s <canrls.live.settings.DaemonSettings.rx_s>`,
-5 ms by default): at 1 kHz one wake-up serves some ten frames instead of one or two,
-and a wake-up costs the process more CPU than reading a frame. An idle bus is waited
-for in ``recv``, without polling.
+5 ms by default) while the bus is slow: at 1 kHz one wake-up serves some ten frames
+instead of two (``docs/daemon.md``, *The batched reader*: the CPU this saves is within
+the development machine's noise). An idle bus is waited for in ``recv``, without
+polling.
 
 The bus is opened with ``can.Bus(..., ignore_config=True)`` from the ``[can]`` table
 and the command line only: python-can's own configuration sources (``can.rc``,
