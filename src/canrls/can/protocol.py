@@ -1440,15 +1440,12 @@ class Decoder:
             if p.check_counter and (len(ok) or skip.any()):
                 state, state_t = self._state[m.name]
                 before = int(state[0])
-                if skip.any():  # the accepted rows and those, in stream order
-                    sel = np.flatnonzero((reason == 0) | skip)
-                    status, lost = _counter_kernel(counter_all[sel], t[sel],
-                                                   *_counter_params(m), state, state_t,
-                                                   skip[sel])
-                    status = status[~skip[sel]]
-                else:
-                    status, lost = _counter_kernel(counter_all[ok], t[ok],
-                                                   *_counter_params(m), state, state_t)
+                # the accepted rows and those, in stream order (the accepted ones alone
+                # when none was rejected so)
+                sel = np.flatnonzero((reason == 0) | skip)
+                status, lost = _counter_kernel(counter_all[sel], t[sel], *_counter_params(m),
+                                               state, state_t, skip[sel])
+                status = status[~skip[sel]]
                 lost_total = int(lost.sum())
 
                 def previous(k: int) -> int:
