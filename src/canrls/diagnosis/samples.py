@@ -294,15 +294,6 @@ class RecordSamples:
         rows were filled: read it in slices)."""
         return self.selected.filled(used)
 
-    def spread_values(self, v: F64) -> F64:
-        """Values on the measured rows placed on the filled record (0 on filled rows)."""
-        real = self.selected.real
-        if real is None:
-            return v
-        out = np.zeros(len(real))
-        out[np.asarray(real)] = v
-        return out
-
     def _filled_use(self, policy: SamplePolicy) -> PackedMask:
         """The rows of the filled record ``policy`` uses (the pipeline's rule), packed."""
         key = (policy.warmup, policy.min_speed, policy.max_speed)

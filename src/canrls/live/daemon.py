@@ -195,6 +195,11 @@ class Daemon:
         proc.restore(state, model)
         return proc
 
+    def _stop_flag(self) -> None:
+        """Mark the daemon stopping and wake the supervisor to see it."""
+        self._stopping.set()
+        self._attention.set()
+
     def _recv_failed(self, exc: BaseException) -> None:
         self._link.recv_failed(exc)
         self._attention.set()
@@ -348,12 +353,10 @@ class Daemon:
     def stop(self) -> None:
         """Stop reading, process what was queued, checkpoint, close the bus. Idempotent."""
         if self._stopped.is_set() or not self._started:
-            self._stopping.set()
-            self._attention.set()
+            self._stop_flag()
             return
         self.sd.stopping()
-        self._stopping.set()
-        self._attention.set()
+        self._stop_flag()
         self._queue.space.set()
         for t in self._threads:  # the supervisor first: no reopening from now on
             if t.name == "canrls supervisor":
@@ -391,8 +394,7 @@ class Daemon:
         self.stop()
 
     def request_stop(self) -> None:
-        self._stopping.set()
-        self._attention.set()
+        self._stop_flag()
         self._queue.wake.set()
 
     def request_reload(self) -> None:
@@ -455,8 +457,7 @@ class Daemon:
                      exc_info=exc)
         if self.failure is None:
             self.failure = exc
-        self._stopping.set()
-        self._attention.set()
+        self._stop_flag()
         self._queue.wake.set()
 
     def _supervisor_loop(self) -> None:
