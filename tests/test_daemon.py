@@ -194,6 +194,26 @@ def test_commands_good_and_bad() -> None:
         tool.close()
 
 
+def test_the_daemon_publishes_the_state_it_stops_in() -> None:
+    """A freeze acknowledged just before a stop is in the last status published (and
+    in ``canrls run --json``'s): the stop publishes once more after the last frames.
+    Before, the last status was the last one of the grid, from before the freeze (here
+    none at all)."""
+    protocol, model, settings = _setup()
+    ch = _chan("final")
+    tool = DaemonTool(ch)
+    d = Daemon(protocol, model, settings,
+               DaemonSettings(publish_interval=30.0, commands=True),
+               bus={"interface": "virtual", "channel": ch})
+    try:
+        d.start()  # no publication of the grid before the stop (30 s)
+        assert tool.command(_cmd(CommandCode.FREEZE)) is CommandResult.OK
+    finally:
+        d.stop()
+        tool.close()
+    assert d.last_status is not None and "frozen" in d.last_status.flags
+
+
 def test_commands_can_be_disabled() -> None:
     protocol, model, settings = _setup()
     ch = _chan("disabled")

@@ -351,7 +351,8 @@ class Daemon:
         return proc
 
     def stop(self) -> None:
-        """Stop reading, process what was queued, checkpoint, close the bus. Idempotent."""
+        """Stop reading, process what was queued, publish that state, checkpoint, close
+        the bus. Idempotent."""
         if self._stopped.is_set() or not self._started:
             self._stop_flag()
             return
@@ -525,13 +526,14 @@ class Daemon:
                     self._reload_requested.clear()
                     self._reload()
                 now = time.monotonic()
-                if pub.due(now):
+                last = closed and not q.queue
+                if pub.due(now) or last:  # the last: the state the daemon stops in
                     pub.publish(now)
                 if ckpt.due(now):
                     self.checkpoint()
                     ckpt.next_at = now + cfg.checkpoint_interval
                 self._est_cpu = time.thread_time() - cpu0
-                if closed and not q.queue:
+                if last:
                     break
         except Exception as e:  # never silently, never exit status 0
             self._failed("estimator", e)
