@@ -115,7 +115,7 @@ class SamplePolicy:
     pitch : linear axis: metres per period of the periodic terms (``None``: rotary)
     doubt : a filled gap is doubtful when the straight line across it departs from the
         slope before it by more than ``doubt`` times the signal's noise
-        (:meth:`GapFiller.settling`; ``inf``: never)
+        (:meth:`GapFiller.settling`; ``inf``: never; ``None``: :data:`FILL_DOUBT`)
     """
 
     dt: float
@@ -126,7 +126,7 @@ class SamplePolicy:
     max_speed: float = math.inf
     max_phase_step: float = math.inf
     pitch: float | None = None
-    doubt: float = FILL_DOUBT
+    doubt: float | None = None
 
     @classmethod
     def for_equation(cls, equation: Equation, dt: float,
@@ -259,13 +259,14 @@ class GapFiller:
     """
 
     def __init__(self, dt: float, max_gap: float, period: float | None, settle: int = 0,
-                 doubt: float = FILL_DOUBT) -> None:
+                 doubt: float | None = None) -> None:
         self.dt = dt
         self.max_gap = max_gap
         self.period = period
         #: rows after a doubtful fill not used (the filter's memory: its warm-up)
         self.settle = int(settle)
-        self.doubt = float(doubt)
+        #: the threshold of :meth:`settling`, in noise sigmas (None: :data:`FILL_DOUBT`)
+        self.doubt = float(FILL_DOUBT if doubt is None else doubt)
         self._last: dict[str, float] | None = None
         self.reset()
 
