@@ -305,13 +305,25 @@ class GapFiller:
             out = np.zeros(n, np.bool_)
             out[:min(n, self._settle_left)] = True
         carry = max(0, self._settle_left - n)
+        keep = NOISE_ROWS + 1
         roles = [r for r in CHECKED if filled.has(r)]
+        if real is None:
+            # no gap in the block (the common case): only the last rows are kept
+            for r in roles:
+                v = np.asarray(getattr(filled, r), dtype=np.float64)
+                if n >= keep:
+                    self._recent[r] = v[-keep:].copy()
+                elif n:
+                    old = self._recent.get(r, np.zeros(0))
+                    self._recent[r] = np.concatenate([old, v])[-keep:]
+            self._settle_left = carry
+            return out
         cols: dict[str, tuple[F64, int]] = {}
         for r in roles:
             v = np.asarray(getattr(filled, r), dtype=np.float64)
             old = self._recent.get(r, np.zeros(0))
             cols[r] = (np.concatenate([old, v]), len(old))
-        if real is not None and n:
+        if n:
             gap = ~real
             starts = np.flatnonzero(gap & ~np.r_[False, gap[:-1]])
             stops = np.flatnonzero(gap & ~np.r_[gap[1:], False]) + 1
@@ -325,7 +337,6 @@ class GapFiller:
                 out[a:min(n, end)] = True
                 carry = max(carry, end - n)
         self._settle_left = carry
-        keep = NOISE_ROWS + 1
         self._recent = {r: c[-keep:].copy() for r, (c, _) in cols.items()}
         return out
 
