@@ -300,13 +300,13 @@ class RecordSamples:
         if key not in self._use:
             # block by block over the filled record (the selector carries its state)
             filled = self.selected.signals
-            real = self.selected.real
+            usable = self.selected.usable  # measured, not in a doubtful fill's memory
             selector = policy.selector()
             use = MaskPacker()
             for c0 in range(0, len(filled), BLOCK):
                 fb = filled.slice(c0, c0 + BLOCK)
                 u = selector.select(fb.t, fb.speed).use
-                use.append(u if real is None else u & real[c0:c0 + len(fb)])
+                use.append(u if usable is None else u & usable[c0:c0 + len(fb)])
             self._use[key] = use.mask()
         return self._use[key]
 

@@ -428,7 +428,9 @@ class EquationEstimator:
 
     def process(self, signals: Signals, record: bool = False) -> EquationBlock:
         filled, real = self.filler.fill(signals)
-        out = self._process(filled, real, record)
+        # the rows in the filter's memory of a doubtful fill are not used either
+        settling = self.filler.settling(filled, real)
+        out = self._process(filled, real, record, settling)
         if real is None:
             return out
         # report the real samples only (the filled rows only kept the filter's time base)
@@ -485,7 +487,7 @@ class EquationEstimator:
         self._since_nonfinite = int(since[-1])
 
     def _process(self, signals: Signals, real: npt.NDArray[np.bool_] | None,
-                 record: bool) -> EquationBlock:
+                 record: bool, settling: npt.NDArray[np.bool_] | None = None) -> EquationBlock:
         eq = self.equation
         t = np.ascontiguousarray(signals.t, dtype=np.float64)
         N = len(t)
@@ -501,8 +503,11 @@ class EquationEstimator:
                 phi=np.zeros((0, eq.n)) if record else None)
         sel = self.selector.select(t, signals.speed)
         restart, use, restarts, used = sel.restart, sel.use, sel.restarts, sel.used
-        if real is not None:
-            use &= real
+        if real is not None or settling is not None:
+            if real is not None:
+                use &= real
+            if settling is not None:
+                use &= ~settling
             used = int(np.count_nonzero(use))
         phi, y, nonfinite = self._regressors(signals, restart, restarts)
         if nonfinite is not None or self._since_nonfinite <= self.warmup:

@@ -8,6 +8,10 @@ filtered columns) wherever it is processed:
    missing periods, up to ``gap`` seconds, is filled with ``m`` interpolated rows
    (:class:`GapFiller`). Filled rows pass through the filter but never update the
    estimators; a longer gap (or time going backwards) restarts the filter.
+   A fill the neighbours show to be wrong (the signal steps or bends inside the gap:
+   the straight line there is off by far more than the noise) is *doubtful*: the
+   ``warmup`` rows after it, which carry it in the filter's memory, are not used
+   either (:meth:`GapFiller.settling`).
 2. **Warm-up.** After the start and after every restart, ``warmup`` samples are not
    used: the filter's zero initial state does not match the signals there.
 3. **Speed limits.** A sample with ``|omega| < min_speed`` (sign-dependent friction
@@ -44,10 +48,21 @@ from canrls.estimation.model import Equation
 from canrls.signals import ROLES, MaskPacker, PackedMask, Signals, SpilledSignals
 
 __all__ = ["SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector", "Selection",
-           "SelectedSamples", "FilledRecord"]
+           "SelectedSamples", "FilledRecord", "FILL_DOUBT", "NOISE_ROWS", "CHECKED"]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
+
+#: A filled gap is doubtful when the straight line across it departs from the slope
+#: before it by more than this many times the signal's noise (:meth:`GapFiller.settling`):
+#: far beyond the noise's own spread there (1.9 sigma for one missing sample), the
+#: signal stepped or bent inside the gap.
+FILL_DOUBT = 8.0
+#: Measured rows before a gap on which the signal's noise is measured.
+NOISE_ROWS = 64
+#: The signals whose fills are checked. The position is not: its straight line is off
+#: by the acceleration's share (``a dt^2 / 4``), far below anything the filter sees.
+CHECKED = ("current", "speed", "voltage")
 
 
 class SelectionSettings(Protocol):
@@ -98,6 +113,9 @@ class SamplePolicy:
     min_speed, max_speed : the used samples have ``min_speed <= |omega| <= max_speed``
     max_phase_step : largest phase advance per sample of a periodic column [rad]
     pitch : linear axis: metres per period of the periodic terms (``None``: rotary)
+    doubt : a filled gap is doubtful when the straight line across it departs from the
+        slope before it by more than ``doubt`` times the signal's noise
+        (:meth:`GapFiller.settling`; ``inf``: never; ``None``: :data:`FILL_DOUBT`)
     """
 
     dt: float
@@ -108,6 +126,7 @@ class SamplePolicy:
     max_speed: float = math.inf
     max_phase_step: float = math.inf
     pitch: float | None = None
+    doubt: float | None = None
 
     @classmethod
     def for_equation(cls, equation: Equation, dt: float,
@@ -140,8 +159,8 @@ class SamplePolicy:
             max_speed=_phase_speed_limit(self.max_phase_step, order, self.dt, self.pitch))
 
     def filler(self) -> GapFiller:
-        """A new gap filler (state: the previous sample) for a stream of blocks."""
-        return GapFiller(self.dt, self.gap, self.wrap)
+        """A new gap filler (state: the previous samples) for a stream of blocks."""
+        return GapFiller(self.dt, self.gap, self.wrap, settle=self.warmup, doubt=self.doubt)
 
     def selector(self) -> SampleSelector:
         """A new selector (state: last sample time, warm-up left) for a stream of blocks."""
@@ -156,21 +175,28 @@ class SamplePolicy:
         (:class:`FilledRecord`)."""
         filler, selector = self.filler(), self.selector()
         # the masks packed as they come (one bit a row)
-        reals, restarts, uses = MaskPacker(), MaskPacker(), MaskPacker()
-        any_filled = False
+        reals, restarts, uses, usables = MaskPacker(), MaskPacker(), MaskPacker(), MaskPacker()
+        any_filled = any_settling = False
         for a in range(0, max(len(signals), 1), block):
             filled, real = filler.fill(signals.slice(a, min(len(signals), a + block)))
+            settling = filler.settling(filled, real)
             sel = selector.select(filled.t, filled.speed)
             if real is None:
                 real = np.ones(len(filled), np.bool_)
             else:
                 any_filled = True
+            usable = real
+            if settling is not None:
+                any_settling = True
+                usable = real & ~settling
             reals.append(real)
+            usables.append(usable)
             restarts.append(sel.restart)
-            uses.append(sel.use & real)
+            uses.append(sel.use & usable)
         real_all = reals.mask() if any_filled else None
         return SelectedSamples(signals=FilledRecord(signals, real_all, self),
-                               real=real_all, restart=restarts.mask(), use=uses.mask())
+                               real=real_all, restart=restarts.mask(), use=uses.mask(),
+                               usable=usables.mask() if any_settling else real_all)
 
 
 # --------------------------------------------------------------------------- state
@@ -222,16 +248,116 @@ class GapFiller:
     shorter way round its wrap period). Filled rows pass through the filter but never
     update the estimators; longer gaps restart the filter instead. The previous sample
     is carried between blocks, so the result does not depend on the block sizes.
+
+    The straight line is off by about the noise where the signal is smooth, and by far
+    more where it steps or bends inside the gap (the speed controller's current at a
+    step of the reference, the speed at the start of a ramp): the filter then carries
+    an error hundreds of times a sample's noise into the ``settle`` rows after the gap
+    (a few such gaps moved the simulated drive's parameters by 2 sigma, where
+    thousands of fills on smooth stretches moved them by a tenth of that).
+    :meth:`settling` marks those rows, for the estimators to leave out.
     """
 
-    def __init__(self, dt: float, max_gap: float, period: float | None) -> None:
+    def __init__(self, dt: float, max_gap: float, period: float | None, settle: int = 0,
+                 doubt: float | None = None) -> None:
         self.dt = dt
         self.max_gap = max_gap
         self.period = period
+        #: rows after a doubtful fill not used (the filter's memory: its warm-up)
+        self.settle = int(settle)
+        #: the threshold of :meth:`settling`, in noise sigmas (None: :data:`FILL_DOUBT`)
+        self.doubt = float(FILL_DOUBT if doubt is None else doubt)
         self._last: dict[str, float] | None = None
+        self.reset()
 
     def reset(self) -> None:
         self._last = None
+        #: the last rows of the checked signals (filled), for the noise before a gap
+        self._recent: dict[str, F64] = {}
+        #: rows of the next block still in the memory of a doubtful fill
+        self._settle_left = 0
+        #: doubtful fills so far
+        self.doubtful = 0
+
+    def settling(self, filled: Signals, real: B | None) -> B | None:
+        r"""The rows of ``filled`` (the output of :meth:`fill`, ``real`` its mask) still
+        in the filter's memory of a doubtful fill: from the gap's first filled row through
+        the ``settle`` rows after it; ``None`` if none. Call it once after each
+        :meth:`fill`, in order (the last rows are carried to the next block, so the
+        result does not depend on the block sizes).
+
+        A gap of ``m`` rows between the measured values :math:`v_p` and :math:`v_q`, of a
+        checked signal (:data:`CHECKED`), is doubtful when the straight line's slope
+        departs from the slope before the gap by more than ``doubt`` times the noise
+        :math:`\sigma` of the :data:`NOISE_ROWS` rows before it:
+
+        .. math::
+
+            \Big|\frac{v_q - v_p}{m + 1} - (v_p - v_{p-1})\Big| > \text{doubt}\;\sigma,
+            \qquad \sigma = 1.4826\,\mathrm{median}|\Delta^2 v| / \sqrt 6
+
+        (white noise alone gives 1.9 sigma for ``m = 1``; a step ``D`` inside the gap
+        ``D / 2``, where the straight line is off by ``D / 2``).
+        """
+        n = len(filled)
+        out: B | None = None
+        if self._settle_left and n:
+            out = np.zeros(n, np.bool_)
+            out[:min(n, self._settle_left)] = True
+        carry = max(0, self._settle_left - n)
+        keep = NOISE_ROWS + 1
+        roles = [r for r in CHECKED if filled.has(r)]
+        if real is None:
+            # no gap in the block (the common case): only the last rows are kept
+            for r in roles:
+                v = np.asarray(getattr(filled, r), dtype=np.float64)
+                if n >= keep:
+                    self._recent[r] = v[-keep:].copy()
+                elif n:
+                    old = self._recent.get(r, np.zeros(0))
+                    self._recent[r] = np.concatenate([old, v])[-keep:]
+            self._settle_left = carry
+            return out
+        cols: dict[str, tuple[F64, int]] = {}
+        for r in roles:
+            v = np.asarray(getattr(filled, r), dtype=np.float64)
+            old = self._recent.get(r, np.zeros(0))
+            cols[r] = (np.concatenate([old, v]), len(old))
+        if n:
+            gap = ~real
+            starts = np.flatnonzero(gap & ~np.r_[False, gap[:-1]])
+            stops = np.flatnonzero(gap & ~np.r_[gap[1:], False]) + 1
+            for a, q in zip(starts.tolist(), stops.tolist(), strict=True):
+                if not self._doubtful(cols, a, q):
+                    continue
+                self.doubtful += 1
+                end = q + self.settle
+                if out is None:
+                    out = np.zeros(n, np.bool_)
+                out[a:min(n, end)] = True
+                carry = max(carry, end - n)
+        self._settle_left = carry
+        self._recent = {r: c[-keep:].copy() for r, (c, _) in cols.items()}
+        return out
+
+    def _doubtful(self, cols: dict[str, tuple[F64, int]], a: int, q: int) -> bool:
+        """Whether the gap of filled rows ``a:q`` (rows of the block) is doubtful in one
+        of ``cols`` (each: the carried rows then the block's, and the count carried)."""
+        m = q - a
+        for c, h in cols.values():
+            # the measured rows on both sides, in the rows of c
+            p, q_c = a - 1 + h, q + h
+            if p < 2 or q_c >= len(c):
+                # the start of the stream: too little before the gap to tell (fill never
+                # leaves a gap at the end of a block: it fills on seeing the next sample)
+                continue
+            before = c[max(0, p - NOISE_ROWS):p + 1]
+            # sigma = 1.4826 median|d2 v| / sqrt(6)
+            sigma = 1.4826 * float(np.median(np.abs(np.diff(before, 2)))) / math.sqrt(6.0)
+            # |(v_q - v_p) / (m + 1) - (v_p - v_{p-1})| > doubt sigma
+            if abs((c[q_c] - c[p]) / (m + 1) - (c[p] - c[p - 1])) > self.doubt * sigma:
+                return True
+        return False
 
     def fill(self, s: Signals) -> tuple[Signals, B | None]:
         """(signals with the gaps filled, mask of the real rows or ``None``: nothing filled)."""
@@ -359,7 +485,9 @@ class SelectedSamples:
     ``signals`` has the gaps filled (:class:`FilledRecord`: filled again where
     sliced); ``real`` marks the measured rows (``None``: nothing
     was filled, every row is real); ``restart`` the rows where the filter restarts;
-    ``use`` the rows that update the estimators. The masks are packed
+    ``use`` the rows that update the estimators; ``usable`` the rows a selection may
+    use: the measured rows outside the memory of a doubtful fill
+    (:meth:`GapFiller.settling`; ``None``: every row). The masks are packed
     (:class:`~canrls.signals.PackedMask`: read them in slices; ``np.asarray`` unpacks).
     """
 
@@ -367,6 +495,7 @@ class SelectedSamples:
     real: PackedMask | None
     restart: PackedMask
     use: PackedMask
+    usable: PackedMask | None = None
 
     #: rows unpacked at a time where a whole mask is read
     BLOCK = 65536
