@@ -173,6 +173,28 @@ def test_a_fill_across_a_step_is_doubtful_and_its_memory_not_used() -> None:
     np.testing.assert_array_equal(sel.measured(sel.use), used)
 
 
+def test_a_fill_on_a_quantised_signal_is_judged_against_its_resolution() -> None:
+    # a current in whole steps of 10 mA, mostly flat (the second differences before the
+    # gap are mostly zero): the line across the gap misses by a step and a half of
+    # resolution, which is the rounding, not a step of the signal; 20 steps are one
+    rng = np.random.default_rng(5)
+    n, gap = 200, 100
+    k = np.arange(n)
+    current = 0.5 + 0.01 * (rng.random(n) < 0.1)
+    current[gap - 2:gap + 2] = [0.50, 0.51, 0.0, 0.50]  # v_(p-1), v_p, lost, v_q
+    speed = 0.01 * k
+    keep = k != gap
+    p = SamplePolicy(dt=DT, warmup=10, gap=3.5 * DT, wrap=None)
+    f = p.filler()
+    filled, real = f.fill(Signals((k * DT)[keep], current[keep], speed[keep]))
+    assert real is not None and f.settling(filled, real) is None and f.doubtful == 0
+    stepped = current.copy()
+    stepped[gap + 1:] += 0.2  # the drive's current steps inside the gap
+    g = p.filler()
+    filled, real = g.fill(Signals((k * DT)[keep], stepped[keep], speed[keep]))
+    assert g.settling(filled, real) is not None and g.doubtful == 1
+
+
 @pytest.mark.parametrize("cuts", [[99], [100], [101, 105], [50, 108, 111, 299]])
 def test_doubtful_fills_do_not_depend_on_the_blocks(cuts: list[int]) -> None:
     s = _step_record()

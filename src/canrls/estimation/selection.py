@@ -238,6 +238,14 @@ class SampleSelector:
         return Selection(restart, use, int(restarts), int(used))
 
 
+def _quantum(v: F64) -> float:
+    """The smallest nonzero difference between neighbouring values of ``v`` (the
+    signal's resolution where it is quantised; 0 if ``v`` is constant)."""
+    d = np.abs(np.diff(v))
+    d = d[d > 0.0]
+    return float(d.min()) if len(d) else 0.0
+
+
 class GapFiller:
     r"""Fill short gaps in the sample times so the filter keeps its time base.
 
@@ -294,10 +302,15 @@ class GapFiller:
         .. math::
 
             \Big|\frac{v_q - v_p}{m + 1} - (v_p - v_{p-1})\Big| > \text{doubt}\;\sigma,
-            \qquad \sigma = 1.4826\,\mathrm{median}|\Delta^2 v| / \sqrt 6
+            \qquad \sigma = \max\big(1.4826\,\mathrm{median}|\Delta^2 v| / \sqrt 6,\;
+            q / \sqrt{12}\big)
 
         (white noise alone gives 1.9 sigma for ``m = 1``; a step ``D`` inside the gap
-        ``D / 2``, where the straight line is off by ``D / 2``).
+        ``D / 2``, where the straight line is off by ``D / 2``). ``q``, the smallest
+        step between neighbouring values there, is the signal's resolution: a coarsely
+        quantised signal (an encoder's speed, a current in whole LSBs) whose second
+        differences are mostly zero has at least the rounding's noise, so a fill off by
+        a step or two of resolution is not taken for a step of the signal.
         """
         n = len(filled)
         out: B | None = None
@@ -352,8 +365,9 @@ class GapFiller:
                 # leaves a gap at the end of a block: it fills on seeing the next sample)
                 continue
             before = c[max(0, p - NOISE_ROWS):p + 1]
-            # sigma = 1.4826 median|d2 v| / sqrt(6)
-            sigma = 1.4826 * float(np.median(np.abs(np.diff(before, 2)))) / math.sqrt(6.0)
+            # sigma = max(1.4826 median|d2 v| / sqrt(6), q / sqrt(12))
+            sigma = max(1.4826 * float(np.median(np.abs(np.diff(before, 2)))) / math.sqrt(6.0),
+                        _quantum(before) / math.sqrt(12.0))
             # |(v_q - v_p) / (m + 1) - (v_p - v_{p-1})| > doubt sigma
             if abs((c[q_c] - c[p]) / (m + 1) - (c[p] - c[p - 1])) > self.doubt * sigma:
                 return True
