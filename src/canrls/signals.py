@@ -16,6 +16,7 @@ import hashlib
 import logging
 import os
 import tempfile
+import weakref
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -322,13 +323,23 @@ class SpilledBytes:
     PAGE = 4096
 
     def __init__(self, dir: str | None = None) -> None:
-        self._file = tempfile.TemporaryFile(prefix="canrls-mask-", dir=dir)
-        self._fd = self._file.fileno()
+        # unlinked at once (no name: it goes with the process); the descriptor is closed
+        # when the array is collected or closed
+        fd, path = tempfile.mkstemp(prefix="canrls-mask-", dir=dir)
+        try:
+            os.unlink(path)
+        except OSError:  # pragma: no cover - a file just made in a writable directory
+            os.close(fd)
+            raise
+        self._fd = fd
+        self._close = weakref.finalize(self, os.close, fd)
         self._n = 0
         self._page: tuple[int, npt.NDArray[np.uint8]] | None = None
 
     def append(self, data: npt.NDArray[np.uint8]) -> None:
         """Add ``data`` at the end."""
+        if not self._close.alive:
+            raise ValueError("the mask's temporary file is closed")
         view = memoryview(np.ascontiguousarray(data, dtype=np.uint8)).cast("B")
         done = 0
         while done < len(view):
@@ -344,6 +355,8 @@ class SpilledBytes:
         return 0 if self._page is None else int(self._page[1].nbytes)
 
     def _read(self, a: int, b: int) -> npt.NDArray[np.uint8]:
+        if not self._close.alive:
+            raise ValueError("the mask's temporary file is closed")
         out = np.empty(max(b - a, 0), np.uint8)
         view = memoryview(out).cast("B")
         got = 0
@@ -374,7 +387,8 @@ class SpilledBytes:
                    for a in range(0, self._n, PackedMask.CHUNK))
 
     def close(self) -> None:
-        self._file.close()
+        """Free the file (the bytes cannot be read after)."""
+        self._close()
 
 
 def _bit_count(bits: npt.NDArray[np.uint8]) -> int:
