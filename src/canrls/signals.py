@@ -28,6 +28,8 @@ __all__ = ["Signals", "ROLES", "SpilledSignals", "SpilledColumn", "SpilledBytes"
            "MaskPacker", "as_packed"]
 
 _log = logging.getLogger(__name__)
+#: the warning that a mask cannot go to a temporary file was given (once per process)
+_mask_warned = False
 
 F64 = npt.NDArray[np.float64]
 
@@ -587,8 +589,11 @@ class MaskPacker:
                 self._file.append(p)
             i = len(self._parts)
         except OSError as e:
-            _log.warning("cannot write a temporary file for a mask in %s (%s): it is kept "
-                         "in memory", tempfile.gettempdir(), e)
+            global _mask_warned
+            if not _mask_warned:  # once: a long diagnosis makes many masks
+                _log.warning("cannot write a temporary file for a mask in %s (%s): masks "
+                             "are kept in memory", tempfile.gettempdir(), e)
+                _mask_warned = True
             self._memory_only = True
             if self._file is not None:
                 # the bytes in the file back in memory, then the parts not written
