@@ -155,7 +155,7 @@ def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
 
 
 # ------------------------------------------------------------- record in blocks, exactly
-def _count(rows: B) -> int:
+def _true_rows(rows: B) -> int:
     """True rows of a mask (a packed one counted block by block, not unpacked)."""
     return rows.count() if isinstance(rows, PackedMask) else int(np.count_nonzero(rows))
 
@@ -234,7 +234,7 @@ def percentiles(x: F64, rows: B | None, qs: list[float]) -> list[float]:
     must not be empty."""
     if not _finite(x, rows):
         return [float(v) for v in np.percentile(_copy(x, rows), qs)]
-    n = len(x) if rows is None else _count(rows)
+    n = len(x) if rows is None else _true_rows(rows)
     ks: list[tuple[int, int, float]] = []
     for q in qs:
         # numpy's virtual index (n - 1) q and its neighbours
@@ -260,7 +260,7 @@ def median(x: F64, rows: B | None = None) -> float:
     finite)."""
     if not _finite(x, rows):
         return float(np.median(_copy(x, rows)))
-    n = len(x) if rows is None else _count(rows)
+    n = len(x) if rows is None else _true_rows(rows)
     if n % 2:
         return _kth(x, rows, [n // 2])[0]
     a, b = _kth(x, rows, [n // 2 - 1, n // 2])
@@ -339,7 +339,7 @@ def _extremes(x: F64, rows: B) -> tuple[float, float]:
 def moments(r: F64, rows: B) -> tuple[int, float, float, float]:
     """(N, mean, sum of squares, sum of squares about the mean) of ``r[rows]``, block by
     block (the deviations in a second pass, as ``np.std`` takes them)."""
-    n = _count(rows)
+    n = _true_rows(rows)
     s1 = s2 = 0.0
     for a in _spans(len(r)):
         v = r[a:a + BLOCK][rows[a:a + BLOCK]]
@@ -698,7 +698,7 @@ def spectrum_peaks(orders: F64, expl: F64, limit: int = 5) -> tuple[float, ...]:
 def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationSummary:
     """How the ``used`` rows excite the model, block by block (exact order statistics:
     :func:`percentiles`, :func:`median`; sums block by block)."""
-    N = _count(used)
+    N = _true_rows(used)
     if not N:
         return ExcitationSummary(0.0, 0.0, 0, math.nan, math.nan, math.nan, math.nan,
                                  math.nan, math.nan, None, None, ctx.speed_unit, ctx.per)
