@@ -23,7 +23,7 @@ from canrls.diagnosis.analysis import diagnose, diagnose_log
 from canrls.estimation.model import Model
 from canrls.processor import scan_ranges
 from canrls.replay import prepare, read_logs
-from canrls.signals import PackedMask, Signals, SpilledSignals
+from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals
 from canrls.sim.scenario import scenario, simulate
 
 
@@ -105,6 +105,70 @@ def test_packed_mask_reads_like_the_mask() -> None:
                 assert pm.count(a, b) == int(m[a:b].sum())
             assert [pm[k] for k in range(n)] == list(m)
             assert pm.count() == int(m.sum())
+
+
+def test_packed_mask_in_a_temporary_file_reads_like_the_mask(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Past MaskPacker.MEMORY bytes the bits go to a temporary file: read back in
+    slices, at sorted rows, counted, intersected and hashed as the mask in memory,
+    with only a page of it in memory."""
+    monkeypatch.setattr(MaskPacker, "MEMORY", 64)
+    monkeypatch.setattr(PackedMask, "CHUNK", 100)  # many chunks of bits per pass
+    rng = np.random.default_rng(4)
+    for n in (1000, 4099, 20001):
+        m = rng.random(n) < 0.4
+        other = rng.random(n) < 0.5
+        cuts = sorted(int(x) for x in rng.integers(0, n + 1, 6))
+        pm = PackedMask.from_blocks(np.split(m, cuts))
+        mem = PackedMask.pack(m)
+        assert pm.spilled and not mem.spilled and pm.nbytes <= 4096
+        assert len(pm) == n and np.array_equal(np.asarray(pm), m)
+        assert pm.any() and pm.count() == pm.sum() == int(m.sum())
+        for _ in range(50):
+            a, b = sorted(int(x) for x in rng.integers(0, n + 1, 2))
+            assert np.array_equal(pm[a:b], m[a:b]) and pm.count(a, b) == int(m[a:b].sum())
+        assert [pm[k] for k in range(0, n, 7)] == list(m[::7])
+        idx = np.sort(rng.choice(n, 300, replace=False))
+        assert np.array_equal(pm[idx], m[idx])
+        both = pm.intersect(other)
+        assert both.spilled and np.array_equal(np.asarray(both), m & other)
+        assert np.array_equal(np.asarray(pm.intersect(PackedMask.pack(other))), m & other)
+        assert pm.digest() == mem.digest() != both.digest()
+        assert not PackedMask.from_blocks([np.zeros(n, np.bool_)]).any()
+    pk = MaskPacker()
+    pk.append(m)
+    pk.mask()
+    with pytest.raises(ValueError, match="taken with its file"):
+        pk.append(m)
+
+
+def test_a_mask_file_that_cannot_be_written_keeps_the_mask_in_memory(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """The temporary directory fills up while a mask is written: one warning line, the
+    bytes written so far read back, the mask whole in memory (and later masks too,
+    without another warning)."""
+    monkeypatch.setattr(MaskPacker, "MEMORY", 16)
+    monkeypatch.setattr(signals_mod, "_mask_warned", False)
+    writes = []
+    pwrite = os.pwrite
+
+    def full(fd: int, data: Any, offset: int) -> int:
+        if len(writes) >= 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        writes.append(offset)
+        return pwrite(fd, data, offset)
+
+    monkeypatch.setattr(signals_mod.os, "pwrite", full)
+    rng = np.random.default_rng(5)
+    m = rng.random(5000) < 0.3
+    with caplog.at_level(logging.WARNING, logger="canrls.signals"):
+        pms = [PackedMask.from_blocks(np.array_split(m, 40)) for _ in range(2)]
+    assert len(writes) == 3
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "No space left" in warnings[0].getMessage()
+    assert "\n" not in warnings[0].getMessage()
+    for pm in pms:
+        assert not pm.spilled and np.array_equal(np.asarray(pm), m)
 
 
 @pytest.fixture

@@ -12,8 +12,11 @@ back; :class:`PackedMask` keeps a mask over a record at one bit a row.
 
 from __future__ import annotations
 
+import hashlib
+import logging
 import os
 import tempfile
+import weakref
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -21,7 +24,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Signals", "ROLES", "SpilledSignals", "SpilledColumn", "PackedMask", "MaskPacker"]
+__all__ = ["Signals", "ROLES", "SpilledSignals", "SpilledColumn", "SpilledBytes", "PackedMask",
+           "MaskPacker", "as_packed"]
+
+_log = logging.getLogger(__name__)
+#: the warning that a mask cannot go to a temporary file was given (once per process)
+_mask_warned = False
 
 F64 = npt.NDArray[np.float64]
 
@@ -302,17 +310,112 @@ class SpilledColumn:
 
 
 # ------------------------------------------------------------------ a packed mask
-class PackedMask:
-    """A boolean mask over a record at one bit a row (:func:`numpy.packbits`).
+class SpilledBytes:
+    """A byte array (``uint8``) in an anonymous temporary file, written once from the
+    front (:meth:`append`) and read back in slices: what a long :class:`PackedMask`
+    keeps its bits in (:class:`MaskPacker` moves them there past
+    :data:`MaskPacker.MEMORY` bytes). Reads use ``os.preadv`` into fresh arrays (the
+    file's pages live in the kernel's page cache, not in the process); the last page
+    read is kept, so that reading one byte after another costs no system call each.
 
-    Read like the mask it packs where read in pieces: ``m[a:b]`` (a step-1 slice) and
-    ``m[k]`` unpack only those rows; ``len``, :meth:`count` and :meth:`any` count
-    without unpacking the whole; ``np.asarray(m)``, any other index, ``~m`` and
-    ``m & x`` unpack it all (an array). Built from a whole mask or block by block
-    (:meth:`from_blocks`, :class:`MaskPacker`).
+    :raises OSError: the temporary file cannot be made or written.
     """
 
-    def __init__(self, bits: npt.NDArray[np.uint8], n: int) -> None:
+    #: bytes of the page kept from the last read of a single byte
+    PAGE = 4096
+
+    def __init__(self, dir: str | None = None) -> None:
+        # unlinked at once (no name: it goes with the process); the descriptor is closed
+        # when the array is collected or closed
+        fd, path = tempfile.mkstemp(prefix="canrls-mask-", dir=dir)
+        try:
+            os.unlink(path)
+        except OSError:  # pragma: no cover - a file just made in a writable directory
+            os.close(fd)
+            raise
+        self._fd = fd
+        self._close = weakref.finalize(self, os.close, fd)
+        self._n = 0
+        self._page: tuple[int, npt.NDArray[np.uint8]] | None = None
+
+    def append(self, data: npt.NDArray[np.uint8]) -> None:
+        """Add ``data`` at the end."""
+        if not self._close.alive:
+            raise ValueError("the mask's temporary file is closed")
+        view = memoryview(np.ascontiguousarray(data, dtype=np.uint8)).cast("B")
+        done = 0
+        while done < len(view):
+            done += os.pwrite(self._fd, view[done:], self._n + done)
+        self._n += len(view)
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes in memory (the page kept), not the file's."""
+        return 0 if self._page is None else int(self._page[1].nbytes)
+
+    def _read(self, a: int, b: int) -> npt.NDArray[np.uint8]:
+        if not self._close.alive:
+            raise ValueError("the mask's temporary file is closed")
+        out = np.empty(max(b - a, 0), np.uint8)
+        view = memoryview(out).cast("B")
+        got = 0
+        while got < len(view):
+            m = os.preadv(self._fd, [view[got:]], a + got)
+            if m <= 0:
+                raise OSError(f"the temporary mask file ended at byte {a + got}")
+            got += m
+        return out
+
+    def __getitem__(self, key: int | slice) -> Any:
+        if isinstance(key, slice):
+            a, b, step = key.indices(self._n)
+            if step != 1:
+                raise IndexError("SpilledBytes: only step-1 slices")
+            return self._read(a, max(a, b))
+        k = int(key) + (self._n if key < 0 else 0)
+        if not 0 <= k < self._n:
+            raise IndexError(f"byte {int(key)} of {self._n}")
+        p = k - k % self.PAGE
+        if self._page is None or self._page[0] != p:
+            self._page = (p, self._read(p, min(self._n, p + self.PAGE)))
+        return int(self._page[1][k - p])
+
+    def any(self) -> bool:
+        """True when a byte is not zero."""
+        return any(bool(self._read(a, min(self._n, a + PackedMask.CHUNK)).any())
+                   for a in range(0, self._n, PackedMask.CHUNK))
+
+    def close(self) -> None:
+        """Free the file (the bytes cannot be read after)."""
+        self._close()
+
+
+def _bit_count(bits: npt.NDArray[np.uint8]) -> int:
+    if hasattr(np, "bitwise_count"):
+        return int(np.bitwise_count(bits).sum())
+    return int(np.count_nonzero(np.unpackbits(bits)))  # pragma: no cover - numpy < 2
+
+
+class PackedMask:
+    """A boolean mask over a record at one bit a row (:func:`numpy.packbits`); the bits
+    of a long one are in a temporary file (:class:`SpilledBytes`, past
+    :data:`MaskPacker.MEMORY` bytes), read back where needed.
+
+    Read like the mask it packs where read in pieces: ``m[a:b]`` (a step-1 slice),
+    ``m[k]`` and ``m[rows]`` (sorted row numbers) unpack only those rows' bytes;
+    ``len``, :meth:`count` (also ``sum()``), :meth:`any`, :meth:`blocks` and
+    :meth:`intersect` (``&`` of two masks, packed) go block by block; ``np.asarray(m)``,
+    any other index, ``~m`` and ``m & x`` unpack it all (an array). Built from a whole
+    mask or block by block (:meth:`from_blocks`, :class:`MaskPacker`).
+    """
+
+    #: bytes of bits read at a time where the whole mask is gone through
+    CHUNK = 1 << 16
+
+    def __init__(self, bits: npt.NDArray[np.uint8] | SpilledBytes, n: int) -> None:
         self.bits = bits
         self.n = n
 
@@ -323,7 +426,7 @@ class PackedMask:
         return cls(np.packbits(m), len(m))
 
     @classmethod
-    def from_blocks(cls, blocks: Iterable[npt.NDArray[np.bool_]]) -> PackedMask:
+    def from_blocks(cls, blocks: Iterable[npt.ArrayLike]) -> PackedMask:
         """The blocks joined end to end, packed as they come (:class:`MaskPacker`)."""
         packer = MaskPacker()
         for b in blocks:
@@ -336,6 +439,11 @@ class PackedMask:
     @property
     def shape(self) -> tuple[int]:
         return (self.n,)
+
+    @property
+    def spilled(self) -> bool:
+        """True when the bits are in a temporary file."""
+        return isinstance(self.bits, SpilledBytes)
 
     def _unpack(self, a: int, b: int) -> npt.NDArray[np.bool_]:
         if b <= a:
@@ -358,6 +466,21 @@ class PackedMask:
             a, b, step = key.indices(self.n)
             if step == 1:
                 return self._unpack(a, max(a, b))
+        elif (isinstance(key, np.ndarray) and key.dtype.kind in "iu" and key.ndim == 1
+              and (len(key) < 2 or bool(np.all(key[1:] >= key[:-1])))):
+            # sorted rows: the bytes of each block of rows they fall in
+            out = np.zeros(len(key), np.bool_)
+            if not len(key):
+                return out
+            if key[0] < 0 or key[-1] >= self.n:
+                raise IndexError(f"rows {int(key[0])}..{int(key[-1])} of a mask of {self.n}")
+            rows = 8 * self.CHUNK
+            starts = np.searchsorted(key, np.arange(0, self.n + rows, rows))
+            for lo, hi in zip(starts[:-1], starts[1:], strict=True):
+                if hi > lo:
+                    a, b = int(key[lo]), int(key[hi - 1]) + 1
+                    out[lo:hi] = self._unpack(a, b)[key[lo:hi] - a]
+            return out
         return np.asarray(self)[key]
 
     def __invert__(self) -> npt.NDArray[np.bool_]:
@@ -365,10 +488,19 @@ class PackedMask:
         return ~np.asarray(self)
 
     def __and__(self, other: npt.ArrayLike) -> npt.NDArray[np.bool_]:
-        """``mask & other`` unpacked (a whole array)."""
+        """``mask & other`` unpacked (a whole array; :meth:`intersect` keeps it packed)."""
         return np.asarray(self) & np.asarray(other, dtype=np.bool_)
 
     __rand__ = __and__
+
+    def intersect(self, other: PackedMask | npt.NDArray[np.bool_]) -> PackedMask:
+        """``self & other`` packed, block by block (``other`` as long, packed or not)."""
+        if len(other) != self.n:
+            raise ValueError(f"masks of {self.n} and {len(other)} rows")
+        out = MaskPacker()
+        for a, u in self.blocks():
+            out.append(u & np.asarray(other[a:a + len(u)], dtype=np.bool_))
+        return out.mask()
 
     def count(self, a: int = 0, b: int | None = None) -> int:
         """True rows in ``a:b`` (default: all)."""
@@ -378,17 +510,29 @@ class PackedMask:
         lo, hi = -(-a // 8), b // 8  # whole bytes inside a:b
         if hi <= lo:
             return int(np.count_nonzero(self._unpack(a, b)))
-        whole = int(np.bitwise_count(self.bits[lo:hi]).sum()) if hasattr(np, "bitwise_count") \
-            else int(np.count_nonzero(np.unpackbits(self.bits[lo:hi])))
+        whole = sum(_bit_count(self.bits[c:min(hi, c + self.CHUNK)])
+                    for c in range(lo, hi, self.CHUNK))
         return (whole + int(np.count_nonzero(self._unpack(a, lo * 8)))
                 + int(np.count_nonzero(self._unpack(hi * 8, b))))
+
+    def sum(self) -> int:
+        """True rows (as ``ndarray.sum`` of the mask)."""
+        return self.count()
 
     def any(self) -> bool:
         """True when a row is true."""
         return bool(self.bits.any())
 
+    def digest(self) -> bytes:
+        """A hash of the rows (equal masks, equal digests), block by block."""
+        h = hashlib.blake2b(str(self.n).encode(), digest_size=16)
+        for c in range(0, len(self.bits), self.CHUNK):
+            h.update(np.asarray(self.bits[c:c + self.CHUNK]).tobytes())
+        return h.digest()
+
     @property
     def nbytes(self) -> int:
+        """Bytes in memory (a mask in a temporary file: the page it keeps)."""
         return int(self.bits.nbytes)
 
     def blocks(self, block: int = 65536) -> Iterator[tuple[int, npt.NDArray[np.bool_]]]:
@@ -397,24 +541,81 @@ class PackedMask:
             yield a, self._unpack(a, min(self.n, a + block))
 
 
+def as_packed(mask: PackedMask | npt.ArrayLike) -> PackedMask:
+    """``mask`` as a :class:`PackedMask` (itself if it is one)."""
+    return mask if isinstance(mask, PackedMask) else PackedMask.from_blocks([mask])
+
+
 class MaskPacker:
     """Packs a mask that comes in blocks (:class:`PackedMask`): the last rows of a block
-    that do not fill a byte wait for the next block."""
+    that do not fill a byte wait for the next block. Past :data:`MEMORY` bytes the bits
+    go to a temporary file (:class:`SpilledBytes`), so a mask of any length holds at
+    most that much memory; where the file cannot be made or written they stay in memory
+    (one warning line)."""
+
+    #: bytes of bits kept in memory before they go to a temporary file (2**19 rows)
+    MEMORY = 1 << 16
 
     def __init__(self) -> None:
         self._parts: list[npt.NDArray[np.uint8]] = []
+        self._held = 0  # bytes in _parts
+        self._file: SpilledBytes | None = None
+        self._memory_only = False
         self._tail = np.zeros(0, np.bool_)
         self._n = 0
+        self._done = False
 
     def append(self, block: npt.ArrayLike) -> None:
         """Add the rows of ``block`` at the end."""
+        if self._done:
+            raise ValueError("MaskPacker: the mask was taken with its file")
         b = np.asarray(block, dtype=np.bool_)
-        m = np.concatenate([self._tail, b])
+        m = np.concatenate([self._tail, b]) if len(self._tail) else b
         whole = len(m) - len(m) % 8
-        self._parts.append(np.packbits(m[:whole]))
-        self._tail = m[whole:]
+        part = np.packbits(m[:whole])
+        self._parts.append(part)
+        self._held += len(part)
+        self._tail = m[whole:].copy()
         self._n += len(b)
+        if self._held > self.MEMORY and not self._memory_only:
+            self._flush()
+
+    def _flush(self) -> None:
+        i = 0  # parts written
+        try:
+            if self._file is None:
+                self._file = SpilledBytes()
+            for i, p in enumerate(self._parts):  # noqa: B007 - i read on failure
+                self._file.append(p)
+            i = len(self._parts)
+        except OSError as e:
+            global _mask_warned
+            if not _mask_warned:  # once: a long diagnosis makes many masks
+                _log.warning("cannot write a temporary file for a mask in %s (%s): masks "
+                             "are kept in memory", tempfile.gettempdir(), e)
+                _mask_warned = True
+            self._memory_only = True
+            if self._file is not None:
+                # the bytes in the file back in memory, then the parts not written
+                self._parts = [self._file[0:len(self._file)], *self._parts[i:]]
+                self._file.close()
+                self._file = None
+            return
+        self._parts = []
+        self._held = 0
 
     def mask(self) -> PackedMask:
-        """The rows appended so far, packed."""
-        return PackedMask(np.concatenate([*self._parts, np.packbits(self._tail)]), self._n)
+        """The rows appended so far, packed. A mask whose bits went to a temporary file
+        takes the file: the packer cannot be used again (``ValueError``)."""
+        if self._done:
+            raise ValueError("MaskPacker: the mask was taken with its file")
+        last = np.packbits(self._tail)
+        if self._file is None:
+            return PackedMask(np.concatenate([*self._parts, last]), self._n)
+        self._parts.append(last)
+        self._tail = np.zeros(0, np.bool_)
+        self._flush()
+        self._done = True
+        if self._file is None:  # the file failed: in memory
+            return PackedMask(np.concatenate(self._parts), self._n)
+        return PackedMask(self._file, self._n)

@@ -72,7 +72,6 @@ from canrls.estimation.effects import ELECTRICAL
 from canrls.estimation.fixed import FixedRLS
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import (
-    EquationBlock,
     EquationEstimator,
     EquationFit,
     EstimatorSettings,
@@ -80,7 +79,7 @@ from canrls.estimation.pipeline import (
 )
 from canrls.estimation.rls import RLS
 from canrls.processor import SampleProcessor
-from canrls.signals import PackedMask, Signals, SpilledSignals
+from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals
 
 __all__ = ["DEFAULT_MAX_ORDER", "MAX_ORDER_LIMIT", "DiagnosisReport", "diagnose",
            "diagnose_log"]
@@ -211,16 +210,18 @@ def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
     est = pipe.estimates()
     eqs = []
     for e, fit in zip(pipe.estimators, est.equations, strict=True):
-        # popped: each equation's arrays are freed once it is analysed
+        # popped: each equation's mask is freed once it is analysed
         eqs.append(_analyse_equation(ctx, model, e, blocks.pop(0), fit))
     return Analysis(model=model, estimates=est, equations=tuple(eqs))
 
 
 def _run_in_chunks(proc: SampleProcessor,
-                   signals: Signals | SpilledSignals) -> list[EquationBlock]:
+                   signals: Signals | SpilledSignals) -> list[PackedMask]:
     """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
-    each equation's recorded block, what the diagnosis reads (used), joined (the times
-    are the samples' own, ``signals.t``, checked block by block).
+    each equation's recorded block, what the diagnosis reads: the used rows, packed as
+    they come (:class:`~canrls.signals.MaskPacker`: one bit a row, in a temporary file
+    past a few hundred thousand rows); the times are the samples' own, ``signals.t``
+    (checked block by block).
 
     The pipeline carries its state from block to block bit for bit (``canrls fit``
     replays a log in blocks too), so the result is the one of a single run; but the
@@ -228,22 +229,21 @@ def _run_in_chunks(proc: SampleProcessor,
     sample, the regressor buffer) stay the size of one block instead of the record's
     (:func:`_traces` re-runs the estimators for the convergence figure).
     """
-    kept: list[list[EquationBlock]] = []
+    kept: list[MaskPacker] = []
     rows: list[int] = []  # rows of each equation so far
 
     def keep(block: PipelineBlock) -> None:
         if not kept:
-            kept.extend([] for _ in block.equations)
+            kept.extend(MaskPacker() for _ in block.equations)
             rows.extend(0 for _ in block.equations)
-        for j, (parts, eb) in enumerate(zip(kept, block.equations, strict=True)):
+        for j, (packer, eb) in enumerate(zip(kept, block.equations, strict=True)):
             # the pipeline's rows are the samples given (their times: signals.t, not kept)
             a = rows[j]
             if not np.array_equal(eb.t, signals.t[a:a + len(eb.t)]):  # pragma: no cover
                 raise AssertionError(f"{eb.equation}: the pipeline's rows {a}.. are not "
                                      f"the samples")
             rows[j] += len(eb.t)
-            if len(eb.t) or not parts:  # the first, even empty
-                parts.append(_slim(eb))
+            packer.append(eb.used)
 
     n = len(signals)
     for a in range(0, n, CHUNK):
@@ -252,38 +252,14 @@ def _run_in_chunks(proc: SampleProcessor,
         keep(proc.finish(record=True))
     if not kept:
         keep(proc.process(signals.slice(0, 0), record=True))
-    return [_concat(parts, eq) for parts, eq in
-            zip(kept, (e.equation.name for e in proc.pipeline.estimators), strict=True)]
-
-
-_EMPTY = np.zeros(0)
-
-
-def _slim(eb: EquationBlock) -> EquationBlock:
-    """``eb`` with only the array the diagnosis reads (used): the columns and the
-    target are built again block by block where needed
-    (:meth:`RecordSamples.measured_blocks`), the times are the samples'."""
-    return EquationBlock(equation=eb.equation, t=_EMPTY, y=_EMPTY, eps=_EMPTY,
-                         eps_fixed=_EMPTY, used=eb.used, online_rms=_EMPTY,
-                         flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None,
-                         phi=None)
-
-
-def _concat(parts: list[EquationBlock], name: str) -> EquationBlock:
-    parts = [b for b in parts if len(b.used)] or parts[:1]
-    if len(parts) == 1:
-        return parts[0]
-    return EquationBlock(
-        equation=name, t=_EMPTY, y=_EMPTY, eps=_EMPTY,
-        eps_fixed=_EMPTY, used=np.concatenate([b.used for b in parts]), online_rms=_EMPTY,
-        flags=np.zeros(0, np.uint8), theta=None, theta_fixed=None, phi=None)
+    return [packer.mask() for packer in kept]
 
 
 def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
-                      eb: EquationBlock, fit: EquationFit) -> EquationDiagnosis:
+                      used: PackedMask, fit: EquationFit) -> EquationDiagnosis:
+    """``used``: the rows the pipeline used for the equation (packed, read in blocks)."""
     eq = est.equation
-    used = eb.used
-    N = int(used.sum())
+    N = used.count()
     unit = eq.target.unit
     th = np.array(est.rls.theta, dtype=np.float64)
     th_fx = np.asarray(est.frls.theta_float, dtype=np.float64)
@@ -306,8 +282,8 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
     regions = find_regions(bins, r, tau, unit, ctx, rows=used)
     spectrum = order_spectrum(ctx, r, used, unit) if ctx.angle_raw is not None else None
     exc = excitation_summary(ctx, model, used)
-    cand = rank_candidates(ctx, model, eq, eb, r, used, N, h2, unit, bins, spectrum, exc)
-    traces = _traces(ctx, est, eb, r, used)
+    cand = rank_candidates(ctx, model, eq, r, used, N, h2, unit, bins, spectrum, exc)
+    traces = _traces(ctx, est, r, used)
     return EquationDiagnosis(
         equation=eq.name, target=eq.target.description, unit=unit, fit=fit,
         residual_rms_ls=cand.rms_ls, residual_rms_fixed=rms_fixed, whiteness=wht,
@@ -318,10 +294,10 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
 
 
 # -------------------------------------------------------------------------- traces
-def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F64,
-            used: B) -> Traces:
+def _traces(ctx: RecordSamples, est: EquationEstimator, r: F64,
+            used: PackedMask) -> Traces:
     eq = est.equation
-    n_used = int(np.count_nonzero(used))
+    n_used = used.count()
     n = eq.n
     npts = min(400, n_used)
     conv_t = np.zeros(0)
@@ -370,12 +346,27 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
         sigma = np.array(sd_l)
         tfx = np.array(fx_l)
     # the points the figures draw, not the record: every k-th sample for the timeline,
-    # every k-th used sample for the scatter plots
+    # every k-th used sample for the scatter plots (found block by block)
     n_rows = len(used)
-    timeline = np.zeros(n_rows, np.bool_)
-    timeline[::decimation(n_rows)] = True
-    scatter = _every_mask(used, decimation(n_used))
-    pts = np.flatnonzero(timeline | scatter)
+    k_t, k_s = decimation(n_rows), decimation(n_used)
+    parts: list[npt.NDArray[np.intp]] = []
+    tl_parts: list[B] = []
+    sc_parts: list[B] = []
+    seen = 0  # used rows before the block
+    for a, u in used.blocks(CHUNK):
+        tl = np.zeros(len(u), np.bool_)
+        tl[(-a) % k_t::k_t] = True
+        idx = np.flatnonzero(u)
+        sc = np.zeros(len(u), np.bool_)
+        sc[idx[(-seen) % k_s::k_s]] = True
+        seen += len(idx)
+        at_b = np.flatnonzero(tl | sc)
+        parts.append(a + at_b)
+        tl_parts.append(tl[at_b])
+        sc_parts.append(sc[at_b])
+    pts = np.concatenate([np.zeros(0, np.intp), *parts])
+    timeline = np.concatenate([np.zeros(0, np.bool_), *tl_parts])
+    scatter = np.concatenate([np.zeros(0, np.bool_), *sc_parts])
     y = ctx.target_at(eq, pts)
     res = r[pts]
 
@@ -387,16 +378,5 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, eb: EquationBlock, r: F6
         acceleration=ctx.acceleration[pts], current=ctx.current[pts],
         position=at(ctx.position), angle=at(ctx.angle), conv_t=conv_t, theta=theta,
         sigma=sigma, theta_fixed=tfx, names=tuple(p.name for p in eq.parameters),
-        units=tuple(p.unit for p in eq.parameters), timeline=timeline[pts],
-        scatter=scatter[pts], record_used=PackedMask.pack(used))
-
-
-def _every_mask(mask: B, k: int) -> B:
-    """Every ``k``-th true row of ``mask`` (from the first), block by block."""
-    out = np.zeros(len(mask), np.bool_)
-    seen = 0  # true rows before the block
-    for a in range(0, len(mask), CHUNK):
-        idx = np.flatnonzero(mask[a:a + CHUNK])
-        out[a + idx[(-seen) % k::k]] = True
-        seen += len(idx)
-    return out
+        units=tuple(p.unit for p in eq.parameters), timeline=timeline,
+        scatter=scatter, record_used=used)

@@ -67,8 +67,7 @@ from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Cogging, Effect, UserTerm, library
 from canrls.estimation.model import Equation, Model
-from canrls.estimation.pipeline import EquationBlock
-from canrls.signals import Signals, SpilledSignals
+from canrls.signals import PackedMask, Signals, SpilledSignals
 
 __all__ = [
     "DEFAULT_MAX_ORDER",
@@ -122,7 +121,7 @@ MAX_COHERENCE = 0.9
 
 
 def _eval_rows(ctx: RecordSamples, model: Model, eq: Equation, names: Sequence[str],
-               used: B, periodic: bool = False) -> B:
+               used: PackedMask, periodic: bool = False) -> PackedMask:
     """The samples the candidates are compared on.
 
     The pipeline's own samples for the model (``used``), less those it would not use
@@ -130,12 +129,12 @@ def _eval_rows(ctx: RecordSamples, model: Model, eq: Equation, names: Sequence[s
     Stribeck friction joins the model): the rows the pipeline's sample policy uses for
     that model (:meth:`RecordSamples.used`). Periodic candidates are masked column by
     column instead (:meth:`RecordSamples.keep`), unless ``periodic``: then their limits
-    count too (the samples of the refit with them).
+    count too (the samples of the refit with them). Packed, made block by block.
     """
     nonper = [nm for nm in names
               if periodic or not nm.startswith(("cogging:", "unbalance"))]
     m = model.with_effects(add=nonper) if nonper else model
-    return used & ctx.used(m.equation(eq.name))
+    return used.intersect(ctx.used(m.equation(eq.name)))
 
 
 @dataclass
@@ -273,14 +272,16 @@ def _candidate_names(model: Model, eq: Equation, signals: Signals | SpilledSigna
     return ok, na
 
 
-def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: EquationBlock, r: F64,
-                used: B, N: int, h2: float, unit: str, bins: Mapping[str, Binned],
-                spectrum: OrderSpectrum | None,
-                exc: ExcitationSummary) -> CandidateResult:
+def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, r: F64,
+                    used: PackedMask, N: int, h2: float, unit: str,
+                    bins: Mapping[str, Binned], spectrum: OrderSpectrum | None,
+                    exc: ExcitationSummary) -> CandidateResult:
+    """``used``: the rows the pipeline used for the equation (``N`` of them)."""
     names, na = _candidate_names(model, eq, ctx.signals, ctx.max_order)
+    pipe_used, pipe_n = used, N
     # compare on the samples the pipeline would use with the candidates
     used = _eval_rows(ctx, model, eq, names, used)
-    N = int(used.sum())
+    N = used.count()
     n = eq.n
     cur_names = [p.name for p in eq.parameters]
     aug_model = model.with_effects(add=names) if names else model
@@ -403,7 +404,7 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
         # (periodic effects drop the fast samples there, instead of being masked)
         m2 = model.with_effects(add=chosen)
         eq2 = m2.equation(eq.name)
-        rows2 = _eval_rows(ctx, model, eq, chosen, eb.used, periodic=True)
+        rows2 = _eval_rows(ctx, model, eq, chosen, pipe_used, periodic=True)
         # r = y - Phi theta, theta the least squares on rows2 (block by block)
         r_left = ctx.fit_residual(eq2, rows2)
         n2, _, e2, _ = moments(r_left, rows2)
@@ -428,7 +429,7 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
             x, d = r_ls[a:a + BLOCK][u], (r_ls[a:a + BLOCK] - r[a:a + BLOCK])[u]
             dd += float(np.dot(d, d))
             el += float(np.dot(x, x))
-        same = dd <= 0.01 * el and N == int(eb.used.sum())
+        same = dd <= 0.01 * el and N == pipe_n
         structure = residual_structure(ctx, r_ls, used, unit, h2, spectrum if same else None,
                                eq.target.signal)
     # -- which candidates to list --------------------------------------------------------
@@ -438,7 +439,7 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, eb: Equation
     if best_cog is not None and best_cog not in extra_cog:
         extra_cog.insert(0, best_cog)
     listed += extra_cog
-    ev_ctx = _EvidenceContext(ctx, bins, spectrum, unit, eb, used, A, G, C, aug, evaluated,
+    ev_ctx = _EvidenceContext(ctx, bins, spectrum, unit, used, A, G, C, aug, evaluated,
                               best_cog, cog, model)
     cands = []
     for nm in listed:
@@ -577,8 +578,7 @@ class _EvidenceContext:
     bins: Mapping[str, Binned]
     spectrum: OrderSpectrum | None
     unit: str
-    eb: EquationBlock
-    used: B
+    used: PackedMask
     A: F64
     G: _Gram
     C: list[int]

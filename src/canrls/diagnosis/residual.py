@@ -40,6 +40,7 @@ from canrls.diagnosis.results import (
 from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.estimation.model import Model
 from canrls.estimation.svf import SVF
+from canrls.signals import PackedMask
 
 __all__ = [
     "MIN_BIN",
@@ -66,7 +67,8 @@ __all__ = [
 ]
 
 F64 = npt.NDArray[np.float64]
-B = npt.NDArray[np.bool_]
+#: a mask over the record's rows: an array, or packed (read in blocks)
+B = npt.NDArray[np.bool_] | PackedMask
 
 #: Share of the residual variance a candidate (or an order of the spectrum left in the
 #: residual) must explain to be suggested (reported).
@@ -153,6 +155,11 @@ def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
 
 
 # ------------------------------------------------------------- record in blocks, exactly
+def _true_rows(rows: B) -> int:
+    """True rows of a mask (a packed one counted block by block, not unpacked)."""
+    return rows.count() if isinstance(rows, PackedMask) else int(np.count_nonzero(rows))
+
+
 def _spans(n: int) -> range:
     """Starts of the blocks of :data:`~canrls.diagnosis.samples.BLOCK` rows."""
     return range(0, n, BLOCK)
@@ -227,7 +234,7 @@ def percentiles(x: F64, rows: B | None, qs: list[float]) -> list[float]:
     must not be empty."""
     if not _finite(x, rows):
         return [float(v) for v in np.percentile(_copy(x, rows), qs)]
-    n = len(x) if rows is None else int(np.count_nonzero(rows))
+    n = len(x) if rows is None else _true_rows(rows)
     ks: list[tuple[int, int, float]] = []
     for q in qs:
         # numpy's virtual index (n - 1) q and its neighbours
@@ -253,7 +260,7 @@ def median(x: F64, rows: B | None = None) -> float:
     finite)."""
     if not _finite(x, rows):
         return float(np.median(_copy(x, rows)))
-    n = len(x) if rows is None else int(np.count_nonzero(rows))
+    n = len(x) if rows is None else _true_rows(rows)
     if n % 2:
         return _kth(x, rows, [n // 2])[0]
     a, b = _kth(x, rows, [n // 2 - 1, n // 2])
@@ -332,7 +339,7 @@ def _extremes(x: F64, rows: B) -> tuple[float, float]:
 def moments(r: F64, rows: B) -> tuple[int, float, float, float]:
     """(N, mean, sum of squares, sum of squares about the mean) of ``r[rows]``, block by
     block (the deviations in a second pass, as ``np.std`` takes them)."""
-    n = int(np.count_nonzero(rows))
+    n = _true_rows(rows)
     s1 = s2 = 0.0
     for a in _spans(len(r)):
         v = r[a:a + BLOCK][rows[a:a + BLOCK]]
@@ -691,7 +698,7 @@ def spectrum_peaks(orders: F64, expl: F64, limit: int = 5) -> tuple[float, ...]:
 def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationSummary:
     """How the ``used`` rows excite the model, block by block (exact order statistics:
     :func:`percentiles`, :func:`median`; sums block by block)."""
-    N = int(np.count_nonzero(used))
+    N = _true_rows(used)
     if not N:
         return ExcitationSummary(0.0, 0.0, 0, math.nan, math.nan, math.nan, math.nan,
                                  math.nan, math.nan, None, None, ctx.speed_unit, ctx.per)

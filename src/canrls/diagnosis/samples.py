@@ -12,7 +12,6 @@ masks of the diagnosis are the pipeline's, bit for bit.
 
 from __future__ import annotations
 
-import copy
 import math
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -24,7 +23,7 @@ from canrls.estimation.model import Equation, Model, PositionUnwrapper
 from canrls.estimation.pipeline import EstimatorSettings
 from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.svf import SVF
-from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals
+from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals, as_packed
 
 __all__ = ["BLOCK", "RecordSamples"]
 
@@ -37,16 +36,17 @@ BLOCK = 32768
 
 class _FilterSource:
     """Filtered signals (or a residual) on the measured rows, computed block by block
-    when read, from the start of the block's segment or from the filter's state saved
-    at the block (``snapshots``: a filter's state is small; a regressor builder's holds
-    a block-long scratch array, so it runs forward instead, from the block last
-    computed or from the segment's start). The values are those of one pass, bit for
-    bit (the filter carries its state exactly); the last few blocks are cached."""
+    when read: the filter (or regressor builder) runs forward from the block last
+    computed, or from the start of the block's segment when the block read lies before
+    it. No state is kept per block (nothing grows with the record), and the statistics
+    read the record in order, so a pass over it filters each block once. The values
+    are those of one pass, bit for bit (the filter carries its state exactly); the last
+    few blocks are cached."""
 
     CACHE = 4
 
     def __init__(self, ctx: RecordSamples, svf: Any, compute: Callable[[int, int], F64],
-                 n: int, snapshots: bool = True) -> None:
+                 n: int) -> None:
         self.svf = svf
         self.compute = compute
         self.n = n
@@ -54,7 +54,6 @@ class _FilterSource:
         self.pieces: list[tuple[int, int, int, int]] = []
         #: the measured rows of the filled record (packed; None: all), sliced where read
         self.real = ctx.selected.real
-        self.states: list[Any] | None = [] if snapshots else None
         #: the first piece of each piece's segment
         self.first: list[int] = []
         seg_starts = {a for a, _ in ctx.segments()}
@@ -62,9 +61,6 @@ class _FilterSource:
             self.first.append(len(self.pieces) if c0 in seg_starts or not self.first
                               else self.first[-1])
             self.pieces.append((c0, c1, m0, m1))
-            if self.states is not None:
-                self.states.append(copy.deepcopy(svf))
-                compute(c0, c1)  # advance the filter
         self.starts = np.array([p[2] for p in self.pieces], dtype=np.int64)
         self.cache: dict[int, F64] = {}
         self.pos: int | None = None  # the piece the builder last computed
@@ -83,9 +79,6 @@ class _FilterSource:
         """The measured rows of piece ``i``, all columns."""
         if i in self.cache:
             return self.cache[i]
-        if self.states is not None:
-            self.svf.__dict__.update(copy.deepcopy(self.states[i]).__dict__)
-            return self._run(i)
         j = self.first[i]
         if self.pos is not None and j <= self.pos < i:
             start = self.pos + 1  # forward from the block last computed
@@ -122,8 +115,7 @@ class _FilterSource:
 
 
 class _PositionChain:
-    """The position's unwrapper and filter, reset and saved together (for
-    :class:`_FilterSource`)."""
+    """The position's unwrapper and filter, reset together (for :class:`_FilterSource`)."""
 
     def __init__(self, unw: PositionUnwrapper, svf: SVF) -> None:
         self.unw = unw
@@ -215,8 +207,8 @@ class RecordSamples:
         self.acceleration: Filtered = Filtered(sc, 1)
         self.current: Filtered = Filtered(sc, 2)
         # the unwrapped position (as the model unwraps it) and the phase of periodic terms:
-        # not kept either, unwrapped again block by block when read (the unwrapper's
-        # turn count is saved at each block with the filter's state)
+        # not kept either, unwrapped again block by block when read (the unwrapper
+        # runs forward with the filter)
         self.position: Filtered | None = None
         self.angle_raw: Filtered | None = None
         self.angle: Filtered | None = None
@@ -247,7 +239,7 @@ class RecordSamples:
             self.angle_raw = Filtered(ps, 2)
         self._h: dict[str, F64] = {}
         self._use: dict[tuple[int, float, float], PackedMask] = {}
-        self._coh: dict[tuple[int, int], tuple[F64, float]] = {}
+        self._coh: dict[bytes, tuple[F64, float]] = {}
 
     def angle_filled_blocks(self) -> Iterator[tuple[int, int, F64]]:
         """(b0, b1, the phase of periodic terms on the filled rows ``b0:b1``) over the
@@ -289,7 +281,7 @@ class RecordSamples:
         """Runs of rows of the filled record without a filter restart."""
         return self.selected.segments()
 
-    def spread(self, used: B) -> B | PackedMask:
+    def spread(self, used: B | PackedMask) -> B | PackedMask:
         """A mask over the measured rows as a mask over the filled record (packed when
         rows were filled: read it in slices)."""
         return self.selected.filled(used)
@@ -310,16 +302,27 @@ class RecordSamples:
             self._use[key] = use.mask()
         return self._use[key]
 
-    def used(self, equation: Equation) -> B:
+    def measured_mask(self, mask: PackedMask) -> PackedMask:
+        """A mask over the filled record on the measured rows, packed, block by block
+        (``mask`` itself when nothing was filled)."""
+        real = self.selected.real
+        if real is None:
+            return mask
+        out = MaskPacker()
+        for c0, r in real.blocks(BLOCK):
+            out.append(mask[c0:c0 + len(r)][r])
+        return out.mask()
+
+    def used(self, equation: Equation) -> PackedMask:
         """The measured rows the pipeline uses for ``equation`` (without the rows of a
-        non-finite column, which the builder finds)."""
+        non-finite column, which the builder finds), packed."""
         policy = SamplePolicy.for_equation(equation, self.dt, self.settings)
-        return self.selected.measured(self._filled_use(policy))
+        return self.measured_mask(self._filled_use(policy))
 
     def _keep_filled(self, order: int) -> PackedMask:
         return self._filled_use(self.policy.for_order(order))
 
-    def keep(self, order: int) -> B:
+    def keep(self, order: int) -> PackedMask:
         """Measured rows where a periodic column of ``order`` is sampled finely enough.
 
         The pipeline skips the samples where the fastest periodic column advances more
@@ -329,7 +332,7 @@ class RecordSamples:
         A candidate periodic column is set to zero on the other rows (not the rows
         dropped: the other candidates are compared on the same samples).
         """
-        return self.selected.measured(self._keep_filled(order))
+        return self.measured_mask(self._keep_filled(order))
 
     # -- filtered signals and columns -----------------------------------------------------
     def _mask_periodic(self, eq: Equation, first: int, phi: F64, a: int) -> None:
@@ -359,7 +362,7 @@ class RecordSamples:
         self._mask_periodic(eq, eq.n if first is None else first, phi, 0)
         return self.selected.measured(phi), self.selected.measured(y)
 
-    def gram(self, eq: Equation, used: B, first: int) -> F64:
+    def gram(self, eq: Equation, used: B | PackedMask, first: int) -> F64:
         """Gram matrix of [phi, y] over the ``used`` measured rows, block by block
         (periodic columns from ``first`` on masked as in :meth:`columns`)."""
         builder = eq.builder(self.dt)
@@ -408,7 +411,7 @@ class RecordSamples:
     def residual(self, eq: Equation, theta: F64) -> Filtered:
         """``r = y - Phi theta`` on every measured row, in the target unit (``theta``
         normalised): not kept, computed block by block from the equation's columns
-        when read (:class:`Filtered`; the builder's state saved at each block)."""
+        when read (:class:`Filtered`: the builder runs forward block by block)."""
         builder = eq.builder(self.dt)
         filled = self.selected.signals
         real = self.selected.real
@@ -425,8 +428,7 @@ class RecordSamples:
                 out[rr, 0] = eq.target_to_physical(y[rr] - phi[rr] @ theta)
             return out
 
-        return Filtered(_FilterSource(self, builder, compute, len(self.signals),
-                                      snapshots=False), 0)
+        return Filtered(_FilterSource(self, builder, compute, len(self.signals)), 0)
 
     def target_at(self, eq: Equation, rows: npt.NDArray[np.intp]) -> F64:
         """The target ``y`` of an equation on the measured ``rows`` (sorted), in the
@@ -438,7 +440,7 @@ class RecordSamples:
             out[a:b] = y[rows[a:b] - m]
         return eq.target_to_physical(out)
 
-    def mean_square(self, eq: Equation, theta: F64, rows: B) -> float:
+    def mean_square(self, eq: Equation, theta: F64, rows: B | PackedMask) -> float:
         """Mean square of ``r = y - Phi theta`` (target unit) over the measured
         ``rows``, block by block: nothing record-long."""
         s = 0.0
@@ -447,9 +449,9 @@ class RecordSamples:
             if u.any():
                 r = eq.target_to_physical(y[u] - phi[u] @ theta)
                 s += float(np.dot(r, r))
-        return s / max(int(rows.sum()), 1)
+        return s / max(int(rows.sum()), 1)  # PackedMask.sum counts block by block
 
-    def fit_residual(self, eq: Equation, rows: B) -> Filtered:
+    def fit_residual(self, eq: Equation, rows: B | PackedMask) -> Filtered:
         """Least-squares fit of ``eq`` on the measured ``rows`` and its residual on every
         measured row, in the target unit: ``r = y - Phi theta``, ``theta`` the
         minimum-norm least-squares solution of ``Phi[rows] theta = y[rows]``, without the
@@ -489,7 +491,7 @@ class RecordSamples:
             self._h[hold + "/s"] = sf[2:]
         return self._h[key]
 
-    def coherence(self, order: int, used: B) -> tuple[float, float]:
+    def coherence(self, order: int, used: B | PackedMask) -> tuple[float, float]:
         r"""How much a periodic column of ``order`` looks like a sinusoid in time.
 
         :math:`c_k = |\overline{e^{ik(\vartheta - \bar\omega t)}}|` with
@@ -499,12 +501,12 @@ class RecordSamples:
         ``(c_k, frequency [Hz])``.
         """
         assert self.angle_raw is not None
-        key = (int(used.sum()), hash(used.tobytes()))
+        key = as_packed(used).digest()  # block by block
         if key not in self._coh:
             # block by block: the means of t and the angle, the slope from the centred
             # sums, then the mean of exp(ik(a - w t)) per order (nothing record-long)
             ang, t = self.angle_raw, self.signals.t
-            n = int(np.count_nonzero(used))
+            n = int(used.sum())
             c = np.ones(self.max_order + 1)
             w = 0.0
             if n >= 3:
