@@ -406,6 +406,14 @@ class GapFiller:
         real = np.zeros(total, np.bool_)
         real[dest] = True
         roles = [r for r in ROLES if s.has(r)]
+        # every filled row at once: the gap it fills (owner k), its place i = 1..m in it
+        ks = np.flatnonzero(missing)
+        ms = missing[ks]
+        owner = np.repeat(ks, ms)
+        m_row = np.repeat(ms, ms)
+        i = np.arange(1, len(owner) + 1) - np.repeat(np.cumsum(ms) - ms, ms)
+        frac = i / (m_row + 1)
+        at = dest[owner] - m_row + i - 1  # i-th of the m rows before input row k
         out: dict[str, npt.NDArray[np.float64]] = {}
         for r in ["t", *roles]:
             v = np.asarray(getattr(s, r), dtype=np.float64)
@@ -418,13 +426,11 @@ class GapFiller:
             wrap = self.period if r == "position" else None
             if wrap is not None:
                 step = np.mod(step + 0.5 * wrap, wrap) - 0.5 * wrap
-            for k in np.flatnonzero(missing):
-                m = int(missing[k])
-                frac = np.arange(1, m + 1) / (m + 1)
-                vals = pv[k] + step[k] * frac
-                if wrap is not None:
-                    vals = np.mod(vals, wrap)
-                col[dest[k] - m: dest[k]] = vals
+            # v_i = v_(k-1) + (v_k - v_(k-1)) i / (m + 1), i = 1..m (modulo the wrap)
+            vals = pv[owner] + step[owner] * frac
+            if wrap is not None:
+                vals = np.mod(vals, wrap)
+            col[at] = vals
             out[r] = col
         return Signals(out["t"], out["current"], out["speed"], out.get("position"),
                        out.get("voltage")), real
