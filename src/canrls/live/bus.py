@@ -45,9 +45,11 @@ from canrls.can.frames import frame_ids
 from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
 from canrls.live.settings import DaemonSettings
+from canrls.live.socketcan import (Received, SocketcanReceiver, bulk_receiver,
+                                   set_receive_buffer, socketcan_socket)
 
-__all__ = ["BusLink", "BusReader", "FrameQueue", "RX_BATCH", "bus_config", "is_command",
-           "messages_to_block", "open_bus", "COMMAND_ID"]
+__all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "RX_BATCH", "bus_config",
+           "command_rows", "is_command", "messages_to_block", "open_bus", "COMMAND_ID"]
 
 log = logging.getLogger(__name__)
 
@@ -135,8 +137,17 @@ def is_command(msg: can.Message) -> bool:
     return msg.arbitration_id == COMMAND_ID and not msg.is_extended_id
 
 
+def command_rows(block: FrameBlock) -> np.ndarray:
+    """Mask of the ``RlsCommand`` frames of ``block`` (:func:`is_command` of each row)."""
+    return (block.arbitration_id == COMMAND_ID) & ~block.is_extended
+
+
 class FrameQueue(can.Listener):
     """Runs in the reader's thread: queues each frame, nothing more.
+
+    The :class:`BusReader` hands it frames one by one (:meth:`on_message_received`), the
+    :class:`BlockReader` of a SocketCAN bus whole blocks (:meth:`on_block`); the
+    estimator takes a :class:`~canrls.can.frameblock.FrameBlock` of either (:meth:`take`).
 
     :param limit: frames held; beyond, a frame is dropped and counted in
         :attr:`overflow` (or, with ``block``, the reader's thread waits for room).
@@ -146,7 +157,8 @@ class FrameQueue(can.Listener):
 
     def __init__(self, limit: int, block: bool, stopping: threading.Event,
                  on_error: Callable[[BaseException], None]) -> None:
-        self.queue: collections.deque[can.Message] = collections.deque()
+        #: frames (python-can's reader) or blocks of frames (the bulk reader), oldest first
+        self.queue: collections.deque[can.Message | FrameBlock] = collections.deque()
         #: set when a frame is queued
         self.wake = threading.Event()
         #: set when a command frame is queued (or the input closes): the estimator
@@ -155,7 +167,9 @@ class FrameQueue(can.Listener):
         self.space = threading.Event()
         self.limit = limit
         self.block = block
+        #: frames queued (the reader's thread counts them) and taken (the estimator's)
         self.received = 0
+        self.taken = 0
         self.overflow = 0
         #: gets every frame too (``[daemon] record``)
         self.recorder: can.Listener | None = None
@@ -172,11 +186,11 @@ class FrameQueue(can.Listener):
         while not self.gate.is_set() and not self._stopping.is_set():
             self.gate.wait(0.05)
         q = self.queue
-        if len(q) >= self.limit:
+        if self.received - self.taken >= self.limit:
             if not self.block:
                 self.overflow += 1
                 return
-            while len(q) >= self.limit and not self._stopping.is_set():
+            while self.received - self.taken >= self.limit and not self._stopping.is_set():
                 self.space.clear()
                 self.space.wait(0.05)
         q.append(msg)
@@ -190,6 +204,44 @@ class FrameQueue(can.Listener):
             if self._cpu0 is None:
                 self._cpu0 = now
             self.cpu = now - self._cpu0
+        if not self.wake.is_set():
+            self.wake.set()
+
+    def on_block(self, block: FrameBlock,
+                 messages: Callable[[int], list[can.Message]] | None = None) -> None:
+        """Queue a block of frames (the :class:`BlockReader`'s thread), as
+        :meth:`on_message_received` each of them: the gate, the limit in frames (the
+        newest beyond it dropped and counted), a command frame hurries the estimator.
+
+        :param messages: ``messages(n)``: the first ``n`` frames as python-can's messages,
+            called only when a recorder is set.
+        """
+        while not self.gate.is_set() and not self._stopping.is_set():
+            self.gate.wait(0.05)
+        n = len(block)
+        if self.received - self.taken + n > self.limit:
+            if not self.block:
+                keep = max(0, self.limit - (self.received - self.taken))
+                self.overflow += n - keep
+                if keep == 0:
+                    return
+                block, n = block.take(slice(0, keep)), keep
+            else:  # room for the whole block (or an empty queue: a block above the limit)
+                while (self.received - self.taken + n > self.limit
+                       and self.received > self.taken and not self._stopping.is_set()):
+                    self.space.clear()
+                    self.space.wait(0.05)
+        self.queue.append(block)
+        if command_rows(block).any():
+            self.hurry.set()
+        if self.recorder is not None and messages is not None:
+            for m in messages(n):
+                self.recorder.on_message_received(m)
+        self.received += n
+        now = time.thread_time()
+        if self._cpu0 is None:
+            self._cpu0 = now
+        self.cpu = now - self._cpu0
         if not self.wake.is_set():
             self.wake.set()
 
@@ -207,13 +259,42 @@ class FrameQueue(can.Listener):
         else:
             self.gate.set()
 
-    def take(self, most: int) -> list[can.Message]:
-        """Up to ``most`` frames, oldest first, off the queue (a block)."""
+    @property
+    def held(self) -> int:
+        """Frames in the queue."""
+        return max(0, self.received - self.taken)
+
+    def take(self, most: int) -> FrameBlock:
+        """Up to ``most`` frames, oldest first, off the queue: one block (a queued block
+        is split at ``most``)."""
         q = self.queue
-        pop = q.popleft
-        msgs = [pop() for _ in range(min(len(q), most))]
+        parts: list[FrameBlock] = []
+        msgs: list[can.Message] = []
+        k = 0
+        while q and k < most:
+            item = q[0]
+            if not isinstance(item, FrameBlock):
+                msgs.append(q.popleft())
+                k += 1
+                continue
+            if msgs:
+                parts.append(messages_to_block(msgs))
+                msgs = []
+            room = most - k
+            if len(item) > room:
+                parts.append(item.take(slice(0, room)))
+                q[0] = item.take(slice(room, None))
+                k = most
+                break
+            parts.append(q.popleft())
+            k += len(item)
+        if msgs:
+            parts.append(messages_to_block(msgs))
+        self.taken += k
         self.space.set()
-        return msgs
+        if len(parts) == 1:
+            return parts[0]
+        return FrameBlock.concat(parts)
 
     def wake_all(self) -> None:
         """Wake a waiting estimator and a waiting reader (stopping)."""
@@ -293,6 +374,65 @@ class BusReader:
         self.listener.stop()
 
 
+class BlockReader:
+    """The reader of a SocketCAN bus: blocks of frames off python-can's socket
+    (:class:`~canrls.live.socketcan.SocketcanReceiver`, ``recvmmsg``) into ``listener``
+    (:meth:`FrameQueue.on_block`), no ``can.Message`` per frame. The loop of
+    :class:`BusReader`: wait up to ``timeout`` for a frame, take every frame waiting,
+    sleep ``interval`` while the bus brings fewer than :data:`RX_BATCH` frames an
+    interval; an exception of the socket goes to ``listener.on_error`` (after the frames
+    taken with it).
+    """
+
+    def __init__(self, rx: SocketcanReceiver, listener: FrameQueue, interval: float,
+                 timeout: float = 0.1) -> None:
+        self.rx = rx
+        self.listener = listener
+        self.interval = float(interval)
+        self.timeout = timeout
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="canrls-bus-reader",
+                                        daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        recv, messages = self.rx.recv, self.rx.messages
+        on_block = self.listener.on_block
+        full = self.rx.capacity
+        stop, interval = self._stop, self.interval
+        mark, taken = time.monotonic(), 0  # frames taken since mark
+        while not stop.is_set():
+            try:
+                got: Received = recv(self.timeout)  # an idle bus: wait here
+                while len(got.block):  # every frame waiting (a full take: look again)
+                    n = len(got.block)
+                    on_block(got.block, lambda k, g=got: messages(g, k))
+                    taken += n
+                    if got.error is not None or n < full or stop.is_set():
+                        break
+                    got = recv(0.0)
+                if got.error is not None:
+                    raise got.error
+                if not taken:
+                    continue
+            except Exception as exc:  # noqa: BLE001 -- as python-can's Notifier
+                self.listener.on_error(exc)
+                continue
+            if interval > 0.0:
+                now = time.monotonic()
+                # frames per interval at the rate since mark: rate * interval < RX_BATCH
+                slow = taken * interval < RX_BATCH * (now - mark)
+                mark, taken = now, 0
+                if slow:
+                    stop.wait(interval)  # as BusReader: frames gather in the socket
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the thread (it finishes the block in hand) and wait for it."""
+        self._stop.set()
+        self._thread.join(timeout)
+        self.listener.stop()
+
+
 class BusLink:
     """The bus and its reader: open, reopen, send, and the transmit pause of faults.
 
@@ -309,7 +449,7 @@ class BusLink:
         self.config = config
         self.describe = describe
         self.bus: can.BusABC | None = None
-        self._reader: BusReader | None = None
+        self._reader: BusReader | BlockReader | None = None
         #: set in the reader's thread when ``recv`` raised
         self.failed = threading.Event()
         self._fail_exc: BaseException | None = None
@@ -324,11 +464,22 @@ class BusLink:
 
     # ------------------------------------------------------------------ open, close
     def open(self) -> None:
-        """Open the bus and start its reader (``BusError`` if it cannot be opened)."""
+        """Open the bus and start its reader (``BusError`` if it cannot be opened): a
+        SocketCAN bus gets ``[daemon] rx_buffer`` and, with ``rx_bulk``, the
+        :class:`BlockReader`; any other bus python-can's loop, :class:`BusReader`."""
         bus = self.factory()
         self.bus = bus
         self.failed.clear()
-        self._reader = BusReader(bus, self.queue, self.config.rx_s)
+        cfg = self.config
+        sock = socketcan_socket(bus)
+        if sock is not None and cfg.rx_buffer:
+            set_receive_buffer(sock, cfg.rx_buffer, self.info())
+        rx = bulk_receiver(bus) if cfg.rx_bulk else None
+        if rx is not None:
+            self._reader = BlockReader(rx, self.queue, cfg.rx_s)
+        else:
+            self._reader = BusReader(bus, self.queue, cfg.rx_s)
+        log.info("CAN bus %s read by %s", self.info(), type(self._reader).__name__)
 
     def close_reader(self) -> None:
         r, self._reader = self._reader, None
@@ -416,11 +567,11 @@ class BusLink:
         self._fault_active = True
         self._fault_until = now + self.config.fault_hold_s
 
-    def error_frame(self, msg: can.Message) -> None:
-        """An error frame arrived (in stream order with the others)."""
+    def error_frame(self, cls: int) -> None:
+        """An error frame arrived (in stream order with the others); ``cls``: its
+        arbitration ID, the error classes of ``linux/can/error.h``."""
         self.counts["error_frames"] += 1
         now = time.monotonic()
-        cls = msg.arbitration_id
         if cls & _CAN_ERR_RESTARTED and not cls & _CAN_ERR_BUSOFF:
             if self.bus_off:
                 log.info("CAN controller restarted after bus-off")
