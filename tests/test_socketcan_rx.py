@@ -334,6 +334,28 @@ def test_the_queue_counts_its_limit_in_frames_and_splits_blocks() -> None:
     assert rest.data[:, 0].tolist() == [6, 7, 8, 9, 99, 1] and q.held == 0
 
 
+def test_spans_of_the_receiver_queue_and_split_as_blocks(pair: Any) -> None:
+    """The block reader queues what each receive took as it lies in the receiver's arena
+    (a Span); ``take`` makes blocks of them, split at ``most``, commands counted."""
+    rx_sock, tx = pair
+    for i in range(10):
+        tx.send(build_can_frame(can.Message(arbitration_id=0x320 if i == 7 else 0x100,
+                                            data=[i], is_extended_id=False)))
+    rx = SocketcanReceiver(rx_sock, capacity=4, command_id=0x320)
+    q = FrameQueue(100, False, threading.Event(), lambda e: None)
+    got = [rx.take(5.0) for _ in range(3)]
+    assert [(len(s), c, e) for s, c, e in got] == [(4, 0, None), (4, 1, None), (2, 0, None)]
+    q.on_block(got[0][0], got[0][1])
+    assert not q.hurry.is_set()
+    for span, commands, _ in got[1:]:
+        q.on_block(span, commands)
+    assert q.hurry.is_set() and q.held == 10
+    first, rest = q.take(6), q.take(100)
+    assert first.data[:, 0].tolist() == list(range(6))
+    assert rest.data[:, 0].tolist() == [6, 7, 8, 9] and q.held == 0
+    assert rest.arbitration_id.tolist() == [0x100, 0x320, 0x100, 0x100]
+
+
 # ------------------------------------------------------------------ the daemon
 def _wait(pred: Any, seconds: float = 30.0) -> bool:
     end = time.monotonic() + seconds

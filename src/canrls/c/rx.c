@@ -194,11 +194,19 @@ static Py_ssize_t take(const Out *o, Py_ssize_t n, struct mmsghdr *mm, const uin
     return n;
 }
 
-/* Wait up to ``timeout`` s for the socket, then take up to o->cap frames. Runs without the
- * GIL. Returns the rows written; *err: errno of a failure (0: none). */
-static Py_ssize_t receive(int fd, double timeout, const Out *o, Refusal *bad, int *err)
+/* Sleep ``pause`` s, wait up to ``timeout`` s for the socket, then take up to o->cap
+ * frames. Runs without the GIL. Returns the rows written; *err: errno of a failure (0: none). */
+static Py_ssize_t receive(int fd, double pause, double timeout, const Out *o, Refusal *bad,
+                          int *err)
 {
     *err = 0;
+    if (pause > 0.0) { /* the reader's batched sleep: frames gather in the socket */
+        struct timespec ps;
+        ps.tv_sec = (time_t)pause;
+        ps.tv_nsec = (long)((pause - (double)ps.tv_sec) * 1e9);
+        while (nanosleep(&ps, &ps) < 0 && errno == EINTR)
+            ;
+    }
     if (timeout > 0.0) {
         struct pollfd p = {fd, POLLIN, 0};
         struct timespec ts;
@@ -255,27 +263,36 @@ static Py_ssize_t receive(int fd, double timeout, const Out *o, Refusal *bad, in
 #endif /* HAVE_RECVMMSG */
 
 PyDoc_STRVAR(recv_doc,
-"recv(fd, timeout, t, arbitration_id, is_extended, is_remote, is_error, dlc, data, aux)\n"
-"-> (n, error)\n\n"
-"Wait up to timeout seconds (0: not at all) for the socket fd, the GIL released, then\n"
-"take every frame waiting, at most len(t), into rows 0..n-1 of the arrays: t float64,\n"
-"arbitration_id uint32, is_extended/is_remote/is_error bool, dlc uint8, data uint8\n"
-"(N, 64), aux uint8 (N, 2) (see the module's source). error: None, or the exception\n"
-"(OSError of the socket, ValueError of a refused datagram) to raise once the n frames\n"
-"are delivered. An OSError before any frame is raised at once.");
+"recv(fd, pause, timeout, offset, most, command_id, t, arbitration_id, is_extended,\n"
+"     is_remote, is_error, dlc, data, aux) -> (n, commands, error)\n\n"
+"Sleep pause seconds, then wait up to timeout seconds (0: not at all) for the socket fd,\n"
+"the GIL released throughout, then take every frame waiting, at most ``most``, into rows\n"
+"offset..offset+n-1 of the arrays: t float64, arbitration_id uint32,\n"
+"is_extended/is_remote/is_error bool, dlc uint8, data uint8 (N, 64), aux uint8 (N, 2)\n"
+"(see the module's source). commands: how many of them are standard frames with the id\n"
+"command_id. error: None, or the exception (OSError of the socket, ValueError of a\n"
+"refused datagram) to raise once the n frames are delivered. An OSError before any\n"
+"frame is raised at once.");
 
 static PyObject *py_recv(PyObject *self, PyObject *args)
 {
     (void)self;
     int fd;
-    double timeout;
+    double pause, timeout;
+    Py_ssize_t offset, most;
+    long command_id;
     PyObject *obj[8];
-    if (!PyArg_ParseTuple(args, "idOOOOOOOO", &fd, &timeout, &obj[0], &obj[1], &obj[2],
-                          &obj[3], &obj[4], &obj[5], &obj[6], &obj[7]))
+    if (!PyArg_ParseTuple(args, "iddnnlOOOOOOOO", &fd, &pause, &timeout, &offset, &most,
+                          &command_id, &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5],
+                          &obj[6], &obj[7]))
         return NULL;
 #if !HAVE_RECVMMSG
     (void)fd;
+    (void)pause;
     (void)timeout;
+    (void)offset;
+    (void)most;
+    (void)command_id;
     PyErr_SetString(PyExc_NotImplementedError, "canrls._rx: no recvmmsg on this platform");
     return NULL;
 #else
@@ -300,19 +317,29 @@ static PyObject *py_recv(PyObject *self, PyObject *args)
                      "(%zd, 2)", cap, cap);
         goto done;
     }
+    if (offset < 0 || most < 0 || offset > cap) {
+        PyErr_Format(PyExc_ValueError, "canrls._rx: offset %zd, most %zd: outside the %zd "
+                     "rows", offset, most, cap);
+        goto done;
+    }
+    cap = cap - offset < most ? cap - offset : most;
     if (fd < 0) {
         errno = EBADF;
         PyErr_SetFromErrno(PyExc_OSError);
         goto done;
     }
-    Out o = {(double *)b[0].view.buf, (uint32_t *)b[1].view.buf, (uint8_t *)b[2].view.buf,
-             (uint8_t *)b[3].view.buf, (uint8_t *)b[4].view.buf, (uint8_t *)b[5].view.buf,
-             (uint8_t *)b[6].view.buf, (uint8_t *)b[7].view.buf, cap};
+    Out o = {(double *)b[0].view.buf + offset, (uint32_t *)b[1].view.buf + offset,
+             (uint8_t *)b[2].view.buf + offset, (uint8_t *)b[3].view.buf + offset,
+             (uint8_t *)b[4].view.buf + offset, (uint8_t *)b[5].view.buf + offset,
+             (uint8_t *)b[6].view.buf + offset * CANFD_MAX_DLEN,
+             (uint8_t *)b[7].view.buf + offset * 2, cap};
     Refusal bad = {NULL, 0};
     int err = 0;
-    Py_ssize_t n;
+    Py_ssize_t n, commands = 0;
     Py_BEGIN_ALLOW_THREADS
-    n = receive(fd, timeout, &o, &bad, &err);
+    n = receive(fd, pause, timeout, &o, &bad, &err);
+    for (Py_ssize_t k = 0; k < n; k++)
+        commands += !o.ext[k] && !o.err[k] && (long)o.id[k] == command_id;
     Py_END_ALLOW_THREADS
     PyObject *exc = NULL;
     if (err) {
@@ -335,7 +362,7 @@ static PyObject *py_recv(PyObject *self, PyObject *args)
         if (!exc)
             goto done;
     }
-    result = Py_BuildValue("(nN)", n, exc ? exc : Py_NewRef(Py_None));
+    result = Py_BuildValue("(nnN)", n, commands, exc ? exc : Py_NewRef(Py_None));
 #endif
 #if HAVE_RECVMMSG
 done:

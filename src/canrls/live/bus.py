@@ -45,8 +45,8 @@ from canrls.can.frames import frame_ids
 from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
 from canrls.live.settings import DaemonSettings
-from canrls.live.socketcan import (Received, SocketcanReceiver, bulk_receiver,
-                                   set_receive_buffer, socketcan_socket)
+from canrls.live.socketcan import (SocketcanReceiver, Span, bulk_receiver, set_receive_buffer,
+                                   socketcan_socket, to_block)
 
 __all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "RX_BATCH", "bus_config",
            "command_rows", "is_command", "messages_to_block", "open_bus", "COMMAND_ID"]
@@ -157,8 +157,8 @@ class FrameQueue(can.Listener):
 
     def __init__(self, limit: int, block: bool, stopping: threading.Event,
                  on_error: Callable[[BaseException], None]) -> None:
-        #: frames (python-can's reader) or blocks of frames (the bulk reader), oldest first
-        self.queue: collections.deque[can.Message | FrameBlock] = collections.deque()
+        #: frames (python-can's reader) or pieces of frames (the bulk reader), oldest first
+        self.queue: collections.deque[can.Message | FrameBlock | Span] = collections.deque()
         #: set when a frame is queued
         self.wake = threading.Event()
         #: set when a command frame is queued (or the input closes): the estimator
@@ -207,14 +207,16 @@ class FrameQueue(can.Listener):
         if not self.wake.is_set():
             self.wake.set()
 
-    def on_block(self, block: FrameBlock,
-                 messages: Callable[[int], list[can.Message]] | None = None) -> None:
-        """Queue a block of frames (the :class:`BlockReader`'s thread), as
+    def on_block(self, block: FrameBlock | Span, commands: int | None = None,
+                 messages: Callable[[Span, int], list[can.Message]] | None = None) -> None:
+        """Queue frames in one piece (the :class:`BlockReader`'s thread: a
+        :class:`~canrls.live.socketcan.Span` of its receiver, or a block), as
         :meth:`on_message_received` each of them: the gate, the limit in frames (the
         newest beyond it dropped and counted), a command frame hurries the estimator.
 
-        :param messages: ``messages(n)``: the first ``n`` frames as python-can's messages,
-            called only when a recorder is set.
+        :param commands: command frames among them (None: looked for in the block).
+        :param messages: ``messages(span, n)``: its first ``n`` frames as python-can's
+            messages, called only when a recorder is set.
         """
         while not self.gate.is_set() and not self._stopping.is_set():
             self.gate.wait(0.05)
@@ -225,17 +227,22 @@ class FrameQueue(can.Listener):
                 self.overflow += n - keep
                 if keep == 0:
                     return
-                block, n = block.take(slice(0, keep)), keep
+                n = keep
+                block = (block.head(keep) if isinstance(block, Span)
+                         else block.take(slice(0, keep)))
             else:  # room for the whole block (or an empty queue: a block above the limit)
                 while (self.received - self.taken + n > self.limit
                        and self.received > self.taken and not self._stopping.is_set()):
                     self.space.clear()
                     self.space.wait(0.05)
         self.queue.append(block)
-        if command_rows(block).any():
+        if commands is None:
+            commands = int(command_rows(to_block([block]) if isinstance(block, Span)
+                                        else block).any())
+        if commands:
             self.hurry.set()
-        if self.recorder is not None and messages is not None:
-            for m in messages(n):
+        if self.recorder is not None and messages is not None and isinstance(block, Span):
+            for m in messages(block, n):
                 self.recorder.on_message_received(m)
         self.received += n
         now = time.thread_time()
@@ -265,15 +272,19 @@ class FrameQueue(can.Listener):
         return max(0, self.received - self.taken)
 
     def take(self, most: int) -> FrameBlock:
-        """Up to ``most`` frames, oldest first, off the queue: one block (a queued block
+        """Up to ``most`` frames, oldest first, off the queue: one block (a queued piece
         is split at ``most``)."""
         q = self.queue
         parts: list[FrameBlock] = []
         msgs: list[can.Message] = []
+        spans: list[Span] = []
         k = 0
         while q and k < most:
             item = q[0]
-            if not isinstance(item, FrameBlock):
+            if isinstance(item, can.Message):
+                if spans:
+                    parts.append(to_block(spans))
+                    spans = []
                 msgs.append(q.popleft())
                 k += 1
                 continue
@@ -281,6 +292,18 @@ class FrameQueue(can.Listener):
                 parts.append(messages_to_block(msgs))
                 msgs = []
             room = most - k
+            if isinstance(item, Span):
+                if len(item) > room:
+                    spans.append(item.head(room))
+                    q[0] = item.tail(room)
+                    k = most
+                    break
+                spans.append(q.popleft())
+                k += len(item)
+                continue
+            if spans:
+                parts.append(to_block(spans))
+                spans = []
             if len(item) > room:
                 parts.append(item.take(slice(0, room)))
                 q[0] = item.take(slice(room, None))
@@ -290,6 +313,8 @@ class FrameQueue(can.Listener):
             k += len(item)
         if msgs:
             parts.append(messages_to_block(msgs))
+        if spans:
+            parts.append(to_block(spans))
         self.taken += k
         self.space.set()
         if len(parts) == 1:
@@ -396,35 +421,36 @@ class BlockReader:
         self._thread.start()
 
     def _run(self) -> None:
-        recv, messages = self.rx.recv, self.rx.messages
+        take, messages = self.rx.take, self.rx.messages
         on_block = self.listener.on_block
         full = self.rx.capacity
         stop, interval = self._stop, self.interval
         mark, taken = time.monotonic(), 0  # frames taken since mark
+        pause = 0.0  # the batched sleep, in the next receive (one wake-up, not two)
         while not stop.is_set():
             try:
-                got: Received = recv(self.timeout)  # an idle bus: wait here
-                while len(got.block):  # every frame waiting (a full take: look again)
-                    n = len(got.block)
-                    on_block(got.block, lambda k, g=got: messages(g, k))
-                    taken += n
-                    if got.error is not None or n < full or stop.is_set():
+                span, commands, error = take(self.timeout, pause)  # an idle bus: wait here
+                pause = 0.0
+                while span.n:  # every frame waiting (a full take: look again)
+                    on_block(span, commands, messages)
+                    taken += span.n
+                    if error is not None or span.n < full or stop.is_set():
                         break
-                    got = recv(0.0)
-                if got.error is not None:
-                    raise got.error
+                    span, commands, error = take(0.0)
+                if error is not None:
+                    raise error
                 if not taken:
                     continue
             except Exception as exc:  # noqa: BLE001 -- as python-can's Notifier
+                pause = 0.0
                 self.listener.on_error(exc)
                 continue
             if interval > 0.0:
                 now = time.monotonic()
                 # frames per interval at the rate since mark: rate * interval < RX_BATCH
-                slow = taken * interval < RX_BATCH * (now - mark)
+                if taken * interval < RX_BATCH * (now - mark):
+                    pause = interval  # as BusReader: frames gather in the socket
                 mark, taken = now, 0
-                if slow:
-                    stop.wait(interval)  # as BusReader: frames gather in the socket
 
     def stop(self, timeout: float = 5.0) -> None:
         """Stop the thread (it finishes the block in hand) and wait for it."""
@@ -474,7 +500,7 @@ class BusLink:
         sock = socketcan_socket(bus)
         if sock is not None and cfg.rx_buffer:
             set_receive_buffer(sock, cfg.rx_buffer, self.info())
-        rx = bulk_receiver(bus) if cfg.rx_bulk else None
+        rx = bulk_receiver(bus, COMMAND_ID) if cfg.rx_bulk else None
         if rx is not None:
             self._reader = BlockReader(rx, self.queue, cfg.rx_s)
         else:

@@ -29,18 +29,94 @@ import numpy.typing as npt
 from canrls import _rx
 from canrls.can.frameblock import FrameBlock
 
-__all__ = ["AVAILABLE", "RX_CAPACITY", "Received", "SocketcanReceiver", "bulk_receiver",
-           "set_receive_buffer", "socketcan_socket"]
+__all__ = ["ARENA", "AVAILABLE", "Arena", "RX_CAPACITY", "Received", "SocketcanReceiver",
+           "Span", "bulk_receiver", "set_receive_buffer", "socketcan_socket", "to_block"]
 
 log = logging.getLogger(__name__)
 
 #: whether this platform has the bulk receive (recvmmsg: Linux)
 AVAILABLE = bool(_rx.AVAILABLE)
-#: most frames one :meth:`SocketcanReceiver.recv` takes (the reader calls again at once
+#: most frames one :meth:`SocketcanReceiver.take` takes (the reader calls again at once
 #: when it took that many)
 RX_CAPACITY = 1024
+#: frames of one arena: the receiver writes the frames of successive calls one after the
+#: other into it (a new one when the rest is shorter than :data:`RX_CAPACITY`)
+ARENA = 16384
 # SO_RCVBUFFORCE (asm-generic/socket.h; the socket module names it only on some builds)
 _SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
+
+
+class Arena:
+    """The arrays the C receive writes frames into, :data:`ARENA` rows (or ``rows``)."""
+
+    __slots__ = ("t", "arbitration_id", "is_extended", "is_remote", "is_error", "dlc",
+                 "data", "aux", "arrays")
+
+    def __init__(self, rows: int = ARENA) -> None:
+        self.t = np.zeros(rows, np.float64)
+        self.arbitration_id = np.zeros(rows, np.uint32)
+        self.is_extended = np.zeros(rows, np.bool_)
+        self.is_remote = np.zeros(rows, np.bool_)
+        self.is_error = np.zeros(rows, np.bool_)
+        self.dlc = np.zeros(rows, np.uint8)
+        self.data = np.zeros((rows, _rx.DATA_WIDTH), np.uint8)
+        #: python-can's message fields a block does not keep: column 0 bit 0 CAN FD,
+        #: bit 1 bit rate switch, bit 2 error state indicator, bit 3 sent by this host;
+        #: column 1 the ``dlc`` python-can's message carries
+        self.aux = np.zeros((rows, 2), np.uint8)
+        self.arrays = (self.t, self.arbitration_id, self.is_extended, self.is_remote,
+                       self.is_error, self.dlc, self.data, self.aux)
+
+
+class Span:
+    """Frames ``start .. start + n - 1`` of an :class:`Arena`: what one receive took,
+    queued as it is (no copy, no block built in the reader's thread); :func:`to_block`
+    makes the block."""
+
+    __slots__ = ("arena", "start", "n")
+
+    def __init__(self, arena: Arena, start: int, n: int) -> None:
+        self.arena, self.start, self.n = arena, start, n
+
+    def __len__(self) -> int:
+        return self.n
+
+    def head(self, k: int) -> Span:
+        """The first ``k`` frames."""
+        return Span(self.arena, self.start, k)
+
+    def tail(self, k: int) -> Span:
+        """The frames after the first ``k``."""
+        return Span(self.arena, self.start + k, self.n - k)
+
+
+def to_block(spans: list[Span]) -> FrameBlock:
+    """One block of the frames of ``spans`` (in order; spans that follow each other in
+    an arena are copied in one piece): field for field what python-can's ``recv`` and
+    :func:`canrls.live.bus.messages_to_block` give, the data as wide as the longest (at
+    least 8)."""
+    runs: list[Span] = []
+    for s in spans:
+        last = runs[-1] if runs else None
+        if last is not None and last.arena is s.arena and last.start + last.n == s.start:
+            runs[-1] = Span(s.arena, last.start, last.n + s.n)
+        elif s.n:
+            runs.append(s)
+    if not runs:
+        return FrameBlock.empty()
+
+    def field(name: str) -> np.ndarray:
+        parts = [getattr(r.arena, name)[r.start:r.start + r.n] for r in runs]
+        return parts[0].copy() if len(parts) == 1 else np.concatenate(parts)
+
+    dlc = field("dlc")
+    width = max(8, int(dlc.max()))  # messages_to_block's width
+    data = [r.arena.data[r.start:r.start + r.n, :width] for r in runs]
+    return FrameBlock(t=field("t"), arbitration_id=field("arbitration_id"),
+                      is_extended=field("is_extended"), is_remote=field("is_remote"),
+                      is_error=field("is_error"), dlc=dlc,
+                      data=np.ascontiguousarray(data[0]) if len(data) == 1
+                      else np.concatenate(data))
 
 
 @dataclass(frozen=True)
@@ -48,10 +124,8 @@ class Received:
     """What one :meth:`SocketcanReceiver.recv` took.
 
     :ivar block: the frames (empty: none arrived within the timeout).
-    :ivar aux: uint8 (N, 2): python-can's message fields that a block does not keep, for
-        :meth:`SocketcanReceiver.messages` (column 0: bit 0 CAN FD, bit 1 bit rate
-        switch, bit 2 error state indicator, bit 3 sent by this host; column 1: the
-        ``dlc`` python-can's message carries).
+    :ivar aux: uint8 (N, 2): python-can's message fields a block does not keep
+        (:attr:`Arena.aux`).
     :ivar error: raise it once the frames are delivered (an ``OSError`` of the socket
         after frames were taken, or a ``ValueError``: a datagram python-can would have
         refused); None: none.
@@ -68,48 +142,55 @@ class SocketcanReceiver:
     :param sock: the bus's socket (``bus.socket``); python-can keeps it, sends on it and
         closes it.
     :param channel: the channel the messages of :meth:`messages` name.
-    :param capacity: most frames one :meth:`recv` takes.
+    :param capacity: most frames one :meth:`take` takes.
+    :param command_id: the standard id :meth:`take` counts frames of (the daemon's
+        command frames, which hurry the estimator).
     """
 
     def __init__(self, sock: socket.socket, channel: str | None = None,
-                 capacity: int = RX_CAPACITY) -> None:
+                 capacity: int = RX_CAPACITY, command_id: int = -1) -> None:
         self.sock = sock
         self.channel = channel or None
         self.capacity = capacity
-        self._t = np.zeros(capacity, np.float64)
-        self._id = np.zeros(capacity, np.uint32)
-        self._ext = np.zeros(capacity, np.bool_)
-        self._rtr = np.zeros(capacity, np.bool_)
-        self._err = np.zeros(capacity, np.bool_)
-        self._dlc = np.zeros(capacity, np.uint8)
-        self._data = np.zeros((capacity, _rx.DATA_WIDTH), np.uint8)
-        self._aux = np.zeros((capacity, 2), np.uint8)
+        self.command_id = command_id
+        self._arena = Arena(max(ARENA, capacity))
+        self._pos = 0
+
+    def take(self, timeout: float, pause: float = 0.0
+             ) -> tuple[Span, int, BaseException | None]:
+        """Sleep ``pause`` seconds, wait up to ``timeout`` seconds for a frame (0: not at
+        all), then take every frame waiting (at most :attr:`capacity`), the interpreter
+        lock released throughout. Returns the frames (a :class:`Span`), how many of them
+        are command frames, and an error to raise once they are delivered (an
+        ``OSError`` of the socket after frames, a ``ValueError`` for a datagram
+        python-can would refuse), or None.
+
+        :raises OSError: the socket failed (closed, interface down) before a frame.
+        """
+        arena, pos = self._arena, self._pos
+        if len(arena.t) - pos < self.capacity:
+            arena, pos = self._arena, self._pos = Arena(len(arena.t)), 0
+        n, commands, error = _rx.recv(self.sock.fileno(), pause, timeout, pos, self.capacity,
+                                      self.command_id, *arena.arrays)
+        self._pos = pos + n
+        return Span(arena, pos, n), commands, error
 
     def recv(self, timeout: float) -> Received:
-        """Wait up to ``timeout`` seconds for a frame (0: not at all), then take every
-        frame waiting (at most :attr:`capacity`).
+        """:meth:`take` as one block, with its messages' other fields.
 
-        :raises OSError: the socket failed (closed, interface down) before a frame was
-            taken; after frames, it comes back in :attr:`Received.error`.
+        :raises OSError: as :meth:`take`.
         """
-        fd = self.sock.fileno()  # -1 once python-can closed it: EBADF
-        n, error = _rx.recv(fd, timeout, self._t, self._id, self._ext, self._rtr, self._err,
-                            self._dlc, self._data, self._aux)
-        if n == 0:
-            return Received(FrameBlock.empty(), self._aux[:0].copy(), error)
-        dlc = self._dlc[:n].copy()
-        # messages_to_block's width: max(8, the longest data)
-        width = max(8, int(dlc.max()))
-        block = FrameBlock(t=self._t[:n].copy(), arbitration_id=self._id[:n].copy(),
-                           is_extended=self._ext[:n].copy(), is_remote=self._rtr[:n].copy(),
-                           is_error=self._err[:n].copy(), dlc=dlc,
-                           data=self._data[:n, :width].copy())
-        return Received(block, self._aux[:n].copy(), error)
+        span, _, error = self.take(timeout)
+        a = span.arena.aux[span.start:span.start + span.n].copy()
+        return Received(to_block([span]), a, error)
 
-    def messages(self, got: Received, n: int | None = None) -> list[can.Message]:
+    def messages(self, got: Received | Span, n: int | None = None) -> list[can.Message]:
         """The ``can.Message`` objects python-can's ``recv`` would have made of the
         frames (the first ``n``; the recorder, ``[daemon] record``)."""
-        b, aux = got.block, got.aux
+        if isinstance(got, Span):
+            b, aux = to_block([got]), got.arena.aux[got.start:got.start + got.n]
+        else:
+            b, aux = got.block, got.aux
         n = len(b) if n is None else n
         return [can.Message(
             timestamp=float(b.t[k]), channel=self.channel,
@@ -132,7 +213,7 @@ def socketcan_socket(bus: can.BusABC) -> socket.socket | None:
     return bus.socket if isinstance(bus, SocketcanBus) else None
 
 
-def bulk_receiver(bus: can.BusABC) -> SocketcanReceiver | None:
+def bulk_receiver(bus: can.BusABC, command_id: int = -1) -> SocketcanReceiver | None:
     """A :class:`SocketcanReceiver` on ``bus`` if it is python-can's ``SocketcanBus`` and
     the bulk receive applies; None: read it through python-can (any other interface; no
     ``recvmmsg`` on this platform; filters python-can applies in software, as on a
@@ -150,7 +231,7 @@ def bulk_receiver(bus: can.BusABC) -> SocketcanReceiver | None:
         log.info("python-can filters %s in software: frames are read through python-can",
                  bus.filters)
         return None
-    return SocketcanReceiver(sock, getattr(bus, "channel", None))
+    return SocketcanReceiver(sock, getattr(bus, "channel", None), command_id=command_id)
 
 
 def set_receive_buffer(sock: socket.socket, size: int, describe: str = "socket") -> int | None:
