@@ -13,8 +13,13 @@ CAN socket: the datagrams are the 16-byte ``struct can_frame`` of python-can's
 ``build_can_frame``. Stood in: the socket (the kernel's UDP path, not its CAN path)
 and the bus's constructor, which would open ``AF_CAN`` (:func:`udp_socketcan_bus` sets
 the attributes it sets; in the daemon's process python-can's ``socketcan`` interface
-name is pointed at it). A sender process puts the simulated drive's frames on the
-daemon's port at 2,000 frames/s (1 kHz: a current and a speed frame each millisecond)
+name is pointed at it). The daemon reads it as it reads a SocketCAN bus: by default with
+its block reader (``canrls.live.bus.BlockReader``: ``recvmmsg`` on python-can's socket
+into the arrays of a frame block, ``canrls._rx``, no ``can.Message`` per frame), and,
+for comparison, with ``[daemon] rx_bulk = false`` (python-can's ``recv`` frame by frame,
+``BusReader``; skipped with ``--skip-message-path``); the receive buffer it was granted
+(``[daemon] rx_buffer``, from its log) is printed. A sender process puts the simulated
+drive's frames on the daemon's port at 2,000 frames/s (1 kHz: a current and a speed frame each millisecond)
 for ``--socketcan-seconds`` and at ``--fast-rate`` (18,000) for ``--fast-seconds``,
 every ``--tick`` (``--fast-tick``; both 1 ms) the frames due by then (a bus delivers
 them one by one: at 18,000 frames/s 1 ms hand-overs of 18 frames spare the listener
@@ -24,11 +29,11 @@ timed window (the process from /proc, goal 20 us, and its estimator and bus list
 threads from /proc/PID/task), frames sent against frames processed (goal: none lost),
 the datagrams the socket's receive buffer dropped, the parameter frames sent and
 received. The daemon starts warm (the compiled kernels in their cache). Then, for
-comparison, the same run with python-can's ``Notifier`` alone on that bus, feeding a
+comparison (skipped with ``--skip-floor``), the same run with python-can's ``Notifier`` alone on that bus, feeding a
 listener that only counts (:func:`floor_udp`): the CPU per frame of python-can's
 receive path and the operating system's wake-ups, one for each hand-over (the daemon's
-reader, ``canrls.live.bus.BusReader``, takes every frame waiting and sleeps
-``rx_interval``, 5 ms, between wake-ups, so it can go below that floor).
+readers take every frame waiting and sleep ``rx_interval``, 5 ms, between wake-ups, so
+they can go below that floor).
 
 **python-can-remote, the test transport** (the transport of the tests): four processes
 
@@ -65,6 +70,7 @@ Usage::
     python tools/bench_live.py [--duration 60] [--fast-seconds 10] [--fast-rate 18000]
                                [--socketcan-seconds 30] [--tick 0.001]
                                [--skip-remote | --skip-socketcan]
+                               [--skip-message-path] [--skip-floor]
 """
 
 from __future__ import annotations
