@@ -3,7 +3,8 @@
 ::
 
     bus --BusReader--> FrameQueue (a Listener: queues, nothing more)
-                           | take(): a list of frames, a block
+        (SocketCAN:         | take(): a FrameBlock
+         BlockReader)
     BusLink: opens the bus (and its reader), reopens it with backoff when recv
              raises, sends without blocking, pauses transmission on error frames
 
@@ -13,7 +14,10 @@ The reader is python-can's :class:`~can.Notifier` loop (``bus.recv``, the listen
 5 ms by default) while the bus is slow: at 1 kHz one wake-up serves some ten frames
 instead of two (``docs/daemon.md``, *The batched reader*: the CPU this saves is within
 the development machine's noise). An idle bus is waited for in ``recv``, without
-polling.
+polling. A SocketCAN bus (python-can's ``SocketcanBus``) is read by the
+:class:`BlockReader` instead (``[daemon] rx_bulk``): the same loop, its socket read in
+bulk (:mod:`canrls.live.socketcan`, ``recvmmsg``), no ``can.Message`` per frame; its
+receive buffer is raised to ``[daemon] rx_buffer`` when it opens.
 
 The bus is opened with ``can.Bus(..., ignore_config=True)`` from the ``[can]`` table
 and the command line only: python-can's own configuration sources (``can.rc``,

@@ -11,8 +11,10 @@
     supervisor thread: reopens a vanished bus (BusLink.reopen), pings systemd's watchdog
 
 Threads: a :class:`~canrls.live.bus.BusReader` (python-can's ``Notifier`` loop, taking
-every frame waiting each ``rx_interval``) reads the bus and hands every frame to a
-:class:`~canrls.live.bus.FrameQueue` that only queues it; the estimator thread takes
+every frame waiting each ``rx_interval``; on a SocketCAN bus the
+:class:`~canrls.live.bus.BlockReader`, the same loop in bulk with ``recvmmsg``, no
+``can.Message`` per frame) reads the bus and hands the frames to a
+:class:`~canrls.live.bus.FrameQueue` that only queues them; the estimator thread takes
 whatever has arrived (at most every ``block_interval``, by default the publish
 interval, and right before each publication; at once when a command frame waits) and
 processes it as one block through :class:`~canrls.processor.FrameProcessor`, so a log
