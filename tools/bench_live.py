@@ -19,21 +19,22 @@ into the arrays of a frame block, ``canrls._rx``, no ``can.Message`` per frame),
 for comparison, with ``[daemon] rx_bulk = false`` (python-can's ``recv`` frame by frame,
 ``BusReader``; skipped with ``--skip-message-path``); the receive buffer it was granted
 (``[daemon] rx_buffer``, from its log) is printed. A sender process puts the simulated
-drive's frames on the daemon's port at 2,000 frames/s (1 kHz: a current and a speed frame each millisecond)
-for ``--socketcan-seconds`` and at ``--fast-rate`` (18,000) for ``--fast-seconds``,
-every ``--tick`` (``--fast-tick``; both 1 ms) the frames due by then (a bus delivers
-them one by one: at 18,000 frames/s 1 ms hand-overs of 18 frames spare the listener
-most of its wake-ups, so that figure is a lower bound); the parameter frames the daemon sends
-go back to the sender, which counts them. Printed: the daemon's CPU per frame over the
-timed window (the process from /proc, goal 20 us, and its estimator and bus listener
-threads from /proc/PID/task), frames sent against frames processed (goal: none lost),
-the datagrams the socket's receive buffer dropped, the parameter frames sent and
-received. The daemon starts warm (the compiled kernels in their cache). Then, for
-comparison (skipped with ``--skip-floor``), the same run with python-can's ``Notifier`` alone on that bus, feeding a
-listener that only counts (:func:`floor_udp`): the CPU per frame of python-can's
-receive path and the operating system's wake-ups, one for each hand-over (the daemon's
-readers take every frame waiting and sleep ``rx_interval``, 5 ms, between wake-ups, so
-they can go below that floor).
+drive's frames on the daemon's port at 2,000 frames/s (1 kHz: a current and a speed
+frame each millisecond) for ``--socketcan-seconds`` and at ``--fast-rate`` (18,000) for
+``--fast-seconds``, every ``--tick`` (``--fast-tick``; both 1 ms) the frames due by then
+(a bus delivers them one by one: at 18,000 frames/s 1 ms hand-overs of 18 frames spare
+the listener most of its wake-ups, so that figure is a lower bound); the parameter
+frames the daemon sends go back to the sender, which counts them. Printed: the daemon's
+CPU per frame over the timed window (the process from /proc, goal 20 us, and its
+estimator and bus reader threads from /proc/PID/task), frames sent against frames
+processed (goal: none lost), the datagrams the socket's receive buffer dropped, the
+parameter frames sent and received. The daemon starts warm (the compiled kernels in
+their cache). Then, for comparison (skipped with ``--skip-floor``), the same run with
+python-can's ``Notifier`` alone on that bus, feeding a listener that only counts
+(:func:`floor_udp`): the CPU per frame of python-can's receive path and the operating
+system's wake-ups, one for each hand-over (the daemon's readers take every frame
+waiting and sleep ``rx_interval``, 5 ms, between wake-ups, so they can go below that
+floor).
 
 **python-can-remote, the test transport** (the transport of the tests): four processes
 

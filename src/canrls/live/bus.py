@@ -49,8 +49,14 @@ from canrls.can.frames import frame_ids
 from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
 from canrls.live.settings import DaemonSettings
-from canrls.live.socketcan import (SocketcanReceiver, Span, bulk_receiver, set_receive_buffer,
-                                   socketcan_socket, to_block)
+from canrls.live.socketcan import (
+    SocketcanReceiver,
+    Span,
+    bulk_receiver,
+    set_receive_buffer,
+    socketcan_socket,
+    to_block,
+)
 
 __all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "RX_BATCH", "bus_config",
            "command_rows", "is_command", "messages_to_block", "open_bus", "COMMAND_ID"]
