@@ -195,12 +195,13 @@ def test_each_frame_equals_python_cans_recv_of_the_same_datagram(pair: Any) -> N
 def test_a_batch_equals_python_cans_recv_field_for_field() -> None:
     """The same datagrams to two sockets: one read in bulk (few recvmmsg calls), the other
     by python-can's ``SocketcanBus.recv``. Every field equal; the timestamps (each
-    socket's own) interleave as the datagrams were sent, first to the bulk socket."""
+    socket's own; exactly equal in the test above) in order, after the sending began."""
     a, b = _udp(), _udp()
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     bus = stand_in_bus(b)
     try:
         frames = datagrams() * 5  # within the default receive buffer (some 270)
+        before = time.time()
         for f in frames:
             tx.sendto(f, a.getsockname())
             tx.sendto(f, b.getsockname())
@@ -211,8 +212,9 @@ def test_a_batch_equals_python_cans_recv_field_for_field() -> None:
         want = messages_to_block(ref)  # type: ignore[arg-type]
         _same(block, want, t=False)
         assert all(x.equals(y, timestamp_delta=None) for x, y in zip(msgs, ref, strict=True))
-        ta, tb = block.t, want.t
-        assert np.all(ta <= tb) and np.all(tb[:-1] <= ta[1:])
+        for t in (block.t, want.t):  # each socket's own receive times, in order (the
+            # kernel may stamp the last ones after the sending returned, on a busy machine)
+            assert np.all(np.diff(t) >= 0) and before <= t[0]
     finally:
         bus.shutdown()
         a.close()
