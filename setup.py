@@ -21,6 +21,10 @@ EXTENSIONS: list[Extension] = [
     # the per-frame loops of the CAN layer (strict decoding, counters, CRC, pairing):
     # canrls.can, live and offline
     Extension("canrls._can", sources=["src/canrls/c/can.c"], extra_compile_args=_CFLAGS),
+    # the bulk receive of SocketCAN frames (recvmmsg into a FrameBlock's arrays):
+    # canrls.live.socketcan, the daemon's reader of a python-can SocketcanBus. Linux only;
+    # it builds everywhere (recv raises NotImplementedError where recvmmsg is missing)
+    Extension("canrls._rx", sources=["src/canrls/c/rx.c"], extra_compile_args=_CFLAGS),
     # the fixed-point RLS kernel (canrls_fixed.c, the target's code) for
     # canrls.estimation.fixed.FixedRLS
     Extension("canrls._fixed",

@@ -13,22 +13,28 @@ CAN socket: the datagrams are the 16-byte ``struct can_frame`` of python-can's
 ``build_can_frame``. Stood in: the socket (the kernel's UDP path, not its CAN path)
 and the bus's constructor, which would open ``AF_CAN`` (:func:`udp_socketcan_bus` sets
 the attributes it sets; in the daemon's process python-can's ``socketcan`` interface
-name is pointed at it). A sender process puts the simulated drive's frames on the
-daemon's port at 2,000 frames/s (1 kHz: a current and a speed frame each millisecond)
-for ``--socketcan-seconds`` and at ``--fast-rate`` (18,000) for ``--fast-seconds``,
-every ``--tick`` (``--fast-tick``; both 1 ms) the frames due by then (a bus delivers
-them one by one: at 18,000 frames/s 1 ms hand-overs of 18 frames spare the listener
-most of its wake-ups, so that figure is a lower bound); the parameter frames the daemon sends
-go back to the sender, which counts them. Printed: the daemon's CPU per frame over the
-timed window (the process from /proc, goal 20 us, and its estimator and bus listener
-threads from /proc/PID/task), frames sent against frames processed (goal: none lost),
-the datagrams the socket's receive buffer dropped, the parameter frames sent and
-received. The daemon starts warm (the compiled kernels in their cache). Then, for
-comparison, the same run with python-can's ``Notifier`` alone on that bus, feeding a
-listener that only counts (:func:`floor_udp`): the CPU per frame of python-can's
-receive path and the operating system's wake-ups, one for each hand-over (the daemon's
-reader, ``canrls.live.bus.BusReader``, takes every frame waiting and sleeps
-``rx_interval``, 5 ms, between wake-ups, so it can go below that floor).
+name is pointed at it). The daemon reads it as it reads a SocketCAN bus: by default with
+its block reader (``canrls.live.bus.BlockReader``: ``recvmmsg`` on python-can's socket
+into the arrays of a frame block, ``canrls._rx``, no ``can.Message`` per frame), and,
+for comparison, with ``[daemon] rx_bulk = false`` (python-can's ``recv`` frame by frame,
+``BusReader``; skipped with ``--skip-message-path``); the receive buffer it was granted
+(``[daemon] rx_buffer``, from its log) is printed. A sender process puts the simulated
+drive's frames on the daemon's port at 2,000 frames/s (1 kHz: a current and a speed
+frame each millisecond) for ``--socketcan-seconds`` and at ``--fast-rate`` (18,000) for
+``--fast-seconds``, every ``--tick`` (``--fast-tick``; both 1 ms) the frames due by then
+(a bus delivers them one by one: at 18,000 frames/s 1 ms hand-overs of 18 frames spare
+the listener most of its wake-ups, so that figure is a lower bound); the parameter
+frames the daemon sends go back to the sender, which counts them. Printed: the daemon's
+CPU per frame over the timed window (the process from /proc, goal 20 us, and its
+estimator and bus reader threads from /proc/PID/task), frames sent against frames
+processed (goal: none lost), the datagrams the socket's receive buffer dropped, the
+parameter frames sent and received. The daemon starts warm (the compiled kernels in
+their cache). Then, for comparison (skipped with ``--skip-floor``), the same run with
+python-can's ``Notifier`` alone on that bus, feeding a listener that only counts
+(:func:`floor_udp`): the CPU per frame of python-can's receive path and the operating
+system's wake-ups, one for each hand-over (the daemon's readers take every frame
+waiting and sleep ``rx_interval``, 5 ms, between wake-ups, so they can go below that
+floor).
 
 **python-can-remote, the test transport** (the transport of the tests): four processes
 
@@ -65,6 +71,7 @@ Usage::
     python tools/bench_live.py [--duration 60] [--fast-seconds 10] [--fast-rate 18000]
                                [--socketcan-seconds 30] [--tick 0.001]
                                [--skip-remote | --skip-socketcan]
+                               [--skip-message-path] [--skip-floor]
 """
 
 from __future__ import annotations
@@ -73,6 +80,7 @@ import argparse
 import ctypes
 import json
 import os
+import re
 import select
 import socket
 import subprocess
@@ -468,10 +476,12 @@ def _thread_cpu(pid: int) -> dict[str, float]:
     return out
 
 
-def run_socketcan(rate: float, seconds: float, tick: float, floor: bool = False
-                  ) -> dict[str, float]:
+def run_socketcan(rate: float, seconds: float, tick: float, floor: bool = False,
+                  bulk: bool = True) -> dict[str, Any]:
     """``canrls run`` on the SocketCAN stand-in, warm, fed ``seconds`` at ``rate``
-    (``floor``: instead of the daemon, python-can's notifier alone, :func:`floor_udp`)."""
+    (``floor``: instead of the daemon, python-can's notifier alone, :func:`floor_udp`;
+    ``bulk``: the daemon's SocketCAN block reader, else ``[daemon] rx_bulk = false``,
+    python-can's ``recv`` frame by frame)."""
     dport, sport = udp_port(), udp_port()
     sender = subprocess.Popen(
         [PY, __file__, "--send-udp", str(sport), "--daemon-port", str(dport),
@@ -488,12 +498,19 @@ def run_socketcan(rate: float, seconds: float, tick: float, floor: bool = False
         raise
     channel = f"{dport}>{sport}"
     period = [] if rate == 2000.0 else ["--period", repr(2.0 / rate)]
+    conf = []
+    if not bulk:
+        tmp = tempfile.NamedTemporaryFile("w", suffix=".toml", delete=False)
+        with tmp:
+            tmp.write("[daemon]\nrx_bulk = false\n")
+        conf = ["-C", tmp.name]
     cmd = ([PY, __file__, "--floor-udp", channel] if floor else
-           [PY, __file__, "--serve-udp", "run", "-i", "socketcan", "-c", channel,
-            "--effects", EFFECTS, "--kt", "0.1", "--duration", f"{seconds + 120:g}",
-            "--json", *period])
+           [PY, __file__, "--serve-udp", "--log-level", "INFO", "run", "-i", "socketcan",
+            "-c", channel, *conf, "--effects", EFFECTS, "--kt", "0.1",
+            "--duration", f"{seconds + 120:g}", "--json", *period])
     d = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
+    err = ""
     try:
         if floor:
             assert d.stdout is not None
@@ -513,7 +530,14 @@ def run_socketcan(rate: float, seconds: float, tick: float, floor: bool = False
             _go(d)
         else:
             d.terminate()
-        live = _finish(d, 60)["daemon"]
+        out, err = d.communicate(timeout=60)
+        if d.returncode != 0:
+            sys.stderr.write(err)
+            raise SystemExit(f"error: {' '.join(map(str, d.args))} exited {d.returncode}")
+        try:
+            live = json.loads(out)["daemon"]  # the daemon's --json
+        except json.JSONDecodeError:
+            live = json.loads(out.strip().splitlines()[-1])["daemon"]  # the floor's line
         _go(sender)  # stop reading
         sent.update(_finish(sender, 30))
     finally:
@@ -521,6 +545,11 @@ def run_socketcan(rate: float, seconds: float, tick: float, floor: bool = False
             if p.poll() is None:
                 p.kill()
                 p.wait()
+        if conf:
+            os.unlink(conf[1])
+    # the daemon's log line: "...: receive buffer N bytes (asked M)" or the warning
+    granted = re.search(r"receive buffer (\d+) bytes \(asked|granted (\d+)", err)
+    reader = re.search(r"read by (\w+)", err)
     frames = live["frames"]
     per = 1e6 / max(sent["sent"], 1)
 
@@ -533,7 +562,9 @@ def run_socketcan(rate: float, seconds: float, tick: float, floor: bool = False
             "lost_counter": live.get("counters", {}).get("frames_lost", 0),
             "param_frames": sent["received"], "frames_sent": live.get("frames_sent", 0),
             "cpu_us": (cpu2 - cpu1) * per, "est_us": est, "rx_us": rx,
-            "other_us": (cpu2 - cpu1) * per - est - rx}
+            "other_us": (cpu2 - cpu1) * per - est - rx,
+            "rcvbuf": int(next(g for g in granted.groups() if g)) if granted else None,
+            "reader": reader.group(1) if reader else None}
 
 
 def _verdict(ok: bool) -> str:
@@ -567,6 +598,10 @@ def main() -> int:
                     help="only the SocketCAN receive path's runs")
     ap.add_argument("--skip-socketcan", action="store_true",
                     help="only python-can-remote's runs")
+    ap.add_argument("--skip-message-path", action="store_true",
+                    help="SocketCAN: not the comparison run with [daemon] rx_bulk = false")
+    ap.add_argument("--skip-floor", action="store_true",
+                    help="SocketCAN: not the comparison run of python-can's Notifier alone")
     ap.add_argument("--send", metavar="URL", help=argparse.SUPPRESS)
     ap.add_argument("--send-udp", type=int, metavar="PORT", help=argparse.SUPPRESS)
     ap.add_argument("--daemon-port", type=int, help=argparse.SUPPRESS)
@@ -587,20 +622,28 @@ def main() -> int:
               "AF_CAN itself is not available here):")
         for rate, seconds, tick in ((2000.0, args.socketcan_seconds, args.tick),
                                     (args.fast_rate, args.fast_seconds, args.fast_tick)):
-            r = run_socketcan(rate, seconds, tick)
-            lost = r["sent"] - r["frames"]
-            print(f"  {rate:5.0f} frames/s offered for {seconds:g} s (the sender reached "
-                  f"{r['rate']:.0f} frames/s, {tick * 1e3:g} ms hand-overs):")
-            print(f"    CPU per frame, the daemon's process     {r['cpu_us']:6.1f} us   "
-                  f"goal < {GOAL_CPU_US:g} us: {_verdict(r['cpu_us'] < GOAL_CPU_US)} "
-                  f"(of which its threads: estimator {r['est_us']:.1f} us, bus listener "
-                  f"{r['rx_us']:.1f} us, the others {r['other_us']:.1f} us)")
-            print(f"    frames lost                             {lost:6.0f}      goal 0: "
-                  f"{_verdict(lost == 0 and r['rate'] >= 0.99 * rate)} "
-                  f"({r['sent']} sent, {r['frames']} processed; dropped by the socket's "
-                  f"receive buffer {r['drops']}, queue overflow {r['overflow']}, counter "
-                  f"gaps {r['lost_counter']}; parameter frames {r['frames_sent']} sent, "
-                  f"{r['param_frames']} received)")
+            print(f"  {rate:5.0f} frames/s offered for {seconds:g} s ({tick * 1e3:g} ms "
+                  f"hand-overs):")
+            paths = [("the block reader (rx_bulk = true, the default)", True)]
+            if not args.skip_message_path:
+                paths.append(("python-can's recv (rx_bulk = false)", False))
+            for what, bulk in paths:
+                r = run_socketcan(rate, seconds, tick, bulk=bulk)
+                lost = r["sent"] - r["frames"]
+                print(f"    {what}, read by {r['reader']}, receive buffer {r['rcvbuf']} "
+                      f"bytes; the sender reached {r['rate']:.0f} frames/s:")
+                print(f"      CPU per frame, the daemon's process   {r['cpu_us']:6.1f} us   "
+                      f"goal < {GOAL_CPU_US:g} us: {_verdict(r['cpu_us'] < GOAL_CPU_US)} "
+                      f"(of which its threads: estimator {r['est_us']:.1f} us, bus reader "
+                      f"{r['rx_us']:.1f} us, the others {r['other_us']:.1f} us)")
+                print(f"      frames lost                           {lost:6.0f}      goal 0: "
+                      f"{_verdict(lost == 0 and r['rate'] >= 0.99 * rate)} "
+                      f"({r['sent']} sent, {r['frames']} processed; dropped by the socket's "
+                      f"receive buffer {r['drops']}, queue overflow {r['overflow']}, counter "
+                      f"gaps {r['lost_counter']}; parameter frames {r['frames_sent']} sent, "
+                      f"{r['param_frames']} received)")
+            if args.skip_floor:
+                continue
             f = run_socketcan(rate, seconds, tick, floor=True)
             print(f"    for comparison, python-can's Notifier alone on that bus (a listener "
                   f"that only counts, no estimator): {f['cpu_us']:.1f} us per frame, the "

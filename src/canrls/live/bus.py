@@ -3,7 +3,8 @@
 ::
 
     bus --BusReader--> FrameQueue (a Listener: queues, nothing more)
-                           | take(): a list of frames, a block
+        (SocketCAN:         | take(): a FrameBlock
+         BlockReader)
     BusLink: opens the bus (and its reader), reopens it with backoff when recv
              raises, sends without blocking, pauses transmission on error frames
 
@@ -13,7 +14,10 @@ The reader is python-can's :class:`~can.Notifier` loop (``bus.recv``, the listen
 5 ms by default) while the bus is slow: at 1 kHz one wake-up serves some ten frames
 instead of two (``docs/daemon.md``, *The batched reader*: the CPU this saves is within
 the development machine's noise). An idle bus is waited for in ``recv``, without
-polling.
+polling. A SocketCAN bus (python-can's ``SocketcanBus``) is read by the
+:class:`BlockReader` instead (``[daemon] rx_bulk``): the same loop, its socket read in
+bulk (:mod:`canrls.live.socketcan`, ``recvmmsg``), no ``can.Message`` per frame; its
+receive buffer is raised to ``[daemon] rx_buffer`` when it opens.
 
 The bus is opened with ``can.Bus(..., ignore_config=True)`` from the ``[can]`` table
 and the command line only: python-can's own configuration sources (``can.rc``,
@@ -45,9 +49,17 @@ from canrls.can.frames import frame_ids
 from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
 from canrls.live.settings import DaemonSettings
+from canrls.live.socketcan import (
+    SocketcanReceiver,
+    Span,
+    bulk_receiver,
+    set_receive_buffer,
+    socketcan_socket,
+    to_block,
+)
 
-__all__ = ["BusLink", "BusReader", "FrameQueue", "RX_BATCH", "bus_config", "is_command",
-           "messages_to_block", "open_bus", "COMMAND_ID"]
+__all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "RX_BATCH", "bus_config",
+           "command_rows", "is_command", "messages_to_block", "open_bus", "COMMAND_ID"]
 
 log = logging.getLogger(__name__)
 
@@ -135,8 +147,17 @@ def is_command(msg: can.Message) -> bool:
     return msg.arbitration_id == COMMAND_ID and not msg.is_extended_id
 
 
+def command_rows(block: FrameBlock) -> np.ndarray:
+    """Mask of the ``RlsCommand`` frames of ``block`` (:func:`is_command` of each row)."""
+    return (block.arbitration_id == COMMAND_ID) & ~block.is_extended
+
+
 class FrameQueue(can.Listener):
     """Runs in the reader's thread: queues each frame, nothing more.
+
+    The :class:`BusReader` hands it frames one by one (:meth:`on_message_received`), the
+    :class:`BlockReader` of a SocketCAN bus whole blocks (:meth:`on_block`); the
+    estimator takes a :class:`~canrls.can.frameblock.FrameBlock` of either (:meth:`take`).
 
     :param limit: frames held; beyond, a frame is dropped and counted in
         :attr:`overflow` (or, with ``block``, the reader's thread waits for room).
@@ -146,7 +167,8 @@ class FrameQueue(can.Listener):
 
     def __init__(self, limit: int, block: bool, stopping: threading.Event,
                  on_error: Callable[[BaseException], None]) -> None:
-        self.queue: collections.deque[can.Message] = collections.deque()
+        #: frames (python-can's reader) or pieces of frames (the bulk reader), oldest first
+        self.queue: collections.deque[can.Message | FrameBlock | Span] = collections.deque()
         #: set when a frame is queued
         self.wake = threading.Event()
         #: set when a command frame is queued (or the input closes): the estimator
@@ -155,7 +177,9 @@ class FrameQueue(can.Listener):
         self.space = threading.Event()
         self.limit = limit
         self.block = block
+        #: frames queued (the reader's thread counts them) and taken (the estimator's)
         self.received = 0
+        self.taken = 0
         self.overflow = 0
         #: gets every frame too (``[daemon] record``)
         self.recorder: can.Listener | None = None
@@ -172,11 +196,11 @@ class FrameQueue(can.Listener):
         while not self.gate.is_set() and not self._stopping.is_set():
             self.gate.wait(0.05)
         q = self.queue
-        if len(q) >= self.limit:
+        if self.received - self.taken >= self.limit:
             if not self.block:
                 self.overflow += 1
                 return
-            while len(q) >= self.limit and not self._stopping.is_set():
+            while self.received - self.taken >= self.limit and not self._stopping.is_set():
                 self.space.clear()
                 self.space.wait(0.05)
         q.append(msg)
@@ -190,6 +214,51 @@ class FrameQueue(can.Listener):
             if self._cpu0 is None:
                 self._cpu0 = now
             self.cpu = now - self._cpu0
+        if not self.wake.is_set():
+            self.wake.set()
+
+    def on_block(self, block: FrameBlock | Span, commands: int | None = None,
+                 messages: Callable[[Span, int], list[can.Message]] | None = None) -> None:
+        """Queue frames in one piece (the :class:`BlockReader`'s thread: a
+        :class:`~canrls.live.socketcan.Span` of its receiver, or a block), as
+        :meth:`on_message_received` each of them: the gate, the limit in frames (the
+        newest beyond it dropped and counted), a command frame hurries the estimator.
+
+        :param commands: command frames among them (None: looked for in the block).
+        :param messages: ``messages(span, n)``: its first ``n`` frames as python-can's
+            messages, called only when a recorder is set.
+        """
+        while not self.gate.is_set() and not self._stopping.is_set():
+            self.gate.wait(0.05)
+        n = len(block)
+        if self.received - self.taken + n > self.limit:
+            if not self.block:
+                keep = max(0, self.limit - (self.received - self.taken))
+                self.overflow += n - keep
+                if keep == 0:
+                    return
+                n = keep
+                block = (block.head(keep) if isinstance(block, Span)
+                         else block.take(slice(0, keep)))
+            else:  # room for the whole block (or an empty queue: a block above the limit)
+                while (self.received - self.taken + n > self.limit
+                       and self.received > self.taken and not self._stopping.is_set()):
+                    self.space.clear()
+                    self.space.wait(0.05)
+        self.queue.append(block)
+        if commands is None:
+            commands = int(command_rows(to_block([block]) if isinstance(block, Span)
+                                        else block).any())
+        if commands:
+            self.hurry.set()
+        if self.recorder is not None and messages is not None and isinstance(block, Span):
+            for m in messages(block, n):
+                self.recorder.on_message_received(m)
+        self.received += n
+        now = time.thread_time()
+        if self._cpu0 is None:
+            self._cpu0 = now
+        self.cpu = now - self._cpu0
         if not self.wake.is_set():
             self.wake.set()
 
@@ -207,13 +276,60 @@ class FrameQueue(can.Listener):
         else:
             self.gate.set()
 
-    def take(self, most: int) -> list[can.Message]:
-        """Up to ``most`` frames, oldest first, off the queue (a block)."""
+    @property
+    def held(self) -> int:
+        """Frames in the queue."""
+        return max(0, self.received - self.taken)
+
+    def take(self, most: int) -> FrameBlock:
+        """Up to ``most`` frames, oldest first, off the queue: one block (a queued piece
+        is split at ``most``)."""
         q = self.queue
-        pop = q.popleft
-        msgs = [pop() for _ in range(min(len(q), most))]
+        parts: list[FrameBlock] = []
+        msgs: list[can.Message] = []
+        spans: list[Span] = []
+        k = 0
+        while q and k < most:
+            item = q[0]
+            if isinstance(item, can.Message):
+                if spans:
+                    parts.append(to_block(spans))
+                    spans = []
+                msgs.append(q.popleft())
+                k += 1
+                continue
+            if msgs:
+                parts.append(messages_to_block(msgs))
+                msgs = []
+            room = most - k
+            if isinstance(item, Span):
+                if len(item) > room:
+                    spans.append(item.head(room))
+                    q[0] = item.tail(room)
+                    k = most
+                    break
+                spans.append(q.popleft())
+                k += len(item)
+                continue
+            if spans:
+                parts.append(to_block(spans))
+                spans = []
+            if len(item) > room:
+                parts.append(item.take(slice(0, room)))
+                q[0] = item.take(slice(room, None))
+                k = most
+                break
+            parts.append(q.popleft())
+            k += len(item)
+        if msgs:
+            parts.append(messages_to_block(msgs))
+        if spans:
+            parts.append(to_block(spans))
+        self.taken += k
         self.space.set()
-        return msgs
+        if len(parts) == 1:
+            return parts[0]
+        return FrameBlock.concat(parts)
 
     def wake_all(self) -> None:
         """Wake a waiting estimator and a waiting reader (stopping)."""
@@ -293,6 +409,66 @@ class BusReader:
         self.listener.stop()
 
 
+class BlockReader:
+    """The reader of a SocketCAN bus: blocks of frames off python-can's socket
+    (:class:`~canrls.live.socketcan.SocketcanReceiver`, ``recvmmsg``) into ``listener``
+    (:meth:`FrameQueue.on_block`), no ``can.Message`` per frame. The loop of
+    :class:`BusReader`: wait up to ``timeout`` for a frame, take every frame waiting,
+    sleep ``interval`` while the bus brings fewer than :data:`RX_BATCH` frames an
+    interval; an exception of the socket goes to ``listener.on_error`` (after the frames
+    taken with it).
+    """
+
+    def __init__(self, rx: SocketcanReceiver, listener: FrameQueue, interval: float,
+                 timeout: float = 0.1) -> None:
+        self.rx = rx
+        self.listener = listener
+        self.interval = float(interval)
+        self.timeout = timeout
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="canrls-bus-reader",
+                                        daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        take, messages = self.rx.take, self.rx.messages
+        on_block = self.listener.on_block
+        full = self.rx.capacity
+        stop, interval = self._stop, self.interval
+        mark, taken = time.monotonic(), 0  # frames taken since mark
+        pause = 0.0  # the batched sleep, in the next receive (one wake-up, not two)
+        while not stop.is_set():
+            try:
+                span, commands, error = take(self.timeout, pause)  # an idle bus: wait here
+                pause = 0.0
+                while span.n:  # every frame waiting (a full take: look again)
+                    on_block(span, commands, messages)
+                    taken += span.n
+                    if error is not None or span.n < full or stop.is_set():
+                        break
+                    span, commands, error = take(0.0)
+                if error is not None:
+                    raise error
+                if not taken:
+                    continue
+            except Exception as exc:  # noqa: BLE001 -- as python-can's Notifier
+                pause = 0.0
+                self.listener.on_error(exc)
+                continue
+            if interval > 0.0:
+                now = time.monotonic()
+                # frames per interval at the rate since mark: rate * interval < RX_BATCH
+                if taken * interval < RX_BATCH * (now - mark):
+                    pause = interval  # as BusReader: frames gather in the socket
+                mark, taken = now, 0
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the thread (it finishes the block in hand) and wait for it."""
+        self._stop.set()
+        self._thread.join(timeout)
+        self.listener.stop()
+
+
 class BusLink:
     """The bus and its reader: open, reopen, send, and the transmit pause of faults.
 
@@ -309,7 +485,7 @@ class BusLink:
         self.config = config
         self.describe = describe
         self.bus: can.BusABC | None = None
-        self._reader: BusReader | None = None
+        self._reader: BusReader | BlockReader | None = None
         #: set in the reader's thread when ``recv`` raised
         self.failed = threading.Event()
         self._fail_exc: BaseException | None = None
@@ -324,11 +500,22 @@ class BusLink:
 
     # ------------------------------------------------------------------ open, close
     def open(self) -> None:
-        """Open the bus and start its reader (``BusError`` if it cannot be opened)."""
+        """Open the bus and start its reader (``BusError`` if it cannot be opened): a
+        SocketCAN bus gets ``[daemon] rx_buffer`` and, with ``rx_bulk``, the
+        :class:`BlockReader`; any other bus python-can's loop, :class:`BusReader`."""
         bus = self.factory()
         self.bus = bus
         self.failed.clear()
-        self._reader = BusReader(bus, self.queue, self.config.rx_s)
+        cfg = self.config
+        sock = socketcan_socket(bus)
+        if sock is not None and cfg.rx_buffer:
+            set_receive_buffer(sock, cfg.rx_buffer, self.info())
+        rx = bulk_receiver(bus, COMMAND_ID) if cfg.rx_bulk else None
+        if rx is not None:
+            self._reader = BlockReader(rx, self.queue, cfg.rx_s)
+        else:
+            self._reader = BusReader(bus, self.queue, cfg.rx_s)
+        log.info("CAN bus %s read by %s", self.info(), type(self._reader).__name__)
 
     def close_reader(self) -> None:
         r, self._reader = self._reader, None
@@ -416,11 +603,11 @@ class BusLink:
         self._fault_active = True
         self._fault_until = now + self.config.fault_hold_s
 
-    def error_frame(self, msg: can.Message) -> None:
-        """An error frame arrived (in stream order with the others)."""
+    def error_frame(self, cls: int) -> None:
+        """An error frame arrived (in stream order with the others); ``cls``: its
+        arbitration ID, the error classes of ``linux/can/error.h``."""
         self.counts["error_frames"] += 1
         now = time.monotonic()
-        cls = msg.arbitration_id
         if cls & _CAN_ERR_RESTARTED and not cls & _CAN_ERR_BUSOFF:
             if self.bus_off:
                 log.info("CAN controller restarted after bus-off")

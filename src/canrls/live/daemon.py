@@ -11,8 +11,10 @@
     supervisor thread: reopens a vanished bus (BusLink.reopen), pings systemd's watchdog
 
 Threads: a :class:`~canrls.live.bus.BusReader` (python-can's ``Notifier`` loop, taking
-every frame waiting each ``rx_interval``) reads the bus and hands every frame to a
-:class:`~canrls.live.bus.FrameQueue` that only queues it; the estimator thread takes
+every frame waiting each ``rx_interval``; on a SocketCAN bus the
+:class:`~canrls.live.bus.BlockReader`, the same loop in bulk with ``recvmmsg``, no
+``can.Message`` per frame) reads the bus and hands the frames to a
+:class:`~canrls.live.bus.FrameQueue` that only queues them; the estimator thread takes
 whatever has arrived (at most every ``block_interval``, by default the publish
 interval, and right before each publication; at once when a command frame waits) and
 processes it as one block through :class:`~canrls.processor.FrameProcessor`, so a log
@@ -40,12 +42,13 @@ from typing import Any
 import can
 import numpy as np
 
+from canrls.can.frameblock import FrameBlock
 from canrls.can.frames import ParameterReport, StatusReport
 from canrls.can.protocol import FeedbackEncoder, Protocol
 from canrls.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline
-from canrls.live.bus import BusLink, FrameQueue, is_command, messages_to_block, open_bus
+from canrls.live.bus import BusLink, FrameQueue, command_rows, messages_to_block, open_bus
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
 from canrls.live.publisher import Publisher, check_publishable
@@ -263,7 +266,7 @@ class Daemon:
             command_results={k: v for k, v in cmd.items()
                              if k not in ("commands", "commands_rejected")},
             reloads=c["reloads"],
-            checkpoints=self._checkpoints.saved, backlog=len(q.queue),
+            checkpoints=self._checkpoints.saved, backlog=q.held,
             estimator_cpu_s=self._est_cpu, listener_cpu_s=q.cpu,
             resumed_from=self.resumed_from, counters=counters)
 
@@ -547,24 +550,26 @@ class Daemon:
             if not everything:
                 break
 
-    def process(self, msgs: Sequence[can.Message]) -> None:
+    def process(self, frames: FrameBlock | Sequence[can.Message]) -> None:
         """Handle frames as the estimator thread does: feedback frames through the
         processor, command and error frames in stream order between them."""
+        block = frames if isinstance(frames, FrameBlock) else messages_to_block(frames)
         with self._lock:
+            err = block.is_error
             start = 0
-            for i, m in enumerate(msgs):
-                if m.is_error_frame:
-                    self._link.error_frame(m)
-                elif is_command(m):
-                    self._estimate(msgs[start:i + 1])
+            for i in np.flatnonzero(err | command_rows(block)).tolist():
+                if err[i]:
+                    self._link.error_frame(int(block.arbitration_id[i]))
+                else:
+                    self._estimate(block.take(slice(start, i + 1)))
                     start = i + 1
-                    self._commands.handle(m)
-            self._estimate(msgs[start:])
+                    self._commands.handle(block.take(slice(i, i + 1)).to_messages()[0])
+            self._estimate(block if start == 0 else block.take(slice(start, None)))
 
-    def _estimate(self, msgs: Sequence[can.Message]) -> None:
-        if not msgs:
+    def _estimate(self, block: FrameBlock) -> None:
+        if not len(block):
             return
-        out = self._proc.process(messages_to_block(msgs))
+        out = self._proc.process(block)
         self._c["blocks"] += 1
         self._publisher.absorb(out)
 

@@ -17,7 +17,7 @@ from canrls.errors import ConfigError
 if TYPE_CHECKING:  # importing the configuration imports numba's kernels: not here
     from canrls.config import AppConfig
 
-__all__ = ["DaemonSettings", "DAEMON_KEYS", "FRAME_PARAMETERS", "RX_INTERVAL",
+__all__ = ["DaemonSettings", "DAEMON_KEYS", "FRAME_PARAMETERS", "RX_BUFFER", "RX_INTERVAL",
            "resolve_path"]
 
 #: the most parameters the frames carry: RlsParamInfo's Index (0..255) and Count
@@ -25,6 +25,11 @@ __all__ = ["DaemonSettings", "DAEMON_KEYS", "FRAME_PARAMETERS", "RX_INTERVAL",
 FRAME_PARAMETERS = 255
 #: the bus reader's default sleep between takings [s] (:attr:`DaemonSettings.rx_s`)
 RX_INTERVAL = 0.005
+#: the receive buffer the daemon asks for on a SocketCAN socket [bytes]
+#: (:attr:`DaemonSettings.rx_buffer`): the kernel grants twice the size asked for its
+#: bookkeeping: 2,520 datagrams of a CAN frame on the development machine, 140 ms of
+#: twice a saturated 1 Mbit/s bus
+RX_BUFFER = 1 << 20
 
 DAEMON_KEYS: dict[str, str] = {
     "publish_interval": "seconds between parameter/status publications (0: after every block)",
@@ -43,6 +48,12 @@ DAEMON_KEYS: dict[str, str] = {
     "rx_interval": "seconds the bus reader sleeps after taking every frame waiting, so "
                    "that one wake-up serves several frames (default: 5 ms, at most a "
                    "quarter of block_interval; 0: wake for each frame)",
+    "rx_bulk": "read a SocketCAN bus in blocks (recvmmsg on python-can's socket, no "
+               "can.Message per frame; default true; false: through python-can's recv, "
+               "for diagnosis)",
+    "rx_buffer": "bytes of receive buffer asked for on a SocketCAN socket at start "
+                 "(default 1 MiB; the kernel caps it at net.core.rmem_max without "
+                 "CAP_NET_ADMIN; 0: the kernel's default)",
     "queue_size": "frames held between the bus and the estimator; beyond, dropped and counted",
     "max_block": "most frames processed in one block",
     "send_timeout": "seconds a transmission may wait (0: never block)",
@@ -74,6 +85,8 @@ class DaemonSettings:
     command_burst: int = 10
     checkpoint: Path | None = None
     checkpoint_interval: float = 60.0
+    rx_bulk: bool = True
+    rx_buffer: int = RX_BUFFER
     queue_size: int = 1_000_000
     max_block: int = 65536
     send_timeout: float = 0.0
@@ -103,6 +116,8 @@ class DaemonSettings:
         if self.reopen_max_s < self.reopen_min_s:
             raise ConfigError(f"{src}.reopen_max_s = {self.reopen_max_s!r}: must be >= "
                               f"reopen_min_s ({self.reopen_min_s!r})")
+        if self.rx_buffer < 0:
+            raise ConfigError(f"{src}.rx_buffer = {self.rx_buffer!r}: must be >= 0 bytes")
         for k in ("queue_size", "max_block", "command_burst"):
             if getattr(self, k) < 1:
                 raise ConfigError(f"{src}.{k} = {getattr(self, k)!r}: must be >= 1")
@@ -144,13 +159,17 @@ class DaemonSettings:
             if k not in DAEMON_KEYS:
                 raise ConfigError(f"{key} = {v!r}: unknown key (valid: "
                                   f"{', '.join(DAEMON_KEYS)})")
-            if k == "commands":
+            if k in ("commands", "rx_bulk"):
                 if not isinstance(v, bool):
                     raise ConfigError(f"{key} = {v!r}: must be true or false")
                 kw[k] = v
             elif k in ("queue_size", "max_block", "command_burst", "max_parameters"):
                 if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                     raise ConfigError(f"{key} = {v!r}: must be an integer >= 1")
+                kw[k] = v
+            elif k == "rx_buffer":
+                if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                    raise ConfigError(f"{key} = {v!r}: must be an integer >= 0 (bytes)")
                 kw[k] = v
             elif k in _PATH_KEYS:
                 if not isinstance(v, str):
