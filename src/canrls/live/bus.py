@@ -345,7 +345,35 @@ class FrameQueue(can.Listener):
 RX_BATCH = 64
 
 
-class BusReader:
+class _Reader:
+    """The reader's thread, started at once: :meth:`_run` (the subclass's loop) until
+    :meth:`stop`.
+
+    :param interval: the batched sleep (``rx_interval``, :data:`RX_BATCH`).
+    :param timeout: seconds one receive waits on an idle bus before the loop looks
+        whether it should stop.
+    """
+
+    def __init__(self, listener: FrameQueue, interval: float, timeout: float) -> None:
+        self.listener = listener
+        self.interval = float(interval)
+        self.timeout = timeout
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="canrls-bus-reader",
+                                        daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the thread (it finishes the frames in hand) and wait for it."""
+        self._stop.set()
+        self._thread.join(timeout)
+        self.listener.stop()
+
+
+class BusReader(_Reader):
     """The thread that reads the bus into ``listener``: python-can's ``Notifier`` loop,
     taking every frame waiting at a wake-up, then sleeping ``interval`` seconds.
 
@@ -362,13 +390,7 @@ class BusReader:
     def __init__(self, bus: can.BusABC, listener: FrameQueue, interval: float,
                  timeout: float = 0.1) -> None:
         self.bus = bus
-        self.listener = listener
-        self.interval = float(interval)
-        self.timeout = timeout
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="canrls-bus-reader",
-                                        daemon=True)
-        self._thread.start()
+        super().__init__(listener, interval, timeout)
 
     def _run(self) -> None:
         recv = self.bus.recv
@@ -402,14 +424,8 @@ class BusReader:
                     # by itself, and the interface's buffer is not slept away
                     stop.wait(interval)
 
-    def stop(self, timeout: float = 5.0) -> None:
-        """Stop the thread (it finishes the frame in hand) and wait for it."""
-        self._stop.set()
-        self._thread.join(timeout)
-        self.listener.stop()
 
-
-class BlockReader:
+class BlockReader(_Reader):
     """The reader of a SocketCAN bus: blocks of frames off python-can's socket
     (:class:`~canrls.live.socketcan.SocketcanReceiver`, ``recvmmsg``) into ``listener``
     (:meth:`FrameQueue.on_block`), no ``can.Message`` per frame. The loop of
@@ -422,13 +438,7 @@ class BlockReader:
     def __init__(self, rx: SocketcanReceiver, listener: FrameQueue, interval: float,
                  timeout: float = 0.1) -> None:
         self.rx = rx
-        self.listener = listener
-        self.interval = float(interval)
-        self.timeout = timeout
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="canrls-bus-reader",
-                                        daemon=True)
-        self._thread.start()
+        super().__init__(listener, interval, timeout)
 
     def _run(self) -> None:
         take, messages = self.rx.take, self.rx.messages
@@ -461,12 +471,6 @@ class BlockReader:
                 if taken * interval < RX_BATCH * (now - mark):
                     pause = interval  # as BusReader: frames gather in the socket
                 mark, taken = now, 0
-
-    def stop(self, timeout: float = 5.0) -> None:
-        """Stop the thread (it finishes the block in hand) and wait for it."""
-        self._stop.set()
-        self._thread.join(timeout)
-        self.listener.stop()
 
 
 class BusLink:
