@@ -257,6 +257,24 @@ def test_a_command_does_not_wait_for_the_block_interval() -> None:
         tool.close()
 
 
+def test_a_backlog_is_taken_without_waiting_the_block_interval() -> None:
+    """Frames gather for block_interval before a block, but when a whole block
+    (``max_block`` frames) is already waiting, a backlog, the estimator takes it at once:
+    it used to wait a block interval for each, so a backlog of N frames took
+    N / max_block block intervals to work off (here 10 s for every 200 frames)."""
+    protocol, model, settings = _setup()
+    ch = _chan("backlog")
+    d = Daemon(protocol, model, settings,
+               DaemonSettings(publish_interval=10.0, max_block=200, queue_size=2000),
+               bus=_sim(ch), backpressure=True)  # the drive as fast as it is taken
+    assert d.config.block_s == 10.0
+    try:
+        d.start()
+        assert d.wait_for(lambda x: x.stats().frames >= 4000, 30), d.stats().frames
+    finally:
+        d.stop()
+
+
 def test_block_interval_follows_the_publish_interval() -> None:
     assert DaemonSettings().block_s == DaemonSettings().publish_interval == 0.1
     assert DaemonSettings(publish_interval=0.5).block_s == 0.5

@@ -163,17 +163,21 @@ class FrameQueue(can.Listener):
         :attr:`overflow` (or, with ``block``, the reader's thread waits for room).
     :param stopping: set when the daemon stops (a waiting reader gives up).
     :param on_error: called with the exception when the bus's ``recv`` raises.
+    :param full: frames that make a whole block (the daemon's ``max_block``): once that
+        many are queued the estimator is hurried too (0: never); a backlog is not left
+        to gather for a block interval.
     """
 
     def __init__(self, limit: int, block: bool, stopping: threading.Event,
-                 on_error: Callable[[BaseException], None]) -> None:
+                 on_error: Callable[[BaseException], None], full: int = 0) -> None:
         #: frames (python-can's reader) or pieces of frames (the bulk reader), oldest first
         self.queue: collections.deque[can.Message | FrameBlock | Span] = collections.deque()
         #: set when a frame is queued
         self.wake = threading.Event()
-        #: set when a command frame is queued (or the input closes): the estimator
-        #: stops letting frames gather and takes them at once
+        #: set when a command frame is queued, a whole block waits (``full``) or the
+        #: input closes: the estimator stops letting frames gather and takes them at once
         self.hurry = threading.Event()
+        self.full = full if full > 0 else 1 << 62
         self.space = threading.Event()
         self.limit = limit
         self.block = block
@@ -204,7 +208,7 @@ class FrameQueue(can.Listener):
                 self.space.clear()
                 self.space.wait(0.05)
         q.append(msg)
-        if is_command(msg):
+        if is_command(msg) or self.received + 1 - self.taken >= self.full:
             self.hurry.set()
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
@@ -249,7 +253,7 @@ class FrameQueue(can.Listener):
         if commands is None:
             commands = int(command_rows(to_block([block]) if isinstance(block, Span)
                                         else block).any())
-        if commands:
+        if commands or self.received + n - self.taken >= self.full:
             self.hurry.set()
         if self.recorder is not None and messages is not None and isinstance(block, Span):
             for m in messages(block, n):

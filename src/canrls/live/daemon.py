@@ -178,7 +178,7 @@ class Daemon:
         self._proc = proc
         # the parts
         self._queue = FrameQueue(cfg.queue_size, backpressure, self._stopping,
-                                 on_error=self._recv_failed)
+                                 on_error=self._recv_failed, full=cfg.max_block)
         self._link = BusLink(self._queue, bus_factory or (lambda: open_bus(bus_args)), cfg,
                              describe=str(bus_args or "bus"))
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
@@ -513,8 +513,9 @@ class Daemon:
                     deadline = min(pub.deadline(now), ckpt.next_at, now + 0.25)
                     q.wake.wait(max(0.0, deadline - now))
                     q.wake.clear()
-                if q.queue and not closed and cfg.block_s > 0:
-                    # let frames gather, but not past a publication: it carries them
+                if q.queue and not closed and cfg.block_s > 0 and q.held < cfg.max_block:
+                    # let frames gather, but not past a publication: it carries them (a
+                    # whole block waiting, a backlog, is taken at once: FrameQueue.full)
                     until = last_block + cfg.block_s
                     if cfg.publish_interval > 0:
                         until = min(until, pub.next_at)

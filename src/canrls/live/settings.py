@@ -35,7 +35,8 @@ DAEMON_KEYS: dict[str, str] = {
     "publish_interval": "seconds between parameter/status publications (0: after every block)",
     "info_interval": "seconds between RlsParamInfo, RlsCounters and RlsRejects",
     "block_interval": "seconds the estimator lets frames gather before processing them "
-                      "(default: publish_interval)",
+                      "(default: publish_interval; a command frame or a whole block of "
+                      "max_block frames waiting is taken at once)",
     "commands": "accept RlsCommand frames (default false: every command is answered "
                 "'disabled')",
     "max_parameters": "most parameters the running model may have; a command or reload "
