@@ -90,6 +90,17 @@ class Signals:
 
 
 # ------------------------------------------------------------- a record on disk
+def _pread(fd: int, view: memoryview, offset: int, what: str) -> None:
+    """Fill ``view`` from byte ``offset`` of the temporary ``what`` file (``os.preadv``
+    until it is full)."""
+    got = 0
+    while got < len(view):
+        m = os.preadv(fd, [view[got:]], offset + got)
+        if m <= 0:
+            raise OSError(f"the temporary {what} file ended at byte {offset + got}")
+        got += m
+
+
 class SpilledSignals:
     """A record of samples in an anonymous temporary file, read back in slices.
 
@@ -223,14 +234,8 @@ class SpilledSignals:
                 assert self._buf is not None
                 dst[:] = self._buf[col, a - k * rows:e - k * rows]
             else:
-                view = memoryview(dst).cast("B")
                 off = (k * len(self._roles) + col) * rows * 8 + (a - k * rows) * 8
-                got = 0
-                while got < len(view):
-                    m = os.preadv(self._fd, [view[got:]], off + got)
-                    if m <= 0:
-                        raise OSError(f"the temporary sample file ended at byte {off + got}")
-                    got += m
+                _pread(self._fd, memoryview(dst).cast("B"), off, "sample")
             out = out[e - a:]
             a = e
 
@@ -360,13 +365,7 @@ class SpilledBytes:
         if not self._close.alive:
             raise ValueError("the mask's temporary file is closed")
         out = np.empty(max(b - a, 0), np.uint8)
-        view = memoryview(out).cast("B")
-        got = 0
-        while got < len(view):
-            m = os.preadv(self._fd, [view[got:]], a + got)
-            if m <= 0:
-                raise OSError(f"the temporary mask file ended at byte {a + got}")
-            got += m
+        _pread(self._fd, memoryview(out).cast("B"), a, "mask")
         return out
 
     def __getitem__(self, key: int | slice) -> Any:

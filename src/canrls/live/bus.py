@@ -213,13 +213,7 @@ class FrameQueue(can.Listener):
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
         self.received += 1
-        if self.received & 255 == 1:
-            now = time.thread_time()
-            if self._cpu0 is None:
-                self._cpu0 = now
-            self.cpu = now - self._cpu0
-        if not self.wake.is_set():
-            self.wake.set()
+        self._queued(self.received & 255 == 1)
 
     def on_block(self, block: FrameBlock | Span, commands: int | None = None,
                  messages: Callable[[Span, int], list[can.Message]] | None = None) -> None:
@@ -259,10 +253,16 @@ class FrameQueue(can.Listener):
             for m in messages(block, n):
                 self.recorder.on_message_received(m)
         self.received += n
-        now = time.thread_time()
-        if self._cpu0 is None:
-            self._cpu0 = now
-        self.cpu = now - self._cpu0
+        self._queued(True)
+
+    def _queued(self, clock: bool) -> None:
+        """After frames were queued: the reader's CPU time (when ``clock``: its clock is
+        read every 256 frames one by one, at every block), and the estimator woken."""
+        if clock:
+            now = time.thread_time()
+            if self._cpu0 is None:
+                self._cpu0 = now
+            self.cpu = now - self._cpu0
         if not self.wake.is_set():
             self.wake.set()
 
