@@ -76,7 +76,7 @@ from canrls.sim.scenario import Simulator, scenario
 
 #: n = 8 parameters, as tools/bench_daemon.py
 EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"
-#: the daemon's ``max_block`` here: the hour is fed in a few minutes, so the estimator
+#: the daemon's ``max_block`` here: the hour is fed in about a minute, so the estimator
 #: would take blocks of up to the default 65,536 frames (33 s of traffic; a live daemon
 #: at 1 kHz takes some 200 a block). Its scratch buffers (decoder outputs, the pairer's
 #: work arrays, the raw regressors), kept between blocks and grown to the largest block
