@@ -23,6 +23,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "export_c",
     "run",
     "monitor",
+    "fleet",
 )
 
 log = logging.getLogger("canrls")
