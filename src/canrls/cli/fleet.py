@@ -1,6 +1,7 @@
 """``canrls fleet``: the logs of many drives into a parameter history, and its report.
 
-    canrls fleet ingest 'logs/{drive}/*.log' --db fleet.db --kt 0.1 -e inertia,viscous,coulomb,offset
+    canrls fleet ingest 'logs/{drive}/*.log' --db fleet.db --kt 0.1 \\
+        -e inertia,viscous,coulomb,offset
     canrls fleet ingest --manifest plant.csv --db postgresql://canrls@db/plant --scheduler tcp://10.0.0.5:8786
     canrls fleet report --db fleet.db --out fleet-report/      # or --json
 
@@ -35,7 +36,7 @@ DEFAULT_DB = "fleet.db"
 KEEP_CANDIDATES = 8
 
 
-def _count(text: str) -> int:
+def _nonnegative(text: str) -> int:
     try:
         n = int(text)
     except ValueError:
@@ -72,7 +73,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                           f"(default {DEFAULT_DB})")
     add_model_options(ing)
     d = ing.add_argument_group("Dask")
-    d.add_argument("--workers", type=_count, default=None, metavar="N",
+    d.add_argument("--workers", type=_nonnegative, default=None, metavar="N",
                    help="worker processes of the local cluster (default: one per core; "
                         "0: in this process, no Dask)")
     d.add_argument("--scheduler", metavar="ADDRESS",
@@ -82,7 +83,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     r.add_argument("--rank", choices=("none", "auto", "all"), default="none",
                    help="rank the effects the model lacks: 'auto' for the recordings around "
                         "each residual change, 'all' for every log (default none)")
-    r.add_argument("--max-order", type=_count, default=64, metavar="K",
+    r.add_argument("--max-order", type=_nonnegative, default=64, metavar="K",
                    help="highest cogging order the ranking searches (default 64)")
     ing.add_argument("--retry-errors", action="store_true",
                      help="try the logs stored as errors again")
@@ -98,7 +99,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                      help=f"the history (default {DEFAULT_DB})")
     rep.add_argument("--out", "-o", metavar="DIR", help="write DIR/index.html with figures")
     rep.add_argument("--json", action="store_true", help="print one JSON object")
-    rep.add_argument("--figures", type=_count, default=20, metavar="N",
+    rep.add_argument("--figures", type=_nonnegative, default=20, metavar="N",
                      help="drives with a figure of their trends, first of the ranking "
                           "(default 20)")
     rep.add_argument("--alpha", type=float, default=None, metavar="P",

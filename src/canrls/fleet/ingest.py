@@ -312,7 +312,7 @@ class IngestSummary:
         if self.ranked:
             lines.append(f"candidate effects ranked on {self.ranked} recordings around "
                          f"residual changes")
-        for path, why in self.error_rows[:20]:
+        for _, why in self.error_rows[:20]:
             lines.append(f"  error: {why}")
         if len(self.error_rows) > 20:
             lines.append(f"  ... and {len(self.error_rows) - 20} more errors")

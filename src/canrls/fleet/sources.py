@@ -136,8 +136,8 @@ def from_manifest(path: str | os.PathLike[str]) -> list[LogSource]:
                 if not log.is_file():
                     raise ConfigError(f"{where}: field 'path': {cells['path']!r}: no such file")
 
-                def rel(name: str, w: str = where) -> str | None:
-                    v = cells.get(name)
+                def rel(name: str, w: str = where, c: dict[str, str] = cells) -> str | None:
+                    v = c.get(name)
                     if not v:
                         return None
                     q = Path(v)

@@ -240,7 +240,8 @@ def make_fleet(drives: int = 50, recordings: int = 10, duration: float = 6.0,
             effects = change(k, p) if change is not None else FLEET_EFFECTS
             start = t0 + (k * days + rng.uniform(-1, 1) * (days > 1)) * 86400.0
             recs.append(RecordingPlan(
-                drive=name, type=t.name, index=k + 1, start=round(start, 3), params=p, effects=effects,
+                drive=name, type=t.name, index=k + 1, start=round(start, 3), params=p,
+                effects=effects,
                 speed=speed * rng.uniform(0.9, 1.1), accel=accel, hold=hold,
                 prbs_amplitude=amp, seed=int(rng.integers(2**31))))
         plans.append(DrivePlan(name=name, type=t.name, cls=cls, base=base,
