@@ -134,10 +134,11 @@ def _sources(args: argparse.Namespace) -> Sequence[Any]:
 
 def run_ingest(args: argparse.Namespace) -> int:
     from canrls.fleet.cluster import dask_client, require_dask
-    from canrls.fleet.history import History, require_sqlalchemy
+    from canrls.fleet.history import History, history_url, require_sqlalchemy
     from canrls.fleet.ingest import JobConfig, ingest
 
     require_sqlalchemy()
+    history_url(args.db)  # a database this command cannot use: before anything else
     if args.workers != 0 or args.scheduler:
         require_dask()
     if args.scheduler and args.workers:

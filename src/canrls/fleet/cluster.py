@@ -34,7 +34,8 @@ def dask_client(scheduler: str | None = None, workers: int | None = None, *,
                 memory_limit: str | int = "auto", timeout: float = 30.0) -> Iterator[Any]:
     """A Dask client: of the cluster at ``scheduler``, else of a new
     :class:`~distributed.LocalCluster` with ``workers`` processes (default: one per
-    core) on 127.0.0.1, no dashboard. The local cluster is closed on exit.
+    core) on 127.0.0.1 (its HTTP server on a free port). The local cluster is closed on
+    exit.
 
     :raises ConfigError: the scheduler cannot be reached.
     """
@@ -68,7 +69,10 @@ def _client(distributed: Any, scheduler: str | None, workers: int | None,
         raise ConfigError(f"--workers {n}: must be at least 1 (0: in this process)")
     cluster = distributed.LocalCluster(
         n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-        dashboard_address=None, memory_limit=memory_limit, silence_logs=logging.ERROR)
+        # the scheduler's HTTP server starts anyway (8787 unless told): a free port on
+        # the loopback, so that clusters side by side do not collide
+        dashboard_address="127.0.0.1:0", memory_limit=memory_limit,
+        silence_logs=logging.ERROR)
     try:
         client = distributed.Client(cluster)
         try:

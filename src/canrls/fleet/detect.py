@@ -69,7 +69,7 @@ F64 = npt.NDArray[np.float64]
 #: family-wise false-alert probability per healthy drive and history
 ALPHA = 1e-3
 #: robust z beyond which a drive is an outlier among its siblings
-OUTLIER_Z = 5.0
+OUTLIER_Z = 4.5
 #: fewest recordings of a series tested for a change
 MIN_RECORDINGS = 4
 #: fewest drives of a type and model compared with each other
@@ -347,9 +347,10 @@ def _tests(se: Series, tau: float, rises: bool = False) -> tuple[_Found | None, 
     n = len(se.y)
     if n < MIN_RECORDINGS:
         return None, 0
-    w = 1.0 / (se.s ** 2 + tau ** 2)
-    if not np.all(np.isfinite(w)):
+    v = se.s ** 2 + tau ** 2
+    if not np.all(v > 0):  # no scatter at all (a series with neither sigma nor tau)
         return None, 0
+    w = 1.0 / v
     best: _Found | None = None
     tried = 0
     for m in range(2, n - 1):  # change: >= 2 before, >= 2 after
@@ -406,21 +407,29 @@ def _new_effect(recs: Sequence[Recording], at: int) -> tuple[str | None, str]:
     if not after:
         return None, ""
 
-    def share(rs: Sequence[Recording]) -> dict[str, float]:
+    def share(rs: Sequence[Recording], identifiable: bool) -> dict[str, float]:
         out: dict[str, float] = {}
         for r in rs:
             for c in r.candidates or ():
-                if c.identifiable and math.isfinite(c.explained):
+                if (c.identifiable or not identifiable) and math.isfinite(c.explained):
                     out[c.effect] = out.get(c.effect, 0.0) + c.explained / len(rs)
         return out
 
-    sb, sa = share(before), share(after)
+    sb, sa = share(before, False), share(after, True)
+    caveat = ""
+    if not sa or max(sa.values()) < NEW_EFFECT_SHARE:
+        # an effect these logs cannot identify (too little travel for a once-per-
+        # revolution term) that explains most of the residual is still named, with why
+        loose = share(after, False)
+        if loose and max(loose.values()) >= 2 * NEW_EFFECT_SHARE:
+            sa = loose
+            caveat = " (not identifiable in these logs alone: see canrls diagnose)"
     if not sa:
         return None, ""
     eff = max(sa, key=lambda e: sa[e] - sb.get(e, 0.0))
     how = (f"{eff} explains {100 * sa[eff]:.0f} % of the residual after"
            + (f", {100 * sb.get(eff, 0.0):.0f} % before" if before else
-              " (no ranking before)"))
+              " (no ranking before)") + caveat)
     if sa[eff] < NEW_EFFECT_SHARE or sa[eff] - sb.get(eff, 0.0) < NEW_EFFECT_SHARE / 2:
         return None, f"the ranking names no effect that appeared (best: {how})"
     return eff, how
@@ -480,10 +489,10 @@ def _ordered(alerts: Iterable[Alert]) -> tuple[Alert, ...]:
 
 def _level(se: Series, tau: float, upto: int | None) -> tuple[float, float]:
     y, s = (se.y, se.s) if upto is None else (se.y[:upto], se.s[:upto])
-    w = 1.0 / (s ** 2 + tau ** 2)
-    if not np.all(np.isfinite(w)):
+    v = s ** 2 + tau ** 2
+    if not np.all(v > 0):
         return float(np.mean(y)), 0.0
-    m, W = _weighted_mean(y, w)
+    m, W = _weighted_mean(y, 1.0 / v)
     return m, 1.0 / math.sqrt(W)
 
 
@@ -507,9 +516,9 @@ def assess(recordings: Iterable[Recording], *, alpha: float = ALPHA,
             lst.sort(key=lambda r: (_time(r), r.id or 0))
         names = sorted({p.name for lst in per_drive.values() for r in lst
                         for p in r.parameters}) + [RESIDUAL]
-        logs = {n: n == RESIDUAL or (_positive(n) and all(
-            (p := r.parameter(n)) is None or not p.identifiable or p.value > 0
-            for lst in per_drive.values() for r in lst)) for n in names}
+        # positive by physics: in logs; a value <= 0 of such a parameter (impossible
+        # physics, a recording gone wrong) is left out of its series
+        logs = {n: n == RESIDUAL or _positive(n) for n in names}
         ser: dict[str, dict[str, Series]] = {}
         for d, lst in per_drive.items():
             ser[d] = {}

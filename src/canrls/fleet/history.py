@@ -255,9 +255,14 @@ class History:
         if current is not None and not upgrade:
             raise ConfigError(f"history {_redact(self.url)}: schema revision {current!r}, "
                               f"this canrls needs {heads[0]!r}")
-        with self.engine.begin() as conn:
-            cfg.attributes["connection"] = conn
-            command.upgrade(cfg, "head")
+        try:
+            with self.engine.begin() as conn:
+                cfg.attributes["connection"] = conn
+                command.upgrade(cfg, "head")
+        except Exception:
+            if self.revision() in heads:  # another process upgraded it meanwhile
+                return
+            raise
 
     def close(self) -> None:
         self.engine.dispose()
@@ -403,7 +408,8 @@ class History:
             q = q.where(d.c.name == drive)
         if status is not None:
             q = q.where(r.c.status == status)
-        q = q.order_by(d.c.name, r.c.t_start, r.c.id)
+        # NULL times (error rows) last in both databases (SQLite sorts them first)
+        q = q.order_by(d.c.name, r.c.t_start.is_(None), r.c.t_start, r.c.id)
         with self.engine.connect() as conn:
             rows = list(conn.execute(q).mappings())
             ids = [row["id"] for row in rows]

@@ -6,8 +6,9 @@ whose hash the history already holds for this model is skipped), then
 :func:`canrls.replay.fit_logs`, and where asked the diagnosis's candidate ranking
 (handed in as a ``ranker``: this layer does not import the diagnosis). A log that
 cannot be fitted becomes an error :class:`~canrls.fleet.records.Recording` naming the
-file and the reason. :func:`ingest` sends the logs to the workers and stores the
-results as they arrive, in batches, with the history's insert-or-ignore: a worker
+file and the reason. :func:`ingest` has the workers hash every log first (the logs the
+history holds for the model are not sent to be fitted), then fit the others, and stores
+the results as they arrive, in batches, with the history's insert-or-ignore: a worker
 killed mid-log (Dask runs its task again elsewhere), a run interrupted, or two runs at
 once still leave every recording stored exactly once.
 """
@@ -41,7 +42,7 @@ from canrls.fleet.records import (
 from canrls.fleet.sources import LogSource
 
 __all__ = ["JobConfig", "IngestJob", "IngestSummary", "Ranker", "content_hash", "ingest",
-           "ingest_one", "model_key", "RANK_MODES"]
+           "ingest_one", "hash_or_none", "model_key", "RANK_MODES"]
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +122,14 @@ class JobConfig:
 
 
 _PREPARED: dict[JobConfig, tuple[Any, Any, Any]] = {}
+
+
+def hash_or_none(path: str) -> str | None:
+    """:func:`content_hash`, None for a file that cannot be read (a worker's task)."""
+    try:
+        return content_hash(path)
+    except OSError:
+        return None
 
 
 def _file_hash(path: str | None) -> str | None:
@@ -406,14 +415,21 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
         else:
             from distributed import as_completed
 
-            # each model's known hashes go to every worker once, not with every task
-            scattered = client.scatter({f"known-{k}": v for k, v in known.items()},
-                                       broadcast=True, hash=False)
-            scattered = {k: scattered[f"known-{k}"] for k in known}
-            futures = {client.submit(ingest_one, job, scattered[job.key], use_ranker,
-                                     pure=False, key=f"ingest-{i}-{job.key[:8]}-"
-                                                     f"{hashlib.sha1(job.source.path.encode()).hexdigest()[:12]}"):
-                       job for i, job in enumerate(jobs)}
+            # first the hashes (a read of each log, on the workers): the logs the history
+            # holds are not sent to be fitted at all
+            hashes = client.gather(client.map(hash_or_none, [j.source.path for j in jobs],
+                                              pure=False), errors="raise")
+            todo = []
+            for job, digest in zip(jobs, hashes, strict=True):
+                if digest is not None and digest in known[job.key]:
+                    skipped += 1
+                    done += 1
+                else:
+                    todo.append(job)
+            if progress is not None and done:
+                progress(done, len(jobs))
+            futures = {client.submit(ingest_one, job, None, use_ranker, pure=False): job
+                       for job in todo}
             try:
                 for fut in as_completed(futures):
                     job = futures[fut]
@@ -423,6 +439,8 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                     else:
                         rec = fut.result()
                         if rec is None:
+                            skipped += 1
+                        elif rec.content_hash in known[job.key]:  # changed since hashed
                             skipped += 1
                         else:
                             store.add(rec)

@@ -96,6 +96,9 @@ class RecordingPlan:
     hold: float
     prbs_amplitude: float
     seed: int
+    #: the PRBS's mean speed [rad/s]: the drive travels (a conveyor, a spindle) while it
+    #: reverses, so a once-per-revolution term sees whole revolutions
+    travel: float = 0.0
 
     @property
     def file(self) -> str:
@@ -103,7 +106,8 @@ class RecordingPlan:
 
     def excitation(self) -> Excitation:
         return (reversals(self.speed, self.accel, self.hold)
-                + prbs(self.prbs_amplitude, 0.04, order=7, seed=self.seed))
+                + prbs(self.prbs_amplitude, 0.04, order=7, offset=self.travel,
+                       seed=self.seed))
 
 
 @dataclass(frozen=True)
@@ -185,6 +189,7 @@ def make_fleet(drives: int = 50, recordings: int = 10, duration: float = 6.0,
         accel = t.accel * rng.uniform(0.8, 1.25)
         hold = rng.uniform(0.2, 0.6)
         amp = rng.uniform(2.0, 5.0)
+        travel = float(rng.choice([-1.0, 1.0])) * rng.uniform(8.0, 12.0)
         cnoise, snoise = rng.uniform(0.003, 0.008), rng.uniform(0.01, 0.03)
         parameter = effect = onset = None
         detail = ""
@@ -227,7 +232,7 @@ def make_fleet(drives: int = 50, recordings: int = 10, duration: float = 6.0,
                 return f"{FLEET_EFFECTS},{e}"
         elif cls == "outlier":
             parameter = str(rng.choice(["viscous.B", "coulomb.Tc", "inertia.J"]))
-            factor = float(rng.choice([rng.uniform(2.5, 3.5), rng.uniform(0.28, 0.4)]))
+            factor = float(rng.choice([rng.uniform(3.0, 4.0), rng.uniform(0.22, 0.3)]))
             base[parameter] *= factor
             detail = f"{parameter} x{factor:.2f} of its siblings' from the start"
         t0 = FIRST_DAY.timestamp() + rng.uniform(0, days) * 86400.0
@@ -243,7 +248,7 @@ def make_fleet(drives: int = 50, recordings: int = 10, duration: float = 6.0,
                 drive=name, type=t.name, index=k + 1, start=round(start, 3), params=p,
                 effects=effects,
                 speed=speed * rng.uniform(0.9, 1.1), accel=accel, hold=hold,
-                prbs_amplitude=amp, seed=int(rng.integers(2**31))))
+                prbs_amplitude=amp, seed=int(rng.integers(2**31)), travel=travel))
         plans.append(DrivePlan(name=name, type=t.name, cls=cls, base=base,
                                current_noise=cnoise, speed_noise=snoise,
                                recordings=tuple(recs), parameter=parameter, effect=effect,
