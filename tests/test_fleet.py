@@ -467,6 +467,31 @@ def test_pattern_takes_drive_and_type(tmp_path: Path) -> None:
         ("pump", "b1", "r1.log"), ("servo", "a1", "r1.log"), ("servo", "a2", "r1.log")]
 
 
+def test_sim_fleet_writes_logs_manifest_and_truth(tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "f"
+    assert main(["sim", "fleet", "--drives", "3", "--recordings", "2", "--duration", "3",
+                 "--out", str(out), "--seed", "5"]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith(f"canrls sim fleet: wrote 6 logs of 3 drives (3 s each, seed 5) "
+                          f"to {out}")
+    truth = json.loads((out / "truth.json").read_text())
+    srcs = from_manifest(out / "manifest.csv")
+    assert len(srcs) == 6 and {s.drive for s in srcs} == set(truth["drives"])
+    for s in srcs:
+        t = truth["drives"][s.drive]
+        assert s.drive_type == t["type"] and Path(s.path).parent.parent.name == t["type"]
+    assert [Path(s.path).name for s in srcs[:2]] == ["d001-01.log", "d001-02.log"]
+    # the same seed, the same bytes
+    again = tmp_path / "g"
+    assert main(["sim", "fleet", "--drives", "3", "--recordings", "2", "--duration", "3",
+                 "--out", str(again), "--seed", "5"]) == 0
+    assert (again / srcs[0].path.split("/f/", 1)[1]).read_bytes() == \
+        Path(srcs[0].path).read_bytes()
+    assert main(["sim", "fleet", "--out", str(tmp_path / "h"), "--effects", "inertia"]) == 1
+    assert "--effects: not an option of 'canrls sim fleet'" in capsys.readouterr().err
+
+
 # ------------------------------------------------------------------ the daemon's history
 def test_the_daemon_appends_to_the_history_it_shares_with_ingest(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

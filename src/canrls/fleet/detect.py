@@ -13,9 +13,15 @@ scatter that no single recording shows. Each series gets a between-recording var
 :math:`d_k = y_{k+1} - y_k` (robust to a drive's level, and to a step or a trend of the
 few drives that change): :math:`\tau` solves
 
-.. math:: \operatorname{median}_k \frac{d_k^2}{s_k^2 + s_{k+1}^2 + 2\tau^2} = 0.4549
+.. math:: Q_{0.8}\left(\frac{d_k^2}{s_k^2 + s_{k+1}^2 + 2\tau^2}\right) = 1.642
 
-(the median of :math:`\chi^2_1`), and is 0 when the sigmas already explain the scatter.
+(the 80th percentile of :math:`\chi^2_1`: drives that scatter more than the typical one
+set it, the few that change do not), and is 0 when the sigmas already explain the
+scatter. It is estimated per drive type (drives of a size scatter alike), the fleet's
+for a type with fewer than :data:`MIN_PAIRS` pairs; for a series in its own units (an
+offset, a harmonic: they follow what the drive moves, and so scatter differently from
+drive to drive) a drive's own estimate counts when it is larger. The successive
+differences make each of these blind to a drive's level and to one step in it.
 Each value then weighs :math:`w_k = 1/(s_k^2 + \tau^2)`.
 
 **Per drive**, for each series with at least :data:`MIN_RECORDINGS` recordings:
@@ -76,6 +82,8 @@ MIN_RECORDINGS = 4
 MIN_SIBLINGS = 5
 #: fewest successive pairs of a type that estimate its own scatter (else the fleet's)
 MIN_PAIRS = 40
+#: fewest pairs of one drive whose own scatter can raise its offsets' tau
+MIN_OWN_PAIRS = 5
 #: the series name of the residual RMS
 RESIDUAL = "residual_rms"
 #: least rise of the residual RMS that is a new effect (its scatter from one excitation
@@ -86,8 +94,13 @@ MIN_RESIDUAL_RISE = 0.5
 NEW_EFFECT_SHARE = 0.2
 #: effects whose parameters are positive by physics: compared in logs (relative scale)
 POSITIVE_EFFECTS = ("inertia", "viscous", "coulomb", "stribeck", "electrical")
-#: the median of a chi-square with one degree of freedom
-_CHI2_MEDIAN = 0.454936423119572
+#: the quantile of the standardised differences that tau matches to a chi-square's:
+#: above the median, so that the drives that scatter more than the typical one (an
+#: offset that follows a drive's own friction, a noisier installation) set tau, not the
+#: quietest; below the tail, which the few changing drives hold
+TAU_QUANTILE = 0.8
+#: that quantile of a chi-square with one degree of freedom
+_CHI2_Q = 1.6423744151498062
 
 
 def _phi_tail(z: float) -> float:
@@ -301,25 +314,26 @@ def _series(recs: Sequence[Recording], name: str, log: bool) -> Series | None:
 
 def estimate_tau(pairs: Sequence[tuple[float, float]]) -> float:
     r"""The between-recording scatter :math:`\tau` from ``(d_k^2, s_k^2 + s_{k+1}^2)``
-    of successive recordings (module docstring)."""
+    of successive recordings: the quantile :data:`TAU_QUANTILE` of the standardised
+    squared differences matched to a chi-square's (module docstring)."""
     if not pairs:
         return 0.0
     d2 = np.array([p[0] for p in pairs])
     v = np.array([p[1] for p in pairs])
 
-    def med(tau: float) -> float:
+    def quantile(tau: float) -> float:
         with np.errstate(divide="ignore", invalid="ignore"):
             q = np.where(v + 2 * tau * tau > 0, d2 / (v + 2 * tau * tau), np.inf)
-        return float(np.median(q))
+        return float(np.quantile(q, TAU_QUANTILE, method="inverted_cdf"))
 
-    if med(0.0) <= _CHI2_MEDIAN:
+    if quantile(0.0) <= _CHI2_Q:
         return 0.0
     lo, hi = 0.0, max(1e-12, math.sqrt(float(np.max(d2))))
-    while med(hi) > _CHI2_MEDIAN:
+    while quantile(hi) > _CHI2_Q:
         hi *= 2.0
     for _ in range(80):
         mid = 0.5 * (lo + hi)
-        if med(mid) > _CHI2_MEDIAN:
+        if quantile(mid) > _CHI2_Q:
             lo = mid
         else:
             hi = mid
@@ -553,6 +567,15 @@ def assess(recordings: Iterable[Recording], *, alpha: float = ALPHA,
                     baselines[key][f"{n}@{ty}"] = Baseline(n, per_type[ty], logs[n], len(ps))
             for d in per_drive:
                 taus[d][n] = per_type.get(types[d], pooled)
+                se = ser[d].get(n)
+                if not logs[n] and se is not None and len(se.y) > MIN_OWN_PAIRS:
+                    # an offset or a harmonic follows what the drive moves: its scatter
+                    # differs from drive to drive, and the drive's own (the same
+                    # quantile of its own differences) counts when it is larger
+                    own = estimate_tau([(float((se.y[k + 1] - se.y[k]) ** 2),
+                                         float(se.s[k] ** 2 + se.s[k + 1] ** 2))
+                                        for k in range(len(se.y) - 1)])
+                    taus[d][n] = max(taus[d][n], own)
         assessed: dict[str, tuple[list[Alert], float]] = {}
         for d, lst in per_drive.items():
             assessed[d] = _drive_alerts(d, lst, ser[d], taus[d], alpha)
