@@ -410,6 +410,7 @@ def test_ingest_cli_in_process_with_a_pattern_and_errors(fleet: dict[str, Any], 
                                                    "no file matches"),
     (["fleet", "ingest"], "error: fleet ingest: give a PATTERN"),
     (["fleet", "report", "--db", "x.db"], "error: fleet report: give --out DIR"),
+    (["fleet", "report", "--db", "x.db", "--json"], "error: --db x.db: no such history"),
     (["fleet", "ingest", "--manifest", "m.csv", "--db", "mysql://x/y"],
      "error: history: mysql:// databases are not supported"),
 ])

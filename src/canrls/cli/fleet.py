@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from canrls.cli._common import Progress, add_model_options, add_progress_option, print_json
@@ -166,7 +167,7 @@ def run_ingest(args: argparse.Namespace) -> int:
 
 def run_report(args: argparse.Namespace) -> int:
     from canrls.fleet.detect import ALPHA, assess
-    from canrls.fleet.history import History
+    from canrls.fleet.history import History, history_url
     from canrls.fleet.records import STATUS_OK
     from canrls.fleet.report import report_dict, write_html
 
@@ -175,6 +176,9 @@ def run_report(args: argparse.Namespace) -> int:
     alpha = ALPHA if args.alpha is None else args.alpha
     if not 0 < alpha < 1:
         raise ConfigError(f"--alpha {args.alpha}: must be between 0 and 1")
+    url = history_url(args.db)
+    if url.startswith("sqlite:///") and not Path(url[len("sqlite:///"):]).is_file():
+        raise ConfigError(f"--db {args.db}: no such history (canrls fleet ingest makes it)")
     if args.out:
         from canrls.fleet.report import require_matplotlib
 
