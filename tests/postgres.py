@@ -53,6 +53,13 @@ def postgres_server(database: str = "canrls") -> Iterator[str]:
     as_root = hasattr(os, "geteuid") and os.geteuid() == 0
     if as_root and shutil.which("runuser") is None:
         pytest.skip("running as root without runuser: cannot start PostgreSQL as postgres")
+    if as_root:
+        import pwd
+
+        try:
+            pwd.getpwnam("postgres")
+        except KeyError:
+            pytest.skip("running as root without a 'postgres' user to run PostgreSQL as")
     run_as = ["runuser", "-u", "postgres", "--"] if as_root else []
     base = Path(tempfile.mkdtemp(prefix="canrls-pg-"))
     data, sock = base / "data", base / "sock"
