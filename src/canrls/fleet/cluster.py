@@ -67,12 +67,18 @@ def _client(distributed: Any, scheduler: str | None, workers: int | None,
     n = workers if workers is not None else (os.cpu_count() or 1)
     if n < 1:
         raise ConfigError(f"--workers {n}: must be at least 1 (0: in this process)")
-    cluster = distributed.LocalCluster(
-        n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-        # the scheduler's HTTP server starts anyway (8787 unless told): a free port on
-        # the loopback, so that clusters side by side do not collide
-        dashboard_address="127.0.0.1:0", memory_limit=memory_limit,
-        silence_logs=logging.ERROR)
+    import dask
+
+    # the workers' statistical profiler samples the task's stack every 10 ms: on a log's
+    # fit (a C loop called from Python, many short calls) it cost a third of the
+    # wall time; the nannies hand this configuration to their workers
+    with dask.config.set({"distributed.worker.profile.enabled": False}):
+        cluster = distributed.LocalCluster(
+            n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+            # the scheduler's HTTP server starts anyway (8787 unless told): a free port
+            # on the loopback, so that clusters side by side do not collide
+            dashboard_address="127.0.0.1:0", memory_limit=memory_limit,
+            silence_logs=logging.ERROR)
     try:
         client = distributed.Client(cluster)
         try:
