@@ -18,7 +18,9 @@ filtered columns) wherever it is processed:
    near a reversal: the measured speed's sign is noise and the drive sticks) or
    ``|omega| > max_speed`` (the fastest position-periodic column advances more than
    ``max_phase_step`` rad per sample) is not used, nor are the ``warmup`` samples after
-   it.
+   it. With a minimum speed, a speed whose sign changed since the last sample counts
+   as below it: the drive reversed between the two samples (a fast reversal passes
+   through the band without a sample in it).
 
 With the highest position order :math:`k` among the equation's effects,
 
@@ -220,7 +222,7 @@ class SampleSelector:
 
     def reset(self) -> None:
         """The next sample starts the filter."""
-        self._state = np.array([np.nan, 0.0])
+        self._state = np.array([np.nan, 0.0, 0.0])
 
     def select(self, t: npt.ArrayLike, omega: npt.ArrayLike) -> Selection:
         """Restarts and used rows of a block with sample times ``t`` and speed ``omega``."""
