@@ -458,7 +458,7 @@ def test_saturated_and_nan_estimates_on_the_wire() -> None:
     update_count=st.integers(0, 2**70), windup=st.booleans(), low_excitation=st.booleans(),
     saturation=st.booleans(), frame_loss=st.booleans(), frozen=st.booleans(),
     diverged=st.booleans(), bus_fault=st.booleans(), clock_fault=st.booleans(),
-    active_effects=st.integers(0, 2**20),
+    implausible=st.booleans(), active_effects=st.integers(0, 2**20),
     divergence=ESTIMATES.filter(lambda x: x is not None),
     frames_rejected=st.integers(0, 2**40), frames_lost=st.integers(0, 2**40),
     saturations=st.integers(0, 2**40), tx_dropped=st.integers(0, 2**40),
@@ -471,7 +471,7 @@ def test_status_frames_are_cantools_bytes(db, status: StatusReport, counter: int
     s = status
     health = {sig: int(getattr(s, f)) for f, sig in zip(FLAG_NAMES, (
         "Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen", "Diverged", "BusFault",
-        "ClockFault"), strict=True)}
+        "ClockFault", "Implausible"), strict=True)}
     want = [("RlsStatus", {"ResidualRms": f32(s.residual_rms),
                            "UpdateCount": s.update_count % 2**32}),
             ("RlsHealth", {**health, "Counter": counter % 16,

@@ -35,6 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can.protocol import Protocol
+from canrls.estimation.physics import Implausible, check_physics, describe
 from canrls.diagnosis.figures import figures_in
 from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
@@ -104,6 +105,8 @@ class ValidationReport:
     parameters: dict[str, dict[str, Any]]
     equations: tuple[EquationValidation, ...]
     frames: dict[str, Any] = field(default_factory=dict)
+    #: saved parameters physics rules out (:func:`canrls.estimation.physics.check_physics`)
+    implausible: tuple[Implausible, ...] = ()
 
     @property
     def fit_percent(self) -> float:
@@ -119,7 +122,8 @@ class ValidationReport:
                 "parameters": self.parameters,
                 "fit_percent": _num(self.fit_percent), "residual_rms": _num(self.residual_rms),
                 "equations": {e.equation: e.to_dict() for e in self.equations},
-                "frames": self.frames}
+                "frames": self.frames,
+                "implausible": [i.to_dict() for i in self.implausible]}
 
     def format(self) -> str:
         lines = [f"model {self.model_file} (identified on {', '.join(self.identified_on) or '?'})",
@@ -129,6 +133,7 @@ class ValidationReport:
                          f"{p.get('unit', '')}"
                          + ("  NOT IDENTIFIABLE from the logs it was identified on"
                             if p.get("identifiable") is False else ""))
+        lines.extend(describe(self.implausible))
         for e in self.equations:
             ident = "" if e.identified_rms is None else \
                 f" (identification: {e.identified_rms:.4g} {e.unit})"
@@ -232,7 +237,28 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
             traces=traces, bins=bins, bounds=tuple(int(b) for b in bounds)))
     return ValidationReport(model_file=model_file, sources=tuple(names),
                             identified_on=tuple(saved.sources), parameters=saved.parameters,
-                            equations=tuple(out), frames=dict(frames or {}))
+                            equations=tuple(out), frames=dict(frames or {}),
+                            implausible=saved_physics(saved))
+
+
+@dataclass(frozen=True)
+class _Saved:
+    """A saved parameter as :func:`check_physics` reads it."""
+
+    name: str
+    value: float
+    sigma: float
+    identifiable: bool
+
+
+def saved_physics(saved: SavedModel) -> tuple[Implausible, ...]:
+    """The saved parameters physics rules out (the file's own verdicts on
+    identifiability)."""
+    items = [_Saved(n, float(p.get("value", math.nan)), float(p.get("sigma") or 0.0),
+                    p.get("identifiable") is not False)
+             for n, p in saved.parameters.items()]
+    kt = saved.model.get("kt")
+    return check_physics(items, float(kt) if isinstance(kt, int | float) else None)
 
 
 def validate_logs(paths: Sequence[str | os.PathLike[str]], saved: SavedModel,

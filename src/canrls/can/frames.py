@@ -124,9 +124,9 @@ COMPONENTS: dict[EffectId, tuple[str, ...]] = {
 
 #: Health flags of ``RlsHealth``, in bit order (StatusReport field names).
 FLAG_NAMES: tuple[str, ...] = ("windup", "low_excitation", "saturation", "frame_loss",
-                               "frozen", "diverged", "bus_fault", "clock_fault")
+                               "frozen", "diverged", "bus_fault", "clock_fault", "implausible")
 _FLAG_SIGNALS = ("Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen", "Diverged",
-                 "BusFault", "ClockFault")
+                 "BusFault", "ClockFault", "Implausible")
 
 #: Counters of ``RlsRejects`` (:attr:`StatusReport.rejects` keys), in signal order: frames
 #: rejected by the decoder (``crc``; ``malformed``: remote or wrong length; ``repeated``
@@ -261,6 +261,8 @@ class StatusReport:
     diverged: bool = False
     bus_fault: bool = False
     clock_fault: bool = False
+    #: an estimate physics rules out (:func:`canrls.estimation.physics.check_physics`)
+    implausible: bool = False
     active_effects: int = 0
     divergence: float = 0.0
     frames_rejected: int = 0

@@ -30,6 +30,7 @@ from canrls.can.frames import (
 )
 from canrls.errors import CanrlsError, ConfigError
 from canrls.estimation.model import Model
+from canrls.estimation.physics import check_physics
 from canrls.estimation.pipeline import Estimates, Pipeline, PipelineBlock, divergence
 from canrls.estimation.rls import RLSFlag
 from canrls.live.bus import BusLink
@@ -218,6 +219,8 @@ class Publisher:
             diverged=div > self.config.divergence_limit,
             bus_fault=self.link.paused(now),
             clock_fault=rejects["clock_steps"] > self._last_clock,  # since the last RlsRejects
+            implausible=bool(check_physics(
+                [p for eq in pipe.parameters() for p in eq], pipe.model.kt)),
             active_effects=self._layout_of(pipe)[2],
             divergence=div if math.isfinite(div) else 0.0,
             rejects=rejects, **counters)
