@@ -100,13 +100,16 @@ def too_few_samples(model: Model, estimates: Estimates, frames: Mapping[str, Any
     """Why ``estimates`` rest on too few usable samples to be an answer (fewer than
     :data:`MIN_SAMPLES_PER_PARAMETER` per parameter in an equation), or None.
     ``frames``: the frame counts of a fit's or a diagnosis's JSON (``total``,
-    ``rejected``, ``pairing``, ``foreign``); ``dt`` the control period."""
+    ``rejected``, ``pairing``, ``foreign``, ``missing``: a mapped message that never
+    occurred, :meth:`FrameProcessor.missing_messages`); ``dt`` the control period."""
     st = settings or EstimatorSettings()
     dt = dt if dt else math.nan
     for eq, fit in zip(model.equations, estimates.equations, strict=False):
         need = MIN_SAMPLES_PER_PARAMETER * len(eq.parameters)
         if fit.samples >= need:
             continue
+        if frames.get("missing"):
+            return str(frames["missing"])
         pairing = frames.get("pairing") or {}
         paired = pairing.get("samples", 0)
         lost = {k: v for k, v in pairing.items() if v and k != "samples"}
@@ -238,7 +241,11 @@ class LogFiles:
         d: dict[str, Any] = {"total": self.proc.frames, "rejected": total("rejected"),
                              "examples": examples, "lost": total("lost"),
                              "foreign": sum(c["foreign"] for c in parts),
-                             "pairing": total("pairing")}
+                             "pairing": total("pairing"),
+                             "messages": dict(self.proc.message_frames)}
+        missing = self.proc.missing_messages()
+        if missing:
+            d["missing"] = missing
         if self.stats.bad_lines:
             d["bad_lines"] = self.stats.bad_lines
         return d
@@ -379,8 +386,7 @@ def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model:
     res = dataclasses.replace(res, frames=fr["total"], rejected=fr["rejected"],
                               rejected_examples=fr["examples"], pairing=fr["pairing"],
                               foreign=fr["foreign"], lost=fr["lost"], extra=extra)
-    few = too_few_samples(res.model, res.estimates, res.to_dict()["frames"],
-                          res.extra["period"]["value"], settings)
+    few = too_few_samples(res.model, res.estimates, fr, res.extra["period"]["value"], settings)
     if few is not None:
         raise EstimatorError(f"{res.source}: {few}")
     return res

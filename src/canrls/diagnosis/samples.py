@@ -22,7 +22,7 @@ import numpy.typing as npt
 from canrls.estimation.model import Equation, Model, PositionUnwrapper
 from canrls.estimation.pipeline import EstimatorSettings
 from canrls.estimation.selection import SamplePolicy
-from canrls.estimation.svf import SVF
+from canrls.estimation.svf import SVF, impulse_response
 from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals, as_packed
 
 __all__ = ["BLOCK", "RecordSamples"]
@@ -481,14 +481,8 @@ class RecordSamples:
         """Impulse response of F (DC gain 1), or of sF, for a hold, long enough to decay."""
         key = hold + ("/s" if derivative else "")
         if key not in self._h:
-            svf = SVF(self.cutoff_hz, self.dt, self.zeta, hold)
-            wc = 2 * math.pi * self.cutoff_hz
-            m = int(math.ceil(40.0 / (min(self.zeta, 1.0) * wc * self.dt))) + 8
-            u = np.zeros(m + 2)
-            u[2] = 1.0  # the filter starts at rest on u[0] = 0
-            f, sf = svf.process(u)
-            self._h[hold] = f[2:]
-            self._h[hold + "/s"] = sf[2:]
+            self._h[hold], self._h[hold + "/s"] = impulse_response(
+                self.cutoff_hz, self.dt, self.zeta, hold)  # type: ignore[arg-type]
         return self._h[key]
 
     def coherence(self, order: int, used: B | PackedMask) -> tuple[float, float]:

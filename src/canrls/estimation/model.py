@@ -88,6 +88,7 @@ regressors bit for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -120,6 +121,7 @@ from canrls.estimation.svf import (
     SVF,
     ZETA_RANGE,
     gain_bounds,
+    impulse_response,
 )
 
 __all__ = [
@@ -335,6 +337,17 @@ class Equation:
         return tuple(out)
 
     @property
+    def intrinsic(self) -> tuple[bool, ...]:
+        """Which columns are bounded by their own function (``tanh``, ``sin``, a constant,
+        a user term with a configured range) rather than by the signals: their bound is
+        the same with every signal range doubled, and no value can exceed it."""
+        r = self.model.ranges
+        doubled = {k: (2.0 * lo, 2.0 * hi) for k, (lo, hi) in r.items()}
+        return tuple(not col.derivative
+                     and tuple(map(float, col.range(r))) == tuple(map(float, col.range(doubled)))
+                     for col in self.columns)
+
+    @property
     def derivative_mask(self) -> tuple[bool, ...]:
         """Which columns go through ``sF`` (True) rather than ``F``."""
         return tuple(c.derivative for c in self.columns)
@@ -448,6 +461,19 @@ class RegressorBuilder:
     def n(self) -> int:
         return self.equation.n
 
+    def rescale(self, equation: Equation) -> None:
+        """Normalise from now on with ``equation``'s exponents (the same columns); the
+        filter's state, which holds unnormalised values, carries on."""
+        self.equation = equation
+        self.normalise_as(equation.scaling)
+
+    def normalise_as(self, scaling: Scaling) -> None:
+        """Normalise from now on with ``scaling``'s exponents (of the same columns)."""
+        self._neg_exp = -np.array([scaling.target, *scaling.columns], dtype=np.int64)
+        self._scale = None
+        if np.all((self._neg_exp >= -1074) & (self._neg_exp <= 1023)):
+            self._scale = np.ldexp(np.ones(len(self._neg_exp)), self._neg_exp)
+
     def reset(self) -> None:
         self.svf.reset()
         self.unwrapper.reset()
@@ -497,6 +523,55 @@ class RegressorBuilder:
                      speed=arr(signals.speed), position=pos,  # type: ignore[arg-type]
                      voltage=arr(getattr(signals, "voltage", None)), angle=angle)
 
+    def noise_covariance(self, signals: Any, noise: Mapping[str, float],
+                         rows: npt.NDArray[np.bool_] | None = None) -> F64:
+        r"""Covariance of the noise each filtered column carries per row, from white
+        noise of standard deviation ``noise[role]`` on each measured signal, linearised on
+        ``signals`` (the calibration window), in unnormalised units:
+
+        .. math::
+
+            E[n_j n_k] = \sum_s \sigma_s^2\,\overline{g_{js} g_{ks}}
+                         \sum_m h_j[m]\,h_k[m], \qquad g_{js} = \partial c_j/\partial s
+
+        with ``h_j`` the impulse response of the column's filter (``F`` or ``sF``, its
+        hold) and the slope ``g`` taken over ``±sigma`` (a column that saturates, like a
+        ``tanh`` away from zero speed, passes little noise), averaged over ``rows`` (the
+        rows the estimator would use: within its speed limits). With fewer than
+        :data:`MIN_NOISE_ROWS` of those, only columns whose slope is the same on every
+        row (linear in the signal) are counted. It does not touch the builder's state.
+        """
+        eq = self.equation
+        frame = RegressorBuilder(eq, self.dt)._frame(signals)
+        N, n = len(frame.t), eq.n
+        cov = np.zeros((n, n))
+        if N == 0:
+            return cov
+        m = eq.model
+        holds = eq.holds[1:]
+        h = {(hold, d): impulse_response(m.cutoff_hz, self.dt, m.zeta, hold)[int(d)]  # type: ignore[arg-type]
+             for hold, d in {(hd, c.derivative) for hd, c in zip(holds, eq.columns, strict=True)}}
+        H = np.array([[float(h[holds[j], eq.columns[j].derivative]
+                             @ h[holds[k], eq.columns[k].derivative]) for k in range(n)]
+                      for j in range(n)])
+        for role, sigma in noise.items():
+            if not (sigma > 0 and math.isfinite(sigma)) or getattr(frame, role, None) is None:
+                continue
+            g = np.zeros((N, n))
+            for j, col in enumerate(eq.columns):
+                if role in col.reads:
+                    up, down = _nudged(frame, role, sigma, m), _nudged(frame, role, -sigma, m)
+                    g[:, j] = (col.raw(up) - col.raw(down)) / (2.0 * sigma)
+            g[~np.isfinite(g)] = 0.0
+            if rows is not None and np.count_nonzero(rows) >= MIN_NOISE_ROWS:
+                g = g[rows]
+            else:
+                # the operating point is unknown: linear columns only
+                g[:, np.ptp(g, axis=0) > 1e-9 * np.max(np.abs(g), axis=0)] = 0.0
+            # E[n_j n_k] = sigma^2 mean(g_j g_k) sum_m h_j h_k
+            cov += sigma * sigma * (g.T @ g / len(g)) * H
+        return cov
+
     def process(self, signals: Any) -> RegressorBlock:
         """Regressors of one block (see the module docstring)."""
         phi, y, t, nonfinite = self.regressors(signals)
@@ -535,6 +610,20 @@ class RegressorBuilder:
         # exact power-of-two normalisation
         np.ldexp(f, self._neg_exp, out=f)
         return np.ascontiguousarray(f[:, 1:]), f[:, 0].copy(), frame.t, nonfinite
+
+
+#: Fewest rows within the speed limits on which :meth:`RegressorBuilder.noise_covariance`
+#: takes the slopes of columns that are not linear in a signal.
+MIN_NOISE_ROWS = 16
+
+
+def _nudged(frame: Frame, role: str, by: float, model: Model) -> Frame:
+    """``frame`` with signal ``role`` moved by ``by`` (the position's angle with it)."""
+    v = getattr(frame, role) + by
+    if role != "position":
+        return dataclasses.replace(frame, **{role: v})
+    angle = v if model.axis == "rotary" else Frame.phase(v, model.axis, model.pitch)
+    return dataclasses.replace(frame, position=v, angle=angle)
 
 
 # ---------------------------------------------------------------------------- model
@@ -844,6 +933,12 @@ class Model:
         kw.update(values)
         kw["options_given"] = self.options_given | frozenset(values)
         return Model([e.name for e in self.effects], **kw)
+
+    def with_cutoff(self, cutoff_hz: float) -> Model:
+        """The same model with the state-variable filter's cutoff at ``cutoff_hz``."""
+        kw = self._kwargs()
+        kw["cutoff_hz"] = cutoff_hz
+        return Model(self.effects, **kw)
 
     def with_scaling(self, exponents: Mapping[str, Mapping[str, int]]) -> Model:
         """A new model whose equations use the given power-of-two exponents,
