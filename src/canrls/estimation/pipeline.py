@@ -847,6 +847,13 @@ class EquationEstimator:
             dy = exponent_for(vy, RMS_HEADROOM)
         elif self._adaptive_y and not self._pending_y and vy > RESCALE_LIMIT:
             dy = exponent_for(vy, RESCALE_HEADROOM)
+        # theta_j takes 2**(d_j - d_y): the target moves with the columns where that
+        # would take an estimate beyond half its bound (a column and the target growing
+        # together, one row apart, would otherwise saturate it for a moment)
+        th = np.abs(np.ldexp(np.asarray(self.rls.theta, dtype=np.float64), d - dy))
+        big = float(np.max(th)) if len(th) else 0.0
+        if big > 0.5 * self.settings.theta_max and math.isfinite(big):
+            dy += exponent_for(big, 2.0 / self.settings.theta_max)
         # a column that outgrew its exponent takes the prior of the weakest data-scaled
         # column in its new units (alpha * MIN_ENERGY): the one it had, rescaled with it,
         # would weigh 2**(2 d_j) times less than the calibration's rule
