@@ -33,6 +33,11 @@ from canrls.can.logs import read_frames, write_candump
 from canrls.can.protocol import Protocol
 from canrls.cli.main import build_parser, main
 from canrls.cli.run import build_daemon
+from canrls.config import load_config
+from canrls.estimation.model import Model
+from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
+from canrls.processor import FrameProcessor
+from canrls.replay import prepare
 from canrls.sim.scenario import SimResult, scenario, simulate
 
 DBC = Path(__file__).resolve().parent / "data" / "cia402_drive.dbc"
@@ -271,6 +276,33 @@ def test_the_daemon_reads_the_tpdos_from_a_bus(drive: dict[str, Any],
     for p in live.parameters:
         assert p.unit == offline[p.name]["unit"]
         assert p.value == pytest.approx(offline[p.name]["value"], rel=1e-9), p.name
+
+
+def test_a_checkpoint_of_the_daemon_keeps_the_torque(drive: dict[str, Any],
+                                                    tmp_path: Path) -> None:
+    cfg = load_config(None, build_parser("run").parse_args(["run", *MAP, "-e", EFFECTS]))
+    protocol, model, settings = prepare(cfg)
+    frames = FrameBlock.concat(read_frames(drive["cia"]))
+    whole = FrameProcessor(protocol, model, settings)
+    whole.process(frames)
+    a = FrameProcessor(protocol, model, settings)
+    a.process(frames.take(slice(0, 6000)))  # 3 s: past the calibration window
+    cp = Checkpoint(model=json.loads(json.dumps(a.model.to_dict())),
+                    config_model=json.loads(json.dumps(model.to_dict())),
+                    fingerprint=fingerprint(settings, a.dt), state=a.state(), counters={},
+                    saved_at=0.0)
+    save_checkpoint(tmp_path / "cp.bin", cp)
+    cp = load_checkpoint(tmp_path / "cp.bin")
+    assert cp.model["target"] == "torque" and "torque" in cp.state["window"]
+    assert "current" not in cp.state["window"]
+    b = FrameProcessor(protocol, model, settings)
+    b.restore(cp.state, Model.from_dict(cp.model))
+    b.process(frames.take(slice(6000, None)))
+    assert b.calibration == a.calibration
+    for p, q in zip(b.pipeline.estimates().parameters, whole.pipeline.estimates().parameters,
+                    strict=True):
+        # the filter restarts at the restore: the same drive, within sigma
+        assert p.unit == q.unit and abs(p.value - q.value) <= q.sigma, (p, q)
 
 
 def test_export_c_states_the_torque_target_and_its_scaling(saved: Path, tmp_path: Path) -> None:
