@@ -83,6 +83,7 @@ def test_unknown_role() -> None:
     # relative to the ratings: per mille / per cent of the rated torque or current
     ("torque", "‰", 2.4e-3), ("torque", "permille", 2.4e-3), ("torque", "%", 2.4e-2),
     ("torque", "0.1 %", 2.4e-3), ("current", "‰", 5e-3), ("current", "per mille", 5e-3),
+    ("torque", "‰".encode().decode("cp1252"), 2.4e-3),  # a UTF-8 DBC read as cp1252
     # encoder increments: 1/4096 of a revolution
     ("position", "inc", 2 * math.pi / 4096), ("position", "counts", 2 * math.pi / 4096),
     ("speed", "inc/s", 2 * math.pi / 4096), ("speed", "increments/s", 2 * math.pi / 4096),

@@ -92,6 +92,7 @@ _ALIASES: dict[str, str] = {
     "Nm": "N·m", "N.m": "N·m", "N*m": "N·m", "N m": "N·m", "N-m": "N·m", "mNm": "mN·m",
     "mN.m": "mN·m", "kNm": "kN·m", "kN.m": "kN·m",
     "permille": "‰", "per mille": "‰", "promille": "‰", "o/oo": "‰", "percent": "%",
+    "â€°": "‰",  # a DBC saved in UTF-8, read as Windows-1252 (as DBC files are)
     "incr": "inc", "increments": "inc", "increment": "inc", "counts": "inc", "cnt": "inc",
     "ticks": "inc", "incr/s": "inc/s", "increments/s": "inc/s", "counts/s": "inc/s",
     "cnt/s": "inc/s", "ticks/s": "inc/s",
