@@ -58,6 +58,7 @@ from canrls.can.pairing import Pairer, PairingCounts
 from canrls.can.period import MIN_INTERVALS, PeriodEstimate, PeriodMeter, check_period
 from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
 from canrls.can.reorder import Reorderer
+from canrls.can.units import Ratings
 from canrls.errors import CheckpointError, ConfigError
 from canrls.estimation.model import DATA_OPTIONS, Model
 from canrls.estimation.pipeline import (
@@ -82,9 +83,9 @@ log = logging.getLogger(__name__)
 
 #: Signals whose DBC range bounds the normalisation (position enters only through
 #: periodic columns, bounded by 1, and is unwrapped beyond its DBC range).
-_DBC_ROLES = ("current", "speed", "voltage")
+_DBC_ROLES = ("current", "speed", "voltage", "torque")
 
-_SIGNALS = ("t", "current", "speed", "position", "voltage")
+_SIGNALS = ("t", "current", "speed", "position", "voltage", "torque")
 
 
 #: The period of the placeholder estimator of a :class:`FrameProcessor` whose period is
@@ -147,6 +148,10 @@ class FitResult:
         if ax.get("axis"):
             units = ", ".join(f"{r} {u}" for r, u in (ax.get("units") or {}).items() if u)
             lines.append(f"axis {ax['axis']}" + (f" (DBC units: {units})" if units else ""))
+            if ax.get("ratings"):
+                lines.append("ratings: " + Ratings(**ax["ratings"]).describe(ax["axis"]))
+            if ax.get("target"):
+                lines.append(f"mechanical target: {ax['target']}")
         per = self.extra.get("period") or {}
         if per.get("value"):
             meas = per.get("measured")
@@ -201,11 +206,13 @@ class RangeScanner:
         if len(s) == 0:
             return
         self.samples += len(s)
-        for role in ("current", "speed", "voltage"):
+        for role in ("current", "speed", "voltage", "torque"):
             v = getattr(s, role)
             if v is not None:
                 self._put(role, float(np.nanmax(np.abs(v))))
-        _, sf = self.svf.process(np.column_stack([s.speed, s.current]))
+        # a drive reporting only its torque has no current rate (0: no range)
+        i = s.current if s.current is not None else np.zeros(len(s))
+        _, sf = self.svf.process(np.column_stack([s.speed, i]))
         self._put("acceleration", float(np.nanmax(np.abs(sf[:, 0]))))
         self._put("current_rate", float(np.nanmax(np.abs(sf[:, 1]))))
 
@@ -600,7 +607,8 @@ class SampleProcessor:
             raise CheckpointError(f"the state ran at a control period of {dt!r} s, the frames "
                                   f"give {self.dt * 1e3:.6g} ms")
         w = state["window"]
-        window = Signals(**{k: np.asarray(w[k], dtype=np.float64) for k in _SIGNALS if k in w})
+        window = Signals.from_roles({k: np.asarray(w[k], dtype=np.float64)
+                                     for k in _SIGNALS if k in w})
         cal = state.get("calibration")
         if cal is None:
             self.calibration, self._window = None, None
@@ -964,9 +972,17 @@ class FrameProcessor:
                 "intervals": None if est is None else sum(est.intervals.values())}
 
     def axis_info(self) -> dict[str, Any]:
-        """The model's axis and the DBC units of the signals it was read from."""
-        return {"axis": self.model.axis, "dbc_axis": self.protocol.axis,
-                "units": {r: i.unit for r, i in self.protocol.roles.items()}}
+        """The model's axis, the DBC units of the signals it was read from, the ratings
+        relative units refer to and, on a torque-reporting drive, the target."""
+        d: dict[str, Any] = {"axis": self.model.axis, "dbc_axis": self.protocol.axis,
+                             "units": {r: i.unit for r, i in self.protocol.roles.items()},
+                             "ratings": self.protocol.mapping.ratings.as_dict()}
+        if self.model.target == "torque":
+            t = self.protocol.roles["torque"]
+            lin = self.model.axis == "linear"
+            d["target"] = (f"the {'force' if lin else 'torque'} the drive reports, "
+                           f"{t.message}.{t.signal} [{'N' if lin else 'N·m'}], no Kt")
+        return d
 
     def start_info(self) -> dict[str, Any]:
         """The first frame's timestamp and, for an epoch time, its date (UTC)."""

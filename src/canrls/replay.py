@@ -290,9 +290,7 @@ def _join(blocks: Iterable[Signals]) -> Signals:
         parts = cols.pop(r)
         out[r] = None if any(v is None for v in parts) else np.concatenate(parts)
         del parts
-    t, current, speed = out["t"], out["current"], out["speed"]
-    assert t is not None and current is not None and speed is not None
-    return Signals(t, current, speed, out.get("position"), out.get("voltage"))
+    return Signals.from_roles(out)
 
 
 def _spill(blocks: Iterable[Signals]) -> Signals | SpilledSignals:

@@ -44,7 +44,7 @@ from canrls.diagnosis.samples import RecordSamples
 from canrls.errors import ConfigError
 from canrls.modelfile import SavedModel
 from canrls.replay import read_logs
-from canrls.signals import Signals
+from canrls.signals import ROLES, Signals
 
 __all__ = ["EquationValidation", "FileFit", "ValidationReport", "validate_logs",
            "validate_signals", "write_html"]
@@ -188,8 +188,7 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
     the record into its files for the per-file fit."""
     if len(signals) < 2:
         raise ConfigError(f"validate: {len(signals)} samples; nothing to validate")
-    model = saved.build_model([r for r in ("current", "speed", "position", "voltage")
-                               if signals.has(r)])
+    model = saved.build_model([r for r in ROLES if signals.has(r)])
     settings = saved.config().settings()
     ctx = RecordSamples(model, signals, dt, settings, 1)
     bounds = np.cumsum([0, *sizes]) if sizes else np.array([0, len(signals)])
@@ -266,7 +265,7 @@ def validate_logs(paths: Sequence[str | os.PathLike[str]], saved: SavedModel,
                   progress: Callable[[int, int], None] | None = None,
                   chunk_size: int = 65536, skip_bad_lines: bool = False) -> ValidationReport:
     """Decode and pair the logs as ``canrls fit`` does, then :func:`validate_signals`."""
-    available = [r for r in ("current", "speed", "position", "voltage") if protocol.has(r)]
+    available = [r for r in ROLES if protocol.has(r)]
     model = saved.build_model(available)
     log = read_logs(paths, protocol, model, saved.config().settings(), progress=progress,
                     chunk_size=chunk_size, skip_bad_lines=skip_bad_lines)

@@ -64,7 +64,7 @@ FILL_DOUBT = 8.0
 NOISE_ROWS = 64
 #: The signals whose fills are checked. The position is not: its straight line is off
 #: by the acceleration's share (``a dt^2 / 4``), far below anything the filter sees.
-CHECKED = ("current", "speed", "voltage")
+CHECKED = ("current", "speed", "voltage", "torque")
 
 
 class SelectionSettings(Protocol):
@@ -434,8 +434,7 @@ class GapFiller:
                 vals = np.mod(vals, wrap)
             col[at] = vals
             out[r] = col
-        return Signals(out["t"], out["current"], out["speed"], out.get("position"),
-                       out.get("voltage")), real
+        return Signals.from_roles(out), real
 
 
 # ------------------------------------------------------------------ a whole record

@@ -54,7 +54,7 @@ _KINDS = ("feedback", "estimator", "command", "error", "other")
 
 
 class LibraryUnits(Mapping[str, str]):
-    """Parameter name -> unit, from the effect library, for one axis, ``kt`` and terms.
+    """Parameter name -> unit, from the effect library, for one axis, target and terms.
 
     ``units["cogging:24.sin"] == "N·m"`` (rotary, kt known); any effect the library
     can build is answered, so a monitor started before an effect is added still knows
@@ -68,7 +68,7 @@ class LibraryUnits(Mapping[str, str]):
 
     @classmethod
     def for_model(cls, model: Model) -> LibraryUnits:
-        return cls(model.effect_options, model.kt is not None)
+        return cls(model.effect_options, model.torque_known)
 
     def _lookup(self, name: str) -> str | None:
         if name in self._cache:
