@@ -72,7 +72,7 @@ from canrls.estimation.pipeline import (
 )
 from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.svf import SVF
-from canrls.signals import Signals
+from canrls.signals import ROLES, Signals
 
 __all__ = ["Calibration", "FitResult", "FrameProcessor", "RMS_HEADROOM",
            "MIN_ENERGY", "RangeScanner", "SampleProcessor", "WindowScaling", "calibrate",
@@ -384,7 +384,7 @@ def measure_noise(window: Signals, model: Model) -> dict[str, float]:
     if len(window) < 16:
         return out
     wrap = 2.0 * math.pi if model.axis == "rotary" else model.wrap
-    for role in ("current", "speed", "position", "voltage"):
+    for role in ROLES:
         x = getattr(window, role, None)
         if x is None:
             continue
@@ -541,16 +541,20 @@ class SampleProcessor:
 
     def __init__(self, model: Model, dt: float, settings: EstimatorSettings | None = None,
                  sources: Mapping[str, str] | None = None) -> None:
-        self.settings = settings or EstimatorSettings()
         self._sources = dict(sources) if sources is not None else {
             k: ("config" if k in model.ranges_given else "default") for k in model.ranges}
-        self.pipeline = Pipeline(model, dt, self.settings)
+        self.pipeline = Pipeline(model, dt, settings or EstimatorSettings())
         #: the frozen calibration (None while the window is being collected)
         self.calibration: Calibration | None = None
         self._held: list[Signals] = []
         self._held_n = 0
         self._window: Signals | None = None
         self._calibrate_n = max(1, int(round(self.settings.calibration_s / self.pipeline.dt)))
+
+    @property
+    def settings(self) -> EstimatorSettings:
+        """The estimator settings: the pipeline's, which a command may change (lambda)."""
+        return self.pipeline.settings
 
     @property
     def calibrating(self) -> bool:
@@ -575,7 +579,7 @@ class SampleProcessor:
         ones, its column energies measured on the stored window, and the parameters both
         models share start from their estimates (:meth:`Pipeline.with_model`)."""
         if self.calibration is None or self._window is None:
-            self.pipeline = Pipeline(model, self.dt, self.settings)
+            self.pipeline = self.pipeline.with_model(model, warm=False)
             return self.pipeline
         model = _frozen_defaults(model, self.calibration)
         ws = calibrate(self._window, model.with_ranges(self.calibration.ranges),

@@ -35,6 +35,7 @@ computed on the filtered target, in the target's unit.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -1197,10 +1198,11 @@ class Pipeline:
         return tuple((int(e.rls.count), int(e.frls.count)) for e in self.estimators)
 
     def set_lambda(self, lam: float) -> None:
-        """Change the forgetting factor of both estimators (validated)."""
-        if not (0.5 < lam <= 1.0):
-            raise ConfigError(f"lambda = {lam!r}: must be in (0.5, 1]")
+        """Change the forgetting factor of both estimators (validated); it lives in
+        :attr:`settings`, which a pipeline for a changed model is built from."""
+        self.settings = dataclasses.replace(self.settings, lam=lam)
         for e in self.estimators:
+            e.settings = self.settings
             e.rls.set_lambda(lam)
             e.frls.set_lambda(lam)
 
@@ -1217,6 +1219,8 @@ class Pipeline:
         the new model's column energies and pending columns (as for :class:`Pipeline`).
         """
         new = Pipeline(model, self.dt, self.settings, energy, pending, noise)
+        if self.frozen:
+            new.freeze()
         if not warm:
             return new
         old = {e.equation.name: e for e in self.estimators}
@@ -1263,3 +1267,9 @@ class Pipeline:
         for e, s in zip(self.estimators, ests, strict=True):
             e.restore(s)
         self.samples = int(d["samples"])
+        # a forgetting factor set by a command lives in the state
+        lam = self.estimators[0].rls.lam if self.estimators else self.settings.lam
+        if lam != self.settings.lam:
+            self.settings = dataclasses.replace(self.settings, lam=lam)
+            for e in self.estimators:
+                e.settings = self.settings
