@@ -86,8 +86,8 @@ ENERGY_FLOOR = 2.0 ** -20
 #: Smallest energy (normalised mean square) a column's prior is scaled with: a column
 #: with an RMS of 1/32 of full scale, the least the calibration's RMS rule gives a
 #: data-scaled column; a column bounded by its own function that the window barely
-#: excites, a pending one until it is seen, and one that outgrew its exponent take it.
-#: It bounds P0 by 2**10/alpha, which the fixed-point formats hold.
+#: excites and a pending one until it is seen take it. It bounds P0 by 2**10/alpha,
+#: which the fixed-point formats hold.
 MIN_ENERGY = 2.0 ** -10
 #: The calibration puts the window's RMS of each data-scaled column (and the first value
 #: of a pending one) at most 1/RMS_HEADROOM of full scale (:func:`exponent_for`): room
@@ -218,11 +218,6 @@ class EstimatorSettings:
         weights :math:`\alpha_j`, default ``alpha`` for all)."""
         alpha = self.alpha if ridge is None else ridge
         overrides = dict(self.fixed_overrides)
-        if ridge is not None:
-            # sized for every prior a column can be given: its own, or after a rescale
-            # alpha * MIN_ENERGY (EquationEstimator._adapt)
-            alpha = np.minimum(np.broadcast_to(np.asarray(ridge, dtype=np.float64), (n,)),
-                               float(self.alpha) * MIN_ENERGY)
         return FixedConfig.auto(n, alpha, self.lam, theta_max=self.theta_max,
                                 word_bits=self.word_bits, acc_bits=self.acc_bits,
                                 input_bits=self.input_bits, trace_max=self.trace_max,
@@ -567,6 +562,9 @@ class EquationEstimator:
         self.rescales: list[Rescale] = []
         #: ridge weight of each column, alpha_j = alpha * e_j (EstimatorSettings.ridge)
         self.ridge = s.ridge(n, energy)
+        #: the prior a column that outgrew its exponent is raised to (:meth:`_adapt`):
+        #: the weakest one at the start, which the fixed-point P format holds
+        self._prior_floor = float(np.min(self.ridge))
         self.rls = RLS(n, lam=s.lam, alpha=self.ridge, trace_max=s.trace_max)
         self.fixed_config = s.fixed_config(n, self.ridge)
         self.frls = FixedRLS(self.fixed_config, n, lam=s.lam, alpha=self.ridge,
@@ -618,6 +616,7 @@ class EquationEstimator:
         # the check filter's sums: M2 = sum phi2 phi2', v2 = sum phi2 y2 (normalised)
         self._M2 = np.zeros((n, n))
         self._v2 = np.zeros(n)
+        self._s2 = np.zeros(3)
         if self.check_builder is not None and self.check_selector is not None:
             self.check_builder.reset()
             self.check_selector.reset()
@@ -786,12 +785,10 @@ class EquationEstimator:
             eq.scaling.target, out.y[a:b], out.eps[a:b], out.eps_fixed[a:b],
             out.flags[a:b], out.rms[a:b])
         if out.check is not None and out.check_use is not None:
-            cu = out.check_use[a:b]
-            if cu.any():
-                X, Y = out.check[0][a:b][cu], out.check[1][a:b][cu]
-                # M2 += X' X, v2 += X' y
-                self._M2 += X.T @ X
-                self._v2 += X.T @ Y
+            # the check filter's sums, row by row in C (the same bits in any blocks):
+            # M2 += phi2 phi2' (upper triangle), v2 += phi2 y2, s2 += [1, y2, y2^2]
+            _kernels.accumulate(out.check[0][a:b], out.check[1][a:b], out.check_use[a:b],
+                                self._M2, self._v2, self._s2)
         if record and theta_u is not None and thetaq_u is not None:
             # rows in a warm-up did not update: they stay nan
             at = slice(a, b) if rows is None else rows + a
@@ -855,11 +852,10 @@ class EquationEstimator:
         big = float(np.max(th)) if len(th) else 0.0
         if big > 0.5 * self.settings.theta_max and math.isfinite(big):
             dy += exponent_for(big, 2.0 / self.settings.theta_max)
-        # a column that outgrew its exponent takes the prior of the weakest data-scaled
-        # column in its new units (alpha * MIN_ENERGY): the one it had, rescaled with it,
-        # would weigh 2**(2 d_j) times less than the calibration's rule
-        grew = {int(j): float(self.settings.alpha) * MIN_ENERGY
-                for j in np.flatnonzero(d) if not self._pending[j]}
+        # a column that outgrew its exponent takes, in its new units, the weakest prior
+        # the estimator started with (alpha * MIN_ENERGY or more once calibrated): the one
+        # it had, rescaled with it, would weigh 2**(2 d_j) times less than the rule gives
+        grew = {int(j): self._prior_floor for j in np.flatnonzero(d) if not self._pending[j]}
         self._rescale(d, dy, t, grew)
         if first_y:
             self._pending_y = False
@@ -902,6 +898,7 @@ class EquationEstimator:
         self._v = np.ldexp(self._v, -(d + dy))
         self._M2 = np.ldexp(self._M2, -(d[:, None] + d[None, :]))
         self._v2 = np.ldexp(self._v2, -(d + dy))
+        self._s2[1:] = np.ldexp(self._s2[1:], [-dy, -2 * dy])
         self._s[1:] = np.ldexp(self._s[1:], [-dy, -2 * dy])
         self._rms_state = np.ldexp(self._rms_state, -2 * dy)
         self.tail.rescale(d, dy)
@@ -1003,11 +1000,12 @@ class EquationEstimator:
             return bound, noisy
         M = np.triu(self._M) + np.triu(self._M, 1).T
         A = M + np.diag(self.ridge)
-        if self._M2.any():
+        if self._s2[0] > n:
+            M2 = np.triu(self._M2) + np.triu(self._M2, 1).T
             try:
                 # theta1 = (M + R)^-1 v, theta2 = (M2 + R)^-1 v2
                 t1 = np.linalg.solve(A, self._v)
-                t2 = np.linalg.solve(self._M2 + np.diag(self.ridge), self._v2)
+                t2 = np.linalg.solve(M2 + np.diag(self.ridge), self._v2)
                 bound = CHECK_FACTOR * np.abs(t1 - t2)
             except np.linalg.LinAlgError:
                 bound = np.full(n, math.inf)
@@ -1050,7 +1048,7 @@ class EquationEstimator:
     def state(self) -> dict[str, Any]:
         return {"rls": self.rls.state(), "fixed": self.frls.state(), "M": self._M.copy(),
                 "v": self._v.copy(), "s": self._s.copy(), "rms": self._rms_state.copy(),
-                "M2": self._M2.copy(), "v2": self._v2.copy(),
+                "M2": self._M2.copy(), "v2": self._v2.copy(), "s2": self._s2.copy(),
                 "windup_steps": self.windup_steps, "nonfinite_rows": self.nonfinite_rows,
                 "tail": self.tail.state(), "pending": list(self.pending),
                 "noise": None if self.noise is None else self.noise.copy(),
@@ -1082,6 +1080,7 @@ class EquationEstimator:
         n = self.equation.n
         self._M2 = np.array(d.get("M2", np.zeros((n, n))), dtype=np.float64)
         self._v2 = np.array(d.get("v2", np.zeros(n)), dtype=np.float64)
+        self._s2 = np.array(d.get("s2", np.zeros(3)), dtype=np.float64)
         self.windup_steps = int(d["windup_steps"])
         self.nonfinite_rows = int(d.get("nonfinite_rows", 0))
         self._since_nonfinite = self.warmup + 1
