@@ -217,11 +217,10 @@ class EstimatorSettings:
         """The automatic fixed-point configuration for ``n`` parameters (``ridge``: the
         weights :math:`\alpha_j`, default ``alpha`` for all)."""
         alpha = self.alpha if ridge is None else ridge
-        overrides = dict(self.fixed_overrides)
         return FixedConfig.auto(n, alpha, self.lam, theta_max=self.theta_max,
                                 word_bits=self.word_bits, acc_bits=self.acc_bits,
                                 input_bits=self.input_bits, trace_max=self.trace_max,
-                                **overrides)
+                                **dict(self.fixed_overrides))
 
 
 # ------------------------------------------------------------------------- results
