@@ -175,10 +175,12 @@ def _report(daemon: Any, args: argparse.Namespace) -> None:
     if args.json:
         d = est.to_dict()
         d["daemon"] = daemon.stats().to_dict()
+        d["frames"] = daemon.frame_counts()  # as canrls fit --json: rejected by reason
         st = daemon.last_status
         d["status"] = None if st is None else {
             "residual_rms": st.residual_rms, "update_count": st.update_count,
-            "flags": list(st.flags), "active_effects": st.active_effects}
+            "flags": list(st.flags), "active_effects": st.active_effects,
+            "rejects": dict(st.rejects)}
         print_json(d)
     else:
         sys.stdout.write(est.format() + "\n")
