@@ -252,3 +252,238 @@ def test_a_full_disk_under_record_stops_the_recording_not_the_bus(tmp_path: Path
     assert len(stopped) == 1 and "stopped" in stopped[0]
     assert "failed" not in r.stderr and "Traceback" not in r.stderr
     assert 0 < record.stat().st_size <= limit
+
+
+# --------------------------------------------------------------------------- signals at start
+_SIGNAL_AT_IMPORT = textwrap.dedent("""
+    import os, signal, sys
+
+    class SignalAtImport:
+        '''Sends the process SIGNAL when MODULE is first imported: the moment the
+        heavy imports begin, before canrls run's own handlers can exist.'''
+
+        def find_spec(self, name, path=None, target=None):
+            if name == {module!r}:
+                sys.meta_path.remove(self)
+                os.kill(os.getpid(), signal.{signal})
+            return None
+
+    sys.meta_path.insert(0, SignalAtImport())
+    from canrls.cli.main import main
+    sys.exit(main())
+""")
+
+
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
+@pytest.mark.parametrize("module", ["numpy", "can"])
+def test_a_signal_in_the_first_moments_of_canrls_run_does_not_kill_it(
+        tmp_path: Path, signame: str, module: str) -> None:
+    """The console script's ``main()`` with SIGTERM or SIGHUP arriving as numpy (or
+    python-can) starts to load, some 0.1 s into ``canrls run``: before, the process died
+    by the signal (-15, -1); now a SIGTERM makes the daemon start and stop at once
+    (exit 0, its JSON, "signal 15: stopping"), a SIGHUP is ignored (nothing to reload
+    yet) and the run goes on to its ``--duration``."""
+    code = _SIGNAL_AT_IMPORT.format(module=module, signal=signame)
+    r = subprocess.run(
+        [sys.executable, "-c", code, "--log-level", "INFO", "run", "-i", "virtual", "-c",
+         f"early-{signame}", "--duration", "1", "--json"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, (r.returncode, r.stderr[-2000:])
+    out = json.loads(r.stdout)
+    assert "daemon" in out and "frames" in out
+    stopping = "signal 15: stopping" in r.stderr
+    assert stopping == (signame == "SIGTERM"), r.stderr[-2000:]
+
+
+# --------------------------------------------------------------------------- a lost remote bus
+_REMOTE_ON_PORT = """
+from can_remote import RemoteServer
+srv = RemoteServer("127.0.0.1", %d, channel="lost", bustype="canrls-sim", seed=7,
+                   excitation="slow", effects="inertia,viscous,coulomb")
+print(srv.server_port, flush=True)
+srv.serve_forever()
+"""
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _server(port: int) -> subprocess.Popen[str]:
+    proc = subprocess.Popen([sys.executable, "-c", _REMOTE_ON_PORT % port],
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    assert proc.stdout is not None and int(proc.stdout.readline()) == port
+    return proc
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    proc.terminate()
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(10)
+    if proc.stdout is not None:
+        proc.stdout.close()
+
+
+@pytest.mark.slow
+def test_a_remote_bus_lost_and_reconnected_leaves_no_traceback_at_exit() -> None:
+    """``canrls run -i remote``: the python-can-remote server goes away and comes back
+    on its port. Before, the lost bus's shutdown failed (ENOTCONN), python-can's
+    ``__del__`` tried again when it was collected and printed "Exception ignored in
+    BusABC.__del__" with a traceback; now the old bus is shut down properly, whatever
+    its connection did."""
+    import queue
+    import threading
+
+    pytest.importorskip("can_remote")
+    port = _free_port()
+    server = _server(port)
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-i", "remote", "-c",
+         f"ws://127.0.0.1:{port}/", "--kt", "0.1", "--duration", "120", "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: queue.Queue[str | None] = queue.Queue()
+    seen: list[str] = []
+
+    def pump() -> None:
+        assert daemon.stderr is not None
+        for line in daemon.stderr:
+            lines.put(line)
+        lines.put(None)
+
+    reader = threading.Thread(target=pump, name="stderr pump")
+    reader.start()
+
+    def wait_for(text: str) -> None:
+        while (line := lines.get(timeout=60)) is not None:
+            seen.append(line)
+            if text in line:
+                return
+        raise AssertionError(f"no {text!r} in {''.join(seen)[-2000:]}")
+
+    try:
+        wait_for("daemon running")
+        _stop(server)
+        wait_for("reopening")
+        server = _server(port)
+        wait_for("CAN bus reopened")
+    finally:
+        daemon.terminate()
+        out, _ = daemon.communicate(timeout=60)
+        reader.join(10)
+        _stop(server)
+    while (line := lines.get_nowait()) is not None:
+        seen.append(line)
+    err = "".join(seen)
+    assert daemon.returncode == 0, err[-2000:]
+    assert "Exception ignored" not in err and "Traceback" not in err, err[-3000:]
+    assert "not properly shut down" not in err
+    assert json.loads(out)["daemon"]["bus_reopens"] == 1
+
+
+# --------------------------------------------------------------------------- reloads
+def test_sighup_with_an_invalid_daemon_table_says_so_and_keeps_the_settings(
+        tmp_path: Path) -> None:
+    """SIGHUP after the configuration's ``[daemon]`` table went bad: before, the reload
+    read only the model and said nothing (the next restart would then refuse the file);
+    now the reload is refused with an error naming the key, and the daemon goes on with
+    its settings and model. A valid change of the table is said to apply at the next
+    start."""
+    conf = tmp_path / "canrls.toml"
+    good = ('[model]\neffects = ["inertia", "viscous", "coulomb"]\nkt = 0.1\n'
+            '[can]\ninterface = "virtual"\nchannel = "reload-daemon"\n'
+            '[daemon]\npublish_interval = 0.05\n')
+    conf.write_text(good)
+    sock, addr = notify_socket(tmp_path, "notify")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-C", str(conf),
+         "--json"], env=dict(os.environ, NOTIFY_SOCKET=addr),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert any("READY=1" in g for g in datagrams(sock, "READY=1", 60, proc))
+        conf.write_text(good.replace("0.05", '"fast"'))
+        proc.send_signal(signal.SIGHUP)
+        assert "READY=1" in datagrams(sock, "READY=1", 30, proc)[-1]
+        conf.write_text(good.replace("0.05", "0.2"))
+        proc.send_signal(signal.SIGHUP)
+        assert "READY=1" in datagrams(sock, "READY=1", 30, proc)[-1]
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        sock.close()
+    assert proc.returncode == 0, err
+    refused = [line for line in err.splitlines() if "reload failed" in line]
+    assert len(refused) == 1, err
+    assert "daemon.publish_interval = 'fast'" in refused[0]
+    assert "keeps its settings" in refused[0]
+    assert "reload: [daemon] publish_interval changed: applied at the next start" in err
+    assert json.loads(out)["daemon"]["reloads"] == 2
+
+
+# --------------------------------------------------------------------------- two daemons
+def test_a_second_daemon_on_one_checkpoint_is_refused_naming_the_holder(
+        tmp_path: Path) -> None:
+    """Two ``canrls run`` on one checkpoint file: before, both ran and wrote it in turn
+    (never torn, but each overwrote the other's state); now the second stops at start,
+    exit 1, one error naming the checkpoint and the PID holding its lock. Once the first
+    has stopped, the file is free again."""
+    ckpt = tmp_path / "cp.bin"
+    sock, addr = notify_socket(tmp_path, "notify")
+    cmd = [sys.executable, "-m", "canrls", "run", "-i", "virtual", "-c", "lock-test",
+           "--kt", "0.1", "--checkpoint", str(ckpt), "--json"]
+    first = subprocess.Popen([*cmd, "--duration", "120"],
+                             env=dict(os.environ, NOTIFY_SOCKET=addr),
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert any("READY=1" in g for g in datagrams(sock, "READY=1", 60, first))
+        second = subprocess.run([*cmd, "--duration", "1"], capture_output=True, text=True,
+                                timeout=120)
+        first.send_signal(signal.SIGTERM)
+        out, err = first.communicate(timeout=60)
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.communicate()
+        sock.close()
+    assert first.returncode == 0, err
+    assert second.returncode == 1 and second.stdout == ""
+    lines = second.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), second.stderr
+    assert f"{ckpt}: the checkpoint is in use" in lines[0]
+    assert f"PID {first.pid}" in lines[0] and "cp.bin.lock" in lines[0]
+    third = subprocess.run([*cmd, "--duration", "0.5"], capture_output=True, text=True,
+                           timeout=120)
+    assert third.returncode == 0, third.stderr
+
+
+def test_a_link_at_the_lock_path_runs_without_checkpoints_and_is_not_followed(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A symbolic link planted at ``NAME.lock``: never followed (its target is not
+    created nor written), the daemon runs without checkpoints and says so; and the lock
+    goes with the daemon, so another one on the same file starts after it."""
+    from canrls.errors import CheckpointError
+
+    protocol, model, settings = _setup()
+    target = tmp_path / "elsewhere.txt"
+    (tmp_path / "cp.bin.lock").symlink_to(target)
+    cfg = DaemonSettings(checkpoint=tmp_path / "cp.bin")
+    d = Daemon(protocol, model, settings, cfg, bus={"interface": "virtual", "channel": "x"})
+    assert not target.exists() and d.checkpoint() is None
+    assert any("lock" in r.message and "without checkpoints" in r.message
+               for r in caplog.records)
+    (tmp_path / "cp.bin.lock").unlink()
+    one = Daemon(protocol, model, settings, cfg, bus={"interface": "virtual", "channel": "x"})
+    with pytest.raises(CheckpointError, match=rf"PID {os.getpid()}"):
+        Daemon(protocol, model, settings, cfg, bus={"interface": "virtual", "channel": "x"})
+    with one:
+        pass  # started and stopped: the lock is released at the stop
+    Daemon(protocol, model, settings, cfg, bus={"interface": "virtual", "channel": "x"})

@@ -372,6 +372,8 @@ class Daemon:
         the bus. Idempotent."""
         if self._stopped.is_set() or not self._started:
             self._stop_flag()
+            if not self._started:  # never to run: the checkpoint is another's to take
+                self._checkpoints.close()
             return
         self.sd.stopping()
         self._stop_flag()
@@ -390,6 +392,7 @@ class Daemon:
         else:  # the state that failed is not saved: the last periodic checkpoint stays
             log.error("no checkpoint at stop: the daemon failed (%s: %s)",
                       type(self.failure).__name__, self.failure)
+        self._checkpoints.close()  # the lock: another daemon may take the file now
         self._link.close()
         self._close_recorder()
         if self._tuned:
