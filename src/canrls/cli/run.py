@@ -10,7 +10,8 @@ frames (only with ``--commands`` or ``[daemon] commands = true``; otherwise each
 answered ``disabled``), checkpoints, and talks to systemd (``Type=notify``, watchdog).
 SIGTERM/SIGINT stop it (with a final checkpoint; a second one while it stops changes
 nothing), SIGHUP re-reads the configuration's model. On exit it prints the final
-estimates (``--json``: one object with the estimates and the daemon's counters).
+estimates (``--json``: one object with the estimates, the daemon's counters, the frames
+rejected by reason as ``canrls fit --json`` has them, and the last status).
 Logging goes to stderr (journald under systemd).
 
 Exit status: 0 after a requested stop (SIGTERM, SIGINT, ``--duration``), however many
