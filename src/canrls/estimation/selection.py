@@ -54,8 +54,8 @@ from canrls.signals import ROLES, MaskPacker, PackedMask, Signals, SpilledSignal
 #: default warm-up can be.
 MAX_WARMUP = 5 * MAX_TIME_CONSTANT
 
-__all__ = ["MAX_WARMUP", "SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector", "Selection",
-           "SelectedSamples", "FilledRecord", "FILL_DOUBT", "NOISE_ROWS", "CHECKED"]
+__all__ = ["MAX_WARMUP", "SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector",
+           "Selection", "SelectedSamples", "FilledRecord", "FILL_DOUBT", "NOISE_ROWS", "CHECKED"]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]

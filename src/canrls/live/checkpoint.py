@@ -138,6 +138,11 @@ class CheckpointLock:
     def __init__(self, path: Path) -> None:
         self.path = path.with_name(path.name + ".lock")
         with _directory(path) as dfd:
+            st = _lstat(dfd, self.path.name)
+            if st is not None and not stat.S_ISREG(st.st_mode):  # not opened: a device acts
+                raise CheckpointPathError(f"{path}: the checkpoint's lock {self.path} is "
+                                          f"{_kind(st.st_mode)}, not a regular file; it is "
+                                          f"left untouched")
             try:
                 fd = os.open(self.path.name, os.O_RDWR | os.O_CREAT | _O_NOFOLLOW
                              | _O_NONBLOCK | _O_CLOEXEC, _MODE, dir_fd=dfd)
