@@ -38,7 +38,7 @@ import numpy.typing as npt
 
 from canrls.can import candump
 from canrls.can.frameblock import MAX_DATA_LENGTH, FrameBlock
-from canrls.can.times import describe, is_time
+from canrls.can.times import MAX_TIMESTAMP, describe, is_time
 from canrls.errors import LogFormatError
 
 __all__ = ["LogReadStats", "read_frames", "write_candump", "write_log", "CAN_ERR_FLAG"]
@@ -252,7 +252,8 @@ def _read_python_can(path: Path, chunk_size: int, st: LogReadStats,
                     f"{path}: unreadable after frame {st.frames + len(buf)} ({e})") from e
             if not is_time(msg.timestamp):
                 raise LogFormatError(
-                    f"{path}: frame {st.frames + len(buf) + 1}: {describe(msg.timestamp)}")
+                    f"{path}: frame {st.frames + len(buf) + 1} has the timestamp "
+                    f"{msg.timestamp!r}, not a time (finite, at most {MAX_TIMESTAMP:g} s)")
             buf.append(msg)
             if len(buf) >= chunk_size:
                 st.frames += len(buf)
