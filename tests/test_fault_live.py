@@ -447,8 +447,8 @@ def test_a_second_daemon_on_one_checkpoint_is_refused_naming_the_holder(
         tmp_path: Path) -> None:
     """Two ``canrls run`` on one checkpoint file: before, both ran and wrote it in turn
     (never torn, but each overwrote the other's state); now the second stops at start,
-    exit 1, one error naming the checkpoint and the PID holding its lock. Once the first
-    has stopped, the file is free again."""
+    exit 1, one error naming the checkpoint and the PID holding its lock (that the lock
+    goes with the stop: the next test)."""
     ckpt = tmp_path / "cp.bin"
     sock, addr = notify_socket(tmp_path, "notify")
     cmd = [sys.executable, "-m", "canrls", "run", "-i", "virtual", "-c", "lock-test",
@@ -473,9 +473,6 @@ def test_a_second_daemon_on_one_checkpoint_is_refused_naming_the_holder(
     assert len(lines) == 1 and lines[0].startswith("error: "), second.stderr
     assert f"{ckpt}: the checkpoint is in use" in lines[0]
     assert f"PID {first.pid}" in lines[0] and "cp.bin.lock" in lines[0]
-    third = subprocess.run([*cmd, "--duration", "0.5"], capture_output=True, text=True,
-                           timeout=120)
-    assert third.returncode == 0, third.stderr
 
 
 def test_a_link_at_the_lock_path_runs_without_checkpoints_and_is_not_followed(

@@ -289,7 +289,7 @@ def _toml(v: Any) -> str:
     return "{" + ", ".join(f"{json.dumps(k)} = {_toml(x)}" for k, x in v.items()) + "}"
 
 
-@FUZZ
+@settings(FUZZ, max_examples=30)
 @given(doc=toml_documents)
 @example(doc={"can": {"dbc": "a\x00b"}})
 @example(doc={"estimator": {"warmup_s": 1e300}})
