@@ -197,10 +197,12 @@ class AppConfig:
             if not isinstance(value, dict):
                 raise ConfigError(f"{p}: {key} must be a table, got {value!r}")
             setattr(cfg, key, dict(value))
-        cfg._check()
+        cfg.check()
         return cfg
 
-    def _check(self) -> None:
+    def check(self) -> None:
+        """Every key of ``[estimator]``, ``[fixed]`` and ``[can]`` is one canrls knows (a
+        :class:`ConfigError` naming the first that is not)."""
         src = self.source
         for k in self.estimator:
             if k not in _ESTIMATOR_KEYS:
@@ -250,8 +252,9 @@ class AppConfig:
         dbc = self.can.get("dbc")
         if dbc is None:
             return None
-        if not isinstance(dbc, str):
-            raise ConfigError(f"{self._where('can.dbc')} = {dbc!r}: must be a file path")
+        if not isinstance(dbc, str) or "\0" in dbc:
+            raise ConfigError(f"{self._where('can.dbc')} = {dbc!r}: must be a file path"
+                              + (" (no NUL byte)" if isinstance(dbc, str) else ""))
         p = Path(dbc)
         return p if p.is_absolute() else self.base_dir / p
 

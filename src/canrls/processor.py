@@ -58,6 +58,7 @@ from canrls.can.pairing import Pairer, PairingCounts
 from canrls.can.period import MIN_INTERVALS, PeriodEstimate, PeriodMeter, check_period
 from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
 from canrls.can.reorder import Reorderer
+from canrls.can.times import TimeJudge
 from canrls.can.units import Ratings
 from canrls.errors import CheckpointError, ConfigError
 from canrls.estimation.model import DATA_OPTIONS, Model
@@ -75,8 +76,9 @@ from canrls.estimation.svf import SVF
 from canrls.signals import ROLES, Signals
 
 __all__ = ["Calibration", "FitResult", "FrameProcessor", "RMS_HEADROOM",
-           "MIN_ENERGY", "RangeScanner", "SampleProcessor", "WindowScaling", "calibrate",
-           "data_defaults", "dbc_ranges", "epoch_date", "measure_noise", "scan_ranges",
+           "MIN_ENERGY", "RangeScanner", "SampleProcessor", "SEEN_IDS", "WindowScaling",
+           "calibrate", "data_defaults", "dbc_ranges", "epoch_date", "measure_noise",
+           "scan_ranges",
            "RESTORE_PERIOD_TOLERANCE"]
 
 log = logging.getLogger(__name__)
@@ -96,6 +98,11 @@ _PLACEHOLDER_DT = 1e-3
 #: the period of the frames it continues on (two measurements of one drive's period
 #: agree far closer; the filters and the statistics of a state depend on the period).
 RESTORE_PERIOD_TOLERANCE = 0.01
+
+#: Most distinct frame IDs counted while none of the mapped messages has come (for the
+#: error that names the most frequent ones): beyond, the rarest are forgotten, so a bus
+#: of random IDs cannot grow the daemon's memory.
+SEEN_IDS = 1024
 
 
 @dataclass(frozen=True)
@@ -704,6 +711,9 @@ class FrameProcessor:
         #: times of samples and results are relative to it)
         self.origin: float | None = None
         self.decoder = protocol.decoder()
+        #: judges every frame's receive time first (:mod:`canrls.can.times`): frames
+        #: without a time, or out of line with the stream, are rejected (``time``)
+        self.times = TimeJudge()
         #: puts frames swapped on the way back in counter order before the decoder
         #: (:mod:`canrls.can.reorder`; ``reorder.moved`` counts them)
         self.reorder = Reorderer(protocol.messages)
@@ -806,10 +816,27 @@ class FrameProcessor:
                 f"(seen: {seen}): a sample needs every mapped message; map the signal to "
                 f"a message the drive sends, or leave its role out")
 
+    def _count_ids(self, block: FrameBlock) -> None:
+        """Frames of each ID, while no mapped message has come; at most :data:`SEEN_IDS`
+        IDs are kept (the most frequent: the rarest are forgotten when twice as many)."""
+        ids, n = np.unique(block.arbitration_id, return_counts=True)
+        seen = self._seen_ids
+        for i, k in zip(ids.tolist(), n.tolist(), strict=True):
+            seen[i] = seen.get(i, 0) + k
+        if len(seen) > 2 * SEEN_IDS:
+            keep = sorted(seen.items(), key=lambda kv: -kv[1])[:SEEN_IDS]
+            self._seen_ids = dict(keep)
+
+    def seen_ids(self, most: int = 8) -> list[tuple[int, int]]:
+        """The most frequent frame IDs counted while no mapped message has come, with
+        their frames: ``[(id, frames), ...]`` (at most ``most``; of at most
+        :data:`SEEN_IDS` IDs kept)."""
+        return sorted(self._seen_ids.items(), key=lambda kv: (-kv[1], kv[0]))[:most]
+
     def _foreign_error(self) -> ConfigError:
         """None of the mapped messages was decoded: name what was expected and seen."""
         want = ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in self.protocol.messages)
-        seen = sorted(self._seen_ids.items(), key=lambda kv: -kv[1])[:8]
+        seen = self.seen_ids()
         seen_text = ", ".join(f"0x{i:X} ({n})" for i, n in seen) if seen else "none"
         rej = {k: int(v) for k, v in self.decoder.rejected.items() if v}
         why = ("; rejected: " + ", ".join(f"{k} {v}" for k, v in rej.items())) if rej else ""
@@ -875,13 +902,38 @@ class FrameProcessor:
 
     def samples(self, block: FrameBlock) -> Signals:
         """Decode and pair one block of frames (no estimation)."""
+        base = self.frames
+        self.frames += len(block)
+        judged = self.times.push(block)  # first: a frame without a time is no frame
+        self._count_time_rejects(base)
+        return self._through(judged)
+
+    def _through(self, block: FrameBlock) -> Signals:
+        """Frames whose times were judged: reordered, decoded and paired."""
         if self.origin is None and len(block):
             self.origin = float(block.t[0])
         if self.relative_time and self.origin:
             block = dataclasses.replace(block, t=block.t - self.origin)
-        self.frames += len(block)
         # frames swapped on the way put back in counter order, before the strict checks
         return self._paired(self.decoder.decode(self.reorder.push(block)), block)
+
+    def _count_time_rejects(self, key: int) -> None:
+        """Count the frames :attr:`times` rejected last, under ``time``, per mapped
+        message (other frames under ``*``); ``key``: the stream position for the example."""
+        bad = self.times.rejected()
+        if bad is None:
+            return
+        example = self.times.counts.example
+        rej = self.decoder.rejected
+        left = np.ones(len(bad), np.bool_)
+        for m in self.protocol.messages:
+            mine = (left & (bad.arbitration_id == m.frame_id) & (bad.is_extended == m.is_extended)
+                    & ~bad.is_error)
+            if mine.any():
+                rej.add("time", m.name, int(mine.sum()), example, key)
+                left &= ~mine
+        if left.any():
+            rej.add("time", "*", int(left.sum()), example, key)
 
     def _paired(self, decoded: DecodedFrames, block: FrameBlock) -> Signals:
         """The period meter, then pairing, of one decoded ``block``."""
@@ -891,9 +943,7 @@ class FrameProcessor:
             times = {name: decoded.messages[name].t for name in decoded.messages}
             self._meter.add(times)
             if not any(self._meter.counts().values()) and len(block):
-                ids, n = np.unique(block.arbitration_id, return_counts=True)
-                for i, k in zip(ids.tolist(), n.tolist(), strict=True):
-                    self._seen_ids[i] = self._seen_ids.get(i, 0) + k
+                self._count_ids(block)
             if self._meter.done:
                 self._measured()
         if self.pairer is None:
@@ -916,10 +966,16 @@ class FrameProcessor:
     def flush_samples(self) -> Signals:
         """End of stream, no estimation: the period decided with what came (an error if
         it cannot be, or if none of the mapped messages came), and the samples still open."""
+        parts = []
+        tail = self.times.flush()  # a departure from the time base nothing came back from
+        if len(tail):
+            parts.append(self._through(tail))
         held = self.reorder.flush()  # a frame held for its neighbour in a next block
-        head = self._paired(self.decoder.decode(held), held) if len(held) else Signals.concat([])
+        if len(held):
+            parts.append(self._paired(self.decoder.decode(held), held))
         rest = self._flush_samples()
-        return Signals.concat([head, rest]) if len(head) else rest
+        head = [p for p in parts if len(p)]
+        return Signals.concat([*head, rest]) if head else rest
 
     def _flush_samples(self) -> Signals:
         if self._meter is not None and self.frames:
@@ -961,11 +1017,19 @@ class FrameProcessor:
         r, c = self.rejected, self.pairing
         return {"crc": r["crc"], "malformed": r["remote"] + r["length"],
                 "repeated": r["repeated"], "stale": r["stale"] + r["sequence"],
-                "range": r["range"] + r["nan"],
+                "range": r["range"] + r["nan"], "time": r["time"],
                 "unpaired": c.unpaired + c.late + c.duplicated,
                 "reordered": self.reorder.moved,
                 "clock_steps": c.clock["step_back"] + c.clock["step_forward"],
                 "gaps": c.clock["gap"]}
+
+    def frame_counts(self) -> dict[str, Any]:
+        """The frames seen, as ``canrls fit --json`` has them under ``frames``: total,
+        rejected by reason, lost by message, foreign, pairing (running totals)."""
+        rej = self.rejected
+        return {"total": self.frames, "rejected": {k: int(v) for k, v in rej.items()},
+                "lost": {k: int(v) for k, v in self.decoder.lost.items()},
+                "foreign": int(self.decoder.foreign), "pairing": self.pairing.as_dict()}
 
     def period_info(self) -> dict[str, Any]:
         """The period used, who stated it and what the frames measured (text and JSON)."""

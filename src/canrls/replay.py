@@ -28,6 +28,7 @@ from canrls.can.logs import LogReadStats, read_frames
 from canrls.can.pairing import Pairer
 from canrls.can.protocol import Protocol
 from canrls.can.reorder import Reorderer
+from canrls.can.times import TimeJudge
 from canrls.errors import ConfigError, EstimatorError, LogFormatError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, PipelineBlock
@@ -207,6 +208,7 @@ class LogFiles:
                 proc = self.proc
                 proc.decoder = proc.protocol.decoder()
                 proc.reorder = Reorderer(proc.protocol.messages)
+                proc.times = TimeJudge()
                 if proc.pairer is not None:
                     proc.pairer = Pairer(proc.protocol, period=proc.pairer.period)
             frames = self.proc.frames

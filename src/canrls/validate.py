@@ -41,7 +41,7 @@ from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
 from canrls.diagnosis.results import Binned, Region, Traces, share_text
 from canrls.diagnosis.samples import RecordSamples
-from canrls.errors import ConfigError
+from canrls.errors import ConfigError, EstimatorError
 from canrls.modelfile import SavedModel
 from canrls.replay import read_logs
 from canrls.signals import ROLES, Signals
@@ -200,11 +200,27 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
                               for p in eq.parameters])
         except KeyError as e:
             raise ConfigError(f"{model_file}: no value for parameter {e.args[0]}") from None
+        if not np.all(np.isfinite(theta)):  # a SavedModel built in code, not read
+            bad = [p.name for p, v in zip(eq.parameters, theta, strict=True)
+                   if not math.isfinite(v)]
+            raise ConfigError(f"{model_file}: parameters {', '.join(bad)}: not finite; "
+                              f"nothing can be predicted with them")
         phi, y = ctx.columns(eq)
         used = ctx.used(eq) & np.isfinite(y) & np.all(np.isfinite(phi), axis=1)
+        if not used.any():
+            raise EstimatorError(
+                f"validate: {', '.join(names)}: no usable sample for the {eq.name} "
+                f"equation ({len(signals)} samples, every one left out: the filter's "
+                f"warm-up after the start and after each gap, the speed limits of the "
+                f"model, non-finite values); nothing to validate")
         # r = y - Phi theta, normalised columns and parameters, then in the target unit
-        r = eq.target_to_physical(y - phi @ eq.to_normalised(theta))
+        with np.errstate(over="ignore", invalid="ignore"):
+            r = eq.target_to_physical(y - phi @ eq.to_normalised(theta))
         yt = eq.target_to_physical(y)
+        if not np.all(np.isfinite(r[used])):
+            raise EstimatorError(
+                f"{model_file}: the saved parameters predict non-finite values of the "
+                f"{eq.name} equation's target (parameters of absurd size?)")
         rms, fit, r2 = _fit(r[used], yt[used])
         files = []
         for k, name in enumerate(names):

@@ -96,6 +96,9 @@ REJECT_REASONS: tuple[str, ...] = (
     "sequence",     # counter jumped further ahead than the time since the last frame allows
     "nan",          # a float signal is NaN or infinite
     "range",        # a physical value lies outside the DBC [minimum, maximum]
+    "time",         # the receive time is no time of the stream (canrls.can.times): judged
+                    # first, by the front end, before decoding; listed last, so that the
+                    # codes of the others stay
 )
 _R = {r: k + 1 for k, r in enumerate(REJECT_REASONS)}  # reason -> code (0 = accepted)
 _NO_REJECTS = dict.fromkeys(REJECT_REASONS, 0)

@@ -186,6 +186,9 @@ class EstimatorSettings:
             raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be from {ALPHA_MIN:g} "
                               f"to {ALPHA_MAX:g} (the prior weighs like alpha samples of "
                               f"each column)")
+        if self.warmup_s is not None and not (isinstance(self.warmup_s, int | float)
+                                              and 0.0 <= self.warmup_s < math.inf):
+            raise ConfigError(f"estimator.warmup_s = {self.warmup_s!r}: must be >= 0 seconds")
         if self.gap_periods <= 1.0:
             raise ConfigError(f"estimator.gap_periods = {self.gap_periods!r}: must be > 1")
         if not self.max_phase_step > 0:

@@ -46,11 +46,18 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
+from canrls.errors import ConfigError
 from canrls.estimation.model import Equation
+from canrls.estimation.svf import MAX_TIME_CONSTANT
 from canrls.signals import ROLES, MaskPacker, PackedMask, Signals, SpilledSignals
 
-__all__ = ["SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector", "Selection",
-           "SelectedSamples", "FilledRecord", "FILL_DOUBT", "NOISE_ROWS", "CHECKED"]
+#: Most samples of warm-up (``[estimator] warmup_s``): five of the state-variable filter's
+#: longest time constant (:data:`~canrls.estimation.svf.MAX_TIME_CONSTANT`), what the
+#: default warm-up can be.
+MAX_WARMUP = 5 * MAX_TIME_CONSTANT
+
+__all__ = ["MAX_WARMUP", "SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector",
+           "Selection", "SelectedSamples", "FilledRecord", "FILL_DOUBT", "NOISE_ROWS", "CHECKED"]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
@@ -140,6 +147,13 @@ class SamplePolicy:
         m = equation.model
         wc = 2 * math.pi * m.cutoff_hz
         warm_s = 5.0 / (m.zeta * wc) if s.warmup_s is None else s.warmup_s
+        # the warm-up sizes the residual's colour window (64 of them): bounded as the
+        # filter's own (5 of its longest time constant), before anything is allocated
+        if not warm_s / dt <= MAX_WARMUP:
+            raise ConfigError(
+                f"estimator.warmup_s = {warm_s!r}: {warm_s / dt:.3g} samples of warm-up at "
+                f"the period {dt:g} s, at most {MAX_WARMUP} (the filter's longest warm-up: "
+                f"warmup_s <= {MAX_WARMUP * dt:g} s)")
         pitch = m.pitch if m.axis == "linear" else None
         k_max = max([e.order for e in equation.effects] + [0])
         friction = any(e.name in ("coulomb", "stribeck") for e in equation.effects)

@@ -12,7 +12,8 @@ process) and call :meth:`Monitor.snapshot` whenever a view is wanted::
 A snapshot has every parameter (fixed-point value, ±σ, float reference, their
 difference, the unit), the residual RMS with its recent trend, frame rates by kind,
 the loss and rejection counters (by reason, from ``RlsRejects``, with the clock
-steps and gaps of the feedback's timestamps), the health flags (``clock_fault`` among
+steps and gaps of the feedback's timestamps, and ``time`` from ``RlsHealth``), the
+health flags (``clock_fault`` among
 them), the active effects and the last command acknowledgement. Parameter names come
 from ``RlsParamInfo`` and the units from the effect library (:class:`LibraryUnits`),
 which needs the axis, ``kt`` and the user terms of the daemon's model: the monitor
