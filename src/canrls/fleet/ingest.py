@@ -74,6 +74,11 @@ class JobConfig:
     axis: str | None = None
     lam: float | None = None
     alpha: float | None = None
+    #: what relative units refer to (``--rated-torque``, ``--rated-current``,
+    #: ``--increments-per-rev``)
+    rated_torque: float | None = None
+    rated_current: float | None = None
+    increments_per_rev: float | None = None
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> JobConfig:
@@ -87,7 +92,10 @@ class JobConfig:
                    signals=tuple(getattr(args, "signal", None) or ()),
                    effects=getattr(args, "effects", None), kt=num(getattr(args, "kt", None)),
                    period=num(getattr(args, "period", None)), axis=getattr(args, "axis", None),
-                   lam=num(getattr(args, "lam", None)), alpha=num(getattr(args, "alpha", None)))
+                   lam=num(getattr(args, "lam", None)), alpha=num(getattr(args, "alpha", None)),
+                   rated_torque=num(getattr(args, "rated_torque", None)),
+                   rated_current=num(getattr(args, "rated_current", None)),
+                   increments_per_rev=num(getattr(args, "increments_per_rev", None)))
 
     def for_source(self, src: LogSource) -> JobConfig:
         """This configuration with a manifest row's overrides."""
@@ -107,7 +115,10 @@ class JobConfig:
     def app_config(self) -> AppConfig:
         ns = argparse.Namespace(dbc=self.dbc, signal=list(self.signals) or None,
                                 effects=self.effects, kt=self.kt, period=self.period,
-                                axis=self.axis, lam=self.lam, alpha=self.alpha)
+                                axis=self.axis, lam=self.lam, alpha=self.alpha,
+                                rated_torque=self.rated_torque,
+                                rated_current=self.rated_current,
+                                increments_per_rev=self.increments_per_rev)
         return load_config(self.config, ns)
 
     def prepared(self) -> tuple[Any, Any, Any]:

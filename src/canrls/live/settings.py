@@ -173,9 +173,10 @@ class DaemonSettings:
                     raise ConfigError(f"{key} = {v!r}: must be an integer >= 0 (bytes)")
                 kw[k] = v
             elif k in _PATH_KEYS:
-                if not isinstance(v, str):
+                if not isinstance(v, str) or "\0" in v:
                     what = "directory" if k == "cache_dir" else "file"
-                    raise ConfigError(f"{key} = {v!r}: must be a {what} path")
+                    raise ConfigError(f"{key} = {v!r}: must be a {what} path"
+                                      + (" (no NUL byte)" if isinstance(v, str) else ""))
                 if v:
                     kw[k] = resolve_path(v, base_dir)
             else:
