@@ -173,6 +173,18 @@ def run_bookkeeping(K: Any) -> list[Any]:
     return [*out, M, v, s]
 
 
+def run_sincos(K: Any) -> list[Any]:
+    """The diagnosis's harmonic columns: angles over many turns (a large argument reduces
+    the way libm does), the orders of the spectrum in steps of 1/4 and whole ones."""
+    a = np.cumsum(uniform(16, 500)) * 40.0
+    a[7] = 0.0
+    a[8] = -1e5
+    orders = np.concatenate([np.arange(1, 17) * 0.25, [1.0, 6.0, 24.0, 97.0]])
+    out = np.empty((len(a), 2 * len(orders)))
+    K.sincos(a, orders, out)
+    return [out]
+
+
 def runs(K: Any) -> Iterator[tuple[str, Callable[[], list[Any]]]]:
     for name in ("rls_block_symmetric", "rls_block_literal"):
         for dtype in (np.float64, np.float32):
@@ -184,9 +196,11 @@ def runs(K: Any) -> Iterator[tuple[str, Callable[[], list[Any]]]]:
     yield "selection", lambda: run_selection(K)
     yield "unwrap", lambda: run_unwrap(K)
     yield "bookkeeping", lambda: run_bookkeeping(K)
+    yield "sincos", lambda: run_sincos(K)
 
 
-#: Digests of the numba kernels of canrls 19b846f on these runs.
+#: Digests of the numba kernels of canrls 19b846f on these runs (sincos: the diagnosis's
+#: numba kernel of f79833d, ``canrls.diagnosis.residual._sincos``).
 GOLDEN = {
     "rls_block_symmetric-float64-1.0": "4670ca557c93036b",
     "rls_block_symmetric-float64-0.98": "a498196c1608557f",
@@ -201,6 +215,7 @@ GOLDEN = {
     "selection": "6c84fa46cd5807c7",
     "unwrap": "07f3f565c3102d12",
     "bookkeeping": "40d0e57a3af08396",
+    "sincos": "43dbfaba3af727b8",
 }
 
 

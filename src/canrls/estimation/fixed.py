@@ -296,9 +296,9 @@ _CFIXED = _c_kernel()
 
 
 def _spec_kernels() -> ModuleType:
-    """The numba specification (:mod:`canrls.estimation.fixed_kernels`), imported on first
-    use only: the literal and naive forms, a model larger than the C kernel's bound, or a
-    machine without the extension."""
+    """The compiled specification (:mod:`canrls.estimation.fixed_kernels`), imported on
+    first use only: the literal and naive forms, a model larger than the C kernel's bound,
+    or a machine without the extension."""
     return importlib.import_module("canrls.estimation.fixed_kernels")
 
 
@@ -1498,7 +1498,7 @@ class FixedRLS:
     @property
     def backend(self) -> str:
         """``"c"``: the blocks run in the C kernel (``canrls._fixed``, the symmetric form
-        with ``n <= N_MAX``); ``"spec"``: in the numba specification
+        with ``n <= N_MAX``); ``"spec"``: in the compiled specification
         (:func:`canrls.estimation.fixed_kernels.fixed_block`). Both give the same integers.
 
         Set it to ``"spec"`` to run the specification (a test's reference), or to
