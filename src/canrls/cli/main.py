@@ -10,7 +10,6 @@ from collections.abc import Sequence
 
 from canrls import __version__
 from canrls.errors import CanrlsError
-from canrls.live.cache import preload as preload_cache_dir
 
 #: Subcommand modules, in the order ``--help`` lists them.
 SUBCOMMANDS: tuple[str, ...] = (
@@ -97,7 +96,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(given: list[str], process: bool) -> int:
-    preload_cache_dir(given)  # before the kernels load
     parser = build_parser(named_command(given))
     args = parser.parse_args(given)
     #: the command is the process's own (the console script, ``python -m canrls``), which

@@ -1,0 +1,56 @@
+"""What a command loads: one kernel language, and nothing a command does not use.
+
+The kernels are C extensions built at installation (``setup.py``): no module of canrls
+imports a JIT compiler, and ``canrls run`` loads neither the simulator nor the diagnosis.
+Each command runs in a fresh interpreter, so other tests' imports do not count.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parent.parent / "src"
+
+#: runs the command line in ``ARGV`` with main() and prints, as JSON, the watched
+#: packages it loaded (canrls's own by their first two names)
+REPORT = """
+import contextlib, io, json, sys
+from canrls.cli.main import main
+with contextlib.redirect_stdout(io.StringIO()):
+    try:
+        code = main(ARGV)
+    except SystemExit as e:  # --help
+        code = e.code
+assert code == 0, code
+WATCH = {"numba", "llvmlite", "numpy", "cantools", "matplotlib", "scipy", "jinja2", "tqdm",
+         "canrls.sim", "canrls.diagnosis"}
+names = {".".join(m.split(".")[:2]) if m.startswith("canrls.") else m.split(".")[0]
+         for m in sys.modules}
+print(json.dumps(sorted(names & WATCH)))
+"""
+
+
+def _loaded(argv: list[str], cwd: Path) -> set[str]:
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    r = subprocess.run([sys.executable, "-c", f"ARGV = {argv!r}\n" + REPORT], cwd=cwd,
+                       env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return set(json.loads(r.stdout.strip().splitlines()[-1]))
+
+
+def test_no_module_imports_a_jit_compiler() -> None:
+    where = [f"{p.relative_to(SRC)}:{k}" for p in sorted(SRC.rglob("*.py"))
+             for k, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1)
+             if re.match(r"\s*(import|from)\s+(numba|llvmlite)\b", line)]
+    assert not where, f"a JIT compiler is imported at {', '.join(where)}"
+
+
+def test_the_daemon_loads_neither_the_simulator_nor_the_diagnosis(tmp_path: Path) -> None:
+    loaded = _loaded(["run", "-i", "virtual", "-c", f"canrls-startup-{os.getpid()}",
+                      "--duration", "0.5"], tmp_path)
+    assert loaded == {"numpy", "cantools"}
