@@ -253,17 +253,11 @@ def _round_saturate(x: npt.NDArray[np.float64], scale: float, lo: float, hi: flo
     """``out = clip(floor(x * scale + 1/2), lo, hi)``; the number clamped, or -1 on a NaN.
 
     ``scale`` is the exact power of two ``2**frac``, so ``x * scale`` is ``ldexp(x, frac)``
-    (one rounding of the exact product, as ldexp does).
+    (one rounding of the exact product, as ldexp does). One pass in C
+    (``canrls._fixed.round_saturate``: round half up, then saturate to the word, counted).
     """
-    if np.isnan(x).any():
-        return -1
-    # round half up: floor(x 2^frac + 1/2)
-    v = np.floor(x * scale + 0.5)
-    # saturate to the word, counted (never wrap)
-    nsat = int(np.count_nonzero((v < lo) | (v > hi)))
-    np.clip(v, lo, hi, out=v)
-    out[...] = v
-    return nsat
+    assert _CFIXED is not None, "canrls._fixed is not built (pip install builds it)"
+    return int(_CFIXED.round_saturate(np.ascontiguousarray(x, np.float64), scale, lo, hi, out))
 
 
 def _round_inputs(Phi: npt.NDArray[np.float64], Y: npt.NDArray[np.float64],
