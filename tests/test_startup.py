@@ -1,8 +1,11 @@
 """What a command loads: one kernel language, and nothing a command does not use.
 
 The kernels are C extensions built at installation (``setup.py``): no module of canrls
-imports a JIT compiler, and ``canrls run`` loads neither the simulator nor the diagnosis.
-Each command runs in a fresh interpreter, so other tests' imports do not count.
+imports a JIT compiler. ``canrls run`` loads neither the simulator nor the diagnosis,
+``canrls fit`` none of matplotlib, scipy, jinja2 and tqdm (a progress bar loads tqdm when
+it is drawn), and ``canrls fit --help`` neither numpy nor cantools: what a process does
+not import costs it no start-up time (docs/architecture.md, *Start-up*). Each command runs
+in a fresh interpreter, so other tests' imports do not count.
 """
 
 from __future__ import annotations
@@ -13,6 +16,8 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 SRC = Path(__file__).resolve().parent.parent / "src"
 
@@ -54,3 +59,28 @@ def test_the_daemon_loads_neither_the_simulator_nor_the_diagnosis(tmp_path: Path
     loaded = _loaded(["run", "-i", "virtual", "-c", f"canrls-startup-{os.getpid()}",
                       "--duration", "0.5"], tmp_path)
     assert loaded == {"numpy", "cantools"}
+
+
+@pytest.fixture(scope="module")
+def log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from canrls.cli.main import main
+
+    path = tmp_path_factory.mktemp("startup") / "drive.log"
+    assert main(["sim", "--out", str(path), "--duration", "4", "--seed", "1"]) == 0
+    return path
+
+
+def test_fit_loads_no_plotting_templating_or_progress_bar(log: Path) -> None:
+    assert _loaded(["fit", str(log), "--kt", "0.1", "--quiet"], log.parent) == {
+        "numpy", "cantools"}
+    assert "tqdm" not in _loaded(["fit", str(log), "--kt", "0.1"], log.parent)  # no terminal
+
+
+def test_diagnose_without_a_report_loads_no_plotting_or_templating(log: Path) -> None:
+    assert _loaded(["diagnose", str(log), "--kt", "0.1", "--max-order", "4", "--quiet"],
+                   log.parent) == {"numpy", "cantools", "canrls.diagnosis"}
+
+
+@pytest.mark.parametrize("command", ["fit", "validate", "export-c", "monitor", "run"])
+def test_help_loads_neither_numpy_nor_cantools(command: str, tmp_path: Path) -> None:
+    assert _loaded([command, "--help"], tmp_path) == set()

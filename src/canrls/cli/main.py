@@ -38,7 +38,8 @@ def named_command(argv: Sequence[str]) -> str | None:
         if a == "--log-level":
             next(args, None)
         elif not a.startswith("-"):
-            return a if a in SUBCOMMANDS else None
+            name = a.replace("-", "_")  # export-c, fixed-sweep: their modules' names
+            return name if name in SUBCOMMANDS else None
     return None
 
 
