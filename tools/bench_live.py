@@ -28,8 +28,9 @@ frames the daemon sends go back to the sender, which counts them. Printed: the d
 CPU per frame over the timed window (the process from /proc, goal 20 us, and its
 estimator and bus reader threads from /proc/PID/task), frames sent against frames
 processed (goal: none lost), the datagrams the socket's receive buffer dropped, the
-parameter frames sent and received. Then, for comparison (skipped with ``--skip-floor``), the same run with
-python-can's ``Notifier`` alone on that bus, feeding a listener that only counts
+parameter frames sent and received. Then, for comparison (skipped with
+``--skip-floor``), the same run with python-can's ``Notifier`` alone on that bus, feeding
+a listener that only counts
 (:func:`floor_udp`): the CPU per frame of python-can's receive path and the operating
 system's wake-ups, one for each hand-over (the daemon's readers take every frame
 waiting and sleep ``rx_interval``, 5 ms, between wake-ups, so they can go below that
