@@ -311,3 +311,32 @@ def test_the_c_loops_refuse_wrong_arrays() -> None:
         candump.format_lines(*one, np.empty(20, np.uint8))
     # "(0.000000) can0 000#" and 16 digits and a newline
     assert candump.format_lines(*one, np.empty(40, np.uint8)) == 37
+
+
+# --------------------------------------------------------------------------- read ahead
+def test_reading_ahead_gives_the_blocks_and_counts_of_reading_in_turn(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Blocks of READ_AHEAD frames or more are parsed a block ahead in a thread: the same
+    blocks, with lines of every layout (slow lines included), and the same counts after
+    each block; a reader left early joins its thread and closes the file."""
+    from canrls.can import logs
+
+    path = tmp_path / "a.log"
+    path.write_bytes(candump_text(3, 5000))
+    runs = []
+    for ahead in (1000, 10**12):  # blocks of 1,000 frames read ahead / in turn
+        monkeypatch.setattr(logs, "READ_AHEAD", ahead)
+        st = LogReadStats()
+        seen = []
+        for b in read_frames(path, 1000, skip_bad_lines=True, stats=st):
+            seen.append((b, (st.frames, st.lines, st.bad_lines, st.slow_lines,
+                             st.bytes_read)))
+        runs.append(seen)
+    assert len(runs[0]) == len(runs[1]) > 3
+    for (a, sa), (b, sb) in zip(*runs, strict=True):
+        _identical(a, b)
+        assert sa == sb
+    monkeypatch.setattr(logs, "READ_AHEAD", 1)
+    reader = read_frames(path, 64, skip_bad_lines=True)
+    next(reader)
+    reader.close()  # the thread making the next block is joined (no leaked thread)

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import threading
 from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +37,7 @@ import can
 import numpy as np
 import numpy.typing as npt
 
+from canrls.background import Background
 from canrls.can import candump
 from canrls.can.frameblock import MAX_DATA_LENGTH, FrameBlock
 from canrls.errors import LogFormatError
@@ -120,45 +120,17 @@ def _read_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats,
 _END = object()
 
 
-class _Ahead:
-    """The next item of an iterator, made in a thread of its own (:func:`_read_ahead`)."""
-
-    def __init__(self, it: Iterator[Any]) -> None:
-        self._it = it
-        self._item: Any = None
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._next, name="canrls log reader",
-                                        daemon=True)
-        self._thread.start()
-
-    def _next(self) -> None:
-        try:
-            self._item = next(self._it, _END)
-        except BaseException as e:  # handed to the caller by result()
-            self._error = e
-
-    def join(self) -> None:
-        self._thread.join()
-
-    def result(self) -> Any:
-        """The item (``_END`` after the last), or the iterator's exception."""
-        self.join()
-        if self._error is not None:
-            raise self._error
-        return self._item
-
-
 def _read_ahead(it: Generator[_T, None, None]) -> Iterator[_T]:
     """The items of ``it``, each next one made in a thread while the caller works on the
-    current one. A thread per item (none waits between items, so a generator left
-    suspended holds no thread); ``it`` is closed at the end, or when the caller stops."""
-    ahead = _Ahead(it)
+    current one (a thread per item: a generator left suspended holds none); ``it`` is
+    closed at the end, or when the caller stops."""
+    ahead: Background[Any] = Background(next, it, _END, name="canrls log reader")
     try:
         while True:
             item = ahead.result()
             if item is _END:
                 return
-            ahead = _Ahead(it)
+            ahead = Background(next, it, _END, name="canrls log reader")
             yield item
     finally:
         ahead.join()  # an item made for a caller that stopped early is dropped
