@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import logging
 import sys
@@ -94,6 +95,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"internal error: {type(e).__name__}: {_one_line(e)} (rerun with --debug "
               f"for the traceback, and report it)", file=sys.stderr)
         return INTERNAL_ERROR
+    finally:
+        if argv is None:
+            # the process exits next: the collections of its way out need not go through
+            # every object it made (5 % of `canrls fit` of a 10-minute log, CPU time)
+            gc.freeze()
 
 
 def _run(given: list[str], process: bool) -> int:
