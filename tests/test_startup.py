@@ -4,8 +4,9 @@ The kernels are C extensions built at installation (``setup.py``): no module of 
 imports a JIT compiler. ``canrls run`` loads neither the simulator nor the diagnosis,
 ``canrls fit`` none of matplotlib, scipy, jinja2 and tqdm (a progress bar loads tqdm when
 it is drawn), and ``canrls fit --help`` neither numpy nor cantools: what a process does
-not import costs it no start-up time (docs/architecture.md, *Start-up*). Each command runs
-in a fresh interpreter, so other tests' imports do not count.
+not import costs it no start-up time (docs/architecture.md, *Start-up*); a command's
+process runs numpy's BLAS in one thread unless told otherwise. Each command runs in a
+fresh interpreter, so other tests' imports do not count.
 """
 
 from __future__ import annotations
@@ -84,3 +85,32 @@ def test_diagnose_without_a_report_loads_no_plotting_or_templating(log: Path) ->
 @pytest.mark.parametrize("command", ["fit", "validate", "export-c", "monitor", "run"])
 def test_help_loads_neither_numpy_nor_cantools(command: str, tmp_path: Path) -> None:
     assert _loaded([command, "--help"], tmp_path) == set()
+
+
+#: prints OPENBLAS_NUM_THREADS as main() leaves it, called as the console script or
+#: with an argv
+BLAS = """
+import os, sys
+from canrls.cli.main import main
+sys.argv = ["canrls", "--version"]
+try:
+    main(None if HOW == "process" else ["--version"])
+except SystemExit:
+    pass
+print(os.environ.get("OPENBLAS_NUM_THREADS", "unset"))
+"""
+
+
+@pytest.mark.parametrize("how, given, want", [("process", None, "1"),
+                                               ("process", "4", "4"),
+                                               ("call", None, "unset")])
+def test_a_command_process_runs_blas_in_one_thread_unless_told(how: str, given: str | None,
+                                                               want: str) -> None:
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    env["PYTHONPATH"] = str(SRC)
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    r = subprocess.run([sys.executable, "-c", f"HOW = {how!r}\n" + BLAS], env=env,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == want

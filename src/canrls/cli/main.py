@@ -6,6 +6,7 @@ import argparse
 import gc
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
@@ -78,6 +79,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status:
     0 done, 1 a :class:`CanrlsError` (one ``error:`` line), 2 usage, 3 an internal error
     (one ``internal error:`` line), 130 interrupted. ``--debug`` shows the traceback."""
+    if argv is None:
+        # the process's own command: numpy's BLAS in one thread unless the environment
+        # says otherwise (set before numpy loads): the matrices are a model's, small,
+        # and a pool of threads costs its start in every command
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     given = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in given[:given.index("--")] if "--" in given else "--debug" in given
     try:
