@@ -357,7 +357,7 @@ def test_one_hour_simulates_fast() -> None:
     """Benchmark: one hour at 1 kHz (3.6 M periods). Timing is printed, never asserted."""
     sc = scenario("standard", duration=3600.0, seed=1)  # inertia,viscous,coulomb
     sim = Simulator(sc)
-    sim.step(10)  # compile / load the cache
+    sim.step(10)  # the first call (imports, first touch of the arrays)
     t0 = time.perf_counter()
     peak = 0.0
     for c in sim.chunks(262144):
