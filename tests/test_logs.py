@@ -293,6 +293,15 @@ def test_the_c_loops_give_the_numba_kernels_bytes() -> None:
     assert candump_digest(candump.parse, candump.format_lines) == "bcc0022e799a44cd"
 
 
+def test_the_c_parser_keeps_the_one_timestamp_bound() -> None:
+    """The compiled parser hands a line beyond the bound to the per-line path: its bound
+    is :data:`canrls.can.times.MAX_TIMESTAMP`, the one of live and offline."""
+    from canrls import _candump
+    from canrls.can import times
+
+    assert _candump.MAX_TIMESTAMP == times.MAX_TIMESTAMP == candump.MAX_TIMESTAMP
+
+
 def test_the_c_loops_refuse_wrong_arrays() -> None:
     buf = np.frombuffer(b"(1.0) can0 123#00\n", np.uint8)
     rows = [np.empty(4), np.empty(4, np.uint32), np.empty(4, np.bool_), np.empty(4, np.bool_),

@@ -28,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _candump
+from canrls.can import times
 
 __all__ = ["parse", "format_lines", "CAN_ERR_FLAG", "EFF_MASK", "MAX_TIMESTAMP"]
 
@@ -35,11 +36,12 @@ __all__ = ["parse", "format_lines", "CAN_ERR_FLAG", "EFF_MASK", "MAX_TIMESTAMP"]
 CAN_ERR_FLAG: int = _candump.CAN_ERR_FLAG
 EFF_MASK: int = _candump.EFF_MASK
 
-#: Largest timestamp [s] a log line may carry (about the year 2286): a line beyond it
-#: (``(1e300)``, ``(inf)``, a corrupted time) is not a frame of this log but a bad line
+#: Largest timestamp [s] a log line may carry (:data:`canrls.can.times.MAX_TIMESTAMP`,
+#: the one bound of live and offline): a line beyond it (``(1e300)``, ``(inf)``, a
+#: corrupted time) is not a frame of this log but a bad line
 #: (:class:`~canrls.errors.LogFormatError` naming the line, skippable with
 #: ``skip_bad_lines``); the compiled parser hands such lines to the per-line path.
-MAX_TIMESTAMP: float = _candump.MAX_TIMESTAMP
+MAX_TIMESTAMP: float = times.MAX_TIMESTAMP
 
 
 def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,

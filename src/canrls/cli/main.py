@@ -11,6 +11,7 @@ import sys
 from collections.abc import Sequence
 
 from canrls import __version__
+from canrls.cli import early_signals
 from canrls.errors import CanrlsError
 
 #: Subcommand modules, in the order ``--help`` lists them.
@@ -85,6 +86,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # and a pool of threads costs its start in every command
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     given = list(sys.argv[1:] if argv is None else argv)
+    if argv is None and named_command(given) == "run":
+        # the process's own canrls run: its signals are handled from here on, before
+        # numpy, python-can and cantools load (docs/daemon.md)
+        early_signals.install()
     debug = "--debug" in given[:given.index("--")] if "--" in given else "--debug" in given
     try:
         return _run(given, process=argv is None)

@@ -27,6 +27,7 @@ from canrls.diagnosis.results import (
 )
 from canrls.errors import ConfigError
 from canrls.estimation.model import Model
+from canrls.estimation.physics import describe
 from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
 
 if TYPE_CHECKING:  # imported when a page is rendered, not for the text report
@@ -117,6 +118,7 @@ class DiagnosisReport:
             "excitation": p.excitation.to_dict(),
             "identifiable": self.identifiable,
             "identifiability": [r for q in self.before.equations for r in q.identifiability],
+            "implausible": [i.to_dict() for i in self.before.estimates.implausible],
             "verdict": self.verdict,
         }
         if self.frames is not None:
@@ -130,6 +132,9 @@ class DiagnosisReport:
         b = self.before
         out.append(f"{self.source}: {self.samples} samples ({self.duration:.1f} s), "
                    f"model {', '.join(b.effects)}")
+        out.extend(describe(b.estimates.implausible))
+        if self.after is not None:
+            out.extend(f"after adding: {line}" for line in describe(self.after.estimates.implausible))
         for q in b.equations:
             out.extend(_format_equation(q, self.model.axis))
         if self.after is not None:

@@ -178,8 +178,9 @@ class DaemonSettings:
                     raise ConfigError(f"{key} = {v!r}: must be an integer >= 0 (bytes)")
                 kw[k] = v
             elif k in _PATH_KEYS:
-                if not isinstance(v, str):
-                    raise ConfigError(f"{key} = {v!r}: must be a file path")
+                if not isinstance(v, str) or "\0" in v:
+                    raise ConfigError(f"{key} = {v!r}: must be a file path"
+                                      + (" (no NUL byte)" if isinstance(v, str) else ""))
                 if v:
                     kw[k] = resolve_path(v, base_dir)
             else:
