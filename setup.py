@@ -11,16 +11,20 @@ _CFLAGS = ["-O2", "-std=c99", "-Wall", "-Wextra", "-Werror", "-ffp-contract=off"
 
 EXTENSIONS: list[Extension] = [
     # the per-sample float loops of the estimation (RLS, SVF, selection, unwrapping,
-    # pipeline sums), one implementation for the daemon and the offline replay.
+    # pipeline sums; the diagnosis's harmonic columns), one implementation for the daemon
+    # and the offline replay.
     # -fvect-cost-model=dynamic: GCC's -O2 default vectorises only loops whose trip count
     # is known; these run over n parameters, and vectorised (element-wise, so the same
     # bits; reductions stay in order) the float RLS is about 30 % faster at n = 8
     Extension("canrls._kernels", sources=["src/canrls/c/kernels.c"],
-              depends=["src/canrls/c/kernels_rls.h"],
+              depends=["src/canrls/c/kernels_rls.h", "src/canrls/c/pyargs.h"],
               extra_compile_args=[*_CFLAGS, "-fvect-cost-model=dynamic"]),
     # the per-frame loops of the CAN layer (strict decoding, counters, CRC, pairing):
     # canrls.can, live and offline
     Extension("canrls._can", sources=["src/canrls/c/can.c"], extra_compile_args=_CFLAGS),
+    # the candump reader and writer (text <-> frame arrays): canrls.can.candump
+    Extension("canrls._candump", sources=["src/canrls/c/candump.c"],
+              depends=["src/canrls/c/pyargs.h"], extra_compile_args=_CFLAGS),
     # the bulk receive of SocketCAN frames (recvmmsg into a FrameBlock's arrays):
     # canrls.live.socketcan, the daemon's reader of a python-can SocketcanBus. Linux only;
     # it builds everywhere (recv raises NotImplementedError where recvmmsg is missing)
@@ -31,6 +35,13 @@ EXTENSIONS: list[Extension] = [
               sources=["src/canrls/c/fixed_module.c", "src/canrls/c/canrls_fixed.c"],
               include_dirs=["src/canrls/c"], depends=["src/canrls/c/canrls_fixed.h"],
               extra_compile_args=_CFLAGS),
+    # the fixed-point RLS as specified (every update form, any n) for
+    # canrls.estimation.fixed_kernels: where the target's kernel does not apply
+    Extension("canrls._fixedspec", sources=["src/canrls/c/fixed_spec.c"],
+              depends=["src/canrls/c/pyargs.h"], extra_compile_args=_CFLAGS),
+    # the simulated drive's loop (sensors, controllers, RK4): canrls.sim.plant
+    Extension("canrls._sim", sources=["src/canrls/c/sim.c"],
+              depends=["src/canrls/c/pyargs.h"], extra_compile_args=_CFLAGS),
 ]
 
 setup(ext_modules=EXTENSIONS)

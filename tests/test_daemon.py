@@ -689,6 +689,19 @@ def test_daemon_settings_are_validated(tmp_path: Path) -> None:
         assert "f.toml" in str(e.value)
 
 
+def test_the_obsolete_cache_dir_is_ignored_with_a_warning(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """``[daemon] cache_dir`` (the directory of the compiled kernels' cache, when canrls
+    compiled them at run time) still loads: ignored, with a warning naming the file and
+    saying why; a configuration file of an earlier version keeps working."""
+    with caplog.at_level(logging.WARNING, logger="canrls.live.settings"):
+        s = DaemonSettings.from_table({"cache_dir": "kernels", "commands": True}, "f.toml")
+    assert s.commands and not hasattr(s, "cache_dir")
+    assert [r.getMessage() for r in caplog.records] == [
+        "f.toml: daemon.cache_dir is obsolete and ignored (canrls compiles nothing at run "
+        "time any more, so it keeps no cache of compiled kernels): remove it"]
+
+
 def test_running_daemons_shorten_the_switch_interval_and_freeze_the_heap() -> None:
     protocol, model, settings = _setup()
     before = sys.getswitchinterval()
@@ -712,21 +725,6 @@ def test_running_daemons_shorten_the_switch_interval_and_freeze_the_heap() -> No
     assert gc.get_freeze_count() == 0
     with pytest.raises(ConfigError, match="switch_interval"):
         DaemonSettings.from_table({"switch_interval": -1.0}, "f.toml")
-
-
-def test_warm_up_runs_every_estimator_and_changes_nothing() -> None:
-    protocol, model, settings = _setup(BASE + ["unbalance", "cogging:6"])
-    ch = _chan("warm")
-    d = Daemon(protocol, model, settings, DaemonSettings(),
-               bus={"interface": "virtual", "channel": ch})
-    with VirtualBus(channel=ch) as observer:
-        proc = d.warm_up()
-        assert observer.recv(0.05) is None  # nothing sent
-    assert proc is not d.processor
-    assert all(f > 0 and q > 0 for f, q in proc.pipeline.update_counts())
-    assert d.processor.frames == 0
-    assert all(f == 0 and q == 0 for f, q in d.pipeline.update_counts())
-    assert d.stats().frames == 0
 
 
 def test_messages_to_block_matches_from_messages() -> None:

@@ -306,8 +306,10 @@ CONFIGS = [
 def test_kernel_is_bit_exact_against_python_integers(
     update: str, W: int, A: int, In: int, lam: float, n: int, alpha: float, tm: float
 ) -> None:
-    """numba kernel == the pure-Python reference, integer for integer, on inputs that
-    saturate (raw integers beyond the word, outliers), wind up and excite poorly.
+    """The compiled kernels (the target's for the symmetric form, the compiled
+    specification for the others) == the pure-Python reference, integer for integer, on
+    inputs that saturate (raw integers beyond the word, outliers), wind up and excite
+    poorly.
 
     The reference also asserts every accumulator value against ``acc_bits``: the
     guard-bit argument holds on these inputs.

@@ -1,20 +1,26 @@
 """The compiled extension ``canrls._fixed`` (the C kernel in the service) against the spec.
 
 :class:`FixedRLS` runs its blocks through the extension (``backend == "c"``); these tests
-run the same blocks through the numba specification (``backend = "spec"``) and the
-pure-Python :func:`reference_block`, and require the same integers: eps, trace, exponent,
-flags, theta after every row, every word of P, the forgetting scale, K and the counters.
-The cases are the C kernel's test vectors (tests/test_ckernel.py).
+run the same blocks through the compiled specification (``backend = "spec"``,
+``canrls._fixedspec``) and the pure-Python :func:`reference_block`, and require the same
+integers: eps, trace, exponent, flags, theta after every row, every word of P, the
+forgetting scale, K and the counters. The cases are the C kernel's test vectors
+(tests/test_ckernel.py). The compiled specification gives what the numba one it replaces
+gave, bit for bit (a digest).
 """
 
 from __future__ import annotations
 
+import hashlib
 import subprocess
 import sys
+from typing import Any
 
 import numpy as np
 import pytest
 
+from canrls import _fixedspec
+from canrls.estimation import fixed_kernels
 from canrls.estimation.fixed import FixedConfig, FixedRLS
 
 cfixed = pytest.importorskip(
@@ -92,8 +98,9 @@ def test_literal_and_large_models_use_the_spec() -> None:
         FixedRLS(cfg, 3, 0.99, 1e-2).backend = "fast"
 
 
-def test_fixed_runs_without_importing_the_numba_spec() -> None:
-    """fixed.py itself imports no numba: the spec kernels load only when needed."""
+def test_fixed_runs_without_importing_the_spec() -> None:
+    """The symmetric form runs on the target's kernel alone: the specification
+    (fixed_kernels, canrls._fixedspec) loads only when needed."""
     code = (
         "import sys\n"
         "import numpy as np\n"
@@ -155,3 +162,86 @@ def test_run_block_lets_other_threads_run() -> None:
         stop.set()
         t.join(10)
     assert during > 0
+
+
+# ------------------------------------- the compiled specification against the numba one
+#: (update, word, acc, input bits, n, lambda) of the digest runs: every form, n beyond the
+#: C kernel's bound, narrow words and a narrow accumulator (16-bit words hold n <= 8)
+SPEC_RUNS = [(u, *w, n, lam) for u in ("symmetric", "literal", "naive")
+             for w in ((32, 64, 32), (24, 48, 16), (24, 32, 16), (16, 32, 16))
+             for n, lam in ((3, 0.99), (8, 1.0), (14, 0.95)) if w[0] > 16 or n <= 8]
+
+
+def spec_digest(block: Any) -> str:
+    """SHA-256 of everything ``block`` (:func:`fixed_kernels.fixed_block`'s signature)
+    gives over :data:`SPEC_RUNS`: 1,500 rows each with saturating inputs and frozen
+    stretches, from the prior and from a disturbed state (random words of P, random
+    fractions of theta)."""
+    rng = np.random.default_rng(17)
+    h = hashlib.sha256()
+    for update, W, A, In, n, lam in SPEC_RUNS:
+        cfg = FixedConfig.auto(n, 1e-2, lam, word_bits=W, acc_bits=A, input_bits=In,
+                               trace_max=0.3 * n / 1e-2)
+        for disturbed in (False, True):
+            est = FixedRLS(cfg, n, lam, 1e-2, trace_max=0.3 * n / 1e-2, update=update)
+            if disturbed:
+                st = est.state()
+                lim = 2 ** (W - 1)
+                st["P"] = np.clip(st["P"] + rng.integers(-1000, 1000, st["P"].shape),
+                                  -lim, lim - 1)
+                st["theta_frac"] = rng.integers(0, 2**32, n)
+                est = FixedRLS.from_state(st)
+            N = 1500
+            Phi = rng.uniform(-1, 1, (N, n)) * (rng.random((N, 1)) < 0.9)
+            Pq, Yq, _ = cfg.quantize_inputs(Phi, Phi @ rng.uniform(-1, 1, n)
+                                            + rng.normal(0, 0.1, N))
+            Pq = Pq.copy()
+            big = rng.random(N) < 0.01
+            Pq[big] = rng.integers(-(1 << 40), 1 << 40, (int(big.sum()), n))
+            frozen = rng.random(N) < 0.05
+            k = 0
+            while k < N:
+                j = k + 1
+                while j < N and frozen[j] == frozen[k]:
+                    j += 1
+                m = j - k
+                out = [np.empty(m, np.int64), np.empty((m, n), np.int64),
+                       np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m, np.uint8)]
+                applied = block(np.ascontiguousarray(Pq[k:j]), np.ascontiguousarray(Yq[k:j]),
+                                est._theta, est._theta_frac, est._P, est._scale, est._work,
+                                est._counts, est._plan, est._mode, bool(frozen[k]), True,
+                                *out)
+                h.update(repr(int(applied)).encode())
+                for a in out:
+                    h.update(a.tobytes())
+                k = j
+            for a in (est._theta, est._theta_frac, est._P, est._scale, est._work, est._counts):
+                h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def test_the_compiled_spec_gives_the_numba_specs_bits() -> None:
+    """The specification compiled in C (``canrls._fixedspec``: every update form, any n)
+    gives, bit for bit, what the numba specification it replaces gave (f79833d:
+    ``canrls.estimation.fixed_kernels.fixed_block``)."""
+    assert spec_digest(fixed_kernels.fixed_block) == "d78b252228a97305"
+
+
+def test_the_compiled_spec_refuses_wrong_arrays() -> None:
+    n, N = 3, 4
+    z = np.zeros
+    est = FixedRLS(FixedConfig.auto(n, 1e-2, 0.99), n, 0.99, 1e-2)
+    args = [z((N, n), np.int64), z(N, np.int64), z(n, np.int64), z(n, np.int64),
+            z((n, n), np.int64), z(2, np.int64), z((6, n), np.int64), z(fixed_kernels.NSITES,
+            np.int64), est._plan, 0, False, True, z(N, np.int64), z((N, n), np.int64),
+            z(N, np.int64), z(N, np.int64), z(N, np.uint8)]
+    assert fixed_kernels.fixed_block(*args) == N
+    for k, bad, err, msg in ((13, z((N - 1, n), np.int64), ValueError, "theta_out must have"),
+                             (6, z((5, n), np.int64), ValueError, "work must have shape"),
+                             (8, z(3, np.int64), ValueError, "prm must have shape"),
+                             (0, z((N, n)), TypeError, "Phi must be a int64"),
+                             (9, 3, ValueError, "unknown mode 3")):
+        with pytest.raises(err, match=msg):
+            fixed_kernels.fixed_block(*args[:k], bad, *args[k + 1:])
+    assert (fixed_kernels.NSITES, fixed_kernels.NPARAM) == (_fixedspec.NSITES,
+                                                            _fixedspec.NPARAM)

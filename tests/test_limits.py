@@ -19,7 +19,6 @@ from canrls.config import MAX_DEPTH, load_config, read_toml
 from canrls.errors import ConfigError, DecodeError, ExpressionError
 from canrls.estimation.expr import compile_expression
 from canrls.estimation.svf import MAX_TIME_CONSTANT, SVF, ZETA_RANGE
-from canrls.live.cache import configured_cache_dir, preload
 
 USER = ('[model]\neffects = ["inertia", "viscous", "coulomb", "user:d"]\n'
         '[[model.terms]]\nname = "d"\nexpr = "{expr}"\n{extra}\n')
@@ -148,13 +147,6 @@ def test_64_bit_integers_are_read(tmp_path: Path) -> None:
     p = tmp_path / "ints.toml"
     p.write_text(f"[estimator]\nalpha = {2**63 - 1}\nlambda = {-2**63}\n")
     assert load_config(p).estimator["alpha"] == 2**63 - 1
-
-
-def test_cache_preload_leaves_an_unreadable_config_to_the_loader(tmp_path: Path) -> None:
-    p = tmp_path / "deep.toml"
-    p.write_text("a = " + "[" * 3000 + "]" * 3000 + "\n")
-    assert configured_cache_dir(p) is None
-    assert preload(["run", "-C", str(p)]) is None
 
 
 # --------------------------------------------------------------------------- expressions

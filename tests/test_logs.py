@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
 import pytest
 
+from canrls.can import candump
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, read_frames, write_candump, write_log
 from canrls.errors import LogFormatError
@@ -223,3 +226,126 @@ def test_write_candump_formats_as_python_does(tmp_path: Path, width: int) -> Non
     b.t[3] = -1.25  # negative timestamps take Python's formatting
     write_candump(path, [b], "vcan0")
     assert path.read_text() == _format_reference(b, "vcan0")
+
+
+# --------------------------------------------- the C loops against the numba kernels
+def candump_text(seed: int, lines: int) -> bytes:
+    """Seeded candump text of every layout the parser meets: runs of one layout, epoch
+    and zero-based times of 0 to 24 digits, 3-, 5- and 8-digit IDs, odd data, remote
+    frames, doubled spaces, comments, blank lines, ``\\r\\n``, ``(inf)``."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(lines):
+        ts = f"{rng.uniform(0, 2e9 if rng.random() < 0.5 else 100):.{rng.integers(0, 9)}f}"
+        if rng.random() < 0.05:
+            ts = "".join(rng.choice(list("0123456789"), int(rng.integers(1, 25))))
+        ident = "".join(rng.choice(list("0123456789ABCDEFabcdef"),
+                                   int(rng.choice([3, 8, 8, 3, 5]))))
+        data = "".join(rng.choice(list("0123456789ABCDEF"), 2 * int(rng.integers(0, 10))))
+        data += "G" if rng.random() < 0.03 else ""
+        data = "R" if rng.random() < 0.02 else data
+        sep = "  " if rng.random() < 0.02 else " "
+        line = f"({ts}){sep}{rng.choice(['can0', 'vcan12', 'x'])} {ident}#{data}"
+        line = "# comment" if rng.random() < 0.02 else line
+        line = "" if rng.random() < 0.02 else line
+        line = "(inf) can0 123#00" if rng.random() < 0.01 else line
+        end = "\r\n" if rng.random() < 0.05 else "\n"
+        out += [line + end] * (2 if rng.random() < 0.7 else 1)
+    return "".join(out).encode()
+
+
+def candump_digest(parse: Any, format_lines: Any) -> str:
+    """SHA-256 of what ``parse`` gives on :func:`candump_text` cut at random places (a
+    line cut, the end of the buffer final or not, capacities of 1 to 400 rows) and of
+    what ``format_lines`` writes for random blocks (8 and 64 bytes wide)."""
+    rng = np.random.default_rng(5)
+    h = hashlib.sha256()
+    for k in range(200):
+        buf = np.frombuffer(candump_text(k, int(rng.integers(1, 200))), np.uint8).copy()
+        cap = int(rng.integers(1, 400))
+        stop = int(rng.integers(0, len(buf) + 1)) if rng.random() < 0.5 else len(buf)
+        out = [np.full(cap, -1.0), np.zeros(cap, np.uint32), np.zeros(cap, np.bool_),
+               np.zeros(cap, np.bool_), np.zeros(cap, np.uint8), np.full((cap, 8), 7, np.uint8),
+               np.full((cap, 4), -5, np.int64)]
+        r = parse(buf, stop, bool(rng.random() < 0.5), *out)
+        h.update(repr(tuple(int(x) for x in r)).encode())
+        for a in out[:6]:
+            h.update(a[:r[1]].tobytes())
+        h.update(out[6][:r[2]].tobytes())
+    for _ in range(100):
+        n, width = int(rng.integers(1, 300)), int(rng.choice([8, 8, 64]))
+        ext, rtr, err = rng.random(n) < 0.5, rng.random(n) < 0.1, rng.random(n) < 0.1
+        aid = rng.integers(0, 2**29, n).astype(np.uint32)
+        aid[~ext & ~err] &= 0x7FF
+        dlc = rng.integers(0, 16 if width == 64 else 9, n).astype(np.uint8)
+        ch = np.frombuffer(rng.choice([b"can0", b"vcan1", b"c"]), np.uint8)
+        out8 = np.zeros(n * (33 + len(ch) + 2 * width), np.uint8)
+        size = format_lines(rng.integers(0, 5_000_000_000, n), rng.integers(0, 1_000_000, n),
+                            aid, ext, rtr, err, dlc,
+                            rng.integers(0, 256, (n, width)).astype(np.uint8), ch, out8)
+        h.update(out8[:size].tobytes())
+    return h.hexdigest()[:16]
+
+
+def test_the_c_loops_give_the_numba_kernels_bytes() -> None:
+    """The candump parser and writer in C (``canrls._candump``) give, byte for byte, what
+    the numba kernels they replace gave (f79833d: ``canrls.can.candump``)."""
+    assert candump_digest(candump.parse, candump.format_lines) == "bcc0022e799a44cd"
+
+
+def test_the_c_parser_keeps_the_one_timestamp_bound() -> None:
+    """The compiled parser hands a line beyond the bound to the per-line path: its bound
+    is :data:`canrls.can.times.MAX_TIMESTAMP`, the one of live and offline."""
+    from canrls import _candump
+    from canrls.can import times
+
+    assert _candump.MAX_TIMESTAMP == times.MAX_TIMESTAMP == candump.MAX_TIMESTAMP
+
+
+def test_the_c_loops_refuse_wrong_arrays() -> None:
+    buf = np.frombuffer(b"(1.0) can0 123#00\n", np.uint8)
+    rows = [np.empty(4), np.empty(4, np.uint32), np.empty(4, np.bool_), np.empty(4, np.bool_),
+            np.empty(4, np.uint8), np.empty((4, 8), np.uint8), np.empty((4, 4), np.int64)]
+    assert candump.parse(buf, len(buf), True, *rows)[:3] == (len(buf), 1, 0)
+    with pytest.raises(ValueError, match="stop 99 is outside buf"):
+        candump.parse(buf, 99, True, *rows)
+    with pytest.raises(ValueError, match="data must have shape"):
+        candump.parse(buf, len(buf), True, *rows[:5], np.empty((4, 6), np.uint8), rows[6])
+    with pytest.raises(TypeError, match="aid must be a uint32"):
+        candump.parse(buf, len(buf), True, rows[0], np.empty(4, np.int64), *rows[2:])
+    one = [np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.uint32),
+           *(np.zeros(1, np.bool_) for _ in range(3)), np.full(1, 8, np.uint8),
+           np.zeros((1, 8), np.uint8), np.frombuffer(b"can0", np.uint8)]
+    with pytest.raises(ValueError, match="out is too small"):
+        candump.format_lines(*one, np.empty(20, np.uint8))
+    # "(0.000000) can0 000#" and 16 digits and a newline
+    assert candump.format_lines(*one, np.empty(40, np.uint8)) == 37
+
+
+# --------------------------------------------------------------------------- read ahead
+def test_reading_ahead_gives_the_blocks_and_counts_of_reading_in_turn(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Blocks of READ_AHEAD frames or more are parsed a block ahead in a thread: the same
+    blocks, with lines of every layout (slow lines included), and the same counts after
+    each block; a reader left early joins its thread and closes the file."""
+    from canrls.can import logs
+
+    path = tmp_path / "a.log"
+    path.write_bytes(candump_text(3, 5000))
+    runs = []
+    for ahead in (1000, 10**12):  # blocks of 1,000 frames read ahead / in turn
+        monkeypatch.setattr(logs, "READ_AHEAD", ahead)
+        st = LogReadStats()
+        seen = []
+        for b in read_frames(path, 1000, skip_bad_lines=True, stats=st):
+            seen.append((b, (st.frames, st.lines, st.bad_lines, st.slow_lines,
+                             st.bytes_read)))
+        runs.append(seen)
+    assert len(runs[0]) == len(runs[1]) > 3
+    for (a, sa), (b, sb) in zip(*runs, strict=True):
+        _identical(a, b)
+        assert sa == sb
+    monkeypatch.setattr(logs, "READ_AHEAD", 1)
+    reader = read_frames(path, 64, skip_bad_lines=True)
+    next(reader)
+    reader.close()  # the thread making the next block is joined (no leaked thread)

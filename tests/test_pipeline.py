@@ -72,6 +72,62 @@ def test_any_block_sizes_give_the_same_bits(standard: object) -> None:
     assert ea.residual_rms == eb.residual_rms
 
 
+@pytest.mark.parametrize("record", [False, True])
+def test_the_fixed_point_thread_gives_the_same_bits(standard: object, record: bool,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Large blocks run the fixed-point estimator in a thread beside the float one
+    (OVERLAP_ROWS): every output and the state are those of the estimators one after the
+    other."""
+    from canrls.estimation import pipeline
+
+    sig: Signals = standard.measured  # type: ignore[attr-defined]
+    model = _model(standard)
+    outs = []
+    for rows in (1, 10**12):  # every block in a thread / none
+        monkeypatch.setattr(pipeline, "OVERLAP_ROWS", rows)
+        pipe = Pipeline(model, 1e-3)
+        blocks = [pipe.process(sig.slice(k, k + 7000), record=record)
+                  for k in range(0, len(sig), 7000)]
+        outs.append(([(q.eps, q.eps_fixed, q.flags, q.online_rms, q.theta, q.theta_fixed)
+                      for b in blocks for q in b.equations], pipe.state()))
+    (a, sa), (b, sb) = outs
+    for x, y in zip(a, b, strict=True):
+        for u, v in zip(x, y, strict=True):
+            assert (u is None and v is None) or np.array_equal(u, v, equal_nan=True)
+    _same_state(sa, sb)
+
+
+def _same_state(a: object, b: object) -> None:
+    """Two states (nested dicts, lists, arrays, numbers) equal item for item, bit for bit."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys()
+        for k in a:
+            _same_state(a[k], b[k])
+    elif isinstance(a, (list, tuple)):
+        assert isinstance(b, (list, tuple)) and len(a) == len(b)
+        for x, y in zip(a, b, strict=True):
+            _same_state(x, y)
+    elif isinstance(a, np.ndarray):
+        assert a.dtype == np.asarray(b).dtype and a.tobytes() == np.asarray(b).tobytes()
+    else:
+        assert a == b or (a != a and b != b), (a, b)  # nan: itself
+
+
+def test_an_error_of_the_fixed_point_thread_reaches_the_caller(
+        standard: object, monkeypatch: pytest.MonkeyPatch) -> None:
+    from canrls.estimation import pipeline
+
+    monkeypatch.setattr(pipeline, "OVERLAP_ROWS", 1)
+    pipe = Pipeline(_model(standard), 1e-3)
+
+    def broken(*args: object) -> None:
+        raise RuntimeError("the fixed-point kernel failed")
+
+    monkeypatch.setattr(pipe.estimators[0], "_fixed_block", broken)
+    with pytest.raises(RuntimeError, match="fixed-point kernel failed"):
+        pipe.process(standard.measured)  # type: ignore[attr-defined]
+
+
 def test_a_gap_restarts_the_filter_and_skips_its_warm_up(standard: object) -> None:
     sig: Signals = standard.measured  # type: ignore[attr-defined]
     # without friction effects only the warm-ups are skipped

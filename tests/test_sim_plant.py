@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
 
+from canrls import _sim
 from canrls.errors import ConfigError, EffectError
 from canrls.sim import (
     PRESETS,
@@ -21,6 +25,7 @@ from canrls.sim import (
     simulate,
 )
 from canrls.sim.excitation import chirp, prbs, reversals
+from canrls.sim.plant import EFFECT_PARAMS, Plant
 
 ALL = "inertia,viscous,coulomb,stribeck,offset,unbalance,cogging:24,electrical"
 QUIET = Sensors(current_noise=0.0, speed_noise=0.0, current_step=0.0, speed_step=0.0,
@@ -203,6 +208,71 @@ def test_output_does_not_depend_on_chunking() -> None:
 # --------------------------------------------------------------------------- truth, scenario
 
 
+#: (effects, axis, sensors, band, offset of the speed reference) of the digest runs: every
+#: term of the loop, the electrical equation and the ideal current source, the stiff
+#: zone at standstill, a linear axis, sensors without quantisation
+PLANT_RUNS = [
+    ("inertia,viscous", "rotary", Sensors(), 1e-3, 0.0),
+    ("inertia,viscous,coulomb,offset", "rotary", Sensors(), 1e-3, 5.0),
+    ("inertia,viscous,coulomb,stribeck,offset,unbalance,cogging:6,cogging:24", "linear",
+     Sensors(), 0.05, 0.0),
+    ("inertia,viscous,coulomb,electrical", "rotary",
+     Sensors(current_step=0.0, speed_step=0.0, position_step=0.0, position_noise=0.01),
+     1e-3, 0.0),
+    ("inertia,stribeck,unbalance,electrical,cogging:3", "linear", Sensors(), 1e-3, 5.0),
+]
+
+
+def plant_digest(run: Callable[..., Any]) -> str:
+    """SHA-256 of the loop's outputs and final states over :data:`PLANT_RUNS` (seeded
+    parameters and noise, 3,000 periods each in blocks of 1, 999 and 2,000)."""
+    h = hashlib.sha256()
+    for k, (effects, axis, sensors, band, offset) in enumerate(PLANT_RUNS):
+        rng = np.random.default_rng(k)
+        params = {f"{e}.{s}": float(rng.uniform(0.01, 0.5)) * (1e-3 if s == "J" else 1.0)
+                  for e in parse_effects(effects) for s in EFFECT_PARAMS[e.split(":")[0]]}
+        params.update({p: v for p, v in (("electrical.R", 0.5), ("electrical.L", 1e-3),
+                                         ("electrical.Ke", 0.1)) if p in params})
+        truth = Truth(params, axis=axis, pitch=0.05 if axis == "linear" else 1.0,
+                      coulomb_band=band)
+        plant = Plant(truth, sensors=sensors, seed=k)
+        t = np.arange(3000) * 1e-3
+        w = 30.0 * np.sin(2 * np.pi * 0.7 * t) + offset
+        a = 30.0 * 2 * np.pi * 0.7 * np.cos(2 * np.pi * 0.7 * t)
+        for s in (slice(0, 1), slice(1, 1000), slice(1000, 3000)):
+            n = s.stop - s.start
+            noise = rng.standard_normal((n, 3)) * np.array([0.005, 0.02, 0.001])
+            out = np.empty((n, 9))
+            run(plant.dt, plant.nsub, plant.h_stiff, plant._state, plant._p, plant._ck,
+                plant._cs, plant._cc, plant._gains, plant._quant,
+                np.ascontiguousarray(w[s]), np.ascontiguousarray(a[s]), noise, out)
+            h.update(out.tobytes())
+        h.update(plant._state.tobytes())
+    return h.hexdigest()[:16]
+
+
+def test_the_c_loop_gives_the_numba_loops_bits() -> None:
+    """The simulated drive's loop in C (``canrls._sim``) gives, bit for bit, what the numba
+    kernel it replaces gave (f79833d: ``canrls.sim.plant._run``); the simulated logs that
+    tests keep as goldens are unchanged."""
+    assert plant_digest(_sim.plant_run) == "82cb553671107f57"
+
+
+def test_the_loop_refuses_wrong_arrays() -> None:
+    plant = Plant(Truth({"inertia.J": 1e-4}))
+    args = [plant.dt, plant.nsub, plant.h_stiff, plant._state, plant._p, plant._ck, plant._cs,
+            plant._cc, plant._gains, plant._quant, np.zeros(4), np.zeros(4), np.zeros((4, 3)),
+            np.empty((4, 9))]
+    _sim.plant_run(*args)
+    for k, bad, err, msg in ((13, np.empty((3, 9)), ValueError, "out must have shape"),
+                             (12, np.zeros((4, 2)), ValueError, "noise must have shape"),
+                             (4, np.zeros(14), ValueError, "p must have shape"),
+                             (10, np.zeros(4, np.float32), TypeError, "w_ref must be a float64"),
+                             (1, 0, ValueError, "nsub")):
+        with pytest.raises(err, match=msg):
+            _sim.plant_run(*args[:k], bad, *args[k + 1:])
+
+
 def test_truth_and_effect_validation() -> None:
     assert parse_effects("cogging:24, inertia,viscous") == ("inertia", "viscous", "cogging:24")
     with pytest.raises(EffectError, match="cogging:K"):
@@ -287,7 +357,7 @@ def test_one_hour_simulates_fast() -> None:
     """Benchmark: one hour at 1 kHz (3.6 M periods). Timing is printed, never asserted."""
     sc = scenario("standard", duration=3600.0, seed=1)  # inertia,viscous,coulomb
     sim = Simulator(sc)
-    sim.step(10)  # compile / load the cache
+    sim.step(10)  # the first call (imports, first touch of the arrays)
     t0 = time.perf_counter()
     peak = 0.0
     for c in sim.chunks(262144):

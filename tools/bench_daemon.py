@@ -17,12 +17,8 @@ channel by a feeder thread at a fixed rate, so the simulator's CPU is not the da
   (default one hour) go through as fast as the daemon takes them; first, the floor of
   a fresh process that only imports the daemon and builds one (no simulator, no
   frame), step by step (numpy + python-can + cantools, canrls's daemon modules, one
-  daemon; the daemon imports no JIT, which the floor checks). The memory over
-  simulated traffic includes the simulated drive in the same process, which uses
-  numba: the daemon's own figure over a bus is ``tools/bench_live.py``'s.
-
-Every daemon warms up at start (``Daemon.start``: the compiled kernels are loaded
-before the bus opens), so the figures are those of a running service.
+  daemon). The memory over simulated traffic includes the simulated drive in the same
+  process: the daemon's own figure over a bus is ``tools/bench_live.py``'s.
 
 Usage::
 
@@ -179,8 +175,6 @@ cfg.model = {"effects": %r, "kt": 0.1}
 protocol = cfg.protocol()
 Daemon(protocol, cfg.model_for(protocol), cfg.settings(), DaemonSettings(),
        bus={"interface": "virtual", "channel": "floor"})
-import sys
-assert "numba" not in sys.modules, "the daemon imported numba"
 print(a, c, rss(), rss("RssAnon"), rss("RssFile"))
 """
 
@@ -188,7 +182,7 @@ print(a, c, rss(), rss("RssAnon"), rss("RssFile"))
 def memory_floor() -> tuple[float, ...]:
     """RSS [MB] of a fresh process: numpy + python-can + cantools imported, then
     canrls' daemon modules, then one daemon built (then also split into private and
-    file-backed pages); no simulator, no frame yet, and no numba."""
+    file-backed pages); no simulator and no frame yet."""
     out = subprocess.run([sys.executable, "-c", _FLOOR % EFFECTS.split(",")],
                          capture_output=True, text=True, check=True).stdout.split()
     return tuple(int(x) / 1024.0 for x in out)
@@ -259,15 +253,15 @@ def main() -> None:
           + f" ({runs[0][2]} frames a run)")
     if not args.skip_memory:
         a, c, d, anon, file = memory_floor()
-        print(f"memory floor of the daemon alone (fresh process, before any frame, no "
-              f"JIT): numpy + python-can + cantools {a:.0f} MB, "
+        print(f"memory floor of the daemon alone (fresh process, before any frame): "
+              f"numpy + python-can + cantools {a:.0f} MB, "
               f"+ canrls {c:.0f} MB, one daemon built {d:.0f} MB "
               f"({anon:.0f} MB private, {file:.0f} MB of mapped files)")
         t0 = time.perf_counter()
         rows = bench_memory(args.memory_sim_s, args.memory_sim_s / 6)
         wall = time.perf_counter() - t0
         print(f"memory over {args.memory_sim_s:g} s of simulated traffic ({wall:.0f} s wall; "
-              f"the simulated drive, with numba, runs in the same process), "
+              f"the simulated drive runs in the same process), "
               f"RSS (of which private): "
               + ", ".join(f"{t:.0f} s: {m:.0f} ({a:.0f}) MB" for t, m, a in rows))
 

@@ -3,8 +3,8 @@
 grows with the log.
 
 Each command runs in its own Python process, which reports its own peak resident set
-(``getrusage(RUSAGE_SELF).ru_maxrss``), so the figures include the interpreter, numpy,
-numba and the compiled kernels. ``--traced`` runs ``diagnose`` once more per log under
+(``getrusage(RUSAGE_SELF).ru_maxrss``), so the figures include the interpreter, numpy
+and the C extensions. ``--traced`` runs ``diagnose`` once more per log under
 :mod:`tracemalloc` (numpy's arrays included; the peak above the memory in use when the
 command starts, which leaves out the imports; slower, and the tracing's own memory
 would inflate the resident set, hence a run of its own). Prints one line per log and

@@ -4,8 +4,8 @@ Prints figures; it is not a test. Writes two candump logs of the same frames (th
 default DBC's feedback frames of a ``--duration`` second run at 1 kHz, two frames per
 period: 10 minutes are 1.2 M frames), one with times from 0 and one from an epoch time
 (``--epoch``, 1.7e9 s, as ``candump -l`` writes), then reads each with
-:func:`canrls.can.logs.read_frames` warm (after one untimed read: JIT compilation and
-the first read of the file are not timed) and prints frames/s, best of ``--repeat``;
+:func:`canrls.can.logs.read_frames` warm (after one untimed read: the first read of the
+file is not timed) and prints frames/s, best of ``--repeat``;
 then the whole replay, ``fit_log`` (read, decode, measure and check the period, pair,
 estimate), the same way. Both logs should take the compiled fast path and replay at the
 same speed; the goal is at least 1 M frames/s each.

@@ -2,7 +2,8 @@
 
 Prints, for n = 4 and n = 8 (32-bit state, 64-bit accumulators, 32-bit inputs,
 lambda = 0.999) and each backend of ``FixedRLS`` (``c``: the C kernel through the
-extension ``canrls._fixed``, the default; ``spec``: the numba specification): updates
+extension ``canrls._fixed``, the default; ``spec``: the compiled specification,
+``canrls._fixedspec``): updates
 per second of the per-sample path (``FixedRLS.update``, one Python call per sample) and
 of the batch path (``FixedRLS.run`` over a block, ``record=False``), each the best of
 several repeats. The target is >= 3 M

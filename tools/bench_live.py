@@ -28,9 +28,9 @@ frames the daemon sends go back to the sender, which counts them. Printed: the d
 CPU per frame over the timed window (the process from /proc, goal 20 us, and its
 estimator and bus reader threads from /proc/PID/task), frames sent against frames
 processed (goal: none lost), the datagrams the socket's receive buffer dropped, the
-parameter frames sent and received. The daemon starts warm (the compiled kernels in
-their cache). Then, for comparison (skipped with ``--skip-floor``), the same run with
-python-can's ``Notifier`` alone on that bus, feeding a listener that only counts
+parameter frames sent and received. Then, for comparison (skipped with
+``--skip-floor``), the same run with python-can's ``Notifier`` alone on that bus, feeding
+a listener that only counts
 (:func:`floor_udp`): the CPU per frame of python-can's receive path and the operating
 system's wake-ups, one for each hand-over (the daemon's readers take every frame
 waiting and sleep ``rx_interval``, 5 ms, between wake-ups, so they can go below that
@@ -49,7 +49,7 @@ Two runs:
 
 * **1 kHz** (2,000 frames/s) for ``--duration`` seconds (default 60). The sender runs
   before the daemon starts (a drive on the bus), and the daemon starts cold: a fresh
-  process with an empty ``$HOME`` and cache directory (no compiled kernels). Figures:
+  process with an empty ``$HOME`` and cache directory. Figures:
   the time from the daemon's start to the first parameter frame on the bus (goal 3 s);
   its resident memory after ``--duration`` seconds (or 5 s after the first parameter
   frame, if that came later; ``VmRSS``, goal 100 MB; the peak
@@ -205,10 +205,9 @@ class Setup:
         """``canrls run``; ``period``: the control period the sender's rate makes (the
         DBC's 1 ms holds only at 2,000 frames/s, and the daemon checks it)."""
         env = dict(os.environ)
-        if cold:  # a fresh home: no cache of compiled kernels anywhere
+        if cold:  # a fresh home: nothing of an earlier run anywhere
             home = self.tmp / f"home-{len(self.procs)}"
             home.mkdir()
-            env.pop("NUMBA_CACHE_DIR", None)
             env.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"))
         p = subprocess.Popen([PY, "-m", "canrls", "run", "-i", "remote", "-c", self.url,
                               "--effects", EFFECTS, "--kt", "0.1", "--duration", f"{duration:g}",

@@ -10,8 +10,8 @@ Prints figures; it is not a test. For n = 4 and n = 8, on the same seeded data:
   plus the largest difference between its weights and our theta on those rows
   (the same recursion, so it should be at rounding level).
 
-Every figure is the best of ``--repeat`` timed runs after a warm-up run (the
-JIT compilation and the first touch of the output arrays are not timed). The
+Every figure is the best of ``--repeat`` timed runs after a warm-up run (the first
+touch of the output arrays is not timed). The
 machine may be shared: the best of several runs is the least disturbed one, and
 ``--clock cpu`` times with the thread's CPU time instead of the wall clock.
 

@@ -74,7 +74,8 @@ def write_vectors(path: Path, est: FixedRLS, Phi: IntArray, Y: IntArray,
     """
     N, n = Phi.shape
     fz = np.zeros(N, bool) if frozen is None else np.asarray(frozen, bool)
-    # the expected lines come from the specification (numba), never the C extension
+    # the expected lines come from the specification (canrls._fixedspec), never the
+    # target's kernel (canrls._fixed)
     est.backend = "spec"
     k = est.constants
     lines = [f"plan {len(k)}", *(f"{name} {v}" for name, v in k.items()),

@@ -97,7 +97,7 @@ def main() -> int:
                  "--duration", f"{length + 15:.0f}", "--json"],
                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             procs.append(daemon)
-            time.sleep(5.0)  # the daemon's start (its kernels load from numba's cache)
+            time.sleep(5.0)  # the daemon's start
             subprocess.run([PY, "-m", "can.player", "-i", "remote", "-c", remote, str(log)],
                            check=True, capture_output=True)
             out, err = daemon.communicate(timeout=length + 60)

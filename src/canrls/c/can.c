@@ -1,8 +1,7 @@
 /* canrls._can: the per-frame loops of the CAN layer (strict decoding and pairing).
  *
- * The live path (canrls run) runs these instead of JIT-compiled kernels, and the
- * offline replay runs the same code, so a log replayed offline gives the samples the
- * daemon built, bit for bit. Each function is the loop of one Python caller, which
+ * The live path (canrls run) and the offline replay run the same code, so a log
+ * replayed offline gives the samples the daemon built, bit for bit. Each function is the loop of one Python caller, which
  * owns the arrays (allocation, growth, dtypes) and documents the layout:
  *
  *   crc8          canrls.can.protocol._crc_vector     E2E CRC-8 of every row

@@ -3,12 +3,12 @@
  *
  * SPDX-License-Identifier: MIT
  *
- * One function, run_block(), runs canrls_update_q31() over a block of rows with the
- * state of a Python FixedRLS (symmetric update), taking every array through the
- * buffer protocol (no numpy C API): the int64 arrays of FixedRLS are converted to the
- * kernel's instance on entry and written back on exit. It computes what
- * canrls.estimation.fixed_kernels.fixed_block computes (mode symmetric), bit for bit
- * (tests/test_fixed_ext.py).
+ * run_block() runs canrls_update_q31() over a block of rows with the state of a Python
+ * FixedRLS (symmetric update), taking every array through the buffer protocol (no numpy
+ * C API): the int64 arrays of FixedRLS are converted to the kernel's instance on entry
+ * and written back on exit. It computes what canrls.estimation.fixed_kernels.fixed_block
+ * computes (mode symmetric), bit for bit (tests/test_fixed_ext.py). round_saturate()
+ * rounds the float inputs to their words before (FixedRLS.quantize_block).
  *
  * PLAN_FIELDS (a tuple of names) is the order in which run_block() reads the plan
  * vector: FixedRLS builds it from its named constants, so the two cannot drift.
@@ -16,6 +16,7 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <math.h>
 #include <string.h>
 
 #include "canrls_fixed.h"
@@ -236,8 +237,67 @@ done:
     return result;
 }
 
+PyDoc_STRVAR(round_saturate_doc,
+"round_saturate(x, scale, lo, hi, out) -> int\n\n"
+"out = clip(floor(x * scale + 1/2), lo, hi) for the float64 items of x into the int64\n"
+"items of out (as many); the number clamped, or -1 (out untouched) when x holds a NaN.\n"
+"The inputs of the fixed-point RLS rounded to their words\n"
+"(canrls.estimation.fixed._round_saturate).");
+
+static PyObject *round_saturate(PyObject *self, PyObject *args)
+{
+    PyObject *xo, *outo;
+    double scale, lo, hi;
+    Py_buffer xb, ob;
+    Py_ssize_t N, k, nsat = -1;
+    (void)self;
+    if (!PyArg_ParseTuple(args, "OdddO:round_saturate", &xo, &scale, &lo, &hi, &outo)) {
+        return NULL;
+    }
+    if (PyObject_GetBuffer(xo, &xb, PyBUF_C_CONTIGUOUS) != 0) {
+        return NULL;
+    }
+    if (xb.itemsize != 8) {
+        PyErr_SetString(PyExc_ValueError, "round_saturate: x must hold float64 items");
+        PyBuffer_Release(&xb);
+        return NULL;
+    }
+    N = xb.len / 8;
+    if (get_buf(outo, &ob, 8, N, 1, "out") != 0) {
+        PyBuffer_Release(&xb);
+        return NULL;
+    }
+    {
+        const double *x = xb.buf;
+        int64_t *out = ob.buf;
+        Py_BEGIN_ALLOW_THREADS
+        for (k = 0; k < N && !isnan(x[k]); k++) {
+        }
+        if (k == N) {
+            nsat = 0;
+            for (k = 0; k < N; k++) {
+                /* round half up: floor(x 2^frac + 1/2), then saturate to the word, counted */
+                double v = floor(x[k] * scale + 0.5);
+                if (v < lo) {
+                    v = lo;
+                    nsat++;
+                } else if (v > hi) {
+                    v = hi;
+                    nsat++;
+                }
+                out[k] = (int64_t)v;
+            }
+        }
+        Py_END_ALLOW_THREADS
+    }
+    PyBuffer_Release(&ob);
+    PyBuffer_Release(&xb);
+    return PyLong_FromSsize_t(nsat);
+}
+
 static PyMethodDef methods[] = {
     {"run_block", run_block, METH_VARARGS, run_block_doc},
+    {"round_saturate", round_saturate, METH_VARARGS, round_saturate_doc},
     {NULL, NULL, 0, NULL},
 };
 

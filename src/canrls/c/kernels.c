@@ -5,7 +5,8 @@
  *
  * One implementation for the live daemon and the offline replay: the float RLS
  * (symmetric and literal, float64 and float32), the state-variable filter, the sample
- * selection, the position unwrapping and the pipeline's bookkeeping sums. Each kernel
+ * selection, the position unwrapping and the pipeline's bookkeeping sums (and the
+ * harmonic columns of the diagnosis's order spectrum). Each kernel
  * is the loop the Python module describes, with the same operations in the same order
  * (the equation beside each line), so a recording gives the same bits wherever it is
  * processed. Built with -ffp-contract=off and without -ffast-math: no fused
@@ -25,6 +26,8 @@
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+
+#include "pyargs.h"
 
 #if !defined(FLT_EVAL_METHOD) || FLT_EVAL_METHOD != 0
 #error "the float32 kernels need FLT_EVAL_METHOD == 0 (float arithmetic in float)"
@@ -265,31 +268,24 @@ static Py_ssize_t bookkeeping(Py_ssize_t N, Py_ssize_t n, const double *phi,
     return windup;
 }
 
-/* ================================================================= Python glue */
-/* The item types the wrappers take: float64, float32, int64, uint8, bool, and REAL:
- * the precision of the call (an RLS state's dtype, float64 elsewhere). */
-enum kind { F64, F32, I64, U8, BOOL, REAL_ };
-
-static const char *kind_name[] = {"float64", "float32", "int64", "uint8", "bool"};
-
-/* Whether a buffer's format and item size are those of kind k (native byte order). */
-static int is_kind(const Py_buffer *b, enum kind k)
+/* ---------------------------------------------- harmonic columns (diagnosis) */
+/* The unfiltered columns of the residual's order spectrum
+ * (canrls.diagnosis.residual.harmonic_fit), for angles a (N) and orders q (m), into out
+ * (N, 2m): out[i, 2j] = sin(q_j a_i), out[i, 2j + 1] = cos(q_j a_i). */
+static void sincos_columns(Py_ssize_t N, Py_ssize_t m, const double *a, const double *q,
+                           double *out)
 {
-    const char *f = b->format ? b->format : "B";
-    if (*f == '@' || *f == '=')
-        f++;
-    if (f[0] == '\0' || f[1] != '\0')
-        return 0;
-    switch (k) {
-    case F64: return f[0] == 'd' && b->itemsize == 8;
-    case F32: return f[0] == 'f' && b->itemsize == 4;
-    case I64: return (f[0] == 'q' || f[0] == 'l') && b->itemsize == 8;
-    case U8: return f[0] == 'B' && b->itemsize == 1;
-    case BOOL: return f[0] == '?' && b->itemsize == 1;
-    case REAL_: break;
-    }
-    return 0;
+    for (Py_ssize_t i = 0; i < N; i++)
+        for (Py_ssize_t j = 0; j < m; j++) {
+            /* x = q_j a_i */
+            const double x = q[j] * a[i];
+            out[i * 2 * m + 2 * j] = sin(x);
+            out[i * 2 * m + 2 * j + 1] = cos(x);
+        }
 }
+
+/* ================================================================= Python glue */
+/* The argument helpers (item types, shapes, numbers) are in pyargs.h. */
 
 /* Whether o is a float32 buffer (the precision of an RLS state; anything else is
  * taken as float64, and take() says what is wrong with it). */
@@ -304,138 +300,6 @@ static int is_single(PyObject *o)
     PyBuffer_Release(&b);
     return single;
 }
-
-#define MAX_BUFS 20
-enum { RO = 0, RW = 1 };
-
-/* One array argument: its position, name, item type, dimensions, whether written. */
-typedef struct {
-    int arg;
-    const char *name;
-    enum kind kind;
-    int ndim;
-    int writable;
-} Spec;
-
-/* The buffers one call holds (released together by release()). */
-typedef struct {
-    const char *fn;
-    Py_buffer b[MAX_BUFS];
-    int count;
-} Args;
-
-static void release(Args *a)
-{
-    for (int i = 0; i < a->count; i++)
-        PyBuffer_Release(&a->b[i]);
-    a->count = 0;
-}
-
-/* Whether the call has `want` arguments (TypeError otherwise). */
-static int start(Args *a, Py_ssize_t nargs, Py_ssize_t want)
-{
-    if (nargs == want)
-        return 1;
-    PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", a->fn, want, nargs);
-    return 0;
-}
-
-/* The C-contiguous buffers of the array arguments in spec, into b[0..count) (REAL_
- * items are `real`); 0 with TypeError or ValueError set when one is not as spec says. */
-static int take(Args *a, PyObject *const *args, const Spec *spec, int count,
-                Py_buffer **b, enum kind real)
-{
-    for (int i = 0; i < count; i++) {
-        const Spec *s = &spec[i];
-        const enum kind k = s->kind == REAL_ ? real : s->kind;
-        PyObject *o = args[s->arg];
-        if (a->count == MAX_BUFS) {
-            PyErr_Format(PyExc_SystemError, "%s: more than %d arrays", a->fn, MAX_BUFS);
-            return 0;
-        }
-        Py_buffer *v = &a->b[a->count];
-        int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (s->writable ? PyBUF_WRITABLE : 0);
-        if (PyObject_GetBuffer(o, v, flags) < 0) {
-            PyErr_Clear();
-            PyErr_Format(PyExc_TypeError,
-                         "%s: %s must be a C-contiguous%s %s array, got %.100s", a->fn,
-                         s->name, s->writable ? " writable" : "", kind_name[k],
-                         Py_TYPE(o)->tp_name);
-            return 0;
-        }
-        a->count++;
-        if (!is_kind(v, k)) {
-            PyErr_Format(PyExc_TypeError, "%s: %s must be a %s array, got format '%s'",
-                         a->fn, s->name, kind_name[k], v->format ? v->format : "B");
-            return 0;
-        }
-        if (v->ndim != s->ndim) {
-            PyErr_Format(PyExc_ValueError, "%s: %s must have %d dimension(s), got %d", a->fn,
-                         s->name, s->ndim, v->ndim);
-            return 0;
-        }
-        b[i] = v;
-    }
-    return 1;
-}
-
-/* Size of dimension d of a buffer (1 beyond its dimensions). */
-static Py_ssize_t dim(const Py_buffer *b, int d)
-{
-    return d < b->ndim ? b->shape[d] : 1;
-}
-
-/* Whether buffer b has `rows` rows (dimension 0) and, when cols >= 0, `cols` columns
- * (dimension 1); ValueError naming the shape otherwise. */
-static int need(Args *a, const Py_buffer *b, const char *name, Py_ssize_t rows,
-                Py_ssize_t cols)
-{
-    if (dim(b, 0) == rows && (cols < 0 || dim(b, 1) == cols))
-        return 1;
-    if (cols >= 0)
-        PyErr_Format(PyExc_ValueError, "%s: %s must have shape (%zd, %zd)", a->fn, name, rows,
-                     cols);
-    else
-        PyErr_Format(PyExc_ValueError, "%s: %s must have shape (%zd,)", a->fn, name, rows);
-    return 0;
-}
-
-/* Whether buffer b has at least `rows` rows (ValueError saying `what` otherwise). */
-static int at_least(Args *a, const Py_buffer *b, const char *name, Py_ssize_t rows,
-                    const char *what)
-{
-    if (dim(b, 0) >= rows)
-        return 1;
-    PyErr_Format(PyExc_ValueError, "%s: %s must have %s", a->fn, name, what);
-    return 0;
-}
-
-static int as_double(PyObject *o, double *x)
-{
-    *x = PyFloat_AsDouble(o);
-    return !(*x == -1.0 && PyErr_Occurred());
-}
-
-static int as_int64(PyObject *o, int64_t *x)
-{
-    long long v = PyLong_AsLongLong(o);
-    if (v == -1 && PyErr_Occurred())
-        return 0;
-    *x = (int64_t)v;
-    return 1;
-}
-
-static int as_bool(PyObject *o, int *x)
-{
-    *x = PyObject_IsTrue(o);
-    return *x >= 0;
-}
-
-#define D(b) ((double *)(b)->buf)
-#define F(b) ((float *)(b)->buf)
-#define U(b) ((uint8_t *)(b)->buf)
-#define I(b) ((int64_t *)(b)->buf)
-#define COUNT(spec) ((int)(sizeof spec / sizeof spec[0]))
 
 /* ------------------------------------------------------------------ RLS glue */
 typedef Py_ssize_t (*rls64_fn)(Py_ssize_t, Py_ssize_t, const double *, const double *,
@@ -787,6 +651,30 @@ static PyObject *py_bookkeeping(PyObject *self, PyObject *const *args, Py_ssize_
     return res;
 }
 
+PyDoc_STRVAR(sincos_doc,
+"sincos(a, q, out)\n\n"
+"out[i, 2j] = sin(q[j] a[i]), out[i, 2j + 1] = cos(q[j] a[i]): the harmonic columns of\n"
+"the diagnosis's order spectrum (canrls.diagnosis.residual.harmonic_fit).");
+
+static PyObject *py_sincos(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const Spec spec[] = {{0, "a", F64, 1, RO}, {1, "q", F64, 1, RO},
+                                {2, "out", F64, 2, RW}};
+    Args a = {.fn = "sincos", .count = 0};
+    Py_buffer *b[COUNT(spec)];
+    PyObject *res = NULL;
+    (void)self;
+    if (start(&a, nargs, 3) && take(&a, args, spec, COUNT(spec), b, F64)
+        && need(&a, b[2], "out", dim(b[0], 0), 2 * dim(b[1], 0))) {
+        Py_BEGIN_ALLOW_THREADS
+        sincos_columns(dim(b[0], 0), dim(b[1], 0), D(b[0]), D(b[1]), D(b[2]));
+        Py_END_ALLOW_THREADS
+        res = Py_NewRef(Py_None);
+    }
+    release(&a);
+    return res;
+}
+
 /* ================================================================== module */
 static PyMethodDef methods[] = {
     {"rls_block_symmetric", (PyCFunction)(void (*)(void))py_rls_block_symmetric,
@@ -803,6 +691,7 @@ static PyMethodDef methods[] = {
     {"accumulate", (PyCFunction)(void (*)(void))py_accumulate, METH_FASTCALL, accumulate_doc},
     {"bookkeeping", (PyCFunction)(void (*)(void))py_bookkeeping, METH_FASTCALL,
      bookkeeping_doc},
+    {"sincos", (PyCFunction)(void (*)(void))py_sincos, METH_FASTCALL, sincos_doc},
     {NULL, NULL, 0, NULL},
 };
 

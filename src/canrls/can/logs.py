@@ -27,15 +27,18 @@ live path judges its frames by the same rule (:mod:`canrls.can.times`).
 
 from __future__ import annotations
 
+import dataclasses
 import os
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, TypeVar
 
 import can
 import numpy as np
 import numpy.typing as npt
 
+from canrls.background import Background
 from canrls.can import candump
 from canrls.can.frameblock import MAX_DATA_LENGTH, FrameBlock
 from canrls.can.times import MAX_TIMESTAMP, describe, is_time
@@ -46,6 +49,12 @@ __all__ = ["LogReadStats", "read_frames", "write_candump", "write_log", "CAN_ERR
 #: Linux SocketCAN error-frame flag in the 32-bit CAN ID (candump writes it in the ID).
 CAN_ERR_FLAG = candump.CAN_ERR_FLAG
 _EFF_MASK = candump.EFF_MASK
+
+#: Blocks of at least this many frames are read ahead in a thread (smaller ones cost
+#: more in thread hand-overs than the overlap saves).
+READ_AHEAD = 4096
+
+_T = TypeVar("_T")
 
 
 @dataclass
@@ -95,7 +104,45 @@ def read_frames(
 
 def _read_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats,
                   progress: Callable[[int, int], None] | None) -> Iterator[FrameBlock]:
-    """Blocks of at most ``chunk_size`` frames, read into one reusable buffer.
+    """Blocks of at most ``chunk_size`` frames (:func:`_parse_candump`); from
+    :data:`READ_AHEAD` frames a block, the next block is read and parsed in a thread while
+    the caller works on the current one (the file read and the C parser release the GIL).
+    ``st`` counts what the caller was given."""
+    own = LogReadStats(total_bytes=st.total_bytes)  # the parser's, a block ahead
+    steps = _parse_candump(path, chunk_size, skip_bad, own)
+    for block, seen in _read_ahead(steps) if chunk_size >= READ_AHEAD else steps:
+        for name in ("frames", "lines", "bad_lines", "slow_lines", "bytes_read"):
+            setattr(st, name, getattr(seen, name))
+        if len(block):
+            yield block
+        if progress is not None:
+            progress(st.bytes_read, st.total_bytes)
+
+
+_END = object()
+
+
+def _read_ahead(it: Generator[_T, None, None]) -> Iterator[_T]:
+    """The items of ``it``, each next one made in a thread while the caller works on the
+    current one (a thread per item: a generator left suspended holds none); ``it`` is
+    closed at the end, or when the caller stops."""
+    ahead: Background[Any] = Background(next, it, _END, name="canrls log reader")
+    try:
+        while True:
+            item = ahead.result()
+            if item is _END:
+                return
+            ahead = Background(next, it, _END, name="canrls log reader")
+            yield item
+    finally:
+        ahead.join()  # an item made for a caller that stopped early is dropped
+        it.close()
+
+
+def _parse_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats
+                   ) -> Generator[tuple[FrameBlock, LogReadStats], None, None]:
+    """Each parse step's block (possibly empty) and a copy of ``st`` after it, reading the
+    file into one reusable buffer.
 
     The compiled parser (:func:`canrls.can.candump.parse`) takes every line of the common
     layout; the others come back as "slow" lines with the row they precede, go through
@@ -147,11 +194,8 @@ def _read_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats,
             st.lines += nlines
             st.bytes_read += used
             start += used
-            if len(block):
-                st.frames += len(block)
-                yield block
-            if progress is not None:
-                progress(st.bytes_read, st.total_bytes)
+            st.frames += len(block)
+            yield block, dataclasses.replace(st)
 
 
 def _with_slow_lines(block: FrameBlock, buf: npt.NDArray[np.uint8],

@@ -8,9 +8,10 @@ import json
 import math
 import sys
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from canrls.config import AppConfig, load_config
+if TYPE_CHECKING:  # numpy and cantools load with the configuration: not for --help
+    from canrls.config import AppConfig
 
 __all__ = ["add_model_options", "add_bus_options", "add_progress_option", "setup",
            "print_json", "Progress"]
@@ -119,6 +120,8 @@ def add_bus_options(p: argparse.ArgumentParser) -> None:
 
 def setup(args: argparse.Namespace) -> AppConfig:
     """The configuration file with the command line applied on top."""
+    from canrls.config import load_config
+
     return load_config(getattr(args, "config", None), args)
 
 

@@ -14,9 +14,7 @@ import math
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
-
-import jinja2
+from typing import TYPE_CHECKING, Any
 
 from canrls.diagnosis.candidates import MENTION_EXPLAINED
 from canrls.diagnosis.figures import FIGURES, figures_in
@@ -31,6 +29,9 @@ from canrls.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.physics import describe
 from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
+
+if TYPE_CHECKING:  # imported when a page is rendered, not for the text report
+    import jinja2
 
 __all__ = ["CAPTIONS", "DiagnosisReport", "FIGURES", "page_template", "white_caveat",
            "write_html"]
@@ -189,6 +190,8 @@ def _template() -> jinja2.Template:
 def page_template(name: str) -> jinja2.Template:
     """The jinja2 template ``name`` shipped under ``diagnosis/templates``, with the
     report's filters (``num``, ``fmt``); also the page of ``canrls validate``."""
+    import jinja2
+
     env = jinja2.Environment(
         loader=jinja2.PackageLoader("canrls.diagnosis", "templates"),
         autoescape=True, trim_blocks=True, lstrip_blocks=True,

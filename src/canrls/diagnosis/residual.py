@@ -23,10 +23,10 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from canrls import _kernels
 from canrls.diagnosis.results import (
     Binned,
     ExcitationSummary,
@@ -582,16 +582,6 @@ def order_spectrum(ctx: RecordSamples, r: F64, used: B, unit: str) -> OrderSpect
     return OrderSpectrum(orders, amp, expl, peaks, unit, ctx.per)
 
 
-@numba.njit(cache=True)
-def _sincos(a: F64, qs: F64, out: F64) -> None:  # pragma: no cover - compiled
-    """out[i, 2j] = sin(q_j a_i), out[i, 2j + 1] = cos(q_j a_i)."""
-    for i in range(a.shape[0]):
-        for j in range(qs.shape[0]):
-            x = qs[j] * a[i]
-            out[i, 2 * j] = math.sin(x)
-            out[i, 2 * j + 1] = math.cos(x)
-
-
 def spectrum_orders(max_order: int) -> F64:
     """Steps of 1/4 up to order 16 (fractional orders: gears, belts), integers above."""
     fine = np.arange(1, int(round(min(max_order, 16) / ORDER_STEP)) + 1) * ORDER_STEP
@@ -640,7 +630,8 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
             if b0 in seg_starts:
                 svf.reset()
             raw = np.empty((b1 - b0, 2 * m))
-            _sincos(ang, qs, raw)
+            # raw[i, 2j] = sin(q_j a_i), raw[i, 2j + 1] = cos(q_j a_i)
+            _kernels.sincos(np.ascontiguousarray(ang, np.float64), qs, raw)
             f, _ = svf.process(raw)
             u = used[b0:b1]
             if real is None:

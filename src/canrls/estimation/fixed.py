@@ -253,17 +253,11 @@ def _round_saturate(x: npt.NDArray[np.float64], scale: float, lo: float, hi: flo
     """``out = clip(floor(x * scale + 1/2), lo, hi)``; the number clamped, or -1 on a NaN.
 
     ``scale`` is the exact power of two ``2**frac``, so ``x * scale`` is ``ldexp(x, frac)``
-    (one rounding of the exact product, as ldexp does).
+    (one rounding of the exact product, as ldexp does). One pass in C
+    (``canrls._fixed.round_saturate``: round half up, then saturate to the word, counted).
     """
-    if np.isnan(x).any():
-        return -1
-    # round half up: floor(x 2^frac + 1/2)
-    v = np.floor(x * scale + 0.5)
-    # saturate to the word, counted (never wrap)
-    nsat = int(np.count_nonzero((v < lo) | (v > hi)))
-    np.clip(v, lo, hi, out=v)
-    out[...] = v
-    return nsat
+    assert _CFIXED is not None, "canrls._fixed is not built (pip install builds it)"
+    return int(_CFIXED.round_saturate(np.ascontiguousarray(x, np.float64), scale, lo, hi, out))
 
 
 def _round_inputs(Phi: npt.NDArray[np.float64], Y: npt.NDArray[np.float64],
@@ -296,9 +290,9 @@ _CFIXED = _c_kernel()
 
 
 def _spec_kernels() -> ModuleType:
-    """The numba specification (:mod:`canrls.estimation.fixed_kernels`), imported on first
-    use only: the literal and naive forms, a model larger than the C kernel's bound, or a
-    machine without the extension."""
+    """The compiled specification (:mod:`canrls.estimation.fixed_kernels`), imported on
+    first use only: the literal and naive forms, a model larger than the C kernel's bound,
+    or a machine without the extension."""
     return importlib.import_module("canrls.estimation.fixed_kernels")
 
 
@@ -1601,7 +1595,7 @@ class FixedRLS:
     @property
     def backend(self) -> str:
         """``"c"``: the blocks run in the C kernel (``canrls._fixed``, the symmetric form
-        with ``n <= N_MAX``); ``"spec"``: in the numba specification
+        with ``n <= N_MAX``); ``"spec"``: in the compiled specification
         (:func:`canrls.estimation.fixed_kernels.fixed_block`). Both give the same integers.
 
         Set it to ``"spec"`` to run the specification (a test's reference), or to

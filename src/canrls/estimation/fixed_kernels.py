@@ -1,11 +1,22 @@
-r"""Compiled kernel of the fixed-point recursive least squares (private).
+r"""The fixed-point recursive least squares as specified, and its independent reference (private).
 
 :class:`canrls.estimation.fixed.FixedRLS` owns the state, validates every argument and derives
 the integer constants of the kernel (the *plan*, an ``int64`` vector indexed by the
-``I_*`` constants below) from its :class:`~canrls.estimation.fixed.FixedConfig`. This module
-only runs the recursion, in place, on preallocated ``int64`` arrays. It is the
-bit-exact specification of the embedded kernel: every operation below is one a
-32-bit microcontroller or DSP performs with the same result.
+``I_*`` constants of :mod:`canrls.estimation.fixed_layout`) from its
+:class:`~canrls.estimation.fixed.FixedConfig`. This module states the recursion that runs on
+them, in place, on preallocated ``int64`` arrays: the bit-exact specification of the
+embedded kernel, every operation one a 32-bit microcontroller or DSP performs with the
+same result. Two implementations of it:
+
+* :func:`fixed_block` (and the Q primitives :func:`round_shift`, :func:`saturate`,
+  :func:`store`, :func:`sat_mul`, :func:`sat_add`, :func:`div_trunc`): the specification
+  compiled for the host (C, ``canrls._fixedspec``, ``src/canrls/c/fixed_spec.c``), every
+  update form and any ``n``. ``FixedRLS`` runs it where the target's kernel
+  (``canrls._fixed``: symmetric form, ``n <= CANRLS_N_MAX``) does not apply, and on request
+  (``backend = "spec"``);
+* :func:`reference_block`: the same recursion in plain Python integers, written
+  independently (unbounded integers, floor division instead of shifts, no shared
+  helpers) and slow; the tests hold both compiled kernels to it, integer for integer.
 
 Integer operations (all on ``int64``, no floating point anywhere)
 ----------------------------------------------------------------
@@ -97,8 +108,10 @@ dividing, from the equivalent division-free test
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from canrls import _fixedspec
+from canrls._fixedspec import div_trunc, round_shift, sat_add, sat_mul, saturate, store
 
 __all__ = [
     "SITES",
@@ -191,130 +204,7 @@ from canrls.estimation.fixed_layout import (  # noqa: F401 - the layout, re-expo
 )
 
 
-# ------------------------------------------------------- Q-format arithmetic
-@numba.njit(cache=True, nogil=True, inline="always")
-def round_shift(x: int, s: int) -> int:  # pragma: no cover - compiled
-    """``x / 2**s`` rounded half up for ``s > 0`` (``x`` itself for ``s <= 0``).
-
-    ``(x + (1 << (s-1))) >> s`` with an arithmetic shift. The caller guarantees
-    ``|x| + 2**(s-1) < 2**63`` and ``s <= 62`` (the plan's guard bits do).
-    """
-    if s <= 0:
-        return x
-    return (x + (np.int64(1) << (s - 1))) >> s
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def saturate(x: int, lo: int, hi: int) -> tuple[int, int]:  # pragma: no cover - compiled
-    """``x`` clamped to ``[lo, hi]``, and 1 if it was clamped (else 0)."""
-    v = min(max(x, lo), hi)
-    return v, np.int64(v != x)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def store(x: int, s: int, lo: int, hi: int) -> tuple[int, int]:  # pragma: no cover - compiled
-    """Store an accumulator ``x`` (scale ``2**-(f+s)``) into a word of scale ``2**-f``.
-
-    ``s >= 0``: rounding right shift then clamp. ``s < 0``: a left shift by ``-s``
-    that clamps *before* shifting, so it never wraps. Returns ``(word, saturated)``.
-    """
-    if s >= 0:
-        if s > 0:
-            x = (x + (np.int64(1) << (s - 1))) >> s
-        v = min(max(x, lo), hi)
-        return v, np.int64(v != x)
-    if x == 0:
-        return x, np.int64(0)
-    t = min(-s, 63)
-    # x 2^t > hi  <=>  x > floor(hi / 2^t) ;  x 2^t < lo  <=>  x < ceil(lo / 2^t)
-    if x > (hi >> t):
-        return hi, np.int64(1)
-    if x < -((-lo) >> t):
-        return lo, np.int64(1)
-    return x << t, np.int64(0)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def sat_mul(a: int, b: int, s: int, lo: int, hi: int) -> tuple[int, int]:  # pragma: no cover
-    """Saturating Q multiply: the product ``a*b`` stored with output shift ``s``.
-
-    ``a`` and ``b`` are words of at most 32 bits, so the product is exact.
-    """
-    return store(a * b, s, lo, hi)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def sat_add(a: int, b: int, lo: int, hi: int) -> tuple[int, int]:  # pragma: no cover
-    """Saturating add ``a + b`` clamped to ``[lo, hi]`` (``|a|, |b| < 2**62``)."""
-    return saturate(a + b, lo, hi)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def div_trunc(a: int, b: int) -> int:  # pragma: no cover - compiled
-    """C division ``a / b`` of integers: the quotient truncated toward zero (``b != 0``)."""
-    q = abs(a) // abs(b)
-    if (a < 0) != (b < 0):
-        return -q
-    return q
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _half(s: int) -> int:  # pragma: no cover - compiled
-    """Rounding constant ``1 << (s-1)`` of a right shift by ``s`` (0 for ``s <= 0``)."""
-    if s > 0:
-        return np.int64(1) << (s - 1)
-    return np.int64(0)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _norm_shift(m: int) -> int:  # pragma: no cover - compiled
-    """The left shift that brings ``0 <= m < 2**31`` to 30 bits: ``30 - bit_length(m)``.
-
-    ``x << k`` then lies in ``[-2**30, 2**30)`` for every ``x`` with ``x ^ (x >> 63) <= m``
-    (on the target: ``clz(m) - 2``; 30 for ``m = 0``).
-    """
-    k = 30
-    while m > 0:
-        m >>= 1
-        k -= 1
-    return max(k, 0)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _rsh(x: int, s: int) -> int:  # pragma: no cover - compiled
-    """Rounding right shift for ``0 <= s <= 62`` (``x`` itself for ``s = 0``)."""
-    return (x + _half(s)) >> s
-
-
-_FRAC_MASK = (1 << 32) - 1
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _theta_add(
-    t: int, f: int, p: int, s: int, lo: int, hi: int
-) -> tuple[int, int, int]:  # pragma: no cover - compiled
-    """The 64-bit estimate ``t 2^32 + f`` (``0 <= f < 2^32``) plus the update ``p 2^-s`` LSB
-    (``0 <= s <= 62``) at ``2^-32`` LSB: ``floor(p 2^(32-s))`` for ``s < 32``; for ``s >= 32``
-    the high word of the product, ``floor(p / 2^32) 2^(64-s)`` (exact at this scale; the
-    low word of ``p`` is dropped, as the target takes the high word of ``SMULL``).
-    Saturated to ``[lo 2^32, hi 2^32 + 2^32 - 1]``. Returns ``(t, f, clamped)``."""
-    whole = p >> s  # floor(p / 2^s): whole LSBs
-    if s >= 32:
-        part = ((p >> 32) << (64 - s)) & _FRAC_MASK  # the high word below the LSB
-    else:
-        part = (p & ((np.int64(1) << s) - 1)) << (32 - s)
-    f = f + part
-    t = t + whole + (f >> 32)
-    f &= _FRAC_MASK
-    if t > hi:
-        return hi, _FRAC_MASK, 1
-    if t < lo:
-        return lo, 0, 1
-    return t, f, 0
-
-
 # -------------------------------------------------------------------- kernel
-@numba.njit(cache=True, nogil=True)
 def fixed_block(
     Phi: np.ndarray,
     Y: np.ndarray,
@@ -333,8 +223,9 @@ def fixed_block(
     trace_out: np.ndarray,
     exp_out: np.ndarray,
     flags_out: np.ndarray,
-) -> int:  # pragma: no cover - compiled
-    r"""Run the fixed-point recursion over the rows of ``Phi``, in place.
+) -> int:
+    r"""Run the fixed-point recursion over the rows of ``Phi``, in place (the compiled
+    specification, ``canrls._fixedspec``).
 
     Parameters
     ----------
@@ -381,311 +272,9 @@ def fixed_block(
     int
         Number of rows that updated the state.
     """
-    n = theta.shape[0]
-    phi = work[0]
-    phg = work[1]
-    h = work[2]
-    w = work[3]
-    K = work[4]
-    acc = work[5]
-    # ---- the plan, as locals
-    phi_lo = prm[I_PHI_LO]
-    phi_hi = prm[I_PHI_HI]
-    y_lo = prm[I_Y_LO]
-    y_hi = prm[I_Y_HI]
-    eps_lo = prm[I_EPS_LO]
-    eps_hi = prm[I_EPS_HI]
-    h_lo = prm[I_H_LO]
-    h_hi = prm[I_H_HI]
-    den_lo = prm[I_DEN_LO]
-    den_hi = prm[I_DEN_HI]
-    g_lo = prm[I_G_LO]
-    g_hi = prm[I_G_HI]
-    th_lo = prm[I_TH_LO]
-    th_hi = prm[I_TH_HI]
-    P_lo = prm[I_P_LO]
-    P_hi = prm[I_P_HI]
-    l_hi = prm[I_L_HI]
-    phi_ps = prm[I_PHI_PS]
-    eps_ts = prm[I_EPS_TS]
-    eps_os = prm[I_EPS_OS]
-    h_os = prm[I_H_OS]
-    s_os = prm[I_S_OS]
-    sc_s = prm[I_SC_S]
-    lam_d = prm[I_LAM_D]
-    one_d = prm[I_ONE_D]
-    dividend = prm[I_DIVIDEND]
-    gc_s = prm[I_GC_S]
-    g_up = prm[I_G_UP]
-    th_s0 = prm[I_TH_S]
-    P_s0 = prm[I_P_S]
-    inv_lam = prm[I_INV_LAM]
-    one_l = prm[I_ONE_L]
-    c_s = prm[I_C_S]
-    tr_ps = prm[I_TR_PS]
-    tmax = prm[I_TMAX]
-    tmax_lim = prm[I_TMAX_LIM]
-    tc_s = prm[I_TC_S]
-    hc_s = prm[I_HC_S]
-    vw_ps = prm[I_VW_PS]
-    lhs_ps = prm[I_LHS_PS]
-    cmp_df = prm[I_CMP_DF]
-    e_max = prm[I_E_MAX]
-    tr_hi = prm[I_TR_HI]
-    symmetric = mode == MODE_SYMMETRIC
-    e = scale[0]
-    c = scale[1]
-    applied = 0
-    # the diagonal of P~ summed >> tr_ps (carried from row to row)
-    trw = np.int64(0)
-    for i in range(n):
-        trw += _rsh(P[i, i], tr_ps)
-
-    for k in range(Phi.shape[0]):
-        # per-step saturation counts, added to ``counts`` once per step
-        c_phi = np.int64(0)
-        c_y = np.int64(0)
-        c_eps = np.int64(0)
-        c_h = np.int64(0)
-        c_den = np.int64(0)
-        c_div = np.int64(0)
-        c_K = np.int64(0)
-        c_th = np.int64(0)
-        c_P = np.int64(0)
-        flag = 0
-
-        # phi, y <- sat(phi), sat(y)       inputs clamped to their words
-        for j in range(n):
-            x = Phi[k, j]
-            v = min(max(x, phi_lo), phi_hi)
-            c_phi += v != x
-            phi[j] = v
-            # phi >> ps: the guard bits of the multiply-accumulates
-            phg[j] = _rsh(v, phi_ps)
-        x = Y[k]
-        yk = min(max(x, y_lo), y_hi)
-        c_y += yk != x
-
-        # eps = y - phi' theta
-        a = (yk << eps_ts) if eps_ts >= 0 else _rsh(yk, -eps_ts)
-        for j in range(n):
-            a -= phg[j] * theta[j]
-        eps, cc = store(a, eps_os, eps_lo, eps_hi)
-        c_eps += cc
-
-        if frozen:
-            flag = FLAG_FROZEN
-            for i in range(n):
-                K[i] = 0
-        else:
-            # h~ = P~ phi   (symmetric: P~_ij read from the upper triangle only)
-            if symmetric:
-                for i in range(n):
-                    acc[i] = 0
-                for i in range(n):
-                    pi_ = phg[i]
-                    # h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i
-                    a = acc[i] + P[i, i] * pi_
-                    for j in range(i + 1, n):
-                        Pij = P[i, j]
-                        # P_ij phi_j -> h_i ;  P_ji phi_i = P_ij phi_i -> h_j
-                        a += Pij * phg[j]
-                        acc[j] += Pij * pi_
-                    v, cc = store(a, h_os, h_lo, h_hi)
-                    c_h += cc
-                    h[i] = v
-                    w[i] = v
-            else:
-                # h~ = P~ phi (rows): P~ may have lost its symmetry
-                for i in range(n):
-                    a = np.int64(0)
-                    for j in range(n):
-                        a += P[i, j] * phg[j]
-                    v, cc = store(a, h_os, h_lo, h_hi)
-                    c_h += cc
-                    h[i] = v
-                    w[i] = v
-                if mode == MODE_LITERAL:
-                    # w~ = P~' phi (columns), i.e. the row phi' P~ as written
-                    for i in range(n):
-                        acc[i] = 0
-                    for j in range(n):
-                        pj = phg[j]
-                        for i in range(n):
-                            acc[i] += P[j, i] * pj
-                    for i in range(n):
-                        v, cc = store(acc[i], h_os, h_lo, h_hi)
-                        c_h += cc
-                        w[i] = v
-
-            # s~ = phi' h~, brought from the scale of P (exponent e) to that of lambda
-            a = np.int64(0)
-            for i in range(n):
-                a += phg[i] * h[i]
-            st, cc = store(_rsh(a, e), s_os, den_lo, den_hi)
-            c_den += cc
-            # s = phi' P phi = c s~
-            sv, cc = saturate(_rsh(st * c, sc_s), den_lo, den_hi)
-            c_den += cc
-
-            # windup <=> (tr P - g h'w)/lambda > trace_max
-            #        <=> (tr P - lambda trace_max) (lambda + phi'P phi) > h'w
-            lam_k = lam_d
-            if tmax <= (tmax_lim >> e):
-                # tr P = c tr P~   (trw: the diagonal summed >> tr_ps, kept from the last row)
-                T = _rsh(trw * c, tc_s) - (tmax << e)
-                if T > 0:
-                    d_lam, cc = saturate(lam_d + sv, den_lo, den_hi)
-                    a_vw = np.int64(0)
-                    for i in range(n):
-                        # h = c h~ ; w = c w~
-                        hi_ = _rsh(h[i] * c, hc_s)
-                        wi_ = _rsh(w[i] * c, hc_s)
-                        a_vw += _rsh(hi_ * wi_, vw_ps)
-                    lhs = _rsh(min(T, P_hi) * d_lam, lhs_ps)
-                    # the two sides differ in scale by cmp_df - e bits
-                    df = cmp_df - e
-                    if df >= 0:
-                        up = (lhs >> min(df, 63)) > a_vw
-                    else:
-                        up = lhs > (a_vw >> min(-df, 63))
-                    if up:
-                        lam_k = one_d
-                        flag = FLAG_WINDUP
-
-            # d = lambda_k + phi' P phi
-            d, cc = saturate(lam_k + sv, den_lo, den_hi)
-            c_den += cc
-            # g = 1 / d     (the one division: acc-width dividend, word divisor, C truncation)
-            if d <= 0:
-                g = g_hi
-                c_div += 1
-            else:
-                g = div_trunc(dividend, d)
-                if g > g_hi:
-                    g = g_hi
-                    c_div += 1
-            # gc = g c
-            gc, cc = saturate(_rsh(g * c, gc_s), g_lo, g_hi)
-            c_div += cc
-
-            # normalisation of the updates (once per step): h~, w~ and eps shifted left
-            # (exactly) to 31 bits, so that the theta and P updates take the high word
-            # of their products (shifts >= 32 in the steady state; docs/fixed_point.md)
-            m = np.int64(0)
-            for i in range(n):
-                m |= h[i] ^ (h[i] >> 63)
-                m |= w[i] ^ (w[i] >> 63)
-            kn = _norm_shift(m)
-            kn = min(kn, (62 - P_s0 - e) >> 1, 62 - th_s0 - e)
-            ke = min(_norm_shift(eps ^ (eps >> 63)), 62 - th_s0 - e - kn)
-            epn = eps << ke
-            gcn = gc << g_up
-            th_s = th_s0 + e + kn + ke
-            # K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each
-            P_s = P_s0 + e + 2 * kn
-            low = True
-            for i in range(n):
-                hs = h[i] << kn
-                h[i] = hs
-                w[i] = w[i] << kn
-            for i in range(n):
-                # K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded
-                Ki = (h[i] * gcn + (np.int64(1) << 31)) >> 32
-                K[i] = Ki
-                # theta:theta_frac <- theta:theta_frac + K eps   (64 bits: K eps floored
-                # to 2^-32 LSB, so that updates below the LSB accumulate; K carries the
-                # exponent e + kn: shifted out here)
-                v, f, cc = _theta_add(theta[i], theta_frac[i], Ki * epn, th_s, th_lo, th_hi)
-                c_th += cc
-                theta[i] = v
-                theta_frac[i] = f
-                # low excitation: the information K_i w~_i rounds to zero on the whole diagonal
-                if _rsh(Ki * w[i], P_s) != 0:
-                    low = False
-            if symmetric:
-                # P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle
-                for i in range(n):
-                    Ki = K[i]
-                    for j in range(i, n):
-                        v, cc = saturate(P[i, j] - _rsh(Ki * h[j], P_s), P_lo, P_hi)
-                        c_P += cc
-                        P[i, j] = v
-            else:
-                # P <- (P - K phi' P) / lambda:  P~ <- P~ - K w~', full matrix as written
-                # (naive: w~ = h~, the row phi' P taken as (P phi)')
-                for i in range(n):
-                    Ki = K[i]
-                    for j in range(n):
-                        v, cc = saturate(P[i, j] - _rsh(Ki * w[j], P_s), P_lo, P_hi)
-                        c_P += cc
-                        P[i, j] = v
-            if low:
-                flag |= FLAG_LOW_EXCITATION
-
-            # c <- c / lambda_k
-            il = one_l if flag & FLAG_WINDUP else inv_lam
-            c, cc = saturate(_rsh(c * il, c_s), np.int64(0), l_hi)
-            c_P += cc
-            if c > one_l:
-                if e > 0:
-                    # c/2 and 2^-e x 2: the words do not move
-                    c = _rsh(c, 1)
-                    e -= 1
-                else:
-                    # fold c into the words: P~ <- c P~, c = 1
-                    for i in range(n):
-                        for j in range(i if symmetric else 0, n):
-                            v, cc = saturate(_rsh(P[i, j] * c, c_s), P_lo, P_hi)
-                            c_P += cc
-                            P[i, j] = v
-                    c = one_l
-
-            # block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh
-            tr = np.int64(0)
-            trw = np.int64(0)
-            for i in range(n):
-                Pii = P[i, i]
-                tr += Pii
-                trw += _rsh(Pii, tr_ps)
-            if tr > 0 and tr <= (tr_hi >> 1) and e < e_max:
-                sh = 1
-                while (tr << (sh + 1)) <= tr_hi and e + sh < e_max:
-                    sh += 1
-                for i in range(n):
-                    for j in range(i if symmetric else 0, n):
-                        v, cc = store(P[i, j], -sh, P_lo, P_hi)
-                        c_P += cc
-                        P[i, j] = v
-                e += sh
-                trw = np.int64(0)
-                for i in range(n):
-                    trw += _rsh(P[i, i], tr_ps)
-            scale[0] = e
-            scale[1] = c
-            applied += 1
-
-        nsat = c_phi + c_y + c_eps + c_h + c_den + c_div + c_K + c_th + c_P
-        if nsat > 0:
-            flag |= FLAG_SATURATION
-            counts[S_PHI] += c_phi
-            counts[S_Y] += c_y
-            counts[S_EPS] += c_eps
-            counts[S_H] += c_h
-            counts[S_DEN] += c_den
-            counts[S_DIV] += c_div
-            counts[S_K] += c_K
-            counts[S_TH] += c_th
-            counts[S_P] += c_P
-        # tr P = c tr P~, recorded at the scale 2^-(f_P - tr_ps + e)
-        eps_out[k] = eps
-        trace_out[k] = _rsh(trw * c, tc_s)
-        exp_out[k] = e
-        flags_out[k] = flag
-        if record:
-            for i in range(n):
-                theta_out[k, i] = theta[i]
-    return applied
+    return _fixedspec.fixed_block(Phi, Y, theta, theta_frac, P, scale, work, counts, prm, mode,
+                                  frozen, record, eps_out, theta_out, trace_out, exp_out,
+                                  flags_out)
 
 
 # ------------------------------------------------------ pure-Python reference

@@ -1,9 +1,10 @@
-"""Layout shared by the fixed-point specification and the C kernel (private).
+"""Layout shared by the fixed-point specification and the C kernels (private).
 
 The saturation sites, the update modes, the flag bits and the plan layout (the ``I_*``
 indices of the ``int64`` plan vector built by :class:`canrls.estimation.fixed.FixedRLS`)
-of :mod:`canrls.estimation.fixed_kernels`, in a module without numba, so that
-:mod:`canrls.estimation.fixed` runs on the C extension without importing a JIT.
+of :mod:`canrls.estimation.fixed_kernels` (the enums of ``src/canrls/c/fixed_spec.c``), in
+a module of their own, so that :mod:`canrls.estimation.fixed` reads them without loading
+the specification.
 """
 
 from __future__ import annotations

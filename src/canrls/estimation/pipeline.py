@@ -45,6 +45,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
+from canrls.background import Background
 from canrls.errors import ConfigError
 from canrls.estimation.colour import MAX_PRIOR_SHARE, ResidualTail, prior_share
 from canrls.estimation.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
@@ -113,6 +114,11 @@ CHECK_CUTOFF = 0.5
 #: The bias bound is this many times the difference of the two filters' estimates: a
 #: bias that falls like the cutoff (or faster) is at most twice the difference.
 CHECK_FACTOR = 2.0
+#: Blocks of at least this many used rows run the fixed-point estimator in a thread
+#: beside the float one (the offline replay's blocks; the daemon's, some 200 rows, stay
+#: in one thread, where a hand-over would cost more than the overlap saves).
+OVERLAP_ROWS = 4096
+
 
 #: The ridge weight ``alpha`` (the prior weighs like ``alpha`` samples of each column)
 #: from one billionth of a sample to a billion samples: P0 = diag(1/(alpha e_j)) then
@@ -698,6 +704,14 @@ class EquationEstimator:
         use &= since > self.warmup
         self._since_nonfinite = int(since[-1])
 
+    def _fixed_block(self, phi: F64, y: F64, record: bool
+                     ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64] | None,
+                                npt.NDArray[np.int64], npt.NDArray[np.int64],
+                                npt.NDArray[np.uint8], int]:
+        """The fixed-point estimator over the used rows: inputs rounded, then its kernel."""
+        Pq, Yq = self.frls.quantize_block(phi, y)
+        return self.frls.run_block(Pq, Yq, record)
+
     def _process(self, signals: Signals, real: npt.NDArray[np.bool_] | None,
                  record: bool, settling: npt.NDArray[np.bool_] | None = None) -> EquationBlock:
         eq = self.equation
@@ -767,10 +781,18 @@ class EquationEstimator:
         if used:
             phi_u = phi_ab if rows is None else phi_ab[rows]
             y_u = y_ab if rows is None else y_ab[rows]
-            eps_u, theta_u, _, flags_u, _ = self.rls.run_block(phi_u, y_u, record)
-            self.tail.push(phi_u, y_u)
-            Pq, Yq = self.frls.quantize_block(phi_u, y_u)
-            epsq_u, thetaq_u, _, _, flagsq_u, _ = self.frls.run_block(Pq, Yq, record)
+            # on a large block the fixed-point estimator runs in a thread meanwhile: the
+            # two share no state, and their kernels release the GIL
+            fixed = Background(self._fixed_block, phi_u, y_u, record,
+                               name="canrls fixed point") if used >= OVERLAP_ROWS else None
+            try:
+                eps_u, theta_u, _, flags_u, _ = self.rls.run_block(phi_u, y_u, record)
+                self.tail.push(phi_u, y_u)
+            finally:
+                if fixed is not None:
+                    fixed.join()
+            epsq_u, thetaq_u, _, _, flagsq_u, _ = (
+                fixed.result() if fixed is not None else self._fixed_block(phi_u, y_u, record))
         else:
             # no row updates the estimators (all in a warm-up): they are left as they are
             eps_u, epsq_u = np.zeros(0), np.zeros(0, np.int64)

@@ -44,7 +44,7 @@ import numpy as np
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.frames import ParameterReport, StatusReport
-from canrls.can.protocol import FeedbackEncoder, Protocol
+from canrls.can.protocol import Protocol
 from canrls.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline
@@ -320,10 +320,6 @@ class Daemon:
         if self._started:
             raise RuntimeError("daemon already started")
         self._started = True
-        try:
-            self.warm_up()
-        except Exception as e:  # only a speed-up: never a reason not to start
-            log.warning("warm-up skipped (the first frames will be slower): %s", e)
         if self.config.record is not None:
             self._recorder = Recorder(can.Logger(str(self.config.record)), self.config.record)
             self._queue.recorder = self._recorder
@@ -342,35 +338,6 @@ class Daemon:
             self._threads.append(t)
         log.info("canrls daemon running on %s: effects %s, %d parameters", self._link.info(),
                  ",".join(self.model.effect_names), len(self.model.parameters))
-
-    def warm_up(self) -> FrameProcessor:
-        """Run the hot path once on made-up frames, before the bus opens; returns the
-        throwaway processor.
-
-        numba loads each compiled kernel from its cache at its first call (some
-        100 ms in all), and the frame codecs are built at their first use: without
-        this, the first frames after start would wait that long for their parameter
-        frames. A throwaway processor takes the frames (until every estimator has
-        updated) and nothing is sent: the daemon's own state does not change.
-        """
-        proc = make_processor(self.config, self.protocol, self.model, self.settings)
-        pipe = proc.pipeline
-        encode = FeedbackEncoder(self.protocol, clip=True).encode
-        n, dt = 256, pipe.dt
-        T = 4 * n * dt  # the speed turns both ways every 4 blocks, so every estimator updates
-        a = 0.5 * abs(self.model.ranges.get("speed", (0.0, 1.0))[1])
-        for k in range(64):
-            t = (k * n + np.arange(n)) * dt
-            w = 2 * math.pi / T
-            omega = a * np.sin(w * t)
-            proc.process(encode(t, current=0.1 * np.cos(t), speed=omega,
-                                position=a / w * (1.0 - np.cos(w * t)), voltage=0.1 * omega))
-            if k % 4 == 3 and all(f and q for f, q in pipe.update_counts()):
-                break
-        proc.flush()
-        pipe.estimates()
-        self._publisher.rehearse()
-        return proc
 
     def stop(self) -> None:
         """Stop reading, process what was queued, publish that state, checkpoint, close

@@ -17,12 +17,10 @@ import time
 from collections.abc import Callable
 
 from canrls.can.frames import (
-    CommandResult,
     EffectId,
     EquationId,
     ParameterReport,
     StatusReport,
-    encode_ack,
     encode_param_info,
     encode_parameters,
     encode_status,
@@ -276,14 +274,3 @@ class Publisher:
             self.next_at += (math.floor((now - self.next_at) / step) + 1) * step
         if self.on_publish is not None:
             self.on_publish(self.processor.frames, sent)
-
-    def rehearse(self) -> None:
-        """Encode every kind of frame once (the codecs are built at their first use),
-        sending nothing: part of the daemon's warm-up."""
-        reports: list[ParameterReport] = []
-        for blanks in parameter_layout(self.processor.pipeline):
-            reports += [r.with_estimates(0.0, 0.0, 0.0, True) for r in blanks]
-        encode_parameters(reports, 0)
-        encode_status(StatusReport(), 0)
-        encode_param_info(reports)
-        encode_ack(0, CommandResult.OK, 0)

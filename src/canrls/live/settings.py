@@ -1,11 +1,8 @@
-"""The ``[daemon]`` table of the configuration, validated once (``docs/daemon.md``).
-
-Imports nothing that imports numba: :mod:`canrls.live.cache` reads ``cache_dir`` with
-it before the kernels load.
-"""
+"""The ``[daemon]`` table of the configuration, validated once (``docs/daemon.md``)."""
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -14,11 +11,13 @@ from typing import TYPE_CHECKING, Any
 
 from canrls.errors import ConfigError
 
-if TYPE_CHECKING:  # importing the configuration imports numba's kernels: not here
+if TYPE_CHECKING:
     from canrls.config import AppConfig
 
-__all__ = ["DaemonSettings", "DAEMON_KEYS", "FRAME_PARAMETERS", "RX_BUFFER", "RX_INTERVAL",
-           "resolve_path"]
+__all__ = ["DaemonSettings", "DAEMON_KEYS", "FRAME_PARAMETERS", "OBSOLETE_KEYS", "RX_BUFFER",
+           "RX_INTERVAL", "resolve_path"]
+
+log = logging.getLogger(__name__)
 
 #: the most parameters the frames carry: RlsParamInfo's Index (0..255) and Count
 #: (at most 255) are 8-bit fields of dbc/canrls.dbc
@@ -65,8 +64,12 @@ DAEMON_KEYS: dict[str, str] = {
     "record": "log file of every frame received (python-can writer by suffix: .log, .asc, .blf)",
     "model_file": "TOML file whose [model] replaces the configuration's (re-read on SIGHUP)",
     "switch_interval": "Python's thread switch interval while running, seconds (0: leave it)",
-    "cache_dir": "directory of numba's compiled kernels (default: $XDG_CACHE_HOME/canrls/numba; "
-                 "read before the kernels load, see canrls.live.cache)",
+}
+
+#: keys of earlier versions that are accepted, ignored and warned about: why each is gone
+OBSOLETE_KEYS: dict[str, str] = {
+    "cache_dir": "canrls compiles nothing at run time any more, so it keeps no cache of "
+                 "compiled kernels",
 }
 
 
@@ -98,7 +101,6 @@ class DaemonSettings:
     record: Path | None = None
     model_file: Path | None = None
     switch_interval: float = 0.001
-    cache_dir: Path | None = None
 
     def __post_init__(self) -> None:
         src = "daemon"
@@ -157,6 +159,9 @@ class DaemonSettings:
         kw: dict[str, Any] = {}
         for k, v in table.items():
             key = f"{source}: daemon.{k}"
+            if k in OBSOLETE_KEYS:
+                log.warning("%s is obsolete and ignored (%s): remove it", key, OBSOLETE_KEYS[k])
+                continue
             if k not in DAEMON_KEYS:
                 raise ConfigError(f"{key} = {v!r}: unknown key (valid: "
                                   f"{', '.join(DAEMON_KEYS)})")
@@ -174,8 +179,7 @@ class DaemonSettings:
                 kw[k] = v
             elif k in _PATH_KEYS:
                 if not isinstance(v, str) or "\0" in v:
-                    what = "directory" if k == "cache_dir" else "file"
-                    raise ConfigError(f"{key} = {v!r}: must be a {what} path"
+                    raise ConfigError(f"{key} = {v!r}: must be a file path"
                                       + (" (no NUL byte)" if isinstance(v, str) else ""))
                 if v:
                     kw[k] = resolve_path(v, base_dir)
@@ -194,7 +198,7 @@ class DaemonSettings:
         return cls.from_table(cfg.daemon, cfg.source, cfg.base_dir)
 
 
-_PATH_KEYS = ("checkpoint", "record", "model_file", "cache_dir")
+_PATH_KEYS = ("checkpoint", "record", "model_file")
 
 
 def resolve_path(value: str, base_dir: Path | None) -> Path:

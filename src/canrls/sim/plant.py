@@ -26,7 +26,7 @@ One control period ``dt`` (default 1 ms) runs, in order:
 
 Sample ``k`` of every output is taken at ``t_k``; the voltage sample ``k`` is the
 voltage applied over ``[t_k, t_k + dt)`` (a zero-order hold, as the SVF assumes).
-The loop is compiled with numba (``cache=True``).
+The loop is C (``canrls._sim``, ``src/canrls/c/sim.c``).
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ from types import MappingProxyType
 
 import numpy as np
 import numpy.typing as npt
-from numba import njit
 
+from canrls import _sim
 from canrls.errors import ConfigError, EffectError
 
 __all__ = [
@@ -235,6 +235,8 @@ class Truth:
 
     # ------------------------------------------------------------------ kernel view
     def _kernel_params(self) -> tuple[F64, F64, F64, F64]:
+        """The physics as the C loop takes it: ``p`` in the order of ``sim.c``'s
+        ``P_J .. P_ELEC``, and the cogging orders with their sine and cosine amplitudes."""
         g = self.get
         p = np.array([
             g("inertia.J"), g("viscous.B"), g("coulomb.Tc"), g("stribeck.Ts"),
@@ -248,10 +250,6 @@ class Truth:
         cs = np.array([self.params[f"cogging:{k}.sin"] for k in orders], dtype=np.float64)
         cc = np.array([self.params[f"cogging:{k}.cos"] for k in orders], dtype=np.float64)
         return p, ck, cs, cc
-
-
-# indices into the kernel's parameter vector
-_J, _B, _TC, _TS, _WS, _E, _T0, _USIN, _UCOS, _R, _L, _KE, _KT, _ASC, _ELEC = range(15)
 
 
 def load_torque(truth: Truth | Mapping[str, float], theta: npt.ArrayLike, omega: npt.ArrayLike,
@@ -397,141 +395,6 @@ class Sensors:
                         dtype=np.float64)
 
 
-# ---------------------------------------------------------------------------- kernel
-
-
-@njit(cache=True, fastmath=False, inline="always")
-def _deriv(th: float, w: float, i: float, u: float, p: F64, ck: F64, cs: F64,
-           cc: F64) -> tuple[float, float, float]:
-    ang = th * p[_ASC]
-    x = w / p[_E]
-    # sgn_e(w) = tanh(w/e); tanh(x) rounds to exactly +-1.0 for |x| > 19.1
-    sg = 1.0 if x > 20.0 else (-1.0 if x < -20.0 else math.tanh(x))
-    # load = B w + Tc sgn_e(w) + Ts sgn_e(w) exp(-(w/ws)^2) + T0 + unbalance + cogging
-    load = p[_B] * w + p[_TC] * sg + p[_T0]
-    if p[_TS] != 0.0:
-        r = w / p[_WS]
-        if r * r < 746.0:  # exp(-746) underflows to exactly 0
-            load += p[_TS] * sg * math.exp(-r * r)
-    if p[_USIN] != 0.0 or p[_UCOS] != 0.0:
-        load += p[_USIN] * math.sin(ang) + p[_UCOS] * math.cos(ang)
-    for j in range(ck.shape[0]):
-        a = ck[j] * ang
-        load += cs[j] * math.sin(a) + cc[j] * math.cos(a)
-    # J dw/dt = Kt i - load
-    dw = (p[_KT] * i - load) / p[_J]
-    # L di/dt = u - R i - Ke w
-    di = (u - p[_R] * i - p[_KE] * w) / p[_L] if p[_ELEC] != 0.0 else 0.0
-    return w, dw, di
-
-
-@njit(cache=True, fastmath=False, inline="always")
-def _rk4(th: float, w: float, i: float, u: float, h: float, a1: float, b1: float, c1: float,
-         p: F64, ck: F64, cs: F64, cc: F64) -> tuple[float, float, float]:
-    """One RK4 step of length h from (th, w, i), given the derivative (a1, b1, c1) there."""
-    a2, b2, c2 = _deriv(th + 0.5 * h * a1, w + 0.5 * h * b1, i + 0.5 * h * c1, u, p, ck, cs, cc)
-    a3, b3, c3 = _deriv(th + 0.5 * h * a2, w + 0.5 * h * b2, i + 0.5 * h * c2, u, p, ck, cs, cc)
-    a4, b4, c4 = _deriv(th + h * a3, w + h * b3, i + h * c3, u, p, ck, cs, cc)
-    return (th + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4),
-            w + h / 6.0 * (b1 + 2.0 * b2 + 2.0 * b3 + b4),
-            i + h / 6.0 * (c1 + 2.0 * c2 + 2.0 * c3 + c4))
-
-
-@njit(cache=True, fastmath=False)
-def _quantise(x: float, q: float) -> float:
-    if q <= 0.0:
-        return x
-    return math.floor(x / q + 0.5) * q
-
-
-@njit(cache=True, fastmath=False)
-def _run(dt: float, nsub: int, h_stiff: float, st: F64, p: F64, ck: F64, cs: F64, cc: F64,
-         gains: F64, quant: F64, w_ref: F64, a_ref: F64, noise: F64,
-         out: F64) -> None:
-    """Advance len(w_ref) control periods; st = [theta, omega, i, integ_w, integ_i] in/out.
-
-    noise[k] = standard normals (current, speed, position), already scaled by sigma.
-    out[k] = [i, omega, theta, u, i_meas, omega_meas, theta_meas, u_meas, i_ref].
-    """
-    th, w, i, integ_w, integ_i = st[0], st[1], st[2], st[3], st[4]
-    kp_w, ki_w, jff, kp_i, ki_i, ke_ff, i_max, u_max = (
-        gains[0], gains[1], gains[2], gains[3], gains[4], gains[5], gains[6], gains[7])
-    q_i, q_w, q_th, q_u, wrap = quant[0], quant[1], quant[2], quant[3], quant[4]
-    m_wrap = wrap / q_th if q_th > 0.0 else 1.0
-    kt = p[_KT]
-    elec = p[_ELEC] != 0.0
-    h = dt / nsub
-    # zero-speed zone where the tanh makes the equation stiff: |w| < 10 e
-    zone = 10.0 * p[_E]
-    stiff = p[_TC] != 0.0 or p[_TS] != 0.0
-    h_min = dt * 1e-6
-    n = w_ref.shape[0]
-    for k in range(n):
-        # ---- sensors at t_k (ideal source: i is the current over the coming period)
-        w_m = _quantise(w + noise[k, 1], q_w)
-        th_m = th + noise[k, 2]
-        if q_th > 0.0:
-            # wrap the count (exact in float for an integral counts-per-turn) then scale
-            cnt = math.floor(th_m / q_th + 0.5)
-            cnt -= m_wrap * math.floor(cnt / m_wrap)
-            th_m = cnt * q_th
-        else:
-            th_m -= wrap * math.floor(th_m / wrap)
-        if th_m >= wrap:
-            th_m -= wrap
-        # ---- speed PI + inertia feed-forward -> current reference
-        e = w_ref[k] - w_m
-        i_un = jff * a_ref[k] / kt + kp_w * e + integ_w
-        i_ref = min(max(i_un, -i_max), i_max)
-        if i_un == i_ref or (i_un > i_max and e < 0.0) or (i_un < -i_max and e > 0.0):
-            integ_w += ki_w * e * dt
-        # ---- current PI + back-EMF feed-forward -> voltage (or ideal current source)
-        if elec:
-            i_m = _quantise(i + noise[k, 0], q_i)
-            ei = i_ref - i_m
-            u_un = kp_i * ei + integ_i + ke_ff * w_m
-            u = min(max(u_un, -u_max), u_max)
-            if u_un == u or (u_un > u_max and ei < 0.0) or (u_un < -u_max and ei > 0.0):
-                integ_i += ki_i * ei * dt
-            u_m = _quantise(u, q_u)
-        else:
-            i = i_ref
-            i_m = _quantise(i + noise[k, 0], q_i)
-            u = 0.0
-            u_m = 0.0
-        out[k, 0] = i
-        out[k, 1] = w
-        out[k, 2] = th
-        out[k, 3] = u
-        out[k, 4] = i_m
-        out[k, 5] = w_m
-        out[k, 6] = th_m
-        out[k, 7] = u_m
-        out[k, 8] = i_ref
-        # ---- integrate the plant over [t_k, t_k + dt] with u (or i) held
-        rem = dt
-        while rem > 0.0:
-            a1, b1, c1 = _deriv(th, w, i, u, p, ck, cs, cc)
-            hs = h
-            if stiff:
-                # bound on |domega/dt| over a sub-step (the current may move too)
-                acc = abs(b1) + h * abs(c1) * kt / p[_J] + 1e-300
-                dist = abs(w) - zone
-                if dist < 3.0 * h * acc:
-                    # at the friction's kink: omega moves by at most half a band per step,
-                    # and h*lambda <= 2 for the tanh's stiffness; approaching it: halve the
-                    # distance per step
-                    hs = min(h_stiff, 0.5 * p[_E] / acc)
-                    if dist > 0.0:
-                        hs = max(hs, 0.5 * dist / acc)
-                    hs = max(min(hs, h), h_min)
-            if hs >= rem - 1e-9 * dt:
-                hs = rem
-            th, w, i = _rk4(th, w, i, u, hs, a1, b1, c1, p, ck, cs, cc)
-            rem = 0.0 if hs == rem else rem - hs
-    st[0], st[1], st[2], st[3], st[4] = th, w, i, integ_w, integ_i
-
-
 # ---------------------------------------------------------------------------- plant
 
 
@@ -632,8 +495,8 @@ class Plant:
             raise ValueError(f"accel_ref has shape {a_ref.shape}, speed_ref {w_ref.shape}")
         noise = self._rng.standard_normal((n, 3)) * self._sigma
         out = np.empty((n, 9), dtype=np.float64)
-        _run(self.dt, self.nsub, self.h_stiff, self._state, self._p, self._ck, self._cs, self._cc,
-             self._gains, self._quant, w_ref, a_ref, noise, out)
+        _sim.plant_run(self.dt, self.nsub, self.h_stiff, self._state, self._p, self._ck,
+                       self._cs, self._cc, self._gains, self._quant, w_ref, a_ref, noise, out)
         t = (self.k + np.arange(n, dtype=np.float64)) * self.dt
         self.k += n
         elec = self.truth.has_electrical
