@@ -67,6 +67,7 @@ from canrls.errors import ConfigError
 from canrls.estimation.fixed import QFormat
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings
+from canrls.files import MAX_CONFIG_BYTES, check_path, read_bytes
 
 __all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "load_config",
            "read_toml", "load_model"]
@@ -108,12 +109,10 @@ def read_toml(path: str | Path, table: str | None = None, *, key: str | None = N
     ``"daemon.model_file = m.toml: invalid TOML: Expected ']' ... (at line 1, column 7)"``,
     ``"drive.toml: cannot read: No such file or directory"``, ``"x.toml: no [model] table"``.
     """
-    p = Path(path)
-    where = f"{key} = {p}" if key else str(p)
-    try:
-        text = p.read_bytes()
-    except OSError as e:
-        raise ConfigError(f"{where}: cannot read: {e.strerror or e}") from e
+    where = f"{key} = {path}" if key else str(path)
+    p = check_path(path, where)
+    # a regular file of bounded size: a FIFO or a device is refused, never opened
+    text = read_bytes(p, where, limit=MAX_CONFIG_BYTES)
     try:
         doc = tomllib.loads(text.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
@@ -243,7 +242,7 @@ class AppConfig:
             return None
         if not isinstance(dbc, str):
             raise ConfigError(f"{self._where('can.dbc')} = {dbc!r}: must be a file path")
-        p = Path(dbc)
+        p = check_path(dbc, f"{self._where('can.dbc')} = {dbc!r}")
         return p if p.is_absolute() else self.base_dir / p
 
     def protocol(self) -> Protocol:

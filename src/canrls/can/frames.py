@@ -49,7 +49,7 @@ from typing import Any
 import can
 import cantools
 
-from canrls.can.protocol import DEFAULT_DBC, EncodeError, SignalMapping
+from canrls.can.protocol import DEFAULT_DBC, EncodeError, SignalMapping, load_dbc
 from canrls.effect_names import EffectId, EquationId, parse_effect_name
 from canrls.errors import CommandError, EffectError
 
@@ -324,7 +324,7 @@ class CommandAck:
 
 @cache
 def _database(path: str) -> Any:
-    return cantools.database.load_file(path, database_format="dbc", strict=True)
+    return load_dbc(path)[0]
 
 
 def _db(dbc: str | Path | None = None) -> Any:

@@ -18,6 +18,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from canrls import prefer_cache_dir
+from canrls.errors import CanrlsError
+from canrls.files import MAX_CONFIG_BYTES, read_bytes
 from canrls.live.settings import resolve_path
 
 __all__ = ["configured_cache_dir", "preload"]
@@ -26,15 +28,15 @@ __all__ = ["configured_cache_dir", "preload"]
 def configured_cache_dir(config: str | Path) -> Path | None:
     """``[daemon] cache_dir`` of the configuration file ``config`` (relative to the
     file's directory), or None (no such key, or a file that does not read)."""
-    p = Path(config).expanduser()
     try:
-        with p.open("rb") as fh:
-            doc = tomllib.load(fh)
-    except (OSError, ValueError, RecursionError):  # left to the configuration loader
+        p = Path(config).expanduser()
+        # a regular file of bounded size only: a FIFO must not block the start
+        doc = tomllib.loads(read_bytes(p, str(p), limit=MAX_CONFIG_BYTES).decode("utf-8"))
+    except (CanrlsError, OSError, ValueError, RecursionError):  # left to the loader
         return None
     table = doc.get("daemon")
     value = table.get("cache_dir") if isinstance(table, dict) else None
-    if not isinstance(value, str) or not value:
+    if not isinstance(value, str) or not value or "\0" in value:
         return None
     return resolve_path(value, p.resolve().parent)
 

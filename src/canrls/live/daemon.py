@@ -45,6 +45,7 @@ import numpy as np
 from canrls.can.frameblock import FrameBlock
 from canrls.can.frames import ParameterReport, StatusReport
 from canrls.can.protocol import FeedbackEncoder, Protocol
+from canrls.can.writers import open_writer
 from canrls.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline
@@ -306,7 +307,9 @@ class Daemon:
         except Exception as e:  # only a speed-up: never a reason not to start
             log.warning("warm-up skipped (the first frames will be slower): %s", e)
         if self.config.record is not None:
-            self._recorder = can.Logger(str(self.config.record))
+            # never through a link planted at the path (python-can opens by name)
+            self._recorder = open_writer(self.config.record,
+                                         f"daemon.record = {self.config.record}")
             self._queue.recorder = self._recorder
         try:
             self._link.open()

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from canrls.errors import ConfigError
+from canrls.files import check_path
 
 if TYPE_CHECKING:  # importing the configuration imports numba's kernels: not here
     from canrls.config import AppConfig
@@ -177,7 +178,12 @@ class DaemonSettings:
                     what = "directory" if k == "cache_dir" else "file"
                     raise ConfigError(f"{key} = {v!r}: must be a {what} path")
                 if v:
+                    check_path(v, f"{key} = {v!r}")  # a NUL byte is no file name
                     kw[k] = resolve_path(v, base_dir)
+                    if k == "record":  # its format and place, before the daemon starts
+                        from canrls.can.writers import check_record_path
+
+                        check_record_path(kw[k], f"{key} = {v}")
             else:
                 if isinstance(v, bool) or not isinstance(v, int | float):
                     unit = "commands per second" if k == "command_rate" else "seconds"
