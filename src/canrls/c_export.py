@@ -76,14 +76,15 @@ class _Names:
     """The macros and symbols a generated file defines: each derived name once (two
     parameters that become the same C name are refused, naming both)."""
 
-    def __init__(self) -> None:
+    def __init__(self, where: str = "") -> None:
+        self.where = where
         self.seen: dict[str, str] = {}
 
     def __call__(self, name: str, origin: str) -> str:
-        c_identifier(name, origin)
+        c_identifier(name, f"{self.where}{origin}")
         if name in self.seen and self.seen[name] != origin:
-            raise ConfigError(f"{self.seen[name]} and {origin} both become {name} in the "
-                              f"generated C: rename one")
+            raise ConfigError(f"{self.where}{self.seen[name]} and {origin} both become "
+                              f"{name} in the generated C: rename one")
         self.seen[name] = origin
         return name
 
@@ -201,19 +202,19 @@ def _frames_files(dbc: Path) -> tuple[str, str]:
     msgs = [m for m in full.messages if m.frame_id in own]
     if not msgs:
         raise ConfigError(f"{dbc}: none of canrls' frames found")
-    messages = _Names()
+    messages = _Names(f"DBC {dbc}: ")
     for m in msgs:
+        c_identifier(m.name, f"DBC {dbc}: a message name")  # shown with repr until valid
         mw = f"DBC {dbc}: message {m.name}"
-        c_identifier(m.name, mw)
-        messages(camel_to_snake_case(m.name).upper(), mw)
+        messages(camel_to_snake_case(m.name).upper(), f"message {m.name}")
         m.comment = _dbc_comment(m.comment, f"{mw}: comment")
         if m.cycle_time is not None:
             c_int(m.cycle_time, 32, f"{mw}: cycle time")
-        signals = _Names()
+        signals = _Names(f"{mw}: ")
         for sig in m.signals:
+            c_identifier(sig.name, f"{mw}: a signal name")
             sw = f"{mw}: signal {sig.name}"
-            c_identifier(sig.name, sw)
-            signals(camel_to_snake_case(sig.name).upper(), sw)
+            signals(camel_to_snake_case(sig.name).upper(), f"signal {sig.name}")
             sig.comment = _dbc_comment(sig.comment, f"{sw}: comment")
             if sig.unit is not None:
                 sig.unit = c_comment(sig.unit, f"{sw}: unit")

@@ -729,9 +729,9 @@ def _check_numbers(sig: Any, where: str) -> None:
         except OverflowError:
             ends = (math.inf, math.inf)
         if not all(math.isfinite(x) for x in ends):
-            raise ConfigError(f"{where}: scale {conv.scale!r} and offset {conv.offset!r} "
-                              f"put the raw values {lo}..{hi} beyond the range of a "
-                              f"double")
+            raise ConfigError(f"{where}: scale {float(conv.scale):g} and offset "
+                              f"{float(conv.offset):g} put the raw values {lo}..{hi} beyond "
+                              f"the range of a double")
 
 
 @functools.cache
