@@ -113,8 +113,9 @@ def _csv(draw: st.DrawFn) -> str:
     for _ in range(draw(st.integers(0, 6))):
         if draw(st.booleans()):
             t = draw(st.sampled_from(["0.001", "1e300", "inf", "-1", "2.5"]))
+            data = draw(st.sampled_from(["AQ==", "", "x", "AAAAAAAAAAA="]))
             lines.append(f"{t},0x{draw(_ids):X},{draw(st.integers(0, 1))},0,0,"
-                         f"{draw(st.integers(0, 70))},{draw(st.sampled_from(['AQ==', '', 'x', 'AAAAAAAAAAA=']))}")
+                         f"{draw(st.integers(0, 70))},{data}")
         else:
             lines.append(draw(_junk))
     return "\n".join(lines) + "\n"

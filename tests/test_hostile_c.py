@@ -232,6 +232,17 @@ def test_dbc_text_cantools_would_paste_into_c_is_refused(
     assert not out.exists()
 
 
+def test_a_dbc_without_canrls_frames_is_one_error_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A drive's own DBC without canrls' frames ended ``export-c`` in a KeyError."""
+    text = DBC.read_text()
+    dbc = tmp_path / "drive.dbc"
+    dbc.write_text(text[:text.index("BO_ 768 ")])  # the drive's messages alone
+    cfg, out = _export(tmp_path, dbc)
+    line = _error(capsys, ["export-c", "--model", str(cfg), "--out", str(out)])
+    assert f"DBC file {dbc}: no message RlsEstimate, RlsSigma" in line
+
+
 # ------------------------------------------------------------------ item 12: the size
 def test_more_parameters_than_the_kernel_holds_stops_the_build(tmp_path: Path,
                                                                fixed_o: Path) -> None:

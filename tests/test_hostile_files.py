@@ -452,7 +452,8 @@ def _dbc(tmp_path: Path, old: str, new: str) -> Path:
      "message DriveCurrent: signal Current: scale 0"),
     ("SG_ Current : 16|24@1- (0.0001,0) [-800|800]",
      "SG_ Current : 16|24@1- (1e308,0) [-800|800]",
-     "message DriveCurrent: signal Current: scale 1e+308 and offset 0 put the raw values -8388608..8388607 beyond"),
+     "message DriveCurrent: signal Current: scale 1e+308 and offset 0 put the raw values "
+     "-8388608..8388607 beyond"),
     ("SG_ Speed : 16|24@1- (0.0001,0)", "SG_ Speed : 16|24@1- (0.0001,1e999)",
      "message DriveSpeed: signal Speed: offset inf is not a finite number"),
     ("SG_ Current : 16|24@1-", "SG_ Current : 999999|24@1-",

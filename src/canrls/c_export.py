@@ -23,10 +23,10 @@ from __future__ import annotations
 import math
 import os
 import stat
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -36,10 +36,10 @@ from canrls.can.protocol import load_dbc
 from canrls.config import AppConfig
 from canrls.ctext import c_comment, c_float, c_identifier, c_int, c_name_part, c_string
 from canrls.errors import ConfigError
-from canrls.files import atomic_writer, check_path, kind
 from canrls.estimation.fixed import FixedRLS
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
+from canrls.files import atomic_writer, check_path, kind
 
 __all__ = ["KERNEL_FILES", "PLAN_64", "Export", "plan_c", "c_int", "export_c"]
 

@@ -51,7 +51,7 @@ import cantools
 
 from canrls.can.protocol import DEFAULT_DBC, EncodeError, SignalMapping, load_dbc
 from canrls.effect_names import EffectId, EquationId, parse_effect_name
-from canrls.errors import CommandError, EffectError
+from canrls.errors import CommandError, ConfigError, EffectError
 
 __all__ = [
     "EffectId",
@@ -367,10 +367,15 @@ class FrameIds:
 @cache
 def _frame_ids(path: str) -> FrameIds:
     db = _database(path)
-    ids = [db.get_message_by_name(n).frame_id for n in (*_PUBLISHED, "RlsCommand",
-                                                          "RlsCommandAck")]
-    names = dict.fromkeys(r.message for r in SignalMapping.default().roles.values())
     present = {m.name: m.frame_id for m in db.messages}
+    wanted = (*_PUBLISHED, "RlsCommand", "RlsCommandAck")
+    missing = [n for n in wanted if n not in present]
+    if missing:
+        raise ConfigError(f"DBC file {path}: no message {', '.join(missing)}: canrls' own "
+                          f"frames (those of the shipped DBC, canrls/data/canrls.dbc) are "
+                          f"needed to publish estimates or export their codecs")
+    ids = [present[n] for n in wanted]
+    names = dict.fromkeys(r.message for r in SignalMapping.default().roles.values())
     return FrameIds(*ids, feedback=tuple(present[n] for n in names if n in present))
 
 

@@ -27,9 +27,9 @@ from canrls.diagnosis.results import (
     share_text,
     value_text,
 )
-from canrls.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
+from canrls.files import atomic_writer
 
 __all__ = ["CAPTIONS", "DiagnosisReport", "FIGURES", "page_template", "white_caveat",
            "write_html"]
@@ -237,10 +237,8 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
     written["convergence.png"] = figs.convergence(final.primary, final is report.after)
     written["fixed.png"] = figs.fixed(final.primary)
     page = out / "index.html"
-    try:
-        page.write_text(render_html(report, written), encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(f"--report {out}: cannot write index.html: {e}") from e
+    with atomic_writer(page, f"--report {out}: index.html") as f:
+        f.write(render_html(report, written).encode("utf-8"))
     return page
 
 
