@@ -7,10 +7,11 @@ before it is opened (``stat``) and again after (``fstat`` of a descriptor opened
 stops at a stated size. Logs are read in blocks; :class:`LineBound` bounds their lines.
 
 Writing: never through a link (``O_NOFOLLOW``). A whole file (a log of ``canrls sim``,
-a model, the C of ``export-c``) goes to a private temporary beside its name, created
-with ``O_EXCL``, and is renamed over the name when complete (:func:`atomic_writer`),
-so a link planted at the name or at the temporary is replaced or never touched; a
-stream (``--record``) is opened with :func:`open_for_writing`.
+a model, the C of ``export-c``, a report) goes to a fresh temporary beside its name,
+created with ``O_EXCL``, and is renamed over the name when complete
+(:func:`atomic_writer`), so a link planted at the name is replaced and one at a
+temporary's name never touched; a stream (``--record``) is opened with
+:func:`open_for_writing`.
 
 Every error is raised as the ``error`` class the caller names (a
 :class:`~canrls.errors.ConfigError` by default, a
@@ -200,7 +201,7 @@ def temporary_name(path: Path) -> Path:
 @contextlib.contextmanager
 def atomic_writer(path: str | os.PathLike[str], what: str, error: ErrorType = ConfigError,
                   *, replace: bool = True) -> Iterator[BinaryIO]:
-    """Write a whole file: yields a binary file object on a new private temporary beside
+    """Write a whole file: yields a binary file object on a fresh temporary beside
     ``path`` (``O_EXCL | O_NOFOLLOW``, mode 0666 less the umask), renamed over ``path``
     when the block ends without an exception, removed otherwise (also on
     ``KeyboardInterrupt`` and ``SystemExit``).

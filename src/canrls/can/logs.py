@@ -274,7 +274,7 @@ def _python_can_reader(f: BinaryIO, path: Path) -> can.io.generic.MessageReader:
             text = io.TextIOWrapper(raw, encoding=locale.getpreferredencoding(False))
             return cls(file=text)
         if cls is not None and issubclass(cls, BinaryIOMessageReader):
-            return cls(file=f)
+            return cls(file=io.BufferedReader(f))  # type: ignore[arg-type]
         # formats python-can opens by name (.db, .mf4, compressed): the file was checked
         return can.LogReader(str(path))
     except LogFormatError:
@@ -425,7 +425,7 @@ def check_channel(channel: object, what: str = "channel") -> str:
 
 def write_candump(path: str | os.PathLike[str], blocks: Iterable[FrameBlock],
                   channel: str = "can0", *, what: str | None = None) -> int:
-    """Write blocks as a candump ``.log`` file (atomically: a private temporary beside it,
+    """Write blocks as a candump ``.log`` file (atomically: a fresh temporary beside it,
     then a rename; see :func:`canrls.files.atomic_writer`).
 
     Returns the number of frames written.
