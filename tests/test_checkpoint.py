@@ -131,6 +131,7 @@ def test_daemon_resumes_and_sets_aside_mismatches(tmp_path: Path,
     assert d.resumed_from == str(path)
     assert d.pipeline.samples == proc.pipeline.samples > 0
     assert d.stats().frames == 7
+    d.stop()  # never started: the checkpoint's lock is released for the next
     # another configured model: set aside, never loaded
     _, model2, _ = _setup(EFFECTS + ["offset"])
     with caplog.at_level("ERROR", logger="canrls.live"):
@@ -138,12 +139,14 @@ def test_daemon_resumes_and_sets_aside_mismatches(tmp_path: Path,
     assert d2.resumed_from is None and d2.pipeline.samples == 0
     assert not path.exists() and len(list(tmp_path.glob("cp.bin.bad-*"))) == 1
     assert "another configured model" in caplog.text
+    d2.stop()
     # other estimator settings: also a mismatch
     save_checkpoint(path, _checkpoint_of(proc, model, settings))
     cfg = AppConfig()
     cfg.estimator = {"alpha": 0.5}
     d3 = _daemon(protocol, model, cfg.settings(), path)
     assert d3.resumed_from is None and len(list(tmp_path.glob("cp.bin.bad-*"))) == 2
+    d3.stop()
     # a corrupted file
     save_checkpoint(path, _checkpoint_of(proc, model, settings))
     raw = bytearray(path.read_bytes())

@@ -194,6 +194,39 @@ def test_commands_good_and_bad() -> None:
         tool.close()
 
 
+def test_lambda_and_a_freeze_survive_an_added_effect_and_a_checkpoint() -> None:
+    """A command's lambda and freeze live in the settings a changed model's pipeline
+    is built from: an effect added after them keeps both, live and after a restore.
+    Before, the pipeline for the new model was built from the configured lambda 1."""
+    protocol, model, settings = _setup()
+    ch = _chan("lam")
+    tool = DaemonTool(ch)
+    d = Daemon(protocol, model, settings,
+               DaemonSettings(publish_interval=1.0, commands=True, command_burst=100),
+               bus={"interface": "virtual", "channel": ch})
+    R = CommandResult
+    try:
+        d.start()
+        assert tool.command(_cmd(CommandCode.SET_LAMBDA, lam=0.99)) is R.OK
+        assert tool.command(_cmd(CommandCode.FREEZE)) is R.OK
+        assert tool.command(_cmd(CommandCode.ADD_EFFECT, EffectId.OFFSET)) is R.OK
+        pipe = d.pipeline
+        assert d.model.effect_names == (*BASE, "offset")
+        assert pipe.frozen and pipe.settings.lam == pytest.approx(0.99)
+        assert all(e.rls.lam == pytest.approx(0.99) and e.frls.lam == pytest.approx(0.99)
+                   for e in pipe.estimators)
+        state, running = d.processor.state(), d.model
+    finally:
+        d.stop()
+        tool.close()
+    # a checkpoint's state restored: the next added effect keeps them as well
+    proc = FrameProcessor(protocol, model, settings, period=1e-3)
+    proc.restore(state, running)
+    assert proc.pipeline.frozen and proc.settings.lam == pytest.approx(0.99)
+    pipe = proc.with_model(running.with_effects(add=["cogging:6"]))
+    assert pipe.frozen and all(e.rls.lam == pytest.approx(0.99) for e in pipe.estimators)
+
+
 def test_the_daemon_publishes_the_state_it_stops_in() -> None:
     """A freeze acknowledged just before a stop is in the last status published (and
     in ``canrls run --json``'s): the stop publishes once more after the last frames.

@@ -458,7 +458,7 @@ def test_saturated_and_nan_estimates_on_the_wire() -> None:
     update_count=st.integers(0, 2**70), windup=st.booleans(), low_excitation=st.booleans(),
     saturation=st.booleans(), frame_loss=st.booleans(), frozen=st.booleans(),
     diverged=st.booleans(), bus_fault=st.booleans(), clock_fault=st.booleans(),
-    active_effects=st.integers(0, 2**20),
+    implausible=st.booleans(), active_effects=st.integers(0, 2**20),
     divergence=ESTIMATES.filter(lambda x: x is not None),
     frames_rejected=st.integers(0, 2**40), frames_lost=st.integers(0, 2**40),
     saturations=st.integers(0, 2**40), tx_dropped=st.integers(0, 2**40),
@@ -471,10 +471,11 @@ def test_status_frames_are_cantools_bytes(db, status: StatusReport, counter: int
     s = status
     health = {sig: int(getattr(s, f)) for f, sig in zip(FLAG_NAMES, (
         "Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen", "Diverged", "BusFault",
-        "ClockFault"), strict=True)}
+        "ClockFault", "Implausible"), strict=True)}
     want = [("RlsStatus", {"ResidualRms": f32(s.residual_rms),
                            "UpdateCount": s.update_count % 2**32}),
             ("RlsHealth", {**health, "Counter": counter % 16,
+                           "TimeRejects": s.rejects["time"] % 8,
                            "ActiveEffects": s.active_effects % 2**16,
                            "Divergence": f32(s.divergence)}),
             ("RlsCounters", {"FramesRejected": s.frames_rejected % 2**16,
@@ -482,8 +483,9 @@ def test_status_frames_are_cantools_bytes(db, status: StatusReport, counter: int
                              "Saturations": s.saturations % 2**16,
                              "TxDropped": s.tx_dropped % 2**16}),
             ("RlsRejects", {sig: s.rejects[k] % REJECT_WRAP[k] for k, sig in zip(
-                REJECT_FIELDS, ("Crc", "Malformed", "Repeated", "Stale", "Range", "Unpaired",
-                                "Reordered", "ClockSteps", "Gaps"), strict=True)})]
+                REJECT_FIELDS[:-1], ("Crc", "Malformed", "Repeated", "Stale", "Range",
+                                     "Unpaired", "Reordered", "ClockSteps", "Gaps"),
+                strict=True)})]
     got = encode_status(status, counter)
     assert [bytes(m.data) for m in got] == [
         bytes(db.get_message_by_name(n).encode(v, scaling=True, strict=True)) for n, v in want]

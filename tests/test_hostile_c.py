@@ -22,7 +22,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from canrls.c_export import load_source
+from canrls.c_export import frames_c, load_source
 from canrls.cli.main import main
 from canrls.ctext import MAX_TEXT, c_comment, c_identifier, c_int, c_string, c_uint
 from canrls.errors import ConfigError
@@ -34,6 +34,9 @@ KERNEL = ROOT / "src" / "canrls" / "c"
 CFLAGS = ["-std=c99", "-O0", "-Wall", "-Wextra", "-Werror", "-pedantic"]
 ATTACK = "1*/\n#define canrls_update_q31(S, phi, y, st) ((void)(S))\n/*"
 BASE = ["inertia", "viscous", "coulomb"]
+#: the mapping of the shipped DBC, the current with a stated scale (any unit in the DBC)
+SIGNALS = ('[signals]\ncurrent = { signal = "DriveCurrent.Current", scale = 1.0 }\n'
+           'speed = "DriveSpeed.Speed"\nposition = "DriveSpeed.Position"\n')
 
 
 def _gcc() -> str:
@@ -53,13 +56,26 @@ def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
     return lines[0]
 
 
+def _toml_str(s: str) -> str:
+    """``s`` as a TOML basic string (control characters as ``\\uXXXX``)."""
+    out = []
+    for ch in s:
+        if ch in '"\\':
+            out.append("\\" + ch)
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04X}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
 def _toml(units: dict[str, str], dbc: Path | None = None) -> str:
     """A configuration with one user term per entry of ``units`` (name -> unit)."""
     effects = [*BASE, *(f"user:{n}" for n in units)]
     text = f"[model]\neffects = {json.dumps(effects)}\nkt = 0.1\n"
     for name, unit in units.items():
         text += (f'[[model.terms]]\nname = "{name}"\nexpr = "speed * abs(speed)"\n'
-                 f"unit = {json.dumps(unit, ensure_ascii=False)}\n")
+                 f"unit = {_toml_str(unit)}\n")
     if dbc is not None:
         text += f'[can]\ndbc = "{dbc}"\n'
     return text
@@ -183,26 +199,27 @@ def _dbc(tmp_path: Path, *edits: tuple[str, str], extra: str = "") -> Path:
         assert old in text
         text = text.replace(old, new, 1)
     path = tmp_path / "drive.dbc"
-    path.write_text(text + extra)
+    path.write_bytes((text + extra).encode("cp1252", errors="replace"))  # a DBC's encoding
     return path
 
 
-def _export(tmp_path: Path, dbc: Path) -> tuple[Path, Path]:
-    cfg = tmp_path / "drive.toml"
-    cfg.write_text(_toml({}, dbc))
-    return cfg, tmp_path / "c"
+def _syntax(tmp_path: Path, header: str, source: str) -> None:
+    """cantools' codecs compile (syntax and warnings) with the firmware's flags."""
+    (tmp_path / "canrls_frames.h").write_text(header)
+    (tmp_path / "canrls_frames.c").write_text(source)
+    r = subprocess.run([_gcc(), *CFLAGS, "-fsyntax-only", str(tmp_path / "canrls_frames.c")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
 
 
-def test_a_dbc_unit_that_closes_the_comment_is_rendered_inert(tmp_path: Path,
-                                                             fixed_o: Path) -> None:
-    """cantools pasted a signal's unit raw into a comment of the codecs (its ``Range:``
+def test_a_dbc_unit_that_closes_the_comment_is_rendered_inert(tmp_path: Path) -> None:
+    """cantools pastes a signal's unit raw into a comment of the codecs (its ``Range:``
     line): ``*/ #error injected /*`` stopped the build, anything else went in."""
     dbc = _dbc(tmp_path, ('SG_ ResidualRms : 0|32@1- (1,0) [0|3.4e+38] ""',
                           'SG_ ResidualRms : 0|32@1- (1,0) [0|3.4e+38] "*/ #error injected /*"'))
-    cfg, out = _export(tmp_path, dbc)
-    assert main(["export-c", "--model", str(cfg), "--out", str(out)]) == 0
-    assert "* / #error injected / *" in (out / "canrls_frames.h").read_text()
-    _estimates_like_python(cfg, out, fixed_o, tmp_path)
+    header, source = frames_c(dbc)
+    assert "* / #error injected / *" in header
+    _syntax(tmp_path, header, source)
 
 
 @pytest.mark.parametrize(("edit", "extra", "message"), [
@@ -219,28 +236,40 @@ def test_a_dbc_unit_that_closes_the_comment_is_rendered_inert(tmp_path: Path,
      "message RlsCommandAck: signal Result: value of a choice = 99999999999999999999999"),
 ], ids=["backslash-newline", "long-name", "snake-collision", "huge-choice"])
 def test_dbc_text_cantools_would_paste_into_c_is_refused(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str], edit: tuple[str, str],
-        extra: str, message: str) -> None:
+        tmp_path: Path, edit: tuple[str, str], extra: str, message: str) -> None:
     """A backslash-newline in a message comment closed cantools' comment (its escape
     misses a line splice), a long name (``SystemSignalLongSymbol``) went raw into a
     string literal, two signals with one snake-case name and a choice beyond 64 bits
-    broke the build. Each is refused, naming the message and signal."""
+    broke the build. Each is refused before cantools sees it, naming message and signal
+    (``export-c`` generates the codecs of the shipped DBC; the guard holds for any)."""
     dbc = _dbc(tmp_path, *([edit] if edit[0] else []), extra=extra)
-    cfg, out = _export(tmp_path, dbc)
-    line = _error(capsys, ["export-c", "--model", str(cfg), "--out", str(out)])
-    assert str(dbc) in line and message in line
-    assert not out.exists()
+    with pytest.raises(ConfigError) as e:
+        frames_c(dbc)
+    assert str(dbc) in str(e.value) and message in str(e.value)
 
 
-def test_a_dbc_without_canrls_frames_is_one_error_line(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """A drive's own DBC without canrls' frames ended ``export-c`` in a KeyError."""
+def test_a_dbc_without_canrls_frames_is_one_error(tmp_path: Path) -> None:
+    """A DBC without canrls' frames ended the frame IDs' lookup in a KeyError."""
     text = DBC.read_text()
     dbc = tmp_path / "drive.dbc"
     dbc.write_text(text[:text.index("BO_ 768 ")])  # the drive's messages alone
-    cfg, out = _export(tmp_path, dbc)
-    line = _error(capsys, ["export-c", "--model", str(cfg), "--out", str(out)])
-    assert f"DBC file {dbc}: no message RlsEstimate, RlsSigma" in line
+    with pytest.raises(ConfigError, match=f"DBC file {dbc}: no message RlsEstimate, RlsSigma"):
+        frames_c(dbc)
+
+
+def test_the_target_signals_dbc_names_and_unit_go_into_c_as_escaped_strings(
+        tmp_path: Path, fixed_o: Path) -> None:
+    """The export names the DBC signal the target is decoded from, and its unit, in C
+    strings: the user's DBC text, escaped byte by byte."""
+    unit = "A */ ??/ #error x"
+    dbc = _dbc(tmp_path, ('SG_ Current : 16|24@1- (0.0001,0) [-800|800] "A"',
+                          f'SG_ Current : 16|24@1- (0.0001,0) [-800|800] "{unit}"'))
+    cfg = tmp_path / "drive.toml"
+    cfg.write_text(_toml({}, dbc) + SIGNALS)
+    out = tmp_path / "c"
+    assert main(["export-c", "--model", str(cfg), "--out", str(out)]) == 0
+    assert c_string(unit) in (out / "canrls_config.c").read_text()
+    _estimates_like_python(cfg, out, fixed_o, tmp_path)
 
 
 # ------------------------------------------------------------------ item 12: the size
@@ -309,17 +338,26 @@ def test_export_of_random_names_units_and_comments_compiles_and_estimates(
         capsys: pytest.CaptureFixture[str], terms: dict[str, str], comment: str,
         dbc_unit: str) -> None:
     """Random term names, units (with every dangerous sequence we know), a random DBC
-    comment and unit: ``export-c`` refuses (one error line, exit 1; a unit exactly when
-    it is not printable text without a backslash, names exactly when two differ only in
-    case) or writes C that compiles with -Werror and estimates as canrls does."""
+    comment and units: ``export-c`` refuses (one error line, exit 1; a term's unit
+    exactly when it is not printable text without a backslash, names exactly when two
+    differ only in case) or writes C that compiles with -Werror and estimates as canrls
+    does; cantools' codecs of that DBC are refused or compile."""
     tmp = tmp_path_factory.mktemp("fuzz")
     # a DBC string cannot hold a quote; a trailing backslash would escape its end
     clean = lambda s: s.replace('"', "'").rstrip("\\")  # noqa: E731
     dbc = _dbc(tmp, ('CM_ BO_ 768 "Fixed-point', f'CM_ BO_ 768 "{clean(comment)} Fixed-point'),
                ('SG_ ResidualRms : 0|32@1- (1,0) [0|3.4e+38] ""',
-                f'SG_ ResidualRms : 0|32@1- (1,0) [0|3.4e+38] "{clean(dbc_unit)}"'))
+                f'SG_ ResidualRms : 0|32@1- (1,0) [0|3.4e+38] "{clean(dbc_unit)}"'),
+               ('SG_ Current : 16|24@1- (0.0001,0) [-800|800] "A"',
+                f'SG_ Current : 16|24@1- (0.0001,0) [-800|800] "{clean(dbc_unit)}"'))
+    try:
+        header, source = frames_c(dbc)
+    except ConfigError:
+        pass
+    else:
+        _syntax(tmp, header, source)
     cfg = tmp / "drive.toml"
-    cfg.write_text(_toml(terms, dbc))
+    cfg.write_text(_toml(terms, dbc) + SIGNALS)
     out = tmp / "c"
     capsys.readouterr()
     rc = main(["export-c", "--model", str(cfg), "--out", str(out)])
@@ -333,7 +371,6 @@ def test_export_of_random_names_units_and_comments_compiles_and_estimates(
     if rc == 1:
         assert not out.exists()
         return
-    assert not (units_bad or names_bad)
     h = (out / "canrls_config.h").read_text()
     assert not re.search(r"^\s*#\s*define\s+canrls_update", h, re.M)
     _estimates_like_python(cfg, out, fixed_o, tmp)

@@ -118,7 +118,7 @@ def run_selection(K: Any) -> list[Any]:
     t = sample_times(3, N)
     omega = uniform(4, N) * 100.0
     out: list[Any] = []
-    state = np.array([np.nan, 0.0])
+    state = np.array([np.nan, 0.0, 0.0])
     for a, b in ((0, 200), (200, 500)):
         restart, use = np.zeros(b - a, np.bool_), np.empty(b - a, np.bool_)
         r = K.select(np.ascontiguousarray(t[a:b]), np.ascontiguousarray(omega[a:b]), 0.01, 7,
@@ -198,7 +198,10 @@ GOLDEN = {
     "rls_block_literal-float32-0.98": "127041bb31abfca2",
     "svf-foh": "815385e1adc60c40",
     "svf-mixed": "560bdb3630ce2974",
-    "selection": "6c84fa46cd5807c7",
+    # the selection since a reversal between two samples counts as a low speed (the
+    # numba kernel's digest was 6c84fa46cd5807c7); test_selection_is_the_documented_rule
+    # holds the rule itself
+    "selection": "448c81fa1ed33444",
     "unwrap": "07f3f565c3102d12",
     "bookkeeping": "40d0e57a3af08396",
 }
@@ -252,19 +255,26 @@ def test_selection_is_the_documented_rule() -> None:
     t = sample_times(3, 500)
     omega = uniform(4, 500) * 100.0
     gap, warm, lo, hi = 0.01, 7, 5.0, 80.0
-    last, left = math.nan, 0.0
+    last, left, w_last = math.nan, 0.0, 0.0
     restart, use = [], []
+    crossings = 0
     for tk, wk in zip(t.tolist(), omega.tolist(), strict=True):
         r = not (tk - last <= gap) or tk < last  # nan: the first sample restarts
         if r:
             left = warm
+            w_last = 0.0
         last = tk
-        if abs(wk) > hi or abs(wk) < lo:
+        # a sign change since the last sample: the speed passed zero in between
+        crossed = w_last * wk < 0
+        crossings += crossed and lo <= abs(wk) <= hi
+        if abs(wk) > hi or abs(wk) < lo or crossed:
             left = warm + 1
+        w_last = wk
         restart.append(r)
         use.append(left <= 0)
         left = left - 1 if left > 0 else left
     out = run_selection(_kernels)
+    assert crossings > 10  # the rule for a reversal between samples is exercised
     assert np.concatenate([out[1], out[5]]).tolist() == restart
     assert np.concatenate([out[2], out[6]]).tolist() == use
     assert out[0].tolist() == [sum(restart[:200]), sum(use[:200])]
@@ -357,10 +367,10 @@ def test_the_wrappers_refuse_wrong_arrays_with_named_errors() -> None:
         _kernels.rls_block_symmetric(np.zeros((4, 3)), *rls_args(dtype=np.float32)[1:])
     t = np.zeros(3)
     with pytest.raises(ValueError, match="state must have shape"):
-        _kernels.select(t, t, 0.1, 1, 0.0, 1.0, np.zeros(3), np.zeros(3, np.bool_),
+        _kernels.select(t, t, 0.1, 1, 0.0, 1.0, np.zeros(2), np.zeros(3, np.bool_),
                         np.zeros(3, np.bool_))
     with pytest.raises(TypeError, match="use must be a bool array"):
-        _kernels.select(t, t, 0.1, 1, 0.0, 1.0, np.zeros(2), np.zeros(3, np.bool_),
+        _kernels.select(t, t, 0.1, 1, 0.0, 1.0, np.zeros(3), np.zeros(3, np.bool_),
                         np.zeros(3, np.uint8))
     with pytest.raises(ValueError, match="at least one sample"):
         _kernels.unwrap(np.zeros(0), 1.0, 0, math.nan, np.zeros(0))

@@ -458,8 +458,8 @@ BAD_CASES = [
      ["model.filter.cutoff_hz", "= 0"]),
     ('effects = ["inertia"]\n[model.filter]\norder = 2', ConfigError,
      ["model.filter.order", "2"]),
-    ('effects = ["inertia"]\n[model.filter]\nheld = ["torque"]', ConfigError,
-     ["model.filter.held", "'torque'"]),
+    ('effects = ["inertia"]\n[model.filter]\nheld = ["pressure"]', ConfigError,
+     ["model.filter.held", "'pressure'"]),
     ('effects = ["inertia"]\n[model.filter]\nheld = "voltage"', ConfigError,
      ["model.filter.held", "'voltage'", "list"]),
     ('effects = ["coulomb"]\n[model.coulomb]\nband = 0.0', ConfigError,
@@ -470,8 +470,11 @@ BAD_CASES = [
      ["model.stribeck.speed", "0"]),
     ('effects = ["inertia"]\n[model.ranges]\ncurrent = [5, -5]', ConfigError,
      ["model.ranges.current", "[5, -5]"]),
-    ('effects = ["inertia"]\n[model.ranges]\ntorque = [0, 1]', ConfigError,
-     ["model.ranges.torque"]),
+    ('effects = ["inertia"]\n[model.ranges]\npressure = [0, 1]', ConfigError,
+     ["model.ranges.pressure"]),
+    ('effects = ["inertia"]\ntarget = "force"', ConfigError, ["model.target", "'force'"]),
+    ('effects = ["inertia"]\ntarget = "torque"\nkt = 0.1', ConfigError,
+     ["model.kt", "the torque the drive reports", "Kt is not used"]),
     ('effects = ["inertia"]\n[model.ranges]\nspeed = 100', ConfigError,
      ["model.ranges.speed", "100"]),
     ('effects = ["user:w"]\n[[model.terms]]\nname = "w"\nexpr = "import os"', ExpressionError,
@@ -515,8 +518,23 @@ def test_missing_signals_are_reported_at_build_time(tmp_path: Path) -> None:
         load_model(path, available_signals=["position"])
     with pytest.raises(EffectError, match=r"user:th.*position"):
         Model(["user:th"], available_signals=[], terms={"th": {"expr": "sin(theta)"}})
-    with pytest.raises(ConfigError, match="'torque'"):
+    with pytest.raises(ConfigError, match="'pressure'"):
+        Model(["inertia"], available_signals=["pressure"])
+    # a drive that reports its torque: the current only when it says so
+    with pytest.raises(ConfigError, match="model.target = 'current': the drive sends no "
+                                          "current signal"):
         Model(["inertia"], available_signals=["torque"])
+    with pytest.raises(EffectError, match=r"electrical.*needs signal\(s\) \['current'\]"):
+        Model(["inertia", "electrical"], target="torque", available_signals=["torque",
+                                                                            "voltage"])
+    with pytest.raises(ConfigError, match="model.target = 'torque': the drive sends no "
+                                          "torque signal"):
+        Model(["inertia"], target="torque", available_signals=["position"])
+    m = Model(["inertia", "coulomb"], target="torque", available_signals=["torque"])
+    eq = m.equations[0]
+    assert (eq.target.signal, eq.target.unit, eq.target.gain) == ("torque", "N·m", 1.0)
+    assert [p.unit for p in m.parameters] == ["kg·m²", "N·m"] and m.torque_known
+    assert Model.from_dict(m.to_dict()) == m and m.to_dict()["target"] == "torque"
     assert load_model(path, available_signals=["position", "voltage"]).equations
 
 

@@ -367,7 +367,8 @@ class TestMapping:
 
     @pytest.mark.parametrize("mapping, match", [
         ({"current": "InverterFb1", "speed": "InverterFb2.MotorSpeed"}, r"current: expected"),
-        ({"torque": "A.B"}, r"unknown key 'torque'"),
+        ({"pressure": "A.B"}, r"unknown key 'pressure'"),
+        ({"current": "InverterFb1.Iq", "rated_current": -5}, r"rated_current = -5: must be"),
         ({"current": {"signal": "InverterFb1.Iq", "units": "mA"}}, r"unknown key current\.units"),
         ({"current": {"signal": "InverterFb1.Iq", "scale": 0}}, r"current\.scale must be"),
         ({"current": {"signal": "InverterFb1.Iq", "counter": 3}}, r"current\.counter must be"),
@@ -375,7 +376,7 @@ class TestMapping:
           "messages": {"InverterFb3": {"counter": "Seq"}}},
          r"counter configured for message 'InverterFb3', which no role maps"),
         (["current InverterFb1.Iq"], r"expected ROLE=MESSAGE\.SIGNAL"),
-        (["torque=A.B"], r"unknown role 'torque'"),
+        (["pressure=A.B"], r"unknown role 'pressure'"),
     ])
     def test_config_errors(self, mapping, match) -> None:
         with pytest.raises(ConfigError, match=match):

@@ -12,7 +12,16 @@ import canrls.can.pairing
 import canrls.can.protocol
 import canrls.can.units
 import canrls.effect_names
-from canrls.can.units import SI_UNITS, UNITS, axis_of, known_units, si_factor
+from canrls.can.units import (
+    RATING_OPTIONS,
+    SI_UNITS,
+    UNITS,
+    Ratings,
+    axis_of,
+    known_units,
+    rating_of,
+    si_factor,
+)
 from canrls.errors import ConfigError, SignalError
 
 
@@ -61,8 +70,62 @@ def test_explicit_scale_wins() -> None:
 
 
 def test_unknown_role() -> None:
-    with pytest.raises(SignalError, match="unknown signal role 'torque'"):
-        si_factor("torque", "N.m")
+    with pytest.raises(SignalError, match="unknown signal role 'pressure'"):
+        si_factor("pressure", "bar")
+
+
+@pytest.mark.parametrize("role, unit, factor", [
+    ("torque", "N·m", 1.0), ("torque", "Nm", 1.0), ("torque", "N.m", 1.0),
+    ("torque", "mNm", 1e-3), ("torque", "N", 1.0), ("torque", "kN", 1e3),
+    # a number before the unit scales it (as a DBC writes "0.1 rpm" for a factor of 1)
+    ("speed", "0.1 rpm", 0.1 * 2 * math.pi / 60), ("speed", "0.1rpm", 0.1 * 2 * math.pi / 60),
+    ("position", "0.01 deg", 1e-2 * math.pi / 180), ("current", "10 mA", 1e-2),
+    # relative to the ratings: per mille / per cent of the rated torque or current
+    ("torque", "‰", 2.4e-3), ("torque", "permille", 2.4e-3), ("torque", "%", 2.4e-2),
+    ("torque", "0.1 %", 2.4e-3), ("current", "‰", 5e-3), ("current", "per mille", 5e-3),
+    ("torque", "‰".encode().decode("cp1252"), 2.4e-3),  # a UTF-8 DBC read as cp1252
+    # encoder increments: 1/4096 of a revolution
+    ("position", "inc", 2 * math.pi / 4096), ("position", "counts", 2 * math.pi / 4096),
+    ("speed", "inc/s", 2 * math.pi / 4096), ("speed", "increments/s", 2 * math.pi / 4096),
+])
+def test_torque_scaled_and_relative_units(role: str, unit: str, factor: float) -> None:
+    r = Ratings(rated_torque=2.4, rated_current=5.0, increments_per_rev=4096)
+    assert si_factor(role, unit, ratings=r) == pytest.approx(factor, rel=1e-14)
+
+
+def test_increments_on_a_linear_axis_are_per_metre() -> None:
+    r = Ratings(increments_per_rev=1e6)
+    assert si_factor("position", "inc", ratings=r, axis="linear") == pytest.approx(1e-6)
+    assert si_factor("speed", "inc/s", ratings=r, axis="linear") == pytest.approx(1e-6)
+    assert axis_of("inc") is None and axis_of("0.1 rpm") == "rotary"
+
+
+@pytest.mark.parametrize("role, unit, flag, what", [
+    ("torque", "‰", "--rated-torque", "per mille of the rated torque"),
+    ("torque", "%", "--rated-torque", "per cent of the rated torque"),
+    ("current", "‰", "--rated-current", "per mille of the rated current"),
+    ("position", "inc", "--increments-per-rev", "in encoder increments"),
+    ("speed", "inc/s", "--increments-per-rev", "in encoder increments"),
+])
+def test_a_relative_unit_without_its_rating_names_signal_and_flag(
+        role: str, unit: str, flag: str, what: str) -> None:
+    with pytest.raises(SignalError) as e:
+        si_factor(role, unit, message="TPDO1", signal="Sig")
+    msg = str(e.value)
+    assert msg.startswith(f"TPDO1.Sig: unit {unit!r} of the {role} signal is {what}: "
+                          f"give {flag} VALUE"), msg
+    assert RATING_OPTIONS[rating_of(role, unit)][1] + " = VALUE in [signals]" in msg
+
+
+def test_ratings_must_be_positive_and_name_their_flag() -> None:
+    assert Ratings(rated_torque=3).as_dict() == {"rated_torque": 3.0}
+    assert Ratings(rated_torque=2.4, increments_per_rev=4096).describe() == \
+        "rated torque 2.4 N·m, 4096 increments per revolution"
+    assert Ratings(rated_torque=20).describe("linear") == "rated force 20 N"
+    for bad in (0, -1.0, math.nan, math.inf, True):
+        with pytest.raises(SignalError, match="--rated-torque .*: must be a positive number"):
+            Ratings(rated_torque=bad)
+    assert rating_of("voltage", "%") is None and rating_of("torque", "N·m") is None
 
 
 def test_axis() -> None:

@@ -16,17 +16,17 @@ canrls writes nothing, and nothing is written into the installed package.
 from __future__ import annotations
 
 import atexit
-import importlib.abc
-import importlib.machinery
 import os
-import shutil
 import sys
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 from canrls.errors import CanrlsError
+
+if TYPE_CHECKING:  # importlib.abc costs 30 ms: not before canrls run's signal handlers
+    import importlib.machinery
 
 __version__ = "0.1.0"
 
@@ -50,6 +50,9 @@ def _usable(d: Path) -> bool:
 
 
 def _temporary() -> Path:
+    import shutil
+    import tempfile
+
     global _temp_cache
     if _temp_cache is None:
         _temp_cache = Path(tempfile.mkdtemp(prefix="canrls-numba-"))  # mode 0700
@@ -110,10 +113,10 @@ def prefer_cache_dir(path: str | os.PathLike[str] | None) -> Path | None:
     return None
 
 
-class _NumbaCacheHook(importlib.abc.MetaPathFinder):
+class _NumbaCacheHook:
     """Runs :func:`use_cache_dir` right before the first import of numba (numba reads
     ``$NUMBA_CACHE_DIR`` when it loads), then gets out of the way: it finds nothing
-    itself."""
+    itself (a meta path finder: ``find_spec`` is all ``sys.meta_path`` asks of it)."""
 
     done = False
 

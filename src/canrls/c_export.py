@@ -6,7 +6,10 @@ A firmware engineer gets one directory that compiles as it is (``-std=c99 -Wall 
 * ``canrls_fixed.h``, ``canrls_fixed.c`` -- the fixed-point RLS kernel (a copy of
   ``canrls/c``), bit-exact with :class:`canrls.estimation.fixed.FixedRLS`;
 * ``canrls_config.h``, ``canrls_config.c`` -- per equation of the model: its parameters
-  (names, units), the power-of-two scaling of its columns and target, the Q formats,
+  (names, units), its target (what it is, the DBC signal it comes from and that
+  signal's scaling to SI: a torque-reporting drive's torque is the mechanical target,
+  ``CANRLS_MECHANICAL_TARGET_TORQUE 1``, with no Kt), the power-of-two scaling of its
+  columns and target, the Q formats,
   the kernel's plan (``canrls_plan_q31``, the integers ``FixedRLS.constants`` holds) and
   an ``init`` function that starts an instance from the prior ``FixedRLS`` starts from;
 * ``canrls_frames.h``, ``canrls_frames.c`` -- the C codecs of canrls' parameter and
@@ -32,7 +35,8 @@ from typing import Any
 import numpy as np
 
 from canrls.can.frames import frame_ids
-from canrls.can.protocol import load_dbc
+from canrls.can.protocol import DEFAULT_DBC, Protocol, load_dbc
+from canrls.can.units import rating_of
 from canrls.config import AppConfig
 from canrls.ctext import c_comment, c_float, c_identifier, c_int, c_name_part, c_string
 from canrls.errors import ConfigError
@@ -41,7 +45,7 @@ from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
 from canrls.files import atomic_writer, check_path, kind
 
-__all__ = ["KERNEL_FILES", "PLAN_64", "Export", "plan_c", "c_int", "export_c"]
+__all__ = ["KERNEL_FILES", "PLAN_64", "Export", "plan_c", "c_int", "export_c", "frames_c"]
 
 #: The kernel's files, copied from the package (``canrls/c``).
 KERNEL_FILES = ("canrls_fixed.h", "canrls_fixed.c")
@@ -72,6 +76,47 @@ class Export:
                 f"(equations: {', '.join(self.equations)})")
 
 
+def _target_lines(eq: Any, protocol: Protocol | None) -> tuple[str, str]:
+    """What the header and the source say of ``eq``'s target: the quantity, the DBC
+    signal it is decoded from (its names in C strings: a user's text) and that signal's
+    scaling to SI. Text as comment text or string literals, numbers only finite ones."""
+    P = c_name_part(eq.name, "equation")
+    lo = P.lower()
+    role = c_comment(eq.target.signal, f"equation {eq.name}: target signal")
+    info = None if protocol is None else protocol.roles.get(eq.target.signal)
+    torque = int(eq.target.signal == "torque")
+    unit = c_comment(eq.target.unit, f"equation {eq.name}: target unit")
+    si_unit = {"current": "A", "voltage": "V"}.get(eq.target.signal, unit)
+    gain = eq.target.gain
+    g = c_float(gain, f"equation {eq.name}: Kt")
+    value = role if gain == 1.0 else f"{g} * {role}"
+    h = [f"/* target y: {c_comment(eq.target.description, f'equation {eq.name}: target')} "
+         f"[{unit}]" + (", no Kt" if torque else "" if gain == 1.0 else f", Kt = {g}")]
+    c = ""
+    if info is not None:
+        where = f"the {eq.target.signal} signal {info.message}.{info.signal}"
+        per_raw = c_float(float(info.codec.scale) * info.si_scale, f"{where}: scale")
+        off = float(info.codec.offset) * info.si_scale
+        rating = rating_of(eq.target.signal, info.unit)
+        of = ""
+        if rating is not None and protocol is not None:
+            r = c_float(getattr(protocol.mapping.ratings, rating), f"{where}: {rating}")
+            of = f",\n * relative to {c_comment(rating, 'rating')} = {r} {si_unit}"
+        h.append(f": the {role} signal\n * canrls_{lo}_target_signal, DBC unit "
+                 f"canrls_{lo}_target_unit{of}:\n * {role} [{si_unit}] = raw * {per_raw}"
+                 + (f" + {c_float(off, f'{where}: offset')}" if off else ""))
+        c = (f"const char canrls_{lo}_target_signal[] = "
+             f"{c_string(f'{info.message}.{info.signal}')};\n"
+             f"const char canrls_{lo}_target_unit[] = {c_string(info.unit or '')};\n")
+    h.append(f";\n * y = round({value} * 2^(CANRLS_{P}_Y_FRAC - CANRLS_{P}_TARGET_EXP)) */\n"
+             f"#define CANRLS_{P}_TARGET_TORQUE {torque} /* 1: the torque the drive reports, "
+             f"0: not */\n")
+    if info is not None:
+        h.append(f"extern const char canrls_{lo}_target_signal[];\n"
+                 f"extern const char canrls_{lo}_target_unit[];\n")
+    return "".join(h), c
+
+
 class _Names:
     """The macros and symbols a generated file defines: each derived name once (two
     parameters that become the same C name are refused, naming both)."""
@@ -89,8 +134,10 @@ class _Names:
         return name
 
 
-def _config_files(pipeline: Pipeline, source: str) -> tuple[str, str]:
-    """``canrls_config.h`` and ``canrls_config.c`` for the estimators of ``pipeline``.
+def _config_files(pipeline: Pipeline, source: str,
+                  protocol: Protocol | None = None) -> tuple[str, str]:
+    """``canrls_config.h`` and ``canrls_config.c`` for the estimators of ``pipeline``
+    (``protocol``: the DBC signals of the targets).
 
     Every name, unit and number goes through :mod:`canrls.ctext`: names as validated
     identifiers, text as comment text, numbers from validated integers and finite floats.
@@ -151,6 +198,9 @@ def _config_files(pipeline: Pipeline, source: str) -> tuple[str, str]:
         h.append(f"/* scaling: column exponents [{', '.join(cols)}], "
                  f"target exponent {target} */\n")
         h.append(f"#define {names(pre + '_TARGET_EXP', 'target exponent')} {target}\n")
+        th, tc = _target_lines(eq, protocol)
+        h.append(th)
+        c.append(tc)
         for q in _QUANTITIES:
             fmt = getattr(cfg, q)
             Q = c_name_part(q, "quantity")
@@ -186,8 +236,9 @@ def _dbc_comment(text: str | None, what: str) -> str | None:
                      for line in text.splitlines())
 
 
-def _frames_files(dbc: Path) -> tuple[str, str]:
-    """cantools' C codecs of canrls' own frames (parameters, commands) in ``dbc``.
+def frames_c(dbc: str | Path = DEFAULT_DBC) -> tuple[str, str]:
+    """cantools' C codecs (header, source) of canrls' own frames (parameters, status,
+    commands) in ``dbc`` (default: the shipped DBC, whose frames the daemon publishes).
 
     cantools pastes the DBC's names, units, comments and numbers into the C; of the
     messages exported, every name must be a C identifier whose C form (cantools'
@@ -196,6 +247,7 @@ def _frames_files(dbc: Path) -> tuple[str, str]:
     from cantools.database.can import Database
     from cantools.database.can.c_source import camel_to_snake_case, generate
 
+    dbc = Path(dbc)
     full, _ = load_dbc(dbc)
     ids = frame_ids(dbc)
     own = {v for k, v in vars(ids).items() if k != "feedback" and isinstance(v, int)}
@@ -272,8 +324,10 @@ def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
     # everything generated before anything is written
     kernel = resources.files("canrls") / "c"
     texts = [(name, (kernel / name).read_text()) for name in KERNEL_FILES]
-    ch, cc = _config_files(pipeline, source)
-    fh, fc = _frames_files(Path(protocol.dbc_path))
+    ch, cc = _config_files(pipeline, source, protocol)
+    # the frames the daemon publishes are the shipped DBC's, whatever DBC the drive's
+    # feedback is read with (a user's DBC has none of them)
+    fh, fc = frames_c(DEFAULT_DBC)
     texts += [("canrls_config.h", ch), ("canrls_config.c", cc), ("canrls_frames.h", fh),
               ("canrls_frames.c", fc)]
     out = _output_dir(Path(out), label)

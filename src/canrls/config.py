@@ -4,9 +4,10 @@
 
     [model]                    # the model: see canrls.estimation.model (effects, kt, axis, filter, ...)
     effects = ["inertia", "viscous", "coulomb"]
-    kt = 0.1
+    kt = 0.1                   # not with a torque signal: its torque is the target (N·m)
     [model.filter]
-    held = ["current", "voltage"]   # the default here (canrls.estimation.model.Model's is ["voltage"])
+    held = ["current", "voltage"]   # the default here (canrls.estimation.model.Model's is
+                                    # ["voltage"]); with a torque signal also "torque"
 
     [estimator]
     lambda = 1.0               # forgetting factor (0.5, 1]; 1 keeps all data (default)
@@ -43,6 +44,10 @@
     [signals]                  # which message and signal carry each role (canrls.can.protocol)
     current = "DriveCurrent.Current"
     speed = { signal = "DriveSpeed.Speed", unit = "rpm" }
+    # torque = "TPDO1.TorqueActual"    # a drive that reports its torque (no kt needed)
+    # rated_torque = 2.4        # N·m: what a per mille (‰) or per cent torque refers to
+    # rated_current = 5.0       # A: the same for a current in ‰ or %
+    # increments_per_rev = 4096 # encoder increments per revolution (linear: per metre)
 
     [daemon]                   # canrls run (see docs/daemon.md)
 
@@ -54,6 +59,7 @@ naming the file, the key and the value.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import re
 import tomllib
@@ -63,11 +69,13 @@ from pathlib import Path
 from typing import Any
 
 from canrls.can.protocol import Protocol, SignalMapping
+from canrls.can.units import RATING_OPTIONS, Ratings
 from canrls.errors import ConfigError
 from canrls.estimation.fixed import QFormat
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings
 from canrls.files import MAX_CONFIG_BYTES, check_path, read_bytes
+from canrls.signals import ROLES
 
 __all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "load_config",
            "read_toml", "load_model"]
@@ -95,7 +103,8 @@ _FIXED_KEYS = ("word_bits", "acc_bits", "input_bits", "theta_max", "formats")
 #: options of the command line that set a configuration key: (attribute, flag, table, key)
 _FLAGS = (("kt", "--kt", "model", "kt"), ("axis", "--axis", "model", "axis"),
           ("lam", "--lambda", "estimator", "lambda"), ("alpha", "--alpha", "estimator", "alpha"),
-          ("period", "--period", "can", "period"))
+          ("period", "--period", "can", "period"),
+          *((key, flag, "signals", key) for key, (flag, _, _) in RATING_OPTIONS.items()))
 _CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
              "channel", "bitrate", "fd", "data_bitrate")
 
@@ -187,10 +196,12 @@ class AppConfig:
             if not isinstance(value, dict):
                 raise ConfigError(f"{p}: {key} must be a table, got {value!r}")
             setattr(cfg, key, dict(value))
-        cfg._check()
+        cfg.check()
         return cfg
 
-    def _check(self) -> None:
+    def check(self) -> None:
+        """Every key of ``[estimator]``, ``[fixed]`` and ``[can]`` is one canrls knows (a
+        :class:`ConfigError` naming the first that is not)."""
         src = self.source
         for k in self.estimator:
             if k not in _ESTIMATOR_KEYS:
@@ -240,20 +251,41 @@ class AppConfig:
         dbc = self.can.get("dbc")
         if dbc is None:
             return None
-        if not isinstance(dbc, str):
-            raise ConfigError(f"{self._where('can.dbc')} = {dbc!r}: must be a file path")
-        p = check_path(dbc, f"{self._where('can.dbc')} = {dbc!r}")
+        if not isinstance(dbc, str) or "\0" in dbc:
+            raise ConfigError(f"{self._where('can.dbc')} = {dbc!r}: must be a file path"
+                              + (" (no NUL byte)" if isinstance(dbc, str) else ""))
+        p = Path(dbc)
         return p if p.is_absolute() else self.base_dir / p
+
+    def ratings(self) -> Ratings:
+        """What relative units refer to: ``[signals]`` ``rated_torque``, ``rated_current``,
+        ``increments_per_rev`` (``--rated-torque``, ... override them)."""
+        given = {}
+        for key, (flag, _, unit) in RATING_OPTIONS.items():
+            if key not in self.signals:
+                continue
+            v = self.signals[key]
+            if (isinstance(v, bool) or not isinstance(v, int | float)
+                    or not (math.isfinite(v) and v > 0)):
+                where = (self.flags.get(f"signals.{key}")
+                         or f"{self._where('signals.' + key)} = {v!r}")
+                raise ConfigError(f"{where}: must be a positive number ({unit})")
+            given[key] = float(v)
+        return Ratings(**given)
 
     def protocol(self) -> Protocol:
         """The DBC and signal mapping (``--signal`` options replace roles of ``[signals]``)."""
         mapping: SignalMapping | None = None
-        if self.signals:
-            mapping = SignalMapping.from_config(self.signals, source=f"{self.source} [signals]")
+        ratings = self.ratings()
+        table = {k: v for k, v in self.signals.items() if k not in RATING_OPTIONS}
+        if table:
+            mapping = SignalMapping.from_config(table, source=f"{self.source} [signals]")
         if self.signal_overrides:
             base = mapping if mapping is not None else (
                 SignalMapping.default() if self.dbc_path() is None else None)
             mapping = SignalMapping.from_strings(self.signal_overrides, base=base)
+        if ratings.as_dict():
+            mapping = dataclasses.replace(mapping or SignalMapping.default(), ratings=ratings)
         period = self.can.get("period")
         opts = {k: self.can[k] for k in ("strict_range", "check_crc", "check_counter")
                 if k in self.can}
@@ -265,8 +297,10 @@ class AppConfig:
                                    or not (math.isfinite(period) and period > 0)):
             raise ConfigError(f"{where}{'' if 'can.period' in self.flags else f' = {period!r}'}"
                               f": the control period must be a positive number of seconds")
+        axis = self.model.get("axis")
         return Protocol.load(self.dbc_path(), mapping, period=period,
-                             period_source=where, **opts)
+                             period_source=where, axis=axis if isinstance(axis, str) else None,
+                             **opts)
 
     def model_for(self, protocol: Protocol | None = None,
                   data_ranges: Mapping[str, Any] | None = None) -> Model:
@@ -288,15 +322,28 @@ class AppConfig:
                               f"turning the other way: swap the sign of the current signal)")
         if "axis" not in d and protocol is not None and protocol.axis is not None:
             d["axis"] = protocol.axis  # from the DBC units of speed and position
+        torque = protocol is not None and protocol.has("torque")
+        if torque:
+            # the torque the drive reports is the mechanical target: no Kt
+            d.setdefault("target", "torque")
+            if d["target"] == "torque" and d.get("kt") is not None:
+                assert protocol is not None
+                where = self.flags.get("model.kt") or f"{self._where('model.kt')} = {kt!r}"
+                sig = protocol.roles["torque"]
+                raise ConfigError(
+                    f"{where}: the drive reports its torque ({sig.message}.{sig.signal}), "
+                    f"the mechanical target: the parameters come out in N·m (linear axis: "
+                    f"N) without Kt; leave Kt out, or set [model] target = \"current\" to "
+                    f"identify on the current with Kt")
         filt = d.get("filter", {})
         if isinstance(filt, Mapping):
             filt = dict(filt)
-            filt.setdefault("held", list(DEFAULT_HELD))
+            # a reported torque follows the held current reference as the current does
+            filt.setdefault("held", list(DEFAULT_HELD) + (["torque"] if torque else []))
             d["filter"] = filt
         available = None
         if protocol is not None:
-            available = [r for r in ("current", "speed", "position", "voltage")
-                         if protocol.has(r)]
+            available = [r for r in ROLES if protocol.has(r)]
         ranges = d.get("ranges", {})
         if isinstance(ranges, Mapping) and data_ranges:
             ranges = dict(ranges)

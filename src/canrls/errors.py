@@ -20,8 +20,9 @@ working for callers who do not know canrls::
     ├── CommandError (ValueError)       a command frame is unknown or malformed
     │   └── frames.CommandFrameError    carries the CommandResult code for the ack
     ├── CheckpointError (ValueError)    a checkpoint is corrupted or does not match
-    │   └── live.checkpoint.CheckpointPathError   its name or directory cannot be
-    │                                   used (a link, FIFO, device, directory, no writes)
+    │   ├── live.checkpoint.CheckpointPathError   its name or directory cannot be
+    │   │                               used (a link, FIFO, device, directory, no writes)
+    │   └── live.checkpoint.CheckpointInUseError  another daemon holds its lock
     └── BusError (OSError)              the CAN interface failed or vanished
 
 Messages name what failed: the file, key, message, signal, limit and value.

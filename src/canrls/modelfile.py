@@ -60,6 +60,50 @@ def _clean(x: Any) -> Any:
     return x
 
 
+def _short(v: Any) -> str:
+    """``repr(v)`` for an error message, cut to 60 characters."""
+    if isinstance(v, int) and v.bit_length() > 100:  # repr() of 5,000 digits raises
+        return f"an integer of about {int(v.bit_length() * 0.30103) + 1} digits"
+    text = repr(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _table(d: Mapping[str, Any], key: str, source: str, *, null: bool = False,
+           where: str | None = None) -> dict[str, Any]:
+    """``d[key]``, a table (``null``: also absent or null, then empty)."""
+    v = d.get(key)
+    if v is None and (null or key not in d):
+        return {}
+    if not isinstance(v, Mapping):
+        raise ConfigError(f"{source}: {where or key} = {_short(v)}: must be a table")
+    return dict(v)
+
+
+def _strings(d: Mapping[str, Any], key: str, source: str, *, null: bool = False,
+             where: str | None = None) -> list[str]:
+    """``d[key]``, a list of strings (``null``: also absent or null, then empty)."""
+    v = d.get(key)
+    if v is None and null:
+        return []
+    if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+        raise ConfigError(f"{source}: {where or key} = {_short(v)}: must be a list of "
+                          f"strings")
+    return list(v)
+
+
+def _number(v: Any, where: str, source: str) -> float:
+    """``v``, a finite number (an integer too large for a float is not one)."""
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ConfigError(f"{source}: {where} = {_short(v)}: must be a number")
+    try:
+        x = float(v)
+    except OverflowError:
+        x = math.inf
+    if not math.isfinite(x):
+        raise ConfigError(f"{source}: {where} = {_short(v)}: must be a finite number")
+    return x
+
+
 @dataclass
 class SavedModel:
     """An identified model: effects, parameters with sigma and unit, and what made them."""
@@ -123,23 +167,67 @@ class SavedModel:
     # -- reading ----------------------------------------------------------------------
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], source: str = "<dict>") -> SavedModel:
+        """Validate a model file's document (every key its reader uses, with its type;
+        parameters finite): a :class:`ConfigError` naming the file and the key."""
         if not isinstance(d, Mapping) or d.get("format") != FORMAT:
             raise ConfigError(f"{source}: not a canrls model file (no \"format\": \"{FORMAT}\")")
-        if d.get("version") != VERSION:
-            raise ConfigError(f"{source}: model file version {d.get('version')!r} "
+        if type(d.get("version")) is not int or d.get("version") != VERSION:
+            raise ConfigError(f"{source}: model file version {_short(d.get('version'))} "
                               f"(this canrls reads version {VERSION})")
         for key in ("model", "parameters", "effects"):
             if key not in d:
                 raise ConfigError(f"{source}: model file without {key!r}")
-        params = d["parameters"]
+        model = _table(d, "model", source)
+        params = _table(d, "parameters", source)
         for name, p in params.items():
-            if not isinstance(p, Mapping) or not isinstance(p.get("value"), int | float):
-                raise ConfigError(f"{source}: parameters.{name}: needs a numeric 'value'")
-        return cls(model=dict(d["model"]), parameters={k: dict(v) for k, v in params.items()},
-                   effects=list(d["effects"]), fit=dict(d.get("fit") or {}),
-                   configuration=dict(d.get("configuration") or {}),
-                   calibration=d.get("calibration"), sources=list(d.get("sources") or []),
-                   created=str(d.get("created", "")), canrls=str(d.get("canrls", "")))
+            where = f"parameters.{name}"
+            if not isinstance(p, Mapping):
+                raise ConfigError(f"{source}: {where} = {_short(p)}: must be a table")
+            _number(p.get("value"), f"{where}.value", source)
+            for key in ("sigma", "fixed", "prior_share"):
+                if p.get(key) is not None:
+                    _number(p[key], f"{where}.{key}", source)
+            for key in ("unit", "effect", "equation", "description"):
+                if p.get(key) is not None and not isinstance(p[key], str):
+                    raise ConfigError(f"{source}: {where}.{key} = {_short(p[key])}: must be "
+                                      f"a string")
+            if p.get("identifiable") is not None and not isinstance(p["identifiable"], bool):
+                raise ConfigError(f"{source}: {where}.identifiable = "
+                                  f"{_short(p['identifiable'])}: must be true or false")
+        effects = _strings(d, "effects", source)
+        fit = _table(d, "fit", source, null=True)
+        for eq, f in fit.items():
+            if not isinstance(f, Mapping):
+                raise ConfigError(f"{source}: fit.{eq} = {_short(f)}: must be a table")
+            for key in ("residual_rms", "fit_percent", "samples"):
+                if f.get(key) is not None:
+                    _number(f[key], f"fit.{eq}.{key}", source)
+        configuration = _table(d, "configuration", source, null=True)
+        for key in ("model", "estimator", "fixed", "can", "signals"):
+            _table(configuration, key, source, null=True, where=f"configuration.{key}")
+        _strings(configuration, "signal_overrides", source, null=True,
+                 where="configuration.signal_overrides")
+        calibration = d.get("calibration")
+        if calibration is not None:
+            calibration = _table(d, "calibration", source)
+            energy = _table(calibration, "energy", source, null=True,
+                            where="calibration.energy")
+            for eq, e in energy.items():
+                if not isinstance(e, list):
+                    raise ConfigError(f"{source}: calibration.energy.{eq} = {_short(e)}: "
+                                      f"must be a list of numbers")
+                for k, x in enumerate(e):
+                    _number(x, f"calibration.energy.{eq}[{k}]", source)
+        saved = cls(model=model, parameters={k: dict(v) for k, v in params.items()},
+                    effects=effects, fit={k: dict(v) for k, v in fit.items()},
+                    configuration=configuration, calibration=calibration,
+                    sources=_strings(d, "sources", source, null=True),
+                    created=str(d.get("created", "")), canrls=str(d.get("canrls", "")))
+        try:
+            saved.config().check()  # the configuration's keys, as a TOML file's
+        except ConfigError as e:
+            raise ConfigError(f"{source}: configuration: {e}") from e
+        return saved
 
     @classmethod
     def load(cls, path: str | Path) -> SavedModel:
@@ -149,6 +237,10 @@ class SavedModel:
         try:
             d = json.loads(text)
         except json.JSONDecodeError as e:
+            raise ConfigError(f"--model {p}: invalid JSON: {e}") from e
+        except RecursionError as e:  # the JSON parser recurses once per nested level
+            raise ConfigError(f"--model {p}: invalid JSON: nested too deep") from e
+        except ValueError as e:  # an integer of more digits than Python converts
             raise ConfigError(f"--model {p}: invalid JSON: {e}") from e
         saved = cls.from_dict(d, source=str(p))
         try:  # the model checked where the file is read: names, units, expressions

@@ -58,41 +58,37 @@ from canrls.can.pairing import Pairer, PairingCounts
 from canrls.can.period import MIN_INTERVALS, PeriodEstimate, PeriodMeter, check_period
 from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
 from canrls.can.reorder import Reorderer
+from canrls.can.times import TimeJudge
+from canrls.can.units import Ratings
 from canrls.errors import CheckpointError, ConfigError
-from canrls.estimation.model import DATA_OPTIONS, Equation, Model
-from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline, PipelineBlock
+from canrls.estimation.model import DATA_OPTIONS, Model
+from canrls.estimation.pipeline import (
+    MIN_ENERGY,
+    RMS_HEADROOM,
+    Estimates,
+    EstimatorSettings,
+    Pipeline,
+    PipelineBlock,
+    exponent_for,
+)
+from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.svf import SVF
-from canrls.signals import Signals
+from canrls.signals import ROLES, Signals
 
 __all__ = ["Calibration", "FitResult", "FrameProcessor", "RMS_HEADROOM",
-           "MIN_ENERGY", "RangeScanner", "SampleProcessor", "UNEXCITED", "calibrate",
-           "data_defaults", "dbc_ranges", "epoch_date", "intrinsic", "scan_ranges",
+           "MIN_ENERGY", "RangeScanner", "SampleProcessor", "SEEN_IDS", "WindowScaling",
+           "calibrate", "data_defaults", "dbc_ranges", "epoch_date", "measure_noise",
+           "scan_ranges",
            "RESTORE_PERIOD_TOLERANCE"]
 
 log = logging.getLogger(__name__)
 
 #: Signals whose DBC range bounds the normalisation (position enters only through
 #: periodic columns, bounded by 1, and is unwrapped beyond its DBC range).
-_DBC_ROLES = ("current", "speed", "voltage")
+_DBC_ROLES = ("current", "speed", "voltage", "torque")
 
-_SIGNALS = ("t", "current", "speed", "position", "voltage")
+_SIGNALS = ("t", "current", "speed", "position", "voltage", "torque")
 
-#: A column (or target) whose RMS on the calibration window is below this fraction of
-#: its bound counts as not excited there.
-UNEXCITED = 2.0 ** -20
-
-#: Smallest energy (normalised mean square) a calibrated column's prior is scaled with:
-#: a column with an RMS of 1/32 of full scale, the least the RMS rule gives. It bounds
-#: P0 by 2**10/alpha, which the fixed-point formats hold, and weighs only where the
-#: window barely excites a column bounded by its own function.
-MIN_ENERGY = 2.0 ** -10
-
-#: The normalisation puts each column's RMS on the window in (1/32, 1/16] of the
-#: fixed-point range (|phi| <= 1): room for crest factors and for signals that grow
-#: beyond what the window showed (else they saturate, counted, in the fixed-point
-#: estimator only), and normalised energies in (2**-10, 2**-8], so that the prior
-#: P0 = diag(1/(alpha e_j)) stays below 2**10/alpha.
-RMS_HEADROOM = 16.0
 
 #: The period of the placeholder estimator of a :class:`FrameProcessor` whose period is
 #: still being measured (no sample ever reaches it).
@@ -102,6 +98,11 @@ _PLACEHOLDER_DT = 1e-3
 #: the period of the frames it continues on (two measurements of one drive's period
 #: agree far closer; the filters and the statistics of a state depend on the period).
 RESTORE_PERIOD_TOLERANCE = 0.01
+
+#: Most distinct frame IDs counted while none of the mapped messages has come (for the
+#: error that names the most frequent ones): beyond, the rarest are forgotten, so a bus
+#: of random IDs cannot grow the daemon's memory.
+SEEN_IDS = 1024
 
 
 @dataclass(frozen=True)
@@ -154,6 +155,10 @@ class FitResult:
         if ax.get("axis"):
             units = ", ".join(f"{r} {u}" for r, u in (ax.get("units") or {}).items() if u)
             lines.append(f"axis {ax['axis']}" + (f" (DBC units: {units})" if units else ""))
+            if ax.get("ratings"):
+                lines.append("ratings: " + Ratings(**ax["ratings"]).describe(ax["axis"]))
+            if ax.get("target"):
+                lines.append(f"mechanical target: {ax['target']}")
         per = self.extra.get("period") or {}
         if per.get("value"):
             meas = per.get("measured")
@@ -208,11 +213,13 @@ class RangeScanner:
         if len(s) == 0:
             return
         self.samples += len(s)
-        for role in ("current", "speed", "voltage"):
+        for role in ("current", "speed", "voltage", "torque"):
             v = getattr(s, role)
             if v is not None:
                 self._put(role, float(np.nanmax(np.abs(v))))
-        _, sf = self.svf.process(np.column_stack([s.speed, s.current]))
+        # a drive reporting only its torque has no current rate (0: no range)
+        i = s.current if s.current is not None else np.zeros(len(s))
+        _, sf = self.svf.process(np.column_stack([s.speed, i]))
         self._put("acceleration", float(np.nanmax(np.abs(sf[:, 0]))))
         self._put("current_rate", float(np.nanmax(np.abs(sf[:, 1]))))
 
@@ -250,6 +257,8 @@ class Calibration:
     energy : ``{equation: mean square of each normalised column}`` on the window
     alpha : the ridge weight ``alpha`` (samples' worth of each column in the prior)
     defaults : the model's options scaled from the window (:func:`data_defaults`)
+    pending : ``{equation: names}`` the window showed nothing of (:class:`WindowScaling`)
+    noise : the measurement noise of each signal on the window (:func:`measure_noise`)
     """
 
     t_start: float
@@ -261,6 +270,8 @@ class Calibration:
     energy: dict[str, tuple[float, ...]]
     alpha: float
     defaults: dict[str, float] = field(default_factory=dict)
+    pending: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    noise: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {"window": {"t_start": self.t_start, "t_end": self.t_end,
@@ -269,7 +280,9 @@ class Calibration:
                            for k, v in self.ranges.items()},
                 "scaling": {k: dict(v) for k, v in self.scaling.items()},
                 "energy": {k: list(v) for k, v in self.energy.items()},
-                "alpha": self.alpha, "defaults": dict(self.defaults)}
+                "alpha": self.alpha, "defaults": dict(self.defaults),
+                "pending": {k: list(v) for k, v in self.pending.items()},
+                "noise": dict(self.noise)}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Calibration:
@@ -284,7 +297,10 @@ class Calibration:
                             for k, v in d["scaling"].items()},
                    energy={k: tuple(float(e) for e in v) for k, v in d["energy"].items()},
                    alpha=float(d["alpha"]),
-                   defaults={k: float(v) for k, v in d.get("defaults", {}).items()})
+                   defaults={k: float(v) for k, v in d.get("defaults", {}).items()},
+                   pending={k: tuple(str(n) for n in v)
+                            for k, v in d.get("pending", {}).items()},
+                   noise={k: float(v) for k, v in d.get("noise", {}).items()})
 
     def format(self) -> str:
         rng = ", ".join(f"{k} ±{max(abs(lo), abs(hi)):.4g} ({self.sources.get(k, 'default')})"
@@ -338,8 +354,7 @@ def data_defaults(window: Signals, model: Model) -> tuple[Model, dict[str, float
     if not todo or len(w) < 16:
         return model, {}
     out: dict[str, float] = {}
-    # sigma = 1.4826 median|d2 w| / sqrt(6)
-    sigma = 1.4826 * float(np.median(np.abs(np.diff(w, 2)))) / math.sqrt(6.0)
+    sigma = _robust_noise(np.diff(w))
     steps = np.abs(np.diff(w))
     steps = steps[steps > 0]
     resolution = float(steps.min()) if len(steps) else 0.0
@@ -358,14 +373,67 @@ def data_defaults(window: Signals, model: Model) -> tuple[Model, dict[str, float
     return (model.with_options(**out) if out else model), out
 
 
+def _robust_noise(d: npt.NDArray[np.float64]) -> float:
+    """The standard deviation of white noise on a signal from its first differences
+    ``d``, robust to the signal's own motion: ``1.4826 median|diff(d)| / sqrt(6)`` (the
+    second difference of white noise has variance ``6 sigma^2``)."""
+    d2 = np.diff(d)
+    d2 = d2[np.isfinite(d2)]
+    return 1.4826 * float(np.median(np.abs(d2))) / math.sqrt(6.0) if len(d2) else 0.0
+
+
+def measure_noise(window: Signals, model: Model) -> dict[str, float]:
+    """The measurement noise of every signal of the calibration window (standard
+    deviation, SI units): :func:`_robust_noise`, at least the rounding of the
+    signal's resolution (``q / sqrt(12)``, ``q`` its smallest step) where it is
+    quantised. A position is taken across its wrap (the shorter way round)."""
+    out: dict[str, float] = {}
+    if len(window) < 16:
+        return out
+    wrap = 2.0 * math.pi if model.axis == "rotary" else model.wrap
+    for role in ROLES:
+        x = getattr(window, role, None)
+        if x is None:
+            continue
+        d = np.diff(np.asarray(x, dtype=np.float64))
+        if role == "position" and wrap:
+            d = (d + 0.5 * wrap) % wrap - 0.5 * wrap
+        steps = np.abs(d[np.isfinite(d)])
+        steps = steps[steps > 0]
+        q = float(steps.min()) if len(steps) else 0.0
+        out[role] = max(_robust_noise(d), q / math.sqrt(12.0))
+    return out
+
+
 def _frozen_defaults(model: Model, cal: Calibration) -> Model:
     """``model`` with the options a calibration scaled from the data, where not given."""
     todo = {k: v for k, v in cal.defaults.items() if k not in model.options_given}
     return model.with_options(**todo) if todo else model
 
 
-def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSettings
-              ) -> tuple[Model, dict[str, tuple[float, ...]]]:
+@dataclass(frozen=True)
+class WindowScaling:
+    """What :func:`calibrate` decides on a window.
+
+    Attributes
+    ----------
+    model : the model with the exponents (:meth:`Model.with_scaling`)
+    energy : ``{equation: mean square of each normalised column}`` (the prior's scale)
+    pending : ``{equation: names}`` of the target (``"target"``) and the columns the
+        window shows nothing of (no value other than zero): their exponents and prior
+        are provisional, set by the pipeline when the data first show them
+    """
+
+    model: Model
+    energy: dict[str, tuple[float, ...]]
+    pending: dict[str, tuple[str, ...]]
+    #: ``{equation: covariance of the noise of the filtered columns}`` (unnormalised;
+    #: :meth:`~canrls.estimation.model.RegressorBuilder.noise_covariance`)
+    noise: dict[str, npt.NDArray[np.float64]] = field(default_factory=dict)
+
+
+def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSettings,
+              noise: Mapping[str, float] | None = None) -> WindowScaling:
     r"""The normalisation and the column energies of ``model`` on ``window``.
 
     The columns and the target are filtered as the pipeline does (same gap filling and
@@ -374,24 +442,27 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
     (``[model.scaling]``, or frozen by an earlier calibration):
 
     * a column bounded by its own function (``tanh``, ``sin``, a constant, a user term
-      with a configured range; :func:`intrinsic`): the exponent of its bound, so that
+      with a configured range; :attr:`Equation.intrinsic`): the exponent of its bound, so that
       no value can saturate, whatever the window showed;
-    * the target and the columns bounded by signal ranges (speed, acceleration, ...):
-      the smallest exponent that puts the window's RMS at most 1/:data:`RMS_HEADROOM`
-      of full scale, since those ranges (the DBC's) are far wider than the drive goes;
-      the exponent of the bound where the window shows nothing (RMS below
-      :data:`UNEXCITED` of the bound).
+    * the target and every other column: the smallest exponent that puts the window's
+      RMS at most 1/:data:`RMS_HEADROOM` of full scale, from the data alone (a declared
+      range never enters); one the window shows nothing of (only zeros) is *pending*:
+      the pipeline sets its exponent and prior where it first sees a value
+      (:class:`~canrls.estimation.pipeline.EquationEstimator`), and rescales any column
+      exactly when it later outgrows its exponent.
 
-    The energy :math:`\bar e_j` is the window's mean square of the normalised column, at
-    least :data:`MIN_ENERGY` (which the RMS rule always gives: it only weighs for a
-    column the window barely excites); configured exponents take the energy as it is.
-    Returns the model with the exponents
-    (:meth:`~canrls.estimation.model.Model.with_scaling`) and ``{equation: energies}``.
+    The energy :math:`\bar e_j` is the window's mean square of the normalised column:
+    in :math:`(2^{-10}, 2^{-8}]` for a data-scaled column; at least :data:`MIN_ENERGY`
+    for a column bounded by its own function (which data never exceed) or pending;
+    configured exponents take the energy as it is. With ``noise`` (the signals'
+    measurement noise, :func:`measure_noise`), each equation's column noise covariance
+    on the window (the estimator's errors-in-variables bias, :mod:`canrls.estimation.pipeline`).
     """
-    probe = Pipeline(model, dt, settings)
+    probe = Pipeline(model, dt, settings, adapt=False)
     block = probe.process(window, record=True)
     exponents: dict[str, dict[str, int]] = {}
     energy: dict[str, tuple[float, ...]] = {}
+    pending: dict[str, tuple[str, ...]] = {}
     for eq, b in zip(model.equations, block.equations, strict=True):
         sc = eq.scaling
         phi = b.phi if b.phi is not None else np.zeros((0, eq.n))
@@ -401,19 +472,28 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
         cols = np.ldexp(phi[rows], np.array(sc.columns, dtype=np.int64))
         # exponents the model gives (configured, or frozen by an earlier calibration) stay
         given = model.exponents.get(eq.name, {})
-        s_y = (sc.target if "target" in given
-               else _scale_exponent(y, sc.target_bound, sc.target))
-        own = intrinsic(eq)
+        waiting: list[str] = []
+        if "target" in given:
+            s_y = sc.target
+        else:
+            s = _scale_exponent(y)
+            s_y = sc.target if s is None else s
+            if s is None:
+                waiting.append("target")
+        own = eq.intrinsic
         s_cols, e_cols = [], []
         for j, par in enumerate(eq.parameters):
             c = cols[:, j]
+            floor = MIN_ENERGY
             if par.name in given:
                 s, floor = sc.columns[j], 0.0
             elif own[j]:
-                s, floor = sc.columns[j], MIN_ENERGY
+                s = sc.columns[j]
             else:
-                s = _scale_exponent(c, sc.column_bounds[j], sc.columns[j])
-                floor = MIN_ENERGY
+                found = _scale_exponent(c)
+                s = sc.columns[j] if found is None else found
+                if found is None:
+                    waiting.append(par.name)
             # e_j = mean_k (c_kj 2**-s_j)^2
             e = float(np.mean(np.ldexp(c, -s) ** 2)) if len(c) else 0.0
             s_cols.append(s)
@@ -421,29 +501,24 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
         exponents[eq.name] = {"target": s_y,
                               **{p.name: s for p, s in zip(eq.parameters, s_cols, strict=True)}}
         energy[eq.name] = tuple(e_cols)
-    return model.with_scaling(exponents), energy
+        pending[eq.name] = tuple(waiting)
+    cov = {}
+    if noise:
+        w = np.abs(window.speed)
+        for eq in model.equations:
+            pol = SamplePolicy.for_equation(eq, dt, settings)
+            cov[eq.name] = eq.builder(dt).noise_covariance(
+                window, noise, (w >= pol.min_speed) & (w <= pol.max_speed))
+    return WindowScaling(model.with_scaling(exponents), energy, pending, cov)
 
 
-def intrinsic(eq: Equation) -> list[bool]:
-    """Which columns of ``eq`` are bounded by their own function rather than by the
-    signal ranges: their bound is the same with every range doubled."""
-    r = eq.model.ranges
-    doubled = {k: (2.0 * lo, 2.0 * hi) for k, (lo, hi) in r.items()}
-    out = []
-    for col in eq.columns:
-        a, b = col.range(r), col.range(doubled)
-        out.append(not col.derivative and tuple(map(float, a)) == tuple(map(float, b)))
-    return out
-
-
-def _scale_exponent(x: npt.NDArray[np.float64], bound: float, default: int) -> int:
-    """Smallest s with RMS_HEADROOM rms(x) <= 2**s; ``default`` when x is below
-    :data:`UNEXCITED` of ``bound`` (not excited)."""
+def _scale_exponent(x: npt.NDArray[np.float64]) -> int | None:
+    """Smallest s with RMS_HEADROOM rms(x) <= 2**s; None when ``x`` holds no value
+    other than zero (nothing to scale from)."""
     rms = float(np.sqrt(np.mean(x * x))) if len(x) else 0.0
-    if not (rms > UNEXCITED * bound):
-        return default
-    m, e = math.frexp(RMS_HEADROOM * rms)
-    return e - 1 if m == 0.5 else e
+    if not (rms > 0 and math.isfinite(rms)):
+        return None
+    return exponent_for(rms, RMS_HEADROOM)
 
 
 def dbc_ranges(model: Model, protocol: Protocol) -> dict[str, tuple[float, float]]:
@@ -473,16 +548,20 @@ class SampleProcessor:
 
     def __init__(self, model: Model, dt: float, settings: EstimatorSettings | None = None,
                  sources: Mapping[str, str] | None = None) -> None:
-        self.settings = settings or EstimatorSettings()
         self._sources = dict(sources) if sources is not None else {
             k: ("config" if k in model.ranges_given else "default") for k in model.ranges}
-        self.pipeline = Pipeline(model, dt, self.settings)
+        self.pipeline = Pipeline(model, dt, settings or EstimatorSettings())
         #: the frozen calibration (None while the window is being collected)
         self.calibration: Calibration | None = None
         self._held: list[Signals] = []
         self._held_n = 0
         self._window: Signals | None = None
         self._calibrate_n = max(1, int(round(self.settings.calibration_s / self.pipeline.dt)))
+
+    @property
+    def settings(self) -> EstimatorSettings:
+        """The estimator settings: the pipeline's, which a command may change (lambda)."""
+        return self.pipeline.settings
 
     @property
     def calibrating(self) -> bool:
@@ -507,12 +586,13 @@ class SampleProcessor:
         ones, its column energies measured on the stored window, and the parameters both
         models share start from their estimates (:meth:`Pipeline.with_model`)."""
         if self.calibration is None or self._window is None:
-            self.pipeline = Pipeline(model, self.dt, self.settings)
+            self.pipeline = self.pipeline.with_model(model, warm=False)
             return self.pipeline
         model = _frozen_defaults(model, self.calibration)
-        model, energy = calibrate(self._window, model.with_ranges(self.calibration.ranges),
-                                  self.dt, self.settings)
-        self.pipeline = self.pipeline.with_model(model, energy=energy)
+        ws = calibrate(self._window, model.with_ranges(self.calibration.ranges),
+                       self.dt, self.settings, self.calibration.noise)
+        self.pipeline = self.pipeline.with_model(ws.model, energy=ws.energy,
+                                                 pending=ws.pending, noise=ws.noise)
         return self.pipeline
 
     def state(self) -> dict[str, Any]:
@@ -538,7 +618,8 @@ class SampleProcessor:
             raise CheckpointError(f"the state ran at a control period of {dt!r} s, the frames "
                                   f"give {self.dt * 1e3:.6g} ms")
         w = state["window"]
-        window = Signals(**{k: np.asarray(w[k], dtype=np.float64) for k in _SIGNALS if k in w})
+        window = Signals.from_roles({k: np.asarray(w[k], dtype=np.float64)
+                                     for k in _SIGNALS if k in w})
         cal = state.get("calibration")
         if cal is None:
             self.calibration, self._window = None, None
@@ -548,7 +629,8 @@ class SampleProcessor:
             self.calibration, self._window = Calibration.from_dict(cal), window
             model = _frozen_defaults(model, self.calibration)
             self._held, self._held_n = [], 0
-            self.pipeline = Pipeline(model, self.dt, self.settings, self.calibration.energy)
+            self.pipeline = Pipeline(model, self.dt, self.settings, self.calibration.energy,
+                                     self.calibration.pending)
         self.pipeline.restore(state["pipeline"])
 
     def process(self, samples: Signals, record: bool = False) -> PipelineBlock:
@@ -578,7 +660,9 @@ class SampleProcessor:
         self._held, self._held_n = [], 0
         window = held.slice(0, min(len(held), self._calibrate_n))
         model, defaults = data_defaults(window, self.model)
-        model, energy = calibrate(window, model, self.dt, self.settings)
+        noise = measure_noise(window, model)
+        ws = calibrate(window, model, self.dt, self.settings, noise)
+        model, energy = ws.model, ws.energy
         t = window.t
         self.calibration = Calibration(
             t_start=float(t[0]) if len(t) else math.nan,
@@ -586,9 +670,10 @@ class SampleProcessor:
             ranges={k: (float(lo), float(hi)) for k, (lo, hi) in model.ranges.items()},
             sources=dict(self._sources),
             scaling={k: dict(v) for k, v in model.exponents.items()},
-            energy=energy, alpha=float(self.settings.alpha), defaults=defaults)
+            energy=energy, alpha=float(self.settings.alpha), defaults=defaults,
+            pending=ws.pending, noise=noise)
         self._window = window
-        self.pipeline = Pipeline(model, self.dt, self.settings, energy)
+        self.pipeline = Pipeline(model, self.dt, self.settings, energy, ws.pending, ws.noise)
         return self.pipeline.process(held, record)
 
 
@@ -626,10 +711,15 @@ class FrameProcessor:
         #: times of samples and results are relative to it)
         self.origin: float | None = None
         self.decoder = protocol.decoder()
+        #: judges every frame's receive time first (:mod:`canrls.can.times`): frames
+        #: without a time, or out of line with the stream, are rejected (``time``)
+        self.times = TimeJudge()
         #: puts frames swapped on the way back in counter order before the decoder
         #: (:mod:`canrls.can.reorder`; ``reorder.moved`` counts them)
         self.reorder = Reorderer(protocol.messages)
         self.frames = 0
+        #: frames of each mapped message that decoded, so far
+        self.message_frames: dict[str, int] = {m.name: 0 for m in protocol.messages}
         stated = period if period is not None else protocol.period
         #: who states the period (None: measured)
         self.period_source: str | None = (
@@ -706,10 +796,47 @@ class FrameProcessor:
                   "state it with --period SECONDS")
         self._start(est.period)
 
+    def missing_messages(self) -> str | None:
+        """What to say when some mapped messages decoded frames and others none (a
+        sample needs them all): each missing one with its ID and roles, and the frames
+        of the others; None when every mapped message occurred (or none did)."""
+        counts = self.message_frames
+        if not any(counts.values()):
+            return None
+        missing = [m for m in self.protocol.messages if counts[m.name] == 0]
+        if not missing:
+            return None
+        roles = {m.name: [r for r, i in self.protocol.roles.items() if i.message == m.name]
+                 for m in missing}
+        what = ", ".join(f"{m.name} (0x{m.frame_id:X}: {', '.join(roles[m.name])})"
+                         for m in missing)
+        seen = ", ".join(f"{n} {c} frames" for n, c in counts.items() if c)
+        return (f"mapped message{'s' if len(missing) > 1 else ''} {what} never "
+                f"occur{'' if len(missing) > 1 else 's'} in the {self.frames} frames read "
+                f"(seen: {seen}): a sample needs every mapped message; map the signal to "
+                f"a message the drive sends, or leave its role out")
+
+    def _count_ids(self, block: FrameBlock) -> None:
+        """Frames of each ID, while no mapped message has come; at most :data:`SEEN_IDS`
+        IDs are kept (the most frequent: the rarest are forgotten when twice as many)."""
+        ids, n = np.unique(block.arbitration_id, return_counts=True)
+        seen = self._seen_ids
+        for i, k in zip(ids.tolist(), n.tolist(), strict=True):
+            seen[i] = seen.get(i, 0) + k
+        if len(seen) > 2 * SEEN_IDS:
+            keep = sorted(seen.items(), key=lambda kv: -kv[1])[:SEEN_IDS]
+            self._seen_ids = dict(keep)
+
+    def seen_ids(self, most: int = 8) -> list[tuple[int, int]]:
+        """The most frequent frame IDs counted while no mapped message has come, with
+        their frames: ``[(id, frames), ...]`` (at most ``most``; of at most
+        :data:`SEEN_IDS` IDs kept)."""
+        return sorted(self._seen_ids.items(), key=lambda kv: (-kv[1], kv[0]))[:most]
+
     def _foreign_error(self) -> ConfigError:
         """None of the mapped messages was decoded: name what was expected and seen."""
         want = ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in self.protocol.messages)
-        seen = sorted(self._seen_ids.items(), key=lambda kv: -kv[1])[:8]
+        seen = self.seen_ids()
         seen_text = ", ".join(f"0x{i:X} ({n})" for i, n in seen) if seen else "none"
         rej = {k: int(v) for k, v in self.decoder.rejected.items() if v}
         why = ("; rejected: " + ", ".join(f"{k} {v}" for k, v in rej.items())) if rej else ""
@@ -775,23 +902,48 @@ class FrameProcessor:
 
     def samples(self, block: FrameBlock) -> Signals:
         """Decode and pair one block of frames (no estimation)."""
+        base = self.frames
+        self.frames += len(block)
+        judged = self.times.push(block)  # first: a frame without a time is no frame
+        self._count_time_rejects(base)
+        return self._through(judged)
+
+    def _through(self, block: FrameBlock) -> Signals:
+        """Frames whose times were judged: reordered, decoded and paired."""
         if self.origin is None and len(block):
             self.origin = float(block.t[0])
         if self.relative_time and self.origin:
             block = dataclasses.replace(block, t=block.t - self.origin)
-        self.frames += len(block)
         # frames swapped on the way put back in counter order, before the strict checks
         return self._paired(self.decoder.decode(self.reorder.push(block)), block)
 
+    def _count_time_rejects(self, key: int) -> None:
+        """Count the frames :attr:`times` rejected last, under ``time``, per mapped
+        message (other frames under ``*``); ``key``: the stream position for the example."""
+        bad = self.times.rejected()
+        if bad is None:
+            return
+        example = self.times.counts.example
+        rej = self.decoder.rejected
+        left = np.ones(len(bad), np.bool_)
+        for m in self.protocol.messages:
+            mine = (left & (bad.arbitration_id == m.frame_id) & (bad.is_extended == m.is_extended)
+                    & ~bad.is_error)
+            if mine.any():
+                rej.add("time", m.name, int(mine.sum()), example, key)
+                left &= ~mine
+        if left.any():
+            rej.add("time", "*", int(left.sum()), example, key)
+
     def _paired(self, decoded: DecodedFrames, block: FrameBlock) -> Signals:
         """The period meter, then pairing, of one decoded ``block``."""
+        for name, m in decoded.messages.items():
+            self.message_frames[name] += len(m.t)
         if self._meter is not None:
             times = {name: decoded.messages[name].t for name in decoded.messages}
             self._meter.add(times)
             if not any(self._meter.counts().values()) and len(block):
-                ids, n = np.unique(block.arbitration_id, return_counts=True)
-                for i, k in zip(ids.tolist(), n.tolist(), strict=True):
-                    self._seen_ids[i] = self._seen_ids.get(i, 0) + k
+                self._count_ids(block)
             if self._meter.done:
                 self._measured()
         if self.pairer is None:
@@ -814,10 +966,16 @@ class FrameProcessor:
     def flush_samples(self) -> Signals:
         """End of stream, no estimation: the period decided with what came (an error if
         it cannot be, or if none of the mapped messages came), and the samples still open."""
+        parts = []
+        tail = self.times.flush()  # a departure from the time base nothing came back from
+        if len(tail):
+            parts.append(self._through(tail))
         held = self.reorder.flush()  # a frame held for its neighbour in a next block
-        head = self._paired(self.decoder.decode(held), held) if len(held) else Signals.concat([])
+        if len(held):
+            parts.append(self._paired(self.decoder.decode(held), held))
         rest = self._flush_samples()
-        return Signals.concat([head, rest]) if len(head) else rest
+        head = [p for p in parts if len(p)]
+        return Signals.concat([*head, rest]) if head else rest
 
     def _flush_samples(self) -> Signals:
         if self._meter is not None and self.frames:
@@ -859,11 +1017,19 @@ class FrameProcessor:
         r, c = self.rejected, self.pairing
         return {"crc": r["crc"], "malformed": r["remote"] + r["length"],
                 "repeated": r["repeated"], "stale": r["stale"] + r["sequence"],
-                "range": r["range"] + r["nan"],
+                "range": r["range"] + r["nan"], "time": r["time"],
                 "unpaired": c.unpaired + c.late + c.duplicated,
                 "reordered": self.reorder.moved,
                 "clock_steps": c.clock["step_back"] + c.clock["step_forward"],
                 "gaps": c.clock["gap"]}
+
+    def frame_counts(self) -> dict[str, Any]:
+        """The frames seen, as ``canrls fit --json`` has them under ``frames``: total,
+        rejected by reason, lost by message, foreign, pairing (running totals)."""
+        rej = self.rejected
+        return {"total": self.frames, "rejected": {k: int(v) for k, v in rej.items()},
+                "lost": {k: int(v) for k, v in self.decoder.lost.items()},
+                "foreign": int(self.decoder.foreign), "pairing": self.pairing.as_dict()}
 
     def period_info(self) -> dict[str, Any]:
         """The period used, who stated it and what the frames measured (text and JSON)."""
@@ -874,9 +1040,17 @@ class FrameProcessor:
                 "intervals": None if est is None else sum(est.intervals.values())}
 
     def axis_info(self) -> dict[str, Any]:
-        """The model's axis and the DBC units of the signals it was read from."""
-        return {"axis": self.model.axis, "dbc_axis": self.protocol.axis,
-                "units": {r: i.unit for r, i in self.protocol.roles.items()}}
+        """The model's axis, the DBC units of the signals it was read from, the ratings
+        relative units refer to and, on a torque-reporting drive, the target."""
+        d: dict[str, Any] = {"axis": self.model.axis, "dbc_axis": self.protocol.axis,
+                             "units": {r: i.unit for r, i in self.protocol.roles.items()},
+                             "ratings": self.protocol.mapping.ratings.as_dict()}
+        if self.model.target == "torque":
+            t = self.protocol.roles["torque"]
+            lin = self.model.axis == "linear"
+            d["target"] = (f"the {'force' if lin else 'torque'} the drive reports, "
+                           f"{t.message}.{t.signal} [{'N' if lin else 'N·m'}], no Kt")
+        return d
 
     def start_info(self) -> dict[str, Any]:
         """The first frame's timestamp and, for an epoch time, its date (UTC)."""

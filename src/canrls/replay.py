@@ -28,6 +28,7 @@ from canrls.can.logs import LogReadStats, read_frames
 from canrls.can.pairing import Pairer
 from canrls.can.protocol import Protocol
 from canrls.can.reorder import Reorderer
+from canrls.can.times import TimeJudge
 from canrls.errors import ConfigError, EstimatorError, LogFormatError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, PipelineBlock
@@ -100,13 +101,16 @@ def too_few_samples(model: Model, estimates: Estimates, frames: Mapping[str, Any
     """Why ``estimates`` rest on too few usable samples to be an answer (fewer than
     :data:`MIN_SAMPLES_PER_PARAMETER` per parameter in an equation), or None.
     ``frames``: the frame counts of a fit's or a diagnosis's JSON (``total``,
-    ``rejected``, ``pairing``, ``foreign``); ``dt`` the control period."""
+    ``rejected``, ``pairing``, ``foreign``, ``missing``: a mapped message that never
+    occurred, :meth:`FrameProcessor.missing_messages`); ``dt`` the control period."""
     st = settings or EstimatorSettings()
     dt = dt if dt else math.nan
     for eq, fit in zip(model.equations, estimates.equations, strict=False):
         need = MIN_SAMPLES_PER_PARAMETER * len(eq.parameters)
         if fit.samples >= need:
             continue
+        if frames.get("missing"):
+            return str(frames["missing"])
         pairing = frames.get("pairing") or {}
         paired = pairing.get("samples", 0)
         lost = {k: v for k, v in pairing.items() if v and k != "samples"}
@@ -204,6 +208,7 @@ class LogFiles:
                 proc = self.proc
                 proc.decoder = proc.protocol.decoder()
                 proc.reorder = Reorderer(proc.protocol.messages)
+                proc.times = TimeJudge()
                 if proc.pairer is not None:
                     proc.pairer = Pairer(proc.protocol, period=proc.pairer.period)
             frames = self.proc.frames
@@ -238,7 +243,11 @@ class LogFiles:
         d: dict[str, Any] = {"total": self.proc.frames, "rejected": total("rejected"),
                              "examples": examples, "lost": total("lost"),
                              "foreign": sum(c["foreign"] for c in parts),
-                             "pairing": total("pairing")}
+                             "pairing": total("pairing"),
+                             "messages": dict(self.proc.message_frames)}
+        missing = self.proc.missing_messages()
+        if missing:
+            d["missing"] = missing
         if self.stats.bad_lines:
             d["bad_lines"] = self.stats.bad_lines
         return d
@@ -283,9 +292,7 @@ def _join(blocks: Iterable[Signals]) -> Signals:
         parts = cols.pop(r)
         out[r] = None if any(v is None for v in parts) else np.concatenate(parts)
         del parts
-    t, current, speed = out["t"], out["current"], out["speed"]
-    assert t is not None and current is not None and speed is not None
-    return Signals(t, current, speed, out.get("position"), out.get("voltage"))
+    return Signals.from_roles(out)
 
 
 def _spill(blocks: Iterable[Signals]) -> Signals | SpilledSignals:
@@ -379,8 +386,7 @@ def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model:
     res = dataclasses.replace(res, frames=fr["total"], rejected=fr["rejected"],
                               rejected_examples=fr["examples"], pairing=fr["pairing"],
                               foreign=fr["foreign"], lost=fr["lost"], extra=extra)
-    few = too_few_samples(res.model, res.estimates, res.to_dict()["frames"],
-                          res.extra["period"]["value"], settings)
+    few = too_few_samples(res.model, res.estimates, fr, res.extra["period"]["value"], settings)
     if few is not None:
         raise EstimatorError(f"{res.source}: {few}")
     return res

@@ -1,9 +1,10 @@
 """Samples: the pipeline's input, one row per control period.
 
 A :class:`Signals` block holds paired measurements as float64 arrays in SI units
-(rotary axis: rad, rad/s, A, V; linear axis: m, m/s, A, V). Position is as measured
-(single-turn or wrapping); the pipeline unwraps it. Optional channels are ``None``
-when the drive does not send them.
+(rotary axis: rad, rad/s, A, V, N·m; linear axis: m, m/s, A, V, N). Position is as
+measured (single-turn or wrapping); the pipeline unwraps it. Optional channels are
+``None`` when the drive does not send them: a drive reports current or torque (a
+CiA 402 drive's torque actual value) or both, and speed always.
 
 A long record that is read again in slices (the diagnosis) need not stay in memory:
 :class:`SpilledSignals` keeps it in an anonymous temporary file and reads the slices
@@ -17,7 +18,7 @@ import logging
 import os
 import tempfile
 import weakref
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,25 +35,38 @@ _mask_warned = False
 F64 = npt.NDArray[np.float64]
 
 #: The signal roles a DBC mapping can fill.
-ROLES: tuple[str, ...] = ("current", "speed", "position", "voltage")
+ROLES: tuple[str, ...] = ("current", "speed", "position", "voltage", "torque")
 
 
 @dataclass(frozen=True)
 class Signals:
-    """A block of paired samples (structure of arrays, all of length N)."""
+    """A block of paired samples (structure of arrays, all of length N).
+
+    ``current`` is ``None`` for a drive that reports its torque instead (``torque``,
+    N·m; a force in N on a linear axis); one of the two is always there.
+    """
 
     t: F64
-    current: F64
+    current: F64 | None
     speed: F64
     position: F64 | None = None
     voltage: F64 | None = None
+    torque: F64 | None = None
 
     def __post_init__(self) -> None:
         n = len(self.t)
-        for name in ("current", "speed", "position", "voltage"):
+        for name in ROLES:
             v = getattr(self, name)
             if v is not None and len(v) != n:
                 raise ValueError(f"Signals.{name} has {len(v)} samples, t has {n}")
+
+    @classmethod
+    def from_roles(cls, columns: Mapping[str, F64 | None]) -> Signals:
+        """A block from ``{"t": ..., role: array}`` (a role absent or ``None``: not sent)."""
+        t, speed = columns["t"], columns["speed"]
+        assert t is not None and speed is not None
+        return cls(t, columns.get("current"), speed, columns.get("position"),
+                   columns.get("voltage"), columns.get("torque"))
 
     def __len__(self) -> int:
         return len(self.t)
@@ -67,8 +81,8 @@ class Signals:
         def s(a: F64 | None) -> F64 | None:
             return None if a is None else a[start:stop]
 
-        return Signals(self.t[start:stop], self.current[start:stop], self.speed[start:stop],
-                       s(self.position), s(self.voltage))
+        return Signals(self.t[start:stop], s(self.current), self.speed[start:stop],
+                       s(self.position), s(self.voltage), s(self.torque))
 
     @staticmethod
     def concat(blocks: list[Signals]) -> Signals:
@@ -83,10 +97,9 @@ class Signals:
                 return None
             return np.concatenate(vs)
 
-        return Signals(np.concatenate([b.t for b in blocks]),
-                       np.concatenate([b.current for b in blocks]),
+        return Signals(np.concatenate([b.t for b in blocks]), cat("current"),
                        np.concatenate([b.speed for b in blocks]),
-                       cat("position"), cat("voltage"))
+                       cat("position"), cat("voltage"), cat("torque"))
 
 
 # ------------------------------------------------------------- a record on disk
@@ -106,12 +119,12 @@ class SpilledSignals:
 
     The rows are appended block by block (:meth:`append`) and stored in chunks of
     :data:`ROWS` rows, each chunk column after column (``ROWS`` float64 of ``t``, then
-    of ``current``, ``speed``, and ``position``, ``voltage`` when present: 8 bytes per
-    row and channel, 40 with all five). A slice is read back with ``os.preadv`` into
-    fresh arrays, so the values are those appended, bit for bit, and only the slices
-    being used are in memory (not ``mmap``: mapped pages would count as the process's
-    resident memory); the file's pages live in the kernel's page cache. The file is
-    made by :func:`tempfile.TemporaryFile` in the usual temporary directory
+    of each channel present in the order of :data:`ROLES`: 8 bytes per row and channel,
+    40 with ``current``, ``speed``, ``position`` and ``voltage``). A slice is read back
+    with ``os.preadv`` into fresh arrays, so the values are those appended, bit for bit,
+    and only the slices being used are in memory (not ``mmap``: mapped pages would count
+    as the process's resident memory); the file's pages live in the kernel's page cache.
+    The file is made by :func:`tempfile.TemporaryFile` in the usual temporary directory
     (``TMPDIR``): it has no name (unlinked at once), so it goes with the process, even
     a killed one; :meth:`close` frees it earlier.
 
@@ -144,6 +157,7 @@ class SpilledSignals:
         self.speed: SpilledColumn | None = None
         self.position: SpilledColumn | None = None
         self.voltage: SpilledColumn | None = None
+        self.torque: SpilledColumn | None = None
 
     # -- writing -------------------------------------------------------------------
     def append(self, block: Signals) -> None:
@@ -251,9 +265,7 @@ class SpilledSignals:
             self.read(self._roles.index(r), a, b, out)
             return out
 
-        t, current, speed = col("t"), col("current"), col("speed")
-        assert t is not None and current is not None and speed is not None
-        return Signals(t, current, speed, col("position"), col("voltage"))
+        return Signals.from_roles({r: col(r) for r in ("t", *ROLES)})
 
     def in_memory(self) -> Signals:
         """The whole record as :class:`Signals`."""

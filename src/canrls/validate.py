@@ -35,16 +35,17 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can.protocol import Protocol
+from canrls.estimation.physics import Implausible, check_physics, describe
 from canrls.diagnosis.figures import figures_in
 from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
 from canrls.diagnosis.results import Binned, Region, Traces, share_text
 from canrls.diagnosis.samples import RecordSamples
-from canrls.errors import ConfigError
+from canrls.errors import ConfigError, EstimatorError
 from canrls.files import atomic_writer
 from canrls.modelfile import SavedModel
 from canrls.replay import read_logs
-from canrls.signals import Signals
+from canrls.signals import ROLES, Signals
 
 __all__ = ["EquationValidation", "FileFit", "ValidationReport", "validate_logs",
            "validate_signals", "write_html"]
@@ -105,6 +106,8 @@ class ValidationReport:
     parameters: dict[str, dict[str, Any]]
     equations: tuple[EquationValidation, ...]
     frames: dict[str, Any] = field(default_factory=dict)
+    #: saved parameters physics rules out (:func:`canrls.estimation.physics.check_physics`)
+    implausible: tuple[Implausible, ...] = ()
 
     @property
     def fit_percent(self) -> float:
@@ -120,7 +123,8 @@ class ValidationReport:
                 "parameters": self.parameters,
                 "fit_percent": _num(self.fit_percent), "residual_rms": _num(self.residual_rms),
                 "equations": {e.equation: e.to_dict() for e in self.equations},
-                "frames": self.frames}
+                "frames": self.frames,
+                "implausible": [i.to_dict() for i in self.implausible]}
 
     def format(self) -> str:
         lines = [f"model {self.model_file} (identified on {', '.join(self.identified_on) or '?'})",
@@ -130,6 +134,7 @@ class ValidationReport:
                          f"{p.get('unit', '')}"
                          + ("  NOT IDENTIFIABLE from the logs it was identified on"
                             if p.get("identifiable") is False else ""))
+        lines.extend(describe(self.implausible))
         for e in self.equations:
             ident = "" if e.identified_rms is None else \
                 f" (identification: {e.identified_rms:.4g} {e.unit})"
@@ -184,8 +189,7 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
     the record into its files for the per-file fit."""
     if len(signals) < 2:
         raise ConfigError(f"validate: {len(signals)} samples; nothing to validate")
-    model = saved.build_model([r for r in ("current", "speed", "position", "voltage")
-                               if signals.has(r)])
+    model = saved.build_model([r for r in ROLES if signals.has(r)])
     settings = saved.config().settings()
     ctx = RecordSamples(model, signals, dt, settings, 1)
     bounds = np.cumsum([0, *sizes]) if sizes else np.array([0, len(signals)])
@@ -197,11 +201,27 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
                               for p in eq.parameters])
         except KeyError as e:
             raise ConfigError(f"{model_file}: no value for parameter {e.args[0]}") from None
+        if not np.all(np.isfinite(theta)):  # a SavedModel built in code, not read
+            bad = [p.name for p, v in zip(eq.parameters, theta, strict=True)
+                   if not math.isfinite(v)]
+            raise ConfigError(f"{model_file}: parameters {', '.join(bad)}: not finite; "
+                              f"nothing can be predicted with them")
         phi, y = ctx.columns(eq)
         used = ctx.used(eq) & np.isfinite(y) & np.all(np.isfinite(phi), axis=1)
+        if not used.any():
+            raise EstimatorError(
+                f"validate: {', '.join(names)}: no usable sample for the {eq.name} "
+                f"equation ({len(signals)} samples, every one left out: the filter's "
+                f"warm-up after the start and after each gap, the speed limits of the "
+                f"model, non-finite values); nothing to validate")
         # r = y - Phi theta, normalised columns and parameters, then in the target unit
-        r = eq.target_to_physical(y - phi @ eq.to_normalised(theta))
+        with np.errstate(over="ignore", invalid="ignore"):
+            r = eq.target_to_physical(y - phi @ eq.to_normalised(theta))
         yt = eq.target_to_physical(y)
+        if not np.all(np.isfinite(r[used])):
+            raise EstimatorError(
+                f"{model_file}: the saved parameters predict non-finite values of the "
+                f"{eq.name} equation's target (parameters of absurd size?)")
         rms, fit, r2 = _fit(r[used], yt[used])
         files = []
         for k, name in enumerate(names):
@@ -233,7 +253,28 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
             traces=traces, bins=bins, bounds=tuple(int(b) for b in bounds)))
     return ValidationReport(model_file=model_file, sources=tuple(names),
                             identified_on=tuple(saved.sources), parameters=saved.parameters,
-                            equations=tuple(out), frames=dict(frames or {}))
+                            equations=tuple(out), frames=dict(frames or {}),
+                            implausible=saved_physics(saved))
+
+
+@dataclass(frozen=True)
+class _Saved:
+    """A saved parameter as :func:`check_physics` reads it."""
+
+    name: str
+    value: float
+    sigma: float
+    identifiable: bool
+
+
+def saved_physics(saved: SavedModel) -> tuple[Implausible, ...]:
+    """The saved parameters physics rules out (the file's own verdicts on
+    identifiability)."""
+    items = [_Saved(n, float(p.get("value", math.nan)), float(p.get("sigma") or 0.0),
+                    p.get("identifiable") is not False)
+             for n, p in saved.parameters.items()]
+    kt = saved.model.get("kt")
+    return check_physics(items, float(kt) if isinstance(kt, int | float) else None)
 
 
 def validate_logs(paths: Sequence[str | os.PathLike[str]], saved: SavedModel,
@@ -241,7 +282,7 @@ def validate_logs(paths: Sequence[str | os.PathLike[str]], saved: SavedModel,
                   progress: Callable[[int, int], None] | None = None,
                   chunk_size: int = 65536, skip_bad_lines: bool = False) -> ValidationReport:
     """Decode and pair the logs as ``canrls fit`` does, then :func:`validate_signals`."""
-    available = [r for r in ("current", "speed", "position", "voltage") if protocol.has(r)]
+    available = [r for r in ROLES if protocol.has(r)]
     model = saved.build_model(available)
     log = read_logs(paths, protocol, model, saved.config().settings(), progress=progress,
                     chunk_size=chunk_size, skip_bad_lines=skip_bad_lines)

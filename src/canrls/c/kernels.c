@@ -109,8 +109,10 @@ static void svf_scaled(Py_ssize_t N, Py_ssize_t m, const double *u, const double
 /* ------------------------------------------------------------ sample selection */
 /* Mark gaps (restart the filter there) and the rows not to use; count both.
  * A row is not used in the warm-up after a restart, nor while |omega| > max_speed or
- * |omega| < min_speed, nor in the warm-up after those.
- * state = [last t (nan: none yet), samples left in the warm-up] */
+ * |omega| < min_speed, nor in the warm-up after those. With min_speed > 0 a sign
+ * change of omega since the last sample counts as a speed below min_speed: the drive
+ * passed through zero between the two samples, however fast it reversed.
+ * state = [last t (nan: none yet), samples left in the warm-up, last omega] */
 static void select_rows(Py_ssize_t N, const double *t, const double *omega, double gap,
                         int64_t warm, double min_speed, double max_speed, double *state,
                         uint8_t *restart, uint8_t *use, Py_ssize_t *restarts,
@@ -118,17 +120,23 @@ static void select_rows(Py_ssize_t N, const double *t, const double *omega, doub
 {
     double last = state[0];
     double left = state[1];
+    double w_last = state[2];
     Py_ssize_t r = 0, u = 0;
     for (Py_ssize_t k = 0; k < N; k++) {
         if (last != last || t[k] - last > gap || t[k] < last) {
             restart[k] = 1;
             r++;
             left = (double)warm;
+            w_last = 0.0;  /* no crossing across a restart */
         }
         last = t[k];
         const double w = fabs(omega[k]);
-        if (w > max_speed || w < min_speed)
+        /* omega_{k-1} omega_k < 0: a zero crossing between the samples */
+        const int crossed = min_speed > 0 && w_last * omega[k] < 0;
+        if (w > max_speed || w < min_speed || crossed)
             left = (double)(warm + 1);
+        if (omega[k] == omega[k])
+            w_last = omega[k];
         if (left > 0) {
             use[k] = 0;
             left -= 1;
@@ -139,6 +147,7 @@ static void select_rows(Py_ssize_t N, const double *t, const double *omega, doub
     }
     state[0] = last;
     state[1] = left;
+    state[2] = w_last;
     *restarts = r;
     *used = u;
 }
@@ -610,7 +619,7 @@ PyDoc_STRVAR(select_doc,
 "select(t, omega, gap, warm, min_speed, max_speed, state, restart, use)\n"
 "    -> (restarts, used)\n\n"
 "Mark the restarts (gaps) and the rows to use of a block; state = [last t, warm-up\n"
-"left] is carried. See canrls.estimation.selection.");
+"left, last omega] is carried. See canrls.estimation.selection.");
 
 static PyObject *py_select(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -627,7 +636,7 @@ static PyObject *py_select(PyObject *self, PyObject *const *args, Py_ssize_t nar
         && as_double(args[4], &min_speed) && as_double(args[5], &max_speed)
         && take(&a, args, spec, COUNT(spec), b, F64)) {
         const Py_ssize_t N = dim(b[0], 0);
-        if (need(&a, b[1], "omega", N, -1) && need(&a, b[2], "state", 2, -1)
+        if (need(&a, b[1], "omega", N, -1) && need(&a, b[2], "state", 3, -1)
             && need(&a, b[3], "restart", N, -1) && need(&a, b[4], "use", N, -1)) {
             Py_ssize_t restarts, used;
             Py_BEGIN_ALLOW_THREADS

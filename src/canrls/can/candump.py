@@ -27,17 +27,20 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from canrls.can import times
+
 __all__ = ["parse", "format_lines", "CAN_ERR_FLAG", "EFF_MASK", "MAX_TIMESTAMP"]
 
 #: Linux SocketCAN error-frame flag in the 32-bit CAN ID (candump writes it in the ID).
 CAN_ERR_FLAG = 0x20000000
 EFF_MASK = 0x1FFFFFFF
 
-#: Largest timestamp [s] a log line may carry (about the year 2286): a line beyond it
-#: (``(1e300)``, ``(inf)``, a corrupted time) is not a frame of this log but a bad line
+#: Largest timestamp [s] a log line may carry (:data:`canrls.can.times.MAX_TIMESTAMP`,
+#: the one bound of live and offline): a line beyond it (``(1e300)``, ``(inf)``, a
+#: corrupted time) is not a frame of this log but a bad line
 #: (:class:`~canrls.errors.LogFormatError` naming the line, skippable with
 #: ``skip_bad_lines``); the compiled parser hands such lines to the per-line path.
-MAX_TIMESTAMP = 1e10
+MAX_TIMESTAMP = times.MAX_TIMESTAMP
 
 # exact powers of ten as doubles (10**22 is the largest exactly representable one)
 _POW10 = np.array([10.0 ** k for k in range(23)], np.float64)

@@ -14,7 +14,7 @@ RlsSigma        0x301   standard deviation of parameter Index (float32)
 RlsReference    0x302   float reference estimate of parameter Index (float32)
 RlsParamInfo    0x303   what parameter Index is: effect, component, order, equation
 RlsStatus       0x310   residual RMS, number of updates
-RlsHealth       0x311   health flags, active effects, float-vs-fixed divergence
+RlsHealth       0x311   health flags, active effects, divergence, time rejects
 RlsCounters     0x312   rejected / lost frames, saturations, dropped transmissions
 RlsRejects      0x313   rejected (and reordered) feedback frames by reason, clock faults
 RlsCommand      0x320   command to the daemon (from a tool)
@@ -124,9 +124,9 @@ COMPONENTS: dict[EffectId, tuple[str, ...]] = {
 
 #: Health flags of ``RlsHealth``, in bit order (StatusReport field names).
 FLAG_NAMES: tuple[str, ...] = ("windup", "low_excitation", "saturation", "frame_loss",
-                               "frozen", "diverged", "bus_fault", "clock_fault")
+                               "frozen", "diverged", "bus_fault", "clock_fault", "implausible")
 _FLAG_SIGNALS = ("Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen", "Diverged",
-                 "BusFault", "ClockFault")
+                 "BusFault", "ClockFault", "Implausible")
 
 #: Counters of ``RlsRejects`` (:attr:`StatusReport.rejects` keys), in signal order: frames
 #: rejected by the decoder (``crc``; ``malformed``: remote or wrong length; ``repeated``
@@ -134,14 +134,18 @@ _FLAG_SIGNALS = ("Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen",
 #: outside the DBC range or NaN), dropped by
 #: pairing (``unpaired``: no partner, late, duplicated), put back in order
 #: (``reordered``), and clock events (``clock_steps``: back, or forward beyond
-#: :data:`canrls.can.pairing.FORWARD_STEP`; ``gaps``). They wrap at :data:`REJECT_WRAP`.
+#: :data:`canrls.can.pairing.FORWARD_STEP`; ``gaps``); last ``time``, frames rejected for
+#: their receive time (:mod:`canrls.can.times`), which ``RlsHealth`` carries
+#: (``TimeRejects``: RlsRejects is full). They wrap at :data:`REJECT_WRAP`.
 REJECT_FIELDS: tuple[str, ...] = ("crc", "malformed", "repeated", "stale", "range", "unpaired",
-                                  "reordered", "clock_steps", "gaps")
+                                  "reordered", "clock_steps", "gaps", "time")
 _REJECT_SIGNALS = ("Crc", "Malformed", "Repeated", "Stale", "Range", "Unpaired", "Reordered",
                    "ClockSteps", "Gaps")
-#: Where each counter of ``RlsRejects`` wraps (its signal's width).
+#: (field, RlsRejects signal) of every field but ``time``
+_REJECTS_FRAME = tuple(zip(REJECT_FIELDS[:-1], _REJECT_SIGNALS, strict=True))
+#: Where each counter wraps on the wire (its signal's width).
 REJECT_WRAP: dict[str, int] = {**dict.fromkeys(REJECT_FIELDS, 256), "clock_steps": 16,
-                               "gaps": 16}
+                               "gaps": 16, "time": 8}
 
 
 def _no_rejects() -> dict[str, int]:
@@ -246,9 +250,10 @@ class StatusReport:
 
     ``active_effects`` is a bitmask: bit ``EffectId - 1`` set when the effect is in
     the model. The four counters wrap at 16 bits on the wire, ``update_count`` at 32.
-    ``clock_fault``: the frames' timestamps stepped (back, or forward beyond a bound)
-    during the last interval. ``rejects``: ``{reason: frames}`` for every reason of
-    :data:`REJECT_FIELDS` (wrapping on the wire at :data:`REJECT_WRAP`).
+    ``clock_fault``: the frames' timestamps stepped (back, or forward beyond a bound),
+    or a frame was rejected for its receive time, during the last interval.
+    ``rejects``: ``{reason: frames}`` for every reason of :data:`REJECT_FIELDS`
+    (wrapping on the wire at :data:`REJECT_WRAP`; ``time`` in RlsHealth).
     """
 
     residual_rms: float = 0.0
@@ -261,6 +266,8 @@ class StatusReport:
     diverged: bool = False
     bus_fault: bool = False
     clock_fault: bool = False
+    #: an estimate physics rules out (:func:`canrls.estimation.physics.check_physics`)
+    implausible: bool = False
     active_effects: int = 0
     divergence: float = 0.0
     frames_rejected: int = 0
@@ -671,7 +678,8 @@ def encode_status(status: StatusReport, counter: int, *, timestamp: float = 0.0,
     health: dict[str, Any] = {sig: int(bool(getattr(s, f)))
                               for f, sig in zip(FLAG_NAMES, _FLAG_SIGNALS, strict=True)}
     health.update(Counter=counter % 16, ActiveEffects=s.active_effects & 0xFFFF,
-                  Divergence=_f32(s.divergence, 0.0, _F32_MAX))
+                  Divergence=_f32(s.divergence, 0.0, _F32_MAX),
+                  TimeRejects=int(s.rejects.get("time", 0)) % REJECT_WRAP["time"])
     return [
         _message("RlsStatus", {"ResidualRms": _f32(s.residual_rms, 0.0, _F32_MAX),
                                "UpdateCount": s.update_count % (1 << 32)}, timestamp, dbc),
@@ -681,7 +689,7 @@ def encode_status(status: StatusReport, counter: int, *, timestamp: float = 0.0,
                                  "Saturations": s.saturations % 65536,
                                  "TxDropped": s.tx_dropped % 65536}, timestamp, dbc),
         _message("RlsRejects", {sig: int(s.rejects.get(f, 0)) % REJECT_WRAP[f]
-                                for f, sig in zip(REJECT_FIELDS, _REJECT_SIGNALS, strict=True)},
+                                for f, sig in _REJECTS_FRAME},
                  timestamp, dbc),
     ]
 
@@ -850,10 +858,11 @@ class FrameDecoder:
         elif name == "RlsHealth":
             flags = {f: bool(v[sig]) for f, sig in zip(FLAG_NAMES, _FLAG_SIGNALS, strict=True)}
             s = replace(s, active_effects=int(v["ActiveEffects"]),
-                        divergence=float(v["Divergence"]), **flags)
+                        divergence=float(v["Divergence"]),
+                        rejects={**s.rejects, "time": int(v.get("TimeRejects", 0))}, **flags)
         elif name == "RlsRejects":
-            s = replace(s, rejects={f: int(v[sig]) for f, sig in
-                                    zip(REJECT_FIELDS, _REJECT_SIGNALS, strict=True)})
+            s = replace(s, rejects={**{f: int(v[sig]) for f, sig in _REJECTS_FRAME},
+                                    "time": int(s.rejects.get("time", 0))})
         else:  # RlsCounters
             s = replace(s, frames_rejected=int(v["FramesRejected"]),
                         frames_lost=int(v["FramesLost"]), saturations=int(v["Saturations"]),

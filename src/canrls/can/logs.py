@@ -19,9 +19,10 @@ Reading streams in blocks of ``chunk_size`` frames, so memory stays flat in the
 log's length. A line that cannot be parsed is a :class:`~canrls.errors.LogFormatError`
 naming the file and line number, unless ``skip_bad_lines=True`` (the named
 opt-out), in which case it is counted in :attr:`LogReadStats.bad_lines`. A timestamp
-that is not finite or beyond :data:`canrls.can.candump.MAX_TIMESTAMP` (``(inf)``,
-``(1e300)``) makes its line bad: it is no time of a frame, and read as one it would
-put every later frame out of time.
+that is not a time (:func:`canrls.can.times.is_time`: not finite or beyond
+:data:`~canrls.can.times.MAX_TIMESTAMP`, ``(inf)``, ``(1e300)``) makes its line bad: it
+is no time of a frame, and read as one it would put every later frame out of time. The
+live path judges its frames by the same rule (:mod:`canrls.can.times`).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import numpy.typing as npt
 
 from canrls.can import candump
 from canrls.can.frameblock import MAX_DATA_LENGTH, FrameBlock
+from canrls.can.times import MAX_TIMESTAMP, describe, is_time
 from canrls.can.writers import writer_on
 from canrls.errors import ConfigError, LogFormatError
 from canrls.files import MAX_LINE, LineBound, atomic_writer, check_path, open_regular
@@ -227,9 +229,8 @@ def _parse_candump_line(text: str) -> can.Message:
     if len(parts) < 3 or not (parts[0].startswith("(") and parts[0].endswith(")")):
         raise ValueError("expected '(timestamp) channel frame'")
     timestamp = float(parts[0][1:-1])
-    if not abs(timestamp) <= candump.MAX_TIMESTAMP:  # inf, nan, 1e300: no time of a frame
-        raise ValueError(f"timestamp {parts[0][1:-1]} is not a time (finite, at most "
-                         f"{candump.MAX_TIMESTAMP:g} s)")
+    if not is_time(timestamp):  # inf, nan, 1e300: no time of a frame
+        raise ValueError(describe(timestamp))
     channel = parts[1]
     frame = parts[2]
     if "#" not in frame:
@@ -315,10 +316,10 @@ def _read_python_can(f: BinaryIO, path: Path, chunk_size: int, st: LogReadStats,
                 raise LogFormatError(
                     f"{path}: unreadable after frame {st.frames + len(buf)} ({e})") from e
             k = st.frames + len(buf) + 1
-            if not abs(msg.timestamp) <= candump.MAX_TIMESTAMP:
+            if not is_time(msg.timestamp):
                 raise LogFormatError(
                     f"{path}: frame {k} has the timestamp {msg.timestamp!r}, not a time "
-                    f"(finite, at most {candump.MAX_TIMESTAMP:g} s)")
+                    f"(finite, at most {MAX_TIMESTAMP:g} s)")
             if not 0 <= msg.arbitration_id <= _EFF_MASK:
                 raise LogFormatError(
                     f"{path}: frame {k} has the ID 0x{msg.arbitration_id:X}, not a CAN ID "

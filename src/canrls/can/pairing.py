@@ -294,6 +294,7 @@ class Pairer:
                            flush, self._gf, self._gi, self._sf, self._si, self._counts,
                            self._clock, self._iwork, self._fwork, self._vwork)
         self._samples += out.shape[1]
-        c, s, p, v = self._rows
-        return Signals(out[0], out[c], out[s], None if p is None else out[p],
-                       None if v is None else out[v])
+        c, s, p, v, q = self._rows
+        return Signals(out[0], None if c is None else out[c], out[s],
+                       None if p is None else out[p], None if v is None else out[v],
+                       None if q is None else out[q])

@@ -1,12 +1,14 @@
 """The feedback protocol: DBC, signal mapping and a strict, vectorised codec.
 
-canrls reads motor current, speed, position and voltage from CAN frames described
-by a DBC file. :class:`Protocol` ties three things together:
+canrls reads motor current (or the torque the drive reports), speed, position and
+voltage from CAN frames described by a DBC file. :class:`Protocol` ties three things
+together:
 
 * the DBC, loaded with cantools (the default one, ``canrls/data/canrls.dbc``, or
   the user's);
 * a :class:`SignalMapping` that says which ``MESSAGE.SIGNAL`` carries each role
-  (``current``, ``speed``, ``position``, ``voltage``), its scale to SI and which
+  (``current``, ``speed``, ``position``, ``voltage``, ``torque``), its scale to SI
+  (with the :class:`~canrls.can.units.Ratings` that relative units need) and which
   signals of each message are the alive counter and the CRC;
 * one compiled codec per mapped message, built once from cantools' ``Signal``
   objects (start bit, length, byte order, signedness, scale, offset, minimum,
@@ -46,7 +48,7 @@ import numpy.typing as npt
 from canrls import _can
 from canrls.can.e2e import CRC8_TABLE
 from canrls.can.frameblock import FrameBlock
-from canrls.can.units import axis_of, si_factor
+from canrls.can.units import RATING_OPTIONS, Ratings, axis_of, si_factor
 from canrls.errors import ConfigError, DecodeError, SignalError
 from canrls.files import MAX_DBC_BYTES, read_bytes
 from canrls.signals import ROLES
@@ -56,6 +58,7 @@ __all__ = [
     "MAX_MESSAGE_BYTES",
     "load_dbc",
     "REQUIRED_ROLES",
+    "EFFORT_ROLES",
     "REJECT_REASONS",
     "RoleSpec",
     "SignalMapping",
@@ -82,7 +85,11 @@ DEFAULT_DBC: Path = Path(str(resources.files("canrls") / "data" / "canrls.dbc"))
 MAX_MESSAGE_BYTES = 64
 
 #: Roles every mapping must fill; ``position`` and ``voltage`` are optional.
-REQUIRED_ROLES: tuple[str, ...] = ("current", "speed")
+REQUIRED_ROLES: tuple[str, ...] = ("speed",)
+#: A mapping fills at least one of these: the current, or the torque (force) the drive
+#: reports; with both, the torque is the mechanical target and the current feeds the
+#: electrical equation.
+EFFORT_ROLES: tuple[str, ...] = ("current", "torque")
 
 #: Rejection reasons, in the order the checks run (a frame counts under the first that fails).
 REJECT_REASONS: tuple[str, ...] = (
@@ -95,6 +102,9 @@ REJECT_REASONS: tuple[str, ...] = (
     "sequence",     # counter jumped further ahead than the time since the last frame allows
     "nan",          # a float signal is NaN or infinite
     "range",        # a physical value lies outside the DBC [minimum, maximum]
+    "time",         # the receive time is no time of the stream (canrls.can.times): judged
+                    # first, by the front end, before decoding; listed last, so that the
+                    # codes of the others stay
 )
 _R = {r: k + 1 for k, r in enumerate(REJECT_REASONS)}  # reason -> code (0 = accepted)
 _NO_REJECTS = dict.fromkeys(REJECT_REASONS, 0)
@@ -150,12 +160,14 @@ class SignalMapping:
     ``counters`` / ``crcs`` map a message name to a signal name, or to ``None`` for
     "this message has none". A message absent from them has a counter/CRC only
     when the DBC is the default one and has signals named ``Counter`` / ``CRC``
-    (auto-detection never applies to user DBCs).
+    (auto-detection never applies to user DBCs). ``ratings`` are what relative units
+    (``‰`` of the rated torque or current, increments) refer to.
     """
 
     roles: Mapping[str, RoleSpec]
     counters: Mapping[str, str | None] = field(default_factory=dict)
     crcs: Mapping[str, str | None] = field(default_factory=dict)
+    ratings: Ratings = field(default_factory=Ratings)
 
     @staticmethod
     def default() -> SignalMapping:
@@ -174,10 +186,13 @@ class SignalMapping:
         Each role is ``"MESSAGE.SIGNAL"`` or a table with ``signal = "MESSAGE.SIGNAL"``
         (or ``message`` + ``signal``) and optional ``unit``, ``scale``, ``counter``,
         ``crc``. ``counter``/``crc`` are a signal name of the role's message or
-        ``false``. A ``messages`` table may give ``counter``/``crc`` per message::
+        ``false``. A ``messages`` table may give ``counter``/``crc`` per message;
+        ``rated_torque``, ``rated_current`` and ``increments_per_rev`` give the
+        :class:`~canrls.can.units.Ratings`::
 
             current = "Feedback.Iq"
             speed = { signal = "Feedback.Speed", unit = "rpm", counter = "Alive", crc = false }
+            rated_current = 5.0
             [messages.Feedback]
             counter = "Alive"
 
@@ -188,6 +203,7 @@ class SignalMapping:
         roles: dict[str, RoleSpec] = {}
         counters: dict[str, str | None] = {}
         crcs: dict[str, str | None] = {}
+        ratings: dict[str, float] = {}
 
         def e2e(kind: str, table: dict[str, str | None], message: str, value: Any,
                 where: str) -> None:
@@ -219,9 +235,13 @@ class SignalMapping:
                     if "crc" in t:
                         e2e("crc", crcs, msg, t["crc"], f"messages.{msg}")
                 continue
+            if key in RATING_OPTIONS:
+                ratings[key] = value
+                continue
             if key not in ROLES:
                 raise ConfigError(f"{source}: unknown key {key!r} (expected one of "
-                                  f"{', '.join(ROLES)}, messages)")
+                                  f"{', '.join(ROLES)}, messages, "
+                                  f"{', '.join(RATING_OPTIONS)})")
             if isinstance(value, str):
                 msg, sig = _split_ref(value, f"{source}: {key}")
                 roles[key] = RoleSpec(msg, sig)
@@ -256,7 +276,13 @@ class SignalMapping:
                 e2e("counter", counters, msg, value["counter"], key)
             if "crc" in value:
                 e2e("crc", crcs, msg, value["crc"], key)
-        return SignalMapping(roles=roles, counters=counters, crcs=crcs)
+        for key, v in ratings.items():
+            if (isinstance(v, bool) or not isinstance(v, int | float)
+                    or not (math.isfinite(v) and v > 0)):
+                raise ConfigError(f"{source}: {key} = {v!r}: must be a positive number "
+                                  f"({RATING_OPTIONS[key][2]})")
+        return SignalMapping(roles=roles, counters=counters, crcs=crcs,
+                             ratings=Ratings(**ratings))
 
     @staticmethod
     def from_strings(items: Iterable[str], *, base: SignalMapping | None = None) -> SignalMapping:
@@ -273,6 +299,7 @@ class SignalMapping:
         roles = dict(base.roles) if base else {}
         counters = dict(base.counters) if base else {}
         crcs = dict(base.crcs) if base else {}
+        ratings = base.ratings if base else Ratings()
         for item in items:
             m = _CLI_RE.match(item)
             if not m:
@@ -300,7 +327,7 @@ class SignalMapping:
                         raise ConfigError(f"--signal {item}: scale must be finite "
                                           f"and non-zero")
             roles[key] = RoleSpec(msg, sig, unit=unit, scale=scale)
-        return SignalMapping(roles=roles, counters=counters, crcs=crcs)
+        return SignalMapping(roles=roles, counters=counters, crcs=crcs, ratings=ratings)
 
     def describe(self) -> str:
         """One line per role, e.g. ``current = DriveCurrent.Current``."""
@@ -745,9 +772,10 @@ class Protocol:
     Build it with :meth:`load`. Attributes: ``db`` (the cantools database),
     ``dbc_path``, ``is_default_dbc``, ``mapping``, ``roles`` (role ->
     :class:`RoleInfo`), ``messages`` (the mapped :class:`MessageCodec`, the current's
-    message first, then the speed's, position's and voltage's), ``strict_range``,
-    ``check_crc``, ``check_counter``, ``period_source`` (who states :attr:`period`: the
-    configuration's name for it, ``"the DBC's GenMsgCycleTime"``, or None).
+    message first (else the torque's), then the speed's, position's and voltage's),
+    ``strict_range``, ``check_crc``, ``check_counter``, ``period_source`` (who states
+    :attr:`period`: the configuration's name for it, ``"the DBC's GenMsgCycleTime"``,
+    or None).
     """
 
     period_source: str | None = None
@@ -773,8 +801,8 @@ class Protocol:
     def load(dbc: str | Path | None = None,
              mapping: SignalMapping | Mapping[str, Any] | Sequence[str] | None = None, *,
              strict_range: bool = True, check_crc: bool = True, check_counter: bool = True,
-             period: float | None = None, period_source: str = "the configured period"
-             ) -> Protocol:
+             period: float | None = None, period_source: str = "the configured period",
+             axis: str | None = None) -> Protocol:
         """Load a DBC (default: the one shipped with canrls) and resolve a signal mapping.
 
         Parameters
@@ -786,6 +814,8 @@ class Protocol:
         strict_range, check_crc, check_counter : named opt-outs of the strict checks.
         period : control period [s] of the feedback messages, overriding their
             ``GenMsgCycleTime``; ``period_source`` names it in messages (``"--period"``).
+        axis : ``"linear"`` when an increment (``inc``, ``inc/s``) is a fraction of a
+            metre (default: of a revolution).
 
         Raises
         ------
@@ -810,7 +840,7 @@ class Protocol:
                               f"ROLE=MESSAGE.SIGNAL strings, got {type(mapping).__name__}")
         if period is not None and not (math.isfinite(period) and period > 0):
             raise ConfigError(f"period must be a positive number of seconds, got {period!r}")
-        roles, messages = _resolve(db, path, is_default, mp, period)
+        roles, messages = _resolve(db, path, is_default, mp, period, axis)
         proto = Protocol(db, path, is_default, mp, roles, messages, strict_range=strict_range,
                          check_crc=check_crc, check_counter=check_counter)
         if period is not None:
@@ -879,7 +909,8 @@ class Protocol:
 
 
 def _resolve(db: Any, path: Path, is_default: bool, mp: SignalMapping,
-             period: float | None) -> tuple[dict[str, RoleInfo], tuple[MessageCodec, ...]]:
+             period: float | None, axis: str | None = None
+             ) -> tuple[dict[str, RoleInfo], tuple[MessageCodec, ...]]:
     where = f"DBC {path}"
     names = {m.name for m in db.messages}
     roles: dict[str, RoleInfo] = {}
@@ -906,8 +937,13 @@ def _resolve(db: Any, path: Path, is_default: bool, mp: SignalMapping,
             raise SignalError(f"{where}: message {spec.message} is a container message")
         codec = SignalCodec(sig, msg.name)
         unit = spec.unit if spec.unit is not None else (sig.unit or "")
-        factor = si_factor(role, unit, message=msg.name, signal=sig.name, scale=spec.scale)
+        factor = si_factor(role, unit, message=msg.name, signal=sig.name, scale=spec.scale,
+                           ratings=mp.ratings, axis=axis)
         roles[role] = RoleInfo(role, codec, factor, unit)
+    if not any(r in roles for r in EFFORT_ROLES):
+        raise SignalError(f"signal mapping for {where} lacks the required role current "
+                          f"(give current=MESSAGE.SIGNAL, or torque=MESSAGE.SIGNAL for a "
+                          f"drive that reports its torque)")
     for role in REQUIRED_ROLES:
         if role not in roles:
             raise SignalError(f"signal mapping for {where} lacks the required role {role} "
@@ -920,7 +956,9 @@ def _resolve(db: Any, path: Path, is_default: bool, mp: SignalMapping,
                               f"{roles['position'].message}.{roles['position'].signal} is "
                               f"{ax_p} ({roles['position'].unit})")
 
-    mapped = list(dict.fromkeys(r.message for r in roles.values()))
+    # the messages in the order of their roles: the current's (else the torque's) first
+    order = ("current", "torque", "speed", "position", "voltage")
+    mapped = list(dict.fromkeys(roles[r].message for r in order if r in roles))
     for table, kind in ((mp.counters, "counter"), (mp.crcs, "CRC")):
         for mname in table:
             if mname not in mapped:
@@ -1661,18 +1699,20 @@ class FeedbackEncoder:
             <= 1e-9 * 2 * math.pi)
         self._width = max(8, max(m.length for m in protocol.messages))
 
-    def encode(self, t: npt.ArrayLike, current: npt.ArrayLike, speed: npt.ArrayLike,
+    def encode(self, t: npt.ArrayLike, current: npt.ArrayLike | None, speed: npt.ArrayLike,
                position: npt.ArrayLike | None = None,
-               voltage: npt.ArrayLike | None = None) -> FrameBlock:
+               voltage: npt.ArrayLike | None = None,
+               torque: npt.ArrayLike | None = None) -> FrameBlock:
         """Frames of ``len(t)`` periods (``len(t) * len(protocol.messages)`` frames).
 
-        Values are SI (A, rad/s, rad, V). A mapped role given as ``None`` is sent as
-        raw 0; a role given but not mapped is ignored.
+        Values are SI (A, rad/s, rad, V, N·m). A mapped role given as ``None`` is sent
+        as raw 0; a role given but not mapped is ignored.
         """
         p = self.protocol
         tt = np.asarray(t, np.float64).ravel()
         n = len(tt)
-        si = {"current": current, "speed": speed, "position": position, "voltage": voltage}
+        si = {"current": current, "speed": speed, "position": position, "voltage": voltage,
+              "torque": torque}
         m_count = len(p.messages)
         block = FrameBlock.allocate(n * m_count, self._width)
         seq = self.counter + np.arange(n, dtype=np.int64)

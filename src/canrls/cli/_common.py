@@ -42,22 +42,35 @@ def number(text: str) -> float:
 
 
 def add_model_options(p: argparse.ArgumentParser) -> None:
-    """``--config --dbc --signal --effects --kt --period --axis --lambda --alpha --json``."""
+    """``--config --dbc --signal --rated-torque --rated-current --increments-per-rev
+    --effects --kt --period --axis --lambda --alpha --json``."""
     g = p.add_argument_group("model and protocol (each also settable in --config)")
     g.add_argument("--config", "-C", metavar="FILE",
                    help="TOML configuration ([model], [estimator], [fixed], [can], [signals])")
     g.add_argument("--dbc", metavar="FILE",
                    help="DBC of the drive (default: the DBC shipped with canrls)")
     g.add_argument("--signal", action="append", metavar="ROLE=MESSAGE.SIGNAL[:UNIT]",
-                   help="which signal carries a role: current, speed, position, voltage "
-                        "(repeatable; also counter=MESSAGE.SIGNAL, crc=MESSAGE.SIGNAL)")
+                   help="which signal carries a role: current, speed, position, voltage, "
+                        "torque (the torque a drive reports, N·m; linear axis: N; the "
+                        "mechanical target then, no --kt) (repeatable; also "
+                        "counter=MESSAGE.SIGNAL, crc=MESSAGE.SIGNAL)")
+    g.add_argument("--rated-torque", type=number, metavar="VALUE",
+                   help="rated torque [N·m] (linear axis: rated force [N]) that a torque "
+                        "signal in per mille (‰) or per cent refers to (CiA 402: 0x6076)")
+    g.add_argument("--rated-current", type=number, metavar="VALUE",
+                   help="rated current [A] that a current signal in per mille (‰) or per "
+                        "cent refers to (CiA 402: 0x6075)")
+    g.add_argument("--increments-per-rev", type=number, metavar="N",
+                   help="encoder increments per revolution (linear axis: per metre) of a "
+                        "position in increments (inc) and a speed in increments/s (inc/s)")
     g.add_argument("--effects", "-e", metavar="NAME,...",
                    help="effects of the model: inertia, viscous, coulomb, stribeck, offset, "
                         "unbalance, cogging:K, electrical, user:NAME "
                         "(default: inertia,viscous,coulomb)")
     g.add_argument("--kt", type=number, metavar="VALUE",
                    help="torque constant Kt [N·m/A] (linear: N/A); without it the target is "
-                        "the current and parameters are per ampere")
+                        "the current and parameters are per ampere; refused with a torque "
+                        "signal, whose torque is the target")
     g.add_argument("--period", type=number, metavar="SECONDS",
                    help="control period [s] (default: the DBC's GenMsgCycleTime, else measured "
                         "on the log's timestamps; a stated period must agree with them within "

@@ -67,6 +67,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from canrls.estimation.fixed import sweep
+    from canrls.estimation.pipeline import used_rows
     from canrls.estimation.rls import RLS
     from canrls.processor import FrameProcessor
     from canrls.replay import prepare
@@ -98,9 +99,7 @@ def run(args: argparse.Namespace) -> int:
     text = [f"{source}"]
     for k, est in enumerate(pipe.estimators):
         eq = est.equation
-        phi = np.concatenate([b.equations[k].phi[b.equations[k].used] for b in blocks])
-        y = np.concatenate([np.ldexp(b.equations[k].y[b.equations[k].used], -eq.scaling.target)
-                            for b in blocks])
+        phi, y = used_rows([b.equations[k] for b in blocks], eq.scaling.target)
         phi, y = phi[: args.max_samples], y[: args.max_samples]
         if len(y) == 0:
             raise ConfigError(f"{source}: no samples to sweep")

@@ -9,8 +9,8 @@ import sys
 from collections.abc import Sequence
 
 from canrls import __version__
+from canrls.cli import early_signals
 from canrls.errors import CanrlsError
-from canrls.live.cache import preload as preload_cache_dir
 
 #: Subcommand modules, in the order ``--help`` lists them.
 SUBCOMMANDS: tuple[str, ...] = (
@@ -78,6 +78,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     0 done, 1 a :class:`CanrlsError` (one ``error:`` line), 2 usage, 3 an internal error
     (one ``internal error:`` line), 130 interrupted. ``--debug`` shows the traceback."""
     given = list(sys.argv[1:] if argv is None else argv)
+    if argv is None and named_command(given) == "run":
+        # the process's own canrls run: its signals are handled from here on, before
+        # numpy, python-can and cantools load (docs/daemon.md)
+        early_signals.install()
     debug = "--debug" in given[:given.index("--")] if "--" in given else "--debug" in given
     try:
         return _run(given, process=argv is None)
@@ -97,6 +101,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(given: list[str], process: bool) -> int:
+    from canrls.live.cache import preload as preload_cache_dir
+
     preload_cache_dir(given)  # before the kernels load
     parser = build_parser(named_command(given))
     args = parser.parse_args(given)

@@ -38,7 +38,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
         description="Show every parameter the daemon publishes (fixed, ±σ, float, unit), the "
                     "residual RMS and its trend, frame rates, counters, rejected frames by "
                     "reason (RlsRejects: CRC, counters, range, unpaired, reordered, clock "
-                    "steps and gaps) and health flags (ClockFault among them).")
+                    "steps and gaps; RlsHealth: receive times) and health flags "
+                    "(ClockFault among them).")
     add_model_options(p)
     add_bus_options(p)
     g = p.add_argument_group("view")

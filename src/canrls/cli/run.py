@@ -10,7 +10,8 @@ frames (only with ``--commands`` or ``[daemon] commands = true``; otherwise each
 answered ``disabled``), checkpoints, and talks to systemd (``Type=notify``, watchdog).
 SIGTERM/SIGINT stop it (with a final checkpoint; a second one while it stops changes
 nothing), SIGHUP re-reads the configuration's model. On exit it prints the final
-estimates (``--json``: one object with the estimates and the daemon's counters).
+estimates (``--json``: one object with the estimates, the daemon's counters, the frames
+rejected by reason as ``canrls fit --json`` has them, and the last status).
 Logging goes to stderr (journald under systemd).
 
 Exit status: 0 after a requested stop (SIGTERM, SIGINT, ``--duration``), however many
@@ -22,6 +23,7 @@ thread (logged with its traceback) -- so systemd's ``Restart=on-failure`` restar
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import math
 import signal
@@ -32,6 +34,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from canrls.cli import early_signals
 from canrls.cli._common import add_bus_options, add_model_options, print_json, setup
 from canrls.errors import ConfigError
 
@@ -108,9 +111,26 @@ def build_daemon(args: argparse.Namespace) -> Any:
             c.apply_args(args)
         return c.model_for(protocol)
 
+    def reloaded_model() -> Model:
+        """SIGHUP: the model again, from a file whose ``[daemon]`` table still holds (a
+        table a restart would refuse is said at once, and the reload refused); its
+        changes apply at the next start."""
+        c = load_config(getattr(args, "config", None), args)
+        try:
+            new = DaemonSettings.from_table(_daemon_table(c, args), c.source, c.base_dir)
+        except ConfigError as e:
+            raise ConfigError(f"{e}; the running daemon keeps its settings (a restart "
+                              f"would refuse this file)") from e
+        changed = [f.name for f in dataclasses.fields(new)
+                   if getattr(new, f.name) != getattr(dset, f.name)]
+        if changed:
+            log.warning("reload: [daemon] %s changed: applied at the next start, not now",
+                        ", ".join(changed))
+        return configured_model()
+
     model = configured_model()
     return Daemon(protocol, model, cfg.settings(), dset, bus=bus_config(cfg, args),
-                  reload=configured_model)
+                  reload=reloaded_model)
 
 
 log = logging.getLogger(__name__)
@@ -148,6 +168,10 @@ def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
 
     old = {sig: signal.signal(sig, stop) for sig in _STOP_SIGNALS}
     old[signal.SIGHUP] = signal.signal(signal.SIGHUP, hup)
+    old.update(early_signals.previous_handlers())  # those before canrls.cli.main's
+    early = early_signals.stop_requested()
+    if early is not None:  # before these handlers, even before the imports
+        stop(early, None)
     try:
         yield
     finally:
@@ -179,10 +203,12 @@ def _report(daemon: Any, args: argparse.Namespace) -> None:
     if args.json:
         d = est.to_dict()
         d["daemon"] = daemon.stats().to_dict()
+        d["frames"] = daemon.frame_counts()  # as canrls fit --json: rejected by reason
         st = daemon.last_status
         d["status"] = None if st is None else {
             "residual_rms": st.residual_rms, "update_count": st.update_count,
-            "flags": list(st.flags), "active_effects": st.active_effects}
+            "flags": list(st.flags), "active_effects": st.active_effects,
+            "rejects": dict(st.rejects)}
         print_json(d)
     else:
         sys.stdout.write(est.format() + "\n")

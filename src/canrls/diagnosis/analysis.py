@@ -306,9 +306,13 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, r: F64,
     tfx = np.zeros((0, n))
     if npts:
         # re-run the pipeline's float RLS, back at its prior, on the same rows
-        # (bit-identical) and sample theta and sigma = sqrt(kappa sigma2 diag P) at npts
-        # instants (kappa: the colour of the final residual, as the estimates report it)
+        # (bit-identical) and sample theta and sigma = sqrt(kappa sigma2 diag P + bias^2)
+        # at npts instants (kappa: the colour of the final residual, as the estimates
+        # report it)
         root_kappa = math.sqrt(est.sigma_inflation())
+        # the bound of the model errors' bias, as the final estimate reports it, in every
+        # point of the band (it does not shrink with the run)
+        bias = np.array([p.bias for p in est.parameters()], dtype=np.float64)
         rls = RLS.from_state(est.rls.state())
         rls.reset()
         # the fixed-point RLS too, on the same quantised inputs: its estimate at the
@@ -337,7 +341,7 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, r: F64,
                 a = c
                 if k == cuts[ci]:
                     th_l.append(eq.to_physical(np.array(rls.theta)))
-                    sd_l.append(eq.sigma_to_physical(rls.std() * root_kappa))
+                    sd_l.append(np.hypot(eq.sigma_to_physical(rls.std() * root_kappa), bias))
                     fx_l.append(eq.to_physical(frls.theta_float))
                     t_l.append(ctx.signals.t[m + int(at[c - 1])])
                     ci += 1

@@ -28,6 +28,7 @@ from canrls.diagnosis.results import (
     value_text,
 )
 from canrls.estimation.model import Model
+from canrls.estimation.physics import describe
 from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
 from canrls.files import atomic_writer
 
@@ -116,6 +117,7 @@ class DiagnosisReport:
             "excitation": p.excitation.to_dict(),
             "identifiable": self.identifiable,
             "identifiability": [r for q in self.before.equations for r in q.identifiability],
+            "implausible": [i.to_dict() for i in self.before.estimates.implausible],
             "verdict": self.verdict,
         }
         if self.frames is not None:
@@ -129,6 +131,9 @@ class DiagnosisReport:
         b = self.before
         out.append(f"{self.source}: {self.samples} samples ({self.duration:.1f} s), "
                    f"model {', '.join(b.effects)}")
+        out.extend(describe(b.estimates.implausible))
+        if self.after is not None:
+            out.extend(f"after adding: {line}" for line in describe(self.after.estimates.implausible))
         for q in b.equations:
             out.extend(_format_equation(q, self.model.axis))
         if self.after is not None:

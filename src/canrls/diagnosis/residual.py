@@ -424,8 +424,9 @@ def all_bins(ctx: RecordSamples, r: F64, used: B, unit: str) -> dict[str, Binned
             out["position"] = bin_residual(ctx.position, r,
                                            _edges_linear(ctx.position, used, 40),
                                            "position", "position along the travel", "m", used)
-    out["current"] = bin_residual(ctx.current, r, _edges_linear(ctx.current, used, 20),
-                                  "current", "current", "A", used)
+    eff = ctx.effort  # the current, or the torque a torque-reporting drive sends
+    out[eff] = bin_residual(ctx.current, r, _edges_linear(ctx.current, used, 20),
+                            eff, eff, ctx.effort_unit, used)
     out["acceleration"] = bin_residual(ctx.acceleration, r,
                                        _edges_linear(ctx.acceleration, used, 20),
                                        "acceleration", "acceleration", ctx.acc_unit, used)
@@ -449,7 +450,7 @@ def _range_text(quantity: str, lo: float, hi: float, full_lo: float, full_hi: fl
             return "over the whole record"
         return f"from {lo:.3g} s to {hi:.3g} s"
     noun = {"speed": "speed", "position": "position", "current": "current",
-            "acceleration": "acceleration"}[quantity]
+            "torque": "torque", "acceleration": "acceleration"}[quantity]
     if lo_end and hi_end:
         return f"at every {noun}"
     if quantity == "speed":
@@ -458,7 +459,7 @@ def _range_text(quantity: str, lo: float, hi: float, full_lo: float, full_hi: fl
         if hi_end:
             return f"above {lo:.3g} {unit}"
         return f"between {lo:.3g} and {hi:.3g} {unit}"
-    plural = {"position": "positions", "current": "currents",
+    plural = {"position": "positions", "current": "currents", "torque": "torques",
               "acceleration": "accelerations"}[quantity]
     if lo_end:
         return f"at {plural} below {hi:.3g} {unit}"
@@ -532,7 +533,7 @@ def find_regions(bins: Mapping[str, Binned], ru: F64, tau: float, unit: str,
                                 mean_forward=None if not nf else mf,
                                 mean_backward=None if not nb_ else mb))
     # the other quantities: runs of notable bins of the same sign
-    for qn in ("position", "current", "acceleration", "time"):
+    for qn in ("position", "current", "torque", "acceleration", "time"):
         bq = bins.get(qn)
         if bq is None:
             continue
@@ -786,7 +787,8 @@ def residual_structure(ctx: RecordSamples, r: F64, used: B, unit: str, h2: float
                                            f"{value_text(mu, unit, True)}", share_mean))
     bins = all_bins(ctx, r, used, unit)
     words = {"speed": "speed-dependent", "position": "position-dependent",
-             "current": "current-dependent", "acceleration": "acceleration-dependent",
+             "current": "current-dependent", "torque": "torque-dependent",
+             "acceleration": "acceleration-dependent",
              "time": "drifting in time"}
     for qn, b in bins.items():
         if b.share < MIN_STRUCTURE or qn == target:

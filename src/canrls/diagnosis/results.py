@@ -538,4 +538,5 @@ class Analysis:
             "candidates": [c.to_dict() for c in self.candidates],
             "suggestion": list(self.suggestion),
             "verdict": " ".join(e.verdict for e in self.equations),
+            "implausible": est["implausible"],
         }

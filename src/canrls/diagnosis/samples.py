@@ -22,7 +22,7 @@ import numpy.typing as npt
 from canrls.estimation.model import Equation, Model, PositionUnwrapper
 from canrls.estimation.pipeline import EstimatorSettings
 from canrls.estimation.selection import SamplePolicy
-from canrls.estimation.svf import SVF
+from canrls.estimation.svf import SVF, impulse_response
 from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals, as_packed
 
 __all__ = ["BLOCK", "RecordSamples"]
@@ -161,7 +161,9 @@ class RecordSamples:
     """What both analyses (before and after) share: samples, restarts, filtered signals.
 
     Attributes (measured rows): ``signals`` (as given), ``speed``, ``acceleration``,
-    ``current`` (through the filter), ``position`` (unwrapped, filtered), ``angle``
+    ``current`` (through the filter; on a drive whose mechanical target is the torque it
+    reports, that torque: :attr:`effort` names which, :attr:`effort_unit` its unit),
+    ``position`` (unwrapped, filtered), ``angle``
     (phase of periodic terms, filtered) and ``angle_raw`` (unfiltered), ``None``
     without position. These are :class:`Filtered`: not kept, unwrapped and filtered
     again block by block when sliced (read them in slices or at sorted rows;
@@ -188,7 +190,13 @@ class RecordSamples:
         self.acc_unit = "rad/s²" if model.axis == "rotary" else "m/s²"
         self.per = "revolution" if model.axis == "rotary" else "pitch"
         held = model.held
-        hold = {r: ("zoh" if r in held else "foh") for r in ("speed", "current", "position")}
+        #: the drive's effort the residual is binned by: ``"current"`` or ``"torque"``
+        self.effort = "torque" if model.target == "torque" else "current"
+        self.effort_unit = ("A" if self.effort == "current" else
+                            "N·m" if model.axis == "rotary" else "N")
+        effort = self.effort
+        hold = {r: ("zoh" if r in held else "foh") for r in ("speed", "position")}
+        hold["current"] = "zoh" if effort in held else "foh"
         self.speed_hold = hold["speed"]
         self.position_hold = hold["position"]
         self.cutoff_hz, self.zeta = model.cutoff_hz, model.zeta
@@ -198,7 +206,7 @@ class RecordSamples:
 
         def speed_current(c0: int, c1: int) -> F64:
             fb = filled.slice(c0, c1)
-            raw = np.column_stack([fb.speed, fb.current]).astype(np.float64)
+            raw = np.column_stack([fb.speed, getattr(fb, effort)]).astype(np.float64)
             f, sf = svf.process(raw)
             return np.column_stack([f[:, 0], sf[:, 0], f[:, 1]])
 
@@ -481,14 +489,8 @@ class RecordSamples:
         """Impulse response of F (DC gain 1), or of sF, for a hold, long enough to decay."""
         key = hold + ("/s" if derivative else "")
         if key not in self._h:
-            svf = SVF(self.cutoff_hz, self.dt, self.zeta, hold)
-            wc = 2 * math.pi * self.cutoff_hz
-            m = int(math.ceil(40.0 / (min(self.zeta, 1.0) * wc * self.dt))) + 8
-            u = np.zeros(m + 2)
-            u[2] = 1.0  # the filter starts at rest on u[0] = 0
-            f, sf = svf.process(u)
-            self._h[hold] = f[2:]
-            self._h[hold + "/s"] = sf[2:]
+            self._h[hold], self._h[hold + "/s"] = impulse_response(
+                self.cutoff_hz, self.dt, self.zeta, hold)  # type: ignore[arg-type]
         return self._h[key]
 
     def coherence(self, order: int, used: B | PackedMask) -> tuple[float, float]:

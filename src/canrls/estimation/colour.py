@@ -86,6 +86,12 @@ class ResidualTail:
         self._next = (self._next + k) % self.window
         self.rows = min(self.window, self.rows + k)
 
+    def rescale(self, d: npt.NDArray[np.int64], dy: int) -> None:
+        """The rows held in new units: column ``j`` times ``2**-d_j``, the target
+        ``2**-dy`` (exact)."""
+        self._phi = np.ldexp(self._phi, -d)
+        self._y = np.ldexp(self._y, -int(dy))
+
     def _ordered(self) -> tuple[F64, F64]:
         if self.rows < self.window:
             return self._phi[:self.rows], self._y[:self.rows]

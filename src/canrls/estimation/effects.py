@@ -18,7 +18,9 @@ with :math:`\mathrm{sgn}_\epsilon(\omega) = \tanh(\omega/\epsilon)`. On a linear
 ``omega`` is the speed ``v`` [m/s], the torque a force [N], and the angle of the
 periodic terms is :math:`2\pi x / p` with ``p`` the pitch [m]. Without ``kt`` the
 mechanical target is the raw current and every mechanical parameter is divided by
-``Kt`` (units read ``A`` instead of ``N·m`` or ``N``).
+``Kt`` (units read ``A`` instead of ``N·m`` or ``N``); a drive that reports its torque
+(``torque`` signal) gives the left-hand side itself, :math:`T = J\dot\omega + ...`,
+in N·m (N) without ``Kt``.
 
 Every effect class documents its equation, its parameters with units for both axes
 and both targets, the signals it needs, its DBC ``EFFECT_ID`` and its
@@ -187,11 +189,12 @@ class Frame:
     """
 
     t: F64
-    current: F64
+    current: F64 | None
     speed: F64
     position: F64 | None = None
     voltage: F64 | None = None
     angle: F64 | None = None
+    torque: F64 | None = None
 
     @staticmethod
     def phase(position: F64, axis: Axis, pitch: float) -> F64:
@@ -209,10 +212,11 @@ class Frame:
             return None if v is None else np.ascontiguousarray(v, dtype=np.float64)
 
         pos = arr(getattr(signals, "position", None))
-        return cls(t=arr(signals.t), current=arr(signals.current),  # type: ignore[arg-type]
+        return cls(t=arr(signals.t), current=arr(getattr(signals, "current", None)),
                    speed=arr(signals.speed), position=pos,  # type: ignore[arg-type]
                    voltage=arr(getattr(signals, "voltage", None)),
-                   angle=None if pos is None else cls.phase(pos, axis, pitch))
+                   angle=None if pos is None else cls.phase(pos, axis, pitch),
+                   torque=arr(getattr(signals, "torque", None)))
 
     def get(self, role: str) -> F64:
         v = getattr(self, role, None)

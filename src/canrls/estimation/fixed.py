@@ -1172,6 +1172,8 @@ class FixedRLS:
         self._config = config
         self._n = n_i
         self._ridge = ridge
+        #: whether the trace bound is the prior's trace (it follows a :meth:`rescale`)
+        self._trace_default = trace_max is None
         self._trace_max = tm
         self._update = update
         self._mode = _UPDATES[update]
@@ -1360,6 +1362,107 @@ class FixedRLS:
         lam_f = _check_lam(lam)
         self._plan, self._named = _build_plan(self._config, self._n, lam_f, self._trace_max)
         self._lam = lam_f
+
+    def rescale(self, d: npt.ArrayLike, dy: int = 0,
+                prior: Mapping[int, float] | None = None) -> None:
+        r"""New units for the columns and the target, by powers of two, and raised
+        priors, as :meth:`canrls.estimation.rls.RLS.rescale` does them: computed exactly
+        (rationals) on the real values the words stand for, then rounded half up back to
+        the words: the 64-bit estimate, and :math:`\tilde P` with the largest block
+        exponent ``e`` (at most ``e_max``) that keeps :math:`\mathrm{tr}\tilde P` within
+        half the word's range, as the kernel keeps it. Where even ``e = 0`` cannot hold
+        a value it saturates, counted (``theta``, ``P``)."""
+        n = self._n
+        dv = [int(x) for x in np.asarray(d, dtype=np.int64).reshape(-1)]
+        if len(dv) != n:
+            raise EstimatorError(f"FixedRLS rescale needs {n} exponents, got {len(dv)}")
+        dy = int(dy)
+        cfg = self._config
+        two = Fraction(2)
+        # the real values: P = c P~ 2^-(f_P + e), theta = (word 2^32 + frac) 2^-(32 + f_th)
+        c = Fraction(int(self._scale[1])) / two ** cfg.lam.frac
+        e = int(self._scale[0])
+        Pw = self.P  # the whole matrix (the triangle mirrored)
+        unit = c / two ** (cfg.P.frac + e)
+        P = [[Fraction(int(Pw[j, k])) * unit * two ** (dv[j] + dv[k]) for k in range(n)]
+             for j in range(n)]
+        th_unit = two ** -(32 + cfg.theta.frac)
+        th = [Fraction((int(self._theta[j]) << 32) | int(self._theta_frac[j])) * th_unit
+              * two ** (dv[j] - dy) for j in range(n)]
+        ridge = [Fraction(float(a)) / two ** (2 * x) for a, x in zip(self._ridge, dv,
+                                                                     strict=True)]
+        for j, alpha in (prior or {}).items():
+            delta = Fraction(float(alpha)) - ridge[j]
+            if delta > 0:
+                # g = P e_j / (1 + delta P_jj); theta -= delta theta_j g; P -= delta g P_j.
+                den = 1 + delta * P[j][j]
+                g = [P[i][j] / den for i in range(n)]
+                tj, Pj = th[j], list(P[j])
+                th = [th[i] - delta * tj * g[i] for i in range(n)]
+                P = [[P[i][k] - delta * g[i] * Pj[k] for k in range(n)] for i in range(n)]
+            ridge[j] = Fraction(float(alpha))
+        # theta back to its 64 bits
+        q = cfg.theta
+        lo, hi = q.lo << 32, (q.hi << 32) | 0xFFFFFFFF
+        for j in range(n):
+            v = math.floor(th[j] / th_unit + Fraction(1, 2))
+            if not lo <= v <= hi:
+                self._counts[kernels.S_TH] += 1
+                v = min(max(v, lo), hi)
+            self._theta[j], self._theta_frac[j] = v >> 32, v & 0xFFFFFFFF
+        # P back to its words, with the largest block exponent that keeps them in range
+        sym = self._mode == kernels.MODE_SYMMETRIC
+        cells = [(j, k) for j in range(n) for k in range(j if sym else 0, n)]
+        half = Fraction(1 << (cfg.P.bits - 2))
+        tr = sum(P[j][j] for j in range(n))
+        top = max([abs(P[j][k]) for j, k in cells] + [Fraction(0)])
+
+        def words_at(ex: int) -> Fraction:
+            return c / two ** (cfg.P.frac + ex)
+
+        e_new = 0
+        for ex in range(int(self._named["e_max"]), 0, -1):
+            if tr / words_at(ex) <= half and top / words_at(ex) <= cfg.P.hi:
+                e_new = ex
+                break
+        u = words_at(e_new)
+        for j, k in cells:
+            v = math.floor(P[j][k] / u + Fraction(1, 2))
+            if not cfg.P.lo <= v <= cfg.P.hi:
+                self._counts[kernels.S_P] += 1
+                v = min(max(v, cfg.P.lo), cfg.P.hi)
+            self._P[j, k] = v
+        self._scale[0] = e_new
+        self._ridge = np.array([float(a) for a in ridge], dtype=np.float64)
+        self._prior_changed()
+
+    def set_prior(self, j: int, alpha: float) -> None:
+        r"""Give parameter ``j`` the ridge weight ``alpha`` as if from the start
+        (:meth:`canrls.estimation.rls.RLS.set_prior`): :math:`\tilde P_{jj} \leftarrow
+        \tilde P_{jj}\,\alpha_j/\alpha`, rounded half up, saturated (counted)."""
+        a = _real("alpha", alpha)
+        if not (a > 0.0 and math.isfinite(a)):
+            raise EstimatorError(f"FixedRLS alpha must be > 0, got {alpha!r}")
+        ratio = Fraction(float(self._ridge[j])) / Fraction(a)
+        v = math.floor(int(self._P[j, j]) * ratio + Fraction(1, 2))
+        P = self._config.P
+        if not P.lo <= v <= P.hi:
+            self._counts[kernels.S_P] += 1
+            v = min(max(v, P.lo), P.hi)
+        self._P[j, j] = v
+        self._ridge = self._ridge.copy()
+        self._ridge[j] = a
+        self._prior_changed()
+
+    def _prior_changed(self) -> None:
+        """The prior's words for :meth:`reset` and, where it is the prior's, the trace bound."""
+        P = self._config.P
+        self._p0 = np.array([min(max(P.to_int(1 / Fraction(float(a))), 1), P.hi)
+                             for a in self._ridge], np.int64)
+        if self._trace_default:
+            self._trace_max = float(np.sum(1.0 / self._ridge))
+            self._plan, self._named = _build_plan(self._config, self._n, self._lam,
+                                                  self._trace_max)
 
     # -------------------------------------------------------------- updates
     def quantize_inputs(
@@ -1559,6 +1662,7 @@ class FixedRLS:
             "P_exp": int(self._scale[0]),
             "P_scale": int(self._scale[1]),
             "counts": self._counts.copy(),
+            "trace_default": self._trace_default,
         }
 
     @classmethod
@@ -1648,6 +1752,7 @@ class FixedRLS:
         rls._scale[1] = int(c)
         rls._frozen = bool(get("frozen"))
         rls.count = int(get("count"))
+        rls._trace_default = bool(d.get("trace_default", False)) if hasattr(d, "get") else False
         return rls
 
     def __repr__(self) -> str:

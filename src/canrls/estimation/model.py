@@ -19,6 +19,10 @@ Configuration (TOML, the ``[model]`` table)
     wrap = 0.2                 # linear only, optional: position wraps with this period [m]
     kt = 0.12                  # optional: Kt [N·m/A] (linear Kf [N/A]); without it the
                                # mechanical target is the current and parameters read A
+    target = "torque"          # the mechanical target: "current" (Kt*i, or i without kt)
+                               # or "torque", the torque [N·m] (force [N]) the drive
+                               # reports; canrls fit/diagnose/run: "torque" when the
+                               # mapping has a torque signal; no kt with "torque"
     effects = ["inertia", "viscous", "coulomb", "cogging:24", "user:drag"]
 
     [model.filter]
@@ -49,6 +53,7 @@ Configuration (TOML, the ``[model]`` table)
     position = [-1.0, 1.0]     # optional, only used to bound user terms
     acceleration = [-500.0, 500.0]  # optional [rad/s², m/s²]: tightens the inertia column
     current_rate = [-1e4, 1e4]      # optional [A/s]: tightens the inductance column
+    torque = [-10.0, 10.0]     # N·m (linear: N), a torque-reporting drive's target
 
 Every key is checked; an unknown key, a wrong type or a bad value raises
 :class:`~canrls.errors.ConfigError` (an unknown or unusable effect
@@ -57,17 +62,17 @@ Every key is checked; an unknown key, a wrong type or a bad value raises
 Regressors
 ----------
 For an equation ``y = sum_j theta_j phi_j``, the builder computes per sample the raw
-target (``Kt*i``, ``i`` or ``u``) and raw columns (value columns, or the signal a
-derivative column differentiates), filters all of them with one SVF (value columns and
-target through ``F``, derivative columns through ``sF``) and scales them by exact
-powers of two: ``phi_j = F[.] * 2**-s_j``, ``y = F[target] * 2**-s_y``. The exponents
-(:attr:`Equation.scaling`) are the smallest making the filtered signals' worst-case
-bound at most 1, from the ranges and the filter's L1 gains (``canrls.estimation.svf``): a value
-column with raw range ``[lo, hi]`` is bounded by ``|mid| + F_GAIN * half``, a
-derivative column by ``SF_GAIN * half`` (``half = (hi - lo) / 2``), or, when the range
-of the derivative itself is configured (``acceleration``, ``current_rate``), by the
-smaller of that and the value bound of the derivative's range. The physical
-parameters are ``theta_phys_j = theta_j * 2**(s_y - s_j)``
+target (``Kt*i``, ``i``, the reported torque ``T`` or ``u``) and raw columns (value
+columns, or the signal a derivative column differentiates), filters all of them with one
+SVF (value columns and target through ``F``, derivative columns through ``sF``) and
+scales them by exact powers of two: ``phi_j = F[.] * 2**-s_j``,
+``y = F[target] * 2**-s_y``. The exponents (:attr:`Equation.scaling`) are the smallest
+making the filtered signals' worst-case bound at most 1, from the ranges and the filter's
+L1 gains (``canrls.estimation.svf``): a value column with raw range ``[lo, hi]`` is
+bounded by ``|mid| + F_GAIN * half``, a derivative column by ``SF_GAIN * half``
+(``half = (hi - lo) / 2``), or, when the range of the derivative itself is configured
+(``acceleration``, ``current_rate``), by the smaller of that and the value bound of the
+derivative's range. The physical parameters are ``theta_phys_j = theta_j * 2**(s_y - s_j)``
 (:meth:`Equation.to_physical`).
 
 Holds
@@ -88,6 +93,7 @@ regressors bit for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -120,6 +126,7 @@ from canrls.estimation.svf import (
     SVF,
     ZETA_RANGE,
     gain_bounds,
+    impulse_response,
 )
 
 __all__ = [
@@ -133,6 +140,7 @@ __all__ = [
     "PositionUnwrapper",
     "ParameterSpec",
     "DEFAULT_RANGES",
+    "TARGETS",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -148,13 +156,18 @@ DEFAULT_RANGES: Mapping[str, Range] = {
     "current": (-10.0, 10.0),
     "speed": (-100.0, 100.0),
     "voltage": (-50.0, 50.0),
+    "torque": (-10.0, 10.0),
 }
 _LINEAR_SPEED: Range = (-1.0, 1.0)
-_RANGE_KEYS = ("current", "speed", "voltage", "position", "acceleration", "current_rate")
+_RANGE_KEYS = ("current", "speed", "voltage", "position", "acceleration", "current_rate",
+               "torque")
 _ALWAYS = frozenset({"t", "current", "speed"})
-_MODEL_KEYS = ("axis", "pitch", "wrap", "kt", "effects", "filter", "coulomb", "stribeck",
-               "terms", "ranges", "scaling")
-_HELD_ROLES = ("current", "speed", "position", "voltage")
+_MODEL_KEYS = ("axis", "pitch", "wrap", "kt", "target", "effects", "filter", "coulomb",
+               "stribeck", "terms", "ranges", "scaling")
+_HELD_ROLES = ("current", "speed", "position", "voltage", "torque")
+#: The mechanical targets: the current (``Kt*i``, or ``i`` without ``kt``) or the torque
+#: (force) the drive reports.
+TARGETS = ("current", "torque")
 _SUBKEYS: Mapping[str, tuple[str, ...]] = {
     "filter": ("cutoff_hz", "zeta", "held"),
     "coulomb": ("band",),
@@ -299,6 +312,10 @@ class Equation:
         axis = model.axis
         if name == ELECTRICAL:
             self.target = TargetSpec(name, "q-axis voltage u", "V", "voltage", 1.0)
+        elif model.target == "torque":
+            what = ("motor torque T reported by the drive" if axis == "rotary" else
+                    "motor force F reported by the drive")
+            self.target = TargetSpec(name, what, target_unit(name, axis, True), "torque", 1.0)
         elif model.kt is None:
             self.target = TargetSpec(name, "q-axis current i (Kt unknown)", "A", "current", 1.0)
         else:
@@ -309,7 +326,7 @@ class Equation:
         params: list[ParameterSpec] = []
         for e in effects:
             cols.extend(e.columns())
-            params.extend(e.parameters(kt_known=model.kt is not None or name == ELECTRICAL))
+            params.extend(e.parameters(kt_known=model.torque_known or name == ELECTRICAL))
         self.columns: tuple[Column, ...] = tuple(cols)
         self.parameters: tuple[ParameterSpec, ...] = tuple(params)
         self.n = len(self.columns)
@@ -333,6 +350,17 @@ class Equation:
         out = ["zoh" if self.target.signal in held else "foh"]
         out += ["zoh" if c.reads & held else "foh" for c in self.columns]
         return tuple(out)
+
+    @property
+    def intrinsic(self) -> tuple[bool, ...]:
+        """Which columns are bounded by their own function (``tanh``, ``sin``, a constant,
+        a user term with a configured range) rather than by the signals: their bound is
+        the same with every signal range doubled, and no value can exceed it."""
+        r = self.model.ranges
+        doubled = {k: (2.0 * lo, 2.0 * hi) for k, (lo, hi) in r.items()}
+        return tuple(not col.derivative
+                     and tuple(map(float, col.range(r))) == tuple(map(float, col.range(doubled)))
+                     for col in self.columns)
 
     @property
     def derivative_mask(self) -> tuple[bool, ...]:
@@ -448,6 +476,19 @@ class RegressorBuilder:
     def n(self) -> int:
         return self.equation.n
 
+    def rescale(self, equation: Equation) -> None:
+        """Normalise from now on with ``equation``'s exponents (the same columns); the
+        filter's state, which holds unnormalised values, carries on."""
+        self.equation = equation
+        self.normalise_as(equation.scaling)
+
+    def normalise_as(self, scaling: Scaling) -> None:
+        """Normalise from now on with ``scaling``'s exponents (of the same columns)."""
+        self._neg_exp = -np.array([scaling.target, *scaling.columns], dtype=np.int64)
+        self._scale = None
+        if np.all((self._neg_exp >= -1074) & (self._neg_exp <= 1023)):
+            self._scale = np.ldexp(np.ones(len(self._neg_exp)), self._neg_exp)
+
     def reset(self) -> None:
         self.svf.reset()
         self.unwrapper.reset()
@@ -493,9 +534,59 @@ class RegressorBuilder:
             pos = self.unwrapper.process(raw)
             m = eq.model
             angle = raw if m.axis == "rotary" else Frame.phase(pos, m.axis, m.pitch)
-        return Frame(t=arr(signals.t), current=arr(signals.current),  # type: ignore[arg-type]
+        return Frame(t=arr(signals.t), current=arr(getattr(signals, "current", None)),
                      speed=arr(signals.speed), position=pos,  # type: ignore[arg-type]
-                     voltage=arr(getattr(signals, "voltage", None)), angle=angle)
+                     voltage=arr(getattr(signals, "voltage", None)), angle=angle,
+                     torque=arr(getattr(signals, "torque", None)))
+
+    def noise_covariance(self, signals: Any, noise: Mapping[str, float],
+                         rows: npt.NDArray[np.bool_] | None = None) -> F64:
+        r"""Covariance of the noise each filtered column carries per row, from white
+        noise of standard deviation ``noise[role]`` on each measured signal, linearised on
+        ``signals`` (the calibration window), in unnormalised units:
+
+        .. math::
+
+            E[n_j n_k] = \sum_s \sigma_s^2\,\overline{g_{js} g_{ks}}
+                         \sum_m h_j[m]\,h_k[m], \qquad g_{js} = \partial c_j/\partial s
+
+        with ``h_j`` the impulse response of the column's filter (``F`` or ``sF``, its
+        hold) and the slope ``g`` taken over ``±sigma`` (a column that saturates, like a
+        ``tanh`` away from zero speed, passes little noise), averaged over ``rows`` (the
+        rows the estimator would use: within its speed limits). With fewer than
+        :data:`MIN_NOISE_ROWS` of those, only columns whose slope is the same on every
+        row (linear in the signal) are counted. It does not touch the builder's state.
+        """
+        eq = self.equation
+        frame = RegressorBuilder(eq, self.dt)._frame(signals)
+        N, n = len(frame.t), eq.n
+        cov = np.zeros((n, n))
+        if N == 0:
+            return cov
+        m = eq.model
+        holds = eq.holds[1:]
+        h = {(hold, d): impulse_response(m.cutoff_hz, self.dt, m.zeta, hold)[int(d)]  # type: ignore[arg-type]
+             for hold, d in {(hd, c.derivative) for hd, c in zip(holds, eq.columns, strict=True)}}
+        H = np.array([[float(h[holds[j], eq.columns[j].derivative]
+                             @ h[holds[k], eq.columns[k].derivative]) for k in range(n)]
+                      for j in range(n)])
+        for role, sigma in noise.items():
+            if not (sigma > 0 and math.isfinite(sigma)) or getattr(frame, role, None) is None:
+                continue
+            g = np.zeros((N, n))
+            for j, col in enumerate(eq.columns):
+                if role in col.reads:
+                    up, down = _nudged(frame, role, sigma, m), _nudged(frame, role, -sigma, m)
+                    g[:, j] = (col.raw(up) - col.raw(down)) / (2.0 * sigma)
+            g[~np.isfinite(g)] = 0.0
+            if rows is not None and np.count_nonzero(rows) >= MIN_NOISE_ROWS:
+                g = g[rows]
+            else:
+                # the operating point is unknown: linear columns only
+                g[:, np.ptp(g, axis=0) > 1e-9 * np.max(np.abs(g), axis=0)] = 0.0
+            # E[n_j n_k] = sigma^2 mean(g_j g_k) sum_m h_j h_k
+            cov += sigma * sigma * (g.T @ g / len(g)) * H
+        return cov
 
     def process(self, signals: Any) -> RegressorBlock:
         """Regressors of one block (see the module docstring)."""
@@ -514,7 +605,7 @@ class RegressorBuilder:
             self._raw = np.empty((max(n, (self._raw.shape[0] * 3) // 2), eq.n + 1))
         raw = self._raw[:n]
         tgt = frame.get(eq.target.signal)
-        # target: Kt * i (torque), i, or u
+        # target: Kt * i (torque), i, the reported torque T, or u
         if eq.target.gain != 1.0:
             np.multiply(tgt, eq.target.gain, out=raw[:, 0])
         else:
@@ -537,6 +628,20 @@ class RegressorBuilder:
         return np.ascontiguousarray(f[:, 1:]), f[:, 0].copy(), frame.t, nonfinite
 
 
+#: Fewest rows within the speed limits on which :meth:`RegressorBuilder.noise_covariance`
+#: takes the slopes of columns that are not linear in a signal.
+MIN_NOISE_ROWS = 16
+
+
+def _nudged(frame: Frame, role: str, by: float, model: Model) -> Frame:
+    """``frame`` with signal ``role`` moved by ``by`` (the position's angle with it)."""
+    v = getattr(frame, role) + by
+    if role != "position":
+        return dataclasses.replace(frame, **{role: v})
+    angle = v if model.axis == "rotary" else Frame.phase(v, model.axis, model.pitch)
+    return dataclasses.replace(frame, position=v, angle=angle)
+
+
 # ---------------------------------------------------------------------------- model
 class Model:
     """Effects, target and filter settings; validated once when built.
@@ -545,6 +650,9 @@ class Model:
         :class:`~canrls.estimation.effects.Effect` objects, in column order.
     :param axis: ``"rotary"`` or ``"linear"``.
     :param kt: torque (force) constant; ``None``: the mechanical target is the current.
+    :param target: the mechanical target, ``"current"`` (``Kt*i``, or ``i`` without
+        ``kt``) or ``"torque"`` (the torque the drive reports, N·m; linear axis: force,
+        N; no ``kt``).
     :param pitch: linear axis: metres per period of the periodic terms.
     :param wrap: linear axis: wrap period of the measured position, or ``None``.
     :param cutoff_hz, zeta: SVF settings (:class:`canrls.estimation.svf.SVF`).
@@ -555,14 +663,16 @@ class Model:
         tables with a ``name`` key (as ``[[model.terms]]``).
     :param ranges: ``{role: (lo, hi)}`` for ``current``, ``speed``, ``voltage``
         (``position`` optional), merged over the defaults.
-    :param available_signals: signal roles the drive sends (``position``, ``voltage``;
-        ``current`` and ``speed`` are always there); ``None``: all.
+    :param available_signals: signal roles the drive sends (``position``, ``voltage``,
+        ``torque``; ``current`` and ``speed`` are always there, except that a drive
+        sending ``torque`` has ``current`` only when it says so); ``None``: all.
     :param source: where the configuration came from, for error messages.
     :raises ConfigError: an invalid setting; :class:`EffectError` for effects.
     """
 
     def __init__(self, effects: Iterable[str | Effect] = (), *, axis: str = "rotary",
-                 kt: float | None = None, pitch: float = DEFAULT_PITCH,
+                 kt: float | None = None, target: str = "current",
+                 pitch: float = DEFAULT_PITCH,
                  wrap: float | None = None, cutoff_hz: float = DEFAULT_CUTOFF_HZ,
                  zeta: float = DEFAULT_ZETA, held: Iterable[str] = ("voltage",),
                  coulomb_band: float = DEFAULT_BAND,
@@ -585,6 +695,17 @@ class Model:
             raise ConfigError(_fmt(source, "model.axis", axis, "must be 'rotary' or 'linear'"))
         self.axis: Axis = axis  # type: ignore[assignment]
         self.kt = None if kt is None else _number(source, "model.kt", kt, nonzero=True)
+        if target not in TARGETS:
+            raise ConfigError(_fmt(source, "model.target", target,
+                                   f"must be one of {', '.join(map(repr, TARGETS))}"))
+        #: The mechanical target: ``"current"`` or ``"torque"`` (reported by the drive).
+        self.target: str = target
+        if target == "torque" and self.kt is not None:
+            raise ConfigError(_fmt(source, "model.kt", kt,
+                                   "the mechanical target is the torque the drive reports "
+                                   "(parameters in N·m, or N on a linear axis): Kt is not "
+                                   "used; leave it out (or set model.target = \"current\" to "
+                                   "identify on the current)"))
         self.pitch = _number(source, "model.pitch", pitch, positive=True)
         self.wrap = None if wrap is None else _number(source, "model.wrap", wrap, positive=True)
         if self.wrap is not None and self.axis == "rotary":
@@ -621,15 +742,33 @@ class Model:
             self.available_signals: frozenset[str] | None = None
         else:
             av = frozenset(available_signals)
-            bad = sorted(av - {"t", "current", "speed", "position", "voltage"})
+            bad = sorted(av - {"t", "current", "speed", "position", "voltage", "torque"})
             if bad:
                 raise ConfigError(_fmt(source, "available_signals", sorted(av),
                                        f"unknown role(s) {bad}"))
-            self.available_signals = av | _ALWAYS
+            # a drive reporting its torque sends the current only when it says so
+            self.available_signals = av | (_ALWAYS - {"current"} if "torque" in av
+                                           else _ALWAYS)
+            if target == "torque" and "torque" not in av:
+                raise ConfigError(_fmt(source, "model.target", target,
+                                       "the drive sends no torque signal (map one: "
+                                       "torque=MESSAGE.SIGNAL)"))
         self.effects: tuple[Effect, ...] = self._build_effects(effects)
         self.equations: tuple[Equation, ...] = self._build_equations()
+        av = self.available_signals
+        for eq in self.equations:
+            if av is not None and eq.name == MECHANICAL and eq.target.signal not in av:
+                raise ConfigError(_fmt(source, "model.target", self.target,
+                                       f"the drive sends no {eq.target.signal} signal "
+                                       f"(it sends {', '.join(sorted(av - {'t'}))})"))
 
     # -- validation -------------------------------------------------------------------
+    @property
+    def torque_known(self) -> bool:
+        """True when the mechanical target is a torque (``Kt*i`` or the drive's own):
+        parameters in N·m (N), not per ampere."""
+        return self.kt is not None or self.target == "torque"
+
     @property
     def effect_options(self) -> dict[str, Any]:
         """The shared options :func:`canrls.estimation.effects.parse_effect` builds effects with."""
@@ -789,8 +928,9 @@ class Model:
 
     # -- views ------------------------------------------------------------------------
     def __repr__(self) -> str:
+        target = "" if self.target == "current" else f", target={self.target!r}"
         return (f"Model(effects={[e.name for e in self.effects]}, axis={self.axis!r}, "
-                f"kt={self.kt!r}, source={self.source!r})")
+                f"kt={self.kt!r}{target}, source={self.source!r})")
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, Model) and other.to_dict() == self.to_dict()
@@ -829,7 +969,8 @@ class Model:
 
     # -- derivation -------------------------------------------------------------------
     def _kwargs(self) -> dict[str, Any]:
-        return dict(axis=self.axis, kt=self.kt, pitch=self.pitch, wrap=self.wrap,
+        return dict(axis=self.axis, kt=self.kt, target=self.target, pitch=self.pitch,
+                    wrap=self.wrap,
                     cutoff_hz=self.cutoff_hz, zeta=self.zeta, held=self.held_list,
                     coulomb_band=self.coulomb_band, stribeck_speed=self.stribeck_speed,
                     terms=self.terms, ranges=self.ranges,
@@ -848,6 +989,12 @@ class Model:
         kw.update(values)
         kw["options_given"] = self.options_given | frozenset(values)
         return Model([e.name for e in self.effects], **kw)
+
+    def with_cutoff(self, cutoff_hz: float) -> Model:
+        """The same model with the state-variable filter's cutoff at ``cutoff_hz``."""
+        kw = self._kwargs()
+        kw["cutoff_hz"] = cutoff_hz
+        return Model(self.effects, **kw)
 
     def with_scaling(self, exponents: Mapping[str, Mapping[str, int]]) -> Model:
         """A new model whose equations use the given power-of-two exponents,
@@ -902,6 +1049,8 @@ class Model:
             d["wrap"] = self.wrap
         if self.kt is not None:
             d["kt"] = self.kt
+        if self.target != "current":
+            d["target"] = self.target
         d["effects"] = [e.name for e in self.effects]
         d["filter"] = {"cutoff_hz": self.cutoff_hz, "zeta": self.zeta, "held": self.held_list}
         d["coulomb"] = {"band": self.coulomb_band}
@@ -924,7 +1073,7 @@ class Model:
                 raise ConfigError(_fmt(source, f"model.{k}", d[k],
                                        f"unknown key (valid: {', '.join(_MODEL_KEYS)})"))
         kw: dict[str, Any] = {}
-        for k in ("axis", "pitch", "wrap", "kt"):
+        for k in ("axis", "pitch", "wrap", "kt", "target"):
             if k in d:
                 kw[k] = d[k]
         for sub, keys in _SUBKEYS.items():

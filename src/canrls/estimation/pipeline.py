@@ -35,6 +35,7 @@ computed on the filtered target, in the target's unit.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -47,15 +48,23 @@ from canrls import _kernels
 from canrls.errors import ConfigError
 from canrls.estimation.colour import MAX_PRIOR_SHARE, ResidualTail, prior_share
 from canrls.estimation.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
-from canrls.estimation.model import Equation, Model
+from canrls.estimation.model import Equation, Model, RegressorBuilder
+from canrls.estimation.physics import Implausible, check_physics, describe
 from canrls.estimation.rls import RLS
-from canrls.estimation.selection import SamplePolicy
+from canrls.estimation.selection import SamplePolicy, SampleSelector
 from canrls.signals import Signals
 
 __all__ = [
     "ALPHA_MAX",
     "ALPHA_MIN",
     "ENERGY_FLOOR",
+    "MIN_ENERGY",
+    "RESCALE_HEADROOM",
+    "RESCALE_LIMIT",
+    "RMS_HEADROOM",
+    "Rescale",
+    "exponent_for",
+    "used_rows",
     "EstimatorSettings",
     "ParameterEstimate",
     "EquationFit",
@@ -74,6 +83,37 @@ F64 = npt.NDArray[np.float64]
 #: then weighs as for a column at 2**-10 of full scale (P0 = 2**20/alpha, which the
 #: fixed-point formats still hold for up to 12 columns).
 ENERGY_FLOOR = 2.0 ** -20
+#: Smallest energy (normalised mean square) a column's prior is scaled with: a column
+#: with an RMS of 1/32 of full scale, the least the calibration's RMS rule gives a
+#: data-scaled column; a column bounded by its own function that the window barely
+#: excites and a pending one until it is seen take it. It bounds P0 by 2**10/alpha,
+#: which the fixed-point formats hold.
+MIN_ENERGY = 2.0 ** -10
+#: The calibration puts the window's RMS of each data-scaled column (and the first value
+#: of a pending one) at most 1/RMS_HEADROOM of full scale (:func:`exponent_for`): room
+#: for crest factors and growth, normalised energies in (2**-10, 2**-8].
+RMS_HEADROOM = 16.0
+#: A used row whose normalised value of a data-scaled column (or of the target) exceeds
+#: this in magnitude has outgrown its exponent: the estimator rescales it first, exactly.
+RESCALE_LIMIT = 1.0
+#: After a rescale, the value that asked for it is at most 1/RESCALE_HEADROOM of full scale.
+RESCALE_HEADROOM = 4.0
+#: At most this many rescales are listed (:attr:`EquationEstimator.rescales`; all counted).
+MAX_RESCALES_LISTED = 64
+
+
+def exponent_for(x: float, headroom: float) -> int:
+    """The smallest ``s`` with ``headroom * |x| <= 2**s`` (``x`` finite, not zero)."""
+    m, e = math.frexp(headroom * abs(x))
+    return e - 1 if m == 0.5 else e
+
+
+#: The check filter's cutoff, a fraction of the model's (:meth:`EquationEstimator.bias`).
+CHECK_CUTOFF = 0.5
+#: The bias bound is this many times the difference of the two filters' estimates: a
+#: bias that falls like the cutoff (or faster) is at most twice the difference.
+CHECK_FACTOR = 2.0
+
 #: The ridge weight ``alpha`` (the prior weighs like ``alpha`` samples of each column)
 #: from one billionth of a sample to a billion samples: P0 = diag(1/(alpha e_j)) then
 #: has a fixed-point format at any energy from ENERGY_FLOOR to 1.
@@ -146,6 +186,9 @@ class EstimatorSettings:
             raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be from {ALPHA_MIN:g} "
                               f"to {ALPHA_MAX:g} (the prior weighs like alpha samples of "
                               f"each column)")
+        if self.warmup_s is not None and not (isinstance(self.warmup_s, int | float)
+                                              and 0.0 <= self.warmup_s < math.inf):
+            raise ConfigError(f"estimator.warmup_s = {self.warmup_s!r}: must be >= 0 seconds")
         if self.gap_periods <= 1.0:
             raise ConfigError(f"estimator.gap_periods = {self.gap_periods!r}: must be > 1")
         if not self.max_phase_step > 0:
@@ -221,16 +264,47 @@ class ParameterEstimate:
     #: colour.prior_share`): above :data:`~canrls.estimation.colour.MAX_PRIOR_SHARE` the
     #: data cannot tell the parameter from the others, and value and sigma are the prior's
     prior_share: float = 0.0
+    #: how far the model's errors (noise in the columns' signals, the hold between
+    #: samples, reversals) can pull the estimate (:meth:`EquationEstimator.bias`): part
+    #: of ``sigma``, ``sigma**2 = (statistical sigma)**2 + bias**2``
+    bias: float = 0.0
+    #: the measurement noise could explain what the data show of the parameter's columns:
+    #: the data cannot identify it (:meth:`EquationEstimator.bias`)
+    noise_bound: bool = False
 
     @property
     def identifiable(self) -> bool:
-        return self.prior_share <= MAX_PRIOR_SHARE
+        return self.prior_share <= MAX_PRIOR_SHARE and not self.noise_bound
+
+    @property
+    def why_not(self) -> str:
+        """Why the data cannot identify it ("" when they can)."""
+        if self.prior_share > MAX_PRIOR_SHARE:
+            return f"{100 * self.prior_share:.0f} % prior"
+        return "noise explains it" if self.noise_bound else ""
 
     def to_dict(self) -> dict[str, Any]:
         return {"value": self.value, "sigma": self.sigma, "unit": self.unit,
                 "fixed": self.fixed, "effect": self.effect, "equation": self.equation,
                 "description": self.description, "identifiable": self.identifiable,
-                "prior_share": self.prior_share}
+                "prior_share": self.prior_share, "bias": self.bias,
+                "noise_bound": self.noise_bound}
+
+
+@dataclass(frozen=True)
+class Rescale:
+    """One change of an equation's normalisation during a run: a column or the target
+    outgrew its exponent (``grew``), or a pending one showed its first value (``first``)."""
+
+    t: float
+    name: str
+    old: int
+    new: int
+    why: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"t": self.t, "name": self.name, "old": self.old, "new": self.new,
+                "why": self.why}
 
 
 @dataclass(frozen=True)
@@ -257,6 +331,13 @@ class EquationFit:
     #: factor the residual's colour puts on the variances (kappa >= 1; the sigmas
     #: reported are multiplied by its square root; :mod:`canrls.estimation.colour`)
     sigma_inflation: float = 1.0
+    #: the normalisation's exponents at the end (``{"target": s_y, parameter: s_j}``)
+    exponents: Mapping[str, int] = field(default_factory=dict)
+    #: how often the normalisation changed during the run, and the first changes
+    rescale_count: int = 0
+    rescales: tuple[Rescale, ...] = ()
+    #: the target and columns the data have not shown yet (exponent and prior provisional)
+    pending: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {"equation": self.equation, "target": self.target, "unit": self.unit,
@@ -266,7 +347,10 @@ class EquationFit:
                 "divergence": self.divergence, "saturations": dict(self.saturations),
                 "windup_steps": self.windup_steps, "low_excitation": self.low_excitation,
                 "condition": self.condition, "nonfinite_rows": self.nonfinite_rows,
-                "sigma_inflation": self.sigma_inflation}
+                "sigma_inflation": self.sigma_inflation, "exponents": dict(self.exponents),
+                "rescale_count": self.rescale_count,
+                "rescales": [r.to_dict() for r in self.rescales],
+                "pending": list(self.pending)}
 
 
 @dataclass(frozen=True)
@@ -276,6 +360,13 @@ class Estimates:
     parameters: tuple[ParameterEstimate, ...]
     equations: tuple[EquationFit, ...]
     effects: tuple[str, ...]
+    #: the torque constant the model was given (checked against a back-EMF constant)
+    kt: float | None = None
+
+    @property
+    def implausible(self) -> tuple[Implausible, ...]:
+        """Parameters physics rules out, with the likely cause (:func:`check_physics`)."""
+        return check_physics(self.parameters, self.kt)
 
     @property
     def residual_rms(self) -> float:
@@ -304,6 +395,7 @@ class Estimates:
             "fit_percent": self.fit_percent,
             "samples": self.samples,
             "equations": {e.equation: e.to_dict() for e in self.equations},
+            "implausible": [i.to_dict() for i in self.implausible],
         }
 
     def format(self) -> str:
@@ -314,15 +406,22 @@ class Estimates:
         for p in self.parameters:
             lines.append(f"{p.name:<{w}}  {p.value:>13.6g}  {p.sigma:>11.3g}  {p.fixed:>13.6g}"
                          f"  {p.unit}"
-                         + ("" if p.identifiable else
-                            f"  NOT IDENTIFIABLE ({100 * p.prior_share:.0f} % prior)"))
-        weak = [p.name for p in self.parameters if not p.identifiable]
+                         + ("" if p.identifiable else f"  NOT IDENTIFIABLE ({p.why_not})"))
+        weak = [p.name for p in self.parameters if p.prior_share > MAX_PRIOR_SHARE]
         if weak:
             lines.append(f"not identifiable from these data: {', '.join(weak)}: the data "
                          f"cannot tell {'them' if len(weak) > 1 else 'it'} from the other "
                          f"parameters, value and sigma are the prior's (e.g. Coulomb "
                          f"friction and an offset while the speed never reverses; "
                          f"'canrls diagnose' names the experiment)")
+        noisy = [p.name for p in self.parameters
+                 if p.noise_bound and p.prior_share <= MAX_PRIOR_SHARE]
+        if noisy:
+            lines.append(f"not identifiable from these data: {', '.join(noisy)}: the "
+                         f"measurement noise of the signals could explain what the data "
+                         f"show of {'them' if len(noisy) > 1 else 'it'} (too little motion "
+                         f"for the noise: a longer or faster run)")
+        lines.extend(describe(self.implausible))
         for e in self.equations:
             lines.append(
                 f"{e.equation}: residual RMS {e.residual_rms:.4g} {e.unit}, "
@@ -358,6 +457,32 @@ class EquationBlock:
     theta: F64 | None
     theta_fixed: F64 | None
     phi: F64 | None
+    #: where the normalisation changed in the block: ``(row, d_columns, d_target)``;
+    #: ``phi`` rows from ``row`` on are in the new one (:func:`used_rows`)
+    changes: tuple[tuple[int, tuple[int, ...], int], ...] = ()
+
+
+def used_rows(blocks: Sequence[EquationBlock], target: int) -> tuple[F64, F64]:
+    """The used rows ``(phi, y)`` of one equation's recorded blocks, normalised as at
+    the end of the last block (``target``: the target's exponent then)."""
+    n = next((b.phi.shape[1] for b in blocks if b.phi is not None), 0)
+    later = np.zeros(n, np.int64)  # the column exponents' change after a row
+    parts = []
+    for b in reversed(blocks):
+        if b.phi is None:
+            continue
+        phi = b.phi.copy()
+        end = len(phi)
+        for row, d, _ in reversed(b.changes):
+            np.ldexp(phi[row:end], -later, out=phi[row:end])
+            later = later + np.asarray(d, np.int64)
+            end = row
+        np.ldexp(phi[:end], -later, out=phi[:end])
+        parts.append((phi[b.used], np.ldexp(b.y[b.used], -target)))
+    parts.reverse()
+    if not parts:
+        return np.zeros((0, n)), np.zeros(0)
+    return np.concatenate([p for p, _ in parts]), np.concatenate([y for _, y in parts])
 
 
 @dataclass(frozen=True)
@@ -369,23 +494,96 @@ class PipelineBlock:
 
 
 # ----------------------------------------------------------------------- estimator
+def _noise_explains(A: F64, B: F64, share: float = 1.0) -> npt.NDArray[np.bool_]:
+    r"""Which parameters a combination of columns involves whose energy in ``A`` the
+    noise (energy ``B``) could account for, at least ``share`` of it (1: all of it; the
+    white noise model overstates an encoder's differenced speed noise, so no less):
+    the generalised eigenvectors of
+    :math:`B x = \mu A x` with :math:`\mu \ge` ``share``, each parameter flagged where
+    such a vector moves it by at least a tenth of its largest component (after scaling
+    by the parameter's own variance, :math:`A^{-1}_{jj}`)."""
+    n = len(A)
+    try:
+        L = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        return np.ones(n, np.bool_)
+    Li = np.linalg.inv(L)
+    mu, V = np.linalg.eigh(Li @ B @ Li.T)
+
+    out = np.zeros(n, np.bool_)
+    scale = np.sqrt(np.clip(np.diag(np.linalg.inv(A)), 1e-300, None))
+    for k in np.flatnonzero(mu >= share):
+        # the direction in parameter space, x = L^-T v, each parameter in its own sigma
+        x = np.abs(Li.T @ V[:, k]) / scale
+        out |= x >= 0.1 * x.max()
+    return out
+
+
+class _BlockOut:
+    """The per-row outputs of one block of :meth:`EquationEstimator.process`."""
+
+    def __init__(self, N: int, n: int, record: bool) -> None:
+        self.y = np.empty(N)
+        self.eps = np.empty(N)
+        self.eps_fixed = np.empty(N)
+        self.flags = np.empty(N, np.uint8)
+        self.rms = np.empty(N)
+        self.theta = np.full((N, n), np.nan) if record else None
+        self.theta_fixed = np.full((N, n), np.nan) if record else None
+        #: the check filter's (phi, y) and the rows it counts
+        self.check: tuple[F64, F64] | None = None
+        self.check_use: npt.NDArray[np.bool_] | None = None
+
+
 class EquationEstimator:
     """Builder, float RLS, fixed RLS and statistics of one equation."""
 
     def __init__(self, equation: Equation, dt: float, settings: EstimatorSettings,
-                 energy: npt.ArrayLike | None = None) -> None:
+                 energy: npt.ArrayLike | None = None, pending: Sequence[str] = (),
+                 adapt: bool = True, noise: npt.ArrayLike | None = None) -> None:
         self.equation = equation
+        #: covariance of the noise the filtered columns carry per row, unnormalised
+        #: (:meth:`~canrls.estimation.model.RegressorBuilder.noise_covariance`; None: unknown)
+        self.noise = None if noise is None else np.array(noise, dtype=np.float64)
         self.settings = settings
         self.dt = float(dt)
         self.builder = equation.builder(dt)
         n = equation.n
         s = settings
+        names = [p.name for p in equation.parameters]
+        #: whether the normalisation follows the data (:meth:`_adapt`): off for a probe
+        self.adapt = bool(adapt)
+        #: columns whose exponent follows the data (all but those bounded by their own
+        #: function, which no value can outgrow); the target's always does
+        self._adaptive = ~np.array(equation.intrinsic, np.bool_)
+        self._adaptive_y = True
+        #: columns (and the target) no used row has shown a value of yet
+        self._pending = np.array([nm in pending for nm in names], np.bool_)
+        self._pending_y = "target" in pending
+        self.rescale_count = 0
+        self.rescales: list[Rescale] = []
         #: ridge weight of each column, alpha_j = alpha * e_j (EstimatorSettings.ridge)
         self.ridge = s.ridge(n, energy)
+        #: the prior a column that outgrew its exponent is raised to (:meth:`_adapt`):
+        #: the weakest one at the start, which the fixed-point P format holds
+        self._prior_floor = float(np.min(self.ridge))
         self.rls = RLS(n, lam=s.lam, alpha=self.ridge, trace_max=s.trace_max)
         self.fixed_config = s.fixed_config(n, self.ridge)
         self.frls = FixedRLS(self.fixed_config, n, lam=s.lam, alpha=self.ridge,
                              trace_max=s.trace_max)
+        #: the same equation through the filter at half the cutoff (None where that
+        #: filter cannot run at this period): its least-squares estimate, on the rows
+        #: both filters have settled on, bounds the bias of the model's errors that the
+        #: filter weighs (:meth:`bias`)
+        self.check_builder: RegressorBuilder | None = None
+        self.check_selector: SampleSelector | None = None
+        try:
+            check = equation.model.with_cutoff(CHECK_CUTOFF * equation.model.cutoff_hz)
+            check_eq = check.equation(equation.name)
+            self.check_builder = check_eq.builder(dt)
+            self.check_selector = SamplePolicy.for_equation(check_eq, self.dt, s).selector()
+        except ConfigError:
+            pass
         #: which samples update the estimators (warm-up, gaps, speed limits)
         self.policy = SamplePolicy.for_equation(equation, self.dt, s)
         self.filler = self.policy.filler()
@@ -417,6 +615,13 @@ class EquationEstimator:
         self._M = np.zeros((n, n))
         self._v = np.zeros(n)
         self._s = np.zeros(3)
+        # the check filter's sums: M2 = sum phi2 phi2', v2 = sum phi2 y2 (normalised)
+        self._M2 = np.zeros((n, n))
+        self._v2 = np.zeros(n)
+        self._s2 = np.zeros(3)
+        if self.check_builder is not None and self.check_selector is not None:
+            self.check_builder.reset()
+            self.check_selector.reset()
         self._rms_state = np.zeros(1)
         self.selector.reset()
         self.filler.reset()
@@ -438,22 +643,29 @@ class EquationEstimator:
         def pick(a: Any) -> Any:
             return None if a is None else a[real]
 
+        # changes happen on used rows, which are real: their index among the real rows
+        before = np.cumsum(real) - real
+        changes = tuple((int(before[k]), d, dy) for k, d, dy in out.changes)
         return EquationBlock(
             equation=out.equation, t=out.t[real], y=out.y[real], eps=out.eps[real],
             eps_fixed=out.eps_fixed[real], used=out.used[real],
             online_rms=out.online_rms[real], flags=out.flags[real],
-            theta=pick(out.theta), theta_fixed=pick(out.theta_fixed), phi=pick(out.phi))
+            theta=pick(out.theta), theta_fixed=pick(out.theta_fixed), phi=pick(out.phi),
+            changes=changes)
 
-    def _regressors(self, signals: Signals, restart: npt.NDArray[np.bool_], restarts: int
+    def _regressors(self, signals: Signals, restart: npt.NDArray[np.bool_], restarts: int,
+                    builder: RegressorBuilder | None = None
                     ) -> tuple[F64, F64, npt.NDArray[np.bool_] | None]:
-        """(phi, y, rows with a non-finite value or None) of the block, the filter
-        restarted at the ``restart`` rows."""
+        """(phi, y, rows with a non-finite value or None) of the block through
+        ``builder`` (default: the equation's), the filter restarted at the ``restart``
+        rows."""
+        builder = self.builder if builder is None else builder
         N = len(restart)
         if restarts == 0 or (restarts == 1 and restart[0]):
             # one piece (the common case): no slicing, no joining
             if restarts:
-                self.builder.reset()
-            phi, y, _, nonfinite = self.builder.regressors(signals)
+                builder.reset()
+            phi, y, _, nonfinite = builder.regressors(signals)
             return phi, y, nonfinite
         # the filter restarts at every gap (and at the start): split the block there
         bounds = [int(k) for k in np.flatnonzero(restart)] + [N]
@@ -462,8 +674,8 @@ class EquationEstimator:
         parts = []
         for a, b in zip(bounds[:-1], bounds[1:], strict=True):
             if restart[a]:
-                self.builder.reset()
-            parts.append(self.builder.process(signals.slice(a, b)))
+                builder.reset()
+            parts.append(builder.process(signals.slice(a, b)))
         nonfinite = None
         if any(p.nonfinite is not None for p in parts):
             nonfinite = np.concatenate([np.zeros(len(p), np.bool_) if p.nonfinite is None
@@ -502,22 +714,59 @@ class EquationEstimator:
                 theta_fixed=np.zeros((0, eq.n)) if record else None,
                 phi=np.zeros((0, eq.n)) if record else None)
         sel = self.selector.select(t, signals.speed)
-        restart, use, restarts, used = sel.restart, sel.use, sel.restarts, sel.used
-        if real is not None or settling is not None:
-            if real is not None:
-                use &= real
-            if settling is not None:
-                use &= ~settling
-            used = int(np.count_nonzero(use))
-        phi, y, nonfinite = self._regressors(signals, restart, restarts)
+        restart, use = sel.restart, sel.use
+        if real is not None:
+            use &= real
+        if settling is not None:
+            use &= ~settling
+        phi, y, nonfinite = self._regressors(signals, restart, sel.restarts)
         if nonfinite is not None or self._since_nonfinite <= self.warmup:
             self._skip_nonfinite(nonfinite, use)
-            used = int(np.count_nonzero(use))
+        out = _BlockOut(N, eq.n, record)
+        if self.check_builder is not None and self.check_selector is not None:
+            # the check filter, in the normalisation of the block's start; its rows: those
+            # the estimators use, once its own (longer) warm-up has passed
+            self.check_builder.normalise_as(eq.scaling)
+            csel = self.check_selector.select(t, signals.speed)
+            out.check = self._regressors(signals, csel.restart, csel.restarts,
+                                         self.check_builder)[:2]
+            out.check_use = csel.use & use
+        # rows up to the next one that asks for a new normalisation, then that change
+        # (exact: the float estimate does not move), then on: never more than a few
+        a = 0
+        changes: list[tuple[int, npt.NDArray[np.int64], int]] = []
+        while True:
+            k = self._next_change(phi, y, use, a) if self.adapt else N
+            self._estimate(phi, y, use, a, k, out)
+            if k >= N:
+                break
+            d, dy = self._adapt(phi, y, k, float(t[k]))
+            changes.append((k, d, dy))
+            if out.check is not None:
+                np.ldexp(out.check[0][k:], -d, out=out.check[0][k:])
+                np.ldexp(out.check[1][k:], -dy, out=out.check[1][k:])
+            a = k
+        return EquationBlock(
+            equation=eq.name, t=t, y=out.y, eps=out.eps, eps_fixed=out.eps_fixed, used=use,
+            online_rms=out.rms, flags=out.flags, theta=out.theta,
+            theta_fixed=out.theta_fixed, phi=phi if record else None,
+            changes=tuple((k, tuple(int(x) for x in d), dy) for k, d, dy in changes))
+
+    def _estimate(self, phi: F64, y: F64, use: npt.NDArray[np.bool_], a: int, b: int,
+                  out: _BlockOut) -> None:
+        """Rows ``a:b`` of a block through both estimators and the bookkeeping."""
+        if b <= a:
+            return
+        eq = self.equation
+        phi_ab, y_ab, use_ab = phi[a:b], y[a:b], use[a:b]
+        used = int(np.count_nonzero(use_ab))
+        n_ab = b - a
         # the used rows (None: all of them, or none)
-        rows = np.flatnonzero(use) if 0 < used < N else None
+        rows = np.flatnonzero(use_ab) if 0 < used < n_ab else None
+        record = out.theta is not None
         if used:
-            phi_u = phi if rows is None else phi[rows]
-            y_u = y if rows is None else y[rows]
+            phi_u = phi_ab if rows is None else phi_ab[rows]
+            y_u = y_ab if rows is None else y_ab[rows]
             eps_u, theta_u, _, flags_u, _ = self.rls.run_block(phi_u, y_u, record)
             self.tail.push(phi_u, y_u)
             Pq, Yq = self.frls.quantize_block(phi_u, y_u)
@@ -527,33 +776,151 @@ class EquationEstimator:
             eps_u, epsq_u = np.zeros(0), np.zeros(0, np.int64)
             flags_u = flagsq_u = np.zeros(0, np.uint8)
             theta_u = thetaq_u = None
-        y_out = np.empty(N)
-        eps = np.empty(N)
-        eps_fixed = np.empty(N)
-        flags = np.empty(N, np.uint8)
-        rms = np.empty(N)
         # after the estimators, row by row in C (canrls._kernels.bookkeeping): spread the
         # used rows' errors (the fixed-point one is epsq * lsb, exact) and flags over the
-        # block, 0 elsewhere; the residual mean square r <- r + beta (eps^2 - r) on used
+        # rows, 0 elsewhere; the residual mean square r <- r + beta (eps^2 - r) on used
         # rows; y, the errors and sqrt(r) in the target unit (x 2**s_y, one rounding);
         # the sums M += phi phi' (upper triangle), v += phi y, s += [1, y, y^2]
         self.windup_steps += _kernels.bookkeeping(
-            phi, y, use, eps_u, epsq_u, self.fixed_config.eps.lsb, flags_u, flagsq_u,
-            self._M, self._v, self._s, self.beta, self._rms_state, eq.scaling.target,
-            y_out, eps, eps_fixed, flags, rms)
-        theta = theta_fixed = None
-        if record:
+            phi_ab, y_ab, use_ab, eps_u, epsq_u, self.fixed_config.eps.lsb, flags_u,
+            flagsq_u, self._M, self._v, self._s, self.beta, self._rms_state,
+            eq.scaling.target, out.y[a:b], out.eps[a:b], out.eps_fixed[a:b],
+            out.flags[a:b], out.rms[a:b])
+        if out.check is not None and out.check_use is not None:
+            # the check filter's sums, row by row in C (the same bits in any blocks):
+            # M2 += phi2 phi2' (upper triangle), v2 += phi2 y2, s2 += [1, y2, y2^2]
+            _kernels.accumulate(out.check[0][a:b], out.check[1][a:b], out.check_use[a:b],
+                                self._M2, self._v2, self._s2)
+        if record and theta_u is not None and thetaq_u is not None:
             # rows in a warm-up did not update: they stay nan
-            theta = np.full((N, eq.n), np.nan)
-            theta_fixed = np.full((N, eq.n), np.nan)
-            if theta_u is not None and thetaq_u is not None:
-                at = slice(None) if rows is None else rows
-                theta[at] = eq.to_physical(theta_u)
-                theta_fixed[at] = eq.to_physical(self.frls.config.theta.to_float(thetaq_u))
-        return EquationBlock(
-            equation=eq.name, t=t, y=y_out, eps=eps, eps_fixed=eps_fixed, used=use,
-            online_rms=rms, flags=flags, theta=theta, theta_fixed=theta_fixed,
-            phi=phi if record else None)
+            at = slice(a, b) if rows is None else rows + a
+            out.theta[at] = eq.to_physical(theta_u)  # type: ignore[index]
+            out.theta_fixed[at] = eq.to_physical(  # type: ignore[index]
+                self.frls.config.theta.to_float(thetaq_u))
+
+    # -- the normalisation follows the data -----------------------------------------------
+    def _next_change(self, phi: F64, y: F64, use: npt.NDArray[np.bool_], a: int) -> int:
+        """The first used row from ``a`` on where a data-scaled column or the target
+        exceeds :data:`RESCALE_LIMIT`, or a pending one is not zero; ``len(y)``: none."""
+        N = len(y)
+        grow, first = self._adaptive & ~self._pending, self._pending
+        grow_y = self._adaptive_y and not self._pending_y
+        if not (grow.any() or first.any() or grow_y or self._pending_y):
+            return N
+        sub, ys, u = phi[a:], y[a:], use[a:]
+        hit = np.zeros(N - a, np.bool_)
+        if grow.any():
+            hit |= (np.abs(sub[:, grow]) > RESCALE_LIMIT).any(axis=1)
+        if first.any():
+            hit |= (sub[:, first] != 0.0).any(axis=1)
+        if grow_y:
+            hit |= np.abs(ys) > RESCALE_LIMIT
+        if self._pending_y:
+            hit |= ys != 0.0
+        hit &= u
+        i = int(np.argmax(hit)) if len(hit) else 0
+        return a + i if len(hit) and hit[i] else N
+
+    def _adapt(self, phi: F64, y: F64, k: int, t: float
+               ) -> tuple[npt.NDArray[np.int64], int]:
+        """Change the normalisation at row ``k`` (:meth:`_next_change`): every column and
+        the target that outgrew its exponent get one that puts row ``k`` at most
+        1/:data:`RESCALE_HEADROOM` of full scale, and a pending one the exponent of the
+        calibration's rule for its first value, with its prior (``alpha`` times that
+        value's square, as the window's energy would give); everything the estimators
+        and the sums hold is rescaled exactly, and so are the rows from ``k`` on.
+        Returns the change of every column's exponent and of the target's."""
+        n = self.equation.n
+        d = np.zeros(n, np.int64)
+        first: list[tuple[int, float]] = []
+        for j in range(n):
+            v = abs(float(phi[k, j]))
+            if self._pending[j] and v != 0.0:
+                d[j] = exponent_for(v, RMS_HEADROOM)
+                first.append((j, math.ldexp(v, -int(d[j])) ** 2))
+            elif self._adaptive[j] and not self._pending[j] and v > RESCALE_LIMIT:
+                d[j] = exponent_for(v, RESCALE_HEADROOM)
+        dy = 0
+        vy = abs(float(y[k]))
+        first_y = self._pending_y and vy != 0.0
+        if first_y:
+            dy = exponent_for(vy, RMS_HEADROOM)
+        elif self._adaptive_y and not self._pending_y and vy > RESCALE_LIMIT:
+            dy = exponent_for(vy, RESCALE_HEADROOM)
+        # theta_j takes 2**(d_j - d_y): the target moves with the columns where that
+        # would take an estimate beyond half its bound (a column and the target growing
+        # together, one row apart, would otherwise saturate it for a moment)
+        th = np.abs(np.ldexp(np.asarray(self.rls.theta, dtype=np.float64), d - dy))
+        big = float(np.max(th)) if len(th) else 0.0
+        if big > 0.5 * self.settings.theta_max and math.isfinite(big):
+            dy += exponent_for(big, 2.0 / self.settings.theta_max)
+        # a column that outgrew its exponent takes, in its new units, the weakest prior
+        # the estimator started with (alpha * MIN_ENERGY or more once calibrated): the one
+        # it had, rescaled with it, would weigh 2**(2 d_j) times less than the rule gives
+        grew = {int(j): self._prior_floor for j in np.flatnonzero(d) if not self._pending[j]}
+        self._rescale(d, dy, t, grew)
+        if first_y:
+            self._pending_y = False
+        for j, e in first:
+            # the column was zero on every used row: its prior alone holds it, and is set
+            # now as if it had been from the start (alpha_j = alpha * e_j)
+            self._pending[j] = False
+            new = float(self.settings.alpha) * e
+            self.rls.set_prior(j, new)
+            self.frls.set_prior(j, new)
+            self.ridge[j] = new
+        np.ldexp(phi[k:], -d, out=phi[k:])
+        if dy:
+            np.ldexp(y[k:], -dy, out=y[k:])
+        return d, dy
+
+    def _rescale(self, d: npt.NDArray[np.int64], dy: int, t: float,
+                 prior: Mapping[int, float]) -> None:
+        r"""Exponents ``s_j += d_j``, ``s_y += d_y``: ``phi_j`` takes ``2**-d_j``,
+        ``theta_j`` ``2**(d_j - d_y)``, ``P_jk`` ``2**(d_j + d_k)``, the sums and the
+        residual's statistics alike (exact powers of two; the float estimate in
+        physical units does not move); then the priors ``{j: alpha_j}`` are raised
+        (:meth:`~canrls.estimation.rls.RLS.rescale`)."""
+        eq = self.equation
+        sc = eq.scaling
+        names = [p.name for p in eq.parameters]
+        for j in np.flatnonzero(d):
+            self._note(t, names[j], sc.columns[j], sc.columns[j] + int(d[j]),
+                       "first" if self._pending[j] else "grew")
+        if dy:
+            self._note(t, "target", sc.target, sc.target + dy,
+                       "first" if self._pending_y else "grew")
+        self.rls.rescale(d, dy, prior)
+        self.frls.rescale(d, dy, prior)
+        self.ridge = np.ldexp(self.ridge, -2 * d)
+        for j, a in prior.items():
+            self.ridge[j] = a
+        # M = sum phi phi', v = sum phi y, s = [N, sum y, sum y^2], r: mean square of eps
+        self._M = np.ldexp(self._M, -(d[:, None] + d[None, :]))
+        self._v = np.ldexp(self._v, -(d + dy))
+        self._M2 = np.ldexp(self._M2, -(d[:, None] + d[None, :]))
+        self._v2 = np.ldexp(self._v2, -(d + dy))
+        self._s2[1:] = np.ldexp(self._s2[1:], [-dy, -2 * dy])
+        self._s[1:] = np.ldexp(self._s[1:], [-dy, -2 * dy])
+        self._rms_state = np.ldexp(self._rms_state, -2 * dy)
+        self.tail.rescale(d, dy)
+        exps = {"target": sc.target + dy,
+                **{nm: s_j + int(d_j) for nm, s_j, d_j in zip(names, sc.columns, d, strict=True)}}
+        model = eq.model.with_scaling({**eq.model.exponents, eq.name: exps})
+        self.equation = model.equation(eq.name)
+        self.builder.rescale(self.equation)
+
+    def _note(self, t: float, name: str, old: int, new: int, why: str) -> None:
+        self.rescale_count += 1
+        if len(self.rescales) < MAX_RESCALES_LISTED:
+            self.rescales.append(Rescale(t, name, old, new, why))
+
+    @property
+    def pending(self) -> tuple[str, ...]:
+        """The target and the columns no used row has shown a value of yet."""
+        names = [p.name for p, w in zip(self.equation.parameters, self._pending, strict=True)
+                 if w]
+        return (("target",) if self._pending_y else ()) + tuple(names)
 
     # -- results ----------------------------------------------------------------------
     @property
@@ -588,14 +955,68 @@ class EquationEstimator:
         """The parameter estimates alone, without the fit statistics of :meth:`estimates`."""
         eq = self.equation
         value = eq.to_physical(self.rls.theta)
-        # sigma = sqrt(kappa sigma^2 diag P): the RLS formula, widened by the colour
-        sigma = eq.sigma_to_physical(self.rls.std() * math.sqrt(self.sigma_inflation()))
+        # sigma = sqrt(kappa sigma^2 diag P): the RLS formula, widened by the colour, and
+        # the noise's pull on the estimate added: sqrt(sigma_stat^2 + bias^2)
+        stat = eq.sigma_to_physical(self.rls.std() * math.sqrt(self.sigma_inflation()))
+        bound, noisy = self.bias()
+        bias = np.abs(eq.to_physical(bound))
+        # where the noise can explain the columns, the estimate itself stands for the bias
+        bias = np.where(noisy, np.maximum(bias, np.abs(value)), bias)
+        sigma = np.hypot(stat, bias)
         fixed = eq.to_physical(self.frls.theta_float)
         share = prior_share(self.rls.P, self.rls.ridge)
         return [ParameterEstimate(p.name, p.unit, p.effect, eq.name, p.description, v, s, f,
-                                  float(sh))
-                for p, v, s, f, sh in zip(eq.parameters, value.tolist(), sigma.tolist(),
-                                          fixed.tolist(), share.tolist(), strict=True)]
+                                  float(sh), float(b), bool(nz))
+                for p, v, s, f, sh, b, nz in zip(eq.parameters, value.tolist(), sigma.tolist(),
+                                                 fixed.tolist(), share.tolist(), bias.tolist(),
+                                                 noisy.tolist(), strict=True)]
+
+    def bias(self) -> tuple[F64, npt.NDArray[np.bool_]]:
+        r"""What the model's errors can do to the estimate: a bound on each parameter's
+        bias (normalised) and which parameters the measurement noise can explain.
+
+        *The bound.* The filtered equation holds for any filter if the model is right;
+        the errors it makes do not: errors in the variables (a noisy speed in the inertia
+        and viscous columns pulls the estimate towards zero, more the wider the filter),
+        the hold between samples, what happens at reversals. The least-squares estimates
+        through this filter and through the check filter at :data:`CHECK_CUTOFF` of its
+        cutoff, on the rows both use, with the same prior,
+        :math:`\hat\theta_1 = (M + R)^{-1} v` and :math:`\hat\theta_2 = (M_2 + R)^{-1}
+        v_2`, differ by what such errors do; a bias that falls like the cutoff or faster
+        is at most :data:`CHECK_FACTOR` times the difference.
+
+        *The noise.* With the columns' noise covariance :attr:`noise` (white noise of the
+        size measured on the calibration window), :math:`B = N\Sigma`: where
+        :math:`A - B` (:math:`A = M + R`) is not positive definite, the noise could
+        explain all the data show of some combination of the columns; the parameters
+        that combination involves are not identifiable from these data
+        (:func:`_noise_explains`). The white noise overstates what a speed differenced
+        from an encoder carries through the filter, which is why it decides only this
+        and does not size the bound.
+        """
+        n = self.equation.n
+        N = float(self._s[0])
+        bound = np.zeros(n)
+        noisy = np.zeros(n, np.bool_)
+        if N <= 0:
+            return bound, noisy
+        M = np.triu(self._M) + np.triu(self._M, 1).T
+        A = M + np.diag(self.ridge)
+        if self._s2[0] > n:
+            M2 = np.triu(self._M2) + np.triu(self._M2, 1).T
+            try:
+                # theta1 = (M + R)^-1 v, theta2 = (M2 + R)^-1 v2
+                t1 = np.linalg.solve(A, self._v)
+                t2 = np.linalg.solve(M2 + np.diag(self.ridge), self._v2)
+                bound = CHECK_FACTOR * np.abs(t1 - t2)
+            except np.linalg.LinAlgError:
+                bound = np.full(n, math.inf)
+            bound = np.where(np.isfinite(bound), bound, math.inf)
+        if self.noise is not None and np.any(self.noise):
+            d = np.ldexp(np.ones(n), -np.asarray(self.equation.scaling.columns, np.int64))
+            B = N * (self.noise * d[:, None] * d[None, :])
+            noisy = _noise_explains(A, B)
+        return bound, noisy
 
     def estimates(self) -> tuple[list[ParameterEstimate], EquationFit]:
         eq = self.equation
@@ -610,8 +1031,17 @@ class EquationEstimator:
             divergence=self.divergence(), saturations=self.frls.saturations.nonzero(),
             windup_steps=self.windup_steps, low_excitation=bool(exc.low),
             condition=float(exc.cond), nonfinite_rows=self.nonfinite_rows,
-            sigma_inflation=self.sigma_inflation())
+            sigma_inflation=self.sigma_inflation(), exponents=self.exponents,
+            rescale_count=self.rescale_count, rescales=tuple(self.rescales),
+            pending=self.pending)
         return params, fit_obj
+
+    @property
+    def exponents(self) -> dict[str, int]:
+        """The normalisation's exponents now, ``{"target": s_y, parameter: s_j}``."""
+        sc = self.equation.scaling
+        return {"target": sc.target, **{p.name: s for p, s in
+                                        zip(self.equation.parameters, sc.columns, strict=True)}}
 
     def sigma_inflation(self) -> float:
         """``kappa`` of the current float estimate (:class:`ResidualTail`)."""
@@ -620,18 +1050,39 @@ class EquationEstimator:
     def state(self) -> dict[str, Any]:
         return {"rls": self.rls.state(), "fixed": self.frls.state(), "M": self._M.copy(),
                 "v": self._v.copy(), "s": self._s.copy(), "rms": self._rms_state.copy(),
+                "M2": self._M2.copy(), "v2": self._v2.copy(), "s2": self._s2.copy(),
                 "windup_steps": self.windup_steps, "nonfinite_rows": self.nonfinite_rows,
-                "tail": self.tail.state()}
+                "tail": self.tail.state(), "pending": list(self.pending),
+                "noise": None if self.noise is None else self.noise.copy(),
+                "rescale_count": self.rescale_count,
+                "rescales": [r.to_dict() for r in self.rescales]}
 
     def restore(self, d: Mapping[str, Any]) -> None:
         """Continue from :meth:`state` (the filter restarts: the next samples warm it up)."""
         self.rls = RLS.from_state(d["rls"])
         self.frls = FixedRLS.from_state(d["fixed"])
         self.fixed_config = self.frls.config  # the formats the restored state is in
+        self.ridge = np.array(self.rls.ridge, dtype=np.float64)
+        if "pending" in d:
+            pend = set(d["pending"])
+            self._pending = np.array([p.name in pend for p in self.equation.parameters],
+                                     np.bool_)
+            self._pending_y = "target" in pend
+        self.rescale_count = int(d.get("rescale_count", 0))
+        noise = d.get("noise")
+        n = self.equation.n
+        self.noise = None if noise is None else np.array(noise, dtype=np.float64).reshape(n, n)
+        self.rescales = [Rescale(float(r["t"]), str(r["name"]), int(r["old"]),
+                                 int(r["new"]), str(r["why"]))
+                         for r in d.get("rescales", [])][:MAX_RESCALES_LISTED]
         self._M = np.array(d["M"], dtype=np.float64)
         self._v = np.array(d["v"], dtype=np.float64)
         self._s = np.array(d["s"], dtype=np.float64)
         self._rms_state = np.array(d["rms"], dtype=np.float64)
+        n = self.equation.n
+        self._M2 = np.array(d.get("M2", np.zeros((n, n))), dtype=np.float64)
+        self._v2 = np.array(d.get("v2", np.zeros(n)), dtype=np.float64)
+        self._s2 = np.array(d.get("s2", np.zeros(3)), dtype=np.float64)
         self.windup_steps = int(d["windup_steps"])
         self.nonfinite_rows = int(d.get("nonfinite_rows", 0))
         self._since_nonfinite = self.warmup + 1
@@ -640,6 +1091,9 @@ class EquationEstimator:
         self.builder.reset()
         self.selector.reset()
         self.filler.reset()
+        if self.check_builder is not None and self.check_selector is not None:
+            self.check_builder.reset()
+            self.check_selector.reset()
 
 
 class Pipeline:
@@ -655,22 +1109,44 @@ class Pipeline:
         is scaled with it (:meth:`EstimatorSettings.ridge`). ``None``:
         :math:`P_0 = I/\alpha` in normalised units, which weighs on the parameters of
         weakly scaled columns and so depends on the ranges.
+    pending : ``{equation name: names}`` of the target and columns the calibration
+        window showed nothing of (:class:`~canrls.processor.WindowScaling`)
+    noise : ``{equation name: noise covariance of the filtered columns}`` (unnormalised;
+        :meth:`EquationEstimator.bias`)
+    adapt : whether the normalisation follows the data (off: a probe of the window)
     """
 
     def __init__(self, model: Model, dt: float, settings: EstimatorSettings | None = None,
-                 energy: Mapping[str, npt.ArrayLike] | None = None) -> None:
+                 energy: Mapping[str, npt.ArrayLike] | None = None,
+                 pending: Mapping[str, Sequence[str]] | None = None,
+                 noise: Mapping[str, npt.ArrayLike] | None = None,
+                 adapt: bool = True) -> None:
         if not (dt > 0 and math.isfinite(dt)):
             raise ConfigError(f"sample period dt = {dt!r}: must be > 0")
-        self.model = model
+        self._model = model
         self.dt = float(dt)
         self.settings = settings or EstimatorSettings()
         self.energy = None if energy is None else {
             k: np.asarray(v, dtype=np.float64).copy() for k, v in energy.items()}
         self.estimators = tuple(
             EquationEstimator(eq, self.dt, self.settings,
-                              None if energy is None else energy[eq.name])
+                              None if energy is None else energy[eq.name],
+                              (pending or {}).get(eq.name, ()), adapt,
+                              (noise or {}).get(eq.name))
             for eq in model.equations)
         self.samples = 0
+
+    @property
+    def model(self) -> Model:
+        """The model, with the exponents its equations have now (they follow the data)."""
+        if any(e.equation is not eq for e, eq in zip(self.estimators, self._model.equations,
+                                                     strict=True)):
+            self._model = self._model.with_scaling(
+                {**self._model.exponents, **{e.equation.name: e.exponents
+                                             for e in self.estimators}})
+            for e in self.estimators:
+                e.equation = self._model.equation(e.equation.name)
+        return self._model
 
     def process(self, signals: Signals, record: bool = False) -> PipelineBlock:
         """Feed a block of samples (any size, including 0)."""
@@ -691,7 +1167,7 @@ class Pipeline:
             p, f = e.estimates()
             params.extend(p)
             fits.append(f)
-        return Estimates(tuple(params), tuple(fits), self.model.effect_names)
+        return Estimates(tuple(params), tuple(fits), self._model.effect_names, self._model.kt)
 
     # -- control (command frames) ---------------------------------------------------
     def reset(self) -> None:
@@ -723,24 +1199,29 @@ class Pipeline:
         return tuple((int(e.rls.count), int(e.frls.count)) for e in self.estimators)
 
     def set_lambda(self, lam: float) -> None:
-        """Change the forgetting factor of both estimators (validated)."""
-        if not (0.5 < lam <= 1.0):
-            raise ConfigError(f"lambda = {lam!r}: must be in (0.5, 1]")
+        """Change the forgetting factor of both estimators (validated); it lives in
+        :attr:`settings`, which a pipeline for a changed model is built from."""
+        self.settings = dataclasses.replace(self.settings, lam=lam)
         for e in self.estimators:
+            e.settings = self.settings
             e.rls.set_lambda(lam)
             e.frls.set_lambda(lam)
 
     def with_model(self, model: Model, warm: bool = True,
-                   energy: Mapping[str, npt.ArrayLike] | None = None) -> Pipeline:
+                   energy: Mapping[str, npt.ArrayLike] | None = None,
+                   pending: Mapping[str, Sequence[str]] | None = None,
+                   noise: Mapping[str, npt.ArrayLike] | None = None) -> Pipeline:
         """A new pipeline for ``model`` (e.g. an effect added or removed).
 
         With ``warm`` (default) the parameters both models share start from their
         current estimates (float and fixed point alike) instead of zero, so adding an
         effect does not make the others converge again; the covariance restarts from
-        the prior for every parameter, so all of them adapt. ``energy``: the new
-        model's column energies (as for :class:`Pipeline`).
+        the prior for every parameter, so all of them adapt. ``energy``, ``pending``:
+        the new model's column energies and pending columns (as for :class:`Pipeline`).
         """
-        new = Pipeline(model, self.dt, self.settings, energy)
+        new = Pipeline(model, self.dt, self.settings, energy, pending, noise)
+        if self.frozen:
+            new.freeze()
         if not warm:
             return new
         old = {e.equation.name: e for e in self.estimators}
@@ -787,3 +1268,9 @@ class Pipeline:
         for e, s in zip(self.estimators, ests, strict=True):
             e.restore(s)
         self.samples = int(d["samples"])
+        # a forgetting factor set by a command lives in the state
+        lam = self.estimators[0].rls.lam if self.estimators else self.settings.lam
+        if lam != self.settings.lam:
+            self.settings = dataclasses.replace(self.settings, lam=lam)
+            for e in self.estimators:
+                e.settings = self.settings

@@ -90,6 +90,7 @@ from __future__ import annotations
 import enum
 import math
 import operator
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -408,6 +409,8 @@ class RLS:
         self._frozen = False
         self.count = 0
         self._reset_arrays()
+        #: whether the trace bound is the prior's trace (it follows a :meth:`rescale`)
+        self._trace_default = trace_max is None
         if trace_max is None:
             # the prior's trace, summed in the kernel's order and dtype
             tm = _kernels.trace_of(self._P)
@@ -534,6 +537,63 @@ class RLS:
         lam_f = check_lam(lam)
         self._lam = lam_f
         self._lam_d = self._dtype.type(lam_f)
+
+    def rescale(self, d: npt.ArrayLike, dy: int = 0,
+                prior: Mapping[int, float] | None = None) -> None:
+        r"""New units for the columns and the target, by powers of two: column ``j``
+        multiplied by :math:`2^{-d_j}`, the target by :math:`2^{-d_y}`. Then
+        :math:`\theta_j \leftarrow \theta_j 2^{d_j - d_y}`,
+        :math:`P_{jk} \leftarrow P_{jk} 2^{d_j + d_k}`, :math:`\alpha_j \leftarrow
+        \alpha_j 2^{-2 d_j}` and the error sum :math:`\times 2^{-2 d_y}`: exact, so
+        the estimate means what it meant (a prior-trace bound follows).
+
+        ``prior`` (``{j: alpha}``) then raises the ridge weight of parameter ``j`` to
+        ``alpha`` (in the new units): the difference :math:`\delta` is information
+        added, :math:`P^{-1} \leftarrow P^{-1} + \delta e_j e_j^\top`, taken as one
+        update with the regressor :math:`\sqrt\delta e_j` and target 0 (the prior's
+        mean): :math:`g = P_{:j}/(1 + \delta P_{jj})`,
+        :math:`\theta \leftarrow \theta - \delta\theta_j g`,
+        :math:`P \leftarrow P - \delta g P_{j:}`.
+        """
+        dv = np.asarray(d, dtype=np.int64)
+        if dv.shape != (self._n,):
+            raise EstimatorError(f"RLS rescale needs {self._n} exponents, got {dv.shape}")
+        theta = np.ldexp(self._theta.astype(np.float64), dv - int(dy))
+        P = np.ldexp(self._P.astype(np.float64), dv[:, None] + dv[None, :])
+        self._ridge = np.ldexp(self._ridge, -2 * dv)
+        for j, alpha in (prior or {}).items():
+            delta = float(alpha) - float(self._ridge[j])
+            if delta > 0:
+                # g = P e_j / (1 + delta P_jj)
+                g = P[:, j] / (1.0 + delta * P[j, j])
+                theta = theta - delta * theta[j] * g
+                P = P - delta * np.outer(g, P[j, :])
+                P = 0.5 * (P + P.T)
+            self._ridge = self._ridge.copy()
+            self._ridge[j] = float(alpha)
+        self._theta[...] = theta
+        self._P[...] = P
+        self._acc[0] = math.ldexp(float(self._acc[0]), -2 * int(dy))
+        self._prior_trace()
+
+    def set_prior(self, j: int, alpha: float) -> None:
+        r"""Give parameter ``j`` the ridge weight ``alpha`` as if from the start:
+        :math:`P_{jj} \leftarrow P_{jj}\,\alpha_j/\alpha`, exact while column ``j``
+        has been zero on every row (:math:`P_{jk} = 0`, :math:`\theta_j = 0`)."""
+        a = check_real("alpha", alpha)
+        if not (a > 0.0 and math.isfinite(a)):
+            raise EstimatorError(f"RLS alpha must be > 0, got {alpha!r}")
+        old = float(self._ridge[j])
+        self._P[j, j] = self._P[j, j] * (old / a)
+        self._ridge = self._ridge.copy()
+        self._ridge[j] = a
+        self._prior_trace()
+
+    def _prior_trace(self) -> None:
+        if self._trace_default:
+            P0 = np.diag(1.0 / self._ridge).astype(self._dtype)
+            self._trace_max = _kernels.trace_of(P0)
+            self._trace_max_d = self._dtype.type(self._trace_max)
 
     # ----------------------------------------------------------------- update
     def update(self, phi: npt.ArrayLike, y: float) -> RLSStep:
@@ -721,6 +781,7 @@ class RLS:
             "theta": self._theta.copy(),
             "P": self._P.copy(),
             "acc": self._acc.copy(),
+            "trace_default": self._trace_default,
         }
 
     @classmethod
@@ -784,6 +845,7 @@ class RLS:
             )
         rls._frozen = bool(get("frozen"))
         rls.count = int(count)
+        rls._trace_default = bool(d.get("trace_default", False)) if hasattr(d, "get") else False
         return rls
 
     def __repr__(self) -> str:

@@ -18,7 +18,9 @@ filtered columns) wherever it is processed:
    near a reversal: the measured speed's sign is noise and the drive sticks) or
    ``|omega| > max_speed`` (the fastest position-periodic column advances more than
    ``max_phase_step`` rad per sample) is not used, nor are the ``warmup`` samples after
-   it.
+   it. With a minimum speed, a speed whose sign changed since the last sample counts
+   as below it: the drive reversed between the two samples (a fast reversal passes
+   through the band without a sample in it).
 
 With the highest position order :math:`k` among the equation's effects,
 
@@ -44,11 +46,18 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
+from canrls.errors import ConfigError
 from canrls.estimation.model import Equation
+from canrls.estimation.svf import MAX_TIME_CONSTANT
 from canrls.signals import ROLES, MaskPacker, PackedMask, Signals, SpilledSignals
 
-__all__ = ["SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector", "Selection",
-           "SelectedSamples", "FilledRecord", "FILL_DOUBT", "NOISE_ROWS", "CHECKED"]
+#: Most samples of warm-up (``[estimator] warmup_s``): five of the state-variable filter's
+#: longest time constant (:data:`~canrls.estimation.svf.MAX_TIME_CONSTANT`), what the
+#: default warm-up can be.
+MAX_WARMUP = 5 * MAX_TIME_CONSTANT
+
+__all__ = ["MAX_WARMUP", "SelectionSettings", "SamplePolicy", "GapFiller", "SampleSelector",
+           "Selection", "SelectedSamples", "FilledRecord", "FILL_DOUBT", "NOISE_ROWS", "CHECKED"]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
@@ -62,7 +71,7 @@ FILL_DOUBT = 8.0
 NOISE_ROWS = 64
 #: The signals whose fills are checked. The position is not: its straight line is off
 #: by the acceleration's share (``a dt^2 / 4``), far below anything the filter sees.
-CHECKED = ("current", "speed", "voltage")
+CHECKED = ("current", "speed", "voltage", "torque")
 
 
 class SelectionSettings(Protocol):
@@ -138,6 +147,13 @@ class SamplePolicy:
         m = equation.model
         wc = 2 * math.pi * m.cutoff_hz
         warm_s = 5.0 / (m.zeta * wc) if s.warmup_s is None else s.warmup_s
+        # the warm-up sizes the residual's colour window (64 of them): bounded as the
+        # filter's own (5 of its longest time constant), before anything is allocated
+        if not warm_s / dt <= MAX_WARMUP:
+            raise ConfigError(
+                f"estimator.warmup_s = {warm_s!r}: {warm_s / dt:.3g} samples of warm-up at "
+                f"the period {dt:g} s, at most {MAX_WARMUP} (the filter's longest warm-up: "
+                f"warmup_s <= {MAX_WARMUP * dt:g} s)")
         pitch = m.pitch if m.axis == "linear" else None
         k_max = max([e.order for e in equation.effects] + [0])
         friction = any(e.name in ("coulomb", "stribeck") for e in equation.effects)
@@ -220,7 +236,7 @@ class SampleSelector:
 
     def reset(self) -> None:
         """The next sample starts the filter."""
-        self._state = np.array([np.nan, 0.0])
+        self._state = np.array([np.nan, 0.0, 0.0])
 
     def select(self, t: npt.ArrayLike, omega: npt.ArrayLike) -> Selection:
         """Restarts and used rows of a block with sample times ``t`` and speed ``omega``."""
@@ -432,8 +448,7 @@ class GapFiller:
                 vals = np.mod(vals, wrap)
             col[at] = vals
             out[r] = col
-        return Signals(out["t"], out["current"], out["speed"], out.get("position"),
-                       out.get("voltage")), real
+        return Signals.from_roles(out), real
 
 
 # ------------------------------------------------------------------ a whole record

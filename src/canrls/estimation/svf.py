@@ -208,6 +208,18 @@ def _discretise(wc: float, zeta: float, dt: float, hold: Hold) -> tuple[F64, F64
     return Ad, G0, G1
 
 
+def impulse_response(cutoff_hz: float, dt: float, zeta: float, hold: Hold
+                     ) -> tuple[F64, F64]:
+    """``(F, sF)``: the filter's responses to a unit sample at rest, long enough to decay
+    (40 time constants): what filtered white noise is made of."""
+    svf = SVF(cutoff_hz, dt, zeta, hold)
+    m = int(math.ceil(40.0 / (min(svf.zeta, 1.0) * svf.wc * svf.dt))) + 8
+    u = np.zeros(m + 2)
+    u[2] = 1.0  # the filter starts at rest on u[0] = 0
+    f, sf = svf.process(u)
+    return f[2:].copy(), sf[2:].copy()
+
+
 class SVF:
     r"""Second-order state-variable filter applied column-wise with carried state.
 

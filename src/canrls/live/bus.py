@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import socket
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -59,7 +60,8 @@ from canrls.live.socketcan import (
 )
 
 __all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "RX_BATCH", "bus_config",
-           "command_rows", "is_command", "messages_to_block", "open_bus", "COMMAND_ID"]
+           "command_rows", "is_command", "messages_to_block", "open_bus", "shutdown_bus",
+           "COMMAND_ID"]
 
 log = logging.getLogger(__name__)
 
@@ -116,6 +118,21 @@ def open_bus(config: Mapping[str, Any]) -> can.BusABC:
     except (can.CanError, OSError, ValueError, ImportError, TypeError, NotImplementedError) as e:
         raise BusError(f"cannot open CAN interface {conf.get('interface')!r} channel "
                        f"{conf.get('channel')!r}: {e}") from e
+
+
+def shutdown_bus(bus: can.BusABC) -> None:
+    """Shut ``bus`` down. An interface whose shutdown fails (the connection of a lost
+    python-can-remote bus: ``ENOTCONN``) is marked shut down all the same and its socket
+    closed: otherwise python-can's ``BusABC.__del__`` tries again when the object is
+    collected and prints a raw "Exception ignored" traceback at exit."""
+    try:
+        bus.shutdown()
+    except Exception as e:  # noqa: BLE001 -- any interface's failure: the bus is gone
+        log.debug("bus shutdown: %s: %s", type(e).__name__, e)
+        can.BusABC.shutdown(bus)  # the base's part: marked shut down, periodic tasks off
+        sock = getattr(bus, "socket", None)
+        if isinstance(sock, socket.socket):
+            sock.close()
 
 
 def messages_to_block(msgs: Sequence[can.Message]) -> FrameBlock:
@@ -535,10 +552,7 @@ class BusLink:
         self.close_reader()
         b, self.bus = self.bus, None
         if b is not None:
-            try:
-                b.shutdown()
-            except (can.CanError, OSError) as e:
-                log.debug("bus shutdown: %s", e)
+            shutdown_bus(b)
 
     def recv_failed(self, exc: BaseException) -> None:
         """Called in the reader's thread when ``recv`` raises."""

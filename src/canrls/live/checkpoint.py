@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import fcntl
 import hashlib
 import io
 import json
@@ -64,6 +65,7 @@ import re
 import secrets
 import stat
 import time
+import weakref
 import zipfile
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -79,8 +81,9 @@ from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings
 
 __all__ = ["FORMAT", "MAGIC", "MAX_BYTES", "MAX_DEPTH", "MAX_PARAMETERS", "Checkpoint",
-           "CheckpointPathError", "Checkpointer", "clean_temporaries", "fingerprint",
-           "save_checkpoint", "load_checkpoint", "set_aside"]
+           "CheckpointInUseError", "CheckpointPathError", "Checkpointer", "CheckpointLock",
+           "clean_temporaries", "fingerprint", "save_checkpoint", "load_checkpoint",
+           "set_aside"]
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -113,6 +116,68 @@ class CheckpointPathError(CheckpointError):
     """The checkpoint's name or directory cannot be used: a symbolic link, a directory, a
     FIFO or a device at the name, or a directory that is missing or refuses writes.
     Such a path is never renamed, read or written through."""
+
+
+class CheckpointInUseError(CheckpointError):
+    """Another process holds the checkpoint's lock (``NAME.lock``): a second daemon on
+    one checkpoint file is refused at start."""
+
+
+class CheckpointLock:
+    """``flock`` on ``NAME.lock`` beside the checkpoint, held while the daemon runs.
+
+    Opened relative to the directory's descriptor with ``O_NOFOLLOW`` (a link at the
+    lock's name is refused, never followed), mode 0600, the holder's PID written in it.
+    The lock is the open file's: it goes with :meth:`release`, the object, or the
+    process (a ``kill -9`` leaves no stale lock; the file itself stays, harmless).
+
+    :raises CheckpointInUseError: another process holds it (names the path and its PID).
+    :raises CheckpointPathError: the lock file cannot be made or is not a regular file.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path.with_name(path.name + ".lock")
+        with _directory(path) as dfd:
+            st = _lstat(dfd, self.path.name)
+            if st is not None and not stat.S_ISREG(st.st_mode):  # not opened: a device acts
+                raise CheckpointPathError(f"{path}: the checkpoint's lock {self.path} is "
+                                          f"{_kind(st.st_mode)}, not a regular file; it is "
+                                          f"left untouched")
+            try:
+                fd = os.open(self.path.name, os.O_RDWR | os.O_CREAT | _O_NOFOLLOW
+                             | _O_NONBLOCK | _O_CLOEXEC, _MODE, dir_fd=dfd)
+            except OSError as e:
+                st = _lstat(dfd, self.path.name)
+                kind = "" if st is None or stat.S_ISREG(st.st_mode) else f" ({_kind(st.st_mode)})"
+                raise CheckpointPathError(f"{path}: cannot open the checkpoint's lock "
+                                          f"{self.path}{kind}: {e.strerror}") from e
+        try:
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode):
+                raise CheckpointPathError(f"{path}: the checkpoint's lock {self.path} is "
+                                          f"{_kind(st.st_mode)}, not a regular file")
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip()
+                pid = holder if holder.isdigit() else "unknown"
+                raise CheckpointInUseError(
+                    f"{path}: the checkpoint is in use by another canrls daemon (PID {pid}, "
+                    f"lock {self.path}); two daemons must not share one checkpoint file: "
+                    f"give each its own [daemon] checkpoint") from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd: int | None = fd
+        self._finalizer = weakref.finalize(self, os.close, fd)
+
+    def release(self) -> None:
+        """Release the lock (idempotent)."""
+        if self._fd is not None:
+            self._fd = None
+            self._finalizer()
 
 
 @dataclass
@@ -669,9 +734,18 @@ class Checkpointer:
         self.saved = 0
         #: why checkpoints are off for this run (None: they are on, or none configured)
         self.disabled: str | None = None
+        #: held from :meth:`resume` until :meth:`close` (None: none taken)
+        self.lock: CheckpointLock | None = None
+
+    def close(self) -> None:
+        """Release the checkpoint's lock (the daemon stopped)."""
+        if self.lock is not None:
+            self.lock.release()
+            self.lock = None
 
     def _disable(self, why: CheckpointError) -> None:
         self.disabled = str(why)
+        self.close()
         log.error("%s; running without checkpoints", why)
 
     def _prepare(self, path: Path) -> bool:
@@ -679,8 +753,6 @@ class Checkpointer:
         non-regular file at the name, a directory that cannot be opened or written:
         checkpoints off). True when checkpoints can be used."""
         try:
-            for t in clean_temporaries(path):
-                log.warning("removed %s, the temporary of a save cut short", t)
             with _directory(path) as dfd:
                 st = _lstat(dfd, path.name)
                 if st is not None and not stat.S_ISREG(st.st_mode):
@@ -690,6 +762,10 @@ class Checkpointer:
                 except OSError as e:
                     raise CheckpointPathError(f"{path}: cannot write in the checkpoint's "
                                               f"directory: {e.strerror}") from e
+            if self.lock is None:  # before anything is read or removed; may refuse
+                self.lock = CheckpointLock(path)
+            for t in clean_temporaries(path):
+                log.warning("removed %s, the temporary of a save cut short", t)
         except CheckpointPathError as e:
             self._disable(e)
             return False

@@ -53,6 +53,7 @@ from canrls.live.bus import BusLink, FrameQueue, command_rows, messages_to_block
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
 from canrls.live.publisher import Publisher, check_publishable
+from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.live.settings import DaemonSettings
 from canrls.live.tuning import interpreter
@@ -102,6 +103,9 @@ class DaemonStats:
     listener_cpu_s: float = 0.0
     resumed_from: str | None = None
     counters: dict[str, int] = field(default_factory=dict)
+    #: the recording (``[daemon] record``): path, frames written, frames not written
+    #: after an error, errors, the first error (None: no recording)
+    record: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -154,7 +158,8 @@ class Daemon:
         self._rx_closed = threading.Event()
         self._reload_requested = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._recorder: can.Listener | None = None
+        self._recorder: Recorder | None = None
+        self._record_stats: dict[str, Any] | None = None
         self._started = False
         self._tuned = False
         self._heartbeat = time.monotonic()
@@ -269,7 +274,16 @@ class Daemon:
             reloads=c["reloads"],
             checkpoints=self._checkpoints.saved, backlog=q.held,
             estimator_cpu_s=self._est_cpu, listener_cpu_s=q.cpu,
-            resumed_from=self.resumed_from, counters=counters)
+            resumed_from=self.resumed_from, counters=counters,
+            record=self._recorder.stats() if self._recorder is not None
+            else self._record_stats)
+
+    def frame_counts(self) -> dict[str, Any]:
+        """The frames the processor saw, as ``canrls fit --json`` has them under
+        ``frames`` (total, rejected by reason, lost, foreign, pairing; since the start,
+        a checkpoint's counters aside)."""
+        with self._lock:
+            return self._proc.frame_counts()
 
     def status(self) -> StatusReport:
         """The status as the next RlsStatus/RlsHealth/RlsCounters would carry it."""
@@ -308,8 +322,8 @@ class Daemon:
             log.warning("warm-up skipped (the first frames will be slower): %s", e)
         if self.config.record is not None:
             # never through a link planted at the path (python-can opens by name)
-            self._recorder = open_writer(self.config.record,
-                                         f"daemon.record = {self.config.record}")
+            writer = open_writer(self.config.record, f"daemon.record = {self.config.record}")
+            self._recorder = Recorder(writer, self.config.record)
             self._queue.recorder = self._recorder
         try:
             self._link.open()
@@ -361,6 +375,8 @@ class Daemon:
         the bus. Idempotent."""
         if self._stopped.is_set() or not self._started:
             self._stop_flag()
+            if not self._started:  # never to run: the checkpoint is another's to take
+                self._checkpoints.close()
             return
         self.sd.stopping()
         self._stop_flag()
@@ -379,6 +395,7 @@ class Daemon:
         else:  # the state that failed is not saved: the last periodic checkpoint stays
             log.error("no checkpoint at stop: the daemon failed (%s: %s)",
                       type(self.failure).__name__, self.failure)
+        self._checkpoints.close()  # the lock: another daemon may take the file now
         self._link.close()
         self._close_recorder()
         if self._tuned:
@@ -391,7 +408,8 @@ class Daemon:
         r, self._recorder = self._recorder, None
         self._queue.recorder = None
         if r is not None:
-            r.stop()
+            r.stop()  # errors logged and counted, never raised
+            self._record_stats = r.stats()
 
     def __enter__(self) -> Daemon:
         self.start()

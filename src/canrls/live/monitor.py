@@ -12,7 +12,8 @@ process) and call :meth:`Monitor.snapshot` whenever a view is wanted::
 A snapshot has every parameter (fixed-point value, ±σ, float reference, their
 difference, the unit), the residual RMS with its recent trend, frame rates by kind,
 the loss and rejection counters (by reason, from ``RlsRejects``, with the clock
-steps and gaps of the feedback's timestamps), the health flags (``clock_fault`` among
+steps and gaps of the feedback's timestamps, and ``time`` from ``RlsHealth``), the
+health flags (``clock_fault`` among
 them), the active effects and the last command acknowledgement. Parameter names come
 from ``RlsParamInfo`` and the units from the effect library (:class:`LibraryUnits`),
 which needs the axis, ``kt`` and the user terms of the daemon's model: the monitor
@@ -54,7 +55,7 @@ _KINDS = ("feedback", "estimator", "command", "error", "other")
 
 
 class LibraryUnits(Mapping[str, str]):
-    """Parameter name -> unit, from the effect library, for one axis, ``kt`` and terms.
+    """Parameter name -> unit, from the effect library, for one axis, target and terms.
 
     ``units["cogging:24.sin"] == "N·m"`` (rotary, kt known); any effect the library
     can build is answered, so a monitor started before an effect is added still knows
@@ -68,7 +69,7 @@ class LibraryUnits(Mapping[str, str]):
 
     @classmethod
     def for_model(cls, model: Model) -> LibraryUnits:
-        return cls(model.effect_options, model.kt is not None)
+        return cls(model.effect_options, model.torque_known)
 
     def _lookup(self, name: str) -> str | None:
         if name in self._cache:

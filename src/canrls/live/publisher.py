@@ -30,6 +30,7 @@ from canrls.can.frames import (
 )
 from canrls.errors import CanrlsError, ConfigError
 from canrls.estimation.model import Model
+from canrls.estimation.physics import check_physics
 from canrls.estimation.pipeline import Estimates, Pipeline, PipelineBlock, divergence
 from canrls.estimation.rls import RLSFlag
 from canrls.live.bus import BusLink
@@ -125,7 +126,7 @@ class Publisher:
         self._low_excitation = False
         self._last_lost = 0
         self._last_sat = 0
-        self._last_clock = 0  # clock steps as the last RlsRejects carried them
+        self._last_clock = 0  # clock steps and time rejects as the last RlsRejects had them
         #: (pipeline, parameter_layout, active effects), made again when the model changes
         self._layout: tuple[Pipeline | None, tuple[tuple[ParameterReport, ...], ...], int] = (
             None, (), 0)
@@ -217,7 +218,10 @@ class Publisher:
             frozen=pipe.frozen,
             diverged=div > self.config.divergence_limit,
             bus_fault=self.link.paused(now),
-            clock_fault=rejects["clock_steps"] > self._last_clock,  # since the last RlsRejects
+            # since the last RlsRejects: a clock step, or a frame rejected for its time
+            clock_fault=rejects["clock_steps"] + rejects["time"] > self._last_clock,
+            implausible=bool(check_physics(
+                [p for eq in pipe.parameters() for p in eq], pipe.model.kt)),
             active_effects=self._layout_of(pipe)[2],
             divergence=div if math.isfinite(div) else 0.0,
             rejects=rejects, **counters)
@@ -257,7 +261,7 @@ class Publisher:
         msgs = [m for m in encode_status(status, self._counter, timestamp=ts)
                 if info or m.arbitration_id not in (_COUNTERS_ID, _REJECTS_ID)]
         if info:
-            self._last_clock = status.rejects["clock_steps"]
+            self._last_clock = status.rejects["clock_steps"] + status.rejects["time"]
             msgs += encode_param_info(reports, timestamp=ts)
             self.info_due = now + self.config.info_interval
         self.link.send(msgs)

@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from canrls.errors import ConfigError
-from canrls.files import check_path
 
 if TYPE_CHECKING:  # importing the configuration imports numba's kernels: not here
     from canrls.config import AppConfig
@@ -174,11 +173,11 @@ class DaemonSettings:
                     raise ConfigError(f"{key} = {v!r}: must be an integer >= 0 (bytes)")
                 kw[k] = v
             elif k in _PATH_KEYS:
-                if not isinstance(v, str):
+                if not isinstance(v, str) or "\0" in v:
                     what = "directory" if k == "cache_dir" else "file"
-                    raise ConfigError(f"{key} = {v!r}: must be a {what} path")
+                    raise ConfigError(f"{key} = {v!r}: must be a {what} path"
+                                      + (" (no NUL byte)" if isinstance(v, str) else ""))
                 if v:
-                    check_path(v, f"{key} = {v!r}")  # a NUL byte is no file name
                     kw[k] = resolve_path(v, base_dir)
                     if k == "record":  # its format and place, before the daemon starts
                         from canrls.can.writers import check_record_path
