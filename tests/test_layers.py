@@ -2,19 +2,17 @@
 
 Dependencies run one way::
 
-    core (canrls, errors, signals, effect_names)
+    core (canrls, errors, signals, spill, effect_names, files, ctext)
       -> can (DBC, decoding, logs, pairing, frames)   estimation (effects ... RLS, pipeline)
-      -> config, processor                             (the front end: one calibration rule)
-      -> replay                                        (offline: what canrls fit runs)
-      -> diagnosis, live | fleet                       (analysis, the daemon | many drives)
+      -> front: config, processor, replay, modelfile   (one configuration, one calibration rule)
+      -> diagnosis | live | fleet | export             (beside each other, none imports another)
       -> cli                                           (one module per subcommand)
 
-``fleet`` sits beside ``diagnosis`` and ``live`` and imports neither (the command line
-hands it the diagnosis's ranking; the daemon's ``[history]`` hook is given its writer
-by the command line). ``sim`` (the simulated drive) sits at the edge: it uses ``core``
-and ``can`` and only ``cli`` uses it. ``can`` and ``estimation`` never import each other,
-and neither ``estimation`` nor ``core`` imports an I/O package (python-can, cantools).
-No import circle, and no module reaches into another module's underscore names.
+``sim`` (the simulated drive) sits at the edge: it uses ``core`` and ``can`` and only
+``cli`` uses it. ``can`` and ``estimation`` never import each other, and neither
+``estimation`` nor ``core`` imports an I/O package (python-can, cantools). Only the
+processor pairs, reorders, judges times and measures the period. No import circle, and
+no module reaches into another module's underscore names.
 
 The checks read the source (ast), so they also see imports inside functions.
 """
@@ -33,40 +31,35 @@ PKG = SRC / "canrls"
 
 #: layer of each top-level part, and the layers it may import (besides itself)
 LAYER = {
-    "canrls": "core", "canrls.errors": "core", "canrls.signals": "core",
+    "canrls": "core", "canrls.errors": "core", "canrls.signals": "core", "canrls.spill": "core",
     "canrls.effect_names": "core", "canrls.files": "core", "canrls.ctext": "core",
     "canrls.can": "can", "canrls.estimation": "estimation",
     "canrls.config": "front", "canrls.processor": "front", "canrls.modelfile": "front",
-    "canrls.validate": "app",
-    "canrls.replay": "replay", "canrls.diagnosis": "app", "canrls.live": "app",
-    "canrls.c_export": "app",
-    "canrls.fleet": "fleet",
+    "canrls.replay": "front",
+    "canrls.diagnosis": "diagnosis", "canrls.live": "live", "canrls.fleet": "fleet",
+    "canrls.c_export": "export",
     "canrls.sim": "sim", "canrls.cli": "cli", "canrls.__main__": "cli",
 }
+#: the rooms above the front end: each sees the front end and below, none another
+BESIDE = ("diagnosis", "live", "fleet", "export")
+_BELOW = {"core", "can", "estimation", "front"}
 ALLOWED = {
     "core": {"core"},
     "can": {"core"},
     "estimation": {"core"},
-    "front": {"core", "can", "estimation", "front"},
-    # the offline replay (canrls fit): what the applications above it share
-    "replay": {"core", "can", "estimation", "front"},
-    "app": {"core", "can", "estimation", "front", "replay", "app"},
-    # many drives: beside the diagnosis and the daemon, importing neither
-    "fleet": {"core", "can", "estimation", "front", "replay", "fleet"},
+    "front": _BELOW,
+    **{room: _BELOW for room in BESIDE},
     "sim": {"core", "can"},
-    "cli": {"core", "can", "estimation", "front", "replay", "app", "fleet", "sim", "cli"},
+    "cli": {*_BELOW, *BESIDE, "sim", "cli"},
 }
+#: the processor's parts: the one front end runs them (their own package aside)
+PROCESSOR_PARTS = {"canrls.can.pairing", "canrls.can.reorder", "canrls.can.period",
+                   "canrls.can.times"}
 #: third-party I/O packages the pure layers must not import
 IO_PACKAGES = {"can", "cantools"}
 #: underscore names of the standard library's own protocols (namedtuple, enum)
 STD_PRIVATE = {"_replace", "_asdict", "_fields", "_make", "_value_", "_name_", "_missing_",
                "_generate_next_value_", "_member_map_", "_exit", "_getframe"}
-
-
-#: the compiled extensions setup.py declares (``canrls._can``, ...): private to the package,
-#: each imported by the layer whose loops it runs
-C_EXTENSIONS = set(re.findall(r"""Extension\(\s*(?:name\s*=\s*)?["']canrls\.(\w+)["']""",
-                              (SRC.parent / "setup.py").read_text()))
 
 
 #: the compiled extensions setup.py declares (``canrls._can``, ...): private to the package,
@@ -151,6 +144,25 @@ def test_nothing_imports_the_cli(tree: dict[str, ast.Module]) -> None:
            if layer_of(mod) != "cli" for dep, line in canrls_imports(t, mod, known)
            if layer_of(dep) == "cli"]
     assert not bad, bad
+
+
+def test_rooms_beside_each_other_do_not_import_each_other(tree: dict[str, ast.Module]) -> None:
+    known = set(tree)
+    bad = [f"{mod}:{line} ({layer_of(mod)}) imports {dep} ({layer_of(dep)})"
+           for mod, t in tree.items() if layer_of(mod) in BESIDE
+           for dep, line in canrls_imports(t, mod, known)
+           if layer_of(dep) in BESIDE and layer_of(dep) != layer_of(mod)]
+    assert not bad, bad
+
+
+def test_only_the_processor_runs_its_parts(tree: dict[str, ast.Module]) -> None:
+    known = set(tree)
+    bad = [f"{mod}:{line} imports {dep}" for mod, t in tree.items()
+           if not (mod == "canrls.processor" or mod.startswith(("canrls.processor.",
+                                                                  "canrls.can.")))
+           for dep, line in canrls_imports(t, mod, known) if dep in PROCESSOR_PARTS]
+    assert not bad, "only canrls.processor pairs, reorders and measures the period:\n" \
+        + "\n".join(sorted(bad))
 
 
 def test_pure_layers_import_no_io(tree: dict[str, ast.Module]) -> None:
@@ -241,8 +253,6 @@ def test_no_module_uses_another_modules_private_names(tree: dict[str, ast.Module
                 continue
             if name.startswith("import ") and name[len("import "):] in C_EXTENSIONS:
                 continue
-            if name.startswith("import ") and name[len("import "):] in C_EXTENSIONS:
-                continue
             if name.startswith("import "):
                 bad.append(f"{mod}:{line}: {name}")
             elif name not in own:
@@ -273,5 +283,6 @@ def test_the_checks_catch_a_wrong_import_a_circle_and_a_private_call() -> None:
     assert {name: plain for name, _, plain in private_uses(t2)} == {"_regressors": False}
     assert "_regressors" not in private_names(t)
     assert "_x" in private_names(ast.parse("class A:\n    def _x(self):\n        pass\n"))
+    assert "live" not in ALLOWED["diagnosis"] and "diagnosis" not in ALLOWED["fleet"]
     io = ast.parse("import cantools\n")
     assert [n for n, _ in imports(io, "canrls.estimation.rls")] == ["cantools"]

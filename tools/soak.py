@@ -274,9 +274,9 @@ def run(label: str, duration: float, seed: int, faults: str, effects: str,
         s = d.stats()
         res.frames_processed = s.frames
         res.stats = s.to_dict()
-        dec = d.processor.decoder
-        res.rejected = {k: int(v) for k, v in dec.rejected.items() if v}
-        res.lost = int(sum(dec.lost.values()))
+        fr = d.processor.frame_counts()
+        res.rejected = {k: v for k, v in fr.rejected.items() if v}
+        res.lost = sum(fr.lost.values())
         res.rss_peak = rss_mb("VmHWM")
         res.faults = sim.fault_log
         res.survived = {}

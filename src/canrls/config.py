@@ -299,10 +299,6 @@ class AppConfig:
             if not isinstance(v, bool):
                 raise ConfigError(f"{self._where('can.' + k)} = {v!r}: must be true or false")
         where = self.flags.get("can.period") or self._where("can.period")
-        if period is not None and (isinstance(period, bool) or not isinstance(period, int | float)
-                                   or not (math.isfinite(period) and period > 0)):
-            raise ConfigError(f"{where}{'' if 'can.period' in self.flags else f' = {period!r}'}"
-                              f": the control period must be a positive number of seconds")
         axis = self.model.get("axis")
         return Protocol.load(self.dbc_path(), mapping, period=period,
                              period_source=where, axis=axis if isinstance(axis, str) else None,

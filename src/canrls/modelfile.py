@@ -20,7 +20,7 @@ A JSON document (``docs/model_file.md`` describes every key)::
 
 The parameters are physical (SI, the unit beside each); the model and the calibration
 hold the ranges and power-of-two scaling that produced them, so a prediction with the
-file (:func:`canrls.validate.validate_logs`) builds exactly the same filtered columns.
+file (:func:`canrls.diagnosis.validate.validate_logs`) builds exactly the same filtered columns.
 """
 
 from __future__ import annotations

@@ -55,7 +55,15 @@ import numpy.typing as npt
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.pairing import Pairer, PairingCounts
-from canrls.can.period import MIN_INTERVALS, PeriodEstimate, PeriodMeter, check_period
+from canrls.can.period import (
+    MIN_INTERVALS,
+    PERIOD_FRAMES,
+    PeriodEstimate,
+    PeriodMeter,
+    check_period,
+    estimate_period,
+    positive_period,
+)
 from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
 from canrls.can.reorder import Reorderer
 from canrls.can.times import TimeJudge
@@ -75,11 +83,11 @@ from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.svf import SVF
 from canrls.signals import ROLES, Signals
 
-__all__ = ["Calibration", "FitResult", "FrameProcessor", "RMS_HEADROOM",
-           "MIN_ENERGY", "RangeScanner", "SampleProcessor", "SEEN_IDS", "WindowScaling",
-           "calibrate", "data_defaults", "dbc_ranges", "epoch_date", "measure_noise",
-           "scan_ranges",
-           "RESTORE_PERIOD_TOLERANCE"]
+__all__ = ["AxisInfo", "Calibration", "FileShift", "FitResult", "FrameCounts", "FrameProcessor",
+           "MIN_ENERGY", "PeriodInfo", "RESTORE_PERIOD_TOLERANCE", "RMS_HEADROOM", "RangeScanner",
+           "SEEN_IDS", "SampleProcessor", "StartInfo", "WindowScaling", "calibrate",
+           "data_defaults", "dbc_ranges", "epoch_date", "measure_noise", "positive_period",
+           "sample_period", "scan_ranges"]
 
 log = logging.getLogger(__name__)
 
@@ -106,20 +114,155 @@ SEEN_IDS = 1024
 
 
 @dataclass(frozen=True)
+class FrameCounts:
+    """What became of the frames of a stream: how many, rejected by reason, lost,
+    foreign, and the pairing's counts (running totals over every restart)."""
+
+    total: int = 0
+    #: frames rejected, by reason (every reason), and the earliest example of each
+    rejected: dict[str, int] = field(default_factory=dict)
+    examples: dict[str, str] = field(default_factory=dict)
+    #: frames lost (counter gaps), by message
+    lost: dict[str, int] = field(default_factory=dict)
+    #: frames of messages the mapping does not use
+    foreign: int = 0
+    #: the pairing's counts (:meth:`~canrls.can.pairing.PairingCounts.as_dict`)
+    pairing: dict[str, int] = field(default_factory=dict)
+    #: decoded frames of each mapped message
+    messages: dict[str, int] = field(default_factory=dict)
+    #: a mapped message that never came, said (:meth:`FrameProcessor.missing_messages`)
+    missing: str | None = None
+    #: unparsable log lines skipped (``--skip-bad-lines``)
+    bad_lines: int = 0
+
+    def __add__(self, other: FrameCounts) -> FrameCounts:
+        """The counts of two parts of a stream; the first part's examples first."""
+        def add(a: Mapping[str, int], b: Mapping[str, int]) -> dict[str, int]:
+            out = dict(a)
+            for k, v in b.items():
+                out[k] = out.get(k, 0) + int(v)
+            return out
+
+        examples = dict(self.examples)
+        for k, v in other.examples.items():
+            examples.setdefault(k, v)
+        return FrameCounts(self.total + other.total, add(self.rejected, other.rejected),
+                           examples, add(self.lost, other.lost),
+                           self.foreign + other.foreign, add(self.pairing, other.pairing),
+                           add(self.messages, other.messages), self.missing or other.missing,
+                           self.bad_lines + other.bad_lines)
+
+    def to_dict(self, detail: bool = False, period: PeriodInfo | None = None,
+                start: StartInfo | None = None) -> dict[str, Any]:
+        """As ``canrls fit --json`` has them (``detail``: also the frames of each
+        message, a missing message and the lines skipped, and with the ``period`` and
+        ``start`` given, as a diagnosis and a validation have them)."""
+        d: dict[str, Any] = {"total": self.total, "rejected": dict(self.rejected),
+                             "lost": dict(self.lost), "foreign": self.foreign,
+                             "pairing": dict(self.pairing)}
+        if detail:
+            d["messages"] = dict(self.messages)
+            if self.missing:
+                d["missing"] = self.missing
+            if self.bad_lines:
+                d["bad_lines"] = self.bad_lines
+        if period is not None:
+            d["period"] = period.to_dict()
+        if start is not None:
+            d["start"] = start.to_dict()
+        return d
+
+
+@dataclass(frozen=True)
+class PeriodInfo:
+    """The control period used, who stated it and what the frames measured."""
+
+    value: float | None
+    #: ``"measured"``, or who stated it (``"--period 0.001"``, the DBC)
+    source: str = "measured"
+    measured: float | None = None
+    jitter: float | None = None
+    intervals: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def format(self) -> str | None:
+        """``control period 1 ms (measured on the timestamps)`` (None: no period)."""
+        if not self.value:
+            return None
+        how = ("measured on the timestamps" if self.source == "measured" else
+               f"from {self.source}"
+               + (f", timestamps say {self.measured * 1e3:.6g} ms" if self.measured else ""))
+        return f"control period {self.value * 1e3:.6g} ms ({how})"
+
+
+@dataclass(frozen=True)
+class StartInfo:
+    """The first frame's timestamp, its date (UTC) when it is an epoch time, and whether
+    the times reported are relative to it."""
+
+    t0: float | None = None
+    date: str | None = None
+    relative: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def format(self) -> str | None:
+        return (f"log starts {self.date}; times below are from that start"
+                if self.date else None)
+
+
+@dataclass(frozen=True)
+class AxisInfo:
+    """The model's axis, the DBC units it was read from, the ratings relative units refer
+    to and, on a drive that reports its torque, the target."""
+
+    axis: str
+    dbc_axis: str | None = None
+    units: dict[str, str | None] = field(default_factory=dict)
+    ratings: dict[str, float] = field(default_factory=dict)
+    target: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        if self.target is None:
+            del d["target"]
+        return d
+
+    def format(self) -> list[str]:
+        units = ", ".join(f"{r} {u}" for r, u in self.units.items() if u)
+        lines = [f"axis {self.axis}" + (f" (DBC units: {units})" if units else "")]
+        if self.ratings:
+            lines.append("ratings: " + Ratings(**self.ratings).describe(self.axis))
+        if self.target:
+            lines.append(f"mechanical target: {self.target}")
+        return lines
+
+
+@dataclass(frozen=True)
+class FileShift:
+    """One log of several fitted as one record, and the time it was moved by [s]."""
+
+    path: str
+    time_shift_s: float
+
+
+@dataclass(frozen=True)
 class FitResult:
     """What a replay produced: the estimates and what happened to the frames."""
 
     estimates: Estimates
-    frames: int
-    rejected: dict[str, int]
-    rejected_examples: dict[str, str]
-    pairing: dict[str, int]
-    foreign: int
-    lost: dict[str, int]
+    frames: FrameCounts
     source: str
     model: Model
+    period: PeriodInfo
+    start: StartInfo
+    axis: AxisInfo
     calibration: Calibration | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    #: the logs of a fit of several, each with its time shift
+    files: tuple[FileShift, ...] = ()
 
     @property
     def parameters(self) -> Any:
@@ -137,45 +280,34 @@ class FitResult:
         d = self.estimates.to_dict()
         d.update({
             "source": self.source,
-            "frames": {"total": self.frames, "rejected": self.rejected,
-                       "lost": self.lost, "foreign": self.foreign,
-                       "pairing": self.pairing},
+            "frames": self.frames.to_dict(),
             "unit": self.estimates.equations[0].unit if self.estimates.equations else None,
             "calibration": None if self.calibration is None else self.calibration.to_dict(),
+            "period": self.period.to_dict(), "start": self.start.to_dict(),
+            "axis": self.axis.to_dict(),
         })
-        d.update(self.extra)
+        if self.frames.bad_lines:
+            d["bad_lines"] = self.frames.bad_lines
+        if self.files:
+            d["files"] = [dataclasses.asdict(f) for f in self.files]
         return d
 
     def format(self) -> str:
-        lines = [f"{self.source}: {self.frames} frames, {self.estimates.samples} samples used"]
-        start = self.extra.get("start") or {}
-        if start.get("date"):
-            lines.append(f"log starts {start['date']}; times below are from that start")
-        ax = self.extra.get("axis") or {}
-        if ax.get("axis"):
-            units = ", ".join(f"{r} {u}" for r, u in (ax.get("units") or {}).items() if u)
-            lines.append(f"axis {ax['axis']}" + (f" (DBC units: {units})" if units else ""))
-            if ax.get("ratings"):
-                lines.append("ratings: " + Ratings(**ax["ratings"]).describe(ax["axis"]))
-            if ax.get("target"):
-                lines.append(f"mechanical target: {ax['target']}")
-        per = self.extra.get("period") or {}
-        if per.get("value"):
-            meas = per.get("measured")
-            how = ("measured on the timestamps" if per.get("source") == "measured" else
-                   f"from {per.get('source')}"
-                   + (f", timestamps say {meas * 1e3:.6g} ms" if meas else ""))
-            lines.append(f"control period {per['value'] * 1e3:.6g} ms ({how})")
-        rej = sum(self.rejected.values())
+        fr = self.frames
+        lines = [f"{self.source}: {fr.total} frames, {self.estimates.samples} samples used"]
+        lines += [x for x in (self.start.format(),) if x]
+        lines += self.axis.format()
+        lines += [x for x in (self.period.format(),) if x]
+        rej = sum(fr.rejected.values())
         if rej:
             lines.append(f"rejected frames: {rej} ("
-                         + ", ".join(f"{k} {v}" for k, v in self.rejected.items() if v) + ")")
-            for k, ex in self.rejected_examples.items():
+                         + ", ".join(f"{k} {v}" for k, v in fr.rejected.items() if v) + ")")
+            for k, ex in fr.examples.items():
                 lines.append(f"  e.g. {k}: {ex}")
-        if any(self.lost.values()):
+        if any(fr.lost.values()):
             lines.append("lost frames (counter gaps): "
-                         + ", ".join(f"{k} {v}" for k, v in self.lost.items() if v))
-        odd = {k: v for k, v in self.pairing.items() if v and k != "samples"}
+                         + ", ".join(f"{k} {v}" for k, v in fr.lost.items() if v))
+        odd = {k: v for k, v in fr.pairing.items() if v and k != "samples"}
         if odd:
             lines.append("pairing: " + ", ".join(f"{k} {v}" for k, v in odd.items()))
         if self.calibration is not None:
@@ -186,7 +318,6 @@ class FitResult:
     __str__ = format
 
 
-
 def epoch_date(t: float | None) -> str | None:
     """``"2023-11-14 22:13:20.123456 UTC"`` for a timestamp that is an epoch time (after
     1973), else None (a log whose times start near zero)."""
@@ -194,6 +325,19 @@ def epoch_date(t: float | None) -> str | None:
         return None
     d = datetime.datetime.fromtimestamp(t, tz=datetime.UTC)
     return d.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
+
+
+def sample_period(t: npt.ArrayLike, source: str = "the samples") -> float:
+    """The control period of samples at times ``t`` [s], by the rule that measures it on
+    frames (:func:`~canrls.can.period.estimate_period` on the first
+    :data:`~canrls.can.period.PERIOD_FRAMES`): jitter, dropped samples and bursts do
+    not move it."""
+    times = np.asarray(t, dtype=np.float64)[:PERIOD_FRAMES]
+    est = estimate_period({source: times})
+    if est is None:
+        raise ConfigError(f"{source}: cannot measure the sample period on {len(times)} "
+                          f"samples (at least {MIN_INTERVALS + 1} are needed)")
+    return positive_period(est.period, source)
 
 
 class RangeScanner:
@@ -725,15 +869,16 @@ class FrameProcessor:
         self.period_source: str | None = (
             (period_source or "the period given") if period is not None
             else protocol.period_source if stated is not None else None)
-        if stated is not None and not (math.isfinite(stated) and stated > 0):
-            raise ConfigError(f"{self.period_source}: the control period must be a positive "
-                              f"number of seconds, got {stated!r}")
+        if period is not None:  # the protocol's own was checked when it was loaded
+            stated = positive_period(period, str(self.period_source))
         self._model0, self._settings0 = model, settings
         self._meter: PeriodMeter | None = PeriodMeter([m.name for m in protocol.messages])
         #: the period measured on the first frames (None until then, or too few frames)
         self.period_estimate: PeriodEstimate | None = None
         self._held: list[DecodedFrames] = []
         self._seen_ids: dict[int, int] = {}
+        #: the counts of the parts before the last :meth:`restart`
+        self._past = FrameCounts()
         self._restore: tuple[Mapping[str, Any], Model, Model] | None = None
         #: why a state restored before the period was measured was dropped once it was
         #: (it ran at another period); None: none was
@@ -1023,48 +1168,58 @@ class FrameProcessor:
                 "clock_steps": c.clock["step_back"] + c.clock["step_forward"],
                 "gaps": c.clock["gap"]}
 
-    def frame_counts(self) -> dict[str, Any]:
-        """The frames seen, as ``canrls fit --json`` has them under ``frames``: total,
-        rejected by reason, lost by message, foreign, pairing (running totals)."""
+    def frame_counts(self) -> FrameCounts:
+        """The frames seen so far (running totals over every :meth:`restart`)."""
         rej = self.rejected
-        return {"total": self.frames, "rejected": {k: int(v) for k, v in rej.items()},
-                "lost": {k: int(v) for k, v in self.decoder.lost.items()},
-                "foreign": int(self.decoder.foreign), "pairing": self.pairing.as_dict()}
+        now = FrameCounts(
+            total=self.frames - self._past.total,
+            rejected={k: int(v) for k, v in rej.items()},
+            examples=dict(getattr(rej, "examples", {}) or {}),
+            lost={k: int(v) for k, v in self.decoder.lost.items()},
+            foreign=int(self.decoder.foreign), pairing=self.pairing.as_dict())
+        counts = self._past + now
+        return dataclasses.replace(counts, messages=dict(self.message_frames),
+                                   missing=self.missing_messages())
 
-    def period_info(self) -> dict[str, Any]:
-        """The period used, who stated it and what the frames measured (text and JSON)."""
+    def restart(self) -> None:
+        """A new stream (the next log): time judge, reorderer, decoder and pairer start
+        afresh, none of their state carried over; the period stays decided, and the
+        frame counts go on (:meth:`frame_counts`)."""
+        self._past = dataclasses.replace(self.frame_counts(), messages={}, missing=None)
+        self.decoder = self.protocol.decoder()
+        self.reorder = Reorderer(self.protocol.messages)
+        self.times = TimeJudge()
+        if self.pairer is not None:
+            self.pairer = Pairer(self.protocol, period=self.pairer.period)
+
+    def period_info(self) -> PeriodInfo:
+        """The period used, who stated it and what the frames measured."""
         est = self.period_estimate
-        return {"value": self.period, "source": self.period_source or "measured",
-                "measured": None if est is None else est.period,
-                "jitter": None if est is None else est.jitter,
-                "intervals": None if est is None else sum(est.intervals.values())}
+        return PeriodInfo(self.period, self.period_source or "measured",
+                          None if est is None else est.period,
+                          None if est is None else est.jitter,
+                          None if est is None else sum(est.intervals.values()))
 
-    def axis_info(self) -> dict[str, Any]:
+    def axis_info(self) -> AxisInfo:
         """The model's axis, the DBC units of the signals it was read from, the ratings
         relative units refer to and, on a torque-reporting drive, the target."""
-        d: dict[str, Any] = {"axis": self.model.axis, "dbc_axis": self.protocol.axis,
-                             "units": {r: i.unit for r, i in self.protocol.roles.items()},
-                             "ratings": self.protocol.mapping.ratings.as_dict()}
+        target = None
         if self.model.target == "torque":
             t = self.protocol.roles["torque"]
             lin = self.model.axis == "linear"
-            d["target"] = (f"the {'force' if lin else 'torque'} the drive reports, "
-                           f"{t.message}.{t.signal} [{'N' if lin else 'N·m'}], no Kt")
-        return d
+            target = (f"the {'force' if lin else 'torque'} the drive reports, "
+                      f"{t.message}.{t.signal} [{'N' if lin else 'N·m'}], no Kt")
+        return AxisInfo(self.model.axis, self.protocol.axis,
+                        {r: i.unit for r, i in self.protocol.roles.items()},
+                        self.protocol.mapping.ratings.as_dict(), target)
 
-    def start_info(self) -> dict[str, Any]:
+    def start_info(self) -> StartInfo:
         """The first frame's timestamp and, for an epoch time, its date (UTC)."""
-        return {"t0": self.origin, "date": epoch_date(self.origin),
-                "relative": self.relative_time}
+        return StartInfo(self.origin, epoch_date(self.origin), self.relative_time)
 
     def result(self, source: str) -> FitResult:
-        rej = self.rejected
-        extra: dict[str, Any] = {"period": self.period_info(), "start": self.start_info(),
-                                 "axis": self.axis_info()}
-        return FitResult(
-            estimates=self.pipeline.estimates(), frames=self.frames,
-            rejected={k: int(v) for k, v in rej.items()},
-            rejected_examples=dict(getattr(rej, "examples", {}) or {}),
-            pairing=self.pairing.as_dict(), foreign=int(self.decoder.foreign),
-            lost={k: int(v) for k, v in self.decoder.lost.items()},
-            source=source, model=self.model, calibration=self.calibration, extra=extra)
+        """The estimates so far, with the frames, period, start and axis."""
+        return FitResult(estimates=self.pipeline.estimates(), frames=self.frame_counts(),
+                         source=source, model=self.model, period=self.period_info(),
+                         start=self.start_info(), axis=self.axis_info(),
+                         calibration=self.calibration)

@@ -36,6 +36,7 @@ measured together, their intervals pooled (:func:`_segments`), so the start does
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -45,7 +46,8 @@ import numpy.typing as npt
 from canrls.errors import ConfigError
 
 __all__ = ["PERIOD_FRAMES", "PERIOD_TOLERANCE", "MIN_INTERVALS", "BURST_SHARE", "PeriodEstimate",
-           "PeriodMeter", "estimate_period", "check_period", "STEP_BACK", "STEP_FORWARD"]
+           "PeriodMeter", "estimate_period", "check_period", "STEP_BACK", "STEP_FORWARD",
+           "positive_period"]
 
 #: Frames of each mapped message the period is measured on (the first ones).
 PERIOD_FRAMES = 256
@@ -174,6 +176,18 @@ def estimate_period(times: Mapping[str, Sequence[float] | F64]) -> PeriodEstimat
               "messages sent at the control period")
     jit = float(max(r[1] for r in got.values()))
     return PeriodEstimate(p, jit, {name: len(times[name]) - 1 for name in got}, periods)
+
+
+def positive_period(value: object, where: str) -> float:
+    """``value`` as a control period [s]; a :class:`ConfigError` naming ``where`` (the
+    flag, key or file that stated it) unless it is a finite positive number. The one
+    check of a period's value: a stated period (:meth:`Protocol.load
+    <canrls.can.protocol.Protocol.load>`) and the processor's go through it."""
+    if (isinstance(value, bool) or not isinstance(value, int | float)
+            or not (math.isfinite(value) and value > 0)):
+        raise ConfigError(f"{where}: the control period must be a positive number of "
+                          f"seconds, got {value!r}")
+    return float(value)
 
 
 def check_period(stated: float, source: str, measured: PeriodEstimate) -> None:

@@ -48,6 +48,7 @@ import numpy.typing as npt
 from canrls import _can
 from canrls.can.e2e import CRC8_TABLE
 from canrls.can.frameblock import FrameBlock
+from canrls.can.period import positive_period
 from canrls.can.units import RATING_OPTIONS, Ratings, axis_of, si_factor
 from canrls.errors import ConfigError, DecodeError, SignalError
 from canrls.files import MAX_DBC_BYTES, read_bytes
@@ -838,8 +839,8 @@ class Protocol:
         else:
             raise ConfigError(f"signal mapping must be a SignalMapping, a table or a list of "
                               f"ROLE=MESSAGE.SIGNAL strings, got {type(mapping).__name__}")
-        if period is not None and not (math.isfinite(period) and period > 0):
-            raise ConfigError(f"period must be a positive number of seconds, got {period!r}")
+        if period is not None:
+            period = positive_period(period, period_source or "period")
         roles, messages = _resolve(db, path, is_default, mp, period, axis)
         proto = Protocol(db, path, is_default, mp, roles, messages, strict_range=strict_range,
                          check_crc=check_crc, check_counter=check_counter)
@@ -847,6 +848,7 @@ class Protocol:
             proto.period_source = period_source
         elif proto.period is not None:
             proto.period_source = f"the GenMsgCycleTime of DBC {path.name}"
+            positive_period(proto.period, proto.period_source)
         return proto
 
     def has(self, role: str) -> bool:

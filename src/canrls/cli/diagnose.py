@@ -105,10 +105,9 @@ def run(args: argparse.Namespace) -> int:
     rep = diagnose_log(args.log, protocol, model, settings, add=args.add,
                        progress=Progress("diagnose", quiet=args.quiet).callback,
                        max_order=args.max_order, skip_bad_lines=args.skip_bad_lines)
-    frames = rep.frames or {}
-    few = too_few_samples(rep.before.model, rep.before.estimates, frames,
-                          (frames.get("period") or {}).get("value"), settings)
-    if few is not None:
+    few = rep.frames and too_few_samples(rep.before.model, rep.before.estimates, rep.frames,
+                                         rep.period and rep.period.value, settings)
+    if few:
         raise EstimatorError(f"{', '.join(args.log)}: {few}")
     page = rep.write_html(args.report) if args.report else None
     saved = None
@@ -127,11 +126,10 @@ def run(args: argparse.Namespace) -> int:
         print_json(d)
     else:
         head = []
-        if (frames.get("start") or {}).get("date"):
-            head.append(f"log starts {frames['start']['date']}; times below are from that start")
-        per = frames.get("period") or {}
-        if per.get("value"):
-            head.append(f"control period {per['value'] * 1e3:.6g} ms ({per.get('source')})")
+        if rep.start is not None and rep.start.date:
+            head.append(f"log starts {rep.start.date}; times below are from that start")
+        if rep.period is not None and rep.period.value:
+            head.append(f"control period {rep.period.value * 1e3:.6g} ms ({rep.period.source})")
         m = getattr(rep, "model", None)
         if m is not None:
             u = "m/s" if m.axis == "linear" else "rad/s"

@@ -1,7 +1,7 @@
 """``canrls validate LOG [LOG ...] --model FILE``: a saved model against other recordings.
 
 Predicts the logs with the parameters of a model saved by ``canrls fit --save-model``
-without re-estimating anything (:mod:`canrls.validate`), and reports fit %, residual RMS
+without re-estimating anything (:mod:`canrls.diagnosis.validate`), and reports fit %, residual RMS
 (overall and per log) and where the model fails, as the diagnosis does. The DBC and
 signal mapping default to those saved in the model file; ``--dbc``/``--signal``/
 ``--config`` replace them (logs of another drive with the same mechanics); the
@@ -60,8 +60,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from canrls.config import AppConfig
+    from canrls.diagnosis.validate import validate_logs
     from canrls.modelfile import SavedModel
-    from canrls.validate import validate_logs
 
     if args.report:
         # fail before the long part when the figures cannot be drawn

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -78,8 +78,16 @@ from canrls.estimation.pipeline import (
     PipelineBlock,
 )
 from canrls.estimation.rls import RLS
-from canrls.processor import SampleProcessor
-from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals
+from canrls.processor import (
+    FrameCounts,
+    PeriodInfo,
+    SampleProcessor,
+    StartInfo,
+    positive_period,
+    sample_period,
+)
+from canrls.signals import Signals
+from canrls.spill import MaskPacker, PackedMask, SpilledSignals
 
 __all__ = ["DEFAULT_MAX_ORDER", "MAX_ORDER_LIMIT", "DiagnosisReport", "diagnose",
            "diagnose_log"]
@@ -97,21 +105,22 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
              settings: EstimatorSettings | None = None, *, dt: float | None = None,
              add: Sequence[str] = (), max_order: int = DEFAULT_MAX_ORDER,
              source: str = "<signals>",
-             frames: Mapping[str, Any] | None = None) -> DiagnosisReport:
+             frames: FrameCounts | None = None, period: PeriodInfo | None = None,
+             start: StartInfo | None = None) -> DiagnosisReport:
     """Diagnose ``model`` on samples: compare, locate the failures, rank the missing effects.
 
     :param data: a :class:`~canrls.signals.Signals` block, or blocks (joined end to end),
-        or a record in a temporary file (:class:`~canrls.signals.SpilledSignals`,
+        or a record in a temporary file (:class:`~canrls.spill.SpilledSignals`,
         read in slices).
     :param model: the model to diagnose.
     :param settings: estimator settings (default :class:`EstimatorSettings`).
-    :param dt: sample period [s] (default: the median step of ``t``).
+    :param dt: sample period [s] (default: measured on ``t`` as the processor measures it).
     :param add: effects to add and refit (``after``); ``cogging`` without an order takes
         the order the search found.
     :param max_order: highest cogging order searched, and of the order spectrum
         (1 to :data:`~canrls.diagnosis.candidates.MAX_ORDER_LIMIT`).
     :param source: what the samples are, for the text.
-    :param frames: frame statistics of a log replay, copied into the report.
+    :param frames, period, start: what a log replay found, copied into the report.
     :raises ConfigError: no samples, a bad ``dt`` or ``max_order``; :class:`EffectError`
         for an effect in ``add`` that is unknown or already in the model.
     """
@@ -120,14 +129,8 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
     n = len(signals)
     if n < 2:
         raise ConfigError(f"diagnose: {source}: {n} samples; need at least a few seconds")
-    if dt is None:
-        steps = np.diff(signals.t)
-        steps = steps[np.isfinite(steps) & (steps > 0)]
-        if not len(steps):
-            raise ConfigError(f"diagnose: {source}: cannot infer the sample period from t")
-        dt = float(np.median(steps))
-    if not (isinstance(dt, int | float) and math.isfinite(dt) and dt > 0):
-        raise ConfigError(f"diagnose: dt = {dt!r}: must be > 0 s")
+    dt = (sample_period(signals.t, f"diagnose: {source}") if dt is None
+          else positive_period(dt, "diagnose: dt"))
     if (isinstance(max_order, bool) or not isinstance(max_order, int)
             or not 1 <= max_order <= MAX_ORDER_LIMIT):
         raise ConfigError(f"diagnose: max_order = {max_order!r}: must be an integer in "
@@ -147,7 +150,8 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
     duration = float(t[-1] - t[0]) + float(dt) if n else 0.0
     return DiagnosisReport(source=source, dt=float(dt), samples=n, duration=duration,
                            before=before, after=after, added=added, settings=settings,
-                           max_order=max_order, frames=frames)
+                           max_order=max_order, frames=frames, period=period,
+                           start=start)
 
 
 def diagnose_log(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
@@ -162,7 +166,7 @@ def diagnose_log(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]
     The frames are decoded and paired exactly as ``canrls fit`` does
     (:func:`canrls.replay.read_logs`), so ``before`` holds the same parameters as
     ``canrls fit`` prints, bit for bit. The samples are kept in an anonymous temporary
-    file (:class:`~canrls.signals.SpilledSignals`: the statistics read them again in
+    file (:class:`~canrls.spill.SpilledSignals`: the statistics read them again in
     slices, the refit of ``add`` too), freed on return; in memory if the file cannot
     be made.
     """
@@ -179,7 +183,7 @@ def diagnose_log(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]
     try:
         return diagnose(log.signals, log.model, settings, dt=log.dt, add=add,
                         max_order=max_order, source=", ".join(str(p) for p in paths),
-                        frames=log.frames)
+                        frames=log.frames, period=log.period, start=log.start)
     finally:
         log.close()
 
@@ -219,7 +223,7 @@ def _run_in_chunks(proc: SampleProcessor,
                    signals: Signals | SpilledSignals) -> list[PackedMask]:
     """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
     each equation's recorded block, what the diagnosis reads: the used rows, packed as
-    they come (:class:`~canrls.signals.MaskPacker`: one bit a row, in a temporary file
+    they come (:class:`~canrls.spill.MaskPacker`: one bit a row, in a temporary file
     past a few hundred thousand rows); the times are the samples' own, ``signals.t``
     (checked block by block).
 

@@ -67,7 +67,8 @@ from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Cogging, Effect, UserTerm, library
 from canrls.estimation.model import Equation, Model
-from canrls.signals import PackedMask, Signals, SpilledSignals
+from canrls.signals import Signals
+from canrls.spill import PackedMask, SpilledSignals
 
 __all__ = [
     "DEFAULT_MAX_ORDER",

@@ -209,11 +209,9 @@ def _recording(job: IngestJob, digest: str, res: Any,
                candidates: tuple[CandidateValue, ...] | None,
                rank_error: str | None) -> Recording:
     est = res.estimates
-    d = res.to_dict()
-    start = d.get("start") or {}
-    period = (d.get("period") or {}).get("value")
-    paired = int((d.get("frames") or {}).get("pairing", {}).get("samples", 0))
-    t0 = _finite(start.get("t0"))
+    period = res.period.value
+    paired = int(res.frames.pairing.get("samples", 0))
+    t0 = _finite(res.start.t0)
     t1 = t0 + paired * period if period and math.isfinite(t0) else math.nan
     eqs = {e.equation: {"fit_percent": e.fit_percent, "r2": e.r2,
                         "divergence": e.divergence, "saturations": int(sum(
@@ -223,10 +221,10 @@ def _recording(job: IngestJob, digest: str, res: Any,
     verdicts: dict[str, Any] = {
         "equations": eqs,
         "not_identifiable": [p.name for p in est.parameters if not p.identifiable],
-        "rejected_frames": int(sum(res.rejected.values())),
-        "lost_frames": int(sum(res.lost.values())),
+        "rejected_frames": int(sum(res.frames.rejected.values())),
+        "lost_frames": int(sum(res.frames.lost.values())),
         "period": period,
-        "start_date": start.get("date"),
+        "start_date": res.start.date,
     }
     if rank_error:
         verdicts["rank_error"] = rank_error
@@ -239,7 +237,7 @@ def _recording(job: IngestJob, digest: str, res: Any,
     return Recording(drive=job.source.drive, drive_type=job.source.drive_type,
                      content_hash=digest, model_key=job.key, model=job.model,
                      source=SOURCE_LOG, path=job.source.path, t_start=t0, t_end=t1,
-                     samples=int(est.samples), frames=int(res.frames),
+                     samples=int(est.samples), frames=int(res.frames.total),
                      residual_rms=float(est.residual_rms), fit_percent=float(est.fit_percent),
                      unit=unit, verdicts=verdicts, parameters=params, candidates=candidates,
                      canrls_version=__version__)

@@ -252,11 +252,11 @@ class Daemon:
             return self._proc.pipeline.estimates()
 
     def _wire_counters(self) -> dict[str, int]:
-        d = self._proc.decoder
+        fr = self._proc.frame_counts()
         b = self._base
         return {
-            "frames_rejected": int(d.rejected.total) + b.get("frames_rejected", 0),
-            "frames_lost": int(sum(d.lost.values())) + self._queue.overflow
+            "frames_rejected": sum(fr.rejected.values()) + b.get("frames_rejected", 0),
+            "frames_lost": sum(fr.lost.values()) + self._queue.overflow
             + b.get("frames_lost", 0),
             "saturations": int(self._proc.pipeline.saturations.total) + b.get("saturations", 0),
             "tx_dropped": self._link.counts["tx_dropped"] + b.get("tx_dropped", 0),
@@ -288,7 +288,7 @@ class Daemon:
         ``frames`` (total, rejected by reason, lost, foreign, pairing; since the start,
         a checkpoint's counters aside)."""
         with self._lock:
-            return self._proc.frame_counts()
+            return self._proc.frame_counts().to_dict()
 
     def status(self) -> StatusReport:
         """The status as the next RlsStatus/RlsHealth/RlsCounters would carry it."""
