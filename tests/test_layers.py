@@ -165,6 +165,12 @@ def test_only_the_processor_runs_its_parts(tree: dict[str, ast.Module]) -> None:
         + "\n".join(sorted(bad))
 
 
+def test_only_the_cli_sees_argparse(tree: dict[str, ast.Module]) -> None:
+    bad = [f"{mod}:{line}" for mod, t in tree.items() if layer_of(mod) != "cli"
+           for name, line in imports(t, mod) if name.split(".")[0] == "argparse"]
+    assert not bad, "argparse below the command line: " + ", ".join(bad)
+
+
 def test_pure_layers_import_no_io(tree: dict[str, ast.Module]) -> None:
     bad = []
     for mod, t in tree.items():

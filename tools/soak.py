@@ -68,7 +68,7 @@ import numpy as np
 from can.interfaces import virtual as _virtual
 
 from canrls.can.frames import FrameDecoder, ParameterReport, frame_ids
-from canrls.config import AppConfig
+from canrls.config import AppConfig, prepare
 from canrls.errors import CanrlsError
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.sim.faults import FaultLog, FaultSpec
@@ -183,11 +183,10 @@ class _LogCount(logging.Handler):
 def make_daemon(channel: str, effects: str, max_block: int = MAX_BLOCK) -> Daemon:
     cfg = AppConfig()
     cfg.model = {"effects": effects.split(","), "kt": 0.1}
-    protocol = cfg.protocol()
-    model = cfg.model_for(protocol)
+    protocol, model, est = prepare(cfg)
     # commands on explicitly: the soak floods them (the default may be off)
     settings = DaemonSettings(commands=True, queue_size=200_000, max_block=max_block)
-    return Daemon(protocol, model, cfg.settings(), settings,
+    return Daemon(protocol, model, est, settings,
                   bus={"interface": "virtual", "channel": channel}, backpressure=True)
 
 

@@ -51,6 +51,9 @@
 
     [daemon]                   # canrls run (see docs/daemon.md)
 
+    [monitor]                  # canrls monitor: defaults of --interval, --timeout, --plain
+    interval = 1.0
+
     [history]                  # canrls run appends its parameters to a fleet history
     url = "fleet.db"           # (docs/fleet.md; canrls.fleet.live)
     drive = "axis-1"
@@ -62,7 +65,6 @@ naming the file, the key and the value.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import re
@@ -70,7 +72,7 @@ import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from canrls.can.protocol import Protocol, SignalMapping
 from canrls.can.units import RATING_OPTIONS, Ratings
@@ -81,8 +83,8 @@ from canrls.estimation.pipeline import EstimatorSettings
 from canrls.files import MAX_CONFIG_BYTES, check_path, read_bytes
 from canrls.signals import ROLES
 
-__all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "load_config",
-           "read_toml", "load_model"]
+__all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "Overrides", "Prepared",
+           "load_config", "load_model", "prepare", "read_toml"]
 
 #: Deepest nesting of tables and arrays a configuration file may have (ours need 3).
 MAX_DEPTH = 16
@@ -111,6 +113,49 @@ _FLAGS = (("kt", "--kt", "model", "kt"), ("axis", "--axis", "model", "axis"),
           *((key, flag, "signals", key) for key, (flag, _, _) in RATING_OPTIONS.items()))
 _CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
              "channel", "bitrate", "fd", "data_bitrate")
+#: ``[monitor]``: defaults of ``canrls monitor``'s options of the same names
+_MONITOR_KEYS = {"interval": "a positive number of seconds",
+                 "timeout": "a positive number of seconds", "plain": "true or false"}
+
+
+@dataclass(frozen=True)
+class Overrides:
+    """What the command line sets over the configuration file, built once from the
+    arguments by the command line (nothing below it sees them); hashable and picklable,
+    so a fleet's workers take it as it is."""
+
+    dbc: str | None = None
+    signals: tuple[str, ...] = ()
+    effects: str | None = None
+    kt: float | None = None
+    axis: str | None = None
+    lam: float | None = None
+    alpha: float | None = None
+    period: float | None = None
+    #: what relative units refer to (``--rated-torque``, ``--rated-current``,
+    #: ``--increments-per-rev``)
+    rated_torque: float | None = None
+    rated_current: float | None = None
+    increments_per_rev: float | None = None
+    #: python-can's bus arguments (``-i -c -b --fd --data-bitrate --timing``,
+    #: ``--bus-kwargs``), over ``[can]``
+    bus: tuple[tuple[str, Any], ...] = ()
+
+
+class Prepared(NamedTuple):
+    """What every command builds from a configuration (:func:`prepare`)."""
+
+    protocol: Protocol
+    model: Model
+    settings: EstimatorSettings
+
+
+def prepare(cfg: AppConfig) -> Prepared:
+    """Protocol, model and settings from a configuration: the one builder of them. The
+    ranges it does not give are measured by the front end on the calibration window
+    (:mod:`canrls.processor`), live and offline alike: no first pass over a log."""
+    protocol = cfg.protocol()
+    return Prepared(protocol, cfg.model_for(protocol), cfg.settings())
 
 
 def read_toml(path: str | Path, table: str | None = None, *, key: str | None = None
@@ -186,6 +231,8 @@ class AppConfig:
     #: configuration keys set from the command line, with the flag and value typed
     #: (``{"model.effects": "--effects inertia,foo"}``): errors name those, not the key
     flags: dict[str, str] = field(default_factory=dict)
+    #: the bus arguments of the command line (over the bus keys of ``[can]``)
+    bus: dict[str, Any] = field(default_factory=dict)
 
     # -- loading ----------------------------------------------------------------------
     @classmethod
@@ -206,8 +253,8 @@ class AppConfig:
         return cfg
 
     def check(self) -> None:
-        """Every key of ``[estimator]``, ``[fixed]`` and ``[can]`` is one canrls knows (a
-        :class:`ConfigError` naming the first that is not)."""
+        """Every key of ``[estimator]``, ``[fixed]``, ``[can]`` and ``[monitor]`` is one
+        canrls knows (a :class:`ConfigError` naming the first that is not)."""
         src = self.source
         for k in self.estimator:
             if k not in _ESTIMATOR_KEYS:
@@ -221,22 +268,33 @@ class AppConfig:
             if k not in _CAN_KEYS:
                 raise ConfigError(f"{src}: unknown key can.{k} = {self.can[k]!r} "
                                   f"(valid: {', '.join(_CAN_KEYS)})")
+        for k, v in self.monitor.items():
+            want = _MONITOR_KEYS.get(k)
+            if want is None:
+                raise ConfigError(f"{src}: unknown key monitor.{k} = {v!r} "
+                                  f"(valid: {', '.join(_MONITOR_KEYS)})")
+            ok = (isinstance(v, bool) if k == "plain" else
+                  not isinstance(v, bool) and isinstance(v, int | float)
+                  and math.isfinite(v) and v > 0)
+            if not ok:
+                raise ConfigError(f"{src}: monitor.{k} = {v!r}: must be {want}")
 
     # -- command line -----------------------------------------------------------------
-    def apply_args(self, args: argparse.Namespace) -> AppConfig:
-        """Let the options of :func:`canrls.cli._common.add_model_options` override the file."""
-        if getattr(args, "dbc", None):
-            self.can["dbc"] = str(Path(args.dbc).resolve())
-        if getattr(args, "signal", None):
-            self.signal_overrides = list(args.signal)
-        if getattr(args, "effects", None):
-            self.model["effects"] = [e.strip() for e in args.effects.split(",") if e.strip()]
-            self.flags["model.effects"] = f"--effects {args.effects}"
+    def apply(self, over: Overrides) -> AppConfig:
+        """Let the command line's :class:`Overrides` override the file."""
+        if over.dbc:
+            self.can["dbc"] = str(Path(over.dbc).resolve())
+        if over.signals:
+            self.signal_overrides = list(over.signals)
+        if over.effects:
+            self.model["effects"] = [e.strip() for e in over.effects.split(",") if e.strip()]
+            self.flags["model.effects"] = f"--effects {over.effects}"
         for attr, flag, section, key in _FLAGS:
-            v = getattr(args, attr, None)
+            v = getattr(over, attr)
             if v is not None:
                 getattr(self, section)[key] = v
                 self.flags[f"{section}.{key}"] = f"{flag} {v}"
+        self.bus.update(over.bus)
         return self
 
     def _flagged(self, e: ConfigError) -> ConfigError:
@@ -394,7 +452,7 @@ class AppConfig:
             raise self._flagged(ConfigError(f"{self.source}: {e}")) from e
 
 
-def load_config(path: str | Path | None, args: argparse.Namespace | None = None) -> AppConfig:
-    """Read the file (if any) and apply command-line overrides."""
+def load_config(path: str | Path | None, overrides: Overrides | None = None) -> AppConfig:
+    """Read the file (if any) and apply the command line's overrides."""
     cfg = AppConfig.load(path)
-    return cfg.apply_args(args) if args is not None else cfg
+    return cfg.apply(overrides) if overrides is not None else cfg

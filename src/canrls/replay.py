@@ -15,11 +15,11 @@ import dataclasses
 import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from typing import TYPE_CHECKING
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, read_frames
 from canrls.can.protocol import Protocol
+from canrls.config import prepare  # the one builder, where the replay's callers look
 from canrls.errors import ConfigError, EstimatorError, LogFormatError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, PipelineBlock
@@ -34,9 +34,6 @@ from canrls.processor import (
 )
 from canrls.signals import Signals
 from canrls.spill import SpilledSignals, join_blocks, spill_blocks
-
-if TYPE_CHECKING:
-    from canrls.config import AppConfig
 
 __all__ = ["FILE_GAP_S", "FitResult", "FrameProcessor", "LogFiles", "LogsSamples",
            "MIN_SAMPLES_PER_PARAMETER", "fit_frames", "fit_log", "fit_logs", "prepare",
@@ -128,14 +125,6 @@ def too_few_samples(model: Model, estimates: Estimates, frames: FrameCounts,
         return (f"too few usable samples: the {eq.name} equation used {fit.samples}, its "
                 f"{len(eq.parameters)} parameters need at least {need}; {text}{why}")
     return None
-
-
-def prepare(cfg: AppConfig) -> tuple[Protocol, Model, EstimatorSettings]:
-    """Protocol, model and settings from a configuration. The ranges it does not give
-    are measured by the front end on the calibration window (:mod:`canrls.processor`),
-    as the live daemon does: no first pass over the log."""
-    protocol = cfg.protocol()
-    return protocol, cfg.model_for(protocol), cfg.settings()
 
 
 class LogFiles:

@@ -144,7 +144,7 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
 
     from canrls.can.frameblock import FrameBlock
     from canrls.can.frames import encode_command, parse_effect
-    from canrls.config import AppConfig
+    from canrls.config import AppConfig, prepare
     from canrls.live.daemon import Daemon, DaemonSettings
     from canrls.live.monitor import LibraryUnits, Monitor
     from canrls.processor import FrameProcessor
@@ -168,9 +168,7 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     kt = sc.truth.kt
     cfg = AppConfig()
     cfg.model = {"effects": list(_BASE), "kt": kt}
-    protocol = cfg.protocol()
-    model = cfg.model_for(protocol)
-    settings = cfg.settings()
+    protocol, model, settings = prepare(cfg)
     units = LibraryUnits.for_model(model)
     unit = units.target_unit()
     global _counter

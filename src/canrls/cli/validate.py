@@ -35,6 +35,7 @@ from canrls.cli._common import (
     add_model_options,
     add_progress_option,
     add_report_option,
+    overrides,
     print_json,
 )
 
@@ -95,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         cfg.signals = dict(base.signals)
         if not args.signal:
             cfg.signal_overrides = list(base.signal_overrides)
-    cfg.apply_args(args)
+    cfg.apply(overrides(args))
     rep = validate_logs(args.log, saved, cfg.protocol(), model_file=args.model,
                         progress=Progress("validate", quiet=args.quiet).callback,
                         skip_bad_lines=args.skip_bad_lines)

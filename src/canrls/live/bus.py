@@ -73,11 +73,9 @@ _CAN_ERR_RESTARTED = 0x100
 _BUS_KEYS = ("interface", "channel", "bitrate", "fd", "data_bitrate")
 
 
-def bus_config(cfg: AppConfig | None = None, args: Any = None) -> dict[str, Any]:
-    """Every argument of the bus, explicitly: ``[can]`` overridden by the command line.
-
-    ``args`` is a namespace from :func:`canrls.cli._common.add_bus_options`
-    (``-i -c -b --fd --data-bitrate --timing --bus-kwargs``).
+def bus_config(cfg: AppConfig | None = None) -> dict[str, Any]:
+    """Every argument of the bus, explicitly: ``[can]`` overridden by the command line's
+    bus arguments (:attr:`AppConfig.bus <canrls.config.AppConfig.bus>`).
 
     :raises ConfigError: no interface, or a value of the wrong type.
     """
@@ -87,11 +85,7 @@ def bus_config(cfg: AppConfig | None = None, args: Any = None) -> dict[str, Any]
         for k in _BUS_KEYS:
             if k in cfg.can:
                 conf[k] = cfg.can[k]
-    if args is not None:
-        for k in (*_BUS_KEYS, "timing"):
-            if getattr(args, k, None) is not None:
-                conf[k] = getattr(args, k)
-        conf.update(getattr(args, "bus_kwargs", None) or {})
+        conf.update(cfg.bus)
     if not conf.get("interface"):
         raise ConfigError(f"{src}: no CAN interface: set can.interface in the configuration or "
                           f"-i/--interface (socketcan, virtual, canrls-sim, remote, ...)")
