@@ -55,7 +55,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.diagnosis.candidates import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT, rank_candidates
+from canrls.diagnosis.candidates import (
+    DEFAULT_MAX_ORDER,
+    MAX_ORDER_LIMIT,
+    ResidualSummary,
+    rank_candidates,
+)
 from canrls.diagnosis.report import DiagnosisReport
 from canrls.diagnosis.residual import (
     WHITENESS_LAGS,
@@ -286,7 +291,8 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
     regions = find_regions(bins, r, tau, unit, ctx, rows=used)
     spectrum = order_spectrum(ctx, r, used, unit) if ctx.angle_raw is not None else None
     exc = excitation_summary(ctx, model, used)
-    cand = rank_candidates(ctx, model, eq, r, used, N, h2, unit, bins, spectrum, exc)
+    cand = rank_candidates(ctx, model, eq,
+                           ResidualSummary(r, used, h2, unit, bins, spectrum, exc))
     traces = _traces(ctx, est, r, used)
     return EquationDiagnosis(
         equation=eq.name, target=eq.target.description, unit=unit, fit=fit,
