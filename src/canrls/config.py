@@ -1,66 +1,8 @@
 """The canrls configuration file (TOML) and how command-line options override it.
 
-.. code-block:: toml
-
-    [model]                    # the model: see canrls.estimation.model (effects, kt, axis, filter, ...)
-    effects = ["inertia", "viscous", "coulomb"]
-    kt = 0.1                   # not with a torque signal: its torque is the target (N·m)
-    [model.filter]
-    held = ["current", "voltage"]   # the default here (canrls.estimation.model.Model's is
-                                    # ["voltage"]); with a torque signal also "torque"
-
-    [estimator]
-    lambda = 1.0               # forgetting factor (0.5, 1]; 1 keeps all data (default)
-    alpha = 0.01               # ridge: the prior weighs like alpha samples of each column
-    trace_max = 80.0           # bound on trace P (default: the prior's trace)
-    warmup_s = 0.05            # filter warm-up not used (default 5 SVF time constants)
-    gap_periods = 3.5          # a sample gap longer than this many periods restarts the filter
-    calibration_s = 2.0        # seconds at the start that calibrate normalisation and prior
-    rms_time_s = 1.0           # time constant of the running residual RMS
-    max_phase_step = 0.3       # skip samples where a periodic column advances more [rad]
-                               # (default: no limit)
-    min_speed = 0.05           # with friction effects: skip samples slower than this
-                               # (default 5 x the Coulomb band)
-
-    [fixed]
-    word_bits = 32             # state word
-    acc_bits = 64              # accumulators
-    input_bits = 32            # phi and y (16 possible)
-    theta_max = 16.0           # bound of the normalised parameters (default)
-    [fixed.formats]            # optional Q-format overrides: [bits, frac]
-    P = [32, 20]
-
-    [can]
-    dbc = "my_drive.dbc"       # default: the DBC shipped with canrls
-    period = 0.001             # control period [s] (default: the DBC's GenMsgCycleTime, else
-                               # measured on the log's timestamps; checked against them)
-    strict_range = true        # named opt-outs of strict decoding
-    check_crc = true
-    check_counter = true
-    interface = "socketcan"    # live bus (canrls run / monitor)
-    channel = "can0"
-    bitrate = 1000000
-
-    [signals]                  # which message and signal carry each role (canrls.can.protocol)
-    current = "DriveCurrent.Current"
-    speed = { signal = "DriveSpeed.Speed", unit = "rpm" }
-    # torque = "TPDO1.TorqueActual"    # a drive that reports its torque (no kt needed)
-    # rated_torque = 2.4        # N·m: what a per mille (‰) or per cent torque refers to
-    # rated_current = 5.0       # A: the same for a current in ‰ or %
-    # increments_per_rev = 4096 # encoder increments per revolution (linear: per metre)
-
-    [daemon]                   # canrls run (see docs/daemon.md)
-
-    [monitor]                  # canrls monitor: defaults of --interval, --timeout, --plain
-    interval = 1.0
-
-    [history]                  # canrls run appends its parameters to a fleet history
-    url = "fleet.db"           # (docs/fleet.md; canrls.fleet.live)
-    drive = "axis-1"
-
-Relative paths (``can.dbc``) are relative to the configuration file. Every key is
-checked: an unknown key or a bad value is a :class:`~canrls.errors.ConfigError`
-naming the file, the key and the value.
+One reader (:func:`read_toml`), the command line's options applied once
+(:class:`Overrides`) and one builder of (protocol, model, settings) for every command
+(:func:`prepare`). The file's sections and keys: docs/configuration.md.
 """
 
 from __future__ import annotations

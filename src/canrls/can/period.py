@@ -1,37 +1,10 @@
 r"""The control period from the frames' timestamps.
 
-A user's DBC rarely states ``GenMsgCycleTime``, and a stated period can be wrong; the
-timestamps of the feedback frames say it. :class:`PeriodMeter` measures it on the first
-:data:`PERIOD_FRAMES` frames of each mapped message, causally, so the live daemon (no log
-ahead) and the offline replay (the same frames from a file) measure the same period. The
-front end (:class:`canrls.processor.FrameProcessor`) is the one place that runs it and
-decides the period (docs/architecture.md, "Control period").
-
-The estimate, per message, robust to jitter, dropped frames and bursts: with the frame
-times :math:`t_0 < \dots < t_n` and the intervals :math:`d_i = t_i - t_{i-1}`, start from
-the mean interval :math:`p = (t_n - t_0)/n` and iterate
-
-.. math::
-
-    k_i = \operatorname{round}(d_i / p), \qquad p = (t_n - t_0) / \textstyle\sum_i k_i
-
-Jitter rounds to one period (:math:`k_i = 1`), a dropped frame to two, a burst (frames
-queued and sent back to back) to zero for the queued frames and to several periods for
-the gap before them: the count of periods over the span stays right in each case.
-Frames relayed in groups (a gateway, a websocket, a USB adapter polled every few
-periods) arrive with many intervals near zero and gaps blurred by the relay's latency,
-and there the rounding drifts; when more than :data:`BURST_SHARE` of the intervals are
-shorter than half the mean interval, every frame is taken as one period and the period
-is the least-squares slope of :math:`t_i` against :math:`i` (frames dropped inside such a
-stream lengthen it by their share of the frames, which the 10 % check against a stated
-period tolerates up to one frame in eleven). The
-mapped messages must share the period (pairing takes one frame of each per period): the
-period is the shortest of theirs, and messages whose periods differ by more than half
-are an error that names each message with its period.
-
-A clock step among the measured frames (an interval back, or forward far beyond the
-others: NTP, a merged log) is not measured across: the frames on either side are
-measured together, their intervals pooled (:func:`_segments`), so the start does not fail.
+:class:`PeriodMeter` measures it on the first :data:`PERIOD_FRAMES` frames of each
+mapped message, causally, so the daemon and the offline replay measure the same period;
+:func:`estimate_period` counts whole periods over the span, robust to jitter, dropped
+frames, bursts and relayed groups. The front end (:class:`canrls.processor.FrameProcessor`)
+is the one place that runs it (docs/architecture.md, "Control period").
 """
 
 from __future__ import annotations

@@ -1,48 +1,10 @@
 r"""Diagnosis: compare the model with the measurements, see where it fails, name the missing effect.
 
 :func:`diagnose` (samples in memory) and :func:`diagnose_log` (a recorded CAN log) run
-the model through the same :class:`~canrls.estimation.pipeline.Pipeline` as ``canrls fit`` and
-return a :class:`DiagnosisReport`: a result object that renders to text
-(:meth:`DiagnosisReport.format`), to a JSON-able dict (:meth:`DiagnosisReport.to_dict`)
-and to an HTML page with figures (:meth:`DiagnosisReport.write_html`,
-:mod:`canrls.diagnosis.report`). ``docs/diagnose.md`` documents the JSON and the figures.
-
-Everything is computed on the *filtered* equation the estimators see (the state-variable
-filter applied to target and columns, :mod:`canrls.estimation.svf`), over the samples the estimators
-used (not in a filter warm-up), in the target's unit:
-
-1. **Compare.** The residual of the final float estimate :math:`\hat\theta` over the
-   whole record, :math:`r = y - \Phi\hat\theta`; fit and :math:`R^2` as MATLAB's
-   ``compare`` (the values ``canrls fit`` prints); whiteness of the residual and its
-   cross-correlation with the inputs (:class:`~canrls.diagnosis.results.Whiteness`).
-2. **Where it fails.** Residual mean and RMS binned by speed (both directions), position
-   (one revolution, or the travel of a linear axis), current, acceleration and time
-   (:class:`~canrls.diagnosis.results.Binned`); the worst regions in words; the
-   residual's rotation-order spectrum (:mod:`canrls.diagnosis.residual`).
-3. **Which effect is missing.** Every effect of the library that is not in the model is
-   tried as an extra set of columns and ranked by the share of the residual variance it
-   explains (:mod:`canrls.diagnosis.candidates`); a greedy forward selection makes the
-   :class:`~canrls.diagnosis.results.Suggestion`.
-4. **Add it.** With ``add=[...]`` the model is refitted with the effects added and the
-   report holds ``before`` and ``after`` side by side (``cogging`` without an order
-   takes the order the search found).
-
-The residual left after the suggestion is checked for structure no candidate explains
-(:class:`~canrls.diagnosis.results.StructureItem`: a constant offset, dependence on
-speed, position, current, acceleration, drift in time, periodicity at a non-integer
-order); with a complete model and no structure left, nothing is suggested.
-
-The diagnosis in modules, lowest first:
-
-* :mod:`canrls.diagnosis.results`: the result values (plain frozen dataclasses);
-* :mod:`canrls.diagnosis.samples`: the record as the pipeline sees it (its sample
-  policy, gap filling, restarts, used rows, columns);
-* :mod:`canrls.diagnosis.residual`: statistics of the residual, where the model fails;
-* :mod:`canrls.diagnosis.candidates`: candidate effects, ranking, identifiability,
-  verdict;
-* :mod:`canrls.diagnosis.figures` and :mod:`canrls.diagnosis.report`: rendering (text,
-  JSON, figures, the HTML page from a jinja2 template);
-* this module: the entry points, which run the pipeline and put it together.
+the model through the same pipeline as ``canrls fit`` and return a
+:class:`DiagnosisReport` that renders to text, JSON and an HTML page with figures. This
+module holds the entry points; the steps (compare, where it fails, which effect is
+missing, add it) live in the modules beside it and are described in docs/diagnose.md.
 """
 
 from __future__ import annotations
