@@ -267,7 +267,7 @@ class AppConfig:
         """What relative units refer to: ``[signals]`` ``rated_torque``, ``rated_current``,
         ``increments_per_rev`` (``--rated-torque``, ... override them)."""
         given = {}
-        for key, (flag, _, unit) in RATING_OPTIONS.items():
+        for key, (_, _, unit) in RATING_OPTIONS.items():
             if key not in self.signals:
                 continue
             v = self.signals[key]

@@ -14,8 +14,6 @@ import argparse
 import sys
 from typing import Any
 
-import numpy as np
-
 from canrls.cli._common import (
     Progress,
     add_model_options,

@@ -139,7 +139,8 @@ class DiagnosisReport:
                    f"model {', '.join(b.effects)}")
         out.extend(describe(b.estimates.implausible))
         if self.after is not None:
-            out.extend(f"after adding: {line}" for line in describe(self.after.estimates.implausible))
+            out.extend(f"after adding: {line}"
+                       for line in describe(self.after.estimates.implausible))
         for q in b.equations:
             out.extend(_format_equation(q, self.model.axis))
         if self.after is not None:
