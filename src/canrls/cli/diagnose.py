@@ -1,31 +1,9 @@
 """``canrls diagnose LOG [LOG ...]``: where the model fails, which effect is missing.
 
-Several logs are diagnosed as one record (:class:`canrls.replay.LogFiles`: no segment
-bridged across files; the calibration window is the start of the first log).
-
 Takes every option of ``canrls fit`` (the same replay: same samples, same parameters),
-plus::
-
-    --add NAME       add an effect and refit (repeatable); ``cogging`` alone takes the
-                     order the search found
-    --report DIR     write DIR/index.html with PNG figures (needs matplotlib)
-    --max-order K    highest cogging order searched (default 64, at most 256)
-
-Text by default; ``--json`` prints one object (``docs/diagnose.md`` documents every key)::
-
-    {
-      "before": {"effects": [...], "residual_rms": 0.0168, "fit_percent": 78.6, "r2": ...,
-                 "whiteness": {...}, "parameters": {"coulomb.Tc": {"value": ..., "sigma": ...,
-                 "unit": "N·m", "fixed": ...}, ...}, "equations": {...}, ...},
-      "after": {...} or null,          # with --add
-      "added": ["coulomb"],
-      "candidates": [{"effect": "coulomb", "explained": 0.91, "delta_bic": -5195.0,
-                      "rms_after": 0.0050, "identifiable": true, "suggested": true,
-                      "description": ..., "evidence": [...], ...}, ...],   # best first
-      "suggestion": {"add": ["coulomb", "offset"], "rms_after": ..., "steps": [...]},
-      "regions": [...], "orders": {...}, "structure": [...], "excitation": {...},
-      "identifiable": true, "verdict": "...", "frames": {...}, "source": "drive.log", ...
-    }
+plus ``--add NAME`` (refit with it), ``--report DIR`` (an HTML page with figures) and
+``--max-order K``; several logs are diagnosed as one record. Text by default;
+``--json`` prints one object (docs/diagnose.md documents every key).
 """
 
 from __future__ import annotations

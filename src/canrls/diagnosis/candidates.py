@@ -1,44 +1,11 @@
-r"""Which effect is missing: the candidates, their ranking and identifiability.
+"""Which effect is missing: the candidates, their ranking and identifiability.
 
-Every effect of the library that is not in the model is
-tried as an extra set of columns :math:`G`, built through the same
-:class:`~canrls.estimation.model.Model` / regressor path (``model.with_effects(add=[...])``).
-With :math:`r_0` the least-squares residual of the current columns :math:`\Phi` and
-:math:`\tilde G = (I - \Phi\Phi^+) G` the candidate orthogonalised against them,
-the *error-reduction ratio*
-
-.. math::
-
-    \mathrm{ERR} = \frac{r_0^\top \tilde G (\tilde G^\top\tilde G)^{-1}
-                         \tilde G^\top r_0}{r_0^\top r_0}
-
-is the share of the residual variance the candidate explains (one column:
-:math:`(\tilde g^\top r_0)^2 / (\tilde g^\top\tilde g\; r_0^\top r_0)`); the
-residual RMS after adding it is :math:`\sqrt{(1-\mathrm{ERR})\,r_0^\top r_0/N}` and
-the change of the Bayesian information criterion
-
-.. math::
-
-    \Delta\mathrm{BIC} = N_e \ln(1 - \mathrm{ERR}) + p \ln N_e,
-    \qquad N_e = N\,\lVert h\rVert_2^2
-
-counts the :math:`N_e` independent samples the filter's impulse response :math:`h`
-(DC gain 1) leaves of :math:`N` (white noise through :math:`F` is correlated over
-about :math:`1/\lVert h\rVert_2^2` samples, 18 at the defaults). All of it comes
-from the Gram matrix of ``[Phi, G, y]`` accumulated block by block, so memory
-does not grow with the number of candidates. The cogging order is searched over
-:math:`k = 2 \dots K_{max}` (order 1 is ``unbalance``). A greedy forward selection
-(orthogonal least squares) adds the best candidate, re-ranks the others against the
-enlarged model and stops when the next one explains less than
-:data:`MIN_EXPLAINED` of what is left or does not lower the BIC: that is the
-:class:`Suggestion`. A candidate whose column is not excited, or (nearly) collinear
-with the model's columns (less than :data:`MIN_INDEPENDENCE` of it outside their
-span: a variance inflation above 100), is *not identifiable from this data* and is
-never suggested; the reason is stated (one direction of motion only, nearly constant
-speed, less than a revolution covered, ...).
-
-:func:`rank_candidates` also checks the model's own columns (excited, not collinear),
-what structure is left after the suggestion and writes the verdict.
+Every effect of the library that the model lacks is tried as extra columns, built
+through the same :class:`~canrls.estimation.model.Model` path, and ranked by the share
+of the residual variance it explains; a greedy forward selection makes the
+:class:`Suggestion`, and a candidate these data cannot identify is said so, with the
+reason, never suggested. :func:`rank_candidates` also checks the model's own columns
+and writes the verdict. The statistics: docs/diagnose.md, "Which effect is missing".
 """
 
 from __future__ import annotations
@@ -260,6 +227,9 @@ class _Comparison:
         return math.sqrt(rss / self.N) * self.scale_y if self.N else math.nan
 
     def bic(self, rss_new: float, rss_old: float, p: int) -> float:
+        """The change of the Bayesian information criterion when ``p`` columns take the
+        RSS from ``rss_old`` to ``rss_new``, over the ``Ne = N ||h||^2`` independent
+        samples the filter leaves."""
         # dBIC = Ne ln(RSS'/RSS) + p ln Ne
         if rss_old <= 0:
             return math.inf
@@ -442,7 +412,22 @@ def _model_issues(cmp: _Comparison, exc: ExcitationSummary, model: Model) -> lis
 
 def _evaluate(cmp: _Comparison, ctx: RecordSamples, model: Model,
               exc: ExcitationSummary) -> dict[str, _Evaluation]:
-    """Every candidate added alone to the model."""
+    r"""Every candidate added alone to the model.
+
+    With :math:`r_0` the least-squares residual of the model's columns and
+    :math:`\tilde G` the candidate's columns orthogonalised against them, the share of
+    the residual variance it explains is the error-reduction ratio
+
+    .. math::
+
+        \mathrm{ERR} = \frac{r_0^\top \tilde G (\tilde G^\top\tilde G)^{-1}
+                             \tilde G^\top r_0}{r_0^\top r_0}
+
+    (from the Gram matrix: :math:`1 - \mathrm{RSS}/\mathrm{RSS}_0`). A candidate not
+    excited, (nearly) collinear with the model's columns (less than
+    :data:`MIN_INDEPENDENCE` outside their span) or periodic in time as much as in
+    position is not identifiable, and the reason is kept.
+    """
     G, C, aug = cmp.G, cmp.C, cmp.aug
     factors = aug.scaling.factors
     evaluated: dict[str, _Evaluation] = {}

@@ -10,20 +10,8 @@
         Checkpointer     resume at start, save every checkpoint_interval and at stop
     supervisor thread: reopens a vanished bus (BusLink.reopen), pings systemd's watchdog
 
-Threads: a :class:`~canrls.live.bus.BusReader` (python-can's ``Notifier`` loop, taking
-every frame waiting each ``rx_interval``; on a SocketCAN bus the
-:class:`~canrls.live.bus.BlockReader`, the same loop in bulk with ``recvmmsg``, no
-``can.Message`` per frame) reads the bus and hands the frames to a
-:class:`~canrls.live.bus.FrameQueue` that only queues them; the estimator thread takes
-whatever has arrived (at most every ``block_interval``, by default the publish
-interval, and right before each publication; at once when a command frame waits) and
-processes it as one block through :class:`~canrls.processor.FrameProcessor`, so a log
-of the frames the daemon saw, replayed offline, gives the same parameters bit for bit.
-Command frames are applied in stream order between the frames around them; error
-frames go to :meth:`BusLink.error_frame <canrls.live.bus.BusLink.error_frame>`. Nothing
-the estimator does waits for the bus (:meth:`canrls.live.bus.BusLink.send`).
-
-See ``docs/daemon.md`` for the ``[daemon]`` keys, commands, checkpoints and systemd.
+The threads and the flow of frames, the ``[daemon]`` keys, commands, checkpoints and
+systemd: docs/daemon.md.
 """
 
 from __future__ import annotations
