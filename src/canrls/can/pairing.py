@@ -29,7 +29,7 @@ I64 = npt.NDArray[np.int64]
 PAIRING_KINDS: tuple[str, ...] = ("unpaired", "lost", "duplicated", "reordered", "late")
 _UNPAIRED, _LOST, _DUP, _REORD, _LATE = range(5)
 
-#: Clock faults a :class:`Pairer` counts (events, not frames; module docstring).
+#: Clock faults a :class:`Pairer` counts (events, not frames; docs/protocol.md, "Pairing").
 CLOCK_KINDS: tuple[str, ...] = ("step_back", "step_forward", "gap")
 
 #: Periods a frame must lie before the newest to be a clock step back (not late).
@@ -98,7 +98,7 @@ def _push_kernel(index: tuple[I64, ...], t: tuple[F64, ...], cnt: tuple[I64, ...
     (``index``, ``t``, ``cnt``: one array per message; ``vals``: one array per role, of
     the role's message) merged into stream order (a stable sort by ``index`` when a
     message's frames are out of order), then processed one at a time (``times`` =
-    [tolerance, wait, period, back, step, gap]: the bounds of the module docstring).
+    [tolerance, wait, period, back, step, gap]: the bounds of docs/protocol.md, "Pairing").
     Counters are ignored (-1) unless ``use_counters``.
     ``iwork`` (4, C), ``fwork`` (3, C) and ``vwork`` (3, C, R) are scratch space for C >=
     frames + open-period capacity. Returns the completed samples as rows [t, role
@@ -125,7 +125,7 @@ def _push_kernel(index: tuple[I64, ...], t: tuple[F64, ...], cnt: tuple[I64, ...
 
 
 class Pairer:
-    """Pair decoded feedback frames into samples (see the module docstring for the rules).
+    """Pair decoded feedback frames into samples (the rules: docs/protocol.md, "Pairing").
 
     Parameters
     ----------

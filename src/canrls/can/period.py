@@ -32,7 +32,8 @@ PERIOD_TOLERANCE = 0.10
 MIN_INTERVALS = 8
 
 #: Share of intervals shorter than half the mean interval above which a message's frames
-#: are taken as relayed in groups (module docstring): the period is the mean interval.
+#: are taken as relayed in groups: the period is then the slope of the times against the
+#: frame index (docs/architecture.md, "Control period").
 BURST_SHARE = 0.05
 
 #: An interval back by more than this many times the 90th percentile of the intervals'
@@ -79,9 +80,17 @@ def _segments(t: F64) -> list[F64]:
 
 
 def _one(t: F64) -> tuple[float, float] | None:
-    """(period, jitter) of one message's frame times (stream order), None if too few or
-    no span. The pieces between clock steps (:func:`_segments`) are measured together:
-    their intervals pooled, their spans summed, the slope fitted within each."""
+    r"""(period, jitter) of one message's frame times (stream order), None if too few or
+    no span. With the intervals :math:`d_i` and the span, from the mean interval,
+
+    .. math::
+
+        k_i = \operatorname{round}(d_i / p), \qquad p = \mathrm{span} / \textstyle\sum_i k_i
+
+    iterated: jitter rounds to one period, a dropped frame to two, a burst to zero and
+    the gap before it to several. The pieces between clock steps (:func:`_segments`)
+    are measured together: their intervals pooled, their spans summed, the slope
+    fitted within each."""
     t = np.asarray(t, np.float64)
     t = t[np.isfinite(t)]  # a frame without a time says nothing of the period
     if len(t) < MIN_INTERVALS + 1:
@@ -134,8 +143,10 @@ def _one(t: F64) -> tuple[float, float] | None:
 
 
 def estimate_period(times: Mapping[str, Sequence[float] | F64]) -> PeriodEstimate | None:
-    """The period of frames ``{message: times}`` (module docstring); None when no message
-    has :data:`MIN_INTERVALS` intervals over a span."""
+    """The period of frames ``{message: times}``: the shortest of the messages' (a
+    :class:`ConfigError` when one is over 1.5 times it); None when no message has
+    :data:`MIN_INTERVALS` intervals over a span (docs/architecture.md, "Control
+    period")."""
     got = {name: r for name, t in times.items() if (r := _one(np.asarray(t))) is not None}
     if not got:
         return None

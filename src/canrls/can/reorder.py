@@ -27,7 +27,7 @@ _CONTENT = ("is_extended", "is_remote", "is_error", "dlc", "data")
 
 
 class Reorderer:
-    """Reorder the frames of counter-carrying messages (module docstring).
+    """Reorder the frames of counter-carrying messages (docs/protocol.md).
 
     Parameters
     ----------

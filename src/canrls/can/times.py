@@ -70,7 +70,7 @@ class TimeRejects:
 
 
 class TimeJudge:
-    """The stream's receive times judged frame by frame (module docstring).
+    """The stream's receive times judged frame by frame (docs/protocol.md).
 
     :meth:`push` returns the frames accepted so far, in stream order, and keeps a
     departure from the time base until the frames after it decide it; :meth:`flush`

@@ -269,7 +269,7 @@ def _series(recs: Sequence[Recording], name: str, log: bool) -> Series | None:
 def estimate_tau(pairs: Sequence[tuple[float, float]]) -> float:
     r"""The between-recording scatter :math:`\tau` from ``(d_k^2, s_k^2 + s_{k+1}^2)``
     of successive recordings: the quantile :data:`TAU_QUANTILE` of the standardised
-    squared differences matched to a chi-square's (module docstring)."""
+    squared differences matched to a chi-square's (docs/fleet.md)."""
     if not pairs:
         return 0.0
     d2 = np.array([p[0] for p in pairs])
@@ -466,7 +466,7 @@ def _level(se: Series, tau: float, upto: int | None) -> tuple[float, float]:
 
 def assess(recordings: Iterable[Recording], *, alpha: float = ALPHA,
            outlier_z: float = OUTLIER_Z) -> FleetAssessment:
-    """Assess every drive of a history's recordings (module docstring)."""
+    """Assess every drive of a history's recordings (docs/fleet.md)."""
     recs = [r for r in recordings]
     errors: dict[tuple[str, str], int] = {}
     for r in recs:

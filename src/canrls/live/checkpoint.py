@@ -499,7 +499,8 @@ def _write_temp(dfd: int, name: str, data: bytes) -> str:
 
 def save_checkpoint(path: str | os.PathLike[str], cp: Checkpoint, *,
                     max_bytes: int = MAX_BYTES) -> int:
-    """Write ``cp`` to ``path`` atomically (module docstring); returns the bytes written.
+    """Write ``cp`` to ``path`` atomically (docs/daemon.md, "Checkpoints"); returns the
+    bytes written.
 
     :raises CheckpointError: the state holds something a load would refuse (NaN, a
         type JSON lacks, more than ``max_bytes``): nothing is written.
@@ -528,7 +529,7 @@ def save_checkpoint(path: str | os.PathLike[str], cp: Checkpoint, *,
 
 
 def load_checkpoint(path: str | os.PathLike[str], *, max_bytes: int = MAX_BYTES) -> Checkpoint:
-    """Read and verify a checkpoint (module docstring).
+    """Read and verify a checkpoint (docs/daemon.md, "Checkpoints").
 
     :raises CheckpointPathError: the path is not a regular file (a link, a FIFO...).
     :raises CheckpointError: the file is not a valid checkpoint.

@@ -306,7 +306,7 @@ def chirp(amplitude: float, f0: float, f1: float, sweep_time: float,
 
 
 def standard(seed: int = 0) -> Sequence:
-    """The identification profile (see the module docstring)."""
+    """The identification profile (docs/simulator.md, "Excitation")."""
     return Sequence([
         phases([100.0, 40.0, 10.0, 2.0, 0.5], accel=300.0, holds=[1.5, 2.0, 2.0, 3.0, 3.0]),
         chirp(20.0, 0.2, 15.0, 10.0),

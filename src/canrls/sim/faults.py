@@ -88,7 +88,7 @@ def _seconds(text: str, key: str, spec: str) -> float:
 
 @dataclass(frozen=True)
 class FaultSpec:
-    """What faults to inject (see the module docstring for the string syntax)."""
+    """What faults to inject (the string syntax: docs/simulator.md, "Faults")."""
 
     drop: float = 0.0
     dup: float = 0.0

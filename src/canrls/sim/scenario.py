@@ -72,7 +72,7 @@ _DEFAULTS: dict[str, dict[str, float]] = {
     },
 }
 
-#: Named scenarios and their settings (see the module docstring).
+#: Named scenarios and their settings (docs/simulator.md).
 SCENARIOS: dict[str, dict[str, Any]] = {
     "standard": dict(axis="rotary", kt=0.1, pitch=1.0, coulomb_band=1e-3, stribeck_speed=1.0,
                      excitation="standard", speed_scale=1.0, duration=60.0,
@@ -370,7 +370,7 @@ class SimResult:
         ``voltage`` is None unless ``electrical`` is among the true effects.
     speed_ref, current_ref : the excitation and the speed controller's output
     truth : the :class:`Truth`; ``params`` its true parameter values
-    noise_floor : see the module docstring
+    noise_floor : see docs/simulator.md
     frames : the feedback frames (encoded on first access; faults applied)
     fault_log : what the faults did to ``frames``
     """
