@@ -12,8 +12,9 @@ Dependencies run one way::
 ``cli`` uses it. ``can`` and ``estimation`` never import each other, and neither
 ``estimation`` nor ``core`` imports an I/O package (python-can, cantools). Only the
 processor pairs, reorders, judges times and measures the period. No import circle, and
-no module reaches into another module's underscore names. No function is over 150 lines
-and no module over 1,000 (estimation/ and target/ aside, for now).
+no module reaches into another module's underscore names. No function is over 150 lines,
+no module over 1,000 and no module docstring over 35 (estimation/ and target/ aside, for
+now).
 
 The checks read the source (ast), so they also see imports inside functions.
 """
@@ -288,6 +289,9 @@ def test_no_module_uses_another_modules_private_names(tree: dict[str, ast.Module
 #: lines, the fixed-point reference_block and target's build over 150)
 MAX_FUNCTION_LINES = 150
 MAX_MODULE_LINES = 1000
+#: a module docstring says what the module is for; the rules, measurements and histories
+#: are in docs/ (errors.py's tree of errors and units.py's doctests are the longest)
+MAX_MODULE_DOCSTRING_LINES = 35
 SIZE_EXEMPT = ("canrls.estimation", "canrls.target")
 
 
@@ -318,6 +322,18 @@ def test_no_module_over_1000_lines() -> None:
     assert not bad, f"modules over {MAX_MODULE_LINES} lines:\n" + "\n".join(bad)
 
 
+def docstring_lines(t: ast.Module) -> int:
+    doc = ast.get_docstring(t, clean=False)
+    return len(doc.splitlines()) if doc else 0
+
+
+def test_module_docstrings_are_short(tree: dict[str, ast.Module]) -> None:
+    bad = [f"{mod}: {docstring_lines(t)} lines" for mod, t in tree.items()
+           if sized(mod) and docstring_lines(t) > MAX_MODULE_DOCSTRING_LINES]
+    assert not bad, (f"module docstrings over {MAX_MODULE_DOCSTRING_LINES} lines (say what "
+                     f"the module is for; the rest belongs in docs/):\n" + "\n".join(bad))
+
+
 # -- the checks themselves fail where they should ------------------------------------------
 def test_the_checks_catch_a_wrong_import_a_circle_and_a_private_call() -> None:
     a = ast.parse("from canrls.cli.main import main\nimport canrls.estimation.model\n")
@@ -346,5 +362,7 @@ def test_the_checks_catch_a_wrong_import_a_circle_and_a_private_call() -> None:
     assert long_functions(long) == [("f", 2, 151)]
     assert long_functions(ast.parse("def g():\n" + "    x = 1\n" * 149)) == []
     assert not sized("canrls.estimation.fixed") and sized("canrls.processor.frames")
+    assert docstring_lines(ast.parse('"""One.\n\nTwo."""\nx = 1\n')) == 3
+    assert docstring_lines(ast.parse("x = 1\n")) == 0
     io = ast.parse("import cantools\n")
     assert [n for n, _ in imports(io, "canrls.estimation.rls")] == ["cantools"]
