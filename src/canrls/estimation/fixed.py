@@ -231,11 +231,14 @@ FloatArray = npt.NDArray[np.float64]
 #: Saturation sites, in counter order.
 SITES: tuple[str, ...] = kernels.SITES
 
-#: Format tag of :meth:`FixedRLS.state` dictionaries (``/2``: with ``theta_frac``).
-STATE_FORMAT = "canrls.fixed/2"
-#: The tag before the 64-bit estimate: read with ``theta_frac = 0`` (a valid state: the
-#: estimate exactly at its word).
+#: Format tag of :meth:`FixedRLS.state` dictionaries (``/3``: with ``P_frac``).
+STATE_FORMAT = "canrls.fixed/3"
+#: The tag before the 64-bit covariance: read with ``P_frac = 0`` (``P`` exactly its words).
+STATE_FORMAT_2 = "canrls.fixed/2"
+#: The tag before the 64-bit estimate: read with ``theta_frac = 0`` and ``P_frac = 0``.
 STATE_FORMAT_1 = "canrls.fixed/1"
+#: The range of a fraction of ``P`` (units of 2^-32 LSB): the word is ``P~`` rounded.
+P_FRAC_RANGE = (-(1 << 31), (1 << 31) - 1)
 
 _UPDATES = {
     "symmetric": kernels.MODE_SYMMETRIC,
@@ -824,6 +827,12 @@ def _build_plan(
     g_up = 32 - cfg.g.bits
     f_Kn = cfg.h.frac + cfg.g.frac + g_up - 32
     put(kernels.I_G_UP, "g_up", g_up)
+    # g normalised: DIVIDEND 2^kg // d <= 2^(bits_g - 2) for d of bit length up to
+    # kg_bl + kg, so that a large d (phi'P phi >= 1: the start, or data that suddenly
+    # show a direction the prior held) still leaves g its bits; the dividend 2^(fdiv + kg)
+    # must fit the accumulator
+    put(kernels.I_KG_BL, "kg_bl", fdiv - cfg.g.bits + 3)
+    put(kernels.I_KG_MAX, "kg_max", A - 2 - fdiv)
     put(kernels.I_TH_S, "theta_s", f_Kn + cfg.eps.frac - cfg.theta.frac)
     put(kernels.I_P_S, "P_s", f_Kn + cfg.h.frac - cfg.P.frac)
     # c <- c / lambda_k
@@ -1182,6 +1191,7 @@ class FixedRLS:
         self._theta = np.zeros(n_i, np.int64)
         self._theta_frac = np.zeros(n_i, np.int64)  # below the LSB, 2^-32 LSB units
         self._P = np.zeros((n_i, n_i), np.int64)
+        self._P_frac = np.zeros((n_i, n_i), np.int64)  # below the words, 2^-32 LSB units
         self._scale = np.zeros(2, np.int64)  # [e, c]
         self._work = np.zeros((6, n_i), np.int64)
         self._counts = np.zeros(len(SITES), np.int64)
@@ -1200,6 +1210,7 @@ class FixedRLS:
     def _reset_arrays(self) -> None:
         # P0 = diag(1 / alpha_j) ; theta0 = 0
         self._P[...] = 0
+        self._P_frac[...] = 0
         self._P[np.diag_indices(self._n)] = self._p0
         self._scale[0] = 0
         self._scale[1] = 1 << self._config.lam.frac
@@ -1297,15 +1308,32 @@ class FixedRLS:
         return P
 
     @property
+    def P_frac(self) -> IntArray:
+        """The fractions of the words :attr:`P` in units of :math:`2^{-32}` LSB, in
+        :math:`[-2^{31}, 2^{31})`, shape (n, n) (a copy, mirrored like :attr:`P`).
+
+        :math:`\\tilde P` is held in 64 bits, ``P * 2**32 + P_frac``; the word ``P`` is it
+        rounded half up to the ``P`` format, which is what the kernel reads (``h = P~
+        phi``, the trace); the update ``P~ - K h~'`` is subtracted from the 64 bits
+        (docs/fixed_point.md, *The covariance in 64 bits*).
+        """
+        F = self._P_frac.copy()
+        if self._mode == kernels.MODE_SYMMETRIC:
+            il = np.tril_indices(self._n, -1)
+            F[il] = F.T[il]
+        return F
+
+    @property
     def theta_float(self) -> FloatArray:
         """Estimate as float64 (normalised units)."""
         return np.asarray(self._config.theta.to_float(self._theta))
 
     @property
     def P_float(self) -> FloatArray:
-        """:math:`P` as float64, shape (n, n)."""
+        """:math:`P` as float64 (the words and their fractions), shape (n, n)."""
         c = self._config.lam.to_float(self.P_scale)
-        return c * np.ldexp(self.P.astype(np.float64), -(self._config.P.frac + self.P_exp))
+        words = self.P.astype(np.float64) + np.ldexp(self.P_frac.astype(np.float64), -32)
+        return c * np.ldexp(words, -(self._config.P.frac + self.P_exp))
 
     @property
     def saturations(self) -> SaturationCounts:
@@ -1362,10 +1390,10 @@ class FixedRLS:
         r"""New units for the columns and the target, by powers of two, and raised
         priors, as :meth:`canrls.estimation.rls.RLS.rescale` does them: computed exactly
         (rationals) on the real values the words stand for, then rounded half up back to
-        the words: the 64-bit estimate, and :math:`\tilde P` with the largest block
-        exponent ``e`` (at most ``e_max``) that keeps :math:`\mathrm{tr}\tilde P` within
-        half the word's range, as the kernel keeps it. Where even ``e = 0`` cannot hold
-        a value it saturates, counted (``theta``, ``P``)."""
+        the words: the 64-bit estimate, and the 64-bit :math:`\tilde P` (its words and
+        fractions) with the largest block exponent ``e`` (at most ``e_max``) that keeps
+        :math:`\mathrm{tr}\tilde P` within half the word's range, as the kernel keeps it.
+        Where even ``e = 0`` cannot hold a value it saturates, counted (``theta``, ``P``)."""
         n = self._n
         dv = [int(x) for x in np.asarray(d, dtype=np.int64).reshape(-1)]
         if len(dv) != n:
@@ -1376,10 +1404,10 @@ class FixedRLS:
         # the real values: P = c P~ 2^-(f_P + e), theta = (word 2^32 + frac) 2^-(32 + f_th)
         c = Fraction(int(self._scale[1])) / two ** cfg.lam.frac
         e = int(self._scale[0])
-        Pw = self.P  # the whole matrix (the triangle mirrored)
-        unit = c / two ** (cfg.P.frac + e)
-        P = [[Fraction(int(Pw[j, k])) * unit * two ** (dv[j] + dv[k]) for k in range(n)]
-             for j in range(n)]
+        Pw, Pf = self.P, self.P_frac  # the whole matrix (the triangle mirrored)
+        unit = c / two ** (cfg.P.frac + e + 32)
+        P = [[Fraction((int(Pw[j, k]) << 32) + int(Pf[j, k])) * unit * two ** (dv[j] + dv[k])
+              for k in range(n)] for j in range(n)]
         th_unit = two ** -(32 + cfg.theta.frac)
         th = [Fraction((int(self._theta[j]) << 32) | int(self._theta_frac[j])) * th_unit
               * two ** (dv[j] - dy) for j in range(n)]
@@ -1419,13 +1447,9 @@ class FixedRLS:
             if tr / words_at(ex) <= half and top / words_at(ex) <= cfg.P.hi:
                 e_new = ex
                 break
-        u = words_at(e_new)
+        u = words_at(e_new) / two ** 32
         for j, k in cells:
-            v = math.floor(P[j][k] / u + Fraction(1, 2))
-            if not cfg.P.lo <= v <= cfg.P.hi:
-                self._counts[kernels.S_P] += 1
-                v = min(max(v, cfg.P.lo), cfg.P.hi)
-            self._P[j, k] = v
+            self._put_P(j, k, math.floor(P[j][k] / u + Fraction(1, 2)))
         self._scale[0] = e_new
         self._ridge = np.array([float(a) for a in ridge], dtype=np.float64)
         self._prior_changed()
@@ -1433,20 +1457,28 @@ class FixedRLS:
     def set_prior(self, j: int, alpha: float) -> None:
         r"""Give parameter ``j`` the ridge weight ``alpha`` as if from the start
         (:meth:`canrls.estimation.rls.RLS.set_prior`): :math:`\tilde P_{jj} \leftarrow
-        \tilde P_{jj}\,\alpha_j/\alpha`, rounded half up, saturated (counted)."""
+        \tilde P_{jj}\,\alpha_j/\alpha` in 64 bits, rounded half up at :math:`2^{-32}` LSB,
+        saturated (counted)."""
         a = _real("alpha", alpha)
         if not (a > 0.0 and math.isfinite(a)):
             raise EstimatorError(f"FixedRLS alpha must be > 0, got {alpha!r}")
         ratio = Fraction(float(self._ridge[j])) / Fraction(a)
-        v = math.floor(int(self._P[j, j]) * ratio + Fraction(1, 2))
-        P = self._config.P
-        if not P.lo <= v <= P.hi:
-            self._counts[kernels.S_P] += 1
-            v = min(max(v, P.lo), P.hi)
-        self._P[j, j] = v
+        V = (int(self._P[j, j]) << 32) + int(self._P_frac[j, j])
+        self._put_P(j, j, math.floor(V * ratio + Fraction(1, 2)))
         self._ridge = self._ridge.copy()
         self._ridge[j] = a
         self._prior_changed()
+
+    def _put_P(self, j: int, k: int, V: int) -> None:
+        r"""Store :math:`V = \tilde P_{jk} 2^{32}` as the word ``rsh(V, 32)`` and its
+        fraction, saturated to the word (counted), as the kernel stores it."""
+        P = self._config.P
+        lo, hi = (P.lo << 32) - (1 << 31), (P.hi << 32) + (1 << 31) - 1
+        if not lo <= V <= hi:
+            self._counts[kernels.S_P] += 1
+            V = min(max(V, lo), hi)
+        w = (V + (1 << 31)) >> 32
+        self._P[j, k], self._P_frac[j, k] = w, V - (w << 32)
 
     def _prior_changed(self) -> None:
         """The prior's words for :meth:`reset` and, where it is the prior's, the trace bound."""
@@ -1623,13 +1655,13 @@ class FixedRLS:
                 self._cplan = np.array([self._named[f] for f in _CFIXED.PLAN_FIELDS], np.int64)
                 self._cplan_of = self._plan
             return int(_CFIXED.run_block(
-                Phi, Y, self._theta, self._theta_frac, self._P, self._scale, self._work[4], self._counts,
-                self._cplan, self._frozen, eps, theta_out if record else None, trace_P,
-                P_exp, flags,
+                Phi, Y, self._theta, self._theta_frac, self._P, self._P_frac, self._scale,
+                self._work[4], self._counts, self._cplan, self._frozen, eps,
+                theta_out if record else None, trace_P, P_exp, flags,
             ))  # fmt: skip
         return int(_spec_kernels().fixed_block(
-            Phi, Y, self._theta, self._theta_frac, self._P, self._scale, self._work, self._counts,
-            self._plan, self._mode, self._frozen, record,
+            Phi, Y, self._theta, self._theta_frac, self._P, self._P_frac, self._scale,
+            self._work, self._counts, self._plan, self._mode, self._frozen, record,
             eps, theta_out, trace_P, P_exp, flags,
         ))  # fmt: skip
 
@@ -1653,6 +1685,7 @@ class FixedRLS:
             "theta": self._theta.copy(),
             "theta_frac": self._theta_frac.copy(),
             "P": self._P.copy(),
+            "P_frac": self._P_frac.copy(),
             "P_exp": int(self._scale[0]),
             "P_scale": int(self._scale[1]),
             "counts": self._counts.copy(),
@@ -1679,10 +1712,11 @@ class FixedRLS:
             return v
 
         fmt = get("format")
-        if fmt not in (STATE_FORMAT, STATE_FORMAT_1):
+        if fmt not in (STATE_FORMAT, STATE_FORMAT_2, STATE_FORMAT_1):
             raise CheckpointError(
                 f"FixedRLS checkpoint format is {fmt!r}, expected {STATE_FORMAT!r} "
-                f"(or {STATE_FORMAT_1!r}, read with theta_frac = 0)"
+                f"(or {STATE_FORMAT_2!r}, read with P_frac = 0, or {STATE_FORMAT_1!r}, "
+                f"read with theta_frac = 0 and P_frac = 0)"
             )
         try:
             cfg_d = get("config")
@@ -1705,8 +1739,9 @@ class FixedRLS:
         frac = (0, (1 << 32) - 1)  # theta_frac: 2^-32 LSB, below one LSB
         for key, target, shape, q in (
             ("theta", rls._theta, (n,), cfg.theta),
-            *((("theta_frac", rls._theta_frac, (n,), frac),) if fmt == STATE_FORMAT else ()),
+            *((("theta_frac", rls._theta_frac, (n,), frac),) if fmt != STATE_FORMAT_1 else ()),
             ("P", rls._P, (n, n), cfg.P),
+            *((("P_frac", rls._P_frac, (n, n), P_FRAC_RANGE),) if fmt == STATE_FORMAT else ()),
             ("counts", rls._counts, (len(SITES),), None),
         ):
             try:
