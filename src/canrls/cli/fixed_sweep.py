@@ -1,6 +1,7 @@
 """``canrls fixed-sweep``: fixed-point parameter error against word length and Q formats.
 
-Replays a log (or simulates a scenario) through the pipeline, keeps the normalised
+Replays logs (several identify one model, as ``canrls fit`` reads them) or simulates a
+scenario through the pipeline, keeps the normalised
 regressors of every used sample, computes the float reference on them and runs the
 fixed-point kernel for every combination of state word (``--word``), accumulator
 (``--acc``) and input word (``--input``), Q formats chosen automatically for each.
@@ -39,11 +40,13 @@ def _bits(text: str) -> list[int]:
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "fixed-sweep", help="fixed-point error against word length and Q formats",
-        description="Run the fixed-point RLS for several word lengths on a log (or a "
+        description="Run the fixed-point RLS for several word lengths on logs (or a "
                     "simulated scenario), print each configuration's largest relative "
                     "parameter error against the float reference, and recommend one.")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("log", nargs="?", metavar="LOG", help="CAN log to replay")
+    src.add_argument("log", nargs="*", default=[], metavar="LOG",
+                     help="CAN log(s) to replay; several identify one model, as in "
+                          "'canrls fit'")
     src.add_argument("--scenario", metavar="NAME",
                      help="simulate this scenario instead (standard, linear, poor)")
     p.add_argument("--duration", type=float, default=30.0,
@@ -85,13 +88,15 @@ def run(args: argparse.Namespace) -> int:
         blocks.append(proc.process_samples(res.measured, record=True))
         source = f"scenario {args.scenario} ({args.duration:g} s, seed {args.seed})"
     else:
-        from canrls.can.logs import read_frames
+        from canrls.replay import LogFiles
 
-        for fb in read_frames(args.log, progress=Progress("replay", quiet=args.quiet).callback):
-            blocks.append(proc.process(fb, record=True))
+        files = LogFiles(args.log, proc,
+                         progress=Progress("replay", quiet=args.quiet).callback)
+        for s in files.samples():
+            blocks.append(proc.process_samples(s, record=True))
             if sum(b.samples for b in blocks) >= args.max_samples:
                 break
-        source = args.log
+        source = ", ".join(args.log)
     blocks.append(proc.flush(record=True))
     pipe = proc.pipeline
     settings = pipe.settings
