@@ -51,6 +51,10 @@
 
     [daemon]                   # canrls run (see docs/daemon.md)
 
+    [history]                  # canrls run appends its parameters to a fleet history
+    url = "fleet.db"           # (docs/fleet.md; canrls.fleet.live)
+    drive = "axis-1"
+
 Relative paths (``can.dbc``) are relative to the configuration file. Every key is
 checked: an unknown key or a bad value is a :class:`~canrls.errors.ConfigError`
 naming the file, the key and the value.
@@ -74,6 +78,7 @@ from canrls.errors import ConfigError
 from canrls.estimation.fixed import QFormat
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings
+from canrls.files import MAX_CONFIG_BYTES, check_path, read_bytes
 from canrls.signals import ROLES
 
 __all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "load_config",
@@ -93,7 +98,7 @@ DEFAULT_EFFECTS: tuple[str, ...] = ("inertia", "viscous", "coulomb")
 #: the inverter holds its voltage (the built-in simulated drive does the same).
 DEFAULT_HELD: tuple[str, ...] = ("current", "voltage")
 
-_SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor")
+_SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor", "history")
 _ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
                    "warmup_s": "warmup_s", "gap_periods": "gap_periods",
                    "rms_time_s": "rms_time_s", "max_phase_step": "max_phase_step",
@@ -117,12 +122,10 @@ def read_toml(path: str | Path, table: str | None = None, *, key: str | None = N
     ``"daemon.model_file = m.toml: invalid TOML: Expected ']' ... (at line 1, column 7)"``,
     ``"drive.toml: cannot read: No such file or directory"``, ``"x.toml: no [model] table"``.
     """
-    p = Path(path)
-    where = f"{key} = {p}" if key else str(p)
-    try:
-        text = p.read_bytes()
-    except OSError as e:
-        raise ConfigError(f"{where}: cannot read: {e.strerror or e}") from e
+    where = f"{key} = {path}" if key else str(path)
+    p = check_path(path, where)
+    # a regular file of bounded size: a FIFO or a device is refused, never opened
+    text = read_bytes(p, where, limit=MAX_CONFIG_BYTES)
     try:
         doc = tomllib.loads(text.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
@@ -177,6 +180,8 @@ class AppConfig:
     signals: dict[str, Any] = field(default_factory=dict)
     daemon: dict[str, Any] = field(default_factory=dict)
     monitor: dict[str, Any] = field(default_factory=dict)
+    #: ``[history]``: where ``canrls run`` appends its parameters (canrls.fleet.live)
+    history: dict[str, Any] = field(default_factory=dict)
     signal_overrides: list[str] = field(default_factory=list)
     #: configuration keys set from the command line, with the flag and value typed
     #: (``{"model.effects": "--effects inertia,foo"}``): errors name those, not the key

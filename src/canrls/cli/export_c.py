@@ -26,7 +26,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                    help="TOML configuration, or a saved model (.json, canrls fit "
                         "--save-model)")
     p.add_argument("--out", type=Path, default=Path("canrls_c"), metavar="DIR",
-                   help="output directory (default: canrls_c)")
+                   help="output directory, made if missing (default: canrls_c); each file "
+                        "is written to a temporary beside it and renamed")
     p.add_argument("--dt", type=float, default=None, metavar="S",
                    help="control period in seconds (default: the DBC's cycle time, else "
                         "1 ms)")
@@ -38,5 +39,6 @@ def run(args: argparse.Namespace) -> int:
     from canrls.c_export import export_c, load_source
 
     cfg, model, energy, source = load_source(args.model)
-    print(export_c(cfg, args.out, model=model, dt=args.dt, energy=energy, source=source))
+    print(export_c(cfg, args.out, model=model, dt=args.dt, energy=energy, source=source,
+                   what=f"--out {args.out}"))
     return 0

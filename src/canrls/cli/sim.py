@@ -1,25 +1,40 @@
-"""``canrls sim``: write a log of the simulated drive.
+"""``canrls sim``: write a log of the simulated drive, or the logs of a simulated fleet.
 
     canrls sim --out drive.log --duration 60 --effects inertia,viscous,coulomb,cogging:24 \\
                --seed 3 --faults drop=0.01,silence=0.5s@10s
+    canrls sim fleet --drives 50 --recordings 10 --out fleet/ --seed 1
 
 The log holds the drive's feedback frames (``DriveCurrent``, ``DriveSpeed`` of the
 default DBC, CRC and alive counter included), timestamps from ``--start-time``
 (default 0) in steps of the control period. ``.log`` is candump; other suffixes
 (``.asc``, ``.blf``, ``.trc``, ``.csv``) go through python-can's writers. One summary
 line goes to stderr: frames written, duration, scenario, truth and faults.
+
+``canrls sim fleet`` writes ``DIR/<drive>/<drive>-<k>.log`` for every drive and
+recording (``--duration`` seconds each, default 6), ``DIR/manifest.csv`` and
+``DIR/truth.json`` (:mod:`canrls.sim.fleet`; docs/fleet.md): a spread of drive types,
+physics, noise and excitation, a few drives wearing.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from canrls.errors import ConfigError
 
-__all__ = ["add_subparser", "run"]
+__all__ = ["add_subparser", "run", "MAX_DURATION"]
+
+#: Longest simulated run [s]: a day, some 7 GB of candump at 1 kHz (the simulator
+#: writes about 86 MB/s; beyond a day a run is a disk filling up, not a test log).
+MAX_DURATION = 86400.0
 
 
 def _param(text: str) -> tuple[str, float]:
@@ -37,16 +52,33 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     from canrls.sim.scenario import DEFAULT_EFFECTS, SCENARIOS
 
     p = subparsers.add_parser(
-        "sim", help="write a CAN log of the simulated drive",
+        "sim", help="write a CAN log of the simulated drive (or a simulated fleet's logs)",
         description="Simulate the drive and write its feedback frames to a log "
-                    "(candump .log, or any format python-can writes).")
-    p.add_argument("--out", "-o", required=True, metavar="LOG", help="log file to write")
-    p.add_argument("--duration", "-d", type=float, required=True, metavar="SECONDS",
-                   help="simulated time [s]")
+                    "(candump .log, or any format python-can writes); 'canrls sim fleet' "
+                    "writes the logs of a fleet of drives, a few of them wearing, with a "
+                    "manifest and a truth file.")
+    p.add_argument("mode", nargs="?", choices=("drive", "fleet"), default="drive",
+                   help="'fleet': many drives, each recorded again and again (default: "
+                        "one drive)")
+    p.add_argument("--out", "-o", required=True, type=Path, metavar="LOG",
+                   help="log file to write (.log, .asc, .blf, .csv, .trc; written to a "
+                        "temporary beside it and renamed when complete; fleet: the "
+                        "directory)")
+    p.add_argument("--duration", "-d", type=float, default=None, metavar="SECONDS",
+                   help=f"simulated time [s], at most {MAX_DURATION:g} (a day; required; "
+                        f"fleet: of each recording, default 6)")
+    f = p.add_argument_group("fleet (canrls sim fleet)")
+    f.add_argument("--drives", type=int, default=50, metavar="N",
+                   help="drives of the fleet (default 50)")
+    f.add_argument("--recordings", type=int, default=10, metavar="M",
+                   help="recordings of each drive (default 10)")
+    f.add_argument("--days", type=float, default=7.0, metavar="D",
+                   help="days between a drive's recordings (default 7)")
     p.add_argument("--effects", "-e", default=None, metavar="NAME,...",
                    help=f"true physics (default {DEFAULT_EFFECTS}); names: inertia, viscous, "
                         "coulomb, stribeck, offset, unbalance, cogging:K, electrical")
-    p.add_argument("--seed", "-s", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--seed", "-s", type=int, default=0,
+                   help="seed, a non-negative integer (default 0)")
     p.add_argument("--faults", "-f", default=None, metavar="SPEC",
                    help="faults, e.g. drop=0.01,dup=0.005,reorder=0.01,corrupt=0.001,"
                         "silence=0.5s@10s")
@@ -59,26 +91,115 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--param", "-p", action="append", type=_param, default=[],
                    metavar="NAME=VALUE", help="true parameter value (repeatable), e.g. "
                                               "coulomb.Tc=0.03")
-    p.add_argument("--channel", default="can0", help="channel name written in the log")
+    p.add_argument("--channel", default="can0",
+                   help="channel name written in the log: printable ASCII, no spaces "
+                        "(default can0)")
     p.add_argument("--start-time", type=float, default=0.0, metavar="T0",
                    help="timestamp of the first period [s] (default 0)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, sim_parser=p)
     return p
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """The options' values, before anything is simulated or written."""
+    from canrls.can.candump import MAX_TIMESTAMP
+    from canrls.can.logs import check_channel
+    from canrls.can.writers import RECORD_SUFFIXES
+    from canrls.errors import LogFormatError
+    from canrls.files import check_writable
+
+    if not (math.isfinite(args.duration) and 0 < args.duration <= MAX_DURATION):
+        raise ConfigError(f"--duration: {args.duration!r} must be a positive number of "
+                          f"seconds, at most {MAX_DURATION:g} (a day of the drive, some "
+                          f"7 GB of candump at 1 kHz; for more, several runs with "
+                          f"--start-time)")
+    if not (math.isfinite(args.start_time)
+            and abs(args.start_time) + args.duration <= MAX_TIMESTAMP):
+        raise ConfigError(f"--start-time {args.start_time!r}: the log's times must stay "
+                          f"within {MAX_TIMESTAMP:g} s (what the log readers take)")
+    if args.seed < 0:
+        raise ConfigError(f"--seed {args.seed}: must be a non-negative integer")
+    try:
+        check_channel(args.channel, "--channel")
+    except LogFormatError as e:
+        raise ConfigError(str(e)) from e
+    suffix = Path(args.out).suffix.lower()
+    if suffix not in RECORD_SUFFIXES:
+        raise ConfigError(f"--out {args.out}: unknown log format {suffix or '(no suffix)'!r}"
+                          f" (canrls writes {', '.join(RECORD_SUFFIXES)})")
+    check_writable(args.out, f"--out {args.out}")
+
+
+@contextmanager
+def _terminated_as_exit() -> Iterator[None]:
+    """SIGTERM raises SystemExit(143) while the log is written, so that its temporary
+    is removed (the default action would leave it); the handler is restored after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    old = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 def run(args: argparse.Namespace) -> int:
     from canrls.can.logs import write_log
     from canrls.sim.scenario import Simulator, scenario
 
-    if not (math.isfinite(args.duration) and args.duration > 0):
-        raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
+    if args.mode == "fleet":
+        return run_fleet(args)
+    if args.duration is None:
+        args.sim_parser.error("the following arguments are required: --duration/-d")
+    check_args(args)
     sc = scenario(args.scenario, effects=args.effects, seed=args.seed, faults=args.faults,
                   axis=args.axis, excitation=args.excitation, duration=args.duration,
                   params=dict(args.param))
     sim = Simulator(sc, t0=args.start_time)
-    n = write_log(args.out, sim.frames(), channel=args.channel)
+    with _terminated_as_exit():
+        n = write_log(args.out, sim.frames(), channel=args.channel, what=f"--out {args.out}")
     faults = f"; faults {sc.faults}: {sim.fault_log.summary()}" if sc.faults.active else ""
     clipped = f"; {sim.clipped} values clipped to the DBC range" if sim.clipped else ""
     print(f"canrls sim: wrote {n} frames to {args.out} ({sc.duration:g} s, scenario {sc.name}, "
           f"seed {sc.seed}); truth: {sc.truth.summary()}{faults}{clipped}", file=sys.stderr)
+    return 0
+
+
+#: options of one drive that a fleet draws for each of its drives
+_DRIVE_ONLY = ("effects", "faults", "axis", "excitation")
+
+
+def run_fleet(args: argparse.Namespace) -> int:
+    """``canrls sim fleet``."""
+    from canrls.cli._common import Progress
+    from canrls.sim.fleet import make_fleet, write_fleet
+
+    for opt in _DRIVE_ONLY:
+        if getattr(args, opt) is not None:
+            raise ConfigError(f"--{opt}: not an option of 'canrls sim fleet' (each drive's "
+                              f"physics, faults and excitation are drawn)")
+    if args.param:
+        raise ConfigError("--param: not an option of 'canrls sim fleet'")
+    duration = 6.0 if args.duration is None else args.duration
+    if args.drives < 1 or args.recordings < 1:
+        raise ConfigError(f"--drives {args.drives} --recordings {args.recordings}: at least 1")
+    if not (math.isfinite(args.days) and args.days > 0):
+        raise ConfigError(f"--days: {args.days!r} must be a positive number of days")
+    plan = make_fleet(args.drives, args.recordings, duration, args.seed, days=args.days)
+    bar = Progress("sim fleet", unit="log")
+    out = write_fleet(plan, args.out, progress=bar.callback)
+    bar.close()
+    classes: dict[str, int] = {}
+    for d in plan.drives:
+        classes[d.cls] = classes.get(d.cls, 0) + 1
+    print(f"canrls sim fleet: wrote {args.drives * args.recordings} logs of {args.drives} "
+          f"drives ({duration:g} s each, seed {args.seed}) to {out}: "
+          + ", ".join(f"{n} {c}" for c, n in sorted(classes.items()))
+          + f"; truth in {out / 'truth.json'}, manifest {out / 'manifest.csv'}",
+          file=sys.stderr)
     return 0
