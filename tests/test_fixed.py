@@ -30,9 +30,8 @@ from canrls.estimation.fixed import (
     FixedTrace,
     QFormat,
     SaturationCounts,
-    SweepResult,
-    sweep,
 )
+from canrls.estimation.fixed_sweep import SweepResult, sweep
 
 F64 = npt.NDArray[np.float64]
 UPDATES = ["symmetric", "literal", "naive"]

@@ -15,8 +15,6 @@ import argparse
 import sys
 from typing import Any
 
-import numpy as np
-
 from canrls.cli._common import (
     Progress,
     add_model_options,
@@ -69,7 +67,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.estimation.fixed import sweep
+    from canrls.estimation.fixed_sweep import sweep
     from canrls.estimation.pipeline import used_rows
     from canrls.estimation.rls import RLS
     from canrls.processor import FrameProcessor
