@@ -67,7 +67,10 @@ def test_several_logs_and_the_note_of_fit(tmp_path: Path,
     assert main(["fit", *args, "--json", "--quiet"]) == 0
     fit = json.loads(capsys.readouterr().out)
     assert mech["samples"] == fit["samples"]
-    assert fit["equations"]["mechanical"]["divergence"] < 1e-3
+    div = fit["equations"]["mechanical"]["divergence"]
+    # the same measure: max |fixed - float| / max(|float|, 3 sigma) over the parameters
+    assert rows["W32/A64/I32"]["max_rel_error"] == pytest.approx(div, rel=1e-6)
+    assert div < 1e-3
     cfg = tmp_path / "narrow.toml"
     cfg.write_text("[fixed]\nword_bits = 24\ninput_bits = 8\n")
     assert main(["fit", *args, "-C", str(cfg), "--quiet"]) == 0

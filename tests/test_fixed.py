@@ -776,6 +776,29 @@ def test_sweep_reports_and_recommends_the_smallest_configuration() -> None:
     assert [r.label for r in res2.rows] == ["mine"] and res2.rows[0].ok
 
 
+def test_sweep_with_sigma_measures_as_fit_does() -> None:
+    """With the reference's sigma, each parameter's error is relative to
+    max(|theta_ref|, 3 sigma), the measure of canrls fit (pipeline.divergence)."""
+    from canrls.estimation.pipeline import divergence
+
+    n, lam, alpha = 4, 0.999, 1e-1
+    Phi, Y, _ = drive_data(5_000, n, seed=4)
+    ref = float_rls(Phi, Y, lam, alpha, n / alpha)
+    cfg = FixedConfig.auto(n, alpha, lam, word_bits=24)
+    sigma = np.array([0.0, np.nan, 10.0 * abs(ref[2]), 0.0])
+    res = sweep(Phi, Y, ref, {"w24": cfg}, lam=lam, alpha=alpha, sigma=sigma)
+    row = res.rows[0]
+    assert row.max_rel_error == pytest.approx(
+        divergence(ref.tolist(), list(row.theta), sigma.tolist()), rel=1e-12)
+    # the third parameter is measured against 3 sigma = 30 |theta_3|, the others not
+    rel = np.abs(np.array(row.theta) - ref) / np.abs(ref)
+    assert row.rel_errors[2] == pytest.approx(rel[2] / 30.0, rel=1e-12)
+    assert row.rel_errors[0] == pytest.approx(rel[0], rel=1e-12)
+    assert res.sigma_ref[2] == sigma[2] and res.to_dict()["sigma_ref"][3] == 0.0
+    with pytest.raises(EstimatorError, match="sigma must have shape"):
+        sweep(Phi, Y, ref, {"w24": cfg}, lam=lam, alpha=alpha, sigma=[1.0])
+
+
 def _quantize_numpy(q: QFormat, x: npt.ArrayLike) -> tuple[npt.NDArray[np.int64], int]:
     """The numpy formulation of :meth:`QFormat.quantize` (before its compiled kernel)."""
     a = np.asarray(x, dtype=np.float64)

@@ -253,6 +253,27 @@ def test_fixed_point_follows_the_float_on_one_direction_and_on_eight_logs(
     assert _divergence(res) < 1e-3
 
 
+def test_sweep_measures_one_direction_as_fit_does(
+        logs: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    """The worst single run (Coulomb and offset not identifiable, sigma far above their
+    values): fit's divergence is below 1e-3 and fixed-sweep, measuring each parameter
+    against max(|float|, 3 sigma) as fit does, finds the same figure for fit's words and
+    recommends them."""
+    from canrls.cli.main import main
+
+    one = str(logs["idf_neg_0.04_2"])
+    div = _divergence(canrls("fit", one, *MODEL, capsys=capsys))
+    assert div < 1e-3
+    assert main(["fixed-sweep", one, "--dbc", str(DBC),
+                 *(a for s in TOOL.SIGNALS for a in ("--signal", s)), "--kt", str(KT),
+                 *MODEL, "--word", "24,32", "--acc", "64", "--input", "32", "--json",
+                 "--quiet"]) == 0
+    sw = json.loads(capsys.readouterr().out)["equations"]["mechanical"]
+    rows = {r["label"]: r for r in sw["rows"]}
+    assert rows["W32/A64/I32"]["max_rel_error"] == pytest.approx(div, rel=1e-6)
+    assert sw["recommended"] == "W32/A64/I32"
+
+
 def test_raw_limit_dbc_changes_no_fixed_point(logs: dict[str, Path], tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     """The same runs as 32-bit signals whose DBC declares their full raw range: the float

@@ -5,7 +5,8 @@ scenario through the pipeline, keeps the normalised
 regressors of every used sample, computes the float reference on them and runs the
 fixed-point kernel for every combination of state word (``--word``), accumulator
 (``--acc``) and input word (``--input``), Q formats chosen automatically for each.
-Prints the largest relative parameter error of each configuration against float, its
+Prints the largest relative parameter error of each configuration against float (each
+parameter against ``max(|float|, 3 sigma)``, as ``canrls fit`` measures its divergence), its
 saturations, and recommends the smallest configuration within ``--tol`` (0.1 %).
 """
 
@@ -57,7 +58,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--input", type=_bits, default=[16, 32], metavar="BITS,...",
                    help="input word lengths of phi and y (default 16,32)")
     p.add_argument("--tol", type=float, default=1e-3,
-                   help="tolerance on every parameter's relative error (default 1e-3)")
+                   help="tolerance on every parameter's error, relative to max(|float|, "
+                        "3 sigma) as in 'canrls fit' (default 1e-3)")
     p.add_argument("--max-samples", type=int, default=200_000,
                    help="use at most this many samples (default 200000)")
     add_model_options(p)
@@ -110,7 +112,8 @@ def run(args: argparse.Namespace) -> int:
         ref.run(phi, y, record=False)
         res_sw = sweep(phi, y, ref.theta, lam=settings.lam, alpha=est.ridge,
                        trace_max=settings.trace_max, word_bits=args.word, acc_bits=args.acc,
-                       input_bits=args.input, theta_max=settings.theta_max, tol=args.tol)
+                       input_bits=args.input, theta_max=settings.theta_max, tol=args.tol,
+                       sigma=ref.std())
         d = res_sw.to_dict()
         d["parameters"] = [p.name for p in eq.parameters]
         d["samples"] = len(y)

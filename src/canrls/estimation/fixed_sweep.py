@@ -99,6 +99,9 @@ class SweepResult:
         Parameters smaller than this are measured against it instead.
     theta_ref : tuple of float
         The float reference.
+    sigma_ref : tuple of float
+        Its standard deviations (empty when not given): a parameter is measured against
+        ``max(|theta_ref|, 3 sigma_ref, floor)``.
     recommended : SweepRow or None
         The smallest configuration (by :attr:`SweepRow.cost`) within ``tol``.
     """
@@ -108,6 +111,7 @@ class SweepResult:
     floor: float
     theta_ref: tuple[float, ...]
     recommended: SweepRow | None
+    sigma_ref: tuple[float, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict."""
@@ -115,6 +119,7 @@ class SweepResult:
             "tol": self.tol,
             "floor": self.floor,
             "theta_ref": list(self.theta_ref),
+            "sigma_ref": list(self.sigma_ref),
             "recommended": self.recommended.label if self.recommended else None,
             "rows": [r.to_dict() for r in self.rows],
         }
@@ -164,6 +169,7 @@ def sweep(
     tol: float = 1e-3,
     floor: float | None = None,
     update: str = "symmetric",
+    sigma: npt.ArrayLike | None = None,
 ) -> SweepResult:
     r"""Run the fixed-point RLS for several word lengths and compare with a float reference.
 
@@ -191,8 +197,12 @@ def sweep(
     floor : float or None
         A parameter smaller than this is measured against ``floor`` instead of its
         own size (so a zero parameter does not fail everything); ``None``: 1 % of
-        the largest :math:`|\theta_{ref}|`.
+        the largest :math:`|\theta_{ref}|` without ``sigma``, none with it.
     update : {"symmetric", "literal", "naive"}
+    sigma : array_like, shape (n,), optional
+        Standard deviations of ``theta_ref``: each parameter is then measured against
+        ``max(|theta_ref_j|, 3 sigma_j)``, as ``canrls fit`` measures the fixed point
+        (:func:`canrls.estimation.pipeline.divergence`); a NaN counts as 0.
 
     Returns
     -------
@@ -210,10 +220,17 @@ def sweep(
         raise EstimatorError(
             f"sweep Y must have shape ({N},) and theta_ref ({n},), got {Y_a.shape}, {ref.shape}"
         )
-    fl = 0.01 * float(np.max(np.abs(ref))) if floor is None else float(floor)
+    sd = np.zeros(n) if sigma is None else np.asarray(sigma, dtype=np.float64)
+    if sd.shape != (n,):
+        raise EstimatorError(f"sweep sigma must have shape ({n},), got {sd.shape}")
+    if floor is not None:
+        fl = float(floor)
+    else:
+        fl = 0.01 * float(np.max(np.abs(ref))) if sigma is None else 0.0
     if not fl > 0:
         fl = np.finfo(np.float64).tiny
-    scale = np.maximum(np.abs(ref), fl)
+    # scale_j = max(|theta_ref_j|, 3 sigma_j, floor)
+    scale = np.maximum(np.maximum(np.abs(ref), 3.0 * np.nan_to_num(sd, nan=0.0)), fl)
 
     todo: list[tuple[str, FixedConfig | None, str | None]] = []
     if configs is None:
@@ -256,4 +273,5 @@ def sweep(
         )  # fmt: skip
     ok = [r for r in rows if r.ok]
     rec = min(ok, key=lambda r: r.cost) if ok else None
-    return SweepResult(tuple(rows), float(tol), fl, tuple(float(x) for x in ref), rec)
+    return SweepResult(tuple(rows), float(tol), fl, tuple(float(x) for x in ref), rec,
+                       () if sigma is None else tuple(float(x) for x in sd))
