@@ -15,7 +15,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 import tracemalloc
 from collections.abc import Callable
@@ -24,6 +23,7 @@ from typing import Any
 
 import pytest
 
+from blocking import in_thread, unblock_fifo
 from canrls.can.logs import LogReadStats, read_frames
 from canrls.cli.main import main
 from canrls.config import read_toml
@@ -54,36 +54,6 @@ def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
     return lines[0]
 
 
-def _in_thread(fn: Callable[[], Any], unblock: Callable[[], None]) -> Any:
-    """``fn()`` in a thread; if it is still blocked after 30 s (a hang: the fault),
-    ``unblock()`` frees it so that the test fails instead of hanging."""
-    out: dict[str, Any] = {}
-
-    def target() -> None:
-        try:
-            out["value"] = fn()
-        except BaseException as e:  # re-raised below
-            out["error"] = e
-
-    t = threading.Thread(target=target, name="hostile-files")
-    t.start()
-    t.join(30)
-    hung = t.is_alive()
-    if hung:
-        unblock()
-        t.join(30)
-    assert not hung, "blocked on a FIFO"
-    if "error" in out:
-        raise out["error"]
-    return out.get("value")
-
-
-def _unblock(fifo: Path) -> Callable[[], None]:
-    def unblock() -> None:  # a writer that opens and closes: the reader sees EOF
-        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
-    return unblock
-
-
 def _precious(tmp_path: Path) -> Path:
     target = tmp_path / "precious.txt"
     target.write_bytes(PRECIOUS)
@@ -105,7 +75,7 @@ def test_a_fifo_where_a_file_is_read_is_refused_without_blocking(
             "validate --model": ["validate", str(log), "--model", str(fifo)],
             "export-c --model": ["export-c", "--model", str(fifo), "--out",
                                  str(tmp_path / "c")]}[where]
-    line = _in_thread(lambda: _error(capsys, argv), _unblock(fifo))
+    line = in_thread(lambda: _error(capsys, argv), unblock_fifo(fifo), "a FIFO")
     assert f"{fifo.name}: is a FIFO, not a regular file" in line
 
 
@@ -145,7 +115,7 @@ def test_sighup_with_the_model_file_a_fifo_keeps_the_daemon_running(
         def failed() -> None:
             while not any("reload failed" in r.getMessage() for r in caplog.records):
                 time.sleep(0.01)
-        _in_thread(failed, _unblock(model))
+        in_thread(failed, unblock_fifo(model), "a FIFO")
     finally:
         d.stop()
     msg = next(r.getMessage() for r in caplog.records if "reload failed" in r.getMessage())
@@ -157,7 +127,7 @@ def test_the_helpers_refuse_a_fifo_and_bound_the_size(tmp_path: Path) -> None:
     fifo = tmp_path / "f"
     os.mkfifo(fifo)
     with pytest.raises(ConfigError, match="f: is a FIFO"):
-        _in_thread(lambda: open_regular(fifo, str(fifo)), _unblock(fifo))
+        in_thread(lambda: open_regular(fifo, str(fifo)), unblock_fifo(fifo), "a FIFO")
     big = tmp_path / "big.toml"
     big.write_bytes(b"#" * 5000)
     with pytest.raises(ConfigError, match="5000 bytes, more than the 4096"):
