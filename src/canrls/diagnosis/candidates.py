@@ -255,6 +255,17 @@ class _Evaluation:
 
 
 @dataclass(frozen=True)
+class _Outcome:
+    """What the selection leaves: the suggestion (empty when withdrawn), the structure left
+    in the residual, the suggestion withdrawn (``partial``) and the effects chosen."""
+
+    suggestion: Suggestion
+    structure: tuple[StructureItem, ...]
+    partial: Suggestion | None
+    chosen: list[str]
+
+
+@dataclass(frozen=True)
 class _Selection:
     """The greedy forward selection: its steps, the effects chosen and the RSS after them."""
 
@@ -347,18 +358,19 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation,
     best_cog = max(cog, key=lambda nm: (evaluated[nm].explained, -int(nm[8:]))) \
         if cog else None
     sel = _forward_select(cmp, evaluated)
-    suggestion, structure, partial, chosen = _what_is_left(ctx, model, eq, res, cmp, sel)
+    out = _what_is_left(ctx, model, eq, res, cmp, sel)
     ev_ctx = _EvidenceContext(ctx, res.bins, res.spectrum, res.unit, cmp.used, cmp.A, cmp.G,
                               cmp.C, cmp.aug, evaluated, best_cog, cog, model)
-    cands = _listed(cmp, evaluated, chosen, best_cog, cog, ev_ctx, eq)
+    cands = _listed(cmp, evaluated, out.chosen, best_cog, cog, ev_ctx, eq)
     not_ident = [c for c in cands if not c.identifiable]
     reasons = [*model_issues, *(f"{c.effect}: {c.reason}" for c in not_ident)]
-    verdict = _verdict(eq, suggestion, cands, structure, model_issues, not_ident, res.exc,
-                       res.unit, cmp.rms_ls, partial, inseparable, cmp.not_applicable)
+    verdict = _verdict(eq, out.suggestion, cands, out.structure, model_issues, not_ident,
+                       res.exc, res.unit, cmp.rms_ls, out.partial, inseparable,
+                       cmp.not_applicable)
     verdict += _convergence_note(res, cmp.rms_ls)
-    return CandidateResult(tuple(cands), tuple(cmp.not_applicable), suggestion, structure,
-                           not model_issues and not not_ident, tuple(reasons), verdict,
-                           cmp.rms_ls)
+    return CandidateResult(tuple(cands), tuple(cmp.not_applicable), out.suggestion,
+                           out.structure, not model_issues and not not_ident, tuple(reasons),
+                           verdict, cmp.rms_ls)
 
 
 def _compare(ctx: RecordSamples, model: Model, eq: Equation,
@@ -496,11 +508,9 @@ def _forward_select(cmp: _Comparison, evaluated: Mapping[str, _Evaluation]) -> _
 
 
 def _what_is_left(ctx: RecordSamples, model: Model, eq: Equation, res: ResidualSummary,
-                  cmp: _Comparison, sel: _Selection
-                  ) -> tuple[Suggestion, tuple[StructureItem, ...], Suggestion | None,
-                             list[str]]:
-    """The suggestion, the structure left after it, the suggestion withdrawn (when it
-    explains less than :data:`MIN_TOTAL` of structure that stays) and what is chosen."""
+                  cmp: _Comparison, sel: _Selection) -> _Outcome:
+    """The suggestion and the structure left after it; the suggestion is withdrawn when
+    it explains less than :data:`MIN_TOTAL` of structure that stays."""
     suggestion = Suggestion(sel.steps, cmp.rms_ls)
     chosen = list(sel.chosen)
     partial: Suggestion | None = None
@@ -538,7 +548,7 @@ def _what_is_left(ctx: RecordSamples, model: Model, eq: Equation, res: ResidualS
         same = dd <= 0.01 * el and cmp.N == res.used.count()
         structure = residual_structure(ctx, r_ls, cmp.used, res.unit, res.h2,
                                        res.spectrum if same else None, eq.target.signal)
-    return suggestion, structure, partial, chosen
+    return _Outcome(suggestion, structure, partial, chosen)
 
 
 def _listed(cmp: _Comparison, evaluated: Mapping[str, _Evaluation], chosen: Sequence[str],
