@@ -1,6 +1,7 @@
 # Two commands do all the set-up on a fresh machine with Python 3.11:
 #   make demo   -- create .venv, install canrls, run the demo on the simulated drive
 #   make test   -- create .venv, install canrls with its test extras, run the tests
+#                  (the PostgreSQL tests install Debian's postgresql with apt-get as root)
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   ?= .venv
 BIN     = $(VENV)/bin
@@ -11,7 +12,7 @@ BIN     = $(VENV)/bin
 $(BIN)/.installed: pyproject.toml setup.py $(wildcard src/canrls/c/*.c src/canrls/c/*.h)
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,report]'
+	$(BIN)/python -m pip install --quiet -e '.[test,report,fleet]'
 	touch $@
 
 demo: $(BIN)/.installed

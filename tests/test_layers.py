@@ -5,13 +5,16 @@ Dependencies run one way::
     core (canrls, errors, signals, effect_names)
       -> can (DBC, decoding, logs, pairing, frames)   estimation (effects ... RLS, pipeline)
       -> config, processor                             (the front end: one calibration rule)
-      -> replay, diagnosis, live                       (offline, analysis, the daemon)
+      -> replay                                        (offline: what canrls fit runs)
+      -> diagnosis, live | fleet                       (analysis, the daemon | many drives)
       -> cli                                           (one module per subcommand)
 
-``sim`` (the simulated drive) sits at the edge: it uses ``core`` and ``can`` and only
-``cli`` uses it. ``can`` and ``estimation`` never import each other, and neither
-``estimation`` nor ``core`` imports an I/O package (python-can, cantools). No import
-circle, and no module reaches into another module's underscore names.
+``fleet`` sits beside ``diagnosis`` and ``live`` and imports neither (the command line
+hands it the diagnosis's ranking; the daemon's ``[history]`` hook is given its writer
+by the command line). ``sim`` (the simulated drive) sits at the edge: it uses ``core``
+and ``can`` and only ``cli`` uses it. ``can`` and ``estimation`` never import each other,
+and neither ``estimation`` nor ``core`` imports an I/O package (python-can, cantools).
+No import circle, and no module reaches into another module's underscore names.
 
 The checks read the source (ast), so they also see imports inside functions.
 """
@@ -35,8 +38,9 @@ LAYER = {
     "canrls.can": "can", "canrls.estimation": "estimation",
     "canrls.config": "front", "canrls.processor": "front", "canrls.modelfile": "front",
     "canrls.validate": "app",
-    "canrls.replay": "app", "canrls.diagnosis": "app", "canrls.live": "app",
+    "canrls.replay": "replay", "canrls.diagnosis": "app", "canrls.live": "app",
     "canrls.c_export": "app",
+    "canrls.fleet": "fleet",
     "canrls.sim": "sim", "canrls.cli": "cli", "canrls.__main__": "cli",
 }
 ALLOWED = {
@@ -44,9 +48,13 @@ ALLOWED = {
     "can": {"core"},
     "estimation": {"core"},
     "front": {"core", "can", "estimation", "front"},
-    "app": {"core", "can", "estimation", "front", "app"},
+    # the offline replay (canrls fit): what the applications above it share
+    "replay": {"core", "can", "estimation", "front"},
+    "app": {"core", "can", "estimation", "front", "replay", "app"},
+    # many drives: beside the diagnosis and the daemon, importing neither
+    "fleet": {"core", "can", "estimation", "front", "replay", "fleet"},
     "sim": {"core", "can"},
-    "cli": {"core", "can", "estimation", "front", "app", "sim", "cli"},
+    "cli": {"core", "can", "estimation", "front", "replay", "app", "fleet", "sim", "cli"},
 }
 #: third-party I/O packages the pure layers must not import
 IO_PACKAGES = {"can", "cantools"}

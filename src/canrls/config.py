@@ -51,6 +51,10 @@
 
     [daemon]                   # canrls run (see docs/daemon.md)
 
+    [history]                  # canrls run appends its parameters to a fleet history
+    url = "fleet.db"           # (docs/fleet.md; canrls.fleet.live)
+    drive = "axis-1"
+
 Relative paths (``can.dbc``) are relative to the configuration file. Every key is
 checked: an unknown key or a bad value is a :class:`~canrls.errors.ConfigError`
 naming the file, the key and the value.
@@ -93,7 +97,7 @@ DEFAULT_EFFECTS: tuple[str, ...] = ("inertia", "viscous", "coulomb")
 #: the inverter holds its voltage (the built-in simulated drive does the same).
 DEFAULT_HELD: tuple[str, ...] = ("current", "voltage")
 
-_SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor")
+_SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor", "history")
 _ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
                    "warmup_s": "warmup_s", "gap_periods": "gap_periods",
                    "rms_time_s": "rms_time_s", "max_phase_step": "max_phase_step",
@@ -177,6 +181,8 @@ class AppConfig:
     signals: dict[str, Any] = field(default_factory=dict)
     daemon: dict[str, Any] = field(default_factory=dict)
     monitor: dict[str, Any] = field(default_factory=dict)
+    #: ``[history]``: where ``canrls run`` appends its parameters (canrls.fleet.live)
+    history: dict[str, Any] = field(default_factory=dict)
     signal_overrides: list[str] = field(default_factory=list)
     #: configuration keys set from the command line, with the flag and value typed
     #: (``{"model.effects": "--effects inertia,foo"}``): errors name those, not the key

@@ -342,23 +342,31 @@ def _split_timestamps(t: npt.NDArray[np.float64]
                       ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None:
     """Exact ``(seconds, microseconds)`` of ``f"{t:f}"`` per row, or None (use the fallback).
 
-    ``rint(t * 1e6)`` is the correctly rounded microsecond count unless ``t * 1e6`` lies
+    The whole seconds are split off first (``t - floor(t)`` is exact), so that the
+    microseconds ``rint(frac * 1e6)`` are correctly rounded unless ``frac * 1e6`` lies
     within a few ulps of a half-integer (its own rounding error could then flip the
     tie); those rows take Python's formatting, which rounds the exact binary value.
+    Without the split, an epoch time (``candump -l``: 1.7e9 s, 1.7e15 us, ulp 0.25 us)
+    put every row within those ulps and formatted every row in Python.
     """
     t = np.ascontiguousarray(t, np.float64)
     with np.errstate(invalid="ignore", over="ignore"):
-        x = t * 1e6
-        ok = (t >= 0.0) & (x < 2.0 ** 52)
+        ok = (t >= 0.0) & (t * 1e6 < 2.0 ** 52)
+        whole = np.floor(t)
+        x = (t - whole) * 1e6
         fr = x - np.floor(x)
         near = np.abs(fr - 0.5) <= 8.0 * np.spacing(x)
     if not ok.all():
         return None
+    sec = whole.astype(np.int64)
     us = np.rint(x).astype(np.int64)
+    carry = us >= 1_000_000
+    sec += carry
+    us -= carry * 1_000_000
     for k in np.flatnonzero(near).tolist():
-        whole, _, frac = f"{t[k]:f}".partition(".")
-        us[k] = int(whole) * 1_000_000 + int(frac)
-    return us // 1_000_000, us % 1_000_000
+        w, _, frac = f"{t[k]:f}".partition(".")
+        sec[k], us[k] = int(w), int(frac)
+    return sec, us
 
 
 def _candump_bytes(block: FrameBlock, channel: bytes) -> bytes:

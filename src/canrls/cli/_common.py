@@ -154,7 +154,8 @@ def _bar_class() -> Any:
 
 
 class Progress:
-    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr (sizes in bytes).
+    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr (sizes in bytes,
+    or counts of ``unit``).
 
     Silent with ``quiet`` (``--quiet``) or when stderr is not a terminal: then
     :attr:`callback` is None and the reader skips the calls. The bar appears at the first
@@ -164,9 +165,10 @@ class Progress:
     for one small pure-Python dependency.
     """
 
-    def __init__(self, label: str, *, quiet: bool = False, enabled: bool | None = None
-                 ) -> None:
+    def __init__(self, label: str, *, quiet: bool = False, enabled: bool | None = None,
+                 unit: str = "B") -> None:
         self.label = label
+        self.unit = unit
         self.enabled = (not quiet and sys.stderr.isatty()) if enabled is None else enabled
         self._bar: Any = None
 
@@ -175,8 +177,10 @@ class Progress:
             return
         bar = self._bar
         if bar is None:
-            bar = self._bar = _bar_class()(desc=self.label, total=total, unit="B", unit_scale=True,
-                                   unit_divisor=1024, file=sys.stderr, dynamic_ncols=True)
+            sized = self.unit == "B"
+            bar = self._bar = _bar_class()(desc=self.label, total=total, unit=self.unit,
+                                           unit_scale=sized, unit_divisor=1024 if sized else 1000,
+                                           file=sys.stderr, dynamic_ncols=True)
         bar.total = total
         bar.update(done - bar.n)
         if done >= total:

@@ -25,6 +25,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "export_c",
     "run",
     "monitor",
+    "fleet",
 )
 
 log = logging.getLogger("canrls")

@@ -125,8 +125,26 @@ def build_daemon(args: argparse.Namespace) -> Any:
         return configured_model()
 
     model = configured_model()
-    return Daemon(protocol, model, cfg.settings(), dset, bus=bus_config(cfg, args),
-                  reload=reloaded_model)
+    history = _history_hook(cfg, args) if cfg.history else None
+    try:
+        return Daemon(protocol, model, cfg.settings(), dset, bus=bus_config(cfg, args),
+                      reload=reloaded_model, history=history)
+    except BaseException:
+        if history is not None:
+            history.close()
+        raise
+
+
+def _history_hook(cfg: Any, args: argparse.Namespace) -> Any:
+    """``[history]``: the fleet history the daemon appends its parameters to."""
+    from canrls.fleet.ingest import JobConfig, model_key
+    from canrls.fleet.live import HistorySettings, LiveAppender
+    from canrls.live.history import HistoryHook
+
+    settings = HistorySettings.from_table(cfg.history, cfg.source)
+    key, desc = model_key(JobConfig.from_args(args))
+    appender = LiveAppender.open(settings, key, desc)
+    return HistoryHook(appender.append, settings.interval, close=appender.close)
 
 
 log = logging.getLogger(__name__)

@@ -1,13 +1,19 @@
-"""``canrls sim``: write a log of the simulated drive.
+"""``canrls sim``: write a log of the simulated drive, or the logs of a simulated fleet.
 
     canrls sim --out drive.log --duration 60 --effects inertia,viscous,coulomb,cogging:24 \\
                --seed 3 --faults drop=0.01,silence=0.5s@10s
+    canrls sim fleet --drives 50 --recordings 10 --out fleet/ --seed 1
 
 The log holds the drive's feedback frames (``DriveCurrent``, ``DriveSpeed`` of the
 default DBC, CRC and alive counter included), timestamps from ``--start-time``
 (default 0) in steps of the control period. ``.log`` is candump; other suffixes
 (``.asc``, ``.blf``, ``.trc``, ``.csv``) go through python-can's writers. One summary
 line goes to stderr: frames written, duration, scenario, truth and faults.
+
+``canrls sim fleet`` writes ``DIR/<drive>/<drive>-<k>.log`` for every drive and
+recording (``--duration`` seconds each, default 6), ``DIR/manifest.csv`` and
+``DIR/truth.json`` (:mod:`canrls.sim.fleet`; docs/fleet.md): a spread of drive types,
+physics, noise and excitation, a few drives wearing.
 """
 
 from __future__ import annotations
@@ -37,12 +43,25 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     from canrls.sim.scenario import DEFAULT_EFFECTS, SCENARIOS
 
     p = subparsers.add_parser(
-        "sim", help="write a CAN log of the simulated drive",
+        "sim", help="write a CAN log of the simulated drive (or a simulated fleet's logs)",
         description="Simulate the drive and write its feedback frames to a log "
-                    "(candump .log, or any format python-can writes).")
-    p.add_argument("--out", "-o", required=True, metavar="LOG", help="log file to write")
-    p.add_argument("--duration", "-d", type=float, required=True, metavar="SECONDS",
-                   help="simulated time [s]")
+                    "(candump .log, or any format python-can writes); 'canrls sim fleet' "
+                    "writes the logs of a fleet of drives, a few of them wearing, with a "
+                    "manifest and a truth file.")
+    p.add_argument("mode", nargs="?", choices=("drive", "fleet"), default="drive",
+                   help="'fleet': many drives, each recorded again and again (default: "
+                        "one drive)")
+    p.add_argument("--out", "-o", required=True, metavar="LOG",
+                   help="log file to write (fleet: the directory)")
+    p.add_argument("--duration", "-d", type=float, default=None, metavar="SECONDS",
+                   help="simulated time [s] (required; fleet: of each recording, default 6)")
+    f = p.add_argument_group("fleet (canrls sim fleet)")
+    f.add_argument("--drives", type=int, default=50, metavar="N",
+                   help="drives of the fleet (default 50)")
+    f.add_argument("--recordings", type=int, default=10, metavar="M",
+                   help="recordings of each drive (default 10)")
+    f.add_argument("--days", type=float, default=7.0, metavar="D",
+                   help="days between a drive's recordings (default 7)")
     p.add_argument("--effects", "-e", default=None, metavar="NAME,...",
                    help=f"true physics (default {DEFAULT_EFFECTS}); names: inertia, viscous, "
                         "coulomb, stribeck, offset, unbalance, cogging:K, electrical")
@@ -62,7 +81,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--channel", default="can0", help="channel name written in the log")
     p.add_argument("--start-time", type=float, default=0.0, metavar="T0",
                    help="timestamp of the first period [s] (default 0)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, sim_parser=p)
     return p
 
 
@@ -70,6 +89,10 @@ def run(args: argparse.Namespace) -> int:
     from canrls.can.logs import write_log
     from canrls.sim.scenario import Simulator, scenario
 
+    if args.mode == "fleet":
+        return run_fleet(args)
+    if args.duration is None:
+        args.sim_parser.error("the following arguments are required: --duration/-d")
     if not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
     sc = scenario(args.scenario, effects=args.effects, seed=args.seed, faults=args.faults,
@@ -81,4 +104,39 @@ def run(args: argparse.Namespace) -> int:
     clipped = f"; {sim.clipped} values clipped to the DBC range" if sim.clipped else ""
     print(f"canrls sim: wrote {n} frames to {args.out} ({sc.duration:g} s, scenario {sc.name}, "
           f"seed {sc.seed}); truth: {sc.truth.summary()}{faults}{clipped}", file=sys.stderr)
+    return 0
+
+
+#: options of one drive that a fleet draws for each of its drives
+_DRIVE_ONLY = ("effects", "faults", "axis", "excitation")
+
+
+def run_fleet(args: argparse.Namespace) -> int:
+    """``canrls sim fleet``."""
+    from canrls.cli._common import Progress
+    from canrls.sim.fleet import make_fleet, write_fleet
+
+    for opt in _DRIVE_ONLY:
+        if getattr(args, opt) is not None:
+            raise ConfigError(f"--{opt}: not an option of 'canrls sim fleet' (each drive's "
+                              f"physics, faults and excitation are drawn)")
+    if args.param:
+        raise ConfigError("--param: not an option of 'canrls sim fleet'")
+    duration = 6.0 if args.duration is None else args.duration
+    if args.drives < 1 or args.recordings < 1:
+        raise ConfigError(f"--drives {args.drives} --recordings {args.recordings}: at least 1")
+    if not (math.isfinite(args.days) and args.days > 0):
+        raise ConfigError(f"--days: {args.days!r} must be a positive number of days")
+    plan = make_fleet(args.drives, args.recordings, duration, args.seed, days=args.days)
+    bar = Progress("sim fleet", unit="log")
+    out = write_fleet(plan, args.out, progress=bar.callback)
+    bar.close()
+    classes: dict[str, int] = {}
+    for d in plan.drives:
+        classes[d.cls] = classes.get(d.cls, 0) + 1
+    print(f"canrls sim fleet: wrote {args.drives * args.recordings} logs of {args.drives} "
+          f"drives ({duration:g} s each, seed {args.seed}) to {out}: "
+          + ", ".join(f"{n} {c}" for c, n in sorted(classes.items()))
+          + f"; truth in {out / 'truth.json'}, manifest {out / 'manifest.csv'}",
+          file=sys.stderr)
     return 0

@@ -51,6 +51,7 @@ from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline
 from canrls.live.bus import BusLink, FrameQueue, command_rows, messages_to_block, open_bus
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
+from canrls.live.history import HistoryHook
 from canrls.live.publisher import Publisher, check_publishable
 from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
@@ -127,6 +128,8 @@ class Daemon:
     :param on_publish: called in the estimator thread after each publication with
         ``(frames processed so far, time.monotonic() when its parameter frames had
         been sent)`` (benchmarks).
+    :param history: offered the estimates after each publication, closed at stop
+        (``[history]``: :class:`~canrls.live.history.HistoryHook`).
     """
 
     def __init__(self, protocol: Protocol, model: Model,
@@ -137,7 +140,8 @@ class Daemon:
                  reload: Callable[[], Model] | None = None,
                  notifier: SystemdNotifier | None = None,
                  backpressure: bool = False,
-                 on_publish: Callable[[int, float], None] | None = None) -> None:
+                 on_publish: Callable[[int, float], None] | None = None,
+                 history: HistoryHook | None = None) -> None:
         if bus is None and bus_factory is None:
             raise ConfigError("Daemon: give the bus arguments (bus=...) or a bus_factory")
         self.protocol = protocol
@@ -187,6 +191,7 @@ class Daemon:
         self._link = BusLink(self._queue, bus_factory or (lambda: open_bus(bus_args)), cfg,
                              describe=str(bus_args or "bus"))
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
+        self._history = history
         self._commands = CommandHandler(
             proc, cfg.commands, self._link.send, self._set_model, self._publisher.clear_rms,
             max_parameters=cfg.max_parameters, check_model=self._check_model,
@@ -362,6 +367,8 @@ class Daemon:
         self._checkpoints.close()  # the lock: another daemon may take the file now
         self._link.close()
         self._close_recorder()
+        if self._history is not None:
+            self._history.close()
         if self._tuned:
             self._tuned = False
             interpreter.restore()
@@ -518,6 +525,8 @@ class Daemon:
                 last = closed and not q.queue
                 if pub.due(now) or last:  # the last: the state the daemon stops in
                     pub.publish(now)
+                    if self._history is not None:
+                        self._history.offer(now, self._proc.pipeline.estimates, final=last)
                 if ckpt.due(now):
                     self.checkpoint()
                     ckpt.next_at = now + cfg.checkpoint_interval

@@ -1,0 +1,529 @@
+"""Logs of many drives into the history: each log through the same pipeline as
+``canrls fit``, on a Dask cluster (or in this process), each recording stored once.
+
+:func:`ingest_one` is what a worker runs for one log: the log's SHA-256 first (a log
+whose hash the history already holds for this model is skipped), then
+:func:`canrls.replay.fit_logs`, and where asked the diagnosis's candidate ranking
+(handed in as a ``ranker``: this layer does not import the diagnosis). A log that
+cannot be fitted becomes an error :class:`~canrls.fleet.records.Recording` naming the
+file and the reason. :func:`ingest` has the workers hash every log first (the logs the
+history holds for the model are not sent to be fitted), then fit the others, and stores
+the results as they arrive, in batches, with the history's insert-or-ignore: a worker
+killed mid-log (Dask runs its task again elsewhere), a run interrupted, or two runs at
+once still leave every recording stored exactly once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import time
+import traceback
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from canrls import __version__
+from canrls.config import AppConfig, load_config
+from canrls.errors import CanrlsError
+from canrls.fleet.history import History
+from canrls.fleet.records import (
+    SOURCE_LOG,
+    STATUS_ERROR,
+    CandidateValue,
+    ParameterValue,
+    Recording,
+)
+from canrls.fleet.sources import LogSource
+
+__all__ = ["JobConfig", "IngestJob", "IngestSummary", "Ranker", "content_hash", "ingest",
+           "ingest_one", "hash_or_none", "model_key", "RANK_MODES"]
+
+log = logging.getLogger(__name__)
+
+#: ``rank`` of :func:`ingest`: ``none``; ``all`` (every log); ``auto`` (after the fits,
+#: the recordings around each residual change the detection finds, to name the effect)
+RANK_MODES = ("none", "auto", "all")
+
+#: ``ranker(path, protocol, model, settings, max_order)``: the candidate effects of one
+#: log, best first (the command line hands in the diagnosis's ranking)
+Ranker = Callable[[str, Any, Any, Any, int], Sequence[CandidateValue]]
+
+#: results stored per transaction at most, and the longest a result waits to be stored [s]
+BATCH = 64
+BATCH_S = 1.0
+
+
+@dataclass(frozen=True)
+class JobConfig:
+    """The configuration of a log's fit: a TOML file and the options that override it
+    (those of ``canrls fit``). Hashable and picklable: a worker builds the protocol and
+    model from it once (:meth:`prepared`)."""
+
+    config: str | None = None
+    dbc: str | None = None
+    signals: tuple[str, ...] = ()
+    effects: str | None = None
+    kt: float | None = None
+    period: float | None = None
+    axis: str | None = None
+    lam: float | None = None
+    alpha: float | None = None
+    #: what relative units refer to (``--rated-torque``, ``--rated-current``,
+    #: ``--increments-per-rev``)
+    rated_torque: float | None = None
+    rated_current: float | None = None
+    increments_per_rev: float | None = None
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> JobConfig:
+        def num(x: Any) -> float | None:
+            return None if x is None else float(x)
+
+        cfg = getattr(args, "config", None)
+        dbc = getattr(args, "dbc", None)
+        return cls(config=None if cfg is None else str(Path(cfg).absolute()),
+                   dbc=None if dbc is None else str(Path(dbc).absolute()),
+                   signals=tuple(getattr(args, "signal", None) or ()),
+                   effects=getattr(args, "effects", None), kt=num(getattr(args, "kt", None)),
+                   period=num(getattr(args, "period", None)), axis=getattr(args, "axis", None),
+                   lam=num(getattr(args, "lam", None)), alpha=num(getattr(args, "alpha", None)),
+                   rated_torque=num(getattr(args, "rated_torque", None)),
+                   rated_current=num(getattr(args, "rated_current", None)),
+                   increments_per_rev=num(getattr(args, "increments_per_rev", None)))
+
+    def for_source(self, src: LogSource) -> JobConfig:
+        """This configuration with a manifest row's overrides."""
+        kw: dict[str, Any] = {}
+        if src.config:
+            kw["config"] = src.config
+        if src.dbc:
+            kw["dbc"] = src.dbc
+        if src.signals:
+            kw["signals"] = src.signals
+        if src.kt is not None:
+            kw["kt"] = src.kt
+        if src.effects:
+            kw["effects"] = src.effects
+        return dataclasses.replace(self, **kw) if kw else self
+
+    def app_config(self) -> AppConfig:
+        ns = argparse.Namespace(dbc=self.dbc, signal=list(self.signals) or None,
+                                effects=self.effects, kt=self.kt, period=self.period,
+                                axis=self.axis, lam=self.lam, alpha=self.alpha,
+                                rated_torque=self.rated_torque,
+                                rated_current=self.rated_current,
+                                increments_per_rev=self.increments_per_rev)
+        return load_config(self.config, ns)
+
+    def prepared(self) -> tuple[Any, Any, Any]:
+        """``(protocol, model, settings)`` as ``canrls fit`` builds them (cached per
+        process: a worker builds each configuration once)."""
+        got = _PREPARED.get(self)
+        if got is None:
+            from canrls.replay import prepare
+
+            got = _PREPARED[self] = prepare(self.app_config())
+        return got
+
+
+_PREPARED: dict[JobConfig, tuple[Any, Any, Any]] = {}
+
+
+def hash_or_none(path: str) -> str | None:
+    """:func:`content_hash`, None for a file that cannot be read (a worker's task)."""
+    try:
+        return content_hash(path)
+    except OSError:
+        return None
+
+
+def _file_hash(path: str | None) -> str | None:
+    if not path:
+        return None
+    try:
+        return content_hash(path)
+    except OSError:
+        return None
+
+
+def model_key(cfg: JobConfig) -> tuple[str, str]:
+    """``(key, description)`` of the model a configuration fits: the key is a SHA-256
+    (hex, 64) of everything that changes the parameters (the model and estimator tables,
+    the fixed-point settings, the decoding options, the signal mapping and the DBC's
+    bytes); the description is what a reader needs (``inertia,viscous,coulomb kt=0.1``).
+    """
+    app = cfg.app_config()
+    model = dict(app.model)
+    effects = model.get("effects") or ["inertia", "viscous", "coulomb"]
+    can = {k: v for k, v in app.can.items()
+           if k not in ("interface", "channel", "bitrate", "fd", "data_bitrate", "dbc")}
+    dbc = app.dbc_path()
+    doc = {"model": model, "estimator": app.estimator, "fixed": app.fixed, "can": can,
+           "signals": app.signals, "signal_overrides": list(app.signal_overrides),
+           "dbc": _file_hash(None if dbc is None else str(dbc))}
+    key = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+    desc = ",".join(str(e) for e in effects)
+    if model.get("kt") is not None:
+        desc += f" kt={model['kt']:g}"
+    if dbc is not None:
+        desc += f" dbc={Path(dbc).name}"
+    return key, desc
+
+
+def content_hash(path: str | Path) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class IngestJob:
+    """One log for a worker: where, whose, how to fit it."""
+
+    source: LogSource
+    config: JobConfig
+    key: str
+    model: str
+    rank: bool = False
+    max_order: int = 64
+
+
+def _finite(x: Any) -> float:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return math.nan
+    return v
+
+
+def _recording(job: IngestJob, digest: str, res: Any,
+               candidates: tuple[CandidateValue, ...] | None,
+               rank_error: str | None) -> Recording:
+    est = res.estimates
+    d = res.to_dict()
+    start = d.get("start") or {}
+    period = (d.get("period") or {}).get("value")
+    paired = int((d.get("frames") or {}).get("pairing", {}).get("samples", 0))
+    t0 = _finite(start.get("t0"))
+    t1 = t0 + paired * period if period and math.isfinite(t0) else math.nan
+    eqs = {e.equation: {"fit_percent": e.fit_percent, "r2": e.r2,
+                        "divergence": e.divergence, "saturations": int(sum(
+                            e.saturations.values())), "low_excitation": e.low_excitation,
+                        "sigma_inflation": e.sigma_inflation, "samples": e.samples}
+           for e in est.equations}
+    verdicts: dict[str, Any] = {
+        "equations": eqs,
+        "not_identifiable": [p.name for p in est.parameters if not p.identifiable],
+        "rejected_frames": int(sum(res.rejected.values())),
+        "lost_frames": int(sum(res.lost.values())),
+        "period": period,
+        "start_date": start.get("date"),
+    }
+    if rank_error:
+        verdicts["rank_error"] = rank_error
+    params = tuple(ParameterValue(name=p.name, value=float(p.value), sigma=float(p.sigma),
+                                  unit=p.unit, fixed=float(p.fixed),
+                                  identifiable=bool(p.identifiable),
+                                  prior_share=float(p.prior_share))
+                   for p in est.parameters)
+    unit = est.equations[0].unit if est.equations else ""
+    return Recording(drive=job.source.drive, drive_type=job.source.drive_type,
+                     content_hash=digest, model_key=job.key, model=job.model,
+                     source=SOURCE_LOG, path=job.source.path, t_start=t0, t_end=t1,
+                     samples=int(est.samples), frames=int(res.frames),
+                     residual_rms=float(est.residual_rms), fit_percent=float(est.fit_percent),
+                     unit=unit, verdicts=verdicts, parameters=params, candidates=candidates,
+                     canrls_version=__version__)
+
+
+def ingest_one(job: IngestJob, known: frozenset[str] | set[str] | None = None,
+               ranker: Ranker | None = None) -> Recording | None:
+    """One log (a worker's task): None when the history holds its hash for this model
+    (``known``), else a :class:`Recording` (an error row when it cannot be fitted)."""
+    from canrls.replay import fit_logs
+
+    path = job.source.path
+    try:
+        digest = content_hash(path)
+    except OSError as e:
+        # no content to hash: the row is keyed by the path, so a rerun does not repeat it
+        digest = hashlib.sha256(f"unreadable:{path}".encode()).hexdigest()
+        if known is not None and digest in known:
+            return None
+        return _error(job, digest, f"{path}: cannot read the log ({e.strerror or e})")
+    if known is not None and digest in known:
+        return None
+    try:
+        protocol, model, settings = job.config.prepared()
+        res = fit_logs([path], protocol, model, settings)
+    except CanrlsError as e:
+        msg = str(e)
+        return _error(job, digest, msg if path in msg else f"{path}: {msg}")
+    except (OSError, MemoryError) as e:
+        return _error(job, digest, f"{path}: {type(e).__name__}: {e}")
+    except Exception as e:  # a bug: the row says so, the fleet goes on
+        log.debug("internal error on %s", path, exc_info=True)
+        return _error(job, digest, f"{path}: internal error: {type(e).__name__}: {e} "
+                                   f"({traceback.extract_tb(e.__traceback__)[-1].name})")
+    candidates: tuple[CandidateValue, ...] | None = None
+    rank_error = None
+    if job.rank and ranker is not None:
+        try:
+            candidates = tuple(ranker(path, protocol, model, settings, job.max_order))
+        except Exception as e:  # the fit stands without its ranking
+            rank_error = f"{type(e).__name__}: {e}"
+    return _recording(job, digest, res, candidates, rank_error)
+
+
+def _error(job: IngestJob, digest: str, message: str) -> Recording:
+    return Recording(drive=job.source.drive, drive_type=job.source.drive_type,
+                     content_hash=digest, model_key=job.key, model=job.model,
+                     status=STATUS_ERROR, source=SOURCE_LOG, path=job.source.path,
+                     error=" | ".join(s.strip() for s in message.splitlines() if s.strip()),
+                     canrls_version=__version__)
+
+
+def rank_one(path: str, config: JobConfig, max_order: int,
+             ranker: Ranker) -> tuple[CandidateValue, ...]:
+    """The candidate ranking of one log (a worker's task of ``rank="auto"``)."""
+    protocol, model, settings = config.prepared()
+    return tuple(ranker(path, protocol, model, settings, max_order))
+
+
+@dataclass(frozen=True)
+class IngestSummary:
+    """What an ingest did."""
+
+    total: int
+    stored: int
+    skipped: int
+    errors: int
+    #: stored meanwhile by another run (the insert found it there)
+    already: int = 0
+    #: logs whose task did not finish (a worker lost too often): a rerun takes them
+    failed: tuple[tuple[str, str], ...] = ()
+    #: recordings ranked after the fits (``rank="auto"``)
+    ranked: int = 0
+    elapsed_s: float = 0.0
+    workers: int = 0
+    #: each worker's peak resident memory [bytes] (Dask only)
+    worker_peak_rss: Mapping[str, int] = field(default_factory=dict)
+    error_rows: tuple[tuple[str, str], ...] = ()
+
+    def format(self) -> str:
+        rate = self.total / self.elapsed_s * 60.0 if self.elapsed_s > 0 else math.nan
+        lines = [f"{self.total} logs: {self.stored} stored, {self.skipped} already in the "
+                 f"history, {self.errors} errors"
+                 + (f", {self.already} stored meanwhile by another run" if self.already else "")
+                 + (f", {len(self.failed)} not finished (rerun to take them)"
+                    if self.failed else "")
+                 + f" ({self.elapsed_s:.1f} s, {rate:.0f} logs/min"
+                 + (f", {self.workers} workers" if self.workers else ", in this process")
+                 + ")"]
+        if self.ranked:
+            lines.append(f"candidate effects ranked on {self.ranked} recordings around "
+                         f"residual changes")
+        for _, why in self.error_rows[:20]:
+            lines.append(f"  error: {why}")
+        if len(self.error_rows) > 20:
+            lines.append(f"  ... and {len(self.error_rows) - 20} more errors")
+        for path, why in self.failed[:20]:
+            lines.append(f"  not finished: {path}: {why}")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"total": self.total, "stored": self.stored, "skipped": self.skipped,
+                "errors": self.errors, "already": self.already,
+                "failed": [{"path": p, "reason": r} for p, r in self.failed],
+                "error_rows": [{"path": p, "error": r} for p, r in self.error_rows],
+                "ranked": self.ranked, "elapsed_s": self.elapsed_s, "workers": self.workers,
+                "worker_peak_rss": dict(self.worker_peak_rss)}
+
+
+class _Store:
+    """Results into the history in batches (at most :data:`BATCH` per transaction, none
+    waiting longer than :data:`BATCH_S`)."""
+
+    def __init__(self, history: History) -> None:
+        self.history = history
+        self.pending: list[Recording] = []
+        self.since = time.monotonic()
+        self.stored = self.errors = self.already = 0
+        self.error_rows: list[tuple[str, str]] = []
+
+    def add(self, rec: Recording) -> None:
+        if not self.pending:
+            self.since = time.monotonic()
+        self.pending.append(rec)
+        if len(self.pending) >= BATCH or time.monotonic() - self.since >= BATCH_S:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self.pending:
+            return
+        batch, self.pending = self.pending, []
+        for rec, rid in zip(batch, self.history.store(batch), strict=True):
+            if rid is None:
+                self.already += 1
+            elif rec.ok:
+                self.stored += 1
+            else:
+                self.errors += 1
+                self.error_rows.append((rec.path, rec.error or ""))
+
+
+def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
+           client: Any = None, rank: str = "none", ranker: Ranker | None = None,
+           max_order: int = 64, progress: Callable[[int, int], None] | None = None,
+           retry_errors: bool = False) -> IngestSummary:
+    """Ingest ``sources`` into ``history``: on the Dask ``client``'s cluster, or in this
+    process (``client=None``). ``rank``: one of :data:`RANK_MODES` (needs ``ranker``).
+    ``progress(done, total)`` after each log. ``retry_errors``: forget the error rows of
+    this model first, so their logs are tried again.
+    """
+    if rank not in RANK_MODES:
+        raise ValueError(f"rank {rank!r} not one of {RANK_MODES}")
+    t0 = time.monotonic()
+    jobs: list[IngestJob] = []
+    keys: dict[JobConfig, tuple[str, str]] = {}
+    for src in sources:
+        cfg = config.for_source(src)
+        if cfg not in keys:
+            keys[cfg] = model_key(cfg)
+            cfg.prepared()  # a bad configuration fails here, once, before any log
+        key, desc = keys[cfg]
+        jobs.append(IngestJob(source=src, config=cfg, key=key, model=desc,
+                              rank=rank == "all", max_order=max_order))
+    if retry_errors:
+        for key, _ in set(keys.values()):
+            history.forget_errors(key)
+    known = {key: frozenset(history.known_hashes(key)) for key, _ in set(keys.values())}
+    store = _Store(history)
+    skipped = 0
+    failed: list[tuple[str, str]] = []
+    done = 0
+    use_ranker = ranker if rank == "all" else None
+    try:
+        if client is None:
+            for job in jobs:
+                rec = ingest_one(job, known[job.key], use_ranker)
+                if rec is None:
+                    skipped += 1
+                else:
+                    store.add(rec)
+                done += 1
+                if progress is not None:
+                    progress(done, len(jobs))
+        else:
+            from distributed import as_completed
+
+            # first the hashes (a read of each log, on the workers): the logs the history
+            # holds are not sent to be fitted at all
+            hashes = client.gather(client.map(hash_or_none, [j.source.path for j in jobs],
+                                              pure=False), errors="raise")
+            todo = []
+            for job, digest in zip(jobs, hashes, strict=True):
+                if digest is not None and digest in known[job.key]:
+                    skipped += 1
+                    done += 1
+                else:
+                    todo.append(job)
+            if progress is not None and done:
+                progress(done, len(jobs))
+            futures = {client.submit(ingest_one, job, None, use_ranker, pure=False): job
+                       for job in todo}
+            try:
+                for fut in as_completed(futures):
+                    job = futures[fut]
+                    if fut.status == "error":
+                        exc = fut.exception()
+                        failed.append((job.source.path, f"{type(exc).__name__}: {exc}"))
+                    else:
+                        rec = fut.result()
+                        if rec is None:
+                            skipped += 1
+                        elif rec.content_hash in known[job.key]:  # changed since hashed
+                            skipped += 1
+                        else:
+                            store.add(rec)
+                    fut.release()
+                    done += 1
+                    if progress is not None:
+                        progress(done, len(jobs))
+            finally:
+                client.cancel(list(futures))
+        store.flush()
+    finally:
+        store.flush()  # what arrived before an interruption is kept
+    ranked = 0
+    if rank == "auto" and ranker is not None:
+        ranked = _rank_changes(history, {k for k, _ in keys.values()},
+                               {j.source.path: j.config for j in jobs}, client, ranker,
+                               max_order)
+    peaks: dict[str, int] = {}
+    workers = 0
+    if client is not None:
+        peaks = worker_peak_rss(client)
+        workers = len(peaks)
+    return IngestSummary(total=len(jobs), stored=store.stored, skipped=skipped,
+                         errors=store.errors, already=store.already, failed=tuple(failed),
+                         ranked=ranked, elapsed_s=time.monotonic() - t0, workers=workers,
+                         worker_peak_rss=peaks, error_rows=tuple(store.error_rows))
+
+
+def _peak_rss() -> int:
+    import resource
+    import sys
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(peak if sys.platform == "darwin" else peak * 1024)
+
+
+def worker_peak_rss(client: Any) -> dict[str, int]:
+    """Each worker process's peak resident memory [bytes]."""
+    try:
+        return {str(k): int(v) for k, v in client.run(_peak_rss).items()}
+    except Exception as e:  # a worker gone: no figure rather than no summary
+        log.debug("worker memory not read: %s", e)
+        return {}
+
+
+def _rank_changes(history: History, model_keys: Iterable[str],
+                  configs: Mapping[str, JobConfig], client: Any, ranker: Ranker,
+                  max_order: int) -> int:
+    """Rank the candidate effects of the recordings around each residual change that has
+    no ranking yet (``rank="auto"``); returns how many were ranked."""
+    from canrls.fleet.detect import assess, to_rank
+
+    todo: list[tuple[int, str, JobConfig]] = []
+    for key in model_keys:
+        recs = history.recordings(model_key=key)
+        for rid, path in to_rank(assess(recs)):
+            cfg = configs.get(path)
+            if cfg is not None and Path(path).is_file():
+                todo.append((rid, path, cfg))
+    if not todo:
+        return 0
+    if client is None:
+        results = [rank_one(p, c, max_order, ranker) for _, p, c in todo]
+    else:
+        futs = [client.submit(rank_one, p, c, max_order, ranker, pure=False)
+                for _, p, c in todo]
+        results = client.gather(futs, errors="skip")
+        if len(results) != len(todo):  # a task lost: those go without a ranking
+            results = [f.result() if f.status == "finished" else () for f in futs]
+    n = 0
+    for (rid, _, _), cands in zip(todo, results, strict=True):
+        if cands:
+            history.add_candidates(rid, cands)
+            n += 1
+    return n

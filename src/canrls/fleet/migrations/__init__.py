@@ -1,0 +1,1 @@
+"""The Alembic migrations of the fleet history's schema (:mod:`canrls.fleet.history`)."""

@@ -1,0 +1,1 @@
+"""The revisions of the fleet history's schema, oldest first."""
