@@ -34,9 +34,10 @@ PKG = SRC / "canrls"
 #: layer of each top-level part, and the layers it may import (besides itself)
 LAYER = {
     "canrls": "core", "canrls.errors": "core", "canrls.signals": "core",
-    "canrls.effect_names": "core",
+    "canrls.effect_names": "core", "canrls.ctext": "core",
     "canrls.can": "can", "canrls.estimation": "estimation",
     "canrls.config": "front", "canrls.processor": "front", "canrls.modelfile": "front",
+    "canrls.target": "front",
     "canrls.validate": "app",
     "canrls.replay": "replay", "canrls.diagnosis": "app", "canrls.live": "app",
     "canrls.c_export": "app",

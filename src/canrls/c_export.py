@@ -271,5 +271,11 @@ def load_source(path: str | Path) -> tuple[AppConfig, Model | None,
             raise ConfigError(f"{path}: saved models need canrls.modelfile") from e
         saved: Any = SavedModel.load(path)
         energy = (saved.calibration or {}).get("energy")
-        return saved.config(), saved.build_model(), energy, f"the saved model {path.name}"
+        model = saved.build_model()
+        scaling = (saved.calibration or {}).get("scaling")
+        if scaling:
+            # the energies are measured in the calibration's exponents, not the ones the
+            # fit ended with: the prior in the units it was measured in
+            model = model.with_scaling(scaling)
+        return saved.config(), model, energy, f"the saved model {path.name}"
     return AppConfig.load(path), None, None, f"the configuration {path.name}"

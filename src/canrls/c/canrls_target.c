@@ -242,7 +242,7 @@ static int64_t cr_extract(const canrls_field *f, const uint8_t *data)
     if (f->is_signed && ((acc >> (f->length - 1)) & 1u) != 0u) {
         return (int64_t)acc - ((int64_t)1 << f->length);
     }
-    return (int64_t)acc;
+    return (int64_t)acc - (f->biased ? ((int64_t)1 << 31) : 0);
 }
 
 /* the E2E CRC-8 table (polynomial 0x1D, canrls.can.e2e.CRC8_TABLE) */
@@ -281,7 +281,7 @@ static int32_t cr_trace_bound(const canrls_equation *e, const canrls_target_eq *
     return (int32_t)(sum < e->trace_cap ? sum : e->trace_cap);
 }
 
-int canrls_target_init(canrls_target *S, const canrls_model *M)
+int canrls_target_init(canrls_target *S, const canrls_target_model *M)
 {
     uint32_t i, j;
     if (S == NULL || M == NULL || M->nmsg > CANRLS_TARGET_MSG_MAX
@@ -338,7 +338,7 @@ static int64_t cr_state(const canrls_target *S, const canrls_column *c)
 /* the input u of every filter of the bank */
 static void cr_inputs(const canrls_target *S, int32_t *u)
 {
-    const canrls_model *M = S->model;
+    const canrls_target_model *M = S->model;
     int64_t z = 0, r = 0;
     uint64_t ph = 0u;
     uint32_t i;
@@ -406,7 +406,7 @@ static int64_t cr_svf_row(int32_t a0, int32_t a1, int64_t x1, int64_t x2, int64_
 /* advance every filter of the bank by one sample */
 static void cr_filter(canrls_target *S, const int32_t *u)
 {
-    const canrls_model *M = S->model;
+    const canrls_target_model *M = S->model;
     uint32_t i;
     for (i = 0; i < M->nfilters; i++) {
         const canrls_filter *f = &M->filters[i];
@@ -437,7 +437,7 @@ static void cr_filter(canrls_target *S, const int32_t *u)
 
 static void cr_restart(canrls_target *S)
 {
-    const canrls_model *M = S->model;
+    const canrls_target_model *M = S->model;
     uint32_t i;
     for (i = 0; i < M->nfilters; i++) {
         if (M->filters[i].kind != CANRLS_SRC_CONST) {
@@ -724,7 +724,7 @@ static void cr_update(canrls_target *S, const canrls_equation *e, canrls_target_
 /* one sample, complete in S->raw, at time t */
 static uint32_t cr_sample(canrls_target *S, uint32_t t)
 {
-    const canrls_model *M = S->model;
+    const canrls_target_model *M = S->model;
     int32_t u[CANRLS_TARGET_FILTER_MAX];
     const int32_t dt = (int32_t)(t - S->last_t);
     int64_t w;
@@ -782,7 +782,7 @@ static uint32_t cr_popcount(uint32_t v)
 uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
                              const uint8_t *data, uint32_t len, uint32_t t)
 {
-    const canrls_model *M = S->model;
+    const canrls_target_model *M = S->model;
     const canrls_message *msg = NULL;
     int32_t raws[CANRLS_TARGET_ROLES];
     uint32_t mi, r, bit;
@@ -896,7 +896,7 @@ static void cr_frame(canrls_can_frame *out, const canrls_out_frame *f, uint64_t 
 
 void canrls_target_theta(const canrls_target *S, uint32_t i, int32_t *word, int32_t *exp)
 {
-    const canrls_model *M = S->model;
+    const canrls_target_model *M = S->model;
     uint32_t k;
     for (k = 0; k < M->neq; k++) {
         const canrls_equation *e = &M->equations[k];
@@ -914,7 +914,7 @@ void canrls_target_theta(const canrls_target *S, uint32_t i, int32_t *word, int3
 
 uint32_t canrls_target_publish(canrls_target *S, canrls_can_frame *out, uint32_t max)
 {
-    const canrls_model *M = S->model;
+    const canrls_target_model *M = S->model;
     const uint64_t cnt = S->publications & 0xFu;
     uint32_t nf = 0u, idx = 0u, i, j, flags = 0u;
     uint64_t word;

@@ -84,12 +84,14 @@ enum canrls_reject { CANRLS_R_LENGTH = 0, CANRLS_R_CRC, CANRLS_R_REPEATED, CANRL
                      CANRLS_NREJECTS };
 
 /** A signal's bit field: payload byte bytes[j] holds bits 8 j - shift .. of the raw
- * value (least significant byte first, either byte order); raw values lo..hi pass. */
+ * value (least significant byte first, either byte order); raw values lo..hi pass. An
+ * unsigned 32-bit field is held less 2^31 (biased): lo, hi and its values are raw - 2^31. */
 typedef struct {
     uint8_t msg;       /**< index of its message */
     uint8_t nbytes;    /**< payload bytes of the field, 0: the role is not mapped */
     uint8_t length;    /**< bits, 1..32 */
     uint8_t is_signed; /**< two's complement */
+    uint8_t biased;    /**< held less 2^31 */
     int8_t shift;
     uint8_t bytes[CANRLS_TARGET_FIELD_BYTES];
     int32_t lo, hi;    /**< accepted raw range (strict decoding) */
@@ -185,7 +187,7 @@ typedef struct {
     const uint16_t *param_order;    /**< per parameter: the harmonic order (RlsParamInfo) */
     uint8_t has_frames;      /**< 0: no estimator frames (--frames none) */
     canrls_out_frame estimate, info, status, health;
-} canrls_model;
+} canrls_target_model;
 
 /** The state of one equation. */
 typedef struct {
@@ -208,7 +210,7 @@ typedef struct {
 
 /** The estimator: owned by the caller, filled by canrls_target_init(). */
 typedef struct {
-    const canrls_model *model;
+    const canrls_target_model *model;
     int32_t last_counter[CANRLS_TARGET_MSG_MAX]; /**< -1: none yet */
     uint32_t rejects[CANRLS_NREJECTS];
     uint32_t open_mask, open_t;  /**< the period being paired */
@@ -238,7 +240,7 @@ typedef struct {
  * kernel at its prior (canrls_init_q31), no frame seen.
  * @return CANRLS_OK, or CANRLS_EINVAL for a model beyond the compile-time bounds
  */
-int canrls_target_init(canrls_target *S, const canrls_model *model);
+int canrls_target_init(canrls_target *S, const canrls_target_model *model);
 
 /**
  * One received frame: decode, pair, and when it completes a sample, the whole

@@ -76,7 +76,10 @@ class Field:
     """A signal's bit field in its message: payload byte ``bytes[j]`` holds bits
     ``8 j - shift .. 8 j - shift + 7`` of the raw value (least significant byte first,
     either byte order), ``length`` bits, two's complement when ``signed``; strict
-    decoding accepts the raw values ``lo .. hi`` (the DBC's [minimum, maximum])."""
+    decoding accepts the raw values ``lo .. hi`` (the DBC's [minimum, maximum]). An
+    unsigned 32-bit field is held less ``bias = 2^31`` (``biased``), so that every raw
+    value is an ``int32``: ``lo``, ``hi`` and what :meth:`extract` returns are then
+    ``raw - 2^31``, and the signal's offset takes the ``2^31`` back."""
 
     msg: int
     bytes: tuple[int, ...]
@@ -85,6 +88,11 @@ class Field:
     signed: bool
     lo: int
     hi: int
+    biased: bool = False
+
+    @property
+    def bias(self) -> int:
+        return 1 << 31 if self.biased else 0
 
     def extract(self, data: bytes) -> int:
         """The raw value of the field in ``data`` (sign-extended)."""
@@ -96,7 +104,7 @@ class Field:
         acc &= (1 << self.length) - 1
         if self.signed and acc >> (self.length - 1):
             acc -= 1 << self.length
-        return acc
+        return acc - self.bias
 
 
 @dataclass(frozen=True)
@@ -342,11 +350,13 @@ def _field(codec: SignalCodec, msg: int, where: str, strict: bool = True) -> Fie
     lo, hi = (codec.enc_lo, codec.enc_hi) if strict else (codec.raw_min, codec.raw_max)
     if lo > hi:
         raise TargetError(f"{where}: no raw value decodes inside its DBC range")
-    if lo < -(1 << 31) or hi > (1 << 31) - 1:
-        raise TargetError(f"{where}: raw values {lo} .. {hi} do not fit 32 bits (an unsigned "
-                          f"32-bit field needs a DBC maximum below 2^31 raw)")
+    biased = not codec.is_signed and codec.length == 32 and hi > (1 << 31) - 1
+    if biased:
+        lo, hi = lo - (1 << 31), hi - (1 << 31)
+    if lo < -(1 << 31) or hi > (1 << 31) - 1:  # pragma: no cover - fields of <= 32 bits
+        raise TargetError(f"{where}: raw values {lo} .. {hi} do not fit 32 bits")
     return Field(msg, tuple(codec.byte_index), codec.shift, codec.length, codec.is_signed,
-                 int(lo), int(hi))
+                 int(lo), int(hi), biased)
 
 
 def _messages(protocol: Protocol) -> tuple[tuple[Message, ...], dict[str, Field]]:
@@ -364,15 +374,16 @@ def _messages(protocol: Protocol) -> tuple[tuple[Message, ...], dict[str, Field]
     return tuple(msgs), roles
 
 
-def _scale(protocol: Protocol, role: str) -> tuple[Fraction, Fraction]:
-    """``(k, o)``: SI value of one raw unit and the offset in raw units of ``role``."""
+def _scale(protocol: Protocol, role: str, bias: int = 0) -> tuple[Fraction, Fraction]:
+    """``(k, o)``: SI value of one raw unit and the offset in raw units of ``role``
+    (``bias``: what the field holds less, :attr:`Field.bias`)."""
     info = protocol.roles[role]
     c = info.codec
     k = Fraction(float(c.scale) if not isinstance(c.scale, int) else c.scale) \
         * Fraction(info.si_scale)
     off = Fraction(float(c.offset) if not isinstance(c.offset, int) else c.offset)
     o = off / Fraction(float(c.scale) if not isinstance(c.scale, int) else c.scale)
-    return k, o
+    return k, o + bias
 
 
 def _source(eq: Equation, j: int, model: Model) -> tuple[int, str, int]:
@@ -460,7 +471,7 @@ def build(model: Model, protocol: Protocol, settings: EstimatorSettings, dt: flo
     A, G = _coefficients(model, dt)
     f_gain, sf_gain = gain_bounds(model.cutoff_hz, model.zeta)
     gamma = max(f_gain, sf_gain * dt, 1.0)
-    scales = {r: _scale(protocol, r) for r in roles}
+    scales = {r: _scale(protocol, r, f.bias) for r, f in roles.items()}
 
     filters: list[Filter] = []
 
@@ -494,9 +505,9 @@ def build(model: Model, protocol: Protocol, settings: EstimatorSettings, dt: flo
         if deriv:
             K /= Fraction(dt)
         m, sh = _mantissa(K * Fraction(2) ** (frac - s - flt.fx))
-        if sh < 31:
-            raise TargetError(f"{name}: the integer path cannot resolve this column finely "
-                              f"enough (multiplier shift {sh} < 31)")
+        if sh < 0:
+            raise TargetError(f"{name}: the filter's state cannot resolve this column finely "
+                              f"enough (multiplier shift {sh} < 0)")
         return Column(name, fi, deriv, offset, m, sh, adaptive, pend, s)
 
     eqs: list[EquationSpec] = []

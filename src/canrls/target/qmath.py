@@ -23,10 +23,12 @@ not fit (each such place is named below with its bound).
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 from canrls.target import tables
 
 __all__ = ["ONE_Q30", "MASK32", "MASK64", "F32_SAT", "F32_NAN", "rsh", "mul_rsh", "clog2",
-           "isqrt", "sat", "table_eval", "tanh_q24", "exp2_neg_q24", "exp_neg_q24",
+           "isqrt", "dyadic", "sat", "table_eval", "tanh_q24", "exp2_neg_q24", "exp_neg_q24",
            "sincos_q64", "f32_bits", "LOG2E_Q30"]
 
 #: 1.0 in Q30
@@ -82,6 +84,19 @@ def isqrt(n: int) -> int:
             r >>= 1
         bit >>= 2
     return r
+
+
+def dyadic(x: Fraction) -> tuple[int, int]:
+    """``(m, e)`` with ``x = m 2^e`` exactly (a ridge weight: a double, so dyadic)."""
+    e = 0
+    while x.denominator != 1:
+        x *= 2
+        e -= 1
+    m = x.numerator
+    while m and m % 2 == 0 and m >> 53:
+        m //= 2
+        e += 1
+    return m, e
 
 
 def sat(x: int, lo: int, hi: int) -> int:

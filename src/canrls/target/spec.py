@@ -65,6 +65,7 @@ from canrls.target.qmath import (
     MASK64,
     ONE_Q30,
     clog2,
+    dyadic,
     exp_neg_q24,
     f32_bits,
     isqrt,
@@ -89,19 +90,6 @@ def _s32(x: int) -> int:
     """``x`` modulo 2^32 as a signed 32-bit difference (the C's ``(int32_t)(a - b)``)."""
     x &= MASK32
     return x - (1 << 32) if x >> 31 else x
-
-
-def _dyadic(x: Fraction) -> tuple[int, int]:
-    """``(m, e)`` with ``x = m 2^e`` (a ridge weight: a double, so dyadic)."""
-    e = 0
-    while x.denominator != 1:
-        x *= 2
-        e -= 1
-    m = x.numerator
-    while m and m % 2 == 0 and m >> 53:
-        m //= 2
-        e += 1
-    return m, e
 
 
 def _floor_scaled(m: int, e: int) -> int:
@@ -194,7 +182,7 @@ class TargetEstimator:
         return EquationState(
             spec=e, rls=rls, sh=[c.sh for c in e.columns], sh_y=e.target.sh,
             pending=[c.pending for c in e.columns], pending_y=e.target.pending,
-            ridge=[_dyadic(r) for r in e.ridge], terms=terms,
+            ridge=[dyadic(r) for r in e.ridge], terms=terms,
             exponents=[c.exponent for c in e.columns] + [e.target.exponent])
 
     def _trace_bound(self, e: EquationSpec, terms: Sequence[int]) -> int:
@@ -492,7 +480,7 @@ class TargetEstimator:
             st["P"] = P
             es.rls = FixedRLS.from_state(st)
             es.pending[j] = False
-            es.ridge[j] = _dyadic(e.first_ridge)
+            es.ridge[j] = dyadic(e.first_ridge)
             es.terms[j] = e.first_term
         if first_y:
             es.pending_y = False
@@ -552,7 +540,7 @@ class TargetEstimator:
         e = es.spec
         m, ex = es.ridge[j]
         ex -= 2 * dj
-        fm, fe = _dyadic(e.prior_floor)
+        fm, fe = dyadic(e.prior_floor)
         # D = floor(alpha_f 2^(2 f)) - ceil(alpha_j 2^(2 f))
         D = _floor_scaled(fm, fe + 2 * e.f_phi) - _ceil_scaled(m, ex + 2 * e.f_phi)
         if D > 0:
