@@ -227,13 +227,14 @@ def _frames_files(dbc: Path, source: str) -> tuple[str, str]:
 
 def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
              dt: float | None = None, energy: Mapping[str, Sequence[float]] | None = None,
-             source: str = "the configuration") -> Export:
+             source: str = "the configuration", frames: bool = True) -> Export:
     """Write the kernel, the configuration of ``model`` (default: the configuration's) and
     the frame codecs into ``out`` (created); see the module docstring.
 
     ``energy`` (``{equation: column energies}``, a calibration's) scales the prior as the
     service does after its calibration window; without it the prior is the ridge alone
-    (every column energy 1), the prior of an estimator that has not calibrated."""
+    (every column energy 1), the prior of an estimator that has not calibrated.
+    ``frames=False``: no codecs of canrls' frames (``canrls export-c --frames none``)."""
     out = Path(out)
     protocol = cfg.protocol()
     model = cfg.model_for(protocol) if model is None else model
@@ -247,11 +248,13 @@ def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
         p.write_text((kernel / name).read_text())
         files.append(p)
     ch, cc = _config_files(pipeline, source, protocol)
-    # the frames the daemon publishes are the shipped DBC's, whatever DBC the drive's
-    # feedback is read with (a user's DBC has none of them)
-    fh, fc = _frames_files(DEFAULT_DBC, source)
-    for name, text in (("canrls_config.h", ch), ("canrls_config.c", cc),
-                       ("canrls_frames.h", fh), ("canrls_frames.c", fc)):
+    texts = [("canrls_config.h", ch), ("canrls_config.c", cc)]
+    if frames:
+        # the frames the daemon publishes are the shipped DBC's, whatever DBC the drive's
+        # feedback is read with (a user's DBC has none of them)
+        fh, fc = _frames_files(DEFAULT_DBC, source)
+        texts += [("canrls_frames.h", fh), ("canrls_frames.c", fc)]
+    for name, text in texts:
         p = out / name
         p.write_text(text)
         files.append(p)

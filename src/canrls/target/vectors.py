@@ -36,6 +36,8 @@ class Vectors:
     publications: list[tuple[int, list[tuple[int, bytes]]]] = field(default_factory=list)
     samples: int = 0
     source: str = ""
+    #: samples between state records
+    every: int = 1000
     #: the estimate at the end, SI (for people)
     theta: list[float] = field(default_factory=list)
 
@@ -79,7 +81,7 @@ def record(model: TargetModel, frames: Iterable[Frame], every: int = 1000,
     """Run ``frames`` through the specification; a state record every ``every`` samples
     and after the last frame, every publication's frames."""
     est = TargetEstimator(model)
-    v = Vectors(source=source)
+    v = Vectors(source=source, every=every)
     for k, (t, fid, ext, data) in enumerate(frames):
         v.frames.append((t, fid, ext, data))
         r = est.frame(fid, ext, data, t)
