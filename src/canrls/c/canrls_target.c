@@ -566,7 +566,9 @@ static void cr_adapt(canrls_target *S, const canrls_equation *e, canrls_target_e
         }
     }
     for (j = 0; j < n; j++) {
-        dmax = d[j] > dmax ? d[j] : dmax;
+        if (!first[j]) {
+            dmax = d[j] > dmax ? d[j] : dmax;
+        }
     }
     ex = q->rls.e;
     e_new = ex - 2 * dmax;
@@ -574,7 +576,9 @@ static void cr_adapt(canrls_target *S, const canrls_equation *e, canrls_target_e
     idx = 0;
     for (j = 0; j < n; j++) {
         for (k = j; k < n; k++, idx++) {
-            const int32_t sjk = d[j] + d[k] + e_new - ex;
+            /* P_jj / 4 for a first value (the prior alpha 2^-8 for alpha 2^-10), else
+             * P_jk 2^(d_j + d_k), at e_new */
+            const int32_t sjk = (j == k && first[j]) ? e_new - ex - 2 : d[j] + d[k] + e_new - ex;
             int64_t v = q->rls.P[idx];
             if (sjk < 0) {
                 v = cr_rsh(v, -sjk);
@@ -627,18 +631,7 @@ static void cr_adapt(canrls_target *S, const canrls_equation *e, canrls_target_e
     }
     for (j = 0; j < n; j++) {
         if (first[j]) {
-            /* the first value: the prior alpha 2^-8 (the top of the window's energies) */
-            int32_t th[CANRLS_N_MAX];
-            uint32_t fr[CANRLS_N_MAX];
-            int32_t Pw[CANRLS_TRI(CANRLS_N_MAX)];
-            const size_t ii = canrls_tri_index(n, j, j);
-            for (k = 0; k < n; k++) {
-                th[k] = canrls_theta_q31(&q->rls, k);
-                fr[k] = canrls_theta_frac_q31(&q->rls, k);
-            }
-            memcpy(Pw, q->rls.P, CANRLS_TRI(n) * sizeof *Pw);
-            Pw[ii] = (int32_t)cr_rsh(Pw[ii], 2);
-            cr_restore(q, e, th, fr, Pw, q->rls.e, 0);
+            /* the first value: the prior alpha 2^-8 (its P_jj set above) */
             q->pending[j] = 0u;
             q->ridge[j] = e->first_ridge;
             q->terms[j] = e->first_term;

@@ -404,8 +404,8 @@ def _source(eq: Equation, j: int, model: Model) -> tuple[int, str, int]:
         return SRC_RAW, ("speed" if p.symbol == "Ke" else "current"), 0
     raise TargetError(f"{model.source}: effect {p.effect} ({p.name}) is not available on the "
                       f"target: a user term is an expression of the signals, which the "
-                      f"integer path does not evaluate; fit without it for export-c, or "
-                      f"run it in the daemon")
+                      f"integer path does not evaluate (no float); fit without it for the "
+                      f"whole estimator, or export the kernel alone with --kernel-only")
 
 
 def _coefficients(model: Model, dt: float) -> tuple[tuple[int, ...], tuple[tuple[int, ...], ...]]:

@@ -28,7 +28,7 @@ from fractions import Fraction
 from canrls.target import tables
 
 __all__ = ["ONE_Q30", "MASK32", "MASK64", "F32_SAT", "F32_NAN", "rsh", "mul_rsh", "clog2",
-           "isqrt", "dyadic", "sat", "table_eval", "tanh_q24", "exp2_neg_q24", "exp_neg_q24",
+           "isqrt", "dyadic", "floor_scaled", "ceil_scaled", "sat", "table_eval", "tanh_q24", "exp2_neg_q24", "exp_neg_q24",
            "sincos_q64", "f32_bits", "LOG2E_Q30"]
 
 #: 1.0 in Q30
@@ -53,16 +53,25 @@ def rsh(x: int, s: int) -> int:
 
 
 def mul_rsh(x: int, m: int, s: int) -> int:
-    """``rsh(x m, s)`` saturated to +-2^62: ``|x| < 2^61``, ``|m| < 2^31``, ``s >= 0``.
+    """``rsh(x m, s)`` for ``|x| < 2^61``, ``|m| < 2^31``, ``s >= 0``, saturated at
+    +-2^62 where it is larger.
 
     The C (``cr_mul_rsh``) splits ``x = h 2^31 + l`` (``0 <= l < 2^31``, ``|h| < 2^30``):
     for ``s >= 32``, ``x m + 2^(s-1) = (h m + 2^(s-32)) 2^31 + l m``, so the result is
     ``(h m + 2^(s-32) + (l m >> 31)) >> (s - 31)`` exactly (the low part cannot carry
     into a bit the final shift keeps); ``s = 31``: ``h m + ((l m + 2^30) >> 31)``;
-    ``s < 31``: ``h m 2^(31-s) + rsh(l m, s)``, saturated; ``s > 93``: 0. Every term fits
-    ``int64``. (For ``s >= 31`` the result is below 2^61: no saturation.)
+    ``s >= 93``: 0. Every term fits ``int64`` and the result is below 2^61. ``s < 31``
+    (a column whose filter state resolves it no finer than its word): ``h m 2^(31-s) +
+    rsh(l m, s)``, and +-2^62 as soon as ``|h m| >= 2^(31+s)`` (the value is then far
+    beyond any word: only its sign and size matter, to the rescale and the clamp).
     """
-    return sat(rsh(x * m, s), -_I62, _I62)
+    if s >= 31:
+        return rsh(x * m, s)
+    h, lo = x >> 31, x & 0x7FFFFFFF
+    a = h * m
+    if abs(a) >= 1 << (31 + s):
+        return _I62 if a >= 0 else -_I62
+    return sat((a << (31 - s)) + rsh(lo * m, s), -_I62, _I62)
 
 
 def clog2(n: int) -> int:
@@ -97,6 +106,20 @@ def dyadic(x: Fraction) -> tuple[int, int]:
         m //= 2
         e += 1
     return m, e
+
+
+def floor_scaled(m: int, e: int) -> int:
+    """``floor(m 2^e)`` of ``m >= 0``, saturated at 2^62 (the C's ``cr_floor_scaled``)."""
+    if e >= 0:
+        return _I62 if e >= 62 or m >= (_I62 >> e) else m << e
+    return m >> -e if -e < 64 else 0
+
+
+def ceil_scaled(m: int, e: int) -> int:
+    """``ceil(m 2^e)`` of ``m >= 0``, saturated at 2^62."""
+    if e >= 0:
+        return floor_scaled(m, e)
+    return (m + (1 << -e) - 1) >> -e if -e < 64 else (1 if m else 0)
 
 
 def sat(x: int, lo: int, hi: int) -> int:

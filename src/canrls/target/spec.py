@@ -64,10 +64,12 @@ from canrls.target.qmath import (
     MASK32,
     MASK64,
     ONE_Q30,
+    ceil_scaled,
     clog2,
     dyadic,
     exp_neg_q24,
     f32_bits,
+    floor_scaled,
     isqrt,
     mul_rsh,
     rsh,
@@ -90,20 +92,6 @@ def _s32(x: int) -> int:
     """``x`` modulo 2^32 as a signed 32-bit difference (the C's ``(int32_t)(a - b)``)."""
     x &= MASK32
     return x - (1 << 32) if x >> 31 else x
-
-
-def _floor_scaled(m: int, e: int) -> int:
-    """``floor(m 2^e)``, saturated at 2^62 (the C's ``cr_floor_scaled``)."""
-    if e >= 0:
-        return _I62 if e >= 62 or m >= (_I62 >> e) else m << e
-    return m >> -e if -e < 64 else 0
-
-
-def _ceil_scaled(m: int, e: int) -> int:
-    """``ceil(m 2^e)``, saturated at 2^62."""
-    if e >= 0:
-        return _floor_scaled(m, e)
-    return (m + (1 << -e) - 1) >> -e if -e < 64 else (1 if m else 0)
 
 
 def trace_max_float(T: int, plan: dict[str, int], cfg: Any, lam: float) -> float:
@@ -465,7 +453,7 @@ class TargetEstimator:
             if w:
                 s = max(s, clog2(w) + d[j] - dy - h)
         dy += s
-        self._rescale(es, d, dy)
+        self._rescale(es, d, dy, first)
         for j in range(n):
             if d[j] and not es.pending[j]:
                 self._raise_prior(es, j, d[j])
@@ -473,12 +461,7 @@ class TargetEstimator:
                 # the ridge scales with the column (then set below)
                 es.ridge[j] = (es.ridge[j][0], es.ridge[j][1] - 2 * d[j])
         for j in first:
-            # the first value: the prior alpha 2^-8 (the top of the window's energies)
-            st = es.rls.state()
-            P = np.asarray(st["P"]).copy()
-            P[j, j] = rsh(int(P[j, j]), 2)
-            st["P"] = P
-            es.rls = FixedRLS.from_state(st)
+            # the first value: the prior alpha 2^-8 (its P_jj set by _rescale)
             es.pending[j] = False
             es.ridge[j] = dyadic(e.first_ridge)
             es.terms[j] = e.first_term
@@ -493,10 +476,14 @@ class TargetEstimator:
         if e.trace_follows:
             es.rls = self._kernel(e, es.rls.state(), es.terms)
 
-    def _rescale(self, es: EquationState, d: Sequence[int], dy: int) -> None:
+    def _rescale(self, es: EquationState, d: Sequence[int], dy: int,
+                 first: Sequence[int] = ()) -> None:
         """The kernel's state in the new units: ``theta_j 2^(d_j - d_y)`` (its 64 bits),
         ``P_jk 2^(d_j + d_k)`` with the block exponent lowered by twice the largest
-        growth, so that no word grows; left shifts saturate (counted)."""
+        growth (of the columns not ``first``), so that no word grows; left shifts
+        saturate (counted). A column seen for the first time (``first``) holds the prior
+        alone, in any units: its ``P_jj`` becomes ``P_jj alpha_old / alpha_new = P_jj / 4``
+        (``alpha 2^-10`` of a pending column to ``alpha 2^-8``), its row 0 as it was."""
         e = es.spec
         n = e.n
         st = es.rls.state()
@@ -515,13 +502,14 @@ class TargetEstimator:
             else:
                 v = rsh(v, -s)
             th[j], fr[j] = v >> 32, v & MASK32
-        dmax = max([0, *d])
+        dmax = max([0, *(d[j] for j in range(n) if j not in first)])
         ex = int(st["P_exp"])
         e_new = max(0, ex - 2 * dmax)
         P = np.asarray(st["P"]).copy()
         for j in range(n):
             for k in range(j, n):
-                s = d[j] + d[k] + e_new - ex
+                # P_jj / 4 for a first value, else P_jk 2^(d_j + d_k), at e_new
+                s = e_new - ex - 2 if j == k and j in first else d[j] + d[k] + e_new - ex
                 v = int(P[j, k])
                 v = rsh(v, -s) if s < 0 else v << s
                 if not e.P_lo <= v <= e.P_hi:
@@ -542,7 +530,7 @@ class TargetEstimator:
         ex -= 2 * dj
         fm, fe = dyadic(e.prior_floor)
         # D = floor(alpha_f 2^(2 f)) - ceil(alpha_j 2^(2 f))
-        D = _floor_scaled(fm, fe + 2 * e.f_phi) - _ceil_scaled(m, ex + 2 * e.f_phi)
+        D = floor_scaled(fm, fe + 2 * e.f_phi) - ceil_scaled(m, ex + 2 * e.f_phi)
         if D > 0:
             q = min(isqrt(D), e.phi_hi)
             if q:

@@ -96,8 +96,10 @@ def record(model: TargetModel, frames: Iterable[Frame], every: int = 1000,
     return v
 
 
-def _rows(values: Iterable[str], per: int = 8) -> str:
-    vals = list(values)
+def _rows(values: Iterable[str], per: int = 8, empty: str = "0") -> str:
+    """Rows of an initialiser (``empty``: the one element of an array with none: C has
+    no empty initialiser)."""
+    vals = list(values) or [empty]
     return ",\n".join("    " + ", ".join(vals[i:i + per]) for i in range(0, len(vals), per))
 
 
@@ -124,7 +126,7 @@ def vectors_header(v: Vectors) -> str:
                  + _rows((f"{len(d)}u" for _, _, _, d in v.frames), 16) + "\n};")
     lines.append(f"static const uint8_t vec_data[{max(nf, 1)}][8] = {{\n"
                  + _rows(("{" + ", ".join(str(b) for b in (d + bytes(8))[:8]) + "}"
-                          for _, _, _, d in v.frames), 4) + "\n};")
+                          for _, _, _, d in v.frames), 4, "{0}") + "\n};")
     lines.append("/* state records: the frame index after which each holds, then the record */")
     lines.append(f"static const uint32_t vec_cp_frame[{max(len(v.checkpoints), 1)}] = {{\n"
                  + _rows(f"{k}u" for k, _ in v.checkpoints) + "\n};")
@@ -142,6 +144,6 @@ def vectors_header(v: Vectors) -> str:
                  + _rows(f"0x{fid:X}u" for _, (fid, _) in pub_frames) + "\n};")
     lines.append(f"static const uint8_t vec_pub_data[{max(len(pub_frames), 1)}][8] = {{\n"
                  + _rows(("{" + ", ".join(str(b) for b in d) + "}" for _, (_, d) in pub_frames),
-                         4) + "\n};")
+                         4, "{0}") + "\n};")
     lines += ["", "#endif /* CANRLS_VECTORS_H */", ""]
     return "\n".join(lines)
