@@ -7,7 +7,7 @@
  * It includes canrls_target.c to reach its static functions. stdin: one operation per
  * line, "name arg..." (decimal integers); stdout: one line of results per operation:
  *   mul_rsh x m s  |  clog2_mul a m  |  isqrt n  |  tanh z  |  exp x  |  sincos phase
- *   f32 v e  |  svf a0 a1 x1 x2 gs fx  |  floor m e  |  ceil m e  |  rsh x s
+ *   f32 v e  |  svf a0 a1 g0 g1 x1 x2 up u fx  |  floor m e  |  ceil m e  |  rsh x s
  */
 #include <inttypes.h>
 #include <stdio.h>
@@ -53,11 +53,14 @@ int main(void)
             if (scanf("%" SCNd64 " %" SCNd32, &v, &e) != 2) return 2;
             printf("%" PRIu32 "\n", cr_f32_bits(v, e));
         } else if (strcmp(op, "svf") == 0) {
-            int32_t a0, a1, fx;
-            int64_t x1, x2, gs;
-            if (scanf("%" SCNd32 " %" SCNd32 " %" SCNd64 " %" SCNd64 " %" SCNd64 " %" SCNd32,
-                      &a0, &a1, &x1, &x2, &gs, &fx) != 6) return 2;
-            printf("%" PRId64 "\n", cr_svf_row(a0, a1, x1, x2, gs, fx));
+            int32_t a[2], g0, g1, up, u, fx, uph, upl, uh, ul;
+            int64_t x1, x2;
+            if (scanf("%" SCNd32 " %" SCNd32 " %" SCNd32 " %" SCNd32 " %" SCNd64 " %" SCNd64
+                      " %" SCNd32 " %" SCNd32 " %" SCNd32,
+                      &a[0], &a[1], &g0, &g1, &x1, &x2, &up, &u, &fx) != 9) return 2;
+            cr_split_input(up, fx, &uph, &upl);
+            cr_split_input(u, fx, &uh, &ul);
+            printf("%" PRId64 "\n", cr_svf_row(a, g0, g1, x1, x2, uph, upl, uh, ul));
         } else if (strcmp(op, "floor") == 0 || strcmp(op, "ceil") == 0) {
             uint64_t m;
             int32_t e;

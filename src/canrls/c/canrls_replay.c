@@ -83,6 +83,12 @@ __attribute__((noinline)) void canrls_replay_frames(canrls_target *S, uint32_t a
     for (k = a; k < b; k++) {
         r = canrls_target_frame(S, vec_id[k] & 0x7FFFFFFFu, vec_id[k] >> 31, vec_data[k],
                                 vec_len[k], vec_t[k]);
+#ifdef CANRLS_REPLAY_MARK
+        /* a hook of the instruction count (make target): the frame completed a sample */
+        if ((r & CANRLS_SAMPLE) != 0u) {
+            CANRLS_REPLAY_MARK(r);
+        }
+#endif
         if ((r & CANRLS_PUBLISH) != 0u) {
             n = canrls_target_publish(S, out, CANRLS_PUBLISH_MAX);
             if (R->published >= VEC_PUBLICATIONS || vec_pub_frame[R->published] != k

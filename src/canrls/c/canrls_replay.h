@@ -15,6 +15,12 @@ typedef struct {
     uint32_t checked, published, pub_base, bad;
 } canrls_replay_counts;
 
+#ifdef CANRLS_REPLAY_MARK
+/** Called after each frame that completed a sample, where the build defines it (the
+ * instruction count of `make target`). */
+void CANRLS_REPLAY_MARK(uint32_t r);
+#endif
+
 /** Frames a..b-1 of the vectors through canrls_target_frame(), compared as they come. */
 void canrls_replay_frames(canrls_target *S, uint32_t a, uint32_t b, canrls_replay_counts *R);
 

@@ -48,16 +48,15 @@ static int64_t cr_shl(int64_t x, int32_t s)
 }
 
 /* rsh(x m, s) saturated to +-2^62 (qmath.mul_rsh), |x| < 2^61, x = h 2^31 + l */
-static int64_t cr_mul_rsh(int64_t x, int32_t m, int32_t s)
+static inline int64_t cr_mul_rsh(int64_t x, int32_t m, int32_t s)
 {
-    const int64_t h = x >> 31;
-    const int64_t l = x & 0x7FFFFFFF;
-    const int64_t a = h * m;
-    const int64_t b = l * m;
-    if (s >= 93) {
-        return 0;
-    }
+    /* h < 2^30 and l < 2^31: both words, each product one SMULL */
+    const int64_t a = (int64_t)(int32_t)(x >> 31) * m;
+    const int64_t b = (int64_t)(int32_t)(x & 0x7FFFFFFF) * m;
     if (s > 31) {
+        if (s >= 93) {
+            return 0;
+        }
         /* (h m + 2^(s-32) + (l m >> 31)) >> (s - 31) */
         return (a + ((int64_t)1 << (s - 32)) + (b >> 31)) >> (s - 31);
     }
@@ -131,12 +130,13 @@ static int32_t cr_table_eval(const int32_t (*table)[4], int32_t k, uint32_t u)
 {
     const int32_t *c = table[u >> (32 - k)];
     /* t = position in the segment, Q31 */
-    const int64_t t = (int64_t)((uint32_t)(u << k) >> 1);
-    int64_t p = c[3];
-    p = c[2] + cr_rsh(p * t, 31);
-    p = c[1] + cr_rsh(p * t, 31);
-    p = c[0] + cr_rsh(p * t, 31);
-    return (int32_t)p;
+    const int32_t t = (int32_t)((uint32_t)(u << k) >> 1);
+    /* p = c3; p = c_i + rsh(p t, 31): the words of the tables keep p within int32 */
+    int32_t p = c[3];
+    p = c[2] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
+    p = c[1] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
+    p = c[0] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
+    return p;
 }
 
 /* tanh(z 2^-24), Q30: odd, 1 from |z| >= 8 */
@@ -228,21 +228,23 @@ static uint32_t cr_f32_bits(int64_t v, int32_t e)
 
 /* ------------------------------------------------------------------ frames in */
 
-/* the raw value of a field (sign-extended) */
-static int64_t cr_extract(const canrls_field *f, const uint8_t *data)
+/* the bytes of a word in the other order (one REV where the compiler sees it) */
+static uint32_t cr_bswap32(uint32_t w)
 {
-    uint64_t acc = 0u;
-    uint32_t j;
-    for (j = 0; j < f->nbytes; j++) {
-        const int32_t sh = 8 * (int32_t)j - f->shift;
-        /* acc |= data[b] << (8 j - shift), or >> for the first byte */
-        acc |= sh >= 0 ? (uint64_t)data[f->bytes[j]] << sh : (uint64_t)(data[f->bytes[j]] >> -sh);
+    return (w >> 24) | ((w >> 8) & 0xFF00u) | ((w << 8) & 0xFF0000u) | (w << 24);
+}
+
+/* the raw value of a field (sign-extended, less its bias) from the payload's words */
+static int32_t cr_extract(const canrls_field *f, uint64_t le, uint64_t be)
+{
+    /* raw = (word >> shift) mod 2^length */
+    const uint32_t acc = (uint32_t)((f->big_endian ? be : le) >> f->shift)
+                         & (0xFFFFFFFFu >> (32u - f->length));
+    if (f->is_signed && ((acc >> (f->length - 1u)) & 1u) != 0u) {
+        /* two's complement: the bits above the field set */
+        return (int32_t)(acc | ~(0xFFFFFFFFu >> (32u - f->length)));
     }
-    acc &= ((uint64_t)1 << f->length) - 1u;
-    if (f->is_signed && ((acc >> (f->length - 1)) & 1u) != 0u) {
-        return (int64_t)acc - ((int64_t)1 << f->length);
-    }
-    return (int64_t)acc - (f->biased ? ((int64_t)1 << 31) : 0);
+    return f->biased ? (int32_t)(acc ^ 0x80000000u) : (int32_t)acc;
 }
 
 /* the E2E CRC-8 table (polynomial 0x1D, canrls.can.e2e.CRC8_TABLE) */
@@ -388,18 +390,30 @@ static void cr_inputs(const canrls_target *S, int32_t *u)
     }
 }
 
-/* rsh(a0 x1 + a1 x2 + gs 2^fx, 30) with |x| < 2^60, |gs| < 2^62: x = h 2^31 + l, the
- * sum as H 2^31 + L, so the result is 2 H + rsh(L, 30) */
-static int64_t cr_svf_row(int32_t a0, int32_t a1, int64_t x1, int64_t x2, int64_t gs, int32_t fx)
+/* an input u 2^fx as h 2^31 + l (0 <= l < 2^31): the C's form of the input term */
+static void cr_split_input(int32_t u, int32_t fx, int32_t *h, int32_t *l)
 {
-    int64_t H = a0 * (x1 >> 31) + a1 * (x2 >> 31);
-    int64_t L = a0 * (x1 & 0x7FFFFFFF) + a1 * (x2 & 0x7FFFFFFF);
     if (fx >= 31) {
-        H += cr_shl(gs, fx - 31);
+        /* |u| 2^fx < 2^59 (the model's fx): h = u 2^(fx-31) is a word, l = 0 */
+        *h = u * (int32_t)((uint32_t)1 << (fx - 31));
+        *l = 0;
     } else {
-        H += gs >> (31 - fx);
-        L += (gs & (((int64_t)1 << (31 - fx)) - 1)) << fx;
+        *h = u >> (31 - fx);
+        *l = (int32_t)(((uint32_t)u & ((1u << (31 - fx)) - 1u)) << fx);
     }
+}
+
+/* rsh(a0 x1 + a1 x2 + (g0 u[k-1] + g1 u[k]) 2^fx, 30) with |x| < 2^60: every term as
+ * h 2^31 + l, summed as H 2^31 + L (each product one SMULL or SMLAL; the model bounds
+ * |a0| + |a1| + |g0| + |g1| below 2^31, so L < 2^62), so the result is 2 H + rsh(L, 30) */
+static int64_t cr_svf_row(const int32_t *a, int32_t g0, int32_t g1, int64_t x1, int64_t x2,
+                          int32_t uph, int32_t upl, int32_t uh, int32_t ul)
+{
+    const int64_t H = (int64_t)a[0] * (int32_t)(x1 >> 31) + (int64_t)a[1] * (int32_t)(x2 >> 31)
+                      + (int64_t)g0 * uph + (int64_t)g1 * uh;
+    const int64_t L = (int64_t)a[0] * (int32_t)(x1 & 0x7FFFFFFF)
+                      + (int64_t)a[1] * (int32_t)(x2 & 0x7FFFFFFF)
+                      + (int64_t)g0 * upl + (int64_t)g1 * ul;
     return 2 * H + ((L + ((int64_t)1 << 29)) >> 30);
 }
 
@@ -411,27 +425,29 @@ static void cr_filter(canrls_target *S, const int32_t *u)
     for (i = 0; i < M->nfilters; i++) {
         const canrls_filter *f = &M->filters[i];
         const int32_t *g = M->G[f->hold];
-        int64_t x1, x2, g1, g2;
+        int32_t uh, ul;
+        int64_t x1, x2;
         if (f->kind == CANRLS_SRC_CONST) {
             continue;
         }
+        cr_split_input(u[i], f->fx, &uh, &ul);
         if (!S->primed[i]) {
             /* at rest on the first sample: x = [u 2^FX, 0] */
             S->x1[i] = cr_shl(u[i], f->fx);
             S->x2[i] = 0;
-            S->up[i] = u[i];
+            S->uph[i] = uh;
+            S->upl[i] = ul;
             S->primed[i] = 1u;
             continue;
         }
         x1 = S->x1[i];
         x2 = S->x2[i];
-        g1 = (int64_t)g[0] * S->up[i] + (int64_t)g[2] * u[i];
-        g2 = (int64_t)g[1] * S->up[i] + (int64_t)g[3] * u[i];
         /* x1 = A00 x1 + A01 x2 + (G0_1 u[k-1] + G1_1 u[k]) 2^FX, Q30 coefficients */
-        S->x1[i] = cr_svf_row(M->A[0], M->A[1], x1, x2, g1, f->fx);
+        S->x1[i] = cr_svf_row(&M->A[0], g[0], g[2], x1, x2, S->uph[i], S->upl[i], uh, ul);
         /* x2 = A10 x1 + A11 x2 + (G0_2 u[k-1] + G1_2 u[k]) 2^FX   (x2 = sF[u] T 2^FX) */
-        S->x2[i] = cr_svf_row(M->A[2], M->A[3], x1, x2, g2, f->fx);
-        S->up[i] = u[i];
+        S->x2[i] = cr_svf_row(&M->A[2], g[1], g[3], x1, x2, S->uph[i], S->upl[i], uh, ul);
+        S->uph[i] = uh;
+        S->upl[i] = ul;
     }
 }
 
@@ -778,8 +794,9 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
     const canrls_target_model *M = S->model;
     const canrls_message *msg = NULL;
     int32_t raws[CANRLS_TARGET_ROLES];
-    uint32_t mi, r, bit;
+    uint32_t mi, bit, k;
     int32_t counter = -1, key;
+    uint64_t le = 0u, be = 0u;
     for (mi = 0; mi < M->nmsg; mi++) {
         if (M->messages[mi].id == id && M->messages[mi].extended == (extended != 0u)) {
             msg = &M->messages[mi];
@@ -797,7 +814,7 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
     }
     /* E2E CRC-8: over the ID (2 bytes, little endian), then bytes 1..dlc-1 */
     if (msg->crc) {
-        uint32_t c = 0xFFu, k;
+        uint32_t c = 0xFFu;
         c = cr_crc8[c ^ (id & 0xFFu)];
         c = cr_crc8[c ^ ((id >> 8) & 0xFFu)];
         for (k = 1; k < len; k++) {
@@ -809,9 +826,21 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
             return 0u;
         }
     }
+    /* the payload as one word, little and big endian (bytes after its end are 0) */
+    {
+        uint8_t b[8] = {0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u};
+        uint32_t w0, w1;
+        for (k = 0; k < len; k++) {
+            b[k] = data[k];
+        }
+        w0 = (uint32_t)b[0] | (uint32_t)b[1] << 8 | (uint32_t)b[2] << 16 | (uint32_t)b[3] << 24;
+        w1 = (uint32_t)b[4] | (uint32_t)b[5] << 8 | (uint32_t)b[6] << 16 | (uint32_t)b[7] << 24;
+        le = (uint64_t)w1 << 32 | w0;
+        be = (uint64_t)cr_bswap32(w0) << 32 | cr_bswap32(w1);
+    }
     /* alive counter: one equal to the last accepted is a repeat */
     if (msg->has_counter) {
-        counter = (int32_t)cr_extract(&msg->counter, data);
+        counter = cr_extract(&msg->counter, le, be);
         if (counter == S->last_counter[mi]) {
             S->rejects[CANRLS_R_REPEATED]++;
             S->frame_loss = 1u;
@@ -820,17 +849,15 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
         S->last_counter[mi] = counter;
     }
     /* strict range of every mapped field */
-    for (r = 0; r < CANRLS_TARGET_ROLES; r++) {
-        const canrls_field *f = &M->roles[r];
-        if (f->nbytes != 0u && f->msg == mi) {
-            const int64_t v = cr_extract(f, data);
-            if (v < f->lo || v > f->hi) {
-                S->rejects[CANRLS_R_RANGE]++;
-                S->frame_loss = 1u;
-                return 0u;
-            }
-            raws[r] = (int32_t)v;
+    for (k = 0; k < msg->nroles; k++) {
+        const canrls_field *f = &M->roles[msg->roles[k]];
+        const int32_t v = cr_extract(f, le, be);
+        if (v < f->lo || v > f->hi) {
+            S->rejects[CANRLS_R_RANGE]++;
+            S->frame_loss = 1u;
+            return 0u;
         }
+        raws[k] = v;
     }
     /* pair: the frames of one period */
     bit = 1u << mi;
@@ -855,10 +882,8 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
         S->open_counter = key;
     }
     S->open_mask |= bit;
-    for (r = 0; r < CANRLS_TARGET_ROLES; r++) {
-        if (M->roles[r].nbytes != 0u && M->roles[r].msg == mi) {
-            S->raw[r] = raws[r];
-        }
+    for (k = 0; k < msg->nroles; k++) {
+        S->raw[msg->roles[k]] = raws[k];
     }
     if (S->open_mask != (1u << M->nmsg) - 1u) {
         return 0u;

@@ -64,7 +64,6 @@ extern "C" {
 #define CANRLS_TARGET_FILTER_MAX 16 /**< filters of the bank */
 #define CANRLS_TARGET_EQ_MAX 2     /**< equations (mechanical, electrical) */
 #define CANRLS_TARGET_ROLES 5      /**< current, speed, position, voltage, torque */
-#define CANRLS_TARGET_FIELD_BYTES 5 /**< payload bytes of a field of <= 32 bits */
 
 /** Roles (the order of canrls.signals.ROLES). */
 enum canrls_role { CANRLS_CURRENT = 0, CANRLS_SPEED, CANRLS_POSITION, CANRLS_VOLTAGE,
@@ -83,18 +82,18 @@ enum canrls_reject { CANRLS_R_LENGTH = 0, CANRLS_R_CRC, CANRLS_R_REPEATED, CANRL
                      CANRLS_R_UNPAIRED, CANRLS_R_DUPLICATED, CANRLS_R_RESTARTS,
                      CANRLS_NREJECTS };
 
-/** A signal's bit field: payload byte bytes[j] holds bits 8 j - shift .. of the raw
- * value (least significant byte first, either byte order); raw values lo..hi pass. An
- * unsigned 32-bit field is held less 2^31 (biased): lo, hi and its values are raw - 2^31. */
+/** A signal's bit field: the payload (at most 8 bytes, classic CAN) read as one 64-bit
+ * word, little endian (Intel) or big endian (Motorola: byte 0 the most significant), the
+ * field is `length` bits from bit `shift` of it; raw values lo..hi pass. An unsigned
+ * 32-bit field is held less 2^31 (biased): lo, hi and its values are raw - 2^31. */
 typedef struct {
-    uint8_t msg;       /**< index of its message */
-    uint8_t nbytes;    /**< payload bytes of the field, 0: the role is not mapped */
-    uint8_t length;    /**< bits, 1..32 */
-    uint8_t is_signed; /**< two's complement */
-    uint8_t biased;    /**< held less 2^31 */
-    int8_t shift;
-    uint8_t bytes[CANRLS_TARGET_FIELD_BYTES];
-    int32_t lo, hi;    /**< accepted raw range (strict decoding) */
+    uint8_t msg;        /**< index of its message */
+    uint8_t length;     /**< bits, 1..32; 0: the role is not mapped */
+    uint8_t is_signed;  /**< two's complement */
+    uint8_t biased;     /**< held less 2^31 */
+    uint8_t big_endian; /**< Motorola */
+    uint8_t shift;      /**< its lowest bit in the payload's word */
+    int32_t lo, hi;     /**< accepted raw range (strict decoding) */
 } canrls_field;
 
 /** A mapped feedback message. */
@@ -104,6 +103,8 @@ typedef struct {
     uint8_t dlc;         /**< the DBC's length */
     uint8_t crc;         /**< 1: byte 0 is the E2E CRC-8 (canrls.can.e2e) */
     uint8_t has_counter; /**< 1: an alive counter (field `counter`) */
+    uint8_t nroles;      /**< the mapped signals it carries */
+    uint8_t roles[CANRLS_TARGET_ROLES]; /**< their enum canrls_role, in role order */
     canrls_field counter;
 } canrls_message;
 
@@ -170,7 +171,7 @@ typedef struct {
 typedef struct {
     uint32_t nmsg, nfilters, neq, nparams;
     const canrls_message *messages;
-    canrls_field roles[CANRLS_TARGET_ROLES]; /**< nbytes 0: not mapped */
+    canrls_field roles[CANRLS_TARGET_ROLES]; /**< length 0: not mapped */
     uint8_t match_counters; /**< pair by alive counters (every message has one, one width) */
     int32_t dt_ticks, gap_ticks, tol_ticks; /**< period, restart beyond, pairing tolerance */
     int32_t tanh_m, tanh_sh; int64_t tanh_b;  /**< z = rsh(speed m + b, sh), Q24 */
@@ -218,7 +219,8 @@ typedef struct {
     int32_t raw[CANRLS_TARGET_ROLES];
     uint32_t has_t, last_t, samples;
     int64_t x1[CANRLS_TARGET_FILTER_MAX], x2[CANRLS_TARGET_FILTER_MAX];
-    int32_t up[CANRLS_TARGET_FILTER_MAX];
+    int32_t uph[CANRLS_TARGET_FILTER_MAX], upl[CANRLS_TARGET_FILTER_MAX]; /**< the last
+                                  input times 2^FX, as h 2^31 + l */
     uint8_t primed[CANRLS_TARGET_FILTER_MAX];
     canrls_target_eq eq[CANRLS_TARGET_EQ_MAX];
     uint32_t since_publish, publications, frame_loss;

@@ -50,13 +50,9 @@ def plan_text(plan: dict[str, int], name: str) -> str:
 def _field(f: Field | None, what: str) -> str:
     if f is None:
         return "{0}"
-    b = list(f.bytes) + [0] * (5 - len(f.bytes))
-    if len(f.bytes) > 5:
-        raise ValueError(f"{what}: more than 5 bytes")
-    return (f"{{.msg = {_u(f.msg, what)}, .nbytes = {_u(len(f.bytes), what)}, "
-            f".length = {_u(f.length, what)}, .is_signed = {int(f.signed)}u, "
-            f".biased = {int(f.biased)}u, "
-            f".shift = {_i(f.shift, what)}, .bytes = {{{', '.join(_u(x, what) for x in b)}}}, "
+    return (f"{{.msg = {_u(f.msg, what)}, .length = {_u(f.length, what)}, "
+            f".is_signed = {int(f.signed)}u, .biased = {int(f.biased)}u, "
+            f".big_endian = {int(f.big_endian)}u, .shift = {_u(f.shift, what)}, "
             f".lo = {_i(f.lo, what)}, .hi = {_i(f.hi, what)}}}")
 
 
@@ -181,10 +177,14 @@ def model_files(tm: TargetModel, source: str) -> tuple[str, str]:
     msgs = []
     for mm in tm.messages:
         w = f"message {mm.name}"
+        carried = [_ROLE_ENUM[k] for k, r in enumerate(("current", "speed", "position",
+                                                        "voltage", "torque"))
+                   if r in tm.roles and tm.roles[r].msg == len(msgs)]
         msgs.append(f"/* {c_comment(mm.name, 'message')} */ "
                     f"{{.id = {_u(mm.id, w)}, .extended = {int(mm.extended)}u, "
                     f".dlc = {_u(mm.dlc, w)}, .crc = {int(mm.crc)}u, "
                     f".has_counter = {int(mm.counter is not None)}u, "
+                    f".nroles = {len(carried)}u, .roles = {{{', '.join(carried) or '0'}}}, "
                     f".counter = {_field(mm.counter, w)}}}")
     c.append(f"static const canrls_message messages[] = {{\n{_list(msgs)},\n}};\n")
     flts = []

@@ -73,16 +73,17 @@ class TargetError(ConfigError):
 # ----------------------------------------------------------------- frames in
 @dataclass(frozen=True)
 class Field:
-    """A signal's bit field in its message: payload byte ``bytes[j]`` holds bits
-    ``8 j - shift .. 8 j - shift + 7`` of the raw value (least significant byte first,
-    either byte order), ``length`` bits, two's complement when ``signed``; strict
-    decoding accepts the raw values ``lo .. hi`` (the DBC's [minimum, maximum]). An
-    unsigned 32-bit field is held less ``bias = 2^31`` (``biased``), so that every raw
-    value is an ``int32``: ``lo``, ``hi`` and what :meth:`extract` returns are then
-    ``raw - 2^31``, and the signal's offset takes the ``2^31`` back."""
+    """A signal's bit field in its message (classic CAN, at most 8 bytes): the payload
+    read as one 64-bit word, little endian (Intel) or big endian (Motorola: byte 0 the
+    most significant), the field is ``length`` bits from bit ``shift`` of that word,
+    two's complement when ``signed``; strict decoding accepts the raw values ``lo ..
+    hi`` (the DBC's [minimum, maximum]). An unsigned 32-bit field is held less ``bias =
+    2^31`` (``biased``), so that every raw value is an ``int32``: ``lo``, ``hi`` and
+    what :meth:`extract` returns are then ``raw - 2^31``, and the signal's offset takes
+    the ``2^31`` back."""
 
     msg: int
-    bytes: tuple[int, ...]
+    big_endian: bool
     shift: int
     length: int
     signed: bool
@@ -95,13 +96,11 @@ class Field:
         return 1 << 31 if self.biased else 0
 
     def extract(self, data: bytes) -> int:
-        """The raw value of the field in ``data`` (sign-extended)."""
-        acc = 0
-        for j, b in enumerate(self.bytes):
-            sh = 8 * j - self.shift
-            # acc |= data[b] << (8 j - shift), or >> for the first byte
-            acc |= (data[b] << sh) if sh >= 0 else (data[b] >> -sh)
-        acc &= (1 << self.length) - 1
+        """The raw value of the field in ``data`` (sign-extended, less the bias)."""
+        # the payload as a 64-bit word (bytes after the frame's end are 0)
+        word = int.from_bytes(bytes(data).ljust(8, b"\0"), "big" if self.big_endian else "little")
+        # raw = (word >> shift) mod 2^length
+        acc = (word >> self.shift) & ((1 << self.length) - 1)
         if self.signed and acc >> (self.length - 1):
             acc -= 1 << self.length
         return acc - self.bias
@@ -355,14 +354,26 @@ def _field(codec: SignalCodec, msg: int, where: str, strict: bool = True) -> Fie
         lo, hi = lo - (1 << 31), hi - (1 << 31)
     if lo < -(1 << 31) or hi > (1 << 31) - 1:  # pragma: no cover - fields of <= 32 bits
         raise TargetError(f"{where}: raw values {lo} .. {hi} do not fit 32 bits")
-    return Field(msg, tuple(codec.byte_index), codec.shift, codec.length, codec.is_signed,
-                 int(lo), int(hi), biased)
+    if codec.byte_order == "little_endian":
+        # the field's first bit is bit 8 (first byte) + shift of the little-endian word
+        shift = codec.byte_index[0] * 8 + codec.shift
+    else:
+        # its last bit in the sequential numbering (byte 0's bit 7 first), last = 8
+        # (its last byte) + 7 - shift, is bit 63 - last of the big-endian word
+        shift = 63 - (8 * codec.byte_index[0] + 7 - codec.shift)
+    if max(codec.byte_index) >= 8:
+        raise TargetError(f"{where}: beyond the 8 bytes of a classic CAN frame")
+    return Field(msg, codec.byte_order != "little_endian", shift, codec.length,
+                 codec.is_signed, int(lo), int(hi), biased)
 
 
 def _messages(protocol: Protocol) -> tuple[tuple[Message, ...], dict[str, Field]]:
     msgs: list[Message] = []
     roles: dict[str, Field] = {}
     for i, m in enumerate(protocol.messages):
+        if m.length > 8:
+            raise TargetError(f"message {m.name} has {m.length} bytes: the target reads "
+                              f"classic CAN frames (at most 8)")
         counter = None
         if m.counter is not None and protocol.check_counter:
             counter = _field(m.counter, i, f"counter {m.name}.{m.counter.name}", False)
@@ -434,6 +445,13 @@ def _coefficients(model: Model, dt: float) -> tuple[tuple[int, ...], tuple[tuple
                 raise TargetError(f"the filter's input coefficients exceed 1 at cutoff "
                                   f"{model.cutoff_hz} Hz and period {dt} s")
         G.append((g0q[0], g0q[1], g1q[0], g1q[1]))
+        # each row's coefficients sum below 2^31 in magnitude: the C sums the row's four
+        # products of 31-bit words (the low parts of the split states) in 62 bits
+        for row in ((A[0], A[1], g0q[0], g1q[0]), (A[2], A[3], g0q[1], g1q[1])):
+            if sum(abs(v) for v in row) >= 1 << 31:
+                raise TargetError(f"the filter's coefficients at cutoff {model.cutoff_hz} Hz "
+                                  f"and period {dt} s are too large for the integer path: "
+                                  f"the cutoff must be well below the sample rate")
     return A, tuple(G)
 
 
