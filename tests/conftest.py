@@ -30,3 +30,22 @@ def no_leaked_threads() -> Iterator[None]:
 @pytest.fixture
 def default_dbc() -> Path:
     return ROOT / "dbc" / "canrls.dbc"
+
+
+@pytest.fixture
+def bounded_writes() -> Iterator[int]:
+    """Files this process writes stop at 64 MiB (RLIMIT_FSIZE, SIGXFSZ ignored: a larger
+    write fails with EFBIG): a test of a bound on output cannot fill the disk when the
+    bound is missing (the code before the fix), it fails instead."""
+    import resource
+    import signal
+
+    limit = 64 << 20
+    old = resource.getrlimit(resource.RLIMIT_FSIZE)
+    old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, old[1]))
+    try:
+        yield limit
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, old)
+        signal.signal(signal.SIGXFSZ, old_handler)

@@ -34,7 +34,7 @@ PKG = SRC / "canrls"
 #: layer of each top-level part, and the layers it may import (besides itself)
 LAYER = {
     "canrls": "core", "canrls.errors": "core", "canrls.signals": "core",
-    "canrls.effect_names": "core", "canrls.ctext": "core",
+    "canrls.effect_names": "core", "canrls.files": "core", "canrls.ctext": "core",
     "canrls.can": "can", "canrls.estimation": "estimation",
     "canrls.config": "front", "canrls.processor": "front", "canrls.modelfile": "front",
     "canrls.target": "front",

@@ -383,7 +383,7 @@ class TestMapping:
             Protocol.load(USER_DBC, mapping)
 
     def test_missing_or_bad_dbc_file(self, tmp_path: Path) -> None:
-        with pytest.raises(ConfigError, match=r"cannot read DBC file .*missing\.dbc"):
+        with pytest.raises(ConfigError, match=r"DBC file .*missing\.dbc: cannot read"):
             Protocol.load(tmp_path / "missing.dbc")
         bad = tmp_path / "bad.dbc"
         bad.write_text("BO_ this is not a DBC\n")

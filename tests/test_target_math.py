@@ -53,6 +53,9 @@ def test_the_tables_are_the_generators_and_the_c_has_the_same_words() -> None:
         assert body is not None
         words = [int(w) for w in re.findall(r"-?\d+", body.group(1))]
         assert words == [w for seg in kept for w in seg], name
+        # Horner's partial sums stay within an int32 (the C holds them in one): |p| <=
+        # |c0| + |c1| + |c2| + |c3| for t < 1
+        assert all(sum(abs(c) for c in seg) < 1 << 31 for seg in kept), name
 
 
 @pytest.mark.parametrize("name,f,bound", [
@@ -123,13 +126,16 @@ def _ops() -> list[tuple[str, list[int], str]]:
         n = int(rng.integers(0, 1 << 62)) >> int(rng.integers(0, 62))
         add("isqrt", [n], isqrt(n))
         add("rsh", [x, s], rsh(x, s) if s < 64 else 0)
-        # the filter's row: rsh(a0 x1 + a1 x2 + gs 2^fx, 30), |x| < 2^60, |gs| < 2^62
-        a0, a1 = (int(v) for v in rng.integers(-(1 << 30), 1 << 30, 2))
+        # the filter's row: rsh(a0 x1 + a1 x2 + (g0 up + g1 u) 2^fx, 30), |x| < 2^60,
+        # |u| 2^fx < 2^59, the row's coefficients summing below 2^31
+        a0, a1, g0, g1 = (int(v) for v in rng.integers(-(1 << 29), 1 << 29, 4))
         fx = int(rng.integers(0, 41))
         x1, x2 = (int(v) >> int(rng.integers(0, 60)) for v in
                   rng.integers(-(1 << 59), 1 << 59, 2))
-        gs = int(rng.integers(-(1 << 61), 1 << 61)) >> max(0, fx - 20 + int(rng.integers(0, 20)))
-        add("svf", [a0, a1, x1, x2, gs, fx], rsh(a0 * x1 + a1 * x2 + (gs << fx), 30))
+        ub = min(1 << 31, 1 << max(0, 58 - fx))
+        up, u = (int(v) >> int(rng.integers(0, 20)) for v in rng.integers(-ub, ub, 2))
+        add("svf", [a0, a1, g0, g1, x1, x2, up, u, fx],
+            rsh(a0 * x1 + a1 * x2 + ((g0 * up + g1 * u) << fx), 30))
         mm = int(rng.integers(0, 1 << 53))
         e = int(rng.integers(-80, 70))
         add("floor", [mm, e], floor_scaled(mm, e))

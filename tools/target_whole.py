@@ -62,7 +62,7 @@ def _canrls(*argv: str) -> str:
     from canrls.cli.main import main
 
     buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
         rc = main(list(argv))
     if rc != 0:
         raise WholeError(f"canrls {' '.join(argv)}: exit status {rc}\n{buf.getvalue()}")

@@ -78,6 +78,7 @@ from canrls.errors import ConfigError
 from canrls.estimation.fixed import QFormat
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings
+from canrls.files import MAX_CONFIG_BYTES, check_path, read_bytes
 from canrls.signals import ROLES
 
 __all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "load_config",
@@ -121,12 +122,10 @@ def read_toml(path: str | Path, table: str | None = None, *, key: str | None = N
     ``"daemon.model_file = m.toml: invalid TOML: Expected ']' ... (at line 1, column 7)"``,
     ``"drive.toml: cannot read: No such file or directory"``, ``"x.toml: no [model] table"``.
     """
-    p = Path(path)
-    where = f"{key} = {p}" if key else str(p)
-    try:
-        text = p.read_bytes()
-    except OSError as e:
-        raise ConfigError(f"{where}: cannot read: {e.strerror or e}") from e
+    where = f"{key} = {path}" if key else str(path)
+    p = check_path(path, where)
+    # a regular file of bounded size: a FIFO or a device is refused, never opened
+    text = read_bytes(p, where, limit=MAX_CONFIG_BYTES)
     try:
         doc = tomllib.loads(text.decode("utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:

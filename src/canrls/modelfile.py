@@ -37,6 +37,7 @@ from canrls import __version__
 from canrls.config import AppConfig
 from canrls.errors import ConfigError
 from canrls.estimation.model import Model
+from canrls.files import MAX_MODEL_BYTES, atomic_writer, read_text
 
 if TYPE_CHECKING:
     from canrls.estimation.pipeline import Estimates
@@ -163,11 +164,10 @@ class SavedModel:
 
     def save(self, path: str | Path) -> Path:
         p = Path(path)
-        try:
-            p.write_text(json.dumps(self.to_dict(), indent=2, ensure_ascii=False) + "\n",
-                         encoding="utf-8")
-        except OSError as e:
-            raise ConfigError(f"--save-model {p}: cannot write: {e.strerror or e}") from e
+        text = json.dumps(self.to_dict(), indent=2, ensure_ascii=False) + "\n"
+        # a temporary beside it, renamed: never written through a link, never half-written
+        with atomic_writer(p, f"--save-model {p}") as f:
+            f.write(text.encode("utf-8"))
         return p
 
     # -- reading ----------------------------------------------------------------------
@@ -238,20 +238,22 @@ class SavedModel:
     @classmethod
     def load(cls, path: str | Path) -> SavedModel:
         p = Path(path)
+        # a regular file of bounded size: a FIFO or a device is refused, never opened
+        text = read_text(p, f"--model {p}", limit=MAX_MODEL_BYTES)
         try:
-            d = json.loads(p.read_text(encoding="utf-8"))
-        except OSError as e:
-            raise ConfigError(f"--model {p}: cannot read: {e.strerror or e}") from e
-        except UnicodeDecodeError as e:
-            raise ConfigError(f"--model {p}: not UTF-8 text ({e.reason} at byte "
-                              f"{e.start})") from e
+            d = json.loads(text)
         except json.JSONDecodeError as e:
             raise ConfigError(f"--model {p}: invalid JSON: {e}") from e
         except RecursionError as e:  # the JSON parser recurses once per nested level
             raise ConfigError(f"--model {p}: invalid JSON: nested too deep") from e
         except ValueError as e:  # an integer of more digits than Python converts
             raise ConfigError(f"--model {p}: invalid JSON: {e}") from e
-        return cls.from_dict(d, source=str(p))
+        saved = cls.from_dict(d, source=str(p))
+        try:  # the model checked where the file is read: names, units, expressions
+            saved.build_model()
+        except ConfigError as e:
+            raise type(e)(f"--model {p}: {str(e).removeprefix('saved model: ')}") from e
+        return saved
 
     # -- use --------------------------------------------------------------------------
     def build_model(self, available_signals: list[str] | None = None) -> Model:

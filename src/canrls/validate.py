@@ -42,6 +42,7 @@ from canrls.diagnosis.residual import all_bins, find_regions
 from canrls.diagnosis.results import Binned, Region, Traces, share_text
 from canrls.diagnosis.samples import RecordSamples
 from canrls.errors import ConfigError, EstimatorError
+from canrls.files import atomic_writer
 from canrls.modelfile import SavedModel
 from canrls.replay import read_logs
 from canrls.signals import ROLES, Signals
@@ -365,9 +366,7 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
                             VALIDATE_CAPTIONS["position"]))
         sections.append((e, figures))
     page = out / "index.html"
-    try:
-        page.write_text(page_template("validate.html.j2").render(r=report, sections=sections),
-                        encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(f"--report {out}: cannot write index.html: {e}") from e
+    with atomic_writer(page, f"--report {out}: index.html") as f:
+        f.write(page_template("validate.html.j2").render(r=report, sections=sections)
+                .encode("utf-8"))
     return page

@@ -49,9 +49,9 @@ from typing import Any
 import can
 import cantools
 
-from canrls.can.protocol import DEFAULT_DBC, EncodeError, SignalMapping
+from canrls.can.protocol import DEFAULT_DBC, EncodeError, SignalMapping, load_dbc
 from canrls.effect_names import EffectId, EquationId, parse_effect_name
-from canrls.errors import CommandError, EffectError
+from canrls.errors import CommandError, ConfigError, EffectError
 
 __all__ = [
     "EffectId",
@@ -331,7 +331,7 @@ class CommandAck:
 
 @cache
 def _database(path: str) -> Any:
-    return cantools.database.load_file(path, database_format="dbc", strict=True)
+    return load_dbc(path)[0]
 
 
 def _db(dbc: str | Path | None = None) -> Any:
@@ -374,10 +374,15 @@ class FrameIds:
 @cache
 def _frame_ids(path: str) -> FrameIds:
     db = _database(path)
-    ids = [db.get_message_by_name(n).frame_id for n in (*_PUBLISHED, "RlsCommand",
-                                                          "RlsCommandAck")]
-    names = dict.fromkeys(r.message for r in SignalMapping.default().roles.values())
     present = {m.name: m.frame_id for m in db.messages}
+    wanted = (*_PUBLISHED, "RlsCommand", "RlsCommandAck")
+    missing = [n for n in wanted if n not in present]
+    if missing:
+        raise ConfigError(f"DBC file {path}: no message {', '.join(missing)}: canrls' own "
+                          f"frames (those of the shipped DBC, canrls/data/canrls.dbc) are "
+                          f"needed to publish estimates or export their codecs")
+    ids = [present[n] for n in wanted]
+    names = dict.fromkeys(r.message for r in SignalMapping.default().roles.values())
     return FrameIds(*ids, feedback=tuple(present[n] for n in names if n in present))
 
 

@@ -28,11 +28,13 @@ live path judges its frames by the same rule (:mod:`canrls.can.times`).
 from __future__ import annotations
 
 import dataclasses
+import io
+import locale
 import os
 from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, BinaryIO, TypeVar
 
 import can
 import numpy as np
@@ -42,13 +44,18 @@ from canrls.background import Background
 from canrls.can import candump
 from canrls.can.frameblock import MAX_DATA_LENGTH, FrameBlock
 from canrls.can.times import MAX_TIMESTAMP, describe, is_time
-from canrls.errors import LogFormatError
+from canrls.can.writers import writer_on
+from canrls.errors import ConfigError, LogFormatError
+from canrls.files import MAX_LINE, LineBound, atomic_writer, check_path, open_regular
 
-__all__ = ["LogReadStats", "read_frames", "write_candump", "write_log", "CAN_ERR_FLAG"]
+__all__ = ["LogReadStats", "read_frames", "write_candump", "write_log", "check_channel",
+           "CAN_ERR_FLAG", "MAX_CHANNEL"]
 
 #: Linux SocketCAN error-frame flag in the 32-bit CAN ID (candump writes it in the ID).
 CAN_ERR_FLAG = candump.CAN_ERR_FLAG
 _EFF_MASK = candump.EFF_MASK
+#: Longest channel name written into a log (Linux interface names have at most 15).
+MAX_CHANNEL = 64
 
 #: Blocks of at least this many frames are read ahead in a thread (smaller ones cost
 #: more in thread hand-overs than the overlap saves).
@@ -88,28 +95,31 @@ def read_frames(
     stats : filled in while reading
     progress : called as ``progress(bytes_done, bytes_total)`` after each block
     """
-    p = Path(path)
-    if not p.is_file():
+    p = check_path(path, "log file", LogFormatError)
+    if not p.exists():
         raise LogFormatError(f"{p}: no such log file")
     st = stats if stats is not None else LogReadStats()
-    st.total_bytes = p.stat().st_size
-    if p.suffix.lower() == ".log":
-        yield from _read_candump(p, chunk_size, skip_bad_lines, st, progress)
-    else:
-        yield from _read_python_can(p, chunk_size, st, progress)
+    # a regular file only: a FIFO, device or directory is refused before it is opened
+    with open_regular(p, str(p), LogFormatError) as f:
+        st.total_bytes = os.fstat(f.fileno()).st_size
+        if p.suffix.lower() == ".log":
+            yield from _read_candump(f, p, chunk_size, skip_bad_lines, st, progress)
+        else:
+            yield from _read_python_can(f, p, chunk_size, st, progress)
 
 
 # --------------------------------------------------------------------------- candump
 
 
-def _read_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats,
-                  progress: Callable[[int, int], None] | None) -> Iterator[FrameBlock]:
+def _read_candump(f: BinaryIO, path: Path, chunk_size: int, skip_bad: bool,
+                  st: LogReadStats, progress: Callable[[int, int], None] | None
+                  ) -> Iterator[FrameBlock]:
     """Blocks of at most ``chunk_size`` frames (:func:`_parse_candump`); from
     :data:`READ_AHEAD` frames a block, the next block is read and parsed in a thread while
     the caller works on the current one (the file read and the C parser release the GIL).
     ``st`` counts what the caller was given."""
     own = LogReadStats(total_bytes=st.total_bytes)  # the parser's, a block ahead
-    steps = _parse_candump(path, chunk_size, skip_bad, own)
+    steps = _parse_candump(f, path, chunk_size, skip_bad, own)
     for block, seen in _read_ahead(steps) if chunk_size >= READ_AHEAD else steps:
         for name in ("frames", "lines", "bad_lines", "slow_lines", "bytes_read"):
             setattr(st, name, getattr(seen, name))
@@ -139,14 +149,16 @@ def _read_ahead(it: Generator[_T, None, None]) -> Iterator[_T]:
         it.close()
 
 
-def _parse_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats
-                   ) -> Generator[tuple[FrameBlock, LogReadStats], None, None]:
-    """Each parse step's block (possibly empty) and a copy of ``st`` after it, reading the
-    file into one reusable buffer.
+def _parse_candump(f: BinaryIO, path: Path, chunk_size: int, skip_bad: bool,
+                   st: LogReadStats) -> Generator[tuple[FrameBlock, LogReadStats], None, None]:
+    """Each parse step's block (possibly empty) and a copy of ``st`` after it, reading
+    ``f`` into one reusable buffer.
 
     The compiled parser (:func:`canrls.can.candump.parse`) takes every line of the common
     layout; the others come back as "slow" lines with the row they precede, go through
-    :func:`_parse_candump_line` and are inserted there, so the file's order is kept.
+    :func:`_parse_candump_line` and are inserted there, so the file's order is kept. A
+    line longer than :data:`~canrls.files.MAX_LINE` is a bad line: the buffer never
+    grows for it (skipped with ``skip_bad``, unread beyond the bound).
     """
     cap = max(1, int(chunk_size))
     # ~40 bytes per line in a typical classic-CAN candump file; a bit more so that one
@@ -157,45 +169,65 @@ def _parse_candump(path: Path, chunk_size: int, skip_bad: bool, st: LogReadStats
     need = True  # read before parsing (the buffer holds no complete line)
     line_no = 0
     slow = np.empty((cap, 4), np.int64)
-    with open(path, "rb", buffering=0) as f:
-        while True:
-            if not eof and (need or fill - start < len(buf) // 2):
-                if start:
-                    buf[:fill - start] = buf[start:fill]
-                    fill -= start
-                    start = 0
-                if fill == len(buf):  # a line longer than the buffer
-                    buf = np.concatenate([buf, np.empty(len(buf), np.uint8)])
-                got = f.readinto(memoryview(buf)[fill:])
-                if got:
-                    fill += got
-                else:
-                    eof = True
-                need = False
-            view = buf[start:fill]
-            b = FrameBlock(np.empty(cap, np.float64), np.empty(cap, np.uint32),
-                           np.empty(cap, np.bool_), np.zeros(cap, np.bool_),
-                           np.empty(cap, np.bool_), np.empty(cap, np.uint8),
-                           np.empty((cap, 8), np.uint8))
-            used, rows, nslow, nlines = candump.parse(
-                view, len(view), eof, b.t, b.arbitration_id, b.is_extended, b.is_error,
-                b.dlc, b.data, slow)
-            if used == 0:
-                if eof:
-                    break
-                need = True
+    #: inside a line too long to keep ("comment" or "bad"), dropping it up to its end
+    skipping: str | None = None
+    while True:
+        if not eof and (need or fill - start < len(buf) // 2):
+            if start:
+                buf[:fill - start] = buf[start:fill]
+                fill -= start
+                start = 0
+            if fill == len(buf):  # one line fills the buffer: longer than MAX_LINE
+                comment = bytes(buf[:256]).lstrip().startswith(b"#")
+                if not (comment or skip_bad):
+                    raise LogFormatError(f"{path}:{line_no + 1}: line longer than "
+                                         f"{MAX_LINE} bytes: not a candump line")
+                skipping, fill = "comment" if comment else "bad", 0
+                st.bytes_read += len(buf)
+            got = f.readinto(memoryview(buf)[fill:])
+            if got:
+                fill += got
+            else:
+                eof = True
+            need = False
+        if skipping:
+            ends = np.flatnonzero(buf[:fill] == 10)
+            if len(ends) == 0 and not eof:
+                st.bytes_read += fill
+                fill, need = 0, True
                 continue
-            block = b if rows == cap else b.take(slice(0, rows))
-            if nslow:
-                st.slow_lines += nslow
-                block = _with_slow_lines(block, view, slow[:nslow], path, line_no, skip_bad,
-                                         st)
-            line_no += nlines
-            st.lines += nlines
-            st.bytes_read += used
-            start += used
-            st.frames += len(block)
-            yield block, dataclasses.replace(st)
+            st.bad_lines += skipping == "bad"
+            line_no += 1
+            st.lines += 1
+            cut = int(ends[0]) + 1 if len(ends) else fill
+            st.bytes_read += cut
+            buf[:fill - cut] = buf[cut:fill]
+            fill -= cut
+            skipping = None
+        view = buf[start:fill]
+        b = FrameBlock(np.empty(cap, np.float64), np.empty(cap, np.uint32),
+                       np.empty(cap, np.bool_), np.zeros(cap, np.bool_),
+                       np.empty(cap, np.bool_), np.empty(cap, np.uint8),
+                       np.empty((cap, 8), np.uint8))
+        used, rows, nslow, nlines = candump.parse(
+            view, len(view), eof, b.t, b.arbitration_id, b.is_extended, b.is_error,
+            b.dlc, b.data, slow)
+        if used == 0:
+            if eof:
+                break
+            need = True
+            continue
+        block = b if rows == cap else b.take(slice(0, rows))
+        if nslow:
+            st.slow_lines += nslow
+            block = _with_slow_lines(block, view, slow[:nslow], path, line_no, skip_bad,
+                                     st)
+        line_no += nlines
+        st.lines += nlines
+        st.bytes_read += used
+        start += used
+        st.frames += len(block)
+        yield block, dataclasses.replace(st)
 
 
 def _with_slow_lines(block: FrameBlock, buf: npt.NDArray[np.uint8],
@@ -205,10 +237,12 @@ def _with_slow_lines(block: FrameBlock, buf: npt.NDArray[np.uint8],
     msgs: list[can.Message] = []
     before: list[int] = []
     for row, a, e, k in slow.tolist():
-        text = buf[a:e].tobytes().decode("ascii", errors="replace")
+        text = buf[a:min(e, a + MAX_LINE + 1)].tobytes().decode("ascii", errors="replace")
         if not text.strip() or text.lstrip().startswith("#"):
             continue
         try:
+            if e - a > MAX_LINE:
+                raise ValueError(f"{e - a} bytes long, a line has at most {MAX_LINE}")
             msgs.append(_parse_candump_line(text))
             before.append(row)
         except ValueError as err:
@@ -269,20 +303,48 @@ def _parse_candump_line(text: str) -> can.Message:
 # --------------------------------------------------------------------------- python-can readers
 
 
-def _read_python_can(path: Path, chunk_size: int, st: LogReadStats,
-                     progress: Callable[[int, int], None] | None) -> Iterator[FrameBlock]:
+def _python_can_reader(f: BinaryIO, path: Path) -> can.io.generic.MessageReader:
+    """python-can's reader for the suffix of ``path``, reading ``f``: a text format
+    through :class:`~canrls.files.LineBound` (no line longer than
+    :data:`~canrls.files.MAX_LINE` is buffered), a binary one straight."""
+    from can.io.generic import BinaryIOMessageReader, TextIOMessageReader
+    from can.io.player import MESSAGE_READERS
+
+    suffix = path.suffix.lower()
+    cls = MESSAGE_READERS.get(suffix)
     try:
-        reader = can.LogReader(str(path))
-    except (ValueError, OSError, NotImplementedError) as e:
+        if cls is not None and issubclass(cls, TextIOMessageReader):
+            raw = io.BufferedReader(LineBound(f, str(path), error=LogFormatError))
+            text = io.TextIOWrapper(raw, encoding=locale.getpreferredencoding(False))
+            return cls(file=text)
+        if cls is not None and issubclass(cls, BinaryIOMessageReader):
+            return cls(file=io.BufferedReader(f))  # type: ignore[arg-type]
+        # formats python-can opens by name (.db, .mf4, compressed): the file was checked
+        return can.LogReader(str(path))
+    except LogFormatError:
+        raise
+    except Exception as e:  # python-can readers raise many kinds on bad input
         raise LogFormatError(f"{path}: cannot read this log format ({e})") from e
+
+
+def _read_python_can(f: BinaryIO, path: Path, chunk_size: int, st: LogReadStats,
+                     progress: Callable[[int, int], None] | None) -> Iterator[FrameBlock]:
+    reader = _python_can_reader(f, path)
     buf: list[can.Message] = []
 
     def position() -> int:
         """Bytes read so far, where the reader's file tells (binary formats may not)."""
         try:
-            return min(int(reader.file.tell()), st.total_bytes)  # type: ignore[union-attr]
+            return min(int(f.tell()), st.total_bytes)
         except (AttributeError, OSError, ValueError):
             return 0
+
+    def block(msgs: list[can.Message]) -> FrameBlock:
+        try:
+            return FrameBlock.from_messages(msgs)
+        except (ValueError, OverflowError) as e:
+            raise LogFormatError(f"{path}: frames {st.frames + 1}..{st.frames + len(msgs)}: "
+                                 f"{e}") from e
 
     with reader:
         it = iter(reader)
@@ -291,23 +353,32 @@ def _read_python_can(path: Path, chunk_size: int, st: LogReadStats,
                 msg = next(it)
             except StopIteration:
                 break
+            except LogFormatError:
+                raise
             except Exception as e:  # python-can readers raise many kinds on bad input
                 raise LogFormatError(
                     f"{path}: unreadable after frame {st.frames + len(buf)} ({e})") from e
+            k = st.frames + len(buf) + 1
             if not is_time(msg.timestamp):
                 raise LogFormatError(
-                    f"{path}: frame {st.frames + len(buf) + 1} has the timestamp "
-                    f"{msg.timestamp!r}, not a time (finite, at most {MAX_TIMESTAMP:g} s)")
+                    f"{path}: frame {k} has the timestamp {msg.timestamp!r}, not a time "
+                    f"(finite, at most {MAX_TIMESTAMP:g} s)")
+            if not 0 <= msg.arbitration_id <= _EFF_MASK:
+                raise LogFormatError(
+                    f"{path}: frame {k} has the ID 0x{msg.arbitration_id:X}, not a CAN ID "
+                    f"(at most 29 bits, 0x{_EFF_MASK:X})")
             buf.append(msg)
             if len(buf) >= chunk_size:
+                out = block(buf)
                 st.frames += len(buf)
-                yield FrameBlock.from_messages(buf)
+                yield out
                 buf = []
                 if progress is not None:
                     progress(position(), st.total_bytes)
     if buf:
+        out = block(buf)
         st.frames += len(buf)
-        yield FrameBlock.from_messages(buf)
+        yield out
     st.bytes_read = st.total_bytes
     if progress is not None:
         progress(st.total_bytes, st.total_bytes)
@@ -392,42 +463,54 @@ def _candump_bytes(block: FrameBlock, channel: bytes) -> bytes:
     return out[:size].tobytes()
 
 
+def check_channel(channel: object, what: str = "channel") -> str:
+    """``channel`` if it is a channel name the candump reader takes back: 1 to
+    :data:`MAX_CHANNEL` printable ASCII characters, no space; else
+    :class:`~canrls.errors.LogFormatError` naming ``what``."""
+    if not (isinstance(channel, str) and 0 < len(channel) <= MAX_CHANNEL
+            and all("!" <= c <= "~" for c in channel)):
+        raise LogFormatError(f"{what} {channel!r}: a channel name in a CAN log is 1 to "
+                             f"{MAX_CHANNEL} printable ASCII characters without spaces "
+                             f"(what the log readers take back)")
+    return channel
+
+
 def write_candump(path: str | os.PathLike[str], blocks: Iterable[FrameBlock],
-                  channel: str = "can0") -> int:
-    """Write blocks as a candump ``.log`` file (atomically: temp file, then rename).
+                  channel: str = "can0", *, what: str | None = None) -> int:
+    """Write blocks as a candump ``.log`` file (atomically: a fresh temporary beside it,
+    then a rename; see :func:`canrls.files.atomic_writer`).
 
     Returns the number of frames written.
     """
     p = Path(path)
-    ch = channel.encode("ascii")
-    tmp = p.with_name(p.name + ".part")
+    ch = check_channel(channel).encode("ascii")
     n = 0
-    try:
-        with open(tmp, "wb") as f:
-            for block in blocks:
-                f.write(_candump_bytes(block, ch))
-                n += len(block)
-        os.replace(tmp, p)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_writer(p, what or str(p), LogFormatError) as f:
+        for block in blocks:
+            f.write(_candump_bytes(block, ch))
+            n += len(block)
     return n
 
 
 def write_log(path: str | os.PathLike[str], blocks: Iterable[FrameBlock],
-              channel: str = "can0") -> int:
-    """Write blocks in the format the suffix names: ``.log`` natively, others via python-can."""
+              channel: str = "can0", *, what: str | None = None) -> int:
+    """Write blocks in the format the suffix names: ``.log`` natively, ``.asc``,
+    ``.blf``, ``.csv``, ``.trc`` through python-can's writers (atomically, as
+    :func:`write_candump`)."""
     p = Path(path)
+    label = what or str(p)
     if p.suffix.lower() == ".log":
-        return write_candump(p, blocks, channel)
+        return write_candump(p, blocks, channel, what=label)
+    check_channel(channel)
     n = 0
-    try:
-        writer = can.Logger(str(p))
-    except ValueError as e:
-        raise LogFormatError(f"{p}: cannot write this log format ({e})") from e
-    with writer:
-        for block in blocks:
-            for msg in block.to_messages(channel):
-                writer.on_message_received(msg)
-                n += 1
+    with atomic_writer(p, label, LogFormatError) as f:
+        try:
+            writer = writer_on(f, p, label)
+        except ConfigError as e:
+            raise LogFormatError(str(e)) from e
+        with writer:
+            for block in blocks:
+                for msg in block.to_messages(channel):
+                    writer.on_message_received(msg)
+                    n += 1
     return n

@@ -50,10 +50,13 @@ from canrls.can.e2e import CRC8_TABLE
 from canrls.can.frameblock import FrameBlock
 from canrls.can.units import RATING_OPTIONS, Ratings, axis_of, si_factor
 from canrls.errors import ConfigError, DecodeError, SignalError
+from canrls.files import MAX_DBC_BYTES, read_bytes
 from canrls.signals import ROLES
 
 __all__ = [
     "DEFAULT_DBC",
+    "MAX_MESSAGE_BYTES",
+    "load_dbc",
     "REQUIRED_ROLES",
     "EFFORT_ROLES",
     "REJECT_REASONS",
@@ -77,6 +80,9 @@ U64 = npt.NDArray[np.uint64]
 
 #: The DBC shipped with canrls (same content as ``dbc/canrls.dbc`` in the repository).
 DEFAULT_DBC: Path = Path(str(resources.files("canrls") / "data" / "canrls.dbc"))
+
+#: Longest message a DBC may declare [bytes]: a CAN FD frame's payload.
+MAX_MESSAGE_BYTES = 64
 
 #: Roles every mapping must fill; ``position`` and ``voltage`` are optional.
 REQUIRED_ROLES: tuple[str, ...] = ("speed",)
@@ -664,6 +670,97 @@ class MessageCodec:
 # ---------------------------------------------------------------------------
 
 
+def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
+    """The cantools database of the DBC at ``path`` (strict) and the file's bytes.
+
+    The one DBC reader of canrls: a regular file of at most
+    :data:`~canrls.files.MAX_DBC_BYTES`, whose every message fits a CAN frame
+    (:data:`MAX_MESSAGE_BYTES`) and every signal its message, checked on cantools'
+    tokens before cantools builds anything (its strict check is quadratic in a start
+    bit, its codec linear in a length); then every signal's scale, offset and limits
+    must be finite numbers, the scale not zero, and the physical range of its raw
+    integers finite. Errors (:class:`ConfigError`) name the file, message and signal.
+    """
+    p = Path(path)
+    where = what or f"DBC file {p}"
+    raw = read_bytes(p, where, limit=MAX_DBC_BYTES)
+    try:
+        text = raw.decode("cp1252")  # cantools' encoding of DBC files
+    except UnicodeDecodeError as e:
+        line = raw.count(b"\n", 0, e.start) + 1
+        raise ConfigError(f"cannot parse {where}: byte 0x{raw[e.start]:02x} at line "
+                          f"{line} is not cp1252 text") from e
+    from cantools.database.can.formats.dbc.dbc_loader import DbcParser
+
+    try:
+        tokens = DbcParser().parse(text)
+    except Exception as e:  # textparser's errors say where
+        raise ConfigError(f"cannot parse {where}: {e}") from e
+    _check_layout(tokens, where)
+    try:
+        db = cantools.database.load_string(text, database_format="dbc", strict=True)
+    except Exception as e:  # cantools raises several parse error types
+        raise ConfigError(f"cannot parse {where}: {e}") from e
+    for m in db.messages:
+        for sig in m.signals:
+            _check_numbers(sig, f"{where}: message {m.name}: signal {sig.name}")
+    return db, raw
+
+
+def _check_layout(tokens: Any, where: str) -> None:
+    """Every message at most :data:`MAX_MESSAGE_BYTES` long, every signal's start bit
+    and length within its message (what cantools will then check exactly)."""
+    for msg in tokens.get("BO_", []) if isinstance(tokens, Mapping) else []:
+        try:
+            name, length = str(msg[2]), int(msg[4], 0)
+        except (IndexError, TypeError, ValueError):
+            continue  # cantools says what is wrong
+        if not 0 <= length <= MAX_MESSAGE_BYTES:
+            raise ConfigError(f"{where}: message {name}: {length} bytes long, a CAN frame "
+                              f"carries at most {MAX_MESSAGE_BYTES}")
+        bits = 8 * length
+        for sig in msg[6] if len(msg) > 6 and isinstance(msg[6], list) else []:
+            try:
+                sname = str(sig[1][0])
+                start, n = int(sig[3]), int(sig[5])
+            except (IndexError, TypeError, ValueError):
+                continue
+            if not (0 <= start < max(bits, 1) and 1 <= n <= bits):
+                raise ConfigError(f"{where}: message {name}: signal {sname}: start bit "
+                                  f"{start} and length {n} do not fit the message's "
+                                  f"{length} bytes")
+
+
+def _check_numbers(sig: Any, where: str) -> None:
+    """Scale, offset and limits finite, the scale not zero, and the physical range of the
+    raw integers finite (a scale of 1e308 on 16 bits is not)."""
+    conv = sig.conversion
+    for name, v in (("scale", conv.scale), ("offset", conv.offset),
+                    ("minimum", sig.minimum), ("maximum", sig.maximum)):
+        if v is None and name in ("minimum", "maximum"):
+            continue
+        try:
+            ok = math.isfinite(float(v))
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
+            raise ConfigError(f"{where}: {name} {v!r} is not a finite number")
+    if float(conv.scale) == 0.0:
+        raise ConfigError(f"{where}: scale 0: every raw value would decode to the offset")
+    if not sig.is_float:
+        lo = -(1 << (sig.length - 1)) if sig.is_signed else 0
+        hi = (1 << (sig.length - 1)) - 1 if sig.is_signed else (1 << sig.length) - 1
+        try:
+            ends = (lo * float(conv.scale) + float(conv.offset),
+                    hi * float(conv.scale) + float(conv.offset))
+        except OverflowError:
+            ends = (math.inf, math.inf)
+        if not all(math.isfinite(x) for x in ends):
+            raise ConfigError(f"{where}: scale {float(conv.scale):g} and offset "
+                              f"{float(conv.offset):g} put the raw values {lo}..{hi} beyond "
+                              f"the range of a double")
+
+
 @functools.cache
 def _default_hash() -> str:
     return hashlib.sha256(DEFAULT_DBC.read_bytes()).hexdigest()
@@ -728,14 +825,7 @@ class Protocol:
             The DBC lacks a mapped message or signal, or a unit cannot be converted.
         """
         path = DEFAULT_DBC if dbc is None else Path(dbc)
-        try:
-            raw = path.read_bytes()
-        except OSError as e:
-            raise ConfigError(f"cannot read DBC file {path}: {e.strerror or e}") from e
-        try:
-            db = cantools.database.load_file(str(path), database_format="dbc", strict=True)
-        except Exception as e:  # cantools raises several parse error types
-            raise ConfigError(f"cannot parse DBC file {path}: {e}") from e
+        db, raw = load_dbc(path)
         is_default = hashlib.sha256(raw).hexdigest() == _default_hash()
         if mapping is None:
             mp = SignalMapping.default()

@@ -31,7 +31,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                    help="TOML configuration, or a saved model (.json, canrls fit "
                         "--save-model)")
     p.add_argument("--out", type=Path, default=Path("canrls_c"), metavar="DIR",
-                   help="output directory (default: canrls_c)")
+                   help="output directory, made if missing (default: canrls_c); each file "
+                        "is written to a temporary beside it and renamed")
     p.add_argument("--dt", type=float, default=None, metavar="S",
                    help="control period in seconds (default: the saved model's, else the "
                         "DBC's cycle time, else 1 ms)")
@@ -60,18 +61,21 @@ def run(args: argparse.Namespace) -> int:
     if args.kernel_only and args.vectors:
         raise ConfigError("--vectors: the test vectors need the whole estimator "
                           "(not --kernel-only)")
-    tm = src = None
+    tm = src = texts = None
     if not args.kernel_only:
+        from canrls.target.export import target_texts
         from canrls.target.load import load, target_model
 
         src = load(args.model, args.dt)
-        # refused before anything is written: a model the target cannot run
+        # generated (or refused: a model the target cannot run, a log that cannot be
+        # read) before anything is written
         tm = target_model(src, frames=args.frames != "none")
+        texts = target_texts(src, tm, vectors=args.vectors, every=args.every)
     cfg, model, energy, source = load_source(args.model)
     print(export_c(cfg, args.out, model=model, dt=args.dt, energy=energy, source=source,
-                   frames=args.frames != "none"))
+                   what=f"--out {args.out}", frames=args.frames != "none"))
     if tm is not None and src is not None:
         from canrls.target.export import export_target
 
-        print(export_target(src, args.out, tm, vectors=args.vectors, every=args.every))
+        print(export_target(src, args.out, tm, what=f"--out {args.out}", texts=texts))
     return 0

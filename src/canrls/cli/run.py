@@ -74,10 +74,14 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _daemon_table(cfg: Any, args: argparse.Namespace) -> dict[str, Any]:
+    from canrls.can.writers import check_record_path
+
     table = dict(cfg.daemon)
     for opt, key in (("checkpoint", "checkpoint"), ("record", "record")):
         v = getattr(args, opt, None)
         if v:
+            if opt == "record":  # its format and place, named as typed
+                check_record_path(v, f"--record {v}")
             table[key] = str(Path(v).absolute())  # not resolved: a link stays a link
     for opt, key in (("checkpoint_interval", "checkpoint_interval"),
                      ("publish_interval", "publish_interval")):

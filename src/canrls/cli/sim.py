@@ -20,12 +20,21 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from canrls.errors import ConfigError
 
-__all__ = ["add_subparser", "run"]
+__all__ = ["add_subparser", "run", "MAX_DURATION"]
+
+#: Longest simulated run [s]: a day, some 7 GB of candump at 1 kHz (the simulator
+#: writes about 86 MB/s; beyond a day a run is a disk filling up, not a test log).
+MAX_DURATION = 86400.0
 
 
 def _param(text: str) -> tuple[str, float]:
@@ -51,10 +60,13 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("mode", nargs="?", choices=("drive", "fleet"), default="drive",
                    help="'fleet': many drives, each recorded again and again (default: "
                         "one drive)")
-    p.add_argument("--out", "-o", required=True, metavar="LOG",
-                   help="log file to write (fleet: the directory)")
+    p.add_argument("--out", "-o", required=True, type=Path, metavar="LOG",
+                   help="log file to write (.log, .asc, .blf, .csv, .trc; written to a "
+                        "temporary beside it and renamed when complete; fleet: the "
+                        "directory)")
     p.add_argument("--duration", "-d", type=float, default=None, metavar="SECONDS",
-                   help="simulated time [s] (required; fleet: of each recording, default 6)")
+                   help=f"simulated time [s], at most {MAX_DURATION:g} (a day; required; "
+                        f"fleet: of each recording, default 6)")
     f = p.add_argument_group("fleet (canrls sim fleet)")
     f.add_argument("--drives", type=int, default=50, metavar="N",
                    help="drives of the fleet (default 50)")
@@ -65,7 +77,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--effects", "-e", default=None, metavar="NAME,...",
                    help=f"true physics (default {DEFAULT_EFFECTS}); names: inertia, viscous, "
                         "coulomb, stribeck, offset, unbalance, cogging:K, electrical")
-    p.add_argument("--seed", "-s", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--seed", "-s", type=int, default=0,
+                   help="seed, a non-negative integer (default 0)")
     p.add_argument("--faults", "-f", default=None, metavar="SPEC",
                    help="faults, e.g. drop=0.01,dup=0.005,reorder=0.01,corrupt=0.001,"
                         "silence=0.5s@10s")
@@ -78,11 +91,61 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--param", "-p", action="append", type=_param, default=[],
                    metavar="NAME=VALUE", help="true parameter value (repeatable), e.g. "
                                               "coulomb.Tc=0.03")
-    p.add_argument("--channel", default="can0", help="channel name written in the log")
+    p.add_argument("--channel", default="can0",
+                   help="channel name written in the log: printable ASCII, no spaces "
+                        "(default can0)")
     p.add_argument("--start-time", type=float, default=0.0, metavar="T0",
                    help="timestamp of the first period [s] (default 0)")
     p.set_defaults(func=run, sim_parser=p)
     return p
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """The options' values, before anything is simulated or written."""
+    from canrls.can.candump import MAX_TIMESTAMP
+    from canrls.can.logs import check_channel
+    from canrls.can.writers import RECORD_SUFFIXES
+    from canrls.errors import LogFormatError
+    from canrls.files import check_writable
+
+    if not (math.isfinite(args.duration) and 0 < args.duration <= MAX_DURATION):
+        raise ConfigError(f"--duration: {args.duration!r} must be a positive number of "
+                          f"seconds, at most {MAX_DURATION:g} (a day of the drive, some "
+                          f"7 GB of candump at 1 kHz; for more, several runs with "
+                          f"--start-time)")
+    if not (math.isfinite(args.start_time)
+            and abs(args.start_time) + args.duration <= MAX_TIMESTAMP):
+        raise ConfigError(f"--start-time {args.start_time!r}: the log's times must stay "
+                          f"within {MAX_TIMESTAMP:g} s (what the log readers take)")
+    if args.seed < 0:
+        raise ConfigError(f"--seed {args.seed}: must be a non-negative integer")
+    try:
+        check_channel(args.channel, "--channel")
+    except LogFormatError as e:
+        raise ConfigError(str(e)) from e
+    suffix = Path(args.out).suffix.lower()
+    if suffix not in RECORD_SUFFIXES:
+        raise ConfigError(f"--out {args.out}: unknown log format {suffix or '(no suffix)'!r}"
+                          f" (canrls writes {', '.join(RECORD_SUFFIXES)})")
+    check_writable(args.out, f"--out {args.out}")
+
+
+@contextmanager
+def _terminated_as_exit() -> Iterator[None]:
+    """SIGTERM raises SystemExit(143) while the log is written, so that its temporary
+    is removed (the default action would leave it); the handler is restored after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum: int, frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    old = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -93,13 +156,13 @@ def run(args: argparse.Namespace) -> int:
         return run_fleet(args)
     if args.duration is None:
         args.sim_parser.error("the following arguments are required: --duration/-d")
-    if not (math.isfinite(args.duration) and args.duration > 0):
-        raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
+    check_args(args)
     sc = scenario(args.scenario, effects=args.effects, seed=args.seed, faults=args.faults,
                   axis=args.axis, excitation=args.excitation, duration=args.duration,
                   params=dict(args.param))
     sim = Simulator(sc, t0=args.start_time)
-    n = write_log(args.out, sim.frames(), channel=args.channel)
+    with _terminated_as_exit():
+        n = write_log(args.out, sim.frames(), channel=args.channel, what=f"--out {args.out}")
     faults = f"; faults {sc.faults}: {sim.fault_log.summary()}" if sc.faults.active else ""
     clipped = f"; {sim.clipped} values clipped to the DBC range" if sim.clipped else ""
     print(f"canrls sim: wrote {n} frames to {args.out} ({sc.duration:g} s, scenario {sc.name}, "

@@ -38,6 +38,7 @@ import numpy.typing as npt
 
 from canrls.diagnosis.results import EquationDiagnosis, Traces, decimation
 from canrls.errors import ConfigError
+from canrls.files import atomic_writer
 
 __all__ = ["FIGURES", "Figures", "figures_in", "require_matplotlib"]
 
@@ -97,10 +98,9 @@ class Figures:
 
     def _save(self, fig: Any, name: str) -> str:
         self.Canvas(fig)
-        try:
-            fig.savefig(self.out / name, dpi=110)
-        except OSError as e:
-            raise ConfigError(f"--report {self.out}: cannot write {name}: {e}") from e
+        # a temporary beside it, renamed: never written through a link in the directory
+        with atomic_writer(self.out / name, f"--report {self.out}: {name}") as f:
+            fig.savefig(f, dpi=110, format="png")
         return name
 
     def timeline(self, b: EquationDiagnosis, a: EquationDiagnosis | None, *,

@@ -25,10 +25,10 @@ from canrls.diagnosis.results import (
     share_text,
     value_text,
 )
-from canrls.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.physics import describe
 from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
+from canrls.files import atomic_writer
 
 if TYPE_CHECKING:  # imported when a page is rendered, not for the text report
     import jinja2
@@ -245,10 +245,8 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
     written["convergence.png"] = figs.convergence(final.primary, final is report.after)
     written["fixed.png"] = figs.fixed(final.primary)
     page = out / "index.html"
-    try:
-        page.write_text(render_html(report, written), encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(f"--report {out}: cannot write index.html: {e}") from e
+    with atomic_writer(page, f"--report {out}: index.html") as f:
+        f.write(render_html(report, written).encode("utf-8"))
     return page
 
 

@@ -44,6 +44,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import numpy.typing as npt
 
+from canrls.ctext import check_text
 from canrls.effect_names import EffectId, EquationId, parse_effect_name
 from canrls.errors import EffectError
 from canrls.estimation.expr import CompiledExpression, compile_expression
@@ -688,9 +689,8 @@ class UserTerm(Effect):
             raise EffectError(f"effect 'user:{term}': equation = {equation!r} must be "
                               f"'{MECHANICAL}' or '{ELECTRICAL}'")
         self._equation = equation
-        if not isinstance(unit, str):
-            raise EffectError(f"effect 'user:{term}': unit = {unit!r} must be a string")
-        self.unit = unit.strip() or "1"
+        # one line of printable text: the unit goes into reports and generated C
+        self.unit = check_text(unit, f"effect 'user:{term}': unit", EffectError).strip() or "1"
         self.range: tuple[float, float] | None = None
         if range is not None:
             # [lo, hi]: a list or tuple of two real numbers (not a table, string or bool)

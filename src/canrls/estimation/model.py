@@ -798,6 +798,10 @@ class Model:
                 raise ConfigError(_fmt(src, f"{key}.name", name, "must be an identifier"))
             if name in out:
                 raise ConfigError(_fmt(src, f"{key}.name", name, "duplicate term name"))
+            same = [n for n in out if n.upper() == name.upper()]
+            if same:  # the generated C names parameters in capitals: they would collide
+                raise ConfigError(_fmt(src, f"{key}.name", name,
+                                       f"differs from term {same[0]!r} only in case"))
             bad = sorted(set(t) - {"expr", "unit", "equation", "range"})
             if bad:
                 raise ConfigError(_fmt(src, f"{key}.{bad[0]}", t[bad[0]],

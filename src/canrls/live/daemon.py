@@ -45,6 +45,7 @@ import numpy as np
 from canrls.can.frameblock import FrameBlock
 from canrls.can.frames import ParameterReport, StatusReport
 from canrls.can.protocol import Protocol
+from canrls.can.writers import open_writer
 from canrls.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline
@@ -321,7 +322,9 @@ class Daemon:
             raise RuntimeError("daemon already started")
         self._started = True
         if self.config.record is not None:
-            self._recorder = Recorder(can.Logger(str(self.config.record)), self.config.record)
+            # never through a link planted at the path (python-can opens by name)
+            writer = open_writer(self.config.record, f"daemon.record = {self.config.record}")
+            self._recorder = Recorder(writer, self.config.record)
             self._queue.recorder = self._recorder
         try:
             self._link.open()

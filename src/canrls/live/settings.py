@@ -183,6 +183,10 @@ class DaemonSettings:
                                       + (" (no NUL byte)" if isinstance(v, str) else ""))
                 if v:
                     kw[k] = resolve_path(v, base_dir)
+                    if k == "record":  # its format and place, before the daemon starts
+                        from canrls.can.writers import check_record_path
+
+                        check_record_path(kw[k], f"{key} = {v}")
             else:
                 if isinstance(v, bool) or not isinstance(v, int | float):
                     unit = "commands per second" if k == "command_rate" else "seconds"

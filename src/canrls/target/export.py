@@ -22,12 +22,14 @@ from importlib import resources
 from pathlib import Path
 
 from canrls.ctext import check_text
+from canrls.files import atomic_writer
 from canrls.target.cgen import model_files
 from canrls.target.load import Source
 from canrls.target.model import SOURCE_NAMES, TargetModel
 from canrls.target.vectors import Vectors, log_frames, record, vectors_header
 
-__all__ = ["TARGET_FILES", "TEST_FILES", "TargetExport", "export_target", "readme"]
+__all__ = ["TARGET_FILES", "TEST_FILES", "TargetExport", "export_target", "readme",
+           "target_texts"]
 
 #: the whole path's files, copied from the package (``canrls/c``)
 TARGET_FILES = ("canrls_target.h", "canrls_target.c", "canrls_target_tables.h")
@@ -216,36 +218,46 @@ def _makefile(single_n: int | None, vectors: bool) -> str:
     return "\n".join(lines)
 
 
-def export_target(src: Source, out: str | Path, tm: TargetModel, *,
-                  vectors: Sequence[str | Path] = (), every: int = 1000) -> TargetExport:
-    """Write the whole estimator of ``tm`` (built from ``src``) into ``out``, with test
-    vectors from the logs ``vectors`` (a state record every ``every`` samples)."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    files: list[Path] = []
+def target_texts(src: Source, tm: TargetModel, *, vectors: Sequence[str | Path] = (),
+                 every: int = 1000) -> tuple[list[tuple[str, str]], Vectors | None]:
+    """Every file of the whole estimator of ``tm`` (built from ``src``), ``(name, text)``,
+    with test vectors from the logs ``vectors`` (a state record every ``every``
+    samples): generated before anything is written."""
     kernel = resources.files("canrls") / "c"
     names = TARGET_FILES + (TEST_FILES if vectors else ())
-    for name in names:
-        p = out / name
-        p.write_text((kernel / name).read_text())
-        files.append(p)
+    texts = [(name, (kernel / name).read_text()) for name in names]
     h, c = model_files(tm, src.label)
-    for name, text in (("canrls_model.h", h), ("canrls_model.c", c)):
-        p = out / name
-        p.write_text(text)
-        files.append(p)
+    texts += [("canrls_model.h", h), ("canrls_model.c", c)]
     v = None
     if vectors:
         v = record(tm, log_frames(vectors, tm.tick_s), every=every,
                    source=", ".join(Path(x).name for x in vectors))
-        p = out / "canrls_vectors.h"
-        p.write_text(vectors_header(v))
-        files.append(p)
+        texts.append(("canrls_vectors.h", vectors_header(v)))
     sizes = {e.n for e in tm.equations}
     single = sizes.pop() if len(sizes) == 1 else None
-    for name, text in (("README.md", readme(tm, src.label, v, single)),
-                       ("Makefile", _makefile(single, v is not None))):
+    texts += [("README.md", readme(tm, src.label, v, single)),
+              ("Makefile", _makefile(single, v is not None))]
+    return texts, v
+
+
+def export_target(src: Source, out: str | Path, tm: TargetModel, *,
+                  vectors: Sequence[str | Path] = (), every: int = 1000,
+                  what: str | None = None,
+                  texts: tuple[list[tuple[str, str]], Vectors | None] | None = None
+                  ) -> TargetExport:
+    """Write the whole estimator of ``tm`` into the directory ``out`` (made if missing;
+    ``what`` names it in errors): :func:`target_texts` (or ``texts``, its result), each
+    file written to a temporary and renamed (:func:`canrls.files.atomic_writer`)."""
+    label = what or str(out)
+    files_texts, v = texts if texts is not None else target_texts(
+        src, tm, vectors=vectors, every=every)
+    out = Path(out)
+    if not out.is_dir():
+        out.mkdir(parents=True, exist_ok=True)
+    files: list[Path] = []
+    for name, text in files_texts:
         p = out / name
-        p.write_text(text)
+        with atomic_writer(p, f"{label}: {name}") as f:
+            f.write(text.encode("utf-8"))
         files.append(p)
     return TargetExport(out, tuple(files), tm, v)
