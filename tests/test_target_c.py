@@ -240,12 +240,20 @@ def test_a_user_term_is_refused_with_the_reason(tmp_path: Path,
     cfg.write_text('[model]\neffects = ["inertia", "viscous", "user:drag"]\nkt = 0.1\n'
                    '[[model.terms]]\nname = "drag"\nexpr = "omega * abs(omega)"\n'
                    'range = [-1e4, 1e4]\n')
-    assert main(["export-c", "--model", str(cfg), "--out", str(tmp_path / "c")]) == 1
+    # the kernel and its configuration are written, the whole estimator is not: why, on
+    # stderr
+    assert main(["export-c", "--model", str(cfg), "--out", str(tmp_path / "c")]) == 0
     err = capsys.readouterr().err
-    assert "user:drag" in err and "user term" in err and "--kernel-only" in err, err
-    assert not (tmp_path / "c").exists()
-    # the kernel and its configuration alone, as before
+    assert "the whole estimator is not written" in err and "user:drag" in err
+    assert "user term" in err and "--kernel-only" in err, err
+    assert (tmp_path / "c" / "canrls_config.h").exists()
+    assert not (tmp_path / "c" / "canrls_target.c").exists()
+    # vectors need the whole estimator: an error, nothing written
+    log = tmp_path / "x.log"
+    log.write_text("(0.0) can0 101#0000000000000000\n")
+    assert main(["export-c", "--model", str(cfg), "--out", str(tmp_path / "v"),
+                 "--vectors", str(log)]) == 1
+    assert "user term" in capsys.readouterr().err and not (tmp_path / "v").exists()
     assert main(["export-c", "--model", str(cfg), "--out", str(tmp_path / "k"),
                  "--kernel-only"]) == 0
-    assert (tmp_path / "k" / "canrls_config.h").exists()
     assert not (tmp_path / "k" / "canrls_target.c").exists()

@@ -13,6 +13,7 @@ test vectors from logs and the host test that replays them (:mod:`canrls.c_expor
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -46,8 +47,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--every", type=int, default=1000, metavar="N",
                    help="samples between the state records of the vectors (default 1000)")
     p.add_argument("--kernel-only", action="store_true",
-                   help="only the kernel, the configuration and the frame codecs (a model "
-                        "the whole estimator cannot run: user terms)")
+                   help="only the kernel, the configuration and the frame codecs (what a "
+                        "model the whole estimator cannot run, with user terms, gets anyway, "
+                        "with the reason on stderr)")
     p.set_defaults(func=run)
     return p
 
@@ -66,11 +68,22 @@ def run(args: argparse.Namespace) -> int:
         from canrls.target.export import target_texts
         from canrls.target.load import load, target_model
 
+        from canrls.target.model import TargetError
+
         src = load(args.model, args.dt)
         # generated (or refused: a model the target cannot run, a log that cannot be
         # read) before anything is written
-        tm = target_model(src, frames=args.frames != "none")
-        texts = target_texts(src, tm, vectors=args.vectors, every=args.every)
+        try:
+            tm = target_model(src, frames=args.frames != "none")
+        except TargetError as e:
+            if args.vectors:
+                raise
+            # the kernel and its configuration still serve a firmware that builds its
+            # own regressors: written, and the reason the rest is not said
+            print(f"canrls export-c: the whole estimator is not written: {e}",
+                  file=sys.stderr)
+        if tm is not None:
+            texts = target_texts(src, tm, vectors=args.vectors, every=args.every)
     cfg, model, energy, source = load_source(args.model)
     print(export_c(cfg, args.out, model=model, dt=args.dt, energy=energy, source=source,
                    what=f"--out {args.out}", frames=args.frames != "none"))
