@@ -677,11 +677,35 @@ def test_the_reader_raises_nothing_but_checkpoint_errors(
             raw = bytes(whole[:data.draw(st.integers(0, len(whole)))])
         else:
             buf = whole if how == "flip" else payload
-            for _ in range(data.draw(st.integers(1, 8))):
-                i = data.draw(st.integers(0, len(buf) - 1))
-                buf[i] = data.draw(st.integers(0, 255))
+            flips = data.draw(st.lists(st.tuples(st.integers(0, len(buf) - 1),
+                                                 st.integers(0, 255)), min_size=1, max_size=8))
+            for i, byte in flips:
+                buf[i] = byte
             raw = bytes(whole) if how == "flip" else _envelope(bytes(payload))
     _read(tmp, raw)
+
+
+def test_an_array_header_that_does_not_parse_is_a_checkpoint_error(tmp_path: Path) -> None:
+    """A .npy header with an open bracket makes numpy's parser raise tokenize's own
+    error (found by the property above): still a CheckpointError."""
+    meta = json.dumps({"x": {"__array__": "a0"}}).encode()
+    header = b"{'descr': '<f8', 'fortran_order': False, 'shape': ((3,), }"
+    header += b" " * (117 - len(header)) + b"\n"
+    npy = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + bytes(24)
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        z.writestr("__meta__.npy", _npy_bytes(np.frombuffer(meta, np.uint8)))
+        z.writestr("a0.npy", npy)
+    p = tmp_path / "cp.bin"
+    p.write_bytes(_envelope(buf.getvalue()))
+    with pytest.raises(CheckpointError, match="payload unreadable"):
+        load_checkpoint(p)
+
+
+def _npy_bytes(a: np.ndarray) -> bytes:
+    out = io.BytesIO()
+    np.save(out, a)
+    return out.getvalue()
 
 
 def _paths(obj: Any, path: tuple = ()) -> Iterator[tuple]:

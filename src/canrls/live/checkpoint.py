@@ -65,6 +65,7 @@ import re
 import secrets
 import stat
 import time
+import tokenize
 import weakref
 import zipfile
 from collections.abc import Callable, Iterator, Mapping
@@ -410,7 +411,8 @@ def _decode(raw: bytes, source: str) -> Checkpoint:
             arrays = _read_arrays(payload)
             meta = arrays.pop("__meta__")
         except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile,
-                zipfile.LargeZipFile, NotImplementedError, MemoryError) as e:
+                zipfile.LargeZipFile, NotImplementedError, MemoryError,
+                SyntaxError, tokenize.TokenError) as e:  # numpy parses .npy headers
             raise CheckpointError(f"payload unreadable: {e}") from e
         if meta.dtype != np.uint8 or meta.ndim != 1:
             raise CheckpointError("__meta__ is not a byte string")
