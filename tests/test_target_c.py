@@ -234,6 +234,24 @@ def test_the_readme_and_the_header_say_what_the_firmware_needs(
     assert "build without -DCANRLS_N" in h2
 
 
+@pytest.mark.parametrize("name", ["own", "no-frames"])
+def test_the_readme_s_c_compiles_with_the_export_s_warnings(
+        drives: dict[str, dict[str, Any]], name: str) -> None:
+    # what a firmware engineer copies: the README's C, built as the Makefile builds
+    cc = need_tool("cc", ["gcc"])
+    out = drives[name]["out"]
+    blocks = re.findall(r"```c\n(.*?)```", (out / "README.md").read_text(), re.S)
+    assert len(blocks) == 1
+    (out / "use.c").write_text(blocks[0])
+    mk = (out / "Makefile").read_text()
+    flags = re.search(r"^CFLAGS \?= (.*)$", mk, re.M).group(1).split()  # type: ignore[union-attr]
+    defs = re.search(r"^DEFS \?= ?(.*)$", mk, re.M).group(1).split()  # type: ignore[union-attr]
+    r = subprocess.run([cc, *flags, "-Wsign-conversion", *defs, "-c", "use.c", "-o", "use.o"],
+                       cwd=out, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert ("can_send(&out[i])" in blocks[0]) == (name == "own")
+
+
 def test_a_user_term_is_refused_with_the_reason(tmp_path: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     cfg = tmp_path / "drive.toml"

@@ -5,8 +5,8 @@ integer path; ``canrls export-c`` of the saved model with the same log as vector
 reproduces it: the specification's final estimate, which the exported C reproduces word
 for word (``make test``), is the fit's fixed column to the last bit; both within 0.1 %
 of the float. On the simulated drive in canrls' DBC, on a user's Motorola DBC through a
-window of standstill (rescales), and on an HSM150 run in its own DBC where the runs
-are there.
+window of standstill (rescales), on a CiA 402 drive reporting its torque in its own DBC,
+and on an HSM150 run in its own DBC where the runs are there.
 """
 
 from __future__ import annotations
@@ -76,6 +76,20 @@ def test_through_rescales_in_a_users_dbc(tmp_path: Path) -> None:
     log, mapping = _motorola(tmp_path)
     fit = _check(log, [*mapping, "--kt", "0.1", "-e", "inertia,viscous,coulomb"], tmp_path)
     assert fit["fixed"]["rescales"]["mechanical"] >= 1
+
+
+def test_a_torque_reporting_drive_in_a_cia402_dbc(tmp_path: Path) -> None:
+    # the drive's own DBC (tests/data/cia402_drive.dbc): torque in per mille of the rated
+    # torque, speed and position in encoder increments; the target is the reported torque
+    from test_target_c import CIA_MAP, _cia402
+
+    log = _cia402(tmp_path)
+    fit = _check(log, [*CIA_MAP, "-e", "inertia,viscous,coulomb,unbalance"], tmp_path)
+    assert fit["fixed"]["path"] == "target"
+    h = (tmp_path / "c" / "canrls_model.h").read_text()
+    assert "CANRLS_PARAM_UNBALANCE_COS" in h
+    readme = (tmp_path / "c" / "README.md").read_text()
+    assert "| TPDO1 | 0x181 |" in readme and "| TPDO2 | 0x281 |" in readme, readme
 
 
 def test_the_text_says_where_the_fixed_column_comes_from(tmp_path: Path) -> None:

@@ -81,6 +81,43 @@ def readme(tm: TargetModel, label: str, vectors: Vectors | None, single_n: int |
                         for i, f in enumerate(tm.filters))
     fmts = "\n".join(f"| {e.name} | Q.{e.f_phi} | Q.{e.f_y} | Q.{e.f_theta} | Q.{e.f_eps} | "
                      f"{e.lam!r} | {e.selection.warmup} |" for e in tm.equations)
+    tick = f"/* every CAN frame received (extended: 1 for a 29-bit ID), t its receive time in\n" \
+           f"   ticks of {tm.tick_s!r} s (mod 2^32) */"
+    if tm.out:
+        use = f"""static canrls_can_frame out[CANRLS_PUBLISH_MAX];
+
+void can_send(const canrls_can_frame *f);   /* the firmware's: f->id, f->dlc, f->data */
+
+/* once: CANRLS_OK, or CANRLS_EINVAL for a model beyond the build's bounds */
+int start(void) {{ return canrls_target_init(&S, &canrls_model); }}
+
+{tick}
+void on_frame(uint32_t id, uint32_t extended, const uint8_t *data, uint32_t len, uint32_t t)
+{{
+    if (canrls_target_frame(&S, id, extended, data, len, t) & CANRLS_PUBLISH) {{
+        /* RlsEstimate of every parameter, RlsStatus, RlsHealth (RlsParamInfo every
+           tenth publication) */
+        uint32_t i, n = canrls_target_publish(&S, out, CANRLS_PUBLISH_MAX);
+        for (i = 0; i < n; i++) {{
+            can_send(&out[i]);
+        }}
+    }}
+}}"""
+    else:
+        use = f"""/* once: CANRLS_OK, or CANRLS_EINVAL for a model beyond the build's bounds */
+int start(void) {{ return canrls_target_init(&S, &canrls_model); }}
+
+{tick}
+void on_frame(uint32_t id, uint32_t extended, const uint8_t *data, uint32_t len, uint32_t t)
+{{
+    (void)canrls_target_frame(&S, id, extended, data, len, t);
+}}
+
+/* parameter i (canrls_target_theta index below) as word 2^exp in SI units */
+void parameter(uint32_t i, int32_t *word, int32_t *exp)
+{{
+    canrls_target_theta(&S, i, word, exp);
+}}"""
     test = ""
     if vectors is not None:
         test = f"""
@@ -134,19 +171,7 @@ point and fails if `arm-none-eabi-nm` finds a floating-point routine among their
 #include "canrls_model.h"
 
 static canrls_target S;                     /* the caller owns the state */
-static canrls_can_frame out[CANRLS_PUBLISH_MAX];
-
-void start(void) {{ canrls_target_init(&S, &canrls_model); }}
-
-/* every CAN frame received, t its receive time in ticks of {tm.tick_s!r} s (mod 2^32) */
-void on_frame(uint32_t id, int extended, const uint8_t *data, uint8_t len, uint32_t t)
-{{
-    if (canrls_target_frame(&S, id, extended, data, len, t) & CANRLS_PUBLISH) {{
-        uint32_t n = canrls_target_publish(&S, out, CANRLS_PUBLISH_MAX);
-        /* send out[0..n-1]: RlsEstimate of every parameter, RlsStatus, RlsHealth
-           (RlsParamInfo every tenth publication) */
-    }}
-}}
+{use}
 ```
 
 `canrls_target_theta(&S, i, &word, &exp)` gives parameter `i` at any time: `word 2^exp`
