@@ -250,6 +250,15 @@ def test_the_readme_s_c_compiles_with_the_export_s_warnings(
                        cwd=out, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert ("can_send(&out[i])" in blocks[0]) == (name == "own")
+    if name == "own":
+        # and canrls' README's, on the same export
+        text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+        part = text[text.index("### From a log to a passing target test"):]
+        (out / "use_readme.c").write_text(re.findall(r"```c\n(.*?)```", part, re.S)[0])
+        r = subprocess.run([cc, *flags, "-Wsign-conversion", *defs, "-c", "use_readme.c",
+                            "-o", "use_readme.o"], cwd=out, capture_output=True, text=True,
+                           timeout=120)
+        assert r.returncode == 0, r.stderr
 
 
 def test_a_user_term_is_refused_with_the_reason(tmp_path: Path,

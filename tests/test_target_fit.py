@@ -123,3 +123,28 @@ def test_an_hsm150_run_in_its_own_dbc(tmp_path: Path) -> None:
     r = subprocess.run(["make", "-s", "-C", str(out), "test"], capture_output=True, text=True,
                        timeout=600)
     assert r.returncode == 0 and "bit-exact" in r.stdout, r.stdout + r.stderr
+
+
+def test_the_readme_walks_from_a_log_to_a_passing_target_test(tmp_path: Path) -> None:
+    # README's "For firmware engineers": its commands, as written, in a fresh directory
+    import re
+    import shlex
+
+    need_tool("cc", ["gcc"])
+    text = (ROOT / "README.md").read_text()
+    part = text[text.index("### From a log to a passing target test"):]
+    block = re.search(r"```sh\n(.*?)```", part, re.S)
+    assert block is not None
+    lines = [shlex.split(line) for line in block.group(1).splitlines() if line.strip()]
+    assert [w[0] for w in lines] == [".venv/bin/canrls"] * 3 + ["make"]
+    out = ""
+    for words in lines:
+        cmd = [sys.executable, "-m", "canrls", *words[1:]] if words[0].endswith("canrls") \
+            else words
+        r = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, (words, r.stdout, r.stderr)
+        out = r.stdout
+    assert "bit-exact with the specification" in out, out
+    # what the README says the test prints, it prints
+    said = re.search(r"`(canrls replay: [^`]*)`", part.replace("\n", " "))
+    assert said is not None and said.group(1) in out, (said, out)

@@ -118,6 +118,9 @@ void parameter(uint32_t i, int32_t *word, int32_t *exp)
 {{
     canrls_target_theta(&S, i, word, exp);
 }}"""
+    widths = {None if m.counter is None else m.counter.length for m in tm.messages}
+    pairing = (" and carry its alive counter" if None not in widths and len(widths) == 1
+               else "")
     test = ""
     if vectors is not None:
         test = f"""
@@ -182,8 +185,8 @@ A publication is due every {tm.publish_every} samples; the control period is
 
 ## The model
 
-Feedback messages (every one is needed for a sample; frames of one control period pair
-by their alive counters, within half a period):
+Feedback messages (every one is needed for a sample; frames pair into one sample when
+they arrive within half a control period of its first{pairing}):
 
 | message | ID | DLC | E2E CRC | alive counter |
 |---|---|---|---|---|
