@@ -24,7 +24,8 @@
    the ``.text`` of the library at ``-O2`` and ``-Os``.
 
 Missing tools are installed with apt-get (``gcc-arm-none-eabi libnewlib-arm-none-eabi
-qemu-system-arm``) when running as root. Exit status 0 when every check passed.
+qemu-system-arm``, and ``gcc`` for the host's counter) when running as root. Exit status
+0 when every check passed.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 CC = "arm-none-eabi-gcc"
 CFLAGS = ["-mcpu=cortex-m4", "-mthumb", "-O2", "-std=c99", "-Wall", "-Wextra", "-Werror"]
 PACKAGES = {"arm-none-eabi-gcc": ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"],
-            "qemu-system-arm": ["qemu-system-arm"]}
+            "qemu-system-arm": ["qemu-system-arm"], "cc": ["gcc"]}
 QEMU = ["qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none",
         "-semihosting-config", "enable=on,target=native"]
 
@@ -57,7 +58,7 @@ class TargetError(RuntimeError):
     """A tool is missing or a build, run or check failed (the message says which)."""
 
 
-def ensure_tools(names: Sequence[str] = ("arm-none-eabi-gcc", "qemu-system-arm"),
+def ensure_tools(names: Sequence[str] = ("arm-none-eabi-gcc", "qemu-system-arm", "cc"),
                  install: bool = True) -> None:
     """Install the Debian packages of the missing tools (root only), or raise TargetError."""
     missing = [t for t in names if shutil.which(t) is None]
