@@ -123,6 +123,12 @@ def test_an_hsm150_run_in_its_own_dbc(tmp_path: Path) -> None:
     r = subprocess.run(["make", "-s", "-C", str(out), "test"], capture_output=True, text=True,
                        timeout=600)
     assert r.returncode == 0 and "bit-exact" in r.stdout, r.stdout + r.stderr
+    # and on 32-bit ARM (the Cortex-M4: make target)
+    need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    need_tool("qemu-arm", ["qemu-user"])
+    r = subprocess.run(["make", "-s", "-C", str(out), "test-arm"], capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0 and "bit-exact" in r.stdout, r.stdout + r.stderr
 
 
 def test_the_readme_walks_from_a_log_to_a_passing_target_test(tmp_path: Path) -> None:
