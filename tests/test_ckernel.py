@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canrls.c_export import plan_c
+from canrls.c_export import c_int, plan_c
 from canrls.estimation.fixed import SITES, FixedConfig, FixedFlag, FixedRLS, QFormat
 from debian import need_tool
 
@@ -141,6 +141,9 @@ def _corrupt_case(seed: int, n: int) -> Case:
     # and below stay those of the cases before the 64-bit estimate)
     s["theta_frac"] = np.random.default_rng(seed + 100).integers(0, 2**32 - 1, n,
                                                                    endpoint=True)
+    # and of P below its words (likewise)
+    F = np.random.default_rng(seed + 200).integers(-2**31, 2**31 - 1, (n, n), endpoint=True)
+    s["P_frac"] = np.triu(F) + np.triu(F, 1).T
     est = FixedRLS.from_state(s)
     Pq = rng.integers(cfg.phi.lo, cfg.phi.hi, (80, n), endpoint=True)
     Yq = rng.integers(cfg.y.lo, cfg.y.hi, 80, endpoint=True)
@@ -292,54 +295,77 @@ _ACCESSORS_C = r"""
 #include <stddef.h>
 #include <stdio.h>
 #include "canrls_fixed.h"
-/* the pair of a parameter: adjacent, 8-byte aligned (one LDRD/STRD on the M4) */
+/* the pair of a parameter and of a word of P: adjacent, 8-byte aligned (one LDRD/STRD on
+ * the M4) */
 typedef char pair_is_8_bytes[sizeof(canrls_theta64) == 8 ? 1 : -1];
 typedef char word_after_frac[offsetof(canrls_theta64, word) == 4 ? 1 : -1];
 typedef char aligned_in_instance[offsetof(canrls_rls_q31, theta_q) % 8 == 0 ? 1 : -1];
+typedef char P_pair_is_8_bytes[sizeof(canrls_P64) == 8 ? 1 : -1];
+typedef char P_word_after_lo[offsetof(canrls_P64, word) == 4 ? 1 : -1];
+typedef char P_aligned_in_instance[offsetof(canrls_rls_q31, P) % 8 == 0 ? 1 : -1];
 PLAN
 int main(void)
 {
     static canrls_rls_q31 S;
     const int32_t p0[3] = {P0, P0, P0}, P_up[6] = {P0, 0, 0, P0, 0, P0};
+    const int32_t Pf[6] = {PF};
     const int32_t th[3] = {TH};
     const uint32_t tf[3] = {TF};
     uint32_t j;
-    if (canrls_init_q31(&S, &plan, 3, p0, 0) != CANRLS_OK
-        || canrls_restore_q31(&S, th, tf, P_up, 0, ONE) != CANRLS_OK) {
+    if (canrls_init_q31(&S, &plan, 3, p0, 0) != CANRLS_OK) {
+        return 2;
+    }
+    for (j = 0; j < 6; j++) {
+        printf("%ld %ld\n", (long)canrls_P_q31(&S, j), (long)canrls_P_frac_q31(&S, j));
+    }
+    if (canrls_restore_q31(&S, th, tf, P_up, Pf, 0, ONE) != CANRLS_OK) {
         return 2;
     }
     for (j = 0; j < 3; j++) {
         printf("%ld %lu\n", (long)canrls_theta_q31(&S, j),
                (unsigned long)canrls_theta_frac_q31(&S, j));
     }
-    if (canrls_restore_q31(&S, th, NULL, P_up, 0, ONE) != CANRLS_OK) {
+    for (j = 0; j < 6; j++) {
+        printf("%ld %ld\n", (long)canrls_P_q31(&S, j), (long)canrls_P_frac_q31(&S, j));
+    }
+    if (canrls_restore_q31(&S, th, NULL, P_up, NULL, 0, ONE) != CANRLS_OK) {
         return 2;
     }
     for (j = 0; j < 3; j++) {
         printf("%ld %lu\n", (long)canrls_theta_q31(&S, j),
                (unsigned long)canrls_theta_frac_q31(&S, j));
+    }
+    for (j = 0; j < 6; j++) {
+        printf("%ld %ld\n", (long)canrls_P_q31(&S, j), (long)canrls_P_frac_q31(&S, j));
     }
     return 0;
 }
 """
 
 
-def test_firmware_reads_the_estimate_through_its_accessors(tmp_path: Path) -> None:
-    """The instance holds the 64-bit estimate as canrls_theta64 pairs (theta_q: frac, word;
-    8-byte aligned, so one LDRD/STRD per parameter): no field `theta` of another meaning,
-    and canrls_theta_q31 / canrls_theta_frac_q31 give back the word and the fraction
-    canrls_restore_q31 took (NULL fractions: 0), the checkpoint's "theta"/"theta_frac"."""
+def test_firmware_reads_the_state_through_its_accessors(tmp_path: Path) -> None:
+    """The instance holds the 64-bit estimate as canrls_theta64 pairs (theta_q: frac, word)
+    and the 64-bit P as canrls_P64 pairs (P: lo, word), each 8-byte aligned, so one
+    LDRD/STRD per element: canrls_theta_q31 / canrls_theta_frac_q31 and canrls_P_q31 /
+    canrls_P_frac_q31 give back the words and fractions canrls_init_q31 set (fractions 0)
+    and canrls_restore_q31 took (NULL fractions: 0), the checkpoint's "theta",
+    "theta_frac", "P" and "P_frac"."""
     header = (KERNEL / "canrls_fixed.h").read_text()
     body = header[header.index("typedef struct {\n    const canrls_plan_q31"):
                   header.index("} canrls_rls_q31;")]
     assert "canrls_theta64 theta_q[CANRLS_N_MAX];" in body
+    assert "canrls_P64 P[CANRLS_TRI(CANRLS_N_MAX)];" in body
     assert " theta[" not in body and "theta_frac[" not in body
     est = FixedRLS(FixedConfig.auto(3, 1e-2, 0.99), 3, 0.99, 1e-2)
     c = est.constants
     th = [c["theta_hi"], c["theta_lo"], -1]
     tf = [0xFFFFFFFF, 0, 0x80000001]
+    p0 = int(np.diag(est.P)[0])
+    P_up = [p0, 0, 0, p0, 0, p0]
+    Pf = [2**31 - 1, -2**31, 0, -1, 1, 12345]
     src = (_ACCESSORS_C.replace("PLAN", plan_c(c, "plan"))
-           .replace("P0", str(int(np.diag(est.P)[0]))).replace("ONE", str(c["one_lam"]))
+           .replace("P0", str(p0)).replace("ONE", str(c["one_lam"]))
+           .replace("PF", ", ".join(c_int(v) for v in Pf))
            .replace("TH", ", ".join(map(str, th))).replace("TF", ", ".join(f"{v}u" for v in tf)))
     prog = tmp_path / "accessors.c"
     prog.write_text(src)
@@ -349,7 +375,10 @@ def test_firmware_reads_the_estimate_through_its_accessors(tmp_path: Path) -> No
                     "-o", str(exe)], check=True, capture_output=True)
     out = subprocess.run([str(exe)], check=True, capture_output=True, text=True).stdout.split()
     got = [(int(a), int(b)) for a, b in zip(out[::2], out[1::2], strict=True)]
-    assert got == [*zip(th, tf, strict=True), *zip(th, [0, 0, 0], strict=True)]
+    zero = [0] * 6
+    assert got == [*zip(P_up, zero, strict=True),
+                   *zip(th, tf, strict=True), *zip(P_up, Pf, strict=True),
+                   *zip(th, [0, 0, 0], strict=True), *zip(P_up, zero, strict=True)]
 
 
 # ------------------------------------------------------------------ Cortex-M4

@@ -43,3 +43,36 @@ def test_sweep_on_a_scenario(capsys: pytest.CaptureFixture[str]) -> None:
                  "--word", "24,32", "--acc", "64", "--input", "32", "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["equations"]["mechanical"]["recommended"] in ("W24/A64/I32", "W32/A64/I32")
+
+
+def test_several_logs_and_the_note_of_fit(tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """fixed-sweep reads several logs as one model, as fit does (the same rows: its 32-bit
+    row gives fit's fixed point); fit says when its word lengths cannot follow the float,
+    and names the sweep."""
+    logs = []
+    for seed in (2, 3):
+        res = simulate(scenario("standard", effects="inertia,viscous,coulomb", seed=seed,
+                                duration=6.0))
+        logs.append(tmp_path / f"drive{seed}.log")
+        write_candump(logs[-1], [res.frames])
+    args = [*map(str, logs), "--kt", "0.1", "--effects", "inertia,viscous,coulomb"]
+    assert main(["fixed-sweep", *args, "--word", "16,32", "--acc", "64", "--input", "32",
+                 "--json", "--quiet"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["source"] == f"{logs[0]}, {logs[1]}"
+    mech = d["equations"]["mechanical"]
+    rows = {r["label"]: r for r in mech["rows"]}
+    assert not rows["W16/A64/I32"]["ok"] and mech["recommended"] == "W32/A64/I32"
+    assert main(["fit", *args, "--json", "--quiet"]) == 0
+    fit = json.loads(capsys.readouterr().out)
+    assert mech["samples"] == fit["samples"]
+    div = fit["equations"]["mechanical"]["divergence"]
+    # the same measure: max |fixed - float| / max(|float|, 3 sigma) over the parameters
+    assert rows["W32/A64/I32"]["max_rel_error"] == pytest.approx(div, rel=1e-6)
+    assert div < 1e-3
+    cfg = tmp_path / "narrow.toml"
+    cfg.write_text("[fixed]\nword_bits = 24\ninput_bits = 8\n")
+    assert main(["fit", *args, "-C", str(cfg), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "the fixed point (W24/A64/I8) is" in out and "'canrls fixed-sweep'" in out

@@ -30,9 +30,8 @@ from canrls.estimation.fixed import (
     FixedTrace,
     QFormat,
     SaturationCounts,
-    SweepResult,
-    sweep,
 )
+from canrls.estimation.fixed_sweep import SweepResult, sweep
 
 F64 = npt.NDArray[np.float64]
 UPDATES = ["symmetric", "literal", "naive"]
@@ -132,9 +131,16 @@ def chunks(N: int, seed: int) -> Iterator[slice]:
         i += size
 
 
-def rel_asym(P: npt.ArrayLike) -> float:
-    P = np.asarray(P, np.float64)
-    return float(np.abs(P - P.T).max() / np.abs(P).max())
+def rel_asym(P: npt.ArrayLike, F: npt.ArrayLike | None = None) -> float:
+    """max |P - P'| / max |P| of the words P, or of the 64-bit P * 2^32 + F (exactly)."""
+    if F is None:
+        P = np.asarray(P, np.float64)
+        return float(np.abs(P - P.T).max() / np.abs(P).max())
+    V = [[(int(w) << 32) + int(f) for w, f in zip(rw, rf, strict=True)]
+         for rw, rf in zip(np.asarray(P).tolist(), np.asarray(F).tolist(), strict=True)]
+    n = len(V)
+    d = max(abs(V[i][j] - V[j][i]) for i in range(n) for j in range(n))
+    return float(Fraction(d, max(abs(v) for r in V for v in r)))
 
 
 def snapshot(rls: FixedRLS) -> dict:
@@ -323,12 +329,13 @@ def test_kernel_is_bit_exact_against_python_integers(
     theta = [0] * n
     theta_frac = [0] * n
     P = rls.P.tolist() if update == "symmetric" else rls._P.tolist()
+    P_frac = [[0] * n for _ in range(n)]
     scale = [rls.P_exp, rls.P_scale]
     counts = [0] * len(SITES)
     eps, tr, ex, fl = K.reference_block(
         Pq.tolist(), Yq.tolist(), theta, P, scale, counts, rls._plan.tolist(), A,
         {"symmetric": K.MODE_SYMMETRIC, "literal": K.MODE_LITERAL, "naive": K.MODE_NAIVE}[update],
-        theta_frac,
+        theta_frac, P_frac,
     )  # fmt: skip
     trace = rls.run(Pq, Yq)
     assert trace.eps.tolist() == eps
@@ -337,9 +344,11 @@ def test_kernel_is_bit_exact_against_python_integers(
     assert trace.flags.tolist() == fl
     assert rls.theta.tolist() == theta
     assert rls.theta_frac.tolist() == theta_frac
-    Pk = rls._P if update != "symmetric" else np.triu(rls._P)
-    Pr = np.array(P) if update != "symmetric" else np.triu(np.array(P))
-    assert Pk.tolist() == Pr.tolist()
+    for mine, ref in ((rls._P, P), (rls._P_frac, P_frac)):
+        Pk = mine if update != "symmetric" else np.triu(mine)
+        Pr = np.array(ref) if update != "symmetric" else np.triu(np.array(ref))
+        assert Pk.tolist() == Pr.tolist()
+    assert np.any(rls._P_frac != 0)  # the fractions carry P
     assert [rls.P_exp, rls.P_scale] == scale
     assert list(rls.saturations.values()) == counts
     assert rls.saturations["acc"] == 0
@@ -493,7 +502,7 @@ def test_naive_update_diverges_with_forgetting_where_symmetric_holds(lam: float)
                 first_sat = s + int(np.flatnonzero(tr.flags & FixedFlag.SATURATION)[0])
             raw = rls._P.astype(np.float64)
             if update != "symmetric":
-                asym = max(asym, rel_asym(raw))
+                asym = max(asym, rel_asym(raw, rls._P_frac))
             Pf = rls.P_float
             min_eig = min(min_eig, float(np.linalg.eigvalsh(0.5 * (Pf + Pf.T))[0]))
         out[update] = (float(np.abs(rls.theta_float - ref).max()), asym, min_eig, first_sat, rls)
@@ -527,7 +536,8 @@ def test_without_forgetting_naive_asymmetry_random_walks() -> None:
         a = []
         for s in (slice(0, 5000), slice(5000, N)):
             rls.run(Pq[s], Yq[s], record=False)
-            a.append(rel_asym(rls._P) if update != "symmetric" else rel_asym(rls.P))
+            a.append(rel_asym(rls._P, rls._P_frac) if update != "symmetric"
+                     else rel_asym(rls.P, rls.P_frac))
         asym[update] = a
         assert np.abs(rls.theta_float - ref).max() < 1e-5, update
     assert asym["symmetric"] == [0.0, 0.0]
@@ -664,6 +674,8 @@ def test_corrupted_checkpoints_are_rejected() -> None:
         ("theta", np.full(3, 2**40), "outside"),
         ("theta_frac", np.full(3, 2**32), "theta_frac.*outside"),
         ("theta_frac", np.full(3, -1), "theta_frac.*outside"),
+        ("P_frac", np.full((3, 3), 2**31), "P_frac.*outside"),
+        ("P_frac", np.full((3, 3), -2**31 - 1), "P_frac.*outside"),
         ("P", np.zeros((3, 3)), "integers"),
         ("P_exp", -1, "P_exp"),
         ("P_scale", 0, "P_scale"),
@@ -679,31 +691,39 @@ def test_corrupted_checkpoints_are_rejected() -> None:
         FixedRLS.from_state(bad)
 
 
-def test_checkpoint_of_format_1_continues_with_a_zero_fraction() -> None:
-    """A state written before the 64-bit estimate (format canrls.fixed/1, no theta_frac)
-    still loads: the estimate exactly at its words, the fraction 0; one without
-    theta_frac in format /2 is refused, naming the key."""
+@pytest.mark.parametrize("fmt, missing", [("canrls.fixed/1", ("theta_frac", "P_frac")),
+                                          ("canrls.fixed/2", ("P_frac",))])
+def test_older_checkpoints_continue_with_zero_fractions(fmt: str, missing: tuple) -> None:
+    """A state written before the 64-bit estimate (format canrls.fixed/1: no theta_frac,
+    no P_frac) or before the 64-bit P (/2: no P_frac) still loads: the estimate and P
+    exactly at their words, the fractions 0, and it continues as the same state with
+    zero fractions does; a state of format /3 without a fraction is refused, naming
+    the key."""
     n, lam, alpha = 4, 1.0, 1e-2
     cfg = FixedConfig.auto(n, alpha, lam)
     Pq, Yq = random_block(np.random.default_rng(5), cfg, 3000, n)
     rls = FixedRLS(cfg, n, lam, alpha)
     rls.run(Pq[:2000], Yq[:2000])
-    assert np.any(rls.theta_frac != 0)
+    assert np.any(rls.theta_frac != 0) and np.any(rls.P_frac != 0)
     old = rls.state()
-    del old["theta_frac"]
-    old["format"] = "canrls.fixed/1"
-    back = FixedRLS.from_state(old)
-    assert back.theta.tolist() == rls.theta.tolist() and not np.any(back.theta_frac)
     zero = rls.state()
-    zero["theta_frac"] = np.zeros(n, np.int64)
+    for key in missing:
+        del old[key]
+        zero[key] = np.zeros_like(zero[key])
+    old["format"] = fmt
+    back = FixedRLS.from_state(old)
+    assert back.theta.tolist() == rls.theta.tolist() and back.P.tolist() == rls.P.tolist()
+    for key in missing:
+        assert not np.any(getattr(back, key))
     same = FixedRLS.from_state(zero)
     back.run(Pq[2000:], Yq[2000:])
     same.run(Pq[2000:], Yq[2000:])
     assert snapshot(back) == snapshot(same)
-    bad = rls.state()
-    del bad["theta_frac"]
-    with pytest.raises(CheckpointError, match="theta_frac"):
-        FixedRLS.from_state(bad)
+    for key in missing:
+        bad = rls.state()
+        del bad[key]
+        with pytest.raises(CheckpointError, match=key):
+            FixedRLS.from_state(bad)
 
 
 # ----------------------------------------------------- 10. argument checks
@@ -754,6 +774,29 @@ def test_sweep_reports_and_recommends_the_smallest_configuration() -> None:
     cfgs = {"mine": FixedConfig.auto(n, alpha, lam)}
     res2 = sweep(Phi, Y, ref, cfgs, lam=lam, alpha=alpha)
     assert [r.label for r in res2.rows] == ["mine"] and res2.rows[0].ok
+
+
+def test_sweep_with_sigma_measures_as_fit_does() -> None:
+    """With the reference's sigma, each parameter's error is relative to
+    max(|theta_ref|, 3 sigma), the measure of canrls fit (pipeline.divergence)."""
+    from canrls.estimation.pipeline import divergence
+
+    n, lam, alpha = 4, 0.999, 1e-1
+    Phi, Y, _ = drive_data(5_000, n, seed=4)
+    ref = float_rls(Phi, Y, lam, alpha, n / alpha)
+    cfg = FixedConfig.auto(n, alpha, lam, word_bits=24)
+    sigma = np.array([0.0, np.nan, 10.0 * abs(ref[2]), 0.0])
+    res = sweep(Phi, Y, ref, {"w24": cfg}, lam=lam, alpha=alpha, sigma=sigma)
+    row = res.rows[0]
+    assert row.max_rel_error == pytest.approx(
+        divergence(ref.tolist(), list(row.theta), sigma.tolist()), rel=1e-12)
+    # the third parameter is measured against 3 sigma = 30 |theta_3|, the others not
+    rel = np.abs(np.array(row.theta) - ref) / np.abs(ref)
+    assert row.rel_errors[2] == pytest.approx(rel[2] / 30.0, rel=1e-12)
+    assert row.rel_errors[0] == pytest.approx(rel[0], rel=1e-12)
+    assert res.sigma_ref[2] == sigma[2] and res.to_dict()["sigma_ref"][3] == 0.0
+    with pytest.raises(EstimatorError, match="sigma must have shape"):
+        sweep(Phi, Y, ref, {"w24": cfg}, lam=lam, alpha=alpha, sigma=[1.0])
 
 
 def _quantize_numpy(q: QFormat, x: npt.ArrayLike) -> tuple[npt.NDArray[np.int64], int]:

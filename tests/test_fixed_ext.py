@@ -3,10 +3,10 @@
 :class:`FixedRLS` runs its blocks through the extension (``backend == "c"``); these tests
 run the same blocks through the compiled specification (``backend = "spec"``,
 ``canrls._fixedspec``) and the pure-Python :func:`reference_block`, and require the same
-integers: eps, trace, exponent, flags, theta after every row, every word of P, the
-forgetting scale, K and the counters. The cases are the C kernel's test vectors
-(tests/test_ckernel.py). The compiled specification gives what the numba one it replaces
-gave, bit for bit (a digest).
+integers: eps, trace, exponent, flags, theta after every row, the fractions of theta,
+every word of P and its fraction, the forgetting scale, K and the counters. The cases are
+the C kernel's test vectors (tests/test_ckernel.py). A digest of the compiled
+specification's output holds its integers.
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ def _run(est: FixedRLS, Phi: np.ndarray, Y: np.ndarray, frozen: np.ndarray) -> l
         out += [tr.eps, tr.theta, tr.trace_P, tr.P_exp, tr.flags, tr.applied]
         k = j
     st = est.state()
-    out += [st["theta"], np.triu(st["P"]), st["P_exp"], st["P_scale"], st["counts"]]
+    out += [st["theta"], st["theta_frac"], np.triu(st["P"]), np.triu(st["P_frac"]),
+            st["P_exp"], st["P_scale"], st["counts"]]
     return out
 
 
@@ -120,7 +121,7 @@ def test_run_block_names_a_wrong_buffer() -> None:
     n, N = 3, 4
     z = np.zeros
     args = [z((N, n), np.int64), z(N, np.int64), z(n, np.int64), z(n, np.int64),
-            z((n, n), np.int64),
+            z((n, n), np.int64), z((n, n), np.int64),
             z(2, np.int64), z(n, np.int64), z(cfixed.NSITES, np.int64),
             z(len(cfixed.PLAN_FIELDS), np.int64), False, z(N, np.int64), None,
             z(N, np.int64), z(N + 1, np.int64), z(N, np.uint8)]
@@ -164,7 +165,7 @@ def test_run_block_lets_other_threads_run() -> None:
     assert during > 0
 
 
-# ------------------------------------- the compiled specification against the numba one
+# ------------------------------------------------- the compiled specification's integers
 #: (update, word, acc, input bits, n, lambda) of the digest runs: every form, n beyond the
 #: C kernel's bound, narrow words and a narrow accumulator (16-bit words hold n <= 8)
 SPEC_RUNS = [(u, *w, n, lam) for u in ("symmetric", "literal", "naive")
@@ -176,7 +177,7 @@ def spec_digest(block: Any) -> str:
     """SHA-256 of everything ``block`` (:func:`fixed_kernels.fixed_block`'s signature)
     gives over :data:`SPEC_RUNS`: 1,500 rows each with saturating inputs and frozen
     stretches, from the prior and from a disturbed state (random words of P, random
-    fractions of theta)."""
+    fractions of theta and of P)."""
     rng = np.random.default_rng(17)
     h = hashlib.sha256()
     for update, W, A, In, n, lam in SPEC_RUNS:
@@ -190,6 +191,7 @@ def spec_digest(block: Any) -> str:
                 st["P"] = np.clip(st["P"] + rng.integers(-1000, 1000, st["P"].shape),
                                   -lim, lim - 1)
                 st["theta_frac"] = rng.integers(0, 2**32, n)
+                st["P_frac"] = rng.integers(-2**31, 2**31, st["P"].shape)
                 est = FixedRLS.from_state(st)
             N = 1500
             Phi = rng.uniform(-1, 1, (N, n)) * (rng.random((N, 1)) < 0.9)
@@ -208,23 +210,26 @@ def spec_digest(block: Any) -> str:
                 out = [np.empty(m, np.int64), np.empty((m, n), np.int64),
                        np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m, np.uint8)]
                 applied = block(np.ascontiguousarray(Pq[k:j]), np.ascontiguousarray(Yq[k:j]),
-                                est._theta, est._theta_frac, est._P, est._scale, est._work,
-                                est._counts, est._plan, est._mode, bool(frozen[k]), True,
-                                *out)
+                                est._theta, est._theta_frac, est._P, est._P_frac, est._scale,
+                                est._work, est._counts, est._plan, est._mode,
+                                bool(frozen[k]), True, *out)
                 h.update(repr(int(applied)).encode())
                 for a in out:
                     h.update(a.tobytes())
                 k = j
-            for a in (est._theta, est._theta_frac, est._P, est._scale, est._work, est._counts):
+            for a in (est._theta, est._theta_frac, est._P, est._P_frac, est._scale, est._work,
+                      est._counts):
                 h.update(a.tobytes())
     return h.hexdigest()[:16]
 
 
-def test_the_compiled_spec_gives_the_numba_specs_bits() -> None:
+def test_the_compiled_spec_keeps_its_integers() -> None:
     """The specification compiled in C (``canrls._fixedspec``: every update form, any n)
-    gives, bit for bit, what the numba specification it replaces gave (f79833d:
-    ``canrls.estimation.fixed_kernels.fixed_block``)."""
-    assert spec_digest(fixed_kernels.fixed_block) == "d78b252228a97305"
+    gives the integers recorded when P became 64 bits (the fraction below each word, the
+    product's high word rounded, g normalised), bit for bit. (Before that change the
+    digest was d78b252228a97305, the numba specification's of f79833d.) A change of the
+    recursion changes this digest on purpose: its commit says so."""
+    assert spec_digest(fixed_kernels.fixed_block) == "3706d5658e267aad"
 
 
 def test_the_compiled_spec_refuses_wrong_arrays() -> None:
@@ -232,15 +237,16 @@ def test_the_compiled_spec_refuses_wrong_arrays() -> None:
     z = np.zeros
     est = FixedRLS(FixedConfig.auto(n, 1e-2, 0.99), n, 0.99, 1e-2)
     args = [z((N, n), np.int64), z(N, np.int64), z(n, np.int64), z(n, np.int64),
-            z((n, n), np.int64), z(2, np.int64), z((6, n), np.int64), z(fixed_kernels.NSITES,
-            np.int64), est._plan, 0, False, True, z(N, np.int64), z((N, n), np.int64),
-            z(N, np.int64), z(N, np.int64), z(N, np.uint8)]
+            z((n, n), np.int64), z((n, n), np.int64), z(2, np.int64), z((6, n), np.int64),
+            z(fixed_kernels.NSITES, np.int64), est._plan, 0, False, True, z(N, np.int64),
+            z((N, n), np.int64), z(N, np.int64), z(N, np.int64), z(N, np.uint8)]
     assert fixed_kernels.fixed_block(*args) == N
-    for k, bad, err, msg in ((13, z((N - 1, n), np.int64), ValueError, "theta_out must have"),
-                             (6, z((5, n), np.int64), ValueError, "work must have shape"),
-                             (8, z(3, np.int64), ValueError, "prm must have shape"),
+    for k, bad, err, msg in ((14, z((N - 1, n), np.int64), ValueError, "theta_out must have"),
+                             (5, z((n, n + 1), np.int64), ValueError, "P_frac must have"),
+                             (7, z((5, n), np.int64), ValueError, "work must have shape"),
+                             (9, z(3, np.int64), ValueError, "prm must have shape"),
                              (0, z((N, n)), TypeError, "Phi must be a int64"),
-                             (9, 3, ValueError, "unknown mode 3")):
+                             (10, 3, ValueError, "unknown mode 3")):
         with pytest.raises(err, match=msg):
             fixed_kernels.fixed_block(*args[:k], bad, *args[k + 1:])
     assert (fixed_kernels.NSITES, fixed_kernels.NPARAM) == (_fixedspec.NSITES,

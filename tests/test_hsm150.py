@@ -217,3 +217,104 @@ def test_diagnosis_both_directions_finds_the_friction(
     assert d["suggestion"]["add"][:2] == ["coulomb", "offset"]
     c = {x["effect"]: x for x in d["candidates"]}
     assert c["coulomb"]["identifiable"] and c["offset"]["identifiable"]
+
+
+# ------------------------------------------------------- the fixed point against float
+MODEL = ("--effects", "inertia,viscous,coulomb,offset")
+
+
+def _divergence(res: dict[str, Any]) -> float:
+    eq = res["equations"]["mechanical"]
+    assert eq["saturations"] == {} and eq["fixed_config"] == "W32/A64/I32"
+    return float(eq["divergence"])
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_fixed_point_follows_the_float_on_every_pair(logs: dict[str, Path], k: int,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Both pairs of runs k (one direction each way): every parameter of the fixed point
+    within 1e-3 of the float, relative to max(|float|, 3 sigma), no saturation (figures in
+    docs/hsm150.md)."""
+    for pos, neg in (("idf_pos_0.06", "idf_neg_0.04"), ("idf_pos_0.065", "idf_neg_0.045")):
+        res = canrls("fit", str(logs[f"{pos}_{k}"]), str(logs[f"{neg}_{k}"]), *MODEL,
+                     capsys=capsys)
+        assert _divergence(res) < 1e-3, (pos, neg, k)
+
+
+def test_fixed_point_follows_the_float_on_one_direction_and_on_eight_logs(
+        logs: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    """One direction alone (Coulomb and offset then one column: P has a direction only the
+    prior holds) and the eight identification logs together (the first reversal makes
+    d = lambda + phi'P phi large: g normalised): within 1e-3."""
+    res = canrls("fit", str(logs["idf_neg_0.04_2"]), *MODEL, capsys=capsys)
+    assert _divergence(res) < 1e-3
+    eight = [str(logs[f"{c}_{k}"]) for c in FOUR for k in (1, 2)]
+    res = canrls("fit", *eight, *MODEL, capsys=capsys)
+    assert _divergence(res) < 1e-3
+
+
+def test_sweep_measures_one_direction_as_fit_does(
+        logs: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    """The worst single run (Coulomb and offset not identifiable, sigma far above their
+    values): fit's divergence is below 1e-3 and fixed-sweep, measuring each parameter
+    against max(|float|, 3 sigma) as fit does, finds the same figure for fit's words and
+    recommends them."""
+    from canrls.cli.main import main
+
+    one = str(logs["idf_neg_0.04_2"])
+    div = _divergence(canrls("fit", one, *MODEL, capsys=capsys))
+    assert div < 1e-3
+    assert main(["fixed-sweep", one, "--dbc", str(DBC),
+                 *(a for s in TOOL.SIGNALS for a in ("--signal", s)), "--kt", str(KT),
+                 *MODEL, "--word", "24,32", "--acc", "64", "--input", "32", "--json",
+                 "--quiet"]) == 0
+    sw = json.loads(capsys.readouterr().out)["equations"]["mechanical"]
+    rows = {r["label"]: r for r in sw["rows"]}
+    assert rows["W32/A64/I32"]["max_rel_error"] == pytest.approx(div, rel=1e-6)
+    assert sw["recommended"] == "W32/A64/I32"
+
+
+def test_raw_limit_dbc_changes_no_fixed_point(logs: dict[str, Path], tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """The same runs as 32-bit signals whose DBC declares their full raw range: the float
+    and the fixed point are those of the tight DBC, the fixed point within 1e-3."""
+    names = ("idf_pos_0.06_1", "idf_neg_0.04_1")
+    raw = [TOOL.convert(run_file(n), tmp_path, raw_limits=True) for n in names]
+    dbc = TOOL.write_dbc(tmp_path, raw_limits=True)
+    from canrls.cli.main import main
+
+    capsys.readouterr()
+    assert main(["fit", *map(str, raw), "--dbc", str(dbc),
+                 *(a for s in TOOL.SIGNALS for a in ("--signal", s)), "--kt", str(KT),
+                 *MODEL, "--quiet", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert _divergence(res) < 1e-3
+    tight = canrls("fit", *(str(logs[n]) for n in names), *MODEL, capsys=capsys)
+    for name, p in res["parameters"].items():
+        assert p["value"] == tight["parameters"][name]["value"], name
+        assert p["fixed"] == tight["parameters"][name]["fixed"], name
+
+
+def test_narrow_words_are_named_and_the_sweep_names_wider_ones(
+        logs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """24-bit words cannot follow the float on a pair of runs: `canrls fit` says so and
+    `canrls fixed-sweep` on the same logs recommends 32-bit words."""
+    from canrls.cli.main import main
+
+    pair = [str(logs["idf_pos_0.06_1"]), str(logs["idf_neg_0.04_1"])]
+    cfg = tmp_path / "w24.toml"
+    cfg.write_text("[fixed]\nword_bits = 24\n")
+    args = ["--dbc", str(DBC), *(a for s in TOOL.SIGNALS for a in ("--signal", s)),
+            "--kt", str(KT), *MODEL, "--quiet"]
+    capsys.readouterr()
+    assert main(["fit", *pair, *args, "-C", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "the fixed point (W24/A64/I24)" in out and "canrls fixed-sweep" in out
+    assert main(["fit", *pair, *args]) == 0
+    assert "fixed-sweep" not in capsys.readouterr().out
+    assert main(["fixed-sweep", *pair, *args, "--word", "24,32", "--acc", "64",
+                 "--input", "32", "--json"]) == 0
+    sw = json.loads(capsys.readouterr().out)["equations"]["mechanical"]
+    rows = {r["label"]: r for r in sw["rows"]}
+    assert not rows["W24/A64/I32"]["ok"] and rows["W32/A64/I32"]["ok"]
+    assert sw["recommended"] == "W32/A64/I32"

@@ -7,7 +7,7 @@ extension ``canrls._fixed``, the default; ``spec``: the compiled specification,
 per second of the per-sample path (``FixedRLS.update``, one Python call per sample) and
 of the batch path (``FixedRLS.run`` over a block, ``record=False``), each the best of
 several repeats. The target is >= 3 M
-updates/s in batch at n = 8. Then runs :func:`canrls.estimation.fixed.sweep` on a drive-like
+updates/s in batch at n = 8. Then runs :func:`canrls.estimation.fixed_sweep.sweep` on a drive-like
 regression and prints its table.
 
 Usage::
@@ -25,7 +25,8 @@ import time
 
 import numpy as np
 
-from canrls.estimation.fixed import FixedConfig, FixedRLS, sweep
+from canrls.estimation.fixed import FixedConfig, FixedRLS
+from canrls.estimation.fixed_sweep import sweep
 
 TARGET_BATCH_N8 = 3e6
 

@@ -61,10 +61,12 @@ def upper(P: IntArray) -> IntArray:
 
 # ------------------------------------------------------------------ vectors
 def state_words(est: FixedRLS) -> list[int]:
-    """``theta, theta_frac, P_up, e, c, frozen, counts``: the state line of a vector file."""
+    """``theta, theta_frac, P_up, P_frac_up, e, c, frozen, counts``: the state line of a
+    vector file."""
     s = est.state()
-    return [*s["theta"].tolist(), *s["theta_frac"].tolist(), *upper(est.P).tolist(), s["P_exp"], s["P_scale"],
-            int(s["frozen"]), *s["counts"].tolist()]
+    return [*s["theta"].tolist(), *s["theta_frac"].tolist(), *upper(est.P).tolist(),
+            *upper(est.P_frac).tolist(), s["P_exp"], s["P_scale"], int(s["frozen"]),
+            *s["counts"].tolist()]
 
 
 def write_vectors(path: Path, est: FixedRLS, Phi: IntArray, Y: IntArray,
@@ -95,7 +97,7 @@ def write_vectors(path: Path, est: FixedRLS, Phi: IntArray, Y: IntArray,
         s = est.saturations
         words = [0 if fz[i] else 1, st.eps, st.trace_P, st.P_exp, int(st.flags),
                  *est.theta.tolist(), *est.theta_frac.tolist(), *upper(est.P).tolist(),
-                 est.P_scale,
+                 *upper(est.P_frac).tolist(), est.P_scale,
                  *(s[site] for site in SITES)]
         expected.append(" ".join(map(str, words)))
     return expected
@@ -197,15 +199,17 @@ def stream_header(s: Stream, limit: int | None = None, guard: str = "CANRLS_STRE
     """A C header: plan, initial state, samples, and the state Python reaches on them.
 
     The initial state is ``s.est``'s (``theta``, ``theta_frac``, the packed upper triangle
-    of ``P``, ``e``, ``c``: the C side restores it with ``canrls_restore_q31``); the final
-    ``theta``, ``theta_frac``, ``P``, ``e``, ``c`` and counters are those of the Python estimator after
-    the same samples (``FixedRLS.run``), counted from zero.
+    of ``P`` and of ``P_frac``, ``e``, ``c``: the C side restores it with
+    ``canrls_restore_q31``); the final ``theta``, ``theta_frac``, ``P``, ``P_frac``,
+    ``e``, ``c`` and counters are those of the Python estimator after the same samples
+    (``FixedRLS.run``), counted from zero.
     """
     Phi, Y = (s.Phi, s.Y) if limit is None else (s.Phi[:limit], s.Y[:limit])
     st = s.est.state()
     st["counts"] = np.zeros_like(st["counts"])
     est = FixedRLS.from_state(st)
-    theta0, tf0, P0 = est.theta.copy(), est.theta_frac.copy(), upper(est.P)
+    theta0, tf0, P0, Pf0 = est.theta.copy(), est.theta_frac.copy(), upper(est.P), \
+        upper(est.P_frac)
     e0, c0 = est.P_exp, est.P_scale
     est.backend = "spec"  # the final state of the specification, never the C extension
     est.run(Phi, Y, record=False)
@@ -227,11 +231,13 @@ def stream_header(s: Stream, limit: int | None = None, guard: str = "CANRLS_STRE
         c_array("stream_theta0", theta0),
         c_array("stream_theta_frac0", tf0, ctype="uint32_t"),
         c_array("stream_P0", P0),
+        c_array("stream_P_frac0", Pf0),
         c_array("stream_phi", Phi),
         c_array("stream_y", Y),
         c_array("stream_theta_final", est.theta),
         c_array("stream_theta_frac_final", est.theta_frac, ctype="uint32_t"),
         c_array("stream_P_final", upper(est.P)),
+        c_array("stream_P_frac_final", upper(est.P_frac)),
         c_array("stream_counts_final", [cnt[k] for k in SITES], ctype="uint32_t"),
         f"\n#endif /* {guard} */\n",
     ]

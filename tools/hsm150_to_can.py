@@ -16,9 +16,13 @@ also written by ``--write-dbc``):
 Usage::
 
     python tools/hsm150_to_can.py OUT_DIR [RUN.mat ...]   # default: every run of the folder
+    python tools/hsm150_to_can.py --raw-limits OUT_DIR    # 32-bit signals, raw limits
 
 writes ``OUT_DIR/<run>.log`` (candump ``-l`` format, ``(t) can0 ID#DATA``) and
-``OUT_DIR/hsm150_drive.dbc``. The map for canrls::
+``OUT_DIR/hsm150_drive.dbc``. With ``--raw-limits`` the current and the speed are 32-bit
+signals whose DBC declares the full raw range of their 32 bits (±2.1e6 A, ±21e6 rpm), as
+vendors' tools often write them; the signal names, units and resolutions stay the same,
+so the same map reads either directory. The map for canrls::
 
     canrls fit OUT_DIR/idf_pos_0.06_1.log --dbc OUT_DIR/hsm150_drive.dbc \\
       --signal current=MC_Feedback1.PhaseCurrentIq --signal speed=MC_Feedback2.RotorSpeed \\
@@ -95,6 +99,23 @@ BA_ "VFrameFormat" BO_ {0x80000000 | ID_FB2} 1;
 """
 
 
+#: The DBC of ``--raw-limits``: the current and the speed in 32 bits, declaring the raw
+#: range of their fields; the torque estimate, the angle and the counters as above (no
+#: DC-link voltage: no room left).
+DBC_TEXT_RAW = DBC_TEXT.replace(
+    """ SG_ PhaseCurrentIq : 0|16@1- (1,0) [-32000|32000] "mA" Logger
+ SG_ TorqueEst : 16|16@1- (0.0001,0) [-3|3] "N.m" Logger
+ SG_ DcLinkVoltage : 32|16@1+ (0.01,0) [0|100] "V" Logger
+""", """ SG_ PhaseCurrentIq : 0|32@1- (1,0) [-2147483648|2147483647] "mA" Logger
+ SG_ TorqueEst : 32|16@1- (0.0001,0) [-3|3] "N.m" Logger
+""").replace(
+    """ SG_ RotorSpeed : 0|24@1- (0.01,0) [-60000|60000] "rpm" Logger
+ SG_ RotorAngle : 24|16@1+ (0.001,0) [0|6.283] "rad" Logger
+""", """ SG_ RotorSpeed : 0|32@1- (0.01,0) [-21474836.48|21474836.47] "rpm" Logger
+ SG_ RotorAngle : 32|16@1+ (0.001,0) [0|6.283] "rad" Logger
+""").replace("scaled integer units)", "scaled integer units, raw limits)")
+
+
 def load_run(path: str | Path) -> npt.NDArray[np.float64]:
     """The ``data`` matrix of a run (20000 x 7: t, ref, position, speed, input, torque,
     current), see the folder's README."""
@@ -109,9 +130,10 @@ def _le(values: npt.NDArray[np.int64], bits: int, start: int) -> npt.NDArray[np.
     return v.astype(np.uint64) << np.uint64(start)
 
 
-def encode(data: npt.NDArray[np.float64], t0: float = 1714564800.0
+def encode(data: npt.NDArray[np.float64], t0: float = 1714564800.0, raw_limits: bool = False
            ) -> list[tuple[float, int, bytes]]:
-    """Frames ``(t, id, payload)`` of one run, in time order (FB1 then FB2 each period)."""
+    """Frames ``(t, id, payload)`` of one run, in time order (FB1 then FB2 each period);
+    ``raw_limits``: the layout of :data:`DBC_TEXT_RAW`."""
     t = data[:, 0] + t0
     n = len(t)
     cur = np.rint(data[:, 6] * 1000.0).astype(np.int64)                      # mA
@@ -121,8 +143,12 @@ def encode(data: npt.NDArray[np.float64], t0: float = 1714564800.0
     ang = np.rint(np.mod(data[:, 2], 2.0 * math.pi) / 0.001).astype(np.int64)
     ang = np.where(ang > 6283, ang - 6284, ang)                               # one turn
     cnt = np.arange(n, dtype=np.int64) % 16
-    w1 = _le(cur, 16, 0) | _le(tq, 16, 16) | _le(volt, 16, 32) | _le(cnt, 4, 60)
-    w2 = _le(rpm, 24, 0) | _le(ang, 16, 24) | _le(cnt, 4, 60)
+    if raw_limits:
+        w1 = _le(cur, 32, 0) | _le(tq, 16, 32) | _le(cnt, 4, 60)
+        w2 = _le(rpm, 32, 0) | _le(ang, 16, 32) | _le(cnt, 4, 60)
+    else:
+        w1 = _le(cur, 16, 0) | _le(tq, 16, 16) | _le(volt, 16, 32) | _le(cnt, 4, 60)
+        w2 = _le(rpm, 24, 0) | _le(ang, 16, 24) | _le(cnt, 4, 60)
     out: list[tuple[float, int, bytes]] = []
     for k in range(n):
         out.append((float(t[k]), ID_FB1, int(w1[k]).to_bytes(8, "little")))
@@ -138,16 +164,17 @@ def write_log(path: str | Path, frames: Sequence[tuple[float, int, bytes]],
             f.write(f"({t:.6f}) {channel} {cid:08X}#{data.hex().upper()}\n")
 
 
-def convert(run: str | Path, out_dir: str | Path, t0: float = 1714564800.0) -> Path:
+def convert(run: str | Path, out_dir: str | Path, t0: float = 1714564800.0,
+            raw_limits: bool = False) -> Path:
     """Write ``out_dir/<run stem>.log``; return its path."""
     out = Path(out_dir) / (Path(run).stem + ".log")
-    write_log(out, encode(load_run(run), t0))
+    write_log(out, encode(load_run(run), t0, raw_limits))
     return out
 
 
-def write_dbc(out_dir: str | Path) -> Path:
+def write_dbc(out_dir: str | Path, raw_limits: bool = False) -> Path:
     p = Path(out_dir) / "hsm150_drive.dbc"
-    p.write_text(DBC_TEXT, encoding="ascii")
+    p.write_text(DBC_TEXT_RAW if raw_limits else DBC_TEXT, encoding="ascii")
     return p
 
 
@@ -157,6 +184,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("runs", nargs="*", help=f".mat runs (default: every run of {DATA_DIR})")
     ap.add_argument("--t0", type=float, default=1714564800.0,
                     help="epoch time of the first sample [s]")
+    ap.add_argument("--raw-limits", action="store_true",
+                    help="current and speed as 32-bit signals whose DBC declares the full "
+                         "raw range of their fields")
     args = ap.parse_args(argv)
     runs = [Path(r) for r in args.runs] or sorted(DATA_DIR.glob("idf_*.mat"))
     if not runs:
@@ -164,9 +194,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    print(write_dbc(out))
+    print(write_dbc(out, args.raw_limits))
     for r in runs:
-        print(convert(r, out, args.t0))
+        print(convert(r, out, args.t0, args.raw_limits))
     return 0
 
 

@@ -9,18 +9,23 @@
    daemon publishes and decodes them (:class:`canrls.can.frames.FrameDecoder`).
 
 Prints every parameter offline and as last published (float and fixed point) with the
-relative difference, and exits 1 if any is more than ``--tol`` (default 1 %) apart.
+relative difference, and the fixed-vs-float divergence offline and live, and exits 1 if
+any is more than ``--tol`` (default 1 %) apart.
 The player sends in real time: a 20 s log takes about 20 s. Frames arrive with the
 server's clock, so the daemon pairs them on their arrival times, as on a real bus.
 
     python tools/live_vs_offline.py                 # a 20 s simulated log
     python tools/live_vs_offline.py drive.log --effects inertia,viscous,coulomb --kt 0.1
+    python tools/live_vs_offline.py hsm/idf_pos_0.06_1.log --kt 0.0458 \
+        --effects inertia,viscous,coulomb,offset --flags "--dbc hsm/hsm150_drive.dbc \
+        --signal current=MC_Feedback1.PhaseCurrentIq ..."
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import socket
 import subprocess
 import sys
@@ -31,7 +36,7 @@ from pathlib import Path
 import can
 
 from canrls.can.frames import FrameDecoder, frame_ids
-from canrls.can.logs import write_candump
+from canrls.can.logs import read_frames, write_candump
 from canrls.sim.scenario import scenario, simulate
 
 PY = sys.executable
@@ -62,12 +67,17 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=20.0,
                     help="length of the simulated log [s]")
     ap.add_argument("--tol", type=float, default=0.01, help="relative tolerance (0.01)")
+    ap.add_argument("--flags", default="",
+                    help="more options of both canrls commands, one string (a DBC and "
+                         "its signal map)")
     args = ap.parse_args()
-    model_flags = ["--effects", args.effects, "--kt", args.kt]
+    model_flags = ["--effects", args.effects, "--kt", args.kt, *shlex.split(args.flags)]
     with tempfile.TemporaryDirectory() as tmp:
         if args.log:
             log = Path(args.log)
-            length = None
+            # the player sends at the log's pace: its length from its timestamps
+            ts = [(float(b.t[0]), float(b.t[-1])) for b in read_frames(log) if len(b.t)]
+            length = ts[-1][1] - ts[0][0]
         else:
             res = simulate(scenario("standard", effects=args.effects, seed=args.seed,
                                     duration=args.duration))
@@ -77,8 +87,6 @@ def main() -> int:
         fit = subprocess.run([PY, "-m", "canrls", "fit", str(log), *model_flags, "--json",
                               "--quiet"], capture_output=True, text=True, check=True)
         offline = json.loads(fit.stdout)["parameters"]
-        if length is None:
-            length = float(json.loads(fit.stdout).get("duration", 600.0))
         port = free_port()
         remote = f"127.0.0.1:{port}"
         procs: list[subprocess.Popen[str]] = []
@@ -138,6 +146,10 @@ def main() -> int:
     ok = worst <= args.tol
     print(f"largest relative difference {worst:.3g} ({'within' if ok else 'OUTSIDE'} "
           f"{args.tol:g})")
+    for name, eq in json.loads(fit.stdout)["equations"].items():
+        div = live.get("equations", {}).get(name, {}).get("divergence")
+        print(f"fixed-vs-float divergence, {name}: offline {eq['divergence']:.3g}, live "
+              + (f"{div:.3g}" if isinstance(div, float) else "not reported"))
     return 0 if ok else 1
 
 

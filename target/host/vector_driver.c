@@ -8,10 +8,12 @@
  * IN (whitespace-separated text):
  *     plan <count>            then <count> lines "name value" (Python FixedRLS.constants)
  *     n <n>
- *     state theta[n] theta_frac[n] P_up[n(n+1)/2] e c frozen counts[NSITES]
+ *     state theta[n] theta_frac[n] P_up[n(n+1)/2] P_frac_up[n(n+1)/2] e c frozen
+ *           counts[NSITES]
  *     steps <N>               then N rows "frozen phi[n] y"
  * OUT: one line per step (the layout of tools/gen_ckernel.py expected_lines):
- *     applied eps trace e flags theta[n] theta_frac[n] P_up[..] c counts[NSITES]
+ *     applied eps trace e flags theta[n] theta_frac[n] P_up[..] P_frac_up[..] c
+ *     counts[NSITES]
  * Exit status 0, or 2 with a message on stderr for a malformed IN (unknown constant,
  * missing constant, a value the kernel's init/restore refuses).
  */
@@ -39,7 +41,8 @@ static const struct {
     FIELD(eps_ts, int32_t), FIELD(eps_os, int32_t), FIELD(h_os, int32_t),
     FIELD(s_os, int32_t), FIELD(sc_s, int32_t), FIELD(lam_den, int32_t),
     FIELD(one_den, int32_t), FIELD(dividend, int64_t), FIELD(gc_s, int32_t),
-    FIELD(g_up, int32_t), FIELD(theta_s, int32_t), FIELD(P_s, int32_t),
+    FIELD(g_up, int32_t), FIELD(kg_bl, int32_t), FIELD(kg_max, int32_t),
+    FIELD(theta_s, int32_t), FIELD(P_s, int32_t),
     FIELD(inv_lam, int32_t), FIELD(one_lam, int32_t), FIELD(c_s, int32_t),
     FIELD(trace_ps, int32_t), FIELD(trace_max_lam, int32_t),
     FIELD(trace_max_lim, int64_t), FIELD(tc_s, int32_t), FIELD(hc_s, int32_t),
@@ -74,6 +77,7 @@ int main(int argc, char **argv)
     static canrls_plan_q31 plan;
     static canrls_rls_q31 S;
     int32_t theta[CANRLS_N_MAX], P[CANRLS_TRI(CANRLS_N_MAX)], p0[CANRLS_N_MAX];
+    int32_t P_frac[CANRLS_TRI(CANRLS_N_MAX)];
     uint32_t theta_frac[CANRLS_N_MAX];
     int32_t phi[CANRLS_N_MAX], e, c, y;
     char set[NFIELDS];
@@ -146,6 +150,11 @@ int main(int argc, char **argv)
             return fail("malformed P");
         }
     }
+    for (i = 0; i < m; i++) {
+        if (!read_word(in, &P_frac[i])) {
+            return fail("malformed P_frac");
+        }
+    }
     if (!read_word(in, &e) || !read_word(in, &c) || !read_i64(in, &v)) {
         return fail("malformed e, c or frozen");
     }
@@ -156,7 +165,7 @@ int main(int argc, char **argv)
     if (canrls_init_q31(&S, &plan, (uint32_t)n, p0, e) != CANRLS_OK) {
         return fail("canrls_init_q31 refused the state");
     }
-    if (canrls_restore_q31(&S, theta, theta_frac, P, e, c) != CANRLS_OK) {
+    if (canrls_restore_q31(&S, theta, theta_frac, P, P_frac, e, c) != CANRLS_OK) {
         return fail("canrls_restore_q31 refused the state");
     }
     S.frozen = v != 0;
@@ -195,7 +204,10 @@ int main(int argc, char **argv)
             fprintf(out, " %lu", (unsigned long)canrls_theta_frac_q31(&S, i));
         }
         for (i = 0; i < m; i++) {
-            fprintf(out, " %ld", (long)S.P[i]);
+            fprintf(out, " %ld", (long)canrls_P_q31(&S, i));
+        }
+        for (i = 0; i < m; i++) {
+            fprintf(out, " %ld", (long)canrls_P_frac_q31(&S, i));
         }
         fprintf(out, " %ld", (long)S.c);
         for (i = 0; i < CANRLS_NSITES; i++) {

@@ -168,24 +168,8 @@ INLINE int32_t sat2(int32_t rhi, uint32_t rlo, int32_t lo, int32_t hi, uint32_t 
     return rhi < 0 ? lo : hi;
 }
 
-/* sat(a - b) of two words, counted (a - b computed without overflow); ``full``: the
- * word is the whole int32_t (lo = INT32_MIN, hi = INT32_MAX), a constant at each call */
-INLINE int32_t sub_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n, int full)
-{
-#if defined(__GNUC__)
-    int32_t r;
-    if (UNLIKELY(__builtin_sub_overflow(a, b, &r))) {
-        *n += 1u;
-        return b < 0 ? hi : lo; /* beyond the int32_t range, so beyond [lo, hi] */
-    }
-    return full ? r : clamp32(r, lo, hi, n);
-#else
-    (void)full;
-    return sat((int64_t)a - b, lo, hi, n);
-#endif
-}
-
-/* sat(a + b) of two words, counted; ``full`` as for sub_sat */
+/* sat(a + b) of two words, counted (a + b computed without overflow); ``full``: the word
+ * is the whole int32_t (lo = INT32_MIN, hi = INT32_MAX), a constant at each call */
 INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n, int full)
 {
 #if defined(__GNUC__)
@@ -212,22 +196,6 @@ INLINE int32_t mul_rsh32(int32_t a, int32_t b)
 #else
     return (int32_t)(uint32_t)(((uint64_t)((int64_t)a * b) + ((uint64_t)1 << 31)) >> 32);
 #endif
-}
-
-/* rsh(a b, s) for 33 <= s <= 62 from the high word H of a b = H 2^32 + L, 0 <= L < 2^32:
- * (a b + 2^(s-1)) >> s = (H + 2^(s-33)) >> (s - 32), L cannot carry into a multiple of
- * 2^(s-32); |H| <= 2^30 and rh = 2^(s-33) <= 2^29, so the sum is a word */
-INLINE int32_t mul_rsh_hi(int32_t a, int32_t b, int32_t rh, int32_t s)
-{
-    return ((int32_t)(((int64_t)a * b) >> 32) + rh) >> (s - 32);
-}
-
-/* rsh(a b, s) for 32 <= s <= 62 (``cls`` SHIFT_32 or SHIFT_HIGH, a constant there) */
-INLINE int32_t mul_rsh_w(int32_t a, int32_t b, int32_t rh, int32_t s, int cls);
-
-INLINE int32_t mul_rsh_w(int32_t a, int32_t b, int32_t rh, int32_t s, int cls)
-{
-    return cls == SHIFT_32 ? mul_rsh32(a, b) : mul_rsh_hi(a, b, rh, s);
 }
 
 /* The 64-bit estimate (Python _theta_add): q = word 2^32 + frac (canrls_theta64: the word
@@ -285,6 +253,97 @@ INLINE void theta_add_full(canrls_theta64 *q, int32_t ph, int32_t m, int32_t s, 
     (void)m;
     theta_add(q, (int64_t)ph * 4294967296LL, s, INT32_MIN, INT32_MAX, n);
 #endif
+}
+
+/* The 64-bit P (canrls_P64: word and lo, the pair X = V + 2^31 with V = P~ 2^32) minus
+ * u = whole 2^32 + part (0 <= part < 2^32), saturated: X clamped to [lo 2^32,
+ * hi 2^32 + 2^32 - 1], i.e. the word to [lo, hi] (counted). The general case (Python
+ * reference_block: V <- V - u, any shift, any P word). */
+INLINE void P_sub(canrls_P64 *q, int64_t whole, uint32_t part, int32_t lo, int32_t hi,
+                  uint32_t *n)
+{
+    const uint32_t l = q->lo - part; /* mod 2^32, borrow when q->lo < part */
+    const int64_t w = (int64_t)q->word - whole - (int64_t)(q->lo < part);
+    if (UNLIKELY(w > hi)) {
+        *n += 1u;
+        q->lo = 0xFFFFFFFFu;
+        q->word = hi;
+        return;
+    }
+    if (UNLIKELY(w < lo)) {
+        *n += 1u;
+        q->lo = 0u;
+        q->word = lo;
+        return;
+    }
+    q->lo = l;
+    q->word = (int32_t)w;
+}
+
+/* P_sub for the common case: 34 <= s <= 62 and the whole int32_t word, u = ph 2^(64-s)
+ * with ph the rounded high word of K_i h_j and m = 2^(64-s) <= 2^30 (one SMULL): the pair
+ * as one int64_t minus ph m, saturated where the 64-bit difference overflows, which is
+ * exactly where the word leaves the int32_t (as theta_add_full). */
+INLINE void P_sub_full(canrls_P64 *q, int32_t ph, int32_t m, int32_t s, uint32_t *n)
+{
+#if defined(__GNUC__)
+    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
+    int64_t x;
+    if (UNLIKELY(__builtin_sub_overflow(t, mul_ww(ph, m), &x))) {
+        *n += 1u;
+        q->lo = ph < 0 ? 0xFFFFFFFFu : 0u;
+        q->word = ph < 0 ? INT32_MAX : INT32_MIN;
+        return;
+    }
+    (void)s;
+    q->lo = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
+#else
+    (void)m;
+    P_sub(q, ph >> (s - 32), (uint32_t)ph << (64 - s), INT32_MIN, INT32_MAX, n);
+#endif
+}
+
+/* The 64-bit P from a word w (any int64_t) and a pair's low part t (0 <= t < 2^32 + 2^31:
+ * the fraction plus 2^31, carry included), saturated as P_sub. */
+static void P_put(canrls_P64 *q, int64_t w, uint64_t t, int32_t lo, int32_t hi, uint32_t *n)
+{
+    w += (int64_t)(t >> 32);
+    if (w > hi) {
+        *n += 1u;
+        q->lo = 0xFFFFFFFFu;
+        q->word = hi;
+    } else if (w < lo) {
+        *n += 1u;
+        q->lo = 0u;
+        q->word = lo;
+    } else {
+        q->lo = (uint32_t)t;
+        q->word = (int32_t)w;
+    }
+}
+
+/* V <- rsh(V c, c_s), 0 < c, 1 <= c_s <= 31: the fold of c into P~ (rare: e = 0).
+ * V c + 2^(c_s-1) = A2 2^32 + Bl exactly (A = word c, B = f c + 2^(c_s-1), f the
+ * fraction), and rsh(V c, c_s) = (A2 >> c_s) 2^32 + T with 0 <= T < 2^32. */
+static void P_fold(canrls_P64 *q, int32_t c, int32_t c_s, int32_t lo, int32_t hi, uint32_t *n)
+{
+    const int32_t f = (int32_t)(q->lo ^ 0x80000000u);
+    const int64_t B = (int64_t)f * c + ((int64_t)1 << (c_s - 1));
+    const int64_t A2 = (int64_t)q->word * c + (B >> 32);
+    const uint32_t T = ((uint32_t)A2 << (32 - c_s)) | ((uint32_t)B >> c_s);
+    /* the pair: + 2^31 */
+    P_put(q, A2 >> c_s, (uint64_t)T + 0x80000000u, lo, hi, n);
+}
+
+/* V <- V 2^sh, 1 <= sh <= 31, exactly (the block exponent's shift; rare):
+ * word 2^sh plus the carry of f 2^sh + 2^31 (f the fraction) */
+static void P_shift(canrls_P64 *q, int32_t sh, int32_t lo, int32_t hi, uint32_t *n)
+{
+    const int32_t f = (int32_t)(q->lo ^ 0x80000000u);
+    const int64_t t = (int64_t)f * ((int64_t)1 << sh) + ((int64_t)1 << 31);
+    const int64_t w = (int64_t)q->word * ((int64_t)1 << sh) + (t >> 32);
+    P_put(q, w, (uint32_t)t, lo, hi, n);
 }
 
 /* Store an accumulator x (scale 2^-(f+s)) into a word of scale 2^-f (Python store):
@@ -394,11 +453,11 @@ INLINE uint32_t wide_bit(int32_t lo, int32_t hi, uint32_t bit)
 /* trw = sum_i rsh(Pw_ii, trace_ps): the trace at the windup test's scale */
 static int32_t trace_words(const canrls_rls_q31 *S)
 {
-    const int32_t *Pii = S->P;
+    const canrls_P64 *Pii = S->P;
     int64_t trw = 0;
     uint32_t i;
     for (i = 0; i < S->n; i++) {
-        trw += rsh32(*Pii, S->plan->trace_ps);
+        trw += rsh32(Pii->word, S->plan->trace_ps);
         Pii += S->n - i; /* the next diagonal word of the packed rows */
     }
     return (int32_t)trw;
@@ -425,9 +484,13 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
     memset(S, 0, sizeof *S);
     S->plan = plan;
     S->n = n;
-    /* P0 = diag(p0) 2^-(f_P + e0), c = 1 ; theta0 = 0 with fraction 0 (the memset) */
+    /* P0 = diag(p0) 2^-(f_P + e0), c = 1, the fractions 0 (lo = 2^31) ; theta0 = 0 with
+     * fraction 0 (the memset) */
+    for (i = 0; i < CANRLS_TRI(n); i++) {
+        S->P[i].lo = 0x80000000u;
+    }
     for (i = 0; i < n; i++) {
-        S->P[canrls_tri_index(n, i, i)] = p0[i];
+        S->P[canrls_tri_index(n, i, i)].word = p0[i];
     }
     S->e = e0;
     S->c = plan->one_lam;
@@ -450,7 +513,7 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
 }
 
 int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *theta_frac,
-                       const int32_t *P_up, int32_t e, int32_t c)
+                       const int32_t *P_up, const int32_t *P_frac_up, int32_t e, int32_t c)
 {
     const canrls_plan_q31 *p;
     uint32_t i, m;
@@ -478,7 +541,11 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *
         S->theta_q[i].word = theta[i];
         S->theta_q[i].frac = theta_frac != NULL ? theta_frac[i] : 0u;
     }
-    memcpy(S->P, P_up, m * sizeof *P_up);
+    /* P: the word and its fraction (NULL: 0), the fraction held + 2^31 */
+    for (i = 0; i < m; i++) {
+        S->P[i].word = P_up[i];
+        S->P[i].lo = (uint32_t)(P_frac_up != NULL ? P_frac_up[i] : 0) ^ 0x80000000u;
+    }
     S->e = e;
     S->c = c;
     S->trw = trace_words(S);
@@ -507,24 +574,24 @@ INLINE int32_t h_word(uint64_t u, int32_t h_os, int32_t lo, int32_t hi, uint32_t
 /* acc = P~ phi + rnd as exact 64-bit sums (the rounding half rnd of the store of h~
  * added once to each). Symmetric: each P~_ij of the packed upper triangle read once;
  * its two products go to h_i and, scattered, to h_j. */
-INLINE void h_sums(const int32_t *Pr, const int32_t *phg, uint32_t n, int64_t rnd,
+INLINE void h_sums(const canrls_P64 *Pr, const int32_t *phg, uint32_t n, int64_t rnd,
                    int64_t *acc)
 {
     uint32_t i, j;
     for (i = 0; i < n; i++) {
         const int32_t pi_ = phg[i];
-        /* h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i */
-        int64_t a = (i == 0 ? rnd : acc[i]) + (int64_t)Pr[0] * pi_;
+        /* h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i (the words) */
+        int64_t a = (i == 0 ? rnd : acc[i]) + (int64_t)Pr[0].word * pi_;
         if (i == 0) {
             for (j = 1; j < n; j++) {
-                const int32_t Pij = Pr[j];
+                const int32_t Pij = Pr[j].word;
                 /* P_0j phi_j -> h_0 ;  P_j0 phi_0 = P_0j phi_0 -> h_j */
                 a += (int64_t)Pij * phg[j];
                 acc[j] = rnd + (int64_t)Pij * pi_;
             }
         } else {
             for (j = i + 1; j < n; j++) {
-                const int32_t Pij = Pr[j - i];
+                const int32_t Pij = Pr[j - i].word;
                 /* P_ij phi_j -> h_i ;  P_ji phi_i = P_ij phi_i -> h_j */
                 a += (int64_t)Pij * phg[j];
                 acc[j] += (int64_t)Pij * pi_;
@@ -539,7 +606,7 @@ INLINE void h_sums(const int32_t *Pr, const int32_t *phg, uint32_t n, int64_t rn
 /* n a constant (CANRLS_N): h~ = P~ phi row by row, each P~_ij at a constant index of
  * the packed upper triangle (the same exact sums as h_sums), stored as it is summed;
  * returns s~ = phi' h~ and m = OR of |h~_i| (one's complement). 1 <= h_os <= 31. */
-INLINE int64_t h_rows(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t h_os,
+INLINE int64_t h_rows(const canrls_P64 *Pr, const int32_t *phg, int32_t *h, int32_t h_os,
                       int32_t lo, int32_t hi, uint32_t *c_h, uint32_t *m, int full)
 {
     const uint32_t n = CANRLS_N;
@@ -558,8 +625,8 @@ INLINE int64_t h_rows(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t
         UNROLL
         for (j = 0; j < n; j++) {
             const uint32_t r = i < j ? i : j, q = i < j ? j : i;
-            /* h~_i = sum_j P~_ij phi_j   (P~_ij = P~_ji: the upper triangle) */
-            a += (int64_t)Pr[r * n - r * (r - 1u) / 2u + (q - r)] * ph[j];
+            /* h~_i = sum_j Pw_ij phi_j   (Pw_ij = Pw_ji: the upper triangle's words) */
+            a += (int64_t)Pr[r * n - r * (r - 1u) / 2u + (q - r)].word * ph[j];
         }
         hi_ = h_word((uint64_t)a, h_os, lo, hi, c_h, full);
         h[i] = hi_;
@@ -575,14 +642,14 @@ INLINE int64_t h_rows(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t
 }
 
 /* the two instances, out of line: each loop gets the registers to itself */
-NOINLINE int64_t h_rows_full(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t h_os,
-                             uint32_t *c_h, uint32_t *m)
+NOINLINE int64_t h_rows_full(const canrls_P64 *Pr, const int32_t *phg, int32_t *h,
+                             int32_t h_os, uint32_t *c_h, uint32_t *m)
 {
     return h_rows(Pr, phg, h, h_os, INT32_MIN, INT32_MAX, c_h, m, 1);
 }
 
-NOINLINE int64_t h_rows_word(const int32_t *Pr, const int32_t *phg, int32_t *h, int32_t h_os,
-                             int32_t lo, int32_t hi, uint32_t *c_h, uint32_t *m)
+NOINLINE int64_t h_rows_word(const canrls_P64 *Pr, const int32_t *phg, int32_t *h,
+                             int32_t h_os, int32_t lo, int32_t hi, uint32_t *c_h, uint32_t *m)
 {
     return h_rows(Pr, phg, h, h_os, lo, hi, c_h, m, 0);
 }
@@ -620,9 +687,12 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     }
 }
 
-/* P~ <- P~ - K h~'  (upper triangle). ``cls`` (a constant at each call) is the shift
- * class of P_s (see rsh_c). Returns the low-excitation test of the specification,
- * "rsh(K_i h~_i, P_s) == 0 for every i": those are the diagonal terms of this update,
+/* P~ <- P~ - K h~'  (upper triangle, in 64 bits: V <- V - u). ``cls`` (a constant at each
+ * call) is the shift class of P_s: SHIFT_HIGH and SHIFT_32 (P_s >= 32) take the product's
+ * high word rounded half up, ph = rsh(K_i h~_j, 32), and u = ph 2^(64 - P_s) (``full``:
+ * P_s >= 34 and the whole int32_t word, one SMULL by 2^(64 - P_s)); SHIFT_LOW and SHIFT_ANY
+ * (P_s <= 31) u = K_i h~_j 2^(32 - P_s) exactly. Returns the low-excitation test of the
+ * specification, "u_ii == 0 for every i": those are the diagonal terms of this update,
  * so they are tested here rather than computed twice. */
 INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int full)
 {
@@ -631,27 +701,38 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int fu
     const int32_t *const K = S->K;
     /* the plan, as locals (a store to P~ cannot change them) */
     const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
-    const int32_t rh = (int32_t)1 << ((P_s >= 33 ? P_s : 33) - 33);
-    int32_t *Pw = S->P; /* row i of the packed upper triangle */
+    /* 2^(64 - P_s) (``full``), and the shifts of ph 2^(64 - P_s) as whole and part */
+    const int32_t m = cls == SHIFT_HIGH && full ? (int32_t)1 << (64 - P_s) : 0;
+    const int32_t hs = cls == SHIFT_HIGH ? P_s - 32 : 0;
+    const int32_t ls = cls == SHIFT_HIGH ? 64 - P_s : 0;
+    canrls_P64 *Pw = S->P; /* row i of the packed upper triangle */
     uint32_t i, j;
     uint32_t nz = 0; /* nonzero once a diagonal term is */
     for (i = 0; i < n; i++) {
         const int32_t Ki = K[i];
-        if (cls == SHIFT_HIGH || cls == SHIFT_32) {
-            /* the diagonal: information K_i h~_i */
-            const int32_t r = mul_rsh_w(Ki, h[i], rh, P_s, cls);
-            nz |= (uint32_t)r;
-            Pw[0] = sub_sat(Pw[0], r, P_lo, P_hi, c_P, full);
-            for (j = i + 1; j < n; j++) {
-                Pw[j - i] = sub_sat(Pw[j - i], mul_rsh_w(Ki, h[j], rh, P_s, cls), P_lo,
-                                    P_hi, c_P, full);
-            }
-        } else {
-            const int64_t r = mul_rsh(Ki, h[i], P_s, cls);
-            nz |= (uint32_t)(r != 0);
-            Pw[0] = sat(Pw[0] - r, P_lo, P_hi, c_P);
-            for (j = i + 1; j < n; j++) {
-                Pw[j - i] = sat(Pw[j - i] - mul_rsh(Ki, h[j], P_s, cls), P_lo, P_hi, c_P);
+        for (j = i; j < n; j++) {
+            if (cls == SHIFT_HIGH || cls == SHIFT_32) {
+                /* ph = rsh(K_i h~_j, 32): the high word, rounded (one SMMULR) */
+                const int32_t ph = mul_rsh32(Ki, h[j]);
+                if (j == i) {
+                    nz |= (uint32_t)ph; /* the diagonal: information K_i h~_i */
+                }
+                if (cls == SHIFT_32) {
+                    /* u = ph 2^32: the word alone */
+                    P_sub(&Pw[j - i], ph, 0u, P_lo, P_hi, c_P);
+                } else if (full) {
+                    P_sub_full(&Pw[j - i], ph, m, P_s, c_P);
+                } else {
+                    P_sub(&Pw[j - i], ph >> hs, (uint32_t)ph << ls, P_lo, P_hi, c_P);
+                }
+            } else {
+                /* u = K_i h~_j 2^(32 - P_s): whole LSBs and the part below */
+                const int64_t pr = (int64_t)Ki * h[j];
+                if (j == i) {
+                    nz |= (uint32_t)(pr != 0);
+                }
+                P_sub(&Pw[j - i], pr >> P_s, (uint32_t)((uint64_t)pr << (32 - P_s)), P_lo,
+                      P_hi, c_P);
             }
         }
         Pw += n - i;
@@ -659,7 +740,7 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int fu
     return nz == 0u;
 }
 
-/* the common instance of P_step (32-bit words, shifts of 33 or more), out of line: the
+/* the common instance of P_step (32-bit words, shifts of 34 or more), out of line: the
  * update of the triangle gets the registers to itself */
 NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 {
@@ -668,7 +749,7 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 
 #ifdef CANRLS_N
 /* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
- * th_s >= 34, P_s >= 33), out of line: h~ 2^kn and K stay in registers from one to the
+ * th_s >= 34, P_s >= 34), out of line: h~ 2^kn and K stay in registers from one to the
  * other (the same integers; S->h keeps h~ without the normalisation, it is scratch).
  * theta is updated last, when the P loop has freed the registers (the order of the two
  * updates changes no integer: neither reads what the other writes).
@@ -677,9 +758,9 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
                                int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const int32_t mt = (int32_t)1 << (64 - th_s), rp = (int32_t)1 << (P_s - 33);
+    const int32_t mt = (int32_t)1 << (64 - th_s), mp = (int32_t)1 << (64 - P_s);
     int32_t hn[CANRLS_N], K[CANRLS_N];
-    int32_t *Pw = S->P; /* row i of the packed upper triangle */
+    canrls_P64 *Pw = S->P; /* row i of the packed upper triangle */
     uint32_t i, j, nz = 0;
     UNROLL
     for (i = 0; i < n; i++) {
@@ -691,14 +772,14 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
     }
     UNROLL
     for (i = 0; i < n; i++) {
-        /* P~ <- P~ - K h~'  (upper triangle); the diagonal: information K_i h~_i */
-        const int32_t r = mul_rsh_hi(K[i], hn[i], rp, P_s);
+        /* P~ <- P~ - K h~'  (upper triangle, 64 bits: u = rsh(K_i h~_j, 32) 2^(64 - P_s));
+         * the diagonal: information K_i h~_i */
+        const int32_t r = mul_rsh32(K[i], hn[i]);
         nz |= (uint32_t)r;
-        Pw[0] = sub_sat(Pw[0], r, INT32_MIN, INT32_MAX, c_P, 1);
+        P_sub_full(&Pw[0], r, mp, P_s, c_P);
         UNROLL
         for (j = i + 1; j < n; j++) {
-            Pw[j - i] = sub_sat(Pw[j - i], mul_rsh_hi(K[i], hn[j], rp, P_s), INT32_MIN,
-                                INT32_MAX, c_P, 1);
+            P_sub_full(&Pw[j - i], mul_rsh32(K[i], hn[j]), mp, P_s, c_P);
         }
         Pw += n - i;
     }
@@ -718,7 +799,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     const canrls_plan_q31 *p = S->plan;
     const uint32_t n = NPAR(S);
     const canrls_theta64 *const theta_q = S->theta_q;
-    int32_t *const P = S->P;
+    canrls_P64 *const P = S->P;
     int32_t *const h = S->h;
     int32_t *const K = S->K;
     int32_t *const phg = S->phg;
@@ -779,7 +860,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
     } else {
         int64_t acc[CANRLS_N_MAX]; /* the scattered column sums of h~ */
         uint32_t m = 0;
-        int32_t st, sv, lam_k, d, g, gc, gcn, epn, th_s, P_s, kn;
+        int32_t st, sv, lam_k, d, g, gc, gcn, epn, th_s, P_s, kn, kg = 0;
         int32_t il;
         int low;
 
@@ -869,11 +950,25 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             /* DIVIDEND // d > g_hi  <=>  DIVIDEND >= (g_hi + 1) d : then the quotient
              * fits 32 bits, and a 64/32 division gives it */
             /* (g_hi + 1) d: 0 < g_hi + 1 <= 2^31 and 0 < d < 2^31, one 32 x 32 product */
-            if ((uint64_t)p->dividend >= (uint64_t)((uint32_t)p->g_hi + 1u) * (uint32_t)d) {
+            /* g normalised: g 2^kg = DIVIDEND 2^kg / d, kg = bit length of d - kg_bl within
+             * [0, kg_max] and the room of the shifts below (kg = 0 for d < 2: the
+             * steady state) */
+            uint64_t dvd;
+            kg = 32 - nlz((uint32_t)d) - p->kg_bl;
+            if (UNLIKELY(kg > 0)) {
+                int32_t lim = p->kg_max;
+                lim = lim < 62 - p->P_s - e ? lim : 62 - p->P_s - e;
+                lim = lim < 62 - p->theta_s - e ? lim : 62 - p->theta_s - e;
+                kg = kg < lim ? kg : lim;
+            } else {
+                kg = 0;
+            }
+            dvd = (uint64_t)p->dividend << kg;
+            if (dvd >= (uint64_t)((uint32_t)p->g_hi + 1u) * (uint32_t)d) {
                 g = p->g_hi;
                 c_div += 1u;
             } else {
-                g = (int32_t)div_u64_u32((uint64_t)p->dividend, (uint32_t)d);
+                g = (int32_t)div_u64_u32(dvd, (uint32_t)d);
             }
         }
         /* gc = g c */
@@ -885,21 +980,21 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         {
             int32_t ke, lim;
             kn = norm_shift(m);
-            lim = (62 - p->P_s - e) >> 1;
+            lim = (62 - p->P_s - e - kg) >> 1;
             kn = kn < lim ? kn : lim;
-            lim = 62 - p->theta_s - e;
+            lim = 62 - p->theta_s - e - kg;
             kn = kn < lim ? kn : lim;
             ke = norm_shift((uint32_t)(eps ^ (eps >> 31)));
-            lim = 62 - p->theta_s - e - kn;
+            lim = 62 - p->theta_s - e - kn - kg;
             ke = ke < lim ? ke : lim;
             epn = (int32_t)((uint32_t)eps << ke);
             gcn = (int32_t)((uint32_t)gc << p->g_up);
-            th_s = p->theta_s + e + kn + ke;
-            /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each */
-            P_s = p->P_s + e + 2 * kn;
+            th_s = p->theta_s + e + kn + ke + kg;
+            /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each, g 2^kg */
+            P_s = p->P_s + e + 2 * kn + kg;
         }
 #ifdef CANRLS_N
-        if (th_s >= 34 && P_s >= 33 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
+        if (th_s >= 34 && P_s >= 34 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
             /* the common case in one piece */
             low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, &c_th, &c_P);
         } else
@@ -930,8 +1025,9 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
          * information K_i h~_i rounds to zero on the whole diagonal */
         switch (shift_class(P_s)) {
         case SHIFT_HIGH:
-            /* words of 32 bits: the overflow test is the clamp */
-            if (S->wide & WIDE_P) {
+            /* words of 32 bits: the overflow test is the clamp (P_s >= 34: 2^(64 - P_s)
+             * is a word, one SMULL) */
+            if ((S->wide & WIDE_P) && P_s >= 34) {
                 low = P_step_high_full(S, P_s, &c_P);
             } else {
                 low = P_step(S, P_s, &c_P, SHIFT_HIGH, 0);
@@ -961,9 +1057,9 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                 c = rsh32(c, 1);
                 e -= 1;
             } else {
-                /* fold c into the words: P~ <- c P~, c = 1 */
+                /* fold c into P~: V <- rsh(V c, c_s) in 64 bits, c = 1 */
                 for (i = 0; i < CANRLS_TRI(n); i++) {
-                    P[i] = sat(rsh((int64_t)P[i] * c, p->c_s), p->P_lo, p->P_hi, &c_P);
+                    P_fold(&P[i], c, p->c_s, p->P_lo, p->P_hi, &c_P);
                 }
                 c = p->one_lam;
             }
@@ -973,19 +1069,19 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         {
             int64_t tr = 0;
             uint32_t trw32 = 0; /* the sum modulo 2^32: trw is a word */
-            const int32_t *Pii = P;
+            const canrls_P64 *Pii = P;
             if (tr_ps > 0) {
                 UNROLL
                 for (i = 0; i < n; i++) {
-                    const int32_t x = *Pii;
+                    const int32_t x = Pii->word;
                     tr += x;
                     trw32 += (uint32_t)(((x >> (tr_ps - 1)) + 1) >> 1);
                     Pii += n - i;
                 }
             } else {
                 for (i = 0; i < n; i++) {
-                    tr += *Pii;
-                    trw32 += (uint32_t)*Pii;
+                    tr += Pii->word;
+                    trw32 += (uint32_t)Pii->word;
                     Pii += n - i;
                 }
             }
@@ -995,23 +1091,9 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                 while ((tr << (sh + 1)) <= p->trace_hi && e + sh < p->e_max) {
                     sh += 1;
                 }
-                {
-                    /* P~ <- P~ 2^sh, clamped before shifting (Python store with s = -sh):
-                     * x 2^sh > hi <=> x > floor(hi / 2^sh), x 2^sh < lo <=> x < ceil(lo / 2^sh) */
-                    const int32_t up_hi = p->P_hi >> sh;
-                    const int32_t up_lo = (int32_t)(-((-(int64_t)p->P_lo) >> sh));
-                    for (i = 0; i < CANRLS_TRI(n); i++) {
-                        const int32_t x = P[i];
-                        if (x > up_hi) {
-                            P[i] = p->P_hi;
-                            c_P += 1u;
-                        } else if (x < up_lo) {
-                            P[i] = p->P_lo;
-                            c_P += 1u;
-                        } else {
-                            P[i] = (int32_t)((uint32_t)x << sh);
-                        }
-                    }
+                /* P~ <- P~ 2^sh: V <- V 2^sh exactly, the words and their fractions */
+                for (i = 0; i < CANRLS_TRI(n); i++) {
+                    P_shift(&P[i], sh, p->P_lo, p->P_hi, &c_P);
                 }
                 e += sh;
                 trw = trace_words(S);

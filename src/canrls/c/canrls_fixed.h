@@ -29,17 +29,20 @@
  * int64_t accumulator that cannot overflow: the plan's guard shift phi_ps makes it
  * so for every input.
  *
- * The covariance is held scaled:  P = c * Pw * 2^-(f_P + e)
- *   Pw  words in the P format (upper triangle only, packed by rows),
+ * The covariance is held scaled:  P = c * P~ * 2^-(f_P + e)
+ *   P~  in 64 bits (upper triangle only, packed by rows: canrls_P64), the word Pw in the
+ *       P format (P~ rounded half up: what h, the trace and the block exponent read)
+ *       and a fraction below it,
  *   e   block exponent, 0 <= e <= e_max,
  *   c   forgetting scale in the lam format, 1/2 < c <= 1 (one_lam = 1.0).
  *
  * Per sample (the equation of each line is beside it in canrls_fixed.c):
  *   eps   = y - phi' theta
- *   h     = Pw phi,  d = lambda_k + c phi' h,  g = 1/d   (one division)
+ *   h     = Pw phi,  d = lambda_k + c phi' h,  g = 1/d   (one division, g normalised by
+ *           2^kg when d is large)
  *   K     = (g c) h     (the high word of (h 2^kn)(g c 2^g_up), kn normalising h)
  *   theta = theta + K eps   (in 64 bits, theta_q: the word theta and its fraction)
- *   Pw    = Pw - K h'   (upper triangle),  c = c / lambda_k
+ *   P~    = P~ - K h'   (upper triangle, in 64 bits),  c = c / lambda_k
  * with lambda_k = 1 (flag WINDUP) when the step would take tr P above trace_max.
  *
  * Constants
@@ -125,8 +128,10 @@ typedef struct {
     int64_t dividend;       /**< 1 << (frac_g + frac_den) */
     int32_t gc_s;           /**< shift of g c */
     int32_t g_up;           /**< left shift of g c to 32 bits (K: the high word) */
-    int32_t theta_s;        /**< shift of K eps at e = kn = ke = 0 (+ e + kn + ke) */
-    int32_t P_s;            /**< shift of K h at e = kn = 0 (+ e + 2 kn) */
+    int32_t kg_bl;          /**< g is normalised by 2^kg, kg = bit length of d - kg_bl (>= 0) */
+    int32_t kg_max;         /**< largest kg (the dividend 2^kg in the accumulator) */
+    int32_t theta_s;        /**< shift of K eps at e = kn = ke = kg = 0 (+ e + kn + ke + kg) */
+    int32_t P_s;            /**< shift of K h at e = kn = kg = 0 (+ e + 2 kn + kg) */
     int32_t inv_lam;        /**< 1/lambda in the lam format */
     int32_t one_lam;        /**< 1 in the lam format */
     int32_t c_s;            /**< shift of c (1/lambda_k) and of the fold c Pw */
@@ -164,11 +169,26 @@ typedef struct {
 } CANRLS_ALIGN8 canrls_theta64;
 
 /**
+ * One element of P~ in 64 bits: the value V = P~_ij 2^32, in units of 2^-32 of the P
+ * format's LSB. `word` is P~_ij rounded half up, rsh(V, 32), in the P format (the word
+ * h = Pw phi, the trace and the block exponent read: canrls_P_q31()); below it the
+ * fraction V - word 2^32, in [-2^31, 2^31), held in `lo` with 2^31 added
+ * (canrls_P_frac_q31() gives the fraction): the pair word 2^32 + lo is then the 64-bit
+ * two's-complement V + 2^31, and the update V - K_i h_j is one 64-bit subtraction
+ * (SUBS/SBCS on the Cortex-M4, one LDRD and one STRD).
+ */
+typedef struct {
+    uint32_t lo;  /**< the fraction below word, plus 2^31 (units of 2^-32 LSB) */
+    int32_t word; /**< Pw_ij, P format: P~_ij rounded */
+} CANRLS_ALIGN8 canrls_P64;
+
+/**
  * Instance of the fixed-point RLS: owned by the caller, filled by canrls_init_q31().
  *
  * The state fields may be read at any time (theta_q through canrls_theta_q31() and
- * canrls_theta_frac_q31(), P, e, c, counts, K); write them only through
- * canrls_restore_q31(), except `frozen` and `counts` (plain fields).
+ * canrls_theta_frac_q31(), P through canrls_P_q31() and canrls_P_frac_q31(), e, c,
+ * counts, K); write them only through canrls_restore_q31(), except `frozen` and
+ * `counts` (plain fields).
  */
 typedef struct {
     const canrls_plan_q31 *plan; /**< constants (not copied: keep it alive) */
@@ -185,8 +205,11 @@ typedef struct {
     canrls_theta64 theta_q[CANRLS_N_MAX]; /**< the estimate in 64 bits (see canrls_theta64):
                                                read it with canrls_theta_q31() and
                                                canrls_theta_frac_q31() */
-    int32_t P[CANRLS_TRI(CANRLS_N_MAX)]; /**< Pw, upper triangle packed by rows, P format */
-    int32_t K[CANRLS_N_MAX];     /**< gain of the last step (K 2^(f_K + e)), 0 when frozen */
+    canrls_P64 P[CANRLS_TRI(CANRLS_N_MAX)]; /**< P~ in 64 bits (see canrls_P64), upper
+                                                 triangle packed by rows: read it with
+                                                 canrls_P_q31() and canrls_P_frac_q31() */
+    int32_t K[CANRLS_N_MAX];     /**< gain of the last step (K 2^(f_K + e + kn + kg)), 0 when
+                                      frozen */
     int32_t h[CANRLS_N_MAX];     /**< scratch: h = Pw phi (h format, normalised or not) */
     int32_t phg[CANRLS_N_MAX];   /**< scratch: phi >> phi_ps */
     uint32_t counts[CANRLS_NSITES]; /**< saturations per site (canrls_site), wrap at 2^32 */
@@ -202,7 +225,7 @@ typedef struct {
 } canrls_step_q31;
 
 /**
- * Initialise: theta = 0, Pw = diag(p0[0..n-1]), block exponent e0, c = 1
+ * Initialise: theta = 0, P~ = diag(p0[0..n-1]) (fractions 0), block exponent e0, c = 1
  * (plan->one_lam), counters 0, not frozen.
  *
  * @param S     instance to fill
@@ -219,19 +242,22 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
 
 /**
  * Restore a checkpoint (Python FixedRLS.state()): theta, theta_frac, the upper triangle
- * of Pw, e and c (theta_q[j]: word theta[j], frac theta_frac[j]). Counters and `frozen` are
- * left as they are (plain fields).
+ * of P~ (its words and their fractions), e and c (theta_q[j]: word theta[j], frac
+ * theta_frac[j]). Counters and `frozen` are left as they are (plain fields).
  *
  * @param theta  n words, theta format
  * @param theta_frac  n fractions (state "theta_frac"), or NULL for zeros (a checkpoint
  *               of format canrls.fixed/1, written before the 64-bit estimate)
- * @param P_up   n (n + 1) / 2 words of Pw's upper triangle packed by rows, P format
+ * @param P_up   n (n + 1) / 2 words of P~'s upper triangle packed by rows, P format
+ * @param P_frac_up  their n (n + 1) / 2 fractions in 2^-32 LSB, -2^31..2^31-1 (state
+ *               "P_frac", the upper triangle packed by rows), or NULL for zeros (a
+ *               checkpoint of format canrls.fixed/2 or /1, written before the 64-bit P)
  * @param e      block exponent, 0..plan->e_max
  * @param c      forgetting scale, lam format, 1..plan->one_lam
  * @return CANRLS_OK or CANRLS_EINVAL (a value outside its word; S untouched)
  */
 int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *theta_frac,
-                       const int32_t *P_up, int32_t e, int32_t c);
+                       const int32_t *P_up, const int32_t *P_frac_up, int32_t e, int32_t c);
 
 /**
  * One sample: the recursion of the module comment, in place.
@@ -243,7 +269,8 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *
  * @return 1 if the state was updated, 0 if frozen
  *
  * Saturates (each counted at its site): eps, h, phi' h and d (den), g and g c (div),
- * theta, Pw and c (P); K cannot (the high word of two normalised 31-bit words). S->K holds the gain of this step.
+ * theta, P~ and c (P); K cannot (the high word of two normalised 31-bit words). S->K
+ * holds the gain of this step.
  */
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                       canrls_step_q31 *step);
@@ -266,6 +293,25 @@ static inline int32_t canrls_theta_q31(const canrls_rls_q31 *S, uint32_t j)
 static inline uint32_t canrls_theta_frac_q31(const canrls_rls_q31 *S, uint32_t j)
 {
     return S->theta_q[j].frac;
+}
+
+/**
+ * The word of element k of P~'s packed upper triangle (P format: P~ rounded half up;
+ * S->P[k].word; the checkpoint's "P", the triangle packed by rows).
+ */
+static inline int32_t canrls_P_q31(const canrls_rls_q31 *S, size_t k)
+{
+    return S->P[k].word;
+}
+
+/**
+ * The fraction of element k of P~'s packed upper triangle below its word, in units of
+ * 2^-32 LSB, -2^31..2^31-1 (S->P[k].lo - 2^31; the checkpoint's "P_frac": what
+ * canrls_restore_q31() takes back).
+ */
+static inline int32_t canrls_P_frac_q31(const canrls_rls_q31 *S, size_t k)
+{
+    return (int32_t)(S->P[k].lo ^ 0x80000000u);
 }
 
 /** Index of Pw_ij (i <= j) in the packed upper triangle of an n x n matrix. */

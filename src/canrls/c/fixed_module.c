@@ -26,9 +26,9 @@
     X(phi_lo) X(phi_hi) X(y_lo) X(y_hi) X(eps_lo) X(eps_hi) X(h_lo) X(h_hi) X(den_lo)    \
     X(den_hi) X(g_lo) X(g_hi) X(K_lo) X(K_hi) X(theta_lo) X(theta_hi) X(P_lo) X(P_hi)    \
     X(lam_lo) X(lam_hi) X(phi_ps) X(eps_ts) X(eps_os) X(h_os) X(s_os) X(sc_s) X(lam_den) \
-    X(one_den) X(dividend) X(gc_s) X(g_up) X(theta_s) X(P_s) X(inv_lam) X(one_lam)       \
-    X(c_s) X(trace_ps) X(tc_s) X(trace_max_lam) X(trace_max_lim) X(hc_s) X(vw_ps)        \
-    X(lhs_ps) X(cmp_scale_diff) X(trace_hi) X(e_max)
+    X(one_den) X(dividend) X(gc_s) X(g_up) X(kg_bl) X(kg_max) X(theta_s) X(P_s)          \
+    X(inv_lam) X(one_lam) X(c_s) X(trace_ps) X(tc_s) X(trace_max_lam) X(trace_max_lim)    \
+    X(hc_s) X(vw_ps) X(lhs_ps) X(cmp_scale_diff) X(trace_hi) X(e_max)
 
 #define COUNT_FIELD(name) +1
 enum { NPLAN = 0 CANRLS_PLAN_FIELDS(COUNT_FIELD) };
@@ -64,17 +64,18 @@ static int32_t clamp_in(int64_t x, int32_t lo, int32_t hi, int64_t *n)
 }
 
 PyDoc_STRVAR(run_block_doc,
-"run_block(Phi, Y, theta, theta_frac, P, scale, K, counts, plan, frozen, eps, theta_out,\n"
-"          trace, exp, flags) -> applied\n\n"
+"run_block(Phi, Y, theta, theta_frac, P, P_frac, scale, K, counts, plan, frozen, eps,\n"
+"          theta_out, trace, exp, flags) -> applied\n\n"
 "canrls_update_q31 over the N rows of Phi (int64, N x n) and Y (int64, N): theta (int64,\n"
-"n), theta_frac (int64, n, 0..2^32-1), P (int64, n x n, upper triangle), scale (int64, [e, c]), K (int64, n) and counts\n"
-"(int64, NSITES) updated in place; plan: int64 in PLAN_FIELDS order; eps, trace, exp\n"
-"(int64, N) and flags (uint8, N) written; theta_out (int64, N x n) or None.");
+"n), theta_frac (int64, n, 0..2^32-1), P and P_frac (int64, n x n, upper triangle; P_frac\n"
+"-2^31..2^31-1), scale (int64, [e, c]), K (int64, n) and counts (int64, NSITES) updated\n"
+"in place; plan: int64 in PLAN_FIELDS order; eps, trace, exp (int64, N) and flags\n"
+"(uint8, N) written; theta_out (int64, N x n) or None.");
 
 static PyObject *run_block(PyObject *self, PyObject *args)
 {
-    PyObject *o[14];
-    Py_buffer b[14];
+    PyObject *o[15];
+    Py_buffer b[15];
     int nb = 0;
     int frozen;
     PyObject *result = NULL;
@@ -82,9 +83,10 @@ static PyObject *run_block(PyObject *self, PyObject *args)
     canrls_rls_q31 S;
     Py_ssize_t N, n, k, i, j, m;
     const int64_t *pv, *Phi, *Y;
-    int64_t *theta, *thf, *P, *scale, *K, *counts, *eps, *tho = NULL, *trace, *ex;
+    int64_t *theta, *thf, *P, *Pf, *scale, *K, *counts, *eps, *tho = NULL, *trace, *ex;
     uint8_t *flags;
-    int32_t p0[CANRLS_N_MAX], th32[CANRLS_N_MAX], Pup[CANRLS_TRI(CANRLS_N_MAX)];
+    int32_t p0[CANRLS_N_MAX], th32[CANRLS_N_MAX], Pup[CANRLS_TRI(CANRLS_N_MAX)],
+        Pfup[CANRLS_TRI(CANRLS_N_MAX)];
     uint32_t tf32[CANRLS_N_MAX];
     int32_t phi[CANRLS_N_MAX];
     int64_t c_phi = 0, c_y = 0;
@@ -92,10 +94,10 @@ static PyObject *run_block(PyObject *self, PyObject *args)
     (void)self;
 
     memset(o, 0, sizeof o);
-    /* o[13]: theta_frac (the fourth argument) */
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOpOOOOO:run_block", &o[0], &o[1], &o[2], &o[13],
-                          &o[3], &o[4], &o[5], &o[6], &o[7], &frozen, &o[8], &o[9], &o[10],
-                          &o[11], &o[12])) {
+    /* o[13]: theta_frac (the fourth argument), o[14]: P_frac (the sixth) */
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOpOOOOO:run_block", &o[0], &o[1], &o[2], &o[13],
+                          &o[3], &o[14], &o[4], &o[5], &o[6], &o[7], &frozen, &o[8], &o[9],
+                          &o[10], &o[11], &o[12])) {
         return NULL;
     }
     /* theta gives n, Y gives N */
@@ -123,10 +125,11 @@ static PyObject *run_block(PyObject *self, PyObject *args)
             {8, 8, N, 1, "eps"},       {9, 8, N * n, 1, "theta_out"},
             {10, 8, N, 1, "trace"},    {11, 8, N, 1, "exp"},
             {12, 1, N, 1, "flags"},    {13, 8, n, 1, "theta_frac"},
+            {14, 8, n * n, 1, "P_frac"},
         };
-        void *ptr[14];
+        void *ptr[15];
         int k2;
-        for (k2 = 0; k2 < 14; k2++) {
+        for (k2 = 0; k2 < 15; k2++) {
             ptr[k2] = NULL;
             if (spec[k2].idx == 9 && o[9] == Py_None) {
                 continue; /* theta_out: None when not recorded */
@@ -151,6 +154,7 @@ static PyObject *run_block(PyObject *self, PyObject *args)
         ex = ptr[11];
         flags = ptr[12];
         thf = ptr[13];
+        Pf = ptr[14];
     }
 
     /* the plan, field by field; every value must fit its field */
@@ -176,11 +180,16 @@ static PyObject *run_block(PyObject *self, PyObject *args)
         }
         tf32[i] = (uint32_t)thf[i];
         for (j = i; j < n; j++) {
+            if (Pf[i * n + j] < INT32_MIN || Pf[i * n + j] > INT32_MAX) {
+                PyErr_SetString(PyExc_ValueError, "P_frac outside -2^31..2^31-1");
+                goto done;
+            }
+            Pfup[m] = (int32_t)Pf[i * n + j];
             Pup[m++] = (int32_t)P[i * n + j];
         }
     }
     if (canrls_init_q31(&S, &plan, (uint32_t)n, p0, (int32_t)scale[0]) != CANRLS_OK
-        || canrls_restore_q31(&S, th32, tf32, Pup, (int32_t)scale[0], (int32_t)scale[1])
+        || canrls_restore_q31(&S, th32, tf32, Pup, Pfup, (int32_t)scale[0], (int32_t)scale[1])
                != CANRLS_OK) {
         PyErr_SetString(PyExc_ValueError, "state outside the words of the plan");
         goto done;
@@ -211,14 +220,15 @@ static PyObject *run_block(PyObject *self, PyObject *args)
     }
     Py_END_ALLOW_THREADS
 
-    /* the state back into the Python arrays (P: the upper triangle only) */
+    /* the state back into the Python arrays (P, P_frac: the upper triangle only) */
     m = 0;
     for (i = 0; i < n; i++) {
         theta[i] = canrls_theta_q31(&S, (uint32_t)i);
         thf[i] = canrls_theta_frac_q31(&S, (uint32_t)i);
         K[i] = S.K[i];
         for (j = i; j < n; j++) {
-            P[i * n + j] = S.P[m++];
+            Pf[i * n + j] = canrls_P_frac_q31(&S, (size_t)m);
+            P[i * n + j] = canrls_P_q31(&S, (size_t)m++);
         }
     }
     scale[0] = S.e;

@@ -38,10 +38,12 @@ enum {
     I_DEN_HI, I_G_LO, I_G_HI, I_K_LO, I_K_HI, I_TH_LO, I_TH_HI, I_P_LO, I_P_HI, I_L_LO,
     I_L_HI, I_PHI_PS, I_EPS_TS, I_EPS_OS, I_H_OS, I_S_OS, I_SC_S, I_LAM_D, I_ONE_D,
     I_DIVIDEND, I_GC_S, I_G_UP, I_TH_S, I_P_S, I_INV_LAM, I_ONE_L, I_C_S, I_TR_PS, I_TMAX,
-    I_TMAX_LIM, I_TC_S, I_HC_S, I_VW_PS, I_LHS_PS, I_CMP_DF, I_E_MAX, I_TR_HI, NPARAM
+    I_TMAX_LIM, I_TC_S, I_HC_S, I_VW_PS, I_LHS_PS, I_CMP_DF, I_E_MAX, I_TR_HI, I_KG_BL,
+    I_KG_MAX, NPARAM
 };
 
 #define FRAC_MASK INT64_C(0xFFFFFFFF)
+#define HALF_WORD (INT64_C(1) << 31)
 
 /* ---------------------------------------------------------- Q-format arithmetic */
 static inline int64_t min64(int64_t a, int64_t b) { return a < b ? a : b; }
@@ -142,12 +144,83 @@ static inline void theta_add(int64_t *t, int64_t *f, int64_t p, int64_t s, int64
     }
 }
 
+/* The 64-bit P: V = P~ 2^32 (units of 2^-32 LSB) held as the word W = rsh(V, 32) (P~
+ * rounded half up) and the fraction F = V - W 2^32 in [-2^31, 2^31). v_put stores the
+ * value w 2^32 + t (any w, t with no overflow) as such a pair: the carry of t moved into
+ * the word, then the word clamped to [lo, hi] (the fraction then 2^31 - 1 or -2^31: V
+ * clamped to [lo 2^32 - 2^31, hi 2^32 + 2^31 - 1]); *sat = 1 when clamped. */
+static inline void v_put(int64_t *W, int64_t *F, int64_t w, int64_t t, int64_t lo, int64_t hi,
+                         int64_t *sat)
+{
+    const int64_t carry = (t + HALF_WORD) >> 32; /* floor((t + 2^31) / 2^32) */
+    w += carry;
+    t -= shl(carry, 32);
+    *sat = 0;
+    if (w > hi) {
+        *W = hi;
+        *F = HALF_WORD - 1;
+        *sat = 1;
+    } else if (w < lo) {
+        *W = lo;
+        *F = -HALF_WORD;
+        *sat = 1;
+    } else {
+        *W = w;
+        *F = t;
+    }
+}
+
+/* The decrement u of V for the product p = K_i w~_j shifted by s (0 <= s <= 62), as
+ * whole LSBs and the part below (0 <= part < 2^32): u = p 2^(32-s) for s < 32; for
+ * s >= 32 the product's high word rounded half up, rsh(p, 32) 2^(64-s). */
+static inline void p_dec(int64_t p, int64_t s, int64_t *whole, int64_t *part)
+{
+    if (s >= 32) {
+        const int64_t ph = rsh(p, 32);
+        *whole = ph >> (s - 32);
+        *part = shl(ph, 64 - s) & FRAC_MASK;
+    } else {
+        *whole = p >> s;
+        *part = shl(p, 32 - s) & FRAC_MASK;
+    }
+}
+
+/* V <- V - u (p_dec), stored by v_put */
+static inline void p_sub(int64_t *W, int64_t *F, int64_t p, int64_t s, int64_t lo, int64_t hi,
+                         int64_t *sat)
+{
+    int64_t whole, part;
+    p_dec(p, s, &whole, &part);
+    v_put(W, F, *W - whole, *F - part, lo, hi, sat);
+}
+
+/* V <- rsh(V c, c_s) for 0 < c, 1 <= c_s <= 31: V c + 2^(c_s-1) = A2 2^32 + Bl exactly
+ * (A = W c, B = F c + 2^(c_s-1)), shifted as its two parts */
+static inline void p_fold(int64_t *W, int64_t *F, int64_t c, int64_t c_s, int64_t lo,
+                          int64_t hi, int64_t *sat)
+{
+    const int64_t B = *F * c + half(c_s);
+    const int64_t A2 = *W * c + (B >> 32);
+    const int64_t Bl = B & FRAC_MASK;
+    /* rsh(V c, c_s) = (A2 >> c_s) 2^32 + T0, 0 <= T0 < 2^32 */
+    const int64_t T0 = shl(A2 & (shl(1, c_s) - 1), 32 - c_s) | (Bl >> c_s);
+    v_put(W, F, A2 >> c_s, T0, lo, hi, sat);
+}
+
+/* V <- V 2^sh (1 <= sh <= 31), exactly */
+static inline void p_shift(int64_t *W, int64_t *F, int64_t sh, int64_t lo, int64_t hi,
+                           int64_t *sat)
+{
+    v_put(W, F, shl(*W, sh), shl(*F, sh), lo, hi, sat);
+}
+
 /* ------------------------------------------------------------------- the block */
 /* The arrays of one block (fixed_kernels.fixed_block documents each). */
 typedef struct {
     Py_ssize_t N, n;
     const int64_t *Phi, *Y;                    /* (N, n), (N,) */
-    int64_t *theta, *theta_frac, *P, *scale;   /* (n,), (n,), (n, n), [e, c] */
+    int64_t *theta, *theta_frac, *P, *P_frac;  /* (n,), (n,), (n, n), (n, n) */
+    int64_t *scale;                            /* [e, c] */
     int64_t *work, *counts;                    /* (6, n), (NSITES,) */
     const int64_t *prm;                        /* (NPARAM,) */
     int mode, frozen, record;
@@ -160,11 +233,13 @@ static Py_ssize_t fixed_block(const Block *B)
 {
     const Py_ssize_t n = B->n;
     const int64_t *prm = B->prm;
-    int64_t *const theta = B->theta, *const theta_frac = B->theta_frac, *const P = B->P;
+    int64_t *const theta = B->theta, *const theta_frac = B->theta_frac, *const P = B->P,
+                   *const P_frac = B->P_frac;
     int64_t *const phi = B->work, *const phg = B->work + n, *const h = B->work + 2 * n,
                    *const w = B->work + 3 * n, *const K = B->work + 4 * n,
                    *const acc = B->work + 5 * n;
 #define PIJ(i, j) P[(i) * n + (j)]
+#define FIJ(i, j) P_frac[(i) * n + (j)]
     /* ---- the plan, as locals */
     const int64_t phi_lo = prm[I_PHI_LO], phi_hi = prm[I_PHI_HI], y_lo = prm[I_Y_LO],
                   y_hi = prm[I_Y_HI], eps_lo = prm[I_EPS_LO], eps_hi = prm[I_EPS_HI],
@@ -180,7 +255,7 @@ static Py_ssize_t fixed_block(const Block *B)
                   tr_ps = prm[I_TR_PS], tmax = prm[I_TMAX], tmax_lim = prm[I_TMAX_LIM],
                   tc_s = prm[I_TC_S], hc_s = prm[I_HC_S], vw_ps = prm[I_VW_PS],
                   lhs_ps = prm[I_LHS_PS], cmp_df = prm[I_CMP_DF], e_max = prm[I_E_MAX],
-                  tr_hi = prm[I_TR_HI];
+                  tr_hi = prm[I_TR_HI], kg_bl = prm[I_KG_BL], kg_max = prm[I_KG_MAX];
     const int symmetric = B->mode == MODE_SYMMETRIC;
     int64_t e = B->scale[0], c = B->scale[1], cc;
     Py_ssize_t applied = 0;
@@ -299,13 +374,20 @@ static Py_ssize_t fixed_block(const Block *B)
             /* d = lambda_k + phi' P phi */
             const int64_t d = saturate(lam_k + sv, den_lo, den_hi, &cc);
             c_den += cc;
-            /* g = 1 / d     (the one division: acc-width dividend, word divisor, C truncation) */
-            int64_t g;
+            /* g = 1 / d     (the one division: acc-width dividend, word divisor, C truncation),
+             * normalised: g 2^kg = DIVIDEND 2^kg / d, kg = bit_length(d) - kg_bl within
+             * [0, kg_max] and the room of the shifts below (kg = 0 for d < 2) */
+            int64_t g, kg = 0;
             if (d <= 0) {
                 g = g_hi;
                 c_div += 1;
             } else {
-                g = div_trunc(dividend, d);
+                int64_t bl = 0;
+                while (bl < 63 && (d >> bl) != 0)
+                    bl++;
+                kg = max64(0, min64(min64(bl - kg_bl, kg_max),
+                                    min64(62 - P_s0 - e, 62 - th_s0 - e)));
+                g = div_trunc(shl(dividend, kg), d);
                 if (g > g_hi) {
                     g = g_hi;
                     c_div += 1;
@@ -324,13 +406,13 @@ static Py_ssize_t fixed_block(const Block *B)
                 m |= w[i] ^ (w[i] >> 63);
             }
             int64_t kn = norm_shift(m);
-            kn = min64(min64(kn, (62 - P_s0 - e) >> 1), 62 - th_s0 - e);
-            const int64_t ke = min64(norm_shift(eps ^ (eps >> 63)), 62 - th_s0 - e - kn);
+            kn = min64(min64(kn, (62 - P_s0 - e - kg) >> 1), 62 - th_s0 - e - kg);
+            const int64_t ke = min64(norm_shift(eps ^ (eps >> 63)), 62 - th_s0 - e - kn - kg);
             const int64_t epn = shl(eps, ke);
             const int64_t gcn = shl(gc, g_up);
-            const int64_t th_s = th_s0 + e + kn + ke;
-            /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each */
-            const int64_t P_s = P_s0 + e + 2 * kn;
+            const int64_t th_s = th_s0 + e + kn + ke + kg;
+            /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each, g 2^kg */
+            const int64_t P_s = P_s0 + e + 2 * kn + kg;
             int low = 1;
             for (Py_ssize_t i = 0; i < n; i++) {
                 h[i] = shl(h[i], kn);
@@ -344,15 +426,19 @@ static Py_ssize_t fixed_block(const Block *B)
                  * to 2^-32 LSB; K carries the exponent e + kn: shifted out here) */
                 theta_add(&theta[i], &theta_frac[i], Ki * epn, th_s, th_lo, th_hi, &cc);
                 c_th += cc;
-                /* low excitation: the information K_i w~_i rounds to zero on the whole diagonal */
-                if (rsh(Ki * w[i], P_s) != 0)
+                /* low excitation: the decrement of the information K_i w~_i is zero (at
+                 * 2^-32 LSB) on the whole diagonal */
+                int64_t whole, part;
+                p_dec(Ki * w[i], P_s, &whole, &part);
+                if (whole != 0 || part != 0)
                     low = 0;
             }
             if (symmetric) {
-                /* P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle */
+                /* P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle,
+                 * in 64 bits: V <- V - u (p_dec) */
                 for (Py_ssize_t i = 0; i < n; i++)
                     for (Py_ssize_t j = i; j < n; j++) {
-                        PIJ(i, j) = saturate(PIJ(i, j) - rsh(K[i] * h[j], P_s), P_lo, P_hi, &cc);
+                        p_sub(&PIJ(i, j), &FIJ(i, j), K[i] * h[j], P_s, P_lo, P_hi, &cc);
                         c_P += cc;
                     }
             } else {
@@ -360,7 +446,7 @@ static Py_ssize_t fixed_block(const Block *B)
                  * (naive: w~ = h~, the row phi' P taken as (P phi)') */
                 for (Py_ssize_t i = 0; i < n; i++)
                     for (Py_ssize_t j = 0; j < n; j++) {
-                        PIJ(i, j) = saturate(PIJ(i, j) - rsh(K[i] * w[j], P_s), P_lo, P_hi, &cc);
+                        p_sub(&PIJ(i, j), &FIJ(i, j), K[i] * w[j], P_s, P_lo, P_hi, &cc);
                         c_P += cc;
                     }
             }
@@ -377,10 +463,10 @@ static Py_ssize_t fixed_block(const Block *B)
                     c = rsh(c, 1);
                     e -= 1;
                 } else {
-                    /* fold c into the words: P~ <- c P~, c = 1 */
+                    /* fold c into the words: P~ <- c P~ (V <- rsh(V c, c_s)), c = 1 */
                     for (Py_ssize_t i = 0; i < n; i++)
                         for (Py_ssize_t j = symmetric ? i : 0; j < n; j++) {
-                            PIJ(i, j) = saturate(rsh(PIJ(i, j) * c, c_s), P_lo, P_hi, &cc);
+                            p_fold(&PIJ(i, j), &FIJ(i, j), c, c_s, P_lo, P_hi, &cc);
                             c_P += cc;
                         }
                     c = one_l;
@@ -398,9 +484,10 @@ static Py_ssize_t fixed_block(const Block *B)
                 int64_t sh = 1;
                 while (shl(tr, sh + 1) <= tr_hi && e + sh < e_max)
                     sh++;
+                /* V <- V 2^sh (the words and their fractions) */
                 for (Py_ssize_t i = 0; i < n; i++)
                     for (Py_ssize_t j = symmetric ? i : 0; j < n; j++) {
-                        PIJ(i, j) = store(PIJ(i, j), -sh, P_lo, P_hi, &cc);
+                        p_shift(&PIJ(i, j), &FIJ(i, j), sh, P_lo, P_hi, &cc);
                         c_P += cc;
                     }
                 e += sh;
@@ -436,13 +523,14 @@ static Py_ssize_t fixed_block(const Block *B)
                 B->theta_out[k * n + i] = theta[i];
     }
 #undef PIJ
+#undef FIJ
     return applied;
 }
 
 /* ================================================================= Python glue */
 PyDoc_STRVAR(fixed_block_doc,
-"fixed_block(Phi, Y, theta, theta_frac, P, scale, work, counts, prm, mode, frozen, record,\n"
-"            eps_out, theta_out, trace_out, exp_out, flags_out) -> applied\n"
+"fixed_block(Phi, Y, theta, theta_frac, P, P_frac, scale, work, counts, prm, mode, frozen,\n"
+"            record, eps_out, theta_out, trace_out, exp_out, flags_out) -> applied\n"
 "--\n\n"
 "Run the fixed-point recursion over the rows of Phi, in place\n"
 "(canrls.estimation.fixed_kernels.fixed_block documents every argument).");
@@ -452,19 +540,19 @@ static PyObject *py_fixed_block(PyObject *self, PyObject *const *args, Py_ssize_
     (void)self;
     static const Spec spec[] = {
         {0, "Phi", I64, 2, RO}, {1, "Y", I64, 1, RO}, {2, "theta", I64, 1, RW},
-        {3, "theta_frac", I64, 1, RW}, {4, "P", I64, 2, RW}, {5, "scale", I64, 1, RW},
-        {6, "work", I64, 2, RW}, {7, "counts", I64, 1, RW}, {8, "prm", I64, 1, RO},
-        {12, "eps_out", I64, 1, RW}, {13, "theta_out", I64, 2, RW},
-        {14, "trace_out", I64, 1, RW}, {15, "exp_out", I64, 1, RW},
-        {16, "flags_out", U8, 1, RW},
+        {3, "theta_frac", I64, 1, RW}, {4, "P", I64, 2, RW}, {5, "P_frac", I64, 2, RW},
+        {6, "scale", I64, 1, RW}, {7, "work", I64, 2, RW}, {8, "counts", I64, 1, RW},
+        {9, "prm", I64, 1, RO}, {13, "eps_out", I64, 1, RW}, {14, "theta_out", I64, 2, RW},
+        {15, "trace_out", I64, 1, RW}, {16, "exp_out", I64, 1, RW},
+        {17, "flags_out", U8, 1, RW},
     };
     Args a = {.fn = "fixed_block", .count = 0};
     Py_buffer *b[COUNT(spec)];
     int64_t mode;
     int frozen, record;
     PyObject *res = NULL;
-    if (!start(&a, nargs, 17) || !as_int64(args[9], &mode) || !as_bool(args[10], &frozen)
-        || !as_bool(args[11], &record))
+    if (!start(&a, nargs, 18) || !as_int64(args[10], &mode) || !as_bool(args[11], &frozen)
+        || !as_bool(args[12], &record))
         return NULL;
     if (mode != MODE_SYMMETRIC && mode != MODE_LITERAL && mode != MODE_NAIVE) {
         PyErr_Format(PyExc_ValueError, "fixed_block: unknown mode %lld", (long long)mode);
@@ -474,19 +562,19 @@ static PyObject *py_fixed_block(PyObject *self, PyObject *const *args, Py_ssize_
         const Py_ssize_t n = dim(b[2], 0), N = dim(b[0], 0);
         if (need(&a, b[0], "Phi", N, n) && need(&a, b[1], "Y", N, -1)
             && need(&a, b[3], "theta_frac", n, -1) && need(&a, b[4], "P", n, n)
-            && need(&a, b[5], "scale", 2, -1) && need(&a, b[6], "work", 6, n)
-            && need(&a, b[7], "counts", NSITES, -1) && need(&a, b[8], "prm", NPARAM, -1)
-            && need(&a, b[9], "eps_out", N, -1)
-            && need(&a, b[10], "theta_out", record ? N : dim(b[10], 0), n)
-            && need(&a, b[11], "trace_out", N, -1) && need(&a, b[12], "exp_out", N, -1)
-            && need(&a, b[13], "flags_out", N, -1)) {
+            && need(&a, b[5], "P_frac", n, n) && need(&a, b[6], "scale", 2, -1)
+            && need(&a, b[7], "work", 6, n) && need(&a, b[8], "counts", NSITES, -1)
+            && need(&a, b[9], "prm", NPARAM, -1) && need(&a, b[10], "eps_out", N, -1)
+            && need(&a, b[11], "theta_out", record ? N : dim(b[11], 0), n)
+            && need(&a, b[12], "trace_out", N, -1) && need(&a, b[13], "exp_out", N, -1)
+            && need(&a, b[14], "flags_out", N, -1)) {
             const Block B = {.N = N, .n = n, .Phi = I(b[0]), .Y = I(b[1]), .theta = I(b[2]),
-                             .theta_frac = I(b[3]), .P = I(b[4]), .scale = I(b[5]),
-                             .work = I(b[6]), .counts = I(b[7]), .prm = I(b[8]),
-                             .mode = (int)mode, .frozen = frozen, .record = record,
-                             .eps_out = I(b[9]), .theta_out = I(b[10]),
-                             .trace_out = I(b[11]), .exp_out = I(b[12]),
-                             .flags_out = U(b[13])};
+                             .theta_frac = I(b[3]), .P = I(b[4]), .P_frac = I(b[5]),
+                             .scale = I(b[6]), .work = I(b[7]), .counts = I(b[8]),
+                             .prm = I(b[9]), .mode = (int)mode, .frozen = frozen,
+                             .record = record, .eps_out = I(b[10]), .theta_out = I(b[11]),
+                             .trace_out = I(b[12]), .exp_out = I(b[13]),
+                             .flags_out = U(b[14])};
             Py_ssize_t applied;
             Py_BEGIN_ALLOW_THREADS
             applied = fixed_block(&B);

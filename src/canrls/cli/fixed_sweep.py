@@ -1,10 +1,12 @@
 """``canrls fixed-sweep``: fixed-point parameter error against word length and Q formats.
 
-Replays a log (or simulates a scenario) through the pipeline, keeps the normalised
+Replays logs (several identify one model, as ``canrls fit`` reads them) or simulates a
+scenario through the pipeline, keeps the normalised
 regressors of every used sample, computes the float reference on them and runs the
 fixed-point kernel for every combination of state word (``--word``), accumulator
 (``--acc``) and input word (``--input``), Q formats chosen automatically for each.
-Prints the largest relative parameter error of each configuration against float, its
+Prints the largest relative parameter error of each configuration against float (each
+parameter against ``max(|float|, 3 sigma)``, as ``canrls fit`` measures its divergence), its
 saturations, and recommends the smallest configuration within ``--tol`` (0.1 %).
 """
 
@@ -13,8 +15,6 @@ from __future__ import annotations
 import argparse
 import sys
 from typing import Any
-
-import numpy as np
 
 from canrls.cli._common import (
     Progress,
@@ -39,11 +39,13 @@ def _bits(text: str) -> list[int]:
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "fixed-sweep", help="fixed-point error against word length and Q formats",
-        description="Run the fixed-point RLS for several word lengths on a log (or a "
+        description="Run the fixed-point RLS for several word lengths on logs (or a "
                     "simulated scenario), print each configuration's largest relative "
                     "parameter error against the float reference, and recommend one.")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("log", nargs="?", metavar="LOG", help="CAN log to replay")
+    src.add_argument("log", nargs="*", default=[], metavar="LOG",
+                     help="CAN log(s) to replay; several identify one model, as in "
+                          "'canrls fit'")
     src.add_argument("--scenario", metavar="NAME",
                      help="simulate this scenario instead (standard, linear, poor)")
     p.add_argument("--duration", type=float, default=30.0,
@@ -56,7 +58,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--input", type=_bits, default=[16, 32], metavar="BITS,...",
                    help="input word lengths of phi and y (default 16,32)")
     p.add_argument("--tol", type=float, default=1e-3,
-                   help="tolerance on every parameter's relative error (default 1e-3)")
+                   help="tolerance on every parameter's error, relative to max(|float|, "
+                        "3 sigma) as in 'canrls fit' (default 1e-3)")
     p.add_argument("--max-samples", type=int, default=200_000,
                    help="use at most this many samples (default 200000)")
     add_model_options(p)
@@ -66,7 +69,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.estimation.fixed import sweep
+    from canrls.estimation.fixed_sweep import sweep
     from canrls.estimation.pipeline import used_rows
     from canrls.estimation.rls import RLS
     from canrls.processor import FrameProcessor
@@ -85,13 +88,15 @@ def run(args: argparse.Namespace) -> int:
         blocks.append(proc.process_samples(res.measured, record=True))
         source = f"scenario {args.scenario} ({args.duration:g} s, seed {args.seed})"
     else:
-        from canrls.can.logs import read_frames
+        from canrls.replay import LogFiles
 
-        for fb in read_frames(args.log, progress=Progress("replay", quiet=args.quiet).callback):
-            blocks.append(proc.process(fb, record=True))
+        files = LogFiles(args.log, proc,
+                         progress=Progress("replay", quiet=args.quiet).callback)
+        for s in files.samples():
+            blocks.append(proc.process_samples(s, record=True))
             if sum(b.samples for b in blocks) >= args.max_samples:
                 break
-        source = args.log
+        source = ", ".join(args.log)
     blocks.append(proc.flush(record=True))
     pipe = proc.pipeline
     settings = pipe.settings
@@ -107,7 +112,8 @@ def run(args: argparse.Namespace) -> int:
         ref.run(phi, y, record=False)
         res_sw = sweep(phi, y, ref.theta, lam=settings.lam, alpha=est.ridge,
                        trace_max=settings.trace_max, word_bits=args.word, acc_bits=args.acc,
-                       input_bits=args.input, theta_max=settings.theta_max, tol=args.tol)
+                       input_bits=args.input, theta_max=settings.theta_max, tol=args.tol,
+                       sigma=ref.std())
         d = res_sw.to_dict()
         d["parameters"] = [p.name for p in eq.parameters]
         d["samples"] = len(y)

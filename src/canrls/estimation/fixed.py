@@ -22,60 +22,6 @@ Inputs are the pipeline's normalised regressors: every column and the target are
 scaled by exact powers of two so that :math:`|\varphi_j| \le 1`, :math:`|y| \le 1`
 nominally; ``alpha`` is in the same units.
 
-Q formats
----------
-``QFormat(bits, frac)`` is a signed two's-complement word of ``bits`` bits whose
-integer ``q`` stands for ``q * 2**-frac``; ``Q{m}.{frac}`` in the usual notation with
-``m = bits - 1 - frac`` integer bits besides the sign. :meth:`FixedConfig.auto`
-gives every quantity the smallest number of integer bits that holds its bound
-(:meth:`QFormat.for_range`: :math:`2^m >` bound) and all the remaining bits to the
-fraction. The bounds (``n`` parameters, :math:`\bar\varphi_j` = ``phi_max``,
-:math:`\|\bar\varphi\|_2` their Euclidean norm, :math:`\bar P_h` half the range of
-the ``P`` format, the largest :math:`\mathrm{tr}\tilde P` the block exponent allows)
-are:
-
-==========  =======================================================================
-quantity    bound and reason
-==========  =======================================================================
-``phi``     ``max(phi_max)`` (one format for all columns, as one MAC loop needs)
-``y``       ``y_max``
-``P``       :math:`\bar P = 1/\alpha` for :math:`\lambda = 1` (:math:`P \preceq P_0`:
-            information only accumulates); otherwise
-            :math:`\max(n/\alpha, \mathrm{trace\_max})`: the trace bound caps
-            :math:`\mathrm{tr}P`, and every :math:`|P_{ij}| \le \lambda_{max}(P)
-            \le \mathrm{tr}P` for a positive semi-definite :math:`P`
-``h``       :math:`\max(\bar P, \bar P_h)\,\|\bar\varphi\|_2` (Cauchy-Schwarz in the
-            :math:`P` inner product: :math:`|h_i| \le \sqrt{P_{ii}}\sqrt{\varphi^\top
-            P\varphi} \le \lambda_{max}(P)\|\varphi\|_2`)
-``den``     :math:`1 + \max(\bar P, \bar P_h)\,\|\bar\varphi\|_2^2`
-            (:math:`\lambda + \varphi^\top P\varphi`)
-``g``       :math:`1/\lambda < 2` (:math:`\varphi^\top P\varphi \ge 0`), ``Q1``; its
-            fraction is limited so that the dividend ``1 << (frac_g + frac_den)``
-            fits the accumulator (with a narrow accumulator the fractions of ``g`` and
-            ``den`` are balanced for equal relative precision)
-``K``       :math:`\max\big(\min(\sqrt{\bar P}/(2\sqrt\lambda),\ \bar P\|\bar\varphi\|_2/\lambda),\
-            \bar P_h\|\bar\varphi\|_2/\lambda\big)`: at ``e = 0``,
-            :math:`|K_i| \le \sqrt{P_{ii}}\sqrt{s}/(\lambda+s) \le \sqrt{P_{ii}}/(2\sqrt\lambda)`
-            (:math:`s = \varphi^\top P\varphi`); once scaled by :math:`2^e`, ``K``
-            grows with :math:`P` again, :math:`|K_i| \le |h_i|/\lambda`
-``theta``   ``theta_max``, default :math:`4\,y_{max}/\min_j\bar\varphi_j`: with
-            normalised columns each term :math:`\theta_j\varphi_j` is of the size of
-            the target, :math:`|\theta_j| \lesssim y_{max}/\bar\varphi_j`; two more
-            bits leave room for terms that partly cancel and for the start-up
-            transient. Pass the real range when known.
-``eps``     :math:`4\,y_{max}`: the a-priori error starts at :math:`y`
-            (:math:`\theta_0 = 0`) and shrinks to the noise; a larger error during a
-            transient is clipped (counted), which only limits that one correction,
-            like a robust (Huber) RLS
-``lam``     :math:`\lambda \le 1`, :math:`1/\lambda < 2` and the forgetting scale
-            :math:`c \le 1`: ``Q1.(bits-2)`` (requires :math:`\lambda > 1/2`; typical
-            :math:`[0.98, 1]`)
-==========  =======================================================================
-
-``phi`` and ``y`` use ``input_bits``, everything else ``word_bits``. Any format can be
-overridden: ``FixedConfig.auto(..., P=QFormat(32, 24))`` or
-``dataclasses.replace(config, P=...)``; a saturation then shows in the counters.
-
 Scaled P
 --------
 :math:`P` falls by many orders of magnitude from :math:`P_0 = I/\alpha` once data
@@ -114,51 +60,24 @@ shift by ``theta_s + e + k + ke`` and ``P_s + e + 2k``, at least 32 in the stead
 state, so that the target takes the high word of each product (docs/fixed_point.md).
 The ``K`` format of :class:`FixedConfig` no longer enters the arithmetic.
 
-The estimate in 64 bits
------------------------
+The estimate and the covariance in 64 bits
+------------------------------------------
 :math:`\theta` is the word ``theta`` (the ``theta`` format, published and used in
-:math:`\varepsilon`) and below it a fraction word ``theta_frac``, :math:`0 \le` ``theta_frac``
-:math:`< 2^{32}`, in units of :math:`2^{-32}` LSB: the estimate is the 64-bit
-``theta * 2**32 + theta_frac``. The update :math:`K\varepsilon` is added to it at
+:math:`\varepsilon`) and below it a fraction word ``theta_frac``, :math:`0 \le`
+``theta_frac`` :math:`< 2^{32}`, in units of :math:`2^{-32}` LSB: the estimate is the
+64-bit ``theta * 2**32 + theta_frac``. The update :math:`K\varepsilon` is added to it at
 :math:`2^{-32}` LSB, floored (from the high word of its product when its shift is 32
 or more, which the target's ``SMULL`` gives), and the sum saturated to the ``theta``
-word. Why: with :math:`\lambda = 1` the gain falls like :math:`1/N`, and after a few
-hundred thousand samples :math:`K\varepsilon` is a small fraction of an LSB (about 0.05
-to 0.1 LSB on the simulated drive at 1 kHz after 10 min); rounded to the word each step,
-almost every update became 0 and the estimate froze where it was while the float kept
-converging: 0.15 % and 7 sigma from the float after one hour, against 0.004 % and 0.6
-sigma with the fraction (``canrls fit``; docs/fixed_point.md). It costs one word per
-parameter of state. The C kernel keeps the two words of a parameter as one 8-byte pair,
-``canrls_rls_q31.theta_q[j]`` of type ``canrls_theta64`` (``frac``, ``word``: this
-``theta_frac[j]`` and ``theta[j]``), read with ``canrls_theta_q31(S, j)`` and
-``canrls_theta_frac_q31(S, j)``, so that the Cortex-M4 loads and stores it at once
-(``LDRD``/``STRD``): at n = 6 built for that n, 984 instructions per update against
-988 with a 32-bit estimate and 1004 with the fraction in an array of its own.
+word: with :math:`\lambda = 1` the gain falls like :math:`1/N` and :math:`K\varepsilon`
+becomes a fraction of an LSB, which a word rounded every step would lose.
 
-Accumulators (guard bits)
--------------------------
-The multiply-accumulates (:math:`\varphi^\top\theta`, :math:`\tilde P\varphi`,
-:math:`\varphi^\top\tilde h`) sum ``n`` products in ``acc_bits``. They never overflow,
-by construction rather than by a check: the plan shifts the regressor operand right
-(rounded, once per sample, shared by the three sums) by the smallest guard shift for
-which ``n`` products at the *largest representable* magnitudes of their words, plus
-the additive term and the final rounding constant, stay below ``2**(acc_bits-1)``
-(``constants["phi_ps"]``). Because every operand is a saturated word this holds for
-every input, including a corrupted state; with 32-bit words and inputs and 64-bit
-accumulators it costs 4-5 of the 30 fraction bits of :math:`\varphi`, far below the
-LSB of the results. A configuration whose accumulator cannot hold the products at all
-(32-bit words with a 32-bit accumulator) is rejected. The ``acc`` counter is kept so
-every site is listed, and stays 0; the pure-Python reference
-:func:`canrls.estimation.fixed_kernels.reference_block` asserts every accumulator value against
-``acc_bits``.
-
-Division
---------
-One per update, modelled as the target does it: ``g = (1 << (frac_g + frac_den)) / d``,
-an ``acc_bits`` dividend over a word divisor, truncated toward zero (C semantics).
-Everything else multiplies: :math:`\lambda` and :math:`1/\lambda` are Q constants
-computed once, exactly, from the rational value of ``lam`` (Python fractions, no
-floating point) when the estimator is built (:attr:`FixedRLS.constants`).
+Each element of :math:`\tilde P` likewise has a fraction ``P_frac`` below its word:
+:math:`V = \tilde P\,2^{32}` is held as the word ``rsh(V, 32)`` (rounded half up, what
+:math:`h`, the trace and the block exponent read) and the fraction
+:math:`V - \mathrm{word}\,2^{32} \in [-2^{31}, 2^{31})` (:data:`P_FRAC_RANGE`), so that a
+direction of :math:`P` far below its trace keeps its bits. The C kernel holds each pair
+as one 8-byte value (``canrls_theta64``, ``canrls_P64``), loaded and stored at once on the
+Cortex-M4. Figures: docs/fixed_point.md and docs/hsm150.md.
 
 Trace bound and flags
 ---------------------
@@ -187,29 +106,47 @@ part of the rounding error is not damped at all, :math:`A \mapsto A/\lambda`, so
 grows as :math:`\lambda^{-k}` and the estimator diverges within a few thousand
 samples for any :math:`\lambda < 1` (``tests/test_fixed.py``). Both are kept only
 for comparison.
+
+The Q formats and the configuration are in :mod:`canrls.estimation.fixed_formats`,
+the plan of shifts in :mod:`canrls.estimation.fixed_plan`, the result objects in
+:mod:`canrls.estimation.fixed_results` and the word-length sweep in
+:mod:`canrls.estimation.fixed_sweep`; this module re-exports all but the sweep.
 """
 
 from __future__ import annotations
 
-import enum
-import math
-import operator
-from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
-from fractions import Fraction
-from typing import Any
-
 import importlib
+import math
+from collections.abc import Mapping
+from fractions import Fraction
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from canrls.errors import CheckpointError, EstimatorError, FixedPointError
 from canrls.estimation import fixed_layout as kernels
-from canrls.estimation.rls import check_lam as _rls_check_lam
-from canrls.estimation.rls import check_real as _rls_real
-from canrls.estimation.rls import check_ridge, ridge_value
+from canrls.estimation.fixed_formats import (
+    C_FIXED,
+    SITES,
+    FixedConfig,
+    FixedFlag,
+    QFormat,
+    SaturationCounts,
+    check_lam,
+    check_n,
+    check_real,
+    check_ridge,
+    nan_error,
+    round_inputs,
+)
+from canrls.estimation.fixed_plan import build_plan
+from canrls.estimation.fixed_results import FixedStep, FixedTrace
+from canrls.estimation.rls import ridge_value
+
+IntArray = npt.NDArray[np.int64]
+FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
     "QFormat",
@@ -219,74 +156,25 @@ __all__ = [
     "FixedStep",
     "FixedTrace",
     "FixedRLS",
-    "SweepRow",
-    "SweepResult",
-    "sweep",
     "SITES",
 ]
 
-IntArray = npt.NDArray[np.int64]
-FloatArray = npt.NDArray[np.float64]
-
-#: Saturation sites, in counter order.
-SITES: tuple[str, ...] = kernels.SITES
-
-#: Format tag of :meth:`FixedRLS.state` dictionaries (``/2``: with ``theta_frac``).
-STATE_FORMAT = "canrls.fixed/2"
-#: The tag before the 64-bit estimate: read with ``theta_frac = 0`` (a valid state: the
-#: estimate exactly at its word).
+#: Format tag of :meth:`FixedRLS.state` dictionaries (``/3``: with ``P_frac``).
+STATE_FORMAT = "canrls.fixed/3"
+#: The tag before the 64-bit covariance: read with ``P_frac = 0`` (``P`` exactly its words).
+STATE_FORMAT_2 = "canrls.fixed/2"
+#: The tag before the 64-bit estimate: read with ``theta_frac = 0`` and ``P_frac = 0``.
 STATE_FORMAT_1 = "canrls.fixed/1"
+#: The range of a fraction of ``P`` (units of 2^-32 LSB): the word is ``P~`` rounded.
+P_FRAC_RANGE = (-(1 << 31), (1 << 31) - 1)
+
 
 _UPDATES = {
     "symmetric": kernels.MODE_SYMMETRIC,
     "literal": kernels.MODE_LITERAL,
     "naive": kernels.MODE_NAIVE,
 }
-#: Quantities that have a Q format in :class:`FixedConfig`, in table order.
-_QUANTITIES = ("phi", "y", "theta", "P", "K", "eps", "h", "den", "g", "lam")
-_MAX_WORD = 32  # products of two words must be exact in int64
-
-
-# ---------------------------------------------------------------- Q formats
-def _round_saturate(x: npt.NDArray[np.float64], scale: float, lo: float, hi: float,
-                    out: IntArray) -> int:
-    """``out = clip(floor(x * scale + 1/2), lo, hi)``; the number clamped, or -1 on a NaN.
-
-    ``scale`` is the exact power of two ``2**frac``, so ``x * scale`` is ``ldexp(x, frac)``
-    (one rounding of the exact product, as ldexp does). One pass in C
-    (``canrls._fixed.round_saturate``: round half up, then saturate to the word, counted).
-    """
-    assert _CFIXED is not None, "canrls._fixed is not built (pip install builds it)"
-    return int(_CFIXED.round_saturate(np.ascontiguousarray(x, np.float64), scale, lo, hi, out))
-
-
-def _round_inputs(Phi: npt.NDArray[np.float64], Y: npt.NDArray[np.float64],
-                  fmt: npt.NDArray[np.float64], Pq: IntArray, Yq: IntArray,
-                  counts: IntArray) -> int:
-    """:func:`_round_saturate` of ``Phi`` (flat) and ``Y`` (``fmt`` rows: ``[2**frac, lo,
-    hi]`` of phi and y), the clamps added to the ``phi_in`` and ``y_in`` counters; 1 or 2
-    when ``Phi`` or ``Y`` holds a NaN (then nothing is counted), else 0.
-    """
-    n_phi = _round_saturate(Phi, fmt[0, 0], fmt[0, 1], fmt[0, 2], Pq)
-    if n_phi < 0:
-        return 1
-    n_y = _round_saturate(Y, fmt[1, 0], fmt[1, 1], fmt[1, 2], Yq)
-    if n_y < 0:
-        return 2
-    counts[kernels.S_PHI] += n_phi
-    counts[kernels.S_Y] += n_y
-    return 0
-
-
-def _c_kernel() -> ModuleType | None:
-    """The compiled C kernel ``canrls._fixed`` (built by ``pip install``), or None."""
-    try:
-        return importlib.import_module("canrls._fixed")
-    except ImportError:
-        return None
-
-
-_CFIXED = _c_kernel()
+_FLAGS: tuple[FixedFlag, ...] = tuple(FixedFlag(i) for i in range(16))
 
 
 def _spec_kernels() -> ModuleType:
@@ -294,773 +182,6 @@ def _spec_kernels() -> ModuleType:
     first use only: the literal and naive forms, a model larger than the C kernel's bound,
     or a machine without the extension."""
     return importlib.import_module("canrls.estimation.fixed_kernels")
-
-
-def _nan_error(q: QFormat) -> FixedPointError:
-    """The error of a NaN handed to :meth:`QFormat.quantize` (or the inputs of the RLS)."""
-    return FixedPointError(f"cannot quantize NaN to {q}")
-
-
-@dataclass(frozen=True, slots=True)
-class QFormat:
-    """A signed two's-complement fixed-point format: ``bits`` bits, ``frac`` fraction bits.
-
-    The integer ``q`` represents ``q * 2**-frac``; its range is
-    ``[-2**(bits-1), 2**(bits-1) - 1]``.
-
-    Parameters
-    ----------
-    bits : int
-        Word length, 2..64.
-    frac : int
-        Number of fraction bits (may exceed ``bits - 1`` for small quantities, or be
-        negative for a coarse one).
-
-    Examples
-    --------
-    >>> q = QFormat(16, 14)
-    >>> str(q), q.lo, q.hi, q.max
-    ('Q1.14', -32768, 32767, 1.99993896484375)
-    """
-
-    bits: int
-    frac: int
-
-    def __post_init__(self) -> None:
-        for name in ("bits", "frac"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | np.integer):
-                raise FixedPointError(f"QFormat {name} must be an integer, got {v!r}")
-            object.__setattr__(self, name, int(v))
-        if not 2 <= self.bits <= 64:
-            raise FixedPointError(f"QFormat bits must be in 2..64, got {self.bits}")
-        if not -64 <= self.frac <= 126:
-            raise FixedPointError(f"QFormat frac must be in -64..126, got {self.frac}")
-
-    @classmethod
-    def for_range(cls, max_abs: float, bits: int) -> QFormat:
-        """The format of ``bits`` bits with the most fraction bits that holds ``±max_abs``.
-
-        The integer bits ``m`` are the smallest with ``2**m > max_abs``, so
-        ``max_abs`` itself is representable (``1.0`` gets ``Q1.(bits-2)``).
-        """
-        x = float(max_abs)
-        if not (x > 0.0 and math.isfinite(x)):
-            raise FixedPointError(f"range of a Q format must be finite and > 0, got {max_abs!r}")
-        m = math.frexp(x)[1]  # x = f 2^m, 0.5 <= f < 1  ->  2^(m-1) <= x < 2^m
-        return cls(bits, bits - 1 - m)
-
-    @property
-    def int_bits(self) -> int:
-        """Integer bits besides the sign, ``bits - 1 - frac``."""
-        return self.bits - 1 - self.frac
-
-    @property
-    def lo(self) -> int:
-        """Smallest integer, ``-2**(bits-1)``."""
-        return -(1 << (self.bits - 1))
-
-    @property
-    def hi(self) -> int:
-        """Largest integer, ``2**(bits-1) - 1``."""
-        return (1 << (self.bits - 1)) - 1
-
-    @property
-    def lsb(self) -> float:
-        """Value of one LSB, ``2**-frac``."""
-        return math.ldexp(1.0, -self.frac)
-
-    @property
-    def max(self) -> float:
-        """Largest representable value, ``hi * 2**-frac``."""
-        return math.ldexp(float(self.hi), -self.frac)
-
-    def to_int(self, x: float | Fraction) -> int:
-        """``x`` rounded half up to this format, exactly (no saturation)."""
-        v = Fraction(x) * (Fraction(2) ** self.frac)
-        return math.floor(v + Fraction(1, 2))
-
-    def to_float(self, q: int | npt.ArrayLike) -> Any:
-        """The real value of integer(s) ``q`` (float64)."""
-        return np.ldexp(np.asarray(q, dtype=np.float64), -self.frac)
-
-    def quantize(self, x: npt.ArrayLike) -> tuple[IntArray, int]:
-        """Round float(s) to nearest (half up) and saturate to the word.
-
-        Returns
-        -------
-        (q, saturated) : (ndarray of int64, int)
-            The integers and how many values were clamped (``±inf`` clamp too).
-
-        Raises
-        ------
-        FixedPointError
-            A value is NaN.
-        """
-        a = np.asarray(x, dtype=np.float64)
-        q = np.empty(a.shape, np.int64)
-        # x 2^frac is exact (power of two); floor(v + 1/2) is exact for |v| < 2^52,
-        # and larger values saturate anyway
-        nsat = _round_saturate(a.ravel(), *self._rounding(), q.reshape(-1))
-        if nsat < 0:
-            raise _nan_error(self)
-        return (q[()] if q.ndim == 0 else q), nsat
-
-    def _rounding(self) -> tuple[float, float, float]:
-        """``(2**frac, lo, hi)`` as floats: the constants of :meth:`quantize`."""
-        return math.ldexp(1.0, self.frac), float(self.lo), float(self.hi)
-
-    def __str__(self) -> str:
-        return f"Q{self.int_bits}.{self.frac}"
-
-    def to_dict(self) -> dict[str, int]:
-        """``{"bits": ..., "frac": ...}``."""
-        return {"bits": self.bits, "frac": self.frac}
-
-
-# -------------------------------------------------------------- the config
-def _as_qformat(name: str, v: object) -> QFormat:
-    if isinstance(v, QFormat):
-        return v
-    if isinstance(v, Mapping):
-        try:
-            return QFormat(v["bits"], v["frac"])
-        except KeyError as e:
-            raise FixedPointError(f"Q format of {name!r} lacks key {e}") from e
-    if isinstance(v, tuple | list) and len(v) == 2:
-        return QFormat(v[0], v[1])
-    raise FixedPointError(f"Q format of {name!r} must be a QFormat, got {v!r}")
-
-
-@dataclass(frozen=True)
-class FixedConfig:
-    r"""Word lengths and the Q format of every quantity of the fixed-point RLS.
-
-    Build it with :meth:`auto` from the ranges of the problem; override any format
-    with keywords of :meth:`auto` or with :func:`dataclasses.replace`.
-
-    Attributes
-    ----------
-    word_bits : int
-        State word (``theta``, ``P``, ``K``, ``eps``, ``h``, ``den``, ``g``, ``lam``),
-        8..32.
-    acc_bits : int
-        Accumulator of multiply-accumulates and dividend of the division, 16..64.
-    input_bits : int
-        Input word of ``phi`` and ``y``, 2..32.
-    phi, y, theta, P, K, eps, h, den, g, lam : QFormat
-        Regressors, target, estimate, :math:`P`, gain, a-priori error,
-        :math:`h = P\varphi`, :math:`d = \lambda + \varphi^\top P\varphi`, the
-        reciprocal :math:`g = 1/d`, and :math:`\lambda`, :math:`1/\lambda`.
-
-    Raises
-    ------
-    FixedPointError
-        A word is wider than the limits above, or a format has a negative fraction
-        or a fraction beyond 62 bits (the message names the quantity and format).
-    """
-
-    word_bits: int
-    acc_bits: int
-    input_bits: int
-    phi: QFormat
-    y: QFormat
-    theta: QFormat
-    P: QFormat
-    K: QFormat
-    eps: QFormat
-    h: QFormat
-    den: QFormat
-    g: QFormat
-    lam: QFormat
-
-    def __post_init__(self) -> None:
-        for name, lo, hi in (("word_bits", 8, 32), ("acc_bits", 16, 64), ("input_bits", 2, 32)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or not lo <= v <= hi:
-                raise FixedPointError(
-                    f"FixedConfig {name} must be an integer in {lo}..{hi}, got {v!r}"
-                )
-            object.__setattr__(self, name, int(v))
-        for name in _QUANTITIES:
-            q = _as_qformat(name, getattr(self, name))
-            object.__setattr__(self, name, q)
-            if q.bits > _MAX_WORD:
-                raise FixedPointError(
-                    f"FixedConfig {name} format {q} has {q.bits} bits; words are at most "
-                    f"{_MAX_WORD} bits (products must be exact in 64 bits)"
-                )
-            if not 0 <= q.frac <= 62:
-                raise FixedPointError(
-                    f"FixedConfig {name} format {q} ({q.bits} bits) has {q.frac} fraction "
-                    f"bits; the range of {name} needs more integer bits than the word has"
-                )
-
-    @classmethod
-    def auto(
-        cls,
-        n: int,
-        alpha: float | npt.ArrayLike,
-        lam: float,
-        phi_max: float | Sequence[float] | npt.ArrayLike = 1.0,
-        y_max: float = 1.0,
-        theta_max: float | None = None,
-        word_bits: int = 32,
-        acc_bits: int = 64,
-        input_bits: int | None = None,
-        trace_max: float | None = None,
-        **overrides: QFormat,
-    ) -> FixedConfig:
-        r"""Choose every Q format from the ranges of the problem (module docstring table).
-
-        Parameters
-        ----------
-        n : int
-            Number of parameters.
-        alpha : float or sequence of n floats
-            Ridge weight, :math:`P_0 = I/\alpha` (normalised units, typical 1e-3..1e-1),
-            or one per parameter, :math:`P_0 = \mathrm{diag}(1/\alpha_j)`: the bounds
-            then use :math:`\max_j 1/\alpha_j` and :math:`\sum_j 1/\alpha_j`.
-        lam : float
-            Forgetting factor, :math:`1/2 < \lambda \le 1` (typical 0.98..1).
-        phi_max : float or sequence of n floats, default 1.0
-            Nominal :math:`\max|\varphi_j|`, one for all columns or one per column.
-        y_max : float, default 1.0
-            Nominal :math:`\max|y|`.
-        theta_max : float or None
-            Bound on :math:`|\theta_j|`; ``None``: :math:`4\,y_{max}/\min_j\bar\varphi_j`.
-        word_bits, acc_bits : int, default 32, 64
-            State word and accumulator.
-        input_bits : int or None
-            Input word of ``phi`` and ``y``; ``None``: ``word_bits``.
-        trace_max : float or None
-            The trace bound the estimator will use (``None``: :math:`\sum_j 1/\alpha_j`, the
-            default of :class:`FixedRLS`); it bounds :math:`P` when :math:`\lambda < 1`.
-        **overrides : QFormat
-            Formats to use instead of the derived ones (``P=QFormat(32, 20)``, ...).
-
-        Returns
-        -------
-        FixedConfig
-
-        Raises
-        ------
-        FixedPointError
-            A range does not fit its word (names the quantity and the format).
-        """
-        n_i = _check_n(n)
-        ridge = _check_ridge(alpha, n_i)
-        lam_f = _check_lam(lam)
-        W = word_bits
-        In = W if input_bits is None else input_bits
-        pm = np.broadcast_to(np.asarray(phi_max, dtype=np.float64), (n_i,))
-        if not (np.all(np.isfinite(pm)) and np.all(pm > 0)):
-            raise FixedPointError(f"phi_max must be finite and > 0, got {phi_max!r}")
-        ym = float(y_max)
-        if not (math.isfinite(ym) and ym > 0):
-            raise FixedPointError(f"y_max must be finite and > 0, got {y_max!r}")
-        tm = 4.0 * ym / float(pm.min()) if theta_max is None else float(theta_max)
-        finite = trace_max is not None and math.isfinite(trace_max)
-        p0_sum = float(np.sum(1.0 / ridge))
-        tr = float(trace_max) if finite else p0_sum  # type: ignore[arg-type]
-        # bound on every |P_ij| (and on the largest eigenvalue of P)
-        P_bar = float(np.max(1.0 / ridge)) if lam_f == 1.0 else max(p0_sum, tr)
-        phi_norm = float(np.sqrt(np.sum(pm * pm)))
-
-        def fmt(name: str, bound: float, bits: int) -> QFormat:
-            try:
-                return QFormat.for_range(bound, bits)
-            except FixedPointError as e:
-                raise FixedPointError(f"range of {name}: {e}") from e
-
-        P_q = _as_qformat("P", overrides["P"]) if "P" in overrides else fmt("P", P_bar, W)
-        # with the block exponent e > 0, tr P (words) <= half the range of P
-        P_top = math.ldexp(1.0, P_q.int_bits - 1)
-        # phi' P~ phi, with P~ = P / c (1/2 < c <= 1) bounded by P_bar or half its range
-        den_max = 1.0 + max(P_bar, P_top) * phi_norm * phi_norm
-        K_max = max(
-            min(math.sqrt(P_bar) / (2.0 * math.sqrt(lam_f)), P_bar * phi_norm / lam_f),
-            P_top * phi_norm / lam_f,
-        )
-        formats: dict[str, QFormat] = {
-            "phi": fmt("phi", float(pm.max()), In),
-            "y": fmt("y", ym, In),
-            "theta": fmt("theta", tm, W),
-            "P": P_q,
-            "K": fmt("K", K_max, W),
-            "eps": fmt("eps", 4.0 * ym, W),
-            "h": fmt("h", max(P_bar, P_top) * phi_norm, W),
-            "den": fmt("den", den_max, W),
-            "lam": QFormat(W, W - 2),
-        }
-        # g = 1/d <= 1/lambda < 2: Q1.(W-2). The dividend 1 << (frac_g + frac_den) must fit
-        # the accumulator; when it does not, the fractions are balanced so that d (at its
-        # smallest, lambda) and g (at its smallest, 1/den_max) lose the same relative
-        # precision: frac_den = frac_g - int_bits_den.
-        if "den" in overrides:
-            den_q = _as_qformat("den", overrides["den"])
-        else:
-            den_q = formats["den"]
-            if den_q.frac + (W - 2) > acc_bits - 2:
-                fg = min(W - 2, (acc_bits - 2 + den_q.int_bits) // 2)
-                den_q = QFormat(W, min(den_q.frac, acc_bits - 2 - fg))
-                formats["den"] = den_q
-        formats["g"] = QFormat(W, min(W - 2, acc_bits - 2 - den_q.frac))
-        unknown = set(overrides) - set(_QUANTITIES)
-        if unknown:
-            raise FixedPointError(
-                f"FixedConfig.auto got unknown override(s) {sorted(unknown)}; "
-                f"formats are {list(_QUANTITIES)}"
-            )
-        formats.update({k: _as_qformat(k, v) for k, v in overrides.items()})
-        try:
-            return cls(word_bits=W, acc_bits=acc_bits, input_bits=In, **formats)
-        except FixedPointError as e:
-            # P, K, h and den are sized from P0 = diag(1/alpha_j): name the knob
-            raise FixedPointError(
-                f"{e} (the ridge's P0 = diag(1/alpha_j) reaches {P_bar:.3g} here: a larger "
-                f"estimator.alpha, or fixed.word_bits, gives it room)") from e
-
-    def formats(self) -> dict[str, QFormat]:
-        """The Q format of every quantity, in table order."""
-        return {name: getattr(self, name) for name in _QUANTITIES}
-
-    def quantize_inputs(
-        self, Phi: npt.ArrayLike, Y: npt.ArrayLike
-    ) -> tuple[IntArray, IntArray, SaturationCounts]:
-        """Round normalised float inputs to the ``phi`` and ``y`` formats, saturating.
-
-        Round to nearest (half up), then clamp to the input word; a value outside is
-        counted, never wrapped. This runs at the edge (a host or the CAN decoder),
-        not in the kernel.
-
-        Returns
-        -------
-        (Phi_int, Y_int, saturations)
-            ``int64`` arrays of the shapes of ``Phi`` and ``Y``, and the counts
-            (``phi_in``, ``y_in``).
-        """
-        Pq, n_phi = self.phi.quantize(Phi)
-        Yq, n_y = self.y.quantize(Y)
-        counts = [0] * kernels.NSITES
-        counts[kernels.S_PHI] = n_phi
-        counts[kernels.S_Y] = n_y
-        return Pq, Yq, SaturationCounts(counts)
-
-    def to_dict(self) -> dict[str, Any]:
-        """A JSON-able dict (``from_dict`` inverts it)."""
-        d: dict[str, Any] = {
-            "word_bits": self.word_bits,
-            "acc_bits": self.acc_bits,
-            "input_bits": self.input_bits,
-        }
-        d.update({name: q.to_dict() for name, q in self.formats().items()})
-        return d
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> FixedConfig:
-        """Rebuild a config from :meth:`to_dict`."""
-        try:
-            kw = {name: _as_qformat(name, d[name]) for name in _QUANTITIES}
-            return cls(
-                word_bits=d["word_bits"], acc_bits=d["acc_bits"], input_bits=d["input_bits"], **kw
-            )
-        except KeyError as e:
-            raise FixedPointError(f"FixedConfig dict lacks key {e}") from e
-
-    @property
-    def label(self) -> str:
-        """Short name of the word lengths, e.g. ``W32/A64/I16``."""
-        return f"W{self.word_bits}/A{self.acc_bits}/I{self.input_bits}"
-
-    def __str__(self) -> str:
-        lines = [f"FixedConfig {self.label}"]
-        for name, q in self.formats().items():
-            lines.append(f"  {name:<6} {q!s:<8} {q.bits:>2} bit  lsb {q.lsb:.3g}  max {q.max:.6g}")
-        return "\n".join(lines)
-
-
-# --------------------------------------------------------------- validation
-def _check_n(n: object) -> int:
-    if isinstance(n, bool):
-        raise EstimatorError(f"FixedRLS n must be a positive integer, got {n!r}")
-    try:
-        v = operator.index(n)  # type: ignore[arg-type]
-    except TypeError as e:
-        raise EstimatorError(f"FixedRLS n must be a positive integer, got {n!r}") from e
-    if v < 1:
-        raise EstimatorError(f"FixedRLS n must be a positive integer, got {n!r}")
-    return v
-
-
-def _real(name: str, value: object) -> float:
-    return _rls_real(name, value, "FixedRLS")
-
-
-def _check_lam(lam: object) -> float:
-    return _rls_check_lam(lam, "FixedRLS", 0.5, " (1/lam is a Q1 word)")
-
-
-def _check_ridge(alpha: object, n: int) -> npt.NDArray[np.float64]:
-    return check_ridge(alpha, n, "FixedRLS")
-
-
-# --------------------------------------------------------------------- plan
-def _mac(
-    acc_bits: int,
-    phi: QFormat,
-    b: QFormat,
-    m: int,
-    out: QFormat | None,
-    term: QFormat | None = None,
-    extra: int = 0,
-) -> tuple[int, int, int]:
-    """Shifts of one multiply-accumulate ``[term] + sum of m products (phi >> ps) * b -> out``.
-
-    Returns ``(ps, ts, os)``: the guard shift of the ``phi`` operand (>= 0), the
-    alignment of the term to the accumulator (> 0: left) and the output shift (> 0:
-    rounding right shift). ``ps`` is the smallest for which the worst case (every
-    operand at the largest magnitude its word holds) plus the rounding constant stays
-    at or below ``2**(acc_bits - 1 - extra) - 1``.
-    """
-    lim = ((1 << (acc_bits - 1)) - 1) >> extra
-    bmax = 1 << (b.bits - 1)
-    for ps in range(0, 63):
-        phimax = ((1 << (phi.bits - 1)) + ((1 << (ps - 1)) if ps else 0)) >> ps
-        fa = phi.frac - ps + b.frac
-        total = m * phimax * bmax
-        ts = 0
-        if term is not None:
-            ts = fa - term.frac
-            tmag = 1 << (term.bits - 1)
-            total += tmag << ts if ts >= 0 else (tmag + (1 << (-ts - 1))) >> -ts
-        os = 0 if out is None else fa - out.frac
-        if os > 0:
-            total += 1 << (os - 1)
-        if total <= lim:
-            return ps, ts, os
-    raise FixedPointError(  # pragma: no cover - only absurd formats
-        f"no guard shift of {phi} fits a {acc_bits}-bit accumulator"
-    )
-
-
-def _pre(acc_bits: int, a: QFormat, b: QFormat, m: int) -> int:
-    """Pre-shift of each product of a rarely used multiply-accumulate (windup test)."""
-    lim = (1 << (acc_bits - 1)) - 1
-    pmax = (1 << (a.bits - 1)) * (1 << (b.bits - 1))
-    for ps in range(0, 63):
-        if m * ((pmax + ((1 << (ps - 1)) if ps else 0)) >> ps) <= lim:
-            return ps
-    raise FixedPointError("no pre-shift fits the accumulator")  # pragma: no cover
-
-
-def _build_plan(
-    cfg: FixedConfig, n: int, lam: float, trace_max: float
-) -> tuple[IntArray, dict[str, int]]:
-    """The kernel's integer constants (``fixed_kernels.I_*`` layout) and a named copy.
-
-    Every constant is an exact function of the config, ``n``, the rational value of
-    ``lam`` and ``trace_max``: Python integers and fractions, no floating point.
-    """
-    A = cfg.acc_bits
-    p = np.zeros(kernels.NPARAM, dtype=np.int64)
-    named: dict[str, int] = {}
-
-    def put(i: int, name: str, v: int) -> None:
-        if not -(1 << 63) <= v < (1 << 63):  # pragma: no cover - guarded by the checks
-            raise FixedPointError(f"plan constant {name} = {v} does not fit 64 bits")
-        p[i] = v
-        named[name] = int(v)
-
-    for q, lo_i, name in (
-        (cfg.phi, kernels.I_PHI_LO, "phi"), (cfg.y, kernels.I_Y_LO, "y"), (cfg.eps, kernels.I_EPS_LO, "eps"),
-        (cfg.h, kernels.I_H_LO, "h"), (cfg.den, kernels.I_DEN_LO, "den"), (cfg.g, kernels.I_G_LO, "g"),
-        (cfg.K, kernels.I_K_LO, "K"), (cfg.theta, kernels.I_TH_LO, "theta"), (cfg.P, kernels.I_P_LO, "P"),
-        (cfg.lam, kernels.I_L_LO, "lam"),
-    ):  # fmt: skip
-        put(lo_i, f"{name}_lo", q.lo)
-        put(lo_i + 1, f"{name}_hi", q.hi)
-
-    # the guard shift of phi: the largest the three multiply-accumulates need,
-    #   eps = y - (phi >> ps)' theta ;  h~ = P~ (phi >> ps) ;  s~ = (phi >> ps)' h~ >> e
-    # (s~ keeps one extra guard bit: the sum is then rounded by e bits)
-    ps = max(
-        _mac(A, cfg.phi, cfg.theta, n, cfg.eps, cfg.y)[0],
-        _mac(A, cfg.phi, cfg.P, n, cfg.h)[0],
-        _mac(A, cfg.phi, cfg.h, n, cfg.den, extra=1)[0],
-    )
-    if ps >= cfg.phi.bits - 1:
-        raise FixedPointError(
-            f"a {A}-bit accumulator cannot sum {n} products of phi {cfg.phi} "
-            f"({cfg.phi.bits} bit) with {cfg.P.bits}-bit words: the guard shift {ps} "
-            f"leaves no bit of phi"
-        )
-    put(kernels.I_PHI_PS, "phi_ps", ps)
-    fa = cfg.phi.frac - ps + cfg.theta.frac
-    put(kernels.I_EPS_TS, "eps_ts", fa - cfg.y.frac)
-    put(kernels.I_EPS_OS, "eps_os", fa - cfg.eps.frac)
-    put(kernels.I_H_OS, "h_os", cfg.phi.frac - ps + cfg.P.frac - cfg.h.frac)
-    put(kernels.I_S_OS, "s_os", cfg.phi.frac - ps + cfg.h.frac - cfg.den.frac)
-    # s = c s~ ; lambda and 1 in the den format
-    put(kernels.I_SC_S, "sc_s", cfg.lam.frac)
-    lam_d = cfg.den.to_int(Fraction(lam))
-    one_d = cfg.den.to_int(1)
-    if not 0 < lam_d <= one_d <= cfg.den.hi:
-        raise FixedPointError(f"lam = {lam!r} and 1 must fit the den format {cfg.den}")
-    put(kernels.I_LAM_D, "lam_den", lam_d)
-    put(kernels.I_ONE_D, "one_den", one_d)
-    # g = DIVIDEND // d ; gc = g c
-    fdiv = cfg.g.frac + cfg.den.frac
-    if fdiv > A - 2:
-        raise FixedPointError(
-            f"dividend 1 << (frac_g + frac_den) = 1 << {fdiv} of g {cfg.g} / den {cfg.den} "
-            f"does not fit the {A}-bit accumulator"
-        )
-    put(kernels.I_DIVIDEND, "dividend", 1 << fdiv)
-    put(kernels.I_GC_S, "gc_s", cfg.lam.frac)
-    # single products rounded to their destination
-    # K = rsh((h~ << k)(gc << g_up), 32): the high word of the product, with gc brought to
-    # 32 bits; its fraction is then f_K' = f_h + k + f_g + g_up - 32 (exponent e)
-    g_up = 32 - cfg.g.bits
-    f_Kn = cfg.h.frac + cfg.g.frac + g_up - 32
-    put(kernels.I_G_UP, "g_up", g_up)
-    put(kernels.I_TH_S, "theta_s", f_Kn + cfg.eps.frac - cfg.theta.frac)
-    put(kernels.I_P_S, "P_s", f_Kn + cfg.h.frac - cfg.P.frac)
-    # c <- c / lambda_k
-    one_l = 1 << cfg.lam.frac
-    inv_l = cfg.lam.to_int(1 / Fraction(lam))
-    if not one_l <= inv_l <= cfg.lam.hi:
-        raise FixedPointError(f"1/lam = {1 / lam!r} does not fit the lam format {cfg.lam}")
-    put(kernels.I_INV_LAM, "inv_lam", inv_l)
-    put(kernels.I_ONE_L, "one_lam", one_l)
-    put(kernels.I_C_S, "c_s", cfg.lam.frac)
-    # trace bound: the diagonal summed >> tr_ps must fit a word of min(P bits, A - 3) bits
-    tw = min(cfg.P.bits, A - 3)
-    tr_ps = 0
-    while n * (((1 << (cfg.P.bits - 1)) + ((1 << (tr_ps - 1)) if tr_ps else 0)) >> tr_ps) >= (
-        1 << (tw - 1)
-    ):
-        tr_ps += 1
-    put(kernels.I_TR_PS, "trace_ps", tr_ps)
-    put(kernels.I_TC_S, "tc_s", cfg.lam.frac)
-    tr_cap = (1 << (tw - 1)) - 1  # tr P (times c <= 1) can never exceed this
-    if math.isinf(trace_max):
-        tmax = tr_cap
-    else:
-        lam_q = Fraction(cfg.lam.to_int(Fraction(lam)), one_l)
-        tq = lam_q * Fraction(trace_max) * Fraction(2) ** (cfg.P.frac - tr_ps)
-        tmax = min(math.floor(tq), tr_cap)
-    put(kernels.I_TMAX, "trace_max_lam", tmax)
-    put(kernels.I_TMAX_LIM, "trace_max_lim", 1 << (A - 3))
-    # windup test: h = c h~, h'w pre-shifted, (tr P - lambda trace_max) d pre-shifted
-    put(kernels.I_HC_S, "hc_s", cfg.lam.frac)
-    vw_ps = _pre(A, cfg.h, cfg.h, n)
-    lhs_ps = _pre(A, cfg.P, cfg.den, 1)
-    put(kernels.I_VW_PS, "vw_ps", vw_ps)
-    put(kernels.I_LHS_PS, "lhs_ps", lhs_ps)
-    f_lhs = cfg.P.frac - tr_ps + cfg.den.frac - lhs_ps
-    f_vw = 2 * cfg.h.frac - vw_ps
-    put(kernels.I_CMP_DF, "cmp_scale_diff", f_lhs - f_vw)
-    # block exponent of P: the window (tr_hi/2, tr_hi], and the largest exponent so
-    # that every shift by (s + e) stays <= 62 and s~ >> e keeps its guard bit
-    put(kernels.I_TR_HI, "trace_hi", 1 << (cfg.P.bits - 2))
-    e_max = min(A - 3, 62 - named["theta_s"], 62 - named["P_s"])
-    put(kernels.I_E_MAX, "e_max", e_max)
-    for name, v in named.items():
-        if name.endswith(("_ps", "_s")) and not 0 <= v <= 62:
-            raise FixedPointError(
-                f"shift {name} = {v} is outside 0..62: the Q formats of this configuration "
-                f"are too far apart (or too close) for a {A}-bit accumulator"
-            )
-        if name.endswith(("_os", "_ts")) and abs(v) > 62:
-            raise FixedPointError(f"shift {name} = {v} exceeds 62 bits")
-    if e_max < 0:  # pragma: no cover - only absurd formats
-        raise FixedPointError(f"no room for the block exponent of P {cfg.P}")
-    return p, named
-
-
-# --------------------------------------------------------- result objects
-class FixedFlag(enum.IntFlag):
-    """Per-step status bits; the values of :class:`canrls.estimation.rls.RLSFlag`."""
-
-    NONE = 0
-    #: The trace bound held this step: taken with lambda = 1.
-    WINDUP = kernels.FLAG_WINDUP
-    #: The sample's information rounded to zero on the diagonal of P.
-    LOW_EXCITATION = kernels.FLAG_LOW_EXCITATION
-    #: A value saturated during this step (see :attr:`FixedRLS.saturations`).
-    SATURATION = kernels.FLAG_SATURATION
-    #: The estimator is frozen: the error was computed, the state left untouched.
-    FROZEN = kernels.FLAG_FROZEN
-
-
-_FLAGS: tuple[FixedFlag, ...] = tuple(FixedFlag(i) for i in range(16))
-
-
-class SaturationCounts(Mapping[str, int]):
-    """Read-only counts of saturations per site (a ``Mapping[str, int]`` over :data:`SITES`).
-
-    Examples
-    --------
-    >>> c = SaturationCounts.of({"theta": 2})
-    >>> c["theta"], c["P"], c.total
-    (2, 0, 2)
-    """
-
-    __slots__ = ("_v",)
-
-    def __init__(self, values: Sequence[int] | npt.ArrayLike) -> None:
-        v = tuple(np.asarray(values, dtype=np.int64).ravel().tolist())
-        if len(v) != len(SITES):
-            raise EstimatorError(f"SaturationCounts needs {len(SITES)} values, got {len(v)}")
-        self._v = v
-
-    @classmethod
-    def of(cls, d: Mapping[str, int]) -> SaturationCounts:
-        """Counts from a partial ``{site: count}`` mapping (missing sites are 0)."""
-        bad = set(d) - set(SITES)
-        if bad:
-            raise EstimatorError(f"unknown saturation site(s) {sorted(bad)}; sites are {SITES}")
-        return cls([int(d.get(s, 0)) for s in SITES])
-
-    def __getitem__(self, key: str) -> int:
-        try:
-            return self._v[SITES.index(key)]
-        except ValueError:
-            raise KeyError(key) from None
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(SITES)
-
-    def __len__(self) -> int:
-        return len(SITES)
-
-    def __add__(self, other: SaturationCounts) -> SaturationCounts:
-        return SaturationCounts([a + b for a, b in zip(self._v, other._v, strict=True)])
-
-    def __sub__(self, other: SaturationCounts) -> SaturationCounts:
-        return SaturationCounts([a - b for a, b in zip(self._v, other._v, strict=True)])
-
-    def __eq__(self, other: object) -> bool:
-        if isinstance(other, SaturationCounts):
-            return self._v == other._v
-        return Mapping.__eq__(self, other)
-
-    def __hash__(self) -> int:
-        return hash(self._v)
-
-    @property
-    def total(self) -> int:
-        """Sum over all sites."""
-        return sum(self._v)
-
-    def nonzero(self) -> dict[str, int]:
-        """The sites that saturated, ``{site: count}``."""
-        return {s: v for s, v in zip(SITES, self._v, strict=True) if v}
-
-    def __repr__(self) -> str:
-        return f"SaturationCounts({self.nonzero()})"
-
-
-@dataclass(frozen=True)
-class FixedStep:
-    """The result of one :meth:`FixedRLS.update` (integers in the config's formats).
-
-    Attributes
-    ----------
-    eps : int
-        A-priori error (``eps`` format).
-    K : ndarray of int64, shape (n,)
-        Gain applied this step, the high word of :math:`(\\tilde h\\,2^{k})(g c\\,2^{g_{up}})`:
-        :math:`K\\,2^{f_h + f_g + g_{up} - 32 + e + k}` with ``e = P_exp`` before the
-        renormalisation of this step and ``k`` the step's normalisation shift of
-        :math:`\\tilde h` (zeros when frozen).
-    theta : ndarray of int64, shape (n,)
-        Estimate after the step (``theta`` format, a copy).
-    trace_P : int
-        :math:`\\mathrm{tr}\\,P\\,2^{f_{tr} + e}` after the step, with
-        :math:`f_{tr}` = ``trace_frac``.
-    P_exp : int
-        Block exponent ``e`` of ``P`` after the step.
-    trace_frac : int
-        Fraction bits of ``trace_P`` at ``e = 0`` (``P.frac`` less the trace guard shift).
-    flags : FixedFlag
-        Status bits of the step.
-    """
-
-    eps: int
-    K: IntArray
-    theta: IntArray
-    trace_P: int
-    P_exp: int
-    trace_frac: int
-    flags: FixedFlag
-
-    @property
-    def trace_float(self) -> float:
-        """:math:`\\mathrm{tr}\\,P` after the step as a float."""
-        return math.ldexp(float(self.trace_P), -(self.trace_frac + self.P_exp))
-
-
-@dataclass(frozen=True)
-class FixedTrace:
-    """The record of one :meth:`FixedRLS.run` over N samples (integers).
-
-    Attributes
-    ----------
-    eps : ndarray of int64, shape (N,)
-        A-priori errors (``eps`` format).
-    theta : ndarray of int64, shape (N, n) or None
-        Estimate after each sample (``theta`` format); ``None`` with ``record=False``.
-    trace_P : ndarray of int64, shape (N,)
-        :math:`\\mathrm{tr}\\,P\\,2^{f_{tr}+e}` after each sample (:meth:`trace_float`).
-    P_exp : ndarray of int64, shape (N,)
-        Block exponent ``e`` of ``P`` after each sample.
-    trace_frac : int
-        :math:`f_{tr}`: fraction bits of ``trace_P`` at ``e = 0``.
-    flags : ndarray of uint8, shape (N,)
-        :class:`FixedFlag` bits per sample.
-    theta_final : ndarray of int64, shape (n,)
-        Estimate at the end of the block.
-    applied : int
-        Samples that updated the state.
-    saturations : SaturationCounts
-        Saturations that happened during this block.
-    config : FixedConfig
-        The formats, to convert the integers (:meth:`theta_float`, :meth:`eps_float`).
-    """
-
-    eps: IntArray
-    theta: IntArray | None
-    trace_P: IntArray
-    P_exp: IntArray
-    trace_frac: int
-    flags: npt.NDArray[np.uint8]
-    theta_final: IntArray
-    applied: int
-    saturations: SaturationCounts
-    config: FixedConfig
-
-    def __len__(self) -> int:
-        return int(self.eps.shape[0])
-
-    def count(self, flag: FixedFlag) -> int:
-        """Number of samples whose flags contain every bit of ``flag``."""
-        f = int(flag)
-        return int(np.count_nonzero((self.flags & f) == f))
-
-    def theta_float(self) -> FloatArray:
-        """``theta`` (or ``theta_final`` if not recorded) as floats."""
-        t = self.theta if self.theta is not None else self.theta_final
-        return np.asarray(self.config.theta.to_float(t))
-
-    def eps_float(self) -> FloatArray:
-        """``eps`` as floats."""
-        return np.asarray(self.config.eps.to_float(self.eps))
-
-    def trace_float(self) -> FloatArray:
-        """:math:`\\mathrm{tr}\\,P` after each sample as floats."""
-        return np.ldexp(self.trace_P.astype(np.float64), -(self.trace_frac + self.P_exp))
 
 
 # ---------------------------------------------------------------- estimator
@@ -1143,9 +264,9 @@ class FixedRLS:
     ) -> None:
         if not isinstance(config, FixedConfig):
             raise EstimatorError(f"FixedRLS config must be a FixedConfig, got {config!r}")
-        n_i = _check_n(n)
-        lam_f = _check_lam(lam)
-        ridge = _check_ridge(alpha, n_i)
+        n_i = check_n(n)
+        lam_f = check_lam(lam)
+        ridge = check_ridge(alpha, n_i)
         if update not in _UPDATES:
             raise EstimatorError(
                 f"FixedRLS update must be one of {sorted(_UPDATES)}, got {update!r}"
@@ -1153,7 +274,7 @@ class FixedRLS:
         if trace_max is None:
             tm = float(np.sum(1.0 / ridge))
         else:
-            tm = _real("trace_max", trace_max)
+            tm = check_real("trace_max", trace_max)
             if not tm > 0.0:
                 raise EstimatorError(f"FixedRLS trace_max must be > 0 (or None), got {trace_max!r}")
         # P0_jj = 1/alpha_j, exactly rounded to the P format
@@ -1173,15 +294,16 @@ class FixedRLS:
         self._mode = _UPDATES[update]
         self._p0 = p0
         self._lam = lam_f
-        self._plan, self._named = _build_plan(config, n_i, lam_f, tm)
+        self._plan, self._named = build_plan(config, n_i, lam_f, tm)
         self._cplan: IntArray = self._plan
         self._cplan_of: IntArray | None = None  # the plan self._cplan was built from
         self._force_spec = False
         self._trace_frac = config.P.frac - self._named["trace_ps"]
-        self._in_fmt = np.array([config.phi._rounding(), config.y._rounding()])
+        self._in_fmt = np.array([config.phi.rounding(), config.y.rounding()])
         self._theta = np.zeros(n_i, np.int64)
         self._theta_frac = np.zeros(n_i, np.int64)  # below the LSB, 2^-32 LSB units
         self._P = np.zeros((n_i, n_i), np.int64)
+        self._P_frac = np.zeros((n_i, n_i), np.int64)  # below the words, 2^-32 LSB units
         self._scale = np.zeros(2, np.int64)  # [e, c]
         self._work = np.zeros((6, n_i), np.int64)
         self._counts = np.zeros(len(SITES), np.int64)
@@ -1200,6 +322,7 @@ class FixedRLS:
     def _reset_arrays(self) -> None:
         # P0 = diag(1 / alpha_j) ; theta0 = 0
         self._P[...] = 0
+        self._P_frac[...] = 0
         self._P[np.diag_indices(self._n)] = self._p0
         self._scale[0] = 0
         self._scale[1] = 1 << self._config.lam.frac
@@ -1297,15 +420,32 @@ class FixedRLS:
         return P
 
     @property
+    def P_frac(self) -> IntArray:
+        """The fractions of the words :attr:`P` in units of :math:`2^{-32}` LSB, in
+        :math:`[-2^{31}, 2^{31})`, shape (n, n) (a copy, mirrored like :attr:`P`).
+
+        :math:`\\tilde P` is held in 64 bits, ``P * 2**32 + P_frac``; the word ``P`` is it
+        rounded half up to the ``P`` format, which is what the kernel reads (``h = P~
+        phi``, the trace); the update ``P~ - K h~'`` is subtracted from the 64 bits
+        (docs/fixed_point.md, *The covariance in 64 bits*).
+        """
+        F = self._P_frac.copy()
+        if self._mode == kernels.MODE_SYMMETRIC:
+            il = np.tril_indices(self._n, -1)
+            F[il] = F.T[il]
+        return F
+
+    @property
     def theta_float(self) -> FloatArray:
         """Estimate as float64 (normalised units)."""
         return np.asarray(self._config.theta.to_float(self._theta))
 
     @property
     def P_float(self) -> FloatArray:
-        """:math:`P` as float64, shape (n, n)."""
+        """:math:`P` as float64 (the words and their fractions), shape (n, n)."""
         c = self._config.lam.to_float(self.P_scale)
-        return c * np.ldexp(self.P.astype(np.float64), -(self._config.P.frac + self.P_exp))
+        words = self.P.astype(np.float64) + np.ldexp(self.P_frac.astype(np.float64), -32)
+        return c * np.ldexp(words, -(self._config.P.frac + self.P_exp))
 
     @property
     def saturations(self) -> SaturationCounts:
@@ -1326,7 +466,7 @@ class FixedRLS:
         ndarray, shape (n,)
             ``nan`` where the diagonal of :math:`P` is negative (a broken literal P).
         """
-        s2 = _real("sigma2", sigma2)
+        s2 = check_real("sigma2", sigma2)
         if not s2 >= 0.0:
             raise EstimatorError(f"FixedRLS sigma2 must be >= 0, got {sigma2!r}")
         d = np.diag(self.P_float)
@@ -1353,8 +493,8 @@ class FixedRLS:
 
     def set_lambda(self, lam: float) -> None:
         """Change the forgetting factor (new Q constants; validated like the constructor's)."""
-        lam_f = _check_lam(lam)
-        self._plan, self._named = _build_plan(self._config, self._n, lam_f, self._trace_max)
+        lam_f = check_lam(lam)
+        self._plan, self._named = build_plan(self._config, self._n, lam_f, self._trace_max)
         self._lam = lam_f
 
     def rescale(self, d: npt.ArrayLike, dy: int = 0,
@@ -1362,10 +502,10 @@ class FixedRLS:
         r"""New units for the columns and the target, by powers of two, and raised
         priors, as :meth:`canrls.estimation.rls.RLS.rescale` does them: computed exactly
         (rationals) on the real values the words stand for, then rounded half up back to
-        the words: the 64-bit estimate, and :math:`\tilde P` with the largest block
-        exponent ``e`` (at most ``e_max``) that keeps :math:`\mathrm{tr}\tilde P` within
-        half the word's range, as the kernel keeps it. Where even ``e = 0`` cannot hold
-        a value it saturates, counted (``theta``, ``P``)."""
+        the words: the 64-bit estimate, and the 64-bit :math:`\tilde P` (its words and
+        fractions) with the largest block exponent ``e`` (at most ``e_max``) that keeps
+        :math:`\mathrm{tr}\tilde P` within half the word's range, as the kernel keeps it.
+        Where even ``e = 0`` cannot hold a value it saturates, counted (``theta``, ``P``)."""
         n = self._n
         dv = [int(x) for x in np.asarray(d, dtype=np.int64).reshape(-1)]
         if len(dv) != n:
@@ -1376,10 +516,10 @@ class FixedRLS:
         # the real values: P = c P~ 2^-(f_P + e), theta = (word 2^32 + frac) 2^-(32 + f_th)
         c = Fraction(int(self._scale[1])) / two ** cfg.lam.frac
         e = int(self._scale[0])
-        Pw = self.P  # the whole matrix (the triangle mirrored)
-        unit = c / two ** (cfg.P.frac + e)
-        P = [[Fraction(int(Pw[j, k])) * unit * two ** (dv[j] + dv[k]) for k in range(n)]
-             for j in range(n)]
+        Pw, Pf = self.P, self.P_frac  # the whole matrix (the triangle mirrored)
+        unit = c / two ** (cfg.P.frac + e + 32)
+        P = [[Fraction((int(Pw[j, k]) << 32) + int(Pf[j, k])) * unit * two ** (dv[j] + dv[k])
+              for k in range(n)] for j in range(n)]
         th_unit = two ** -(32 + cfg.theta.frac)
         th = [Fraction((int(self._theta[j]) << 32) | int(self._theta_frac[j])) * th_unit
               * two ** (dv[j] - dy) for j in range(n)]
@@ -1419,13 +559,9 @@ class FixedRLS:
             if tr / words_at(ex) <= half and top / words_at(ex) <= cfg.P.hi:
                 e_new = ex
                 break
-        u = words_at(e_new)
+        u = words_at(e_new) / two ** 32
         for j, k in cells:
-            v = math.floor(P[j][k] / u + Fraction(1, 2))
-            if not cfg.P.lo <= v <= cfg.P.hi:
-                self._counts[kernels.S_P] += 1
-                v = min(max(v, cfg.P.lo), cfg.P.hi)
-            self._P[j, k] = v
+            self._put_P(j, k, math.floor(P[j][k] / u + Fraction(1, 2)))
         self._scale[0] = e_new
         self._ridge = np.array([float(a) for a in ridge], dtype=np.float64)
         self._prior_changed()
@@ -1433,20 +569,28 @@ class FixedRLS:
     def set_prior(self, j: int, alpha: float) -> None:
         r"""Give parameter ``j`` the ridge weight ``alpha`` as if from the start
         (:meth:`canrls.estimation.rls.RLS.set_prior`): :math:`\tilde P_{jj} \leftarrow
-        \tilde P_{jj}\,\alpha_j/\alpha`, rounded half up, saturated (counted)."""
-        a = _real("alpha", alpha)
+        \tilde P_{jj}\,\alpha_j/\alpha` in 64 bits, rounded half up at :math:`2^{-32}` LSB,
+        saturated (counted)."""
+        a = check_real("alpha", alpha)
         if not (a > 0.0 and math.isfinite(a)):
             raise EstimatorError(f"FixedRLS alpha must be > 0, got {alpha!r}")
         ratio = Fraction(float(self._ridge[j])) / Fraction(a)
-        v = math.floor(int(self._P[j, j]) * ratio + Fraction(1, 2))
-        P = self._config.P
-        if not P.lo <= v <= P.hi:
-            self._counts[kernels.S_P] += 1
-            v = min(max(v, P.lo), P.hi)
-        self._P[j, j] = v
+        V = (int(self._P[j, j]) << 32) + int(self._P_frac[j, j])
+        self._put_P(j, j, math.floor(V * ratio + Fraction(1, 2)))
         self._ridge = self._ridge.copy()
         self._ridge[j] = a
         self._prior_changed()
+
+    def _put_P(self, j: int, k: int, V: int) -> None:
+        r"""Store :math:`V = \tilde P_{jk} 2^{32}` as the word ``rsh(V, 32)`` and its
+        fraction, saturated to the word (counted), as the kernel stores it."""
+        P = self._config.P
+        lo, hi = (P.lo << 32) - (1 << 31), (P.hi << 32) + (1 << 31) - 1
+        if not lo <= V <= hi:
+            self._counts[kernels.S_P] += 1
+            V = min(max(V, lo), hi)
+        w = (V + (1 << 31)) >> 32
+        self._P[j, k], self._P_frac[j, k] = w, V - (w << 32)
 
     def _prior_changed(self) -> None:
         """The prior's words for :meth:`reset` and, where it is the prior's, the trace bound."""
@@ -1455,7 +599,7 @@ class FixedRLS:
                              for a in self._ridge], np.int64)
         if self._trace_default:
             self._trace_max = float(np.sum(1.0 / self._ridge))
-            self._plan, self._named = _build_plan(self._config, self._n, self._lam,
+            self._plan, self._named = build_plan(self._config, self._n, self._lam,
                                                   self._trace_max)
 
     # -------------------------------------------------------------- updates
@@ -1490,9 +634,9 @@ class FixedRLS:
         ``Phi`` (N, n) and ``Y`` (N,) itself, C-contiguous float64."""
         Pq = np.empty(Phi.shape, np.int64)
         Yq = np.empty(Y.shape, np.int64)
-        nan = _round_inputs(Phi.reshape(-1), Y, self._in_fmt, Pq.reshape(-1), Yq, self._counts)
+        nan = round_inputs(Phi.reshape(-1), Y, self._in_fmt, Pq.reshape(-1), Yq, self._counts)
         if nan:
-            raise _nan_error(self._config.phi if nan == 1 else self._config.y)
+            raise nan_error(self._config.phi if nan == 1 else self._config.y)
         return Pq, Yq
 
     def update(self, phi_int: npt.ArrayLike, y_int: int) -> FixedStep:
@@ -1601,8 +745,8 @@ class FixedRLS:
         Set it to ``"spec"`` to run the specification (a test's reference), or to
         ``"auto"`` for the C kernel wherever it applies (the default).
         """
-        if (not self._force_spec and _CFIXED is not None
-                and self._mode == kernels.MODE_SYMMETRIC and self._n <= _CFIXED.N_MAX):
+        if (not self._force_spec and C_FIXED is not None
+                and self._mode == kernels.MODE_SYMMETRIC and self._n <= C_FIXED.N_MAX):
             return "c"
         return "spec"
 
@@ -1617,19 +761,19 @@ class FixedRLS:
                flags: npt.NDArray[np.uint8]) -> int:
         """Run the kernel (:attr:`backend`) over a block, in place; rows applied."""
         if self.backend == "c":
-            assert _CFIXED is not None
+            assert C_FIXED is not None
             if self._cplan_of is not self._plan:
                 # the plan in the order of the C struct's fields (canrls_plan_q31)
-                self._cplan = np.array([self._named[f] for f in _CFIXED.PLAN_FIELDS], np.int64)
+                self._cplan = np.array([self._named[f] for f in C_FIXED.PLAN_FIELDS], np.int64)
                 self._cplan_of = self._plan
-            return int(_CFIXED.run_block(
-                Phi, Y, self._theta, self._theta_frac, self._P, self._scale, self._work[4], self._counts,
-                self._cplan, self._frozen, eps, theta_out if record else None, trace_P,
-                P_exp, flags,
+            return int(C_FIXED.run_block(
+                Phi, Y, self._theta, self._theta_frac, self._P, self._P_frac, self._scale,
+                self._work[4], self._counts, self._cplan, self._frozen, eps,
+                theta_out if record else None, trace_P, P_exp, flags,
             ))  # fmt: skip
         return int(_spec_kernels().fixed_block(
-            Phi, Y, self._theta, self._theta_frac, self._P, self._scale, self._work, self._counts,
-            self._plan, self._mode, self._frozen, record,
+            Phi, Y, self._theta, self._theta_frac, self._P, self._P_frac, self._scale,
+            self._work, self._counts, self._plan, self._mode, self._frozen, record,
             eps, theta_out, trace_P, P_exp, flags,
         ))  # fmt: skip
 
@@ -1653,6 +797,7 @@ class FixedRLS:
             "theta": self._theta.copy(),
             "theta_frac": self._theta_frac.copy(),
             "P": self._P.copy(),
+            "P_frac": self._P_frac.copy(),
             "P_exp": int(self._scale[0]),
             "P_scale": int(self._scale[1]),
             "counts": self._counts.copy(),
@@ -1679,10 +824,11 @@ class FixedRLS:
             return v
 
         fmt = get("format")
-        if fmt not in (STATE_FORMAT, STATE_FORMAT_1):
+        if fmt not in (STATE_FORMAT, STATE_FORMAT_2, STATE_FORMAT_1):
             raise CheckpointError(
                 f"FixedRLS checkpoint format is {fmt!r}, expected {STATE_FORMAT!r} "
-                f"(or {STATE_FORMAT_1!r}, read with theta_frac = 0)"
+                f"(or {STATE_FORMAT_2!r}, read with P_frac = 0, or {STATE_FORMAT_1!r}, "
+                f"read with theta_frac = 0 and P_frac = 0)"
             )
         try:
             cfg_d = get("config")
@@ -1705,8 +851,9 @@ class FixedRLS:
         frac = (0, (1 << 32) - 1)  # theta_frac: 2^-32 LSB, below one LSB
         for key, target, shape, q in (
             ("theta", rls._theta, (n,), cfg.theta),
-            *((("theta_frac", rls._theta_frac, (n,), frac),) if fmt == STATE_FORMAT else ()),
+            *((("theta_frac", rls._theta_frac, (n,), frac),) if fmt != STATE_FORMAT_1 else ()),
             ("P", rls._P, (n, n), cfg.P),
+            *((("P_frac", rls._P_frac, (n, n), P_FRAC_RANGE),) if fmt == STATE_FORMAT else ()),
             ("counts", rls._counts, (len(SITES),), None),
         ):
             try:
@@ -1752,243 +899,9 @@ class FixedRLS:
     def __repr__(self) -> str:
         return (
             f"FixedRLS({self._config.label}, n={self._n}, lam={self._lam!r}, "
-            f"alpha={ridge_value(self._ridge)!r}, trace_max={self._trace_max!r}, update={self._update!r}, "
+            f"alpha={ridge_value(self._ridge)!r}, trace_max={self._trace_max!r}, "
+            f"update={self._update!r}, "
             f"count={self.count}, frozen={self._frozen})"
         )
 
 
-# -------------------------------------------------------------------- sweep
-@dataclass(frozen=True)
-class SweepRow:
-    """One configuration of a :func:`sweep`.
-
-    Attributes
-    ----------
-    label : str
-        ``W{word}/A{acc}/I{input}`` or the name given with the config.
-    config : FixedConfig or None
-        ``None`` when the word lengths cannot represent the problem (see ``error``).
-    max_rel_error : float
-        Largest relative parameter error against ``theta_ref`` (``inf`` if not run).
-    rel_errors : tuple of float
-        Relative error per parameter.
-    theta : tuple of float
-        Final fixed-point estimate (float, normalised units).
-    saturations : SaturationCounts
-        Saturations over the run (inputs included).
-    ok : bool
-        ``max_rel_error <= tol``.
-    error : str or None
-        Why the configuration could not be run.
-    """
-
-    label: str
-    config: FixedConfig | None
-    max_rel_error: float
-    rel_errors: tuple[float, ...]
-    theta: tuple[float, ...]
-    saturations: SaturationCounts
-    ok: bool
-    error: str | None = None
-
-    @property
-    def cost(self) -> tuple[int, int, int]:
-        """Sort key of "smallest": (state word, accumulator, input word)."""
-        c = self.config
-        return (c.word_bits, c.acc_bits, c.input_bits) if c is not None else (99, 99, 99)
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-able dict (``inf``/``nan`` as ``None``)."""
-
-        def num(x: float) -> float | None:
-            return x if math.isfinite(x) else None
-
-        return {
-            "label": self.label,
-            "word_bits": self.config.word_bits if self.config else None,
-            "acc_bits": self.config.acc_bits if self.config else None,
-            "input_bits": self.config.input_bits if self.config else None,
-            "max_rel_error": num(self.max_rel_error),
-            "rel_errors": [num(x) for x in self.rel_errors],
-            "theta": [num(x) for x in self.theta],
-            "saturations": dict(self.saturations),
-            "ok": self.ok,
-            "error": self.error,
-            "config": self.config.to_dict() if self.config else None,
-        }
-
-
-@dataclass(frozen=True)
-class SweepResult:
-    """The outcome of :func:`sweep`: one row per configuration and a recommendation.
-
-    ``str(result)`` is a text table; :meth:`to_dict` is JSON-able.
-
-    Attributes
-    ----------
-    rows : tuple of SweepRow
-        In the order run.
-    tol : float
-        Relative tolerance on every parameter.
-    floor : float
-        Parameters smaller than this are measured against it instead.
-    theta_ref : tuple of float
-        The float reference.
-    recommended : SweepRow or None
-        The smallest configuration (by :attr:`SweepRow.cost`) within ``tol``.
-    """
-
-    rows: tuple[SweepRow, ...]
-    tol: float
-    floor: float
-    theta_ref: tuple[float, ...]
-    recommended: SweepRow | None
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-able dict."""
-        return {
-            "tol": self.tol,
-            "floor": self.floor,
-            "theta_ref": list(self.theta_ref),
-            "recommended": self.recommended.label if self.recommended else None,
-            "rows": [r.to_dict() for r in self.rows],
-        }
-
-    def __str__(self) -> str:
-        head = (
-            f"{'config':<16} {'word':>4} {'acc':>4} {'input':>5} {'max rel err':>12}  "
-            f"{'ok':<3} saturations"
-        )
-        lines = [head, "-" * len(head)]
-        for r in self.rows:
-            c = r.config
-            if c is None:
-                blank = f"{'':>4} {'':>4} {'':>5}"
-                lines.append(f"{r.label:<16} {blank} {'n/a':>12}  {'no':<3} {r.error}")
-                continue
-            sat = ", ".join(f"{k}={v}" for k, v in r.saturations.nonzero().items()) or "-"
-            lines.append(
-                f"{r.label:<16} {c.word_bits:>4} {c.acc_bits:>4} {c.input_bits:>5} "
-                f"{r.max_rel_error:>12.3e}  {'yes' if r.ok else 'no':<3} {sat}"
-            )
-        if self.recommended is not None:
-            lines.append(
-                f"recommended: {self.recommended.label} (max relative error "
-                f"{self.recommended.max_rel_error:.3e} <= {self.tol:.3g})"
-            )
-        else:
-            lines.append(f"recommended: none meets the tolerance {self.tol:.3g}")
-        return "\n".join(lines)
-
-
-def sweep(
-    Phi: npt.ArrayLike,
-    Y: npt.ArrayLike,
-    theta_ref: npt.ArrayLike,
-    configs: Sequence[FixedConfig] | Mapping[str, FixedConfig] | None = None,
-    *,
-    lam: float = 1.0,
-    alpha: float | npt.ArrayLike = 1e-2,
-    trace_max: float | None = None,
-    word_bits: Sequence[int] = (16, 24, 32),
-    acc_bits: Sequence[int] = (32, 48, 64),
-    input_bits: Sequence[int] = (16, 32),
-    phi_max: float | Sequence[float] = 1.0,
-    y_max: float = 1.0,
-    theta_max: float | None = None,
-    tol: float = 1e-3,
-    floor: float | None = None,
-    update: str = "symmetric",
-) -> SweepResult:
-    r"""Run the fixed-point RLS for several word lengths and compare with a float reference.
-
-    Parameters
-    ----------
-    Phi : array_like, shape (N, n)
-        Normalised regressors (float).
-    Y : array_like, shape (N,)
-        Normalised targets (float).
-    theta_ref : array_like, shape (n,)
-        Float reference estimate on the same data (e.g. ``canrls.estimation.rls.RLS`` with the
-        same ``lam``, ``alpha``, ``trace_max``).
-    configs : sequence or mapping of FixedConfig, optional
-        Explicit configurations (a mapping gives them labels). Default: every
-        combination of ``word_bits`` x ``acc_bits`` x ``input_bits`` through
-        :meth:`FixedConfig.auto`.
-    lam, alpha, trace_max : float
-        Estimator settings (as for :class:`FixedRLS`).
-    word_bits, acc_bits, input_bits : sequences of int
-        The grid of word lengths (when ``configs`` is not given).
-    phi_max, y_max, theta_max : float
-        Ranges for :meth:`FixedConfig.auto`.
-    tol : float, default 1e-3
-        Tolerance on every parameter's relative error (0.1 %).
-    floor : float or None
-        A parameter smaller than this is measured against ``floor`` instead of its
-        own size (so a zero parameter does not fail everything); ``None``: 1 % of
-        the largest :math:`|\theta_{ref}|`.
-    update : {"symmetric", "literal", "naive"}
-
-    Returns
-    -------
-    SweepResult
-        Per configuration: relative errors and saturations; the recommended (smallest
-        by state word, then accumulator, then input word) configuration within ``tol``.
-    """
-    Phi_a = np.asarray(Phi, dtype=np.float64)
-    Y_a = np.asarray(Y, dtype=np.float64)
-    ref = np.asarray(theta_ref, dtype=np.float64)
-    if Phi_a.ndim != 2:
-        raise EstimatorError(f"sweep Phi must have shape (N, n), got {Phi_a.shape}")
-    N, n = Phi_a.shape
-    if Y_a.shape != (N,) or ref.shape != (n,):
-        raise EstimatorError(
-            f"sweep Y must have shape ({N},) and theta_ref ({n},), got {Y_a.shape}, {ref.shape}"
-        )
-    fl = 0.01 * float(np.max(np.abs(ref))) if floor is None else float(floor)
-    if not fl > 0:
-        fl = np.finfo(np.float64).tiny
-    scale = np.maximum(np.abs(ref), fl)
-
-    todo: list[tuple[str, FixedConfig | None, str | None]] = []
-    if configs is None:
-        for W in word_bits:
-            for A in acc_bits:
-                for In in input_bits:
-                    label = f"W{W}/A{A}/I{In}"
-                    try:
-                        cfg = FixedConfig.auto(
-                            n, alpha, lam, phi_max=phi_max, y_max=y_max, theta_max=theta_max,
-                            word_bits=W, acc_bits=A, input_bits=In, trace_max=trace_max,
-                        )  # fmt: skip
-                        todo.append((label, cfg, None))
-                    except FixedPointError as e:
-                        todo.append((label, None, str(e)))
-    elif isinstance(configs, Mapping):
-        todo = [(str(k), v, None) for k, v in configs.items()]
-    else:
-        todo = [(c.label, c, None) for c in configs]
-
-    rows: list[SweepRow] = []
-    zero = SaturationCounts.of({})
-    for label, cfg, err in todo:
-        if cfg is not None:
-            try:
-                est = FixedRLS(cfg, n, lam, alpha, trace_max=trace_max, update=update)
-            except FixedPointError as e:
-                cfg, err = None, str(e)
-        if cfg is None:
-            rows.append(SweepRow(label, None, math.inf, (), (), zero, False, err))
-            continue
-        Pq, Yq, _ = est.quantize_inputs(Phi_a, Y_a)
-        est.run(Pq, Yq, record=False)
-        th = est.theta_float
-        rel = np.abs(th - ref) / scale
-        mx = float(rel.max())
-        rows.append(
-            SweepRow(label, cfg, mx, tuple(float(x) for x in rel), tuple(float(x) for x in th),
-                     est.saturations, bool(mx <= tol))
-        )  # fmt: skip
-    ok = [r for r in rows if r.ok]
-    rec = min(ok, key=lambda r: r.cost) if ok else None
-    return SweepResult(tuple(rows), float(tol), fl, tuple(float(x) for x in ref), rec)

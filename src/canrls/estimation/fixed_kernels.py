@@ -29,13 +29,17 @@ Integer operations (all on ``int64``, no floating point anywhere)
   ``[lo, hi]``; every clamp increments the counter of its site. A negative output
   shift (a store to a *finer* format) is a left shift that saturates before
   shifting, so it cannot wrap either.
-* **single product to a word** (``K``, ``P``, ...): the exact product is
-  rounded once to the destination's scale and added to the destination with
-  saturation, e.g. ``P_ij <- sat(P_ij - rsh(K_i h_j, s))``. ``theta`` is the exception:
-  the estimate is 64 bits, the word ``theta`` and a fraction ``theta_frac`` in units of
-  ``2^-32`` LSB, and ``K_i eps`` is added to it floored at ``2^-32`` LSB (from the high
-  word of the product when the shift is 32 or more), then saturated to the word
-  (:func:`_theta_add`): updates smaller than the LSB accumulate instead of rounding to 0.
+* **single product to a word** (``K``, ``g c``, ...): the exact product is
+  rounded once to the destination's scale and stored with saturation. ``theta`` and
+  ``P`` are held in 64 bits, a word and a fraction below it in units of ``2^-32`` LSB,
+  so that updates smaller than the LSB accumulate instead of rounding to 0: ``K_i eps``
+  is added to ``theta * 2**32 + theta_frac`` floored at ``2^-32`` LSB (from the high
+  word of the product when the shift is 32 or more); ``K_i h_j`` is subtracted from
+  :math:`V = \tilde P_{ij} 2^{32}` as ``K_i h_j 2^(32-s)`` for a shift ``s < 32`` and
+  as the product's high word rounded half up, ``rsh(K_i h_j, 32) 2^(64-s)``, for
+  ``s >= 32``. ``P``'s word is ``rsh(V, 32)`` (:math:`\tilde P` rounded half up: what
+  ``h``, the trace and the block exponent read) and its fraction ``V - word 2^32``
+  lies in :math:`[-2^{31}, 2^{31})`. Both saturate at their word.
 * **multiply-accumulate** (``eps``, ``h``, ``phi' h``): sums of up to ``n`` products
   live in an accumulator of ``acc_bits``. It never overflows, by construction: the
   regressor operand is pre-shifted right (rounded) by the plan's guard shift
@@ -65,10 +69,10 @@ exponent ``e``.
 
 * Forgetting multiplies ``c`` by :math:`1/\lambda` (one product per step) instead
   of every word of :math:`P`; when ``c`` exceeds 1 it is halved and ``e`` lowered
-  (the words do not move), or, at ``e = 0``, folded into the words
-  (:math:`\tilde P \leftarrow c\tilde P`, ``c = 1``).
-* After each update, when :math:`\mathrm{tr}\tilde P` has fallen to a quarter of the
-  positive word range or below, the words are shifted left (exactly) and ``e``
+  (the words do not move), or, at ``e = 0``, folded into the 64-bit values
+  (:math:`V \leftarrow \mathrm{rsh}(V c)`, ``c = 1``).
+* After each update, when the trace of the words has fallen to a quarter of the
+  positive word range or below, the 64-bit values are shifted left (exactly) and ``e``
   raised, so the trace sits in ``(range/4, range/2]``.
 
 Every use of ``e`` is a shift, so this is still integer arithmetic; it keeps about
@@ -88,15 +92,16 @@ Per sample
 .. math::
 
     \varepsilon &= y - \varphi^\top\theta \\
-    \tilde h &= \tilde P\varphi, \quad d = \lambda_k + c\,\varphi^\top\tilde h,
-        \quad g = 1/d \\
+    \tilde h &= \tilde P\varphi \text{ (the words)}, \quad d = \lambda_k +
+        c\,\varphi^\top\tilde h, \quad g = 1/d \text{ (normalised by } 2^{k_g}
+        \text{ when } d \ge 2) \\
     K &= (g c)\,\tilde h \qquad (= P\varphi/(\lambda_k + \varphi^\top P\varphi);
         \text{the high word of } (\tilde h\,2^k)(g c\,2^{g_{up}})) \\
     \theta &\leftarrow \theta + K\varepsilon \qquad\text{(the 64-bit estimate
         } \theta\,2^{32} + \theta_{frac}\text{, } K\varepsilon \text{ floored to } 2^{-32}
         \text{ LSB)} \\
-    \tilde P &\leftarrow \tilde P - K\tilde h^\top \quad\text{(upper triangle only)},
-        \qquad c \leftarrow c/\lambda_k
+    \tilde P &\leftarrow \tilde P - K\tilde h^\top \quad\text{(upper triangle only, in 64
+        bits)}, \qquad c \leftarrow c/\lambda_k
 
 which is :math:`P \leftarrow (P - g\,hh^\top)/\lambda_k` with :math:`h = c\tilde h`.
 :math:`\lambda_k = 1` instead of :math:`\lambda` when the trace the step would give,
@@ -200,6 +205,8 @@ from canrls.estimation.fixed_layout import (  # noqa: F401 - the layout, re-expo
     I_CMP_DF,
     I_E_MAX,
     I_TR_HI,
+    I_KG_BL,
+    I_KG_MAX,
     NPARAM,
 )
 
@@ -211,6 +218,7 @@ def fixed_block(
     theta: np.ndarray,
     theta_frac: np.ndarray,
     P: np.ndarray,
+    P_frac: np.ndarray,
     scale: np.ndarray,
     work: np.ndarray,
     counts: np.ndarray,
@@ -243,6 +251,11 @@ def fixed_block(
     P : ndarray of int64, shape (n, n)
         The words :math:`\tilde P`, updated in place. ``MODE_SYMMETRIC`` reads and
         writes the upper triangle only (the lower one is never touched).
+    P_frac : ndarray of int64, shape (n, n)
+        The fraction of each word of ``P`` in units of :math:`2^{-32}` LSB, in
+        :math:`[-2^{31}, 2^{31})`, updated in place (the same triangle): :math:`\tilde P`
+        is the 64-bit ``P * 2**32 + P_frac``, of which ``P`` is the word rounded half up
+        (module docstring, *The covariance in 64 bits*).
     scale : ndarray of int64, shape (2,)
         ``[e, c]``: block exponent and forgetting scale (module docstring),
         updated in place.
@@ -272,9 +285,9 @@ def fixed_block(
     int
         Number of rows that updated the state.
     """
-    return _fixedspec.fixed_block(Phi, Y, theta, theta_frac, P, scale, work, counts, prm, mode,
-                                  frozen, record, eps_out, theta_out, trace_out, exp_out,
-                                  flags_out)
+    return _fixedspec.fixed_block(Phi, Y, theta, theta_frac, P, P_frac, scale, work, counts,
+                                  prm, mode, frozen, record, eps_out, theta_out, trace_out,
+                                  exp_out, flags_out)
 
 
 # ------------------------------------------------------ pure-Python reference
@@ -289,6 +302,7 @@ def reference_block(
     acc_bits: int,
     mode: int = MODE_SYMMETRIC,
     theta_frac: list[int] | None = None,
+    P_frac: list[list[int]] | None = None,
 ) -> tuple[list[int], list[int], list[int], list[int]]:
     r"""The same recursion in plain Python integers: the slow, readable specification.
 
@@ -314,6 +328,10 @@ def reference_block(
     theta_frac : list of int, optional
         The fractions of ``theta`` in :math:`2^{-32}` LSB (``fixed_block``), updated in
         place; ``None``: zeros, not returned.
+    P_frac : list of lists of int, optional
+        The fractions of the words of ``P`` in :math:`2^{-32}` LSB, in
+        :math:`[-2^{31}, 2^{31})` (``fixed_block``), updated in place; ``None``: zeros,
+        not returned.
 
     Returns
     -------
@@ -323,6 +341,12 @@ def reference_block(
     lim = 1 << (acc_bits - 1)
     p = prm
     tf = [0] * n if theta_frac is None else theta_frac
+    Pf = [[0] * n for _ in range(n)] if P_frac is None else P_frac
+    # the 64-bit P: V = P~ 2^32 (units of 2^-32 LSB), held as the word rsh(V, 32) (P~
+    # rounded half up) and the fraction V - word 2^32 in [-2^31, 2^31); V's range is the
+    # word's, [lo - 1/2, hi + 1/2) LSB
+    V_lo = (p[I_P_LO] << 32) - (1 << 31)
+    V_hi = (p[I_P_HI] << 32) + (1 << 31) - 1
 
     def chk(a: int) -> int:
         # an accumulator value must fit in acc_bits (the guard-bit argument)
@@ -361,6 +385,18 @@ def reference_block(
         if mode == MODE_SYMMETRIC and i > j:
             return P[j][i]
         return P[i][j]
+
+    def Vget(i: int, j: int) -> int:
+        # V = P~ 2^32: the word and its fraction
+        return P[i][j] * (1 << 32) + Pf[i][j]
+
+    def Vput(i: int, j: int, v: int) -> None:
+        # V clamped to the word's range (counted), then split: word = rsh(V, 32)
+        if v > V_hi or v < V_lo:
+            counts[S_P] += 1
+            v = V_hi if v > V_hi else V_lo
+        P[i][j] = rsh(v, 32)
+        Pf[i][j] = v - P[i][j] * (1 << 32)
 
     out_eps: list[int] = []
     out_tr: list[int] = []
@@ -425,13 +461,18 @@ def reference_block(
                 if up:
                     lam_k = p[I_ONE_D]
                     flag = FLAG_WINDUP
-        # d = lambda_k + s ; g = 1/d (C division, both operands positive)
+        # d = lambda_k + s ; g = 1/d (C division, both operands positive), normalised:
+        # g 2^kg = DIVIDEND 2^kg // d keeps the bits of g when d is large (kg = 0 for
+        # d < 2^KG_BL, i.e. d < 2 in the steady state)
         d = sat(lam_k + sv, p[I_DEN_LO], p[I_DEN_HI], S_DEN)
+        kg = 0
         if d <= 0:
             g = p[I_G_HI]
             counts[S_DIV] += 1
         else:
-            g = sat(p[I_DIVIDEND] // d, p[I_G_LO], p[I_G_HI], S_DIV)
+            kg = max(0, min(d.bit_length() - p[I_KG_BL], p[I_KG_MAX],
+                            62 - p[I_P_S] - e, 62 - p[I_TH_S] - e))
+            g = sat(p[I_DIVIDEND] * (1 << kg) // d, p[I_G_LO], p[I_G_HI], S_DIV)
         gc = sat(rsh(mul(g, c), p[I_GC_S]), p[I_G_LO], p[I_G_HI], S_DIV)
         # normalisation: h~, w~ and eps shifted left to 31 bits (k, ke)
         def norm(m: int) -> int:
@@ -442,8 +483,8 @@ def reference_block(
         for x in h + w:
             m |= x if x >= 0 else -x - 1
         e0 = e
-        k = min(norm(m), (62 - p[I_P_S] - e0) // 2, 62 - p[I_TH_S] - e0)
-        ke = min(norm(eps if eps >= 0 else -eps - 1), 62 - p[I_TH_S] - e0 - k)
+        k = min(norm(m), (62 - p[I_P_S] - e0 - kg) // 2, 62 - p[I_TH_S] - e0 - kg)
+        ke = min(norm(eps if eps >= 0 else -eps - 1), 62 - p[I_TH_S] - e0 - k - kg)
         hs = [x * (1 << k) for x in h]
         ws = [x * (1 << k) for x in w]
         gcn = gc * (1 << p[I_G_UP])
@@ -452,7 +493,7 @@ def reference_block(
         K = [rsh(mul(hs[i], gcn), 32) for i in range(n)]
         # theta 2^32 + tf <- theta 2^32 + tf + floor(K eps 2^32)   (the 64-bit estimate)
         for i in range(n):
-            ts = p[I_TH_S] + e + k + ke
+            ts = p[I_TH_S] + e + k + ke + kg
             u = mul(K[i], eps * (1 << ke))
             if ts >= 32:
                 u = u // (1 << 32) * (1 << 32)  # the high word of the product (s >= 32)
@@ -463,12 +504,20 @@ def reference_block(
                 counts[S_TH] += 1
                 x = top if x > top else bot
             theta[i], tf[i] = x >> 32, x & ((1 << 32) - 1)
-        # P~ <- P~ - K w~'   (upper triangle, or the full matrix for literal)
-        ps = p[I_P_S] + e + 2 * k
-        low = all(rsh(mul(K[i], ws[i]), ps) == 0 for i in range(n))
+        # P~ <- P~ - K w~'   (upper triangle, or the full matrix for literal), at 2^-32
+        # LSB: V -= u, u = K_i w~_j 2^(32 - ps) exactly for ps < 32, else the product's
+        # high word rounded half up, rsh(K_i w~_j, 32) 2^(64 - ps)
+        ps = p[I_P_S] + e + 2 * k + kg
+
+        def dec(x: int) -> int:
+            if ps < 32:
+                return x * (1 << (32 - ps))
+            return rsh(x, 32) * (1 << (64 - ps))
+
+        low = all(dec(mul(K[i], ws[i])) == 0 for i in range(n))
         for i in range(n):
             for j in range(i if mode == MODE_SYMMETRIC else 0, n):
-                P[i][j] = sat(P[i][j] - rsh(mul(K[i], ws[j]), ps), p[I_P_LO], p[I_P_HI], S_P)
+                Vput(i, j, Vget(i, j) - dec(mul(K[i], ws[j])))
         if low:
             flag |= FLAG_LOW_EXCITATION
         # c <- c / lambda_k ; c > 1: halve it (e - 1) or fold it into the words (e = 0)
@@ -479,11 +528,13 @@ def reference_block(
                 c = rsh(c, 1)
                 e -= 1
             else:
+                # V <- rsh(V c, c_s): c folded into the 64-bit values
                 for i in range(n):
                     for j in range(i if mode == MODE_SYMMETRIC else 0, n):
-                        P[i][j] = sat(rsh(mul(P[i][j], c), p[I_C_S]), p[I_P_LO], p[I_P_HI], S_P)
+                        Vput(i, j, rsh(Vget(i, j) * c, p[I_C_S]))
                 c = p[I_ONE_L]
-        # block exponent: the largest left shift keeping tr P~ <= TR_HI
+        # block exponent: the largest left shift keeping tr P~ <= TR_HI (the words' trace);
+        # V <- V 2^up, exactly
         tr = sum(P[i][i] for i in range(n))
         up_ = 0
         while 0 < tr * (1 << up_) and 2 * tr * (1 << up_) <= p[I_TR_HI] and e + up_ < p[I_E_MAX]:
@@ -491,7 +542,7 @@ def reference_block(
         if up_:
             for i in range(n):
                 for j in range(i if mode == MODE_SYMMETRIC else 0, n):
-                    P[i][j] = sat(P[i][j] * (1 << up_), p[I_P_LO], p[I_P_HI], S_P)
+                    Vput(i, j, Vget(i, j) * (1 << up_))
             e += up_
         scale[0], scale[1] = e, c
         if sum(counts) > before:

@@ -63,4 +63,6 @@ I_TR_PS, I_TMAX, I_TMAX_LIM, I_TC_S = 36, 37, 38, 39
 I_HC_S, I_VW_PS, I_LHS_PS, I_CMP_DF = 40, 41, 42, 43
 # block exponent: largest e, and tr P~ is kept in (TR_HI/2, TR_HI] once e > 0
 I_E_MAX, I_TR_HI = 44, 45
-NPARAM = 46
+# normalised g: kg = max(0, bit_length(d) - KG_BL), at most KG_MAX (the dividend's room)
+I_KG_BL, I_KG_MAX = 46, 47
+NPARAM = 48

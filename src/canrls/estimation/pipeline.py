@@ -233,6 +233,11 @@ class EstimatorSettings:
 
 
 # ------------------------------------------------------------------------- results
+#: The fixed point is meant to follow the float within this divergence (0.1 %, the
+#: default tolerance of ``canrls fixed-sweep``); beyond it ``canrls fit`` says so.
+DIVERGENCE_TOL = 1e-3
+
+
 def divergence(theta: Sequence[float], fixed: Sequence[float], sigma: Sequence[float]) -> float:
     """Fixed point against float: ``max_j |fixed_j - theta_j| / max(|theta_j|, 3 sigma_j)``.
 
@@ -344,6 +349,8 @@ class EquationFit:
     rescales: tuple[Rescale, ...] = ()
     #: the target and columns the data have not shown yet (exponent and prior provisional)
     pending: tuple[str, ...] = ()
+    #: the fixed point's word lengths (``W32/A64/I32``)
+    fixed_config: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return {"equation": self.equation, "target": self.target, "unit": self.unit,
@@ -356,7 +363,7 @@ class EquationFit:
                 "sigma_inflation": self.sigma_inflation, "exponents": dict(self.exponents),
                 "rescale_count": self.rescale_count,
                 "rescales": [r.to_dict() for r in self.rescales],
-                "pending": list(self.pending)}
+                "pending": list(self.pending), "fixed_config": self.fixed_config}
 
 
 @dataclass(frozen=True)
@@ -438,6 +445,13 @@ class Estimates:
                 + (", LOW EXCITATION" if e.low_excitation else "")
                 + (f", {e.nonfinite_rows} samples with a non-finite term left out "
                    f"(with the filter's warm-up after each)" if e.nonfinite_rows else ""))
+            if e.divergence > DIVERGENCE_TOL:
+                lines.append(
+                    f"{e.equation}: the fixed point ({e.fixed_config or 'its words'}) is "
+                    f"{e.divergence:.2g} from the float, more than {DIVERGENCE_TOL:g}: these "
+                    f"word lengths cannot follow the float on these data; 'canrls "
+                    f"fixed-sweep' with the same log and options names the configuration "
+                    f"that does")
         return "\n".join(lines)
 
     __str__ = format
@@ -1055,7 +1069,7 @@ class EquationEstimator:
             condition=float(exc.cond), nonfinite_rows=self.nonfinite_rows,
             sigma_inflation=self.sigma_inflation(), exponents=self.exponents,
             rescale_count=self.rescale_count, rescales=tuple(self.rescales),
-            pending=self.pending)
+            pending=self.pending, fixed_config=self.frls.config.label)
         return params, fit_obj
 
     @property
