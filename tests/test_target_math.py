@@ -29,6 +29,8 @@ from canrls.target.qmath import (
     isqrt,
     mul_rsh,
     rsh,
+    sat,
+    scale_p64,
     sincos_q64,
     tanh_q24,
 )
@@ -114,6 +116,7 @@ def _ops() -> list[tuple[str, list[int], str]]:
         ops.append((name, args, w))
 
     big = [0, 1, -1, (1 << 61) - 1, -(1 << 61) + 1, (1 << 31) - 1, -(1 << 31), 1 << 31]
+    edges = [0, 1, -1, (1 << 31) - 1, -(1 << 31), (1 << 30), -(1 << 30)]
     for _ in range(3000):
         x = int(rng.choice(big)) if rng.random() < 0.1 else int(
             rng.integers(-(1 << 60), 1 << 60)) >> int(rng.integers(0, 60))
@@ -149,6 +152,21 @@ def _ops() -> list[tuple[str, list[int], str]]:
         v = int(rng.integers(-(1 << 31), 1 << 31))
         ev = int(rng.integers(-200, 140))
         add("f32", [v, ev], f32_bits(v, ev))
+        # an element of the 64-bit P scaled by 2^s: words at the ends of int32 (the pair
+        # just below -2^63), fractions of either sign, shifts across every split
+        pw = int(rng.choice(edges)) if rng.random() < 0.2 else int(
+            rng.integers(-(1 << 31), 1 << 31)) >> int(rng.integers(0, 32))
+        pf = int(rng.choice(edges)) if rng.random() < 0.2 else int(
+            rng.integers(-(1 << 31), 1 << 31))
+        ps = int(rng.choice([-100, -95, -94, -64, -63, -34, -33, -32, -31, -2, -1, 0, 1, 31,
+                             32, 33, 63, 64, 90])) if rng.random() < 0.3 \
+            else int(rng.integers(-70, 70))
+        plo, phi = ((-(1 << 31), (1 << 31) - 1) if rng.random() < 0.5
+                    else (0, int(rng.integers(1, 1 << 31))))
+        if not plo <= pw <= phi:
+            pw = sat(pw, plo, phi)
+        w2, f2, clamped = scale_p64(pw, pf, ps, plo, phi)
+        add("p64", [pw, pf, ps, plo, phi], (w2, f2, int(clamped)))
     return ops
 
 

@@ -8,6 +8,7 @@
  * line, "name arg..." (decimal integers); stdout: one line of results per operation:
  *   mul_rsh x m s  |  clog2_mul a m  |  isqrt n  |  tanh z  |  exp x  |  sincos phase
  *   f32 v e  |  svf a0 a1 g0 g1 x1 x2 up u fx  |  floor m e  |  ceil m e  |  rsh x s
+ *   p64 word frac s lo hi
  */
 #include <inttypes.h>
 #include <stdio.h>
@@ -71,6 +72,13 @@ int main(void)
             int32_t s;
             if (scanf("%" SCNd64 " %" SCNd32, &x, &s) != 2) return 2;
             printf("%" PRId64 "\n", cr_rsh(x, s));
+        } else if (strcmp(op, "p64") == 0) {
+            int32_t w, f, s, lo, hi;
+            uint32_t n = 0u;
+            if (scanf("%" SCNd32 " %" SCNd32 " %" SCNd32 " %" SCNd32 " %" SCNd32,
+                      &w, &f, &s, &lo, &hi) != 5) return 2;
+            cr_P_scale(&w, &f, s, lo, hi, &n);
+            printf("%" PRId32 " %" PRId32 " %" PRIu32 "\n", w, f, n);
         } else {
             return 2;
         }

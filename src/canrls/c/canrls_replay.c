@@ -42,7 +42,10 @@ static uint32_t record(const canrls_target *S, int64_t *out)
             out[k++] = canrls_theta_frac_q31(&q->rls, j);
         }
         for (j = 0; j < CANRLS_TRI(n); j++) {
-            out[k++] = q->rls.P[j];
+            out[k++] = canrls_P_q31(&q->rls, j);
+        }
+        for (j = 0; j < CANRLS_TRI(n); j++) {
+            out[k++] = canrls_P_frac_q31(&q->rls, j);
         }
         out[k++] = q->rls.e;
         out[k++] = q->rls.c;

@@ -470,7 +470,8 @@ static void cr_restart(canrls_target *S)
  * trace bound the plan changes, so it is initialised again first (counters and
  * `frozen` kept) */
 static void cr_restore(canrls_target_eq *q, const canrls_equation *e, const int32_t *theta,
-                       const uint32_t *frac, const int32_t *P, int32_t ex, int replan)
+                       const uint32_t *frac, const int32_t *P, const int32_t *P_frac,
+                       int32_t ex, int replan)
 {
     uint32_t counts[CANRLS_NSITES];
     const int32_t c = q->rls.c;
@@ -482,7 +483,64 @@ static void cr_restore(canrls_target_eq *q, const canrls_equation *e, const int3
         memcpy(q->rls.counts, counts, sizeof counts);
         q->rls.frozen = frozen;
     }
-    (void)canrls_restore_q31(&q->rls, theta, frac, P, ex, c);
+    (void)canrls_restore_q31(&q->rls, theta, frac, P, P_frac, ex, c);
+}
+
+/* V 2^s, V = P~ 2^32 the 64-bit element (word w, fraction f), exactly for s > 0 and
+ * rsh(V, -s) for s < 0, into the word rsh(V', 32) and the fraction V' - word 2^32;
+ * saturated where the word leaves [lo, hi] (counted in *n). V itself may lie just below
+ * -2^63 (w = INT32_MIN, f < 0), so it is never formed in one int64_t. */
+static void cr_P_scale(int32_t *word, int32_t *frac, int32_t s, int32_t lo, int32_t hi,
+                       uint32_t *n)
+{
+    const int64_t w = *word, f = *frac;
+    int64_t nw, v;
+    uint32_t nl;
+    if (s == 0) {
+        return;
+    }
+    if (s > 0) {
+        if (s <= 31) {
+            /* V 2^s + 2^31 = (w 2^s + (t >> 32)) 2^32 + (t mod 2^32), t = f 2^s + 2^31 */
+            const int64_t t = f * ((int64_t)1 << s) + ((int64_t)1 << 31);
+            nw = w * ((int64_t)1 << s) + (t >> 32);
+            nl = (uint32_t)t;
+        } else if (w != 0) {
+            /* |V 2^s| >= 2^31 2^32: outside every word */
+            nw = w > 0 ? I62 : -I62;
+            nl = 0u;
+        } else {
+            /* V = f: the word f 2^(s-32) exactly, no fraction */
+            nw = s - 32 <= 31 ? f * ((int64_t)1 << (s - 32)) : (f > 0 ? I62 : f < 0 ? -I62 : 0);
+            nl = 0x80000000u;
+        }
+    } else {
+        /* rsh(V, r) = ((V >> a) + 1) >> 1, a = r - 1, with V >> a from the word and the
+         * fraction: V = w 2^32 + f, so V >> a = w 2^(32-a) + (f >> a) for a < 32 and
+         * (w - (f < 0)) >> (a - 32) for a >= 32 */
+        const int32_t a = -s - 1;
+        if (a == 0) {
+            v = w * ((int64_t)1 << 31) + ((f + 1) >> 1);
+        } else if (a <= 31) {
+            v = ((w * ((int64_t)1 << (32 - a)) + (f >> a)) + 1) >> 1;
+        } else {
+            v = (((w - (f < 0 ? 1 : 0)) >> (a - 32 < 63 ? a - 32 : 63)) + 1) >> 1;
+        }
+        /* the word rounded half up, the fraction + 2^31 its low word */
+        nw = (v + ((int64_t)1 << 31)) >> 32;
+        nl = (uint32_t)((uint64_t)v + 0x80000000u);
+    }
+    if (nw > hi) {
+        *n += 1u;
+        nw = hi;
+        nl = 0xFFFFFFFFu;
+    } else if (nw < lo) {
+        *n += 1u;
+        nw = lo;
+        nl = 0u;
+    }
+    *word = (int32_t)nw;
+    *frac = (int32_t)(nl ^ 0x80000000u);
 }
 
 /* floor(m 2^e) and ceil(m 2^e), saturated at 2^62 */
@@ -512,6 +570,7 @@ static void cr_adapt(canrls_target *S, const canrls_equation *e, canrls_target_e
     int32_t theta[CANRLS_N_MAX];
     uint32_t frac[CANRLS_N_MAX];
     int32_t P[CANRLS_TRI(CANRLS_N_MAX)];
+    int32_t Pf[CANRLS_TRI(CANRLS_N_MAX)];
     int32_t dy = 0, dmax = 0, s = 0, ex, e_new;
     int first_y = 0;
     uint32_t j, k, idx;
@@ -593,24 +652,15 @@ static void cr_adapt(canrls_target *S, const canrls_equation *e, canrls_target_e
     for (j = 0; j < n; j++) {
         for (k = j; k < n; k++, idx++) {
             /* P_jj / 4 for a first value (the prior alpha 2^-8 for alpha 2^-10), else
-             * P_jk 2^(d_j + d_k), at e_new */
+             * P_jk 2^(d_j + d_k), at e_new, in 64 bits */
             const int32_t sjk = (j == k && first[j]) ? e_new - ex - 2 : d[j] + d[k] + e_new - ex;
-            int64_t v = q->rls.P[idx];
-            if (sjk < 0) {
-                v = cr_rsh(v, -sjk);
-            } else if (sjk >= 32) {
-                v = v > 0 ? I62 : v < 0 ? -I62 : 0;
-            } else {
-                v = cr_shl(v, sjk);
-            }
-            if (v < e->plan->P_lo || v > e->plan->P_hi) {
-                q->rls.counts[CANRLS_S_P]++;
-                v = cr_sat(v, e->plan->P_lo, e->plan->P_hi);
-            }
-            P[idx] = (int32_t)v;
+            P[idx] = canrls_P_q31(&q->rls, idx);
+            Pf[idx] = canrls_P_frac_q31(&q->rls, idx);
+            cr_P_scale(&P[idx], &Pf[idx], sjk, e->plan->P_lo, e->plan->P_hi,
+                       &q->rls.counts[CANRLS_S_P]);
         }
     }
-    cr_restore(q, e, theta, frac, P, e_new, 0);
+    cr_restore(q, e, theta, frac, P, Pf, e_new, 0);
     /* a column that grew takes the weakest prior of the start: delta = alpha_f -
      * alpha_j 2^(-2 d_j), as one update with the regressor sqrt(delta) e_j and y = 0 */
     for (j = 0; j < n; j++) {
@@ -666,13 +716,15 @@ static void cr_adapt(canrls_target *S, const canrls_equation *e, canrls_target_e
     if (e->trace_follows) {
         int32_t th[CANRLS_N_MAX];
         uint32_t fr[CANRLS_N_MAX];
-        int32_t Pw[CANRLS_TRI(CANRLS_N_MAX)];
         for (k = 0; k < n; k++) {
             th[k] = canrls_theta_q31(&q->rls, k);
             fr[k] = canrls_theta_frac_q31(&q->rls, k);
         }
-        memcpy(Pw, q->rls.P, CANRLS_TRI(n) * sizeof *Pw);
-        cr_restore(q, e, th, fr, Pw, q->rls.e, 1);
+        for (k = 0; k < CANRLS_TRI(n); k++) {
+            P[k] = canrls_P_q31(&q->rls, k);
+            Pf[k] = canrls_P_frac_q31(&q->rls, k);
+        }
+        cr_restore(q, e, th, fr, P, Pf, q->rls.e, 1);
     }
 }
 

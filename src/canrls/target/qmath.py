@@ -28,7 +28,7 @@ from fractions import Fraction
 from canrls.target import tables
 
 __all__ = ["ONE_Q30", "MASK32", "MASK64", "F32_SAT", "F32_NAN", "rsh", "mul_rsh", "clog2",
-           "isqrt", "dyadic", "floor_scaled", "ceil_scaled", "sat", "table_eval", "tanh_q24", "exp2_neg_q24", "exp_neg_q24",
+           "isqrt", "dyadic", "floor_scaled", "ceil_scaled", "sat", "scale_p64", "table_eval", "tanh_q24", "exp2_neg_q24", "exp_neg_q24",
            "sincos_q64", "f32_bits", "LOG2E_Q30"]
 
 #: 1.0 in Q30
@@ -125,6 +125,21 @@ def ceil_scaled(m: int, e: int) -> int:
 def sat(x: int, lo: int, hi: int) -> int:
     """``x`` clamped to ``[lo, hi]``."""
     return lo if x < lo else hi if x > hi else x
+
+
+def scale_p64(word: int, frac: int, s: int, lo: int, hi: int) -> tuple[int, int, bool]:
+    """An element of the kernel's 64-bit ``P~``, ``V = word 2^32 + frac``, times ``2^s``
+    (``s >= 0``, exact) or ``rsh(V, -s)`` (``s < 0``), back into the word ``V`` rounded
+    half up (``rsh(V, 32)``) and the fraction below it; saturated where the word leaves
+    ``[lo, hi]`` (the word ``lo`` or ``hi`` with the fraction ``-2^31`` or ``2^31 - 1``).
+    Returns the word, the fraction and whether it saturated."""
+    v = (word << 32) + frac
+    v = rsh(v, -s) if s < 0 else v << s
+    vlo, vhi = (lo << 32) - (1 << 31), (hi << 32) + (1 << 31) - 1
+    clamped = not vlo <= v <= vhi
+    v = sat(v, vlo, vhi)
+    w = (v + (1 << 31)) >> 32
+    return w, v - (w << 32), clamped
 
 
 def table_eval(table: tuple[tuple[int, int, int, int], ...], u: int) -> int:

@@ -74,6 +74,7 @@ from canrls.target.qmath import (
     mul_rsh,
     rsh,
     sat,
+    scale_p64,
     sincos_q64,
     tanh_q24,
 )
@@ -479,7 +480,7 @@ class TargetEstimator:
     def _rescale(self, es: EquationState, d: Sequence[int], dy: int,
                  first: Sequence[int] = ()) -> None:
         """The kernel's state in the new units: ``theta_j 2^(d_j - d_y)`` (its 64 bits),
-        ``P_jk 2^(d_j + d_k)`` with the block exponent lowered by twice the largest
+        ``P_jk 2^(d_j + d_k)`` (its 64 bits) with the block exponent lowered by twice the largest
         growth (of the columns not ``first``), so that no word grows; left shifts
         saturate (counted). A column seen for the first time (``first``) holds the prior
         alone, in any units: its ``P_jj`` becomes ``P_jj alpha_old / alpha_new = P_jj / 4``
@@ -506,17 +507,15 @@ class TargetEstimator:
         ex = int(st["P_exp"])
         e_new = max(0, ex - 2 * dmax)
         P = np.asarray(st["P"]).copy()
+        P_frac = np.asarray(st["P_frac"]).copy()
         for j in range(n):
             for k in range(j, n):
-                # P_jj / 4 for a first value, else P_jk 2^(d_j + d_k), at e_new
+                # P_jj / 4 for a first value, else P_jk 2^(d_j + d_k), at e_new, in 64 bits
                 s = e_new - ex - 2 if j == k and j in first else d[j] + d[k] + e_new - ex
-                v = int(P[j, k])
-                v = rsh(v, -s) if s < 0 else v << s
-                if not e.P_lo <= v <= e.P_hi:
-                    counts[8] += 1  # P
-                    v = sat(v, e.P_lo, e.P_hi)
-                P[j, k] = v
-        st.update(theta=th, theta_frac=fr, P=P, P_exp=e_new, counts=counts)
+                P[j, k], P_frac[j, k], clamped = scale_p64(int(P[j, k]), int(P_frac[j, k]), s,
+                                                           e.P_lo, e.P_hi)
+                counts[8] += clamped  # P
+        st.update(theta=th, theta_frac=fr, P=P, P_frac=P_frac, P_exp=e_new, counts=counts)
         es.rls = FixedRLS.from_state(st)
 
     def _raise_prior(self, es: EquationState, j: int, dj: int) -> None:
@@ -613,11 +612,12 @@ class TargetEstimator:
         for es in self.eqs:
             st = es.rls.state()
             n = es.spec.n
-            P = np.asarray(st["P"])
+            P, P_frac = np.asarray(st["P"]), np.asarray(st["P_frac"])
             eqs.append({
                 "theta": [int(v) for v in st["theta"]],
                 "theta_frac": [int(v) for v in st["theta_frac"]],
                 "P": [int(P[j, k]) for j in range(n) for k in range(j, n)],
+                "P_frac": [int(P_frac[j, k]) for j in range(n) for k in range(j, n)],
                 "e": int(st["P_exp"]), "c": int(st["P_scale"]),
                 "counts": [int(v) for v in st["counts"]],
                 "sh": list(es.sh) + [es.sh_y], "updates": es.updates, "ms": es.ms,

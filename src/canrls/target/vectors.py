@@ -66,13 +66,13 @@ def log_frames(paths: Iterable[str | Path], tick_s: float = 1e-6) -> Iterator[Fr
 def state_record(est: TargetEstimator) -> list[int]:
     """The integer state as the C's ``record()`` lays it out: samples, the rejection
     counters, the filters' states, then per equation theta, its fractions, the upper
-    triangle of P, e, c, the kernel's counters, the shifts (columns, target), updates,
-    the residual's mean square and the rescales."""
+    triangle of P, its fractions, e, c, the kernel's counters, the shifts (columns,
+    target), updates, the residual's mean square and the rescales."""
     s = est.snapshot()
     out = [s["samples"], *s["rejects"], *s["x1"], *s["x2"]]
     for e in s["equations"]:
-        out += [*e["theta"], *e["theta_frac"], *e["P"], e["e"], e["c"], *e["counts"],
-                *e["sh"], e["updates"], e["ms"], e["rescales"]]
+        out += [*e["theta"], *e["theta_frac"], *e["P"], *e["P_frac"], e["e"], e["c"],
+                *e["counts"], *e["sh"], e["updates"], e["ms"], e["rescales"]]
     return out
 
 
