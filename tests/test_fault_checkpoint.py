@@ -21,7 +21,6 @@ import stat
 import subprocess
 import sys
 import textwrap
-import threading
 import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -32,6 +31,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from blocking import in_thread, unblock_fifo
 from canrls.cli.main import main
 from canrls.config import AppConfig
 from canrls.errors import CheckpointError
@@ -156,36 +156,6 @@ def _forge_checkpoint(cp: Checkpoint) -> bytes:
     return _forge(doc, arrays)
 
 
-def _in_thread(fn: Callable[[], Any], unblock: Callable[[], None]) -> Any:
-    """``fn()`` in a thread; if it is still blocked after 30 s (a hang, i.e. the fault),
-    ``unblock()`` frees it so that the test fails instead of hanging."""
-    out: dict[str, Any] = {}
-
-    def target() -> None:
-        try:
-            out["value"] = fn()
-        except BaseException as e:  # re-raised below
-            out["error"] = e
-    t = threading.Thread(target=target, name="fault-ckpt")
-    t.start()
-    t.join(30)
-    hung = t.is_alive()
-    if hung:
-        unblock()
-        t.join(30)
-    assert not hung, "blocked on the checkpoint path"
-    if "error" in out:
-        raise out["error"]
-    return out.get("value")
-
-
-def _unblock_fifo(fifo: Path) -> Callable[[], None]:
-    def unblock() -> None:
-        fd = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
-        os.close(fd)
-    return unblock
-
-
 @pytest.fixture
 def umask022() -> Iterator[None]:
     old = os.umask(0o022)
@@ -227,12 +197,12 @@ def test_a_link_to_a_fifo_is_refused_without_reading(tmp_path: Path) -> None:
     link.symlink_to(fifo)
     running_stub = _setup()
     ck = Checkpointer(link, running_stub[1], running_stub[2], 1e-3, 60.0)
-    assert _in_thread(lambda: ck.resume(lambda m, s: pytest.fail("restored")),
-                      _unblock_fifo(fifo)) is None
+    assert in_thread(lambda: ck.resume(lambda m, s: pytest.fail("restored")),
+                      unblock_fifo(fifo), "the checkpoint path") is None
     assert ck.disabled is not None and "symbolic link" in ck.disabled
     assert link.is_symlink() and stat.S_ISFIFO(fifo.lstat().st_mode)
     with pytest.raises(CheckpointPathError, match="symbolic link"):
-        _in_thread(lambda: load_checkpoint(link), _unblock_fifo(fifo))
+        in_thread(lambda: load_checkpoint(link), unblock_fifo(fifo), "the checkpoint path")
 
 
 def test_a_link_to_a_huge_file_is_not_read(tmp_path: Path) -> None:
@@ -279,7 +249,7 @@ def test_a_fifo_at_the_path_does_not_hang_the_start(tmp_path: Path,
                                                     running: tuple) -> None:
     path = tmp_path / "cp.bin"
     os.mkfifo(path)
-    d = _in_thread(lambda: _daemon(running, path), _unblock_fifo(path))
+    d = in_thread(lambda: _daemon(running, path), unblock_fifo(path), "the checkpoint path")
     assert d.resumed_from is None and d.pipeline.samples == 0
     assert d.checkpoint() is None  # checkpoints are off: nothing written over the FIFO
     assert stat.S_ISFIFO(path.lstat().st_mode)

@@ -22,6 +22,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from cli_tool import cli_error
 from canrls.c_export import frames_c, load_source
 from canrls.cli.main import main
 from canrls.ctext import MAX_TEXT, c_comment, c_identifier, c_int, c_string, c_uint
@@ -44,16 +45,6 @@ def _gcc() -> str:
     if gcc is None:
         pytest.skip("gcc not installed")
     return gcc
-
-
-def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
-    capsys.readouterr()
-    rc = main(argv)
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert rc == 1, err
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    return lines[0]
 
 
 def _toml_str(s: str) -> str:
@@ -162,11 +153,11 @@ def test_a_unit_that_closes_the_comment_is_refused_by_validate_and_export(
     m.write_text(json.dumps(d))
     for argv in (["validate", str(log), "--model", str(m)],
                  ["export-c", "--model", str(m), "--out", str(tmp_path / "c")]):
-        line = _error(capsys, argv)
+        line = cli_error(capsys, argv)
         assert f"--model {m}" in line and "unit" in line and "U+000A" in line
     cfg = tmp_path / "evil.toml"
     cfg.write_text(_toml({"drag": ATTACK}))
-    assert "U+000A" in _error(capsys, ["export-c", "--model", str(cfg),
+    assert "U+000A" in cli_error(capsys, ["export-c", "--model", str(cfg),
                                        "--out", str(tmp_path / "c")])
     assert not (tmp_path / "c").exists()
 
@@ -188,7 +179,7 @@ def test_term_names_that_collide_in_c_are_refused_where_the_model_is_read(
     a build error in the firmware; now the model is refused by every command."""
     cfg = tmp_path / "drive.toml"
     cfg.write_text(_toml({"drag": "1", "DRAG": "1"}))
-    line = _error(capsys, ["fit", str(log), "--config", str(cfg)])
+    line = cli_error(capsys, ["fit", str(log), "--config", str(cfg)])
     assert "DRAG" in line and "only in case" in line
 
 

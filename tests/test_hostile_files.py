@@ -15,7 +15,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 import tracemalloc
 from collections.abc import Callable
@@ -24,6 +23,8 @@ from typing import Any
 
 import pytest
 
+from blocking import in_thread, unblock_fifo
+from cli_tool import cli_error
 from canrls.can.logs import LogReadStats, read_frames
 from canrls.cli.main import main
 from canrls.config import read_toml
@@ -41,47 +42,6 @@ def log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("hostile") / "drive.log"
     assert main(["sim", "--out", str(path), "--duration", "2", "--seed", "1"]) == 0
     return path
-
-
-def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
-    """Run the CLI; expect exit status 1 and one ``error:`` line, and return it."""
-    capsys.readouterr()
-    rc = main(argv)
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert rc == 1, err
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    return lines[0]
-
-
-def _in_thread(fn: Callable[[], Any], unblock: Callable[[], None]) -> Any:
-    """``fn()`` in a thread; if it is still blocked after 30 s (a hang: the fault),
-    ``unblock()`` frees it so that the test fails instead of hanging."""
-    out: dict[str, Any] = {}
-
-    def target() -> None:
-        try:
-            out["value"] = fn()
-        except BaseException as e:  # re-raised below
-            out["error"] = e
-
-    t = threading.Thread(target=target, name="hostile-files")
-    t.start()
-    t.join(30)
-    hung = t.is_alive()
-    if hung:
-        unblock()
-        t.join(30)
-    assert not hung, "blocked on a FIFO"
-    if "error" in out:
-        raise out["error"]
-    return out.get("value")
-
-
-def _unblock(fifo: Path) -> Callable[[], None]:
-    def unblock() -> None:  # a writer that opens and closes: the reader sees EOF
-        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
-    return unblock
 
 
 def _precious(tmp_path: Path) -> Path:
@@ -105,7 +65,7 @@ def test_a_fifo_where_a_file_is_read_is_refused_without_blocking(
             "validate --model": ["validate", str(log), "--model", str(fifo)],
             "export-c --model": ["export-c", "--model", str(fifo), "--out",
                                  str(tmp_path / "c")]}[where]
-    line = _in_thread(lambda: _error(capsys, argv), _unblock(fifo))
+    line = in_thread(lambda: cli_error(capsys, argv), unblock_fifo(fifo), "a FIFO")
     assert f"{fifo.name}: is a FIFO, not a regular file" in line
 
 
@@ -117,7 +77,7 @@ def test_a_directory_where_a_file_is_read_is_one_error_line(
     argv = {"--dbc": ["fit", str(log), "--dbc", str(d)],
             "--config": ["fit", str(log), "--config", str(d)],
             "log": ["fit", str(d)]}[where]
-    assert "is a directory, not a regular file" in _error(capsys, argv)
+    assert "is a directory, not a regular file" in cli_error(capsys, argv)
 
 
 def test_sighup_with_the_model_file_a_fifo_keeps_the_daemon_running(
@@ -145,7 +105,7 @@ def test_sighup_with_the_model_file_a_fifo_keeps_the_daemon_running(
         def failed() -> None:
             while not any("reload failed" in r.getMessage() for r in caplog.records):
                 time.sleep(0.01)
-        _in_thread(failed, _unblock(model))
+        in_thread(failed, unblock_fifo(model), "a FIFO")
     finally:
         d.stop()
     msg = next(r.getMessage() for r in caplog.records if "reload failed" in r.getMessage())
@@ -157,7 +117,7 @@ def test_the_helpers_refuse_a_fifo_and_bound_the_size(tmp_path: Path) -> None:
     fifo = tmp_path / "f"
     os.mkfifo(fifo)
     with pytest.raises(ConfigError, match="f: is a FIFO"):
-        _in_thread(lambda: open_regular(fifo, str(fifo)), _unblock(fifo))
+        in_thread(lambda: open_regular(fifo, str(fifo)), unblock_fifo(fifo), "a FIFO")
     big = tmp_path / "big.toml"
     big.write_bytes(b"#" * 5000)
     with pytest.raises(ConfigError, match="5000 bytes, more than the 4096"):
@@ -268,7 +228,7 @@ def test_record_never_writes_through_a_link(tmp_path: Path,
     target = _precious(tmp_path)
     link = tmp_path / "rec.log"
     link.symlink_to(target)
-    line = _error(capsys, ["run", "-i", "virtual", "-c", f"rec-{os.getpid()}",
+    line = cli_error(capsys, ["run", "-i", "virtual", "-c", f"rec-{os.getpid()}",
                            "--record", str(link), "--duration", "0.2"])
     assert f"--record {link}: is a symbolic link, not a file canrls may write" in line
     assert target.read_bytes() == PRECIOUS
@@ -283,7 +243,7 @@ def test_record_is_checked_before_the_daemon_starts(
             "directory": tmp_path / "rec.log"}[case]
     if case == "directory":
         path.mkdir()
-    line = _error(capsys, ["run", "-i", "virtual", "-c", f"rec-{os.getpid()}",
+    line = cli_error(capsys, ["run", "-i", "virtual", "-c", f"rec-{os.getpid()}",
                            "--record", str(path), "--duration", "0.2"])
     assert line.startswith(f"error: --record {path}: ")
     assert {"suffix": "unknown log format '.xyz'",
@@ -306,7 +266,7 @@ def test_export_c_out_an_existing_file_is_refused(tmp_path: Path,
     cfg = tmp_path / "drive.toml"
     cfg.write_text(TOML)
     out = _precious(tmp_path)
-    line = _error(capsys, ["export-c", "--model", str(cfg), "--out", str(out)])
+    line = cli_error(capsys, ["export-c", "--model", str(cfg), "--out", str(out)])
     assert f"--out {out}: exists and is a regular file, not a directory" in line
     assert out.read_bytes() == PRECIOUS
 
@@ -379,7 +339,7 @@ def test_sim_options_are_checked_before_anything_is_written(
     """Items 14, 18, 8: ``--duration 1e300`` filled the disk, ``--seed -1`` and
     ``--channel ä`` exited 3, ``--channel "a b"`` wrote a log canrls cannot read."""
     monkeypatch.chdir(tmp_path)
-    line = _error(capsys, ["sim", "--out", str(tmp_path / "x.log"), "--duration", "1",
+    line = cli_error(capsys, ["sim", "--out", str(tmp_path / "x.log"), "--duration", "1",
                            *argv])
     assert message in line
     assert list(tmp_path.iterdir()) == []
@@ -406,7 +366,7 @@ def test_an_id_beyond_29_bits_is_refused_naming_the_frame(
     else:
         path.write_text("timestamp,arbitration_id,extended,remote,error,dlc,data\n"
                         "0.001,0x101,0,0,0,1,AQ==\n0.002,0x123456789,1,0,0,1,Ag==\n")
-    line = _error(capsys, ["fit", str(path)])
+    line = cli_error(capsys, ["fit", str(path)])
     assert f"{path}: frame 2 has the ID 0x123456789, not a CAN ID (at most 29 bits" in line
 
 
@@ -417,7 +377,7 @@ def test_an_empty_or_garbage_blf_is_one_error_line(
     """Item 8: an empty or garbage ``.blf`` exited 3."""
     path = tmp_path / "x.blf"
     path.write_bytes(content)
-    assert str(path) in _error(capsys, ["fit", str(path)])
+    assert str(path) in cli_error(capsys, ["fit", str(path)])
 
 
 @pytest.mark.parametrize("key", ["can.dbc", "daemon.record", "daemon.checkpoint",
@@ -430,7 +390,7 @@ def test_a_nul_byte_in_a_path_of_the_configuration(
     conf.write_text(f'[{table}]\n{name} = "a\\u0000b"\n')
     argv = (["fit", str(log), "--config", str(conf)] if table == "can" else
             ["run", "-C", str(conf), "-i", "virtual", "-c", "nul", "--duration", "0.2"])
-    line = _error(capsys, argv)
+    line = cli_error(capsys, argv)
     assert key in line and "NUL byte" in line
 
 
@@ -467,5 +427,5 @@ def test_a_dbc_whose_numbers_cannot_be_is_refused_naming_message_and_signal(
     strict check, a length of 1e9 74 s and 3.2 GB in its codec. Now each is refused
     (the layout on cantools' tokens, before cantools builds anything)."""
     dbc = _dbc(tmp_path, old, new)
-    line = _error(capsys, ["fit", str(log), "--dbc", str(dbc)])
+    line = cli_error(capsys, ["fit", str(log), "--dbc", str(dbc)])
     assert str(dbc) in line and message in line

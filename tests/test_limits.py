@@ -13,6 +13,7 @@ import can
 import numpy as np
 import pytest
 
+from cli_tool import cli_error
 from canrls.can.frameblock import MAX_DATA_LENGTH, FrameBlock
 from canrls.cli.main import INTERNAL_ERROR, main
 from canrls.config import MAX_DEPTH, load_config, read_toml
@@ -31,23 +32,11 @@ def log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def _error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
-    """Run the CLI, expect exit status 1 and one ``error:`` line; return it."""
-    capsys.readouterr()
-    rc = main(argv)
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert rc == 1, err
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    assert "Traceback" not in err
-    return lines[0]
-
-
 def _fit_with(tmp_path: Path, log: Path, capsys: pytest.CaptureFixture[str],
               text: str) -> str:
     cfg = tmp_path / "drive.toml"
     cfg.write_text(text)
-    line = _error(capsys, ["fit", "--config", str(cfg), str(log)])
+    line = cli_error(capsys, ["fit", "--config", str(cfg), str(log)])
     assert str(cfg) in line
     return line
 
@@ -70,7 +59,7 @@ def test_alpha_out_of_range_names_the_flag(log: Path, value: str,
                                            capsys: pytest.CaptureFixture[str]) -> None:
     # 1e308 and 1e-320 used to end in "range of P: QFormat frac must be in -64..126",
     # nan in "<defaults>: estimator.alpha = nan": neither named --alpha
-    line = _error(capsys, ["fit", "--alpha", value, str(log)])
+    line = cli_error(capsys, ["fit", "--alpha", value, str(log)])
     assert line.startswith(f"error: --alpha {value}: must be "), line
 
 
@@ -83,7 +72,7 @@ def test_alpha_out_of_range_names_the_key(tmp_path: Path, log: Path,
 def test_alpha_too_small_for_the_fixed_point_names_the_ridge(
         log: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # in range, but P0 = 1/(alpha e_j) outgrows the 32-bit words of this data
-    line = _error(capsys, ["fit", "--alpha", "1e-8", str(log)])
+    line = cli_error(capsys, ["fit", "--alpha", "1e-8", str(log)])
     assert "P0 = diag(1/alpha_j) reaches" in line and "estimator.alpha" in line, line
 
 
@@ -196,7 +185,7 @@ def test_candump_line_with_256_data_bytes(tmp_path: Path, log: Path,
     lines = log.read_text().splitlines()
     bad.write_text("\n".join(lines[:20] + ["(1.000000) can0 123##0" + "00" * 256]
                              + lines[20:]) + "\n")
-    line = _error(capsys, ["fit", str(bad)])
+    line = cli_error(capsys, ["fit", str(bad)])
     assert f"{bad}:21" in line and "256 data bytes" in line
 
 

@@ -129,6 +129,7 @@ def main() -> int:
     published = {p.name: p for p in dec.table()}
     print(f"{log.name}: {live.get('samples')} samples live, "
           f"{json.loads(fit.stdout)['samples']} offline")
+    print(f"daemon's frames: {json.dumps(live.get('frames'))}")
     print(f"{'parameter':16s} {'offline':>13s} {'published':>13s} {'rel':>9s}   "
           f"{'fixed off':>13s} {'fixed pub':>13s} {'rel':>9s}")
     worst = 0.0
