@@ -137,6 +137,7 @@ def test_the_readme_walks_from_a_log_to_a_passing_target_test(tmp_path: Path) ->
     import shlex
 
     need_tool("cc", ["gcc"])
+    need_tool("make", ["make"])
     text = (ROOT / "README.md").read_text()
     part = text[text.index("### From a log to a passing target test"):]
     block = re.search(r"```sh\n(.*?)```", part, re.S)
