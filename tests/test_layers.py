@@ -37,6 +37,7 @@ LAYER = {
     "canrls.effect_names": "core", "canrls.files": "core", "canrls.ctext": "core",
     "canrls.can": "can", "canrls.estimation": "estimation",
     "canrls.config": "front", "canrls.processor": "front", "canrls.modelfile": "front",
+    "canrls.target": "front",
     "canrls.validate": "app",
     "canrls.replay": "replay", "canrls.diagnosis": "app", "canrls.live": "app",
     "canrls.c_export": "app",

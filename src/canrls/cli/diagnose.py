@@ -3,7 +3,8 @@
 Several logs are diagnosed as one record (:class:`canrls.replay.LogFiles`: no segment
 bridged across files; the calibration window is the start of the first log).
 
-Takes every option of ``canrls fit`` (the same replay: same samples, same parameters),
+Takes every option of ``canrls fit`` (the same replay: same samples, same parameters)
+but ``--fixed`` (the fixed-point column is the kernel's, fed by the float front end),
 plus::
 
     --add NAME       add an effect and refit (repeatable); ``cogging`` alone takes the

@@ -8,7 +8,10 @@ as JSON (:mod:`canrls.modelfile`, ``docs/model_file.md``) for ``canrls validate`
 Reads candump ``.log`` (and ``.asc``, ``.blf``, ``.trc``, ``.csv`` through python-can),
 decodes the feedback frames strictly with the DBC, pairs them into samples, and runs the
 same pipeline as the daemon: float and fixed-point RLS side by side. Prints every
-parameter (float, ±σ, fixed, unit), the residual RMS and fit %.
+parameter (float, ±σ, fixed, unit), the residual RMS and fit %. ``--fixed target`` takes
+the fixed column from the target's integer path instead (:mod:`canrls.target.fit`): the
+frames decoded, filtered and estimated in integers as ``canrls export-c``'s C does, bit
+for bit (``extra``: ``"fixed"`` in ``--json``).
 
 ``--json`` prints one object::
 
@@ -68,6 +71,11 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--save-model", metavar="FILE",
                    help="write the identified model (effects, parameters with sigma and "
                         "unit, configuration, calibration) as JSON for 'canrls validate'")
+    p.add_argument("--fixed", choices=("kernel", "target"), default="kernel",
+                   help="the fixed-point column: the kernel fed by the float front end, as "
+                        "the daemon runs it (default), or the target's whole integer path "
+                        "from the frames on, as the C of 'canrls export-c' runs it (bit for "
+                        "bit; docs/target.md)")
     add_progress_option(p)
     p.set_defaults(func=run)
     return p
@@ -81,6 +89,10 @@ def run(args: argparse.Namespace) -> int:
     res = fit_logs(args.log, protocol, model, settings,
                    progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
+    if args.fixed == "target":
+        from canrls.target.fit import target_fixed
+
+        res = target_fixed(res, args.log, protocol, settings)
     saved = None
     if args.save_model:
         from canrls.modelfile import SavedModel
@@ -93,6 +105,13 @@ def run(args: argparse.Namespace) -> int:
         print_json(d)
     else:
         sys.stdout.write(res.format() + "\n")
+        fx = res.extra.get("fixed")
+        if fx:
+            sys.stdout.write(
+                f"fixed point: the target's integer path from the frames on ({fx['samples']} "
+                f"samples; updates {fx['updates']}, rescales {fx['rescales']}"
+                + (f", frames rejected or dropped {fx['rejected']}" if fx["rejected"] else "")
+                + ")\n")
         if saved is not None:
             sys.stdout.write(f"model saved: {saved}\n")
     return 0
