@@ -25,9 +25,12 @@ bench: $(BIN)/.installed
 	$(BIN)/python -m pip install --quiet -e '.[bench]'
 	$(BIN)/python tools/bench_rls.py
 
-# the C kernel (src/canrls/c) for a Cortex-M4: size, stack, the bare-metal example on
-# QEMU mps2-an386 checked bit for bit against the Python FixedRLS, instructions per update
-# (installs gcc-arm-none-eabi, libnewlib-arm-none-eabi, qemu-system-arm via apt-get as root)
+# the C for a Cortex-M4 on QEMU mps2-an386: the kernel (size, stack, a recorded log bit for
+# bit against the Python FixedRLS, instructions per update) and the whole estimator of
+# export-c at n = 4, 6, 8 (bit for bit; instructions per sample and per update, mean and
+# worst over the whole log; .text at -O2 and -Os); docs/target.md has the figures
+# (installs gcc, gcc-arm-none-eabi, libnewlib-arm-none-eabi, qemu-system-arm via apt-get
+# as root)
 target: $(BIN)/.installed
 	$(BIN)/python tools/build_target.py --out build/target
 

@@ -37,7 +37,7 @@ LAYER = {
     "canrls.effect_names": "core", "canrls.files": "core", "canrls.ctext": "core",
     "canrls.can": "can", "canrls.estimation": "estimation",
     "canrls.config": "front", "canrls.processor": "front", "canrls.modelfile": "front",
-    "canrls.replay": "front",
+    "canrls.replay": "front", "canrls.target": "front",
     "canrls.diagnosis": "diagnosis", "canrls.live": "live", "canrls.fleet": "fleet",
     "canrls.c_export": "export",
     "canrls.sim": "sim", "canrls.cli": "cli", "canrls.__main__": "cli",

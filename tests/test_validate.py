@@ -105,7 +105,11 @@ def test_fit_several_logs_save_and_validate(logs: dict[str, Path], tmp_path: Pat
         assert saved.parameters[name]["value"] == p["value"]
         assert saved.parameters[name]["sigma"] == p["sigma"]
         assert saved.parameters[name]["unit"] == p["unit"]
-    assert saved.calibration == fit["calibration"]
+    # the calibration, and the period the fit ran at with it (the target's exponents
+    # and filters are the calibration's, at that period)
+    cal = dict(saved.calibration)
+    assert cal.pop("period") == fit["period"]["value"]
+    assert cal == fit["calibration"]
     assert saved.configuration["model"]["kt"] == 0.1
     doc = json.loads(m.read_text())
     assert doc["format"] == "canrls-model" and doc["version"] == 1

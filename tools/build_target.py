@@ -17,8 +17,15 @@
    lines from the entry of ``canrls_update_q31`` to the return into its caller are one
    update (callees such as the libgcc division included).
 
+4. The whole estimator (``tools/target_whole.py``): a simulated log (and an HSM150 run
+   when the runs are beside the repository) through ``canrls export-c --vectors`` and
+   the bare-metal ``target/example/target_main.c``, bit for bit; instructions per sample
+   over the whole log, start-up included (mean and worst, whole path and update), and
+   the ``.text`` of the library at ``-O2`` and ``-Os``.
+
 Missing tools are installed with apt-get (``gcc-arm-none-eabi libnewlib-arm-none-eabi
-qemu-system-arm``) when running as root. Exit status 0 when every check passed.
+qemu-system-arm``, and ``gcc`` for the host's counter) when running as root. Exit status
+0 when every check passed.
 """
 
 from __future__ import annotations
@@ -42,7 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 CC = "arm-none-eabi-gcc"
 CFLAGS = ["-mcpu=cortex-m4", "-mthumb", "-O2", "-std=c99", "-Wall", "-Wextra", "-Werror"]
 PACKAGES = {"arm-none-eabi-gcc": ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"],
-            "qemu-system-arm": ["qemu-system-arm"]}
+            "qemu-system-arm": ["qemu-system-arm"], "cc": ["gcc"]}
 QEMU = ["qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none",
         "-semihosting-config", "enable=on,target=native"]
 
@@ -51,7 +58,7 @@ class TargetError(RuntimeError):
     """A tool is missing or a build, run or check failed (the message says which)."""
 
 
-def ensure_tools(names: Sequence[str] = ("arm-none-eabi-gcc", "qemu-system-arm"),
+def ensure_tools(names: Sequence[str] = ("arm-none-eabi-gcc", "qemu-system-arm", "cc"),
                  install: bool = True) -> None:
     """Install the Debian packages of the missing tools (root only), or raise TargetError."""
     missing = [t for t in names if shutil.which(t) is None]
@@ -225,6 +232,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="recorded log for the example (default: the simulator's)")
     ap.add_argument("--no-install", action="store_true", help="never apt-get install")
     ap.add_argument("--sizes", default="4,6,8", help="n of the instruction counts")
+    ap.add_argument("--whole-duration", type=float, default=5.0, metavar="S",
+                    help="seconds of the simulated drive through the whole estimator "
+                         "(tools/target_whole.py; 0: skip it)")
     a = ap.parse_args(argv)
     import gen_ckernel as gen
 
@@ -258,7 +268,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                     print(f"  {n:>3} {build:<14} {sum(start) / len(start):>14.0f} "
                           f"{sum(steady) / len(steady):>12.0f} {min(steady):>6} "
                           f"{max(steady):>6}")
+        if a.whole_duration > 0:
+            import target_whole
+
+            with tempfile.TemporaryDirectory() as tmp:
+                target_whole.main(Path(tmp), tuple(int(x) for x in a.sizes.split(",")),
+                                  a.whole_duration)
     except TargetError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    except RuntimeError as e:  # target_whole.WholeError
         print(f"error: {e}", file=sys.stderr)
         return 1
     return 0

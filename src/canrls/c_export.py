@@ -304,7 +304,8 @@ def _output_dir(out: Path, what: str) -> Path:
 
 def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
              dt: float | None = None, energy: Mapping[str, Sequence[float]] | None = None,
-             source: str = "the configuration", what: str | None = None) -> Export:
+             source: str = "the configuration", what: str | None = None,
+             frames: bool = True) -> Export:
     """Write the kernel, the configuration of ``model`` (default: the configuration's) and
     the frame codecs into the directory ``out`` (made if missing; ``what`` names it in
     errors, default the path); see the module docstring. Each file is written to a
@@ -312,7 +313,8 @@ def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
 
     ``energy`` (``{equation: column energies}``, a calibration's) scales the prior as the
     service does after its calibration window; without it the prior is the ridge alone
-    (every column energy 1), the prior of an estimator that has not calibrated."""
+    (every column energy 1), the prior of an estimator that has not calibrated.
+    ``frames=False``: no codecs of canrls' frames (``canrls export-c --frames none``)."""
     label = what or str(out)
     protocol = cfg.protocol()
     model = cfg.model_for(protocol) if model is None else model
@@ -325,11 +327,12 @@ def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
     kernel = resources.files("canrls") / "c"
     texts = [(name, (kernel / name).read_text()) for name in KERNEL_FILES]
     ch, cc = _config_files(pipeline, source, protocol)
-    # the frames the daemon publishes are the shipped DBC's, whatever DBC the drive's
-    # feedback is read with (a user's DBC has none of them)
-    fh, fc = frames_c(DEFAULT_DBC)
-    texts += [("canrls_config.h", ch), ("canrls_config.c", cc), ("canrls_frames.h", fh),
-              ("canrls_frames.c", fc)]
+    texts += [("canrls_config.h", ch), ("canrls_config.c", cc)]
+    if frames:
+        # the frames the daemon publishes are the shipped DBC's, whatever DBC the drive's
+        # feedback is read with (a user's DBC has none of them)
+        fh, fc = frames_c(DEFAULT_DBC)
+        texts += [("canrls_frames.h", fh), ("canrls_frames.c", fc)]
     out = _output_dir(Path(out), label)
     files: list[Path] = []
     for name, text in texts:
@@ -355,5 +358,11 @@ def load_source(path: str | Path) -> tuple[AppConfig, Model | None,
             raise ConfigError(f"{path}: saved models need canrls.modelfile") from e
         saved: Any = SavedModel.load(path)
         energy = (saved.calibration or {}).get("energy")
-        return saved.config(), saved.build_model(), energy, f"the saved model {path.name}"
+        model = saved.build_model()
+        scaling = (saved.calibration or {}).get("scaling")
+        if scaling:
+            # the energies are measured in the calibration's exponents, not the ones the
+            # fit ended with: the prior in the units it was measured in
+            model = model.with_scaling(scaling)
+        return saved.config(), model, energy, f"the saved model {path.name}"
     return AppConfig.load(path), None, None, f"the configuration {path.name}"

@@ -104,8 +104,13 @@ class SavedModel:
     # -- building ---------------------------------------------------------------------
     @classmethod
     def from_fit(cls, res: FitResult, cfg: AppConfig, sources: list[str]) -> SavedModel:
-        """From a replay's result and the configuration that produced it."""
-        return cls.from_parts(res.model, res.estimates, res.calibration, cfg, sources)
+        """From a replay's result and the configuration that produced it (the control
+        period it ran at kept with the calibration, ``calibration.period``: what
+        ``canrls export-c`` builds the target's filter for)."""
+        saved = cls.from_parts(res.model, res.estimates, res.calibration, cfg, sources)
+        if saved.calibration is not None and res.period.value:
+            saved.calibration["period"] = float(res.period.value)
+        return saved
 
     @classmethod
     def from_parts(cls, model: Model, est: Estimates, calibration: Calibration | None,

@@ -1,7 +1,8 @@
 """``canrls diagnose LOG [LOG ...]``: where the model fails, which effect is missing.
 
-Takes every option of ``canrls fit`` (the same replay: same samples, same parameters),
-plus ``--add NAME`` (refit with it), ``--report DIR`` (an HTML page with figures) and
+Takes every option of ``canrls fit`` but ``--fixed`` (the same replay: same samples, same
+parameters; the fixed-point column is the kernel's, fed by the float front end), plus
+``--add NAME`` (refit with it), ``--report DIR`` (an HTML page with figures) and
 ``--max-order K``; several logs are diagnosed as one record. Text by default;
 ``--json`` prints one object (docs/diagnose.md documents every key).
 """

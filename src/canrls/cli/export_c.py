@@ -1,15 +1,19 @@
 """``canrls export-c``: the C code of a model for the target.
 
-Writes into ``--out`` the fixed-point RLS kernel (``canrls_fixed.h/.c``), the
+Writes into ``--out`` the whole estimator (``canrls_target.h/.c``, the model's constants
+``canrls_model.h/.c``: the drive's frames in, canrls' parameter frames out, in integers;
+:mod:`canrls.target.export`), the fixed-point RLS kernel (``canrls_fixed.h/.c``), the
 configuration of the model's equations (``canrls_config.h/.c``: parameters, scaling, Q
-formats, the kernel's plan and prior) and cantools' C codecs of canrls' parameter and
-command frames (``canrls_frames.h/.c``); see :mod:`canrls.c_export`. ``--model`` is a
-TOML configuration or a saved model (``canrls fit --save-model``).
+formats, the kernel's plan and prior), cantools' C codecs of canrls' parameter and
+command frames (``canrls_frames.h/.c``), a README and a Makefile; with ``--vectors``
+test vectors from logs and the host test that replays them (:mod:`canrls.c_export`).
+``--model`` is a TOML configuration or a saved model (``canrls fit --save-model``).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,10 +22,12 @@ __all__ = ["add_subparser", "run"]
 
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "export-c", help="write the C kernel, the model's configuration and the frame codecs",
-        description="Write a directory that compiles for the target: the fixed-point RLS "
-                    "kernel, the configuration header of the model (effects, scaling, Q "
-                    "formats, plan) and the C codecs of canrls' frames from the DBC.")
+        "export-c", help="write the whole estimator in C for the target, with test vectors",
+        description="Write a directory that compiles for the target: the whole estimator "
+                    "(the drive's frames in, canrls' parameter frames out, in integers), the "
+                    "fixed-point RLS kernel, the configuration header of the model, a README "
+                    "and a Makefile; with --vectors, test vectors from logs and a host test "
+                    "that checks the C bit for bit against the specification.")
     p.add_argument("--model", required=True, metavar="FILE",
                    help="TOML configuration, or a saved model (.json, canrls fit "
                         "--save-model)")
@@ -29,16 +35,60 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                    help="output directory, made if missing (default: canrls_c); each file "
                         "is written to a temporary beside it and renamed")
     p.add_argument("--dt", type=float, default=None, metavar="S",
-                   help="control period in seconds (default: the DBC's cycle time, else "
-                        "1 ms)")
+                   help="control period in seconds (default: the saved model's, else the "
+                        "DBC's cycle time, else 1 ms)")
+    p.add_argument("--frames", choices=("canrls", "none"), default="canrls",
+                   help="the estimator frames: canrls' own DBC's (default), or none (the "
+                        "firmware sends the estimate itself)")
+    p.add_argument("--vectors", nargs="+", default=(), metavar="LOG",
+                   help="logs of the drive's frames (in the model's DBC): write them and the "
+                        "integers the specification computes as test vectors, with the host "
+                        "test that replays them (make -C DIR test)")
+    p.add_argument("--every", type=int, default=1000, metavar="N",
+                   help="samples between the state records of the vectors (default 1000)")
+    p.add_argument("--kernel-only", action="store_true",
+                   help="only the kernel, the configuration and the frame codecs (what a "
+                        "model the whole estimator cannot run, with user terms, gets anyway, "
+                        "with the reason on stderr)")
     p.set_defaults(func=run)
     return p
 
 
 def run(args: argparse.Namespace) -> int:
     from canrls.c_export import export_c, load_source
+    from canrls.errors import ConfigError
 
+    if args.every < 1:
+        raise ConfigError(f"--every {args.every}: must be at least 1")
+    if args.kernel_only and args.vectors:
+        raise ConfigError("--vectors: the test vectors need the whole estimator "
+                          "(not --kernel-only)")
+    tm = src = texts = None
+    if not args.kernel_only:
+        from canrls.target.export import target_texts
+        from canrls.target.load import load, target_model
+
+        from canrls.target.model import TargetError
+
+        src = load(args.model, args.dt)
+        # generated (or refused: a model the target cannot run, a log that cannot be
+        # read) before anything is written
+        try:
+            tm = target_model(src, frames=args.frames != "none")
+        except TargetError as e:
+            if args.vectors:
+                raise
+            # the kernel and its configuration still serve a firmware that builds its
+            # own regressors: written, and the reason the rest is not said
+            print(f"canrls export-c: the whole estimator is not written: {e}",
+                  file=sys.stderr)
+        if tm is not None:
+            texts = target_texts(src, tm, vectors=args.vectors, every=args.every)
     cfg, model, energy, source = load_source(args.model)
     print(export_c(cfg, args.out, model=model, dt=args.dt, energy=energy, source=source,
-                   what=f"--out {args.out}"))
+                   what=f"--out {args.out}", frames=args.frames != "none"))
+    if tm is not None and src is not None:
+        from canrls.target.export import export_target
+
+        print(export_target(src, args.out, tm, what=f"--out {args.out}", texts=texts))
     return 0

@@ -3,7 +3,9 @@
 Several logs identify one model from all of them (no segment is bridged; the
 calibration window is the start of the first log); ``--save-model FILE`` writes the
 model as JSON for ``canrls validate`` (docs/model_file.md); ``--json`` prints one object
-(README.md, "Command line").
+(README.md, "Command line"). ``--fixed target`` takes the fixed column from the target's
+integer path instead (:mod:`canrls.target.fit`, docs/target.md): the frames decoded,
+filtered and estimated in integers as ``canrls export-c``'s C does, bit for bit.
 """
 
 from __future__ import annotations
@@ -36,6 +38,11 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--save-model", metavar="FILE",
                    help="write the identified model (effects, parameters with sigma and "
                         "unit, configuration, calibration) as JSON for 'canrls validate'")
+    p.add_argument("--fixed", choices=("kernel", "target"), default="kernel",
+                   help="the fixed-point column: the kernel fed by the float front end, as "
+                        "the daemon runs it (default), or the target's whole integer path "
+                        "from the frames on, as the C of 'canrls export-c' runs it (bit for "
+                        "bit; docs/target.md)")
     add_progress_option(p)
     p.set_defaults(func=run)
     return p
@@ -49,6 +56,10 @@ def run(args: argparse.Namespace) -> int:
     res = fit_logs(args.log, protocol, model, settings,
                    progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
+    if args.fixed == "target":
+        from canrls.target.fit import target_fixed
+
+        res = target_fixed(res, args.log, protocol, settings)
     saved = None
     if args.save_model:
         from canrls.modelfile import SavedModel
@@ -61,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
         print_json(d)
     else:
         sys.stdout.write(res.format() + "\n")
+        if res.fixed is not None:
+            sys.stdout.write(res.fixed.format() + "\n")
         if saved is not None:
             sys.stdout.write(f"model saved: {saved}\n")
     return 0

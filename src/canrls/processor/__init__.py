@@ -17,6 +17,7 @@ from canrls.processor.results import (
     FrameCounts,
     PeriodInfo,
     StartInfo,
+    TargetRun,
     epoch_date,
 )
 from canrls.processor.samples import (
@@ -35,6 +36,6 @@ from canrls.processor.samples import (
 
 __all__ = ["AxisInfo", "Calibration", "FileShift", "FitResult", "FrameCounts", "FrameProcessor",
            "MIN_ENERGY", "PeriodInfo", "RESTORE_PERIOD_TOLERANCE", "RMS_HEADROOM", "RangeScanner",
-           "SEEN_IDS", "SampleProcessor", "StartInfo", "WindowScaling", "calibrate",
+           "SEEN_IDS", "SampleProcessor", "StartInfo", "TargetRun", "WindowScaling", "calibrate",
            "data_defaults", "dbc_ranges", "epoch_date", "measure_noise", "positive_period",
            "sample_period", "scan_ranges"]

@@ -11,13 +11,12 @@ from typing import Any
 
 from canrls.can.units import Ratings
 from canrls.estimation.model import Model
-from canrls.estimation.pipeline import (
-    Estimates,
-)
+from canrls.estimation.pipeline import Estimates
 from canrls.processor.samples import Calibration
 
 __all__ = ["FrameCounts", "PeriodInfo", "StartInfo", "AxisInfo", "FileShift", "FitResult",
-           "epoch_date"]
+           "TargetRun", "epoch_date"]
+
 
 @dataclass(frozen=True)
 class FrameCounts:
@@ -156,6 +155,28 @@ class FileShift:
 
 
 @dataclass(frozen=True)
+class TargetRun:
+    """What the target's integer path ran when it gave a fit's fixed column
+    (``canrls fit --fixed target``, :mod:`canrls.target.fit`)."""
+
+    samples: int
+    #: updates and rescales of each equation's estimator
+    updates: dict[str, int] = field(default_factory=dict)
+    rescales: dict[str, int] = field(default_factory=dict)
+    #: frames it rejected or dropped, by reason
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"path": "target", **dataclasses.asdict(self)}
+
+    def format(self) -> str:
+        return (f"fixed point: the target's integer path from the frames on ({self.samples} "
+                f"samples; updates {self.updates}, rescales {self.rescales}"
+                + (f", frames rejected or dropped {self.rejected}" if self.rejected else "")
+                + ")")
+
+
+@dataclass(frozen=True)
 class FitResult:
     """What a replay produced: the estimates and what happened to the frames."""
 
@@ -169,6 +190,8 @@ class FitResult:
     calibration: Calibration | None = None
     #: the logs of a fit of several, each with its time shift
     files: tuple[FileShift, ...] = ()
+    #: the target's run, when it gave the fixed column (None: the kernel's)
+    fixed: TargetRun | None = None
 
     @property
     def parameters(self) -> Any:
@@ -196,6 +219,8 @@ class FitResult:
             d["bad_lines"] = self.frames.bad_lines
         if self.files:
             d["files"] = [dataclasses.asdict(f) for f in self.files]
+        if self.fixed is not None:
+            d["fixed"] = self.fixed.to_dict()
         return d
 
     def format(self) -> str:

@@ -1,0 +1,108 @@
+"""Where the whole estimator's instructions go on the Cortex-M4: a flat profile.
+
+The simulated drive with the model of n parameters (``tools/target_whole.py``'s cases)
+is exported with vectors and replayed on QEMU ``mps2-an386`` under its execution log
+(``-singlestep -d exec,nochain``: one line per instruction); each executed address is
+given to its innermost function, inlined ones included (``addr2line -i``), and the
+functions are summed by the stage of the path they belong to (:data:`STAGES`).
+Prints instructions per sample by stage and by function; the figures of
+docs/target.md. Needs ``arm-none-eabi-gcc`` and ``qemu-system-arm`` (``make target``
+installs them)::
+
+    .venv/bin/python tools/target_profile.py [--n 6] [--duration 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import target_whole as tw  # noqa: E402
+
+#: the stage of each function of canrls_target.c (the rest: the kernel, canrls_fixed.c,
+#: or the replay that feeds the frames and compares the records)
+STAGES = {
+    "decode and pair": ("canrls_target_frame", "cr_frame", "cr_extract", "cr_bswap32",
+                        "cr_popcount"),
+    "filters (SVF, tanh, exp, sin/cos)": (
+        "cr_filter", "cr_svf_row", "cr_split_input", "cr_inputs", "cr_table_eval",
+        "cr_quarter", "cr_tanh_q24", "cr_exp2_neg_q24", "cr_exp_neg_q24", "cr_sincos_q64"),
+    "columns, selection, rescale": (
+        "cr_sample", "cr_update", "cr_values", "cr_changes", "cr_state", "cr_mul_rsh",
+        "cr_sat", "cr_rsh", "cr_shl", "cr_bitlen64", "cr_clog2", "cr_clog2_mul", "cr_adapt",
+        "cr_restore", "cr_P_scale", "cr_isqrt", "cr_restart", "cr_trace_bound",
+        "cr_floor_scaled", "cr_ceil_scaled"),
+    "publication": ("canrls_target_publish", "cr_f32_bits", "cr_put"),
+    "replay (the test harness)": ("canrls_replay_frames", "canrls_replay", "record", "memcmp",
+                                  "canrls_mark", "main"),
+}
+
+
+def profile(n: int, duration: float, work: Path) -> tuple[collections.Counter[str], int]:
+    """Instructions by innermost function over the replay, and the samples."""
+    src = tw.export_case(work, n, duration)
+    elf = work / "profile.elf"
+    tw.build_example(src, elf, defines=(f"-DCANRLS_N={n}",))
+    q = subprocess.Popen([*tw.QEMU, "-singlestep", "-d", "exec,nochain", "-kernel", str(elf)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    assert q.stderr is not None
+    pcs: collections.Counter[int] = collections.Counter()
+    pat = re.compile(r"\[[0-9a-f]+/([0-9a-f]+)/")
+    for line in q.stderr:
+        m = pat.search(line)
+        if m:
+            pcs[int(m.group(1), 16)] += 1
+    if q.wait() != 0:
+        raise SystemExit("the replay on QEMU is not bit-exact")
+    r = subprocess.run(["arm-none-eabi-addr2line", "-a", "-f", "-i", "-e", str(elf)],
+                       input="".join(f"{p:#x}\n" for p in pcs), capture_output=True,
+                       text=True, check=True)
+    func: dict[int, str] = {}
+    addr = None
+    lines = r.stdout.splitlines()
+    i = 0
+    while i < len(lines):
+        if lines[i].startswith("0x"):
+            addr = int(lines[i], 16)
+            i += 1
+            continue
+        if addr is not None and addr not in func:
+            func[addr] = lines[i]  # the innermost (inlined) function comes first
+        i += 2
+    by = collections.Counter[str]()
+    for p, c in pcs.items():
+        by[func.get(p, "?")] += c
+    text = (src / "canrls_vectors.h").read_text()
+    samples = int(re.search(r"#define VEC_SAMPLES (\d+)u", text).group(1))  # type: ignore[union-attr]
+    return by, samples
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--n", type=int, default=6, choices=sorted(tw.CASES))
+    ap.add_argument("--duration", type=float, default=3.0)
+    a = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        by, samples = profile(a.n, a.duration, Path(tmp))
+    stage_of = {f: s for s, fs in STAGES.items() for f in fs}
+    stages = collections.Counter[str]()
+    for f, c in by.items():
+        stages[stage_of.get(f, "kernel (canrls_fixed.c, memset, memcpy)")] += c
+    print(f"instructions per sample, n = {a.n}, {samples} samples of {a.duration:g} s "
+          f"(start-up included), -O2 -DCANRLS_N={a.n}:")
+    for s, c in stages.most_common():
+        print(f"  {c / samples:>8.0f}  {s}")
+    print("by function (innermost, inlined included):")
+    for f, c in by.most_common(30):
+        print(f"  {c / samples:>8.1f}  {f}  [{stage_of.get(f, 'kernel')}]")
+
+
+if __name__ == "__main__":
+    main()
