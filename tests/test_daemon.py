@@ -34,8 +34,15 @@ from canrls.can.frames import (
 from canrls.can.logs import read_frames
 from canrls.config import AppConfig
 from canrls.errors import BusError, ConfigError
-from canrls.live.bus import (RX_BATCH, BusLink, BusReader, FrameQueue, bus_config,
-                             messages_to_block, open_bus)
+from canrls.live.bus import (
+    RX_BATCH,
+    BusLink,
+    BusReader,
+    FrameQueue,
+    bus_config,
+    messages_to_block,
+    open_bus,
+)
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.live.publisher import Publisher
 from canrls.live.sdnotify import SystemdNotifier

@@ -22,7 +22,7 @@ from canrls.config import load_config
 from canrls.diagnosis import analysis, residual, results, samples
 from canrls.diagnosis.analysis import diagnose_log
 from canrls.replay import prepare
-from canrls.signals import MaskPacker, PackedMask, SpilledSignals
+from canrls.spill import MaskPacker, PackedMask, SpilledSignals
 
 #: Bytes of peak memory per sample of the record that the diagnosis may grow by. Nothing
 #: it keeps is a row long (the masks go to a temporary file past a chunk's bits; the

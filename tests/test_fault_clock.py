@@ -73,8 +73,8 @@ def test_inf_line_in_a_log_does_not_stop_the_fit(tmp_path: Path, sim: FrameBlock
     with pytest.raises(LogFormatError, match=rf"inf\.log:{half + 1}:"):
         fit_log(path, *_setup())
     fit = fit_log(path, *_setup(), skip_bad_lines=True)
-    assert fit.pairing["samples"] == len(sim) // 2
-    assert fit.pairing["late"] == 0
+    assert fit.frames.pairing["samples"] == len(sim) // 2
+    assert fit.frames.pairing["late"] == 0
 
 
 # --------------------------------------------------------------------------- steps
@@ -85,20 +85,20 @@ def test_step_back_is_counted_and_estimation_resumes(tmp_path: Path, sim: FrameB
     write_candump(path, [_stepped(sim, 0.5, -60.0)])
     fit = fit_log(path, *_setup())
     clean = fit_frames([sim], *_setup())
-    assert fit.pairing["step_back"] == 1
-    assert fit.pairing["late"] == 0 and fit.pairing["unpaired"] == 0
-    assert fit.pairing["samples"] == clean.pairing["samples"]
+    assert fit.frames.pairing["step_back"] == 1
+    assert fit.frames.pairing["late"] == 0 and fit.frames.pairing["unpaired"] == 0
+    assert fit.frames.pairing["samples"] == clean.frames.pairing["samples"]
     for a, b in zip(fit.parameters, clean.parameters, strict=True):
         assert abs(a.value - b.value) < 2 * b.sigma, (a, b)
 
 
 def test_step_forward_is_a_step_not_lost_frames(sim: FrameBlock) -> None:
     fit = fit_frames([_stepped(sim, 0.5, 60.0)], *_setup())
-    assert fit.pairing["step_forward"] == 1
-    assert fit.pairing["lost"] == 0 and fit.pairing["samples"] == len(sim) // 2
+    assert fit.frames.pairing["step_forward"] == 1
+    assert fit.frames.pairing["lost"] == 0 and fit.frames.pairing["samples"] == len(sim) // 2
     # the alive counters neither: the time infers wraps only up to 1 s (before: 60 s of
     # frames, 120000, counted lost)
-    assert sum(fit.lost.values()) == 0
+    assert sum(fit.frames.lost.values()) == 0
 
 
 def test_sample_times_stay_monotonic_across_steps() -> None:
@@ -170,8 +170,8 @@ def test_neighbour_swaps_do_not_bias_the_estimate(sim: FrameBlock, block: int | 
                                               for k in range(0, len(swapped), block)]
     fit = fit_frames(blocks, *_setup())
     clean = fit_frames([sim], *_setup())
-    assert fit.rejected["stale"] == 0
-    assert fit.pairing["samples"] == clean.pairing["samples"]
+    assert fit.frames.rejected["stale"] == 0
+    assert fit.frames.pairing["samples"] == clean.frames.pairing["samples"]
     for a, b in zip(fit.parameters, clean.parameters, strict=True):
         assert abs(a.value - b.value) <= b.sigma, (a, b)
 

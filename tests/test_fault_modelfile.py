@@ -11,7 +11,6 @@ examples and size.
 from __future__ import annotations
 
 import contextlib
-import copy
 import io
 import json
 import math

@@ -6,6 +6,7 @@ import itertools
 import json
 import os
 import sys
+from pathlib import Path
 
 import can
 import pytest
@@ -168,3 +169,18 @@ def test_cli_on_a_terminal_redraws_in_place(running_daemon: tuple[Daemon, str],
         # every line clears what a longer line of the previous view left
         assert all(line.endswith("\x1b[K") for line in v.split("\n")[:-1])
     assert "\x1b[2J" not in out  # the screen is never blanked first: no flicker
+
+
+def test_the_monitor_section_is_read_and_checked(tmp_path: Path) -> None:
+    from canrls.config import AppConfig
+    from canrls.errors import ConfigError
+
+    good = tmp_path / "good.toml"
+    good.write_text("[monitor]\ninterval = 0.5\nplain = true\n")
+    assert AppConfig.load(good).monitor == {"interval": 0.5, "plain": True}
+    for body, what in (("interval = 0", "monitor.interval = 0: must be a positive"),
+                       ("colour = true", "unknown key monitor.colour")):
+        bad = tmp_path / "bad.toml"
+        bad.write_text(f"[monitor]\n{body}\n")
+        with pytest.raises(ConfigError, match=what):
+            AppConfig.load(bad)

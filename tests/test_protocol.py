@@ -1,4 +1,4 @@
-"""canrls.can.protocol: mapping, vectorised codec against cantools, strict decoding, FeedbackEncoder."""
+"""canrls.can: the mapping, the codec against cantools, strict decoding, FeedbackEncoder."""
 
 from __future__ import annotations
 

@@ -45,8 +45,8 @@ def test_fit_log_recovers_the_true_parameters(sim_log: tuple[Path, object]) -> N
     truth = res.truth.params  # type: ignore[attr-defined]
     for p in fit.parameters:
         assert p.value == pytest.approx(truth[p.name], rel=0.02), p
-    assert fit.frames == len(res.frames)  # type: ignore[attr-defined]
-    assert sum(fit.rejected.values()) == 0
+    assert fit.frames.total == len(res.frames)  # type: ignore[attr-defined]
+    assert sum(fit.frames.rejected.values()) == 0
     # the residual is close to the noise floor of the simulated current sensor
     assert fit.residual_rms < 2.0 * res.noise_floor  # type: ignore[attr-defined]
     assert 90.0 < fit.fit_percent <= 100.0
@@ -234,9 +234,9 @@ def test_faulty_frames_are_rejected_and_lost_samples_do_not_bias(tmp_path: Path)
     write_candump(path, [res.frames])
     fit = fit_log(path, *_setup("inertia,viscous,coulomb", log=path))
     log = res.fault_log
-    assert fit.rejected["crc"] == log.corrupted
-    assert fit.rejected["repeated"] == log.duplicated
-    assert sum(fit.lost.values()) > 0 and fit.pairing["unpaired"] > 0
+    assert fit.frames.rejected["crc"] == log.corrupted
+    assert fit.frames.rejected["repeated"] == log.duplicated
+    assert sum(fit.frames.lost.values()) > 0 and fit.frames.pairing["unpaired"] > 0
     for p in fit.parameters:
         assert p.value == pytest.approx(res.truth.params[p.name], rel=0.01), p
         assert p.fixed == pytest.approx(p.value, rel=1e-3), p

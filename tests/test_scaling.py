@@ -22,8 +22,8 @@ from canrls.can.logs import write_log
 from canrls.can.protocol import Protocol
 from canrls.cli.main import main
 from canrls.config import DEFAULT_HELD
-from canrls.estimation.model import Model
 from canrls.estimation.fixed import FixedRLS
+from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EstimatorSettings, used_rows
 from canrls.estimation.rls import RLS
 from canrls.processor import SampleProcessor

@@ -1,5 +1,5 @@
-"""The record of samples in a temporary file (:class:`canrls.signals.SpilledSignals`) and
-the masks at one bit a row (:class:`canrls.signals.PackedMask`): read back bit for bit,
+"""The record of samples in a temporary file (:class:`canrls.spill.SpilledSignals`) and
+the masks at one bit a row (:class:`canrls.spill.PackedMask`): read back bit for bit,
 the diagnosis on them the same, and the fallback to memory when the temporary directory
 cannot take the file."""
 
@@ -16,15 +16,16 @@ from typing import Any
 import numpy as np
 import pytest
 
-from canrls import signals as signals_mod
+from canrls import spill as spill_mod
 from canrls.cli.main import main
 from canrls.config import DEFAULT_HELD, load_config
 from canrls.diagnosis.analysis import diagnose, diagnose_log
 from canrls.estimation.model import Model
 from canrls.processor import scan_ranges
 from canrls.replay import prepare, read_logs
-from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals
+from canrls.signals import Signals
 from canrls.sim.scenario import scenario, simulate
+from canrls.spill import MaskPacker, PackedMask, SpilledSignals
 
 
 def _blocks(rng: np.random.Generator, sizes: list[int], position: bool = True,
@@ -148,7 +149,7 @@ def test_a_mask_file_that_cannot_be_written_keeps_the_mask_in_memory(
     bytes written so far read back, the mask whole in memory (and later masks too,
     without another warning)."""
     monkeypatch.setattr(MaskPacker, "MEMORY", 16)
-    monkeypatch.setattr(signals_mod, "_mask_warned", False)
+    monkeypatch.setattr(spill_mod, "_mask_warned", False)
     writes = []
     pwrite = os.pwrite
 
@@ -158,7 +159,7 @@ def test_a_mask_file_that_cannot_be_written_keeps_the_mask_in_memory(
         writes.append(offset)
         return pwrite(fd, data, offset)
 
-    monkeypatch.setattr(signals_mod.os, "pwrite", full)
+    monkeypatch.setattr(spill_mod.os, "pwrite", full)
     rng = np.random.default_rng(5)
     m = rng.random(5000) < 0.3
     with caplog.at_level(logging.WARNING, logger="canrls.signals"):
@@ -191,7 +192,8 @@ def test_diagnose_log_on_spilled_samples_is_the_in_memory_report(
     log = read_logs([drive_log], protocol, model, settings)
     assert isinstance(log.signals, Signals)
     want = diagnose(log.signals, log.model, settings, dt=log.dt, add=["offset"],
-                    max_order=16, source=str(drive_log), frames=log.frames)
+                    max_order=16, source=str(drive_log), frames=log.frames,
+                    period=log.period, start=log.start)
     made: list[SpilledSignals] = []
     init = SpilledSignals.__init__
 
@@ -277,7 +279,7 @@ def test_a_write_that_fails_keeps_every_sample_in_memory(
         writes.append(offset)
         return pwrite(fd, data, offset)
 
-    monkeypatch.setattr(signals_mod.os, "pwrite", full)
+    monkeypatch.setattr(spill_mod.os, "pwrite", full)
     with caplog.at_level(logging.WARNING, logger="canrls.replay"):
         got = read_logs([drive_log], protocol, model, settings, chunk_size=2000, spill=True)
     assert len(writes) == 2

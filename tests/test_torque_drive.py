@@ -31,6 +31,7 @@ import pytest
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import read_frames, write_candump
 from canrls.can.protocol import Protocol
+from canrls.cli._common import overrides
 from canrls.cli.main import build_parser, main
 from canrls.cli.run import build_daemon
 from canrls.config import load_config
@@ -280,7 +281,8 @@ def test_the_daemon_reads_the_tpdos_from_a_bus(drive: dict[str, Any],
 
 def test_a_checkpoint_of_the_daemon_keeps_the_torque(drive: dict[str, Any],
                                                     tmp_path: Path) -> None:
-    cfg = load_config(None, build_parser("run").parse_args(["run", *MAP, "-e", EFFECTS]))
+    args = build_parser("run").parse_args(["run", *MAP, "-e", EFFECTS])
+    cfg = load_config(None, overrides(args))
     protocol, model, settings = prepare(cfg)
     frames = FrameBlock.concat(read_frames(drive["cia"]))
     whole = FrameProcessor(protocol, model, settings)

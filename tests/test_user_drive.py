@@ -304,7 +304,7 @@ def test_the_period_is_the_same_live_and_offline(rotary: dict[str, Path]) -> Non
     small = [b.take(slice(i, i + 37)) for b in whole for i in range(0, len(b), 37)]
     a = fit_frames(whole, protocol, model, settings)
     b = fit_frames(small, protocol, model, settings)
-    assert a.extra["period"] == b.extra["period"]
+    assert a.period == b.period
     for pa, pb in zip(a.parameters, b.parameters, strict=True):
         assert pa.value == pb.value or (math.isnan(pa.value) and math.isnan(pb.value))
 

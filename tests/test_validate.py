@@ -74,7 +74,7 @@ def test_segments_are_not_bridged_across_files(logs: dict[str, Path]) -> None:
     warm = SamplePolicy.for_equation(split.model.equations[0], 0.001, settings).warmup
     assert split.estimates.samples == whole.estimates.samples - warm
     # and it was moved in time to leave a gap the pipeline does not fill
-    shifts = [f["time_shift_s"] for f in split.extra["files"]]
+    shifts = [f.time_shift_s for f in split.files]
     assert shifts[0] == 0.0 and shifts[1] >= FILE_GAP_S - 0.01
     # the same parameters within their sigma
     for p in whole.estimates.parameters:
@@ -89,7 +89,7 @@ def test_logs_at_the_same_time_are_joined_one_after_the_other(logs: dict[str, Pa
     n2 = rec.sizes[0]
     assert rec.signals.t[n2] - rec.signals.t[n2 - 1] == pytest.approx(FILE_GAP_S, abs=1e-6)
     lines = [len(logs[k].read_text().splitlines()) for k in ("s2", "s3")]
-    assert rec.frames["total"] == sum(lines)
+    assert rec.frames.total == sum(lines)
 
 
 def test_fit_several_logs_save_and_validate(logs: dict[str, Path], tmp_path: Path,

@@ -74,7 +74,7 @@ def fit_rate(path: Path, repeat: int) -> tuple[float, int]:
         el = time.perf_counter() - t
         best = min(best, el) if i else best
         used = res.estimates.samples
-    return res.frames / best, used
+    return res.frames.total / best, used
 
 
 def main() -> None:

@@ -187,7 +187,7 @@ def bench_canrls(path: Path, effects: str, repeat: int,
     def samples() -> int:
         proc = FrameProcessor(protocol, model, settings)
         n = sum(len(proc.samples(b)) for b in read_frames(path, chunk_size))
-        return n + len(proc.pairer.flush())
+        return n + len(proc.flush_samples())
 
     def fit() -> Any:
         return fit_log(path, protocol, model, settings, chunk_size=chunk_size)
@@ -200,7 +200,7 @@ def bench_canrls(path: Path, effects: str, repeat: int,
     print(line("read + decode + pair", frames, wall, cpu))
     wall, cpu, res = best_of(fit, repeat)
     print(line("fit_log: read, decode, pair, regress, RLS", frames, wall, cpu))
-    print(f"  ({res.frames} frames, {n_samples} samples, {res.estimates.samples} used; "
+    print(f"  ({res.frames.total} frames, {n_samples} samples, {res.estimates.samples} used; "
           f"float and fixed-point RLS, {len(res.parameters)} parameters)")
     # the writer, on the same frames: read + write, minus the read
     w_wall, w_cpu, same = best_of(lambda: rewrite(path, chunk_size), 1)
@@ -208,7 +208,7 @@ def bench_canrls(path: Path, effects: str, repeat: int,
     print(line("write_candump (read time subtracted)", frames, max(w_wall - r_wall, 1e-9),
                max(w_cpu - r_cpu, 1e-9)))
     print(f"  (the re-written log is {'byte for byte' if same else 'NOT'} the original)")
-    return res.frames, wall, cpu
+    return res.frames.total, wall, cpu
 
 
 def rewrite(path: Path, chunk_size: int) -> bool:
@@ -316,7 +316,7 @@ def rss_child(path: Path, effects: str, chunk_size: int) -> None:
     protocol, model, settings = configure(path, effects)
     res = fit_log(path, protocol, model, settings, chunk_size=chunk_size)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(json.dumps({"frames": res.frames, "base_kb": base, "now_kb": now, "peak_kb": peak}))
+    print(json.dumps({"frames": res.frames.total, "base_kb": base, "now_kb": now, "peak_kb": peak}))
 
 
 def current_rss_kb() -> int | None:

@@ -68,7 +68,7 @@ import numpy as np
 from can.interfaces import virtual as _virtual
 
 from canrls.can.frames import FrameDecoder, ParameterReport, frame_ids
-from canrls.config import AppConfig
+from canrls.config import AppConfig, prepare
 from canrls.errors import CanrlsError
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.sim.faults import FaultLog, FaultSpec
@@ -183,11 +183,10 @@ class _LogCount(logging.Handler):
 def make_daemon(channel: str, effects: str, max_block: int = MAX_BLOCK) -> Daemon:
     cfg = AppConfig()
     cfg.model = {"effects": effects.split(","), "kt": 0.1}
-    protocol = cfg.protocol()
-    model = cfg.model_for(protocol)
+    protocol, model, est = prepare(cfg)
     # commands on explicitly: the soak floods them (the default may be off)
     settings = DaemonSettings(commands=True, queue_size=200_000, max_block=max_block)
-    return Daemon(protocol, model, cfg.settings(), settings,
+    return Daemon(protocol, model, est, settings,
                   bus={"interface": "virtual", "channel": channel}, backpressure=True)
 
 
@@ -274,9 +273,9 @@ def run(label: str, duration: float, seed: int, faults: str, effects: str,
         s = d.stats()
         res.frames_processed = s.frames
         res.stats = s.to_dict()
-        dec = d.processor.decoder
-        res.rejected = {k: int(v) for k, v in dec.rejected.items() if v}
-        res.lost = int(sum(dec.lost.values()))
+        fr = d.processor.frame_counts()
+        res.rejected = {k: v for k, v in fr.rejected.items() if v}
+        res.lost = sum(fr.lost.values())
         res.rss_peak = rss_mb("VmHWM")
         res.faults = sim.fault_log
         res.survived = {}

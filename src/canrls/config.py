@@ -1,68 +1,12 @@
 """The canrls configuration file (TOML) and how command-line options override it.
 
-.. code-block:: toml
-
-    [model]                    # the model: see canrls.estimation.model (effects, kt, axis, filter, ...)
-    effects = ["inertia", "viscous", "coulomb"]
-    kt = 0.1                   # not with a torque signal: its torque is the target (N·m)
-    [model.filter]
-    held = ["current", "voltage"]   # the default here (canrls.estimation.model.Model's is
-                                    # ["voltage"]); with a torque signal also "torque"
-
-    [estimator]
-    lambda = 1.0               # forgetting factor (0.5, 1]; 1 keeps all data (default)
-    alpha = 0.01               # ridge: the prior weighs like alpha samples of each column
-    trace_max = 80.0           # bound on trace P (default: the prior's trace)
-    warmup_s = 0.05            # filter warm-up not used (default 5 SVF time constants)
-    gap_periods = 3.5          # a sample gap longer than this many periods restarts the filter
-    calibration_s = 2.0        # seconds at the start that calibrate normalisation and prior
-    rms_time_s = 1.0           # time constant of the running residual RMS
-    max_phase_step = 0.3       # skip samples where a periodic column advances more [rad]
-                               # (default: no limit)
-    min_speed = 0.05           # with friction effects: skip samples slower than this
-                               # (default 5 x the Coulomb band)
-
-    [fixed]
-    word_bits = 32             # state word
-    acc_bits = 64              # accumulators
-    input_bits = 32            # phi and y (16 possible)
-    theta_max = 16.0           # bound of the normalised parameters (default)
-    [fixed.formats]            # optional Q-format overrides: [bits, frac]
-    P = [32, 20]
-
-    [can]
-    dbc = "my_drive.dbc"       # default: the DBC shipped with canrls
-    period = 0.001             # control period [s] (default: the DBC's GenMsgCycleTime, else
-                               # measured on the log's timestamps; checked against them)
-    strict_range = true        # named opt-outs of strict decoding
-    check_crc = true
-    check_counter = true
-    interface = "socketcan"    # live bus (canrls run / monitor)
-    channel = "can0"
-    bitrate = 1000000
-
-    [signals]                  # which message and signal carry each role (canrls.can.protocol)
-    current = "DriveCurrent.Current"
-    speed = { signal = "DriveSpeed.Speed", unit = "rpm" }
-    # torque = "TPDO1.TorqueActual"    # a drive that reports its torque (no kt needed)
-    # rated_torque = 2.4        # N·m: what a per mille (‰) or per cent torque refers to
-    # rated_current = 5.0       # A: the same for a current in ‰ or %
-    # increments_per_rev = 4096 # encoder increments per revolution (linear: per metre)
-
-    [daemon]                   # canrls run (see docs/daemon.md)
-
-    [history]                  # canrls run appends its parameters to a fleet history
-    url = "fleet.db"           # (docs/fleet.md; canrls.fleet.live)
-    drive = "axis-1"
-
-Relative paths (``can.dbc``) are relative to the configuration file. Every key is
-checked: an unknown key or a bad value is a :class:`~canrls.errors.ConfigError`
-naming the file, the key and the value.
+One reader (:func:`read_toml`), the command line's options applied once
+(:class:`Overrides`) and one builder of (protocol, model, settings) for every command
+(:func:`prepare`). The file's sections and keys: docs/configuration.md.
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import re
@@ -70,7 +14,7 @@ import tomllib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from canrls.can.protocol import Protocol, SignalMapping
 from canrls.can.units import RATING_OPTIONS, Ratings
@@ -81,8 +25,8 @@ from canrls.estimation.pipeline import EstimatorSettings
 from canrls.files import MAX_CONFIG_BYTES, check_path, read_bytes
 from canrls.signals import ROLES
 
-__all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "load_config",
-           "read_toml", "load_model"]
+__all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "Overrides", "Prepared",
+           "load_config", "load_model", "prepare", "read_toml"]
 
 #: Deepest nesting of tables and arrays a configuration file may have (ours need 3).
 MAX_DEPTH = 16
@@ -111,6 +55,49 @@ _FLAGS = (("kt", "--kt", "model", "kt"), ("axis", "--axis", "model", "axis"),
           *((key, flag, "signals", key) for key, (flag, _, _) in RATING_OPTIONS.items()))
 _CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
              "channel", "bitrate", "fd", "data_bitrate")
+#: ``[monitor]``: defaults of ``canrls monitor``'s options of the same names
+_MONITOR_KEYS = {"interval": "a positive number of seconds",
+                 "timeout": "a positive number of seconds", "plain": "true or false"}
+
+
+@dataclass(frozen=True)
+class Overrides:
+    """What the command line sets over the configuration file, built once from the
+    arguments by the command line (nothing below it sees them); hashable and picklable,
+    so a fleet's workers take it as it is."""
+
+    dbc: str | None = None
+    signals: tuple[str, ...] = ()
+    effects: str | None = None
+    kt: float | None = None
+    axis: str | None = None
+    lam: float | None = None
+    alpha: float | None = None
+    period: float | None = None
+    #: what relative units refer to (``--rated-torque``, ``--rated-current``,
+    #: ``--increments-per-rev``)
+    rated_torque: float | None = None
+    rated_current: float | None = None
+    increments_per_rev: float | None = None
+    #: python-can's bus arguments (``-i -c -b --fd --data-bitrate --timing``,
+    #: ``--bus-kwargs``), over ``[can]``
+    bus: tuple[tuple[str, Any], ...] = ()
+
+
+class Prepared(NamedTuple):
+    """What every command builds from a configuration (:func:`prepare`)."""
+
+    protocol: Protocol
+    model: Model
+    settings: EstimatorSettings
+
+
+def prepare(cfg: AppConfig) -> Prepared:
+    """Protocol, model and settings from a configuration: the one builder of them. The
+    ranges it does not give are measured by the front end on the calibration window
+    (:mod:`canrls.processor`), live and offline alike: no first pass over a log."""
+    protocol = cfg.protocol()
+    return Prepared(protocol, cfg.model_for(protocol), cfg.settings())
 
 
 def read_toml(path: str | Path, table: str | None = None, *, key: str | None = None
@@ -186,6 +173,8 @@ class AppConfig:
     #: configuration keys set from the command line, with the flag and value typed
     #: (``{"model.effects": "--effects inertia,foo"}``): errors name those, not the key
     flags: dict[str, str] = field(default_factory=dict)
+    #: the bus arguments of the command line (over the bus keys of ``[can]``)
+    bus: dict[str, Any] = field(default_factory=dict)
 
     # -- loading ----------------------------------------------------------------------
     @classmethod
@@ -206,8 +195,8 @@ class AppConfig:
         return cfg
 
     def check(self) -> None:
-        """Every key of ``[estimator]``, ``[fixed]`` and ``[can]`` is one canrls knows (a
-        :class:`ConfigError` naming the first that is not)."""
+        """Every key of ``[estimator]``, ``[fixed]``, ``[can]`` and ``[monitor]`` is one
+        canrls knows (a :class:`ConfigError` naming the first that is not)."""
         src = self.source
         for k in self.estimator:
             if k not in _ESTIMATOR_KEYS:
@@ -221,22 +210,33 @@ class AppConfig:
             if k not in _CAN_KEYS:
                 raise ConfigError(f"{src}: unknown key can.{k} = {self.can[k]!r} "
                                   f"(valid: {', '.join(_CAN_KEYS)})")
+        for k, v in self.monitor.items():
+            want = _MONITOR_KEYS.get(k)
+            if want is None:
+                raise ConfigError(f"{src}: unknown key monitor.{k} = {v!r} "
+                                  f"(valid: {', '.join(_MONITOR_KEYS)})")
+            ok = (isinstance(v, bool) if k == "plain" else
+                  not isinstance(v, bool) and isinstance(v, int | float)
+                  and math.isfinite(v) and v > 0)
+            if not ok:
+                raise ConfigError(f"{src}: monitor.{k} = {v!r}: must be {want}")
 
     # -- command line -----------------------------------------------------------------
-    def apply_args(self, args: argparse.Namespace) -> AppConfig:
-        """Let the options of :func:`canrls.cli._common.add_model_options` override the file."""
-        if getattr(args, "dbc", None):
-            self.can["dbc"] = str(Path(args.dbc).resolve())
-        if getattr(args, "signal", None):
-            self.signal_overrides = list(args.signal)
-        if getattr(args, "effects", None):
-            self.model["effects"] = [e.strip() for e in args.effects.split(",") if e.strip()]
-            self.flags["model.effects"] = f"--effects {args.effects}"
+    def apply(self, over: Overrides) -> AppConfig:
+        """Let the command line's :class:`Overrides` override the file."""
+        if over.dbc:
+            self.can["dbc"] = str(Path(over.dbc).resolve())
+        if over.signals:
+            self.signal_overrides = list(over.signals)
+        if over.effects:
+            self.model["effects"] = [e.strip() for e in over.effects.split(",") if e.strip()]
+            self.flags["model.effects"] = f"--effects {over.effects}"
         for attr, flag, section, key in _FLAGS:
-            v = getattr(args, attr, None)
+            v = getattr(over, attr)
             if v is not None:
                 getattr(self, section)[key] = v
                 self.flags[f"{section}.{key}"] = f"{flag} {v}"
+        self.bus.update(over.bus)
         return self
 
     def _flagged(self, e: ConfigError) -> ConfigError:
@@ -267,7 +267,7 @@ class AppConfig:
         """What relative units refer to: ``[signals]`` ``rated_torque``, ``rated_current``,
         ``increments_per_rev`` (``--rated-torque``, ... override them)."""
         given = {}
-        for key, (flag, _, unit) in RATING_OPTIONS.items():
+        for key, (_, _, unit) in RATING_OPTIONS.items():
             if key not in self.signals:
                 continue
             v = self.signals[key]
@@ -299,10 +299,6 @@ class AppConfig:
             if not isinstance(v, bool):
                 raise ConfigError(f"{self._where('can.' + k)} = {v!r}: must be true or false")
         where = self.flags.get("can.period") or self._where("can.period")
-        if period is not None and (isinstance(period, bool) or not isinstance(period, int | float)
-                                   or not (math.isfinite(period) and period > 0)):
-            raise ConfigError(f"{where}{'' if 'can.period' in self.flags else f' = {period!r}'}"
-                              f": the control period must be a positive number of seconds")
         axis = self.model.get("axis")
         return Protocol.load(self.dbc_path(), mapping, period=period,
                              period_source=where, axis=axis if isinstance(axis, str) else None,
@@ -398,7 +394,7 @@ class AppConfig:
             raise self._flagged(ConfigError(f"{self.source}: {e}")) from e
 
 
-def load_config(path: str | Path | None, args: argparse.Namespace | None = None) -> AppConfig:
-    """Read the file (if any) and apply command-line overrides."""
+def load_config(path: str | Path | None, overrides: Overrides | None = None) -> AppConfig:
+    """Read the file (if any) and apply the command line's overrides."""
     cfg = AppConfig.load(path)
-    return cfg.apply_args(args) if args is not None else cfg
+    return cfg.apply(overrides) if overrides is not None else cfg

@@ -1,26 +1,9 @@
 """The saved model: ``canrls fit --save-model FILE`` writes it, ``canrls validate`` reads it.
 
-A JSON document (``docs/model_file.md`` describes every key)::
-
-    {
-      "format": "canrls-model", "version": 1,
-      "created": "2026-11-25T10:00:00Z", "canrls": "0.4.0",
-      "sources": ["run1.log", "run2.log"],          # the logs it was identified on
-      "model": {...},            # Model.to_dict() with the frozen ranges and scaling
-      "effects": ["inertia", "viscous", "coulomb", "offset"],
-      "parameters": {"inertia.J": {"value": 7.0e-05, "sigma": 4.9e-06, "unit": "kg·m²",
-                                   "fixed": ..., "effect": "inertia",
-                                   "equation": "mechanical", "description": "..."}, ...},
-      "fit": {"mechanical": {"unit": "N·m", "residual_rms": ..., "fit_percent": ...,
-                             "samples": ...}},
-      "configuration": {"source": "drive.toml", "model": {...}, "estimator": {...},
-                        "can": {...}, "signals": {...}, "signal_overrides": [...]},
-      "calibration": {...}       # the frozen calibration (canrls.processor.Calibration)
-    }
-
-The parameters are physical (SI, the unit beside each); the model and the calibration
-hold the ranges and power-of-two scaling that produced them, so a prediction with the
-file (:func:`canrls.validate.validate_logs`) builds exactly the same filtered columns.
+A JSON document (format ``canrls-model``, version 1) with the physical parameters, the
+model with the frozen ranges and power-of-two scaling that produced them, the
+configuration and the calibration, so a prediction with the file builds exactly the
+same filtered columns. Every key: docs/model_file.md.
 """
 
 from __future__ import annotations
@@ -125,9 +108,8 @@ class SavedModel:
         period it ran at kept with the calibration, ``calibration.period``: what
         ``canrls export-c`` builds the target's filter for)."""
         saved = cls.from_parts(res.model, res.estimates, res.calibration, cfg, sources)
-        period = (res.extra.get("period") or {}).get("value")
-        if saved.calibration is not None and period:
-            saved.calibration["period"] = float(period)
+        if saved.calibration is not None and res.period.value:
+            saved.calibration["period"] = float(res.period.value)
         return saved
 
     @classmethod

@@ -12,36 +12,28 @@ for bit.
 from __future__ import annotations
 
 import dataclasses
-import itertools
-import logging
 import math
 import os
-import tempfile
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from typing import TYPE_CHECKING, Any
-
-import numpy as np
-import numpy.typing as npt
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, read_frames
-from canrls.can.pairing import Pairer
 from canrls.can.protocol import Protocol
-from canrls.can.reorder import Reorderer
-from canrls.can.times import TimeJudge
+from canrls.config import prepare  # the one builder, where the replay's callers look
 from canrls.errors import ConfigError, EstimatorError, LogFormatError
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Estimates, EstimatorSettings, PipelineBlock
 from canrls.estimation.selection import SamplePolicy
-from canrls.processor import FitResult, FrameProcessor
-from canrls.signals import ROLES, Signals, SpilledSignals
-
-if TYPE_CHECKING:
-    from canrls.config import AppConfig
-
-F64 = npt.NDArray[np.float64]
-
-log = logging.getLogger(__name__)
+from canrls.processor import (
+    FileShift,
+    FitResult,
+    FrameCounts,
+    FrameProcessor,
+    PeriodInfo,
+    StartInfo,
+)
+from canrls.signals import Signals
+from canrls.spill import SpilledSignals, join_blocks, spill_blocks
 
 __all__ = ["FILE_GAP_S", "FitResult", "FrameProcessor", "LogFiles", "LogsSamples",
            "MIN_SAMPLES_PER_PARAMETER", "fit_frames", "fit_log", "fit_logs", "prepare",
@@ -96,27 +88,24 @@ def fit_log(path: str | os.PathLike[str], protocol: Protocol, model: Model,
 MIN_SAMPLES_PER_PARAMETER = 10
 
 
-def too_few_samples(model: Model, estimates: Estimates, frames: Mapping[str, Any],
+def too_few_samples(model: Model, estimates: Estimates, frames: FrameCounts,
                     dt: float | None, settings: EstimatorSettings | None = None) -> str | None:
     """Why ``estimates`` rest on too few usable samples to be an answer (fewer than
-    :data:`MIN_SAMPLES_PER_PARAMETER` per parameter in an equation), or None.
-    ``frames``: the frame counts of a fit's or a diagnosis's JSON (``total``,
-    ``rejected``, ``pairing``, ``foreign``, ``missing``: a mapped message that never
-    occurred, :meth:`FrameProcessor.missing_messages`); ``dt`` the control period."""
+    :data:`MIN_SAMPLES_PER_PARAMETER` per parameter in an equation), or None; ``dt`` is
+    the control period."""
     st = settings or EstimatorSettings()
     dt = dt if dt else math.nan
     for eq, fit in zip(model.equations, estimates.equations, strict=False):
         need = MIN_SAMPLES_PER_PARAMETER * len(eq.parameters)
         if fit.samples >= need:
             continue
-        if frames.get("missing"):
-            return str(frames["missing"])
-        pairing = frames.get("pairing") or {}
-        paired = pairing.get("samples", 0)
-        lost = {k: v for k, v in pairing.items() if v and k != "samples"}
-        rej = {k: v for k, v in (frames.get("rejected") or {}).items() if v}
-        foreign = frames.get("foreign", 0)
-        text = (f"{frames.get('total', 0)} frames gave {paired} samples"
+        if frames.missing:
+            return frames.missing
+        paired = frames.pairing.get("samples", 0)
+        lost = {k: v for k, v in frames.pairing.items() if v and k != "samples"}
+        rej = {k: v for k, v in frames.rejected.items() if v}
+        foreign = frames.foreign
+        text = (f"{frames.total} frames gave {paired} samples"
                   + (f" (frames rejected: {', '.join(f'{k} {v}' for k, v in rej.items())})"
                      if rej else "")
                   + (f" (pairing: {', '.join(f'{k} {v}' for k, v in lost.items())})"
@@ -138,25 +127,14 @@ def too_few_samples(model: Model, estimates: Estimates, frames: Mapping[str, Any
     return None
 
 
-def prepare(cfg: AppConfig) -> tuple[Protocol, Model, EstimatorSettings]:
-    """Protocol, model and settings from a configuration. The ranges it does not give
-    are measured by the front end on the calibration window (:mod:`canrls.processor`),
-    as the live daemon does: no first pass over the log."""
-    protocol = cfg.protocol()
-    return protocol, cfg.model_for(protocol), cfg.settings()
-
-
 class LogFiles:
     """The samples of several logs, in turn, through one :class:`FrameProcessor`.
 
-    Segments are never bridged across files: before each file the processor's decoder
-    and pairer restart (no counter or pairing state carried over), and a file that does
-    not start at least :data:`FILE_GAP_S` after the previous one ended (the same time,
-    earlier, or straight after) is moved in time to start exactly that much later, so
-    the estimator sees a gap and restarts its filter there, and the joined record's time
-    stays increasing. The calibration window is the start of the first file (the first
-    ``calibration_s`` of samples; when the first file is shorter, it continues into the
-    next). The frame counts of :meth:`frames` are the totals over the files.
+    Segments are never bridged across files: before each file the processor restarts
+    (:meth:`FrameProcessor.restart`), and a file that does not start at least
+    :data:`FILE_GAP_S` after the previous one ended is moved in time to start exactly
+    that much later, so the estimator restarts its filter there and the joined record's
+    time stays increasing. The calibration window is the start of the first file.
     """
 
     def __init__(self, paths: Sequence[str | os.PathLike[str]], proc: FrameProcessor, *,
@@ -172,16 +150,8 @@ class LogFiles:
         self.shifts: list[float] = []
         #: samples of each file read so far (in the order of the joined record)
         self.sizes: list[int] = []
-        self._counts: list[dict[str, Any]] = []
         self._end: float | None = None
         self._file = 0
-
-    def _file_counts(self) -> dict[str, Any]:
-        p = self.proc
-        return {"rejected": {k: int(v) for k, v in p.rejected.items()},
-                "examples": dict(getattr(p.rejected, "examples", {}) or {}),
-                "lost": {k: int(v) for k, v in p.decoder.lost.items()},
-                "foreign": int(p.decoder.foreign), "pairing": p.pairing.as_dict()}
 
     def _shifted(self, s: Signals) -> Signals:
         self.sizes[-1] += len(s)
@@ -204,13 +174,7 @@ class LogFiles:
             self._file = k + 1
             self.sizes.append(0)
             if k:
-                self._counts.append(self._file_counts())
-                proc = self.proc
-                proc.decoder = proc.protocol.decoder()
-                proc.reorder = Reorderer(proc.protocol.messages)
-                proc.times = TimeJudge()
-                if proc.pairer is not None:
-                    proc.pairer = Pairer(proc.protocol, period=proc.pairer.period)
+                self.proc.restart()
             frames = self.proc.frames
             for block in read_frames(path, self.chunk_size, skip_bad_lines=self.skip_bad_lines,
                                      stats=self.stats, progress=self.progress):
@@ -225,102 +189,39 @@ class LogFiles:
             if len(self.shifts) < self._file:
                 self.shifts.append(0.0)  # a file without samples
 
-    def frames(self) -> dict[str, Any]:
-        """Frame statistics summed over the files (as :meth:`FitResult.to_dict` has them)."""
-        parts = [*self._counts, self._file_counts()]
+    def frames(self) -> FrameCounts:
+        """The frame counts over the files, with the log lines skipped."""
+        return dataclasses.replace(self.proc.frame_counts(), bad_lines=self.stats.bad_lines)
 
-        def total(key: str) -> dict[str, int]:
-            out: dict[str, int] = {}
-            for c in parts:
-                for k, v in c[key].items():
-                    out[k] = out.get(k, 0) + int(v)
-            return out
-
-        examples: dict[str, str] = {}
-        for c in parts:
-            for k, v in c["examples"].items():
-                examples.setdefault(k, v)
-        d: dict[str, Any] = {"total": self.proc.frames, "rejected": total("rejected"),
-                             "examples": examples, "lost": total("lost"),
-                             "foreign": sum(c["foreign"] for c in parts),
-                             "pairing": total("pairing"),
-                             "messages": dict(self.proc.message_frames)}
-        missing = self.proc.missing_messages()
-        if missing:
-            d["missing"] = missing
-        if self.stats.bad_lines:
-            d["bad_lines"] = self.stats.bad_lines
-        return d
+    def files(self) -> tuple[FileShift, ...]:
+        """Each log with its time shift (none for a single log)."""
+        if len(self.paths) < 2:
+            return ()
+        return tuple(FileShift(p, sh) for p, sh in zip(self.paths, self.shifts, strict=True))
 
 
 @dataclasses.dataclass(frozen=True)
 class LogsSamples:
     """The samples of several logs as one record (:class:`LogFiles`): in memory, or in
-    a temporary file (:class:`~canrls.signals.SpilledSignals`) when read with
+    a temporary file (:class:`~canrls.spill.SpilledSignals`) when read with
     ``spill=True`` (:meth:`close` frees it)."""
 
     signals: Signals | SpilledSignals
     #: sample period [s] (the pairer's)
     dt: float
-    #: frame statistics summed over the files (total, rejected, lost, foreign, pairing)
-    frames: dict[str, Any]
+    #: the frames of every file
+    frames: FrameCounts
     #: the model with the ranges the front end gives it (the DBC's where not configured)
     model: Model
     #: samples of each file, in order
     sizes: tuple[int, ...]
+    period: PeriodInfo
+    start: StartInfo
 
     def close(self) -> None:
         """Free the temporary file of spilled samples (nothing for samples in memory)."""
         if isinstance(self.signals, SpilledSignals):
             self.signals.close()
-
-
-def _join(blocks: Iterable[Signals]) -> Signals:
-    """:meth:`Signals.concat` of ``blocks`` (the same values), without keeping the larger
-    arrays the blocks' columns are views of, one channel's blocks joined at a time and
-    freed once joined: the peak is the samples and one channel more."""
-    cols: dict[str, list[F64 | None]] = {r: [] for r in ("t", *ROLES)}
-    for b in blocks:
-        for r, parts in cols.items():
-            v = getattr(b, r)
-            # a copy: the block's columns are views of larger arrays, kept alive by them
-            parts.append(None if v is None else np.array(v, dtype=np.float64))
-    if not cols["t"]:
-        return Signals.concat([])
-    out: dict[str, F64 | None] = {}
-    for r in list(cols):
-        parts = cols.pop(r)
-        out[r] = None if any(v is None for v in parts) else np.concatenate(parts)
-        del parts
-    return Signals.from_roles(out)
-
-
-def _spill(blocks: Iterable[Signals]) -> Signals | SpilledSignals:
-    """``blocks`` joined in a temporary file (:class:`SpilledSignals`), or in memory
-    (:func:`_join`) with one warning line when the file cannot be made or written (a
-    read-only or full temporary directory): the rows written so far are read back,
-    none is lost."""
-    blocks = iter(blocks)
-    try:
-        rec = SpilledSignals()
-    except OSError as e:
-        log.warning("cannot make a temporary file for the samples in %s (%s): they are "
-                    "kept in memory", tempfile.gettempdir(), e)
-        return _join(blocks)
-    try:
-        for b in blocks:
-            try:
-                rec.append(b)
-            except OSError as e:
-                log.warning("cannot write the temporary file of the samples in %s (%s): "
-                            "they are kept in memory", tempfile.gettempdir(), e)
-                kept = rec.in_memory()
-                rec.close()
-                return _join(itertools.chain([kept, b], blocks))
-    except BaseException:
-        rec.close()  # a log that cannot be read: the file goes at once
-        raise
-    return rec
 
 
 def read_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model: Model,
@@ -331,7 +232,7 @@ def read_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model
     diagnosis of them all: :func:`canrls.diagnosis.analysis.diagnose`).
 
     ``spill=True`` keeps them in an anonymous temporary file instead of memory
-    (:class:`~canrls.signals.SpilledSignals`, 8 bytes per sample and channel, read back
+    (:class:`~canrls.spill.SpilledSignals`, 8 bytes per sample and channel, read back
     in slices; :meth:`LogsSamples.close` frees it); if the file cannot be made or
     written, in memory after one warning line.
 
@@ -342,18 +243,15 @@ def read_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model
     files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
                      skip_bad_lines=skip_bad_lines)
     blocks = (s for s in files.samples() if len(s))
-    signals = _spill(blocks) if spill else _join(blocks)
+    signals = spill_blocks(blocks) if spill else join_blocks(blocks)
     if len(signals) < 2:
         if isinstance(signals, SpilledSignals):
             signals.close()
         raise ConfigError(f"{', '.join(files.paths)}: {len(signals)} samples after decoding "
                           f"and pairing {proc.frames} frames; nothing to analyse")
-    frames = files.frames()
-    frames.pop("examples", None)
-    frames["period"] = proc.period_info()
-    frames["start"] = proc.start_info()
     assert proc.period is not None  # decided at the end of the first file
-    return LogsSamples(signals, proc.period, frames, proc.model, tuple(files.sizes))
+    return LogsSamples(signals, proc.period, files.frames(), proc.model, tuple(files.sizes),
+                       proc.period_info(), proc.start_info())
 
 
 def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model: Model,
@@ -363,8 +261,8 @@ def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model:
              record: bool = False, skip_bad_lines: bool = False) -> FitResult:
     """One model from several logs (:class:`LogFiles`: no segment bridged across files).
 
-    The result's ``source`` is the logs joined by ``", "``; ``extra["files"]`` lists each
-    log with its time shift.
+    The result's ``source`` is the logs joined by ``", "``; its ``files`` list each log
+    with its time shift.
 
     :raises LogFormatError: a log without any CAN frame.
     :raises EstimatorError: too few usable samples (:func:`too_few_samples`).
@@ -375,18 +273,9 @@ def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model:
     files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
                      skip_bad_lines=skip_bad_lines)
     _estimate(proc, files.samples(), on_block, record)
-    res = proc.result(", ".join(files.paths))
-    fr = files.frames()
-    extra = dict(res.extra)
-    if fr.get("bad_lines"):
-        extra["bad_lines"] = fr["bad_lines"]
-    if len(files.paths) > 1:
-        extra["files"] = [{"path": p, "time_shift_s": sh}
-                          for p, sh in zip(files.paths, files.shifts, strict=True)]
-    res = dataclasses.replace(res, frames=fr["total"], rejected=fr["rejected"],
-                              rejected_examples=fr["examples"], pairing=fr["pairing"],
-                              foreign=fr["foreign"], lost=fr["lost"], extra=extra)
-    few = too_few_samples(res.model, res.estimates, fr, res.extra["period"]["value"], settings)
+    res = dataclasses.replace(proc.result(", ".join(files.paths)), frames=files.frames(),
+                              files=files.files())
+    few = too_few_samples(res.model, res.estimates, res.frames, res.period.value, settings)
     if few is not None:
         raise EstimatorError(f"{res.source}: {few}")
     return res

@@ -1,38 +1,11 @@
 """Estimator, status and command frames (0x300..0x321 of the default DBC).
 
-The daemon publishes what it estimates and how healthy the estimation is, and
-accepts commands, through frames described in ``canrls/data/canrls.dbc``. Frames are
-encoded by an encoder compiled once per message from cantools' model of that DBC (the
-bytes of cantools' strict ``Message.encode``, with the same checks) and decoded through
-cantools, so ``cantools monitor`` shows exactly what canrls sends.
-
-==============  ======  ==========================================================
-frame           ID      content
-==============  ======  ==========================================================
-RlsEstimate     0x300   fixed-point estimate of parameter Index (float32), Valid
-RlsSigma        0x301   standard deviation of parameter Index (float32)
-RlsReference    0x302   float reference estimate of parameter Index (float32)
-RlsParamInfo    0x303   what parameter Index is: effect, component, order, equation
-RlsStatus       0x310   residual RMS, number of updates
-RlsHealth       0x311   health flags, active effects, divergence, time rejects
-RlsCounters     0x312   rejected / lost frames, saturations, dropped transmissions
-RlsRejects      0x313   rejected (and reordered) feedback frames by reason, clock faults
-RlsCommand      0x320   command to the daemon (from a tool)
-RlsCommandAck   0x321   result of the last command
-==============  ======  ==========================================================
-
-``Index`` is the DBC multiplexer of the four parameter frames (``Index M``; their
-per-parameter signals are multiplexed on every index 0..255 through ``SG_MUL_VAL_``), so
-``cantools monitor`` shows one line per parameter. The IDs come from the DBC
-(:func:`frame_ids`), never typed again; the table above is what the shipped DBC says.
-
-Parameter ``Index`` i is described by (``EffectId``, ``Component``, ``Order``,
-``Equation``: :class:`~canrls.effect_names.EffectId` and
-:class:`~canrls.effect_names.EquationId`); its name follows :data:`COMPONENTS`:
-component c of effect e is ``COMPONENTS[e][c]``, e.g. (electrical, 2) is
-``electrical.Ke`` and (cogging, 1, order 24) is ``cogging:24.cos``. ``Order`` is the
-harmonic order of ``cogging`` and the 1-based index of a user term in the
-configuration, 0 otherwise.
+The daemon publishes its estimates and health, and accepts commands, through frames of
+``canrls/data/canrls.dbc``: each encoded by an encoder compiled once per message from
+cantools' model (the bytes and checks of cantools' strict ``Message.encode``) and
+decoded through cantools, so ``cantools monitor`` shows what canrls sends. The IDs come
+from the DBC (:func:`frame_ids`); parameter names follow :data:`COMPONENTS`. Every
+frame and signal: docs/protocol.md.
 """
 
 from __future__ import annotations

@@ -1,50 +1,10 @@
 """Pairing: from decoded feedback frames to samples, one per control period.
 
-Current and speed arrive in separate frames (``DriveCurrent`` and ``DriveSpeed`` in
-the default DBC), each once per control period. :class:`Pairer` groups the frames
-of one period and emits a :class:`~canrls.signals.Signals` row when every mapped
-message of that period is present. The rules:
-
-* **Same period.** Two frames belong to the same period when their timestamps lie
-  within ``tolerance`` of each other (default: half the period, from the DBC's
-  ``GenMsgCycleTime`` or configured) and, when both carry an alive counter, their
-  counters are equal (the drive sends one counter value per period).
-* **Complete or nothing.** A sample needs a frame of every mapped message of its
-  period (current, speed, and the messages of position and voltage if they are
-  mapped elsewhere). A half without its partner is dropped and counted
-  (``unpaired``; the missing frames count as ``lost``); a sample is never built
-  from the data of another period.
-* **Waiting.** An incomplete period waits for its partners until a frame newer
-  than ``tolerance + hold * period`` after it arrives (``hold`` = 1: a frame
-  swapped with its neighbour of the next period still pairs). Samples are emitted
-  in time order, so a complete period waits behind an older incomplete one.
-* **Faults.** A second frame of the same message for a period is ``duplicated``; a
-  frame whose period was already emitted or given up is ``late``; both are dropped.
-  A frame accepted after a frame of a later period had arrived counts as
-  ``reordered`` (it still pairs). Whole periods missing between two emitted or
-  dropped periods count as ``lost`` frames (one per mapped message).
-* **Timestamp.** A sample's timestamp is that of the later partner (the time at
-  which the sample became complete).
-* **Clock faults: time is monotonic inside.** A frame's time is its timestamp plus an
-  offset, 0 until a clock step. A frame more than ``back`` (default
-  :data:`STEP_PERIODS` periods, at least ``tolerance + hold * period``) before the
-  newest frame is a **step back** (NTP, a merged log): the open periods are finalised
-  (nothing pairs across the step) and the offset re-anchored so that the frame lies
-  ``back`` after the newest; the sample times stay monotonic, the jump restarts the
-  filter downstream (:class:`~canrls.estimation.selection.SamplePolicy`) and estimation
-  resumes after its warm-up, where before every frame counted ``late`` for as long as
-  the step. A frame more than ``step`` (default 1 s) after the newest is a **step
-  forward** (or a silence that long: the timestamps cannot tell them apart), more than
-  ``tolerance + (hold + 1) * period`` a **gap**: the open periods are finalised, and
-  across a step no whole periods are counted ``lost``. Each is counted
-  (:data:`CLOCK_KINDS`, :attr:`PairingCounts.clock`) and published (``RlsRejects``,
-  the ``ClockFault`` health bit). Frames between ``hold`` and ``back`` late stay
-  ``late``, and so does a frame without a time (a non-finite timestamp: dropped).
-
-The pairer is chunk-invariant: frames are processed one at a time in stream order
-(``MessageFrames.index``) with state carried across :meth:`Pairer.push` calls, so
-splitting the stream anywhere gives the same samples (after :meth:`Pairer.flush`
-at the end of the stream).
+:class:`Pairer` groups the frames of one period (timestamps within ``tolerance``, equal
+alive counters) and emits a :class:`~canrls.signals.Signals` row when every mapped
+message of that period is there; an incomplete period is dropped and counted, never
+filled from another. Time stays monotonic across clock steps (:data:`CLOCK_KINDS`), and
+any split of the stream gives the same samples. The rules: docs/protocol.md, "Pairing".
 """
 
 from __future__ import annotations
@@ -69,7 +29,7 @@ I64 = npt.NDArray[np.int64]
 PAIRING_KINDS: tuple[str, ...] = ("unpaired", "lost", "duplicated", "reordered", "late")
 _UNPAIRED, _LOST, _DUP, _REORD, _LATE = range(5)
 
-#: Clock faults a :class:`Pairer` counts (events, not frames; module docstring).
+#: Clock faults a :class:`Pairer` counts (events, not frames; docs/protocol.md, "Pairing").
 CLOCK_KINDS: tuple[str, ...] = ("step_back", "step_forward", "gap")
 
 #: Periods a frame must lie before the newest to be a clock step back (not late).
@@ -138,7 +98,7 @@ def _push_kernel(index: tuple[I64, ...], t: tuple[F64, ...], cnt: tuple[I64, ...
     (``index``, ``t``, ``cnt``: one array per message; ``vals``: one array per role, of
     the role's message) merged into stream order (a stable sort by ``index`` when a
     message's frames are out of order), then processed one at a time (``times`` =
-    [tolerance, wait, period, back, step, gap]: the bounds of the module docstring).
+    [tolerance, wait, period, back, step, gap]: the bounds of docs/protocol.md, "Pairing").
     Counters are ignored (-1) unless ``use_counters``.
     ``iwork`` (4, C), ``fwork`` (3, C) and ``vwork`` (3, C, R) are scratch space for C >=
     frames + open-period capacity. Returns the completed samples as rows [t, role
@@ -165,7 +125,7 @@ def _push_kernel(index: tuple[I64, ...], t: tuple[F64, ...], cnt: tuple[I64, ...
 
 
 class Pairer:
-    """Pair decoded feedback frames into samples (see the module docstring for the rules).
+    """Pair decoded feedback frames into samples (the rules: docs/protocol.md, "Pairing").
 
     Parameters
     ----------

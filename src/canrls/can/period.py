@@ -1,41 +1,15 @@
 r"""The control period from the frames' timestamps.
 
-A user's DBC rarely states ``GenMsgCycleTime``, and a stated period can be wrong; the
-timestamps of the feedback frames say it. :class:`PeriodMeter` measures it on the first
-:data:`PERIOD_FRAMES` frames of each mapped message, causally, so the live daemon (no log
-ahead) and the offline replay (the same frames from a file) measure the same period. The
-front end (:class:`canrls.processor.FrameProcessor`) is the one place that runs it and
-decides the period (docs/architecture.md, "Control period").
-
-The estimate, per message, robust to jitter, dropped frames and bursts: with the frame
-times :math:`t_0 < \dots < t_n` and the intervals :math:`d_i = t_i - t_{i-1}`, start from
-the mean interval :math:`p = (t_n - t_0)/n` and iterate
-
-.. math::
-
-    k_i = \operatorname{round}(d_i / p), \qquad p = (t_n - t_0) / \textstyle\sum_i k_i
-
-Jitter rounds to one period (:math:`k_i = 1`), a dropped frame to two, a burst (frames
-queued and sent back to back) to zero for the queued frames and to several periods for
-the gap before them: the count of periods over the span stays right in each case.
-Frames relayed in groups (a gateway, a websocket, a USB adapter polled every few
-periods) arrive with many intervals near zero and gaps blurred by the relay's latency,
-and there the rounding drifts; when more than :data:`BURST_SHARE` of the intervals are
-shorter than half the mean interval, every frame is taken as one period and the period
-is the least-squares slope of :math:`t_i` against :math:`i` (frames dropped inside such a
-stream lengthen it by their share of the frames, which the 10 % check against a stated
-period tolerates up to one frame in eleven). The
-mapped messages must share the period (pairing takes one frame of each per period): the
-period is the shortest of theirs, and messages whose periods differ by more than half
-are an error that names each message with its period.
-
-A clock step among the measured frames (an interval back, or forward far beyond the
-others: NTP, a merged log) is not measured across: the frames on either side are
-measured together, their intervals pooled (:func:`_segments`), so the start does not fail.
+:class:`PeriodMeter` measures it on the first :data:`PERIOD_FRAMES` frames of each
+mapped message, causally, so the daemon and the offline replay measure the same period;
+:func:`estimate_period` counts whole periods over the span, robust to jitter, dropped
+frames, bursts and relayed groups. The front end (:class:`canrls.processor.FrameProcessor`)
+is the one place that runs it (docs/architecture.md, "Control period").
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -45,7 +19,8 @@ import numpy.typing as npt
 from canrls.errors import ConfigError
 
 __all__ = ["PERIOD_FRAMES", "PERIOD_TOLERANCE", "MIN_INTERVALS", "BURST_SHARE", "PeriodEstimate",
-           "PeriodMeter", "estimate_period", "check_period", "STEP_BACK", "STEP_FORWARD"]
+           "PeriodMeter", "estimate_period", "check_period", "STEP_BACK", "STEP_FORWARD",
+           "positive_period"]
 
 #: Frames of each mapped message the period is measured on (the first ones).
 PERIOD_FRAMES = 256
@@ -57,7 +32,8 @@ PERIOD_TOLERANCE = 0.10
 MIN_INTERVALS = 8
 
 #: Share of intervals shorter than half the mean interval above which a message's frames
-#: are taken as relayed in groups (module docstring): the period is the mean interval.
+#: are taken as relayed in groups: the period is then the slope of the times against the
+#: frame index (docs/architecture.md, "Control period").
 BURST_SHARE = 0.05
 
 #: An interval back by more than this many times the 90th percentile of the intervals'
@@ -104,9 +80,17 @@ def _segments(t: F64) -> list[F64]:
 
 
 def _one(t: F64) -> tuple[float, float] | None:
-    """(period, jitter) of one message's frame times (stream order), None if too few or
-    no span. The pieces between clock steps (:func:`_segments`) are measured together:
-    their intervals pooled, their spans summed, the slope fitted within each."""
+    r"""(period, jitter) of one message's frame times (stream order), None if too few or
+    no span. With the intervals :math:`d_i` and the span, from the mean interval,
+
+    .. math::
+
+        k_i = \operatorname{round}(d_i / p), \qquad p = \mathrm{span} / \textstyle\sum_i k_i
+
+    iterated: jitter rounds to one period, a dropped frame to two, a burst to zero and
+    the gap before it to several. The pieces between clock steps (:func:`_segments`)
+    are measured together: their intervals pooled, their spans summed, the slope
+    fitted within each."""
     t = np.asarray(t, np.float64)
     t = t[np.isfinite(t)]  # a frame without a time says nothing of the period
     if len(t) < MIN_INTERVALS + 1:
@@ -159,8 +143,10 @@ def _one(t: F64) -> tuple[float, float] | None:
 
 
 def estimate_period(times: Mapping[str, Sequence[float] | F64]) -> PeriodEstimate | None:
-    """The period of frames ``{message: times}`` (module docstring); None when no message
-    has :data:`MIN_INTERVALS` intervals over a span."""
+    """The period of frames ``{message: times}``: the shortest of the messages' (a
+    :class:`ConfigError` when one is over 1.5 times it); None when no message has
+    :data:`MIN_INTERVALS` intervals over a span (docs/architecture.md, "Control
+    period")."""
     got = {name: r for name, t in times.items() if (r := _one(np.asarray(t))) is not None}
     if not got:
         return None
@@ -174,6 +160,18 @@ def estimate_period(times: Mapping[str, Sequence[float] | F64]) -> PeriodEstimat
               "messages sent at the control period")
     jit = float(max(r[1] for r in got.values()))
     return PeriodEstimate(p, jit, {name: len(times[name]) - 1 for name in got}, periods)
+
+
+def positive_period(value: object, where: str) -> float:
+    """``value`` as a control period [s]; a :class:`ConfigError` naming ``where`` (the
+    flag, key or file that stated it) unless it is a finite positive number. The one
+    check of a period's value: a stated period (:meth:`Protocol.load
+    <canrls.can.protocol.Protocol.load>`) and the processor's go through it."""
+    if (isinstance(value, bool) or not isinstance(value, int | float)
+            or not (math.isfinite(value) and value > 0)):
+        raise ConfigError(f"{where}: the control period must be a positive number of "
+                          f"seconds, got {value!r}")
+    return float(value)
 
 
 def check_period(stated: float, source: str, measured: PeriodEstimate) -> None:

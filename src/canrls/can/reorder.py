@@ -1,30 +1,11 @@
 """Put frames reordered on the way back in their order, by their alive counters.
 
 A gateway, a driver queue or a merged log can swap a frame with its neighbour of the
-same ID: the receive timestamps keep their order, the contents (and the counters) do
-not. Decoded as they come, the earlier counter looks like a jump backwards (``stale``,
-rejected) and the later one like a lost frame: a fifth of the frames swapped loses half
-the samples and biases the estimate (inertia by -1.2 %, -59 sigma, on the simulated
-drive). :class:`Reorderer` runs before the strict decoder, per mapped message that
-carries an alive counter, within a window of :data:`REORDER_WINDOW` frames:
-
-* a frame whose counter runs ahead of the last one passed on by ``d`` in
-  ``2 .. 1 + window`` is a candidate: when the frame with the expected counter (last
-  + 1) follows within ``window`` frames of that message, its contents move up to the
-  candidate's place and those between move down by one. The timestamps stay where
-  they are (they are the periods' receive times), so a neighbour swap is undone
-  exactly. Otherwise (a frame really lost) nothing moves.
-* a candidate that is the last frame of its message in a block is held back and put in
-  front of the next block, so that a swap with the next block's first frame is undone
-  too (the daemon's blocks are whatever arrived); :meth:`Reorderer.flush` passes it on
-  at the end of the stream. Frames moved further across a block's end are left as
-  they came (the decoder counts them).
-* repeated (``d = 0``) and stale counters (a jump backwards) are left to the decoder,
-  which rejects and counts them. ``moved`` counts the frames moved up to their place
-  (one per neighbour swap undone).
-
-Messages without a counter need no such step: pairing matches frames by their
-timestamps within its wait (:mod:`canrls.can.pairing`), whatever their order.
+same ID: the receive times keep their order, the contents do not. :class:`Reorderer`
+runs before the strict decoder and, within :data:`REORDER_WINDOW` frames of a message
+that carries a counter, moves the contents back to their places, the timestamps staying
+where they are; a real loss, repeats and stale counters are left to the decoder. The
+rule and what it is worth: docs/protocol.md, "Clock faults and reordering".
 """
 
 from __future__ import annotations
@@ -46,7 +27,7 @@ _CONTENT = ("is_extended", "is_remote", "is_error", "dlc", "data")
 
 
 class Reorderer:
-    """Reorder the frames of counter-carrying messages (module docstring).
+    """Reorder the frames of counter-carrying messages (docs/protocol.md).
 
     Parameters
     ----------

@@ -1,23 +1,11 @@
 """When a frame's receive time is a time: one judgment for the log readers and the live path.
 
-Two rules, applied to every frame before anything else reads it:
-
-* **A time at all** (:func:`is_time`, :func:`not_times`): finite and within
-  :data:`MAX_TIMESTAMP` of zero. The log readers make a line with any other timestamp a
-  bad line (``(inf)``, ``(1e300)``); the live path rejects such a frame (an epoch in
-  microseconds, 1.7e15, or a driver's garbage), counted under the reason ``time``.
-* **In line with the stream** (:class:`TimeJudge`): a frame more than
-  :data:`~canrls.can.pairing.FORWARD_STEP` (the pairer's clock-step bound, 1 s) before
-  or after the last frame accepted departs from the time base. When the frames after it
-  come back within :data:`SPIKE_FRAMES` frames, it was a lone outlier (a glitch of the
-  receiver's clock): rejected, counted ``time``. Otherwise the departure is a clock
-  step (or a silence, or a slow stream), passed on for the pairer to re-anchor its time
-  base and count (``docs/protocol.md``, *Clock faults and reordering*).
-
-Without these, one frame stamped 1e300 s (or 1.7e15 s) put the pairer's time base where
-a double can no longer tell one period from the next, and estimation stopped for good.
-The judgment carries its state from block to block, so any split of the stream gives
-the same frames (held departures wait for the frames that decide them).
+A time at all (:func:`is_time`, :func:`not_times`: finite, within
+:data:`MAX_TIMESTAMP`), and in line with the stream (:class:`TimeJudge`: a lone outlier
+more than :data:`~canrls.can.pairing.FORWARD_STEP` off, whose next frames come back, is
+rejected as ``time``; a departure that stays is a clock step, left to the pairer). The
+judgment carries its state from block to block, so any split of the stream gives the
+same frames (docs/protocol.md, "Clock faults and reordering").
 """
 
 from __future__ import annotations
@@ -82,7 +70,7 @@ class TimeRejects:
 
 
 class TimeJudge:
-    """The stream's receive times judged frame by frame (module docstring).
+    """The stream's receive times judged frame by frame (docs/protocol.md).
 
     :meth:`push` returns the frames accepted so far, in stream order, and keeps a
     departure from the time base until the frames after it decide it; :meth:`flush`

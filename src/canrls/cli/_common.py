@@ -11,10 +11,10 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # numpy and cantools load with the configuration: not for --help
-    from canrls.config import AppConfig
+    from canrls.config import AppConfig, Overrides
 
-__all__ = ["add_model_options", "add_bus_options", "add_progress_option", "setup",
-           "print_json", "Progress"]
+__all__ = ["add_model_options", "add_bus_options", "add_progress_option", "config_path",
+           "overrides", "setup", "print_json", "Progress"]
 
 
 class _Typed(float):
@@ -118,11 +118,43 @@ def add_bus_options(p: argparse.ArgumentParser) -> None:
     can.cli.add_bus_arguments(p, group_title="CAN bus (python-can; overrides [can] of --config)")
 
 
+def overrides(args: argparse.Namespace) -> Overrides:
+    """The configuration the options of :func:`add_model_options` and
+    :func:`add_bus_options` set: the one place the arguments become configuration."""
+    from pathlib import Path
+
+    from canrls.config import Overrides
+
+    def num(name: str) -> float | None:
+        return getattr(args, name, None)  # a number as typed (errors quote it so)
+
+    dbc = getattr(args, "dbc", None)
+    bus = {k: getattr(args, k) for k in ("interface", "channel", "bitrate", "fd",
+                                         "data_bitrate", "timing")
+           if getattr(args, k, None) is not None}
+    bus.update(getattr(args, "bus_kwargs", None) or {})
+    return Overrides(
+        dbc=None if dbc is None else str(Path(dbc).absolute()),
+        signals=tuple(getattr(args, "signal", None) or ()),
+        effects=getattr(args, "effects", None), kt=num("kt"), axis=getattr(args, "axis", None),
+        lam=num("lam"), alpha=num("alpha"), period=num("period"),
+        rated_torque=num("rated_torque"), rated_current=num("rated_current"),
+        increments_per_rev=num("increments_per_rev"), bus=tuple(bus.items()))
+
+
+def config_path(args: argparse.Namespace) -> str | None:
+    """``--config`` as an absolute path (None without it)."""
+    from pathlib import Path
+
+    c = getattr(args, "config", None)
+    return None if c is None else str(Path(c).absolute())
+
+
 def setup(args: argparse.Namespace) -> AppConfig:
     """The configuration file with the command line applied on top."""
     from canrls.config import load_config
 
-    return load_config(getattr(args, "config", None), args)
+    return load_config(getattr(args, "config", None), overrides(args))
 
 
 def _clean(x: Any) -> Any:

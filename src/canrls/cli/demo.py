@@ -26,11 +26,16 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from canrls.errors import ConfigError
+
+if TYPE_CHECKING:
+    from canrls.can.protocol import Protocol
+    from canrls.estimation.model import Model
+    from canrls.estimation.pipeline import EstimatorSettings
 
 __all__ = ["add_subparser", "run", "run_demo", "DemoResult"]
 
@@ -142,12 +147,10 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     """Run the demo; print the story to ``out`` (default stdout); return the figures."""
     import can
 
-    from canrls.can.frameblock import FrameBlock
     from canrls.can.frames import encode_command, parse_effect
-    from canrls.config import AppConfig
+    from canrls.config import AppConfig, prepare
     from canrls.live.daemon import Daemon, DaemonSettings
     from canrls.live.monitor import LibraryUnits, Monitor
-    from canrls.processor import FrameProcessor
     from canrls.sim.plant import parse_effects
     from canrls.sim.scenario import scenario
 
@@ -168,9 +171,7 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     kt = sc.truth.kt
     cfg = AppConfig()
     cfg.model = {"effects": list(_BASE), "kt": kt}
-    protocol = cfg.protocol()
-    model = cfg.model_for(protocol)
-    settings = cfg.settings()
+    protocol, model, settings = prepare(cfg)
     units = LibraryUnits.for_model(model)
     unit = units.target_unit()
     global _counter
@@ -219,32 +220,8 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
         daemon.hold_input(True)
         frames = list(tl.frames)
         tl.frames.clear()
-        add = hidden
-        try:
-            diag = importlib.import_module("canrls.diagnosis.analysis")
-        except ModuleNotFoundError:
-            diag = None
-        if diag is None:
-            say("   (canrls.diagnosis.analysis is not available in this build: using the effect the "
-                f"simulated drive hides, {hidden})")
-        else:
-            proc = FrameProcessor(protocol, model, settings)
-            signals = proc.samples(FrameBlock.from_messages(frames))
-            try:
-                report = diag.diagnose(signals, model, settings, dt=proc.pipeline.dt,
-                                       source="the bus")
-                say("   " + report.format().replace("\n", "\n   "))
-                if report.suggestion:
-                    diagnosed = str(report.suggestion[0])
-                    add = diagnosed
-                    say(f"   -> the diagnosis names {diagnosed}"
-                        + (" (the hidden effect)" if diagnosed == hidden else
-                           f" (the drive hides {hidden})"))
-                else:
-                    say(f"   -> the diagnosis names no effect from these data; adding the one "
-                        f"the simulated drive hides, {hidden}, to show the error fall")
-            except Exception as e:  # the demo goes on: the user still sees the fix
-                say(f"   diagnosis failed ({e}); using the hidden effect {hidden}")
+        diagnosed = _diagnose(frames, protocol, model, settings, hidden, say)
+        add = diagnosed or hidden
         del frames
         say()
         eid, order = parse_effect(add)
@@ -279,20 +256,60 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     say(f"   the residual RMS falls from {before:.3g} to {after:.3g} {unit} "
         f"({fall * 100:.0f} % lower).")
     say()
-    truth = sc.truth.params
+    params = _final_estimates(view.parameters, sc.truth.params, say)
+    say(f"({wall:.1f} s wall clock for {tl.sim_t:.0f} s of simulated drive)")
+    return DemoResult(hidden=hidden, diagnosed=diagnosed, added=add, ack=ack_text,
+                      rms_before=before, rms_after=after, unit=unit, wall_s=wall,
+                      sim_s=tl.sim_t, parameters=params)
+
+
+def _diagnose(frames: list[Any], protocol: Protocol, model: Model,
+              settings: EstimatorSettings, hidden: str,
+              say: Callable[[str], None]) -> str | None:
+    """Diagnose the recorded feedback frames and say so; the effect the diagnosis names
+    (None: none, or the diagnosis is not available or failed)."""
+    from canrls.can.frameblock import FrameBlock
+    from canrls.processor import FrameProcessor
+
+    try:
+        diag = importlib.import_module("canrls.diagnosis.analysis")
+    except ModuleNotFoundError:
+        say("   (canrls.diagnosis.analysis is not available in this build: using the effect the "
+            f"simulated drive hides, {hidden})")
+        return None
+    proc = FrameProcessor(protocol, model, settings)
+    signals = proc.samples(FrameBlock.from_messages(frames))
+    try:
+        report = diag.diagnose(signals, model, settings, dt=proc.pipeline.dt,
+                               source="the bus")
+        say("   " + report.format().replace("\n", "\n   "))
+        if not report.suggestion:
+            say(f"   -> the diagnosis names no effect from these data; adding the one "
+                f"the simulated drive hides, {hidden}, to show the error fall")
+            return None
+        diagnosed = str(report.suggestion[0])
+        say(f"   -> the diagnosis names {diagnosed}"
+            + (" (the hidden effect)" if diagnosed == hidden else
+               f" (the drive hides {hidden})"))
+        return diagnosed
+    except Exception as e:  # the demo goes on: the user still sees the fix
+        say(f"   diagnosis failed ({e}); using the hidden effect {hidden}")
+        return None
+
+
+def _final_estimates(parameters: Sequence[Any], truth: Mapping[str, float],
+                     say: Callable[[str], None]) -> dict[str, dict[str, Any]]:
+    """Say the monitor's final estimates beside the truth; return them by parameter."""
     say("Final estimates (fixed point on the bus, ± sigma, float reference, truth):")
     params: dict[str, dict[str, Any]] = {}
-    width = max([len(p.name) for p in view.parameters] + [9])
-    for p in view.parameters:
+    width = max([len(p.name) for p in parameters] + [9])
+    for p in parameters:
         tv = truth.get(p.name)
         params[p.name] = {"fixed": p.fixed_value, "sigma": p.sigma, "float": p.float_value,
                           "truth": tv, "unit": p.unit}
         say(f"  {p.name:<{width}}  {_g(p.fixed_value):>11}  ± {_g(p.sigma):>9}  "
             f"{_g(p.float_value):>11}  truth {_g(tv):>10}  {p.unit}")
-    say(f"({wall:.1f} s wall clock for {tl.sim_t:.0f} s of simulated drive)")
-    return DemoResult(hidden=hidden, diagnosed=diagnosed, added=add, ack=ack_text,
-                      rms_before=before, rms_after=after, unit=unit, wall_s=wall,
-                      sim_s=tl.sim_t, parameters=params)
+    return params
 
 
 def _g(x: float | None) -> str:

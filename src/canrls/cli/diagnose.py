@@ -1,32 +1,10 @@
 """``canrls diagnose LOG [LOG ...]``: where the model fails, which effect is missing.
 
-Several logs are diagnosed as one record (:class:`canrls.replay.LogFiles`: no segment
-bridged across files; the calibration window is the start of the first log).
-
-Takes every option of ``canrls fit`` (the same replay: same samples, same parameters)
-but ``--fixed`` (the fixed-point column is the kernel's, fed by the float front end),
-plus::
-
-    --add NAME       add an effect and refit (repeatable); ``cogging`` alone takes the
-                     order the search found
-    --report DIR     write DIR/index.html with PNG figures (needs matplotlib)
-    --max-order K    highest cogging order searched (default 64, at most 256)
-
-Text by default; ``--json`` prints one object (``docs/diagnose.md`` documents every key)::
-
-    {
-      "before": {"effects": [...], "residual_rms": 0.0168, "fit_percent": 78.6, "r2": ...,
-                 "whiteness": {...}, "parameters": {"coulomb.Tc": {"value": ..., "sigma": ...,
-                 "unit": "N·m", "fixed": ...}, ...}, "equations": {...}, ...},
-      "after": {...} or null,          # with --add
-      "added": ["coulomb"],
-      "candidates": [{"effect": "coulomb", "explained": 0.91, "delta_bic": -5195.0,
-                      "rms_after": 0.0050, "identifiable": true, "suggested": true,
-                      "description": ..., "evidence": [...], ...}, ...],   # best first
-      "suggestion": {"add": ["coulomb", "offset"], "rms_after": ..., "steps": [...]},
-      "regions": [...], "orders": {...}, "structure": [...], "excitation": {...},
-      "identifiable": true, "verdict": "...", "frames": {...}, "source": "drive.log", ...
-    }
+Takes every option of ``canrls fit`` but ``--fixed`` (the same replay: same samples, same
+parameters; the fixed-point column is the kernel's, fed by the float front end), plus
+``--add NAME`` (refit with it), ``--report DIR`` (an HTML page with figures) and
+``--max-order K``; several logs are diagnosed as one record. Text by default;
+``--json`` prints one object (docs/diagnose.md documents every key).
 """
 
 from __future__ import annotations
@@ -106,10 +84,9 @@ def run(args: argparse.Namespace) -> int:
     rep = diagnose_log(args.log, protocol, model, settings, add=args.add,
                        progress=Progress("diagnose", quiet=args.quiet).callback,
                        max_order=args.max_order, skip_bad_lines=args.skip_bad_lines)
-    frames = rep.frames or {}
-    few = too_few_samples(rep.before.model, rep.before.estimates, frames,
-                          (frames.get("period") or {}).get("value"), settings)
-    if few is not None:
+    few = rep.frames and too_few_samples(rep.before.model, rep.before.estimates, rep.frames,
+                                         rep.period and rep.period.value, settings)
+    if few:
         raise EstimatorError(f"{', '.join(args.log)}: {few}")
     page = rep.write_html(args.report) if args.report else None
     saved = None
@@ -128,11 +105,10 @@ def run(args: argparse.Namespace) -> int:
         print_json(d)
     else:
         head = []
-        if (frames.get("start") or {}).get("date"):
-            head.append(f"log starts {frames['start']['date']}; times below are from that start")
-        per = frames.get("period") or {}
-        if per.get("value"):
-            head.append(f"control period {per['value'] * 1e3:.6g} ms ({per.get('source')})")
+        if rep.start is not None and rep.start.date:
+            head.append(f"log starts {rep.start.date}; times below are from that start")
+        if rep.period is not None and rep.period.value:
+            head.append(f"control period {rep.period.value * 1e3:.6g} ms ({rep.period.source})")
         m = getattr(rep, "model", None)
         if m is not None:
             u = "m/s" if m.axis == "linear" else "rad/s"

@@ -1,12 +1,8 @@
 """The signals of ``canrls run`` from its first moment, before the heavy imports.
 
-``canrls run`` handles SIGTERM, SIGINT and SIGHUP from its start to its exit
-(``docs/daemon.md``). Its own handlers need the daemon's modules (numpy, python-can,
-cantools: some 0.3 s to import), and a SIGTERM in that time used to kill the process
-by the signal (status -15). :func:`install` runs first thing in
-:func:`canrls.cli.main.main`: until the command installs its handlers, a SIGTERM or
-SIGINT is remembered (:func:`stop_requested`: the daemon then starts and stops at
-once) and a SIGHUP ignored (there is nothing to reload yet).
+:func:`install` runs first thing in :func:`canrls.cli.main.main`: until the command
+installs its own handlers, a SIGTERM or SIGINT is remembered (:func:`stop_requested`:
+the daemon then starts and stops at once) and a SIGHUP ignored (docs/daemon.md).
 """
 
 from __future__ import annotations

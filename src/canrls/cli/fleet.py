@@ -27,7 +27,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from canrls.cli._common import Progress, add_model_options, add_progress_option, print_json
+from canrls.cli._common import (
+    Progress,
+    add_model_options,
+    add_progress_option,
+    config_path,
+    overrides,
+    print_json,
+)
 from canrls.errors import ConfigError
 
 __all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates"]
@@ -145,7 +152,7 @@ def run_ingest(args: argparse.Namespace) -> int:
     if args.scheduler and args.workers:
         raise ConfigError("--workers: the workers of --scheduler's cluster are its own")
     sources = _sources(args)
-    config = JobConfig.from_args(args)
+    config = JobConfig.from_overrides(config_path(args), overrides(args))
     progress = Progress("ingest", quiet=args.quiet, unit="log")
     with History.open(args.db) as history:
         if args.workers == 0 and not args.scheduler:

@@ -28,6 +28,9 @@ from canrls.errors import ConfigError
 
 __all__ = ["add_subparser", "run"]
 
+#: the view's options when neither the command line nor ``[monitor]`` sets them
+_VIEW_DEFAULTS: dict[str, Any] = {"interval": 1.0, "timeout": 10.0, "plain": False}
+
 #: end of a line on the terminal: clear what an older, longer line left, then newline
 _EOL = "\x1b[K\n"
 
@@ -46,12 +49,14 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     g.add_argument("--once", action="store_true",
                    help="print one complete view and exit")
     g.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
-    g.add_argument("--interval", type=float, default=1.0, metavar="S",
-                   help="seconds between refreshes (default 1)")
-    g.add_argument("--timeout", type=float, default=10.0, metavar="S",
-                   help="--once/--command: give up after S seconds (default 10)")
-    g.add_argument("--plain", action="store_true",
-                   help="plain text even on a terminal (no redraw, no colour)")
+    g.add_argument("--interval", type=float, metavar="S",
+                   help="seconds between refreshes (default: [monitor] interval, else 1)")
+    g.add_argument("--timeout", type=float, metavar="S",
+                   help="--once/--command: give up after S seconds (default: [monitor] "
+                        "timeout, else 10)")
+    g.add_argument("--plain", action="store_true", default=None,
+                   help="plain text even on a terminal (no redraw, no colour; default: "
+                        "[monitor] plain)")
     g.add_argument("--command", action="append", default=[], metavar="CMD",
                    help="send a command first: reset, freeze, resume, 'add EFFECT', "
                         "'remove EFFECT', 'lambda L' (repeatable)")
@@ -68,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     import can
 
     from canrls.can.frames import encode_command, frame_ids
+    from canrls.config import prepare
     from canrls.live.bus import bus_config, open_bus
     from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
 
@@ -75,9 +81,11 @@ def run(args: argparse.Namespace) -> int:
         _positive(f"--{name}", getattr(args, name))
     commands = [parse_command_text(c) for c in args.command]
     cfg = setup(args)
+    for name in ("interval", "timeout", "plain"):  # [monitor] under the flags
+        if getattr(args, name) is None:
+            setattr(args, name, cfg.monitor.get(name, _VIEW_DEFAULTS[name]))
     try:
-        protocol = cfg.protocol()
-        model = cfg.model_for(protocol)
+        protocol, model, _ = prepare(cfg)
         units = LibraryUnits.for_model(model)
         feedback = [m.frame_id for m in protocol.messages]
         user_names = list(model.terms)
@@ -85,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         if cfg.model or cfg.signals or cfg.can.get("dbc"):
             raise
         units, feedback, user_names = LibraryUnits(), list(frame_ids().feedback), []
-    conf = bus_config(cfg, args)
+    conf = bus_config(cfg)
     tty = sys.stdout.isatty() and not args.plain and not args.json
     mon = Monitor(units=units, user_names=user_names, feedback_ids=feedback,
                   source=f"{conf.get('interface')}:{conf.get('channel')}")

@@ -35,7 +35,13 @@ from pathlib import Path
 from typing import Any
 
 from canrls.cli import early_signals
-from canrls.cli._common import add_bus_options, add_model_options, print_json, setup
+from canrls.cli._common import (
+    add_bus_options,
+    add_model_options,
+    config_path,
+    overrides,
+    print_json,
+)
 from canrls.errors import ConfigError
 
 __all__ = ["add_subparser", "run", "build_daemon"]
@@ -95,27 +101,29 @@ def _daemon_table(cfg: Any, args: argparse.Namespace) -> dict[str, Any]:
 
 def build_daemon(args: argparse.Namespace) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started)."""
-    from canrls.config import load_config, read_toml
-    from canrls.estimation.model import Model
+    from canrls.config import AppConfig, load_config, prepare, read_toml
+    from canrls.fleet.ingest import JobConfig
     from canrls.live.bus import bus_config
     from canrls.live.daemon import Daemon, DaemonSettings
 
-    cfg = setup(args)
+    over = overrides(args)
+    cfg = load_config(getattr(args, "config", None), over)
     dset = DaemonSettings.from_table(_daemon_table(cfg, args), cfg.source, cfg.base_dir)
-    protocol = cfg.protocol()
 
-    def configured_model() -> Model:
-        c = load_config(getattr(args, "config", None), args)
+    def with_model_file(c: AppConfig) -> AppConfig:
+        """``c`` with ``[daemon] model_file``'s model (the command line still over it)."""
         if dset.model_file is not None:
             c.model = read_toml(dset.model_file, "model", key="daemon.model_file")
-            c.apply_args(args)
-        return c.model_for(protocol)
+            c.apply(over)
+        return c
 
-    def reloaded_model() -> Model:
+    protocol, model, settings = prepare(with_model_file(cfg))
+
+    def reloaded_model() -> Any:
         """SIGHUP: the model again, from a file whose ``[daemon]`` table still holds (a
         table a restart would refuse is said at once, and the reload refused); its
         changes apply at the next start."""
-        c = load_config(getattr(args, "config", None), args)
+        c = load_config(getattr(args, "config", None), over)
         try:
             new = DaemonSettings.from_table(_daemon_table(c, args), c.source, c.base_dir)
         except ConfigError as e:
@@ -126,12 +134,12 @@ def build_daemon(args: argparse.Namespace) -> Any:
         if changed:
             log.warning("reload: [daemon] %s changed: applied at the next start, not now",
                         ", ".join(changed))
-        return configured_model()
+        return with_model_file(c).model_for(protocol)
 
-    model = configured_model()
-    history = _history_hook(cfg, args) if cfg.history else None
+    history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over)) \
+        if cfg.history else None
     try:
-        return Daemon(protocol, model, cfg.settings(), dset, bus=bus_config(cfg, args),
+        return Daemon(protocol, model, settings, dset, bus=bus_config(cfg),
                       reload=reloaded_model, history=history)
     except BaseException:
         if history is not None:
@@ -139,14 +147,15 @@ def build_daemon(args: argparse.Namespace) -> Any:
         raise
 
 
-def _history_hook(cfg: Any, args: argparse.Namespace) -> Any:
-    """``[history]``: the fleet history the daemon appends its parameters to."""
-    from canrls.fleet.ingest import JobConfig, model_key
+def _history_hook(cfg: Any, job: Any) -> Any:
+    """``[history]``: the fleet history the daemon appends its parameters to, under the
+    key of the model ``job`` (a :class:`~canrls.fleet.ingest.JobConfig`) fits."""
+    from canrls.fleet.ingest import model_key
     from canrls.fleet.live import HistorySettings, LiveAppender
     from canrls.live.history import HistoryHook
 
     settings = HistorySettings.from_table(cfg.history, cfg.source)
-    key, desc = model_key(JobConfig.from_args(args))
+    key, desc = model_key(job)
     appender = LiveAppender.open(settings, key, desc)
     return HistoryHook(appender.append, settings.interval, close=appender.close)
 

@@ -1,26 +1,10 @@
 """``canrls validate LOG [LOG ...] --model FILE``: a saved model against other recordings.
 
 Predicts the logs with the parameters of a model saved by ``canrls fit --save-model``
-without re-estimating anything (:mod:`canrls.validate`), and reports fit %, residual RMS
-(overall and per log) and where the model fails, as the diagnosis does. The DBC and
-signal mapping default to those saved in the model file; ``--dbc``/``--signal``/
-``--config`` replace them (logs of another drive with the same mechanics); the
-options that would change the model (``--effects``, ``--kt``, ``--axis``, ``--lambda``,
-``--alpha`` with another value than the file's) are refused: the model is the file's.
-``--report DIR`` writes ``DIR/index.html`` with PNG figures (needs matplotlib): per log
-the measured target against the prediction and the residual over time, and the
-residual binned by speed and, where a position is logged, by position.
-
-``--json`` prints one object::
-
-    {"model_file": "m.json", "sources": [...], "identified_on": [...],
-     "parameters": {...}, "fit_percent": 88.1, "residual_rms": 0.0052,
-     "equations": {"mechanical": {"unit": "N·m", "samples": ..., "residual_rms": ...,
-                   "fit_percent": ..., "r2": ..., "identified_rms": ...,
-                   "files": [{"source": ..., "samples": ..., "residual_rms": ...,
-                              "fit_percent": ...}, ...],
-                   "regions": [{"quantity": "speed", "text": ..., ...}, ...]}},
-     "frames": {...}, "report": "DIR/index.html"}   # "report" with --report
+without re-estimating anything (:mod:`canrls.diagnosis.validate`) and reports fit %,
+residual RMS (overall and per log) and where the model fails. The DBC and mapping
+default to the file's; options that would change the model are refused. ``--report``
+and ``--json``: docs/model_file.md, "``canrls validate``".
 """
 
 from __future__ import annotations
@@ -35,6 +19,7 @@ from canrls.cli._common import (
     add_model_options,
     add_progress_option,
     add_report_option,
+    overrides,
     print_json,
 )
 
@@ -60,8 +45,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from canrls.config import AppConfig
+    from canrls.diagnosis.validate import validate_logs
     from canrls.modelfile import SavedModel
-    from canrls.validate import validate_logs
 
     if args.report:
         # fail before the long part when the figures cannot be drawn
@@ -95,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         cfg.signals = dict(base.signals)
         if not args.signal:
             cfg.signal_overrides = list(base.signal_overrides)
-    cfg.apply_args(args)
+    cfg.apply(overrides(args))
     rep = validate_logs(args.log, saved, cfg.protocol(), model_file=args.model,
                         progress=Progress("validate", quiet=args.quiet).callback,
                         skip_bad_lines=args.skip_bad_lines)

@@ -1,61 +1,28 @@
 r"""Diagnosis: compare the model with the measurements, see where it fails, name the missing effect.
 
 :func:`diagnose` (samples in memory) and :func:`diagnose_log` (a recorded CAN log) run
-the model through the same :class:`~canrls.estimation.pipeline.Pipeline` as ``canrls fit`` and
-return a :class:`DiagnosisReport`: a result object that renders to text
-(:meth:`DiagnosisReport.format`), to a JSON-able dict (:meth:`DiagnosisReport.to_dict`)
-and to an HTML page with figures (:meth:`DiagnosisReport.write_html`,
-:mod:`canrls.diagnosis.report`). ``docs/diagnose.md`` documents the JSON and the figures.
-
-Everything is computed on the *filtered* equation the estimators see (the state-variable
-filter applied to target and columns, :mod:`canrls.estimation.svf`), over the samples the estimators
-used (not in a filter warm-up), in the target's unit:
-
-1. **Compare.** The residual of the final float estimate :math:`\hat\theta` over the
-   whole record, :math:`r = y - \Phi\hat\theta`; fit and :math:`R^2` as MATLAB's
-   ``compare`` (the values ``canrls fit`` prints); whiteness of the residual and its
-   cross-correlation with the inputs (:class:`~canrls.diagnosis.results.Whiteness`).
-2. **Where it fails.** Residual mean and RMS binned by speed (both directions), position
-   (one revolution, or the travel of a linear axis), current, acceleration and time
-   (:class:`~canrls.diagnosis.results.Binned`); the worst regions in words; the
-   residual's rotation-order spectrum (:mod:`canrls.diagnosis.residual`).
-3. **Which effect is missing.** Every effect of the library that is not in the model is
-   tried as an extra set of columns and ranked by the share of the residual variance it
-   explains (:mod:`canrls.diagnosis.candidates`); a greedy forward selection makes the
-   :class:`~canrls.diagnosis.results.Suggestion`.
-4. **Add it.** With ``add=[...]`` the model is refitted with the effects added and the
-   report holds ``before`` and ``after`` side by side (``cogging`` without an order
-   takes the order the search found).
-
-The residual left after the suggestion is checked for structure no candidate explains
-(:class:`~canrls.diagnosis.results.StructureItem`: a constant offset, dependence on
-speed, position, current, acceleration, drift in time, periodicity at a non-integer
-order); with a complete model and no structure left, nothing is suggested.
-
-The diagnosis in modules, lowest first:
-
-* :mod:`canrls.diagnosis.results`: the result values (plain frozen dataclasses);
-* :mod:`canrls.diagnosis.samples`: the record as the pipeline sees it (its sample
-  policy, gap filling, restarts, used rows, columns);
-* :mod:`canrls.diagnosis.residual`: statistics of the residual, where the model fails;
-* :mod:`canrls.diagnosis.candidates`: candidate effects, ranking, identifiability,
-  verdict;
-* :mod:`canrls.diagnosis.figures` and :mod:`canrls.diagnosis.report`: rendering (text,
-  JSON, figures, the HTML page from a jinja2 template);
-* this module: the entry points, which run the pipeline and put it together.
+the model through the same pipeline as ``canrls fit`` and return a
+:class:`DiagnosisReport` that renders to text, JSON and an HTML page with figures. This
+module holds the entry points; the steps (compare, where it fails, which effect is
+missing, add it) live in the modules beside it and are described in docs/diagnose.md.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from canrls.diagnosis.candidates import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT, rank_candidates
+from canrls.diagnosis.candidates import (
+    DEFAULT_MAX_ORDER,
+    MAX_ORDER_LIMIT,
+    ResidualSummary,
+    rank_candidates,
+)
 from canrls.diagnosis.report import DiagnosisReport
 from canrls.diagnosis.residual import (
     WHITENESS_LAGS,
@@ -78,8 +45,16 @@ from canrls.estimation.pipeline import (
     PipelineBlock,
 )
 from canrls.estimation.rls import RLS
-from canrls.processor import SampleProcessor
-from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals
+from canrls.processor import (
+    FrameCounts,
+    PeriodInfo,
+    SampleProcessor,
+    StartInfo,
+    positive_period,
+    sample_period,
+)
+from canrls.signals import Signals
+from canrls.spill import MaskPacker, PackedMask, SpilledSignals
 
 __all__ = ["DEFAULT_MAX_ORDER", "MAX_ORDER_LIMIT", "DiagnosisReport", "diagnose",
            "diagnose_log"]
@@ -97,21 +72,22 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
              settings: EstimatorSettings | None = None, *, dt: float | None = None,
              add: Sequence[str] = (), max_order: int = DEFAULT_MAX_ORDER,
              source: str = "<signals>",
-             frames: Mapping[str, Any] | None = None) -> DiagnosisReport:
+             frames: FrameCounts | None = None, period: PeriodInfo | None = None,
+             start: StartInfo | None = None) -> DiagnosisReport:
     """Diagnose ``model`` on samples: compare, locate the failures, rank the missing effects.
 
     :param data: a :class:`~canrls.signals.Signals` block, or blocks (joined end to end),
-        or a record in a temporary file (:class:`~canrls.signals.SpilledSignals`,
+        or a record in a temporary file (:class:`~canrls.spill.SpilledSignals`,
         read in slices).
     :param model: the model to diagnose.
     :param settings: estimator settings (default :class:`EstimatorSettings`).
-    :param dt: sample period [s] (default: the median step of ``t``).
+    :param dt: sample period [s] (default: measured on ``t`` as the processor measures it).
     :param add: effects to add and refit (``after``); ``cogging`` without an order takes
         the order the search found.
     :param max_order: highest cogging order searched, and of the order spectrum
         (1 to :data:`~canrls.diagnosis.candidates.MAX_ORDER_LIMIT`).
     :param source: what the samples are, for the text.
-    :param frames: frame statistics of a log replay, copied into the report.
+    :param frames, period, start: what a log replay found, copied into the report.
     :raises ConfigError: no samples, a bad ``dt`` or ``max_order``; :class:`EffectError`
         for an effect in ``add`` that is unknown or already in the model.
     """
@@ -120,14 +96,8 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
     n = len(signals)
     if n < 2:
         raise ConfigError(f"diagnose: {source}: {n} samples; need at least a few seconds")
-    if dt is None:
-        steps = np.diff(signals.t)
-        steps = steps[np.isfinite(steps) & (steps > 0)]
-        if not len(steps):
-            raise ConfigError(f"diagnose: {source}: cannot infer the sample period from t")
-        dt = float(np.median(steps))
-    if not (isinstance(dt, int | float) and math.isfinite(dt) and dt > 0):
-        raise ConfigError(f"diagnose: dt = {dt!r}: must be > 0 s")
+    dt = (sample_period(signals.t, f"diagnose: {source}") if dt is None
+          else positive_period(dt, "diagnose: dt"))
     if (isinstance(max_order, bool) or not isinstance(max_order, int)
             or not 1 <= max_order <= MAX_ORDER_LIMIT):
         raise ConfigError(f"diagnose: max_order = {max_order!r}: must be an integer in "
@@ -147,7 +117,8 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
     duration = float(t[-1] - t[0]) + float(dt) if n else 0.0
     return DiagnosisReport(source=source, dt=float(dt), samples=n, duration=duration,
                            before=before, after=after, added=added, settings=settings,
-                           max_order=max_order, frames=frames)
+                           max_order=max_order, frames=frames, period=period,
+                           start=start)
 
 
 def diagnose_log(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
@@ -162,7 +133,7 @@ def diagnose_log(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]
     The frames are decoded and paired exactly as ``canrls fit`` does
     (:func:`canrls.replay.read_logs`), so ``before`` holds the same parameters as
     ``canrls fit`` prints, bit for bit. The samples are kept in an anonymous temporary
-    file (:class:`~canrls.signals.SpilledSignals`: the statistics read them again in
+    file (:class:`~canrls.spill.SpilledSignals`: the statistics read them again in
     slices, the refit of ``add`` too), freed on return; in memory if the file cannot
     be made.
     """
@@ -179,7 +150,7 @@ def diagnose_log(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]
     try:
         return diagnose(log.signals, log.model, settings, dt=log.dt, add=add,
                         max_order=max_order, source=", ".join(str(p) for p in paths),
-                        frames=log.frames)
+                        frames=log.frames, period=log.period, start=log.start)
     finally:
         log.close()
 
@@ -219,7 +190,7 @@ def _run_in_chunks(proc: SampleProcessor,
                    signals: Signals | SpilledSignals) -> list[PackedMask]:
     """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
     each equation's recorded block, what the diagnosis reads: the used rows, packed as
-    they come (:class:`~canrls.signals.MaskPacker`: one bit a row, in a temporary file
+    they come (:class:`~canrls.spill.MaskPacker`: one bit a row, in a temporary file
     past a few hundred thousand rows); the times are the samples' own, ``signals.t``
     (checked block by block).
 
@@ -282,7 +253,8 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
     regions = find_regions(bins, r, tau, unit, ctx, rows=used)
     spectrum = order_spectrum(ctx, r, used, unit) if ctx.angle_raw is not None else None
     exc = excitation_summary(ctx, model, used)
-    cand = rank_candidates(ctx, model, eq, r, used, N, h2, unit, bins, spectrum, exc)
+    cand = rank_candidates(ctx, model, eq,
+                           ResidualSummary(r, used, h2, unit, bins, spectrum, exc))
     traces = _traces(ctx, est, r, used)
     return EquationDiagnosis(
         equation=eq.name, target=eq.target.description, unit=unit, fit=fit,

@@ -1,44 +1,11 @@
-r"""Which effect is missing: the candidates, their ranking and identifiability.
+"""Which effect is missing: the candidates, their ranking and identifiability.
 
-Every effect of the library that is not in the model is
-tried as an extra set of columns :math:`G`, built through the same
-:class:`~canrls.estimation.model.Model` / regressor path (``model.with_effects(add=[...])``).
-With :math:`r_0` the least-squares residual of the current columns :math:`\Phi` and
-:math:`\tilde G = (I - \Phi\Phi^+) G` the candidate orthogonalised against them,
-the *error-reduction ratio*
-
-.. math::
-
-    \mathrm{ERR} = \frac{r_0^\top \tilde G (\tilde G^\top\tilde G)^{-1}
-                         \tilde G^\top r_0}{r_0^\top r_0}
-
-is the share of the residual variance the candidate explains (one column:
-:math:`(\tilde g^\top r_0)^2 / (\tilde g^\top\tilde g\; r_0^\top r_0)`); the
-residual RMS after adding it is :math:`\sqrt{(1-\mathrm{ERR})\,r_0^\top r_0/N}` and
-the change of the Bayesian information criterion
-
-.. math::
-
-    \Delta\mathrm{BIC} = N_e \ln(1 - \mathrm{ERR}) + p \ln N_e,
-    \qquad N_e = N\,\lVert h\rVert_2^2
-
-counts the :math:`N_e` independent samples the filter's impulse response :math:`h`
-(DC gain 1) leaves of :math:`N` (white noise through :math:`F` is correlated over
-about :math:`1/\lVert h\rVert_2^2` samples, 18 at the defaults). All of it comes
-from the Gram matrix of ``[Phi, G, y]`` accumulated block by block, so memory
-does not grow with the number of candidates. The cogging order is searched over
-:math:`k = 2 \dots K_{max}` (order 1 is ``unbalance``). A greedy forward selection
-(orthogonal least squares) adds the best candidate, re-ranks the others against the
-enlarged model and stops when the next one explains less than
-:data:`MIN_EXPLAINED` of what is left or does not lower the BIC: that is the
-:class:`Suggestion`. A candidate whose column is not excited, or (nearly) collinear
-with the model's columns (less than :data:`MIN_INDEPENDENCE` of it outside their
-span: a variance inflation above 100), is *not identifiable from this data* and is
-never suggested; the reason is stated (one direction of motion only, nearly constant
-speed, less than a revolution covered, ...).
-
-:func:`rank_candidates` also checks the model's own columns (excited, not collinear),
-what structure is left after the suggestion and writes the verdict.
+Every effect of the library that the model lacks is tried as extra columns, built
+through the same :class:`~canrls.estimation.model.Model` path, and ranked by the share
+of the residual variance it explains; a greedy forward selection makes the
+:class:`Suggestion`, and a candidate these data cannot identify is said so, with the
+reason, never suggested. :func:`rank_candidates` also checks the model's own columns
+and writes the verdict. The statistics: docs/diagnose.md, "Which effect is missing".
 """
 
 from __future__ import annotations
@@ -46,7 +13,6 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -67,7 +33,8 @@ from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Cogging, Effect, UserTerm, library
 from canrls.estimation.model import Equation, Model
-from canrls.signals import PackedMask, Signals, SpilledSignals
+from canrls.signals import Signals
+from canrls.spill import PackedMask, SpilledSignals
 
 __all__ = [
     "DEFAULT_MAX_ORDER",
@@ -80,6 +47,7 @@ __all__ = [
     "SIGN_PAIR",
     "SIGN_PAIR_TEXT",
     "CandidateResult",
+    "ResidualSummary",
     "rank_candidates",
 ]
 
@@ -135,6 +103,25 @@ def _eval_rows(ctx: RecordSamples, model: Model, eq: Equation, names: Sequence[s
               if periodic or not nm.startswith(("cogging:", "unbalance"))]
     m = model.with_effects(add=nonper) if nonper else model
     return used.intersect(ctx.used(m.equation(eq.name)))
+
+
+@dataclass(frozen=True)
+class ResidualSummary:
+    """What the analysis knows of one equation's residual, for :func:`rank_candidates`.
+
+    ``r`` the residual of the final estimate (target unit), ``used`` the rows the
+    pipeline used for the equation, ``h2`` the squared norm of the filter's impulse
+    response, ``bins`` and ``spectrum`` the residual binned and by rotation order,
+    ``exc`` what the record excites.
+    """
+
+    r: F64
+    used: PackedMask
+    h2: float
+    unit: str
+    bins: Mapping[str, Binned]
+    spectrum: OrderSpectrum | None
+    exc: ExcitationSummary
 
 
 @dataclass
@@ -205,6 +192,88 @@ class _Gram:
         return float(self.An[i, j])
 
 
+@dataclass
+class _Comparison:
+    """The model's columns and every candidate's, on the rows they are compared on.
+
+    ``C`` the model's columns in the Gram matrix ``A`` (``G``), ``groups`` each
+    candidate's columns, ``rss0`` and ``th0`` the least squares of the model alone,
+    ``Ne`` the independent samples of ``N``.
+    """
+
+    names: list[str]
+    not_applicable: list[tuple[str, str]]
+    used: PackedMask
+    N: int
+    aug_model: Model
+    aug: Equation
+    A: F64
+    G: _Gram
+    C: list[int]
+    cur_names: list[str]
+    groups: dict[str, list[int]]
+    scale_y: float
+    rss0: float
+    th0: dict[int, float]
+    Ne: float
+    col_rms: F64
+
+    @property
+    def rms_ls(self) -> float:
+        """Residual RMS of the model's least squares (target unit)."""
+        return self.rms_of(self.rss0)
+
+    def rms_of(self, rss: float) -> float:
+        return math.sqrt(rss / self.N) * self.scale_y if self.N else math.nan
+
+    def bic(self, rss_new: float, rss_old: float, p: int) -> float:
+        """The change of the Bayesian information criterion when ``p`` columns take the
+        RSS from ``rss_old`` to ``rss_new``, over the ``Ne = N ||h||^2`` independent
+        samples the filter leaves."""
+        # dBIC = Ne ln(RSS'/RSS) + p ln Ne
+        if rss_old <= 0:
+            return math.inf
+        return (self.Ne * math.log(max(rss_new, 1e-300 * rss_old) / rss_old)
+                + p * math.log(self.Ne))
+
+
+@dataclass
+class _Evaluation:
+    """One candidate added alone to the model: its columns, the share of the residual
+    variance it explains, the RSS and ΔBIC after it, its independence of the model's
+    columns (1/VIF) and excitation, why it is not identifiable ("" when it is) and its
+    parameters (name -> (value, unit))."""
+
+    cols: list[int]
+    explained: float
+    rss: float
+    dbic: float
+    ind: float
+    exc: float
+    reason: str
+    params: dict[str, tuple[float, str]]
+
+
+@dataclass(frozen=True)
+class _Outcome:
+    """What the selection leaves: the suggestion (empty when withdrawn), the structure left
+    in the residual, the suggestion withdrawn (``partial``) and the effects chosen."""
+
+    suggestion: Suggestion
+    structure: tuple[StructureItem, ...]
+    partial: Suggestion | None
+    chosen: list[str]
+
+
+@dataclass(frozen=True)
+class _Selection:
+    """The greedy forward selection: its steps, the effects chosen and the RSS after them."""
+
+    steps: tuple[Step, ...]
+    chosen: list[str]
+    rss: float
+
+
 def _candidate_names(model: Model, eq: Equation, signals: Signals | SpilledSignals,
                      max_order: int) -> tuple[list[str], list[tuple[str, str]]]:
     """The library effects (and configured user terms) not in the model, for this equation."""
@@ -272,15 +341,43 @@ def _candidate_names(model: Model, eq: Equation, signals: Signals | SpilledSigna
     return ok, na
 
 
-def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, r: F64,
-                    used: PackedMask, N: int, h2: float, unit: str,
-                    bins: Mapping[str, Binned], spectrum: OrderSpectrum | None,
-                    exc: ExcitationSummary) -> CandidateResult:
-    """``used``: the rows the pipeline used for the equation (``N`` of them)."""
+def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation,
+                    res: ResidualSummary) -> CandidateResult:
+    """Rank the library's effects that ``model`` lacks against the residual of ``eq``.
+
+    The steps: compare every candidate on the same rows (:func:`_compare`), check the
+    model's own columns, evaluate each candidate alone, mark the pairs that cannot be
+    told apart, select greedily, look at what structure is left, list the candidates
+    and write the verdict.
+    """
+    cmp = _compare(ctx, model, eq, res)
+    model_issues = _model_issues(cmp, res.exc, model)
+    evaluated = _evaluate(cmp, ctx, model, res.exc)
+    inseparable = _inseparable(evaluated, cmp.G, cmp.C, res.exc)
+    cog = [nm for nm in evaluated if nm.startswith("cogging:")]
+    best_cog = max(cog, key=lambda nm: (evaluated[nm].explained, -int(nm[8:]))) \
+        if cog else None
+    sel = _forward_select(cmp, evaluated)
+    out = _what_is_left(ctx, model, eq, res, cmp, sel)
+    ev_ctx = _EvidenceContext(ctx, res.bins, res.spectrum, res.unit, cmp.used, cmp.A, cmp.G,
+                              cmp.C, cmp.aug, evaluated, best_cog, cog, model)
+    cands = _listed(cmp, evaluated, out.chosen, best_cog, cog, ev_ctx, eq)
+    not_ident = [c for c in cands if not c.identifiable]
+    reasons = [*model_issues, *(f"{c.effect}: {c.reason}" for c in not_ident)]
+    verdict = _verdict(eq, out.suggestion, cands, out.structure, model_issues, not_ident,
+                       res.exc, res.unit, cmp.rms_ls, out.partial, inseparable,
+                       cmp.not_applicable)
+    verdict += _convergence_note(res, cmp.rms_ls)
+    return CandidateResult(tuple(cands), tuple(cmp.not_applicable), out.suggestion,
+                           out.structure, not model_issues and not not_ident, tuple(reasons),
+                           verdict, cmp.rms_ls)
+
+
+def _compare(ctx: RecordSamples, model: Model, eq: Equation,
+             res: ResidualSummary) -> _Comparison:
+    """The model with every candidate, on the samples the pipeline would use with them."""
     names, na = _candidate_names(model, eq, ctx.signals, ctx.max_order)
-    pipe_used, pipe_n = used, N
-    # compare on the samples the pipeline would use with the candidates
-    used = _eval_rows(ctx, model, eq, names, used)
+    used = _eval_rows(ctx, model, eq, names, res.used)
     N = used.count()
     n = eq.n
     cur_names = [p.name for p in eq.parameters]
@@ -295,48 +392,62 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, r: F64,
     groups: dict[str, list[int]] = {}
     for j, p in enumerate(aug.parameters[n:], start=n):
         groups.setdefault(p.effect, []).append(j)
-    factors = aug.scaling.factors
-    scale_y = math.ldexp(1.0, aug.scaling.target)
     rss0, th0 = G.solve(C)
-    Ne = max(N * h2, 2.0)
-    rms_ls = math.sqrt(rss0 / N) * scale_y if N else math.nan
-
-    def rms_of(rss: float) -> float:
-        return math.sqrt(rss / N) * scale_y if N else math.nan
-
-    def bic(rss_new: float, rss_old: float, p: int) -> float:
-        # dBIC = Ne ln(RSS'/RSS) + p ln Ne
-        if rss_old <= 0:
-            return math.inf
-        return Ne * math.log(max(rss_new, 1e-300 * rss_old) / rss_old) + p * math.log(Ne)
-
     col_rms = np.sqrt(np.maximum(np.diag(A)[:-1], 0.0) / max(N, 1))
-    # -- the model's own columns -------------------------------------------------------
-    model_issues: list[str] = []
+    return _Comparison(names, na, used, N, aug_model, aug, A, G, C, cur_names, groups,
+                       math.ldexp(1.0, aug.scaling.target), rss0, th0,
+                       max(N * res.h2, 2.0), col_rms)
+
+
+def _model_issues(cmp: _Comparison, exc: ExcitationSummary, model: Model) -> list[str]:
+    """The model's own columns that are not excited or (nearly) collinear, and why."""
+    G, C, cur_names = cmp.G, cmp.C, cmp.cur_names
+    issues: list[str] = []
     for j in C:
         others = [i for i in C if i != j]
         ind = G.independence([j], others) if others else 1.0
         why = _unexcited_reason(cur_names[j], exc, model)
-        if col_rms[j] < MIN_EXCITATION or why:
-            model_issues.append(f"{cur_names[j]} is " + (why or "not excited: its column is "
-                                                          "practically zero").replace(
-                "not excited", "not excited", 1))
+        if cmp.col_rms[j] < MIN_EXCITATION or why:
+            issues.append(f"{cur_names[j]} is "
+                          + (why or "not excited: its column is practically zero"))
         elif ind < MIN_INDEPENDENCE:
             partners = sorted(others, key=lambda i: -abs(G.corr(i, j)))[:2]
             pair = {cur_names[j].split(".")[0], cur_names[partners[0]].split(".")[0]}
             experiment = (f"; {SIGN_PAIR_TEXT}" if pair == SIGN_PAIR and exc.one_direction
                           else "")
-            model_issues.append(
+            issues.append(
                 f"{cur_names[j]} is (nearly) collinear with "
                 f"{' and '.join(cur_names[i] for i in partners)} "
                 f"({share_text(ind)} of its column independent){experiment}")
-    # -- every candidate alone ---------------------------------------------------------
-    evaluated: dict[str, dict[str, Any]] = {}
-    for name, cols in groups.items():
-        exc_c = float(np.max(col_rms[cols]))
+    return issues
+
+
+def _evaluate(cmp: _Comparison, ctx: RecordSamples, model: Model,
+              exc: ExcitationSummary) -> dict[str, _Evaluation]:
+    r"""Every candidate added alone to the model.
+
+    With :math:`r_0` the least-squares residual of the model's columns and
+    :math:`\tilde G` the candidate's columns orthogonalised against them, the share of
+    the residual variance it explains is the error-reduction ratio
+
+    .. math::
+
+        \mathrm{ERR} = \frac{r_0^\top \tilde G (\tilde G^\top\tilde G)^{-1}
+                             \tilde G^\top r_0}{r_0^\top r_0}
+
+    (from the Gram matrix: :math:`1 - \mathrm{RSS}/\mathrm{RSS}_0`). A candidate not
+    excited, (nearly) collinear with the model's columns (less than
+    :data:`MIN_INDEPENDENCE` outside their span) or periodic in time as much as in
+    position is not identifiable, and the reason is kept.
+    """
+    G, C, aug = cmp.G, cmp.C, cmp.aug
+    factors = aug.scaling.factors
+    evaluated: dict[str, _Evaluation] = {}
+    for name, cols in cmp.groups.items():
+        exc_c = float(np.max(cmp.col_rms[cols]))
         ind = G.independence(cols, C)
         rss, x = G.solve(C + cols)
-        expl = (rss0 - rss) / rss0 if rss0 > 0 else 0.0
+        expl = (cmp.rss0 - rss) / cmp.rss0 if cmp.rss0 > 0 else 0.0
         expl = min(max(expl, 0.0), 1.0)
         reason = ""
         order = aug.parameters[cols[0]].order
@@ -346,39 +457,37 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, r: F64,
         elif unexcited:
             reason = unexcited
         elif ind < MIN_INDEPENDENCE:
-            reason = _collinear_reason(name, cols, C, G, cur_names, ind, exc)
+            reason = _collinear_reason(name, cols, C, G, cmp.cur_names, ind, exc)
         elif order > 0 and ctx.angle_raw is not None:
-            coh, f_hz = ctx.coherence(order, used)
+            coh, f_hz = ctx.coherence(order, cmp.used)
             if coh >= MAX_COHERENCE:
                 reason = (f"not identifiable from this data: the speed is nearly constant, so "
                           f"order {order} in position is a sinusoid of {f_hz:.3g} Hz in time "
                           f"(coherence {coh:.2f}); it cannot be told from a disturbance "
                           f"periodic in time: vary the speed")
-        th = {}
-        for j in cols:
-            p = aug.parameters[j]
-            th[p.name] = (float(x.get(j, 0.0) * factors[j]), p.unit)
-        evaluated[name] = dict(cols=cols, explained=expl, rss=rss,
-                               dbic=bic(rss, rss0, len(cols)), ind=ind, exc=exc_c,
-                               reason=reason, params=th)
-    # -- candidates that cannot be told apart from one another ---------------------------
-    inseparable = _inseparable(evaluated, G, C, exc)
-    # -- the cogging order -------------------------------------------------------------
-    cog = [nm for nm in evaluated if nm.startswith("cogging:")]
-    best_cog = max(cog, key=lambda nm: (evaluated[nm]["explained"], -int(nm[8:]))) \
-        if cog else None
-    # -- forward selection ---------------------------------------------------------------
+        params = {aug.parameters[j].name: (float(x.get(j, 0.0) * factors[j]),
+                                           aug.parameters[j].unit) for j in cols}
+        evaluated[name] = _Evaluation(cols, expl, rss, cmp.bic(rss, cmp.rss0, len(cols)), ind,
+                                      exc_c, reason, params)
+    return evaluated
+
+
+def _forward_select(cmp: _Comparison, evaluated: Mapping[str, _Evaluation]) -> _Selection:
+    """Orthogonal least squares: add the best identifiable candidate, re-rank the others
+    against the enlarged model, stop when the next explains less than
+    :data:`MIN_EXPLAINED` of what is left or does not lower the BIC (at most 8)."""
+    G, C = cmp.G, cmp.C
     steps: list[Step] = []
     sel: list[int] = []
     chosen: list[str] = []
-    rss_cur = rss0
-    pool = [nm for nm, ev in evaluated.items() if not ev["reason"]]
+    rss_cur = cmp.rss0
+    pool = [nm for nm, ev in evaluated.items() if not ev.reason]
     for _ in range(8):
         best = None
         for nm in pool:
             if nm in chosen:
                 continue
-            cols = evaluated[nm]["cols"]
+            cols = evaluated[nm].cols
             if G.independence(cols, C + sel) < MIN_INDEPENDENCE:
                 continue
             rss, _ = G.solve(C + sel + cols)
@@ -388,96 +497,105 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation, r: F64,
             break
         nm, rss = best
         expl = (rss_cur - rss) / rss_cur
-        db = bic(rss, rss_cur, len(evaluated[nm]["cols"]))
+        db = cmp.bic(rss, rss_cur, len(evaluated[nm].cols))
         if expl < MIN_EXPLAINED or db >= 0:
             break
         chosen.append(nm)
-        sel += evaluated[nm]["cols"]
-        steps.append(Step(nm, float(expl), float(db), rms_of(rss)))
+        sel += evaluated[nm].cols
+        steps.append(Step(nm, float(expl), float(db), cmp.rms_of(rss)))
         rss_cur = rss
-    suggestion = Suggestion(tuple(steps), rms_ls)
-    # -- what structure is left after the suggestion ---------------------------------------
+    return _Selection(tuple(steps), chosen, rss_cur)
+
+
+def _what_is_left(ctx: RecordSamples, model: Model, eq: Equation, res: ResidualSummary,
+                  cmp: _Comparison, sel: _Selection) -> _Outcome:
+    """The suggestion and the structure left after it; the suggestion is withdrawn when
+    it explains less than :data:`MIN_TOTAL` of structure that stays."""
+    suggestion = Suggestion(sel.steps, cmp.rms_ls)
+    chosen = list(sel.chosen)
     partial: Suggestion | None = None
     structure: tuple[StructureItem, ...] = ()
     if chosen:
         # the model with the suggestion, on the samples the pipeline will use for it
         # (periodic effects drop the fast samples there, instead of being masked)
-        m2 = model.with_effects(add=chosen)
-        eq2 = m2.equation(eq.name)
-        rows2 = _eval_rows(ctx, model, eq, chosen, pipe_used, periodic=True)
+        eq2 = model.with_effects(add=chosen).equation(eq.name)
+        rows2 = _eval_rows(ctx, model, eq, chosen, res.used, periodic=True)
         # r = y - Phi theta, theta the least squares on rows2 (block by block)
         r_left = ctx.fit_residual(eq2, rows2)
         n2, _, e2, _ = moments(r_left, rows2)
         if n2:
             suggestion = Suggestion(suggestion.steps, suggestion.rms_before,
                                     math.sqrt(e2 / n2))
-        structure = residual_structure(ctx, r_left, rows2, unit, h2, None, eq.target.signal)
-        total = 1.0 - rss_cur / rss0 if rss0 > 0 else 0.0
+        structure = residual_structure(ctx, r_left, rows2, res.unit, res.h2, None,
+                                       eq.target.signal)
+        total = 1.0 - sel.rss / cmp.rss0 if cmp.rss0 > 0 else 0.0
         if structure and total < MIN_TOTAL:
             # the best candidates explain part of the structure and leave the rest: they
             # are not what is missing; say so instead of suggesting them
-            partial, suggestion, chosen = suggestion, Suggestion((), rms_ls), []
+            partial, suggestion, chosen = suggestion, Suggestion((), cmp.rms_ls), []
     if not chosen:
         # nothing to add: the least-squares residual of the model as it is (structure the
         # model's own columns can absorb is the estimator's, not a missing effect)
-        th_ls = np.array([th0.get(j, 0.0) for j in C])
+        th_ls = np.array([cmp.th0.get(j, 0.0) for j in cmp.C])
         r_ls = ctx.residual(eq, th_ls)  # block by block
         # the displayed spectrum (of r) serves when r_ls is practically r
         dd = el = 0.0
-        for a in range(0, len(r), BLOCK):
-            u = used[a:a + BLOCK]
-            x, d = r_ls[a:a + BLOCK][u], (r_ls[a:a + BLOCK] - r[a:a + BLOCK])[u]
+        for a in range(0, len(res.r), BLOCK):
+            u = cmp.used[a:a + BLOCK]
+            x, d = r_ls[a:a + BLOCK][u], (r_ls[a:a + BLOCK] - res.r[a:a + BLOCK])[u]
             dd += float(np.dot(d, d))
             el += float(np.dot(x, x))
-        same = dd <= 0.01 * el and N == pipe_n
-        structure = residual_structure(ctx, r_ls, used, unit, h2, spectrum if same else None,
-                               eq.target.signal)
-    # -- which candidates to list --------------------------------------------------------
-    # every effect once; of the cogging orders the best one and those suggested
+        same = dd <= 0.01 * el and cmp.N == res.used.count()
+        structure = residual_structure(ctx, r_ls, cmp.used, res.unit, res.h2,
+                                       res.spectrum if same else None, eq.target.signal)
+    return _Outcome(suggestion, structure, partial, chosen)
+
+
+def _listed(cmp: _Comparison, evaluated: Mapping[str, _Evaluation], chosen: Sequence[str],
+            best_cog: str | None, cog: Sequence[str], ev_ctx: _EvidenceContext,
+            eq: Equation) -> list[Candidate]:
+    """The candidates to show, best first: every effect once and, of the cogging orders,
+    the best one and those suggested; the suggestion in the order it was chosen, then by
+    share explained (identifiable ones before the others)."""
     listed = [nm for nm in evaluated if not nm.startswith("cogging:")]
     extra_cog = [nm for nm in cog if nm in chosen]
     if best_cog is not None and best_cog not in extra_cog:
         extra_cog.insert(0, best_cog)
     listed += extra_cog
-    ev_ctx = _EvidenceContext(ctx, bins, spectrum, unit, used, A, G, C, aug, evaluated,
-                              best_cog, cog, model)
+    effects: dict[str, Effect] = {}
+    for e in cmp.aug_model.effects:
+        effects.setdefault(e.name, e)
     cands = []
     for nm in listed:
         ev = evaluated[nm]
-        eff = aug_model.effects[[e.name for e in aug_model.effects].index(nm)]
+        eff = effects[nm]
         cands.append(Candidate(
             effect=nm, equation=eq.name, description=_description(eff),
-            signature=type(eff).RESIDUAL_SIGNATURE, explained=float(ev["explained"]),
-            delta_bic=float(ev["dbic"]), rms_after=rms_of(ev["rss"]),
-            identifiable=not ev["reason"], suggested=nm in chosen, reason=ev["reason"],
-            evidence=tuple(_evidence(nm, ev_ctx)), parameters=ev["params"],
-            independence=float(ev["ind"]), excitation=float(ev["exc"])))
-    # best first: the suggestion in the order it was chosen, then by share explained
-    # (identifiable ones before the others)
+            signature=type(eff).RESIDUAL_SIGNATURE, explained=float(ev.explained),
+            delta_bic=float(ev.dbic), rms_after=cmp.rms_of(ev.rss),
+            identifiable=not ev.reason, suggested=nm in chosen, reason=ev.reason,
+            evidence=tuple(_evidence(nm, ev_ctx)), parameters=ev.params,
+            independence=float(ev.ind), excitation=float(ev.exc)))
     cands.sort(key=lambda c: (chosen.index(c.effect) if c.suggested else len(chosen),
                               0 if c.identifiable else 1, -c.explained))
-    # -- identifiability and verdict -------------------------------------------------------
-    not_ident = [c for c in cands if not c.identifiable]
-    reasons = list(model_issues)
-    for c in not_ident:
-        reasons.append(f"{c.effect}: {c.reason}")
-    identifiable = not model_issues and not not_ident
-    n_f, _, e_f, _ = moments(r, used)
+    return cands
+
+
+def _convergence_note(res: ResidualSummary, rms_ls: float) -> str:
+    """A note when the final estimate's residual is 10 % above the least squares' ("" else)."""
+    n_f, _, e_f, _ = moments(res.r, res.used)
     rms_final = math.sqrt(e_f / n_f) if n_f else math.nan
-    verdict = _verdict(eq, suggestion, cands, structure, model_issues, not_ident, exc, unit,
-                       rms_ls, partial, inseparable, na)
-    if rms_final > 1.1 * rms_ls:
-        verdict += (f" Note: the final estimate leaves a residual RMS of "
-                    f"{value_text(rms_final, unit)}"
-                    f", {100 * (rms_final / rms_ls - 1):.0f} % more than the least-squares fit "
-                    f"of the same model over the whole record ({value_text(rms_ls, unit)}): the "
-                    f"estimator has not converged, or forgetting or the ridge prior bias it "
-                    f"(see the parameter convergence).")
-    return CandidateResult(tuple(cands), tuple(na), suggestion, structure, identifiable,
-                            tuple(reasons), verdict, rms_ls)
+    if not rms_final > 1.1 * rms_ls:
+        return ""
+    return (f" Note: the final estimate leaves a residual RMS of "
+            f"{value_text(rms_final, res.unit)}"
+            f", {100 * (rms_final / rms_ls - 1):.0f} % more than the least-squares fit "
+            f"of the same model over the whole record ({value_text(rms_ls, res.unit)}): the "
+            f"estimator has not converged, or forgetting or the ridge prior bias it "
+            f"(see the parameter convergence).")
 
 
-def _inseparable(evaluated: dict[str, dict[str, Any]], G: _Gram, C: Sequence[int],
+def _inseparable(evaluated: Mapping[str, _Evaluation], G: _Gram, C: Sequence[int],
                  exc: ExcitationSummary) -> list[tuple[str, str, float]]:
     """Pairs of candidates, each identifiable against the model alone, that cannot be
     told apart from one another on these data (less than :data:`MIN_INDEPENDENCE` of
@@ -485,17 +603,17 @@ def _inseparable(evaluated: dict[str, dict[str, Any]], G: _Gram, C: Sequence[int
     with the experiment that would separate them; returns ``(a, b, explained)`` with
     the share of the residual variance the pair explains together. Cogging orders are
     compared with the other effects only (orders are orthogonal to one another)."""
-    names = [nm for nm, ev in evaluated.items() if not ev["reason"]]
+    names = [nm for nm, ev in evaluated.items() if not ev.reason]
     out: list[tuple[str, str, float]] = []
     for i, a in enumerate(names):
         for b in names[i + 1:]:
             if a.startswith("cogging:") and b.startswith("cogging:"):
                 continue
-            ca, cb = evaluated[a]["cols"], evaluated[b]["cols"]
+            ca, cb = evaluated[a].cols, evaluated[b].cols
             ind = min(G.independence(ca, [*C, *cb]), G.independence(cb, [*C, *ca]))
             if ind >= MIN_INDEPENDENCE:
                 continue
-            expl = max(evaluated[a]["explained"], evaluated[b]["explained"])
+            expl = max(evaluated[a].explained, evaluated[b].explained)
             out.append((a, b, expl))
             for x, y in ((a, b), (b, a)):
                 if {x, y} == SIGN_PAIR and exc.one_direction:
@@ -506,8 +624,8 @@ def _inseparable(evaluated: dict[str, dict[str, Any]], G: _Gram, C: Sequence[int
                     facts = exc.facts()
                     if facts:
                         why += "; " + "; ".join(facts)
-                if not evaluated[x]["reason"] or x == a:
-                    evaluated[x]["reason"] = why
+                if not evaluated[x].reason or x == a:
+                    evaluated[x].reason = why
     return out
 
 
@@ -583,7 +701,7 @@ class _EvidenceContext:
     G: _Gram
     C: list[int]
     aug: Equation
-    evaluated: Mapping[str, Mapping[str, Any]]
+    evaluated: Mapping[str, _Evaluation]
     best_cog: str | None
     cog: list[str]
     model: Model
@@ -662,11 +780,11 @@ def _evidence(name: str, ec: _EvidenceContext) -> list[str]:
                f"({share_text(e)} of the residual variance)")
         if base == "cogging" and name == ec.best_cog:
             others = sorted((nm for nm in ec.cog if nm != name),
-                            key=lambda nm: -ec.evaluated[nm]["explained"])
+                            key=lambda nm: -ec.evaluated[nm].explained)
             if others:
                 o = others[0]
                 txt += (f"; the strongest order of the search k = 2..{ec.ctx.max_order}, next "
-                        f"{o.split(':')[1]} ({share_text(ec.evaluated[o]['explained'])})")
+                        f"{o.split(':')[1]} ({share_text(ec.evaluated[o].explained)})")
         out.append(txt)
     if base == "inertia":
         ab = ec.bins.get("acceleration")
@@ -680,11 +798,11 @@ def _evidence(name: str, ec: _EvidenceContext) -> list[str]:
                            f"{ab.centers[lo_j]:.3g} {ab.unit} "
                            f"{value_text(float(ab.mean[lo_j]), u, True)}")
     # the candidate's own column against the residual
-    if ev["explained"] > 0:
-        out.append(f"explains {100 * ev['explained']:.3g} % of the residual variance "
-                   f"(correlation {math.sqrt(ev['explained']):.2f} with its orthogonalised "
+    if ev.explained > 0:
+        out.append(f"explains {100 * ev.explained:.3g} % of the residual variance "
+                   f"(correlation {math.sqrt(ev.explained):.2f} with its orthogonalised "
                    f"column)")
-    vals = ", ".join(f"{k} ≈ {v:.4g} {un}" for k, (v, un) in ev["params"].items())
+    vals = ", ".join(f"{k} ≈ {v:.4g} {un}" for k, (v, un) in ev.params.items())
     if vals:
         out.append(f"would be {vals}")
     return out

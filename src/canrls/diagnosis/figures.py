@@ -1,29 +1,10 @@
 """The figures of the HTML report (``canrls diagnose --report DIR``), as PNG files.
 
-:class:`Figures` draws each figure of a diagnosis into a directory:
-
-``timeline.png``
-    the filtered target (measured) against the model over time, and the residual below
-    (before, and after the added effects);
-``speed.png``, ``position.png``
-    the residual against speed (both directions, symmetric-log axis) and against the
-    position in the revolution (or along the travel of a linear axis): every sample in
-    grey, the bin means with their RMS as bars, before and after;
-``candidates.png``
-    the share of the residual variance each candidate effect explains, best first;
-``orders.png``
-    the residual's rotation-order spectrum: the amplitude of each order (multiples of
-    the rotation frequency) fitted to the residual;
-``convergence.png``
-    every parameter over time, float estimate with its ±σ band and the fixed-point
-    estimate dashed;
-``fixed.png``
-    fixed point against float: ``|fixed - float|`` relative to ``max(|float|, σ)``.
-
-matplotlib is an optional dependency (the ``report`` extra): it is imported here
-(:func:`require_matplotlib`), when a report is written, and its absence is a
-:class:`~canrls.errors.ConfigError` naming the package. The figures use matplotlib's
-object API (no pyplot, no global state).
+:class:`Figures` draws each figure of a diagnosis (timeline, speed, position,
+candidates, orders, convergence, fixed point; docs/diagnose.md, "The figures") into a
+directory with matplotlib's object API (no pyplot, no global state). matplotlib is the
+optional ``report`` extra: :func:`require_matplotlib` imports it when a report is
+written, and its absence is a :class:`~canrls.errors.ConfigError` naming the package.
 """
 
 from __future__ import annotations

@@ -29,6 +29,7 @@ from canrls.estimation.model import Model
 from canrls.estimation.physics import describe
 from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
 from canrls.files import atomic_writer
+from canrls.processor import FrameCounts, PeriodInfo, StartInfo
 
 if TYPE_CHECKING:  # imported when a page is rendered, not for the text report
     import jinja2
@@ -48,7 +49,8 @@ class DiagnosisReport:
     def __init__(self, *, source: str, dt: float, samples: int, duration: float,
                  before: Analysis, after: Analysis | None, added: tuple[str, ...],
                  settings: EstimatorSettings, max_order: int,
-                 frames: Mapping[str, Any] | None = None) -> None:
+                 frames: FrameCounts | None = None, period: PeriodInfo | None = None,
+                 start: StartInfo | None = None) -> None:
         self.source = source
         self.dt = dt
         self.samples = samples
@@ -57,7 +59,10 @@ class DiagnosisReport:
         self.after = after
         self.added = added
         self.settings = settings
-        self.frames = dict(frames) if frames is not None else None
+        #: the frames of the replayed logs, their period and start (None: samples given)
+        self.frames = frames
+        self.period = period
+        self.start = start
         self.max_order = max_order
 
     # -- shortcuts ----------------------------------------------------------------------
@@ -122,7 +127,7 @@ class DiagnosisReport:
             "verdict": self.verdict,
         }
         if self.frames is not None:
-            d["frames"] = self.frames
+            d["frames"] = self.frames.to_dict(True, self.period, self.start)
         return d
 
     # -- text ---------------------------------------------------------------------------
@@ -134,7 +139,8 @@ class DiagnosisReport:
                    f"model {', '.join(b.effects)}")
         out.extend(describe(b.estimates.implausible))
         if self.after is not None:
-            out.extend(f"after adding: {line}" for line in describe(self.after.estimates.implausible))
+            out.extend(f"after adding: {line}"
+                       for line in describe(self.after.estimates.implausible))
         for q in b.equations:
             out.extend(_format_equation(q, self.model.axis))
         if self.after is not None:

@@ -40,7 +40,7 @@ from canrls.diagnosis.results import (
 from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.estimation.model import Model
 from canrls.estimation.svf import SVF
-from canrls.signals import PackedMask
+from canrls.spill import PackedMask
 
 __all__ = [
     "MIN_BIN",

@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EquationFit, Estimates
-from canrls.signals import PackedMask
+from canrls.spill import PackedMask
 
 __all__ = [
     "FIGURE_POINTS",

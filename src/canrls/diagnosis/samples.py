@@ -23,7 +23,8 @@ from canrls.estimation.model import Equation, Model, PositionUnwrapper
 from canrls.estimation.pipeline import EstimatorSettings
 from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.svf import SVF, impulse_response
-from canrls.signals import MaskPacker, PackedMask, Signals, SpilledSignals, as_packed
+from canrls.signals import Signals
+from canrls.spill import MaskPacker, PackedMask, SpilledSignals, as_packed
 
 __all__ = ["BLOCK", "RecordSamples"]
 

@@ -1,56 +1,10 @@
 r"""Change, drift, new-effect and outlier detection on a fleet's history, respecting sigma.
 
-Per model (the same effects and settings) and parameter, every value of a positive
-parameter (inertia, friction, electrical) is taken in logs, :math:`y = \ln x`,
-:math:`s = \sigma / x` (a relative scale: drives of different sizes share one scatter);
-others as they are; the residual RMS as :math:`\ln` RMS with no sigma of its own.
-
-**The scatter that sigma does not see.** A recording's sigma says how well that log
-pins its parameter down; between recordings a drive's friction also moves with
-temperature and lubrication, and the excitation changes the errors-in-variables bias:
-scatter that no single recording shows. Each series gets a between-recording variance
-:math:`\tau^2`, estimated from the fleet's successive differences
-:math:`d_k = y_{k+1} - y_k` (robust to a drive's level, and to a step or a trend of the
-few drives that change): :math:`\tau` solves
-
-.. math:: Q_{0.8}\left(\frac{d_k^2}{s_k^2 + s_{k+1}^2 + 2\tau^2}\right) = 1.642
-
-(the 80th percentile of :math:`\chi^2_1`: drives that scatter more than the typical one
-set it, the few that change do not), and is 0 when the sigmas already explain the
-scatter. It is estimated per drive type (drives of a size scatter alike), the fleet's
-for a type with fewer than :data:`MIN_PAIRS` pairs; for a series in its own units (an
-offset, a harmonic: they follow what the drive moves, and so scatter differently from
-drive to drive) a drive's own estimate counts when it is larger. The successive
-differences make each of these blind to a drive's level and to one step in it.
-Each value then weighs :math:`w_k = 1/(s_k^2 + \tau^2)`.
-
-**Per drive**, for each series with at least :data:`MIN_RECORDINGS` recordings:
-
-* a *change* at recording m (two or more on each side): :math:`z_m = (\bar y_{\ge m} -
-  \bar y_{<m}) / \sqrt{1/W_{<m} + 1/W_{\ge m}}` (weighted means and weights);
-* a *drift* from recording c (a flat start, then a slope in time, three or more
-  recordings on it; c = 0 is a trend over the whole history): the weighted least-squares
-  slope of :math:`y` on :math:`\max(0, t - t_c)`, :math:`z_c = b / \mathrm{se}(b)`.
-
-The largest :math:`|z|` of a drive is turned into a probability that a healthy drive
-shows one that large, Bonferroni over every split, onset and series of the drive:
-:math:`p = 2\Phi(-|z|) \cdot M`. An alert when :math:`p <` ``alpha`` (default
-:data:`ALPHA`: one healthy drive in a thousand alerted, when the scatter is as
-estimated). A residual that changes is a **new effect** when the diagnosis's candidate
-ranking of the recordings after the change names an effect that it did not name before
-(the largest rise of the share of the residual it explains); without a ranking, the
-alert says to rank them. Only a rise of the residual by at least
-:data:`MIN_RESIDUAL_RISE` counts: its scatter from one excitation to the next has
-heavier tails than a normal's.
-
-**Among siblings** (drives of the same type and model), for the positive parameters
-(offsets and harmonics depend on what a drive moves): each drive's level (the
-weighted mean of its recordings before any change) against the median of its
-siblings', in units of the spread around the siblings' medians pooled over the fleet's
-types (1.4826 MAD) and the level's own uncertainty: an *outlier* beyond
-:data:`OUTLIER_Z`. Groups of fewer than :data:`MIN_SIBLINGS` drives are not compared.
-
-``docs/fleet.md`` shows the figures on simulated fleets.
+Each series (per model, parameter and drive) is weighed by its sigma and by the
+between-recording scatter the fleet shows and sigma does not (:math:`\tau`); a drive is
+alerted when its largest change or drift is unlikely for a healthy drive (Bonferroni
+over its splits, onsets and series), and compared with its siblings. The statistics,
+with their formulas and figures: docs/fleet.md, "Finding what changes".
 """
 
 from __future__ import annotations
@@ -315,7 +269,7 @@ def _series(recs: Sequence[Recording], name: str, log: bool) -> Series | None:
 def estimate_tau(pairs: Sequence[tuple[float, float]]) -> float:
     r"""The between-recording scatter :math:`\tau` from ``(d_k^2, s_k^2 + s_{k+1}^2)``
     of successive recordings: the quantile :data:`TAU_QUANTILE` of the standardised
-    squared differences matched to a chi-square's (module docstring)."""
+    squared differences matched to a chi-square's (docs/fleet.md)."""
     if not pairs:
         return 0.0
     d2 = np.array([p[0] for p in pairs])
@@ -512,7 +466,7 @@ def _level(se: Series, tau: float, upto: int | None) -> tuple[float, float]:
 
 def assess(recordings: Iterable[Recording], *, alpha: float = ALPHA,
            outlier_z: float = OUTLIER_Z) -> FleetAssessment:
-    """Assess every drive of a history's recordings (module docstring)."""
+    """Assess every drive of a history's recordings (docs/fleet.md)."""
     recs = [r for r in recordings]
     errors: dict[tuple[str, str], int] = {}
     for r in recs:

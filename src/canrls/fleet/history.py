@@ -1,27 +1,10 @@
 """The parameter history of a fleet, in a real database through SQLAlchemy.
 
 SQLite (a file: the embedded default) or PostgreSQL (``postgresql://user@host/db``,
-through psycopg). The schema is versioned: the Alembic migrations shipped in
-``canrls/fleet/migrations`` bring any older history up to this canrls's revision when
-it is opened (:meth:`History.open`); a history newer than this canrls is refused.
-
-Tables::
-
-    drives      id, name (unique), type
-    models      id, key (unique: what identifies the model and its settings), description
-    recordings  id, drive, model, content_hash, status (ok/error), source (log/live), path,
-                t_start, t_end, samples, frames, residual_rms, fit_percent, unit,
-                verdicts (JSON), error, session, canrls_version, ingested_at
-                UNIQUE (content_hash, model): a log is stored once per model
-    parameters  recording, name, value, sigma, unit, fixed, identifiable, prior_share
-    candidates  recording, rank, effect, explained, delta_bic, rms_after, identifiable,
-                suggested
-
-Every write is an insert-or-ignore (``ON CONFLICT DO NOTHING``) in one transaction per
-batch: a recording stored by a run that was killed, or by another ingest at the same
-time, is never stored twice. Values go in as bound parameters only; non-finite floats
-are stored as NULL and read back as NaN (SQLite cannot hold a NaN; both databases then
-give the same rows).
+through psycopg); the schema is versioned, and the Alembic migrations shipped in
+``canrls/fleet/migrations`` bring an older history up to date when it is opened
+(:meth:`History.open`). Every write is an insert-or-ignore in one transaction per batch,
+so a recording is never stored twice. The tables: docs/fleet.md, "The history".
 """
 
 from __future__ import annotations

@@ -15,7 +15,6 @@ once still leave every recording stored exactly once.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import hashlib
 import json
@@ -29,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from canrls import __version__
-from canrls.config import AppConfig, load_config
+from canrls.config import AppConfig, Overrides, load_config, prepare
 from canrls.errors import CanrlsError
 from canrls.fleet.history import History
 from canrls.fleet.records import (
@@ -60,42 +59,22 @@ BATCH_S = 1.0
 
 
 @dataclass(frozen=True)
-class JobConfig:
-    """The configuration of a log's fit: a TOML file and the options that override it
-    (those of ``canrls fit``). Hashable and picklable: a worker builds the protocol and
-    model from it once (:meth:`prepared`)."""
+class JobConfig(Overrides):
+    """The configuration of a log's fit: a TOML file and the command line's
+    :class:`~canrls.config.Overrides` of ``canrls fit``. Hashable and picklable: a worker
+    builds the protocol and model from it once (:meth:`prepared`)."""
 
     config: str | None = None
-    dbc: str | None = None
-    signals: tuple[str, ...] = ()
-    effects: str | None = None
-    kt: float | None = None
-    period: float | None = None
-    axis: str | None = None
-    lam: float | None = None
-    alpha: float | None = None
-    #: what relative units refer to (``--rated-torque``, ``--rated-current``,
-    #: ``--increments-per-rev``)
-    rated_torque: float | None = None
-    rated_current: float | None = None
-    increments_per_rev: float | None = None
 
     @classmethod
-    def from_args(cls, args: argparse.Namespace) -> JobConfig:
-        def num(x: Any) -> float | None:
-            return None if x is None else float(x)
-
-        cfg = getattr(args, "config", None)
-        dbc = getattr(args, "dbc", None)
-        return cls(config=None if cfg is None else str(Path(cfg).absolute()),
-                   dbc=None if dbc is None else str(Path(dbc).absolute()),
-                   signals=tuple(getattr(args, "signal", None) or ()),
-                   effects=getattr(args, "effects", None), kt=num(getattr(args, "kt", None)),
-                   period=num(getattr(args, "period", None)), axis=getattr(args, "axis", None),
-                   lam=num(getattr(args, "lam", None)), alpha=num(getattr(args, "alpha", None)),
-                   rated_torque=num(getattr(args, "rated_torque", None)),
-                   rated_current=num(getattr(args, "rated_current", None)),
-                   increments_per_rev=num(getattr(args, "increments_per_rev", None)))
+    def from_overrides(cls, config: str | None, over: Overrides) -> JobConfig:
+        """``over`` with the configuration file ``config``; numbers as plain floats (a
+        worker unpickles them without the command line's types)."""
+        kw = {f.name: getattr(over, f.name) for f in dataclasses.fields(Overrides)}
+        for k, v in kw.items():
+            if isinstance(v, float):
+                kw[k] = float(v)
+        return cls(config=config, **kw)
 
     def for_source(self, src: LogSource) -> JobConfig:
         """This configuration with a manifest row's overrides."""
@@ -113,21 +92,13 @@ class JobConfig:
         return dataclasses.replace(self, **kw) if kw else self
 
     def app_config(self) -> AppConfig:
-        ns = argparse.Namespace(dbc=self.dbc, signal=list(self.signals) or None,
-                                effects=self.effects, kt=self.kt, period=self.period,
-                                axis=self.axis, lam=self.lam, alpha=self.alpha,
-                                rated_torque=self.rated_torque,
-                                rated_current=self.rated_current,
-                                increments_per_rev=self.increments_per_rev)
-        return load_config(self.config, ns)
+        return load_config(self.config, self)
 
     def prepared(self) -> tuple[Any, Any, Any]:
         """``(protocol, model, settings)`` as ``canrls fit`` builds them (cached per
         process: a worker builds each configuration once)."""
         got = _PREPARED.get(self)
         if got is None:
-            from canrls.replay import prepare
-
             got = _PREPARED[self] = prepare(self.app_config())
         return got
 
@@ -209,11 +180,9 @@ def _recording(job: IngestJob, digest: str, res: Any,
                candidates: tuple[CandidateValue, ...] | None,
                rank_error: str | None) -> Recording:
     est = res.estimates
-    d = res.to_dict()
-    start = d.get("start") or {}
-    period = (d.get("period") or {}).get("value")
-    paired = int((d.get("frames") or {}).get("pairing", {}).get("samples", 0))
-    t0 = _finite(start.get("t0"))
+    period = res.period.value
+    paired = int(res.frames.pairing.get("samples", 0))
+    t0 = _finite(res.start.t0)
     t1 = t0 + paired * period if period and math.isfinite(t0) else math.nan
     eqs = {e.equation: {"fit_percent": e.fit_percent, "r2": e.r2,
                         "divergence": e.divergence, "saturations": int(sum(
@@ -223,10 +192,10 @@ def _recording(job: IngestJob, digest: str, res: Any,
     verdicts: dict[str, Any] = {
         "equations": eqs,
         "not_identifiable": [p.name for p in est.parameters if not p.identifiable],
-        "rejected_frames": int(sum(res.rejected.values())),
-        "lost_frames": int(sum(res.lost.values())),
+        "rejected_frames": int(sum(res.frames.rejected.values())),
+        "lost_frames": int(sum(res.frames.lost.values())),
         "period": period,
-        "start_date": start.get("date"),
+        "start_date": res.start.date,
     }
     if rank_error:
         verdicts["rank_error"] = rank_error
@@ -239,7 +208,7 @@ def _recording(job: IngestJob, digest: str, res: Any,
     return Recording(drive=job.source.drive, drive_type=job.source.drive_type,
                      content_hash=digest, model_key=job.key, model=job.model,
                      source=SOURCE_LOG, path=job.source.path, t_start=t0, t_end=t1,
-                     samples=int(est.samples), frames=int(res.frames),
+                     samples=int(est.samples), frames=int(res.frames.total),
                      residual_rms=float(est.residual_rms), fit_percent=float(est.fit_percent),
                      unit=unit, verdicts=verdicts, parameters=params, candidates=candidates,
                      canrls_version=__version__)

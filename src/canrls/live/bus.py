@@ -8,28 +8,9 @@
     BusLink: opens the bus (and its reader), reopens it with backoff when recv
              raises, sends without blocking, pauses transmission on error frames
 
-The reader is python-can's :class:`~can.Notifier` loop (``bus.recv``, the listener,
-``on_error``) that takes every frame waiting at each wake-up and then sleeps
-``rx_interval`` (:attr:`DaemonSettings.rx_s <canrls.live.settings.DaemonSettings.rx_s>`,
-5 ms by default) while the bus is slow: at 1 kHz one wake-up serves some ten frames
-instead of two (``docs/daemon.md``, *The batched reader*: the CPU this saves is within
-the development machine's noise). An idle bus is waited for in ``recv``, without
-polling. A SocketCAN bus (python-can's ``SocketcanBus``) is read by the
-:class:`BlockReader` instead (``[daemon] rx_bulk``): the same loop, its socket read in
-bulk (:mod:`canrls.live.socketcan`, ``recvmmsg``), no ``can.Message`` per frame; its
-receive buffer is raised to ``[daemon] rx_buffer`` when it opens.
-
-The bus is opened with ``can.Bus(..., ignore_config=True)`` from the ``[can]`` table
-and the command line only: python-can's own configuration sources (``can.rc``,
-``$CAN_INTERFACE``/``$CAN_CHANNEL``/``$CAN_BITRATE``/``$CAN_CONFIG``, ``/etc/can.conf``,
-``~/.can``, ``~/.canrc``) are never read, so a stray file cannot redirect the service.
-
-Faults: an error frame (SocketCAN delivers them, bus-off included) pauses transmission
-for ``fault_hold_s`` after the last one (a ``CAN_ERR_RESTARTED`` frame ends a bus-off
-pause at once). An exception from the bus's ``recv`` (interface gone: unplugged
-adapter, ``ip link set can0 down``) marks the link failed; :meth:`BusLink.reopen`
-then stops the reader, shuts the bus down and opens it again with exponential
-backoff from ``reopen_min_s`` to ``reopen_max_s``. The queue survives a reopening.
+The bus is opened from the ``[can]`` table and the command line only
+(``ignore_config=True``). The batched and bulk readers, the fault handling and their
+settings: docs/daemon.md.
 """
 
 from __future__ import annotations
@@ -73,11 +54,9 @@ _CAN_ERR_RESTARTED = 0x100
 _BUS_KEYS = ("interface", "channel", "bitrate", "fd", "data_bitrate")
 
 
-def bus_config(cfg: AppConfig | None = None, args: Any = None) -> dict[str, Any]:
-    """Every argument of the bus, explicitly: ``[can]`` overridden by the command line.
-
-    ``args`` is a namespace from :func:`canrls.cli._common.add_bus_options`
-    (``-i -c -b --fd --data-bitrate --timing --bus-kwargs``).
+def bus_config(cfg: AppConfig | None = None) -> dict[str, Any]:
+    """Every argument of the bus, explicitly: ``[can]`` overridden by the command line's
+    bus arguments (:attr:`AppConfig.bus <canrls.config.AppConfig.bus>`).
 
     :raises ConfigError: no interface, or a value of the wrong type.
     """
@@ -87,11 +66,7 @@ def bus_config(cfg: AppConfig | None = None, args: Any = None) -> dict[str, Any]
         for k in _BUS_KEYS:
             if k in cfg.can:
                 conf[k] = cfg.can[k]
-    if args is not None:
-        for k in (*_BUS_KEYS, "timing"):
-            if getattr(args, k, None) is not None:
-                conf[k] = getattr(args, k)
-        conf.update(getattr(args, "bus_kwargs", None) or {})
+        conf.update(cfg.bus)
     if not conf.get("interface"):
         raise ConfigError(f"{src}: no CAN interface: set can.interface in the configuration or "
                           f"-i/--interface (socketcan, virtual, canrls-sim, remote, ...)")

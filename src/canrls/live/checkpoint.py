@@ -1,53 +1,11 @@
 """Checkpoints of the live estimator: theta, P, the model and the counters, atomically.
 
-File layout (``docs/daemon.md``)::
-
-    CANRLS-CHECKPOINT\\n                      magic line
-    {"format": "canrls.checkpoint/1", ...}\\n  header: one JSON line (format, canrls
-                                              version, payload size, SHA-256 of the payload)
-    <payload>                                 an uncompressed ``.npz`` archive (no pickles):
-                                              ``__meta__`` = the JSON document (uint8), and
-                                              one array per numpy array of the state
-
-The JSON document holds everything that is not an array (models, settings
-fingerprint, counters, scalars of the estimator states); each array is replaced by
-``{"__array__": KEY}``. Floats go through JSON by ``repr``, which round-trips exactly,
-so a restored estimator continues bit for bit.
-
-The file is handled as a database handles its files:
-
-* **The name is never followed.** Every file is opened relative to a descriptor of the
-  checkpoint's directory (which may itself be reached through a symbolic link) with
-  ``O_NOFOLLOW``: a symbolic link, a directory, a FIFO or a device at the checkpoint's
-  name is refused (:class:`CheckpointPathError`), never read, renamed or written
-  through, so whatever a link points to is never touched.
-* **Reading is bounded.** The file is opened with ``O_NONBLOCK`` (a FIFO cannot hang
-  the start), ``fstat`` of the open descriptor must say a regular file of at most
-  ``max_bytes``, and exactly that many bytes are read. Then the magic, the format, the
-  size and the SHA-256; then the archive (stored members only, each ``.npy`` header
-  checked against the member's size before anything is allocated, numeric dtypes
-  only); then the document (nesting depth at most :data:`MAX_DEPTH`, checked before
-  the JSON parser recurses; JSON types and numeric arrays only; no NaN, and no
-  infinity in an array, outside the recorded samples; the fields of
-  :class:`Checkpoint` with their types). Anything else is a :class:`CheckpointError`.
-* **Writing is atomic and private.** The bytes are first checked by reading them back
-  (a state that would be refused at load is never written), then go to a temporary
-  ``.NAME.tmp.PID.XXXXXXXX`` created with ``O_CREAT | O_EXCL | O_NOFOLLOW``, mode 0600,
-  in the same directory, are ``fsync``-ed and renamed over the name, and the directory
-  is ``fsync``-ed. A crash (``kill -9``, power loss) leaves either the old or the new
-  checkpoint, never a torn one, plus at most a stale temporary, which
-  :func:`clean_temporaries` removes at the next start (only regular files whose names
-  match the pattern above).
-
-:func:`set_aside` renames a damaged regular file to ``NAME.bad-YYYYmmdd-HHMMSS`` in the
-same directory, so that it is kept for inspection but never loaded.
-
-:class:`Checkpointer` is the daemon's use of them: resume at start (only under the same
-configured model, :func:`fingerprint` and a model no larger than the parameter frames
-carry), save every ``checkpoint_interval`` and at stop. When the checkpoint's location
-cannot be used (a link or another non-regular file at the name, a directory that is
-missing, not a directory or not writable) the daemon runs without checkpoints and logs
-one error saying why.
+A checkpoint is a magic line, a JSON header (format, version, size, SHA-256) and an
+uncompressed ``.npz`` archive without pickles; floats round-trip exactly, so a restored
+estimator continues bit for bit. The file is opened as a database opens its files:
+never through a link, bounded, checked before it is trusted, written atomically and
+privately. :class:`Checkpointer` is the daemon's use of them. The format and every
+promise: docs/daemon.md, "Checkpoints".
 """
 
 from __future__ import annotations
@@ -541,7 +499,8 @@ def _write_temp(dfd: int, name: str, data: bytes) -> str:
 
 def save_checkpoint(path: str | os.PathLike[str], cp: Checkpoint, *,
                     max_bytes: int = MAX_BYTES) -> int:
-    """Write ``cp`` to ``path`` atomically (module docstring); returns the bytes written.
+    """Write ``cp`` to ``path`` atomically (docs/daemon.md, "Checkpoints"); returns the
+    bytes written.
 
     :raises CheckpointError: the state holds something a load would refuse (NaN, a
         type JSON lacks, more than ``max_bytes``): nothing is written.
@@ -570,7 +529,7 @@ def save_checkpoint(path: str | os.PathLike[str], cp: Checkpoint, *,
 
 
 def load_checkpoint(path: str | os.PathLike[str], *, max_bytes: int = MAX_BYTES) -> Checkpoint:
-    """Read and verify a checkpoint (module docstring).
+    """Read and verify a checkpoint (docs/daemon.md, "Checkpoints").
 
     :raises CheckpointPathError: the path is not a regular file (a link, a FIFO...).
     :raises CheckpointError: the file is not a valid checkpoint.

@@ -10,20 +10,8 @@
         Checkpointer     resume at start, save every checkpoint_interval and at stop
     supervisor thread: reopens a vanished bus (BusLink.reopen), pings systemd's watchdog
 
-Threads: a :class:`~canrls.live.bus.BusReader` (python-can's ``Notifier`` loop, taking
-every frame waiting each ``rx_interval``; on a SocketCAN bus the
-:class:`~canrls.live.bus.BlockReader`, the same loop in bulk with ``recvmmsg``, no
-``can.Message`` per frame) reads the bus and hands the frames to a
-:class:`~canrls.live.bus.FrameQueue` that only queues them; the estimator thread takes
-whatever has arrived (at most every ``block_interval``, by default the publish
-interval, and right before each publication; at once when a command frame waits) and
-processes it as one block through :class:`~canrls.processor.FrameProcessor`, so a log
-of the frames the daemon saw, replayed offline, gives the same parameters bit for bit.
-Command frames are applied in stream order between the frames around them; error
-frames go to :meth:`BusLink.error_frame <canrls.live.bus.BusLink.error_frame>`. Nothing
-the estimator does waits for the bus (:meth:`canrls.live.bus.BusLink.send`).
-
-See ``docs/daemon.md`` for the ``[daemon]`` keys, commands, checkpoints and systemd.
+The threads and the flow of frames, the ``[daemon]`` keys, commands, checkpoints and
+systemd: docs/daemon.md.
 """
 
 from __future__ import annotations
@@ -252,11 +240,11 @@ class Daemon:
             return self._proc.pipeline.estimates()
 
     def _wire_counters(self) -> dict[str, int]:
-        d = self._proc.decoder
+        fr = self._proc.frame_counts()
         b = self._base
         return {
-            "frames_rejected": int(d.rejected.total) + b.get("frames_rejected", 0),
-            "frames_lost": int(sum(d.lost.values())) + self._queue.overflow
+            "frames_rejected": sum(fr.rejected.values()) + b.get("frames_rejected", 0),
+            "frames_lost": sum(fr.lost.values()) + self._queue.overflow
             + b.get("frames_lost", 0),
             "saturations": int(self._proc.pipeline.saturations.total) + b.get("saturations", 0),
             "tx_dropped": self._link.counts["tx_dropped"] + b.get("tx_dropped", 0),
@@ -288,7 +276,7 @@ class Daemon:
         ``frames`` (total, rejected by reason, lost, foreign, pairing; since the start,
         a checkpoint's counters aside)."""
         with self._lock:
-            return self._proc.frame_counts()
+            return self._proc.frame_counts().to_dict()
 
     def status(self) -> StatusReport:
         """The status as the next RlsStatus/RlsHealth/RlsCounters would carry it."""

@@ -1,12 +1,9 @@
 """The recording of every frame received (``[daemon] record``, ``canrls run --record``).
 
-Recording is not the bus: a python-can writer that fails (a full disk, ``EFBIG`` past a
-file-size limit, a file system gone read-only) used to raise in the bus reader's
-thread, where it read as a failure of the bus: reopened some 40 times in 6 s,
-publications paused, frames lost, and ``canrls run`` exiting 3 when closing the
-writer raised again at the stop. :class:`Recorder` keeps the writer's errors to
-itself: the first is logged once and counted, the recording stops there (the file
-keeps what was written), and estimation and publication go on.
+Recording is not the bus: :class:`Recorder` keeps the python-can writer's errors (a
+full disk, ``EFBIG``, a file system gone read-only) to itself: the first is logged once
+and counted, the recording stops there (the file keeps what was written), and
+estimation and publication go on (docs/reliability.md).
 """
 
 from __future__ import annotations

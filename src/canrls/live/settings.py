@@ -25,9 +25,7 @@ FRAME_PARAMETERS = 255
 #: the bus reader's default sleep between takings [s] (:attr:`DaemonSettings.rx_s`)
 RX_INTERVAL = 0.005
 #: the receive buffer the daemon asks for on a SocketCAN socket [bytes]
-#: (:attr:`DaemonSettings.rx_buffer`): the kernel grants twice the size asked for its
-#: bookkeeping: 2,520 datagrams of a CAN frame on the development machine, 140 ms of
-#: twice a saturated 1 Mbit/s bus
+#: (:attr:`DaemonSettings.rx_buffer`; docs/daemon.md, "The receive buffer")
 RX_BUFFER = 1 << 20
 
 DAEMON_KEYS: dict[str, str] = {
@@ -135,9 +133,8 @@ class DaemonSettings:
     @property
     def block_s(self) -> float:
         """Seconds the estimator lets frames gather: ``block_interval``, by default the
-        publish interval. Each block has a fixed cost of its own (some 1 ms of CPU on
-        the development machine, the caches being cold after the wait), so blocks more
-        frequent than publications cost CPU without fresher parameter frames."""
+        publish interval (each block has a fixed cost of its own, so blocks more
+        frequent than publications cost CPU without fresher parameter frames)."""
         return self.publish_interval if self.block_interval is None else self.block_interval
 
     @property
@@ -145,9 +142,8 @@ class DaemonSettings:
         """Seconds the bus reader sleeps once it has taken every frame waiting:
         ``rx_interval``, by default :data:`RX_INTERVAL` but at most a quarter of
         :attr:`block_s` (0 with blocks after every frame: the reader wakes for each).
-        The frames wait for the block anyway, so the reader need not wake for each
-        (a fifth of the wake-ups at 1 kHz); the interface buffers them meanwhile (a
-        CAN socket's default buffer holds some 15 ms of a saturated bus)."""
+        The frames wait for the block anyway, so the reader need not wake for each;
+        the interface buffers them meanwhile."""
         if self.rx_interval is not None:
             return self.rx_interval
         return min(RX_INTERVAL, self.block_s / 4.0)

@@ -1,29 +1,11 @@
 """The simulated drive as a python-can interface: ``can.Bus(interface="canrls-sim")``.
 
-:class:`SimBus` is python-can's ``virtual`` bus with a drive on it. Frames sent by
-any bus on a channel reach every other ``canrls-sim`` *and* ``virtual`` bus on the
-same channel in this process (the channel registry is python-can's), and one
-simulated drive per channel sends its feedback frames (``DriveCurrent`` and
-``DriveSpeed`` of the default DBC, CRC and alive counter included) to all of them,
-like a real drive on a real bus. So the daemon, ``python -m can.logger``,
-``cantools monitor`` and a test's ``virtual`` bus all run against it unchanged::
-
-    with can.Bus(interface="canrls-sim", channel="standard", effects="inertia,viscous,coulomb",
-                 seed=1, faults="drop=0.01") as bus:
-        msg = bus.recv(1.0)
-
-The drive of a channel is created by the first ``SimBus`` opened on it and stopped
-when the last one shuts down. Its configuration comes from the first bus; a later
-bus on the same channel that states a different value raises
-:class:`~canrls.errors.ConfigError` (one that states nothing joins the drive).
-
-Timing: frame timestamps are ``start_time + k*dt`` (``start_time`` defaults to the
-wall clock when the drive starts). With ``realtime=True`` (default) a background
-thread delivers each frame when the wall clock reaches its timestamp; with
-``realtime=False`` there is no thread: a ``recv`` that finds its queue empty
-simulates the next few periods at once, so a reader consumes the drive as fast as
-it can (other buses on the channel receive the same frames and may fall behind).
-After ``duration`` seconds of simulated time the drive falls silent; the bus stays open.
+:class:`SimBus` is python-can's ``virtual`` bus with a drive on it: one simulated drive
+per channel sends its feedback frames (CRC and alive counter included) to every
+``canrls-sim`` and ``virtual`` bus on the channel, so the daemon, ``python -m
+can.logger``, ``cantools monitor`` and a test's ``virtual`` bus run against it
+unchanged. Channels, timing and keyword arguments: docs/simulator.md, "The python-can
+interface ``canrls-sim``".
 """
 
 from __future__ import annotations

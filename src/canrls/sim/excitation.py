@@ -1,34 +1,10 @@
-r"""Speed-reference profiles that excite the drive.
-
-Reversals, slow and fast phases, chirps, steps and PRBS.
+"""Speed-reference profiles that excite the drive: reversals, chirps, steps and PRBS.
 
 A profile maps time to the speed reference and its derivative (the acceleration the
-speed controller feeds forward)::
-
-    w_ref, a_ref = profile.reference(t)          # vectorised over t [s]
-
-Every profile is defined for all ``t >= 0``: periodic profiles repeat (``period``),
-the others hold their final value (``period is None``). Profiles compose:
-``a + b`` adds references, :class:`Sequence` plays profiles one after the other,
-``profile.scaled(k)`` scales speed and acceleration (how the rotary presets, in
-rad/s, become linear ones in m/s).
-
-Named presets (:data:`PRESETS`, selected by :func:`excitation`; rotary units, a
-linear scenario scales them):
-
-``standard``
-    the identification profile: reversals (both directions) at 0.5, 2, 10, 40 and
-    100 rad/s with 300 rad/s² ramps (slow and fast phases, 24 revolutions each way at
-    the top speed, so position-periodic effects are identifiable), a chirp 0.2 -> 15 Hz
-    of ±20 rad/s (accelerations for inertia), and a ±5 rad/s PRBS (many zero
-    crossings for Coulomb and Stribeck friction). One cycle lasts 40.75 s and repeats.
-``poor``
-    ramp to +20 rad/s and stay there: one direction, no acceleration. Viscous,
-    Coulomb and offset are collinear and inertia is not excited (for non-identifiability tests).
-``reversals``, ``slow``, ``fast``, ``chirp``, ``steps``, ``prbs``
-    the ingredients on their own.
-
-Specs like ``"reversals+prbs"`` add presets.
+speed controller feeds forward), ``w_ref, a_ref = profile.reference(t)``, for all
+``t >= 0``; profiles add (``a + b``), play in turn (:class:`Sequence`) and scale
+(``profile.scaled(k)``). The named presets (:data:`PRESETS`, :func:`excitation`):
+docs/simulator.md, "Excitation".
 """
 
 from __future__ import annotations
@@ -330,7 +306,7 @@ def chirp(amplitude: float, f0: float, f1: float, sweep_time: float,
 
 
 def standard(seed: int = 0) -> Sequence:
-    """The identification profile (see the module docstring)."""
+    """The identification profile (docs/simulator.md, "Excitation")."""
     return Sequence([
         phases([100.0, 40.0, 10.0, 2.0, 0.5], accel=300.0, holds=[1.5, 2.0, 2.0, 3.0, 3.0]),
         chirp(20.0, 0.2, 15.0, 10.0),

@@ -1,57 +1,10 @@
 """Fault injection on frame streams: drop, duplicate, reorder, corrupt, silence, and the
 hostile rest of a bus: bad counters and DLCs, clock steps, command floods, error frames.
 
-A :class:`FaultSpec` says what to inject; it parses from a short string::
-
-    drop=0.01,dup=0.005,reorder=0.01,corrupt=0.001,silence=0.5s@10s
-
-=================  ==========================================================================
-``drop=P``         each frame is lost with probability P
-``dup=P``          each frame is delivered twice (back to back) with probability P
-``reorder=P``      each frame swaps places with the next frame of the same ID with
-                   probability P (that ID's alive counter then runs backwards once)
-``corrupt=P``      one random bit of each frame's payload is flipped with probability P
-                   (CRC-8 detects every single-bit error, so the frame fails its CRC)
-``silence=D@T``    no frame at all for D seconds from T seconds after the stream's start;
-                   ``silence=D@T/E`` repeats every E seconds; the key may be given again
-                   (``silence=0.5s@10s,silence=2s@30s``) or joined with ``+``
-``counter=P``      the alive counter of an E2E-protected frame (``protected`` IDs: byte 0
-                   CRC-8, low nibble of byte 1 counter, as the default DBC) is moved by
-                   1..15 and the CRC made valid again: only the counter check can see it
-``dlc=P``          the frame's DLC is changed to another value in 0..8 (bytes beyond the
-                   new DLC read as zeros)
-``tstep=P``        the receive clock steps at this frame with probability P, by a random
-                   amount of either sign, at most ``tstep_max`` (default 0.5 s): this
-                   frame and every later one carry the shifted time (steps add up)
-``cmd=P``          after a frame, with probability P, a burst of 1..``cmd_burst`` (default
-                   16) command frames (``command_id``, default RlsCommand 0x320), each
-                   either random (an unknown command code, a DLC other than 8, or a remote
-                   frame) or valid but harmless (see :data:`HARMLESS_COMMANDS`)
-``errframe=P``     after a frame, with probability P, a bus error frame
-                   (``is_error_frame``; its ID a SocketCAN error class of
-                   :data:`ERROR_CLASSES`)
-=================  ==========================================================================
-
-The commands are chosen so that the estimates they leave behind are those of the same
-stream without them: a valid command that changes the model or the estimator state
-(reset, add or remove an effect the model has or lacks, a valid lambda) is never
-sent, and a ``freeze`` is always followed at once by its ``resume``. A soak can then
-compare the final parameters with a fault-free run (``tools/soak.py``).
-
-Probabilities are in [0, 1]; ``cmd_burst`` is a whole number >= 1. Times take ``s``,
-``ms`` or no suffix (seconds).
-``none`` or an empty string means no faults. A malformed spec is a
-:class:`~canrls.errors.ConfigError` naming the field and the value.
-
-Faults apply in this order: silence, drop, corrupt, counter, dlc, reorder, duplicate,
-tstep, then the inserted command and error frames. Each frame
-is affected by a given fault at most once; a corrupted frame that is then
-duplicated is delivered twice, corrupted. :class:`FaultInjector` applies a spec
-block after block with one ``numpy.random.default_rng(seed)`` and keeps a
-:class:`FaultLog` of what it injected, so tests can check a decoder's counters.
-Without ``tstep``, frame timestamps keep their order: reordering swaps the contents of
-two frames, not their receive times; a duplicate, an inserted command or error frame
-has the timestamp of the frame it follows.
+A :class:`FaultSpec` parses from a short string (``drop=0.01,silence=0.5s@10s``);
+:class:`FaultInjector` applies it block after block with one seeded generator and keeps
+a :class:`FaultLog` of what it injected. Every key, the order the faults apply in and
+what the decoder counts for each: docs/simulator.md, "Faults".
 """
 
 from __future__ import annotations
@@ -135,7 +88,7 @@ def _seconds(text: str, key: str, spec: str) -> float:
 
 @dataclass(frozen=True)
 class FaultSpec:
-    """What faults to inject (see the module docstring for the string syntax)."""
+    """What faults to inject (the string syntax: docs/simulator.md, "Faults")."""
 
     drop: float = 0.0
     dup: float = 0.0

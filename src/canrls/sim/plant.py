@@ -1,32 +1,10 @@
-r"""The simulated drive's physics: true parameters, load torque, controllers, sensors.
+"""The simulated drive's physics: true parameters, load torque, controllers, sensors.
 
-The plant follows the conventions of ``docs/architecture.md`` exactly (they are a
-contract shared with :mod:`canrls.estimation.effects`)::
-
-    Kt*i = J*domega/dt + B*omega + Tc*sgn_e(omega) + Ts*sgn_e(omega)*exp(-(omega/ws)^2)
-           + T0 + Tg_sin*sin(theta) + Tg_cos*cos(theta)
-           + sum_k Tk_sin*sin(k*theta) + Tk_cos*cos(k*theta)
-    u    = R*i + L*di/dt + Ke*omega                     (only with the `electrical` effect)
-
-with ``sgn_e(w) = tanh(w/e)``. On a linear axis the same equation reads in N, kg,
-m and m/s, and the "angle" of the position-periodic terms is ``2*pi*x/pitch``.
-
-One control period ``dt`` (default 1 ms) runs, in order:
-
-1. the sensors sample the continuous state at ``t_k`` (noise, then quantisation to
-   the DBC's resolution);
-2. a PI speed controller with inertia feed-forward turns the reference and the
-   measured speed into a current reference (limited to ``i_max``);
-3. with ``electrical``: a PI current controller with back-EMF feed-forward turns it
-   into the voltage ``u_k`` (limited to ``u_max``), held over ``[t_k, t_k + dt)``;
-   without it the current source is ideal: ``i = i_ref`` over the period;
-4. the state (theta, omega, i) is integrated over the period with RK4 in ``nsub``
-   sub-steps; around zero speed, where the Coulomb/Stribeck ``tanh`` makes the
-   equation stiff, a sub-step is split further so that ``h * lambda <= 2``.
-
-Sample ``k`` of every output is taken at ``t_k``; the voltage sample ``k`` is the
-voltage applied over ``[t_k, t_k + dt)`` (a zero-order hold, as the SVF assumes).
-The loop is C (``canrls._sim``, ``src/canrls/c/sim.c``).
+The plant follows the equations of ``docs/architecture.md`` exactly (a contract shared
+with :mod:`canrls.estimation.effects`); each control period samples the sensors, runs
+the speed (and with ``electrical`` the current) controller and integrates the state
+with RK4, in C (``canrls._sim``). The physics and the order of one period:
+docs/simulator.md, "Physics".
 """
 
 from __future__ import annotations

@@ -1,53 +1,12 @@
-r"""Scenarios of the simulated drive and the :func:`simulate` entry point.
+"""Scenarios of the simulated drive and the :func:`simulate` entry point.
 
-A :class:`Scenario` is everything a run needs: the true physics (:class:`Truth`),
-the excitation, the controller, the sensors, the control period, the duration,
-the seed and the faults on the frames. Build one by name::
+A :class:`Scenario` is everything a run needs: the true physics (:class:`Truth`), the
+excitation, the controller, the sensors, the control period, the duration, the seed
+and the faults on the frames; :func:`scenario` builds one by name (:data:`SCENARIOS`)::
 
-    sc = scenario("standard", effects="inertia,viscous,coulomb,cogging:24",
-                  params={"coulomb.Tc": 0.03}, seed=3, duration=30.0)
-    res = simulate(sc)
-    res.true, res.measured        # canrls.signals.Signals
-    res.truth.params              # {"inertia.J": 0.0002, ...}
-    res.noise_floor               # [N·m] (linear: N)
-    res.frames                    # FrameBlock of DriveCurrent/DriveSpeed (faults applied)
+    res = simulate(scenario("standard", effects="inertia,viscous,coulomb", seed=3))
 
-Named scenarios (:data:`SCENARIOS`):
-
-``standard``
-    a typical small servo (rotary): Kt = 0.1 N·m/A, J = 2e-4 kg·m², B = 1e-4 N·m·s/rad,
-    Tc = 0.02 N·m, Ts = 0.01 N·m (ws = 1 rad/s), T0 = 0.005 N·m, unbalance 0.008/-0.004
-    N·m, cogging:K 0.003/0.0015 N·m, R = 0.5 Ohm, L = 1.5 mH, Ke = 0.1 V·s/rad;
-    default effects ``inertia,viscous,coulomb``; ``standard`` excitation; 60 s.
-``linear``
-    a belt-driven linear axis: Kf = 20 N/A, m = 2 kg, B = 5 N·s/m, Fc = 3 N, Fs = 1.5 N
-    (vs = 0.005 m/s), F0 = 1 N, unbalance 0.8/-0.4 N and cogging 0.3/0.15 N per
-    ``pitch`` = 0.1 m, R = 2 Ohm, L = 8 mH, Ke = 20 V·s/m; the ``standard`` excitation
-    scaled by 0.005 (m/s per rad/s: top speed 0.5 m/s); Coulomb band 1e-4 m/s.
-``poor``
-    the standard drive under the ``poor`` excitation (constant speed, one direction).
-
-Every true value of the selected effects can be overridden (``params``). The
-Coulomb smoothing band of the simulated drive is tiny (1e-3 rad/s; 1e-4 m/s on the
-linear axis) so that its friction is practically a step; the estimator may use its
-own band (architecture default 0.01).
-
-Noise floor
------------
-``noise_floor`` is the RMS of the noise on the mechanical target as the estimator
-sees it: the measured current differs from the true one by white Gaussian noise
-(``current_noise``) and the quantisation to ``current_step`` (uniform, variance
-``q^2/12``), so on the torque target ``Kt*i``:
-
-.. math::
-
-    \sigma_{floor} = K_t \sqrt{\sigma_i^2 + q_i^2 / 12}
-
-in N·m (linear: N). It is white, so a linear filter with impulse response ``h``
-(the SVF) scales it by ``||h||_2``; an estimator without ``kt`` sees it divided by
-Kt. ``noise_floor_measured`` is the same RMS computed from the run
-(``Kt * rms(i_meas - i_true)``). Speed-sensor noise enters the regressors, not
-the target, and is not part of the floor.
+The scenarios, their true values and the noise floor: docs/simulator.md.
 """
 
 from __future__ import annotations
@@ -113,7 +72,7 @@ _DEFAULTS: dict[str, dict[str, float]] = {
     },
 }
 
-#: Named scenarios and their settings (see the module docstring).
+#: Named scenarios and their settings (docs/simulator.md).
 SCENARIOS: dict[str, dict[str, Any]] = {
     "standard": dict(axis="rotary", kt=0.1, pitch=1.0, coulomb_band=1e-3, stribeck_speed=1.0,
                      excitation="standard", speed_scale=1.0, duration=60.0,
@@ -411,7 +370,7 @@ class SimResult:
         ``voltage`` is None unless ``electrical`` is among the true effects.
     speed_ref, current_ref : the excitation and the speed controller's output
     truth : the :class:`Truth`; ``params`` its true parameter values
-    noise_floor : see the module docstring
+    noise_floor : see docs/simulator.md
     frames : the feedback frames (encoded on first access; faults applied)
     fault_log : what the faults did to ``frames``
     """

@@ -17,11 +17,10 @@ import dataclasses
 import math
 import os
 from collections.abc import Sequence
-from typing import Any
 
 from canrls.can.protocol import Protocol
 from canrls.estimation.pipeline import EstimatorSettings, divergence
-from canrls.processor import FitResult
+from canrls.processor import FitResult, TargetRun
 from canrls.target.model import TargetModel, build
 from canrls.target.spec import PUBLISH, TargetEstimator
 from canrls.target.vectors import log_frames
@@ -39,7 +38,7 @@ def fit_model(res: FitResult, protocol: Protocol, settings: EstimatorSettings) -
         model = model.with_scaling(cal.scaling)
         energy = {k: list(v) for k, v in cal.energy.items()}
         pending = {k: list(v) for k, v in cal.pending.items()}
-    period = float((res.extra.get("period") or {}).get("value") or protocol.period or 1e-3)
+    period = float(res.period.value or protocol.period or 1e-3)
     return build(model, protocol, settings, period, energy=energy, pending=pending,
                  source="canrls fit")
 
@@ -48,8 +47,8 @@ def target_fixed(res: FitResult, paths: Sequence[str | os.PathLike[str]],
                  protocol: Protocol, settings: EstimatorSettings) -> FitResult:
     """``res`` with every parameter's ``fixed`` from the target's integer path over the
     frames of ``paths``; each equation's ``divergence`` and ``saturations`` are then the
-    target's, and ``extra["fixed"]`` says what it ran (samples, updates, rescales, the
-    frames it rejected or dropped and why).
+    target's, and ``fixed`` (a :class:`~canrls.processor.TargetRun`) says what it ran
+    (samples, updates, rescales, the frames it rejected or dropped and why).
 
     :raises canrls.target.model.TargetError: the model cannot run on the target (a user
         term).
@@ -75,10 +74,8 @@ def target_fixed(res: FitResult, paths: Sequence[str | os.PathLike[str]],
         fits.append(dataclasses.replace(fit, divergence=div,
                                         saturations=es.rls.saturations.nonzero()))
     estimates = dataclasses.replace(res.estimates, parameters=params, equations=tuple(fits))
-    info: dict[str, Any] = {
-        "path": "target", "samples": est.samples,
-        "updates": {es.spec.name: es.updates for es in est.eqs},
-        "rescales": {es.spec.name: es.rescales for es in est.eqs},
-        "rejected": {k: v for k, v in est.rejects.items() if v},
-    }
-    return dataclasses.replace(res, estimates=estimates, extra={**res.extra, "fixed": info})
+    info = TargetRun(samples=est.samples,
+                     updates={es.spec.name: es.updates for es in est.eqs},
+                     rescales={es.spec.name: es.rescales for es in est.eqs},
+                     rejected={k: v for k, v in est.rejects.items() if v})
+    return dataclasses.replace(res, estimates=estimates, fixed=info)

@@ -35,15 +35,16 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can.protocol import Protocol
-from canrls.estimation.physics import Implausible, check_physics, describe
 from canrls.diagnosis.figures import figures_in
 from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
 from canrls.diagnosis.results import Binned, Region, Traces, share_text
 from canrls.diagnosis.samples import RecordSamples
 from canrls.errors import ConfigError, EstimatorError
+from canrls.estimation.physics import Implausible, check_physics, describe
 from canrls.files import atomic_writer
 from canrls.modelfile import SavedModel
+from canrls.processor import FrameCounts, PeriodInfo, StartInfo
 from canrls.replay import read_logs
 from canrls.signals import ROLES, Signals
 
@@ -105,7 +106,10 @@ class ValidationReport:
     identified_on: tuple[str, ...]
     parameters: dict[str, dict[str, Any]]
     equations: tuple[EquationValidation, ...]
-    frames: dict[str, Any] = field(default_factory=dict)
+    #: the frames of the logs, their period and start
+    frames: FrameCounts | None = None
+    period: PeriodInfo | None = None
+    start: StartInfo | None = None
     #: saved parameters physics rules out (:func:`canrls.estimation.physics.check_physics`)
     implausible: tuple[Implausible, ...] = ()
 
@@ -123,7 +127,8 @@ class ValidationReport:
                 "parameters": self.parameters,
                 "fit_percent": _num(self.fit_percent), "residual_rms": _num(self.residual_rms),
                 "equations": {e.equation: e.to_dict() for e in self.equations},
-                "frames": self.frames,
+                "frames": {} if self.frames is None else self.frames.to_dict(True, self.period,
+                                                                             self.start),
                 "implausible": [i.to_dict() for i in self.implausible]}
 
     def format(self) -> str:
@@ -183,7 +188,8 @@ def _fit(r: F64, y: F64) -> tuple[float, float, float]:
 
 def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
                      sizes: Sequence[int] = (), sources: Sequence[str] = (),
-                     model_file: str = "<model>", frames: dict[str, Any] | None = None
+                     model_file: str = "<model>", frames: FrameCounts | None = None,
+                     period: PeriodInfo | None = None, start: StartInfo | None = None
                      ) -> ValidationReport:
     """Predict ``signals`` with ``saved`` (no estimation); ``sizes``/``sources`` split
     the record into its files for the per-file fit."""
@@ -253,7 +259,7 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
             traces=traces, bins=bins, bounds=tuple(int(b) for b in bounds)))
     return ValidationReport(model_file=model_file, sources=tuple(names),
                             identified_on=tuple(saved.sources), parameters=saved.parameters,
-                            equations=tuple(out), frames=dict(frames or {}),
+                            equations=tuple(out), frames=frames, period=period, start=start,
                             implausible=saved_physics(saved))
 
 
@@ -288,7 +294,7 @@ def validate_logs(paths: Sequence[str | os.PathLike[str]], saved: SavedModel,
                     chunk_size=chunk_size, skip_bad_lines=skip_bad_lines)
     return validate_signals(log.signals, saved, log.dt, sizes=log.sizes,
                             sources=[str(p) for p in paths], model_file=model_file,
-                            frames=log.frames)
+                            frames=log.frames, period=log.period, start=log.start)
 
 
 # ------------------------------------------------------------------------------ HTML
