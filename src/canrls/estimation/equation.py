@@ -428,7 +428,7 @@ class RegressorBuilder:
         return cov
 
     def process(self, signals: Any) -> RegressorBlock:
-        """Regressors of one block (see the module docstring)."""
+        """Regressors of one block (docs/effects.md, *Regressors*)."""
         phi, y, t, nonfinite = self.regressors(signals)
         return RegressorBlock(phi=phi, y=y, t=t, nonfinite=nonfinite)
 

@@ -1,114 +1,20 @@
 r"""The fixed-point recursive least squares as specified, and its independent reference (private).
 
-:class:`canrls.estimation.fixed.FixedRLS` owns the state, validates every argument and derives
-the integer constants of the kernel (the *plan*, an ``int64`` vector indexed by the
-``I_*`` constants of :mod:`canrls.estimation.fixed_layout`) from its
-:class:`~canrls.estimation.fixed.FixedConfig`. This module states the recursion that runs on
-them, in place, on preallocated ``int64`` arrays: the bit-exact specification of the
-embedded kernel, every operation one a 32-bit microcontroller or DSP performs with the
-same result. Two implementations of it:
+:class:`canrls.estimation.fixed.FixedRLS` owns the state, validates every argument and
+derives the integer constants of the kernel (the *plan*, an ``int64`` vector indexed by
+the ``I_*`` constants of :mod:`canrls.estimation.fixed_layout`). This module states the
+recursion that runs on them, in place, on preallocated ``int64`` arrays, twice:
 
 * :func:`fixed_block` (and the Q primitives :func:`round_shift`, :func:`saturate`,
   :func:`store`, :func:`sat_mul`, :func:`sat_add`, :func:`div_trunc`): the specification
   compiled for the host (C, ``canrls._fixedspec``, ``src/canrls/c/fixed_spec.c``), every
-  update form and any ``n``. ``FixedRLS`` runs it where the target's kernel
-  (``canrls._fixed``: symmetric form, ``n <= CANRLS_N_MAX``) does not apply, and on request
-  (``backend = "spec"``);
+  update form and any ``n``;
 * :func:`reference_block`: the same recursion in plain Python integers, written
   independently (unbounded integers, floor division instead of shifts, no shared
   helpers) and slow; the tests hold both compiled kernels to it, integer for integer.
 
-Integer operations (all on ``int64``, no floating point anywhere)
-----------------------------------------------------------------
-* **product**: ``a * b`` of two words (at most 32 bits each), exact: the
-  multiplier's double-width output.
-* **rounding right shift** ``rsh(x, s)``: round half up,
-  ``(x + (1 << (s-1))) >> s`` with an arithmetic (floor) shift, as a DSP does with
-  its rounding constant.
-* **store to a word**: after the rounding shift the value is clamped to the word
-  ``[lo, hi]``; every clamp increments the counter of its site. A negative output
-  shift (a store to a *finer* format) is a left shift that saturates before
-  shifting, so it cannot wrap either.
-* **single product to a word** (``K``, ``g c``, ...): the exact product is
-  rounded once to the destination's scale and stored with saturation. ``theta`` and
-  ``P`` are held in 64 bits, a word and a fraction below it in units of ``2^-32`` LSB,
-  so that updates smaller than the LSB accumulate instead of rounding to 0: ``K_i eps``
-  is added to ``theta * 2**32 + theta_frac`` floored at ``2^-32`` LSB (from the high
-  word of the product when the shift is 32 or more); ``K_i h_j`` is subtracted from
-  :math:`V = \tilde P_{ij} 2^{32}` as ``K_i h_j 2^(32-s)`` for a shift ``s < 32`` and
-  as the product's high word rounded half up, ``rsh(K_i h_j, 32) 2^(64-s)``, for
-  ``s >= 32``. ``P``'s word is ``rsh(V, 32)`` (:math:`\tilde P` rounded half up: what
-  ``h``, the trace and the block exponent read) and its fraction ``V - word 2^32``
-  lies in :math:`[-2^{31}, 2^{31})`. Both saturate at their word.
-* **multiply-accumulate** (``eps``, ``h``, ``phi' h``): sums of up to ``n`` products
-  live in an accumulator of ``acc_bits``. It never overflows, by construction: the
-  regressor operand is pre-shifted right (rounded) by the plan's guard shift
-  ``ps`` so that ``n`` products at the largest magnitudes their words can hold, plus
-  the additive term and the final rounding constant, stay below
-  ``2**(acc_bits-1)`` for *every* input (the guard-bit argument of
-  :mod:`canrls.estimation.fixed`). The ``acc`` saturation counter therefore stays 0; the
-  pure-Python reference :func:`reference_block` asserts every accumulator value.
-* **division**: exactly one per update, ``g = DIVIDEND // d`` with a dividend of
-  ``acc_bits`` (``1 << (frac_g + frac_d)``) and a positive word divisor: C's
-  truncating division (operands are positive, so floor and truncation agree; a
-  non-positive divisor, possible only when :math:`P` has lost positive definiteness,
-  gives ``g = hi`` and counts ``div``).
-
-Scaled P (block exponent and forgetting scale)
-----------------------------------------------
-:math:`P` shrinks by orders of magnitude from :math:`P_0 = I/\alpha` as data arrive,
-and grows by :math:`1/\lambda` per step in directions without data. It is stored as
-
-.. math::
-
-    P = c\,\tilde P\,2^{-(f_P + e)}, \qquad \tfrac12 < c \le 1, \quad e \ge 0
-
-with integer words :math:`\tilde P`, a block exponent ``e`` and a forgetting scale
-``c`` (a ``lam``-format word). :math:`h = P\varphi` and :math:`K` carry the same
-exponent ``e``.
-
-* Forgetting multiplies ``c`` by :math:`1/\lambda` (one product per step) instead
-  of every word of :math:`P`; when ``c`` exceeds 1 it is halved and ``e`` lowered
-  (the words do not move), or, at ``e = 0``, folded into the 64-bit values
-  (:math:`V \leftarrow \mathrm{rsh}(V c)`, ``c = 1``).
-* After each update, when the trace of the words has fallen to a quarter of the
-  positive word range or below, the 64-bit values are shifted left (exactly) and ``e``
-  raised, so the trace sits in ``(range/4, range/2]``.
-
-Every use of ``e`` is a shift, so this is still integer arithmetic; it keeps about
-``word_bits - 3`` significant bits on :math:`\mathrm{tr}P` however small :math:`P`
-becomes, and costs one product per step for forgetting.
-
-Saturation sites
-----------------
-``SITES`` lists the counters in the order of the ``counts`` array: inputs
-(``phi_in``, ``y_in``), then every store: ``eps``, ``h`` (:math:`\tilde P\varphi` and,
-in the literal form, :math:`\tilde P^\top\varphi`), ``den`` (:math:`\varphi^\top\tilde
-P\varphi` and :math:`d`), ``div`` (the quotient and :math:`g c`), ``K``, ``theta``,
-``P`` (including ``c``), and ``acc`` (always 0, see above).
-
-Per sample
-----------
-.. math::
-
-    \varepsilon &= y - \varphi^\top\theta \\
-    \tilde h &= \tilde P\varphi \text{ (the words)}, \quad d = \lambda_k +
-        c\,\varphi^\top\tilde h, \quad g = 1/d \text{ (normalised by } 2^{k_g}
-        \text{ when } d \ge 2) \\
-    K &= (g c)\,\tilde h \qquad (= P\varphi/(\lambda_k + \varphi^\top P\varphi);
-        \text{the high word of } (\tilde h\,2^k)(g c\,2^{g_{up}})) \\
-    \theta &\leftarrow \theta + K\varepsilon \qquad\text{(the 64-bit estimate
-        } \theta\,2^{32} + \theta_{frac}\text{, } K\varepsilon \text{ floored to } 2^{-32}
-        \text{ LSB)} \\
-    \tilde P &\leftarrow \tilde P - K\tilde h^\top \quad\text{(upper triangle only, in 64
-        bits)}, \qquad c \leftarrow c/\lambda_k
-
-which is :math:`P \leftarrow (P - g\,hh^\top)/\lambda_k` with :math:`h = c\tilde h`.
-:math:`\lambda_k = 1` instead of :math:`\lambda` when the trace the step would give,
-:math:`(\mathrm{tr}P - g\,h^\top h)/\lambda`, exceeds ``trace_max`` (flag ``WINDUP``),
-the rule of :mod:`canrls.estimation.rls`. To keep a single division it is decided before
-dividing, from the equivalent division-free test
-:math:`(\mathrm{tr}P - \lambda\,\mathrm{trace\_max})\,(\lambda + \varphi^\top P\varphi) > h^\top h`.
+The integer operations, the scaled covariance, the saturation sites and the step per
+sample are in docs/fixed_point.md, *The specification in detail*.
 """
 
 from __future__ import annotations
@@ -247,7 +153,7 @@ def fixed_block(
         The fraction of each estimate below its LSB, in units of :math:`2^{-32}` LSB
         (``0 <= theta_frac < 2**32``), updated in place: the estimate is the 64-bit
         ``theta * 2**32 + theta_frac``, of which ``theta`` is the published word
-        (module docstring, *The estimate in 64 bits*).
+        (docs/fixed_point.md, *The estimate in 64 bits*).
     P : ndarray of int64, shape (n, n)
         The words :math:`\tilde P`, updated in place. ``MODE_SYMMETRIC`` reads and
         writes the upper triangle only (the lower one is never touched).
@@ -255,9 +161,9 @@ def fixed_block(
         The fraction of each word of ``P`` in units of :math:`2^{-32}` LSB, in
         :math:`[-2^{31}, 2^{31})`, updated in place (the same triangle): :math:`\tilde P`
         is the 64-bit ``P * 2**32 + P_frac``, of which ``P`` is the word rounded half up
-        (module docstring, *The covariance in 64 bits*).
+        (docs/fixed_point.md, *The estimate and the covariance in 64 bits*).
     scale : ndarray of int64, shape (2,)
-        ``[e, c]``: block exponent and forgetting scale (module docstring),
+        ``[e, c]``: block exponent and forgetting scale (docs/fixed_point.md, *Scaled P*),
         updated in place.
     work : ndarray of int64, shape (6, n)
         Scratch rows: ``phi`` (saturated input), ``phi >> ps`` (the guard shift),

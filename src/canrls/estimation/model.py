@@ -546,7 +546,7 @@ class Model:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], *, source: str = "<dict>",
                   available_signals: Iterable[str] | None = None) -> Model:
-        """Build from the contents of a ``[model]`` table (see the module docstring)."""
+        """Build from the contents of a ``[model]`` table (docs/effects.md, *Configuration*)."""
         if not isinstance(d, Mapping):
             raise ConfigError(_fmt(source, "model", d, "must be a table"))
         for k in d:
