@@ -16,19 +16,8 @@ import numpy.typing as npt
 from canrls import _kernels
 from canrls.effect_names import EquationId
 from canrls.errors import ConfigError, SignalError
-from canrls.estimation.effects import (
-    ELECTRICAL,
-    Column,
-    Effect,
-    Frame,
-    ParameterSpec,
-    target_unit,
-)
-from canrls.estimation.svf import (
-    SVF,
-    gain_bounds,
-    impulse_response,
-)
+from canrls.estimation.effects import ELECTRICAL, Column, Effect, Frame, ParameterSpec, target_unit
+from canrls.estimation.svf import SVF, gain_bounds, impulse_response
 
 if TYPE_CHECKING:
     from canrls.estimation.model import Model
