@@ -1,111 +1,15 @@
 r"""Fixed-point recursive least squares: the bit-exact specification of the embedded kernel.
 
 :class:`FixedRLS` runs the recursion of :class:`canrls.estimation.rls.RLS` the way a
-microcontroller runs it: integers end to end, every quantity in a signed Q format
-chosen from the ranges of the problem, explicit rounding, saturation with a counter
-on every store, one integer division per update. The kernel
-(:func:`canrls.estimation.fixed_kernels.fixed_block`) is pure ``int64`` arithmetic with explicit
-shifts, so the same inputs give the same integers on every platform, and per-sample
-:meth:`FixedRLS.update` and block :meth:`FixedRLS.run` give the same bits.
-
-.. math::
-
-    \varepsilon &= y - \varphi^\top\theta \\
-    h &= P\varphi, \qquad g = 1/(\lambda + \varphi^\top h) \\
-    K &= g\,h \\
-    \theta &\leftarrow \theta + K\varepsilon
-        \qquad\text{(64 bits: the word and a fraction, below)} \\
-    P &\leftarrow (P - K h^\top)/\lambda
-    \qquad\text{upper triangle only;}\quad P_0 = I/\alpha
-
-Inputs are the pipeline's normalised regressors: every column and the target are
-scaled by exact powers of two so that :math:`|\varphi_j| \le 1`, :math:`|y| \le 1`
-nominally; ``alpha`` is in the same units.
-
-Scaled P
---------
-:math:`P` falls by many orders of magnitude from :math:`P_0 = I/\alpha` once data
-arrive (and rises by :math:`1/\lambda` per step where they do not), far more than a
-fixed Q format resolves. It is therefore held as :math:`P = c\,\tilde P\,2^{-(f_P +
-e)}`: words :math:`\tilde P` in the ``P`` format, an integer block exponent
-``e >= 0`` and a forgetting scale :math:`1/2 < c \le 1` (a ``lam`` word).
-Forgetting multiplies ``c`` by :math:`1/\lambda` (one product per step, not one per
-element); ``c > 1`` trades a factor 2 with ``e``, or at ``e = 0`` is folded into the
-words. When :math:`\mathrm{tr}\tilde P` falls to a quarter of the word range the
-words shift left and ``e`` rises. :math:`h = \tilde P\varphi` and ``K`` carry the
-same ``e``, removed by shifts where they meet ``theta`` and ``den``. All of it is
-integer arithmetic; it keeps about ``word_bits - 3`` significant bits on
-:math:`\mathrm{tr}P` for any :math:`\alpha` and run length (without it, 32-bit
-words lose the small eigenvalues of :math:`P` at :math:`\alpha = 10^{-3}`,
-:math:`\lambda < 1`, and stall with :math:`\lambda = 1` once :math:`g h_i^2` falls
-below half an LSB). The ``P`` format is the one at ``e = 0``.
-
-Rounding and saturation
------------------------
-Every product of two words is exact (at most 32 x 32 bits: the multiplier's
-double-width result). A value is brought to a coarser scale by a *rounding right
-shift*: round half up, by adding ``1 << (s-1)`` before the arithmetic right shift, as
-a DSP does with its rounding constant (bias +1/2 LSB only on exact ties). It is
-then clamped to its word, and each clamp increments the counter of its site
-(:data:`SITES`): ``phi_in``, ``y_in`` (inputs outside their word), ``eps``, ``h``,
-``den``, ``div``, ``K``, ``theta``, ``P``. Nothing ever wraps. A single product
-(``theta``, ``P`` updates) is rounded once to its destination and added with
-saturation, e.g. :math:`\tilde P_{ij} \leftarrow \mathrm{sat}(\tilde P_{ij} -
-\mathrm{rsh}(K_i \tilde h_j))`. The gain is *normalised*: once per step
-:math:`\tilde h` and :math:`\varepsilon` are shifted left, exactly, to 31 bits (shifts
-``k`` and ``ke``, bounded so that no later shift exceeds 62) and :math:`K` is the high
-word of :math:`(\tilde h\,2^k)(g c\,2^{g_{up}})`, rounded half up: it cannot saturate
-(its counter stays 0), its scale moves with ``k``, and the ``theta`` and ``P`` updates
-shift by ``theta_s + e + k + ke`` and ``P_s + e + 2k``, at least 32 in the steady
-state, so that the target takes the high word of each product (docs/fixed_point.md).
-The ``K`` format of :class:`FixedConfig` no longer enters the arithmetic.
-
-The estimate and the covariance in 64 bits
-------------------------------------------
-:math:`\theta` is the word ``theta`` (the ``theta`` format, published and used in
-:math:`\varepsilon`) and below it a fraction word ``theta_frac``, :math:`0 \le`
-``theta_frac`` :math:`< 2^{32}`, in units of :math:`2^{-32}` LSB: the estimate is the
-64-bit ``theta * 2**32 + theta_frac``. The update :math:`K\varepsilon` is added to it at
-:math:`2^{-32}` LSB, floored (from the high word of its product when its shift is 32
-or more, which the target's ``SMULL`` gives), and the sum saturated to the ``theta``
-word: with :math:`\lambda = 1` the gain falls like :math:`1/N` and :math:`K\varepsilon`
-becomes a fraction of an LSB, which a word rounded every step would lose.
-
-Each element of :math:`\tilde P` likewise has a fraction ``P_frac`` below its word:
-:math:`V = \tilde P\,2^{32}` is held as the word ``rsh(V, 32)`` (rounded half up, what
-:math:`h`, the trace and the block exponent read) and the fraction
-:math:`V - \mathrm{word}\,2^{32} \in [-2^{31}, 2^{31})` (:data:`P_FRAC_RANGE`), so that a
-direction of :math:`P` far below its trace keeps its bits. The C kernel holds each pair
-as one 8-byte value (``canrls_theta64``, ``canrls_P64``), loaded and stored at once on the
-Cortex-M4. Figures: docs/fixed_point.md and docs/hsm150.md.
-
-Trace bound and flags
----------------------
-Like :class:`canrls.estimation.rls.RLS`: a step that would take :math:`\mathrm{tr}P` above
-``trace_max`` is taken with :math:`\lambda = 1` (no forgetting; flag ``WINDUP``).
-Decided before the division with the equivalent division-free test
-:math:`(\mathrm{tr}P - \lambda\,\mathrm{trace\_max})(\lambda+\varphi^\top P\varphi) >
-|P\varphi|^2`, so there is still one division. ``trace_max=None`` means
-:math:`n/\alpha`, the prior's trace. ``LOW_EXCITATION`` is set by the kernel when
-the sample's information :math:`K_i h_i` rounds to zero on the whole diagonal of
-:math:`\tilde P` (the sample changed nothing the words can hold). ``SATURATION``
-when any counter moved during the step, ``FROZEN`` after :meth:`FixedRLS.freeze`.
-
-Update forms
-------------
-``update="symmetric"`` (default) is the embedded form: upper triangle only, so
-:math:`P` is symmetric by construction at half the work. ``"literal"`` is the
-textbook full-matrix :math:`P - K(\varphi^\top P)` with :math:`\varphi^\top P`
-computed as written (as :mod:`canrls.estimation.rls` does); its rounding loses symmetry, but
-its error propagates like the symmetric form's (to first order
-:math:`\delta P \mapsto (I - K\varphi^\top)\,\delta P\,(I - \varphi K^\top)/\lambda`
-for any :math:`\delta P`), so it stays close while costing twice the work.
-``"naive"`` is the full-matrix update with :math:`\varphi^\top P` taken as
-:math:`(P\varphi)^\top`, as embedded code often writes it: there the antisymmetric
-part of the rounding error is not damped at all, :math:`A \mapsto A/\lambda`, so it
-grows as :math:`\lambda^{-k}` and the estimator diverges within a few thousand
-samples for any :math:`\lambda < 1` (``tests/test_fixed.py``). Both are kept only
-for comparison.
+microcontroller runs it: integers end to end, every quantity in a signed Q format chosen
+from the ranges of the problem, explicit rounding, saturation with a counter on every
+store, one integer division per update. The kernel
+(:func:`canrls.estimation.fixed_kernels.fixed_block`) is pure ``int64`` arithmetic, so the
+same inputs give the same integers on every platform, and per-sample
+:meth:`FixedRLS.update` and block :meth:`FixedRLS.run` give the same bits. The scaled
+covariance, the rounding and saturation rules, the estimate and covariance in 64 bits,
+the trace bound, the flags and the update forms are in docs/fixed_point.md, *The
+specification in detail*.
 
 The Q formats and the configuration are in :mod:`canrls.estimation.fixed_formats`,
 the plan of shifts in :mod:`canrls.estimation.fixed_plan`, the result objects in
@@ -230,7 +134,7 @@ class FixedRLS:
     update : {"symmetric", "literal", "naive"}, default "symmetric"
         ``"literal"``: full-matrix :math:`P - K\varphi^\top P`; ``"naive"``: full
         matrix with :math:`\varphi^\top P` taken as :math:`(P\varphi)^\top`. Both for
-        comparison only (module docstring, *Update forms*).
+        comparison only (docs/fixed_point.md, *Update forms*).
 
     Raises
     ------
@@ -390,7 +294,7 @@ class FixedRLS:
 
         The estimate is the 64-bit ``theta * 2**32 + theta_frac``; the kernel publishes
         and predicts with the word :attr:`theta` and accumulates the updates below its
-        LSB here (module docstring, *Rounding and saturation*).
+        LSB here (docs/fixed_point.md, *Rounding and saturation*).
         """
         v = self._theta_frac.view()
         v.flags.writeable = False

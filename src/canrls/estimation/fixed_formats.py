@@ -1,63 +1,10 @@
-r"""Q formats, the configuration and the saturation counters of the fixed-point RLS.
+"""Q formats, the configuration and the saturation counters of the fixed-point RLS.
 
 :class:`QFormat` is one signed word, :class:`FixedConfig` the word lengths and the
 format of every quantity of :class:`canrls.estimation.fixed.FixedRLS`,
 :class:`SaturationCounts` its counters; the rounding of float inputs runs in the C
-extension ``canrls._fixed``.
-
-Q formats
----------
-``QFormat(bits, frac)`` is a signed two's-complement word of ``bits`` bits whose
-integer ``q`` stands for ``q * 2**-frac``; ``Q{m}.{frac}`` in the usual notation with
-``m = bits - 1 - frac`` integer bits besides the sign. :meth:`FixedConfig.auto`
-gives every quantity the smallest number of integer bits that holds its bound
-(:meth:`QFormat.for_range`: :math:`2^m >` bound) and all the remaining bits to the
-fraction. The bounds (``n`` parameters, :math:`\bar\varphi_j` = ``phi_max``,
-:math:`\|\bar\varphi\|_2` their Euclidean norm, :math:`\bar P_h` half the range of
-the ``P`` format, the largest :math:`\mathrm{tr}\tilde P` the block exponent allows)
-are:
-
-==========  =======================================================================
-quantity    bound and reason
-==========  =======================================================================
-``phi``     ``max(phi_max)`` (one format for all columns, as one MAC loop needs)
-``y``       ``y_max``
-``P``       :math:`\bar P = 1/\alpha` for :math:`\lambda = 1` (:math:`P \preceq P_0`:
-            information only accumulates); otherwise
-            :math:`\max(n/\alpha, \mathrm{trace\_max})`: the trace bound caps
-            :math:`\mathrm{tr}P`, and every :math:`|P_{ij}| \le \lambda_{max}(P)
-            \le \mathrm{tr}P` for a positive semi-definite :math:`P`
-``h``       :math:`\max(\bar P, \bar P_h)\,\|\bar\varphi\|_2` (Cauchy-Schwarz in the
-            :math:`P` inner product: :math:`|h_i| \le \sqrt{P_{ii}}\sqrt{\varphi^\top
-            P\varphi} \le \lambda_{max}(P)\|\varphi\|_2`)
-``den``     :math:`1 + \max(\bar P, \bar P_h)\,\|\bar\varphi\|_2^2`
-            (:math:`\lambda + \varphi^\top P\varphi`)
-``g``       :math:`1/\lambda < 2` (:math:`\varphi^\top P\varphi \ge 0`), ``Q1``; its
-            fraction is limited so that the dividend ``1 << (frac_g + frac_den)``
-            fits the accumulator (with a narrow accumulator the fractions of ``g`` and
-            ``den`` are balanced for equal relative precision)
-``K``       :math:`\max\big(\min(\sqrt{\bar P}/(2\sqrt\lambda),\ \bar P\|\bar\varphi\|_2/\lambda),\
-            \bar P_h\|\bar\varphi\|_2/\lambda\big)`: at ``e = 0``,
-            :math:`|K_i| \le \sqrt{P_{ii}}\sqrt{s}/(\lambda+s) \le \sqrt{P_{ii}}/(2\sqrt\lambda)`
-            (:math:`s = \varphi^\top P\varphi`); once scaled by :math:`2^e`, ``K``
-            grows with :math:`P` again, :math:`|K_i| \le |h_i|/\lambda`
-``theta``   ``theta_max``, default :math:`4\,y_{max}/\min_j\bar\varphi_j`: with
-            normalised columns each term :math:`\theta_j\varphi_j` is of the size of
-            the target, :math:`|\theta_j| \lesssim y_{max}/\bar\varphi_j`; two more
-            bits leave room for terms that partly cancel and for the start-up
-            transient. Pass the real range when known.
-``eps``     :math:`4\,y_{max}`: the a-priori error starts at :math:`y`
-            (:math:`\theta_0 = 0`) and shrinks to the noise; a larger error during a
-            transient is clipped (counted), which only limits that one correction,
-            like a robust (Huber) RLS
-``lam``     :math:`\lambda \le 1`, :math:`1/\lambda < 2` and the forgetting scale
-            :math:`c \le 1`: ``Q1.(bits-2)`` (requires :math:`\lambda > 1/2`; typical
-            :math:`[0.98, 1]`)
-==========  =======================================================================
-
-``phi`` and ``y`` use ``input_bits``, everything else ``word_bits``. Any format can be
-overridden: ``FixedConfig.auto(..., P=QFormat(32, 24))`` or
-``dataclasses.replace(config, P=...)``; a saturation then shows in the counters.
+extension ``canrls._fixed``. The bound behind each automatic format
+(:meth:`FixedConfig.auto`) is in docs/fixed_point.md, *The Q formats*.
 """
 
 from __future__ import annotations
@@ -349,7 +296,8 @@ class FixedConfig:
         trace_max: float | None = None,
         **overrides: QFormat,
     ) -> FixedConfig:
-        r"""Choose every Q format from the ranges of the problem (module docstring table).
+        r"""Choose every Q format from the ranges of the problem (docs/fixed_point.md,
+        *The Q formats*).
 
         Parameters
         ----------

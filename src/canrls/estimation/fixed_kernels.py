@@ -1,114 +1,20 @@
 r"""The fixed-point recursive least squares as specified, and its independent reference (private).
 
-:class:`canrls.estimation.fixed.FixedRLS` owns the state, validates every argument and derives
-the integer constants of the kernel (the *plan*, an ``int64`` vector indexed by the
-``I_*`` constants of :mod:`canrls.estimation.fixed_layout`) from its
-:class:`~canrls.estimation.fixed.FixedConfig`. This module states the recursion that runs on
-them, in place, on preallocated ``int64`` arrays: the bit-exact specification of the
-embedded kernel, every operation one a 32-bit microcontroller or DSP performs with the
-same result. Two implementations of it:
+:class:`canrls.estimation.fixed.FixedRLS` owns the state, validates every argument and
+derives the integer constants of the kernel (the *plan*, an ``int64`` vector indexed by
+the ``I_*`` constants of :mod:`canrls.estimation.fixed_layout`). This module states the
+recursion that runs on them, in place, on preallocated ``int64`` arrays, twice:
 
 * :func:`fixed_block` (and the Q primitives :func:`round_shift`, :func:`saturate`,
   :func:`store`, :func:`sat_mul`, :func:`sat_add`, :func:`div_trunc`): the specification
   compiled for the host (C, ``canrls._fixedspec``, ``src/canrls/c/fixed_spec.c``), every
-  update form and any ``n``. ``FixedRLS`` runs it where the target's kernel
-  (``canrls._fixed``: symmetric form, ``n <= CANRLS_N_MAX``) does not apply, and on request
-  (``backend = "spec"``);
+  update form and any ``n``;
 * :func:`reference_block`: the same recursion in plain Python integers, written
   independently (unbounded integers, floor division instead of shifts, no shared
   helpers) and slow; the tests hold both compiled kernels to it, integer for integer.
 
-Integer operations (all on ``int64``, no floating point anywhere)
-----------------------------------------------------------------
-* **product**: ``a * b`` of two words (at most 32 bits each), exact: the
-  multiplier's double-width output.
-* **rounding right shift** ``rsh(x, s)``: round half up,
-  ``(x + (1 << (s-1))) >> s`` with an arithmetic (floor) shift, as a DSP does with
-  its rounding constant.
-* **store to a word**: after the rounding shift the value is clamped to the word
-  ``[lo, hi]``; every clamp increments the counter of its site. A negative output
-  shift (a store to a *finer* format) is a left shift that saturates before
-  shifting, so it cannot wrap either.
-* **single product to a word** (``K``, ``g c``, ...): the exact product is
-  rounded once to the destination's scale and stored with saturation. ``theta`` and
-  ``P`` are held in 64 bits, a word and a fraction below it in units of ``2^-32`` LSB,
-  so that updates smaller than the LSB accumulate instead of rounding to 0: ``K_i eps``
-  is added to ``theta * 2**32 + theta_frac`` floored at ``2^-32`` LSB (from the high
-  word of the product when the shift is 32 or more); ``K_i h_j`` is subtracted from
-  :math:`V = \tilde P_{ij} 2^{32}` as ``K_i h_j 2^(32-s)`` for a shift ``s < 32`` and
-  as the product's high word rounded half up, ``rsh(K_i h_j, 32) 2^(64-s)``, for
-  ``s >= 32``. ``P``'s word is ``rsh(V, 32)`` (:math:`\tilde P` rounded half up: what
-  ``h``, the trace and the block exponent read) and its fraction ``V - word 2^32``
-  lies in :math:`[-2^{31}, 2^{31})`. Both saturate at their word.
-* **multiply-accumulate** (``eps``, ``h``, ``phi' h``): sums of up to ``n`` products
-  live in an accumulator of ``acc_bits``. It never overflows, by construction: the
-  regressor operand is pre-shifted right (rounded) by the plan's guard shift
-  ``ps`` so that ``n`` products at the largest magnitudes their words can hold, plus
-  the additive term and the final rounding constant, stay below
-  ``2**(acc_bits-1)`` for *every* input (the guard-bit argument of
-  :mod:`canrls.estimation.fixed`). The ``acc`` saturation counter therefore stays 0; the
-  pure-Python reference :func:`reference_block` asserts every accumulator value.
-* **division**: exactly one per update, ``g = DIVIDEND // d`` with a dividend of
-  ``acc_bits`` (``1 << (frac_g + frac_d)``) and a positive word divisor: C's
-  truncating division (operands are positive, so floor and truncation agree; a
-  non-positive divisor, possible only when :math:`P` has lost positive definiteness,
-  gives ``g = hi`` and counts ``div``).
-
-Scaled P (block exponent and forgetting scale)
-----------------------------------------------
-:math:`P` shrinks by orders of magnitude from :math:`P_0 = I/\alpha` as data arrive,
-and grows by :math:`1/\lambda` per step in directions without data. It is stored as
-
-.. math::
-
-    P = c\,\tilde P\,2^{-(f_P + e)}, \qquad \tfrac12 < c \le 1, \quad e \ge 0
-
-with integer words :math:`\tilde P`, a block exponent ``e`` and a forgetting scale
-``c`` (a ``lam``-format word). :math:`h = P\varphi` and :math:`K` carry the same
-exponent ``e``.
-
-* Forgetting multiplies ``c`` by :math:`1/\lambda` (one product per step) instead
-  of every word of :math:`P`; when ``c`` exceeds 1 it is halved and ``e`` lowered
-  (the words do not move), or, at ``e = 0``, folded into the 64-bit values
-  (:math:`V \leftarrow \mathrm{rsh}(V c)`, ``c = 1``).
-* After each update, when the trace of the words has fallen to a quarter of the
-  positive word range or below, the 64-bit values are shifted left (exactly) and ``e``
-  raised, so the trace sits in ``(range/4, range/2]``.
-
-Every use of ``e`` is a shift, so this is still integer arithmetic; it keeps about
-``word_bits - 3`` significant bits on :math:`\mathrm{tr}P` however small :math:`P`
-becomes, and costs one product per step for forgetting.
-
-Saturation sites
-----------------
-``SITES`` lists the counters in the order of the ``counts`` array: inputs
-(``phi_in``, ``y_in``), then every store: ``eps``, ``h`` (:math:`\tilde P\varphi` and,
-in the literal form, :math:`\tilde P^\top\varphi`), ``den`` (:math:`\varphi^\top\tilde
-P\varphi` and :math:`d`), ``div`` (the quotient and :math:`g c`), ``K``, ``theta``,
-``P`` (including ``c``), and ``acc`` (always 0, see above).
-
-Per sample
-----------
-.. math::
-
-    \varepsilon &= y - \varphi^\top\theta \\
-    \tilde h &= \tilde P\varphi \text{ (the words)}, \quad d = \lambda_k +
-        c\,\varphi^\top\tilde h, \quad g = 1/d \text{ (normalised by } 2^{k_g}
-        \text{ when } d \ge 2) \\
-    K &= (g c)\,\tilde h \qquad (= P\varphi/(\lambda_k + \varphi^\top P\varphi);
-        \text{the high word of } (\tilde h\,2^k)(g c\,2^{g_{up}})) \\
-    \theta &\leftarrow \theta + K\varepsilon \qquad\text{(the 64-bit estimate
-        } \theta\,2^{32} + \theta_{frac}\text{, } K\varepsilon \text{ floored to } 2^{-32}
-        \text{ LSB)} \\
-    \tilde P &\leftarrow \tilde P - K\tilde h^\top \quad\text{(upper triangle only, in 64
-        bits)}, \qquad c \leftarrow c/\lambda_k
-
-which is :math:`P \leftarrow (P - g\,hh^\top)/\lambda_k` with :math:`h = c\tilde h`.
-:math:`\lambda_k = 1` instead of :math:`\lambda` when the trace the step would give,
-:math:`(\mathrm{tr}P - g\,h^\top h)/\lambda`, exceeds ``trace_max`` (flag ``WINDUP``),
-the rule of :mod:`canrls.estimation.rls`. To keep a single division it is decided before
-dividing, from the equivalent division-free test
-:math:`(\mathrm{tr}P - \lambda\,\mathrm{trace\_max})\,(\lambda + \varphi^\top P\varphi) > h^\top h`.
+The integer operations, the scaled covariance, the saturation sites and the step per
+sample are in docs/fixed_point.md, *The specification in detail*.
 """
 
 from __future__ import annotations
@@ -247,7 +153,7 @@ def fixed_block(
         The fraction of each estimate below its LSB, in units of :math:`2^{-32}` LSB
         (``0 <= theta_frac < 2**32``), updated in place: the estimate is the 64-bit
         ``theta * 2**32 + theta_frac``, of which ``theta`` is the published word
-        (module docstring, *The estimate in 64 bits*).
+        (docs/fixed_point.md, *The estimate in 64 bits*).
     P : ndarray of int64, shape (n, n)
         The words :math:`\tilde P`, updated in place. ``MODE_SYMMETRIC`` reads and
         writes the upper triangle only (the lower one is never touched).
@@ -255,9 +161,9 @@ def fixed_block(
         The fraction of each word of ``P`` in units of :math:`2^{-32}` LSB, in
         :math:`[-2^{31}, 2^{31})`, updated in place (the same triangle): :math:`\tilde P`
         is the 64-bit ``P * 2**32 + P_frac``, of which ``P`` is the word rounded half up
-        (module docstring, *The covariance in 64 bits*).
+        (docs/fixed_point.md, *The estimate and the covariance in 64 bits*).
     scale : ndarray of int64, shape (2,)
-        ``[e, c]``: block exponent and forgetting scale (module docstring),
+        ``[e, c]``: block exponent and forgetting scale (docs/fixed_point.md, *Scaled P*),
         updated in place.
     work : ndarray of int64, shape (6, n)
         Scratch rows: ``phi`` (saturated input), ``phi >> ps`` (the guard shift),
@@ -291,7 +197,273 @@ def fixed_block(
 
 
 # ------------------------------------------------------ pure-Python reference
+class _Reference:
+    """The arithmetic and the steps of :func:`reference_block` on one state: plain Python
+    integers, every accumulator value checked against ``acc_bits``."""
+
+    def __init__(self, P: list[list[int]], P_frac: list[list[int]], counts: list[int],
+                 prm: list[int], acc_bits: int, mode: int) -> None:
+        self.P, self.Pf, self.counts, self.p, self.mode = P, P_frac, counts, prm, mode
+        self.n = len(P)
+        self.acc_bits = acc_bits
+        self.lim = 1 << (acc_bits - 1)
+        p = prm
+        # the 64-bit P: V = P~ 2^32 (units of 2^-32 LSB), held as the word rsh(V, 32) (P~
+        # rounded half up) and the fraction V - word 2^32 in [-2^31, 2^31); V's range is
+        # the word's, [lo - 1/2, hi + 1/2) LSB
+        self.V_lo = (p[I_P_LO] << 32) - (1 << 31)
+        self.V_hi = (p[I_P_HI] << 32) + (1 << 31) - 1
+
+    # -- the arithmetic
+    def chk(self, a: int) -> int:
+        # an accumulator value must fit in acc_bits (the guard-bit argument)
+        assert -self.lim <= a < self.lim, f"accumulator {a} outside {self.acc_bits} bits"
+        return a
+
+    @staticmethod
+    def mul(a: int, b: int) -> int:
+        # product of two words: exact, and within the 64-bit product register
+        assert abs(a) <= (1 << 32) and abs(b) <= (1 << 32), "operand wider than a word"
+        x = a * b
+        assert abs(x) < (1 << 63)
+        return x
+
+    @staticmethod
+    def rsh(x: int, s: int) -> int:
+        # x / 2^s rounded half up: floor(x / 2^s + 1/2)
+        assert 0 <= s <= 62
+        return (x + (1 << (s - 1))) // (1 << s) if s > 0 else x
+
+    def sat(self, x: int, lo: int, hi: int, site: int | None) -> int:
+        if x > hi or x < lo:
+            if site is not None:
+                self.counts[site] += 1
+            return hi if x > hi else lo
+        return x
+
+    def put(self, a: int, s: int, lo: int, hi: int, site: int) -> int:
+        # store an accumulator into a word: rounding half up (s > 0) or exact left shift
+        self.chk(a)
+        if s > 0:
+            self.chk(a + (1 << (s - 1)))
+            return self.sat(self.rsh(a, s), lo, hi, site)
+        return self.sat(a * (1 << -s), lo, hi, site)
+
+    def Pget(self, i: int, j: int) -> int:
+        # symmetric form: only the upper triangle exists
+        if self.mode == MODE_SYMMETRIC and i > j:
+            return self.P[j][i]
+        return self.P[i][j]
+
+    def Vget(self, i: int, j: int) -> int:
+        # V = P~ 2^32: the word and its fraction
+        return self.P[i][j] * (1 << 32) + self.Pf[i][j]
+
+    def Vput(self, i: int, j: int, v: int) -> None:
+        # V clamped to the word's range (counted), then split: word = rsh(V, 32)
+        if v > self.V_hi or v < self.V_lo:
+            self.counts[S_P] += 1
+            v = self.V_hi if v > self.V_hi else self.V_lo
+        self.P[i][j] = self.rsh(v, 32)
+        self.Pf[i][j] = v - self.P[i][j] * (1 << 32)
+
+    def stored(self) -> list[tuple[int, int]]:
+        """The ``(i, j)`` of the stored words: the upper triangle, or all (literal, naive)."""
+        n = self.n
+        return [(i, j) for i in range(n)
+                for j in range(i if self.mode == MODE_SYMMETRIC else 0, n)]
+
+    # -- the steps of one row
+    def inputs(self, row: list[int], y_raw: int) -> tuple[list[int], int]:
+        """``phi >> ps`` and ``y``, each saturated to its format (counted)."""
+        p = self.p
+        phi = [self.sat(int(x), p[I_PHI_LO], p[I_PHI_HI], S_PHI) for x in row]
+        y = self.sat(int(y_raw), p[I_Y_LO], p[I_Y_HI], S_Y)
+        return [self.rsh(x, p[I_PHI_PS]) for x in phi], y
+
+    def error(self, phg: list[int], y: int, theta: list[int]) -> int:
+        """The a-priori error in the ``eps`` format."""
+        p, chk = self.p, self.chk
+        # eps = y - phi' theta
+        a = chk(y * (1 << p[I_EPS_TS]) if p[I_EPS_TS] >= 0 else self.rsh(y, -p[I_EPS_TS]))
+        for j in range(self.n):
+            a = chk(a - self.mul(phg[j], theta[j]))
+        return self.put(a, p[I_EPS_OS], p[I_EPS_LO], p[I_EPS_HI], S_EPS)
+
+    def products(self, phg: list[int]) -> tuple[list[int], list[int]]:
+        """``h~ = P~ phi`` and ``w~ = P~' phi`` (the same vector unless literal)."""
+        p, n, chk, mul = self.p, self.n, self.chk, self.mul
+        h: list[int] = []
+        w: list[int] = []
+        for i in range(n):
+            a = 0
+            for j in range(n):
+                a = chk(a + mul(self.Pget(i, j), phg[j]))
+            h.append(self.put(a, p[I_H_OS], p[I_H_LO], p[I_H_HI], S_H))
+        if self.mode != MODE_LITERAL:
+            w = list(h)
+        else:
+            for i in range(n):
+                a = 0
+                for j in range(n):
+                    a = chk(a + mul(self.Pget(j, i), phg[j]))
+                w.append(self.put(a, p[I_H_OS], p[I_H_LO], p[I_H_HI], S_H))
+        return h, w
+
+    def denominator(self, phg: list[int], h: list[int], e: int, c: int) -> int:
+        """``s = c s~``, ``s~ = phi' h~`` at lambda's scale."""
+        p, chk, rsh = self.p, self.chk, self.rsh
+        # s~ = phi' h~ at lambda's scale ; s = c s~
+        a = 0
+        for i in range(self.n):
+            a = chk(a + self.mul(phg[i], h[i]))
+        if e > 0:
+            chk(a + (1 << (e - 1)))
+        st = self.put(rsh(a, e), p[I_S_OS], p[I_DEN_LO], p[I_DEN_HI], S_DEN)
+        return self.sat(rsh(self.mul(st, c), p[I_SC_S]), p[I_DEN_LO], p[I_DEN_HI], S_DEN)
+
+    def forgetting(self, h: list[int], w: list[int], sv: int, e: int,
+                   c: int) -> tuple[int, int]:
+        """``(lambda_k, flag)``: 1 and ``FLAG_WINDUP`` when the trace bound holds the
+        forgetting, else lambda and 0."""
+        p, n, chk, mul, rsh = self.p, self.n, self.chk, self.mul, self.rsh
+        # windup <=> (c tr P~ - lambda trace_max) (lambda + s) > h' w
+        lam_k = p[I_LAM_D]
+        flag = 0
+        if p[I_TMAX] <= (p[I_TMAX_LIM] >> e):
+            trw = 0
+            for i in range(n):
+                trw = chk(trw + rsh(self.P[i][i], p[I_TR_PS]))
+            T = chk(rsh(mul(trw, c), p[I_TC_S]) - p[I_TMAX] * (1 << e))
+            if T > 0:
+                d_lam = self.sat(lam_k + sv, p[I_DEN_LO], p[I_DEN_HI], None)
+                a_vw = 0
+                for i in range(n):
+                    hi_ = rsh(mul(h[i], c), p[I_HC_S])
+                    wi_ = rsh(mul(w[i], c), p[I_HC_S])
+                    a_vw = chk(a_vw + rsh(mul(hi_, wi_), p[I_VW_PS]))
+                lhs = chk(rsh(mul(min(T, p[I_P_HI]), d_lam), p[I_LHS_PS]))
+                df = p[I_CMP_DF] - e
+                if df >= 0:
+                    up = lhs // (1 << min(df, 63)) > a_vw
+                else:
+                    up = lhs > a_vw // (1 << min(-df, 63))
+                if up:
+                    lam_k = p[I_ONE_D]
+                    flag = FLAG_WINDUP
+        return lam_k, flag
+
+    def gain(self, lam_k: int, sv: int, e: int, c: int) -> tuple[int, int]:
+        """``(g c, kg)``: the normalised reciprocal of ``d = lambda_k + s``, scaled by c."""
+        p, sat = self.p, self.sat
+        # d = lambda_k + s ; g = 1/d (C division, both operands positive), normalised:
+        # g 2^kg = DIVIDEND 2^kg // d keeps the bits of g when d is large (kg = 0 for
+        # d < 2^KG_BL, i.e. d < 2 in the steady state)
+        d = sat(lam_k + sv, p[I_DEN_LO], p[I_DEN_HI], S_DEN)
+        kg = 0
+        if d <= 0:
+            g = p[I_G_HI]
+            self.counts[S_DIV] += 1
+        else:
+            kg = max(0, min(d.bit_length() - p[I_KG_BL], p[I_KG_MAX],
+                            62 - p[I_P_S] - e, 62 - p[I_TH_S] - e))
+            g = sat(p[I_DIVIDEND] * (1 << kg) // d, p[I_G_LO], p[I_G_HI], S_DIV)
+        gc = sat(self.rsh(self.mul(g, c), p[I_GC_S]), p[I_G_LO], p[I_G_HI], S_DIV)
+        return gc, kg
+
+    def update(self, theta: list[int], tf: list[int], h: list[int], w: list[int],
+               eps: int, gc: int, kg: int, e: int) -> int:
+        """``theta += K eps`` and ``P~ -= K w~'``; ``FLAG_LOW_EXCITATION`` when the
+        decrement of every diagonal word is zero, else 0."""
+        p, n, mul, rsh = self.p, self.n, self.mul, self.rsh
+
+        # normalisation: h~, w~ and eps shifted left to 31 bits (k, ke)
+        def norm(m: int) -> int:
+            assert 0 <= m < (1 << 31)
+            return max(30 - m.bit_length(), 0)
+
+        m = 0
+        for x in h + w:
+            m |= x if x >= 0 else -x - 1
+        e0 = e
+        k = min(norm(m), (62 - p[I_P_S] - e0 - kg) // 2, 62 - p[I_TH_S] - e0 - kg)
+        ke = min(norm(eps if eps >= 0 else -eps - 1), 62 - p[I_TH_S] - e0 - k - kg)
+        hs = [x * (1 << k) for x in h]
+        ws = [x * (1 << k) for x in w]
+        gcn = gc * (1 << p[I_G_UP])
+        assert all(-(1 << 31) <= x < (1 << 31) for x in hs + ws) and 0 <= gcn < (1 << 31)
+        # K = (g c) h~: the high word of the product, rounded half up
+        K = [rsh(mul(hs[i], gcn), 32) for i in range(n)]
+        # theta 2^32 + tf <- theta 2^32 + tf + floor(K eps 2^32)   (the 64-bit estimate)
+        for i in range(n):
+            ts = p[I_TH_S] + e + k + ke + kg
+            u = mul(K[i], eps * (1 << ke))
+            if ts >= 32:
+                u = u // (1 << 32) * (1 << 32)  # the high word of the product (s >= 32)
+            x = theta[i] * (1 << 32) + tf[i] + u * (1 << 32) // (1 << ts)
+            top = p[I_TH_HI] * (1 << 32) + (1 << 32) - 1
+            bot = p[I_TH_LO] * (1 << 32)
+            if x > top or x < bot:
+                self.counts[S_TH] += 1
+                x = top if x > top else bot
+            theta[i], tf[i] = x >> 32, x & ((1 << 32) - 1)
+        # P~ <- P~ - K w~'   (upper triangle, or the full matrix for literal), at 2^-32
+        # LSB: V -= u, u = K_i w~_j 2^(32 - ps) exactly for ps < 32, else the product's
+        # high word rounded half up, rsh(K_i w~_j, 32) 2^(64 - ps)
+        ps = p[I_P_S] + e + 2 * k + kg
+
+        def dec(x: int) -> int:
+            if ps < 32:
+                return x * (1 << (32 - ps))
+            return rsh(x, 32) * (1 << (64 - ps))
+
+        low = all(dec(mul(K[i], ws[i])) == 0 for i in range(n))
+        for i, j in self.stored():
+            self.Vput(i, j, self.Vget(i, j) - dec(mul(K[i], ws[j])))
+        return FLAG_LOW_EXCITATION if low else 0
+
+    def forget(self, e: int, c: int, windup: bool) -> tuple[int, int]:
+        """``(e, c)`` after ``c <- c / lambda_k``: a ``c`` over 1 halved (``e - 1``) or
+        folded into the words (``e = 0``)."""
+        p = self.p
+        # c <- c / lambda_k ; c > 1: halve it (e - 1) or fold it into the words (e = 0)
+        il = p[I_ONE_L] if windup else p[I_INV_LAM]
+        c = self.sat(self.rsh(self.mul(c, il), p[I_C_S]), 0, p[I_L_HI], S_P)
+        if c > p[I_ONE_L]:
+            if e > 0:
+                c = self.rsh(c, 1)
+                e -= 1
+            else:
+                # V <- rsh(V c, c_s): c folded into the 64-bit values
+                for i, j in self.stored():
+                    self.Vput(i, j, self.rsh(self.Vget(i, j) * c, p[I_C_S]))
+                c = p[I_ONE_L]
+        return e, c
+
+    def renormalise(self, e: int) -> int:
+        """The block exponent after the largest left shift keeping tr P~ <= TR_HI."""
+        p, n = self.p, self.n
+        # block exponent: the largest left shift keeping tr P~ <= TR_HI (the words' trace);
+        # V <- V 2^up, exactly
+        tr = sum(self.P[i][i] for i in range(n))
+        up_ = 0
+        while 0 < tr * (1 << up_) and 2 * tr * (1 << up_) <= p[I_TR_HI] and e + up_ < p[I_E_MAX]:
+            up_ += 1
+        if up_:
+            for i, j in self.stored():
+                self.Vput(i, j, self.Vget(i, j) * (1 << up_))
+            e += up_
+        return e
+
+    def trace(self, c: int) -> int:
+        """:math:`\\mathrm{tr}P\\,2^{f_P - ps_{tr} + e}` as ``fixed_block`` reports it."""
+        p = self.p
+        trw = sum(self.rsh(self.P[i][i], p[I_TR_PS]) for i in range(self.n))
+        return self.rsh(self.mul(trw, c), p[I_TC_S])
+
+
 def reference_block(
+
     Phi: list[list[int]],
     Y: list[int],
     theta: list[int],
@@ -337,67 +509,9 @@ def reference_block(
     -------
     (eps, trace, exp, flags) : lists of int, one per row
     """
-    n = len(theta)
-    lim = 1 << (acc_bits - 1)
-    p = prm
-    tf = [0] * n if theta_frac is None else theta_frac
-    Pf = [[0] * n for _ in range(n)] if P_frac is None else P_frac
-    # the 64-bit P: V = P~ 2^32 (units of 2^-32 LSB), held as the word rsh(V, 32) (P~
-    # rounded half up) and the fraction V - word 2^32 in [-2^31, 2^31); V's range is the
-    # word's, [lo - 1/2, hi + 1/2) LSB
-    V_lo = (p[I_P_LO] << 32) - (1 << 31)
-    V_hi = (p[I_P_HI] << 32) + (1 << 31) - 1
-
-    def chk(a: int) -> int:
-        # an accumulator value must fit in acc_bits (the guard-bit argument)
-        assert -lim <= a < lim, f"accumulator {a} outside {acc_bits} bits"
-        return a
-
-    def mul(a: int, b: int) -> int:
-        # product of two words: exact, and within the 64-bit product register
-        assert abs(a) <= (1 << 32) and abs(b) <= (1 << 32), "operand wider than a word"
-        x = a * b
-        assert abs(x) < (1 << 63)
-        return x
-
-    def rsh(x: int, s: int) -> int:
-        # x / 2^s rounded half up: floor(x / 2^s + 1/2)
-        assert 0 <= s <= 62
-        return (x + (1 << (s - 1))) // (1 << s) if s > 0 else x
-
-    def sat(x: int, lo: int, hi: int, site: int | None) -> int:
-        if x > hi or x < lo:
-            if site is not None:
-                counts[site] += 1
-            return hi if x > hi else lo
-        return x
-
-    def put(a: int, s: int, lo: int, hi: int, site: int) -> int:
-        # store an accumulator into a word: rounding half up (s > 0) or exact left shift
-        chk(a)
-        if s > 0:
-            chk(a + (1 << (s - 1)))
-            return sat(rsh(a, s), lo, hi, site)
-        return sat(a * (1 << -s), lo, hi, site)
-
-    def Pget(i: int, j: int) -> int:
-        # symmetric form: only the upper triangle exists
-        if mode == MODE_SYMMETRIC and i > j:
-            return P[j][i]
-        return P[i][j]
-
-    def Vget(i: int, j: int) -> int:
-        # V = P~ 2^32: the word and its fraction
-        return P[i][j] * (1 << 32) + Pf[i][j]
-
-    def Vput(i: int, j: int, v: int) -> None:
-        # V clamped to the word's range (counted), then split: word = rsh(V, 32)
-        if v > V_hi or v < V_lo:
-            counts[S_P] += 1
-            v = V_hi if v > V_hi else V_lo
-        P[i][j] = rsh(v, 32)
-        Pf[i][j] = v - P[i][j] * (1 << 32)
-
+    tf = [0] * len(theta) if theta_frac is None else theta_frac
+    Pf = [[0] * len(theta) for _ in range(len(theta))] if P_frac is None else P_frac
+    ref = _Reference(P, Pf, counts, prm, acc_bits, mode)
     out_eps: list[int] = []
     out_tr: list[int] = []
     out_e: list[int] = []
@@ -405,152 +519,21 @@ def reference_block(
     for row, y_raw in zip(Phi, Y, strict=True):
         e, c = scale
         before = sum(counts)
-        flag = 0
-        phi = [sat(int(x), p[I_PHI_LO], p[I_PHI_HI], S_PHI) for x in row]
-        y = sat(int(y_raw), p[I_Y_LO], p[I_Y_HI], S_Y)
-        phg = [rsh(x, p[I_PHI_PS]) for x in phi]
-        # eps = y - phi' theta
-        a = chk(y * (1 << p[I_EPS_TS]) if p[I_EPS_TS] >= 0 else rsh(y, -p[I_EPS_TS]))
-        for j in range(n):
-            a = chk(a - mul(phg[j], theta[j]))
-        eps = put(a, p[I_EPS_OS], p[I_EPS_LO], p[I_EPS_HI], S_EPS)
-        # h~ = P~ phi ; w~ = P~' phi
-        h: list[int] = []
-        w: list[int] = []
-        for i in range(n):
-            a = 0
-            for j in range(n):
-                a = chk(a + mul(Pget(i, j), phg[j]))
-            h.append(put(a, p[I_H_OS], p[I_H_LO], p[I_H_HI], S_H))
-        if mode != MODE_LITERAL:
-            w = list(h)
-        else:
-            for i in range(n):
-                a = 0
-                for j in range(n):
-                    a = chk(a + mul(Pget(j, i), phg[j]))
-                w.append(put(a, p[I_H_OS], p[I_H_LO], p[I_H_HI], S_H))
-        # s~ = phi' h~ at lambda's scale ; s = c s~
-        a = 0
-        for i in range(n):
-            a = chk(a + mul(phg[i], h[i]))
-        if e > 0:
-            chk(a + (1 << (e - 1)))
-        st = put(rsh(a, e), p[I_S_OS], p[I_DEN_LO], p[I_DEN_HI], S_DEN)
-        sv = sat(rsh(mul(st, c), p[I_SC_S]), p[I_DEN_LO], p[I_DEN_HI], S_DEN)
-        # windup <=> (c tr P~ - lambda trace_max) (lambda + s) > h' w
-        lam_k = p[I_LAM_D]
-        if p[I_TMAX] <= (p[I_TMAX_LIM] >> e):
-            trw = 0
-            for i in range(n):
-                trw = chk(trw + rsh(P[i][i], p[I_TR_PS]))
-            T = chk(rsh(mul(trw, c), p[I_TC_S]) - p[I_TMAX] * (1 << e))
-            if T > 0:
-                d_lam = sat(lam_k + sv, p[I_DEN_LO], p[I_DEN_HI], None)
-                a_vw = 0
-                for i in range(n):
-                    hi_ = rsh(mul(h[i], c), p[I_HC_S])
-                    wi_ = rsh(mul(w[i], c), p[I_HC_S])
-                    a_vw = chk(a_vw + rsh(mul(hi_, wi_), p[I_VW_PS]))
-                lhs = chk(rsh(mul(min(T, p[I_P_HI]), d_lam), p[I_LHS_PS]))
-                df = p[I_CMP_DF] - e
-                if df >= 0:
-                    up = lhs // (1 << min(df, 63)) > a_vw
-                else:
-                    up = lhs > a_vw // (1 << min(-df, 63))
-                if up:
-                    lam_k = p[I_ONE_D]
-                    flag = FLAG_WINDUP
-        # d = lambda_k + s ; g = 1/d (C division, both operands positive), normalised:
-        # g 2^kg = DIVIDEND 2^kg // d keeps the bits of g when d is large (kg = 0 for
-        # d < 2^KG_BL, i.e. d < 2 in the steady state)
-        d = sat(lam_k + sv, p[I_DEN_LO], p[I_DEN_HI], S_DEN)
-        kg = 0
-        if d <= 0:
-            g = p[I_G_HI]
-            counts[S_DIV] += 1
-        else:
-            kg = max(0, min(d.bit_length() - p[I_KG_BL], p[I_KG_MAX],
-                            62 - p[I_P_S] - e, 62 - p[I_TH_S] - e))
-            g = sat(p[I_DIVIDEND] * (1 << kg) // d, p[I_G_LO], p[I_G_HI], S_DIV)
-        gc = sat(rsh(mul(g, c), p[I_GC_S]), p[I_G_LO], p[I_G_HI], S_DIV)
-        # normalisation: h~, w~ and eps shifted left to 31 bits (k, ke)
-        def norm(m: int) -> int:
-            assert 0 <= m < (1 << 31)
-            return max(30 - m.bit_length(), 0)
-
-        m = 0
-        for x in h + w:
-            m |= x if x >= 0 else -x - 1
-        e0 = e
-        k = min(norm(m), (62 - p[I_P_S] - e0 - kg) // 2, 62 - p[I_TH_S] - e0 - kg)
-        ke = min(norm(eps if eps >= 0 else -eps - 1), 62 - p[I_TH_S] - e0 - k - kg)
-        hs = [x * (1 << k) for x in h]
-        ws = [x * (1 << k) for x in w]
-        gcn = gc * (1 << p[I_G_UP])
-        assert all(-(1 << 31) <= x < (1 << 31) for x in hs + ws) and 0 <= gcn < (1 << 31)
-        # K = (g c) h~: the high word of the product, rounded half up
-        K = [rsh(mul(hs[i], gcn), 32) for i in range(n)]
-        # theta 2^32 + tf <- theta 2^32 + tf + floor(K eps 2^32)   (the 64-bit estimate)
-        for i in range(n):
-            ts = p[I_TH_S] + e + k + ke + kg
-            u = mul(K[i], eps * (1 << ke))
-            if ts >= 32:
-                u = u // (1 << 32) * (1 << 32)  # the high word of the product (s >= 32)
-            x = theta[i] * (1 << 32) + tf[i] + u * (1 << 32) // (1 << ts)
-            top = p[I_TH_HI] * (1 << 32) + (1 << 32) - 1
-            bot = p[I_TH_LO] * (1 << 32)
-            if x > top or x < bot:
-                counts[S_TH] += 1
-                x = top if x > top else bot
-            theta[i], tf[i] = x >> 32, x & ((1 << 32) - 1)
-        # P~ <- P~ - K w~'   (upper triangle, or the full matrix for literal), at 2^-32
-        # LSB: V -= u, u = K_i w~_j 2^(32 - ps) exactly for ps < 32, else the product's
-        # high word rounded half up, rsh(K_i w~_j, 32) 2^(64 - ps)
-        ps = p[I_P_S] + e + 2 * k + kg
-
-        def dec(x: int) -> int:
-            if ps < 32:
-                return x * (1 << (32 - ps))
-            return rsh(x, 32) * (1 << (64 - ps))
-
-        low = all(dec(mul(K[i], ws[i])) == 0 for i in range(n))
-        for i in range(n):
-            for j in range(i if mode == MODE_SYMMETRIC else 0, n):
-                Vput(i, j, Vget(i, j) - dec(mul(K[i], ws[j])))
-        if low:
-            flag |= FLAG_LOW_EXCITATION
-        # c <- c / lambda_k ; c > 1: halve it (e - 1) or fold it into the words (e = 0)
-        il = p[I_ONE_L] if flag & FLAG_WINDUP else p[I_INV_LAM]
-        c = sat(rsh(mul(c, il), p[I_C_S]), 0, p[I_L_HI], S_P)
-        if c > p[I_ONE_L]:
-            if e > 0:
-                c = rsh(c, 1)
-                e -= 1
-            else:
-                # V <- rsh(V c, c_s): c folded into the 64-bit values
-                for i in range(n):
-                    for j in range(i if mode == MODE_SYMMETRIC else 0, n):
-                        Vput(i, j, rsh(Vget(i, j) * c, p[I_C_S]))
-                c = p[I_ONE_L]
-        # block exponent: the largest left shift keeping tr P~ <= TR_HI (the words' trace);
-        # V <- V 2^up, exactly
-        tr = sum(P[i][i] for i in range(n))
-        up_ = 0
-        while 0 < tr * (1 << up_) and 2 * tr * (1 << up_) <= p[I_TR_HI] and e + up_ < p[I_E_MAX]:
-            up_ += 1
-        if up_:
-            for i in range(n):
-                for j in range(i if mode == MODE_SYMMETRIC else 0, n):
-                    Vput(i, j, Vget(i, j) * (1 << up_))
-            e += up_
+        phg, y = ref.inputs(row, y_raw)
+        eps = ref.error(phg, y, theta)
+        h, w = ref.products(phg)
+        sv = ref.denominator(phg, h, e, c)
+        lam_k, flag = ref.forgetting(h, w, sv, e, c)
+        gc, kg = ref.gain(lam_k, sv, e, c)
+        flag |= ref.update(theta, tf, h, w, eps, gc, kg, e)
+        e, c = ref.forget(e, c, bool(flag & FLAG_WINDUP))
+        e = ref.renormalise(e)
         scale[0], scale[1] = e, c
         if sum(counts) > before:
             flag |= FLAG_SATURATION
         assert counts[S_ACC] == 0
         out_eps.append(eps)
-        trw = sum(rsh(P[i][i], p[I_TR_PS]) for i in range(n))
-        out_tr.append(rsh(mul(trw, c), p[I_TC_S]))
+        out_tr.append(ref.trace(c))
         out_e.append(e)
         out_fl.append(flag)
     return out_eps, out_tr, out_e, out_fl

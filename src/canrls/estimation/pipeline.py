@@ -38,7 +38,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -47,12 +46,33 @@ import numpy.typing as npt
 from canrls import _kernels
 from canrls.background import Background
 from canrls.errors import ConfigError
-from canrls.estimation.colour import MAX_PRIOR_SHARE, ResidualTail, prior_share
-from canrls.estimation.fixed import FixedConfig, FixedRLS, QFormat, SaturationCounts
+from canrls.estimation.colour import ResidualTail, prior_share
+from canrls.estimation.estimates import (
+    DIVERGENCE_TOL,
+    EquationBlock,
+    EquationFit,
+    Estimates,
+    ParameterEstimate,
+    PipelineBlock,
+    Rescale,
+    divergence,
+    used_rows,
+)
+from canrls.estimation.fixed import FixedRLS, SaturationCounts
 from canrls.estimation.model import Equation, Model, RegressorBuilder
-from canrls.estimation.physics import Implausible, check_physics, describe
 from canrls.estimation.rls import RLS
 from canrls.estimation.selection import SamplePolicy, SampleSelector
+from canrls.estimation.settings import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    ENERGY_FLOOR,
+    MIN_ENERGY,
+    RESCALE_HEADROOM,
+    RESCALE_LIMIT,
+    RMS_HEADROOM,
+    EstimatorSettings,
+    exponent_for,
+)
 from canrls.signals import Signals
 
 __all__ = [
@@ -75,38 +95,13 @@ __all__ = [
     "EquationEstimator",
     "Pipeline",
     "divergence",
+    "DIVERGENCE_TOL",
 ]
 
 F64 = npt.NDArray[np.float64]
 
-#: Smallest column energy (mean square, normalised units) the ridge is scaled with: a
-#: column with less on the calibration window was not excited there, and its prior
-#: then weighs as for a column at 2**-10 of full scale (P0 = 2**20/alpha, which the
-#: fixed-point formats still hold for up to 12 columns).
-ENERGY_FLOOR = 2.0 ** -20
-#: Smallest energy (normalised mean square) a column's prior is scaled with: a column
-#: with an RMS of 1/32 of full scale, the least the calibration's RMS rule gives a
-#: data-scaled column; a column bounded by its own function that the window barely
-#: excites and a pending one until it is seen take it. It bounds P0 by 2**10/alpha,
-#: which the fixed-point formats hold.
-MIN_ENERGY = 2.0 ** -10
-#: The calibration puts the window's RMS of each data-scaled column (and the first value
-#: of a pending one) at most 1/RMS_HEADROOM of full scale (:func:`exponent_for`): room
-#: for crest factors and growth, normalised energies in (2**-10, 2**-8].
-RMS_HEADROOM = 16.0
-#: A used row whose normalised value of a data-scaled column (or of the target) exceeds
-#: this in magnitude has outgrown its exponent: the estimator rescales it first, exactly.
-RESCALE_LIMIT = 1.0
-#: After a rescale, the value that asked for it is at most 1/RESCALE_HEADROOM of full scale.
-RESCALE_HEADROOM = 4.0
 #: At most this many rescales are listed (:attr:`EquationEstimator.rescales`; all counted).
 MAX_RESCALES_LISTED = 64
-
-
-def exponent_for(x: float, headroom: float) -> int:
-    """The smallest ``s`` with ``headroom * |x| <= 2**s`` (``x`` finite, not zero)."""
-    m, e = math.frexp(headroom * abs(x))
-    return e - 1 if m == 0.5 else e
 
 
 #: The check filter's cutoff, a fraction of the model's (:meth:`EquationEstimator.bias`).
@@ -118,399 +113,6 @@ CHECK_FACTOR = 2.0
 #: beside the float one (the offline replay's blocks; the daemon's, some 200 rows, stay
 #: in one thread, where a hand-over would cost more than the overlap saves).
 OVERLAP_ROWS = 4096
-
-
-#: The ridge weight ``alpha`` (the prior weighs like ``alpha`` samples of each column)
-#: from one billionth of a sample to a billion samples: P0 = diag(1/(alpha e_j)) then
-#: has a fixed-point format at any energy from ENERGY_FLOOR to 1.
-ALPHA_MIN, ALPHA_MAX = 1e-9, 1e9
-
-
-# ------------------------------------------------------------------------ settings
-@dataclass(frozen=True)
-class EstimatorSettings:
-    """Estimator settings shared by the float and the fixed-point RLS.
-
-    Attributes
-    ----------
-    lam : forgetting factor :math:`\\lambda \\in (1/2, 1]` (memory ``1/(1-lam)`` samples)
-    alpha : ridge weight: the prior weighs like ``alpha`` samples of each column
-        (:math:`P_0 = \\mathrm{diag}(1/(\\alpha\\,\\bar e_j))` with the column's mean
-        square :math:`\\bar e_j` on the calibration window, :class:`Pipeline`); without
-        column energies, :math:`P_0 = I/\\alpha` in normalised units
-    trace_max : bound on trace P (``None``: the prior's trace)
-    calibration_s : seconds of samples at the start of a stream on which the front end
-        (:mod:`canrls.processor`) measures the signal ranges the configuration does not
-        give and the column energies of the prior; frozen and recorded
-    word_bits, acc_bits, input_bits : fixed-point words (``input_bits=None``: ``word_bits``)
-    theta_max : bound of the normalised parameters for the fixed-point theta format
-    fixed_overrides : Q formats overriding the automatic choice (``{"P": QFormat(32, 24)}``)
-    warmup_s : seconds of filter warm-up not used for estimation (``None``: 5 time
-        constants of the SVF, ``5 / (zeta * wc)``)
-    gap_periods : a sample-time step larger than this many periods restarts the filter
-    rms_time_s : time constant of the running residual RMS reported live [s]
-    max_phase_step : largest phase advance per sample [rad] of the fastest
-        position-periodic column (``k * |omega| * dt`` for ``cogging:k``, unbalance
-        ``k = 1``) at which a sample is used. Between samples the filter joins the
-        samples of ``sin(k theta)`` by straight lines; that underestimates a sinusoid
-        advancing by ``d`` rad per sample by about ``d^2/12``; samples faster than the
-        limit (and the filter's settling after them) are skipped. Default ``inf`` (off):
-        at such speeds the filter attenuates the periodic column so much that the
-        error is negligible, while skipping the samples costs the speed-dependent
-        parameters their fast data (``viscous.B`` came back 4-16 % off with
-        ``cogging:24``/``36`` and a 0.3 rad guard).
-    min_speed : samples with ``|omega|`` below this [rad/s, m/s] (and the filter's
-        settling after them) are not used when the model has Coulomb or Stribeck
-        friction: near standstill the measured speed's sign is noise and the drive
-        sticks, which ``sgn_e`` does not model. ``None``: five times the Coulomb band.
-    """
-
-    lam: float = 1.0
-    alpha: float = 0.01
-    trace_max: float | None = None
-    word_bits: int = 32
-    acc_bits: int = 64
-    input_bits: int | None = None
-    theta_max: float = 16.0
-    fixed_overrides: Mapping[str, QFormat] = field(default_factory=dict)
-    warmup_s: float | None = None
-    gap_periods: float = 3.5
-    rms_time_s: float = 1.0
-    max_phase_step: float = math.inf
-    min_speed: float | None = None
-    calibration_s: float = 2.0
-
-    def __post_init__(self) -> None:
-        if not (isinstance(self.lam, int | float) and 0.5 < self.lam <= 1.0):
-            raise ConfigError(f"estimator.lambda = {self.lam!r}: must be in (0.5, 1]")
-        if not (isinstance(self.alpha, int | float) and self.alpha > 0 and
-                math.isfinite(self.alpha)):
-            raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be > 0")
-        if not ALPHA_MIN <= self.alpha <= ALPHA_MAX:
-            # P0 = diag(1 / (alpha e_j)), 2**-10 <= e_j <= 1: beyond these the fixed-point
-            # format of P has no exponent for P0 (and the prior means nothing or all)
-            raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be from {ALPHA_MIN:g} "
-                              f"to {ALPHA_MAX:g} (the prior weighs like alpha samples of "
-                              f"each column)")
-        if self.warmup_s is not None and not (isinstance(self.warmup_s, int | float)
-                                              and 0.0 <= self.warmup_s < math.inf):
-            raise ConfigError(f"estimator.warmup_s = {self.warmup_s!r}: must be >= 0 seconds")
-        if self.gap_periods <= 1.0:
-            raise ConfigError(f"estimator.gap_periods = {self.gap_periods!r}: must be > 1")
-        if not self.max_phase_step > 0:
-            raise ConfigError(f"estimator.max_phase_step = {self.max_phase_step!r}: must be > 0")
-        if self.rms_time_s <= 0:
-            raise ConfigError(f"estimator.rms_time_s = {self.rms_time_s!r}: must be > 0")
-        if not (self.calibration_s > 0 and math.isfinite(self.calibration_s)):
-            raise ConfigError(
-                f"estimator.calibration_s = {self.calibration_s!r}: must be > 0 seconds")
-
-    def ridge(self, n: int, energy: npt.ArrayLike | None = None) -> F64:
-        r"""The ridge weight of each of ``n`` columns: :math:`\alpha_j = \alpha\,\bar e_j`.
-
-        ``energy`` holds the columns' mean squares :math:`\bar e_j` in normalised units
-        (``None``: 1 each, the prior :math:`P_0 = I/\alpha`), floored at
-        :data:`ENERGY_FLOOR`. The penalty :math:`\alpha\sum_j \bar e_j\theta_j^2` is
-        then ``alpha`` times the mean square of each term :math:`\varphi_j\theta_j`:
-        the same in any normalisation, so the scaling changes rounding, never the prior.
-        """
-        if energy is None:
-            return np.full(n, float(self.alpha))
-        e = np.asarray(energy, dtype=np.float64)
-        if e.shape != (n,) or not np.all(np.isfinite(e)):
-            raise ConfigError(f"column energies {energy!r}: need {n} finite values")
-        # alpha_j = alpha * max(e_j, floor)
-        return float(self.alpha) * np.maximum(e, ENERGY_FLOOR)
-
-    def fixed_config(self, n: int, ridge: npt.ArrayLike | None = None) -> FixedConfig:
-        """The automatic fixed-point configuration for ``n`` parameters (``ridge``: the
-        weights :math:`\alpha_j`, default ``alpha`` for all)."""
-        alpha = self.alpha if ridge is None else ridge
-        return FixedConfig.auto(n, alpha, self.lam, theta_max=self.theta_max,
-                                word_bits=self.word_bits, acc_bits=self.acc_bits,
-                                input_bits=self.input_bits, trace_max=self.trace_max,
-                                **dict(self.fixed_overrides))
-
-
-# ------------------------------------------------------------------------- results
-#: The fixed point is meant to follow the float within this divergence (0.1 %, the
-#: default tolerance of ``canrls fixed-sweep``); beyond it ``canrls fit`` says so.
-DIVERGENCE_TOL = 1e-3
-
-
-def divergence(theta: Sequence[float], fixed: Sequence[float], sigma: Sequence[float]) -> float:
-    """Fixed point against float: ``max_j |fixed_j - theta_j| / max(|theta_j|, 3 sigma_j)``.
-
-    A NaN sigma (not known yet) counts as 0, a zero or NaN reference as 1; a NaN
-    difference makes the result NaN; no parameter gives 0. Pure Python: for the few
-    parameters of a model this is several times faster than numpy.
-    """
-    worst = 0.0
-    for th, fx, sd in zip(theta, fixed, sigma, strict=True):
-        ref = abs(th)
-        if 3.0 * sd > ref:
-            ref = 3.0 * sd
-        if not ref > 0:
-            ref = 1.0
-        d = abs(fx - th) / ref
-        if math.isnan(d):
-            return math.nan
-        worst = max(worst, d)
-    return worst
-
-
-@dataclass(frozen=True)
-class ParameterEstimate:
-    """One physical parameter: float reference, fixed point, standard deviation."""
-
-    name: str
-    unit: str
-    effect: str
-    equation: str
-    description: str
-    value: float
-    sigma: float
-    fixed: float
-    #: share of the variance the ridge prior still holds (:func:`~canrls.estimation.
-    #: colour.prior_share`): above :data:`~canrls.estimation.colour.MAX_PRIOR_SHARE` the
-    #: data cannot tell the parameter from the others, and value and sigma are the prior's
-    prior_share: float = 0.0
-    #: how far the model's errors (noise in the columns' signals, the hold between
-    #: samples, reversals) can pull the estimate (:meth:`EquationEstimator.bias`): part
-    #: of ``sigma``, ``sigma**2 = (statistical sigma)**2 + bias**2``
-    bias: float = 0.0
-    #: the measurement noise could explain what the data show of the parameter's columns:
-    #: the data cannot identify it (:meth:`EquationEstimator.bias`)
-    noise_bound: bool = False
-
-    @property
-    def identifiable(self) -> bool:
-        return self.prior_share <= MAX_PRIOR_SHARE and not self.noise_bound
-
-    @property
-    def why_not(self) -> str:
-        """Why the data cannot identify it ("" when they can)."""
-        if self.prior_share > MAX_PRIOR_SHARE:
-            return f"{100 * self.prior_share:.0f} % prior"
-        return "noise explains it" if self.noise_bound else ""
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"value": self.value, "sigma": self.sigma, "unit": self.unit,
-                "fixed": self.fixed, "effect": self.effect, "equation": self.equation,
-                "description": self.description, "identifiable": self.identifiable,
-                "prior_share": self.prior_share, "bias": self.bias,
-                "noise_bound": self.noise_bound}
-
-
-@dataclass(frozen=True)
-class Rescale:
-    """One change of an equation's normalisation during a run: a column or the target
-    outgrew its exponent (``grew``), or a pending one showed its first value (``first``)."""
-
-    t: float
-    name: str
-    old: int
-    new: int
-    why: str
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"t": self.t, "name": self.name, "old": self.old, "new": self.new,
-                "why": self.why}
-
-
-@dataclass(frozen=True)
-class EquationFit:
-    """How well one equation fits, with the final estimate over all used samples."""
-
-    equation: str
-    target: str
-    unit: str
-    samples: int
-    residual_rms: float
-    fit_percent: float
-    r2: float
-    target_rms: float
-    online_rms: float
-    divergence: float
-    saturations: Mapping[str, int]
-    windup_steps: int
-    low_excitation: bool
-    condition: float
-    #: samples whose target or a column was not finite: left out, with the filter's
-    #: warm-up after each (see :class:`~canrls.estimation.model.RegressorBuilder`)
-    nonfinite_rows: int = 0
-    #: factor the residual's colour puts on the variances (kappa >= 1; the sigmas
-    #: reported are multiplied by its square root; :mod:`canrls.estimation.colour`)
-    sigma_inflation: float = 1.0
-    #: the normalisation's exponents at the end (``{"target": s_y, parameter: s_j}``)
-    exponents: Mapping[str, int] = field(default_factory=dict)
-    #: how often the normalisation changed during the run, and the first changes
-    rescale_count: int = 0
-    rescales: tuple[Rescale, ...] = ()
-    #: the target and columns the data have not shown yet (exponent and prior provisional)
-    pending: tuple[str, ...] = ()
-    #: the fixed point's word lengths (``W32/A64/I32``)
-    fixed_config: str = ""
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"equation": self.equation, "target": self.target, "unit": self.unit,
-                "samples": self.samples, "residual_rms": self.residual_rms,
-                "fit_percent": self.fit_percent, "r2": self.r2,
-                "target_rms": self.target_rms, "online_rms": self.online_rms,
-                "divergence": self.divergence, "saturations": dict(self.saturations),
-                "windup_steps": self.windup_steps, "low_excitation": self.low_excitation,
-                "condition": self.condition, "nonfinite_rows": self.nonfinite_rows,
-                "sigma_inflation": self.sigma_inflation, "exponents": dict(self.exponents),
-                "rescale_count": self.rescale_count,
-                "rescales": [r.to_dict() for r in self.rescales],
-                "pending": list(self.pending), "fixed_config": self.fixed_config}
-
-
-@dataclass(frozen=True)
-class Estimates:
-    """The estimates of every parameter and the fit of every equation."""
-
-    parameters: tuple[ParameterEstimate, ...]
-    equations: tuple[EquationFit, ...]
-    effects: tuple[str, ...]
-    #: the torque constant the model was given (checked against a back-EMF constant)
-    kt: float | None = None
-
-    @property
-    def implausible(self) -> tuple[Implausible, ...]:
-        """Parameters physics rules out, with the likely cause (:func:`check_physics`)."""
-        return check_physics(self.parameters, self.kt)
-
-    @property
-    def residual_rms(self) -> float:
-        """Residual RMS of the first (mechanical) equation, in its target unit."""
-        return self.equations[0].residual_rms if self.equations else math.nan
-
-    @property
-    def fit_percent(self) -> float:
-        return self.equations[0].fit_percent if self.equations else math.nan
-
-    @property
-    def samples(self) -> int:
-        return self.equations[0].samples if self.equations else 0
-
-    def __getitem__(self, name: str) -> ParameterEstimate:
-        for p in self.parameters:
-            if p.name == name:
-                return p
-        raise KeyError(f"no parameter {name!r} (have: {[p.name for p in self.parameters]})")
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "effects": list(self.effects),
-            "parameters": {p.name: p.to_dict() for p in self.parameters},
-            "residual_rms": self.residual_rms,
-            "fit_percent": self.fit_percent,
-            "samples": self.samples,
-            "equations": {e.equation: e.to_dict() for e in self.equations},
-            "implausible": [i.to_dict() for i in self.implausible],
-        }
-
-    def format(self) -> str:
-        """A text table: every parameter with float value, sigma, fixed value and unit."""
-        lines = []
-        w = max([len(p.name) for p in self.parameters] + [9])
-        lines.append(f"{'parameter':<{w}}  {'float':>13}  {'± sigma':>11}  {'fixed':>13}  unit")
-        for p in self.parameters:
-            lines.append(f"{p.name:<{w}}  {p.value:>13.6g}  {p.sigma:>11.3g}  {p.fixed:>13.6g}"
-                         f"  {p.unit}"
-                         + ("" if p.identifiable else f"  NOT IDENTIFIABLE ({p.why_not})"))
-        weak = [p.name for p in self.parameters if p.prior_share > MAX_PRIOR_SHARE]
-        if weak:
-            lines.append(f"not identifiable from these data: {', '.join(weak)}: the data "
-                         f"cannot tell {'them' if len(weak) > 1 else 'it'} from the other "
-                         f"parameters, value and sigma are the prior's (e.g. Coulomb "
-                         f"friction and an offset while the speed never reverses; "
-                         f"'canrls diagnose' names the experiment)")
-        noisy = [p.name for p in self.parameters
-                 if p.noise_bound and p.prior_share <= MAX_PRIOR_SHARE]
-        if noisy:
-            lines.append(f"not identifiable from these data: {', '.join(noisy)}: the "
-                         f"measurement noise of the signals could explain what the data "
-                         f"show of {'them' if len(noisy) > 1 else 'it'} (too little motion "
-                         f"for the noise: a longer or faster run)")
-        lines.extend(describe(self.implausible))
-        for e in self.equations:
-            lines.append(
-                f"{e.equation}: residual RMS {e.residual_rms:.4g} {e.unit}, "
-                f"fit {e.fit_percent:.2f} %,"
-                f" R² {e.r2:.5f}, {e.samples} samples, fixed-vs-float divergence "
-                f"{e.divergence:.2e}"
-                + (f", saturations {dict(e.saturations)}" if e.saturations else "")
-                + (", LOW EXCITATION" if e.low_excitation else "")
-                + (f", {e.nonfinite_rows} samples with a non-finite term left out "
-                   f"(with the filter's warm-up after each)" if e.nonfinite_rows else ""))
-            if e.divergence > DIVERGENCE_TOL:
-                lines.append(
-                    f"{e.equation}: the fixed point ({e.fixed_config or 'its words'}) is "
-                    f"{e.divergence:.2g} from the float, more than {DIVERGENCE_TOL:g}: these "
-                    f"word lengths cannot follow the float on these data; 'canrls "
-                    f"fixed-sweep' with the same log and options names the configuration "
-                    f"that does")
-        return "\n".join(lines)
-
-    __str__ = format
-
-
-@dataclass(frozen=True)
-class EquationBlock:
-    """What one block did to one equation (recorded with ``record=True``).
-
-    ``y`` and ``eps``/``eps_fixed`` are in the target unit; ``theta``/``theta_fixed``
-    are physical parameters after each sample; ``used`` marks the rows that updated
-    the estimators (not in a warm-up).
-    """
-
-    equation: str
-    t: F64
-    y: F64
-    eps: F64
-    eps_fixed: F64
-    used: npt.NDArray[np.bool_]
-    online_rms: F64
-    flags: npt.NDArray[np.uint8]
-    theta: F64 | None
-    theta_fixed: F64 | None
-    phi: F64 | None
-    #: where the normalisation changed in the block: ``(row, d_columns, d_target)``;
-    #: ``phi`` rows from ``row`` on are in the new one (:func:`used_rows`)
-    changes: tuple[tuple[int, tuple[int, ...], int], ...] = ()
-
-
-def used_rows(blocks: Sequence[EquationBlock], target: int) -> tuple[F64, F64]:
-    """The used rows ``(phi, y)`` of one equation's recorded blocks, normalised as at
-    the end of the last block (``target``: the target's exponent then)."""
-    n = next((b.phi.shape[1] for b in blocks if b.phi is not None), 0)
-    later = np.zeros(n, np.int64)  # the column exponents' change after a row
-    parts = []
-    for b in reversed(blocks):
-        if b.phi is None:
-            continue
-        phi = b.phi.copy()
-        end = len(phi)
-        for row, d, _ in reversed(b.changes):
-            np.ldexp(phi[row:end], -later, out=phi[row:end])
-            later = later + np.asarray(d, np.int64)
-            end = row
-        np.ldexp(phi[:end], -later, out=phi[:end])
-        parts.append((phi[b.used], np.ldexp(b.y[b.used], -target)))
-    parts.reverse()
-    if not parts:
-        return np.zeros((0, n)), np.zeros(0)
-    return np.concatenate([p for p, _ in parts]), np.concatenate([y for _, y in parts])
-
-
-@dataclass(frozen=True)
-class PipelineBlock:
-    """Per-equation results of one :meth:`Pipeline.process` call."""
-
-    samples: int
-    equations: tuple[EquationBlock, ...]
 
 
 # ----------------------------------------------------------------------- estimator

@@ -1,88 +1,12 @@
 r"""Float recursive least squares with forgetting and a ridge prior: the reference estimator.
 
-:class:`RLS` minimises, after :math:`N` samples,
-
-.. math::
-
-    J_N(\theta) = \sum_{k=1}^{N} \lambda^{N-k} (y_k - \theta^\top\varphi_k)^2
-                  + \lambda^N \alpha |\theta|^2
-
-whose minimiser is the batch closed form
-
-.. math::
-
-    \theta_N = \Big(\sum_{k=1}^{N} \lambda^{N-k}\varphi_k\varphi_k^\top
-               + \lambda^N \alpha I\Big)^{-1} \sum_{k=1}^{N} \lambda^{N-k}\varphi_k y_k .
-
-The ridge term is the prior :math:`P_0 = I/\alpha`, :math:`\theta_0 = 0` (or one weight
-per parameter, :math:`P_0 = \mathrm{diag}(1/\alpha_j)` and :math:`\sum_j\alpha_j\theta_j^2`:
-the pipeline scales :math:`\alpha_j` with each column's energy so that the prior does
-not depend on how the columns are normalised); it is forgotten like any other data
-(hence :math:`\lambda^N\alpha`), so it regularises the start-up and the directions
-that are never excited, and fades elsewhere. The
-recursion, per sample:
-
-.. math::
-
-    \varepsilon &= y - \varphi^\top\theta \\
-    K &= P\varphi / (\lambda + \varphi^\top P\varphi) \\
-    \theta &\leftarrow \theta + K\varepsilon \\
-    P &\leftarrow (P - K\varphi^\top P)/\lambda
-
-Written literally, the last line forms :math:`P\varphi` (in :math:`K`) and
-:math:`\varphi^\top P` separately, and rounding makes :math:`P` asymmetric. The
-default ``update="symmetric"`` computes instead
-
-.. math::
-
-    P \leftarrow \big(P - g\,(P\varphi)(P\varphi)^\top\big)/\lambda,
-    \qquad g = 1/(\lambda + \varphi^\top P\varphi)
-
-so :math:`P` is symmetric bit for bit after every step (the same bits as the upper
-triangle mirrored; see ``src/canrls/c/kernels_rls.h``) and :math:`P\varphi` is computed
-once. What the literal form costs, measured (``tests/test_rls.py``): to first
-order its antisymmetric error propagates like the symmetric one,
-:math:`A \leftarrow (I - K\varphi^\top) A (I - K\varphi^\top)^\top/\lambda`, so it is
-damped while all directions are excited (float64, :math:`10^6` samples: rounding
-level, no drift; float32 with persistent excitation: ~1e-7 relative), but it grows
-with windup: in float32 with :math:`\lambda = 0.98 \dots 0.995` and standstills of
-:math:`7/(1-\lambda)` samples, the relative asymmetry reaches 1.5e-3 to 4e-3
-(the symmetric form: 0), while the estimates of both forms stay within 2e-6 of the
-float64 closed form. We did not observe the literal form diverge where the
-symmetric one does not.
-
-Neither form keeps :math:`P` positive definite when the information matrix is
-conditioned beyond the arithmetic (:math:`\mathrm{cond}\,R \gtrsim 1/\epsilon`, about
-1e7 in float32), or when :math:`P` winds up without bound (in float64 too: the
-trace bound below prevents that). A factorised (UD) update would keep :math:`P`
-definite there, at roughly twice the work per update and without the element-wise
-form that ``canrls.estimation.fixed`` shares; :meth:`RLS.excitation` reports ``cond`` and
-``positive_definite`` so that such data can be recognised. ``update="literal"`` is
-kept only for comparison.
-
-The recursion runs in the C kernel ``canrls._kernels.rls_block_symmetric`` (source
-``src/canrls/c/kernels_rls.h``: float64 and float32, every operation in the state's
-dtype, no fused multiply-add); :meth:`RLS.update` (one sample) and :meth:`RLS.run`
-(a block) call it alike, so the results are identical bit for bit whatever the block
-sizes, and the live daemon and the offline replay run the same machine code.
-
-Per sample, with :math:`\lambda_k \in \{\lambda, 1\}`:
-
-.. math::
-
-    \varepsilon &= y - \varphi^\top\theta \\
-    v &= P\varphi, \quad g = 1 / (\lambda_k + \varphi^\top v) \\
-    K &= g\, v, \quad \theta \leftarrow \theta + K\varepsilon \\
-    P &\leftarrow (P - g\, v v^\top) / \lambda_k
-
-Trace bound: the trace the step would give, :math:`(\mathrm{tr}P - g|v|^2)/\lambda`,
-costs O(n) from quantities already at hand. When it exceeds ``trace_max`` the step
-is taken with :math:`\lambda_k = 1` (forgetting switched off for that step, flag
-``WINDUP``): still an exact RLS step, just without forgetting, so the directions that
-are not excited keep their uncertainty instead of winding up. The kernel also keeps
-the noise accumulators :math:`V \leftarrow \lambda_k V + \varepsilon e_{post}` (the
-minimised weighted cost, :math:`e_{post} = \varepsilon\lambda_k g`) and
-:math:`W \leftarrow \lambda_k W + 1`.
+:class:`RLS` minimises the exponentially weighted squared error plus a ridge prior that
+is forgotten like the data. The recursion runs in the C kernel
+``canrls._kernels.rls_block_symmetric`` (``src/canrls/c/kernels_rls.h``: float64 and
+float32), so per-sample :meth:`RLS.update` and block :meth:`RLS.run` give the same bits
+whatever the block sizes. The cost, the symmetric and literal updates (what the literal
+one costs, measured), positive definiteness, the trace bound and the noise accumulators
+are in docs/architecture.md, *The float RLS*.
 """
 
 from __future__ import annotations
@@ -312,7 +236,8 @@ class RLS:
         (exponential windup, :math:`P \propto \lambda^{-N}`). Pass ``math.inf`` to
         disable the bound (then :math:`J_N` above is minimised exactly).
     update : {"symmetric", "literal"}, default "symmetric"
-        The covariance update; ``"literal"`` only for comparison (module docstring).
+        The covariance update; ``"literal"`` only for comparison (docs/architecture.md,
+        *The float RLS*).
     dtype : np.float64 or np.float32, default np.float64
         Arithmetic of the state and of the kernel. Inputs are converted to it.
 

@@ -1,82 +1,13 @@
 r"""State-variable filter: the low-pass ``F(s)`` and its derivative ``s F(s)``.
 
 Every regression equation of canrls is filtered by the same second-order low pass
-
-.. math::
-
-    F(s) = \frac{\omega_c^2}{s^2 + 2\zeta\omega_c s + \omega_c^2},
-    \qquad \omega_c = 2\pi f_c,
-
-realised as the two-state system
-
-.. math::
-
-    \dot x_1 = x_2, \qquad
-    \dot x_2 = -\omega_c^2 x_1 - 2\zeta\omega_c x_2 + \omega_c^2 u,
-
-so that ``x1 = F[u]`` and ``x2 = sF[u]``: the filtered signal and its filtered
-derivative, without differentiating a noisy measurement. Because ``F`` is linear and
-time invariant, filtering every term of an equation leaves the equation intact:
-``F[y] = sum_j theta_j F[phi_j]`` (derivative terms use ``sF`` on the signal they
-differentiate).
-
-Discretisation
---------------
-The system is discretised exactly with a matrix exponential computed once. The hold
-says how an input moves between samples, and it is a property of the signal, chosen
-per column:
-
-* ``"foh"`` (default): first-order (straight-line) hold, for samples of a continuous
-  quantity (speed, position, a measured current). ``x[k] = Ad x[k-1] + G0 u[k-1] + G1
-  u[k]``. Exact for ramps, so ``sF`` of a sampled ramp is its slope, and ``sF[w]``
-  matches ``F[dw/dt]`` for sampled smooth signals to ``O((w_signal dt)^2 (w_c dt)^2)``.
-* ``"zoh"``: zero-order hold, for a signal whose sample ``k`` is applied over
-  ``[t_k, t_k + dt)`` (a PWM voltage, an ideal current source): ``G1 = 0``. Exact for
-  such staircases. Used on a sampled continuous signal it is not: the filtered
-  derivative of a sampled ramp carries a gain error of about ``(w_c dt)^2 / 12`` (0.2 %
-  at 25 Hz and 1 kHz), and the signal lags half a sample behind the others.
-
-Filtering the target and the columns each with the hold that matches how the signal
-really moves keeps the filtered equation exact (up to the straight-line approximation
-of continuous signals); one hold for all of them shifts held and sampled signals half a
-sample against each other, which biases the estimates (by 10 % on a viscous friction
-in the simulated drive with an ideal current source).
-
-The filter starts at rest at the first sample it sees (``x = [u0, 0]``: as if the input
-had been constant before), which is linear in ``u`` and so keeps the filtered equation
-exact for value terms from the first sample; terms through ``sF`` settle within the
-filter transient (about ``4 / (zeta w_c)``).
-
-Columns are filtered sample by sample in one C kernel (``canrls._kernels.svf``, source
-``src/canrls/c/kernels.c``: per column, ``x1 = Ad00 x1 + Ad01 x2 + G0 u[k-1] + G1 u[k]``
-summed left to right, likewise ``x2``) with the state carried between calls, so any
-chunking of the input gives bit-identical output.
-
-Choosing the cutoff
--------------------
-Put ``cutoff_hz`` above the dynamics you want to identify (the bandwidth of the speed
-and current excitation, typically a few Hz to a few tens of Hz) and below the
-measurement noise and the PWM/current-loop ripple. The default 25 Hz suits a 1 kHz
-control rate. It must stay below the Nyquist frequency ``1 / (2 dt)`` (checked); keep
-it below about a tenth of the sample rate so that the sampled filter behaves like the
-continuous one.
-
-Gain bounds
------------
-For an input inside ``[lo, hi]`` (and a filter started inside it) with mid point
-``c`` and half span ``h``:
-
-* ``|F[u]| <= |c| + F_GAIN * h`` with ``F_GAIN = ||f||_1 = (1 + r) / (1 - r)``,
-  ``r = exp(-zeta pi / sqrt(1 - zeta^2))`` (1 for ``zeta >= 1``), about 1.09 at
-  ``zeta = 0.7071``;
-* ``|sF[u]| <= SF_GAIN * h`` with ``SF_GAIN = ||f'||_1`` (units 1/s), the total
-  variation of the impulse response ``f``: ``2 w_c exp(-zeta acos(zeta)/sqrt(1-zeta^2))
-  / (1 - r)`` for ``zeta < 1`` (0.953 ``w_c`` at ``zeta = 0.7071``) and twice the
-  peak of ``f`` otherwise.
-
-Both bounds hold for the sampled outputs with either hold, because the reconstructed
-input stays in ``[lo, hi]``. :func:`gain_bounds` returns them; the model uses them to choose the
-power-of-two normalisation of every regressor column.
+:math:`F(s) = \omega_c^2/(s^2 + 2\zeta\omega_c s + \omega_c^2)`, realised as a two-state
+system whose states are ``x1 = F[u]`` and ``x2 = sF[u]``: the filtered signal and its
+filtered derivative, without differentiating a noisy measurement. :class:`SVF` runs it,
+discretised exactly for each column's hold, in the C kernel ``canrls._kernels.svf``;
+:func:`gain_bounds` bounds its outputs for the normalisation. The discretisation, the
+holds, the choice of the cutoff and the bounds are in docs/effects.md, *The
+state-variable filter*.
 """
 
 from __future__ import annotations

@@ -40,7 +40,7 @@ import numpy as np
 from canrls.can.protocol import MessageCodec, Protocol, SignalCodec
 from canrls.errors import ConfigError
 from canrls.estimation.model import Equation, Model
-from canrls.estimation.pipeline import EstimatorSettings, Pipeline
+from canrls.estimation.pipeline import EquationEstimator, EstimatorSettings, Pipeline
 from canrls.estimation.svf import SVF, gain_bounds
 from canrls.signals import ROLES
 from canrls.target.qmath import MASK64, clog2
@@ -464,6 +464,168 @@ def _fx(bound: int, gamma: float) -> int:
     return min(fx, FX_MAX)
 
 
+class _Columns:
+    """The filters and columns of one build: a filter is made once and shared by every
+    column that reads it."""
+
+    def __init__(self, protocol: Protocol, roles: Mapping[str, Field],
+                 scales: Mapping[str, tuple[Fraction, Fraction]], gamma: float,
+                 dt: float) -> None:
+        self.protocol, self.roles, self.scales = protocol, roles, scales
+        self.gamma, self.dt = gamma, dt
+        self.filters: list[Filter] = []
+
+    def filter_of(self, kind: int, role: str, order: int, hold: int) -> int:
+        """The index of the filter of ``kind`` on ``role`` (made if new)."""
+        if kind == SRC_CONST:
+            # the constant 1 in Q30 with CONST_FX fraction bits more: no filter
+            key = Filter(kind, "", 0, 0, CONST_FX)
+        else:
+            if role not in self.roles:
+                raise TargetError(f"the model needs the {role} signal, which the mapping of "
+                                  f"{self.protocol.dbc_path.name} does not give")
+            f = self.roles[role]
+            bound = max(abs(f.lo), abs(f.hi)) if kind == SRC_RAW else 1 << 30
+            key = Filter(kind, role, order, hold, _fx(bound, self.gamma))
+        for i, f_ in enumerate(self.filters):
+            if f_ == key:
+                return i
+        self.filters.append(key)
+        return len(self.filters) - 1
+
+    def column(self, name: str, kind: int, role: str, order: int, hold: int, deriv: bool,
+               gain: Fraction, frac: int, s: int, adaptive: bool, pend: bool) -> Column:
+        """A column (or target) read from its filter's state into ``frac`` bits at ``2**-s``."""
+        fi = self.filter_of(kind, role, order, hold)
+        flt = self.filters[fi]
+        if kind == SRC_RAW:
+            k, o = self.scales[role]
+            K = gain * k
+            offset = 0 if deriv else math.floor(o * 2 ** flt.fx + Fraction(1, 2))
+        else:
+            K, offset = gain * Fraction(1, 1 << 30), 0
+        if deriv:
+            K /= Fraction(self.dt)
+        m, sh = _mantissa(K * Fraction(2) ** (frac - s - flt.fx))
+        if sh < 0:
+            raise TargetError(f"{name}: the filter's state cannot resolve this column finely "
+                              f"enough (multiplier shift {sh} < 0)")
+        return Column(name, fi, deriv, offset, m, sh, adaptive, pend, s)
+
+
+def _ticks(dt: float, tick_s: float) -> int:
+    """The control period in timestamp ticks."""
+    if not (dt > 0 and math.isfinite(dt)):
+        raise TargetError(f"the control period {dt!r} s must be > 0")
+    dt_ticks = round(dt / tick_s)
+    if dt_ticks < 2 or abs(dt_ticks * tick_s - dt) > 1e-3 * dt:
+        raise TargetError(f"the control period {dt} s is not a whole number of timestamp "
+                          f"ticks of {tick_s} s")
+    return dt_ticks
+
+
+def _selection(est: EquationEstimator, scales: Mapping[str, tuple[Fraction, Fraction]]
+               ) -> Selection:
+    """The sample selection (:class:`canrls.estimation.selection.SamplePolicy`) in the
+    raw speed's units."""
+    pol = est.policy
+    k_w, o_w = scales["speed"]
+    unit = abs(k_w) / Fraction(2) ** 16  # SI speed of one unit of W
+    min_w = math.ceil(Fraction(pol.min_speed) / unit) if pol.min_speed > 0 else 0
+    max_w = math.floor(Fraction(pol.max_speed) / unit) if math.isfinite(pol.max_speed) else -1
+    return Selection(int(pol.warmup), int(min_w), int(max_w), pol.min_speed > 0)
+
+
+def _equation(est: EquationEstimator, model: Model, settings: EstimatorSettings, dt: float,
+              columns: _Columns, pending: Mapping[str, Sequence[str]] | None,
+              param_info: list[tuple[int, int, int, int]]) -> EquationSpec:
+    """One equation's integers: its columns and target, selection, plan and prior
+    (``param_info`` gets a row per parameter)."""
+    eq = est.equation
+    frls = est.frls
+    cfg = frls.config
+    holds = eq.holds
+    sc = eq.scaling
+    pend = set((pending or {}).get(eq.name, ()))
+    own = eq.intrinsic
+    cols = []
+    for j, p in enumerate(eq.parameters):
+        kind, role, order = _source(eq, j, model)
+        cols.append(columns.column(p.name, kind, role, order, int(holds[j + 1] == "zoh"),
+                                   eq.derivative_mask[j], Fraction(1), cfg.phi.frac,
+                                   sc.columns[j], not own[j], p.name in pend))
+        param_info.append((int(p.effect_id), int(p.component), int(p.order),
+                           int(eq.index)))
+    trole = eq.target.signal
+    if trole not in ("current", "torque", "voltage"):
+        raise TargetError(f"the {eq.name} target {trole} is not a signal")
+    target = columns.column("target", SRC_RAW, trole, 0, int(holds[0] == "zoh"), False,
+                            Fraction(eq.target.gain), cfg.y.frac, sc.target, True,
+                            "target" in pend)
+    sel = _selection(est, columns.scales)
+    # the kernel: its plan with the trace bound of the target's rule
+    named = frls.constants
+    lam_q = Fraction(cfg.lam.to_int(Fraction(frls.lam)), 1 << cfg.lam.frac)
+    ktr = lam_q * Fraction(2) ** (cfg.P.frac - named["trace_ps"])
+    tw = min(cfg.P.bits, cfg.acc_bits - 3)
+    cap = (1 << (tw - 1)) - 1
+    ridge = tuple(Fraction(float(a)) for a in est.ridge)
+    terms = tuple(math.floor(ktr / r) for r in ridge)
+    follows = settings.trace_max is None
+    plan = dict(named)
+    if follows:
+        plan["trace_max_lam"] = min(sum(terms), cap)
+    floor = min(ridge)
+    first = Fraction(float(settings.alpha)) * Fraction(1, 256)
+    st = frls.state()
+    p0 = tuple(int(v) for v in np.diag(np.asarray(st["P"])))
+    # theta_max / 2 in theta words
+    half = math.floor(Fraction(settings.theta_max) / 2 * 2 ** cfg.theta.frac)
+    beta = min(1.0, dt / settings.rms_time_s)
+    rms_shift = max(0, round(-math.log2(beta)))
+    return EquationSpec(
+        name=eq.name, index=int(eq.index), columns=tuple(cols), target=target,
+        selection=sel, plan=plan, p0=p0, e0=int(st["P_exp"]), f_phi=cfg.phi.frac,
+        f_y=cfg.y.frac, f_theta=cfg.theta.frac, f_eps=cfg.eps.frac,
+        theta_lo=cfg.theta.lo, theta_hi=cfg.theta.hi, P_lo=cfg.P.lo, P_hi=cfg.P.hi,
+        phi_hi=cfg.phi.hi, lam=frls.lam, config=cfg, ridge=ridge, trace_follows=follows,
+        trace_terms=terms, trace_cap=cap, prior_floor=floor,
+        floor_term=math.floor(ktr / floor), first_ridge=first,
+        first_term=math.floor(ktr / first), theta_half=half, rms_shift=rms_shift,
+        exponents=tuple(sc.columns) + (sc.target,), parameters=eq.parameters)
+
+
+def _argument(roles: Mapping[str, Field], role_scale: tuple[Fraction, Fraction],
+              div: float) -> tuple[int, int, int]:
+    """``(m, b, sh)`` of the argument ``z = (r + o) k / div`` in Q24 = rsh(r m + b, sh)."""
+    # z = (r + o) k / div in Q24 = rsh(r m + b, sh)
+    k, o = role_scale
+    m, sh = _mantissa(k / Fraction(div) * 2 ** Z_FRAC)
+    b = math.floor(o * m + Fraction(1, 2))
+    f = roles["speed"]
+    if max(abs(f.lo), abs(f.hi)) * abs(m) + abs(b) >= 1 << 62:
+        raise TargetError(f"the speed's offset ({float(o):g} raw) is too large for the "
+                          f"integer path")
+    return m, b, sh
+
+
+def _phase(model: Model, position: tuple[Fraction, Fraction]) -> tuple[int, int]:
+    """The raw position's multiplier and offset to turns in Q64 (modulo 2^64)."""
+    k, o = position
+    if model.axis == "rotary":
+        turns = k / Fraction(2 * math.pi)
+    else:
+        if model.wrap is not None and Fraction(model.wrap) / Fraction(model.pitch) \
+                != round(Fraction(model.wrap) / Fraction(model.pitch)):
+            raise TargetError(f"{model.source}: a linear position that wraps at "
+                              f"{model.wrap} m, not a whole number of pitches "
+                              f"({model.pitch} m), is not available on the target")
+        turns = k / Fraction(model.pitch)
+    pm = math.floor(turns * 2 ** 64 + Fraction(1, 2))
+    po = math.floor(o * turns * 2 ** 64 + Fraction(1, 2))
+    return pm & MASK64, po & MASK64
+
+
 def build(model: Model, protocol: Protocol, settings: EstimatorSettings, dt: float, *,
           energy: Mapping[str, Sequence[float]] | None = None,
           pending: Mapping[str, Sequence[str]] | None = None,
@@ -478,149 +640,28 @@ def build(model: Model, protocol: Protocol, settings: EstimatorSettings, dt: flo
 
     :raises TargetError: something the target does not do (the message says what).
     """
-    if not (dt > 0 and math.isfinite(dt)):
-        raise TargetError(f"the control period {dt!r} s must be > 0")
-    dt_ticks = round(dt / tick_s)
-    if dt_ticks < 2 or abs(dt_ticks * tick_s - dt) > 1e-3 * dt:
-        raise TargetError(f"the control period {dt} s is not a whole number of timestamp "
-                          f"ticks of {tick_s} s")
+    dt_ticks = _ticks(dt, tick_s)
     messages, roles = _messages(protocol)
     pipe = Pipeline(model, dt, settings, energy, pending)
     A, G = _coefficients(model, dt)
     f_gain, sf_gain = gain_bounds(model.cutoff_hz, model.zeta)
     gamma = max(f_gain, sf_gain * dt, 1.0)
     scales = {r: _scale(protocol, r, f.bias) for r, f in roles.items()}
+    columns = _Columns(protocol, roles, scales, gamma, dt)
 
-    filters: list[Filter] = []
-
-    def filter_of(kind: int, role: str, order: int, hold: int) -> int:
-        if kind == SRC_CONST:
-            # the constant 1 in Q30 with CONST_FX fraction bits more: no filter
-            key = Filter(kind, "", 0, 0, CONST_FX)
-        else:
-            if role not in roles:
-                raise TargetError(f"the model needs the {role} signal, which the mapping of "
-                                  f"{protocol.dbc_path.name} does not give")
-            f = roles[role]
-            bound = max(abs(f.lo), abs(f.hi)) if kind == SRC_RAW else 1 << 30
-            key = Filter(kind, role, order, hold, _fx(bound, gamma))
-        for i, f_ in enumerate(filters):
-            if f_ == key:
-                return i
-        filters.append(key)
-        return len(filters) - 1
-
-    def column(name: str, kind: int, role: str, order: int, hold: int, deriv: bool,
-               gain: Fraction, frac: int, s: int, adaptive: bool, pend: bool) -> Column:
-        fi = filter_of(kind, role, order, hold)
-        flt = filters[fi]
-        if kind == SRC_RAW:
-            k, o = scales[role]
-            K = gain * k
-            offset = 0 if deriv else math.floor(o * 2 ** flt.fx + Fraction(1, 2))
-        else:
-            K, offset = gain * Fraction(1, 1 << 30), 0
-        if deriv:
-            K /= Fraction(dt)
-        m, sh = _mantissa(K * Fraction(2) ** (frac - s - flt.fx))
-        if sh < 0:
-            raise TargetError(f"{name}: the filter's state cannot resolve this column finely "
-                              f"enough (multiplier shift {sh} < 0)")
-        return Column(name, fi, deriv, offset, m, sh, adaptive, pend, s)
-
-    eqs: list[EquationSpec] = []
     param_info: list[tuple[int, int, int, int]] = []
-    for est in pipe.estimators:
-        eq = est.equation
-        frls = est.frls
-        cfg = frls.config
-        holds = eq.holds
-        sc = eq.scaling
-        pend = set((pending or {}).get(eq.name, ()))
-        own = eq.intrinsic
-        cols = []
-        for j, p in enumerate(eq.parameters):
-            kind, role, order = _source(eq, j, model)
-            cols.append(column(p.name, kind, role, order, int(holds[j + 1] == "zoh"),
-                               eq.derivative_mask[j], Fraction(1), cfg.phi.frac,
-                               sc.columns[j], not own[j], p.name in pend))
-            param_info.append((int(p.effect_id), int(p.component), int(p.order),
-                               int(eq.index)))
-        trole = eq.target.signal
-        if trole not in ("current", "torque", "voltage"):
-            raise TargetError(f"the {eq.name} target {trole} is not a signal")
-        target = column("target", SRC_RAW, trole, 0, int(holds[0] == "zoh"), False,
-                        Fraction(eq.target.gain), cfg.y.frac, sc.target, True,
-                        "target" in pend)
-        # selection (canrls.estimation.selection.SamplePolicy)
-        pol = est.policy
-        k_w, o_w = scales["speed"]
-        unit = abs(k_w) / Fraction(2) ** 16  # SI speed of one unit of W
-        min_w = math.ceil(Fraction(pol.min_speed) / unit) if pol.min_speed > 0 else 0
-        max_w = math.floor(Fraction(pol.max_speed) / unit) if math.isfinite(pol.max_speed) else -1
-        sel = Selection(int(pol.warmup), int(min_w), int(max_w), pol.min_speed > 0)
-        # the kernel: its plan with the trace bound of the target's rule
-        named = frls.constants
-        lam_q = Fraction(cfg.lam.to_int(Fraction(frls.lam)), 1 << cfg.lam.frac)
-        ktr = lam_q * Fraction(2) ** (cfg.P.frac - named["trace_ps"])
-        tw = min(cfg.P.bits, cfg.acc_bits - 3)
-        cap = (1 << (tw - 1)) - 1
-        ridge = tuple(Fraction(float(a)) for a in est.ridge)
-        terms = tuple(math.floor(ktr / r) for r in ridge)
-        follows = settings.trace_max is None
-        plan = dict(named)
-        if follows:
-            plan["trace_max_lam"] = min(sum(terms), cap)
-        floor = min(ridge)
-        first = Fraction(float(settings.alpha)) * Fraction(1, 256)
-        st = frls.state()
-        p0 = tuple(int(v) for v in np.diag(np.asarray(st["P"])))
-        # theta_max / 2 in theta words
-        half = math.floor(Fraction(settings.theta_max) / 2 * 2 ** cfg.theta.frac)
-        beta = min(1.0, dt / settings.rms_time_s)
-        rms_shift = max(0, round(-math.log2(beta)))
-        eqs.append(EquationSpec(
-            name=eq.name, index=int(eq.index), columns=tuple(cols), target=target,
-            selection=sel, plan=plan, p0=p0, e0=int(st["P_exp"]), f_phi=cfg.phi.frac,
-            f_y=cfg.y.frac, f_theta=cfg.theta.frac, f_eps=cfg.eps.frac,
-            theta_lo=cfg.theta.lo, theta_hi=cfg.theta.hi, P_lo=cfg.P.lo, P_hi=cfg.P.hi,
-            phi_hi=cfg.phi.hi, lam=frls.lam, config=cfg, ridge=ridge, trace_follows=follows,
-            trace_terms=terms, trace_cap=cap, prior_floor=floor,
-            floor_term=math.floor(ktr / floor), first_ridge=first,
-            first_term=math.floor(ktr / first), theta_half=half, rms_shift=rms_shift,
-            exponents=tuple(sc.columns) + (sc.target,), parameters=eq.parameters))
+    eqs = [_equation(est, model, settings, dt, columns, pending, param_info)
+           for est in pipe.estimators]
 
-    def arg(role_scale: tuple[Fraction, Fraction], div: float) -> tuple[int, int, int]:
-        # z = (r + o) k / div in Q24 = rsh(r m + b, sh)
-        k, o = role_scale
-        m, sh = _mantissa(k / Fraction(div) * 2 ** Z_FRAC)
-        b = math.floor(o * m + Fraction(1, 2))
-        f = roles["speed"]
-        if max(abs(f.lo), abs(f.hi)) * abs(m) + abs(b) >= 1 << 62:
-            raise TargetError(f"the speed's offset ({float(o):g} raw) is too large for the "
-                              f"integer path")
-        return m, b, sh
-
+    filters = columns.filters
     uses = {f.kind for f in filters}
     tanh_arg = stribeck_arg = phase = None
     if uses & {SRC_TANH, SRC_STRIBECK}:
-        tanh_arg = arg(scales["speed"], model.coulomb_band)
+        tanh_arg = _argument(roles, scales["speed"], model.coulomb_band)
     if SRC_STRIBECK in uses:
-        stribeck_arg = arg(scales["speed"], model.stribeck_speed)
+        stribeck_arg = _argument(roles, scales["speed"], model.stribeck_speed)
     if uses & {SRC_SIN, SRC_COS}:
-        k, o = scales["position"]
-        if model.axis == "rotary":
-            turns = k / Fraction(2 * math.pi)
-        else:
-            if model.wrap is not None and Fraction(model.wrap) / Fraction(model.pitch) \
-                    != round(Fraction(model.wrap) / Fraction(model.pitch)):
-                raise TargetError(f"{model.source}: a linear position that wraps at "
-                                  f"{model.wrap} m, not a whole number of pitches "
-                                  f"({model.pitch} m), is not available on the target")
-            turns = k / Fraction(model.pitch)
-        pm = math.floor(turns * 2 ** 64 + Fraction(1, 2))
-        po = math.floor(o * turns * 2 ** 64 + Fraction(1, 2))
-        phase = (pm & MASK64, po & MASK64)
+        phase = _phase(model, scales["position"])
     k_w, o_w = scales["speed"]
     w_offset = math.floor(o_w * 2 ** W_FRAC + Fraction(1, 2))
     publish_every = max(1, round(publish_s / dt))

@@ -1,4 +1,4 @@
-r"""The whole estimator as the target runs it, in integers: the bit-exact specification.
+"""The whole estimator as the target runs it, in integers: the bit-exact specification.
 
 :class:`TargetEstimator` takes the drive's CAN frames one at a time (ID, payload bytes,
 receive time in ticks) and runs, for the integers of a
@@ -6,34 +6,9 @@ receive time in ticks) and runs, for the integers of a
 the same names, the same order of operations, each line with its equation beside it.
 Python integers do not overflow; where the C needs a split or a bound to stay in
 ``int64_t``, :mod:`canrls.target.qmath` says how and the bound is built into the model.
-
-Per frame (:meth:`TargetEstimator.frame`)
-    1. **decode**: a mapped ID; its length; the E2E CRC-8 (byte 0 over the ID and bytes
-       1..); the alive counter (one equal to the last accepted one is ``repeated``);
-       every mapped field's raw value within its DBC range (``range``). Rejected frames
-       are counted by reason and go no further.
-    2. **pair**: the frames of one control period (the same alive counter when every
-       message has one of the same width, and within half a period of the first)
-       make a sample when every mapped message has given one; a period that another
-       one interrupts is dropped (``unpaired``), a second frame of a message in a period
-       too (``duplicated``). The sample's time is that of its last frame.
-
-Per sample (:meth:`TargetEstimator.sample`)
-    3. **restart** the filter bank and the warm-ups when the time since the last sample
-       is negative or more than 1.5 periods: the target does not fill gaps.
-    4. **filter**: every input of the bank (a raw field, or tanh, the Stribeck shape, sin
-       and cos of it in Q30) through the state-variable filter
-       ``x = A x + (G0 u[k-1] + G1 u[k]) 2^FX``, rounded once per state.
-    5. per equation, **select**: the warm-up after a restart or a speed out of limits,
-       the speed limits, a reversal between two samples;
-    6. on a used sample, **normalise**: the columns and the target in their Q formats;
-       a data-scaled one above full scale, or a pending one seen for the first time,
-       changes its exponent first (:meth:`TargetEstimator._adapt`, the rule of
-       ``docs/architecture.md``);
-    7. **update** the kernel (:class:`~canrls.estimation.fixed.FixedRLS`, the C
-       ``canrls_update_q31``), and the running residual mean square.
-    8. every ``publish_every`` samples a **publication** is due (:meth:`publish`): the
-       parameter and status frames of canrls' DBC, float32 fields built from the integers.
+The steps per frame (:meth:`TargetEstimator.frame`: decode, pair) and per sample
+(:meth:`TargetEstimator.sample`: restart, filter, select, normalise, update, publish)
+are listed in docs/target.md, *Per frame and per sample*.
 """
 
 from __future__ import annotations

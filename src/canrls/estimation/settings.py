@@ -1,0 +1,168 @@
+"""The estimator's settings (:class:`EstimatorSettings`) and the limits of the
+normalisation and of the ridge prior that the pipeline and the front end share."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from canrls.errors import ConfigError
+from canrls.estimation.fixed import FixedConfig, QFormat
+
+__all__ = [
+    "ALPHA_MAX",
+    "ALPHA_MIN",
+    "ENERGY_FLOOR",
+    "MIN_ENERGY",
+    "RESCALE_HEADROOM",
+    "RESCALE_LIMIT",
+    "RMS_HEADROOM",
+    "EstimatorSettings",
+    "exponent_for",
+]
+
+F64 = npt.NDArray[np.float64]
+
+#: Smallest column energy (mean square, normalised units) the ridge is scaled with: a
+#: column with less on the calibration window was not excited there, and its prior
+#: then weighs as for a column at 2**-10 of full scale (P0 = 2**20/alpha, which the
+#: fixed-point formats still hold for up to 12 columns).
+ENERGY_FLOOR = 2.0 ** -20
+#: Smallest energy (normalised mean square) a column's prior is scaled with: a column
+#: with an RMS of 1/32 of full scale, the least the calibration's RMS rule gives a
+#: data-scaled column; a column bounded by its own function that the window barely
+#: excites and a pending one until it is seen take it. It bounds P0 by 2**10/alpha,
+#: which the fixed-point formats hold.
+MIN_ENERGY = 2.0 ** -10
+#: The calibration puts the window's RMS of each data-scaled column (and the first value
+#: of a pending one) at most 1/RMS_HEADROOM of full scale (:func:`exponent_for`): room
+#: for crest factors and growth, normalised energies in (2**-10, 2**-8].
+RMS_HEADROOM = 16.0
+#: A used row whose normalised value of a data-scaled column (or of the target) exceeds
+#: this in magnitude has outgrown its exponent: the estimator rescales it first, exactly.
+RESCALE_LIMIT = 1.0
+#: After a rescale, the value that asked for it is at most 1/RESCALE_HEADROOM of full scale.
+RESCALE_HEADROOM = 4.0
+
+
+def exponent_for(x: float, headroom: float) -> int:
+    """The smallest ``s`` with ``headroom * |x| <= 2**s`` (``x`` finite, not zero)."""
+    m, e = math.frexp(headroom * abs(x))
+    return e - 1 if m == 0.5 else e
+
+
+#: The ridge weight ``alpha`` (the prior weighs like ``alpha`` samples of each column)
+#: from one billionth of a sample to a billion samples: P0 = diag(1/(alpha e_j)) then
+#: has a fixed-point format at any energy from ENERGY_FLOOR to 1.
+ALPHA_MIN, ALPHA_MAX = 1e-9, 1e9
+
+
+# ------------------------------------------------------------------------ settings
+@dataclass(frozen=True)
+class EstimatorSettings:
+    """Estimator settings shared by the float and the fixed-point RLS.
+
+    Attributes
+    ----------
+    lam : forgetting factor :math:`\\lambda \\in (1/2, 1]` (memory ``1/(1-lam)`` samples)
+    alpha : ridge weight: the prior weighs like ``alpha`` samples of each column
+        (:math:`P_0 = \\mathrm{diag}(1/(\\alpha\\,\\bar e_j))` with the column's mean
+        square :math:`\\bar e_j` on the calibration window,
+        :class:`~canrls.estimation.pipeline.Pipeline`); without column energies,
+        :math:`P_0 = I/\\alpha` in normalised units
+    trace_max : bound on trace P (``None``: the prior's trace)
+    calibration_s : seconds of samples at the start of a stream on which the front end
+        (:mod:`canrls.processor`) measures the signal ranges the configuration does not
+        give and the column energies of the prior; frozen and recorded
+    word_bits, acc_bits, input_bits : fixed-point words (``input_bits=None``: ``word_bits``)
+    theta_max : bound of the normalised parameters for the fixed-point theta format
+    fixed_overrides : Q formats overriding the automatic choice (``{"P": QFormat(32, 24)}``)
+    warmup_s : seconds of filter warm-up not used for estimation (``None``: 5 time
+        constants of the SVF, ``5 / (zeta * wc)``)
+    gap_periods : a sample-time step larger than this many periods restarts the filter
+    rms_time_s : time constant of the running residual RMS reported live [s]
+    max_phase_step : largest phase advance per sample [rad] of the fastest
+        position-periodic column (``k * |omega| * dt`` for ``cogging:k``, unbalance
+        ``k = 1``) at which a sample is used. Between samples the filter joins the
+        samples of ``sin(k theta)`` by straight lines; that underestimates a sinusoid
+        advancing by ``d`` rad per sample by about ``d^2/12``; samples faster than the
+        limit (and the filter's settling after them) are skipped. Default ``inf`` (off):
+        at such speeds the filter attenuates the periodic column so much that the
+        error is negligible, while skipping the samples costs the speed-dependent
+        parameters their fast data (``viscous.B`` came back 4-16 % off with
+        ``cogging:24``/``36`` and a 0.3 rad guard).
+    min_speed : samples with ``|omega|`` below this [rad/s, m/s] (and the filter's
+        settling after them) are not used when the model has Coulomb or Stribeck
+        friction: near standstill the measured speed's sign is noise and the drive
+        sticks, which ``sgn_e`` does not model. ``None``: five times the Coulomb band.
+    """
+
+    lam: float = 1.0
+    alpha: float = 0.01
+    trace_max: float | None = None
+    word_bits: int = 32
+    acc_bits: int = 64
+    input_bits: int | None = None
+    theta_max: float = 16.0
+    fixed_overrides: Mapping[str, QFormat] = field(default_factory=dict)
+    warmup_s: float | None = None
+    gap_periods: float = 3.5
+    rms_time_s: float = 1.0
+    max_phase_step: float = math.inf
+    min_speed: float | None = None
+    calibration_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.lam, int | float) and 0.5 < self.lam <= 1.0):
+            raise ConfigError(f"estimator.lambda = {self.lam!r}: must be in (0.5, 1]")
+        if not (isinstance(self.alpha, int | float) and self.alpha > 0 and
+                math.isfinite(self.alpha)):
+            raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be > 0")
+        if not ALPHA_MIN <= self.alpha <= ALPHA_MAX:
+            # P0 = diag(1 / (alpha e_j)), 2**-10 <= e_j <= 1: beyond these the fixed-point
+            # format of P has no exponent for P0 (and the prior means nothing or all)
+            raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be from {ALPHA_MIN:g} "
+                              f"to {ALPHA_MAX:g} (the prior weighs like alpha samples of "
+                              f"each column)")
+        if self.warmup_s is not None and not (isinstance(self.warmup_s, int | float)
+                                              and 0.0 <= self.warmup_s < math.inf):
+            raise ConfigError(f"estimator.warmup_s = {self.warmup_s!r}: must be >= 0 seconds")
+        if self.gap_periods <= 1.0:
+            raise ConfigError(f"estimator.gap_periods = {self.gap_periods!r}: must be > 1")
+        if not self.max_phase_step > 0:
+            raise ConfigError(f"estimator.max_phase_step = {self.max_phase_step!r}: must be > 0")
+        if self.rms_time_s <= 0:
+            raise ConfigError(f"estimator.rms_time_s = {self.rms_time_s!r}: must be > 0")
+        if not (self.calibration_s > 0 and math.isfinite(self.calibration_s)):
+            raise ConfigError(
+                f"estimator.calibration_s = {self.calibration_s!r}: must be > 0 seconds")
+
+    def ridge(self, n: int, energy: npt.ArrayLike | None = None) -> F64:
+        r"""The ridge weight of each of ``n`` columns: :math:`\alpha_j = \alpha\,\bar e_j`.
+
+        ``energy`` holds the columns' mean squares :math:`\bar e_j` in normalised units
+        (``None``: 1 each, the prior :math:`P_0 = I/\alpha`), floored at
+        :data:`ENERGY_FLOOR`. The penalty :math:`\alpha\sum_j \bar e_j\theta_j^2` is
+        then ``alpha`` times the mean square of each term :math:`\varphi_j\theta_j`:
+        the same in any normalisation, so the scaling changes rounding, never the prior.
+        """
+        if energy is None:
+            return np.full(n, float(self.alpha))
+        e = np.asarray(energy, dtype=np.float64)
+        if e.shape != (n,) or not np.all(np.isfinite(e)):
+            raise ConfigError(f"column energies {energy!r}: need {n} finite values")
+        # alpha_j = alpha * max(e_j, floor)
+        return float(self.alpha) * np.maximum(e, ENERGY_FLOOR)
+
+    def fixed_config(self, n: int, ridge: npt.ArrayLike | None = None) -> FixedConfig:
+        """The automatic fixed-point configuration for ``n`` parameters (``ridge``: the
+        weights :math:`\alpha_j`, default ``alpha`` for all)."""
+        alpha = self.alpha if ridge is None else ridge
+        return FixedConfig.auto(n, alpha, self.lam, theta_max=self.theta_max,
+                                word_bits=self.word_bits, acc_bits=self.acc_bits,
+                                input_bits=self.input_bits, trace_max=self.trace_max,
+                                **dict(self.fixed_overrides))
