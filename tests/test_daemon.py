@@ -560,10 +560,13 @@ def test_full_transmit_queue_drops_and_counts() -> None:
             pass
         assert d.wait_for(lambda x: x.stats().frames >= 4000 and x.stats().tx_dropped > 50, 30)
         assert d.pipeline.samples > 1500  # the estimator was never held up
-        assert d.status().tx_dropped == d.stats().tx_dropped and not d.status().bus_fault
+        assert not d.status().bus_fault  # a full queue is not a bus fault
     finally:
         d.stop()
         feeder.shutdown()
+    # once stopped the count no longer moves: the status report's is the stats' (while
+    # it ran, a drop between the two reads made them differ by one or two)
+    assert d.status().tx_dropped == d.stats().tx_dropped
 
 
 def test_vanished_interface_is_reopened_with_backoff() -> None:
