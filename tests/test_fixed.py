@@ -39,7 +39,8 @@ UPDATES = ["symmetric", "literal", "naive"]
 
 # --------------------------------------------------------------------- helpers
 def float_rls(Phi: F64, Y: F64, lam: float, alpha: float, trace_max: float) -> F64:
-    """Final estimate of the float64 reference RLS (canrls.estimation.rls, or the recursion here)."""
+    """Final estimate of the float64 reference RLS (canrls.estimation.rls, or the
+    recursion here)."""
     try:
         from canrls.estimation.rls import RLS
     except ImportError:  # pragma: no cover - only before canrls.estimation.rls exists

@@ -29,8 +29,6 @@ pytest.importorskip("distributed")
 pytest.importorskip("sqlalchemy")
 pytest.importorskip("alembic")
 
-from postgres import postgres_server  # noqa: E402
-
 from canrls.cli.fleet import rank_candidates  # noqa: E402
 from canrls.cli.main import main  # noqa: E402
 from canrls.fleet import detect  # noqa: E402
@@ -41,6 +39,7 @@ from canrls.fleet.ingest import JobConfig, ingest, model_key  # noqa: E402
 from canrls.fleet.records import STATUS_ERROR, STATUS_OK  # noqa: E402
 from canrls.fleet.sources import LogSource, from_manifest, from_pattern  # noqa: E402
 from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
+from postgres import postgres_server  # noqa: E402
 
 DRIVES, RECORDINGS, DURATION, SEED = 50, 10, 3.0, 1
 CONFIG = JobConfig(effects=FLEET_EFFECTS, kt=FLEET_KT)
@@ -401,7 +400,8 @@ def test_ingest_cli_in_process_with_a_pattern_and_errors(fleet: dict[str, Any], 
     assert main(argv) == 0
     assert capsys.readouterr().out.startswith("4 logs: 0 stored, 4 already")
     assert main([*argv, "--retry-errors"]) == 0
-    assert capsys.readouterr().out.startswith("4 logs: 0 stored, 3 already in the history, 1 errors")
+    assert capsys.readouterr().out.startswith(
+        "4 logs: 0 stored, 3 already in the history, 1 errors")
 
 
 @pytest.mark.parametrize(("argv", "message"), [

@@ -22,12 +22,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from cli_tool import cli_error
 from canrls.c_export import frames_c, load_source
 from canrls.cli.main import main
 from canrls.ctext import MAX_TEXT, c_comment, c_identifier, c_int, c_string, c_uint
 from canrls.errors import ConfigError
 from canrls.estimation.pipeline import Pipeline
+from cli_tool import cli_error
 
 ROOT = Path(__file__).resolve().parent.parent
 DBC = ROOT / "dbc" / "canrls.dbc"

@@ -24,12 +24,12 @@ from typing import Any
 import pytest
 
 from blocking import in_thread, unblock_fifo
-from cli_tool import cli_error
 from canrls.can.logs import LogReadStats, read_frames
 from canrls.cli.main import main
 from canrls.config import read_toml
 from canrls.errors import ConfigError, LogFormatError
 from canrls.files import MAX_LINE, LineBound, atomic_writer, open_regular, read_bytes
+from cli_tool import cli_error
 
 ROOT = Path(__file__).resolve().parent.parent
 DBC = ROOT / "dbc" / "canrls.dbc"

@@ -13,13 +13,13 @@ import can
 import numpy as np
 import pytest
 
-from cli_tool import cli_error
 from canrls.can.frameblock import MAX_DATA_LENGTH, FrameBlock
 from canrls.cli.main import INTERNAL_ERROR, main
 from canrls.config import MAX_DEPTH, load_config, read_toml
 from canrls.errors import ConfigError, DecodeError, ExpressionError
 from canrls.estimation.expr import compile_expression
 from canrls.estimation.svf import MAX_TIME_CONSTANT, SVF, ZETA_RANGE
+from cli_tool import cli_error
 
 USER = ('[model]\neffects = ["inertia", "viscous", "coulomb", "user:d"]\n'
         '[[model.terms]]\nname = "d"\nexpr = "{expr}"\n{extra}\n')

@@ -72,9 +72,8 @@ def _motorola(d: Path, noise: bool = True) -> tuple[Path, list[str]]:
 
 
 def _cia402(d: Path) -> Path:
-    from test_torque_drive import _cia402_log
-
     from canrls.sim.scenario import simulate
+    from test_torque_drive import _cia402_log
 
     log = d / "cia402.log"
     _cia402_log(simulate(scenario("standard", effects="inertia,viscous,coulomb,unbalance",

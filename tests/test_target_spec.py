@@ -114,7 +114,7 @@ def test_the_filter_bank_follows_the_float_filter() -> None:
     fi = [i for i, fl in enumerate(tm.filters) if fl.role == "speed"][0]
     fx = tm.filters[fi].fx
     xs, vs = [], []
-    for k, v in enumerate(w.tolist()):
+    for v in w.tolist():
         est.raw = {"current": 0, "speed": v}
         est._filter(est._inputs())  # one sample through the bank (no estimator)
         xs.append(est.x1[fi])

@@ -55,7 +55,8 @@ class WholeError(RuntimeError):
 def _run(cmd: list[str], **kw: object) -> subprocess.CompletedProcess[str]:
     r = subprocess.run(cmd, capture_output=True, text=True, **kw)  # type: ignore[call-overload]
     if r.returncode != 0:
-        raise WholeError(f"{' '.join(map(str, cmd))} failed ({r.returncode}):\n{r.stdout}{r.stderr}")
+        raise WholeError(f"{' '.join(map(str, cmd))} failed ({r.returncode}):\n"
+                         f"{r.stdout}{r.stderr}")
     return r  # type: ignore[no-any-return]
 
 
@@ -133,8 +134,8 @@ def count(elf: Path, work: Path, kernel_obj: Path, timeout: float = 1800.0) -> C
     if not exe.exists():
         _run(["cc", "-O2", "-o", str(exe), str(COUNTER)])
     syms = _symbols(elf)
-    names = [ln.split()[-1] for ln in _run(["arm-none-eabi-nm", str(kernel_obj)]).stdout.splitlines()
-             if len(ln.split()) == 3 and ln.split()[1] in "tT"]
+    nm = _run(["arm-none-eabi-nm", str(kernel_obj)]).stdout.splitlines()
+    names = [ln.split()[-1] for ln in nm if len(ln.split()) == 3 and ln.split()[1] in "tT"]
     ranges: list[str] = []
     for name in [*names, "memset", "memcpy"]:
         if name in syms:

@@ -67,7 +67,6 @@ def run(args: argparse.Namespace) -> int:
     if not args.kernel_only:
         from canrls.target.export import target_texts
         from canrls.target.load import load, target_model
-
         from canrls.target.model import TargetError
 
         src = load(args.model, args.dt)

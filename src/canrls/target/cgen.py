@@ -220,7 +220,7 @@ def model_files(tm: TargetModel, source: str) -> tuple[str, str]:
     init = [f".nmsg = {_u(len(tm.messages), 'messages')}",
             f".nfilters = {_u(len(tm.filters), 'filters')}",
             f".neq = {_u(len(tm.equations), 'equations')}",
-            f".nparams = CANRLS_MODEL_NPARAMS", ".messages = messages",
+            ".nparams = CANRLS_MODEL_NPARAMS", ".messages = messages",
             ".roles = {\n        " + ",\n        ".join(roles) + "}",
             f".match_counters = {match}u",
             f".dt_ticks = {_i(tm.dt_ticks, 'period')}", f".gap_ticks = {_i(tm.gap_ticks, 'gap')}",

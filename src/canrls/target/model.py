@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from canrls.can.protocol import MessageCodec, Protocol, SignalCodec
+from canrls.can.protocol import Protocol, SignalCodec
 from canrls.errors import ConfigError
 from canrls.estimation.model import Equation, Model
 from canrls.estimation.pipeline import EquationEstimator, EstimatorSettings, Pipeline
@@ -46,8 +46,9 @@ from canrls.signals import ROLES
 from canrls.target.qmath import MASK64, clog2
 
 __all__ = ["SRC_RAW", "SRC_TANH", "SRC_STRIBECK", "SRC_SIN", "SRC_COS", "SRC_CONST",
-           "SOURCE_NAMES", "Field", "Message", "Filter", "OutFrame", "OUT_FRAMES", "out_frames", "Column", "Selection", "EquationSpec",
-           "TargetModel", "build", "FX_MAX", "X_BITS", "TargetError"]
+           "SOURCE_NAMES", "Field", "Message", "Filter", "OutFrame", "OUT_FRAMES", "out_frames",
+           "Column", "Selection", "EquationSpec", "TargetModel", "build", "FX_MAX", "X_BITS",
+           "TargetError"]
 
 #: filter inputs (sources)
 SRC_RAW, SRC_TANH, SRC_STRIBECK, SRC_SIN, SRC_COS, SRC_CONST = range(6)

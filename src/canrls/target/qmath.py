@@ -27,9 +27,9 @@ from fractions import Fraction
 
 from canrls.target import tables
 
-__all__ = ["ONE_Q30", "MASK32", "MASK64", "F32_SAT", "F32_NAN", "rsh", "mul_rsh", "clog2",
-           "isqrt", "dyadic", "floor_scaled", "ceil_scaled", "sat", "scale_p64", "table_eval", "tanh_q24", "exp2_neg_q24", "exp_neg_q24",
-           "sincos_q64", "f32_bits", "LOG2E_Q30"]
+__all__ = ["ONE_Q30", "MASK32", "MASK64", "F32_SAT", "F32_NAN", "rsh", "mul_rsh", "clog2", "isqrt",
+           "dyadic", "floor_scaled", "ceil_scaled", "sat", "scale_p64", "table_eval", "tanh_q24",
+           "exp2_neg_q24", "exp_neg_q24", "sincos_q64", "f32_bits", "LOG2E_Q30"]
 
 #: 1.0 in Q30
 ONE_Q30 = 1 << 30
