@@ -282,3 +282,27 @@ def test_a_user_term_is_refused_with_the_reason(tmp_path: Path,
     assert main(["export-c", "--model", str(cfg), "--out", str(tmp_path / "k"),
                  "--kernel-only"]) == 0
     assert not (tmp_path / "k" / "canrls_target.c").exists()
+
+
+def test_the_whole_estimator_is_written_only_into_a_directory(
+        drives: dict[str, dict[str, Any]], tmp_path: Path) -> None:
+    """export_target, called on its own, refuses an output that is a file (as export_c
+    does) and replaces a link planted at a name instead of writing through it."""
+    from canrls.errors import ConfigError
+    from canrls.target.export import export_target
+    from canrls.target.load import load, target_model
+
+    src = load(drives["own"]["saved"])
+    tm = target_model(src)
+    a_file = tmp_path / "out"
+    a_file.write_text("precious")
+    with pytest.raises(ConfigError, match="exists and is a regular file, not a directory"):
+        export_target(src, a_file, tm)
+    assert a_file.read_text() == "precious"
+    out = tmp_path / "fw"
+    out.mkdir()
+    precious = tmp_path / "precious.txt"
+    precious.write_text("precious")
+    (out / "README.md").symlink_to(precious)
+    export_target(src, out, tm)
+    assert precious.read_text() == "precious" and not (out / "README.md").is_symlink()

@@ -24,8 +24,6 @@ of ``canrls fit --save-model``) gives the scaling frozen by its calibration.
 from __future__ import annotations
 
 import math
-import os
-import stat
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib import resources
@@ -43,7 +41,7 @@ from canrls.errors import ConfigError
 from canrls.estimation.fixed import FixedRLS
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
-from canrls.files import atomic_writer, check_path, kind
+from canrls.files import write_texts
 
 __all__ = ["KERNEL_FILES", "PLAN_64", "Export", "plan_c", "c_int", "export_c", "frames_c"]
 
@@ -284,24 +282,6 @@ def frames_c(dbc: str | Path = DEFAULT_DBC) -> tuple[str, str]:
     return header, src
 
 
-def _output_dir(out: Path, what: str) -> Path:
-    """``out`` made a directory (with its parents), refused when something else is there."""
-    out = check_path(out, what)
-    try:
-        st = os.stat(out)  # a link to a directory is the user's choice: followed
-    except FileNotFoundError:
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise ConfigError(f"{what}: cannot make the directory: {e.strerror or e}") from e
-        return out
-    except OSError as e:
-        raise ConfigError(f"{what}: {e.strerror or e}") from e
-    if not stat.S_ISDIR(st.st_mode):
-        raise ConfigError(f"{what}: exists and is {kind(st.st_mode)}, not a directory")
-    return out
-
-
 def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
              dt: float | None = None, energy: Mapping[str, Sequence[float]] | None = None,
              source: str = "the configuration", what: str | None = None,
@@ -309,7 +289,7 @@ def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
     """Write the kernel, the configuration of ``model`` (default: the configuration's) and
     the frame codecs into the directory ``out`` (made if missing; ``what`` names it in
     errors, default the path); see the module docstring. Each file is written to a
-    temporary and renamed (:func:`canrls.files.atomic_writer`).
+    temporary and renamed (:func:`canrls.files.write_texts`).
 
     ``energy`` (``{equation: column energies}``, a calibration's) scales the prior as the
     service does after its calibration window; without it the prior is the ridge alone
@@ -333,16 +313,8 @@ def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
         # feedback is read with (a user's DBC has none of them)
         fh, fc = frames_c(DEFAULT_DBC)
         texts += [("canrls_frames.h", fh), ("canrls_frames.c", fc)]
-    out = _output_dir(Path(out), label)
-    files: list[Path] = []
-    for name, text in texts:
-        p = out / name
-        # a temporary beside it, renamed: a link planted at the name is replaced, never
-        # written through
-        with atomic_writer(p, f"{label}: {name}") as f:
-            f.write(text.encode("utf-8"))
-        files.append(p)
-    return Export(out, tuple(files), tuple(e.equation.name for e in pipeline.estimators))
+    files = write_texts(out, texts, label)
+    return Export(Path(out), tuple(files), tuple(e.equation.name for e in pipeline.estimators))
 
 
 def load_source(path: str | Path) -> tuple[AppConfig, Model | None,

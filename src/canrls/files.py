@@ -27,7 +27,7 @@ import io
 import os
 import secrets
 import stat
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
@@ -35,7 +35,7 @@ from canrls.errors import CanrlsError, ConfigError
 
 __all__ = ["MAX_LINE", "MAX_CONFIG_BYTES", "MAX_DBC_BYTES", "MAX_MODEL_BYTES", "check_path",
            "kind", "open_regular", "read_bytes", "read_text", "LineBound", "atomic_writer",
-           "check_writable", "open_for_writing", "temporary_name"]
+           "check_writable", "open_for_writing", "temporary_name", "output_dir", "write_texts"]
 
 #: Longest line of a log [bytes]: a CAN FD frame in any text format takes some 200.
 MAX_LINE = 64 * 1024
@@ -275,6 +275,41 @@ def check_writable(path: str | os.PathLike[str], what: str, error: ErrorType = C
         raise error(f"{what}: {parent} is {kind(st.st_mode)}, not a directory")
     _check_target(p, what, error, replace, links)
     return p
+
+
+def output_dir(path: str | os.PathLike[str], what: str, error: ErrorType = ConfigError
+               ) -> Path:
+    """``path`` made a directory (with its parents), refused when something else is
+    there; a link to a directory is the user's choice, followed."""
+    out = check_path(path, what, error)
+    try:
+        st = os.stat(out)
+    except FileNotFoundError:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise error(f"{what}: cannot make the directory: {_oserror(e)}") from e
+        return out
+    except OSError as e:
+        raise error(f"{what}: {_oserror(e)}") from e
+    if not stat.S_ISDIR(st.st_mode):
+        raise error(f"{what}: exists and is {kind(st.st_mode)}, not a directory")
+    return out
+
+
+def write_texts(path: str | os.PathLike[str], texts: Iterable[tuple[str, str]], what: str,
+                error: ErrorType = ConfigError) -> list[Path]:
+    """Each ``(name, text)`` written as UTF-8 to ``name`` in the directory ``path``
+    (:func:`output_dir`), through :func:`atomic_writer`: a link planted at a name is
+    replaced, never written through. Returns the paths."""
+    out = output_dir(path, what, error)
+    files: list[Path] = []
+    for name, text in texts:
+        p = out / name
+        with atomic_writer(p, f"{what}: {name}", error) as f:
+            f.write(text.encode("utf-8"))
+        files.append(p)
+    return files
 
 
 def _unlink(p: Path) -> None:

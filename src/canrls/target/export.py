@@ -22,7 +22,7 @@ from importlib import resources
 from pathlib import Path
 
 from canrls.ctext import check_text
-from canrls.files import atomic_writer
+from canrls.files import write_texts
 from canrls.target.cgen import model_files
 from canrls.target.load import Source
 from canrls.target.model import SOURCE_NAMES, TargetModel
@@ -295,13 +295,5 @@ def export_target(src: Source, out: str | Path, tm: TargetModel, *,
     label = what or str(out)
     files_texts, v = texts if texts is not None else target_texts(
         src, tm, vectors=vectors, every=every)
-    out = Path(out)
-    if not out.is_dir():
-        out.mkdir(parents=True, exist_ok=True)
-    files: list[Path] = []
-    for name, text in files_texts:
-        p = out / name
-        with atomic_writer(p, f"{label}: {name}") as f:
-            f.write(text.encode("utf-8"))
-        files.append(p)
-    return TargetExport(out, tuple(files), tm, v)
+    files = write_texts(out, files_texts, label)
+    return TargetExport(Path(out), tuple(files), tm, v)
