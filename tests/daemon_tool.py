@@ -1,24 +1,32 @@
 """What the daemon tests share: a tool on a daemon's virtual bus (what a monitor or a
 test bench sees: every frame the daemon sends in the ``0x3xx`` range, command frames
 sent and their acknowledgements awaited), and a python-can-remote server hosting the
-simulated drive for the tests across processes.
+simulated drive for the tests across processes, and a daemon fed a recorded stream on
+a virtual bus.
 """
 
 from __future__ import annotations
 
 import contextlib
+import itertools
+import os
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import can
 
 from canrls.can.frames import CommandResult
+from canrls.can.protocol import Protocol
+from canrls.estimation.model import Model
+from canrls.estimation.pipeline import EstimatorSettings
+from canrls.live.daemon import Daemon, DaemonSettings
 
-__all__ = ["DaemonTool", "collect", "datagrams", "notify_socket", "remote_sim_server"]
+__all__ = ["DaemonTool", "collect", "daemon_fed", "datagrams", "notify_socket",
+           "remote_sim_server"]
 
 #: RlsCommandAck
 ACK_ID = 0x321
@@ -30,6 +38,42 @@ def collect(reader: can.BufferedReader) -> list[can.Message]:
     while (m := reader.get_message(0.0)) is not None:
         out.append(m)
     return out
+
+
+_channels = itertools.count()
+
+
+@contextlib.contextmanager
+def daemon_fed(protocol: Protocol, model: Model, settings: EstimatorSettings,
+               messages: Sequence[can.Message], name: str, *, publications: int = 6
+               ) -> Iterator[tuple[Daemon, can.BufferedReader]]:
+    """A daemon on a virtual bus, fed ``messages`` with their own timestamps (as a drive
+    on a real bus would send them); yields it once it has taken every frame and published
+    ``publications`` more times, with a reader holding every frame it sent (``0x3xx``).
+    The daemon and the buses are stopped on leaving."""
+    ch = f"{name}-{os.getpid()}-{next(_channels)}"
+    sender = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
+                     ignore_config=True)
+    tool = can.Bus(interface="virtual", channel=ch, ignore_config=True)
+    tool.set_filters([{"can_id": 0x300, "can_mask": 0x700}])  # the daemon's frames
+    reader = can.BufferedReader()
+    notifier = can.Notifier(tool, [reader], timeout=0.05)
+    d = Daemon(protocol, model, settings,
+               DaemonSettings(publish_interval=0.05, info_interval=0.2),
+               bus={"interface": "virtual", "channel": ch}, backpressure=True)
+    try:
+        d.start()
+        for m in messages:
+            sender.send(m)
+        assert d.wait_for(lambda x: x.stats().frames == len(messages), 120)
+        n = d.stats().publications
+        assert d.wait_for(lambda x: x.stats().publications >= n + publications, 20)
+        yield d, reader
+    finally:
+        d.stop()
+        notifier.stop()
+        sender.shutdown()
+        tool.shutdown()
 
 
 class DaemonTool:

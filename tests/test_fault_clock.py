@@ -207,44 +207,18 @@ def test_daemon_on_a_bus_with_a_clock_step_keeps_estimating_and_says_so(
     every period still becomes a sample and updates the estimators (as the offline front
     end on the same frames), ClockFault and RlsRejects.ClockSteps go out on the bus, and
     the monitor shows them."""
-    import itertools
-    import os
-
-    import can
-
     from canrls.can.frames import FrameDecoder
-    from canrls.live.daemon import Daemon, DaemonSettings
     from canrls.live.monitor import Monitor
     from canrls.processor import FrameProcessor
+    from daemon_tool import daemon_fed
 
     frames = _stepped(sim, 0.5, -60.0)
     messages = frames.to_messages()
     protocol, model, settings = _setup()
-    ch = f"test-fault-clock-{os.getpid()}-{next(itertools.count())}"
-    sender = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
-                     ignore_config=True)
-    tool = can.Bus(interface="virtual", channel=ch, ignore_config=True)
-    tool.set_filters([{"can_id": 0x300, "can_mask": 0x700}])  # the daemon's frames
-    reader = can.BufferedReader()
-    notifier = can.Notifier(tool, [reader], timeout=0.05)
-    d = Daemon(protocol, model, settings,
-               DaemonSettings(publish_interval=0.05, info_interval=0.2),
-               bus={"interface": "virtual", "channel": ch}, backpressure=True)
-    try:
-        d.start()
-        for m in messages:
-            sender.send(m)
-        assert d.wait_for(lambda x: x.stats().frames == len(messages), 120)
-        n = d.stats().publications
-        assert d.wait_for(lambda x: x.stats().publications >= n + 6, 20)
+    with daemon_fed(protocol, model, settings, messages, "test-fault-clock") as (d, reader):
         live_updates = d.processor.pipeline.update_counts()
         live_samples = d.stats().samples
         status = d.status()
-    finally:
-        d.stop()
-        notifier.stop()
-        sender.shutdown()
-        tool.shutdown()
     offline = FrameProcessor(protocol, model, settings)
     offline.process(frames)
     assert live_samples == offline.pipeline.samples == len(sim) // 2

@@ -8,7 +8,6 @@ Each test failed before its fix; everything stays inside the test's ``tmp_path``
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 import os
 import resource
@@ -19,7 +18,6 @@ import textwrap
 import tracemalloc
 from pathlib import Path
 
-import can
 import numpy as np
 import pytest
 
@@ -32,10 +30,9 @@ from canrls.live.monitor import Monitor
 from canrls.processor import SEEN_IDS, FrameProcessor
 from canrls.replay import fit_frames, prepare
 from canrls.sim.scenario import scenario, simulate
-from daemon_tool import datagrams, notify_socket, remote_sim_server
+from daemon_tool import daemon_fed, datagrams, notify_socket, remote_sim_server
 
 EFFECTS = "inertia,viscous,coulomb"
-_channels = itertools.count()
 
 
 def _setup() -> tuple:
@@ -69,31 +66,10 @@ def test_an_absurd_receive_time_in_a_live_run_is_counted_and_estimation_goes_on(
     frames = _stamped(sim, [8000, 8001], stamp)
     messages = frames.to_messages()
     protocol, model, settings = _setup()
-    ch = f"test-fault-live-{os.getpid()}-{next(_channels)}"
-    sender = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
-                     ignore_config=True)
-    tool = can.Bus(interface="virtual", channel=ch, ignore_config=True)
-    tool.set_filters([{"can_id": 0x300, "can_mask": 0x700}])
-    reader = can.BufferedReader()
-    notifier = can.Notifier(tool, [reader], timeout=0.05)
-    d = Daemon(protocol, model, settings,
-               DaemonSettings(publish_interval=0.05, info_interval=0.2),
-               bus={"interface": "virtual", "channel": ch}, backpressure=True)
-    try:
-        d.start()
-        for m in messages:
-            sender.send(m)
-        assert d.wait_for(lambda x: x.stats().frames == len(messages), 120)
-        n = d.stats().publications
-        assert d.wait_for(lambda x: x.stats().publications >= n + 6, 20)
+    with daemon_fed(protocol, model, settings, messages, "test-fault-live") as (d, reader):
         samples = d.stats().samples
         status = d.status()
         counts = d.frame_counts()
-    finally:
-        d.stop()
-        notifier.stop()
-        sender.shutdown()
-        tool.shutdown()
     offline = FrameProcessor(protocol, model, settings)
     offline.process(frames)
     assert samples == offline.pipeline.samples == len(sim) // 2 - 1

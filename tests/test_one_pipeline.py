@@ -9,13 +9,10 @@ and fixed point) are within 1 % of what ``canrls fit LOG --json`` prints for the
 
 from __future__ import annotations
 
-import itertools
 import json
-import os
 import time
 from pathlib import Path
 
-import can
 import pytest
 
 from canrls.can.frameblock import FrameBlock
@@ -23,12 +20,11 @@ from canrls.can.frames import FrameDecoder
 from canrls.can.logs import read_frames, write_candump
 from canrls.cli.main import main
 from canrls.config import AppConfig
-from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.processor import FrameProcessor
 from canrls.sim.scenario import scenario, simulate
+from daemon_tool import daemon_fed
 
 EFFECTS = "inertia,viscous,coulomb,offset,cogging:6"
-_ids = itertools.count()
 
 
 @pytest.fixture(scope="module")
@@ -54,29 +50,10 @@ def test_daemon_fed_the_log_over_a_bus_gives_the_offline_answer(
 
     protocol, model, settings = _setup()
     frames = FrameBlock.concat(read_frames(log)).to_messages()
-    ch = f"test-one-pipeline-{os.getpid()}-{next(_ids)}"
-    sender = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
-                     ignore_config=True)
-    tool = can.Bus(interface="virtual", channel=ch, ignore_config=True)
-    tool.set_filters([{"can_id": 0x300, "can_mask": 0x700}])  # the daemon's frames
-    reader = can.BufferedReader()
-    notifier = can.Notifier(tool, [reader], timeout=0.05)
-    d = Daemon(protocol, model, settings,
-               DaemonSettings(publish_interval=0.05, info_interval=0.2),
-               bus={"interface": "virtual", "channel": ch}, backpressure=True)
-    try:
-        d.start()
-        for m in frames:
-            sender.send(m)
-        assert d.wait_for(lambda x: x.stats().frames == len(frames), 120)
-        # a publication after the last frame carries the final estimates
-        n = d.stats().publications
-        assert d.wait_for(lambda x: x.stats().publications >= n + 2, 10)
-    finally:
-        d.stop()
-        notifier.stop()
-        sender.shutdown()
-        tool.shutdown()
+    # a publication after the last frame carries the final estimates
+    with daemon_fed(protocol, model, settings, frames, "test-one-pipeline",
+                    publications=2) as (d, reader):
+        pass
     dec = FrameDecoder(units={p.name: p.unit for p in model.parameters})
     while (m := reader.get_message(0.0)) is not None:
         dec.feed(m)
