@@ -1,6 +1,11 @@
-"""What the CLI tests share: run ``canrls`` in-process and expect one clear error."""
+"""What the CLI tests share: run ``canrls`` in-process and expect one clear error; write
+any value as inline TOML for the configurations they hand it."""
 
 from __future__ import annotations
+
+import json
+import math
+from typing import Any
 
 import pytest
 
@@ -18,3 +23,19 @@ def cli_error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
     assert len(lines) == 1 and lines[0].startswith("error: "), err
     assert "Traceback" not in err
     return lines[0]
+
+
+def inline_toml(v: Any) -> str:
+    """A value as inline TOML (JSON's strings are TOML basic strings)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) \
+            else repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(inline_toml(x) for x in v) + "]"
+    return "{" + ", ".join(f"{json.dumps(k)} = {inline_toml(x)}" for k, x in v.items()) + "}"

@@ -29,6 +29,7 @@ from canrls.errors import CanrlsError, ConfigError
 from canrls.live.settings import DAEMON_KEYS, DaemonSettings
 from canrls.modelfile import SavedModel
 from canrls.sim.scenario import scenario, simulate
+from cli_tool import inline_toml
 
 FUZZ = settings(max_examples=50, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture,
@@ -272,22 +273,6 @@ toml_documents = st.dictionaries(
     max_size=4)
 
 
-def _toml(v: Any) -> str:
-    """A value as inline TOML (JSON's strings are TOML basic strings)."""
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) \
-            else repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, list):
-        return "[" + ", ".join(_toml(x) for x in v) + "]"
-    return "{" + ", ".join(f"{json.dumps(k)} = {_toml(x)}" for k, x in v.items()) + "}"
-
-
 @settings(FUZZ, max_examples=30)
 @given(doc=toml_documents)
 @example(doc={"can": {"dbc": "a\x00b"}})
@@ -299,7 +284,7 @@ def test_fuzz_a_configuration_never_an_internal_error(files: dict[str, Path],
     builds something there) and through the ``[daemon]`` table's validation that
     ``canrls run`` does first: one error line or a result, never exit 3."""
     conf = files["dir"] / "fuzz.toml"
-    conf.write_text("".join(f"[{table}]\n" + "".join(f"{json.dumps(k)} = {_toml(v)}\n"
+    conf.write_text("".join(f"[{table}]\n" + "".join(f"{json.dumps(k)} = {inline_toml(v)}\n"
                                                       for k, v in body.items())
                             for table, body in doc.items()))
     code, _, err = _cli(["fit", str(files["log"]), "--kt", "0.1", "--config", str(conf),

@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 from canrls.config import load_config
 from canrls.errors import CanrlsError
 from canrls.estimation.expr import CONSTANTS, FUNCTIONS, SIGNAL_NAMES, compile_expression
+from cli_tool import inline_toml
 
 SETTINGS = settings(max_examples=150, deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.function_scoped_fixture,
@@ -65,27 +66,11 @@ documents = st.dictionaries(
     max_size=4)
 
 
-def _toml(v: Any) -> str:
-    """A value as inline TOML (json strings are valid TOML basic strings)."""
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) \
-            else repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, list):
-        return "[" + ", ".join(_toml(x) for x in v) + "]"
-    return "{" + ", ".join(f"{json.dumps(k)} = {_toml(x)}" for k, x in v.items()) + "}"
-
-
 def _write(doc: dict[str, dict[str, Any]]) -> str:
     out = []
     for table, body in doc.items():
         out.append(f"[{table}]")
-        out.extend(f"{json.dumps(k)} = {_toml(v)}" for k, v in body.items())
+        out.extend(f"{json.dumps(k)} = {inline_toml(v)}" for k, v in body.items())
     return "\n".join(out) + "\n"
 
 
