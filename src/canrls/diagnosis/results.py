@@ -37,6 +37,7 @@ __all__ = [
     "Traces",
     "EquationDiagnosis",
     "Analysis",
+    "r2_text",
     "share_text",
     "value_text",
 ]
@@ -60,6 +61,16 @@ def share_text(x: float) -> str:
     if abs(v) >= 1:
         return f"{v:.1f} %"
     return f"{v:.2g} %"
+
+
+def r2_text(r2: float, digits: int = 4) -> str:
+    """R² with ``digits`` decimals, never rounded up to 1: "> 0.9999" above that."""
+    if not math.isfinite(r2):
+        return "n/a"
+    top = 1.0 - 10.0 ** -digits
+    if r2 > top:
+        return f"> {top:.{digits}f}"
+    return f"{r2:.{digits}f}"
 
 
 def value_text(x: float, unit: str = "", sign: bool = False) -> str:
