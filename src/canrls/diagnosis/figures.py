@@ -27,7 +27,7 @@ from canrls.diagnosis.results import (
 from canrls.errors import ConfigError
 from canrls.webpage import save_svg
 
-__all__ = ["FIGURES", "UNUSED_REASONS", "Figures", "figures_in", "integer_orders",
+__all__ = ["FIGURES", "UNUSED_REASONS", "Figures", "figures_in", "integer_orders", "unused_spans",
            "require_matplotlib"]
 
 #: The figures a report holds (without an ``after`` some show ``before`` only).
@@ -112,7 +112,7 @@ class Figures:
         # the measurement above the model: drawn last, thin and black
         ax1.plot(tr.t[s], np.where(tr.used, tr.y, np.nan)[s], color="black", lw=0.7,
                  label="measured (filtered target)", rasterized=True)
-        spans = _unused_spans(tr.t[s], tr.used[s])
+        spans = unused_spans(tr.t[s], tr.used[s])
         for ax in (ax1, ax2):
             for k, (t0, t1) in enumerate(spans):
                 ax.axvspan(t0, t1, color=_GREY, alpha=0.18, lw=0,
@@ -354,7 +354,7 @@ UNUSED_REASONS = ("the filter's warm-up after the start and after each gap in th
                  "after them")
 
 
-def _unused_spans(t: npt.NDArray[np.float64], used: npt.NDArray[np.bool_]
+def unused_spans(t: npt.NDArray[np.float64], used: npt.NDArray[np.bool_]
                   ) -> list[tuple[float, float]]:
     """(start, end) times of the runs of unused points, each from the last used point
     before it to the first used one after it."""
