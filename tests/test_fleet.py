@@ -13,6 +13,7 @@ import csv
 import json
 import math
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -23,6 +24,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 pytest.importorskip("distributed")
@@ -353,9 +355,13 @@ def test_report_html_and_json(fleet: dict[str, Any], tmp_path: Path,
     assert alerted and all(truth[a]["class"] != "healthy" for a in alerted)
     assert d["drives"][0]["score"] >= d["drives"][-1]["score"]
     page = (out / "index.html").read_text()
-    assert page.count("<img src='drive-") == 2 and "spread-01.png" in page
+    assert page.count("<img src='drive-") == 2 and "spread-01.svg" in page
     assert alerted[0] in page and "τ" in page
-    assert (out / "drive-0001.png").stat().st_size > 1000
+    assert (out / "drive-0001.svg").read_bytes().startswith(b"<?xml")
+    # the healthy drives: one row each in a compact table, no section of their own
+    healthy = [x["drive"] for x in d["drives"] if not x["alerts"]]
+    assert healthy and f"<h2>Healthy drives ({len(healthy)}, no alert)</h2>" in page
+    assert page.count("<section") == 2 and all(f"id='{h}'" not in page for h in healthy)
 
 
 def test_report_escapes_the_history_strings(tmp_path: Path) -> None:
@@ -369,7 +375,44 @@ def test_report_escapes_the_history_strings(tmp_path: Path) -> None:
                       parameters=(ParameterValue("inertia.J", 1e-3 * (1 + (k > 4)), 1e-6),),
                       id=k) for k in range(10)]
     page = write_html(assess(recs), tmp_path / "r").read_text()
-    assert "<script>" not in page and "&lt;script&gt;alert(" in page
+    assert "<script>alert(" not in page and "&lt;script&gt;alert(" in page
+
+
+def test_report_shows_an_outlier_against_its_siblings(tmp_path: Path) -> None:
+    """Six drives of one type, one with twice the inertia: its section draws the
+    siblings' level, its table names the parameter and links the recordings; the
+    healthy drives are rows of one table."""
+    from canrls.fleet.records import ParameterValue, Recording
+    from canrls.fleet.report import _siblings, write_html
+
+    rng = np.random.default_rng(35)
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    recs = []
+    for i in range(6):
+        for k in range(6):
+            path = logs / f"d{i} #{k}.log"
+            path.write_text("")
+            J = 1e-3 * (2.0 if i == 5 else 1.0) * (1 + 0.01 * rng.standard_normal())
+            recs.append(Recording(
+                drive=f"d{i}", drive_type="pump", content_hash=f"{i * 10 + k:064x}",
+                model_key="m" * 64, model="inertia", path=str(path),
+                t_start=1.7e9 + 86400 * k, residual_rms=1e-3 * (1 + 0.01 * rng.random()),
+                parameters=(ParameterValue("inertia.J", J, 1e-6, unit="kg·m²"),),
+                id=i * 10 + k))
+    fleet = assess(recs)
+    out = fleet.drive("d5")
+    assert [a.kind for a in out.alerts] == ["outlier"]
+    assert sorted(_siblings(fleet, out, "inertia.J")) == sorted(
+        v for d, (_, v) in fleet.spread["m" * 64]["inertia.J"].items() if d != "d5")
+    page = write_html(fleet, tmp_path / "r").read_text()
+    assert page.count("<section") == 1 and "id='d5'" in page
+    assert "<h2>Healthy drives (5, no alert)</h2>" in page
+    assert "<th>inertia.J [kg·m²]</th>" in page
+    assert "<a href='../logs/d5%20%235.log'>" in page  # relative, quoted
+    figure = re.search(r"<img src='(drive-\d+\.svg)' alt='([^']+)'", page)
+    assert figure is not None and figure.group(2).startswith("Trends of d5: inertia.J")
+    assert b"siblings" in (tmp_path / "r" / figure.group(1)).read_bytes()
 
 
 def test_ingest_cli_in_process_with_a_pattern_and_errors(fleet: dict[str, Any], tmp_path: Path,
