@@ -90,9 +90,9 @@ def test_text_and_report(log: Path, tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "Before and after --add offset" in text
     assert f"report: {out_dir / 'index.html'}" in text
     assert (out_dir / "index.html").is_file()
-    for png in ("timeline.png", "speed.png", "position.png", "candidates.png", "orders.png",
-                "convergence.png", "fixed.png"):
-        assert (out_dir / png).stat().st_size > 1000, png
+    for svg in ("timeline.svg", "speed.svg", "position.svg", "candidates.svg", "orders.svg",
+                "convergence.svg", "fixed.svg"):
+        assert (out_dir / svg).stat().st_size > 1000, svg
 
 
 def test_report_without_matplotlib_is_a_clear_error(log: Path, tmp_path: Path,

@@ -400,8 +400,9 @@ def test_figures_say_clipped_axes_and_unused_spans(cogging_report: DiagnosisRepo
 def test_r2_is_never_rounded_up_to_one() -> None:
     from canrls.diagnosis.results import r2_text
 
-    assert r2_text(0.99999) == "> 0.9999"
+    assert r2_text(0.99996) == "> 0.9999"
     assert r2_text(0.99994) == "0.9999"
+    assert r2_text(1.0) == "1.0000"
     assert r2_text(0.5) == "0.5000"
     assert r2_text(0.999999, 5) == "> 0.99999"
     assert r2_text(float("nan")) == "n/a"

@@ -64,13 +64,13 @@ def share_text(x: float) -> str:
 
 
 def r2_text(r2: float, digits: int = 4) -> str:
-    """R² with ``digits`` decimals, never rounded up to 1: "> 0.9999" above that."""
+    """R² with ``digits`` decimals, never rounded up to 1: "> 0.9999" where it would."""
     if not math.isfinite(r2):
         return "n/a"
-    top = 1.0 - 10.0 ** -digits
-    if r2 > top:
-        return f"> {top:.{digits}f}"
-    return f"{r2:.{digits}f}"
+    text = f"{r2:.{digits}f}"
+    if r2 < 1.0 and float(text) >= 1.0:
+        return f"> {1.0 - 10.0 ** -digits:.{digits}f}"
+    return text
 
 
 def value_text(x: float, unit: str = "", sign: bool = False) -> str:
