@@ -41,6 +41,7 @@ from canrls.fleet.ingest import JobConfig, ingest, model_key  # noqa: E402
 from canrls.fleet.records import STATUS_ERROR, STATUS_OK  # noqa: E402
 from canrls.fleet.sources import LogSource, from_manifest, from_pattern  # noqa: E402
 from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
+from fleet_records import pump_fleet  # noqa: E402
 from postgres import postgres_server  # noqa: E402
 
 DRIVES, RECORDINGS, DURATION, SEED = 50, 10, 3.0, 1
@@ -141,7 +142,6 @@ def test_sigma_alone_understates_the_scatter(fleet: dict[str, Any],
 
 
 def test_tau_is_the_scatter_of_normal_differences() -> None:
-    import numpy as np
 
     rng = np.random.default_rng(3)
     s = rng.uniform(0.005, 0.02, 2001)
@@ -382,24 +382,11 @@ def test_report_shows_an_outlier_against_its_siblings(tmp_path: Path) -> None:
     """Six drives of one type, one with twice the inertia: its section draws the
     siblings' level, its table names the parameter and links the recordings; the
     healthy drives are rows of one table."""
-    from canrls.fleet.records import ParameterValue, Recording
     from canrls.fleet.report import _siblings, write_html
 
-    rng = np.random.default_rng(35)
     logs = tmp_path / "logs"
     logs.mkdir()
-    recs = []
-    for i in range(6):
-        for k in range(6):
-            path = logs / f"d{i} #{k}.log"
-            path.write_text("")
-            J = 1e-3 * (2.0 if i == 5 else 1.0) * (1 + 0.01 * rng.standard_normal())
-            recs.append(Recording(
-                drive=f"d{i}", drive_type="pump", content_hash=f"{i * 10 + k:064x}",
-                model_key="m" * 64, model="inertia", path=str(path),
-                t_start=1.7e9 + 86400 * k, residual_rms=1e-3 * (1 + 0.01 * rng.random()),
-                parameters=(ParameterValue("inertia.J", J, 1e-6, unit="kg·m²"),),
-                id=i * 10 + k))
+    recs = pump_fleet(logs)
     fleet = assess(recs)
     out = fleet.drive("d5")
     assert [a.kind for a in out.alerts] == ["outlier"]

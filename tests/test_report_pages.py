@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from browser import open_page
@@ -21,27 +20,12 @@ MODEL = ["--kt", "0.1", "--effects", EFFECTS]
 
 
 def _fleet_page(out: Path, logs: Path) -> Path:
-    """The fleet page of six drives of one type, one with twice the inertia."""
+    """The fleet page of six pumps: an outlier, a drift, four healthy drives."""
     from canrls.fleet.detect import assess
-    from canrls.fleet.records import ParameterValue, Recording
     from canrls.fleet.report import write_html
+    from fleet_records import pump_fleet
 
-    rng = np.random.default_rng(7)
-    recs = []
-    for i in range(6):
-        for k in range(6):
-            path = logs / f"d{i}-{k}.log"
-            path.write_text("")
-            J = 1e-3 * (2.0 if i == 5 else 1.0) * (1 + 0.01 * rng.standard_normal())
-            B = 1e-4 * (1 + 0.05 * k * (i == 4)) * (1 + 0.01 * rng.standard_normal())
-            recs.append(Recording(
-                drive=f"drive-with-a-long-name-{i}", drive_type="pump",
-                content_hash=f"{i * 10 + k:064x}", model_key="m" * 64, model="inertia",
-                path=str(path), t_start=1.7e9 + 7 * 86400 * k, residual_rms=1e-3,
-                parameters=(ParameterValue("inertia.J", J, 1e-6, unit="kg·m²"),
-                            ParameterValue("viscous.B", B, 1e-7, unit="N·m·s/rad")),
-                id=i * 10 + k))
-    return write_html(assess(recs), out)
+    return write_html(assess(pump_fleet(logs, drift=True)), out)
 
 
 @pytest.fixture(scope="module")
