@@ -3,6 +3,7 @@ test_diagnose_acceptance.py, the command line in test_cli_diagnose.py)."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -354,6 +355,11 @@ def test_report_proves_a_position_effect_with_position(cogging_report: Diagnosis
     said = samples_text(rep)
     assert said.startswith(f"{used:,} of {rep.samples:,} samples used")
     assert f"the other {rep.samples - used:,} were left out" in said
+    assert "(100 %)" not in said  # 97.5 % is not rounded up
+    assert "speeds below the minimum near reversals (below 0.0" in said  # Coulomb's band
+    nearly = copy.copy(rep)
+    nearly.samples = used + 3  # 99.98 % used: said as 99.9 %, never 100 %
+    assert samples_text(nearly).startswith(f"{used:,} of {used + 3:,} samples used (99.9 %)")
     text = rep.write_html(tmp_path / "rep").read_text(encoding="utf-8")
     first = re.search(r"<img src='([^']+)'", text)
     assert first is not None and first.group(1) == "position.svg"

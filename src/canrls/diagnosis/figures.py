@@ -27,8 +27,8 @@ from canrls.diagnosis.results import (
 from canrls.errors import ConfigError
 from canrls.webpage import save_svg
 
-__all__ = ["FIGURES", "UNUSED_REASONS", "Figures", "figures_in", "integer_orders", "unused_spans",
-           "require_matplotlib"]
+__all__ = ["FIGURES", "UNUSED_REASONS", "UNUSED_SLOW", "UNUSED_WARMUP", "Figures",
+           "figures_in", "integer_orders", "require_matplotlib", "unused_spans"]
 
 #: The figures a report holds (without an ``after`` some show ``before`` only).
 FIGURES: tuple[str, ...] = ("timeline.svg", "speed.svg", "position.svg", "candidates.svg",
@@ -348,10 +348,12 @@ def _symlog_speed(ax: Any, vmax: float) -> None:
     ax.set_xlim(-1.05 * vmax, 1.05 * vmax)
 
 
-#: why the estimator leaves samples out (estimation.selection.SamplePolicy)
-UNUSED_REASONS = ("the filter's warm-up after the start and after each gap in the "
-                 "timestamps, and speeds below the minimum near reversals with the warm-up "
-                 "after them")
+#: why the estimator leaves samples out (estimation.selection.SamplePolicy): always, and
+#: with sign-dependent friction in the model
+UNUSED_WARMUP = "the filter's warm-up after the start and after each gap in the timestamps"
+UNUSED_SLOW = "speeds below the minimum near reversals with the warm-up after them"
+UNUSED_REASONS = (f"{UNUSED_WARMUP}, and, in a model with sign-dependent friction, "
+                  f"{UNUSED_SLOW}")
 
 
 def unused_spans(t: npt.NDArray[np.float64], used: npt.NDArray[np.bool_]

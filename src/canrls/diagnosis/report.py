@@ -20,7 +20,13 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.diagnosis.candidates import MENTION_EXPLAINED
-from canrls.diagnosis.figures import FIGURES, UNUSED_REASONS, figures_in, integer_orders
+from canrls.diagnosis.figures import (
+    FIGURES,
+    UNUSED_SLOW,
+    UNUSED_WARMUP,
+    figures_in,
+    integer_orders,
+)
 from canrls.diagnosis.results import (
     Analysis,
     Candidate,
@@ -256,14 +262,20 @@ def samples_text(report: DiagnosisReport) -> str:
     b = report.before.primary
     used = b.fit.samples
     left = report.samples - used
-    text = f"{used:,} of {report.samples:,} samples used ({share_text(used / report.samples)})"
+    part = used / report.samples
+    # a share never rounded up to 100 % while samples were left out
+    pct = share_text(part) if part < 0.995 or left <= 0 else \
+        f"{math.floor(1000 * part) / 10:.1f} %"
+    text = f"{used:,} of {report.samples:,} samples used ({pct})"
     if left <= 0:
         return text + "."
     policy = SamplePolicy.for_equation(report.model.equations[0], report.dt, report.settings)
-    low = (f" (below {policy.min_speed:.3g} {b.excitation.speed_unit})"
-           if policy.min_speed > 0 else "")
-    return (f"{text}; the other {left:,} were left out: {UNUSED_REASONS}"
-            .replace("near reversals", f"near reversals{low}") + ".")
+    why = UNUSED_WARMUP
+    if policy.min_speed > 0:
+        why += ", and " + UNUSED_SLOW.replace(
+            "near reversals", f"near reversals (below {policy.min_speed:.3g} "
+                              f"{b.excitation.speed_unit})")
+    return f"{text}; the other {left:,} were left out: {why}."
 
 
 def _extent(x: npt.NDArray[np.float64]) -> float:
