@@ -133,6 +133,7 @@ def test_fit_several_logs_save_and_validate(logs: dict[str, Path], tmp_path: Pat
     assert main(["validate", str(logs["s3"]), "--model", str(m), "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "without re-estimating" in text and "fit" in text and "residual RMS" in text
+    assert text.startswith("mechanical: the model holds: residual RMS ")  # the answer first
 
 
 def test_validate_shows_where_a_poorer_model_fails(logs: dict[str, Path], tmp_path: Path,

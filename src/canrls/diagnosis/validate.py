@@ -159,8 +159,10 @@ class ValidationReport:
                 "implausible": [i.to_dict() for i in self.implausible]}
 
     def format(self) -> str:
-        lines = [f"model {self.model_file} (identified on {', '.join(self.identified_on) or '?'})",
-                 f"validated on {', '.join(self.sources)} without re-estimating:"]
+        """The report as text, the answer first: per equation, whether the model holds."""
+        lines = [e.verdict for e in self.equations]
+        lines += [f"model {self.model_file} (identified on {', '.join(self.identified_on) or '?'})",
+                  f"validated on {', '.join(self.sources)} without re-estimating:"]
         for name, p in self.parameters.items():
             lines.append(f"  {name:<14} {p['value']:12.6g} ± {p.get('sigma') or 0:9.3g} "
                          f"{p.get('unit', '')}"
