@@ -375,11 +375,31 @@ def test_order_figure_shows_integer_orders(cogging_report: DiagnosisReport) -> N
     orders, amp, expl, peaks = integer_orders(sp)
     assert all(float(p).is_integer() for p in orders) and len(orders) == ORDER
     assert peaks and peaks[0] == 6 and all(float(p).is_integer() for p in peaks)
-    assert sum(sp.at(p)[1] for p in peaks) <= 1.0
+    # fitted together, the peaks' shares add up to at most 1; a quarter order beside
+    # order 6 (its leakage) explains next to nothing beyond it
+    assert len(sp.shares) == len(sp.peaks) and sum(sp.shares) <= 1.0
+    assert sp.share(6) == pytest.approx(sp.at(6)[1], abs=1e-9)
+    assert all(sp.share(p) <= sp.at(p)[1] + 1e-9 for p in sp.peaks)
     # the figure's after panel: the order-6 amplitude gone once cogging:6 is added
     after = cogging_report.after
     assert after is not None and after.primary.spectrum is not None
     assert after.primary.spectrum.at(6)[0] < 0.1 * sp.at(6)[0]
+
+
+def test_leakage_of_an_order_gets_no_share_of_its_own() -> None:
+    """The quarter orders beside a strong order 6 (its leakage on the standard run)
+    each explain 5-19 % alone, and nothing beyond order 6 fitted with it."""
+    res = simulate(scenario("standard", effects="inertia,viscous,coulomb,offset,cogging:6",
+                            seed=1, duration=40.0))
+    s = res.measured
+    sp = diagnose(s, _model(s, BASE + ["offset"]), dt=1e-3, max_order=ORDER
+                  ).before.primary.spectrum
+    assert sp is not None and sp.peaks[0] == 6
+    leaks = [p for p in sp.peaks if not float(p).is_integer()]
+    assert leaks
+    for p in leaks:
+        assert sp.share(p) < 0.01 and sp.at(p)[1] > 0.04, p
+    assert sum(sp.shares) <= 1.0 < sum(sp.at(p)[1] for p in sp.peaks)
 
 
 def test_figures_say_clipped_axes_and_unused_spans(cogging_report: DiagnosisReport,

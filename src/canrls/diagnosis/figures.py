@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.diagnosis.residual import PEAK_SHARE
 from canrls.diagnosis.results import (
     EquationDiagnosis,
     OrderSpectrum,
@@ -263,7 +264,7 @@ class Figures:
                 ax.annotate(f"{p:g}", (p, qs.at(p)[0]), textcoords="offset points",
                             xytext=(0, 3), ha="center", fontsize=9, color=color)
             text = "; ".join(f"order {p:g}: {qs.at(p)[0]:.3g} {qs.unit} "
-                             f"({share_text(qs.at(p)[1])} of the residual variance)"
+                             f"({share_text(qs.share(p))} of the residual variance)"
                              for p in peaks[:3]) or "no order stands out"
             ax.set_title(f"{label}: {text}", fontsize=9, loc="left")
             if top > 0:
@@ -373,8 +374,9 @@ def integer_orders(sp: OrderSpectrum
                    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64],
                               npt.NDArray[np.float64], tuple[float, ...]]:
     """The spectrum at its integer orders: (orders, amplitude, explained, peaks), the
-    peaks those of the whole spectrum that are integer orders (the quarter orders beside
-    a strong order are its leakage, not orders of their own)."""
+    peaks those of the whole spectrum that are integer orders and explain a share of
+    their own beyond the stronger ones (the quarter orders beside a strong order are
+    its leakage, not orders of their own)."""
     keep = np.isclose(sp.orders, np.round(sp.orders))
-    peaks = tuple(p for p in sp.peaks if float(p).is_integer())
+    peaks = tuple(p for p in sp.peaks if float(p).is_integer() and sp.share(p) >= PEAK_SHARE)
     return sp.orders[keep], sp.amplitude[keep], sp.explained[keep], peaks

@@ -27,6 +27,7 @@ from canrls.diagnosis.figures import (
     figures_in,
     integer_orders,
 )
+from canrls.diagnosis.residual import PEAK_SHARE
 from canrls.diagnosis.results import (
     Analysis,
     Candidate,
@@ -193,8 +194,9 @@ CAPTIONS = {
                       "error-reduction ratio).",
     "orders.svg": "The residual's rotation-order spectrum at the integer orders: amplitude "
                   "of sin/cos of order q times the angle fitted to the residual (filtered "
-                  "like the equation); each share is what that order explains alone. Peaks "
-                  "sit at the orders of position-periodic effects.",
+                  "like the equation). Each peak's share is what it explains beyond the "
+                  "stronger peaks, all fitted together, so the shares add up to at most "
+                  "100 %. Peaks sit at the orders of position-periodic effects.",
     "convergence.svg": "Parameter convergence: float estimate with its ±σ band, fixed-point "
                        "estimate dashed.",
     "fixed.svg": "Fixed point against float: the difference relative to the float value "
@@ -409,10 +411,14 @@ def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
             out.append(f"  - {reg.text} ({share_text(reg.share)} of the residual energy)")
     else:
         out.append("  no region stands out: the binned means of the residual are small")
-    if q.spectrum is not None and q.spectrum.peaks:
-        pk = ", ".join(f"{p:g} ({value_text(q.spectrum.at(p)[0], u)}, "
-                       f"{share_text(q.spectrum.at(p)[1])})" for p in q.spectrum.peaks[:3])
-        out.append(f"  rotation-order spectrum peaks (order per {q.spectrum.per}): {pk}")
+    # the peaks with a share of their own beyond the stronger ones (not their leakage)
+    sp = q.spectrum
+    own = [p for p in sp.peaks if sp.share(p) >= PEAK_SHARE] if sp is not None else []
+    if sp is not None and own:
+        pk = ", ".join(f"{p:g} ({value_text(sp.at(p)[0], u)}, {share_text(sp.share(p))})"
+                       for p in own[:3])
+        out.append(f"  rotation-order spectrum peaks (order per {sp.per}; each share beyond "
+                   f"the stronger ones): {pk}")
     facts = q.excitation.facts()
     if facts:
         out.append("  excitation: " + "; ".join(facts))

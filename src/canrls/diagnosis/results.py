@@ -202,7 +202,8 @@ class OrderSpectrum:
     ``amplitude`` is the fitted amplitude in the target unit, ``explained`` the share of
     the residual variance the pair explains. ``per`` says what one period of order 1 is
     (a revolution, or the pitch of a linear axis). ``peaks`` lists the orders that stand
-    out (local maxima explaining at least 1 % and 5 times the median), strongest first.
+    out (local maxima explaining at least 1 % and 5 times the median), strongest first;
+    ``shares`` what each explains beyond the ones before it, all of them fitted together.
     """
 
     orders: F64
@@ -211,6 +212,16 @@ class OrderSpectrum:
     peaks: tuple[float, ...]
     unit: str
     per: str
+    #: per peak, the share it explains beyond the peaks before it (fitted together:
+    #: they add up to at most 1; leakage of a stronger order gets next to nothing)
+    shares: tuple[float, ...] = ()
+
+    def share(self, order: float) -> float:
+        """The share of peak ``order`` beyond the stronger peaks (``explained`` alone
+        when the sequential shares were not computed)."""
+        if order in self.peaks and len(self.shares) == len(self.peaks):
+            return self.shares[self.peaks.index(order)]
+        return self.at(order)[1]
 
     def at(self, order: float) -> tuple[float, float]:
         """(amplitude, explained) at the order nearest ``order``."""
@@ -220,6 +231,7 @@ class OrderSpectrum:
     def to_dict(self) -> dict[str, Any]:
         return {"orders": _floats(self.orders), "amplitude": _floats(self.amplitude),
                 "explained": _floats(self.explained), "peaks": list(self.peaks),
+                "peak_shares": list(self.shares),
                 "unit": self.unit, "per": self.per}
 
 
