@@ -361,8 +361,9 @@ def test_report_proves_a_position_effect_with_position(cogging_report: Diagnosis
     nearly.samples = used + 3  # 99.98 % used: said as 99.9 %, never 100 %
     assert samples_text(nearly).startswith(f"{used:,} of {used + 3:,} samples used (99.9 %)")
     text = rep.write_html(tmp_path / "rep").read_text(encoding="utf-8")
-    first = re.search(r"<img src='([^']+)'", text)
-    assert first is not None and first.group(1) == "position.svg"
+    # the residual against position, then the order spectrum, under the verdict
+    assert re.findall(r"<img src='([^']+)'", text)[:2] == ["position.svg", "orders.svg"]
+    assert text.index("orders.svg") < text.index("<h2>Compare")
     assert text.index(lead[0].text) < text.index("Also in other quantities")
     assert str(escape(said)) in text
 

@@ -242,11 +242,13 @@ def _quantity(effect: str) -> str:
     return "timeline"
 
 
-def proof_figure(b: EquationDiagnosis, written: Mapping[str, str]) -> str:
-    """The figure that proves the verdict (shown right under it): the residual against
-    the quantity of the first suggested effect, else the timeline."""
+def proof_figures(b: EquationDiagnosis, written: Mapping[str, str]) -> tuple[str, ...]:
+    """The figures that prove the verdict (shown right under it): the residual against
+    the quantity of the first suggested effect (and, for a position-periodic one, the
+    order spectrum that names its order), else the timeline."""
     q = _quantity(b.suggestion.steps[0].effect) if b.suggestion.steps else "timeline"
-    return f"{q}.svg" if f"{q}.svg" in written else "timeline.svg"
+    names = (f"{q}.svg", "orders.svg") if q == "position" else (f"{q}.svg",)
+    return tuple(n for n in names if n in written) or ("timeline.svg",)
 
 
 def split_regions(b: EquationDiagnosis) -> tuple[tuple[Region, ...], tuple[Region, ...]]:
@@ -335,14 +337,15 @@ def render_html(report: DiagnosisReport, written: Mapping[str, str],
     the ``notes`` their captions add (clipped axes, shaded spans)."""
     notes = notes or {}
     b = report.before.primary
-    proof = proof_figure(b, written)
+    proof = proof_figures(b, written)
 
     def fig(name: str) -> tuple[str, str, str]:
         cap = CAPTIONS[name] + (" " + notes[name] if name in notes else "")
         return written[name], cap, alt_text(name, report)
-    figures = [fig(name) for name in FIGURES if name in written and name != proof]
+    figures = [fig(name) for name in FIGURES if name in written and name not in proof]
     lead, rest = split_regions(b)
-    return _template().render(r=report, b=b, proof=fig(proof), figures=figures,
+    return _template().render(r=report, b=b, proof=[fig(name) for name in proof],
+                              figures=figures,
                               lead=lead, rest=rest, samples=samples_text(report),
                               params=_parameter_rows(report.before, report.after))
 
