@@ -366,6 +366,9 @@ def test_report_proves_a_position_effect_with_position(cogging_report: Diagnosis
     assert text.index("orders.svg") < text.index("<h2>Compare")
     assert text.index(lead[0].text) < text.index("Also in other quantities")
     assert str(escape(said)) in text
+    # the text too: the position ranges first
+    where = rep.format().split("Where it fails\n")[1]
+    assert where.startswith(f"  - {lead[0].text}") and "  also in other quantities:" in where
 
 
 def test_order_figure_shows_integer_orders(cogging_report: DiagnosisReport) -> None:

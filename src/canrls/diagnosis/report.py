@@ -410,7 +410,10 @@ def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
             out.append(f"  {caveat}")
     out += ["", "Where it fails"]
     if q.regions:
-        for reg in q.regions:
+        lead, rest = split_regions(q)
+        for k, reg in enumerate(lead + rest):
+            if k == len(lead) and lead:
+                out.append("  also in other quantities:")
             out.append(f"  - {reg.text} ({share_text(reg.share)} of the residual energy)")
     else:
         out.append("  no region stands out: the binned means of the residual are small")
