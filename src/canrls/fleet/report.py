@@ -133,13 +133,14 @@ def _spread_figure(fleet: FleetAssessment, key: str, name: str, path: Path) -> s
     for i, ty in enumerate(types):
         pts = [(d, v) for d, (t, v) in levels.items() if t == ty]
         ys = i + rng.uniform(-0.2, 0.2, len(pts))
-        for k, ((d, v), y) in enumerate(zip(pts, ys, strict=True)):
-            bad = d in out
-            ax.plot(v, y, "o", ms=7 if bad else 5, color="#cb181d" if bad else "#3182bd",
-                    alpha=1.0 if bad else 0.7)
-            if bad:  # labels staggered above and below the point
-                ax.annotate(d, (v, y), fontsize=9, xytext=(5, 6 if k % 2 else -12),
-                            textcoords="offset points", color="#a50f15")
+        bad = np.array([d in out for d, _ in pts], dtype=bool)
+        vs = np.array([v for _, v in pts], dtype=float)
+        # one marker set per type (a plant's thousand drives draw fast), outliers on top
+        ax.plot(vs[~bad], ys[~bad], "o", ms=5, color="#3182bd", alpha=0.7, ls="none")
+        ax.plot(vs[bad], ys[bad], "o", ms=7, color="#cb181d", ls="none")
+        for k, j in enumerate(np.flatnonzero(bad)):  # labels staggered above and below
+            ax.annotate(pts[j][0], (vs[j], ys[j]), fontsize=9, xytext=(5, 6 if k % 2 else -12),
+                        textcoords="offset points", color="#a50f15")
     ax.set_yticks(range(len(types)), [t or "(no type)" for t in types], fontsize=10)
     ax.set_ylim(-0.6, len(types) - 0.4)
     unit = next((d.series[name].unit for d in fleet.drives if name in d.series), "")
