@@ -265,8 +265,12 @@ class Figures:
                             xytext=(0, 3), ha="center", fontsize=9, color=color)
             text = "; ".join(f"order {p:g}: {qs.at(p)[0]:.3g} {qs.unit} "
                              f"({share_text(qs.share(p))} of the residual variance)"
-                             for p in peaks[:3]) or "no order stands out"
-            ax.set_title(f"{label}: {text}", fontsize=9, loc="left")
+                             for p in peaks[:3])
+            if not text and top > 0:
+                k = int(np.argmax(amp))
+                text = (f"no order stands out (largest: order {orders[k]:g}, "
+                        f"{top:.3g} {qs.unit})")
+            ax.set_title(f"{label}: {text or 'no order stands out'}", fontsize=9, loc="left")
             if top > 0:
                 ax.set_ylim(0, 1.25 * top)
             ax.set_ylabel(f"amplitude [{qs.unit}]")
