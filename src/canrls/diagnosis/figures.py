@@ -2,9 +2,9 @@
 
 :class:`Figures` draws each figure of a diagnosis (timeline, speed, position,
 candidates, orders, convergence, fixed point; docs/diagnose.md, "The figures") into a
-directory as SVG with matplotlib's object API (no pyplot, no global state). matplotlib is the
-optional ``report`` extra: :func:`require_matplotlib` imports it when a report is
-written, and its absence is a :class:`~canrls.errors.ConfigError` naming the package.
+directory as SVG with matplotlib's object API (no pyplot, no global state). matplotlib
+is the optional ``report`` extra: :func:`require_matplotlib` imports it when a report is
+written, and its absence is a :class:`~canrls.core.errors.ConfigError` naming the package.
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.errors import ConfigError
+from canrls.core.webpage import save_svg
 from canrls.diagnosis.residual import PEAK_SHARE
 from canrls.diagnosis.results import (
     EquationDiagnosis,
@@ -25,8 +27,6 @@ from canrls.diagnosis.results import (
     decimation,
     share_text,
 )
-from canrls.errors import ConfigError
-from canrls.webpage import save_svg
 
 __all__ = ["FIGURES", "UNUSED_REASONS", "UNUSED_SLOW", "UNUSED_WARMUP", "Figures",
            "figures_in", "integer_orders", "require_matplotlib", "unused_spans"]

@@ -19,6 +19,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.effect_names import EffectId, parse_effect_name
+from canrls.core.errors import CanrlsError
+from canrls.core.files import atomic_writer
+from canrls.core.webpage import environment
 from canrls.diagnosis.candidates import MENTION_EXPLAINED
 from canrls.diagnosis.figures import (
     FIGURES,
@@ -37,21 +41,17 @@ from canrls.diagnosis.results import (
     share_text,
     value_text,
 )
-from canrls.effect_names import EffectId, parse_effect_name
-from canrls.errors import CanrlsError
+from canrls.estimation.estimates import ParameterEstimate
 from canrls.estimation.model import Model
 from canrls.estimation.physics import describe
-from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
 from canrls.estimation.selection import SamplePolicy
-from canrls.files import atomic_writer
+from canrls.estimation.settings import EstimatorSettings
 from canrls.processor import FrameCounts, PeriodInfo, StartInfo
-from canrls.webpage import environment
 
 if TYPE_CHECKING:  # imported when a page is rendered, not for the text report
     import jinja2
 
-__all__ = ["CAPTIONS", "DiagnosisReport", "FIGURES", "page_template", "white_caveat",
-           "write_html"]
+__all__ = ["CAPTIONS", "DiagnosisReport", "page_template", "white_caveat", "write_html"]
 
 
 class DiagnosisReport:

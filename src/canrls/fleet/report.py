@@ -16,9 +16,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
+from canrls.core.webpage import environment, num, relative_href, save_svg
 from canrls.fleet.detect import RESIDUAL, DriveAssessment, FleetAssessment
-from canrls.webpage import environment, num, relative_href, save_svg
 
 __all__ = ["write_html", "report_dict", "require_matplotlib", "DEFAULT_FIGURES"]
 
