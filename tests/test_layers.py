@@ -5,7 +5,7 @@ Dependencies run one way::
     core (canrls, errors, signals, spill, effect_names, files, ctext)
       -> can (DBC, decoding, logs, pairing, frames)   estimation (effects ... RLS, pipeline)
       -> front: config, processor, replay, modelfile   (one configuration, one calibration rule)
-      -> diagnosis | live | fleet | export             (beside each other, none imports another)
+      -> diagnosis | control | live | fleet | export   (beside each other, none imports another)
       -> cli                                           (one module per subcommand)
 
 ``sim`` (the simulated drive) sits at the edge: it uses ``core`` and ``can`` and only
@@ -37,12 +37,13 @@ LAYER = {
     "canrls.can": "can", "canrls.estimation": "estimation",
     "canrls.config": "front", "canrls.processor": "front", "canrls.modelfile": "front",
     "canrls.replay": "front", "canrls.target": "front",
-    "canrls.diagnosis": "diagnosis", "canrls.live": "live", "canrls.fleet": "fleet",
+    "canrls.diagnosis": "diagnosis", "canrls.control": "control", "canrls.live": "live",
+    "canrls.fleet": "fleet",
     "canrls.c_export": "export",
     "canrls.sim": "sim", "canrls.cli": "cli", "canrls.__main__": "cli",
 }
 #: the rooms above the front end: each sees the front end and below, none another
-BESIDE = ("diagnosis", "live", "fleet", "export")
+BESIDE = ("diagnosis", "control", "live", "fleet", "export")
 _BELOW = {"core", "can", "estimation", "front"}
 ALLOWED = {
     "core": {"core"},

@@ -20,8 +20,13 @@ __all__ = ["add_subparser", "run"]
 
 
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
-    from canrls.control.feedforward import DEFAULT_SHARE, MAX_POINTS
-    from canrls.control.gains import DEFAULT_DELAY, DEFAULT_MARGIN
+    from canrls.control.settings import (
+        DEFAULT_DELAY,
+        DEFAULT_MARGIN,
+        DEFAULT_POINTS,
+        DEFAULT_SHARE,
+        MAX_POINTS,
+    )
 
     p = subparsers.add_parser(
         "tune", help="feedforward (anticogging map, friction) and speed-loop gains from a "
@@ -34,15 +39,18 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                    help="CAN log(s) to identify the model on (as 'canrls fit'); or --model")
     p.add_argument("--model", "-m", metavar="FILE",
                    help="a saved model (canrls fit --save-model)")
-    p.add_argument("--points", "-n", type=int, default=1024, metavar="N",
+    p.add_argument("--points", "-n", type=int, default=DEFAULT_POINTS, metavar="N",
                    help=f"points of the anticogging map per revolution (pitch), 2 to "
-                        f"{MAX_POINTS} (default 1024)")
+                        f"{MAX_POINTS} (default {DEFAULT_POINTS})")
     p.add_argument("--share", type=number, default=DEFAULT_SHARE, metavar="S",
                    help=f"leave out a term whose sigma is above this share of its size "
                         f"(default {DEFAULT_SHARE:g})")
     p.add_argument("--bandwidth", type=number, metavar="HZ",
                    help="closed speed loop's bandwidth to tune for [Hz] (default: the "
                         "symmetric optimum)")
+    p.add_argument("--symmetric-optimum", action="store_true",
+                   help="tune for the symmetric optimum (the default without --bandwidth "
+                        "where the current loop's time constant is known)")
     p.add_argument("--phase-margin", type=number, default=DEFAULT_MARGIN, metavar="DEG",
                    help=f"phase margin with --bandwidth (default {DEFAULT_MARGIN:g})")
     p.add_argument("--delay", type=number, default=DEFAULT_DELAY, metavar="PERIODS",
@@ -98,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
     saved, source = _saved(args)
     req = TuneRequest(points=args.points, share=float(args.share),
                       bandwidth=None if args.bandwidth is None else float(args.bandwidth),
+                      symmetric_optimum=args.symmetric_optimum,
                       margin=float(args.phase_margin), delay=float(args.delay),
                       current_tau=None if args.current_tau is None else float(args.current_tau),
                       period=None if args.period is None else float(args.period),

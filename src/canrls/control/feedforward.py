@@ -17,19 +17,16 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.control.settings import DEFAULT_SHARE, MAX_POINTS
 from canrls.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Effect, Frame
 from canrls.estimation.model import Model
 
-__all__ = ["MAX_POINTS", "DEFAULT_SHARE", "Term", "Harmonic", "Ripple", "Feedforward",
+__all__ = ["Term", "Harmonic", "Ripple", "Feedforward",
            "feedforward", "check_points"]
 
 F64 = npt.NDArray[np.float64]
 
-#: Most points of an anticogging map per revolution (pitch): a 16-bit index.
-MAX_POINTS = 65536
-#: Default largest sigma, as a share of a term's size, of a term that is compensated.
-DEFAULT_SHARE = 0.2
 #: Points per revolution on which the ripple of the position terms is computed.
 RIPPLE_POINTS = 4096
 #: The signal roles a feedforward may read: the drive's own position and speed.
@@ -142,13 +139,13 @@ class Feedforward:
         """The position of one turn of the map: 2 pi rad, or the pitch [m] (linear)."""
         return 2.0 * math.pi if self.model.axis == "rotary" else float(self.model.pitch)
 
-    def _frame(self, position: F64, speed: F64) -> Frame:
+    def _signals_at(self, position: F64, speed: F64) -> Frame:
         pos = np.ascontiguousarray(position, dtype=np.float64)
         return Frame(t=np.zeros(len(pos)), current=None, speed=speed, position=pos,
                      angle=Frame.phase(pos, self.model.axis, self.model.pitch))
 
     def _sum(self, terms: tuple[Term, ...], position: F64, speed: F64) -> F64:
-        frame = self._frame(position, speed)
+        frame = self._signals_at(position, speed)
         out = np.zeros(len(frame.t))
         for t in terms:
             for col, v in zip(self._effects[t.effect].columns(), t.values, strict=True):
@@ -186,7 +183,6 @@ class Feedforward:
         for t in self.used:
             if not t.of_position:
                 continue
-            eff = self._effects[t.effect]
             name = t.effect.split(":", 1)[0]
             if name in ("unbalance", "cogging"):
                 k = 1 if name == "unbalance" else int(t.effect.split(":", 1)[1])
@@ -278,7 +274,7 @@ def _ripple(ff: Feedforward) -> Ripple | None:
         return None
     n = RIPPLE_POINTS
     pos = np.arange(n) * (ff.period / n)
-    frame = ff._frame(pos, np.zeros(n))
+    frame = ff._signals_at(pos, np.zeros(n))
     cols: list[tuple[Term, float, float, F64]] = []
     for t in terms:
         for col, v, s in zip(ff._effects[t.effect].columns(), t.values, t.sigmas,

@@ -16,16 +16,11 @@ from typing import Any
 
 import numpy as np
 
+from canrls.control.settings import DEFAULT_MARGIN
 from canrls.errors import ConfigError
 
-__all__ = ["Loop", "SpeedGains", "for_bandwidth", "symmetric_optimum", "DEFAULT_MARGIN",
-           "DEFAULT_DELAY"]
+__all__ = ["Loop", "SpeedGains", "for_bandwidth", "symmetric_optimum", "check_bandwidth"]
 
-#: Phase margin of :func:`for_bandwidth` unless stated [deg].
-DEFAULT_MARGIN = 60.0
-#: Delay of the loop in control periods unless stated: one period of computation and
-#: half a period of the hold.
-DEFAULT_DELAY = 1.5
 #: |T| at the closed loop's bandwidth: -3 dB.
 _HALF_POWER = 1.0 / math.sqrt(2.0)
 

@@ -15,15 +15,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from canrls.control.feedforward import DEFAULT_SHARE, Feedforward, check_points, feedforward
-from canrls.control.gains import (
-    DEFAULT_DELAY,
-    DEFAULT_MARGIN,
-    Loop,
-    SpeedGains,
-    for_bandwidth,
-    symmetric_optimum,
-)
+from canrls.control.feedforward import Feedforward, check_points, feedforward
+from canrls.control.gains import Loop, SpeedGains, for_bandwidth, symmetric_optimum
+from canrls.control.settings import DEFAULT_DELAY, DEFAULT_MARGIN, DEFAULT_POINTS, DEFAULT_SHARE
 from canrls.errors import ConfigError
 from canrls.files import MAX_MODEL_BYTES, atomic_writer, check_writable, read_text
 from canrls.modelfile import SavedModel
@@ -40,9 +34,10 @@ GAINS_FILE = "gains.json"
 class TuneRequest:
     """What the user asks for (None: the default or what the model says)."""
 
-    points: int = 1024
+    points: int = DEFAULT_POINTS
     share: float = DEFAULT_SHARE
     bandwidth: float | None = None  # Hz; None: the symmetric optimum
+    symmetric_optimum: bool = False  # asked for: an error without the current loop's tau
     margin: float = DEFAULT_MARGIN
     delay: float = DEFAULT_DELAY  # control periods
     current_tau: float | None = None  # s; None: L/R of the electrical equation, else 0
@@ -194,14 +189,19 @@ def _gains(saved: SavedModel, req: TuneRequest, unit: str,
     if not (J[0] > 0 and J[1] <= req.share * J[0]):
         return None, (f"inertia.J {J[0]:.3g} ± {J[1]:.2g}: sigma above {req.share:.0%} of "
                       f"its value" if J[0] > 0 else f"inertia.J {J[0]:.3g} is not positive")
+    if req.bandwidth is not None and req.symmetric_optimum:
+        raise ConfigError("--bandwidth, --symmetric-optimum: one or the other")
     if not (math.isfinite(req.delay) and req.delay >= 0):
         raise ConfigError(f"--delay {req.delay!r}: must be a number of periods >= 0")
     Ti, where = _current_tau(saved, req)
     if math.isnan(Ti):
         if req.bandwidth is None:
-            raise ConfigError("--current-tau: the symmetric optimum needs the current "
-                              "loop's time constant; the model has no electrical equation "
-                              "to take it from (or ask for --bandwidth HZ)")
+            why = ("the symmetric optimum needs the current loop's time constant; the "
+                   "model has no electrical equation to take it from: give --current-tau "
+                   "SECONDS (or --bandwidth HZ)")
+            if req.symmetric_optimum:
+                raise ConfigError(f"--current-tau: {why}")
+            return None, why
         Ti, where = 0.0, "none given, no electrical equation: taken as ideal"
     notes.append(f"current loop time constant {Ti:.4g} s: {where}")
     loop = Loop(J[0], J[1], float(dt), req.delay * float(dt), Ti)

@@ -1,0 +1,236 @@
+"""``canrls tune`` and the control layer, proved in closed loop on the simulated drive.
+
+The maps and gains are made from logs of ordinary motion (the standard excitation), as a
+user would; the simulated speed controller then takes them (``canrls sim --feedforward
+--gains``, :func:`canrls.cli.sim.with_tuning`). docs/tune.md.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from canrls.cli.main import main
+from canrls.cli.sim import with_tuning
+from canrls.control.feedforward import feedforward
+from canrls.sim.excitation import constant, reversals
+from canrls.sim.plant import Controller, Plant, Sensors, Truth
+from canrls.sim.scenario import Simulator, scenario
+from cli_tool import cli_error
+
+COGGING = "inertia,viscous,coulomb,stribeck,cogging:6"
+FRICTION = "inertia,viscous,coulomb,stribeck"
+
+
+def tuned(tmp: Path, effects: str, *extra: str, seed: int = 1,
+          params: tuple[str, ...] = ()) -> Path:
+    """``canrls sim`` a 20 s log of ordinary motion, ``canrls tune`` it into ``tmp/out``."""
+    log = tmp / "drive.log"
+    p = [x for kv in params for x in ("-p", kv)]
+    assert main(["sim", "--out", str(log), "--duration", "20", "--effects", effects,
+                 "--seed", str(seed), *p]) == 0
+    out = tmp / "out"
+    assert main(["tune", str(log), "--kt", "0.1", "-e", effects, "--out", str(out),
+                 *extra]) == 0
+    return out
+
+
+def closed_loop(effects: str, ex: Any, duration: float, ff: Path | None,
+                gains: Path | None = None) -> Any:
+    """The simulated drive under its speed controller (with the files, if given)."""
+    sc = scenario("standard", effects=effects, excitation=ex, duration=duration, seed=3)
+    sc = with_tuning(sc, None if ff is None else str(ff), None if gains is None else str(gains))
+    return Simulator(sc).step(sc.periods)
+
+
+def harmonic_ripple(ch: Any, skip: int = 3000, orders: int = 24) -> float:
+    """RMS of the measured speed's part periodic in the measured position (orders 1..24):
+    the ripple an engineer sees on the rig, without the sensor's white noise."""
+    th, w = ch.measured.position[skip:], ch.measured.speed[skip:]
+    cols = [f(k * th) for k in range(1, orders + 1) for f in (np.sin, np.cos)]
+    A = np.column_stack([*cols, np.ones_like(th)])
+    c, *_ = np.linalg.lstsq(A, w, rcond=None)
+    return float(np.sqrt(np.mean((A[:, :-1] @ c[:-1]) ** 2)))
+
+
+def test_speed_ripple_at_5_rad_s_falls_by_80_percent(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]
+                                                      ) -> None:
+    out = tuned(tmp_path, COGGING)
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("canrls tune: compensate viscous, coulomb, stribeck, cogging:6")
+    before = harmonic_ripple(closed_loop(COGGING, constant(5.0), 8.0, None))
+    after = harmonic_ripple(closed_loop(COGGING, constant(5.0), 8.0,
+                                        out / "feedforward.json"))
+    assert after <= 0.2 * before, (before, after)
+
+
+def test_speed_error_through_reversals_falls_by_half_with_friction(tmp_path: Path) -> None:
+    out = tuned(tmp_path, FRICTION)
+    ff = json.loads((out / "feedforward.json").read_text())
+    assert "map" not in ff  # no position term: no map
+    ex = reversals(2.0, accel=50.0, hold=1.0)
+
+    def reversal_error(path: Path | None) -> float:
+        ch = closed_loop(FRICTION, ex, 12.0, path)
+        w_ref, _ = ex.reference(ch.true.t)
+        near = np.abs(w_ref) < 1.0  # through the reversals
+        near[:2000] = False
+        return float(np.sqrt(np.mean((w_ref - ch.true.speed)[near] ** 2)))
+
+    before, after = reversal_error(None), reversal_error(out / "feedforward.json")
+    assert after <= 0.5 * before, (before, after)
+
+
+def step_bandwidth(gains: dict[str, Any], J: float, kt: float = 0.1, dt: float = 1e-3) -> float:
+    r"""The closed loop's -3 dB bandwidth [Hz] measured from speed steps (20 <-> 30 rad/s,
+    no reference feed-forward): the impulse response :math:`h = \Delta y / \Delta r`
+    averaged over the steps, :math:`|T(e^{j\omega dt})| = |\sum_k h_k e^{-j\omega k dt}|`."""
+    truth = Truth({"inertia.J": J, "viscous.B": 1e-4, "coulomb.Tc": 0.02}, kt=kt,
+                  coulomb_band=1e-3)
+    ctl = Controller(kp_speed=gains["kp"] / kt, ki_speed=gains["ki"] / kt)
+    plant = Plant(truth, dt, ctl, Sensors(), seed=5)
+    lo, hi = 20.0, 30.0
+    plant.run(np.full(1000, lo))
+    hs = []
+    for k in range(6):
+        a, b = (lo, hi) if k % 2 == 0 else (hi, lo)
+        y = np.concatenate([[a], plant.run(np.full(500, b)).speed])
+        hs.append(np.diff(y) / (b - a))
+    h = np.mean(hs, axis=0)
+    w = 2 * np.pi * np.geomspace(1.0, 200.0, 3000)
+    T = np.abs(np.exp(-1j * np.outer(w, np.arange(len(h)) * dt)) @ h)
+    return float(w[np.nonzero(T <= 1 / math.sqrt(2))[0][0]] / (2 * np.pi))
+
+
+@pytest.mark.parametrize("scale", [0.3, 1.0, 3.0])
+def test_suggested_gains_reach_the_bandwidth_within_10_percent(tmp_path: Path,
+                                                               scale: float) -> None:
+    J = 2e-4 * scale
+    # the simulator samples at t_k and holds the current over the period: half a period
+    out = tuned(tmp_path, "inertia,viscous,coulomb", "--bandwidth", "20", "--delay", "0.5",
+                seed=2, params=(f"inertia.J={J}",))
+    gains = json.loads((out / "gains.json").read_text())
+    assert gains["inertia"] == pytest.approx(J, rel=0.01)
+    bw = step_bandwidth(gains, J)
+    assert abs(bw - 20.0) <= 2.0, bw
+
+
+def test_terms_the_data_do_not_support_are_left_out(tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]
+                                                    ) -> None:
+    out = tuned(tmp_path, COGGING)
+    ff_all = json.loads((out / "feedforward.json").read_text())
+    model = tmp_path / "m.json"
+    assert main(["fit", str(tmp_path / "drive.log"), "--kt", "0.1", "-e", COGGING,
+                 "--save-model", str(model)]) == 0
+    d = json.loads(model.read_text())
+    d["parameters"]["cogging:6.sin"]["identifiable"] = False
+    d["parameters"]["stribeck.Ts"]["sigma"] = 0.5 * d["parameters"]["stribeck.Ts"]["value"]
+    model.write_text(json.dumps(d))
+    capsys.readouterr()
+    assert main(["tune", "--model", str(model), "--out", str(tmp_path / "o2"),
+                 "--current-tau", "0"]) == 0
+    text = capsys.readouterr().out
+    assert "left out  cogging:6" in text and "cogging:6.sin NOT IDENTIFIABLE" in text
+    assert "left out  stribeck" in text and "50% of its size" in text
+    ff = json.loads((tmp_path / "o2" / "feedforward.json").read_text())
+    assert [t["effect"] for t in ff["terms"] if t["used"]] == ["viscous", "coulomb"]
+    # the ripple left is the cogging the map leaves out: about all of it
+    r, r_all = ff["ripple"], ff_all["ripple"]
+    assert r["after"] == pytest.approx(r["before"], rel=1e-3)
+    assert r_all["after"] < 0.01 * r_all["before"]
+
+
+def test_ripple_and_harmonics_follow_the_parameters() -> None:
+    from canrls.estimation.model import Model
+
+    model = Model(["inertia", "unbalance", "cogging:6", "offset"], kt=0.1)
+    params = {"inertia.J": {"value": 2e-4, "sigma": 1e-7},
+              "unbalance.sin": {"value": 0.004, "sigma": 1e-5},
+              "unbalance.cos": {"value": -0.003, "sigma": 1e-5},
+              "cogging:6.sin": {"value": 0.003, "sigma": 2e-5},
+              "cogging:6.cos": {"value": 0.0, "sigma": 2e-5},
+              "offset.T0": {"value": 0.01, "sigma": 1e-4}}
+    ff = feedforward(model, params)
+    # RMS of A sin: A / sqrt 2; before sqrt((0.005^2 + 0.003^2) / 2)
+    assert ff.ripple is not None
+    assert ff.ripple.before == pytest.approx(math.sqrt((0.005**2 + 0.003**2) / 2), rel=1e-9)
+    # after: sqrt(sum sigma_j^2 / 2) of the terms used
+    assert ff.ripple.after == pytest.approx(math.sqrt((2e-10 + 8e-10) / 2), rel=1e-6)
+    h = {x.order: x for x in ff.harmonics()}
+    assert h[1].amplitude == pytest.approx(0.005) and h[6].sin == 0.003
+    assert h[0].cos == 0.01
+    pos, tau = ff.position_map(8)
+    want = 0.004 * np.sin(pos) - 0.003 * np.cos(pos) + 0.003 * np.sin(6 * pos) + 0.01
+    np.testing.assert_allclose(tau, want, atol=1e-15)
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--points", "0"], "--points 0: the points of a map"),
+    (["--points", "1"], "--points 1: the points of a map"),
+    (["--points", "65537"], "--points 65537: the points of a map"),
+    (["--bandwidth", "0"], "--bandwidth 0"),
+    (["--bandwidth", "-5"], "--bandwidth -5"),
+    (["--bandwidth", "500"], "Nyquist frequency 500 Hz"),
+    (["--bandwidth", "400"], "reaches at most"),
+])
+def test_bad_requests_are_one_error_and_nothing_written(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], says: str
+) -> None:
+    model = saved_model(tmp_path)
+    out = tmp_path / "out"
+    line = cli_error(capsys, ["tune", "--model", str(model), "--out", str(out), *argv])
+    assert says in line
+    assert not out.exists() or not any(out.iterdir())
+
+
+def saved_model(tmp: Path, edit: Any = None) -> Path:
+    truth = {"inertia.J": {"value": 2e-4, "sigma": 1e-7, "identifiable": True},
+             "cogging:6.sin": {"value": 0.003, "sigma": 1e-5},
+             "cogging:6.cos": {"value": 0.001, "sigma": 1e-5}}
+    d = {"format": "canrls-model", "version": 1, "effects": ["inertia", "cogging:6"],
+         "model": {"axis": "rotary", "kt": 0.1, "effects": ["inertia", "cogging:6"]},
+         "parameters": truth, "calibration": {"period": 0.001}}
+    if edit is not None:
+        edit(d)
+    p = tmp / "model.json"
+    p.write_text(json.dumps(d))
+    return p
+
+
+@pytest.mark.parametrize("edit, says", [
+    (lambda d: d.update(version=2), "model file version 2"),
+    (lambda d: d["parameters"]["cogging:6.sin"].update(value=math.nan),
+     "parameters.cogging:6.sin.value = nan: must be a finite number"),
+    (lambda d: d["parameters"]["cogging:6.cos"].update(sigma=math.inf),
+     "parameters.cogging:6.cos.sigma = inf"),
+    (lambda d: d.update(calibration=None), "--period"),
+])
+def test_bad_model_files_are_one_error_and_nothing_written(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], edit: Any, says: str) -> None:
+    model = saved_model(tmp_path, edit)
+    out = tmp_path / "out"
+    line = cli_error(capsys, ["tune", "--model", str(model), "--out", str(out),
+                              "--bandwidth", "20"])
+    assert says in line
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_a_model_without_position_asks_for_no_map(tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    model = saved_model(tmp_path, lambda d: (
+        d.update(effects=["inertia", "viscous"]),
+        d["model"].update(effects=["inertia", "viscous"]),
+        d.update(parameters={"inertia.J": {"value": 2e-4, "sigma": 1e-7},
+                             "viscous.B": {"value": 1e-4, "sigma": 1e-7}})))
+    out = tmp_path / "out"
+    assert main(["tune", "--model", str(model), "--out", str(out), "--bandwidth", "20"]) == 0
+    text = capsys.readouterr().out
+    assert "no anticogging map: the model has no term of the position" in text
+    assert sorted(p.name for p in out.iterdir()) == ["feedforward.json", "gains.json"]
