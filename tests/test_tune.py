@@ -26,6 +26,8 @@ from cli_tool import cli_error
 
 COGGING = "inertia,viscous,coulomb,stribeck,cogging:6"
 FRICTION = "inertia,viscous,coulomb,stribeck"
+#: the simulator samples at t_k and holds the current over the period: half a period
+SIM_DELAY = ("--delay", "0.5")
 
 
 def tuned(tmp: Path, effects: str, *extra: str, seed: int = 1,
@@ -57,7 +59,7 @@ def harmonic_ripple(ch: Any, skip: int = 3000) -> float:
 def test_speed_ripple_at_5_rad_s_falls_by_80_percent(tmp_path: Path,
                                                       capsys: pytest.CaptureFixture[str]
                                                       ) -> None:
-    out = tuned(tmp_path, COGGING)
+    out = tuned(tmp_path, COGGING, *SIM_DELAY)
     first = capsys.readouterr().out.splitlines()[0]
     assert first.startswith("canrls tune: compensate viscous, coulomb, stribeck, cogging:6")
     before = harmonic_ripple(closed_loop(COGGING, constant(5.0), 8.0, None))
@@ -67,7 +69,7 @@ def test_speed_ripple_at_5_rad_s_falls_by_80_percent(tmp_path: Path,
 
 
 def test_speed_error_through_reversals_falls_by_half_with_friction(tmp_path: Path) -> None:
-    out = tuned(tmp_path, FRICTION)
+    out = tuned(tmp_path, FRICTION, *SIM_DELAY)
     ff = json.loads((out / "feedforward.json").read_text())
     assert "map" not in ff  # no position term: no map
     ex = reversals(2.0, accel=50.0, hold=1.0)
@@ -95,8 +97,7 @@ def closed_loop_bandwidth(gains: dict[str, Any], J: float, kt: float = 0.1) -> f
 def test_suggested_gains_reach_the_bandwidth_within_10_percent(tmp_path: Path,
                                                                scale: float) -> None:
     J = 2e-4 * scale
-    # the simulator samples at t_k and holds the current over the period: half a period
-    out = tuned(tmp_path, "inertia,viscous,coulomb", "--bandwidth", "20", "--delay", "0.5",
+    out = tuned(tmp_path, "inertia,viscous,coulomb", "--bandwidth", "20", *SIM_DELAY,
                 seed=2, params=(f"inertia.J={J}",))
     gains = json.loads((out / "gains.json").read_text())
     assert gains["inertia"] == pytest.approx(J, rel=0.01)

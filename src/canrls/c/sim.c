@@ -82,10 +82,11 @@ static inline void rk4(const Physics *ph, double *th, double *w, double *i, doub
 }
 
 /* indices into the feedforward vector ffv (canrls.sim.plant: Compensation.kernel) */
-enum { F_ON, F_SCALE, F_B, F_TC, F_TS, F_WS, F_E, F_IDX, F_COUNT };
+enum { F_ON, F_SCALE, F_B, F_TC, F_TS, F_WS, F_E, F_IDX, F_LEAD, F_COUNT };
 
 /* The speed controller's feedforward (canrls tune): the map over the measured position
- * (linear between its points, periodic) and the friction at the speed reference,
+ * led by the measured speed times the loop's delay, theta_m + w_m T_lead (linear between
+ * its points, periodic), and the friction at the speed reference,
  * tau_ff = map(theta_m) + B w_r + (Tc + Ts exp(-(w_r/ws)^2)) tanh(w_r/e), in current. */
 static double feedforward(const double *f, const double *map, Py_ssize_t nmap, double pos,
                           double w_r)
@@ -161,7 +162,8 @@ static void plant_run(Py_ssize_t n, double dt, int64_t nsub, double h_stiff, dou
         const double e = w_ref[k] - w_m;
         double i_un = jff * a_ref[k] / kt + kp_w * e + integ_w;
         if (ff_on) /* + tau_ff(theta_m, w_ref) / Kt; the position unwrapped, quantised */
-            i_un += feedforward(ffv, ffmap, nmap, quantise(th + nz[2], q_th), w_ref[k]);
+            i_un += feedforward(ffv, ffmap, nmap,
+                                quantise(th + nz[2], q_th) + w_m * ffv[F_LEAD], w_ref[k]);
         const double i_ref = py_min(py_max(i_un, -i_max), i_max);
         if (i_un == i_ref || (i_un > i_max && e < 0.0) || (i_un < -i_max && e > 0.0))
             integ_w += ki_w * e * dt;
@@ -231,7 +233,7 @@ PyDoc_STRVAR(plant_run_doc,
 "Advance len(w_ref) control periods of the simulated drive (canrls.sim.plant), in place.\n\n"
 "st (5,): [theta, omega, i, integ_w, integ_i], updated; p (15,): the physics;\n"
 "ck, cs, cc (m,): cogging orders and amplitudes; gains (8,); quant (5,);\n"
-"ffv (8,): the feedforward (ffv[0] = 0: none); ffmap (N,): its map over the position;\n"
+"ffv (9,): the feedforward (ffv[0] = 0: none); ffmap (N,): its map over the position;\n"
 "w_ref, a_ref (n,); noise (n, 3); out (n, 9) written (float64 throughout).");
 
 static PyObject *py_plant_run(PyObject *self, PyObject *const *args, Py_ssize_t nargs)

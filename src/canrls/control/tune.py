@@ -56,6 +56,7 @@ class TuneResult:
     notes: tuple[str, ...]
     points: int
     base: tuple[float, float] | None  # (torque, speed) of the per-unit gains
+    lead: float  # s: read the map at theta + omega lead (the loop's delay)
 
     def headline(self) -> str:
         """The answer, on one line."""
@@ -123,7 +124,7 @@ class TuneResult:
     def files(self) -> dict[str, bytes]:
         """The files ``--out DIR`` holds, by name."""
         ff = self.feedforward
-        out = {FEEDFORWARD_FILE: _json(ff.to_dict(self.points))}
+        out = {FEEDFORWARD_FILE: _json({**ff.to_dict(self.points), "lead": self.lead})}
         if ff.has_map:
             pos, tau = ff.position_map(self.points)
             unit = "rad" if ff.model.axis == "rotary" else "m"
@@ -174,14 +175,21 @@ def _current_tau(saved: SavedModel, req: TuneRequest) -> tuple[float, str]:
     return math.nan, ""
 
 
-def _gains(saved: SavedModel, req: TuneRequest, unit: str,
-           notes: list[str]) -> tuple[SpeedGains | None, str]:
-    J = _param(saved, "inertia.J")
+def _period(saved: SavedModel, req: TuneRequest) -> float:
+    """The control period: stated, else the one the model was fitted at."""
     cal = saved.calibration or {}
     dt = req.period if req.period is not None else cal.get("period")
     if not isinstance(dt, int | float) or not (math.isfinite(dt) and dt > 0):
         raise ConfigError("--period: the model file holds no control period "
                           "(calibration.period); state it with --period SECONDS")
+    if not (math.isfinite(req.delay) and req.delay >= 0):
+        raise ConfigError(f"--delay {req.delay!r}: must be a number of periods >= 0")
+    return float(dt)
+
+
+def _gains(saved: SavedModel, req: TuneRequest, dt: float, unit: str,
+           notes: list[str]) -> tuple[SpeedGains | None, str]:
+    J = _param(saved, "inertia.J")
     if J is None:
         return None, "the model has no inertia (add the effect inertia)"
     if not J[2]:
@@ -191,8 +199,6 @@ def _gains(saved: SavedModel, req: TuneRequest, unit: str,
                       f"its value" if J[0] > 0 else f"inertia.J {J[0]:.3g} is not positive")
     if req.bandwidth is not None and req.symmetric_optimum:
         raise ConfigError("--bandwidth, --symmetric-optimum: one or the other")
-    if not (math.isfinite(req.delay) and req.delay >= 0):
-        raise ConfigError(f"--delay {req.delay!r}: must be a number of periods >= 0")
     Ti, where = _current_tau(saved, req)
     if math.isnan(Ti):
         if req.bandwidth is None:
@@ -204,7 +210,7 @@ def _gains(saved: SavedModel, req: TuneRequest, unit: str,
             return None, why
         Ti, where = 0.0, "none given, no electrical equation: taken as ideal"
     notes.append(f"current loop time constant {Ti:.4g} s: {where}")
-    loop = Loop(J[0], J[1], float(dt), req.delay * float(dt), Ti)
+    loop = Loop(J[0], J[1], dt, req.delay * dt, Ti)
     if req.bandwidth is None:
         return symmetric_optimum(loop, unit=unit), ""
     return for_bandwidth(loop, req.bandwidth, req.margin, unit=unit), ""
@@ -216,7 +222,8 @@ def tune(saved: SavedModel, req: TuneRequest, source: str = "model") -> TuneResu
     model = saved.build_model()
     ff = feedforward(model, saved.parameters, share=req.share, source=source)
     notes: list[str] = []
-    gains, why = _gains(saved, req, ff.unit, notes)
+    dt = _period(saved, req)
+    gains, why = _gains(saved, req, dt, ff.unit, notes)
     base = None
     rated = req.rated_torque
     if rated is None:
@@ -231,7 +238,7 @@ def tune(saved: SavedModel, req: TuneRequest, source: str = "model") -> TuneResu
         else:
             notes.append("per unit: give --rated-speed (and --rated-torque where the model "
                          "file holds no rating)")
-    return TuneResult(ff, gains, why, tuple(notes), req.points, base)
+    return TuneResult(ff, gains, why, tuple(notes), req.points, base, req.delay * dt)
 
 
 def _read(path: str | Path, fmt: str, what: str) -> dict[str, Any]:
@@ -259,13 +266,16 @@ def _finite(d: Any, key: str, where: str, *, positive: bool = False) -> float:
 
 
 def read_feedforward(path: str | Path) -> dict[str, Any]:
-    """A feedforward file, checked: ``unit``, ``map`` (``period``, ``torque``) and the
-    ``speed`` parameters and speeds as finite numbers; user terms of the speed refused
+    """A feedforward file, checked: ``unit``, ``lead``, ``map`` (``period``, ``torque``)
+    and the ``speed`` parameters and speeds as finite numbers; user terms of the speed refused
     (a drive or the simulator evaluates no expression)."""
     what = f"--feedforward {path}"
     d = _read(path, "canrls-feedforward", "--feedforward")
     if d.get("unit") not in ("N·m", "N", "A"):
         raise ConfigError(f"{what}: unit = {d.get('unit')!r}: must be N·m, N or A")
+    lead = _finite(d, "lead", what)
+    if lead < 0:
+        raise ConfigError(f"{what}: lead = {lead!r}: must be >= 0 s")
     sp = d.get("speed")
     if not isinstance(sp, dict) or not isinstance(sp.get("parameters"), dict):
         raise ConfigError(f"{what}: speed.parameters: must be a table")
