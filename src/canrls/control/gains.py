@@ -101,7 +101,7 @@ class SpeedGains:
 
     @property
     def integral_time(self) -> float:
-        """Ti = kp / ki [s]."""
+        """Tn = kp / ki [s]."""
         return self.kp / self.ki
 
     def per_unit(self, base_torque: float, base_speed: float) -> tuple[float, float]:

@@ -98,7 +98,7 @@ class TuneResult:
         if g is not None:
             lp = g.loop
             out.append(f"  speed loop ({g.method}): kp {g.kp:.6g} {g.unit}·s/rad, ki "
-                       f"{g.ki:.6g} {g.unit}/rad (Ti {g.integral_time:.4g} s); crossover "
+                       f"{g.ki:.6g} {g.unit}/rad (Tn {g.integral_time:.4g} s); crossover "
                        f"{g.crossover_hz:.3g} Hz, bandwidth {g.bandwidth_hz:.3g} Hz "
                        f"({g.bandwidth_range_hz[0]:.3g} to {g.bandwidth_range_hz[1]:.3g} "
                        f"Hz for J ± 2 sigma)")
