@@ -218,3 +218,23 @@ def test_a_model_without_position_asks_for_no_map(tmp_path: Path,
     text = capsys.readouterr().out
     assert "no anticogging map: the model has no term of the position" in text
     assert sorted(p.name for p in out.iterdir()) == ["feedforward.json", "gains.json"]
+
+
+def test_the_diagnosis_says_what_compensation_would_leave(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    log = tmp_path / "drive.log"
+    assert main(["sim", "--out", str(log), "--duration", "20", "--effects", COGGING,
+                 "--seed", "1"]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(log), "--kt", "0.1", "-e", FRICTION, "--add", "cogging:6",
+                 "--json"]) == 0
+    comp = json.loads(capsys.readouterr().out)["compensation"]
+    assert comp["effects"] == ["cogging:6"]
+    # the truth's ripple: sqrt((0.003^2 + 0.0015^2) / 2)
+    assert comp["before"] == pytest.approx(math.sqrt((0.003**2 + 0.0015**2) / 2), rel=0.02)
+    assert comp["after"] < 0.01 * comp["before"]
+    assert main(["diagnose", str(log), "--kt", "0.1", "-e", FRICTION, "--add",
+                 "cogging:6"]) == 0
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert line.startswith("with this compensation (cogging:6; canrls tune), the torque "
+                           "ripple would fall from 0.00238")

@@ -69,6 +69,14 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+def _compensation(analysis: Any) -> tuple[str, dict[str, Any]] | None:
+    """What compensating the model's position terms would leave of their ripple."""
+    from canrls.control.tune import compensation
+
+    return compensation(analysis.model, {p.name: p.to_dict()
+                                         for p in analysis.estimates.parameters})
+
+
 def run(args: argparse.Namespace) -> int:
     from canrls.diagnosis.analysis import diagnose_log
     from canrls.errors import EstimatorError
@@ -96,8 +104,11 @@ def run(args: argparse.Namespace) -> int:
         final = rep.after if rep.after is not None else rep.before
         saved = SavedModel.from_parts(final.model, final.estimates, None, cfg,
                                       list(args.log)).save(args.save_model)
+    final = rep.after if rep.after is not None else rep.before
+    comp = _compensation(final)
     if args.json:
         d = rep.to_dict()
+        d["compensation"] = None if comp is None else comp[1]
         if page is not None:
             d["report"] = str(page)
         if saved is not None:
@@ -118,6 +129,8 @@ def run(args: argparse.Namespace) -> int:
                         f"Stribeck speed {m.stribeck_speed:.4g} {u}"
                         + (f", pitch {m.pitch:.4g} m" if m.axis == "linear" else ""))
         sys.stdout.write("".join(h + "\n" for h in head) + rep.format() + "\n")
+        if comp is not None:
+            sys.stdout.write(comp[0] + "\n")
         if page is not None:
             sys.stdout.write(f"\nreport: {page}\n")
         if saved is not None:

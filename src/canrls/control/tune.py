@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,10 +20,11 @@ from canrls.control.feedforward import Feedforward, check_points, feedforward
 from canrls.control.gains import Loop, SpeedGains, for_bandwidth, symmetric_optimum
 from canrls.control.settings import DEFAULT_DELAY, DEFAULT_MARGIN, DEFAULT_POINTS, DEFAULT_SHARE
 from canrls.errors import ConfigError
+from canrls.estimation.model import Model
 from canrls.files import MAX_MODEL_BYTES, atomic_writer, check_writable, read_text
 from canrls.modelfile import SavedModel
 
-__all__ = ["TuneRequest", "TuneResult", "tune", "read_feedforward", "read_gains",
+__all__ = ["TuneRequest", "TuneResult", "tune", "read_feedforward", "read_gains", "compensation",
            "FEEDFORWARD_FILE", "MAP_FILE", "GAINS_FILE"]
 
 FEEDFORWARD_FILE = "feedforward.json"
@@ -239,6 +241,29 @@ def tune(saved: SavedModel, req: TuneRequest, source: str = "model") -> TuneResu
             notes.append("per unit: give --rated-speed (and --rated-torque where the model "
                          "file holds no rating)")
     return TuneResult(ff, gains, why, tuple(notes), req.points, base, req.delay * dt)
+
+
+def compensation(model: Model, parameters: Mapping[str, Mapping[str, Any]],
+                 share: float = DEFAULT_SHARE) -> tuple[str, dict[str, Any]] | None:
+    """The line the diagnosis prints beside the effects found ("with this compensation,
+    the ripple would fall from X to Y") and its JSON; None without a position term.
+    A parameter the estimator left without a finite value counts as not identifiable."""
+    clean = {}
+    for name, p in parameters.items():
+        ok = all(isinstance(p.get(k), int | float) and math.isfinite(p[k])
+                 for k in ("value", "sigma"))
+        clean[name] = dict(p) if ok else {**p, "value": 0.0, "sigma": None,
+                                          "identifiable": False}
+    ff = feedforward(model, clean, share=share)
+    r = ff.ripple
+    if r is None:
+        return None
+    used = ", ".join(t.effect for t in ff.used if t.of_position) or "nothing"
+    line = (f"with this compensation ({used}; canrls tune), the torque ripple would fall "
+            f"from {r.before:.3g} ± {r.before_sigma:.2g} to {r.after:.3g} ± "
+            f"{r.after_sigma:.2g} {ff.unit} RMS ({-100 * r.reduction:+.1f} %)")
+    return line, {"effects": [t.effect for t in ff.used if t.of_position], "unit": ff.unit,
+                  **r.to_dict()}
 
 
 def _read(path: str | Path, fmt: str, what: str) -> dict[str, Any]:
