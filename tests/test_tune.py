@@ -238,3 +238,57 @@ def test_the_diagnosis_says_what_compensation_would_leave(
     line = capsys.readouterr().out.splitlines()[-1]
     assert line.startswith("with this compensation (cogging:6; canrls tune), the torque "
                            "ripple would fall from 0.00238")
+
+
+DRIVER = """#include <stdio.h>
+#include <inttypes.h>
+#include "canrls_feedforward.h"
+int main(void)
+{
+    unsigned long a;
+    while (scanf("%lu", &a) == 1)
+        printf("%" PRId32 "\\n", canrls_ff_map_q((uint32_t)a));
+    return 0;
+}
+"""
+
+
+@pytest.mark.parametrize("points", [2, 7, 1024, 65536])
+def test_the_c_map_is_the_specification_bit_for_bit(tmp_path: Path, points: int) -> None:
+    import shutil
+    import subprocess
+
+    from canrls.control.fixed_map import fixed_map, map_q
+
+    cc = shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler")
+    model = saved_model(tmp_path, lambda d: d["parameters"].update({
+        "cogging:6.sin": {"value": -0.02, "sigma": 1e-5}}))
+    out = tmp_path / "c"
+    assert main(["export-c", "--model", str(model), "--out", str(out), "--kernel-only",
+                 "--feedforward", str(points)]) == 0
+    (out / "driver.c").write_text(DRIVER)
+    exe = tmp_path / "ff"
+    subprocess.run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic",
+                    "-I", str(out), str(out / "driver.c"), str(out / "canrls_feedforward.c"),
+                    "-o", str(exe)], check=True, capture_output=True, text=True)
+    rng = np.random.default_rng(points)
+    angles = [0, 1, 0xFFFFFFFF, 0x80000000, *rng.integers(0, 1 << 32, 3000).tolist()]
+    got = subprocess.run([str(exe)], input="\n".join(map(str, angles)) + "\n",
+                         capture_output=True, text=True, check=True).stdout.split()
+    from canrls.control.feedforward import feedforward as ff_of
+    from canrls.modelfile import SavedModel
+
+    sm = SavedModel.load(model)
+    ff = ff_of(sm.build_model(), sm.parameters)
+    pos, tau = ff.position_map(points)
+    fm = fixed_map(tau, ff.unit)
+    want = [map_q(fm, a) for a in angles]
+    assert [int(g) for g in got] == want
+    # and the fixed point follows the float map within its rounding (half an LSB of the
+    # table and of the interpolation) plus the chord's sag between points
+    th = np.array(angles, dtype=np.float64) * (2 * np.pi / 2**32)
+    exact = ff.torque(th, np.zeros(len(th)))
+    sag = 0.02 * 36 * (2 * np.pi / points) ** 2 / 8
+    assert np.max(np.abs(np.array(want) * 2.0**-fm.frac - exact)) <= 2.0**-fm.frac + sag

@@ -46,6 +46,10 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "test that replays them (make -C DIR test)")
     p.add_argument("--every", type=int, default=1000, metavar="N",
                    help="samples between the state records of the vectors (default 1000)")
+    p.add_argument("--feedforward", type=int, default=None, metavar="N",
+                   help="also the anticogging map of a saved model as a C function in fixed "
+                        "point, N points per revolution (canrls_feedforward.h/.c; "
+                        "docs/tune.md)")
     p.add_argument("--kernel-only", action="store_true",
                    help="only the kernel, the configuration and the frame codecs (what a "
                         "model the whole estimator cannot run, with user terms, gets anyway, "
@@ -63,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     if args.kernel_only and args.vectors:
         raise ConfigError("--vectors: the test vectors need the whole estimator "
                           "(not --kernel-only)")
+    ff_texts = _feedforward(args.model, args.feedforward) if args.feedforward else None
     tm = src = texts = None
     if not args.kernel_only:
         from canrls.target.export import target_texts
@@ -90,4 +95,31 @@ def run(args: argparse.Namespace) -> int:
         from canrls.target.export import export_target
 
         print(export_target(src, args.out, tm, what=f"--out {args.out}", texts=texts))
+    if ff_texts is not None:
+        from canrls.files import write_texts
+
+        texts_ff, line = ff_texts
+        write_texts(args.out, texts_ff, f"--out {args.out}")
+        print(line)
     return 0
+
+
+def _feedforward(path: str, points: int) -> tuple[list[tuple[str, str]], str]:
+    """The anticogging map's C (before anything is written) and the line that says it."""
+    from canrls.control.feedforward import check_points, feedforward
+    from canrls.control.fixed_map import fixed_map, map_c
+    from canrls.errors import ConfigError
+    from canrls.modelfile import SavedModel
+
+    check_points(points, "--feedforward")
+    if not path.endswith(".json"):
+        raise ConfigError(f"--feedforward: needs a saved model (.json), not {path}")
+    saved = SavedModel.load(path)
+    ff = feedforward(saved.build_model(), saved.parameters, source=path)
+    if not ff.has_map:
+        raise ConfigError(f"--feedforward: no anticogging map: {ff.no_map_reason()}")
+    fm = fixed_map(ff.position_map(points)[1], ff.unit)
+    head, src = map_c(fm, path)
+    return ([("canrls_feedforward.h", head), ("canrls_feedforward.c", src)],
+            f"canrls_feedforward.c: the anticogging map, {points} points in Q{fm.frac} "
+            f"{ff.unit}, table {fm.flash} bytes of flash")
