@@ -237,7 +237,7 @@ def test_the_diagnosis_says_what_compensation_would_leave(
                  "cogging:6"]) == 0
     line = capsys.readouterr().out.splitlines()[-1]
     assert line.startswith("with this compensation (cogging:6; canrls tune), the torque "
-                           "ripple would fall from 0.00238")
+                           "ripple would fall: 0.00238 ± ")
 
 
 DRIVER = """#include <stdio.h>

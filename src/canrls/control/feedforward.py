@@ -104,6 +104,11 @@ class Ripple:
         """Share of the ripple the compensation removes (0..1; nan without ripple)."""
         return 1.0 - self.after / self.before if self.before > 0 else math.nan
 
+    def describe(self, unit: str) -> str:
+        """``0.00238 ± 3.5e-06 -> 4.88e-06 ± 2.4e-06 N·m RMS (-99.8 %)``"""
+        return (f"{self.before:.3g} ± {self.before_sigma:.2g} -> {self.after:.3g} ± "
+                f"{self.after_sigma:.2g} {unit} RMS ({-100 * self.reduction:+.1f} %)")
+
     def to_dict(self) -> dict[str, Any]:
         return {"before": self.before, "before_sigma": self.before_sigma,
                 "after": self.after, "after_sigma": self.after_sigma,

@@ -66,9 +66,7 @@ class TuneResult:
         used = ", ".join(t.effect for t in ff.used) or "nothing"
         r = ff.ripple
         if r is not None:
-            parts.append(f"compensate {used}: torque ripple {r.before:.3g} ± "
-                         f"{r.before_sigma:.2g} -> {r.after:.3g} ± {r.after_sigma:.2g} "
-                         f"{ff.unit} RMS ({-100 * r.reduction:+.1f} %)")
+            parts.append(f"compensate {used}: torque ripple {r.describe(ff.unit)}")
         else:
             parts.append(f"compensate {used}")
         g = self.gains
@@ -259,9 +257,8 @@ def compensation(model: Model, parameters: Mapping[str, Mapping[str, Any]],
     if r is None:
         return None
     used = ", ".join(t.effect for t in ff.used if t.of_position) or "nothing"
-    line = (f"with this compensation ({used}; canrls tune), the torque ripple would fall "
-            f"from {r.before:.3g} ± {r.before_sigma:.2g} to {r.after:.3g} ± "
-            f"{r.after_sigma:.2g} {ff.unit} RMS ({-100 * r.reduction:+.1f} %)")
+    line = (f"with this compensation ({used}; canrls tune), the torque ripple would fall: "
+            f"{r.describe(ff.unit)}")
     return line, {"effects": [t.effect for t in ff.used if t.of_position], "unit": ff.unit,
                   **r.to_dict()}
 
