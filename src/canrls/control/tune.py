@@ -60,6 +60,11 @@ class TuneResult:
     base: tuple[float, float] | None  # (torque, speed) of the per-unit gains
     lead: float  # s: read the map at theta + omega lead (the loop's delay)
 
+    @property
+    def position_unit(self) -> str:
+        """rad, or m on a linear axis."""
+        return "rad" if self.feedforward.model.axis == "rotary" else "m"
+
     def headline(self) -> str:
         """The answer, on one line."""
         ff, parts = self.feedforward, []
@@ -71,8 +76,9 @@ class TuneResult:
             parts.append(f"compensate {used}")
         g = self.gains
         if g is not None:
-            parts.append(f"speed PI kp {g.kp:.4g}, ki {g.ki:.4g} ({g.unit} per rad/s, per "
-                         f"rad) for {g.bandwidth_hz:.3g} Hz, phase margin "
+            x = self.position_unit
+            parts.append(f"speed PI kp {g.kp:.4g}, ki {g.ki:.4g} ({g.unit} per {x}/s, per "
+                         f"{x}) for {g.bandwidth_hz:.3g} Hz, phase margin "
                          f"{g.phase_margin:.0f} deg")
         else:
             parts.append(f"no gains: {self.no_gains}")
@@ -97,8 +103,9 @@ class TuneResult:
         g = self.gains
         if g is not None:
             lp = g.loop
-            out.append(f"  speed loop ({g.method}): kp {g.kp:.6g} {g.unit}·s/rad, ki "
-                       f"{g.ki:.6g} {g.unit}/rad (Tn {g.integral_time:.4g} s); crossover "
+            x = self.position_unit
+            out.append(f"  speed loop ({g.method}): kp {g.kp:.6g} {g.unit}·s/{x}, ki "
+                       f"{g.ki:.6g} {g.unit}/{x} (Tn {g.integral_time:.4g} s); crossover "
                        f"{g.crossover_hz:.3g} Hz, bandwidth {g.bandwidth_hz:.3g} Hz "
                        f"({g.bandwidth_range_hz[0]:.3g} to {g.bandwidth_range_hz[1]:.3g} "
                        f"Hz for J ± 2 sigma)")
@@ -127,8 +134,7 @@ class TuneResult:
         out = {FEEDFORWARD_FILE: _json({**ff.to_dict(self.points), "lead": self.lead})}
         if ff.has_map:
             pos, tau = ff.position_map(self.points)
-            unit = "rad" if ff.model.axis == "rotary" else "m"
-            rows = [f"position_{unit},torque_{ff.unit.replace('·', '')}"]
+            rows = [f"position_{self.position_unit},torque_{ff.unit.replace('·', '')}"]
             rows += [f"{p!r},{t!r}" for p, t in zip(pos.tolist(), tau.tolist(), strict=True)]
             out[MAP_FILE] = ("\n".join(rows) + "\n").encode("utf-8")
         if self.gains is not None:
