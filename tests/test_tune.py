@@ -292,3 +292,61 @@ def test_the_c_map_is_the_specification_bit_for_bit(tmp_path: Path, points: int)
     exact = ff.torque(th, np.zeros(len(th)))
     sag = 0.02 * 36 * (2 * np.pi / points) ** 2 / 8
     assert np.max(np.abs(np.array(want) * 2.0**-fm.frac - exact)) <= 2.0**-fm.frac + sag
+
+
+def test_the_daemon_saves_its_running_model_for_tune(tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]
+                                                     ) -> None:
+    from canrls.can.frameblock import FrameBlock
+    from canrls.can.frames import CommandCode, CommandResult, encode_command
+    from canrls.config import AppConfig
+    from canrls.live.daemon import DaemonSettings
+    from daemon_tool import ACK_ID, daemon_fed
+
+    sc = scenario("standard", effects=COGGING, duration=20.0, seed=1)
+    frames = FrameBlock.concat(list(Simulator(sc).frames()))
+    cfg = AppConfig()
+    cfg.model = {"effects": COGGING.split(","), "kt": 0.1}
+    protocol = cfg.protocol()
+    path = tmp_path / "live.json"
+    dset = DaemonSettings(publish_interval=0.05, info_interval=0.2, commands=True,
+                          saved_model=path)
+    with daemon_fed(protocol, cfg.model_for(protocol), cfg.settings(),
+                    frames.to_messages(), "test-tune-save", daemon=dset,
+                    configuration=cfg) as (d, reader):
+        d.process([encode_command(CommandCode.SAVE_MODEL)])
+        acks = [m for m in reader_messages(reader) if m.arbitration_id == ACK_ID]
+    assert acks and CommandResult(acks[-1].data[1]) is CommandResult.OK
+    capsys.readouterr()
+    assert main(["tune", "--model", str(path), "--bandwidth", "20"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert "compensate viscous, coulomb, stribeck, cogging:6" in first
+    saved = json.loads(path.read_text())
+    assert saved["calibration"]["period"] == pytest.approx(1e-3)
+    assert saved["parameters"]["inertia.J"]["value"] == pytest.approx(2e-4, rel=0.02)
+
+
+def reader_messages(reader: Any) -> list[Any]:
+    """Every message the daemon sent that the reader holds now (after a moment)."""
+    import time
+
+    from daemon_tool import collect
+
+    time.sleep(0.2)
+    return collect(reader)
+
+
+def test_save_model_without_a_file_is_not_applicable() -> None:
+    from canrls.can.frames import CommandCode, CommandResult, encode_command
+    from canrls.config import AppConfig
+    from canrls.live.commands import CommandHandler
+    from canrls.processor import FrameProcessor
+
+    cfg = AppConfig()
+    cfg.model = {"effects": ["inertia"], "kt": 0.1}
+    protocol = cfg.protocol()
+    proc = FrameProcessor(protocol, cfg.model_for(protocol), cfg.settings())
+    sent: list[Any] = []
+    h = CommandHandler(proc, True, lambda m: sent.extend(m) or len(m),
+                       lambda m, w: None, lambda: None)
+    assert h.handle(encode_command(CommandCode.SAVE_MODEL)) is CommandResult.NOT_APPLICABLE
