@@ -350,3 +350,14 @@ def test_save_model_without_a_file_is_not_applicable() -> None:
     h = CommandHandler(proc, True, lambda m: sent.extend(m) or len(m),
                        lambda m, w: None, lambda: None)
     assert h.handle(encode_command(CommandCode.SAVE_MODEL)) is CommandResult.NOT_APPLICABLE
+
+
+def test_the_diagnosis_report_page_says_it_too(tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    log = tmp_path / "drive.log"
+    assert main(["sim", "--out", str(log), "--duration", "10", "--effects", COGGING,
+                 "--seed", "1"]) == 0
+    assert main(["diagnose", str(log), "--kt", "0.1", "-e", FRICTION, "--add", "cogging:6",
+                 "--report", str(tmp_path / "rep")]) == 0
+    page = (tmp_path / "rep" / "index.html").read_text()
+    assert "<b>Compensation.</b> with this compensation (cogging:6; canrls tune)" in page

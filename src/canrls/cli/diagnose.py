@@ -96,19 +96,17 @@ def run(args: argparse.Namespace) -> int:
                                          rep.period and rep.period.value, settings)
     if few:
         raise EstimatorError(f"{', '.join(args.log)}: {few}")
+    final = rep.after if rep.after is not None else rep.before
+    rep.compensation = _compensation(final)
     page = rep.write_html(args.report) if args.report else None
     saved = None
     if args.save_model:
         from canrls.modelfile import SavedModel
 
-        final = rep.after if rep.after is not None else rep.before
         saved = SavedModel.from_parts(final.model, final.estimates, None, cfg,
                                       list(args.log)).save(args.save_model)
-    final = rep.after if rep.after is not None else rep.before
-    comp = _compensation(final)
     if args.json:
         d = rep.to_dict()
-        d["compensation"] = None if comp is None else comp[1]
         if page is not None:
             d["report"] = str(page)
         if saved is not None:
@@ -129,8 +127,6 @@ def run(args: argparse.Namespace) -> int:
                         f"Stribeck speed {m.stribeck_speed:.4g} {u}"
                         + (f", pitch {m.pitch:.4g} m" if m.axis == "linear" else ""))
         sys.stdout.write("".join(h + "\n" for h in head) + rep.format() + "\n")
-        if comp is not None:
-            sys.stdout.write(comp[0] + "\n")
         if page is not None:
             sys.stdout.write(f"\nreport: {page}\n")
         if saved is not None:
