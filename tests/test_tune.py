@@ -361,3 +361,58 @@ def test_the_diagnosis_report_page_says_it_too(tmp_path: Path) -> None:
                  "--report", str(tmp_path / "rep")]) == 0
     page = (tmp_path / "rep" / "index.html").read_text()
     assert "<b>Compensation.</b> with this compensation (cogging:6; canrls tune)" in page
+
+
+HARMONICS_DRIVER = DRIVER.replace("canrls_ff_map_q", "canrls_ff_harmonics_q")
+
+
+def test_the_c_harmonics_are_the_specification_bit_for_bit(tmp_path: Path) -> None:
+    import shutil
+    import subprocess
+
+    from canrls.control.feedforward import feedforward as ff_of
+    from canrls.control.fixed_map import fixed_harmonics, harmonics_q
+    from canrls.modelfile import SavedModel
+
+    cc = shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler")
+
+    def edit(d: dict[str, Any]) -> None:
+        effects = ["inertia", "offset", "unbalance", "cogging:6", "cogging:48"]
+        d["effects"] = d["model"]["effects"] = effects
+        d["parameters"].update({
+            "offset.T0": {"value": -0.011, "sigma": 1e-5},
+            "unbalance.sin": {"value": 0.004, "sigma": 1e-5},
+            "unbalance.cos": {"value": -0.003, "sigma": 1e-5},
+            "cogging:48.sin": {"value": -0.0007, "sigma": 1e-5},
+            "cogging:48.cos": {"value": 0.0009, "sigma": 1e-5}})
+
+    model = saved_model(tmp_path, edit)
+    out = tmp_path / "c"
+    assert main(["export-c", "--model", str(model), "--out", str(out), "--kernel-only",
+                 "--feedforward", "1024", "--feedforward-form", "harmonics"]) == 0
+    (out / "driver.c").write_text(HARMONICS_DRIVER)
+    exe = tmp_path / "ff"
+    subprocess.run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic",
+                    "-I", str(out), str(out / "driver.c"), str(out / "canrls_feedforward.c"),
+                    "-o", str(exe)], check=True, capture_output=True, text=True)
+    rng = np.random.default_rng(48)
+    angles = [0, 1, 0xFFFFFFFF, 0x80000000, *rng.integers(0, 1 << 32, 3000).tolist()]
+    got = subprocess.run([str(exe)], input="\n".join(map(str, angles)) + "\n",
+                         capture_output=True, text=True, check=True).stdout.split()
+    sm = SavedModel.load(model)
+    ff = ff_of(sm.build_model(), sm.parameters)
+    fh = fixed_harmonics([(h.order, h.cos if h.order == 0 else h.amplitude, h.phase)
+                          for h in ff.harmonics()], ff.unit)
+    assert fh.orders == (1, 6, 48)
+    want = [harmonics_q(fh, a) for a in angles]
+    assert [int(g) for g in got] == want
+    # the specification follows the float torque within the sine table's error
+    # (1/32767 rounding and the chord's sag (2 pi / 1024)^2 / 8 per amplitude)
+    th = np.array(angles, dtype=np.float64) * (2 * np.pi / 2**32)
+    exact = ff.torque(th, np.zeros(len(th)))
+    amps = 0.005 + math.hypot(0.003, 0.001) + math.hypot(0.0007, 0.0009)
+    bound = amps * (1 / 32767 + (2 * np.pi / 1024) ** 2 / 8) + 2 * 2.0**-fh.frac
+    err = np.max(np.abs(np.array(want) * 2.0**-fh.frac - exact))
+    assert err <= bound, (err, bound)

@@ -1,12 +1,13 @@
 """Flash and instructions per call of the anticogging map's C on a Cortex-M4.
 
-Exports the map of a saved model (``canrls export-c --feedforward N``), compiles
-``canrls_feedforward.c`` with ``arm-none-eabi-gcc -mcpu=cortex-m4 -mthumb -O2`` and prints
-the code and table bytes and the instructions of ``canrls_ff_map_q`` from the
-disassembly: the function has no loop, so a call executes at most that many
+Exports the map of a saved model (``canrls export-c --feedforward N``, as a table or as
+harmonics), compiles ``canrls_feedforward.c`` with ``arm-none-eabi-gcc -mcpu=cortex-m4
+-mthumb -O2`` and prints the code and table bytes and the instructions of the function
+from the disassembly: it has no loop and no branch, so a call executes them all
 (docs/tune.md)::
 
     python tools/bench_feedforward_c.py --model drive.json --points 1024 4096
+    python tools/bench_feedforward_c.py --model drive.json --form harmonics
 """
 
 from __future__ import annotations
@@ -27,12 +28,12 @@ FLAGS = ["-std=c99", "-O2", "-mcpu=cortex-m4", "-mthumb", "-Wall", "-Wextra", "-
          "-ffunction-sections", "-fdata-sections"]
 
 
-def measure(model: str, points: int, tmp: Path) -> tuple[int, int, int, bool]:
+def measure(model: str, points: int, form: str, tmp: Path) -> tuple[int, int, int, bool]:
     """(code bytes, table bytes, instructions, has a branch) of one map."""
-    out = tmp / f"c{points}"
+    out = tmp / f"c{points}{form}"
     with contextlib.redirect_stdout(io.StringIO()):
         rc = main(["export-c", "--model", model, "--out", str(out), "--kernel-only",
-                   "--feedforward", str(points)])
+                   "--feedforward", str(points), "--feedforward-form", form])
     if rc != 0:
         raise SystemExit(f"export-c failed ({rc})")
     obj = out / "ff.o"
@@ -54,11 +55,12 @@ def run(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", required=True)
     ap.add_argument("--points", type=int, nargs="+", default=[1024])
+    ap.add_argument("--form", choices=("table", "harmonics"), default="table")
     args = ap.parse_args(argv)
     print(f"{'points':>7} {'code B':>7} {'table B':>8} {'instructions':>12} {'branch':>6}")
     with tempfile.TemporaryDirectory() as d:
         for n in args.points:
-            code, table, ins, br = measure(args.model, n, Path(d))
+            code, table, ins, br = measure(args.model, n, args.form, Path(d))
             print(f"{n:7d} {code:7d} {table:8d} {ins:12d} {'yes' if br else 'no':>6}")
     return 0
 

@@ -50,6 +50,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                    help="also the anticogging map of a saved model as a C function in fixed "
                         "point, N points per revolution (canrls_feedforward.h/.c; "
                         "docs/tune.md)")
+    p.add_argument("--feedforward-form", choices=("table", "harmonics"), default="table",
+                   help="the map as a table of N points (default) or as its harmonics "
+                        "(N: the points the float map is checked on)")
     p.add_argument("--kernel-only", action="store_true",
                    help="only the kernel, the configuration and the frame codecs (what a "
                         "model the whole estimator cannot run, with user terms, gets anyway, "
@@ -67,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
     if args.kernel_only and args.vectors:
         raise ConfigError("--vectors: the test vectors need the whole estimator "
                           "(not --kernel-only)")
-    ff_texts = _feedforward(args.model, args.feedforward) if args.feedforward else None
+    ff_texts = (_feedforward(args.model, args.feedforward, args.feedforward_form)
+                if args.feedforward is not None else None)
     tm = src = texts = None
     if not args.kernel_only:
         from canrls.target.export import target_texts
@@ -104,10 +108,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _feedforward(path: str, points: int) -> tuple[list[tuple[str, str]], str]:
+def _feedforward(path: str, points: int, form: str) -> tuple[list[tuple[str, str]], str]:
     """The anticogging map's C (before anything is written) and the line that says it."""
     from canrls.control.feedforward import check_points, feedforward
-    from canrls.control.fixed_map import fixed_map, map_c
+    from canrls.control.fixed_map import fixed_harmonics, fixed_map, harmonics_c, map_c
     from canrls.errors import ConfigError
     from canrls.modelfile import SavedModel
 
@@ -118,8 +122,16 @@ def _feedforward(path: str, points: int) -> tuple[list[tuple[str, str]], str]:
     ff = feedforward(saved.build_model(), saved.parameters, source=path)
     if not ff.has_map:
         raise ConfigError(f"--feedforward: no anticogging map: {ff.no_map_reason()}")
-    fm = fixed_map(ff.position_map(points)[1], ff.unit)
-    head, src = map_c(fm, path)
+    if form == "harmonics":
+        fh = fixed_harmonics([(h.order, h.cos if h.order == 0 else h.amplitude, h.phase)
+                              for h in ff.harmonics()], ff.unit)
+        head, src = harmonics_c(fh, path)
+        what = (f"the anticogging map as {len(fh.orders)} harmonics in Q{fh.frac} "
+                f"{ff.unit} (orders {', '.join(map(str, fh.orders)) or 'none'})")
+    else:
+        fm = fixed_map(ff.position_map(points)[1], ff.unit)
+        head, src = map_c(fm, path)
+        what = (f"the anticogging map, {points} points in Q{fm.frac} {ff.unit}, table "
+                f"{fm.flash} bytes of flash")
     return ([("canrls_feedforward.h", head), ("canrls_feedforward.c", src)],
-            f"canrls_feedforward.c: the anticogging map, {points} points in Q{fm.frac} "
-            f"{ff.unit}, table {fm.flash} bytes of flash")
+            f"canrls_feedforward.c: {what}")

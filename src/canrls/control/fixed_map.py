@@ -1,11 +1,13 @@
 """The anticogging map in the target's fixed point: the Python specification and its C.
 
-The map of :meth:`~canrls.control.feedforward.Feedforward.position_map` becomes an
+Two forms, as the user picks (``canrls export-c --feedforward N --feedforward-form``):
+the map of :meth:`~canrls.control.feedforward.Feedforward.position_map` as an
 ``int16_t`` table in Q``frac`` (the largest ``frac`` whose entries fit), read with a
-32-bit angle (one revolution, or pitch, is 2**32) between its points. :func:`map_q` is the
-specification, :func:`map_c` writes ``canrls_feedforward.h/.c`` (``canrls export-c
---feedforward N``), the same operations in the same order; tests/test_tune.py holds
-them to each other bit for bit. docs/tune.md, *The C function*.
+32-bit angle (one revolution, or pitch, is 2**32) between its points (:func:`map_q`,
+:func:`map_c`); or its harmonics, each amplitude int32 and phase uint32, the sine from a
+Q15 table (:func:`harmonics_q`, :func:`harmonics_c`). Specification and C do the same
+operations in the same order; tests/test_tune.py holds them to each other bit for bit.
+docs/tune.md, *The C function*.
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ from dataclasses import dataclass
 from canrls.ctext import c_comment, c_int
 from canrls.errors import ConfigError
 
-__all__ = ["FixedMap", "fixed_map", "map_q", "map_c"]
+__all__ = ["FixedMap", "fixed_map", "map_q", "map_c", "FixedHarmonics", "fixed_harmonics",
+           "sin_q15", "harmonics_q", "harmonics_c"]
 
 #: Largest magnitude of a table entry: int16_t.
 _WORD = 32767
@@ -116,6 +119,139 @@ int32_t canrls_ff_map_q(uint32_t angle)
     const int32_t m1 = canrls_ff_table[j + 1u < CANRLS_FF_POINTS ? j + 1u : 0u];
     /* out = m0 + ((m1 - m0) f + 2^15) >> 16 (arithmetic shift of a signed value) */
     return m0 + (int32_t)(((int64_t)(m1 - m0) * f + 0x8000) >> 16);
+}}
+"""
+    return head, src
+
+
+# ------------------------------------------------------------------------ harmonics
+#: Points of the sine table of the harmonics' C (a power of two: the index is the top
+#: bits of the phase).
+SINE_BITS = 10
+_SINE_POINTS = 1 << SINE_BITS
+#: sin(2 pi j / 1024) in Q15, rounded half up.
+SINE_Q15 = tuple(int(math.floor(32767.0 * math.sin(2.0 * math.pi * j / _SINE_POINTS) + 0.5))
+                 for j in range(_SINE_POINTS))
+
+
+@dataclass(frozen=True)
+class FixedHarmonics:
+    """``offset + sum_k amp_k sin(order_k angle + phase_k)`` in Q``frac``: amplitudes and
+    offset int32, phases uint32 (2**32 a turn)."""
+
+    orders: tuple[int, ...]
+    amps: tuple[int, ...]
+    phases: tuple[int, ...]
+    offset: int
+    frac: int
+    unit: str
+
+
+def fixed_harmonics(harmonics: Sequence[tuple[int, float, float]], unit: str
+                    ) -> FixedHarmonics:
+    """From ``(order, amplitude, phase [rad])`` (order 0: the offset, its amplitude the
+    value): frac the largest (at most 30) with ``|offset| + sum |amp|`` within 2**30;
+    the amplitudes times 32768/32767, the scale of the sine table."""
+    orders = [k for k, _, _ in harmonics if k > 0]
+    if not orders and not harmonics:
+        raise ConfigError("--feedforward: no harmonic to export")
+    if any(k >= 1 << 16 for k in orders):
+        raise ConfigError(f"--feedforward: harmonic order {max(orders)} above 65535")
+    total = sum(abs(a) for _, a, _ in harmonics) * 32768.0 / 32767.0
+    frac = 30
+    while frac > -30 and total * 2.0**frac > 2.0**30:
+        frac -= 1
+
+    def q(x: float) -> int:  # x 2^frac, rounded half up
+        return int(math.floor(x * 2.0**frac + 0.5))
+
+    offset = sum(q(a) for k, a, _ in harmonics if k == 0)
+    # the sine table holds 32767 sin: a_k 32768/32767 makes the product >> 15 a_k sin
+    terms = [(k, q(a * 32768.0 / 32767.0),
+              int(math.floor(p / (2 * math.pi) * 2.0**32 + 0.5)) % (1 << 32))
+             for k, a, p in harmonics if k > 0]
+    return FixedHarmonics(tuple(t[0] for t in terms), tuple(t[1] for t in terms),
+                          tuple(t[2] for t in terms), offset, frac, unit)
+
+
+def sin_q15(phase: int) -> int:
+    """sin(2 pi phase / 2**32) in Q15: the table, linear between its points."""
+    # j = phase >> 22 (the top 10 bits); f = the next 16 bits (Q16)
+    j = (phase >> (32 - SINE_BITS)) & (_SINE_POINTS - 1)
+    f = (phase >> (16 - SINE_BITS)) & 0xFFFF
+    s0 = SINE_Q15[j]
+    s1 = SINE_Q15[(j + 1) & (_SINE_POINTS - 1)]
+    # s = s0 + ((s1 - s0) f + 2^15) >> 16
+    return s0 + (((s1 - s0) * f + 0x8000) >> 16)
+
+
+def harmonics_q(h: FixedHarmonics, angle: int) -> int:
+    """The specification: the torque in Q``frac`` (int32) at ``angle`` (uint32)."""
+    acc = 0
+    for k, a, p in zip(h.orders, h.amps, h.phases, strict=True):
+        # phi_k = k angle + phase_k (mod 2^32); acc += a_k sin(phi_k) (Q(frac + 15))
+        acc += a * sin_q15((k * angle + p) & 0xFFFFFFFF)
+    # out = offset + (acc + 2^14) >> 15
+    return h.offset + ((acc + 0x4000) >> 15)
+
+
+def harmonics_c(h: FixedHarmonics, source: str) -> tuple[str, str]:
+    """``canrls_feedforward.h`` and ``.c`` of the harmonics: ``canrls_ff_harmonics_q``,
+    one line per harmonic (no loop)."""
+    n = len(h.orders)
+    head = f"""/* canrls_feedforward.h -- the position terms of {c_comment(source, "source")} as
+ * {n} harmonics (canrls export-c --feedforward-form harmonics; canrls.control.fixed_map is
+ * its specification).
+ *
+ * canrls_ff_harmonics_q(angle): offset + sum_k a_k sin(k angle + phase_k), in
+ * Q{h.frac} ({c_comment(h.unit, "unit")} = value * 2^-{h.frac}), int32; angle: one
+ * revolution (linear axis: one pitch) is 2^32, uint32, read ahead by the speed times
+ * the loop's delay (feedforward.json "lead"). sin from a table of {_SINE_POINTS} points in
+ * Q15, linear between them; nothing saturates (|offset| + sum |a_k| <= 2^30).
+ */
+#ifndef CANRLS_FEEDFORWARD_H
+#define CANRLS_FEEDFORWARD_H
+
+#include <stdint.h>
+
+#define CANRLS_FF_HARMONICS {n}u
+#define CANRLS_FF_FRAC {h.frac}
+
+int32_t canrls_ff_harmonics_q(uint32_t angle);
+
+#endif
+"""
+    rows = "\n".join("    " + ", ".join(str(v) for v in SINE_Q15[k:k + 12]) + ","
+                     for k in range(0, _SINE_POINTS, 12))
+    terms = "\n".join(
+        f"    acc += (int64_t){c_int(a, 32, f'amplitude of order {k}')} * sin_q15("
+        f"(uint32_t)({k}u * angle + {p}u));  /* order {k} */"
+        for k, a, p in zip(h.orders, h.amps, h.phases, strict=True))
+    src = f"""/* canrls_feedforward.c -- see canrls_feedforward.h (generated by canrls export-c). */
+#include "canrls_feedforward.h"
+
+/* sin(2 pi j / {_SINE_POINTS}) in Q15, rounded half up */
+static const int16_t canrls_ff_sine[{_SINE_POINTS}] = {{
+{rows}
+}};
+
+/* sin(2 pi phase / 2^32) in Q15: j the top {SINE_BITS} bits, f the next 16 (Q16) */
+static inline int32_t sin_q15(uint32_t phase)
+{{
+    const uint32_t j = phase >> {32 - SINE_BITS};
+    const int64_t f = (int64_t)((phase >> {16 - SINE_BITS}) & 0xFFFFu);
+    const int32_t s0 = canrls_ff_sine[j];
+    const int32_t s1 = canrls_ff_sine[(j + 1u) & {_SINE_POINTS - 1}u];
+    /* s = s0 + ((s1 - s0) f + 2^15) >> 16 (arithmetic shift of a signed value) */
+    return s0 + (int32_t)(((int64_t)(s1 - s0) * f + 0x8000) >> 16);
+}}
+
+int32_t canrls_ff_harmonics_q(uint32_t angle)
+{{
+    int64_t acc = 0;  /* Q{h.frac + 15} */
+{terms}
+    /* out = offset + (acc + 2^14) >> 15 */
+    return {c_int(h.offset, 32, "offset")} + (int32_t)((acc + 0x4000) >> 15);
 }}
 """
     return head, src
