@@ -416,3 +416,32 @@ def test_the_c_harmonics_are_the_specification_bit_for_bit(tmp_path: Path) -> No
     bound = amps * (1 / 32767 + (2 * np.pi / 1024) ** 2 / 8) + 2 * 2.0**-fh.frac
     err = np.max(np.abs(np.array(want) * 2.0**-fh.frac - exact))
     assert err <= bound, (err, bound)
+
+
+@pytest.mark.parametrize("which, edit, says", [
+    ("feedforward", lambda d: d.update(version=2), "version 2"),
+    ("feedforward", lambda d: d.update(format="x"), "not a canrls-feedforward file"),
+    ("feedforward", lambda d: d["map"]["torque"].__setitem__(3, math.nan),
+     "map.torque[3] = nan"),
+    ("feedforward", lambda d: d["map"].update(torque=[0.1]), "map.torque has 1"),
+    ("feedforward", lambda d: d.update(lead=-1.0), "lead = -1.0"),
+    ("feedforward", lambda d: d["speed"]["parameters"].update({"coulomb.Tc": "big"}),
+     "speed.parameters.coulomb.Tc = 'big'"),
+    ("gains", lambda d: d.update(kp=0.0), "kp = 0.0"),
+    ("gains", lambda d: d.update(unit="furlong"), "unit = 'furlong'"),
+])
+def test_sim_refuses_bad_tuning_files(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                      which: str, edit: Any, says: str) -> None:
+    model = saved_model(tmp_path)
+    out = tmp_path / "out"
+    assert main(["tune", "--model", str(model), "--out", str(out), "--bandwidth", "20",
+                 "--points", "16"]) == 0
+    f = out / ("feedforward.json" if which == "feedforward" else "gains.json")
+    d = json.loads(f.read_text())
+    edit(d)
+    f.write_text(json.dumps(d))
+    log = tmp_path / "x.log"
+    line = cli_error(capsys, ["sim", "--out", str(log), "--duration", "1",
+                              f"--{which}", str(f)])
+    assert says in line and str(f) in line
+    assert not log.exists()

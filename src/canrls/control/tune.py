@@ -284,13 +284,18 @@ def _read(path: str | Path, fmt: str, what: str) -> dict[str, Any]:
     return d
 
 
-def _finite(d: Any, key: str, where: str, *, positive: bool = False) -> float:
-    v = d.get(key) if isinstance(d, dict) else None
+def _number(v: Any, where: str, *, positive: bool = False) -> float:
+    """``v``, a finite (positive) number, or an error naming ``where``."""
     ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
     if not ok or (positive and v <= 0):
-        raise ConfigError(f"{where}.{key} = {v!r}: must be a finite"
+        raise ConfigError(f"{where} = {v!r}: must be a finite"
                           f"{' positive' if positive else ''} number")
     return float(v)
+
+
+def _finite(d: Any, key: str, where: str, *, positive: bool = False) -> float:
+    return _number(d.get(key) if isinstance(d, dict) else None, f"{where}.{key}",
+                   positive=positive)
 
 
 def read_feedforward(path: str | Path) -> dict[str, Any]:
@@ -321,8 +326,8 @@ def read_feedforward(path: str | Path) -> dict[str, Any]:
         if not isinstance(tau, list):
             raise ConfigError(f"{what}: map.torque: must be a list of numbers")
         check_points(len(tau), f"{what}: map.torque has")
-        for k in range(len(tau)):
-            _finite({"x": tau[k]}, "x", f"{what}: map.torque[{k}]")
+        for k, v in enumerate(tau):
+            _number(v, f"{what}: map.torque[{k}]")
     return d
 
 
