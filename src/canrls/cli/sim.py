@@ -173,8 +173,11 @@ def run(args: argparse.Namespace) -> int:
         n = write_log(args.out, sim.frames(), channel=args.channel, what=f"--out {args.out}")
     faults = f"; faults {sc.faults}: {sim.fault_log.summary()}" if sc.faults.active else ""
     clipped = f"; {sim.clipped} values clipped to the DBC range" if sim.clipped else ""
+    tuned = "".join(f"; {what} {path}" for what, path in (
+        ("feedforward", args.feedforward), ("gains", args.gains)) if path is not None)
     print(f"canrls sim: wrote {n} frames to {args.out} ({sc.duration:g} s, scenario {sc.name}, "
-          f"seed {sc.seed}); truth: {sc.truth.summary()}{faults}{clipped}", file=sys.stderr)
+          f"seed {sc.seed}); truth: {sc.truth.summary()}{faults}{clipped}{tuned}",
+          file=sys.stderr)
     return 0
 
 
