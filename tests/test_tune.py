@@ -18,6 +18,8 @@ import pytest
 from canrls.cli.main import main
 from canrls.cli.sim import with_tuning
 from canrls.control.feedforward import feedforward
+from canrls.control.fixed_map import fixed_harmonics, fixed_map, harmonics_q, map_q
+from canrls.modelfile import SavedModel
 from canrls.sim.excitation import constant, reversals
 from canrls.sim.loop import speed_ripple, step_bandwidth
 from canrls.sim.plant import Controller, Plant, Sensors, Truth
@@ -253,39 +255,42 @@ int main(void)
 """
 
 
-@pytest.mark.parametrize("points", [2, 7, 1024, 65536])
-def test_the_c_map_is_the_specification_bit_for_bit(tmp_path: Path, points: int) -> None:
+def c_outputs(out: Path, driver: str, seed: int) -> tuple[list[int], list[int]]:
+    """Compile the exported ``canrls_feedforward.c`` with a driver (the firmware's
+    warnings) and run it on 0, 1, 2**31, 2**32 - 1 and 3,000 seeded random angles:
+    (angles, outputs)."""
     import shutil
     import subprocess
-
-    from canrls.control.fixed_map import fixed_map, map_q
 
     cc = shutil.which("gcc")
     if cc is None:
         pytest.skip("no C compiler")
+    (out / "driver.c").write_text(driver)
+    exe = out / "ff"
+    subprocess.run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic",
+                    "-I", str(out), str(out / "driver.c"), str(out / "canrls_feedforward.c"),
+                    "-o", str(exe)], check=True, capture_output=True, text=True)
+    rng = np.random.default_rng(seed)
+    angles = [0, 1, 0xFFFFFFFF, 0x80000000, *rng.integers(0, 1 << 32, 3000).tolist()]
+    got = subprocess.run([str(exe)], input="\n".join(map(str, angles)) + "\n",
+                         capture_output=True, text=True, check=True).stdout.split()
+    return angles, [int(g) for g in got]
+
+
+@pytest.mark.parametrize("points", [2, 7, 1024, 65536])
+def test_the_c_map_is_the_specification_bit_for_bit(tmp_path: Path, points: int) -> None:
     model = saved_model(tmp_path, lambda d: d["parameters"].update({
         "cogging:6.sin": {"value": -0.02, "sigma": 1e-5}}))
     out = tmp_path / "c"
     assert main(["export-c", "--model", str(model), "--out", str(out), "--kernel-only",
                  "--feedforward", str(points)]) == 0
-    (out / "driver.c").write_text(DRIVER)
-    exe = tmp_path / "ff"
-    subprocess.run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic",
-                    "-I", str(out), str(out / "driver.c"), str(out / "canrls_feedforward.c"),
-                    "-o", str(exe)], check=True, capture_output=True, text=True)
-    rng = np.random.default_rng(points)
-    angles = [0, 1, 0xFFFFFFFF, 0x80000000, *rng.integers(0, 1 << 32, 3000).tolist()]
-    got = subprocess.run([str(exe)], input="\n".join(map(str, angles)) + "\n",
-                         capture_output=True, text=True, check=True).stdout.split()
-    from canrls.control.feedforward import feedforward as ff_of
-    from canrls.modelfile import SavedModel
-
+    angles, got = c_outputs(out, DRIVER, points)
     sm = SavedModel.load(model)
-    ff = ff_of(sm.build_model(), sm.parameters)
+    ff = feedforward(sm.build_model(), sm.parameters)
     pos, tau = ff.position_map(points)
     fm = fixed_map(tau, ff.unit)
     want = [map_q(fm, a) for a in angles]
-    assert [int(g) for g in got] == want
+    assert got == want
     # and the fixed point follows the float map within its rounding (half an LSB of the
     # table and of the interpolation) plus the chord's sag between points
     th = np.array(angles, dtype=np.float64) * (2 * np.pi / 2**32)
@@ -367,17 +372,6 @@ HARMONICS_DRIVER = DRIVER.replace("canrls_ff_map_q", "canrls_ff_harmonics_q")
 
 
 def test_the_c_harmonics_are_the_specification_bit_for_bit(tmp_path: Path) -> None:
-    import shutil
-    import subprocess
-
-    from canrls.control.feedforward import feedforward as ff_of
-    from canrls.control.fixed_map import fixed_harmonics, harmonics_q
-    from canrls.modelfile import SavedModel
-
-    cc = shutil.which("gcc")
-    if cc is None:
-        pytest.skip("no C compiler")
-
     def edit(d: dict[str, Any]) -> None:
         effects = ["inertia", "offset", "unbalance", "cogging:6", "cogging:48"]
         d["effects"] = d["model"]["effects"] = effects
@@ -392,22 +386,14 @@ def test_the_c_harmonics_are_the_specification_bit_for_bit(tmp_path: Path) -> No
     out = tmp_path / "c"
     assert main(["export-c", "--model", str(model), "--out", str(out), "--kernel-only",
                  "--feedforward", "1024", "--feedforward-form", "harmonics"]) == 0
-    (out / "driver.c").write_text(HARMONICS_DRIVER)
-    exe = tmp_path / "ff"
-    subprocess.run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic",
-                    "-I", str(out), str(out / "driver.c"), str(out / "canrls_feedforward.c"),
-                    "-o", str(exe)], check=True, capture_output=True, text=True)
-    rng = np.random.default_rng(48)
-    angles = [0, 1, 0xFFFFFFFF, 0x80000000, *rng.integers(0, 1 << 32, 3000).tolist()]
-    got = subprocess.run([str(exe)], input="\n".join(map(str, angles)) + "\n",
-                         capture_output=True, text=True, check=True).stdout.split()
+    angles, got = c_outputs(out, HARMONICS_DRIVER, 48)
     sm = SavedModel.load(model)
-    ff = ff_of(sm.build_model(), sm.parameters)
+    ff = feedforward(sm.build_model(), sm.parameters)
     fh = fixed_harmonics([(h.order, h.cos if h.order == 0 else h.amplitude, h.phase)
                           for h in ff.harmonics()], ff.unit)
     assert fh.orders == (1, 6, 48)
     want = [harmonics_q(fh, a) for a in angles]
-    assert [int(g) for g in got] == want
+    assert got == want
     # the specification follows the float torque within the sine table's error
     # (1/32767 rounding and the chord's sag (2 pi / 1024)^2 / 8 per amplitude)
     th = np.array(angles, dtype=np.float64) * (2 * np.pi / 2**32)
