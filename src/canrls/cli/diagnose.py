@@ -69,10 +69,17 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
-def _compensation(analysis: Any) -> tuple[str, dict[str, Any]] | None:
-    """What compensating the model's position terms would leave of their ripple."""
-    from canrls.control.tune import compensation
+def _compensation(analysis: Any, found: Any) -> tuple[str, dict[str, Any]] | None:
+    """What compensating the model's position terms would leave of their ripple; for
+    position effects found but not added (``found``: their candidates), their ripple."""
+    from canrls.control.tune import compensation, found_ripple
 
+    if found:
+        line = found_ripple(analysis.model, {c.effect: {k: v for k, (v, _) in
+                                                        c.parameters.items()}
+                                             for c in found})
+        if line is not None:
+            return line
     return compensation(analysis.model, {p.name: p.to_dict()
                                          for p in analysis.estimates.parameters})
 
@@ -97,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
     if few:
         raise EstimatorError(f"{', '.join(args.log)}: {few}")
     final = rep.after if rep.after is not None else rep.before
-    rep.compensation = _compensation(final)
+    rep.compensation = _compensation(final, () if rep.after is not None else
+                                     [c for c in rep.candidates if c.suggested])
     page = rep.write_html(args.report) if args.report else None
     saved = None
     if args.save_model:

@@ -25,6 +25,7 @@ from canrls.files import MAX_MODEL_BYTES, atomic_writer, check_writable, read_te
 from canrls.modelfile import SavedModel
 
 __all__ = ["TuneRequest", "TuneResult", "tune", "read_feedforward", "read_gains", "compensation",
+           "found_ripple",
            "FEEDFORWARD_FILE", "MAP_FILE", "GAINS_FILE"]
 
 FEEDFORWARD_FILE = "feedforward.json"
@@ -267,6 +268,30 @@ def compensation(model: Model, parameters: Mapping[str, Mapping[str, Any]],
             f"{r.describe(ff.unit)}")
     return line, {"effects": [t.effect for t in ff.used if t.of_position], "unit": ff.unit,
                   **r.to_dict()}
+
+
+def found_ripple(model: Model, found: Mapping[str, Mapping[str, float]]
+                 ) -> tuple[str, dict[str, Any]] | None:
+    """The line for effects the diagnosis found but the model lacks (``found``: effect
+    -> parameter -> value of its candidate fit, no sigma): the torque ripple of their
+    position terms, and that adding them tells what compensation would leave."""
+    names = [e for e in found if e.split(":", 1)[0] in ("unbalance", "cogging")]
+    if not names:
+        return None
+    grown = model.with_effects(add=names)
+    params = {p: {"value": v, "sigma": 0.0} for e in names for p, v in found[e].items()}
+    params.update({p.name: {"value": 0.0, "sigma": 0.0} for p in grown.parameters
+                   if p.name not in params})
+    r = feedforward(grown, params, share=1.0).ripple
+    if r is None:
+        return None
+    unit = "N·m" if model.axis == "rotary" else "N"
+    unit = unit if model.torque_known else "A"
+    add = " ".join(f"--add {e}" for e in names)
+    line = (f"{', '.join(names)} (found): a torque ripple of {r.before:.3g} {unit} RMS; "
+            f"add it ({add}) to learn what compensation (canrls tune) would leave")
+    return line, {"effects": names, "unit": unit, "before": r.before, "before_sigma": None,
+                  "after": None, "after_sigma": None, "reduction": None}
 
 
 def _read(path: str | Path, fmt: str, what: str) -> dict[str, Any]:
