@@ -211,15 +211,22 @@ def test_bad_model_files_are_one_error_and_nothing_written(
 def test_a_model_without_position_asks_for_no_map(tmp_path: Path,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     model = saved_model(tmp_path, lambda d: (
-        d.update(effects=["inertia", "viscous"]),
-        d["model"].update(effects=["inertia", "viscous"]),
+        d.update(effects=["inertia", "viscous", "offset"]),
+        d["model"].update(effects=["inertia", "viscous", "offset"]),
         d.update(parameters={"inertia.J": {"value": 2e-4, "sigma": 1e-7},
-                             "viscous.B": {"value": 1e-4, "sigma": 1e-7}})))
+                             "viscous.B": {"value": 1e-4, "sigma": 1e-7},
+                             "offset.T0": {"value": 0.004, "sigma": 1e-5}})))
     out = tmp_path / "out"
     assert main(["tune", "--model", str(model), "--out", str(out), "--bandwidth", "20"]) == 0
     text = capsys.readouterr().out
     assert "no anticogging map: the model has no term of the position" in text
     assert sorted(p.name for p in out.iterdir()) == ["feedforward.json", "gains.json"]
+    # the offset, with no map to hold it, goes with the speed terms, and the simulator
+    # takes it
+    ff = json.loads((out / "feedforward.json").read_text())
+    assert ff["speed"]["parameters"] == {"viscous.B": 1e-4, "offset.T0": 0.004}
+    sc = with_tuning(scenario("standard"), str(out / "feedforward.json"), None)
+    assert sc.controller.compensation.T0 == 0.004 and sc.controller.compensation.map == ()
 
 
 def test_the_diagnosis_says_what_compensation_would_leave(

@@ -82,16 +82,17 @@ static inline void rk4(const Physics *ph, double *th, double *w, double *i, doub
 }
 
 /* indices into the feedforward vector ffv (canrls.sim.plant: Compensation.kernel) */
-enum { F_ON, F_SCALE, F_B, F_TC, F_TS, F_WS, F_E, F_IDX, F_LEAD, F_COUNT };
+enum { F_ON, F_SCALE, F_B, F_TC, F_TS, F_WS, F_E, F_IDX, F_LEAD, F_T0, F_COUNT };
 
 /* The speed controller's feedforward (canrls tune): the map over the measured position
  * led by the measured speed times the loop's delay, theta_m + w_m T_lead (linear between
- * its points, periodic), and the friction at the speed reference,
- * tau_ff = map(theta_m) + B w_r + (Tc + Ts exp(-(w_r/ws)^2)) tanh(w_r/e), in current. */
+ * its points, periodic), and the friction at the speed reference, with an offset T0 the
+ * map does not hold: tau_ff = map(theta_m) + T0 + B w_r + (Tc + Ts exp(-(w_r/ws)^2))
+ * tanh(w_r/e), in current. */
 static double feedforward(const double *f, const double *map, Py_ssize_t nmap, double pos,
                           double w_r)
 {
-    double tau = 0.0;
+    double tau = f[F_T0];
     if (nmap > 0) {
         /* x = pos N / period, reduced to [0, N) */
         double x = pos * f[F_IDX];
@@ -102,7 +103,7 @@ static double feedforward(const double *f, const double *map, Py_ssize_t nmap, d
         const double fr = x - (double)j;
         const Py_ssize_t j1 = j + 1 < nmap ? j + 1 : 0;
         /* map(x) = m_j + fr (m_{j+1} - m_j) */
-        tau = map[j] + fr * (map[j1] - map[j]);
+        tau += map[j] + fr * (map[j1] - map[j]);
     }
     const double sg = tanh(w_r / f[F_E]);
     const double r = w_r / f[F_WS];
@@ -233,7 +234,7 @@ PyDoc_STRVAR(plant_run_doc,
 "Advance len(w_ref) control periods of the simulated drive (canrls.sim.plant), in place.\n\n"
 "st (5,): [theta, omega, i, integ_w, integ_i], updated; p (15,): the physics;\n"
 "ck, cs, cc (m,): cogging orders and amplitudes; gains (8,); quant (5,);\n"
-"ffv (9,): the feedforward (ffv[0] = 0: none); ffmap (N,): its map over the position;\n"
+"ffv (10,): the feedforward (ffv[0] = 0: none); ffmap (N,): its map over the position;\n"
 "w_ref, a_ref (n,); noise (n, 3); out (n, 9) written (float64 throughout).");
 
 static PyObject *py_plant_run(PyObject *self, PyObject *const *args, Py_ssize_t nargs)

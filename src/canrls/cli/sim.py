@@ -199,7 +199,8 @@ def with_tuning(sc: Any, feedforward: str | None, gains: str | None) -> Any:
             map=tuple(m.get("torque", ())), period=m.get("period", 2.0 * math.pi),
             scale=1.0 if d["unit"] == "A" else 1.0 / kt, B=par.get("viscous.B", 0.0),
             Tc=par.get("coulomb.Tc", 0.0), Ts=par.get("stribeck.Ts", 0.0),
-            ws=sp["stribeck_speed"], band=sp["coulomb_band"], lead=d["lead"]))
+            ws=sp["stribeck_speed"], band=sp["coulomb_band"], lead=d["lead"],
+            T0=par.get("offset.T0", 0.0)))
     if gains is not None:
         g = read_gains(gains)
         per_amp = g["unit"] == "A"

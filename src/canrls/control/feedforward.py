@@ -214,7 +214,9 @@ class Feedforward:
         """The feedforward file (``canrls tune --out``): what ``canrls sim --feedforward``
         and a drive load; the map when ``points`` is given and the model has one."""
         m = self.model
-        speed_terms = {p: v for t in self.used if not t.of_position
+        # the speed terms, and the offset when there is no map to hold it
+        speed_terms = {p: v for t in self.used
+                       if not t.of_position or (t.effect == "offset" and not self.has_map)
                        for p, v in zip(t.parameters, t.values, strict=True)}
         d: dict[str, Any] = {
             "format": "canrls-feedforward", "version": 1, "unit": self.unit,

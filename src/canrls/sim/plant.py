@@ -301,7 +301,8 @@ class Compensation:
     friction ``B w + (Tc + Ts exp(-(w/ws)^2)) tanh(w/e)`` at the speed reference;
     ``scale`` turns the torque into the current reference (1/Kt, or 1 for a model
     identified per ampere); ``lead`` [s] reads the map ahead by the measured speed times
-    it (the loop's delay: the current is held over the coming period)."""
+    it (the loop's delay: the current is held over the coming period); ``T0`` a constant
+    torque the map does not hold (a model without a position term has no map)."""
 
     map: tuple[float, ...] = ()
     period: float = 2.0 * math.pi
@@ -312,9 +313,10 @@ class Compensation:
     ws: float = 1.0
     band: float = 1e-3
     lead: float = 0.0
+    T0: float = 0.0
 
     def __post_init__(self) -> None:
-        for key in ("period", "scale", "B", "Tc", "Ts", "ws", "band", "lead"):
+        for key in ("period", "scale", "B", "Tc", "Ts", "ws", "band", "lead", "T0"):
             v = getattr(self, key)
             if not math.isfinite(v) or (key in ("period", "ws", "band") and v <= 0):
                 raise ConfigError(f"feedforward.{key}: {v!r} must be a finite number"
@@ -326,12 +328,12 @@ class Compensation:
         """The kernel's ``ffv`` (``sim.c``'s ``F_ON .. F_IDX``) and ``ffmap``."""
         n = len(self.map)
         ffv = np.array([1.0, self.scale, self.B, self.Tc, self.Ts, self.ws, self.band,
-                        n / self.period, self.lead], dtype=np.float64)
+                        n / self.period, self.lead, self.T0], dtype=np.float64)
         return ffv, np.array(self.map, dtype=np.float64)
 
 
 #: the kernel's vectors without a feedforward
-_NO_FEEDFORWARD = (np.zeros(9, dtype=np.float64), np.zeros(0, dtype=np.float64))
+_NO_FEEDFORWARD = (np.zeros(10, dtype=np.float64), np.zeros(0, dtype=np.float64))
 
 
 @dataclass(frozen=True)
