@@ -443,3 +443,59 @@ def test_sim_refuses_bad_tuning_files(tmp_path: Path, capsys: pytest.CaptureFixt
                               f"--{which}", str(f)])
     assert says in line and str(f) in line
     assert not log.exists()
+
+
+FRICTION_DRIVER = """#include <stdio.h>
+#include <inttypes.h>
+#include "canrls_feedforward.h"
+int main(void)
+{
+    long w;
+    while (scanf("%ld", &w) == 1)
+        printf("%" PRId32 "\\n", canrls_ff_friction_q((int32_t)w));
+    return 0;
+}
+"""
+
+
+def test_the_c_friction_is_the_specification_bit_for_bit(tmp_path: Path) -> None:
+    import shutil
+    import subprocess
+
+    from canrls.control.fixed_map import fixed_friction, friction_q
+
+    cc = shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler")
+    model = saved_model(tmp_path, lambda d: (
+        d.update(effects=d["effects"] + ["viscous", "coulomb", "stribeck"]),
+        d["model"].update(effects=d["effects"], coulomb={"band": 0.04},
+                          stribeck={"speed": 1.0}),
+        d["parameters"].update({"viscous.B": {"value": 1e-4, "sigma": 1e-7},
+                                "coulomb.Tc": {"value": 0.02, "sigma": 1e-5},
+                                "stribeck.Ts": {"value": 0.01, "sigma": 1e-4}})))
+    out = tmp_path / "c"
+    assert main(["export-c", "--model", str(model), "--out", str(out), "--kernel-only",
+                 "--feedforward", "64"]) == 0
+    (out / "driver.c").write_text(FRICTION_DRIVER)
+    exe = out / "fr"
+    subprocess.run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic",
+                    "-I", str(out), str(out / "driver.c"), str(out / "canrls_feedforward.c"),
+                    "-o", str(exe)], check=True, capture_output=True, text=True)
+    rng = np.random.default_rng(7)
+    # Q16 speeds: the extremes, the band, the Stribeck speed and beyond, both signs
+    ws = [0, 1, -1, 2**31 - 1, -2**31, *rng.integers(-2**31, 2**31, 1000).tolist(),
+          *(rng.normal(0, 0.2, 1000) * 2**16).astype(int).tolist(),
+          *(rng.normal(0, 5.0, 1000) * 2**16).astype(int).tolist()]
+    got = subprocess.run([str(exe)], input="\n".join(map(str, ws)) + "\n",
+                         capture_output=True, text=True, check=True).stdout.split()
+    fr = fixed_friction(1e-4, 0.02, 0.01, 0.04, 1.0, "N·m")
+    want = [friction_q(fr, w) for w in ws]
+    assert [int(g) for g in got] == want
+    # the specification follows the float friction within the tables' rounding and sag,
+    # and B's half LSB times the speed
+    w = np.array(ws, dtype=np.float64) / 2**16
+    sg = np.tanh(w / 0.04)
+    exact = 1e-4 * w + (0.02 + 0.01 * np.exp(-w**2)) * sg
+    err = np.abs(np.array(want) * 2.0**-fr.frac - exact)
+    assert np.all(err <= 0.03 * 2e-4 + 4 * 2.0**-fr.frac + np.abs(w) * 2.0**-(fr.frac + 1))

@@ -111,7 +111,14 @@ def run(args: argparse.Namespace) -> int:
 def _feedforward(path: str, points: int, form: str) -> tuple[list[tuple[str, str]], str]:
     """The anticogging map's C (before anything is written) and the line that says it."""
     from canrls.control.feedforward import check_points, feedforward
-    from canrls.control.fixed_map import fixed_harmonics, fixed_map, harmonics_c, map_c
+    from canrls.control.fixed_map import (
+        fixed_friction,
+        fixed_harmonics,
+        fixed_map,
+        friction_c,
+        harmonics_c,
+        map_c,
+    )
     from canrls.errors import ConfigError
     from canrls.modelfile import SavedModel
 
@@ -133,5 +140,15 @@ def _feedforward(path: str, points: int, form: str) -> tuple[list[tuple[str, str
         head, src = map_c(fm, path)
         what = (f"the anticogging map, {points} points in Q{fm.frac} {ff.unit}, table "
                 f"{fm.flash} bytes of flash")
+    sp = ff.to_dict()["speed"]
+    par = sp["parameters"]
+    if any(k in par for k in ("viscous.B", "coulomb.Tc", "stribeck.Ts")):
+        fr = fixed_friction(par.get("viscous.B", 0.0), par.get("coulomb.Tc", 0.0),
+                            par.get("stribeck.Ts", 0.0), sp["coulomb_band"],
+                            sp["stribeck_speed"], ff.unit)
+        fh_, fc_ = friction_c(fr)
+        head = head.replace("\n#endif\n", fh_ + "\n#endif\n")
+        src += fc_
+        what += f"; the friction at the speed reference in Q{fr.frac}"
     return ([("canrls_feedforward.h", head), ("canrls_feedforward.c", src)],
             f"canrls_feedforward.c: {what}")

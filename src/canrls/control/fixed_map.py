@@ -20,7 +20,8 @@ from canrls.ctext import c_comment, c_int
 from canrls.errors import ConfigError
 
 __all__ = ["FixedMap", "fixed_map", "map_q", "map_c", "FixedHarmonics", "fixed_harmonics",
-           "sin_q15", "harmonics_q", "harmonics_c"]
+           "sin_q15", "harmonics_q", "harmonics_c", "FixedFriction", "fixed_friction",
+           "friction_q", "friction_c"]
 
 #: Largest magnitude of a table entry: int16_t.
 _WORD = 32767
@@ -82,7 +83,7 @@ def map_c(m: FixedMap, source: str) -> tuple[str, str]:
  * revolution (linear axis: one pitch) is 2^32, uint32, read ahead by the speed times
  * the loop's delay (feedforward.json "lead"). Linear between the {n} points, periodic;
  * nothing saturates (|result| <= 32767). Divide by Kt for a current reference; add the
- * friction of feedforward.json "speed" at the speed reference.
+ * friction at the speed reference (canrls_ff_friction_q, where the model has friction).
  */
 #ifndef CANRLS_FEEDFORWARD_H
 #define CANRLS_FEEDFORWARD_H
@@ -252,6 +253,153 @@ int32_t canrls_ff_harmonics_q(uint32_t angle)
 {terms}
     /* out = offset + (acc + 2^14) >> 15 */
     return {c_int(h.offset, 32, "offset")} + (int32_t)((acc + 0x4000) >> 15);
+}}
+"""
+    return head, src
+
+
+# ------------------------------------------------------------------------ friction
+#: Points of the tanh and exp tables (plus their end point).
+FRICTION_BITS = 10
+_FP = 1 << FRICTION_BITS
+#: tanh(x) on [0, 8] and exp(-x) on [0, 16] in Q15 (rounded half up), 1,025 points each.
+TANH_Q15 = tuple(int(math.floor(32767.0 * math.tanh(8.0 * j / _FP) + 0.5))
+                 for j in range(_FP + 1))
+EXP_Q15 = tuple(int(math.floor(32767.0 * math.exp(-16.0 * j / _FP) + 0.5))
+                for j in range(_FP + 1))
+#: 8 and 16 in Q16: where the tables end.
+_TANH_END = 8 << 16
+_EXP_END = 16 << 16
+
+
+@dataclass(frozen=True)
+class FixedFriction:
+    """``B w + (Tc + Ts exp(-(w/ws)^2)) tanh(w/e)`` with ``w`` in Q16 (rad/s; m/s):
+    ``B`` (Q``frac``+16 per Q16), ``Tc``, ``Ts`` in Q``frac``, and the reciprocals of
+    ``e`` and ``ws`` as ``inv * 2**-shift``."""
+
+    B: int
+    Tc: int
+    Ts: int
+    inv_e: int
+    shift_e: int
+    inv_ws: int
+    shift_ws: int
+    frac: int
+    unit: str
+
+
+def _reciprocal(x: float, what: str) -> tuple[int, int]:
+    """(m, s) with m 2**-s = 1/x, m < 2**31, s the largest up to 62."""
+    if not (math.isfinite(x) and x > 0):
+        raise ConfigError(f"feedforward: {what} = {x!r}: must be a positive number")
+    s = 62
+    while s > 0 and math.floor(2.0**s / x + 0.5) >= 2**31:
+        s -= 1
+    return int(math.floor(2.0**s / x + 0.5)), s
+
+
+def fixed_friction(B: float, Tc: float, Ts: float, band: float, ws: float,
+                   unit: str) -> FixedFriction:
+    """From the friction of ``feedforward.json`` ``speed``: frac the largest (at most 30)
+    with ``|Tc| + |Ts| + |B| 32768`` (the speed's range) within 2**30."""
+    total = abs(Tc) + abs(Ts) + abs(B) * 32768.0
+    frac = 30
+    while frac > -30 and total * 2.0**frac > 2.0**30:
+        frac -= 1
+
+    def q(x: float) -> int:
+        return int(math.floor(x * 2.0**frac + 0.5))
+
+    inv_e, s_e = _reciprocal(band, "coulomb_band")
+    inv_ws, s_ws = _reciprocal(ws, "stribeck_speed")
+    # tanh and exp from Q15 tables of 32767 x: Tc, Ts times 32768/32767
+    return FixedFriction(q(B), q(Tc * 32768.0 / 32767.0), q(Ts * 32768.0 / 32767.0),
+                         inv_e, s_e, inv_ws, s_ws, frac, unit)
+
+
+def _table_q15(table: tuple[int, ...], u: int, end: int) -> int:
+    """``table`` (1,025 points over [0, end) in Q16) at ``u`` >= 0, linear between."""
+    if u >= end:
+        return table[_FP]
+    step = end >> FRICTION_BITS  # 2^9 (tanh) or 2^10 (exp)
+    sh = step.bit_length() - 1
+    j = u >> sh
+    f = (u & (step - 1)) << (16 - sh)  # Q16
+    return table[j] + (((table[j + 1] - table[j]) * f + 0x8000) >> 16)
+
+
+def friction_q(fr: FixedFriction, w: int) -> int:
+    """The specification: the friction torque in Q``frac`` (int32) at ``w`` (int32, Q16)."""
+    a = -w if w < 0 else w
+    # u = |w| / e, v = |w| / ws (Q16)
+    u = (a * fr.inv_e) >> fr.shift_e
+    v = min((a * fr.inv_ws) >> fr.shift_ws, _EXP_END)
+    # r2 = v^2 (Q16)
+    r2 = (v * v) >> 16
+    t = _table_q15(TANH_Q15, u, _TANH_END)
+    ex = _table_q15(EXP_Q15, r2, _EXP_END)
+    # c = Tc + Ts exp(-r2); f = c tanh(u)  (Q frac)
+    c = fr.Tc + ((fr.Ts * ex + 0x4000) >> 15)
+    f = (c * t + 0x4000) >> 15
+    # out = B w + sign(w) f
+    return ((fr.B * w + 0x8000) >> 16) + (-f if w < 0 else f)
+
+
+def friction_c(fr: FixedFriction) -> tuple[str, str]:
+    """The declaration and the C of ``canrls_ff_friction_q`` (appended to the map's)."""
+    def rows(t: tuple[int, ...]) -> str:
+        return "\n".join("    " + ", ".join(str(v) for v in t[k:k + 12]) + ","
+                         for k in range(0, len(t), 12))
+
+    head = f"""
+/* canrls_ff_friction_q(w): B w + (Tc + Ts exp(-(w/ws)^2)) tanh(w/e) at the speed
+ * reference w in Q16 (rad/s; linear axis: m/s), int32, in Q{fr.frac}
+ * ({c_comment(fr.unit, "unit")} = value * 2^-{fr.frac}); tanh and exp from Q15 tables of
+ * {_FP + 1} points, linear between them. Nothing saturates. */
+#define CANRLS_FF_FRICTION_FRAC {fr.frac}
+int32_t canrls_ff_friction_q(int32_t w);
+"""
+    tanh_sh = (_TANH_END >> FRICTION_BITS).bit_length() - 1  # 9: 2^19 / 1024
+    exp_sh = (_EXP_END >> FRICTION_BITS).bit_length() - 1  # 10
+    src = f"""
+/* tanh(8 j / {_FP}) and exp(-16 j / {_FP}) in Q15, rounded half up */
+static const int16_t canrls_ff_tanh[{_FP + 1}] = {{
+{rows(TANH_Q15)}
+}};
+static const int16_t canrls_ff_exp[{_FP + 1}] = {{
+{rows(EXP_Q15)}
+}};
+
+/* a table of {_FP + 1} points over [0, end) at u >= 0 (Q16), linear between them */
+static int32_t table_q15(const int16_t *t, int64_t u, int64_t end, int sh)
+{{
+    if (u >= end)
+        return t[{_FP}];
+    const int64_t j = u >> sh;
+    const int64_t f = (u & ((1 << sh) - 1)) << (16 - sh);
+    return t[j] + (int32_t)(((int64_t)(t[j + 1] - t[j]) * f + 0x8000) >> 16);
+}}
+
+int32_t canrls_ff_friction_q(int32_t w)
+{{
+    const int64_t b = {c_int(fr.B, 32, "B")}, tc = {c_int(fr.Tc, 32, "Tc")};
+    const int64_t ts = {c_int(fr.Ts, 32, "Ts")};
+    const int64_t a = w < 0 ? -(int64_t)w : (int64_t)w;
+    /* u = |w| / e, v = |w| / ws (Q16) */
+    const int64_t u = (a * {c_int(fr.inv_e, 64, "1/e")}) >> {fr.shift_e};
+    int64_t v = (a * {c_int(fr.inv_ws, 64, "1/ws")}) >> {fr.shift_ws};
+    if (v > {_EXP_END})
+        v = {_EXP_END};
+    /* r2 = v^2 (Q16) */
+    const int64_t r2 = (v * v) >> 16;
+    const int64_t t = table_q15(canrls_ff_tanh, u, {_TANH_END}, {tanh_sh});
+    const int64_t ex = table_q15(canrls_ff_exp, r2, {_EXP_END}, {exp_sh});
+    /* c = Tc + Ts exp(-r2); f = c tanh(u) (Q{fr.frac}) */
+    const int64_t c = tc + ((ts * ex + 0x4000) >> 15);
+    const int64_t f = (c * t + 0x4000) >> 15;
+    /* out = B w + sign(w) f */
+    return (int32_t)((b * w + 0x8000) >> 16) + (int32_t)(w < 0 ? -f : f);
 }}
 """
     return head, src
