@@ -75,7 +75,7 @@ _FIT_ONLY = ("config", "dbc", "signal", "rated_current", "increments_per_rev", "
 
 def _saved(args: argparse.Namespace) -> Any:
     """The saved model: read from --model, or identified on the logs."""
-    from canrls.modelfile import SavedModel
+    from canrls.processor.modelfile import SavedModel
 
     if bool(args.log) == bool(args.model):
         args.tune_parser.error("give either LOG ... or --model FILE")
@@ -83,13 +83,14 @@ def _saved(args: argparse.Namespace) -> Any:
         given = [f"--{k.replace('_', '-')}" for k in _FIT_ONLY
                  if getattr(args, k, None) is not None]
         if given:
-            from canrls.errors import ConfigError
+            from canrls.core.errors import ConfigError
 
             raise ConfigError(f"tune: {', '.join(given)}: the model is the saved file's "
                               f"({args.model}); to change it, fit again (or tune on the "
                               f"logs)")
         return SavedModel.load(args.model), str(args.model)
-    from canrls.replay import fit_logs, prepare
+    from canrls.processor.config import prepare
+    from canrls.processor.replay import fit_logs
 
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
@@ -99,7 +100,7 @@ def _saved(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     from canrls.control.tune import TuneRequest, tune
-    from canrls.files import check_path, output_dir
+    from canrls.core.files import check_path, output_dir
 
     if args.out is not None:
         check_path(args.out, f"--out {args.out}")

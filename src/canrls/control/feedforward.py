@@ -18,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.control.settings import DEFAULT_SHARE, MAX_POINTS
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Effect, Frame
 from canrls.estimation.model import Model
 

@@ -16,8 +16,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from canrls.ctext import c_comment, c_int
-from canrls.errors import ConfigError
+from canrls.core.ctext import c_comment, c_int
+from canrls.core.errors import ConfigError
 
 __all__ = ["FixedMap", "fixed_map", "map_q", "map_c", "FixedHarmonics", "fixed_harmonics",
            "sin_q15", "harmonics_q", "harmonics_c", "FixedFriction", "fixed_friction",

@@ -1,6 +1,6 @@
 """``canrls tune`` on a saved model: the feedforward and the speed-loop gains it supports.
 
-:func:`tune` takes a :class:`~canrls.modelfile.SavedModel` and the user's requests (map
+:func:`tune` takes a :class:`~canrls.processor.modelfile.SavedModel` and the user's requests (map
 points, the share of sigma, a bandwidth or the symmetric optimum) and returns a
 :class:`TuneResult` that renders to text and JSON and writes the files a drive and
 ``canrls sim --feedforward/--gains`` load (:func:`read_feedforward`, :func:`read_gains`).
@@ -19,10 +19,10 @@ from typing import Any
 from canrls.control.feedforward import Feedforward, check_points, feedforward
 from canrls.control.gains import Loop, SpeedGains, for_bandwidth, symmetric_optimum
 from canrls.control.settings import DEFAULT_DELAY, DEFAULT_MARGIN, DEFAULT_POINTS, DEFAULT_SHARE
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 from canrls.estimation.model import Model
-from canrls.files import MAX_MODEL_BYTES, atomic_writer, check_writable, read_text
-from canrls.modelfile import SavedModel
+from canrls.core.files import MAX_MODEL_BYTES, atomic_writer, check_writable, read_text
+from canrls.processor.modelfile import SavedModel
 
 __all__ = ["TuneRequest", "TuneResult", "tune", "read_feedforward", "read_gains", "compensation",
            "found_ripple",

@@ -34,10 +34,11 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.frames import ParameterReport, StatusReport
 from canrls.can.protocol import Protocol
 from canrls.can.writers import open_writer
-from canrls.config import AppConfig
-from canrls.errors import CommandError, ConfigError
+from canrls.core.errors import CommandError, ConfigError
+from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
-from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline
+from canrls.estimation.pipeline import Pipeline
+from canrls.estimation.settings import EstimatorSettings
 from canrls.live.bus import BusLink, FrameQueue, command_rows, messages_to_block, open_bus
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
@@ -48,8 +49,9 @@ from canrls.live.sdnotify import SystemdNotifier
 from canrls.live.settings import DaemonSettings
 from canrls.live.tuning import interpreter
 from canrls.processor import FrameProcessor
+from canrls.processor.config import AppConfig
 
-__all__ = ["Daemon", "DaemonSettings", "DaemonStats", "make_processor"]
+__all__ = ["Daemon", "DaemonStats", "make_processor"]
 
 log = logging.getLogger(__name__)
 
@@ -196,7 +198,7 @@ class Daemon:
         """The command ``save_model``: the running model and its estimates written to
         ``[daemon] saved_model`` as ``canrls fit --save-model`` writes them (in the
         estimator thread, under its lock)."""
-        from canrls.modelfile import SavedModel
+        from canrls.processor.modelfile import SavedModel
 
         proc, path = self._proc, self.config.saved_model
         assert path is not None
