@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from cli_tool import cli_error
 
 from canrls.cli.main import main
 from canrls.cli.sim import with_tuning
@@ -24,7 +25,6 @@ from canrls.sim.excitation import constant, reversals
 from canrls.sim.loop import speed_ripple, step_bandwidth
 from canrls.sim.plant import Controller, Plant, Sensors, Truth
 from canrls.sim.scenario import Simulator, scenario
-from cli_tool import cli_error
 
 COGGING = "inertia,viscous,coulomb,stribeck,cogging:6"
 FRICTION = "inertia,viscous,coulomb,stribeck"
@@ -314,11 +314,12 @@ def test_the_c_map_is_the_specification_bit_for_bit(tmp_path: Path, points: int)
 def test_the_daemon_saves_its_running_model_for_tune(tmp_path: Path,
                                                      capsys: pytest.CaptureFixture[str]
                                                      ) -> None:
+    from daemon_tool import ACK_ID, daemon_fed
+
     from canrls.can.frameblock import FrameBlock
     from canrls.can.frames import CommandCode, CommandResult, encode_command
-    from canrls.processor.config import AppConfig
     from canrls.live.daemon import DaemonSettings
-    from daemon_tool import ACK_ID, daemon_fed
+    from canrls.processor.config import AppConfig
 
     sc = scenario("standard", effects=COGGING, duration=20.0, seed=1)
     frames = FrameBlock.concat(list(Simulator(sc).frames()))
@@ -355,9 +356,9 @@ def reader_messages(reader: Any) -> list[Any]:
 
 def test_save_model_without_a_file_is_not_applicable() -> None:
     from canrls.can.frames import CommandCode, CommandResult, encode_command
-    from canrls.processor.config import AppConfig
     from canrls.live.commands import CommandHandler
     from canrls.processor import FrameProcessor
+    from canrls.processor.config import AppConfig
 
     cfg = AppConfig()
     cfg.model = {"effects": ["inertia"], "kt": 0.1}

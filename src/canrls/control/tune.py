@@ -20,8 +20,8 @@ from canrls.control.feedforward import Feedforward, check_points, feedforward
 from canrls.control.gains import Loop, SpeedGains, for_bandwidth, symmetric_optimum
 from canrls.control.settings import DEFAULT_DELAY, DEFAULT_MARGIN, DEFAULT_POINTS, DEFAULT_SHARE
 from canrls.core.errors import ConfigError
-from canrls.estimation.model import Model
 from canrls.core.files import MAX_MODEL_BYTES, atomic_writer, check_writable, read_text
+from canrls.estimation.model import Model
 from canrls.processor.modelfile import SavedModel
 
 __all__ = ["TuneRequest", "TuneResult", "tune", "read_feedforward", "read_gains", "compensation",
