@@ -6,7 +6,7 @@ the map of :meth:`~canrls.control.feedforward.Feedforward.position_map` as an
 32-bit angle (one revolution, or pitch, is 2**32) between its points (:func:`map_q`,
 :func:`map_c`); or its harmonics, each amplitude int32 and phase uint32, the sine from a
 Q15 table (:func:`harmonics_q`, :func:`harmonics_c`). Specification and C do the same
-operations in the same order; tests/test_tune.py holds them to each other bit for bit.
+operations in the same order; tests/control/test_tune.py holds them to each other bit for bit.
 docs/tune.md, *The C function*.
 """
 
