@@ -267,10 +267,9 @@ int main(void)
 """
 
 
-def c_outputs(out: Path, driver: str, seed: int) -> tuple[list[int], list[int]]:
+def c_outputs(out: Path, driver: str, inputs: list[int]) -> list[int]:
     """Compile the exported ``canrls_feedforward.c`` with a driver (the firmware's
-    warnings) and run it on 0, 1, 2**31, 2**32 - 1 and 3,000 seeded random angles:
-    (angles, outputs)."""
+    warnings) and run it on ``inputs``, one a line: its outputs."""
     import shutil
     import subprocess
 
@@ -282,11 +281,15 @@ def c_outputs(out: Path, driver: str, seed: int) -> tuple[list[int], list[int]]:
     subprocess.run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic",
                     "-I", str(out), str(out / "driver.c"), str(out / "canrls_feedforward.c"),
                     "-o", str(exe)], check=True, capture_output=True, text=True)
-    rng = np.random.default_rng(seed)
-    angles = [0, 1, 0xFFFFFFFF, 0x80000000, *rng.integers(0, 1 << 32, 3000).tolist()]
-    got = subprocess.run([str(exe)], input="\n".join(map(str, angles)) + "\n",
+    got = subprocess.run([str(exe)], input="\n".join(map(str, inputs)) + "\n",
                          capture_output=True, text=True, check=True).stdout.split()
-    return angles, [int(g) for g in got]
+    return [int(g) for g in got]
+
+
+def some_angles(seed: int) -> list[int]:
+    """0, 1, 2**31, 2**32 - 1 and 3,000 seeded random angles (uint32)."""
+    rng = np.random.default_rng(seed)
+    return [0, 1, 0xFFFFFFFF, 0x80000000, *rng.integers(0, 1 << 32, 3000).tolist()]
 
 
 @pytest.mark.parametrize("points", [2, 7, 1024, 65536])
@@ -296,7 +299,8 @@ def test_the_c_map_is_the_specification_bit_for_bit(tmp_path: Path, points: int)
     out = tmp_path / "c"
     assert main(["export-c", "--model", str(model), "--out", str(out), "--kernel-only",
                  "--feedforward", str(points)]) == 0
-    angles, got = c_outputs(out, DRIVER, points)
+    angles = some_angles(points)
+    got = c_outputs(out, DRIVER, angles)
     sm = SavedModel.load(model)
     ff = feedforward(sm.build_model(), sm.parameters)
     pos, tau = ff.position_map(points)
@@ -399,7 +403,8 @@ def test_the_c_harmonics_are_the_specification_bit_for_bit(tmp_path: Path) -> No
     out = tmp_path / "c"
     assert main(["export-c", "--model", str(model), "--out", str(out), "--kernel-only",
                  "--feedforward", "1024", "--feedforward-form", "harmonics"]) == 0
-    angles, got = c_outputs(out, HARMONICS_DRIVER, 48)
+    angles = some_angles(48)
+    got = c_outputs(out, HARMONICS_DRIVER, angles)
     sm = SavedModel.load(model)
     ff = feedforward(sm.build_model(), sm.parameters)
     fh = fixed_harmonics([(h.order, h.cos if h.order == 0 else h.amplitude, h.phase)
@@ -460,14 +465,8 @@ int main(void)
 
 
 def test_the_c_friction_is_the_specification_bit_for_bit(tmp_path: Path) -> None:
-    import shutil
-    import subprocess
-
     from canrls.control.fixed_map import fixed_friction, friction_q
 
-    cc = shutil.which("gcc")
-    if cc is None:
-        pytest.skip("no C compiler")
     model = saved_model(tmp_path, lambda d: (
         d.update(effects=d["effects"] + ["viscous", "coulomb", "stribeck"]),
         d["model"].update(effects=d["effects"], coulomb={"band": 0.04},
@@ -478,21 +477,15 @@ def test_the_c_friction_is_the_specification_bit_for_bit(tmp_path: Path) -> None
     out = tmp_path / "c"
     assert main(["export-c", "--model", str(model), "--out", str(out), "--kernel-only",
                  "--feedforward", "64"]) == 0
-    (out / "driver.c").write_text(FRICTION_DRIVER)
-    exe = out / "fr"
-    subprocess.run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic",
-                    "-I", str(out), str(out / "driver.c"), str(out / "canrls_feedforward.c"),
-                    "-o", str(exe)], check=True, capture_output=True, text=True)
     rng = np.random.default_rng(7)
     # Q16 speeds: the extremes, the band, the Stribeck speed and beyond, both signs
     ws = [0, 1, -1, 2**31 - 1, -2**31, *rng.integers(-2**31, 2**31, 1000).tolist(),
           *(rng.normal(0, 0.2, 1000) * 2**16).astype(int).tolist(),
           *(rng.normal(0, 5.0, 1000) * 2**16).astype(int).tolist()]
-    got = subprocess.run([str(exe)], input="\n".join(map(str, ws)) + "\n",
-                         capture_output=True, text=True, check=True).stdout.split()
+    got = c_outputs(out, FRICTION_DRIVER, ws)
     fr = fixed_friction(1e-4, 0.02, 0.01, 0.04, 1.0, "N·m")
     want = [friction_q(fr, w) for w in ws]
-    assert [int(g) for g in got] == want
+    assert got == want
     # the specification follows the float friction within the tables' rounding and sag,
     # and B's half LSB times the speed
     w = np.array(ws, dtype=np.float64) / 2**16
