@@ -16,6 +16,7 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import can
 
@@ -46,12 +47,14 @@ _channels = itertools.count()
 
 @contextlib.contextmanager
 def daemon_fed(protocol: Protocol, model: Model, settings: EstimatorSettings,
-               messages: Sequence[can.Message], name: str, *, publications: int = 6
+               messages: Sequence[can.Message], name: str, *, publications: int = 6,
+               daemon: DaemonSettings | None = None, **options: Any
                ) -> Iterator[tuple[Daemon, can.BufferedReader]]:
     """A daemon on a virtual bus, fed ``messages`` with their own timestamps (as a drive
     on a real bus would send them); yields it once it has taken every frame and published
     ``publications`` more times, with a reader holding every frame it sent (``0x3xx``).
-    The daemon and the buses are stopped on leaving."""
+    ``daemon`` replaces the settings, ``options`` go to the daemon. The daemon and the
+    buses are stopped on leaving."""
     ch = f"{name}-{os.getpid()}-{next(_channels)}"
     sender = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
                      ignore_config=True)
@@ -60,8 +63,8 @@ def daemon_fed(protocol: Protocol, model: Model, settings: EstimatorSettings,
     reader = can.BufferedReader()
     notifier = can.Notifier(tool, [reader], timeout=0.05)
     d = Daemon(protocol, model, settings,
-               DaemonSettings(publish_interval=0.05, info_interval=0.2),
-               bus={"interface": "virtual", "channel": ch}, backpressure=True)
+               daemon or DaemonSettings(publish_interval=0.05, info_interval=0.2),
+               bus={"interface": "virtual", "channel": ch}, backpressure=True, **options)
     try:
         d.start()
         for m in messages:

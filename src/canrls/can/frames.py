@@ -44,6 +44,7 @@ class CommandCode(IntEnum):
     ADD_EFFECT = 4
     REMOVE_EFFECT = 5
     SET_LAMBDA = 6
+    SAVE_MODEL = 7
 
 
 class CommandResult(IntEnum):

@@ -141,7 +141,7 @@ def build_daemon(args: argparse.Namespace) -> Any:
         if cfg.history else None
     try:
         return Daemon(protocol, model, settings, dset, bus=bus_config(cfg),
-                      reload=reloaded_model, history=history)
+                      reload=reloaded_model, history=history, configuration=cfg)
     except BaseException:
         if history is not None:
             history.close()
