@@ -86,6 +86,23 @@ def test_alpha_too_small_for_the_fixed_point_names_the_smallest(
     assert float(m.group(1)) == pytest.approx(7.7e-6, rel=0.3)  # 4 parameters, 32 bits
 
 
+def test_a_cogging_order_of_5000_digits_is_one_short_error_line(
+        log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """-e cogging:<5000 digits> ended in "internal error: ValueError: Exceeds the limit
+    (4300 digits)" (exit 3)."""
+    line = cli_error(capsys, ["fit", "--kt", "0.1", "-e", "cogging:" + "9" * 5000, str(log)])
+    assert "must be an integer from 1 to 65535" in line and len(line) < 600, line
+
+
+def test_a_kt_whose_torque_overflows_is_one_error_line_naming_kt(
+        log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--kt 1e308 printed numpy's overflow warnings, then "cannot quantize NaN to Q1.30":
+    now the one line names model.kt and what overflowed (no warning: one line)."""
+    line = cli_error(capsys, ["fit", "--kt", "1e308", "-e", "inertia,viscous", str(log)])
+    assert line.startswith("error: model.kt = 1e+308: the target motor torque"), line
+    assert "overflows a double" in line
+
+
 def test_alpha_help_states_the_fixed_point_limit(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         main(["fit", "--help"])

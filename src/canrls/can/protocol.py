@@ -315,6 +315,10 @@ def _resolve(db: Any, path: Path, is_default: bool, mp: SignalMapping,
             raise SignalError(f"{where}: {spec} is multiplexed; canrls maps plain signals only")
         if msg.is_container:
             raise SignalError(f"{where}: message {spec.message} is a container message")
+        if sig.minimum is not None and sig.maximum is not None and sig.minimum > sig.maximum:
+            raise SignalError(f"{where}: {spec.message}.{spec.signal} (mapped to {role}): "
+                              f"minimum {sig.minimum:g} > maximum {sig.maximum:g}: every value "
+                              f"would be out of range (swap them in the DBC)")
         codec = SignalCodec(sig, msg.name)
         unit = spec.unit if spec.unit is not None else (sig.unit or "")
         factor = si_factor(role, unit, message=msg.name, signal=sig.name, scale=spec.scale,
