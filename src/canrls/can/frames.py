@@ -336,6 +336,14 @@ class FrameIds:
     feedback: tuple[int, ...]
 
     @property
+    def own(self) -> dict[int, str]:
+        """Every frame of canrls' own, ID -> DBC message name: the published frames, the
+        command and its acknowledgement (standard IDs)."""
+        ids = (self.estimate, self.sigma, self.reference, self.param_info, self.status,
+               self.health, self.counters, self.rejects, self.command, self.ack)
+        return dict(zip(ids, (*_PUBLISHED, "RlsCommand", "RlsCommandAck"), strict=True))
+
+    @property
     def published(self) -> frozenset[int]:
         """The frames the daemon publishes every cycle (parameters and status, not the ack)."""
         return frozenset((self.estimate, self.sigma, self.reference, self.param_info,
