@@ -30,7 +30,7 @@ from canrls.live.monitor import Monitor
 from canrls.processor import SEEN_IDS, FrameProcessor
 from canrls.replay import fit_frames, prepare
 from canrls.sim.scenario import scenario, simulate
-from daemon_tool import daemon_fed, datagrams, notify_socket, remote_sim_server
+from daemon_tool import daemon_fed, datagrams, notify_socket, reloaded_daemon, remote_sim_server
 
 EFFECTS = "inertia,viscous,coulomb"
 
@@ -388,27 +388,9 @@ def test_sighup_with_an_invalid_daemon_table_says_so_and_keeps_the_settings(
             '[can]\ninterface = "virtual"\nchannel = "reload-daemon"\n'
             '[daemon]\npublish_interval = 0.05\n')
     conf.write_text(good)
-    sock, addr = notify_socket(tmp_path, "notify")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-C", str(conf),
-         "--json"], env=dict(os.environ, NOTIFY_SOCKET=addr),
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert any("READY=1" in g for g in datagrams(sock, "READY=1", 60, proc))
-        conf.write_text(good.replace("0.05", '"fast"'))
-        proc.send_signal(signal.SIGHUP)
-        assert "READY=1" in datagrams(sock, "READY=1", 30, proc)[-1]
-        conf.write_text(good.replace("0.05", "0.2"))
-        proc.send_signal(signal.SIGHUP)
-        assert "READY=1" in datagrams(sock, "READY=1", 30, proc)[-1]
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-        sock.close()
-    assert proc.returncode == 0, err
+    rc, out, err = reloaded_daemon(tmp_path, conf, [good.replace("0.05", '"fast"'),
+                                                    good.replace("0.05", "0.2")])
+    assert rc == 0, err
     refused = [line for line in err.splitlines() if "reload failed" in line]
     assert len(refused) == 1, err
     assert "daemon.publish_interval = 'fast'" in refused[0]
@@ -436,28 +418,10 @@ def test_sighup_with_another_dbc_refuses_what_a_start_refuses_and_says_what_wait
                      .replace(" 257 ", " 300 ").replace(" 258 ", " 301 "))
     other_map = ('[signals]\ncurrent = "MotorCurrent.Current"\n'
                  'speed = "MotorSpeed.Speed"\n')
-    sock, addr = notify_socket(tmp_path, "notify")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-C", str(conf),
-         "--json"], env=dict(os.environ, NOTIFY_SOCKET=addr),
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert any("READY=1" in g for g in datagrams(sock, "READY=1", 60, proc))
-        conf.write_text(base.format(dbc=f'dbc = "{tmp_path / "missing.dbc"}"\n',
-                                    signals=""))
-        proc.send_signal(signal.SIGHUP)
-        assert "READY=1" in datagrams(sock, "READY=1", 30, proc)[-1]
-        conf.write_text(base.format(dbc=f'dbc = "{other}"\n', signals=other_map))
-        proc.send_signal(signal.SIGHUP)
-        assert "READY=1" in datagrams(sock, "READY=1", 30, proc)[-1]
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-        sock.close()
-    assert proc.returncode == 0, err
+    rc, out, err = reloaded_daemon(tmp_path, conf, [
+        base.format(dbc=f'dbc = "{tmp_path / "missing.dbc"}"\n', signals=""),
+        base.format(dbc=f'dbc = "{other}"\n', signals=other_map)])
+    assert rc == 0, err
     refused = [line for line in err.splitlines() if "reload failed" in line]
     assert len(refused) == 1, err
     assert "missing.dbc" in refused[0] and "keeps its configuration" in refused[0]
