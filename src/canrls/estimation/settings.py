@@ -10,8 +10,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from canrls.errors import ConfigError, FixedPointError
-from canrls.estimation.fixed import FixedConfig, FixedRLS, QFormat
+from canrls.core.errors import ConfigError, FixedPointError
+from canrls.estimation.fixed.estimator import FixedRLS
+from canrls.estimation.fixed.formats import FixedConfig, QFormat
 
 __all__ = [
     "ALPHA_MAX",

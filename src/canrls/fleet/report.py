@@ -16,8 +16,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from canrls.errors import ConfigError
-from canrls.figtext import plain
+from canrls.core.errors import ConfigError
+from canrls.core.figtext import plain
 from canrls.fleet.detect import RESIDUAL, DriveAssessment, FleetAssessment
 
 __all__ = ["write_html", "report_dict", "require_matplotlib", "DEFAULT_FIGURES"]
