@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.core.errors import ConfigError
+from canrls.core.figtext import plain
 from canrls.core.webpage import save_svg
 from canrls.diagnosis.residual import PEAK_SHARE
 from canrls.diagnosis.results import (
@@ -106,9 +107,9 @@ class Figures:
             tq = q.traces
             sq = _timeline(tq)
             ax1.plot(tq.t[sq], np.where(tq.used, tq.yhat, np.nan)[sq], color=color, lw=2.2,
-                     alpha=0.55, label=f"model {lab}", rasterized=True)
+                     alpha=0.55, label=plain(f"model {lab}"), rasterized=True)
             ax2.plot(tq.t[sq], np.where(tq.used, tq.residual, np.nan)[sq], color=color,
-                     lw=0.6, label=f"residual {lab} (RMS {q.residual_rms:.3g} {u})",
+                     lw=0.6, label=plain(f"residual {lab} (RMS {q.residual_rms:.3g} {u})"),
                      rasterized=True)
         # the measurement above the model: drawn last, thin and black
         ax1.plot(tr.t[s], np.where(tr.used, tr.y, np.nan)[s], color="black", lw=0.7,
@@ -122,15 +123,16 @@ class Figures:
         if spans:
             self.notes[name] = (f"Shaded: {len(spans)} spans the estimator does not use "
                                 f"({UNUSED_REASONS}).")
-        ax1.set_ylabel(f"{b.target} [{u}]")
-        ax1.set_title(f"{b.equation} equation: measured against model "
-                      f"(fit {b.fit_percent:.1f} %"
-                      + (f" {label}, {a.fit_percent:.1f} % after)" if a is not None else ")"))
+        ax1.set_ylabel(plain(f"{b.target} [{u}]"))
+        ax1.set_title(plain(f"{b.equation} equation: measured against model "
+                            f"(fit {b.fit_percent:.1f} %"
+                            + (f" {label}, {a.fit_percent:.1f} % after)" if a is not None
+                               else ")")))
         ax1.legend(loc="upper right", fontsize=8)
         ax1.grid(alpha=0.3)
         ax2.axhline(0.0, color="black", lw=0.5)
         ax2.set_xlabel("time [s]")
-        ax2.set_ylabel(f"residual [{u}]")
+        ax2.set_ylabel(plain(f"residual [{u}]"))
         ax2.legend(loc="upper right", fontsize=8)
         ax2.grid(alpha=0.3)
         return self._save(fig, name)
@@ -187,14 +189,15 @@ class Figures:
             ax.axhline(0.0, color="black", lw=0.5)
             if quantity == "speed":
                 _symlog_speed(ax, vmax)
-                ax.set_xlabel(f"speed (filtered) [{bn.unit if bn else ''}], negative: "
-                              f"moving backward")
+                ax.set_xlabel(plain(f"speed (filtered) [{bn.unit if bn else ''}], "
+                                    f"negative: moving backward"))
             else:
-                ax.set_xlabel(f"{bn.label if bn else 'position'} [{bn.unit if bn else ''}]")
-            ax.set_title(f"{label}: residual RMS {q.residual_rms:.3g} {u}", fontsize=10)
+                ax.set_xlabel(plain(f"{bn.label if bn else 'position'} "
+                                    f"[{bn.unit if bn else ''}]"))
+            ax.set_title(plain(f"{label}: residual RMS {q.residual_rms:.3g} {u}"), fontsize=10)
             ax.grid(alpha=0.3)
             ax.legend(handles=[handles[0], handles[-1]], loc="upper left", fontsize=8)
-        axes[0].set_ylabel(f"residual [{u}]")
+        axes[0].set_ylabel(plain(f"residual [{u}]"))
         name = name or f"{quantity}.svg"
         if lim > 0:
             top = 1.6 * lim
@@ -204,7 +207,7 @@ class Figures:
                 note = (f"y axis clipped at ±{top:.3g} {u}: {share_text(max(out))} of the "
                         f"samples lie beyond it")
                 self.notes[name] = note[0].upper() + note[1:] + "."
-                fig.text(0.99, 0.005, note, ha="right", va="bottom", fontsize=8,
+                fig.text(0.99, 0.005, plain(note), ha="right", va="bottom", fontsize=8,
                          color="#555")
         what = "speed (both directions)" if quantity == "speed" else (
             "position in the revolution" if b.traces.angle is not None and
@@ -222,7 +225,7 @@ class Figures:
         colors = [_AFTER if c.suggested else (_GREY if not c.identifiable else "#7fa7cf")
                   for c in cands]
         ax.barh(ypos, vals, color=colors)
-        ax.set_yticks(ypos, [c.effect for c in cands])
+        ax.set_yticks(ypos, [plain(c.effect) for c in cands])
         ax.set_xlim(0, 150)
         ax.set_xticks([0, 20, 40, 60, 80, 100])
         steps = {st.effect: (i, st) for i, st in enumerate(q.suggestion.steps)}
@@ -232,8 +235,8 @@ class Figures:
                 i, st = steps[c.effect]
                 note = (f"suggested, step {i + 1}: {100 * st.explained:.1f} % of what is left"
                         if i else "suggested, step 1")
-            ax.text(v + 1, y0, f"{v:.1f} %  ΔBIC {c.delta_bic:.3g}  RMS after "
-                                f"{c.rms_after:.3g} {q.unit}  {note}",
+            ax.text(v + 1, y0, plain(f"{v:.1f} %  ΔBIC {c.delta_bic:.3g}  RMS after "
+                                      f"{c.rms_after:.3g} {q.unit}  {note}"),
                     va="center", fontsize=8)
         ax.set_xlabel("share of the residual variance explained when added alone [%]")
         ax.set_title("Which effect is missing: candidates, best first "
@@ -270,10 +273,11 @@ class Figures:
                 k = int(np.argmax(amp))
                 text = (f"no order stands out (largest: order {orders[k]:g}, "
                         f"{top:.3g} {qs.unit})")
-            ax.set_title(f"{label}: {text or 'no order stands out'}", fontsize=9, loc="left")
+            ax.set_title(plain(f"{label}: {text or 'no order stands out'}"), fontsize=9,
+                         loc="left")
             if top > 0:
                 ax.set_ylim(0, 1.25 * top)
-            ax.set_ylabel(f"amplitude [{qs.unit}]")
+            ax.set_ylabel(plain(f"amplitude [{qs.unit}]"))
             # plain tick labels: no "1e-5" multiplier over the panel's title
             ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
             ax.grid(alpha=0.3)
@@ -307,7 +311,7 @@ class Figures:
                            1e-30)
                 ax.set_ylim(fin - span, fin + span)
                 ax.axhline(fin, color=_GREY, lw=0.6)
-            ax.set_title(f"{tr.names[j]} [{tr.units[j]}]", fontsize=9)
+            ax.set_title(plain(f"{tr.names[j]} [{tr.units[j]}]"), fontsize=9)
             ax.grid(alpha=0.3)
             if j == 0:
                 ax.legend(fontsize=7, loc="lower right")
@@ -330,7 +334,7 @@ class Figures:
             ref = np.where(ref > 0, ref, 1.0)
             rel = np.abs(fx - th) / ref
             ax.plot(tr.conv_t, np.maximum(np.nan_to_num(rel, nan=floor), floor), lw=1.0,
-                    label=name)
+                    label=plain(name))
         ax.axhline(1e-3, color="black", ls=":", lw=0.8, label="0.1 %")
         ax.set_yscale("log")
         ax.set_xlabel("time [s]")

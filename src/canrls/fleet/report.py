@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from canrls.core.errors import ConfigError
+from canrls.core.figtext import plain
 from canrls.core.webpage import environment, num, relative_href, save_svg
 from canrls.fleet.detect import RESIDUAL, DriveAssessment, FleetAssessment
 
@@ -96,18 +97,18 @@ def _trend_figure(d: DriveAssessment, fleet: FleetAssessment, path: Path) -> str
                 ax.axhspan(a.before * (1 - 2 * tn) if se.log else a.before - 2 * tn,
                            a.before * (1 + 2 * tn) if se.log else a.before + 2 * tn,
                            xmax=1.0, color="#fcbba1", alpha=0.4, lw=0)
-            ax.set_title(a.message[:110], fontsize=8, color="#a50f15", loc="left")
+            ax.set_title(plain(a.message[:110]), fontsize=8, color="#a50f15", loc="left")
         elif a is not None:
-            ax.set_title(a.message[:110], fontsize=8, color="#a50f15", loc="left")
+            ax.set_title(plain(a.message[:110]), fontsize=8, color="#a50f15", loc="left")
         sib = _siblings(fleet, d, n) if a is not None and a.kind == "outlier" else []
         if sib:
             # the siblings' level: their median, and the band their levels span
             ax.axhspan(min(sib), max(sib), color="#a1d99b", alpha=0.35, lw=0,
-                       label=f"{len(sib)} siblings ({d.drive_type}): their levels")
+                       label=plain(f"{len(sib)} siblings ({d.drive_type}): their levels"))
             ax.axhline(float(np.median(sib)), color="#31a354", lw=1.2, ls="--",
                        label="siblings' median")
             ax.legend(fontsize=8, loc="best")
-        ax.set_ylabel(f"{n}\n[{se.unit}]" if se.unit else n, fontsize=9)
+        ax.set_ylabel(plain(f"{n}\n[{se.unit}]" if se.unit else n), fontsize=9)
         ax.tick_params(labelsize=9)
         if np.all((se.t > 1e8) & (se.t < 1e11)):
             ax.xaxis_date()
@@ -139,12 +140,13 @@ def _spread_figure(fleet: FleetAssessment, key: str, name: str, path: Path) -> s
         ax.plot(vs[~bad], ys[~bad], "o", ms=5, color="#3182bd", alpha=0.7, ls="none")
         ax.plot(vs[bad], ys[bad], "o", ms=7, color="#cb181d", ls="none")
         for k, j in enumerate(np.flatnonzero(bad)):  # labels staggered above and below
-            ax.annotate(pts[j][0], (vs[j], ys[j]), fontsize=9, xytext=(5, 6 if k % 2 else -12),
-                        textcoords="offset points", color="#a50f15")
-    ax.set_yticks(range(len(types)), [t or "(no type)" for t in types], fontsize=10)
+            ax.annotate(plain(pts[j][0]), (vs[j], ys[j]), fontsize=9,
+                        xytext=(5, 6 if k % 2 else -12), textcoords="offset points",
+                        color="#a50f15")
+    ax.set_yticks(range(len(types)), [plain(t or "(no type)") for t in types], fontsize=10)
     ax.set_ylim(-0.6, len(types) - 0.4)
     unit = next((d.series[name].unit for d in fleet.drives if name in d.series), "")
-    ax.set_xlabel(f"{name} [{unit}]" if unit else name, fontsize=10)
+    ax.set_xlabel(plain(f"{name} [{unit}]" if unit else name), fontsize=10)
     if all(v > 0 for _, v in levels.values()):
         ax.set_xscale("log")
         # 1, 2 and 5 of each decade labelled in plain numbers, the minor ticks unlabelled
