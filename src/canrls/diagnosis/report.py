@@ -316,6 +316,8 @@ def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
             out.append(f"        {c.description}")
             if not c.identifiable:
                 out.append(f"        {c.reason}")
+            for r in c.search:
+                out.append(f"        {r.text()}")
             for e in c.evidence[:3]:
                 out.append(f"        evidence: {e}")
     else:

@@ -1,0 +1,207 @@
+"""The search of the parameters the regression cannot estimate linearly.
+
+Each effect names its own (:meth:`~canrls.estimation.effects.Effect.search_space`: the
+Stribeck speed, the Coulomb band, a user term's free parameter) with a grid over what
+the record covers; :func:`search_parameters` fits the candidate at every value by batch
+least squares on the rows the candidates are compared on, keeps the value of the
+smallest residual (refined between its neighbours) and returns the model with it. A
+value set in the configuration is kept. The rule: docs/diagnose.md, "Nonlinear
+parameters".
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from canrls.diagnosis.results import SearchResult
+from canrls.diagnosis.samples import BLOCK, RecordSamples
+from canrls.estimation.effects import RecordSpan, UserTerm
+from canrls.estimation.model import DATA_OPTIONS, Equation, Model
+from canrls.processor import measure_noise
+from canrls.spill import PackedMask
+
+__all__ = ["Gram", "record_span", "search_parameters", "REFINE_STEPS"]
+
+F64 = npt.NDArray[np.float64]
+
+#: Golden-section steps between the best grid value's neighbours (in log).
+REFINE_STEPS = 6
+
+
+class Gram:
+    r"""Least squares from the Gram matrix of ``[columns..., y]`` (columns equilibrated).
+
+    ``rss(S)`` is the residual sum of squares of y regressed on the columns ``S``
+    (normalised units); pseudo-inverses drop directions below 1e-12 of the largest.
+    A column is ``zero`` when it has no non-zero value on the rows summed.
+    """
+
+    def __init__(self, A: F64) -> None:
+        self.m = A.shape[0] - 1
+        d = np.sqrt(np.maximum(np.diag(A), 0.0))
+        self.zero = d[: self.m] <= 1e-300
+        d = np.where(d > 1e-300, d, 1.0)
+        self.d = d
+        self.An = A / np.outer(d, d)
+        self.yy = float(A[-1, -1])
+
+    def solve(self, S: Sequence[int]) -> tuple[float, dict[int, float]]:
+        """(RSS, {column: coefficient in the column's units}) of y on columns S."""
+        S = [j for j in S if not self.zero[j]]
+        if not S:
+            return self.yy, {}
+        Ass = self.An[np.ix_(S, S)]
+        b = self.An[S, -1]
+        w, V = np.linalg.eigh(Ass)
+        keep = w > 1e-12 * max(float(w[-1]), 1e-300)
+        x = V[:, keep] @ ((V[:, keep].T @ b) / w[keep])
+        rss = (float(self.An[-1, -1]) - float(b @ x)) * self.d[-1] ** 2
+        coef = x * self.d[-1] / self.d[S]
+        return max(rss, 0.0), {j: float(c) for j, c in zip(S, coef, strict=True)}
+
+    def independence(self, S: Sequence[int], C: Sequence[int]) -> float:
+        """Smallest eigenvalue of the equilibrated Schur complement of C in [C, S]: the
+        fraction of the worst direction of S outside the span of C (1/VIF)."""
+        S = [j for j in S if not self.zero[j]]
+        if not S:
+            return 0.0
+        Ass = self.An[np.ix_(S, S)]
+        C = [j for j in C if not self.zero[j]]
+        if C:
+            Acc = self.An[np.ix_(C, C)]
+            Acs = self.An[np.ix_(C, S)]
+            w, V = np.linalg.eigh(Acc)
+            keep = w > 1e-12 * max(float(w[-1]), 1e-300)
+            X = V[:, keep] @ ((V[:, keep].T @ Acs) / w[keep][:, None])
+            Ass = Ass - Acs.T @ X
+        # relative to the columns' own energy (their equilibrated Gram)
+        w0 = np.linalg.eigvalsh(self.An[np.ix_(S, S)])
+        ws = np.linalg.eigvalsh(0.5 * (Ass + Ass.T))
+        return float(max(ws[0], 0.0) / max(w0[-1], 1e-300))
+
+    def corr(self, i: int, j: int) -> float:
+        return float(self.An[i, j])
+
+
+def record_span(ctx: RecordSamples, used: PackedMask, model: Model) -> RecordSpan:
+    """The speeds the compared rows move at (2nd and 98th percentiles of the non-zero
+    ``|speed|``) and the speed noise measured on the record's first block."""
+    parts = []
+    for a in range(0, len(ctx.signals), BLOCK):
+        u = used[a:a + BLOCK]
+        w = np.abs(np.asarray(ctx.signals.slice(a, a + BLOCK).speed, dtype=np.float64))[u]
+        parts.append(w[np.isfinite(w) & (w > 0)])
+    w = np.concatenate([np.zeros(0), *parts])
+    lo, hi = (float(np.percentile(w, 2)), float(np.percentile(w, 98))) if len(w) \
+        else (0.0, 0.0)
+    first = ctx.signals.slice(0, min(len(ctx.signals), BLOCK))
+    noise = measure_noise(first, model).get("speed", 0.0)
+    return RecordSpan(lo, hi, noise, ctx.speed_unit)
+
+
+def _is_given(model: Model, configured: frozenset[str], key: str, effect: str) -> bool:
+    """The parameter is set in the configuration: an option given, or a term's fixed value."""
+    if key in DATA_OPTIONS:
+        return key in configured
+    eff = model.with_effects(add=[effect]).effects[-1] if effect not in model.effect_names \
+        else next(e for e in model.effects if e.name == effect)
+    return isinstance(eff, UserTerm) and eff.free is not None \
+        and not isinstance(eff.free[1], tuple)
+
+
+def _reads(model: Model, key: str) -> bool:
+    """An effect of the model reads this option (its own column would change)."""
+    uses = {"coulomb_band": ("coulomb", "stribeck"), "stribeck_speed": ("stribeck",)}
+    return any(e.name in uses.get(key, ()) for e in model.effects)
+
+
+def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Sequence[str],
+                      used: PackedMask, configured: frozenset[str],
+                      bic: Callable[[float, float, int], float]
+                      ) -> tuple[Model, dict[str, tuple[SearchResult, ...]]]:
+    """Search every candidate's nonlinear parameters on the rows ``used``.
+
+    For a candidate ``c`` and a grid value ``v``: the batch least squares of the model
+    with ``c`` at ``v`` (its Gram matrix on ``used``); the value of the smallest residual
+    sum of squares wins, refined by a golden-section search (in log) between its grid
+    neighbours. An option one of the model's own effects reads is the model's and not
+    searched here; one set in the configuration (``configured``; a term's fixed value)
+    is kept. ``bic(rss_new, rss_old, p)`` gives the ΔBIC of the candidate at the value
+    found against the model without it. Returns the model with the values found and
+    ``{candidate: results}``.
+    """
+    span = record_span(ctx, used, model)
+    out: dict[str, tuple[SearchResult, ...]] = {}
+    done: set[str] = set()
+    rss_model: float | None = None
+    # the band first (Stribeck's column reads it too)
+    order = sorted((nm for nm in names if not nm.startswith("cogging:")),
+                   key=lambda nm: nm != "coulomb")
+    for nm in order:
+        eff = model.with_effects(add=[nm]).effects[-1]
+        found: list[SearchResult] = []
+        for sp in eff.search_space(span):
+            if sp.key in done or _reads(model, sp.key):
+                continue
+            done.add(sp.key)
+            if _is_given(model, configured, sp.key, nm):
+                value = (model.coulomb_band if sp.key == "coulomb_band" else
+                         model.stribeck_speed if sp.key == "stribeck_speed" else
+                         eff.free_value)  # type: ignore[attr-defined]
+                found.append(SearchResult(sp.key, sp.label, sp.unit, float(value), True))
+                continue
+            if not sp.grid:
+                continue
+
+            def rss(v: float, key: str = sp.key, name: str = nm, base: Model = model) -> float:
+                m = base.with_search_value(key, v).with_effects(add=[name])
+                G = Gram(ctx.gram(m.equation(eq.name), used, eq.n))
+                return G.solve(range(G.m))[0]
+
+            best, r_best = _minimise(rss, sp.grid)
+            if rss_model is None:
+                G0 = Gram(ctx.gram(eq, used, eq.n))
+                rss_model = G0.solve(range(G0.m))[0]
+            p = len(eff.parameters())
+            found.append(SearchResult(sp.key, sp.label, sp.unit, best, False,
+                                      min(sp.grid), max(sp.grid), len(sp.grid),
+                                      bic(r_best, rss_model, p)))
+            model = model.with_search_value(sp.key, best)
+        if found:
+            out[nm] = tuple(found)
+    return model, out
+
+
+def _minimise(f: Callable[[float], float], grid: Sequence[float]) -> tuple[float, float]:
+    """The value of ``grid`` where ``f`` is smallest, refined by golden section between its
+    neighbours (in log when the grid keeps one sign); (value, f there)."""
+    vals = [f(v) for v in grid]
+    k = int(np.argmin(vals))
+    best, f_best = float(grid[k]), float(vals[k])
+    if len(grid) < 3:
+        return best, f_best
+    a, b = float(grid[max(k - 1, 0)]), float(grid[min(k + 1, len(grid) - 1)])
+    logs = a > 0 and b > 0
+    to = (lambda v: math.log(v)) if logs else (lambda v: v)
+    back = (lambda x: math.exp(x)) if logs else (lambda x: x)
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    lo, hi = to(a), to(b)
+    x1, x2 = hi - g * (hi - lo), lo + g * (hi - lo)
+    f1, f2 = f(back(x1)), f(back(x2))
+    for _ in range(REFINE_STEPS):
+        if f1 <= f2:
+            hi, x2, f2 = x2, x1, f1
+            x1 = hi - g * (hi - lo)
+            f1 = f(back(x1))
+        else:
+            lo, x1, f1 = x1, x2, f2
+            x2 = lo + g * (hi - lo)
+            f2 = f(back(x2))
+    for x, fx in ((x1, f1), (x2, f2)):
+        if fx < f_best:
+            best, f_best = back(x), fx
+    return best, f_best
