@@ -10,6 +10,7 @@ and writes the verdict. The statistics: docs/diagnose.md, "Which effect is missi
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -17,7 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from canrls.diagnosis.residual import MIN_BIN, MIN_EXPLAINED, moments, residual_structure
+from canrls.diagnosis.residual import (
+    MIN_BIN,
+    MIN_EXPLAINED,
+    excitation_summary,
+    moments,
+    residual_structure,
+)
 from canrls.diagnosis.results import (
     Binned,
     Candidate,
@@ -302,6 +309,9 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation,
     and write the verdict.
     """
     cmp = _compare(ctx, model, eq, res)
+    if cmp.model.stribeck_speed != model.stribeck_speed:
+        # the time below the Stribeck speed found, not below the one the model had
+        res = dataclasses.replace(res, exc=excitation_summary(ctx, cmp.model, res.used))
     model = cmp.model  # with the values the search found
     model_issues = _model_issues(cmp, res.exc, model)
     evaluated = _evaluate(cmp, ctx, model, res.exc)

@@ -166,7 +166,7 @@ def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Seq
             if rss_model is None:
                 G0 = Gram(ctx.gram(eq, used, eq.n))
                 rss_model = G0.solve(range(G0.m))[0]
-            p = len(eff.parameters())
+            p = len(eff.parameters()) + 1  # the searched parameter is one too
             found.append(SearchResult(sp.key, sp.label, sp.unit, best, False,
                                       min(sp.grid), max(sp.grid), len(sp.grid),
                                       bic(r_best, rss_model, p)))
