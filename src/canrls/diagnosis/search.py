@@ -88,19 +88,19 @@ class Gram:
 
 
 def record_span(ctx: RecordSamples, used: PackedMask, model: Model) -> RecordSpan:
-    """The speeds the compared rows move at (2nd and 98th percentiles of the non-zero
-    ``|speed|``) and the speed noise measured on the record's first block."""
+    """The speeds the compared rows move at (2nd, 50th and 98th percentiles of the
+    non-zero ``|speed|``) and the speed noise measured on the record's first block."""
     parts = []
     for a in range(0, len(ctx.signals), BLOCK):
         u = used[a:a + BLOCK]
         w = np.abs(np.asarray(ctx.signals.slice(a, a + BLOCK).speed, dtype=np.float64))[u]
         parts.append(w[np.isfinite(w) & (w > 0)])
     w = np.concatenate([np.zeros(0), *parts])
-    lo, hi = (float(np.percentile(w, 2)), float(np.percentile(w, 98))) if len(w) \
-        else (0.0, 0.0)
+    lo, mid, hi = (float(x) for x in np.percentile(w, [2, 50, 98])) if len(w) \
+        else (0.0, 0.0, 0.0)
     first = ctx.signals.slice(0, min(len(ctx.signals), BLOCK))
     noise = measure_noise(first, model).get("speed", 0.0)
-    return RecordSpan(lo, hi, noise, ctx.speed_unit)
+    return RecordSpan(lo, hi, noise, ctx.speed_unit, mid)
 
 
 def _is_given(model: Model, configured: frozenset[str], key: str, effect: str) -> bool:
@@ -121,18 +121,20 @@ def _reads(model: Model, key: str) -> bool:
 
 def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Sequence[str],
                       used: PackedMask, configured: frozenset[str],
-                      bic: Callable[[float, float, int], float]
+                      bic: Callable[[float, float, int], float], min_independence: float
                       ) -> tuple[Model, dict[str, tuple[SearchResult, ...]]]:
     """Search every candidate's nonlinear parameters on the rows ``used``.
 
     For a candidate ``c`` and a grid value ``v``: the batch least squares of the model
     with ``c`` at ``v`` (its Gram matrix on ``used``); the value of the smallest residual
-    sum of squares wins, refined by a golden-section search (in log) between its grid
-    neighbours. An option one of the model's own effects reads is the model's and not
-    searched here; one set in the configuration (``configured``; a term's fixed value)
-    is kept. ``bic(rss_new, rss_old, p)`` gives the ΔBIC of the candidate at the value
-    found against the model without it. Returns the model with the values found and
-    ``{candidate: results}``.
+    sum of squares wins among the values where the candidate's columns keep at least
+    ``min_independence`` of their energy outside the span of the model's (a value the
+    data cannot tell from the model is no finding), refined by a golden-section search
+    (in log) between its grid neighbours. An option one of the model's own effects reads
+    is the model's and not searched here; one set in the configuration (``configured``;
+    a term's fixed value) is kept. ``bic(rss_new, rss_old, p)`` gives the ΔBIC of the
+    candidate at the value found against the model without it. Returns the model with
+    the values found and ``{candidate: results}``.
     """
     span = record_span(ctx, used, model)
     out: dict[str, tuple[SearchResult, ...]] = {}
@@ -157,12 +159,21 @@ def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Seq
             if not sp.grid:
                 continue
 
-            def rss(v: float, key: str = sp.key, name: str = nm, base: Model = model) -> float:
+            def rss(v: float, key: str = sp.key, name: str = nm, base: Model = model,
+                    tellable: bool = True) -> float:
+                # the RSS at v; inf where the candidate cannot be told from the model
                 m = base.with_search_value(key, v).with_effects(add=[name])
                 G = Gram(ctx.gram(m.equation(eq.name), used, eq.n))
+                if tellable and G.independence(range(eq.n, G.m), range(eq.n)) \
+                        < min_independence:
+                    return math.inf
                 return G.solve(range(G.m))[0]
 
             best, r_best = _minimise(rss, sp.grid)
+            if not math.isfinite(r_best):
+                # no value these data tell from the model: the best of all, said so by
+                # the candidate's identifiability
+                best, r_best = _minimise(lambda v, f=rss: f(v, tellable=False), sp.grid)
             if rss_model is None:
                 G0 = Gram(ctx.gram(eq, used, eq.n))
                 rss_model = G0.solve(range(G0.m))[0]

@@ -106,13 +106,15 @@ SEARCH_POINTS = 16
 @dataclass(frozen=True)
 class RecordSpan:
     """What a record covers, for the grids of :meth:`Effect.search_space`: the speeds
-    moved at (``speed_low``, ``speed_high``: the 2nd and 98th percentiles of the
-    non-zero ``|speed|``) and the speed noise (standard deviation), in the speed unit."""
+    moved at (``speed_low``, ``speed_mid``, ``speed_high``: the 2nd, 50th and 98th
+    percentiles of the non-zero ``|speed|``) and the speed noise (standard deviation), in the speed unit."""
 
     speed_low: float
     speed_high: float
     speed_noise: float
     speed_unit: str
+    #: the median of the non-zero ``|speed|``
+    speed_mid: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -561,9 +563,11 @@ class Stribeck(Effect):
     def search_space(self, span: RecordSpan) -> tuple[SearchSpace, ...]:
         """The Stribeck speed, on a log grid over the speeds the record covers: not
         below the band (a bump narrower than the smoothed sign is no bump), not above a
-        third of the highest speed (the record must show the bump decay: at 3 ``speed``
-        it is down to 1e-4)."""
-        lo, hi = max(span.speed_low, self.band), span.speed_high / 3.0
+        third of the median speed: at 3 ``speed`` the bump is down to 1e-4, and at
+        least half the record must lie beyond it, or a bump wider than the speeds moved
+        at, ``sgn(w) (1 - (w/speed)^2 ...)``, is Coulomb friction plus any odd
+        nonlinearity in speed (a fan load ``w |w|``)."""
+        lo, hi = max(span.speed_low, self.band), span.speed_mid / 3.0
         grid = log_grid(lo, hi) if 0 < lo < hi else ()
         return (SearchSpace("stribeck_speed", "Stribeck speed", span.speed_unit, grid),)
 
