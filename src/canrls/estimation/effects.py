@@ -107,7 +107,8 @@ SEARCH_POINTS = 16
 class RecordSpan:
     """What a record covers, for the grids of :meth:`Effect.search_space`: the speeds
     moved at (``speed_low``, ``speed_mid``, ``speed_high``: the 2nd, 50th and 98th
-    percentiles of the non-zero ``|speed|``) and the speed noise (standard deviation), in the speed unit."""
+    percentiles of the non-zero ``|speed|``) and the speed noise (standard deviation),
+    in the speed unit."""
 
     speed_low: float
     speed_high: float
