@@ -12,25 +12,25 @@ parameters".
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from canrls.diagnosis.results import SearchResult
 from canrls.diagnosis.samples import BLOCK, RecordSamples
-from canrls.estimation.effects import RecordSpan, UserTerm
+from canrls.estimation.effects import UserTerm
 from canrls.estimation.model import DATA_OPTIONS, Equation, Model
+from canrls.estimation.pipeline import EstimatorSettings
+from canrls.estimation.search import RecordSpan, minimise_on_grid, record_span
 from canrls.processor import measure_noise
 from canrls.spill import PackedMask
 
-__all__ = ["Gram", "record_span", "search_parameters", "REFINE_STEPS"]
+__all__ = ["Gram", "search_parameters", "search_model"]
 
 F64 = npt.NDArray[np.float64]
-
-#: Golden-section steps between the best grid value's neighbours (in log).
-REFINE_STEPS = 6
-
 
 class Gram:
     r"""Least squares from the Gram matrix of ``[columns..., y]`` (columns equilibrated).
@@ -87,20 +87,16 @@ class Gram:
         return float(self.An[i, j])
 
 
-def record_span(ctx: RecordSamples, used: PackedMask, model: Model) -> RecordSpan:
-    """The speeds the compared rows move at (2nd, 50th and 98th percentiles of the
-    non-zero ``|speed|``) and the speed noise measured on the record's first block."""
+def _span(ctx: RecordSamples, used: PackedMask, model: Model) -> RecordSpan:
+    """What the compared rows cover (:func:`~canrls.estimation.search.record_span`), the
+    speed noise measured on the record's first block."""
     parts = []
     for a in range(0, len(ctx.signals), BLOCK):
         u = used[a:a + BLOCK]
-        w = np.abs(np.asarray(ctx.signals.slice(a, a + BLOCK).speed, dtype=np.float64))[u]
-        parts.append(w[np.isfinite(w) & (w > 0)])
-    w = np.concatenate([np.zeros(0), *parts])
-    lo, mid, hi = (float(x) for x in np.percentile(w, [2, 50, 98])) if len(w) \
-        else (0.0, 0.0, 0.0)
+        parts.append(np.asarray(ctx.signals.slice(a, a + BLOCK).speed, np.float64)[u])
     first = ctx.signals.slice(0, min(len(ctx.signals), BLOCK))
-    noise = measure_noise(first, model).get("speed", 0.0)
-    return RecordSpan(lo, hi, noise, ctx.speed_unit, mid)
+    return record_span(np.concatenate([np.zeros(0), *parts]),
+                       measure_noise(first, model).get("speed", 0.0), ctx.speed_unit)
 
 
 def _is_given(model: Model, configured: frozenset[str], key: str, effect: str) -> bool:
@@ -136,7 +132,7 @@ def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Seq
     candidate at the value found against the model without it. Returns the model with
     the values found and ``{candidate: results}``.
     """
-    span = record_span(ctx, used, model)
+    span = _span(ctx, used, model)
     out: dict[str, tuple[SearchResult, ...]] = {}
     done: set[str] = set()
     rss_model: float | None = None
@@ -169,11 +165,11 @@ def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Seq
                     return math.inf
                 return G.solve(range(G.m))[0]
 
-            best, r_best = _minimise(rss, sp.grid)
+            best, r_best = minimise_on_grid(rss, sp.grid)
             if not math.isfinite(r_best):
                 # no value these data tell from the model: the best of all, said so by
                 # the candidate's identifiability
-                best, r_best = _minimise(lambda v, f=rss: f(v, tellable=False), sp.grid)
+                best, r_best = minimise_on_grid(lambda v, f=rss: f(v, tellable=False), sp.grid)
             if rss_model is None:
                 G0 = Gram(ctx.gram(eq, used, eq.n))
                 rss_model = G0.solve(range(G0.m))[0]
@@ -187,32 +183,43 @@ def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Seq
     return model, out
 
 
-def _minimise(f: Callable[[float], float], grid: Sequence[float]) -> tuple[float, float]:
-    """The value of ``grid`` where ``f`` is smallest, refined by golden section between its
-    neighbours (in log when the grid keeps one sign); (value, f there)."""
-    vals = [f(v) for v in grid]
-    k = int(np.argmin(vals))
-    best, f_best = float(grid[k]), float(vals[k])
-    if len(grid) < 3:
-        return best, f_best
-    a, b = float(grid[max(k - 1, 0)]), float(grid[min(k + 1, len(grid) - 1)])
-    logs = a > 0 and b > 0
-    to = (lambda v: math.log(v)) if logs else (lambda v: v)
-    back = (lambda x: math.exp(x)) if logs else (lambda x: x)
-    g = (math.sqrt(5.0) - 1.0) / 2.0
-    lo, hi = to(a), to(b)
-    x1, x2 = hi - g * (hi - lo), lo + g * (hi - lo)
-    f1, f2 = f(back(x1)), f(back(x2))
-    for _ in range(REFINE_STEPS):
-        if f1 <= f2:
-            hi, x2, f2 = x2, x1, f1
-            x1 = hi - g * (hi - lo)
-            f1 = f(back(x1))
-        else:
-            lo, x1, f1 = x1, x2, f2
-            x2 = lo + g * (hi - lo)
-            f2 = f(back(x2))
-    for x, fx in ((x1, f1), (x2, f2)):
-        if fx < f_best:
-            best, f_best = back(x), fx
-    return best, f_best
+def search_model(paths: Sequence[str | os.PathLike[str]], protocol: Any, model: Model,
+                 settings: EstimatorSettings | None = None, *,
+                 skip_bad_lines: bool = False) -> tuple[Model, tuple[SearchResult, ...]]:
+    """The Stribeck speed of a model with Stribeck friction whose configuration does not
+    give one, searched on the whole record of ``paths`` as the
+    diagnosis searches a candidate's (:func:`search_parameters`, the model's other
+    columns with it, on the rows the pipeline uses): ``canrls fit``'s search. Returns
+    the model with the values found (given from then on) and what was found."""
+    from canrls.replay import read_logs
+
+    settings = settings or EstimatorSettings()
+    if "stribeck" not in model.effect_names or "stribeck_speed" in model.options_given:
+        return model, ()
+    names = ["stribeck"]
+    log = read_logs(paths, protocol, model, settings, skip_bad_lines=skip_bad_lines,
+                    spill=True)
+    try:
+        found: list[SearchResult] = []
+        base = log.model.with_effects(remove=names)
+        for eq_name in sorted({e.equation for e in model.effects if e.name in names}):
+            ctx = RecordSamples(base, log.signals, log.dt, settings, 1)
+            eq = base.equation(eq_name)
+            full = model.equation(eq_name)
+            used = ctx.used(full)
+            h = ctx.impulse(full.holds[0])
+            Ne = max(used.count() * float(np.sum(h * h)), 2.0)
+
+            def bic(new: float, old: float, p: int, ne: float = Ne) -> float:
+                # dBIC = Ne ln(RSS'/RSS) + p ln Ne
+                return ne * math.log(max(new, 1e-300 * old) / old) + p * math.log(ne) \
+                    if old > 0 else math.inf
+
+            _, out = search_parameters(ctx, base, eq, names, used, model.options_given,
+                                       bic, 0.0)
+            found += [r for rs in out.values() for r in rs if r.key == "stribeck_speed"]
+        for r in found:
+            model = model.with_search_value(r.key, r.value)
+        return model, tuple(found)
+    finally:
+        log.close()

@@ -48,6 +48,7 @@ from canrls.ctext import check_text
 from canrls.effect_names import EffectId, EquationId, parse_effect_name
 from canrls.errors import EffectError
 from canrls.estimation.expr import CompiledExpression, compile_expression
+from canrls.estimation.search import RecordSpan, SearchSpace, log_grid
 
 __all__ = [
     "Axis",
@@ -66,9 +67,6 @@ __all__ = [
     "Cogging",
     "Electrical",
     "UserTerm",
-    "RecordSpan",
-    "SearchSpace",
-    "SEARCH_POINTS",
     "EFFECT_NAMES",
     "EFFECT_IDS",
     "MECHANICAL",
@@ -99,49 +97,6 @@ DEFAULT_PITCH = 1.0
 OPTION_KEYS = frozenset({"axis", "pitch", "band", "speed", "terms"})
 #: Keys of one user term definition in ``options["terms"][NAME]``.
 TERM_KEYS = frozenset({"expr", "unit", "equation", "range", "search"})
-#: Values tried by a search of a nonlinear parameter (:meth:`Effect.search_space`).
-SEARCH_POINTS = 16
-
-
-@dataclass(frozen=True)
-class RecordSpan:
-    """What a record covers, for the grids of :meth:`Effect.search_space`: the speeds
-    moved at (``speed_low``, ``speed_mid``, ``speed_high``: the 2nd, 50th and 98th
-    percentiles of the non-zero ``|speed|``) and the speed noise (standard deviation),
-    in the speed unit."""
-
-    speed_low: float
-    speed_high: float
-    speed_noise: float
-    speed_unit: str
-    #: the median of the non-zero ``|speed|``
-    speed_mid: float = math.nan
-
-
-@dataclass(frozen=True)
-class SearchSpace:
-    """A parameter the regression cannot estimate linearly and the values to try.
-
-    ``key`` names it for :meth:`canrls.estimation.model.Model.with_search_value`
-    (``stribeck_speed``, ``coulomb_band``, ``user:NAME:PARAM``), ``label`` for a
-    person, ``grid`` the values (empty: the record covers nothing to search)."""
-
-    key: str
-    label: str
-    unit: str
-    grid: tuple[float, ...]
-
-
-def log_grid(lo: float, hi: float, n: int = SEARCH_POINTS) -> tuple[float, ...]:
-    """``n`` values spaced evenly in log from ``lo`` to ``hi`` (both > 0); linear when
-    the interval holds zero or negative values."""
-    if not (math.isfinite(lo) and math.isfinite(hi)) or hi < lo:
-        return ()
-    if lo > 0 or hi < 0:
-        s = 1.0 if lo > 0 else -1.0
-        a, b = sorted((abs(lo), abs(hi)))
-        return tuple(s * float(v) for v in np.geomspace(a, b, n)) if b > a else (lo,)
-    return tuple(float(v) for v in np.linspace(lo, hi, n))
 
 
 def target_unit(equation: str, axis: Axis = "rotary", kt_known: bool = True) -> str:
