@@ -10,6 +10,7 @@ equation of motion carries them.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -21,6 +22,7 @@ import pytest
 from canrls.can.encoder import FeedbackEncoder
 from canrls.can.logs import write_log
 from canrls.can.protocol import Protocol
+from canrls.cli.main import main
 from canrls.diagnosis.analysis import diagnose_log
 from canrls.diagnosis.report import DiagnosisReport
 from canrls.errors import ConfigError
@@ -174,3 +176,46 @@ def test_a_bad_search_names_the_key(tmp_path: Path) -> None:
     from canrls.config import load_model
     with pytest.raises(ConfigError, match=r"drive\.toml: model\.terms\[0\].*search\.c"):
         load_model(path)
+
+
+def _cli(capsys: pytest.CaptureFixture[str], cmd: str, path: Path, *extra: str) -> str:
+    flags = [a for s in SIGNALS for a in ("--signal", s)]
+    assert main([cmd, str(path), "--dbc", str(path.with_suffix(".dbc")), *flags, "-q",
+                 *extra]) == 0
+    return capsys.readouterr().out
+
+
+def test_fit_searches_the_stribeck_speed_it_is_not_given(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    res = simulate(scenario("standard", effects="inertia,viscous,coulomb,stribeck", seed=4,
+                            duration=30.0, stribeck_speed=3.0))
+    path, _ = _log(tmp_path, "raw32", res)
+    eff = ["-e", "inertia,viscous,coulomb,stribeck"]
+    d = json.loads(_cli(capsys, "fit", path, *eff, "--json"))
+    (r,) = d["search"]
+    assert r["key"] == "stribeck_speed" and not r["kept"]
+    assert r["value"] == pytest.approx(3.0, rel=0.1)  # measured: 2.996
+    ts = d["parameters"]["stribeck.Ts"]
+    assert ts["value"] == pytest.approx(res.truth["stribeck.Ts"] / KT, rel=0.05)
+    assert "stribeck_speed" not in d["calibration"]["defaults"]
+    text = _cli(capsys, "fit", path, *eff)
+    assert f"Stribeck speed {r['value']:.4g} rad/s (searched " in text
+    assert f"set [model.stribeck] speed = {r['value']:.4g} for 'canrls run'" in text
+
+
+def test_without_kt_the_units_say_per_ampere(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path, _ = _log(tmp_path, "raw32", _sim("inertia,viscous,coulomb", seed=6))
+    line = ("units: no Kt and no torque signal, so the mechanical parameters are per "
+            "ampere (A where N·m would be): multiply them by Kt [N·m/A] for N·m, or "
+            "give --kt")
+    text = _cli(capsys, "fit", path)
+    assert text.count(line) == 1
+    assert json.loads(_cli(capsys, "fit", path, "--json"))["axis"]["per_ampere"] == line
+    assert line not in _cli(capsys, "fit", path, "--kt", "0.1")
+    assert json.loads(_cli(capsys, "fit", path, "--kt", "0.1", "--json"))["axis"][
+        "per_ampere"] is None
+    diag = _cli(capsys, "diagnose", path, "--max-order", "2")
+    assert diag.count(line) == 1
+    assert json.loads(_cli(capsys, "diagnose", path, "--max-order", "2", "--json"))[
+        "per_ampere"] == line

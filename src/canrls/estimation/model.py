@@ -252,6 +252,20 @@ class Model:
         return self.kt is not None or self.target == "torque"
 
     @property
+    def per_ampere(self) -> bool:
+        """True when the model has a mechanical equation whose target is the raw current
+        (no Kt, no torque signal): its mechanical parameters are per ampere."""
+        return not self.torque_known and any(e.name == MECHANICAL for e in self.equations)
+
+    @property
+    def per_ampere_text(self) -> str:
+        """The one line that says so, and how to get N·m (N on a linear axis)."""
+        u = "N·m" if self.axis == "rotary" else "N"
+        return (f"units: no Kt and no torque signal, so the mechanical parameters are per "
+                f"ampere (A where {u} would be): multiply them by Kt [{u}/A] for {u}, or "
+                f"give --kt")
+
+    @property
     def effect_options(self) -> dict[str, Any]:
         """The shared options :func:`canrls.estimation.effects.parse_effect` builds effects with."""
         return {"axis": self.axis, "pitch": self.pitch, "band": self.coulomb_band,
