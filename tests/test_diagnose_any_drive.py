@@ -221,3 +221,14 @@ def test_without_kt_the_units_say_per_ampere(
     assert diag.count(line) == 1
     assert json.loads(_cli(capsys, "diagnose", path, "--max-order", "2", "--json"))[
         "per_ampere"] == line
+
+
+def test_the_daemon_without_kt_says_per_ampere(
+        caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]) -> None:
+    for kt, times in (([], 1), (["--kt", "0.1"], 0)):
+        caplog.clear()
+        assert main(["run", "-i", "virtual", "-c", "issue28-units", "--duration", "0.2",
+                     *kt]) == 0
+        said = [r for r in caplog.records if "per ampere" in r.getMessage()]
+        assert len(said) == times
+    capsys.readouterr()
