@@ -232,3 +232,21 @@ def test_the_daemon_without_kt_says_per_ampere(
         said = [r for r in caplog.records if "per ampere" in r.getMessage()]
         assert len(said) == times
     capsys.readouterr()
+
+
+@pytest.mark.parametrize("band", [None, 0.02])
+def test_a_missing_coulomb_friction_has_its_band_searched_or_kept(
+        tmp_path: Path, band: float | None) -> None:
+    path, proto = _log(tmp_path, "raw32", _sim("inertia,viscous,coulomb", seed=7))
+    opts = {} if band is None else {"coulomb_band": band}
+    # without the dead-time term: on these reversals tanh(i / c) is the sign of the
+    # speed, and the diagnosis says it cannot tell the two apart
+    rep = _diagnose(path, proto, ["inertia", "viscous"], terms=TERMS[:1], **opts)
+    assert _first(rep) == "coulomb"
+    (r,) = rep.before.equations[0].candidate("coulomb").search
+    assert r.key == "coulomb_band" and r.kept == (band is not None)
+    if band is None:
+        assert r.lo < r.value < r.hi and r.delta_bic < 0
+    else:
+        assert r.value == band
+        assert "Coulomb band 0.02 rad/s (set in the configuration: kept)" in rep.format()
