@@ -21,7 +21,6 @@ import numpy.typing as npt
 
 from canrls.diagnosis.results import SearchResult
 from canrls.diagnosis.samples import BLOCK, RecordSamples
-from canrls.estimation.effects import UserTerm
 from canrls.estimation.model import DATA_OPTIONS, Equation, Model
 from canrls.estimation.pipeline import EstimatorSettings
 from canrls.estimation.search import RecordSpan, minimise_on_grid, record_span
@@ -99,20 +98,12 @@ def _span(ctx: RecordSamples, used: PackedMask, model: Model) -> RecordSpan:
                        measure_noise(first, model).get("speed", 0.0), ctx.speed_unit)
 
 
-def _is_given(model: Model, configured: frozenset[str], key: str, effect: str) -> bool:
-    """The parameter is set in the configuration: an option given, or a term's fixed value."""
-    if key in DATA_OPTIONS:
-        return key in configured
-    eff = model.with_effects(add=[effect]).effects[-1] if effect not in model.effect_names \
-        else next(e for e in model.effects if e.name == effect)
-    return isinstance(eff, UserTerm) and eff.free is not None \
-        and not isinstance(eff.free[1], tuple)
-
-
-def _reads(model: Model, key: str) -> bool:
-    """An effect of the model reads this option (its own column would change)."""
-    uses = {"coulomb_band": ("coulomb", "stribeck"), "stribeck_speed": ("stribeck",)}
-    return any(e.name in uses.get(key, ()) for e in model.effects)
+def _reads(model: Model, key: str, value: float) -> bool:
+    """One of the model's own effects reads the option ``key`` (now ``value``): its
+    columns would change with it."""
+    if key not in DATA_OPTIONS:
+        return False
+    return model.with_search_value(key, 2.0 * value).effects != model.effects
 
 
 def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Sequence[str],
@@ -143,14 +134,11 @@ def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Seq
         eff = model.with_effects(add=[nm]).effects[-1]
         found: list[SearchResult] = []
         for sp in eff.search_space(span):
-            if sp.key in done or _reads(model, sp.key):
+            if sp.key in done or _reads(model, sp.key, sp.value):
                 continue
             done.add(sp.key)
-            if _is_given(model, configured, sp.key, nm):
-                value = (model.coulomb_band if sp.key == "coulomb_band" else
-                         model.stribeck_speed if sp.key == "stribeck_speed" else
-                         eff.free_value)  # type: ignore[attr-defined]
-                found.append(SearchResult(sp.key, sp.label, sp.unit, float(value), True))
+            if sp.kept or sp.key in configured:
+                found.append(SearchResult(sp.key, sp.label, sp.unit, sp.value, True))
                 continue
             if not sp.grid:
                 continue

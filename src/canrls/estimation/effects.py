@@ -481,7 +481,8 @@ class Coulomb(Effect):
         lo = 0.5 * span.speed_noise
         hi = max(lo, min(16.0 * span.speed_noise, 0.5 * span.speed_high))
         grid = log_grid(lo, hi) if lo > 0 else ()
-        return (SearchSpace("coulomb_band", "Coulomb band", span.speed_unit, grid),)
+        return (SearchSpace("coulomb_band", "Coulomb band", span.speed_unit, grid,
+                            self.band),)
 
     def columns(self) -> tuple[Column, ...]:
         return (Column("Tc", False, lambda f: self.sgn(_need(f, "speed", self.name)),
@@ -525,7 +526,8 @@ class Stribeck(Effect):
         nonlinearity in speed (a fan load ``w |w|``)."""
         lo, hi = max(span.speed_low, self.band), span.speed_mid / 3.0
         grid = log_grid(lo, hi) if 0 < lo < hi else ()
-        return (SearchSpace("stribeck_speed", "Stribeck speed", span.speed_unit, grid),)
+        return (SearchSpace("stribeck_speed", "Stribeck speed", span.speed_unit, grid,
+                            self.speed),)
 
     def shape(self, w: F64) -> F64:
         """``tanh(omega / band) * exp(-(omega / speed)^2)``."""
@@ -764,7 +766,8 @@ class UserTerm(Effect):
             return ()
         p, v = self.free
         grid = log_grid(*v) if isinstance(v, tuple) else ()
-        return (SearchSpace(f"{self.name}:{p}", f"{self.name} {p}", "", grid),)
+        return (SearchSpace(f"{self.name}:{p}", f"{self.name} {p}", "", grid,
+                            self.free_value, not isinstance(v, tuple)),)
 
     @property
     def name(self) -> str:

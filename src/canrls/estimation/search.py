@@ -41,12 +41,16 @@ class SearchSpace:
 
     ``key`` names it for :meth:`canrls.estimation.model.Model.with_search_value`
     (``stribeck_speed``, ``coulomb_band``, ``user:NAME:PARAM``), ``label`` for a
-    person, ``grid`` the values (empty: the record covers nothing to search)."""
+    person, ``grid`` the values (empty: the record covers nothing to search), ``value``
+    the one the effect has now, ``kept`` True when the effect itself fixes it (a user
+    term's ``search = { c = 0.05 }``)."""
 
     key: str
     label: str
     unit: str
     grid: tuple[float, ...]
+    value: float
+    kept: bool = False
 
 
 def log_grid(lo: float, hi: float, n: int = SEARCH_POINTS) -> tuple[float, ...]:
