@@ -162,9 +162,15 @@ def test_a_dead_time_term_has_its_width_searched(tmp_path: Path, kind: str) -> N
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("profile", ["low and high speeds", "standard"])
 @pytest.mark.parametrize("seed", range(10))
-def test_no_false_suggestion_on_the_complete_model(tmp_path: Path, seed: int) -> None:
-    res = _sim("inertia,viscous,coulomb", seed=100 + seed)
+def test_no_false_suggestion_on_the_complete_model(tmp_path: Path, seed: int,
+                                                   profile: str) -> None:
+    # the standard profile leaves the filter's errors-in-variables bias in the residual:
+    # a searched Stribeck speed or dead-time width took 5 to 9 % of it before the
+    # searched candidates had to explain MIN_EXPLAINED_SEARCHED
+    res = (_sim("inertia,viscous,coulomb", seed=100 + seed) if profile != "standard" else
+           simulate(scenario("standard", seed=100 + seed, duration=30.0)))
     rep = _diagnose(*_log(tmp_path, "raw32" if seed % 2 else "tidy", res))
     q = rep.before.equations[0]
     assert not q.suggestion, q.verdict
