@@ -187,6 +187,10 @@ class _Comparison:
     def rms_of(self, rss: float) -> float:
         return math.sqrt(rss / self.N) * self.scale_y if self.N else math.nan
 
+    def parameters(self, name: str) -> int:
+        """The parameters candidate ``name`` adds: its columns' and those searched."""
+        return len(self.groups[name]) + sum(not r.kept for r in self.search.get(name, ()))
+
     def bic(self, rss_new: float, rss_old: float, p: int) -> float:
         """:func:`delta_bic` over these rows."""
         return delta_bic(self.Ne, rss_new, rss_old, p)
@@ -447,7 +451,8 @@ def _evaluate(cmp: _Comparison, ctx: RecordSamples, model: Model,
                           f"periodic in time: vary the speed")
         params = {aug.parameters[j].name: (float(x.get(j, 0.0) * factors[j]),
                                            aug.parameters[j].unit) for j in cols}
-        evaluated[name] = _Evaluation(cols, expl, rss, cmp.bic(rss, cmp.rss0, len(cols)), ind,
+        evaluated[name] = _Evaluation(cols, expl, rss, cmp.bic(rss, cmp.rss0,
+                                                               cmp.parameters(name)), ind,
                                       exc_c, reason, params)
     return evaluated
 
@@ -477,8 +482,8 @@ def _forward_select(cmp: _Comparison, evaluated: Mapping[str, _Evaluation]) -> _
             break
         nm, rss = best
         expl = (rss_cur - rss) / rss_cur
-        db = cmp.bic(rss, rss_cur, len(evaluated[nm].cols))
-        searched = any(not r.kept for r in cmp.search.get(nm, ()))
+        db = cmp.bic(rss, rss_cur, cmp.parameters(nm))
+        searched = cmp.parameters(nm) > len(evaluated[nm].cols)
         if expl < (MIN_EXPLAINED_SEARCHED if searched else MIN_EXPLAINED) or db >= 0:
             break
         chosen.append(nm)
