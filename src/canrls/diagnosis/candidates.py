@@ -38,7 +38,7 @@ from canrls.diagnosis.results import (
     value_text,
 )
 from canrls.diagnosis.samples import BLOCK, RecordSamples
-from canrls.diagnosis.search import Gram, search_parameters
+from canrls.diagnosis.search import Gram, delta_bic, search_parameters
 from canrls.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Cogging, Effect, UserTerm, library
 from canrls.estimation.model import Equation, Model
@@ -194,16 +194,6 @@ class _Comparison:
     def bic(self, rss_new: float, rss_old: float, p: int) -> float:
         """:func:`delta_bic` over these rows."""
         return delta_bic(self.Ne, rss_new, rss_old, p)
-
-
-def delta_bic(Ne: float, rss_new: float, rss_old: float, p: int) -> float:
-    """The change of the Bayesian information criterion when ``p`` columns take the
-    RSS from ``rss_old`` to ``rss_new``, over the ``Ne = N ||h||^2`` independent
-    samples the filter leaves."""
-    # dBIC = Ne ln(RSS'/RSS) + p ln Ne
-    if rss_old <= 0:
-        return math.inf
-    return Ne * math.log(max(rss_new, 1e-300 * rss_old) / rss_old) + p * math.log(Ne)
 
 
 @dataclass

@@ -27,9 +27,20 @@ from canrls.estimation.search import RecordSpan, minimise_on_grid, record_span
 from canrls.processor import measure_noise
 from canrls.spill import PackedMask
 
-__all__ = ["Gram", "search_parameters", "search_model"]
+__all__ = ["Gram", "delta_bic", "search_parameters", "search_model"]
 
 F64 = npt.NDArray[np.float64]
+
+
+def delta_bic(Ne: float, rss_new: float, rss_old: float, p: int) -> float:
+    """The change of the Bayesian information criterion when ``p`` parameters take the
+    RSS from ``rss_old`` to ``rss_new``, over the ``Ne = N ||h||^2`` independent
+    samples the filter leaves."""
+    # dBIC = Ne ln(RSS'/RSS) + p ln Ne
+    if rss_old <= 0:
+        return math.inf
+    return Ne * math.log(max(rss_new, 1e-300 * rss_old) / rss_old) + p * math.log(Ne)
+
 
 class Gram:
     r"""Least squares from the Gram matrix of ``[columns..., y]`` (columns equilibrated).
@@ -127,7 +138,7 @@ def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Seq
     out: dict[str, tuple[SearchResult, ...]] = {}
     done: set[str] = set()
     rss_model: float | None = None
-    # the band first (Stribeck's column reads it too)
+    # the band first: Stribeck's column reads it too, and is searched with the band found
     order = sorted((nm for nm in names if not nm.startswith("cogging:")),
                    key=lambda nm: nm != "coulomb")
     for nm in order:
@@ -175,8 +186,8 @@ def search_model(paths: Sequence[str | os.PathLike[str]], protocol: Any, model: 
                  settings: EstimatorSettings | None = None, *,
                  skip_bad_lines: bool = False) -> tuple[Model, tuple[SearchResult, ...]]:
     """The Stribeck speed of a model with Stribeck friction whose configuration does not
-    give one, searched on the whole record of ``paths`` as the
-    diagnosis searches a candidate's (:func:`search_parameters`, the model's other
+    give one, searched on the whole record of ``paths`` as the diagnosis searches a
+    candidate's (:func:`search_parameters`, the model's other
     columns with it, on the rows the pipeline uses): ``canrls fit``'s search. Returns
     the model with the values found (given from then on) and what was found."""
     from canrls.replay import read_logs
@@ -197,14 +208,11 @@ def search_model(paths: Sequence[str | os.PathLike[str]], protocol: Any, model: 
             used = ctx.used(full)
             h = ctx.impulse(full.holds[0])
             Ne = max(used.count() * float(np.sum(h * h)), 2.0)
-
-            def bic(new: float, old: float, p: int, ne: float = Ne) -> float:
-                # dBIC = Ne ln(RSS'/RSS) + p ln Ne
-                return ne * math.log(max(new, 1e-300 * old) / old) + p * math.log(ne) \
-                    if old > 0 else math.inf
-
+            # independence 0: the model's own column, whose identifiability is the
+            # estimator's to judge (prior share, noise), not the search's
             _, out = search_parameters(ctx, base, eq, names, used, model.options_given,
-                                       bic, 0.0)
+                                       lambda new, old, p, ne=Ne: delta_bic(ne, new, old, p),
+                                       0.0)
             found += [r for rs in out.values() for r in rs if r.key == "stribeck_speed"]
         for r in found:
             model = model.with_search_value(r.key, r.value)
