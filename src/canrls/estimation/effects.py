@@ -693,7 +693,9 @@ class UserTerm(Effect):
     ``expr``. Options: ``expr`` (required), ``unit`` of ``f_u`` (default ``"1"``),
     ``equation`` (``"mechanical"`` default, or ``"electrical"``), ``range = [lo, hi]`` of
     ``f_u`` for normalisation (default: derived from the signal ranges by interval
-    arithmetic). Parameter ``user:NAME.c`` in the target unit divided by ``unit``.
+    arithmetic), ``search = {PARAM: [lo, hi]}`` (or ``{PARAM: value}``, kept): one free
+    parameter of ``expr`` that the regression cannot estimate linearly, searched by the
+    diagnosis. Parameter ``user:NAME.c`` in the target unit divided by ``unit``.
     """
 
     NAME = "user"
@@ -869,7 +871,8 @@ def parse_effect(spec: str, options: Mapping[str, Any] | None = None) -> Effect:
     :param options: shared options, each effect reading those it uses: ``axis``
         (``"rotary"``/``"linear"``), ``pitch`` [m], ``band`` (Coulomb/Stribeck smoothing),
         ``speed`` (Stribeck speed), ``terms`` (``{NAME: {"expr": ..., "unit": ...,
-        "equation": ..., "range": [lo, hi]}}`` for user terms).
+        "equation": ..., "range": [lo, hi], "search": {PARAM: [lo, hi]}}}`` for user
+        terms).
     :raises EffectError: unknown effect (the message lists the valid names), missing or
         bad order, undefined user term, or an invalid option value.
     """
