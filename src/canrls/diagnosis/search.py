@@ -23,7 +23,7 @@ from canrls.diagnosis.results import SearchResult
 from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.estimation.model import DATA_OPTIONS, Equation, Model
 from canrls.estimation.pipeline import EstimatorSettings
-from canrls.estimation.search import RecordSpan, minimise_on_grid, record_span
+from canrls.estimation.nonlinear import RecordSpan, minimise_on_grid, record_span
 from canrls.processor import measure_noise
 from canrls.spill import PackedMask
 
@@ -98,7 +98,7 @@ class Gram:
 
 
 def _span(ctx: RecordSamples, used: PackedMask, model: Model) -> RecordSpan:
-    """What the compared rows cover (:func:`~canrls.estimation.search.record_span`), the
+    """What the compared rows cover (:func:`~canrls.estimation.nonlinear.record_span`), the
     speed noise measured on the record's first block."""
     parts = []
     for a in range(0, len(ctx.signals), BLOCK):

@@ -48,7 +48,7 @@ from canrls.ctext import check_text
 from canrls.effect_names import EffectId, EquationId, parse_effect_name
 from canrls.errors import EffectError
 from canrls.estimation.expr import CompiledExpression, compile_expression
-from canrls.estimation.search import RecordSpan, SearchSpace, log_grid
+from canrls.estimation.nonlinear import RecordSpan, SearchSpace, log_grid
 
 __all__ = [
     "Axis",
