@@ -22,8 +22,8 @@ import numpy.typing as npt
 from canrls.diagnosis.results import SearchResult
 from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.estimation.model import DATA_OPTIONS, Equation, Model
-from canrls.estimation.pipeline import EstimatorSettings
 from canrls.estimation.nonlinear import RecordSpan, minimise_on_grid, record_span
+from canrls.estimation.pipeline import EstimatorSettings
 from canrls.processor import measure_noise
 from canrls.spill import PackedMask
 
