@@ -19,13 +19,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.spill import PackedMask
 from canrls.diagnosis.results import SearchResult
 from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.estimation.model import DATA_OPTIONS, Equation, Model
 from canrls.estimation.nonlinear import RecordSpan, minimise_on_grid, record_span
 from canrls.estimation.pipeline import EstimatorSettings
 from canrls.processor import measure_noise
-from canrls.spill import PackedMask
 
 __all__ = ["Gram", "delta_bic", "search_parameters", "search_model"]
 
@@ -190,7 +190,7 @@ def search_model(paths: Sequence[str | os.PathLike[str]], protocol: Any, model: 
     candidate's (:func:`search_parameters`, the model's other
     columns with it, on the rows the pipeline uses): ``canrls fit``'s search. Returns
     the model with the values found (given from then on) and what was found."""
-    from canrls.replay import read_logs
+    from canrls.processor.replay import read_logs
 
     settings = settings or EstimatorSettings()
     if "stribeck" not in model.effect_names or "stribeck_speed" in model.options_given:
