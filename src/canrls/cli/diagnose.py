@@ -132,8 +132,10 @@ def run(args: argparse.Namespace) -> int:
             u = "m/s" if m.axis == "linear" else "rad/s"
             ms = settings.min_speed if settings.min_speed is not None else 5 * m.coulomb_band
             head.append(f"axis {m.axis}; values used: Coulomb band {m.coulomb_band:.4g} {u} "
-                        f"(minimum speed {ms:.4g} {u} with sign-dependent friction), "
-                        f"Stribeck speed {m.stribeck_speed:.4g} {u}"
+                        f"(minimum speed {ms:.4g} {u} with sign-dependent friction)"
+                        # a candidate's Stribeck speed is searched: the model's only if used
+                        + (f", Stribeck speed {m.stribeck_speed:.4g} {u}"
+                           if "stribeck" in m.effect_names else "")
                         + (f", pitch {m.pitch:.4g} m" if m.axis == "linear" else ""))
         sys.stdout.write("".join(h + "\n" for h in head) + rep.format() + "\n")
         if page is not None:
