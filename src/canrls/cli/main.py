@@ -33,6 +33,9 @@ log = logging.getLogger("canrls")
 #: Exit status of an unexpected (non-canrls) exception: distinct from 1 (an error in the
 #: input, a ``CanrlsError``), 2 (usage) and 130 (interrupted).
 INTERNAL_ERROR = 3
+#: Exit status when the reader of the output went away (``canrls ... | head -1``): that
+#: of a Unix tool ended by SIGPIPE, 128 + 13, without a word on stderr.
+READER_GONE = 141
 
 
 def named_command(argv: Sequence[str]) -> str | None:
@@ -56,7 +59,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
                     "least squares.",
         epilog="exit status: 0 done, 1 an error in the input (one 'error:' line), 2 usage, "
                "3 an internal error (one 'internal error:' line; --debug shows the "
-               "traceback), 130 interrupted",
+               "traceback), 130 interrupted, 141 the reader of the output went away "
+               "(as '| head')",
     )
     parser.add_argument("--version", action="version", version=f"canrls {__version__}")
     parser.add_argument("--debug", action="store_true",
@@ -80,7 +84,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status:
     0 done, 1 a :class:`CanrlsError` (one ``error:`` line), 2 usage, 3 an internal error
-    (one ``internal error:`` line), 130 interrupted. ``--debug`` shows the traceback."""
+    (one ``internal error:`` line), 130 interrupted, 141 the reader of stdout went away.
+    ``--debug`` shows the traceback."""
     if argv is None:
         # the process's own command: numpy's BLAS in one thread unless the environment
         # says otherwise (set before numpy loads): the matrices are a model's, small,
@@ -93,7 +98,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         early_signals.install()
     debug = "--debug" in given[:given.index("--")] if "--" in given else "--debug" in given
     try:
-        return _run(given, process=argv is None)
+        status = _run(given, process=argv is None)
+        if argv is None:
+            sys.stdout.flush()  # a reader gone (| head) shows here, not at the exit
+        return status
     except CanrlsError as e:
         if debug:
             raise
@@ -102,6 +110,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     except Exception as e:  # a bug of canrls, not of the input: never a silent 0
+        if isinstance(e, BrokenPipeError) and argv is None and _stdout_gone():
+            return _reader_gone()
         if debug:
             raise
         print(f"internal error: {type(e).__name__}: {_one_line(e)} (rerun with --debug "
@@ -126,6 +136,27 @@ def _run(given: list[str], process: bool) -> int:
         parser.print_help()
         return 2
     return int(args.func(args) or 0)
+
+
+def _stdout_gone() -> bool:
+    """Whether the reader of this process's stdout has closed its end (``| head``)."""
+    import select
+
+    try:
+        poll = select.poll()
+        poll.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & select.POLLERR for _, ev in poll.poll(0))
+    except (AttributeError, OSError, ValueError):
+        return False
+
+
+def _reader_gone() -> int:
+    """The exit when the reader of stdout went away: quiet, as a Unix tool killed by
+    SIGPIPE (128 + 13); stdout goes to /dev/null so that the exit's flush is silent."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return READER_GONE
 
 
 def _one_line(e: BaseException) -> str:
