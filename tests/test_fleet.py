@@ -337,7 +337,7 @@ def test_a_newer_history_is_refused(tmp_path: Path, capsys: pytest.CaptureFixtur
     con.close()
     assert main(["fleet", "report", "--db", str(db), "--json"]) == 1
     err = capsys.readouterr().err
-    assert err.startswith("error: history sqlite:///") and "'9999' is newer" in err
+    assert err.startswith(f"error: history {db}: ") and "'9999' is newer" in err
     assert err.count("\n") == 1
 
 

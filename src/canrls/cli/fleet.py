@@ -56,6 +56,8 @@ def _nonnegative(text: str) -> int:
 
 
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
+    from canrls.fleet.cluster import SCHEDULER_TIMEOUT, WORKERS_PER_CORE
+
     p = subparsers.add_parser(
         "fleet", help="many drives: ingest their logs into a parameter history, report wear",
         description="Ingest the logs of many drives into a parameter history (SQLite or "
@@ -73,7 +75,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     src = ing.add_argument_group("logs")
     src.add_argument("pattern", nargs="?", metavar="PATTERN",
                      help="logs with a {drive} (and optionally {type}) field, e.g. "
-                          "'logs/{drive}/*.log' (quote it)")
+                          "'logs/{drive}/*.log' (quote it; * ? [...] and ** as the shell's)")
     src.add_argument("--manifest", metavar="CSV",
                      help="a CSV with path,drive[,type,dbc,config,kt,effects,signals] "
                           "instead of a pattern")
@@ -83,11 +85,14 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     add_model_options(ing)
     d = ing.add_argument_group("Dask")
     d.add_argument("--workers", type=_nonnegative, default=None, metavar="N",
-                   help="worker processes of the local cluster (default: one per core; "
-                        "0: in this process, no Dask)")
+                   help=f"worker processes of the local cluster (default: one per core, "
+                        f"at most {WORKERS_PER_CORE} per core within the open-file limit; 0: "
+                        f"in this process, no Dask)")
     d.add_argument("--scheduler", metavar="ADDRESS",
-                   help="an existing Dask scheduler (tcp://HOST:PORT) instead of a local "
-                        "cluster; its workers must read the logs at the same paths")
+                   help=f"an existing Dask scheduler (tcp://HOST:PORT) instead of a local "
+                        f"cluster; it must answer and have a worker within "
+                        f"{SCHEDULER_TIMEOUT:g} s; its workers must read the logs at the "
+                        f"same paths")
     r = ing.add_argument_group("candidate ranking (the diagnosis)")
     r.add_argument("--rank", choices=("none", "auto", "all"), default="none",
                    help="rank the effects the model lacks: 'auto' for the recordings around "

@@ -9,7 +9,6 @@ and never answers, or answers something else, is named), and it must have a work
 
 from __future__ import annotations
 
-import asyncio
 import ipaddress
 import logging
 import os
@@ -117,6 +116,8 @@ def _probe(address: str, timeout: float) -> None:
 
     :raises ConfigError: no connection, no answer in time, or not a Dask scheduler's.
     """
+    import asyncio
+
     try:
         got = asyncio.run(asyncio.wait_for(_identity(address, timeout), timeout))
     except TimeoutError:
