@@ -36,6 +36,7 @@ from canrls.fleet.ingest import JobConfig, ingest  # noqa: E402
 from canrls.fleet.records import ParameterValue, Recording  # noqa: E402
 from canrls.fleet.sources import MAX_CELL, from_manifest, from_pattern  # noqa: E402
 from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
+from postgres import postgres_server  # noqa: E402
 
 CONFIG = JobConfig(effects=FLEET_EFFECTS, kt=FLEET_KT)
 MODEL_ARGS = ["--effects", FLEET_EFFECTS, "--kt", str(FLEET_KT), "--quiet"]
@@ -524,3 +525,45 @@ def test_a_reader_that_goes_away_ends_the_command_quietly(tmp_path: Path) -> Non
     finally:
         os.close(w)
     assert got.stderr == "" and got.returncode == 141
+
+
+def _open_at_once(url: str, barrier: Any, q: Any) -> None:
+    try:
+        barrier.wait(BOUND)
+        with History.open(url) as h:
+            h.store([_recording(k) for k in range(3)])
+        q.put("")
+    except BaseException as e:  # the parent reports it
+        q.put(f"{type(e).__name__}: {e}")
+
+
+def test_concurrent_creators_of_a_postgresql_history_all_succeed() -> None:
+    """The PostgreSQL side of the schema's lock (an advisory lock): four processes
+    opening a new database at once, 5 rounds, each storing the same three recordings:
+    all succeed, each recording once. (The code before passed this too, by a retry
+    after the failed creation; this holds the lock that replaced the retry.)"""
+    import sqlalchemy as sa
+
+    ctx = multiprocessing.get_context("fork")
+    with postgres_server() as pg:
+        admin = sa.create_engine(pg, isolation_level="AUTOCOMMIT")
+        try:
+            failures = []
+            for rnd in range(5):
+                with admin.connect() as c:
+                    c.exec_driver_sql(f"CREATE DATABASE round{rnd}")
+                url = pg.replace("/canrls?", f"/round{rnd}?")
+                barrier, q = ctx.Barrier(4), ctx.Queue()
+                procs = [ctx.Process(target=_open_at_once, args=(url, barrier, q))
+                         for _ in range(4)]
+                for p in procs:
+                    p.start()
+                failures += [f"round {rnd}: {m}" for m in
+                             (q.get(timeout=BOUND) for _ in procs) if m]
+                for p in procs:
+                    p.join(BOUND)
+                with History.open(url) as h:
+                    assert h.count() == 3
+        finally:
+            admin.dispose()
+    assert not failures, failures
