@@ -324,7 +324,7 @@ def test_one_log_under_two_drives_is_stored_once_under_the_first_listed(
             ("d2", "a.log"), ("d2", "b.log")]
     with History.open(tmp_path / "h3.db") as h:
         lines = ingest(from_manifest(m), CONFIG, h).format().splitlines()
-    assert "2 listed twice" in lines[0] and "stored meanwhile" not in lines[0]
+    assert "2 duplicates" in lines[0] and "stored meanwhile" not in lines[0]
     assert lines[1:3] == [
         f"  duplicate: {tmp_path / 'a.log'} (listed for drive d1) is the same log as "
         f"{tmp_path / 'a.log'}: stored once, under drive d2",

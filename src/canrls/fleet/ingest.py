@@ -311,7 +311,7 @@ class IngestSummary:
         rate = self.total / self.elapsed_s * 60.0 if self.elapsed_s > 0 else math.nan
         lines = [f"{self.total} logs: {self.stored} stored, {self.skipped} already in the "
                  f"history, {self.errors} errors"
-                 + (f", {len(self.duplicates)} listed twice" if self.duplicates else "")
+                 + (f", {len(self.duplicates)} duplicates" if self.duplicates else "")
                  + (f", {self.already} stored meanwhile by another run" if self.already else "")
                  + (f", {len(self.failed)} not finished (rerun to take them)"
                     if self.failed else "")
