@@ -55,9 +55,10 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canrls.core.errors import EstimatorError
     from canrls.diagnosis.analysis import diagnose_log
-    from canrls.errors import EstimatorError
-    from canrls.replay import prepare, too_few_samples
+    from canrls.processor.config import prepare
+    from canrls.processor.replay import too_few_samples
 
     if args.report:
         # fail before the long part when the figures cannot be drawn
@@ -76,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     page = rep.write_html(args.report) if args.report else None
     saved = None
     if args.save_model:
-        from canrls.modelfile import SavedModel
+        from canrls.processor.modelfile import SavedModel
 
         final = rep.after if rep.after is not None else rep.before
         saved = SavedModel.from_parts(final.model, final.estimates, None, cfg,

@@ -36,7 +36,7 @@ from canrls.cli._common import (
     overrides,
     print_json,
 )
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates"]
 

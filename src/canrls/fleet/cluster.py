@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["dask_client", "require_dask", "scheduler_address", "max_workers",
            "local_workers", "SCHEDULER_TIMEOUT", "WORKERS_PER_CORE", "FILES_PER_WORKER"]

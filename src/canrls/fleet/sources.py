@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["LogSource", "from_pattern", "from_manifest", "MANIFEST_FIELDS"]
 
