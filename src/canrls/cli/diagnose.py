@@ -16,6 +16,7 @@ from typing import Any
 from canrls.cli._common import (
     Progress,
     add_log_arguments,
+    add_max_order_option,
     add_model_options,
     add_progress_option,
     add_report_option,
@@ -26,21 +27,7 @@ from canrls.cli._common import (
 __all__ = ["add_subparser", "run"]
 
 
-def _order(text: str) -> int:
-    from canrls.diagnosis.candidates import MAX_ORDER_LIMIT
-
-    try:
-        k = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if not 1 <= k <= MAX_ORDER_LIMIT:
-        raise argparse.ArgumentTypeError(f"{text!r} must be in 1..{MAX_ORDER_LIMIT}")
-    return k
-
-
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
-    from canrls.diagnosis.candidates import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT
-
     p = subparsers.add_parser(
         "diagnose", help="compare the model with a log: where it fails, which effect is missing",
         description="Replay a CAN log as 'canrls fit' does, compare the model with the "
@@ -62,9 +49,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     g.add_argument("--save-model", metavar="FILE",
                    help="write the model (after --add, if any) with its parameters as JSON "
                         "for 'canrls validate' (as 'canrls fit --save-model')")
-    g.add_argument("--max-order", type=_order, default=DEFAULT_MAX_ORDER, metavar="K",
-                   help=f"highest cogging order searched (default {DEFAULT_MAX_ORDER}, at most "
-                        f"{MAX_ORDER_LIMIT})")
+    add_max_order_option(g, "searched")
     p.set_defaults(func=run)
     return p
 
