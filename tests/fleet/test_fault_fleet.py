@@ -11,6 +11,7 @@ import json
 import multiprocessing
 import os
 import shutil
+import signal
 import socket
 import sqlite3
 import subprocess
@@ -32,6 +33,7 @@ from postgres import postgres_server  # noqa: E402
 from canrls.cli.main import main  # noqa: E402
 from canrls.core.errors import ConfigError  # noqa: E402
 from canrls.fleet import cluster  # noqa: E402
+from canrls.fleet import ingest as ingest_module  # noqa: E402
 from canrls.fleet.cluster import dask_client, max_workers  # noqa: E402
 from canrls.fleet.history import NOT_A_HISTORY, History, redact  # noqa: E402
 from canrls.fleet.ingest import JobConfig, ingest  # noqa: E402
@@ -39,6 +41,7 @@ from canrls.fleet.records import ParameterValue, Recording  # noqa: E402
 from canrls.fleet.sources import MAX_CELL, from_manifest, from_pattern  # noqa: E402
 from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
 
+_STORE_ADD = ingest_module._Store.add
 CONFIG = JobConfig(effects=FLEET_EFFECTS, kt=FLEET_KT)
 MODEL_ARGS = ["--effects", FLEET_EFFECTS, "--kt", str(FLEET_KT), "--quiet"]
 #: the bound of every wait in these tests [s]: far beyond the 1 s timeouts they set
@@ -104,13 +107,13 @@ def silent_server() -> Iterator[_Server]:
     s.close()
 
 
-def _bounded_main(argv: list[str]) -> int:
-    """``main(argv)`` in a thread, failing the test if it has not returned in BOUND s."""
+def _bounded_main(argv: list[str], bound: float = BOUND) -> int:
+    """``main(argv)`` in a thread, failing the test if it has not returned in ``bound`` s."""
     out: list[int] = []
     t = threading.Thread(target=lambda: out.append(main(argv)), daemon=True)
     t.start()
-    t.join(BOUND)
-    assert not t.is_alive(), f"canrls {' '.join(argv)} still waiting after {BOUND:g} s"
+    t.join(bound)
+    assert not t.is_alive(), f"canrls {' '.join(argv)} still waiting after {bound:g} s"
     return out[0]
 
 
@@ -174,6 +177,137 @@ def test_a_scheduler_without_workers_is_named_within_the_timeout(idle_scheduler:
         with dask_client(idle_scheduler, timeout=1.0):
             pass
     assert time.monotonic() - t0 < 20
+
+
+class _RemoteCluster:
+    """A Dask scheduler and one worker (without a nanny: the worker is the process) in
+    subprocesses on 127.0.0.1, each of which a test may freeze (SIGSTOP)."""
+
+    def __init__(self, root: Path) -> None:
+        info = root / "scheduler.json"
+        quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "cwd": root}
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.scheduler = self._start([
+            "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
+            "--no-dashboard", "--scheduler-file", str(info)], quiet)
+        end = time.monotonic() + BOUND
+        while not info.is_file() or not info.read_text().strip().endswith("}"):
+            assert time.monotonic() < end and self.scheduler.poll() is None, "no scheduler"
+            time.sleep(0.1)
+        self.address: str = json.loads(info.read_text())["address"]
+        self.worker = self._start([
+            "distributed.cli.dask_worker", self.address, "--no-nanny", "--nthreads", "1",
+            "--host", "127.0.0.1", "--no-dashboard"], quiet)
+
+    def _start(self, argv: list[str], kw: dict[str, Any]) -> subprocess.Popen[bytes]:
+        self.procs.append(subprocess.Popen([sys.executable, "-m", *argv], **kw))
+        return self.procs[-1]
+
+    def close(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                os.kill(p.pid, signal.SIGCONT)
+                p.kill()
+            p.wait(BOUND)
+
+
+@pytest.fixture
+def remote_cluster(tmp_path: Path) -> Iterator[_RemoteCluster]:
+    (tmp_path / "cluster").mkdir()
+    c = _RemoteCluster(tmp_path / "cluster")
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+@pytest.fixture(scope="module")
+def eight_logs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Eight simulated logs of one drive, 3 s each (seed 8), under ``DIR/d1/``."""
+    root = tmp_path_factory.mktemp("eight")
+    plan = make_fleet(1, 8, 3.0, seed=8)
+    d = plan.drives[0]
+    (root / "d1").mkdir()
+    for k, r in enumerate(d.recordings):
+        write_recording(root / "d1" / f"r{k + 1}.log", d, r, 3.0)
+    return root
+
+
+def test_a_scheduler_that_freezes_after_its_identity_is_named_within_the_timeout(
+        tmp_path: Path, remote_cluster: _RemoteCluster, eight_logs: Path,
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    probe = cluster._probe
+
+    def probe_then_freeze(address: str, timeout: float) -> None:
+        probe(address, timeout)
+        os.kill(remote_cluster.scheduler.pid, signal.SIGSTOP)
+
+    monkeypatch.setattr(cluster, "_probe", probe_then_freeze)
+    monkeypatch.setattr(cluster, "SCHEDULER_TIMEOUT", 1.0)
+    t0 = time.monotonic()
+    rc = _bounded_main(["fleet", "ingest", str(eight_logs / "{drive}" / "*.log"), "--db",
+                        str(tmp_path / "h.db"), "--scheduler", remote_cluster.address,
+                        *MODEL_ARGS], bound=30.0)
+    err = capsys.readouterr().err
+    assert rc == 1 and time.monotonic() - t0 < 20
+    assert err == (f"error: --scheduler {remote_cluster.address}: no handshake within 1 s "
+                   f"(a scheduler that answered, then stopped)\n")
+
+
+def _freeze_after_first_store(monkeypatch: pytest.MonkeyPatch, pid: int) -> None:
+    """SIGSTOP process ``pid`` as the ingest stores its first result."""
+    add = ingest_module._Store.add
+
+    def add_then_freeze(self: Any, rec: Recording) -> None:
+        add(self, rec)
+        os.kill(pid, signal.SIGSTOP)  # again for a result that was on its way: harmless
+
+    monkeypatch.setattr(ingest_module._Store, "add", add_then_freeze)
+
+
+def _stored(db: Path) -> int:
+    with History.open(str(db)) as h:
+        return len(h.recordings())
+
+
+@pytest.mark.parametrize("frozen", ["worker", "scheduler"])
+def test_a_cluster_that_freezes_mid_ingest_ends_naming_it_and_keeps_each_stored_log(
+        tmp_path: Path, remote_cluster: _RemoteCluster, eight_logs: Path, frozen: str,
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    proc = getattr(remote_cluster, frozen)
+    _freeze_after_first_store(monkeypatch, proc.pid)
+    monkeypatch.setattr(cluster, "SCHEDULER_TIMEOUT", 2.0)
+    monkeypatch.setattr(cluster, "STALL_TIMEOUT", 2.0)
+    db = tmp_path / "h.db"
+    argv = ["fleet", "ingest", str(eight_logs / "{drive}" / "*.log"), "--db", str(db),
+            "--scheduler", remote_cluster.address, *MODEL_ARGS]
+    t0 = time.monotonic()
+    rc = _bounded_main(argv, bound=60.0)
+    err = capsys.readouterr().err
+    assert rc == 1 and time.monotonic() - t0 < 45, err
+    n = _stored(db)
+    assert 1 <= n < 8
+    assert err == (f"error: the Dask scheduler at {remote_cluster.address}: no result within "
+                   f"2 s (it or its workers stopped answering); {n} of the 8 logs to fit "
+                   f"stored, each kept: run again for the rest\n")
+    # thawed, a rerun stores the rest, each once
+    os.kill(proc.pid, signal.SIGCONT)
+    monkeypatch.setattr(ingest_module._Store, "add", _STORE_ADD)
+    assert _bounded_main([*argv, "--json"], bound=60.0) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert (got["stored"], got["skipped"]) == (8 - n, n)
+    assert _stored(db) == 8
+
+
+def test_the_stall_limit_is_a_flag(tmp_path: Path, remote_cluster: _RemoteCluster,
+                                   eight_logs: Path, monkeypatch: pytest.MonkeyPatch,
+                                   capsys: pytest.CaptureFixture[str]) -> None:
+    _freeze_after_first_store(monkeypatch, remote_cluster.worker.pid)
+    rc = _bounded_main(["fleet", "ingest", str(eight_logs / "{drive}" / "*.log"), "--db",
+                        str(tmp_path / "h.db"), "--scheduler", remote_cluster.address,
+                        "--stall-timeout", "1.5", *MODEL_ARGS], bound=60.0)
+    err = capsys.readouterr().err
+    assert rc == 1 and ": no result within 1.5 s (" in err and err.count("\n") == 1
 
 
 # ------------------------------------------------------------------ workers
