@@ -6,6 +6,7 @@ directory, every wait bounded."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import multiprocessing
@@ -31,7 +32,7 @@ pytest.importorskip("alembic")
 from postgres import postgres_server  # noqa: E402
 
 from canrls.cli.main import main  # noqa: E402
-from canrls.core.errors import ConfigError  # noqa: E402
+from canrls.core.errors import ConfigError, StallError  # noqa: E402
 from canrls.fleet import cluster  # noqa: E402
 from canrls.fleet import ingest as ingest_module  # noqa: E402
 from canrls.fleet.cluster import dask_client, max_workers  # noqa: E402
@@ -308,6 +309,45 @@ def test_the_stall_limit_is_a_flag(tmp_path: Path, remote_cluster: _RemoteCluste
                         "--stall-timeout", "1.5", *MODEL_ARGS], bound=60.0)
     err = capsys.readouterr().err
     assert rc == 1 and ": no result within 1.5 s (" in err and err.count("\n") == 1
+
+
+@pytest.fixture(scope="module")
+def dask_offload_thread() -> None:
+    """Dask's one process-wide offload thread, started before the test that first uses it
+    (closing a cluster whose worker is frozen does): it never ends, and is no leak."""
+    from distributed.utils import _offload_executor
+
+    _offload_executor.submit(int).result()
+
+
+def test_a_local_worker_that_freezes_ends_the_ingest_and_its_cluster(
+        tmp_path: Path, eight_logs: Path, monkeypatch: pytest.MonkeyPatch,
+        dask_offload_thread: None) -> None:
+    raised: list[BaseException] = []
+    pids: list[int] = []
+
+    def run() -> None:
+        try:
+            with dask_client(None, 1) as client, History.open(str(tmp_path / "h.db")) as h:
+                pids.extend(client.run(os.getpid).values())
+                _freeze_after_first_store(monkeypatch, pids[0])
+                ingest(from_pattern(str(eight_logs / "{drive}" / "*.log")), CONFIG, h,
+                       client=client, stall_timeout=2.0)
+        except BaseException as e:
+            raised.append(e)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(BOUND)
+    try:
+        assert not t.is_alive(), f"the ingest on a local cluster still waiting after {BOUND:g} s"
+        assert len(raised) == 1 and isinstance(raised[0], StallError), raised
+        n = _stored(tmp_path / "h.db")
+        assert 1 <= n < 8 and f"; {n} of the 8 logs to fit stored" in str(raised[0])
+    finally:
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
 
 
 # ------------------------------------------------------------------ workers
