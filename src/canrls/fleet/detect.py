@@ -44,7 +44,10 @@ MIN_SIBLINGS = 5
 MIN_PAIRS = 40
 #: how many of a drive's own successive pairs its type's scatter weighs like: a drive
 #: with few recordings takes its type's, one with many mostly its own
-PRIOR_PAIRS = 8
+PRIOR_PAIRS = 16
+#: the share of a drive's own standardised differences whose mean estimates its scatter
+#: (the largest left out: a step)
+OWN_KEEP = 0.8
 #: the series name of the residual RMS
 RESIDUAL = "residual_rms"
 #: the least change that matters, relative, per effect (positive parameters) and for the
@@ -89,6 +92,17 @@ def _chi2_1_quantile(q: float) -> float:
 def _phi_tail(z: float) -> float:
     """2 Phi(-|z|)."""
     return math.erfc(abs(z) / math.sqrt(2.0))
+
+
+def _t_tail(t: float, dof: float) -> float:
+    r"""2 P(T > |t|) of a Student t with ``dof`` degrees of freedom, through Wallace's
+    normal equivalent :math:`z = \sqrt{\nu \ln(1 + t^2/\nu)}\,(8\nu + 1)/(8\nu + 3)`
+    (a z whose scale is itself estimated from few pairs has heavier tails)."""
+    if not math.isfinite(dof):
+        return _phi_tail(t)
+    # z = sqrt(nu ln(1 + t^2 / nu)) (8 nu + 1) / (8 nu + 3)
+    z = math.sqrt(dof * math.log1p(t * t / dof)) * (8 * dof + 1) / (8 * dof + 3)
+    return _phi_tail(z)
 
 
 def when(t: float) -> str | None:
@@ -448,6 +462,38 @@ def estimate_tau(pairs: Sequence[tuple[float, float]], quantile: float = TAU_QUA
     return math.sqrt(tau2) if tau2 > 0 else 0.0
 
 
+def _own_tau(pairs: Sequence[tuple[float, float]]) -> float:
+    r"""A drive's own scatter :math:`\tau` from its few pairs: the mean of the smallest
+    :data:`OWN_KEEP` of the standardised squared differences
+    :math:`d_k^2 / (s_k^2 + s_{k+1}^2 + 2\tau^2)` matched to that of a chi-square with
+    one degree of freedom below the same quantile (the largest, a step, left out; more
+    efficient than the median on nine pairs)."""
+    if not pairs:
+        return 0.0
+    d2 = np.array([p[0] for p in pairs])
+    v = np.array([p[1] for p in pairs])
+    k = max(1, math.floor(OWN_KEEP * len(d2) + 1e-9))
+    q = _chi2_1_quantile(k / len(d2))
+    # E[X | X < q] of X ~ chi2_1 = P(chi2_3 < q) / P(chi2_1 < q)
+    target = (math.erf(math.sqrt(q / 2)) - math.sqrt(2 * q / math.pi) * math.exp(-q / 2)) \
+        / (k / len(d2))
+
+    def trimmed(tau: float) -> float:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(v + 2 * tau * tau > 0, d2 / (v + 2 * tau * tau), np.inf)
+        return float(np.mean(np.sort(z)[:k]))
+
+    if trimmed(0.0) <= target:
+        return 0.0
+    lo, hi = 0.0, max(1e-12, math.sqrt(float(np.max(d2))))
+    while trimmed(hi) > target:
+        hi *= 2.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if trimmed(mid) > target else (lo, mid)
+    return hi
+
+
 def _shrunk(own: float, own_pairs: int, prior: float, prior_pairs: int) -> float:
     r"""A drive's scatter, shrunk toward its type's:
     :math:`\tau_d^2 = (m \hat\tau_d^2 + m_0 \tau_{type}^2) / (m + m_0)`."""
@@ -466,6 +512,16 @@ class _Found:
     at: int
     before: float
     after: float
+
+
+@dataclass(frozen=True)
+class _Scale:
+    """A drive's normal scatter of one series: tau, its usual week-to-week change, and
+    the degrees of freedom tau rests on (its own pairs and its type's weight)."""
+
+    tau: float
+    usual: float
+    dof: float
 
 
 def _weighted_mean(y: F64, w: F64) -> tuple[float, float]:
@@ -595,18 +651,17 @@ def _usual(se: Series, keep: npt.NDArray[np.intp], tau: float) -> float:
 
 
 def _drive_alerts(drive: str, recs: Sequence[Recording], series: Mapping[str, Series],
-                  taus: Mapping[str, float], usual_of: Mapping[str, float],
-                  cfg: DetectionSettings) -> tuple[list[Alert], float]:
+                  scale: Mapping[str, _Scale], cfg: DetectionSettings
+                  ) -> tuple[list[Alert], float]:
     """A drive's alerts: per series the most significant change or drift that is large
     enough to matter, when it is unlikely for a healthy drive (Bonferroni over every
     test of the drive)."""
-    found = {name: _tests(se, taus.get(name, 0.0)) for name, se in series.items()}
+    found = {name: _tests(se, scale[name].tau) for name, se in series.items()}
     total = sum(len(fs) for fs in found.values())
     max_z = max((abs(f.z) for fs in found.values() for f in fs), default=0.0)
     alerts = []
     for name, fs in found.items():
-        se, tau = series[name], taus.get(name, 0.0)
-        usual = usual_of[name]
+        se, tau, usual = series[name], scale[name].tau, scale[name].usual
         least = cfg.least_change(name)
         best: tuple[_Found, float, float] | None = None
         for f in fs:
@@ -621,7 +676,7 @@ def _drive_alerts(drive: str, recs: Sequence[Recording], series: Mapping[str, Se
         if best is None:
             continue
         f, rel, times = best
-        p = min(1.0, _phi_tail(f.z) * total)
+        p = min(1.0, _t_tail(f.z, scale[name].dof) * total)
         if p < cfg.alpha:
             alerts.append(_alert(drive, recs, se, f, p, tau, rel, times))
     return alerts, max_z
@@ -684,13 +739,11 @@ def _level(se: Series, tau: float, upto: int | None) -> tuple[float, float]:
 # ---------------------------------------------------------------------------- the fleet
 def _scatter(names: Sequence[str], ser: Mapping[str, Mapping[str, Series]],
              types: Mapping[str, str], cfg: DetectionSettings
-             ) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, float]],
-                        dict[str, Baseline]]:
+             ) -> tuple[dict[str, dict[str, _Scale]], dict[str, Baseline]]:
     """Each drive's normal week-to-week scatter tau per series (its own, shrunk toward
     its type's) and its usual week-to-week change; the fleet's and types' tau (the
     baselines)."""
-    taus: dict[str, dict[str, float]] = {d: {} for d in ser}
-    usual: dict[str, dict[str, float]] = {d: {} for d in ser}
+    scales: dict[str, dict[str, _Scale]] = {d: {} for d in ser}
     baselines: dict[str, Baseline] = {}
     for n in names:
         has = [d for d in ser if n in ser[d]]
@@ -716,10 +769,10 @@ def _scatter(names: Sequence[str], ser: Mapping[str, Mapping[str, Series]],
             if len(by_type) > 1:
                 baselines[f"{n}@{ty}"] = Baseline(n, per_type[ty], log, len(ps))
         for d, ps in own.items():
-            taus[d][n] = _shrunk(estimate_tau(ps), len(ps), per_type[types[d]],
-                                 cfg.prior_pairs)
-            usual[d][n] = _usual(ser[d][n], keep[d], taus[d][n])
-    return taus, usual, baselines
+            tau = _shrunk(_own_tau(ps), len(ps), per_type[types[d]], cfg.prior_pairs)
+            scales[d][n] = _Scale(tau, _usual(ser[d][n], keep[d], tau),
+                                  OWN_KEEP * len(ps) + cfg.prior_pairs)
+    return scales, baselines
 
 
 def _outliers(names: Sequence[str], per_drive: Mapping[str, Sequence[Recording]],
@@ -851,8 +904,9 @@ def assess(recordings: Iterable[Recording], *, alpha: float | None = None,
                 if se is not None:
                     ser[d][n] = se
         types = {d: lst[0].drive_type for d, lst in per_drive.items()}
-        taus, usual, baselines[key] = _scatter(names, ser, types, cfg)
-        assessed = {d: _drive_alerts(d, lst, ser[d], taus[d], usual[d], cfg)
+        scales, baselines[key] = _scatter(names, ser, types, cfg)
+        taus = {d: {n: sc.tau for n, sc in per.items()} for d, per in scales.items()}
+        assessed = {d: _drive_alerts(d, lst, ser[d], scales[d], cfg)
                     for d, lst in per_drive.items()}
         spread[key] = _outliers(names, per_drive, ser, types, taus, assessed, cfg)
         for d, lst in per_drive.items():
