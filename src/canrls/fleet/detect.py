@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import functools
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -76,6 +77,7 @@ STALE_INTERVALS = 3.0
 _EPOCH = (1e8, 1e11)
 
 
+@functools.lru_cache(maxsize=64)
 def _chi2_1_quantile(q: float) -> float:
     """The quantile ``q`` of a chi-square with one degree of freedom (bisection on erf)."""
     lo, hi = 0.0, 100.0
@@ -470,8 +472,8 @@ def _own_tau(pairs: Sequence[tuple[float, float]]) -> float:
     efficient than the median on nine pairs)."""
     if not pairs:
         return 0.0
-    d2 = np.array([p[0] for p in pairs])
-    v = np.array([p[1] for p in pairs])
+    d2 = [p[0] for p in pairs]
+    v = [p[1] for p in pairs]
     k = max(1, math.floor(OWN_KEEP * len(d2) + 1e-9))
     q = _chi2_1_quantile(k / len(d2))
     # E[X | X < q] of X ~ chi2_1 = P(chi2_3 < q) / P(chi2_1 < q)
@@ -479,16 +481,18 @@ def _own_tau(pairs: Sequence[tuple[float, float]]) -> float:
         / (k / len(d2))
 
     def trimmed(tau: float) -> float:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.where(v + 2 * tau * tau > 0, d2 / (v + 2 * tau * tau), np.inf)
-        return float(np.mean(np.sort(z)[:k]))
+        # a few pairs: plain Python is faster than numpy here
+        t2 = 2 * tau * tau
+        z = sorted(a / (b + t2) if b + t2 > 0 else math.inf for a, b in zip(d2, v,
+                                                                           strict=True))
+        return sum(z[:k]) / k
 
     if trimmed(0.0) <= target:
         return 0.0
-    lo, hi = 0.0, max(1e-12, math.sqrt(float(np.max(d2))))
+    lo, hi = 0.0, max(1e-12, math.sqrt(max(d2)))
     while trimmed(hi) > target:
         hi *= 2.0
-    for _ in range(60):
+    for _ in range(50):
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if trimmed(mid) > target else (lo, mid)
     return hi
@@ -832,8 +836,8 @@ def _outliers(names: Sequence[str], per_drive: Mapping[str, Sequence[Recording]]
     return spread
 
 
-def _notes(lst: Sequence[Recording], models: int, latest: float, interval: float
-           ) -> tuple[str, ...]:
+def _notes(lst: Sequence[Recording], models: int, earliest: float, latest: float,
+           interval: float) -> tuple[str, ...]:
     """What the bookkeeping says about a drive's recordings of one model."""
     out = []
     n = len(lst)
@@ -854,11 +858,14 @@ def _notes(lst: Sequence[Recording], models: int, latest: float, interval: float
     if ids != sorted(ids):
         out.append("recordings stored out of time order: assessed in the order of their "
                    "start times")
-    last = max(times) if times else math.nan
-    if (math.isfinite(interval) and interval > 0 and when(last) is not None
-            and latest - last > STALE_INTERVALS * interval):
-        out.append(f"no recording since {when(last)} (the fleet's latest: {when(latest)}): "
-                   f"renamed in the manifest, or out of service?")
+    if times and math.isfinite(interval) and interval > 0 and when(times[0]) is not None:
+        first, last = min(times), max(times)
+        if first - earliest > STALE_INTERVALS * interval:
+            out.append(f"recorded since {when(first)} only (the fleet since "
+                       f"{when(earliest)}): a new drive, or one renamed in the manifest?")
+        if latest - last > STALE_INTERVALS * interval:
+            out.append(f"no recording since {when(last)} (the fleet's latest: "
+                       f"{when(latest)}): renamed in the manifest, or out of service?")
     return tuple(out)
 
 
@@ -891,7 +898,7 @@ def assess(recordings: Iterable[Recording], *, alpha: float | None = None,
     for key, per_drive in by_model.items():
         for lst in per_drive.values():
             lst.sort(key=lambda r: (_time(r), r.id or 0))
-        latest, interval = _cadence(per_drive)
+        earliest, latest, interval = _cadence(per_drive)
         names = sorted({p.name for lst in per_drive.values() for r in lst
                         for p in r.parameters}) + [RESIDUAL]
         # positive by physics: in logs; a value <= 0 of such a parameter (impossible
@@ -915,7 +922,7 @@ def assess(recordings: Iterable[Recording], *, alpha: float | None = None,
                 drive=d, drive_type=types[d], model_key=key, model=lst[0].model,
                 recordings=len(lst), errors=errors.get((key, d), 0), alerts=_ordered(al),
                 series=ser[d], max_z=max_z, scatter=taus[d],
-                notes=_notes(lst, models_of[d], latest, interval)))
+                notes=_notes(lst, models_of[d], earliest, latest, interval)))
     for (key, d), n_err in errors.items():
         if key not in by_model or d not in by_model[key]:
             drives.append(DriveAssessment(
@@ -926,15 +933,16 @@ def assess(recordings: Iterable[Recording], *, alpha: float | None = None,
                            alpha=cfg.alpha, settings=cfg)
 
 
-def _cadence(per_drive: Mapping[str, Sequence[Recording]]) -> tuple[float, float]:
-    """The latest start time of a model's recordings and the drives' median interval."""
-    gaps, latest = [], -math.inf
+def _cadence(per_drive: Mapping[str, Sequence[Recording]]) -> tuple[float, float, float]:
+    """The earliest and latest start time of a model's recordings and the drives'
+    median interval between two."""
+    gaps, earliest, latest = [], math.inf, -math.inf
     for lst in per_drive.values():
         t = sorted({_time(r) for r in lst})
         if t:
-            latest = max(latest, t[-1])
+            earliest, latest = min(earliest, t[0]), max(latest, t[-1])
         gaps += [b - a for a, b in zip(t, t[1:], strict=False)]
-    return latest, float(np.median(gaps)) if gaps else math.nan
+    return earliest, latest, float(np.median(gaps)) if gaps else math.nan
 
 
 def to_rank(fleet: FleetAssessment, around: int = 2) -> list[tuple[int, str]]:
