@@ -213,3 +213,54 @@ def test_changes_are_named_in_the_words_of_the_effect_library() -> None:
     assert set(CHANGES) >= {"coulomb.Tc", "inertia.J", "viscous.B"}
     assert math.isfinite(detect._t_tail(4.0, 20.0)) and \
         detect._t_tail(4.0, 20.0) > detect._phi_tail(4.0)
+
+
+# ------------------------------------------------------------------ real fits
+def test_wear_and_weather_on_real_fits(tmp_path: Path) -> None:
+    """The same conclusion on estimates of the real pipeline: 8 simulated drives x 8
+    weekly logs (``canrls.sim.fleet``: friction jittering ±3 % / ±2 % a week), each
+    log with its own excitation (standard, steps, prbs, chirp) and length (5 or 10 s),
+    fitted through ``canrls.fleet.ingest`` into a SQLite history: the drive whose load
+    changes (inertia x1.3) and the drive whose Coulomb friction rises 8 % a week are
+    alerted with that parameter, no healthy drive is."""
+    pytest.importorskip("sqlalchemy")
+    pytest.importorskip("alembic")
+    import numpy as np
+
+    from canrls.fleet.history import History
+    from canrls.fleet.ingest import JobConfig, ingest
+    from canrls.fleet.sources import LogSource
+    from canrls.sim.excitation import excitation
+    from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
+
+    rng = np.random.default_rng(33)
+    plan = make_fleet(8, 8, 5.0, seed=33)
+    healthy = [d for d in plan.drives if d.cls == "healthy"]
+    assert len(healthy) >= 8 - 2
+    load, wear = healthy[0], healthy[1]
+    sources = []
+    for d in healthy:
+        (tmp_path / d.name).mkdir()
+        for k, r in enumerate(d.recordings):
+            p = dict(r.params)
+            if d is load and k >= 4:
+                p["inertia.J"] *= 1.3
+            if d is wear and k >= 2:
+                p["coulomb.Tc"] *= 1.0 + 0.08 * (k - 1)
+            rec = dataclasses.replace(r, params=p)
+            prof = excitation(str(rng.choice(["standard", "steps", "prbs", "chirp"])),
+                              seed=r.seed)
+            path = tmp_path / d.name / f"{k + 1:02d}.log"
+            write_recording(path, d, rec, float(rng.choice([5.0, 10.0])), profile=prof)
+            sources.append(LogSource(str(path), d.name, d.type))
+    with History.open(tmp_path / "fleet.db") as h:
+        summary = ingest(sources, JobConfig(effects=FLEET_EFFECTS, kt=FLEET_KT), h)
+        recs = h.recordings()
+    assert summary.errors == 0 and summary.stored == len(sources)
+    fa = assess(recs)
+    alerted = {d.drive: d.headline for d in fa.drives if d.headline is not None}
+    print("\n" + "\n".join(f"{d}: {a.message}" for d, a in alerted.items()))
+    assert alerted[load.name].series == "inertia.J" and alerted[load.name].relative > 0.2
+    assert alerted[wear.name].series == "coulomb.Tc" and alerted[wear.name].relative > 0.2
+    assert set(alerted) == {load.name, wear.name}
+    assert detect.when(alerted[load.name].since) in alerted[load.name].message
