@@ -264,3 +264,37 @@ def test_wear_and_weather_on_real_fits(tmp_path: Path) -> None:
     assert alerted[wear.name].series == "coulomb.Tc" and alerted[wear.name].relative > 0.2
     assert set(alerted) == {load.name, wear.name}
     assert detect.when(alerted[load.name].since) in alerted[load.name].message
+
+
+# ------------------------------------------------------------------ the command line
+def test_report_reads_fleet_settings_and_refuses_a_bad_one(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``canrls fleet report --config`` takes what counts as an alert from ``[fleet]``;
+    a bad key is one ``error:`` line naming the file and the key, exit 1."""
+    pytest.importorskip("sqlalchemy")
+    pytest.importorskip("alembic")
+    import json
+
+    from canrls.cli.main import main
+    from canrls.fleet.history import History
+
+    f = simulated_fleet(SEEDS[0], 0.02)
+    db = tmp_path / "fleet.db"
+    with History.open(db) as h:
+        h.store(dataclasses.replace(r, id=None) for r in f.recordings)
+    assert main(["fleet", "report", "--db", str(db), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    first = out["drives"][0]["alerts"][0]
+    assert first["since_date"] and first["check"] and out["settings"]["min_change"]["coulomb"]
+    alerted = {d["drive"] for d in out["drives"] if d["alerts"]}
+    assert alerted == set(f.changing)
+    cfg = tmp_path / "plant.toml"
+    cfg.write_text("[fleet]\nmin_times_usual = 1e6\n")
+    assert main(["fleet", "report", "--db", str(db), "--json", "--config", str(cfg)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {a["kind"] for d in out["drives"] for a in d["alerts"]} <= {"outlier"}
+    cfg.write_text("[fleet]\nmin_chnage = 0.1\n")
+    assert main(["fleet", "report", "--db", str(db), "--json", "--config", str(cfg)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {cfg}: unknown key fleet.min_chnage = 0.1")
+    assert err.count("\n") == 1
