@@ -21,15 +21,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from canrls.fleet.detect import assess  # noqa: E402
+from fleet_detection import seeds  # noqa: E402
 from fleet_histories import simulated_fleet  # noqa: E402
-
-
-def seeds(text: str) -> list[int]:
-    out: list[int] = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b or a) + 1))
-    return out
 
 
 def main() -> int:
