@@ -17,7 +17,7 @@ import functools
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -128,7 +128,8 @@ class DetectionSettings:
     min_times_usual: float = MIN_TIMES_USUAL
     prior_pairs: int = PRIOR_PAIRS
 
-    KEYS = ("alpha", "outlier_z", "min_change", "min_times_usual", "prior_pairs")
+    KEYS: ClassVar[tuple[str, ...]] = ("alpha", "outlier_z", "min_change", "min_times_usual",
+                                      "prior_pairs")
 
     @classmethod
     def from_table(cls, table: Mapping[str, Any], source: str = "[fleet]"
