@@ -24,9 +24,9 @@ from pathlib import Path
 from typing import Any
 
 import can
-import cantools
-import numpy as np
 import pytest
+from user_drives import CIA402_DBC as DBC
+from user_drives import INCREMENTS, RATED_CURRENT, RATED_TORQUE, cia402_log
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import read_frames, write_candump
@@ -34,16 +34,12 @@ from canrls.can.protocol import Protocol
 from canrls.cli._common import overrides
 from canrls.cli.main import build_parser, main
 from canrls.cli.run import build_daemon
-from canrls.config import load_config
 from canrls.estimation.model import Model
 from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
 from canrls.processor import FrameProcessor
-from canrls.replay import prepare
-from canrls.sim.scenario import SimResult, scenario, simulate
+from canrls.processor.config import load_config, prepare
+from canrls.sim.scenario import scenario, simulate
 
-DBC = Path(__file__).resolve().parent / "data" / "cia402_drive.dbc"
-#: the drive's ratings: rated torque 0x6076 [N·m], rated current 0x6075 [A], encoder
-RATED_TORQUE, RATED_CURRENT, INCREMENTS = 0.32, 3.2, 131072
 TORQUE = ["torque=TPDO1.TorqueActual", "speed=TPDO2.VelocityActual",
           "position=TPDO2.PositionActual"]
 RATINGS = ["--rated-torque", str(RATED_TORQUE), "--increments-per-rev", str(INCREMENTS)]
@@ -52,38 +48,15 @@ EFFECTS = "inertia,viscous,coulomb"
 _ids = itertools.count()
 
 
-def _cia402_log(res: SimResult, path: Path) -> None:
-    """The measured run as the CiA 402 drive sends it: TPDO1 and TPDO2 on every SYNC,
-    encoded by cantools, written by python-can's candump writer."""
-    db = cantools.database.load_file(str(DBC))
-    tpdo1, tpdo2 = db.get_message_by_name("TPDO1"), db.get_message_by_name("TPDO2")
-    m = res.measured
-    assert m.current is not None
-    torque = res.truth.kt * m.current  # what the drive computes from its current
-    turns = INCREMENTS / (2 * math.pi)
-    position = np.unwrap(m.position)  # the position actual value is multi-turn
-    with can.CanutilsLogWriter(str(path)) as w:
-        for k in range(len(m)):
-            d1 = tpdo1.encode({"Statusword": 0x0237,  # operation enabled
-                               "TorqueActual": round(1000 * torque[k] / RATED_TORQUE),
-                               "CurrentActual": round(1000 * m.current[k] / RATED_CURRENT)})
-            d2 = tpdo2.encode({"PositionActual": round(position[k] * turns),
-                               "VelocityActual": round(m.speed[k] * turns)})
-            for dt, fid, data in ((0.0, 0x181, d1), (1e-4, 0x281, d2)):
-                w.on_message_received(can.Message(timestamp=float(m.t[k]) + dt,
-                                                  arbitration_id=fid, is_extended_id=False,
-                                                  data=data))
-
-
 @pytest.fixture(scope="module")
 def drive(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     d = tmp_path_factory.mktemp("cia402")
     res = simulate(scenario("standard", effects=EFFECTS, seed=5, duration=8.0))
     out: dict[str, Any] = {"dir": d, "truth": res.truth.params, "kt": res.truth.kt,
                            "cia": d / "servo.log", "own": d / "own.log", "other": d / "other.log"}
-    _cia402_log(res, out["cia"])
+    cia402_log(res, out["cia"])
     write_candump(out["own"], [res.frames])  # the same run in canrls's own DBC
-    _cia402_log(simulate(scenario("standard", effects=EFFECTS, seed=6, duration=4.0)),
+    cia402_log(simulate(scenario("standard", effects=EFFECTS, seed=6, duration=4.0)),
                 out["other"])
     return out
 
@@ -322,6 +295,6 @@ def test_export_c_states_the_torque_target_and_its_scaling(saved: Path, tmp_path
     gcc = shutil.which("gcc")
     if gcc is None:
         pytest.skip("gcc not installed")
-    f = out / "canrls_config.c"  # the kernel and the frame codecs: tests/test_c_export.py
+    f = out / "canrls_config.c"  # the kernel and the frame codecs: tests/firmware/test_c_export.py
     subprocess.run([gcc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-c",
                     str(f), "-o", str(f.with_suffix(".o"))], check=True, capture_output=True)

@@ -8,8 +8,8 @@ of its frames per second).
     .venv/bin/python tools/bench_fleet_plant.py --drives 100 --logs 20        # a quick look
 
 * **The history**: a PostgreSQL server started as the tests start it
-  (``tests/postgres.py``: a throwaway cluster on a unix socket), filled with the
-  parameter histories of ``tests/fleet_histories.py`` (the estimates a fit gives, with
+  (``tests/helpers/postgres.py``: a throwaway cluster on a unix socket), filled with the
+  parameter histories of ``tests/helpers/fleet_histories.py`` (the estimates a fit gives, with
   their sigma and the bias of each recording's excitation and length; five of every 40
   drives changing; candidate rankings on every recording) through
   :meth:`canrls.fleet.history.History.store`, 1,000 recordings a transaction.
@@ -35,11 +35,12 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "helpers"))
 
-from canrls.fleet.history import History  # noqa: E402
 from fleet_histories import simulated_fleet  # noqa: E402
 from postgres import postgres_server  # noqa: E402
+
+from canrls.fleet.history import History  # noqa: E402
 
 PER_FLEET = 40  # drives per simulated fleet (five of them changing)
 BATCH = 1000  # recordings per transaction
@@ -78,7 +79,7 @@ def ingest_throughput(n: int, duration: float, out: Path) -> None:
     from canrls.fleet.cluster import dask_client
     from canrls.fleet.ingest import JobConfig, ingest
     from canrls.fleet.sources import LogSource
-    from canrls.replay import fit_logs
+    from canrls.processor.replay import fit_logs
     from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
 
     plan = make_fleet(max(1, n // 10), 10, duration, seed=52)

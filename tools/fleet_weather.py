@@ -3,7 +3,7 @@
     .venv/bin/python tools/fleet_weather.py --seeds 101-110
     .venv/bin/python tools/fleet_weather.py --seeds 1-10 --gaussian --jitter 0.05
 
-The histories come from ``tests/fleet_histories.py`` (40 drives x 10 weekly recordings,
+The histories come from ``tests/helpers/fleet_histories.py`` (40 drives x 10 weekly recordings,
 each with its own excitation and length, friction jittering week to week, five drives
 changing); :func:`canrls.fleet.detect.assess` assesses each. Prints per jitter the
 changing drives alerted with the right parameter or effect, the healthy drives
@@ -18,11 +18,12 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "helpers"))
+
+from fleet_histories import simulated_fleet  # noqa: E402
 
 from canrls.fleet.detect import assess  # noqa: E402
 from fleet_detection import seeds  # noqa: E402
-from fleet_histories import simulated_fleet  # noqa: E402
 
 
 def main() -> int:

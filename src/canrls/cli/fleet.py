@@ -35,7 +35,7 @@ from canrls.cli._common import (
     overrides,
     print_json,
 )
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates"]
 
@@ -180,11 +180,11 @@ def run_ingest(args: argparse.Namespace) -> int:
 def run_report(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from canrls.config import AppConfig
     from canrls.fleet.detect import DetectionSettings, assess
     from canrls.fleet.history import History, history_url
     from canrls.fleet.records import STATUS_OK
     from canrls.fleet.report import report_dict, write_html
+    from canrls.processor.config import AppConfig
 
     if not args.out and not args.json:
         raise ConfigError("fleet report: give --out DIR (HTML) or --json (or both)")

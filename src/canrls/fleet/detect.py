@@ -22,7 +22,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 from canrls.estimation.effects import library
 from canrls.fleet.records import SOURCE_LIVE, Recording
 

@@ -1,0 +1,65 @@
+"""Drives in users' DBCs, shared by the tests: a Motorola DBC with 32-bit signals (the
+processor's scaling tests and the firmware's) and a CiA 402 drive's log written through
+cantools (the torque-drive tests and the firmware's)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import can
+import cantools
+import numpy as np
+
+from canrls.sim.scenario import SimResult
+
+CIA402_DBC = Path(__file__).resolve().parents[1] / "data" / "cia402_drive.dbc"
+#: the CiA 402 drive's ratings: rated torque 0x6076 [N·m], rated current 0x6075 [A], encoder
+RATED_TORQUE, RATED_CURRENT, INCREMENTS = 0.32, 3.2, 131072
+
+HEADER = 'VERSION ""\n\nNS_ :\n\nBS_:\n\n'
+SIGNALS = ["current=Feedback.Current", "speed=Feedback.Speed", "position=Angle.Angle"]
+#: (current A, speed rpm, angle deg) limits as the drive reaches them
+TIGHT = (32.0, 2000.0, 360.0)
+
+
+def user_dbc(scale: float | None) -> str:
+    """32-bit signals in mA, 0.01 rpm and 0.01 deg; limits ``scale`` times the tight
+    ones, or (None) the raw range of the 32-bit fields."""
+    if scale is None:
+        lim = ["[-2147483.648|2147483.647]", "[-21474836.48|21474836.47]", "[0|42949672.95]"]
+    else:
+        c, w, a = (x * scale for x in TIGHT)
+        lim = [f"[{-c:g}|{c:g}]", f"[{-w:g}|{w:g}]", f"[0|{a:g}]"]
+    return HEADER + f'''BU_: Drive
+
+BO_ 2566914305 Feedback: 8 Drive
+ SG_ Current : 7|32@0- (0.001,0) {lim[0]} "A" Vector__XXX
+ SG_ Speed : 39|32@0- (0.01,0) {lim[1]} "rpm" Vector__XXX
+
+BO_ 2566914306 Angle: 4 Drive
+ SG_ Angle : 7|32@0+ (0.01,0) {lim[2]} "deg" Vector__XXX
+'''
+
+
+def cia402_log(res: SimResult, path: Path) -> None:
+    """The measured run as the CiA 402 drive sends it: TPDO1 and TPDO2 on every SYNC,
+    encoded by cantools, written by python-can's candump writer."""
+    db = cantools.database.load_file(str(CIA402_DBC))
+    tpdo1, tpdo2 = db.get_message_by_name("TPDO1"), db.get_message_by_name("TPDO2")
+    m = res.measured
+    assert m.current is not None
+    torque = res.truth.kt * m.current  # what the drive computes from its current
+    turns = INCREMENTS / (2 * math.pi)
+    position = np.unwrap(m.position)  # the position actual value is multi-turn
+    with can.CanutilsLogWriter(str(path)) as w:
+        for k in range(len(m)):
+            d1 = tpdo1.encode({"Statusword": 0x0237,  # operation enabled
+                               "TorqueActual": round(1000 * torque[k] / RATED_TORQUE),
+                               "CurrentActual": round(1000 * m.current[k] / RATED_CURRENT)})
+            d2 = tpdo2.encode({"PositionActual": round(position[k] * turns),
+                               "VelocityActual": round(m.speed[k] * turns)})
+            for dt, fid, data in ((0.0, 0x181, d1), (1e-4, 0x281, d2)):
+                w.on_message_received(can.Message(timestamp=float(m.t[k]) + dt,
+                                                  arbitration_id=fid, is_extended_id=False,
+                                                  data=data))
