@@ -13,6 +13,7 @@ DBC, and carry the torque mapping and its ratings through ``fit``, ``diagnose``,
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import io
 import itertools
 import json
@@ -24,8 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import can
-import cantools
-import numpy as np
 import pytest
 
 from canrls.can.frameblock import FrameBlock
@@ -39,40 +38,29 @@ from canrls.estimation.model import Model
 from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
 from canrls.processor import FrameProcessor
 from canrls.replay import prepare
-from canrls.sim.scenario import SimResult, scenario, simulate
+from canrls.sim.scenario import scenario, simulate
 
-DBC = Path(__file__).resolve().parent / "data" / "cia402_drive.dbc"
-#: the drive's ratings: rated torque 0x6076 [N·m], rated current 0x6075 [A], encoder
-RATED_TORQUE, RATED_CURRENT, INCREMENTS = 0.32, 3.2, 131072
+
+def _tool() -> Any:
+    """tools/cia402_log.py: the simulated CiA 402 drive's frames, its DBC and ratings."""
+    path = Path(__file__).resolve().parents[1] / "tools" / "cia402_log.py"
+    spec = importlib.util.spec_from_file_location("cia402_log", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_TOOL = _tool()
+_cia402_log = _TOOL.write_log
+DBC: Path = _TOOL.DBC
+RATED_TORQUE, RATED_CURRENT, INCREMENTS = _TOOL.RATED_TORQUE, _TOOL.RATED_CURRENT, _TOOL.INCREMENTS
 TORQUE = ["torque=TPDO1.TorqueActual", "speed=TPDO2.VelocityActual",
           "position=TPDO2.PositionActual"]
 RATINGS = ["--rated-torque", str(RATED_TORQUE), "--increments-per-rev", str(INCREMENTS)]
 MAP = ["--dbc", str(DBC), *[a for s in TORQUE for a in ("--signal", s)], *RATINGS]
 EFFECTS = "inertia,viscous,coulomb"
 _ids = itertools.count()
-
-
-def _cia402_log(res: SimResult, path: Path) -> None:
-    """The measured run as the CiA 402 drive sends it: TPDO1 and TPDO2 on every SYNC,
-    encoded by cantools, written by python-can's candump writer."""
-    db = cantools.database.load_file(str(DBC))
-    tpdo1, tpdo2 = db.get_message_by_name("TPDO1"), db.get_message_by_name("TPDO2")
-    m = res.measured
-    assert m.current is not None
-    torque = res.truth.kt * m.current  # what the drive computes from its current
-    turns = INCREMENTS / (2 * math.pi)
-    position = np.unwrap(m.position)  # the position actual value is multi-turn
-    with can.CanutilsLogWriter(str(path)) as w:
-        for k in range(len(m)):
-            d1 = tpdo1.encode({"Statusword": 0x0237,  # operation enabled
-                               "TorqueActual": round(1000 * torque[k] / RATED_TORQUE),
-                               "CurrentActual": round(1000 * m.current[k] / RATED_CURRENT)})
-            d2 = tpdo2.encode({"PositionActual": round(position[k] * turns),
-                               "VelocityActual": round(m.speed[k] * turns)})
-            for dt, fid, data in ((0.0, 0x181, d1), (1e-4, 0x281, d2)):
-                w.on_message_received(can.Message(timestamp=float(m.t[k]) + dt,
-                                                  arbitration_id=fid, is_extended_id=False,
-                                                  data=data))
 
 
 @pytest.fixture(scope="module")
