@@ -107,6 +107,9 @@ def test_readme_block_runs_as_pasted(block: Block, clone: Path) -> None:
         what = block.needs.split(",")[0].strip()
         if not (clone / what).exists():
             pytest.skip(f"README line {block.line} needs {block.needs}")
+    assert not re.search(r"^\s*make test\b", block.text, re.MULTILINE), (
+        f"README line {block.line}: 'make test' in a shell block would run the whole suite "
+        f"from here, this test among it: name it in the prose")
     r = subprocess.run(["bash", "-e", "-o", "pipefail", "-c", block.text], cwd=clone,
                        env=_env(), capture_output=True, text=True, timeout=600, check=False)
     assert r.returncode == 0, (f"README line {block.line}: exit {r.returncode}\n{block.text}\n"
