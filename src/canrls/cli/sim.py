@@ -8,7 +8,8 @@ The log holds the drive's feedback frames (``DriveCurrent``, ``DriveSpeed`` of t
 default DBC, CRC and alive counter included), timestamps from ``--start-time``
 (default 0) in steps of the control period. ``.log`` is candump; other suffixes
 (``.asc``, ``.blf``, ``.trc``, ``.csv``) go through python-can's writers. One summary
-line goes to stderr: frames written, duration, scenario, truth and faults.
+line goes to stdout (``> truth.txt`` keeps it): frames written, duration, scenario,
+truth and faults.
 
 ``canrls sim fleet`` writes ``DIR/<drive>/<drive>-<k>.log`` for every drive and
 recording (``--duration`` seconds each, default 6), ``DIR/manifest.csv`` and
@@ -166,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
     faults = f"; faults {sc.faults}: {sim.fault_log.summary()}" if sc.faults.active else ""
     clipped = f"; {sim.clipped} values clipped to the DBC range" if sim.clipped else ""
     print(f"canrls sim: wrote {n} frames to {args.out} ({sc.duration:g} s, scenario {sc.name}, "
-          f"seed {sc.seed}); truth: {sc.truth.summary()}{faults}{clipped}", file=sys.stderr)
+          f"seed {sc.seed}); truth: {sc.truth.summary()}{faults}{clipped}")
     return 0
 
 
