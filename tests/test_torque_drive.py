@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+import cantools
 import pytest
 
 from canrls.can.frameblock import FrameBlock
@@ -107,6 +108,25 @@ def test_the_dbc_says_what_a_cia402_drive_sends() -> None:
     assert p.roles["speed"].si_scale == pytest.approx(2 * math.pi / INCREMENTS)
     assert p.roles["position"].si_scale == pytest.approx(2 * math.pi / INCREMENTS)
     assert p.period == 1e-3 and p.axis is None  # increments say no axis: rotary by default
+
+
+def test_the_summary_says_the_speed_the_data_reach_not_the_dbc_limits(
+        drive: dict[str, Any], capsys: pytest.CaptureFixture[str]) -> None:
+    """The DBC declares ±10,000,000 inc/s (479.4 rad/s); the scaling comes from the
+    calibration window, and so does the speed the summary prints."""
+    got = _json(capsys, ["fit", str(drive["cia"]), *MAP, "-e", EFFECTS])
+    cal = got["calibration"]
+    db = cantools.database.load_file(str(DBC))
+    tpdo2 = db.get_message_by_name("TPDO2")
+    raw = [tpdo2.decode(m.data)["VelocityActual"] for m in can.LogReader(str(drive["cia"]))
+           if m.arbitration_id == tpdo2.frame_id][:cal["window"]["samples"]]
+    peak = max(abs(v) for v in raw) * 2 * math.pi / INCREMENTS
+    assert cal["peaks"]["speed"] == pytest.approx(peak, rel=1e-12)
+    assert main(["fit", str(drive["cia"]), *MAP, "-e", EFFECTS, "--quiet"]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines()
+                if ln.startswith("calibration:"))
+    assert f"speed ±{peak:.4g} rad/s" in line
+    assert "479.4" not in line and "dbc" not in line
 
 
 def test_fit_finds_the_drive_in_newton_metres_without_kt(
