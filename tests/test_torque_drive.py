@@ -129,6 +129,23 @@ def test_the_summary_says_the_speed_the_data_reach_not_the_dbc_limits(
     assert "479.4" not in line and "dbc" not in line
 
 
+def test_a_utf8_dbc_says_per_mille_as_written(
+        drive: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The same DBC saved in UTF-8 (as some editors write it): '‰' is printed as '‰',
+    not 'â€°', and the answer is the cp1252 file's."""
+    utf8 = tmp_path / "cia402_utf8.dbc"
+    utf8.write_bytes(DBC.read_bytes().decode("cp1252").encode("utf-8"))
+    assert "‰".encode() in utf8.read_bytes()
+    mapped = [a if a != str(DBC) else str(utf8) for a in MAP]
+    assert main(["fit", str(drive["cia"]), *mapped, "-e", EFFECTS, "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "axis rotary (DBC units: speed inc/s, position inc, torque ‰)" in out.splitlines()
+    assert "â" not in out
+    got = _json(capsys, ["fit", str(drive["cia"]), *mapped, "-e", EFFECTS])
+    ref = _json(capsys, ["fit", str(drive["cia"]), *MAP, "-e", EFFECTS])
+    assert got["parameters"] == ref["parameters"]
+
+
 def test_fit_finds_the_drive_in_newton_metres_without_kt(
         drive: dict[str, Any], capsys: pytest.CaptureFixture[str]) -> None:
     got = _json(capsys, ["fit", str(drive["cia"]), *MAP, "-e", EFFECTS])
