@@ -9,7 +9,7 @@ BIN     = $(VENV)/bin
 .PHONY: demo test bench target clean
 
 # the C extensions are built by the install: rebuilt when their sources change
-$(BIN)/.installed: pyproject.toml setup.py $(wildcard src/canrls/c/*.c src/canrls/c/*.h)
+$(BIN)/.installed: pyproject.toml setup.py $(wildcard src/canrls/c/*/*.c src/canrls/c/*/*.h)
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test,report,fleet]'

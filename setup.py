@@ -1,4 +1,5 @@
-"""Build the C extensions of canrls (sources in src/canrls/c); all other metadata is in
+"""Build the C extensions of canrls (sources in src/canrls/c/host; the fixed-point kernel
+they share with the target in src/canrls/c/firmware); all other metadata is in
 pyproject.toml. ``pip install`` (and so ``make test`` / ``make demo``) compiles them with
 the machine's C compiler (GCC or clang: ``CC`` chooses) and the Python headers; without
 either the build stops with one ``error:`` line naming the Debian package to install."""
@@ -41,32 +42,34 @@ EXTENSIONS: list[Extension] = [
     # the per-sample float loops of the estimation (RLS, SVF, selection, unwrapping,
     # pipeline sums; the diagnosis's harmonic columns), one implementation for the daemon
     # and the offline replay
-    Extension("canrls._kernels", sources=["src/canrls/c/kernels.c"],
-              depends=["src/canrls/c/kernels_rls.h", "src/canrls/c/pyargs.h"],
+    Extension("canrls._kernels", sources=["src/canrls/c/host/kernels.c"],
+              depends=["src/canrls/c/host/kernels_rls.h", "src/canrls/c/host/pyargs.h"],
               extra_compile_args=[*_CFLAGS, _VECTORISE]),
     # the per-frame loops of the CAN layer (strict decoding, counters, CRC, pairing):
     # canrls.can, live and offline
-    Extension("canrls._can", sources=["src/canrls/c/can.c"], extra_compile_args=_CFLAGS),
+    Extension("canrls._can", sources=["src/canrls/c/host/can.c"], extra_compile_args=_CFLAGS),
     # the candump reader and writer (text <-> frame arrays): canrls.can.candump
-    Extension("canrls._candump", sources=["src/canrls/c/candump.c"],
-              depends=["src/canrls/c/pyargs.h"], extra_compile_args=_CFLAGS),
+    Extension("canrls._candump", sources=["src/canrls/c/host/candump.c"],
+              depends=["src/canrls/c/host/pyargs.h"], extra_compile_args=_CFLAGS),
     # the bulk receive of SocketCAN frames (recvmmsg into a FrameBlock's arrays):
     # canrls.live.socketcan, the daemon's reader of a python-can SocketcanBus. Linux only;
     # it builds everywhere (recv raises NotImplementedError where recvmmsg is missing)
-    Extension("canrls._rx", sources=["src/canrls/c/rx.c"], extra_compile_args=_CFLAGS),
+    Extension("canrls._rx", sources=["src/canrls/c/host/rx.c"], extra_compile_args=_CFLAGS),
     # the fixed-point RLS kernel (canrls_fixed.c, the target's code) for
-    # canrls.estimation.fixed.FixedRLS
+    # canrls.estimation.fixed.estimator.FixedRLS
     Extension("canrls._fixed",
-              sources=["src/canrls/c/fixed_module.c", "src/canrls/c/canrls_fixed.c"],
-              include_dirs=["src/canrls/c"], depends=["src/canrls/c/canrls_fixed.h"],
+              sources=["src/canrls/c/host/fixed_module.c",
+                       "src/canrls/c/firmware/canrls_fixed.c"],
+              include_dirs=["src/canrls/c/firmware"],
+              depends=["src/canrls/c/firmware/canrls_fixed.h"],
               extra_compile_args=_CFLAGS),
     # the fixed-point RLS as specified (every update form, any n) for
-    # canrls.estimation.fixed_kernels: where the target's kernel does not apply
-    Extension("canrls._fixedspec", sources=["src/canrls/c/fixed_spec.c"],
-              depends=["src/canrls/c/pyargs.h"], extra_compile_args=_CFLAGS),
+    # canrls.estimation.fixed.kernels: where the target's kernel does not apply
+    Extension("canrls._fixedspec", sources=["src/canrls/c/host/fixed_spec.c"],
+              depends=["src/canrls/c/host/pyargs.h"], extra_compile_args=_CFLAGS),
     # the simulated drive's loop (sensors, controllers, RK4): canrls.sim.plant
-    Extension("canrls._sim", sources=["src/canrls/c/sim.c"],
-              depends=["src/canrls/c/pyargs.h"], extra_compile_args=_CFLAGS),
+    Extension("canrls._sim", sources=["src/canrls/c/host/sim.c"],
+              depends=["src/canrls/c/host/pyargs.h"], extra_compile_args=_CFLAGS),
 ]
 
 
@@ -97,6 +100,7 @@ class BuildExt(build_ext):
             probe = [*self.compiler.compiler_so, flag, "-Werror", "-c", src,
                      "-o", os.path.join(tmp, "flag.o")]
             return subprocess.run(probe, capture_output=True, check=False).returncode == 0
+
 
 if __name__ == "__main__":
     setup(ext_modules=EXTENSIONS, cmdclass={"build_ext": BuildExt})

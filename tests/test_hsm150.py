@@ -108,9 +108,10 @@ def test_dbc_file_is_what_the_tool_writes(tmp_path: Path) -> None:
 def test_log_decodes_to_the_run(logs: dict[str, Path]) -> None:
     """The CAN log carries the run at the DBC's resolution (1 mA, 0.01 rpm, 1 mrad)."""
     from canrls.can.logs import read_frames
-    from canrls.can.protocol import Protocol, SignalMapping
+    from canrls.can.mapping import SignalMapping
+    from canrls.can.protocol import Protocol
     from canrls.estimation.model import Model
-    from canrls.replay import FrameProcessor
+    from canrls.processor import FrameProcessor
 
     proto = Protocol.load(DBC, SignalMapping.from_strings(TOOL.SIGNALS))
     proc = FrameProcessor(proto, Model(effects=["inertia"]))

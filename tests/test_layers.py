@@ -1,19 +1,19 @@
-"""The layers of the tree, kept by a test (docs/architecture.md).
+"""The layers of the tree: a module's layer is its top-level folder (docs/architecture.md).
 
 Dependencies run one way::
 
-    core (canrls, errors, signals, spill, effect_names, files, ctext)
-      -> can (DBC, decoding, logs, pairing, frames)   estimation (effects ... RLS, pipeline)
-      -> front: config, processor, replay, modelfile   (one configuration, one calibration rule)
-      -> diagnosis | live | fleet | export             (beside each other, none imports another)
-      -> cli                                           (one module per subcommand)
+    core                                            errors, files, units, samples ...
+      -> can | estimation                           (never each other)
+      -> processor                                  frames -> samples -> model input
+      -> diagnosis | control | live | firmware | fleet   (beside each other)
+      -> cli                                        (one module per subcommand)
 
 ``sim`` (the simulated drive) sits at the edge: it uses ``core`` and ``can`` and only
-``cli`` uses it. ``can`` and ``estimation`` never import each other, and neither
-``estimation`` nor ``core`` imports an I/O package (python-can, cantools). Only the
-processor pairs, reorders, judges times and measures the period. No import circle, and
-no module reaches into another module's underscore names. No function is over 150 lines,
-no module over 1,000 and no module docstring over 35.
+``cli`` uses it. Neither ``estimation`` nor ``core`` imports an I/O package (python-can,
+cantools). No import circle, type-only ones included; only a package's ``__init__``
+re-exports; no module reaches into another module's underscore names. No function is
+over 150 lines, no module over 1,000 and no module docstring over 35. The table of
+docs/architecture.md lists every folder and module of the tree, and no other.
 
 The checks read the source (ast), so they also see imports inside functions.
 """
@@ -29,33 +29,23 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 PKG = SRC / "canrls"
+ARCHITECTURE = SRC.parent / "docs" / "architecture.md"
 
-#: layer of each top-level part, and the layers it may import (besides itself)
-LAYER = {
-    "canrls": "core", "canrls.errors": "core", "canrls.signals": "core", "canrls.spill": "core",
-    "canrls.effect_names": "core", "canrls.files": "core", "canrls.ctext": "core",
-    "canrls.can": "can", "canrls.estimation": "estimation",
-    "canrls.config": "front", "canrls.processor": "front", "canrls.modelfile": "front",
-    "canrls.replay": "front", "canrls.target": "front",
-    "canrls.diagnosis": "diagnosis", "canrls.live": "live", "canrls.fleet": "fleet",
-    "canrls.c_export": "export",
-    "canrls.sim": "sim", "canrls.cli": "cli", "canrls.__main__": "cli",
-}
-#: the rooms above the front end: each sees the front end and below, none another
-BESIDE = ("diagnosis", "live", "fleet", "export")
-_BELOW = {"core", "can", "estimation", "front"}
+#: the layers, each a top-level folder of canrls, and the layers each may import
+_BOTTOM = {"core", "can", "estimation", "processor"}
+#: the rooms above the processor: each sees the processor and below, none another
+BESIDE = ("diagnosis", "control", "live", "firmware", "fleet")
 ALLOWED = {
     "core": {"core"},
     "can": {"core"},
     "estimation": {"core"},
-    "front": _BELOW,
-    **{room: _BELOW for room in BESIDE},
+    "processor": _BOTTOM,
+    **{room: _BOTTOM for room in BESIDE},
     "sim": {"core", "can"},
-    "cli": {*_BELOW, *BESIDE, "sim", "cli"},
+    "cli": {*_BOTTOM, *BESIDE, "sim", "cli"},
 }
-#: the processor's parts: the one front end runs them (their own package aside)
-PROCESSOR_PARTS = {"canrls.can.pairing", "canrls.can.reorder", "canrls.can.period",
-                   "canrls.can.times"}
+#: the modules outside the layers' folders: the package itself and ``python -m canrls``
+ROOT_MODULES = {"canrls": "core", "canrls.__main__": "cli"}
 #: third-party I/O packages the pure layers must not import
 IO_PACKAGES = {"can", "cantools"}
 #: underscore names of the standard library's own protocols (namedtuple, enum)
@@ -81,8 +71,10 @@ def modules() -> dict[str, ast.Module]:
 
 
 def layer_of(mod: str) -> str:
-    best = max((k for k in LAYER if mod == k or mod.startswith(k + ".")), key=len)
-    return LAYER[best]
+    """A module's layer: its top-level folder (``canrls.can.decoder``: ``can``)."""
+    if mod in ROOT_MODULES:
+        return ROOT_MODULES[mod]
+    return mod.split(".")[1]
 
 
 def imports(tree: ast.Module, mod: str) -> Iterator[tuple[str, int]]:
@@ -120,9 +112,10 @@ def tree() -> dict[str, ast.Module]:
     return modules()
 
 
-def test_every_module_has_a_layer(tree: dict[str, ast.Module]) -> None:
-    for mod in tree:
-        assert layer_of(mod) in ALLOWED, mod
+def test_every_module_is_in_a_layers_folder(tree: dict[str, ast.Module]) -> None:
+    loose = [mod for mod in tree if mod not in ROOT_MODULES and layer_of(mod) not in ALLOWED]
+    assert not loose, ("modules outside the layers' folders (a module's layer is its "
+                       "top-level folder under src/canrls):\n" + "\n".join(sorted(loose)))
 
 
 def test_imports_go_one_way(tree: dict[str, ast.Module]) -> None:
@@ -154,16 +147,6 @@ def test_rooms_beside_each_other_do_not_import_each_other(tree: dict[str, ast.Mo
            for dep, line in canrls_imports(t, mod, known)
            if layer_of(dep) in BESIDE and layer_of(dep) != layer_of(mod)]
     assert not bad, bad
-
-
-def test_only_the_processor_runs_its_parts(tree: dict[str, ast.Module]) -> None:
-    known = set(tree)
-    bad = [f"{mod}:{line} imports {dep}" for mod, t in tree.items()
-           if not (mod == "canrls.processor" or mod.startswith(("canrls.processor.",
-                                                                  "canrls.can.")))
-           for dep, line in canrls_imports(t, mod, known) if dep in PROCESSOR_PARTS]
-    assert not bad, "only canrls.processor pairs, reorders and measures the period:\n" \
-        + "\n".join(sorted(bad))
 
 
 def test_only_the_cli_sees_argparse(tree: dict[str, ast.Module]) -> None:
@@ -209,26 +192,47 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
     return None
 
 
-def without_type_checking(tree: ast.Module) -> ast.Module:
-    """``tree`` less its ``if TYPE_CHECKING:`` blocks (imports for annotations only)."""
-    out = ast.parse(ast.unparse(tree))
-    for node in ast.walk(out):
-        if isinstance(node, ast.If) and ast.unparse(node.test) in ("TYPE_CHECKING",
-                                                                   "typing.TYPE_CHECKING"):
-            node.body, node.orelse = [ast.Pass()], []
-    return out
+def import_graph(tree: dict[str, ast.Module]) -> dict[str, set[str]]:
+    """Module -> the canrls modules it imports, also for annotations only (``if
+    TYPE_CHECKING:``) and inside functions. A module's import of a package it is in
+    (``from canrls.estimation.fixed import layout`` in ``fixed.plan``) is left out: Python
+    imports a module's packages before the module anyway, and a package's ``__init__``
+    importing its own modules is how packages work."""
+    known = set(tree)
+    return {mod: {d for d, _ in canrls_imports(t, mod, known)
+                  if d != "canrls" and not mod.startswith(d + ".")}
+            for mod, t in tree.items()}
 
 
 def test_no_import_circles(tree: dict[str, ast.Module]) -> None:
+    cycle = find_cycle(import_graph(tree))
+    assert cycle is None, "import circle: " + " -> ".join(cycle or [])
+
+
+def re_exports(t: ast.Module, mod: str, known: set[str]) -> list[str]:
+    """Names a module lists in ``__all__`` but imports from another canrls module."""
+    imported = {(a.asname or a.name) for node in t.body if isinstance(node, ast.ImportFrom)
+                and (node.module or "").startswith("canrls.") and node.module in known
+                for a in node.names}
+    listed: list[str] = []
+    for node in t.body:
+        if isinstance(node, ast.Assign) and any(isinstance(x, ast.Name) and x.id == "__all__"
+                                                for x in node.targets):
+            listed = list(ast.literal_eval(node.value))
+    return [n for n in listed if n in imported]
+
+
+def is_package(mod: str) -> bool:
+    return (PKG / Path(*mod.split(".")[1:]) / "__init__.py").exists()
+
+
+def test_only_packages_re_export(tree: dict[str, ast.Module]) -> None:
     known = set(tree)
-    graph = {}
-    for mod, t in tree.items():
-        # a package's __init__ importing its own modules is how packages work, not a
-        # circle; nor is an import for annotations only (the decoder names the Protocol
-        # that makes it): neither runs anything in a circle
-        graph[mod] = {d for d, _ in canrls_imports(without_type_checking(t), mod, known)
-                      if d != "canrls" and not mod.startswith(d + ".")}
-    assert find_cycle(graph) is None, " -> ".join(find_cycle(graph) or [])
+    bad = [f"{mod}: {', '.join(names)}" for mod, t in tree.items() if not is_package(mod)
+           for names in [re_exports(t, mod, known)] if names]
+    assert not bad, ("modules that re-export their siblings' names (import them from the "
+                     "module that defines them; only a package's __init__ re-exports):\n"
+                     + "\n".join(sorted(bad)))
 
 
 def private_names(t: ast.Module) -> set[str]:
@@ -338,8 +342,13 @@ def test_the_checks_catch_a_wrong_import_a_circle_and_a_private_call() -> None:
     assert find_cycle({"a": {"b"}, "b": set()}) is None
     typed = ast.parse("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
                       "    from canrls.can.protocol import Protocol\n")
-    assert not canrls_imports(without_type_checking(typed), "canrls.can.decoder",
-                              {"canrls.can.protocol"})
+    assert canrls_imports(typed, "canrls.can.decoder", {"canrls.can.protocol"}) == {
+        ("canrls.can.protocol", 3)}
+    shim = ast.parse("from canrls.can.decoder import Decoder\n__all__ = ['Decoder', 'x']\n")
+    assert re_exports(shim, "canrls.can.protocol", {"canrls.can.decoder"}) == ["Decoder"]
+    assert layer_of("canrls.config") == "config" and "config" not in ALLOWED
+    assert layer_of("canrls.processor.pairing") == "processor"
+    assert layer_of("canrls.__main__") == "cli" and layer_of("canrls") == "core"
     t = ast.parse("def f(builder):\n    return builder._regressors(1)\n"
                   "from canrls.estimation.model import _exponent\n")
     uses = {name: plain for name, _, plain in private_uses(t)}
@@ -357,3 +366,53 @@ def test_the_checks_catch_a_wrong_import_a_circle_and_a_private_call() -> None:
     assert docstring_lines(ast.parse("x = 1\n")) == 0
     io = ast.parse("import cantools\n")
     assert [n for n, _ in imports(io, "canrls.estimation.rls")] == ["cantools"]
+
+
+# -- docs/architecture.md is drawn from the tree --------------------------------------------
+#: what the table lists of a folder: its Python modules (by name) and its C
+SOURCE_SUFFIXES = {".py", ".c", ".h", ".ld"}
+
+
+def tree_folders(pkg: Path = PKG) -> dict[str, set[str]]:
+    """Each folder under ``pkg`` (``"estimation/fixed/"``) -> its modules (``"svf"``) and C
+    files (``"can.c"``), ``__init__`` aside; the package's own top level left out."""
+    out: dict[str, set[str]] = {}
+    for f in sorted(pkg.rglob("*")):
+        if (f.suffix not in SOURCE_SUFFIXES or f.name == "__init__.py"
+                or "__pycache__" in f.parts or f.parent == pkg):
+            continue
+        folder = f.parent.relative_to(pkg).as_posix() + "/"
+        out.setdefault(folder, set()).add(f.stem if f.suffix == ".py" else f.name)
+    return out
+
+
+def documented_folders(text: str) -> dict[str, set[str]]:
+    """The table of docs/architecture.md's "The tree, in layers": folder -> names."""
+    section = text.split("## The tree, in layers", 1)[1].split("\n## ", 1)[0]
+    out: dict[str, set[str]] = {}
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 3 and re.fullmatch(r"`[\w/]+/`", cells[0]):
+            out[cells[0].strip("`")] = set(re.findall(r"`([^`]+)`", cells[2]))
+    return out
+
+
+def test_architecture_md_is_drawn_from_the_tree() -> None:
+    have, told = tree_folders(), documented_folders(ARCHITECTURE.read_text())
+    bad = [f"{folder}: in the tree {sorted(have.get(folder, ()))}, in the docs "
+           f"{sorted(told.get(folder, ()))}" for folder in sorted(set(have) | set(told))
+           if have.get(folder) != told.get(folder)]
+    assert not bad, ("docs/architecture.md's table of the tree differs from src/canrls:\n"
+                     + "\n".join(bad))
+
+
+def test_the_tree_check_sees_a_missing_module(tmp_path: Path) -> None:
+    (tmp_path / "can").mkdir()
+    (tmp_path / "can" / "__init__.py").write_text("")
+    (tmp_path / "can" / "logs.py").write_text("")
+    (tmp_path / "can" / "new.py").write_text("")
+    (tmp_path / "loose.py").write_text("")
+    assert tree_folders(tmp_path) == {"can/": {"logs", "new"}}
+    doc = ("## The tree, in layers\n\n| folder | what | modules |\n|---|---|---|\n"
+           "| `can/` | the bus | `logs` |\n\n## Next\n| `sim/` | x | `bus` |\n")
+    assert documented_folders(doc) == {"can/": {"logs"}}

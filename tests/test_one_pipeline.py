@@ -14,15 +14,15 @@ import time
 from pathlib import Path
 
 import pytest
+from daemon_tool import daemon_fed
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.frames import FrameDecoder
 from canrls.can.logs import read_frames, write_candump
 from canrls.cli.main import main
-from canrls.config import AppConfig
 from canrls.processor import FrameProcessor
+from canrls.processor.config import AppConfig
 from canrls.sim.scenario import scenario, simulate
-from daemon_tool import daemon_fed
 
 EFFECTS = "inertia,viscous,coulomb,offset,cogging:6"
 

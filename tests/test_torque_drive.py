@@ -13,7 +13,6 @@ DBC, and carry the torque mapping and its ratings through ``fit``, ``diagnose``,
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import io
 import itertools
 import json
@@ -27,6 +26,8 @@ from typing import Any
 import can
 import cantools
 import pytest
+from user_drives import CIA402_DBC as DBC
+from user_drives import INCREMENTS, RATED_CURRENT, RATED_TORQUE, cia402_log
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import read_frames, write_candump
@@ -34,28 +35,12 @@ from canrls.can.protocol import Protocol
 from canrls.cli._common import overrides
 from canrls.cli.main import build_parser, main
 from canrls.cli.run import build_daemon
-from canrls.config import load_config
 from canrls.estimation.model import Model
 from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
 from canrls.processor import FrameProcessor
-from canrls.replay import prepare
+from canrls.processor.config import load_config, prepare
 from canrls.sim.scenario import scenario, simulate
 
-
-def _tool() -> Any:
-    """tools/cia402_log.py: the simulated CiA 402 drive's frames, its DBC and ratings."""
-    path = Path(__file__).resolve().parents[1] / "tools" / "cia402_log.py"
-    spec = importlib.util.spec_from_file_location("cia402_log", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-_TOOL = _tool()
-_cia402_log = _TOOL.write_log
-DBC: Path = _TOOL.DBC
-RATED_TORQUE, RATED_CURRENT, INCREMENTS = _TOOL.RATED_TORQUE, _TOOL.RATED_CURRENT, _TOOL.INCREMENTS
 TORQUE = ["torque=TPDO1.TorqueActual", "speed=TPDO2.VelocityActual",
           "position=TPDO2.PositionActual"]
 RATINGS = ["--rated-torque", str(RATED_TORQUE), "--increments-per-rev", str(INCREMENTS)]
@@ -70,9 +55,9 @@ def drive(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     res = simulate(scenario("standard", effects=EFFECTS, seed=5, duration=8.0))
     out: dict[str, Any] = {"dir": d, "truth": res.truth.params, "kt": res.truth.kt,
                            "cia": d / "servo.log", "own": d / "own.log", "other": d / "other.log"}
-    _cia402_log(res, out["cia"])
+    cia402_log(res, out["cia"])
     write_candump(out["own"], [res.frames])  # the same run in canrls's own DBC
-    _cia402_log(simulate(scenario("standard", effects=EFFECTS, seed=6, duration=4.0)),
+    cia402_log(simulate(scenario("standard", effects=EFFECTS, seed=6, duration=4.0)),
                 out["other"])
     return out
 
@@ -347,6 +332,6 @@ def test_export_c_states_the_torque_target_and_its_scaling(saved: Path, tmp_path
     gcc = shutil.which("gcc")
     if gcc is None:
         pytest.skip("gcc not installed")
-    f = out / "canrls_config.c"  # the kernel and the frame codecs: tests/test_c_export.py
+    f = out / "canrls_config.c"  # the kernel and the frame codecs: tests/firmware/test_c_export.py
     subprocess.run([gcc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-c",
                     str(f), "-o", str(f.with_suffix(".o"))], check=True, capture_output=True)

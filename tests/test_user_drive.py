@@ -18,10 +18,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from canrls.can.encoder import FeedbackEncoder
 from canrls.can.logs import LogReadStats, read_frames, write_log
-from canrls.can.period import estimate_period
 from canrls.can.protocol import Protocol
 from canrls.cli.main import main
+from canrls.processor.period import estimate_period
 from canrls.sim.scenario import Simulator, scenario
 
 #: what every DBC begins with
@@ -294,8 +295,8 @@ def test_period_from_timestamps_is_robust(kind: str) -> None:
 def test_the_period_is_the_same_live_and_offline(rotary: dict[str, Path]) -> None:
     """The daemon's front end measures the period on the first frames as they come, in
     blocks of any size: the same period and parameters as one block."""
-    from canrls.config import AppConfig
-    from canrls.replay import fit_frames
+    from canrls.processor.config import AppConfig
+    from canrls.processor.replay import fit_frames
 
     cfg = AppConfig(can={"dbc": str(rotary["dbc"])}, signal_overrides=ROTARY_SIGNALS)
     protocol = cfg.protocol()
@@ -329,8 +330,8 @@ def test_bench_epoch_runs(tmp_path: Path) -> None:
 def test_a_checkpoint_restored_before_the_period_is_measured(rotary: dict[str, Path]) -> None:
     """The daemon restores a checkpoint at start, before the first frames have told the
     period: the restored calibration holds once the period is measured."""
-    from canrls.config import AppConfig
     from canrls.processor import FrameProcessor
+    from canrls.processor.config import AppConfig
 
     cfg = AppConfig(can={"dbc": str(rotary["dbc"])}, signal_overrides=ROTARY_SIGNALS)
     protocol = cfg.protocol()
@@ -355,9 +356,9 @@ def test_a_refused_model_switch_before_the_period_keeps_the_model_to_start_with(
         rotary: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
     """A command's model switch that fails while the period is being measured leaves
     the model the processor will start with as it was (it was replaced first)."""
-    from canrls.config import AppConfig
-    from canrls.errors import ConfigError
+    from canrls.core.errors import ConfigError
     from canrls.processor import FrameProcessor, SampleProcessor
+    from canrls.processor.config import AppConfig
 
     cfg = AppConfig(can={"dbc": str(rotary["dbc"])}, signal_overrides=ROTARY_SIGNALS)
     protocol = cfg.protocol()
@@ -406,7 +407,7 @@ def test_the_dbc_cycle_time_is_checked_against_the_timestamps(
     ("m/min", "linear", 1 / 60), ("µm", "linear", 1e-6), ("cm/s", "linear", 1e-2),
 ])
 def test_every_motion_unit_names_its_axis(unit: str, axis: str, factor: float) -> None:
-    from canrls.can.units import axis_of, si_factor
+    from canrls.core.units import axis_of, si_factor
 
     assert axis_of(unit) == axis
     role = "speed" if "/" in unit or unit == "rpm" else "position"
@@ -466,9 +467,9 @@ def test_real_measurements_in_a_user_dbc_fit_as_in_the_own(
     angle = np.mod(position, 2 * np.pi)
     dbc = tmp_path / "servo.dbc"
     dbc.write_text(ROTARY_DBC)
-    user = Protocol.load(dbc, ROTARY_SIGNALS).encoder(stagger=1e-4)
+    user = FeedbackEncoder(Protocol.load(dbc, ROTARY_SIGNALS), stagger=1e-4)
     write_log(tmp_path / "user.log", [user.encode(EPOCH + t, current, speed, angle)])
-    own = Protocol.load().encoder(stagger=1e-4)
+    own = FeedbackEncoder(Protocol.load(), stagger=1e-4)
     write_log(tmp_path / "own.log", [own.encode(t, current, speed, angle, np.zeros_like(t))])
     flags = ["--kt", "0.0458", "--effects", "inertia,viscous,offset"]
     a = _fit(capsys, [str(tmp_path / "own.log"), *flags])
@@ -479,7 +480,7 @@ def test_real_measurements_in_a_user_dbc_fit_as_in_the_own(
 
 
 def test_messages_at_different_periods_are_named() -> None:
-    from canrls.errors import ConfigError
+    from canrls.core.errors import ConfigError
 
     t = np.arange(500) * 1e-3
     with pytest.raises(ConfigError, match=r"MotorFeedback every 1 ms, MotorAngle every 10 ms"):
@@ -494,10 +495,12 @@ def test_the_daemon_measures_the_period_as_the_replay_does(tmp_path: Path) -> No
     parameters bit for bit."""
     import os
 
-    from canrls.can.protocol import DEFAULT_DBC, SignalMapping
-    from canrls.config import AppConfig
-    from canrls.live.daemon import Daemon, DaemonSettings
+    from canrls.can.mapping import SignalMapping
+    from canrls.can.protocol import DEFAULT_DBC
+    from canrls.live.daemon import Daemon
+    from canrls.live.settings import DaemonSettings
     from canrls.processor import FrameProcessor
+    from canrls.processor.config import AppConfig
 
     dbc = tmp_path / "no_cycle.dbc"
     dbc.write_text("".join(ln for ln in DEFAULT_DBC.read_text().splitlines(keepends=True)

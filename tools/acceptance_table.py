@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Print the table of docs/diagnose.md ("Acceptance results") from the acceptance cases.
 
-Runs every case of ``tests/test_diagnose_acceptance.py`` (the simulated drive with a
+Runs every case of ``tests/diagnosis/test_diagnose_acceptance.py`` (the simulated drive with a
 hidden effect the model lacks, diagnosed and refitted with the suggestion) and prints one
 Markdown row per case: the rank of the hidden effect(s), the share of the residual
 variance the first candidate explains, the residual RMS before and after adding, the

@@ -24,9 +24,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from canrls.can.pairing import Pairer
-from canrls.can.protocol import FeedbackEncoder, Protocol
-from canrls.can.reorder import Reorderer
+from canrls.can.decoder import Decoder
+from canrls.can.encoder import FeedbackEncoder
+from canrls.can.protocol import Protocol
+from canrls.processor.pairing import Pairer
+from canrls.processor.reorder import Reorderer
 from canrls.sim.faults import inject
 
 
@@ -54,10 +56,10 @@ def main() -> None:
               rng.uniform(0, 2 * np.pi, n), rng.uniform(-320, 320, n))
     enc = FeedbackEncoder(proto)
     block = enc.encode(t, *values)
-    decoded = proto.decoder().decode(block)
+    decoded = Decoder(proto).decode(block)
     frames = len(block)
     t_enc = best(lambda: enc.encode(t, *values), args.repeat)
-    t_dec = best(lambda: proto.decoder().decode(block), args.repeat)
+    t_dec = best(lambda: Decoder(proto).decode(block), args.repeat)
     t_pair = best(lambda: Pairer(proto).push(decoded), args.repeat)
     print(f"{frames} frames of {len(proto.messages)} messages, best of {args.repeat}:")
     for what, sec, ok in (("encode", t_enc, frames / t_enc >= 1e6),

@@ -20,8 +20,8 @@ from collections import defaultdict
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
-from canrls.config import AppConfig
-from canrls.replay import fit_frames, prepare
+from canrls.processor.config import AppConfig, prepare
+from canrls.processor.replay import fit_frames
 from canrls.sim.scenario import Simulator, scenario
 
 EXCITATIONS = ("standard", "steps", "prbs", "chirp", "slow")

@@ -41,8 +41,9 @@ import can
 import numpy as np
 from can.interfaces import virtual as _virtual
 
-from canrls.config import AppConfig
-from canrls.live.daemon import Daemon, DaemonSettings
+from canrls.live.daemon import Daemon
+from canrls.live.settings import DaemonSettings
+from canrls.processor.config import AppConfig
 from canrls.sim.scenario import Simulator, scenario
 
 #: n = 8: inertia, viscous, coulomb, offset, unbalance (2), cogging:6 (2)
@@ -167,7 +168,7 @@ import numpy, can, cantools
 def rss(field="VmRSS"):
     return int([l for l in open("/proc/self/status") if l.startswith(field)][0].split()[1])
 a = rss()
-from canrls.config import AppConfig
+from canrls.processor.config import AppConfig
 from canrls.live.daemon import Daemon, DaemonSettings
 c = rss()
 cfg = AppConfig()

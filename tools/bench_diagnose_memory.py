@@ -32,7 +32,7 @@ from pathlib import Path
 RUN = """
 import resource, sys, time, tracemalloc
 from canrls.cli import main as cli
-import canrls.diagnosis.analysis, canrls.replay  # imported before the tracing starts
+import canrls.diagnosis.analysis, canrls.processor.replay  # imported before the tracing starts
 traced = sys.argv[1] == "traced"
 if traced:
     tracemalloc.start()

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from canrls.can.encoder import FeedbackEncoder
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, read_frames, write_candump
 from canrls.can.protocol import Protocol
@@ -35,7 +36,7 @@ from canrls.can.protocol import Protocol
 def frames(duration: float, t0: float, dt: float = 1e-3, chunk: int = 65536
            ) -> Iterator[FrameBlock]:
     """Feedback frames of a sine speed profile, ``chunk`` periods at a time."""
-    enc = Protocol.load().encoder(clip=True, stagger=1e-4)
+    enc = FeedbackEncoder(Protocol.load(), clip=True, stagger=1e-4)
     n = int(round(duration / dt))
     for k0 in range(0, n, chunk):
         k = np.arange(k0, min(n, k0 + chunk), dtype=np.float64)
@@ -62,8 +63,8 @@ def read_rate(path: Path, repeat: int) -> tuple[float, int, int]:
 
 def fit_rate(path: Path, repeat: int) -> tuple[float, int]:
     """(best frames/s of ``fit_log``, samples used)."""
-    from canrls.config import AppConfig
-    from canrls.replay import fit_log, prepare
+    from canrls.processor.config import AppConfig, prepare
+    from canrls.processor.replay import fit_log
 
     protocol, model, settings = prepare(AppConfig())
     best = math.inf

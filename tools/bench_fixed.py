@@ -7,7 +7,7 @@ extension ``canrls._fixed``, the default; ``spec``: the compiled specification,
 per second of the per-sample path (``FixedRLS.update``, one Python call per sample) and
 of the batch path (``FixedRLS.run`` over a block, ``record=False``), each the best of
 several repeats. The target is >= 3 M
-updates/s in batch at n = 8. Then runs :func:`canrls.estimation.fixed_sweep.sweep` on a drive-like
+updates/s in batch at n = 8. Then runs :func:`canrls.estimation.fixed.sweep.sweep` on a drive-like
 regression and prints its table.
 
 Usage::
@@ -25,8 +25,9 @@ import time
 
 import numpy as np
 
-from canrls.estimation.fixed import FixedConfig, FixedRLS
-from canrls.estimation.fixed_sweep import sweep
+from canrls.estimation.fixed.estimator import FixedRLS
+from canrls.estimation.fixed.formats import FixedConfig
+from canrls.estimation.fixed.sweep import sweep
 
 TARGET_BATCH_N8 = 3e6
 
@@ -61,7 +62,7 @@ def bench(n: int, samples: int, repeats: int, backend: str = "auto") -> tuple[fl
 
 
 def drive_data(N: int, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised drive-like regression (as in tests/test_fixed.py)."""
+    """Normalised drive-like regression (as in tests/estimation/test_fixed.py)."""
     rng = np.random.default_rng(seed)
     t = np.arange(N) * 1e-3
     f = np.array([0.23, 0.71, 1.9, 3.7])

@@ -32,7 +32,7 @@ from canrls.fleet.cluster import dask_client
 from canrls.fleet.history import History
 from canrls.fleet.ingest import JobConfig, ingest
 from canrls.fleet.sources import from_manifest
-from canrls.replay import fit_logs
+from canrls.processor.replay import fit_logs
 from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
 
 

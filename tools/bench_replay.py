@@ -64,9 +64,9 @@ from typing import Any
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import read_frames, write_candump
-from canrls.config import AppConfig
 from canrls.processor import FrameProcessor
-from canrls.replay import fit_log, prepare
+from canrls.processor.config import AppConfig, prepare
+from canrls.processor.replay import fit_log
 
 EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"
 KT = 0.1  # the standard scenario's torque constant [N·m/A]

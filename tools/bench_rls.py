@@ -143,7 +143,8 @@ def bench_float(n: int, rows: int, padasip_rows: int, lam: float, repeat: int) -
 
 def bench_fixed(n: int, rows: int, lam: float, repeat: int) -> None:
     """Print the fixed-point section for one n: the same data, quantised at the boundary."""
-    from canrls.estimation.fixed import FixedConfig, FixedRLS
+    from canrls.estimation.fixed.estimator import FixedRLS
+    from canrls.estimation.fixed.formats import FixedConfig
 
     Phi, Y = make_data(rows, n, seed=n)
     scale = float(np.abs(Phi).max())

@@ -3,7 +3,7 @@
 
 A measurement, not a test (docs/reliability.md, *Why not "within 2 sigma of the
 twin"*). The simulated drive (``canrls.sim``) runs through the float pipeline of
-``canrls fit`` (``canrls.replay.fit_frames``) once without faults (the twin), then
+``canrls fit`` (``canrls.processor.replay.fit_frames``) once without faults (the twin), then
 with the same ``--fraction`` of its control periods taken away (both frames of each,
 at seeded random places, far apart on average: single-sample gaps) in four ways:
 
@@ -42,10 +42,10 @@ from collections.abc import Iterator
 import numpy as np
 
 from canrls.can.frameblock import FrameBlock
-from canrls.config import AppConfig
+from canrls.core.signals import Signals
 from canrls.estimation import selection
-from canrls.replay import fit_frames, prepare
-from canrls.signals import Signals
+from canrls.processor.config import AppConfig, prepare
+from canrls.processor.replay import fit_frames
 from canrls.sim.scenario import Simulator, scenario
 
 EFFECTS = "inertia,viscous,coulomb,offset,unbalance,cogging:6"

@@ -1,16 +1,18 @@
-"""Generate what the C kernel (src/canrls/c/) is built and checked with, from the Python spec.
+"""Generate what the C kernel (src/canrls/c/firmware/) is built and checked with, from the
+Python spec.
 
-The C text of a plan (:func:`canrls.c_export.plan_c`) is the package's, which
+The C text of a plan (:func:`canrls.firmware.kernel_export.plan_c`) is the package's, which
 ``canrls export-c`` writes for a user's model; this script adds the test vectors and
 the sample streams of ``make target``.
 
-The Python :class:`canrls.estimation.fixed.FixedRLS` is the specification; this script
+The Python :class:`canrls.estimation.fixed.estimator.FixedRLS` is the specification; this script
 only writes its integers in forms C reads:
 
 * :func:`plan_c` -- the plan (``FixedRLS.constants``) as a ``canrls_plan_q31`` initialiser;
-* :func:`write_vectors` -- a test-vector file for ``target/host/vector_driver.c`` (state
-  taken from ``FixedRLS.state()``, the samples, a frozen flag per sample) and the lines the
-  driver must print, computed by the Python estimator step by step;
+* :func:`write_vectors` -- a test-vector file for
+  ``src/canrls/c/firmware/drivers/vector_driver.c`` (state taken from
+  ``FixedRLS.state()``, the samples, a frozen flag per sample) and the lines the driver
+  must print, computed by the Python estimator step by step;
 * :func:`stream_header` -- a C header with a plan, an initial state, a sample stream and the
   final estimate Python reaches on it (the bare-metal example checks it);
 * :func:`log_stream` -- the quantised ``(phi, y)`` rows the pipeline hands ``FixedRLS`` when it
@@ -34,9 +36,10 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from canrls.c_export import PLAN_64, plan_c  # noqa: F401 - PLAN_64 re-exported
-from canrls.ctext import c_comment, c_float, c_identifier, c_int, c_uint
-from canrls.estimation.fixed import SITES, FixedConfig, FixedRLS
+from canrls.core.ctext import c_comment, c_float, c_identifier, c_int, c_uint
+from canrls.estimation.fixed.estimator import FixedRLS
+from canrls.estimation.fixed.formats import SITES, FixedConfig
+from canrls.firmware.kernel_export import PLAN_64, plan_c  # noqa: F401 - PLAN_64 re-exported
 
 IntArray = npt.NDArray[np.int64]
 
@@ -144,9 +147,8 @@ def log_stream(log: Path | None = None, effects: str = "inertia,viscous,coulomb,
     estimator run over them must reach the pipeline's own final estimate (checked).
     """
     from canrls.can.logs import write_candump
-    from canrls.config import AppConfig
     from canrls.processor import FrameProcessor
-    from canrls.replay import prepare
+    from canrls.processor.config import AppConfig, prepare
 
     with tempfile.TemporaryDirectory() as tmp:
         if log is None:

@@ -68,9 +68,10 @@ import numpy as np
 from can.interfaces import virtual as _virtual
 
 from canrls.can.frames import FrameDecoder, ParameterReport, frame_ids
-from canrls.config import AppConfig, prepare
-from canrls.errors import CanrlsError
-from canrls.live.daemon import Daemon, DaemonSettings
+from canrls.core.errors import CanrlsError
+from canrls.live.daemon import Daemon
+from canrls.live.settings import DaemonSettings
+from canrls.processor.config import AppConfig, prepare
 from canrls.sim.faults import FaultLog, FaultSpec
 from canrls.sim.scenario import Simulator, scenario
 

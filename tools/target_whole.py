@@ -3,13 +3,13 @@
 For n = 4, 6 and 8 parameters (inertia, viscous, Coulomb, offset; with unbalance; with
 cogging:6), the simulated drive is written as a log, identified by ``canrls fit
 --save-model`` and exported by ``canrls export-c --vectors LOG``; the exported files are
-built into the bare-metal example ``target/example/target_main.c`` (QEMU
+built into the bare-metal example ``src/canrls/c/firmware/example/target_main.c`` (QEMU
 ``mps2-an386``), which replays every frame through ``canrls_target_frame`` and exits 0
 only if every state record and every published frame equals the specification's. Then:
 
 * **instructions per sample over the whole log, start-up included**: QEMU runs one
   instruction per translation block without chaining (``-singlestep -d exec,nochain``)
-  and its log, streamed through ``target/host/count_exec.c``, gives each sample's
+  and its log, streamed through ``src/canrls/c/firmware/drivers/count_exec.c``, gives each sample's
   instructions (every ``canrls_target_frame`` call since the last sample: decode, pair,
   filter, select, rescale, update) and each ``canrls_update_q31``'s; mean and the
   worst sample, at ``-O2`` with ``-DCANRLS_N=n``;
@@ -34,9 +34,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-C_DIR = ROOT / "src" / "canrls" / "c"
-EXAMPLE = ROOT / "target" / "example"
-COUNTER = ROOT / "target" / "host" / "count_exec.c"
+C_DIR = ROOT / "src" / "canrls" / "c" / "firmware"
+EXAMPLE = ROOT / "src" / "canrls" / "c" / "firmware" / "example"
+COUNTER = ROOT / "src" / "canrls" / "c" / "firmware" / "drivers" / "count_exec.c"
 CC = "arm-none-eabi-gcc"
 M4 = ["-mcpu=cortex-m4", "-mthumb", "-std=c99", "-Wall", "-Wextra", "-Werror"]
 QEMU = ["qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none",

@@ -2,7 +2,7 @@
 
 Private to :mod:`canrls.can.logs`, which keeps a per-line Python path (following
 python-can) for whatever these do not take. The loops are C (``canrls._candump``,
-``src/canrls/c/candump.c``):
+``src/canrls/c/host/candump.c``):
 
 parse
     ``(SECONDS.FRACTION) CHANNEL ID#DATA`` with a 3- or 8-digit hex ID and 0..8 data
@@ -28,20 +28,13 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _candump
-from canrls.can import times
 
-__all__ = ["parse", "format_lines", "CAN_ERR_FLAG", "EFF_MASK", "MAX_TIMESTAMP"]
+__all__ = ["parse", "format_lines", "CAN_ERR_FLAG", "EFF_MASK"]
 
 #: Linux SocketCAN error-frame flag in the 32-bit CAN ID (candump writes it in the ID).
 CAN_ERR_FLAG: int = _candump.CAN_ERR_FLAG
 EFF_MASK: int = _candump.EFF_MASK
 
-#: Largest timestamp [s] a log line may carry (:data:`canrls.can.times.MAX_TIMESTAMP`,
-#: the one bound of live and offline): a line beyond it (``(1e300)``, ``(inf)``, a
-#: corrupted time) is not a frame of this log but a bad line
-#: (:class:`~canrls.errors.LogFormatError` naming the line, skippable with
-#: ``skip_bad_lines``); the compiled parser hands such lines to the per-line path.
-MAX_TIMESTAMP: float = times.MAX_TIMESTAMP
 
 
 def parse(buf: npt.NDArray[np.uint8], stop: int, final: bool,

@@ -12,7 +12,7 @@ import numpy.typing as npt
 
 from canrls import _can
 from canrls.can.e2e import CRC8_TABLE
-from canrls.errors import DecodeError, SignalError
+from canrls.core.errors import DecodeError, SignalError
 
 __all__ = ["CRC8_POWERS", "EncodeError", "MessageCodec", "PHYS_FLOAT", "PHYS_IDENTITY", "PHYS_INT",
            "RoleInfo", "SignalCodec", "crc_vector", "format_value"]
@@ -28,7 +28,7 @@ PHYS_IDENTITY, PHYS_INT, PHYS_FLOAT = 0, 1, 2
 class EncodeError(DecodeError):
     """A value cannot be encoded into a frame (outside the DBC range or the bit field, NaN).
 
-    A :class:`~canrls.errors.DecodeError` with ``reason`` ``"range"`` or ``"nan"``, so
+    A :class:`~canrls.core.errors.DecodeError` with ``reason`` ``"range"`` or ``"nan"``, so
     that callers treat it like the matching rejection on the receiving side.
     """
 
@@ -291,7 +291,7 @@ def format_value(x: float) -> str:
 
 def _crc_powers() -> U8:
     """T, T^2, ..., T^8 of the CRC table T (:data:`canrls.can.e2e.CRC8_TABLE`), rows of a
-    (8, 256) array: the C loops look bytes up in parallel (``src/canrls/c/can.c``)."""
+    (8, 256) array: the C loops look bytes up in parallel (``src/canrls/c/host/can.c``)."""
     powers = np.empty((8, 256), np.uint8)
     powers[0] = CRC8_TABLE
     for k in range(1, 8):

@@ -43,7 +43,7 @@ REJECT_REASONS: tuple[str, ...] = (
     "sequence",     # counter jumped further ahead than the time since the last frame allows
     "nan",          # a float signal is NaN or infinite
     "range",        # a physical value lies outside the DBC [minimum, maximum]
-    "time",         # the receive time is no time of the stream (canrls.can.times): judged
+    "time",         # the receive time is no time of the stream (canrls.processor.times): judged
                     # first, by the front end, before decoding; listed last, so that the
                     # codes of the others stay
 )
@@ -190,7 +190,7 @@ def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
                     state: I64, state_t: F64, skip: npt.NDArray[np.bool_] | None = None,
                     ) -> tuple[npt.NDArray[np.int8], I64]:
     """Classify alive counters one frame at a time (``counter_step`` in
-    ``src/canrls/c/can.c``), carrying state across blocks: state = [last counter (-1:
+    ``src/canrls/c/host/can.c``), carrying state across blocks: state = [last counter (-1:
     none yet), run, counter of the last frame of the run, skipped, trusted]; state_t =
     [time of the last accepted frame]. Returns the status and the frames lost before
     each frame. Frames marked in ``skip`` (rejected before the counter check: length,
@@ -208,7 +208,7 @@ def _counter_kernel(c: I64, t: F64, mod: int, window: int, period: float,
       arrives a period late and says nothing of the next one's time);
     * otherwise the frame is accepted: gap = d, plus k M when the time implies k =
       floor((dt / T - d) / M + 0.5) > 0 whole wraps and agrees with them, |dt / T - d -
-      k M| < 1/2 (only for dt up to 1 s, :data:`canrls.can.pairing.FORWARD_STEP`: a
+      k M| < 1/2 (only for dt up to 1 s, :data:`canrls.processor.pairing.FORWARD_STEP`: a
       longer jump is a clock step or a silence as long, and the time says nothing of the
       frames lost in it; a shorter one off the wraps by more is a clock step too), and
       ``lost = max(0, gap - 1 - skipped)``: the frames of the message rejected since the
@@ -419,7 +419,7 @@ def _fast_kernel(t: F64, arbitration_id: npt.NDArray[np.uint32],
 
 
 class Decoder:
-    """Stateful strict decoder of the mapped feedback messages (see :meth:`Protocol.decoder`).
+    """Stateful strict decoder of the mapped feedback messages (``Decoder(protocol)``).
 
     Running totals: ``rejected`` (:class:`RejectCounts`), ``lost`` (message -> frames
     missing by counter), ``accepted`` (message -> frames passed on), ``foreign``

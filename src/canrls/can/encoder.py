@@ -13,7 +13,7 @@ from canrls.can.codec import (
     crc_vector,
 )
 from canrls.can.frameblock import FrameBlock
-from canrls.can.units import axis_of
+from canrls.core.units import axis_of
 
 if TYPE_CHECKING:
     from canrls.can.protocol import Protocol

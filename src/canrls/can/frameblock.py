@@ -2,7 +2,7 @@
 
 Log readers, the live bus listener and the simulated drive all produce
 :class:`FrameBlock` objects; strict decoding turns them into
-:class:`~canrls.signals.Signals`. Arrays rather than one object per frame keep
+:class:`~canrls.core.signals.Signals`. Arrays rather than one object per frame keep
 the offline replay fast, and the same code serves the live path (a block of
 whatever frames arrived).
 """
@@ -16,7 +16,7 @@ import can
 import numpy as np
 import numpy.typing as npt
 
-from canrls.errors import DecodeError
+from canrls.core.errors import DecodeError
 
 __all__ = ["FrameBlock", "MAX_DATA_LENGTH"]
 

@@ -22,36 +22,17 @@ from typing import Any
 import can
 import cantools
 
-from canrls.can.protocol import DEFAULT_DBC, EncodeError, SignalMapping, load_dbc
-from canrls.effect_names import EffectId, EquationId, parse_effect_name
-from canrls.errors import CommandError, ConfigError, EffectError
+from canrls.can.codec import EncodeError
+from canrls.can.mapping import SignalMapping
+from canrls.can.protocol import DEFAULT_DBC, load_dbc
+from canrls.core.effect_names import EffectId, EquationId, parse_effect_name
+from canrls.core.errors import CommandError, ConfigError, EffectError
 
-__all__ = [
-    "EffectId",
-    "EquationId",
-    "CommandCode",
-    "CommandResult",
-    "COMPONENTS",
-    "FLAG_NAMES",
-    "REJECT_FIELDS",
-    "REJECT_WRAP",
-    "ParameterReport",
-    "StatusReport",
-    "Command",
-    "CommandAck",
-    "CommandFrameError",
-    "parameter_name",
-    "parse_effect",
-    "encode_parameters",
-    "encode_param_info",
-    "encode_status",
-    "encode_command",
-    "encode_ack",
-    "decode_command",
-    "FrameDecoder",
-    "FrameIds",
-    "frame_ids",
-]
+__all__ = ["CommandCode", "CommandResult", "COMPONENTS", "FLAG_NAMES", "REJECT_FIELDS",
+           "REJECT_WRAP", "ParameterReport", "StatusReport", "Command", "CommandAck",
+           "CommandFrameError", "parameter_name", "parse_effect", "encode_parameters",
+           "encode_param_info", "encode_status", "encode_command", "encode_ack", "decode_command",
+           "FrameDecoder", "FrameIds", "frame_ids"]
 
 
 class CommandCode(IntEnum):
@@ -107,8 +88,8 @@ _FLAG_SIGNALS = ("Windup", "LowExcitation", "Saturation", "FrameLoss", "Frozen",
 #: outside the DBC range or NaN), dropped by
 #: pairing (``unpaired``: no partner, late, duplicated), put back in order
 #: (``reordered``), and clock events (``clock_steps``: back, or forward beyond
-#: :data:`canrls.can.pairing.FORWARD_STEP`; ``gaps``); last ``time``, frames rejected for
-#: their receive time (:mod:`canrls.can.times`), which ``RlsHealth`` carries
+#: :data:`canrls.processor.pairing.FORWARD_STEP`; ``gaps``); last ``time``, frames rejected for
+#: their receive time (:mod:`canrls.processor.times`), which ``RlsHealth`` carries
 #: (``TimeRejects``: RlsRejects is full). They wrap at :data:`REJECT_WRAP`.
 REJECT_FIELDS: tuple[str, ...] = ("crc", "malformed", "repeated", "stale", "range", "unpaired",
                                   "reordered", "clock_steps", "gaps", "time")
@@ -146,7 +127,7 @@ def parameter_name(effect: EffectId, component: int, order: int = 0,
 def parse_effect(name: str) -> tuple[EffectId, int]:
     """``"cogging:24"`` -> (COGGING, 24); ``"viscous"`` -> (VISCOUS, 0); ``"user:3"`` -> (USER, 3).
 
-    The grammar of :func:`canrls.effect_names.parse_effect_name`, with the user term given
+    The grammar of :func:`canrls.core.effect_names.parse_effect_name`, with the user term given
     by its 1-based index (as the ``Order`` field carries it). Raises
     :class:`CommandFrameError` (result UNKNOWN_EFFECT / BAD_VALUE) for an unknown name or
     a missing / malformed order, or an order beyond the 16-bit ``Order`` field.
@@ -698,7 +679,7 @@ def encode_ack(command: int, result: CommandResult | int, counter: int, *,
 def decode_command(msg: can.Message, *, dbc: str | Path | None = None) -> Command:
     """Validate and decode an RlsCommand frame.
 
-    Raises :class:`CommandFrameError` (a :class:`~canrls.errors.CommandError`) with
+    Raises :class:`CommandFrameError` (a :class:`~canrls.core.errors.CommandError`) with
     ``.result``: MALFORMED for another ID, a remote/error frame or a DLC other than 8;
     UNKNOWN_COMMAND for an unknown command code; UNKNOWN_EFFECT for an effect id
     outside 1..9 (add/remove); BAD_VALUE for a missing or spurious order (cogging and

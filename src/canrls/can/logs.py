@@ -16,13 +16,13 @@ Formats
     read through python-can's readers, packed into blocks.
 
 Reading streams in blocks of ``chunk_size`` frames, so memory stays flat in the
-log's length. A line that cannot be parsed is a :class:`~canrls.errors.LogFormatError`
+log's length. A line that cannot be parsed is a :class:`~canrls.core.errors.LogFormatError`
 naming the file and line number, unless ``skip_bad_lines=True`` (the named
 opt-out), in which case it is counted in :attr:`LogReadStats.bad_lines`. A timestamp
-that is not a time (:func:`canrls.can.times.is_time`: not finite or beyond
-:data:`~canrls.can.times.MAX_TIMESTAMP`, ``(inf)``, ``(1e300)``) makes its line bad: it
+that is not a time (:func:`canrls.core.checks.is_time`: not finite or beyond
+:data:`~canrls.core.checks.MAX_TIMESTAMP`, ``(inf)``, ``(1e300)``) makes its line bad: it
 is no time of a frame, and read as one it would put every later frame out of time. The
-live path judges its frames by the same rule (:mod:`canrls.can.times`).
+live path judges its frames by the same rule (:mod:`canrls.processor.times`).
 """
 
 from __future__ import annotations
@@ -40,13 +40,13 @@ import can
 import numpy as np
 import numpy.typing as npt
 
-from canrls.background import Background
 from canrls.can import candump
 from canrls.can.frameblock import MAX_DATA_LENGTH, FrameBlock
-from canrls.can.times import MAX_TIMESTAMP, describe, is_time
 from canrls.can.writers import writer_on
-from canrls.errors import ConfigError, LogFormatError
-from canrls.files import MAX_LINE, LineBound, atomic_writer, check_path, open_regular
+from canrls.core.background import Background
+from canrls.core.checks import MAX_TIMESTAMP, describe_time, is_time
+from canrls.core.errors import ConfigError, LogFormatError
+from canrls.core.files import MAX_LINE, LineBound, atomic_writer, check_path, open_regular
 
 __all__ = ["LogReadStats", "read_frames", "write_candump", "write_log", "check_channel",
            "CAN_ERR_FLAG", "MAX_CHANNEL"]
@@ -157,7 +157,7 @@ def _parse_candump(f: BinaryIO, path: Path, chunk_size: int, skip_bad: bool,
     The compiled parser (:func:`canrls.can.candump.parse`) takes every line of the common
     layout; the others come back as "slow" lines with the row they precede, go through
     :func:`_parse_candump_line` and are inserted there, so the file's order is kept. A
-    line longer than :data:`~canrls.files.MAX_LINE` is a bad line: the buffer never
+    line longer than :data:`~canrls.core.files.MAX_LINE` is a bad line: the buffer never
     grows for it (skipped with ``skip_bad``, unread beyond the bound).
     """
     cap = max(1, int(chunk_size))
@@ -273,7 +273,7 @@ def _parse_candump_line(text: str) -> can.Message:
         raise ValueError("expected '(timestamp) channel frame'")
     timestamp = float(parts[0][1:-1])
     if not is_time(timestamp):  # inf, nan, 1e300: no time of a frame
-        raise ValueError(describe(timestamp))
+        raise ValueError(describe_time(timestamp))
     channel = parts[1]
     frame = parts[2]
     if "#" not in frame:
@@ -305,8 +305,8 @@ def _parse_candump_line(text: str) -> can.Message:
 
 def _python_can_reader(f: BinaryIO, path: Path) -> can.io.generic.MessageReader:
     """python-can's reader for the suffix of ``path``, reading ``f``: a text format
-    through :class:`~canrls.files.LineBound` (no line longer than
-    :data:`~canrls.files.MAX_LINE` is buffered), a binary one straight."""
+    through :class:`~canrls.core.files.LineBound` (no line longer than
+    :data:`~canrls.core.files.MAX_LINE` is buffered), a binary one straight."""
     from can.io.generic import BinaryIOMessageReader, TextIOMessageReader
     from can.io.player import MESSAGE_READERS
 
@@ -466,7 +466,7 @@ def _candump_bytes(block: FrameBlock, channel: bytes) -> bytes:
 def check_channel(channel: object, what: str = "channel") -> str:
     """``channel`` if it is a channel name the candump reader takes back: 1 to
     :data:`MAX_CHANNEL` printable ASCII characters, no space; else
-    :class:`~canrls.errors.LogFormatError` naming ``what``."""
+    :class:`~canrls.core.errors.LogFormatError` naming ``what``."""
     if not (isinstance(channel, str) and 0 < len(channel) <= MAX_CHANNEL
             and all("!" <= c <= "~" for c in channel)):
         raise LogFormatError(f"{what} {channel!r}: a channel name in a CAN log is 1 to "
@@ -478,7 +478,7 @@ def check_channel(channel: object, what: str = "channel") -> str:
 def write_candump(path: str | os.PathLike[str], blocks: Iterable[FrameBlock],
                   channel: str = "can0", *, what: str | None = None) -> int:
     """Write blocks as a candump ``.log`` file (atomically: a fresh temporary beside it,
-    then a rename; see :func:`canrls.files.atomic_writer`).
+    then a rename; see :func:`canrls.core.files.atomic_writer`).
 
     Returns the number of frames written.
     """

@@ -9,9 +9,9 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from canrls.can.units import RATING_OPTIONS, Ratings
-from canrls.errors import ConfigError
-from canrls.signals import ROLES
+from canrls.core.errors import ConfigError
+from canrls.core.signals import ROLES
+from canrls.core.units import RATING_OPTIONS, Ratings
 
 __all__ = ["REQUIRED_ROLES", "EFFORT_ROLES", "RoleSpec", "SignalMapping"]
 
@@ -86,7 +86,7 @@ class SignalMapping:
         ``crc``. ``counter``/``crc`` are a signal name of the role's message or
         ``false``. A ``messages`` table may give ``counter``/``crc`` per message;
         ``rated_torque``, ``rated_current`` and ``increments_per_rev`` give the
-        :class:`~canrls.can.units.Ratings`::
+        :class:`~canrls.core.units.Ratings`::
 
             current = "Feedback.Iq"
             speed = { signal = "Feedback.Speed", unit = "rpm", counter = "Alive", crc = false }

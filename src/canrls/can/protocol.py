@@ -1,10 +1,14 @@
 """The feedback protocol: a DBC (:func:`load_dbc`, the one reader), the signal mapping and
-the compiled codec of each mapped message, with the strict decoder and the encoder it makes.
+the compiled codec of each mapped message. The strict decoder
+(:class:`~canrls.can.decoder.Decoder`) and the encoder
+(:class:`~canrls.can.encoder.FeedbackEncoder`) each take a protocol:
 
+>>> from canrls.can.decoder import Decoder
+>>> from canrls.can.encoder import FeedbackEncoder
 >>> proto = Protocol.load()                       # default DBC and mapping
 >>> enc = FeedbackEncoder(proto)
 >>> block = enc.encode([0.0, 0.001], current=[1.5, 1.6], speed=[10.0, 10.1])
->>> dec = proto.decoder().decode(block)
+>>> dec = Decoder(proto).decode(block)
 >>> dec["DriveCurrent"].values["current"].tolist()
 [1.5, 1.6]
 """
@@ -22,24 +26,18 @@ from typing import Any
 import cantools
 
 from canrls.can.codec import (
-    EncodeError,
     MessageCodec,
     RoleInfo,
     SignalCodec,
 )
-from canrls.can.decoder import REJECT_REASONS, DecodedFrames, Decoder, MessageFrames, RejectCounts
-from canrls.can.encoder import FeedbackEncoder
-from canrls.can.mapping import EFFORT_ROLES, REQUIRED_ROLES, RoleSpec, SignalMapping
-from canrls.can.period import positive_period
-from canrls.can.units import axis_of, si_factor
-from canrls.errors import ConfigError, SignalError
-from canrls.files import MAX_DBC_BYTES, read_bytes
-from canrls.signals import ROLES
+from canrls.can.mapping import EFFORT_ROLES, REQUIRED_ROLES, SignalMapping
+from canrls.core.checks import positive_period
+from canrls.core.errors import ConfigError, SignalError
+from canrls.core.files import MAX_DBC_BYTES, read_bytes
+from canrls.core.signals import ROLES
+from canrls.core.units import axis_of, si_factor
 
-__all__ = ["DEFAULT_DBC", "MAX_MESSAGE_BYTES", "load_dbc", "REQUIRED_ROLES", "EFFORT_ROLES",
-           "REJECT_REASONS", "RoleSpec", "SignalMapping", "SignalCodec", "MessageCodec",
-           "Protocol", "RejectCounts", "MessageFrames", "DecodedFrames", "Decoder", "EncodeError",
-           "FeedbackEncoder"]
+__all__ = ["DEFAULT_DBC", "MAX_MESSAGE_BYTES", "load_dbc", "Protocol"]
 
 
 #: The DBC shipped with canrls (same content as ``dbc/canrls.dbc`` in the repository).
@@ -53,7 +51,7 @@ def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
     """The cantools database of the DBC at ``path`` (strict) and the file's bytes.
 
     The one DBC reader of canrls: a regular file of at most
-    :data:`~canrls.files.MAX_DBC_BYTES`, whose every message fits a CAN frame
+    :data:`~canrls.core.files.MAX_DBC_BYTES`, whose every message fits a CAN frame
     (:data:`MAX_MESSAGE_BYTES`) and every signal its message, checked on cantools'
     tokens before cantools builds anything (its strict check is quadratic in a start
     bit, its codec linear in a length); then every signal's scale, offset and limits
@@ -285,19 +283,11 @@ class Protocol:
     @property
     def axis(self) -> str | None:
         """``"rotary"`` or ``"linear"`` from the DBC units of the speed and position
-        signals (:func:`~canrls.can.units.axis_of`); None when the units do not say."""
+        signals (:func:`~canrls.core.units.axis_of`); None when the units do not say."""
         for role in ("speed", "position"):
             if role in self.roles and (ax := axis_of(self.roles[role].unit)) is not None:
                 return ax
         return None
-
-    def decoder(self) -> Decoder:
-        """A new stateful strict decoder (counters carried across blocks)."""
-        return Decoder(self)
-
-    def encoder(self, **kwargs: Any) -> FeedbackEncoder:
-        """A new :class:`FeedbackEncoder` (keyword arguments passed on)."""
-        return FeedbackEncoder(self, **kwargs)
 
 
 def _resolve(db: Any, path: Path, is_default: bool, mp: SignalMapping,

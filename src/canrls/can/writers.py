@@ -1,7 +1,7 @@
 """python-can's log writers on a file canrls opened itself (``canrls run --record``).
 
 python-can opens a writer's file by name, following a link planted there; here the
-file is opened by :func:`canrls.files.open_for_writing` (a regular file only, never
+file is opened by :func:`canrls.core.files.open_for_writing` (a regular file only, never
 through a link) and handed to the writer of its suffix. Imports no numba (the daemon's
 path).
 """
@@ -18,8 +18,8 @@ from typing import BinaryIO
 from can.io.generic import BinaryIOMessageWriter, MessageWriter, TextIOMessageWriter
 from can.io.logger import MESSAGE_WRITERS
 
-from canrls.errors import ConfigError
-from canrls.files import check_writable, open_for_writing
+from canrls.core.errors import ConfigError
+from canrls.core.files import check_writable, open_for_writing
 
 __all__ = ["RECORD_SUFFIXES", "check_record_path", "open_writer", "writer_on"]
 

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # numpy and cantools load with the configuration: not for --help
-    from canrls.config import AppConfig, Overrides
+    from canrls.processor.config import AppConfig, Overrides
 
 __all__ = ["add_model_options", "add_bus_options", "add_progress_option", "config_path",
            "overrides", "setup", "print_json", "Progress"]
@@ -123,7 +123,7 @@ def overrides(args: argparse.Namespace) -> Overrides:
     :func:`add_bus_options` set: the one place the arguments become configuration."""
     from pathlib import Path
 
-    from canrls.config import Overrides
+    from canrls.processor.config import Overrides
 
     def num(name: str) -> float | None:
         return getattr(args, name, None)  # a number as typed (errors quote it so)
@@ -152,7 +152,7 @@ def config_path(args: argparse.Namespace) -> str | None:
 
 def setup(args: argparse.Namespace) -> AppConfig:
     """The configuration file with the command line applied on top."""
-    from canrls.config import load_config
+    from canrls.processor.config import load_config
 
     return load_config(getattr(args, "config", None), overrides(args))
 

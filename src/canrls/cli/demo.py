@@ -30,12 +30,12 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TextIO
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:
     from canrls.can.protocol import Protocol
     from canrls.estimation.model import Model
-    from canrls.estimation.pipeline import EstimatorSettings
+    from canrls.estimation.settings import EstimatorSettings
 
 __all__ = ["add_subparser", "run", "run_demo", "DemoResult"]
 
@@ -148,9 +148,10 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     import can
 
     from canrls.can.frames import encode_command, parse_effect
-    from canrls.config import AppConfig, prepare
-    from canrls.live.daemon import Daemon, DaemonSettings
+    from canrls.live.daemon import Daemon
     from canrls.live.monitor import LibraryUnits, Monitor
+    from canrls.live.settings import DaemonSettings
+    from canrls.processor.config import AppConfig, prepare
     from canrls.sim.plant import parse_effects
     from canrls.sim.scenario import scenario
 

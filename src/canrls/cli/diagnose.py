@@ -39,7 +39,7 @@ def _order(text: str) -> int:
 
 
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
-    from canrls.diagnosis.analysis import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT
+    from canrls.diagnosis.candidates import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT
 
     p = subparsers.add_parser(
         "diagnose", help="compare the model with a log: where it fails, which effect is missing",
@@ -70,9 +70,10 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canrls.core.errors import EstimatorError
     from canrls.diagnosis.analysis import diagnose_log
-    from canrls.errors import EstimatorError
-    from canrls.replay import prepare, too_few_samples
+    from canrls.processor.config import prepare
+    from canrls.processor.replay import too_few_samples
 
     if args.report:
         # fail before the long part when the figures cannot be drawn
@@ -91,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     page = rep.write_html(args.report) if args.report else None
     saved = None
     if args.save_model:
-        from canrls.modelfile import SavedModel
+        from canrls.processor.modelfile import SavedModel
 
         final = rep.after if rep.after is not None else rep.before
         saved = SavedModel.from_parts(final.model, final.estimates, None, cfg,

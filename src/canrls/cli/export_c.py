@@ -2,11 +2,11 @@
 
 Writes into ``--out`` the whole estimator (``canrls_target.h/.c``, the model's constants
 ``canrls_model.h/.c``: the drive's frames in, canrls' parameter frames out, in integers;
-:mod:`canrls.target.export`), the fixed-point RLS kernel (``canrls_fixed.h/.c``), the
+:mod:`canrls.firmware.target_export`), the fixed-point RLS kernel (``canrls_fixed.h/.c``), the
 configuration of the model's equations (``canrls_config.h/.c``: parameters, scaling, Q
 formats, the kernel's plan and prior), cantools' C codecs of canrls' parameter and
 command frames (``canrls_frames.h/.c``), a README and a Makefile; with ``--vectors``
-test vectors from logs and the host test that replays them (:mod:`canrls.c_export`).
+test vectors from logs and the host test that replays them (:mod:`canrls.firmware.kernel_export`).
 ``--model`` is a TOML configuration or a saved model (``canrls fit --save-model``).
 """
 
@@ -55,8 +55,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.c_export import export_c, load_source
-    from canrls.errors import ConfigError
+    from canrls.core.errors import ConfigError
+    from canrls.firmware.kernel_export import export_c, load_source
 
     if args.every < 1:
         raise ConfigError(f"--every {args.every}: must be at least 1")
@@ -65,9 +65,9 @@ def run(args: argparse.Namespace) -> int:
                           "(not --kernel-only)")
     tm = src = texts = None
     if not args.kernel_only:
-        from canrls.target.export import target_texts
-        from canrls.target.load import load, target_model
-        from canrls.target.model import TargetError
+        from canrls.firmware.load import load, target_model
+        from canrls.firmware.model import TargetError
+        from canrls.firmware.target_export import target_texts
 
         src = load(args.model, args.dt)
         # generated (or refused: a model the target cannot run, a log that cannot be
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     print(export_c(cfg, args.out, model=model, dt=args.dt, energy=energy, source=source,
                    what=f"--out {args.out}", frames=args.frames != "none"))
     if tm is not None and src is not None:
-        from canrls.target.export import export_target
+        from canrls.firmware.target_export import export_target
 
         print(export_target(src, args.out, tm, what=f"--out {args.out}", texts=texts))
     return 0

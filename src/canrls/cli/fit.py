@@ -4,7 +4,7 @@ Several logs identify one model from all of them (no segment is bridged; the
 calibration window is the start of the first log); ``--save-model FILE`` writes the
 model as JSON for ``canrls validate`` (docs/model_file.md); ``--json`` prints one object
 (README.md, "Command line"). ``--fixed target`` takes the fixed column from the target's
-integer path instead (:mod:`canrls.target.fit`, docs/target.md): the frames decoded,
+integer path instead (:mod:`canrls.firmware.fit`, docs/target.md): the frames decoded,
 filtered and estimated in integers as ``canrls export-c``'s C does, bit for bit.
 """
 
@@ -49,7 +49,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.replay import fit_logs, prepare
+    from canrls.processor.config import prepare
+    from canrls.processor.replay import fit_logs
 
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
@@ -57,12 +58,12 @@ def run(args: argparse.Namespace) -> int:
                    progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
     if args.fixed == "target":
-        from canrls.target.fit import target_fixed
+        from canrls.firmware.fit import target_fixed
 
         res = target_fixed(res, args.log, protocol, settings)
     saved = None
     if args.save_model:
-        from canrls.modelfile import SavedModel
+        from canrls.processor.modelfile import SavedModel
 
         saved = SavedModel.from_fit(res, cfg, list(args.log)).save(args.save_model)
     if args.json:

@@ -23,7 +23,7 @@ from canrls.cli._common import (
     print_json,
     setup,
 )
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run"]
 
@@ -69,11 +69,11 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.estimation.fixed_sweep import sweep
-    from canrls.estimation.pipeline import used_rows
+    from canrls.estimation.estimates import used_rows
+    from canrls.estimation.fixed.sweep import sweep
     from canrls.estimation.rls import RLS
     from canrls.processor import FrameProcessor
-    from canrls.replay import prepare
+    from canrls.processor.config import prepare
 
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         blocks.append(proc.process_samples(res.measured, record=True))
         source = f"scenario {args.scenario} ({args.duration:g} s, seed {args.seed})"
     else:
-        from canrls.replay import LogFiles
+        from canrls.processor.replay import LogFiles
 
         files = LogFiles(args.log, proc,
                          progress=Progress("replay", quiet=args.quiet).callback)

@@ -35,7 +35,7 @@ from canrls.cli._common import (
     overrides,
     print_json,
 )
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates", "text_summary"]
 
@@ -218,7 +218,7 @@ def run_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _count(n: int, noun: str) -> str:
+def _plural(n: int, noun: str) -> str:
     """``n noun``, the noun in the plural but for one."""
     return f"{n} {noun}{'' if n == 1 else 's'}"
 
@@ -227,7 +227,7 @@ def text_summary(fleet: Any, page: Path | None) -> str:
     """The text of ``canrls fleet report``: the counts, then every alert the count counts,
     drive by drive (ranked; each drive's most severe first)."""
     flagged = [d for d in fleet.drives if d.alerts]
-    head = (f"{_count(len(fleet.drives), 'drive')}, {_count(len(fleet.alerts), 'alert')} "
-            f"on {_count(len(flagged), 'drive')}" + (f"; report: {page}" if page else ""))
+    head = (f"{_plural(len(fleet.drives), 'drive')}, {_plural(len(fleet.alerts), 'alert')} "
+            f"on {_plural(len(flagged), 'drive')}" + (f"; report: {page}" if page else ""))
     return "".join([f"{head}\n", *(f"  {d.drive}: {a.message}\n"
                                     for d in flagged for a in d.alerts)])

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 from canrls import __version__
 from canrls.cli import early_signals
-from canrls.errors import CanrlsError
+from canrls.core.errors import CanrlsError
 
 #: Subcommand modules, in the order ``--help`` lists them.
 SUBCOMMANDS: tuple[str, ...] = (

@@ -24,7 +24,7 @@ import time
 from typing import Any
 
 from canrls.cli._common import add_bus_options, add_model_options, print_json, setup
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run"]
 
@@ -73,9 +73,9 @@ def run(args: argparse.Namespace) -> int:
     import can
 
     from canrls.can.frames import encode_command, frame_ids
-    from canrls.config import prepare
     from canrls.live.bus import bus_config, open_bus
     from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
+    from canrls.processor.config import prepare
 
     for name in ("duration", "interval", "timeout"):
         _positive(f"--{name}", getattr(args, name))

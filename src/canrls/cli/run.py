@@ -43,7 +43,7 @@ from canrls.cli._common import (
     overrides,
     print_json,
 )
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run", "build_daemon"]
 
@@ -102,10 +102,11 @@ def _daemon_table(cfg: Any, args: argparse.Namespace) -> dict[str, Any]:
 
 def build_daemon(args: argparse.Namespace) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started)."""
-    from canrls.config import AppConfig, load_config, prepare, read_toml
     from canrls.fleet.ingest import JobConfig
     from canrls.live.bus import bus_config
-    from canrls.live.daemon import Daemon, DaemonSettings
+    from canrls.live.daemon import Daemon
+    from canrls.live.settings import DaemonSettings
+    from canrls.processor.config import AppConfig, load_config, prepare, read_toml
 
     over = overrides(args)
     cfg = load_config(getattr(args, "config", None), over)

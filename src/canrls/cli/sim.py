@@ -29,7 +29,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run", "MAX_DURATION"]
 
@@ -103,11 +103,11 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 def check_args(args: argparse.Namespace) -> None:
     """The options' values, before anything is simulated or written."""
-    from canrls.can.candump import MAX_TIMESTAMP
     from canrls.can.logs import check_channel
     from canrls.can.writers import RECORD_SUFFIXES
-    from canrls.errors import LogFormatError
-    from canrls.files import check_writable
+    from canrls.core.checks import MAX_TIMESTAMP
+    from canrls.core.errors import LogFormatError
+    from canrls.core.files import check_writable
 
     if not (math.isfinite(args.duration) and 0 < args.duration <= MAX_DURATION):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of "

@@ -44,16 +44,16 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.config import AppConfig
     from canrls.diagnosis.validate import validate_logs
-    from canrls.modelfile import SavedModel
+    from canrls.processor.config import AppConfig
+    from canrls.processor.modelfile import SavedModel
 
     if args.report:
         # fail before the long part when the figures cannot be drawn
         from canrls.diagnosis.figures import require_matplotlib
 
         require_matplotlib()
-    from canrls.errors import ConfigError
+    from canrls.core.errors import ConfigError
 
     saved = SavedModel.load(args.model)
     # the model is the file's: options that would change it are refused, not ignored

@@ -17,6 +17,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.checks import positive_period
+from canrls.core.errors import ConfigError, EffectError
+from canrls.core.signals import Signals
+from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals
 from canrls.diagnosis.candidates import (
     DEFAULT_MAX_ORDER,
     MAX_ORDER_LIMIT,
@@ -34,30 +38,22 @@ from canrls.diagnosis.residual import (
 )
 from canrls.diagnosis.results import Analysis, EquationDiagnosis, Traces, decimation
 from canrls.diagnosis.samples import RecordSamples
-from canrls.errors import ConfigError, EffectError
 from canrls.estimation.effects import ELECTRICAL
-from canrls.estimation.fixed import FixedRLS
+from canrls.estimation.estimates import EquationFit, PipelineBlock
+from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.model import Model
-from canrls.estimation.pipeline import (
-    EquationEstimator,
-    EquationFit,
-    EstimatorSettings,
-    PipelineBlock,
-)
+from canrls.estimation.pipeline import EquationEstimator
 from canrls.estimation.rls import RLS
+from canrls.estimation.settings import EstimatorSettings
 from canrls.processor import (
     FrameCounts,
     PeriodInfo,
     SampleProcessor,
     StartInfo,
-    positive_period,
     sample_period,
 )
-from canrls.signals import Signals
-from canrls.spill import MaskPacker, PackedMask, SpilledSignals
 
-__all__ = ["DEFAULT_MAX_ORDER", "MAX_ORDER_LIMIT", "DiagnosisReport", "diagnose",
-           "diagnose_log"]
+__all__ = ["diagnose", "diagnose_log"]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
@@ -76,8 +72,8 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
              start: StartInfo | None = None) -> DiagnosisReport:
     """Diagnose ``model`` on samples: compare, locate the failures, rank the missing effects.
 
-    :param data: a :class:`~canrls.signals.Signals` block, or blocks (joined end to end),
-        or a record in a temporary file (:class:`~canrls.spill.SpilledSignals`,
+    :param data: a :class:`~canrls.core.signals.Signals` block, or blocks (joined end to end),
+        or a record in a temporary file (:class:`~canrls.core.spill.SpilledSignals`,
         read in slices).
     :param model: the model to diagnose.
     :param settings: estimator settings (default :class:`EstimatorSettings`).
@@ -128,16 +124,16 @@ def diagnose_log(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]
                  skip_bad_lines: bool = False) -> DiagnosisReport:
     """Diagnose ``model`` on one recorded CAN log or several (``.log`` candump, ``.asc``,
     ``.blf``, ...; several are one record, no segment bridged:
-    :class:`canrls.replay.LogFiles`).
+    :class:`canrls.processor.replay.LogFiles`).
 
     The frames are decoded and paired exactly as ``canrls fit`` does
-    (:func:`canrls.replay.read_logs`), so ``before`` holds the same parameters as
+    (:func:`canrls.processor.replay.read_logs`), so ``before`` holds the same parameters as
     ``canrls fit`` prints, bit for bit. The samples are kept in an anonymous temporary
-    file (:class:`~canrls.spill.SpilledSignals`: the statistics read them again in
+    file (:class:`~canrls.core.spill.SpilledSignals`: the statistics read them again in
     slices, the refit of ``add`` too), freed on return; in memory if the file cannot
     be made.
     """
-    from canrls.replay import read_logs
+    from canrls.processor.replay import read_logs
 
     if isinstance(paths, str | os.PathLike):
         paths = [paths]
@@ -190,7 +186,7 @@ def _run_in_chunks(proc: SampleProcessor,
                    signals: Signals | SpilledSignals) -> list[PackedMask]:
     """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
     each equation's recorded block, what the diagnosis reads: the used rows, packed as
-    they come (:class:`~canrls.spill.MaskPacker`: one bit a row, in a temporary file
+    they come (:class:`~canrls.core.spill.MaskPacker`: one bit a row, in a temporary file
     past a few hundred thousand rows); the times are the samples' own, ``signals.t``
     (checked block by block).
 

@@ -17,6 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.errors import ConfigError
+from canrls.core.signals import Signals
+from canrls.core.spill import PackedMask, SpilledSignals
 from canrls.diagnosis.residual import MIN_BIN, MIN_EXPLAINED, moments, residual_structure
 from canrls.diagnosis.results import (
     Binned,
@@ -30,26 +33,13 @@ from canrls.diagnosis.results import (
     value_text,
 )
 from canrls.diagnosis.samples import BLOCK, RecordSamples
-from canrls.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Cogging, Effect, UserTerm, library
-from canrls.estimation.model import Equation, Model
-from canrls.signals import Signals
-from canrls.spill import PackedMask, SpilledSignals
+from canrls.estimation.equation import Equation
+from canrls.estimation.model import Model
 
-__all__ = [
-    "DEFAULT_MAX_ORDER",
-    "MIN_EXPLAINED",
-    "MIN_TOTAL",
-    "MIN_INDEPENDENCE",
-    "MIN_EXCITATION",
-    "MAX_COHERENCE",
-    "MIN_PERIODS",
-    "SIGN_PAIR",
-    "SIGN_PAIR_TEXT",
-    "CandidateResult",
-    "ResidualSummary",
-    "rank_candidates",
-]
+__all__ = ["DEFAULT_MAX_ORDER", "MIN_TOTAL", "MIN_INDEPENDENCE", "MIN_EXCITATION", "MAX_COHERENCE",
+           "MIN_PERIODS", "SIGN_PAIR", "SIGN_PAIR_TEXT", "CandidateResult", "ResidualSummary",
+           "rank_candidates"]
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]

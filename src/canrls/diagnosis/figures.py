@@ -4,7 +4,7 @@
 candidates, orders, convergence, fixed point; docs/diagnose.md, "The figures") into a
 directory with matplotlib's object API (no pyplot, no global state). matplotlib is the
 optional ``report`` extra: :func:`require_matplotlib` imports it when a report is
-written, and its absence is a :class:`~canrls.errors.ConfigError` naming the package.
+written, and its absence is a :class:`~canrls.core.errors.ConfigError` naming the package.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.errors import ConfigError
+from canrls.core.files import atomic_writer
 from canrls.diagnosis.results import EquationDiagnosis, Traces, decimation
-from canrls.errors import ConfigError
-from canrls.files import atomic_writer
 
 __all__ = ["FIGURES", "Figures", "figures_in", "require_matplotlib"]
 

@@ -16,6 +16,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from canrls.core.files import atomic_writer
 from canrls.diagnosis.candidates import MENTION_EXPLAINED
 from canrls.diagnosis.figures import FIGURES, figures_in
 from canrls.diagnosis.results import (
@@ -25,17 +26,16 @@ from canrls.diagnosis.results import (
     share_text,
     value_text,
 )
+from canrls.estimation.estimates import ParameterEstimate
 from canrls.estimation.model import Model
 from canrls.estimation.physics import describe
-from canrls.estimation.pipeline import EstimatorSettings, ParameterEstimate
-from canrls.files import atomic_writer
+from canrls.estimation.settings import EstimatorSettings
 from canrls.processor import FrameCounts, PeriodInfo, StartInfo
 
 if TYPE_CHECKING:  # imported when a page is rendered, not for the text report
     import jinja2
 
-__all__ = ["CAPTIONS", "DiagnosisReport", "FIGURES", "page_template", "white_caveat",
-           "write_html"]
+__all__ = ["CAPTIONS", "DiagnosisReport", "page_template", "white_caveat", "write_html"]
 
 
 class DiagnosisReport:

@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
+from canrls.core.spill import PackedMask
 from canrls.diagnosis.results import (
     Binned,
     ExcitationSummary,
@@ -40,7 +41,6 @@ from canrls.diagnosis.results import (
 from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.estimation.model import Model
 from canrls.estimation.svf import SVF
-from canrls.spill import PackedMask
 
 __all__ = [
     "MIN_BIN",

@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.spill import PackedMask
+from canrls.estimation.estimates import EquationFit, Estimates
 from canrls.estimation.model import Model
-from canrls.estimation.pipeline import EquationFit, Estimates
-from canrls.spill import PackedMask
 
 __all__ = [
     "FIGURE_POINTS",

@@ -19,12 +19,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.estimation.model import Equation, Model, PositionUnwrapper
-from canrls.estimation.pipeline import EstimatorSettings
+from canrls.core.signals import Signals
+from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals, as_packed
+from canrls.estimation.equation import Equation, PositionUnwrapper
+from canrls.estimation.model import Model
 from canrls.estimation.selection import SamplePolicy
+from canrls.estimation.settings import EstimatorSettings
 from canrls.estimation.svf import SVF, impulse_response
-from canrls.signals import Signals
-from canrls.spill import MaskPacker, PackedMask, SpilledSignals, as_packed
 
 __all__ = ["BLOCK", "RecordSamples"]
 

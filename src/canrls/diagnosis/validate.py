@@ -1,7 +1,7 @@
 """Validation: a saved model predicts other logs, without estimating anything.
 
 ``canrls validate LOG [LOG ...] --model FILE`` (:mod:`canrls.cli.validate`). The logs are
-decoded and paired as ``canrls fit`` does (:class:`canrls.replay.LogFiles`: one record,
+decoded and paired as ``canrls fit`` does (:class:`canrls.processor.replay.LogFiles`: one record,
 no segment bridged across files), the model's filtered columns are built with the
 saved ranges and scaling (the same columns the estimator saw), and the saved physical
 parameters predict the filtered target:
@@ -35,18 +35,18 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can.protocol import Protocol
+from canrls.core.errors import ConfigError, EstimatorError
+from canrls.core.files import atomic_writer
+from canrls.core.signals import ROLES, Signals
 from canrls.diagnosis.figures import figures_in
 from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
 from canrls.diagnosis.results import Binned, Region, Traces, share_text
 from canrls.diagnosis.samples import RecordSamples
-from canrls.errors import ConfigError, EstimatorError
 from canrls.estimation.physics import Implausible, check_physics, describe
-from canrls.files import atomic_writer
-from canrls.modelfile import SavedModel
 from canrls.processor import FrameCounts, PeriodInfo, StartInfo
-from canrls.replay import read_logs
-from canrls.signals import ROLES, Signals
+from canrls.processor.modelfile import SavedModel
+from canrls.processor.replay import read_logs
 
 __all__ = ["EquationValidation", "FileFit", "ValidationReport", "validate_logs",
            "validate_signals", "write_html"]

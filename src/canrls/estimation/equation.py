@@ -8,19 +8,24 @@ import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
-from canrls.effect_names import EquationId
-from canrls.errors import ConfigError, SignalError
-from canrls.estimation.effects import ELECTRICAL, Column, Effect, Frame, ParameterSpec, target_unit
+from canrls.core.effect_names import EquationId
+from canrls.core.errors import ConfigError, SignalError
+from canrls.estimation.effects import (
+    ELECTRICAL,
+    Axis,
+    Column,
+    Effect,
+    Frame,
+    ParameterSpec,
+    target_unit,
+)
 from canrls.estimation.svf import SVF, gain_bounds, impulse_response
-
-if TYPE_CHECKING:
-    from canrls.estimation.model import Model
 
 __all__ = [
     "Equation",
@@ -127,10 +132,31 @@ class PositionUnwrapper:
 
 
 # ------------------------------------------------------------------------- equation
+class ModelView(Protocol):
+    """What an equation reads of the model it belongs to; a
+    :class:`~canrls.estimation.model.Model` is one. The model imports its equations, so
+    they name what they need of it here rather than import it back."""
+
+    source: str
+    axis: Axis
+    target: str
+    kt: float | None
+    pitch: float
+    wrap: float | None
+    cutoff_hz: float
+    zeta: float
+    held: frozenset[str]
+    ranges: Mapping[str, tuple[float, float]]
+    exponents: Mapping[str, Mapping[str, int]]
+
+    @property
+    def torque_known(self) -> bool: ...
+
+
 class Equation:
     """One regression equation of a model: its target, columns and parameters."""
 
-    def __init__(self, model: Model, name: str, effects: tuple[Effect, ...]) -> None:
+    def __init__(self, model: ModelView, name: str, effects: tuple[Effect, ...]) -> None:
         self.model = model
         #: ``"mechanical"`` or ``"electrical"``.
         self.name = name
@@ -264,7 +290,8 @@ class Equation:
 
 
 class RegressorBuilder:
-    """Stateful: turns :class:`~canrls.signals.Signals` blocks into :class:`RegressorBlock`\\ s.
+    """Stateful: turns :class:`~canrls.core.signals.Signals` blocks into
+    :class:`RegressorBlock`\\ s.
 
     ``process`` may be called with blocks of any size (including empty); the SVF state
     and the position turn count are carried, so the concatenated output is bit-identical
@@ -461,7 +488,7 @@ class RegressorBuilder:
 MIN_NOISE_ROWS = 16
 
 
-def _nudged(frame: Frame, role: str, by: float, model: Model) -> Frame:
+def _nudged(frame: Frame, role: str, by: float, model: ModelView) -> Frame:
     """``frame`` with signal ``role`` moved by ``by`` (the position's angle with it)."""
     v = getattr(frame, role) + by
     if role != "position":

@@ -18,7 +18,7 @@ functions (elementwise)   ``sin cos tan asin acos atan atan2 sinh cosh tanh exp 
 
 Anything else (attributes, subscripts, comparisons, keywords, lambdas,
 comprehensions, other names or functions) raises
-:class:`~canrls.errors.ExpressionError` naming the term, the offending token and its
+:class:`~canrls.core.errors.ExpressionError` naming the term, the offending token and its
 position. The compiled expression is evaluated elementwise with numpy, so evaluating
 a block in chunks gives the same values bit for bit. Values outside a function's
 domain (``log`` of a negative speed, division by zero) become ``nan``/``inf`` without a
@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.errors import ExpressionError
+from canrls.core.errors import ExpressionError
 
 __all__ = [
     "CompiledExpression",
@@ -208,7 +208,7 @@ class CompiledExpression:
 
     Call it with a mapping of signal roles to arrays (``"t"``, ``"current"``,
     ``"speed"``, ``"position"``, ``"voltage"``) or with an object holding them as
-    attributes (:class:`canrls.signals.Signals`); it returns a float64 array of the
+    attributes (:class:`canrls.core.signals.Signals`); it returns a float64 array of the
     block length. :attr:`signals` lists the roles it reads.
     """
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.errors import ConfigError, EffectError
+from canrls.core.errors import ConfigError, EffectError
 from canrls.estimation.effects import (
     DEFAULT_BAND,
     DEFAULT_PITCH,
@@ -33,11 +33,6 @@ from canrls.estimation.effects import (
 )
 from canrls.estimation.equation import (
     Equation,
-    PositionUnwrapper,
-    RegressorBlock,
-    RegressorBuilder,
-    Scaling,
-    TargetSpec,
 )
 from canrls.estimation.svf import (
     DEFAULT_CUTOFF_HZ,
@@ -45,19 +40,7 @@ from canrls.estimation.svf import (
     ZETA_RANGE,
 )
 
-__all__ = [
-    "DATA_OPTIONS",
-    "Model",
-    "Equation",
-    "TargetSpec",
-    "Scaling",
-    "RegressorBlock",
-    "RegressorBuilder",
-    "PositionUnwrapper",
-    "ParameterSpec",
-    "DEFAULT_RANGES",
-    "TARGETS",
-]
+__all__ = ["DATA_OPTIONS", "Model", "DEFAULT_RANGES", "TARGETS"]
 
 F64 = npt.NDArray[np.float64]
 Range = tuple[float, float]

@@ -1,9 +1,9 @@
 r"""The pure pipeline: samples -> regressors -> float and fixed RLS -> estimates.
 
 :class:`Pipeline` is shared by the live daemon (``canrls run``) and the offline replay
-(``canrls fit``, ``canrls diagnose``). It takes :class:`~canrls.signals.Signals`
+(``canrls fit``, ``canrls diagnose``). It takes :class:`~canrls.core.signals.Signals`
 blocks of any size and carries every state across them, sample by sample in the C
-kernels of ``canrls._kernels`` (``src/canrls/c/kernels.c``) and in the fixed-point
+kernels of ``canrls._kernels`` (``src/canrls/c/host/kernels.c``) and in the fixed-point
 kernels, so the same samples give the same parameters bit for bit whatever the block
 sizes (the replay reads 64 k frames at a time, the daemon whatever has arrived).
 
@@ -16,8 +16,8 @@ Per equation of the model (mechanical, and electrical when present):
    signals there, so the filtered equation does not hold yet (short gaps are filled;
    :class:`~canrls.estimation.selection.SamplePolicy` decides, for the diagnosis too);
 3. the float reference :class:`~canrls.estimation.rls.RLS` and the fixed-point
-   :class:`~canrls.estimation.fixed.FixedRLS` (inputs quantised at the boundary) update on the
-   same rows;
+   :class:`~canrls.estimation.fixed.estimator.FixedRLS` (inputs quantised at the
+   boundary) update on the same rows;
 4. the sufficient statistics (``sum phi phi'``, ``sum phi y``, ``sum y^2``) accumulate,
    so that the residual of the final estimate over all data, the fit and
    :math:`R^2` come without a second pass, in memory independent of the log length.
@@ -44,11 +44,12 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
-from canrls.background import Background
-from canrls.errors import ConfigError
+from canrls.core.background import Background
+from canrls.core.errors import ConfigError
+from canrls.core.signals import Signals
 from canrls.estimation.colour import ResidualTail, prior_share
+from canrls.estimation.equation import Equation, RegressorBuilder
 from canrls.estimation.estimates import (
-    DIVERGENCE_TOL,
     EquationBlock,
     EquationFit,
     Estimates,
@@ -56,47 +57,21 @@ from canrls.estimation.estimates import (
     PipelineBlock,
     Rescale,
     divergence,
-    used_rows,
 )
-from canrls.estimation.fixed import FixedRLS, SaturationCounts
-from canrls.estimation.model import Equation, Model, RegressorBuilder
+from canrls.estimation.fixed.estimator import FixedRLS
+from canrls.estimation.fixed.formats import SaturationCounts
+from canrls.estimation.model import Model
 from canrls.estimation.rls import RLS
 from canrls.estimation.selection import SamplePolicy, SampleSelector
 from canrls.estimation.settings import (
-    ALPHA_MAX,
-    ALPHA_MIN,
-    ENERGY_FLOOR,
-    MIN_ENERGY,
     RESCALE_HEADROOM,
     RESCALE_LIMIT,
     RMS_HEADROOM,
     EstimatorSettings,
     exponent_for,
 )
-from canrls.signals import Signals
 
-__all__ = [
-    "ALPHA_MAX",
-    "ALPHA_MIN",
-    "ENERGY_FLOOR",
-    "MIN_ENERGY",
-    "RESCALE_HEADROOM",
-    "RESCALE_LIMIT",
-    "RMS_HEADROOM",
-    "Rescale",
-    "exponent_for",
-    "used_rows",
-    "EstimatorSettings",
-    "ParameterEstimate",
-    "EquationFit",
-    "Estimates",
-    "EquationBlock",
-    "PipelineBlock",
-    "EquationEstimator",
-    "Pipeline",
-    "divergence",
-    "DIVERGENCE_TOL",
-]
+__all__ = ["EquationEstimator", "Pipeline"]
 
 F64 = npt.NDArray[np.float64]
 

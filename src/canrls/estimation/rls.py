@@ -2,7 +2,7 @@ r"""Float recursive least squares with forgetting and a ridge prior: the referen
 
 :class:`RLS` minimises the exponentially weighted squared error plus a ridge prior that
 is forgotten like the data. The recursion runs in the C kernel
-``canrls._kernels.rls_block_symmetric`` (``src/canrls/c/kernels_rls.h``: float64 and
+``canrls._kernels.rls_block_symmetric`` (``src/canrls/c/host/kernels_rls.h``: float64 and
 float32), so per-sample :meth:`RLS.update` and block :meth:`RLS.run` give the same bits
 whatever the block sizes. The cost, the symmetric and literal updates (what the literal
 one costs, measured), positive definiteness, the trace bound and the noise accumulators
@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
-from canrls.errors import CheckpointError, EstimatorError
+from canrls.core.errors import CheckpointError, EstimatorError
 
 __all__ = ["RLS", "RLSFlag", "RLSStep", "RLSTrace", "Excitation"]
 

@@ -46,11 +46,11 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
-from canrls.errors import ConfigError
-from canrls.estimation.model import Equation
+from canrls.core.errors import ConfigError
+from canrls.core.signals import ROLES, Signals
+from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals
+from canrls.estimation.equation import Equation
 from canrls.estimation.svf import MAX_TIME_CONSTANT
-from canrls.signals import ROLES, Signals
-from canrls.spill import MaskPacker, PackedMask, SpilledSignals
 
 #: Most samples of warm-up (``[estimator] warmup_s``): five of the state-variable filter's
 #: longest time constant (:data:`~canrls.estimation.svf.MAX_TIME_CONSTANT`), what the
@@ -524,7 +524,7 @@ class SelectedSamples:
     ``use`` the rows that update the estimators; ``usable`` the rows a selection may
     use: the measured rows outside the memory of a doubtful fill
     (:meth:`GapFiller.settling`; ``None``: every row). The masks are packed
-    (:class:`~canrls.spill.PackedMask`: read them in slices; ``np.asarray`` unpacks).
+    (:class:`~canrls.core.spill.PackedMask`: read them in slices; ``np.asarray`` unpacks).
     """
 
     signals: FilledRecord

@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from canrls.errors import ConfigError
-from canrls.estimation.fixed import FixedConfig, QFormat
+from canrls.core.errors import ConfigError
+from canrls.estimation.fixed.formats import FixedConfig, QFormat
 
 __all__ = [
     "ALPHA_MAX",

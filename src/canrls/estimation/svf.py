@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["SVF", "gain_bounds", "DEFAULT_CUTOFF_HZ", "DEFAULT_ZETA", "ZETA_RANGE",
            "MAX_TIME_CONSTANT"]

@@ -10,7 +10,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["dask_client", "require_dask"]
 

@@ -17,7 +17,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 from canrls.fleet.records import (
     STATUS_OK,
     CandidateValue,

@@ -3,7 +3,7 @@
 
 :func:`ingest_one` is what a worker runs for one log: the log's SHA-256 first (a log
 whose hash the history already holds for this model is skipped), then
-:func:`canrls.replay.fit_logs`, and where asked the diagnosis's candidate ranking
+:func:`canrls.processor.replay.fit_logs`, and where asked the diagnosis's candidate ranking
 (handed in as a ``ranker``: this layer does not import the diagnosis). A log that
 cannot be fitted becomes an error :class:`~canrls.fleet.records.Recording` naming the
 file and the reason. :func:`ingest` has the workers hash every log first (the logs the
@@ -28,8 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from canrls import __version__
-from canrls.config import AppConfig, Overrides, load_config, prepare
-from canrls.errors import CanrlsError
+from canrls.core.errors import CanrlsError
 from canrls.fleet.history import History
 from canrls.fleet.records import (
     SOURCE_LOG,
@@ -39,6 +38,7 @@ from canrls.fleet.records import (
     Recording,
 )
 from canrls.fleet.sources import LogSource
+from canrls.processor.config import AppConfig, Overrides, load_config, prepare
 
 __all__ = ["JobConfig", "IngestJob", "IngestSummary", "Ranker", "content_hash", "ingest",
            "ingest_one", "hash_or_none", "model_key", "RANK_MODES"]
@@ -61,7 +61,7 @@ BATCH_S = 1.0
 @dataclass(frozen=True)
 class JobConfig(Overrides):
     """The configuration of a log's fit: a TOML file and the command line's
-    :class:`~canrls.config.Overrides` of ``canrls fit``. Hashable and picklable: a worker
+    :class:`~canrls.processor.config.Overrides` of ``canrls fit``. Hashable and picklable: a worker
     builds the protocol and model from it once (:meth:`prepared`)."""
 
     config: str | None = None
@@ -218,7 +218,7 @@ def ingest_one(job: IngestJob, known: frozenset[str] | set[str] | None = None,
                ranker: Ranker | None = None) -> Recording | None:
     """One log (a worker's task): None when the history holds its hash for this model
     (``known``), else a :class:`Recording` (an error row when it cannot be fitted)."""
-    from canrls.replay import fit_logs
+    from canrls.processor.replay import fit_logs
 
     path = job.source.path
     try:

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from canrls import __version__
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 from canrls.fleet.history import History
 from canrls.fleet.records import SOURCE_LIVE, ParameterValue, Recording
 from canrls.fleet.sources import check_name

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 from canrls.fleet.detect import RESIDUAL, DriveAssessment, FleetAssessment
 
 __all__ = ["write_html", "report_dict", "require_matplotlib", "DEFAULT_FIGURES"]

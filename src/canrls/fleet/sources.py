@@ -22,7 +22,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["LogSource", "from_pattern", "from_manifest", "MANIFEST_FIELDS"]
 

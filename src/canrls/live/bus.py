@@ -28,8 +28,7 @@ import numpy as np
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.frames import frame_ids
-from canrls.config import AppConfig
-from canrls.errors import BusError, ConfigError
+from canrls.core.errors import BusError, ConfigError
 from canrls.live.journal import JOURNAL
 from canrls.live.settings import DaemonSettings
 from canrls.live.socketcan import (
@@ -40,6 +39,7 @@ from canrls.live.socketcan import (
     socketcan_socket,
     to_block,
 )
+from canrls.processor.config import AppConfig
 
 __all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "RX_BATCH", "bus_config",
            "command_rows", "is_command", "messages_to_block", "open_bus", "shutdown_bus",
@@ -57,7 +57,7 @@ _BUS_KEYS = ("interface", "channel", "bitrate", "fd", "data_bitrate")
 
 def bus_config(cfg: AppConfig | None = None) -> dict[str, Any]:
     """Every argument of the bus, explicitly: ``[can]`` overridden by the command line's
-    bus arguments (:attr:`AppConfig.bus <canrls.config.AppConfig.bus>`).
+    bus arguments (:attr:`AppConfig.bus <canrls.processor.config.AppConfig.bus>`).
 
     :raises ConfigError: no interface, or a value of the wrong type.
     """

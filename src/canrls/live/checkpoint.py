@@ -35,9 +35,9 @@ from typing import Any, TypeVar
 import numpy as np
 
 from canrls import __version__
-from canrls.errors import CheckpointError, ConfigError
+from canrls.core.errors import CheckpointError, ConfigError
 from canrls.estimation.model import Model
-from canrls.estimation.pipeline import EstimatorSettings
+from canrls.estimation.settings import EstimatorSettings
 
 __all__ = ["FORMAT", "MAGIC", "MAX_BYTES", "MAX_DEPTH", "MAX_PARAMETERS", "Checkpoint",
            "CheckpointInUseError", "CheckpointPathError", "Checkpointer", "CheckpointLock",

@@ -25,11 +25,11 @@ from canrls.can.frames import (
     CommandCode,
     CommandFrameError,
     CommandResult,
-    EffectId,
     decode_command,
     encode_ack,
 )
-from canrls.errors import CanrlsError, ConfigError
+from canrls.core.effect_names import EffectId
+from canrls.core.errors import CanrlsError, ConfigError
 from canrls.estimation.model import Model
 from canrls.processor import FrameProcessor
 
@@ -98,7 +98,7 @@ class CommandHandler:
     :param set_model: makes a model the running one (ADD_EFFECT, REMOVE_EFFECT).
     :param on_reset: called after RESET.
     :param max_parameters: the most parameters a changed model may have (``too_large``).
-    :param check_model: raises a :class:`~canrls.errors.CanrlsError` for a changed model
+    :param check_model: raises a :class:`~canrls.core.errors.CanrlsError` for a changed model
         that cannot be published (the frames are rehearsed); called before ``set_model``.
     :param bucket: the rate limit of valid commands (None: none).
     :param clock: the time the bucket is filled by [s].

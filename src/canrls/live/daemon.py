@@ -34,9 +34,11 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.frames import ParameterReport, StatusReport
 from canrls.can.protocol import Protocol
 from canrls.can.writers import open_writer
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
+from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
-from canrls.estimation.pipeline import Estimates, EstimatorSettings, Pipeline
+from canrls.estimation.pipeline import Pipeline
+from canrls.estimation.settings import EstimatorSettings
 from canrls.live.bus import BusLink, FrameQueue, command_rows, messages_to_block, open_bus
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
@@ -49,7 +51,7 @@ from canrls.live.settings import DaemonSettings
 from canrls.live.tuning import interpreter
 from canrls.processor import FrameProcessor
 
-__all__ = ["Daemon", "DaemonSettings", "DaemonStats", "make_processor"]
+__all__ = ["Daemon", "DaemonStats", "make_processor"]
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from canrls.estimation.pipeline import Estimates
+from canrls.estimation.estimates import Estimates
 
 __all__ = ["HistoryHook", "Snapshot"]
 

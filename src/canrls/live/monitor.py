@@ -35,13 +35,13 @@ import can
 from canrls.can.frames import (
     CommandAck,
     CommandCode,
-    EffectId,
     FrameDecoder,
     ParameterReport,
     StatusReport,
     frame_ids,
 )
-from canrls.errors import ConfigError
+from canrls.core.effect_names import EffectId
+from canrls.core.errors import ConfigError
 from canrls.estimation.effects import parse_effect, target_unit
 from canrls.estimation.model import Model
 

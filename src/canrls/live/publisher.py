@@ -17,8 +17,6 @@ import time
 from collections.abc import Callable
 
 from canrls.can.frames import (
-    EffectId,
-    EquationId,
     ParameterReport,
     StatusReport,
     encode_param_info,
@@ -26,10 +24,12 @@ from canrls.can.frames import (
     encode_status,
     frame_ids,
 )
-from canrls.errors import CanrlsError, ConfigError
+from canrls.core.effect_names import EffectId, EquationId
+from canrls.core.errors import CanrlsError, ConfigError
+from canrls.estimation.estimates import Estimates, PipelineBlock, divergence
 from canrls.estimation.model import Model
 from canrls.estimation.physics import check_physics
-from canrls.estimation.pipeline import Estimates, Pipeline, PipelineBlock, divergence
+from canrls.estimation.pipeline import Pipeline
 from canrls.estimation.rls import RLSFlag
 from canrls.live.bus import BusLink
 from canrls.live.settings import DaemonSettings
@@ -67,7 +67,7 @@ def model_layout(model: Model) -> tuple[tuple[ParameterReport, ...], ...]:
 
 
 def check_publishable(model: Model, max_parameters: int, what: str = "the model") -> None:
-    """Raise :class:`~canrls.errors.ConfigError` unless the daemon can publish ``model``:
+    """Raise :class:`~canrls.core.errors.ConfigError` unless the daemon can publish ``model``:
     at most ``max_parameters`` parameters (``[daemon] max_parameters``), and every frame
     it would send encodes (a rehearsal with made-up values; nothing is sent).
 

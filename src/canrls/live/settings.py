@@ -9,10 +9,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:
-    from canrls.config import AppConfig
+    from canrls.processor.config import AppConfig
 
 __all__ = ["DaemonSettings", "DAEMON_KEYS", "FRAME_PARAMETERS", "OBSOLETE_KEYS", "RX_BUFFER",
            "RX_INTERVAL", "resolve_path"]

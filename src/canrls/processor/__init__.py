@@ -7,8 +7,7 @@ one causal rule, so a log replayed offline gives the daemon's parameters bit for
 :class:`SampleProcessor` samples; a replay's result is a :class:`FitResult`.
 """
 
-from canrls.can.period import positive_period
-from canrls.estimation.pipeline import MIN_ENERGY, RMS_HEADROOM
+from canrls.estimation.settings import MIN_ENERGY, RMS_HEADROOM
 from canrls.processor.frames import SEEN_IDS, FrameProcessor
 from canrls.processor.results import (
     AxisInfo,
@@ -37,5 +36,5 @@ from canrls.processor.samples import (
 __all__ = ["AxisInfo", "Calibration", "FileShift", "FitResult", "FrameCounts", "FrameProcessor",
            "MIN_ENERGY", "PeriodInfo", "RESTORE_PERIOD_TOLERANCE", "RMS_HEADROOM", "RangeScanner",
            "SEEN_IDS", "SampleProcessor", "StartInfo", "TargetRun", "WindowScaling", "calibrate",
-           "data_defaults", "dbc_ranges", "epoch_date", "measure_noise", "positive_period",
+           "data_defaults", "dbc_ranges", "epoch_date", "measure_noise",
            "sample_period", "scan_ranges"]

@@ -11,25 +11,24 @@ from typing import Any
 
 import numpy as np
 
+from canrls.can.decoder import DecodedFrames, Decoder, RejectCounts
 from canrls.can.frameblock import FrameBlock
-from canrls.can.pairing import Pairer, PairingCounts
-from canrls.can.period import (
+from canrls.can.protocol import Protocol
+from canrls.core.checks import positive_period
+from canrls.core.errors import CheckpointError, ConfigError
+from canrls.core.signals import Signals
+from canrls.estimation.estimates import PipelineBlock
+from canrls.estimation.model import Model
+from canrls.estimation.pipeline import Pipeline
+from canrls.estimation.settings import EstimatorSettings
+from canrls.processor.pairing import Pairer, PairingCounts
+from canrls.processor.period import (
     MIN_INTERVALS,
     PeriodEstimate,
     PeriodMeter,
     check_period,
-    positive_period,
 )
-from canrls.can.protocol import DecodedFrames, Protocol, RejectCounts
-from canrls.can.reorder import Reorderer
-from canrls.can.times import TimeJudge
-from canrls.errors import CheckpointError, ConfigError
-from canrls.estimation.model import Model
-from canrls.estimation.pipeline import (
-    EstimatorSettings,
-    Pipeline,
-    PipelineBlock,
-)
+from canrls.processor.reorder import Reorderer
 from canrls.processor.results import (
     AxisInfo,
     FitResult,
@@ -39,7 +38,7 @@ from canrls.processor.results import (
     epoch_date,
 )
 from canrls.processor.samples import Calibration, SampleProcessor, dbc_ranges
-from canrls.signals import Signals
+from canrls.processor.times import TimeJudge
 
 __all__ = ["SEEN_IDS", "FrameProcessor"]
 
@@ -63,8 +62,8 @@ class FrameProcessor:
     Used by the offline replay (blocks of a log) and by the daemon (blocks of the frames
     that arrived), with the same calibration rule (docs/architecture.md) and the same
     control period rule (docs/architecture.md, "Control period"): the period is measured
-    on the first :data:`~canrls.can.period.PERIOD_FRAMES` frames of each mapped message
-    (:class:`~canrls.can.period.PeriodMeter`); a stated period (``period``, else the
+    on the first :data:`~canrls.processor.period.PERIOD_FRAMES` frames of each mapped message
+    (:class:`~canrls.processor.period.PeriodMeter`); a stated period (``period``, else the
     protocol's: ``[can] period``/``--period``, else the DBC's ``GenMsgCycleTime``) is used
     from the first frame and must agree with the measured one within 10 %; without one
     the decoded frames are held until the period is measured, then paired. This is the
@@ -90,12 +89,12 @@ class FrameProcessor:
         #: the first frame's timestamp [s] (None before it; with ``relative_time`` the
         #: times of samples and results are relative to it)
         self.origin: float | None = None
-        self.decoder = protocol.decoder()
-        #: judges every frame's receive time first (:mod:`canrls.can.times`): frames
+        self.decoder = Decoder(protocol)
+        #: judges every frame's receive time first (:mod:`canrls.processor.times`): frames
         #: without a time, or out of line with the stream, are rejected (``time``)
         self.times = TimeJudge()
         #: puts frames swapped on the way back in counter order before the decoder
-        #: (:mod:`canrls.can.reorder`; ``reorder.moved`` counts them)
+        #: (:mod:`canrls.processor.reorder`; ``reorder.moved`` counts them)
         self.reorder = Reorderer(protocol.messages)
         self.frames = 0
         #: frames of each mapped message that decoded, so far
@@ -422,7 +421,7 @@ class FrameProcessor:
         afresh, none of their state carried over; the period stays decided, and the
         frame counts go on (:meth:`frame_counts`)."""
         self._past = dataclasses.replace(self.frame_counts(), messages={}, missing=None)
-        self.decoder = self.protocol.decoder()
+        self.decoder = Decoder(self.protocol)
         self.reorder = Reorderer(self.protocol.messages)
         self.times = TimeJudge()
         if self.pairer is not None:

@@ -9,9 +9,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from canrls.can.units import Ratings
+from canrls.core.units import Ratings
+from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
-from canrls.estimation.pipeline import Estimates
 from canrls.processor.samples import Calibration
 
 __all__ = ["FrameCounts", "PeriodInfo", "StartInfo", "AxisInfo", "FileShift", "FitResult",
@@ -31,7 +31,7 @@ class FrameCounts:
     lost: dict[str, int] = field(default_factory=dict)
     #: frames of messages the mapping does not use
     foreign: int = 0
-    #: the pairing's counts (:meth:`~canrls.can.pairing.PairingCounts.as_dict`)
+    #: the pairing's counts (:meth:`~canrls.processor.pairing.PairingCounts.as_dict`)
     pairing: dict[str, int] = field(default_factory=dict)
     #: decoded frames of each mapped message
     messages: dict[str, int] = field(default_factory=dict)
@@ -157,7 +157,7 @@ class FileShift:
 @dataclass(frozen=True)
 class TargetRun:
     """What the target's integer path ran when it gave a fit's fixed column
-    (``canrls fit --fixed target``, :mod:`canrls.target.fit`)."""
+    (``canrls fit --fixed target``, :mod:`canrls.firmware.fit`)."""
 
     samples: int
     #: updates and rescales of each equation's estimator

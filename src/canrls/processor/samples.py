@@ -13,27 +13,22 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.can.period import (
+from canrls.can.protocol import Protocol
+from canrls.core.checks import positive_period
+from canrls.core.errors import CheckpointError, ConfigError
+from canrls.core.signals import ROLES, Signals
+from canrls.core.units import si_unit
+from canrls.estimation.estimates import PipelineBlock
+from canrls.estimation.model import DATA_OPTIONS, Model
+from canrls.estimation.pipeline import Pipeline
+from canrls.estimation.selection import SamplePolicy
+from canrls.estimation.settings import MIN_ENERGY, RMS_HEADROOM, EstimatorSettings, exponent_for
+from canrls.estimation.svf import SVF
+from canrls.processor.period import (
     MIN_INTERVALS,
     PERIOD_FRAMES,
     estimate_period,
-    positive_period,
 )
-from canrls.can.protocol import Protocol
-from canrls.can.units import si_unit
-from canrls.errors import CheckpointError, ConfigError
-from canrls.estimation.model import DATA_OPTIONS, Model
-from canrls.estimation.pipeline import (
-    MIN_ENERGY,
-    RMS_HEADROOM,
-    EstimatorSettings,
-    Pipeline,
-    PipelineBlock,
-    exponent_for,
-)
-from canrls.estimation.selection import SamplePolicy
-from canrls.estimation.svf import SVF
-from canrls.signals import ROLES, Signals
 
 __all__ = ["RESTORE_PERIOD_TOLERANCE", "sample_period", "RangeScanner", "scan_ranges",
            "Calibration", "data_defaults", "measure_noise", "WindowScaling", "calibrate",
@@ -55,8 +50,8 @@ RESTORE_PERIOD_TOLERANCE = 0.01
 
 def sample_period(t: npt.ArrayLike, source: str = "the samples") -> float:
     """The control period of samples at times ``t`` [s], by the rule that measures it on
-    frames (:func:`~canrls.can.period.estimate_period` on the first
-    :data:`~canrls.can.period.PERIOD_FRAMES`): jitter, dropped samples and bursts do
+    frames (:func:`~canrls.processor.period.estimate_period` on the first
+    :data:`~canrls.processor.period.PERIOD_FRAMES`): jitter, dropped samples and bursts do
     not move it."""
     times = np.asarray(t, dtype=np.float64)[:PERIOD_FRAMES]
     est = estimate_period({source: times})

@@ -24,7 +24,7 @@ from can.interfaces import virtual as _virtual
 from can.interfaces.virtual import VirtualBus
 
 from canrls.can.frameblock import FrameBlock
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 from canrls.sim.faults import FaultLog, FaultSpec
 from canrls.sim.scenario import DEFAULT_EFFECTS, SCENARIOS, Scenario, Simulator, scenario
 

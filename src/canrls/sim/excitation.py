@@ -17,7 +17,7 @@ from collections.abc import Sequence as Seq
 import numpy as np
 import numpy.typing as npt
 
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = [
     "Excitation",

@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from canrls.can.e2e import CRC8_TABLE
 from canrls.can.frameblock import FrameBlock
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 
 __all__ = ["Silence", "FaultSpec", "FaultLog", "FaultInjector", "inject", "ERROR_CLASSES",
            "HARMLESS_COMMANDS"]

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from canrls.can.logs import write_log
-from canrls.errors import ConfigError
+from canrls.core.errors import ConfigError
 from canrls.sim.excitation import Excitation, prbs, reversals
 from canrls.sim.plant import Controller
 from canrls.sim.scenario import Simulator, scenario

@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _sim
-from canrls.errors import ConfigError, EffectError
+from canrls.core.errors import ConfigError, EffectError
 
 __all__ = [
     "AXES",
@@ -85,7 +85,7 @@ def _effect_key(name: str) -> tuple[int, int]:
 def parse_effects(effects: str | Iterable[str]) -> tuple[str, ...]:
     """Validate effect names (``"inertia,viscous,cogging:24"``) and return them in canonical order.
 
-    Raises :class:`~canrls.errors.EffectError` naming the offending entry.
+    Raises :class:`~canrls.core.errors.EffectError` naming the offending entry.
     """
     items = [s.strip() for s in effects.split(",")] if isinstance(effects, str) else [
         str(s).strip() for s in effects]

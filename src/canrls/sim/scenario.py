@@ -22,8 +22,8 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can.frameblock import FrameBlock
-from canrls.errors import ConfigError, EffectError
-from canrls.signals import Signals
+from canrls.core.errors import ConfigError, EffectError
+from canrls.core.signals import Signals
 from canrls.sim.excitation import Excitation
 from canrls.sim.excitation import excitation as make_excitation
 from canrls.sim.faults import FaultInjector, FaultLog, FaultSpec
@@ -341,7 +341,7 @@ class Simulator:
     def encode(self, chunk: SimChunk) -> FrameBlock:
         """The feedback frames of ``chunk`` (timestamps ``t0 + t``), faults applied."""
         if self._encoder is None:
-            from canrls.can.protocol import FeedbackEncoder
+            from canrls.can.encoder import FeedbackEncoder
             proto = self._protocol or _default_protocol()
             self._encoder = FeedbackEncoder(proto, clip=True, stagger=FRAME_STAGGER)
         m = chunk.measured
@@ -365,7 +365,7 @@ class SimResult:
     Attributes
     ----------
     scenario : the :class:`Scenario` that ran
-    true, measured : :class:`~canrls.signals.Signals` (true: unwrapped position, exact
+    true, measured : :class:`~canrls.core.signals.Signals` (true: unwrapped position, exact
         current; measured: noisy, quantised, position wrapped at 2*pi as the DBC sends it).
         ``voltage`` is None unless ``electrical`` is among the true effects.
     speed_ref, current_ref : the excitation and the speed controller's output

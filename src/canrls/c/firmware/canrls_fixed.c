@@ -1,0 +1,1131 @@
+/*
+ * canrls_fixed.c -- fixed-point recursive least squares, the embedded kernel.
+ *
+ * SPDX-License-Identifier: MIT
+ *
+ * Line for line the symmetric form of the Python specification
+ * (canrls.estimation.fixed.kernels.fixed_block): the same names, the same order of
+ * operations, the equation beside each line. See canrls_fixed.h for the numbers.
+ */
+#include "canrls_fixed.h"
+
+#include <string.h>
+
+/* The kernel needs an arithmetic (floor) right shift of negative values, which C99
+ * leaves to the implementation; every compiler for a DSP or a microcontroller has it.
+ * Refuse to build where it is missing. */
+typedef char canrls_needs_arithmetic_shift[((-8 >> 1) == -4) ? 1 : -1];
+typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1];
+
+/* The helpers below are meant to disappear into their callers (the shift class of
+ * mul_rsh must be a constant there); GCC and Clang are told so. */
+#if defined(__GNUC__)
+#define INLINE static inline __attribute__((always_inline))
+#define NOINLINE static __attribute__((noinline))
+#define LIKELY(x) __builtin_expect(!!(x), 1)
+#define UNLIKELY(x) __builtin_expect(!!(x), 0)
+#else
+#define INLINE static inline
+#define NOINLINE static
+#define LIKELY(x) (x)
+#define UNLIKELY(x) (x)
+#endif
+
+/* n: the instance's, or the constant CANRLS_N where the build fixes it (-DCANRLS_N=6:
+ * the loops over n unrolled, h~ summed row by row; canrls_init_q31 then takes only
+ * n = CANRLS_N) */
+#ifdef CANRLS_N
+typedef char canrls_n_within_n_max[(CANRLS_N >= 1 && CANRLS_N <= CANRLS_N_MAX) ? 1 : -1];
+#define NPAR(S) ((uint32_t)CANRLS_N)
+#else
+#define NPAR(S) ((S)->n)
+#endif
+
+/* loops over n unrolled completely where n is a constant (CANRLS_N) */
+#if defined(CANRLS_N) && defined(__GNUC__) && !defined(__clang__)
+#define UNROLL _Pragma("GCC unroll 16")
+#elif defined(CANRLS_N) && defined(__clang__)
+#define UNROLL _Pragma("unroll")
+#else
+#define UNROLL
+#endif
+
+/* ------------------------------------------------------- Q-format arithmetic */
+
+/* rsh(x, s) = x / 2^s rounded half up, (x + 2^(s-1)) >> s, for 0 <= s <= 62
+ * (Python _rsh; the caller guarantees |x| + 2^(s-1) < 2^63). */
+INLINE int64_t rsh(int64_t x, int32_t s)
+{
+    return s > 0 ? (x + ((int64_t)1 << (s - 1))) >> s : x;
+}
+
+/* rsh of a word: ((x >> (s-1)) + 1) >> 1 equals (x + 2^(s-1)) >> s and cannot overflow. */
+INLINE int32_t rsh32(int32_t x, int32_t s)
+{
+    return s > 0 ? ((x >> (s - 1)) + 1) >> 1 : x;
+}
+
+/* How rsh(x, s) is computed on a 32-bit machine (all three give the same integers):
+ * SHIFT_ANY  any 0 <= s <= 62: the 64-bit formula;
+ * SHIFT_LOW  1 <= s <= 31: x + 2^(s-1) in two words, shifted as two words, and the
+ *            result a word in the common case;
+ * SHIFT_HIGH s >= 32: the high word of x + 2^(s-1) shifted by s - 32: always a word.
+ * Where the class is a constant (an inline loop called once per class), the compiler
+ * makes one loop per class and the choice is made once per step, not per element. */
+enum { SHIFT_ANY = 0, SHIFT_LOW = 1, SHIFT_HIGH = 2, SHIFT_32 = 3 };
+
+/* SHIFT_32: s = 32 exactly (rounded in the low word); SHIFT_HIGH: 33 <= s <= 62 */
+INLINE int shift_class(int32_t s)
+{
+    return s >= 33 ? SHIFT_HIGH : s == 32 ? SHIFT_32 : s >= 1 ? SHIFT_LOW : SHIFT_ANY;
+}
+
+/* rsh(x, s) = (x + 2^(s-1)) >> s, computed as its class says */
+INLINE int64_t rsh_c(int64_t x, int32_t s, int cls)
+{
+    if (cls == SHIFT_HIGH || cls == SHIFT_32) {
+        const uint64_t u = (uint64_t)x + ((uint64_t)1 << (s - 1));
+        return (int32_t)(uint32_t)(u >> 32) >> (s - 32);
+    }
+    if (cls == SHIFT_LOW) {
+        const uint64_t u = (uint64_t)x + (uint32_t)((uint32_t)1 << (s - 1)); /* s <= 31 */
+        const uint32_t lo = (uint32_t)u;
+        const int32_t hi = (int32_t)(uint32_t)(u >> 32);
+        const uint32_t rlo = (lo >> s) | ((uint32_t)hi << (32 - s));
+        const int32_t rhi = hi >> s;
+        if (rhi == ((int32_t)rlo >> 31)) {
+            return (int32_t)rlo; /* the result fits a word: the common case */
+        }
+        return (int64_t)(((uint64_t)(uint32_t)rhi << 32) | rlo);
+    }
+    return rsh(x, s);
+}
+
+/* a b, the exact product of two words (one SMULL: written out on Thumb-2, where GCC
+ * otherwise keeps the sign word of a long-lived c and multiplies 64 x 64) */
+INLINE int64_t mul_ww(int32_t a, int32_t b)
+{
+#if defined(__GNUC__) && defined(__thumb2__)
+    uint32_t lo, hi;
+    __asm__("smull %0, %1, %2, %3" : "=&r"(lo), "=&r"(hi) : "r"(a), "r"(b));
+    return (int64_t)(((uint64_t)hi << 32) | lo);
+#else
+    return (int64_t)a * b;
+#endif
+}
+
+/* rsh(x, s) for any 0 <= s <= 62, the half added in one word when 1 <= s <= 31 */
+INLINE int64_t rsh_w(int64_t x, int32_t s)
+{
+    if ((uint32_t)(s - 1) < 31u) {
+        return (int64_t)((uint64_t)x + (uint32_t)((uint32_t)1 << (s - 1))) >> s;
+    }
+    return rsh(x, s);
+}
+
+/* rsh(a b, s): a product of two words rounded half up by s bits */
+INLINE int64_t mul_rsh(int32_t a, int32_t b, int32_t s, int cls)
+{
+    return rsh_c((int64_t)a * b, s, cls);
+}
+
+/* sat(x) = x clamped to [lo, hi]; a clamp increments *n (Python saturate). */
+INLINE int32_t sat(int64_t x, int32_t lo, int32_t hi, uint32_t *n)
+{
+    /* the common case in 32-bit compares: x fits a word and lies in [lo, hi] */
+    if ((int64_t)(int32_t)x == x
+        && (uint32_t)(int32_t)x - (uint32_t)lo <= (uint32_t)hi - (uint32_t)lo) {
+        return (int32_t)x;
+    }
+    if (x > hi) {
+        *n += 1u;
+        return hi;
+    }
+    if (x < lo) {
+        *n += 1u;
+        return lo;
+    }
+    return (int32_t)x;
+}
+
+/* A word r (already a word: an int32_t) clamped to [lo, hi], counted. */
+INLINE int32_t clamp32(int32_t r, int32_t lo, int32_t hi, uint32_t *n)
+{
+    if (LIKELY((uint32_t)r - (uint32_t)lo <= (uint32_t)hi - (uint32_t)lo)) {
+        return r;
+    }
+    *n += 1u;
+    return r > hi ? hi : lo;
+}
+
+/* sat(x) for a 64-bit x given as its two words: the common case in 32-bit compares */
+INLINE int32_t sat2(int32_t rhi, uint32_t rlo, int32_t lo, int32_t hi, uint32_t *n)
+{
+    if (LIKELY(rhi == ((int32_t)rlo >> 31))) {
+        return clamp32((int32_t)rlo, lo, hi, n); /* x fits a word */
+    }
+    *n += 1u;
+    return rhi < 0 ? lo : hi;
+}
+
+/* sat(a + b) of two words, counted (a + b computed without overflow); ``full``: the word
+ * is the whole int32_t (lo = INT32_MIN, hi = INT32_MAX), a constant at each call */
+INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n, int full)
+{
+#if defined(__GNUC__)
+    int32_t r;
+    if (UNLIKELY(__builtin_add_overflow(a, b, &r))) {
+        *n += 1u;
+        return b > 0 ? hi : lo;
+    }
+    return full ? r : clamp32(r, lo, hi, n);
+#else
+    (void)full;
+    return sat((int64_t)a + b, lo, hi, n);
+#endif
+}
+
+/* rsh(a b, 32): the high word of a b + 2^31 (one SMMULR on a core with the DSP
+ * extension) */
+INLINE int32_t mul_rsh32(int32_t a, int32_t b)
+{
+#if defined(__GNUC__) && defined(__ARM_FEATURE_DSP) && defined(__thumb2__)
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(a), "r"(b));
+    return r;
+#else
+    return (int32_t)(uint32_t)(((uint64_t)((int64_t)a * b) + ((uint64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* The 64-bit estimate (Python _theta_add): q = word 2^32 + frac (canrls_theta64: the word
+ * t, its fraction f in units of 2^-32 LSB) += floor(p 2^(32-s)) for s < 32 and
+ * floor(p / 2^32) 2^(64-s) (the high word of p, exact at this scale) for 32 <= s <= 62,
+ * saturated to [lo 2^32, hi 2^32 + 2^32 - 1] (counted). The general case (any s, any
+ * theta word). */
+INLINE void theta_add(canrls_theta64 *q, int64_t p, int32_t s, int32_t lo, int32_t hi,
+                      uint32_t *n)
+{
+    const int64_t whole = p >> s; /* floor(p / 2^s): whole LSBs */
+    /* the 32 bits below the LSB: s >= 32, of the high word of p (p's low word dropped);
+     * s < 32, p mod 2^s moved up */
+    const uint32_t part = s >= 32 ? (uint32_t)((uint64_t)(p >> 32) << (64 - s))
+                                  : (uint32_t)((uint64_t)p << (32 - s));
+    const uint64_t fs = (uint64_t)q->frac + part;
+    const int64_t x = (int64_t)q->word + whole + (int64_t)(fs >> 32);
+    if (UNLIKELY(x > hi)) {
+        *n += 1u;
+        q->frac = 0xFFFFFFFFu;
+        q->word = hi;
+        return;
+    }
+    if (UNLIKELY(x < lo)) {
+        *n += 1u;
+        q->frac = 0u;
+        q->word = lo;
+        return;
+    }
+    q->frac = (uint32_t)fs;
+    q->word = (int32_t)x;
+}
+
+/* theta_add for 34 <= s <= 62 and the whole int32_t word: q as one int64_t plus the high
+ * word ph of the product at 2^-32 LSB, ph 2^(64-s) = ph m (m = 2^(64-s) <= 2^30: one SMULL),
+ * saturated where the 64-bit sum overflows, which is exactly where the word leaves the
+ * int32_t. (Written on the two words, not on an int64_t array: GCC then branches on the
+ * overflow flag of ADCS instead of materialising it, and loads and stores the pair with
+ * LDRD/STRD.) */
+INLINE void theta_add_full(canrls_theta64 *q, int32_t ph, int32_t m, int32_t s, uint32_t *n)
+{
+#if defined(__GNUC__)
+    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->frac);
+    int64_t x;
+    if (UNLIKELY(__builtin_add_overflow(t, mul_ww(ph, m), &x))) {
+        *n += 1u;
+        q->frac = ph > 0 ? 0xFFFFFFFFu : 0u;
+        q->word = ph > 0 ? INT32_MAX : INT32_MIN;
+        return;
+    }
+    (void)s;
+    q->frac = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
+#else
+    (void)m;
+    theta_add(q, (int64_t)ph * 4294967296LL, s, INT32_MIN, INT32_MAX, n);
+#endif
+}
+
+/* The 64-bit P (canrls_P64: word and lo, the pair X = V + 2^31 with V = P~ 2^32) minus
+ * u = whole 2^32 + part (0 <= part < 2^32), saturated: X clamped to [lo 2^32,
+ * hi 2^32 + 2^32 - 1], i.e. the word to [lo, hi] (counted). The general case (Python
+ * reference_block: V <- V - u, any shift, any P word). */
+INLINE void P_sub(canrls_P64 *q, int64_t whole, uint32_t part, int32_t lo, int32_t hi,
+                  uint32_t *n)
+{
+    const uint32_t l = q->lo - part; /* mod 2^32, borrow when q->lo < part */
+    const int64_t w = (int64_t)q->word - whole - (int64_t)(q->lo < part);
+    if (UNLIKELY(w > hi)) {
+        *n += 1u;
+        q->lo = 0xFFFFFFFFu;
+        q->word = hi;
+        return;
+    }
+    if (UNLIKELY(w < lo)) {
+        *n += 1u;
+        q->lo = 0u;
+        q->word = lo;
+        return;
+    }
+    q->lo = l;
+    q->word = (int32_t)w;
+}
+
+/* P_sub for the common case: 34 <= s <= 62 and the whole int32_t word, u = ph 2^(64-s)
+ * with ph the rounded high word of K_i h_j and m = 2^(64-s) <= 2^30 (one SMULL): the pair
+ * as one int64_t minus ph m, saturated where the 64-bit difference overflows, which is
+ * exactly where the word leaves the int32_t (as theta_add_full). */
+INLINE void P_sub_full(canrls_P64 *q, int32_t ph, int32_t m, int32_t s, uint32_t *n)
+{
+#if defined(__GNUC__)
+    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
+    int64_t x;
+    if (UNLIKELY(__builtin_sub_overflow(t, mul_ww(ph, m), &x))) {
+        *n += 1u;
+        q->lo = ph < 0 ? 0xFFFFFFFFu : 0u;
+        q->word = ph < 0 ? INT32_MAX : INT32_MIN;
+        return;
+    }
+    (void)s;
+    q->lo = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
+#else
+    (void)m;
+    P_sub(q, ph >> (s - 32), (uint32_t)ph << (64 - s), INT32_MIN, INT32_MAX, n);
+#endif
+}
+
+/* The 64-bit P from a word w (any int64_t) and a pair's low part t (0 <= t < 2^32 + 2^31:
+ * the fraction plus 2^31, carry included), saturated as P_sub. */
+static void P_put(canrls_P64 *q, int64_t w, uint64_t t, int32_t lo, int32_t hi, uint32_t *n)
+{
+    w += (int64_t)(t >> 32);
+    if (w > hi) {
+        *n += 1u;
+        q->lo = 0xFFFFFFFFu;
+        q->word = hi;
+    } else if (w < lo) {
+        *n += 1u;
+        q->lo = 0u;
+        q->word = lo;
+    } else {
+        q->lo = (uint32_t)t;
+        q->word = (int32_t)w;
+    }
+}
+
+/* V <- rsh(V c, c_s), 0 < c, 1 <= c_s <= 31: the fold of c into P~ (rare: e = 0).
+ * V c + 2^(c_s-1) = A2 2^32 + Bl exactly (A = word c, B = f c + 2^(c_s-1), f the
+ * fraction), and rsh(V c, c_s) = (A2 >> c_s) 2^32 + T with 0 <= T < 2^32. */
+static void P_fold(canrls_P64 *q, int32_t c, int32_t c_s, int32_t lo, int32_t hi, uint32_t *n)
+{
+    const int32_t f = (int32_t)(q->lo ^ 0x80000000u);
+    const int64_t B = (int64_t)f * c + ((int64_t)1 << (c_s - 1));
+    const int64_t A2 = (int64_t)q->word * c + (B >> 32);
+    const uint32_t T = ((uint32_t)A2 << (32 - c_s)) | ((uint32_t)B >> c_s);
+    /* the pair: + 2^31 */
+    P_put(q, A2 >> c_s, (uint64_t)T + 0x80000000u, lo, hi, n);
+}
+
+/* V <- V 2^sh, 1 <= sh <= 31, exactly (the block exponent's shift; rare):
+ * word 2^sh plus the carry of f 2^sh + 2^31 (f the fraction) */
+static void P_shift(canrls_P64 *q, int32_t sh, int32_t lo, int32_t hi, uint32_t *n)
+{
+    const int32_t f = (int32_t)(q->lo ^ 0x80000000u);
+    const int64_t t = (int64_t)f * ((int64_t)1 << sh) + ((int64_t)1 << 31);
+    const int64_t w = (int64_t)q->word * ((int64_t)1 << sh) + (t >> 32);
+    P_put(q, w, (uint32_t)t, lo, hi, n);
+}
+
+/* Store an accumulator x (scale 2^-(f+s)) into a word of scale 2^-f (Python store):
+ * s >= 0: rounding right shift then clamp; s < 0: a left shift that clamps before
+ * shifting, so it never wraps. */
+INLINE int32_t store(int64_t x, int32_t s, int32_t lo, int32_t hi, uint32_t *n)
+{
+    int32_t t;
+    if (LIKELY((uint32_t)(s - 1) < 31u)) {
+        /* 1 <= s <= 31 (the common case): x + 2^(s-1) shifted as two words */
+        const uint64_t u = (uint64_t)x + (uint32_t)((uint32_t)1 << (s - 1)); /* s <= 31 */
+        const uint32_t ulo = (uint32_t)u;
+        const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
+        return sat2(uhi >> s, (ulo >> s) | ((uint32_t)uhi << (32 - s)), lo, hi, n);
+    }
+    if (s >= 0) {
+        return sat(rsh_c(x, s, shift_class(s)), lo, hi, n);
+    }
+    if (x == 0) {
+        return 0;
+    }
+    t = -s < 63 ? -s : 63;
+    /* x 2^t > hi  <=>  x > floor(hi / 2^t) ;  x 2^t < lo  <=>  x < ceil(lo / 2^t) */
+    if (x > ((int64_t)hi >> t)) {
+        *n += 1u;
+        return hi;
+    }
+    if (x < -((-(int64_t)lo) >> t)) {
+        *n += 1u;
+        return lo;
+    }
+    return (int32_t)(x * ((int64_t)1 << t));
+}
+
+/* Number of leading zero bits of v != 0. */
+static inline int32_t nlz(uint32_t v)
+{
+#if defined(__GNUC__)
+    return (int32_t)__builtin_clz(v);
+#else
+    int32_t k = 0;
+    while ((v & 0x80000000u) == 0u) {
+        v <<= 1;
+        k += 1;
+    }
+    return k;
+#endif
+}
+
+/* The left shift that brings 0 <= m < 2^31 to 30 bits: 30 - bit_length(m), at least 0
+ * (30 for m = 0); x << norm_shift(m) lies in [-2^30, 2^30) for every |x| "<=" m. */
+static inline int32_t norm_shift(uint32_t m)
+{
+    const int32_t k = m == 0u ? 30 : nlz(m) - 2;
+    return k > 0 ? k : 0;
+}
+
+/* One 16-bit digit of a long division: num / (vn1 b + vn0) with b = 2^16, ``next`` the
+ * next 16-bit digit of the dividend; the estimate num / vn1 corrected (at most twice). */
+static uint32_t div_digit(uint32_t num, uint32_t next, uint32_t vn1, uint32_t vn0)
+{
+    const uint32_t b = 65536u;
+    uint32_t q = num / vn1;
+    uint32_t rhat = num - q * vn1;
+    while (q >= b || q * vn0 > b * rhat + next) {
+        q -= 1u;
+        rhat += vn1;
+        if (rhat >= b) {
+            break;
+        }
+    }
+    return q;
+}
+
+/* u / v truncated, for u < 2^32 v (the quotient fits 32 bits) and v > 0: two 32/32
+ * divisions on 16-bit digits of the normalised operands (Knuth's algorithm D as in
+ * Hacker's Delight, divlu), exact, instead of a 64/64 library division. */
+static uint32_t div_u64_u32(uint64_t u, uint32_t v)
+{
+    const int32_t s = nlz(v);
+    const uint32_t u1 = (uint32_t)(u >> 32), u0 = (uint32_t)u;
+    uint32_t vn1, vn0, un32, un21, un10, un1, un0, q1, q0;
+    v <<= s;
+    vn1 = v >> 16;
+    vn0 = v & 0xFFFFu;
+    un32 = s > 0 ? (u1 << s) | (u0 >> (32 - s)) : u1;
+    un10 = u0 << s;
+    un1 = un10 >> 16;
+    un0 = un10 & 0xFFFFu;
+    /* first digit, the remainder, second digit */
+    q1 = div_digit(un32, un1, vn1, vn0);
+    un21 = un32 * 65536u + un1 - q1 * v;
+    q0 = div_digit(un21, un0, vn1, vn0);
+    return q1 * 65536u + q0;
+}
+
+/* ------------------------------------------------------------------- set-up */
+
+/* bits of canrls_rls_q31.wide: the word is the whole int32_t (nothing to clamp) */
+enum { WIDE_PHI = 1, WIDE_H = 2, WIDE_THETA = 4, WIDE_P = 8 };
+
+INLINE uint32_t wide_bit(int32_t lo, int32_t hi, uint32_t bit)
+{
+    return lo == INT32_MIN && hi == INT32_MAX ? bit : 0u;
+}
+
+/* trw = sum_i rsh(Pw_ii, trace_ps): the trace at the windup test's scale */
+static int32_t trace_words(const canrls_rls_q31 *S)
+{
+    const canrls_P64 *Pii = S->P;
+    int64_t trw = 0;
+    uint32_t i;
+    for (i = 0; i < S->n; i++) {
+        trw += rsh32(Pii->word, S->plan->trace_ps);
+        Pii += S->n - i; /* the next diagonal word of the packed rows */
+    }
+    return (int32_t)trw;
+}
+
+int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
+                    const int32_t *p0, int32_t e0)
+{
+    uint32_t i;
+    if (S == NULL || plan == NULL || p0 == NULL || n < 1u || n > CANRLS_N_MAX
+        || e0 < 0 || e0 > plan->e_max) {
+        return CANRLS_EINVAL;
+    }
+#ifdef CANRLS_N
+    if (n != (uint32_t)CANRLS_N) {
+        return CANRLS_EINVAL;
+    }
+#endif
+    for (i = 0; i < n; i++) {
+        if (p0[i] < plan->P_lo || p0[i] > plan->P_hi) {
+            return CANRLS_EINVAL;
+        }
+    }
+    memset(S, 0, sizeof *S);
+    S->plan = plan;
+    S->n = n;
+    /* P0 = diag(p0) 2^-(f_P + e0), c = 1, the fractions 0 (lo = 2^31) ; theta0 = 0 with
+     * fraction 0 (the memset) */
+    for (i = 0; i < CANRLS_TRI(n); i++) {
+        S->P[i].lo = 0x80000000u;
+    }
+    for (i = 0; i < n; i++) {
+        S->P[canrls_tri_index(n, i, i)].word = p0[i];
+    }
+    S->e = e0;
+    S->c = plan->one_lam;
+    S->trw = trace_words(S);
+    /* the e for which the windup test runs: trace_max_lim >> e is monotonic in e, so
+     * they form an interval (empty: wu_lo > wu_hi) */
+    S->wu_lo = plan->e_max + 1;
+    S->wu_hi = -1;
+    for (i = 0; i <= (uint32_t)plan->e_max; i++) {
+        if (plan->trace_max_lam <= (plan->trace_max_lim >> i)) {
+            S->wu_lo = S->wu_lo < (int32_t)i ? S->wu_lo : (int32_t)i;
+            S->wu_hi = (int32_t)i;
+        }
+    }
+    S->wide = wide_bit(plan->phi_lo, plan->phi_hi, WIDE_PHI)
+              | wide_bit(plan->h_lo, plan->h_hi, WIDE_H)
+              | wide_bit(plan->theta_lo, plan->theta_hi, WIDE_THETA)
+              | wide_bit(plan->P_lo, plan->P_hi, WIDE_P);
+    return CANRLS_OK;
+}
+
+int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *theta_frac,
+                       const int32_t *P_up, const int32_t *P_frac_up, int32_t e, int32_t c)
+{
+    const canrls_plan_q31 *p;
+    uint32_t i, m;
+    if (S == NULL || S->plan == NULL || theta == NULL || P_up == NULL) {
+        return CANRLS_EINVAL;
+    }
+    p = S->plan;
+    m = CANRLS_TRI(S->n);
+    if (e < 0 || e > p->e_max || c < 1 || c > p->one_lam) {
+        return CANRLS_EINVAL;
+    }
+    for (i = 0; i < S->n; i++) {
+        if (theta[i] < p->theta_lo || theta[i] > p->theta_hi) {
+            return CANRLS_EINVAL;
+        }
+    }
+    for (i = 0; i < m; i++) {
+        if (P_up[i] < p->P_lo || P_up[i] > p->P_hi) {
+            return CANRLS_EINVAL;
+        }
+    }
+    /* theta_q: the word theta and the fraction below its LSB theta_frac (NULL: 0, the
+     * estimate at its word) */
+    for (i = 0; i < S->n; i++) {
+        S->theta_q[i].word = theta[i];
+        S->theta_q[i].frac = theta_frac != NULL ? theta_frac[i] : 0u;
+    }
+    /* P: the word and its fraction (NULL: 0), the fraction held + 2^31 */
+    for (i = 0; i < m; i++) {
+        S->P[i].word = P_up[i];
+        S->P[i].lo = (uint32_t)(P_frac_up != NULL ? P_frac_up[i] : 0) ^ 0x80000000u;
+    }
+    S->e = e;
+    S->c = c;
+    S->trw = trace_words(S);
+    return CANRLS_OK;
+}
+
+/* ------------------------------------------------------------------- kernel */
+
+/* h~_i from its sum u = acc_i + 2^(h_os-1) (the rounding half already added), for
+ * 1 <= h_os <= 31: u >> h_os fits a word iff the high word of u lies in
+ * [-2^(h_os-1), 2^(h_os-1)); then it is the two words shifted. ``full``: the h word is
+ * the whole int32_t (a constant at each call). */
+INLINE int32_t h_word(uint64_t u, int32_t h_os, int32_t lo, int32_t hi, uint32_t *c_h,
+                      int full)
+{
+    const uint32_t ulo = (uint32_t)u;
+    const int32_t uhi = (int32_t)(uint32_t)(u >> 32);
+    if (LIKELY((uint32_t)uhi + ((uint32_t)1 << (h_os - 1)) < ((uint32_t)1 << h_os))) {
+        const int32_t r = (int32_t)((ulo >> h_os) | ((uint32_t)uhi << (32 - h_os)));
+        return full ? r : clamp32(r, lo, hi, c_h);
+    }
+    *c_h += 1u;
+    return uhi < 0 ? lo : hi;
+}
+
+/* acc = P~ phi + rnd as exact 64-bit sums (the rounding half rnd of the store of h~
+ * added once to each). Symmetric: each P~_ij of the packed upper triangle read once;
+ * its two products go to h_i and, scattered, to h_j. */
+INLINE void h_sums(const canrls_P64 *Pr, const int32_t *phg, uint32_t n, int64_t rnd,
+                   int64_t *acc)
+{
+    uint32_t i, j;
+    for (i = 0; i < n; i++) {
+        const int32_t pi_ = phg[i];
+        /* h_i = sum_{j<i} P_ji phi_j (scattered by the rows above) + P_ii phi_i (the words) */
+        int64_t a = (i == 0 ? rnd : acc[i]) + (int64_t)Pr[0].word * pi_;
+        if (i == 0) {
+            for (j = 1; j < n; j++) {
+                const int32_t Pij = Pr[j].word;
+                /* P_0j phi_j -> h_0 ;  P_j0 phi_0 = P_0j phi_0 -> h_j */
+                a += (int64_t)Pij * phg[j];
+                acc[j] = rnd + (int64_t)Pij * pi_;
+            }
+        } else {
+            for (j = i + 1; j < n; j++) {
+                const int32_t Pij = Pr[j - i].word;
+                /* P_ij phi_j -> h_i ;  P_ji phi_i = P_ij phi_i -> h_j */
+                a += (int64_t)Pij * phg[j];
+                acc[j] += (int64_t)Pij * pi_;
+            }
+        }
+        acc[i] = a;
+        Pr += n - i;
+    }
+}
+
+#ifdef CANRLS_N
+/* n a constant (CANRLS_N): h~ = P~ phi row by row, each P~_ij at a constant index of
+ * the packed upper triangle (the same exact sums as h_sums), stored as it is summed;
+ * returns s~ = phi' h~ and m = OR of |h~_i| (one's complement). 1 <= h_os <= 31. */
+INLINE int64_t h_rows(const canrls_P64 *Pr, const int32_t *phg, int32_t *h, int32_t h_os,
+                      int32_t lo, int32_t hi, uint32_t *c_h, uint32_t *m, int full)
+{
+    const uint32_t n = CANRLS_N;
+    const int64_t rnd = (int64_t)((uint32_t)1 << (h_os - 1)); /* h_os <= 31: one word */
+    int64_t s = 0;
+    uint32_t i, j, mm = 0;
+    int32_t ph[CANRLS_N]; /* phi >> phi_ps, held in registers over the rows */
+    UNROLL
+    for (j = 0; j < n; j++) {
+        ph[j] = phg[j];
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        int64_t a = rnd;
+        int32_t hi_;
+        UNROLL
+        for (j = 0; j < n; j++) {
+            const uint32_t r = i < j ? i : j, q = i < j ? j : i;
+            /* h~_i = sum_j Pw_ij phi_j   (Pw_ij = Pw_ji: the upper triangle's words) */
+            a += (int64_t)Pr[r * n - r * (r - 1u) / 2u + (q - r)].word * ph[j];
+        }
+        hi_ = h_word((uint64_t)a, h_os, lo, hi, c_h, full);
+        h[i] = hi_;
+        mm |= (uint32_t)(hi_ ^ (hi_ >> 31));
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* s~ = phi' h~ */
+        s += (int64_t)ph[i] * h[i];
+    }
+    *m = mm;
+    return s;
+}
+
+/* the two instances, out of line: each loop gets the registers to itself */
+NOINLINE int64_t h_rows_full(const canrls_P64 *Pr, const int32_t *phg, int32_t *h,
+                             int32_t h_os, uint32_t *c_h, uint32_t *m)
+{
+    return h_rows(Pr, phg, h, h_os, INT32_MIN, INT32_MAX, c_h, m, 1);
+}
+
+NOINLINE int64_t h_rows_word(const canrls_P64 *Pr, const int32_t *phg, int32_t *h,
+                             int32_t h_os, int32_t lo, int32_t hi, uint32_t *c_h, uint32_t *m)
+{
+    return h_rows(Pr, phg, h, h_os, lo, hi, c_h, m, 0);
+}
+#endif
+
+/* h~ <- h~ 2^kn; K = (g c) h~ as the high word of (h~ 2^kn)(gc 2^g_up), rounded half up;
+ * theta <- theta + K eps. ``cls`` (a constant at each call) is the shift class of th_s. */
+INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                   uint32_t *c_th, int cls, int full)
+{
+    const uint32_t n = NPAR(S);
+    int32_t *const h = S->h;
+    int32_t *const K = S->K;
+    canrls_theta64 *const theta_q = S->theta_q;
+    const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
+    /* 2^(64 - th_s): the high word of K eps at 2^-32 LSB (``full`` with SHIFT_HIGH: the
+     * caller guarantees th_s >= 34 and the whole int32_t theta word) */
+    const int32_t m = cls == SHIFT_HIGH && full ? (int32_t)1 << (64 - th_s) : 0;
+    uint32_t i;
+    for (i = 0; i < n; i++) {
+        /* h~ <- h~ 2^kn (exact: the normalisation) */
+        const int32_t hn = (int32_t)((uint32_t)h[i] << kn);
+        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
+        const int32_t Ki = mul_rsh32(hn, gcn);
+        h[i] = hn;
+        K[i] = Ki;
+        /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB, so that
+         * updates below the LSB accumulate; K carries the exponent e + kn: shifted out
+         * here) */
+        if (cls == SHIFT_HIGH && full) {
+            theta_add_full(&theta_q[i], (int32_t)(mul_ww(Ki, epn) >> 32), m, th_s, c_th);
+        } else {
+            theta_add(&theta_q[i], (int64_t)Ki * epn, th_s, th_lo, th_hi, c_th);
+        }
+    }
+}
+
+/* P~ <- P~ - K h~'  (upper triangle, in 64 bits: V <- V - u). ``cls`` (a constant at each
+ * call) is the shift class of P_s: SHIFT_HIGH and SHIFT_32 (P_s >= 32) take the product's
+ * high word rounded half up, ph = rsh(K_i h~_j, 32), and u = ph 2^(64 - P_s) (``full``:
+ * P_s >= 34 and the whole int32_t word, one SMULL by 2^(64 - P_s)); SHIFT_LOW and SHIFT_ANY
+ * (P_s <= 31) u = K_i h~_j 2^(32 - P_s) exactly. Returns the low-excitation test of the
+ * specification, "u_ii == 0 for every i": those are the diagonal terms of this update,
+ * so they are tested here rather than computed twice. */
+INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int full)
+{
+    const uint32_t n = NPAR(S);
+    const int32_t *const h = S->h;
+    const int32_t *const K = S->K;
+    /* the plan, as locals (a store to P~ cannot change them) */
+    const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
+    /* 2^(64 - P_s) (``full``), and the shifts of ph 2^(64 - P_s) as whole and part */
+    const int32_t m = cls == SHIFT_HIGH && full ? (int32_t)1 << (64 - P_s) : 0;
+    const int32_t hs = cls == SHIFT_HIGH ? P_s - 32 : 0;
+    const int32_t ls = cls == SHIFT_HIGH ? 64 - P_s : 0;
+    canrls_P64 *Pw = S->P; /* row i of the packed upper triangle */
+    uint32_t i, j;
+    uint32_t nz = 0; /* nonzero once a diagonal term is */
+    for (i = 0; i < n; i++) {
+        const int32_t Ki = K[i];
+        for (j = i; j < n; j++) {
+            if (cls == SHIFT_HIGH || cls == SHIFT_32) {
+                /* ph = rsh(K_i h~_j, 32): the high word, rounded (one SMMULR) */
+                const int32_t ph = mul_rsh32(Ki, h[j]);
+                if (j == i) {
+                    nz |= (uint32_t)ph; /* the diagonal: information K_i h~_i */
+                }
+                if (cls == SHIFT_32) {
+                    /* u = ph 2^32: the word alone */
+                    P_sub(&Pw[j - i], ph, 0u, P_lo, P_hi, c_P);
+                } else if (full) {
+                    P_sub_full(&Pw[j - i], ph, m, P_s, c_P);
+                } else {
+                    P_sub(&Pw[j - i], ph >> hs, (uint32_t)ph << ls, P_lo, P_hi, c_P);
+                }
+            } else {
+                /* u = K_i h~_j 2^(32 - P_s): whole LSBs and the part below */
+                const int64_t pr = (int64_t)Ki * h[j];
+                if (j == i) {
+                    nz |= (uint32_t)(pr != 0);
+                }
+                P_sub(&Pw[j - i], pr >> P_s, (uint32_t)((uint64_t)pr << (32 - P_s)), P_lo,
+                      P_hi, c_P);
+            }
+        }
+        Pw += n - i;
+    }
+    return nz == 0u;
+}
+
+/* the common instance of P_step (32-bit words, shifts of 34 or more), out of line: the
+ * update of the triangle gets the registers to itself */
+NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
+{
+    return P_step(S, P_s, c_P, SHIFT_HIGH, 1);
+}
+
+#ifdef CANRLS_N
+/* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
+ * th_s >= 34, P_s >= 34), out of line: h~ 2^kn and K stay in registers from one to the
+ * other (the same integers; S->h keeps h~ without the normalisation, it is scratch).
+ * theta is updated last, when the P loop has freed the registers (the order of the two
+ * updates changes no integer: neither reads what the other writes).
+ * Returns the low-excitation test, as P_step. */
+NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
+                               int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
+{
+    const uint32_t n = CANRLS_N;
+    const int32_t mt = (int32_t)1 << (64 - th_s), mp = (int32_t)1 << (64 - P_s);
+    int32_t hn[CANRLS_N], K[CANRLS_N];
+    canrls_P64 *Pw = S->P; /* row i of the packed upper triangle */
+    uint32_t i, j, nz = 0;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* h~ <- h~ 2^kn (exact: the normalisation) */
+        hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
+        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
+        K[i] = mul_rsh32(hn[i], gcn);
+        S->K[i] = K[i];
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* P~ <- P~ - K h~'  (upper triangle, 64 bits: u = rsh(K_i h~_j, 32) 2^(64 - P_s));
+         * the diagonal: information K_i h~_i */
+        const int32_t r = mul_rsh32(K[i], hn[i]);
+        nz |= (uint32_t)r;
+        P_sub_full(&Pw[0], r, mp, P_s, c_P);
+        UNROLL
+        for (j = i + 1; j < n; j++) {
+            P_sub_full(&Pw[j - i], mul_rsh32(K[i], hn[j]), mp, P_s, c_P);
+        }
+        Pw += n - i;
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB; K carries
+         * the exponent e + kn: shifted out here; one LDRD, one STRD) */
+        theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s, c_th);
+    }
+    return nz == 0u;
+}
+#endif
+
+int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
+                      canrls_step_q31 *step)
+{
+    const canrls_plan_q31 *p = S->plan;
+    const uint32_t n = NPAR(S);
+    const canrls_theta64 *const theta_q = S->theta_q;
+    canrls_P64 *const P = S->P;
+    int32_t *const h = S->h;
+    int32_t *const K = S->K;
+    int32_t *const phg = S->phg;
+    int32_t e = S->e;
+    int32_t c = S->c;
+    int32_t trw = S->trw;
+    /* per-step saturation counts, added to S->counts once per step */
+    uint32_t c_phi = 0, c_y = 0, c_eps = 0, c_h = 0, c_den = 0, c_div = 0, c_th = 0,
+             c_P = 0;
+    uint32_t flag = 0;
+    uint32_t i, j;
+    /* the plan, as locals (stores to the state cannot change them) */
+    const int32_t phi_lo = p->phi_lo, phi_hi = p->phi_hi, phi_ps = p->phi_ps;
+    const int32_t h_lo = p->h_lo, h_hi = p->h_hi, h_os = p->h_os;
+    const int32_t tr_ps = p->trace_ps;
+    int32_t yk, eps;
+    int64_t a;
+    int applied = 0;
+
+    /* phi, y <- sat(phi), sat(y)       inputs clamped to their words;
+     * phi >> ps: the guard bits of the multiply-accumulates */
+    if (phi_ps > 0 && (S->wide & WIDE_PHI)) {
+        /* 32-bit words: nothing to clamp */
+        UNROLL
+        for (j = 0; j < n; j++) {
+            phg[j] = ((phi[j] >> (phi_ps - 1)) + 1) >> 1;
+        }
+    } else if (phi_ps > 0) {
+        for (j = 0; j < n; j++) {
+            const int32_t v = clamp32(phi[j], phi_lo, phi_hi, &c_phi);
+            phg[j] = ((v >> (phi_ps - 1)) + 1) >> 1;
+        }
+    } else {
+        for (j = 0; j < n; j++) {
+            phg[j] = clamp32(phi[j], phi_lo, phi_hi, &c_phi);
+        }
+    }
+    yk = clamp32(y, p->y_lo, p->y_hi, &c_y);
+
+    /* eps = y - phi' theta */
+    /* (summed as phi' theta - y, multiply-accumulates, then negated: the same integer) */
+    if ((uint32_t)p->eps_ts <= 30u) {
+        a = (int64_t)yk * ((int32_t)1 << p->eps_ts); /* y 2^ts: one multiply */
+    } else {
+        a = p->eps_ts >= 0 ? (int64_t)yk * ((int64_t)1 << p->eps_ts) : rsh(yk, -p->eps_ts);
+    }
+    a = -a;
+    UNROLL
+    for (j = 0; j < n; j++) {
+        a += (int64_t)phg[j] * theta_q[j].word;
+    }
+    a = -a;
+    eps = store(a, p->eps_os, p->eps_lo, p->eps_hi, &c_eps);
+
+    if (S->frozen) {
+        flag = CANRLS_FLAG_FROZEN;
+        memset(K, 0, n * sizeof *K);
+    } else {
+        int64_t acc[CANRLS_N_MAX]; /* the scattered column sums of h~ */
+        uint32_t m = 0;
+        int32_t st, sv, lam_k, d, g, gc, gcn, epn, th_s, P_s, kn, kg = 0;
+        int32_t il;
+        int low;
+
+        /* h~ = P~ phi, rounded and stored; m = OR of |h~_i| (one's complement) for the
+         * normalisation below; s~ = phi' h~ (a) summed as h~ is stored */
+        a = 0;
+        if ((uint32_t)(h_os - 1) < 31u) {
+            /* 1 <= h_os <= 31 (the common case): each sum rounded in two words */
+#ifdef CANRLS_N
+            if (S->wide & WIDE_H) {
+                a = h_rows_full(P, phg, h, h_os, &c_h, &m);
+            } else {
+                a = h_rows_word(P, phg, h, h_os, h_lo, h_hi, &c_h, &m);
+            }
+#else
+            /* h~ = P~ phi (+ the rounding half)   (symmetric: each P~_ij read once) */
+            h_sums(P, phg, n, (int64_t)1 << (h_os - 1), acc);
+            for (i = 0; i < n; i++) {
+                const int32_t hi_ = h_word((uint64_t)acc[i], h_os, h_lo, h_hi, &c_h, 0);
+                h[i] = hi_;
+                m |= (uint32_t)(hi_ ^ (hi_ >> 31));
+                /* s~ = phi' h~ (summed as h~ is stored) */
+                a += (int64_t)phg[i] * hi_;
+            }
+#endif
+        } else {
+            /* h~ = P~ phi   (symmetric: each P~_ij of the upper triangle read once) */
+            h_sums(P, phg, n, 0, acc);
+            for (i = 0; i < n; i++) {
+                const int32_t hi_ = store(acc[i], h_os, h_lo, h_hi, &c_h);
+                h[i] = hi_;
+                m |= (uint32_t)(hi_ ^ (hi_ >> 31));
+                a += (int64_t)phg[i] * hi_;
+            }
+        }
+
+        /* s~ = phi' h~ (a, summed above), brought from the scale of P (exponent e) to
+         * that of lambda */
+        st = store((uint32_t)(e - 1) < 31u ? rsh_c(a, e, SHIFT_LOW) : rsh_c(a, e, shift_class(e)),
+                   p->s_os, p->den_lo, p->den_hi, &c_den);
+        /* s = phi' P phi = c s~ */
+        sv = store(mul_ww(st, c), p->sc_s, p->den_lo, p->den_hi, &c_den);
+
+        /* windup <=> (tr P - g h'h)/lambda > trace_max
+         *        <=> (tr P - lambda trace_max) (lambda + phi'P phi) > h'h */
+        lam_k = p->lam_den;
+        if (e >= S->wu_lo && e <= S->wu_hi) { /* trace_max_lam <= trace_max_lim >> e */
+            /* tr P = c tr P~   (trw: the diagonal summed >> tr_ps, kept from the last row) */
+            /* (lambda trace_max 2^e: within trace_max_lim for these e, so the shift is
+             * the product) */
+            int64_t T = rsh_w(mul_ww(trw, c), p->tc_s)
+                        - (int64_t)((uint64_t)(int64_t)p->trace_max_lam << e);
+            if (T > 0) {
+                uint32_t none = 0; /* d_lam is not counted */
+                int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
+                int64_t a_vw = 0, lhs;
+                int32_t df;
+                int up;
+                for (i = 0; i < n; i++) {
+                    /* h = c h~ ; w = c w~ = h */
+                    int64_t hi_ = rsh((int64_t)h[i] * c, p->hc_s);
+                    int64_t wi_ = rsh((int64_t)h[i] * c, p->hc_s);
+                    a_vw += rsh(hi_ * wi_, p->vw_ps);
+                }
+                lhs = rsh((T < p->P_hi ? T : p->P_hi) * d_lam, p->lhs_ps);
+                /* the two sides differ in scale by cmp_df - e bits */
+                df = p->cmp_scale_diff - e;
+                if (df >= 0) {
+                    up = (lhs >> (df < 63 ? df : 63)) > a_vw;
+                } else {
+                    up = lhs > (a_vw >> (-df < 63 ? -df : 63));
+                }
+                if (up) {
+                    lam_k = p->one_den;
+                    flag = CANRLS_FLAG_WINDUP;
+                }
+            }
+        }
+
+        /* d = lambda_k + phi' P phi */
+        d = add_sat(lam_k, sv, p->den_lo, p->den_hi, &c_den, 0);
+        /* g = 1 / d     (the one division: acc-width dividend, word divisor, C truncation) */
+        if (d <= 0) {
+            g = p->g_hi;
+            c_div += 1u;
+        } else {
+            /* DIVIDEND // d > g_hi  <=>  DIVIDEND >= (g_hi + 1) d : then the quotient
+             * fits 32 bits, and a 64/32 division gives it */
+            /* (g_hi + 1) d: 0 < g_hi + 1 <= 2^31 and 0 < d < 2^31, one 32 x 32 product */
+            /* g normalised: g 2^kg = DIVIDEND 2^kg / d, kg = bit length of d - kg_bl within
+             * [0, kg_max] and the room of the shifts below (kg = 0 for d < 2: the
+             * steady state) */
+            uint64_t dvd;
+            kg = 32 - nlz((uint32_t)d) - p->kg_bl;
+            if (UNLIKELY(kg > 0)) {
+                int32_t lim = p->kg_max;
+                lim = lim < 62 - p->P_s - e ? lim : 62 - p->P_s - e;
+                lim = lim < 62 - p->theta_s - e ? lim : 62 - p->theta_s - e;
+                kg = kg < lim ? kg : lim;
+            } else {
+                kg = 0;
+            }
+            dvd = (uint64_t)p->dividend << kg;
+            if (dvd >= (uint64_t)((uint32_t)p->g_hi + 1u) * (uint32_t)d) {
+                g = p->g_hi;
+                c_div += 1u;
+            } else {
+                g = (int32_t)div_u64_u32(dvd, (uint32_t)d);
+            }
+        }
+        /* gc = g c */
+        gc = store(mul_ww(g, c), p->gc_s, p->g_lo, p->g_hi, &c_div);
+
+        /* normalisation of the updates (once per step): h~ and eps shifted left (exactly)
+         * to 31 bits, so that K is the high word of a 32 x 32 product and the theta and
+         * P updates shift by 32 or more (docs/fixed_point.md) */
+        {
+            int32_t ke, lim;
+            kn = norm_shift(m);
+            lim = (62 - p->P_s - e - kg) >> 1;
+            kn = kn < lim ? kn : lim;
+            lim = 62 - p->theta_s - e - kg;
+            kn = kn < lim ? kn : lim;
+            ke = norm_shift((uint32_t)(eps ^ (eps >> 31)));
+            lim = 62 - p->theta_s - e - kn - kg;
+            ke = ke < lim ? ke : lim;
+            epn = (int32_t)((uint32_t)eps << ke);
+            gcn = (int32_t)((uint32_t)gc << p->g_up);
+            th_s = p->theta_s + e + kn + ke + kg;
+            /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each, g 2^kg */
+            P_s = p->P_s + e + 2 * kn + kg;
+        }
+#ifdef CANRLS_N
+        if (th_s >= 34 && P_s >= 34 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
+            /* the common case in one piece */
+            low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, &c_th, &c_P);
+        } else
+#endif
+        {
+        switch (shift_class(th_s)) {
+        case SHIFT_HIGH:
+            /* words of 32 bits: the overflow test is the clamp (th_s >= 34: the high word
+             * of K eps times 2^(64 - th_s) is one SMULL) */
+            if ((S->wide & WIDE_THETA) && th_s >= 34) {
+                K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 1);
+            } else {
+                K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 0);
+            }
+            break;
+        case SHIFT_32:
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_32, 0);
+            break;
+        case SHIFT_LOW:
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_LOW, 0);
+            break;
+        default:
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_ANY, 0);
+            break;
+        }
+        /* P <- (P - g (P phi)(P phi)') / lambda:  P~ <- P~ - K h~'   upper triangle
+         * (in a loop made for the shift class of this step); low excitation: the
+         * information K_i h~_i rounds to zero on the whole diagonal */
+        switch (shift_class(P_s)) {
+        case SHIFT_HIGH:
+            /* words of 32 bits: the overflow test is the clamp (P_s >= 34: 2^(64 - P_s)
+             * is a word, one SMULL) */
+            if ((S->wide & WIDE_P) && P_s >= 34) {
+                low = P_step_high_full(S, P_s, &c_P);
+            } else {
+                low = P_step(S, P_s, &c_P, SHIFT_HIGH, 0);
+            }
+            break;
+        case SHIFT_32:
+            low = P_step(S, P_s, &c_P, SHIFT_32, 0);
+            break;
+        case SHIFT_LOW:
+            low = P_step(S, P_s, &c_P, SHIFT_LOW, 0);
+            break;
+        default:
+            low = P_step(S, P_s, &c_P, SHIFT_ANY, 0);
+            break;
+        }
+        }
+        if (low) {
+            flag |= CANRLS_FLAG_LOW_EXCITATION;
+        }
+
+        /* c <- c / lambda_k */
+        il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
+        c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, &c_P);
+        if (c > p->one_lam) {
+            if (e > 0) {
+                /* c/2 and 2^-e x 2: the words do not move */
+                c = rsh32(c, 1);
+                e -= 1;
+            } else {
+                /* fold c into P~: V <- rsh(V c, c_s) in 64 bits, c = 1 */
+                for (i = 0; i < CANRLS_TRI(n); i++) {
+                    P_fold(&P[i], c, p->c_s, p->P_lo, p->P_hi, &c_P);
+                }
+                c = p->one_lam;
+            }
+        }
+
+        /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh */
+        {
+            int64_t tr = 0;
+            uint32_t trw32 = 0; /* the sum modulo 2^32: trw is a word */
+            const canrls_P64 *Pii = P;
+            if (tr_ps > 0) {
+                UNROLL
+                for (i = 0; i < n; i++) {
+                    const int32_t x = Pii->word;
+                    tr += x;
+                    trw32 += (uint32_t)(((x >> (tr_ps - 1)) + 1) >> 1);
+                    Pii += n - i;
+                }
+            } else {
+                for (i = 0; i < n; i++) {
+                    tr += Pii->word;
+                    trw32 += (uint32_t)Pii->word;
+                    Pii += n - i;
+                }
+            }
+            trw = (int32_t)trw32;
+            if (tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max) {
+                int32_t sh = 1;
+                while ((tr << (sh + 1)) <= p->trace_hi && e + sh < p->e_max) {
+                    sh += 1;
+                }
+                /* P~ <- P~ 2^sh: V <- V 2^sh exactly, the words and their fractions */
+                for (i = 0; i < CANRLS_TRI(n); i++) {
+                    P_shift(&P[i], sh, p->P_lo, p->P_hi, &c_P);
+                }
+                e += sh;
+                trw = trace_words(S);
+            }
+        }
+        S->e = e;
+        S->c = c;
+        S->trw = trw;
+        applied = 1;
+    }
+
+    {
+        const uint32_t nsat = c_phi + c_y + c_eps + c_h + c_den + c_div + c_th + c_P;
+        if (nsat > 0u) {
+            uint32_t *const cnt = S->counts;
+            flag |= CANRLS_FLAG_SATURATION;
+            cnt[CANRLS_S_PHI_IN] += c_phi;
+            cnt[CANRLS_S_Y_IN] += c_y;
+            cnt[CANRLS_S_EPS] += c_eps;
+            cnt[CANRLS_S_H] += c_h;
+            cnt[CANRLS_S_DEN] += c_den;
+            cnt[CANRLS_S_DIV] += c_div;
+            cnt[CANRLS_S_THETA] += c_th;
+            cnt[CANRLS_S_P] += c_P;
+        }
+    }
+    if (step != NULL) {
+        /* tr P = c tr P~, recorded at the scale 2^-(f_P - tr_ps + e) */
+        step->eps = eps;
+        step->trace = (int32_t)mul_rsh(trw, c, p->tc_s, shift_class(p->tc_s));
+        step->e = e;
+        step->flags = flag;
+    }
+    return applied;
+}

@@ -1,0 +1,148 @@
+/*
+ * canrls_replay.c -- replays test vectors through the whole estimator and compares.
+ *
+ * SPDX-License-Identifier: MIT
+ *
+ * canrls_vectors.h (`canrls export-c --vectors LOG`) holds the frames of a log and
+ * what the Python specification (canrls.firmware.spec) computes from them: the integer
+ * state every N samples and every frame of every publication. canrls_replay() feeds
+ * the frames to canrls_target_frame() one by one, publishes when asked and compares
+ * each state record and each published frame with the expected ones, word for word.
+ * The host test (canrls_test.c) and the Cortex-M4 example (src/canrls/c/firmware/example) call it.
+ */
+#include "canrls_replay.h"
+
+#include <string.h>
+
+#include "canrls_model.h"
+#include "canrls_vectors.h"
+
+/* the state as the specification's state_record() lays it out */
+static uint32_t record(const canrls_target *S, int64_t *out)
+{
+    const canrls_target_model *M = S->model;
+    uint32_t k = 0u, i, j;
+    out[k++] = S->samples;
+    for (i = 0; i < CANRLS_NREJECTS; i++) {
+        out[k++] = S->rejects[i];
+    }
+    for (i = 0; i < M->nfilters; i++) {
+        out[k++] = S->x1[i];
+    }
+    for (i = 0; i < M->nfilters; i++) {
+        out[k++] = S->x2[i];
+    }
+    for (i = 0; i < M->neq; i++) {
+        const canrls_target_eq *q = &S->eq[i];
+        const uint32_t n = M->equations[i].n;
+        for (j = 0; j < n; j++) {
+            out[k++] = canrls_theta_q31(&q->rls, j);
+        }
+        for (j = 0; j < n; j++) {
+            out[k++] = canrls_theta_frac_q31(&q->rls, j);
+        }
+        for (j = 0; j < CANRLS_TRI(n); j++) {
+            out[k++] = canrls_P_q31(&q->rls, j);
+        }
+        for (j = 0; j < CANRLS_TRI(n); j++) {
+            out[k++] = canrls_P_frac_q31(&q->rls, j);
+        }
+        out[k++] = q->rls.e;
+        out[k++] = q->rls.c;
+        for (j = 0; j < CANRLS_NSITES; j++) {
+            out[k++] = q->rls.counts[j];
+        }
+        for (j = 0; j < n; j++) {
+            out[k++] = q->sh[j];
+        }
+        out[k++] = q->sh_y;
+        out[k++] = q->updates;
+        out[k++] = q->ms;
+        out[k++] = q->rescales;
+    }
+    return k;
+}
+
+static void put_uint(void (*say)(const char *), uint32_t v)
+{
+    char buf[12];
+    char *s = buf + sizeof buf - 1;
+    *s = '\0';
+    do {
+        *--s = (char)('0' + v % 10u);
+        v /= 10u;
+    } while (v != 0u);
+    say(s);
+}
+
+/* the frame loop, out of line so that a trace finds each call of canrls_target_frame:
+ * frames a..b-1, the comparisons counted in R */
+__attribute__((noinline)) void canrls_replay_frames(canrls_target *S, uint32_t a, uint32_t b,
+                                                    canrls_replay_counts *R)
+{
+    static canrls_can_frame out[CANRLS_PUBLISH_MAX];
+    static int64_t rec[VEC_RECORD + 1u];
+    uint32_t k, r, n, i;
+    for (k = a; k < b; k++) {
+        r = canrls_target_frame(S, vec_id[k] & 0x7FFFFFFFu, vec_id[k] >> 31, vec_data[k],
+                                vec_len[k], vec_t[k]);
+#ifdef CANRLS_REPLAY_MARK
+        /* a hook of the instruction count (make target): the frame completed a sample */
+        if ((r & CANRLS_SAMPLE) != 0u) {
+            CANRLS_REPLAY_MARK(r);
+        }
+#endif
+        if ((r & CANRLS_PUBLISH) != 0u) {
+            n = canrls_target_publish(S, out, CANRLS_PUBLISH_MAX);
+            if (R->published >= VEC_PUBLICATIONS || vec_pub_frame[R->published] != k
+                || vec_pub_count[R->published] != n) {
+                R->bad++;
+            } else {
+                for (i = 0; i < n; i++) {
+                    if (out[i].id != vec_pub_id[R->pub_base + i]
+                        || memcmp(out[i].data, vec_pub_data[R->pub_base + i], 8) != 0) {
+                        R->bad++;
+                        break;
+                    }
+                }
+                R->pub_base += n;
+            }
+            R->published++;
+        }
+        if (R->checked < VEC_CHECKPOINTS && vec_cp_frame[R->checked] == k) {
+            const uint32_t m = record(S, rec);
+            if (m != VEC_RECORD || memcmp(rec, &vec_cp[R->checked * VEC_RECORD],
+                                          VEC_RECORD * sizeof rec[0]) != 0) {
+                R->bad++;
+            }
+            R->checked++;
+        }
+    }
+}
+
+int canrls_replay(canrls_target *S, void (*say)(const char *))
+{
+    canrls_replay_counts R = {0u, 0u, 0u, 0u};
+    if (canrls_target_init(S, &canrls_model) != CANRLS_OK) {
+        say("canrls_target_init failed\n");
+        return 0;
+    }
+    canrls_replay_frames(S, 0u, VEC_FRAMES, &R);
+    say("canrls replay: ");
+    put_uint(say, VEC_FRAMES);
+    say(" frames, ");
+    put_uint(say, S->samples);
+    say(" samples, ");
+    put_uint(say, R.checked);
+    say(" state records, ");
+    put_uint(say, R.published);
+    say(" publications: ");
+    if (R.bad != 0u || R.checked != VEC_CHECKPOINTS || R.published != VEC_PUBLICATIONS
+        || S->samples != VEC_SAMPLES) {
+        put_uint(say, R.bad);
+        say(" differ from the specification\n");
+        return 0;
+    }
+    say("bit-exact with the specification\n");
+    return 1;
+}

@@ -1,0 +1,1058 @@
+/*
+ * canrls_target.c -- the whole estimator on the target (see canrls_target.h).
+ *
+ * SPDX-License-Identifier: MIT
+ *
+ * Each function is the one of the same name (without cr_ / canrls_target_) in
+ * src/canrls/firmware/qmath.py and spec.py, line for line. Integers only; a left shift
+ * is never applied to a negative value (a multiplication by a power of two instead),
+ * and the arithmetic right shift of a negative value is required (checked below).
+ */
+#include "canrls_target.h"
+
+#include <string.h>
+
+#include "canrls_target_tables.h"
+
+/* an arithmetic right shift of negative values (every compiler for these targets has one) */
+typedef char canrls_target_needs_arithmetic_shift[((-8) >> 1) == -4 ? 1 : -1];
+
+#define ONE_Q30 ((int64_t)1 << 30)
+#define I62 ((int64_t)1 << 62)
+#define W_FRAC 16
+#define Z_FRAC 24
+
+/* ------------------------------------------------------------------ arithmetic */
+
+/* rsh(x, s) = (x + 2^(s-1)) >> s for s >= 0, as ((x >> (s-1)) + 1) >> 1: no overflow. */
+static int64_t cr_rsh(int64_t x, int32_t s)
+{
+    if (s <= 0) {
+        return x;
+    }
+    if (s >= 64) {
+        return 0;
+    }
+    return ((x >> (s - 1)) + 1) >> 1;
+}
+
+static int64_t cr_sat(int64_t x, int64_t lo, int64_t hi)
+{
+    return x < lo ? lo : x > hi ? hi : x;
+}
+
+/* x 2^s for s >= 0 without shifting a negative value (the caller bounds the result) */
+static int64_t cr_shl(int64_t x, int32_t s)
+{
+    return x * ((int64_t)1 << s);
+}
+
+/* rsh(x m, s) saturated to +-2^62 (qmath.mul_rsh), |x| < 2^61, x = h 2^31 + l */
+static inline int64_t cr_mul_rsh(int64_t x, int32_t m, int32_t s)
+{
+    /* h < 2^30 and l < 2^31: both words, each product one SMULL */
+    const int64_t a = (int64_t)(int32_t)(x >> 31) * m;
+    const int64_t b = (int64_t)(int32_t)(x & 0x7FFFFFFF) * m;
+    if (s > 31) {
+        if (s >= 93) {
+            return 0;
+        }
+        /* (h m + 2^(s-32) + (l m >> 31)) >> (s - 31) */
+        return (a + ((int64_t)1 << (s - 32)) + (b >> 31)) >> (s - 31);
+    }
+    if (s == 31) {
+        /* h m + ((l m + 2^30) >> 31) */
+        return a + ((b + ((int64_t)1 << 30)) >> 31);
+    }
+    /* s < 31: h m 2^(31-s) + rsh(l m, s), saturated */
+    if (a >= ((int64_t)1 << (31 + s)) || -a >= ((int64_t)1 << (31 + s))) {
+        return a >= 0 ? I62 : -I62;
+    }
+    return cr_sat(cr_shl(a, 31 - s) + cr_rsh(b, s), -I62, I62);
+}
+
+static int32_t cr_bitlen64(uint64_t v)
+{
+    int32_t n = 0;
+    while (v != 0u) {
+        v >>= 1;
+        n++;
+    }
+    return n;
+}
+
+/* clog2(n) = bit length of n - 1 (n >= 1) */
+static int32_t cr_clog2(uint64_t n)
+{
+    return cr_bitlen64(n - 1u);
+}
+
+/* clog2(a m) of a product of up to 92 bits: a < 2^61, m < 2^31, a m >= 1 */
+static int32_t cr_clog2_mul(uint64_t a, uint32_t m)
+{
+    /* a m = A 2^31 + B, A = (a >> 31) m, B = (a mod 2^31) m ; as hi 2^32 + lo */
+    const uint64_t A = (a >> 31) * m;
+    const uint64_t B = (a & 0x7FFFFFFFu) * m;
+    uint64_t lo = ((A & 1u) << 31) + (B & 0xFFFFFFFFu);
+    uint64_t hi = (A >> 1) + (B >> 32) + (lo >> 32);
+    lo &= 0xFFFFFFFFu;
+    /* n - 1 */
+    if (lo == 0u) {
+        hi -= 1u;
+        lo = 0xFFFFFFFFu;
+    } else {
+        lo -= 1u;
+    }
+    return hi != 0u ? 32 + cr_bitlen64(hi) : cr_bitlen64(lo);
+}
+
+/* floor(sqrt(n)), n >= 0, bit by bit */
+static int64_t cr_isqrt(int64_t n)
+{
+    uint64_t v = (uint64_t)n, r = 0u, bit = (uint64_t)1 << 62;
+    while (bit > v) {
+        bit >>= 2;
+    }
+    while (bit != 0u) {
+        if (v >= r + bit) {
+            v -= r + bit;
+            r = (r >> 1) + bit;
+        } else {
+            r >>= 1;
+        }
+        bit >>= 2;
+    }
+    return (int64_t)r;
+}
+
+/* the piecewise cubic of a table at u / 2^32, Q30: p = c3; p = c_i + rsh(p t, 31) */
+static int32_t cr_table_eval(const int32_t (*table)[4], int32_t k, uint32_t u)
+{
+    const int32_t *c = table[u >> (32 - k)];
+    /* t = position in the segment, Q31 */
+    const int32_t t = (int32_t)((uint32_t)(u << k) >> 1);
+    /* p = c3; p = c_i + rsh(p t, 31): the words of the tables keep p within int32 */
+    int32_t p = c[3];
+    p = c[2] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
+    p = c[1] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
+    p = c[0] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
+    return p;
+}
+
+/* tanh(z 2^-24), Q30: odd, 1 from |z| >= 8 */
+static int32_t cr_tanh_q24(int32_t z)
+{
+    const uint32_t a = z < 0 ? 0u - (uint32_t)z : (uint32_t)z;
+    const int32_t v = a >= (8u << 24) ? (int32_t)ONE_Q30
+                                      : cr_table_eval(cr_tanh, CR_TANH_LOG2, a << 5);
+    return z < 0 ? -v : v;
+}
+
+/* 2^(-x 2^-24), Q30, x >= 0 */
+static int32_t cr_exp2_neg_q24(int64_t x)
+{
+    const int64_t n = x >> 24;
+    if (n >= 31) {
+        return 0;
+    }
+    return (int32_t)cr_rsh(cr_table_eval(cr_exp2, CR_EXP2_LOG2,
+                                         (uint32_t)(x & 0xFFFFFF) << 8), (int32_t)n);
+}
+
+/* exp(-x 2^-24) = 2^(-x log2 e), Q30 */
+static int32_t cr_exp_neg_q24(int64_t x)
+{
+    return cr_exp2_neg_q24(cr_rsh(x * 1549082005, 30));
+}
+
+/* S(x) or S(~x) of the quadrant q, signed by it */
+static int32_t cr_quarter(uint32_t q, uint32_t x)
+{
+    const int32_t v = cr_table_eval(cr_sin, CR_SIN_LOG2, (q & 1u) == 0u ? x : ~x);
+    return q < 2u ? v : -v;
+}
+
+/* sin and cos of 2 pi phase / 2^64, Q30 */
+static void cr_sincos_q64(uint64_t phase, int32_t *s, int32_t *c)
+{
+    const uint32_t q = (uint32_t)(phase >> 62);
+    const uint32_t x = (uint32_t)(phase >> 30);
+    *s = cr_quarter(q, x);
+    *c = cr_quarter((q + 1u) & 3u, x);
+}
+
+/* the binary32 bits of v 2^e, round half to even, saturated at 3.4e38; |v| < 2^32 */
+static uint32_t cr_f32_bits(int64_t v, int32_t e)
+{
+    const uint32_t sat_bits = 0x7F7FC99Eu;
+    uint32_t sign, bits;
+    uint64_t a, m;
+    int32_t q, s;
+    if (v == 0) {
+        return 0u;
+    }
+    sign = v < 0 ? 0x80000000u : 0u;
+    a = v < 0 ? 0u - (uint64_t)v : (uint64_t)v;
+    q = cr_bitlen64(a) - 1 + e - 23;
+    q = q < -149 ? -149 : q;
+    s = q - e;
+    if (s > 0) {
+        if (s > 33) {
+            m = 0u;
+        } else {
+            const uint64_t rem = a & (((uint64_t)1 << s) - 1u);
+            const uint64_t half = (uint64_t)1 << (s - 1);
+            m = a >> s;
+            if (rem > half || (rem == half && (m & 1u) != 0u)) {
+                m += 1u;
+            }
+        }
+    } else {
+        m = a << (-s);
+    }
+    if ((m >> 24) != 0u) {
+        m >>= 1;
+        q += 1;
+    }
+    if ((m >> 23) != 0u) {
+        const int32_t biased = q + 150;
+        bits = biased < 255 ? ((uint32_t)biased << 23) | (uint32_t)(m & 0x7FFFFFu) : sat_bits + 1u;
+    } else {
+        bits = (uint32_t)m;
+    }
+    if (bits > sat_bits) {
+        bits = sat_bits;
+    }
+    return sign | bits;
+}
+
+/* ------------------------------------------------------------------ frames in */
+
+/* the bytes of a word in the other order (one REV where the compiler sees it) */
+static uint32_t cr_bswap32(uint32_t w)
+{
+    return (w >> 24) | ((w >> 8) & 0xFF00u) | ((w << 8) & 0xFF0000u) | (w << 24);
+}
+
+/* the raw value of a field (sign-extended, less its bias) from the payload's words */
+static int32_t cr_extract(const canrls_field *f, uint64_t le, uint64_t be)
+{
+    /* raw = (word >> shift) mod 2^length */
+    const uint32_t acc = (uint32_t)((f->big_endian ? be : le) >> f->shift)
+                         & (0xFFFFFFFFu >> (32u - f->length));
+    if (f->is_signed && ((acc >> (f->length - 1u)) & 1u) != 0u) {
+        /* two's complement: the bits above the field set */
+        return (int32_t)(acc | ~(0xFFFFFFFFu >> (32u - f->length)));
+    }
+    return f->biased ? (int32_t)(acc ^ 0x80000000u) : (int32_t)acc;
+}
+
+/* the E2E CRC-8 table (polynomial 0x1D, canrls.can.e2e.CRC8_TABLE) */
+static const uint8_t cr_crc8[256] = {
+    0x00, 0x1D, 0x3A, 0x27, 0x74, 0x69, 0x4E, 0x53, 0xE8, 0xF5, 0xD2, 0xCF, 0x9C, 0x81, 0xA6, 0xBB,
+    0xCD, 0xD0, 0xF7, 0xEA, 0xB9, 0xA4, 0x83, 0x9E, 0x25, 0x38, 0x1F, 0x02, 0x51, 0x4C, 0x6B, 0x76,
+    0x87, 0x9A, 0xBD, 0xA0, 0xF3, 0xEE, 0xC9, 0xD4, 0x6F, 0x72, 0x55, 0x48, 0x1B, 0x06, 0x21, 0x3C,
+    0x4A, 0x57, 0x70, 0x6D, 0x3E, 0x23, 0x04, 0x19, 0xA2, 0xBF, 0x98, 0x85, 0xD6, 0xCB, 0xEC, 0xF1,
+    0x13, 0x0E, 0x29, 0x34, 0x67, 0x7A, 0x5D, 0x40, 0xFB, 0xE6, 0xC1, 0xDC, 0x8F, 0x92, 0xB5, 0xA8,
+    0xDE, 0xC3, 0xE4, 0xF9, 0xAA, 0xB7, 0x90, 0x8D, 0x36, 0x2B, 0x0C, 0x11, 0x42, 0x5F, 0x78, 0x65,
+    0x94, 0x89, 0xAE, 0xB3, 0xE0, 0xFD, 0xDA, 0xC7, 0x7C, 0x61, 0x46, 0x5B, 0x08, 0x15, 0x32, 0x2F,
+    0x59, 0x44, 0x63, 0x7E, 0x2D, 0x30, 0x17, 0x0A, 0xB1, 0xAC, 0x8B, 0x96, 0xC5, 0xD8, 0xFF, 0xE2,
+    0x26, 0x3B, 0x1C, 0x01, 0x52, 0x4F, 0x68, 0x75, 0xCE, 0xD3, 0xF4, 0xE9, 0xBA, 0xA7, 0x80, 0x9D,
+    0xEB, 0xF6, 0xD1, 0xCC, 0x9F, 0x82, 0xA5, 0xB8, 0x03, 0x1E, 0x39, 0x24, 0x77, 0x6A, 0x4D, 0x50,
+    0xA1, 0xBC, 0x9B, 0x86, 0xD5, 0xC8, 0xEF, 0xF2, 0x49, 0x54, 0x73, 0x6E, 0x3D, 0x20, 0x07, 0x1A,
+    0x6C, 0x71, 0x56, 0x4B, 0x18, 0x05, 0x22, 0x3F, 0x84, 0x99, 0xBE, 0xA3, 0xF0, 0xED, 0xCA, 0xD7,
+    0x35, 0x28, 0x0F, 0x12, 0x41, 0x5C, 0x7B, 0x66, 0xDD, 0xC0, 0xE7, 0xFA, 0xA9, 0xB4, 0x93, 0x8E,
+    0xF8, 0xE5, 0xC2, 0xDF, 0x8C, 0x91, 0xB6, 0xAB, 0x10, 0x0D, 0x2A, 0x37, 0x64, 0x79, 0x5E, 0x43,
+    0xB2, 0xAF, 0x88, 0x95, 0xC6, 0xDB, 0xFC, 0xE1, 0x5A, 0x47, 0x60, 0x7D, 0x2E, 0x33, 0x14, 0x09,
+    0x7F, 0x62, 0x45, 0x58, 0x0B, 0x16, 0x31, 0x2C, 0x97, 0x8A, 0xAD, 0xB0, 0xE3, 0xFE, 0xD9, 0xC4,
+};
+
+/* ------------------------------------------------------------------ set-up */
+
+/* the trace bound: the sum of the columns' terms (saturating), at most the cap */
+static int32_t cr_trace_bound(const canrls_equation *e, const canrls_target_eq *q)
+{
+    int64_t sum = 0;
+    uint32_t j;
+    if (!e->trace_follows) {
+        return e->plan->trace_max_lam;
+    }
+    for (j = 0; j < e->n; j++) {
+        sum = sum > I62 - q->terms[j] ? I62 : sum + q->terms[j];
+    }
+    return (int32_t)(sum < e->trace_cap ? sum : e->trace_cap);
+}
+
+int canrls_target_init(canrls_target *S, const canrls_target_model *M)
+{
+    uint32_t i, j;
+    if (S == NULL || M == NULL || M->nmsg > CANRLS_TARGET_MSG_MAX
+        || M->nfilters > CANRLS_TARGET_FILTER_MAX || M->neq > CANRLS_TARGET_EQ_MAX
+        || M->neq < 1u) {
+        return CANRLS_EINVAL;
+    }
+    memset(S, 0, sizeof *S);
+    S->model = M;
+    for (i = 0; i < M->nmsg; i++) {
+        S->last_counter[i] = -1;
+    }
+    S->open_counter = -1;
+    for (i = 0; i < M->nfilters; i++) {
+        if (M->filters[i].kind == CANRLS_SRC_CONST) {
+            /* F[1] = 1 exactly, sF[1] = 0: the constant needs no filter */
+            S->x1[i] = cr_shl(ONE_Q30, M->filters[i].fx);
+            S->primed[i] = 1u;
+        }
+    }
+    for (i = 0; i < M->neq; i++) {
+        const canrls_equation *e = &M->equations[i];
+        canrls_target_eq *q = &S->eq[i];
+        if (e->n > CANRLS_N_MAX) {
+            return CANRLS_EINVAL;
+        }
+        for (j = 0; j < e->n; j++) {
+            q->sh[j] = e->columns[j].sh;
+            q->exponents[j] = e->columns[j].exponent;
+            q->pending[j] = e->columns[j].pending;
+            q->ridge[j] = e->ridge[j];
+            q->terms[j] = e->trace_terms[j];
+        }
+        q->sh_y = e->target.sh;
+        q->exponents[e->n] = e->target.exponent;
+        q->pending_y = e->target.pending;
+        q->plan = *e->plan;
+        q->plan.trace_max_lam = cr_trace_bound(e, q);
+        if (canrls_init_q31(&q->rls, &q->plan, e->n, e->p0, e->e0) != CANRLS_OK) {
+            return CANRLS_EINVAL;
+        }
+    }
+    return CANRLS_OK;
+}
+
+/* ------------------------------------------------------------------ one sample */
+
+/* X + O of a column */
+static int64_t cr_state(const canrls_target *S, const canrls_column *c)
+{
+    return (c->derivative ? S->x2[c->filter] : S->x1[c->filter]) + c->offset;
+}
+
+/* the input u of every filter of the bank */
+static void cr_inputs(const canrls_target *S, int32_t *u)
+{
+    const canrls_target_model *M = S->model;
+    int64_t z = 0, r = 0;
+    uint64_t ph = 0u;
+    uint32_t i;
+    if (M->tanh_m != 0) {
+        /* z = w / band, Q24 */
+        z = cr_sat(cr_rsh((int64_t)S->raw[CANRLS_SPEED] * M->tanh_m + M->tanh_b, M->tanh_sh),
+                   INT32_MIN, INT32_MAX);
+    }
+    if (M->strib_m != 0) {
+        /* r = w / ws, Q24 */
+        r = cr_sat(cr_rsh((int64_t)S->raw[CANRLS_SPEED] * M->strib_m + M->strib_b, M->strib_sh),
+                   INT32_MIN, INT32_MAX);
+    }
+    if (M->phase_m != 0u) {
+        /* phase = raw PM + PO, turns in Q64 (modulo one turn) */
+        ph = (uint64_t)(int64_t)S->raw[CANRLS_POSITION] * M->phase_m + M->phase_o;
+    }
+    for (i = 0; i < M->nfilters; i++) {
+        const canrls_filter *f = &M->filters[i];
+        switch (f->kind) {
+        case CANRLS_SRC_RAW:
+            u[i] = S->raw[f->role];
+            break;
+        case CANRLS_SRC_TANH:
+            /* tanh(w / band) */
+            u[i] = cr_tanh_q24((int32_t)z);
+            break;
+        case CANRLS_SRC_STRIBECK: {
+            /* x = (w / ws)^2, Q24, at most 32 ; tanh(w / band) exp(-(w / ws)^2) */
+            int64_t x = cr_rsh(r * r, 24);
+            x = x < ((int64_t)32 << 24) ? x : (int64_t)32 << 24;
+            u[i] = (int32_t)cr_rsh((int64_t)cr_tanh_q24((int32_t)z) * cr_exp_neg_q24(x), 30);
+            break;
+        }
+        case CANRLS_SRC_SIN:
+        case CANRLS_SRC_COS: {
+            /* sin, cos of k theta: the phase times k, modulo one turn */
+            int32_t s, c;
+            cr_sincos_q64((uint64_t)f->order * ph, &s, &c);
+            u[i] = f->kind == CANRLS_SRC_SIN ? s : c;
+            break;
+        }
+        default:
+            u[i] = 0; /* the constant: no input */
+            break;
+        }
+    }
+}
+
+/* an input u 2^fx as h 2^31 + l (0 <= l < 2^31): the C's form of the input term */
+static void cr_split_input(int32_t u, int32_t fx, int32_t *h, int32_t *l)
+{
+    if (fx >= 31) {
+        /* |u| 2^fx < 2^59 (the model's fx): h = u 2^(fx-31) is a word, l = 0 */
+        *h = u * (int32_t)((uint32_t)1 << (fx - 31));
+        *l = 0;
+    } else {
+        *h = u >> (31 - fx);
+        *l = (int32_t)(((uint32_t)u & ((1u << (31 - fx)) - 1u)) << fx);
+    }
+}
+
+/* rsh(a0 x1 + a1 x2 + (g0 u[k-1] + g1 u[k]) 2^fx, 30) with |x| < 2^60: every term as
+ * h 2^31 + l, summed as H 2^31 + L (each product one SMULL or SMLAL; the model bounds
+ * |a0| + |a1| + |g0| + |g1| below 2^31, so L < 2^62), so the result is 2 H + rsh(L, 30) */
+static int64_t cr_svf_row(const int32_t *a, int32_t g0, int32_t g1, int64_t x1, int64_t x2,
+                          int32_t uph, int32_t upl, int32_t uh, int32_t ul)
+{
+    const int64_t H = (int64_t)a[0] * (int32_t)(x1 >> 31) + (int64_t)a[1] * (int32_t)(x2 >> 31)
+                      + (int64_t)g0 * uph + (int64_t)g1 * uh;
+    const int64_t L = (int64_t)a[0] * (int32_t)(x1 & 0x7FFFFFFF)
+                      + (int64_t)a[1] * (int32_t)(x2 & 0x7FFFFFFF)
+                      + (int64_t)g0 * upl + (int64_t)g1 * ul;
+    return 2 * H + ((L + ((int64_t)1 << 29)) >> 30);
+}
+
+/* advance every filter of the bank by one sample */
+static void cr_filter(canrls_target *S, const int32_t *u)
+{
+    const canrls_target_model *M = S->model;
+    uint32_t i;
+    for (i = 0; i < M->nfilters; i++) {
+        const canrls_filter *f = &M->filters[i];
+        const int32_t *g = M->G[f->hold];
+        int32_t uh, ul;
+        int64_t x1, x2;
+        if (f->kind == CANRLS_SRC_CONST) {
+            continue;
+        }
+        cr_split_input(u[i], f->fx, &uh, &ul);
+        if (!S->primed[i]) {
+            /* at rest on the first sample: x = [u 2^FX, 0] */
+            S->x1[i] = cr_shl(u[i], f->fx);
+            S->x2[i] = 0;
+            S->uph[i] = uh;
+            S->upl[i] = ul;
+            S->primed[i] = 1u;
+            continue;
+        }
+        x1 = S->x1[i];
+        x2 = S->x2[i];
+        /* x1 = A00 x1 + A01 x2 + (G0_1 u[k-1] + G1_1 u[k]) 2^FX, Q30 coefficients */
+        S->x1[i] = cr_svf_row(&M->A[0], g[0], g[2], x1, x2, S->uph[i], S->upl[i], uh, ul);
+        /* x2 = A10 x1 + A11 x2 + (G0_2 u[k-1] + G1_2 u[k]) 2^FX   (x2 = sF[u] T 2^FX) */
+        S->x2[i] = cr_svf_row(&M->A[2], g[1], g[3], x1, x2, S->uph[i], S->upl[i], uh, ul);
+        S->uph[i] = uh;
+        S->upl[i] = ul;
+    }
+}
+
+static void cr_restart(canrls_target *S)
+{
+    const canrls_target_model *M = S->model;
+    uint32_t i;
+    for (i = 0; i < M->nfilters; i++) {
+        if (M->filters[i].kind != CANRLS_SRC_CONST) {
+            S->primed[i] = 0u;
+        }
+    }
+    for (i = 0; i < M->neq; i++) {
+        S->eq[i].left = M->equations[i].warmup;
+        S->eq[i].w_last = 0;
+    }
+}
+
+/* the kernel continues from its state in new words (canrls_restore_q31); with a new
+ * trace bound the plan changes, so it is initialised again first (counters and
+ * `frozen` kept) */
+static void cr_restore(canrls_target_eq *q, const canrls_equation *e, const int32_t *theta,
+                       const uint32_t *frac, const int32_t *P, const int32_t *P_frac,
+                       int32_t ex, int replan)
+{
+    uint32_t counts[CANRLS_NSITES];
+    const int32_t c = q->rls.c;
+    const uint32_t frozen = q->rls.frozen;
+    if (replan) {
+        memcpy(counts, q->rls.counts, sizeof counts);
+        q->plan.trace_max_lam = cr_trace_bound(e, q);
+        (void)canrls_init_q31(&q->rls, &q->plan, e->n, e->p0, e->e0);
+        memcpy(q->rls.counts, counts, sizeof counts);
+        q->rls.frozen = frozen;
+    }
+    (void)canrls_restore_q31(&q->rls, theta, frac, P, P_frac, ex, c);
+}
+
+/* V 2^s, V = P~ 2^32 the 64-bit element (word w, fraction f), exactly for s > 0 and
+ * rsh(V, -s) for s < 0, into the word rsh(V', 32) and the fraction V' - word 2^32;
+ * saturated where the word leaves [lo, hi] (counted in *n). V itself may lie just below
+ * -2^63 (w = INT32_MIN, f < 0), so it is never formed in one int64_t. */
+static void cr_P_scale(int32_t *word, int32_t *frac, int32_t s, int32_t lo, int32_t hi,
+                       uint32_t *n)
+{
+    const int64_t w = *word, f = *frac;
+    int64_t nw, v;
+    uint32_t nl;
+    if (s == 0) {
+        return;
+    }
+    if (s > 0) {
+        if (s <= 31) {
+            /* V 2^s + 2^31 = (w 2^s + (t >> 32)) 2^32 + (t mod 2^32), t = f 2^s + 2^31 */
+            const int64_t t = f * ((int64_t)1 << s) + ((int64_t)1 << 31);
+            nw = w * ((int64_t)1 << s) + (t >> 32);
+            nl = (uint32_t)t;
+        } else if (w != 0) {
+            /* |V 2^s| >= 2^31 2^32: outside every word */
+            nw = w > 0 ? I62 : -I62;
+            nl = 0u;
+        } else {
+            /* V = f: the word f 2^(s-32) exactly, no fraction */
+            nw = s - 32 <= 31 ? f * ((int64_t)1 << (s - 32)) : (f > 0 ? I62 : f < 0 ? -I62 : 0);
+            nl = 0x80000000u;
+        }
+    } else {
+        /* rsh(V, r) = ((V >> a) + 1) >> 1, a = r - 1, with V >> a from the word and the
+         * fraction: V = w 2^32 + f, so V >> a = w 2^(32-a) + (f >> a) for a < 32 and
+         * (w - (f < 0)) >> (a - 32) for a >= 32 */
+        const int32_t a = -s - 1;
+        if (a == 0) {
+            v = w * ((int64_t)1 << 31) + ((f + 1) >> 1);
+        } else if (a <= 31) {
+            v = ((w * ((int64_t)1 << (32 - a)) + (f >> a)) + 1) >> 1;
+        } else {
+            v = (((w - (f < 0 ? 1 : 0)) >> (a - 32 < 63 ? a - 32 : 63)) + 1) >> 1;
+        }
+        /* the word rounded half up, the fraction + 2^31 its low word */
+        nw = (v + ((int64_t)1 << 31)) >> 32;
+        nl = (uint32_t)((uint64_t)v + 0x80000000u);
+    }
+    if (nw > hi) {
+        *n += 1u;
+        nw = hi;
+        nl = 0xFFFFFFFFu;
+    } else if (nw < lo) {
+        *n += 1u;
+        nw = lo;
+        nl = 0u;
+    }
+    *word = (int32_t)nw;
+    *frac = (int32_t)(nl ^ 0x80000000u);
+}
+
+/* floor(m 2^e) and ceil(m 2^e), saturated at 2^62 */
+static int64_t cr_floor_scaled(uint64_t m, int32_t e)
+{
+    if (e >= 0) {
+        return (e >= 62 || m >= ((uint64_t)I62 >> e)) ? I62 : (int64_t)(m << e);
+    }
+    return -e < 64 ? (int64_t)(m >> -e) : 0;
+}
+
+static int64_t cr_ceil_scaled(uint64_t m, int32_t e)
+{
+    if (e >= 0) {
+        return cr_floor_scaled(m, e);
+    }
+    return -e < 64 ? (int64_t)((m + ((uint64_t)1 << -e) - 1u) >> -e) : (m != 0u ? 1 : 0);
+}
+
+/* the exponents change before this sample (spec TargetEstimator._adapt) */
+static void cr_adapt(canrls_target *S, const canrls_equation *e, canrls_target_eq *q,
+                     const int64_t *phi, int64_t y)
+{
+    const uint32_t n = e->n;
+    int32_t d[CANRLS_N_MAX];
+    uint8_t first[CANRLS_N_MAX];
+    int32_t theta[CANRLS_N_MAX];
+    uint32_t frac[CANRLS_N_MAX];
+    int32_t P[CANRLS_TRI(CANRLS_N_MAX)];
+    int32_t Pf[CANRLS_TRI(CANRLS_N_MAX)];
+    int32_t dy = 0, dmax = 0, s = 0, ex, e_new;
+    int first_y = 0;
+    uint32_t j, k, idx;
+    uint64_t big;
+    const int64_t lim = (int64_t)1 << e->f_phi;
+    for (j = 0; j < n; j++) {
+        const canrls_column *c = &e->columns[j];
+        const int64_t x = cr_state(S, c);
+        big = (uint64_t)(x < 0 ? -x : x);
+        d[j] = 0;
+        first[j] = 0u;
+        if (q->pending[j]) {
+            if (big != 0u) {
+                /* 16 |phi| <= 2^(f + d): the first value at most 1/16 of full scale */
+                d[j] = cr_clog2_mul(big, (uint32_t)(c->m < 0 ? -c->m : c->m)) - q->sh[j] - e->f_phi + 4;
+                first[j] = 1u;
+            }
+        } else if (c->adaptive && (phi[j] > lim || -phi[j] > lim)) {
+            /* 4 |phi| <= 2^(f + d) */
+            d[j] = cr_clog2_mul(big, (uint32_t)(c->m < 0 ? -c->m : c->m)) - q->sh[j] - e->f_phi + 2;
+        }
+    }
+    {
+        const int64_t x = cr_state(S, &e->target);
+        const uint32_t am = (uint32_t)(e->target.m < 0 ? -e->target.m : e->target.m);
+        big = (uint64_t)(x < 0 ? -x : x);
+        if (q->pending_y) {
+            if (big != 0u) {
+                dy = cr_clog2_mul(big, am) - q->sh_y - e->f_y + 4;
+                first_y = 1;
+            }
+        } else if (y > ((int64_t)1 << e->f_y) || -y > ((int64_t)1 << e->f_y)) {
+            dy = cr_clog2_mul(big, am) - q->sh_y - e->f_y + 2;
+        }
+    }
+    /* theta_j takes 2^(d_j - d_y): the target moves where an estimate would leave half its
+     * bound, |theta_j| 2^(d_j - dy) <= 2^h 2^s */
+    for (j = 0; j < n; j++) {
+        const int32_t w = canrls_theta_q31(&q->rls, j);
+        if (w != 0) {
+            const int32_t sj = cr_clog2((uint64_t)(w < 0 ? -(int64_t)w : w)) + d[j] - dy - e->theta_h;
+            s = sj > s ? sj : s;
+        }
+    }
+    dy += s;
+    /* the kernel's state in the new units: theta_j 2^(d_j - d_y) in its 64 bits; P_jk
+     * 2^(d_j + d_k) with the block exponent lowered by twice the largest growth */
+    {
+        const int64_t lo = cr_shl(e->plan->theta_lo, 32);
+        const int64_t hi = cr_shl(e->plan->theta_hi, 32) + 0xFFFFFFFF;
+        for (j = 0; j < n; j++) {
+            int64_t v = cr_shl(canrls_theta_q31(&q->rls, j), 32)
+                        + (int64_t)canrls_theta_frac_q31(&q->rls, j);
+            const int32_t sj = d[j] - dy;
+            if (sj >= 0) {
+                /* v 2^s, saturated */
+                if (v != 0 && (sj >= 63 || v > (hi >> sj) || v < (lo >> sj))) {
+                    q->rls.counts[CANRLS_S_THETA]++;
+                    v = v > 0 ? hi : lo;
+                } else if (v != 0) {
+                    v = cr_shl(v, sj);
+                }
+            } else {
+                v = cr_rsh(v, -sj);
+            }
+            theta[j] = (int32_t)(v >> 32);
+            frac[j] = (uint32_t)(v & 0xFFFFFFFF);
+        }
+    }
+    for (j = 0; j < n; j++) {
+        if (!first[j]) {
+            dmax = d[j] > dmax ? d[j] : dmax;
+        }
+    }
+    ex = q->rls.e;
+    e_new = ex - 2 * dmax;
+    e_new = e_new < 0 ? 0 : e_new;
+    idx = 0;
+    for (j = 0; j < n; j++) {
+        for (k = j; k < n; k++, idx++) {
+            /* P_jj / 4 for a first value (the prior alpha 2^-8 for alpha 2^-10), else
+             * P_jk 2^(d_j + d_k), at e_new, in 64 bits */
+            const int32_t sjk = (j == k && first[j]) ? e_new - ex - 2 : d[j] + d[k] + e_new - ex;
+            P[idx] = canrls_P_q31(&q->rls, idx);
+            Pf[idx] = canrls_P_frac_q31(&q->rls, idx);
+            cr_P_scale(&P[idx], &Pf[idx], sjk, e->plan->P_lo, e->plan->P_hi,
+                       &q->rls.counts[CANRLS_S_P]);
+        }
+    }
+    cr_restore(q, e, theta, frac, P, Pf, e_new, 0);
+    /* a column that grew takes the weakest prior of the start: delta = alpha_f -
+     * alpha_j 2^(-2 d_j), as one update with the regressor sqrt(delta) e_j and y = 0 */
+    for (j = 0; j < n; j++) {
+        if (d[j] != 0 && !q->pending[j]) {
+            const canrls_dyadic r = {q->ridge[j].m, q->ridge[j].e - 2 * d[j]};
+            /* D = floor(alpha_f 2^(2 f)) - ceil(alpha_j 2^(2 f)) */
+            const int64_t D = cr_floor_scaled(e->floor_ridge.m, e->floor_ridge.e + 2 * e->f_phi)
+                              - cr_ceil_scaled(r.m, r.e + 2 * e->f_phi);
+            if (D > 0) {
+                int64_t qv = cr_isqrt(D);
+                qv = qv < e->plan->phi_hi ? qv : e->plan->phi_hi;
+                if (qv != 0) {
+                    int32_t ph[CANRLS_N_MAX];
+                    memset(ph, 0, sizeof ph);
+                    ph[j] = (int32_t)qv;
+                    (void)canrls_update_q31(&q->rls, ph, 0, NULL);
+                }
+                q->ridge[j] = e->floor_ridge;
+                q->terms[j] = e->floor_term;
+            } else {
+                q->ridge[j] = r;
+                /* terms_j 2^(2 d_j), saturated at 2^62 */
+                if (q->terms[j] != 0
+                    && (d[j] >= 31 || q->terms[j] > (I62 >> (2 * d[j])))) {
+                    q->terms[j] = I62;
+                } else if (q->terms[j] != 0) {
+                    q->terms[j] = q->terms[j] << (2 * d[j]);
+                }
+            }
+        } else if (d[j] != 0) {
+            /* the ridge scales with the column (then set below) */
+            q->ridge[j].e -= 2 * d[j];
+        }
+    }
+    for (j = 0; j < n; j++) {
+        if (first[j]) {
+            /* the first value: the prior alpha 2^-8 (its P_jj set above) */
+            q->pending[j] = 0u;
+            q->ridge[j] = e->first_ridge;
+            q->terms[j] = e->first_term;
+        }
+    }
+    if (first_y) {
+        q->pending_y = 0u;
+    }
+    for (j = 0; j < n; j++) {
+        q->sh[j] += d[j];
+        q->exponents[j] += d[j];
+    }
+    q->sh_y += dy;
+    q->exponents[n] += dy;
+    q->rescales++;
+    if (e->trace_follows) {
+        int32_t th[CANRLS_N_MAX];
+        uint32_t fr[CANRLS_N_MAX];
+        for (k = 0; k < n; k++) {
+            th[k] = canrls_theta_q31(&q->rls, k);
+            fr[k] = canrls_theta_frac_q31(&q->rls, k);
+        }
+        for (k = 0; k < CANRLS_TRI(n); k++) {
+            P[k] = canrls_P_q31(&q->rls, k);
+            Pf[k] = canrls_P_frac_q31(&q->rls, k);
+        }
+        cr_restore(q, e, th, fr, P, Pf, q->rls.e, 1);
+    }
+}
+
+/* the columns and the target of a used sample: rsh((X + O) m, sh) */
+static void cr_values(const canrls_target *S, const canrls_equation *e,
+                      const canrls_target_eq *q, int64_t *phi, int64_t *y)
+{
+    uint32_t j;
+    for (j = 0; j < e->n; j++) {
+        phi[j] = cr_mul_rsh(cr_state(S, &e->columns[j]), e->columns[j].m, q->sh[j]);
+    }
+    *y = cr_mul_rsh(cr_state(S, &e->target), e->target.m, q->sh_y);
+}
+
+/* whether this used sample changes the normalisation */
+static int cr_changes(const canrls_target *S, const canrls_equation *e,
+                      const canrls_target_eq *q, const int64_t *phi, int64_t y)
+{
+    const int64_t lim = (int64_t)1 << e->f_phi;
+    const int64_t lim_y = (int64_t)1 << e->f_y;
+    uint32_t j;
+    for (j = 0; j < e->n; j++) {
+        if (q->pending[j]) {
+            if (cr_state(S, &e->columns[j]) != 0) {
+                return 1;
+            }
+        } else if (e->columns[j].adaptive && (phi[j] > lim || -phi[j] > lim)) {
+            return 1;
+        }
+    }
+    if (q->pending_y) {
+        return cr_state(S, &e->target) != 0;
+    }
+    return y > lim_y || -y > lim_y;
+}
+
+static void cr_update(canrls_target *S, const canrls_equation *e, canrls_target_eq *q)
+{
+    int64_t phi[CANRLS_N_MAX], y;
+    int32_t phq[CANRLS_N_MAX];
+    canrls_step_q31 st;
+    uint32_t j;
+    cr_values(S, e, q, phi, &y);
+    if (cr_changes(S, e, q, phi, y)) {
+        cr_adapt(S, e, q, phi, y);
+        cr_values(S, e, q, phi, &y);
+    }
+    for (j = 0; j < e->n; j++) {
+        phq[j] = (int32_t)cr_sat(phi[j], INT32_MIN, INT32_MAX);
+    }
+    (void)canrls_update_q31(&q->rls, phq, (int32_t)cr_sat(y, INT32_MIN, INT32_MAX), &st);
+    q->updates++;
+    q->flags |= st.flags;
+    /* the residual's mean square: ms <- ms + (eps^2 - ms) >> rms_shift */
+    q->ms += ((int64_t)st.eps * st.eps - q->ms) >> e->rms_shift;
+}
+
+/* one sample, complete in S->raw, at time t */
+static uint32_t cr_sample(canrls_target *S, uint32_t t)
+{
+    const canrls_target_model *M = S->model;
+    int32_t u[CANRLS_TARGET_FILTER_MAX];
+    const int32_t dt = (int32_t)(t - S->last_t);
+    int64_t w;
+    uint32_t i;
+    if (!S->has_t || dt < 0 || dt > M->gap_ticks) {
+        /* the first sample, time going back, or a period missing: restart */
+        if (S->has_t) {
+            S->rejects[CANRLS_R_RESTARTS]++;
+        }
+        cr_restart(S);
+    }
+    S->has_t = 1u;
+    S->last_t = t;
+    cr_inputs(S, u);
+    cr_filter(S, u);
+    /* the speed of the selection: W = raw 2^16 + offset */
+    w = (int64_t)S->raw[CANRLS_SPEED] * ((int64_t)1 << W_FRAC) + M->w_offset;
+    for (i = 0; i < M->neq; i++) {
+        const canrls_equation *e = &M->equations[i];
+        canrls_target_eq *q = &S->eq[i];
+        const int64_t aw = w < 0 ? -w : w;
+        const int out = aw < e->min_w || (e->max_w >= 0 && aw > e->max_w)
+                        || (e->cross && ((q->w_last < 0 && w > 0) || (w < 0 && q->w_last > 0)));
+        if (out) {
+            q->left = e->warmup + 1;
+        }
+        q->w_last = w;
+        if (q->left > 0) {
+            q->left--;
+            continue;
+        }
+        cr_update(S, e, q);
+    }
+    S->samples++;
+    S->since_publish++;
+    if (S->since_publish >= M->publish_every) {
+        S->since_publish = 0u;
+        return CANRLS_SAMPLE | CANRLS_PUBLISH;
+    }
+    return CANRLS_SAMPLE;
+}
+
+/* ------------------------------------------------------------------ frames in */
+
+static uint32_t cr_popcount(uint32_t v)
+{
+    uint32_t n = 0u;
+    while (v != 0u) {
+        n += v & 1u;
+        v >>= 1;
+    }
+    return n;
+}
+
+uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
+                             const uint8_t *data, uint32_t len, uint32_t t)
+{
+    const canrls_target_model *M = S->model;
+    const canrls_message *msg = NULL;
+    int32_t raws[CANRLS_TARGET_ROLES];
+    uint32_t mi, bit, k;
+    int32_t counter = -1, key;
+    uint64_t le = 0u, be = 0u;
+    for (mi = 0; mi < M->nmsg; mi++) {
+        if (M->messages[mi].id == id && M->messages[mi].extended == (extended != 0u)) {
+            msg = &M->messages[mi];
+            break;
+        }
+    }
+    if (msg == NULL) {
+        return 0u;
+    }
+    /* length: the DBC's */
+    if (len != msg->dlc) {
+        S->rejects[CANRLS_R_LENGTH]++;
+        S->frame_loss = 1u;
+        return 0u;
+    }
+    /* E2E CRC-8: over the ID (2 bytes, little endian), then bytes 1..dlc-1 */
+    if (msg->crc) {
+        uint32_t c = 0xFFu;
+        c = cr_crc8[c ^ (id & 0xFFu)];
+        c = cr_crc8[c ^ ((id >> 8) & 0xFFu)];
+        for (k = 1; k < len; k++) {
+            c = cr_crc8[c ^ data[k]];
+        }
+        if ((c ^ 0xFFu) != data[0]) {
+            S->rejects[CANRLS_R_CRC]++;
+            S->frame_loss = 1u;
+            return 0u;
+        }
+    }
+    /* the payload as one word, little and big endian (bytes after its end are 0) */
+    {
+        uint8_t b[8] = {0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u};
+        uint32_t w0, w1;
+        for (k = 0; k < len; k++) {
+            b[k] = data[k];
+        }
+        w0 = (uint32_t)b[0] | (uint32_t)b[1] << 8 | (uint32_t)b[2] << 16 | (uint32_t)b[3] << 24;
+        w1 = (uint32_t)b[4] | (uint32_t)b[5] << 8 | (uint32_t)b[6] << 16 | (uint32_t)b[7] << 24;
+        le = (uint64_t)w1 << 32 | w0;
+        be = (uint64_t)cr_bswap32(w0) << 32 | cr_bswap32(w1);
+    }
+    /* alive counter: one equal to the last accepted is a repeat */
+    if (msg->has_counter) {
+        counter = cr_extract(&msg->counter, le, be);
+        if (counter == S->last_counter[mi]) {
+            S->rejects[CANRLS_R_REPEATED]++;
+            S->frame_loss = 1u;
+            return 0u;
+        }
+        S->last_counter[mi] = counter;
+    }
+    /* strict range of every mapped field */
+    for (k = 0; k < msg->nroles; k++) {
+        const canrls_field *f = &M->roles[msg->roles[k]];
+        const int32_t v = cr_extract(f, le, be);
+        if (v < f->lo || v > f->hi) {
+            S->rejects[CANRLS_R_RANGE]++;
+            S->frame_loss = 1u;
+            return 0u;
+        }
+        raws[k] = v;
+    }
+    /* pair: the frames of one period */
+    bit = 1u << mi;
+    key = M->match_counters ? counter : -1;
+    if (S->open_mask != 0u) {
+        const int same = (int32_t)(t - S->open_t) <= M->tol_ticks && key == S->open_counter;
+        if (same && (S->open_mask & bit) != 0u) {
+            /* a second frame of this message in the period: dropped */
+            S->rejects[CANRLS_R_DUPLICATED]++;
+            S->frame_loss = 1u;
+            return 0u;
+        }
+        if (!same) {
+            /* another period began: the open one stays incomplete */
+            S->rejects[CANRLS_R_UNPAIRED] += cr_popcount(S->open_mask);
+            S->frame_loss = 1u;
+            S->open_mask = 0u;
+        }
+    }
+    if (S->open_mask == 0u) {
+        S->open_t = t;
+        S->open_counter = key;
+    }
+    S->open_mask |= bit;
+    for (k = 0; k < msg->nroles; k++) {
+        S->raw[msg->roles[k]] = raws[k];
+    }
+    if (S->open_mask != (1u << M->nmsg) - 1u) {
+        return 0u;
+    }
+    S->open_mask = 0u;
+    return cr_sample(S, t);
+}
+
+/* ------------------------------------------------------------------ frames out */
+
+static void cr_put(uint64_t *word, const canrls_out_frame *f, uint32_t k, uint64_t v)
+{
+    const uint32_t len = f->length[k];
+    const uint64_t mask = len >= 64u ? ~(uint64_t)0 : (((uint64_t)1 << len) - 1u);
+    /* word |= (v mod 2^length) << start */
+    *word |= (v & mask) << f->start[k];
+}
+
+static void cr_frame(canrls_can_frame *out, const canrls_out_frame *f, uint64_t word)
+{
+    uint32_t k;
+    out->id = f->id;
+    out->dlc = 8u;
+    for (k = 0; k < 8u; k++) {
+        out->data[k] = (uint8_t)(word >> (8u * k));
+    }
+}
+
+void canrls_target_theta(const canrls_target *S, uint32_t i, int32_t *word, int32_t *exp)
+{
+    const canrls_target_model *M = S->model;
+    uint32_t k;
+    for (k = 0; k < M->neq; k++) {
+        const canrls_equation *e = &M->equations[k];
+        if (i < e->n) {
+            const canrls_target_eq *q = &S->eq[k];
+            *word = canrls_theta_q31(&q->rls, i);
+            *exp = q->exponents[e->n] - q->exponents[i] - e->f_theta;
+            return;
+        }
+        i -= e->n;
+    }
+    *word = 0;
+    *exp = 0;
+}
+
+uint32_t canrls_target_publish(canrls_target *S, canrls_can_frame *out, uint32_t max)
+{
+    const canrls_target_model *M = S->model;
+    const uint64_t cnt = S->publications & 0xFu;
+    uint32_t nf = 0u, idx = 0u, i, j, flags = 0u;
+    uint64_t word;
+    if (!M->has_frames) {
+        return 0u;
+    }
+    for (i = 0; i < M->neq; i++) {
+        const canrls_equation *e = &M->equations[i];
+        const canrls_target_eq *q = &S->eq[i];
+        for (j = 0; j < e->n; j++, idx++) {
+            const uint32_t valid = q->updates > 0u;
+            /* FixedValue = theta_j 2^(s_y - s_j - f_theta), float32 from the integers */
+            const uint32_t bits = valid ? cr_f32_bits(canrls_theta_q31(&q->rls, j),
+                                                      q->exponents[e->n] - q->exponents[j] - e->f_theta)
+                                        : 0u;
+            if (nf < max) {
+                word = 0u;
+                cr_put(&word, &M->estimate, 0, idx);
+                cr_put(&word, &M->estimate, 1, cnt);
+                cr_put(&word, &M->estimate, 2, valid);
+                cr_put(&word, &M->estimate, 3, bits);
+                cr_frame(&out[nf++], &M->estimate, word);
+            }
+        }
+    }
+    if (S->publications % 10u == 0u) {
+        for (i = 0; i < M->nparams; i++) {
+            if (nf < max) {
+                word = 0u;
+                cr_put(&word, &M->info, 0, i);
+                cr_put(&word, &M->info, 1, idx);
+                cr_put(&word, &M->info, 2, M->param_info[i][0]);
+                cr_put(&word, &M->info, 3, M->param_info[i][1]);
+                cr_put(&word, &M->info, 4, M->param_order[i]);
+                cr_put(&word, &M->info, 5, M->param_info[i][2]);
+                cr_frame(&out[nf++], &M->info, word);
+            }
+        }
+    }
+    {
+        const canrls_equation *e = &M->equations[0];
+        const canrls_target_eq *q = &S->eq[0];
+        /* ResidualRms = sqrt(ms) 2^(s_y - f_eps) */
+        const uint32_t rms = cr_f32_bits(cr_isqrt(q->ms), q->exponents[e->n] - e->f_eps);
+        if (nf < max) {
+            word = 0u;
+            cr_put(&word, &M->status, 0, rms);
+            cr_put(&word, &M->status, 1, q->updates);
+            cr_frame(&out[nf++], &M->status, word);
+        }
+    }
+    for (i = 0; i < M->neq; i++) {
+        flags |= S->eq[i].flags;
+        S->eq[i].flags = 0u;
+    }
+    if (nf < max) {
+        word = 0u;
+        cr_put(&word, &M->health, 0, flags & 1u);
+        cr_put(&word, &M->health, 1, (flags >> 1) & 1u);
+        cr_put(&word, &M->health, 2, (flags >> 2) & 1u);
+        cr_put(&word, &M->health, 3, S->frame_loss);
+        cr_put(&word, &M->health, 4, (flags >> 3) & 1u);
+        cr_put(&word, &M->health, 5, cnt);
+        cr_put(&word, &M->health, 6, M->active_effects);
+        cr_put(&word, &M->health, 7, 0u);
+        cr_frame(&out[nf++], &M->health, word);
+    }
+    S->frame_loss = 0u;
+    S->publications++;
+    return nf;
+}

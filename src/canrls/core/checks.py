@@ -1,0 +1,48 @@
+"""The one check of each kind of value a user hands canrls: a receive time, a control
+period. Every layer asks here, so a value is refused by the same rule and in the same
+words wherever it enters."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from canrls.core.errors import ConfigError
+
+__all__ = ["MAX_TIMESTAMP", "describe_time", "is_time", "not_times", "positive_period"]
+
+F64 = npt.NDArray[np.float64]
+
+#: Largest receive time [s] a frame may carry (about the year 2286): beyond it (or not
+#: finite) a timestamp is no time of a frame.
+MAX_TIMESTAMP = 1e10
+
+
+def is_time(t: float) -> bool:
+    """``t`` is a receive time: finite and at most :data:`MAX_TIMESTAMP` from zero."""
+    return bool(abs(t) <= MAX_TIMESTAMP)  # False for NaN
+
+
+def not_times(t: F64) -> npt.NDArray[np.bool_]:
+    """Mask of the entries of ``t`` that are not receive times (:func:`is_time`)."""
+    with np.errstate(invalid="ignore"):
+        return ~(np.abs(t) <= MAX_TIMESTAMP)
+
+
+def describe_time(t: float) -> str:
+    """Why ``t`` is not a receive time, for an error or a log line."""
+    return f"timestamp {t!r} is not a time (finite, at most {MAX_TIMESTAMP:g} s)"
+
+
+def positive_period(value: object, where: str) -> float:
+    """``value`` as a control period [s]; a :class:`ConfigError` naming ``where`` (the
+    flag, key or file that stated it) unless it is a finite positive number. The one
+    check of a period's value: a stated period (:meth:`Protocol.load
+    <canrls.can.protocol.Protocol.load>`) and the processor's go through it."""
+    if (isinstance(value, bool) or not isinstance(value, int | float)
+            or not (math.isfinite(value) and value > 0)):
+        raise ConfigError(f"{where}: the control period must be a positive number of "
+                          f"seconds, got {value!r}")
+    return float(value)

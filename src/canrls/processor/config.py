@@ -1,0 +1,401 @@
+"""The canrls configuration file (TOML) and how command-line options override it.
+
+One reader (:func:`read_toml`), the command line's options applied once
+(:class:`Overrides`) and one builder of (protocol, model, settings) for every command
+(:func:`prepare`). The file's sections and keys: docs/configuration.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import tomllib
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from canrls.can.mapping import SignalMapping
+from canrls.can.protocol import Protocol
+from canrls.core.errors import ConfigError
+from canrls.core.files import MAX_CONFIG_BYTES, check_path, read_bytes
+from canrls.core.signals import ROLES
+from canrls.core.units import RATING_OPTIONS, Ratings
+from canrls.estimation.fixed.formats import QFormat
+from canrls.estimation.model import Model
+from canrls.estimation.settings import EstimatorSettings
+
+__all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "Overrides", "Prepared",
+           "load_config", "load_model", "prepare", "read_toml"]
+
+#: Deepest nesting of tables and arrays a configuration file may have (ours need 3).
+MAX_DEPTH = 16
+#: TOML integers are 64-bit signed (the TOML spec: a value that cannot be represented
+#: losslessly is an error); a longer one is refused with its key, never turned into inf.
+MAX_INT_BITS = 63
+
+#: Effects of the model when neither the configuration nor ``--effects`` name any.
+DEFAULT_EFFECTS: tuple[str, ...] = ("inertia", "viscous", "coulomb")
+
+#: ``[model.filter] held`` when the configuration does not set it: a cascaded drive holds
+#: its current reference over the control period and its fast current loop tracks it, and
+#: the inverter holds its voltage (the built-in simulated drive does the same).
+DEFAULT_HELD: tuple[str, ...] = ("current", "voltage")
+
+_SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor", "history")
+_ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
+                   "warmup_s": "warmup_s", "gap_periods": "gap_periods",
+                   "rms_time_s": "rms_time_s", "max_phase_step": "max_phase_step",
+                   "min_speed": "min_speed", "calibration_s": "calibration_s"}
+_FIXED_KEYS = ("word_bits", "acc_bits", "input_bits", "theta_max", "formats")
+#: options of the command line that set a configuration key: (attribute, flag, table, key)
+_FLAGS = (("kt", "--kt", "model", "kt"), ("axis", "--axis", "model", "axis"),
+          ("lam", "--lambda", "estimator", "lambda"), ("alpha", "--alpha", "estimator", "alpha"),
+          ("period", "--period", "can", "period"),
+          *((key, flag, "signals", key) for key, (flag, _, _) in RATING_OPTIONS.items()))
+_CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
+             "channel", "bitrate", "fd", "data_bitrate")
+#: ``[monitor]``: defaults of ``canrls monitor``'s options of the same names
+_MONITOR_KEYS = {"interval": "a positive number of seconds",
+                 "timeout": "a positive number of seconds", "plain": "true or false"}
+
+
+@dataclass(frozen=True)
+class Overrides:
+    """What the command line sets over the configuration file, built once from the
+    arguments by the command line (nothing below it sees them); hashable and picklable,
+    so a fleet's workers take it as it is."""
+
+    dbc: str | None = None
+    signals: tuple[str, ...] = ()
+    effects: str | None = None
+    kt: float | None = None
+    axis: str | None = None
+    lam: float | None = None
+    alpha: float | None = None
+    period: float | None = None
+    #: what relative units refer to (``--rated-torque``, ``--rated-current``,
+    #: ``--increments-per-rev``)
+    rated_torque: float | None = None
+    rated_current: float | None = None
+    increments_per_rev: float | None = None
+    #: python-can's bus arguments (``-i -c -b --fd --data-bitrate --timing``,
+    #: ``--bus-kwargs``), over ``[can]``
+    bus: tuple[tuple[str, Any], ...] = ()
+
+
+class Prepared(NamedTuple):
+    """What every command builds from a configuration (:func:`prepare`)."""
+
+    protocol: Protocol
+    model: Model
+    settings: EstimatorSettings
+
+
+def prepare(cfg: AppConfig) -> Prepared:
+    """Protocol, model and settings from a configuration: the one builder of them. The
+    ranges it does not give are measured by the front end on the calibration window
+    (:mod:`canrls.processor`), live and offline alike: no first pass over a log."""
+    protocol = cfg.protocol()
+    return Prepared(protocol, cfg.model_for(protocol), cfg.settings())
+
+
+def read_toml(path: str | Path, table: str | None = None, *, key: str | None = None
+              ) -> dict[str, Any]:
+    """The document of TOML file ``path``, or its ``[table]`` when ``table`` is given.
+
+    The one TOML reader of canrls. Every error is a :class:`ConfigError` whose message
+    begins with the configuration ``key`` that named the file, if any, and the file:
+    ``"daemon.model_file = m.toml: invalid TOML: Expected ']' ... (at line 1, column 7)"``,
+    ``"drive.toml: cannot read: No such file or directory"``, ``"x.toml: no [model] table"``.
+    """
+    where = f"{key} = {path}" if key else str(path)
+    p = check_path(path, where)
+    # a regular file of bounded size: a FIFO or a device is refused, never opened
+    text = read_bytes(p, where, limit=MAX_CONFIG_BYTES)
+    try:
+        doc = tomllib.loads(text.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{where}: invalid TOML: {e}") from e
+    except RecursionError as e:  # tomllib recurses once per nested array or inline table
+        raise ConfigError(f"{where}: invalid TOML: nested deeper than {MAX_DEPTH} "
+                          f"levels") from e
+    except ValueError as e:  # e.g. an integer of more than sys.get_int_max_str_digits()
+        raise ConfigError(f"{where}: invalid TOML: {e}") from e
+    _check_limits(doc, where)
+    if table is None:
+        return doc
+    if not isinstance(doc.get(table), dict):
+        raise ConfigError(f"{where}: no [{table}] table")
+    return dict(doc[table])
+
+
+def _check_limits(doc: dict[str, Any], where: str) -> None:
+    """Refuse nesting deeper than :data:`MAX_DEPTH` and integers beyond 64 bits, naming
+    the key (walked with a stack: no recursion, linear in the document's size)."""
+    stack: list[tuple[str, Any, int]] = [(k, v, 1) for k, v in doc.items()]
+    while stack:
+        key, v, depth = stack.pop()
+        if depth > MAX_DEPTH:
+            raise ConfigError(f"{where}: {key}: nested deeper than {MAX_DEPTH} levels")
+        if isinstance(v, dict):
+            stack.extend((f"{key}.{k}", x, depth + 1) for k, x in v.items())
+        elif isinstance(v, list):
+            stack.extend((f"{key}[{i}]", x, depth + 1) for i, x in enumerate(v))
+        elif (isinstance(v, int) and not isinstance(v, bool)
+              and not -(1 << MAX_INT_BITS) <= v < (1 << MAX_INT_BITS)):
+            raise ConfigError(f"{where}: {key}: integer of {len(str(abs(v)))} digits is "
+                              f"outside the 64-bit range of TOML")
+
+
+def load_model(path: str | Path, *, available_signals: Iterable[str] | None = None) -> Model:
+    """The model of the ``[model]`` table of TOML file ``path`` (errors name the file)."""
+    return Model.from_dict(read_toml(path, "model"), source=str(path),
+                           available_signals=available_signals)
+
+
+@dataclass
+class AppConfig:
+    """The raw tables of a configuration file, with where they came from."""
+
+    source: str = "<defaults>"
+    base_dir: Path = field(default_factory=Path.cwd)
+    model: dict[str, Any] = field(default_factory=dict)
+    estimator: dict[str, Any] = field(default_factory=dict)
+    fixed: dict[str, Any] = field(default_factory=dict)
+    can: dict[str, Any] = field(default_factory=dict)
+    signals: dict[str, Any] = field(default_factory=dict)
+    daemon: dict[str, Any] = field(default_factory=dict)
+    monitor: dict[str, Any] = field(default_factory=dict)
+    #: ``[history]``: where ``canrls run`` appends its parameters (canrls.fleet.live)
+    history: dict[str, Any] = field(default_factory=dict)
+    signal_overrides: list[str] = field(default_factory=list)
+    #: configuration keys set from the command line, with the flag and value typed
+    #: (``{"model.effects": "--effects inertia,foo"}``): errors name those, not the key
+    flags: dict[str, str] = field(default_factory=dict)
+    #: the bus arguments of the command line (over the bus keys of ``[can]``)
+    bus: dict[str, Any] = field(default_factory=dict)
+
+    # -- loading ----------------------------------------------------------------------
+    @classmethod
+    def load(cls, path: str | Path | None) -> AppConfig:
+        """Read a TOML file (``None``: all defaults)."""
+        if path is None:
+            return cls()
+        p = Path(path)
+        d = read_toml(p)
+        cfg = cls(source=str(p), base_dir=p.resolve().parent)
+        for key, value in d.items():
+            if key not in _SECTIONS:
+                raise ConfigError(f"{p}: unknown section [{key}] (valid: {', '.join(_SECTIONS)})")
+            if not isinstance(value, dict):
+                raise ConfigError(f"{p}: {key} must be a table, got {value!r}")
+            setattr(cfg, key, dict(value))
+        cfg.check()
+        return cfg
+
+    def check(self) -> None:
+        """Every key of ``[estimator]``, ``[fixed]``, ``[can]`` and ``[monitor]`` is one
+        canrls knows (a :class:`ConfigError` naming the first that is not)."""
+        src = self.source
+        for k in self.estimator:
+            if k not in _ESTIMATOR_KEYS:
+                raise ConfigError(f"{src}: unknown key estimator.{k} = {self.estimator[k]!r} "
+                                  f"(valid: {', '.join(_ESTIMATOR_KEYS)})")
+        for k in self.fixed:
+            if k not in _FIXED_KEYS:
+                raise ConfigError(f"{src}: unknown key fixed.{k} = {self.fixed[k]!r} "
+                                  f"(valid: {', '.join(_FIXED_KEYS)})")
+        for k in self.can:
+            if k not in _CAN_KEYS:
+                raise ConfigError(f"{src}: unknown key can.{k} = {self.can[k]!r} "
+                                  f"(valid: {', '.join(_CAN_KEYS)})")
+        for k, v in self.monitor.items():
+            want = _MONITOR_KEYS.get(k)
+            if want is None:
+                raise ConfigError(f"{src}: unknown key monitor.{k} = {v!r} "
+                                  f"(valid: {', '.join(_MONITOR_KEYS)})")
+            ok = (isinstance(v, bool) if k == "plain" else
+                  not isinstance(v, bool) and isinstance(v, int | float)
+                  and math.isfinite(v) and v > 0)
+            if not ok:
+                raise ConfigError(f"{src}: monitor.{k} = {v!r}: must be {want}")
+
+    # -- command line -----------------------------------------------------------------
+    def apply(self, over: Overrides) -> AppConfig:
+        """Let the command line's :class:`Overrides` override the file."""
+        if over.dbc:
+            self.can["dbc"] = str(Path(over.dbc).resolve())
+        if over.signals:
+            self.signal_overrides = list(over.signals)
+        if over.effects:
+            self.model["effects"] = [e.strip() for e in over.effects.split(",") if e.strip()]
+            self.flags["model.effects"] = f"--effects {over.effects}"
+        for attr, flag, section, key in _FLAGS:
+            v = getattr(over, attr)
+            if v is not None:
+                getattr(self, section)[key] = v
+                self.flags[f"{section}.{key}"] = f"{flag} {v}"
+        self.bus.update(over.bus)
+        return self
+
+    def _flagged(self, e: ConfigError) -> ConfigError:
+        """``e`` with a configuration key set from the command line replaced by the flag
+        and value typed: ``"--effects inertia,foo: unknown effect 'foo'..."``."""
+        msg = str(e)
+        for key, flag in self.flags.items():
+            m = re.match(re.escape(f"{self.source}: {key}") + r"(\[\d+\])?( = .*?)?: ", msg)
+            if m:
+                return type(e)(f"{flag}: {msg[m.end():]}")
+        return e
+
+    # -- building ---------------------------------------------------------------------
+    def _where(self, key: str) -> str:
+        return f"{self.source}: {key}"
+
+    def dbc_path(self) -> Path | None:
+        dbc = self.can.get("dbc")
+        if dbc is None:
+            return None
+        if not isinstance(dbc, str) or "\0" in dbc:
+            raise ConfigError(f"{self._where('can.dbc')} = {dbc!r}: must be a file path"
+                              + (" (no NUL byte)" if isinstance(dbc, str) else ""))
+        p = Path(dbc)
+        return p if p.is_absolute() else self.base_dir / p
+
+    def ratings(self) -> Ratings:
+        """What relative units refer to: ``[signals]`` ``rated_torque``, ``rated_current``,
+        ``increments_per_rev`` (``--rated-torque``, ... override them)."""
+        given = {}
+        for key, (_, _, unit) in RATING_OPTIONS.items():
+            if key not in self.signals:
+                continue
+            v = self.signals[key]
+            if (isinstance(v, bool) or not isinstance(v, int | float)
+                    or not (math.isfinite(v) and v > 0)):
+                where = (self.flags.get(f"signals.{key}")
+                         or f"{self._where('signals.' + key)} = {v!r}")
+                raise ConfigError(f"{where}: must be a positive number ({unit})")
+            given[key] = float(v)
+        return Ratings(**given)
+
+    def protocol(self) -> Protocol:
+        """The DBC and signal mapping (``--signal`` options replace roles of ``[signals]``)."""
+        mapping: SignalMapping | None = None
+        ratings = self.ratings()
+        table = {k: v for k, v in self.signals.items() if k not in RATING_OPTIONS}
+        if table:
+            mapping = SignalMapping.from_config(table, source=f"{self.source} [signals]")
+        if self.signal_overrides:
+            base = mapping if mapping is not None else (
+                SignalMapping.default() if self.dbc_path() is None else None)
+            mapping = SignalMapping.from_strings(self.signal_overrides, base=base)
+        if ratings.as_dict():
+            mapping = dataclasses.replace(mapping or SignalMapping.default(), ratings=ratings)
+        period = self.can.get("period")
+        opts = {k: self.can[k] for k in ("strict_range", "check_crc", "check_counter")
+                if k in self.can}
+        for k, v in opts.items():
+            if not isinstance(v, bool):
+                raise ConfigError(f"{self._where('can.' + k)} = {v!r}: must be true or false")
+        where = self.flags.get("can.period") or self._where("can.period")
+        axis = self.model.get("axis")
+        return Protocol.load(self.dbc_path(), mapping, period=period,
+                             period_source=where, axis=axis if isinstance(axis, str) else None,
+                             **opts)
+
+    def model_for(self, protocol: Protocol | None = None,
+                  data_ranges: Mapping[str, Any] | None = None) -> Model:
+        """The model.
+
+        Signal ranges for the normalisation, by priority: ``[model.ranges]``, then
+        ``data_ranges`` (e.g. :func:`canrls.processor.scan_ranges`), then the defaults
+        of :data:`canrls.estimation.model.DEFAULT_RANGES`. The DBC's min/max are the protocol's
+        limits (often ten times what the drive reaches) and serve strict decoding only:
+        normalising by them would leave the regressors tiny, costing fixed-point
+        resolution and letting the ridge prior bias the weakly scaled parameters.
+        """
+        d = dict(self.model)
+        d.setdefault("effects", list(DEFAULT_EFFECTS))
+        kt = d.get("kt")
+        if isinstance(kt, int | float) and not isinstance(kt, bool) and not kt > 0:
+            where = self.flags.get("model.kt") or f"{self._where('model.kt')} = {kt!r}"
+            raise ConfigError(f"{where}: the torque constant must be positive (a motor "
+                              f"turning the other way: swap the sign of the current signal)")
+        if "axis" not in d and protocol is not None and protocol.axis is not None:
+            d["axis"] = protocol.axis  # from the DBC units of speed and position
+        torque = protocol is not None and protocol.has("torque")
+        if torque:
+            # the torque the drive reports is the mechanical target: no Kt
+            d.setdefault("target", "torque")
+            if d["target"] == "torque" and d.get("kt") is not None:
+                assert protocol is not None
+                where = self.flags.get("model.kt") or f"{self._where('model.kt')} = {kt!r}"
+                sig = protocol.roles["torque"]
+                raise ConfigError(
+                    f"{where}: the drive reports its torque ({sig.message}.{sig.signal}), "
+                    f"the mechanical target: the parameters come out in N·m (linear axis: "
+                    f"N) without Kt; leave Kt out, or set [model] target = \"current\" to "
+                    f"identify on the current with Kt")
+        filt = d.get("filter", {})
+        if isinstance(filt, Mapping):
+            filt = dict(filt)
+            # a reported torque follows the held current reference as the current does
+            filt.setdefault("held", list(DEFAULT_HELD) + (["torque"] if torque else []))
+            d["filter"] = filt
+        available = None
+        if protocol is not None:
+            available = [r for r in ROLES if protocol.has(r)]
+        ranges = d.get("ranges", {})
+        if isinstance(ranges, Mapping) and data_ranges:
+            ranges = dict(ranges)
+            for role, r in data_ranges.items():
+                ranges.setdefault(role, list(r))
+            d["ranges"] = ranges
+        try:
+            return Model.from_dict(d, source=self.source, available_signals=available)
+        except ConfigError as e:
+            raise self._flagged(e) from e
+
+    def settings(self) -> EstimatorSettings:
+        kw: dict[str, Any] = {}
+        for k, v in self.estimator.items():
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise self._flagged(ConfigError(
+                    f"{self._where('estimator.' + k)} = {v!r}: must be a number"))
+            kw[_ESTIMATOR_KEYS[k]] = v
+        for k in ("word_bits", "acc_bits", "input_bits"):
+            if k in self.fixed:
+                v = self.fixed[k]
+                if isinstance(v, bool) or not isinstance(v, int):
+                    raise ConfigError(f"{self._where('fixed.' + k)} = {v!r}: must be an integer")
+                kw[k] = v
+        if "theta_max" in self.fixed:
+            v = self.fixed["theta_max"]
+            if (isinstance(v, bool) or not isinstance(v, int | float)
+                    or not (math.isfinite(v) and v > 0)):
+                raise ConfigError(f"{self._where('fixed.theta_max')} = {v!r}: must be a "
+                                  f"positive number")
+            kw["theta_max"] = float(v)
+        formats = self.fixed.get("formats", {})
+        if not isinstance(formats, Mapping):
+            raise ConfigError(f"{self._where('fixed.formats')} = {formats!r}: must be a table")
+        overrides = {}
+        for name, v in formats.items():
+            if (not isinstance(v, list) or len(v) != 2
+                    or not all(isinstance(x, int) and not isinstance(x, bool) for x in v)):
+                raise ConfigError(f"{self._where('fixed.formats.' + name)} = {v!r}: "
+                                  f"must be [bits, frac]")
+            overrides[name] = QFormat(v[0], v[1])
+        kw["fixed_overrides"] = overrides
+        try:
+            return EstimatorSettings(**kw)
+        except ConfigError as e:
+            raise self._flagged(ConfigError(f"{self.source}: {e}")) from e
+
+
+def load_config(path: str | Path | None, overrides: Overrides | None = None) -> AppConfig:
+    """Read the file (if any) and apply the command line's overrides."""
+    cfg = AppConfig.load(path)
+    return cfg.apply(overrides) if overrides is not None else cfg

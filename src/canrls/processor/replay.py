@@ -1,0 +1,274 @@
+"""Offline replay: a recorded CAN log through the same pipeline as the live daemon.
+
+``frames (log) -> strict decode -> pairing -> calibration -> Pipeline -> FitResult``
+
+The log is streamed in blocks (:func:`canrls.can.logs.read_frames`), so memory stays
+flat in the log's length. :class:`FrameProcessor` is the part shared with the live
+daemon: it takes :class:`~canrls.can.frameblock.FrameBlock` objects of any size, so a
+log replayed here gives the same parameters as the daemon fed the same frames, bit
+for bit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
+
+from canrls.can.frameblock import FrameBlock
+from canrls.can.logs import LogReadStats, read_frames
+from canrls.can.protocol import Protocol
+from canrls.core.errors import ConfigError, EstimatorError, LogFormatError
+from canrls.core.signals import Signals
+from canrls.core.spill import SpilledSignals, join_blocks, spill_blocks
+from canrls.estimation.estimates import Estimates, PipelineBlock
+from canrls.estimation.model import Model
+from canrls.estimation.selection import SamplePolicy
+from canrls.estimation.settings import EstimatorSettings
+from canrls.processor.frames import FrameProcessor
+from canrls.processor.results import FileShift, FitResult, FrameCounts, PeriodInfo, StartInfo
+
+__all__ = ["FILE_GAP_S", "LogFiles", "LogsSamples", "MIN_SAMPLES_PER_PARAMETER", "fit_frames",
+           "fit_log", "fit_logs", "read_logs", "too_few_samples"]
+
+#: Several logs are joined into one record with at least this gap [s] between the end of
+#: one and the start of the next (:class:`LogFiles`): longer than any sample gap the
+#: pipeline fills, so the filter restarts at every file and no segment is bridged.
+FILE_GAP_S = 1.0
+
+
+def fit_frames(blocks: Iterable[FrameBlock], protocol: Protocol, model: Model,
+               settings: EstimatorSettings | None = None, *, source: str = "<frames>",
+               on_block: Callable[[PipelineBlock], None] | None = None,
+               record: bool = False) -> FitResult:
+    """Run blocks of frames through decoder, pairer and pipeline."""
+    proc = FrameProcessor(protocol, model, settings, relative_time=True)
+    _estimate(proc, (proc.samples(b) for b in blocks), on_block, record)
+    return proc.result(source)
+
+
+def _estimate(proc: FrameProcessor, samples: Iterable[Signals],
+              on_block: Callable[[PipelineBlock], None] | None, record: bool) -> None:
+    """Estimate on ``samples`` (paired by ``proc`` as they are drawn), then the end of
+    the stream; every block's output to ``on_block``."""
+    for s in samples:
+        out = proc.process_samples(s, record)
+        if on_block is not None:
+            on_block(out)
+    out = proc.flush(record)
+    if on_block is not None:
+        on_block(out)
+
+
+def fit_log(path: str | os.PathLike[str], protocol: Protocol, model: Model,
+            settings: EstimatorSettings | None = None, *, chunk_size: int = 65536,
+            progress: Callable[[int, int], None] | None = None,
+            on_block: Callable[[PipelineBlock], None] | None = None,
+            record: bool = False, skip_bad_lines: bool = False) -> FitResult:
+    """Replay a log file (candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ``.csv``):
+    :func:`fit_logs` of one log.
+
+    :raises LogFormatError: no CAN frame in the log.
+    :raises EstimatorError: too few usable samples (:func:`too_few_samples`).
+    """
+    return fit_logs([path], protocol, model, settings, chunk_size=chunk_size,
+                    progress=progress, on_block=on_block, record=record,
+                    skip_bad_lines=skip_bad_lines)
+
+
+#: Fewest used samples per parameter of an equation that a fit reports rather than refuses.
+MIN_SAMPLES_PER_PARAMETER = 10
+
+
+def too_few_samples(model: Model, estimates: Estimates, frames: FrameCounts,
+                    dt: float | None, settings: EstimatorSettings | None = None) -> str | None:
+    """Why ``estimates`` rest on too few usable samples to be an answer (fewer than
+    :data:`MIN_SAMPLES_PER_PARAMETER` per parameter in an equation), or None; ``dt`` is
+    the control period."""
+    st = settings or EstimatorSettings()
+    dt = dt if dt else math.nan
+    for eq, fit in zip(model.equations, estimates.equations, strict=False):
+        need = MIN_SAMPLES_PER_PARAMETER * len(eq.parameters)
+        if fit.samples >= need:
+            continue
+        if frames.missing:
+            return frames.missing
+        paired = frames.pairing.get("samples", 0)
+        lost = {k: v for k, v in frames.pairing.items() if v and k != "samples"}
+        rej = {k: v for k, v in frames.rejected.items() if v}
+        foreign = frames.foreign
+        text = (f"{frames.total} frames gave {paired} samples"
+                  + (f" (frames rejected: {', '.join(f'{k} {v}' for k, v in rej.items())})"
+                     if rej else "")
+                  + (f" (pairing: {', '.join(f'{k} {v}' for k, v in lost.items())})"
+                     if lost else "")
+                  + (f"; {foreign} frames of other messages" if foreign else ""))
+        why = ""
+        if math.isfinite(dt):
+            pol = SamplePolicy.for_equation(eq, dt, st)
+            u = "m/s" if model.axis == "linear" else "rad/s"
+            why = (f"; the others are left out in the filter's warm-up ({pol.warmup} samples "
+                   f"after the start, after each gap over {pol.gap * 1e3:.3g} ms and after "
+                   f"each sample outside the speed limits)"
+                   + (f", below the minimum speed {pol.min_speed:.4g} {u} (sign-dependent "
+                      f"friction)" if pol.min_speed > 0 else "")
+                   + (f", above {pol.max_speed:.4g} {u} (periodic terms)"
+                      if math.isfinite(pol.max_speed) else ""))
+        return (f"too few usable samples: the {eq.name} equation used {fit.samples}, its "
+                f"{len(eq.parameters)} parameters need at least {need}; {text}{why}")
+    return None
+
+
+class LogFiles:
+    """The samples of several logs, in turn, through one :class:`FrameProcessor`.
+
+    Segments are never bridged across files: before each file the processor restarts
+    (:meth:`FrameProcessor.restart`), and a file that does not start at least
+    :data:`FILE_GAP_S` after the previous one ended is moved in time to start exactly
+    that much later, so the estimator restarts its filter there and the joined record's
+    time stays increasing. The calibration window is the start of the first file.
+    """
+
+    def __init__(self, paths: Sequence[str | os.PathLike[str]], proc: FrameProcessor, *,
+                 chunk_size: int = 65536, progress: Callable[[int, int], None] | None = None,
+                 skip_bad_lines: bool = False) -> None:
+        self.paths = [str(p) for p in paths]
+        self.proc = proc
+        self.chunk_size = chunk_size
+        self.progress = progress
+        self.skip_bad_lines = skip_bad_lines
+        self.stats = LogReadStats()
+        #: time shift of each file read so far [s]
+        self.shifts: list[float] = []
+        #: samples of each file read so far (in the order of the joined record)
+        self.sizes: list[int] = []
+        self._end: float | None = None
+        self._file = 0
+
+    def _shifted(self, s: Signals) -> Signals:
+        self.sizes[-1] += len(s)
+        if not len(s):
+            return s
+        if len(self.shifts) < self._file:
+            t0 = float(s.t[0])
+            shift = 0.0 if self._end is None or t0 >= self._end + FILE_GAP_S \
+                else self._end + FILE_GAP_S - t0
+            self.shifts.append(shift)
+        shift = self.shifts[-1]
+        if shift:
+            s = dataclasses.replace(s, t=s.t + shift)
+        self._end = float(s.t[-1])
+        return s
+
+    def samples(self) -> Iterator[Signals]:
+        """Every file's samples in turn (the caller estimates on them)."""
+        for k, path in enumerate(self.paths):
+            self._file = k + 1
+            self.sizes.append(0)
+            if k:
+                self.proc.restart()
+            frames = self.proc.frames
+            for block in read_frames(path, self.chunk_size, skip_bad_lines=self.skip_bad_lines,
+                                     stats=self.stats, progress=self.progress):
+                yield self._shifted(self.proc.samples(block))
+            if self.proc.frames == frames:
+                raise LogFormatError(f"{path}: no CAN frames in the log"
+                                     + (f" ({self.stats.bad_lines} unparsable lines skipped)"
+                                        if self.stats.bad_lines else ""))
+            # the end of the file: the period is decided with what came (the first file
+            # measures it), and the samples still open are paired
+            yield self._shifted(self.proc.flush_samples())
+            if len(self.shifts) < self._file:
+                self.shifts.append(0.0)  # a file without samples
+
+    def frames(self) -> FrameCounts:
+        """The frame counts over the files, with the log lines skipped."""
+        return dataclasses.replace(self.proc.frame_counts(), bad_lines=self.stats.bad_lines)
+
+    def files(self) -> tuple[FileShift, ...]:
+        """Each log with its time shift (none for a single log)."""
+        if len(self.paths) < 2:
+            return ()
+        return tuple(FileShift(p, sh) for p, sh in zip(self.paths, self.shifts, strict=True))
+
+
+@dataclasses.dataclass(frozen=True)
+class LogsSamples:
+    """The samples of several logs as one record (:class:`LogFiles`): in memory, or in
+    a temporary file (:class:`~canrls.core.spill.SpilledSignals`) when read with
+    ``spill=True`` (:meth:`close` frees it)."""
+
+    signals: Signals | SpilledSignals
+    #: sample period [s] (the pairer's)
+    dt: float
+    #: the frames of every file
+    frames: FrameCounts
+    #: the model with the ranges the front end gives it (the DBC's where not configured)
+    model: Model
+    #: samples of each file, in order
+    sizes: tuple[int, ...]
+    period: PeriodInfo
+    start: StartInfo
+
+    def close(self) -> None:
+        """Free the temporary file of spilled samples (nothing for samples in memory)."""
+        if isinstance(self.signals, SpilledSignals):
+            self.signals.close()
+
+
+def read_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model: Model,
+              settings: EstimatorSettings | None = None, *, chunk_size: int = 65536,
+              progress: Callable[[int, int], None] | None = None,
+              skip_bad_lines: bool = False, spill: bool = False) -> LogsSamples:
+    """Decode and pair several logs as :func:`fit_logs` does, keeping the samples (for a
+    diagnosis of them all: :func:`canrls.diagnosis.analysis.diagnose`).
+
+    ``spill=True`` keeps them in an anonymous temporary file instead of memory
+    (:class:`~canrls.core.spill.SpilledSignals`, 8 bytes per sample and channel, read back
+    in slices; :meth:`LogsSamples.close` frees it); if the file cannot be made or
+    written, in memory after one warning line.
+
+    :raises LogFormatError: a log without any CAN frame.
+    :raises ConfigError: fewer than two samples in all.
+    """
+    proc = FrameProcessor(protocol, model, settings, relative_time=True)
+    files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
+                     skip_bad_lines=skip_bad_lines)
+    blocks = (s for s in files.samples() if len(s))
+    signals = spill_blocks(blocks) if spill else join_blocks(blocks)
+    if len(signals) < 2:
+        if isinstance(signals, SpilledSignals):
+            signals.close()
+        raise ConfigError(f"{', '.join(files.paths)}: {len(signals)} samples after decoding "
+                          f"and pairing {proc.frames} frames; nothing to analyse")
+    assert proc.period is not None  # decided at the end of the first file
+    return LogsSamples(signals, proc.period, files.frames(), proc.model, tuple(files.sizes),
+                       proc.period_info(), proc.start_info())
+
+
+def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model: Model,
+             settings: EstimatorSettings | None = None, *, chunk_size: int = 65536,
+             progress: Callable[[int, int], None] | None = None,
+             on_block: Callable[[PipelineBlock], None] | None = None,
+             record: bool = False, skip_bad_lines: bool = False) -> FitResult:
+    """One model from several logs (:class:`LogFiles`: no segment bridged across files).
+
+    The result's ``source`` is the logs joined by ``", "``; its ``files`` list each log
+    with its time shift.
+
+    :raises LogFormatError: a log without any CAN frame.
+    :raises EstimatorError: too few usable samples (:func:`too_few_samples`).
+    """
+    if not paths:
+        raise ValueError("fit_logs: no log given")
+    proc = FrameProcessor(protocol, model, settings, relative_time=True)
+    files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
+                     skip_bad_lines=skip_bad_lines)
+    _estimate(proc, files.samples(), on_block, record)
+    res = dataclasses.replace(proc.result(", ".join(files.paths)), frames=files.frames(),
+                              files=files.files())
+    few = too_few_samples(res.model, res.estimates, res.frames, res.period.value, settings)
+    if few is not None:
+        raise EstimatorError(f"{res.source}: {few}")
+    return res

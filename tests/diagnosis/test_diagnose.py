@@ -1,0 +1,329 @@
+"""Unit tests of canrls.diagnosis.analysis and canrls.diagnosis.report (the acceptance is in
+test_diagnose_acceptance.py, the command line in test_cli_diagnose.py)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from typing import Any
+
+import numpy as np
+import pytest
+
+from canrls.cli._common import _clean
+from canrls.core.errors import ConfigError, EffectError
+from canrls.core.signals import Signals
+from canrls.diagnosis.analysis import diagnose
+from canrls.diagnosis.report import DiagnosisReport
+from canrls.diagnosis.residual import bin_residual, chi2_sf, nice_magnitudes, whiteness
+from canrls.estimation.model import Model
+from canrls.estimation.settings import EstimatorSettings
+from canrls.processor import SampleProcessor, scan_ranges
+from canrls.processor.config import DEFAULT_HELD
+from canrls.sim.scenario import SimResult, scenario, simulate
+
+BASE = ["inertia", "viscous", "coulomb"]
+ORDER = 24  # a smaller cogging search keeps these tests quick
+
+
+def _model(signals: Signals, effects: list[str], **kw: Any) -> Model:
+    ranges = scan_ranges([signals], 1e-3, 25.0, 0.7071)
+    return Model(effects, kt=0.1, held=DEFAULT_HELD, ranges=ranges, **kw)
+
+
+@pytest.fixture(scope="module")
+def offset_run() -> tuple[SimResult, Model, DiagnosisReport]:
+    res = simulate(scenario("standard", effects="inertia,viscous,coulomb,offset", seed=3,
+                            duration=20.0))
+    model = _model(res.measured, BASE)
+    rep = diagnose(res.measured, model, dt=1e-3, add=["offset"], max_order=ORDER,
+                   source="offset-run")
+    return res, model, rep
+
+
+# ----------------------------------------------------------------------- the report
+def test_offset_is_named_added_and_the_error_falls(offset_run: Any) -> None:
+    res, _, rep = offset_run
+    assert rep.candidates[0].effect == "offset"
+    assert rep.suggestion == ("offset",)
+    assert rep.added == ("offset",)
+    assert rep.after is not None
+    assert rep.after.residual_rms < 0.1 * rep.before.residual_rms
+    assert rep.after.estimates["offset.T0"].value == pytest.approx(0.005, rel=0.02)
+    c = rep.candidates[0]
+    assert c.parameters["offset.T0"][0] == pytest.approx(0.005, rel=0.02)
+    assert c.parameters["offset.T0"][1] == "N·m"
+    assert c.rms_after == pytest.approx(rep.after.residual_rms, rel=0.2)
+    assert c.description.startswith("Torque offset")
+    assert "constant" in c.signature
+    assert any("mean residual" in e for e in c.evidence)
+
+
+def test_text_has_every_section(offset_run: Any) -> None:
+    _, _, rep = offset_run
+    text = rep.format()
+    for part in ("offset-run: ", "Compare", "residual RMS", "fit ", "whiteness:",
+                 "Where it fails", "moving forward", "Which effect is missing", "offset",
+                 "Verdict:", "--add offset", "Before and after --add offset",
+                 "offset.T0", "± σ", "After:"):
+        assert part in text, part
+    assert str(rep) == text
+
+
+def test_json_is_plain_and_has_the_documented_keys(offset_run: Any) -> None:
+    _, _, rep = offset_run
+    d = rep.to_dict()
+    json.dumps(_clean(d), allow_nan=False, ensure_ascii=False)
+    for key in ("source", "samples", "duration", "dt", "axis", "unit", "before", "after",
+                "added", "candidates", "suggestion", "regions", "orders", "structure",
+                "excitation", "identifiable", "identifiability", "verdict",
+                "not_applicable", "max_order"):
+        assert key in d, key
+    for side in ("before", "after"):
+        s = d[side]
+        assert {"residual_rms", "fit_percent", "r2", "parameters", "whiteness", "effects",
+                "candidates", "suggestion", "verdict", "equations"} <= set(s)
+        for p in s["parameters"].values():
+            assert {"value", "sigma", "unit", "fixed"} <= set(p)
+    assert d["after"]["parameters"]["offset.T0"]["unit"] == "N·m"
+    c = d["candidates"][0]
+    assert c["effect"] == "offset"
+    assert {"effect", "explained", "delta_bic", "rms_after", "identifiable", "suggested",
+            "description", "evidence", "parameters"} <= set(c)
+    assert d["suggestion"]["add"] == ["offset"]
+    assert d["orders"]["per"] == "revolution"
+    assert len(d["orders"]["orders"]) == len(d["orders"]["amplitude"])
+
+
+def test_before_is_what_the_pipeline_fits(offset_run: Any) -> None:
+    """diagnose runs the same front end and pipeline: the same parameters, bit for bit."""
+    res, model, rep = offset_run
+    proc = SampleProcessor(model, 1e-3, EstimatorSettings())
+    proc.run(res.measured)
+    est = proc.pipeline.estimates()
+    assert [p.value for p in rep.before.estimates.parameters] == \
+        [p.value for p in est.parameters]
+    assert [p.fixed for p in rep.before.estimates.parameters] == \
+        [p.fixed for p in est.parameters]
+    assert rep.before.residual_rms == est.residual_rms
+    assert rep.to_dict()["before"]["parameters"] == est.to_dict()["parameters"]
+
+
+def test_blocks_give_the_same_diagnosis(offset_run: Any) -> None:
+    res, model, rep = offset_run
+    s = res.measured
+    k = len(s) // 3
+    blocks = [s.slice(0, k), s.slice(k, 2 * k), s.slice(2 * k, len(s))]
+    rep2 = diagnose(blocks, model, dt=1e-3, max_order=ORDER)
+    assert [p.value for p in rep2.before.estimates.parameters] == \
+        [p.value for p in rep.before.estimates.parameters]
+    assert [(c.effect, c.explained) for c in rep2.candidates] == \
+        [(c.effect, c.explained) for c in rep.candidates]
+    assert rep2.after is None and rep2.to_dict()["after"] is None
+
+
+def test_regions_say_where_in_words(offset_run: Any) -> None:
+    _, _, rep = offset_run
+    q = rep.before.primary
+    assert q.regions
+    # a constant offset shows everywhere: the top region covers (almost) all samples,
+    # and the speed region says it is the same moving forward and backward
+    assert q.regions[0].share > 0.9
+    top = next(r for r in q.regions if r.quantity == "speed")
+    assert "moving forward" in top.text and "moving backward" in top.text
+    assert top.mean_forward == pytest.approx(0.005, rel=0.1)
+    assert top.mean_backward == pytest.approx(0.005, rel=0.1)
+    assert top.share > 0.9
+    for name in ("speed", "position", "current", "acceleration", "time"):
+        b = q.bins[name]
+        assert len(b.edges) == len(b.count) + 1
+        assert int(b.count.sum()) == q.fit.samples
+
+
+def test_convergence_traces(offset_run: Any) -> None:
+    _, _, rep = offset_run
+    tr = rep.after.primary.traces  # type: ignore[union-attr]
+    assert tr.names == ("inertia.J", "viscous.B", "coulomb.Tc", "offset.T0")
+    assert tr.theta.shape == tr.sigma.shape == tr.theta_fixed.shape == (len(tr.conv_t), 4)
+    # the re-run RLS ends where the pipeline did
+    final = [p.value for p in rep.after.estimates.parameters]  # type: ignore[union-attr]
+    np.testing.assert_allclose(tr.theta[-1], final, rtol=1e-12)
+    sig = [p.sigma for p in rep.after.estimates.parameters]  # type: ignore[union-attr]
+    np.testing.assert_allclose(tr.sigma[-1], sig, rtol=1e-9)
+
+
+# ------------------------------------------------------------------ the cogging order
+def test_cogging_order_is_found_and_bare_cogging_takes_it() -> None:
+    res = simulate(scenario("standard", effects="inertia,viscous,coulomb,cogging:9", seed=5,
+                            duration=20.0,
+                            params={"cogging:9.sin": 0.009, "cogging:9.cos": -0.0045}))
+    rep = diagnose(res.measured, _model(res.measured, BASE), dt=1e-3, add=["cogging"],
+                   max_order=ORDER)
+    assert rep.candidates[0].effect == "cogging:9"
+    assert rep.added == ("cogging:9",)
+    assert rep.after is not None and "cogging:9" in rep.after.effects
+    sp = rep.before.primary.spectrum
+    assert sp is not None and sp.peaks[0] == 9.0
+    amp, share = sp.at(9)
+    assert amp == pytest.approx(math.hypot(0.009, 0.0045), rel=0.1)
+    assert rep.after.estimates["cogging:9.sin"].value == pytest.approx(0.009, rel=0.03)
+
+
+# -------------------------------------------------- structure no candidate explains
+@pytest.fixture(scope="module")
+def plain() -> SimResult:
+    return simulate(scenario("standard", effects="inertia,viscous,coulomb", seed=4,
+                             duration=20.0))
+
+
+def _with_torque(res: SimResult, torque: np.ndarray) -> Signals:
+    m = res.measured
+    return Signals(m.t, m.current + torque / res.truth.kt, m.speed, m.position)
+
+
+def test_time_drift_is_described_not_blamed_on_an_effect(plain: SimResult) -> None:
+    m = plain.measured
+    s = _with_torque(plain, 0.01 * np.sin(2 * np.pi * m.t / 20.0))
+    rep = diagnose(s, _model(s, BASE), dt=1e-3, max_order=ORDER)
+    assert rep.suggestion == ()
+    kinds = [x.kind for x in rep.before.primary.structure]
+    assert "time" in kinds
+    assert "no effect of the library explains the structure left" in rep.verdict
+    assert "drifting in time" in rep.verdict
+
+
+def test_fractional_order_is_described_not_blamed_on_cogging(plain: SimResult) -> None:
+    s = _with_torque(plain, 0.005 * np.sin(2.5 * np.asarray(plain.true.position)))
+    rep = diagnose(s, _model(s, BASE), dt=1e-3, max_order=ORDER)
+    assert rep.suggestion == ()
+    periodic = [x for x in rep.before.primary.structure if x.kind == "periodic"]
+    assert periodic and "order 2.5" in periodic[0].text
+    assert "periodic at order 2.5" in rep.verdict
+
+
+def test_complete_model_suggests_nothing(plain: SimResult) -> None:
+    rep = diagnose(plain.measured, _model(plain.measured, BASE), dt=1e-3, max_order=ORDER)
+    assert rep.suggestion == ()
+    assert "complete" in rep.verdict
+    assert rep.before.primary.structure == ()
+
+
+# ------------------------------------------------------------- other equations, signals
+def test_without_position_periodic_effects_are_not_applicable(plain: SimResult) -> None:
+    m = plain.measured
+    s = Signals(m.t, m.current, m.speed)
+    rep = diagnose(s, _model(s, ["inertia", "viscous"]), dt=1e-3)
+    q = rep.before.primary
+    assert q.spectrum is None
+    assert "position" not in q.bins
+    na = dict(q.not_applicable)
+    assert "position" in na["cogging:K"] and "position" in na["unbalance"]
+    assert rep.candidates[0].effect == "coulomb"
+    with pytest.raises(EffectError, match="cogging"):
+        diagnose(s, _model(s, BASE), dt=1e-3, add=["cogging"])
+
+
+def test_electrical_equation_and_user_terms() -> None:
+    res = simulate(scenario("standard", effects="inertia,viscous,coulomb,electrical", seed=6,
+                            duration=10.0))
+    s = res.measured
+    terms = [{"name": "drag", "expr": "omega * abs(omega)", "unit": "rad²/s²",
+              "range": [-1e4, 1e4]}]
+    model = Model(BASE + ["electrical"], kt=0.1, held=["voltage"], terms=terms,
+                  ranges=scan_ranges([s], 1e-3, 25.0, 0.7071))
+    rep = diagnose(s, model, dt=1e-3, max_order=8)
+    assert [q.equation for q in rep.before.equations] == ["mechanical", "electrical"]
+    assert "user:drag" in [c.effect for c in rep.before.equations[0].candidates]
+    assert not rep.before.equations[0].candidate("user:drag").suggested
+    assert rep.before.equations[1].unit == "V"
+    assert "electrical equation" in rep.format()
+    d = rep.to_dict()
+    assert set(d["before"]["equations"]) == {"mechanical", "electrical"}
+
+
+# ------------------------------------------------------------------------ errors
+def test_errors(plain: SimResult) -> None:
+    s = plain.measured
+    model = _model(s, BASE)
+    with pytest.raises(EffectError, match="unknown effect"):
+        diagnose(s, model, dt=1e-3, add=["friction"])
+    with pytest.raises(EffectError, match="already in the model"):
+        diagnose(s, model, dt=1e-3, add=["coulomb"])
+    with pytest.raises(ConfigError, match="max_order"):
+        diagnose(s, model, dt=1e-3, max_order=0)
+    with pytest.raises(ConfigError, match="dt"):
+        diagnose(s, model, dt=-1.0)
+    with pytest.raises(ConfigError, match="samples"):
+        diagnose(s.slice(0, 1), model, dt=1e-3)
+
+
+# ------------------------------------------------------------------ building blocks
+def test_chi2_tail() -> None:
+    # chi-square(20) quantiles: 37.566 (p = 0.01), 19.337 (p = 0.5), 45.315 (p = 0.001)
+    assert chi2_sf(37.566, 20) == pytest.approx(0.01, abs=0.001)
+    assert chi2_sf(19.337, 20) == pytest.approx(0.5, abs=0.01)
+    assert chi2_sf(45.315, 20) == pytest.approx(0.001, abs=0.0003)
+    assert chi2_sf(0.0, 20) == 1.0
+
+
+def test_whiteness_of_white_and_coloured_residuals() -> None:
+    rng = np.random.default_rng(11)
+    n = 5000
+    used = np.ones(n, np.bool_)
+    white = rng.normal(size=n)
+    u = {"input": rng.normal(size=n)}
+    w = whiteness(white, used, u, np.array([1.0]), 20)
+    assert w is not None and w.decimation == 1
+    assert w.white and w.independent
+    assert w.bound == pytest.approx(2.5758 / math.sqrt(n), rel=1e-4)
+    coloured = np.convolve(white, np.ones(5) / 5, mode="same")
+    w2 = whiteness(coloured, used, {"input": white}, np.array([1.0]), 20)
+    assert w2 is not None and not w2.white and w2.outside >= 3
+    assert not w2.independent  # the residual is made of the input
+    # through a low pass, the decimation takes the filter's own colour out
+    h = np.exp(-np.arange(60) / 6.0)
+    filt = np.convolve(white, h)[:n]
+    w3 = whiteness(filt, used, u, h, 20)
+    assert w3 is not None and w3.decimation > 10 and w3.white
+
+
+def test_bins_and_share() -> None:
+    rng = np.random.default_rng(12)
+    x = rng.uniform(-1, 1, 4000)
+    edges = np.linspace(-1, 1, 11)
+    step = np.where(x > 0, 1.0, -1.0)
+    b = bin_residual(x, step, edges, "speed", "speed", "rad/s")
+    assert b.share == pytest.approx(1.0)
+    np.testing.assert_allclose(b.mean, [-1] * 5 + [1] * 5)
+    noise = bin_residual(x, rng.normal(size=4000), edges, "speed", "speed", "rad/s")
+    assert noise.share < 0.01
+    mags = nice_magnitudes(100.0)
+    assert mags[0] == 0.0 and mags[-1] >= 100.0
+    assert list(mags[1:4]) == [0.5, 1.0, 2.0]
+
+
+# ------------------------------------------------------------------------ figures
+def test_html_report(offset_run: Any, tmp_path: Any) -> None:
+    pytest.importorskip("matplotlib")
+    from canrls.diagnosis.figures import FIGURES
+
+    _, _, rep = offset_run
+    page = rep.write_html(tmp_path / "rep")
+    assert page.name == "index.html"
+    text = page.read_text(encoding="utf-8")
+    for name in FIGURES:
+        f = tmp_path / "rep" / name
+        assert f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+        assert f"src='{name}'" in text
+    assert "Verdict" in text and "offset.T0" in text
+
+
+def test_html_report_without_matplotlib(offset_run: Any, tmp_path: Any,
+                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    for mod in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, mod)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    _, _, rep = offset_run
+    with pytest.raises(ConfigError, match="matplotlib"):
+        rep.write_html(tmp_path / "rep")

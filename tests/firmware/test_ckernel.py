@@ -1,0 +1,426 @@
+"""The C kernel (src/canrls/c/firmware) against the Python specification, integer for integer.
+
+Vectors come from :class:`canrls.estimation.fixed.estimator.FixedRLS` (``tools/gen_ckernel.py``):
+the C state starts from ``FixedRLS.state()`` (so the tests hold whatever the initial
+covariance policy is), then every sample's ``eps``, trace, exponent, flags, ``theta``,
+every word of ``P``, ``c`` and all saturation counters are compared after each step.
+The driver (``src/canrls/c/firmware/drivers/vector_driver.c``) is built with gcc for this
+machine and with ``arm-linux-gnueabihf-gcc`` for 32-bit ARM (run under ``qemu-arm``); the
+bare-metal Cortex-M4 example runs on ``qemu-system-arm``. Missing tools are installed
+from Debian's packages when the tests run as root, otherwise those tests skip.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import subprocess
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from debian import need_tool
+
+from canrls.core.ctext import c_int
+from canrls.estimation.fixed.estimator import FixedRLS
+from canrls.estimation.fixed.formats import SITES, FixedConfig, FixedFlag, QFormat
+from canrls.firmware.kernel_export import plan_c
+
+ROOT = Path(__file__).resolve().parents[2]
+KERNEL = ROOT / "src" / "canrls" / "c" / "firmware"
+DRIVER = ROOT / "src" / "canrls" / "c" / "firmware" / "drivers" / "vector_driver.c"
+CFLAGS = ["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic"]
+
+
+def _load(name: str) -> object:
+    spec = importlib.util.spec_from_file_location(name, ROOT / "tools" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+gen = _load("gen_ckernel")
+build_target = _load("build_target")
+
+# ------------------------------------------------------------------ vectors
+@dataclass
+class Case:
+    """One vector file: an estimator in some state, samples, frozen flags."""
+
+    name: str
+    est: FixedRLS
+    Phi: np.ndarray
+    Y: np.ndarray
+    frozen: np.ndarray
+
+
+def _rows(rng: np.random.Generator, N: int, n: int, scale: float = 1.0) -> np.ndarray:
+    return rng.uniform(-scale, scale, (N, n))
+
+
+def _case(name: str, n: int, lam: float, alpha: float, Phi: np.ndarray, Y: np.ndarray,
+          frozen: np.ndarray | None = None, warm: int = 0, raw: bool = False,
+          trace_max: float | None = None, **auto: object) -> Case:
+    cfg = FixedConfig.auto(n, alpha, lam, trace_max=trace_max, **auto)  # type: ignore[arg-type]
+    est = FixedRLS(cfg, n, lam, alpha, trace_max=trace_max)
+    if raw:
+        Pq, Yq = Phi.astype(np.int64), Y.astype(np.int64)
+    else:
+        Pq, Yq, _ = cfg.quantize_inputs(Phi, Y)
+    if warm:
+        # the C state starts where Python got to: theta, every P word, e, c, counters
+        est.run(Pq[:warm], Yq[:warm], record=False)
+        Pq, Yq = Pq[warm:], Yq[warm:]
+    fz = np.zeros(len(Yq), bool) if frozen is None else np.asarray(frozen, bool)[warm:]
+    return Case(name, est, Pq, Yq, fz)
+
+
+def _cases() -> list[Case]:
+    rng = np.random.default_rng(20240611)
+    out = []
+    # lambda = 1: P falls by orders of magnitude, the block exponent climbs
+    Phi = _rows(rng, 400, 2)
+    out.append(_case("n2_lam1", 2, 1.0, 1e-2, Phi, Phi @ [0.5, -0.25]))
+    # lambda < 1 without excitation first: c grows and is folded into the words at e = 0,
+    # the trace reaches trace_max (WINDUP), then data
+    Phi = np.vstack([np.zeros((150, 3)), _rows(rng, 250, 3)])
+    out.append(_case("n3_windup", 3, 0.98, 1e-1, Phi, Phi @ [0.2, 0.1, -0.3],
+                     trace_max=40.0))
+    # one direction unexcited for long stretches (low excitation, windup)
+    Phi = _rows(rng, 500, 4)
+    Phi[100:400, 2:] = 0.0
+    out.append(_case("n4_partial", 4, 0.99, 1e-2, Phi,
+                     Phi @ [0.1, -0.2, 0.3, 0.05] + 1e-3 * rng.standard_normal(500)))
+    # narrow words, inputs beyond their 16-bit word (phi_in, y_in), raw integers
+    n = 5
+    Phi = np.round(_rows(rng, 300, n, 3.0) * 2**14)
+    Y = np.round(Phi @ rng.uniform(-0.3, 0.3, n) * 2.0)
+    out.append(_case("n5_w16_inputs", n, 0.99, 1e-1, Phi, Y, raw=True,
+                     word_bits=16, acc_bits=32, input_bits=16))
+    # theta and eps saturate (a too small theta range, a target far off the model)
+    n = 6
+    Phi = _rows(rng, 400, n)
+    Y = Phi @ np.full(n, 0.6) + 0.9 * np.sign(rng.standard_normal(400))
+    out.append(_case("n6_saturating", n, 0.995, 1e-2, Phi, Y, theta_max=0.5,
+                     word_bits=24, acc_bits=48))
+    # a checkpointed state taken mid-run, then a frozen stretch
+    n = 8
+    Phi = _rows(rng, 600, n)
+    fz = np.zeros(600, bool)
+    fz[350:420] = True
+    out.append(_case("n8_warm_frozen", n, 0.99, 1e-2, Phi,
+                     Phi @ rng.uniform(-0.1, 0.1, n), frozen=fz, warm=200))
+    # the largest model, lambda = 1, a P format overridden (coarser than the automatic one)
+    n = 12
+    Phi = _rows(rng, 300, n)
+    out.append(_case("n12_P_override", n, 1.0, 1e-3, Phi,
+                     Phi @ rng.uniform(-0.05, 0.05, n),
+                     P=QFormat(32, 20), input_bits=32))
+    # n = 12, lambda < 1, small inputs
+    Phi = _rows(rng, 300, n, 0.01)
+    out.append(_case("n12_lam", n, 0.97, 1e-1, Phi, Phi @ rng.uniform(-1, 1, n)))
+    return out
+
+
+def _corrupt_case(seed: int, n: int) -> Case:
+    """A state of random words (P not positive definite): every saturation and the d <= 0
+    branch of the division, which only a broken state reaches."""
+    rng = np.random.default_rng(seed)
+    cfg = FixedConfig.auto(n, 1e-2, 0.99)
+    est = FixedRLS(cfg, n, 0.99, 1e-2)
+    s = est.state()
+    P = rng.integers(cfg.P.lo, cfg.P.hi, (n, n), endpoint=True)
+    s["P"] = np.triu(P) + np.triu(P, 1).T
+    s["theta"] = rng.integers(cfg.theta.lo, cfg.theta.hi, n, endpoint=True)
+    s["P_exp"] = int(rng.integers(0, 8))
+    s["P_scale"] = int(rng.integers(1, est.constants["one_lam"], endpoint=True))
+    # the fractions of theta below its LSB (a generator of their own: the draws above
+    # and below stay those of the cases before the 64-bit estimate)
+    s["theta_frac"] = np.random.default_rng(seed + 100).integers(0, 2**32 - 1, n,
+                                                                   endpoint=True)
+    # and of P below its words (likewise)
+    F = np.random.default_rng(seed + 200).integers(-2**31, 2**31 - 1, (n, n), endpoint=True)
+    s["P_frac"] = np.triu(F) + np.triu(F, 1).T
+    est = FixedRLS.from_state(s)
+    Pq = rng.integers(cfg.phi.lo, cfg.phi.hi, (80, n), endpoint=True)
+    Yq = rng.integers(cfg.y.lo, cfg.y.hi, 80, endpoint=True)
+    return Case(f"corrupt_{seed}_n{n}", est, Pq, Yq, np.zeros(80, bool))
+
+
+@functools.cache
+def _all_cases() -> tuple[Case, ...]:
+    return tuple(_cases() + [_corrupt_case(s, n) for s, n in ((1, 3), (2, 7), (3, 10))])
+
+
+@pytest.fixture(scope="module")
+def vectors(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, Path, list[str]]]:
+    d = tmp_path_factory.mktemp("vectors")
+    out = []
+    for c in _all_cases():
+        path = d / f"{c.name}.txt"
+        expected = gen.write_vectors(path, c.est, c.Phi, c.Y, c.frozen)
+        out.append((c.name, path, expected))
+    return out
+
+
+def _compare(name: str, got: list[str], expected: list[str], n_words: int) -> None:
+    assert len(got) == len(expected), f"{name}: {len(got)} lines, expected {len(expected)}"
+    for k, (g, e) in enumerate(zip(got, expected, strict=True)):
+        if g != e:
+            gw, ew = g.split(), e.split()
+            diff = [i for i, (a, b) in enumerate(zip(gw, ew, strict=True)) if a != b]
+            pytest.fail(f"{name}: step {k} differs at word(s) {diff[:8]} of {n_words}:\n"
+                        f"C:      {g[:300]}\nPython: {e[:300]}")
+
+
+def _run_all(run: Callable[[Path, Path], None], vectors: list[tuple[str, Path, list[str]]],
+             tmp_path: Path) -> None:
+    for name, path, expected in vectors:
+        out = tmp_path / f"{name}.out"
+        run(path, out)
+        got = out.read_text().splitlines()
+        _compare(name, got, expected, len(expected[0].split()))
+
+
+def test_vectors_cover_every_flag_and_saturation_site() -> None:
+    """The cases reach every flag and every saturation counter (except acc and K, 0 by
+    design: K is the high word of two normalised 31-bit words, it cannot saturate)."""
+    flags = 0
+    sites: set[str] = set()
+    for c in _all_cases():
+        est = FixedRLS.from_state(c.est.state())
+        for k in range(len(c.Y)):
+            est.freeze() if c.frozen[k] else est.resume()
+            flags |= int(est.update(c.Phi[k], int(c.Y[k])).flags)
+        sites |= set(est.saturations.nonzero())
+    assert flags == int(FixedFlag.WINDUP | FixedFlag.LOW_EXCITATION | FixedFlag.SATURATION
+                        | FixedFlag.FROZEN)
+    assert sites == set(SITES) - {"acc", "K"}
+    # n from 2 to 12, lambda = 1 and < 1, several word lengths
+    assert {c.est.n for c in _all_cases()} >= {2, 3, 4, 5, 6, 8, 12}
+    assert {c.est.lam == 1.0 for c in _all_cases()} == {True, False}
+    assert {c.est.config.word_bits for c in _all_cases()} == {16, 24, 32}
+
+
+@pytest.fixture(scope="module")
+def host_driver(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    cc = need_tool("gcc", ["gcc"])
+    exe = tmp_path_factory.mktemp("host") / "vector_driver"
+    subprocess.run([cc, *CFLAGS, "-I", str(KERNEL), str(DRIVER), str(KERNEL / "canrls_fixed.c"),
+                    "-o", str(exe)], check=True, capture_output=True)
+    return exe
+
+
+def test_c_kernel_is_bit_exact_on_x86_64(host_driver: Path, vectors: list, tmp_path: Path
+                                         ) -> None:
+    _run_all(lambda i, o: subprocess.run([str(host_driver), str(i), str(o)], check=True,
+                                         timeout=60), vectors, tmp_path)
+
+
+def test_c_kernel_is_bit_exact_on_32_bit_arm(vectors: list, tmp_path: Path) -> None:
+    cc = need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    qemu = need_tool("qemu-arm", ["qemu-user"])
+    exe = tmp_path / "vector_driver_arm"
+    subprocess.run([cc, *CFLAGS, "-static", "-I", str(KERNEL), str(DRIVER),
+                    str(KERNEL / "canrls_fixed.c"), "-o", str(exe)], check=True,
+                   capture_output=True)
+    _run_all(lambda i, o: subprocess.run([qemu, str(exe), str(i), str(o)], check=True,
+                                         timeout=120), vectors, tmp_path)
+
+
+def _run_fixed_n(cc: str, wrap: list[str], vectors: list, tmp_path: Path,
+                 extra: Sequence[str] = ()) -> None:
+    """Each case through a driver built with -DCANRLS_N = its n (loops unrolled, h~ summed
+    by rows, the SMMULR path on ARM): bit for bit the same lines; a driver built for
+    another n refuses the state (canrls_init_q31 takes only n = CANRLS_N)."""
+    n_of = {c.name: c.est.n for c in _all_cases()}
+    by_n: dict[int, list] = {}
+    for v in vectors:
+        by_n.setdefault(n_of[v[0]], []).append(v)
+    for n, vs in sorted(by_n.items()):
+        exe = tmp_path / f"vector_driver_n{n}"
+        subprocess.run([cc, *CFLAGS, *extra, f"-DCANRLS_N={n}", "-I", str(KERNEL),
+                        str(DRIVER), str(KERNEL / "canrls_fixed.c"), "-o", str(exe)],
+                       check=True, capture_output=True)
+        _run_all(lambda i, o, exe=exe: subprocess.run([*wrap, str(exe), str(i), str(o)], check=True,
+                                             timeout=120), vs, tmp_path)
+        other = next(v for m, w in by_n.items() if m != n for v in w)
+        r = subprocess.run([*wrap, str(exe), str(other[1]), str(tmp_path / "o")],
+                           capture_output=True, text=True)
+        assert r.returncode == 2 and "canrls_init_q31 refused" in r.stderr
+
+
+def test_c_kernel_with_a_fixed_n_is_bit_exact_on_x86_64(vectors: list, tmp_path: Path
+                                                        ) -> None:
+    _run_fixed_n(need_tool("gcc", ["gcc"]), [], vectors, tmp_path)
+
+
+def test_c_kernel_with_a_fixed_n_is_bit_exact_on_32_bit_arm(vectors: list, tmp_path: Path
+                                                            ) -> None:
+    cc = need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    qemu = need_tool("qemu-arm", ["qemu-user"])
+    _run_fixed_n(cc, [qemu], vectors, tmp_path, ["-static"])
+
+
+def test_driver_refuses_a_plan_without_a_constant(host_driver: Path, vectors: list,
+                                                  tmp_path: Path) -> None:
+    """The driver maps constants by name: a constant the spec drops or adds is an error."""
+    _, path, _ = vectors[0]
+    lines = path.read_text().splitlines()
+    count = int(lines[0].split()[1])
+    bad = tmp_path / "bad.txt"
+    bad.write_text("\n".join([f"plan {count}", "no_such_constant 1", *lines[2:]]) + "\n")
+    r = subprocess.run([str(host_driver), str(bad), str(tmp_path / "o")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "no_such_constant" in r.stderr
+
+
+def test_plan_names_are_the_python_constants() -> None:
+    """canrls_plan_q31 has exactly the fields of FixedRLS.constants, in its order."""
+    text = (KERNEL / "canrls_fixed.h").read_text()
+    body = text[text.index("typedef struct {"):text.index("} canrls_plan_q31;")]
+    import re
+
+    fields = [f for decl in re.findall(r"int(?:32|64)_t ([^;]+);", body)
+              for f in (x.strip() for x in decl.split(","))]
+    est = FixedRLS(FixedConfig.auto(3, 1e-2, 0.99), 3, 0.99, 1e-2)
+    assert fields == list(est.constants)
+    assert {k for k, v in est.constants.items() if not -2**31 <= v < 2**31} <= gen.PLAN_64
+
+
+_ACCESSORS_C = r"""
+#include <stddef.h>
+#include <stdio.h>
+#include "canrls_fixed.h"
+/* the pair of a parameter and of a word of P: adjacent, 8-byte aligned (one LDRD/STRD on
+ * the M4) */
+typedef char pair_is_8_bytes[sizeof(canrls_theta64) == 8 ? 1 : -1];
+typedef char word_after_frac[offsetof(canrls_theta64, word) == 4 ? 1 : -1];
+typedef char aligned_in_instance[offsetof(canrls_rls_q31, theta_q) % 8 == 0 ? 1 : -1];
+typedef char P_pair_is_8_bytes[sizeof(canrls_P64) == 8 ? 1 : -1];
+typedef char P_word_after_lo[offsetof(canrls_P64, word) == 4 ? 1 : -1];
+typedef char P_aligned_in_instance[offsetof(canrls_rls_q31, P) % 8 == 0 ? 1 : -1];
+PLAN
+int main(void)
+{
+    static canrls_rls_q31 S;
+    const int32_t p0[3] = {P0, P0, P0}, P_up[6] = {P0, 0, 0, P0, 0, P0};
+    const int32_t Pf[6] = {PF};
+    const int32_t th[3] = {TH};
+    const uint32_t tf[3] = {TF};
+    uint32_t j;
+    if (canrls_init_q31(&S, &plan, 3, p0, 0) != CANRLS_OK) {
+        return 2;
+    }
+    for (j = 0; j < 6; j++) {
+        printf("%ld %ld\n", (long)canrls_P_q31(&S, j), (long)canrls_P_frac_q31(&S, j));
+    }
+    if (canrls_restore_q31(&S, th, tf, P_up, Pf, 0, ONE) != CANRLS_OK) {
+        return 2;
+    }
+    for (j = 0; j < 3; j++) {
+        printf("%ld %lu\n", (long)canrls_theta_q31(&S, j),
+               (unsigned long)canrls_theta_frac_q31(&S, j));
+    }
+    for (j = 0; j < 6; j++) {
+        printf("%ld %ld\n", (long)canrls_P_q31(&S, j), (long)canrls_P_frac_q31(&S, j));
+    }
+    if (canrls_restore_q31(&S, th, NULL, P_up, NULL, 0, ONE) != CANRLS_OK) {
+        return 2;
+    }
+    for (j = 0; j < 3; j++) {
+        printf("%ld %lu\n", (long)canrls_theta_q31(&S, j),
+               (unsigned long)canrls_theta_frac_q31(&S, j));
+    }
+    for (j = 0; j < 6; j++) {
+        printf("%ld %ld\n", (long)canrls_P_q31(&S, j), (long)canrls_P_frac_q31(&S, j));
+    }
+    return 0;
+}
+"""
+
+
+def test_firmware_reads_the_state_through_its_accessors(tmp_path: Path) -> None:
+    """The instance holds the 64-bit estimate as canrls_theta64 pairs (theta_q: frac, word)
+    and the 64-bit P as canrls_P64 pairs (P: lo, word), each 8-byte aligned, so one
+    LDRD/STRD per element: canrls_theta_q31 / canrls_theta_frac_q31 and canrls_P_q31 /
+    canrls_P_frac_q31 give back the words and fractions canrls_init_q31 set (fractions 0)
+    and canrls_restore_q31 took (NULL fractions: 0), the checkpoint's "theta",
+    "theta_frac", "P" and "P_frac"."""
+    header = (KERNEL / "canrls_fixed.h").read_text()
+    body = header[header.index("typedef struct {\n    const canrls_plan_q31"):
+                  header.index("} canrls_rls_q31;")]
+    assert "canrls_theta64 theta_q[CANRLS_N_MAX];" in body
+    assert "canrls_P64 P[CANRLS_TRI(CANRLS_N_MAX)];" in body
+    assert " theta[" not in body and "theta_frac[" not in body
+    est = FixedRLS(FixedConfig.auto(3, 1e-2, 0.99), 3, 0.99, 1e-2)
+    c = est.constants
+    th = [c["theta_hi"], c["theta_lo"], -1]
+    tf = [0xFFFFFFFF, 0, 0x80000001]
+    p0 = int(np.diag(est.P)[0])
+    P_up = [p0, 0, 0, p0, 0, p0]
+    Pf = [2**31 - 1, -2**31, 0, -1, 1, 12345]
+    src = (_ACCESSORS_C.replace("PLAN", plan_c(c, "plan"))
+           .replace("P0", str(p0)).replace("ONE", str(c["one_lam"]))
+           .replace("PF", ", ".join(c_int(v) for v in Pf))
+           .replace("TH", ", ".join(map(str, th))).replace("TF", ", ".join(f"{v}u" for v in tf)))
+    prog = tmp_path / "accessors.c"
+    prog.write_text(src)
+    exe = tmp_path / "accessors"
+    cc = need_tool("gcc", ["gcc"])
+    subprocess.run([cc, *CFLAGS, "-I", str(KERNEL), str(prog), str(KERNEL / "canrls_fixed.c"),
+                    "-o", str(exe)], check=True, capture_output=True)
+    out = subprocess.run([str(exe)], check=True, capture_output=True, text=True).stdout.split()
+    got = [(int(a), int(b)) for a, b in zip(out[::2], out[1::2], strict=True)]
+    zero = [0] * 6
+    assert got == [*zip(P_up, zero, strict=True),
+                   *zip(th, tf, strict=True), *zip(P_up, Pf, strict=True),
+                   *zip(th, [0, 0, 0], strict=True), *zip(P_up, zero, strict=True)]
+
+
+# ------------------------------------------------------------------ Cortex-M4
+@pytest.fixture(scope="module")
+def m4_tools() -> Iterator[None]:
+    need_tool("arm-none-eabi-gcc", ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"])
+    need_tool("qemu-system-arm", ["qemu-system-arm"])
+    yield
+
+
+def test_cortex_m4_example_matches_python_on_a_recorded_log(m4_tools: None, tmp_path: Path
+                                                            ) -> None:
+    s = gen.log_stream(duration=4.0)
+    hdr = tmp_path / "stream.h"
+    hdr.write_text(gen.stream_header(s))
+    elf = tmp_path / "example.elf"
+    build_target.build_example(hdr, elf)
+    rc, text = build_target.run_example(elf, timeout=60)
+    assert rc == 0, text
+    assert "bit-exact with the Python FixedRLS: PASS" in text
+    theta = [int(line.split("=")[1]) for line in text.splitlines() if "theta[" in line]
+    assert theta == FixedRLS.from_state(s.est.state()).run(
+        s.Phi, s.Y, record=False).theta_final.tolist()
+    # the example fails loudly when a final word differs
+    bad = hdr.read_text().replace("#define STREAM_C_FINAL ", "#define STREAM_C_FINAL 1 + ")
+    hdr.write_text(bad)
+    build_target.build_example(hdr, elf)
+    rc, text = build_target.run_example(elf, timeout=60)
+    assert rc != 0 and "FAIL" in text
+
+
+def test_cortex_m4_kernel_builds_and_counts(m4_tools: None, tmp_path: Path) -> None:
+    k = build_target.build_kernel(tmp_path)
+    assert k.text > 0 and k.data == 0 and k.bss == 0
+    assert "canrls_update_q31" in k.stack and k.worst_stack < 512
+    s = gen.synthetic_stream(4, 8)
+    hdr = tmp_path / "n4.h"
+    hdr.write_text(gen.stream_header(s))
+    elf = tmp_path / "n4.elf"
+    build_target.build_example(hdr, elf)
+    counts = build_target.count_instructions(elf, tmp_path)
+    assert len(counts) == 8
+    assert all(100 < c < 20000 for c in counts)

@@ -1,0 +1,157 @@
+"""``canrls fit --fixed target``: the fit's fixed column is the exported C's, bit for bit.
+
+A fit with ``--fixed target --save-model`` takes its fixed column from the target's
+integer path; ``canrls export-c`` of the saved model with the same log as vectors
+reproduces it: the specification's final estimate, which the exported C reproduces word
+for word (``make test``), is the fit's fixed column to the last bit; both within 0.1 %
+of the float. On the simulated drive in canrls' DBC, on a user's Motorola DBC through a
+window of standstill (rescales), on a CiA 402 drive reporting its torque in its own DBC,
+and on an HSM150 run in its own DBC where the runs are there.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+from debian import need_tool
+
+from canrls.cli.main import main
+from canrls.estimation.estimates import divergence
+from canrls.firmware.load import load, target_model
+from canrls.firmware.vectors import log_frames, record
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+ROOT = Path(__file__).resolve().parents[2]
+HSM = ROOT.parent / "shared" / "data" / "hsm150"
+
+
+def _canrls(argv: list[str]) -> str:
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(argv) == 0, buf.getvalue()
+    return buf.getvalue()
+
+
+def _check(log: Path, fit_args: list[str], tmp: Path, test_c: bool = True) -> dict[str, Any]:
+    saved = tmp / "m.json"
+    fit = json.loads(_canrls(["fit", str(log), *fit_args, "--fixed", "target", "--save-model",
+                              str(saved), "--json", "--quiet"]))
+    names = list(fit["parameters"])
+    fixed = [fit["parameters"][n]["fixed"] for n in names]
+    v = record(target_model(load(saved)), log_frames([log]))
+    # the specification's estimate from the saved model is the fit's fixed column
+    assert v.theta == fixed
+    assert fit["fixed"]["path"] == "target" and fit["fixed"]["samples"] == v.samples
+    value = [fit["parameters"][n]["value"] for n in names]
+    sigma = [fit["parameters"][n]["sigma"] for n in names]
+    assert divergence(value, fixed, sigma) <= 1e-3
+    if test_c:
+        out = tmp / "c"
+        _canrls(["export-c", "--model", str(saved), "--out", str(out), "--vectors", str(log)])
+        need_tool("cc", ["gcc"])
+        r = subprocess.run(["make", "-s", "-C", str(out), "test"], capture_output=True,
+                           text=True, timeout=600)
+        assert r.returncode == 0 and "bit-exact" in r.stdout, r.stdout + r.stderr
+    return fit
+
+
+def test_fit_and_the_exported_c_agree_bit_for_bit(tmp_path: Path) -> None:
+    log = tmp_path / "drive.log"
+    effects = "inertia,viscous,coulomb,offset,unbalance"
+    _canrls(["sim", "--out", str(log), "--duration", "6", "--effects", effects, "--seed", "7"])
+    fit = _check(log, ["--kt", "0.1", "-e", effects], tmp_path)
+    assert fit["fixed"]["rescales"] == {"mechanical": 0}
+
+
+def test_through_rescales_in_a_users_dbc(tmp_path: Path) -> None:
+    from test_target_c import _motorola
+
+    log, mapping = _motorola(tmp_path)
+    fit = _check(log, [*mapping, "--kt", "0.1", "-e", "inertia,viscous,coulomb"], tmp_path)
+    assert fit["fixed"]["rescales"]["mechanical"] >= 1
+
+
+def test_a_torque_reporting_drive_in_a_cia402_dbc(tmp_path: Path) -> None:
+    # the drive's own DBC (tests/data/cia402_drive.dbc): torque in per mille of the rated
+    # torque, speed and position in encoder increments; the target is the reported torque
+    from test_target_c import CIA_MAP, _cia402
+
+    log = _cia402(tmp_path)
+    fit = _check(log, [*CIA_MAP, "-e", "inertia,viscous,coulomb,unbalance"], tmp_path)
+    assert fit["fixed"]["path"] == "target"
+    h = (tmp_path / "c" / "canrls_model.h").read_text()
+    assert "CANRLS_PARAM_UNBALANCE_COS" in h
+    readme = (tmp_path / "c" / "README.md").read_text()
+    assert "| TPDO1 | 0x181 |" in readme and "| TPDO2 | 0x281 |" in readme, readme
+
+
+def test_the_text_says_where_the_fixed_column_comes_from(tmp_path: Path) -> None:
+    log = tmp_path / "drive.log"
+    _canrls(["sim", "--out", str(log), "--duration", "4", "--seed", "8"])
+    text = _canrls(["fit", str(log), "--kt", "0.1", "--fixed", "target", "--quiet"])
+    assert "fixed point: the target's integer path from the frames on" in text
+
+
+@pytest.mark.skipif(not HSM.is_dir(), reason=f"HSM150 data not found at {HSM} (real "
+                    "measurements kept outside the project; see docs/hsm150.md)")
+@pytest.mark.slow
+def test_an_hsm150_run_in_its_own_dbc(tmp_path: Path) -> None:
+    pytest.importorskip("scipy.io", reason="scipy (test extra) reads the .mat runs")
+    sys.path.insert(0, str(ROOT / "tools"))
+    import hsm150_to_can as tool
+
+    log = tool.convert(HSM / "idf_pos_0.06_1.mat", tmp_path)
+    mapping = ["--dbc", str(ROOT / "tests" / "data" / "hsm150_drive.dbc"),
+               *[a for s in tool.SIGNALS for a in ("--signal", s)], "--kt", str(tool.KT)]
+    # one direction: the fixed point's own gap to the float is the kernel's (0.7 % on
+    # the inertia, docs/hsm150.md), not the front end's: bit-exactness is what is held
+    saved = tmp_path / "m.json"
+    fit = json.loads(_canrls(["fit", str(log), *mapping, "-e", "inertia,viscous,coulomb,offset",
+                              "--fixed", "target", "--save-model", str(saved), "--json",
+                              "--quiet"]))
+    v = record(target_model(load(saved)), log_frames([log]))
+    assert v.theta == [p["fixed"] for p in fit["parameters"].values()]
+    out = tmp_path / "c"
+    _canrls(["export-c", "--model", str(saved), "--out", str(out), "--vectors", str(log)])
+    r = subprocess.run(["make", "-s", "-C", str(out), "test"], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0 and "bit-exact" in r.stdout, r.stdout + r.stderr
+    # and on 32-bit ARM (the Cortex-M4: make target)
+    need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    need_tool("qemu-arm", ["qemu-user"])
+    r = subprocess.run(["make", "-s", "-C", str(out), "test-arm"], capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0 and "bit-exact" in r.stdout, r.stdout + r.stderr
+
+
+def test_the_readme_walks_from_a_log_to_a_passing_target_test(tmp_path: Path) -> None:
+    # README's "For firmware engineers": its commands, as written, in a fresh directory
+    import re
+    import shlex
+
+    need_tool("cc", ["gcc"])
+    need_tool("make", ["make"])
+    text = (ROOT / "README.md").read_text()
+    part = text[text.index("### From a log to a passing target test"):]
+    block = re.search(r"```sh\n(.*?)```", part, re.S)
+    assert block is not None
+    lines = [shlex.split(line) for line in block.group(1).splitlines() if line.strip()]
+    assert [w[0] for w in lines] == [".venv/bin/canrls"] * 3 + ["make"]
+    out = ""
+    for words in lines:
+        cmd = [sys.executable, "-m", "canrls", *words[1:]] if words[0].endswith("canrls") \
+            else words
+        r = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, (words, r.stdout, r.stderr)
+        out = r.stdout
+    assert "bit-exact with the specification" in out, out
+    # what the README says the test prints, it prints
+    said = re.search(r"`(canrls replay: [^`]*)`", part.replace("\n", " "))
+    assert said is not None and said.group(1) in out, (said, out)

@@ -1,0 +1,534 @@
+"""``canrls fleet``: a simulated fleet ingested on a real Dask LocalCluster into a real
+SQLite file and a real PostgreSQL server, wear found, every recording stored once.
+
+One simulated fleet (50 drives x 10 recordings of 3 s, seed 1; ``canrls.sim.fleet``)
+and one LocalCluster of two worker processes serve the whole module: the fleet is
+written and ingested on the cluster (the path ``canrls fleet ingest`` takes), the
+smaller tests take a few of its drives.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("distributed")
+pytest.importorskip("sqlalchemy")
+pytest.importorskip("alembic")
+
+from postgres import postgres_server  # noqa: E402
+
+from canrls.cli.fleet import rank_candidates  # noqa: E402
+from canrls.cli.main import main  # noqa: E402
+from canrls.fleet import detect  # noqa: E402
+from canrls.fleet.cluster import dask_client  # noqa: E402
+from canrls.fleet.detect import assess  # noqa: E402
+from canrls.fleet.history import History  # noqa: E402
+from canrls.fleet.ingest import JobConfig, ingest, model_key  # noqa: E402
+from canrls.fleet.records import STATUS_ERROR, STATUS_OK  # noqa: E402
+from canrls.fleet.sources import LogSource, from_manifest, from_pattern  # noqa: E402
+from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
+
+DRIVES, RECORDINGS, DURATION, SEED = 50, 10, 3.0, 1
+CONFIG = JobConfig(effects=FLEET_EFFECTS, kt=FLEET_KT)
+MODEL_ARGS = ["--effects", FLEET_EFFECTS, "--kt", str(FLEET_KT)]
+
+
+@pytest.fixture(scope="module")
+def client() -> Iterator[Any]:
+    """A LocalCluster of two worker processes, one thread each (as ``canrls fleet
+    ingest --workers 2``)."""
+    with dask_client(None, 2) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def fleet(client: Any, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The fleet written (on the cluster) and ingested into SQLite (on the cluster,
+    candidates ranked around residual changes)."""
+    root = tmp_path_factory.mktemp("fleet")
+    plan = make_fleet(DRIVES, RECORDINGS, DURATION, seed=SEED)
+    jobs = [(d, r) for d in plan.drives for r in d.recordings]
+    for d in plan.drives:
+        (root / d.type / d.name).mkdir(parents=True)
+    t0 = time.monotonic()
+    futs = client.map(lambda dr: write_recording(root / dr[1].file, dr[0], dr[1], DURATION),
+                      jobs, pure=False)
+    client.gather(futs)
+    t1 = time.monotonic()
+    with open(root / "manifest.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["path", "drive", "type"])
+        w.writerows((r.file, d.name, d.type) for d, r in jobs)
+    truth = plan.truth()["drives"]
+    db = root / "fleet.db"
+    with History.open(db) as h:
+        summary = ingest(from_manifest(root / "manifest.csv"), CONFIG, h, client=client,
+                         rank="auto", ranker=rank_candidates, max_order=16)
+        recs = h.recordings()
+    print(f"\nthe fleet: {len(jobs)} logs written in {t1 - t0:.1f} s, ingested in "
+          f"{summary.elapsed_s:.1f} s ({summary.ranked} ranked)")
+    return {"root": root, "db": db, "truth": truth, "summary": summary, "recordings": recs,
+            "plan": plan}
+
+
+def _subset(fleet: dict[str, Any], drives: list[str]) -> list[LogSource]:
+    return [s for s in from_manifest(fleet["root"] / "manifest.csv") if s.drive in drives]
+
+
+# ------------------------------------------------------------------ detection
+def _right(alert: detect.Alert, truth: dict[str, Any]) -> bool:
+    if truth["class"] == "harmonic":
+        return alert.kind == "new effect" and alert.effect == truth["effect"]
+    return alert.series == truth["parameter"]
+
+
+def test_wear_is_found_with_the_right_parameter_and_no_false_alerts(
+        fleet: dict[str, Any]) -> None:
+    s = fleet["summary"]
+    assert (s.total, s.stored, s.errors, s.failed) == (500, 500, 0, ())
+    assert s.workers == 2 and len(s.worker_peak_rss) == 2 and s.ranked > 0
+    truth = fleet["truth"]
+    fa = assess(fleet["recordings"])
+    faulty = [d for d, t in truth.items() if t["class"] != "healthy"]
+    healthy = [d for d, t in truth.items() if t["class"] == "healthy"]
+    assert len(faulty) >= 10 and len(healthy) >= 35
+    found = [d for d in faulty if fa.drive(d).headline is not None]
+    right = [d for d in found if _right(fa.drive(d).headline, truth[d])]
+    false = [d for d in healthy if fa.drive(d).alerts]
+    print(f"\nfleet seed {SEED}: {len(found)}/{len(faulty)} faulty drives alerted, "
+          f"{len(right)} with the right parameter or effect; {len(false)}/{len(healthy)} "
+          f"healthy drives alerted")
+    assert len(found) >= 0.95 * len(faulty), [d for d in faulty if d not in found]
+    assert right == found, {d: fa.drive(d).headline.message for d in found if d not in right}
+    assert len(false) <= 0.01 * len(healthy), {d: fa.drive(d).alerts[0].message for d in false}
+    # the drives that need a look come first, with their evidence
+    top = [d.drive for d in fa.drives[:len(found)]]
+    assert set(top) == set(found)
+    a = fa.drive(found[0]).headline
+    assert a.evidence and all(math.isfinite(e.value) and e.sigma >= 0 for e in a.evidence)
+    # every class is in the fleet and named: a drift of friction, a load change, a new
+    # harmonic with its effect, an outlier
+    kinds = {truth[d]["class"]: fa.drive(d).headline.kind for d in found}
+    assert kinds["load"] == "change" and kinds["harmonic"] == "new effect"
+    assert kinds["outlier"] == "outlier" and kinds["friction"] in ("drift", "change")
+
+
+def test_sigma_alone_understates_the_scatter(fleet: dict[str, Any],
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """The between-recording scatter is what keeps healthy drives quiet: with each
+    recording's sigma alone (tau = 0) most healthy drives would alert."""
+    truth = fleet["truth"]
+    healthy = [d for d, t in truth.items() if t["class"] == "healthy"]
+    monkeypatch.setattr(detect, "estimate_tau", lambda pairs: 0.0)
+    fa = assess(fleet["recordings"])
+    false = [d for d in healthy if fa.drive(d).alerts]
+    assert len(false) > 0.5 * len(healthy)
+
+
+def test_tau_is_the_scatter_of_normal_differences() -> None:
+    import numpy as np
+
+    rng = np.random.default_rng(3)
+    s = rng.uniform(0.005, 0.02, 2001)
+    y = rng.normal(0, np.sqrt(s ** 2 + 0.03 ** 2))
+    pairs = [(float((y[k + 1] - y[k]) ** 2), float(s[k] ** 2 + s[k + 1] ** 2))
+             for k in range(2000)]
+    assert detect.estimate_tau(pairs) == pytest.approx(0.03, rel=0.1)
+    assert detect.estimate_tau([(1e-6, 1.0)] * 10) == 0.0  # sigma explains it all
+
+
+# ------------------------------------------------------------------ idempotence
+def test_rerun_skips_everything_by_hash(fleet: dict[str, Any], tmp_path: Path) -> None:
+    with History.open(fleet["db"]) as h:
+        before = h.count()
+        s = ingest(_subset(fleet, ["d001", "d002"]), CONFIG, h)
+        assert (s.stored, s.skipped, s.errors) == (0, 20, 0)
+        assert h.count() == before
+        # another model is another recording of the same log
+        other = JobConfig(effects="inertia,viscous,coulomb", kt=FLEET_KT)
+        s2 = ingest(_subset(fleet, ["d001"]), other, h)
+        assert s2.stored == 10 and h.count() == before + 10
+        assert len(h.models()) == 2
+
+
+def test_a_killed_worker_leaves_every_recording_once(fleet: dict[str, Any],
+                                                     tmp_path: Path) -> None:
+    """A LocalCluster of its own (one worker: its nanny starts it again) whose worker is
+    killed mid-ingest; the run goes on, a rerun adds nothing."""
+    sources = _subset(fleet, ["d003", "d004", "d005"])
+    killed: list[int] = []
+    with dask_client(None, 1) as c, History.open(tmp_path / "k.db") as h:
+        pids = c.run(os.getpid)
+
+        def kill_one(done: int, total: int) -> None:
+            if done == 5 and not killed:
+                pid = sorted(pids.values())[0]
+                os.kill(pid, signal.SIGKILL)  # the worker process this test's cluster started
+                killed.append(pid)
+
+        s = ingest(sources, CONFIG, h, client=c, progress=kill_one)
+        assert killed and set(c.run(os.getpid).values()) != set(pids.values())
+        # the task the worker died in ran again on the new worker (or waits for the rerun)
+        assert s.stored + len(s.failed) == len(sources) and s.errors == 0
+        s2 = ingest(sources, CONFIG, h, client=c)
+        assert s2.stored == len(s.failed) and s2.skipped == s.stored
+        assert h.count() == len(sources)
+    con = sqlite3.connect(tmp_path / "k.db")
+    try:
+        rows = con.execute("SELECT content_hash, COUNT(*) FROM recordings "
+                           "GROUP BY content_hash, model_id").fetchall()
+        assert len(rows) == len(sources) and all(n == 1 for _, n in rows)
+        paths = {p for (p,) in con.execute("SELECT path FROM recordings")}
+        assert paths == {s.path for s in sources}
+    finally:
+        con.close()
+
+
+def test_an_interrupted_run_on_an_existing_scheduler_is_finished_by_a_rerun(
+        fleet: dict[str, Any], client: Any, tmp_path: Path) -> None:
+    """``canrls fleet ingest --scheduler`` (the cluster's address, as with ``dask
+    scheduler`` and ``dask worker``) killed mid-run, then run again."""
+    manifest = tmp_path / "m.csv"
+    drives = ["d007", "d008"]
+    with open(manifest, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["path", "drive", "type"])
+        w.writerows((s.path, s.drive, s.drive_type) for s in _subset(fleet, drives))
+    db = tmp_path / "i.db"
+    cmd = [sys.executable, "-m", "canrls", "fleet", "ingest", "--manifest", str(manifest),
+           "--db", str(db), "--scheduler", client.scheduler.address, *MODEL_ARGS]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    try:
+        end = time.monotonic() + 120
+        n = 0
+        while time.monotonic() < end and proc.poll() is None:
+            if db.exists():
+                try:
+                    con = sqlite3.connect(db, timeout=5)
+                    n = con.execute("SELECT COUNT(*) FROM recordings").fetchone()[0]
+                    con.close()
+                except sqlite3.OperationalError:
+                    n = 0  # the schema not there yet
+                if n >= 3:
+                    break
+            time.sleep(0.05)
+        killed = proc.poll() is None
+        if killed:
+            os.killpg(proc.pid, signal.SIGKILL)  # the process group this test started
+    finally:
+        proc.communicate(timeout=60)
+    out = subprocess.run(cmd + ["--json", "--quiet"], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    res = json.loads(out.stdout)
+    total = 10 * len(drives)
+    assert res["stored"] + res["skipped"] == total and res["errors"] == 0
+    if killed:
+        assert res["skipped"] >= 3
+    con = sqlite3.connect(db)
+    try:
+        assert con.execute("SELECT COUNT(*), COUNT(DISTINCT content_hash) FROM recordings"
+                           ).fetchone() == (total, total)
+    finally:
+        con.close()
+
+
+def test_two_runs_at_once_store_each_recording_once(fleet: dict[str, Any],
+                                                    tmp_path: Path) -> None:
+    sources = _subset(fleet, ["d011"])
+    url = tmp_path / "twice.db"
+    History.open(url).close()
+    results: list[Any] = []
+
+    def run() -> None:
+        with History.open(url) as h:
+            results.append(ingest(sources, CONFIG, h))
+
+    threads = [threading.Thread(target=run) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(300)
+    assert len(results) == 2
+    assert sum(r.stored for r in results) == len(sources)
+    assert sum(r.stored + r.already + r.skipped for r in results) == 2 * len(sources)
+    with History.open(url) as h:
+        assert h.count() == len(sources)
+
+
+# ------------------------------------------------------------------ both databases
+def _rows(h: History) -> list[tuple[Any, ...]]:
+    return [(r.drive, r.drive_type, r.content_hash, r.status, r.t_start, r.samples,
+             r.residual_rms, tuple((p.name, p.value, p.sigma, p.identifiable)
+                                   for p in r.parameters)) for r in h.recordings()]
+
+
+def test_sqlite_and_postgresql_hold_the_same_schema_and_results(
+        fleet: dict[str, Any], tmp_path: Path) -> None:
+    import sqlalchemy as sa
+
+    sources = _subset(fleet, ["d012", "d013", "d014"])
+    bad = tmp_path / "bad.log"
+    bad.write_text("this is not a CAN log\n")
+    sources.append(LogSource(path=str(bad), drive="d012", drive_type=sources[0].drive_type))
+    with postgres_server() as pg:
+        out = {}
+        for name, url in (("sqlite", str(tmp_path / "s.db")), ("postgresql", pg)):
+            with History.open(url) as h:
+                assert h.revision() == "0001"
+                s = ingest(sources, CONFIG, h)
+                assert (s.stored, s.errors) == (30, 1)
+                insp = sa.inspect(h.engine)
+                schema = {t: sorted((c["name"], type(c["type"]).__name__.lower()
+                                     .replace("double_precision", "float")
+                                     .replace("double", "float"))
+                                    for c in insp.get_columns(t))
+                          for t in insp.get_table_names() if t != "alembic_version"}
+                uniques = {t: sorted(tuple(u["column_names"])
+                                     for u in insp.get_unique_constraints(t))
+                           for t in schema}
+                out[name] = (schema, uniques, _rows(h),
+                             assess(h.recordings()).to_dict()["drives"])
+            with History.open(url) as h:  # opened again: at head, nothing migrated
+                assert ingest(sources, CONFIG, h).skipped == len(sources)
+                err = h.recordings(status=STATUS_ERROR)
+                assert len(err) == 1 and str(bad) in (err[0].error or "")
+    s_schema, s_uniq, s_rows, s_drives = out["sqlite"]
+    p_schema, p_uniq, p_rows, p_drives = out["postgresql"]
+    assert {t: [c for c, _ in cols] for t, cols in s_schema.items()} == \
+        {t: [c for c, _ in cols] for t, cols in p_schema.items()}
+    assert s_uniq["recordings"] == p_uniq["recordings"] == [("content_hash", "model_id")]
+    assert s_rows == p_rows
+    assert s_drives == p_drives
+
+
+def test_the_migrations_build_the_schema_the_code_uses(tmp_path: Path) -> None:
+    from alembic.autogenerate import compare_metadata
+    from alembic.migration import MigrationContext
+
+    from canrls.fleet.history import METADATA
+
+    with History.open(tmp_path / "m.db") as h, h.engine.connect() as conn:
+        diff = compare_metadata(MigrationContext.configure(conn), METADATA())
+    assert diff == []
+
+
+def test_a_newer_history_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                    ) -> None:
+    db = tmp_path / "new.db"
+    History.open(db).close()
+    con = sqlite3.connect(db)
+    con.execute("UPDATE alembic_version SET version_num = '9999'")
+    con.commit()
+    con.close()
+    assert main(["fleet", "report", "--db", str(db), "--json"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: history sqlite:///") and "'9999' is newer" in err
+    assert err.count("\n") == 1
+
+
+# ------------------------------------------------------------------ the command line
+def test_report_html_and_json(fleet: dict[str, Any], tmp_path: Path,
+                              capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "report"
+    assert main(["fleet", "report", "--db", str(fleet["db"]), "--out", str(out), "--json",
+                 "--figures", "2"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    truth = fleet["truth"]
+    alerted = [x["drive"] for x in d["drives"] if x["alerts"]]
+    assert alerted and all(truth[a]["class"] != "healthy" for a in alerted)
+    assert d["drives"][0]["score"] >= d["drives"][-1]["score"]
+    page = (out / "index.html").read_text()
+    assert page.count("<img src='drive-") == 2 and "spread-01.png" in page
+    assert alerted[0] in page and "τ" in page
+    assert (out / "drive-0001.png").stat().st_size > 1000
+
+
+def test_report_escapes_the_history_strings(tmp_path: Path) -> None:
+    """A path with markup in it reaches the page as text."""
+    from canrls.fleet.records import ParameterValue, Recording
+    from canrls.fleet.report import write_html
+
+    recs = [Recording(drive="d1", content_hash=f"{k:064x}", model_key="m" * 64,
+                      model="inertia", path=f"<script>alert({k})</script>.log",
+                      t_start=1.7e9 + 86400 * k, residual_rms=1e-3,
+                      parameters=(ParameterValue("inertia.J", 1e-3 * (1 + (k > 4)), 1e-6),),
+                      id=k) for k in range(10)]
+    page = write_html(assess(recs), tmp_path / "r").read_text()
+    assert "<script>" not in page and "&lt;script&gt;alert(" in page
+
+
+def test_ingest_cli_in_process_with_a_pattern_and_errors(fleet: dict[str, Any], tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]
+                                                        ) -> None:
+    logs = tmp_path / "logs"
+    for s in _subset(fleet, ["d015"])[:3]:
+        (logs / "pumps" / s.drive).mkdir(parents=True, exist_ok=True)
+        (logs / "pumps" / s.drive / Path(s.path).name).write_bytes(Path(s.path).read_bytes())
+    (logs / "pumps" / "d099").mkdir(parents=True)
+    (logs / "pumps" / "d099" / "empty.log").write_text("")
+    db = tmp_path / "p.db"
+    argv = ["fleet", "ingest", str(logs / "{type}" / "{drive}" / "*.log"), "--db", str(db),
+            "--workers", "0", "--quiet", *MODEL_ARGS]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("4 logs: 3 stored, 0 already in the history, 1 errors")
+    assert "empty.log" in out
+    with History.open(db) as h:
+        recs = h.recordings()
+    assert {r.drive_type for r in recs} == {"pumps"}
+    ok = [r for r in recs if r.status == STATUS_OK]
+    assert len(ok) == 3 and all(r.t_end > r.t_start > 1.7e9 for r in ok)
+    assert all(r.canrls_version and r.model.startswith(FLEET_EFFECTS) for r in ok)
+    key, _ = model_key(CONFIG)
+    assert {r.model_key for r in recs} == {key}
+    # a rerun skips them all, --retry-errors tries the error again
+    assert main(argv) == 0
+    assert capsys.readouterr().out.startswith("4 logs: 0 stored, 4 already")
+    assert main([*argv, "--retry-errors"]) == 0
+    assert capsys.readouterr().out.startswith(
+        "4 logs: 0 stored, 3 already in the history, 1 errors")
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["fleet", "ingest", "logs/*.log"], "error: pattern 'logs/*.log': needs a {drive} field"),
+    (["fleet", "ingest", "nowhere/{drive}/*.log"], "error: pattern 'nowhere/{drive}/*.log': "
+                                                   "no file matches"),
+    (["fleet", "ingest"], "error: fleet ingest: give a PATTERN"),
+    (["fleet", "report", "--db", "x.db"], "error: fleet report: give --out DIR"),
+    (["fleet", "report", "--db", "x.db", "--json"], "error: --db x.db: no such history"),
+    (["fleet", "ingest", "--manifest", "m.csv", "--db", "mysql://x/y"],
+     "error: history: mysql:// databases are not supported"),
+])
+def test_errors_are_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                             capsys: pytest.CaptureFixture[str], argv: list[str],
+                             message: str) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "m.csv").write_text("path,drive\n")
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(message) and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("path,drive,colour\n", "line 1: unknown column 'colour'"),
+    ("path\n", "line 1: no 'drive' column"),
+    ("path,drive\nmissing.log,d1\n", "line 2: field 'path': 'missing.log': no such file"),
+    ("path,drive,kt\nx.log,d1,-1\n", "line 2: field 'kt': '-1' must be a positive number"),
+    ("path,drive\nx.log,<b>\n", "line 2: drive '<b>': must be 1 to 128 letters"),
+    ("path,drive\n", "the manifest lists no log"),
+])
+def test_manifest_errors_name_the_line_and_field(tmp_path: Path, text: str,
+                                                 message: str) -> None:
+    from canrls.core.errors import ConfigError
+
+    (tmp_path / "x.log").write_text("")
+    m = tmp_path / "m.csv"
+    m.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        from_manifest(m)
+    assert str(e.value).startswith(f"{m}: {message}")
+
+
+def test_a_missing_dependency_disables_only_its_command(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "a" / "d1").mkdir(parents=True)
+    (tmp_path / "a" / "d1" / "x.log").write_text("")
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    assert main(["fleet", "ingest", str(tmp_path / "a" / "{drive}" / "*.log"), "--db",
+                 str(tmp_path / "h.db")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ingesting on Dask needs dask[distributed]") and \
+        "pip install 'canrls[fleet]'" in err and "--workers 0" in err
+    assert main(["sim", "--out", str(tmp_path / "s.log"), "--duration", "0.1"]) == 0
+
+
+def test_pattern_takes_drive_and_type(tmp_path: Path) -> None:
+    for ty, d in (("servo", "a1"), ("servo", "a2"), ("pump", "b1")):
+        (tmp_path / ty / d).mkdir(parents=True)
+        (tmp_path / ty / d / "r1.log").write_text("x")
+        (tmp_path / ty / d / "notes.txt").write_text("x")
+    got = from_pattern(str(tmp_path / "{type}" / "{drive}" / "*.log"))
+    assert [(s.drive_type, s.drive, Path(s.path).name) for s in got] == [
+        ("pump", "b1", "r1.log"), ("servo", "a1", "r1.log"), ("servo", "a2", "r1.log")]
+
+
+def test_sim_fleet_writes_logs_manifest_and_truth(tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "f"
+    assert main(["sim", "fleet", "--drives", "3", "--recordings", "2", "--duration", "3",
+                 "--out", str(out), "--seed", "5"]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith(f"canrls sim fleet: wrote 6 logs of 3 drives (3 s each, seed 5) "
+                          f"to {out}")
+    truth = json.loads((out / "truth.json").read_text())
+    srcs = from_manifest(out / "manifest.csv")
+    assert len(srcs) == 6 and {s.drive for s in srcs} == set(truth["drives"])
+    for s in srcs:
+        t = truth["drives"][s.drive]
+        assert s.drive_type == t["type"] and Path(s.path).parent.parent.name == t["type"]
+    assert [Path(s.path).name for s in srcs[:2]] == ["d001-01.log", "d001-02.log"]
+    # the same seed, the same bytes
+    again = tmp_path / "g"
+    assert main(["sim", "fleet", "--drives", "3", "--recordings", "2", "--duration", "3",
+                 "--out", str(again), "--seed", "5"]) == 0
+    assert (again / srcs[0].path.split("/f/", 1)[1]).read_bytes() == \
+        Path(srcs[0].path).read_bytes()
+    assert main(["sim", "fleet", "--out", str(tmp_path / "h"), "--effects", "inertia"]) == 1
+    assert "--effects: not an option of 'canrls sim fleet'" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ the daemon's history
+def test_the_daemon_appends_to_the_history_it_shares_with_ingest(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    db = tmp_path / "live.db"
+    conf = tmp_path / "canrls.toml"
+    conf.write_text(f'[model]\neffects = ["inertia", "viscous", "coulomb", "offset"]\n'
+                    f'kt = {FLEET_KT}\n'
+                    f'[history]\nurl = "{db}"\ndrive = "axis-7"\ntype = "servo-s"\n'
+                    f'interval = 0.3\n')
+    assert main(["run", "-C", str(conf), "-i", "canrls-sim", "-c", "fleet-live",
+                 "--bus-kwargs", "effects=inertia,viscous,coulomb,offset", "seed=2",
+                 "realtime=False", "start_time=0", "--duration", "2",
+                 "--publish-interval", "0.05"]) == 0
+    capsys.readouterr()
+    with History.open(db) as h:
+        recs = h.recordings()
+    assert len(recs) >= 3 and {r.source for r in recs} == {"live"}
+    assert len({r.session for r in recs}) == 1 and {r.drive for r in recs} == {"axis-7"}
+    last = max(recs, key=lambda r: r.t_end)
+    assert last.samples > 1000 and last.parameter("inertia.J").value == pytest.approx(
+        2e-4, rel=0.05)
+    # the same model key as an offline ingest with the same configuration
+    key, _ = model_key(JobConfig(config=str(conf)))
+    assert {r.model_key for r in recs} == {key}
+    fa = assess(recs)
+    assert fa.drive("axis-7").recordings == 1  # one session counts once
+
+
+def test_history_settings_errors() -> None:
+    from canrls.core.errors import ConfigError
+    from canrls.fleet.live import HistorySettings
+
+    with pytest.raises(ConfigError, match=r"c.toml: history.drive = None: must be"):
+        HistorySettings.from_table({"url": "x.db"}, "c.toml")
+    with pytest.raises(ConfigError, match=r"c.toml: history.interval = 0: must be"):
+        HistorySettings.from_table({"url": "x.db", "drive": "a", "interval": 0}, "c.toml")
+    with pytest.raises(ConfigError, match=r"c.toml: history.colour = 1: unknown key"):
+        HistorySettings.from_table({"url": "x.db", "drive": "a", "colour": 1}, "c.toml")
