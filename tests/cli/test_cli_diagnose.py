@@ -123,3 +123,18 @@ def test_max_order_must_be_positive(log: Path, capsys: pytest.CaptureFixture[str
     with pytest.raises(SystemExit):
         main(["diagnose", str(log), "--max-order", "0"])
     assert "--max-order" in capsys.readouterr().err
+
+
+def test_a_unit_matplotlib_would_read_as_mathtext_is_drawn_as_text(
+        log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 30, 4: a user term's unit `$a^$` ended `diagnose --report` with exit 3
+    (matplotlib's mathtext parser); it is plain text now (canrls.figtext.plain)."""
+    pytest.importorskip("matplotlib")
+    cfg = tmp_path / "drive.toml"
+    cfg.write_text('[model]\neffects = ["inertia", "viscous", "coulomb", "user:drag"]\n'
+                   'kt = 0.1\n[[model.terms]]\nname = "drag"\nexpr = "speed * abs(speed)"\n'
+                   'unit = "$a^$"\n')
+    out_dir = tmp_path / "report"
+    assert main(["diagnose", str(log), "--config", str(cfg), *QUICK,
+                 "--report", str(out_dir)]) == 0, capsys.readouterr().err
+    assert (out_dir / "convergence.png").stat().st_size > 1000

@@ -373,6 +373,27 @@ def test_report_escapes_the_history_strings(tmp_path: Path) -> None:
     assert "<script>" not in page and "&lt;script&gt;alert(" in page
 
 
+def test_report_figures_draw_the_history_strings_as_text(tmp_path: Path) -> None:
+    """Issue 30, 4: a unit `$a^$` (a user term's) ended `fleet report` with exit 3
+    (matplotlib's mathtext parser): a drive, type, parameter and unit with `$` are now
+    drawn as the characters they hold (canrls.figtext.plain)."""
+    pytest.importorskip("matplotlib")
+    from canrls.fleet.records import ParameterValue, Recording
+    from canrls.fleet.report import write_html
+
+    recs = [Recording(drive=f"$d{d}^$", drive_type="$t^$", content_hash=f"{d}{k:063x}",
+                      model_key="m" * 64, model="user:drag", path=f"{d}-{k}.log",
+                      t_start=1.7e9 + 86400 * k, residual_rms=1e-3,
+                      parameters=(ParameterValue("user:drag.c", 1e-3 * (1 + (d == 0 and k > 4))
+                                                 * (1 + 0.01 * d), 1e-6, unit="$a^$"),),
+                      id=10 * d + k) for d in range(4) for k in range(10)]
+    fleet = assess(recs)
+    assert fleet.alerts  # a trend figure with the alert's message, a spread figure
+    out = tmp_path / "r"
+    write_html(fleet, out)
+    assert sorted(p.name for p in out.glob("*.png"))
+
+
 def test_ingest_cli_in_process_with_a_pattern_and_errors(fleet: dict[str, Any], tmp_path: Path,
                                                         capsys: pytest.CaptureFixture[str]
                                                         ) -> None:

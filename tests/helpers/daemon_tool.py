@@ -16,6 +16,7 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import can
 
@@ -27,7 +28,7 @@ from canrls.live.daemon import Daemon
 from canrls.live.settings import DaemonSettings
 
 __all__ = ["DaemonTool", "collect", "daemon_fed", "datagrams", "notify_socket",
-           "remote_sim_server"]
+           "reloaded_daemon", "remote_sim_server"]
 
 #: RlsCommandAck
 ACK_ID = 0x321
@@ -46,12 +47,14 @@ _channels = itertools.count()
 
 @contextlib.contextmanager
 def daemon_fed(protocol: Protocol, model: Model, settings: EstimatorSettings,
-               messages: Sequence[can.Message], name: str, *, publications: int = 6
+               messages: Sequence[can.Message], name: str, *, publications: int = 6,
+               daemon: DaemonSettings | None = None, **options: Any
                ) -> Iterator[tuple[Daemon, can.BufferedReader]]:
     """A daemon on a virtual bus, fed ``messages`` with their own timestamps (as a drive
     on a real bus would send them); yields it once it has taken every frame and published
     ``publications`` more times, with a reader holding every frame it sent (``0x3xx``).
-    The daemon and the buses are stopped on leaving."""
+    ``daemon`` replaces the settings, ``options`` go to the daemon. The daemon and the
+    buses are stopped on leaving."""
     ch = f"{name}-{os.getpid()}-{next(_channels)}"
     sender = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
                      ignore_config=True)
@@ -60,8 +63,8 @@ def daemon_fed(protocol: Protocol, model: Model, settings: EstimatorSettings,
     reader = can.BufferedReader()
     notifier = can.Notifier(tool, [reader], timeout=0.05)
     d = Daemon(protocol, model, settings,
-               DaemonSettings(publish_interval=0.05, info_interval=0.2),
-               bus={"interface": "virtual", "channel": ch}, backpressure=True)
+               daemon or DaemonSettings(publish_interval=0.05, info_interval=0.2),
+               bus={"interface": "virtual", "channel": ch}, backpressure=True, **options)
     try:
         d.start()
         for m in messages:
@@ -177,3 +180,31 @@ def datagrams(sock: socket.socket, want: str, timeout: float,
         if want in got[-1]:
             break
     return got
+
+
+def reloaded_daemon(directory: Path, conf: Path, texts: Sequence[str]
+                    ) -> tuple[int, str, str]:
+    """``canrls run -C conf --json`` as a process under a stand-in for systemd: once it
+    is ready, each of ``texts`` written to ``conf`` and a SIGHUP sent (the next waits for
+    READY=1 again), then SIGTERM; returns (exit status, stdout, stderr)."""
+    import signal
+
+    sock, addr = notify_socket(directory, "notify")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-C", str(conf),
+         "--json"], env=dict(os.environ, NOTIFY_SOCKET=addr),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert any("READY=1" in g for g in datagrams(sock, "READY=1", 60, proc))
+        for text in texts:
+            conf.write_text(text)
+            proc.send_signal(signal.SIGHUP)
+            assert "READY=1" in datagrams(sock, "READY=1", 30, proc)[-1]
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        sock.close()
+    return proc.returncode, out, err

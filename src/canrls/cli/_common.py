@@ -84,7 +84,10 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                         "below 1 the estimate tracks changes, memory 1/(1-L) samples)")
     g.add_argument("--alpha", type=number, metavar="A",
                    help="ridge weight: the prior weighs like A samples of each column, "
-                        "P0 = diag(1/(A e_j)) with e_j its mean square; 1e-9 to 1e9 "
+                        "P0 = diag(1/(A e_j)) with e_j its mean square; 1e-9 to 1e9, "
+                        "and at least what the fixed-point words hold: P0 needs a Q "
+                        "format (32-bit words: about 1e-5 for a few parameters, 1e-3 for "
+                        "30 below lambda 1; the error names the smallest for the model) "
                         "(default 0.01)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 

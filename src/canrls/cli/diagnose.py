@@ -69,6 +69,21 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+def _compensation(analysis: Any, found: Any) -> tuple[str, dict[str, Any]] | None:
+    """What compensating the model's position terms would leave of their ripple; for
+    position effects found but not added (``found``: their candidates), their ripple."""
+    from canrls.control.tune import compensation, found_ripple
+
+    if found:
+        line = found_ripple(analysis.model, {c.effect: {k: v for k, (v, _) in
+                                                        c.parameters.items()}
+                                             for c in found})
+        if line is not None:
+            return line
+    return compensation(analysis.model, {p.name: p.to_dict()
+                                         for p in analysis.estimates.parameters})
+
+
 def run(args: argparse.Namespace) -> int:
     from canrls.core.errors import EstimatorError
     from canrls.diagnosis.analysis import diagnose_log
@@ -89,12 +104,14 @@ def run(args: argparse.Namespace) -> int:
                                          rep.period and rep.period.value, settings)
     if few:
         raise EstimatorError(f"{', '.join(args.log)}: {few}")
+    final = rep.after if rep.after is not None else rep.before
+    rep.compensation = _compensation(final, () if rep.after is not None else
+                                     [c for c in rep.candidates if c.suggested])
     page = rep.write_html(args.report) if args.report else None
     saved = None
     if args.save_model:
         from canrls.processor.modelfile import SavedModel
 
-        final = rep.after if rep.after is not None else rep.before
         saved = SavedModel.from_parts(final.model, final.estimates, None, cfg,
                                       list(args.log)).save(args.save_model)
     if args.json:

@@ -59,7 +59,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "[monitor] plain)")
     g.add_argument("--command", action="append", default=[], metavar="CMD",
                    help="send a command first: reset, freeze, resume, 'add EFFECT', "
-                        "'remove EFFECT', 'lambda L' (repeatable)")
+                        "'remove EFFECT', 'lambda L', save (the running model to [daemon] "
+                        "saved_model, for canrls tune) (repeatable)")
     p.set_defaults(func=run)
     return p
 

@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.core.errors import ConfigError
+from canrls.core.figtext import plain
 from canrls.core.files import atomic_writer
 from canrls.diagnosis.results import EquationDiagnosis, Traces, decimation
 
@@ -102,22 +103,23 @@ class Figures:
             sa = _timeline(ta)
             ax1.plot(ta.t[sa], np.where(ta.used, ta.yhat, np.nan)[sa], color=_AFTER, lw=0.7,
                      alpha=0.85, label="model after")
-        ax1.set_ylabel(f"{b.target} [{u}]")
-        ax1.set_title(f"{b.equation} equation: measured against model "
-                      f"(fit {b.fit_percent:.1f} %"
-                      + (f" {label}, {a.fit_percent:.1f} % after)" if a is not None else ")"))
+        ax1.set_ylabel(plain(f"{b.target} [{u}]"))
+        ax1.set_title(plain(f"{b.equation} equation: measured against model "
+                            f"(fit {b.fit_percent:.1f} %"
+                            + (f" {label}, {a.fit_percent:.1f} % after)" if a is not None
+                               else ")")))
         ax1.legend(loc="upper right", fontsize=8)
         ax1.grid(alpha=0.3)
         ax2.plot(tr.t[s], np.where(tr.used, tr.residual, np.nan)[s], color=_BEFORE, lw=0.6,
-                 label=f"residual {label} (RMS {b.residual_rms:.3g} {u})")
+                 label=plain(f"residual {label} (RMS {b.residual_rms:.3g} {u})"))
         if a is not None:
             ta = a.traces
             sa = _timeline(ta)
             ax2.plot(ta.t[sa], np.where(ta.used, ta.residual, np.nan)[sa], color=_AFTER,
-                     lw=0.6, label=f"residual after (RMS {a.residual_rms:.3g} {u})")
+                     lw=0.6, label=plain(f"residual after (RMS {a.residual_rms:.3g} {u})"))
         ax2.axhline(0.0, color="black", lw=0.5)
         ax2.set_xlabel("time [s]")
-        ax2.set_ylabel(f"residual [{u}]")
+        ax2.set_ylabel(plain(f"residual [{u}]"))
         ax2.legend(loc="upper right", fontsize=8)
         ax2.grid(alpha=0.3)
         return self._save(fig, name)
@@ -172,14 +174,15 @@ class Figures:
             ax.axhline(0.0, color="black", lw=0.5)
             if quantity == "speed":
                 _symlog_speed(ax, vmax)
-                ax.set_xlabel(f"speed (filtered) [{bn.unit if bn else ''}], negative: "
-                              f"moving backward")
+                ax.set_xlabel(plain(f"speed (filtered) [{bn.unit if bn else ''}], "
+                                    f"negative: moving backward"))
             else:
-                ax.set_xlabel(f"{bn.label if bn else 'position'} [{bn.unit if bn else ''}]")
-            ax.set_title(f"{label}: residual RMS {q.residual_rms:.3g} {u}", fontsize=10)
+                ax.set_xlabel(plain(f"{bn.label if bn else 'position'} "
+                                    f"[{bn.unit if bn else ''}]"))
+            ax.set_title(plain(f"{label}: residual RMS {q.residual_rms:.3g} {u}"), fontsize=10)
             ax.grid(alpha=0.3)
             ax.legend(handles=[handles[0], handles[-1]], loc="upper left", fontsize=8)
-        axes[0].set_ylabel(f"residual [{u}]")
+        axes[0].set_ylabel(plain(f"residual [{u}]"))
         if lim > 0:
             axes[0].set_ylim(-1.6 * lim, 1.6 * lim)
         what = "speed (both directions)" if quantity == "speed" else (
@@ -198,7 +201,7 @@ class Figures:
         colors = [_AFTER if c.suggested else (_GREY if not c.identifiable else "#7fa7cf")
                   for c in cands]
         ax.barh(ypos, vals, color=colors)
-        ax.set_yticks(ypos, [c.effect for c in cands])
+        ax.set_yticks(ypos, [plain(c.effect) for c in cands])
         ax.set_xlim(0, 150)
         ax.set_xticks([0, 20, 40, 60, 80, 100])
         steps = {st.effect: (i, st) for i, st in enumerate(q.suggestion.steps)}
@@ -208,8 +211,8 @@ class Figures:
                 i, st = steps[c.effect]
                 note = (f"suggested, step {i + 1}: {100 * st.explained:.1f} % of what is left"
                         if i else "suggested, step 1")
-            ax.text(v + 1, y0, f"{v:.1f} %  ΔBIC {c.delta_bic:.3g}  RMS after "
-                                f"{c.rms_after:.3g} {q.unit}  {note}",
+            ax.text(v + 1, y0, plain(f"{v:.1f} %  ΔBIC {c.delta_bic:.3g}  RMS after "
+                                      f"{c.rms_after:.3g} {q.unit}  {note}"),
                     va="center", fontsize=8)
         ax.set_xlabel("share of the residual variance explained when added alone [%]")
         ax.set_title("Which effect is missing: candidates, best first "
@@ -228,11 +231,11 @@ class Figures:
                     label="after")
         for p in sp.peaks[:4]:
             amp, ex = sp.at(p)
-            ax.annotate(f"order {p:g}\n{amp:.2g} {b.unit}, {100 * ex:.0f} %", (p, amp),
+            ax.annotate(plain(f"order {p:g}\n{amp:.2g} {b.unit}, {100 * ex:.0f} %"), (p, amp),
                         textcoords="offset points", xytext=(4, 6), fontsize=8,
                         color=_BEFORE)
         ax.set_xlabel(f"rotation order (periods per {sp.per})")
-        ax.set_ylabel(f"fitted amplitude [{sp.unit}]")
+        ax.set_ylabel(plain(f"fitted amplitude [{sp.unit}]"))
         ax.set_xlim(0, float(sp.orders[-1]) + 0.5)
         top = float(np.nanmax(sp.amplitude)) if len(sp.amplitude) else 0.0
         if top > 0:
@@ -267,7 +270,7 @@ class Figures:
                            1e-30)
                 ax.set_ylim(fin - span, fin + span)
                 ax.axhline(fin, color=_GREY, lw=0.6)
-            ax.set_title(f"{tr.names[j]} [{tr.units[j]}]", fontsize=9)
+            ax.set_title(plain(f"{tr.names[j]} [{tr.units[j]}]"), fontsize=9)
             ax.grid(alpha=0.3)
             if j == 0:
                 ax.legend(fontsize=7, loc="lower right")
@@ -290,7 +293,7 @@ class Figures:
             ref = np.where(ref > 0, ref, 1.0)
             rel = np.abs(fx - th) / ref
             ax.plot(tr.conv_t, np.maximum(np.nan_to_num(rel, nan=floor), floor), lw=1.0,
-                    label=name)
+                    label=plain(name))
         ax.axhline(1e-3, color="black", ls=":", lw=0.8, label="0.1 %")
         ax.set_yscale("log")
         ax.set_xlabel("time [s]")

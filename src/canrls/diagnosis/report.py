@@ -64,6 +64,10 @@ class DiagnosisReport:
         self.period = period
         self.start = start
         self.max_order = max_order
+        #: what compensating the final model's position terms would leave of their
+        #: ripple, (line, JSON), set by ``canrls diagnose`` from ``canrls.control``
+        #: (a layer beside this one); None: not computed or no position term
+        self.compensation: tuple[str, dict[str, Any]] | None = None
 
     # -- shortcuts ----------------------------------------------------------------------
     @property
@@ -125,6 +129,7 @@ class DiagnosisReport:
             "identifiability": [r for q in self.before.equations for r in q.identifiability],
             "implausible": [i.to_dict() for i in self.before.estimates.implausible],
             "verdict": self.verdict,
+            "compensation": None if self.compensation is None else self.compensation[1],
         }
         if self.frames is not None:
             d["frames"] = self.frames.to_dict(True, self.period, self.start)
@@ -146,6 +151,8 @@ class DiagnosisReport:
         if self.after is not None:
             out.append("")
             out.extend(_format_before_after(self.before, self.after, self.added))
+        if self.compensation is not None:
+            out.append(self.compensation[0])
         return "\n".join(out)
 
     __str__ = format

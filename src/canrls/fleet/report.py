@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from canrls.core.errors import ConfigError
+from canrls.core.figtext import plain
 from canrls.fleet.detect import RESIDUAL, DriveAssessment, FleetAssessment
 
 __all__ = ["write_html", "report_dict", "require_matplotlib", "DEFAULT_FIGURES"]
@@ -95,10 +96,10 @@ def _trend_figure(d: DriveAssessment, fleet: FleetAssessment, path: Path) -> Non
                 ax.axhspan(a.before * (1 - 2 * tn) if se.log else a.before - 2 * tn,
                            a.before * (1 + 2 * tn) if se.log else a.before + 2 * tn,
                            xmax=1.0, color="#fcbba1", alpha=0.4, lw=0)
-            ax.set_title(a.message[:110], fontsize=8, color="#a50f15", loc="left")
+            ax.set_title(plain(a.message[:110]), fontsize=8, color="#a50f15", loc="left")
         elif a is not None:
-            ax.set_title(a.message[:110], fontsize=8, color="#a50f15", loc="left")
-        ax.set_ylabel(f"{n}\n[{se.unit}]" if se.unit else n, fontsize=8)
+            ax.set_title(plain(a.message[:110]), fontsize=8, color="#a50f15", loc="left")
+        ax.set_ylabel(plain(f"{n}\n[{se.unit}]" if se.unit else n), fontsize=8)
         ax.tick_params(labelsize=7)
         if np.all((se.t > 1e8) & (se.t < 1e11)):
             ax.xaxis_date()
@@ -124,9 +125,10 @@ def _spread_figure(fleet: FleetAssessment, key: str, name: str, path: Path) -> N
             bad = d in out
             ax.plot(v, y, "o", ms=5 if bad else 3, color="#cb181d" if bad else "#3182bd")
             if bad:
-                ax.annotate(d, (v, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
-    ax.set_yticks(range(len(types)), [t or "(no type)" for t in types], fontsize=8)
-    ax.set_xlabel(name, fontsize=8)
+                ax.annotate(plain(d), (v, y), fontsize=7, xytext=(3, 3),
+                            textcoords="offset points")
+    ax.set_yticks(range(len(types)), [plain(t or "(no type)") for t in types], fontsize=8)
+    ax.set_xlabel(plain(name), fontsize=8)
     if all(v > 0 for _, v in levels.values()):
         ax.set_xscale("log")
     ax.tick_params(labelsize=7)

@@ -34,7 +34,7 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.frames import ParameterReport, StatusReport
 from canrls.can.protocol import Protocol
 from canrls.can.writers import open_writer
-from canrls.core.errors import ConfigError
+from canrls.core.errors import CommandError, ConfigError
 from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
@@ -50,6 +50,7 @@ from canrls.live.sdnotify import SystemdNotifier
 from canrls.live.settings import DaemonSettings
 from canrls.live.tuning import interpreter
 from canrls.processor import FrameProcessor
+from canrls.processor.config import AppConfig
 
 __all__ = ["Daemon", "DaemonStats", "make_processor"]
 
@@ -122,6 +123,8 @@ class Daemon:
         been sent)`` (benchmarks).
     :param history: offered the estimates after each publication, closed at stop
         (``[history]``: :class:`~canrls.live.history.HistoryHook`).
+    :param configuration: what produced the model, kept in the file the command
+        ``save_model`` writes to ``[daemon] saved_model`` (default: none recorded).
     """
 
     def __init__(self, protocol: Protocol, model: Model,
@@ -133,7 +136,8 @@ class Daemon:
                  notifier: SystemdNotifier | None = None,
                  backpressure: bool = False,
                  on_publish: Callable[[int, float], None] | None = None,
-                 history: HistoryHook | None = None) -> None:
+                 history: HistoryHook | None = None,
+                 configuration: AppConfig | None = None) -> None:
         if bus is None and bus_factory is None:
             raise ConfigError("Daemon: give the bus arguments (bus=...) or a bus_factory")
         self.protocol = protocol
@@ -184,11 +188,33 @@ class Daemon:
                              describe=str(bus_args or "bus"))
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
         self._history = history
+        self._configuration = configuration or AppConfig(source="<canrls run>")
         self._journal = Journal()
         self._commands = CommandHandler(
             proc, cfg.commands, self._link.send, self._set_model, self._publisher.clear_rms,
             max_parameters=cfg.max_parameters, check_model=self._check_model,
-            bucket=TokenBucket(cfg.command_rate, cfg.command_burst))
+            bucket=TokenBucket(cfg.command_rate, cfg.command_burst),
+            save_model=None if cfg.saved_model is None else self._save_model)
+
+    def _save_model(self) -> Path:
+        """The command ``save_model``: the running model and its estimates written to
+        ``[daemon] saved_model`` as ``canrls fit --save-model`` writes them (in the
+        estimator thread, under its lock)."""
+        from canrls.processor.modelfile import SavedModel
+
+        proc, path = self._proc, self.config.saved_model
+        assert path is not None
+        if proc.calibration is None:
+            raise CommandError("the calibration window has not ended: nothing is "
+                               "estimated yet")
+        saved = SavedModel.from_parts(proc.model, proc.pipeline.estimates(), proc.calibration,
+                                      self._configuration, ["<canrls run>"])
+        period = proc.period_info().value
+        if saved.calibration is not None and period:
+            saved.calibration["period"] = float(period)
+        out = saved.save(path)
+        log.info("save_model: the running model written to %s", out)
+        return out
 
     def _check_model(self, model: Model, what: str = "the model") -> None:
         """:func:`~canrls.live.publisher.check_publishable` with ``[daemon] max_parameters``."""
