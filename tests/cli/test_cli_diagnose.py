@@ -90,9 +90,9 @@ def test_text_and_report(log: Path, tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "Before and after --add offset" in text
     assert f"report: {out_dir / 'index.html'}" in text
     assert (out_dir / "index.html").is_file()
-    for png in ("timeline.png", "speed.png", "position.png", "candidates.png", "orders.png",
-                "convergence.png", "fixed.png"):
-        assert (out_dir / png).stat().st_size > 1000, png
+    for svg in ("timeline.svg", "speed.svg", "position.svg", "candidates.svg", "orders.svg",
+                "convergence.svg", "fixed.svg"):
+        assert (out_dir / svg).stat().st_size > 1000, svg
 
 
 def test_report_without_matplotlib_is_a_clear_error(log: Path, tmp_path: Path,
@@ -137,4 +137,4 @@ def test_a_unit_matplotlib_would_read_as_mathtext_is_drawn_as_text(
     out_dir = tmp_path / "report"
     assert main(["diagnose", str(log), "--config", str(cfg), *QUICK,
                  "--report", str(out_dir)]) == 0, capsys.readouterr().err
-    assert (out_dir / "convergence.png").stat().st_size > 1000
+    assert (out_dir / "convergence.svg").stat().st_size > 1000

@@ -13,6 +13,7 @@ import csv
 import json
 import math
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -23,12 +24,14 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 pytest.importorskip("distributed")
 pytest.importorskip("sqlalchemy")
 pytest.importorskip("alembic")
 
+from fleet_records import pump_fleet  # noqa: E402
 from postgres import postgres_server  # noqa: E402
 
 from canrls.cli.fleet import rank_candidates  # noqa: E402
@@ -140,7 +143,6 @@ def test_sigma_alone_understates_the_scatter(fleet: dict[str, Any],
 
 
 def test_tau_is_the_scatter_of_normal_differences() -> None:
-    import numpy as np
 
     rng = np.random.default_rng(3)
     s = rng.uniform(0.005, 0.02, 2001)
@@ -354,9 +356,13 @@ def test_report_html_and_json(fleet: dict[str, Any], tmp_path: Path,
     assert alerted and all(truth[a]["class"] != "healthy" for a in alerted)
     assert d["drives"][0]["score"] >= d["drives"][-1]["score"]
     page = (out / "index.html").read_text()
-    assert page.count("<img src='drive-") == 2 and "spread-01.png" in page
+    assert page.count("<img src='drive-") == 2 and "spread-01.svg" in page
     assert alerted[0] in page and "τ" in page
-    assert (out / "drive-0001.png").stat().st_size > 1000
+    assert (out / "drive-0001.svg").read_bytes().startswith(b"<?xml")
+    # the healthy drives: one row each in a compact table, no section of their own
+    healthy = [x["drive"] for x in d["drives"] if not x["alerts"]]
+    assert healthy and f"<h2>Healthy drives ({len(healthy)}, no alert)</h2>" in page
+    assert page.count("<section") == 2 and all(f"id='{h}'" not in page for h in healthy)
 
 
 def test_report_escapes_the_history_strings(tmp_path: Path) -> None:
@@ -370,7 +376,31 @@ def test_report_escapes_the_history_strings(tmp_path: Path) -> None:
                       parameters=(ParameterValue("inertia.J", 1e-3 * (1 + (k > 4)), 1e-6),),
                       id=k) for k in range(10)]
     page = write_html(assess(recs), tmp_path / "r").read_text()
-    assert "<script>" not in page and "&lt;script&gt;alert(" in page
+    assert "<script>alert(" not in page and "&lt;script&gt;alert(" in page
+
+
+def test_report_shows_an_outlier_against_its_siblings(tmp_path: Path) -> None:
+    """Six drives of one type, one with twice the inertia: its section draws the
+    siblings' level, its table names the parameter and links the recordings; the
+    healthy drives are rows of one table."""
+    from canrls.fleet.report import _siblings, write_html
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    recs = pump_fleet(logs)
+    fleet = assess(recs)
+    out = fleet.drive("d5")
+    assert [a.kind for a in out.alerts] == ["outlier"]
+    assert sorted(_siblings(fleet, out, "inertia.J")) == sorted(
+        v for d, (_, v) in fleet.spread["m" * 64]["inertia.J"].items() if d != "d5")
+    page = write_html(fleet, tmp_path / "r").read_text()
+    assert page.count("<section") == 1 and "id='d5'" in page
+    assert "<h2>Healthy drives (5, no alert)</h2>" in page
+    assert "<th>inertia.J [kg·m²]</th>" in page
+    assert "<a href='../logs/d5%20%235.log'>" in page  # relative, quoted
+    figure = re.search(r"<img src='(drive-\d+\.svg)' alt='([^']+)'", page)
+    assert figure is not None and figure.group(2).startswith("Trends of d5: inertia.J")
+    assert b"siblings" in (tmp_path / "r" / figure.group(1)).read_bytes()
 
 
 def test_report_figures_draw_the_history_strings_as_text(tmp_path: Path) -> None:
@@ -391,7 +421,7 @@ def test_report_figures_draw_the_history_strings_as_text(tmp_path: Path) -> None
     assert fleet.alerts  # a trend figure with the alert's message, a spread figure
     out = tmp_path / "r"
     write_html(fleet, out)
-    assert sorted(p.name for p in out.glob("*.png"))
+    assert sorted(p.name for p in out.glob("*.svg"))
 
 
 def test_ingest_cli_in_process_with_a_pattern_and_errors(fleet: dict[str, Any], tmp_path: Path,

@@ -104,7 +104,7 @@ def add_log_arguments(p: argparse.ArgumentParser, several: str) -> None:
 def add_report_option(p: Any) -> None:
     """``--report DIR`` on a parser or an argument group: the HTML page with figures."""
     p.add_argument("--report", metavar="DIR",
-                   help="write DIR/index.html with PNG figures (needs matplotlib: "
+                   help="write DIR/index.html with SVG figures (needs matplotlib: "
                         "pip install 'canrls[report]')")
 
 

@@ -108,8 +108,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     rep.add_argument("--out", "-o", metavar="DIR", help="write DIR/index.html with figures")
     rep.add_argument("--json", action="store_true", help="print one JSON object")
     rep.add_argument("--figures", type=_nonnegative, default=20, metavar="N",
-                     help="drives with a figure of their trends, first of the ranking "
-                          "(default 20)")
+                     help="drives with a section and a figure of their trends: the first "
+                          "drives with alerts in the ranking (default 20)")
     rep.add_argument("--alpha", type=float, default=None, metavar="P",
                      help="false-alert probability per healthy drive (default 0.001)")
     rep.add_argument("--model", metavar="KEY",

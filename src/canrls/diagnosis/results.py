@@ -37,6 +37,7 @@ __all__ = [
     "Traces",
     "EquationDiagnosis",
     "Analysis",
+    "r2_text",
     "share_text",
     "value_text",
 ]
@@ -60,6 +61,16 @@ def share_text(x: float) -> str:
     if abs(v) >= 1:
         return f"{v:.1f} %"
     return f"{v:.2g} %"
+
+
+def r2_text(r2: float, digits: int = 4) -> str:
+    """R² with ``digits`` decimals, never rounded up to 1: "> 0.9999" where it would."""
+    if not math.isfinite(r2):
+        return "n/a"
+    text = f"{r2:.{digits}f}"
+    if r2 < 1.0 and float(text) >= 1.0:
+        return f"> {1.0 - 10.0 ** -digits:.{digits}f}"
+    return text
 
 
 def value_text(x: float, unit: str = "", sign: bool = False) -> str:
@@ -191,7 +202,8 @@ class OrderSpectrum:
     ``amplitude`` is the fitted amplitude in the target unit, ``explained`` the share of
     the residual variance the pair explains. ``per`` says what one period of order 1 is
     (a revolution, or the pitch of a linear axis). ``peaks`` lists the orders that stand
-    out (local maxima explaining at least 1 % and 5 times the median), strongest first.
+    out (local maxima explaining at least 1 % and 5 times the median), strongest first;
+    ``shares`` what each explains beyond the ones before it, all of them fitted together.
     """
 
     orders: F64
@@ -200,6 +212,16 @@ class OrderSpectrum:
     peaks: tuple[float, ...]
     unit: str
     per: str
+    #: per peak, the share it explains beyond the peaks before it (fitted together:
+    #: they add up to at most 1; leakage of a stronger order gets next to nothing)
+    shares: tuple[float, ...] = ()
+
+    def share(self, order: float) -> float:
+        """The share of peak ``order`` beyond the stronger peaks (``explained`` alone
+        when the sequential shares were not computed)."""
+        if order in self.peaks and len(self.shares) == len(self.peaks):
+            return self.shares[self.peaks.index(order)]
+        return self.at(order)[1]
 
     def at(self, order: float) -> tuple[float, float]:
         """(amplitude, explained) at the order nearest ``order``."""
@@ -209,6 +231,7 @@ class OrderSpectrum:
     def to_dict(self) -> dict[str, Any]:
         return {"orders": _floats(self.orders), "amplitude": _floats(self.amplitude),
                 "explained": _floats(self.explained), "peaks": list(self.peaks),
+                "peak_shares": list(self.shares),
                 "unit": self.unit, "per": self.per}
 
 
