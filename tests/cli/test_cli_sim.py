@@ -28,9 +28,9 @@ def test_writes_a_candump_log_python_can_reads(tmp_path: Path,
     assert rc == 0
     out_err = capsys.readouterr()
     assert out_err.err == ""  # the truth on stdout: `canrls sim ... > truth.txt` keeps it
-    assert out_err.out == (f"canrls sim: wrote 4000 frames to {out} (2 s, scenario standard, seed 3); "
-                   "truth: inertia.J=0.0002 viscous.B=0.0001 coulomb.Tc=0.02 "
-                   "cogging:24.sin=0.003 cogging:24.cos=0.0015 Kt=0.1\n")
+    assert out_err.out == (f"canrls sim: wrote 4000 frames to {out} (2 s, scenario standard, "
+                           "seed 3); truth: inertia.J=0.0002 viscous.B=0.0001 coulomb.Tc=0.02 "
+                           "cogging:24.sin=0.003 cogging:24.cos=0.0015 Kt=0.1\n")
     msgs = list(can.LogReader(str(out)))
     assert len(msgs) == 4000
     assert msgs[0].timestamp == 0.0 and msgs[-1].timestamp == pytest.approx(1.9991)
