@@ -38,7 +38,7 @@ from canrls.cli._common import (
 )
 from canrls.core.errors import ConfigError
 
-__all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates"]
+__all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates", "text_summary"]
 
 DEFAULT_DB = "fleet.db"
 #: candidates kept per ranked recording
@@ -238,9 +238,20 @@ def run_report(args: argparse.Namespace) -> int:
             d["report"] = str(page)
         print_json(d)
     else:
-        alerts = fleet.alerts
-        sys.stdout.write(f"{len(fleet.drives)} drives, {len(alerts)} alerts; report: {page}\n")
-        for dr in fleet.drives:
-            if dr.headline is not None:
-                sys.stdout.write(f"  {dr.drive}: {dr.headline.message}\n")
+        sys.stdout.write(text_summary(fleet, page))
     return 0
+
+
+def _plural(n: int, noun: str) -> str:
+    """``n noun``, the noun in the plural but for one."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def text_summary(fleet: Any, page: Path | None) -> str:
+    """The text of ``canrls fleet report``: the counts, then every alert the count counts,
+    drive by drive (ranked; each drive's most severe first)."""
+    flagged = [d for d in fleet.drives if d.alerts]
+    head = (f"{_plural(len(fleet.drives), 'drive')}, {_plural(len(fleet.alerts), 'alert')} "
+            f"on {_plural(len(flagged), 'drive')}" + (f"; report: {page}" if page else ""))
+    return "".join([f"{head}\n", *(f"  {d.drive}: {a.message}\n"
+                                    for d in flagged for a in d.alerts)])
