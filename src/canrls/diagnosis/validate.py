@@ -265,10 +265,12 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
         with np.errstate(over="ignore", invalid="ignore"):
             r = eq.target_to_physical(y - phi @ eq.to_normalised(theta))
         yt = eq.target_to_physical(y)
-        if not np.all(np.isfinite(r[used])):
+        with np.errstate(over="ignore"):
+            energy = float(np.dot(r[used], r[used]))
+        if not math.isfinite(energy):  # a value or its square beyond a double
             raise EstimatorError(
-                f"{model_file}: the saved parameters predict non-finite values of the "
-                f"{eq.name} equation's target (parameters of absurd size?)")
+                f"{model_file}: the saved parameters predict values of the {eq.name} "
+                f"equation's target too large for a double (parameters of absurd size?)")
         rms, fit, r2, sd = _fit(r[used], yt[used])
         files = []
         for k, name in enumerate(names):
