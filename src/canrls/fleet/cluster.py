@@ -25,7 +25,7 @@ from typing import Any
 from canrls.core.errors import ConfigError, StallError
 
 __all__ = ["dask_client", "require_dask", "scheduler_address", "max_workers",
-           "local_workers", "finished", "result", "SCHEDULER_TIMEOUT", "STALL_TIMEOUT",
+           "local_workers", "finished", "result", "exception", "SCHEDULER_TIMEOUT", "STALL_TIMEOUT",
            "WORKERS_PER_CORE", "FILES_PER_WORKER"]
 
 log = logging.getLogger(__name__)
@@ -238,6 +238,17 @@ def result(future: Any, address: str, stall: float) -> Any:
     except TimeoutError:
         if future.status != "finished":
             raise
+        raise _stalled(address, stall) from None
+
+
+def exception(future: Any, address: str, stall: float) -> BaseException | None:
+    """The error of an erred ``future``, fetched within ``stall`` seconds.
+
+    :raises StallError: the scheduler does not answer.
+    """
+    try:
+        return future.exception(timeout=stall)
+    except TimeoutError:
         raise _stalled(address, stall) from None
 
 

@@ -449,7 +449,7 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                 for fut in cluster.finished(futures, _address(client), stall):
                     job = futures[fut]
                     if fut.status == "error":
-                        exc = fut.exception()
+                        exc = cluster.exception(fut, _address(client), stall)
                         failed.append((job.source.path, f"{type(exc).__name__}: {exc}"))
                     else:
                         rec = cluster.result(fut, _address(client), stall)
