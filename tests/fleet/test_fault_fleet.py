@@ -6,11 +6,14 @@ directory, every wait bounded."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import csv
 import json
 import multiprocessing
 import os
 import shutil
+import signal
 import socket
 import sqlite3
 import subprocess
@@ -30,8 +33,9 @@ pytest.importorskip("alembic")
 from postgres import postgres_server  # noqa: E402
 
 from canrls.cli.main import main  # noqa: E402
-from canrls.core.errors import ConfigError  # noqa: E402
+from canrls.core.errors import ConfigError, StallError  # noqa: E402
 from canrls.fleet import cluster  # noqa: E402
+from canrls.fleet import ingest as ingest_module  # noqa: E402
 from canrls.fleet.cluster import dask_client, max_workers  # noqa: E402
 from canrls.fleet.history import NOT_A_HISTORY, History, redact  # noqa: E402
 from canrls.fleet.ingest import JobConfig, ingest  # noqa: E402
@@ -39,6 +43,7 @@ from canrls.fleet.records import ParameterValue, Recording  # noqa: E402
 from canrls.fleet.sources import MAX_CELL, from_manifest, from_pattern  # noqa: E402
 from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
 
+_STORE_ADD = ingest_module._Store.add
 CONFIG = JobConfig(effects=FLEET_EFFECTS, kt=FLEET_KT)
 MODEL_ARGS = ["--effects", FLEET_EFFECTS, "--kt", str(FLEET_KT), "--quiet"]
 #: the bound of every wait in these tests [s]: far beyond the 1 s timeouts they set
@@ -104,13 +109,19 @@ def silent_server() -> Iterator[_Server]:
     s.close()
 
 
-def _bounded_main(argv: list[str]) -> int:
-    """``main(argv)`` in a thread, failing the test if it has not returned in BOUND s."""
+def _ingest_argv(logs: Path, db: Path, scheduler: str, *extra: str) -> list[str]:
+    """``fleet ingest`` of ``logs/{drive}/*.log`` into ``db`` on ``scheduler``."""
+    return ["fleet", "ingest", str(logs / "{drive}" / "*.log"), "--db", str(db),
+            "--scheduler", scheduler, *extra, *MODEL_ARGS]
+
+
+def _bounded_main(argv: list[str], bound: float = BOUND) -> int:
+    """``main(argv)`` in a thread, failing the test if it has not returned in ``bound`` s."""
     out: list[int] = []
     t = threading.Thread(target=lambda: out.append(main(argv)), daemon=True)
     t.start()
-    t.join(BOUND)
-    assert not t.is_alive(), f"canrls {' '.join(argv)} still waiting after {BOUND:g} s"
+    t.join(bound)
+    assert not t.is_alive(), f"canrls {' '.join(argv)} still waiting after {bound:g} s"
     return out[0]
 
 
@@ -122,9 +133,7 @@ def test_a_scheduler_that_accepts_and_never_answers_is_named_within_the_timeout(
     (tmp_path / "d1" / "a.log").write_text("")
     monkeypatch.setattr(cluster, "SCHEDULER_TIMEOUT", 1.0)
     t0 = time.monotonic()
-    rc = _bounded_main(["fleet", "ingest", str(tmp_path / "{drive}" / "*.log"), "--db",
-                        str(tmp_path / "h.db"), "--scheduler", silent_server.address,
-                        *MODEL_ARGS])
+    rc = _bounded_main(_ingest_argv(tmp_path, tmp_path / "h.db", silent_server.address))
     err = capsys.readouterr().err
     assert rc == 1 and time.monotonic() - t0 < 20
     assert err.startswith(f"error: --scheduler {silent_server.address}: no answer within 1 s")
@@ -174,6 +183,179 @@ def test_a_scheduler_without_workers_is_named_within_the_timeout(idle_scheduler:
         with dask_client(idle_scheduler, timeout=1.0):
             pass
     assert time.monotonic() - t0 < 20
+
+
+class _RemoteCluster:
+    """A Dask scheduler and one worker (without a nanny: the worker is the process) in
+    subprocesses on 127.0.0.1, each of which a test may freeze (SIGSTOP)."""
+
+    def __init__(self, root: Path) -> None:
+        info = root / "scheduler.json"
+        quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "cwd": root}
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.scheduler = self._start([
+            "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
+            "--no-dashboard", "--scheduler-file", str(info)], quiet)
+        end = time.monotonic() + BOUND
+        while not info.is_file() or not info.read_text().strip().endswith("}"):
+            assert time.monotonic() < end and self.scheduler.poll() is None, "no scheduler"
+            time.sleep(0.1)
+        self.address: str = json.loads(info.read_text())["address"]
+        # the worker imports the ingest as it starts (not in the first task, which a
+        # short stall limit would count), and has joined before a test begins
+        self.worker = self._start([
+            "distributed.cli.dask_worker", self.address, "--no-nanny", "--nthreads", "1",
+            "--host", "127.0.0.1", "--no-dashboard", "--preload", "canrls.fleet.ingest"],
+            quiet)
+        while not asyncio.run(cluster._identity(self.address, BOUND)).get("workers"):
+            assert time.monotonic() < end and self.worker.poll() is None, "no worker"
+            time.sleep(0.1)
+
+    def _start(self, argv: list[str], kw: dict[str, Any]) -> subprocess.Popen[bytes]:
+        self.procs.append(subprocess.Popen([sys.executable, "-m", *argv], **kw))
+        return self.procs[-1]
+
+    def close(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                os.kill(p.pid, signal.SIGCONT)
+                p.kill()
+            p.wait(BOUND)
+
+
+@pytest.fixture
+def remote_cluster(tmp_path: Path) -> Iterator[_RemoteCluster]:
+    (tmp_path / "cluster").mkdir()
+    c = _RemoteCluster(tmp_path / "cluster")
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+@pytest.fixture(scope="module")
+def eight_logs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Eight simulated logs of one drive, 3 s each (seed 8), under ``DIR/d1/``."""
+    root = tmp_path_factory.mktemp("eight")
+    plan = make_fleet(1, 8, 3.0, seed=8)
+    d = plan.drives[0]
+    (root / "d1").mkdir()
+    for k, r in enumerate(d.recordings):
+        write_recording(root / "d1" / f"r{k + 1}.log", d, r, 3.0)
+    return root
+
+
+def test_a_scheduler_that_freezes_after_its_identity_is_named_within_the_timeout(
+        tmp_path: Path, remote_cluster: _RemoteCluster, eight_logs: Path,
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    probe = cluster._probe
+
+    def probe_then_freeze(address: str, timeout: float) -> None:
+        probe(address, timeout)
+        os.kill(remote_cluster.scheduler.pid, signal.SIGSTOP)
+
+    monkeypatch.setattr(cluster, "_probe", probe_then_freeze)
+    monkeypatch.setattr(cluster, "SCHEDULER_TIMEOUT", 1.0)
+    t0 = time.monotonic()
+    rc = _bounded_main(_ingest_argv(eight_logs, tmp_path / "h.db", remote_cluster.address),
+                       bound=30.0)
+    err = capsys.readouterr().err
+    assert rc == 1 and time.monotonic() - t0 < 20
+    assert err == (f"error: --scheduler {remote_cluster.address}: no handshake within 1 s "
+                   f"(a scheduler that answered, then stopped)\n")
+
+
+def _freeze_after_first_store(monkeypatch: pytest.MonkeyPatch, pid: int) -> None:
+    """SIGSTOP process ``pid`` as the ingest stores its first result."""
+    add = ingest_module._Store.add
+
+    def add_then_freeze(self: Any, rec: Recording) -> None:
+        add(self, rec)
+        os.kill(pid, signal.SIGSTOP)  # again for a result that was on its way: harmless
+
+    monkeypatch.setattr(ingest_module._Store, "add", add_then_freeze)
+
+
+def _stored(db: Path) -> int:
+    with History.open(str(db)) as h:
+        return len(h.recordings())
+
+
+@pytest.mark.parametrize("frozen", ["worker", "scheduler"])
+def test_a_cluster_that_freezes_mid_ingest_ends_naming_it_and_keeps_each_stored_log(
+        tmp_path: Path, remote_cluster: _RemoteCluster, eight_logs: Path, frozen: str,
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    proc = getattr(remote_cluster, frozen)
+    _freeze_after_first_store(monkeypatch, proc.pid)
+    monkeypatch.setattr(cluster, "SCHEDULER_TIMEOUT", 2.0)
+    monkeypatch.setattr(cluster, "STALL_TIMEOUT", 4.0)
+    db = tmp_path / "h.db"
+    argv = _ingest_argv(eight_logs, db, remote_cluster.address)
+    t0 = time.monotonic()
+    rc = _bounded_main(argv, bound=60.0)
+    err = capsys.readouterr().err
+    assert rc == 1 and time.monotonic() - t0 < 45, err
+    n = _stored(db)
+    assert 1 <= n < 8
+    assert err == (f"error: the Dask scheduler at {remote_cluster.address}: no result within "
+                   f"4 s (it or its workers stopped answering); {n} of the 8 logs to fit "
+                   f"stored, each kept: run again for the rest\n")
+    # thawed, a rerun stores the rest, each once
+    os.kill(proc.pid, signal.SIGCONT)
+    monkeypatch.setattr(ingest_module._Store, "add", _STORE_ADD)
+    assert _bounded_main([*argv, "--json"], bound=60.0) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert (got["stored"], got["skipped"]) == (8 - n, n)
+    assert _stored(db) == 8
+
+
+def test_the_stall_limit_is_a_flag(tmp_path: Path, remote_cluster: _RemoteCluster,
+                                   eight_logs: Path, monkeypatch: pytest.MonkeyPatch,
+                                   capsys: pytest.CaptureFixture[str]) -> None:
+    _freeze_after_first_store(monkeypatch, remote_cluster.worker.pid)
+    rc = _bounded_main(_ingest_argv(eight_logs, tmp_path / "h.db", remote_cluster.address,
+                                    "--stall-timeout", "3.5"), bound=60.0)
+    err = capsys.readouterr().err
+    assert rc == 1 and ": no result within 3.5 s (" in err and err.count("\n") == 1
+
+
+@pytest.fixture(scope="module")
+def dask_offload_thread() -> None:
+    """Dask's one process-wide offload thread, started before the test that first uses it
+    (closing a cluster whose worker is frozen does): it never ends, and is no leak."""
+    from distributed.utils import _offload_executor
+
+    _offload_executor.submit(int).result()
+
+
+def test_a_local_worker_that_freezes_ends_the_ingest_and_its_cluster(
+        tmp_path: Path, eight_logs: Path, monkeypatch: pytest.MonkeyPatch,
+        dask_offload_thread: None) -> None:
+    raised: list[BaseException] = []
+    pids: list[int] = []
+
+    def run() -> None:
+        try:
+            with dask_client(None, 1) as client, History.open(str(tmp_path / "h.db")) as h:
+                pids.extend(client.run(os.getpid).values())
+                _freeze_after_first_store(monkeypatch, pids[0])
+                ingest(from_pattern(str(eight_logs / "{drive}" / "*.log")), CONFIG, h,
+                       client=client, stall_timeout=4.0)
+        except BaseException as e:
+            raised.append(e)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(BOUND)
+    try:
+        assert not t.is_alive(), f"the ingest on a local cluster still waiting after {BOUND:g} s"
+        assert len(raised) == 1 and isinstance(raised[0], StallError), raised
+        n = _stored(tmp_path / "h.db")
+        assert 1 <= n < 8 and f"; {n} of the 8 logs to fit stored" in str(raised[0])
+    finally:
+        for pid in pids:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
 
 
 # ------------------------------------------------------------------ workers

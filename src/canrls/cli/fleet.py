@@ -33,6 +33,7 @@ from canrls.cli._common import (
     add_model_options,
     add_progress_option,
     config_path,
+    number,
     overrides,
     print_json,
 )
@@ -55,8 +56,15 @@ def _nonnegative(text: str) -> int:
     return n
 
 
+def _positive_seconds(text: str) -> float:
+    s = number(text)
+    if not 0 < s < float("inf"):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number of seconds")
+    return s
+
+
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
-    from canrls.fleet.cluster import SCHEDULER_TIMEOUT, WORKERS_PER_CORE
+    from canrls.fleet.cluster import SCHEDULER_TIMEOUT, STALL_TIMEOUT, WORKERS_PER_CORE
 
     p = subparsers.add_parser(
         "fleet", help="many drives: ingest their logs into a parameter history, report wear",
@@ -93,6 +101,10 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         f"cluster; it must answer and have a worker within "
                         f"{SCHEDULER_TIMEOUT:g} s; its workers must read the logs at the "
                         f"same paths")
+    d.add_argument("--stall-timeout", type=_positive_seconds, default=None, metavar="S",
+                   help=f"end with an error when the cluster has given no result (a log "
+                        f"hashed, fitted or ranked) for S seconds; each log stored is kept "
+                        f"(default {STALL_TIMEOUT:g})")
     r = ing.add_argument_group("candidate ranking (the diagnosis)")
     r.add_argument("--rank", choices=("none", "auto", "all"), default="none",
                    help="rank the effects the model lacks: 'auto' for the recordings around "
@@ -177,7 +189,8 @@ def run_ingest(args: argparse.Namespace) -> int:
             with dask_client(args.scheduler, args.workers) as client:
                 summary = ingest(sources, config, history, client=client, rank=args.rank,
                                  ranker=rank_candidates, max_order=args.max_order,
-                                 progress=progress.callback, retry_errors=args.retry_errors)
+                                 progress=progress.callback, retry_errors=args.retry_errors,
+                                 stall_timeout=args.stall_timeout)
         progress.close()
     if args.json:
         print_json(summary.to_dict())

@@ -23,7 +23,9 @@ working for callers who do not know canrls::
     │   ├── live.checkpoint.CheckpointPathError   its name or directory cannot be
     │   │                               used (a link, FIFO, device, directory, no writes)
     │   └── live.checkpoint.CheckpointInUseError  another daemon holds its lock
-    └── BusError (OSError)              the CAN interface failed or vanished
+    ├── BusError (OSError)              the CAN interface failed or vanished
+    └── StallError (TimeoutError)       a Dask scheduler or its workers stopped
+                                        answering: no result within the stall limit
 
 Messages name what failed: the file, key, message, signal, limit and value.
 Internal errors are turned into these with ``raise ... from e``.
@@ -44,6 +46,7 @@ __all__ = [
     "CommandError",
     "CheckpointError",
     "BusError",
+    "StallError",
 ]
 
 
@@ -101,3 +104,7 @@ class CheckpointError(CanrlsError, ValueError):
 
 class BusError(CanrlsError, OSError):
     """The CAN interface failed, went bus-off or vanished."""
+
+
+class StallError(CanrlsError, TimeoutError):
+    """A Dask scheduler (or its workers) stopped answering: nothing finished in time."""

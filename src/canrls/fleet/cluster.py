@@ -4,7 +4,10 @@ loops), or an existing scheduler's cluster (``--scheduler tcp://HOST:PORT``).
 
 Every wait on a scheduler is bounded: the address is checked before any connection,
 the scheduler must answer Dask's ``identity`` within the timeout (a port that accepts
-and never answers, or answers something else, is named), and it must have a worker.
+and never answers, or answers something else, is named), the client's own handshake
+must end within it too, and the scheduler must have a worker. Results are awaited
+with :func:`finished`: a stall of :data:`STALL_TIMEOUT` without any result raises
+:class:`~canrls.core.errors.StallError` naming the address.
 """
 
 from __future__ import annotations
@@ -13,20 +16,30 @@ import ipaddress
 import logging
 import os
 import re
-from collections.abc import Iterator
+import threading
+import time
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from canrls.core.errors import ConfigError
+from canrls.core.errors import ConfigError, StallError
 
 __all__ = ["dask_client", "require_dask", "scheduler_address", "max_workers",
-           "local_workers", "SCHEDULER_TIMEOUT", "WORKERS_PER_CORE", "FILES_PER_WORKER"]
+           "local_workers", "finished", "result", "exception", "SCHEDULER_TIMEOUT", "STALL_TIMEOUT",
+           "WORKERS_PER_CORE", "FILES_PER_WORKER"]
+
+log = logging.getLogger(__name__)
 
 #: the longest any one wait on a scheduler takes (connect, answer, a worker) [s]
 SCHEDULER_TIMEOUT = 30.0
+#: the longest a cluster may work without any result (a log hashed, fitted or ranked)
+#: before the wait ends as a stall [s]: far beyond one log's fit
+STALL_TIMEOUT = 300.0
 #: worker processes of a local cluster per core, at most (each fits one log at a time;
 #: more than a few per core only adds memory and start-up)
 WORKERS_PER_CORE = 4
+#: how often a wait for results looks for one [s]
+_POLL = 0.05
 #: files this process holds open per worker of a local cluster (its nanny, the comms
 #: to the worker and the scheduler, their pipes; about 10 measured)
 FILES_PER_WORKER = 16
@@ -137,6 +150,113 @@ def _short(e: BaseException) -> str:
     return " ".join(str(e).split())[:200]
 
 
+def _connect(distributed: Any, address: str, timeout: float) -> Any:
+    """A :class:`distributed.Client` of the scheduler at ``address``, within ``timeout``
+    seconds: Dask bounds its TCP connect and its requests, not the handshake between
+    them, so the client is made in a thread that is abandoned if it takes longer (a
+    client it makes later is closed there).
+
+    :raises ConfigError: no connection, or no handshake within ``timeout``.
+    """
+    box: list[Any] = []
+    lock = threading.Lock()
+    abandoned = False
+
+    def make() -> None:
+        client = distributed.Client.__new__(distributed.Client)
+        try:
+            client.__init__(address, timeout=timeout)
+        except Exception as e:
+            # a client that failed to start keeps its event-loop thread: stop it
+            runner = getattr(client, "_loop_runner", None)
+            if runner is not None:
+                runner.stop()
+            with lock:
+                box.append(e)
+            return
+        with lock:
+            if not abandoned:
+                box.append(client)
+                return
+        _close(client, timeout)
+
+    thread = threading.Thread(target=make, name="canrls-dask-connect", daemon=True)
+    thread.start()
+    thread.join(timeout)
+    with lock:
+        if not box:
+            abandoned = True
+            raise ConfigError(f"--scheduler {address}: no handshake within {timeout:g} s "
+                              f"(a scheduler that answered, then stopped)")
+        got = box[0]
+    if isinstance(got, (OSError, TimeoutError)):
+        raise ConfigError(f"--scheduler {address}: cannot connect "
+                          f"({_short(got) or type(got).__name__})") from got
+    if isinstance(got, Exception):
+        raise got
+    return got
+
+
+def _close(client: Any, timeout: float) -> None:
+    """Close ``client`` within ``timeout`` seconds; a scheduler that does not answer is
+    left (it forgets the client when the connection ends)."""
+    try:
+        client.close(timeout=timeout)
+    except (OSError, TimeoutError) as e:  # TimeoutError is an OSError; both said once
+        log.debug("client not closed cleanly: %s", e)
+
+
+def finished(futures: Iterable[Any], address: str, stall: float) -> Iterator[Any]:
+    """``futures`` as each finishes (a result, an error or cancelled), in that order.
+
+    :raises StallError: ``stall`` seconds without any of them finishing, naming the
+        scheduler's ``address``.
+    """
+    from distributed import as_completed
+
+    pending = as_completed(futures)
+    since = time.monotonic()
+    while not pending.is_empty():
+        ready = pending.next_batch(block=False)
+        yield from ready
+        if ready:
+            since = time.monotonic()
+        elif time.monotonic() - since > stall:
+            raise _stalled(address, stall)
+        else:
+            time.sleep(_POLL)
+
+
+def result(future: Any, address: str, stall: float) -> Any:
+    """The result of a finished ``future``, fetched from its worker within ``stall``
+    seconds (the task's own error raised).
+
+    :raises StallError: the worker holding it does not answer.
+    """
+    try:
+        return future.result(timeout=stall)
+    except TimeoutError:
+        if future.status != "finished":
+            raise
+        raise _stalled(address, stall) from None
+
+
+def exception(future: Any, address: str, stall: float) -> BaseException | None:
+    """The error of an erred ``future``, fetched within ``stall`` seconds.
+
+    :raises StallError: the scheduler does not answer.
+    """
+    try:
+        return future.exception(timeout=stall)
+    except TimeoutError:
+        raise _stalled(address, stall) from None
+
+
+def _stalled(address: str, stall: float) -> StallError:
+    return StallError(f"the Dask scheduler at {address}: no result within {stall:g} s "
+                      f"(it or its workers stopped answering)")
+
+
 
 def require_dask() -> Any:
     """The ``distributed`` module.
@@ -185,11 +305,7 @@ def _client(distributed: Any, scheduler: str | None, workers: int | None,
     if scheduler is not None:
         address = scheduler_address(scheduler)
         _probe(address, timeout)
-        try:
-            client = distributed.Client(address, timeout=timeout)
-        except (OSError, TimeoutError) as e:
-            raise ConfigError(f"--scheduler {address}: cannot connect "
-                              f"({_short(e) or type(e).__name__})") from e
+        client = _connect(distributed, address, timeout)
         try:
             try:
                 client.wait_for_workers(1, timeout=timeout)
@@ -198,7 +314,7 @@ def _client(distributed: Any, scheduler: str | None, workers: int | None,
                                   f"within {timeout:g} s") from None
             yield client
         finally:
-            client.close(timeout=timeout)
+            _close(client, timeout)
         return
     n = local_workers(workers)
     import dask

@@ -28,7 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from canrls import __version__
-from canrls.core.errors import CanrlsError
+from canrls.core.errors import CanrlsError, StallError
+from canrls.fleet import cluster
 from canrls.fleet.history import History
 from canrls.fleet.records import (
     SOURCE_LOG,
@@ -378,14 +379,19 @@ class _Store:
 def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
            client: Any = None, rank: str = "none", ranker: Ranker | None = None,
            max_order: int = 64, progress: Callable[[int, int], None] | None = None,
-           retry_errors: bool = False) -> IngestSummary:
+           retry_errors: bool = False, stall_timeout: float | None = None) -> IngestSummary:
     """Ingest ``sources`` into ``history``: on the Dask ``client``'s cluster, or in this
     process (``client=None``). ``rank``: one of :data:`RANK_MODES` (needs ``ranker``).
     ``progress(done, total)`` after each log. ``retry_errors``: forget the error rows of
-    this model first, so their logs are tried again.
+    this model first, so their logs are tried again. ``stall_timeout``: the longest the
+    cluster may go without any result (default :data:`~canrls.fleet.cluster.STALL_TIMEOUT`).
+
+    :raises StallError: the cluster stopped answering; what arrived is stored, and the
+        message says how much.
     """
     if rank not in RANK_MODES:
         raise ValueError(f"rank {rank!r} not one of {RANK_MODES}")
+    stall = cluster.STALL_TIMEOUT if stall_timeout is None else stall_timeout
     t0 = time.monotonic()
     rejected = [(src.path, src.error) for src in sources if src.error]
     jobs: list[IngestJob] = []
@@ -413,7 +419,13 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
     if client is None:
         hashes = [hash_or_none(p) for p in paths]
     else:
-        hashes = client.gather(client.map(hash_or_none, paths, pure=False), errors="raise")
+        futs = client.map(hash_or_none, paths, pure=False)
+        try:
+            for _ in cluster.finished(futs, _address(client), stall):
+                pass
+            hashes = [cluster.result(f, _address(client), stall) for f in futs]
+        except StallError as e:
+            raise _stall(e, 0, len(jobs)) from None
     todo, duplicates = _plan(jobs, hashes, known)
     skipped = done = len(jobs) - len(todo) - len(duplicates)
     done += len(duplicates)
@@ -431,18 +443,16 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                 if progress is not None:
                     progress(done, len(jobs))
         else:
-            from distributed import as_completed
-
             futures = {client.submit(ingest_one, job, None, use_ranker, pure=False): job
                        for job in todo}
             try:
-                for fut in as_completed(futures):
+                for fut in cluster.finished(futures, _address(client), stall):
                     job = futures[fut]
                     if fut.status == "error":
-                        exc = fut.exception()
+                        exc = cluster.exception(fut, _address(client), stall)
                         failed.append((job.source.path, f"{type(exc).__name__}: {exc}"))
                     else:
-                        rec = fut.result()
+                        rec = cluster.result(fut, _address(client), stall)
                         if rec is None:
                             skipped += 1
                         elif rec.content_hash in known[job.key]:  # changed since hashed
@@ -454,15 +464,22 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                     if progress is not None:
                         progress(done, len(jobs))
             finally:
-                client.cancel(list(futures))
+                client.cancel(list(futures))  # sent, not awaited: never blocks
         store.flush()
+    except StallError as e:
+        store.flush()
+        raise _stall(e, store.stored + store.errors, len(todo)) from None
     finally:
         store.flush()  # what arrived before an interruption is kept
     ranked = 0
     if rank == "auto" and ranker is not None:
-        ranked = _rank_changes(history, {k for k, _ in keys.values()},
-                               {j.source.path: j.config for j in jobs}, client, ranker,
-                               max_order)
+        try:
+            ranked = _rank_changes(history, {k for k, _ in keys.values()},
+                                   {j.source.path: j.config for j in jobs}, client, ranker,
+                                   max_order, stall)
+        except StallError as e:
+            raise StallError(f"{e}; every log stored, not the candidate ranking: run again "
+                             f"for it") from None
     peaks: dict[str, int] = {}
     workers = 0
     if client is not None:
@@ -499,6 +516,16 @@ def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],
     return todo, duplicates
 
 
+def _address(client: Any) -> str:
+    return str(getattr(client.scheduler, "address", None) or "?")
+
+
+def _stall(e: StallError, stored: int, total: int) -> StallError:
+    """``e`` with what the ingest kept."""
+    return StallError(f"{e}; {stored} of the {total} logs to fit stored, each kept: run "
+                      f"again for the rest")
+
+
 def _peak_rss() -> int:
     import resource
     import sys
@@ -510,7 +537,9 @@ def _peak_rss() -> int:
 def worker_peak_rss(client: Any) -> dict[str, int]:
     """Each worker process's peak resident memory [bytes]."""
     try:
-        return {str(k): int(v) for k, v in client.run(_peak_rss).items()}
+        # Client.run has no timeout of its own; Client.sync takes this one
+        got = client.run(_peak_rss, callback_timeout=cluster.SCHEDULER_TIMEOUT)
+        return {str(k): int(v) for k, v in got.items()}
     except Exception as e:  # a worker gone: no figure rather than no summary
         log.debug("worker memory not read: %s", e)
         return {}
@@ -518,7 +547,7 @@ def worker_peak_rss(client: Any) -> dict[str, int]:
 
 def _rank_changes(history: History, model_keys: Iterable[str],
                   configs: Mapping[str, JobConfig], client: Any, ranker: Ranker,
-                  max_order: int) -> int:
+                  max_order: int, stall: float) -> int:
     """Rank the candidate effects of the recordings around each residual change that has
     no ranking yet (``rank="auto"``); returns how many were ranked."""
     from canrls.fleet.detect import assess, to_rank
@@ -537,9 +566,11 @@ def _rank_changes(history: History, model_keys: Iterable[str],
     else:
         futs = [client.submit(rank_one, p, c, max_order, ranker, pure=False)
                 for _, p, c in todo]
-        results = client.gather(futs, errors="skip")
-        if len(results) != len(todo):  # a task lost: those go without a ranking
-            results = [f.result() if f.status == "finished" else () for f in futs]
+        for _ in cluster.finished(futs, _address(client), stall):
+            pass
+        # a task lost: those go without a ranking
+        results = [cluster.result(f, _address(client), stall) if f.status == "finished"
+                   else () for f in futs]
     n = 0
     for (rid, _, _), cands in zip(todo, results, strict=True):
         if cands:
