@@ -459,6 +459,76 @@ def test_ingest_cli_in_process_with_a_pattern_and_errors(fleet: dict[str, Any], 
         "4 logs: 0 stored, 3 already in the history, 1 errors")
 
 
+def _residual_rise(logs: Path, key: str, desc: str) -> list[Any]:
+    """Six pumps recorded weekly, ``d2``'s residual 30 % higher from the sixth week:
+    below the default size that matters for the residual (50 %), above 20 %. Each
+    recording's log is a small file whose hash it carries (a rerun holds them all)."""
+    import hashlib
+
+    from canrls.fleet.records import ParameterValue, Recording
+
+    rng = np.random.default_rng(33)
+    recs = []
+    for i in range(6):
+        for k in range(10):
+            p = logs / f"d{i}-{k}.log"
+            p.write_bytes(f"pump {i} week {k}\n".encode())
+            rise = 1.3 if i == 2 and k >= 5 else 1.0
+            recs.append(Recording(
+                drive=f"d{i}", drive_type="pump",
+                content_hash=hashlib.sha256(p.read_bytes()).hexdigest(), model_key=key,
+                model=desc, path=str(p), t_start=1.7e9 + 7 * 86400 * k,
+                residual_rms=1e-3 * (1 + 0.01 * rng.standard_normal()) * rise,
+                parameters=(ParameterValue("inertia.J", 1e-3 * (
+                    1 + 0.01 * rng.standard_normal()), 1e-6, unit="kg·m²"),)))
+    return recs
+
+
+def test_rank_auto_takes_the_detection_of_fleet_in_config(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``fleet ingest --rank auto --config FILE`` ranks around the residual changes that
+    FILE's ``[fleet]`` table finds (as ``fleet report --config FILE`` alerts on them), not
+    those of the default settings; a bad ``[fleet]`` key stops it before any log."""
+    from canrls.cli import fleet as cli_fleet
+    from canrls.fleet.records import CandidateValue
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    cfg = tmp_path / "plant.toml"
+    cfg.write_text("[fleet]\nmin_change = { residual_rms = 0.2 }\n")
+    key, desc = model_key(JobConfig(config=str(cfg), effects=FLEET_EFFECTS, kt=FLEET_KT))
+    assert key == model_key(CONFIG)[0]  # [fleet] is not part of the model
+    db = tmp_path / "h.db"
+    with History.open(db) as h:
+        h.store(_residual_rise(logs, key, desc))
+    ranked: list[str] = []
+
+    def ranker(path: str, *_: Any) -> list[Any]:  # the logs are not CAN logs
+        ranked.append(Path(path).name)
+        return [CandidateValue(rank=1, effect="cogging[6]", explained=0.5, delta_bic=-40.0,
+                               rms_after=1e-3, identifiable=True, suggested=True)]
+
+    monkeypatch.setattr(cli_fleet, "rank_candidates", ranker)
+    argv = ["fleet", "ingest", str(logs / "{drive}-*.log"), "--db", str(db), "--workers",
+            "0", "--quiet", "--rank", "auto", *MODEL_ARGS]
+    assert main(argv) == 0  # the defaults: a rise of 30 % is no change that matters
+    assert capsys.readouterr().out.startswith("60 logs: 0 stored, 60 already")
+    assert ranked == []
+    assert main([*argv, "--config", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "candidate effects ranked on 4 recordings" in out
+    assert sorted(ranked) == ["d2-3.log", "d2-4.log", "d2-8.log", "d2-9.log"]
+    with History.open(db) as h:
+        assert sum(1 for r in h.recordings() if r.candidates) == 4
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[fleet]\nmin_chnage = 0.2\n")
+    assert main([*argv, "--config", str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {bad}: unknown key fleet.min_chnage") and \
+        err.count("\n") == 1
+
+
 @pytest.mark.parametrize(("argv", "message"), [
     (["fleet", "ingest", "logs/*.log"], "error: pattern 'logs/*.log': needs a {drive} field"),
     (["fleet", "ingest", "nowhere/{drive}/*.log"], "error: pattern 'nowhere/{drive}/*.log': "

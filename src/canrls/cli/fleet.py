@@ -184,14 +184,10 @@ def run_report(args: argparse.Namespace) -> int:
     from canrls.fleet.history import History, history_url
     from canrls.fleet.records import STATUS_OK
     from canrls.fleet.report import report_dict, write_html
-    from canrls.processor.config import AppConfig
 
     if not args.out and not args.json:
         raise ConfigError("fleet report: give --out DIR (HTML) or --json (or both)")
-    settings = DetectionSettings()
-    if args.config:
-        settings = DetectionSettings.from_table(AppConfig.load(args.config).fleet,
-                                                args.config)
+    settings = DetectionSettings.from_file(args.config)
     if args.alpha is not None:
         if not 0 < args.alpha < 1:
             raise ConfigError(f"--alpha {args.alpha}: must be between 0 and 1")

@@ -6,9 +6,10 @@ whose hash the history already holds for this model is skipped), then
 :func:`canrls.processor.replay.fit_logs`, and where asked the diagnosis's candidate ranking
 (handed in as a ``ranker``: this layer does not import the diagnosis). A log that
 cannot be fitted becomes an error :class:`~canrls.fleet.records.Recording` naming the
-file and the reason. :func:`ingest` has the workers hash every log first (the logs the
-history holds for the model are not sent to be fitted), then fit the others, and stores
-the results as they arrive, in batches, with the history's insert-or-ignore: a worker
+file and the reason. Where the history holds recordings of the model, :func:`ingest`
+has the workers hash the logs first, :data:`HASH_CHUNK` a task (the logs it holds are
+not sent to be fitted); then it fits the others, a task each, and stores the results as
+they arrive, in batches, with the history's insert-or-ignore: a worker
 killed mid-log (Dask runs its task again elsewhere), a run interrupted, or two runs at
 once still leave every recording stored exactly once.
 """
@@ -29,6 +30,7 @@ from typing import Any
 
 from canrls import __version__
 from canrls.core.errors import CanrlsError
+from canrls.fleet.detect import DetectionSettings, assess, to_rank
 from canrls.fleet.history import History
 from canrls.fleet.records import (
     SOURCE_LOG,
@@ -41,7 +43,7 @@ from canrls.fleet.sources import LogSource
 from canrls.processor.config import AppConfig, Overrides, load_config, prepare
 
 __all__ = ["JobConfig", "IngestJob", "IngestSummary", "Ranker", "content_hash", "ingest",
-           "ingest_one", "hash_or_none", "model_key", "RANK_MODES"]
+           "ingest_one", "model_key", "RANK_MODES"]
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +54,9 @@ RANK_MODES = ("none", "auto", "all")
 #: ``ranker(path, protocol, model, settings, max_order)``: the candidate effects of one
 #: log, best first (the command line hands in the diagnosis's ranking)
 Ranker = Callable[[str, Any, Any, Any, int], Sequence[CandidateValue]]
+
+#: logs hashed per task before the fits (a task per log cost more than the hash)
+HASH_CHUNK = 64
 
 #: results stored per transaction at most, and the longest a result waits to be stored [s]
 BATCH = 64
@@ -104,14 +109,6 @@ class JobConfig(Overrides):
 
 
 _PREPARED: dict[JobConfig, tuple[Any, Any, Any]] = {}
-
-
-def hash_or_none(path: str) -> str | None:
-    """:func:`content_hash`, None for a file that cannot be read (a worker's task)."""
-    try:
-        return content_hash(path)
-    except OSError:
-        return None
 
 
 def _file_hash(path: str | None) -> str | None:
@@ -353,14 +350,19 @@ class _Store:
 def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
            client: Any = None, rank: str = "none", ranker: Ranker | None = None,
            max_order: int = 64, progress: Callable[[int, int], None] | None = None,
-           retry_errors: bool = False) -> IngestSummary:
+           retry_errors: bool = False,
+           settings: DetectionSettings | None = None) -> IngestSummary:
     """Ingest ``sources`` into ``history``: on the Dask ``client``'s cluster, or in this
     process (``client=None``). ``rank``: one of :data:`RANK_MODES` (needs ``ranker``).
     ``progress(done, total)`` after each log. ``retry_errors``: forget the error rows of
-    this model first, so their logs are tried again.
+    this model first, so their logs are tried again. ``settings``: the detection that
+    picks the recordings ``rank="auto"`` ranks (default: the ``[fleet]`` table of
+    ``config``'s file, as ``fleet report --config`` reads it).
     """
     if rank not in RANK_MODES:
         raise ValueError(f"rank {rank!r} not one of {RANK_MODES}")
+    if rank == "auto" and settings is None:
+        settings = DetectionSettings.from_file(config.config)  # a bad table: before any log
     t0 = time.monotonic()
     jobs: list[IngestJob] = []
     keys: dict[JobConfig, tuple[str, str]] = {}
@@ -395,17 +397,8 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
         else:
             from distributed import as_completed
 
-            # first the hashes (a read of each log, on the workers): the logs the history
-            # holds are not sent to be fitted at all
-            hashes = client.gather(client.map(hash_or_none, [j.source.path for j in jobs],
-                                              pure=False), errors="raise")
-            todo = []
-            for job, digest in zip(jobs, hashes, strict=True):
-                if digest is not None and digest in known[job.key]:
-                    skipped += 1
-                    done += 1
-                else:
-                    todo.append(job)
+            todo = _not_held(client, jobs, known)
+            skipped = done = len(jobs) - len(todo)
             if progress is not None and done:
                 progress(done, len(jobs))
             futures = {client.submit(ingest_one, job, None, use_ranker, pure=False): job
@@ -418,10 +411,8 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                         failed.append((job.source.path, f"{type(exc).__name__}: {exc}"))
                     else:
                         rec = fut.result()
-                        if rec is None:
-                            skipped += 1
-                        elif rec.content_hash in known[job.key]:  # changed since hashed
-                            skipped += 1
+                        if rec is None or rec.content_hash in known[job.key]:
+                            skipped += 1  # (the log changed to one held since hashed)
                         else:
                             store.add(rec)
                     fut.release()
@@ -437,7 +428,7 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
     if rank == "auto" and ranker is not None:
         ranked = _rank_changes(history, {k for k, _ in keys.values()},
                                {j.source.path: j.config for j in jobs}, client, ranker,
-                               max_order)
+                               max_order, settings)
     peaks: dict[str, int] = {}
     workers = 0
     if client is not None:
@@ -447,6 +438,35 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                          errors=store.errors, already=store.already, failed=tuple(failed),
                          ranked=ranked, elapsed_s=time.monotonic() - t0, workers=workers,
                          worker_peak_rss=peaks, error_rows=tuple(store.error_rows))
+
+
+def _hashes(paths: Sequence[str]) -> list[str | None]:
+    """:func:`content_hash` of each path, None for one that cannot be read (a
+    worker's task)."""
+    out: list[str | None] = []
+    for p in paths:
+        try:
+            out.append(content_hash(p))
+        except OSError:
+            out.append(None)
+    return out
+
+
+def _not_held(client: Any, jobs: Sequence[IngestJob],
+              known: Mapping[str, frozenset[str]]) -> list[IngestJob]:
+    """The jobs whose log the history does not hold for their model: hashed on the
+    workers, :data:`HASH_CHUNK` logs a task; none hashed for a model the history holds no
+    recording of (a task hashes its log again before it fits it: a log changed meanwhile
+    is not stored under the old hash)."""
+    ask = [j for j in jobs if known[j.key]]
+    if not ask:
+        return list(jobs)
+    chunks = [ask[i:i + HASH_CHUNK] for i in range(0, len(ask), HASH_CHUNK)]
+    got = client.gather(client.map(_hashes, [[j.source.path for j in c] for c in chunks],
+                                   pure=False), errors="raise")
+    held = {id(j) for c, hs in zip(chunks, got, strict=True)
+            for j, h in zip(c, hs, strict=True) if h is not None and h in known[j.key]}
+    return [j for j in jobs if id(j) not in held]
 
 
 def _peak_rss() -> int:
@@ -468,15 +488,14 @@ def worker_peak_rss(client: Any) -> dict[str, int]:
 
 def _rank_changes(history: History, model_keys: Iterable[str],
                   configs: Mapping[str, JobConfig], client: Any, ranker: Ranker,
-                  max_order: int) -> int:
-    """Rank the candidate effects of the recordings around each residual change that has
-    no ranking yet (``rank="auto"``); returns how many were ranked."""
-    from canrls.fleet.detect import assess, to_rank
-
+                  max_order: int, settings: DetectionSettings | None) -> int:
+    """Rank the candidate effects of the recordings around each residual change (as
+    ``settings`` find them) that has no ranking yet (``rank="auto"``); returns how many
+    were ranked."""
     todo: list[tuple[int, str, JobConfig]] = []
     for key in model_keys:
         recs = history.recordings(model_key=key)
-        for rid, path in to_rank(assess(recs)):
+        for rid, path in to_rank(assess(recs, settings=settings)):
             cfg = configs.get(path)
             if cfg is not None and Path(path).is_file():
                 todo.append((rid, path, cfg))
