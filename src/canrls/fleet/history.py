@@ -159,6 +159,20 @@ def _json_safe(x: Any) -> Any:
     return x
 
 
+def _foreign_keys_hold(conn: Any, url: str) -> None:
+    """Refuse a migrated SQLite history whose rows point at rows that are not there.
+
+    :raises ConfigError: naming the table and how many rows (the migration is rolled
+        back).
+    """
+    bad = conn.exec_driver_sql("PRAGMA foreign_key_check").fetchall()
+    if bad:
+        tables = sorted({str(row[0]) for row in bad})
+        raise ConfigError(f"history {_redact(url)}: the migration left rows of "
+                          f"{', '.join(tables)} pointing at rows that are not there "
+                          f"({len(bad)}); nothing was changed")
+
+
 class History:
     """An open history (:meth:`open`); :meth:`close` it (or use ``with``)."""
 
@@ -239,9 +253,27 @@ class History:
             raise ConfigError(f"history {_redact(self.url)}: schema revision {current!r}, "
                               f"this canrls needs {heads[0]!r}")
         try:
-            with self.engine.begin() as conn:
-                cfg.attributes["connection"] = conn
-                command.upgrade(cfg, "head")
+            with self.engine.connect() as conn:
+                sqlite = conn.dialect.name == "sqlite"
+                if sqlite:
+                    # SQLite alters a table by copying it and dropping the old one, and a
+                    # drop with foreign keys on deletes every parameter and candidate of
+                    # it (ON DELETE CASCADE): off for the migration (outside a
+                    # transaction, or SQLite ignores it), checked before the commit
+                    conn.exec_driver_sql("PRAGMA foreign_keys=OFF")
+                    conn.commit()
+                try:
+                    with conn.begin():
+                        cfg.attributes["connection"] = conn
+                        command.upgrade(cfg, "head")
+                        if sqlite:
+                            _foreign_keys_hold(conn, self.url)
+                finally:
+                    if sqlite:
+                        conn.exec_driver_sql("PRAGMA foreign_keys=ON")
+                        conn.commit()
+        except ConfigError:
+            raise
         except Exception:
             if self.revision() in heads:  # another process upgraded it meanwhile
                 return
