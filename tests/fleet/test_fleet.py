@@ -172,6 +172,21 @@ def test_rerun_skips_everything_by_hash(fleet: dict[str, Any], tmp_path: Path) -
         assert len(h.models()) == 2
 
 
+def test_a_log_listed_twice_is_fitted_once_on_the_cluster(fleet: dict[str, Any],
+                                                          client: Any, tmp_path: Path) -> None:
+    """On Dask as in this process (tests/test_fault_fleet.py): the same log under a
+    second drive is not sent to be fitted, the first listed drive owns it."""
+    import dataclasses
+
+    srcs = _subset(fleet, ["d003"])[:3]
+    again = dataclasses.replace(srcs[0], drive="d003-again")
+    with History.open(tmp_path / "twice.db") as h:
+        s = ingest([*srcs, again], CONFIG, h, client=client)
+        assert (s.total, s.stored, s.already, len(s.duplicates)) == (4, 3, 0, 1)
+        assert (s.duplicates[0].drive, s.duplicates[0].owner) == ("d003-again", "d003")
+        assert {r.drive for r in h.recordings()} == {"d003"}
+
+
 def test_a_killed_worker_leaves_every_recording_once(fleet: dict[str, Any],
                                                      tmp_path: Path) -> None:
     """A LocalCluster of its own (one worker: its nanny starts it again) whose worker is
@@ -439,7 +454,7 @@ def test_a_newer_history_is_refused(tmp_path: Path, capsys: pytest.CaptureFixtur
     con.close()
     assert main(["fleet", "report", "--db", str(db), "--json"]) == 1
     err = capsys.readouterr().err
-    assert err.startswith("error: history sqlite:///") and "'9999' is newer" in err
+    assert err.startswith(f"error: history {db}: ") and "'9999' is newer" in err
     assert err.count("\n") == 1
 
 

@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:  # numpy and cantools load with the configuration: not for --help
     from canrls.processor.config import AppConfig, Overrides
 
-__all__ = ["add_model_options", "add_bus_options", "add_progress_option", "config_path",
-           "overrides", "setup", "print_json", "Progress"]
+__all__ = ["add_max_order_option", "add_model_options", "add_bus_options",
+           "add_progress_option", "config_path", "overrides", "setup", "print_json", "Progress"]
 
 
 class _Typed(float):
@@ -32,6 +32,29 @@ class _Typed(float):
 
     def __format__(self, spec: str) -> str:
         return self.text if not spec else super().__format__(spec)
+
+
+def _max_order(text: str) -> int:
+    """argparse type: a cogging order the diagnosis searches up to (1..MAX_ORDER_LIMIT)."""
+    from canrls.diagnosis.candidates import MAX_ORDER_LIMIT
+
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r} is not an integer") from None
+    if not 1 <= k <= MAX_ORDER_LIMIT:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r} must be in 1..{MAX_ORDER_LIMIT}")
+    return k
+
+
+def add_max_order_option(g: Any, what: str) -> None:
+    """``--max-order K``: the highest cogging order ``what`` searches (checked here, as
+    the diagnosis checks it, before anything runs)."""
+    from canrls.diagnosis.candidates import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT
+
+    g.add_argument("--max-order", type=_max_order, default=DEFAULT_MAX_ORDER, metavar="K",
+                   help=f"highest cogging order {what} (default {DEFAULT_MAX_ORDER}, at "
+                        f"most {MAX_ORDER_LIMIT})")
 
 
 def number(text: str) -> float:

@@ -129,6 +129,7 @@ class DiagnosisReport:
             "dt": self.dt,
             "axis": self.model.axis,
             "unit": p.unit,
+            "per_ampere": self.model.per_ampere_text if self.model.per_ampere else None,
             "max_order": self.max_order,
             "before": self.before.to_dict(),
             "added": list(self.added),
@@ -158,6 +159,8 @@ class DiagnosisReport:
         b = self.before
         out.append(f"{self.source}: {self.samples} samples ({self.duration:.1f} s), "
                    f"model {', '.join(b.effects)}")
+        if self.model.per_ampere:
+            out.append(self.model.per_ampere_text)
         out.extend(describe(b.estimates.implausible))
         if self.after is not None:
             out.extend(f"after adding: {line}"
@@ -452,6 +455,8 @@ def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
             out.append(f"        {c.description}")
             if not c.identifiable:
                 out.append(f"        {c.reason}")
+            for r in c.search:
+                out.append(f"        {r.text()}")
             for e in c.evidence[:3]:
                 out.append(f"        evidence: {e}")
     else:

@@ -30,6 +30,7 @@ __all__ = [
     "Region",
     "OrderSpectrum",
     "Candidate",
+    "SearchResult",
     "Step",
     "Suggestion",
     "StructureItem",
@@ -236,6 +237,38 @@ class OrderSpectrum:
 
 
 @dataclass(frozen=True)
+class SearchResult:
+    """A parameter of a candidate the regression cannot estimate linearly (a Stribeck
+    speed, a Coulomb band, a user term's free parameter): the value found by the search
+    over ``grid`` (``lo`` .. ``hi``, ``points`` values) and the ΔBIC of the candidate
+    there, or the value set in the configuration, kept (``kept``)."""
+
+    key: str
+    label: str
+    unit: str
+    value: float
+    kept: bool
+    lo: float = math.nan
+    hi: float = math.nan
+    points: int = 0
+    delta_bic: float = math.nan
+
+    def text(self) -> str:
+        """``Stribeck speed 0.81 rad/s (searched 0.02..40 rad/s, 16 values: ΔBIC -3581)``."""
+        u = f" {self.unit}" if self.unit else ""
+        if self.kept:
+            return f"{self.label} {self.value:.4g}{u} (set in the configuration: kept)"
+        return (f"{self.label} {self.value:.4g}{u} (searched {self.lo:.3g}..{self.hi:.3g}{u}, "
+                f"{self.points} values: ΔBIC {self.delta_bic:.4g})")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"key": self.key, "label": self.label, "unit": self.unit,
+                "value": self.value, "kept": self.kept,
+                "searched": None if self.kept else [self.lo, self.hi, self.points],
+                "delta_bic": None if self.kept else self.delta_bic}
+
+
+@dataclass(frozen=True)
 class Candidate:
     """One effect of the library that the model lacks, evaluated against the residual.
 
@@ -245,7 +278,8 @@ class Candidate:
     when its column is not excited or (nearly) collinear with the model's columns;
     ``reason`` then says why. ``independence`` is the fraction of its column energy
     outside the span of the model's columns (1/VIF), ``excitation`` the RMS of its
-    normalised column.
+    filtered column over the compared rows, in the column's own unit (from the data: no
+    declared range enters it). ``search`` holds its nonlinear parameters, searched or kept.
     """
 
     effect: str
@@ -262,6 +296,7 @@ class Candidate:
     parameters: Mapping[str, tuple[float, str]]
     independence: float
     excitation: float
+    search: tuple[SearchResult, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {"effect": self.effect, "equation": self.equation,
@@ -272,7 +307,8 @@ class Candidate:
                 "evidence": list(self.evidence),
                 "parameters": {k: {"value": v, "unit": u}
                                for k, (v, u) in self.parameters.items()},
-                "independence": self.independence, "excitation": self.excitation}
+                "independence": self.independence, "excitation": self.excitation,
+                "search": [r.to_dict() for r in self.search]}
 
 
 @dataclass(frozen=True)

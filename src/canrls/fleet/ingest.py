@@ -6,12 +6,12 @@ whose hash the history already holds for this model is skipped), then
 :func:`canrls.processor.replay.fit_logs`, and where asked the diagnosis's candidate ranking
 (handed in as a ``ranker``: this layer does not import the diagnosis). A log that
 cannot be fitted becomes an error :class:`~canrls.fleet.records.Recording` naming the
-file and the reason. Where the history holds recordings of the model, :func:`ingest`
-has the workers hash the logs first, :data:`HASH_CHUNK` a task (the logs it holds are
-not sent to be fitted); then it fits the others, a task each, and stores the results as
-they arrive, in batches, with the history's insert-or-ignore: a worker
-killed mid-log (Dask runs its task again elsewhere), a run interrupted, or two runs at
-once still leave every recording stored exactly once.
+file and the reason. :func:`ingest` has the workers hash every log first
+(:data:`HASH_CHUNK` a task; the logs the history holds for the model are not sent to be
+fitted), then fit the others, and stores the results as they arrive, in batches, with
+the history's insert-or-ignore: a worker killed mid-log (Dask runs its task again
+elsewhere), a run interrupted, or two runs at once still leave every recording stored
+exactly once.
 """
 
 from __future__ import annotations
@@ -42,8 +42,8 @@ from canrls.fleet.records import (
 from canrls.fleet.sources import LogSource
 from canrls.processor.config import AppConfig, Overrides, load_config, prepare
 
-__all__ = ["JobConfig", "IngestJob", "IngestSummary", "Ranker", "content_hash", "ingest",
-           "ingest_one", "model_key", "RANK_MODES"]
+__all__ = ["JobConfig", "IngestJob", "IngestSummary", "Duplicate", "Ranker", "content_hash",
+           "ingest", "ingest_one", "hash_or_none", "model_key", "RANK_MODES"]
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ RANK_MODES = ("none", "auto", "all")
 #: log, best first (the command line hands in the diagnosis's ranking)
 Ranker = Callable[[str, Any, Any, Any, int], Sequence[CandidateValue]]
 
-#: logs hashed per task before the fits (a task per log cost more than the hash)
+#: logs hashed per task before the fits
 HASH_CHUNK = 64
 
 #: results stored per transaction at most, and the longest a result waits to be stored [s]
@@ -109,6 +109,19 @@ class JobConfig(Overrides):
 
 
 _PREPARED: dict[JobConfig, tuple[Any, Any, Any]] = {}
+
+
+def hash_or_none(path: str) -> str | None:
+    """:func:`content_hash`, None for a file that cannot be read (a worker's task)."""
+    try:
+        return content_hash(path)
+    except OSError:
+        return None
+
+
+def _hashes(paths: Sequence[str]) -> list[str | None]:
+    """:func:`hash_or_none` of each path (a worker's task)."""
+    return [hash_or_none(p) for p in paths]
 
 
 def _file_hash(path: str | None) -> str | None:
@@ -266,6 +279,23 @@ def rank_one(path: str, config: JobConfig, max_order: int,
 
 
 @dataclass(frozen=True)
+class Duplicate:
+    """A log listed again, under ``drive``, with the content of one listed before it
+    (``owner_path`` of ``owner``): stored once, under the first listed."""
+
+    path: str
+    drive: str
+    owner_path: str
+    owner: str
+
+    def format(self) -> str:
+        under = (f"listed again for drive {self.owner}" if self.drive == self.owner else
+                 f"listed for drive {self.drive}")
+        return (f"{self.path} ({under}) is the same log as {self.owner_path}: stored once, "
+                f"under drive {self.owner}")
+
+
+@dataclass(frozen=True)
 class IngestSummary:
     """What an ingest did."""
 
@@ -284,11 +314,14 @@ class IngestSummary:
     #: each worker's peak resident memory [bytes] (Dask only)
     worker_peak_rss: Mapping[str, int] = field(default_factory=dict)
     error_rows: tuple[tuple[str, str], ...] = ()
+    #: logs whose content another listed log has (stored once, under the first listed)
+    duplicates: tuple[Duplicate, ...] = ()
 
     def format(self) -> str:
         rate = self.total / self.elapsed_s * 60.0 if self.elapsed_s > 0 else math.nan
         lines = [f"{self.total} logs: {self.stored} stored, {self.skipped} already in the "
                  f"history, {self.errors} errors"
+                 + (f", {len(self.duplicates)} duplicates" if self.duplicates else "")
                  + (f", {self.already} stored meanwhile by another run" if self.already else "")
                  + (f", {len(self.failed)} not finished (rerun to take them)"
                     if self.failed else "")
@@ -298,6 +331,10 @@ class IngestSummary:
         if self.ranked:
             lines.append(f"candidate effects ranked on {self.ranked} recordings around "
                          f"residual changes")
+        for d in self.duplicates[:20]:
+            lines.append(f"  duplicate: {d.format()}")
+        if len(self.duplicates) > 20:
+            lines.append(f"  ... and {len(self.duplicates) - 20} more duplicates")
         for _, why in self.error_rows[:20]:
             lines.append(f"  error: {why}")
         if len(self.error_rows) > 20:
@@ -311,6 +348,7 @@ class IngestSummary:
                 "errors": self.errors, "already": self.already,
                 "failed": [{"path": p, "reason": r} for p, r in self.failed],
                 "error_rows": [{"path": p, "error": r} for p, r in self.error_rows],
+                "duplicates": [dataclasses.asdict(d) for d in self.duplicates],
                 "ranked": self.ranked, "elapsed_s": self.elapsed_s, "workers": self.workers,
                 "worker_peak_rss": dict(self.worker_peak_rss)}
 
@@ -364,9 +402,12 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
     if rank == "auto" and settings is None:
         settings = DetectionSettings.from_file(config.config)  # a bad table: before any log
     t0 = time.monotonic()
+    rejected = [(src.path, src.error) for src in sources if src.error]
     jobs: list[IngestJob] = []
     keys: dict[JobConfig, tuple[str, str]] = {}
     for src in sources:
+        if src.error:
+            continue
         cfg = config.for_source(src)
         if cfg not in keys:
             keys[cfg] = model_key(cfg)
@@ -379,13 +420,26 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
             history.forget_errors(key)
     known = {key: frozenset(history.known_hashes(key)) for key, _ in set(keys.values())}
     store = _Store(history)
-    skipped = 0
     failed: list[tuple[str, str]] = []
-    done = 0
     use_ranker = ranker if rank == "all" else None
+    # first the hashes (a read of each log, on the workers): the logs the history holds
+    # are not fitted again, and a log listed twice is fitted once
+    paths = [j.source.path for j in jobs]
+    if client is None:
+        hashes = [hash_or_none(p) for p in paths]
+    else:
+        # HASH_CHUNK logs a task: a task's round trip cost more than the hash of a log
+        chunks = [paths[i:i + HASH_CHUNK] for i in range(0, len(paths), HASH_CHUNK)]
+        hashes = [h for got in client.gather(client.map(_hashes, chunks, pure=False),
+                                             errors="raise") for h in got]
+    todo, duplicates = _plan(jobs, hashes, known)
+    skipped = done = len(jobs) - len(todo) - len(duplicates)
+    done += len(duplicates)
+    if progress is not None and done:
+        progress(done, len(jobs))
     try:
         if client is None:
-            for job in jobs:
+            for job in todo:
                 rec = ingest_one(job, known[job.key], use_ranker)
                 if rec is None:
                     skipped += 1
@@ -397,10 +451,6 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
         else:
             from distributed import as_completed
 
-            todo = _not_held(client, jobs, known)
-            skipped = done = len(jobs) - len(todo)
-            if progress is not None and done:
-                progress(done, len(jobs))
             futures = {client.submit(ingest_one, job, None, use_ranker, pure=False): job
                        for job in todo}
             try:
@@ -411,8 +461,10 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                         failed.append((job.source.path, f"{type(exc).__name__}: {exc}"))
                     else:
                         rec = fut.result()
-                        if rec is None or rec.content_hash in known[job.key]:
-                            skipped += 1  # (the log changed to one held since hashed)
+                        if rec is None:
+                            skipped += 1
+                        elif rec.content_hash in known[job.key]:  # changed since hashed
+                            skipped += 1
                         else:
                             store.add(rec)
                     fut.release()
@@ -434,39 +486,35 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
     if client is not None:
         peaks = worker_peak_rss(client)
         workers = len(peaks)
-    return IngestSummary(total=len(jobs), stored=store.stored, skipped=skipped,
-                         errors=store.errors, already=store.already, failed=tuple(failed),
-                         ranked=ranked, elapsed_s=time.monotonic() - t0, workers=workers,
-                         worker_peak_rss=peaks, error_rows=tuple(store.error_rows))
+    return IngestSummary(total=len(sources), stored=store.stored, skipped=skipped,
+                         errors=store.errors + len(rejected), already=store.already,
+                         failed=tuple(failed), ranked=ranked,
+                         elapsed_s=time.monotonic() - t0, workers=workers,
+                         worker_peak_rss=peaks,
+                         error_rows=tuple(rejected) + tuple(store.error_rows),
+                         duplicates=tuple(duplicates))
 
 
-def _hashes(paths: Sequence[str]) -> list[str | None]:
-    """:func:`content_hash` of each path, None for one that cannot be read (a
-    worker's task)."""
-    out: list[str | None] = []
-    for p in paths:
-        try:
-            out.append(content_hash(p))
-        except OSError:
-            out.append(None)
-    return out
-
-
-def _not_held(client: Any, jobs: Sequence[IngestJob],
-              known: Mapping[str, frozenset[str]]) -> list[IngestJob]:
-    """The jobs whose log the history does not hold for their model: hashed on the
-    workers, :data:`HASH_CHUNK` logs a task; none hashed for a model the history holds no
-    recording of (a task hashes its log again before it fits it: a log changed meanwhile
-    is not stored under the old hash)."""
-    ask = [j for j in jobs if known[j.key]]
-    if not ask:
-        return list(jobs)
-    chunks = [ask[i:i + HASH_CHUNK] for i in range(0, len(ask), HASH_CHUNK)]
-    got = client.gather(client.map(_hashes, [[j.source.path for j in c] for c in chunks],
-                                   pure=False), errors="raise")
-    held = {id(j) for c, hs in zip(chunks, got, strict=True)
-            for j, h in zip(c, hs, strict=True) if h is not None and h in known[j.key]}
-    return [j for j in jobs if id(j) not in held]
+def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],
+          known: Mapping[str, frozenset[str]]) -> tuple[list[IngestJob], list[Duplicate]]:
+    """The jobs to run: not those whose content the history holds for their model, and
+    of the logs with one content (a log listed twice, a copy under another name) only
+    the first listed; the others are returned as :class:`Duplicate`."""
+    todo: list[IngestJob] = []
+    duplicates: list[Duplicate] = []
+    first: dict[tuple[str, str], IngestJob] = {}
+    for job, digest in zip(jobs, hashes, strict=True):
+        if digest is not None and digest in known[job.key]:
+            continue
+        if digest is not None:
+            owner = first.setdefault((job.key, digest), job)
+            if owner is not job:
+                duplicates.append(Duplicate(path=job.source.path, drive=job.source.drive,
+                                            owner_path=owner.source.path,
+                                            owner=owner.source.drive))
+                continue
+        todo.append(job)
+    return todo, duplicates
 
 
 def _peak_rss() -> int:

@@ -43,6 +43,7 @@ from canrls.live.bus import BusLink, FrameQueue, command_rows, messages_to_block
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
 from canrls.live.history import HistoryHook
+from canrls.live.journal import JOURNAL, Journal
 from canrls.live.publisher import Publisher, check_publishable
 from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
@@ -188,6 +189,7 @@ class Daemon:
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
         self._history = history
         self._configuration = configuration or AppConfig(source="<canrls run>")
+        self._journal = Journal()
         self._commands = CommandHandler(
             proc, cfg.commands, self._link.send, self._set_model, self._publisher.clear_rms,
             max_parameters=cfg.max_parameters, check_model=self._check_model,
@@ -357,6 +359,8 @@ class Daemon:
             self._threads.append(t)
         log.info("canrls daemon running on %s: effects %s, %d parameters", self._link.info(),
                  ",".join(self.model.effect_names), len(self.model.parameters))
+        if self.model.per_ampere:
+            log.warning("%s", self.model.per_ampere_text)
 
     def stop(self) -> None:
         """Stop reading, process what was queued, publish that state, checkpoint, close
@@ -470,6 +474,8 @@ class Daemon:
         """An exception ended a thread: logged, kept (:attr:`failure`), the daemon stops."""
         log.critical("%s thread failed; stopping the daemon (exit status 1)", where,
                      exc_info=exc)
+        JOURNAL.error("fault: the %s thread failed (%s: %s); stopping", where,
+                      type(exc).__name__, exc)
         if self.failure is None:
             self.failure = exc
         self._stop_flag()
@@ -544,6 +550,7 @@ class Daemon:
                 last = closed and not q.queue
                 if pub.due(now) or last:  # the last: the state the daemon stops in
                     pub.publish(now)
+                    self._journal.published(self._link.info(), self.model, pub.last_status)
                     if self._history is not None:
                         self._history.offer(now, self._proc.pipeline.estimates, final=last)
                 if ckpt.due(now):
@@ -591,8 +598,7 @@ class Daemon:
     def _set_model(self, model: Model, why: str) -> None:
         self._proc.with_model(model)
         self._publisher.model_changed()
-        log.info("%s: model is now %s (%d parameters; estimation restarts)", why,
-                 ",".join(model.effect_names), len(model.parameters))
+        self._journal.model_changed(model, why)
 
     def _reload(self) -> None:
         self._c["reloads"] += 1

@@ -454,7 +454,8 @@ class FrameProcessor:
                       f"{t.message}.{t.signal} [{'N' if lin else 'N·m'}], no Kt")
         return AxisInfo(self.model.axis, self.protocol.axis,
                         {r: i.unit for r, i in self.protocol.roles.items()},
-                        self.protocol.mapping.ratings.as_dict(), target)
+                        self.protocol.mapping.ratings.as_dict(), target,
+                        self.model.per_ampere_text if self.model.per_ampere else None)
 
     def start_info(self) -> StartInfo:
         """The first frame's timestamp and, for an epoch time, its date (UTC)."""
