@@ -96,7 +96,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     r = ing.add_argument_group("candidate ranking (the diagnosis)")
     r.add_argument("--rank", choices=("none", "auto", "all"), default="none",
                    help="rank the effects the model lacks: 'auto' for the recordings around "
-                        "each residual change, 'all' for every log (default none)")
+                        "each residual change (as the [fleet] table of --config finds "
+                        "them), 'all' for every log (default none)")
     add_max_order_option(r, "the ranking searches")
     ing.add_argument("--retry-errors", action="store_true",
                      help="try the logs stored as errors again")
