@@ -10,6 +10,7 @@ smaller tests take a few of its drives.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -36,6 +37,7 @@ from postgres import postgres_server  # noqa: E402
 
 from canrls.cli.fleet import rank_candidates  # noqa: E402
 from canrls.cli.main import main  # noqa: E402
+from canrls.core.errors import ConfigError  # noqa: E402
 from canrls.fleet import detect  # noqa: E402
 from canrls.fleet.cluster import dask_client  # noqa: E402
 from canrls.fleet.detect import assess  # noqa: E402
@@ -348,6 +350,100 @@ def test_the_migrations_build_the_schema_the_code_uses(tmp_path: Path) -> None:
     assert diff == []
 
 
+#: a migration after 0001 as SQLite runs most of them: Alembic's batch mode copies the
+#: table into a new one and drops the old (SQLite alters little in place)
+_RECREATE_0002 = '''"""A test's migration: a column added to recordings by copying the table."""
+import sqlalchemy as sa
+from alembic import op
+
+revision = "0002"
+down_revision = "0001"
+branch_labels = None
+depends_on = None
+
+
+def upgrade() -> None:
+    with op.batch_alter_table("recordings", recreate="always") as b:
+        b.add_column(sa.Column("note", sa.Text, nullable=True))
+'''
+
+
+def _migrations_to_0002(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, body: str
+                        ) -> None:
+    """canrls's migration scripts copied, with a 0002 of ``body`` after them."""
+    import shutil
+
+    from canrls.fleet import history as history_mod
+
+    mig = tmp_path / "migrations"
+    shutil.copytree(history_mod.MIGRATIONS, mig, ignore=shutil.ignore_patterns("__pycache__"))
+    (mig / "versions" / "0002_test.py").write_text(body)
+    monkeypatch.setattr(history_mod, "MIGRATIONS", mig)
+
+
+def test_a_history_of_an_older_schema_is_migrated_with_nothing_lost(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A history at revision 0001 with data, opened by a canrls whose migrations go one
+    further (the scripts copied, a 0002 that copies the recordings table): ``fleet
+    report`` (no upgrade) refuses it naming both revisions; ``History.open`` upgrades it
+    and every drive, recording, parameter and candidate is kept, the new column null."""
+    from canrls.fleet.records import CandidateValue
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    cand = (CandidateValue(rank=1, effect="cogging[6]", explained=0.4, delta_bic=-30.0,
+                           rms_after=1e-3, identifiable=True, suggested=True),)
+    recs = [dataclasses.replace(r, id=None, candidates=cand if r.drive == "d5" else None)
+            for r in pump_fleet(logs, drift=True)]
+    db = tmp_path / "old.db"
+    with History.open(db) as h:
+        assert h.revision() == "0001"
+        h.store(recs)
+        before = _rows(h), [r.candidates for r in h.recordings()]
+        assessed = assess(h.recordings()).to_dict()["drives"]
+    _migrations_to_0002(tmp_path, monkeypatch, _RECREATE_0002)
+    with pytest.raises(ConfigError, match="schema revision '0001', this canrls needs '0002'"):
+        History.open(db, upgrade=False)
+    with History.open(db) as h:
+        assert h.revision() == "0002"
+        assert (_rows(h), [r.candidates for r in h.recordings()]) == before
+        assert assess(h.recordings()).to_dict()["drives"] == assessed
+    con = sqlite3.connect(db)
+    try:
+        assert con.execute("SELECT COUNT(*), COUNT(note) FROM recordings").fetchone() == (36, 0)
+        assert con.execute("SELECT COUNT(*) FROM parameters").fetchone() == (72,)
+        assert con.execute("SELECT COUNT(*) FROM candidates").fetchone() == (6,)
+        assert con.execute("PRAGMA foreign_key_check").fetchall() == []
+    finally:
+        con.close()
+
+
+def test_a_migration_that_orphans_rows_is_rolled_back(tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch
+                                                      ) -> None:
+    """A 0002 that leaves parameters of a recording it deleted: refused, the history
+    left at 0001 with every row."""
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    db = tmp_path / "old.db"
+    with History.open(db) as h:
+        h.store([dataclasses.replace(r, id=None) for r in pump_fleet(logs)])
+    _migrations_to_0002(tmp_path, monkeypatch, _RECREATE_0002.replace(
+        '    with op.batch_alter_table("recordings", recreate="always") as b:\n'
+        '        b.add_column(sa.Column("note", sa.Text, nullable=True))\n',
+        '    op.execute("DELETE FROM recordings WHERE id = 1")\n'))
+    with pytest.raises(ConfigError, match=r"the migration left rows of parameters "
+                                          r"pointing at rows that are not there \(1\); "):
+        History.open(db)
+    con = sqlite3.connect(db)
+    try:
+        assert con.execute("SELECT version_num FROM alembic_version").fetchone() == ("0001",)
+        assert con.execute("SELECT COUNT(*) FROM recordings").fetchone() == (36,)
+        assert con.execute("SELECT COUNT(*) FROM parameters").fetchone() == (36,)
+    finally:
+        con.close()
+
+
 def test_a_newer_history_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]
                                     ) -> None:
     db = tmp_path / "new.db"
@@ -474,6 +570,76 @@ def test_ingest_cli_in_process_with_a_pattern_and_errors(fleet: dict[str, Any], 
         "4 logs: 0 stored, 3 already in the history, 1 errors")
 
 
+def _residual_rise(logs: Path, key: str, desc: str) -> list[Any]:
+    """Six pumps recorded weekly, ``d2``'s residual 30 % higher from the sixth week:
+    below the default size that matters for the residual (50 %), above 20 %. Each
+    recording's log is a small file whose hash it carries (a rerun holds them all)."""
+    import hashlib
+
+    from canrls.fleet.records import ParameterValue, Recording
+
+    rng = np.random.default_rng(33)
+    recs = []
+    for i in range(6):
+        for k in range(10):
+            p = logs / f"d{i}-{k}.log"
+            p.write_bytes(f"pump {i} week {k}\n".encode())
+            rise = 1.3 if i == 2 and k >= 5 else 1.0
+            recs.append(Recording(
+                drive=f"d{i}", drive_type="pump",
+                content_hash=hashlib.sha256(p.read_bytes()).hexdigest(), model_key=key,
+                model=desc, path=str(p), t_start=1.7e9 + 7 * 86400 * k,
+                residual_rms=1e-3 * (1 + 0.01 * rng.standard_normal()) * rise,
+                parameters=(ParameterValue("inertia.J", 1e-3 * (
+                    1 + 0.01 * rng.standard_normal()), 1e-6, unit="kg·m²"),)))
+    return recs
+
+
+def test_rank_auto_takes_the_detection_of_fleet_in_config(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``fleet ingest --rank auto --config FILE`` ranks around the residual changes that
+    FILE's ``[fleet]`` table finds (as ``fleet report --config FILE`` alerts on them), not
+    those of the default settings; a bad ``[fleet]`` key stops it before any log."""
+    from canrls.cli import fleet as cli_fleet
+    from canrls.fleet.records import CandidateValue
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    cfg = tmp_path / "plant.toml"
+    cfg.write_text("[fleet]\nmin_change = { residual_rms = 0.2 }\n")
+    key, desc = model_key(JobConfig(config=str(cfg), effects=FLEET_EFFECTS, kt=FLEET_KT))
+    assert key == model_key(CONFIG)[0]  # [fleet] is not part of the model
+    db = tmp_path / "h.db"
+    with History.open(db) as h:
+        h.store(_residual_rise(logs, key, desc))
+    ranked: list[str] = []
+
+    def ranker(path: str, *_: Any) -> list[Any]:  # the logs are not CAN logs
+        ranked.append(Path(path).name)
+        return [CandidateValue(rank=1, effect="cogging[6]", explained=0.5, delta_bic=-40.0,
+                               rms_after=1e-3, identifiable=True, suggested=True)]
+
+    monkeypatch.setattr(cli_fleet, "rank_candidates", ranker)
+    argv = ["fleet", "ingest", str(logs / "{drive}-*.log"), "--db", str(db), "--workers",
+            "0", "--quiet", "--rank", "auto", *MODEL_ARGS]
+    assert main(argv) == 0  # the defaults: a rise of 30 % is no change that matters
+    assert capsys.readouterr().out.startswith("60 logs: 0 stored, 60 already")
+    assert ranked == []
+    assert main([*argv, "--config", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "candidate effects ranked on 4 recordings" in out
+    assert sorted(ranked) == ["d2-3.log", "d2-4.log", "d2-8.log", "d2-9.log"]
+    with History.open(db) as h:
+        assert sum(1 for r in h.recordings() if r.candidates) == 4
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[fleet]\nmin_chnage = 0.2\n")
+    assert main([*argv, "--config", str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {bad}: unknown key fleet.min_chnage") and \
+        err.count("\n") == 1
+
+
 @pytest.mark.parametrize(("argv", "message"), [
     (["fleet", "ingest", "logs/*.log"], "error: pattern 'logs/*.log': needs a {drive} field"),
     (["fleet", "ingest", "nowhere/{drive}/*.log"], "error: pattern 'nowhere/{drive}/*.log': "
@@ -504,8 +670,6 @@ def test_errors_are_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
 ])
 def test_manifest_errors_name_the_line_and_field(tmp_path: Path, text: str,
                                                  message: str) -> None:
-    from canrls.core.errors import ConfigError
-
     (tmp_path / "x.log").write_text("")
     m = tmp_path / "m.csv"
     m.write_text(text)

@@ -108,7 +108,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     r = ing.add_argument_group("candidate ranking (the diagnosis)")
     r.add_argument("--rank", choices=("none", "auto", "all"), default="none",
                    help="rank the effects the model lacks: 'auto' for the recordings around "
-                        "each residual change, 'all' for every log (default none)")
+                        "each residual change (as the [fleet] table of --config finds "
+                        "them), 'all' for every log (default none)")
     add_max_order_option(r, "the ranking searches")
     ing.add_argument("--retry-errors", action="store_true",
                      help="try the logs stored as errors again")
@@ -206,14 +207,10 @@ def run_report(args: argparse.Namespace) -> int:
     from canrls.fleet.history import History, history_url, redact, sqlite_path
     from canrls.fleet.records import STATUS_OK
     from canrls.fleet.report import report_dict, write_html
-    from canrls.processor.config import AppConfig
 
     if not args.out and not args.json:
         raise ConfigError("fleet report: give --out DIR (HTML) or --json (or both)")
-    settings = DetectionSettings()
-    if args.config:
-        settings = DetectionSettings.from_table(AppConfig.load(args.config).fleet,
-                                                args.config)
+    settings = DetectionSettings.from_file(args.config)
     if args.alpha is not None:
         if not 0 < args.alpha < 1:
             raise ConfigError(f"--alpha {args.alpha}: must be between 0 and 1")

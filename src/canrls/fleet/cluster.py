@@ -321,8 +321,12 @@ def _client(distributed: Any, scheduler: str | None, workers: int | None,
 
     # the workers' statistical profiler samples the task's stack every 10 ms: on a log's
     # fit (a C loop called from Python, many short calls) it cost a third of the
-    # wall time; the nannies hand this configuration to their workers
-    with dask.config.set({"distributed.worker.profile.enabled": False}):
+    # wall time; the nannies hand this configuration to their workers. Dask's
+    # MALLOC_TRIM_THRESHOLD_ (glibc hands freed memory back at 64 KiB) made each fit's
+    # block buffers fresh pages again: a third slower; None leaves glibc's own rule
+    with dask.config.set({"distributed.worker.profile.enabled": False,
+                          "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_":
+                          None}):
         cluster = distributed.LocalCluster(
             n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
             # the scheduler's HTTP server starts anyway (8787 unless told): a free port

@@ -159,6 +159,19 @@ class DetectionSettings:
                 kw[k] = float(v)
         return cls(**kw)
 
+    @classmethod
+    def from_file(cls, path: str | None) -> DetectionSettings:
+        """The settings of the ``[fleet]`` table of the TOML file ``path`` (the defaults
+        without a file or a table).
+
+        :raises ConfigError: the file cannot be read, or its ``[fleet]`` table is bad.
+        """
+        if path is None:
+            return cls()
+        from canrls.processor.config import AppConfig
+
+        return cls.from_table(AppConfig.load(path).fleet, path)
+
     def least_change(self, series: str) -> float:
         """The least relative change of ``series`` that matters (0: none but the
         drive's usual scatter, for an offset or a harmonic)."""

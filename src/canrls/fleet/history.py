@@ -391,6 +391,8 @@ class History:
                 if current not in heads:
                     cfg.attributes["connection"] = conn
                     command.upgrade(cfg, "head")
+                    if self.engine.dialect.name == "sqlite":
+                        self._foreign_keys_hold(conn)
         self._check_tables()
 
     @contextmanager
@@ -402,17 +404,35 @@ class History:
         if self.engine.dialect.name == "sqlite":
             with self.engine.connect() as raw:
                 conn = raw.execution_options(isolation_level="AUTOCOMMIT")
-                conn.exec_driver_sql("BEGIN IMMEDIATE")
+                # SQLite alters a table by copying it and dropping the old one, and a
+                # drop with foreign keys on deletes every parameter and candidate of it
+                # (ON DELETE CASCADE): off for the migration (outside the transaction, or
+                # SQLite ignores it), checked before the commit (_foreign_keys_hold)
+                conn.exec_driver_sql("PRAGMA foreign_keys=OFF")
                 try:
-                    yield conn
-                except BaseException:
-                    conn.exec_driver_sql("ROLLBACK")
-                    raise
-                conn.exec_driver_sql("COMMIT")
+                    conn.exec_driver_sql("BEGIN IMMEDIATE")
+                    try:
+                        yield conn
+                    except BaseException:
+                        conn.exec_driver_sql("ROLLBACK")
+                        raise
+                    conn.exec_driver_sql("COMMIT")
+                finally:
+                    conn.exec_driver_sql("PRAGMA foreign_keys=ON")
             return
         with self.engine.begin() as conn:
             conn.execute(sa.select(sa.func.pg_advisory_xact_lock(SCHEMA_LOCK)))
             yield conn
+
+    def _foreign_keys_hold(self, conn: Any) -> None:
+        """Refuse a migrated SQLite history whose rows point at rows that are not there
+        (the migration is rolled back)."""
+        bad = conn.exec_driver_sql("PRAGMA foreign_key_check").fetchall()
+        if bad:
+            tables = sorted({str(row[0]) for row in bad})
+            raise ConfigError(f"history {self.shown}: the migration left rows of "
+                              f"{', '.join(tables)} pointing at rows that are not there "
+                              f"({len(bad)}); nothing was changed")
 
     def _refuse_foreign(self, conn: Any) -> None:
         """An unversioned database with tables of this schema, or a SQLite file with any

@@ -6,11 +6,12 @@ whose hash the history already holds for this model is skipped), then
 :func:`canrls.processor.replay.fit_logs`, and where asked the diagnosis's candidate ranking
 (handed in as a ``ranker``: this layer does not import the diagnosis). A log that
 cannot be fitted becomes an error :class:`~canrls.fleet.records.Recording` naming the
-file and the reason. :func:`ingest` has the workers hash every log first (the logs the
-history holds for the model are not sent to be fitted), then fit the others, and stores
-the results as they arrive, in batches, with the history's insert-or-ignore: a worker
-killed mid-log (Dask runs its task again elsewhere), a run interrupted, or two runs at
-once still leave every recording stored exactly once.
+file and the reason. :func:`ingest` has the workers hash every log first
+(:data:`HASH_CHUNK` a task; the logs the history holds for the model are not sent to be
+fitted), then fit the others, and stores the results as they arrive, in batches, with
+the history's insert-or-ignore: a worker killed mid-log (Dask runs its task again
+elsewhere), a run interrupted, or two runs at once still leave every recording stored
+exactly once.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from typing import Any
 from canrls import __version__
 from canrls.core.errors import CanrlsError, StallError
 from canrls.fleet import cluster
+from canrls.fleet.detect import DetectionSettings, assess, to_rank
 from canrls.fleet.history import History
 from canrls.fleet.records import (
     SOURCE_LOG,
@@ -53,6 +55,9 @@ RANK_MODES = ("none", "auto", "all")
 #: ``ranker(path, protocol, model, settings, max_order)``: the candidate effects of one
 #: log, best first (the command line hands in the diagnosis's ranking)
 Ranker = Callable[[str, Any, Any, Any, int], Sequence[CandidateValue]]
+
+#: logs hashed per task before the fits
+HASH_CHUNK = 64
 
 #: results stored per transaction at most, and the longest a result waits to be stored [s]
 BATCH = 64
@@ -113,6 +118,11 @@ def hash_or_none(path: str) -> str | None:
         return content_hash(path)
     except OSError:
         return None
+
+
+def _hashes(paths: Sequence[str]) -> list[str | None]:
+    """:func:`hash_or_none` of each path (a worker's task)."""
+    return [hash_or_none(p) for p in paths]
 
 
 def _file_hash(path: str | None) -> str | None:
@@ -379,18 +389,23 @@ class _Store:
 def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
            client: Any = None, rank: str = "none", ranker: Ranker | None = None,
            max_order: int = 64, progress: Callable[[int, int], None] | None = None,
-           retry_errors: bool = False, stall_timeout: float | None = None) -> IngestSummary:
+           retry_errors: bool = False, stall_timeout: float | None = None,
+           settings: DetectionSettings | None = None) -> IngestSummary:
     """Ingest ``sources`` into ``history``: on the Dask ``client``'s cluster, or in this
     process (``client=None``). ``rank``: one of :data:`RANK_MODES` (needs ``ranker``).
     ``progress(done, total)`` after each log. ``retry_errors``: forget the error rows of
     this model first, so their logs are tried again. ``stall_timeout``: the longest the
     cluster may go without any result (default :data:`~canrls.fleet.cluster.STALL_TIMEOUT`).
+    ``settings``: the detection that picks the recordings ``rank="auto"`` ranks (default:
+    the ``[fleet]`` table of ``config``'s file, as ``fleet report --config`` reads it).
 
     :raises StallError: the cluster stopped answering; what arrived is stored, and the
         message says how much.
     """
     if rank not in RANK_MODES:
         raise ValueError(f"rank {rank!r} not one of {RANK_MODES}")
+    if rank == "auto" and settings is None:
+        settings = DetectionSettings.from_file(config.config)  # a bad table: before any log
     stall = cluster.STALL_TIMEOUT if stall_timeout is None else stall_timeout
     t0 = time.monotonic()
     rejected = [(src.path, src.error) for src in sources if src.error]
@@ -419,11 +434,13 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
     if client is None:
         hashes = [hash_or_none(p) for p in paths]
     else:
-        futs = client.map(hash_or_none, paths, pure=False)
+        # HASH_CHUNK logs a task: a task's round trip cost more than the hash of a log
+        chunks = [paths[i:i + HASH_CHUNK] for i in range(0, len(paths), HASH_CHUNK)]
+        futs = client.map(_hashes, chunks, pure=False)
         try:
             for _ in cluster.finished(futs, _address(client), stall):
                 pass
-            hashes = [cluster.result(f, _address(client), stall) for f in futs]
+            hashes = [h for f in futs for h in cluster.result(f, _address(client), stall)]
         except StallError as e:
             raise _stall(e, 0, len(jobs)) from None
     todo, duplicates = _plan(jobs, hashes, known)
@@ -476,7 +493,7 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
         try:
             ranked = _rank_changes(history, {k for k, _ in keys.values()},
                                    {j.source.path: j.config for j in jobs}, client, ranker,
-                                   max_order, stall)
+                                   max_order, stall, settings)
         except StallError as e:
             raise StallError(f"{e}; every log stored, not the candidate ranking: run again "
                              f"for it") from None
@@ -547,15 +564,14 @@ def worker_peak_rss(client: Any) -> dict[str, int]:
 
 def _rank_changes(history: History, model_keys: Iterable[str],
                   configs: Mapping[str, JobConfig], client: Any, ranker: Ranker,
-                  max_order: int, stall: float) -> int:
-    """Rank the candidate effects of the recordings around each residual change that has
-    no ranking yet (``rank="auto"``); returns how many were ranked."""
-    from canrls.fleet.detect import assess, to_rank
-
+                  max_order: int, stall: float, settings: DetectionSettings | None) -> int:
+    """Rank the candidate effects of the recordings around each residual change (as
+    ``settings`` find them) that has no ranking yet (``rank="auto"``); returns how many
+    were ranked."""
     todo: list[tuple[int, str, JobConfig]] = []
     for key in model_keys:
         recs = history.recordings(model_key=key)
-        for rid, path in to_rank(assess(recs)):
+        for rid, path in to_rank(assess(recs, settings=settings)):
             cfg = configs.get(path)
             if cfg is not None and Path(path).is_file():
                 todo.append((rid, path, cfg))
