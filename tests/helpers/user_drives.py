@@ -1,10 +1,12 @@
 """Drives in users' DBCs, shared by the tests: a Motorola DBC with 32-bit signals (the
-processor's scaling tests and the firmware's) and a CiA 402 drive's log written through
-cantools (the torque-drive tests and the firmware's)."""
+processor's scaling tests and the firmware's), a CiA 402 drive's log written through
+cantools (the torque-drive tests and the firmware's) and an ODrive-style CANSimple
+drive's float32 frames with NaN, infinity and values out of range among them."""
 
 from __future__ import annotations
 
 import math
+import struct
 from pathlib import Path
 
 import can
@@ -14,6 +16,13 @@ import numpy as np
 from canrls.sim.scenario import SimResult
 
 CIA402_DBC = Path(__file__).resolve().parents[1] / "data" / "cia402_drive.dbc"
+ODRIVE_DBC = Path(__file__).resolve().parents[1] / "data" / "odrive_cansimple.dbc"
+ODRIVE_SIGNALS = ["speed=Get_Encoder_Estimates.Vel_Estimate",
+                  "position=Get_Encoder_Estimates.Pos_Estimate", "current=Get_Iq.Iq_Measured"]
+#: what the ODrive-style log sends instead of the velocity, every 397th sample: NaN,
+#: infinities, beyond the DBC's 200 rev/s and beyond float32's integers; -0.0 and a
+#: subnormal pass
+ODRIVE_BAD = (math.nan, math.inf, -math.inf, 200.5, -3e38, 1e9, -0.0, 1e-40)
 #: the CiA 402 drive's ratings: rated torque 0x6076 [N·m], rated current 0x6075 [A], encoder
 RATED_TORQUE, RATED_CURRENT, INCREMENTS = 0.32, 3.2, 131072
 
@@ -60,6 +69,25 @@ def cia402_log(res: SimResult, path: Path) -> None:
             d2 = tpdo2.encode({"PositionActual": round(position[k] * turns),
                                "VelocityActual": round(m.speed[k] * turns)})
             for dt, fid, data in ((0.0, 0x181, d1), (1e-4, 0x281, d2)):
+                w.on_message_received(can.Message(timestamp=float(m.t[k]) + dt,
+                                                  arbitration_id=fid, is_extended_id=False,
+                                                  data=data))
+
+
+def odrive_log(res: SimResult, path: Path) -> None:
+    """The measured run as an ODrive-style CANSimple drive sends it (node 1): the encoder
+    estimates (turns, turns/s) and the q-axis current as little-endian float32, with
+    :data:`ODRIVE_BAD` in place of the velocity now and then."""
+    m = res.measured
+    assert m.current is not None
+    turns = np.unwrap(m.position) / (2 * math.pi)   # the position estimate is multi-turn
+    vel = m.speed / (2 * math.pi)
+    with can.CanutilsLogWriter(str(path)) as w:
+        for k in range(len(m)):
+            v = float(vel[k]) if k % 397 != 396 else ODRIVE_BAD[(k // 397) % len(ODRIVE_BAD)]
+            frames = ((0.0, 0x034, struct.pack("<ff", 0.0, float(m.current[k]))),
+                      (1e-4, 0x029, struct.pack("<ff", float(turns[k]), v)))
+            for dt, fid, data in frames:
                 w.on_message_received(can.Message(timestamp=float(m.t[k]) + dt,
                                                   arbitration_id=fid, is_extended_id=False,
                                                   data=data))

@@ -83,6 +83,17 @@ def _tables(tm: TargetModel) -> tuple[str, str, str, str]:
     return "\n".join(rows), msgs, filters, fmts
 
 
+def _floats(tm: TargetModel) -> str:
+    """The README's paragraph on the float signals (empty without one)."""
+    said = [f"{role} (float{f.length}, raw = round(v 2^{f.frac}))"
+            for role, f in tm.roles.items() if f.is_float]
+    if not said:
+        return ""
+    return ("\nFloat signals are decoded with integer operations into fixed point: "
+            + ", ".join(said) + ", half away from zero; a NaN, an infinity or a value "
+            "outside the DBC's range rejects the frame (`CANRLS_R_RANGE`).\n")
+
+
 def _use(tm: TargetModel) -> str:
     """The README's C example: start, the call per frame and what to do with the
     parameters (sent in canrls' frames, or read by the caller)."""
@@ -207,7 +218,7 @@ they arrive within half a control period of its first{pairing}):
 | message | ID | DLC | E2E CRC | alive counter |
 |---|---|---|---|---|
 {msgs}
-
+{_floats(tm)}
 Parameters (`canrls_target_theta` index; column exponent at the start):
 
 | i | parameter | unit | equation | exponent |
