@@ -39,9 +39,11 @@ def _canrls(argv: list[str]) -> str:
     return buf.getvalue()
 
 
-def _check(log: Path, fit_args: list[str], tmp: Path, test_c: bool = True) -> dict[str, Any]:
+def _check(log: Path, fit_args: list[str], tmp: Path, test_c: bool = True,
+           fixed: str | None = "target") -> dict[str, Any]:
     saved = tmp / "m.json"
-    fit = json.loads(_canrls(["fit", str(log), *fit_args, "--fixed", "target", "--save-model",
+    how = ["--fixed", fixed] if fixed else []
+    fit = json.loads(_canrls(["fit", str(log), *fit_args, *how, "--save-model",
                               str(saved), "--json", "--quiet"]))
     names = list(fit["parameters"])
     fixed = [fit["parameters"][n]["fixed"] for n in names]
@@ -155,3 +157,28 @@ def test_the_readme_walks_from_a_log_to_a_passing_target_test(tmp_path: Path) ->
     # what the README says the test prints, it prints
     said = re.search(r"`(canrls replay: [^`]*)`", part.replace("\n", " "))
     assert said is not None and said.group(1) in out, (said, out)
+
+
+def test_fit_the_daemon_and_the_exported_c_agree_bit_for_bit_by_default(tmp_path: Path) -> None:
+    """One integer path: a plain ``canrls fit`` prints the target's fixed column, the
+    daemon publishes the same values from the same frames, and the exported C of the
+    saved model reproduces them (``make test``)."""
+    from canrls.can.logs import read_frames
+    from canrls.cli.main import build_parser
+    from canrls.cli.run import build_daemon
+
+    log = tmp_path / "drive.log"
+    effects = "inertia,viscous,coulomb,offset,unbalance"
+    _canrls(["sim", "--out", str(log), "--duration", "6", "--effects", effects, "--seed", "9"])
+    fit = _check(log, ["--kt", "0.1", "-e", effects], tmp_path, fixed=None)
+    assert fit["fixed"]["path"] == "target"
+    # the daemon as 'canrls run' builds it, fed the log's frames in blocks of its own
+    d = build_daemon(build_parser("run").parse_args(
+        ["run", "-i", "virtual", "-c", "unused-one-path", "--kt", "0.1", "-e", effects]))
+    try:
+        for b in read_frames(log):
+            d.process(b)
+        live = {p.name: p.fixed_value for p in d.parameter_reports()}
+    finally:
+        d.stop()
+    assert live == {n: p["fixed"] for n, p in fit["parameters"].items()}

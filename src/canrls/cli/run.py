@@ -140,8 +140,11 @@ def build_daemon(args: argparse.Namespace) -> Any:
     history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over)) \
         if cfg.history else None
     try:
+        from canrls.firmware.live import LiveTarget
+
         return Daemon(protocol, model, settings, dset, bus=bus_config(cfg),
-                      reload=reloaded_model, history=history, configuration=cfg)
+                      reload=reloaded_model, history=history, configuration=cfg,
+                      fixed_path=LiveTarget(protocol, settings))
     except BaseException:
         if history is not None:
             history.close()
