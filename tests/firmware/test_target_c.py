@@ -175,6 +175,25 @@ def test_the_cortex_m4_objects_hold_no_floating_point(drives: dict[str, dict[str
     assert re.search(r"__aeabi_[df]", nm)
 
 
+def test_the_export_replays_on_the_cortex_m4_with_its_stack_and_state(
+        drives: dict[str, dict[str, Any]]) -> None:
+    """``make test-m4`` of an export: bit for bit on a Cortex-M4 under QEMU, then the
+    deepest stack and the state, within what docs/target.md states (the ODrive-style
+    float32 drive and canrls' own)."""
+    need_tool("arm-none-eabi-gcc", ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"])
+    need_tool("qemu-system-arm", ["qemu-system-arm"])
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "target.md").read_text()
+    m = re.search(r"stack below (\d+) B and the state at (\d+) B", doc)
+    assert m is not None
+    stack_max, state = int(m.group(1)), int(m.group(2))
+    for name in ("own", "odrive"):
+        out = _make(drives[name]["out"], "test-m4")
+        assert "bit-exact with the specification" in out, out
+        got = re.search(r"stack: (\d+) bytes; state \(canrls_target\): (\d+) bytes", out)
+        assert got is not None, out
+        assert 0 < int(got.group(1)) < stack_max and int(got.group(2)) == state, out
+
+
 def test_a_difference_fails_the_test(drives: dict[str, dict[str, Any]], tmp_path: Path) -> None:
     # the replay can fail: one published word changed in the vectors
     import shutil
@@ -189,6 +208,22 @@ def test_a_difference_fails_the_test(drives: dict[str, dict[str, Any]], tmp_path
     v.write_text(head + "vec_pub_data" + tail)
     r = subprocess.run(["make", "-s", "-C", str(out), "test"], capture_output=True, text=True)
     assert r.returncode != 0 and "1 differ from the specification" in r.stdout, r.stdout
+    # the first sample that differs and which value: the publication's first frame
+    first = (r"first difference: sample \d+ \(frame \d+\), publication 0, frame 0 "
+             r"\(bytes 0\.\.3 little endian\): expected -?\d+, got -?\d+")
+    assert re.search(first, r.stdout), r.stdout
+    # and a word of a state record: named by its place in the record
+    v.write_text(text)
+    head, tail = text.split("vec_cp[", 1)
+    k = tail.index("{") + 1
+    w = list(re.finditer(r"-?\d+", tail[k:]))[30]   # word 30 of the first record
+    tail = tail[:k + w.start()] + str(int(w.group()) + 1) + tail[k + w.end():]
+    v.write_text(head + "vec_cp[" + tail)
+    r = subprocess.run(["make", "-s", "-C", str(out), "test"], capture_output=True, text=True)
+    m = re.search(r"first difference: sample (\d+) \(frame \d+\), state (.+) of equation 0: "
+                  r"expected (-?\d+), got (-?\d+)", r.stdout)
+    assert r.returncode != 0 and m is not None, r.stdout
+    assert m.group(1) == "1000" and int(m.group(3)) == int(m.group(4)) + 1
 
 
 def test_the_rescales_and_the_pending_columns_run_on_the_target(
