@@ -11,6 +11,7 @@ replays through ``canrls_target_frame`` and compares word for word: the host tes
 
 from __future__ import annotations
 
+import collections
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,13 +46,18 @@ class Vectors:
 
 
 def log_frames(paths: Iterable[str | Path], tick_s: float = 1e-6) -> Iterator[Frame]:
-    """The frames of logs, times in ticks from the first frame (:func:`block_frames`)."""
-    from canrls.can.logs import read_frames
+    """The frames of logs, times in ticks from the first frame (:func:`block_frames`); a
+    log without a frame is refused as ``canrls fit`` refuses it."""
+    from canrls.can.logs import empty_log_error, read_frames
 
     t0: list[float] = []
     for path in paths:
+        read = 0
         for b in read_frames(path):
+            read += len(b)
             yield from block_frames(b, t0, tick_s)
+        if not read:  # refused as canrls fit refuses it
+            raise empty_log_error(path)
 
 
 def block_frames(b: FrameBlock, t0: list[float], tick_s: float = 1e-6) -> Iterator[Frame]:
@@ -90,13 +96,23 @@ def record(model: TargetModel, frames: Iterable[Frame], every: int = 1000,
     and after the last frame, every publication's frames."""
     est = TargetEstimator(model)
     v = Vectors(source=source, every=every)
+    mapped = {(m.id, m.extended) for m in model.messages}
+    seen: collections.Counter[int] = collections.Counter()
     for k, (t, fid, ext, data) in enumerate(frames):
+        if not mapped.isdisjoint(((fid, ext),)):
+            mapped = set()  # one mapped frame came: no more counting
+        elif mapped:
+            seen[fid] += 1
         v.frames.append((t, fid, ext, data))
         r = est.frame(fid, ext, data, t)
         if r & PUBLISH:
             v.publications.append((k, est.publish()))
         if r & SAMPLE and est.samples % every == 0:
             v.checkpoints.append((k, state_record(est)))
+    if mapped:  # none of the frames is a mapped message: refused as canrls fit refuses it
+        from canrls.processor.frames import unmapped_error
+
+        raise unmapped_error(model.protocol, len(v.frames), seen.most_common(8))
     if v.frames and (not v.checkpoints or v.checkpoints[-1][0] != len(v.frames) - 1):
         v.checkpoints.append((len(v.frames) - 1, state_record(est)))
     v.samples = est.samples
