@@ -173,8 +173,8 @@ __attribute__((noinline)) void canrls_replay_frames(canrls_target *S, uint32_t a
             if (R->published + 1u > VEC_PUBLICATIONS || vec_pub_frame[R->published] != k
                 || vec_pub_count[R->published] != n) {
                 /* a publication where none is expected, or of another count of frames */
-                differ(R, S, k, 2u, n, R->published < VEC_PUBLICATIONS
-                       ? (int64_t)vec_pub_count[R->published] : 0, (int64_t)n);
+                differ(R, S, k, 2u, n, R->published + 1u > VEC_PUBLICATIONS
+                       ? 0 : (int64_t)vec_pub_count[R->published], (int64_t)n);
             } else {
                 for (i = 0; i < n; i++) {
                     if (out[i].id != vec_pub_id[R->pub_base + i]
