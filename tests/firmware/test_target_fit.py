@@ -182,3 +182,22 @@ def test_fit_the_daemon_and_the_exported_c_agree_bit_for_bit_by_default(tmp_path
     finally:
         d.stop()
     assert live == {n: p["fixed"] for n, p in fit["parameters"].items()}
+
+
+def test_a_model_the_target_cannot_run_takes_the_kernel_and_says_why(tmp_path: Path) -> None:
+    log = tmp_path / "drive.log"
+    _canrls(["sim", "--out", str(log), "--duration", "4", "--seed", "8"])
+    cfg = tmp_path / "drive.toml"
+    cfg.write_text('[model]\neffects = ["inertia", "viscous", "user:drag"]\nkt = 0.1\n'
+                   '[[model.terms]]\nname = "drag"\nexpr = "omega * abs(omega)"\n'
+                   'range = [-1e4, 1e4]\n')
+    text = _canrls(["fit", str(log), "--config", str(cfg), "--quiet"])
+    assert ("fixed point: the kernel on the float front end (the target cannot run this "
+            "model:") in text and "user term" in text, text
+    fit = json.loads(_canrls(["fit", str(log), "--config", str(cfg), "--quiet", "--json"]))
+    assert fit.get("fixed") is None and "user term" in fit["fixed_kernel"]
+    # asked for by name, the target's path is an error
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
+        assert main(["fit", str(log), "--config", str(cfg), "--fixed", "target"]) == 1
+    assert "error:" in buf.getvalue() and "user term" in buf.getvalue()
