@@ -234,7 +234,7 @@ def main(work: Path, sizes_n: tuple[int, ...] = (4, 6, 8), duration: float = 5.0
         elf = work / f"whole_n{n}.elf"
         build_example(src, elf, defines=(f"-DCANRLS_N={n}",))
         rc, text = run_example(elf)
-        print(f"  n = {n}: {text}")
+        print(f"  n = {n}: " + text.replace("\n", "\n  "))
         if rc != 0:
             raise WholeError(f"n = {n}: the whole estimator is not bit-exact on the Cortex-M4")
     print("  " + odrive(work, duration).replace("\n", "\n  "))
