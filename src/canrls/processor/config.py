@@ -43,7 +43,8 @@ DEFAULT_EFFECTS: tuple[str, ...] = ("inertia", "viscous", "coulomb")
 #: the inverter holds its voltage (the built-in simulated drive does the same).
 DEFAULT_HELD: tuple[str, ...] = ("current", "voltage")
 
-_SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor", "history")
+_SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor", "history",
+             "fleet")
 _ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
                    "warmup_s": "warmup_s", "gap_periods": "gap_periods",
                    "rms_time_s": "rms_time_s", "max_phase_step": "max_phase_step",
@@ -170,6 +171,8 @@ class AppConfig:
     monitor: dict[str, Any] = field(default_factory=dict)
     #: ``[history]``: where ``canrls run`` appends its parameters (canrls.fleet.live)
     history: dict[str, Any] = field(default_factory=dict)
+    #: ``[fleet]``: what ``canrls fleet report`` alerts on (canrls.fleet.detect)
+    fleet: dict[str, Any] = field(default_factory=dict)
     signal_overrides: list[str] = field(default_factory=list)
     #: configuration keys set from the command line, with the flag and value typed
     #: (``{"model.effects": "--effects inertia,foo"}``): errors name those, not the key
