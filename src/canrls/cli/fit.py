@@ -5,7 +5,8 @@ calibration window is the start of the first log); ``--save-model FILE`` writes 
 model as JSON for ``canrls validate`` (docs/model_file.md); ``--json`` prints one object
 (README.md, "Command line"). ``--fixed target`` takes the fixed column from the target's
 integer path instead (:mod:`canrls.firmware.fit`, docs/target.md): the frames decoded,
-filtered and estimated in integers as ``canrls export-c``'s C does, bit for bit.
+filtered and estimated in integers as ``canrls export-c``'s C (and the daemon with
+``[daemon] fixed = "target"``) do, bit for bit.
 """
 
 from __future__ import annotations
@@ -40,9 +41,10 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "unit, configuration, calibration) as JSON for 'canrls validate'")
     p.add_argument("--fixed", choices=("kernel", "target"), default="kernel",
                    help="the fixed-point column: the kernel fed by the float front end, as "
-                        "the daemon runs it (default), or the target's whole integer path "
-                        "from the frames on, as the C of 'canrls export-c' runs it (bit for "
-                        "bit; docs/target.md)")
+                        "the daemon runs it by default (default), or the target's whole "
+                        "integer path from the frames on, as the C of 'canrls export-c' "
+                        "and the daemon with [daemon] fixed = \"target\" run it (bit for "
+                        "bit; about 2x the time of the fit; docs/target.md)")
     add_progress_option(p)
     p.set_defaults(func=run)
     return p

@@ -152,8 +152,14 @@ def build_daemon(args: argparse.Namespace) -> Any:
     history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over)) \
         if cfg.history else None
     try:
+        fixed_path = None
+        if dset.fixed == "target":
+            from canrls.firmware.live import LiveTarget
+
+            fixed_path = LiveTarget(protocol, settings)
         return Daemon(protocol, model, settings, dset, bus=bus,
-                      reload=reloaded_model, history=history, configuration=cfg)
+                      reload=reloaded_model, history=history, configuration=cfg,
+                      fixed_path=fixed_path)
     except BaseException:
         if history is not None:
             history.close()

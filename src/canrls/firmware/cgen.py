@@ -51,6 +51,7 @@ def _field(f: Field | None, what: str) -> str:
     if f is None:
         return "{0}"
     return (f"{{.msg = {_u(f.msg, what)}, .length = {_u(f.length, what)}, "
+            f".is_float = {int(f.is_float)}u, .frac = {_i(f.frac, what)}, "
             f".is_signed = {int(f.signed)}u, .biased = {int(f.biased)}u, "
             f".big_endian = {int(f.big_endian)}u, .shift = {_u(f.shift, what)}, "
             f".lo = {_i(f.lo, what)}, .hi = {_i(f.hi, what)}}}")

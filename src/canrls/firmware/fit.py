@@ -1,8 +1,7 @@
-"""``canrls fit --fixed target``: the fit's fixed-point column from the target's integers.
+"""``canrls fit``'s fixed-point column from the target's integers.
 
-By default ``canrls fit``'s fixed column is the kernel fed by the float front end (the
-pipeline's float regressors quantised at the kernel's input), as the daemon runs it.
-With ``--fixed target`` it is :class:`~canrls.firmware.spec.TargetEstimator` run over
+``canrls fit``'s fixed column (and the daemon's, :mod:`canrls.firmware.live`) is
+:class:`~canrls.firmware.spec.TargetEstimator` run over
 the same logs' frames with the fit's own calibration (its exponents, column energies,
 pending columns and period; :func:`canrls.firmware.model.build`): the frames decoded,
 paired, filtered, selected and rescaled in integers, as the C of ``canrls export-c``

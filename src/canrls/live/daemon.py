@@ -44,7 +44,7 @@ from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
 from canrls.live.history import HistoryHook
 from canrls.live.journal import JOURNAL, Journal
-from canrls.live.publisher import Publisher, check_publishable
+from canrls.live.publisher import FixedPath, Publisher, check_publishable
 from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.live.settings import DaemonSettings
@@ -125,6 +125,8 @@ class Daemon:
         (``[history]``: :class:`~canrls.live.history.HistoryHook`).
     :param configuration: what produced the model, kept in the file the command
         ``save_model`` writes to ``[daemon] saved_model`` (default: none recorded).
+    :param fixed_path: computes the published fixed column from the frames (``canrls
+        run``: the target's integer path); None: the pipeline's kernel.
     """
 
     def __init__(self, protocol: Protocol, model: Model,
@@ -137,7 +139,8 @@ class Daemon:
                  backpressure: bool = False,
                  on_publish: Callable[[int, float], None] | None = None,
                  history: HistoryHook | None = None,
-                 configuration: AppConfig | None = None) -> None:
+                 configuration: AppConfig | None = None,
+                 fixed_path: FixedPath | None = None) -> None:
         if bus is None and bus_factory is None:
             raise ConfigError("Daemon: give the bus arguments (bus=...) or a bus_factory")
         self.protocol = protocol
@@ -186,7 +189,9 @@ class Daemon:
                                  on_error=self._recv_failed, full=cfg.max_block)
         self._link = BusLink(self._queue, bus_factory or (lambda: open_bus(bus_args)), cfg,
                              describe=str(bus_args or "bus"))
-        self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
+        self._fixed_path = fixed_path
+        self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish,
+                                    fixed_path)
         self._history = history
         self._configuration = configuration or AppConfig(source="<canrls run>")
         self._journal = Journal()
@@ -591,12 +596,16 @@ class Daemon:
         if not len(block):
             return
         out = self._proc.process(block)
+        if self._fixed_path is not None:
+            self._fixed_path.feed(block, self._proc)
         self._c["blocks"] += 1
         self._publisher.absorb(out)
 
     # ------------------------------------------------------------------ model changes
     def _set_model(self, model: Model, why: str) -> None:
         self._proc.with_model(model)
+        if self._fixed_path is not None:
+            self._fixed_path.restart()
         self._publisher.model_changed()
         self._journal.model_changed(model, why)
 

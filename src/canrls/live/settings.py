@@ -14,8 +14,8 @@ from canrls.core.errors import ConfigError
 if TYPE_CHECKING:
     from canrls.processor.config import AppConfig
 
-__all__ = ["DaemonSettings", "DAEMON_KEYS", "FRAME_PARAMETERS", "OBSOLETE_KEYS", "RX_BUFFER",
-           "RX_INTERVAL", "resolve_path"]
+__all__ = ["DaemonSettings", "DAEMON_KEYS", "FIXED_PATHS", "FRAME_PARAMETERS", "OBSOLETE_KEYS",
+           "RX_BUFFER", "RX_INTERVAL", "resolve_path"]
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +64,14 @@ DAEMON_KEYS: dict[str, str] = {
     "saved_model": "file the command save_model writes the running model to, as canrls fit "
                    "--save-model does (canrls tune --model reads it; '' or absent: none)",
     "switch_interval": "Python's thread switch interval while running, seconds (0: leave it)",
+    "fixed": "the published fixed-point column: 'kernel' (default: the fixed-point kernel "
+             "on the float front end) or 'target' (the target's whole integer path from the "
+             "frames, bit for bit with export-c's C and canrls fit --fixed target; about "
+             "25 us of CPU a frame more, docs/daemon.md)",
 }
+
+#: the values of ``[daemon] fixed``: where the published fixed column comes from
+FIXED_PATHS = ("kernel", "target")
 
 #: keys of earlier versions that are accepted, ignored and warned about: why each is gone
 OBSOLETE_KEYS: dict[str, str] = {
@@ -102,6 +109,7 @@ class DaemonSettings:
     model_file: Path | None = None
     saved_model: Path | None = None
     switch_interval: float = 0.001
+    fixed: str = "kernel"
 
     def __post_init__(self) -> None:
         src = "daemon"
@@ -164,7 +172,12 @@ class DaemonSettings:
             if k not in DAEMON_KEYS:
                 raise ConfigError(f"{key} = {v!r}: unknown key (valid: "
                                   f"{', '.join(DAEMON_KEYS)})")
-            if k in ("commands", "rx_bulk"):
+            if k == "fixed":
+                if v not in FIXED_PATHS:
+                    raise ConfigError(f"{key} = {v!r}: must be one of "
+                                      f"{', '.join(map(repr, FIXED_PATHS))}")
+                kw[k] = v
+            elif k in ("commands", "rx_bulk"):
                 if not isinstance(v, bool):
                     raise ConfigError(f"{key} = {v!r}: must be true or false")
                 kw[k] = v
