@@ -15,6 +15,7 @@ the compiled codec of each mapped message. The strict decoder
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import math
@@ -30,6 +31,7 @@ from canrls.can.codec import (
     RoleInfo,
     SignalCodec,
 )
+from canrls.can.idrules import IdRule
 from canrls.can.mapping import EFFORT_ROLES, REQUIRED_ROLES, SignalMapping
 from canrls.core.checks import positive_period
 from canrls.core.errors import ConfigError, SignalError
@@ -156,6 +158,8 @@ class Protocol:
     """
 
     period_source: str | None = None
+    #: the ID rule that moved the messages (:meth:`with_ids`); None: the DBC's own IDs
+    rule: IdRule | None = None
 
     def __init__(self, db: Any, dbc_path: Path, is_default_dbc: bool, mapping: SignalMapping,
                  roles: dict[str, RoleInfo], messages: tuple[MessageCodec, ...], *,
@@ -225,6 +229,26 @@ class Protocol:
         elif proto.period is not None:
             proto.period_source = f"the GenMsgCycleTime of DBC {path.name}"
             positive_period(proto.period, proto.period_source)
+        return proto
+
+    def with_ids(self, rule: IdRule) -> Protocol:
+        """This protocol with its mapped messages moved to the IDs of ``rule`` (one axis of
+        several on a bus, :mod:`canrls.can.idrules`); the DBC stays as it is."""
+        where = f"DBC {self.dbc_path}"
+        messages = tuple(dataclasses.replace(
+            m, frame_id=rule.frame_id(m.frame_id, m.is_extended, f"{where}: message {m.name}"))
+            for m in self.messages)
+        seen: dict[tuple[int, bool], str] = {}
+        for m in messages:
+            other = seen.setdefault((m.frame_id, m.is_extended), m.name)
+            if other != m.name:
+                raise ConfigError(f"{where}: ID rule {rule} puts messages {other} and "
+                                  f"{m.name} both on ID 0x{m.frame_id:X}")
+        proto = Protocol(self.db, self.dbc_path, self.is_default_dbc, self.mapping, self.roles,
+                         messages, strict_range=self.strict_range, check_crc=self.check_crc,
+                         check_counter=self.check_counter)
+        proto.period_source = self.period_source
+        proto.rule = rule
         return proto
 
     def has(self, role: str) -> bool:

@@ -108,7 +108,7 @@ def build_daemon(args: argparse.Namespace) -> Any:
     from canrls.processor.config import AppConfig, load_config, prepare, read_toml
 
     over = overrides(args)
-    cfg = load_config(getattr(args, "config", None), over)
+    cfg = load_config(getattr(args, "config", None), over).one_axis()
     dset = DaemonSettings.from_table(_daemon_table(cfg, args), cfg.source, cfg.base_dir)
 
     def with_model_file(c: AppConfig) -> AppConfig:
@@ -124,7 +124,7 @@ def build_daemon(args: argparse.Namespace) -> Any:
         """SIGHUP: the model again, from a file whose ``[daemon]`` table still holds (a
         table a restart would refuse is said at once, and the reload refused); its
         changes apply at the next start."""
-        c = load_config(getattr(args, "config", None), over)
+        c = load_config(getattr(args, "config", None), over).one_axis()
         try:
             new = DaemonSettings.from_table(_daemon_table(c, args), c.source, c.base_dir)
         except ConfigError as e:
