@@ -86,6 +86,12 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                    help="scenario (default standard)")
     p.add_argument("--axis", choices=["rotary", "linear"], default=None,
                    help="axis (default: the scenario's)")
+    p.add_argument("--axes", type=int, default=None, metavar="N",
+                   help="a machine of N drives on one bus (1 to 32): axis k's frames on the "
+                        "default DBC's IDs + (k-1)*0x10 (canrls fit --axes offset:0,0x10,...), "
+                        "its own parameters and seed, axes 2, 3, 4 with a hidden unbalance, "
+                        "cogging:6, offset (and so on in turn); one line per axis with its "
+                        "truth"),
     p.add_argument("--excitation", "-x", default=None, metavar="PROFILE",
                    help=f"excitation preset or sum (a+b) of {', '.join(PRESETS)}")
     p.add_argument("--param", "-p", action="append", type=_param, default=[],
@@ -164,6 +170,8 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is None:
         args.sim_parser.error("the following arguments are required: --duration/-d")
     check_args(args)
+    if args.axes is not None:
+        return run_machine(args)
     sc = scenario(args.scenario, effects=args.effects, seed=args.seed, faults=args.faults,
                   axis=args.axis, excitation=args.excitation, duration=args.duration,
                   params=dict(args.param))
@@ -212,6 +220,32 @@ def with_tuning(sc: Any, feedforward: str | None, gains: str | None) -> Any:
 
 #: options of one drive that a fleet draws for each of its drives
 _DRIVE_ONLY = ("effects", "faults", "axis", "excitation", "feedforward", "gains")
+
+
+def run_machine(args: argparse.Namespace) -> int:
+    """``canrls sim --axes N``: the log of a simulated machine."""
+    from canrls.can.logs import write_log
+    from canrls.sim.machine import machine, machine_frames
+
+    for opt in _DRIVE_ONLY:
+        if getattr(args, opt) is not None:
+            raise ConfigError(f"--{opt}: not an option of 'canrls sim --axes' (each axis's "
+                              f"physics are the machine's)")
+    if args.param:
+        raise ConfigError("--param: not an option of 'canrls sim --axes'")
+    axes = machine(args.axes, duration=args.duration, seed=args.seed,
+                   scenario_name=args.scenario)
+    with _terminated_as_exit():
+        n = write_log(args.out, machine_frames(axes, t0=args.start_time),
+                      channel=args.channel, what=f"--out {args.out}")
+    rules = ",".join(f"{a.rule.node:#x}" for a in axes)
+    print(f"canrls sim: wrote {n} frames of {len(axes)} axes to {args.out} "
+          f"({args.duration:g} s, scenario {args.scenario}, seed {args.seed}; canrls fit "
+          f"--axes offset:{rules})", file=sys.stderr)
+    for a in axes:
+        print(f"  {a.name} ({a.rule}, hidden: {a.hidden or 'none'}): truth: "
+              f"{a.scenario.truth.summary()}", file=sys.stderr)
+    return 0
 
 
 def run_fleet(args: argparse.Namespace) -> int:
