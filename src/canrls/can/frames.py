@@ -319,6 +319,13 @@ class FrameIds:
     ack: int
     feedback: tuple[int, ...]
 
+    def own(self) -> dict[str, int]:
+        """canrls' own frames (published, command, ack) by DBC message name."""
+        names = (*_PUBLISHED, "RlsCommand", "RlsCommandAck")
+        ids = (self.estimate, self.sigma, self.reference, self.param_info, self.status,
+               self.health, self.counters, self.rejects, self.command, self.ack)
+        return dict(zip(names, ids, strict=True))
+
     @property
     def published(self) -> frozenset[int]:
         """The frames the daemon publishes every cycle (parameters and status, not the ack)."""

@@ -74,8 +74,9 @@ def run(args: argparse.Namespace) -> int:
     import can
 
     from canrls.can.frames import encode_command, frame_ids
-    from canrls.live.bus import bus_config, open_bus
+    from canrls.live.bus import bus_config, moved, open_bus
     from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
+    from canrls.live.settings import DaemonSettings
     from canrls.processor.config import prepare
 
     for name in ("duration", "interval", "timeout"):
@@ -96,15 +97,16 @@ def run(args: argparse.Namespace) -> int:
         units, feedback, user_names = LibraryUnits(), list(frame_ids().feedback), []
     conf = bus_config(cfg)
     tty = sys.stdout.isatty() and not args.plain and not args.json
+    own = DaemonSettings.from_config(cfg).own_offset  # an axis's own frames
     mon = Monitor(units=units, user_names=user_names, feedback_ids=feedback,
-                  source=f"{conf.get('interface')}:{conf.get('channel')}")
+                  source=f"{conf.get('interface')}:{conf.get('channel')}", own_offset=own)
     bus = open_bus(conf)
     status = 0
     try:
         with can.Notifier(bus, [mon], timeout=0.1):
             for text, (code, eid, order, lam) in zip(args.command, commands, strict=True):
                 before = len(mon.acks)
-                bus.send(encode_command(code, eid, order, lam), timeout=1.0)
+                bus.send(moved(encode_command(code, eid, order, lam), own), timeout=1.0)
                 ack = mon.wait_ack(before, args.timeout)
                 if ack is None:
                     print(f"error: no acknowledgement of {text!r} within "

@@ -119,6 +119,10 @@ def build_daemon(args: argparse.Namespace) -> Any:
         return c
 
     protocol, model, settings = prepare(with_model_file(cfg))
+    if dset.own_offset:
+        from canrls.processor.axes import check_own
+
+        check_own({"the drive": protocol}, {"the drive": dset.own_offset})
 
     def reloaded_model() -> Any:
         """SIGHUP: the model again, from a file whose ``[daemon]`` table still holds (a

@@ -134,14 +134,22 @@ def messages_to_block(msgs: Sequence[can.Message]) -> FrameBlock:
     )
 
 
-def is_command(msg: can.Message) -> bool:
-    """``msg`` is an ``RlsCommand`` frame."""
-    return msg.arbitration_id == COMMAND_ID and not msg.is_extended_id
+def is_command(msg: can.Message, command_id: int = COMMAND_ID) -> bool:
+    """``msg`` is an ``RlsCommand`` frame (on ``command_id``: an axis's own)."""
+    return msg.arbitration_id == command_id and not msg.is_extended_id
 
 
-def command_rows(block: FrameBlock) -> np.ndarray:
+def command_rows(block: FrameBlock, command_id: int = COMMAND_ID) -> np.ndarray:
     """Mask of the ``RlsCommand`` frames of ``block`` (:func:`is_command` of each row)."""
-    return (block.arbitration_id == COMMAND_ID) & ~block.is_extended
+    return (block.arbitration_id == command_id) & ~block.is_extended
+
+
+def moved(msg: can.Message, offset: int) -> can.Message:
+    """A copy of ``msg`` whose ID is ``offset`` further (an axis's own frames)."""
+    return can.Message(timestamp=msg.timestamp, arbitration_id=msg.arbitration_id + offset,
+                       is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+                       dlc=msg.dlc, data=msg.data, is_fd=msg.is_fd,
+                       bitrate_switch=msg.bitrate_switch, channel=msg.channel)
 
 
 class FrameQueue(can.Listener):
@@ -170,6 +178,8 @@ class FrameQueue(can.Listener):
         #: input closes: the estimator stops letting frames gather and takes them at once
         self.hurry = threading.Event()
         self.full = full if full > 0 else 1 << 62
+        #: the ID of the command frames that hurry the estimator (an axis's own)
+        self.command_id = COMMAND_ID
         self.space = threading.Event()
         self.limit = limit
         self.block = block
@@ -200,7 +210,7 @@ class FrameQueue(can.Listener):
                 self.space.clear()
                 self.space.wait(0.05)
         q.append(msg)
-        if is_command(msg) or self.received + 1 - self.taken >= self.full:
+        if is_command(msg, self.command_id) or self.received + 1 - self.taken >= self.full:
             self.hurry.set()
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
@@ -238,7 +248,7 @@ class FrameQueue(can.Listener):
         self.queue.append(block)
         if commands is None:
             commands = int(command_rows(to_block([block]) if isinstance(block, Span)
-                                        else block).any())
+                                        else block, self.command_id).any())
         if commands or self.received + n - self.taken >= self.full:
             self.hurry.set()
         if self.recorder is not None and messages is not None and isinstance(block, Span):
@@ -510,7 +520,7 @@ class BusLink:
         sock = socketcan_socket(bus)
         if sock is not None and cfg.rx_buffer:
             set_receive_buffer(sock, cfg.rx_buffer, self.info())
-        rx = bulk_receiver(bus, COMMAND_ID) if cfg.rx_bulk else None
+        rx = bulk_receiver(bus, COMMAND_ID + cfg.own_offset) if cfg.rx_bulk else None
         if rx is not None:
             self._reader = BlockReader(rx, self.queue, cfg.rx_s)
         else:
@@ -565,6 +575,8 @@ class BusLink:
             return 0
         sent = 0
         timeout = self.config.send_timeout
+        if off := self.config.own_offset:  # an axis's own IDs: moved copies
+            msgs = [moved(m, off) for m in msgs]
         for i, m in enumerate(msgs):
             try:
                 bus.send(m, timeout=timeout)

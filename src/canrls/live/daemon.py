@@ -39,7 +39,14 @@ from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
 from canrls.estimation.settings import EstimatorSettings
-from canrls.live.bus import BusLink, FrameQueue, command_rows, messages_to_block, open_bus
+from canrls.live.bus import (
+    COMMAND_ID,
+    BusLink,
+    FrameQueue,
+    command_rows,
+    messages_to_block,
+    open_bus,
+)
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
 from canrls.live.history import HistoryHook
@@ -183,6 +190,8 @@ class Daemon:
         # the parts
         self._queue = FrameQueue(cfg.queue_size, backpressure, self._stopping,
                                  on_error=self._recv_failed, full=cfg.max_block)
+        # an axis's RlsCommand: the shipped ID + its own offset ([daemon] own_ids)
+        self._command_id = self._queue.command_id = COMMAND_ID + cfg.own_offset
         self._link = BusLink(self._queue, bus_factory or (lambda: open_bus(bus_args)), cfg,
                              describe=str(bus_args or "bus"))
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
@@ -571,13 +580,16 @@ class Daemon:
         with self._lock:
             err = block.is_error
             start = 0
-            for i in np.flatnonzero(err | command_rows(block)).tolist():
+            for i in np.flatnonzero(err | command_rows(block, self._command_id)).tolist():
                 if err[i]:
                     self._link.error_frame(int(block.arbitration_id[i]))
                 else:
                     self._estimate(block.take(slice(start, i + 1)))
                     start = i + 1
-                    self._commands.handle(block.take(slice(i, i + 1)).to_messages()[0])
+                    cmd = block.take(slice(i, i + 1)).to_messages()[0]
+                    # decoded as the shipped DBC's RlsCommand (its ID moved back)
+                    cmd.arbitration_id = COMMAND_ID
+                    self._commands.handle(cmd)
             self._estimate(block if start == 0 else block.take(slice(start, None)))
 
     def _estimate(self, block: FrameBlock) -> None:

@@ -44,6 +44,7 @@ from canrls.core.effect_names import EffectId
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import parse_effect, target_unit
 from canrls.estimation.model import Model
+from canrls.live.bus import moved
 
 __all__ = ["LibraryUnits", "Monitor", "MonitorView", "parse_command_text"]
 
@@ -255,10 +256,13 @@ class Monitor(can.Listener):
     def __init__(self, units: Mapping[str, str] | None = None, user_names: Sequence[str] = (),
                  feedback_ids: Sequence[int] = _IDS.feedback, window_s: float = 2.0,
                  trend_s: float = 10.0, rms_unit: str | None = None,
-                 source: str = "") -> None:
+                 source: str = "", own_offset: int = 0) -> None:
         self.decoder = FrameDecoder(user_names=tuple(user_names),
                                     units=units if units is not None else {})
         self.feedback_ids = frozenset(feedback_ids)
+        #: the axis's own frames are the shipped IDs + this (``[daemon] own_ids``)
+        self.own_offset = own_offset
+        self._own = frozenset(i + own_offset for i in _IDS.own().values())
         self.window_s = window_s
         self.trend_s = trend_s
         if rms_unit is None:
@@ -284,12 +288,14 @@ class Monitor(can.Listener):
             kind = "other"
         elif aid in self.feedback_ids:
             kind = "feedback"
-        elif aid in _ESTIMATOR_IDS or aid == _ACK_ID:
-            kind = "estimator"
-        elif aid == _COMMAND_ID:
-            kind = "command"
+        elif self.own_offset and aid not in self._own:
+            kind = "other"  # another axis's own frames, or none of canrls'
         else:
-            kind = "other"
+            if self.own_offset:  # this axis's own frame, as the shipped DBC has it
+                msg = moved(msg, -self.own_offset)
+                aid = msg.arbitration_id
+            kind = ("estimator" if aid in _ESTIMATOR_IDS or aid == _ACK_ID else
+                    "command" if aid == _COMMAND_ID else "other")
         with self._lock:
             self._totals[kind] += 1
             q = self._arrivals[kind]

@@ -64,6 +64,9 @@ DAEMON_KEYS: dict[str, str] = {
     "saved_model": "file the command save_model writes the running model to, as canrls fit "
                    "--save-model does (canrls tune --model reads it; '' or absent: none)",
     "switch_interval": "Python's thread switch interval while running, seconds (0: leave it)",
+    "own_ids": "canrls' own frames (parameters, status, command, ack) moved by \"offset:N\" "
+               "from the shipped DBC's IDs (default: none; an axis of [[axes]]: its own, "
+               "by default its index x 0x40)",
 }
 
 #: keys of earlier versions that are accepted, ignored and warned about: why each is gone
@@ -102,6 +105,8 @@ class DaemonSettings:
     model_file: Path | None = None
     saved_model: Path | None = None
     switch_interval: float = 0.001
+    #: ``own_ids``: what canrls' own frames are moved by on the bus
+    own_offset: int = 0
 
     def __post_init__(self) -> None:
         src = "daemon"
@@ -164,7 +169,11 @@ class DaemonSettings:
             if k not in DAEMON_KEYS:
                 raise ConfigError(f"{key} = {v!r}: unknown key (valid: "
                                   f"{', '.join(DAEMON_KEYS)})")
-            if k in ("commands", "rx_bulk"):
+            if k == "own_ids":
+                from canrls.processor.axes import own_offset
+
+                kw["own_offset"] = own_offset(v, key)
+            elif k in ("commands", "rx_bulk"):
                 if not isinstance(v, bool):
                     raise ConfigError(f"{key} = {v!r}: must be true or false")
                 kw[k] = v

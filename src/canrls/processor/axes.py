@@ -12,17 +12,21 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from canrls.can.idrules import MAX_AXES, IdRule, parse_rule, parse_rules
+from canrls.can.frames import frame_ids
+from canrls.can.idrules import MAX_AXES, MAX_STANDARD_ID, IdRule, parse_rule, parse_rules
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError
 
-__all__ = ["AXIS_KINDS", "AXIS_KEYS", "AxisSpec", "check_name", "check_shared", "parse_axes",
-           "short_form"]
+__all__ = ["AXIS_KINDS", "AXIS_KEYS", "OWN_STEP", "AxisSpec", "check_name", "check_own",
+           "check_shared", "own_offset", "parse_axes", "short_form"]
 
 #: values of ``--axis`` that name the kind of axis, not an axis: no axis may be called so
 AXIS_KINDS = ("rotary", "linear")
 #: keys of one ``[[axes]]`` table
-AXIS_KEYS = ("name", "ids", "signals", "model")
+AXIS_KEYS = ("name", "ids", "own", "signals", "model")
+#: IDs between two axes' own frames by default: axis k (0-based) publishes on the shipped
+#: DBC's IDs + k * 0x40 (``[daemon] own_ids = "offset:..."``)
+OWN_STEP = 0x40
 
 
 @dataclass(frozen=True)
@@ -32,6 +36,8 @@ class AxisSpec:
 
     name: str
     rule: IdRule | None = None
+    #: the offset of its own frames (``own``; default: index * :data:`OWN_STEP`)
+    own: int = 0
     signals: Mapping[str, Any] = field(default_factory=dict)
     model: Mapping[str, Any] = field(default_factory=dict)
 
@@ -73,19 +79,53 @@ def parse_axes(tables: object, source: str) -> tuple[AxisSpec, ...]:
             raise ConfigError(f"{where}.name = {name!r}: also the name of axes[{seen[name]}]")
         seen[name] = i
         rule = parse_rule(t["ids"], f"{where}.ids") if "ids" in t else None
+        own = own_offset(t["own"], f"{where}.own") if "own" in t else i * OWN_STEP
         tabs = {}
         for k in ("signals", "model"):
             v = t.get(k, {})
             if not isinstance(v, Mapping):
                 raise ConfigError(f"{where}.{k} must be a table, got {v!r}")
             tabs[k] = dict(v)
-        specs.append(AxisSpec(name, rule, tabs["signals"], tabs["model"]))
+        specs.append(AxisSpec(name, rule, own, tabs["signals"], tabs["model"]))
     return tuple(specs)
 
 
 def short_form(text: str) -> list[dict[str, Any]]:
     """``--axes RULE:LIST`` as ``[[axes]]`` tables (``cia402:1-6``: ``node1`` .. ``node6``)."""
     return [{"name": name, "ids": str(rule)} for name, rule in parse_rules(text)]
+
+
+def own_offset(text: object, where: str) -> int:
+    """The offset of an ``"offset:N"`` rule of canrls' own frames (``own``,
+    ``[daemon] own_ids``): the only rule they take, all of them moved alike."""
+    rule = parse_rule(text, where)
+    if rule.kind != "offset":
+        raise ConfigError(f"{where} = {text!r}: canrls' own frames move by an offset only "
+                          f"(\"offset:N\")")
+    return rule.node
+
+
+def check_own(protocols: Mapping[str, Protocol], offsets: Mapping[str, int]) -> None:
+    """Refuse an axis's own frame (parameters, status, command, ack: the shipped DBC's
+    IDs + its offset) beyond the standard IDs or on the ID of another own frame or of
+    any axis's feedback frame (one ``ConfigError`` naming both frames); the keys of
+    ``protocols`` and ``offsets`` name the axes (``"axis a"``, ``"the drive"``)."""
+    owner: dict[int, str] = {}
+    for name, proto in protocols.items():
+        for m in proto.messages:
+            if not m.is_extended:
+                owner.setdefault(m.frame_id, f"{name}'s feedback {m.name}")
+    for name, off in offsets.items():
+        for msg, fid in frame_ids().own().items():
+            new = fid + off
+            what = f"{name}'s {msg}"
+            if not 0 <= new <= MAX_STANDARD_ID:
+                raise ConfigError(f"{what} would be on ID {new:#x}, outside the standard IDs "
+                                  f"0x0..0x7FF: give the axis another own = \"offset:N\"")
+            other = owner.setdefault(new, what)
+            if other != what:
+                raise ConfigError(f"{what} and {other} would both be on ID 0x{new:X}: give "
+                                  f"the axis another own = \"offset:N\"")
 
 
 def check_shared(protocols: Mapping[str, Protocol]) -> None:

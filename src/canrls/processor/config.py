@@ -26,7 +26,14 @@ from canrls.core.units import RATING_OPTIONS, Ratings
 from canrls.estimation.fixed.formats import QFormat
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
-from canrls.processor.axes import AxisSpec, check_shared, parse_axes, short_form
+from canrls.processor.axes import (
+    AxisSpec,
+    check_own,
+    check_shared,
+    own_offset,
+    parse_axes,
+    short_form,
+)
 
 __all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "Overrides", "Prepared",
            "load_config", "load_model", "prepare", "read_toml"]
@@ -282,6 +289,7 @@ class AppConfig:
                 flags=dict(self.flags), source=f"{self.source} [axis {spec.name}]")
             if spec.rule is not None:
                 c.can["ids"] = str(spec.rule)
+            c.daemon = {**self.daemon, "own_ids": f"offset:{spec.own:#x}"}
             key = repr((c.signals, {k: v for k, v in c.can.items() if k != "ids"},
                         c.model.get("axis")))
             try:
@@ -293,6 +301,9 @@ class AppConfig:
                 raise type(e)(f"axis {spec.name}: {e}") from e
             configs[spec.name] = c
         check_shared(protocols)
+        check_own({f"axis {n}": p for n, p in protocols.items()},
+                  {f"axis {n}": own_offset(c.daemon["own_ids"], f"axis {n}: own")
+                   for n, c in configs.items()})
         return configs
 
     def axis(self, name: str | None) -> AppConfig:

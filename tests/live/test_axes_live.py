@@ -1,0 +1,115 @@
+"""Two axes' daemons on one bus: each publishes on its own IDs ([daemon] own_ids, the
+axis's index x 0x40 by default) and a command reaches only the axis it addresses."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import can
+import pytest
+from cli_tool import cli_error
+
+from canrls.can.frames import CommandCode, CommandResult, FrameDecoder, encode_command
+from canrls.live.bus import moved
+from canrls.live.daemon import Daemon
+from canrls.live.monitor import Monitor
+from canrls.live.settings import DaemonSettings
+from canrls.processor.config import load_config
+from canrls.sim.machine import machine, machine_frames
+
+OWN = range(0x300, 0x322)  # the shipped DBC's own frames, RlsEstimate .. RlsCommandAck
+
+
+def _machine(tmp_path: Path) -> dict:
+    p = tmp_path / "machine.toml"
+    p.write_text('[model]\nkt = 0.1\n[daemon]\ncommands = true\npublish_interval = 0.05\n'
+                 '[[axes]]\nname = "a"\n[[axes]]\nname = "b"\nids = "offset:0x10"\n')
+    return load_config(p).axis_configs()
+
+
+def test_each_axis_publishes_on_its_own_ids_and_obeys_its_own_commands(
+        tmp_path: Path) -> None:
+    axes = _machine(tmp_path)
+    ch = f"axes-live-{os.getpid()}"
+    feed = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
+                   ignore_config=True)
+    tool = can.Bus(interface="virtual", channel=ch, ignore_config=True)
+    reader = can.BufferedReader()
+    notifier = can.Notifier(tool, [reader], timeout=0.05)
+    daemons = {}
+    try:
+        for name, cfg in axes.items():
+            protocol = cfg.protocol()
+            d = Daemon(protocol, cfg.model_for(protocol), cfg.settings(),
+                       DaemonSettings.from_config(cfg), bus={"interface": "virtual",
+                                                            "channel": ch})
+            d.start()
+            daemons[name] = d
+        sim = machine(2, duration=2.0, seed=4)
+        n = 0
+        for block in machine_frames(sim):
+            for m in block.to_messages("ch"):
+                feed.send(m)
+                n += 1
+        for d in daemons.values():
+            assert d.wait_for(lambda x: x.stats().frames >= n, 60)  # the machine's and more
+        # freeze axis b: its RlsCommand is 0x320 + 0x40
+        feed.send(moved(encode_command(CommandCode.FREEZE), 0x40))
+        assert daemons["b"].wait_for(lambda x: x.pipeline.frozen, 10)
+        time.sleep(0.3)
+        assert not daemons["a"].pipeline.frozen  # the command reached b only
+        frames: list[can.Message] = []
+        while (m := reader.get_message(0.0)) is not None:
+            frames.append(m)
+        ids = {m.arbitration_id for m in frames}
+        a_ids = {i for i in ids if i in OWN}
+        b_ids = {i for i in ids if i - 0x40 in OWN}
+        assert 0x310 in a_ids and 0x350 in b_ids  # both publish their RlsStatus
+        assert 0x361 in b_ids and 0x321 not in a_ids  # b's ack on b's ID, none from a
+        # b's own frames decode as the shipped DBC's once moved back
+        dec = FrameDecoder()
+        dec.feed_all([moved(m, -0x40) for m in frames if m.arbitration_id in b_ids])
+        assert dec.acks and dec.acks[-1].result is CommandResult.OK
+        # the monitor of axis b reads b's frames only
+        mon = Monitor(own_offset=0x40, feedback_ids=[0x111, 0x112])
+        for m in frames:
+            mon.on_message_received(m)
+        view = mon.snapshot()
+        assert view.totals["estimator"] == sum(1 for m in frames if m.arbitration_id in b_ids
+                                               and m.arbitration_id != 0x360)
+        assert view.totals["command"] == 1  # the freeze sent to b
+        # a's own frames (and a's feedback) are another axis's
+        assert view.totals["other"] == sum(1 for m in frames
+                                           if m.arbitration_id not in b_ids | {0x111, 0x112})
+        assert view.totals["other"] >= sum(1 for m in frames if m.arbitration_id in a_ids) > 0
+        assert view.last_ack is not None and view.last_ack.result is CommandResult.OK
+        assert view.status is not None and view.status.frozen
+    finally:
+        for d in daemons.values():
+            d.stop()
+        notifier.stop()
+        feed.shutdown()
+        tool.shutdown()
+
+
+@pytest.mark.parametrize("axes,expected", [
+    ('[[axes]]\nname = "a"\n[[axes]]\nname = "b"\nids = "offset:0x10"\nown = "offset:0x0"\n',
+     "error: axis b's RlsEstimate and axis a's RlsEstimate would both be on ID 0x300: give "
+     "the axis another own = \"offset:N\""),
+    ('[[axes]]\nname = "a"\n[[axes]]\nname = "b"\nids = "offset:0x1ff"\n',
+     "error: axis a's RlsEstimate and axis b's feedback DriveCurrent would both be on ID "
+     "0x300: give the axis another own = \"offset:N\""),
+    ('[[axes]]\nname = "a"\nown = "offset:0x4e0"\n',
+     "error: axis a's RlsCommand would be on ID 0x800, outside the standard IDs 0x0..0x7FF: "
+     "give the axis another own = \"offset:N\""),
+    ('[[axes]]\nname = "a"\nown = "cia402:3"\n',
+     "error: {cfg}: axes[0].own = 'cia402:3': canrls' own frames move by an offset only "
+     "(\"offset:N\")"),
+])
+def test_own_frames_that_collide_are_refused_naming_both(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], axes: str, expected: str) -> None:
+    p = tmp_path / "m.toml"
+    p.write_text(axes)
+    assert cli_error(capsys, ["fit", "/dev/null", "--config", str(p)]) == expected.format(cfg=p)
