@@ -3,17 +3,23 @@ axis's index x 0x40 by default) and a command reaches only the axis it addresses
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
 import time
 from pathlib import Path
 
 import can
+import numpy as np
 import pytest
 from cli_tool import cli_error
 
 from canrls.can.frames import CommandCode, CommandResult, FrameDecoder, encode_command
-from canrls.live.bus import moved
+from canrls.can.logs import read_frames, write_log
+from canrls.cli.main import main
+from canrls.live.bus import messages_to_block, moved
 from canrls.live.daemon import Daemon
+from canrls.live.machine import MachineDaemon
 from canrls.live.monitor import Monitor
 from canrls.live.settings import DaemonSettings
 from canrls.processor.config import load_config
@@ -113,3 +119,79 @@ def test_own_frames_that_collide_are_refused_naming_both(
     p = tmp_path / "m.toml"
     p.write_text(axes)
     assert cli_error(capsys, ["fit", "/dev/null", "--config", str(p)]) == expected.format(cfg=p)
+
+
+def test_live_equals_fit_axis_on_the_recorded_bus(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """One process serving both axes of a machine: each axis's estimates equal canrls fit
+    --axis NAME of the machine's log within 1e-6 relative."""
+    log = tmp_path / "machine.log"
+    assert main(["sim", "--out", str(log), "--duration", "4", "--axes", "2", "--seed", "5"]) == 0
+    cfg_path = tmp_path / "machine.toml"
+    cfg_path.write_text('[model]\nkt = 0.1\n[[axes]]\nname = "a"\n'
+                        '[[axes]]\nname = "b"\nids = "offset:0x10"\n')
+    ch = f"axes-live-eq-{os.getpid()}"
+    daemons = {}
+    for name, cfg in load_config(cfg_path).axis_configs().items():
+        protocol = cfg.protocol()
+        dset = dataclasses.replace(DaemonSettings.from_config(cfg), block_interval=0.002)
+        daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
+                               bus={"interface": "virtual", "channel": ch}, backpressure=True)
+    machine_d = MachineDaemon(daemons)
+    feed = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
+                   ignore_config=True)
+    clean = [m for b in read_frames(log) for m in b.to_messages("can0")]
+    # a fault on axis a: garbage on its DriveCurrent's ID (the CRC fails), seeded
+    rng = np.random.default_rng(11)
+    frames = []
+    for i, m in enumerate(clean):
+        frames.append(m)
+        if i % 50 == 7:
+            frames.append(can.Message(timestamp=m.timestamp, arbitration_id=0x101,
+                                      is_extended_id=False, data=rng.bytes(8)))
+    fed = tmp_path / "fed.log"
+    write_log(fed, [messages_to_block(frames)])
+    try:
+        machine_d.start()
+        for m in frames:
+            feed.send(m)
+        assert machine_d.wait_for(lambda x: all(
+            d.processor.frame_counts().messages and sum(
+                d.processor.frame_counts().messages.values()) + sum(
+                d.processor.rejected.values()) >= 8000
+            for d in x.daemons.values()), 120)
+        time.sleep(0.2)
+    finally:
+        machine_d.stop()
+        feed.shutdown()
+    def fit(path: Path, name: str) -> dict:
+        capsys.readouterr()
+        assert main(["fit", str(path), "--config", str(cfg_path), "--axis", name,
+                     "--json"]) == 0
+        return json.loads(capsys.readouterr().out)
+
+    assert daemons["a"].processor.rejected["crc"] == fit(fed, "a")["frames"]["rejected"]["crc"] > 0
+    # axis b's estimates are those of the clean log: a's fault never reached it
+    assert fit(fed, "b")["parameters"] == fit(log, "b")["parameters"]
+    for name, d in daemons.items():
+        off = fit(fed, name)["parameters"]
+        live = d.estimates()
+        assert [p.name for p in live.parameters] == list(off)
+        for p in live.parameters:
+            assert p.value == pytest.approx(off[p.name]["value"], rel=1e-6), (name, p.name)
+            assert p.fixed == pytest.approx(off[p.name]["fixed"], rel=1e-6), (name, p.name)
+
+
+def test_canrls_run_serves_every_axis_with_its_own_checkpoint(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tmp_path / "machine.toml"
+    cfg.write_text(f'[model]\nkt = 0.1\n[daemon]\ncheckpoint = "{tmp_path / "ck.bin"}"\n'
+                   '[[axes]]\nname = "a"\n[[axes]]\nname = "b"\nids = "offset:0x10"\n')
+    capsys.readouterr()
+    assert main(["run", "--config", str(cfg), "-i", "virtual", "-c",
+                 f"axes-run-{os.getpid()}", "--duration", "0.3", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert sorted(out["axes"]) == ["a", "b"]
+    assert all("daemon" in v and "parameters" in v for v in out["axes"].values())
+    assert (tmp_path / "ck.a.bin").is_file() and (tmp_path / "ck.b.bin").is_file()
+    assert not (tmp_path / "ck.bin").exists()
