@@ -195,3 +195,36 @@ def test_canrls_run_serves_every_axis_with_its_own_checkpoint(
     assert all("daemon" in v and "parameters" in v for v in out["axes"].values())
     assert (tmp_path / "ck.a.bin").is_file() and (tmp_path / "ck.b.bin").is_file()
     assert not (tmp_path / "ck.bin").exists()
+
+
+def test_monitor_shows_one_row_per_axis(tmp_path: Path,
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    cfg_path = tmp_path / "machine.toml"
+    cfg_path.write_text('[model]\nkt = 0.1\n[daemon]\npublish_interval = 0.05\n'
+                        'info_interval = 0.2\n[[axes]]\nname = "a"\n'
+                        '[[axes]]\nname = "b"\nids = "offset:0x10"\n'
+                        '[axes.model]\neffects = ["inertia", "viscous"]\n')
+    ch = f"axes-mon-{os.getpid()}"
+    daemons = {}
+    for name, cfg in load_config(cfg_path).axis_configs().items():
+        protocol = cfg.protocol()
+        daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(),
+                               DaemonSettings.from_config(cfg),
+                               bus={"interface": "virtual", "channel": ch})
+    machine_d = MachineDaemon(daemons)
+    argv = ["monitor", "--config", str(cfg_path), "-i", "virtual", "-c", ch, "--once",
+            "--timeout", "10"]
+    try:
+        machine_d.start()
+        capsys.readouterr()
+        assert main([*argv, "--json"]) == 0
+        views = json.loads(capsys.readouterr().out)["axes"]
+        assert main(argv) == 0
+        text = capsys.readouterr().out.splitlines()
+    finally:
+        machine_d.stop()
+    # each axis's parameters, from its own frames only
+    assert list(views["a"]["parameters"]) == ["inertia.J", "viscous.B", "coulomb.Tc"]
+    assert list(views["b"]["parameters"]) == ["inertia.J", "viscous.B"]
+    assert text[0].endswith("2 axes")
+    assert [ln.split()[0] for ln in text[2:4]] == ["a", "b"]

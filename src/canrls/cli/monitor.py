@@ -82,10 +82,13 @@ def run(args: argparse.Namespace) -> int:
     for name in ("duration", "interval", "timeout"):
         _positive(f"--{name}", getattr(args, name))
     commands = [parse_command_text(c) for c in args.command]
-    cfg = setup(args)
+    cfg = setup(args, every_axis=True)
     for name in ("interval", "timeout", "plain"):  # [monitor] under the flags
         if getattr(args, name) is None:
             setattr(args, name, cfg.monitor.get(name, _VIEW_DEFAULTS[name]))
+    if len(cfg.axes) > 1 and cfg.axis_name is None:
+        return _run_axes(args, cfg)
+    cfg = cfg.one_axis()
     try:
         protocol, model, _ = prepare(cfg)
         units = LibraryUnits.for_model(model)
@@ -121,6 +124,36 @@ def run(args: argparse.Namespace) -> int:
     finally:
         bus.shutdown()
     return status
+
+
+def _run_axes(args: argparse.Namespace, cfg: Any) -> int:
+    """``canrls monitor`` of a machine without ``--axis``: one row per axis."""
+    import can
+
+    from canrls.live.bus import bus_config, open_bus
+    from canrls.live.monitor import AxesMonitor, LibraryUnits, Monitor
+    from canrls.live.settings import DaemonSettings
+    from canrls.processor.config import prepare
+
+    if args.command:
+        raise ConfigError("--command: a command reaches one axis: give --axis NAME")
+    conf = bus_config(cfg)
+    source = f"{conf.get('interface')}:{conf.get('channel')}"
+    monitors = {}
+    for name, c in cfg.axis_configs().items():
+        protocol, model, _ = prepare(c)
+        monitors[name] = Monitor(
+            units=LibraryUnits.for_model(model), user_names=list(model.terms),
+            feedback_ids=[m.frame_id for m in protocol.messages], source=source,
+            own_offset=DaemonSettings.from_config(c).own_offset)
+    mon = AxesMonitor(monitors)
+    tty = sys.stdout.isatty() and not args.plain and not args.json
+    bus = open_bus(conf)
+    try:
+        with can.Notifier(bus, list(monitors.values()), timeout=0.1):
+            return _watch(args, mon, tty)
+    finally:
+        bus.shutdown()
 
 
 def _watch(args: argparse.Namespace, mon: Any, tty: bool) -> int:

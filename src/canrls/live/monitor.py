@@ -46,7 +46,8 @@ from canrls.estimation.effects import parse_effect, target_unit
 from canrls.estimation.model import Model
 from canrls.live.bus import moved
 
-__all__ = ["LibraryUnits", "Monitor", "MonitorView", "parse_command_text"]
+__all__ = ["AxesMonitor", "AxesView", "LibraryUnits", "Monitor", "MonitorView", "axis_rows",
+           "parse_command_text"]
 
 _IDS = frame_ids()  # of the default DBC, which the daemon publishes with
 _ESTIMATOR_IDS = _IDS.published
@@ -219,6 +220,60 @@ class MonitorView:
 
 #: the commands a tool can send, as :func:`parse_command_text` reads them
 COMMAND_WORDS = "reset, freeze, resume, add EFFECT, remove EFFECT, lambda L, save"
+
+
+@dataclass(frozen=True)
+class AxesView:
+    """One snapshot of every axis's monitor (:class:`AxesMonitor`)."""
+
+    views: Mapping[str, MonitorView]
+
+    @property
+    def complete(self) -> bool:
+        """Every axis's view is complete."""
+        return all(v.complete for v in self.views.values())
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"axes": {n: v.to_dict() for n, v in self.views.items()}}
+
+    def format(self, color: bool = False) -> str:
+        return axis_rows(self.views)
+
+
+class AxesMonitor:
+    """The monitors of a machine's axes, by name (each a listener of the same bus): a
+    snapshot of them all is one row per axis."""
+
+    def __init__(self, monitors: Mapping[str, Monitor]) -> None:
+        self.monitors = dict(monitors)
+        self.source = next(iter(self.monitors.values())).source if self.monitors else ""
+
+    @property
+    def error(self) -> Exception | None:
+        return next((m.error for m in self.monitors.values() if m.error is not None), None)
+
+    def snapshot(self) -> AxesView:
+        return AxesView({n: m.snapshot() for n, m in self.monitors.items()})
+
+
+def axis_rows(views: Mapping[str, MonitorView]) -> str:
+    """The view of a machine's axes: a head line, then one row per axis (residual RMS,
+    updates, health, effects, frames/s of its feedback and of its own frames)."""
+    w = max([len(n) for n in views] + [4])
+    first = next(iter(views.values()), None)
+    stamp = time.strftime("%H:%M:%S", time.localtime(first.time)) if first else ""
+    lines = [f"canrls monitor  {first.source if first else ''}  {stamp}  {len(views)} axes",
+             f"  {'axis':<{w}}  {'residual RMS':>12}  {'updates':>8}  {'feedback/s':>10}  "
+             f"{'canrls/s':>8}  health  effects"]
+    for name, v in views.items():
+        s = v.status
+        rms = "-" if s is None else f"{_num(s.residual_rms)} {v.rms_unit}".strip()
+        lines.append(f"  {name:<{w}}  {rms:>12}  {'-' if s is None else s.update_count:>8}  "
+                     f"{v.rates.get('feedback', 0.0):>10.0f}  "
+                     f"{v.rates.get('estimator', 0.0):>8.0f}  "
+                     f"{'-' if s is None else ', '.join(s.flags) or 'ok'}  "
+                     f"{', '.join(v.effects()) or '-'}")
+    return "\n".join(lines)
 
 
 def _num(x: float | None, valid: bool = True) -> str:
