@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import re
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import can
@@ -72,3 +77,55 @@ def test_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
     err = capsys.readouterr().err
     assert err.startswith(message) and err.count("\n") == 1
     assert not (tmp_path / "x.log").exists()
+
+
+def test_an_inertia_the_integrator_cannot_afford_is_refused_naming_the_limit(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 30, 11: -p inertia.J=1e-8 needed 11 minutes for 5 s of drive (a million
+    sub-steps per period at standstill). Refused at once, naming the sub-step bound and
+    the smallest J, which is then accepted."""
+    from cli_tool import cli_error
+
+    from canrls.sim.plant import MAX_SUBSTEPS
+
+    out = tmp_path / "drive.log"
+    line = cli_error(capsys, ["sim", "--out", str(out), "--duration", "5", "-p",
+                              "inertia.J=1e-8"])
+    m = re.search(rf"more than the simulator's {MAX_SUBSTEPS}: give inertia\.J >= (\S+) with",
+                  line)
+    assert line.startswith("error: inertia.J = 1e-08: ") and m, line
+    assert not out.exists()
+    assert main(["sim", "--out", str(out), "--duration", "0.5", "-p",
+                 f"inertia.J={m.group(1)}"]) == 0
+
+
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_inside_the_c_loop_stops_sim_within_a_second(
+        tmp_path: Path, sig: signal.Signals, status: int) -> None:
+    """Issue 30, 11: SIGTERM was not acted on inside the C loop (a call simulates 65,536
+    periods: about a minute at the smallest J). The loop looks at the signals every
+    100,000 sub-steps now."""
+    out = tmp_path / "long.log"
+    proc = subprocess.Popen([sys.executable, "-m", "canrls", "sim", "--out", str(out),
+                             "--duration", "3600", "-p", "inertia.J=5e-7"],
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not any(p.name.endswith(".part") for p in tmp_path.iterdir()):
+            assert proc.poll() is None and time.monotonic() < deadline, "no temporary seen"
+            time.sleep(0.02)
+        time.sleep(0.5)  # inside the first call of the C loop
+        sent = time.monotonic()
+        proc.send_signal(sig)
+        try:
+            _, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            err = ""
+        took = time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == status, err
+    assert took < 1.0, f"{took:.1f} s"
+    assert list(tmp_path.iterdir()) == []

@@ -133,6 +133,7 @@ def test_fit_several_logs_save_and_validate(logs: dict[str, Path], tmp_path: Pat
     assert main(["validate", str(logs["s3"]), "--model", str(m), "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "without re-estimating" in text and "fit" in text and "residual RMS" in text
+    assert text.startswith("mechanical: the model holds: residual RMS ")  # the answer first
 
 
 def test_validate_shows_where_a_poorer_model_fails(logs: dict[str, Path], tmp_path: Path,
@@ -189,12 +190,18 @@ def test_validate_report_html_with_figures(logs: dict[str, Path], tmp_path: Path
     page = out / "index.html"
     assert d["report"] == str(page)
     html = page.read_text(encoding="utf-8")
-    pngs = re.findall(r"<img src='([^']+)'", html)
+    figs = re.findall(r"<img src='([^']+)' alt='([^']+)'", html)
     # per log the prediction over time, then the residual by speed and by position
-    assert pngs == ["mechanical-timeline-1.png", "mechanical-timeline-2.png",
-                    "mechanical-speed.png", "mechanical-position.png"]
-    for name in pngs:
-        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    assert [f for f, _ in figs] == ["mechanical-timeline-1.svg", "mechanical-timeline-2.svg",
+                                    "mechanical-speed.svg", "mechanical-position.svg"]
+    for name, alt in figs:
+        assert (out / name).read_bytes().startswith(b"<?xml"), name
+        assert name not in alt and ("Residual" in alt or "measured against" in alt)
+    # the answer first: the verdict line right under the title, R² never "1.0000"
+    first = re.search(r"<p class='verdict[^']*'><b>([^<]+)</b>", html)
+    assert first is not None and first.group(1).startswith("mechanical: the model holds")
+    assert html.index(first.group(0)) < html.index("Identified on")
+    assert "R² 1.0000" not in html and "name='viewport'" in html
     # the page says what the text says: fit, per-log rows, where it fails
     for f in d["equations"]["mechanical"]["files"]:
         assert f["source"] in html
@@ -245,3 +252,20 @@ def test_validate_refuses_options_that_would_change_the_model(
         main(["validate", "--help"])
     out = capsys.readouterr().out
     assert "report fit %, residual RMS" in out and "%%" not in out and "--report DIR" in out
+
+
+def test_validation_verdict_says_whether_the_model_holds() -> None:
+    from canrls.diagnosis.validate import HOLDS_WITHIN, EquationValidation
+
+    def eq(rms: float, ident: float | None) -> EquationValidation:
+        return EquationValidation("mechanical", "N·m", 1000, rms, 90.0, 0.999999, ident,
+                                  (), ())
+    ok = eq(0.00102, 0.001)
+    assert ok.holds is True
+    assert ok.verdict == ("mechanical: the model holds: residual RMS 0.00102 N·m, +2.0 % "
+                          "against the 0.001 N·m at identification (it holds within +25 %)")
+    assert eq(0.00098, 0.001).verdict.split(", ")[1].startswith("-2.0 %")
+    bad = eq(0.001 * (1 + HOLDS_WITHIN) * 1.01, 0.001)
+    assert bad.holds is False and "the model does not hold" in bad.verdict
+    unknown = eq(0.001, None)
+    assert unknown.holds is None and "no RMS at identification" in unknown.verdict

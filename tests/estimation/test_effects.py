@@ -123,7 +123,7 @@ def test_parse_names_ids_orders_and_equations() -> None:
     ("friction", {}, ["'friction'", "inertia", "cogging:K", "user:NAME"]),
     ("cogging", {}, ["'cogging'", "cogging:K"]),
     ("cogging:", {}, ["cogging:K"]),
-    ("cogging:0", {}, ["'0'", ">= 1"]),
+    ("cogging:0", {}, ["'0'", "from 1 to 65535"]),
     ("cogging:-3", {}, ["'-3'"]),
     ("cogging:2.5", {}, ["'2.5'"]),
     ("inertia:2", {}, ["'inertia'", "no argument"]),

@@ -28,7 +28,7 @@ from canrls.live.daemon import Daemon
 from canrls.live.settings import DaemonSettings
 
 __all__ = ["DaemonTool", "collect", "daemon_fed", "datagrams", "notify_socket",
-           "remote_sim_server"]
+           "reloaded_daemon", "remote_sim_server"]
 
 #: RlsCommandAck
 ACK_ID = 0x321
@@ -180,3 +180,31 @@ def datagrams(sock: socket.socket, want: str, timeout: float,
         if want in got[-1]:
             break
     return got
+
+
+def reloaded_daemon(directory: Path, conf: Path, texts: Sequence[str]
+                    ) -> tuple[int, str, str]:
+    """``canrls run -C conf --json`` as a process under a stand-in for systemd: once it
+    is ready, each of ``texts`` written to ``conf`` and a SIGHUP sent (the next waits for
+    READY=1 again), then SIGTERM; returns (exit status, stdout, stderr)."""
+    import signal
+
+    sock, addr = notify_socket(directory, "notify")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-C", str(conf),
+         "--json"], env=dict(os.environ, NOTIFY_SOCKET=addr),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert any("READY=1" in g for g in datagrams(sock, "READY=1", 60, proc))
+        for text in texts:
+            conf.write_text(text)
+            proc.send_signal(signal.SIGHUP)
+            assert "READY=1" in datagrams(sock, "READY=1", 30, proc)[-1]
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        sock.close()
+    return proc.returncode, out, err

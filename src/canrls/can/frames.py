@@ -131,7 +131,8 @@ def parse_effect(name: str) -> tuple[EffectId, int]:
     The grammar of :func:`canrls.core.effect_names.parse_effect_name`, with the user term given
     by its 1-based index (as the ``Order`` field carries it). Raises
     :class:`CommandFrameError` (result UNKNOWN_EFFECT / BAD_VALUE) for an unknown name or
-    a missing / malformed order, or an order beyond the 16-bit ``Order`` field.
+    a missing / malformed order, or an order beyond the 16-bit ``Order`` field
+    (:data:`~canrls.core.effect_names.MAX_ORDER`).
     """
     try:
         parsed = parse_effect_name(name, user="index")
@@ -139,9 +140,6 @@ def parse_effect(name: str) -> tuple[EffectId, int]:
         unknown = EffectId.from_name(str(name).partition(":")[0]) is EffectId.NONE
         raise CommandFrameError(str(e), CommandResult.UNKNOWN_EFFECT if unknown
                                 else CommandResult.BAD_VALUE) from e
-    if parsed.order > 0xFFFF:
-        raise CommandFrameError(f"effect {name!r}: order {parsed.order} does not fit the "
-                                f"16-bit Order field (1..65535)", CommandResult.BAD_VALUE)
     return parsed.effect, parsed.order
 
 
@@ -319,12 +317,13 @@ class FrameIds:
     ack: int
     feedback: tuple[int, ...]
 
-    def own(self) -> dict[str, int]:
-        """canrls' own frames (published, command, ack) by DBC message name."""
-        names = (*_PUBLISHED, "RlsCommand", "RlsCommandAck")
+    @property
+    def own(self) -> dict[int, str]:
+        """Every frame of canrls' own, ID -> DBC message name: the published frames, the
+        command and its acknowledgement (standard IDs)."""
         ids = (self.estimate, self.sigma, self.reference, self.param_info, self.status,
                self.health, self.counters, self.rejects, self.command, self.ack)
-        return dict(zip(names, ids, strict=True))
+        return dict(zip(ids, (*_PUBLISHED, "RlsCommand", "RlsCommandAck"), strict=True))
 
     @property
     def published(self) -> frozenset[int]:

@@ -160,6 +160,8 @@ class Protocol:
     period_source: str | None = None
     #: the ID rule that moved the messages (:meth:`with_ids`); None: the DBC's own IDs
     rule: IdRule | None = None
+    #: SHA-256 of the DBC file as it was read ("" when not read from a file)
+    dbc_digest: str = ""
 
     def __init__(self, db: Any, dbc_path: Path, is_default_dbc: bool, mapping: SignalMapping,
                  roles: dict[str, RoleInfo], messages: tuple[MessageCodec, ...], *,
@@ -207,7 +209,8 @@ class Protocol:
         """
         path = DEFAULT_DBC if dbc is None else Path(dbc)
         db, raw = load_dbc(path)
-        is_default = hashlib.sha256(raw).hexdigest() == _default_hash()
+        digest = hashlib.sha256(raw).hexdigest()
+        is_default = digest == _default_hash()
         if mapping is None:
             mp = SignalMapping.default()
         elif isinstance(mapping, SignalMapping):
@@ -224,6 +227,7 @@ class Protocol:
         roles, messages = _resolve(db, path, is_default, mp, period, axis)
         proto = Protocol(db, path, is_default, mp, roles, messages, strict_range=strict_range,
                          check_crc=check_crc, check_counter=check_counter)
+        proto.dbc_digest = digest
         if period is not None:
             proto.period_source = period_source
         elif proto.period is not None:
@@ -248,8 +252,26 @@ class Protocol:
                          messages, strict_range=self.strict_range, check_crc=self.check_crc,
                          check_counter=self.check_counter)
         proto.period_source = self.period_source
+        proto.dbc_digest = self.dbc_digest
         proto.rule = rule
         return proto
+    def changes(self, other: Protocol) -> list[str]:
+        """The configuration keys in which ``other`` decodes differently from this
+        protocol (``can.dbc``: another file, or the file changed; ``signals``: the
+        mapping; the strict checks; the period): empty when the two decode alike."""
+        out = []
+        if (self.dbc_path.resolve() != other.dbc_path.resolve()
+                or self.dbc_digest != other.dbc_digest):
+            out.append("can.dbc")
+        if self.mapping != other.mapping:
+            out.append("signals")
+        if self.rule != other.rule:
+            out.append("can.ids")
+        out += [f"can.{k}" for k in ("strict_range", "check_crc", "check_counter")
+                if getattr(self, k) != getattr(other, k)]
+        if self.period != other.period:
+            out.append("can.period")
+        return out
 
     def has(self, role: str) -> bool:
         """True when ``role`` is mapped."""
@@ -329,6 +351,10 @@ def _resolve(db: Any, path: Path, is_default: bool, mp: SignalMapping,
             raise SignalError(f"{where}: {spec} is multiplexed; canrls maps plain signals only")
         if msg.is_container:
             raise SignalError(f"{where}: message {spec.message} is a container message")
+        if sig.minimum is not None and sig.maximum is not None and sig.minimum > sig.maximum:
+            raise SignalError(f"{where}: {spec.message}.{spec.signal} (mapped to {role}): "
+                              f"minimum {sig.minimum:g} > maximum {sig.maximum:g}: every value "
+                              f"would be out of range (swap them in the DBC)")
         codec = SignalCodec(sig, msg.name)
         unit = spec.unit if spec.unit is not None else (sig.unit or "")
         factor = si_factor(role, unit, message=msg.name, signal=sig.name, scale=spec.scale,

@@ -16,6 +16,7 @@ from typing import Any
 from canrls.cli._common import (
     Progress,
     add_log_arguments,
+    add_max_order_option,
     add_model_options,
     add_progress_option,
     add_report_option,
@@ -26,21 +27,7 @@ from canrls.cli._common import (
 __all__ = ["add_subparser", "run"]
 
 
-def _order(text: str) -> int:
-    from canrls.diagnosis.candidates import MAX_ORDER_LIMIT
-
-    try:
-        k = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if not 1 <= k <= MAX_ORDER_LIMIT:
-        raise argparse.ArgumentTypeError(f"{text!r} must be in 1..{MAX_ORDER_LIMIT}")
-    return k
-
-
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
-    from canrls.diagnosis.candidates import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT
-
     p = subparsers.add_parser(
         "diagnose", help="compare the model with a log: where it fails, which effect is missing",
         description="Replay a CAN log as 'canrls fit' does, compare the model with the "
@@ -62,9 +49,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     g.add_argument("--save-model", metavar="FILE",
                    help="write the model (after --add, if any) with its parameters as JSON "
                         "for 'canrls validate' (as 'canrls fit --save-model')")
-    g.add_argument("--max-order", type=_order, default=DEFAULT_MAX_ORDER, metavar="K",
-                   help=f"highest cogging order searched (default {DEFAULT_MAX_ORDER}, at most "
-                        f"{MAX_ORDER_LIMIT})")
+    add_max_order_option(g, "searched")
     p.set_defaults(func=run)
     return p
 
@@ -132,8 +117,10 @@ def run(args: argparse.Namespace) -> int:
             u = "m/s" if m.axis == "linear" else "rad/s"
             ms = settings.min_speed if settings.min_speed is not None else 5 * m.coulomb_band
             head.append(f"axis {m.axis}; values used: Coulomb band {m.coulomb_band:.4g} {u} "
-                        f"(minimum speed {ms:.4g} {u} with sign-dependent friction), "
-                        f"Stribeck speed {m.stribeck_speed:.4g} {u}"
+                        f"(minimum speed {ms:.4g} {u} with sign-dependent friction)"
+                        # a candidate's Stribeck speed is searched: the model's only if used
+                        + (f", Stribeck speed {m.stribeck_speed:.4g} {u}"
+                           if "stribeck" in m.effect_names else "")
                         + (f", pitch {m.pitch:.4g} m" if m.axis == "linear" else ""))
         sys.stdout.write("".join(h + "\n" for h in head) + rep.format() + "\n")
         if page is not None:

@@ -366,6 +366,8 @@ class Daemon:
             self._threads.append(t)
         log.info("canrls daemon running on %s: effects %s, %d parameters", self._link.info(),
                  ",".join(self.model.effect_names), len(self.model.parameters))
+        if self.model.per_ampere:
+            log.warning("%s", self.model.per_ampere_text)
 
     def stop(self) -> None:
         """Stop reading, process what was queued, publish that state, checkpoint, close

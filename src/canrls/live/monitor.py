@@ -317,7 +317,7 @@ class Monitor(can.Listener):
         self.feedback_ids = frozenset(feedback_ids)
         #: the axis's own frames are the shipped IDs + this (``[daemon] own_ids``)
         self.own_offset = own_offset
-        self._own = frozenset(i + own_offset for i in _IDS.own().values())
+        self._own = frozenset(i + own_offset for i in _IDS.own)
         self.window_s = window_s
         self.trend_s = trend_s
         if rms_unit is None:

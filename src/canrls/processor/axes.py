@@ -116,7 +116,7 @@ def check_own(protocols: Mapping[str, Protocol], offsets: Mapping[str, int]) -> 
             if not m.is_extended:
                 owner.setdefault(m.frame_id, f"{name}'s feedback {m.name}")
     for name, off in offsets.items():
-        for msg, fid in frame_ids().own().items():
+        for fid, msg in frame_ids().own.items():
             new = fid + off
             what = f"{name}'s {msg}"
             if not 0 <= new <= MAX_STANDARD_ID:

@@ -255,12 +255,12 @@ class AppConfig:
             self.signal_overrides = list(over.signals)
         if over.effects:
             self.model["effects"] = [e.strip() for e in over.effects.split(",") if e.strip()]
-            self.flags["model.effects"] = f"--effects {over.effects}"
+            self.flags["model.effects"] = f"--effects {_typed(over.effects)}"
         for attr, flag, section, key in _FLAGS:
             v = getattr(over, attr)
             if v is not None:
                 getattr(self, section)[key] = v
-                self.flags[f"{section}.{key}"] = f"{flag} {v}"
+                self.flags[f"{section}.{key}"] = f"{flag} {_typed(v)}"
         self.bus.update(over.bus)
         if over.axes is not None:
             self.axes = short_form(over.axes)
@@ -492,6 +492,13 @@ class AppConfig:
             return EstimatorSettings(**kw)
         except ConfigError as e:
             raise self._flagged(ConfigError(f"{self.source}: {e}")) from e
+
+
+def _typed(value: object, most: int = 200) -> str:
+    """A value typed on the command line as an error repeats it: at most ``most``
+    characters (5,000 digits are named by their count)."""
+    text = str(value)
+    return text if len(text) <= most else f"{text[:most]}... ({len(text)} characters)"
 
 
 def load_config(path: str | Path | None, overrides: Overrides | None = None) -> AppConfig:

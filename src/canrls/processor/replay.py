@@ -19,9 +19,9 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 import numpy as np
 
 from canrls.can.frameblock import FrameBlock
-from canrls.can.logs import LogReadStats, read_frames
+from canrls.can.logs import LogReadStats, empty_log_error, read_frames
 from canrls.can.protocol import Protocol
-from canrls.core.errors import ConfigError, EstimatorError, LogFormatError
+from canrls.core.errors import ConfigError, EstimatorError
 from canrls.core.signals import Signals
 from canrls.core.spill import SpilledSignals, join_blocks, spill_blocks
 from canrls.estimation.estimates import Estimates, PipelineBlock
@@ -200,9 +200,7 @@ class LogFiles:
         """The end of file ``k``: the period is decided with what came (the first file
         measures it), and the samples still open are paired."""
         if self.proc.frames == self._frames_before:
-            raise LogFormatError(f"{self.paths[k]}: no CAN frames in the log"
-                                 + (f" ({self.stats.bad_lines} unparsable lines skipped)"
-                                    if self.stats.bad_lines else ""))
+            raise empty_log_error(self.paths[k], self.stats.bad_lines)
         out = self._shifted(self.proc.flush_samples())
         if len(self.shifts) < self._file:
             self.shifts.append(0.0)  # a file without samples

@@ -52,6 +52,10 @@ EFFECT_PARAMS: Mapping[str, tuple[str, ...]] = MappingProxyType({
 })
 
 _COGGING = re.compile(r"^cogging:([1-9][0-9]*)$")
+#: Most integration sub-steps per control period (the stiffest part: Coulomb friction
+#: at standstill, ~ (Tc + |Ts|) / (band J)): the standard drive takes 50-75, J = 1e-6
+#: 10,000-15,000 (1.5 s of CPU for 5 s of drive); J = 1e-8 took 11 minutes.
+MAX_SUBSTEPS = 20_000
 
 # SI units of each parameter symbol: (rotary, linear)
 _UNITS: dict[str, tuple[str, str]] = {
@@ -504,7 +508,17 @@ class Plant:
         lam_f = (abs(tr.get("coulomb.Tc")) + abs(tr.get("stribeck.Ts"))) / tr.coulomb_band
         lam_f += abs(tr.get("stribeck.Ts")) / tr.stribeck_speed
         lam_f /= J
-        return n, (2.0 / lam_f if lam_f > 0 else h)
+        h_stiff = 2.0 / lam_f if lam_f > 0 else h
+        # the most sub-steps of a period: all of them in the stiff zone near standstill
+        most = max(n, math.ceil(dt / min(h_stiff, h)))
+        if most > MAX_SUBSTEPS:
+            # every stiffness above is proportional to 1/J: the J that brings it in bound
+            raise ConfigError(
+                f"inertia.J = {J:g}: the simulated drive would need {most} integration "
+                f"steps per {dt * 1e3:g} ms period (its friction, cogging and poles are "
+                f"stiff in proportion to 1/J), more than the simulator's {MAX_SUBSTEPS}: "
+                f"give inertia.J >= {J * most / MAX_SUBSTEPS:.2g} with these parameters")
+        return n, h_stiff
 
     @property
     def state(self) -> tuple[float, float, float]:

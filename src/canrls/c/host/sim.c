@@ -119,14 +119,18 @@ static inline double quantise(double x, double q)
     return floor(x / q + 0.5) * q;
 }
 
-/* Advance n control periods; st = [theta, omega, i, integ_w, integ_i] in and out.
- * noise (n, 3): the sensors' noise (current, speed, position), already scaled.
+/* RK4 sub-steps between two looks at the signals (py_plant_run): a few milliseconds */
+#define STEPS_PER_CHECK 100000
+
+/* Advance control periods k0.. of n, stopping after the period in which the sub-steps
+ * reach `budget`; returns the next period. st = [theta, omega, i, integ_w, integ_i] in
+ * and out. noise (n, 3): the sensors' noise (current, speed, position), already scaled.
  * out (n, 9): i, omega, theta, u, i_meas, omega_meas, theta_meas, u_meas, i_ref. */
-static void plant_run(Py_ssize_t n, double dt, int64_t nsub, double h_stiff, double *st,
-                      const Physics *ph, const double *gains, const double *quant,
-                      const double *ffv, const double *ffmap, Py_ssize_t nmap,
-                      const double *w_ref, const double *a_ref, const double *noise,
-                      double *out)
+static Py_ssize_t plant_run(Py_ssize_t k0, Py_ssize_t n, int64_t budget, double dt,
+                            int64_t nsub, double h_stiff, double *st, const Physics *ph,
+                            const double *gains, const double *quant, const double *ffv,
+                            const double *ffmap, Py_ssize_t nmap, const double *w_ref,
+                            const double *a_ref, const double *noise, double *out)
 {
     const int ff_on = ffv[F_ON] != 0.0;
     const double *p = ph->p;
@@ -143,7 +147,9 @@ static void plant_run(Py_ssize_t n, double dt, int64_t nsub, double h_stiff, dou
     const double zone = 10.0 * p[P_E];
     const int stiff = p[P_TC] != 0.0 || p[P_TS] != 0.0;
     const double h_min = dt * 1e-6;
-    for (Py_ssize_t k = 0; k < n; k++) {
+    int64_t steps = 0;
+    Py_ssize_t k = k0;
+    for (; k < n && steps < budget; k++) {
         const double *nz = noise + 3 * k;
         double *o = out + 9 * k;
         /* ---- sensors at t_k (ideal source: i is the current over the coming period) */
@@ -217,6 +223,7 @@ static void plant_run(Py_ssize_t n, double dt, int64_t nsub, double h_stiff, dou
                 hs = rem;
             rk4(ph, &th, &w, &i, u, hs, a1, b1, c1);
             rem = hs == rem ? 0.0 : rem - hs;
+            steps++;
         }
     }
     st[0] = th;
@@ -224,6 +231,7 @@ static void plant_run(Py_ssize_t n, double dt, int64_t nsub, double h_stiff, dou
     st[2] = i;
     st[3] = integ_w;
     st[4] = integ_i;
+    return k;
 }
 
 /* ================================================================= Python glue */
@@ -269,11 +277,20 @@ static PyObject *py_plant_run(PyObject *self, PyObject *const *args, Py_ssize_t 
             && need(&a, b[12], "out", n, 9)) {
             const Physics ph = {.p = D(b[1]), .m = m, .ck = D(b[2]), .cs = D(b[3]),
                                 .cc = D(b[4])};
-            Py_BEGIN_ALLOW_THREADS
-            plant_run(n, dt, nsub, h_stiff, D(b[0]), &ph, D(b[5]), D(b[6]), D(b[7]), D(b[8]),
-                      nmap, D(b[9]), D(b[10]), D(b[11]), D(b[12]));
-            Py_END_ALLOW_THREADS
-            res = Py_NewRef(Py_None);
+            /* in pieces of STEPS_PER_CHECK sub-steps, the signals looked at between them:
+             * SIGTERM or SIGINT is acted on within milliseconds (the state carries
+             * over exactly: the pieces change nothing) */
+            Py_ssize_t k = 0;
+            int stopped = 0;
+            while (k < n && !stopped) {
+                Py_BEGIN_ALLOW_THREADS
+                k = plant_run(k, n, STEPS_PER_CHECK, dt, nsub, h_stiff, D(b[0]), &ph, D(b[5]),
+                              D(b[6]), D(b[7]), D(b[8]), nmap, D(b[9]), D(b[10]), D(b[11]),
+                              D(b[12]));
+                Py_END_ALLOW_THREADS
+                stopped = PyErr_CheckSignals() < 0;
+            }
+            res = stopped ? NULL : Py_NewRef(Py_None);
         }
     }
     release(&a);
