@@ -31,9 +31,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import can
-from can.interfaces import virtual as _virtual
-
+from bench_daemon import _feed  # the feeder of the one-drive benchmark, at a fixed rate
 from canrls.live.daemon import Daemon
 from canrls.live.machine import MachineDaemon
 from canrls.live.settings import DaemonSettings
@@ -58,25 +56,6 @@ def _config(n: int, directory: Path) -> Path:
         f'[[axes]]\nname = "axis{k + 1}"\nids = "offset:{k * AXIS_ID_STEP:#x}"\n'
         for k in range(n)))
     return p
-
-
-def _feed(channel: str, msgs: list[can.Message], rate: float, tick: float = 1e-3) -> float:
-    """Put ``msgs`` on the channel at ``rate`` frames/s, those due every ``tick`` s."""
-    with _virtual.channels_lock:
-        queues = list(_virtual.channels[channel])
-    t0 = time.perf_counter()
-    k = step = 0
-    while k < len(msgs):
-        step += 1
-        target = min(len(msgs), int((time.perf_counter() - t0) * rate) + 1)
-        for i in range(k, target):
-            for q in queues:
-                q.put_nowait(msgs[i])
-        k = max(k, target)
-        wait = t0 + step * tick - time.perf_counter()
-        if wait > 0:
-            time.sleep(wait)
-    return time.perf_counter() - t0
 
 
 def bench(n: int, seconds: float, directory: Path) -> dict[str, float]:

@@ -222,17 +222,21 @@ def with_tuning(sc: Any, feedforward: str | None, gains: str | None) -> Any:
 _DRIVE_ONLY = ("effects", "faults", "axis", "excitation", "feedforward", "gains")
 
 
+def _refuse_drive_options(args: argparse.Namespace, command: str, why: str) -> None:
+    """The options of one drive, refused by ``command`` (a fleet, a machine)."""
+    for opt in _DRIVE_ONLY:
+        if getattr(args, opt) is not None:
+            raise ConfigError(f"--{opt}: not an option of '{command}' ({why})")
+    if args.param:
+        raise ConfigError(f"--param: not an option of '{command}'")
+
+
 def run_machine(args: argparse.Namespace) -> int:
     """``canrls sim --axes N``: the log of a simulated machine."""
     from canrls.can.logs import write_log
     from canrls.sim.machine import machine, machine_frames
 
-    for opt in _DRIVE_ONLY:
-        if getattr(args, opt) is not None:
-            raise ConfigError(f"--{opt}: not an option of 'canrls sim --axes' (each axis's "
-                              f"physics are the machine's)")
-    if args.param:
-        raise ConfigError("--param: not an option of 'canrls sim --axes'")
+    _refuse_drive_options(args, "canrls sim --axes", "each axis's physics are the machine's")
     axes = machine(args.axes, duration=args.duration, seed=args.seed,
                    scenario_name=args.scenario)
     with _terminated_as_exit():
@@ -253,12 +257,8 @@ def run_fleet(args: argparse.Namespace) -> int:
     from canrls.cli._common import Progress
     from canrls.sim.fleet import make_fleet, write_fleet
 
-    for opt in _DRIVE_ONLY:
-        if getattr(args, opt) is not None:
-            raise ConfigError(f"--{opt}: not an option of 'canrls sim fleet' (each drive's "
-                              f"physics, faults and excitation are drawn)")
-    if args.param:
-        raise ConfigError("--param: not an option of 'canrls sim fleet'")
+    _refuse_drive_options(args, "canrls sim fleet",
+                          "each drive's physics, faults and excitation are drawn")
     duration = 6.0 if args.duration is None else args.duration
     if args.drives < 1 or args.recordings < 1:
         raise ConfigError(f"--drives {args.drives} --recordings {args.recordings}: at least 1")

@@ -58,7 +58,7 @@ from canrls.live.tuning import interpreter
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig
 
-__all__ = ["Daemon", "DaemonStats", "make_processor"]
+__all__ = ["Daemon", "DaemonStats", "make_processor", "serve", "wait_until"]
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +108,46 @@ class DaemonStats:
 
     def to_dict(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def wait_until(check: Callable[[], bool], timeout: float) -> bool:
+    """Poll ``check()`` every 5 ms until true or ``timeout`` seconds; its last answer."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if check():
+            return True
+        time.sleep(0.005)
+    return check()
+
+
+def serve(target: Any, stopping: threading.Event, duration: float | None,
+          ready: Callable[[], None] | None = None) -> int:
+    """Start ``target`` (a :class:`Daemon` or a machine's), call ``ready``, serve until
+    ``stopping`` is set (SIGTERM/SIGINT request it), ``duration`` s have passed or
+    ``target.failure`` is set, then stop it; SIGHUP requests a reload. Signal handlers
+    only from the main thread, restored after. Returns the exit status (0, or 1 after a
+    failure)."""
+    handlers: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig, fn in ((signal.SIGTERM, lambda *_: target.request_stop()),
+                        (signal.SIGINT, lambda *_: target.request_stop()),
+                        (signal.SIGHUP, lambda *_: target.request_reload())):
+            handlers[sig] = signal.signal(sig, fn)
+    try:
+        target.start()
+        if ready is not None:
+            ready()
+        end = None if duration is None else time.monotonic() + duration
+        while not stopping.is_set() and target.failure is None:
+            left = 0.2 if end is None else min(0.2, end - time.monotonic())
+            if left <= 0:
+                break
+            stopping.wait(left)
+    finally:
+        target.stop()
+        for sig, old in handlers.items():
+            signal.signal(sig, old)
+    return 0 if target.failure is None else 1
 
 
 class Daemon:
@@ -435,36 +475,12 @@ class Daemon:
         daemon then stops at once, without a final checkpoint). Signal handlers are
         installed only when called from the main thread.
         """
-        handlers: dict[int, Any] = {}
-        if threading.current_thread() is threading.main_thread():
-            for sig, fn in ((signal.SIGTERM, lambda *_: self.request_stop()),
-                            (signal.SIGINT, lambda *_: self.request_stop()),
-                            (signal.SIGHUP, lambda *_: self.request_reload())):
-                handlers[sig] = signal.signal(sig, fn)
-        try:
-            self.start()
-            self.sd.ready(f"estimating {','.join(self.model.effect_names)} on "
-                          f"{self._link.info()}")
-            end = None if duration is None else time.monotonic() + duration
-            while not self._stopping.is_set():
-                left = 0.2 if end is None else min(0.2, end - time.monotonic())
-                if left <= 0:
-                    break
-                self._stopping.wait(left)
-        finally:
-            self.stop()
-            for sig, old in handlers.items():
-                signal.signal(sig, old)
-        return 0 if self.failure is None else 1
+        return serve(self, self._stopping, duration, ready=lambda: self.sd.ready(
+            f"estimating {','.join(self.model.effect_names)} on {self._link.info()}"))
 
     def wait_for(self, predicate: Callable[[Daemon], bool], timeout: float) -> bool:
         """Poll ``predicate(self)`` until true or ``timeout`` seconds (tests, the demo)."""
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if predicate(self):
-                return True
-            time.sleep(0.005)
-        return predicate(self)
+        return wait_until(lambda: predicate(self), timeout)
 
     def hold_input(self, hold: bool) -> None:
         """Stop (``True``) or restart taking frames from the bus listener.

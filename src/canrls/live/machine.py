@@ -4,13 +4,10 @@ stopped and reported together (:class:`MachineDaemon`)."""
 
 from __future__ import annotations
 
-import signal
 import threading
-import time
 from collections.abc import Callable, Mapping
-from typing import Any
 
-from canrls.live.daemon import Daemon
+from canrls.live.daemon import Daemon, serve, wait_until
 
 __all__ = ["MachineDaemon"]
 
@@ -54,32 +51,9 @@ class MachineDaemon:
 
     def wait_for(self, predicate: Callable[[MachineDaemon], bool], timeout: float) -> bool:
         """Poll ``predicate(self)`` until true or ``timeout`` seconds (tests)."""
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if predicate(self):
-                return True
-            time.sleep(0.005)
-        return predicate(self)
+        return wait_until(lambda: predicate(self), timeout)
 
     def run(self, duration: float | None = None) -> int:
         """Start, serve until SIGTERM/SIGINT (or ``duration`` s) or an axis fails, stop;
         SIGHUP reloads every axis's model. The exit status as :meth:`Daemon.run`'s."""
-        handlers: dict[int, Any] = {}
-        if threading.current_thread() is threading.main_thread():
-            for sig, fn in ((signal.SIGTERM, lambda *_: self.request_stop()),
-                            (signal.SIGINT, lambda *_: self.request_stop()),
-                            (signal.SIGHUP, lambda *_: self.request_reload())):
-                handlers[sig] = signal.signal(sig, fn)
-        try:
-            self.start()
-            end = None if duration is None else time.monotonic() + duration
-            while not self._stopping.is_set() and self.failure is None:
-                left = 0.2 if end is None else min(0.2, end - time.monotonic())
-                if left <= 0:
-                    break
-                self._stopping.wait(left)
-        finally:
-            self.stop()
-            for sig, old in handlers.items():
-                signal.signal(sig, old)
-        return 0 if self.failure is None else 1
+        return serve(self, self._stopping, duration)
