@@ -5,20 +5,21 @@ drives at 1 kHz (``canrls.sim.machine``, 2 feedback frames per axis and period, 
 frames/s) is simulated and encoded first, then put on python-can's virtual channel at
 its own rate by a feeder thread (as in ``tools/bench_daemon.py``) for ``--seconds``; the
 N daemons of a :class:`~canrls.live.machine.MachineDaemon` (each its own virtual bus
-connection: each receives every frame of the bus, as a SocketCAN socket without
-filters does) estimate and publish.
+connection, taking only its own feedback and command frames through the bus's filters
+as ``canrls run`` of a machine sets them; ``--no-filter``: every frame) estimate and
+publish.
 
 * **lost**: frames a daemon's queue dropped (overflow) or its counters found missing,
   summed over the axes; 0 means the process kept up.
 * **CPU per frame**: the daemons' listener and estimator thread CPU time, divided by the
-  frames fed (each frame is seen by every axis: N times the work of one).
+  frames fed (with ``--no-filter`` every axis judges every frame: N times the work).
 * **RSS** after the run, and the **cold start**: a fresh ``canrls run`` process of N
   axes from its start to its exit after ``--duration 0.01`` (imports, the machine
   checked, every daemon built, started and stopped).
 
 Usage::
 
-    python tools/bench_axes.py [--axes 1,2,4,8] [--seconds 5]
+    python tools/bench_axes.py [--axes 1,2,4,8] [--seconds 5] [--no-filter]
 """
 
 from __future__ import annotations
@@ -58,8 +59,9 @@ def _config(n: int, directory: Path) -> Path:
     return p
 
 
-def bench(n: int, seconds: float, directory: Path) -> dict[str, float]:
-    """N axes fed ``seconds`` of the machine's frames at 1 kHz."""
+def bench(n: int, seconds: float, directory: Path, filtered: bool = True) -> dict[str, float]:
+    """N axes fed ``seconds`` of the machine's frames at 1 kHz (``filtered``: each axis
+    takes its own frames only, as ``canrls run`` does)."""
     msgs = [m for b in machine_frames(machine(n, duration=seconds, seed=1))
             for m in b.to_messages()]
     rate = 2000.0 * n
@@ -68,7 +70,8 @@ def bench(n: int, seconds: float, directory: Path) -> dict[str, float]:
     for name, cfg in load_config(_config(n, directory)).axis_configs().items():
         protocol = cfg.protocol()
         dset = DaemonSettings(queue_size=max(1000, int(rate * 0.5)),
-                              own_offset=DaemonSettings.from_config(cfg).own_offset)
+                              own_offset=DaemonSettings.from_config(cfg).own_offset,
+                              rx_filter=filtered)
         daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
                                bus={"interface": "virtual", "channel": ch})
     md = MachineDaemon(daemons)
@@ -101,12 +104,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--axes", default="1,2,4,8", help="numbers of axes, comma-separated")
     ap.add_argument("--seconds", type=float, default=5.0, help="seconds of traffic each")
+    ap.add_argument("--no-filter", action="store_true",
+                    help="every axis takes every frame of the bus (no filters)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         print(f"{'axes':>4}  {'frames/s':>9}  {'lost':>7}  {'CPU µs/frame':>12}  "
               f"{'RSS MB':>7}  {'cold start s':>12}")
         for n in (int(x) for x in args.axes.split(",")):
-            r = bench(n, args.seconds, Path(tmp))
+            r = bench(n, args.seconds, Path(tmp), filtered=not args.no_filter)
             c = cold_start(n, Path(tmp))
             print(f"{n:>4}  {r['offered']:>9.0f}  {r['lost']:>7.0f}  {r['cpu_us']:>12.1f}  "
                   f"{r['rss_mb']:>7.0f}  {c:>12.2f}", flush=True)

@@ -134,7 +134,9 @@ def test_live_equals_fit_axis_on_the_recorded_bus(tmp_path: Path,
     daemons = {}
     for name, cfg in load_config(cfg_path).axis_configs().items():
         protocol = cfg.protocol()
-        dset = dataclasses.replace(DaemonSettings.from_config(cfg), block_interval=0.002)
+        # each axis its own frames only, as canrls run of a machine takes them
+        dset = dataclasses.replace(DaemonSettings.from_config(cfg), block_interval=0.002,
+                                   rx_filter=True)
         daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
                                bus={"interface": "virtual", "channel": ch}, backpressure=True)
     machine_d = MachineDaemon(daemons)
@@ -171,6 +173,9 @@ def test_live_equals_fit_axis_on_the_recorded_bus(tmp_path: Path,
         return json.loads(capsys.readouterr().out)
 
     assert daemons["a"].processor.rejected["crc"] == fit(fed, "a")["frames"]["rejected"]["crc"] > 0
+    # the bus's filters: b never took a's frames nor a's own, a took b's neither
+    assert daemons["b"].stats().frames == 8000
+    assert daemons["a"].stats().frames == 8000 + len(frames) - len(clean)
     # axis b's estimates are those of the clean log: a's fault never reached it
     assert fit(fed, "b")["parameters"] == fit(log, "b")["parameters"]
     for name, d in daemons.items():

@@ -132,6 +132,8 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
 
     cfg = load()
     dset = DaemonSettings.from_table(table(cfg), cfg.source, cfg.base_dir)
+    if axis is not None and dset.record is None:  # a machine's axis: its own frames only
+        dset = dataclasses.replace(dset, rx_filter=True)
     model_over = dataclasses.replace(over, axes=None, axis_name=None)
 
     def with_model_file(c: AppConfig) -> AppConfig:

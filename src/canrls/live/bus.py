@@ -486,11 +486,15 @@ class BusLink:
     :param factory: opens the bus (called again to reopen).
     :param config: ``send_timeout``, ``fault_hold_s``, ``reopen_min_s``/``reopen_max_s``.
     :param describe: what the bus is called in log lines when it has no ``channel_info``.
+    :param rx_ids: (ID, extended) of the only frames to take (empty: every frame).
     """
 
     def __init__(self, queue: FrameQueue, factory: Callable[[], can.BusABC],
-                 config: DaemonSettings, describe: str = "bus") -> None:
+                 config: DaemonSettings, describe: str = "bus",
+                 rx_ids: Sequence[tuple[int, bool]] = ()) -> None:
         self.queue = queue
+        #: (ID, extended) of the only frames to receive (empty: every frame)
+        self.rx_ids = tuple(rx_ids)
         self.factory = factory
         self.config = config
         self.describe = describe
@@ -516,6 +520,9 @@ class BusLink:
         bus = self.factory()
         self.bus = bus
         self.failed.clear()
+        if self.rx_ids:  # in the kernel on SocketCAN, in python-can's recv elsewhere
+            bus.set_filters([{"can_id": i, "can_mask": 0x1FFFFFFF if ext else 0x7FF,
+                              "extended": ext} for i, ext in self.rx_ids])
         cfg = self.config
         sock = socketcan_socket(bus)
         if sock is not None and cfg.rx_buffer:

@@ -232,8 +232,13 @@ class Daemon:
                                  on_error=self._recv_failed, full=cfg.max_block)
         # an axis's RlsCommand: the shipped ID + its own offset ([daemon] own_ids)
         self._command_id = self._queue.command_id = COMMAND_ID + cfg.own_offset
+        # an axis of a machine takes its own frames only (the bus's filters; the
+        # others never reach its queue)
+        own = [(m.frame_id, m.is_extended) for m in protocol.messages] + [
+            (self._command_id, False)]
         self._link = BusLink(self._queue, bus_factory or (lambda: open_bus(bus_args)), cfg,
-                             describe=str(bus_args or "bus"))
+                             describe=str(bus_args or "bus"),
+                             rx_ids=own if cfg.rx_filter else ())
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
         self._history = history
         self._configuration = configuration or AppConfig(source="<canrls run>")

@@ -107,6 +107,9 @@ class DaemonSettings:
     switch_interval: float = 0.001
     #: ``own_ids``: what canrls' own frames are moved by on the bus
     own_offset: int = 0
+    #: take only the axis's feedback and command frames (the bus's filters): an axis of
+    #: a machine's daemon, never a table key
+    rx_filter: bool = False
 
     def __post_init__(self) -> None:
         src = "daemon"
