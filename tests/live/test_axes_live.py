@@ -233,3 +233,48 @@ def test_monitor_shows_one_row_per_axis(tmp_path: Path,
     assert list(views["b"]["parameters"]) == ["inertia.J", "viscous.B"]
     assert text[0].endswith("2 axes")
     assert [ln.split()[0] for ln in text[2:4]] == ["a", "b"]
+
+
+def test_sighup_adds_and_removes_axes_without_touching_the_others(tmp_path: Path) -> None:
+    cfg_path = tmp_path / "machine.toml"
+    head = '[model]\nkt = 0.1\n[daemon]\npublish_interval = 0.05\n'
+
+    def axis(name: str, ids: int, own: str = "") -> str:
+        return (f'[[axes]]\nname = "{name}"\nids = "offset:{ids:#x}"\n'
+                + (f'own = "offset:{own}"\n' if own else ""))
+
+    # own frames by index: a 0x300.., b 0x340.., c 0x380..
+    cfg_path.write_text(head + axis("a", 0) + axis("b", 0x10) + axis("c", 0x20))
+    ch = f"axes-hup-{os.getpid()}"
+
+    def build(name: str) -> Daemon:
+        cfg = load_config(cfg_path).axis(name)
+        protocol = cfg.protocol()
+        dset = dataclasses.replace(DaemonSettings.from_config(cfg), rx_filter=True)
+        return Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
+                      bus={"interface": "virtual", "channel": ch})
+
+    def axes() -> list[str]:
+        return list(load_config(cfg_path).axis_configs())
+
+    md = MachineDaemon({n: build(n) for n in axes()}, build=build, axes=axes)
+    md.start()
+    try:
+        a, c = md.daemons["a"], md.daemons["c"]
+        published = a.stats().publications
+        # b removed, e added with own frames of its own
+        cfg_path.write_text(head + axis("a", 0) + axis("c", 0x20) + axis("e", 0x30, "0xc0"))
+        md.request_reload()
+        md.reconcile()
+        assert sorted(md.daemons) == ["a", "c", "e"]
+        assert md.daemons["a"] is a and md.daemons["c"] is c  # they run on untouched
+        assert md.wait_for(lambda x: x.daemons["e"].stats().publications > 0, 10)
+        assert a.stats().publications > published and a.failure is None
+        # d by its index would publish on 0x380..: running c's own frames (c keeps its
+        # IDs until a restart): refused, nothing changes, e is not removed either
+        cfg_path.write_text(head + axis("a", 0) + axis("c", 0x20) + axis("d", 0x40))
+        md.request_reload()
+        md.reconcile()
+        assert sorted(md.daemons) == ["a", "c", "e"]
+    finally:
+        md.stop()

@@ -290,7 +290,9 @@ def _build(args: argparse.Namespace) -> Any:
         for d in daemons.values():
             d.stop()
         raise
-    return MachineDaemon(daemons)
+    return MachineDaemon(daemons, build=lambda name: build_daemon(args, name),
+                         axes=lambda: list(load_config(getattr(args, "config", None),
+                                                       overrides(args)).axis_configs()))
 
 
 def _report_machine(machine: Any, args: argparse.Namespace) -> None:

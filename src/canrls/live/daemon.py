@@ -121,12 +121,13 @@ def wait_until(check: Callable[[], bool], timeout: float) -> bool:
 
 
 def serve(target: Any, stopping: threading.Event, duration: float | None,
-          ready: Callable[[], None] | None = None) -> int:
+          ready: Callable[[], None] | None = None,
+          each: Callable[[], None] | None = None) -> int:
     """Start ``target`` (a :class:`Daemon` or a machine's), call ``ready``, serve until
     ``stopping`` is set (SIGTERM/SIGINT request it), ``duration`` s have passed or
-    ``target.failure`` is set, then stop it; SIGHUP requests a reload. Signal handlers
-    only from the main thread, restored after. Returns the exit status (0, or 1 after a
-    failure)."""
+    ``target.failure`` is set, then stop it; SIGHUP requests a reload; ``each`` is called
+    at every wake-up (at least every 0.2 s). Signal handlers only from the main thread,
+    restored after. Returns the exit status (0, or 1 after a failure)."""
     handlers: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
         for sig, fn in ((signal.SIGTERM, lambda *_: target.request_stop()),
@@ -143,6 +144,8 @@ def serve(target: Any, stopping: threading.Event, duration: float | None,
             if left <= 0:
                 break
             stopping.wait(left)
+            if each is not None:
+                each()
     finally:
         target.stop()
         for sig, old in handlers.items():
