@@ -103,3 +103,23 @@ def test_diagnose_validate_and_export_pick_one_axis(
     model_c = (tmp_path / "c" / "canrls_model.c").read_text()
     assert "/* DriveCurrent */ {.id = 273u" in model_c  # 0x101 + 0x10
     assert "/* DriveSpeed */ {.id = 274u" in model_c
+
+
+@pytest.mark.parametrize("kind,names", [("cia402", ["node1", "node2", "node3"]),
+                                        ("cansimple", ["node0", "node1", "node2"])])
+def test_a_machine_of_cia402_or_cansimple_nodes_reads_back_as_sim_says(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str, names: list[str]
+) -> None:
+    log = tmp_path / f"{kind}.log"
+    capsys.readouterr()
+    assert main(["sim", "--out", str(log), "--duration", "4", "--axes", "3", "--ids", kind,
+                 "--seed", "3"]) == 0
+    first = capsys.readouterr().err.splitlines()[0]
+    # the first line says how to read the log back: those very options
+    options = first.split("; canrls fit ", 1)[1].rstrip(")").split()
+    d = _json(capsys, ["fit", str(log), *options, "--kt", "0.1", "--json"])
+    assert d["frames"] == {"total": 24000, "unknown_axis": 0}
+    assert list(d["axes"]) == names
+    for k, name in enumerate(names):
+        j = d["axes"][name]["parameters"]["inertia.J"]["value"]
+        assert j == pytest.approx(2e-4 * (1 + 0.5 * k), rel=0.02)

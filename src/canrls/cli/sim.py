@@ -91,7 +91,12 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "default DBC's IDs + (k-1)*0x10 (canrls fit --axes offset:0,0x10,...), "
                         "its own parameters and seed, axes 2, 3, 4 with a hidden unbalance, "
                         "cogging:6, offset (and so on in turn); one line per axis with its "
-                        "truth"),
+                        "truth")
+    p.add_argument("--ids", choices=("offset", "cia402", "cansimple"), default="offset",
+                   help="--axes: the machine's drives: the default DBC's moved by an offset "
+                        "(default), CiA 402 nodes 1..N (canrls/data/cia402.dbc, current in "
+                        "per mille of 5 A, 131072 increments a turn) or ODrive CANSimple "
+                        "nodes 0..N-1 (canrls/data/odrive_cansimple.dbc)"),
     p.add_argument("--excitation", "-x", default=None, metavar="PROFILE",
                    help=f"excitation preset or sum (a+b) of {', '.join(PRESETS)}")
     p.add_argument("--param", "-p", action="append", type=_param, default=[],
@@ -238,18 +243,31 @@ def run_machine(args: argparse.Namespace) -> int:
 
     _refuse_drive_options(args, "canrls sim --axes", "each axis's physics are the machine's")
     axes = machine(args.axes, duration=args.duration, seed=args.seed,
-                   scenario_name=args.scenario)
+                   scenario_name=args.scenario, kind=args.ids)
     with _terminated_as_exit():
         n = write_log(args.out, machine_frames(axes, t0=args.start_time),
                       channel=args.channel, what=f"--out {args.out}")
-    rules = ",".join(f"{a.rule.node:#x}" for a in axes)
     print(f"canrls sim: wrote {n} frames of {len(axes)} axes to {args.out} "
           f"({args.duration:g} s, scenario {args.scenario}, seed {args.seed}; canrls fit "
-          f"--axes offset:{rules})", file=sys.stderr)
+          f"{_fit_options(axes, args.ids)})", file=sys.stderr)
     for a in axes:
         print(f"  {a.name} ({a.rule}, hidden: {a.hidden or 'none'}): truth: "
               f"{a.scenario.truth.summary()}", file=sys.stderr)
     return 0
+
+
+def _fit_options(axes: Any, kind: str) -> str:
+    """The options of ``canrls fit`` that read the machine's log back."""
+    from canrls.sim.machine import CIA402_RATINGS, KINDS, kind_dbc
+
+    if kind == "offset":
+        return "--axes offset:" + ",".join(f"{a.rule.node:#x}" for a in axes)
+    nodes = [a.rule.node for a in axes]
+    out = [f"--dbc {kind_dbc(kind)}", *(f"--signal {s}" for s in KINDS[kind][1])]
+    if kind == "cia402":
+        out += [f"--rated-current {CIA402_RATINGS['rated_current']:g}",
+                f"--increments-per-rev {CIA402_RATINGS['increments_per_rev']:g}"]
+    return " ".join([*out, f"--axes {kind}:{nodes[0]}-{nodes[-1]}"])
 
 
 def run_fleet(args: argparse.Namespace) -> int:
