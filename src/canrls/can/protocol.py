@@ -39,7 +39,7 @@ from canrls.core.files import MAX_DBC_BYTES, read_bytes
 from canrls.core.signals import ROLES
 from canrls.core.units import axis_of, si_factor
 
-__all__ = ["DEFAULT_DBC", "MAX_MESSAGE_BYTES", "load_dbc", "Protocol"]
+__all__ = ["DEFAULT_DBC", "MAX_MESSAGE_BYTES", "load_dbc", "parse_dbc", "Protocol"]
 
 
 #: The DBC shipped with canrls (same content as ``dbc/canrls.dbc`` in the repository).
@@ -63,6 +63,12 @@ def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
     p = Path(path)
     where = what or f"DBC file {p}"
     raw = read_bytes(p, where, limit=MAX_DBC_BYTES)
+    return parse_dbc(raw, where), raw
+
+
+def parse_dbc(raw: bytes, where: str) -> Any:
+    """The cantools database of a DBC's bytes, checked as :func:`load_dbc` says (errors
+    name ``where``)."""
     try:
         text = raw.decode("cp1252")  # cantools' encoding of DBC files
     except UnicodeDecodeError as e:
@@ -83,7 +89,7 @@ def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
     for m in db.messages:
         for sig in m.signals:
             _check_numbers(sig, f"{where}: message {m.name}: signal {sig.name}")
-    return db, raw
+    return db
 
 
 def _check_layout(tokens: Any, where: str) -> None:
@@ -185,7 +191,7 @@ class Protocol:
              mapping: SignalMapping | Mapping[str, Any] | Sequence[str] | None = None, *,
              strict_range: bool = True, check_crc: bool = True, check_counter: bool = True,
              period: float | None = None, period_source: str = "the configured period",
-             axis: str | None = None) -> Protocol:
+             axis: str | None = None, dbc_bytes: bytes | None = None) -> Protocol:
         """Load a DBC (default: the one shipped with canrls) and resolve a signal mapping.
 
         Parameters
@@ -199,6 +205,8 @@ class Protocol:
             ``GenMsgCycleTime``; ``period_source`` names it in messages (``"--period"``).
         axis : ``"linear"`` when an increment (``inc``, ``inc/s``) is a fraction of a
             metre (default: of a revolution).
+        dbc_bytes : the DBC's text, made from the file ``dbc`` (an EDS:
+            :mod:`canrls.can.eds`) rather than read from it.
 
         Raises
         ------
@@ -208,7 +216,10 @@ class Protocol:
             The DBC lacks a mapped message or signal, or a unit cannot be converted.
         """
         path = DEFAULT_DBC if dbc is None else Path(dbc)
-        db, raw = load_dbc(path)
+        if dbc_bytes is None:
+            db, raw = load_dbc(path)
+        else:
+            db, raw = parse_dbc(dbc_bytes, f"the DBC made from {path}"), dbc_bytes
         digest = hashlib.sha256(raw).hexdigest()
         is_default = digest == _default_hash()
         if mapping is None:

@@ -73,6 +73,12 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                    help="TOML configuration ([model], [estimator], [fixed], [can], [signals])")
     g.add_argument("--dbc", metavar="FILE",
                    help="DBC of the drive (default: the DBC shipped with canrls)")
+    g.add_argument("--eds", metavar="FILE",
+                   help="a CiA 402 drive's EDS instead of a DBC: its default TPDO mapping "
+                        "(node 1; --axes cia402:N moves it) and the roles of the 402 objects "
+                        "torque, current, velocity and position actual value, the ratings "
+                        "from its defaults (needs pip install 'canrls[cia402]'; "
+                        "docs/cia402.md)")
     g.add_argument("--signal", action="append", metavar="ROLE=MESSAGE.SIGNAL[:UNIT]",
                    help="which signal carries a role: current, speed, position, voltage, "
                         "torque (the torque a drive reports, N·m; linear axis: N; the "
@@ -171,6 +177,7 @@ def overrides(args: argparse.Namespace) -> Overrides:
         return getattr(args, name, None)  # a number as typed (errors quote it so)
 
     dbc = getattr(args, "dbc", None)
+    eds = getattr(args, "eds", None)
     axis = getattr(args, "axis", None)
     bus = {k: getattr(args, k) for k in ("interface", "channel", "bitrate", "fd",
                                          "data_bitrate", "timing")
@@ -178,6 +185,7 @@ def overrides(args: argparse.Namespace) -> Overrides:
     bus.update(getattr(args, "bus_kwargs", None) or {})
     return Overrides(
         dbc=None if dbc is None else str(Path(dbc).absolute()),
+        eds=None if eds is None else str(Path(eds).absolute()),
         signals=tuple(getattr(args, "signal", None) or ()),
         effects=getattr(args, "effects", None), kt=num("kt"),
         axis=axis if axis in AXIS_KINDS else None,

@@ -265,8 +265,7 @@ def _fit_options(axes: Any, kind: str) -> str:
     nodes = [a.rule.node for a in axes]
     out = [f"--dbc {kind_dbc(kind)}", *(f"--signal {s}" for s in KINDS[kind][1])]
     if kind == "cia402":
-        out += [f"--rated-current {CIA402_RATINGS['rated_current']:g}",
-                f"--increments-per-rev {CIA402_RATINGS['increments_per_rev']:g}"]
+        out += [f"--{k.replace('_', '-')} {v:g}" for k, v in CIA402_RATINGS.items()]
     return " ".join([*out, f"--axes {kind}:{nodes[0]}-{nodes[-1]}"])
 
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from canrls.can.eds import EdsDrive, read_eds
 from canrls.can.idrules import parse_rule
 from canrls.can.mapping import SignalMapping
 from canrls.can.protocol import Protocol
@@ -65,7 +66,7 @@ _FLAGS = (("kt", "--kt", "model", "kt"), ("axis", "--axis", "model", "axis"),
           ("period", "--period", "can", "period"),
           *((key, flag, "signals", key) for key, (flag, _, _) in RATING_OPTIONS.items()))
 _CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
-             "channel", "bitrate", "fd", "data_bitrate", "ids")
+             "channel", "bitrate", "fd", "data_bitrate", "ids", "eds")
 #: ``[monitor]``: defaults of ``canrls monitor``'s options of the same names
 _MONITOR_KEYS = {"interval": "a positive number of seconds",
                  "timeout": "a positive number of seconds", "plain": "true or false"}
@@ -78,6 +79,8 @@ class Overrides:
     so a fleet's workers take it as it is."""
 
     dbc: str | None = None
+    #: ``--eds FILE``: a CiA 402 drive's EDS instead of a DBC
+    eds: str | None = None
     signals: tuple[str, ...] = ()
     effects: str | None = None
     kt: float | None = None
@@ -251,6 +254,8 @@ class AppConfig:
         """Let the command line's :class:`Overrides` override the file."""
         if over.dbc:
             self.can["dbc"] = str(Path(over.dbc).resolve())
+        if over.eds:
+            self.can["eds"] = str(Path(over.eds).resolve())
         if over.signals:
             self.signal_overrides = list(over.signals)
         if over.effects:
@@ -371,14 +376,35 @@ class AppConfig:
             given[key] = float(v)
         return Ratings(**given)
 
+    def _eds(self) -> tuple[Path, EdsDrive] | None:
+        """``[can] eds`` (``--eds``): the path and what the EDS tells; None without one."""
+        eds = self.can.get("eds")
+        if eds is None:
+            return None
+        if not isinstance(eds, str) or "\0" in eds:
+            raise ConfigError(f"{self._where('can.eds')} = {eds!r}: must be a file path")
+        if self.can.get("dbc") is not None:
+            raise ConfigError(f"{self._where('can.eds')} = {eds}: give a DBC (can.dbc, "
+                              f"--dbc) or an EDS (can.eds, --eds), not both")
+        p = Path(eds) if Path(eds).is_absolute() else self.base_dir / eds
+        return p, read_eds(p)
+
     def protocol(self, *, with_rule: bool = True) -> Protocol:
         """The DBC and signal mapping (``--signal`` options replace roles of ``[signals]``),
-        its messages moved by the ID rule ``[can] ids`` unless ``with_rule`` is false."""
+        its messages moved by the ID rule ``[can] ids`` unless ``with_rule`` is false. With
+        an EDS, its TPDOs and the roles of its 402 objects, the ratings it gives under
+        those configured."""
         mapping: SignalMapping | None = None
         ratings = self.ratings()
+        eds = self._eds()
+        if eds is not None:
+            ratings = Ratings(**{**eds[1].ratings.as_dict(), **ratings.as_dict()})
+            mapping = SignalMapping.from_strings(eds[1].signals)
         table = {k: v for k, v in self.signals.items() if k not in RATING_OPTIONS}
         if table:
-            mapping = SignalMapping.from_config(table, source=f"{self.source} [signals]")
+            own = SignalMapping.from_config(table, source=f"{self.source} [signals]")
+            mapping = own if mapping is None else dataclasses.replace(
+                mapping, roles={**mapping.roles, **own.roles})
         if self.signal_overrides:
             base = mapping if mapping is not None else (
                 SignalMapping.default() if self.dbc_path() is None else None)
@@ -393,8 +419,9 @@ class AppConfig:
                 raise ConfigError(f"{self._where('can.' + k)} = {v!r}: must be true or false")
         where = self.flags.get("can.period") or self._where("can.period")
         axis = self.model.get("axis")
-        proto = Protocol.load(self.dbc_path(), mapping, period=period,
+        proto = Protocol.load(eds[0] if eds else self.dbc_path(), mapping, period=period,
                               period_source=where, axis=axis if isinstance(axis, str) else None,
+                              dbc_bytes=eds[1].dbc_text.encode("cp1252") if eds else None,
                               **opts)
         return self._moved(proto) if with_rule else proto
 

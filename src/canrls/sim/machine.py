@@ -37,16 +37,17 @@ HIDDEN: tuple[str, ...] = ("", "unbalance", "cogging:6", "offset")
 #: one; the mapping of its signals with the ratings of its relative units)
 KINDS: dict[str, tuple[str | None, tuple[str, ...]]] = {
     "offset": (None, ()),
-    # CiA 402: TPDO1 current actual 0x6078 in per mille of the rated current 0x6075 (5 A),
-    # TPDO2 position and velocity actual 0x6064, 0x606C in increments (2^17 a turn)
-    "cia402": ("cia402.dbc", ("current=TPDO1.CurrentActual", "speed=TPDO2.VelocityActual",
-                              "position=TPDO2.PositionActual")),
+    # CiA 402: TPDO1 torque and current actual 0x6077, 0x6078 in per mille of the rated
+    # torque 0x6076 (0.32 N·m) and current 0x6075 (5 A), TPDO2 position and velocity
+    # actual 0x6064, 0x606C in increments (2^17 a turn)
+    "cia402": ("cia402.dbc", ("torque=TPDO1.TorqueActual", "current=TPDO1.CurrentActual",
+                              "speed=TPDO2.VelocityActual", "position=TPDO2.PositionActual")),
     "cansimple": ("odrive_cansimple.dbc", ("current=Get_Iq.Iq_Measured",
                                            "speed=Get_Encoder_Estimates.Vel_Estimate",
                                            "position=Get_Encoder_Estimates.Pos_Estimate")),
 }
 #: what the CiA 402 nodes' relative units refer to (``--rated-current``, ...)
-CIA402_RATINGS = {"rated_current": 5.0, "increments_per_rev": 131072.0}
+CIA402_RATINGS = {"rated_torque": 0.32, "rated_current": 5.0, "increments_per_rev": 131072.0}
 
 
 @dataclass(frozen=True)
