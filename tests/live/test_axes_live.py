@@ -278,3 +278,30 @@ def test_sighup_adds_and_removes_axes_without_touching_the_others(tmp_path: Path
         assert sorted(md.daemons) == ["a", "c", "e"]
     finally:
         md.stop()
+
+
+def test_the_simulated_machine_as_a_bus_feeds_every_axis(tmp_path: Path) -> None:
+    """``-i canrls-sim`` with ``axes=3``: three drives on one bus, each axis's daemon
+    identifies its own drive (inertia x 1, 1.5, 2 of the default)."""
+    cfg_path = tmp_path / "machine.toml"
+    cfg_path.write_text('[model]\nkt = 0.1\n[daemon]\npublish_interval = 0.05\n' + "".join(
+        f'[[axes]]\nname = "axis{k + 1}"\nids = "offset:{k * 0x10:#x}"\n' for k in range(3)))
+    ch = f"axes-simbus-{os.getpid()}"
+    # in real time: every axis's bus joins the drive before it has sent much
+    bus = {"interface": "canrls-sim", "channel": ch, "axes": 3, "seed": 2, "duration": 4.0}
+    daemons = {}
+    for name, cfg in load_config(cfg_path).axis_configs().items():
+        protocol = cfg.protocol()
+        dset = dataclasses.replace(DaemonSettings.from_config(cfg), rx_filter=True)
+        daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
+                               bus=bus)
+    md = MachineDaemon(daemons)
+    try:
+        md.start()
+        assert md.wait_for(lambda x: all(d.stats().frames >= 7000
+                                         for d in x.daemons.values()), 30)
+    finally:
+        md.stop()
+    for k, (name, d) in enumerate(daemons.items()):
+        j = next(p for p in d.estimates().parameters if p.name == "inertia.J")
+        assert j.value == pytest.approx(2e-4 * (1 + 0.5 * k), rel=0.05), name

@@ -180,6 +180,9 @@ class FrameQueue(can.Listener):
         self.full = full if full > 0 else 1 << 62
         #: the ID of the command frames that hurry the estimator (an axis's own)
         self.command_id = COMMAND_ID
+        #: (ID, extended) of the only frames queued, error frames aside (None: every
+        #: frame); a SocketCAN bus filters in the kernel instead (:class:`BusLink`)
+        self.accept: frozenset[tuple[int, bool]] | None = None
         self.space = threading.Event()
         self.limit = limit
         self.block = block
@@ -199,6 +202,10 @@ class FrameQueue(can.Listener):
         self.gate.set()
 
     def on_message_received(self, msg: can.Message) -> None:
+        accept = self.accept
+        if accept is not None and not msg.is_error_frame and (
+                msg.arbitration_id, msg.is_extended_id) not in accept:
+            return  # another axis's frame: never queued
         while not self.gate.is_set() and not self._stopping.is_set():
             self.gate.wait(0.05)
         q = self.queue
@@ -520,11 +527,13 @@ class BusLink:
         bus = self.factory()
         self.bus = bus
         self.failed.clear()
-        if self.rx_ids:  # in the kernel on SocketCAN, in python-can's recv elsewhere
-            bus.set_filters([{"can_id": i, "can_mask": 0x1FFFFFFF if ext else 0x7FF,
-                              "extended": ext} for i, ext in self.rx_ids])
         cfg = self.config
         sock = socketcan_socket(bus)
+        if self.rx_ids and sock is not None:  # in the kernel: the others never come
+            bus.set_filters([{"can_id": i, "can_mask": 0x1FFFFFFF if ext else 0x7FF,
+                              "extended": ext} for i, ext in self.rx_ids])
+        elif self.rx_ids:  # python-can's software filters would end recv(0) at the
+            self.queue.accept = frozenset(self.rx_ids)  # first other frame: the queue's
         if sock is not None and cfg.rx_buffer:
             set_receive_buffer(sock, cfg.rx_buffer, self.info())
         rx = bulk_receiver(bus, COMMAND_ID + cfg.own_offset) if cfg.rx_bulk else None

@@ -23,7 +23,7 @@ from canrls.core.units import Ratings
 from canrls.sim.scenario import DEFAULT_EFFECTS, Scenario, Simulator, default_params, scenario
 
 __all__ = ["AXIS_ID_STEP", "CIA402_RATINGS", "HIDDEN", "KINDS", "MAX_SIM_AXES", "MachineAxis",
-           "kind_dbc", "kind_protocol", "machine", "machine_frames"]
+           "kind_dbc", "kind_protocol", "machine", "machine_frames", "simulators", "step_all"]
 
 #: IDs between two simulated axes: axis k's frames are the default DBC's + k * 0x10
 #: (``--axes offset:0,0x10,...``), below canrls' own frames at 0x300
@@ -113,14 +113,26 @@ def machine_frames(axes: tuple[MachineAxis, ...], t0: float = 0.0, size: int = 6
                    ) -> Iterator[FrameBlock]:
     """The frames of every axis, each on its rule's IDs (E2E CRC over its own ID), merged
     in time order, ``size`` periods at a time."""
+    sims = simulators(axes, t0)
+    while (block := step_all(sims, size)) is not None:
+        yield block
+
+
+def simulators(axes: tuple[MachineAxis, ...], t0: float = 0.0) -> list[Simulator]:
+    """One :class:`Simulator` per axis, encoding on its rule's IDs."""
     protos = {kind: kind_protocol(kind) for kind in {_kind(a.rule) for a in axes}}
-    sims = [Simulator(a.scenario, t0=t0, protocol=protos[_kind(a.rule)].with_ids(a.rule))
+    return [Simulator(a.scenario, t0=t0, protocol=protos[_kind(a.rule)].with_ids(a.rule))
             for a in axes]
-    while any(s.remaining for s in sims):
-        blocks = [s.encode(s.step(size)) for s in sims if s.remaining]
-        block = FrameBlock.concat(blocks)
-        # a stable sort: at equal times the first axis's frame first
-        yield block.take(np.argsort(block.t, kind="stable"))
+
+
+def step_all(sims: list[Simulator], periods: int) -> FrameBlock | None:
+    """The next ``periods`` of every drive's frames in time order (None: all ended)."""
+    blocks = [s.encode(s.step(periods)) for s in sims if s.remaining != 0]
+    if not blocks:
+        return None
+    block = FrameBlock.concat(blocks)
+    # a stable sort: at equal times the first axis's frame first
+    return block.take(np.argsort(block.t, kind="stable"))
 
 
 def _kind(rule: IdRule) -> str:
