@@ -26,10 +26,11 @@ def test_writes_a_candump_log_python_can_reads(tmp_path: Path,
     rc = main(["sim", "--out", str(out), "--duration", "2", "--seed", "3",
                "--effects", "inertia,viscous,coulomb,cogging:24"])
     assert rc == 0
-    err = capsys.readouterr().err
-    assert err == (f"canrls sim: wrote 4000 frames to {out} (2 s, scenario standard, seed 3); "
-                   "truth: inertia.J=0.0002 viscous.B=0.0001 coulomb.Tc=0.02 "
-                   "cogging:24.sin=0.003 cogging:24.cos=0.0015 Kt=0.1\n")
+    out_err = capsys.readouterr()
+    assert out_err.err == ""  # the truth on stdout: `canrls sim ... > truth.txt` keeps it
+    assert out_err.out == (f"canrls sim: wrote 4000 frames to {out} (2 s, scenario standard, "
+                           "seed 3); truth: inertia.J=0.0002 viscous.B=0.0001 coulomb.Tc=0.02 "
+                           "cogging:24.sin=0.003 cogging:24.cos=0.0015 Kt=0.1\n")
     msgs = list(can.LogReader(str(out)))
     assert len(msgs) == 4000
     assert msgs[0].timestamp == 0.0 and msgs[-1].timestamp == pytest.approx(1.9991)
@@ -49,7 +50,7 @@ def test_faults_and_linear_axis(tmp_path: Path, capsys: pytest.CaptureFixture[st
                "--effects", "inertia,viscous,coulomb,electrical", "--param", "coulomb.Tc=4",
                "--faults", "drop=0.01,silence=0.5s@1s"])
     assert rc == 0
-    err = capsys.readouterr().err
+    err = capsys.readouterr().out
     assert "scenario standard-linear" in err and "coulomb.Tc=4 " in err and "Kf=20" in err
     assert "faults drop=0.01,silence=0.5s@1s: 6000 frames in" in err
     assert "1000 silenced" in err

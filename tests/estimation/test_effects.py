@@ -44,6 +44,9 @@ def test_every_library_effect_is_documented() -> None:
         assert ".. math::" in doc, cls
         assert cls.EQUATION_TEXT, cls
         assert len(cls.RESIDUAL_SIGNATURE) > 20, cls
+        # what a change of it means on a drive in service, and what to check (the
+        # fleet's alerts say these)
+        assert all(len(c) > 10 for c in cls.CHANGE_CAUSE) and len(cls.CHANGE_CHECK) > 10, cls
         assert cls.EQUATION in ("mechanical", "electrical"), cls
         assert cls.REQUIRES <= ROLES, cls
         assert cls.COMPONENTS, cls

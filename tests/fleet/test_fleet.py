@@ -133,11 +133,14 @@ def test_wear_is_found_with_the_right_parameter_and_no_false_alerts(
 def test_sigma_alone_understates_the_scatter(fleet: dict[str, Any],
                                             monkeypatch: pytest.MonkeyPatch) -> None:
     """The between-recording scatter is what keeps healthy drives quiet: with each
-    recording's sigma alone (tau = 0) most healthy drives would alert."""
+    recording's sigma alone (tau = 0) and no size that matters, most healthy drives
+    would alert."""
     truth = fleet["truth"]
     healthy = [d for d, t in truth.items() if t["class"] == "healthy"]
-    monkeypatch.setattr(detect, "estimate_tau", lambda pairs: 0.0)
-    fa = assess(fleet["recordings"])
+    monkeypatch.setattr(detect, "estimate_tau", lambda pairs, quantile=0.5: 0.0)
+    monkeypatch.setattr(detect, "_own_tau", lambda pairs: 0.0)
+    fa = assess(fleet["recordings"], settings=detect.DetectionSettings(
+        min_times_usual=1e-9, min_change={k: 0.0 for k in detect.MIN_CHANGE}))
     false = [d for d in healthy if fa.drive(d).alerts]
     assert len(false) > 0.5 * len(healthy)
 

@@ -69,12 +69,7 @@ def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
 def parse_dbc(raw: bytes, where: str) -> Any:
     """The cantools database of a DBC's bytes, checked as :func:`load_dbc` says (errors
     name ``where``)."""
-    try:
-        text = raw.decode("cp1252")  # cantools' encoding of DBC files
-    except UnicodeDecodeError as e:
-        line = raw.count(b"\n", 0, e.start) + 1
-        raise ConfigError(f"cannot parse {where}: byte 0x{raw[e.start]:02x} at line "
-                          f"{line} is not cp1252 text") from e
+    text = _dbc_text(raw, where)
     from cantools.database.can.formats.dbc.dbc_loader import DbcParser
 
     try:
@@ -90,6 +85,23 @@ def parse_dbc(raw: bytes, where: str) -> Any:
         for sig in m.signals:
             _check_numbers(sig, f"{where}: message {m.name}: signal {sig.name}")
     return db
+
+
+def _dbc_text(raw: bytes, where: str) -> str:
+    """The text of a DBC file's bytes: UTF-8 when they are UTF-8 (a byte-order mark
+    dropped), else Windows-1252, cantools' encoding and most DBC editors'. A cp1252 '‰'
+    (0x89) or 'µ' (0xb5) is never valid UTF-8; a UTF-8 '‰' read as cp1252 would be 'â€°'.
+    """
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        pass
+    try:
+        return raw.decode("cp1252")
+    except UnicodeDecodeError as e:
+        line = raw.count(b"\n", 0, e.start) + 1
+        raise ConfigError(f"cannot parse {where}: byte 0x{raw[e.start]:02x} at line "
+                          f"{line} is neither UTF-8 nor cp1252 text") from e
 
 
 def _check_layout(tokens: Any, where: str) -> None:

@@ -38,7 +38,7 @@ from canrls.cli._common import (
 )
 from canrls.core.errors import ConfigError
 
-__all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates"]
+__all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates", "text_summary"]
 
 DEFAULT_DB = "fleet.db"
 #: candidates kept per ranked recording
@@ -115,8 +115,13 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     rep.add_argument("--figures", type=_nonnegative, default=20, metavar="N",
                      help="drives with a section and a figure of their trends: the first "
                           "drives with alerts in the ranking (default 20)")
+    rep.add_argument("--config", "-C", metavar="FILE",
+                     help="a TOML file whose [fleet] table says what counts as an alert "
+                          "(alpha, min_change per effect, min_times_usual, outlier_z, "
+                          "prior_pairs: docs/fleet.md)")
     rep.add_argument("--alpha", type=float, default=None, metavar="P",
-                     help="false-alert probability per healthy drive (default 0.001)")
+                     help="false-alert probability per healthy drive (default 0.001, or "
+                          "[fleet] alpha)")
     rep.add_argument("--model", metavar="KEY",
                      help="only the recordings of this model (a key or its first characters)")
     rep.set_defaults(func=run_report)
@@ -182,16 +187,24 @@ def run_ingest(args: argparse.Namespace) -> int:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from canrls.fleet.detect import ALPHA, assess
+    import dataclasses
+
+    from canrls.fleet.detect import DetectionSettings, assess
     from canrls.fleet.history import History, history_url, redact, sqlite_path
     from canrls.fleet.records import STATUS_OK
     from canrls.fleet.report import report_dict, write_html
+    from canrls.processor.config import AppConfig
 
     if not args.out and not args.json:
         raise ConfigError("fleet report: give --out DIR (HTML) or --json (or both)")
-    alpha = ALPHA if args.alpha is None else args.alpha
-    if not 0 < alpha < 1:
-        raise ConfigError(f"--alpha {args.alpha}: must be between 0 and 1")
+    settings = DetectionSettings()
+    if args.config:
+        settings = DetectionSettings.from_table(AppConfig.load(args.config).fleet,
+                                                args.config)
+    if args.alpha is not None:
+        if not 0 < args.alpha < 1:
+            raise ConfigError(f"--alpha {args.alpha}: must be between 0 and 1")
+        settings = dataclasses.replace(settings, alpha=args.alpha)
     url = history_url(args.db)
     path = sqlite_path(url) if url.startswith("sqlite") else None
     if path is not None and not Path(path).is_file():
@@ -212,7 +225,7 @@ def run_report(args: argparse.Namespace) -> int:
             key = keys[0]
             models = [m for m in models if m[0] == key]
         recs = history.recordings(model_key=key)
-    fleet = assess(recs, alpha=alpha)
+    fleet = assess(recs, settings=settings)
     page = None
     if args.out:
         page = write_html(fleet, args.out, models=models,
@@ -225,9 +238,20 @@ def run_report(args: argparse.Namespace) -> int:
             d["report"] = str(page)
         print_json(d)
     else:
-        alerts = fleet.alerts
-        sys.stdout.write(f"{len(fleet.drives)} drives, {len(alerts)} alerts; report: {page}\n")
-        for dr in fleet.drives:
-            if dr.headline is not None:
-                sys.stdout.write(f"  {dr.drive}: {dr.headline.message}\n")
+        sys.stdout.write(text_summary(fleet, page))
     return 0
+
+
+def _plural(n: int, noun: str) -> str:
+    """``n noun``, the noun in the plural but for one."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def text_summary(fleet: Any, page: Path | None) -> str:
+    """The text of ``canrls fleet report``: the counts, then every alert the count counts,
+    drive by drive (ranked; each drive's most severe first)."""
+    flagged = [d for d in fleet.drives if d.alerts]
+    head = (f"{_plural(len(fleet.drives), 'drive')}, {_plural(len(fleet.alerts), 'alert')} "
+            f"on {_plural(len(flagged), 'drive')}" + (f"; report: {page}" if page else ""))
+    return "".join([f"{head}\n", *(f"  {d.drive}: {a.message}\n"
+                                    for d in flagged for a in d.alerts)])

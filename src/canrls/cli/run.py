@@ -24,6 +24,7 @@ thread (logged with its traceback) -- so systemd's ``Restart=on-failure`` restar
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import math
@@ -248,6 +249,8 @@ def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canrls.live.journal import to_stream
+
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
     target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
@@ -256,7 +259,8 @@ def run(args: argparse.Namespace) -> int:
         target[0] = daemon
         if target[1]:
             daemon.request_stop()  # run() starts, sees the request and stops cleanly
-        status = daemon.run(duration=args.duration)
+        with contextlib.nullcontext() if args.json else to_stream(sys.stdout):
+            status = daemon.run(duration=args.duration)
         if hasattr(daemon, "daemons"):
             _report_machine(daemon, args)
         else:

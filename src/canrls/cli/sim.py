@@ -8,7 +8,8 @@ The log holds the drive's feedback frames (``DriveCurrent``, ``DriveSpeed`` of t
 default DBC, CRC and alive counter included), timestamps from ``--start-time``
 (default 0) in steps of the control period. ``.log`` is candump; other suffixes
 (``.asc``, ``.blf``, ``.trc``, ``.csv``) go through python-can's writers. One summary
-line goes to stderr: frames written, duration, scenario, truth and faults.
+line goes to stdout (``> truth.txt`` keeps it): frames written, duration, scenario,
+truth and faults.
 
 ``canrls sim fleet`` writes ``DIR/<drive>/<drive>-<k>.log`` for every drive and
 recording (``--duration`` seconds each, default 6), ``DIR/manifest.csv`` and
@@ -189,8 +190,7 @@ def run(args: argparse.Namespace) -> int:
     tuned = "".join(f"; {what} {path}" for what, path in (
         ("feedforward", args.feedforward), ("gains", args.gains)) if path is not None)
     print(f"canrls sim: wrote {n} frames to {args.out} ({sc.duration:g} s, scenario {sc.name}, "
-          f"seed {sc.seed}); truth: {sc.truth.summary()}{faults}{clipped}{tuned}",
-          file=sys.stderr)
+          f"seed {sc.seed}); truth: {sc.truth.summary()}{faults}{clipped}{tuned}")
     return 0
 
 

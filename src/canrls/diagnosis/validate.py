@@ -66,10 +66,13 @@ class FileFit:
     samples: int
     residual_rms: float
     fit_percent: float
+    #: the target's standard deviation on this log: what its fit % is measured against
+    target_sd: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         return {"source": self.source, "samples": self.samples,
-                "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent)}
+                "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent),
+                "target_sd": _num(self.target_sd)}
 
 
 @dataclass(frozen=True)
@@ -92,6 +95,8 @@ class EquationValidation:
     bins: Mapping[str, Binned] = field(default_factory=dict, repr=False, compare=False)
     #: first row of each file in ``traces`` (and the end)
     bounds: tuple[int, ...] = ()
+    #: the target's standard deviation over all the logs (what fit % is measured against)
+    target_sd: float = math.nan
 
     @property
     def holds(self) -> bool | None:
@@ -120,6 +125,7 @@ class EquationValidation:
         return {"equation": self.equation, "unit": self.unit, "samples": self.samples,
                 "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent),
                 "r2": _num(self.r2), "identified_rms": _num(self.identified_rms),
+                "target_sd": _num(self.target_sd),
                 "files": [f.to_dict() for f in self.files],
                 "regions": [r.to_dict() for r in self.regions]}
 
@@ -176,9 +182,14 @@ class ValidationReport:
                          f"{e.residual_rms:.4g} {e.unit}{ident}, R² {r2_text(e.r2)}, "
                          f"{e.samples} samples")
             if len(e.files) > 1:
+                lines.append(f"  per log, fit % is against that log's own spread of the "
+                             f"target (SD); a log that spreads less than all of them together "
+                             f"(SD {e.target_sd:.4g} {e.unit}) fits less at the same residual "
+                             f"RMS:")
                 for f in e.files:
                     lines.append(f"  {f.source}: fit {f.fit_percent:.2f} %, residual RMS "
-                                 f"{f.residual_rms:.4g} {e.unit}, {f.samples} samples")
+                                 f"{f.residual_rms:.4g} {e.unit}, target SD {f.target_sd:.4g} "
+                                 f"{e.unit}, {f.samples} samples")
             if e.regions:
                 lines.append("  where it fails:")
                 lines.extend(f"    - {r.text} ({share_text(r.share)} of the residual energy)"
@@ -202,17 +213,18 @@ def _num(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
-def _fit(r: F64, y: F64) -> tuple[float, float, float]:
-    """(rms, fit %, R²) of residual ``r`` against target ``y``."""
+def _fit(r: F64, y: F64) -> tuple[float, float, float, float]:
+    """(rms, fit %, R², the target's standard deviation) of residual ``r`` against target
+    ``y``."""
     if not len(r):
-        return math.nan, math.nan, math.nan
+        return math.nan, math.nan, math.nan, math.nan
     dev = y - np.mean(y)
     nd = float(np.sqrt(np.dot(dev, dev)))
     nr = float(np.sqrt(np.dot(r, r)))
     rms = nr / math.sqrt(len(r))
     fit = 100.0 * (1.0 - nr / nd) if nd > 0 else math.nan
     r2 = 1.0 - (nr * nr) / (nd * nd) if nd > 0 else math.nan
-    return rms, fit, r2
+    return rms, fit, r2, nd / math.sqrt(len(r))
 
 
 def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
@@ -253,17 +265,19 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
         with np.errstate(over="ignore", invalid="ignore"):
             r = eq.target_to_physical(y - phi @ eq.to_normalised(theta))
         yt = eq.target_to_physical(y)
-        if not np.all(np.isfinite(r[used])):
+        with np.errstate(over="ignore"):
+            energy = float(np.dot(r[used], r[used]))
+        if not math.isfinite(energy):  # a value or its square beyond a double
             raise EstimatorError(
-                f"{model_file}: the saved parameters predict non-finite values of the "
-                f"{eq.name} equation's target (parameters of absurd size?)")
-        rms, fit, r2 = _fit(r[used], yt[used])
+                f"{model_file}: the saved parameters predict values of the {eq.name} "
+                f"equation's target too large for a double (parameters of absurd size?)")
+        rms, fit, r2, sd = _fit(r[used], yt[used])
         files = []
         for k, name in enumerate(names):
             a, b = int(bounds[k]), int(bounds[k + 1])
             u = used[a:b]
-            f_rms, f_fit, _ = _fit(r[a:b][u], yt[a:b][u])
-            files.append(FileFit(name, int(u.sum()), f_rms, f_fit))
+            f_rms, f_fit, _, f_sd = _fit(r[a:b][u], yt[a:b][u])
+            files.append(FileFit(name, int(u.sum()), f_rms, f_fit, f_sd))
         unit = eq.target.unit
         regions: tuple[Region, ...] = ()
         if used.any():
@@ -285,7 +299,7 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
             equation=eq.name, unit=unit, samples=int(used.sum()), residual_rms=rms,
             fit_percent=fit, r2=r2, identified_rms=None if ident is None else float(ident),
             files=tuple(files), regions=tuple(regions), target=eq.target.description,
-            traces=traces, bins=bins, bounds=tuple(int(b) for b in bounds)))
+            traces=traces, bins=bins, bounds=tuple(int(b) for b in bounds), target_sd=sd))
     return ValidationReport(model_file=model_file, sources=tuple(names),
                             identified_on=tuple(saved.sources), parameters=saved.parameters,
                             equations=tuple(out), frames=frames, period=period, start=start,

@@ -274,6 +274,10 @@ class Effect:
     EQUATION_TEXT: ClassVar[str] = ""
     #: How the absence of this effect shows in the residual.
     RESIDUAL_SIGNATURE: ClassVar[str] = ""
+    #: What a rise of its parameters (or the effect appearing) means on a drive in
+    #: service, what a fall means, and what to check: the fleet's alerts say these.
+    CHANGE_CAUSE: ClassVar[tuple[str, str]] = ("", "")
+    CHANGE_CHECK: ClassVar[str] = ""
     #: The parameters, one per column.
     COMPONENTS: ClassVar[tuple[Component, ...]] = ()
     #: Signal roles the effect reads.
@@ -412,6 +416,9 @@ class Inertia(Effect):
     EQUATION_TEXT = "J * domega/dt"
     RESIDUAL_SIGNATURE = ("residual correlated with the acceleration domega/dt: largest "
                           "while speeding up or slowing down, zero at constant speed")
+    CHANGE_CAUSE = ("more inertia: a changed or added load, a coupling or gear replaced",
+                    "less inertia: a load removed or decoupled (a slipping or broken coupling)")
+    CHANGE_CHECK = "the load and its coupling; the speed loop, tuned on the old inertia"
     COMPONENTS = (Component("J", "moment of inertia", "moving mass",
                             Units("kg·m²", "kg", "A·s²/rad", "A·s²/m")),)
     REQUIRES = frozenset({"speed"})
@@ -434,6 +441,9 @@ class Viscous(Effect):
     EQUATION_TEXT = "B * omega"
     RESIDUAL_SIGNATURE = ("residual linear in speed and odd: proportional to omega, "
                           "changing sign with the direction")
+    CHANGE_CAUSE = ("more viscous friction: lubricant degraded, thickened or cold, a seal dragging",
+                    "less viscous friction: a warmer or thinner lubricant, a seal worn through")
+    CHANGE_CHECK = "the lubricant (grade, level, temperature) and the seals"
     COMPONENTS = (Component("B", "viscous friction coefficient",
                             "viscous friction coefficient",
                             Units("N·m·s/rad", "N·s/m", "A·s/rad", "A·s/m")),)
@@ -459,6 +469,9 @@ class Coulomb(Effect):
     EQUATION_TEXT = "Tc * tanh(omega / band)"
     RESIDUAL_SIGNATURE = ("a step in the residual at zero speed whose sign follows the "
                           "direction of motion, constant in magnitude away from zero")
+    CHANGE_CAUSE = ("more Coulomb friction: bearing or seal wear, lubrication",
+                    "less Coulomb friction: a seal worn through or a load lightened")
+    CHANGE_CHECK = "the bearings and seals, the lubrication"
     COMPONENTS = (Component("Tc", "Coulomb friction torque", "Coulomb friction force",
                             _TORQUE),)
     REQUIRES = frozenset({"speed"})
@@ -504,6 +517,9 @@ class Stribeck(Effect):
     EQUATION_TEXT = "Ts * tanh(omega / band) * exp(-(omega / speed)**2)"
     RESIDUAL_SIGNATURE = ("a bump near zero speed, signed with the direction, decaying "
                           "with |omega| over the Stribeck speed")
+    CHANGE_CAUSE = ("more breakaway friction: stick-slip from lubrication or a guide contaminated",
+                    "less breakaway friction")
+    CHANGE_CHECK = "the lubrication at low speed, guides and ways"
     COMPONENTS = (Component("Ts", "Stribeck (breakaway) friction torque",
                             "Stribeck (breakaway) friction force", _TORQUE),)
     REQUIRES = frozenset({"speed"})
@@ -552,6 +568,10 @@ class Offset(Effect):
     EQUATION_TEXT = "T0"
     RESIDUAL_SIGNATURE = ("a constant non-zero mean of the residual, independent of "
                           "speed, direction and position")
+    CHANGE_CAUSE = ("a larger torque offset: a load that pulls one way (gravity, a process "
+                    "force) or a current-sensor offset",
+                    "a smaller torque offset")
+    CHANGE_CHECK = "the process load and the current sensor's zero"
     COMPONENTS = (Component("T0", "torque offset", "force offset", _TORQUE),)
     REQUIRES = frozenset()
 
@@ -596,6 +616,10 @@ class Unbalance(_Periodic):
     RESIDUAL_SIGNATURE = ("order 1 in position: the residual repeats once per revolution "
                           "(once per pitch on a linear axis), a peak at rotation order 1 "
                           "of the residual spectrum")
+    CHANGE_CAUSE = ("a new or larger once-per-revolution torque: an unbalance or an "
+                    "eccentric load, a mechanical change at order 1",
+                    "a once-per-revolution torque smaller")
+    CHANGE_CHECK = "the rotor and load for unbalance or eccentricity, the mounting"
     COMPONENTS = (Component("sin", "unbalance torque, sine component",
                             "unbalance force, sine component", _TORQUE),
                   Component("cos", "unbalance torque, cosine component",
@@ -622,6 +646,10 @@ class Cogging(_Periodic):
     EQUATION_TEXT = "Tk_sin * sin(k * theta) + Tk_cos * cos(k * theta)"
     RESIDUAL_SIGNATURE = ("a peak at rotation order k of the residual spectrum (k periods "
                           "per revolution, per pitch on a linear axis)")
+    CHANGE_CAUSE = ("a new or larger torque at this order of the revolution: a mechanical "
+                    "change at that order (a bearing, a gear mesh, a magnet)",
+                    "a torque at this order smaller")
+    CHANGE_CHECK = "the bearings and gears whose order matches, the magnets"
     COMPONENTS = (Component("sin", "cogging torque, sine component",
                             "cogging force, sine component", _TORQUE),
                   Component("cos", "cogging torque, cosine component",
@@ -663,6 +691,11 @@ class Electrical(Effect):
     RESIDUAL_SIGNATURE = ("in the voltage equation: a residual proportional to the current "
                           "(R), peaking at current steps (L, di/dt) and linear in speed "
                           "(Ke, back-EMF)")
+    CHANGE_CAUSE = ("a larger electrical parameter: a hotter or damaged winding, a loose "
+                    "connection",
+                    "a smaller electrical parameter: a short between turns, weakened magnets "
+                    "(back-EMF)")
+    CHANGE_CHECK = "the winding temperature and resistance, the connections, the magnets"
     COMPONENTS = (
         Component("R", "winding resistance", "winding resistance", Units("Ohm", "Ohm")),
         Component("L", "winding inductance", "winding inductance", Units("H", "H")),
@@ -703,6 +736,8 @@ class UserTerm(Effect):
     EQUATION_TEXT = "c * f(signals)"
     RESIDUAL_SIGNATURE = ("the residual follows the user function f(signals): it "
                           "correlates with the term's own column")
+    CHANGE_CAUSE = ("the user term changed", "the user term changed")
+    CHANGE_CHECK = "what the user term models"
     COMPONENTS = (Component("c", "user term coefficient", "user term coefficient",
                             Units("N·m/unit", "N/unit", "A/unit", "A/unit")),)
     REQUIRES = frozenset()

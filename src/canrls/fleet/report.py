@@ -82,7 +82,7 @@ def _trend_figure(d: DriveAssessment, fleet: FleetAssessment, path: Path) -> str
         ax = fig.add_subplot(len(names), 1, i + 1)
         se = d.series[n]
         x = _x(se.t)
-        tn = tau.get(f"{n}@{d.drive_type}", tau.get(n, 0.0))
+        tn = d.scatter.get(n, tau.get(f"{n}@{d.drive_type}", tau.get(n, 0.0)))
         v, s = se.value, se.sigma
         total = np.sqrt(s ** 2 + (tn * np.abs(v) if se.log else tn) ** 2)
         ax.errorbar(x, v, yerr=2 * total, fmt="none", ecolor="#9ecae1", elinewidth=6,

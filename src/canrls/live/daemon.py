@@ -50,6 +50,7 @@ from canrls.live.bus import (
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
 from canrls.live.history import HistoryHook
+from canrls.live.journal import JOURNAL, Journal
 from canrls.live.publisher import Publisher, check_publishable
 from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
@@ -245,6 +246,7 @@ class Daemon:
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
         self._history = history
         self._configuration = configuration or AppConfig(source="<canrls run>")
+        self._journal = Journal()
         self._commands = CommandHandler(
             proc, cfg.commands, self._link.send, self._set_model, self._publisher.clear_rms,
             max_parameters=cfg.max_parameters, check_model=self._check_model,
@@ -505,6 +507,8 @@ class Daemon:
         """An exception ended a thread: logged, kept (:attr:`failure`), the daemon stops."""
         log.critical("%s thread failed; stopping the daemon (exit status 1)", where,
                      exc_info=exc)
+        JOURNAL.error("fault: the %s thread failed (%s: %s); stopping", where,
+                      type(exc).__name__, exc)
         if self.failure is None:
             self.failure = exc
         self._stop_flag()
@@ -579,6 +583,7 @@ class Daemon:
                 last = closed and not q.queue
                 if pub.due(now) or last:  # the last: the state the daemon stops in
                     pub.publish(now)
+                    self._journal.published(self._link.info(), self.model, pub.last_status)
                     if self._history is not None:
                         self._history.offer(now, self._proc.pipeline.estimates, final=last)
                 if ckpt.due(now):
@@ -629,8 +634,7 @@ class Daemon:
     def _set_model(self, model: Model, why: str) -> None:
         self._proc.with_model(model)
         self._publisher.model_changed()
-        log.info("%s: model is now %s (%d parameters; estimation restarts)", why,
-                 ",".join(model.effect_names), len(model.parameters))
+        self._journal.model_changed(model, why)
 
     def _reload(self) -> None:
         self._c["reloads"] += 1

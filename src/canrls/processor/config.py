@@ -54,7 +54,7 @@ DEFAULT_EFFECTS: tuple[str, ...] = ("inertia", "viscous", "coulomb")
 DEFAULT_HELD: tuple[str, ...] = ("current", "voltage")
 
 _SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor", "history",
-             "axes")
+             "axes", "fleet")
 _ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
                    "warmup_s": "warmup_s", "gap_periods": "gap_periods",
                    "rms_time_s": "rms_time_s", "max_phase_step": "max_phase_step",
@@ -189,6 +189,8 @@ class AppConfig:
     monitor: dict[str, Any] = field(default_factory=dict)
     #: ``[history]``: where ``canrls run`` appends its parameters (canrls.fleet.live)
     history: dict[str, Any] = field(default_factory=dict)
+    #: ``[fleet]``: what ``canrls fleet report`` alerts on (canrls.fleet.detect)
+    fleet: dict[str, Any] = field(default_factory=dict)
     signal_overrides: list[str] = field(default_factory=list)
     #: configuration keys set from the command line, with the flag and value typed
     #: (``{"model.effects": "--effects inertia,foo"}``): errors name those, not the key
