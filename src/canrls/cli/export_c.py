@@ -31,6 +31,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, metavar="FILE",
                    help="TOML configuration, or a saved model (.json, canrls fit "
                         "--save-model)")
+    p.add_argument("--axis", metavar="NAME",
+                   help="the axis to export of a configuration with several ([[axes]], "
+                        "docs/configuration.md)")
     p.add_argument("--out", type=Path, default=Path("canrls_c"), metavar="DIR",
                    help="output directory, made if missing (default: canrls_c); each file "
                         "is written to a temporary beside it and renamed")
@@ -78,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         from canrls.firmware.model import TargetError
         from canrls.firmware.target_export import target_texts
 
-        src = load(args.model, args.dt)
+        src = load(args.model, args.dt, args.axis)
         # generated (or refused: a model the target cannot run, a log that cannot be
         # read) before anything is written
         try:
@@ -92,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
                   file=sys.stderr)
         if tm is not None:
             texts = target_texts(src, tm, vectors=args.vectors, every=args.every)
-    cfg, model, energy, source = load_source(args.model)
+    cfg, model, energy, source = load_source(args.model, args.axis)
     print(export_c(cfg, args.out, model=model, dt=args.dt, energy=energy, source=source,
                    what=f"--out {args.out}", frames=args.frames != "none"))
     if tm is not None and src is not None:

@@ -54,7 +54,10 @@ def run(args: argparse.Namespace) -> int:
     from canrls.processor.config import prepare
     from canrls.processor.replay import fit_logs
 
-    cfg = setup(args)
+    cfg = setup(args, every_axis=True)
+    if len(cfg.axes) > 1 and cfg.axis_name is None:
+        return _fit_machine(args, cfg)
+    cfg = cfg.one_axis()
     protocol, model, settings = prepare(cfg)
     searched = ()
     if "stribeck" in model.effect_names and "stribeck_speed" not in model.options_given:
@@ -90,4 +93,29 @@ def run(args: argparse.Namespace) -> int:
             sys.stdout.write(res.fixed.format() + "\n")
         if saved is not None:
             sys.stdout.write(f"model saved: {saved}\n")
+    return 0
+
+
+def _fit_machine(args: argparse.Namespace, cfg: Any) -> int:
+    """``canrls fit LOG --axes ...`` without ``--axis``: every axis in one pass."""
+    from canrls.core.errors import ConfigError, EstimatorError
+    from canrls.processor.config import prepare
+    from canrls.processor.replay import fit_axes
+
+    for flag, on in (("--save-model", args.save_model), ("--fixed target",
+                                                         args.fixed == "target")):
+        if on:
+            raise ConfigError(f"{flag}: one axis at a time with several (--axis NAME)")
+    axes = {name: tuple(prepare(c)) for name, c in cfg.axis_configs().items()}
+    res = fit_axes(args.log, axes, progress=Progress("replay", quiet=args.quiet).callback,
+                   skip_bad_lines=args.skip_bad_lines)
+    if args.json:
+        print_json(res.to_dict())
+    else:
+        sys.stdout.write(res.format() + "\n")
+    if res.errors:
+        name, why = next(iter(res.errors.items()))
+        raise EstimatorError(f"axis {name}: {why}"
+                             + (f" (and {len(res.errors) - 1} more axes)"
+                                if len(res.errors) > 1 else ""))
     return 0

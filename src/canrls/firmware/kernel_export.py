@@ -317,11 +317,12 @@ def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
     return Export(Path(out), tuple(files), tuple(e.equation.name for e in pipeline.estimators))
 
 
-def load_source(path: str | Path) -> tuple[AppConfig, Model | None,
-                                           dict[str, list[float]] | None, str]:
+def load_source(path: str | Path, axis: str | None = None
+                ) -> tuple[AppConfig, Model | None, dict[str, list[float]] | None, str]:
     """A configuration (TOML) or a saved model (JSON of ``canrls fit --save-model``):
-    the configuration, the model to export (None: the configuration's), the column
-    energies of its calibration (None for a configuration) and a label."""
+    the configuration (of ``axis`` for a machine's), the model to export (None: the
+    configuration's), the column energies of its calibration (None for a configuration)
+    and a label."""
     path = Path(path)
     if path.suffix.lower() == ".json":
         try:
@@ -336,5 +337,5 @@ def load_source(path: str | Path) -> tuple[AppConfig, Model | None,
             # the energies are measured in the calibration's exponents, not the ones the
             # fit ended with: the prior in the units it was measured in
             model = model.with_scaling(scaling)
-        return saved.config(), model, energy, f"the saved model {path.name}"
-    return AppConfig.load(path), None, None, f"the configuration {path.name}"
+        return saved.config().axis(axis), model, energy, f"the saved model {path.name}"
+    return AppConfig.load(path).axis(axis), None, None, f"the configuration {path.name}"

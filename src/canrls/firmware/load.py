@@ -47,9 +47,10 @@ class Source:
     period_source: str
 
 
-def load(path: str | Path, dt: float | None = None) -> Source:
-    """A saved model (``.json``) or a configuration (TOML); ``dt`` [s] overrides the
-    control period (else the saved model's, the DBC's cycle time, or 1 ms)."""
+def load(path: str | Path, dt: float | None = None, axis: str | None = None) -> Source:
+    """A saved model (``.json``) or a configuration (TOML), of ``axis`` for a machine's;
+    ``dt`` [s] overrides the control period (else the saved model's, the DBC's cycle time,
+    or 1 ms)."""
     from canrls.processor.modelfile import SavedModel
 
     path = Path(path)
@@ -67,6 +68,7 @@ def load(path: str | Path, dt: float | None = None) -> Source:
         cfg = AppConfig.load(path)
         model = None
         label = f"the configuration {path.name}"
+    cfg = cfg.axis(axis)
     protocol = cfg.protocol()
     if model is None:
         model = cfg.model_for(protocol)

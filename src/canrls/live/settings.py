@@ -68,6 +68,9 @@ DAEMON_KEYS: dict[str, str] = {
              "on the float front end) or 'target' (the target's whole integer path from the "
              "frames, bit for bit with export-c's C and canrls fit --fixed target; about "
              "25 us of CPU a frame more, docs/daemon.md)",
+    "own_ids": "canrls' own frames (parameters, status, command, ack) moved by \"offset:N\" "
+               "from the shipped DBC's IDs (default: none; an axis of [[axes]]: its own, "
+               "by default its index x 0x40)",
 }
 
 #: the values of ``[daemon] fixed``: where the published fixed column comes from
@@ -110,6 +113,11 @@ class DaemonSettings:
     saved_model: Path | None = None
     switch_interval: float = 0.001
     fixed: str = "kernel"
+    #: ``own_ids``: what canrls' own frames are moved by on the bus
+    own_offset: int = 0
+    #: take only the axis's feedback and command frames (the bus's filters): an axis of
+    #: a machine's daemon, never a table key
+    rx_filter: bool = False
 
     def __post_init__(self) -> None:
         src = "daemon"
@@ -177,6 +185,10 @@ class DaemonSettings:
                     raise ConfigError(f"{key} = {v!r}: must be one of "
                                       f"{', '.join(map(repr, FIXED_PATHS))}")
                 kw[k] = v
+            elif k == "own_ids":
+                from canrls.processor.axes import own_offset
+
+                kw["own_offset"] = own_offset(v, key)
             elif k in ("commands", "rx_bulk"):
                 if not isinstance(v, bool):
                     raise ConfigError(f"{key} = {v!r}: must be true or false")

@@ -345,7 +345,11 @@ class Simulator:
             proto = self._protocol or _default_protocol()
             self._encoder = FeedbackEncoder(proto, clip=True, stagger=FRAME_STAGGER)
         m = chunk.measured
-        block = self._encoder.encode(m.t + self.t0, m.current, m.speed, m.position, m.voltage)
+        # a drive that reports its torque (CiA 402) reports Kt times its current
+        torque = m.current * self.scenario.truth.kt if self._encoder.protocol.has("torque") \
+            else None
+        block = self._encoder.encode(m.t + self.t0, m.current, m.speed, m.position, m.voltage,
+                                     torque)
         clipped = sum(self._encoder.clipped.values())
         if clipped > self.clipped:
             log.warning("simulated drive: %d values clipped to the DBC range so far (%s)",
