@@ -486,8 +486,9 @@ def check_real(name: str, value: object) -> float:
 
 
 def check_lam(lam: object) -> float:
-    """The forgetting factor, in (1/2, 1] (``1/lam`` is a Q1 word)."""
-    return _rls_check_lam(lam, "FixedRLS", 0.5, " (1/lam is a Q1 word)")
+    """The forgetting factor (:func:`canrls.core.checks.check_lambda`: ``1/lam`` is a Q1
+    word)."""
+    return _rls_check_lam(lam, "FixedRLS")
 
 
 def check_ridge(alpha: object, n: int) -> npt.NDArray[np.float64]:
