@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from canrls.can.frames import CommandCode, decode_command, encode_command
+from canrls.can.estimator_frames import CommandCode, decode_command, encode_command
 from canrls.cli._common import overrides
 from canrls.cli.main import build_parser
 from canrls.core import checks

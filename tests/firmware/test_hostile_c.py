@@ -1,5 +1,5 @@
 """Generated C takes nothing raw: hostile names, units, comments and sizes against
-``canrls export-c`` (``canrls/core/ctext.py``).
+``canrls export-c`` (``canrls/core/c_escape.py``).
 
 A model file, a configuration and a DBC carry text into the C a firmware team builds.
 Each case here either is refused with one ``error:`` line where the text is read (by
@@ -24,7 +24,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from canrls.cli.main import main
-from canrls.core.ctext import MAX_TEXT, c_comment, c_identifier, c_int, c_string, c_uint
+from canrls.core.c_escape import MAX_TEXT, c_comment, c_identifier, c_int, c_string, c_uint
 from canrls.core.errors import ConfigError
 from canrls.estimation.pipeline import Pipeline
 from canrls.firmware.kernel_export import frames_c, load_source

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import can
 
-from canrls.can.frames import CommandResult
+from canrls.can.estimator_frames import CommandResult
 from canrls.can.protocol import Protocol
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings

@@ -24,8 +24,8 @@ import pytest
 from can.interfaces.virtual import VirtualBus
 from daemon_tool import DaemonTool, datagrams, notify_socket
 
+from canrls.can.estimator_frames import CommandCode, CommandResult, FrameDecoder, encode_command
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import CommandCode, CommandResult, FrameDecoder, encode_command
 from canrls.can.logs import read_frames
 from canrls.core.effect_names import EffectId
 from canrls.core.errors import BusError, ConfigError

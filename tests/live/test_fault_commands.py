@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 from daemon_tool import DaemonTool, datagrams, notify_socket, remote_sim_server
 
-from canrls.can.frames import CommandCode, CommandResult, encode_command
+from canrls.can.estimator_frames import CommandCode, CommandResult, encode_command
 from canrls.core.effect_names import EffectId
 from canrls.core.errors import CheckpointError, ConfigError
 from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint

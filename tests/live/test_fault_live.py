@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 from daemon_tool import daemon_fed, datagrams, notify_socket, remote_sim_server
 
+from canrls.can.estimator_frames import FrameDecoder
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import FrameDecoder
 from canrls.core.checks import MAX_TIMESTAMP, is_time
 from canrls.live.daemon import Daemon
 from canrls.live.monitor import Monitor

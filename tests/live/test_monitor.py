@@ -11,7 +11,7 @@ from pathlib import Path
 import can
 import pytest
 
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     CommandCode,
     CommandResult,
     ParameterReport,

@@ -5,7 +5,7 @@ one reader, and :class:`~canrls.can.protocol.Protocol`; ``mapping``), one compil
 per message (``codec``), strict decoding (``decoder``: a value outside its range, a bad
 CRC or counter is rejected and counted, never clipped), the encoder, frame blocks,
 log readers and writers (``logs``, ``candump``, ``writers``), the estimator's own
-parameter, status and command frames (``frames``) and E2E protection (``e2e``). It
+parameter, status and command frames (``estimator_frames``) and E2E protection (``e2e``). It
 imports only :mod:`canrls.core`; what the frames become (samples, periods, pairs) is
 the processor's.
 """

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from canrls.core.errors import ConfigError
-from canrls.core.signals import ROLES
+from canrls.core.samples import ROLES
 from canrls.core.units import RATING_OPTIONS, Ratings
 
 __all__ = ["REQUIRED_ROLES", "EFFORT_ROLES", "RoleSpec", "SignalMapping"]

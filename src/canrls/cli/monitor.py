@@ -72,7 +72,7 @@ def _positive(name: str, v: float | None) -> None:
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from canrls.can.frames import encode_command, frame_ids
+    from canrls.can.estimator_frames import encode_command, frame_ids
     from canrls.live.bus import bus_config, open_bus
     from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
     from canrls.processor.config import prepare

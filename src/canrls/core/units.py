@@ -1,7 +1,7 @@
 """Conversion of DBC unit strings to SI, per signal role.
 
 A DBC states the physical unit of each signal as free text (``"A"``, ``"rpm"``,
-``"deg"``...). canrls works in SI (:mod:`canrls.core.signals`): current in A, speed in
+``"deg"``...). canrls works in SI (:mod:`canrls.core.samples`): current in A, speed in
 rad/s (linear axis: m/s), position in rad (linear axis: m), voltage in V, a torque
 reported by the drive in N·m (linear axis: a force in N). This module maps a unit
 string to the factor that turns a DBC physical value into SI::

@@ -32,9 +32,9 @@ from typing import Any
 
 import numpy as np
 
-from canrls.can.frames import frame_ids
+from canrls.can.estimator_frames import frame_ids
 from canrls.can.protocol import DEFAULT_DBC, Protocol, load_dbc
-from canrls.core.ctext import c_comment, c_float, c_identifier, c_int, c_name_part, c_string
+from canrls.core.c_escape import c_comment, c_float, c_identifier, c_int, c_name_part, c_string
 from canrls.core.errors import ConfigError
 from canrls.core.files import write_texts
 from canrls.core.units import rating_of
@@ -137,7 +137,7 @@ def _config_files(pipeline: Pipeline, source: str,
     """``canrls_config.h`` and ``canrls_config.c`` for the estimators of ``pipeline``
     (``protocol``: the DBC signals of the targets).
 
-    Every name, unit and number goes through :mod:`canrls.core.ctext`: names as validated
+    Every name, unit and number goes through :mod:`canrls.core.c_escape`: names as validated
     identifiers, text as comment text, numbers from validated integers and finite floats.
     """
     src = c_comment(source, "the model's source")

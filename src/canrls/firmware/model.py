@@ -40,7 +40,7 @@ import numpy as np
 from canrls.can.codec import SignalCodec
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError
-from canrls.core.signals import ROLES
+from canrls.core.samples import ROLES
 from canrls.estimation.equation import Equation
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EquationEstimator, Pipeline

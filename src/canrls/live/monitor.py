@@ -32,7 +32,7 @@ from typing import Any
 
 import can
 
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     CommandAck,
     CommandCode,
     FrameDecoder,
@@ -363,7 +363,7 @@ def parse_command_text(text: str) -> tuple[CommandCode, EffectId, int, float]:
     Returns (code, effect, order, lambda). Raises :class:`ConfigError` when it does not
     parse.
     """
-    from canrls.can.frames import parse_effect as parse_effect_id
+    from canrls.can.estimator_frames import parse_effect as parse_effect_id
 
     words = text.strip().split()
     if not words:

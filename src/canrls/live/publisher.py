@@ -16,7 +16,7 @@ import math
 import time
 from collections.abc import Callable
 
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     ParameterReport,
     StatusReport,
     encode_param_info,

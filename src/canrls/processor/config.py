@@ -20,7 +20,7 @@ from canrls.can.mapping import SignalMapping
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError
 from canrls.core.files import MAX_CONFIG_BYTES, check_path, read_bytes
-from canrls.core.signals import ROLES
+from canrls.core.samples import ROLES
 from canrls.core.units import RATING_OPTIONS, Ratings
 from canrls.estimation.fixed.formats import QFormat
 from canrls.estimation.model import Model

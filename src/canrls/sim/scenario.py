@@ -23,7 +23,7 @@ import numpy.typing as npt
 
 from canrls.can.frameblock import FrameBlock
 from canrls.core.errors import ConfigError, EffectError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.sim.excitation import Excitation
 from canrls.sim.excitation import excitation as make_excitation
 from canrls.sim.faults import FaultInjector, FaultLog, FaultSpec
@@ -365,7 +365,7 @@ class SimResult:
     Attributes
     ----------
     scenario : the :class:`Scenario` that ran
-    true, measured : :class:`~canrls.core.signals.Signals` (true: unwrapped position, exact
+    true, measured : :class:`~canrls.core.samples.Signals` (true: unwrapped position, exact
         current; measured: noisy, quantised, position wrapped at 2*pi as the DBC sends it).
         ``voltage`` is None unless ``electrical`` is among the true effects.
     speed_ref, current_ref : the excitation and the speed controller's output

@@ -1,4 +1,4 @@
-"""canrls.can.frames: estimator, status and command frames through cantools."""
+"""canrls.can.estimator_frames: estimator, status and command frames through cantools."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from canrls.can.codec import EncodeError
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     COMPONENTS,
     FLAG_NAMES,
     REJECT_FIELDS,
