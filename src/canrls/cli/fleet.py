@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 from canrls.cli._common import (
@@ -142,11 +141,11 @@ def _sources(args: argparse.Namespace) -> Sequence[Any]:
 
 def run_ingest(args: argparse.Namespace) -> int:
     from canrls.fleet.cluster import dask_client, require_dask
-    from canrls.fleet.history import History, history_url, require_sqlalchemy
+    from canrls.fleet.history import History, HistoryURL, require_sqlalchemy
     from canrls.fleet.ingest import JobConfig, ingest
 
     require_sqlalchemy()
-    history_url(args.db)  # a database this command cannot use: before anything else
+    HistoryURL.parse(args.db)  # a database this command cannot use: before anything else
     if args.workers != 0 or args.scheduler:
         require_dask()
     if args.scheduler and args.workers:
@@ -174,7 +173,7 @@ def run_ingest(args: argparse.Namespace) -> int:
 
 def run_report(args: argparse.Namespace) -> int:
     from canrls.fleet.detect import ALPHA, assess
-    from canrls.fleet.history import History, history_url
+    from canrls.fleet.history import History, HistoryURL
     from canrls.fleet.records import STATUS_OK
     from canrls.fleet.report import report_dict, write_html
 
@@ -183,8 +182,8 @@ def run_report(args: argparse.Namespace) -> int:
     alpha = ALPHA if args.alpha is None else args.alpha
     if not 0 < alpha < 1:
         raise ConfigError(f"--alpha {args.alpha}: must be between 0 and 1")
-    url = history_url(args.db)
-    if url.startswith("sqlite:///") and not Path(url[len("sqlite:///"):]).is_file():
+    db = HistoryURL.parse(args.db).sqlite_path
+    if db is not None and not db.is_file():
         raise ConfigError(f"--db {args.db}: no such history (canrls fleet ingest makes it)")
     if args.out:
         from canrls.fleet.report import require_matplotlib

@@ -14,6 +14,7 @@ import math
 import os
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,7 @@ from canrls.fleet.records import (
     Recording,
 )
 
-__all__ = ["History", "history_url", "require_sqlalchemy", "METADATA", "HEAD_REVISION",
+__all__ = ["History", "HistoryURL", "require_sqlalchemy", "METADATA", "HEAD_REVISION",
            "MIGRATIONS"]
 
 #: the directory of the Alembic migrations (shipped in the package)
@@ -120,25 +121,50 @@ class _Lazy:
 METADATA = _Lazy()
 
 
-def history_url(text: str | os.PathLike[str]) -> str:
-    """A database URL from what a user typed: a URL (``sqlite:///f.db``,
-    ``postgresql://user@host/db``; PostgreSQL through psycopg), or a file path (SQLite).
+@dataclass(frozen=True)
+class HistoryURL:
+    """Where a history lives, parsed once from what a user typed (:meth:`parse`): the one
+    reading of a history's URL for the daemon's ``[history]``, ``canrls fleet`` and
+    :meth:`History.open`."""
 
-    :raises ConfigError: another kind of database.
-    """
-    s = str(text)
-    if "://" not in s:
-        if not s:
-            raise ConfigError("history: an empty database path")
-        return "sqlite:///" + str(Path(s).expanduser().absolute())
-    scheme, _, rest = s.partition("://")
-    base = scheme.split("+", 1)[0].lower()
-    if base in ("postgresql", "postgres"):
-        return "postgresql+psycopg://" + rest
-    if base == "sqlite":
-        return s
-    raise ConfigError(f"history: {scheme}:// databases are not supported (SQLite: a file "
-                      f"path or sqlite:///FILE; PostgreSQL: postgresql://USER@HOST/DB)")
+    #: the SQLAlchemy URL (``sqlite:///...``, ``postgresql+psycopg://...``)
+    url: str
+    #: the SQLite database file (None: PostgreSQL, or SQLite in memory)
+    sqlite_path: Path | None
+
+    @classmethod
+    def parse(cls, text: str | os.PathLike[str]) -> HistoryURL:
+        """A URL (``sqlite:///f.db``, ``postgresql://user@host/db``; PostgreSQL through
+        psycopg) or a file path (SQLite).
+
+        :raises ConfigError: an empty path, or another kind of database.
+        """
+        s = str(text)
+        if "://" not in s:
+            if not s:
+                raise ConfigError("history: an empty database path")
+            path = Path(s).expanduser().absolute()
+            return cls("sqlite:///" + str(path), path)
+        scheme, _, rest = s.partition("://")
+        base = scheme.split("+", 1)[0].lower()
+        if base in ("postgresql", "postgres"):
+            return cls("postgresql+psycopg://" + rest, None)
+        if base == "sqlite":
+            # sqlite:///relative.db, sqlite:////absolute.db, sqlite:// (in memory); the
+            # query (?timeout=...) is the driver's
+            db = rest[1:].partition("?")[0] if rest.startswith("/") else ""
+            return cls(s, Path(db) if db and db != ":memory:" else None)
+        raise ConfigError(f"history: {scheme}:// databases are not supported (SQLite: a file "
+                          f"path or sqlite:///FILE; PostgreSQL: postgresql://USER@HOST/DB)")
+
+    @property
+    def shown(self) -> str:
+        """The URL without its password, for messages."""
+        scheme, sep, rest = self.url.partition("://")
+        if "@" in rest:
+            cred, _, host = rest.rpartition("@")
+            return f"{scheme}{sep}{cred.split(':', 1)[0]}@{host}"
+        return self.url
 
 
 def _num(x: float | None) -> float | None:
@@ -162,9 +188,9 @@ def _json_safe(x: Any) -> Any:
 class History:
     """An open history (:meth:`open`); :meth:`close` it (or use ``with``)."""
 
-    def __init__(self, engine: Any, url: str) -> None:
+    def __init__(self, engine: Any, where: HistoryURL) -> None:
         self.engine = engine
-        self.url = url
+        self.where = where
         self._md = METADATA()
         self._drive_ids: dict[str, int] = {}
         self._model_ids: dict[str, int] = {}
@@ -172,24 +198,22 @@ class History:
     # ------------------------------------------------------------------ opening
     @classmethod
     def open(cls, url: str | os.PathLike[str], *, upgrade: bool = True) -> History:
-        """Connect to the history at ``url`` (:func:`history_url`) and bring its schema
+        """Connect to the history at ``url`` (:meth:`HistoryURL.parse`) and bring its schema
         to :data:`HEAD_REVISION` (``upgrade=False``: refuse an older schema instead).
 
         :raises ConfigError: the database cannot be reached or created, or its schema is
             newer than this canrls.
         """
         sa = require_sqlalchemy()
-        full = history_url(url)
+        where = HistoryURL.parse(url)
         kw: dict[str, Any] = {}
-        if full.startswith("sqlite"):
+        if where.url.startswith("sqlite"):
             kw["connect_args"] = {"timeout": 60}
-            path = full.split(":///", 1)[-1]
-            if path and path != ":memory:":
-                parent = Path(path).parent
-                if not parent.is_dir():
-                    raise ConfigError(f"history {url}: directory {parent} does not exist")
+            if where.sqlite_path is not None and not where.sqlite_path.parent.is_dir():
+                raise ConfigError(f"history {url}: directory {where.sqlite_path.parent} "
+                                  f"does not exist")
         try:
-            engine = sa.create_engine(full, **kw)
+            engine = sa.create_engine(where.url, **kw)
         except (ImportError, sa.exc.ArgumentError) as e:
             raise ConfigError(f"history {url}: {e}") from e
         if engine.dialect.name == "sqlite":
@@ -200,12 +224,12 @@ class History:
                 cur.execute("PRAGMA journal_mode=WAL")
                 cur.execute("PRAGMA busy_timeout=60000")
                 cur.close()
-        self = cls(engine, full)
+        self = cls(engine, where)
         try:
             self._migrate(upgrade)
         except sa.exc.OperationalError as e:
             engine.dispose()
-            raise ConfigError(f"history {_redact(full)}: cannot open the database "
+            raise ConfigError(f"history {where.shown}: cannot open the database "
                               f"({str(e.orig).strip().splitlines()[0]})") from e
         except BaseException:
             engine.dispose()
@@ -232,11 +256,11 @@ class History:
             return
         known = {s.revision for s in ScriptDirectory.from_config(cfg).walk_revisions()}
         if current is not None and current not in known:
-            raise ConfigError(f"history {_redact(self.url)}: schema revision {current!r} is "
+            raise ConfigError(f"history {self.where.shown}: schema revision {current!r} is "
                               f"newer than this canrls knows (up to {heads[0]!r}): "
                               f"upgrade canrls")
         if current is not None and not upgrade:
-            raise ConfigError(f"history {_redact(self.url)}: schema revision {current!r}, "
+            raise ConfigError(f"history {self.where.shown}: schema revision {current!r}, "
                               f"this canrls needs {heads[0]!r}")
         try:
             with self.engine.begin() as conn:
@@ -439,12 +463,3 @@ def _chunks(xs: Sequence[int], n: int) -> Iterator[Sequence[int]]:
     for i in range(0, len(xs), n):
         yield xs[i:i + n]
 
-
-def _redact(url: str) -> str:
-    """``url`` without its password."""
-    scheme, sep, rest = url.partition("://")
-    if "@" in rest:
-        cred, _, host = rest.rpartition("@")
-        user = cred.split(":", 1)[0]
-        return f"{scheme}{sep}{user}@{host}"
-    return url
