@@ -93,8 +93,8 @@ def _target_lines(eq: Any, protocol: Protocol | None) -> tuple[str, str]:
     c = ""
     if info is not None:
         where = f"the {eq.target.signal} signal {info.message}.{info.signal}"
-        per_raw = c_float(float(info.codec.scale) * info.si_scale, f"{where}: scale")
-        off = float(info.codec.offset) * info.si_scale
+        per_raw = c_float(info.si_per_raw, f"{where}: scale")
+        off = info.si_offset
         rating = rating_of(eq.target.signal, info.unit)
         of = ""
         if rating is not None and protocol is not None:

@@ -393,11 +393,9 @@ def _scale(protocol: Protocol, role: str, bias: int = 0) -> tuple[Fraction, Frac
     """``(k, o)``: SI value of one raw unit and the offset in raw units of ``role``
     (``bias``: what the field holds less, :attr:`Field.bias`)."""
     info = protocol.roles[role]
-    c = info.codec
-    k = Fraction(float(c.scale) if not isinstance(c.scale, int) else c.scale) \
-        * Fraction(info.si_scale)
-    off = Fraction(float(c.offset) if not isinstance(c.offset, int) else c.offset)
-    o = off / Fraction(float(c.scale) if not isinstance(c.scale, int) else c.scale)
+    k = info.si_per_raw_exact
+    # the offset in raw units: (offset * f) / (scale * f)
+    o = info.si_offset_exact / k
     return k, o + bias
 
 
