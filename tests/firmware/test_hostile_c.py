@@ -27,7 +27,8 @@ from canrls.cli.main import main
 from canrls.core.c_escape import MAX_TEXT, c_comment, c_identifier, c_int, c_string, c_uint
 from canrls.core.errors import ConfigError
 from canrls.estimation.pipeline import Pipeline
-from canrls.firmware.kernel_export import frames_c, load_source
+from canrls.firmware.kernel_export import frames_c
+from canrls.firmware.load import load
 
 ROOT = Path(__file__).resolve().parents[2]
 DBC = ROOT / "dbc" / "canrls.dbc"
@@ -106,10 +107,8 @@ def _estimates_like_python(model_file: Path, out: Path, fixed_o: Path, tmp: Path
     gcc = _gcc()
     subprocess.run([gcc, *CFLAGS, "-fsyntax-only", str(out / "canrls_frames.c")],
                    check=True, capture_output=True, text=True)
-    cfg, model, energy, _ = load_source(model_file)
-    protocol = cfg.protocol()
-    pipe = Pipeline(model if model is not None else cfg.model_for(protocol),
-                    protocol.period or 1e-3, cfg.settings(), energy)
+    src = load(model_file)  # what export-c exports: the model, its energies, its period
+    pipe = Pipeline(src.model, src.dt, src.settings, src.energy)
     config_o = tmp / "config.o"
     subprocess.run([gcc, *CFLAGS, "-I", str(out), "-c", str(out / "canrls_config.c"),
                     "-o", str(config_o)], check=True, capture_output=True, text=True)
