@@ -1,5 +1,8 @@
 """canrls.core.checks: each rule once, and every place that takes such a value asks it.
 
+A finite (positive) number: one definition (``is_real``, ``is_positive``), no module
+writing it out by hand.
+
 The forgetting factor: the configuration, the command line, the monitor's command, the
 command frame the daemon decodes and both estimators take the one range
 (:data:`~canrls.core.checks.LAMBDA_MIN`, 1]. Before, a monitor command ``lambda 0.3``
@@ -9,7 +12,9 @@ passed the monitor and the frame decoder, then the daemon refused it.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -84,3 +89,28 @@ def test_a_refused_lambda_names_where_it_came_from() -> None:
         checks.check_lambda(True, "x")
     with pytest.raises(CanrlsError, match="x = '0.9'"):
         checks.check_lambda("0.9", "x")
+
+
+# -- a finite number: one definition ----------------------------------------------------
+@pytest.mark.parametrize("value, real, positive", [
+    (1, True, True), (0.5, True, True), (np.float32(2.0), True, True), (0, True, False),
+    (-1.5, True, False), (math.inf, False, False), (math.nan, False, False),
+    (True, False, False), ("1", False, False), (None, False, False),
+])
+def test_a_finite_number_is_one_definition(value: object, real: bool, positive: bool) -> None:
+    assert checks.is_real(value) is real and checks.is_positive(value) is positive
+
+
+#: what the modules wrote by hand before asking core.checks: "not a bool, an int or a
+#: float, finite (and above zero)"
+HAND_WRITTEN = [re.compile(r"math\.isfinite\((\w[\w.]*)\)\s+and\s+\1 > 0"),
+                re.compile(r"isinstance\((\w[\w.]*), bool\)\s+or\s+not\s+isinstance\(\1, "
+                           r"int \| float\)\s+or\s+not\s+math\.isfinite\(\1\)")]
+
+
+def test_no_module_writes_the_number_check_by_hand() -> None:
+    src = Path(checks.__file__).resolve().parents[1]
+    bad = [f"{p.relative_to(src)}:{s.count(chr(10), 0, m.start()) + 1}"
+           for p in sorted(src.rglob("*.py")) if p.name != "checks.py"
+           for s in [p.read_text()] for rx in HAND_WRITTEN for m in rx.finditer(s)]
+    assert not bad, "ask canrls.core.checks.is_real / is_positive:\n" + "\n".join(bad)

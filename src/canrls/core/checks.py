@@ -14,8 +14,20 @@ if TYPE_CHECKING:  # numpy loads with the first array: the command line's --help
     import numpy as np
     import numpy.typing as npt
 
-__all__ = ["LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "describe_time", "is_time", "not_times",
-           "positive_period"]
+__all__ = ["LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "describe_time", "is_positive",
+           "is_real", "is_time", "not_times", "positive_period"]
+
+def is_real(value: object) -> bool:
+    """``value`` is a finite real number: an int or a float (numpy's too), not a bool,
+    not NaN nor infinite. The one definition of "a number" of every check that asks."""
+    return (not isinstance(value, bool) and isinstance(value, numbers.Real)
+            and math.isfinite(value))
+
+
+def is_positive(value: object) -> bool:
+    """``value`` is a finite real number above zero (:func:`is_real`)."""
+    return is_real(value) and float(value) > 0  # type: ignore[arg-type]
+
 
 #: Largest receive time [s] a frame may carry (about the year 2286): beyond it (or not
 #: finite) a timestamp is no time of a frame.
@@ -45,8 +57,7 @@ def positive_period(value: object, where: str) -> float:
     flag, key or file that stated it) unless it is a finite positive number. The one
     check of a period's value: a stated period (:meth:`Protocol.load
     <canrls.can.protocol.Protocol.load>`) and the processor's go through it."""
-    if (isinstance(value, bool) or not isinstance(value, int | float)
-            or not (math.isfinite(value) and value > 0)):
+    if not is_positive(value):
         raise ConfigError(f"{where}: the control period must be a positive number of "
                           f"seconds, got {value!r}")
     return float(value)
@@ -62,7 +73,6 @@ LAMBDA_MIN = 0.5
 def check_lambda(value: object, where: str, error: type[Exception] = ConfigError) -> float:
     """``value`` as the forgetting factor, or ``error`` naming ``where`` (the key, flag,
     command or class) unless it is a real number in (:data:`LAMBDA_MIN`, 1]."""
-    if (isinstance(value, bool) or not isinstance(value, numbers.Real)
-            or not LAMBDA_MIN < float(value) <= 1.0):  # also refuses NaN
+    if not (is_real(value) and LAMBDA_MIN < float(value) <= 1.0):  # type: ignore[arg-type]
         raise error(f"{where} = {value!r}: must be in ({LAMBDA_MIN:g}, 1]")
     return float(value)

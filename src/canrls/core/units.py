@@ -38,6 +38,7 @@ import math
 import re
 from dataclasses import dataclass
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import SignalError
 
 __all__ = ["UNITS", "SI_UNITS", "RELATIVE", "INCREMENTS", "RATING_OPTIONS", "Ratings",
@@ -125,8 +126,7 @@ class Ratings:
             v = getattr(self, name)
             if v is None:
                 continue
-            if (isinstance(v, bool) or not isinstance(v, int | float)
-                    or not (math.isfinite(v) and v > 0)):
+            if not is_positive(v):
                 raise SignalError(f"{flag} {v!r}: must be a positive number ({unit})")
             object.__setattr__(self, name, float(v))
 

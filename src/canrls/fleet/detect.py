@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.checks import is_positive
 from canrls.fleet.records import SOURCE_LIVE, Recording
 
 __all__ = ["ALPHA", "OUTLIER_Z", "MIN_RECORDINGS", "MIN_SIBLINGS", "RESIDUAL", "Alert",
@@ -236,7 +237,7 @@ def _series(recs: Sequence[Recording], name: str, log: bool) -> Series | None:
     for r in recs:
         if name == RESIDUAL:
             x, sig = r.residual_rms, 0.0
-            if not (math.isfinite(x) and x > 0):
+            if not is_positive(x):
                 continue
             yy, ss = math.log(x), 0.0
             unit = r.unit

@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can.frameblock import FrameBlock
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError, EffectError
 from canrls.core.samples import Signals
 from canrls.sim.excitation import Excitation
@@ -118,7 +119,7 @@ class Scenario:
     nsub: int = 5
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.dt) and self.dt > 0):
+        if not is_positive(self.dt):
             raise ConfigError(f"scenario {self.name}: dt {self.dt!r} must be > 0 s")
         if not (self.duration >= 0 and not math.isnan(self.duration)):
             raise ConfigError(f"scenario {self.name}: duration {self.duration!r} must be >= 0 s")

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import EstimatorError, FixedPointError
 from canrls.estimation.fixed import layout as kernels
 from canrls.estimation.rls import check_lam as _rls_check_lam
@@ -343,7 +344,7 @@ class FixedConfig:
         if not (np.all(np.isfinite(pm)) and np.all(pm > 0)):
             raise FixedPointError(f"phi_max must be finite and > 0, got {phi_max!r}")
         ym = float(y_max)
-        if not (math.isfinite(ym) and ym > 0):
+        if not is_positive(ym):
             raise FixedPointError(f"y_max must be finite and > 0, got {y_max!r}")
         tm = 4.0 * ym / float(pm.min()) if theta_max is None else float(theta_max)
         finite = trace_max is not None and math.isfinite(trace_max)
