@@ -175,9 +175,10 @@ def test_cross_validation_on_runs_not_used(logs: dict[str, Path], tmp_path: Path
     if report:  # the figures of every unseen run, as the diagnosis draws them
         html = (tmp_path / "val" / "index.html").read_text(encoding="utf-8")
         for k in range(1, len(test) + 1):
-            assert f"mechanical-timeline-{k}.png" in html
-            assert (tmp_path / "val" / f"mechanical-timeline-{k}.png").is_file()
-        assert (tmp_path / "val" / "mechanical-speed.png").is_file()
+            assert f"mechanical-timeline-{k}.svg" in html
+            assert (tmp_path / "val" / f"mechanical-timeline-{k}.svg").is_file()
+        assert (tmp_path / "val" / "mechanical-speed.svg").is_file()
+        assert "<b>mechanical: the model holds: residual RMS" in html  # the answer first
     assert val["parameters"] == json.loads(m.read_text())["parameters"]
     # the unseen runs are predicted about as well as the runs it learnt from
     assert val["residual_rms"] < 1.15 * fit["residual_rms"]

@@ -82,7 +82,7 @@ def test_diagnose_without_a_report_loads_no_plotting_or_templating(log: Path) ->
                    log.parent) == {"numpy", "cantools", "canrls.diagnosis"}
 
 
-@pytest.mark.parametrize("command", ["fit", "validate", "export-c", "monitor", "run"])
+@pytest.mark.parametrize("command", ["fit", "validate", "export-c", "monitor", "run", "tune"])
 def test_help_loads_neither_numpy_nor_cantools(command: str, tmp_path: Path) -> None:
     assert _loaded([command, "--help"], tmp_path) == set()
 

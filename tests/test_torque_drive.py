@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+import cantools
 import pytest
 from user_drives import CIA402_DBC as DBC
 from user_drives import INCREMENTS, RATED_CURRENT, RATED_TORQUE, cia402_log
@@ -92,6 +93,42 @@ def test_the_dbc_says_what_a_cia402_drive_sends() -> None:
     assert p.roles["speed"].si_scale == pytest.approx(2 * math.pi / INCREMENTS)
     assert p.roles["position"].si_scale == pytest.approx(2 * math.pi / INCREMENTS)
     assert p.period == 1e-3 and p.axis is None  # increments say no axis: rotary by default
+
+
+def test_the_summary_says_the_speed_the_data_reach_not_the_dbc_limits(
+        drive: dict[str, Any], capsys: pytest.CaptureFixture[str]) -> None:
+    """The DBC declares ±10,000,000 inc/s (479.4 rad/s); the scaling comes from the
+    calibration window, and so does the speed the summary prints."""
+    got = _json(capsys, ["fit", str(drive["cia"]), *MAP, "-e", EFFECTS])
+    cal = got["calibration"]
+    db = cantools.database.load_file(str(DBC))
+    tpdo2 = db.get_message_by_name("TPDO2")
+    raw = [tpdo2.decode(m.data)["VelocityActual"] for m in can.LogReader(str(drive["cia"]))
+           if m.arbitration_id == tpdo2.frame_id][:cal["window"]["samples"]]
+    peak = max(abs(v) for v in raw) * 2 * math.pi / INCREMENTS
+    assert cal["peaks"]["speed"] == pytest.approx(peak, rel=1e-12)
+    assert main(["fit", str(drive["cia"]), *MAP, "-e", EFFECTS, "--quiet"]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines()
+                if ln.startswith("calibration:"))
+    assert f"speed ±{peak:.4g} rad/s" in line
+    assert "479.4" not in line and "dbc" not in line
+
+
+def test_a_utf8_dbc_says_per_mille_as_written(
+        drive: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The same DBC saved in UTF-8 (as some editors write it): '‰' is printed as '‰',
+    not 'â€°', and the answer is the cp1252 file's."""
+    utf8 = tmp_path / "cia402_utf8.dbc"
+    utf8.write_bytes(DBC.read_bytes().decode("cp1252").encode("utf-8"))
+    assert "‰".encode() in utf8.read_bytes()
+    mapped = [a if a != str(DBC) else str(utf8) for a in MAP]
+    assert main(["fit", str(drive["cia"]), *mapped, "-e", EFFECTS, "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "axis rotary (DBC units: speed inc/s, position inc, torque ‰)" in out.splitlines()
+    assert "â" not in out
+    got = _json(capsys, ["fit", str(drive["cia"]), *mapped, "-e", EFFECTS])
+    ref = _json(capsys, ["fit", str(drive["cia"]), *MAP, "-e", EFFECTS])
+    assert got["parameters"] == ref["parameters"]
 
 
 def test_fit_finds_the_drive_in_newton_metres_without_kt(

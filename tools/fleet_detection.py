@@ -83,12 +83,15 @@ def main() -> None:
                                rank="auto", ranker=rank_candidates, max_order=16)
                     recs = h.recordings()
             r = score(detect.assess(recs), truth)
-            orig = detect.estimate_tau
-            detect.estimate_tau = lambda pairs: 0.0  # type: ignore[assignment]
-            try:
-                r0 = score(detect.assess(recs), truth)
+            orig = detect.estimate_tau, detect._own_tau
+            detect.estimate_tau = lambda pairs, quantile=0.5: 0.0  # type: ignore[assignment]
+            detect._own_tau = lambda pairs: 0.0  # type: ignore[assignment]
+            try:  # sigma alone, and no size that matters
+                r0 = score(detect.assess(recs, settings=detect.DetectionSettings(
+                    min_times_usual=1e-9, min_change={k: 0.0 for k in detect.MIN_CHANGE})),
+                    truth)
             finally:
-                detect.estimate_tau = orig  # type: ignore[assignment]
+                detect.estimate_tau, detect._own_tau = orig  # type: ignore[assignment]
             for k in ("faulty", "found", "right", "healthy"):
                 total[k] += r[k]
             total["false"] += len(r["false"])

@@ -90,9 +90,9 @@ def test_text_and_report(log: Path, tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "Before and after --add offset" in text
     assert f"report: {out_dir / 'index.html'}" in text
     assert (out_dir / "index.html").is_file()
-    for png in ("timeline.png", "speed.png", "position.png", "candidates.png", "orders.png",
-                "convergence.png", "fixed.png"):
-        assert (out_dir / png).stat().st_size > 1000, png
+    for svg in ("timeline.svg", "speed.svg", "position.svg", "candidates.svg", "orders.svg",
+                "convergence.svg", "fixed.svg"):
+        assert (out_dir / svg).stat().st_size > 1000, svg
 
 
 def test_report_without_matplotlib_is_a_clear_error(log: Path, tmp_path: Path,
@@ -123,3 +123,18 @@ def test_max_order_must_be_positive(log: Path, capsys: pytest.CaptureFixture[str
     with pytest.raises(SystemExit):
         main(["diagnose", str(log), "--max-order", "0"])
     assert "--max-order" in capsys.readouterr().err
+
+
+def test_a_unit_matplotlib_would_read_as_mathtext_is_drawn_as_text(
+        log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 30, 4: a user term's unit `$a^$` ended `diagnose --report` with exit 3
+    (matplotlib's mathtext parser); it is plain text now (canrls.figtext.plain)."""
+    pytest.importorskip("matplotlib")
+    cfg = tmp_path / "drive.toml"
+    cfg.write_text('[model]\neffects = ["inertia", "viscous", "coulomb", "user:drag"]\n'
+                   'kt = 0.1\n[[model.terms]]\nname = "drag"\nexpr = "speed * abs(speed)"\n'
+                   'unit = "$a^$"\n')
+    out_dir = tmp_path / "report"
+    assert main(["diagnose", str(log), "--config", str(cfg), *QUICK,
+                 "--report", str(out_dir)]) == 0, capsys.readouterr().err
+    assert (out_dir / "convergence.svg").stat().st_size > 1000

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import re
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import can
@@ -21,10 +26,11 @@ def test_writes_a_candump_log_python_can_reads(tmp_path: Path,
     rc = main(["sim", "--out", str(out), "--duration", "2", "--seed", "3",
                "--effects", "inertia,viscous,coulomb,cogging:24"])
     assert rc == 0
-    err = capsys.readouterr().err
-    assert err == (f"canrls sim: wrote 4000 frames to {out} (2 s, scenario standard, seed 3); "
-                   "truth: inertia.J=0.0002 viscous.B=0.0001 coulomb.Tc=0.02 "
-                   "cogging:24.sin=0.003 cogging:24.cos=0.0015 Kt=0.1\n")
+    out_err = capsys.readouterr()
+    assert out_err.err == ""  # the truth on stdout: `canrls sim ... > truth.txt` keeps it
+    assert out_err.out == (f"canrls sim: wrote 4000 frames to {out} (2 s, scenario standard, "
+                           "seed 3); truth: inertia.J=0.0002 viscous.B=0.0001 coulomb.Tc=0.02 "
+                           "cogging:24.sin=0.003 cogging:24.cos=0.0015 Kt=0.1\n")
     msgs = list(can.LogReader(str(out)))
     assert len(msgs) == 4000
     assert msgs[0].timestamp == 0.0 and msgs[-1].timestamp == pytest.approx(1.9991)
@@ -44,7 +50,7 @@ def test_faults_and_linear_axis(tmp_path: Path, capsys: pytest.CaptureFixture[st
                "--effects", "inertia,viscous,coulomb,electrical", "--param", "coulomb.Tc=4",
                "--faults", "drop=0.01,silence=0.5s@1s"])
     assert rc == 0
-    err = capsys.readouterr().err
+    err = capsys.readouterr().out
     assert "scenario standard-linear" in err and "coulomb.Tc=4 " in err and "Kf=20" in err
     assert "faults drop=0.01,silence=0.5s@1s: 6000 frames in" in err
     assert "1000 silenced" in err
@@ -72,3 +78,55 @@ def test_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
     err = capsys.readouterr().err
     assert err.startswith(message) and err.count("\n") == 1
     assert not (tmp_path / "x.log").exists()
+
+
+def test_an_inertia_the_integrator_cannot_afford_is_refused_naming_the_limit(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 30, 11: -p inertia.J=1e-8 needed 11 minutes for 5 s of drive (a million
+    sub-steps per period at standstill). Refused at once, naming the sub-step bound and
+    the smallest J, which is then accepted."""
+    from cli_tool import cli_error
+
+    from canrls.sim.plant import MAX_SUBSTEPS
+
+    out = tmp_path / "drive.log"
+    line = cli_error(capsys, ["sim", "--out", str(out), "--duration", "5", "-p",
+                              "inertia.J=1e-8"])
+    m = re.search(rf"more than the simulator's {MAX_SUBSTEPS}: give inertia\.J >= (\S+) with",
+                  line)
+    assert line.startswith("error: inertia.J = 1e-08: ") and m, line
+    assert not out.exists()
+    assert main(["sim", "--out", str(out), "--duration", "0.5", "-p",
+                 f"inertia.J={m.group(1)}"]) == 0
+
+
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_inside_the_c_loop_stops_sim_within_a_second(
+        tmp_path: Path, sig: signal.Signals, status: int) -> None:
+    """Issue 30, 11: SIGTERM was not acted on inside the C loop (a call simulates 65,536
+    periods: about a minute at the smallest J). The loop looks at the signals every
+    100,000 sub-steps now."""
+    out = tmp_path / "long.log"
+    proc = subprocess.Popen([sys.executable, "-m", "canrls", "sim", "--out", str(out),
+                             "--duration", "3600", "-p", "inertia.J=5e-7"],
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not any(p.name.endswith(".part") for p in tmp_path.iterdir()):
+            assert proc.poll() is None and time.monotonic() < deadline, "no temporary seen"
+            time.sleep(0.02)
+        time.sleep(0.5)  # inside the first call of the C loop
+        sent = time.monotonic()
+        proc.send_signal(sig)
+        try:
+            _, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            err = ""
+        took = time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == status, err
+    assert took < 1.0, f"{took:.1f} s"
+    assert list(tmp_path.iterdir()) == []

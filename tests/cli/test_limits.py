@@ -4,6 +4,8 @@ exception in a command is one ``internal error:`` line and exit status 3."""
 
 from __future__ import annotations
 
+import re
+import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -69,11 +71,43 @@ def test_alpha_out_of_range_names_the_key(tmp_path: Path, log: Path,
     assert "estimator.alpha = 1e+300: must be from 1e-09 to 1e+09" in line
 
 
-def test_alpha_too_small_for_the_fixed_point_names_the_ridge(
+@pytest.mark.parametrize("value", ["1e-9", "1e-6"])
+def test_alpha_too_small_for_the_fixed_point_names_the_smallest(
+        log: Path, value: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """--help called 1e-9 valid and every alpha below about 1e-5 was refused with a
+    Q-format message: now the one limit (P0 needs a Q format) is named, the same for
+    any alpha below it, and the value named is accepted."""
+    effects = ["-e", "inertia,viscous,coulomb,offset"]
+    line = cli_error(capsys, ["fit", "--alpha", value, *effects, str(log)])
+    m = re.search(r"estimator\.alpha = [0-9.e+-]+: too small for the fixed-point words: "
+                  r"the smallest is ([0-9.e+-]+) here", line)
+    assert m, line
+    assert main(["fit", "--alpha", m.group(1), *effects, "--quiet", str(log)]) == 0
+    assert float(m.group(1)) == pytest.approx(7.7e-6, rel=0.3)  # 4 parameters, 32 bits
+
+
+def test_a_cogging_order_of_5000_digits_is_one_short_error_line(
         log: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    # in range, but P0 = 1/(alpha e_j) outgrows the 32-bit words of this data
-    line = cli_error(capsys, ["fit", "--alpha", "1e-8", str(log)])
-    assert "P0 = diag(1/alpha_j) reaches" in line and "estimator.alpha" in line, line
+    """-e cogging:<5000 digits> ended in "internal error: ValueError: Exceeds the limit
+    (4300 digits)" (exit 3)."""
+    line = cli_error(capsys, ["fit", "--kt", "0.1", "-e", "cogging:" + "9" * 5000, str(log)])
+    assert "must be an integer from 1 to 65535" in line and len(line) < 600, line
+
+
+def test_a_kt_whose_torque_overflows_is_one_error_line_naming_kt(
+        log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--kt 1e308 printed numpy's overflow warnings, then "cannot quantize NaN to Q1.30":
+    now the one line names model.kt and what overflowed (no warning: one line)."""
+    line = cli_error(capsys, ["fit", "--kt", "1e308", "-e", "inertia,viscous", str(log)])
+    assert line.startswith("error: model.kt = 1e+308: the target motor torque"), line
+    assert "overflows a double" in line
+
+
+def test_alpha_help_states_the_fixed_point_limit(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["fit", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "1e-9 to 1e9, and at least what the fixed-point words hold" in text
 
 
 def test_vanishing_cutoff_is_refused_before_allocating(
@@ -257,3 +291,19 @@ def test_max_order_is_bounded_in_the_api() -> None:
     sig = Signals(t=np.arange(n) * 1e-3, current=np.zeros(n), speed=np.zeros(n))
     with pytest.raises(ConfigError, match=f"1..{MAX_ORDER_LIMIT}"):
         diagnose(sig, Model(["inertia"]), max_order=MAX_ORDER_LIMIT + 1)
+
+
+# ------------------------------------------------------------------------- the output
+@pytest.mark.parametrize("argv", [["fit", "--json", "--kt", "0.1"], ["fit", "--kt", "0.1"]])
+def test_a_reader_that_leaves_ends_the_command_quietly(log: Path, argv: list[str]) -> None:
+    """`canrls fit --json | head -1` ended in "internal error: BrokenPipeError" (exit 3):
+    now every subcommand exits quietly with 141, as a Unix tool that SIGPIPE ended."""
+    from canrls.cli.main import PIPE_CLOSED
+
+    with subprocess.Popen([sys.executable, "-m", "canrls", *argv, str(log)],
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE) as p:
+        assert p.stdout is not None and p.stderr is not None
+        p.stdout.close()  # the reader leaves before the command writes its first byte
+        err = p.stderr.read().decode()
+        assert p.wait(timeout=120) == PIPE_CLOSED, err
+    assert err == ""

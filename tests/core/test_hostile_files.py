@@ -419,7 +419,12 @@ def _dbc(tmp_path: Path, old: str, new: str) -> Path:
      "message DriveCurrent: signal Current: start bit 16 and length 999999999 do not fit"),
     ("BO_ 257 DriveCurrent: 8 Drive", "BO_ 257 DriveCurrent: 99999999 Drive",
      "message DriveCurrent: 99999999 bytes long, a CAN frame carries at most 64"),
-], ids=["scale-0", "scale-1e308", "offset-inf", "start-bit", "length", "message-length"])
+    # issue 30: reported as "message never occurs" although it occurs 5,000 times
+    ("SG_ Current : 16|24@1- (0.0001,0) [-800|800]",
+     "SG_ Current : 16|24@1- (0.0001,0) [800|-800]",
+     "DriveCurrent.Current (mapped to current): minimum 800 > maximum -800"),
+], ids=["scale-0", "scale-1e308", "offset-inf", "start-bit", "length", "message-length",
+        "minimum-above-maximum"])
 def test_a_dbc_whose_numbers_cannot_be_is_refused_naming_message_and_signal(
         tmp_path: Path, log: Path, capsys: pytest.CaptureFixture[str], old: str, new: str,
         message: str) -> None:

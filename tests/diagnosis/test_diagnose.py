@@ -3,13 +3,18 @@ test_diagnose_acceptance.py, the command line in test_cli_diagnose.py)."""
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import json
 import math
+import re
 import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from markupsafe import escape
 
 from canrls.cli._common import _clean
 from canrls.core.errors import ConfigError, EffectError
@@ -313,10 +318,125 @@ def test_html_report(offset_run: Any, tmp_path: Any) -> None:
     assert page.name == "index.html"
     text = page.read_text(encoding="utf-8")
     for name in FIGURES:
+        if name in ("position.svg", "orders.svg") and not (tmp_path / "rep" / name).exists():
+            continue  # the offset run has a position: both are drawn
         f = tmp_path / "rep" / name
-        assert f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+        assert f.read_bytes().startswith(b"<?xml") and b"<svg" in f.read_bytes()[:2000], name
         assert f"src='{name}'" in text
+        assert f"alt='{name}'" not in text  # the alt says what it shows
     assert "Verdict" in text and "offset.T0" in text
+    assert "name='viewport'" in text and "table.sortable" in text
+    # the figure that proves an offset: the residual against speed, right under the verdict
+    first = re.search(r"<img src='([^']+)' alt='([^']+)'", text)
+    assert first is not None and first.group(1) == "speed.svg"
+    assert "Residual against speed" in first.group(2)
+    assert text.index("Verdict") < first.start() < text.index("<h2>Compare")
+
+
+@pytest.fixture(scope="module")
+def cogging_report(plain: SimResult) -> DiagnosisReport:
+    """A hidden cogging of order 6, diagnosed and added."""
+    s = _with_torque(plain, 0.003 * np.sin(6 * np.asarray(plain.true.position)))
+    return diagnose(s, _model(s, BASE), dt=1e-3, add=["cogging:6"], max_order=ORDER,
+                    source="cogging-run")
+
+
+def test_report_proves_a_position_effect_with_position(cogging_report: DiagnosisReport,
+                                                       tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    from canrls.diagnosis.report import samples_text, split_regions
+
+    rep = cogging_report
+    b = rep.before.primary
+    lead, rest = split_regions(b)
+    assert lead and {r.quantity for r in lead} == {"position"}
+    assert all(r.quantity != "position" for r in rest)
+    used = b.fit.samples
+    assert 0 < used < rep.samples
+    said = samples_text(rep)
+    assert said.startswith(f"{used:,} of {rep.samples:,} samples used")
+    assert f"the other {rep.samples - used:,} were left out" in said
+    assert "(100 %)" not in said  # 97.5 % is not rounded up
+    assert "speeds below the minimum near reversals (below 0.0" in said  # Coulomb's band
+    nearly = copy.copy(rep)
+    nearly.samples = used + 3  # 99.98 % used: said as 99.9 %, never 100 %
+    assert samples_text(nearly).startswith(f"{used:,} of {used + 3:,} samples used (99.9 %)")
+    text = rep.write_html(tmp_path / "rep").read_text(encoding="utf-8")
+    # the residual against position, then the order spectrum, under the verdict
+    assert re.findall(r"<img src='([^']+)'", text)[:2] == ["position.svg", "orders.svg"]
+    assert text.index("orders.svg") < text.index("<h2>Compare")
+    assert text.index(lead[0].text) < text.index("Also in other quantities")
+    assert str(escape(said)) in text
+    # the text too: the position ranges first
+    where = rep.format().split("Where it fails\n")[1]
+    assert where.startswith(f"  - {lead[0].text}") and "  also in other quantities:" in where
+
+
+def test_order_figure_shows_integer_orders(cogging_report: DiagnosisReport) -> None:
+    from canrls.diagnosis.figures import integer_orders
+
+    sp = cogging_report.before.primary.spectrum
+    assert sp is not None and any(not float(p).is_integer() for p in sp.orders)
+    orders, amp, expl, peaks = integer_orders(sp)
+    assert all(float(p).is_integer() for p in orders) and len(orders) == ORDER
+    assert peaks and peaks[0] == 6 and all(float(p).is_integer() for p in peaks)
+    # fitted together, the peaks' shares add up to at most 1; a quarter order beside
+    # order 6 (its leakage) explains next to nothing beyond it
+    assert len(sp.shares) == len(sp.peaks) and sum(sp.shares) <= 1.0
+    assert sp.share(6) == pytest.approx(sp.at(6)[1], abs=1e-9)
+    assert all(sp.share(p) <= sp.at(p)[1] + 1e-9 for p in sp.peaks)
+    # the figure's after panel: the order-6 amplitude gone once cogging:6 is added
+    after = cogging_report.after
+    assert after is not None and after.primary.spectrum is not None
+    assert after.primary.spectrum.at(6)[0] < 0.1 * sp.at(6)[0]
+
+
+def test_leakage_of_an_order_gets_no_share_of_its_own() -> None:
+    """The quarter orders beside a strong order 6 (its leakage on the standard run)
+    each explain 5-19 % alone, and nothing beyond order 6 fitted with it."""
+    res = simulate(scenario("standard", effects="inertia,viscous,coulomb,offset,cogging:6",
+                            seed=1, duration=40.0))
+    s = res.measured
+    sp = diagnose(s, _model(s, BASE + ["offset"]), dt=1e-3, max_order=ORDER
+                  ).before.primary.spectrum
+    assert sp is not None and sp.peaks[0] == 6
+    leaks = [p for p in sp.peaks if not float(p).is_integer()]
+    assert leaks
+    for p in leaks:
+        assert sp.share(p) < 0.01 and sp.at(p)[1] > 0.04, p
+    assert sum(sp.shares) <= 1.0 < sum(sp.at(p)[1] for p in sp.peaks)
+
+
+def test_figures_say_clipped_axes_and_unused_spans(cogging_report: DiagnosisReport,
+                                                   tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    from canrls.diagnosis.figures import figures_in, unused_spans
+
+    t = np.arange(10.0)
+    used = np.array([0, 0, 1, 1, 0, 0, 1, 1, 1, 0], bool)
+    assert unused_spans(t, used) == [(0.0, 2.0), (3.0, 6.0), (8.0, 9.0)]
+    figs = figures_in(tmp_path)
+    b = cogging_report.before.primary
+    figs.timeline(b, None)
+    assert "spans the estimator does not use" in figs.notes["timeline.svg"]
+    # 1 % of the samples far out: the axis, sized by the bin means, cuts them off
+    r = b.traces.residual.copy()
+    r[::100] += 0.1
+    spiky = dataclasses.replace(b, traces=dataclasses.replace(b.traces, residual=r))
+    figs.binned(spiky, None, "speed")
+    note = figs.notes["speed.svg"]
+    assert note.startswith("Y axis clipped at ±") and "of the samples lie beyond it" in note
+
+
+def test_r2_is_never_rounded_up_to_one() -> None:
+    from canrls.diagnosis.results import r2_text
+
+    assert r2_text(0.99996) == "> 0.9999"
+    assert r2_text(0.99994) == "0.9999"
+    assert r2_text(1.0) == "1.0000"
+    assert r2_text(0.5) == "0.5000"
+    assert r2_text(0.999999, 5) == "> 0.99999"
+    assert r2_text(float("nan")) == "n/a"
 
 
 def test_html_report_without_matplotlib(offset_run: Any, tmp_path: Any,

@@ -133,6 +133,34 @@ def test_fit_several_logs_save_and_validate(logs: dict[str, Path], tmp_path: Pat
     assert main(["validate", str(logs["s3"]), "--model", str(m), "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "without re-estimating" in text and "fit" in text and "residual RMS" in text
+    assert text.startswith("mechanical: the model holds: residual RMS ")  # the answer first
+
+
+def test_per_log_fit_says_what_it_is_measured_against(
+        logs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Per log, fit % compares the residual with that log's own spread of the target: the
+    text says so and gives each spread, which the figures follow."""
+    m = tmp_path / "m.json"
+    assert main(["fit", str(logs["s1"]), *MODEL, "--quiet", "--save-model", str(m)]) == 0
+    val = _json(capsys, ["validate", str(logs["s2"]), str(logs["s3"]), "--model", str(m),
+                         "--quiet", "--json"])
+    eq = val["equations"]["mechanical"]
+    for f in [eq, *eq["files"]]:
+        # fit = 100 (1 - rms / sd): the spread is what the fit is measured against
+        assert f["fit_percent"] == pytest.approx(100 * (1 - f["residual_rms"] / f["target_sd"]))
+    capsys.readouterr()
+    assert main(["validate", str(logs["s2"]), str(logs["s3"]), "--model", str(m),
+                 "--quiet"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.startswith("mechanical: fit"))
+    assert lines[k + 1] == (
+        f"  per log, fit % is against that log's own spread of the target (SD); a log that "
+        f"spreads less than all of them together (SD {eq['target_sd']:.4g} N·m) fits less "
+        f"at the same residual RMS:")
+    f = eq["files"][0]
+    assert lines[k + 2] == (f"  {logs['s2']}: fit {f['fit_percent']:.2f} %, residual RMS "
+                            f"{f['residual_rms']:.4g} N·m, target SD {f['target_sd']:.4g} "
+                            f"N·m, {f['samples']} samples")
 
 
 def test_validate_shows_where_a_poorer_model_fails(logs: dict[str, Path], tmp_path: Path,
@@ -189,12 +217,18 @@ def test_validate_report_html_with_figures(logs: dict[str, Path], tmp_path: Path
     page = out / "index.html"
     assert d["report"] == str(page)
     html = page.read_text(encoding="utf-8")
-    pngs = re.findall(r"<img src='([^']+)'", html)
+    figs = re.findall(r"<img src='([^']+)' alt='([^']+)'", html)
     # per log the prediction over time, then the residual by speed and by position
-    assert pngs == ["mechanical-timeline-1.png", "mechanical-timeline-2.png",
-                    "mechanical-speed.png", "mechanical-position.png"]
-    for name in pngs:
-        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    assert [f for f, _ in figs] == ["mechanical-timeline-1.svg", "mechanical-timeline-2.svg",
+                                    "mechanical-speed.svg", "mechanical-position.svg"]
+    for name, alt in figs:
+        assert (out / name).read_bytes().startswith(b"<?xml"), name
+        assert name not in alt and ("Residual" in alt or "measured against" in alt)
+    # the answer first: the verdict line right under the title, R² never "1.0000"
+    first = re.search(r"<p class='verdict[^']*'><b>([^<]+)</b>", html)
+    assert first is not None and first.group(1).startswith("mechanical: the model holds")
+    assert html.index(first.group(0)) < html.index("Identified on")
+    assert "R² 1.0000" not in html and "name='viewport'" in html
     # the page says what the text says: fit, per-log rows, where it fails
     for f in d["equations"]["mechanical"]["files"]:
         assert f["source"] in html
@@ -245,3 +279,20 @@ def test_validate_refuses_options_that_would_change_the_model(
         main(["validate", "--help"])
     out = capsys.readouterr().out
     assert "report fit %, residual RMS" in out and "%%" not in out and "--report DIR" in out
+
+
+def test_validation_verdict_says_whether_the_model_holds() -> None:
+    from canrls.diagnosis.validate import HOLDS_WITHIN, EquationValidation
+
+    def eq(rms: float, ident: float | None) -> EquationValidation:
+        return EquationValidation("mechanical", "N·m", 1000, rms, 90.0, 0.999999, ident,
+                                  (), ())
+    ok = eq(0.00102, 0.001)
+    assert ok.holds is True
+    assert ok.verdict == ("mechanical: the model holds: residual RMS 0.00102 N·m, +2.0 % "
+                          "against the 0.001 N·m at identification (it holds within +25 %)")
+    assert eq(0.00098, 0.001).verdict.split(", ")[1].startswith("-2.0 %")
+    bad = eq(0.001 * (1 + HOLDS_WITHIN) * 1.01, 0.001)
+    assert bad.holds is False and "the model does not hold" in bad.verdict
+    unknown = eq(0.001, None)
+    assert unknown.holds is None and "no RMS at identification" in unknown.verdict

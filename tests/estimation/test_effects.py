@@ -44,6 +44,9 @@ def test_every_library_effect_is_documented() -> None:
         assert ".. math::" in doc, cls
         assert cls.EQUATION_TEXT, cls
         assert len(cls.RESIDUAL_SIGNATURE) > 20, cls
+        # what a change of it means on a drive in service, and what to check (the
+        # fleet's alerts say these)
+        assert all(len(c) > 10 for c in cls.CHANGE_CAUSE) and len(cls.CHANGE_CHECK) > 10, cls
         assert cls.EQUATION in ("mechanical", "electrical"), cls
         assert cls.REQUIRES <= ROLES, cls
         assert cls.COMPONENTS, cls
@@ -123,7 +126,7 @@ def test_parse_names_ids_orders_and_equations() -> None:
     ("friction", {}, ["'friction'", "inertia", "cogging:K", "user:NAME"]),
     ("cogging", {}, ["'cogging'", "cogging:K"]),
     ("cogging:", {}, ["cogging:K"]),
-    ("cogging:0", {}, ["'0'", ">= 1"]),
+    ("cogging:0", {}, ["'0'", "from 1 to 65535"]),
     ("cogging:-3", {}, ["'-3'"]),
     ("cogging:2.5", {}, ["'2.5'"]),
     ("inertia:2", {}, ["'inertia'", "no argument"]),

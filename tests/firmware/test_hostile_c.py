@@ -364,3 +364,70 @@ def test_export_of_random_names_units_and_comments_compiles_and_estimates(
     h = (out / "canrls_config.h").read_text()
     assert not re.search(r"^\s*#\s*define\s+canrls_update", h, re.M)
     _estimates_like_python(cfg, out, fixed_o, tmp)
+
+
+# ------------------------------------------------------------ the export's frames and vectors
+@pytest.mark.parametrize(("own", "name"), [(768, "RlsEstimate"), (800, "RlsCommand")])
+def test_a_drive_frame_on_an_id_of_canrls_is_refused_unless_frames_none(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], own: int, name: str) -> None:
+    """Issue 30, 8: a DBC that put the drive's current on RlsEstimate's ID exported,
+    built and passed: the firmware would have taken its own publications as feedback."""
+    text = DBC.read_text()
+    dbc = tmp_path / "drive.dbc"
+    dbc.write_text(text[:text.index("BO_ 768 ")].replace("BO_ 257 DriveCurrent",
+                                                         f"BO_ {own} DriveCurrent"))
+    cfg = tmp_path / "drive.toml"
+    cfg.write_text(_toml({}, dbc) + "period = 0.001\n")  # in [can], after dbc
+    out = tmp_path / "c"
+    line = cli_error(capsys, ["export-c", "--model", str(cfg), "--out", str(out)])
+    assert f"message DriveCurrent (0x{own:X}: current, voltage) has the ID of canrls' " \
+           f"{name}" in line and "--frames none" in line, line
+    assert not out.exists()
+    assert main(["export-c", "--model", str(cfg), "--out", str(out), "--frames", "none"]) == 0
+
+
+@pytest.fixture(scope="module")
+def model_json(tmp_path_factory: pytest.TempPathFactory, log: Path) -> Path:
+    out = tmp_path_factory.mktemp("vectors") / "m.json"
+    assert main(["fit", str(log), "--kt", "0.1", "-e", ",".join(BASE), "--quiet",
+                 "--save-model", str(out)]) == 0
+    return out
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    ("", "no CAN frames in the log"),
+    ("(0.000000) can0 123#0011223344556677\n(0.001000) can0 123#00\n",
+     "none of the mapped messages occurs in the 2 frames read: expected 0x101 "
+     "(DriveCurrent), 0x102 (DriveSpeed)"),
+], ids=["no-frames", "no-mapped-frame"])
+def test_vectors_from_a_log_fit_would_refuse_are_refused(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], model_json: Path,
+        content: str, message: str) -> None:
+    """Issue 30, 9: export-c --vectors exited 0, then the export's make test failed to
+    compile (-Werror=type-limits on an empty table). Refused as canrls fit refuses it,
+    nothing written."""
+    bad = tmp_path / "bad.log"
+    bad.write_text(content)
+    out = tmp_path / "c"
+    line = cli_error(capsys, ["export-c", "--model", str(model_json), "--out", str(out),
+                              "--vectors", str(bad)])
+    assert message in line, line
+    assert not out.exists()
+
+
+def test_vectors_of_a_log_too_short_to_publish_build_and_pass(
+        tmp_path: Path, log: Path, model_json: Path) -> None:
+    """75 samples, no publication: the host test compiled a constant comparison with
+    the empty table (-Werror=type-limits); now it builds and replays bit for bit."""
+    from debian import need_tool
+
+    need_tool("make", ["make"])
+    short = tmp_path / "short.log"
+    short.write_text("".join(log.read_text().splitlines(keepends=True)[:150]))
+    out = tmp_path / "c"
+    assert main(["export-c", "--model", str(model_json), "--out", str(out), "--vectors",
+                 str(short)]) == 0
+    r = subprocess.run(["make", "-s", "-C", str(out), "test"], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "0 publications: bit-exact with the specification" in r.stdout

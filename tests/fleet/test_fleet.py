@@ -13,6 +13,7 @@ import csv
 import json
 import math
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -23,12 +24,14 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 pytest.importorskip("distributed")
 pytest.importorskip("sqlalchemy")
 pytest.importorskip("alembic")
 
+from fleet_records import pump_fleet  # noqa: E402
 from postgres import postgres_server  # noqa: E402
 
 from canrls.cli.fleet import rank_candidates  # noqa: E402
@@ -131,17 +134,19 @@ def test_wear_is_found_with_the_right_parameter_and_no_false_alerts(
 def test_sigma_alone_understates_the_scatter(fleet: dict[str, Any],
                                             monkeypatch: pytest.MonkeyPatch) -> None:
     """The between-recording scatter is what keeps healthy drives quiet: with each
-    recording's sigma alone (tau = 0) most healthy drives would alert."""
+    recording's sigma alone (tau = 0) and no size that matters, most healthy drives
+    would alert."""
     truth = fleet["truth"]
     healthy = [d for d, t in truth.items() if t["class"] == "healthy"]
-    monkeypatch.setattr(detect, "estimate_tau", lambda pairs: 0.0)
-    fa = assess(fleet["recordings"])
+    monkeypatch.setattr(detect, "estimate_tau", lambda pairs, quantile=0.5: 0.0)
+    monkeypatch.setattr(detect, "_own_tau", lambda pairs: 0.0)
+    fa = assess(fleet["recordings"], settings=detect.DetectionSettings(
+        min_times_usual=1e-9, min_change={k: 0.0 for k in detect.MIN_CHANGE}))
     false = [d for d in healthy if fa.drive(d).alerts]
     assert len(false) > 0.5 * len(healthy)
 
 
 def test_tau_is_the_scatter_of_normal_differences() -> None:
-    import numpy as np
 
     rng = np.random.default_rng(3)
     s = rng.uniform(0.005, 0.02, 2001)
@@ -164,6 +169,21 @@ def test_rerun_skips_everything_by_hash(fleet: dict[str, Any], tmp_path: Path) -
         s2 = ingest(_subset(fleet, ["d001"]), other, h)
         assert s2.stored == 10 and h.count() == before + 10
         assert len(h.models()) == 2
+
+
+def test_a_log_listed_twice_is_fitted_once_on_the_cluster(fleet: dict[str, Any],
+                                                          client: Any, tmp_path: Path) -> None:
+    """On Dask as in this process (tests/test_fault_fleet.py): the same log under a
+    second drive is not sent to be fitted, the first listed drive owns it."""
+    import dataclasses
+
+    srcs = _subset(fleet, ["d003"])[:3]
+    again = dataclasses.replace(srcs[0], drive="d003-again")
+    with History.open(tmp_path / "twice.db") as h:
+        s = ingest([*srcs, again], CONFIG, h, client=client)
+        assert (s.total, s.stored, s.already, len(s.duplicates)) == (4, 3, 0, 1)
+        assert (s.duplicates[0].drive, s.duplicates[0].owner) == ("d003-again", "d003")
+        assert {r.drive for r in h.recordings()} == {"d003"}
 
 
 def test_a_killed_worker_leaves_every_recording_once(fleet: dict[str, Any],
@@ -339,7 +359,7 @@ def test_a_newer_history_is_refused(tmp_path: Path, capsys: pytest.CaptureFixtur
     con.close()
     assert main(["fleet", "report", "--db", str(db), "--json"]) == 1
     err = capsys.readouterr().err
-    assert err.startswith("error: history sqlite:///") and "'9999' is newer" in err
+    assert err.startswith(f"error: history {db}: ") and "'9999' is newer" in err
     assert err.count("\n") == 1
 
 
@@ -355,9 +375,13 @@ def test_report_html_and_json(fleet: dict[str, Any], tmp_path: Path,
     assert alerted and all(truth[a]["class"] != "healthy" for a in alerted)
     assert d["drives"][0]["score"] >= d["drives"][-1]["score"]
     page = (out / "index.html").read_text()
-    assert page.count("<img src='drive-") == 2 and "spread-01.png" in page
+    assert page.count("<img src='drive-") == 2 and "spread-01.svg" in page
     assert alerted[0] in page and "τ" in page
-    assert (out / "drive-0001.png").stat().st_size > 1000
+    assert (out / "drive-0001.svg").read_bytes().startswith(b"<?xml")
+    # the healthy drives: one row each in a compact table, no section of their own
+    healthy = [x["drive"] for x in d["drives"] if not x["alerts"]]
+    assert healthy and f"<h2>Healthy drives ({len(healthy)}, no alert)</h2>" in page
+    assert page.count("<section") == 2 and all(f"id='{h}'" not in page for h in healthy)
 
 
 def test_report_escapes_the_history_strings(tmp_path: Path) -> None:
@@ -371,7 +395,52 @@ def test_report_escapes_the_history_strings(tmp_path: Path) -> None:
                       parameters=(ParameterValue("inertia.J", 1e-3 * (1 + (k > 4)), 1e-6),),
                       id=k) for k in range(10)]
     page = write_html(assess(recs), tmp_path / "r").read_text()
-    assert "<script>" not in page and "&lt;script&gt;alert(" in page
+    assert "<script>alert(" not in page and "&lt;script&gt;alert(" in page
+
+
+def test_report_shows_an_outlier_against_its_siblings(tmp_path: Path) -> None:
+    """Six drives of one type, one with twice the inertia: its section draws the
+    siblings' level, its table names the parameter and links the recordings; the
+    healthy drives are rows of one table."""
+    from canrls.fleet.report import _siblings, write_html
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    recs = pump_fleet(logs)
+    fleet = assess(recs)
+    out = fleet.drive("d5")
+    assert [a.kind for a in out.alerts] == ["outlier"]
+    assert sorted(_siblings(fleet, out, "inertia.J")) == sorted(
+        v for d, (_, v) in fleet.spread["m" * 64]["inertia.J"].items() if d != "d5")
+    page = write_html(fleet, tmp_path / "r").read_text()
+    assert page.count("<section") == 1 and "id='d5'" in page
+    assert "<h2>Healthy drives (5, no alert)</h2>" in page
+    assert "<th>inertia.J [kg·m²]</th>" in page
+    assert "<a href='../logs/d5%20%235.log'>" in page  # relative, quoted
+    figure = re.search(r"<img src='(drive-\d+\.svg)' alt='([^']+)'", page)
+    assert figure is not None and figure.group(2).startswith("Trends of d5: inertia.J")
+    assert b"siblings" in (tmp_path / "r" / figure.group(1)).read_bytes()
+
+
+def test_report_figures_draw_the_history_strings_as_text(tmp_path: Path) -> None:
+    """Issue 30, 4: a unit `$a^$` (a user term's) ended `fleet report` with exit 3
+    (matplotlib's mathtext parser): a drive, type, parameter and unit with `$` are now
+    drawn as the characters they hold (canrls.figtext.plain)."""
+    pytest.importorskip("matplotlib")
+    from canrls.fleet.records import ParameterValue, Recording
+    from canrls.fleet.report import write_html
+
+    recs = [Recording(drive=f"$d{d}^$", drive_type="$t^$", content_hash=f"{d}{k:063x}",
+                      model_key="m" * 64, model="user:drag", path=f"{d}-{k}.log",
+                      t_start=1.7e9 + 86400 * k, residual_rms=1e-3,
+                      parameters=(ParameterValue("user:drag.c", 1e-3 * (1 + (d == 0 and k > 4))
+                                                 * (1 + 0.01 * d), 1e-6, unit="$a^$"),),
+                      id=10 * d + k) for d in range(4) for k in range(10)]
+    fleet = assess(recs)
+    assert fleet.alerts  # a trend figure with the alert's message, a spread figure
+    out = tmp_path / "r"
+    write_html(fleet, out)
+    assert sorted(p.name for p in out.glob("*.svg"))
 
 
 def test_ingest_cli_in_process_with_a_pattern_and_errors(fleet: dict[str, Any], tmp_path: Path,
@@ -541,8 +610,6 @@ def test_history_settings_errors() -> None:
     ("sqlite:///k.db", "sqlite:///k.db", "k.db"),
     ("sqlite:////var/h/k.db", "sqlite:////var/h/k.db", "/var/h/k.db"),
     ("sqlite:///k.db?timeout=5", "sqlite:///k.db?timeout=5", "k.db"),
-    ("sqlite://", "sqlite://", None),
-    ("sqlite:///:memory:", "sqlite:///:memory:", None),
     ("postgresql://u:secret@db/plant", "postgresql+psycopg://u:secret@db/plant", None),
     ("postgres://u@db/plant", "postgresql+psycopg://u@db/plant", None),
 ])
@@ -562,6 +629,20 @@ def test_a_history_url_is_parsed_once_into_its_parts(text: str, url: str | None,
 def test_a_history_url_of_another_kind_is_refused(text: str) -> None:
     with pytest.raises(ConfigError, match="history: "):
         HistoryURL.parse(text)
+
+
+@pytest.mark.parametrize("text", ["sqlite://", "sqlite:///:memory:",
+                                  "sqlite:///file:x?mode=memory&uri=true"])
+def test_the_parse_refuses_an_in_memory_history(text: str) -> None:
+    with pytest.raises(ConfigError, match=r"an in-memory database keeps nothing"):
+        HistoryURL.parse(text)
+
+
+def test_messages_name_the_history_as_given_without_its_secrets() -> None:
+    where = HistoryURL.parse("postgresql://alice:s3cret@db/plant?sslpassword=x2")
+    assert where.url == "postgresql+psycopg://alice:s3cret@db/plant?sslpassword=x2"
+    assert where.shown == "postgresql://alice:***@db/plant?sslpassword=***"
+    assert HistoryURL.parse("k.db").shown == "k.db"  # as typed, not made absolute
 
 
 def test_every_reader_of_a_history_url_asks_the_one_parser(

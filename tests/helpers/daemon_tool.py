@@ -30,7 +30,7 @@ from canrls.live.daemon import Daemon
 from canrls.live.settings import DaemonSettings
 
 __all__ = ["DaemonProcess", "DaemonTool", "collect", "daemon_fed", "daemon_process", "datagrams",
-           "notify_socket", "remote_sim_server"]
+           "notify_socket", "reloaded_daemon", "remote_sim_server"]
 
 #: RlsCommandAck
 ACK_ID = 0x321
@@ -49,12 +49,14 @@ _channels = itertools.count()
 
 @contextlib.contextmanager
 def daemon_fed(protocol: Protocol, model: Model, settings: EstimatorSettings,
-               messages: Sequence[can.Message], name: str, *, publications: int = 6
+               messages: Sequence[can.Message], name: str, *, publications: int = 6,
+               daemon: DaemonSettings | None = None, **options: Any
                ) -> Iterator[tuple[Daemon, can.BufferedReader]]:
     """A daemon on a virtual bus, fed ``messages`` with their own timestamps (as a drive
     on a real bus would send them); yields it once it has taken every frame and published
     ``publications`` more times, with a reader holding every frame it sent (``0x3xx``).
-    The daemon and the buses are stopped on leaving."""
+    ``daemon`` replaces the settings, ``options`` go to the daemon. The daemon and the
+    buses are stopped on leaving."""
     ch = f"{name}-{os.getpid()}-{next(_channels)}"
     sender = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
                      ignore_config=True)
@@ -63,8 +65,8 @@ def daemon_fed(protocol: Protocol, model: Model, settings: EstimatorSettings,
     reader = can.BufferedReader()
     notifier = can.Notifier(tool, [reader], timeout=0.05)
     d = Daemon(protocol, model, settings,
-               DaemonSettings(publish_interval=0.05, info_interval=0.2),
-               bus={"interface": "virtual", "channel": ch}, backpressure=True)
+               daemon or DaemonSettings(publish_interval=0.05, info_interval=0.2),
+               bus={"interface": "virtual", "channel": ch}, backpressure=True, **options)
     try:
         d.start()
         for m in messages:
@@ -228,3 +230,19 @@ def daemon_process(args: Sequence[str], directory: Path, *, name: str = "notify"
             proc.kill()
         proc.communicate()
         sock.close()
+
+
+def reloaded_daemon(directory: Path, conf: Path, texts: Sequence[str]
+                    ) -> tuple[int, str, str]:
+    """``canrls run -C conf --json`` (:func:`daemon_process`): once it is ready, each of
+    ``texts`` written to ``conf`` and a SIGHUP sent (the next waits for READY=1 again),
+    then SIGTERM; returns (exit status, stdout, stderr)."""
+    with daemon_process(["--log-level", "INFO", "run", "-C", str(conf), "--json"],
+                        directory) as d:
+        d.wait_ready()
+        for text in texts:
+            conf.write_text(text)
+            d.send(signal.SIGHUP)
+            assert "READY=1" in d.notifications("READY=1", 30)[-1]
+        out, err = d.stop()
+    return d.proc.returncode, out, err

@@ -1,21 +1,33 @@
 """Drives in users' DBCs, shared by the tests: a Motorola DBC with 32-bit signals (the
 processor's scaling tests and the firmware's) and a CiA 402 drive's log written through
-cantools (the torque-drive tests and the firmware's)."""
+cantools (tools/cia402_log.py: the torque-drive tests, the firmware's and the README's)."""
 
 from __future__ import annotations
 
-import math
+import importlib.util
 from pathlib import Path
+from typing import Any
 
-import can
-import cantools
-import numpy as np
 
-from canrls.sim.scenario import SimResult
+def _cia402_tool() -> Any:
+    """tools/cia402_log.py, the simulated CiA 402 drive's log writer (the README's too)."""
+    path = Path(__file__).resolve().parents[2] / "tools" / "cia402_log.py"
+    spec = importlib.util.spec_from_file_location("cia402_log", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
-CIA402_DBC = Path(__file__).resolve().parents[1] / "data" / "cia402_drive.dbc"
+
+_CIA402 = _cia402_tool()
+#: the CiA 402 drive's DBC (tests/data/cia402_drive.dbc)
+CIA402_DBC: Path = _CIA402.DBC
 #: the CiA 402 drive's ratings: rated torque 0x6076 [N·m], rated current 0x6075 [A], encoder
-RATED_TORQUE, RATED_CURRENT, INCREMENTS = 0.32, 3.2, 131072
+RATED_TORQUE, RATED_CURRENT, INCREMENTS = (_CIA402.RATED_TORQUE, _CIA402.RATED_CURRENT,
+                                           _CIA402.INCREMENTS)
+#: the measured run of a :class:`~canrls.sim.scenario.SimResult` as the CiA 402 drive
+#: sends it: ``cia402_log(res, path)``
+cia402_log = _CIA402.write_log
 
 HEADER = 'VERSION ""\n\nNS_ :\n\nBS_:\n\n'
 SIGNALS = ["current=Feedback.Current", "speed=Feedback.Speed", "position=Angle.Angle"]
@@ -40,26 +52,3 @@ BO_ 2566914305 Feedback: 8 Drive
 BO_ 2566914306 Angle: 4 Drive
  SG_ Angle : 7|32@0+ (0.01,0) {lim[2]} "deg" Vector__XXX
 '''
-
-
-def cia402_log(res: SimResult, path: Path) -> None:
-    """The measured run as the CiA 402 drive sends it: TPDO1 and TPDO2 on every SYNC,
-    encoded by cantools, written by python-can's candump writer."""
-    db = cantools.database.load_file(str(CIA402_DBC))
-    tpdo1, tpdo2 = db.get_message_by_name("TPDO1"), db.get_message_by_name("TPDO2")
-    m = res.measured
-    assert m.current is not None
-    torque = res.truth.kt * m.current  # what the drive computes from its current
-    turns = INCREMENTS / (2 * math.pi)
-    position = np.unwrap(m.position)  # the position actual value is multi-turn
-    with can.CanutilsLogWriter(str(path)) as w:
-        for k in range(len(m)):
-            d1 = tpdo1.encode({"Statusword": 0x0237,  # operation enabled
-                               "TorqueActual": round(1000 * torque[k] / RATED_TORQUE),
-                               "CurrentActual": round(1000 * m.current[k] / RATED_CURRENT)})
-            d2 = tpdo2.encode({"PositionActual": round(position[k] * turns),
-                               "VelocityActual": round(m.speed[k] * turns)})
-            for dt, fid, data in ((0.0, 0x181, d1), (1e-4, 0x281, d2)):
-                w.on_message_received(can.Message(timestamp=float(m.t[k]) + dt,
-                                                  arbitration_id=fid, is_extended_id=False,
-                                                  data=data))

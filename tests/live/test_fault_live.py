@@ -11,7 +11,6 @@ import dataclasses
 import json
 import os
 import resource
-import signal
 import subprocess
 import sys
 import textwrap
@@ -20,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from daemon_tool import daemon_fed, daemon_process, remote_sim_server
+from daemon_tool import daemon_fed, daemon_process, reloaded_daemon, remote_sim_server
 
 from canrls.can.estimator_frames import FrameDecoder
 from canrls.can.frameblock import FrameBlock
@@ -389,22 +388,45 @@ def test_sighup_with_an_invalid_daemon_table_says_so_and_keeps_the_settings(
             '[can]\ninterface = "virtual"\nchannel = "reload-daemon"\n'
             '[daemon]\npublish_interval = 0.05\n')
     conf.write_text(good)
-    with daemon_process(["--log-level", "INFO", "run", "-C", str(conf), "--json"],
-                        tmp_path) as d:
-        d.wait_ready()
-        conf.write_text(good.replace("0.05", '"fast"'))
-        d.send(signal.SIGHUP)
-        assert "READY=1" in d.notifications("READY=1", 30)[-1]
-        conf.write_text(good.replace("0.05", "0.2"))
-        d.send(signal.SIGHUP)
-        assert "READY=1" in d.notifications("READY=1", 30)[-1]
-        out, err = d.stop()
-    assert d.proc.returncode == 0, err
+    rc, out, err = reloaded_daemon(tmp_path, conf, [good.replace("0.05", '"fast"'),
+                                                    good.replace("0.05", "0.2")])
+    assert rc == 0, err
     refused = [line for line in err.splitlines() if "reload failed" in line]
     assert len(refused) == 1, err
     assert "daemon.publish_interval = 'fast'" in refused[0]
-    assert "keeps its settings" in refused[0]
+    assert "keeps its configuration" in refused[0]
     assert "reload: [daemon] publish_interval changed: applied at the next start" in err
+    assert json.loads(out)["daemon"]["reloads"] == 2
+
+
+def test_sighup_with_another_dbc_refuses_what_a_start_refuses_and_says_what_waits(
+        tmp_path: Path) -> None:
+    """Issue 30, 10: SIGHUP after the configuration named another DBC and mapping logged
+    only the model, kept decoding the old IDs without a word, and accepted a DBC that
+    does not exist (a fresh start refuses it). Now a file a start would refuse is
+    refused, the running configuration kept; a valid new DBC and mapping are said to
+    apply at the next start."""
+    conf = tmp_path / "canrls.toml"
+    base = ('[model]\neffects = ["inertia", "viscous", "coulomb"]\nkt = 0.1\n'
+            '[can]\ninterface = "virtual"\nchannel = "reload-dbc"\n{dbc}'
+            '[daemon]\npublish_interval = 0.05\n{signals}')
+    conf.write_text(base.format(dbc="", signals=""))
+    text = (Path(__file__).resolve().parents[2] / "dbc" / "canrls.dbc").read_text()
+    other = tmp_path / "other.dbc"
+    other.write_text(text.replace("BO_ 257 DriveCurrent", "BO_ 300 MotorCurrent")
+                     .replace("BO_ 258 DriveSpeed", "BO_ 301 MotorSpeed")
+                     .replace(" 257 ", " 300 ").replace(" 258 ", " 301 "))
+    other_map = ('[signals]\ncurrent = "MotorCurrent.Current"\n'
+                 'speed = "MotorSpeed.Speed"\n')
+    rc, out, err = reloaded_daemon(tmp_path, conf, [
+        base.format(dbc=f'dbc = "{tmp_path / "missing.dbc"}"\n', signals=""),
+        base.format(dbc=f'dbc = "{other}"\n', signals=other_map)])
+    assert rc == 0, err
+    refused = [line for line in err.splitlines() if "reload failed" in line]
+    assert len(refused) == 1, err
+    assert "missing.dbc" in refused[0] and "keeps its configuration" in refused[0]
+    assert ("reload: can.dbc, signals changed: applied at the next start, not now"
+            in err), err
     assert json.loads(out)["daemon"]["reloads"] == 2
 
 

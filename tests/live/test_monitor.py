@@ -10,6 +10,7 @@ from pathlib import Path
 
 import can
 import pytest
+from cli_tool import cli_error
 
 from canrls.can.estimator_frames import (
     CommandCode,
@@ -152,6 +153,21 @@ def test_cli_once_times_out_without_a_daemon(capsys: pytest.CaptureFixture[str])
     ch = f"test-monitor-empty-{os.getpid()}"
     assert main(["monitor", "-i", "virtual", "-c", ch, "--once", "--timeout", "0.3"]) == 1
     assert "no complete publication" in capsys.readouterr().err
+
+
+def test_cli_on_a_bus_of_its_own_says_so(capsys: pytest.CaptureFixture[str]) -> None:
+    """``-i canrls-sim`` (or ``virtual``) is a bus inside the monitor's process: a daemon
+    in another process is never on it, and the error says so and what works instead."""
+    line = cli_error(capsys, ["monitor", "-i", "canrls-sim", "-c", "standard", "--once",
+                              "--timeout", "0.3"])
+    assert line.startswith("error: no complete publication from a canrls daemon within "
+                           "0.3 s on canrls-sim:standard: each process gets its own "
+                           "canrls-sim bus, so a daemon in another process is not on it; ")
+    assert "-i remote -c ws://127.0.0.1:54701/" in line and "canrls demo" in line
+    line = cli_error(capsys, ["monitor", "-i", "virtual", "-c", "nobody", "--command",
+                              "freeze", "--timeout", "0.3"])
+    assert line.startswith("error: no acknowledgement of 'freeze' within 0.3 s: each "
+                           "process gets its own virtual bus")
 
 
 def test_cli_on_a_terminal_redraws_in_place(running_daemon: tuple[Daemon, str],

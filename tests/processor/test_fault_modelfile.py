@@ -155,6 +155,18 @@ def test_validate_refuses_parameters_that_are_not_finite(files: dict[str, Path],
     _one_error(code, err)
 
 
+@pytest.mark.parametrize("value", [2.6011485745922417e150, -1e300])
+def test_validate_refuses_parameters_whose_prediction_overflows(files: dict[str, Path],
+                                                                value: float) -> None:
+    """A finite parameter so large that the residual's energy overflows a double: before,
+    the verdict's residual RMS ended in numpy's overflow warning, exit 3 (found by the
+    fuzz test below)."""
+    doc = _mutated(files, _set("parameters/inertia.J/value", value))
+    code, err = _validate(files, doc)
+    assert code == 1 and "too large for a double" in err, err
+    _one_error(code, err)
+
+
 def test_validate_on_a_log_without_a_usable_sample_is_an_error(files: dict[str, Path]) -> None:
     """A log whose every sample falls in the filter's warm-up (60 frames): before, exit
     0 with "fit nan %, 0 samples" and numpy's "Mean of empty slice" warning."""

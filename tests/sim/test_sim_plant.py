@@ -244,7 +244,7 @@ def plant_digest(run: Callable[..., Any]) -> str:
             noise = rng.standard_normal((n, 3)) * np.array([0.005, 0.02, 0.001])
             out = np.empty((n, 9))
             run(plant.dt, plant.nsub, plant.h_stiff, plant._state, plant._p, plant._ck,
-                plant._cs, plant._cc, plant._gains, plant._quant,
+                plant._cs, plant._cc, plant._gains, plant._quant, *plant._ff,
                 np.ascontiguousarray(w[s]), np.ascontiguousarray(a[s]), noise, out)
             h.update(out.tobytes())
         h.update(plant._state.tobytes())
@@ -261,13 +261,14 @@ def test_the_c_loop_gives_the_numba_loops_bits() -> None:
 def test_the_loop_refuses_wrong_arrays() -> None:
     plant = Plant(Truth({"inertia.J": 1e-4}))
     args = [plant.dt, plant.nsub, plant.h_stiff, plant._state, plant._p, plant._ck, plant._cs,
-            plant._cc, plant._gains, plant._quant, np.zeros(4), np.zeros(4), np.zeros((4, 3)),
-            np.empty((4, 9))]
+            plant._cc, plant._gains, plant._quant, *plant._ff, np.zeros(4), np.zeros(4),
+            np.zeros((4, 3)), np.empty((4, 9))]
     _sim.plant_run(*args)
-    for k, bad, err, msg in ((13, np.empty((3, 9)), ValueError, "out must have shape"),
-                             (12, np.zeros((4, 2)), ValueError, "noise must have shape"),
+    for k, bad, err, msg in ((15, np.empty((3, 9)), ValueError, "out must have shape"),
+                             (14, np.zeros((4, 2)), ValueError, "noise must have shape"),
                              (4, np.zeros(14), ValueError, "p must have shape"),
-                             (10, np.zeros(4, np.float32), TypeError, "w_ref must be a float64"),
+                             (10, np.zeros(7), ValueError, "ffv must have shape"),
+                             (12, np.zeros(4, np.float32), TypeError, "w_ref must be a float64"),
                              (1, 0, ValueError, "nsub")):
         with pytest.raises(err, match=msg):
             _sim.plant_run(*args[:k], bad, *args[k + 1:])

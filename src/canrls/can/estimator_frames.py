@@ -45,6 +45,7 @@ class CommandCode(IntEnum):
     ADD_EFFECT = 4
     REMOVE_EFFECT = 5
     SET_LAMBDA = 6
+    SAVE_MODEL = 7
 
 
 class CommandResult(IntEnum):
@@ -131,7 +132,8 @@ def parse_effect(name: str) -> tuple[EffectId, int]:
     The grammar of :func:`canrls.core.effect_names.parse_effect_name`, with the user term given
     by its 1-based index (as the ``Order`` field carries it). Raises
     :class:`CommandFrameError` (result UNKNOWN_EFFECT / BAD_VALUE) for an unknown name or
-    a missing / malformed order, or an order beyond the 16-bit ``Order`` field.
+    a missing / malformed order, or an order beyond the 16-bit ``Order`` field
+    (:data:`~canrls.core.effect_names.MAX_ORDER`).
     """
     try:
         parsed = parse_effect_name(name, user="index")
@@ -139,9 +141,6 @@ def parse_effect(name: str) -> tuple[EffectId, int]:
         unknown = EffectId.from_name(str(name).partition(":")[0]) is EffectId.NONE
         raise CommandFrameError(str(e), CommandResult.UNKNOWN_EFFECT if unknown
                                 else CommandResult.BAD_VALUE) from e
-    if parsed.order > 0xFFFF:
-        raise CommandFrameError(f"effect {name!r}: order {parsed.order} does not fit the "
-                                f"16-bit Order field (1..65535)", CommandResult.BAD_VALUE)
     return parsed.effect, parsed.order
 
 
@@ -318,6 +317,14 @@ class FrameIds:
     command: int
     ack: int
     feedback: tuple[int, ...]
+
+    @property
+    def own(self) -> dict[int, str]:
+        """Every frame of canrls' own, ID -> DBC message name: the published frames, the
+        command and its acknowledgement (standard IDs)."""
+        ids = (self.estimate, self.sigma, self.reference, self.param_info, self.status,
+               self.health, self.counters, self.rejects, self.command, self.ack)
+        return dict(zip(ids, (*_PUBLISHED, "RlsCommand", "RlsCommandAck"), strict=True))
 
     @property
     def published(self) -> frozenset[int]:

@@ -49,7 +49,7 @@ from canrls.core.errors import ConfigError, LogFormatError
 from canrls.core.files import MAX_LINE, LineBound, atomic_writer, check_path, open_regular
 
 __all__ = ["LogReadStats", "read_frames", "write_candump", "write_log", "check_channel",
-           "CAN_ERR_FLAG", "MAX_CHANNEL"]
+           "empty_log_error", "CAN_ERR_FLAG", "MAX_CHANNEL"]
 
 #: Linux SocketCAN error-frame flag in the 32-bit CAN ID (candump writes it in the ID).
 CAN_ERR_FLAG = candump.CAN_ERR_FLAG
@@ -75,6 +75,13 @@ class LogReadStats:
     slow_lines: int = 0
     bytes_read: int = 0
     total_bytes: int = 0
+
+
+def empty_log_error(path: str | os.PathLike[str], bad_lines: int = 0) -> LogFormatError:
+    """The error of a log without a CAN frame (``canrls fit`` and ``export-c --vectors``
+    alike), with the unparsable lines skipped, if any."""
+    return LogFormatError(f"{path}: no CAN frames in the log"
+                          + (f" ({bad_lines} unparsable lines skipped)" if bad_lines else ""))
 
 
 def read_frames(

@@ -61,12 +61,7 @@ def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
     p = Path(path)
     where = what or f"DBC file {p}"
     raw = read_bytes(p, where, limit=MAX_DBC_BYTES)
-    try:
-        text = raw.decode("cp1252")  # cantools' encoding of DBC files
-    except UnicodeDecodeError as e:
-        line = raw.count(b"\n", 0, e.start) + 1
-        raise ConfigError(f"cannot parse {where}: byte 0x{raw[e.start]:02x} at line "
-                          f"{line} is not cp1252 text") from e
+    text = _dbc_text(raw, where)
     from cantools.database.can.formats.dbc.dbc_loader import DbcParser
 
     try:
@@ -82,6 +77,23 @@ def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
         for sig in m.signals:
             _check_numbers(sig, f"{where}: message {m.name}: signal {sig.name}")
     return db, raw
+
+
+def _dbc_text(raw: bytes, where: str) -> str:
+    """The text of a DBC file's bytes: UTF-8 when they are UTF-8 (a byte-order mark
+    dropped), else Windows-1252, cantools' encoding and most DBC editors'. A cp1252 '‰'
+    (0x89) or 'µ' (0xb5) is never valid UTF-8; a UTF-8 '‰' read as cp1252 would be 'â€°'.
+    """
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        pass
+    try:
+        return raw.decode("cp1252")
+    except UnicodeDecodeError as e:
+        line = raw.count(b"\n", 0, e.start) + 1
+        raise ConfigError(f"cannot parse {where}: byte 0x{raw[e.start]:02x} at line "
+                          f"{line} is neither UTF-8 nor cp1252 text") from e
 
 
 def _check_layout(tokens: Any, where: str) -> None:
@@ -156,6 +168,8 @@ class Protocol:
     """
 
     period_source: str | None = None
+    #: SHA-256 of the DBC file as it was read ("" when not read from a file)
+    dbc_digest: str = ""
 
     def __init__(self, db: Any, dbc_path: Path, is_default_dbc: bool, mapping: SignalMapping,
                  roles: dict[str, RoleInfo], messages: tuple[MessageCodec, ...], *,
@@ -203,7 +217,8 @@ class Protocol:
         """
         path = DEFAULT_DBC if dbc is None else Path(dbc)
         db, raw = load_dbc(path)
-        is_default = hashlib.sha256(raw).hexdigest() == _default_hash()
+        digest = hashlib.sha256(raw).hexdigest()
+        is_default = digest == _default_hash()
         if mapping is None:
             mp = SignalMapping.default()
         elif isinstance(mapping, SignalMapping):
@@ -220,12 +235,29 @@ class Protocol:
         roles, messages = _resolve(db, path, is_default, mp, period, axis)
         proto = Protocol(db, path, is_default, mp, roles, messages, strict_range=strict_range,
                          check_crc=check_crc, check_counter=check_counter)
+        proto.dbc_digest = digest
         if period is not None:
             proto.period_source = period_source
         elif proto.period is not None:
             proto.period_source = f"the GenMsgCycleTime of DBC {path.name}"
             positive_period(proto.period, proto.period_source)
         return proto
+
+    def changes(self, other: Protocol) -> list[str]:
+        """The configuration keys in which ``other`` decodes differently from this
+        protocol (``can.dbc``: another file, or the file changed; ``signals``: the
+        mapping; the strict checks; the period): empty when the two decode alike."""
+        out = []
+        if (self.dbc_path.resolve() != other.dbc_path.resolve()
+                or self.dbc_digest != other.dbc_digest):
+            out.append("can.dbc")
+        if self.mapping != other.mapping:
+            out.append("signals")
+        out += [f"can.{k}" for k in ("strict_range", "check_crc", "check_counter")
+                if getattr(self, k) != getattr(other, k)]
+        if self.period != other.period:
+            out.append("can.period")
+        return out
 
     def has(self, role: str) -> bool:
         """True when ``role`` is mapped."""
@@ -305,6 +337,10 @@ def _resolve(db: Any, path: Path, is_default: bool, mp: SignalMapping,
             raise SignalError(f"{where}: {spec} is multiplexed; canrls maps plain signals only")
         if msg.is_container:
             raise SignalError(f"{where}: message {spec.message} is a container message")
+        if sig.minimum is not None and sig.maximum is not None and sig.minimum > sig.maximum:
+            raise SignalError(f"{where}: {spec.message}.{spec.signal} (mapped to {role}): "
+                              f"minimum {sig.minimum:g} > maximum {sig.maximum:g}: every value "
+                              f"would be out of range (swap them in the DBC)")
         codec = SignalCodec(sig, msg.name)
         unit = spec.unit if spec.unit is not None else (sig.unit or "")
         factor = si_factor(role, unit, message=msg.name, signal=sig.name, scale=spec.scale,

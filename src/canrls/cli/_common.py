@@ -15,8 +15,8 @@ from canrls.core.checks import LAMBDA_MIN
 if TYPE_CHECKING:  # numpy and cantools load with the configuration: not for --help
     from canrls.processor.config import AppConfig, Overrides
 
-__all__ = ["add_model_options", "add_bus_options", "add_progress_option", "config_path",
-           "overrides", "setup", "print_json", "Progress"]
+__all__ = ["add_max_order_option", "add_model_options", "add_bus_options",
+           "add_progress_option", "config_path", "overrides", "setup", "print_json", "Progress"]
 
 
 class _Typed(float):
@@ -34,6 +34,29 @@ class _Typed(float):
 
     def __format__(self, spec: str) -> str:
         return self.text if not spec else super().__format__(spec)
+
+
+def _max_order(text: str) -> int:
+    """argparse type: a cogging order the diagnosis searches up to (1..MAX_ORDER_LIMIT)."""
+    from canrls.diagnosis.candidates import MAX_ORDER_LIMIT
+
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r} is not an integer") from None
+    if not 1 <= k <= MAX_ORDER_LIMIT:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r} must be in 1..{MAX_ORDER_LIMIT}")
+    return k
+
+
+def add_max_order_option(g: Any, what: str) -> None:
+    """``--max-order K``: the highest cogging order ``what`` searches (checked here, as
+    the diagnosis checks it, before anything runs)."""
+    from canrls.diagnosis.candidates import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT
+
+    g.add_argument("--max-order", type=_max_order, default=DEFAULT_MAX_ORDER, metavar="K",
+                   help=f"highest cogging order {what} (default {DEFAULT_MAX_ORDER}, at "
+                        f"most {MAX_ORDER_LIMIT})")
 
 
 def number(text: str) -> float:
@@ -87,7 +110,10 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                         "below 1 the estimate tracks changes, memory 1/(1-L) samples)")
     g.add_argument("--alpha", type=number, metavar="A",
                    help="ridge weight: the prior weighs like A samples of each column, "
-                        "P0 = diag(1/(A e_j)) with e_j its mean square; 1e-9 to 1e9 "
+                        "P0 = diag(1/(A e_j)) with e_j its mean square; 1e-9 to 1e9, "
+                        "and at least what the fixed-point words hold: P0 needs a Q "
+                        "format (32-bit words: about 1e-5 for a few parameters, 1e-3 for "
+                        "30 below lambda 1; the error names the smallest for the model) "
                         "(default 0.01)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
@@ -104,7 +130,7 @@ def add_log_arguments(p: argparse.ArgumentParser, several: str) -> None:
 def add_report_option(p: Any) -> None:
     """``--report DIR`` on a parser or an argument group: the HTML page with figures."""
     p.add_argument("--report", metavar="DIR",
-                   help="write DIR/index.html with PNG figures (needs matplotlib: "
+                   help="write DIR/index.html with SVG figures (needs matplotlib: "
                         "pip install 'canrls[report]')")
 
 

@@ -16,6 +16,7 @@ from typing import Any
 from canrls.cli._common import (
     Progress,
     add_log_arguments,
+    add_max_order_option,
     add_model_options,
     add_progress_option,
     add_report_option,
@@ -26,21 +27,7 @@ from canrls.cli._common import (
 __all__ = ["add_subparser", "run"]
 
 
-def _order(text: str) -> int:
-    from canrls.diagnosis.candidates import MAX_ORDER_LIMIT
-
-    try:
-        k = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if not 1 <= k <= MAX_ORDER_LIMIT:
-        raise argparse.ArgumentTypeError(f"{text!r} must be in 1..{MAX_ORDER_LIMIT}")
-    return k
-
-
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
-    from canrls.diagnosis.candidates import DEFAULT_MAX_ORDER, MAX_ORDER_LIMIT
-
     p = subparsers.add_parser(
         "diagnose", help="compare the model with a log: where it fails, which effect is missing",
         description="Replay a CAN log as 'canrls fit' does, compare the model with the "
@@ -62,11 +49,24 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     g.add_argument("--save-model", metavar="FILE",
                    help="write the model (after --add, if any) with its parameters as JSON "
                         "for 'canrls validate' (as 'canrls fit --save-model')")
-    g.add_argument("--max-order", type=_order, default=DEFAULT_MAX_ORDER, metavar="K",
-                   help=f"highest cogging order searched (default {DEFAULT_MAX_ORDER}, at most "
-                        f"{MAX_ORDER_LIMIT})")
+    add_max_order_option(g, "searched")
     p.set_defaults(func=run)
     return p
+
+
+def _compensation(analysis: Any, found: Any) -> tuple[str, dict[str, Any]] | None:
+    """What compensating the model's position terms would leave of their ripple; for
+    position effects found but not added (``found``: their candidates), their ripple."""
+    from canrls.control.tune import compensation, found_ripple
+
+    if found:
+        line = found_ripple(analysis.model, {c.effect: {k: v for k, (v, _) in
+                                                        c.parameters.items()}
+                                             for c in found})
+        if line is not None:
+            return line
+    return compensation(analysis.model, {p.name: p.to_dict()
+                                         for p in analysis.estimates.parameters})
 
 
 def run(args: argparse.Namespace) -> int:
@@ -89,12 +89,14 @@ def run(args: argparse.Namespace) -> int:
                                          rep.period and rep.period.value, settings)
     if few:
         raise EstimatorError(f"{', '.join(args.log)}: {few}")
+    final = rep.after if rep.after is not None else rep.before
+    rep.compensation = _compensation(final, () if rep.after is not None else
+                                     [c for c in rep.candidates if c.suggested])
     page = rep.write_html(args.report) if args.report else None
     saved = None
     if args.save_model:
         from canrls.processor.modelfile import SavedModel
 
-        final = rep.after if rep.after is not None else rep.before
         saved = SavedModel.from_parts(final.model, final.estimates, None, cfg,
                                       list(args.log)).save(args.save_model)
     if args.json:
@@ -115,8 +117,10 @@ def run(args: argparse.Namespace) -> int:
             u = "m/s" if m.axis == "linear" else "rad/s"
             ms = settings.min_speed if settings.min_speed is not None else 5 * m.coulomb_band
             head.append(f"axis {m.axis}; values used: Coulomb band {m.coulomb_band:.4g} {u} "
-                        f"(minimum speed {ms:.4g} {u} with sign-dependent friction), "
-                        f"Stribeck speed {m.stribeck_speed:.4g} {u}"
+                        f"(minimum speed {ms:.4g} {u} with sign-dependent friction)"
+                        # a candidate's Stribeck speed is searched: the model's only if used
+                        + (f", Stribeck speed {m.stribeck_speed:.4g} {u}"
+                           if "stribeck" in m.effect_names else "")
                         + (f", pitch {m.pitch:.4g} m" if m.axis == "linear" else ""))
         sys.stdout.write("".join(h + "\n" for h in head) + rep.format() + "\n")
         if page is not None:

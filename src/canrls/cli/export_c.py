@@ -46,6 +46,13 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "test that replays them (make -C DIR test)")
     p.add_argument("--every", type=int, default=1000, metavar="N",
                    help="samples between the state records of the vectors (default 1000)")
+    p.add_argument("--feedforward", type=int, default=None, metavar="N",
+                   help="also the anticogging map of a saved model as a C function in fixed "
+                        "point, N points per revolution (canrls_feedforward.h/.c; "
+                        "docs/tune.md)")
+    p.add_argument("--feedforward-form", choices=("table", "harmonics"), default="table",
+                   help="the map as a table of N points (default) or as its harmonics "
+                        "(N: the points the float map is checked on)")
     p.add_argument("--kernel-only", action="store_true",
                    help="only the kernel, the configuration and the frame codecs (what a "
                         "model the whole estimator cannot run, with user terms, gets anyway, "
@@ -64,6 +71,8 @@ def run(args: argparse.Namespace) -> int:
     if args.kernel_only and args.vectors:
         raise ConfigError("--vectors: the test vectors need the whole estimator "
                           "(not --kernel-only)")
+    ff_texts = (_feedforward(args.model, args.feedforward, args.feedforward_form)
+                if args.feedforward is not None else None)
     # the model, its calibration and its control period: one loader, one decision
     src = load(args.model, args.dt)
     tm = texts = None
@@ -91,4 +100,56 @@ def run(args: argparse.Namespace) -> int:
         from canrls.firmware.target_export import export_target
 
         print(export_target(src, args.out, tm, what=f"--out {args.out}", texts=texts))
+    if ff_texts is not None:
+        from canrls.core.files import write_texts
+
+        texts_ff, line = ff_texts
+        write_texts(args.out, texts_ff, f"--out {args.out}")
+        print(line)
     return 0
+
+
+def _feedforward(path: str, points: int, form: str) -> tuple[list[tuple[str, str]], str]:
+    """The anticogging map's C (before anything is written) and the line that says it."""
+    from canrls.control.feedforward import check_points, feedforward
+    from canrls.control.fixed_map import (
+        fixed_friction,
+        fixed_harmonics,
+        fixed_map,
+        friction_c,
+        harmonics_c,
+        map_c,
+    )
+    from canrls.core.errors import ConfigError
+    from canrls.processor.modelfile import SavedModel
+
+    check_points(points, "--feedforward")
+    if not path.endswith(".json"):
+        raise ConfigError(f"--feedforward: needs a saved model (.json), not {path}")
+    saved = SavedModel.load(path)
+    ff = feedforward(saved.build_model(), saved.parameters, source=path)
+    if not ff.has_map:
+        raise ConfigError(f"--feedforward: no anticogging map: {ff.no_map_reason()}")
+    if form == "harmonics":
+        fh = fixed_harmonics([(h.order, h.cos if h.order == 0 else h.amplitude, h.phase)
+                              for h in ff.harmonics()], ff.unit)
+        head, src = harmonics_c(fh, path)
+        what = (f"the anticogging map as {len(fh.orders)} harmonics in Q{fh.frac} "
+                f"{ff.unit} (orders {', '.join(map(str, fh.orders)) or 'none'})")
+    else:
+        fm = fixed_map(ff.position_map(points)[1], ff.unit)
+        head, src = map_c(fm, path)
+        what = (f"the anticogging map, {points} points in Q{fm.frac} {ff.unit}, table "
+                f"{fm.flash} bytes of flash")
+    sp = ff.to_dict()["speed"]
+    par = sp["parameters"]
+    if any(k in par for k in ("viscous.B", "coulomb.Tc", "stribeck.Ts")):
+        fr = fixed_friction(par.get("viscous.B", 0.0), par.get("coulomb.Tc", 0.0),
+                            par.get("stribeck.Ts", 0.0), sp["coulomb_band"],
+                            sp["stribeck_speed"], ff.unit)
+        fh_, fc_ = friction_c(fr)
+        head = head.replace("\n#endif\n", fh_ + "\n#endif\n")
+        src += fc_
+        what += f"; the friction at the speed reference in Q{fr.frac}"
+    return ([("canrls_feedforward.h", head), ("canrls_feedforward.c", src)],
+            f"canrls_feedforward.c: {what}")

@@ -54,6 +54,13 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
+    searched = ()
+    if "stribeck" in model.effect_names and "stribeck_speed" not in model.options_given:
+        # the Stribeck speed searched on the record, as the diagnosis searches it
+        from canrls.diagnosis.search import search_model
+
+        model, searched = search_model(args.log, protocol, model, settings,
+                                       skip_bad_lines=args.skip_bad_lines)
     res = fit_logs(args.log, protocol, model, settings,
                    progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
@@ -66,13 +73,17 @@ def run(args: argparse.Namespace) -> int:
         from canrls.processor.modelfile import SavedModel
 
         saved = SavedModel.from_fit(res, cfg, list(args.log)).save(args.save_model)
+    found = [f"{r.text()}: searched on the record; set [model.stribeck] speed = "
+             f"{r.value:.4g} for 'canrls run', which cannot search" for r in searched]
     if args.json:
         d = res.to_dict()
+        d["search"] = [r.to_dict() for r in searched]
         if saved is not None:
             d["saved_model"] = str(saved)
         print_json(d)
     else:
         sys.stdout.write(res.format() + "\n")
+        sys.stdout.write("".join(line + "\n" for line in found))
         if res.fixed is not None:
             sys.stdout.write(res.fixed.format() + "\n")
         if saved is not None:

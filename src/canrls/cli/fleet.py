@@ -24,10 +24,12 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from canrls.cli._common import (
     Progress,
+    add_max_order_option,
     add_model_options,
     add_progress_option,
     config_path,
@@ -36,7 +38,7 @@ from canrls.cli._common import (
 )
 from canrls.core.errors import ConfigError
 
-__all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates"]
+__all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates", "text_summary"]
 
 DEFAULT_DB = "fleet.db"
 #: candidates kept per ranked recording
@@ -54,6 +56,8 @@ def _nonnegative(text: str) -> int:
 
 
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
+    from canrls.fleet.cluster import SCHEDULER_TIMEOUT, WORKERS_PER_CORE
+
     p = subparsers.add_parser(
         "fleet", help="many drives: ingest their logs into a parameter history, report wear",
         description="Ingest the logs of many drives into a parameter history (SQLite or "
@@ -71,7 +75,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     src = ing.add_argument_group("logs")
     src.add_argument("pattern", nargs="?", metavar="PATTERN",
                      help="logs with a {drive} (and optionally {type}) field, e.g. "
-                          "'logs/{drive}/*.log' (quote it)")
+                          "'logs/{drive}/*.log' (quote it; * ? [...] and ** as the shell's)")
     src.add_argument("--manifest", metavar="CSV",
                      help="a CSV with path,drive[,type,dbc,config,kt,effects,signals] "
                           "instead of a pattern")
@@ -81,17 +85,19 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     add_model_options(ing)
     d = ing.add_argument_group("Dask")
     d.add_argument("--workers", type=_nonnegative, default=None, metavar="N",
-                   help="worker processes of the local cluster (default: one per core; "
-                        "0: in this process, no Dask)")
+                   help=f"worker processes of the local cluster (default: one per core, "
+                        f"at most {WORKERS_PER_CORE} per core within the open-file limit; 0: "
+                        f"in this process, no Dask)")
     d.add_argument("--scheduler", metavar="ADDRESS",
-                   help="an existing Dask scheduler (tcp://HOST:PORT) instead of a local "
-                        "cluster; its workers must read the logs at the same paths")
+                   help=f"an existing Dask scheduler (tcp://HOST:PORT) instead of a local "
+                        f"cluster; it must answer and have a worker within "
+                        f"{SCHEDULER_TIMEOUT:g} s; its workers must read the logs at the "
+                        f"same paths")
     r = ing.add_argument_group("candidate ranking (the diagnosis)")
     r.add_argument("--rank", choices=("none", "auto", "all"), default="none",
                    help="rank the effects the model lacks: 'auto' for the recordings around "
                         "each residual change, 'all' for every log (default none)")
-    r.add_argument("--max-order", type=_nonnegative, default=64, metavar="K",
-                   help="highest cogging order the ranking searches (default 64)")
+    add_max_order_option(r, "the ranking searches")
     ing.add_argument("--retry-errors", action="store_true",
                      help="try the logs stored as errors again")
     add_progress_option(ing)
@@ -107,10 +113,15 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     rep.add_argument("--out", "-o", metavar="DIR", help="write DIR/index.html with figures")
     rep.add_argument("--json", action="store_true", help="print one JSON object")
     rep.add_argument("--figures", type=_nonnegative, default=20, metavar="N",
-                     help="drives with a figure of their trends, first of the ranking "
-                          "(default 20)")
+                     help="drives with a section and a figure of their trends: the first "
+                          "drives with alerts in the ranking (default 20)")
+    rep.add_argument("--config", "-C", metavar="FILE",
+                     help="a TOML file whose [fleet] table says what counts as an alert "
+                          "(alpha, min_change per effect, min_times_usual, outlier_z, "
+                          "prior_pairs: docs/fleet.md)")
     rep.add_argument("--alpha", type=float, default=None, metavar="P",
-                     help="false-alert probability per healthy drive (default 0.001)")
+                     help="false-alert probability per healthy drive (default 0.001, or "
+                          "[fleet] alpha)")
     rep.add_argument("--model", metavar="KEY",
                      help="only the recordings of this model (a key or its first characters)")
     rep.set_defaults(func=run_report)
@@ -123,7 +134,7 @@ def rank_candidates(path: str, protocol: Any, model: Any, settings: Any,
     from canrls.diagnosis.analysis import diagnose_log
     from canrls.fleet.records import CandidateValue
 
-    rep = diagnose_log([path], protocol, model, settings, max_order=max(1, max_order))
+    rep = diagnose_log([path], protocol, model, settings, max_order=max_order)
     return [CandidateValue(rank=i + 1, effect=c.effect, explained=float(c.explained),
                            delta_bic=float(c.delta_bic), rms_after=float(c.rms_after),
                            identifiable=bool(c.identifiable), suggested=bool(c.suggested))
@@ -140,7 +151,7 @@ def _sources(args: argparse.Namespace) -> Sequence[Any]:
 
 
 def run_ingest(args: argparse.Namespace) -> int:
-    from canrls.fleet.cluster import dask_client, require_dask
+    from canrls.fleet.cluster import dask_client, local_workers, require_dask, scheduler_address
     from canrls.fleet.history import History, HistoryURL, require_sqlalchemy
     from canrls.fleet.ingest import JobConfig, ingest
 
@@ -150,6 +161,10 @@ def run_ingest(args: argparse.Namespace) -> int:
         require_dask()
     if args.scheduler and args.workers:
         raise ConfigError("--workers: the workers of --scheduler's cluster are its own")
+    if args.scheduler:
+        scheduler_address(args.scheduler)
+    elif args.workers != 0:
+        local_workers(args.workers)
     sources = _sources(args)
     config = JobConfig.from_overrides(config_path(args), overrides(args))
     progress = Progress("ingest", quiet=args.quiet, unit="log")
@@ -172,24 +187,33 @@ def run_ingest(args: argparse.Namespace) -> int:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from canrls.fleet.detect import ALPHA, assess
+    import dataclasses
+
+    from canrls.fleet.detect import DetectionSettings, assess
     from canrls.fleet.history import History, HistoryURL
     from canrls.fleet.records import STATUS_OK
     from canrls.fleet.report import report_dict, write_html
+    from canrls.processor.config import AppConfig
 
     if not args.out and not args.json:
         raise ConfigError("fleet report: give --out DIR (HTML) or --json (or both)")
-    alpha = ALPHA if args.alpha is None else args.alpha
-    if not 0 < alpha < 1:
-        raise ConfigError(f"--alpha {args.alpha}: must be between 0 and 1")
-    db = HistoryURL.parse(args.db).sqlite_path
-    if db is not None and not db.is_file():
-        raise ConfigError(f"--db {args.db}: no such history (canrls fleet ingest makes it)")
+    settings = DetectionSettings()
+    if args.config:
+        settings = DetectionSettings.from_table(AppConfig.load(args.config).fleet,
+                                                args.config)
+    if args.alpha is not None:
+        if not 0 < args.alpha < 1:
+            raise ConfigError(f"--alpha {args.alpha}: must be between 0 and 1")
+        settings = dataclasses.replace(settings, alpha=args.alpha)
+    where = HistoryURL.parse(args.db)
+    if where.sqlite_path is not None and not where.sqlite_path.is_file():
+        raise ConfigError(f"--db {where.shown}: no such history (canrls fleet ingest "
+                          f"makes it)")
     if args.out:
         from canrls.fleet.report import require_matplotlib
 
         require_matplotlib()  # before the long part
-    with History.open(args.db, upgrade=False) as history:
+    with History.open(args.db, upgrade=False, read_only=True) as history:
         models = history.models()
         key = None
         if args.model:
@@ -200,7 +224,7 @@ def run_report(args: argparse.Namespace) -> int:
             key = keys[0]
             models = [m for m in models if m[0] == key]
         recs = history.recordings(model_key=key)
-    fleet = assess(recs, alpha=alpha)
+    fleet = assess(recs, settings=settings)
     page = None
     if args.out:
         page = write_html(fleet, args.out, models=models,
@@ -213,9 +237,20 @@ def run_report(args: argparse.Namespace) -> int:
             d["report"] = str(page)
         print_json(d)
     else:
-        alerts = fleet.alerts
-        sys.stdout.write(f"{len(fleet.drives)} drives, {len(alerts)} alerts; report: {page}\n")
-        for dr in fleet.drives:
-            if dr.headline is not None:
-                sys.stdout.write(f"  {dr.drive}: {dr.headline.message}\n")
+        sys.stdout.write(text_summary(fleet, page))
     return 0
+
+
+def _plural(n: int, noun: str) -> str:
+    """``n noun``, the noun in the plural but for one."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def text_summary(fleet: Any, page: Path | None) -> str:
+    """The text of ``canrls fleet report``: the counts, then every alert the count counts,
+    drive by drive (ranked; each drive's most severe first)."""
+    flagged = [d for d in fleet.drives if d.alerts]
+    head = (f"{_plural(len(fleet.drives), 'drive')}, {_plural(len(fleet.alerts), 'alert')} "
+            f"on {_plural(len(flagged), 'drive')}" + (f"; report: {page}" if page else ""))
+    return "".join([f"{head}\n", *(f"  {d.drive}: {a.message}\n"
+                                    for d in flagged for a in d.alerts)])

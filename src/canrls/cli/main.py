@@ -23,6 +23,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "validate",
     "fixed_sweep",
     "export_c",
+    "tune",
     "run",
     "monitor",
     "fleet",
@@ -33,6 +34,9 @@ log = logging.getLogger("canrls")
 #: Exit status of an unexpected (non-canrls) exception: distinct from 1 (an error in the
 #: input, a ``CanrlsError``), 2 (usage) and 130 (interrupted).
 INTERNAL_ERROR = 3
+#: Exit status when the reader of the standard output went away (``canrls fit --json |
+#: head -1``): what a shell reports for a Unix tool that SIGPIPE ended, 128 + 13.
+PIPE_CLOSED = 141
 
 
 def named_command(argv: Sequence[str]) -> str | None:
@@ -56,7 +60,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
                     "least squares.",
         epilog="exit status: 0 done, 1 an error in the input (one 'error:' line), 2 usage, "
                "3 an internal error (one 'internal error:' line; --debug shows the "
-               "traceback), 130 interrupted",
+               "traceback), 130 interrupted, 141 the reader of the output left (| head)",
     )
     parser.add_argument("--version", action="version", version=f"canrls {__version__}")
     parser.add_argument("--debug", action="store_true",
@@ -80,7 +84,8 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit status:
     0 done, 1 a :class:`CanrlsError` (one ``error:`` line), 2 usage, 3 an internal error
-    (one ``internal error:`` line), 130 interrupted. ``--debug`` shows the traceback."""
+    (one ``internal error:`` line), 130 interrupted, 141 the reader of the standard output
+    left (quietly). ``--debug`` shows the traceback."""
     if argv is None:
         # the process's own command: numpy's BLAS in one thread unless the environment
         # says otherwise (set before numpy loads): the matrices are a model's, small,
@@ -93,7 +98,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         early_signals.install()
     debug = "--debug" in given[:given.index("--")] if "--" in given else "--debug" in given
     try:
-        return _run(given, process=argv is None)
+        status = _run(given, process=argv is None)
+        if argv is None:
+            sys.stdout.flush()  # the end of the output: a reader that left is seen here
+        return status
     except CanrlsError as e:
         if debug:
             raise
@@ -102,6 +110,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     except Exception as e:  # a bug of canrls, not of the input: never a silent 0
+        if isinstance(e, BrokenPipeError) and _stdout_closed():
+            _silence_stdout()  # the reader of the output left: quietly, as Unix tools do
+            return PIPE_CLOSED
         if debug:
             raise
         print(f"internal error: {type(e).__name__}: {_one_line(e)} (rerun with --debug "
@@ -126,6 +137,29 @@ def _run(given: list[str], process: bool) -> int:
         parser.print_help()
         return 2
     return int(args.func(args) or 0)
+
+
+def _stdout_closed() -> bool:
+    """Whether the standard output is a pipe whose reader has gone (not some other
+    pipe or socket of the command that broke)."""
+    import select
+
+    try:
+        poll = select.poll()
+        poll.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & select.POLLERR for _, ev in poll.poll(0))
+    except (AttributeError, OSError, ValueError):  # not a file descriptor
+        return False
+
+
+def _silence_stdout() -> None:
+    """Point the standard output at /dev/null: what is left in its buffer is dropped at
+    exit instead of failing on the closed pipe again, as a Unix tool exits quietly."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    finally:
+        os.close(devnull)
 
 
 def _one_line(e: BaseException) -> str:

@@ -59,7 +59,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "[monitor] plain)")
     g.add_argument("--command", action="append", default=[], metavar="CMD",
                    help="send a command first: reset, freeze, resume, 'add EFFECT', "
-                        "'remove EFFECT', 'lambda L' (repeatable)")
+                        "'remove EFFECT', 'lambda L', save (the running model to [daemon] "
+                        "saved_model, for canrls tune) (repeatable)")
     p.set_defaults(func=run)
     return p
 
@@ -107,20 +108,37 @@ def run(args: argparse.Namespace) -> int:
                 ack = mon.wait_ack(before, args.timeout)
                 if ack is None:
                     print(f"error: no acknowledgement of {text!r} within "
-                          f"{args.timeout:g} s", file=sys.stderr)
+                          f"{args.timeout:g} s{_own_bus_hint(conf)}", file=sys.stderr)
                     return 1
                 print(f"{code.name.lower()}: {ack.result.name.lower()}")
                 if ack.result:
                     status = 1
             if commands and not (args.once or args.duration):
                 return status
-            status = max(status, _watch(args, mon, tty))
+            status = max(status, _watch(args, mon, tty, _own_bus_hint(conf)))
     finally:
         bus.shutdown()
     return status
 
 
-def _watch(args: argparse.Namespace, mon: Any, tty: bool) -> int:
+#: interfaces whose bus lives inside one process (python-can's virtual bus, and the
+#: simulated drive on one): a daemon in another process is never on it
+_IN_PROCESS = ("virtual", "canrls-sim")
+
+
+def _own_bus_hint(conf: dict[str, Any]) -> str:
+    """Why nothing came, when the bus is the process's own; else nothing."""
+    if conf.get("interface") not in _IN_PROCESS:
+        return ""
+    return (f": each process gets its own {conf.get('interface')} bus, so a daemon in "
+            f"another process is not on it; share one bus with python-can-remote on "
+            f"127.0.0.1 (python -m can_remote -i canrls-sim -c standard -H 127.0.0.1 -p "
+            f"54701, then canrls run and canrls monitor with -i remote -c "
+            f"ws://127.0.0.1:54701/; docs/daemon.md, Remote), or run canrls demo (drive, "
+            f"daemon and monitor in one process)")
+
+
+def _watch(args: argparse.Namespace, mon: Any, tty: bool, hint: str = "") -> int:
     start = time.monotonic()
     end = None if args.duration is None else start + args.duration
     if args.once:
@@ -135,7 +153,7 @@ def _watch(args: argparse.Namespace, mon: Any, tty: bool) -> int:
                 break
             time.sleep(0.05)
         print(f"error: no complete publication from a canrls daemon within {args.timeout:g} s "
-              f"on {mon.source}" + (f" ({mon.error})" if mon.error else ""), file=sys.stderr)
+              f"on {mon.source}" + (f" ({mon.error})" if mon.error else hint), file=sys.stderr)
         return 1
     try:
         while end is None or time.monotonic() < end:

@@ -9,7 +9,8 @@ fixed-point RLS side by side), publishes parameter and status frames, answers co
 frames (only with ``--commands`` or ``[daemon] commands = true``; otherwise each is
 answered ``disabled``), checkpoints, and talks to systemd (``Type=notify``, watchdog).
 SIGTERM/SIGINT stop it (with a final checkpoint; a second one while it stops changes
-nothing), SIGHUP re-reads the configuration's model. On exit it prints the final
+nothing), SIGHUP re-reads the configuration: the model applies at once, the rest at the
+next start (said in the log); a file a start would refuse is refused. On exit it prints the final
 estimates (``--json``: one object with the estimates, the daemon's counters, the frames
 rejected by reason as ``canrls fit --json`` has them, and the last status).
 Logging goes to stderr (journald under systemd).
@@ -23,6 +24,7 @@ thread (logged with its traceback) -- so systemd's ``Restart=on-failure`` restar
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import signal
@@ -119,29 +121,39 @@ def build_daemon(args: argparse.Namespace) -> Any:
         return c
 
     protocol, model, settings = prepare(with_model_file(cfg))
+    bus = bus_config(cfg)
 
     def reloaded_model() -> Any:
-        """SIGHUP: the model again, from a file whose ``[daemon]`` table still holds (a
-        table a restart would refuse is said at once, and the reload refused); its
-        changes apply at the next start."""
+        """SIGHUP: the model again, from a file a start would accept (the whole
+        configuration is prepared as at a start: a DBC that does not exist, a mapping
+        or a ``[daemon]`` table a restart would refuse is said at once, and the reload
+        refused, the running configuration kept). What else changed (the DBC, the
+        mapping, the bus, ``[estimator]``, ``[fixed]``, ``[daemon]``) is logged: it
+        applies at the next start; the model applies now."""
         c = load_config(getattr(args, "config", None), over)
         try:
             new = DaemonSettings.from_table(_daemon_table(c, args), c.source, c.base_dir)
+            new_protocol, _, new_settings = prepare(with_model_file(c))
+            new_bus = bus_config(c)
+            reloaded = c.model_for(protocol)  # the model on the frames being decoded
         except ConfigError as e:
-            raise ConfigError(f"{e}; the running daemon keeps its settings (a restart "
+            raise ConfigError(f"{e}; the running daemon keeps its configuration (a restart "
                               f"would refuse this file)") from e
-        changed = [f.name for f in dataclasses.fields(new)
-                   if getattr(new, f.name) != getattr(dset, f.name)]
+        changed = protocol.changes(new_protocol)
+        changed += ["the bus"] if new_bus != bus else []
+        changed += ["[estimator] or [fixed]"] if new_settings != settings else []
+        changed += [f"[daemon] {f.name}" for f in dataclasses.fields(new)
+                    if getattr(new, f.name) != getattr(dset, f.name)]
         if changed:
-            log.warning("reload: [daemon] %s changed: applied at the next start, not now",
+            log.warning("reload: %s changed: applied at the next start, not now",
                         ", ".join(changed))
-        return with_model_file(c).model_for(protocol)
+        return reloaded
 
     history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over)) \
         if cfg.history else None
     try:
-        return Daemon(protocol, model, settings, dset, bus=bus_config(cfg),
-                      reload=reloaded_model, history=history)
+        return Daemon(protocol, model, settings, dset, bus=bus,
+                      reload=reloaded_model, history=history, configuration=cfg)
     except BaseException:
         if history is not None:
             history.close()
@@ -209,6 +221,8 @@ def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canrls.live.journal import to_stream
+
     if args.duration is not None and not is_positive(args.duration):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
     target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
@@ -217,7 +231,8 @@ def run(args: argparse.Namespace) -> int:
         target[0] = daemon
         if target[1]:
             daemon.request_stop()  # run() starts, sees the request and stops cleanly
-        status = daemon.run(duration=args.duration)
+        with contextlib.nullcontext() if args.json else to_stream(sys.stdout):
+            status = daemon.run(duration=args.duration)
         _report(daemon, args)
     if daemon.failure is not None:
         print(f"error: the daemon stopped on an internal error: "

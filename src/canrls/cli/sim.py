@@ -8,7 +8,8 @@ The log holds the drive's feedback frames (``DriveCurrent``, ``DriveSpeed`` of t
 default DBC, CRC and alive counter included), timestamps from ``--start-time``
 (default 0) in steps of the control period. ``.log`` is candump; other suffixes
 (``.asc``, ``.blf``, ``.trc``, ``.csv``) go through python-can's writers. One summary
-line goes to stderr: frames written, duration, scenario, truth and faults.
+line goes to stdout (``> truth.txt`` keeps it): frames written, duration, scenario,
+truth and faults.
 
 ``canrls sim fleet`` writes ``DIR/<drive>/<drive>-<k>.log`` for every drive and
 recording (``--duration`` seconds each, default 6), ``DIR/manifest.csv`` and
@@ -97,6 +98,13 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "(default can0)")
     p.add_argument("--start-time", type=float, default=0.0, metavar="T0",
                    help="timestamp of the first period [s] (default 0)")
+    p.add_argument("--feedforward", metavar="FILE",
+                   help="the speed controller adds this feedforward (feedforward.json of "
+                        "'canrls tune --out'): its map at the measured position, its "
+                        "friction at the speed reference")
+    p.add_argument("--gains", metavar="FILE",
+                   help="the speed controller's PI gains and inertia feed-forward from "
+                        "this file (gains.json of 'canrls tune --out')")
     p.set_defaults(func=run, sim_parser=p)
     return p
 
@@ -161,18 +169,50 @@ def run(args: argparse.Namespace) -> int:
     sc = scenario(args.scenario, effects=args.effects, seed=args.seed, faults=args.faults,
                   axis=args.axis, excitation=args.excitation, duration=args.duration,
                   params=dict(args.param))
+    sc = with_tuning(sc, args.feedforward, args.gains)
     sim = Simulator(sc, t0=args.start_time)
     with _terminated_as_exit():
         n = write_log(args.out, sim.frames(), channel=args.channel, what=f"--out {args.out}")
     faults = f"; faults {sc.faults}: {sim.fault_log.summary()}" if sc.faults.active else ""
     clipped = f"; {sim.clipped} values clipped to the DBC range" if sim.clipped else ""
+    tuned = "".join(f"; {what} {path}" for what, path in (
+        ("feedforward", args.feedforward), ("gains", args.gains)) if path is not None)
     print(f"canrls sim: wrote {n} frames to {args.out} ({sc.duration:g} s, scenario {sc.name}, "
-          f"seed {sc.seed}); truth: {sc.truth.summary()}{faults}{clipped}", file=sys.stderr)
+          f"seed {sc.seed}); truth: {sc.truth.summary()}{faults}{clipped}{tuned}")
     return 0
 
 
+def with_tuning(sc: Any, feedforward: str | None, gains: str | None) -> Any:
+    """The scenario with the speed controller of ``canrls tune``'s files: the torques
+    of a file in N·m (N) become current through the simulated drive's Kt."""
+    from dataclasses import replace
+
+    from canrls.control.tune import read_feedforward, read_gains
+    from canrls.sim.plant import Compensation
+
+    ctl = sc.controller
+    kt = sc.truth.kt
+    if feedforward is not None:
+        d = read_feedforward(feedforward)
+        sp, m = d["speed"], d.get("map") or {}
+        par = sp["parameters"]
+        ctl = replace(ctl, compensation=Compensation(
+            map=tuple(m.get("torque", ())), period=m.get("period", 2.0 * math.pi),
+            scale=1.0 if d["unit"] == "A" else 1.0 / kt, B=par.get("viscous.B", 0.0),
+            Tc=par.get("coulomb.Tc", 0.0), Ts=par.get("stribeck.Ts", 0.0),
+            ws=sp["stribeck_speed"], band=sp["coulomb_band"], lead=d["lead"],
+            T0=par.get("offset.T0", 0.0)))
+    if gains is not None:
+        g = read_gains(gains)
+        per_amp = g["unit"] == "A"
+        ctl = replace(ctl, kp_speed=g["kp"] if per_amp else g["kp"] / kt,
+                      ki_speed=g["ki"] if per_amp else g["ki"] / kt,
+                      inertia_ff=g["inertia"] * kt if per_amp else g["inertia"])
+    return sc.replace(controller=ctl)
+
+
 #: options of one drive that a fleet draws for each of its drives
-_DRIVE_ONLY = ("effects", "faults", "axis", "excitation")
+_DRIVE_ONLY = ("effects", "faults", "axis", "excitation", "feedforward", "gains")
 
 
 def run_fleet(args: argparse.Namespace) -> int:

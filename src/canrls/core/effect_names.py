@@ -31,7 +31,8 @@ from typing import Literal
 
 from canrls.core.errors import EffectError
 
-__all__ = ["EffectId", "EquationId", "EffectName", "VALID_EFFECTS", "parse_effect_name"]
+__all__ = ["EffectId", "EquationId", "EffectName", "MAX_ORDER", "VALID_EFFECTS",
+           "parse_effect_name"]
 
 
 class EffectId(IntEnum):
@@ -91,6 +92,9 @@ VALID_EFFECTS = ("inertia, viscous, coulomb, stribeck, offset, unbalance, coggin
                  "electrical, user:NAME")
 
 _INTEGER = re.compile(r"[0-9]+")
+#: Largest harmonic order K of ``cogging:K`` and index N of ``user:N``: what the 16-bit
+#: ``Order`` field of canrls' parameter and command frames carries.
+MAX_ORDER = 0xFFFF
 
 
 @dataclass(frozen=True)
@@ -138,9 +142,13 @@ def parse_effect_name(spec: str, *, user: Literal["name", "index"] = "name") -> 
         if not sep or not arg:
             raise EffectError(f"effect {spec!r} needs a {what}: {form} with {letter} an "
                               f"integer >= 1 (e.g. {example})")
-        if not _INTEGER.fullmatch(arg) or int(arg) < 1:
-            raise EffectError(f"effect {spec!r}: {what} {letter} = {arg!r} must be an "
-                              f"integer >= 1 ({form})")
+        # the digits are counted before int(): 5,000 of them exceed Python's limit
+        if (not _INTEGER.fullmatch(arg) or len(arg.lstrip("0")) > len(str(MAX_ORDER))
+                or not 1 <= int(arg) <= MAX_ORDER):
+            shown = arg if len(arg) <= 20 else f"{arg[:20]}... ({len(arg)} characters)"
+            raise EffectError(f"effect {effect.effect_name}:{letter}: {what} {letter} = "
+                              f"{shown!r} must be an integer from 1 to {MAX_ORDER} ({form}; the "
+                              f"16-bit Order field of canrls' frames)")
         return EffectName(effect, order=int(arg))
     if effect is EffectId.USER:
         if not sep or not arg:

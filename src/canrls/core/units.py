@@ -102,6 +102,13 @@ _ALIASES: dict[str, str] = {
 #: The SI unit of each role (rotary axis; a linear axis uses m/s, m and N).
 SI_UNITS: dict[str, str] = {"current": "A", "speed": "rad/s", "position": "rad", "voltage": "V",
                             "torque": "N·m"}
+#: The SI unit of the roles that differ on a linear axis.
+_LINEAR_UNITS: dict[str, str] = {"speed": "m/s", "position": "m", "torque": "N"}
+
+
+def si_unit(role: str, axis: str = "rotary") -> str:
+    """The SI unit a role's values are in, on a ``"rotary"`` or ``"linear"`` axis."""
+    return _LINEAR_UNITS[role] if axis == "linear" and role in _LINEAR_UNITS else SI_UNITS[role]
 
 #: a unit with a number before it: ``0.1 rpm``, ``0.01deg``
 _SCALED = re.compile(r"^(?P<k>[0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(?P<unit>[^\s0-9.].*)$")

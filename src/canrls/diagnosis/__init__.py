@@ -9,7 +9,7 @@ Entry points in :mod:`canrls.diagnosis.analysis` (:func:`~canrls.diagnosis.analy
 ``residual``    statistics of the residual: whiteness, bins, regions, order spectrum,
                 excitation, structure left
 ``candidates``  candidate effects, ranking, forward selection, identifiability, verdict
-``figures``     the PNG figures (matplotlib, optional)
+``figures``     the SVG figures (matplotlib, optional)
 ``report``      the report object; text, JSON and the HTML page (``templates/``, jinja2)
 ``analysis``    the entry points: run the pipeline, put the diagnosis together
 """

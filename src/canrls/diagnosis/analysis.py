@@ -108,7 +108,8 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
     ctx = RecordSamples(model, signals, float(dt), settings, max_order)
     before = _analyse(ctx, model)
     added = tuple(_resolve_add(a, before) for a in add)
-    after = _analyse(ctx, model.with_effects(add=added)) if added else None
+    after = _analyse(ctx, _with_found(model.with_effects(add=added), added, before)) \
+        if added else None
     t = signals.t
     duration = float(t[-1] - t[0]) + float(dt) if n else 0.0
     return DiagnosisReport(source=source, dt=float(dt), samples=n, duration=duration,
@@ -168,17 +169,30 @@ def _resolve_add(spec: str, before: Analysis) -> str:
                       "no position, or the model has every order); give cogging:K")
 
 
+def _with_found(model: Model, added: Sequence[str], before: Analysis) -> Model:
+    """``model`` with the nonlinear parameters the search found for the effects added
+    (those set in the configuration were kept, and stay)."""
+    for q in before.equations:
+        for c in q.candidates:
+            if c.effect in added:
+                for r in c.search:
+                    if not r.kept:
+                        model = model.with_search_value(r.key, r.value)
+    return model
+
+
 # ------------------------------------------------------------------------- the analysis
 def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
     # the front end's calibration rule, as canrls fit and the daemon follow it
     proc = SampleProcessor(model, ctx.dt, ctx.settings)
     blocks = _run_in_chunks(proc, ctx.signals)
+    configured = model.options_given  # before the calibration scales the others
     pipe, model = proc.pipeline, proc.model
     est = pipe.estimates()
     eqs = []
     for e, fit in zip(pipe.estimators, est.equations, strict=True):
         # popped: each equation's mask is freed once it is analysed
-        eqs.append(_analyse_equation(ctx, model, e, blocks.pop(0), fit))
+        eqs.append(_analyse_equation(ctx, model, e, blocks.pop(0), fit, configured))
     return Analysis(model=model, estimates=est, equations=tuple(eqs))
 
 
@@ -223,7 +237,8 @@ def _run_in_chunks(proc: SampleProcessor,
 
 
 def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
-                      used: PackedMask, fit: EquationFit) -> EquationDiagnosis:
+                      used: PackedMask, fit: EquationFit,
+                      configured: frozenset[str]) -> EquationDiagnosis:
     """``used``: the rows the pipeline used for the equation (packed, read in blocks)."""
     eq = est.equation
     N = used.count()
@@ -250,7 +265,7 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
     spectrum = order_spectrum(ctx, r, used, unit) if ctx.angle_raw is not None else None
     exc = excitation_summary(ctx, model, used)
     cand = rank_candidates(ctx, model, eq,
-                           ResidualSummary(r, used, h2, unit, bins, spectrum, exc))
+                           ResidualSummary(r, used, h2, unit, bins, spectrum, exc, configured))
     traces = _traces(ctx, est, r, used)
     return EquationDiagnosis(
         equation=eq.name, target=eq.target.description, unit=unit, fit=fit,

@@ -3,7 +3,7 @@
 :class:`DiagnosisReport` is what :func:`canrls.diagnosis.analysis.diagnose` returns. It
 renders to text (:meth:`DiagnosisReport.format`), to a dict of plain types
 (:meth:`DiagnosisReport.to_dict`, documented in ``docs/diagnose.md``) and to a
-directory with ``index.html`` and PNG figures (:func:`write_html`): the page comes from
+directory with ``index.html`` and SVG figures (:func:`write_html`): the page comes from
 the jinja2 template ``templates/report.html.j2`` shipped with the package, the figures
 from :mod:`canrls.diagnosis.figures` (matplotlib, the ``report`` extra).
 """
@@ -16,19 +16,35 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+import numpy.typing as npt
+
+from canrls.core.effect_names import EffectId, parse_effect_name
+from canrls.core.errors import CanrlsError
 from canrls.core.files import atomic_writer
+from canrls.core.webpage import environment
 from canrls.diagnosis.candidates import MENTION_EXPLAINED
-from canrls.diagnosis.figures import FIGURES, figures_in
+from canrls.diagnosis.figures import (
+    FIGURES,
+    UNUSED_SLOW,
+    UNUSED_WARMUP,
+    figures_in,
+    integer_orders,
+)
+from canrls.diagnosis.residual import PEAK_SHARE
 from canrls.diagnosis.results import (
     Analysis,
     Candidate,
     EquationDiagnosis,
+    Region,
+    r2_text,
     share_text,
     value_text,
 )
 from canrls.estimation.estimates import ParameterEstimate
 from canrls.estimation.model import Model
 from canrls.estimation.physics import describe
+from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.settings import EstimatorSettings
 from canrls.processor import FrameCounts, PeriodInfo, StartInfo
 
@@ -43,7 +59,7 @@ class DiagnosisReport:
     ``added`` effects, or None), the candidates and the verdict.
 
     Renders to text (:meth:`format`), to a JSON-able dict (:meth:`to_dict`) and to an
-    HTML page with PNG figures (:meth:`write_html`, needs matplotlib).
+    HTML page with SVG figures (:meth:`write_html`, needs matplotlib).
     """
 
     def __init__(self, *, source: str, dt: float, samples: int, duration: float,
@@ -64,6 +80,10 @@ class DiagnosisReport:
         self.period = period
         self.start = start
         self.max_order = max_order
+        #: what compensating the final model's position terms would leave of their
+        #: ripple, (line, JSON), set by ``canrls diagnose`` from ``canrls.control``
+        #: (a layer beside this one); None: not computed or no position term
+        self.compensation: tuple[str, dict[str, Any]] | None = None
 
     # -- shortcuts ----------------------------------------------------------------------
     @property
@@ -109,6 +129,7 @@ class DiagnosisReport:
             "dt": self.dt,
             "axis": self.model.axis,
             "unit": p.unit,
+            "per_ampere": self.model.per_ampere_text if self.model.per_ampere else None,
             "max_order": self.max_order,
             "before": self.before.to_dict(),
             "added": list(self.added),
@@ -125,6 +146,7 @@ class DiagnosisReport:
             "identifiability": [r for q in self.before.equations for r in q.identifiability],
             "implausible": [i.to_dict() for i in self.before.estimates.implausible],
             "verdict": self.verdict,
+            "compensation": None if self.compensation is None else self.compensation[1],
         }
         if self.frames is not None:
             d["frames"] = self.frames.to_dict(True, self.period, self.start)
@@ -137,6 +159,8 @@ class DiagnosisReport:
         b = self.before
         out.append(f"{self.source}: {self.samples} samples ({self.duration:.1f} s), "
                    f"model {', '.join(b.effects)}")
+        if self.model.per_ampere:
+            out.append(self.model.per_ampere_text)
         out.extend(describe(b.estimates.implausible))
         if self.after is not None:
             out.extend(f"after adding: {line}"
@@ -146,13 +170,15 @@ class DiagnosisReport:
         if self.after is not None:
             out.append("")
             out.extend(_format_before_after(self.before, self.after, self.added))
+        if self.compensation is not None:
+            out.append(self.compensation[0])
         return "\n".join(out)
 
     __str__ = format
 
     # -- figures ------------------------------------------------------------------------
     def write_html(self, directory: str | os.PathLike[str]) -> Path:
-        """Write ``index.html`` and its PNG figures into ``directory`` (created).
+        """Write ``index.html`` and its SVG figures into ``directory`` (created).
 
         :raises ConfigError: matplotlib (the ``report`` extra) is not installed.
         :returns: the path of ``index.html``.
@@ -163,30 +189,29 @@ class DiagnosisReport:
 # ------------------------------------------------------------------------------ HTML
 #: What each figure shows, under it on the page.
 CAPTIONS = {
-    "timeline.png": "Measured against model over time: the filtered target (black) and the "
-                    "model's value with the final float estimate; below, the residual.",
-    "speed.png": "Residual against speed, both directions (symmetric-log axis, negative: "
+    "timeline.svg": "Measured against model over time: the filtered target (black, drawn "
+                    "above the model) and the model's value with the final float estimate; "
+                    "below, the residual.",
+    "speed.svg": "Residual against speed, both directions (symmetric-log axis, negative: "
                  "moving backward). Grey: every sample; dots: bin means, bars: the spread in the "
                  "bin. A missing Coulomb friction is a step at zero, viscous a slope, "
                  "Stribeck a bump near zero, an offset a constant shift.",
-    "position.png": "Residual against position (in the revolution, or along a linear "
+    "position.svg": "Residual against position (in the revolution, or along a linear "
                     "axis). A missing unbalance is one period per revolution, cogging k "
                     "periods.",
-    "candidates.png": "Every effect of the library that the model lacks, with the share of "
+    "candidates.svg": "Every effect of the library that the model lacks, with the share of "
                       "the residual variance it explains when added alone (orthogonalised: "
                       "error-reduction ratio).",
-    "orders.png": "The residual's rotation-order spectrum: amplitude of sin/cos of order q "
-                  "times the angle fitted to the residual (filtered like the equation). "
-                  "Peaks sit at the orders of position-periodic effects.",
-    "convergence.png": "Parameter convergence: float estimate with its ±σ band, fixed-point "
+    "orders.svg": "The residual's rotation-order spectrum at the integer orders: amplitude "
+                  "of sin/cos of order q times the angle fitted to the residual (filtered "
+                  "like the equation). Each peak's share is what it explains beyond the "
+                  "stronger peaks, all fitted together, so the shares add up to at most "
+                  "100 %. Peaks sit at the orders of position-periodic effects.",
+    "convergence.svg": "Parameter convergence: float estimate with its ±σ band, fixed-point "
                        "estimate dashed.",
-    "fixed.png": "Fixed point against float: the difference relative to the float value "
+    "fixed.svg": "Fixed point against float: the difference relative to the float value "
                  "(or σ when larger), on a log axis; the dotted line is 0.1 %.",
 }
-
-
-def _num(x: float | None, spec: str = ".4g") -> str:
-    return "—" if x is None or not math.isfinite(x) else format(x, spec)
 
 
 def _template() -> jinja2.Template:
@@ -195,17 +220,9 @@ def _template() -> jinja2.Template:
 
 def page_template(name: str) -> jinja2.Template:
     """The jinja2 template ``name`` shipped under ``diagnosis/templates``, with the
-    report's filters (``num``, ``fmt``); also the page of ``canrls validate``."""
-    import jinja2
-
-    env = jinja2.Environment(
-        loader=jinja2.PackageLoader("canrls.diagnosis", "templates"),
-        autoescape=True, trim_blocks=True, lstrip_blocks=True,
-        undefined=jinja2.StrictUndefined)
-    env.filters["num"] = _num
-    env.filters["fmt"] = format
-    env.filters["white_caveat"] = white_caveat
-    return env.get_template(name)
+    report's filters (``num``, ``fmt``, ``r2``); also the page of ``canrls validate``."""
+    return environment("canrls.diagnosis", white_caveat=white_caveat,
+                       r2=r2_text).get_template(name)
 
 
 def _parameter_rows(before: Analysis, after: Analysis | None
@@ -221,15 +238,130 @@ def _parameter_rows(before: Analysis, after: Analysis | None
     return rows
 
 
-def render_html(report: DiagnosisReport, written: Mapping[str, str]) -> str:
-    """The page of ``report`` with the figures ``written`` (``{figure: file name}``)."""
-    figures = [(written[name], CAPTIONS[name]) for name in FIGURES if name in written]
-    return _template().render(r=report, b=report.before.primary, figures=figures,
+def _quantity(effect: str) -> str:
+    """The figure that shows ``effect`` missing: "position" for a position-periodic
+    effect, "speed" for friction and an offset, "timeline" for the others."""
+    try:
+        e = parse_effect_name(effect).effect
+    except CanrlsError:
+        return "timeline"
+    if e in (EffectId.COGGING, EffectId.UNBALANCE):
+        return "position"
+    if e in (EffectId.VISCOUS, EffectId.COULOMB, EffectId.STRIBECK, EffectId.OFFSET):
+        return "speed"
+    return "timeline"
+
+
+def proof_figures(b: EquationDiagnosis, written: Mapping[str, str]) -> tuple[str, ...]:
+    """The figures that prove the verdict (shown right under it): the residual against
+    the quantity of the first suggested effect (and, for a position-periodic one, the
+    order spectrum that names its order), else the timeline."""
+    q = _quantity(b.suggestion.steps[0].effect) if b.suggestion.steps else "timeline"
+    names = (f"{q}.svg", "orders.svg") if q == "position" else (f"{q}.svg",)
+    return tuple(n for n in names if n in written) or ("timeline.svg",)
+
+
+def split_regions(b: EquationDiagnosis) -> tuple[tuple[Region, ...], tuple[Region, ...]]:
+    """The regions where it fails: (in the quantity of the first suggested effect, in
+    the others); a position effect's regions are position ranges first."""
+    q = _quantity(b.suggestion.steps[0].effect) if b.suggestion.steps else ""
+    lead = tuple(r for r in b.regions if r.quantity == q)
+    if not lead:
+        return b.regions, ()
+    return lead, tuple(r for r in b.regions if r.quantity != q)
+
+
+def samples_text(report: DiagnosisReport) -> str:
+    """How many samples the equation used of the record, and why the others were not."""
+    b = report.before.primary
+    used = b.fit.samples
+    left = report.samples - used
+    part = used / report.samples
+    # a share never rounded up to 100 % while samples were left out
+    pct = share_text(part) if part < 0.995 or left <= 0 else \
+        f"{math.floor(1000 * part) / 10:.1f} %"
+    text = f"{used:,} of {report.samples:,} samples used ({pct})"
+    if left <= 0:
+        return text + "."
+    policy = SamplePolicy.for_equation(report.model.equations[0], report.dt, report.settings)
+    why = UNUSED_WARMUP
+    if policy.min_speed > 0:
+        why += ", and " + UNUSED_SLOW.replace(
+            "near reversals", f"near reversals (below {policy.min_speed:.3g} "
+                              f"{b.excitation.speed_unit})")
+    return f"{text}; the other {left:,} were left out: {why}."
+
+
+def _extent(x: npt.NDArray[np.float64]) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.max(np.abs(x))) if len(x) else math.nan
+
+
+def alt_text(name: str, report: DiagnosisReport) -> str:
+    """What figure ``name`` shows, in one sentence with its numbers (the image's alt)."""
+    b = report.before.primary
+    a = report.after.primary if report.after is not None else None
+    u = b.unit
+    after = ""
+    if name == "timeline.svg":
+        if a is not None:
+            after = f", {a.fit_percent:.1f} % after adding {', '.join(report.added)}"
+        return (f"{b.target} measured against the model over {report.duration:.0f} s: fit "
+                f"{b.fit_percent:.1f} % before{after}; the residual below")
+    if name in ("speed.svg", "position.svg"):
+        q = name.split(".")[0]
+
+        def swing(e: EquationDiagnosis) -> str:
+            bn = e.bins.get(q)
+            return "—" if bn is None else value_text(_extent(bn.mean), u)
+        if a is not None:
+            after = f", {swing(a)} after"
+        return (f"Residual against {q}: the bin means reach {swing(b)} before{after} "
+                f"(residual RMS {value_text(b.residual_rms, u)} before"
+                + (f", {value_text(a.residual_rms, u)} after)" if a is not None else ")"))
+    if name == "candidates.svg":
+        best = ", ".join(f"{c.effect} {share_text(c.explained)}" for c in b.candidates[:4])
+        return f"Share of the residual variance each missing effect explains alone: {best}"
+    if name == "orders.svg":
+        def peak(e: EquationDiagnosis) -> str:
+            if e.spectrum is None:
+                return "—"
+            _, amp, _, peaks = integer_orders(e.spectrum)
+            if peaks:
+                return (f"order {peaks[0]:g} at {value_text(e.spectrum.at(peaks[0])[0], u)}")
+            return f"no order stands out (largest {value_text(_extent(amp), u)})"
+        if a is not None:
+            after = f"; after: {peak(a)}"
+        return f"Residual amplitude per integer rotation order: before, {peak(b)}{after}"
+    final = report.after if report.after is not None else report.before
+    names = ", ".join(final.primary.traces.names)
+    if name == "convergence.svg":
+        return f"Each parameter's float estimate over time with its ±σ band and the " \
+               f"fixed-point estimate: {names}"
+    return f"Relative difference of the fixed-point and float estimates over time: {names}"
+
+
+def render_html(report: DiagnosisReport, written: Mapping[str, str],
+                notes: Mapping[str, str] | None = None) -> str:
+    """The page of ``report`` with the figures ``written`` (``{figure: file name}``) and
+    the ``notes`` their captions add (clipped axes, shaded spans)."""
+    notes = notes or {}
+    b = report.before.primary
+    proof = proof_figures(b, written)
+
+    def fig(name: str) -> tuple[str, str, str]:
+        cap = CAPTIONS[name] + (" " + notes[name] if name in notes else "")
+        return written[name], cap, alt_text(name, report)
+    figures = [fig(name) for name in FIGURES if name in written and name not in proof]
+    lead, rest = split_regions(b)
+    return _template().render(r=report, b=b, proof=[fig(name) for name in proof],
+                              figures=figures,
+                              lead=lead, rest=rest, samples=samples_text(report),
                               params=_parameter_rows(report.before, report.after))
 
 
 def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Path:
-    """Write ``index.html`` and the PNG figures of ``report`` into ``directory``.
+    """Write ``index.html`` and the SVG figures of ``report`` into ``directory``.
 
     :raises ConfigError: matplotlib is missing, or the directory cannot be written.
     :returns: the path of ``index.html``.
@@ -239,20 +371,20 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
     b = report.before.primary
     a = report.after.primary if report.after is not None else None
     written: dict[str, str] = {}
-    written["timeline.png"] = figs.timeline(b, a)
-    written["speed.png"] = figs.binned(b, a, "speed")
+    written["timeline.svg"] = figs.timeline(b, a)
+    written["speed.svg"] = figs.binned(b, a, "speed")
     if b.traces.position is not None:
-        written["position.png"] = figs.binned(b, a, "position")
+        written["position.svg"] = figs.binned(b, a, "position")
     if b.candidates:
-        written["candidates.png"] = figs.candidates(b)
+        written["candidates.svg"] = figs.candidates(b)
     if b.spectrum is not None:
-        written["orders.png"] = figs.orders(b, a)
+        written["orders.svg"] = figs.orders(b, a)
     final = report.after if report.after is not None else report.before
-    written["convergence.png"] = figs.convergence(final.primary, final is report.after)
-    written["fixed.png"] = figs.fixed(final.primary)
+    written["convergence.svg"] = figs.convergence(final.primary, final is report.after)
+    written["fixed.svg"] = figs.fixed(final.primary)
     page = out / "index.html"
     with atomic_writer(page, f"--report {out}: index.html") as f:
-        f.write(render_html(report, written).encode("utf-8"))
+        f.write(render_html(report, written, figs.notes).encode("utf-8"))
     return page
 
 
@@ -288,14 +420,21 @@ def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
             out.append(f"  {caveat}")
     out += ["", "Where it fails"]
     if q.regions:
-        for reg in q.regions:
+        lead, rest = split_regions(q)
+        for k, reg in enumerate(lead + rest):
+            if k == len(lead) and lead:
+                out.append("  also in other quantities:")
             out.append(f"  - {reg.text} ({share_text(reg.share)} of the residual energy)")
     else:
         out.append("  no region stands out: the binned means of the residual are small")
-    if q.spectrum is not None and q.spectrum.peaks:
-        pk = ", ".join(f"{p:g} ({value_text(q.spectrum.at(p)[0], u)}, "
-                       f"{share_text(q.spectrum.at(p)[1])})" for p in q.spectrum.peaks[:3])
-        out.append(f"  rotation-order spectrum peaks (order per {q.spectrum.per}): {pk}")
+    # the peaks with a share of their own beyond the stronger ones (not their leakage)
+    sp = q.spectrum
+    own = [p for p in sp.peaks if sp.share(p) >= PEAK_SHARE] if sp is not None else []
+    if sp is not None and own:
+        pk = ", ".join(f"{p:g} ({value_text(sp.at(p)[0], u)}, {share_text(sp.share(p))})"
+                       for p in own[:3])
+        out.append(f"  rotation-order spectrum peaks (order per {sp.per}; each share beyond "
+                   f"the stronger ones): {pk}")
     facts = q.excitation.facts()
     if facts:
         out.append("  excitation: " + "; ".join(facts))
@@ -316,6 +455,8 @@ def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
             out.append(f"        {c.description}")
             if not c.identifiable:
                 out.append(f"        {c.reason}")
+            for r in c.search:
+                out.append(f"        {r.text()}")
             for e in c.evidence[:3]:
                 out.append(f"        evidence: {e}")
     else:

@@ -21,7 +21,7 @@ estimators used (:class:`~canrls.diagnosis.record.RecordSamples`), in the target
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -58,6 +58,8 @@ __all__ = [
     "median",
     "moments",
     "nice_magnitudes",
+    "PEAK_SHARE",
+    "joint_shares",
     "order_spectrum",
     "percentiles",
     "residual_structure",
@@ -579,7 +581,8 @@ def order_spectrum(ctx: RecordSamples, r: F64, used: B, unit: str) -> OrderSpect
     orders = spectrum_orders(K)
     amp, expl = harmonic_fit(ctx, r, used, orders)
     peaks = spectrum_peaks(orders, expl)
-    return OrderSpectrum(orders, amp, expl, peaks, unit, ctx.per)
+    shares = joint_shares(ctx, r, used, peaks)
+    return OrderSpectrum(orders, amp, expl, peaks, unit, ctx.per, shares)
 
 
 def spectrum_orders(max_order: int) -> F64:
@@ -589,12 +592,50 @@ def spectrum_orders(max_order: int) -> F64:
     return np.concatenate([fine, coarse])
 
 
+def _harmonic_blocks(ctx: RecordSamples, r: F64, filled_used: B, orders: F64,
+                     mean_r: float) -> Iterator[tuple[F64, F64]]:
+    """Per block of rows: the filtered columns ``F[sin q a]``, ``F[cos q a]`` of every
+    order ``q`` (interleaved) on the used rows (``filled_used``: the used rows spread
+    onto the filled record), and the residual less ``mean_r`` there.
+
+    The columns are filtered on the filled record, as the pipeline filters its columns
+    (the filter's state carried from block to block, reset at each segment); the
+    residual (measured rows) is placed on the filled rows block by block.
+    """
+    real = ctx.selected.real
+    qs = np.ascontiguousarray(orders, dtype=np.float64)
+    m = len(qs)
+    svf = SVF(ctx.cutoff_hz, ctx.dt, ctx.zeta, ctx.position_hold)
+    m0 = 0  # measured rows before the block
+    seg_starts = {sa for sa, _ in ctx.segments()}
+    # the angle unwrapped again block by block (the blocks of each segment)
+    for b0, b1, ang in ctx.angle_filled_blocks():
+        if b0 in seg_starts:
+            svf.reset()
+        raw = np.empty((b1 - b0, 2 * m))
+        # raw[i, 2j] = sin(q_j a_i), raw[i, 2j + 1] = cos(q_j a_i)
+        _kernels.sincos(np.ascontiguousarray(ang, np.float64), qs, raw)
+        f, _ = svf.process(raw)
+        u = filled_used[b0:b1]
+        if real is None:
+            rb = r[b0:b1] - mean_r
+        else:
+            k = int(np.count_nonzero(real[b0:b1]))
+            rb = np.zeros(b1 - b0)
+            rb[real[b0:b1]] = r[m0:m0 + k] - mean_r
+            m0 += k
+        if u.any():
+            yield f[u], rb[u]
+        # freed before the next block's are made (one block's at a time)
+        del raw, f, _
+
+
 def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64, F64]:
     """Per order q: LS fit of r by a constant, F[sin q a] and F[cos q a].
 
     Returns the amplitude of the sine/cosine pair (target unit) and the share of the
     residual's variance (about its mean) it explains. The columns are built and filtered
-    in blocks of rows (the filter's state carried), so memory does not grow with the
+    in blocks of rows (:func:`_harmonic_blocks`), so memory does not grow with the
     record; only sums over the used rows are kept.
     """
     assert ctx.angle_raw is not None
@@ -606,14 +647,10 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
         return amp, expl
     if den <= 0:
         return amp, expl
-    # filtered on the filled record, as the pipeline filters its columns; the residual
-    # (measured rows) placed on the filled rows block by block: rc = r - mean, 0 on
-    # filled rows
-    used = ctx.spread(used)
-    real = ctx.selected.real
+    filled_used = ctx.spread(used)
     chunk = 16  # orders at a time: BLOCK x 2 chunk float64 per working array
     for c0 in range(0, len(orders), chunk):
-        qs = np.ascontiguousarray(orders[c0:c0 + chunk], dtype=np.float64)
+        qs = orders[c0:c0 + chunk]
         m = len(qs)
         # sums over the used rows: g, g g' (per order: ss, cc, sc), g r
         s1 = np.zeros(2 * m)
@@ -622,29 +659,7 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
         sc = np.zeros(m)
         sr = np.zeros(m)
         cr = np.zeros(m)
-        svf = SVF(ctx.cutoff_hz, ctx.dt, ctx.zeta, ctx.position_hold)
-        m0 = 0  # measured rows before the block
-        seg_starts = {sa for sa, _ in ctx.segments()}
-        # the angle unwrapped again block by block (the blocks of each segment)
-        for b0, b1, ang in ctx.angle_filled_blocks():
-            if b0 in seg_starts:
-                svf.reset()
-            raw = np.empty((b1 - b0, 2 * m))
-            # raw[i, 2j] = sin(q_j a_i), raw[i, 2j + 1] = cos(q_j a_i)
-            _kernels.sincos(np.ascontiguousarray(ang, np.float64), qs, raw)
-            f, _ = svf.process(raw)
-            u = used[b0:b1]
-            if real is None:
-                rb = r[b0:b1] - mean_r
-            else:
-                k = int(np.count_nonzero(real[b0:b1]))
-                rb = np.zeros(b1 - b0)
-                rb[real[b0:b1]] = r[m0:m0 + k] - mean_r
-                m0 += k
-            if not u.any():
-                continue
-            G = f[u]
-            ru = rb[u]
+        for G, ru in _harmonic_blocks(ctx, r, filled_used, qs, mean_r):
             gs, gc = G[:, 0::2], G[:, 1::2]
             s1 += G.sum(axis=0)
             ss += np.einsum("ij,ij->j", gs, gs)
@@ -652,8 +667,6 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
             sc += np.einsum("ij,ij->j", gs, gc)
             sr += gs.T @ ru
             cr += gc.T @ ru
-            # freed before the next block's are made (one block's at a time)
-            del raw, f, _, G, gs, gc, ru
         # centre the columns: sum (g - mean g)(h - mean h) = sum g h - n mean g mean h
         ms, mc = s1[0::2] / n_used, s1[1::2] / n_used
         ss -= n_used * ms * ms
@@ -671,6 +684,48 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
     return amp, expl
 
 
+def joint_shares(ctx: RecordSamples, r: F64, used: B, peaks: Sequence[float]
+                 ) -> tuple[float, ...]:
+    """The share of the residual variance each of ``peaks`` explains beyond the peaks
+    before it (fitted together: sequential, so the shares add up to the joint fit's,
+    at most 1; an order that is leakage of a stronger one gets next to nothing).
+
+    With G_k the centred filtered sin/cos columns of the first k peaks and
+    x_k = (G_k' G_k)^-1 G_k' r, share_k = (x_k' G_k' r - x_{k-1}' G_{k-1}' r) / r'r.
+    """
+    if not peaks:
+        return ()
+    n_used, mean_r, _, den = moments(r, used)
+    if n_used < 3 or den <= 0:
+        return tuple(0.0 for _ in peaks)
+    m2 = 2 * len(peaks)
+    s1 = np.zeros(m2)
+    A = np.zeros((m2, m2))
+    g = np.zeros(m2)
+    qs = np.asarray(peaks, np.float64)
+    for G, ru in _harmonic_blocks(ctx, r, ctx.spread(used), qs, mean_r):
+        s1 += G.sum(axis=0)
+        A += G.T @ G
+        g += G.T @ ru
+    # centred: sum (g - mean g)(h - mean h) = sum g h - n mean g mean h
+    A -= np.outer(s1, s1) / n_used
+    out = []
+    before = 0.0
+    for k in range(1, len(peaks) + 1):
+        Ak, gk = A[:2 * k, :2 * k], g[:2 * k]
+        # x = A_k^+ g_k (least squares: a pair the others span gets nothing new)
+        x = np.linalg.lstsq(Ak, gk, rcond=1e-10)[0]
+        joint = min(max(float(x @ gk) / den, before), 1.0)
+        out.append(joint - before)
+        before = joint
+    return tuple(out)
+
+
+#: a peak of the order spectrum explains at least this share of the residual variance
+#: (alone, and beyond the stronger peaks to be named as an order of its own)
+PEAK_SHARE = 0.01
+
+
 def spectrum_peaks(orders: F64, expl: F64, limit: int = 5) -> tuple[float, ...]:
     if not len(expl):
         return ()
@@ -680,7 +735,7 @@ def spectrum_peaks(orders: F64, expl: F64, limit: int = 5) -> tuple[float, ...]:
         e = expl[j]
         left = expl[j - 1] if j > 0 else -1.0
         right = expl[j + 1] if j + 1 < len(expl) else -1.0
-        if e >= left and e >= right and e >= 0.01 and e >= 10.0 * med:
+        if e >= left and e >= right and e >= PEAK_SHARE and e >= 10.0 * med:
             out.append((float(e), float(orders[j])))
     out.sort(reverse=True)
     return tuple(o for _, o in out[:limit])

@@ -30,6 +30,7 @@ __all__ = [
     "Region",
     "OrderSpectrum",
     "Candidate",
+    "SearchResult",
     "Step",
     "Suggestion",
     "StructureItem",
@@ -37,6 +38,7 @@ __all__ = [
     "Traces",
     "EquationDiagnosis",
     "Analysis",
+    "r2_text",
     "share_text",
     "value_text",
 ]
@@ -60,6 +62,16 @@ def share_text(x: float) -> str:
     if abs(v) >= 1:
         return f"{v:.1f} %"
     return f"{v:.2g} %"
+
+
+def r2_text(r2: float, digits: int = 4) -> str:
+    """R² with ``digits`` decimals, never rounded up to 1: "> 0.9999" where it would."""
+    if not math.isfinite(r2):
+        return "n/a"
+    text = f"{r2:.{digits}f}"
+    if r2 < 1.0 and float(text) >= 1.0:
+        return f"> {1.0 - 10.0 ** -digits:.{digits}f}"
+    return text
 
 
 def value_text(x: float, unit: str = "", sign: bool = False) -> str:
@@ -191,7 +203,8 @@ class OrderSpectrum:
     ``amplitude`` is the fitted amplitude in the target unit, ``explained`` the share of
     the residual variance the pair explains. ``per`` says what one period of order 1 is
     (a revolution, or the pitch of a linear axis). ``peaks`` lists the orders that stand
-    out (local maxima explaining at least 1 % and 5 times the median), strongest first.
+    out (local maxima explaining at least 1 % and 5 times the median), strongest first;
+    ``shares`` what each explains beyond the ones before it, all of them fitted together.
     """
 
     orders: F64
@@ -200,6 +213,16 @@ class OrderSpectrum:
     peaks: tuple[float, ...]
     unit: str
     per: str
+    #: per peak, the share it explains beyond the peaks before it (fitted together:
+    #: they add up to at most 1; leakage of a stronger order gets next to nothing)
+    shares: tuple[float, ...] = ()
+
+    def share(self, order: float) -> float:
+        """The share of peak ``order`` beyond the stronger peaks (``explained`` alone
+        when the sequential shares were not computed)."""
+        if order in self.peaks and len(self.shares) == len(self.peaks):
+            return self.shares[self.peaks.index(order)]
+        return self.at(order)[1]
 
     def at(self, order: float) -> tuple[float, float]:
         """(amplitude, explained) at the order nearest ``order``."""
@@ -209,7 +232,40 @@ class OrderSpectrum:
     def to_dict(self) -> dict[str, Any]:
         return {"orders": _floats(self.orders), "amplitude": _floats(self.amplitude),
                 "explained": _floats(self.explained), "peaks": list(self.peaks),
+                "peak_shares": list(self.shares),
                 "unit": self.unit, "per": self.per}
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """A parameter of a candidate the regression cannot estimate linearly (a Stribeck
+    speed, a Coulomb band, a user term's free parameter): the value found by the search
+    over ``grid`` (``lo`` .. ``hi``, ``points`` values) and the ΔBIC of the candidate
+    there, or the value set in the configuration, kept (``kept``)."""
+
+    key: str
+    label: str
+    unit: str
+    value: float
+    kept: bool
+    lo: float = math.nan
+    hi: float = math.nan
+    points: int = 0
+    delta_bic: float = math.nan
+
+    def text(self) -> str:
+        """``Stribeck speed 0.81 rad/s (searched 0.02..40 rad/s, 16 values: ΔBIC -3581)``."""
+        u = f" {self.unit}" if self.unit else ""
+        if self.kept:
+            return f"{self.label} {self.value:.4g}{u} (set in the configuration: kept)"
+        return (f"{self.label} {self.value:.4g}{u} (searched {self.lo:.3g}..{self.hi:.3g}{u}, "
+                f"{self.points} values: ΔBIC {self.delta_bic:.4g})")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"key": self.key, "label": self.label, "unit": self.unit,
+                "value": self.value, "kept": self.kept,
+                "searched": None if self.kept else [self.lo, self.hi, self.points],
+                "delta_bic": None if self.kept else self.delta_bic}
 
 
 @dataclass(frozen=True)
@@ -222,7 +278,8 @@ class Candidate:
     when its column is not excited or (nearly) collinear with the model's columns;
     ``reason`` then says why. ``independence`` is the fraction of its column energy
     outside the span of the model's columns (1/VIF), ``excitation`` the RMS of its
-    normalised column.
+    filtered column over the compared rows, in the column's own unit (from the data: no
+    declared range enters it). ``search`` holds its nonlinear parameters, searched or kept.
     """
 
     effect: str
@@ -239,6 +296,7 @@ class Candidate:
     parameters: Mapping[str, tuple[float, str]]
     independence: float
     excitation: float
+    search: tuple[SearchResult, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return {"effect": self.effect, "equation": self.equation,
@@ -249,7 +307,8 @@ class Candidate:
                 "evidence": list(self.evidence),
                 "parameters": {k: {"value": v, "unit": u}
                                for k, (v, u) in self.parameters.items()},
-                "independence": self.independence, "excitation": self.excitation}
+                "independence": self.independence, "excitation": self.excitation,
+                "search": [r.to_dict() for r in self.search]}
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ residual binned by speed, position, current, acceleration and time).
 
 The report renders as the diagnosis's does: text (:meth:`ValidationReport.format`), a
 dict of plain types (:meth:`ValidationReport.to_dict`) and a directory with
-``index.html`` and PNG figures (:func:`write_html`, ``canrls validate --report DIR``),
+``index.html`` and SVG figures (:func:`write_html`, ``canrls validate --report DIR``),
 drawn by the diagnosis's :class:`~canrls.diagnosis.figures.Figures` into the page
 ``templates/validate.html.j2``.
 """
@@ -42,16 +42,20 @@ from canrls.diagnosis.figures import figures_in
 from canrls.diagnosis.record import RecordSamples
 from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
-from canrls.diagnosis.results import Binned, Region, Traces, share_text
+from canrls.diagnosis.results import Binned, Region, Traces, r2_text, share_text, value_text
 from canrls.estimation.physics import Implausible, check_physics, describe
 from canrls.processor import FrameCounts, PeriodInfo, StartInfo
 from canrls.processor.modelfile import SavedModel
 from canrls.processor.replay import read_logs
 
-__all__ = ["EquationValidation", "FileFit", "ValidationReport", "validate_logs",
+__all__ = ["HOLDS_WITHIN", "EquationValidation", "FileFit", "ValidationReport", "validate_logs",
            "validate_signals", "write_html"]
 
 F64 = npt.NDArray[np.float64]
+
+#: a saved model holds on other logs while their residual RMS is at most this much above
+#: the RMS at identification (recordings of one drive differ in noise by about this)
+HOLDS_WITHIN = 0.25
 
 
 @dataclass(frozen=True)
@@ -62,10 +66,13 @@ class FileFit:
     samples: int
     residual_rms: float
     fit_percent: float
+    #: the target's standard deviation on this log: what its fit % is measured against
+    target_sd: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         return {"source": self.source, "samples": self.samples,
-                "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent)}
+                "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent),
+                "target_sd": _num(self.target_sd)}
 
 
 @dataclass(frozen=True)
@@ -88,11 +95,37 @@ class EquationValidation:
     bins: Mapping[str, Binned] = field(default_factory=dict, repr=False, compare=False)
     #: first row of each file in ``traces`` (and the end)
     bounds: tuple[int, ...] = ()
+    #: the target's standard deviation over all the logs (what fit % is measured against)
+    target_sd: float = math.nan
+
+    @property
+    def holds(self) -> bool | None:
+        """True when the residual RMS stays within :data:`HOLDS_WITHIN` of the RMS at
+        identification, False beyond it, None when the file has no RMS to compare."""
+        if self.identified_rms is None or not self.identified_rms > 0:
+            return None
+        return self.residual_rms <= (1.0 + HOLDS_WITHIN) * self.identified_rms
+
+    @property
+    def verdict(self) -> str:
+        """The answer in one line: does the saved model hold on these logs."""
+        rms = value_text(self.residual_rms, self.unit)
+        if self.holds is None:
+            return (f"{self.equation}: residual RMS {rms}, fit {self.fit_percent:.1f} % "
+                    f"(the model file has no RMS at identification to compare with)")
+        assert self.identified_rms is not None
+        change = self.residual_rms / self.identified_rms - 1.0
+        sign = "+" if change >= 0 else ""
+        return (f"{self.equation}: the model {'holds' if self.holds else 'does not hold'}: "
+                f"residual RMS {rms}, {sign}{share_text(change)} against the "
+                f"{value_text(self.identified_rms, self.unit)} at identification "
+                f"(it holds within +{share_text(HOLDS_WITHIN)})")
 
     def to_dict(self) -> dict[str, Any]:
         return {"equation": self.equation, "unit": self.unit, "samples": self.samples,
                 "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent),
                 "r2": _num(self.r2), "identified_rms": _num(self.identified_rms),
+                "target_sd": _num(self.target_sd),
                 "files": [f.to_dict() for f in self.files],
                 "regions": [r.to_dict() for r in self.regions]}
 
@@ -132,8 +165,10 @@ class ValidationReport:
                 "implausible": [i.to_dict() for i in self.implausible]}
 
     def format(self) -> str:
-        lines = [f"model {self.model_file} (identified on {', '.join(self.identified_on) or '?'})",
-                 f"validated on {', '.join(self.sources)} without re-estimating:"]
+        """The report as text, the answer first: per equation, whether the model holds."""
+        lines = [e.verdict for e in self.equations]
+        lines += [f"model {self.model_file} (identified on {', '.join(self.identified_on) or '?'})",
+                  f"validated on {', '.join(self.sources)} without re-estimating:"]
         for name, p in self.parameters.items():
             lines.append(f"  {name:<14} {p['value']:12.6g} ± {p.get('sigma') or 0:9.3g} "
                          f"{p.get('unit', '')}"
@@ -144,12 +179,17 @@ class ValidationReport:
             ident = "" if e.identified_rms is None else \
                 f" (identification: {e.identified_rms:.4g} {e.unit})"
             lines.append(f"{e.equation}: fit {e.fit_percent:.2f} %, residual RMS "
-                         f"{e.residual_rms:.4g} {e.unit}{ident}, R² {e.r2:.4f}, "
+                         f"{e.residual_rms:.4g} {e.unit}{ident}, R² {r2_text(e.r2)}, "
                          f"{e.samples} samples")
             if len(e.files) > 1:
+                lines.append(f"  per log, fit % is against that log's own spread of the "
+                             f"target (SD); a log that spreads less than all of them together "
+                             f"(SD {e.target_sd:.4g} {e.unit}) fits less at the same residual "
+                             f"RMS:")
                 for f in e.files:
                     lines.append(f"  {f.source}: fit {f.fit_percent:.2f} %, residual RMS "
-                                 f"{f.residual_rms:.4g} {e.unit}, {f.samples} samples")
+                                 f"{f.residual_rms:.4g} {e.unit}, target SD {f.target_sd:.4g} "
+                                 f"{e.unit}, {f.samples} samples")
             if e.regions:
                 lines.append("  where it fails:")
                 lines.extend(f"    - {r.text} ({share_text(r.share)} of the residual energy)"
@@ -161,7 +201,7 @@ class ValidationReport:
     __str__ = format
 
     def write_html(self, directory: str | os.PathLike[str]) -> Path:
-        """Write ``index.html`` and its PNG figures into ``directory`` (created).
+        """Write ``index.html`` and its SVG figures into ``directory`` (created).
 
         :raises ConfigError: matplotlib (the ``report`` extra) is not installed.
         :returns: the path of ``index.html``.
@@ -173,17 +213,18 @@ def _num(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
-def _fit(r: F64, y: F64) -> tuple[float, float, float]:
-    """(rms, fit %, R²) of residual ``r`` against target ``y``."""
+def _fit(r: F64, y: F64) -> tuple[float, float, float, float]:
+    """(rms, fit %, R², the target's standard deviation) of residual ``r`` against target
+    ``y``."""
     if not len(r):
-        return math.nan, math.nan, math.nan
+        return math.nan, math.nan, math.nan, math.nan
     dev = y - np.mean(y)
     nd = float(np.sqrt(np.dot(dev, dev)))
     nr = float(np.sqrt(np.dot(r, r)))
     rms = nr / math.sqrt(len(r))
     fit = 100.0 * (1.0 - nr / nd) if nd > 0 else math.nan
     r2 = 1.0 - (nr * nr) / (nd * nd) if nd > 0 else math.nan
-    return rms, fit, r2
+    return rms, fit, r2, nd / math.sqrt(len(r))
 
 
 def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
@@ -224,17 +265,19 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
         with np.errstate(over="ignore", invalid="ignore"):
             r = eq.target_to_physical(y - phi @ eq.to_normalised(theta))
         yt = eq.target_to_physical(y)
-        if not np.all(np.isfinite(r[used])):
+        with np.errstate(over="ignore"):
+            energy = float(np.dot(r[used], r[used]))
+        if not math.isfinite(energy):  # a value or its square beyond a double
             raise EstimatorError(
-                f"{model_file}: the saved parameters predict non-finite values of the "
-                f"{eq.name} equation's target (parameters of absurd size?)")
-        rms, fit, r2 = _fit(r[used], yt[used])
+                f"{model_file}: the saved parameters predict values of the {eq.name} "
+                f"equation's target too large for a double (parameters of absurd size?)")
+        rms, fit, r2, sd = _fit(r[used], yt[used])
         files = []
         for k, name in enumerate(names):
             a, b = int(bounds[k]), int(bounds[k + 1])
             u = used[a:b]
-            f_rms, f_fit, _ = _fit(r[a:b][u], yt[a:b][u])
-            files.append(FileFit(name, int(u.sum()), f_rms, f_fit))
+            f_rms, f_fit, _, f_sd = _fit(r[a:b][u], yt[a:b][u])
+            files.append(FileFit(name, int(u.sum()), f_rms, f_fit, f_sd))
         unit = eq.target.unit
         regions: tuple[Region, ...] = ()
         if used.any():
@@ -256,7 +299,7 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
             equation=eq.name, unit=unit, samples=int(used.sum()), residual_rms=rms,
             fit_percent=fit, r2=r2, identified_rms=None if ident is None else float(ident),
             files=tuple(files), regions=tuple(regions), target=eq.target.description,
-            traces=traces, bins=bins, bounds=tuple(int(b) for b in bounds)))
+            traces=traces, bins=bins, bounds=tuple(int(b) for b in bounds), target_sd=sd))
     return ValidationReport(model_file=model_file, sources=tuple(names),
                             identified_on=tuple(saved.sources), parameters=saved.parameters,
                             equations=tuple(out), frames=frames, period=period, start=start,
@@ -330,13 +373,13 @@ VALIDATE_CAPTIONS = {
     "timeline": "Measured against the saved model's prediction over time (no "
                 "re-estimation): the filtered target (black) and the prediction; below, the "
                 "residual. Time from the log's first sample.",
-    "speed": CAPTIONS["speed.png"],
-    "position": CAPTIONS["position.png"],
+    "speed": CAPTIONS["speed.svg"],
+    "position": CAPTIONS["position.svg"],
 }
 
 
 def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> Path:
-    """Write ``index.html`` and the PNG figures of ``report`` into ``directory``: per
+    """Write ``index.html`` and the SVG figures of ``report`` into ``directory``: per
     equation, per log the measured target against the prediction and the residual over
     time, and over all logs the residual binned by speed and (where logged) by position.
 
@@ -346,30 +389,39 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
     figs = figures_in(directory)
     out = figs.out
     sections = []
+
+    def add(figures: list[tuple[str, str, str]], name: str, caption: str, alt: str) -> None:
+        note = figs.notes.get(name)
+        figures.append((name, caption + (" " + note if note else ""), alt))
     for e in report.equations:
         if e.traces is None:
             continue
-        figures: list[tuple[str, str]] = []
+        figures: list[tuple[str, str, str]] = []
         for k, f in enumerate(e.files):
             a, b = e.bounds[k], e.bounds[k + 1]
             if not f.samples:
                 continue
             p = _Panel(e.equation, e.target, e.unit, f.fit_percent, f.residual_rms,
                        _slice(e.traces, a, b), e.bins)
-            name = figs.timeline(p, None, name=f"{e.equation}-timeline-{k + 1}.png",  # type: ignore[arg-type]
+            name = figs.timeline(p, None, name=f"{e.equation}-timeline-{k + 1}.svg",  # type: ignore[arg-type]
                                  label="saved, not re-estimated")
-            figures.append((name, f"{f.source}: {VALIDATE_CAPTIONS['timeline']}"))
+            add(figures, name, f"{f.source}: {VALIDATE_CAPTIONS['timeline']}",
+                f"{e.target} measured against the saved model's prediction over "
+                f"{f.source}: fit {f.fit_percent:.1f} %, residual RMS "
+                f"{value_text(f.residual_rms, e.unit)}; the residual below")
         whole = _Panel(e.equation, e.target, e.unit, e.fit_percent, e.residual_rms,
                        e.traces, e.bins)
-        if "speed" in e.bins:
-            figures.append((figs.binned(whole, None, "speed",  # type: ignore[arg-type]
-                                        name=f"{e.equation}-speed.png", label="saved model"),
-                            VALIDATE_CAPTIONS["speed"]))
-        if "position" in e.bins and e.traces.position is not None:
-            figures.append((figs.binned(whole, None, "position",  # type: ignore[arg-type]
-                                        name=f"{e.equation}-position.png",
-                                        label="saved model"),
-                            VALIDATE_CAPTIONS["position"]))
+        for q in ("speed", "position"):
+            if q not in e.bins or (q == "position" and e.traces.position is None):
+                continue
+            name = figs.binned(whole, None, q, name=f"{e.equation}-{q}.svg",  # type: ignore[arg-type]
+                               label="saved model")
+            mean = e.bins[q].mean
+            swing = float(np.nanmax(np.abs(mean))) if np.isfinite(mean).any() else math.nan
+            add(figures, name, VALIDATE_CAPTIONS[q],
+                f"Residual of the saved model against {q} over every log: the bin means "
+                f"reach {value_text(swing, e.unit)} (residual RMS "
+                f"{value_text(e.residual_rms, e.unit)})")
         sections.append((e, figures))
     page = out / "index.html"
     with atomic_writer(page, f"--report {out}: index.html") as f:

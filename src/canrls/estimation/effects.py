@@ -48,6 +48,7 @@ from canrls.core.c_escape import check_text
 from canrls.core.effect_names import EffectId, EquationId, parse_effect_name
 from canrls.core.errors import EffectError
 from canrls.estimation.expr import CompiledExpression, compile_expression
+from canrls.estimation.nonlinear import RecordSpan, SearchSpace, log_grid
 
 __all__ = [
     "Axis",
@@ -95,7 +96,7 @@ DEFAULT_PITCH = 1.0
 #: Keys :func:`parse_effect` accepts in ``options`` (each effect reads those it needs).
 OPTION_KEYS = frozenset({"axis", "pitch", "band", "speed", "terms"})
 #: Keys of one user term definition in ``options["terms"][NAME]``.
-TERM_KEYS = frozenset({"expr", "unit", "equation", "range"})
+TERM_KEYS = frozenset({"expr", "unit", "equation", "range", "search"})
 
 
 def target_unit(equation: str, axis: Axis = "rotary", kt_known: bool = True) -> str:
@@ -273,6 +274,10 @@ class Effect:
     EQUATION_TEXT: ClassVar[str] = ""
     #: How the absence of this effect shows in the residual.
     RESIDUAL_SIGNATURE: ClassVar[str] = ""
+    #: What a rise of its parameters (or the effect appearing) means on a drive in
+    #: service, what a fall means, and what to check: the fleet's alerts say these.
+    CHANGE_CAUSE: ClassVar[tuple[str, str]] = ("", "")
+    CHANGE_CHECK: ClassVar[str] = ""
     #: The parameters, one per column.
     COMPONENTS: ClassVar[tuple[Component, ...]] = ()
     #: Signal roles the effect reads.
@@ -331,6 +336,11 @@ class Effect:
     def columns(self) -> tuple[Column, ...]:
         """The raw regressor columns, one per parameter, in component order."""
         raise NotImplementedError
+
+    def search_space(self, span: RecordSpan) -> tuple[SearchSpace, ...]:
+        """The parameters of this effect that the regression cannot estimate linearly,
+        with the values a record spanning ``span`` can tell apart (none by default)."""
+        return ()
 
     def parameters(self, kt_known: bool = True) -> tuple[ParameterSpec, ...]:
         """The parameter this effect yields per column, with units for this axis."""
@@ -406,6 +416,9 @@ class Inertia(Effect):
     EQUATION_TEXT = "J * domega/dt"
     RESIDUAL_SIGNATURE = ("residual correlated with the acceleration domega/dt: largest "
                           "while speeding up or slowing down, zero at constant speed")
+    CHANGE_CAUSE = ("more inertia: a changed or added load, a coupling or gear replaced",
+                    "less inertia: a load removed or decoupled (a slipping or broken coupling)")
+    CHANGE_CHECK = "the load and its coupling; the speed loop, tuned on the old inertia"
     COMPONENTS = (Component("J", "moment of inertia", "moving mass",
                             Units("kg·m²", "kg", "A·s²/rad", "A·s²/m")),)
     REQUIRES = frozenset({"speed"})
@@ -428,6 +441,9 @@ class Viscous(Effect):
     EQUATION_TEXT = "B * omega"
     RESIDUAL_SIGNATURE = ("residual linear in speed and odd: proportional to omega, "
                           "changing sign with the direction")
+    CHANGE_CAUSE = ("more viscous friction: lubricant degraded, thickened or cold, a seal dragging",
+                    "less viscous friction: a warmer or thinner lubricant, a seal worn through")
+    CHANGE_CHECK = "the lubricant (grade, level, temperature) and the seals"
     COMPONENTS = (Component("B", "viscous friction coefficient",
                             "viscous friction coefficient",
                             Units("N·m·s/rad", "N·s/m", "A·s/rad", "A·s/m")),)
@@ -453,6 +469,9 @@ class Coulomb(Effect):
     EQUATION_TEXT = "Tc * tanh(omega / band)"
     RESIDUAL_SIGNATURE = ("a step in the residual at zero speed whose sign follows the "
                           "direction of motion, constant in magnitude away from zero")
+    CHANGE_CAUSE = ("more Coulomb friction: bearing or seal wear, lubrication",
+                    "less Coulomb friction: a seal worn through or a load lightened")
+    CHANGE_CHECK = "the bearings and seals, the lubrication"
     COMPONENTS = (Component("Tc", "Coulomb friction torque", "Coulomb friction force",
                             _TORQUE),)
     REQUIRES = frozenset({"speed"})
@@ -468,6 +487,15 @@ class Coulomb(Effect):
     def sgn(self, w: F64) -> F64:
         """The smoothed sign ``tanh(omega / band)``."""
         return np.tanh(w / self.band)  # type: ignore[no-any-return]
+
+    def search_space(self, span: RecordSpan) -> tuple[SearchSpace, ...]:
+        """The band, from half the speed noise to 16 times it (at most half the lowest
+        speed moved at, where the sign is no longer in doubt)."""
+        lo = 0.5 * span.speed_noise
+        hi = max(lo, min(16.0 * span.speed_noise, 0.5 * span.speed_high))
+        grid = log_grid(lo, hi) if lo > 0 else ()
+        return (SearchSpace("coulomb_band", "Coulomb band", span.speed_unit, grid,
+                            self.band),)
 
     def columns(self) -> tuple[Column, ...]:
         return (Column("Tc", False, lambda f: self.sgn(_need(f, "speed", self.name)),
@@ -489,6 +517,9 @@ class Stribeck(Effect):
     EQUATION_TEXT = "Ts * tanh(omega / band) * exp(-(omega / speed)**2)"
     RESIDUAL_SIGNATURE = ("a bump near zero speed, signed with the direction, decaying "
                           "with |omega| over the Stribeck speed")
+    CHANGE_CAUSE = ("more breakaway friction: stick-slip from lubrication or a guide contaminated",
+                    "less breakaway friction")
+    CHANGE_CHECK = "the lubrication at low speed, guides and ways"
     COMPONENTS = (Component("Ts", "Stribeck (breakaway) friction torque",
                             "Stribeck (breakaway) friction force", _TORQUE),)
     REQUIRES = frozenset({"speed"})
@@ -501,6 +532,18 @@ class Stribeck(Effect):
 
     def _options(self) -> tuple[tuple[str, Any], ...]:
         return (*super()._options(), ("band", self.band), ("speed", self.speed))
+
+    def search_space(self, span: RecordSpan) -> tuple[SearchSpace, ...]:
+        """The Stribeck speed, on a log grid over the speeds the record covers: not
+        below the band (a bump narrower than the smoothed sign is no bump), not above a
+        third of the median speed: at 3 ``speed`` the bump is down to 1e-4, and at
+        least half the record must lie beyond it, or a bump wider than the speeds moved
+        at, ``sgn(w) (1 - (w/speed)^2 ...)``, is Coulomb friction plus any odd
+        nonlinearity in speed (a fan load ``w |w|``)."""
+        lo, hi = max(span.speed_low, self.band), span.speed_mid / 3.0
+        grid = log_grid(lo, hi) if 0 < lo < hi else ()
+        return (SearchSpace("stribeck_speed", "Stribeck speed", span.speed_unit, grid,
+                            self.speed),)
 
     def shape(self, w: F64) -> F64:
         """``tanh(omega / band) * exp(-(omega / speed)^2)``."""
@@ -525,6 +568,10 @@ class Offset(Effect):
     EQUATION_TEXT = "T0"
     RESIDUAL_SIGNATURE = ("a constant non-zero mean of the residual, independent of "
                           "speed, direction and position")
+    CHANGE_CAUSE = ("a larger torque offset: a load that pulls one way (gravity, a process "
+                    "force) or a current-sensor offset",
+                    "a smaller torque offset")
+    CHANGE_CHECK = "the process load and the current sensor's zero"
     COMPONENTS = (Component("T0", "torque offset", "force offset", _TORQUE),)
     REQUIRES = frozenset()
 
@@ -569,6 +616,10 @@ class Unbalance(_Periodic):
     RESIDUAL_SIGNATURE = ("order 1 in position: the residual repeats once per revolution "
                           "(once per pitch on a linear axis), a peak at rotation order 1 "
                           "of the residual spectrum")
+    CHANGE_CAUSE = ("a new or larger once-per-revolution torque: an unbalance or an "
+                    "eccentric load, a mechanical change at order 1",
+                    "a once-per-revolution torque smaller")
+    CHANGE_CHECK = "the rotor and load for unbalance or eccentricity, the mounting"
     COMPONENTS = (Component("sin", "unbalance torque, sine component",
                             "unbalance force, sine component", _TORQUE),
                   Component("cos", "unbalance torque, cosine component",
@@ -595,6 +646,10 @@ class Cogging(_Periodic):
     EQUATION_TEXT = "Tk_sin * sin(k * theta) + Tk_cos * cos(k * theta)"
     RESIDUAL_SIGNATURE = ("a peak at rotation order k of the residual spectrum (k periods "
                           "per revolution, per pitch on a linear axis)")
+    CHANGE_CAUSE = ("a new or larger torque at this order of the revolution: a mechanical "
+                    "change at that order (a bearing, a gear mesh, a magnet)",
+                    "a torque at this order smaller")
+    CHANGE_CHECK = "the bearings and gears whose order matches, the magnets"
     COMPONENTS = (Component("sin", "cogging torque, sine component",
                             "cogging force, sine component", _TORQUE),
                   Component("cos", "cogging torque, cosine component",
@@ -636,6 +691,11 @@ class Electrical(Effect):
     RESIDUAL_SIGNATURE = ("in the voltage equation: a residual proportional to the current "
                           "(R), peaking at current steps (L, di/dt) and linear in speed "
                           "(Ke, back-EMF)")
+    CHANGE_CAUSE = ("a larger electrical parameter: a hotter or damaged winding, a loose "
+                    "connection",
+                    "a smaller electrical parameter: a short between turns, weakened magnets "
+                    "(back-EMF)")
+    CHANGE_CHECK = "the winding temperature and resistance, the connections, the magnets"
     COMPONENTS = (
         Component("R", "winding resistance", "winding resistance", Units("Ohm", "Ohm")),
         Component("L", "winding inductance", "winding inductance", Units("H", "H")),
@@ -666,7 +726,9 @@ class UserTerm(Effect):
     ``expr``. Options: ``expr`` (required), ``unit`` of ``f_u`` (default ``"1"``),
     ``equation`` (``"mechanical"`` default, or ``"electrical"``), ``range = [lo, hi]`` of
     ``f_u`` for normalisation (default: derived from the signal ranges by interval
-    arithmetic). Parameter ``user:NAME.c`` in the target unit divided by ``unit``.
+    arithmetic), ``search = {PARAM: [lo, hi]}`` (or ``{PARAM: value}``, kept): one free
+    parameter of ``expr`` that the regression cannot estimate linearly, searched by the
+    diagnosis. Parameter ``user:NAME.c`` in the target unit divided by ``unit``.
     """
 
     NAME = "user"
@@ -674,12 +736,15 @@ class UserTerm(Effect):
     EQUATION_TEXT = "c * f(signals)"
     RESIDUAL_SIGNATURE = ("the residual follows the user function f(signals): it "
                           "correlates with the term's own column")
+    CHANGE_CAUSE = ("the user term changed", "the user term changed")
+    CHANGE_CHECK = "what the user term models"
     COMPONENTS = (Component("c", "user term coefficient", "user term coefficient",
                             Units("N·m/unit", "N/unit", "A/unit", "A/unit")),)
     REQUIRES = frozenset()
 
     def __init__(self, term: str, *, expr: str, unit: str = "1", equation: str = MECHANICAL,
-                 range: tuple[float, float] | None = None, axis: Axis = "rotary",
+                 range: tuple[float, float] | None = None,
+                 search: Mapping[str, Any] | None = None, axis: Axis = "rotary",
                  pitch: float = DEFAULT_PITCH) -> None:
         super().__init__(axis=axis, pitch=pitch)
         if not isinstance(term, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", term):
@@ -705,12 +770,41 @@ class UserTerm(Effect):
                 raise EffectError(f"effect 'user:{term}': range = {range!r} must be "
                                   f"[lo, hi] with finite lo <= hi")
             self.range = (lo, hi)
-        self.expression: CompiledExpression = compile_expression(expr, name=term)
+        #: The free parameter: ``(name, (lo, hi))`` searched, or ``(name, value)`` set
+        #: in the configuration (kept); None without one.
+        self.free: tuple[str, tuple[float, float] | float] | None = _free_parameter(
+            term, search)
+        values = {} if self.free is None else {self.free[0]: self.free_value}
+        self.expression: CompiledExpression = compile_expression(expr, name=term,
+                                                                 parameters=values)
         self.expr = self.expression.text
+        if self.free is not None and self.free[0] not in self.expression.parameters:
+            raise EffectError(f"effect 'user:{term}': search names {self.free[0]!r}, which "
+                              f"the expression {self.expr!r} does not use")
+
+    @property
+    def free_value(self) -> float:
+        """The free parameter's value: the one set, else the middle of its range (in
+        log where the range keeps one sign)."""
+        assert self.free is not None
+        v = self.free[1]
+        if isinstance(v, tuple):
+            lo, hi = v
+            return math.copysign(math.sqrt(lo * hi), lo) if lo * hi > 0 else 0.5 * (lo + hi)
+        return v
 
     def _options(self) -> tuple[tuple[str, Any], ...]:
         return (*super()._options(), ("expr", self.expr), ("unit", self.unit),
-                ("equation", self._equation), ("range", self.range))
+                ("equation", self._equation), ("range", self.range), ("free", self.free))
+
+    def search_space(self, span: RecordSpan) -> tuple[SearchSpace, ...]:
+        """The free parameter over its configured ``[lo, hi]`` (none when set to a value)."""
+        if self.free is None:
+            return ()
+        p, v = self.free
+        grid = log_grid(*v) if isinstance(v, tuple) else ()
+        return (SearchSpace(f"{self.name}:{p}", f"{self.name} {p}", "", grid,
+                            self.free_value, not isinstance(v, tuple)),)
 
     @property
     def name(self) -> str:
@@ -746,6 +840,30 @@ class UserTerm(Effect):
 
         return (Column("c", False, lambda f: self.expression(f), rng,
                        reads=frozenset(self.expression.signals)),)
+
+
+def _free_parameter(term: str, search: Any) -> tuple[str, tuple[float, float] | float] | None:
+    """A user term's ``search``: one ``{NAME = [lo, hi]}`` (searched) or ``{NAME = value}``
+    (kept), checked."""
+    if search is None:
+        return None
+    what = f"effect 'user:{term}': search"
+    if not isinstance(search, Mapping) or len(search) != 1:
+        raise EffectError(f"{what} = {search!r} must be a table of one free parameter, "
+                          f"e.g. {{ c = [0.005, 0.5] }}")
+    (name, v), = search.items()
+
+    def real(x: Any) -> bool:
+        return (isinstance(x, int | float) and not isinstance(x, bool)
+                and math.isfinite(float(x)))
+
+    if isinstance(v, list | tuple) and len(v) == 2 and all(real(x) for x in v) \
+            and float(v[0]) < float(v[1]) and float(v[0]) * float(v[1]) > 0:
+        return str(name), (float(v[0]), float(v[1]))
+    if real(v):
+        return str(name), float(v)
+    raise EffectError(f"{what}.{name} = {v!r} must be [lo, hi] with finite lo < hi of one "
+                      f"sign (searched) or a number (kept)")
 
 
 _CLASSES: tuple[type[Effect], ...] = (Inertia, Viscous, Coulomb, Stribeck, Offset, Unbalance,
@@ -788,7 +906,8 @@ def parse_effect(spec: str, options: Mapping[str, Any] | None = None) -> Effect:
     :param options: shared options, each effect reading those it uses: ``axis``
         (``"rotary"``/``"linear"``), ``pitch`` [m], ``band`` (Coulomb/Stribeck smoothing),
         ``speed`` (Stribeck speed), ``terms`` (``{NAME: {"expr": ..., "unit": ...,
-        "equation": ..., "range": [lo, hi]}}`` for user terms).
+        "equation": ..., "range": [lo, hi], "search": {PARAM: [lo, hi]}}}`` for user
+        terms).
     :raises EffectError: unknown effect (the message lists the valid names), missing or
         bad order, undefined user term, or an invalid option value.
     """
@@ -817,7 +936,7 @@ def parse_effect(spec: str, options: Mapping[str, Any] | None = None) -> Effect:
                               f"valid keys: {sorted(TERM_KEYS)}")
         if "expr" not in t:
             raise EffectError(f"effect {spec!r}: term {arg!r} has no 'expr'")
-        kw = {k: t[k] for k in ("unit", "equation", "range") if k in t}
+        kw = {k: t[k] for k in ("unit", "equation", "range", "search") if k in t}
         return UserTerm(arg, expr=t["expr"], **kw, **common)
     if name.effect is EffectId.COULOMB:
         return Coulomb(**common, **{k: opts[k] for k in ("band",) if k in opts})

@@ -355,7 +355,9 @@ class RegressorBuilder:
         n = len(raw)
         if n == 0:
             return None
-        if math.isfinite(raw.sum()):  # a NaN or an infinity makes the sum one too
+        with np.errstate(over="ignore", invalid="ignore"):  # huge but finite: below
+            total = raw.sum()
+        if math.isfinite(total):  # a NaN or an infinity makes the sum one too
             np.copyto(self._last_finite, raw[-1])
             return None
         finite = np.isfinite(raw)
@@ -369,6 +371,25 @@ class RegressorBuilder:
             raw[:, j] = np.where(at >= 0, raw[np.maximum(at, 0), j], self._last_finite[j])
         self._last_finite = raw[-1].copy()
         return ~finite.all(axis=1)
+
+    def _check_finite(self, phi: F64, y: F64, t: F64) -> None:
+        """Refuse filtered values beyond a double (finite inputs whose filtered values
+        overflow: a ``kt`` of 1e308, a user term of ``exp(700)``), naming the column."""
+        if math.isfinite(y.sum()) and math.isfinite(phi.sum()):
+            return
+        eq = self.equation
+        bad_y = ~np.isfinite(y)
+        for j, bad in [(-1, bad_y), *enumerate((~np.isfinite(phi)).T)]:
+            if not bad.any():
+                continue
+            at = f"t = {float(t[int(np.argmax(bad))]):.6g} s"
+            if j < 0:
+                gain = (f"model.kt = {eq.target.gain:g}: " if eq.target.gain != 1.0 else "")
+                what = f"the target {eq.target.description} ({eq.target.unit})"
+            else:
+                gain, what = "", f"the column of {eq.parameters[j].name}"
+            raise ConfigError(f"{gain}{what} overflows a double once filtered (from {at}): "
+                              f"its values must stay far below 1e308")
 
     def _frame(self, signals: Any) -> Frame:
         eq = self.equation
@@ -462,7 +483,8 @@ class RegressorBuilder:
         tgt = frame.get(eq.target.signal)
         # target: Kt * i (torque), i, the reported torque T, or u
         if eq.target.gain != 1.0:
-            np.multiply(tgt, eq.target.gain, out=raw[:, 0])
+            with np.errstate(over="ignore"):  # an overflow is refused below, by name
+                np.multiply(tgt, eq.target.gain, out=raw[:, 0])
         else:
             raw[:, 0] = tgt
         for j, col in enumerate(eq.columns):
@@ -473,14 +495,17 @@ class RegressorBuilder:
             y = np.empty(n)
             phi = np.empty((n, eq.n))
             self.svf.process_scaled(raw, self._deriv, self._scale, y, phi)
-            return phi, y, frame.t, nonfinite
-        f, sf = self.svf.process(raw)
-        # value columns and target through F, derivative columns through sF
-        if self._deriv_idx.size:
-            f[:, self._deriv_idx] = sf[:, self._deriv_idx]
-        # exact power-of-two normalisation
-        np.ldexp(f, self._neg_exp, out=f)
-        return np.ascontiguousarray(f[:, 1:]), f[:, 0].copy(), frame.t, nonfinite
+        else:
+            f, sf = self.svf.process(raw)
+            # value columns and target through F, derivative columns through sF
+            if self._deriv_idx.size:
+                f[:, self._deriv_idx] = sf[:, self._deriv_idx]
+            # exact power-of-two normalisation
+            np.ldexp(f, self._neg_exp, out=f)
+            phi, y = np.ascontiguousarray(f[:, 1:]), f[:, 0].copy()
+        with np.errstate(over="ignore", invalid="ignore"):
+            self._check_finite(phi, y, frame.t)
+        return phi, y, frame.t, nonfinite
 
 
 #: Fewest rows within the speed limits on which :meth:`RegressorBuilder.noise_covariance`

@@ -218,6 +218,8 @@ class CompiledExpression:
     signals: tuple[str, ...]
     _eval: _Eval = field(repr=False, compare=False)
     _bound: _Bound = field(repr=False, compare=False)
+    #: The free parameters (:func:`compile_expression`) the expression reads.
+    parameters: tuple[str, ...] = ()
 
     def __call__(self, data: Mapping[str, npt.ArrayLike] | Any) -> F64:
         env: dict[str, Value] = {}
@@ -259,10 +261,13 @@ class CompiledExpression:
 
 
 class _Compiler:
-    def __init__(self, text: str, name: str, allowed: frozenset[str]) -> None:
+    def __init__(self, text: str, name: str, allowed: frozenset[str],
+                 parameters: Mapping[str, float]) -> None:
         self.text = text
         self.name = name
         self.allowed = allowed
+        self.parameters = parameters
+        self.used: set[str] = set()
         self.roles: set[str] = set()
         self.lines = text.splitlines() or [""]
 
@@ -353,8 +358,10 @@ class _Compiler:
 
     def compile_name(self, node: ast.Name) -> tuple[_Eval, _Bound, float | None]:
         nm = node.id
-        if nm in CONSTANTS:
-            c = CONSTANTS[nm]
+        if nm in CONSTANTS or nm in self.parameters:
+            c = CONSTANTS[nm] if nm in CONSTANTS else self.parameters[nm]
+            if nm not in CONSTANTS:
+                self.used.add(nm)
             cv = np.float64(c)
             return (lambda env: cv), (lambda rs: (c, c)), c
         if nm in SIGNAL_NAMES:
@@ -432,7 +439,8 @@ def _names(allowed: Iterable[str]) -> str:
 
 
 def compile_expression(text: str, *, name: str,
-                       allowed_names: Iterable[str] | None = None) -> CompiledExpression:
+                       allowed_names: Iterable[str] | None = None,
+                       parameters: Mapping[str, float] | None = None) -> CompiledExpression:
     """Parse and compile a user-term expression.
 
     :param text: the expression, e.g. ``"omega * abs(omega)"``.
@@ -440,6 +448,8 @@ def compile_expression(text: str, *, name: str,
     :param allowed_names: signal names the expression may use (a subset of
         :data:`SIGNAL_NAMES`, e.g. without ``u``/``voltage`` when the drive does not send
         voltage); default all of them.
+    :param parameters: free parameters of the term (``{"c": 0.05}``), read as constants
+        of these values; each name an identifier that is no signal, constant or function.
     :raises ExpressionError: the text does not parse or uses anything outside the
         whitelist; the message names the term, the token and its position.
     """
@@ -449,6 +459,14 @@ def compile_expression(text: str, *, name: str,
         raise ExpressionError(
             f"term {name!r}: allowed_names {sorted(unknown)} are not signal names "
             f"(known: {_names(DEFAULT_NAMES)})")
+    params = dict(parameters or {})
+    for p, v in params.items():
+        if (not isinstance(p, str) or not p.isidentifier() or p in SIGNAL_NAMES
+                or p in CONSTANTS or p in FUNCTIONS):
+            raise ExpressionError(f"term {name!r}: parameter name {p!r} must be an "
+                                  f"identifier that is no signal, constant or function")
+        if not math.isfinite(v):
+            raise ExpressionError(f"term {name!r}: parameter {p} = {v!r} must be finite")
     if not isinstance(text, str):
         raise ExpressionError(f"term {name!r}: expression must be a string, got {text!r}")
     if not text.strip():
@@ -470,10 +488,11 @@ def compile_expression(text: str, *, name: str,
             f"term {name!r}: syntax error at {where} in {text!r}: {e.msg}") from e
     except (RecursionError, MemoryError, ValueError) as e:
         raise ExpressionError(f"term {name!r}: expression cannot be parsed: {e}") from e
-    comp = _Compiler(text, name, allowed)
+    comp = _Compiler(text, name, allowed, params)
     try:
         ev, bd, _ = comp.compile(tree.body)
     except RecursionError as e:
         raise ExpressionError(f"term {name!r}: expression is nested too deeply") from e
     roles = tuple(r for r in _ROLE_ORDER if r in comp.roles)
-    return CompiledExpression(name=name, text=text, signals=roles, _eval=ev, _bound=bd)
+    return CompiledExpression(name=name, text=text, signals=roles, _eval=ev, _bound=bd,
+                              parameters=tuple(sorted(comp.used)))

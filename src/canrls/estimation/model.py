@@ -25,6 +25,7 @@ from canrls.estimation.effects import (
     DEFAULT_STRIBECK_SPEED,
     ELECTRICAL,
     MECHANICAL,
+    TERM_KEYS,
     Axis,
     Effect,
     ParameterSpec,
@@ -234,6 +235,20 @@ class Model:
         return self.kt is not None or self.target == "torque"
 
     @property
+    def per_ampere(self) -> bool:
+        """True when the model has a mechanical equation whose target is the raw current
+        (no Kt, no torque signal): its mechanical parameters are per ampere."""
+        return not self.torque_known and any(e.name == MECHANICAL for e in self.equations)
+
+    @property
+    def per_ampere_text(self) -> str:
+        """The one line that says so, and how to get N·m (N on a linear axis)."""
+        u = "N·m" if self.axis == "rotary" else "N"
+        return (f"units: no Kt and no torque signal, so the mechanical parameters are per "
+                f"ampere (A where {u} would be): multiply them by Kt [{u}/A] for {u}, or "
+                f"give --kt")
+
+    @property
     def effect_options(self) -> dict[str, Any]:
         """The shared options :func:`canrls.estimation.effects.parse_effect` builds effects with."""
         return {"axis": self.axis, "pitch": self.pitch, "band": self.coulomb_band,
@@ -266,11 +281,11 @@ class Model:
             if same:  # the generated C names parameters in capitals: they would collide
                 raise ConfigError(_fmt(src, f"{key}.name", name,
                                        f"differs from term {same[0]!r} only in case"))
-            bad = sorted(set(t) - {"expr", "unit", "equation", "range"})
+            bad = sorted(set(t) - TERM_KEYS)
             if bad:
                 raise ConfigError(_fmt(src, f"{key}.{bad[0]}", t[bad[0]],
-                                       "unknown key (valid: name, expr, unit, equation, "
-                                       "range)"))
+                                       "unknown key (valid: name, "
+                                       f"{', '.join(sorted(TERM_KEYS))})"))
             if not isinstance(t.get("expr"), str):
                 raise ConfigError(_fmt(src, f"{key}.expr", t.get("expr"),
                                        "required, a string expression"))
@@ -452,6 +467,19 @@ class Model:
         kw = self._kwargs()
         kw.update(values)
         kw["options_given"] = self.options_given | frozenset(values)
+        return Model([e.name for e in self.effects], **kw)
+
+    def with_search_value(self, key: str, value: float) -> Model:
+        """A new model with a searched parameter set (:class:`SearchSpace` ``key``: one of
+        :data:`DATA_OPTIONS`, or ``user:NAME:PARAM``, the free parameter of a term)."""
+        if key in DATA_OPTIONS:
+            return self.with_options(**{key: value})
+        term, _, param = key.removeprefix("user:").partition(":")
+        if term not in self.terms or not param:
+            raise ConfigError(f"{self.source}: with_search_value: {key!r} is no searched "
+                              f"parameter of this model")
+        kw = self._kwargs()
+        kw["terms"] = {**self.terms, term: {**self.terms[term], "search": {param: value}}}
         return Model([e.name for e in self.effects], **kw)
 
     def with_cutoff(self, cutoff_hz: float) -> Model:

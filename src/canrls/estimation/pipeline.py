@@ -165,7 +165,8 @@ class EquationEstimator:
         #: the weakest one at the start, which the fixed-point P format holds
         self._prior_floor = float(np.min(self.ridge))
         self.rls = RLS(n, lam=s.lam, alpha=self.ridge, trace_max=s.trace_max)
-        self.fixed_config = s.fixed_config(n, self.ridge)
+        # before a calibration (no energies) the prior is checked at its largest
+        self.fixed_config = s.fixed_config(n, None if energy is None else self.ridge)
         self.frls = FixedRLS(self.fixed_config, n, lam=s.lam, alpha=self.ridge,
                              trace_max=s.trace_max)
         #: the same equation through the filter at half the cutoff (None where that

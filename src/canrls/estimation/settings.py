@@ -11,7 +11,8 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.core.checks import check_lambda
-from canrls.core.errors import ConfigError
+from canrls.core.errors import ConfigError, FixedPointError
+from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import FixedConfig, QFormat
 
 __all__ = [
@@ -57,8 +58,9 @@ def exponent_for(x: float, headroom: float) -> int:
 
 
 #: The ridge weight ``alpha`` (the prior weighs like ``alpha`` samples of each column)
-#: from one billionth of a sample to a billion samples: P0 = diag(1/(alpha e_j)) then
-#: has a fixed-point format at any energy from ENERGY_FLOOR to 1.
+#: from one billionth of a sample to a billion samples. Within it, the fixed-point words
+#: set the lower end: P0 = diag(1/(alpha e_j)) must have a Q format
+#: (:meth:`EstimatorSettings.fixed_config` names the smallest alpha that has one).
 ALPHA_MIN, ALPHA_MAX = 1e-9, 1e9
 
 
@@ -160,9 +162,66 @@ class EstimatorSettings:
 
     def fixed_config(self, n: int, ridge: npt.ArrayLike | None = None) -> FixedConfig:
         """The automatic fixed-point configuration for ``n`` parameters (``ridge``: the
-        weights :math:`\alpha_j`, default ``alpha`` for all)."""
-        alpha = self.alpha if ridge is None else ridge
-        return FixedConfig.auto(n, alpha, self.lam, theta_max=self.theta_max,
-                                word_bits=self.word_bits, acc_bits=self.acc_bits,
-                                input_bits=self.input_bits, trace_max=self.trace_max,
-                                **dict(self.fixed_overrides))
+        weights :math:`\alpha_j`, default ``alpha`` for all, before the calibration).
+
+        The lower limit of ``alpha`` that ``--alpha``'s help states: P0 = diag(1/(alpha
+        e_j)) must have Q formats. Before the calibration it is checked with every
+        column at :data:`MIN_ENERGY`, the least energy a calibration gives (so the same
+        alpha is refused for any log, live or offline; with Q formats set in the
+        configuration, at the energies), after it at the energies found.
+
+        :raises FixedPointError: no Q formats; when a larger ``alpha`` would give them,
+            the message names the smallest.
+        """
+        if ridge is None:
+            flat = np.full(n, float(self.alpha))
+            if not self.fixed_overrides:  # formats a user set are checked as they are
+                self._formats(n, flat * MIN_ENERGY)  # the calibrated prior at its largest
+            return self._formats(n, flat)
+        return self._formats(n, np.asarray(ridge, dtype=np.float64))
+
+    def _formats(self, n: int, ridge: F64) -> FixedConfig:
+        """:meth:`_auto`, its error naming the smallest alpha when alpha is the cause."""
+        try:
+            return self._auto(n, ridge)
+        except FixedPointError as e:
+            smallest = self._smallest_alpha(n, ridge)
+            if smallest is None:  # not the prior's size: the formats say what
+                raise
+            raise FixedPointError(
+                f"estimator.alpha = {self.alpha!r}: too small for the fixed-point words: "
+                f"the smallest is {smallest:.2g} here (P0 = diag(1/(alpha e_j)) of these "
+                f"{n} parameters needs a Q format in {self.word_bits}-bit words; or raise "
+                f"fixed.word_bits): {e}") from e
+
+    def _auto(self, n: int, ridge: npt.ArrayLike) -> FixedConfig:
+        """:meth:`FixedConfig.auto`, checked by building the kernel it plans (P0 and the
+        plan's shifts are limits of the formats too)."""
+        cfg = FixedConfig.auto(n, ridge, self.lam, theta_max=self.theta_max,
+                               word_bits=self.word_bits, acc_bits=self.acc_bits,
+                               input_bits=self.input_bits, trace_max=self.trace_max,
+                               **dict(self.fixed_overrides))
+        FixedRLS(cfg, n, lam=self.lam, alpha=ridge, trace_max=self.trace_max)
+        return cfg
+
+    def _smallest_alpha(self, n: int, ridge: F64) -> float | None:
+        """The smallest ``alpha`` (two significant digits, rounded up) whose ridge, in
+        proportion to ``ridge``, has Q formats; None when not even :data:`ALPHA_MAX` has."""
+        def fits(alpha: float) -> bool:
+            try:
+                self._auto(n, ridge * (alpha / float(self.alpha)))
+            except FixedPointError:
+                return False
+            return True
+
+        lo, hi = math.log(float(self.alpha)), math.log(ALPHA_MAX)
+        if not fits(ALPHA_MAX):
+            return None
+        for _ in range(60):  # bisection in log alpha: the formats grow with 1/alpha
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if fits(math.exp(mid)) else (mid, hi)
+        smallest = math.exp(hi)
+        shown = float(f"{smallest:.1e}")
+        while shown < smallest or not fits(shown):
+            shown = float(f"{shown + 10 ** (math.floor(math.log10(shown)) - 1):.1e}")
+        return shown

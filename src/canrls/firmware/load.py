@@ -26,7 +26,6 @@ from canrls.processor.period import control_period
 
 __all__ = ["Source", "load", "target_model"]
 
-#: the control period when neither the model, the DBC nor ``--dt`` says it [s]
 
 @dataclass
 class Source:
@@ -48,7 +47,8 @@ class Source:
 def load(path: str | Path, dt: float | None = None) -> Source:
     """A saved model (``.json``) or a configuration (TOML); ``dt`` [s] overrides the
     control period (:func:`~canrls.processor.period.control_period`: else the saved
-    model's, the DBC's cycle time, or 1 ms). The one loader of a model to export."""
+    model's, the DBC's cycle time, or
+    :data:`~canrls.processor.period.DEFAULT_PERIOD`). The one loader of a model to export."""
     from canrls.processor.modelfile import SavedModel
 
     path = Path(path)

@@ -389,6 +389,22 @@ def _messages(protocol: Protocol) -> tuple[tuple[Message, ...], dict[str, Field]
     return tuple(msgs), roles
 
 
+def _check_own_ids(protocol: Protocol) -> None:
+    """Refuse a drive's frame on the ID of one of canrls' own frames, which the target
+    sends (or receives, the command): it would take its own publications as feedback."""
+    from canrls.can.estimator_frames import frame_ids
+
+    own = frame_ids().own
+    for m in protocol.messages:
+        if not m.is_extended and m.frame_id in own:
+            roles = ", ".join(r.role for r in m.roles) or "E2E signals"
+            raise ConfigError(
+                f"DBC {protocol.dbc_path}: message {m.name} (0x{m.frame_id:X}: {roles}) has "
+                f"the ID of canrls' {own[m.frame_id]}: the target would take its own frames "
+                f"as the drive's; give the drive's message another ID, or export with "
+                f"--frames none (the firmware then sends the estimate itself)")
+
+
 def _scale(protocol: Protocol, role: str, bias: int = 0) -> tuple[Fraction, Fraction]:
     """``(k, o)``: SI value of one raw unit and the offset in raw units of ``role``
     (``bias``: what the field holds less, :attr:`Field.bias`)."""
@@ -642,6 +658,8 @@ def build(model: Model, protocol: Protocol, settings: EstimatorSettings, dt: flo
 
     :raises TargetError: something the target does not do (the message says what).
     """
+    if frames:
+        _check_own_ids(protocol)
     dt_ticks = _ticks(dt, tick_s)
     messages, roles = _messages(protocol)
     pipe = Pipeline(model, dt, settings, energy, pending)

@@ -11,6 +11,7 @@ replays through ``canrls_target_frame`` and compares word for word: the host tes
 
 from __future__ import annotations
 
+import collections
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,11 +47,13 @@ def log_frames(paths: Iterable[str | Path], tick_s: float = 1e-6) -> Iterator[Fr
     """The frames of logs, times in ticks from the first frame (``round((t - t0) /
     tick_s)`` modulo 2^32); error and remote frames are not passed on (the target never
     sees them: its CAN controller filters them)."""
-    from canrls.can.logs import read_frames
+    from canrls.can.logs import empty_log_error, read_frames
 
     t0: float | None = None
     for path in paths:
+        read = 0
         for b in read_frames(path):
+            read += len(b)
             if not len(b):
                 continue
             if t0 is None:
@@ -61,6 +64,8 @@ def log_frames(paths: Iterable[str | Path], tick_s: float = 1e-6) -> Iterator[Fr
                 t = round((float(b.t[k]) - t0) / tick_s) & MASK32
                 yield (t, int(b.arbitration_id[k]), bool(b.is_extended[k]),
                        bytes(b.data[k, :b.dlc[k]]))
+        if not read:  # refused as canrls fit refuses it
+            raise empty_log_error(path)
 
 
 def state_record(est: TargetEstimator) -> list[int]:
@@ -82,13 +87,23 @@ def record(model: TargetModel, frames: Iterable[Frame], every: int = 1000,
     and after the last frame, every publication's frames."""
     est = TargetEstimator(model)
     v = Vectors(source=source, every=every)
+    mapped = {(m.id, m.extended) for m in model.messages}
+    seen: collections.Counter[int] = collections.Counter()
     for k, (t, fid, ext, data) in enumerate(frames):
+        if not mapped.isdisjoint(((fid, ext),)):
+            mapped = set()  # one mapped frame came: no more counting
+        elif mapped:
+            seen[fid] += 1
         v.frames.append((t, fid, ext, data))
         r = est.frame(fid, ext, data, t)
         if r & PUBLISH:
             v.publications.append((k, est.publish()))
         if r & SAMPLE and est.samples % every == 0:
             v.checkpoints.append((k, state_record(est)))
+    if mapped:  # none of the frames is a mapped message: refused as canrls fit refuses it
+        from canrls.processor.frames import unmapped_error
+
+        raise unmapped_error(model.protocol, len(v.frames), seen.most_common(8))
     if v.frames and (not v.checkpoints or v.checkpoints[-1][0] != len(v.frames) - 1):
         v.checkpoints.append((len(v.frames) - 1, state_record(est)))
     v.samples = est.samples

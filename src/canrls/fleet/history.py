@@ -10,13 +10,17 @@ so a recording is never stored twice. The tables: docs/fleet.md, "The history".
 from __future__ import annotations
 
 import datetime
+import functools
 import math
 import os
-from collections.abc import Iterable, Iterator, Sequence
+import re
+import time
+import urllib.parse
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from canrls.core.errors import ConfigError
 from canrls.fleet.records import (
@@ -27,12 +31,18 @@ from canrls.fleet.records import (
 )
 
 __all__ = ["History", "HistoryURL", "require_sqlalchemy", "METADATA", "HEAD_REVISION",
-           "MIGRATIONS"]
+           "MIGRATIONS", "NOT_A_HISTORY"]
+
+T = TypeVar("T")
 
 #: the directory of the Alembic migrations (shipped in the package)
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 #: the schema revision this canrls writes
 HEAD_REVISION = "0001"
+#: the longest a SQLite history waits for another writer's lock [s]
+BUSY_TIMEOUT_S = 60.0
+#: the PostgreSQL advisory lock a migration holds (a constant of this application)
+SCHEMA_LOCK = 0x63616E726C73  # "canrls"
 
 
 def require_sqlalchemy() -> Any:
@@ -125,46 +135,124 @@ METADATA = _Lazy()
 class HistoryURL:
     """Where a history lives, parsed once from what a user typed (:meth:`parse`): the one
     reading of a history's URL for the daemon's ``[history]``, ``canrls fleet`` and
-    :meth:`History.open`."""
+    :meth:`History.open`, with what messages may show of it (:attr:`shown`)."""
 
     #: the SQLAlchemy URL (``sqlite:///...``, ``postgresql+psycopg://...``)
     url: str
-    #: the SQLite database file (None: PostgreSQL, or SQLite in memory)
+    #: the SQLite database file (None: PostgreSQL)
     sqlite_path: Path | None
+    #: what the user typed (a path or a URL), as messages name the history
+    given: str
 
     @classmethod
     def parse(cls, text: str | os.PathLike[str]) -> HistoryURL:
         """A URL (``sqlite:///f.db``, ``postgresql://user@host/db``; PostgreSQL through
         psycopg) or a file path (SQLite).
 
-        :raises ConfigError: an empty path, or another kind of database.
+        :raises ConfigError: an empty path, another kind of database, a URL that does not
+            parse (a port that is not a number), or an in-memory SQLite database (it keeps
+            nothing).
         """
         s = str(text)
         if "://" not in s:
             if not s:
                 raise ConfigError("history: an empty database path")
             path = Path(s).expanduser().absolute()
-            return cls("sqlite:///" + str(path), path)
+            return cls("sqlite:///" + str(path), path, s)
         scheme, _, rest = s.partition("://")
         base = scheme.split("+", 1)[0].lower()
         if base in ("postgresql", "postgres"):
-            return cls("postgresql+psycopg://" + rest, None)
-        if base == "sqlite":
-            # sqlite:///relative.db, sqlite:////absolute.db, sqlite:// (in memory); the
-            # query (?timeout=...) is the driver's
-            db = rest[1:].partition("?")[0] if rest.startswith("/") else ""
-            return cls(s, Path(db) if db and db != ":memory:" else None)
-        raise ConfigError(f"history: {scheme}:// databases are not supported (SQLite: a file "
-                          f"path or sqlite:///FILE; PostgreSQL: postgresql://USER@HOST/DB)")
+            full = "postgresql+psycopg://" + rest
+        elif base == "sqlite":
+            full = s
+        else:
+            raise ConfigError(f"history: {scheme[:40]}:// databases are not supported "
+                              f"(SQLite: a file path or sqlite:///FILE; PostgreSQL: "
+                              f"postgresql://USER@HOST/DB)")
+        sa = require_sqlalchemy()
+        try:
+            url = sa.engine.make_url(full)
+            url.port  # noqa: B018  (parsed here: a port that is not a number raises)
+        except (sa.exc.ArgumentError, ValueError) as e:
+            raise ConfigError(f"history {cls.redact(s)}: not a database URL "
+                              f"({cls.scrub(_first_line(e), s)})") from None
+        if base != "sqlite":
+            return cls(full, None, s)
+        # sqlite:///relative.db, sqlite:////absolute.db; the query (?timeout=...) is the
+        # driver's, no part of the file
+        db = url.database
+        if not db or db == ":memory:" or url.query.get("mode") == "memory" or (
+                db.startswith("file:") and "mode=memory" in db):
+            raise ConfigError(f"history {cls.redact(s)}: an in-memory database keeps "
+                              f"nothing (give a file: a path or sqlite:///FILE)")
+        return cls(full, Path(db), s)
 
     @property
     def shown(self) -> str:
-        """The URL without its password, for messages."""
-        scheme, sep, rest = self.url.partition("://")
-        if "@" in rest:
-            cred, _, host = rest.rpartition("@")
-            return f"{scheme}{sep}{cred.split(':', 1)[0]}@{host}"
-        return self.url
+        """The history as messages name it: as the user gave it, without its secrets."""
+        return self.redact(self.given)
+
+    @staticmethod
+    def redact(text: str) -> str:
+        """``text`` (a URL, parsed or not) with its secrets replaced by ``***``: the
+        password of ``user:password@`` and every query parameter named like a password,
+        key or token."""
+        scheme, sep, rest = text.partition("://")
+        if not sep:
+            return text
+        head, q, query = rest.partition("?")
+        if "@" in head:
+            cred, _, host = head.rpartition("@")
+            user, colon, _ = cred.partition(":")
+            head = f"{user}{':***' if colon else ''}@{host}"
+        if q:
+            query = "&".join(
+                f"{k}=***" if _SECRET.search(k) and eq else f"{k}{eq}{v}"
+                for k, eq, v in (item.partition("=") for item in query.split("&")))
+        return f"{scheme}{sep}{head}{q}{query}"
+
+    @staticmethod
+    def scrub(message: str, text: str) -> str:
+        """``message`` (a driver's error about the URL ``text``) without its secrets."""
+        scheme, sep, rest = text.partition("://")
+        head, _, query = rest.partition("?")
+        secrets = []
+        if "@" in head:
+            secrets.append(head.rpartition("@")[0].partition(":")[2])
+        for item in query.split("&"):
+            k, _, v = item.partition("=")
+            if _SECRET.search(k):
+                secrets.append(v)
+        for x in sorted(filter(None, secrets), key=len, reverse=True):
+            message = message.replace(x, "***")
+        return message
+
+
+#: query parameters of a URL whose values are secrets
+_SECRET = re.compile(r"pass|pwd|secret|token|key", re.IGNORECASE)
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(getattr(e, "orig", None) or e).strip()
+    return (text.splitlines() or [type(e).__name__])[0][:300]
+
+
+#: what a history that is not canrls's, or whose file is damaged, is called in errors
+NOT_A_HISTORY = "not a canrls history, or damaged"
+
+
+def _guarded(method: Callable[..., T]) -> Callable[..., T]:
+    """``method`` of :class:`History` with the database's errors as one
+    :class:`ConfigError` naming the history (its password removed)."""
+
+    @functools.wraps(method)
+    def guarded(self: History, *args: Any, **kw: Any) -> T:
+        try:
+            return method(self, *args, **kw)
+        except require_sqlalchemy().exc.DBAPIError as e:
+            raise self._error(e) from e
+
+    return guarded
 
 
 def _num(x: float | None) -> float | None:
@@ -190,6 +278,7 @@ class History:
 
     def __init__(self, engine: Any, where: HistoryURL) -> None:
         self.engine = engine
+        #: where it lives (its URL, its SQLite file, and how messages name it)
         self.where = where
         self._md = METADATA()
         self._drive_ids: dict[str, int] = {}
@@ -197,44 +286,90 @@ class History:
 
     # ------------------------------------------------------------------ opening
     @classmethod
-    def open(cls, url: str | os.PathLike[str], *, upgrade: bool = True) -> History:
+    def open(cls, url: str | os.PathLike[str], *, upgrade: bool = True,
+             read_only: bool = False) -> History:
         """Connect to the history at ``url`` (:meth:`HistoryURL.parse`) and bring its schema
         to :data:`HEAD_REVISION` (``upgrade=False``: refuse an older schema instead).
+        ``read_only``: never write (a report; a SQLite history this user cannot write is
+        read as it is on disk).
 
-        :raises ConfigError: the database cannot be reached or created, or its schema is
-            newer than this canrls.
+        :raises ConfigError: the database cannot be reached or created, is not a canrls
+            history or is damaged, or its schema is newer than this canrls.
         """
-        sa = require_sqlalchemy()
         where = HistoryURL.parse(url)
+        path = where.sqlite_path
+        if path is not None and not path.parent.is_dir():
+            raise ConfigError(f"history {where.shown}: directory {path.parent} does not "
+                              f"exist")
+        if path is not None and read_only:
+            try:
+                return cls._open(where, False, _read_only_url(path, "mode=ro"))
+            except ConfigError as e:
+                if not isinstance(e.__cause__, require_sqlalchemy().exc.OperationalError):
+                    raise
+            # no -shm can be made beside it: read the file as it is
+            return cls._open(where, False, _read_only_url(path, "immutable=1"))
+        return cls._open(where, upgrade and not read_only, None)
+
+    @classmethod
+    def _open(cls, where: HistoryURL, upgrade: bool, read_only: str | None) -> History:
+        """:meth:`open` of ``where`` (``read_only``: the URL of a read-only SQLite file)."""
+        sa = require_sqlalchemy()
         kw: dict[str, Any] = {}
-        if where.url.startswith("sqlite"):
-            kw["connect_args"] = {"timeout": 60}
-            if where.sqlite_path is not None and not where.sqlite_path.parent.is_dir():
-                raise ConfigError(f"history {url}: directory {where.sqlite_path.parent} "
-                                  f"does not exist")
+        if where.sqlite_path is not None:
+            kw["connect_args"] = {"timeout": BUSY_TIMEOUT_S}
         try:
-            engine = sa.create_engine(where.url, **kw)
-        except (ImportError, sa.exc.ArgumentError) as e:
-            raise ConfigError(f"history {url}: {e}") from e
+            engine = sa.create_engine(read_only or where.url, **kw)
+        except (ImportError, sa.exc.ArgumentError, ValueError) as e:
+            raise ConfigError(f"history {where.shown}: "
+                              f"{where.scrub(_first_line(e), where.url)}") from e
         if engine.dialect.name == "sqlite":
             @sa.event.listens_for(engine, "connect")
             def _pragmas(dbapi_conn: Any, record: Any) -> None:
                 cur = dbapi_conn.cursor()
                 cur.execute("PRAGMA foreign_keys=ON")
-                cur.execute("PRAGMA journal_mode=WAL")
-                cur.execute("PRAGMA busy_timeout=60000")
+                cur.execute(f"PRAGMA busy_timeout={int(BUSY_TIMEOUT_S * 1000)}")
                 cur.close()
         self = cls(engine, where)
         try:
             self._migrate(upgrade)
-        except sa.exc.OperationalError as e:
+            if engine.dialect.name == "sqlite" and read_only is None:
+                self._wal()
+        except sa.exc.DBAPIError as e:
             engine.dispose()
-            raise ConfigError(f"history {where.shown}: cannot open the database "
-                              f"({str(e.orig).strip().splitlines()[0]})") from e
+            raise self._error(e) from e
         except BaseException:
             engine.dispose()
             raise
         return self
+
+    def _wal(self) -> None:
+        """SQLite's write-ahead log (readers beside the writer), set once the file is
+        known to be a history: the mode stays in the file, another program's database is
+        never changed. The switch does not wait for a lock as statements do: it is
+        retried while other creators of a new history hold one (up to the busy timeout)."""
+        sa = require_sqlalchemy()
+        deadline = time.monotonic() + BUSY_TIMEOUT_S
+        with self.engine.connect() as conn:
+            while conn.exec_driver_sql("PRAGMA journal_mode").scalar() != "wal":
+                try:
+                    conn.exec_driver_sql("PRAGMA journal_mode=WAL")
+                except sa.exc.OperationalError as e:
+                    if "locked" not in str(e.orig) or time.monotonic() > deadline:
+                        raise
+                    time.sleep(0.01)
+
+    def _error(self, e: Any) -> ConfigError:
+        """A database error as one line naming the history: a damaged or foreign SQLite
+        file is :data:`NOT_A_HISTORY`."""
+        sa = require_sqlalchemy()
+        why = self.where.scrub(_first_line(e), self.where.url)
+        damaged = self.engine.dialect.name == "sqlite" and (
+            not isinstance(e, sa.exc.OperationalError)
+            or any(w in why for w in ("malformed", "no such table", "no such column")))
+        if damaged:
+            return ConfigError(f"history {self.where.shown}: {NOT_A_HISTORY} ({why})")
+        return ConfigError(f"history {self.where.shown}: cannot use the database ({why})")
 
     def revision(self) -> str | None:
         """The schema revision the database is at (None: an empty database)."""
@@ -246,30 +381,73 @@ class History:
     def _migrate(self, upgrade: bool) -> None:
         from alembic import command
         from alembic.config import Config
+        from alembic.runtime.migration import MigrationContext
         from alembic.script import ScriptDirectory
 
         cfg = Config()
         cfg.set_main_option("script_location", str(MIGRATIONS))
         heads = ScriptDirectory.from_config(cfg).get_heads()
         current = self.revision()
-        if current in heads:
+        if current not in heads:
+            known = {s.revision for s in ScriptDirectory.from_config(cfg).walk_revisions()}
+            if current is not None and current not in known:
+                raise ConfigError(f"history {self.where.shown}: schema revision {current!r} "
+                                  f"is newer than this canrls knows (up to {heads[0]!r}): "
+                                  f"upgrade canrls")
+            if not upgrade:
+                if current is None:
+                    raise ConfigError(f"history {self.where.shown}: {NOT_A_HISTORY} (no "
+                                      f"schema revision)")
+                raise ConfigError(f"history {self.where.shown}: schema revision "
+                                  f"{current!r}, this canrls needs {heads[0]!r}")
+            # one creator at a time: the others wait, then find it made
+            with self._schema_lock() as conn:
+                current = MigrationContext.configure(conn).get_current_revision()
+                if current is None:
+                    self._refuse_foreign(conn)
+                if current not in heads:
+                    cfg.attributes["connection"] = conn
+                    command.upgrade(cfg, "head")
+        self._check_tables()
+
+    @contextmanager
+    def _schema_lock(self) -> Iterator[Any]:
+        """A connection holding the database's write lock for a migration: SQLite's
+        ``BEGIN IMMEDIATE`` (its DDL then in the one transaction), PostgreSQL's
+        transaction-scoped advisory lock."""
+        sa = require_sqlalchemy()
+        if self.engine.dialect.name == "sqlite":
+            with self.engine.connect() as raw:
+                conn = raw.execution_options(isolation_level="AUTOCOMMIT")
+                conn.exec_driver_sql("BEGIN IMMEDIATE")
+                try:
+                    yield conn
+                except BaseException:
+                    conn.exec_driver_sql("ROLLBACK")
+                    raise
+                conn.exec_driver_sql("COMMIT")
             return
-        known = {s.revision for s in ScriptDirectory.from_config(cfg).walk_revisions()}
-        if current is not None and current not in known:
-            raise ConfigError(f"history {self.where.shown}: schema revision {current!r} is "
-                              f"newer than this canrls knows (up to {heads[0]!r}): "
-                              f"upgrade canrls")
-        if current is not None and not upgrade:
-            raise ConfigError(f"history {self.where.shown}: schema revision {current!r}, "
-                              f"this canrls needs {heads[0]!r}")
-        try:
-            with self.engine.begin() as conn:
-                cfg.attributes["connection"] = conn
-                command.upgrade(cfg, "head")
-        except Exception:
-            if self.revision() in heads:  # another process upgraded it meanwhile
-                return
-            raise
+        with self.engine.begin() as conn:
+            conn.execute(sa.select(sa.func.pg_advisory_xact_lock(SCHEMA_LOCK)))
+            yield conn
+
+    def _refuse_foreign(self, conn: Any) -> None:
+        """An unversioned database with tables of this schema, or a SQLite file with any
+        table, is not an empty history: it is not changed."""
+        sa = require_sqlalchemy()
+        tables = set(sa.inspect(conn).get_table_names())
+        ours = tables & set(self._md.tables)
+        if ours or (tables and self.engine.dialect.name == "sqlite"):
+            raise ConfigError(f"history {self.where.shown}: {NOT_A_HISTORY} (tables "
+                              f"{', '.join(sorted(tables)[:5])} without a schema revision)")
+
+    def _check_tables(self) -> None:
+        sa = require_sqlalchemy()
+        with self.engine.connect() as conn:
+            missing = set(self._md.tables) - set(sa.inspect(conn).get_table_names())
+        if missing:
+            raise ConfigError(f"history {self.where.shown}: {NOT_A_HISTORY} (no table "
+                              f"{', '.join(sorted(missing))})")
 
     def close(self) -> None:
         self.engine.dispose()
@@ -300,6 +478,7 @@ class History:
         cache[key] = int(got)
         return cache[key]
 
+    @_guarded
     def store(self, recordings: Iterable[Recording]) -> list[int | None]:
         """Insert ``recordings`` in one transaction, each unless its (content hash, model)
         is there already; returns each one's new row id, or None where it was there."""
@@ -339,6 +518,7 @@ class History:
                          "suggested": bool(c.suggested)} for c in r.candidates])
         return out
 
+    @_guarded
     def add_candidates(self, recording_id: int, candidates: Sequence[CandidateValue]) -> None:
         """Store the candidate ranking of a recording stored without one (a ranking
         already there is kept)."""
@@ -352,6 +532,7 @@ class History:
                     suggested=bool(c.suggested))
                     .on_conflict_do_nothing(index_elements=["recording_id", "rank"]))
 
+    @_guarded
     def forget_errors(self, model_key: str) -> int:
         """Delete the error rows of ``model_key`` (so their logs are tried again); returns
         how many."""
@@ -367,6 +548,7 @@ class History:
             return int(res.rowcount or 0)
 
     # ------------------------------------------------------------------ reading
+    @_guarded
     def known_hashes(self, model_key: str) -> set[str]:
         """Content hashes stored (fitted or as errors) for ``model_key``."""
         t = self._md.tables
@@ -376,6 +558,7 @@ class History:
         with self.engine.connect() as conn:
             return {row[0] for row in conn.execute(q)}
 
+    @_guarded
     def models(self) -> list[tuple[str, str, int]]:
         """``(key, description, recordings)`` of every model in the history."""
         sa = require_sqlalchemy()
@@ -387,6 +570,7 @@ class History:
         with self.engine.connect() as conn:
             return [(k, d, int(n)) for k, d, n in conn.execute(q)]
 
+    @_guarded
     def count(self, *, status: str | None = None) -> int:
         sa = require_sqlalchemy()
         r = self._md.tables["recordings"]
@@ -396,6 +580,7 @@ class History:
         with self.engine.connect() as conn:
             return int(conn.execute(q).scalar_one())
 
+    @_guarded
     def recordings(self, *, model_key: str | None = None, drive: str | None = None,
                    status: str | None = None) -> list[Recording]:
         """The recordings (with parameters and candidates), by drive and start time."""
@@ -463,3 +648,8 @@ def _chunks(xs: Sequence[int], n: int) -> Iterator[Sequence[int]]:
     for i in range(0, len(xs), n):
         yield xs[i:i + n]
 
+
+def _read_only_url(path: Path, how: str) -> str:
+    """A SQLAlchemy URL opening the SQLite file ``path`` read-only (``how``:
+    ``mode=ro``, or ``immutable=1`` where no -shm file can be made beside it)."""
+    return f"sqlite:///file:{urllib.parse.quote(str(path))}?{how}&uri=true"

@@ -40,8 +40,8 @@ from canrls.fleet.records import (
 from canrls.fleet.sources import LogSource
 from canrls.processor.config import AppConfig, Overrides, load_config, prepare
 
-__all__ = ["JobConfig", "IngestJob", "IngestSummary", "Ranker", "content_hash", "ingest",
-           "ingest_one", "hash_or_none", "model_key", "RANK_MODES"]
+__all__ = ["JobConfig", "IngestJob", "IngestSummary", "Duplicate", "Ranker", "content_hash",
+           "ingest", "ingest_one", "hash_or_none", "model_key", "RANK_MODES"]
 
 log = logging.getLogger(__name__)
 
@@ -269,6 +269,23 @@ def rank_one(path: str, config: JobConfig, max_order: int,
 
 
 @dataclass(frozen=True)
+class Duplicate:
+    """A log listed again, under ``drive``, with the content of one listed before it
+    (``owner_path`` of ``owner``): stored once, under the first listed."""
+
+    path: str
+    drive: str
+    owner_path: str
+    owner: str
+
+    def format(self) -> str:
+        under = (f"listed again for drive {self.owner}" if self.drive == self.owner else
+                 f"listed for drive {self.drive}")
+        return (f"{self.path} ({under}) is the same log as {self.owner_path}: stored once, "
+                f"under drive {self.owner}")
+
+
+@dataclass(frozen=True)
 class IngestSummary:
     """What an ingest did."""
 
@@ -287,11 +304,14 @@ class IngestSummary:
     #: each worker's peak resident memory [bytes] (Dask only)
     worker_peak_rss: Mapping[str, int] = field(default_factory=dict)
     error_rows: tuple[tuple[str, str], ...] = ()
+    #: logs whose content another listed log has (stored once, under the first listed)
+    duplicates: tuple[Duplicate, ...] = ()
 
     def format(self) -> str:
         rate = self.total / self.elapsed_s * 60.0 if self.elapsed_s > 0 else math.nan
         lines = [f"{self.total} logs: {self.stored} stored, {self.skipped} already in the "
                  f"history, {self.errors} errors"
+                 + (f", {len(self.duplicates)} duplicates" if self.duplicates else "")
                  + (f", {self.already} stored meanwhile by another run" if self.already else "")
                  + (f", {len(self.failed)} not finished (rerun to take them)"
                     if self.failed else "")
@@ -301,6 +321,10 @@ class IngestSummary:
         if self.ranked:
             lines.append(f"candidate effects ranked on {self.ranked} recordings around "
                          f"residual changes")
+        for d in self.duplicates[:20]:
+            lines.append(f"  duplicate: {d.format()}")
+        if len(self.duplicates) > 20:
+            lines.append(f"  ... and {len(self.duplicates) - 20} more duplicates")
         for _, why in self.error_rows[:20]:
             lines.append(f"  error: {why}")
         if len(self.error_rows) > 20:
@@ -314,6 +338,7 @@ class IngestSummary:
                 "errors": self.errors, "already": self.already,
                 "failed": [{"path": p, "reason": r} for p, r in self.failed],
                 "error_rows": [{"path": p, "error": r} for p, r in self.error_rows],
+                "duplicates": [dataclasses.asdict(d) for d in self.duplicates],
                 "ranked": self.ranked, "elapsed_s": self.elapsed_s, "workers": self.workers,
                 "worker_peak_rss": dict(self.worker_peak_rss)}
 
@@ -362,9 +387,12 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
     if rank not in RANK_MODES:
         raise ValueError(f"rank {rank!r} not one of {RANK_MODES}")
     t0 = time.monotonic()
+    rejected = [(src.path, src.error) for src in sources if src.error]
     jobs: list[IngestJob] = []
     keys: dict[JobConfig, tuple[str, str]] = {}
     for src in sources:
+        if src.error:
+            continue
         cfg = config.for_source(src)
         if cfg not in keys:
             keys[cfg] = model_key(cfg)
@@ -377,13 +405,23 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
             history.forget_errors(key)
     known = {key: frozenset(history.known_hashes(key)) for key, _ in set(keys.values())}
     store = _Store(history)
-    skipped = 0
     failed: list[tuple[str, str]] = []
-    done = 0
     use_ranker = ranker if rank == "all" else None
+    # first the hashes (a read of each log, on the workers): the logs the history holds
+    # are not fitted again, and a log listed twice is fitted once
+    paths = [j.source.path for j in jobs]
+    if client is None:
+        hashes = [hash_or_none(p) for p in paths]
+    else:
+        hashes = client.gather(client.map(hash_or_none, paths, pure=False), errors="raise")
+    todo, duplicates = _plan(jobs, hashes, known)
+    skipped = done = len(jobs) - len(todo) - len(duplicates)
+    done += len(duplicates)
+    if progress is not None and done:
+        progress(done, len(jobs))
     try:
         if client is None:
-            for job in jobs:
+            for job in todo:
                 rec = ingest_one(job, known[job.key], use_ranker)
                 if rec is None:
                     skipped += 1
@@ -395,19 +433,6 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
         else:
             from distributed import as_completed
 
-            # first the hashes (a read of each log, on the workers): the logs the history
-            # holds are not sent to be fitted at all
-            hashes = client.gather(client.map(hash_or_none, [j.source.path for j in jobs],
-                                              pure=False), errors="raise")
-            todo = []
-            for job, digest in zip(jobs, hashes, strict=True):
-                if digest is not None and digest in known[job.key]:
-                    skipped += 1
-                    done += 1
-                else:
-                    todo.append(job)
-            if progress is not None and done:
-                progress(done, len(jobs))
             futures = {client.submit(ingest_one, job, None, use_ranker, pure=False): job
                        for job in todo}
             try:
@@ -443,10 +468,35 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
     if client is not None:
         peaks = worker_peak_rss(client)
         workers = len(peaks)
-    return IngestSummary(total=len(jobs), stored=store.stored, skipped=skipped,
-                         errors=store.errors, already=store.already, failed=tuple(failed),
-                         ranked=ranked, elapsed_s=time.monotonic() - t0, workers=workers,
-                         worker_peak_rss=peaks, error_rows=tuple(store.error_rows))
+    return IngestSummary(total=len(sources), stored=store.stored, skipped=skipped,
+                         errors=store.errors + len(rejected), already=store.already,
+                         failed=tuple(failed), ranked=ranked,
+                         elapsed_s=time.monotonic() - t0, workers=workers,
+                         worker_peak_rss=peaks,
+                         error_rows=tuple(rejected) + tuple(store.error_rows),
+                         duplicates=tuple(duplicates))
+
+
+def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],
+          known: Mapping[str, frozenset[str]]) -> tuple[list[IngestJob], list[Duplicate]]:
+    """The jobs to run: not those whose content the history holds for their model, and
+    of the logs with one content (a log listed twice, a copy under another name) only
+    the first listed; the others are returned as :class:`Duplicate`."""
+    todo: list[IngestJob] = []
+    duplicates: list[Duplicate] = []
+    first: dict[tuple[str, str], IngestJob] = {}
+    for job, digest in zip(jobs, hashes, strict=True):
+        if digest is not None and digest in known[job.key]:
+            continue
+        if digest is not None:
+            owner = first.setdefault((job.key, digest), job)
+            if owner is not job:
+                duplicates.append(Duplicate(path=job.source.path, drive=job.source.drive,
+                                            owner_path=owner.source.path,
+                                            owner=owner.source.drive))
+                continue
+        todo.append(job)
+    return todo, duplicates
 
 
 def _peak_rss() -> int:

@@ -15,12 +15,12 @@ value. Errors name the manifest, the line and the field.
 from __future__ import annotations
 
 import csv
-import glob
 import math
 import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
@@ -29,6 +29,9 @@ __all__ = ["LogSource", "from_pattern", "from_manifest", "MANIFEST_FIELDS"]
 
 #: the columns a manifest may have (``path`` and ``drive`` required)
 MANIFEST_FIELDS = ("path", "drive", "type", "dbc", "config", "kt", "effects", "signals")
+
+#: the longest cell of a manifest (a path's limit on Linux)
+MAX_CELL = 4096
 
 _FIELD = re.compile(r"\{(drive|type)\}")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.:+-]{0,127}$")
@@ -47,12 +50,15 @@ class LogSource:
     kt: float | None = None
     effects: str | None = None
     signals: tuple[str, ...] = field(default_factory=tuple)
+    #: why this log cannot be ingested (a drive or type name a pattern found that is not
+    #: a valid name): an error row of the ingest's summary, never stored
+    error: str | None = None
 
 
 def check_name(value: str, what: str, where: str) -> str:
     """A drive or type name: letters, digits and ``_ . : + -``, up to 128 characters."""
     if not _NAME.match(value):
-        raise ConfigError(f"{where}: {what} {value!r}: must be 1 to 128 letters, digits or "
+        raise ConfigError(f"{where}: {what} {_clip(value)}: must be 1 to 128 letters, digits or "
                           f"'_.:+-' (starting with a letter or digit)")
     return value
 
@@ -60,42 +66,150 @@ def check_name(value: str, what: str, where: str) -> str:
 def from_pattern(pattern: str) -> list[LogSource]:
     """The logs a pattern with a ``{drive}`` field matches, sorted by path.
 
+    Wildcards as the shell's: ``*``, ``?``, ``[...]`` (``[!...]`` negated) within one
+    component, ``**`` any number of directories; a name starting with ``.`` only where
+    the pattern says ``.``. A directory reached again (a link back up the tree, two links
+    to one place) is not walked twice. A file whose field is not a valid drive or type
+    name is kept with its :attr:`LogSource.error` (an error row, never stored).
+
     :raises ConfigError: no ``{drive}`` field, a field twice, or no file matches.
     """
     names = _FIELD.findall(pattern)
     if "drive" not in names:
-        raise ConfigError(f"pattern {pattern!r}: needs a {{drive}} field, e.g. "
+        raise ConfigError(f"pattern {_clip(pattern)}: needs a {{drive}} field, e.g. "
                           f"'logs/{{drive}}/*.log' (or use --manifest)")
     if len(set(names)) != len(names):
-        raise ConfigError(f"pattern {pattern!r}: each field may appear once")
-    wild = _FIELD.sub("*", pattern)
-    # the fields as regex groups, the rest as the glob means it (* ? within a component)
-    rx = ""
-    for part in re.split(r"(\{drive\}|\{type\}|\*\*|\*|\?)", pattern):
-        if part == "{drive}":
-            rx += r"(?P<drive>[^/]+?)"
-        elif part == "{type}":
-            rx += r"(?P<type>[^/]+?)"
-        elif part == "**":
-            rx += r".*"
-        elif part == "*":
-            rx += r"[^/]*"
-        elif part == "?":
-            rx += r"[^/]"
-        else:
-            rx += re.escape(part)
-    full = re.compile(rx + r"$")
+        raise ConfigError(f"pattern {_clip(pattern)}: each field may appear once")
+    parts = pattern.split("/")
+    first = 0
+    while first < len(parts) - 1 and not _MAGIC.search(parts[first]):
+        first += 1
+    root = "/".join(parts[:first])
+    if pattern.startswith("/") and not root:
+        root = "/"
+    comps = [p if p == "**" else _component(p) for p in parts[first:]]
+    found: dict[str, dict[str, str]] = {}
+    _walk(root, comps, 0, {}, found, set())
     out = []
-    for path in sorted(glob.glob(wild, recursive=True)):
-        m = full.match(path)
-        if m is None or not os.path.isfile(path):
+    for path in sorted(found):
+        fields = found[path]
+        try:
+            drive = check_name(fields["drive"], "drive", path)
+            dtype = check_name(fields["type"], "type", path) if "type" in names else ""
+        except ConfigError as e:
+            out.append(LogSource(path=path, drive=fields["drive"],
+                                 drive_type=fields.get("type", ""), error=str(e)))
             continue
-        drive = check_name(m.group("drive"), "drive", path)
-        dtype = check_name(m.group("type"), "type", path) if "type" in names else ""
         out.append(LogSource(path=path, drive=drive, drive_type=dtype))
     if not out:
-        raise ConfigError(f"pattern {pattern!r}: no file matches")
+        raise ConfigError(f"pattern {_clip(pattern)}: no file matches")
     return out
+
+
+#: a component with a wildcard or a field (the walk starts above the first one)
+_MAGIC = re.compile(r"[*?\[{]")
+
+
+def _component(part: str) -> re.Pattern[str]:
+    """One path component of a pattern as a regex: the fields as named groups, the
+    wildcards as the shell means them."""
+    rx = "" if part.startswith(".") else r"(?!\.)"
+    i = 0
+    while i < len(part):
+        m = _FIELD.match(part, i)
+        c = part[i]
+        if m is not None:
+            rx += rf"(?P<{m.group(1)}>.+?)"
+            i = m.end()
+            continue
+        if c == "*":
+            rx += ".*"
+        elif c == "?":
+            rx += "."
+        elif c == "[" and (j := _class_end(part, i)) > 0:
+            body = part[i + 1:j]
+            neg = body.startswith("!")
+            body = body[1:] if neg else body
+            rx += "[" + ("^" if neg else "") + body.replace("\\", "\\\\").replace(
+                "^", "\\^") + "]"
+            i = j + 1
+            continue
+        else:
+            rx += re.escape(c)
+        i += 1
+    return re.compile(rx + r"\Z", re.DOTALL)
+
+
+def _class_end(part: str, i: int) -> int:
+    """The index of the ``]`` closing the class that opens at ``part[i]`` (-1: none, the
+    ``[`` is a character like the others)."""
+    j = i + 1
+    if j < len(part) and part[j] == "!":
+        j += 1
+    if j < len(part) and part[j] == "]":
+        j += 1
+    j = part.find("]", j)
+    return j
+
+
+def _walk(top: str, comps: list[Any], i: int, fields: dict[str, str],
+          found: dict[str, dict[str, str]], seen: set[tuple[int, int, int]]) -> None:
+    """Match ``comps[i:]`` below directory ``top`` (``""``: the working directory),
+    adding each file to ``found`` with its fields; ``seen`` holds the directories walked
+    (device, inode, component), so that a link loop or two links to one place end."""
+    try:
+        st = os.stat(top or ".")
+        key = (st.st_dev, st.st_ino, i)
+        if key in seen:
+            return
+        seen.add(key)
+        with os.scandir(top or ".") as it:
+            entries = sorted(it, key=lambda e: e.name)
+    except OSError:  # unreadable or gone: nothing there to match
+        return
+    comp = comps[i]
+    last = i == len(comps) - 1
+    if comp == "**":
+        if last:
+            return
+        _walk(top, comps, i + 1, fields, found, seen)
+        for e in entries:
+            if not e.name.startswith(".") and _is_dir(e):
+                _walk(_join(top, e.name), comps, i, fields, found, seen)
+        return
+    for e in entries:
+        m = comp.match(e.name)
+        if m is None:
+            continue
+        got = {**fields, **{k: v for k, v in m.groupdict().items() if v is not None}}
+        if last:
+            if _is_file(e):
+                found.setdefault(_join(top, e.name), got)
+        elif _is_dir(e):
+            _walk(_join(top, e.name), comps, i + 1, got, found, seen)
+
+
+def _join(top: str, name: str) -> str:
+    return name if not top else (top + name if top.endswith("/") else f"{top}/{name}")
+
+
+def _is_dir(e: os.DirEntry[str]) -> bool:
+    try:
+        return e.is_dir()
+    except OSError:
+        return False
+
+
+def _is_file(e: os.DirEntry[str] | Path) -> bool:
+    try:
+        return e.is_file()
+    except (OSError, ValueError):  # a name too long for the system, a NUL in it
+        return False
+
+
+def _clip(text: str, n: int = 120) -> str:
+    """``text`` quoted, cut to ``n`` characters (an error line stays a line)."""
+    return repr(text) if len(text) <= n else repr(text[:n]) + f"... ({len(text)} characters)"
 
 
 def from_manifest(path: str | os.PathLike[str]) -> list[LogSource]:
@@ -107,7 +221,8 @@ def from_manifest(path: str | os.PathLike[str]) -> list[LogSource]:
     p = Path(path)
     base = p.resolve().parent
     try:
-        f = open(p, newline="", encoding="utf-8")
+        # utf-8-sig: a spreadsheet's CSV starts with a byte order mark
+        f = open(p, newline="", encoding="utf-8-sig")
     except OSError as e:
         raise ConfigError(f"{p}: cannot read the manifest ({e.strerror or e})") from e
     out = []
@@ -117,7 +232,7 @@ def from_manifest(path: str | os.PathLike[str]) -> list[LogSource]:
             header = reader.fieldnames or []
             unknown = [h for h in header if h not in MANIFEST_FIELDS]
             if unknown:
-                raise ConfigError(f"{p}: line 1: unknown column {unknown[0]!r} (valid: "
+                raise ConfigError(f"{p}: line 1: unknown column {_clip(unknown[0])} (valid: "
                                   f"{', '.join(MANIFEST_FIELDS)})")
             for col in ("path", "drive"):
                 if col not in header:
@@ -132,10 +247,15 @@ def from_manifest(path: str | os.PathLike[str]) -> list[LogSource]:
                 for col in ("path", "drive"):
                     if not cells.get(col):
                         raise ConfigError(f"{where}: field {col!r} is empty")
+                for col, v in cells.items():
+                    if len(v) > MAX_CELL:
+                        raise ConfigError(f"{where}: field {_clip(col)}: {len(v)} characters "
+                                          f"(at most {MAX_CELL})")
                 log = Path(cells["path"])
                 log = log if log.is_absolute() else base / log
-                if not log.is_file():
-                    raise ConfigError(f"{where}: field 'path': {cells['path']!r}: no such file")
+                if not _is_file(log):
+                    raise ConfigError(f"{where}: field 'path': {_clip(cells['path'])}: no such "
+                                      f"file")
 
                 def rel(name: str, w: str = where, c: dict[str, str] = cells) -> str | None:
                     v = c.get(name)
@@ -143,8 +263,8 @@ def from_manifest(path: str | os.PathLike[str]) -> list[LogSource]:
                         return None
                     q = Path(v)
                     q = q if q.is_absolute() else base / q
-                    if not q.is_file():
-                        raise ConfigError(f"{w}: field {name!r}: {v!r}: no such file")
+                    if not _is_file(q):
+                        raise ConfigError(f"{w}: field {name!r}: {_clip(v)}: no such file")
                     return str(q)
 
                 kt = None
@@ -154,7 +274,7 @@ def from_manifest(path: str | os.PathLike[str]) -> list[LogSource]:
                     except ValueError:
                         kt = math.nan
                     if not is_positive(kt):
-                        raise ConfigError(f"{where}: field 'kt': {cells['kt']!r} must be a "
+                        raise ConfigError(f"{where}: field 'kt': {_clip(cells['kt'])} must be a "
                                           f"positive number")
                 signals = tuple(s for s in re.split(r"[;\s]+", cells.get("signals", "")) if s)
                 out.append(LogSource(

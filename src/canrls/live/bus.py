@@ -29,6 +29,7 @@ import numpy as np
 from canrls.can.estimator_frames import frame_ids
 from canrls.can.frameblock import FrameBlock
 from canrls.core.errors import BusError, ConfigError
+from canrls.live.journal import JOURNAL
 from canrls.live.settings import DaemonSettings
 from canrls.live.socketcan import (
     SocketcanReceiver,
@@ -538,7 +539,7 @@ class BusLink:
     def reopen(self, stopping: threading.Event) -> None:
         """Close the failed bus and open it again, with backoff, until it opens or
         ``stopping`` is set."""
-        log.warning("CAN bus %s failed (%s): reopening", self.info(), self._fail_exc)
+        JOURNAL.warning("fault: CAN bus %s failed (%s): reopening", self.info(), self._fail_exc)
         self.close()
         delay = self.config.reopen_min_s
         while not stopping.is_set():
@@ -551,7 +552,7 @@ class BusLink:
                 delay = min(delay * 2.0, self.config.reopen_max_s)
                 continue
             self.counts["bus_reopens"] += 1
-            log.info("CAN bus reopened: %s", self.info())
+            JOURNAL.info("fault ended: CAN bus reopened: %s", self.info())
             return
 
     # ------------------------------------------------------------------ transmit
@@ -592,11 +593,11 @@ class BusLink:
             self.bus_off = False  # no error frame for fault_hold_s: recovered
         if self._fault_active and not self.paused(now):
             self._fault_active = False
-            log.info("CAN bus fault cleared: transmission resumed")
+            JOURNAL.info("CAN bus fault cleared: transmission resumed")
 
     def _fault(self, now: float, why: str) -> None:
         if not self._fault_active:
-            log.warning("CAN bus fault (%s): transmission paused", why)
+            JOURNAL.warning("fault: CAN bus fault (%s): transmission paused", why)
         self._fault_active = True
         self._fault_until = now + self.config.fault_hold_s
 

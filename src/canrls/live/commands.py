@@ -101,6 +101,8 @@ class CommandHandler:
     :param check_model: raises a :class:`~canrls.core.errors.CanrlsError` for a changed model
         that cannot be published (the frames are rehearsed); called before ``set_model``.
     :param bucket: the rate limit of valid commands (None: none).
+    :param save_model: writes the running model and its estimates (SAVE_MODEL; None:
+        ``[daemon] saved_model`` is not set, the command is not applicable).
     :param clock: the time the bucket is filled by [s].
     """
 
@@ -111,6 +113,7 @@ class CommandHandler:
                  max_parameters: int | None = None,
                  check_model: Callable[[Model], None] | None = None,
                  bucket: TokenBucket | None = None,
+                 save_model: Callable[[], object] | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.processor = processor
         self.enabled = enabled
@@ -120,6 +123,7 @@ class CommandHandler:
         self.max_parameters = max_parameters
         self.check_model = check_model
         self.bucket = bucket
+        self.save_model = save_model
         self.clock = clock
         #: commands, commands_rejected, and one count per result name (``ok``, ...)
         self.counts: collections.Counter[str] = collections.Counter()
@@ -197,6 +201,14 @@ class CommandHandler:
                 pipe.set_lambda(cmd.lam)
             except ConfigError as e:
                 raise CommandFrameError(str(e), CommandResult.BAD_VALUE, int(c)) from e
+        elif c is CommandCode.SAVE_MODEL:
+            if self.save_model is None:
+                raise CommandFrameError("no [daemon] saved_model to write the model to", na,
+                                        int(c))
+            try:
+                self.save_model()
+            except CanrlsError as e:  # no estimates yet, or the file cannot be written
+                raise CommandFrameError(f"save_model: {e}", na, int(c)) from e
         else:
             model = self._changed_model(cmd)
             self._check(cmd, model)

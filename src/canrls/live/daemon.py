@@ -34,7 +34,7 @@ from canrls.can.estimator_frames import ParameterReport, StatusReport
 from canrls.can.frameblock import FrameBlock
 from canrls.can.protocol import Protocol
 from canrls.can.writers import open_writer
-from canrls.core.errors import ConfigError
+from canrls.core.errors import CommandError, ConfigError
 from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
@@ -43,12 +43,14 @@ from canrls.live.bus import BusLink, FrameQueue, command_rows, messages_to_block
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
 from canrls.live.history import HistoryHook
+from canrls.live.journal import JOURNAL, Journal
 from canrls.live.publisher import Publisher, check_publishable
 from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.live.settings import DaemonSettings
 from canrls.live.tuning import interpreter
 from canrls.processor import FrameProcessor
+from canrls.processor.config import AppConfig
 
 __all__ = ["Daemon", "DaemonStats", "make_processor"]
 
@@ -121,6 +123,8 @@ class Daemon:
         been sent)`` (benchmarks).
     :param history: offered the estimates after each publication, closed at stop
         (``[history]``: :class:`~canrls.live.history.HistoryHook`).
+    :param configuration: what produced the model, kept in the file the command
+        ``save_model`` writes to ``[daemon] saved_model`` (default: none recorded).
     """
 
     def __init__(self, protocol: Protocol, model: Model,
@@ -132,7 +136,8 @@ class Daemon:
                  notifier: SystemdNotifier | None = None,
                  backpressure: bool = False,
                  on_publish: Callable[[int, float], None] | None = None,
-                 history: HistoryHook | None = None) -> None:
+                 history: HistoryHook | None = None,
+                 configuration: AppConfig | None = None) -> None:
         if bus is None and bus_factory is None:
             raise ConfigError("Daemon: give the bus arguments (bus=...) or a bus_factory")
         self.protocol = protocol
@@ -183,10 +188,33 @@ class Daemon:
                              describe=str(bus_args or "bus"))
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
         self._history = history
+        self._configuration = configuration or AppConfig(source="<canrls run>")
+        self._journal = Journal()
         self._commands = CommandHandler(
             proc, cfg.commands, self._link.send, self._set_model, self._publisher.clear_rms,
             max_parameters=cfg.max_parameters, check_model=self._check_model,
-            bucket=TokenBucket(cfg.command_rate, cfg.command_burst))
+            bucket=TokenBucket(cfg.command_rate, cfg.command_burst),
+            save_model=None if cfg.saved_model is None else self._save_model)
+
+    def _save_model(self) -> Path:
+        """The command ``save_model``: the running model and its estimates written to
+        ``[daemon] saved_model`` as ``canrls fit --save-model`` writes them (in the
+        estimator thread, under its lock)."""
+        from canrls.processor.modelfile import SavedModel
+
+        proc, path = self._proc, self.config.saved_model
+        assert path is not None
+        if proc.calibration is None:
+            raise CommandError("the calibration window has not ended: nothing is "
+                               "estimated yet")
+        saved = SavedModel.from_parts(proc.model, proc.pipeline.estimates(), proc.calibration,
+                                      self._configuration, ["<canrls run>"])
+        period = proc.period_info().value
+        if saved.calibration is not None and period:
+            saved.calibration["period"] = float(period)
+        out = saved.save(path)
+        log.info("save_model: the running model written to %s", out)
+        return out
 
     def _check_model(self, model: Model, what: str = "the model") -> None:
         """:func:`~canrls.live.publisher.check_publishable` with ``[daemon] max_parameters``."""
@@ -331,6 +359,8 @@ class Daemon:
             self._threads.append(t)
         log.info("canrls daemon running on %s: effects %s, %d parameters", self._link.info(),
                  ",".join(self.model.effect_names), len(self.model.parameters))
+        if self.model.per_ampere:
+            log.warning("%s", self.model.per_ampere_text)
 
     def stop(self) -> None:
         """Stop reading, process what was queued, publish that state, checkpoint, close
@@ -444,6 +474,8 @@ class Daemon:
         """An exception ended a thread: logged, kept (:attr:`failure`), the daemon stops."""
         log.critical("%s thread failed; stopping the daemon (exit status 1)", where,
                      exc_info=exc)
+        JOURNAL.error("fault: the %s thread failed (%s: %s); stopping", where,
+                      type(exc).__name__, exc)
         if self.failure is None:
             self.failure = exc
         self._stop_flag()
@@ -518,6 +550,7 @@ class Daemon:
                 last = closed and not q.queue
                 if pub.due(now) or last:  # the last: the state the daemon stops in
                     pub.publish(now)
+                    self._journal.published(self._link.info(), self.model, pub.last_status)
                     if self._history is not None:
                         self._history.offer(now, self._proc.pipeline.estimates, final=last)
                 if ckpt.due(now):
@@ -565,8 +598,7 @@ class Daemon:
     def _set_model(self, model: Model, why: str) -> None:
         self._proc.with_model(model)
         self._publisher.model_changed()
-        log.info("%s: model is now %s (%d parameters; estimation restarts)", why,
-                 ",".join(model.effect_names), len(model.parameters))
+        self._journal.model_changed(model, why)
 
     def _reload(self) -> None:
         self._c["reloads"] += 1

@@ -217,6 +217,10 @@ class MonitorView:
     __str__ = format
 
 
+#: the commands a tool can send, as :func:`parse_command_text` reads them
+COMMAND_WORDS = "reset, freeze, resume, add EFFECT, remove EFFECT, lambda L, save"
+
+
 def _num(x: float | None, valid: bool = True) -> str:
     if x is None or not valid:
         return "-"
@@ -367,16 +371,15 @@ def parse_command_text(text: str) -> tuple[CommandCode, EffectId, int, float]:
 
     words = text.strip().split()
     if not words:
-        raise ConfigError("empty command (reset, freeze, resume, add EFFECT, remove EFFECT, "
-                          "lambda L)")
+        raise ConfigError(f"empty command ({COMMAND_WORDS})")
     verb = words[0].lower().replace("-", "_")
-    aliases = {"add": "add_effect", "remove": "remove_effect", "lambda": "set_lambda"}
+    aliases = {"add": "add_effect", "remove": "remove_effect", "lambda": "set_lambda",
+               "save": "save_model"}
     verb = aliases.get(verb, verb)
     try:
         code = CommandCode[verb.upper()]
     except KeyError:
-        raise ConfigError(f"unknown command {words[0]!r} (reset, freeze, resume, add EFFECT, "
-                          f"remove EFFECT, lambda L)") from None
+        raise ConfigError(f"unknown command {words[0]!r} ({COMMAND_WORDS})") from None
     if code in (CommandCode.ADD_EFFECT, CommandCode.REMOVE_EFFECT):
         if len(words) != 2:
             raise ConfigError(f"{text!r}: {verb} needs one effect, e.g. '{words[0]} cogging:6'")

@@ -62,6 +62,8 @@ DAEMON_KEYS: dict[str, str] = {
     "divergence_limit": "float-vs-fixed divergence above which the Diverged flag is set",
     "record": "log file of every frame received (python-can writer by suffix: .log, .asc, .blf)",
     "model_file": "TOML file whose [model] replaces the configuration's (re-read on SIGHUP)",
+    "saved_model": "file the command save_model writes the running model to, as canrls fit "
+                   "--save-model does (canrls tune --model reads it; '' or absent: none)",
     "switch_interval": "Python's thread switch interval while running, seconds (0: leave it)",
 }
 
@@ -99,6 +101,7 @@ class DaemonSettings:
     divergence_limit: float = 0.1
     record: Path | None = None
     model_file: Path | None = None
+    saved_model: Path | None = None
     switch_interval: float = 0.001
 
     def __post_init__(self) -> None:
@@ -199,7 +202,7 @@ class DaemonSettings:
         return cls.from_table(cfg.daemon, cfg.source, cfg.base_dir)
 
 
-_PATH_KEYS = ("checkpoint", "record", "model_file")
+_PATH_KEYS = ("checkpoint", "record", "model_file", "saved_model")
 
 
 def resolve_path(value: str, base_dir: Path | None) -> Path:

@@ -17,6 +17,7 @@ from canrls.can.protocol import Protocol
 from canrls.core.checks import positive_period
 from canrls.core.errors import CheckpointError, ConfigError
 from canrls.core.samples import ROLES, Signals
+from canrls.core.units import si_unit
 from canrls.estimation.estimates import PipelineBlock
 from canrls.estimation.model import DATA_OPTIONS, Model
 from canrls.estimation.pipeline import Pipeline
@@ -128,6 +129,9 @@ class Calibration:
     defaults : the model's options scaled from the window (:func:`data_defaults`)
     pending : ``{equation: names}`` the window showed nothing of (:class:`WindowScaling`)
     noise : the measurement noise of each signal on the window (:func:`measure_noise`)
+    peaks : the largest magnitude of each signal on the window (SI units of ``axis``):
+        what the data showed, from which the scaling comes
+    axis : the model's axis (``"rotary"`` or ``"linear"``), for the units of ``peaks``
     """
 
     t_start: float
@@ -141,6 +145,8 @@ class Calibration:
     defaults: dict[str, float] = field(default_factory=dict)
     pending: dict[str, tuple[str, ...]] = field(default_factory=dict)
     noise: dict[str, float] = field(default_factory=dict)
+    peaks: dict[str, float] = field(default_factory=dict)
+    axis: str = "rotary"
 
     def to_dict(self) -> dict[str, Any]:
         return {"window": {"t_start": self.t_start, "t_end": self.t_end,
@@ -151,7 +157,7 @@ class Calibration:
                 "energy": {k: list(v) for k, v in self.energy.items()},
                 "alpha": self.alpha, "defaults": dict(self.defaults),
                 "pending": {k: list(v) for k, v in self.pending.items()},
-                "noise": dict(self.noise)}
+                "noise": dict(self.noise), "peaks": dict(self.peaks), "axis": self.axis}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Calibration:
@@ -169,14 +175,21 @@ class Calibration:
                    defaults={k: float(v) for k, v in d.get("defaults", {}).items()},
                    pending={k: tuple(str(n) for n in v)
                             for k, v in d.get("pending", {}).items()},
-                   noise={k: float(v) for k, v in d.get("noise", {}).items()})
+                   noise={k: float(v) for k, v in d.get("noise", {}).items()},
+                   peaks={k: float(v) for k, v in d.get("peaks", {}).items()},
+                   axis=str(d.get("axis", "rotary")))
 
     def format(self) -> str:
-        rng = ", ".join(f"{k} ±{max(abs(lo), abs(hi)):.4g} ({self.sources.get(k, 'default')})"
-                        for k, (lo, hi) in self.ranges.items()
-                        if self.sources.get(k) != "default")
+        # what the window showed (the scaling's source), never a DBC's declared limits;
+        # ranges stated in the configuration are said as such
+        seen = ", ".join(f"{k} ±{v:.4g} {si_unit(k, self.axis)}" for k, v in self.peaks.items())
+        given = ", ".join(f"{k} ±{max(abs(lo), abs(hi)):.4g}"
+                          for k, (lo, hi) in self.ranges.items()
+                          if self.sources.get(k) == "config")
         text = (f"calibration: first {self.samples} samples ({self.t_end - self.t_start:.3g} s)"
-                f"; ranges {rng or 'all default'}; ridge alpha {self.alpha:g} x column energy")
+                + (f", where the data reach {seen}" if seen else "")
+                + (f"; configured ranges {given}" if given else "")
+                + f"; ridge alpha {self.alpha:g} x column energy")
         if self.defaults:
             names = {"coulomb_band": "Coulomb band", "stribeck_speed": "Stribeck speed",
                      "pitch": "pitch"}
@@ -185,6 +198,16 @@ class Calibration:
                      + ("" if "coulomb_band" not in self.defaults else
                         f" (minimum speed 5 bands = {5 * self.defaults['coulomb_band']:.4g})"))
         return text
+
+
+def window_peaks(window: Signals) -> dict[str, float]:
+    """The largest magnitude of each signal the window carries (its finite values)."""
+    out = {}
+    for role in ROLES:
+        v = getattr(window, role)
+        if v is not None and len(v) and np.isfinite(v).any():
+            out[role] = float(np.max(np.abs(v[np.isfinite(v)])))
+    return out
 
 
 def _round_up_125(x: float) -> float:
@@ -540,7 +563,7 @@ class SampleProcessor:
             sources=dict(self._sources),
             scaling={k: dict(v) for k, v in model.exponents.items()},
             energy=energy, alpha=float(self.settings.alpha), defaults=defaults,
-            pending=ws.pending, noise=noise)
+            pending=ws.pending, noise=noise, peaks=window_peaks(window), axis=model.axis)
         self._window = window
         self.pipeline = Pipeline(model, self.dt, self.settings, energy, ws.pending, ws.noise)
         return self.pipeline.process(held, record)

@@ -43,7 +43,8 @@ DEFAULT_EFFECTS: tuple[str, ...] = ("inertia", "viscous", "coulomb")
 #: the inverter holds its voltage (the built-in simulated drive does the same).
 DEFAULT_HELD: tuple[str, ...] = ("current", "voltage")
 
-_SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor", "history")
+_SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor", "history",
+             "fleet")
 _ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
                    "warmup_s": "warmup_s", "gap_periods": "gap_periods",
                    "rms_time_s": "rms_time_s", "max_phase_step": "max_phase_step",
@@ -170,6 +171,8 @@ class AppConfig:
     monitor: dict[str, Any] = field(default_factory=dict)
     #: ``[history]``: where ``canrls run`` appends its parameters (canrls.fleet.live)
     history: dict[str, Any] = field(default_factory=dict)
+    #: ``[fleet]``: what ``canrls fleet report`` alerts on (canrls.fleet.detect)
+    fleet: dict[str, Any] = field(default_factory=dict)
     signal_overrides: list[str] = field(default_factory=list)
     #: configuration keys set from the command line, with the flag and value typed
     #: (``{"model.effects": "--effects inertia,foo"}``): errors name those, not the key
@@ -229,12 +232,12 @@ class AppConfig:
             self.signal_overrides = list(over.signals)
         if over.effects:
             self.model["effects"] = [e.strip() for e in over.effects.split(",") if e.strip()]
-            self.flags["model.effects"] = f"--effects {over.effects}"
+            self.flags["model.effects"] = f"--effects {_typed(over.effects)}"
         for attr, flag, section, key in _FLAGS:
             v = getattr(over, attr)
             if v is not None:
                 getattr(self, section)[key] = v
-                self.flags[f"{section}.{key}"] = f"{flag} {v}"
+                self.flags[f"{section}.{key}"] = f"{flag} {_typed(v)}"
         self.bus.update(over.bus)
         return self
 
@@ -389,6 +392,13 @@ class AppConfig:
             return EstimatorSettings(**kw)
         except ConfigError as e:
             raise self._flagged(ConfigError(f"{self.source}: {e}")) from e
+
+
+def _typed(value: object, most: int = 200) -> str:
+    """A value typed on the command line as an error repeats it: at most ``most``
+    characters (5,000 digits are named by their count)."""
+    text = str(value)
+    return text if len(text) <= most else f"{text[:most]}... ({len(text)} characters)"
 
 
 def load_config(path: str | Path | None, overrides: Overrides | None = None) -> AppConfig:

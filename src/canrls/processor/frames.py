@@ -40,7 +40,7 @@ from canrls.processor.results import (
 )
 from canrls.processor.times import TimeJudge
 
-__all__ = ["SEEN_IDS", "FrameProcessor"]
+__all__ = ["SEEN_IDS", "FrameProcessor", "unmapped_error"]
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,22 @@ _PLACEHOLDER_DT = 1e-3
 #: error that names the most frequent ones): beyond, the rarest are forgotten, so a bus
 #: of random IDs cannot grow the daemon's memory.
 SEEN_IDS = 1024
+
+
+def unmapped_error(protocol: Protocol, frames: int, seen: list[tuple[int, int]],
+                   rejected: Mapping[str, int] | None = None) -> ConfigError:
+    """The error of frames none of which is a mapped message (``canrls fit`` and
+    ``export-c --vectors`` alike): what was expected, the most frequent IDs ``seen``
+    (``[(id, frames)]``) and the ``rejected`` frames by reason."""
+    want = ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in protocol.messages)
+    seen_text = ", ".join(f"0x{i:X} ({n})" for i, n in seen) if seen else "none"
+    rej = {k: v for k, v in (rejected or {}).items() if v}
+    why = ("; rejected: " + ", ".join(f"{k} {v}" for k, v in rej.items())) if rej else ""
+    return ConfigError(
+        f"none of the mapped messages occurs in the {frames} frames read: expected "
+        f"{want} (DBC {protocol.dbc_path.name}); most frequent IDs seen "
+        f"(frames): {seen_text}{why}. Map the right messages with --signal "
+        f"ROLE=MESSAGE.SIGNAL or give the drive's DBC with --dbc")
 
 
 class FrameProcessor:
@@ -215,16 +231,8 @@ class FrameProcessor:
 
     def _foreign_error(self) -> ConfigError:
         """None of the mapped messages was decoded: name what was expected and seen."""
-        want = ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in self.protocol.messages)
-        seen = self.seen_ids()
-        seen_text = ", ".join(f"0x{i:X} ({n})" for i, n in seen) if seen else "none"
         rej = {k: int(v) for k, v in self.decoder.rejected.items() if v}
-        why = ("; rejected: " + ", ".join(f"{k} {v}" for k, v in rej.items())) if rej else ""
-        return ConfigError(
-            f"none of the mapped messages occurs in the {self.frames} frames read: expected "
-            f"{want} (DBC {self.protocol.dbc_path.name}); most frequent IDs seen "
-            f"(frames): {seen_text}{why}. Map the right messages with --signal "
-            f"ROLE=MESSAGE.SIGNAL or give the drive's DBC with --dbc")
+        return unmapped_error(self.protocol, self.frames, self.seen_ids(), rej)
 
     @property
     def pipeline(self) -> Pipeline:
@@ -446,7 +454,8 @@ class FrameProcessor:
                       f"{t.message}.{t.signal} [{'N' if lin else 'N·m'}], no Kt")
         return AxisInfo(self.model.axis, self.protocol.axis,
                         {r: i.unit for r, i in self.protocol.roles.items()},
-                        self.protocol.mapping.ratings.as_dict(), target)
+                        self.protocol.mapping.ratings.as_dict(), target,
+                        self.model.per_ampere_text if self.model.per_ampere else None)
 
     def start_info(self) -> StartInfo:
         """The first frame's timestamp and, for an epoch time, its date (UTC)."""

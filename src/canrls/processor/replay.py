@@ -17,9 +17,9 @@ import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 
 from canrls.can.frameblock import FrameBlock
-from canrls.can.logs import LogReadStats, read_frames
+from canrls.can.logs import LogReadStats, empty_log_error, read_frames
 from canrls.can.protocol import Protocol
-from canrls.core.errors import ConfigError, EstimatorError, LogFormatError
+from canrls.core.errors import ConfigError, EstimatorError
 from canrls.core.samples import Signals
 from canrls.core.spill import SpilledSignals, join_blocks, spill_blocks
 from canrls.estimation.estimates import Estimates, PipelineBlock
@@ -173,9 +173,7 @@ class LogFiles:
                                      stats=self.stats, progress=self.progress):
                 yield self._shifted(self.proc.samples(block))
             if self.proc.frames == frames:
-                raise LogFormatError(f"{path}: no CAN frames in the log"
-                                     + (f" ({self.stats.bad_lines} unparsable lines skipped)"
-                                        if self.stats.bad_lines else ""))
+                raise empty_log_error(path, self.stats.bad_lines)
             # the end of the file: the period is decided with what came (the first file
             # measures it), and the samples still open are paired
             yield self._shifted(self.proc.flush_samples())

@@ -129,6 +129,9 @@ class AxisInfo:
     units: dict[str, str | None] = field(default_factory=dict)
     ratings: dict[str, float] = field(default_factory=dict)
     target: str | None = None
+    #: :attr:`~canrls.estimation.model.Model.per_ampere_text` when the mechanical
+    #: parameters are per ampere, else None
+    per_ampere: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -143,6 +146,8 @@ class AxisInfo:
             lines.append("ratings: " + Ratings(**self.ratings).describe(self.axis))
         if self.target:
             lines.append(f"mechanical target: {self.target}")
+        if self.per_ampere:
+            lines.append(self.per_ampere)
         return lines
 
 

@@ -257,11 +257,14 @@ def make_fleet(drives: int = 50, recordings: int = 10, duration: float = 6.0,
 
 
 def write_recording(path: str | os.PathLike[str], drive: DrivePlan, rec: RecordingPlan,
-                    duration: float, dt: float = 1e-3) -> int:
+                    duration: float, dt: float = 1e-3, *,
+                    profile: Excitation | None = None) -> int:
     """Simulate one recording and write it as a candump log (epoch times); returns the
-    number of frames."""
+    number of frames. ``profile``: another excitation than the recording's own (a
+    preset of :func:`canrls.sim.excitation.excitation`, as a plant's recordings vary)."""
     sc = scenario("standard", effects=rec.effects, params=dict(rec.params), seed=rec.seed,
-                  duration=duration, dt=dt, excitation=rec.excitation(), kt=FLEET_KT,
+                  duration=duration, dt=dt,
+                  excitation=rec.excitation() if profile is None else profile, kt=FLEET_KT,
                   current_noise=drive.current_noise, speed_noise=drive.speed_noise,
                   controller=_commissioned(drive))
     return write_log(path, Simulator(sc, t0=rec.start).frames())

@@ -27,6 +27,7 @@ __all__ = [
     "EFFECT_PARAMS",
     "Truth",
     "Controller",
+    "Compensation",
     "Sensors",
     "PlantBlock",
     "Plant",
@@ -52,6 +53,10 @@ EFFECT_PARAMS: Mapping[str, tuple[str, ...]] = MappingProxyType({
 })
 
 _COGGING = re.compile(r"^cogging:([1-9][0-9]*)$")
+#: Most integration sub-steps per control period (the stiffest part: Coulomb friction
+#: at standstill, ~ (Tc + |Ts|) / (band J)): the standard drive takes 50-75, J = 1e-6
+#: 10,000-15,000 (1.5 s of CPU for 5 s of drive); J = 1e-8 took 11 minutes.
+MAX_SUBSTEPS = 20_000
 
 # SI units of each parameter symbol: (rotary, linear)
 _UNITS: dict[str, tuple[str, str]] = {
@@ -294,6 +299,49 @@ def load_torque(truth: Truth | Mapping[str, float], theta: npt.ArrayLike, omega:
 
 
 @dataclass(frozen=True)
+class Compensation:
+    """The speed controller's feedforward (``canrls sim --feedforward``, made by
+    ``canrls tune``): a map of the torque over one period of the position (``period``:
+    2 pi rad, or the pitch), read at the measured position between its points, and the
+    friction ``B w + (Tc + Ts exp(-(w/ws)^2)) tanh(w/e)`` at the speed reference;
+    ``scale`` turns the torque into the current reference (1/Kt, or 1 for a model
+    identified per ampere); ``lead`` [s] reads the map ahead by the measured speed times
+    it (the loop's delay: the current is held over the coming period); ``T0`` a constant
+    torque the map does not hold (a model without a position term has no map)."""
+
+    map: tuple[float, ...] = ()
+    period: float = 2.0 * math.pi
+    scale: float = 1.0
+    B: float = 0.0
+    Tc: float = 0.0
+    Ts: float = 0.0
+    ws: float = 1.0
+    band: float = 1e-3
+    lead: float = 0.0
+    T0: float = 0.0
+
+    def __post_init__(self) -> None:
+        for key in ("period", "scale", "B", "Tc", "Ts", "ws", "band", "lead", "T0"):
+            v = getattr(self, key)
+            if not math.isfinite(v) or (key in ("period", "ws", "band") and v <= 0):
+                raise ConfigError(f"feedforward.{key}: {v!r} must be a finite number"
+                                  + (" > 0" if key in ("period", "ws", "band") else ""))
+        if not all(math.isfinite(x) for x in self.map):
+            raise ConfigError("feedforward.map: every point must be a finite number")
+
+    def kernel(self) -> tuple[F64, F64]:
+        """The kernel's ``ffv`` (``sim.c``'s ``F_ON .. F_IDX``) and ``ffmap``."""
+        n = len(self.map)
+        ffv = np.array([1.0, self.scale, self.B, self.Tc, self.Ts, self.ws, self.band,
+                        n / self.period, self.lead, self.T0], dtype=np.float64)
+        return ffv, np.array(self.map, dtype=np.float64)
+
+
+#: the kernel's vectors without a feedforward
+_NO_FEEDFORWARD = (np.zeros(10, dtype=np.float64), np.zeros(0, dtype=np.float64))
+
+
+@dataclass(frozen=True)
 class Controller:
     """Speed and current controllers of the simulated drive.
 
@@ -306,7 +354,9 @@ class Controller:
       ``kp_current = L*wc``, ``ki_current = R*wc`` with ``wc = 2*pi*current_bandwidth``.
 
     ``i_max`` limits the current reference [A], ``u_max`` the voltage [V]; both PIs stop
-    integrating while saturated (conditional integration).
+    integrating while saturated (conditional integration). ``inertia_ff`` replaces the
+    true inertia in the feed-forward (the identified one, ``canrls sim --gains``);
+    ``compensation`` adds a feedforward of the load (:class:`Compensation`).
     """
 
     speed_bandwidth: float = 20.0
@@ -318,6 +368,8 @@ class Controller:
     ki_speed: float | None = None
     kp_current: float | None = None
     ki_current: float | None = None
+    inertia_ff: float | None = None
+    compensation: Compensation | None = None
 
     def gains(self, truth: Truth) -> F64:
         """Kernel gain vector: kp_w, ki_w, jff, kp_i, ki_i, ke_ff, i_max, u_max."""
@@ -332,7 +384,8 @@ class Controller:
         for key, v in (("i_max", self.i_max), ("u_max", self.u_max)):
             if not is_positive(v):
                 raise ConfigError(f"controller.{key}: {v!r} must be a positive number")
-        return np.array([kp_w, ki_w, self.feedforward * J, kp_i, ki_i, Ke,
+        jff = self.feedforward * (J if self.inertia_ff is None else self.inertia_ff)
+        return np.array([kp_w, ki_w, jff, kp_i, ki_i, Ke,
                          self.i_max, self.u_max], dtype=np.float64)
 
 
@@ -425,6 +478,8 @@ class Plant:
         self._p, self._ck, self._cs, self._cc = truth._kernel_params()
         self._gains = self.controller.gains(truth)
         self._quant = self.sensors.quant()
+        comp = self.controller.compensation
+        self._ff = _NO_FEEDFORWARD if comp is None else comp.kernel()
         self._sigma = np.array([self.sensors.current_noise, self.sensors.speed_noise,
                                 self.sensors.position_noise])
         self.nsub, self.h_stiff = self._substeps(nsub)
@@ -454,7 +509,17 @@ class Plant:
         lam_f = (abs(tr.get("coulomb.Tc")) + abs(tr.get("stribeck.Ts"))) / tr.coulomb_band
         lam_f += abs(tr.get("stribeck.Ts")) / tr.stribeck_speed
         lam_f /= J
-        return n, (2.0 / lam_f if lam_f > 0 else h)
+        h_stiff = 2.0 / lam_f if lam_f > 0 else h
+        # the most sub-steps of a period: all of them in the stiff zone near standstill
+        most = max(n, math.ceil(dt / min(h_stiff, h)))
+        if most > MAX_SUBSTEPS:
+            # every stiffness above is proportional to 1/J: the J that brings it in bound
+            raise ConfigError(
+                f"inertia.J = {J:g}: the simulated drive would need {most} integration "
+                f"steps per {dt * 1e3:g} ms period (its friction, cogging and poles are "
+                f"stiff in proportion to 1/J), more than the simulator's {MAX_SUBSTEPS}: "
+                f"give inertia.J >= {J * most / MAX_SUBSTEPS:.2g} with these parameters")
+        return n, h_stiff
 
     @property
     def state(self) -> tuple[float, float, float]:
@@ -475,7 +540,8 @@ class Plant:
         noise = self._rng.standard_normal((n, 3)) * self._sigma
         out = np.empty((n, 9), dtype=np.float64)
         _sim.plant_run(self.dt, self.nsub, self.h_stiff, self._state, self._p, self._ck,
-                       self._cs, self._cc, self._gains, self._quant, w_ref, a_ref, noise, out)
+                       self._cs, self._cc, self._gains, self._quant, *self._ff, w_ref, a_ref,
+                       noise, out)
         t = (self.k + np.arange(n, dtype=np.float64)) * self.dt
         self.k += n
         elec = self.truth.has_electrical

@@ -94,7 +94,10 @@ __attribute__((noinline)) void canrls_replay_frames(canrls_target *S, uint32_t a
 #endif
         if ((r & CANRLS_PUBLISH) != 0u) {
             n = canrls_target_publish(S, out, CANRLS_PUBLISH_MAX);
-            if (R->published >= VEC_PUBLICATIONS || vec_pub_frame[R->published] != k
+            /* published + 1 > VEC_PUBLICATIONS, not published >= VEC_PUBLICATIONS: a log
+             * too short for a publication has VEC_PUBLICATIONS 0, and the comparison must
+             * not be constant (-Werror=type-limits) */
+            if (R->published + 1u > VEC_PUBLICATIONS || vec_pub_frame[R->published] != k
                 || vec_pub_count[R->published] != n) {
                 R->bad++;
             } else {

@@ -81,6 +81,36 @@ static inline void rk4(const Physics *ph, double *th, double *w, double *i, doub
     *i = *i + h / 6.0 * (c1 + 2.0 * c2 + 2.0 * c3 + c4);
 }
 
+/* indices into the feedforward vector ffv (canrls.sim.plant: Compensation.kernel) */
+enum { F_ON, F_SCALE, F_B, F_TC, F_TS, F_WS, F_E, F_IDX, F_LEAD, F_T0, F_COUNT };
+
+/* The speed controller's feedforward (canrls tune): the map over the measured position
+ * led by the measured speed times the loop's delay, theta_m + w_m T_lead (linear between
+ * its points, periodic), and the friction at the speed reference, with an offset T0 the
+ * map does not hold: tau_ff = map(theta_m) + T0 + B w_r + (Tc + Ts exp(-(w_r/ws)^2))
+ * tanh(w_r/e), in current. */
+static double feedforward(const double *f, const double *map, Py_ssize_t nmap, double pos,
+                          double w_r)
+{
+    double tau = f[F_T0];
+    if (nmap > 0) {
+        /* x = pos N / period, reduced to [0, N) */
+        double x = pos * f[F_IDX];
+        x -= (double)nmap * floor(x / (double)nmap);
+        Py_ssize_t j = (Py_ssize_t)floor(x);
+        if (j >= nmap)
+            j = nmap - 1;
+        const double fr = x - (double)j;
+        const Py_ssize_t j1 = j + 1 < nmap ? j + 1 : 0;
+        /* map(x) = m_j + fr (m_{j+1} - m_j) */
+        tau += map[j] + fr * (map[j1] - map[j]);
+    }
+    const double sg = tanh(w_r / f[F_E]);
+    const double r = w_r / f[F_WS];
+    tau += f[F_B] * w_r + f[F_TC] * sg + f[F_TS] * sg * exp(-r * r);
+    return tau * f[F_SCALE];
+}
+
 /* x rounded to the nearest multiple of q (q <= 0: x itself) */
 static inline double quantise(double x, double q)
 {
@@ -89,14 +119,20 @@ static inline double quantise(double x, double q)
     return floor(x / q + 0.5) * q;
 }
 
-/* Advance n control periods; st = [theta, omega, i, integ_w, integ_i] in and out.
- * noise (n, 3): the sensors' noise (current, speed, position), already scaled.
+/* RK4 sub-steps between two looks at the signals (py_plant_run): a few milliseconds */
+#define STEPS_PER_CHECK 100000
+
+/* Advance control periods k0.. of n, stopping after the period in which the sub-steps
+ * reach `budget`; returns the next period. st = [theta, omega, i, integ_w, integ_i] in
+ * and out. noise (n, 3): the sensors' noise (current, speed, position), already scaled.
  * out (n, 9): i, omega, theta, u, i_meas, omega_meas, theta_meas, u_meas, i_ref. */
-static void plant_run(Py_ssize_t n, double dt, int64_t nsub, double h_stiff, double *st,
-                      const Physics *ph, const double *gains, const double *quant,
-                      const double *w_ref, const double *a_ref, const double *noise,
-                      double *out)
+static Py_ssize_t plant_run(Py_ssize_t k0, Py_ssize_t n, int64_t budget, double dt,
+                            int64_t nsub, double h_stiff, double *st, const Physics *ph,
+                            const double *gains, const double *quant, const double *ffv,
+                            const double *ffmap, Py_ssize_t nmap, const double *w_ref,
+                            const double *a_ref, const double *noise, double *out)
 {
+    const int ff_on = ffv[F_ON] != 0.0;
     const double *p = ph->p;
     double th = st[0], w = st[1], i = st[2], integ_w = st[3], integ_i = st[4];
     const double kp_w = gains[0], ki_w = gains[1], jff = gains[2], kp_i = gains[3],
@@ -111,7 +147,9 @@ static void plant_run(Py_ssize_t n, double dt, int64_t nsub, double h_stiff, dou
     const double zone = 10.0 * p[P_E];
     const int stiff = p[P_TC] != 0.0 || p[P_TS] != 0.0;
     const double h_min = dt * 1e-6;
-    for (Py_ssize_t k = 0; k < n; k++) {
+    int64_t steps = 0;
+    Py_ssize_t k = k0;
+    for (; k < n && steps < budget; k++) {
         const double *nz = noise + 3 * k;
         double *o = out + 9 * k;
         /* ---- sensors at t_k (ideal source: i is the current over the coming period) */
@@ -129,7 +167,10 @@ static void plant_run(Py_ssize_t n, double dt, int64_t nsub, double h_stiff, dou
             th_m -= wrap;
         /* ---- speed PI + inertia feed-forward -> current reference */
         const double e = w_ref[k] - w_m;
-        const double i_un = jff * a_ref[k] / kt + kp_w * e + integ_w;
+        double i_un = jff * a_ref[k] / kt + kp_w * e + integ_w;
+        if (ff_on) /* + tau_ff(theta_m, w_ref) / Kt; the position unwrapped, quantised */
+            i_un += feedforward(ffv, ffmap, nmap,
+                                quantise(th + nz[2], q_th) + w_m * ffv[F_LEAD], w_ref[k]);
         const double i_ref = py_min(py_max(i_un, -i_max), i_max);
         if (i_un == i_ref || (i_un > i_max && e < 0.0) || (i_un < -i_max && e > 0.0))
             integ_w += ki_w * e * dt;
@@ -182,6 +223,7 @@ static void plant_run(Py_ssize_t n, double dt, int64_t nsub, double h_stiff, dou
                 hs = rem;
             rk4(ph, &th, &w, &i, u, hs, a1, b1, c1);
             rem = hs == rem ? 0.0 : rem - hs;
+            steps++;
         }
     }
     st[0] = th;
@@ -189,15 +231,18 @@ static void plant_run(Py_ssize_t n, double dt, int64_t nsub, double h_stiff, dou
     st[2] = i;
     st[3] = integ_w;
     st[4] = integ_i;
+    return k;
 }
 
 /* ================================================================= Python glue */
 PyDoc_STRVAR(plant_run_doc,
-"plant_run(dt, nsub, h_stiff, st, p, ck, cs, cc, gains, quant, w_ref, a_ref, noise, out)\n"
+"plant_run(dt, nsub, h_stiff, st, p, ck, cs, cc, gains, quant, ffv, ffmap, w_ref, a_ref,\n"
+"          noise, out)\n"
 "--\n\n"
 "Advance len(w_ref) control periods of the simulated drive (canrls.sim.plant), in place.\n\n"
 "st (5,): [theta, omega, i, integ_w, integ_i], updated; p (15,): the physics;\n"
 "ck, cs, cc (m,): cogging orders and amplitudes; gains (8,); quant (5,);\n"
+"ffv (10,): the feedforward (ffv[0] = 0: none); ffmap (N,): its map over the position;\n"
 "w_ref, a_ref (n,); noise (n, 3); out (n, 9) written (float64 throughout).");
 
 static PyObject *py_plant_run(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -206,15 +251,16 @@ static PyObject *py_plant_run(PyObject *self, PyObject *const *args, Py_ssize_t 
     static const Spec spec[] = {
         {3, "st", F64, 1, RW}, {4, "p", F64, 1, RO}, {5, "ck", F64, 1, RO},
         {6, "cs", F64, 1, RO}, {7, "cc", F64, 1, RO}, {8, "gains", F64, 1, RO},
-        {9, "quant", F64, 1, RO}, {10, "w_ref", F64, 1, RO}, {11, "a_ref", F64, 1, RO},
-        {12, "noise", F64, 2, RO}, {13, "out", F64, 2, RW},
+        {9, "quant", F64, 1, RO}, {10, "ffv", F64, 1, RO}, {11, "ffmap", F64, 1, RO},
+        {12, "w_ref", F64, 1, RO}, {13, "a_ref", F64, 1, RO},
+        {14, "noise", F64, 2, RO}, {15, "out", F64, 2, RW},
     };
     Args a = {.fn = "plant_run", .count = 0};
     Py_buffer *b[COUNT(spec)];
     double dt, h_stiff;
     int64_t nsub;
     PyObject *res = NULL;
-    if (!start(&a, nargs, 14) || !as_double(args[0], &dt) || !as_int64(args[1], &nsub)
+    if (!start(&a, nargs, 16) || !as_double(args[0], &dt) || !as_int64(args[1], &nsub)
         || !as_double(args[2], &h_stiff))
         return NULL;
     if (nsub < 1) {
@@ -222,19 +268,29 @@ static PyObject *py_plant_run(PyObject *self, PyObject *const *args, Py_ssize_t 
         return NULL;
     }
     if (take(&a, args, spec, COUNT(spec), b, F64)) {
-        const Py_ssize_t n = dim(b[7], 0), m = dim(b[2], 0);
+        const Py_ssize_t n = dim(b[9], 0), m = dim(b[2], 0), nmap = dim(b[8], 0);
         if (need(&a, b[0], "st", 5, -1) && need(&a, b[1], "p", P_COUNT, -1)
             && need(&a, b[3], "cs", m, -1) && need(&a, b[4], "cc", m, -1)
             && need(&a, b[5], "gains", 8, -1) && need(&a, b[6], "quant", 5, -1)
-            && need(&a, b[8], "a_ref", n, -1) && need(&a, b[9], "noise", n, 3)
-            && need(&a, b[10], "out", n, 9)) {
+            && need(&a, b[7], "ffv", F_COUNT, -1)
+            && need(&a, b[10], "a_ref", n, -1) && need(&a, b[11], "noise", n, 3)
+            && need(&a, b[12], "out", n, 9)) {
             const Physics ph = {.p = D(b[1]), .m = m, .ck = D(b[2]), .cs = D(b[3]),
                                 .cc = D(b[4])};
-            Py_BEGIN_ALLOW_THREADS
-            plant_run(n, dt, nsub, h_stiff, D(b[0]), &ph, D(b[5]), D(b[6]), D(b[7]), D(b[8]),
-                      D(b[9]), D(b[10]));
-            Py_END_ALLOW_THREADS
-            res = Py_NewRef(Py_None);
+            /* in pieces of STEPS_PER_CHECK sub-steps, the signals looked at between them:
+             * SIGTERM or SIGINT is acted on within milliseconds (the state carries
+             * over exactly: the pieces change nothing) */
+            Py_ssize_t k = 0;
+            int stopped = 0;
+            while (k < n && !stopped) {
+                Py_BEGIN_ALLOW_THREADS
+                k = plant_run(k, n, STEPS_PER_CHECK, dt, nsub, h_stiff, D(b[0]), &ph, D(b[5]),
+                              D(b[6]), D(b[7]), D(b[8]), nmap, D(b[9]), D(b[10]), D(b[11]),
+                              D(b[12]));
+                Py_END_ALLOW_THREADS
+                stopped = PyErr_CheckSignals() < 0;
+            }
+            res = stopped ? NULL : Py_NewRef(Py_None);
         }
     }
     release(&a);
