@@ -36,7 +36,7 @@ from canrls.can.mapping import EFFORT_ROLES, REQUIRED_ROLES, SignalMapping
 from canrls.core.checks import positive_period
 from canrls.core.errors import ConfigError, SignalError
 from canrls.core.files import MAX_DBC_BYTES, read_bytes
-from canrls.core.signals import ROLES
+from canrls.core.samples import ROLES
 from canrls.core.units import axis_of, si_factor
 
 __all__ = ["DEFAULT_DBC", "MAX_MESSAGE_BYTES", "load_dbc", "parse_dbc", "Protocol"]

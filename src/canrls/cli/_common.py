@@ -10,6 +10,8 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from canrls.core.checks import LAMBDA_MIN
+
 if TYPE_CHECKING:  # numpy and cantools load with the configuration: not for --help
     from canrls.processor.config import AppConfig, Overrides
 
@@ -116,7 +118,8 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                         "DBC's IDs + each offset: axis1, axis2); replaces [[axes]] "
                         "(docs/configuration.md)")
     g.add_argument("--lambda", dest="lam", type=number, metavar="L",
-                   help="forgetting factor in (0.5, 1] (default 1: all data weigh the same; "
+                   help=f"forgetting factor in ({LAMBDA_MIN:g}, 1] (default 1: all data weigh "
+                        "the same; "
                         "below 1 the estimate tracks changes, memory 1/(1-L) samples)")
     g.add_argument("--alpha", type=number, metavar="A",
                    help="ridge weight: the prior weighs like A samples of each column, "

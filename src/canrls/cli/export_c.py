@@ -66,7 +66,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from canrls.core.errors import ConfigError
-    from canrls.firmware.kernel_export import export_c, load_source
+    from canrls.firmware.kernel_export import export_c
+    from canrls.firmware.load import load
 
     if args.every < 1:
         raise ConfigError(f"--every {args.every}: must be at least 1")
@@ -75,13 +76,14 @@ def run(args: argparse.Namespace) -> int:
                           "(not --kernel-only)")
     ff_texts = (_feedforward(args.model, args.feedforward, args.feedforward_form)
                 if args.feedforward is not None else None)
-    tm = src = texts = None
+    # the model, its calibration and its control period: one loader, one decision
+    src = load(args.model, args.dt, args.axis)
+    tm = texts = None
     if not args.kernel_only:
-        from canrls.firmware.load import load, target_model
+        from canrls.firmware.load import target_model
         from canrls.firmware.model import TargetError
         from canrls.firmware.target_export import target_texts
 
-        src = load(args.model, args.dt, args.axis)
         # generated (or refused: a model the target cannot run, a log that cannot be
         # read) before anything is written
         try:
@@ -95,10 +97,9 @@ def run(args: argparse.Namespace) -> int:
                   file=sys.stderr)
         if tm is not None:
             texts = target_texts(src, tm, vectors=args.vectors, every=args.every)
-    cfg, model, energy, source = load_source(args.model, args.axis)
-    print(export_c(cfg, args.out, model=model, dt=args.dt, energy=energy, source=source,
-                   what=f"--out {args.out}", frames=args.frames != "none"))
-    if tm is not None and src is not None:
+    print(export_c(src.config, args.out, model=src.model, dt=src.dt, energy=src.energy,
+                   source=src.label, what=f"--out {args.out}", frames=args.frames != "none"))
+    if tm is not None:
         from canrls.firmware.target_export import export_target
 
         print(export_target(src, args.out, tm, what=f"--out {args.out}", texts=texts))

@@ -18,12 +18,12 @@ Units come from the effect library with the axis, ``kt`` and user terms of
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from typing import Any
 
 from canrls.cli._common import add_bus_options, add_model_options, print_json, setup
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run"]
@@ -66,14 +66,14 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _positive(name: str, v: float | None) -> None:
-    if v is not None and not (math.isfinite(v) and v > 0):
+    if v is not None and not is_positive(v):
         raise ConfigError(f"{name}: {v!r} must be a positive number of seconds")
 
 
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from canrls.can.frames import encode_command, frame_ids
+    from canrls.can.estimator_frames import encode_command, frame_ids
     from canrls.live.bus import bus_config, moved, open_bus
     from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
     from canrls.live.settings import DaemonSettings

@@ -27,7 +27,6 @@ import argparse
 import contextlib
 import dataclasses
 import logging
-import math
 import signal
 import sys
 import threading
@@ -44,6 +43,7 @@ from canrls.cli._common import (
     overrides,
     print_json,
 )
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run", "build_daemon"]
@@ -257,7 +257,7 @@ def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
 def run(args: argparse.Namespace) -> int:
     from canrls.live.journal import to_stream
 
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+    if args.duration is not None and not is_positive(args.duration):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
     target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
     with _signals_for_life(target, getattr(args, "process_exits", False)):

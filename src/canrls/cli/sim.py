@@ -29,6 +29,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run", "MAX_DURATION"]
@@ -279,7 +280,7 @@ def run_fleet(args: argparse.Namespace) -> int:
     duration = 6.0 if args.duration is None else args.duration
     if args.drives < 1 or args.recordings < 1:
         raise ConfigError(f"--drives {args.drives} --recordings {args.recordings}: at least 1")
-    if not (math.isfinite(args.days) and args.days > 0):
+    if not is_positive(args.days):
         raise ConfigError(f"--days: {args.days!r} must be a positive number of days")
     plan = make_fleet(args.drives, args.recordings, duration, args.seed, days=args.days)
     bar = Progress("sim fleet", unit="log")

@@ -2,7 +2,7 @@
 
 :func:`model_files` renders a :class:`~canrls.firmware.model.TargetModel` as the constant
 ``canrls_model`` that ``src/canrls/c/firmware/canrls_target.c`` runs on. Every number goes
-through :mod:`canrls.core.ctext` (integers in the range of their C type), every name and
+through :mod:`canrls.core.c_escape` (integers in the range of their C type), every name and
 unit of the user's model or DBC as comment text or a string literal; nothing else
 reaches the C.
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from canrls.core.ctext import c_comment, c_int, c_name_part, c_string, c_uint
+from canrls.core.c_escape import c_comment, c_int, c_name_part, c_string, c_uint
 from canrls.firmware.model import (
     OUT_FRAMES,
     SOURCE_NAMES,

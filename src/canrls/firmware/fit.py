@@ -24,6 +24,7 @@ from canrls.firmware.model import TargetModel, build
 from canrls.firmware.spec import PUBLISH, TargetEstimator
 from canrls.firmware.vectors import log_frames
 from canrls.processor import FitResult, TargetRun
+from canrls.processor.period import control_period
 
 __all__ = ["fit_model", "target_fixed"]
 
@@ -38,7 +39,7 @@ def fit_model(res: FitResult, protocol: Protocol, settings: EstimatorSettings) -
         model = model.with_scaling(cal.scaling)
         energy = {k: list(v) for k, v in cal.energy.items()}
         pending = {k: list(v) for k, v in cal.pending.items()}
-    period = float(res.period.value or protocol.period or 1e-3)
+    period = control_period(measured=res.period.value, dbc=protocol.period).value
     return build(model, protocol, settings, period, energy=energy, pending=pending,
                  source="canrls fit")
 

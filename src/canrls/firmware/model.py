@@ -41,7 +41,7 @@ import numpy as np
 from canrls.can.codec import SignalCodec
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError
-from canrls.core.signals import ROLES
+from canrls.core.samples import ROLES
 from canrls.estimation.equation import Equation
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EquationEstimator, Pipeline
@@ -449,7 +449,7 @@ def _messages(protocol: Protocol) -> tuple[tuple[Message, ...], dict[str, Field]
 def _check_own_ids(protocol: Protocol) -> None:
     """Refuse a drive's frame on the ID of one of canrls' own frames, which the target
     sends (or receives, the command): it would take its own publications as feedback."""
-    from canrls.can.frames import frame_ids
+    from canrls.can.estimator_frames import frame_ids
 
     own = frame_ids().own
     for m in protocol.messages:
@@ -466,11 +466,10 @@ def _scale(protocol: Protocol, role: str, f: Field) -> tuple[Fraction, Fraction]
     """``(k, o)``: SI value of one raw unit and the offset in raw units of ``role``
     held in field ``f`` (less its :attr:`Field.bias`; a float's raw unit ``2^-frac``)."""
     info = protocol.roles[role]
-    c = info.codec
-    scale = Fraction(float(c.scale) if not isinstance(c.scale, int) else c.scale)
-    k = scale * Fraction(info.si_scale) / Fraction(2) ** f.frac
-    off = Fraction(float(c.offset) if not isinstance(c.offset, int) else c.offset)
-    return k, off / scale * Fraction(2) ** f.frac + f.bias
+    k = info.si_per_raw_exact
+    # the offset in raw units: (offset * f) / (scale * f); a float field's raw unit 2^-frac
+    o = info.si_offset_exact / k
+    return k / Fraction(2) ** f.frac, o * Fraction(2) ** f.frac + f.bias
 
 
 def _source(eq: Equation, j: int, model: Model) -> tuple[int, str, int]:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-from canrls.core.ctext import check_text
+from canrls.core.c_escape import check_text
 from canrls.core.files import write_texts
 from canrls.firmware.cgen import model_files
 from canrls.firmware.load import Source
@@ -62,7 +62,7 @@ class TargetExport:
 
 
 def _text(s: str, what: str) -> str:
-    """A user's name or unit in the README: printable text (``canrls.core.ctext``), with the
+    """A user's name or unit in the README: printable text (``canrls.core.c_escape``), with the
     Markdown code span's backticks taken out."""
     return check_text(s, what).replace("`", "'")
 

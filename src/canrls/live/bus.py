@@ -26,8 +26,8 @@ from typing import Any
 import can
 import numpy as np
 
+from canrls.can.estimator_frames import frame_ids
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import frame_ids
 from canrls.core.errors import BusError, ConfigError
 from canrls.live.journal import JOURNAL
 from canrls.live.settings import DaemonSettings

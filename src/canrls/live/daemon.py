@@ -30,8 +30,8 @@ from typing import Any
 import can
 import numpy as np
 
+from canrls.can.estimator_frames import ParameterReport, StatusReport
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import ParameterReport, StatusReport
 from canrls.can.protocol import Protocol
 from canrls.can.writers import open_writer
 from canrls.core.errors import CommandError, ConfigError

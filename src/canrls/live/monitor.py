@@ -32,7 +32,7 @@ from typing import Any
 
 import can
 
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     CommandAck,
     CommandCode,
     FrameDecoder,
@@ -40,6 +40,7 @@ from canrls.can.frames import (
     StatusReport,
     frame_ids,
 )
+from canrls.core.checks import check_lambda
 from canrls.core.effect_names import EffectId
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import parse_effect, target_unit
@@ -427,7 +428,7 @@ def parse_command_text(text: str) -> tuple[CommandCode, EffectId, int, float]:
     Returns (code, effect, order, lambda). Raises :class:`ConfigError` when it does not
     parse.
     """
-    from canrls.can.frames import parse_effect as parse_effect_id
+    from canrls.can.estimator_frames import parse_effect as parse_effect_id
 
     words = text.strip().split()
     if not words:
@@ -453,9 +454,10 @@ def parse_command_text(text: str) -> tuple[CommandCode, EffectId, int, float]:
             lam = float(words[1]) if len(words) == 2 else math.nan
         except ValueError:
             lam = math.nan
-        if not 0.0 < lam <= 1.0:
-            raise ConfigError(f"{text!r}: lambda needs a value in (0, 1], e.g. 'lambda 0.9995'")
-        return code, EffectId.NONE, 0, lam
+        try:
+            return code, EffectId.NONE, 0, check_lambda(lam, f"{text!r}: lambda")
+        except ConfigError as e:
+            raise ConfigError(f"{e} (e.g. 'lambda 0.9995')") from None
     if len(words) != 1:
         raise ConfigError(f"{text!r}: {verb} takes no argument")
     return code, EffectId.NONE, 0, 0.0

@@ -17,8 +17,7 @@ import time
 import typing
 from collections.abc import Callable
 
-from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     ParameterReport,
     StatusReport,
     encode_param_info,
@@ -26,6 +25,7 @@ from canrls.can.frames import (
     encode_status,
     frame_ids,
 )
+from canrls.can.frameblock import FrameBlock
 from canrls.core.effect_names import EffectId, EquationId
 from canrls.core.errors import CanrlsError, ConfigError
 from canrls.estimation.estimates import Estimates, PipelineBlock, divergence

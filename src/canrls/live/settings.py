@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -131,7 +132,7 @@ class DaemonSettings:
         for k in ("info_interval", "checkpoint_interval", "fault_hold_s", "reopen_min_s",
                   "reopen_max_s", "divergence_limit"):
             v = getattr(self, k)
-            if not (math.isfinite(v) and v > 0):
+            if not is_positive(v):
                 raise ConfigError(f"{src}.{k} = {v!r}: must be > 0")
         if self.reopen_max_s < self.reopen_min_s:
             raise ConfigError(f"{src}.reopen_max_s = {self.reopen_max_s!r}: must be >= "
@@ -145,7 +146,7 @@ class DaemonSettings:
             raise ConfigError(f"{src}.max_parameters = {self.max_parameters!r}: must be in "
                               f"1..{FRAME_PARAMETERS} (RlsParamInfo's Index and Count are "
                               f"8-bit fields)")
-        if not (math.isfinite(self.command_rate) and self.command_rate > 0):
+        if not is_positive(self.command_rate):
             raise ConfigError(f"{src}.command_rate = {self.command_rate!r}: must be > 0 "
                               f"commands per second")
 

@@ -8,7 +8,6 @@ One reader (:func:`read_toml`), the command line's options applied once
 from __future__ import annotations
 
 import dataclasses
-import math
 import re
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -20,9 +19,10 @@ from canrls.can.eds import EdsDrive, read_eds
 from canrls.can.idrules import parse_rule
 from canrls.can.mapping import SignalMapping
 from canrls.can.protocol import Protocol
+from canrls.core.checks import is_positive, is_real
 from canrls.core.errors import ConfigError
 from canrls.core.files import MAX_CONFIG_BYTES, check_path, read_bytes
-from canrls.core.signals import ROLES
+from canrls.core.samples import ROLES
 from canrls.core.units import RATING_OPTIONS, Ratings
 from canrls.estimation.fixed.formats import QFormat
 from canrls.estimation.model import Model
@@ -245,9 +245,7 @@ class AppConfig:
             if want is None:
                 raise ConfigError(f"{src}: unknown key monitor.{k} = {v!r} "
                                   f"(valid: {', '.join(_MONITOR_KEYS)})")
-            ok = (isinstance(v, bool) if k == "plain" else
-                  not isinstance(v, bool) and isinstance(v, int | float)
-                  and math.isfinite(v) and v > 0)
+            ok = isinstance(v, bool) if k == "plain" else is_positive(v)
             if not ok:
                 raise ConfigError(f"{src}: monitor.{k} = {v!r}: must be {want}")
 
@@ -370,8 +368,7 @@ class AppConfig:
             if key not in self.signals:
                 continue
             v = self.signals[key]
-            if (isinstance(v, bool) or not isinstance(v, int | float)
-                    or not (math.isfinite(v) and v > 0)):
+            if not is_positive(v):
                 where = (self.flags.get(f"signals.{key}")
                          or f"{self._where('signals.' + key)} = {v!r}")
                 raise ConfigError(f"{where}: must be a positive number ({unit})")
@@ -489,7 +486,7 @@ class AppConfig:
     def settings(self) -> EstimatorSettings:
         kw: dict[str, Any] = {}
         for k, v in self.estimator.items():
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            if not is_real(v):
                 raise self._flagged(ConfigError(
                     f"{self._where('estimator.' + k)} = {v!r}: must be a number"))
             kw[_ESTIMATOR_KEYS[k]] = v
@@ -501,8 +498,7 @@ class AppConfig:
                 kw[k] = v
         if "theta_max" in self.fixed:
             v = self.fixed["theta_max"]
-            if (isinstance(v, bool) or not isinstance(v, int | float)
-                    or not (math.isfinite(v) and v > 0)):
+            if not is_positive(v):
                 raise ConfigError(f"{self._where('fixed.theta_max')} = {v!r}: must be a "
                                   f"positive number")
             kw["theta_max"] = float(v)

@@ -22,7 +22,7 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, empty_log_error, read_frames
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError, EstimatorError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.core.spill import SpilledSignals, join_blocks, spill_blocks
 from canrls.estimation.estimates import Estimates, PipelineBlock
 from canrls.estimation.model import Model

@@ -12,7 +12,7 @@ from typing import Any
 from canrls.core.units import Ratings
 from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
-from canrls.processor.samples import Calibration
+from canrls.processor.calibration import Calibration
 
 __all__ = ["FrameCounts", "PeriodInfo", "StartInfo", "AxisInfo", "FileShift", "FitResult",
            "MachineFit", "TargetRun", "epoch_date"]

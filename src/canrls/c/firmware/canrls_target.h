@@ -65,7 +65,7 @@ extern "C" {
 #define CANRLS_TARGET_EQ_MAX 2     /**< equations (mechanical, electrical) */
 #define CANRLS_TARGET_ROLES 5      /**< current, speed, position, voltage, torque */
 
-/** Roles (the order of canrls.core.signals.ROLES). */
+/** Roles (the order of canrls.core.samples.ROLES). */
 enum canrls_role { CANRLS_CURRENT = 0, CANRLS_SPEED, CANRLS_POSITION, CANRLS_VOLTAGE,
                    CANRLS_TORQUE };
 
