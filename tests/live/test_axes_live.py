@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from cli_tool import cli_error
 
-from canrls.can.frames import CommandCode, CommandResult, FrameDecoder, encode_command
+from canrls.can.estimator_frames import CommandCode, CommandResult, FrameDecoder, encode_command
 from canrls.can.logs import read_frames, write_log
 from canrls.cli.main import main
 from canrls.live.bus import messages_to_block, moved

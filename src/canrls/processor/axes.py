@@ -12,7 +12,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from canrls.can.frames import frame_ids
+from canrls.can.estimator_frames import frame_ids
 from canrls.can.idrules import MAX_AXES, MAX_STANDARD_ID, IdRule, parse_rule, parse_rules
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError
