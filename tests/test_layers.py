@@ -330,6 +330,18 @@ def test_module_docstrings_are_short(tree: dict[str, ast.Module]) -> None:
                      f"the module is for; the rest belongs in docs/):\n" + "\n".join(bad))
 
 
+#: a layer's package docstring says what the layer does, in more than a label
+MIN_LAYER_DOCSTRING_CHARS = 200
+
+
+def test_every_layers_package_says_what_the_layer_does(tree: dict[str, ast.Module]) -> None:
+    bad = [f"{mod}: {ast.get_docstring(t)!r}" for mod, t in tree.items()
+           if mod.count(".") == 1 and is_package(mod)
+           and len(ast.get_docstring(t) or "") < MIN_LAYER_DOCSTRING_CHARS]
+    assert not bad, "layers whose package docstring does not say what they do:\n" + \
+        "\n".join(sorted(bad))
+
+
 # -- the checks themselves fail where they should ------------------------------------------
 def test_the_checks_catch_a_wrong_import_a_circle_and_a_private_call() -> None:
     a = ast.parse("from canrls.cli.main import main\nimport canrls.estimation.model\n")

@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 from daemon_tool import daemon_fed
 
+from canrls.can.estimator_frames import FrameDecoder
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import FrameDecoder
 from canrls.can.logs import read_frames, write_candump
 from canrls.cli.main import main
 from canrls.processor import FrameProcessor

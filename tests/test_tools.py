@@ -193,7 +193,7 @@ def test_soak_judges_a_parameter_by_the_accuracy_the_faults_cost() -> None:
     2 sigma from the twin that is no less accurate (the twin's own bias reweighted,
     docs/reliability.md "## Soak") is kept. Without a true value: within 2 sigma of the
     twin."""
-    from canrls.can.frames import ParameterReport
+    from canrls.can.estimator_frames import ParameterReport
     soak = _soak_module()
 
     def rr(values: dict[str, float], sigma: float = 1e-9) -> object:

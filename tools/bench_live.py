@@ -98,7 +98,7 @@ from can.interfaces.socketcan import constants as sc_constants
 from can.interfaces.socketcan.socketcan import SocketcanBus, build_can_frame
 
 from bench_daemon import EFFECTS, _messages
-from canrls.can.frames import frame_ids
+from canrls.can.estimator_frames import frame_ids
 from live_vs_offline import free_port, wait_port
 
 PY = sys.executable

@@ -42,7 +42,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from canrls.can.frameblock import FrameBlock
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.estimation import selection
 from canrls.processor.config import AppConfig, prepare
 from canrls.processor.replay import fit_frames

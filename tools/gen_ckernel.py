@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from canrls.core.ctext import c_comment, c_float, c_identifier, c_int, c_uint
+from canrls.core.c_escape import c_comment, c_float, c_identifier, c_int, c_uint
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import SITES, FixedConfig
 from canrls.firmware.kernel_export import PLAN_64, plan_c  # noqa: F401 - PLAN_64 re-exported

@@ -6,7 +6,7 @@
 3. ``canrls run -i remote`` listening on it, with the same model flags;
 4. ``python -m can.player`` replaying LOG onto it at the log's own pace;
 5. this tool, a python-can client of the same server, keeps the parameter frames the
-   daemon publishes and decodes them (:class:`canrls.can.frames.FrameDecoder`).
+   daemon publishes and decodes them (:class:`canrls.can.estimator_frames.FrameDecoder`).
 
 Prints every parameter offline and as last published (float and fixed point) with the
 relative difference, and the fixed-vs-float divergence offline and live, and exits 1 if
@@ -35,7 +35,7 @@ from pathlib import Path
 
 import can
 
-from canrls.can.frames import FrameDecoder, frame_ids
+from canrls.can.estimator_frames import FrameDecoder, frame_ids
 from canrls.can.logs import read_frames, write_candump
 from canrls.sim.scenario import scenario, simulate
 

@@ -9,7 +9,7 @@ frames keeping their simulated timestamps (they go straight into the daemon's re
 queue of the virtual channel, as ``tools/bench_daemon.py`` does; the feeder waits
 while more than ``--backlog`` frames are queued; the daemon takes blocks of at most
 :data:`MAX_BLOCK` frames). A listener on the same channel decodes what the daemon
-publishes (``canrls.can.frames.FrameDecoder``).
+publishes (``canrls.can.estimator_frames.FrameDecoder``).
 
 The faults (``--faults``, the syntax of :mod:`canrls.sim.faults`, seeded by
 ``--seed``) are injected into the drive's frames: dropped, corrupted (bad CRC), bad
@@ -67,7 +67,7 @@ import can
 import numpy as np
 from can.interfaces import virtual as _virtual
 
-from canrls.can.frames import FrameDecoder, ParameterReport, frame_ids
+from canrls.can.estimator_frames import FrameDecoder, ParameterReport, frame_ids
 from canrls.core.errors import CanrlsError
 from canrls.live.daemon import Daemon
 from canrls.live.settings import DaemonSettings

@@ -16,6 +16,7 @@ only if every state record and every published frame equals the specification's.
 * **sizes**: ``.text`` of ``canrls_target.o``, ``canrls_model.o`` and ``canrls_fixed.o``
   at ``-O2`` and ``-Os``;
 * **goals** of issue 24 at n = 6, each met or missed (docs/target.md says why);
+* the ODrive-style drive, whose signals are float32, bit for bit on the M4;
 * with the HSM150 runs beside the repository (``../shared/data/hsm150``), one run in its
   own DBC (``tools/hsm150_to_can.py``, into a temporary directory) bit for bit on the M4.
 
@@ -184,17 +185,45 @@ def hsm150(work: Path) -> str | None:
     d.mkdir(exist_ok=True)
     log = tool.convert(run, d)
     dbc = ROOT / "tests" / "data" / "hsm150_drive.dbc"
-    mapping = [a for s in tool.SIGNALS for a in ("--signal", s)]
-    saved = d / "hsm150.json"
-    _canrls("fit", str(log), "--dbc", str(dbc), *mapping, "--kt", str(tool.KT), "-e",
-            "inertia,viscous,coulomb,offset", "--save-model", str(saved), "--quiet")
+    mapping = ["--dbc", str(dbc), *[a for s in tool.SIGNALS for a in ("--signal", s)]]
+    text = _on_m4(d, log, [*mapping, "--kt", str(tool.KT), "-e", "inertia,viscous,coulomb,offset"],
+                  4, f"HSM150 {run.stem}")
+    return f"HSM150 {run.stem} in its own DBC (29-bit IDs, mA, 0.01 rpm, mrad): {text}"
+
+
+def _on_m4(d: Path, log: Path, fit_args: list[str], n: int, what: str) -> str:
+    """``log`` fitted with ``fit_args``, exported with its vectors into ``d`` and replayed
+    on the M4: the replay's text (WholeError unless bit-exact)."""
+    saved = d / "model.json"
+    _canrls("fit", str(log), *fit_args, "--save-model", str(saved), "--quiet")
     _canrls("export-c", "--model", str(saved), "--out", str(d / "c"), "--vectors", str(log))
-    elf = d / "hsm150.elf"
-    build_example(d / "c", elf, defines=("-DCANRLS_N=4",))
+    elf = d / "replay.elf"
+    build_example(d / "c", elf, defines=(f"-DCANRLS_N={n}",))
     rc, text = run_example(elf)
     if rc != 0:
-        raise WholeError(f"HSM150 {run.stem}: not bit-exact on the Cortex-M4:\n{text}")
-    return f"HSM150 {run.stem} in its own DBC (29-bit IDs, mA, 0.01 rpm, mrad): {text}"
+        raise WholeError(f"{what}: not bit-exact on the Cortex-M4:\n{text}")
+    return text
+
+
+def odrive(work: Path, duration: float = 5.0) -> str:
+    """The ODrive-style drive (``tests/data/odrive_cansimple.dbc``: position, velocity and
+    current in float32) through the example, bit for bit on the M4."""
+    from canrls.can.logs import write_log
+    from canrls.can.protocol import Protocol
+    from canrls.sim.scenario import Simulator, scenario
+
+    d = work / "odrive"
+    d.mkdir(exist_ok=True)
+    dbc = ROOT / "tests" / "data" / "odrive_cansimple.dbc"
+    signals = ["speed=Get_Encoder_Estimates.Vel_Estimate",
+               "position=Get_Encoder_Estimates.Pos_Estimate", "current=Get_Iq.Iq_Measured"]
+    effects = CASES[6]
+    log = d / "odrive.log"
+    sc = scenario("standard", seed=6, duration=duration, effects=effects)
+    write_log(log, Simulator(sc, protocol=Protocol.load(dbc, signals)).frames())
+    text = _on_m4(d, log, ["--dbc", str(dbc), *[a for x in signals for a in ("--signal", x)],
+                           "--kt", "0.1", "-e", effects], 6, "the ODrive-style drive")
+    return f"ODrive-style float32 signals (tests/data/odrive_cansimple.dbc), n = 6: {text}"
 
 
 def main(work: Path, sizes_n: tuple[int, ...] = (4, 6, 8), duration: float = 5.0) -> None:
@@ -205,9 +234,10 @@ def main(work: Path, sizes_n: tuple[int, ...] = (4, 6, 8), duration: float = 5.0
         elf = work / f"whole_n{n}.elf"
         build_example(src, elf, defines=(f"-DCANRLS_N={n}",))
         rc, text = run_example(elf)
-        print(f"  n = {n}: {text}")
+        print(f"  n = {n}: " + text.replace("\n", "\n  "))
         if rc != 0:
             raise WholeError(f"n = {n}: the whole estimator is not bit-exact on the Cortex-M4")
+    print("  " + odrive(work, duration).replace("\n", "\n  "))
     h = hsm150(work)
     if h is not None:
         print(f"  {h}")

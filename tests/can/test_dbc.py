@@ -16,7 +16,7 @@ import cantools
 import pytest
 from cantools.subparsers.__utils__ import format_multiplexed_name
 
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     FrameDecoder,
     ParameterReport,
     encode_param_info,

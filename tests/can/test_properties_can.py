@@ -2,7 +2,7 @@
 
 Random candump text and bytes through the log reader, random frames through the strict
 decoder, the pairer and the reorderer, random estimator/status/command frames through
-:class:`~canrls.can.frames.FrameDecoder`: each either works or raises a
+:class:`~canrls.can.estimator_frames.FrameDecoder`: each either works or raises a
 :class:`~canrls.core.errors.CanrlsError` (one line, naming what failed); nothing else escapes.
 """
 
@@ -18,8 +18,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from canrls.can.decoder import Decoder
+from canrls.can.estimator_frames import FrameDecoder, decode_command, frame_ids
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import FrameDecoder, decode_command, frame_ids
 from canrls.can.logs import LogReadStats, read_frames
 from canrls.can.protocol import Protocol
 from canrls.core.errors import CanrlsError, LogFormatError

@@ -905,3 +905,31 @@ def test_fast_path_scaling_of_wide_fields(tmp_path: Path, field: tuple) -> None:
     got = Decoder(proto).decode(b)["M"]
     want = codec.physical(b.data[got.index]) * proto.roles["current"].si_scale
     assert got.values["current"].tobytes() == want.tobytes() and len(got) > n // 4
+
+
+# -- DBC scale x unit factor: one product ---------------------------------------------
+def test_scale_times_unit_factor_is_taken_from_the_role(monkeypatch: pytest.MonkeyPatch,
+                                                        tmp_path: Path) -> None:
+    """The SI value of one raw unit (the DBC scale times the unit's factor to SI) is
+    RoleInfo.si_per_raw_exact: the firmware's integers, the C export's comment and the
+    encoder's full-turn test read it (before, each multiplied the two itself)."""
+    from canrls.can.codec import RoleInfo
+    from canrls.can.encoder import FeedbackEncoder
+    from canrls.firmware import model as target_model
+    from canrls.processor.config import read_toml
+
+    user = Protocol.load(USER_DBC, read_toml(DATA / "proto_user_mapping.toml", "signals"))
+    for p in (Protocol.load(), user):
+        for role, info in p.roles.items():
+            c = info.codec
+            assert info.si_per_raw == float(c.scale) * info.si_scale, role
+            assert target_model._scale(p, role)[0] == info.si_per_raw_exact
+    proto = Protocol.load()
+    assert FeedbackEncoder(proto).wrapping == {"position"}
+    from fractions import Fraction
+
+    doubled = property(lambda self: 2 * Fraction(self.codec.scale) * Fraction(self.si_scale))
+    monkeypatch.setattr(RoleInfo, "si_per_raw_exact", doubled)
+    speed = proto.roles["speed"]
+    assert target_model._scale(proto, "speed")[0] == 2 * Fraction(speed.codec.scale)
+    assert FeedbackEncoder(proto).wrapping == frozenset()  # two turns now: no wrapping

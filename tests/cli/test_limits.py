@@ -282,7 +282,7 @@ def test_max_order_is_bounded(tmp_path: Path, capsys: pytest.CaptureFixture[str]
 
 
 def test_max_order_is_bounded_in_the_api() -> None:
-    from canrls.core.signals import Signals
+    from canrls.core.samples import Signals
     from canrls.diagnosis.analysis import diagnose
     from canrls.diagnosis.candidates import MAX_ORDER_LIMIT
     from canrls.estimation.model import Model

@@ -321,8 +321,8 @@ def test_the_daemon_saves_its_running_model_for_tune(tmp_path: Path,
                                                      ) -> None:
     from daemon_tool import ACK_ID, daemon_fed
 
+    from canrls.can.estimator_frames import CommandCode, CommandResult, encode_command
     from canrls.can.frameblock import FrameBlock
-    from canrls.can.frames import CommandCode, CommandResult, encode_command
     from canrls.live.daemon import DaemonSettings
     from canrls.processor.config import AppConfig
 
@@ -360,7 +360,7 @@ def reader_messages(reader: Any) -> list[Any]:
 
 
 def test_save_model_without_a_file_is_not_applicable() -> None:
-    from canrls.can.frames import CommandCode, CommandResult, encode_command
+    from canrls.can.estimator_frames import CommandCode, CommandResult, encode_command
     from canrls.live.commands import CommandHandler
     from canrls.processor import FrameProcessor
     from canrls.processor.config import AppConfig

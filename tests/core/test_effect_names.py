@@ -1,5 +1,5 @@
 """canrls.core.effect_names: the one table of effect ids and the one grammar of effect names,
-shared by the bus commands (canrls.can.frames) and the effect library."""
+shared by the bus commands (canrls.can.estimator_frames) and the effect library."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from canrls.can import frames
+from canrls.can import estimator_frames as frames
 from canrls.core.effect_names import EffectId, EffectName, EquationId, parse_effect_name
 from canrls.core.errors import CommandError, ConfigError, EffectError
 from canrls.estimation import effects

@@ -281,10 +281,11 @@ def test_export_c_never_writes_through_a_link_inside_out(tmp_path: Path) -> None
     (out / "canrls_config.h").symlink_to(target)
     (out / "canrls_fixed.c").mkdir()  # a directory at a name: refused, left alone
     with pytest.raises(ConfigError, match="canrls_fixed.c: is a directory"):
-        from canrls.firmware.kernel_export import export_c, load_source
+        from canrls.firmware.kernel_export import export_c
+        from canrls.firmware.load import load
 
-        c, model, energy, source = load_source(cfg)
-        export_c(c, out, model=model, energy=energy, source=source)
+        src = load(cfg)
+        export_c(src.config, out, model=src.model, energy=src.energy, source=src.label)
     (out / "canrls_fixed.c").rmdir()
     assert main(["export-c", "--model", str(cfg), "--out", str(out)]) == 0
     assert target.read_bytes() == PRECIOUS

@@ -18,7 +18,7 @@ import pytest
 
 from canrls.cli.main import main
 from canrls.core import spill as spill_mod
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals
 from canrls.diagnosis.analysis import diagnose, diagnose_log
 from canrls.estimation.model import Model
@@ -162,7 +162,7 @@ def test_a_mask_file_that_cannot_be_written_keeps_the_mask_in_memory(
     monkeypatch.setattr(spill_mod.os, "pwrite", full)
     rng = np.random.default_rng(5)
     m = rng.random(5000) < 0.3
-    with caplog.at_level(logging.WARNING, logger="canrls.core.signals"):
+    with caplog.at_level(logging.WARNING, logger="canrls.core.samples"):
         pms = [PackedMask.from_blocks(np.array_split(m, 40)) for _ in range(2)]
     assert len(writes) == 3
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-import canrls.can.frames
+import canrls.can.estimator_frames
 import canrls.can.protocol
 import canrls.core.effect_names
 import canrls.core.units
@@ -135,7 +135,7 @@ def test_axis() -> None:
 
 
 @pytest.mark.parametrize("module", [canrls.core.units, canrls.can.protocol,
-                                    canrls.processor.pairing, canrls.can.frames,
+                                    canrls.processor.pairing, canrls.can.estimator_frames,
                                     canrls.core.effect_names])
 def test_doctests(module) -> None:
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)

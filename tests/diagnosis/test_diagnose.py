@@ -18,7 +18,7 @@ from markupsafe import escape
 
 from canrls.cli._common import _clean
 from canrls.core.errors import ConfigError, EffectError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.diagnosis.analysis import diagnose
 from canrls.diagnosis.report import DiagnosisReport
 from canrls.diagnosis.residual import bin_residual, chi2_sf, nice_magnitudes, whiteness

@@ -3,7 +3,7 @@ included) on a simulated log and on one four times longer. A bound on memory, no
 time: the growth per extra sample must stay below :data:`BYTES_PER_SAMPLE`.
 
 The pipeline's working arrays are one block long (:data:`canrls.diagnosis.analysis.
-CHUNK`), not the record's, and so are the statistics' (:data:`canrls.diagnosis.samples.
+CHUNK`), not the record's, and so are the statistics' (:data:`canrls.diagnosis.record.
 BLOCK`); what still grows with the record is listed in docs/diagnose.md ("Memory").
 """
 
@@ -19,7 +19,7 @@ import pytest
 
 from canrls.cli.main import main
 from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals
-from canrls.diagnosis import analysis, residual, results, samples
+from canrls.diagnosis import analysis, record, residual, results
 from canrls.diagnosis.analysis import diagnose_log
 from canrls.processor.config import load_config, prepare
 
@@ -57,7 +57,7 @@ def _peak(path: Path, chunk: int, monkeypatch: pytest.MonkeyPatch) -> tuple[int,
     # every block shorter than the short log, so that only what grows with the record
     # differs between the two runs (in use the blocks are 32768 and 65536 samples long)
     monkeypatch.setattr(analysis, "CHUNK", chunk, raising=False)
-    monkeypatch.setattr(samples, "BLOCK", chunk)
+    monkeypatch.setattr(record, "BLOCK", chunk)
     monkeypatch.setattr(residual, "BLOCK", chunk)
     # the figures' points too (in use up to 20000 per trace, a fixed amount)
     monkeypatch.setattr(results, "FIGURE_POINTS", chunk // 4, raising=False)
@@ -166,7 +166,7 @@ def test_filtered_signals_read_in_blocks_are_one_pass(tmp_path: Path,
     slices or at sorted rows they are filtered again block by block from saved filter
     states, and equal one pass of the filter over the gap-filled record, bit for bit
     (gaps and filter restarts inside and across blocks)."""
-    from canrls.diagnosis.samples import RecordSamples
+    from canrls.diagnosis.record import RecordSamples
     from canrls.estimation.svf import SVF
     from canrls.processor.replay import read_logs
 
@@ -177,7 +177,7 @@ def test_filtered_signals_read_in_blocks_are_one_pass(tmp_path: Path,
     cfg.model["kt"] = 0.1
     protocol, model, settings = prepare(cfg)
     log = read_logs([p], protocol, model, settings)
-    monkeypatch.setattr(samples, "BLOCK", 777)
+    monkeypatch.setattr(record, "BLOCK", 777)
     ctx = RecordSamples(log.model, log.signals, log.dt, settings, 8)
     assert ctx.selected.real is not None and len(ctx.segments()) > 1
     filled = ctx.selected.signals
@@ -212,7 +212,7 @@ def test_residual_read_in_blocks_is_one_pass(tmp_path: Path,
     """The residual is not kept either: read in slices (forward, backward, across
     restarts) or at sorted rows, the regressor builder runs again from the block last
     computed or the segment's start; the values are those of one pass, bit for bit."""
-    from canrls.diagnosis.samples import RecordSamples
+    from canrls.diagnosis.record import RecordSamples
     from canrls.processor.replay import read_logs
 
     p = tmp_path / "gaps.log"
@@ -222,7 +222,7 @@ def test_residual_read_in_blocks_is_one_pass(tmp_path: Path,
     cfg.model["kt"] = 0.1
     protocol, model, settings = prepare(cfg)
     log = read_logs([p], protocol, model, settings)
-    monkeypatch.setattr(samples, "BLOCK", 613)
+    monkeypatch.setattr(record, "BLOCK", 613)
     ctx = RecordSamples(log.model, log.signals, log.dt, settings, 8)
     eq = log.model.equations[0]
     theta = np.linspace(0.1, 0.4, eq.n)

@@ -10,7 +10,7 @@ import pytest
 
 import canrls
 from canrls.core.errors import ConfigError, EffectError, ExpressionError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.estimation.effects import (
     EFFECT_IDS,
     EFFECT_NAMES,

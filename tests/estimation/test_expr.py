@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 import canrls.estimation.expr as expr_module
 from canrls.core.errors import ConfigError, ExpressionError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.estimation.expr import DEFAULT_NAMES, FUNCTIONS, compile_expression
 
 RNG = np.random.default_rng(0)

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from canrls.core.errors import ConfigError, EffectError, ExpressionError, SignalError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.estimation.equation import PositionUnwrapper, RegressorBlock
 from canrls.estimation.model import Model
 from canrls.processor.config import load_model

@@ -20,8 +20,8 @@ import can
 import pytest
 from daemon_tool import DaemonTool
 
+from canrls.can.estimator_frames import FrameDecoder
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import FrameDecoder
 from canrls.can.logs import read_frames, write_log
 from canrls.can.protocol import Protocol
 from canrls.cli.main import build_parser, main

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.estimation.estimates import divergence
 from canrls.estimation.fixed.formats import QFormat
 from canrls.estimation.pipeline import Pipeline

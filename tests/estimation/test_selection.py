@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from canrls.can.logs import write_candump
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.diagnosis.analysis import diagnose
-from canrls.diagnosis.samples import RecordSamples
+from canrls.diagnosis.record import RecordSamples
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
 from canrls.estimation.selection import GapFiller, SamplePolicy

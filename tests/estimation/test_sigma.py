@@ -3,7 +3,7 @@
 Simulated drives with known truth and the right model, across seeds and run lengths:
 about 95 % of the parameters lie within 2 sigma. The plain RLS formula assumes white
 residuals; after the state-variable filter they are coloured, and without the
-correction (:mod:`canrls.estimation.colour`) far fewer are covered.
+correction (:mod:`canrls.estimation.sigma_inflation`) far fewer are covered.
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canrls.estimation.colour import ResidualTail
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
+from canrls.estimation.sigma_inflation import ResidualTail
 from canrls.processor import SampleProcessor
 from canrls.processor.config import DEFAULT_HELD
 from canrls.sim.scenario import scenario, simulate

@@ -18,7 +18,8 @@ from debian import need_tool
 from canrls.cli.main import main
 from canrls.core.errors import ConfigError
 from canrls.estimation.pipeline import Pipeline
-from canrls.firmware.kernel_export import export_c, load_source
+from canrls.firmware.kernel_export import export_c
+from canrls.firmware.load import load
 from canrls.processor.config import AppConfig
 
 CFLAGS = ["-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic"]
@@ -75,7 +76,7 @@ def test_exported_plan_runs_like_the_pipelines_estimator(exported: Path, tmp_pat
     gcc = shutil.which("gcc")
     if gcc is None:
         pytest.skip("gcc not installed")
-    cfg, _, _, _ = load_source(tmp_path / "drive.toml")
+    cfg = load(tmp_path / "drive.toml").config
     protocol = cfg.protocol()
     pipe = Pipeline(cfg.model_for(protocol), protocol.period or 1e-3, cfg.settings())
     est = pipe.estimators[0].frls
@@ -104,17 +105,11 @@ def test_exported_plan_runs_like_the_pipelines_estimator(exported: Path, tmp_pat
     assert [int(x) for x in out.split()] == est.theta.tolist()
 
 
-def test_a_saved_model_needs_the_model_file_module_or_loads(tmp_path: Path) -> None:
+def test_a_saved_model_that_is_not_one_is_refused(tmp_path: Path) -> None:
     p = tmp_path / "m.json"
     p.write_text("{}")
-    try:
-        import canrls.processor.modelfile  # noqa: F401
-    except ImportError:
-        with pytest.raises(ConfigError, match="saved models"):
-            load_source(p)
-    else:  # pragma: no cover - with the saved-model format merged
-        with pytest.raises(ConfigError):
-            load_source(p)
+    with pytest.raises(ConfigError):
+        load(p)
 
 
 def test_export_c_api_names_the_equations(tmp_path: Path) -> None:

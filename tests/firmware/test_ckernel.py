@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from debian import need_tool
 
-from canrls.core.ctext import c_int
+from canrls.core.c_escape import c_int
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import SITES, FixedConfig, FixedFlag, QFormat
 from canrls.firmware.kernel_export import plan_c

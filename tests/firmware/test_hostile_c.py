@@ -1,5 +1,5 @@
 """Generated C takes nothing raw: hostile names, units, comments and sizes against
-``canrls export-c`` (``canrls/core/ctext.py``).
+``canrls export-c`` (``canrls/core/c_escape.py``).
 
 A model file, a configuration and a DBC carry text into the C a firmware team builds.
 Each case here either is refused with one ``error:`` line where the text is read (by
@@ -24,10 +24,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from canrls.cli.main import main
-from canrls.core.ctext import MAX_TEXT, c_comment, c_identifier, c_int, c_string, c_uint
+from canrls.core.c_escape import MAX_TEXT, c_comment, c_identifier, c_int, c_string, c_uint
 from canrls.core.errors import ConfigError
 from canrls.estimation.pipeline import Pipeline
-from canrls.firmware.kernel_export import frames_c, load_source
+from canrls.firmware.kernel_export import frames_c
+from canrls.firmware.load import load
 
 ROOT = Path(__file__).resolve().parents[2]
 DBC = ROOT / "dbc" / "canrls.dbc"
@@ -106,10 +107,8 @@ def _estimates_like_python(model_file: Path, out: Path, fixed_o: Path, tmp: Path
     gcc = _gcc()
     subprocess.run([gcc, *CFLAGS, "-fsyntax-only", str(out / "canrls_frames.c")],
                    check=True, capture_output=True, text=True)
-    cfg, model, energy, _ = load_source(model_file)
-    protocol = cfg.protocol()
-    pipe = Pipeline(model if model is not None else cfg.model_for(protocol),
-                    protocol.period or 1e-3, cfg.settings(), energy)
+    src = load(model_file)  # what export-c exports: the model, its energies, its period
+    pipe = Pipeline(src.model, src.dt, src.settings, src.energy)
     config_o = tmp / "config.o"
     subprocess.run([gcc, *CFLAGS, "-I", str(out), "-c", str(out / "canrls_config.c"),
                     "-o", str(config_o)], check=True, capture_output=True, text=True)

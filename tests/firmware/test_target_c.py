@@ -39,6 +39,12 @@ CIA_MAP = ["--dbc", str(Path(__file__).resolve().parents[1] / "data" / "cia402_d
            "--increments-per-rev", "131072"]
 
 
+ODRIVE_MAP = ["--dbc", str(Path(__file__).resolve().parents[1] / "data" / "odrive_cansimple.dbc"),
+              *[a for s in ("speed=Get_Encoder_Estimates.Vel_Estimate",
+                            "position=Get_Encoder_Estimates.Pos_Estimate",
+                            "current=Get_Iq.Iq_Measured") for a in ("--signal", s)]]
+
+
 def _quiet(argv: list[str]) -> str:
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
@@ -79,6 +85,17 @@ def _cia402(d: Path) -> Path:
     return log
 
 
+def _odrive(d: Path) -> Path:
+    from user_drives import odrive_log
+
+    from canrls.sim.scenario import simulate
+
+    log = d / "odrive.log"
+    odrive_log(simulate(scenario("standard", effects="inertia,viscous,coulomb,unbalance",
+                                 seed=6, duration=6.0)), log)
+    return log
+
+
 #: name -> (how to make the log, fit arguments, export arguments)
 DRIVES: dict[str, Any] = {
     "own": (lambda d: _sim(d, "own", ["--duration", "8", "--seed", "1", "--effects",
@@ -86,6 +103,8 @@ DRIVES: dict[str, Any] = {
             ["--kt", "0.1", "-e", "inertia,viscous,coulomb,offset,unbalance"], []),
     "motorola": (lambda d: _motorola(d)[0], None, []),
     "cia402": (_cia402, [*CIA_MAP, "-e", "inertia,viscous,coulomb,unbalance"], []),
+    "odrive": (_odrive, [*ODRIVE_MAP, "--kt", "0.1", "-e", "inertia,viscous,coulomb,unbalance"],
+               []),
     "faults": (lambda d: _sim(d, "faults", [
         "--duration", "8", "--seed", "2", "--effects",
         "inertia,viscous,coulomb,stribeck,offset,cogging:6,electrical",
@@ -136,7 +155,7 @@ def test_the_c_is_bit_exact_on_x86_64(drives: dict[str, dict[str, Any]], name: s
     assert int(m.group(4)) > 10
 
 
-@pytest.mark.parametrize("name", ["motorola", "faults", "pending"])
+@pytest.mark.parametrize("name", ["motorola", "faults", "pending", "odrive"])
 def test_the_c_is_bit_exact_on_32_bit_arm(drives: dict[str, dict[str, Any]], name: str) -> None:
     need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
     need_tool("qemu-arm", ["qemu-user"])
@@ -156,6 +175,25 @@ def test_the_cortex_m4_objects_hold_no_floating_point(drives: dict[str, dict[str
     assert re.search(r"__aeabi_[df]", nm)
 
 
+def test_the_export_replays_on_the_cortex_m4_with_its_stack_and_state(
+        drives: dict[str, dict[str, Any]]) -> None:
+    """``make test-m4`` of an export: bit for bit on a Cortex-M4 under QEMU, then the
+    deepest stack and the state, within what docs/target.md states (the ODrive-style
+    float32 drive and canrls' own)."""
+    need_tool("arm-none-eabi-gcc", ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"])
+    need_tool("qemu-system-arm", ["qemu-system-arm"])
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "target.md").read_text()
+    m = re.search(r"stack below (\d+) B and the state at (\d+) B", doc)
+    assert m is not None
+    stack_max, state = int(m.group(1)), int(m.group(2))
+    for name in ("own", "odrive"):
+        out = _make(drives[name]["out"], "test-m4")
+        assert "bit-exact with the specification" in out, out
+        got = re.search(r"stack: (\d+) bytes; state \(canrls_target\): (\d+) bytes", out)
+        assert got is not None, out
+        assert 0 < int(got.group(1)) < stack_max and int(got.group(2)) == state, out
+
+
 def test_a_difference_fails_the_test(drives: dict[str, dict[str, Any]], tmp_path: Path) -> None:
     # the replay can fail: one published word changed in the vectors
     import shutil
@@ -170,6 +208,22 @@ def test_a_difference_fails_the_test(drives: dict[str, dict[str, Any]], tmp_path
     v.write_text(head + "vec_pub_data" + tail)
     r = subprocess.run(["make", "-s", "-C", str(out), "test"], capture_output=True, text=True)
     assert r.returncode != 0 and "1 differ from the specification" in r.stdout, r.stdout
+    # the first sample that differs and which value: the publication's first frame
+    first = (r"first difference: sample \d+ \(frame \d+\), publication 0, frame 0 "
+             r"\(bytes 0\.\.3 little endian\): expected -?\d+, got -?\d+")
+    assert re.search(first, r.stdout), r.stdout
+    # and a word of a state record: named by its place in the record
+    v.write_text(text)
+    head, tail = text.split("vec_cp[", 1)
+    k = tail.index("{") + 1
+    w = list(re.finditer(r"-?\d+", tail[k:]))[30]   # word 30 of the first record
+    tail = tail[:k + w.start()] + str(int(w.group()) + 1) + tail[k + w.end():]
+    v.write_text(head + "vec_cp[" + tail)
+    r = subprocess.run(["make", "-s", "-C", str(out), "test"], capture_output=True, text=True)
+    m = re.search(r"first difference: sample (\d+) \(frame \d+\), state (.+) of equation 0: "
+                  r"expected (-?\d+), got (-?\d+)", r.stdout)
+    assert r.returncode != 0 and m is not None, r.stdout
+    assert m.group(1) == "1000" and int(m.group(3)) == int(m.group(4)) + 1
 
 
 def test_the_rescales_and_the_pending_columns_run_on_the_target(
@@ -192,13 +246,13 @@ def test_the_rescales_and_the_pending_columns_run_on_the_target(
 def test_the_target_follows_the_float_within_0_1_percent(
         drives: dict[str, dict[str, Any]]) -> None:
     """The specification's estimate against the fit's float and fixed point: within
-    0.1 % of the float (or of 3 sigma for a parameter near 0) on the clean logs, and
-    within 0.01 % of the fit's fixed point (the same kernel on the float front end)."""
+    0.1 % of the float (or of 3 sigma for a parameter near 0), and the fit's fixed
+    column to the bit."""
     from canrls.estimation.estimates import divergence
     from canrls.firmware.load import load, target_model
     from canrls.firmware.vectors import log_frames, record
 
-    for name in ("own", "motorola", "cia402", "pending"):
+    for name in ("own", "motorola", "cia402", "pending", "odrive"):
         tm = target_model(load(drives[name]["saved"]))
         v = record(tm, log_frames([drives[name]["log"]]))
         params = drives[name]["fit"]["parameters"]
@@ -206,11 +260,34 @@ def test_the_target_follows_the_float_within_0_1_percent(
         value = [params[n]["value"] for n in names]
         sigma = [params[n]["sigma"] for n in names]
         assert divergence(value, v.theta, sigma) <= 1e-3, (name, v.theta, value)
-        # and the fit's own fixed point, which runs the same kernel on the float front end
-        # (where the speed reads exactly 0 through the window too: with P in 64 bits,
-        # FixedRLS.set_prior after a rescale by 2^-32 no longer saturates P)
-        fixed = [params[n]["fixed"] for n in names]
-        assert divergence(fixed, v.theta, sigma) <= 1e-4, (name, v.theta, fixed)
+        # and the fit's own fixed column is the target's, to the bit
+        assert [params[n]["fixed"] for n in names] == v.theta, name
+
+
+def test_float32_signals_decode_and_nan_infinity_and_out_of_range_are_rejected(
+        drives: dict[str, dict[str, Any]]) -> None:
+    """The ODrive-style drive's float32 fields in fixed point: every frame whose velocity
+    is NaN, infinite or outside the DBC's range is rejected as out of range (the float
+    decoder rejects the same samples), -0.0 and a subnormal pass; the export is whole."""
+    from user_drives import ODRIVE_BAD
+
+    from canrls.firmware.load import load, target_model
+    from canrls.firmware.spec import REJECTS
+    from canrls.firmware.vectors import log_frames, record
+
+    tm = target_model(load(drives["odrive"]["saved"]))
+    f = tm.roles["speed"]
+    assert f.is_float and f.length == 32 and f.frac == 30 - 8  # 200 rev/s in 30 bits
+    v = record(tm, log_frames([drives["odrive"]["log"]]))
+    rejected = v.checkpoints[-1][1][1 + REJECTS.index("range")]
+    n_bad = 6000 // 397
+    passes = sum(1 for k in range(n_bad)
+                 if -200 <= ODRIVE_BAD[k % len(ODRIVE_BAD)] <= 200)
+    assert rejected == n_bad - passes == 12
+    assert drives["odrive"]["fit"]["equations"]["mechanical"]["samples"] > 5000
+    out = drives["odrive"]["out"]
+    assert {"Makefile", "README.md", "canrls_target.c", "canrls_vectors.h"} <= {
+        p.name for p in out.iterdir()}
 
 
 def test_the_readme_and_the_header_say_what_the_firmware_needs(

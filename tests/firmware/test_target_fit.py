@@ -39,9 +39,11 @@ def _canrls(argv: list[str]) -> str:
     return buf.getvalue()
 
 
-def _check(log: Path, fit_args: list[str], tmp: Path, test_c: bool = True) -> dict[str, Any]:
+def _check(log: Path, fit_args: list[str], tmp: Path, test_c: bool = True,
+           fixed: str | None = "target") -> dict[str, Any]:
     saved = tmp / "m.json"
-    fit = json.loads(_canrls(["fit", str(log), *fit_args, "--fixed", "target", "--save-model",
+    how = ["--fixed", fixed] if fixed else []
+    fit = json.loads(_canrls(["fit", str(log), *fit_args, *how, "--save-model",
                               str(saved), "--json", "--quiet"]))
     names = list(fit["parameters"])
     fixed = [fit["parameters"][n]["fixed"] for n in names]
@@ -155,3 +157,63 @@ def test_the_readme_walks_from_a_log_to_a_passing_target_test(tmp_path: Path) ->
     # what the README says the test prints, it prints
     said = re.search(r"`(canrls replay: [^`]*)`", part.replace("\n", " "))
     assert said is not None and said.group(1) in out, (said, out)
+
+
+def test_fit_the_daemon_and_the_exported_c_agree_bit_for_bit(tmp_path: Path) -> None:
+    """One integer path: ``canrls fit --fixed target`` prints the target's fixed column,
+    the daemon with ``[daemon] fixed = "target"`` publishes the same values from the same
+    frames, and the exported C of the saved model reproduces them (``make test``)."""
+    from canrls.can.logs import read_frames
+    from canrls.cli.main import build_parser
+    from canrls.cli.run import build_daemon
+
+    log = tmp_path / "drive.log"
+    effects = "inertia,viscous,coulomb,offset,unbalance"
+    _canrls(["sim", "--out", str(log), "--duration", "6", "--effects", effects, "--seed", "9"])
+    fit = _check(log, ["--kt", "0.1", "-e", effects], tmp_path)
+    cfg = tmp_path / "daemon.toml"
+    cfg.write_text('[daemon]\nfixed = "target"\n')
+
+    def published(extra: list[str]) -> dict[str, float]:
+        # the daemon as 'canrls run' builds it, fed the log's frames in blocks of its own
+        d = build_daemon(build_parser("run").parse_args(
+            ["run", "-i", "virtual", "-c", "unused-one-path", "--kt", "0.1", "-e", effects,
+             *extra]))
+        try:
+            for b in read_frames(log):
+                d.process(b)
+            return {p.name: p.fixed_value for p in d.parameter_reports()}
+        finally:
+            d.stop()
+
+    assert published(["--config", str(cfg)]) == {n: p["fixed"]
+                                                  for n, p in fit["parameters"].items()}
+    # by default the daemon publishes the kernel's column, as plain 'canrls fit' prints it
+    kernel = json.loads(_canrls(["fit", str(log), "--kt", "0.1", "-e", effects, "--json",
+                                 "--quiet"]))
+    assert kernel.get("fixed") is None
+    assert published([]) == {n: p["fixed"] for n, p in kernel["parameters"].items()}
+
+
+def test_the_daemon_takes_the_target_path_only_by_name(tmp_path: Path) -> None:
+    cfg = tmp_path / "daemon.toml"
+    cfg.write_text('[daemon]\nfixed = "float"\n')
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
+        assert main(["run", "-i", "virtual", "-c", "x", "--config", str(cfg), "--kt",
+                     "0.1"]) == 1
+    assert "daemon.fixed = 'float'" in buf.getvalue() and "'target'" in buf.getvalue()
+
+
+def test_a_model_the_target_cannot_run_is_refused_by_name(tmp_path: Path) -> None:
+    log = tmp_path / "drive.log"
+    _canrls(["sim", "--out", str(log), "--duration", "4", "--seed", "8"])
+    cfg = tmp_path / "drive.toml"
+    cfg.write_text('[model]\neffects = ["inertia", "viscous", "user:drag"]\nkt = 0.1\n'
+                   '[[model.terms]]\nname = "drag"\nexpr = "omega * abs(omega)"\n'
+                   'range = [-1e4, 1e4]\n')
+    # asked for by name, the target's path is an error
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
+        assert main(["fit", str(log), "--config", str(cfg), "--fixed", "target"]) == 1
+    assert "error:" in buf.getvalue() and "user term" in buf.getvalue()

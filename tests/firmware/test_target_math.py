@@ -15,6 +15,7 @@ import math
 import re
 import subprocess
 import sys
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ from canrls.firmware.qmath import (
     clog2,
     exp_neg_q24,
     f32_bits,
+    float_fixed,
     floor_scaled,
     isqrt,
     mul_rsh,
@@ -107,6 +109,37 @@ def test_float32_bits_round_to_nearest_even_and_saturate() -> None:
     assert f32_bits(1, 200) == qmath.F32_SAT and f32_bits(-1, 200) == 0x80000000 | qmath.F32_SAT
 
 
+def _float_words(rng: np.random.Generator) -> list[tuple[int, int]]:
+    """Seeded (bits, width) of float32 and float64 fields: random words, NaN, infinities,
+    zeros of both signs, subnormals, and values around every power of two."""
+    out = [(int(rng.integers(0, 1 << 32)), 32) for _ in range(1500)]
+    out += [(int(rng.integers(0, 1 << 63)) * 2 + int(rng.integers(0, 2)), 64) for _ in range(1500)]
+    for x in (0.0, -0.0, 1e-40, -1e-45, 0.5, 1.5, 2.5, -2.5, 3e38, math.inf, -math.inf, math.nan):
+        out.append((int(np.array([x], np.float32).view(np.uint32)[0]), 32))
+        out.append((int(np.array([x], np.float64).view(np.uint64)[0]), 64))
+    for e in range(-70, 40):
+        for x in (2.0 ** e, -(2.0 ** e) * 1.5, 2.0 ** e * (1 - 2 ** -24)):
+            out.append((int(np.array([x], np.float32).view(np.uint32)[0]), 32))
+            out.append((int(np.array([x], np.float64).view(np.uint64)[0]), 64))
+    return out
+
+
+def test_a_float_field_is_its_value_in_fixed_point_rounded_half_away() -> None:
+    rng = np.random.default_rng(14)
+    for bits, width in _float_words(rng):
+        frac = int(rng.integers(-60, 61))
+        x = np.array([bits], np.uint32 if width == 32 else np.uint64).view(
+            np.float32 if width == 32 else np.float64)[0]
+        got = float_fixed(bits, width, frac)
+        if not np.isfinite(x):
+            assert got is None, (bits, width)
+            continue
+        # the exact value times 2^frac, rounded half away from zero
+        q = Fraction(float(x)) * Fraction(2) ** frac
+        want = math.floor(abs(q) + Fraction(1, 2))
+        assert got == (-want if q < 0 else want), (float(x), frac, got, want)
+
+
 def _ops() -> list[tuple[str, list[int], str]]:
     """Seeded operations on the edges of every split, with the specification's results."""
     rng = np.random.default_rng(13)
@@ -168,6 +201,12 @@ def _ops() -> list[tuple[str, list[int], str]]:
             pw = sat(pw, plo, phi)
         w2, f2, clamped = scale_p64(pw, pf, ps, plo, phi)
         add("p64", [pw, pf, ps, plo, phi], (w2, f2, int(clamped)))
+    for bits, width in _float_words(rng):
+        frac = int(rng.integers(-60, 61)) if rng.random() < 0.5 else int(rng.integers(0, 40))
+        shift = int(rng.integers(0, 33)) if width == 32 else 0
+        r = float_fixed(bits, width, frac)
+        ops.append(("float", [bits, width, frac, shift, int(rng.integers(0, 2))],
+                    "reject" if r is None or abs(r) > (1 << 31) - 1 else str(r)))
     return ops
 
 

@@ -9,6 +9,7 @@ clean log), and what the target refuses, with the reason.
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -153,18 +154,47 @@ def test_what_the_target_cannot_run_is_refused_with_the_reason(tmp_path: Path) -
     dbc = tmp_path / "float.dbc"
     dbc.write_text(HEADER + '''BO_ 256 Fb: 8 Drive
  SG_ Current : 0|32@1- (1,0) [-100|100] "A" Vector__XXX
- SG_ Speed : 32|32@1- (1,0) [-100|100] "rad/s" Vector__XXX
+ SG_ Speed : 32|16@1- (1,0) [-100|100] "rad/s" Vector__XXX
 
 SIG_VALTYPE_ 256 Speed : 1;
 ''')
     p = Protocol.load(dbc, ["current=Fb.Current", "speed=Fb.Speed"])
-    with pytest.raises(TargetError, match="float signal"):
+    with pytest.raises(TargetError, match="16-bit float"):
         build(_model("inertia,viscous"), p, EstimatorSettings(), 1e-3)
     with pytest.raises(TargetError, match="whole number of timestamp ticks"):
         build(_model("inertia"), proto, EstimatorSettings(), 1.0000001e-3 / 3)
     with pytest.raises(TargetError, match="wraps"):
         build(Model(["inertia", "cogging:2"], kt=0.1, axis="linear", pitch=0.01, wrap=0.015),
               Protocol.load(), EstimatorSettings(), 1e-3)
+
+
+def test_a_big_endian_float64_signal_is_its_value_in_fixed_point(tmp_path: Path) -> None:
+    import struct
+
+    dbc = tmp_path / "double.dbc"
+    dbc.write_text(HEADER + '''BO_ 256 Fb: 4 Drive
+ SG_ Current : 7|32@0- (0.001,0) [-100|100] "A" Vector__XXX
+
+BO_ 257 Sp: 8 Drive
+ SG_ Speed : 7|64@0- (2,1) [-301|99] "rad/s" Vector__XXX
+
+SIG_VALTYPE_ 257 Speed : 2;
+''')
+    p = Protocol.load(dbc, ["current=Fb.Current", "speed=Sp.Speed"])
+    tm = build(_model("inertia,viscous"), p, EstimatorSettings(), 1e-3)
+    f = tm.roles["speed"]
+    # the raw range -151 .. 49 ((phys - 1) / 2): 151 < 2^8, so 22 fraction bits in 30
+    assert f.is_float and f.big_endian and f.length == 64 and f.frac == 22
+    assert (f.lo, f.hi) == (-151 << 22, 49 << 22)
+    assert f.extract(struct.pack(">d", -2.75)) == round(-2.75 * 2 ** 22)
+    assert f.extract(struct.pack(">d", 2 ** -23 + 2 ** -60)) == 1   # half away from zero
+    assert f.extract(struct.pack(">d", -(2 ** -23))) == -1
+    assert f.extract(struct.pack(">d", float("nan"))) is None
+    assert f.extract(struct.pack(">d", float("-inf"))) is None
+    # and the signal's scale and offset go to the columns: k = 2 2^-22, o = 0.5 2^22
+    from canrls.firmware.model import _scale
+
+    assert _scale(p, "speed", f) == (Fraction(2, 2 ** 22), Fraction(2 ** 21))
 
 
 def test_the_config_without_calibration_exports_the_uncalibrated_prior(tmp_path: Path) -> None:

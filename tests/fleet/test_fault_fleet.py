@@ -37,7 +37,7 @@ from canrls.core.errors import ConfigError, StallError  # noqa: E402
 from canrls.fleet import cluster  # noqa: E402
 from canrls.fleet import ingest as ingest_module  # noqa: E402
 from canrls.fleet.cluster import dask_client, max_workers  # noqa: E402
-from canrls.fleet.history import NOT_A_HISTORY, History, redact  # noqa: E402
+from canrls.fleet.history import NOT_A_HISTORY, History, HistoryURL  # noqa: E402
 from canrls.fleet.ingest import JobConfig, ingest  # noqa: E402
 from canrls.fleet.records import ParameterValue, Recording  # noqa: E402
 from canrls.fleet.sources import MAX_CELL, LogSource, from_manifest, from_pattern  # noqa: E402
@@ -681,12 +681,14 @@ def test_a_password_in_the_url_is_never_echoed(
             if command == "ingest" else ["fleet", "report", "--db", url, "--json"])
     assert _bounded_main(argv) == 1
     err = capsys.readouterr().err
-    assert err.startswith((f"error: history {redact(url)}: ", f"error: --db {redact(url)}: "))
+    shown = HistoryURL.redact(url)
+    assert err.startswith((f"error: history {shown}: ", f"error: --db {shown}: "))
     assert err.count("\n") == 1
     assert secret not in err and "***" in err
 
 
 def test_redact_hides_every_password_form() -> None:
+    redact = HistoryURL.redact
     assert redact("postgresql://alice:pw@h:5/db?sslmode=require&password=x&sslpassword=y"
                   ) == "postgresql://alice:***@h:5/db?sslmode=require&password=***&sslpassword=***"
     assert redact("sqlite+pysqlcipher://:pw@/x.db") == "sqlite+pysqlcipher://:***@/x.db"

@@ -41,7 +41,7 @@ from canrls.core.errors import ConfigError  # noqa: E402
 from canrls.fleet import detect  # noqa: E402
 from canrls.fleet.cluster import dask_client  # noqa: E402
 from canrls.fleet.detect import assess  # noqa: E402
-from canrls.fleet.history import History  # noqa: E402
+from canrls.fleet.history import History, HistoryURL  # noqa: E402
 from canrls.fleet.ingest import JobConfig, ingest, model_key  # noqa: E402
 from canrls.fleet.records import STATUS_ERROR, STATUS_OK  # noqa: E402
 from canrls.fleet.sources import LogSource, from_manifest, from_pattern  # noqa: E402
@@ -765,3 +765,68 @@ def test_history_settings_errors() -> None:
         HistorySettings.from_table({"url": "x.db", "drive": "a", "interval": 0}, "c.toml")
     with pytest.raises(ConfigError, match=r"c.toml: history.colour = 1: unknown key"):
         HistorySettings.from_table({"url": "x.db", "drive": "a", "colour": 1}, "c.toml")
+
+
+# -- the history's URL: one parse -------------------------------------------------------
+@pytest.mark.parametrize("text, url, path", [
+    ("k.db", None, "k.db"),
+    ("sqlite:///k.db", "sqlite:///k.db", "k.db"),
+    ("sqlite:////var/h/k.db", "sqlite:////var/h/k.db", "/var/h/k.db"),
+    ("sqlite:///k.db?timeout=5", "sqlite:///k.db?timeout=5", "k.db"),
+    ("postgresql://u:secret@db/plant", "postgresql+psycopg://u:secret@db/plant", None),
+    ("postgres://u@db/plant", "postgresql+psycopg://u@db/plant", None),
+])
+def test_a_history_url_is_parsed_once_into_its_parts(text: str, url: str | None,
+                                                      path: str | None) -> None:
+    where = HistoryURL.parse(text)
+    if url is None:  # a plain path: SQLite, made absolute
+        assert where.sqlite_path == Path(text).absolute()
+        assert where.url == f"sqlite:///{Path(text).absolute()}"
+    else:
+        assert where.url == url
+        assert where.sqlite_path == (None if path is None else Path(path))
+    assert "secret" not in where.shown
+
+
+@pytest.mark.parametrize("text", ["", "mysql://u@db/x"])
+def test_a_history_url_of_another_kind_is_refused(text: str) -> None:
+    with pytest.raises(ConfigError, match="history: "):
+        HistoryURL.parse(text)
+
+
+@pytest.mark.parametrize("text", ["sqlite://", "sqlite:///:memory:",
+                                  "sqlite:///file:x?mode=memory&uri=true"])
+def test_the_parse_refuses_an_in_memory_history(text: str) -> None:
+    with pytest.raises(ConfigError, match=r"an in-memory database keeps nothing"):
+        HistoryURL.parse(text)
+
+
+def test_messages_name_the_history_as_given_without_its_secrets() -> None:
+    where = HistoryURL.parse("postgresql://alice:s3cret@db/plant?sslpassword=x2")
+    assert where.url == "postgresql+psycopg://alice:s3cret@db/plant?sslpassword=x2"
+    assert where.shown == "postgresql://alice:***@db/plant?sslpassword=***"
+    assert HistoryURL.parse("k.db").shown == "k.db"  # as typed, not made absolute
+
+
+def test_every_reader_of_a_history_url_asks_the_one_parser(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """History.open (the daemon's [history], fleet ingest) and fleet report's "no such
+    history" take the database file from HistoryURL.parse, not from the text again: a
+    query after the file (``?timeout=5``, the driver's) is no part of the file."""
+    asked: list[str] = []
+    parse = HistoryURL.parse.__func__  # type: ignore[attr-defined]
+
+    def spy(cls: type[HistoryURL], text: Any) -> HistoryURL:
+        asked.append(str(text))
+        return parse(cls, text)
+
+    monkeypatch.setattr(HistoryURL, "parse", classmethod(spy))
+    db = tmp_path / "k.db"
+    History.open(f"sqlite:///{db}?timeout=5").close()
+    assert asked == [f"sqlite:///{db}?timeout=5"] and db.is_file()
+    assert main(["fleet", "report", "--db", f"sqlite:///{db}?timeout=5", "--json"]) == 0
+    assert "no such history" not in capsys.readouterr().err
+    assert asked[1:] and set(asked[1:]) == {f"sqlite:///{db}?timeout=5"}
+    with pytest.raises(ConfigError, match="directory .* does not exist"):
+        History.open(f"sqlite:///{tmp_path}/no/k.db?timeout=5")

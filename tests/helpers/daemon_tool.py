@@ -1,8 +1,9 @@
 """What the daemon tests share: a tool on a daemon's virtual bus (what a monitor or a
 test bench sees: every frame the daemon sends in the ``0x3xx`` range, command frames
 sent and their acknowledgements awaited), and a python-can-remote server hosting the
-simulated drive for the tests across processes, and a daemon fed a recorded stream on
-a virtual bus.
+simulated drive for the tests across processes, a daemon fed a recorded stream on
+a virtual bus, and ``canrls run`` in a process of its own, started and stopped in one
+place (:func:`daemon_process`).
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -20,15 +22,15 @@ from typing import Any
 
 import can
 
-from canrls.can.frames import CommandResult
+from canrls.can.estimator_frames import CommandResult
 from canrls.can.protocol import Protocol
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
 from canrls.live.daemon import Daemon
 from canrls.live.settings import DaemonSettings
 
-__all__ = ["DaemonTool", "collect", "daemon_fed", "datagrams", "notify_socket",
-           "reloaded_daemon", "remote_sim_server"]
+__all__ = ["DaemonProcess", "DaemonTool", "collect", "daemon_fed", "daemon_process", "datagrams",
+           "notify_socket", "reloaded_daemon", "remote_sim_server"]
 
 #: RlsCommandAck
 ACK_ID = 0x321
@@ -182,29 +184,65 @@ def datagrams(sock: socket.socket, want: str, timeout: float,
     return got
 
 
-def reloaded_daemon(directory: Path, conf: Path, texts: Sequence[str]
-                    ) -> tuple[int, str, str]:
-    """``canrls run -C conf --json`` as a process under a stand-in for systemd: once it
-    is ready, each of ``texts`` written to ``conf`` and a SIGHUP sent (the next waits for
-    READY=1 again), then SIGTERM; returns (exit status, stdout, stderr)."""
-    import signal
+class DaemonProcess:
+    """``python -m canrls ...`` in a process of its own, told of systemd's
+    ``NOTIFY_SOCKET`` in the test's directory (:func:`daemon_process` starts and stops it)."""
 
-    sock, addr = notify_socket(directory, "notify")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-C", str(conf),
-         "--json"], env=dict(os.environ, NOTIFY_SOCKET=addr),
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    def __init__(self, proc: subprocess.Popen[str], sock: socket.socket) -> None:
+        self.proc = proc
+        self.sock = sock
+
+    def notifications(self, want: str, timeout: float = 60) -> list[str]:
+        """The notifications until one holds ``want`` (or ``timeout``, or the exit)."""
+        return datagrams(self.sock, want, timeout, self.proc)
+
+    def wait_ready(self, timeout: float = 60) -> None:
+        """Until the daemon says ``READY=1``; an AssertionError if it does not."""
+        if not any("READY=1" in g for g in self.notifications("READY=1", timeout)):
+            raise AssertionError(f"the daemon did not get ready (exit status "
+                                 f"{self.proc.poll()})")
+
+    def send(self, sig: int) -> None:
+        self.proc.send_signal(sig)
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 60) -> tuple[str, str]:
+        """Send ``sig`` and wait for the exit: (stdout, stderr) as far as they were piped."""
+        self.proc.send_signal(sig)
+        out, err = self.proc.communicate(timeout=timeout)
+        return out or "", err or ""
+
+
+@contextlib.contextmanager
+def daemon_process(args: Sequence[str], directory: Path, *, name: str = "notify",
+                   env: dict[str, str] | None = None, stdout: Any = subprocess.PIPE,
+                   stderr: Any = subprocess.PIPE) -> Iterator[DaemonProcess]:
+    """``python -m canrls ARGS`` with a ``NOTIFY_SOCKET`` named ``name`` in ``directory``
+    (and ``env`` over the environment); on exit killed if still running, its pipes and
+    the socket closed, so no test leaves a daemon or a descriptor behind."""
+    sock, addr = notify_socket(directory, name)
+    proc = subprocess.Popen([sys.executable, "-m", "canrls", *args],
+                            env=dict(os.environ, NOTIFY_SOCKET=addr, **(env or {})),
+                            stdout=stdout, stderr=stderr, text=True)
     try:
-        assert any("READY=1" in g for g in datagrams(sock, "READY=1", 60, proc))
-        for text in texts:
-            conf.write_text(text)
-            proc.send_signal(signal.SIGHUP)
-            assert "READY=1" in datagrams(sock, "READY=1", 30, proc)[-1]
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
+        yield DaemonProcess(proc, sock)
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.communicate()
+        proc.communicate()
         sock.close()
-    return proc.returncode, out, err
+
+
+def reloaded_daemon(directory: Path, conf: Path, texts: Sequence[str]
+                    ) -> tuple[int, str, str]:
+    """``canrls run -C conf --json`` (:func:`daemon_process`): once it is ready, each of
+    ``texts`` written to ``conf`` and a SIGHUP sent (the next waits for READY=1 again),
+    then SIGTERM; returns (exit status, stdout, stderr)."""
+    with daemon_process(["--log-level", "INFO", "run", "-C", str(conf), "--json"],
+                        directory) as d:
+        d.wait_ready()
+        for text in texts:
+            conf.write_text(text)
+            d.send(signal.SIGHUP)
+            assert "READY=1" in d.notifications("READY=1", 30)[-1]
+        out, err = d.stop()
+    return d.proc.returncode, out, err

@@ -1,12 +1,21 @@
 """Drives in users' DBCs, shared by the tests: a Motorola DBC with 32-bit signals (the
-processor's scaling tests and the firmware's) and a CiA 402 drive's log written through
-cantools (tools/cia402_log.py: the torque-drive tests, the firmware's and the README's)."""
+processor's scaling tests and the firmware's), a CiA 402 drive's log written through
+cantools (tools/cia402_log.py: the torque-drive tests, the firmware's and the README's)
+and an ODrive-style CANSimple drive's float32 frames with NaN, infinity and values out
+of range among them."""
 
 from __future__ import annotations
 
 import importlib.util
+import math
+import struct
 from pathlib import Path
 from typing import Any
+
+import can
+import numpy as np
+
+from canrls.sim.scenario import SimResult
 
 
 def _cia402_tool() -> Any:
@@ -28,6 +37,14 @@ RATED_TORQUE, RATED_CURRENT, INCREMENTS = (_CIA402.RATED_TORQUE, _CIA402.RATED_C
 #: the measured run of a :class:`~canrls.sim.scenario.SimResult` as the CiA 402 drive
 #: sends it: ``cia402_log(res, path)``
 cia402_log = _CIA402.write_log
+
+ODRIVE_DBC = Path(__file__).resolve().parents[1] / "data" / "odrive_cansimple.dbc"
+ODRIVE_SIGNALS = ["speed=Get_Encoder_Estimates.Vel_Estimate",
+                  "position=Get_Encoder_Estimates.Pos_Estimate", "current=Get_Iq.Iq_Measured"]
+#: what the ODrive-style log sends instead of the velocity, every 397th sample: NaN,
+#: infinities, beyond the DBC's 200 rev/s and beyond float32's integers; -0.0 and a
+#: subnormal pass
+ODRIVE_BAD = (math.nan, math.inf, -math.inf, 200.5, -3e38, 1e9, -0.0, 1e-40)
 
 HEADER = 'VERSION ""\n\nNS_ :\n\nBS_:\n\n'
 SIGNALS = ["current=Feedback.Current", "speed=Feedback.Speed", "position=Angle.Angle"]
@@ -52,3 +69,22 @@ BO_ 2566914305 Feedback: 8 Drive
 BO_ 2566914306 Angle: 4 Drive
  SG_ Angle : 7|32@0+ (0.01,0) {lim[2]} "deg" Vector__XXX
 '''
+
+
+def odrive_log(res: SimResult, path: Path) -> None:
+    """The measured run as an ODrive-style CANSimple drive sends it (node 1): the encoder
+    estimates (turns, turns/s) and the q-axis current as little-endian float32, with
+    :data:`ODRIVE_BAD` in place of the velocity now and then."""
+    m = res.measured
+    assert m.current is not None
+    turns = np.unwrap(m.position) / (2 * math.pi)   # the position estimate is multi-turn
+    vel = m.speed / (2 * math.pi)
+    with can.CanutilsLogWriter(str(path)) as w:
+        for k in range(len(m)):
+            v = float(vel[k]) if k % 397 != 396 else ODRIVE_BAD[(k // 397) % len(ODRIVE_BAD)]
+            frames = ((0.0, 0x034, struct.pack("<ff", 0.0, float(m.current[k]))),
+                      (1e-4, 0x029, struct.pack("<ff", float(turns[k]), v)))
+            for dt, fid, data in frames:
+                w.on_message_received(can.Message(timestamp=float(m.t[k]) + dt,
+                                                  arbitration_id=fid, is_extended_id=False,
+                                                  data=data))

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -13,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from daemon_tool import daemon_process
 
 from canrls.core.errors import CheckpointError
 from canrls.estimation.model import Model
@@ -169,56 +168,28 @@ def test_effect_added_by_command_survives_a_restart(tmp_path: Path) -> None:
     assert d.config_model.effect_names == tuple(EFFECTS)
 
 
-def _notify_socket(tmp_path: Path) -> tuple[socket.socket, str]:
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    addr = str(tmp_path / "notify.sock")
-    sock.bind(addr)
-    sock.settimeout(0.2)
-    return sock, addr
-
-
-def _wait_datagram(sock: socket.socket, text: str, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        try:
-            if text in sock.recv(4096).decode():
-                return True
-        except TimeoutError:
-            continue
-    return False
-
-
 @pytest.mark.slow
 def test_kill_9_loses_at_most_one_interval(tmp_path: Path) -> None:
     path = tmp_path / "cp.bin"
-    sock, addr = _notify_socket(tmp_path)
-    env = dict(os.environ, NOTIFY_SOCKET=addr)
     interval = 0.5
-    cmd = [sys.executable, "-m", "canrls", "run", "-i", "canrls-sim", "-c", "kill9",
-           "--bus-kwargs", "seed=4", "excitation=slow", "--kt", "0.1",
-           "--checkpoint", str(path), "--checkpoint-interval", str(interval)]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
-        assert _wait_datagram(sock, "READY=1", 60), "daemon never became ready"
+    cmd = ["run", "-i", "canrls-sim", "-c", "kill9", "--bus-kwargs", "seed=4",
+           "excitation=slow", "--kt", "0.1", "--checkpoint", str(path),
+           "--checkpoint-interval", str(interval)]
+    with daemon_process(cmd, tmp_path, stdout=subprocess.DEVNULL) as d:
+        d.wait_ready()
         time.sleep(2.5)
-        proc.send_signal(signal.SIGKILL)
+        d.send(signal.SIGKILL)
         killed = time.time()
-        proc.wait(10)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        assert proc.stderr is not None
-        proc.stderr.close()
-        sock.close()
-    assert proc.returncode == -signal.SIGKILL
+        d.proc.wait(10)
+    assert d.proc.returncode == -signal.SIGKILL
     cp = load_checkpoint(path)  # intact despite the kill
     assert killed - cp.saved_at <= interval + 0.5  # at most one interval (+ scheduling slack)
     assert cp.state["pipeline"]["samples"] > 500
     leftovers = [p.name for p in tmp_path.iterdir() if p.name.startswith(".cp.bin.tmp")]
     assert len(leftovers) <= 1  # a write cut short leaves at most its temporary file
     # resume from it
-    out = subprocess.run(cmd[:-4] + ["--checkpoint", str(path), "--duration", "1", "--json"],
+    out = subprocess.run([sys.executable, "-m", "canrls", *cmd[:-4], "--checkpoint", str(path),
+                          "--duration", "1", "--json"],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)

@@ -10,7 +10,6 @@ import math
 import os
 import signal
 import socket
-import subprocess
 import sys
 import threading
 import time
@@ -22,10 +21,10 @@ import cantools
 import numpy as np
 import pytest
 from can.interfaces.virtual import VirtualBus
-from daemon_tool import DaemonTool, datagrams, notify_socket
+from daemon_tool import DaemonTool, daemon_process, notify_socket
 
+from canrls.can.estimator_frames import CommandCode, CommandResult, FrameDecoder, encode_command
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import CommandCode, CommandResult, FrameDecoder, encode_command
 from canrls.can.logs import read_frames
 from canrls.core.effect_names import EffectId
 from canrls.core.errors import BusError, ConfigError
@@ -799,30 +798,20 @@ def test_sighup_reloads_model_and_sigterm_checkpoints(tmp_path: Path) -> None:
     conf.write_text('[model]\neffects = ["inertia", "viscous", "coulomb"]\nkt = 0.1\n'
                     '[can]\ninterface = "canrls-sim"\nchannel = "sighup"\n'
                     f'[daemon]\ncheckpoint = "{ckpt.name}"\npublish_interval = 0.05\n')
-    sock, addr = notify_socket(tmp_path, "notify")
-    env = dict(os.environ, NOTIFY_SOCKET=addr, WATCHDOG_USEC="300000")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-C", str(conf),
-         "--bus-kwargs", "effects=inertia,viscous,coulomb,unbalance", "excitation=slow",
-         "seed=2", "--json"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert any("READY=1" in g for g in datagrams(sock, "READY=1", 60))
-        assert any("WATCHDOG=1" in g for g in datagrams(sock, "WATCHDOG=1", 5))
+    with daemon_process(["--log-level", "INFO", "run", "-C", str(conf), "--bus-kwargs",
+                         "effects=inertia,viscous,coulomb,unbalance", "excitation=slow",
+                         "seed=2", "--json"], tmp_path,
+                        env={"WATCHDOG_USEC": "300000"}) as d:
+        d.wait_ready()
+        assert any("WATCHDOG=1" in g for g in d.notifications("WATCHDOG=1", 5))
         time.sleep(1.0)
         conf.write_text(conf.read_text().replace('"coulomb"]', '"coulomb", "unbalance"]'))
-        proc.send_signal(signal.SIGHUP)
-        got = datagrams(sock, "READY=1", 10)
+        d.send(signal.SIGHUP)
+        got = d.notifications("READY=1", 10)
         assert any("RELOADING=1" in g for g in got) and "READY=1" in got[-1]
         time.sleep(1.0)
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-        sock.close()
-    assert proc.returncode == 0, err
+        out, err = d.stop(timeout=30)
+    assert d.proc.returncode == 0, err
     res = json.loads(out)
     assert res["effects"] == [*BASE, "unbalance"]
     assert res["daemon"]["reloads"] == 1 and res["daemon"]["checkpoints"] >= 1

@@ -17,7 +17,6 @@ import json
 import logging
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -27,9 +26,9 @@ from typing import Any
 import can
 import numpy as np
 import pytest
-from daemon_tool import DaemonTool, datagrams, notify_socket, remote_sim_server
+from daemon_tool import DaemonTool, daemon_process, remote_sim_server
 
-from canrls.can.frames import CommandCode, CommandResult, encode_command
+from canrls.can.estimator_frames import CommandCode, CommandResult, encode_command
 from canrls.core.effect_names import EffectId
 from canrls.core.errors import CheckpointError, ConfigError
 from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
@@ -339,36 +338,22 @@ def test_an_exception_in_the_estimator_thread_exits_non_zero(
 
 
 # ------------------------------------------------------------------ across processes
-def _wait_ready(sock: socket.socket, proc: subprocess.Popen[str], timeout: float) -> None:
-    if not any("READY=1" in g for g in datagrams(sock, "READY=1", timeout, proc)):
-        raise AssertionError(f"the daemon did not get ready (exit status {proc.poll()})")
-
-
 @pytest.mark.slow
 def test_sigterm_after_sigterm_is_still_a_clean_stop(tmp_path: Path) -> None:
     """SIGTERM every 10 ms until the daemon has exited: it stops gracefully, exit 0
     (a SIGTERM after the daemon had restored the default handlers killed it: -15)."""
     ckpt = tmp_path / "cp.bin"
-    sock, addr = notify_socket(tmp_path, "term")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "canrls", "run", "-i", "canrls-sim", "-c", "standard",
-         "--bus-kwargs", "seed=1", "--kt", "0.1", "--effects", "inertia,viscous,coulomb",
-         "--checkpoint", str(ckpt), "--json"],
-        env=dict(os.environ, NOTIFY_SOCKET=addr), stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True)
-    try:
-        _wait_ready(sock, proc, 60)
+    with daemon_process(["run", "-i", "canrls-sim", "-c", "standard", "--bus-kwargs",
+                         "seed=1", "--kt", "0.1", "--effects", "inertia,viscous,coulomb",
+                         "--checkpoint", str(ckpt), "--json"], tmp_path, name="term") as d:
+        d.wait_ready()
         time.sleep(1.0)
         end = time.monotonic() + 60
-        while proc.poll() is None and time.monotonic() < end:
-            proc.send_signal(signal.SIGTERM)
+        while d.proc.poll() is None and time.monotonic() < end:
+            d.send(signal.SIGTERM)
             time.sleep(0.01)
-        out, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-        sock.close()
+        out, err = d.proc.communicate(timeout=30)
+    proc = d.proc
     assert proc.returncode == 0, err
     assert json.loads(out)["daemon"]["frames"] > 0 and ckpt.exists()
 
@@ -400,36 +385,26 @@ def test_kill_9_at_random_moments_resumes_from_the_checkpoint(tmp_path: Path) ->
     ckpt = tmp_path / "cp.bin"
     frames: list[int] = []
     with remote_sim_server(tmp_path, "remote-kill9") as url:
-        cmd = [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-i", "remote",
-               "-c", url, "--kt", "0.1", "--effects", "inertia,viscous,coulomb",
-               "--checkpoint", str(ckpt), "--checkpoint-interval", "0.3",
-               "--publish-interval", "0.05", "--json"]
+        cmd = ["--log-level", "INFO", "run", "-i", "remote", "-c", url, "--kt", "0.1",
+               "--effects", "inertia,viscous,coulomb", "--checkpoint", str(ckpt),
+               "--checkpoint-interval", "0.3", "--publish-interval", "0.05", "--json"]
         for k in range(4):
-            sock, addr = notify_socket(tmp_path, f"n{k}")
             log = tmp_path / f"daemon{k}.log"
-            with log.open("w") as err:
-                proc = subprocess.Popen(cmd, env=dict(os.environ, NOTIFY_SOCKET=addr),
-                                        stdout=subprocess.PIPE, stderr=err, text=True)
-                try:
-                    _wait_ready(sock, proc, 60)
-                    if k < 3:
-                        # a checkpoint newer than the last start's, then a random moment
-                        # (waiting on the file, not the clock: a loaded machine is slow)
-                        _wait_for_checkpoint_beyond(ckpt, frames[-1] if frames else -1,
-                                                    proc, 60)
-                        time.sleep(float(rng.uniform(0.0, 1.5)))
-                        proc.kill()
-                        proc.communicate(timeout=30)
-                        assert proc.returncode == -signal.SIGKILL
-                    else:  # the last one stops gracefully
-                        time.sleep(1.0)
-                        proc.send_signal(signal.SIGTERM)
-                        out, _ = proc.communicate(timeout=60)
-                finally:
-                    if proc.poll() is None:
-                        proc.kill()
-                        proc.communicate()
-                    sock.close()
+            with log.open("w") as err, daemon_process(cmd, tmp_path, name=f"n{k}",
+                                                      stderr=err) as d:
+                d.wait_ready()
+                if k < 3:
+                    # a checkpoint newer than the last start's, then a random moment
+                    # (waiting on the file, not the clock: a loaded machine is slow)
+                    _wait_for_checkpoint_beyond(ckpt, frames[-1] if frames else -1,
+                                                d.proc, 60)
+                    time.sleep(float(rng.uniform(0.0, 1.5)))
+                    d.stop(signal.SIGKILL, timeout=30)
+                    assert d.proc.returncode == -signal.SIGKILL
+                else:  # the last one stops gracefully
+                    time.sleep(1.0)
+                    out, _ = d.stop()
+            proc = d.proc
             text = log.read_text()
             if k > 0:
                 assert f"resumed from checkpoint {ckpt}" in text, text

@@ -11,7 +11,6 @@ import dataclasses
 import json
 import os
 import resource
-import signal
 import subprocess
 import sys
 import textwrap
@@ -20,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from daemon_tool import daemon_fed, datagrams, notify_socket, reloaded_daemon, remote_sim_server
+from daemon_tool import daemon_fed, daemon_process, reloaded_daemon, remote_sim_server
 
+from canrls.can.estimator_frames import FrameDecoder
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import FrameDecoder
 from canrls.core.checks import MAX_TIMESTAMP, is_time
 from canrls.live.daemon import Daemon
 from canrls.live.monitor import Monitor
@@ -322,7 +321,7 @@ def _stop(proc: subprocess.Popen[str]) -> None:
 
 
 @pytest.mark.slow
-def test_a_remote_bus_lost_and_reconnected_leaves_no_traceback_at_exit() -> None:
+def test_a_remote_bus_lost_and_reconnected_leaves_no_traceback_at_exit(tmp_path: Path) -> None:
     """``canrls run -i remote``: the python-can-remote server goes away and comes back
     on its port. Before, the lost bus's shutdown failed (ENOTCONN), python-can's
     ``__del__`` tried again when it was collected and printed "Exception ignored in
@@ -334,40 +333,39 @@ def test_a_remote_bus_lost_and_reconnected_leaves_no_traceback_at_exit() -> None
     pytest.importorskip("can_remote")
     port = _free_port()
     server = _server(port)
-    daemon = subprocess.Popen(
-        [sys.executable, "-m", "canrls", "--log-level", "INFO", "run", "-i", "remote", "-c",
-         f"ws://127.0.0.1:{port}/", "--kt", "0.1", "--duration", "120", "--json"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    lines: queue.Queue[str | None] = queue.Queue()
-    seen: list[str] = []
+    with daemon_process(["--log-level", "INFO", "run", "-i", "remote", "-c",
+                         f"ws://127.0.0.1:{port}/", "--kt", "0.1", "--duration", "120",
+                         "--json"], tmp_path) as d:
+        daemon = d.proc
+        lines: queue.Queue[str | None] = queue.Queue()
+        seen: list[str] = []
 
-    def pump() -> None:
-        assert daemon.stderr is not None
-        for line in daemon.stderr:
-            lines.put(line)
-        lines.put(None)
+        def pump() -> None:
+            assert daemon.stderr is not None
+            for line in daemon.stderr:
+                lines.put(line)
+            lines.put(None)
 
-    reader = threading.Thread(target=pump, name="stderr pump")
-    reader.start()
+        reader = threading.Thread(target=pump, name="stderr pump")
+        reader.start()
 
-    def wait_for(text: str) -> None:
-        while (line := lines.get(timeout=60)) is not None:
-            seen.append(line)
-            if text in line:
-                return
-        raise AssertionError(f"no {text!r} in {''.join(seen)[-2000:]}")
+        def wait_for(text: str) -> None:
+            while (line := lines.get(timeout=60)) is not None:
+                seen.append(line)
+                if text in line:
+                    return
+            raise AssertionError(f"no {text!r} in {''.join(seen)[-2000:]}")
 
-    try:
-        wait_for("daemon running")
-        _stop(server)
-        wait_for("reopening")
-        server = _server(port)
-        wait_for("CAN bus reopened")
-    finally:
-        daemon.terminate()
-        out, _ = daemon.communicate(timeout=60)
-        reader.join(10)
-        _stop(server)
+        try:
+            wait_for("daemon running")
+            _stop(server)
+            wait_for("reopening")
+            server = _server(port)
+            wait_for("CAN bus reopened")
+        finally:
+            out, _ = d.stop()
+            reader.join(10)
+            _stop(server)
     while (line := lines.get_nowait()) is not None:
         seen.append(line)
     err = "".join(seen)
@@ -440,23 +438,14 @@ def test_a_second_daemon_on_one_checkpoint_is_refused_naming_the_holder(
     exit 1, one error naming the checkpoint and the PID holding its lock (that the lock
     goes with the stop: the next test)."""
     ckpt = tmp_path / "cp.bin"
-    sock, addr = notify_socket(tmp_path, "notify")
-    cmd = [sys.executable, "-m", "canrls", "run", "-i", "virtual", "-c", "lock-test",
-           "--kt", "0.1", "--checkpoint", str(ckpt), "--json"]
-    first = subprocess.Popen([*cmd, "--duration", "120"],
-                             env=dict(os.environ, NOTIFY_SOCKET=addr),
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert any("READY=1" in g for g in datagrams(sock, "READY=1", 60, first))
-        second = subprocess.run([*cmd, "--duration", "1"], capture_output=True, text=True,
-                                timeout=120)
-        first.send_signal(signal.SIGTERM)
-        out, err = first.communicate(timeout=60)
-    finally:
-        if first.poll() is None:
-            first.kill()
-            first.communicate()
-        sock.close()
+    cmd = ["run", "-i", "virtual", "-c", "lock-test", "--kt", "0.1", "--checkpoint",
+           str(ckpt), "--json"]
+    with daemon_process([*cmd, "--duration", "120"], tmp_path) as d:
+        d.wait_ready()
+        second = subprocess.run([sys.executable, "-m", "canrls", *cmd, "--duration", "1"],
+                                capture_output=True, text=True, timeout=120)
+        out, err = d.stop()
+    first = d.proc
     assert first.returncode == 0, err
     assert second.returncode == 1 and second.stdout == ""
     lines = second.stderr.strip().splitlines()

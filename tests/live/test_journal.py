@@ -6,15 +6,13 @@ from __future__ import annotations
 import io
 import os
 import queue
-import signal
-import subprocess
-import sys
 import threading
+from pathlib import Path
 
 import pytest
-from daemon_tool import DaemonTool
+from daemon_tool import DaemonTool, daemon_process
 
-from canrls.can.frames import CommandCode, EffectId, StatusReport, encode_command
+from canrls.can.estimator_frames import CommandCode, EffectId, StatusReport, encode_command
 from canrls.live.daemon import Daemon, DaemonSettings
 from canrls.live.journal import Journal, to_stream
 from canrls.processor.config import AppConfig
@@ -27,28 +25,25 @@ def _model() -> tuple:
     return protocol, cfg.model_for(protocol), cfg.settings()
 
 
-def test_run_says_it_publishes_while_it_runs() -> None:
+def test_run_says_it_publishes_while_it_runs(tmp_path: Path) -> None:
     """The first line comes while the daemon runs (not at its exit): it is flushed."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "canrls", "run", "-i", "canrls-sim", "-c", "standard",
-         "--bus-kwargs", "seed=1", "--kt", "0.1", "--duration", "120"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines: queue.Queue[str] = queue.Queue()
+    with daemon_process(["run", "-i", "canrls-sim", "-c", "standard", "--bus-kwargs",
+                         "seed=1", "--kt", "0.1", "--duration", "120"], tmp_path) as d:
 
-    def first_line() -> None:
-        assert proc.stdout is not None
-        lines.put(proc.stdout.readline())
+        def first_line() -> None:
+            assert d.proc.stdout is not None
+            lines.put(d.proc.stdout.readline())
 
-    reader = threading.Thread(target=first_line, name="stdout reader")
-    reader.start()
-    try:
-        line = lines.get(timeout=60)
-        assert proc.poll() is None, "the line came only at the exit"
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
-        reader.join()
-    assert proc.returncode == 0, err
+        reader = threading.Thread(target=first_line, name="stdout reader")
+        reader.start()
+        try:
+            line = lines.get(timeout=60)
+            assert d.proc.poll() is None, "the line came only at the exit"
+        finally:
+            out, err = d.stop()
+            reader.join()
+    assert d.proc.returncode == 0, err
     assert line == ("canrls: publishing on canrls simulated drive, channel standard: rotary "
                     "axis, model inertia,viscous,coulomb (3 parameters)\n")
     assert "publishing" not in out  # once

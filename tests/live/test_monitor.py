@@ -12,7 +12,7 @@ import can
 import pytest
 from cli_tool import cli_error
 
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     CommandCode,
     CommandResult,
     ParameterReport,

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from daemon_tool import remote_sim_server
+from daemon_tool import daemon_process, remote_sim_server
 
 pytest.importorskip("can_remote")
 
@@ -28,12 +28,9 @@ def remote_server(tmp_path: Path):
 @pytest.mark.slow
 def test_sim_daemon_monitor_across_processes(remote_server: str, tmp_path: Path) -> None:
     assert remote_server.startswith("ws://127.0.0.1:")
-    daemon = subprocess.Popen(
-        [sys.executable, "-m", "canrls", "run", "-i", "remote", "-c", remote_server,
-         "--kt", "0.1", "--publish-interval", "0.05", "--duration", "60", "--json",
-         "--commands"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
+    with daemon_process(["run", "-i", "remote", "-c", remote_server, "--kt", "0.1",
+                         "--publish-interval", "0.05", "--duration", "60", "--json",
+                         "--commands"], tmp_path) as d:
         time.sleep(6.0)  # the drive runs in real time: let the estimates settle
         mon = subprocess.run(
             [sys.executable, "-m", "canrls", "monitor", "-i", "remote", "-c", remote_server,
@@ -46,10 +43,8 @@ def test_sim_daemon_monitor_across_processes(remote_server: str, tmp_path: Path)
              "--command", "freeze", "--timeout", "30"],
             capture_output=True, text=True, timeout=120)
         assert cmd.returncode == 0 and cmd.stdout.strip() == "freeze: ok", cmd.stderr
-    finally:
-        daemon.terminate()
-        out, err = daemon.communicate(timeout=60)
-    assert daemon.returncode == 0, err
+        out, err = d.stop()
+    assert d.proc.returncode == 0, err
     assert set(view["parameters"]) == {"inertia.J", "viscous.B", "coulomb.Tc"}
     tc = view["parameters"]["coulomb.Tc"]
     assert tc["unit"] == "N·m" and tc["float"] == pytest.approx(0.02, rel=0.2)

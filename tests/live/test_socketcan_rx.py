@@ -28,8 +28,8 @@ from can.bus import CanProtocol
 from can.interfaces.socketcan import constants as sc
 from can.interfaces.socketcan.socketcan import SocketcanBus, build_can_frame
 
+from canrls.can.estimator_frames import CommandCode, encode_command
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import CommandCode, encode_command
 from canrls.core.errors import ConfigError
 from canrls.live.bus import RX_BATCH, BlockReader, BusLink, FrameQueue, messages_to_block
 from canrls.live.daemon import Daemon

@@ -211,7 +211,7 @@ def test_daemon_on_a_bus_with_a_clock_step_keeps_estimating_and_says_so(
     the monitor shows them."""
     from daemon_tool import daemon_fed
 
-    from canrls.can.frames import FrameDecoder
+    from canrls.can.estimator_frames import FrameDecoder
     from canrls.live.monitor import Monitor
     from canrls.processor import FrameProcessor
 

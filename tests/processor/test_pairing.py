@@ -14,7 +14,7 @@ from canrls.can.encoder import FeedbackEncoder
 from canrls.can.frameblock import FrameBlock
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.processor.pairing import PAIRING_KINDS, Pairer
 
 DATA = Path(__file__).resolve().parents[1] / "data"

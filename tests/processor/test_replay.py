@@ -12,7 +12,7 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import read_frames, write_candump
 from canrls.cli.main import main
 from canrls.core.errors import ConfigError, EffectError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.estimation.pipeline import Pipeline
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig, prepare

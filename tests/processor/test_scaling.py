@@ -23,7 +23,7 @@ from user_drives import user_dbc as _dbc
 from canrls.can.logs import write_log
 from canrls.can.protocol import Protocol
 from canrls.cli.main import main
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.estimation.estimates import used_rows
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.model import Model

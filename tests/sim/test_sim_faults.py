@@ -230,7 +230,7 @@ def test_injected_commands_leave_the_estimates_as_they_were(frames: FrameBlock) 
     """Every injected command is random (refused) or valid but harmless: a daemon that
     processes the stream with them ends with the estimates of the stream without them,
     bit for bit, and answers every one."""
-    from canrls.can.frames import CommandCode, decode_command
+    from canrls.can.estimator_frames import CommandCode, decode_command
     from canrls.core.errors import CommandError
     from canrls.live.daemon import Daemon
     from canrls.live.settings import DaemonSettings

@@ -5,6 +5,7 @@ of whole blocks."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from fractions import Fraction
 from typing import Any
 
 import numpy as np
@@ -322,12 +323,35 @@ class RoleInfo:
 
     role: str
     codec: SignalCodec
+    #: the factor from the DBC unit to SI (:func:`canrls.core.units.si_factor`)
     si_scale: float
     unit: str
 
     @property
     def message(self) -> str:
         return self.codec.message
+
+    @property
+    def si_per_raw_exact(self) -> Fraction:
+        """The SI value of one raw unit, exactly: the DBC scale times the unit's factor
+        to SI. The one place that multiplies them (the firmware's integers, the C
+        export's comments, the encoder's full-turn test read it)."""
+        return _exact(self.codec.scale) * Fraction(self.si_scale)
+
+    @property
+    def si_offset_exact(self) -> Fraction:
+        """The DBC offset in SI, exactly (the offset times the unit's factor)."""
+        return _exact(self.codec.offset) * Fraction(self.si_scale)
+
+    @property
+    def si_per_raw(self) -> float:
+        """:attr:`si_per_raw_exact` as a float (the product of the two, rounded once)."""
+        return float(self.si_per_raw_exact)
+
+    @property
+    def si_offset(self) -> float:
+        """:attr:`si_offset_exact` as a float."""
+        return float(self.si_offset_exact)
 
     @property
     def signal(self) -> str:
@@ -351,3 +375,8 @@ class MessageCodec:
     @property
     def counter_modulo(self) -> int | None:
         return None if self.counter is None else 1 << self.counter.length
+
+
+def _exact(x: int | float) -> Fraction:
+    """A DBC scale or offset (cantools: an int or a float) as an exact fraction."""
+    return Fraction(x) if isinstance(x, int) else Fraction(float(x))

@@ -54,8 +54,7 @@ class FeedbackEncoder:
         self.wrapping: frozenset[str] = frozenset(
             r.role for r in protocol.roles.values()
             if r.role == "position" and not r.codec.is_float and axis_of(r.unit) == "rotary"
-            and abs((1 << r.codec.length) * abs(float(r.codec.scale)) * r.si_scale - 2 * math.pi)
-            <= 1e-9 * 2 * math.pi)
+            and abs((1 << r.codec.length) * abs(r.si_per_raw) - 2 * math.pi) <= 1e-9 * 2 * math.pi)
         self._width = max(8, max(m.length for m in protocol.messages))
 
     def encode(self, t: npt.ArrayLike, current: npt.ArrayLike | None, speed: npt.ArrayLike,

@@ -2,7 +2,7 @@
 
 Log readers, the live bus listener and the simulated drive all produce
 :class:`FrameBlock` objects; strict decoding turns them into
-:class:`~canrls.core.signals.Signals`. Arrays rather than one object per frame keep
+:class:`~canrls.core.samples.Signals`. Arrays rather than one object per frame keep
 the offline replay fast, and the same code serves the live path (a block of
 whatever frames arrived).
 """

@@ -9,8 +9,9 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
-from canrls.core.signals import ROLES
+from canrls.core.samples import ROLES
 from canrls.core.units import RATING_OPTIONS, Ratings
 
 __all__ = ["REQUIRED_ROLES", "EFFORT_ROLES", "RoleSpec", "SignalMapping"]
@@ -175,8 +176,7 @@ class SignalMapping:
             if "crc" in value:
                 e2e("crc", crcs, msg, value["crc"], key)
         for key, v in ratings.items():
-            if (isinstance(v, bool) or not isinstance(v, int | float)
-                    or not (math.isfinite(v) and v > 0)):
+            if not is_positive(v):
                 raise ConfigError(f"{source}: {key} = {v!r}: must be a positive number "
                                   f"({RATING_OPTIONS[key][2]})")
         return SignalMapping(roles=roles, counters=counters, crcs=crcs,

@@ -15,6 +15,7 @@ the compiled codec of each mapped message. The strict decoder
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import math
@@ -30,14 +31,15 @@ from canrls.can.codec import (
     RoleInfo,
     SignalCodec,
 )
+from canrls.can.idrules import IdRule
 from canrls.can.mapping import EFFORT_ROLES, REQUIRED_ROLES, SignalMapping
 from canrls.core.checks import positive_period
 from canrls.core.errors import ConfigError, SignalError
 from canrls.core.files import MAX_DBC_BYTES, read_bytes
-from canrls.core.signals import ROLES
+from canrls.core.samples import ROLES
 from canrls.core.units import axis_of, si_factor
 
-__all__ = ["DEFAULT_DBC", "MAX_MESSAGE_BYTES", "load_dbc", "Protocol"]
+__all__ = ["DEFAULT_DBC", "MAX_MESSAGE_BYTES", "load_dbc", "parse_dbc", "Protocol"]
 
 
 #: The DBC shipped with canrls (same content as ``dbc/canrls.dbc`` in the repository).
@@ -61,6 +63,12 @@ def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
     p = Path(path)
     where = what or f"DBC file {p}"
     raw = read_bytes(p, where, limit=MAX_DBC_BYTES)
+    return parse_dbc(raw, where), raw
+
+
+def parse_dbc(raw: bytes, where: str) -> Any:
+    """The cantools database of a DBC's bytes, checked as :func:`load_dbc` says (errors
+    name ``where``)."""
     text = _dbc_text(raw, where)
     from cantools.database.can.formats.dbc.dbc_loader import DbcParser
 
@@ -76,7 +84,7 @@ def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
     for m in db.messages:
         for sig in m.signals:
             _check_numbers(sig, f"{where}: message {m.name}: signal {sig.name}")
-    return db, raw
+    return db
 
 
 def _dbc_text(raw: bytes, where: str) -> str:
@@ -168,6 +176,8 @@ class Protocol:
     """
 
     period_source: str | None = None
+    #: the ID rule that moved the messages (:meth:`with_ids`); None: the DBC's own IDs
+    rule: IdRule | None = None
     #: SHA-256 of the DBC file as it was read ("" when not read from a file)
     dbc_digest: str = ""
 
@@ -193,7 +203,7 @@ class Protocol:
              mapping: SignalMapping | Mapping[str, Any] | Sequence[str] | None = None, *,
              strict_range: bool = True, check_crc: bool = True, check_counter: bool = True,
              period: float | None = None, period_source: str = "the configured period",
-             axis: str | None = None) -> Protocol:
+             axis: str | None = None, dbc_bytes: bytes | None = None) -> Protocol:
         """Load a DBC (default: the one shipped with canrls) and resolve a signal mapping.
 
         Parameters
@@ -207,6 +217,8 @@ class Protocol:
             ``GenMsgCycleTime``; ``period_source`` names it in messages (``"--period"``).
         axis : ``"linear"`` when an increment (``inc``, ``inc/s``) is a fraction of a
             metre (default: of a revolution).
+        dbc_bytes : the DBC's text, made from the file ``dbc`` (an EDS:
+            :mod:`canrls.can.eds`) rather than read from it.
 
         Raises
         ------
@@ -216,7 +228,10 @@ class Protocol:
             The DBC lacks a mapped message or signal, or a unit cannot be converted.
         """
         path = DEFAULT_DBC if dbc is None else Path(dbc)
-        db, raw = load_dbc(path)
+        if dbc_bytes is None:
+            db, raw = load_dbc(path)
+        else:
+            db, raw = parse_dbc(dbc_bytes, f"the DBC made from {path}"), dbc_bytes
         digest = hashlib.sha256(raw).hexdigest()
         is_default = digest == _default_hash()
         if mapping is None:
@@ -243,6 +258,26 @@ class Protocol:
             positive_period(proto.period, proto.period_source)
         return proto
 
+    def with_ids(self, rule: IdRule) -> Protocol:
+        """This protocol with its mapped messages moved to the IDs of ``rule`` (one axis of
+        several on a bus, :mod:`canrls.can.idrules`); the DBC stays as it is."""
+        where = f"DBC {self.dbc_path}"
+        messages = tuple(dataclasses.replace(
+            m, frame_id=rule.frame_id(m.frame_id, m.is_extended, f"{where}: message {m.name}"))
+            for m in self.messages)
+        seen: dict[tuple[int, bool], str] = {}
+        for m in messages:
+            other = seen.setdefault((m.frame_id, m.is_extended), m.name)
+            if other != m.name:
+                raise ConfigError(f"{where}: ID rule {rule} puts messages {other} and "
+                                  f"{m.name} both on ID 0x{m.frame_id:X}")
+        proto = Protocol(self.db, self.dbc_path, self.is_default_dbc, self.mapping, self.roles,
+                         messages, strict_range=self.strict_range, check_crc=self.check_crc,
+                         check_counter=self.check_counter)
+        proto.period_source = self.period_source
+        proto.dbc_digest = self.dbc_digest
+        proto.rule = rule
+        return proto
     def changes(self, other: Protocol) -> list[str]:
         """The configuration keys in which ``other`` decodes differently from this
         protocol (``can.dbc``: another file, or the file changed; ``signals``: the
@@ -253,6 +288,8 @@ class Protocol:
             out.append("can.dbc")
         if self.mapping != other.mapping:
             out.append("signals")
+        if self.rule != other.rule:
+            out.append("can.ids")
         out += [f"can.{k}" for k in ("strict_range", "check_crc", "check_counter")
                 if getattr(self, k) != getattr(other, k)]
         if self.period != other.period:

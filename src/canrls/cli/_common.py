@@ -10,6 +10,8 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from canrls.core.checks import LAMBDA_MIN
+
 if TYPE_CHECKING:  # numpy and cantools load with the configuration: not for --help
     from canrls.processor.config import AppConfig, Overrides
 
@@ -73,6 +75,12 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                    help="TOML configuration ([model], [estimator], [fixed], [can], [signals])")
     g.add_argument("--dbc", metavar="FILE",
                    help="DBC of the drive (default: the DBC shipped with canrls)")
+    g.add_argument("--eds", metavar="FILE",
+                   help="a CiA 402 drive's EDS instead of a DBC: its default TPDO mapping "
+                        "(node 1; --axes cia402:N moves it) and the roles of the 402 objects "
+                        "torque, current, velocity and position actual value, the ratings "
+                        "from its defaults (needs pip install 'canrls[cia402]'; "
+                        "docs/cia402.md)")
     g.add_argument("--signal", action="append", metavar="ROLE=MESSAGE.SIGNAL[:UNIT]",
                    help="which signal carries a role: current, speed, position, voltage, "
                         "torque (the torque a drive reports, N·m; linear axis: N; the "
@@ -99,11 +107,19 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                    help="control period [s] (default: the DBC's GenMsgCycleTime, else measured "
                         "on the log's timestamps; a stated period must agree with them within "
                         "10 %%)")
-    g.add_argument("--axis", choices=("rotary", "linear"),
+    g.add_argument("--axis", type=axis_value, metavar="rotary|linear|NAME",
                    help="rotary (rad, rad/s, N·m) or linear (m, m/s, N) axis (default: from "
-                        "the DBC units of the speed and position signals)")
+                        "the DBC units of the speed and position signals); any other name "
+                        "picks that axis of a machine's (--axes or [[axes]] of --config)")
+    g.add_argument("--axes", metavar="RULE:LIST",
+                   help="the axes of a machine on one bus, the DBC's frames moved by an ID "
+                        "rule: cia402:1-6 (nodes 1..6: node1 .. node6), cansimple:0,1 "
+                        "(ODrive node << 5 | command: node0, node1), offset:0,0x20 (the "
+                        "DBC's IDs + each offset: axis1, axis2); replaces [[axes]] "
+                        "(docs/configuration.md)")
     g.add_argument("--lambda", dest="lam", type=number, metavar="L",
-                   help="forgetting factor in (0.5, 1] (default 1: all data weigh the same; "
+                   help=f"forgetting factor in ({LAMBDA_MIN:g}, 1] (default 1: all data weigh "
+                        "the same; "
                         "below 1 the estimate tracks changes, memory 1/(1-L) samples)")
     g.add_argument("--alpha", type=number, metavar="A",
                    help="ridge weight: the prior weighs like A samples of each column, "
@@ -113,6 +129,14 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                         "30 below lambda 1; the error names the smallest for the model) "
                         "(default 0.01)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+
+def axis_value(text: str) -> str:
+    """argparse type of ``--axis``: ``rotary``, ``linear`` or an axis name (an identifier)."""
+    if not (text.isascii() and text.isidentifier()):
+        raise argparse.ArgumentTypeError(f"{text!r} is neither rotary, linear nor an axis "
+                                         f"name (an identifier)")
+    return text
 
 
 def add_log_arguments(p: argparse.ArgumentParser, several: str) -> None:
@@ -149,20 +173,26 @@ def overrides(args: argparse.Namespace) -> Overrides:
     :func:`add_bus_options` set: the one place the arguments become configuration."""
     from pathlib import Path
 
+    from canrls.processor.axes import AXIS_KINDS
     from canrls.processor.config import Overrides
 
     def num(name: str) -> float | None:
         return getattr(args, name, None)  # a number as typed (errors quote it so)
 
     dbc = getattr(args, "dbc", None)
+    eds = getattr(args, "eds", None)
+    axis = getattr(args, "axis", None)
     bus = {k: getattr(args, k) for k in ("interface", "channel", "bitrate", "fd",
                                          "data_bitrate", "timing")
            if getattr(args, k, None) is not None}
     bus.update(getattr(args, "bus_kwargs", None) or {})
     return Overrides(
         dbc=None if dbc is None else str(Path(dbc).absolute()),
+        eds=None if eds is None else str(Path(eds).absolute()),
         signals=tuple(getattr(args, "signal", None) or ()),
-        effects=getattr(args, "effects", None), kt=num("kt"), axis=getattr(args, "axis", None),
+        effects=getattr(args, "effects", None), kt=num("kt"),
+        axis=axis if axis in AXIS_KINDS else None,
+        axis_name=None if axis in AXIS_KINDS else axis, axes=getattr(args, "axes", None),
         lam=num("lam"), alpha=num("alpha"), period=num("period"),
         rated_torque=num("rated_torque"), rated_current=num("rated_current"),
         increments_per_rev=num("increments_per_rev"), bus=tuple(bus.items()))
@@ -176,11 +206,14 @@ def config_path(args: argparse.Namespace) -> str | None:
     return None if c is None else str(Path(c).absolute())
 
 
-def setup(args: argparse.Namespace) -> AppConfig:
-    """The configuration file with the command line applied on top."""
+def setup(args: argparse.Namespace, *, every_axis: bool = False) -> AppConfig:
+    """The configuration file with the command line applied on top: of the one axis the
+    command works on (``--axis NAME`` of a machine's), or the machine's with
+    ``every_axis``."""
     from canrls.processor.config import load_config
 
-    return load_config(getattr(args, "config", None), overrides(args))
+    cfg = load_config(getattr(args, "config", None), overrides(args))
+    return cfg if every_axis else cfg.one_axis()
 
 
 def _clean(x: Any) -> Any:

@@ -98,7 +98,7 @@ class _Timeline:
     residual RMS of every RlsStatus, and the feedback frames for the diagnosis."""
 
     def __init__(self, feedback_ids: frozenset[int]) -> None:
-        from canrls.can.frames import frame_ids
+        from canrls.can.estimator_frames import frame_ids
 
         self.feedback_ids = feedback_ids
         self.status_id = frame_ids().status
@@ -147,7 +147,7 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     """Run the demo; print the story to ``out`` (default stdout); return the figures."""
     import can
 
-    from canrls.can.frames import encode_command, parse_effect
+    from canrls.can.estimator_frames import encode_command, parse_effect
     from canrls.live.daemon import Daemon
     from canrls.live.monitor import LibraryUnits, Monitor
     from canrls.live.settings import DaemonSettings

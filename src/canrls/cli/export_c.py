@@ -31,6 +31,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, metavar="FILE",
                    help="TOML configuration, or a saved model (.json, canrls fit "
                         "--save-model)")
+    p.add_argument("--axis", metavar="NAME",
+                   help="the axis to export of a configuration with several ([[axes]], "
+                        "docs/configuration.md)")
     p.add_argument("--out", type=Path, default=Path("canrls_c"), metavar="DIR",
                    help="output directory, made if missing (default: canrls_c); each file "
                         "is written to a temporary beside it and renamed")
@@ -63,7 +66,8 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from canrls.core.errors import ConfigError
-    from canrls.firmware.kernel_export import export_c, load_source
+    from canrls.firmware.kernel_export import export_c
+    from canrls.firmware.load import load
 
     if args.every < 1:
         raise ConfigError(f"--every {args.every}: must be at least 1")
@@ -72,13 +76,14 @@ def run(args: argparse.Namespace) -> int:
                           "(not --kernel-only)")
     ff_texts = (_feedforward(args.model, args.feedforward, args.feedforward_form)
                 if args.feedforward is not None else None)
-    tm = src = texts = None
+    # the model, its calibration and its control period: one loader, one decision
+    src = load(args.model, args.dt, args.axis)
+    tm = texts = None
     if not args.kernel_only:
-        from canrls.firmware.load import load, target_model
+        from canrls.firmware.load import target_model
         from canrls.firmware.model import TargetError
         from canrls.firmware.target_export import target_texts
 
-        src = load(args.model, args.dt)
         # generated (or refused: a model the target cannot run, a log that cannot be
         # read) before anything is written
         try:
@@ -92,10 +97,9 @@ def run(args: argparse.Namespace) -> int:
                   file=sys.stderr)
         if tm is not None:
             texts = target_texts(src, tm, vectors=args.vectors, every=args.every)
-    cfg, model, energy, source = load_source(args.model)
-    print(export_c(cfg, args.out, model=model, dt=args.dt, energy=energy, source=source,
-                   what=f"--out {args.out}", frames=args.frames != "none"))
-    if tm is not None and src is not None:
+    print(export_c(src.config, args.out, model=src.model, dt=src.dt, energy=src.energy,
+                   source=src.label, what=f"--out {args.out}", frames=args.frames != "none"))
+    if tm is not None:
         from canrls.firmware.target_export import export_target
 
         print(export_target(src, args.out, tm, what=f"--out {args.out}", texts=texts))

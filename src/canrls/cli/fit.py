@@ -5,7 +5,8 @@ calibration window is the start of the first log); ``--save-model FILE`` writes 
 model as JSON for ``canrls validate`` (docs/model_file.md); ``--json`` prints one object
 (README.md, "Command line"). ``--fixed target`` takes the fixed column from the target's
 integer path instead (:mod:`canrls.firmware.fit`, docs/target.md): the frames decoded,
-filtered and estimated in integers as ``canrls export-c``'s C does, bit for bit.
+filtered and estimated in integers as ``canrls export-c``'s C (and the daemon with
+``[daemon] fixed = "target"``) do, bit for bit.
 """
 
 from __future__ import annotations
@@ -40,9 +41,10 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "unit, configuration, calibration) as JSON for 'canrls validate'")
     p.add_argument("--fixed", choices=("kernel", "target"), default="kernel",
                    help="the fixed-point column: the kernel fed by the float front end, as "
-                        "the daemon runs it (default), or the target's whole integer path "
-                        "from the frames on, as the C of 'canrls export-c' runs it (bit for "
-                        "bit; docs/target.md)")
+                        "the daemon runs it by default (default), or the target's whole "
+                        "integer path from the frames on, as the C of 'canrls export-c' "
+                        "and the daemon with [daemon] fixed = \"target\" run it (bit for "
+                        "bit; about 2x the time of the fit; docs/target.md)")
     add_progress_option(p)
     p.set_defaults(func=run)
     return p
@@ -52,7 +54,10 @@ def run(args: argparse.Namespace) -> int:
     from canrls.processor.config import prepare
     from canrls.processor.replay import fit_logs
 
-    cfg = setup(args)
+    cfg = setup(args, every_axis=True)
+    if len(cfg.axes) > 1 and cfg.axis_name is None:
+        return _fit_machine(args, cfg)
+    cfg = cfg.one_axis()
     protocol, model, settings = prepare(cfg)
     searched = ()
     if "stribeck" in model.effect_names and "stribeck_speed" not in model.options_given:
@@ -88,4 +93,29 @@ def run(args: argparse.Namespace) -> int:
             sys.stdout.write(res.fixed.format() + "\n")
         if saved is not None:
             sys.stdout.write(f"model saved: {saved}\n")
+    return 0
+
+
+def _fit_machine(args: argparse.Namespace, cfg: Any) -> int:
+    """``canrls fit LOG --axes ...`` without ``--axis``: every axis in one pass."""
+    from canrls.core.errors import ConfigError, EstimatorError
+    from canrls.processor.config import prepare
+    from canrls.processor.replay import fit_axes
+
+    for flag, on in (("--save-model", args.save_model), ("--fixed target",
+                                                         args.fixed == "target")):
+        if on:
+            raise ConfigError(f"{flag}: one axis at a time with several (--axis NAME)")
+    axes = {name: tuple(prepare(c)) for name, c in cfg.axis_configs().items()}
+    res = fit_axes(args.log, axes, progress=Progress("replay", quiet=args.quiet).callback,
+                   skip_bad_lines=args.skip_bad_lines)
+    if args.json:
+        print_json(res.to_dict())
+    else:
+        sys.stdout.write(res.format() + "\n")
+    if res.errors:
+        name, why = next(iter(res.errors.items()))
+        raise EstimatorError(f"axis {name}: {why}"
+                             + (f" (and {len(res.errors) - 1} more axes)"
+                                if len(res.errors) > 1 else ""))
     return 0

@@ -165,11 +165,11 @@ def _sources(args: argparse.Namespace) -> Sequence[Any]:
 
 def run_ingest(args: argparse.Namespace) -> int:
     from canrls.fleet.cluster import dask_client, local_workers, require_dask, scheduler_address
-    from canrls.fleet.history import History, history_url, require_sqlalchemy
+    from canrls.fleet.history import History, HistoryURL, require_sqlalchemy
     from canrls.fleet.ingest import JobConfig, ingest
 
     require_sqlalchemy()
-    history_url(args.db)  # a database this command cannot use: before anything else
+    HistoryURL.parse(args.db)  # a database this command cannot use: before anything else
     if args.workers != 0 or args.scheduler:
         require_dask()
     if args.scheduler and args.workers:
@@ -204,7 +204,7 @@ def run_report(args: argparse.Namespace) -> int:
     import dataclasses
 
     from canrls.fleet.detect import DetectionSettings, assess
-    from canrls.fleet.history import History, history_url, redact, sqlite_path
+    from canrls.fleet.history import History, HistoryURL
     from canrls.fleet.records import STATUS_OK
     from canrls.fleet.report import report_dict, write_html
 
@@ -215,10 +215,9 @@ def run_report(args: argparse.Namespace) -> int:
         if not 0 < args.alpha < 1:
             raise ConfigError(f"--alpha {args.alpha}: must be between 0 and 1")
         settings = dataclasses.replace(settings, alpha=args.alpha)
-    url = history_url(args.db)
-    path = sqlite_path(url) if url.startswith("sqlite") else None
-    if path is not None and not Path(path).is_file():
-        raise ConfigError(f"--db {redact(args.db)}: no such history (canrls fleet ingest "
+    where = HistoryURL.parse(args.db)
+    if where.sqlite_path is not None and not where.sqlite_path.is_file():
+        raise ConfigError(f"--db {where.shown}: no such history (canrls fleet ingest "
                           f"makes it)")
     if args.out:
         from canrls.fleet.report import require_matplotlib

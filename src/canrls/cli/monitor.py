@@ -18,12 +18,12 @@ Units come from the effect library with the axis, ``kt`` and user terms of
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from typing import Any
 
 from canrls.cli._common import add_bus_options, add_model_options, print_json, setup
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run"]
@@ -66,25 +66,29 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def _positive(name: str, v: float | None) -> None:
-    if v is not None and not (math.isfinite(v) and v > 0):
+    if v is not None and not is_positive(v):
         raise ConfigError(f"{name}: {v!r} must be a positive number of seconds")
 
 
 def run(args: argparse.Namespace) -> int:
     import can
 
-    from canrls.can.frames import encode_command, frame_ids
-    from canrls.live.bus import bus_config, open_bus
+    from canrls.can.estimator_frames import encode_command, frame_ids
+    from canrls.live.bus import bus_config, moved, open_bus
     from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
+    from canrls.live.settings import DaemonSettings
     from canrls.processor.config import prepare
 
     for name in ("duration", "interval", "timeout"):
         _positive(f"--{name}", getattr(args, name))
     commands = [parse_command_text(c) for c in args.command]
-    cfg = setup(args)
+    cfg = setup(args, every_axis=True)
     for name in ("interval", "timeout", "plain"):  # [monitor] under the flags
         if getattr(args, name) is None:
             setattr(args, name, cfg.monitor.get(name, _VIEW_DEFAULTS[name]))
+    if len(cfg.axes) > 1 and cfg.axis_name is None:
+        return _run_axes(args, cfg)
+    cfg = cfg.one_axis()
     try:
         protocol, model, _ = prepare(cfg)
         units = LibraryUnits.for_model(model)
@@ -96,15 +100,16 @@ def run(args: argparse.Namespace) -> int:
         units, feedback, user_names = LibraryUnits(), list(frame_ids().feedback), []
     conf = bus_config(cfg)
     tty = sys.stdout.isatty() and not args.plain and not args.json
+    own = DaemonSettings.from_config(cfg).own_offset  # an axis's own frames
     mon = Monitor(units=units, user_names=user_names, feedback_ids=feedback,
-                  source=f"{conf.get('interface')}:{conf.get('channel')}")
+                  source=f"{conf.get('interface')}:{conf.get('channel')}", own_offset=own)
     bus = open_bus(conf)
     status = 0
     try:
         with can.Notifier(bus, [mon], timeout=0.1):
             for text, (code, eid, order, lam) in zip(args.command, commands, strict=True):
                 before = len(mon.acks)
-                bus.send(encode_command(code, eid, order, lam), timeout=1.0)
+                bus.send(moved(encode_command(code, eid, order, lam), own), timeout=1.0)
                 ack = mon.wait_ack(before, args.timeout)
                 if ack is None:
                     print(f"error: no acknowledgement of {text!r} within "
@@ -119,6 +124,36 @@ def run(args: argparse.Namespace) -> int:
     finally:
         bus.shutdown()
     return status
+
+
+def _run_axes(args: argparse.Namespace, cfg: Any) -> int:
+    """``canrls monitor`` of a machine without ``--axis``: one row per axis."""
+    import can
+
+    from canrls.live.bus import bus_config, open_bus
+    from canrls.live.monitor import AxesMonitor, LibraryUnits, Monitor
+    from canrls.live.settings import DaemonSettings
+    from canrls.processor.config import prepare
+
+    if args.command:
+        raise ConfigError("--command: a command reaches one axis: give --axis NAME")
+    conf = bus_config(cfg)
+    source = f"{conf.get('interface')}:{conf.get('channel')}"
+    monitors = {}
+    for name, c in cfg.axis_configs().items():
+        protocol, model, _ = prepare(c)
+        monitors[name] = Monitor(
+            units=LibraryUnits.for_model(model), user_names=list(model.terms),
+            feedback_ids=[m.frame_id for m in protocol.messages], source=source,
+            own_offset=DaemonSettings.from_config(c).own_offset)
+    mon = AxesMonitor(monitors)
+    tty = sys.stdout.isatty() and not args.plain and not args.json
+    bus = open_bus(conf)
+    try:
+        with can.Notifier(bus, list(monitors.values()), timeout=0.1):
+            return _watch(args, mon, tty, _own_bus_hint(conf))
+    finally:
+        bus.shutdown()
 
 
 #: interfaces whose bus lives inside one process (python-can's virtual bus, and the

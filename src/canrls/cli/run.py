@@ -27,7 +27,6 @@ import argparse
 import contextlib
 import dataclasses
 import logging
-import math
 import signal
 import sys
 import threading
@@ -44,6 +43,7 @@ from canrls.cli._common import (
     overrides,
     print_json,
 )
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run", "build_daemon"]
@@ -101,8 +101,20 @@ def _daemon_table(cfg: Any, args: argparse.Namespace) -> dict[str, Any]:
     return table
 
 
-def build_daemon(args: argparse.Namespace) -> Any:
-    """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started)."""
+def _per_axis(table: dict[str, Any], axis: str) -> dict[str, Any]:
+    """``table`` with its files made the axis's own (``ckpt.bin`` -> ``ckpt.NAME.bin``):
+    each axis of a machine checkpoints, records and saves on its own."""
+    out = dict(table)
+    for key in ("checkpoint", "record", "saved_model"):
+        if out.get(key):
+            p = Path(out[key])
+            out[key] = str(p.with_name(f"{p.stem}.{axis}{p.suffix}"))
+    return out
+
+
+def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
+    """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started);
+    of the machine's axis ``axis`` (its files its own), else of the one axis."""
     from canrls.fleet.ingest import JobConfig
     from canrls.live.bus import bus_config
     from canrls.live.daemon import Daemon
@@ -110,17 +122,33 @@ def build_daemon(args: argparse.Namespace) -> Any:
     from canrls.processor.config import AppConfig, load_config, prepare, read_toml
 
     over = overrides(args)
-    cfg = load_config(getattr(args, "config", None), over)
-    dset = DaemonSettings.from_table(_daemon_table(cfg, args), cfg.source, cfg.base_dir)
+
+    def load() -> AppConfig:
+        c = load_config(getattr(args, "config", None), over)
+        return c.one_axis() if axis is None else c.axis(axis)
+
+    def table(c: AppConfig) -> dict[str, Any]:
+        t = _daemon_table(c, args)
+        return t if axis is None else _per_axis(t, axis)
+
+    cfg = load()
+    dset = DaemonSettings.from_table(table(cfg), cfg.source, cfg.base_dir)
+    if axis is not None and dset.record is None:  # a machine's axis: its own frames only
+        dset = dataclasses.replace(dset, rx_filter=True)
+    model_over = dataclasses.replace(over, axes=None, axis_name=None)
 
     def with_model_file(c: AppConfig) -> AppConfig:
         """``c`` with ``[daemon] model_file``'s model (the command line still over it)."""
         if dset.model_file is not None:
             c.model = read_toml(dset.model_file, "model", key="daemon.model_file")
-            c.apply(over)
+            c.apply(model_over)
         return c
 
     protocol, model, settings = prepare(with_model_file(cfg))
+    if dset.own_offset:
+        from canrls.processor.axes import check_own
+
+        check_own({"the drive": protocol}, {"the drive": dset.own_offset})
     bus = bus_config(cfg)
 
     def reloaded_model() -> Any:
@@ -130,9 +158,9 @@ def build_daemon(args: argparse.Namespace) -> Any:
         refused, the running configuration kept). What else changed (the DBC, the
         mapping, the bus, ``[estimator]``, ``[fixed]``, ``[daemon]``) is logged: it
         applies at the next start; the model applies now."""
-        c = load_config(getattr(args, "config", None), over)
         try:
-            new = DaemonSettings.from_table(_daemon_table(c, args), c.source, c.base_dir)
+            c = load()
+            new = DaemonSettings.from_table(table(c), c.source, c.base_dir)
             new_protocol, _, new_settings = prepare(with_model_file(c))
             new_bus = bus_config(c)
             reloaded = c.model_for(protocol)  # the model on the frames being decoded
@@ -152,8 +180,14 @@ def build_daemon(args: argparse.Namespace) -> Any:
     history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over)) \
         if cfg.history else None
     try:
+        fixed_path = None
+        if dset.fixed == "target":
+            from canrls.firmware.live import LiveTarget
+
+            fixed_path = LiveTarget(protocol, settings)
         return Daemon(protocol, model, settings, dset, bus=bus,
-                      reload=reloaded_model, history=history, configuration=cfg)
+                      reload=reloaded_model, history=history, configuration=cfg,
+                      fixed_path=fixed_path)
     except BaseException:
         if history is not None:
             history.close()
@@ -223,35 +257,83 @@ def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
 def run(args: argparse.Namespace) -> int:
     from canrls.live.journal import to_stream
 
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+    if args.duration is not None and not is_positive(args.duration):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
     target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
     with _signals_for_life(target, getattr(args, "process_exits", False)):
-        daemon = build_daemon(args)
+        daemon = _build(args)
         target[0] = daemon
         if target[1]:
             daemon.request_stop()  # run() starts, sees the request and stops cleanly
         with contextlib.nullcontext() if args.json else to_stream(sys.stdout):
             status = daemon.run(duration=args.duration)
-        _report(daemon, args)
+        if hasattr(daemon, "daemons"):
+            _report_machine(daemon, args)
+        else:
+            _report(daemon, args)
     if daemon.failure is not None:
         print(f"error: the daemon stopped on an internal error: "
               f"{type(daemon.failure).__name__}: {daemon.failure}", file=sys.stderr)
     return status
 
 
+def _build(args: argparse.Namespace) -> Any:
+    """The daemon of one axis, or of every axis of a machine (no ``--axis``): each axis
+    its own :class:`~canrls.live.daemon.Daemon` in one
+    :class:`~canrls.live.machine.MachineDaemon`, the whole machine checked first."""
+    from canrls.processor.config import load_config
+
+    cfg = load_config(getattr(args, "config", None), overrides(args))
+    if len(cfg.axes) < 2 or cfg.axis_name is not None:
+        return build_daemon(args)
+    from canrls.live.machine import MachineDaemon
+
+    if cfg.history:
+        raise ConfigError(f"{cfg.source}: [history] takes one axis (--axis NAME); a machine's "
+                          f"daemon does not append to a history yet")
+    names = list(cfg.axis_configs())
+    daemons: dict[str, Any] = {}
+    try:
+        for name in names:
+            daemons[name] = build_daemon(args, name)
+    except BaseException:
+        for d in daemons.values():
+            d.stop()
+        raise
+    return MachineDaemon(daemons, build=lambda name: build_daemon(args, name),
+                         axes=lambda: list(load_config(getattr(args, "config", None),
+                                                       overrides(args)).axis_configs()))
+
+
+def _report_machine(machine: Any, args: argparse.Namespace) -> None:
+    """Every axis's final estimates: ``{"axes": {NAME: as one axis's --json}}``, or a
+    first line with the axes and each axis's estimates under ``== axis NAME ==``."""
+    if args.json:
+        print_json({"axes": {n: _axis_dict(d) for n, d in machine.daemons.items()}})
+        return
+    lines = [f"{len(machine.daemons)} axes: " + ", ".join(
+        f"{n} {d.stats().frames} frames" for n, d in machine.daemons.items())]
+    for n, d in machine.daemons.items():
+        lines += ["", f"== axis {n} ==", d.estimates().format()]
+    sys.stdout.write("\n".join(lines) + "\n")
+
+
 def _report(daemon: Any, args: argparse.Namespace) -> None:
     """The final estimates on stdout (``--json``: with the daemon's counters)."""
-    est = daemon.estimates()
     if args.json:
-        d = est.to_dict()
-        d["daemon"] = daemon.stats().to_dict()
-        d["frames"] = daemon.frame_counts()  # as canrls fit --json: rejected by reason
-        st = daemon.last_status
-        d["status"] = None if st is None else {
-            "residual_rms": st.residual_rms, "update_count": st.update_count,
-            "flags": list(st.flags), "active_effects": st.active_effects,
-            "rejects": dict(st.rejects)}
-        print_json(d)
+        print_json(_axis_dict(daemon))
     else:
-        sys.stdout.write(est.format() + "\n")
+        sys.stdout.write(daemon.estimates().format() + "\n")
+
+
+def _axis_dict(daemon: Any) -> dict[str, Any]:
+    """One daemon's estimates, counters, frames and last status (``--json``)."""
+    d = daemon.estimates().to_dict()
+    d["daemon"] = daemon.stats().to_dict()
+    d["frames"] = daemon.frame_counts()  # as canrls fit --json: rejected by reason
+    st = daemon.last_status
+    d["status"] = None if st is None else {
+        "residual_rms": st.residual_rms, "update_count": st.update_count,
+        "flags": list(st.flags), "active_effects": st.active_effects,
+        "rejects": dict(st.rejects)}
+    return d

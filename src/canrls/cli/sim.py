@@ -29,6 +29,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run", "MAX_DURATION"]
@@ -87,6 +88,17 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                    help="scenario (default standard)")
     p.add_argument("--axis", choices=["rotary", "linear"], default=None,
                    help="axis (default: the scenario's)")
+    p.add_argument("--axes", type=int, default=None, metavar="N",
+                   help="a machine of N drives on one bus (1 to 32): axis k's frames on the "
+                        "default DBC's IDs + (k-1)*0x10 (canrls fit --axes offset:0,0x10,...), "
+                        "its own parameters and seed, axes 2, 3, 4 with a hidden unbalance, "
+                        "cogging:6, offset (and so on in turn); one line per axis with its "
+                        "truth")
+    p.add_argument("--ids", choices=("offset", "cia402", "cansimple"), default="offset",
+                   help="--axes: the machine's drives: the default DBC's moved by an offset "
+                        "(default), CiA 402 nodes 1..N (canrls/data/cia402.dbc, current in "
+                        "per mille of 5 A, 131072 increments a turn) or ODrive CANSimple "
+                        "nodes 0..N-1 (canrls/data/odrive_cansimple.dbc)"),
     p.add_argument("--excitation", "-x", default=None, metavar="PROFILE",
                    help=f"excitation preset or sum (a+b) of {', '.join(PRESETS)}")
     p.add_argument("--param", "-p", action="append", type=_param, default=[],
@@ -165,6 +177,8 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is None:
         args.sim_parser.error("the following arguments are required: --duration/-d")
     check_args(args)
+    if args.axes is not None:
+        return run_machine(args)
     sc = scenario(args.scenario, effects=args.effects, seed=args.seed, faults=args.faults,
                   axis=args.axis, excitation=args.excitation, duration=args.duration,
                   params=dict(args.param))
@@ -214,21 +228,59 @@ def with_tuning(sc: Any, feedforward: str | None, gains: str | None) -> Any:
 _DRIVE_ONLY = ("effects", "faults", "axis", "excitation", "feedforward", "gains")
 
 
+def _refuse_drive_options(args: argparse.Namespace, command: str, why: str) -> None:
+    """The options of one drive, refused by ``command`` (a fleet, a machine)."""
+    for opt in _DRIVE_ONLY:
+        if getattr(args, opt) is not None:
+            raise ConfigError(f"--{opt}: not an option of '{command}' ({why})")
+    if args.param:
+        raise ConfigError(f"--param: not an option of '{command}'")
+
+
+def run_machine(args: argparse.Namespace) -> int:
+    """``canrls sim --axes N``: the log of a simulated machine."""
+    from canrls.can.logs import write_log
+    from canrls.sim.machine import machine, machine_frames
+
+    _refuse_drive_options(args, "canrls sim --axes", "each axis's physics are the machine's")
+    axes = machine(args.axes, duration=args.duration, seed=args.seed,
+                   scenario_name=args.scenario, kind=args.ids)
+    with _terminated_as_exit():
+        n = write_log(args.out, machine_frames(axes, t0=args.start_time),
+                      channel=args.channel, what=f"--out {args.out}")
+    print(f"canrls sim: wrote {n} frames of {len(axes)} axes to {args.out} "
+          f"({args.duration:g} s, scenario {args.scenario}, seed {args.seed}; canrls fit "
+          f"{_fit_options(axes, args.ids)})", file=sys.stderr)
+    for a in axes:
+        print(f"  {a.name} ({a.rule}, hidden: {a.hidden or 'none'}): truth: "
+              f"{a.scenario.truth.summary()}", file=sys.stderr)
+    return 0
+
+
+def _fit_options(axes: Any, kind: str) -> str:
+    """The options of ``canrls fit`` that read the machine's log back."""
+    from canrls.sim.machine import CIA402_RATINGS, KINDS, kind_dbc
+
+    if kind == "offset":
+        return "--axes offset:" + ",".join(f"{a.rule.node:#x}" for a in axes)
+    nodes = [a.rule.node for a in axes]
+    out = [f"--dbc {kind_dbc(kind)}", *(f"--signal {s}" for s in KINDS[kind][1])]
+    if kind == "cia402":
+        out += [f"--{k.replace('_', '-')} {v:g}" for k, v in CIA402_RATINGS.items()]
+    return " ".join([*out, f"--axes {kind}:{nodes[0]}-{nodes[-1]}"])
+
+
 def run_fleet(args: argparse.Namespace) -> int:
     """``canrls sim fleet``."""
     from canrls.cli._common import Progress
     from canrls.sim.fleet import make_fleet, write_fleet
 
-    for opt in _DRIVE_ONLY:
-        if getattr(args, opt) is not None:
-            raise ConfigError(f"--{opt}: not an option of 'canrls sim fleet' (each drive's "
-                              f"physics, faults and excitation are drawn)")
-    if args.param:
-        raise ConfigError("--param: not an option of 'canrls sim fleet'")
+    _refuse_drive_options(args, "canrls sim fleet",
+                          "each drive's physics, faults and excitation are drawn")
     duration = 6.0 if args.duration is None else args.duration
     if args.drives < 1 or args.recordings < 1:
         raise ConfigError(f"--drives {args.drives} --recordings {args.recordings}: at least 1")
-    if not (math.isfinite(args.days) and args.days > 0):
+    if not is_positive(args.days):
         raise ConfigError(f"--days: {args.days!r} must be a positive number of days")
     plan = make_fleet(args.drives, args.recordings, duration, args.seed, days=args.days)
     bar = Progress("sim fleet", unit="log")

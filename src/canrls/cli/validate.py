@@ -45,6 +45,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from canrls.diagnosis.validate import validate_logs
+    from canrls.processor.axes import AXIS_KINDS
     from canrls.processor.config import AppConfig
     from canrls.processor.modelfile import SavedModel
 
@@ -56,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
     from canrls.core.errors import ConfigError
 
     saved = SavedModel.load(args.model)
+    kind = args.axis if args.axis in AXIS_KINDS else None  # else the name of an axis
     # the model is the file's: options that would change it are refused, not ignored
     # (the same value as saved is accepted: scripts pass one set of options to all)
     settings = saved.config().settings()
@@ -64,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     differ = [f"{flag} {typed} (saved: {have})" for flag, typed, want, have in (
         ("--effects", args.effects, effects, ",".join(saved.effects)),
         ("--kt", args.kt, args.kt, saved.model.get("kt")),
-        ("--axis", args.axis, args.axis, saved.model.get("axis")),
+        ("--axis", kind, kind, saved.model.get("axis")),
         ("--lambda", args.lam, args.lam, settings.lam),
         ("--alpha", args.alpha, args.alpha, settings.alpha))
         if typed is not None and want != (saved.effects if flag == "--effects" else have)]
@@ -80,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         cfg.signals = dict(base.signals)
         if not args.signal:
             cfg.signal_overrides = list(base.signal_overrides)
-    cfg.apply(overrides(args))
+    cfg = cfg.apply(overrides(args)).one_axis()
     rep = validate_logs(args.log, saved, cfg.protocol(), model_file=args.model,
                         progress=Progress("validate", quiet=args.quiet).callback,
                         skip_bad_lines=args.skip_bad_lines)

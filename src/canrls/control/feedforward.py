@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.control.settings import DEFAULT_SHARE, MAX_POINTS
+from canrls.core.checks import is_real
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Effect, Frame
 from canrls.estimation.model import Model
@@ -320,7 +321,7 @@ def feedforward(model: Model, parameters: Mapping[str, Mapping[str, Any]], *,
     for name, p in parameters.items():
         for key in ("value", "sigma"):
             v = p.get(key)
-            if v is not None and not (isinstance(v, int | float) and math.isfinite(v)):
+            if v is not None and not is_real(v):
                 raise ConfigError(f"{source}: parameters.{name}.{key} = {v!r}: must be a "
                                   f"finite number")
     effects = {e.name: e for e in model.effects

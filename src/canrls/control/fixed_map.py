@@ -16,7 +16,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from canrls.core.ctext import c_comment, c_int
+from canrls.core.c_escape import c_comment, c_int
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["FixedMap", "fixed_map", "map_q", "map_c", "FixedHarmonics", "fixed_harmonics",
@@ -291,7 +292,7 @@ class FixedFriction:
 
 def _reciprocal(x: float, what: str) -> tuple[int, int]:
     """(m, s) with m 2**-s = 1/x, m < 2**31, s the largest up to 62."""
-    if not (math.isfinite(x) and x > 0):
+    if not is_positive(x):
         raise ConfigError(f"feedforward: {what} = {x!r}: must be a positive number")
     s = 62
     while s > 0 and math.floor(2.0**s / x + 0.5) >= 2**31:

@@ -19,10 +19,12 @@ from typing import Any
 from canrls.control.feedforward import Feedforward, check_points, feedforward
 from canrls.control.gains import Loop, SpeedGains, for_bandwidth, symmetric_optimum
 from canrls.control.settings import DEFAULT_DELAY, DEFAULT_MARGIN, DEFAULT_POINTS, DEFAULT_SHARE
+from canrls.core.checks import is_positive, is_real
 from canrls.core.errors import ConfigError
 from canrls.core.files import MAX_MODEL_BYTES, atomic_writer, check_writable, read_text
 from canrls.estimation.model import Model
 from canrls.processor.modelfile import SavedModel
+from canrls.processor.period import control_period
 
 __all__ = ["TuneRequest", "TuneResult", "tune", "read_feedforward", "read_gains", "compensation",
            "found_ripple",
@@ -183,12 +185,14 @@ def _current_tau(saved: SavedModel, req: TuneRequest) -> tuple[float, str]:
 
 
 def _period(saved: SavedModel, req: TuneRequest) -> float:
-    """The control period: stated, else the one the model was fitted at."""
-    cal = saved.calibration or {}
-    dt = req.period if req.period is not None else cal.get("period")
-    if not isinstance(dt, int | float) or not (math.isfinite(dt) and dt > 0):
+    """The control period: stated, else the one the model was fitted at
+    (:func:`~canrls.processor.period.control_period`; never the default: a loop tuned
+    for a period nobody said is no answer)."""
+    measured = (saved.calibration or {}).get("period")
+    if req.period is None and measured is None:
         raise ConfigError("--period: the model file holds no control period "
                           "(calibration.period); state it with --period SECONDS")
+    dt = control_period(given=req.period, given_by="--period", measured=measured).value
     if not (math.isfinite(req.delay) and req.delay >= 0):
         raise ConfigError(f"--delay {req.delay!r}: must be a number of periods >= 0")
     return float(dt)
@@ -239,7 +243,7 @@ def tune(saved: SavedModel, req: TuneRequest, source: str = "model") -> TuneResu
     if gains is not None:
         if req.rated_speed is not None and isinstance(rated, int | float):
             for key, v in (("--rated-speed", req.rated_speed), ("--rated-torque", rated)):
-                if not (math.isfinite(v) and v > 0):
+                if not is_positive(v):
                     raise ConfigError(f"{key} {v!r}: must be a positive number")
             base = (float(rated), float(req.rated_speed))
         else:
@@ -255,8 +259,7 @@ def compensation(model: Model, parameters: Mapping[str, Mapping[str, Any]],
     A parameter the estimator left without a finite value counts as not identifiable."""
     clean = {}
     for name, p in parameters.items():
-        ok = all(isinstance(p.get(k), int | float) and math.isfinite(p[k])
-                 for k in ("value", "sigma"))
+        ok = all(is_real(p.get(k)) for k in ("value", "sigma"))
         clean[name] = dict(p) if ok else {**p, "value": 0.0, "sigma": None,
                                           "identifiable": False}
     ff = feedforward(model, clean, share=share)
@@ -311,8 +314,7 @@ def _read(path: str | Path, fmt: str, what: str) -> dict[str, Any]:
 
 def _number(v: Any, where: str, *, positive: bool = False) -> float:
     """``v``, a finite (positive) number, or an error naming ``where``."""
-    ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-    if not ok or (positive and v <= 0):
+    if not (is_positive(v) if positive else is_real(v)):
         raise ConfigError(f"{where} = {v!r}: must be a finite"
                           f"{' positive' if positive else ''} number")
     return float(v)

@@ -1,19 +1,33 @@
 """The one check of each kind of value a user hands canrls: a receive time, a control
-period. Every layer asks here, so a value is refused by the same rule and in the same
-words wherever it enters."""
+period, a forgetting factor. Every layer asks here, so a value is refused by the same
+rule and in the same words wherever it enters."""
 
 from __future__ import annotations
 
 import math
-
-import numpy as np
-import numpy.typing as npt
+import numbers
+from typing import TYPE_CHECKING
 
 from canrls.core.errors import ConfigError
 
-__all__ = ["MAX_TIMESTAMP", "describe_time", "is_time", "not_times", "positive_period"]
+if TYPE_CHECKING:  # numpy loads with the first array: the command line's --help needs none
+    import numpy as np
+    import numpy.typing as npt
 
-F64 = npt.NDArray[np.float64]
+__all__ = ["LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "describe_time", "is_positive",
+           "is_real", "is_time", "not_times", "positive_period"]
+
+def is_real(value: object) -> bool:
+    """``value`` is a finite real number: an int or a float (numpy's too), not a bool,
+    not NaN nor infinite. The one definition of "a number" of every check that asks."""
+    return (not isinstance(value, bool) and isinstance(value, numbers.Real)
+            and math.isfinite(value))
+
+
+def is_positive(value: object) -> bool:
+    """``value`` is a finite real number above zero (:func:`is_real`)."""
+    return is_real(value) and float(value) > 0  # type: ignore[arg-type]
+
 
 #: Largest receive time [s] a frame may carry (about the year 2286): beyond it (or not
 #: finite) a timestamp is no time of a frame.
@@ -25,8 +39,10 @@ def is_time(t: float) -> bool:
     return bool(abs(t) <= MAX_TIMESTAMP)  # False for NaN
 
 
-def not_times(t: F64) -> npt.NDArray[np.bool_]:
+def not_times(t: npt.NDArray[np.float64]) -> npt.NDArray[np.bool_]:
     """Mask of the entries of ``t`` that are not receive times (:func:`is_time`)."""
+    import numpy as np
+
     with np.errstate(invalid="ignore"):
         return ~(np.abs(t) <= MAX_TIMESTAMP)
 
@@ -41,8 +57,22 @@ def positive_period(value: object, where: str) -> float:
     flag, key or file that stated it) unless it is a finite positive number. The one
     check of a period's value: a stated period (:meth:`Protocol.load
     <canrls.can.protocol.Protocol.load>`) and the processor's go through it."""
-    if (isinstance(value, bool) or not isinstance(value, int | float)
-            or not (math.isfinite(value) and value > 0)):
+    if not is_positive(value):
         raise ConfigError(f"{where}: the control period must be a positive number of "
                           f"seconds, got {value!r}")
+    return float(value)
+
+
+#: The forgetting factor of canrls's estimators lies in (LAMBDA_MIN, 1]: the fixed-point
+#: estimator stores 1/lambda as a Q1 word, and the float one runs beside it on the same
+#: rows (docs/fixed_point.md), so the configuration, the command line, the monitor's
+#: command, the command frame and both estimators take this one range.
+LAMBDA_MIN = 0.5
+
+
+def check_lambda(value: object, where: str, error: type[Exception] = ConfigError) -> float:
+    """``value`` as the forgetting factor, or ``error`` naming ``where`` (the key, flag,
+    command or class) unless it is a real number in (:data:`LAMBDA_MIN`, 1]."""
+    if not (is_real(value) and LAMBDA_MIN < float(value) <= 1.0):  # type: ignore[arg-type]
+        raise error(f"{where} = {value!r}: must be in ({LAMBDA_MIN:g}, 1]")
     return float(value)

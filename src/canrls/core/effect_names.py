@@ -2,9 +2,9 @@
 
 The one place that says which effects exist, by name and by DBC id, which of them take
 an argument after ``:``, and which id each equation carries. It sits in the bottom
-layer (it imports only :mod:`canrls.core.errors`), so the protocol (:mod:`canrls.can.frames`:
-commands and ``RlsParamInfo``) and the effect library (:mod:`canrls.estimation.effects`)
-read the same table and the same grammar:
+layer (it imports only :mod:`canrls.core.errors`), so the protocol
+(:mod:`canrls.can.estimator_frames`: commands and ``RlsParamInfo``) and the effect
+library (:mod:`canrls.estimation.effects`) read the same table and the same grammar:
 
 .. code-block:: text
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.core.signals import ROLES, Signals
+from canrls.core.samples import ROLES, Signals
 
 __all__ = ["SpilledSignals", "SpilledColumn", "SpilledBytes", "PackedMask", "MaskPacker",
            "as_packed", "join_blocks", "spill_blocks"]

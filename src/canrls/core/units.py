@@ -1,7 +1,7 @@
 """Conversion of DBC unit strings to SI, per signal role.
 
 A DBC states the physical unit of each signal as free text (``"A"``, ``"rpm"``,
-``"deg"``...). canrls works in SI (:mod:`canrls.core.signals`): current in A, speed in
+``"deg"``...). canrls works in SI (:mod:`canrls.core.samples`): current in A, speed in
 rad/s (linear axis: m/s), position in rad (linear axis: m), voltage in V, a torque
 reported by the drive in N·m (linear axis: a force in N). This module maps a unit
 string to the factor that turns a DBC physical value into SI::
@@ -38,6 +38,7 @@ import math
 import re
 from dataclasses import dataclass
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import SignalError
 
 __all__ = ["UNITS", "SI_UNITS", "RELATIVE", "INCREMENTS", "RATING_OPTIONS", "Ratings",
@@ -132,8 +133,7 @@ class Ratings:
             v = getattr(self, name)
             if v is None:
                 continue
-            if (isinstance(v, bool) or not isinstance(v, int | float)
-                    or not (math.isfinite(v) and v > 0)):
+            if not is_positive(v):
                 raise SignalError(f"{flag} {v!r}: must be a positive number ({unit})")
             object.__setattr__(self, name, float(v))
 

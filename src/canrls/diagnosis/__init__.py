@@ -4,7 +4,7 @@ Entry points in :mod:`canrls.diagnosis.analysis` (:func:`~canrls.diagnosis.analy
 :func:`~canrls.diagnosis.analysis.diagnose_log`); the modules, lowest first:
 
 ``results``     the result values (plain frozen dataclasses with ``to_dict``)
-``samples``     the record as the pipeline sees it: its sample policy, gap filling,
+``record``      the record as the pipeline sees it: its sample policy, gap filling,
                 restarts, used rows and columns
 ``residual``    statistics of the residual: whiteness, bins, regions, order spectrum,
                 excitation, structure left

@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from canrls.core.checks import positive_period
 from canrls.core.errors import ConfigError, EffectError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals
 from canrls.diagnosis.candidates import (
     DEFAULT_MAX_ORDER,
@@ -27,6 +27,7 @@ from canrls.diagnosis.candidates import (
     ResidualSummary,
     rank_candidates,
 )
+from canrls.diagnosis.record import RecordSamples
 from canrls.diagnosis.report import DiagnosisReport
 from canrls.diagnosis.residual import (
     WHITENESS_LAGS,
@@ -37,7 +38,6 @@ from canrls.diagnosis.residual import (
     whiteness,
 )
 from canrls.diagnosis.results import Analysis, EquationDiagnosis, Traces, decimation
-from canrls.diagnosis.samples import RecordSamples
 from canrls.estimation.effects import ELECTRICAL
 from canrls.estimation.estimates import EquationFit, PipelineBlock
 from canrls.estimation.fixed.estimator import FixedRLS
@@ -72,7 +72,7 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
              start: StartInfo | None = None) -> DiagnosisReport:
     """Diagnose ``model`` on samples: compare, locate the failures, rank the missing effects.
 
-    :param data: a :class:`~canrls.core.signals.Signals` block, or blocks (joined end to end),
+    :param data: a :class:`~canrls.core.samples.Signals` block, or blocks (joined end to end),
         or a record in a temporary file (:class:`~canrls.core.spill.SpilledSignals`,
         read in slices).
     :param model: the model to diagnose.

@@ -19,8 +19,9 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.core.errors import ConfigError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.core.spill import PackedMask, SpilledSignals
+from canrls.diagnosis.record import BLOCK, RecordSamples
 from canrls.diagnosis.residual import (
     MIN_BIN,
     MIN_EXPLAINED,
@@ -40,7 +41,6 @@ from canrls.diagnosis.results import (
     share_text,
     value_text,
 )
-from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.diagnosis.search import Gram, delta_bic, search_parameters
 from canrls.estimation.effects import MECHANICAL, Cogging, Effect, UserTerm, library
 from canrls.estimation.equation import Equation

@@ -2,7 +2,7 @@ r"""Where the model fails: statistics of the residual over the used samples.
 
 Everything is computed on the *filtered* equation the estimators see (the state-variable
 filter applied to target and columns, :mod:`canrls.estimation.svf`), over the samples the
-estimators used (:class:`~canrls.diagnosis.samples.RecordSamples`), in the target's unit:
+estimators used (:class:`~canrls.diagnosis.record.RecordSamples`), in the target's unit:
 
 * :func:`whiteness`: whiteness of the residual and its cross-correlation with the
   inputs (:class:`~canrls.diagnosis.results.Whiteness`);
@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from canrls import _kernels
 from canrls.core.spill import PackedMask
+from canrls.diagnosis.record import BLOCK, RecordSamples
 from canrls.diagnosis.results import (
     Binned,
     ExcitationSummary,
@@ -38,7 +39,6 @@ from canrls.diagnosis.results import (
     share_text,
     value_text,
 )
-from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.estimation.model import Model
 from canrls.estimation.svf import SVF
 
@@ -163,7 +163,7 @@ def _true_rows(rows: B) -> int:
 
 
 def _spans(n: int) -> range:
-    """Starts of the blocks of :data:`~canrls.diagnosis.samples.BLOCK` rows."""
+    """Starts of the blocks of :data:`~canrls.diagnosis.record.BLOCK` rows."""
     return range(0, n, BLOCK)
 
 

@@ -20,8 +20,8 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.core.spill import PackedMask
+from canrls.diagnosis.record import BLOCK, RecordSamples
 from canrls.diagnosis.results import SearchResult
-from canrls.diagnosis.samples import BLOCK, RecordSamples
 from canrls.estimation.model import DATA_OPTIONS, Equation, Model
 from canrls.estimation.nonlinear import RecordSpan, minimise_on_grid, record_span
 from canrls.estimation.pipeline import EstimatorSettings

@@ -37,12 +37,12 @@ import numpy.typing as npt
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError, EstimatorError
 from canrls.core.files import atomic_writer
-from canrls.core.signals import ROLES, Signals
+from canrls.core.samples import ROLES, Signals
 from canrls.diagnosis.figures import figures_in
+from canrls.diagnosis.record import RecordSamples
 from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
 from canrls.diagnosis.results import Binned, Region, Traces, r2_text, share_text, value_text
-from canrls.diagnosis.samples import RecordSamples
 from canrls.estimation.physics import Implausible, check_physics, describe
 from canrls.processor import FrameCounts, PeriodInfo, StartInfo
 from canrls.processor.modelfile import SavedModel

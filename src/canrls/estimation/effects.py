@@ -44,7 +44,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import numpy.typing as npt
 
-from canrls.core.ctext import check_text
+from canrls.core.c_escape import check_text
 from canrls.core.effect_names import EffectId, EquationId, parse_effect_name
 from canrls.core.errors import EffectError
 from canrls.estimation.expr import CompiledExpression, compile_expression
@@ -208,7 +208,7 @@ class Frame:
     @classmethod
     def from_signals(cls, signals: Any, axis: Axis = "rotary",
                      pitch: float = DEFAULT_PITCH) -> Frame:
-        """Wrap a :class:`~canrls.core.signals.Signals` block (its position taken as given)."""
+        """Wrap a :class:`~canrls.core.samples.Signals` block (its position taken as given)."""
         def arr(v: Any) -> F64 | None:
             return None if v is None else np.ascontiguousarray(v, dtype=np.float64)
 
@@ -359,7 +359,7 @@ class Effect:
 
         ``params`` maps parameter names (``"coulomb.Tc"``; a bare symbol ``"Tc"`` is
         accepted too) to values in the units of :meth:`parameters`. ``signals`` is a
-        :class:`~canrls.core.signals.Signals` block or a :class:`Frame`; derivative terms use
+        :class:`~canrls.core.samples.Signals` block or a :class:`Frame`; derivative terms use
         ``np.gradient`` against ``t``; the position is used as given (pass it unwrapped
         when a user term uses ``theta`` other than periodically). For checks and
         simulation cross-tests, not the estimation path.

@@ -290,7 +290,7 @@ class Equation:
 
 
 class RegressorBuilder:
-    """Stateful: turns :class:`~canrls.core.signals.Signals` blocks into
+    """Stateful: turns :class:`~canrls.core.samples.Signals` blocks into
     :class:`RegressorBlock`\\ s.
 
     ``process`` may be called with blocks of any size (including empty); the SVF state

@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.estimation.colour import MAX_PRIOR_SHARE
 from canrls.estimation.physics import Implausible, check_physics, describe
+from canrls.estimation.sigma_inflation import MAX_PRIOR_SHARE
 
 __all__ = [
     "DIVERGENCE_TOL",
@@ -67,7 +67,7 @@ class ParameterEstimate:
     sigma: float
     fixed: float
     #: share of the variance the ridge prior still holds (:func:`~canrls.estimation.
-    #: colour.prior_share`): above :data:`~canrls.estimation.colour.MAX_PRIOR_SHARE` the
+    #: colour.prior_share`): above :data:`~canrls.estimation.sigma_inflation.MAX_PRIOR_SHARE` the
     #: data cannot tell the parameter from the others, and value and sigma are the prior's
     prior_share: float = 0.0
     #: how far the model's errors (noise in the columns' signals, the hold between
@@ -137,7 +137,7 @@ class EquationFit:
     #: warm-up after each (see :class:`~canrls.estimation.model.RegressorBuilder`)
     nonfinite_rows: int = 0
     #: factor the residual's colour puts on the variances (kappa >= 1; the sigmas
-    #: reported are multiplied by its square root; :mod:`canrls.estimation.colour`)
+    #: reported are multiplied by its square root; :mod:`canrls.estimation.sigma_inflation`)
     sigma_inflation: float = 1.0
     #: the normalisation's exponents at the end (``{"target": s_y, parameter: s_j}``)
     exponents: Mapping[str, int] = field(default_factory=dict)

@@ -208,7 +208,7 @@ class CompiledExpression:
 
     Call it with a mapping of signal roles to arrays (``"t"``, ``"current"``,
     ``"speed"``, ``"position"``, ``"voltage"``) or with an object holding them as
-    attributes (:class:`canrls.core.signals.Signals`); it returns a float64 array of the
+    attributes (:class:`canrls.core.samples.Signals`); it returns a float64 array of the
     block length. :attr:`signals` lists the roles it reads.
     """
 

@@ -14,6 +14,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from canrls.core.checks import is_positive
+
 __all__ = ["Implausible", "SIGMAS", "check_physics", "describe"]
 
 #: A parameter that must not be negative is flagged when it is below zero by more than
@@ -105,7 +107,7 @@ def check_physics(params: Iterable[_Estimate], kt: float | None = None
 
 
 def _sd(sigma: float) -> float:
-    return sigma if math.isfinite(sigma) and sigma > 0 else 0.0
+    return sigma if is_positive(sigma) else 0.0
 
 
 _CAUSES: Mapping[str, str] = {

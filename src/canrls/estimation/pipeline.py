@@ -1,7 +1,7 @@
 r"""The pure pipeline: samples -> regressors -> float and fixed RLS -> estimates.
 
 :class:`Pipeline` is shared by the live daemon (``canrls run``) and the offline replay
-(``canrls fit``, ``canrls diagnose``). It takes :class:`~canrls.core.signals.Signals`
+(``canrls fit``, ``canrls diagnose``). It takes :class:`~canrls.core.samples.Signals`
 blocks of any size and carries every state across them, sample by sample in the C
 kernels of ``canrls._kernels`` (``src/canrls/c/host/kernels.c``) and in the fixed-point
 kernels, so the same samples give the same parameters bit for bit whatever the block
@@ -46,8 +46,7 @@ import numpy.typing as npt
 from canrls import _kernels
 from canrls.core.background import Background
 from canrls.core.errors import ConfigError
-from canrls.core.signals import Signals
-from canrls.estimation.colour import ResidualTail, prior_share
+from canrls.core.samples import Signals
 from canrls.estimation.equation import Equation, RegressorBuilder
 from canrls.estimation.estimates import (
     EquationBlock,
@@ -70,6 +69,7 @@ from canrls.estimation.settings import (
     EstimatorSettings,
     exponent_for,
 )
+from canrls.estimation.sigma_inflation import ResidualTail, prior_share
 
 __all__ = ["EquationEstimator", "Pipeline"]
 

@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
+from canrls.core.checks import check_lambda
 from canrls.core.errors import CheckpointError, EstimatorError
 
 __all__ = ["RLS", "RLSFlag", "RLSStep", "RLSTrace", "Excitation"]
@@ -177,13 +178,10 @@ def check_real(name: str, value: object, who: str = "RLS") -> float:
         raise EstimatorError(f"{who} {name} must be a real number, got {value!r}") from e
 
 
-def check_lam(lam: object, who: str = "RLS", low: float = 0.0, why: str = "") -> float:
-    """The forgetting factor in ``(low, 1]`` (``why`` explains a ``low`` above 0)."""
-    x = check_real("lam", lam, who)
-    if not (low < x <= 1.0):
-        raise EstimatorError(
-            f"{who} lam (forgetting factor) must be in ({low:g}, 1]{why}, got {lam!r}")
-    return x
+def check_lam(lam: object, who: str = "RLS") -> float:
+    """The forgetting factor (:func:`canrls.core.checks.check_lambda`), or an
+    :class:`EstimatorError` naming ``who``."""
+    return check_lambda(lam, f"{who} lam (forgetting factor)", EstimatorError)
 
 
 def check_ridge(alpha: object, n: int, who: str = "RLS") -> npt.NDArray[np.float64]:
@@ -221,7 +219,8 @@ class RLS:
     n : int
         Number of parameters (length of :math:`\varphi`), >= 1.
     lam : float, default 1.0
-        Forgetting factor :math:`\lambda \in (0, 1]`; ``1`` keeps all data.
+        Forgetting factor :math:`\lambda \in (1/2, 1]`
+        (:data:`canrls.core.checks.LAMBDA_MIN`); ``1`` keeps all data.
         In float32 the kernel uses ``lam`` rounded to float32.
     alpha : float or sequence of n floats, default 1e-3
         Ridge weight :math:`\alpha > 0`: :math:`P_0 = I/\alpha`; one weight per

@@ -47,7 +47,7 @@ import numpy.typing as npt
 
 from canrls import _kernels
 from canrls.core.errors import ConfigError
-from canrls.core.signals import ROLES, Signals
+from canrls.core.samples import ROLES, Signals
 from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals
 from canrls.estimation.equation import Equation
 from canrls.estimation.svf import MAX_TIME_CONSTANT

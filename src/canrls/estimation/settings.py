@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.checks import check_lambda
 from canrls.core.errors import ConfigError, FixedPointError
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import FixedConfig, QFormat
@@ -119,8 +120,7 @@ class EstimatorSettings:
     calibration_s: float = 2.0
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.lam, int | float) and 0.5 < self.lam <= 1.0):
-            raise ConfigError(f"estimator.lambda = {self.lam!r}: must be in (0.5, 1]")
+        check_lambda(self.lam, "estimator.lambda")
         if not (isinstance(self.alpha, int | float) and self.alpha > 0 and
                 math.isfinite(self.alpha)):
             raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be > 0")

@@ -13,8 +13,9 @@ in integers, and the C a firmware team compiles.
 * :mod:`canrls.firmware.qmath` and :mod:`canrls.firmware.tables` -- its arithmetic and the
   tables of tanh, sine and 2^-x.
 
-* :mod:`canrls.firmware.fit` and :mod:`canrls.firmware.load` -- ``canrls fit --fixed
-  target``: a log through the specification.
+* :mod:`canrls.firmware.fit`, :mod:`canrls.firmware.load` and
+  :mod:`canrls.firmware.live` -- the fixed column of ``canrls fit`` and of the daemon:
+  the frames through the specification.
 
 Its C is in ``src/canrls/c/firmware``; ``docs/target.md`` describes the path, its numbers
 and its measurements.

@@ -2,7 +2,7 @@
 
 :func:`model_files` renders a :class:`~canrls.firmware.model.TargetModel` as the constant
 ``canrls_model`` that ``src/canrls/c/firmware/canrls_target.c`` runs on. Every number goes
-through :mod:`canrls.core.ctext` (integers in the range of their C type), every name and
+through :mod:`canrls.core.c_escape` (integers in the range of their C type), every name and
 unit of the user's model or DBC as comment text or a string literal; nothing else
 reaches the C.
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from canrls.core.ctext import c_comment, c_int, c_name_part, c_string, c_uint
+from canrls.core.c_escape import c_comment, c_int, c_name_part, c_string, c_uint
 from canrls.firmware.model import (
     OUT_FRAMES,
     SOURCE_NAMES,
@@ -51,6 +51,7 @@ def _field(f: Field | None, what: str) -> str:
     if f is None:
         return "{0}"
     return (f"{{.msg = {_u(f.msg, what)}, .length = {_u(f.length, what)}, "
+            f".is_float = {int(f.is_float)}u, .frac = {_i(f.frac, what)}, "
             f".is_signed = {int(f.signed)}u, .biased = {int(f.biased)}u, "
             f".big_endian = {int(f.big_endian)}u, .shift = {_u(f.shift, what)}, "
             f".lo = {_i(f.lo, what)}, .hi = {_i(f.hi, what)}}}")

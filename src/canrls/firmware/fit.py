@@ -1,8 +1,7 @@
-"""``canrls fit --fixed target``: the fit's fixed-point column from the target's integers.
+"""``canrls fit``'s fixed-point column from the target's integers.
 
-By default ``canrls fit``'s fixed column is the kernel fed by the float front end (the
-pipeline's float regressors quantised at the kernel's input), as the daemon runs it.
-With ``--fixed target`` it is :class:`~canrls.firmware.spec.TargetEstimator` run over
+``canrls fit``'s fixed column (and the daemon's, :mod:`canrls.firmware.live`) is
+:class:`~canrls.firmware.spec.TargetEstimator` run over
 the same logs' frames with the fit's own calibration (its exponents, column energies,
 pending columns and period; :func:`canrls.firmware.model.build`): the frames decoded,
 paired, filtered, selected and rescaled in integers, as the C of ``canrls export-c``
@@ -25,6 +24,7 @@ from canrls.firmware.model import TargetModel, build
 from canrls.firmware.spec import PUBLISH, TargetEstimator
 from canrls.firmware.vectors import log_frames
 from canrls.processor import FitResult, TargetRun
+from canrls.processor.period import control_period
 
 __all__ = ["fit_model", "target_fixed"]
 
@@ -39,7 +39,7 @@ def fit_model(res: FitResult, protocol: Protocol, settings: EstimatorSettings) -
         model = model.with_scaling(cal.scaling)
         energy = {k: list(v) for k, v in cal.energy.items()}
         pending = {k: list(v) for k, v in cal.pending.items()}
-    period = float(res.period.value or protocol.period or 1e-3)
+    period = control_period(measured=res.period.value, dbc=protocol.period).value
     return build(model, protocol, settings, period, energy=energy, pending=pending,
                  source="canrls fit")
 

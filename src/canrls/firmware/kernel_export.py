@@ -23,7 +23,6 @@ of ``canrls fit --save-model``) gives the scaling frozen by its calibration.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib import resources
@@ -32,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from canrls.can.frames import frame_ids
+from canrls.can.estimator_frames import frame_ids
 from canrls.can.protocol import DEFAULT_DBC, Protocol, load_dbc
-from canrls.core.ctext import c_comment, c_float, c_identifier, c_int, c_name_part, c_string
+from canrls.core.c_escape import c_comment, c_float, c_identifier, c_int, c_name_part, c_string
 from canrls.core.errors import ConfigError
 from canrls.core.files import write_texts
 from canrls.core.units import rating_of
@@ -42,6 +41,7 @@ from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
 from canrls.processor.config import AppConfig
+from canrls.processor.period import control_period
 
 __all__ = ["KERNEL_FILES", "PLAN_64", "Export", "plan_c", "export_c", "frames_c"]
 
@@ -93,8 +93,8 @@ def _target_lines(eq: Any, protocol: Protocol | None) -> tuple[str, str]:
     c = ""
     if info is not None:
         where = f"the {eq.target.signal} signal {info.message}.{info.signal}"
-        per_raw = c_float(float(info.codec.scale) * info.si_scale, f"{where}: scale")
-        off = float(info.codec.offset) * info.si_scale
+        per_raw = c_float(info.si_per_raw, f"{where}: scale")
+        off = info.si_offset
         rating = rating_of(eq.target.signal, info.unit)
         of = ""
         if rating is not None and protocol is not None:
@@ -137,7 +137,7 @@ def _config_files(pipeline: Pipeline, source: str,
     """``canrls_config.h`` and ``canrls_config.c`` for the estimators of ``pipeline``
     (``protocol``: the DBC signals of the targets).
 
-    Every name, unit and number goes through :mod:`canrls.core.ctext`: names as validated
+    Every name, unit and number goes through :mod:`canrls.core.c_escape`: names as validated
     identifiers, text as comment text, numbers from validated integers and finite floats.
     """
     src = c_comment(source, "the model's source")
@@ -294,15 +294,15 @@ def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
     ``energy`` (``{equation: column energies}``, a calibration's) scales the prior as the
     service does after its calibration window; without it the prior is the ridge alone
     (every column energy 1), the prior of an estimator that has not calibrated.
-    ``frames=False``: no codecs of canrls' frames (``canrls export-c --frames none``)."""
+    ``frames=False``: no codecs of canrls' frames (``canrls export-c --frames none``).
+    ``dt``: the control period (:func:`~canrls.processor.period.control_period`: else
+    the DBC's cycle time, else 1 ms); ``canrls export-c`` passes the one
+    :func:`canrls.firmware.load.load` decided, a saved model's measured one included."""
     label = what or str(out)
     protocol = cfg.protocol()
     model = cfg.model_for(protocol) if model is None else model
-    period = protocol.period if dt is None else dt
-    if period is not None and not (math.isfinite(period) and period > 0):
-        raise ConfigError(f"--dt {period!r}: the control period must be a positive number "
-                          f"of seconds")
-    pipeline = Pipeline(model, period or 1e-3, cfg.settings(), energy)
+    period = control_period(given=dt, dbc=protocol.period).value
+    pipeline = Pipeline(model, period, cfg.settings(), energy)
     # everything generated before anything is written
     kernel = resources.files("canrls") / "c" / "firmware"
     texts = [(name, (kernel / name).read_text()) for name in KERNEL_FILES]
@@ -315,26 +315,3 @@ def export_c(cfg: AppConfig, out: str | Path, *, model: Model | None = None,
         texts += [("canrls_frames.h", fh), ("canrls_frames.c", fc)]
     files = write_texts(out, texts, label)
     return Export(Path(out), tuple(files), tuple(e.equation.name for e in pipeline.estimators))
-
-
-def load_source(path: str | Path) -> tuple[AppConfig, Model | None,
-                                           dict[str, list[float]] | None, str]:
-    """A configuration (TOML) or a saved model (JSON of ``canrls fit --save-model``):
-    the configuration, the model to export (None: the configuration's), the column
-    energies of its calibration (None for a configuration) and a label."""
-    path = Path(path)
-    if path.suffix.lower() == ".json":
-        try:
-            from canrls.processor.modelfile import SavedModel  # type: ignore[import-not-found]
-        except ImportError as e:  # the saved-model format is not in this build
-            raise ConfigError(f"{path}: saved models need canrls.processor.modelfile") from e
-        saved: Any = SavedModel.load(path)
-        energy = (saved.calibration or {}).get("energy")
-        model = saved.build_model()
-        scaling = (saved.calibration or {}).get("scaling")
-        if scaling:
-            # the energies are measured in the calibration's exponents, not the ones the
-            # fit ended with: the prior in the units it was measured in
-            model = model.with_scaling(scaling)
-        return saved.config(), model, energy, f"the saved model {path.name}"
-    return AppConfig.load(path), None, None, f"the configuration {path.name}"

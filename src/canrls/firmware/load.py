@@ -18,16 +18,13 @@ from pathlib import Path
 from typing import Any
 
 from canrls.can.protocol import Protocol
-from canrls.core.errors import ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
 from canrls.firmware.model import TargetModel, build
 from canrls.processor.config import AppConfig
+from canrls.processor.period import control_period
 
-__all__ = ["Source", "load", "target_model", "DEFAULT_PERIOD"]
-
-#: the control period when neither the model, the DBC nor ``--dt`` says it [s]
-DEFAULT_PERIOD = 1e-3
+__all__ = ["Source", "load", "target_model"]
 
 
 @dataclass
@@ -47,9 +44,11 @@ class Source:
     period_source: str
 
 
-def load(path: str | Path, dt: float | None = None) -> Source:
-    """A saved model (``.json``) or a configuration (TOML); ``dt`` [s] overrides the
-    control period (else the saved model's, the DBC's cycle time, or 1 ms)."""
+def load(path: str | Path, dt: float | None = None, axis: str | None = None) -> Source:
+    """A saved model (``.json``) or a configuration (TOML), of ``axis`` for a machine's;
+    ``dt`` [s] overrides the control period (:func:`~canrls.processor.period.control_period`:
+    else the saved model's, the DBC's cycle time, or
+    :data:`~canrls.processor.period.DEFAULT_PERIOD`). The one loader of a model to export."""
     from canrls.processor.modelfile import SavedModel
 
     path = Path(path)
@@ -67,21 +66,13 @@ def load(path: str | Path, dt: float | None = None) -> Source:
         cfg = AppConfig.load(path)
         model = None
         label = f"the configuration {path.name}"
+    cfg = cfg.axis(axis)
     protocol = cfg.protocol()
     if model is None:
         model = cfg.model_for(protocol)
-    if dt is not None:
-        period, how = float(dt), "--dt"
-    elif cal.get("period"):
-        period, how = float(cal["period"]), "the fit's"
-    elif protocol.period:
-        period, how = float(protocol.period), "the DBC's cycle time"
-    else:
-        period, how = DEFAULT_PERIOD, "the default"
-    if not period > 0:
-        raise ConfigError(f"control period {period!r} s: must be > 0")
-    return Source(cfg, protocol, model, cfg.settings(), period, cal.get("energy"),
-                  cal.get("pending"), label, how)
+    period = control_period(given=dt, measured=cal.get("period"), dbc=protocol.period)
+    return Source(cfg, protocol, model, cfg.settings(), period.value, cal.get("energy"),
+                  cal.get("pending"), label, period.source)
 
 
 def target_model(src: Source, *, frames: bool = True, tick_s: float = 1e-6) -> TargetModel:

@@ -11,7 +11,8 @@ thresholds, the kernel's plan and prior. :class:`~canrls.firmware.spec.TargetEst
 and nothing else: neither holds a float.
 
 What the target cannot do is refused here, with the reason: a user term (an expression
-of the signals has no integer form here), a float signal, a field wider than 32 bits,
+of the signals has no integer form here), a 16-bit float signal or counter, an integer
+field wider than 32 bits,
 a linear axis whose position wraps at other than a whole number of pitches.
 
 The numbers (``docs/target.md`` has the same with the reasons):
@@ -40,13 +41,13 @@ import numpy as np
 from canrls.can.codec import SignalCodec
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError
-from canrls.core.signals import ROLES
+from canrls.core.samples import ROLES
 from canrls.estimation.equation import Equation
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import EquationEstimator, Pipeline
 from canrls.estimation.settings import EstimatorSettings
 from canrls.estimation.svf import SVF, gain_bounds
-from canrls.firmware.qmath import MASK64, clog2
+from canrls.firmware.qmath import MASK64, clog2, float_fixed
 
 __all__ = ["SRC_RAW", "SRC_TANH", "SRC_STRIBECK", "SRC_SIN", "SRC_COS", "SRC_CONST",
            "SOURCE_NAMES", "Field", "Message", "Filter", "OutFrame", "OUT_FRAMES", "out_frames",
@@ -84,7 +85,9 @@ class Field:
     hi`` (the DBC's [minimum, maximum]). An unsigned 32-bit field is held less ``bias =
     2^31`` (``biased``), so that every raw value is an ``int32``: ``lo``, ``hi`` and
     what :meth:`extract` returns are then ``raw - 2^31``, and the signal's offset takes
-    the ``2^31`` back."""
+    the ``2^31`` back. A float32 or float64 field (``is_float``) is held in fixed point,
+    ``raw = round(v 2^frac)`` of its value ``v`` (:func:`~canrls.firmware.qmath.float_fixed`),
+    and :meth:`extract` returns None for NaN and infinity."""
 
     msg: int
     big_endian: bool
@@ -94,17 +97,22 @@ class Field:
     lo: int
     hi: int
     biased: bool = False
+    is_float: bool = False
+    frac: int = 0
 
     @property
     def bias(self) -> int:
         return 1 << 31 if self.biased else 0
 
-    def extract(self, data: bytes) -> int:
-        """The raw value of the field in ``data`` (sign-extended, less the bias)."""
+    def extract(self, data: bytes) -> int | None:
+        """The raw value of the field in ``data`` (sign-extended, less the bias; a float
+        field's in fixed point, None for NaN and infinity)."""
         # the payload as a 64-bit word (bytes after the frame's end are 0)
         word = int.from_bytes(bytes(data).ljust(8, b"\0"), "big" if self.big_endian else "little")
         # raw = (word >> shift) mod 2^length
         acc = (word >> self.shift) & ((1 << self.length) - 1)
+        if self.is_float:
+            return float_fixed(acc, self.length, self.frac)
         if self.signed and acc >> (self.length - 1):
             acc -= 1 << self.length
         return acc - self.bias
@@ -343,13 +351,71 @@ def _mantissa(x: Fraction) -> tuple[int, int]:
     return (m if x > 0 else -m), sh
 
 
-def _field(codec: SignalCodec, msg: int, where: str, strict: bool = True) -> Field:
+#: a float field's fixed point holds its bound in at most this many bits (headroom for
+#: the rounding and the filter); the bound of a float field whose DBC states no range
+FLOAT_BITS = 30
+FLOAT_BOUND = 1 << 15
+
+
+def _float_range(codec: SignalCodec, strict: bool) -> tuple[int, int, int]:
+    """``(frac, lo, hi)`` of a float field: ``frac`` the most fraction bits that hold the
+    largest value its DBC range allows (:data:`FLOAT_BOUND` without one) in
+    :data:`FLOAT_BITS` bits, ``lo .. hi`` that range in fixed point (strict) or all of
+    ``int32``."""
+    scale = Fraction(float(codec.scale))
+    off = Fraction(float(codec.offset))
+    ends = [(Fraction(float(x)) - off) / scale for x in (codec.minimum, codec.maximum)
+            if x is not None]
+    bound = max((abs(x) for x in ends), default=Fraction(FLOAT_BOUND)) or Fraction(1)
+    # the largest frac with bound 2^frac <= 2^FLOAT_BITS
+    frac = FLOAT_BITS - math.ceil(math.log2(bound))
+    while bound * 2 ** frac > 2 ** FLOAT_BITS:
+        frac -= 1
+    while bound * 2 ** (frac + 1) <= 2 ** FLOAT_BITS:
+        frac += 1
+    frac = max(-60, min(60, frac))
+    lo, hi = -(1 << 31) + 1, (1 << 31) - 1
+    if strict:
+        # the DBC's [minimum, maximum] in raw float units, in fixed point
+        a = (Fraction(float(codec.minimum)) - off) / scale if codec.minimum is not None else None
+        b = (Fraction(float(codec.maximum)) - off) / scale if codec.maximum is not None else None
+        if scale < 0:
+            a, b = b, a
+        if a is not None:
+            lo = max(lo, math.ceil(a * 2 ** frac))
+        if b is not None:
+            hi = min(hi, math.floor(b * 2 ** frac))
+    return frac, lo, hi
+
+
+def _shift(codec: SignalCodec, where: str) -> int:
+    """The field's lowest bit in the payload's 64-bit word of its byte order."""
+    if max(codec.byte_index) >= 8:
+        raise TargetError(f"{where}: beyond the 8 bytes of a classic CAN frame")
+    if codec.byte_order == "little_endian":
+        # the field's first bit is bit 8 (first byte) + shift of the little-endian word
+        return codec.byte_index[0] * 8 + codec.shift
+    # its last bit in the sequential numbering (byte 0's bit 7 first), last = 8 (its
+    # last byte) + 7 - shift, is bit 63 - last of the big-endian word
+    return 63 - (8 * codec.byte_index[0] + 7 - codec.shift)
+
+
+def _field(codec: SignalCodec, msg: int, where: str, strict: bool = True,
+           counter: bool = False) -> Field:
+    big = codec.byte_order != "little_endian"
     if codec.is_float:
-        raise TargetError(f"{where} is a float signal: the target decodes integer signals "
-                          f"only (no floating point)")
+        if codec.length == 16 or counter:
+            raise TargetError(f"{where} is a {codec.length}-bit float"
+                              f"{' alive counter' if counter else ''}: the target decodes "
+                              f"float32 and float64 signals and integer counters")
+        frac, lo, hi = _float_range(codec, strict)
+        if lo > hi:
+            raise TargetError(f"{where}: no value decodes inside its DBC range")
+        return Field(msg, big, _shift(codec, where), codec.length, True, lo, hi,
+                     is_float=True, frac=frac)
     if codec.length > 32:
-        raise TargetError(f"{where} has {codec.length} bits: the target decodes fields of "
-                          f"at most 32 bits")
+        raise TargetError(f"{where} has {codec.length} bits: the target decodes integer "
+                          f"fields of at most 32 bits")
     lo, hi = (codec.enc_lo, codec.enc_hi) if strict else (codec.raw_min, codec.raw_max)
     if lo > hi:
         raise TargetError(f"{where}: no raw value decodes inside its DBC range")
@@ -358,17 +424,8 @@ def _field(codec: SignalCodec, msg: int, where: str, strict: bool = True) -> Fie
         lo, hi = lo - (1 << 31), hi - (1 << 31)
     if lo < -(1 << 31) or hi > (1 << 31) - 1:  # pragma: no cover - fields of <= 32 bits
         raise TargetError(f"{where}: raw values {lo} .. {hi} do not fit 32 bits")
-    if codec.byte_order == "little_endian":
-        # the field's first bit is bit 8 (first byte) + shift of the little-endian word
-        shift = codec.byte_index[0] * 8 + codec.shift
-    else:
-        # its last bit in the sequential numbering (byte 0's bit 7 first), last = 8
-        # (its last byte) + 7 - shift, is bit 63 - last of the big-endian word
-        shift = 63 - (8 * codec.byte_index[0] + 7 - codec.shift)
-    if max(codec.byte_index) >= 8:
-        raise TargetError(f"{where}: beyond the 8 bytes of a classic CAN frame")
-    return Field(msg, codec.byte_order != "little_endian", shift, codec.length,
-                 codec.is_signed, int(lo), int(hi), biased)
+    return Field(msg, big, _shift(codec, where), codec.length, codec.is_signed, int(lo),
+                 int(hi), biased)
 
 
 def _messages(protocol: Protocol) -> tuple[tuple[Message, ...], dict[str, Field]]:
@@ -380,7 +437,7 @@ def _messages(protocol: Protocol) -> tuple[tuple[Message, ...], dict[str, Field]
                               f"classic CAN frames (at most 8)")
         counter = None
         if m.counter is not None and protocol.check_counter:
-            counter = _field(m.counter, i, f"counter {m.name}.{m.counter.name}", False)
+            counter = _field(m.counter, i, f"counter {m.name}.{m.counter.name}", False, True)
         msgs.append(Message(m.name, m.frame_id, m.is_extended, m.length,
                             m.crc is not None and protocol.check_crc, counter))
         for r in m.roles:
@@ -392,7 +449,7 @@ def _messages(protocol: Protocol) -> tuple[tuple[Message, ...], dict[str, Field]
 def _check_own_ids(protocol: Protocol) -> None:
     """Refuse a drive's frame on the ID of one of canrls' own frames, which the target
     sends (or receives, the command): it would take its own publications as feedback."""
-    from canrls.can.frames import frame_ids
+    from canrls.can.estimator_frames import frame_ids
 
     own = frame_ids().own
     for m in protocol.messages:
@@ -405,16 +462,14 @@ def _check_own_ids(protocol: Protocol) -> None:
                 f"--frames none (the firmware then sends the estimate itself)")
 
 
-def _scale(protocol: Protocol, role: str, bias: int = 0) -> tuple[Fraction, Fraction]:
+def _scale(protocol: Protocol, role: str, f: Field) -> tuple[Fraction, Fraction]:
     """``(k, o)``: SI value of one raw unit and the offset in raw units of ``role``
-    (``bias``: what the field holds less, :attr:`Field.bias`)."""
+    held in field ``f`` (less its :attr:`Field.bias`; a float's raw unit ``2^-frac``)."""
     info = protocol.roles[role]
-    c = info.codec
-    k = Fraction(float(c.scale) if not isinstance(c.scale, int) else c.scale) \
-        * Fraction(info.si_scale)
-    off = Fraction(float(c.offset) if not isinstance(c.offset, int) else c.offset)
-    o = off / Fraction(float(c.scale) if not isinstance(c.scale, int) else c.scale)
-    return k, o + bias
+    k = info.si_per_raw_exact
+    # the offset in raw units: (offset * f) / (scale * f); a float field's raw unit 2^-frac
+    o = info.si_offset_exact / k
+    return k / Fraction(2) ** f.frac, o * Fraction(2) ** f.frac + f.bias
 
 
 def _source(eq: Equation, j: int, model: Model) -> tuple[int, str, int]:
@@ -668,7 +723,7 @@ def build(model: Model, protocol: Protocol, settings: EstimatorSettings, dt: flo
     A, G = _coefficients(model, dt)
     f_gain, sf_gain = gain_bounds(model.cutoff_hz, model.zeta)
     gamma = max(f_gain, sf_gain * dt, 1.0)
-    scales = {r: _scale(protocol, r, f.bias) for r, f in roles.items()}
+    scales = {r: _scale(protocol, r, f) for r, f in roles.items()}
     columns = _Columns(protocol, roles, scales, gamma, dt)
 
     param_info: list[tuple[int, int, int, int]] = []

@@ -17,6 +17,9 @@ not fit (each such place is named below with its bound).
   argument: tanh, the quarter wave of sine, :math:`2^{-x}`;
 * :func:`tanh_q24`, :func:`exp_neg_q24`, :func:`sincos_q64` -- the functions the effect
   columns need, from those tables;
+* :func:`float_fixed` -- an IEEE-754 binary32 or binary64 field's value times
+  :math:`2^F`, rounded half away from zero, by integer operations only (None: NaN or
+  infinity);
 * :func:`f32_bits` -- the IEEE-754 binary32 nearest to :math:`v\,2^E`, round half to
   even, saturated at the DBC's :data:`F32_SAT`, by integer operations only.
 """
@@ -29,7 +32,7 @@ from canrls.firmware import tables
 
 __all__ = ["ONE_Q30", "MASK32", "MASK64", "F32_SAT", "F32_NAN", "rsh", "mul_rsh", "clog2", "isqrt",
            "dyadic", "floor_scaled", "ceil_scaled", "sat", "scale_p64", "table_eval", "tanh_q24",
-           "exp2_neg_q24", "exp_neg_q24", "sincos_q64", "f32_bits", "LOG2E_Q30"]
+           "exp2_neg_q24", "exp_neg_q24", "sincos_q64", "f32_bits", "float_fixed", "LOG2E_Q30"]
 
 #: 1.0 in Q30
 ONE_Q30 = 1 << 30
@@ -237,3 +240,19 @@ def f32_bits(v: int, e: int) -> int:
     if bits > F32_SAT:
         bits = F32_SAT
     return sign | bits
+
+
+def float_fixed(bits: int, width: int, frac: int) -> int | None:
+    """The value of the IEEE-754 field ``bits`` (``width`` 32 or 64) times ``2^frac``,
+    rounded half away from zero; None for NaN and infinity (C ``cr_float``)."""
+    mb = 23 if width == 32 else 52          # stored mantissa bits
+    emax = (1 << (width - 1 - mb)) - 1       # 255, 2047: NaN and infinity
+    e = (bits >> mb) & emax
+    if e == emax:
+        return None
+    # v 2^frac = M 2^s: M the mantissa with its hidden bit, s = max(e, 1) - bias - mb + frac
+    M = (bits & ((1 << mb) - 1)) | ((1 << mb) if e else 0)
+    s = max(e, 1) - (emax >> 1) - mb + frac
+    # |raw| = M 2^s, or rsh(M, -s) (round half up of the magnitude)
+    mag = M << s if s >= 0 else (M + (1 << (-s - 1))) >> -s
+    return -mag if bits >> (width - 1) & 1 else mag

@@ -207,18 +207,18 @@ class TargetEstimator:
         # alive counter: one equal to the last accepted is a repeat
         counter = -1
         if msg.counter is not None:
-            counter = msg.counter.extract(data)
+            counter = msg.counter.extract(data) or 0   # an integer field: never None
             if counter == self.last_counter[mi]:
                 self.rejects["repeated"] += 1
                 self.frame_loss = True
                 return 0
             self.last_counter[mi] = counter
-        # strict range of every mapped field
+        # strict range of every mapped field (a float's NaN and infinity too)
         raws = {}
         for role, f in self.m.roles.items():
             if f.msg == mi:
                 v = f.extract(data)
-                if not f.lo <= v <= f.hi:
+                if v is None or not f.lo <= v <= f.hi:
                     self.rejects["range"] += 1
                     self.frame_loss = True
                     return 0

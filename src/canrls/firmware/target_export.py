@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-from canrls.core.ctext import check_text
+from canrls.core.c_escape import check_text
 from canrls.core.files import write_texts
 from canrls.firmware.cgen import model_files
 from canrls.firmware.load import Source
@@ -35,6 +35,10 @@ __all__ = ["TARGET_FILES", "TEST_FILES", "TargetExport", "export_target", "readm
 TARGET_FILES = ("canrls_target.h", "canrls_target.c", "canrls_target_tables.h")
 #: the replay of test vectors and its host program
 TEST_FILES = ("canrls_replay.h", "canrls_replay.c", "canrls_test.c")
+#: the replay on a Cortex-M4 under QEMU (``make test-m4``, ``make count-m4``): the
+#: bare-metal example's files and the instruction counter, from ``c/firmware``
+M4_FILES = ("example/startup.c", "example/target_main.c", "example/semihost.h",
+            "example/mps2_an386.ld", "example/count_m4.sh", "drivers/count_exec.c")
 
 
 @dataclass(frozen=True)
@@ -58,7 +62,7 @@ class TargetExport:
 
 
 def _text(s: str, what: str) -> str:
-    """A user's name or unit in the README: printable text (``canrls.core.ctext``), with the
+    """A user's name or unit in the README: printable text (``canrls.core.c_escape``), with the
     Markdown code span's backticks taken out."""
     return check_text(s, what).replace("`", "'")
 
@@ -81,6 +85,17 @@ def _tables(tm: TargetModel) -> tuple[str, str, str, str]:
     fmts = "\n".join(f"| {e.name} | Q.{e.f_phi} | Q.{e.f_y} | Q.{e.f_theta} | Q.{e.f_eps} | "
                      f"{e.lam!r} | {e.selection.warmup} |" for e in tm.equations)
     return "\n".join(rows), msgs, filters, fmts
+
+
+def _floats(tm: TargetModel) -> str:
+    """The README's paragraph on the float signals (empty without one)."""
+    said = [f"{role} (float{f.length}, raw = round(v 2^{f.frac}))"
+            for role, f in tm.roles.items() if f.is_float]
+    if not said:
+        return ""
+    return ("\nFloat signals are decoded with integer operations into fixed point: "
+            + ", ".join(said) + ", half away from zero; a NaN, an infinity or a value "
+            "outside the DBC's range rejects the frame (`CANRLS_R_RANGE`).\n")
 
 
 def _use(tm: TargetModel) -> str:
@@ -139,11 +154,20 @@ integer state every {vectors.every} samples
 ```sh
 make test          # the host compiler: prints "... bit-exact with the specification"
 make test-arm      # 32-bit ARM Linux under qemu-arm (arm-linux-gnueabihf-gcc, qemu-user)
+make test-m4       # a Cortex-M4 under QEMU (mps2-an386, bare metal): bit for bit, then
+                   # "stack: N bytes; state (canrls_target): M bytes"
+make count-m4      # the same with every instruction counted: per sample and per update,
+                   # mean and worst (slow; gcc-arm-none-eabi, libnewlib-arm-none-eabi,
+                   # qemu-system-arm)
 ```
 
 `canrls_test.c` is a plain `main()` around `canrls_replay()` (`canrls_replay.c`), which
 any board can call too: it replays the frames through `canrls_target_frame()` and
-compares every record and every published frame word for word.
+compares every record and every published frame word for word. A replay that fails
+prints the first sample that differs and which value: a word of the state record by
+name (`theta[2] of equation 0`, expected and computed) or a publication's frame. The
+stack `make test-m4` prints is the deepest of the whole replay below `main` (painted
+before, scanned after: `target_main.c`), the replay's own frames included.
 """
 
 
@@ -207,7 +231,7 @@ they arrive within half a control period of its first{pairing}):
 | message | ID | DLC | E2E CRC | alive counter |
 |---|---|---|---|---|
 {msgs}
-
+{_floats(tm)}
 Parameters (`canrls_target_theta` index; column exponent at the start):
 
 | i | parameter | unit | equation | exponent |
@@ -244,7 +268,8 @@ def _makefile(single_n: int | None, vectors: bool) -> str:
              f"DEFS ?={n}", f"SRC = {src}",
              "ARM_CC ?= arm-none-eabi-gcc", "ARM_NM ?= arm-none-eabi-nm",
              "ARM_FLAGS ?= -mcpu=cortex-m4 -mthumb -mfloat-abi=soft -Os", "",
-             ".PHONY: check-float" + (" test test-arm" if vectors else ""), ""]
+             ".PHONY: check-float" + (" test test-arm test-m4 count-m4" if vectors else ""),
+             ""]
     if vectors:
         lines += ["test: canrls_test", "\t./canrls_test", "",
                   "canrls_test: $(SRC) canrls_replay.c canrls_test.c $(wildcard *.h)",
@@ -252,7 +277,27 @@ def _makefile(single_n: int | None, vectors: bool) -> str:
                   "test-arm:",
                   "\tarm-linux-gnueabihf-gcc -static $(CFLAGS) $(DEFS) -o canrls_test_arm "
                   "canrls_test.c canrls_replay.c $(SRC)",
-                  "\tqemu-arm ./canrls_test_arm", ""]
+                  "\tqemu-arm ./canrls_test_arm", "",
+                  "# the Cortex-M4 (QEMU mps2-an386, bare metal): the replay, its deepest "
+                  "stack and the state",
+                  "M4_OPT ?= -O2",
+                  "QEMU_M4 ?= qemu-system-arm -M mps2-an386 -nographic -monitor none "
+                  "-semihosting-config enable=on,target=native",
+                  "test-m4: canrls_m4.elf", "\t$(QEMU_M4) -kernel canrls_m4.elf 2>&1", "",
+                  "canrls_m4.elf: $(SRC) canrls_replay.c startup.c target_main.c "
+                  "mps2_an386.ld $(wildcard *.h)",
+                  "\t$(ARM_CC) -mcpu=cortex-m4 -mthumb $(M4_OPT) -std=c99 -Wall -Wextra "
+                  "-Werror $(DEFS) -DCANRLS_REPLAY_MARK=canrls_mark -ffunction-sections -I. "
+                  "-nostartfiles --specs=nano.specs -T mps2_an386.ld -Wl,--gc-sections "
+                  "startup.c target_main.c canrls_replay.c $(SRC) -o $@", "",
+                  "# instructions per sample and per update, mean and worst (slow: QEMU logs "
+                  "every instruction)",
+                  "count-m4: canrls_m4.elf count_exec",
+                  "\t$(ARM_CC) -mcpu=cortex-m4 -mthumb $(M4_OPT) -std=c99 $(DEFS) -c "
+                  "canrls_fixed.c -o canrls_fixed_m4.o",
+                  "\tARM_NM='$(ARM_NM)' QEMU_M4='$(QEMU_M4)' sh count_m4.sh canrls_m4.elf "
+                  "canrls_fixed_m4.o", "",
+                  "count_exec: count_exec.c", "\t$(CC) -O2 -o $@ count_exec.c", ""]
     lines += ["# no floating-point routine (soft-float calls: __aeabi_d*, __aeabi_f*, ...)",
               "check-float:",
               "\t$(ARM_CC) $(ARM_FLAGS) $(DEFS) -std=c99 -Wall -Wextra -Werror -c $(SRC)",
@@ -268,8 +313,8 @@ def target_texts(src: Source, tm: TargetModel, *, vectors: Sequence[str | Path] 
     with test vectors from the logs ``vectors`` (a state record every ``every``
     samples): generated before anything is written."""
     kernel = resources.files("canrls") / "c" / "firmware"
-    names = TARGET_FILES + (TEST_FILES if vectors else ())
-    texts = [(name, (kernel / name).read_text()) for name in names]
+    names = TARGET_FILES + (TEST_FILES + M4_FILES if vectors else ())
+    texts = [(name.rpartition("/")[2], (kernel / name).read_text()) for name in names]
     h, c = model_files(tm, src.label)
     texts += [("canrls_model.h", h), ("canrls_model.c", c)]
     v = None

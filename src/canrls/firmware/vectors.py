@@ -16,11 +16,13 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from canrls.can.frameblock import FrameBlock
 from canrls.firmware.model import TargetModel
 from canrls.firmware.qmath import MASK32
 from canrls.firmware.spec import PUBLISH, SAMPLE, TargetEstimator
 
-__all__ = ["Frame", "Vectors", "log_frames", "record", "state_record", "vectors_header"]
+__all__ = ["Frame", "Vectors", "block_frames", "log_frames", "record", "state_record",
+           "vectors_header"]
 
 #: a frame in: (receive time in ticks mod 2^32, id, extended, payload)
 Frame = tuple[int, int, bool, bytes]
@@ -44,28 +46,35 @@ class Vectors:
 
 
 def log_frames(paths: Iterable[str | Path], tick_s: float = 1e-6) -> Iterator[Frame]:
-    """The frames of logs, times in ticks from the first frame (``round((t - t0) /
-    tick_s)`` modulo 2^32); error and remote frames are not passed on (the target never
-    sees them: its CAN controller filters them)."""
+    """The frames of logs, times in ticks from the first frame (:func:`block_frames`); a
+    log without a frame is refused as ``canrls fit`` refuses it."""
     from canrls.can.logs import empty_log_error, read_frames
 
-    t0: float | None = None
+    t0: list[float] = []
     for path in paths:
         read = 0
         for b in read_frames(path):
             read += len(b)
-            if not len(b):
-                continue
-            if t0 is None:
-                t0 = float(b.t[0])
-            for k in range(len(b)):
-                if b.is_error[k] or b.is_remote[k]:
-                    continue
-                t = round((float(b.t[k]) - t0) / tick_s) & MASK32
-                yield (t, int(b.arbitration_id[k]), bool(b.is_extended[k]),
-                       bytes(b.data[k, :b.dlc[k]]))
+            yield from block_frames(b, t0, tick_s)
         if not read:  # refused as canrls fit refuses it
             raise empty_log_error(path)
+
+
+def block_frames(b: FrameBlock, t0: list[float], tick_s: float = 1e-6) -> Iterator[Frame]:
+    """The frames of one block as the target receives them: times in ticks from the
+    first frame of the stream (``round((t - t0) / tick_s)`` modulo 2^32; ``t0`` holds it
+    once known); error and remote frames are not passed on (the target never sees them:
+    its CAN controller filters them)."""
+    if not len(b):
+        return
+    if not t0:
+        t0.append(float(b.t[0]))
+    for k in range(len(b)):
+        if b.is_error[k] or b.is_remote[k]:
+            continue
+        t = round((float(b.t[k]) - t0[0]) / tick_s) & MASK32
+        yield (t, int(b.arbitration_id[k]), bool(b.is_extended[k]),
+               bytes(b.data[k, :b.dlc[k]]))
 
 
 def state_record(est: TargetEstimator) -> list[int]:

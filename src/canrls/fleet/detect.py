@@ -22,6 +22,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import library
 from canrls.fleet.records import SOURCE_LIVE, Recording
@@ -406,7 +407,7 @@ def _series(recs: Sequence[Recording], name: str, log: bool) -> Series | None:
     for r in recs:
         if name == RESIDUAL:
             x, sig = r.residual_rms, 0.0
-            if not (math.isfinite(x) and x > 0):
+            if not is_positive(x):
                 continue
             yy, ss = math.log(x), 0.0
             unit = r.unit
@@ -872,7 +873,7 @@ def _notes(lst: Sequence[Recording], models: int, earliest: float, latest: float
     if ids != sorted(ids):
         out.append("recordings stored out of time order: assessed in the order of their "
                    "start times")
-    if times and math.isfinite(interval) and interval > 0 and when(times[0]) is not None:
+    if times and is_positive(interval) and when(times[0]) is not None:
         first, last = min(times), max(times)
         if first - earliest > STALE_INTERVALS * interval:
             out.append(f"recorded since {when(first)} only (the fleet since "

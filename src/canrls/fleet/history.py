@@ -18,6 +18,7 @@ import time
 import urllib.parse
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -29,8 +30,8 @@ from canrls.fleet.records import (
     Recording,
 )
 
-__all__ = ["History", "history_url", "sqlite_path", "redact", "require_sqlalchemy",
-           "METADATA", "HEAD_REVISION", "MIGRATIONS", "NOT_A_HISTORY"]
+__all__ = ["History", "HistoryURL", "require_sqlalchemy", "METADATA", "HEAD_REVISION",
+           "MIGRATIONS", "NOT_A_HISTORY"]
 
 T = TypeVar("T")
 
@@ -130,87 +131,105 @@ class _Lazy:
 METADATA = _Lazy()
 
 
-def history_url(text: str | os.PathLike[str]) -> str:
-    """A database URL from what a user typed: a URL (``sqlite:///f.db``,
-    ``postgresql://user@host/db``; PostgreSQL through psycopg), or a file path (SQLite).
+@dataclass(frozen=True)
+class HistoryURL:
+    """Where a history lives, parsed once from what a user typed (:meth:`parse`): the one
+    reading of a history's URL for the daemon's ``[history]``, ``canrls fleet`` and
+    :meth:`History.open`, with what messages may show of it (:attr:`shown`)."""
 
-    :raises ConfigError: another kind of database, a URL that does not parse (a port
-        that is not a number), or an in-memory SQLite database (it keeps nothing).
-    """
-    s = str(text)
-    if "://" not in s:
-        if not s:
-            raise ConfigError("history: an empty database path")
-        return "sqlite:///" + str(Path(s).expanduser().absolute())
-    scheme, _, rest = s.partition("://")
-    base = scheme.split("+", 1)[0].lower()
-    if base in ("postgresql", "postgres"):
-        full = "postgresql+psycopg://" + rest
-    elif base == "sqlite":
-        full = s
-    else:
-        raise ConfigError(f"history: {scheme[:40]}:// databases are not supported (SQLite: a "
-                          f"file path or sqlite:///FILE; PostgreSQL: postgresql://USER@HOST/DB)")
-    sa = require_sqlalchemy()
-    try:
-        url = sa.engine.make_url(full)
-        url.port  # noqa: B018  (parsed here: a port that is not a number raises)
-    except (sa.exc.ArgumentError, ValueError) as e:
-        raise ConfigError(f"history {redact(s)}: not a database URL "
-                          f"({scrub(_first_line(e), s)})") from None
-    if base == "sqlite" and sqlite_path(full) is None:
-        raise ConfigError(f"history {redact(s)}: an in-memory database keeps nothing (give "
-                          f"a file: a path or sqlite:///FILE)")
-    return full
+    #: the SQLAlchemy URL (``sqlite:///...``, ``postgresql+psycopg://...``)
+    url: str
+    #: the SQLite database file (None: PostgreSQL)
+    sqlite_path: Path | None
+    #: what the user typed (a path or a URL), as messages name the history
+    given: str
 
+    @classmethod
+    def parse(cls, text: str | os.PathLike[str]) -> HistoryURL:
+        """A URL (``sqlite:///f.db``, ``postgresql://user@host/db``; PostgreSQL through
+        psycopg) or a file path (SQLite).
 
-def sqlite_path(full: str) -> str | None:
-    """The file of a SQLite URL (:func:`history_url`'s), None for an in-memory one."""
-    sa = require_sqlalchemy()
-    url = sa.engine.make_url(full)
-    db = url.database
-    if not db or db == ":memory:" or url.query.get("mode") == "memory" or (
-            db.startswith("file:") and "mode=memory" in db):
-        return None
-    return db
+        :raises ConfigError: an empty path, another kind of database, a URL that does not
+            parse (a port that is not a number), or an in-memory SQLite database (it keeps
+            nothing).
+        """
+        s = str(text)
+        if "://" not in s:
+            if not s:
+                raise ConfigError("history: an empty database path")
+            path = Path(s).expanduser().absolute()
+            return cls("sqlite:///" + str(path), path, s)
+        scheme, _, rest = s.partition("://")
+        base = scheme.split("+", 1)[0].lower()
+        if base in ("postgresql", "postgres"):
+            full = "postgresql+psycopg://" + rest
+        elif base == "sqlite":
+            full = s
+        else:
+            raise ConfigError(f"history: {scheme[:40]}:// databases are not supported "
+                              f"(SQLite: a file path or sqlite:///FILE; PostgreSQL: "
+                              f"postgresql://USER@HOST/DB)")
+        sa = require_sqlalchemy()
+        try:
+            url = sa.engine.make_url(full)
+            url.port  # noqa: B018  (parsed here: a port that is not a number raises)
+        except (sa.exc.ArgumentError, ValueError) as e:
+            raise ConfigError(f"history {cls.redact(s)}: not a database URL "
+                              f"({cls.scrub(_first_line(e), s)})") from None
+        if base != "sqlite":
+            return cls(full, None, s)
+        # sqlite:///relative.db, sqlite:////absolute.db; the query (?timeout=...) is the
+        # driver's, no part of the file
+        db = url.database
+        if not db or db == ":memory:" or url.query.get("mode") == "memory" or (
+                db.startswith("file:") and "mode=memory" in db):
+            raise ConfigError(f"history {cls.redact(s)}: an in-memory database keeps "
+                              f"nothing (give a file: a path or sqlite:///FILE)")
+        return cls(full, Path(db), s)
+
+    @property
+    def shown(self) -> str:
+        """The history as messages name it: as the user gave it, without its secrets."""
+        return self.redact(self.given)
+
+    @staticmethod
+    def redact(text: str) -> str:
+        """``text`` (a URL, parsed or not) with its secrets replaced by ``***``: the
+        password of ``user:password@`` and every query parameter named like a password,
+        key or token."""
+        scheme, sep, rest = text.partition("://")
+        if not sep:
+            return text
+        head, q, query = rest.partition("?")
+        if "@" in head:
+            cred, _, host = head.rpartition("@")
+            user, colon, _ = cred.partition(":")
+            head = f"{user}{':***' if colon else ''}@{host}"
+        if q:
+            query = "&".join(
+                f"{k}=***" if _SECRET.search(k) and eq else f"{k}{eq}{v}"
+                for k, eq, v in (item.partition("=") for item in query.split("&")))
+        return f"{scheme}{sep}{head}{q}{query}"
+
+    @staticmethod
+    def scrub(message: str, text: str) -> str:
+        """``message`` (a driver's error about the URL ``text``) without its secrets."""
+        scheme, sep, rest = text.partition("://")
+        head, _, query = rest.partition("?")
+        secrets = []
+        if "@" in head:
+            secrets.append(head.rpartition("@")[0].partition(":")[2])
+        for item in query.split("&"):
+            k, _, v = item.partition("=")
+            if _SECRET.search(k):
+                secrets.append(v)
+        for x in sorted(filter(None, secrets), key=len, reverse=True):
+            message = message.replace(x, "***")
+        return message
 
 
 #: query parameters of a URL whose values are secrets
 _SECRET = re.compile(r"pass|pwd|secret|token|key", re.IGNORECASE)
-
-
-def redact(url: str) -> str:
-    """``url`` with its secrets replaced by ``***``: the password of ``user:password@``
-    and every query parameter named like a password, key or token."""
-    scheme, sep, rest = url.partition("://")
-    if not sep:
-        return url
-    head, q, query = rest.partition("?")
-    if "@" in head:
-        cred, _, host = head.rpartition("@")
-        user, colon, _ = cred.partition(":")
-        head = f"{user}{':***' if colon else ''}@{host}"
-    if q:
-        query = "&".join(
-            f"{k}=***" if _SECRET.search(k) and eq else f"{k}{eq}{v}"
-            for k, eq, v in (item.partition("=") for item in query.split("&")))
-    return f"{scheme}{sep}{head}{q}{query}"
-
-
-def scrub(message: str, url: str) -> str:
-    """``message`` (a driver's error about ``url``) without the secrets of ``url``."""
-    scheme, sep, rest = url.partition("://")
-    head, _, query = rest.partition("?")
-    secrets = []
-    if "@" in head:
-        secrets.append(head.rpartition("@")[0].partition(":")[2])
-    for item in query.split("&"):
-        k, _, v = item.partition("=")
-        if _SECRET.search(k):
-            secrets.append(v)
-    for x in sorted(filter(None, secrets), key=len, reverse=True):
-        message = message.replace(x, "***")
-    return message
 
 
 def _first_line(e: BaseException) -> str:
@@ -257,11 +276,10 @@ def _json_safe(x: Any) -> Any:
 class History:
     """An open history (:meth:`open`); :meth:`close` it (or use ``with``)."""
 
-    def __init__(self, engine: Any, url: str, shown: str | None = None) -> None:
+    def __init__(self, engine: Any, where: HistoryURL) -> None:
         self.engine = engine
-        self.url = url
-        #: the URL as errors show it: as the user gave it, without its secrets
-        self.shown = redact(url if shown is None else shown)
+        #: where it lives (its URL, its SQLite file, and how messages name it)
+        self.where = where
         self._md = METADATA()
         self._drive_ids: dict[str, int] = {}
         self._model_ids: dict[str, int] = {}
@@ -270,7 +288,7 @@ class History:
     @classmethod
     def open(cls, url: str | os.PathLike[str], *, upgrade: bool = True,
              read_only: bool = False) -> History:
-        """Connect to the history at ``url`` (:func:`history_url`) and bring its schema
+        """Connect to the history at ``url`` (:meth:`HistoryURL.parse`) and bring its schema
         to :data:`HEAD_REVISION` (``upgrade=False``: refuse an older schema instead).
         ``read_only``: never write (a report; a SQLite history this user cannot write is
         read as it is on disk).
@@ -278,34 +296,33 @@ class History:
         :raises ConfigError: the database cannot be reached or created, is not a canrls
             history or is damaged, or its schema is newer than this canrls.
         """
-        full = history_url(url)
-        path = sqlite_path(full) if full.startswith("sqlite") else None
-        if path is not None:
-            parent = Path(path).parent
-            if not parent.is_dir():
-                raise ConfigError(f"history {redact(str(url))}: directory {parent} does not "
-                                  f"exist")
+        where = HistoryURL.parse(url)
+        path = where.sqlite_path
+        if path is not None and not path.parent.is_dir():
+            raise ConfigError(f"history {where.shown}: directory {path.parent} does not "
+                              f"exist")
         if path is not None and read_only:
             try:
-                return cls._open(full, str(url), False, _read_only_url(path, "mode=ro"))
+                return cls._open(where, False, _read_only_url(path, "mode=ro"))
             except ConfigError as e:
                 if not isinstance(e.__cause__, require_sqlalchemy().exc.OperationalError):
                     raise
             # no -shm can be made beside it: read the file as it is
-            return cls._open(full, str(url), False, _read_only_url(path, "immutable=1"))
-        return cls._open(full, str(url), upgrade and not read_only, None)
+            return cls._open(where, False, _read_only_url(path, "immutable=1"))
+        return cls._open(where, upgrade and not read_only, None)
 
     @classmethod
-    def _open(cls, full: str, given: str, upgrade: bool, read_only: str | None) -> History:
-        """:meth:`open` of ``full`` (``read_only``: the URL of a read-only SQLite file)."""
+    def _open(cls, where: HistoryURL, upgrade: bool, read_only: str | None) -> History:
+        """:meth:`open` of ``where`` (``read_only``: the URL of a read-only SQLite file)."""
         sa = require_sqlalchemy()
         kw: dict[str, Any] = {}
-        if full.startswith("sqlite"):
+        if where.sqlite_path is not None:
             kw["connect_args"] = {"timeout": BUSY_TIMEOUT_S}
         try:
-            engine = sa.create_engine(read_only or full, **kw)
+            engine = sa.create_engine(read_only or where.url, **kw)
         except (ImportError, sa.exc.ArgumentError, ValueError) as e:
-            raise ConfigError(f"history {redact(given)}: {scrub(_first_line(e), full)}") from e
+            raise ConfigError(f"history {where.shown}: "
+                              f"{where.scrub(_first_line(e), where.url)}") from e
         if engine.dialect.name == "sqlite":
             @sa.event.listens_for(engine, "connect")
             def _pragmas(dbapi_conn: Any, record: Any) -> None:
@@ -313,7 +330,7 @@ class History:
                 cur.execute("PRAGMA foreign_keys=ON")
                 cur.execute(f"PRAGMA busy_timeout={int(BUSY_TIMEOUT_S * 1000)}")
                 cur.close()
-        self = cls(engine, full, given)
+        self = cls(engine, where)
         try:
             self._migrate(upgrade)
             if engine.dialect.name == "sqlite" and read_only is None:
@@ -346,13 +363,13 @@ class History:
         """A database error as one line naming the history: a damaged or foreign SQLite
         file is :data:`NOT_A_HISTORY`."""
         sa = require_sqlalchemy()
-        why = scrub(_first_line(e), self.url)
+        why = self.where.scrub(_first_line(e), self.where.url)
         damaged = self.engine.dialect.name == "sqlite" and (
             not isinstance(e, sa.exc.OperationalError)
             or any(w in why for w in ("malformed", "no such table", "no such column")))
         if damaged:
-            return ConfigError(f"history {self.shown}: {NOT_A_HISTORY} ({why})")
-        return ConfigError(f"history {self.shown}: cannot use the database ({why})")
+            return ConfigError(f"history {self.where.shown}: {NOT_A_HISTORY} ({why})")
+        return ConfigError(f"history {self.where.shown}: cannot use the database ({why})")
 
     def revision(self) -> str | None:
         """The schema revision the database is at (None: an empty database)."""
@@ -374,14 +391,14 @@ class History:
         if current not in heads:
             known = {s.revision for s in ScriptDirectory.from_config(cfg).walk_revisions()}
             if current is not None and current not in known:
-                raise ConfigError(f"history {self.shown}: schema revision {current!r} "
+                raise ConfigError(f"history {self.where.shown}: schema revision {current!r} "
                                   f"is newer than this canrls knows (up to {heads[0]!r}): "
                                   f"upgrade canrls")
             if not upgrade:
                 if current is None:
-                    raise ConfigError(f"history {self.shown}: {NOT_A_HISTORY} (no "
+                    raise ConfigError(f"history {self.where.shown}: {NOT_A_HISTORY} (no "
                                       f"schema revision)")
-                raise ConfigError(f"history {self.shown}: schema revision "
+                raise ConfigError(f"history {self.where.shown}: schema revision "
                                   f"{current!r}, this canrls needs {heads[0]!r}")
             # one creator at a time: the others wait, then find it made
             with self._schema_lock() as conn:
@@ -441,7 +458,7 @@ class History:
         tables = set(sa.inspect(conn).get_table_names())
         ours = tables & set(self._md.tables)
         if ours or (tables and self.engine.dialect.name == "sqlite"):
-            raise ConfigError(f"history {self.shown}: {NOT_A_HISTORY} (tables "
+            raise ConfigError(f"history {self.where.shown}: {NOT_A_HISTORY} (tables "
                               f"{', '.join(sorted(tables)[:5])} without a schema revision)")
 
     def _check_tables(self) -> None:
@@ -449,7 +466,7 @@ class History:
         with self.engine.connect() as conn:
             missing = set(self._md.tables) - set(sa.inspect(conn).get_table_names())
         if missing:
-            raise ConfigError(f"history {self.shown}: {NOT_A_HISTORY} (no table "
+            raise ConfigError(f"history {self.where.shown}: {NOT_A_HISTORY} (no table "
                               f"{', '.join(sorted(missing))})")
 
     def close(self) -> None:
@@ -652,7 +669,7 @@ def _chunks(xs: Sequence[int], n: int) -> Iterator[Sequence[int]]:
         yield xs[i:i + n]
 
 
-def _read_only_url(path: str, how: str) -> str:
+def _read_only_url(path: Path, how: str) -> str:
     """A SQLAlchemy URL opening the SQLite file ``path`` read-only (``how``:
     ``mode=ro``, or ``immutable=1`` where no -shm file can be made beside it)."""
-    return f"sqlite:///file:{urllib.parse.quote(path)}?{how}&uri=true"
+    return f"sqlite:///file:{urllib.parse.quote(str(path))}?{how}&uri=true"

@@ -18,7 +18,6 @@ estimates of the run so far).
 from __future__ import annotations
 
 import hashlib
-import math
 import time
 import uuid
 from collections.abc import Mapping
@@ -26,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from canrls import __version__
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 from canrls.fleet.history import History
 from canrls.fleet.records import SOURCE_LIVE, ParameterValue, Recording
@@ -68,8 +68,7 @@ class HistorySettings:
         if not isinstance(ty, str):
             raise ConfigError(f"{source}: history.type = {ty!r}: must be a string")
         iv = table.get("interval", 600.0)
-        if isinstance(iv, bool) or not isinstance(iv, int | float) or not (
-                math.isfinite(iv) and iv > 0):
+        if not is_positive(iv):
             raise ConfigError(f"{source}: history.interval = {iv!r}: must be a positive "
                               f"number of seconds")
         return cls(url=table["url"], drive=check_name(table["drive"], "drive", where),

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["LogSource", "from_pattern", "from_manifest", "MANIFEST_FIELDS"]
@@ -272,7 +273,7 @@ def from_manifest(path: str | os.PathLike[str]) -> list[LogSource]:
                         kt = float(cells["kt"])
                     except ValueError:
                         kt = math.nan
-                    if not (math.isfinite(kt) and kt > 0):
+                    if not is_positive(kt):
                         raise ConfigError(f"{where}: field 'kt': {_clip(cells['kt'])} must be a "
                                           f"positive number")
                 signals = tuple(s for s in re.split(r"[;\s]+", cells.get("signals", "")) if s)

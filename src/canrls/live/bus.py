@@ -26,8 +26,8 @@ from typing import Any
 import can
 import numpy as np
 
+from canrls.can.estimator_frames import frame_ids
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import frame_ids
 from canrls.core.errors import BusError, ConfigError
 from canrls.live.journal import JOURNAL
 from canrls.live.settings import DaemonSettings
@@ -135,14 +135,22 @@ def messages_to_block(msgs: Sequence[can.Message]) -> FrameBlock:
     )
 
 
-def is_command(msg: can.Message) -> bool:
-    """``msg`` is an ``RlsCommand`` frame."""
-    return msg.arbitration_id == COMMAND_ID and not msg.is_extended_id
+def is_command(msg: can.Message, command_id: int = COMMAND_ID) -> bool:
+    """``msg`` is an ``RlsCommand`` frame (on ``command_id``: an axis's own)."""
+    return msg.arbitration_id == command_id and not msg.is_extended_id
 
 
-def command_rows(block: FrameBlock) -> np.ndarray:
+def command_rows(block: FrameBlock, command_id: int = COMMAND_ID) -> np.ndarray:
     """Mask of the ``RlsCommand`` frames of ``block`` (:func:`is_command` of each row)."""
-    return (block.arbitration_id == COMMAND_ID) & ~block.is_extended
+    return (block.arbitration_id == command_id) & ~block.is_extended
+
+
+def moved(msg: can.Message, offset: int) -> can.Message:
+    """A copy of ``msg`` whose ID is ``offset`` further (an axis's own frames)."""
+    return can.Message(timestamp=msg.timestamp, arbitration_id=msg.arbitration_id + offset,
+                       is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+                       dlc=msg.dlc, data=msg.data, is_fd=msg.is_fd,
+                       bitrate_switch=msg.bitrate_switch, channel=msg.channel)
 
 
 class FrameQueue(can.Listener):
@@ -171,6 +179,11 @@ class FrameQueue(can.Listener):
         #: input closes: the estimator stops letting frames gather and takes them at once
         self.hurry = threading.Event()
         self.full = full if full > 0 else 1 << 62
+        #: the ID of the command frames that hurry the estimator (an axis's own)
+        self.command_id = COMMAND_ID
+        #: (ID, extended) of the only frames queued, error frames aside (None: every
+        #: frame); a SocketCAN bus filters in the kernel instead (:class:`BusLink`)
+        self.accept: frozenset[tuple[int, bool]] | None = None
         self.space = threading.Event()
         self.limit = limit
         self.block = block
@@ -190,6 +203,10 @@ class FrameQueue(can.Listener):
         self.gate.set()
 
     def on_message_received(self, msg: can.Message) -> None:
+        accept = self.accept
+        if accept is not None and not msg.is_error_frame and (
+                msg.arbitration_id, msg.is_extended_id) not in accept:
+            return  # another axis's frame: never queued
         while not self.gate.is_set() and not self._stopping.is_set():
             self.gate.wait(0.05)
         q = self.queue
@@ -201,7 +218,7 @@ class FrameQueue(can.Listener):
                 self.space.clear()
                 self.space.wait(0.05)
         q.append(msg)
-        if is_command(msg) or self.received + 1 - self.taken >= self.full:
+        if is_command(msg, self.command_id) or self.received + 1 - self.taken >= self.full:
             self.hurry.set()
         if self.recorder is not None:
             self.recorder.on_message_received(msg)
@@ -239,7 +256,7 @@ class FrameQueue(can.Listener):
         self.queue.append(block)
         if commands is None:
             commands = int(command_rows(to_block([block]) if isinstance(block, Span)
-                                        else block).any())
+                                        else block, self.command_id).any())
         if commands or self.received + n - self.taken >= self.full:
             self.hurry.set()
         if self.recorder is not None and messages is not None and isinstance(block, Span):
@@ -477,11 +494,15 @@ class BusLink:
     :param factory: opens the bus (called again to reopen).
     :param config: ``send_timeout``, ``fault_hold_s``, ``reopen_min_s``/``reopen_max_s``.
     :param describe: what the bus is called in log lines when it has no ``channel_info``.
+    :param rx_ids: (ID, extended) of the only frames to take (empty: every frame).
     """
 
     def __init__(self, queue: FrameQueue, factory: Callable[[], can.BusABC],
-                 config: DaemonSettings, describe: str = "bus") -> None:
+                 config: DaemonSettings, describe: str = "bus",
+                 rx_ids: Sequence[tuple[int, bool]] = ()) -> None:
         self.queue = queue
+        #: (ID, extended) of the only frames to receive (empty: every frame)
+        self.rx_ids = tuple(rx_ids)
         self.factory = factory
         self.config = config
         self.describe = describe
@@ -509,9 +530,14 @@ class BusLink:
         self.failed.clear()
         cfg = self.config
         sock = socketcan_socket(bus)
+        if self.rx_ids and sock is not None:  # in the kernel: the others never come
+            bus.set_filters([{"can_id": i, "can_mask": 0x1FFFFFFF if ext else 0x7FF,
+                              "extended": ext} for i, ext in self.rx_ids])
+        elif self.rx_ids:  # python-can's software filters would end recv(0) at the
+            self.queue.accept = frozenset(self.rx_ids)  # first other frame: the queue's
         if sock is not None and cfg.rx_buffer:
             set_receive_buffer(sock, cfg.rx_buffer, self.info())
-        rx = bulk_receiver(bus, COMMAND_ID) if cfg.rx_bulk else None
+        rx = bulk_receiver(bus, COMMAND_ID + cfg.own_offset) if cfg.rx_bulk else None
         if rx is not None:
             self._reader = BlockReader(rx, self.queue, cfg.rx_s)
         else:
@@ -566,6 +592,8 @@ class BusLink:
             return 0
         sent = 0
         timeout = self.config.send_timeout
+        if off := self.config.own_offset:  # an axis's own IDs: moved copies
+            msgs = [moved(m, off) for m in msgs]
         for i, m in enumerate(msgs):
             try:
                 bus.send(m, timeout=timeout)

@@ -35,6 +35,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from canrls import __version__
+from canrls.core.checks import is_real
 from canrls.core.errors import CheckpointError, ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
@@ -314,7 +315,7 @@ def _document(doc: Any) -> Checkpoint:
         if isinstance(v, bool) or not isinstance(v, int):
             raise CheckpointError(f"counter {k!r} = {v!r} is not an integer")
     saved = doc["saved_at"]
-    if isinstance(saved, bool) or not isinstance(saved, int | float) or not math.isfinite(saved):
+    if not is_real(saved):
         raise CheckpointError(f"saved_at = {saved!r} is not a time")
     if not isinstance(doc["version"], str):
         raise CheckpointError(f"version = {doc['version']!r} is not a string")

@@ -2,7 +2,7 @@
 
 Commands are off unless enabled (``[daemon] commands = true``, ``canrls run
 --commands``); off, every frame on the command ID is answered ``disabled``, whatever it
-holds. On, a command is decoded strictly (:func:`canrls.can.frames.decode_command`),
+holds. On, a command is decoded strictly (:func:`canrls.can.estimator_frames.decode_command`),
 let through a token bucket (``command_rate`` per second, ``command_burst`` at once;
 ``freeze`` and ``resume`` need no token, :data:`UNLIMITED`), a
 changed model is checked before it is applied (at most ``max_parameters``, and its
@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 
 import can
 
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     Command,
     CommandCode,
     CommandFrameError,

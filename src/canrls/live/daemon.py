@@ -30,8 +30,8 @@ from typing import Any
 import can
 import numpy as np
 
+from canrls.can.estimator_frames import ParameterReport, StatusReport
 from canrls.can.frameblock import FrameBlock
-from canrls.can.frames import ParameterReport, StatusReport
 from canrls.can.protocol import Protocol
 from canrls.can.writers import open_writer
 from canrls.core.errors import CommandError, ConfigError
@@ -39,12 +39,19 @@ from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
 from canrls.estimation.settings import EstimatorSettings
-from canrls.live.bus import BusLink, FrameQueue, command_rows, messages_to_block, open_bus
+from canrls.live.bus import (
+    COMMAND_ID,
+    BusLink,
+    FrameQueue,
+    command_rows,
+    messages_to_block,
+    open_bus,
+)
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
 from canrls.live.history import HistoryHook
 from canrls.live.journal import JOURNAL, Journal
-from canrls.live.publisher import Publisher, check_publishable
+from canrls.live.publisher import FixedPath, Publisher, check_publishable
 from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.live.settings import DaemonSettings
@@ -52,7 +59,7 @@ from canrls.live.tuning import interpreter
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig
 
-__all__ = ["Daemon", "DaemonStats", "make_processor"]
+__all__ = ["Daemon", "DaemonStats", "make_processor", "serve", "wait_until"]
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +111,49 @@ class DaemonStats:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
+def wait_until(check: Callable[[], bool], timeout: float) -> bool:
+    """Poll ``check()`` every 5 ms until true or ``timeout`` seconds; its last answer."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if check():
+            return True
+        time.sleep(0.005)
+    return check()
+
+
+def serve(target: Any, stopping: threading.Event, duration: float | None,
+          ready: Callable[[], None] | None = None,
+          each: Callable[[], None] | None = None) -> int:
+    """Start ``target`` (a :class:`Daemon` or a machine's), call ``ready``, serve until
+    ``stopping`` is set (SIGTERM/SIGINT request it), ``duration`` s have passed or
+    ``target.failure`` is set, then stop it; SIGHUP requests a reload; ``each`` is called
+    at every wake-up (at least every 0.2 s). Signal handlers only from the main thread,
+    restored after. Returns the exit status (0, or 1 after a failure)."""
+    handlers: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig, fn in ((signal.SIGTERM, lambda *_: target.request_stop()),
+                        (signal.SIGINT, lambda *_: target.request_stop()),
+                        (signal.SIGHUP, lambda *_: target.request_reload())):
+            handlers[sig] = signal.signal(sig, fn)
+    try:
+        target.start()
+        if ready is not None:
+            ready()
+        end = None if duration is None else time.monotonic() + duration
+        while not stopping.is_set() and target.failure is None:
+            left = 0.2 if end is None else min(0.2, end - time.monotonic())
+            if left <= 0:
+                break
+            stopping.wait(left)
+            if each is not None:
+                each()
+    finally:
+        target.stop()
+        for sig, old in handlers.items():
+            signal.signal(sig, old)
+    return 0 if target.failure is None else 1
+
+
 class Daemon:
     """The live estimator on a CAN bus.
 
@@ -125,6 +175,8 @@ class Daemon:
         (``[history]``: :class:`~canrls.live.history.HistoryHook`).
     :param configuration: what produced the model, kept in the file the command
         ``save_model`` writes to ``[daemon] saved_model`` (default: none recorded).
+    :param fixed_path: computes the published fixed column from the frames (``canrls
+        run``: the target's integer path); None: the pipeline's kernel.
     """
 
     def __init__(self, protocol: Protocol, model: Model,
@@ -137,7 +189,8 @@ class Daemon:
                  backpressure: bool = False,
                  on_publish: Callable[[int, float], None] | None = None,
                  history: HistoryHook | None = None,
-                 configuration: AppConfig | None = None) -> None:
+                 configuration: AppConfig | None = None,
+                 fixed_path: FixedPath | None = None) -> None:
         if bus is None and bus_factory is None:
             raise ConfigError("Daemon: give the bus arguments (bus=...) or a bus_factory")
         self.protocol = protocol
@@ -184,9 +237,18 @@ class Daemon:
         # the parts
         self._queue = FrameQueue(cfg.queue_size, backpressure, self._stopping,
                                  on_error=self._recv_failed, full=cfg.max_block)
+        # an axis's RlsCommand: the shipped ID + its own offset ([daemon] own_ids)
+        self._command_id = self._queue.command_id = COMMAND_ID + cfg.own_offset
+        # an axis of a machine takes its own frames only (the bus's filters; the
+        # others never reach its queue)
+        own = [(m.frame_id, m.is_extended) for m in protocol.messages] + [
+            (self._command_id, False)]
         self._link = BusLink(self._queue, bus_factory or (lambda: open_bus(bus_args)), cfg,
-                             describe=str(bus_args or "bus"))
-        self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish)
+                             describe=str(bus_args or "bus"),
+                             rx_ids=own if cfg.rx_filter else ())
+        self._fixed_path = fixed_path
+        self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish,
+                                    fixed_path)
         self._history = history
         self._configuration = configuration or AppConfig(source="<canrls run>")
         self._journal = Journal()
@@ -428,36 +490,12 @@ class Daemon:
         daemon then stops at once, without a final checkpoint). Signal handlers are
         installed only when called from the main thread.
         """
-        handlers: dict[int, Any] = {}
-        if threading.current_thread() is threading.main_thread():
-            for sig, fn in ((signal.SIGTERM, lambda *_: self.request_stop()),
-                            (signal.SIGINT, lambda *_: self.request_stop()),
-                            (signal.SIGHUP, lambda *_: self.request_reload())):
-                handlers[sig] = signal.signal(sig, fn)
-        try:
-            self.start()
-            self.sd.ready(f"estimating {','.join(self.model.effect_names)} on "
-                          f"{self._link.info()}")
-            end = None if duration is None else time.monotonic() + duration
-            while not self._stopping.is_set():
-                left = 0.2 if end is None else min(0.2, end - time.monotonic())
-                if left <= 0:
-                    break
-                self._stopping.wait(left)
-        finally:
-            self.stop()
-            for sig, old in handlers.items():
-                signal.signal(sig, old)
-        return 0 if self.failure is None else 1
+        return serve(self, self._stopping, duration, ready=lambda: self.sd.ready(
+            f"estimating {','.join(self.model.effect_names)} on {self._link.info()}"))
 
     def wait_for(self, predicate: Callable[[Daemon], bool], timeout: float) -> bool:
         """Poll ``predicate(self)`` until true or ``timeout`` seconds (tests, the demo)."""
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if predicate(self):
-                return True
-            time.sleep(0.005)
-        return predicate(self)
+        return wait_until(lambda: predicate(self), timeout)
 
     def hold_input(self, hold: bool) -> None:
         """Stop (``True``) or restart taking frames from the bus listener.
@@ -578,25 +616,32 @@ class Daemon:
         with self._lock:
             err = block.is_error
             start = 0
-            for i in np.flatnonzero(err | command_rows(block)).tolist():
+            for i in np.flatnonzero(err | command_rows(block, self._command_id)).tolist():
                 if err[i]:
                     self._link.error_frame(int(block.arbitration_id[i]))
                 else:
                     self._estimate(block.take(slice(start, i + 1)))
                     start = i + 1
-                    self._commands.handle(block.take(slice(i, i + 1)).to_messages()[0])
+                    cmd = block.take(slice(i, i + 1)).to_messages()[0]
+                    # decoded as the shipped DBC's RlsCommand (its ID moved back)
+                    cmd.arbitration_id = COMMAND_ID
+                    self._commands.handle(cmd)
             self._estimate(block if start == 0 else block.take(slice(start, None)))
 
     def _estimate(self, block: FrameBlock) -> None:
         if not len(block):
             return
         out = self._proc.process(block)
+        if self._fixed_path is not None:
+            self._fixed_path.feed(block, self._proc)
         self._c["blocks"] += 1
         self._publisher.absorb(out)
 
     # ------------------------------------------------------------------ model changes
     def _set_model(self, model: Model, why: str) -> None:
         self._proc.with_model(model)
+        if self._fixed_path is not None:
+            self._fixed_path.restart()
         self._publisher.model_changed()
         self._journal.model_changed(model, why)
 

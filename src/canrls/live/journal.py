@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import IO
 
-from canrls.can.frames import StatusReport
+from canrls.can.estimator_frames import StatusReport
 from canrls.estimation.model import Model
 
 __all__ = ["JOURNAL", "Journal", "to_stream"]

@@ -32,7 +32,7 @@ from typing import Any
 
 import can
 
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     CommandAck,
     CommandCode,
     FrameDecoder,
@@ -40,12 +40,15 @@ from canrls.can.frames import (
     StatusReport,
     frame_ids,
 )
+from canrls.core.checks import check_lambda
 from canrls.core.effect_names import EffectId
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import parse_effect, target_unit
 from canrls.estimation.model import Model
+from canrls.live.bus import moved
 
-__all__ = ["LibraryUnits", "Monitor", "MonitorView", "parse_command_text"]
+__all__ = ["AxesMonitor", "AxesView", "LibraryUnits", "Monitor", "MonitorView", "axis_rows",
+           "parse_command_text"]
 
 _IDS = frame_ids()  # of the default DBC, which the daemon publishes with
 _ESTIMATOR_IDS = _IDS.published
@@ -220,6 +223,60 @@ class MonitorView:
 COMMAND_WORDS = "reset, freeze, resume, add EFFECT, remove EFFECT, lambda L, save"
 
 
+@dataclass(frozen=True)
+class AxesView:
+    """One snapshot of every axis's monitor (:class:`AxesMonitor`)."""
+
+    views: Mapping[str, MonitorView]
+
+    @property
+    def complete(self) -> bool:
+        """Every axis's view is complete."""
+        return all(v.complete for v in self.views.values())
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"axes": {n: v.to_dict() for n, v in self.views.items()}}
+
+    def format(self, color: bool = False) -> str:
+        return axis_rows(self.views)
+
+
+class AxesMonitor:
+    """The monitors of a machine's axes, by name (each a listener of the same bus): a
+    snapshot of them all is one row per axis."""
+
+    def __init__(self, monitors: Mapping[str, Monitor]) -> None:
+        self.monitors = dict(monitors)
+        self.source = next(iter(self.monitors.values())).source if self.monitors else ""
+
+    @property
+    def error(self) -> Exception | None:
+        return next((m.error for m in self.monitors.values() if m.error is not None), None)
+
+    def snapshot(self) -> AxesView:
+        return AxesView({n: m.snapshot() for n, m in self.monitors.items()})
+
+
+def axis_rows(views: Mapping[str, MonitorView]) -> str:
+    """The view of a machine's axes: a head line, then one row per axis (residual RMS,
+    updates, health, effects, frames/s of its feedback and of its own frames)."""
+    w = max([len(n) for n in views] + [4])
+    first = next(iter(views.values()), None)
+    stamp = time.strftime("%H:%M:%S", time.localtime(first.time)) if first else ""
+    lines = [f"canrls monitor  {first.source if first else ''}  {stamp}  {len(views)} axes",
+             f"  {'axis':<{w}}  {'residual RMS':>12}  {'updates':>8}  {'feedback/s':>10}  "
+             f"{'canrls/s':>8}  health  effects"]
+    for name, v in views.items():
+        s = v.status
+        rms = "-" if s is None else f"{_num(s.residual_rms)} {v.rms_unit}".strip()
+        lines.append(f"  {name:<{w}}  {rms:>12}  {'-' if s is None else s.update_count:>8}  "
+                     f"{v.rates.get('feedback', 0.0):>10.0f}  "
+                     f"{v.rates.get('estimator', 0.0):>8.0f}  "
+                     f"{'-' if s is None else ', '.join(s.flags) or 'ok'}  "
+                     f"{', '.join(v.effects()) or '-'}")
+    return "\n".join(lines)
+
+
 def _num(x: float | None, valid: bool = True) -> str:
     if x is None or not valid:
         return "-"
@@ -255,10 +312,13 @@ class Monitor(can.Listener):
     def __init__(self, units: Mapping[str, str] | None = None, user_names: Sequence[str] = (),
                  feedback_ids: Sequence[int] = _IDS.feedback, window_s: float = 2.0,
                  trend_s: float = 10.0, rms_unit: str | None = None,
-                 source: str = "") -> None:
+                 source: str = "", own_offset: int = 0) -> None:
         self.decoder = FrameDecoder(user_names=tuple(user_names),
                                     units=units if units is not None else {})
         self.feedback_ids = frozenset(feedback_ids)
+        #: the axis's own frames are the shipped IDs + this (``[daemon] own_ids``)
+        self.own_offset = own_offset
+        self._own = frozenset(i + own_offset for i in _IDS.own)
         self.window_s = window_s
         self.trend_s = trend_s
         if rms_unit is None:
@@ -284,12 +344,14 @@ class Monitor(can.Listener):
             kind = "other"
         elif aid in self.feedback_ids:
             kind = "feedback"
-        elif aid in _ESTIMATOR_IDS or aid == _ACK_ID:
-            kind = "estimator"
-        elif aid == _COMMAND_ID:
-            kind = "command"
+        elif self.own_offset and aid not in self._own:
+            kind = "other"  # another axis's own frames, or none of canrls'
         else:
-            kind = "other"
+            if self.own_offset:  # this axis's own frame, as the shipped DBC has it
+                msg = moved(msg, -self.own_offset)
+                aid = msg.arbitration_id
+            kind = ("estimator" if aid in _ESTIMATOR_IDS or aid == _ACK_ID else
+                    "command" if aid == _COMMAND_ID else "other")
         with self._lock:
             self._totals[kind] += 1
             q = self._arrivals[kind]
@@ -366,7 +428,7 @@ def parse_command_text(text: str) -> tuple[CommandCode, EffectId, int, float]:
     Returns (code, effect, order, lambda). Raises :class:`ConfigError` when it does not
     parse.
     """
-    from canrls.can.frames import parse_effect as parse_effect_id
+    from canrls.can.estimator_frames import parse_effect as parse_effect_id
 
     words = text.strip().split()
     if not words:
@@ -392,9 +454,10 @@ def parse_command_text(text: str) -> tuple[CommandCode, EffectId, int, float]:
             lam = float(words[1]) if len(words) == 2 else math.nan
         except ValueError:
             lam = math.nan
-        if not 0.0 < lam <= 1.0:
-            raise ConfigError(f"{text!r}: lambda needs a value in (0, 1], e.g. 'lambda 0.9995'")
-        return code, EffectId.NONE, 0, lam
+        try:
+            return code, EffectId.NONE, 0, check_lambda(lam, f"{text!r}: lambda")
+        except ConfigError as e:
+            raise ConfigError(f"{e} (e.g. 'lambda 0.9995')") from None
     if len(words) != 1:
         raise ConfigError(f"{text!r}: {verb} takes no argument")
     return code, EffectId.NONE, 0, 0.0

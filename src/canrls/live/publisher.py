@@ -14,9 +14,10 @@ from __future__ import annotations
 import logging
 import math
 import time
+import typing
 from collections.abc import Callable
 
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     ParameterReport,
     StatusReport,
     encode_param_info,
@@ -24,6 +25,7 @@ from canrls.can.frames import (
     encode_status,
     frame_ids,
 )
+from canrls.can.frameblock import FrameBlock
 from canrls.core.effect_names import EffectId, EquationId
 from canrls.core.errors import CanrlsError, ConfigError
 from canrls.estimation.estimates import Estimates, PipelineBlock, divergence
@@ -35,7 +37,7 @@ from canrls.live.bus import BusLink
 from canrls.live.settings import DaemonSettings
 from canrls.processor import FrameProcessor
 
-__all__ = ["Publisher", "check_publishable", "model_layout", "parameter_layout"]
+__all__ = ["Publisher", "FixedPath", "check_publishable", "model_layout", "parameter_layout"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +46,20 @@ _REJECTS_ID = frame_ids().rejects
 _WINDUP = int(RLSFlag.WINDUP)
 #: the longest the estimator sleeps without a publication due [s]
 _IDLE_S = 0.25
+
+
+class FixedPath(typing.Protocol):
+    """The fixed-point column computed from the frames themselves (``canrls run``: the
+    target's integer path, :class:`canrls.firmware.live.LiveTarget`)."""
+
+    def feed(self, block: FrameBlock, proc: FrameProcessor) -> None:
+        """The frames of a block the processor has processed."""
+
+    def restart(self) -> None:
+        """A new model runs."""
+
+    def fixed(self) -> dict[str, tuple[float, bool]] | None:
+        """``{parameter: (fixed value in SI, valid)}``; None: the kernel's column stands."""
 
 
 def parameter_layout(pipeline: Pipeline) -> tuple[tuple[ParameterReport, ...], ...]:
@@ -101,12 +117,15 @@ class Publisher:
         ``saturations``, ``tx_dropped``) as ``RlsCounters`` carries them.
     :param on_publish: called after each publication with ``(frames processed so far,
         time.monotonic() when its parameter frames had been sent)`` (benchmarks).
+    :param fixed_path: where the fixed column comes from (None: the pipeline's kernel).
     """
 
     def __init__(self, processor: FrameProcessor, config: DaemonSettings, link: BusLink,
                  counters: Callable[[], dict[str, int]],
-                 on_publish: Callable[[int, float], None] | None = None) -> None:
+                 on_publish: Callable[[int, float], None] | None = None,
+                 fixed_path: FixedPath | None = None) -> None:
         self.processor = processor
+        self.fixed_path = fixed_path
         self.config = config
         self.link = link
         self.counters = counters
@@ -188,13 +207,15 @@ class Publisher:
         pipe = self.processor.pipeline
         out: list[ParameterReport] = []
         divs: list[float] = []
+        path = self.fixed_path.fixed() if self.fixed_path is not None else None
         for blanks, params, (_, fixed_updates) in zip(
                 self._layout_of(pipe)[1], pipe.parameters(), pipe.update_counts(), strict=True):
-            valid = fixed_updates > 0
-            out += [b.with_estimates(p.fixed, p.sigma, p.value, valid and math.isfinite(p.fixed))
-                    for b, p in zip(blanks, params, strict=True)]
+            fixed = [(p.fixed, fixed_updates > 0) if path is None
+                     else path.get(p.name, (math.nan, False)) for p in params]
+            out += [b.with_estimates(f, p.sigma, p.value, ok and math.isfinite(f))
+                    for b, p, (f, ok) in zip(blanks, params, fixed, strict=True)]
             # in physical units: the same as in normalised ones (powers of two apart)
-            divs.append(divergence([p.value for p in params], [p.fixed for p in params],
+            divs.append(divergence([p.value for p in params], [f for f, _ in fixed],
                                    [p.sigma for p in params]))
         return out, max(divs, default=0.0)
 

@@ -9,13 +9,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:
     from canrls.processor.config import AppConfig
 
-__all__ = ["DaemonSettings", "DAEMON_KEYS", "FRAME_PARAMETERS", "OBSOLETE_KEYS", "RX_BUFFER",
-           "RX_INTERVAL", "resolve_path"]
+__all__ = ["DaemonSettings", "DAEMON_KEYS", "FIXED_PATHS", "FRAME_PARAMETERS", "OBSOLETE_KEYS",
+           "RX_BUFFER", "RX_INTERVAL", "resolve_path"]
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +65,17 @@ DAEMON_KEYS: dict[str, str] = {
     "saved_model": "file the command save_model writes the running model to, as canrls fit "
                    "--save-model does (canrls tune --model reads it; '' or absent: none)",
     "switch_interval": "Python's thread switch interval while running, seconds (0: leave it)",
+    "fixed": "the published fixed-point column: 'kernel' (default: the fixed-point kernel "
+             "on the float front end) or 'target' (the target's whole integer path from the "
+             "frames, bit for bit with export-c's C and canrls fit --fixed target; about "
+             "25 us of CPU a frame more, docs/daemon.md)",
+    "own_ids": "canrls' own frames (parameters, status, command, ack) moved by \"offset:N\" "
+               "from the shipped DBC's IDs (default: none; an axis of [[axes]]: its own, "
+               "by default its index x 0x40)",
 }
+
+#: the values of ``[daemon] fixed``: where the published fixed column comes from
+FIXED_PATHS = ("kernel", "target")
 
 #: keys of earlier versions that are accepted, ignored and warned about: why each is gone
 OBSOLETE_KEYS: dict[str, str] = {
@@ -102,6 +113,12 @@ class DaemonSettings:
     model_file: Path | None = None
     saved_model: Path | None = None
     switch_interval: float = 0.001
+    fixed: str = "kernel"
+    #: ``own_ids``: what canrls' own frames are moved by on the bus
+    own_offset: int = 0
+    #: take only the axis's feedback and command frames (the bus's filters): an axis of
+    #: a machine's daemon, never a table key
+    rx_filter: bool = False
 
     def __post_init__(self) -> None:
         src = "daemon"
@@ -115,7 +132,7 @@ class DaemonSettings:
         for k in ("info_interval", "checkpoint_interval", "fault_hold_s", "reopen_min_s",
                   "reopen_max_s", "divergence_limit"):
             v = getattr(self, k)
-            if not (math.isfinite(v) and v > 0):
+            if not is_positive(v):
                 raise ConfigError(f"{src}.{k} = {v!r}: must be > 0")
         if self.reopen_max_s < self.reopen_min_s:
             raise ConfigError(f"{src}.reopen_max_s = {self.reopen_max_s!r}: must be >= "
@@ -129,7 +146,7 @@ class DaemonSettings:
             raise ConfigError(f"{src}.max_parameters = {self.max_parameters!r}: must be in "
                               f"1..{FRAME_PARAMETERS} (RlsParamInfo's Index and Count are "
                               f"8-bit fields)")
-        if not (math.isfinite(self.command_rate) and self.command_rate > 0):
+        if not is_positive(self.command_rate):
             raise ConfigError(f"{src}.command_rate = {self.command_rate!r}: must be > 0 "
                               f"commands per second")
 
@@ -164,7 +181,16 @@ class DaemonSettings:
             if k not in DAEMON_KEYS:
                 raise ConfigError(f"{key} = {v!r}: unknown key (valid: "
                                   f"{', '.join(DAEMON_KEYS)})")
-            if k in ("commands", "rx_bulk"):
+            if k == "fixed":
+                if v not in FIXED_PATHS:
+                    raise ConfigError(f"{key} = {v!r}: must be one of "
+                                      f"{', '.join(map(repr, FIXED_PATHS))}")
+                kw[k] = v
+            elif k == "own_ids":
+                from canrls.processor.axes import own_offset
+
+                kw["own_offset"] = own_offset(v, key)
+            elif k in ("commands", "rx_bulk"):
                 if not isinstance(v, bool):
                     raise ConfigError(f"{key} = {v!r}: must be true or false")
                 kw[k] = v

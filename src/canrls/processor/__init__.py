@@ -8,18 +8,7 @@ one causal rule, so a log replayed offline gives the daemon's parameters bit for
 """
 
 from canrls.estimation.settings import MIN_ENERGY, RMS_HEADROOM
-from canrls.processor.frames import SEEN_IDS, FrameProcessor
-from canrls.processor.results import (
-    AxisInfo,
-    FileShift,
-    FitResult,
-    FrameCounts,
-    PeriodInfo,
-    StartInfo,
-    TargetRun,
-    epoch_date,
-)
-from canrls.processor.samples import (
+from canrls.processor.calibration import (
     RESTORE_PERIOD_TOLERANCE,
     Calibration,
     RangeScanner,
@@ -31,6 +20,17 @@ from canrls.processor.samples import (
     measure_noise,
     sample_period,
     scan_ranges,
+)
+from canrls.processor.frames import SEEN_IDS, FrameProcessor
+from canrls.processor.results import (
+    AxisInfo,
+    FileShift,
+    FitResult,
+    FrameCounts,
+    PeriodInfo,
+    StartInfo,
+    TargetRun,
+    epoch_date,
 )
 
 __all__ = ["AxisInfo", "Calibration", "FileShift", "FitResult", "FrameCounts", "FrameProcessor",

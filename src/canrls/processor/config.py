@@ -8,7 +8,6 @@ One reader (:func:`read_toml`), the command line's options applied once
 from __future__ import annotations
 
 import dataclasses
-import math
 import re
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -16,15 +15,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from canrls.can.eds import EdsDrive, read_eds
+from canrls.can.idrules import parse_rule
 from canrls.can.mapping import SignalMapping
 from canrls.can.protocol import Protocol
+from canrls.core.checks import is_positive, is_real
 from canrls.core.errors import ConfigError
 from canrls.core.files import MAX_CONFIG_BYTES, check_path, read_bytes
-from canrls.core.signals import ROLES
+from canrls.core.samples import ROLES
 from canrls.core.units import RATING_OPTIONS, Ratings
 from canrls.estimation.fixed.formats import QFormat
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
+from canrls.processor.axes import (
+    AxisSpec,
+    check_own,
+    check_shared,
+    own_offset,
+    parse_axes,
+    short_form,
+)
 
 __all__ = ["AppConfig", "DEFAULT_EFFECTS", "MAX_DEPTH", "MAX_INT_BITS", "Overrides", "Prepared",
            "load_config", "load_model", "prepare", "read_toml"]
@@ -44,7 +54,7 @@ DEFAULT_EFFECTS: tuple[str, ...] = ("inertia", "viscous", "coulomb")
 DEFAULT_HELD: tuple[str, ...] = ("current", "voltage")
 
 _SECTIONS = ("model", "estimator", "fixed", "can", "signals", "daemon", "monitor", "history",
-             "fleet")
+             "axes", "fleet")
 _ESTIMATOR_KEYS = {"lambda": "lam", "alpha": "alpha", "trace_max": "trace_max",
                    "warmup_s": "warmup_s", "gap_periods": "gap_periods",
                    "rms_time_s": "rms_time_s", "max_phase_step": "max_phase_step",
@@ -56,7 +66,7 @@ _FLAGS = (("kt", "--kt", "model", "kt"), ("axis", "--axis", "model", "axis"),
           ("period", "--period", "can", "period"),
           *((key, flag, "signals", key) for key, (flag, _, _) in RATING_OPTIONS.items()))
 _CAN_KEYS = ("dbc", "period", "strict_range", "check_crc", "check_counter", "interface",
-             "channel", "bitrate", "fd", "data_bitrate")
+             "channel", "bitrate", "fd", "data_bitrate", "ids", "eds")
 #: ``[monitor]``: defaults of ``canrls monitor``'s options of the same names
 _MONITOR_KEYS = {"interval": "a positive number of seconds",
                  "timeout": "a positive number of seconds", "plain": "true or false"}
@@ -69,6 +79,8 @@ class Overrides:
     so a fleet's workers take it as it is."""
 
     dbc: str | None = None
+    #: ``--eds FILE``: a CiA 402 drive's EDS instead of a DBC
+    eds: str | None = None
     signals: tuple[str, ...] = ()
     effects: str | None = None
     kt: float | None = None
@@ -84,6 +96,10 @@ class Overrides:
     #: python-can's bus arguments (``-i -c -b --fd --data-bitrate --timing``,
     #: ``--bus-kwargs``), over ``[can]``
     bus: tuple[tuple[str, Any], ...] = ()
+    #: ``--axes RULE:LIST``: the axes of the machine, over ``[[axes]]``
+    axes: str | None = None
+    #: ``--axis NAME``: the one axis a command works on
+    axis_name: str | None = None
 
 
 class Prepared(NamedTuple):
@@ -97,7 +113,9 @@ class Prepared(NamedTuple):
 def prepare(cfg: AppConfig) -> Prepared:
     """Protocol, model and settings from a configuration: the one builder of them. The
     ranges it does not give are measured by the front end on the calibration window
-    (:mod:`canrls.processor`), live and offline alike: no first pass over a log."""
+    (:mod:`canrls.processor`), live and offline alike: no first pass over a log. Of a
+    machine's configuration, the axis :meth:`AppConfig.one_axis` picks."""
+    cfg = cfg.one_axis()
     protocol = cfg.protocol()
     return Prepared(protocol, cfg.model_for(protocol), cfg.settings())
 
@@ -179,6 +197,10 @@ class AppConfig:
     flags: dict[str, str] = field(default_factory=dict)
     #: the bus arguments of the command line (over the bus keys of ``[can]``)
     bus: dict[str, Any] = field(default_factory=dict)
+    #: the ``[[axes]]`` tables (``--axes`` replaces them); empty: one axis, the file's own
+    axes: list[Any] = field(default_factory=list)
+    #: ``--axis NAME``: the axis :meth:`one_axis` picks
+    axis_name: str | None = None
 
     # -- loading ----------------------------------------------------------------------
     @classmethod
@@ -192,6 +214,10 @@ class AppConfig:
         for key, value in d.items():
             if key not in _SECTIONS:
                 raise ConfigError(f"{p}: unknown section [{key}] (valid: {', '.join(_SECTIONS)})")
+            if key == "axes":
+                parse_axes(value, str(p))  # checked at the edge, kept as written
+                cfg.axes = list(value)
+                continue
             if not isinstance(value, dict):
                 raise ConfigError(f"{p}: {key} must be a table, got {value!r}")
             setattr(cfg, key, dict(value))
@@ -219,9 +245,7 @@ class AppConfig:
             if want is None:
                 raise ConfigError(f"{src}: unknown key monitor.{k} = {v!r} "
                                   f"(valid: {', '.join(_MONITOR_KEYS)})")
-            ok = (isinstance(v, bool) if k == "plain" else
-                  not isinstance(v, bool) and isinstance(v, int | float)
-                  and math.isfinite(v) and v > 0)
+            ok = isinstance(v, bool) if k == "plain" else is_positive(v)
             if not ok:
                 raise ConfigError(f"{src}: monitor.{k} = {v!r}: must be {want}")
 
@@ -230,6 +254,8 @@ class AppConfig:
         """Let the command line's :class:`Overrides` override the file."""
         if over.dbc:
             self.can["dbc"] = str(Path(over.dbc).resolve())
+        if over.eds:
+            self.can["eds"] = str(Path(over.eds).resolve())
         if over.signals:
             self.signal_overrides = list(over.signals)
         if over.effects:
@@ -241,7 +267,74 @@ class AppConfig:
                 getattr(self, section)[key] = v
                 self.flags[f"{section}.{key}"] = f"{flag} {_typed(v)}"
         self.bus.update(over.bus)
+        if over.axes is not None:
+            self.axes = short_form(over.axes)
+            self.flags["axes"] = f"--axes {over.axes}"
+        if over.axis_name is not None:
+            self.axis_name = over.axis_name
         return self
+
+    # -- axes -------------------------------------------------------------------------
+    def axis_specs(self) -> tuple[AxisSpec, ...]:
+        """The checked ``[[axes]]`` (or ``--axes``) of the configuration; () for one axis."""
+        return parse_axes(self.axes, self.flags.get("axes") or self.source)
+
+    def axis_configs(self) -> dict[str, AppConfig]:
+        """Each axis's own configuration (its ``signals`` and ``model`` over the file's, its
+        ID rule as ``[can] ids``), every axis's protocol built and no feedback signal
+        shared: the whole machine checked before any axis starts."""
+        specs = self.axis_specs()
+        configs: dict[str, AppConfig] = {}
+        protocols: dict[str, Protocol] = {}
+        base: dict[str, Protocol] = {}  # one DBC read per distinct mapping, not per axis
+        for spec in specs:
+            c = dataclasses.replace(
+                self, model={**self.model, **spec.model}, can=dict(self.can),
+                signals={**self.signals, **spec.signals}, axes=[], axis_name=None,
+                flags=dict(self.flags), source=f"{self.source} [axis {spec.name}]")
+            if spec.rule is not None:
+                c.can["ids"] = str(spec.rule)
+            c.daemon = {**self.daemon, "own_ids": f"offset:{spec.own:#x}"}
+            key = repr((c.signals, {k: v for k, v in c.can.items() if k != "ids"},
+                        c.model.get("axis")))
+            try:
+                proto = base.get(key)
+                if proto is None:
+                    proto = base[key] = c.protocol(with_rule=False)
+                protocols[spec.name] = c._moved(proto)
+            except ConfigError as e:
+                raise type(e)(f"axis {spec.name}: {e}") from e
+            configs[spec.name] = c
+        check_shared(protocols)
+        check_own({f"axis {n}": p for n, p in protocols.items()},
+                  {f"axis {n}": own_offset(c.daemon["own_ids"], f"axis {n}: own")
+                   for n, c in configs.items()})
+        return configs
+
+    def axis(self, name: str | None) -> AppConfig:
+        """The configuration of axis ``name`` (None: of the only one, or of an axis-less
+        configuration): :meth:`one_axis` with ``--axis NAME``."""
+        return dataclasses.replace(self, axis_name=name).one_axis()
+
+    def one_axis(self) -> AppConfig:
+        """The configuration of the one axis a command works on: this one without axes,
+        else the axis ``--axis NAME`` picks (or the only one), the others checked too."""
+        if not self.axes:
+            if self.axis_name is not None:
+                raise ConfigError(f"--axis {self.axis_name}: the configuration declares no "
+                                  f"axes ([[axes]] or --axes); --axis rotary|linear sets the "
+                                  f"kind of axis")
+            return self
+        configs = self.axis_configs()
+        if self.axis_name is None:
+            if len(configs) == 1:
+                return next(iter(configs.values()))
+            raise ConfigError(f"{len(configs)} axes ({', '.join(configs)}): give --axis NAME "
+                              f"for one")
+        if self.axis_name not in configs:
+            raise ConfigError(f"--axis {self.axis_name}: no such axis (axes: "
+                              f"{', '.join(configs)})")
+        return configs[self.axis_name]
 
     def _flagged(self, e: ConfigError) -> ConfigError:
         """``e`` with a configuration key set from the command line replaced by the flag
@@ -275,21 +368,42 @@ class AppConfig:
             if key not in self.signals:
                 continue
             v = self.signals[key]
-            if (isinstance(v, bool) or not isinstance(v, int | float)
-                    or not (math.isfinite(v) and v > 0)):
+            if not is_positive(v):
                 where = (self.flags.get(f"signals.{key}")
                          or f"{self._where('signals.' + key)} = {v!r}")
                 raise ConfigError(f"{where}: must be a positive number ({unit})")
             given[key] = float(v)
         return Ratings(**given)
 
-    def protocol(self) -> Protocol:
-        """The DBC and signal mapping (``--signal`` options replace roles of ``[signals]``)."""
+    def _eds(self) -> tuple[Path, EdsDrive] | None:
+        """``[can] eds`` (``--eds``): the path and what the EDS tells; None without one."""
+        eds = self.can.get("eds")
+        if eds is None:
+            return None
+        if not isinstance(eds, str) or "\0" in eds:
+            raise ConfigError(f"{self._where('can.eds')} = {eds!r}: must be a file path")
+        if self.can.get("dbc") is not None:
+            raise ConfigError(f"{self._where('can.eds')} = {eds}: give a DBC (can.dbc, "
+                              f"--dbc) or an EDS (can.eds, --eds), not both")
+        p = Path(eds) if Path(eds).is_absolute() else self.base_dir / eds
+        return p, read_eds(p)
+
+    def protocol(self, *, with_rule: bool = True) -> Protocol:
+        """The DBC and signal mapping (``--signal`` options replace roles of ``[signals]``),
+        its messages moved by the ID rule ``[can] ids`` unless ``with_rule`` is false. With
+        an EDS, its TPDOs and the roles of its 402 objects, the ratings it gives under
+        those configured."""
         mapping: SignalMapping | None = None
         ratings = self.ratings()
+        eds = self._eds()
+        if eds is not None:
+            ratings = Ratings(**{**eds[1].ratings.as_dict(), **ratings.as_dict()})
+            mapping = SignalMapping.from_strings(eds[1].signals)
         table = {k: v for k, v in self.signals.items() if k not in RATING_OPTIONS}
         if table:
-            mapping = SignalMapping.from_config(table, source=f"{self.source} [signals]")
+            own = SignalMapping.from_config(table, source=f"{self.source} [signals]")
+            mapping = own if mapping is None else dataclasses.replace(
+                mapping, roles={**mapping.roles, **own.roles})
         if self.signal_overrides:
             base = mapping if mapping is not None else (
                 SignalMapping.default() if self.dbc_path() is None else None)
@@ -304,9 +418,17 @@ class AppConfig:
                 raise ConfigError(f"{self._where('can.' + k)} = {v!r}: must be true or false")
         where = self.flags.get("can.period") or self._where("can.period")
         axis = self.model.get("axis")
-        return Protocol.load(self.dbc_path(), mapping, period=period,
-                             period_source=where, axis=axis if isinstance(axis, str) else None,
-                             **opts)
+        proto = Protocol.load(eds[0] if eds else self.dbc_path(), mapping, period=period,
+                              period_source=where, axis=axis if isinstance(axis, str) else None,
+                              dbc_bytes=eds[1].dbc_text.encode("cp1252") if eds else None,
+                              **opts)
+        return self._moved(proto) if with_rule else proto
+
+    def _moved(self, proto: Protocol) -> Protocol:
+        """``proto`` on the IDs of the rule ``[can] ids`` (as it is without one)."""
+        if "ids" not in self.can:
+            return proto
+        return proto.with_ids(parse_rule(self.can["ids"], self._where("can.ids")))
 
     def model_for(self, protocol: Protocol | None = None,
                   data_ranges: Mapping[str, Any] | None = None) -> Model:
@@ -364,7 +486,7 @@ class AppConfig:
     def settings(self) -> EstimatorSettings:
         kw: dict[str, Any] = {}
         for k, v in self.estimator.items():
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            if not is_real(v):
                 raise self._flagged(ConfigError(
                     f"{self._where('estimator.' + k)} = {v!r}: must be a number"))
             kw[_ESTIMATOR_KEYS[k]] = v
@@ -376,8 +498,7 @@ class AppConfig:
                 kw[k] = v
         if "theta_max" in self.fixed:
             v = self.fixed["theta_max"]
-            if (isinstance(v, bool) or not isinstance(v, int | float)
-                    or not (math.isfinite(v) and v > 0)):
+            if not is_positive(v):
                 raise ConfigError(f"{self._where('fixed.theta_max')} = {v!r}: must be a "
                                   f"positive number")
             kw["theta_max"] = float(v)

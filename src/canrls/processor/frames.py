@@ -1,6 +1,6 @@
 """Frames in, estimates out: :class:`FrameProcessor` judges times, reorders, decodes,
 measures the period and pairs, then hands the samples to a
-:class:`~canrls.processor.samples.SampleProcessor`."""
+:class:`~canrls.processor.calibration.SampleProcessor`."""
 
 from __future__ import annotations
 
@@ -16,11 +16,12 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.protocol import Protocol
 from canrls.core.checks import positive_period
 from canrls.core.errors import CheckpointError, ConfigError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.estimation.estimates import PipelineBlock
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
 from canrls.estimation.settings import EstimatorSettings
+from canrls.processor.calibration import Calibration, SampleProcessor, dbc_ranges
 from canrls.processor.pairing import Pairer, PairingCounts
 from canrls.processor.period import (
     MIN_INTERVALS,
@@ -37,7 +38,6 @@ from canrls.processor.results import (
     StartInfo,
     epoch_date,
 )
-from canrls.processor.samples import Calibration, SampleProcessor, dbc_ranges
 from canrls.processor.times import TimeJudge
 
 __all__ = ["SEEN_IDS", "FrameProcessor", "unmapped_error"]
@@ -401,7 +401,7 @@ class FrameProcessor:
 
     def reject_counts(self) -> dict[str, int]:
         """Frames rejected or put back, by reason, and clock events, as ``RlsRejects``
-        carries them (:data:`canrls.can.frames.REJECT_FIELDS`; running totals)."""
+        carries them (:data:`canrls.can.estimator_frames.REJECT_FIELDS`; running totals)."""
         r, c = self.rejected, self.pairing
         return {"crc": r["crc"], "malformed": r["remote"] + r["length"],
                 "repeated": r["repeated"], "stale": r["stale"] + r["sequence"],

@@ -24,8 +24,8 @@ from canrls.processor.config import AppConfig
 
 if TYPE_CHECKING:
     from canrls.estimation.estimates import Estimates
+    from canrls.processor.calibration import Calibration
     from canrls.processor.results import FitResult
-    from canrls.processor.samples import Calibration
 
 __all__ = ["FORMAT", "VERSION", "SavedModel"]
 

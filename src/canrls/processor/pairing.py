@@ -1,7 +1,7 @@
 """Pairing: from decoded feedback frames to samples, one per control period.
 
 :class:`Pairer` groups the frames of one period (timestamps within ``tolerance``, equal
-alive counters) and emits a :class:`~canrls.core.signals.Signals` row when every mapped
+alive counters) and emits a :class:`~canrls.core.samples.Signals` row when every mapped
 message of that period is there; an incomplete period is dropped and counted, never
 filled from another. Time stays monotonic across clock steps (:data:`CLOCK_KINDS`), and
 any split of the stream gives the same samples. The rules: docs/protocol.md, "Pairing".
@@ -18,7 +18,7 @@ from canrls import _can
 from canrls.can.decoder import DecodedFrames
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError
-from canrls.core.signals import ROLES, Signals
+from canrls.core.samples import ROLES, Signals
 
 __all__ = ["Pairer", "PairingCounts", "PAIRING_KINDS", "CLOCK_KINDS", "STEP_PERIODS",
            "FORWARD_STEP"]

@@ -15,10 +15,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.checks import positive_period
 from canrls.core.errors import ConfigError
 
-__all__ = ["PERIOD_FRAMES", "PERIOD_TOLERANCE", "MIN_INTERVALS", "BURST_SHARE", "PeriodEstimate",
-           "PeriodMeter", "estimate_period", "check_period", "STEP_BACK", "STEP_FORWARD"]
+__all__ = ["ControlPeriod", "DEFAULT_PERIOD", "control_period", "PERIOD_FRAMES",
+           "PERIOD_TOLERANCE", "MIN_INTERVALS", "BURST_SHARE", "PeriodEstimate", "PeriodMeter",
+           "estimate_period", "check_period", "STEP_BACK", "STEP_FORWARD"]
 
 #: Frames of each mapped message the period is measured on (the first ones).
 PERIOD_FRAMES = 256
@@ -205,3 +207,31 @@ class PeriodMeter:
     def counts(self) -> dict[str, int]:
         """Frames seen per message (measured or not)."""
         return dict(self._n)
+
+
+#: The control period [s] of a model exported without one stated, measured or in the DBC.
+DEFAULT_PERIOD = 1e-3
+
+
+@dataclass(frozen=True)
+class ControlPeriod:
+    """The control period a model runs at outside a stream of frames, and who said so."""
+
+    value: float
+    #: ``"--dt"``, ``"the fit's"`` (measured on the log), ``"the DBC's cycle time"`` or
+    #: ``"the default"``
+    source: str
+
+
+def control_period(*, given: float | None = None, given_by: str = "--dt",
+                   measured: float | None = None, dbc: float | None = None) -> ControlPeriod:
+    """The one decision of the period of an export and of a fit's target path: the period
+    ``given`` (``given_by`` names it), else the one ``measured`` on the log (a fit's),
+    else the DBC's cycle time, else :data:`DEFAULT_PERIOD`; each checked by
+    :func:`~canrls.core.checks.positive_period`. (On a stream of frames the processor
+    measures it: :class:`~canrls.processor.frames.FrameProcessor`.)"""
+    for value, source in ((given, given_by), (measured, "the fit's"),
+                          (dbc, "the DBC's cycle time")):
+        if value is not None:
+            return ControlPeriod(positive_period(value, source), source)
+    return ControlPeriod(DEFAULT_PERIOD, "the default")

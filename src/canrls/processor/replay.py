@@ -14,23 +14,32 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+
+import numpy as np
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, empty_log_error, read_frames
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError, EstimatorError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.core.spill import SpilledSignals, join_blocks, spill_blocks
 from canrls.estimation.estimates import Estimates, PipelineBlock
 from canrls.estimation.model import Model
 from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.settings import EstimatorSettings
 from canrls.processor.frames import FrameProcessor
-from canrls.processor.results import FileShift, FitResult, FrameCounts, PeriodInfo, StartInfo
+from canrls.processor.results import (
+    FileShift,
+    FitResult,
+    FrameCounts,
+    MachineFit,
+    PeriodInfo,
+    StartInfo,
+)
 
-__all__ = ["FILE_GAP_S", "LogFiles", "LogsSamples", "MIN_SAMPLES_PER_PARAMETER", "fit_frames",
-           "fit_log", "fit_logs", "read_logs", "too_few_samples"]
+__all__ = ["FILE_GAP_S", "LogFiles", "LogsSamples", "MIN_SAMPLES_PER_PARAMETER", "fit_axes",
+           "fit_frames", "fit_log", "fit_logs", "read_logs", "too_few_samples"]
 
 #: Several logs are joined into one record with at least this gap [s] between the end of
 #: one and the start of the next (:class:`LogFiles`): longer than any sample gap the
@@ -145,6 +154,7 @@ class LogFiles:
         self.sizes: list[int] = []
         self._end: float | None = None
         self._file = 0
+        self._frames_before = 0
 
     def _shifted(self, s: Signals) -> Signals:
         self.sizes[-1] += len(s)
@@ -163,22 +173,38 @@ class LogFiles:
 
     def samples(self) -> Iterator[Signals]:
         """Every file's samples in turn (the caller estimates on them)."""
-        for k, path in enumerate(self.paths):
-            self._file = k + 1
-            self.sizes.append(0)
-            if k:
-                self.proc.restart()
-            frames = self.proc.frames
-            for block in read_frames(path, self.chunk_size, skip_bad_lines=self.skip_bad_lines,
-                                     stats=self.stats, progress=self.progress):
-                yield self._shifted(self.proc.samples(block))
-            if self.proc.frames == frames:
-                raise empty_log_error(path, self.stats.bad_lines)
-            # the end of the file: the period is decided with what came (the first file
-            # measures it), and the samples still open are paired
-            yield self._shifted(self.proc.flush_samples())
-            if len(self.shifts) < self._file:
-                self.shifts.append(0.0)  # a file without samples
+        for k in range(len(self.paths)):
+            self.start_file(k)
+            for block in self.blocks(k):
+                yield self.block(block)
+            yield self.end_file(k)
+
+    def blocks(self, k: int) -> Iterator[FrameBlock]:
+        """The frames of file ``k``, read in blocks."""
+        return read_frames(self.paths[k], self.chunk_size, skip_bad_lines=self.skip_bad_lines,
+                           stats=self.stats, progress=self.progress)
+
+    def start_file(self, k: int) -> None:
+        """File ``k`` begins: the processor restarts (from the second file on)."""
+        self._file = k + 1
+        self.sizes.append(0)
+        if k:
+            self.proc.restart()
+        self._frames_before = self.proc.frames
+
+    def block(self, block: FrameBlock) -> Signals:
+        """The samples of one block of the current file."""
+        return self._shifted(self.proc.samples(block))
+
+    def end_file(self, k: int) -> Signals:
+        """The end of file ``k``: the period is decided with what came (the first file
+        measures it), and the samples still open are paired."""
+        if self.proc.frames == self._frames_before:
+            raise empty_log_error(self.paths[k], self.stats.bad_lines)
+        out = self._shifted(self.proc.flush_samples())
+        if len(self.shifts) < self._file:
+            self.shifts.append(0.0)  # a file without samples
+        return out
 
     def frames(self) -> FrameCounts:
         """The frame counts over the files, with the log lines skipped."""
@@ -264,9 +290,63 @@ def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model:
     files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
                      skip_bad_lines=skip_bad_lines)
     _estimate(proc, files.samples(), on_block, record)
-    res = dataclasses.replace(proc.result(", ".join(files.paths)), frames=files.frames(),
+    res = _result(files, settings)
+    if res.error is not None:
+        raise EstimatorError(res.error)
+    return res.fit
+
+
+@dataclasses.dataclass(frozen=True)
+class _Outcome:
+    fit: FitResult
+    error: str | None
+
+
+def _result(files: LogFiles, settings: EstimatorSettings | None) -> _Outcome:
+    """The fit of ``files`` after the last sample, and why it is no answer (too few
+    samples), if so."""
+    res = dataclasses.replace(files.proc.result(", ".join(files.paths)), frames=files.frames(),
                               files=files.files())
     few = too_few_samples(res.model, res.estimates, res.frames, res.period.value, settings)
-    if few is not None:
-        raise EstimatorError(f"{res.source}: {few}")
-    return res
+    return _Outcome(res, None if few is None else f"{res.source}: {few}")
+
+
+def fit_axes(paths: Sequence[str | os.PathLike[str]],
+             axes: Mapping[str, tuple[Protocol, Model, EstimatorSettings]], *,
+             chunk_size: int = 65536, progress: Callable[[int, int], None] | None = None,
+             skip_bad_lines: bool = False) -> MachineFit:
+    """Every axis of a machine from the logs of its bus, in one pass: each block read
+    goes to each axis's :class:`FrameProcessor`, which decodes its own IDs only (the
+    others it counts as foreign); frames of no axis are counted. Each axis's fit equals
+    :func:`fit_logs` of that axis alone."""
+    if not paths or not axes:
+        raise ValueError("fit_axes: no log or no axis given")
+    files = {name: LogFiles(paths, FrameProcessor(p, m, s, relative_time=True),
+                            chunk_size=chunk_size, skip_bad_lines=skip_bad_lines)
+             for name, (p, m, s) in axes.items()}
+    # frame ID | extended << 31 of every axis's messages
+    known = np.array(sorted({m.frame_id | (m.is_extended << 31)
+                             for p, _, _ in axes.values() for m in p.messages}), np.int64)
+    first = next(iter(files.values()))
+    first.progress = progress
+    total = unknown = 0
+    for k in range(len(first.paths)):
+        for f in files.values():
+            f.start_file(k)
+        for block in first.blocks(k):
+            key = block.arbitration_id.astype(np.int64) | (block.is_extended.astype(np.int64)
+                                                            << 31)
+            total += len(block)
+            unknown += int(np.count_nonzero(~np.isin(key, known) & ~block.is_error))
+            for f in files.values():
+                f.proc.process_samples(f.block(block))
+        for f in files.values():
+            f.proc.process_samples(f.end_file(k))
+    outcomes = {}
+    for name, f in files.items():
+        f.proc.flush()
+        f.stats = first.stats
+        outcomes[name] = _result(f, axes[name][2])
+    return MachineFit(", ".join(first.paths), total, unknown,
+                      {n: o.fit for n, o in outcomes.items()},
+                      {n: o.error for n, o in outcomes.items() if o.error is not None})

@@ -12,10 +12,10 @@ from typing import Any
 from canrls.core.units import Ratings
 from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
-from canrls.processor.samples import Calibration
+from canrls.processor.calibration import Calibration
 
 __all__ = ["FrameCounts", "PeriodInfo", "StartInfo", "AxisInfo", "FileShift", "FitResult",
-           "TargetRun", "epoch_date"]
+           "MachineFit", "TargetRun", "epoch_date"]
 
 
 @dataclass(frozen=True)
@@ -252,6 +252,36 @@ class FitResult:
         return "\n".join(lines)
 
     __str__ = format
+
+
+@dataclass(frozen=True)
+class MachineFit:
+    """Every axis of a machine fitted in one pass over its bus's logs
+    (:func:`canrls.processor.replay.fit_axes`): each axis's :class:`FitResult`, the
+    frames read and those of no axis (counted, never decoded into one)."""
+
+    source: str
+    total: int
+    #: frames whose ID is no axis's feedback message (error frames aside)
+    unknown: int
+    fits: dict[str, FitResult]
+    #: axes whose fit is no answer, with why (too few usable samples)
+    errors: dict[str, str] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"source": self.source,
+                "frames": {"total": self.total, "unknown_axis": self.unknown},
+                "axes": {n: ({"error": self.errors[n]} if n in self.errors else f.to_dict())
+                         for n, f in self.fits.items()}}
+
+    def format(self) -> str:
+        ok = len(self.fits) - len(self.errors)
+        lines = [f"{self.source}: {ok} of {len(self.fits)} axes identified, {self.total} "
+                 f"frames, {self.unknown} of no axis"]
+        for n, f in self.fits.items():
+            lines += ["", f"== axis {n} ==",
+                      f"error: {self.errors[n]}" if n in self.errors else f.format()]
+        return "\n".join(lines)
 
 
 def epoch_date(t: float | None) -> str | None:

@@ -1,7 +1,7 @@
 """The simulated drive: plant, excitation, scenarios, faults and a python-can interface.
 
 * :func:`simulate` runs a :class:`Scenario` (from :func:`scenario`) and returns a
-  :class:`SimResult`: true and measured :class:`~canrls.core.signals.Signals`, the
+  :class:`SimResult`: true and measured :class:`~canrls.core.samples.Signals`, the
   :class:`Truth`, the noise floor and the feedback frames.
 * :class:`~canrls.sim.bus.SimBus` is the same drive as a python-can interface
   (``can.Bus(interface="canrls-sim", channel="standard")``); it is imported lazily

@@ -70,6 +70,23 @@ def _parse_int(key: str, v: Any) -> int:
     return iv
 
 
+def _machine_given(axes: Any, ids: Any, given: dict[str, Any]) -> dict[str, Any]:
+    """``axes`` and ``ids`` of a machine, checked (one drive's options refused)."""
+    from canrls.sim.machine import KINDS, MAX_SIM_AXES
+
+    n = _parse_int("axes", axes)
+    if not 1 <= n <= MAX_SIM_AXES:
+        raise ConfigError(f"canrls-sim: axes: {n} is not 1 to {MAX_SIM_AXES}")
+    kind = "offset" if ids is None else str(ids)
+    if kind not in KINDS:
+        raise ConfigError(f"canrls-sim: ids: {kind!r} is not one of {', '.join(KINDS)}")
+    one = [k for k in ("effects", "faults", "axis", "excitation", "params") if k in given]
+    if one:
+        raise ConfigError(f"canrls-sim: {one[0]}: a machine's drives have their own "
+                          f"(axes={n})")
+    return {"axes": n, "ids": kind}
+
+
 def _scenario_of_channel(channel: Any) -> str:
     name = str(channel)
     if name in SCENARIOS:
@@ -89,6 +106,9 @@ class _DriveConfig:
     axis: str | None
     excitation: str | None
     params: tuple[tuple[str, float], ...]
+    #: a machine of this many drives (0: one drive), of kind ``ids``
+    axes: int = 0
+    ids: str = "offset"
 
 
 class _Drive:
@@ -102,6 +122,15 @@ class _Drive:
             duration=config.duration, axis=config.axis, excitation=config.excitation,
             params=dict(config.params))
         self.sim = Simulator(self.scenario, t0=start_time)
+        #: a machine's drives (:mod:`canrls.sim.machine`); empty: the one drive ``sim``
+        self.sims: list[Simulator] = []
+        if config.axes:
+            from canrls.sim.machine import machine, simulators
+
+            self.sims = simulators(machine(
+                config.axes, duration=config.duration, seed=config.seed,
+                scenario_name=config.scenario, kind=config.ids), start_time)
+            self.sim = self.sims[0]
         self.start_time = start_time
         self.realtime = config.realtime
         self.lock = threading.Lock()
@@ -116,6 +145,14 @@ class _Drive:
     # -------------------------------------------------------------- generation
     def _refill(self, periods: int) -> bool:
         """Simulate the next periods into the pending frames; False at the end of duration."""
+        if self.sims:
+            from canrls.sim.machine import step_all
+
+            block = step_all(self.sims, periods)
+            if block is None:
+                return False
+            self._pending, self._next = block, 0
+            return True
         if self.sim.remaining == 0:
             return False
         chunk = self.sim.step(periods)
@@ -205,6 +242,10 @@ class SimBus(VirtualBus):
     :param start_time: timestamp of the first period (default: the wall clock now).
     :param rx_queue_size: receive queue length (0: unbounded); a full queue drops the
         drive's frames (counted in ``overflows``).
+    :param axes: a machine of this many drives instead of one (``canrls sim --axes``:
+        each its own parameters, hidden effect and IDs), of kind ``ids``: ``offset``
+        (default), ``cia402`` or ``cansimple``; ``effects``, ``faults``, ``axis``,
+        ``excitation`` and ``params`` are the machine's then.
 
     Other keyword arguments (``bitrate``, ``fd``, ...) are accepted and ignored.
     """
@@ -216,6 +257,7 @@ class SimBus(VirtualBus):
                  axis: str | None = None, excitation: str | None = None,
                  params: Mapping[str, float] | str | None = None,
                  start_time: float | None = None, rx_queue_size: int = 0,
+                 axes: int | str | None = None, ids: str | None = None,
                  **kwargs: Any) -> None:
         if channel is None or channel == "":
             channel = "standard"
@@ -223,6 +265,10 @@ class SimBus(VirtualBus):
             kwargs.pop(k, None)
         given = self._given(channel, effects, seed, faults, duration, realtime, scenario, axis,
                             excitation, params)
+        if axes is not None:
+            given.update(_machine_given(axes, ids, given))
+        elif ids is not None:
+            raise ConfigError("canrls-sim: ids: the kind of a machine's drives, with axes=N")
         super().__init__(channel=channel, receive_own_messages=_parse_bool(
             "receive_own_messages", receive_own_messages), rx_queue_size=rx_queue_size,
             preserve_timestamps=False, **kwargs)
@@ -300,6 +346,8 @@ class SimBus(VirtualBus):
                     axis=given.get("axis"),
                     excitation=given.get("excitation"),
                     params=given.get("params", ()),
+                    axes=given.get("axes", 0),
+                    ids=given.get("ids", "offset"),
                 )
                 drive = _Drive(channel, cfg, time.time() if start_time is None
                                else _parse_float("start_time", start_time))

@@ -19,6 +19,7 @@ import numpy.typing as npt
 
 from canrls.can.e2e import CRC8_TABLE
 from canrls.can.frameblock import FrameBlock
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["Silence", "FaultSpec", "FaultLog", "FaultInjector", "inject", "ERROR_CLASSES",
@@ -108,8 +109,7 @@ class FaultSpec:
             v = getattr(self, key)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 1.0):
                 raise ConfigError(f"fault spec: {key}: probability {v!r} is not in [0, 1]")
-        if not (isinstance(self.tstep_max, (int, float)) and math.isfinite(self.tstep_max)
-                and self.tstep_max > 0):
+        if not is_positive(self.tstep_max):
             raise ConfigError(f"fault spec: tstep_max: {self.tstep_max!r} is not a time > 0")
         if isinstance(self.cmd_burst, bool) or not isinstance(self.cmd_burst, int) \
                 or self.cmd_burst < 1:

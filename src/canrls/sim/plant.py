@@ -19,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _sim
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError, EffectError
 
 __all__ = [
@@ -166,7 +167,7 @@ class Truth:
                               "motion has no solution without a mass)")
         for key in ("kt", "pitch", "coulomb_band", "stribeck_speed"):
             v = getattr(self, key)
-            if not (math.isfinite(v) and v > 0):
+            if not is_positive(v):
                 raise ConfigError(f"{key}: {v!r} must be a positive number")
         if self.params["inertia.J"] <= 0:
             raise ConfigError(f"inertia.J: {self.params['inertia.J']!r} must be > 0")
@@ -381,7 +382,7 @@ class Controller:
         kp_i = L * wc if self.kp_current is None else self.kp_current
         ki_i = R * wc if self.ki_current is None else self.ki_current
         for key, v in (("i_max", self.i_max), ("u_max", self.u_max)):
-            if not (math.isfinite(v) and v > 0):
+            if not is_positive(v):
                 raise ConfigError(f"controller.{key}: {v!r} must be a positive number")
         jff = self.feedforward * (J if self.inertia_ff is None else self.inertia_ff)
         return np.array([kp_w, ki_w, jff, kp_i, ki_i, Ke,
@@ -419,7 +420,7 @@ class Sensors:
     def quant(self) -> F64:
         """Kernel vector: q_i, q_w, q_th, q_u, wrap."""
         wrap = self.position_wrap
-        if not (math.isfinite(wrap) and wrap > 0):
+        if not is_positive(wrap):
             raise ConfigError(f"sensors.position_wrap: {wrap!r} must be > 0")
         q_th = wrap / 65536.0 if self.position_step is None else self.position_step
         return np.array([self.current_step, self.speed_step, q_th, self.voltage_step, wrap],
@@ -464,7 +465,7 @@ class Plant:
 
     def __init__(self, truth: Truth, dt: float = 1e-3, controller: Controller | None = None,
                  sensors: Sensors | None = None, seed: int | None = 0, nsub: int = 5) -> None:
-        if not (math.isfinite(dt) and dt > 0):
+        if not is_positive(dt):
             raise ConfigError(f"dt: {dt!r} must be a positive number of seconds")
         if nsub < 1:
             raise ConfigError(f"nsub: {nsub!r} must be >= 1")

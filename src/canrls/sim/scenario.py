@@ -22,8 +22,9 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can.frameblock import FrameBlock
+from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError, EffectError
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.sim.excitation import Excitation
 from canrls.sim.excitation import excitation as make_excitation
 from canrls.sim.faults import FaultInjector, FaultLog, FaultSpec
@@ -118,7 +119,7 @@ class Scenario:
     nsub: int = 5
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.dt) and self.dt > 0):
+        if not is_positive(self.dt):
             raise ConfigError(f"scenario {self.name}: dt {self.dt!r} must be > 0 s")
         if not (self.duration >= 0 and not math.isnan(self.duration)):
             raise ConfigError(f"scenario {self.name}: duration {self.duration!r} must be >= 0 s")
@@ -345,7 +346,11 @@ class Simulator:
             proto = self._protocol or _default_protocol()
             self._encoder = FeedbackEncoder(proto, clip=True, stagger=FRAME_STAGGER)
         m = chunk.measured
-        block = self._encoder.encode(m.t + self.t0, m.current, m.speed, m.position, m.voltage)
+        # a drive that reports its torque (CiA 402) reports Kt times its current
+        torque = m.current * self.scenario.truth.kt if self._encoder.protocol.has("torque") \
+            else None
+        block = self._encoder.encode(m.t + self.t0, m.current, m.speed, m.position, m.voltage,
+                                     torque)
         clipped = sum(self._encoder.clipped.values())
         if clipped > self.clipped:
             log.warning("simulated drive: %d values clipped to the DBC range so far (%s)",
@@ -365,7 +370,7 @@ class SimResult:
     Attributes
     ----------
     scenario : the :class:`Scenario` that ran
-    true, measured : :class:`~canrls.core.signals.Signals` (true: unwrapped position, exact
+    true, measured : :class:`~canrls.core.samples.Signals` (true: unwrapped position, exact
         current; measured: noisy, quantised, position wrapped at 2*pi as the DBC sends it).
         ``voltage`` is None unless ``electrical`` is among the true effects.
     speed_ref, current_ref : the excitation and the speed controller's output

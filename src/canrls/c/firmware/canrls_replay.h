@@ -10,9 +10,14 @@
 
 #include "canrls_target.h"
 
-/** What a replay compared: state records and publications checked, differences. */
+/** What a replay compared: state records and publications checked, differences, and
+ * the first difference: at sample `at_sample` (frame `at_frame`), `what` 1 a word of the
+ * state record (`index` its position in the record), 2 publication `pub` (`index` its
+ * frame, or its count of frames when that differs), the expected and the computed value. */
 typedef struct {
     uint32_t checked, published, pub_base, bad;
+    uint32_t what, at_sample, at_frame, index, pub;
+    int64_t expected, got;
 } canrls_replay_counts;
 
 #ifdef CANRLS_REPLAY_MARK

@@ -247,6 +247,44 @@ static int32_t cr_extract(const canrls_field *f, uint64_t le, uint64_t be)
     return f->biased ? (int32_t)(acc ^ 0x80000000u) : (int32_t)acc;
 }
 
+/* a float field's value times 2^frac, rounded half away from zero, in *v (qmath.float_fixed):
+ * 0 for NaN, infinity and a value beyond +-(2^31 - 1) (outside every float field's lo..hi) */
+static int cr_float(const canrls_field *f, uint64_t le, uint64_t be, int32_t *v)
+{
+    const uint64_t word = (f->big_endian ? be : le) >> f->shift;
+    const int wide = f->length == 64u;
+    const uint64_t bits = wide ? word : word & 0xFFFFFFFFu;
+    const int32_t mb = wide ? 52 : 23;                 /* stored mantissa bits */
+    const int32_t emax = wide ? 2047 : 255;            /* NaN and infinity */
+    const int32_t e = (int32_t)(bits >> mb) & emax;
+    uint64_t M = bits & ((UINT64_C(1) << mb) - 1u);
+    uint64_t mag;
+    int32_t s;
+    if (e == emax) {
+        return 0;
+    }
+    /* v 2^frac = M 2^s: M with its hidden bit, s = max(e, 1) - bias - mb + frac */
+    if (e != 0) {
+        M |= UINT64_C(1) << mb;
+    }
+    s = (e != 0 ? e : 1) - (emax >> 1) - mb + f->frac;
+    if (s >= 0) {
+        /* |raw| = M 2^s: beyond 2^62 (then beyond 32 bits) when s > 62 - mb, M != 0 */
+        if (M != 0u && s > 62 - mb) {
+            return 0;
+        }
+        mag = M << s;
+    } else {
+        /* |raw| = rsh(M, -s), round half up; 0 when -s > mb + 1 > log2 M + 1 */
+        mag = -s > mb + 1 ? 0u : (M + (UINT64_C(1) << (-s - 1))) >> -s;
+    }
+    if (mag > 0x7FFFFFFFu) {
+        return 0;
+    }
+    *v = ((bits >> (wide ? 63 : 31)) & 1u) != 0u ? -(int32_t)mag : (int32_t)mag;
+    return 1;
+}
+
 /* the E2E CRC-8 table (polynomial 0x1D, canrls.can.e2e.CRC8_TABLE) */
 static const uint8_t cr_crc8[256] = {
     0x00, 0x1D, 0x3A, 0x27, 0x74, 0x69, 0x4E, 0x53, 0xE8, 0xF5, 0xD2, 0xCF, 0x9C, 0x81, 0xA6, 0xBB,
@@ -903,8 +941,9 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
     /* strict range of every mapped field */
     for (k = 0; k < msg->nroles; k++) {
         const canrls_field *f = &M->roles[msg->roles[k]];
-        const int32_t v = cr_extract(f, le, be);
-        if (v < f->lo || v > f->hi) {
+        int32_t v = 0;
+        const int ok = f->is_float ? cr_float(f, le, be, &v) : (v = cr_extract(f, le, be), 1);
+        if (!ok || v < f->lo || v > f->hi) {
             S->rejects[CANRLS_R_RANGE]++;
             S->frame_loss = 1u;
             return 0u;

@@ -65,7 +65,7 @@ extern "C" {
 #define CANRLS_TARGET_EQ_MAX 2     /**< equations (mechanical, electrical) */
 #define CANRLS_TARGET_ROLES 5      /**< current, speed, position, voltage, torque */
 
-/** Roles (the order of canrls.core.signals.ROLES). */
+/** Roles (the order of canrls.core.samples.ROLES). */
 enum canrls_role { CANRLS_CURRENT = 0, CANRLS_SPEED, CANRLS_POSITION, CANRLS_VOLTAGE,
                    CANRLS_TORQUE };
 
@@ -85,10 +85,14 @@ enum canrls_reject { CANRLS_R_LENGTH = 0, CANRLS_R_CRC, CANRLS_R_REPEATED, CANRL
 /** A signal's bit field: the payload (at most 8 bytes, classic CAN) read as one 64-bit
  * word, little endian (Intel) or big endian (Motorola: byte 0 the most significant), the
  * field is `length` bits from bit `shift` of it; raw values lo..hi pass. An unsigned
- * 32-bit field is held less 2^31 (biased): lo, hi and its values are raw - 2^31. */
+ * 32-bit field is held less 2^31 (biased): lo, hi and its values are raw - 2^31. A
+ * float32 or float64 field (is_float) is held in fixed point, raw = round(v 2^frac),
+ * half away from zero, by integer operations; NaN and infinity do not pass. */
 typedef struct {
     uint8_t msg;        /**< index of its message */
-    uint8_t length;     /**< bits, 1..32; 0: the role is not mapped */
+    uint8_t length;     /**< bits, 1..32 (a float: 32 or 64); 0: the role is not mapped */
+    uint8_t is_float;   /**< IEEE-754 binary32 / binary64 */
+    int8_t frac;        /**< a float's fraction bits in raw */
     uint8_t is_signed;  /**< two's complement */
     uint8_t biased;     /**< held less 2^31 */
     uint8_t big_endian; /**< Motorola */

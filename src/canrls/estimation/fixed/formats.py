@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.checks import is_positive
 from canrls.core.errors import EstimatorError, FixedPointError
 from canrls.estimation.fixed import layout as kernels
 from canrls.estimation.rls import check_lam as _rls_check_lam
@@ -343,7 +344,7 @@ class FixedConfig:
         if not (np.all(np.isfinite(pm)) and np.all(pm > 0)):
             raise FixedPointError(f"phi_max must be finite and > 0, got {phi_max!r}")
         ym = float(y_max)
-        if not (math.isfinite(ym) and ym > 0):
+        if not is_positive(ym):
             raise FixedPointError(f"y_max must be finite and > 0, got {y_max!r}")
         tm = 4.0 * ym / float(pm.min()) if theta_max is None else float(theta_max)
         finite = trace_max is not None and math.isfinite(trace_max)
@@ -486,8 +487,9 @@ def check_real(name: str, value: object) -> float:
 
 
 def check_lam(lam: object) -> float:
-    """The forgetting factor, in (1/2, 1] (``1/lam`` is a Q1 word)."""
-    return _rls_check_lam(lam, "FixedRLS", 0.5, " (1/lam is a Q1 word)")
+    """The forgetting factor (:func:`canrls.core.checks.check_lambda`: ``1/lam`` is a Q1
+    word)."""
+    return _rls_check_lam(lam, "FixedRLS")
 
 
 def check_ridge(alpha: object, n: int) -> npt.NDArray[np.float64]:

@@ -8,7 +8,7 @@
  * line, "name arg..." (decimal integers); stdout: one line of results per operation:
  *   mul_rsh x m s  |  clog2_mul a m  |  isqrt n  |  tanh z  |  exp x  |  sincos phase
  *   f32 v e  |  svf a0 a1 g0 g1 x1 x2 up u fx  |  floor m e  |  ceil m e  |  rsh x s
- *   p64 word frac s lo hi
+ *   p64 word frac s lo hi  |  float bits width frac shift big_endian ("reject": not passed)
  */
 #include <inttypes.h>
 #include <stdio.h>
@@ -53,6 +53,24 @@ int main(void)
             int32_t e;
             if (scanf("%" SCNd64 " %" SCNd32, &v, &e) != 2) return 2;
             printf("%" PRIu32 "\n", cr_f32_bits(v, e));
+        } else if (strcmp(op, "float") == 0) {
+            uint64_t bits;
+            uint32_t width, shift, big;
+            int32_t frac, v = 0;
+            canrls_field f;
+            if (scanf("%" SCNu64 " %" SCNu32 " %" SCNd32 " %" SCNu32 " %" SCNu32,
+                      &bits, &width, &frac, &shift, &big) != 5) return 2;
+            memset(&f, 0, sizeof f);
+            f.length = (uint8_t)width;
+            f.is_float = 1u;
+            f.frac = (int8_t)frac;
+            f.shift = (uint8_t)shift;
+            f.big_endian = (uint8_t)big;
+            if (cr_float(&f, bits << shift, bits << shift, &v)) {
+                printf("%" PRId32 "\n", v);
+            } else {
+                printf("reject\n");
+            }
         } else if (strcmp(op, "svf") == 0) {
             int32_t a[2], g0, g1, up, u, fx, uph, upl, uh, ul;
             int64_t x1, x2;

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.core.signals import Signals
+from canrls.core.samples import Signals
 from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals, as_packed
 from canrls.estimation.equation import Equation, PositionUnwrapper
 from canrls.estimation.model import Model

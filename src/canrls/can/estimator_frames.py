@@ -25,6 +25,7 @@ import cantools
 from canrls.can.codec import EncodeError
 from canrls.can.mapping import SignalMapping
 from canrls.can.protocol import DEFAULT_DBC, load_dbc
+from canrls.core.checks import check_lambda
 from canrls.core.effect_names import EffectId, EquationId, parse_effect_name
 from canrls.core.errors import CommandError, ConfigError, EffectError
 
@@ -690,7 +691,8 @@ def decode_command(msg: can.Message, *, dbc: str | Path | None = None) -> Comman
     ``.result``: MALFORMED for another ID, a remote/error frame or a DLC other than 8;
     UNKNOWN_COMMAND for an unknown command code; UNKNOWN_EFFECT for an effect id
     outside 1..9 (add/remove); BAD_VALUE for a missing or spurious order (cogging and
-    user need one, others take none) or a lambda outside (0, 1].
+    user need one, others take none) or a lambda outside
+    (:data:`~canrls.core.checks.LAMBDA_MIN`, 1].
     """
     m = _db(dbc).get_message_by_name("RlsCommand")
     if msg.arbitration_id != m.frame_id or msg.is_extended_id != m.is_extended_frame:
@@ -726,10 +728,10 @@ def decode_command(msg: can.Message, *, dbc: str | Path | None = None) -> Comman
                                     CommandResult.BAD_VALUE, code)
         return Command(cc, effect, order)
     if cc is CommandCode.SET_LAMBDA:
-        lam = float(v["Lambda"])
-        if not (0.0 < lam <= 1.0):  # also rejects NaN
-            raise CommandFrameError(f"RlsCommand set_lambda: lambda = {lam!r} outside (0, 1]",
-                                    CommandResult.BAD_VALUE, code)
+        try:
+            lam = check_lambda(float(v["Lambda"]), "RlsCommand set_lambda: lambda")
+        except ConfigError as e:
+            raise CommandFrameError(str(e), CommandResult.BAD_VALUE, code) from None
         return Command(cc, lam=lam)
     return Command(cc)
 

@@ -1,4 +1,4 @@
-"""canrls.can.frames: estimator, status and command frames through cantools."""
+"""canrls.can.estimator_frames: estimator, status and command frames through cantools."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from canrls.can.codec import EncodeError
-from canrls.can.frames import (
+from canrls.can.estimator_frames import (
     COMPONENTS,
     FLAG_NAMES,
     REJECT_FIELDS,
@@ -215,7 +215,8 @@ def raw_command(code: int, effect: int = 0, order: int = 0, lam: float = 0.0,
     (raw_command(9), CommandResult.UNKNOWN_COMMAND, "unknown command code 9"),
     (raw_command(0), CommandResult.UNKNOWN_COMMAND, "unknown command code 0"),
     (raw_command(1, dlc=6), CommandResult.MALFORMED, "DLC 6, expected 8"),
-    (raw_command(6, lam=0.0), CommandResult.BAD_VALUE, r"lambda = 0\.0 outside \(0, 1\]"),
+    (raw_command(6, lam=0.0), CommandResult.BAD_VALUE, r"lambda = 0\.0: must be in \(0\.5, 1\]"),
+    (raw_command(6, lam=0.25), CommandResult.BAD_VALUE, r"lambda = 0\.25: must be in"),
     (raw_command(6, lam=1.5), CommandResult.BAD_VALUE, "lambda = 1.5"),
     (raw_command(6, lam=-0.5), CommandResult.BAD_VALUE, "lambda = -0.5"),
     (raw_command(6, lam=math.nan), CommandResult.BAD_VALUE, "lambda = nan"),

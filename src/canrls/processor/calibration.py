@@ -16,7 +16,7 @@ import numpy.typing as npt
 from canrls.can.protocol import Protocol
 from canrls.core.checks import positive_period
 from canrls.core.errors import CheckpointError, ConfigError
-from canrls.core.signals import ROLES, Signals
+from canrls.core.samples import ROLES, Signals
 from canrls.core.units import si_unit
 from canrls.estimation.estimates import PipelineBlock
 from canrls.estimation.model import DATA_OPTIONS, Model

@@ -1,0 +1,107 @@
+"""Every axis of a machine in one process: one :class:`~canrls.live.daemon.Daemon` per
+axis, each with its own bus reader, estimator, checkpoint, counters and own frames, started,
+stopped and reported together (:class:`MachineDaemon`)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Mapping, Sequence
+
+from canrls.core.errors import CanrlsError
+from canrls.live.daemon import Daemon, serve, wait_until
+from canrls.processor.axes import check_own
+
+__all__ = ["MachineDaemon"]
+
+log = logging.getLogger(__name__)
+
+
+class MachineDaemon:
+    """The daemons of a machine's axes, by axis name. Nothing is shared between them but
+    the process: a fault on one axis (garbage, silence, a flood, a bad command) reaches
+    its own reader, estimator and frames only.
+
+    :param build: ``build(name)``: a new axis's daemon (not started), for a reload.
+    :param axes: the axes the configuration declares now (its file read again on SIGHUP:
+        the machine is checked as at a start, :meth:`AppConfig.axis_configs`).
+    """
+
+    def __init__(self, daemons: Mapping[str, Daemon],
+                 build: Callable[[str], Daemon] | None = None,
+                 axes: Callable[[], Sequence[str]] | None = None) -> None:
+        self.daemons = dict(daemons)
+        self._build = build
+        self._axes = axes
+        self._stopping = threading.Event()
+        self._reload = threading.Event()
+        self._running = False
+
+    @property
+    def failure(self) -> BaseException | None:
+        """The first axis's internal error, if any ended its threads."""
+        return next((d.failure for d in self.daemons.values() if d.failure is not None), None)
+
+    def start(self) -> None:
+        """Start every axis (those started are stopped again when one cannot start)."""
+        started = []
+        try:
+            for d in self.daemons.values():
+                d.start()
+                started.append(d)
+        except BaseException:
+            for d in started:
+                d.stop()
+            raise
+        self._running = True
+
+    def stop(self) -> None:
+        self._running = False
+        for d in self.daemons.values():
+            d.stop()
+
+    def request_stop(self) -> None:
+        self._stopping.set()
+
+    def request_reload(self) -> None:
+        """SIGHUP: every axis reloads its model; axes added to or removed from the
+        configuration start or stop at the next wake-up (:meth:`reconcile`)."""
+        for d in self.daemons.values():
+            d.request_reload()
+        self._reload.set()
+
+    def reconcile(self) -> None:
+        """After a reload request: start the axes the configuration added, stop those it
+        removed; the others run on untouched. A configuration a start would refuse, or
+        a new axis whose frames would meet a running one's, changes nothing (logged)."""
+        if not self._reload.is_set() or self._axes is None or self._build is None:
+            return
+        self._reload.clear()
+        try:
+            want = list(self._axes())
+            added = {n: self._build(n) for n in want if n not in self.daemons}
+            check_own({f"axis {n}": d.protocol for n, d in {**self.daemons, **added}.items()
+                       if n in want},
+                      {f"axis {n}": d.config.own_offset
+                       for n, d in {**self.daemons, **added}.items() if n in want})
+        except CanrlsError as e:
+            log.warning("reload: the axes stay as they are: %s", e)
+            return
+        for n in [n for n in self.daemons if n not in want]:
+            self.daemons.pop(n).stop()
+            log.info("reload: axis %s removed", n)
+        for n, d in added.items():
+            if self._running:
+                d.start()
+            self.daemons[n] = d
+            log.info("reload: axis %s added", n)
+
+    def wait_for(self, predicate: Callable[[MachineDaemon], bool], timeout: float) -> bool:
+        """Poll ``predicate(self)`` until true or ``timeout`` seconds (tests)."""
+        return wait_until(lambda: predicate(self), timeout)
+
+    def run(self, duration: float | None = None) -> int:
+        """Start, serve until SIGTERM/SIGINT (or ``duration`` s) or an axis fails, stop;
+        SIGHUP reloads every axis's model and adds or removes axes. The exit status as
+        :meth:`Daemon.run`'s."""
+        return serve(self, self._stopping, duration, each=self.reconcile)

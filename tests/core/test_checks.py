@@ -1,0 +1,116 @@
+"""canrls.core.checks: each rule once, and every place that takes such a value asks it.
+
+A finite (positive) number: one definition (``is_real``, ``is_positive``), no module
+writing it out by hand.
+
+The forgetting factor: the configuration, the command line, the monitor's command, the
+command frame the daemon decodes and both estimators take the one range
+(:data:`~canrls.core.checks.LAMBDA_MIN`, 1]. Before, a monitor command ``lambda 0.3``
+passed the monitor and the frame decoder, then the daemon refused it.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from canrls.can.estimator_frames import CommandCode, decode_command, encode_command
+from canrls.cli._common import overrides
+from canrls.cli.main import build_parser
+from canrls.core import checks
+from canrls.core.errors import CanrlsError
+from canrls.estimation.fixed.formats import check_lam as fixed_check_lam
+from canrls.estimation.rls import RLS
+from canrls.estimation.settings import EstimatorSettings
+from canrls.live.monitor import parse_command_text
+from canrls.processor.config import AppConfig
+
+#: every place a forgetting factor enters, each taking ``lam`` or raising a CanrlsError
+LAMBDA_TAKERS: dict[str, Callable[[float], object]] = {
+    "configuration": lambda lam: _config_settings(lam),
+    "settings": lambda lam: EstimatorSettings(lam=lam),
+    "command line": lambda lam: _cli_settings(lam),
+    "monitor command": lambda lam: parse_command_text(f"lambda {lam!r}"),
+    "command frame": lambda lam: decode_command(encode_command(CommandCode.SET_LAMBDA, lam=lam)),
+    "float RLS": lambda lam: RLS(2, lam=lam),
+    "float RLS set_lambda": lambda lam: RLS(2).set_lambda(lam),
+    "fixed RLS": lambda lam: fixed_check_lam(lam),
+}
+
+
+def _config_settings(lam: float) -> object:
+    cfg = AppConfig()
+    cfg.estimator = {"lambda": lam}
+    return cfg.settings()
+
+
+def _cli_settings(lam: float) -> object:
+    args = build_parser().parse_args(["fit", "x.log", "--lambda", repr(lam)])
+    return AppConfig().apply(overrides(args)).settings()
+
+
+def takes(place: str, lam: float) -> bool:
+    try:
+        LAMBDA_TAKERS[place](lam)
+    except CanrlsError:
+        return False
+    return True
+
+
+@pytest.mark.parametrize("place", sorted(LAMBDA_TAKERS))
+def test_every_place_takes_the_one_range_of_lambda(place: str) -> None:
+    # 0.75 is exact in float32, as the command frame carries it
+    assert takes(place, 0.75) and takes(place, 1.0)
+    for lam in (0.3, 0.5, 0.0, 1.5, math.nan, -1.0):
+        assert not takes(place, lam), (place, lam)
+
+
+@pytest.mark.parametrize("place", sorted(LAMBDA_TAKERS))
+def test_every_place_asks_the_one_rule(place: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Move the rule and every place moves with it: none keeps a range of its own."""
+    monkeypatch.setattr(checks, "LAMBDA_MIN", 0.25)
+    assert takes(place, 0.375) and not takes(place, 0.125)
+
+
+def test_a_refused_lambda_names_where_it_came_from() -> None:
+    with pytest.raises(CanrlsError, match=r"'lambda 0.3': lambda = 0.3: must be in \(0.5, 1\]"):
+        parse_command_text("lambda 0.3")
+    with pytest.raises(CanrlsError, match=r"estimator.lambda = 2: must be in \(0.5, 1\]"):
+        EstimatorSettings(lam=2)
+    with pytest.raises(CanrlsError, match=r"FixedRLS lam \(forgetting factor\) = 0.3"):
+        fixed_check_lam(0.3)
+    assert checks.check_lambda(np.float32(0.75), "x") == 0.75
+    with pytest.raises(CanrlsError, match="x = True"):
+        checks.check_lambda(True, "x")
+    with pytest.raises(CanrlsError, match="x = '0.9'"):
+        checks.check_lambda("0.9", "x")
+
+
+# -- a finite number: one definition ----------------------------------------------------
+@pytest.mark.parametrize("value, real, positive", [
+    (1, True, True), (0.5, True, True), (np.float32(2.0), True, True), (0, True, False),
+    (-1.5, True, False), (math.inf, False, False), (math.nan, False, False),
+    (True, False, False), ("1", False, False), (None, False, False),
+])
+def test_a_finite_number_is_one_definition(value: object, real: bool, positive: bool) -> None:
+    assert checks.is_real(value) is real and checks.is_positive(value) is positive
+
+
+#: what the modules wrote by hand before asking core.checks: "not a bool, an int or a
+#: float, finite (and above zero)"
+HAND_WRITTEN = [re.compile(r"math\.isfinite\((\w[\w.]*)\)\s+and\s+\1 > 0"),
+                re.compile(r"isinstance\((\w[\w.]*), bool\)\s+or\s+not\s+isinstance\(\1, "
+                           r"int \| float\)\s+or\s+not\s+math\.isfinite\(\1\)")]
+
+
+def test_no_module_writes_the_number_check_by_hand() -> None:
+    src = Path(checks.__file__).resolve().parents[1]
+    bad = [f"{p.relative_to(src)}:{s.count(chr(10), 0, m.start()) + 1}"
+           for p in sorted(src.rglob("*.py")) if p.name != "checks.py"
+           for s in [p.read_text()] for rx in HAND_WRITTEN for m in rx.finditer(s)]
+    assert not bad, "ask canrls.core.checks.is_real / is_positive:\n" + "\n".join(bad)
