@@ -918,12 +918,15 @@ def test_scale_times_unit_factor_is_taken_from_the_role(monkeypatch: pytest.Monk
     from canrls.firmware import model as target_model
     from canrls.processor.config import read_toml
 
+    # an integer field as it stands in the frame (no bias, no fraction bits)
+    int_field = target_model.Field(msg=0, big_endian=False, shift=0, length=16, signed=True,
+                                   lo=-32768, hi=32767)
     user = Protocol.load(USER_DBC, read_toml(DATA / "proto_user_mapping.toml", "signals"))
     for p in (Protocol.load(), user):
         for role, info in p.roles.items():
             c = info.codec
             assert info.si_per_raw == float(c.scale) * info.si_scale, role
-            assert target_model._scale(p, role)[0] == info.si_per_raw_exact
+            assert target_model._scale(p, role, int_field)[0] == info.si_per_raw_exact
     proto = Protocol.load()
     assert FeedbackEncoder(proto).wrapping == {"position"}
     from fractions import Fraction
@@ -931,5 +934,5 @@ def test_scale_times_unit_factor_is_taken_from_the_role(monkeypatch: pytest.Monk
     doubled = property(lambda self: 2 * Fraction(self.codec.scale) * Fraction(self.si_scale))
     monkeypatch.setattr(RoleInfo, "si_per_raw_exact", doubled)
     speed = proto.roles["speed"]
-    assert target_model._scale(proto, "speed")[0] == 2 * Fraction(speed.codec.scale)
+    assert target_model._scale(proto, "speed", int_field)[0] == 2 * Fraction(speed.codec.scale)
     assert FeedbackEncoder(proto).wrapping == frozenset()  # two turns now: no wrapping

@@ -129,7 +129,7 @@ def drives(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]
                         "-e", "inertia,viscous,coulomb"]
         saved = d / f"{name}.json"
         fit = json.loads(_quiet(["fit", str(log), *fit_args, "--save-model", str(saved),
-                                 "--quiet", "--json"]))
+                                 "--fixed", "target", "--quiet", "--json"]))
         exp = d / f"c_{name}"
         text = _quiet(["export-c", "--model", str(saved), "--out", str(exp), "--vectors",
                        str(log), *export_args])
