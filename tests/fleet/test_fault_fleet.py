@@ -40,7 +40,7 @@ from canrls.fleet.cluster import dask_client, max_workers  # noqa: E402
 from canrls.fleet.history import NOT_A_HISTORY, History, HistoryURL  # noqa: E402
 from canrls.fleet.ingest import JobConfig, ingest  # noqa: E402
 from canrls.fleet.records import ParameterValue, Recording  # noqa: E402
-from canrls.fleet.sources import MAX_CELL, from_manifest, from_pattern  # noqa: E402
+from canrls.fleet.sources import MAX_CELL, LogSource, from_manifest, from_pattern  # noqa: E402
 from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
 
 _STORE_ADD = ingest_module._Store.add
@@ -519,6 +519,81 @@ def test_one_log_under_two_drives_is_stored_once_under_the_first_listed(
         assert sorted((r.drive, Path(r.path).name) for r in h.recordings()) == [
             ("d2", "b.log"), ("d3", "copy.log")]
     assert {d.owner for d in s.duplicates} == {"d3"}
+
+
+@pytest.fixture(scope="module")
+def thread_cluster() -> Iterator[Any]:
+    """A Dask client of a cluster of one worker thread in this process (a test can patch
+    what its tasks call); Dask's own threads started before any test."""
+    import distributed
+
+    with distributed.LocalCluster(n_workers=1, processes=False, threads_per_worker=1,
+                                  protocol="tcp", host="127.0.0.1",
+                                  dashboard_address="127.0.0.1:0") as lc, \
+            distributed.Client(lc) as c:
+        known = c.scatter([frozenset({"x"})], broadcast=True, hash=False)[0]
+        assert c.submit(len, known, pure=False).result() == 1
+        yield c
+
+
+def test_on_a_cluster_each_log_is_read_once_and_the_first_listed_owns_it(
+        tmp_path: Path, logs: list[Path], monkeypatch: pytest.MonkeyPatch,
+        thread_cluster: Any) -> None:
+    """On Dask each log is hashed once, by the task that fits it (no pass over the logs
+    before the fits); duplicates, a path listed twice and a rerun are decided by the
+    hashes the fits return, the first listed owning each content (a cluster of threads
+    in this process, so the hashes can be counted)."""
+    shutil.copy(logs[0], tmp_path / "a.log")
+    shutil.copy(logs[0], tmp_path / "copy.log")
+    shutil.copy(logs[1], tmp_path / "b.log")
+    reads: list[str] = []
+    hash_file = ingest_module.content_hash
+
+    def counted(path: str | Path) -> str:
+        reads.append(Path(path).name)
+        return hash_file(path)
+
+    monkeypatch.setattr(ingest_module, "content_hash", counted)
+    m = tmp_path / "m.csv"
+    m.write_text("path,drive\ncopy.log,d3\nb.log,d2\na.log,d2\ncopy.log,d3\n")
+    for run in range(2):
+        reads.clear()
+        with History.open(tmp_path / "h.db") as h:
+            s = ingest(from_manifest(m), CONFIG, h, client=thread_cluster, stall_timeout=BOUND)
+            recs = h.recordings()
+        assert sorted(reads) == ["a.log", "b.log", "copy.log"]  # once each
+        assert sorted((r.drive, Path(r.path).name) for r in recs) == [
+            ("d2", "b.log"), ("d3", "copy.log")]
+        assert (s.stored, s.skipped, s.failed) == ((2, 0, ()) if run == 0 else
+                                                   (0, 4, ()))
+        assert [(Path(d.path).name, d.drive, Path(d.owner_path).name, d.owner)
+                for d in s.duplicates] == ([("a.log", "d2", "copy.log", "d3"),
+                                            ("copy.log", "d3", "copy.log", "d3")]
+                                           if run == 0 else [])
+
+
+def test_results_out_of_listed_order_keep_the_first_listed_as_owner() -> None:
+    """A later listed log's fit finishing first neither owns the content nor is stored
+    before those listed earlier have arrived."""
+    stored: list[str] = []
+
+    class Store:
+        def add(self, rec: Recording) -> None:
+            stored.append(rec.drive)
+
+    jobs = [ingest_module.IngestJob(source=LogSource(
+        f"/x/{d}.log", d), config=CONFIG, key="k", model="m") for d in ("d1", "d2", "d3")]
+    recs = [Recording(drive=j.source.drive, content_hash="same" if j.source.drive != "d2"
+                      else "other", model_key="k", model="m", path=j.source.path)
+            for j in jobs]
+    order = ingest_module._InOrder(jobs, Store())  # type: ignore[arg-type]
+    order.arrive(2, recs[2])
+    assert stored == [] and order.duplicates == []
+    order.arrive(1, recs[1])
+    assert stored == []
+    order.arrive(0, recs[0])
+    assert stored == ["d1", "d2"]
+    assert [(d.drive, d.owner) for d in order.duplicates] == [("d3", "d1")]
 
 
 # ------------------------------------------------------------------ the history

@@ -105,7 +105,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         f"same paths")
     d.add_argument("--stall-timeout", type=_positive_seconds, default=None, metavar="S",
                    help=f"end with an error when the cluster has given no result (a log "
-                        f"hashed, fitted or ranked) for S seconds; each log stored is kept "
+                        f"fitted or ranked) for S seconds; each log stored is kept "
                         f"(default {STALL_TIMEOUT:g})")
     r = ing.add_argument_group("candidate ranking (the diagnosis)")
     r.add_argument("--rank", choices=("none", "auto", "all"), default="none",

@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 
 #: the longest any one wait on a scheduler takes (connect, answer, a worker) [s]
 SCHEDULER_TIMEOUT = 30.0
-#: the longest a cluster may work without any result (a log hashed, fitted or ranked)
+#: the longest a cluster may work without any result (a log fitted or ranked)
 #: before the wait ends as a stall [s]: far beyond one log's fit
 STALL_TIMEOUT = 300.0
 #: worker processes of a local cluster per core, at most (each fits one log at a time;

@@ -447,7 +447,7 @@ class History:
         bad = conn.exec_driver_sql("PRAGMA foreign_key_check").fetchall()
         if bad:
             tables = sorted({str(row[0]) for row in bad})
-            raise ConfigError(f"history {self.shown}: the migration left rows of "
+            raise ConfigError(f"history {self.where.shown}: the migration left rows of "
                               f"{', '.join(tables)} pointing at rows that are not there "
                               f"({len(bad)}); nothing was changed")
 

@@ -6,12 +6,13 @@ whose hash the history already holds for this model is skipped), then
 :func:`canrls.processor.replay.fit_logs`, and where asked the diagnosis's candidate ranking
 (handed in as a ``ranker``: this layer does not import the diagnosis). A log that
 cannot be fitted becomes an error :class:`~canrls.fleet.records.Recording` naming the
-file and the reason. :func:`ingest` has the workers hash every log first
-(:data:`HASH_CHUNK` a task; the logs the history holds for the model are not sent to be
-fitted), then fit the others, and stores the results as they arrive, in batches, with
-the history's insert-or-ignore: a worker killed mid-log (Dask runs its task again
-elsewhere), a run interrupted, or two runs at once still leave every recording stored
-exactly once.
+file and the reason. On a cluster :func:`ingest` sends every log once (a path listed
+twice once), each task hashing its log and fitting it, and takes the results in the
+listed order (:class:`_InOrder`): the first listed log of each content is stored, the
+others are named as duplicates. In this process it hashes each log first, so a log
+listed again is not fitted again. Results are stored in batches with the history's
+insert-or-ignore: a worker killed mid-log (Dask runs its task again elsewhere), a run
+interrupted, or two runs at once still leave every recording stored exactly once.
 """
 
 from __future__ import annotations
@@ -55,9 +56,6 @@ RANK_MODES = ("none", "auto", "all")
 #: ``ranker(path, protocol, model, settings, max_order)``: the candidate effects of one
 #: log, best first (the command line hands in the diagnosis's ranking)
 Ranker = Callable[[str, Any, Any, Any, int], Sequence[CandidateValue]]
-
-#: logs hashed per task before the fits
-HASH_CHUNK = 64
 
 #: results stored per transaction at most, and the longest a result waits to be stored [s]
 BATCH = 64
@@ -118,11 +116,6 @@ def hash_or_none(path: str) -> str | None:
         return content_hash(path)
     except OSError:
         return None
-
-
-def _hashes(paths: Sequence[str]) -> list[str | None]:
-    """:func:`hash_or_none` of each path (a worker's task)."""
-    return [hash_or_none(p) for p in paths]
 
 
 def _file_hash(path: str | None) -> str | None:
@@ -440,28 +433,17 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
     store = _Store(history)
     failed: list[tuple[str, str]] = []
     use_ranker = ranker if rank == "all" else None
-    # first the hashes (a read of each log, on the workers): the logs the history holds
-    # are not fitted again, and a log listed twice is fitted once
-    paths = [j.source.path for j in jobs]
-    if client is None:
-        hashes = [hash_or_none(p) for p in paths]
-    else:
-        # HASH_CHUNK logs a task: a task's round trip cost more than the hash of a log
-        chunks = [paths[i:i + HASH_CHUNK] for i in range(0, len(paths), HASH_CHUNK)]
-        futs = client.map(_hashes, chunks, pure=False)
-        try:
-            for _ in cluster.finished(futs, _address(client), stall):
-                pass
-            hashes = [h for f in futs for h in cluster.result(f, _address(client), stall)]
-        except StallError as e:
-            raise _stall(e, 0, len(jobs)) from None
-    todo, duplicates = _plan(jobs, hashes, known)
-    skipped = done = len(jobs) - len(todo) - len(duplicates)
-    done += len(duplicates)
-    if progress is not None and done:
-        progress(done, len(jobs))
+    skipped = done = 0
+    duplicates: list[Duplicate] = []
     try:
         if client is None:
+            # each log hashed first: a log the history holds or listed again is not fitted
+            todo, duplicates = _plan(jobs, [hash_or_none(j.source.path) for j in jobs],
+                                     known)
+            skipped = done = len(jobs) - len(todo) - len(duplicates)
+            done += len(duplicates)
+            if progress is not None and done:
+                progress(done, len(jobs))
             for job in todo:
                 rec = ingest_one(job, known[job.key], use_ranker)
                 if rec is None:
@@ -472,32 +454,44 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                 if progress is not None:
                     progress(done, len(jobs))
         else:
-            futures = {client.submit(ingest_one, job, None, use_ranker, pure=False): job
-                       for job in todo}
+            # each log read once, by its task (hash and fit): the history's hashes are
+            # sent to every worker once, a log it holds comes back as None
+            order = _InOrder(jobs, store)
+            duplicates = order.duplicates
+            sent: dict[tuple[str, str], int] = {}
+            again: dict[int, list[int]] = {}  # a path listed again: not sent again
+            for i, job in enumerate(jobs):
+                first = sent.setdefault((job.key, job.source.path), i)
+                if first != i:
+                    again.setdefault(first, []).append(i)
+            shared = {k: _scatter(client, v, stall) if v else None for k, v in known.items()}
+            futures = {client.submit(ingest_one, jobs[i], shared[jobs[i].key], use_ranker,
+                                     pure=False): i for i in sent.values()}
             try:
                 for fut in cluster.finished(futures, _address(client), stall):
-                    job = futures[fut]
+                    i = futures[fut]
+                    got: Recording | None | object
                     if fut.status == "error":
                         exc = cluster.exception(fut, _address(client), stall)
-                        failed.append((job.source.path, f"{type(exc).__name__}: {exc}"))
+                        why = f"{type(exc).__name__}: {exc}"
+                        failed.extend((jobs[k].source.path, why)
+                                      for k in (i, *again.get(i, ())))
+                        got = _LOST
                     else:
-                        rec = cluster.result(fut, _address(client), stall)
-                        if rec is None:
-                            skipped += 1
-                        elif rec.content_hash in known[job.key]:  # changed since hashed
-                            skipped += 1
-                        else:
-                            store.add(rec)
+                        got = cluster.result(fut, _address(client), stall)
                     fut.release()
-                    done += 1
-                    if progress is not None:
-                        progress(done, len(jobs))
+                    for k in (i, *again.get(i, ())):
+                        order.arrive(k, got)
+                        done += 1
+                        if progress is not None:
+                            progress(done, len(jobs))
             finally:
                 client.cancel(list(futures))  # sent, not awaited: never blocks
+            skipped = order.skipped
         store.flush()
     except StallError as e:
         store.flush()
-        raise _stall(e, store.stored + store.errors, len(todo)) from None
+        raise _stall(e, store.stored + store.errors, len(jobs)) from None
     finally:
         store.flush()  # what arrived before an interruption is kept
     ranked = 0
@@ -546,6 +540,58 @@ def per_axis(src: LogSource, cfg: JobConfig, cache: dict[JobConfig, tuple[str, .
     return out or [(src, cfg)]
 
 
+#: a task that did not finish (its worker lost too often)
+_LOST = object()
+
+
+class _InOrder:
+    """The cluster's results taken in the listed order (a task's order on the cluster is
+    not the listed order): of the logs with one content the first listed is stored, the
+    others become :class:`Duplicate`. A result waits for those listed before it; when a
+    run is interrupted, the waiting ones are not stored (a rerun fits them), so the owner
+    of a content never depends on which task finished first."""
+
+    def __init__(self, jobs: Sequence[IngestJob], store: _Store) -> None:
+        self.jobs = jobs
+        self.store = store
+        self.waiting: dict[int, Any] = {}
+        self.next = 0
+        self.skipped = 0
+        self.first: dict[tuple[str, str], IngestJob] = {}
+        self.duplicates: list[Duplicate] = []
+
+    def arrive(self, i: int, rec: Any) -> None:
+        """The result of listed log ``i``: a :class:`Recording`, None (the history holds
+        it) or :data:`_LOST`."""
+        self.waiting[i] = rec
+        while self.next in self.waiting:
+            job, got = self.jobs[self.next], self.waiting.pop(self.next)
+            self.next += 1
+            if got is None:
+                self.skipped += 1
+            elif got is not _LOST:
+                owner = self.first.setdefault((job.key, got.content_hash), job)
+                if owner is job:
+                    self.store.add(got)
+                else:
+                    self.duplicates.append(_duplicate(job, owner))
+
+
+def _duplicate(job: IngestJob, owner: IngestJob) -> Duplicate:
+    return Duplicate(path=job.source.path, drive=job.source.drive,
+                     owner_path=owner.source.path, owner=owner.source.drive)
+
+
+def _scatter(client: Any, data: Any, stall: float) -> Any:
+    """``data`` on every worker once (a future the tasks take), within ``stall`` s."""
+    try:
+        # in a list: a set given alone is scattered element by element
+        return client.scatter([data], broadcast=True, hash=False, timeout=stall)[0]
+    except (TimeoutError, OSError) as e:
+        raise StallError(f"the cluster at {_address(client)} did not take the history's "
+                         f"hashes within {stall:g} s ({e})") from None
+
+
 def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],
           known: Mapping[str, frozenset[str]]) -> tuple[list[IngestJob], list[Duplicate]]:
     """The jobs to run: not those whose content the history holds for their model, and
@@ -560,9 +606,7 @@ def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],
         if digest is not None:
             owner = first.setdefault((job.key, digest), job)
             if owner is not job:
-                duplicates.append(Duplicate(path=job.source.path, drive=job.source.drive,
-                                            owner_path=owner.source.path,
-                                            owner=owner.source.drive))
+                duplicates.append(_duplicate(job, owner))
                 continue
         todo.append(job)
     return todo, duplicates
