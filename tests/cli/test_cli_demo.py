@@ -72,3 +72,10 @@ def test_demo_refuses_a_machine_it_cannot_simulate(
     assert main(["demo", "--axes", axes]) == 1
     assert capsys.readouterr().err == (f"error: --axes {axes}: the machine demo has 2 to 32 "
                                        "axes\n")
+
+
+def test_demo_of_a_machine_refuses_an_excitation_it_would_not_use(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--axes", "4", "--excitation", "slow"]) == 1
+    assert capsys.readouterr().err == ("error: --excitation slow: the drives of --axes 4 run "
+                                       "the simulated machine's own profile\n")

@@ -170,7 +170,7 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
             feed.send(moved(encode_command(CommandCode.ADD_EFFECT, eid, order), k * OWN_STEP))
             d = daemons[a.name]
             if not d.wait_for(lambda x: added in x.model.effect_names, 30.0):
-                say("  no acknowledgement: the effect was not added")
+                say(f"  {a.name} did not add {added} within 30 s")
             say(f"  {a.name} now estimates {', '.join(d.model.effect_names)}; the others "
                 f"{', '.join(_BASE)}")
         else:
