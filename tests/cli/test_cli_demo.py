@@ -41,3 +41,41 @@ def test_demo_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
 def test_demo_rejects_bad_hidden_effects(hidden: str) -> None:
     with pytest.raises(ConfigError):
         run_demo(duration=20.0, hidden=hidden, out=io.StringIO())
+
+
+def test_demo_of_four_axes_fixes_the_one_axis_that_hides_an_effect(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``canrls demo --axes 4``: seed 4 hides cogging:6 in axis3 only; the diagnosis names
+    it there and nowhere else, the command reaches axis3 alone, its error falls."""
+    assert main(["demo", "--axes", "4", "--duration", "12", "--seed", "4", "--hidden",
+                 "cogging:6", "--json"]) == 0
+    cap = capsys.readouterr()
+    res = json.loads(cap.out)
+    story = cap.err.splitlines()
+    assert story[0] == res["answer"]  # the first line says the answer
+    assert story[0].startswith("canrls demo: axis3 lacks cogging:6; added to it alone, its "
+                               "residual RMS fell ")
+    assert res["fixed_axis"] == "axis3" and res["added"] == "cogging:6"
+    axes = res["axes"]
+    assert [a["hidden"] for a in axes.values()] == ["", "", "cogging:6", ""]
+    assert [a["diagnosed"] for a in axes.values()] == [None, None, "cogging:6", None]
+    assert axes["axis3"]["effects"] == ["inertia", "viscous", "coulomb", "cogging:6"]
+    assert all(axes[n]["effects"] == ["inertia", "viscous", "coulomb"]
+               for n in ("axis1", "axis2", "axis4"))
+    assert axes["axis3"]["change"] < -0.5, cap.err
+    assert "3. RlsCommand add_effect cogging:6 to axis3 only (ID 0x3a0):" in story
+
+
+@pytest.mark.parametrize("axes", ["0", "33"])
+def test_demo_refuses_a_machine_it_cannot_simulate(
+        axes: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--axes", axes]) == 1
+    assert capsys.readouterr().err == (f"error: --axes {axes}: the machine demo has 2 to 32 "
+                                       "axes\n")
+
+
+def test_demo_of_a_machine_refuses_an_excitation_it_would_not_use(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--axes", "4", "--excitation", "slow"]) == 1
+    assert capsys.readouterr().err == ("error: --excitation slow: the drives of --axes 4 run "
+                                       "the simulated machine's own profile\n")

@@ -830,3 +830,43 @@ def test_every_reader_of_a_history_url_asks_the_one_parser(
     assert asked[1:] and set(asked[1:]) == {f"sqlite:///{db}?timeout=5"}
     with pytest.raises(ConfigError, match="directory .* does not exist"):
         History.open(f"sqlite:///{tmp_path}/no/k.db?timeout=5")
+
+
+def test_ingest_of_a_machine_stores_one_recording_per_axis(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Logs of a two-axis machine with --axes: each log gives one recording per axis,
+    under the drive MACHINE.AXIS, with the parameters canrls fit --axis finds."""
+    logs = tmp_path / "logs" / "robot1"
+    logs.mkdir(parents=True)
+    for seed in (1, 2):
+        assert main(["sim", "--out", str(logs / f"r{seed}.log"), "--duration", "2",
+                     "--axes", "2", "--seed", str(seed)]) == 0
+    axes = ["--axes", "offset:0,0x10", "--kt", "0.1", "-e", "inertia,viscous,coulomb"]
+    db = tmp_path / "m.db"
+    argv = ["fleet", "ingest", str(tmp_path / "logs" / "{drive}" / "*.log"), "--db", str(db),
+            "--workers", "0", "--quiet", *axes]
+    capsys.readouterr()
+    assert main(argv) == 0
+    assert capsys.readouterr().out.startswith(
+        "2 logs (4 recordings, one per axis): 4 stored, 0 already in the history, 0 errors")
+    with History.open(db) as h:
+        recs = h.recordings()
+    assert sorted((r.drive, Path(r.path).name) for r in recs) == [
+        ("robot1.axis1", "r1.log"), ("robot1.axis1", "r2.log"),
+        ("robot1.axis2", "r1.log"), ("robot1.axis2", "r2.log")]
+    assert all(r.status == STATUS_OK for r in recs)
+    assert len({r.model_key for r in recs}) == 2  # each axis its own IDs: its own model
+    for r in recs:
+        axis = r.drive.split(".")[1]
+        capsys.readouterr()
+        assert main(["fit", r.path, *axes, "--axis", axis, "--json"]) == 0
+        fit = json.loads(capsys.readouterr().out)["parameters"]
+        assert {p.name: p.value for p in r.parameters} == {
+            n: v["value"] for n, v in fit.items()}
+        assert r.frames == 8000  # the whole log read, the other axis's frames foreign
+    # --axis NAME: that axis only; a rerun finds every recording there
+    assert main([*argv, "--axis", "axis2"]) == 0
+    assert capsys.readouterr().out.startswith("2 logs: 0 stored, 2 already in the history")
+    assert main(argv) == 0
+    assert capsys.readouterr().out.startswith(
+        "2 logs (4 recordings, one per axis): 0 stored, 4 already in the history")

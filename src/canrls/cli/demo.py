@@ -20,7 +20,6 @@ daemon publishes like any tool would. The demo prints, as readable text:
 from __future__ import annotations
 
 import argparse
-import importlib
 import math
 import os
 import sys
@@ -30,6 +29,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TextIO
 
+from canrls.cli.demo_common import BASE as _BASE
+from canrls.cli.demo_common import diagnosis
 from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -39,7 +40,8 @@ if TYPE_CHECKING:
 
 __all__ = ["add_subparser", "run", "run_demo", "DemoResult"]
 
-_BASE = ("inertia", "viscous", "coulomb")
+#: the single drive's speed profile (``--excitation``)
+_EXCITATION = "reversals+chirp"
 _counter = 0
 _counter_lock = threading.Lock()
 
@@ -56,9 +58,15 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--hidden", default="unbalance", metavar="EFFECT",
                    help="the effect the drive has and the model lacks: unbalance, cogging:K, "
                         "offset, stribeck (default unbalance)")
-    p.add_argument("--excitation", default="reversals+chirp", metavar="PROFILE",
+    p.add_argument("--excitation", default=None, metavar="PROFILE",
                    help="speed profile of the drive (default reversals+chirp: reversals at "
                         "20 rad/s plus a chirp, every few seconds alike; see docs/simulator.md)")
+    p.add_argument("--axes", type=int, default=1, metavar="N",
+                   help="a machine of N simulated drives on one bus, one daemon per axis; "
+                        "the axis picked by the seed hides the effect, the others none; "
+                        "the first line says which axis lacks what; the drives run the "
+                        "simulated machine's profile, not --excitation (default 1: one "
+                        "drive)")
     p.add_argument("--json", action="store_true", help="print one JSON summary at the end")
     p.set_defaults(func=run)
     return p
@@ -142,7 +150,7 @@ def _wait_sim(tl: _Timeline, t: float, timeout: float,
 
 
 def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
-             excitation: str = "reversals+chirp", out: TextIO | None = None,
+             excitation: str = _EXCITATION, out: TextIO | None = None,
              timeout: float = 600.0) -> DemoResult:
     """Run the demo; print the story to ``out`` (default stdout); return the figures."""
     import can
@@ -269,20 +277,12 @@ def _diagnose(frames: list[Any], protocol: Protocol, model: Model,
               say: Callable[[str], None]) -> str | None:
     """Diagnose the recorded feedback frames and say so; the effect the diagnosis names
     (None: none, or the diagnosis is not available or failed)."""
-    from canrls.can.frameblock import FrameBlock
-    from canrls.processor import FrameProcessor
-
     try:
-        diag = importlib.import_module("canrls.diagnosis.analysis")
-    except ModuleNotFoundError:
-        say("   (canrls.diagnosis.analysis is not available in this build: using the effect the "
-            f"simulated drive hides, {hidden})")
-        return None
-    proc = FrameProcessor(protocol, model, settings)
-    signals = proc.samples(FrameBlock.from_messages(frames))
-    try:
-        report = diag.diagnose(signals, model, settings, dt=proc.pipeline.dt,
-                               source="the bus")
+        report = diagnosis(frames, protocol, model, settings)
+        if report is None:
+            say("   (canrls.diagnosis.analysis is not available in this build: using the "
+                f"effect the simulated drive hides, {hidden})")
+            return None
         say("   " + report.format().replace("\n", "\n   "))
         if not report.suggestion:
             say(f"   -> the diagnosis names no effect from these data; adding the one "
@@ -320,7 +320,19 @@ def _g(x: float | None) -> str:
 def run(args: argparse.Namespace) -> int:
     from canrls.cli._common import print_json
 
-    res = run_demo(args.duration, args.seed, args.hidden, args.excitation,
+    if args.axes != 1:
+        from canrls.cli.demo_axes import run_machine_demo
+
+        if args.excitation is not None:
+            raise ConfigError(f"--excitation {args.excitation}: the drives of --axes "
+                              f"{args.axes} run the simulated machine's own profile")
+
+        mres = run_machine_demo(args.axes, args.duration, args.seed, args.hidden,
+                                out=sys.stderr if args.json else sys.stdout)
+        if args.json:
+            print_json(mres.to_dict())
+        return 0 if mres.fixed_axis is not None else 1
+    res = run_demo(args.duration, args.seed, args.hidden, args.excitation or _EXCITATION,
                    out=sys.stderr if args.json else sys.stdout)
     if args.json:
         print_json(res.to_dict())

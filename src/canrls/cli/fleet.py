@@ -79,7 +79,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
         description="Fit every log as 'canrls fit' does (same options) on Dask and store "
                     "each recording (parameters with sigma, residual, fit, verdicts, "
                     "content hash, time range, drive, model, canrls version) in the "
-                    "history, once: logs already there with this model are skipped.")
+                    "history, once: logs already there with this model are skipped. "
+                    "A machine's logs (--axes or [[axes]]) give one recording per axis, "
+                    "under the drive MACHINE.AXIS.")
     src = ing.add_argument_group("logs")
     src.add_argument("pattern", nargs="?", metavar="PATTERN",
                      help="logs with a {drive} (and optionally {type}) field, e.g. "

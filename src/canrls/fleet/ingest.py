@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from canrls import __version__
-from canrls.core.errors import CanrlsError, StallError
+from canrls.core.errors import CanrlsError, ConfigError, StallError
 from canrls.fleet import cluster
 from canrls.fleet.detect import DetectionSettings, assess, to_rank
 from canrls.fleet.history import History
@@ -41,7 +41,7 @@ from canrls.fleet.records import (
     ParameterValue,
     Recording,
 )
-from canrls.fleet.sources import LogSource
+from canrls.fleet.sources import LogSource, check_name
 from canrls.processor.config import AppConfig, Overrides, load_config, prepare
 
 __all__ = ["JobConfig", "IngestJob", "IngestSummary", "Duplicate", "Ranker", "content_hash",
@@ -133,7 +133,7 @@ def model_key(cfg: JobConfig) -> tuple[str, str]:
     the fixed-point settings, the decoding options, the signal mapping and the DBC's
     bytes); the description is what a reader needs (``inertia,viscous,coulomb kt=0.1``).
     """
-    app = cfg.app_config()
+    app = cfg.app_config().one_axis()
     model = dict(app.model)
     effects = model.get("effects") or ["inertia", "viscous", "coulomb"]
     can = {k: v for k, v in app.can.items()
@@ -310,10 +310,14 @@ class IngestSummary:
     error_rows: tuple[tuple[str, str], ...] = ()
     #: logs whose content another listed log has (stored once, under the first listed)
     duplicates: tuple[Duplicate, ...] = ()
+    #: the recordings the logs give, one per axis of a machine's log (0: one per log)
+    recordings: int = 0
 
     def format(self) -> str:
         rate = self.total / self.elapsed_s * 60.0 if self.elapsed_s > 0 else math.nan
-        lines = [f"{self.total} logs: {self.stored} stored, {self.skipped} already in the "
+        axes = (f" ({self.recordings} recordings, one per axis)"
+                if self.recordings and self.recordings != self.total else "")
+        lines = [f"{self.total} logs{axes}: {self.stored} stored, {self.skipped} already in the "
                  f"history, {self.errors} errors"
                  + (f", {len(self.duplicates)} duplicates" if self.duplicates else "")
                  + (f", {self.already} stored meanwhile by another run" if self.already else "")
@@ -343,6 +347,7 @@ class IngestSummary:
                 "failed": [{"path": p, "reason": r} for p, r in self.failed],
                 "error_rows": [{"path": p, "error": r} for p, r in self.error_rows],
                 "duplicates": [dataclasses.asdict(d) for d in self.duplicates],
+                "recordings": self.recordings or self.total,
                 "ranked": self.ranked, "elapsed_s": self.elapsed_s, "workers": self.workers,
                 "worker_peak_rss": dict(self.worker_peak_rss)}
 
@@ -404,16 +409,23 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
     rejected = [(src.path, src.error) for src in sources if src.error]
     jobs: list[IngestJob] = []
     keys: dict[JobConfig, tuple[str, str]] = {}
-    for src in sources:
-        if src.error:
+    axes: dict[JobConfig, tuple[str, ...]] = {}
+    recordings = 0
+    for whole in sources:
+        if whole.error:
+            recordings += 1
             continue
-        cfg = config.for_source(src)
-        if cfg not in keys:
-            keys[cfg] = model_key(cfg)
-            cfg.prepared()  # a bad configuration fails here, once, before any log
-        key, desc = keys[cfg]
-        jobs.append(IngestJob(source=src, config=cfg, key=key, model=desc,
-                              rank=rank == "all", max_order=max_order))
+        for src, cfg in per_axis(whole, config.for_source(whole), axes):
+            recordings += 1
+            if src.error:
+                rejected.append((src.path, src.error))
+                continue
+            if cfg not in keys:
+                keys[cfg] = model_key(cfg)
+                cfg.prepared()  # a bad configuration fails here, once, before any log
+            key, desc = keys[cfg]
+            jobs.append(IngestJob(source=src, config=cfg, key=key, model=desc,
+                                  rank=rank == "all", max_order=max_order))
     if retry_errors:
         for key, _ in set(keys.values()):
             history.forget_errors(key)
@@ -502,7 +514,30 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                          elapsed_s=time.monotonic() - t0, workers=workers,
                          worker_peak_rss=peaks,
                          error_rows=tuple(rejected) + tuple(store.error_rows),
-                         duplicates=tuple(duplicates))
+                         duplicates=tuple(duplicates), recordings=recordings)
+
+
+def per_axis(src: LogSource, cfg: JobConfig, cache: dict[JobConfig, tuple[str, ...]]
+             ) -> list[tuple[LogSource, JobConfig]]:
+    """The recordings one log of a machine gives: one per axis its configuration declares
+    (``[[axes]]`` or ``--axes``; ``--axis NAME`` only that one), each under the drive
+    ``MACHINE.AXIS`` with that axis's configuration; a log of one drive as it is.
+    ``cache``: the axis names of each configuration, read once."""
+    if cfg not in cache:
+        app = cfg.app_config()
+        cache[cfg] = (() if not app.axes else (cfg.axis_name,) if cfg.axis_name
+                      else tuple(app.axis_configs()))
+    out = []
+    for name in cache[cfg]:
+        drive = f"{src.drive}.{name}"
+        try:
+            drive = check_name(drive, "drive", src.path)
+        except ConfigError as e:
+            out.append((dataclasses.replace(src, drive=drive, error=str(e)), cfg))
+            continue
+        out.append((dataclasses.replace(src, drive=drive),
+                    dataclasses.replace(cfg, axis_name=name)))
+    return out or [(src, cfg)]
 
 
 #: a task that did not finish (its worker lost too often)

@@ -8,7 +8,7 @@ ODrive CANSimple nodes (:data:`KINDS`). ``canrls sim --axes N`` writes its log
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,20 +80,23 @@ def kind_protocol(kind: str) -> Protocol:
 
 
 def machine(n: int, *, duration: float, seed: int = 0, scenario_name: str = "standard",
-            kind: str = "offset") -> tuple[MachineAxis, ...]:
+            kind: str = "offset", hidden: Sequence[str] | None = None
+            ) -> tuple[MachineAxis, ...]:
     """``n`` drives of ``kind``: axis k (0-based) has inertia and friction scaled by
-    ``1 + 0.5 k`` and ``1 + 0.25 k``, the hidden effect ``HIDDEN[k % 4]``, seed
-    ``seed * 1000 + k`` and the rule ``offset:k * 0x10`` (``cia402``: node k + 1;
-    ``cansimple``: node k)."""
+    ``1 + 0.5 k`` and ``1 + 0.25 k``, the hidden effect ``hidden[k]`` (default
+    ``HIDDEN[k % 4]``), seed ``seed * 1000 + k`` and the rule ``offset:k * 0x10``
+    (``cia402``: node k + 1; ``cansimple``: node k)."""
     if not 1 <= n <= MAX_SIM_AXES:
         raise ConfigError(f"--axes {n}: a simulated machine has 1 to {MAX_SIM_AXES} axes")
     if kind not in KINDS:
         raise ConfigError(f"--ids {kind}: the simulated drives are {', '.join(KINDS)}")
+    if hidden is not None and len(hidden) != n:
+        raise ConfigError(f"{len(hidden)} hidden effects for a machine of {n} axes")
     axes = []
     base = tuple(DEFAULT_EFFECTS.split(","))
     for k in range(n):
-        hidden = HIDDEN[k % len(HIDDEN)]
-        effects = base + ((hidden,) if hidden else ())
+        extra = HIDDEN[k % len(HIDDEN)] if hidden is None else hidden[k]
+        effects = base + ((extra,) if extra else ())
         params = default_params(",".join(effects))
         for key in params:
             if key.startswith("inertia."):
@@ -105,7 +108,7 @@ def machine(n: int, *, duration: float, seed: int = 0, scenario_name: str = "sta
         rule = (IdRule("offset", k * AXIS_ID_STEP) if kind == "offset" else
                 IdRule(kind, k + 1 if kind == "cia402" else k))
         name = f"axis{k + 1}" if kind == "offset" else f"node{rule.node}"
-        axes.append(MachineAxis(name, rule, hidden, sc))
+        axes.append(MachineAxis(name, rule, extra, sc))
     return tuple(axes)
 
 
