@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _cases() -> object:
     spec = importlib.util.spec_from_file_location(
-        "acceptance", ROOT / "tests" / "test_diagnose_acceptance.py")
+        "acceptance", ROOT / "tests" / "diagnosis" / "test_diagnose_acceptance.py")
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     sys.modules["acceptance"] = mod
