@@ -55,7 +55,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "docs/tune.md)")
     p.add_argument("--feedforward-form", choices=("table", "harmonics"), default="table",
                    help="the map as a table of N points (default) or as its harmonics "
-                        "(N: the points the float map is checked on)")
+                        "(N is then checked but not used)")
     p.add_argument("--kernel-only", action="store_true",
                    help="only the kernel, the configuration and the frame codecs (what a "
                         "model the whole estimator cannot run, with user terms, gets anyway, "

@@ -41,7 +41,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "unit, configuration, calibration) as JSON for 'canrls validate'")
     p.add_argument("--fixed", choices=("kernel", "target"), default="kernel",
                    help="the fixed-point column: the kernel fed by the float front end, as "
-                        "the daemon runs it by default (default), or the target's whole "
+                        "the daemon runs it by default, or the target's whole "
                         "integer path from the frames on, as the C of 'canrls export-c' "
                         "and the daemon with [daemon] fixed = \"target\" run it (bit for "
                         "bit; about 2x the time of the fit; docs/target.md)")

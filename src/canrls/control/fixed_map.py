@@ -16,6 +16,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from canrls.control.settings import MAX_POINTS
 from canrls.core.c_escape import c_comment, c_int
 from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
@@ -26,6 +27,26 @@ __all__ = ["FixedMap", "fixed_map", "map_q", "map_c", "FixedHarmonics", "fixed_h
 
 #: Largest magnitude of a table entry: int16_t.
 _WORD = 32767
+
+
+def _largest_frac(total: float, limit: float) -> int:
+    """The largest frac, at most 30 (and no less than -30), with total 2**frac <= limit."""
+    frac = 30
+    while frac > -30 and total * 2.0**frac > limit:
+        frac -= 1
+    return frac
+
+
+def _q(x: float, frac: int) -> int:
+    """x 2**frac, rounded half up."""
+    # q = floor(x 2^frac + 1/2)
+    return int(math.floor(x * 2.0**frac + 0.5))
+
+
+def _lerp_q16(s0: int, s1: int, f: int) -> int:
+    """Linear between two points, f their distance in Q16."""
+    # s = s0 + ((s1 - s0) f + 2^15) >> 16   (arithmetic shift: floor)
+    return s0 + (((s1 - s0) * f + 0x8000) >> 16)
 
 
 @dataclass(frozen=True)
@@ -46,16 +67,14 @@ def fixed_map(torque: Sequence[float], unit: str) -> FixedMap:
     """The table of a map: each torque times 2**frac, rounded half up, frac the largest
     (at most 30) with every entry within int16_t."""
     n = len(torque)
-    if not 2 <= n <= 65536:
-        raise ConfigError(f"--feedforward {n}: the points of a map must be 2 to 65536")
+    if not 2 <= n <= MAX_POINTS:
+        raise ConfigError(f"--feedforward {n}: the points of a map must be 2 to {MAX_POINTS}")
     big = max(abs(float(x)) for x in torque)
     if not math.isfinite(big):
         raise ConfigError("feedforward map: a torque is not a finite number")
-    frac = 30
-    while frac > -30 and big * 2.0**frac > _WORD - 0.5:
-        frac -= 1
+    frac = _largest_frac(big, _WORD - 0.5)
     # m_j = floor(tau_j 2^frac + 1/2)
-    table = tuple(int(math.floor(float(x) * 2.0**frac + 0.5)) for x in torque)
+    table = tuple(_q(float(x), frac) for x in torque)
     return FixedMap(table, frac, unit)
 
 
@@ -69,8 +88,8 @@ def map_q(m: FixedMap, angle: int) -> int:
     f = (x >> 16) & 0xFFFF
     m0 = m.table[j]
     m1 = m.table[j + 1 if j + 1 < n else 0]
-    # out = m0 + ((m1 - m0) f + 2^15) >> 16   (arithmetic shift: floor)
-    return m0 + (((m1 - m0) * f + 0x8000) >> 16)
+    # out = m0 + ((m1 - m0) f + 2^15) >> 16
+    return _lerp_q16(m0, m1, f)
 
 
 def map_c(m: FixedMap, source: str) -> tuple[str, str]:
@@ -160,16 +179,10 @@ def fixed_harmonics(harmonics: Sequence[tuple[int, float, float]], unit: str
     if any(k >= 1 << 16 for k in orders):
         raise ConfigError(f"--feedforward: harmonic order {max(orders)} above 65535")
     total = sum(abs(a) for _, a, _ in harmonics) * 32768.0 / 32767.0
-    frac = 30
-    while frac > -30 and total * 2.0**frac > 2.0**30:
-        frac -= 1
-
-    def q(x: float) -> int:  # x 2^frac, rounded half up
-        return int(math.floor(x * 2.0**frac + 0.5))
-
-    offset = sum(q(a) for k, a, _ in harmonics if k == 0)
+    frac = _largest_frac(total, 2.0**30)
+    offset = sum(_q(a, frac) for k, a, _ in harmonics if k == 0)
     # the sine table holds 32767 sin: a_k 32768/32767 makes the product >> 15 a_k sin
-    terms = [(k, q(a * 32768.0 / 32767.0),
+    terms = [(k, _q(a * 32768.0 / 32767.0, frac),
               int(math.floor(p / (2 * math.pi) * 2.0**32 + 0.5)) % (1 << 32))
              for k, a, p in harmonics if k > 0]
     return FixedHarmonics(tuple(t[0] for t in terms), tuple(t[1] for t in terms),
@@ -184,7 +197,7 @@ def sin_q15(phase: int) -> int:
     s0 = SINE_Q15[j]
     s1 = SINE_Q15[(j + 1) & (_SINE_POINTS - 1)]
     # s = s0 + ((s1 - s0) f + 2^15) >> 16
-    return s0 + (((s1 - s0) * f + 0x8000) >> 16)
+    return _lerp_q16(s0, s1, f)
 
 
 def harmonics_q(h: FixedHarmonics, angle: int) -> int:
@@ -305,17 +318,12 @@ def fixed_friction(B: float, Tc: float, Ts: float, band: float, ws: float,
     """From the friction of ``feedforward.json`` ``speed``: frac the largest (at most 30)
     with ``|Tc| + |Ts| + |B| 32768`` (the speed's range) within 2**30."""
     total = abs(Tc) + abs(Ts) + abs(B) * 32768.0
-    frac = 30
-    while frac > -30 and total * 2.0**frac > 2.0**30:
-        frac -= 1
-
-    def q(x: float) -> int:
-        return int(math.floor(x * 2.0**frac + 0.5))
-
+    frac = _largest_frac(total, 2.0**30)
     inv_e, s_e = _reciprocal(band, "coulomb_band")
     inv_ws, s_ws = _reciprocal(ws, "stribeck_speed")
     # tanh and exp from Q15 tables of 32767 x: Tc, Ts times 32768/32767
-    return FixedFriction(q(B), q(Tc * 32768.0 / 32767.0), q(Ts * 32768.0 / 32767.0),
+    return FixedFriction(_q(B, frac), _q(Tc * 32768.0 / 32767.0, frac),
+                         _q(Ts * 32768.0 / 32767.0, frac),
                          inv_e, s_e, inv_ws, s_ws, frac, unit)
 
 
@@ -327,7 +335,7 @@ def _table_q15(table: tuple[int, ...], u: int, end: int) -> int:
     sh = step.bit_length() - 1
     j = u >> sh
     f = (u & (step - 1)) << (16 - sh)  # Q16
-    return table[j] + (((table[j + 1] - table[j]) * f + 0x8000) >> 16)
+    return _lerp_q16(table[j], table[j + 1], f)
 
 
 def friction_q(fr: FixedFriction, w: int) -> int:

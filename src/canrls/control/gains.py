@@ -11,6 +11,7 @@ inertia they assume (with its sigma) and the margin the model gives. docs/tune.m
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,6 +24,17 @@ __all__ = ["Loop", "SpeedGains", "for_bandwidth", "symmetric_optimum", "check_ba
 
 #: |T| at the closed loop's bandwidth: -3 dB.
 _HALF_POWER = 1.0 / math.sqrt(2.0)
+
+
+def _bisect_log(lo: float, hi: float, above: Callable[[float], bool]) -> float:
+    """Where ``above`` turns false between ``lo`` and ``hi``: 60 bisections on a log scale."""
+    for _ in range(60):
+        mid = math.sqrt(lo * hi)
+        if above(mid):
+            lo = mid
+        else:
+            hi = mid
+    return math.sqrt(lo * hi)
 
 
 @dataclass(frozen=True)
@@ -54,29 +66,20 @@ class Loop:
         k = int(below[0])
         if k == 0:
             return float(w[0])
-        lo, hi = float(w[k - 1]), float(w[k])
-        for _ in range(60):  # bisection on |T(jw)| = 1/sqrt 2
-            mid = math.sqrt(lo * hi)
-            Lm = self.open_loop(kp, ki, np.array([mid]), J)[0]
-            if abs(Lm / (1.0 + Lm)) > _HALF_POWER:
-                lo = mid
-            else:
-                hi = mid
-        return math.sqrt(lo * hi)
+
+        def above(x: float) -> bool:  # |T(jx)| > 1/sqrt 2
+            Lx = self.open_loop(kp, ki, np.array([x]), J)[0]
+            return bool(abs(Lx / (1.0 + Lx)) > _HALF_POWER)
+
+        return _bisect_log(float(w[k - 1]), float(w[k]), above)
 
     def margin(self, kp: float, ki: float) -> tuple[float, float]:
         """(crossover [rad/s], phase margin [deg]) where |L| = 1."""
         w = np.geomspace(1e-2, math.pi / self.dt, 4000)
         mag = np.abs(self.open_loop(kp, ki, w))
         k = int(np.nonzero(mag <= 1.0)[0][0]) if np.any(mag <= 1.0) else len(w) - 1
-        lo, hi = float(w[max(k - 1, 0)]), float(w[k])
-        for _ in range(60):
-            mid = math.sqrt(lo * hi)
-            if abs(self.open_loop(kp, ki, np.array([mid]))[0]) > 1.0:
-                lo = mid
-            else:
-                hi = mid
-        wc = math.sqrt(lo * hi)
+        wc = _bisect_log(float(w[max(k - 1, 0)]), float(w[k]),  # |L(j wc)| = 1
+                         lambda x: bool(abs(self.open_loop(kp, ki, np.array([x]))[0]) > 1.0))
         # PM = 180 deg + arg L(j wc), the phase unwrapped from -90 deg at low frequency
         phase = -90.0 - math.degrees(math.atan2(ki, kp * wc)) - math.degrees(
             wc * self.Td + math.atan(wc * self.Ti))
@@ -170,14 +173,14 @@ def for_bandwidth(loop: Loop, hz: float, margin: float = DEFAULT_MARGIN,
             hi = mid
     w_max = lo * 0.999
     target = 2.0 * math.pi * hz
-    best = loop.bandwidth(*gains(w_max), None)
+    best = loop.bandwidth(*gains(w_max))
     if best < target:
         raise ConfigError(f"--bandwidth {hz:g}: with a phase margin of {margin:g} deg, a "
                           f"delay of {loop.Td:g} s and a current loop of {loop.Ti:g} s the "
                           f"speed loop reaches at most {best / (2 * math.pi):.3g} Hz")
     lo, hi = 1e-9, w_max
     for _ in range(80):  # the closed loop's bandwidth grows with the crossover
-        mid = math.sqrt(lo * hi) if lo > 0 else 0.5 * hi
+        mid = math.sqrt(lo * hi)
         if loop.bandwidth(*gains(mid)) < target:
             lo = mid
         else:
