@@ -42,6 +42,7 @@ from canrls.cli._common import (
     config_path,
     overrides,
     print_json,
+    setup,
 )
 from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
@@ -281,9 +282,7 @@ def _build(args: argparse.Namespace) -> Any:
     """The daemon of one axis, or of every axis of a machine (no ``--axis``): each axis
     its own :class:`~canrls.live.daemon.Daemon` in one
     :class:`~canrls.live.machine.MachineDaemon`, the whole machine checked first."""
-    from canrls.processor.config import load_config
-
-    cfg = load_config(getattr(args, "config", None), overrides(args))
+    cfg = setup(args, every_axis=True)
     if len(cfg.axes) < 2 or cfg.axis_name is not None:
         return build_daemon(args)
     from canrls.live.machine import MachineDaemon
@@ -301,8 +300,7 @@ def _build(args: argparse.Namespace) -> Any:
             d.stop()
         raise
     return MachineDaemon(daemons, build=lambda name: build_daemon(args, name),
-                         axes=lambda: list(load_config(getattr(args, "config", None),
-                                                       overrides(args)).axis_configs()))
+                         axes=lambda: list(setup(args, every_axis=True).axis_configs()))
 
 
 def _report_machine(machine: Any, args: argparse.Namespace) -> None:
