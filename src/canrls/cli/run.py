@@ -12,8 +12,11 @@ SIGTERM/SIGINT stop it (with a final checkpoint; a second one while it stops cha
 nothing), SIGHUP re-reads the configuration: the model applies at once, the rest at the
 next start (said in the log); a file a start would refuse is refused. On exit it prints the final
 estimates (``--json``: one object with the estimates, the daemon's counters, the frames
-rejected by reason as ``canrls fit --json`` has them, and the last status).
-Logging goes to stderr (journald under systemd).
+rejected by reason as ``canrls fit --json`` has them, and the last status). A machine's
+axes (``--axes`` or ``[[axes]]``, no ``--axis NAME``) run one daemon each, reported
+under ``== axis NAME ==`` (``--json``: ``{"axes": {NAME: ...}}``). In text mode the
+journal's lines (publishing, model changes, faults) go to stdout; logging goes to
+stderr (journald under systemd).
 
 Exit status: 0 after a requested stop (SIGTERM, SIGINT, ``--duration``), however many
 signals arrive; 1 for an error (one ``error:`` line on stderr): a bad configuration, a
