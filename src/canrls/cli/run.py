@@ -12,8 +12,11 @@ SIGTERM/SIGINT stop it (with a final checkpoint; a second one while it stops cha
 nothing), SIGHUP re-reads the configuration: the model applies at once, the rest at the
 next start (said in the log); a file a start would refuse is refused. On exit it prints the final
 estimates (``--json``: one object with the estimates, the daemon's counters, the frames
-rejected by reason as ``canrls fit --json`` has them, and the last status).
-Logging goes to stderr (journald under systemd).
+rejected by reason as ``canrls fit --json`` has them, and the last status). A machine's
+axes (``--axes`` or ``[[axes]]``, no ``--axis NAME``) run one daemon each, reported
+under ``== axis NAME ==`` (``--json``: ``{"axes": {NAME: ...}}``). In text mode the
+journal's lines (publishing, model changes, faults) go to stdout; logging goes to
+stderr (journald under systemd).
 
 Exit status: 0 after a requested stop (SIGTERM, SIGINT, ``--duration``), however many
 signals arrive; 1 for an error (one ``error:`` line on stderr): a bad configuration, a
@@ -42,6 +45,7 @@ from canrls.cli._common import (
     config_path,
     overrides,
     print_json,
+    setup,
 )
 from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
@@ -281,9 +285,7 @@ def _build(args: argparse.Namespace) -> Any:
     """The daemon of one axis, or of every axis of a machine (no ``--axis``): each axis
     its own :class:`~canrls.live.daemon.Daemon` in one
     :class:`~canrls.live.machine.MachineDaemon`, the whole machine checked first."""
-    from canrls.processor.config import load_config
-
-    cfg = load_config(getattr(args, "config", None), overrides(args))
+    cfg = setup(args, every_axis=True)
     if len(cfg.axes) < 2 or cfg.axis_name is not None:
         return build_daemon(args)
     from canrls.live.machine import MachineDaemon
@@ -301,8 +303,7 @@ def _build(args: argparse.Namespace) -> Any:
             d.stop()
         raise
     return MachineDaemon(daemons, build=lambda name: build_daemon(args, name),
-                         axes=lambda: list(load_config(getattr(args, "config", None),
-                                                       overrides(args)).axis_configs()))
+                         axes=lambda: list(setup(args, every_axis=True).axis_configs()))
 
 
 def _report_machine(machine: Any, args: argparse.Namespace) -> None:

@@ -80,10 +80,9 @@ class MachineDaemon:
         try:
             want = list(self._axes())
             added = {n: self._build(n) for n in want if n not in self.daemons}
-            check_own({f"axis {n}": d.protocol for n, d in {**self.daemons, **added}.items()
-                       if n in want},
-                      {f"axis {n}": d.config.own_offset
-                       for n, d in {**self.daemons, **added}.items() if n in want})
+            kept = {n: d for n, d in {**self.daemons, **added}.items() if n in want}
+            check_own({f"axis {n}": d.protocol for n, d in kept.items()},
+                      {f"axis {n}": d.config.own_offset for n, d in kept.items()})
         except CanrlsError as e:
             log.warning("reload: the axes stay as they are: %s", e)
             return
