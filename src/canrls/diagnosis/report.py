@@ -214,10 +214,6 @@ CAPTIONS = {
 }
 
 
-def _template() -> jinja2.Template:
-    return page_template("report.html.j2")
-
-
 def page_template(name: str) -> jinja2.Template:
     """The jinja2 template ``name`` shipped under ``diagnosis/templates``, with the
     report's filters (``num``, ``fmt``, ``r2``); also the page of ``canrls validate``."""
@@ -354,10 +350,10 @@ def render_html(report: DiagnosisReport, written: Mapping[str, str],
         return written[name], cap, alt_text(name, report)
     figures = [fig(name) for name in FIGURES if name in written and name not in proof]
     lead, rest = split_regions(b)
-    return _template().render(r=report, b=b, proof=[fig(name) for name in proof],
-                              figures=figures,
-                              lead=lead, rest=rest, samples=samples_text(report),
-                              params=_parameter_rows(report.before, report.after))
+    return page_template("report.html.j2").render(
+        r=report, b=b, proof=[fig(name) for name in proof], figures=figures,
+        lead=lead, rest=rest, samples=samples_text(report),
+        params=_parameter_rows(report.before, report.after))
 
 
 def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Path:

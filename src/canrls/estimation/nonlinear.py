@@ -1,7 +1,7 @@
 """The search of a parameter the regression cannot estimate linearly: what a record
 covers, the grid an effect asks for (:meth:`~canrls.estimation.effects.Effect.search_space`)
 and the minimum of a cost over it. The diagnosis searches every candidate's on the
-record, the front end a model's Stribeck speed on its calibration window
+record, ``canrls fit`` a model's Stribeck speed on the whole record
 (docs/diagnose.md, "Nonlinear parameters")."""
 
 from __future__ import annotations

@@ -168,6 +168,19 @@ class Excitation:
         return RLSFlag.LOW_EXCITATION if self.low else RLSFlag.NONE
 
 
+def check_n(n: object, who: str = "RLS") -> int:
+    """The number of parameters, a positive integer, or EstimatorError naming ``who``."""
+    if isinstance(n, bool):
+        raise EstimatorError(f"{who} n must be a positive integer, got {n!r}")
+    try:
+        v = operator.index(n)  # type: ignore[arg-type]
+    except TypeError as e:
+        raise EstimatorError(f"{who} n must be a positive integer, got {n!r}") from e
+    if v < 1:
+        raise EstimatorError(f"{who} n must be a positive integer, got {n!r}")
+    return v
+
+
 def check_real(name: str, value: object, who: str = "RLS") -> float:
     """``value`` as a float, or EstimatorError naming ``who`` and ``name``."""
     if isinstance(value, bool):
@@ -299,14 +312,7 @@ class RLS:
         update: str = "symmetric",
         dtype: type[np.floating[Any]] | np.dtype[Any] | str = np.float64,
     ) -> None:
-        if isinstance(n, bool):
-            raise EstimatorError(f"RLS n must be a positive integer, got {n!r}")
-        try:
-            n_int = operator.index(n)
-        except TypeError as e:
-            raise EstimatorError(f"RLS n must be a positive integer, got {n!r}") from e
-        if n_int < 1:
-            raise EstimatorError(f"RLS n must be a positive integer, got {n!r}")
+        n_int = check_n(n)
         lam_f = check_lam(lam)
         ridge = check_ridge(alpha, n_int)
         if not isinstance(update, str) or update not in KERNELS:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import enum
 import importlib
 import math
-import operator
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
@@ -26,6 +25,7 @@ from canrls.core.checks import is_positive
 from canrls.core.errors import EstimatorError, FixedPointError
 from canrls.estimation.fixed import layout as kernels
 from canrls.estimation.rls import check_lam as _rls_check_lam
+from canrls.estimation.rls import check_n as _rls_check_n
 from canrls.estimation.rls import check_real as _rls_real
 from canrls.estimation.rls import check_ridge as _rls_check_ridge
 
@@ -470,15 +470,7 @@ class FixedConfig:
 # --------------------------------------------------------------- validation
 def check_n(n: object) -> int:
     """The number of parameters, a positive integer."""
-    if isinstance(n, bool):
-        raise EstimatorError(f"FixedRLS n must be a positive integer, got {n!r}")
-    try:
-        v = operator.index(n)  # type: ignore[arg-type]
-    except TypeError as e:
-        raise EstimatorError(f"FixedRLS n must be a positive integer, got {n!r}") from e
-    if v < 1:
-        raise EstimatorError(f"FixedRLS n must be a positive integer, got {n!r}")
-    return v
+    return _rls_check_n(n, "FixedRLS")
 
 
 def check_real(name: str, value: object) -> float:
