@@ -10,9 +10,10 @@ file and the reason. On a cluster :func:`ingest` sends every log once (a path li
 twice once), each task hashing its log and fitting it, and takes the results in the
 listed order (:class:`_InOrder`): the first listed log of each content is stored, the
 others are named as duplicates. In this process it hashes each log first, so a log
-listed again is not fitted again. Results are stored in batches with the history's
-insert-or-ignore: a worker killed mid-log (Dask runs its task again elsewhere), a run
-interrupted, or two runs at once still leave every recording stored exactly once.
+listed again is not fitted again, and hands that hash to the fit. Results are stored
+in batches with the history's insert-or-ignore: a worker killed mid-log (Dask runs its
+task again elsewhere), a run interrupted, or two runs at once still leave every
+recording stored exactly once.
 """
 
 from __future__ import annotations
@@ -219,14 +220,17 @@ def _recording(job: IngestJob, digest: str, res: Any,
 
 
 def ingest_one(job: IngestJob, known: frozenset[str] | set[str] | None = None,
-               ranker: Ranker | None = None) -> Recording | None:
+               ranker: Ranker | None = None, *, digest: str | None = None
+               ) -> Recording | None:
     """One log (a worker's task): None when the history holds its hash for this model
-    (``known``), else a :class:`Recording` (an error row when it cannot be fitted)."""
+    (``known``), else a :class:`Recording` (an error row when it cannot be fitted).
+    ``digest``: the log's :func:`content_hash` when the caller has taken it already."""
     from canrls.processor.replay import fit_logs
 
     path = job.source.path
     try:
-        digest = content_hash(path)
+        if digest is None:
+            digest = content_hash(path)
     except OSError as e:
         # no content to hash: the row is keyed by the path, so a rerun does not repeat it
         digest = hashlib.sha256(f"unreadable:{path}".encode()).hexdigest()
@@ -444,8 +448,8 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
             done += len(duplicates)
             if progress is not None and done:
                 progress(done, len(jobs))
-            for job in todo:
-                rec = ingest_one(job, known[job.key], use_ranker)
+            for job, digest in todo:
+                rec = ingest_one(job, known[job.key], use_ranker, digest=digest)
                 if rec is None:
                     skipped += 1
                 else:
@@ -593,11 +597,13 @@ def _scatter(client: Any, data: Any, stall: float) -> Any:
 
 
 def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],
-          known: Mapping[str, frozenset[str]]) -> tuple[list[IngestJob], list[Duplicate]]:
-    """The jobs to run: not those whose content the history holds for their model, and
-    of the logs with one content (a log listed twice, a copy under another name) only
-    the first listed; the others are returned as :class:`Duplicate`."""
-    todo: list[IngestJob] = []
+          known: Mapping[str, frozenset[str]]
+          ) -> tuple[list[tuple[IngestJob, str | None]], list[Duplicate]]:
+    """The jobs to run, each with its hash (None: unreadable): not those whose content
+    the history holds for their model, and of the logs with one content (a log listed
+    twice, a copy under another name) only the first listed; the others are returned
+    as :class:`Duplicate`."""
+    todo: list[tuple[IngestJob, str | None]] = []
     duplicates: list[Duplicate] = []
     first: dict[tuple[str, str], IngestJob] = {}
     for job, digest in zip(jobs, hashes, strict=True):
@@ -608,7 +614,7 @@ def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],
             if owner is not job:
                 duplicates.append(_duplicate(job, owner))
                 continue
-        todo.append(job)
+        todo.append((job, digest))
     return todo, duplicates
 
 
