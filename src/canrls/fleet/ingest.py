@@ -119,15 +119,6 @@ def hash_or_none(path: str) -> str | None:
         return None
 
 
-def _file_hash(path: str | None) -> str | None:
-    if not path:
-        return None
-    try:
-        return content_hash(path)
-    except OSError:
-        return None
-
-
 def model_key(cfg: JobConfig) -> tuple[str, str]:
     """``(key, description)`` of the model a configuration fits: the key is a SHA-256
     (hex, 64) of everything that changes the parameters (the model and estimator tables,
@@ -142,7 +133,7 @@ def model_key(cfg: JobConfig) -> tuple[str, str]:
     dbc = app.dbc_path()
     doc = {"model": model, "estimator": app.estimator, "fixed": app.fixed, "can": can,
            "signals": app.signals, "signal_overrides": list(app.signal_overrides),
-           "dbc": _file_hash(None if dbc is None else str(dbc))}
+           "dbc": None if dbc is None else hash_or_none(str(dbc))}
     key = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
     desc = ",".join(str(e) for e in effects)
     if model.get("kt") is not None:
