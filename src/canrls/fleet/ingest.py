@@ -10,9 +10,10 @@ file and the reason. On a cluster :func:`ingest` sends every log once (a path li
 twice once), each task hashing its log and fitting it, and takes the results in the
 listed order (:class:`_InOrder`): the first listed log of each content is stored, the
 others are named as duplicates. In this process it hashes each log first, so a log
-listed again is not fitted again. Results are stored in batches with the history's
-insert-or-ignore: a worker killed mid-log (Dask runs its task again elsewhere), a run
-interrupted, or two runs at once still leave every recording stored exactly once.
+listed again is not fitted again, and hands that hash to the fit. Results are stored
+in batches with the history's insert-or-ignore: a worker killed mid-log (Dask runs its
+task again elsewhere), a run interrupted, or two runs at once still leave every
+recording stored exactly once.
 """
 
 from __future__ import annotations
@@ -118,15 +119,6 @@ def hash_or_none(path: str) -> str | None:
         return None
 
 
-def _file_hash(path: str | None) -> str | None:
-    if not path:
-        return None
-    try:
-        return content_hash(path)
-    except OSError:
-        return None
-
-
 def model_key(cfg: JobConfig) -> tuple[str, str]:
     """``(key, description)`` of the model a configuration fits: the key is a SHA-256
     (hex, 64) of everything that changes the parameters (the model and estimator tables,
@@ -141,7 +133,7 @@ def model_key(cfg: JobConfig) -> tuple[str, str]:
     dbc = app.dbc_path()
     doc = {"model": model, "estimator": app.estimator, "fixed": app.fixed, "can": can,
            "signals": app.signals, "signal_overrides": list(app.signal_overrides),
-           "dbc": _file_hash(None if dbc is None else str(dbc))}
+           "dbc": None if dbc is None else hash_or_none(str(dbc))}
     key = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
     desc = ",".join(str(e) for e in effects)
     if model.get("kt") is not None:
@@ -219,14 +211,17 @@ def _recording(job: IngestJob, digest: str, res: Any,
 
 
 def ingest_one(job: IngestJob, known: frozenset[str] | set[str] | None = None,
-               ranker: Ranker | None = None) -> Recording | None:
+               ranker: Ranker | None = None, *, digest: str | None = None
+               ) -> Recording | None:
     """One log (a worker's task): None when the history holds its hash for this model
-    (``known``), else a :class:`Recording` (an error row when it cannot be fitted)."""
+    (``known``), else a :class:`Recording` (an error row when it cannot be fitted).
+    ``digest``: the log's :func:`content_hash` when the caller has taken it already."""
     from canrls.processor.replay import fit_logs
 
     path = job.source.path
     try:
-        digest = content_hash(path)
+        if digest is None:
+            digest = content_hash(path)
     except OSError as e:
         # no content to hash: the row is keyed by the path, so a rerun does not repeat it
         digest = hashlib.sha256(f"unreadable:{path}".encode()).hexdigest()
@@ -444,8 +439,8 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
             done += len(duplicates)
             if progress is not None and done:
                 progress(done, len(jobs))
-            for job in todo:
-                rec = ingest_one(job, known[job.key], use_ranker)
+            for job, digest in todo:
+                rec = ingest_one(job, known[job.key], use_ranker, digest=digest)
                 if rec is None:
                     skipped += 1
                 else:
@@ -593,11 +588,13 @@ def _scatter(client: Any, data: Any, stall: float) -> Any:
 
 
 def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],
-          known: Mapping[str, frozenset[str]]) -> tuple[list[IngestJob], list[Duplicate]]:
-    """The jobs to run: not those whose content the history holds for their model, and
-    of the logs with one content (a log listed twice, a copy under another name) only
-    the first listed; the others are returned as :class:`Duplicate`."""
-    todo: list[IngestJob] = []
+          known: Mapping[str, frozenset[str]]
+          ) -> tuple[list[tuple[IngestJob, str | None]], list[Duplicate]]:
+    """The jobs to run, each with its hash (None: unreadable): not those whose content
+    the history holds for their model, and of the logs with one content (a log listed
+    twice, a copy under another name) only the first listed; the others are returned
+    as :class:`Duplicate`."""
+    todo: list[tuple[IngestJob, str | None]] = []
     duplicates: list[Duplicate] = []
     first: dict[tuple[str, str], IngestJob] = {}
     for job, digest in zip(jobs, hashes, strict=True):
@@ -608,7 +605,7 @@ def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],
             if owner is not job:
                 duplicates.append(_duplicate(job, owner))
                 continue
-        todo.append(job)
+        todo.append((job, digest))
     return todo, duplicates
 
 
