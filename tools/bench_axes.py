@@ -11,8 +11,10 @@ publish.
 
 * **lost**: frames an axis should have taken and had not 2 s after the feed ended
   (dropped, or still waiting), summed over the axes; 0 means the process kept up.
-* **CPU per frame**: the daemons' listener and estimator thread CPU time, divided by the
-  frames fed (with ``--no-filter`` every axis judges every frame: N times the work).
+* **CPU per frame**: the thread CPU time of the machine's bus reader (one for every
+  axis, :class:`~canrls.live.hub.BusHub`) and the axes' estimator threads, divided by the
+  frames fed (with ``--no-filter`` every axis has a bus of its own and judges every
+  frame: N times the work). The feeder's time is not the daemon's.
 * **RSS** after the run, and the **cold start**: a fresh ``canrls run`` process of N
   axes from its start to its exit after ``--duration 0.01`` (imports, the machine
   checked, every daemon built, started and stopped).
@@ -78,23 +80,25 @@ def bench(n: int, seconds: float, directory: Path, filtered: bool = True) -> dic
     md.start()
     try:
         time.sleep(0.3)
-        cpu0 = sum(d.stats().estimator_cpu_s + d.stats().listener_cpu_s
-                   for d in daemons.values())
+        rx0 = md.reader_cpu_s + sum(d.stats().listener_cpu_s for d in daemons.values())
+        est0 = sum(d.stats().estimator_cpu_s for d in daemons.values())
         took = _feed(ch, msgs, rate)
         want_n = len(msgs) // n if filtered else len(msgs)
         md.wait_for(lambda x: all(d.stats().frames >= want_n and d.stats().backlog == 0
                                   for d in x.daemons.values()), 2.0)
         stats = [d.stats() for d in daemons.values()]
+        rx = md.reader_cpu_s + sum(s.listener_cpu_s for s in stats) - rx0
     finally:
         md.stop()
-    cpu = sum(s.estimator_cpu_s + s.listener_cpu_s for s in stats) - cpu0
+    est = sum(s.estimator_cpu_s for s in stats) - est0
     # every frame an axis should have taken (its own, or all without the filters) and
     # did not within 2 s of the end, dropped or still waiting, is lost
     want = len(msgs) // n if filtered else len(msgs)
     lost = sum(max(s.rx_overflow + s.counters["frames_lost"], want - s.frames)
                for s in stats)
     return {"axes": n, "offered": len(msgs) / took, "lost": lost,
-            "cpu_us": cpu / len(msgs) * 1e6, "rss_mb": _rss_mb()}
+            "cpu_us": (rx + est) / len(msgs) * 1e6, "rx_us": rx / len(msgs) * 1e6,
+            "est_us": est / len(msgs) * 1e6, "rss_mb": _rss_mb()}
 
 
 def cold_start(n: int, directory: Path) -> float:
@@ -115,12 +119,13 @@ def main() -> None:
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         print(f"{'axes':>4}  {'frames/s':>9}  {'lost':>7}  {'CPU µs/frame':>12}  "
-              f"{'RSS MB':>7}  {'cold start s':>12}")
+              f"{'(reader':>7}  {'estim.)':>7}  {'RSS MB':>7}  {'cold start s':>12}")
         for n in (int(x) for x in args.axes.split(",")):
             r = bench(n, args.seconds, Path(tmp), filtered=not args.no_filter)
             c = cold_start(n, Path(tmp))
             print(f"{n:>4}  {r['offered']:>9.0f}  {r['lost']:>7.0f}  {r['cpu_us']:>12.1f}  "
-                  f"{r['rss_mb']:>7.0f}  {c:>12.2f}", flush=True)
+                  f"{r['rx_us']:>7.1f}  {r['est_us']:>7.1f}  {r['rss_mb']:>7.0f}  {c:>12.2f}",
+                  flush=True)
 
 
 if __name__ == "__main__":
