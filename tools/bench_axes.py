@@ -15,13 +15,19 @@ publish.
   axis, :class:`~canrls.live.hub.BusHub`) and the axes' estimator threads, divided by the
   frames fed (with ``--no-filter`` every axis has a bus of its own and judges every
   frame: N times the work). The feeder's time is not the daemon's.
+* **publication period** of the axes other than the first: the largest gap between two
+  publications of one axis (their parameter frames sent), and the 99th percentile, in
+  ms (``publish_interval`` 100 ms). With ``--flood RATE`` the first axis also gets RATE
+  frames/s of seeded garbage on its current feedback ID, spread over the run: the
+  others' frames, estimates and publication period must not notice (issue 31, a fault
+  on one axis never changes another axis's timing).
 * **RSS** after the run, and the **cold start**: a fresh ``canrls run`` process of N
   axes from its start to its exit after ``--duration 0.01`` (imports, the machine
   checked, every daemon built, started and stopped).
 
 Usage::
 
-    python tools/bench_axes.py [--axes 1,2,4,8] [--seconds 5] [--no-filter]
+    python tools/bench_axes.py [--axes 1,2,4,8] [--seconds 5] [--no-filter] [--flood 0]
 """
 
 from __future__ import annotations
@@ -32,7 +38,11 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+
+import can
+import numpy as np
 
 from bench_daemon import _feed  # the feeder of the one-drive benchmark, at a fixed rate
 from canrls.live.daemon import Daemon
@@ -61,29 +71,59 @@ def _config(n: int, directory: Path) -> Path:
     return p
 
 
-def bench(n: int, seconds: float, directory: Path, filtered: bool = True) -> dict[str, float]:
+def _flooded(msgs: list[can.Message], frame_id: int, rate: float,
+             seconds: float) -> list[can.Message]:
+    """``msgs`` with ``rate`` frames/s of seeded garbage on ``frame_id`` spread among them."""
+    rng = np.random.default_rng(31)
+    k = int(rate * seconds)
+    flood = [can.Message(timestamp=seconds * (i + 0.5) / k, arbitration_id=frame_id,
+                         is_extended_id=False, data=rng.bytes(8)) for i in range(k)]
+    return sorted(msgs + flood, key=lambda m: m.timestamp)
+
+
+def _gaps(times: list[float]) -> tuple[float, float]:
+    """The largest gap between publications and its 99th percentile [ms]."""
+    d = np.diff(times) * 1e3
+    return (float(d.max()), float(np.percentile(d, 99))) if len(d) else (np.nan, np.nan)
+
+
+def bench(n: int, seconds: float, directory: Path, filtered: bool = True,
+          flood: float = 0.0) -> dict[str, float]:
     """N axes fed ``seconds`` of the machine's frames at 1 kHz (``filtered``: each axis
-    takes its own frames only, as ``canrls run`` does)."""
+    takes its own frames only, as ``canrls run`` does; ``flood``: frames/s of garbage on
+    the first axis's feedback ID)."""
     msgs = [m for b in machine_frames(machine(n, duration=seconds, seed=1))
             for m in b.to_messages()]
-    rate = 2000.0 * n
+    own = len(msgs)
     ch = f"bench-axes-{next(_ch)}"
     daemons = {}
+    sent: dict[str, list[float]] = {}
+
+    def on_publish(name: str) -> Callable[[int, float], None]:
+        return lambda frames, at: sent[name].append(at)
+
     for name, cfg in load_config(_config(n, directory)).axis_configs().items():
         protocol = cfg.protocol()
-        dset = DaemonSettings(queue_size=max(1000, int(rate * 0.5)),
+        if flood and not daemons:
+            msgs = _flooded(msgs, protocol.messages[0].frame_id, flood, seconds)
+        dset = DaemonSettings(queue_size=max(1000, int(2000.0 * n * 0.5)),
                               own_offset=DaemonSettings.from_config(cfg).own_offset,
                               rx_filter=filtered)
+        sent[name] = []
         daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
-                               bus={"interface": "virtual", "channel": ch})
+                               bus={"interface": "virtual", "channel": ch},
+                               on_publish=on_publish(name))
+    rate = len(msgs) / seconds
     md = MachineDaemon(daemons)
     md.start()
     try:
         time.sleep(0.3)
         rx0 = md.reader_cpu_s + sum(d.stats().listener_cpu_s for d in daemons.values())
         est0 = sum(d.stats().estimator_cpu_s for d in daemons.values())
+        for times in sent.values():
+            times.clear()
         took = _feed(ch, msgs, rate)
-        want_n = len(msgs) // n if filtered else len(msgs)
+        want_n = own // n if filtered else len(msgs)
         md.wait_for(lambda x: all(d.stats().frames >= want_n and d.stats().backlog == 0
                                   for d in x.daemons.values()), 2.0)
         stats = [d.stats() for d in daemons.values()]
@@ -93,12 +133,15 @@ def bench(n: int, seconds: float, directory: Path, filtered: bool = True) -> dic
     est = sum(s.estimator_cpu_s for s in stats) - est0
     # every frame an axis should have taken (its own, or all without the filters) and
     # did not within 2 s of the end, dropped or still waiting, is lost
-    want = len(msgs) // n if filtered else len(msgs)
+    want = own // n if filtered else len(msgs)
+    others = stats[1:] if flood else stats  # the flooded axis drops its flood: its own
     lost = sum(max(s.rx_overflow + s.counters["frames_lost"], want - s.frames)
-               for s in stats)
+               for s in others)
+    gaps = [_gaps(t) for t in list(sent.values())[1:]] or [(np.nan, np.nan)]
     return {"axes": n, "offered": len(msgs) / took, "lost": lost,
             "cpu_us": (rx + est) / len(msgs) * 1e6, "rx_us": rx / len(msgs) * 1e6,
-            "est_us": est / len(msgs) * 1e6, "rss_mb": _rss_mb()}
+            "est_us": est / len(msgs) * 1e6, "rss_mb": _rss_mb(),
+            "gap_max": max(g[0] for g in gaps), "gap_p99": max(g[1] for g in gaps)}
 
 
 def cold_start(n: int, directory: Path) -> float:
@@ -116,16 +159,20 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=5.0, help="seconds of traffic each")
     ap.add_argument("--no-filter", action="store_true",
                     help="every axis takes every frame of the bus (no filters)")
+    ap.add_argument("--flood", type=float, default=0.0,
+                    help="frames/s of garbage on the first axis's feedback ID (default 0)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         print(f"{'axes':>4}  {'frames/s':>9}  {'lost':>7}  {'CPU µs/frame':>12}  "
-              f"{'(reader':>7}  {'estim.)':>7}  {'RSS MB':>7}  {'cold start s':>12}")
+              f"{'(reader':>7}  {'estim.)':>7}  {'gap max ms':>10}  {'p99':>6}  "
+              f"{'RSS MB':>7}  {'cold start s':>12}")
         for n in (int(x) for x in args.axes.split(",")):
-            r = bench(n, args.seconds, Path(tmp), filtered=not args.no_filter)
+            r = bench(n, args.seconds, Path(tmp), filtered=not args.no_filter,
+                      flood=args.flood)
             c = cold_start(n, Path(tmp))
             print(f"{n:>4}  {r['offered']:>9.0f}  {r['lost']:>7.0f}  {r['cpu_us']:>12.1f}  "
-                  f"{r['rx_us']:>7.1f}  {r['est_us']:>7.1f}  {r['rss_mb']:>7.0f}  {c:>12.2f}",
-                  flush=True)
+                  f"{r['rx_us']:>7.1f}  {r['est_us']:>7.1f}  {r['gap_max']:>10.1f}  "
+                  f"{r['gap_p99']:>6.1f}  {r['rss_mb']:>7.0f}  {c:>12.2f}", flush=True)
 
 
 if __name__ == "__main__":
