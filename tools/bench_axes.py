@@ -21,9 +21,12 @@ publish.
   frames/s of seeded garbage on its current feedback ID, spread over the run: the
   others' frames, estimates and publication period must not notice (issue 31, a fault
   on one axis never changes another axis's timing).
-* **RSS** after the run, and the **cold start**: a fresh ``canrls run`` process of N
-  axes from its start to its exit after ``--duration 0.01`` (imports, the machine
-  checked, every daemon built, started and stopped).
+* **RSS** after the run (this process: the simulated frames and the feeder included),
+  and the **cold start**: a fresh ``canrls run`` process of N axes from its start to its
+  exit after ``--duration 0.01`` (imports, the machine checked, every daemon built,
+  started and stopped) with canrls's bytecode cached as an installed package has it,
+  that process's peak RSS, and the start without bytecode (``PYTHONDONTWRITEBYTECODE``:
+  every module of canrls compiled at each start).
 
 Usage::
 
@@ -34,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import subprocess
 import sys
 import tempfile
@@ -52,6 +56,11 @@ from canrls.processor.config import load_config
 from canrls.sim.machine import AXIS_ID_STEP, machine, machine_frames
 
 _ch = itertools.count()
+#: ``python -m canrls ARGS`` that prints its peak RSS (``VmHWM``) to stderr at exit (a
+#: child's ``ru_maxrss`` would count the parent's pages at the fork)
+_PEAK = ("import atexit, runpy, sys; atexit.register(lambda: print(next(ln for ln in "
+         "open('/proc/self/status') if ln.startswith('VmHWM:')), end='', file=sys.stderr)); "
+         "sys.argv = ['canrls', *sys.argv[1:]]; runpy.run_module('canrls', run_name='__main__')")
 
 
 def _rss_mb() -> float:
@@ -144,13 +153,25 @@ def bench(n: int, seconds: float, directory: Path, filtered: bool = True,
             "gap_max": max(g[0] for g in gaps), "gap_p99": max(g[1] for g in gaps)}
 
 
-def cold_start(n: int, directory: Path) -> float:
-    """Seconds of a fresh ``canrls run`` of ``n`` axes, start to exit."""
-    t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "canrls", "run", "--config",
-                    str(_config(n, directory)), "-i", "virtual", "-c", f"cold-{n}",
-                    "--duration", "0.01"], check=True, capture_output=True, timeout=120)
-    return time.perf_counter() - t0
+def cold_start(n: int, directory: Path, compiled: bool = True) -> tuple[float, float]:
+    """Seconds of a fresh ``canrls run`` of ``n`` axes, start to exit, and its peak RSS
+    [MB]. ``compiled``: with Python's bytecode of canrls written and read (as an
+    installed package has it; one run first writes it even where
+    ``PYTHONDONTWRITEBYTECODE`` is set); else as the environment says."""
+    env = dict(os.environ)
+    if compiled:
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+    argv = [sys.executable, "-c", _PEAK, "run", "--config", str(_config(n, directory)),
+            "-i", "virtual", "-c", f"cold-{n}", "--duration", "0.01"]
+    for _ in range(2 if compiled else 1):
+        t0 = time.perf_counter()
+        r = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=120)
+        took = time.perf_counter() - t0
+        if r.returncode != 0:
+            raise SystemExit(f"error: canrls run of {n} axes exited {r.returncode}: "
+                             f"{r.stderr.strip()}")
+    peak = [ln for ln in r.stderr.splitlines() if ln.startswith("VmHWM:")]
+    return took, int(peak[-1].split()[1]) / 1024.0
 
 
 def main() -> None:
@@ -165,14 +186,16 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         print(f"{'axes':>4}  {'frames/s':>9}  {'lost':>7}  {'CPU µs/frame':>12}  "
               f"{'(reader':>7}  {'estim.)':>7}  {'gap max ms':>10}  {'p99':>6}  "
-              f"{'RSS MB':>7}  {'cold start s':>12}")
+              f"{'RSS MB':>7}  {'cold start s':>12}  {'(RSS MB)':>8}  {'no .pyc s':>9}")
         for n in (int(x) for x in args.axes.split(",")):
             r = bench(n, args.seconds, Path(tmp), filtered=not args.no_filter,
                       flood=args.flood)
-            c = cold_start(n, Path(tmp))
+            c, c_rss = cold_start(n, Path(tmp))
+            c_src = cold_start(n, Path(tmp), compiled=False)[0]
             print(f"{n:>4}  {r['offered']:>9.0f}  {r['lost']:>7.0f}  {r['cpu_us']:>12.1f}  "
                   f"{r['rx_us']:>7.1f}  {r['est_us']:>7.1f}  {r['gap_max']:>10.1f}  "
-                  f"{r['gap_p99']:>6.1f}  {r['rss_mb']:>7.0f}  {c:>12.2f}", flush=True)
+                  f"{r['gap_p99']:>6.1f}  {r['rss_mb']:>7.0f}  {c:>12.2f}  {c_rss:>8.0f}  "
+                  f"{c_src:>9.2f}", flush=True)
 
 
 if __name__ == "__main__":
