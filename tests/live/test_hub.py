@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from canrls.can.frameblock import FrameBlock
-from canrls.live.bus import BusLink, FrameQueue, messages_to_block, open_bus
+from canrls.live.bus_link import BusLink, FrameQueue, messages_to_block, open_bus
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.live.hub import BusHub
-from canrls.live.settings import DaemonSettings
 
 
 def _link(hub: BusHub, ids: list[tuple[int, bool]], limit: int = 1000) -> BusLink:

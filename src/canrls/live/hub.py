@@ -6,8 +6,8 @@
                     by its (ID, extended) in one sorted table (np.searchsorted),
                     the block cut per axis in one stable sort --> each axis's FrameQueue
 
-Each axis's :class:`~canrls.live.bus.BusLink` attaches to the hub instead of opening a
-bus of its own (:class:`~canrls.live.bus.SharedBus`); it sends on the hub's bus. Why one
+Each axis's :class:`~canrls.live.bus_link.BusLink` attaches to the hub instead of opening a
+bus of its own (:class:`~canrls.live.bus_link.SharedBus`); it sends on the hub's bus. Why one
 reader rather than one per axis, and the figures: docs/daemon.md, *A machine's axes*.
 """
 
@@ -24,8 +24,8 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can.frameblock import FrameBlock
-from canrls.live.bus import BusLink, FrameQueue, messages_to_block
-from canrls.live.settings import DaemonSettings
+from canrls.live.bus_link import BusLink, FrameQueue, messages_to_block
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.live.socketcan import Span, to_block
 
 __all__ = ["BusHub"]
@@ -74,7 +74,7 @@ class _Routes:
 
 
 class BusHub:
-    """The one bus of a machine's axes (a :class:`~canrls.live.bus.SharedBus`): opened
+    """The one bus of a machine's axes (a :class:`~canrls.live.bus_link.SharedBus`): opened
     when the first axis attaches, closed when the last detaches, reopened once for all
     when it fails. Its reader hands it blocks of frames (:meth:`on_block`); each frame
     goes to the queue of the axis whose (ID, extended) it carries, in stream order;

@@ -10,7 +10,7 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 
 from canrls.core.errors import CanrlsError
-from canrls.live.bus import open_bus
+from canrls.live.bus_link import open_bus
 from canrls.live.daemon import Daemon, serve, wait_until
 from canrls.live.hub import BusHub
 from canrls.processor.axes import check_own
