@@ -2,12 +2,13 @@
 
 Prints figures; it is not a test. For each number of axes N: a simulated machine of N
 drives at 1 kHz (``canrls.sim.machine``, 2 feedback frames per axis and period, 2000 N
-frames/s) is simulated and encoded first, then put on python-can's virtual channel at
-its own rate by a feeder thread (as in ``tools/bench_daemon.py``) for ``--seconds``; the
-N daemons of a :class:`~canrls.live.machine_daemon.MachineDaemon` (each its own virtual bus
-connection, taking only its own feedback and command frames through the bus's filters
-as ``canrls run`` of a machine sets them; ``--no-filter``: every frame) estimate and
-publish.
+frames/s) is simulated and encoded first (at most :data:`SEGMENT_S`; a longer run feeds
+that stretch again, later each time), then put on python-can's virtual channel at its
+own rate by a feeder thread (as in ``tools/bench_daemon.py``) for ``--seconds``; the N
+daemons of a :class:`~canrls.live.machine_daemon.MachineDaemon` (one bus connection and
+reader for all, each axis taking its own feedback and command frames, as ``canrls run``
+of a machine; ``--no-filter``: each axis a connection of its own, taking every frame)
+estimate and publish.
 
 * **lost**: frames an axis should have taken and had not 2 s after the feed ended
   (dropped, or still waiting), summed over the axes; 0 means the process kept up.
@@ -37,18 +38,20 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import os
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import can
 import numpy as np
+from can.interfaces import virtual as _virtual
 
-from bench_daemon import _feed  # the feeder of the one-drive benchmark, at a fixed rate
+from canrls.can.frameblock import FrameBlock
 from canrls.live.daemon import Daemon
 from canrls.live.daemon_settings import DaemonSettings
 from canrls.live.machine_daemon import MachineDaemon
@@ -56,6 +59,8 @@ from canrls.processor.config import load_config
 from canrls.sim.machine import AXIS_ID_STEP, machine, machine_frames
 
 _ch = itertools.count()
+#: the longest simulated stretch [s]; a longer run feeds it again, later each time
+SEGMENT_S = 10.0
 #: ``python -m canrls ARGS`` that prints its peak RSS (``VmHWM``) to stderr at exit (a
 #: child's ``ru_maxrss`` would count the parent's pages at the fork)
 _PEAK = ("import atexit, runpy, sys; atexit.register(lambda: print(next(ln for ln in "
@@ -80,14 +85,57 @@ def _config(n: int, directory: Path) -> Path:
     return p
 
 
-def _flooded(msgs: list[can.Message], frame_id: int, rate: float,
-             seconds: float) -> list[can.Message]:
-    """``msgs`` with ``rate`` frames/s of seeded garbage on ``frame_id`` spread among them."""
+def _flooded(block: FrameBlock, frame_id: int, rate: float, seconds: float) -> FrameBlock:
+    """``block`` with ``rate`` frames/s of seeded garbage on ``frame_id`` spread among its
+    frames (in time order)."""
     rng = np.random.default_rng(31)
     k = int(rate * seconds)
-    flood = [can.Message(timestamp=seconds * (i + 0.5) / k, arbitration_id=frame_id,
-                         is_extended_id=False, data=rng.bytes(8)) for i in range(k)]
-    return sorted(msgs + flood, key=lambda m: m.timestamp)
+    flood = FrameBlock.allocate(k)
+    flood.t[:] = seconds * (np.arange(k) + 0.5) / k
+    flood.arbitration_id[:] = frame_id
+    flood.dlc[:] = 8
+    flood.data[:] = rng.integers(0, 256, (k, 8), np.uint8)
+    both = FrameBlock.concat([block, flood])
+    return both.take(np.argsort(both.t, kind="stable"))
+
+
+def _chunks(segment: FrameBlock, seconds: float, repeats: int) -> Iterator[list[can.Message]]:
+    """The segment's frames ``repeats`` times, each time ``seconds`` later, as messages
+    made 20 ms of the machine at a time (a long run never holds them all, and the feeder
+    never holds the interpreter long)."""
+    edges = np.searchsorted(segment.t, np.arange(0.0, seconds + 0.04, 0.02))
+    for k in range(repeats):
+        for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+            part = segment.take(slice(lo, hi))
+            msgs = part.to_messages()
+            for m in msgs:
+                m.timestamp += k * seconds
+            yield msgs
+
+
+def _feed(ch: str, chunks: Iterator[list[can.Message]], total: int, rate: float,
+          tick: float = 1e-3) -> float:
+    """Put ``total`` frames of ``chunks`` on the channel at ``rate`` frames/s, the frames
+    due every ``tick`` (as ``tools/bench_daemon.py`` does); returns the duration."""
+    with _virtual.channels_lock:
+        queues = list(_virtual.channels[ch])
+    buf: list[can.Message] = []
+    t0 = time.perf_counter()
+    k = step = 0
+    while k < total:
+        step += 1
+        due = min(total, int((time.perf_counter() - t0) * rate) + 1)
+        while k < due:
+            if not buf:
+                buf = next(chunks)[::-1]
+            m = buf.pop()
+            for q in queues:
+                q.put_nowait(m)
+            k += 1
+        wait = t0 + step * tick - time.perf_counter()
+        if wait > 0:
+            time.sleep(wait)
+    return time.perf_counter() - t0
 
 
 def _gaps(times: list[float]) -> tuple[float, float]:
@@ -101,9 +149,12 @@ def bench(n: int, seconds: float, directory: Path, filtered: bool = True,
     """N axes fed ``seconds`` of the machine's frames at 1 kHz (``filtered``: each axis
     takes its own frames only, as ``canrls run`` does; ``flood``: frames/s of garbage on
     the first axis's feedback ID)."""
-    msgs = [m for b in machine_frames(machine(n, duration=seconds, seed=1))
-            for m in b.to_messages()]
-    own = len(msgs)
+    # a run longer than SEGMENT_S: the machine's first SEGMENT_S again and again, later
+    # each time (the alive counters go round whole: 10,000 periods of 16)
+    segment_s = min(seconds, SEGMENT_S)
+    repeats = math.ceil(seconds / segment_s)
+    segment = FrameBlock.concat(machine_frames(machine(n, duration=segment_s, seed=1)))
+    own = len(segment) * repeats
     ch = f"bench-axes-{next(_ch)}"
     daemons = {}
     sent: dict[str, list[float]] = {}
@@ -114,7 +165,7 @@ def bench(n: int, seconds: float, directory: Path, filtered: bool = True,
     for name, cfg in load_config(_config(n, directory)).axis_configs().items():
         protocol = cfg.protocol()
         if flood and not daemons:
-            msgs = _flooded(msgs, protocol.messages[0].frame_id, flood, seconds)
+            segment = _flooded(segment, protocol.messages[0].frame_id, flood, segment_s)
         dset = DaemonSettings(queue_size=max(1000, int(2000.0 * n * 0.5)),
                               own_offset=DaemonSettings.from_config(cfg).own_offset,
                               rx_filter=filtered)
@@ -122,7 +173,8 @@ def bench(n: int, seconds: float, directory: Path, filtered: bool = True,
         daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
                                bus={"interface": "virtual", "channel": ch},
                                on_publish=on_publish(name))
-    rate = len(msgs) / seconds
+    total = len(segment) * repeats
+    rate = len(segment) / segment_s
     md = MachineDaemon(daemons)
     md.start()
     try:
@@ -131,8 +183,8 @@ def bench(n: int, seconds: float, directory: Path, filtered: bool = True,
         est0 = sum(d.stats().estimator_cpu_s for d in daemons.values())
         for times in sent.values():
             times.clear()
-        took = _feed(ch, msgs, rate)
-        want_n = own // n if filtered else len(msgs)
+        took = _feed(ch, _chunks(segment, segment_s, repeats), total, rate)
+        want_n = own // n if filtered else total
         md.wait_for(lambda x: all(d.stats().frames >= want_n and d.stats().backlog == 0
                                   for d in x.daemons.values()), 2.0)
         stats = [d.stats() for d in daemons.values()]
@@ -142,14 +194,14 @@ def bench(n: int, seconds: float, directory: Path, filtered: bool = True,
     est = sum(s.estimator_cpu_s for s in stats) - est0
     # every frame an axis should have taken (its own, or all without the filters) and
     # did not within 2 s of the end, dropped or still waiting, is lost
-    want = own // n if filtered else len(msgs)
+    want = own // n if filtered else total
     others = stats[1:] if flood else stats  # the flooded axis drops its flood: its own
     lost = sum(max(s.rx_overflow + s.counters["frames_lost"], want - s.frames)
                for s in others)
     gaps = [_gaps(t) for t in list(sent.values())[1:]] or [(np.nan, np.nan)]
-    return {"axes": n, "offered": len(msgs) / took, "lost": lost,
-            "cpu_us": (rx + est) / len(msgs) * 1e6, "rx_us": rx / len(msgs) * 1e6,
-            "est_us": est / len(msgs) * 1e6, "rss_mb": _rss_mb(),
+    return {"axes": n, "offered": total / took, "lost": lost,
+            "cpu_us": (rx + est) / total * 1e6, "rx_us": rx / total * 1e6,
+            "est_us": est / total * 1e6, "rss_mb": _rss_mb(),
             "gap_max": max(g[0] for g in gaps), "gap_p99": max(g[1] for g in gaps)}
 
 
