@@ -126,7 +126,7 @@ def _feed(ch: str, chunks: Iterator[list[can.Message]], total: int, rate: float,
         step += 1
         due = min(total, int((time.perf_counter() - t0) * rate) + 1)
         while k < due:
-            if not buf:
+            while not buf:
                 buf = next(chunks)[::-1]
             m = buf.pop()
             for q in queues:
