@@ -100,3 +100,31 @@ def test_the_bus_opens_with_the_first_axis_and_closes_with_the_last() -> None:
     assert not opened[0]._is_shutdown  # b still on it
     b.close()
     assert opened[0]._is_shutdown
+
+
+def test_a_failed_bus_is_reopened_once_for_every_axis() -> None:
+    ch = f"hub-reopen-{os.getpid()}"
+    opened: list[can.BusABC] = []
+
+    def factory() -> can.BusABC:
+        opened.append(open_bus({"interface": "virtual", "channel": ch}))
+        return opened[-1]
+
+    hub = BusHub(factory, DaemonSettings(reopen_min_s=0.01))
+    a, b = _link(hub, [(0x101, False)]), _link(hub, [(0x111, False)])
+    for link in (a, b):  # the daemon's callback: its link has failed
+        link.queue._on_error = link.recv_failed
+        link.open()
+    try:
+        hub.on_error(OSError("gone"))  # the reader's recv raised
+        assert a.failed.is_set() and b.failed.is_set() and a.paused(0.0)
+        stopping = threading.Event()
+        a.reopen(stopping)
+        b.reopen(stopping)
+        assert len(opened) == 2 and opened[0]._is_shutdown
+        assert a.bus is b.bus is opened[1] and not a.failed.is_set() and not b.failed.is_set()
+        assert a.counts["bus_reopens"] == b.counts["bus_reopens"] == 1
+    finally:
+        a.close()
+        b.close()
+    assert opened[1]._is_shutdown
