@@ -83,16 +83,22 @@ def test_each_axis_gets_its_frames_in_order_and_errors_others_are_counted(mixed:
     assert a.bus is None
 
 
-def test_the_bus_opens_with_the_first_axis_and_closes_with_the_last() -> None:
-    ch = f"hub-life-{os.getpid()}"
+def _two_axes(tag: str, settings: DaemonSettings
+              ) -> tuple[BusHub, BusLink, BusLink, list[can.BusABC]]:
+    """A hub on a virtual channel, two axes' links on it, and every bus it opened."""
+    ch = f"hub-{tag}-{os.getpid()}"
     opened: list[can.BusABC] = []
 
     def factory() -> can.BusABC:
         opened.append(open_bus({"interface": "virtual", "channel": ch}))
         return opened[-1]
 
-    hub = BusHub(factory, DaemonSettings())
-    a, b = _link(hub, [(0x101, False)]), _link(hub, [(0x111, False)])
+    hub = BusHub(factory, settings)
+    return hub, _link(hub, [(0x101, False)]), _link(hub, [(0x111, False)]), opened
+
+
+def test_the_bus_opens_with_the_first_axis_and_closes_with_the_last() -> None:
+    _, a, b, opened = _two_axes("life", DaemonSettings())
     a.open()
     b.open()
     assert len(opened) == 1 and a.bus is b.bus is opened[0]
@@ -103,15 +109,7 @@ def test_the_bus_opens_with_the_first_axis_and_closes_with_the_last() -> None:
 
 
 def test_a_failed_bus_is_reopened_once_for_every_axis() -> None:
-    ch = f"hub-reopen-{os.getpid()}"
-    opened: list[can.BusABC] = []
-
-    def factory() -> can.BusABC:
-        opened.append(open_bus({"interface": "virtual", "channel": ch}))
-        return opened[-1]
-
-    hub = BusHub(factory, DaemonSettings(reopen_min_s=0.01))
-    a, b = _link(hub, [(0x101, False)]), _link(hub, [(0x111, False)])
+    hub, a, b, opened = _two_axes("reopen", DaemonSettings(reopen_min_s=0.01))
     for link in (a, b):  # the daemon's callback: its link has failed
         link.queue._on_error = link.recv_failed
         link.open()
