@@ -55,6 +55,7 @@ from canrls.live.publisher import FixedPath, Publisher, check_publishable
 from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
 from canrls.live.settings import DaemonSettings
+from canrls.live.signals import SignalRelay
 from canrls.live.tuning import interpreter
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig
@@ -128,29 +129,29 @@ def serve(target: Any, stopping: threading.Event, duration: float | None,
     ``stopping`` is set (SIGTERM/SIGINT request it), ``duration`` s have passed or
     ``target.failure`` is set, then stop it; SIGHUP requests a reload; ``each`` is called
     at every wake-up (at least every 0.2 s). Signal handlers only from the main thread,
-    restored after. Returns the exit status (0, or 1 after a failure)."""
-    handlers: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig, fn in ((signal.SIGTERM, lambda *_: target.request_stop()),
-                        (signal.SIGINT, lambda *_: target.request_stop()),
-                        (signal.SIGHUP, lambda *_: target.request_reload())):
-            handlers[sig] = signal.signal(sig, fn)
-    try:
-        target.start()
-        if ready is not None:
-            ready()
-        end = None if duration is None else time.monotonic() + duration
-        while not stopping.is_set() and target.failure is None:
-            left = 0.2 if end is None else min(0.2, end - time.monotonic())
-            if left <= 0:
-                break
-            stopping.wait(left)
-            if each is not None:
-                each()
-    finally:
-        target.stop()
-        for sig, old in handlers.items():
-            signal.signal(sig, old)
+    restored after; they act from a thread of their own (:class:`SignalRelay`), never
+    inside the code a signal interrupts. Returns the exit status (0, or 1 after a failure)."""
+    def stop(_: int) -> None:
+        target.request_stop()
+
+    def reload(_: int) -> None:
+        target.request_reload()
+
+    with SignalRelay({signal.SIGTERM: stop, signal.SIGINT: stop, signal.SIGHUP: reload}):
+        try:
+            target.start()
+            if ready is not None:
+                ready()
+            end = None if duration is None else time.monotonic() + duration
+            while not stopping.is_set() and target.failure is None:
+                left = 0.2 if end is None else min(0.2, end - time.monotonic())
+                if left <= 0:
+                    break
+                stopping.wait(left)
+                if each is not None:
+                    each()
+        finally:
+            target.stop()
     return 0 if target.failure is None else 1
 
 
