@@ -150,10 +150,11 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
         return c
 
     protocol, model, settings = prepare(with_model_file(cfg))
-    if dset.own_offset:
-        from canrls.processor.axes import check_own
+    from canrls.processor.axes import check_own
 
-        check_own({"the drive": protocol}, {"the drive": dset.own_offset})
+    # a drive frame on one of canrls' own IDs: the daemon would take its own
+    # publications (or a command) as the drive's
+    check_own({"the drive": protocol}, {"the drive": dset.own_offset}, _OWN_HINT)
     bus = bus_config(cfg)
 
     def reloaded_model() -> Any:
@@ -215,6 +216,9 @@ def _history_hook(cfg: Any, job: Any) -> Any:
 log = logging.getLogger(__name__)
 
 _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+#: what a drive frame on one of canrls' own IDs asks for
+_OWN_HINT = ("give the drive's message another ID, or move canrls' frames with [daemon] "
+             "own_ids = \"offset:N\"")
 
 
 class _Stop:
