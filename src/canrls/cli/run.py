@@ -256,11 +256,12 @@ def _signals_for_life(stop: _Stop, process_exits: bool) -> Iterator[None]:
     Before the daemon exists a stop is remembered (:class:`_Stop`) and a SIGHUP ignored;
     while it runs, :meth:`Daemon.run` has its own handlers; after it stopped, further
     signals only log. At the end, when the command is the process's own
-    (``process_exits``), SIGTERM and SIGHUP are left ignored if they had their default
-    action (the process is exiting: a late SIGTERM must not turn a clean stop into death
-    by signal, exit status -15; a Python handler would not do, Python resets it to the
-    default while it finalises); otherwise, and for the other signals, the handlers are
-    restored: ``SIG_IGN`` passes to every process started afterwards.
+    (``process_exits``), SIGTERM, SIGINT and SIGHUP are left ignored if they had their
+    default action or Python's (the process is exiting: a late SIGTERM or SIGINT must not
+    turn a clean stop into death by signal, exit status -15 or -2, or 130; a Python
+    handler would not do, Python resets it to the default while it finalises);
+    otherwise the handlers are restored: ``SIG_IGN`` passes to every process started
+    afterwards.
     """
     def hup(signum: int) -> None:
         log.info("SIGHUP: nothing to reload now")
@@ -275,7 +276,8 @@ def _signals_for_life(stop: _Stop, process_exits: bool) -> Iterator[None]:
             yield
         finally:
             for sig, h in old.items():
-                quiet = process_exits and h is signal.SIG_DFL and sig != signal.SIGINT
+                # Python's own SIGINT handler raises KeyboardInterrupt: exit status 130
+                quiet = process_exits and h in (signal.SIG_DFL, signal.default_int_handler)
                 relay.leave(sig, signal.SIG_IGN if quiet else h)
 
 
