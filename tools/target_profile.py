@@ -30,7 +30,8 @@ import target_whole as tw  # noqa: E402
 #: or the replay that feeds the frames and compares the records)
 STAGES = {
     "decode and pair": ("canrls_target_frame", "cr_frame", "cr_extract", "cr_bswap32",
-                        "cr_popcount"),
+                        "cr_popcount", "cr_float", "cr_float_word", "canrls_target_pair",
+                        "canrls_target_reject"),
     "filters (SVF, tanh, exp, sin/cos)": (
         "cr_filter", "cr_svf_row", "cr_split_input", "cr_inputs", "cr_table_eval",
         "cr_quarter", "cr_tanh_q24", "cr_exp2_neg_q24", "cr_exp_neg_q24", "cr_sincos_q64"),
@@ -38,7 +39,9 @@ STAGES = {
         "cr_sample", "cr_update", "cr_values", "cr_changes", "cr_state", "cr_mul_rsh",
         "cr_sat", "cr_rsh", "cr_shl", "cr_bitlen64", "cr_clog2", "cr_clog2_mul", "cr_adapt",
         "cr_restore", "cr_P_scale", "cr_isqrt", "cr_restart", "cr_trace_bound",
-        "cr_floor_scaled", "cr_ceil_scaled"),
+        "cr_floor_scaled", "cr_ceil_scaled", "fr_sample", "fr_update_0", "fr_update_1",
+        "fr_values_0", "fr_values_1", "fr_changes_0", "fr_changes_1", "canrls_target_step",
+        "canrls_target_adapt", "canrls_target_restart", "canrls_target_sampled"),
     "publication": ("canrls_target_publish", "cr_f32_bits", "cr_put"),
     "replay (the test harness)": ("canrls_replay_frames", "canrls_replay", "record", "memcmp",
                                   "canrls_mark", "main"),
