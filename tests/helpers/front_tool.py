@@ -71,7 +71,7 @@ def both_paths(out: Path) -> tuple[str, str]:
     """The harness's output with the generated front end and with the tables."""
     need_tool("cc", ["gcc"])
     (out / "front_harness.c").write_text(HARNESS)
-    m = re.search(r"^NDEFS \?=(.*)$", (out / "Makefile").read_text(), re.M)
+    m = re.search(r"^TABLE_DEFS \?=(.*)$", (out / "Makefile").read_text(), re.M)
     assert m is not None
     ndefs = m.group(1).split()
     common = ["cc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", *ndefs, "-I", str(out),
