@@ -6,8 +6,8 @@ either exports C that builds with the export's warnings and replays its log bit 
 through the generated front end and the table-driven one, frame by frame, or is refused
 with one ``error:`` line and nothing written: C keywords and canrls' own function names
 as message and signal names, 29-bit IDs up to 0x1FFFFFFF, Motorola fields across byte
-boundaries, a Motorola float32 speed, a 13-bit current at bit 3 with an odd scale factor,
-a 32-bit unsigned position spread over five bytes, and a huge scale factor.
+boundaries, a Motorola float32 speed (its scale factor 1, 1e30 or 1e-30), a 13-bit current
+at bit 3 with an odd scale factor, a 32-bit unsigned position spread over five bytes.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ SIGNALS = ["current=canrls_target_frame.S", "speed=canrls_target_frame.data",
            "position=return_.len"]
 
 
-def _dbc(current_scale: str) -> str:
+def _dbc(speed_scale: str = "1", speed_limit: str = "30000") -> str:
     return f'''VERSION ""
 
 NS_ :
@@ -40,8 +40,8 @@ BS_:
 BU_: Drive
 
 BO_ 2684354559 canrls_target_frame: 8 Drive
- SG_ S : 3|13@1- ({current_scale},0) [-50|50] "A" Vector__XXX
- SG_ data : 23|32@0- (1,0) [-30000|30000] "rpm" Vector__XXX
+ SG_ S : 3|13@1- (0.0123456789,0) [-50|50] "A" Vector__XXX
+ SG_ data : 23|32@0- ({speed_scale},0) [-{speed_limit}|{speed_limit}] "rpm" Vector__XXX
 
 BO_ 2147483664 return_: 6 Drive
  SG_ len : 5|32@1+ (0.01,0) [0|42949672.95] "deg" Vector__XXX
@@ -58,18 +58,21 @@ def _run(argv: list[str]) -> tuple[int, str]:
     return rc, buf.getvalue()
 
 
-@pytest.mark.parametrize("scale", ["0.0123456789", "1e+30"], ids=["odd-scale", "huge-scale"])
+@pytest.mark.parametrize(("scale", "limit"), [("1", "30000"), ("1e+30", "3e+34"),
+                                               ("1e-30", "3e-26")],
+                         ids=["plain-speed", "huge-scale", "tiny-scale"])
 def test_a_hostile_dbc_exports_a_front_end_that_agrees_or_is_one_error(
-        tmp_path: Path, scale: str) -> None:
+        tmp_path: Path, scale: str, limit: str) -> None:
     need_tool("make", ["make"])
     dbc = tmp_path / "drive.dbc"
-    # the log is written in the odd scale (the huge one holds no current the drive has)
-    dbc.write_text(_dbc("0.0123456789"))
+    # the log is written with the float speed in rpm; read back with a huge or tiny
+    # scale factor (and limits to match) its raw values are the same, its units not
+    dbc.write_text(_dbc())
     sc = scenario("standard", seed=7, duration=4.0,
                   effects="inertia,viscous,coulomb,unbalance")
     log = tmp_path / "drive.log"
     write_log(log, Simulator(sc, protocol=Protocol.load(dbc, SIGNALS)).frames())
-    dbc.write_text(_dbc(scale))
+    dbc.write_text(_dbc(scale, limit))
     saved, out = tmp_path / "model.json", tmp_path / "c"
     mapping = ["--dbc", str(dbc), *[a for s in SIGNALS for a in ("--signal", s)]]
     rc, text = _run(["fit", str(log), *mapping, "--kt", "0.1", "-e",
@@ -81,7 +84,7 @@ def test_a_hostile_dbc_exports_a_front_end_that_agrees_or_is_one_error(
     if rc != 0:
         assert rc == 1 and text.startswith("error: ") and text.count("\n") == 1, text
         assert not out.exists()
-        assert scale != "0.0123456789", text
+        assert scale != "1", text
         return
     front = (out / "canrls_front.c").read_text()
     # the IDs as checked constants, the names as comment text only

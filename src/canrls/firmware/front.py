@@ -364,7 +364,8 @@ def front_file(tm: TargetModel, source: str) -> str:
     parts.append("/* one sample, complete in S->raw, at time t: filters, selection, updates */\n"
                  "static uint32_t fr_sample(canrls_target *S, uint32_t t)\n{\n"
                  + _indent(sample) + "\n}\n\n")
-    frame = ["(void)data;"]
+    frame = [] if tm.messages else ["(void)id;", "(void)extended;", "(void)data;", "(void)len;",
+                                    "(void)t;", "(void)S;"]
     for mi, m in enumerate(tm.messages):
         ext = "extended != 0u" if m.extended else "extended == 0u"
         frame += [f"if (id == {_u(m.id, f'message {mi}')} && {ext}) {{",
