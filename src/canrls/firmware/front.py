@@ -1,7 +1,7 @@
 """The straight-line front end of one model for the target: ``canrls_front.c``.
 
 :func:`front_file` writes ``canrls_target_frame`` for one
-:class:`~canrls.firmware.model.TargetModel` as code without tables: each message's ID,
+:class:`~canrls.firmware.target_model.TargetModel` as code without tables: each message's ID,
 length and CRC-8 (its ID's part folded into a constant), each field's bytes, shifts and
 masks (integer or float32/float64), each filter's input and coefficients, and exactly
 the columns of each equation, as constants.
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from canrls.can.e2e import crc8
 from canrls.core.c_escape import c_comment, c_int, c_uint
-from canrls.firmware.model import (
+from canrls.firmware.target_model import (
     SRC_CONST,
     SRC_COS,
     SRC_RAW,

@@ -28,7 +28,7 @@ from canrls.core.files import write_texts
 from canrls.firmware.cgen import model_files
 from canrls.firmware.front import front_file
 from canrls.firmware.load import Source
-from canrls.firmware.model import SOURCE_NAMES, TargetModel
+from canrls.firmware.target_model import SOURCE_NAMES, TargetModel
 from canrls.firmware.vectors import Vectors, log_frames, record, vectors_header
 
 __all__ = ["TARGET_FILES", "TEST_FILES", "TargetExport", "export_target", "readme",
