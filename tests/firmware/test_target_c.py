@@ -198,14 +198,15 @@ def test_the_export_replays_on_the_cortex_m4_with_its_stack_and_state(
         drives: dict[str, dict[str, Any]]) -> None:
     """``make test-m4`` of an export: bit for bit on a Cortex-M4 under QEMU, then the
     deepest stack and the state, within what docs/target.md states (the ODrive-style
-    float32 drive and canrls' own)."""
+    float32 drive, canrls' own, and the user's Motorola DBC, whose rescales take the
+    deepest stack)."""
     need_tool("arm-none-eabi-gcc", ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"])
     need_tool("qemu-system-arm", ["qemu-system-arm"])
     doc = (Path(__file__).resolve().parents[2] / "docs" / "target.md").read_text()
     m = re.search(r"stack below (\d+) B and the state at (\d+) B", doc)
     assert m is not None
     stack_max, state = int(m.group(1)), int(m.group(2))
-    for name in ("own", "odrive"):
+    for name in ("own", "odrive", "motorola"):
         out = _make(drives[name]["out"], "test-m4")
         assert "bit-exact with the specification" in out, out
         got = re.search(r"stack: (\d+) bytes; state \(canrls_target\): (\d+) bytes", out)
