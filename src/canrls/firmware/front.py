@@ -22,6 +22,7 @@ from canrls.firmware.target_model import (
     SRC_SIN,
     SRC_STRIBECK,
     SRC_TANH,
+    W_FRAC,
     Column,
     EquationSpec,
     Field,
@@ -34,8 +35,6 @@ __all__ = ["front_file"]
 _ROLES = ("current", "speed", "position", "voltage", "torque")
 _ROLE_ENUM = ("CANRLS_CURRENT", "CANRLS_SPEED", "CANRLS_POSITION", "CANRLS_VOLTAGE",
               "CANRLS_TORQUE")
-#: the speed of the selection: W = raw 2^W_FRAC + w_offset (canrls_target.c's W_FRAC)
-_W_FRAC = 16
 
 
 def _i(v: int, what: str, bits: int = 32) -> str:
@@ -165,28 +164,27 @@ def _message(tm: TargetModel, mi: int, m: Message) -> list[str]:
     return out
 
 
+def _q24_arg(name: str, ctype: str, arg: tuple[int, int, int] | None, what: str,
+             eq: str) -> list[str]:
+    """Lines setting the Q24 argument ``name = rsh(speed m + b, sh)`` (saturated to 32
+    bits; 0 without one)."""
+    if arg is None or arg[0] == 0:
+        return [f"const {ctype} {name} = 0;"]
+    cast = "(int32_t)" if ctype == "int32_t" else ""
+    return [f"/* {eq} */",
+            f"const {ctype} {name} = {cast}cr_sat(cr_rsh((int64_t)S->raw[CANRLS_SPEED] * "
+            f"{_i(arg[0], what)}{_plus(arg[1], what)}, {_i(arg[2], what)}), "
+            f"INT32_MIN, INT32_MAX);"]
+
+
 def _inputs(tm: TargetModel) -> list[str]:
     """Lines computing what the filters' inputs share: the Q24 arguments and the phase."""
     kinds = {f.kind for f in tm.filters}
     out = []
-    ta = tm.tanh_arg
     if kinds & {SRC_TANH, SRC_STRIBECK}:
-        if ta is None or ta[0] == 0:
-            out.append("const int32_t z = 0;")
-        else:
-            out += ["/* z = w / band, Q24 */",
-                    f"const int32_t z = (int32_t)cr_sat(cr_rsh((int64_t)S->raw[CANRLS_SPEED] * "
-                    f"{_i(ta[0], 'tanh')}{_plus(ta[1], 'tanh')}, {_i(ta[2], 'tanh')}), "
-                    f"INT32_MIN, INT32_MAX);"]
-    sa = tm.stribeck_arg
+        out += _q24_arg("z", "int32_t", tm.tanh_arg, "tanh", "z = w / band, Q24")
     if SRC_STRIBECK in kinds:
-        if sa is None or sa[0] == 0:
-            out.append("const int64_t r = 0;")
-        else:
-            out += ["/* r = w / ws, Q24 */",
-                    f"const int64_t r = cr_sat(cr_rsh((int64_t)S->raw[CANRLS_SPEED] * "
-                    f"{_i(sa[0], 'stribeck')}{_plus(sa[1], 'stribeck')}, "
-                    f"{_i(sa[2], 'stribeck')}), INT32_MIN, INT32_MAX);"]
+        out += _q24_arg("r", "int64_t", tm.stribeck_arg, "stribeck", "r = w / ws, Q24")
     if kinds & {SRC_SIN, SRC_COS}:
         ph = tm.phase
         if ph is None or ph[0] == 0:
@@ -355,8 +353,8 @@ def front_file(tm: TargetModel, source: str) -> str:
         "    canrls_target_restart(S);", "}",
         "S->has_t = 1u;", "S->last_t = t;",
         *_filters(tm),
-        f"/* the speed of the selection: W = raw 2^{_W_FRAC} + offset */",
-        f"w = (int64_t)S->raw[CANRLS_SPEED] * ((int64_t)1 << {_W_FRAC})"
+        f"/* the speed of the selection: W = raw 2^{W_FRAC} + offset */",
+        f"w = (int64_t)S->raw[CANRLS_SPEED] * ((int64_t)1 << {W_FRAC})"
         f"{_plus(tm.w_offset, 'speed offset')};"]
     for k, e in enumerate(tm.equations):
         sample += _selection(e, k)
