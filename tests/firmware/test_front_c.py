@@ -7,7 +7,8 @@ through the generated front end and the table-driven one, frame by frame, or is 
 with one ``error:`` line and nothing written: C keywords and canrls' own function names
 as message and signal names, 29-bit IDs up to 0x1FFFFFFF, Motorola fields across byte
 boundaries, a Motorola float32 speed (its scale factor 1, 1e30 or 1e-30), a 13-bit current
-at bit 3 with an odd scale factor, a 32-bit unsigned position spread over five bytes.
+at bit 3 with an odd scale factor, a 32-bit unsigned position spread over five bytes, a
+float64 voltage.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from canrls.cli.main import main
 from canrls.sim.scenario import Simulator, scenario
 
 SIGNALS = ["current=canrls_target_frame.S", "speed=canrls_target_frame.data",
-           "position=return_.len"]
+           "position=return_.len", "voltage=main.int"]
 
 
 def _dbc(speed_scale: str = "1", speed_limit: str = "30000") -> str:
@@ -46,8 +47,12 @@ BO_ 2684354559 canrls_target_frame: 8 Drive
 BO_ 2147483664 return_: 6 Drive
  SG_ len : 5|32@1+ (0.01,0) [0|42949672.95] "deg" Vector__XXX
 
+BO_ 2147483665 main: 8 Drive
+ SG_ int : 0|64@1- (1,0) [-1000|1000] "V" Vector__XXX
+
 CM_ BO_ 2684354559 "*/ #error gotcha /*";
 SIG_VALTYPE_ 2684354559 data : 1;
+SIG_VALTYPE_ 2147483665 int : 2;
 '''
 
 
@@ -90,7 +95,8 @@ def test_a_hostile_dbc_exports_a_front_end_that_agrees_or_is_one_error(
     # the IDs as checked constants, the names as comment text only
     assert "id == 536870911u && extended != 0u" in front
     assert "id == 16u && extended != 0u" in front
-    assert "cr_float_word(" in front and "(uint64_t)data[4]" in front
+    assert "cr_float_word((uint64_t)raw_speed_bits, 0," in front and "(uint64_t)data[4]" in front
+    assert "cr_float_word(raw_voltage_bits, 1," in front
     generated, tables = both_paths(out)
     assert generated == tables
     for target in ("test", "test-tables"):
