@@ -11,11 +11,12 @@ only if every state record and every published frame equals the specification's.
   instruction per translation block without chaining (``-singlestep -d exec,nochain``)
   and its log, streamed through ``src/canrls/c/firmware/drivers/count_exec.c``, gives each sample's
   instructions (every ``canrls_target_frame`` call since the last sample: decode, pair,
-  filter, select, rescale, update) and each ``canrls_update_q31``'s; mean and the
-  worst sample, at ``-O2`` with ``-DCANRLS_N=n``;
-* **sizes**: ``.text`` of ``canrls_target.o``, ``canrls_model.o`` and ``canrls_fixed.o``
-  at ``-O2`` and ``-Os``;
-* **goals** of issue 24 at n = 6, each met or missed (docs/target.md says why);
+  filter, select, rescale, update), each ``canrls_update_q31``'s and the front end's (a
+  sample less its updates); mean and the worst sample, at ``-O2`` with ``-DCANRLS_N=n
+  -DCANRLS_FRONT`` (the generated front end, ``canrls_front.c``);
+* **sizes**: ``.text`` and ``.rodata`` of ``canrls_target.o``, ``canrls_front.o``,
+  ``canrls_model.o`` and ``canrls_fixed.o`` at ``-O2`` and ``-Os``;
+* **goals** of issues 24 and 34 at n = 6, each met or missed (docs/target.md says why);
 * the ODrive-style drive, whose signals are float32, bit for bit on the M4;
 * with the HSM150 runs beside the repository (``../shared/data/hsm150``), one run in its
   own DBC (``tools/hsm150_to_can.py``, into a temporary directory) bit for bit on the M4.
