@@ -11,6 +11,11 @@
  * is the kernel of canrls_fixed.h. No malloc, no floating point, no libc beyond
  * <stdint.h>, <stddef.h>, <string.h>.
  *
+ * canrls_target_frame() comes in two builds that compute the same integers: the one of
+ * canrls_target.c, which reads the model's tables at run time, and the straight-line one
+ * that `canrls export-c` generates for one model and DBC (canrls_front.c; build every
+ * file with -DCANRLS_FRONT). The steps below the frame function are shared.
+ *
  * Call order
  * ----------
  *   static canrls_target S;                      the caller owns the state
