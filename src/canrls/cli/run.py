@@ -217,10 +217,10 @@ _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 @contextmanager
-def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
+def _signals_for_life(served: list[Any], process_exits: bool) -> Iterator[None]:
     """SIGTERM/SIGINT/SIGHUP for the whole command, not only while the daemon serves.
 
-    Before the daemon exists a stop is remembered (``target[1]``) and a SIGHUP ignored;
+    Before the daemon exists a stop is remembered (``served[1]``) and a SIGHUP ignored;
     while it runs, :meth:`Daemon.run` has its own handlers; after it stopped, further
     signals only log. At the end, when the command is the process's own
     (``process_exits``), SIGTERM and SIGHUP are left ignored if they had their default
@@ -234,9 +234,9 @@ def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
         return
 
     def stop(signum: int, frame: Any) -> None:
-        d = target[0]
+        d = served[0]
         if d is None:
-            target[1] = True
+            served[1] = True
         else:
             d.request_stop()
         log.info("signal %d: stopping", signum)
@@ -263,11 +263,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.duration is not None and not is_positive(args.duration):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
-    target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
-    with _signals_for_life(target, getattr(args, "process_exits", False)):
+    served: list[Any] = [None, False]  # the daemon, a stop requested before it existed
+    with _signals_for_life(served, getattr(args, "process_exits", False)):
         daemon = _build(args)
-        target[0] = daemon
-        if target[1]:
+        served[0] = daemon
+        if served[1]:
             daemon.request_stop()  # run() starts, sees the request and stops cleanly
         with contextlib.nullcontext() if args.json else to_stream(sys.stdout):
             status = daemon.run(duration=args.duration)

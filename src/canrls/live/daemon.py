@@ -121,26 +121,26 @@ def wait_until(check: Callable[[], bool], timeout: float) -> bool:
     return check()
 
 
-def serve(target: Any, stopping: threading.Event, duration: float | None,
+def serve(served: Any, stopping: threading.Event, duration: float | None,
           ready: Callable[[], None] | None = None,
           each: Callable[[], None] | None = None) -> int:
-    """Start ``target`` (a :class:`Daemon` or a machine's), call ``ready``, serve until
+    """Start ``served`` (a :class:`Daemon` or a machine's), call ``ready``, serve until
     ``stopping`` is set (SIGTERM/SIGINT request it), ``duration`` s have passed or
-    ``target.failure`` is set, then stop it; SIGHUP requests a reload; ``each`` is called
+    ``served.failure`` is set, then stop it; SIGHUP requests a reload; ``each`` is called
     at every wake-up (at least every 0.2 s). Signal handlers only from the main thread,
     restored after. Returns the exit status (0, or 1 after a failure)."""
     handlers: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
-        for sig, fn in ((signal.SIGTERM, lambda *_: target.request_stop()),
-                        (signal.SIGINT, lambda *_: target.request_stop()),
-                        (signal.SIGHUP, lambda *_: target.request_reload())):
+        for sig, fn in ((signal.SIGTERM, lambda *_: served.request_stop()),
+                        (signal.SIGINT, lambda *_: served.request_stop()),
+                        (signal.SIGHUP, lambda *_: served.request_reload())):
             handlers[sig] = signal.signal(sig, fn)
     try:
-        target.start()
+        served.start()
         if ready is not None:
             ready()
         end = None if duration is None else time.monotonic() + duration
-        while not stopping.is_set() and target.failure is None:
+        while not stopping.is_set() and served.failure is None:
             left = 0.2 if end is None else min(0.2, end - time.monotonic())
             if left <= 0:
                 break
@@ -148,10 +148,10 @@ def serve(target: Any, stopping: threading.Event, duration: float | None,
             if each is not None:
                 each()
     finally:
-        target.stop()
+        served.stop()
         for sig, old in handlers.items():
             signal.signal(sig, old)
-    return 0 if target.failure is None else 1
+    return 0 if served.failure is None else 1
 
 
 class Daemon:
@@ -414,9 +414,9 @@ class Daemon:
         self._heartbeat = time.monotonic()
         interpreter.tune(self.config.switch_interval)
         self._tuned = True
-        for target, name in ((self._estimator_loop, "canrls estimator"),
+        for loop, name in ((self._estimator_loop, "canrls estimator"),
                              (self._supervisor_loop, "canrls supervisor")):
-            t = threading.Thread(target=target, name=name, daemon=True)
+            t = threading.Thread(target=loop, name=name, daemon=True)
             t.start()
             self._threads.append(t)
         log.info("canrls daemon running on %s: effects %s, %d parameters", self._link.info(),
