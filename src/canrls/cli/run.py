@@ -119,7 +119,6 @@ def _per_axis(table: dict[str, Any], axis: str) -> dict[str, Any]:
 def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started);
     of the machine's axis ``axis`` (its files its own), else of the one axis."""
-    from canrls.fleet.ingest import JobConfig
     from canrls.live.bus_link import bus_config
     from canrls.live.daemon import Daemon
     from canrls.live.daemon_settings import DaemonSettings
@@ -181,8 +180,11 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
                         ", ".join(changed))
         return reloaded
 
-    history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over)) \
-        if cfg.history else None
+    history = None
+    if cfg.history:  # the fleet's code only for a [history]
+        from canrls.fleet.ingest import JobConfig
+
+        history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over))
     try:
         fixed_path = None
         if dset.fixed == "target":

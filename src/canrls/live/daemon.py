@@ -43,6 +43,7 @@ from canrls.live.bus_link import (
     COMMAND_ID,
     BusLink,
     FrameQueue,
+    SharedBus,
     command_rows,
     messages_to_block,
     open_bus,
@@ -100,6 +101,8 @@ class DaemonStats:
     checkpoints: int = 0
     backlog: int = 0
     estimator_cpu_s: float = 0.0
+    #: the bus reader's thread CPU time (0 for an axis on a machine's one bus: the
+    #: machine's :attr:`~canrls.live.machine_daemon.MachineDaemon.reader_cpu_s`)
     listener_cpu_s: float = 0.0
     resumed_from: str | None = None
     counters: dict[str, int] = field(default_factory=dict)
@@ -197,6 +200,7 @@ class Daemon:
         self.settings = settings or EstimatorSettings()
         self.config = cfg = daemon or DaemonSettings()
         bus_args = dict(bus or {})
+        self._bus_args = bus_args if bus_factory is None else None
         self._reload_fn = reload
         self.sd = notifier if notifier is not None else SystemdNotifier()
         # a model the frames cannot carry never runs (nor is it checkpointed)
@@ -257,6 +261,21 @@ class Daemon:
             max_parameters=cfg.max_parameters, check_model=self._check_model,
             bucket=TokenBucket(cfg.command_rate, cfg.command_burst),
             save_model=None if cfg.saved_model is None else self._save_model)
+
+    def shared_bus(self) -> dict[str, Any] | None:
+        """The bus arguments with which this axis may take a machine's one bus
+        (:meth:`join`): its own frames only, nothing recorded, no factory of its own;
+        None: it opens its own."""
+        cfg = self.config
+        if self._bus_args is None or not cfg.rx_filter or cfg.record is not None:
+            return None
+        return dict(self._bus_args)
+
+    def join(self, hub: SharedBus) -> None:
+        """Take frames from, and send on, a machine's one bus (before :meth:`start`)."""
+        if self._started:
+            raise RuntimeError("a running daemon cannot change its bus")
+        self._link.hub = hub
 
     def _save_model(self) -> Path:
         """The command ``save_model``: the running model and its estimates written to
