@@ -748,20 +748,167 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 }
 
 #ifdef CANRLS_N
-/* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
- * th_s >= 34, P_s >= 34), out of line: h~ 2^kn and K stay in registers from one to the
- * other (the same integers; S->h keeps h~ without the normalisation, it is scratch).
- * theta is updated last, when the P loop has freed the registers (the order of the two
- * updates changes no integer: neither reads what the other writes).
- * Returns the low-excitation test, as P_step. */
-NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
-                               int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
+/* How the fixed-n step computes u, the decrement of V (P_step's shift classes, the same
+ * integers): PM_HIGH  P_s >= 33: u = ph 2^(64 - P_s) = (ph 2^pa) m, ph = rsh(K_i h~_j, 32),
+ *                     m = 2^(64 - P_s - pa) <= 2^30 (pa = 1 at P_s = 33: |ph| <= 2^29);
+ *          PM_32    P_s = 32: u = ph 2^32, the word alone;
+ *          PM_LOW   P_s <= 31: u = K_i h~_j 2^(32 - P_s) exactly. */
+enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2 };
+
+/* V <- V 2^sh exactly, in the pair: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31, when the
+ * word leaves room (|X| < 2^(62 - sh)); else P_shift (saturated, counted). */
+INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, int64_t C, uint32_t *c_P)
+{
+    const int32_t hi = (int32_t)(x >> 32);
+    if (LIKELY((uint32_t)((hi >> (30 - sh)) + 1) <= 1u)) {
+        x = (int64_t)(((uint64_t)x << sh) - (uint64_t)C);
+        q->lo = (uint32_t)x;
+        q->word = (int32_t)(x >> 32);
+        return;
+    }
+    q->lo = (uint32_t)x;
+    q->word = hi;
+    P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
+}
+
+/* One element of the fixed-n step (32-bit P words): V <- sat(V - u) and, sh > 0, then
+ * V <- sat(V 2^sh), the block exponent's shift folded into the same pass over P (the
+ * integers of P_step followed by P_shift). ``nz``: the diagonal's low-excitation test. */
+INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, int32_t pa,
+                   int32_t P_s, int32_t sh, int64_t C, uint32_t *c_P, uint32_t *nz)
+{
+    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
+    int64_t x;
+    if (mode == PM_HIGH) {
+        const int32_t ph = mul_rsh32(Ki, hj);
+        if (nz != NULL) {
+            *nz |= (uint32_t)ph;
+        }
+#if defined(__GNUC__)
+        if (UNLIKELY(__builtin_sub_overflow(t, mul_ww((int32_t)((uint32_t)ph << pa), m), &x))) {
+            *c_P += 1u;
+            q->lo = ph < 0 ? 0xFFFFFFFFu : 0u;
+            q->word = ph < 0 ? INT32_MAX : INT32_MIN;
+            if (sh > 0) {
+                P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
+            }
+            return;
+        }
+#else
+        P_sub(q, ph >> (P_s - 32), (uint32_t)ph << (64 - P_s), INT32_MIN, INT32_MAX, c_P);
+        if (sh > 0) {
+            P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
+        }
+        (void)t, (void)x, (void)m, (void)pa, (void)C;
+        return;
+#endif
+    } else if (mode == PM_32) {
+        /* u = ph 2^32: the word alone */
+        const int32_t ph = mul_rsh32(Ki, hj);
+        if (nz != NULL) {
+            *nz |= (uint32_t)ph;
+        }
+        P_sub(q, ph, 0u, INT32_MIN, INT32_MAX, c_P);
+        if (sh > 0) {
+            P_shl(q, (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo), sh, C, c_P);
+        }
+        return;
+    } else {
+        /* u = K_i h~_j 2^(32 - P_s), exact: one 64-bit subtraction when u fits 64 bits */
+        const int64_t pr = mul_ww(Ki, hj);
+        const int32_t k2 = 32 - P_s;
+        if (nz != NULL) {
+            *nz |= (uint32_t)(pr != 0);
+        }
+#if defined(__GNUC__)
+        if (UNLIKELY((uint32_t)(((int32_t)(pr >> 32) >> (31 - k2)) + 1) > 1u)
+            || UNLIKELY(__builtin_sub_overflow(t, (int64_t)((uint64_t)pr << k2), &x)))
+#endif
+        {
+            P_sub(q, pr >> P_s, (uint32_t)((uint64_t)pr << k2), INT32_MIN, INT32_MAX, c_P);
+            if (sh > 0) {
+                P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
+            }
+            return;
+        }
+    }
+    if (sh > 0) {
+        P_shl(q, x, sh, C, c_P);
+        return;
+    }
+    q->lo = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
+}
+
+/* The off-diagonal elements of P~ <- P~ - K h~' in the common case (P_s >= 34, no shift):
+ * out of line, the loop gets the registers to itself. */
+NOINLINE void P_off_high(canrls_P64 *P, const int32_t *K, const int32_t *hn, int32_t mp,
+                         int32_t P_s, uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const int32_t mt = (int32_t)1 << (64 - th_s), mp = (int32_t)1 << (64 - P_s);
+    int32_t h[CANRLS_N];
+    canrls_P64 *Pw = P; /* row i of the packed upper triangle */
+    uint32_t i, j;
+    UNROLL
+    for (j = 0; j < n; j++) {
+        h[j] = hn[j];
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        const int32_t Ki = K[i];
+        UNROLL
+        for (j = i + 1; j < n; j++) {
+            /* P~_ij <- P~_ij - K_i h~_j  (u = rsh(K_i h~_j, 32) 2^(64 - P_s)) */
+            P_sub_full(&Pw[j - i], mul_rsh32(Ki, h[j]), mp, P_s, c_P);
+        }
+        Pw += n - i;
+    }
+}
+
+/* The off-diagonal elements in any other case: any shift class, and the block exponent's
+ * shift sh folded in (V <- sat(sat(V - u) 2^sh)). */
+NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
+                        int32_t m, int32_t pa, int32_t P_s, int32_t sh, uint32_t *c_P)
+{
+    const uint32_t n = CANRLS_N;
+    const int64_t C = (int64_t)(((uint64_t)1 << sh) - 1u) << 31; /* (2^sh - 1) 2^31 */
+    canrls_P64 *Pw = P;
+    uint32_t i, j;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        UNROLL
+        for (j = i + 1; j < n; j++) {
+            P_elem(&Pw[j - i], K[i], hn[j], mode, m, pa, P_s, sh, C, c_P, NULL);
+        }
+        Pw += n - i;
+    }
+}
+
+/* The step after g at a fixed n (32-bit theta and P words), out of line: K; the diagonal of
+ * P~ - K h~' first, so that c <- c / lambda_k and the block exponent's shift sh are known
+ * before the rest of P is touched; then the off-diagonal elements with the shift folded
+ * in (one pass over P: the shift's cost spread over the elements the update writes
+ * anyway), the diagonal shifted, theta updated. The same integers as K_step, P_step, the
+ * forgetting scale and the block exponent of canrls_update_q31 one after the other.
+ * A c to fold into P~ (e = 0) is left to the caller (c > one_lam on return, no shift).
+ * Returns the low-excitation test, as P_step. */
+NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                       int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
+                       uint32_t *c_th, uint32_t *c_P)
+{
+    const uint32_t n = CANRLS_N;
+    const canrls_plan_q31 *p = S->plan;
+    const int mode = P_s >= 33 ? PM_HIGH : P_s == 32 ? PM_32 : PM_LOW;
+    const int32_t pa = P_s == 33 ? 1 : 0;
+    const int32_t mp = mode == PM_HIGH ? (int32_t)1 << (64 - P_s - pa) : 0;
+    /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = (ph 2^ta) mt */
+    const int32_t ta = th_s == 33 ? 1 : 0;
+    const int32_t mt = th_s >= 33 ? (int32_t)1 << (64 - th_s - ta) : 0;
     int32_t hn[CANRLS_N], K[CANRLS_N];
-    canrls_P64 *Pw = S->P; /* row i of the packed upper triangle */
-    uint32_t i, j, nz = 0;
+    canrls_P64 *const P = S->P;
+    int32_t e = *e_io, c = *c_io, sh = 0;
+    int64_t tr = 0;
+    uint32_t i, nz = 0, trw32 = 0;
     UNROLL
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
@@ -770,25 +917,68 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
         K[i] = mul_rsh32(hn[i], gcn);
         S->K[i] = K[i];
     }
-    UNROLL
-    for (i = 0; i < n; i++) {
-        /* P~ <- P~ - K h~'  (upper triangle, 64 bits: u = rsh(K_i h~_j, 32) 2^(64 - P_s));
-         * the diagonal: information K_i h~_i */
-        const int32_t r = mul_rsh32(K[i], hn[i]);
-        nz |= (uint32_t)r;
-        P_sub_full(&Pw[0], r, mp, P_s, c_P);
+    /* the diagonal: P~_ii <- P~_ii - K_i h~_i (the information K_i h~_i: low excitation) */
+    {
+        canrls_P64 *Pii = P;
         UNROLL
-        for (j = i + 1; j < n; j++) {
-            P_sub_full(&Pw[j - i], mul_rsh32(K[i], hn[j]), mp, P_s, c_P);
+        for (i = 0; i < n; i++) {
+            P_elem(Pii, K[i], hn[i], mode, mp, pa, P_s, 0, 0, c_P, &nz);
+            tr += Pii->word;
+            Pii += n - i;
         }
-        Pw += n - i;
+    }
+    /* c <- c / lambda_k ; c > 1 and e > 0: c/2 and 2^-e x 2 (the words do not move) */
+    c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, c_P);
+    if (c > p->one_lam && e > 0) {
+        c = rsh32(c, 1);
+        e -= 1;
+    }
+    /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh (not
+     * with a c to fold: the caller folds, then shifts) */
+    if (c <= p->one_lam && tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max) {
+        sh = 1;
+        while ((tr << (sh + 1)) <= p->trace_hi && e + sh < p->e_max) {
+            sh += 1;
+        }
+    }
+    /* the rest of P~ <- (P~ - K h~') 2^sh */
+    if (mode == PM_HIGH && pa == 0 && sh == 0) {
+        P_off_high(P, K, hn, mp, P_s, c_P);
+    } else {
+        P_off_any(P, K, hn, mode, mp, pa, P_s, sh, c_P);
+    }
+    {
+        canrls_P64 *Pii = P;
+        const int64_t C = (int64_t)(((uint64_t)1 << sh) - 1u) << 31;
+        const int32_t tr_ps = p->trace_ps;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            int32_t x;
+            if (sh > 0) {
+                P_shl(Pii, (int64_t)(((uint64_t)(uint32_t)Pii->word << 32) | Pii->lo), sh, C,
+                      c_P);
+            }
+            /* trw = sum_i rsh(Pw_ii, trace_ps) (modulo 2^32: a word) */
+            x = Pii->word;
+            trw32 += (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
+            Pii += n - i;
+        }
     }
     UNROLL
     for (i = 0; i < n; i++) {
         /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB; K carries
-         * the exponent e + kn: shifted out here; one LDRD, one STRD) */
-        theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s, c_th);
+         * the exponent e + kn: shifted out here) */
+        if (th_s >= 33) {
+            theta_add_full(&S->theta_q[i],
+                           (int32_t)((uint32_t)(int32_t)(mul_ww(K[i], epn) >> 32) << ta), mt,
+                           th_s - ta, c_th);
+        } else {
+            theta_add(&S->theta_q[i], mul_ww(K[i], epn), th_s, INT32_MIN, INT32_MAX, c_th);
+        }
     }
+    *e_io = e + sh;
+    *c_io = c;
+    *trw_io = (int32_t)trw32;
     return nz == 0u;
 }
 #endif
@@ -863,6 +1053,8 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         int32_t st, sv, lam_k, d, g, gc, gcn, epn, th_s, P_s, kn, kg = 0;
         int32_t il;
         int low;
+        int tail = 1;       /* the forgetting scale and the block exponent still to do */
+        int fixed_step = 0; /* KP_step_n took c <- c / lambda_k */
 
         /* h~ = P~ phi, rounded and stored; m = OR of |h~_i| (one's complement) for the
          * normalisation below; s~ = phi' h~ (a) summed as h~ is stored */
@@ -993,10 +1185,14 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each, g 2^kg */
             P_s = p->P_s + e + 2 * kn + kg;
         }
+        il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
 #ifdef CANRLS_N
-        if (th_s >= 34 && P_s >= 34 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
-            /* the common case in one piece */
-            low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, &c_th, &c_P);
+        if ((~S->wide & (WIDE_THETA | WIDE_P)) == 0u && P_s >= 1) {
+            /* 32-bit words at a fixed n: the step, the forgetting scale and the block
+             * exponent in one pass over P (a c to fold is left to the code below) */
+            low = KP_step_n(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
+            tail = c > p->one_lam;
+            fixed_step = 1;
         } else
 #endif
         {
@@ -1048,10 +1244,11 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             flag |= CANRLS_FLAG_LOW_EXCITATION;
         }
 
-        /* c <- c / lambda_k */
-        il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
-        c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, &c_P);
-        if (c > p->one_lam) {
+        /* c <- c / lambda_k (KP_step_n: done) */
+        if (tail && !fixed_step) {
+            c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, &c_P);
+        }
+        if (tail && c > p->one_lam) {
             if (e > 0) {
                 /* c/2 and 2^-e x 2: the words do not move */
                 c = rsh32(c, 1);
@@ -1066,7 +1263,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         }
 
         /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh */
-        {
+        if (tail) {
             int64_t tr = 0;
             uint32_t trw32 = 0; /* the sum modulo 2^32: trw is a word */
             const canrls_P64 *Pii = P;
