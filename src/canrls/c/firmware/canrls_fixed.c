@@ -761,7 +761,11 @@ INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, int64_t C, uint32_t *c_P
 {
     const int32_t hi = (int32_t)(x >> 32);
     if (LIKELY((uint32_t)((hi >> (30 - sh)) + 1) <= 1u)) {
-        x = (int64_t)(((uint64_t)x << sh) - (uint64_t)C);
+        /* 1 <= sh <= 29: X 2^sh on two words, minus C = (2^(sh-1) - 1) 2^32 + 2^31 */
+        const uint32_t lo = (uint32_t)x;
+        const uint64_t y = ((uint64_t)(((uint32_t)hi << sh) | (lo >> (32 - sh))) << 32)
+                           | (uint32_t)(lo << sh);
+        x = (int64_t)(y - (uint64_t)C);
         q->lo = (uint32_t)x;
         q->word = (int32_t)(x >> 32);
         return;
@@ -821,8 +825,13 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, i
             *nz |= (uint32_t)(pr != 0);
         }
 #if defined(__GNUC__)
-        if (UNLIKELY((uint32_t)(((int32_t)(pr >> 32) >> (31 - k2)) + 1) > 1u)
-            || UNLIKELY(__builtin_sub_overflow(t, (int64_t)((uint64_t)pr << k2), &x)))
+        const uint32_t plo = (uint32_t)pr;
+        const int32_t phi_ = (int32_t)(pr >> 32);
+        /* u = pr 2^k2 (1 <= k2 <= 31) on two words, when it fits 64 bits */
+        const int64_t u = (int64_t)(((uint64_t)(((uint32_t)phi_ << k2) | (plo >> (32 - k2))) << 32)
+                                    | (uint32_t)(plo << k2));
+        if (UNLIKELY((uint32_t)((phi_ >> (31 - k2)) + 1) > 1u)
+            || UNLIKELY(__builtin_sub_overflow(t, u, &x)))
 #endif
         {
             P_sub(q, pr >> P_s, (uint32_t)((uint64_t)pr << k2), INT32_MIN, INT32_MAX, c_P);
@@ -865,23 +874,88 @@ NOINLINE void P_off_high(canrls_P64 *P, const int32_t *K, const int32_t *hn, int
     }
 }
 
-/* The off-diagonal elements in any other case: any shift class, and the block exponent's
- * shift sh folded in (V <- sat(sat(V - u) 2^sh)). */
-NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
-                        int32_t m, int32_t pa, int32_t P_s, int32_t sh, uint32_t *c_P)
+/* The off-diagonal elements in any other case: the shift class ``mode`` and whether the
+ * block exponent's shift sh is folded in (V <- sat(sat(V - u) 2^sh)) are constants at
+ * each call, so that each instance is one straight run. */
+INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t m,
+                  int32_t pa, int32_t P_s, int32_t sh, int shifted, uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const int64_t C = (int64_t)(((uint64_t)1 << sh) - 1u) << 31; /* (2^sh - 1) 2^31 */
+    const int64_t C = shifted ? (int64_t)(((uint64_t)1 << sh) - 1u) << 31 : 0; /* (2^sh - 1) 2^31 */
     canrls_P64 *Pw = P;
     uint32_t i, j;
     UNROLL
     for (i = 0; i < n; i++) {
         UNROLL
         for (j = i + 1; j < n; j++) {
-            P_elem(&Pw[j - i], K[i], hn[j], mode, m, pa, P_s, sh, C, c_P, NULL);
+            P_elem(&Pw[j - i], K[i], hn[j], mode, m, pa, P_s, shifted ? sh : 0, C, c_P, NULL);
         }
         Pw += n - i;
     }
+}
+
+NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
+                        int32_t m, int32_t pa, int32_t P_s, int32_t sh, uint32_t *c_P)
+{
+    if (sh > 0) {
+        if (mode == PM_HIGH) {
+            P_off(P, K, hn, PM_HIGH, m, pa, P_s, sh, 1, c_P);
+        } else if (mode == PM_32) {
+            P_off(P, K, hn, PM_32, m, pa, P_s, sh, 1, c_P);
+        } else {
+            P_off(P, K, hn, PM_LOW, m, pa, P_s, sh, 1, c_P);
+        }
+    } else if (mode == PM_HIGH) {
+        P_off(P, K, hn, PM_HIGH, m, pa, P_s, 0, 0, c_P);
+    } else if (mode == PM_32) {
+        P_off(P, K, hn, PM_32, m, pa, P_s, 0, 0, c_P);
+    } else {
+        P_off(P, K, hn, PM_LOW, m, pa, P_s, 0, 0, c_P);
+    }
+}
+
+/* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
+ * th_s >= 34, P_s >= 34, no shift of the block exponent), out of line: h~ 2^kn and K stay
+ * in registers from one to the other (the same integers; S->h keeps h~ without the
+ * normalisation, it is scratch). theta is updated last, when the P loop has freed the
+ * registers (the order of the two updates changes no integer: neither reads what the
+ * other writes). Returns the low-excitation test, as P_step. */
+NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
+                               int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
+{
+    const uint32_t n = CANRLS_N;
+    const int32_t mt = (int32_t)1 << (64 - th_s), mp = (int32_t)1 << (64 - P_s);
+    int32_t hn[CANRLS_N], K[CANRLS_N];
+    canrls_P64 *Pw = S->P; /* row i of the packed upper triangle */
+    uint32_t i, j, nz = 0;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* h~ <- h~ 2^kn (exact: the normalisation) */
+        hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
+        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
+        K[i] = mul_rsh32(hn[i], gcn);
+        S->K[i] = K[i];
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* P~ <- P~ - K h~'  (upper triangle, 64 bits: u = rsh(K_i h~_j, 32) 2^(64 - P_s));
+         * the diagonal: information K_i h~_i */
+        const int32_t r = mul_rsh32(K[i], hn[i]);
+        nz |= (uint32_t)r;
+        P_sub_full(&Pw[0], r, mp, P_s, c_P);
+        UNROLL
+        for (j = i + 1; j < n; j++) {
+            P_sub_full(&Pw[j - i], mul_rsh32(K[i], hn[j]), mp, P_s, c_P);
+        }
+        Pw += n - i;
+    }
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB; K carries
+         * the exponent e + kn: shifted out here; one LDRD, one STRD) */
+        theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s, c_th);
+    }
+    return nz == 0u;
 }
 
 /* The step after g at a fixed n (32-bit theta and P words), out of line: K; the diagonal of
@@ -909,6 +983,46 @@ NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, 
     int32_t e = *e_io, c = *c_io, sh = 0;
     int64_t tr = 0;
     uint32_t i, nz = 0, trw32 = 0;
+    if (mode == PM_HIGH && pa == 0 && th_s >= 34) {
+        /* the common case: the diagonal's words after the step, not stored, tell whether
+         * the block exponent moves; if not, the step in one piece */
+        const canrls_P64 *Pii = P;
+        int32_t cn = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, c_P);
+        int32_t en = e;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            const int32_t hi_ = (int32_t)((uint32_t)S->h[i] << kn);
+            const int32_t ph = mul_rsh32(mul_rsh32(hi_, gcn), hi_);
+            const int64_t t = (int64_t)(((uint64_t)(uint32_t)Pii->word << 32) | Pii->lo);
+            int64_t x;
+            if (UNLIKELY(__builtin_sub_overflow(t, mul_ww(ph, mp), &x))) {
+                x = ph < 0 ? INT64_MAX : INT64_MIN;
+            }
+            tr += (int32_t)(x >> 32);
+            Pii += n - i;
+        }
+        if (cn > p->one_lam && en > 0) {
+            cn = rsh32(cn, 1);
+            en -= 1;
+        }
+        if (cn > p->one_lam || tr <= 0 || tr > (p->trace_hi >> 1) || en >= p->e_max) {
+            /* no shift (or a fold, left to the caller): the step in one piece */
+            const int32_t tr_ps = p->trace_ps;
+            const int low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, c_th, c_P);
+            Pii = P;
+            UNROLL
+            for (i = 0; i < n; i++) {
+                const int32_t w = Pii->word;
+                trw32 += (uint32_t)(tr_ps > 0 ? ((w >> (tr_ps - 1)) + 1) >> 1 : w);
+                Pii += n - i;
+            }
+            *e_io = en;
+            *c_io = cn;
+            *trw_io = (int32_t)trw32;
+            return low;
+        }
+        tr = 0;
+    }
     UNROLL
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
