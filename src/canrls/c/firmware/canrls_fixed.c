@@ -255,6 +255,26 @@ INLINE void theta_add_full(canrls_theta64 *q, int32_t ph, int32_t m, int32_t s, 
 #endif
 }
 
+#if defined(__GNUC__)
+/* theta_q + a b at 2^-32 LSB (the product exact in 64 bits), saturated where the sum leaves
+ * the whole int32_t word (counted): the update K eps 2^(32 - s) of a shift s <= 31 with
+ * a = K 2^(32 - s) a word (theta_add's integers). */
+INLINE void theta_add_prod(canrls_theta64 *q, int32_t a, int32_t b, uint32_t *n)
+{
+    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->frac);
+    const int64_t u = mul_ww(a, b);
+    int64_t x;
+    if (UNLIKELY(__builtin_add_overflow(t, u, &x))) {
+        *n += 1u;
+        q->frac = u > 0 ? 0xFFFFFFFFu : 0u;
+        q->word = u > 0 ? INT32_MAX : INT32_MIN;
+        return;
+    }
+    q->frac = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
+}
+#endif
+
 /* The 64-bit P (canrls_P64: word and lo, the pair X = V + 2^31 with V = P~ 2^32) minus
  * u = whole 2^32 + part (0 <= part < 2^32), saturated: X clamped to [lo 2^32,
  * hi 2^32 + 2^32 - 1], i.e. the word to [lo, hi] (counted). The general case (Python
@@ -752,20 +772,23 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
  * integers): PM_HIGH  P_s >= 33: u = ph 2^(64 - P_s) = (ph 2^pa) m, ph = rsh(K_i h~_j, 32),
  *                     m = 2^(64 - P_s - pa) <= 2^30 (pa = 1 at P_s = 33: |ph| <= 2^29);
  *          PM_32    P_s = 32: u = ph 2^32, the word alone;
- *          PM_LOW   P_s <= 31: u = K_i h~_j 2^(32 - P_s) exactly. */
-enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2 };
+ *          PM_LOW   P_s <= 31: u = K_i h~_j 2^(32 - P_s) exactly;
+ *          PM_LOWK  the same with K_i 2^(32 - P_s) a word (passed as K): u = one product. */
+enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 
-/* V <- V 2^sh exactly, in the pair: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31, when the
- * word leaves room (|X| < 2^(62 - sh)); else P_shift (saturated, counted). */
-INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, int64_t C, uint32_t *c_P)
+/* V <- V 2^sh exactly (1 <= sh <= 29), in the pair: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31
+ * = X 2^sh - (chi 2^32 + 2^31), chi = 2^(sh-1) - 1, when the word leaves room
+ * (|X| < 2^(62 - sh): the high word within +-room, room = 2^(30 - sh)); else P_shift
+ * (saturated, counted). */
+INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, uint32_t chi, uint32_t room,
+                  uint32_t *c_P)
 {
     const int32_t hi = (int32_t)(x >> 32);
-    if (LIKELY((uint32_t)((hi >> (30 - sh)) + 1) <= 1u)) {
-        /* 1 <= sh <= 29: X 2^sh on two words, minus C = (2^(sh-1) - 1) 2^32 + 2^31 */
+    if (LIKELY((uint32_t)hi + room < 2u * room)) {
         const uint32_t lo = (uint32_t)x;
         const uint64_t y = ((uint64_t)(((uint32_t)hi << sh) | (lo >> (32 - sh))) << 32)
                            | (uint32_t)(lo << sh);
-        x = (int64_t)(y - (uint64_t)C);
+        x = (int64_t)(y - (((uint64_t)chi << 32) | 0x80000000u));
         q->lo = (uint32_t)x;
         q->word = (int32_t)(x >> 32);
         return;
@@ -779,7 +802,8 @@ INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, int64_t C, uint32_t *c_P
  * V <- sat(V 2^sh), the block exponent's shift folded into the same pass over P (the
  * integers of P_step followed by P_shift). ``nz``: the diagonal's low-excitation test. */
 INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, int32_t pa,
-                   int32_t P_s, int32_t sh, int64_t C, uint32_t *c_P, uint32_t *nz)
+                   int32_t P_s, int32_t sh, uint32_t chi, uint32_t room, uint32_t *c_P,
+                   uint32_t *nz)
 {
     const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
     int64_t x;
@@ -803,7 +827,7 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, i
         if (sh > 0) {
             P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
         }
-        (void)t, (void)x, (void)m, (void)pa, (void)C;
+        (void)t, (void)x, (void)m, (void)pa, (void)chi, (void)room;
         return;
 #endif
     } else if (mode == PM_32) {
@@ -814,9 +838,26 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, i
         }
         P_sub(q, ph, 0u, INT32_MIN, INT32_MAX, c_P);
         if (sh > 0) {
-            P_shl(q, (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo), sh, C, c_P);
+            P_shl(q, (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo), sh, chi, room,
+                  c_P);
         }
         return;
+    } else if (mode == PM_LOWK) {
+        /* u = (K_i 2^(32 - P_s)) h~_j: one exact product (Ki is K_i 2^(32 - P_s)) */
+        const int64_t u = mul_ww(Ki, hj);
+        if (nz != NULL) {
+            *nz |= (uint32_t)(u != 0);
+        }
+#if defined(__GNUC__)
+        if (UNLIKELY(__builtin_sub_overflow(t, u, &x)))
+#endif
+        {
+            P_sub(q, u >> 32, (uint32_t)u, INT32_MIN, INT32_MAX, c_P);
+            if (sh > 0) {
+                P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
+            }
+            return;
+        }
     } else {
         /* u = K_i h~_j 2^(32 - P_s), exact: one 64-bit subtraction when u fits 64 bits */
         const int64_t pr = mul_ww(Ki, hj);
@@ -842,36 +883,11 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, i
         }
     }
     if (sh > 0) {
-        P_shl(q, x, sh, C, c_P);
+        P_shl(q, x, sh, chi, room, c_P);
         return;
     }
     q->lo = (uint32_t)x;
     q->word = (int32_t)(x >> 32);
-}
-
-/* The off-diagonal elements of P~ <- P~ - K h~' in the common case (P_s >= 34, no shift):
- * out of line, the loop gets the registers to itself. */
-NOINLINE void P_off_high(canrls_P64 *P, const int32_t *K, const int32_t *hn, int32_t mp,
-                         int32_t P_s, uint32_t *c_P)
-{
-    const uint32_t n = CANRLS_N;
-    int32_t h[CANRLS_N];
-    canrls_P64 *Pw = P; /* row i of the packed upper triangle */
-    uint32_t i, j;
-    UNROLL
-    for (j = 0; j < n; j++) {
-        h[j] = hn[j];
-    }
-    UNROLL
-    for (i = 0; i < n; i++) {
-        const int32_t Ki = K[i];
-        UNROLL
-        for (j = i + 1; j < n; j++) {
-            /* P~_ij <- P~_ij - K_i h~_j  (u = rsh(K_i h~_j, 32) 2^(64 - P_s)) */
-            P_sub_full(&Pw[j - i], mul_rsh32(Ki, h[j]), mp, P_s, c_P);
-        }
-        Pw += n - i;
-    }
 }
 
 /* The off-diagonal elements in any other case: the shift class ``mode`` and whether the
@@ -881,14 +897,16 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
                   int32_t pa, int32_t P_s, int32_t sh, int shifted, uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const int64_t C = shifted ? (int64_t)(((uint64_t)1 << sh) - 1u) << 31 : 0; /* (2^sh - 1) 2^31 */
+    const uint32_t chi = shifted ? ((uint32_t)1 << (sh - 1)) - 1u : 0u;
+    const uint32_t room = shifted ? (uint32_t)1 << (30 - sh) : 0u;
     canrls_P64 *Pw = P;
     uint32_t i, j;
     UNROLL
     for (i = 0; i < n; i++) {
         UNROLL
         for (j = i + 1; j < n; j++) {
-            P_elem(&Pw[j - i], K[i], hn[j], mode, m, pa, P_s, shifted ? sh : 0, C, c_P, NULL);
+            P_elem(&Pw[j - i], K[i], hn[j], mode, m, pa, P_s, shifted ? sh : 0, chi, room, c_P,
+                   NULL);
         }
         Pw += n - i;
     }
@@ -902,6 +920,8 @@ NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int 
             P_off(P, K, hn, PM_HIGH, m, pa, P_s, sh, 1, c_P);
         } else if (mode == PM_32) {
             P_off(P, K, hn, PM_32, m, pa, P_s, sh, 1, c_P);
+        } else if (mode == PM_LOWK) {
+            P_off(P, K, hn, PM_LOWK, m, pa, P_s, sh, 1, c_P);
         } else {
             P_off(P, K, hn, PM_LOW, m, pa, P_s, sh, 1, c_P);
         }
@@ -909,120 +929,45 @@ NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int 
         P_off(P, K, hn, PM_HIGH, m, pa, P_s, 0, 0, c_P);
     } else if (mode == PM_32) {
         P_off(P, K, hn, PM_32, m, pa, P_s, 0, 0, c_P);
+    } else if (mode == PM_LOWK) {
+        P_off(P, K, hn, PM_LOWK, m, pa, P_s, 0, 0, c_P);
     } else {
         P_off(P, K, hn, PM_LOW, m, pa, P_s, 0, 0, c_P);
     }
 }
 
-/* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
- * th_s >= 34, P_s >= 34, no shift of the block exponent), out of line: h~ 2^kn and K stay
- * in registers from one to the other (the same integers; S->h keeps h~ without the
- * normalisation, it is scratch). theta is updated last, when the P loop has freed the
- * registers (the order of the two updates changes no integer: neither reads what the
- * other writes). Returns the low-excitation test, as P_step. */
-NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
-                               int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
-{
-    const uint32_t n = CANRLS_N;
-    const int32_t mt = (int32_t)1 << (64 - th_s), mp = (int32_t)1 << (64 - P_s);
-    int32_t hn[CANRLS_N], K[CANRLS_N];
-    canrls_P64 *Pw = S->P; /* row i of the packed upper triangle */
-    uint32_t i, j, nz = 0;
-    UNROLL
-    for (i = 0; i < n; i++) {
-        /* h~ <- h~ 2^kn (exact: the normalisation) */
-        hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
-        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
-        K[i] = mul_rsh32(hn[i], gcn);
-        S->K[i] = K[i];
-    }
-    UNROLL
-    for (i = 0; i < n; i++) {
-        /* P~ <- P~ - K h~'  (upper triangle, 64 bits: u = rsh(K_i h~_j, 32) 2^(64 - P_s));
-         * the diagonal: information K_i h~_i */
-        const int32_t r = mul_rsh32(K[i], hn[i]);
-        nz |= (uint32_t)r;
-        P_sub_full(&Pw[0], r, mp, P_s, c_P);
-        UNROLL
-        for (j = i + 1; j < n; j++) {
-            P_sub_full(&Pw[j - i], mul_rsh32(K[i], hn[j]), mp, P_s, c_P);
-        }
-        Pw += n - i;
-    }
-    UNROLL
-    for (i = 0; i < n; i++) {
-        /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB; K carries
-         * the exponent e + kn: shifted out here; one LDRD, one STRD) */
-        theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s, c_th);
-    }
-    return nz == 0u;
-}
-
-/* The step after g at a fixed n (32-bit theta and P words), out of line: K; the diagonal of
+/* The step after g at a fixed n (32-bit theta and P words): K; the diagonal of
  * P~ - K h~' first, so that c <- c / lambda_k and the block exponent's shift sh are known
  * before the rest of P is touched; then the off-diagonal elements with the shift folded
  * in (one pass over P: the shift's cost spread over the elements the update writes
  * anyway), the diagonal shifted, theta updated. The same integers as K_step, P_step, the
- * forgetting scale and the block exponent of canrls_update_q31 one after the other.
- * A c to fold into P~ (e = 0) is left to the caller (c > one_lam on return, no shift).
- * Returns the low-excitation test, as P_step. */
-NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
-                       int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
-                       uint32_t *c_th, uint32_t *c_P)
+ * forgetting scale and the block exponent of canrls_update_q31 one after the other (the
+ * order changes no integer: the theta and P updates read nothing the other writes, and
+ * the shift of each element follows its own update). ``common`` (a constant at each
+ * call): P_s >= 34 and th_s >= 34, the steady state, one straight run. A c to fold into
+ * P~ (e = 0) is left to the caller (c > one_lam on return, no shift). Returns the
+ * low-excitation test, as P_step. */
+INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                   int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
+                   uint32_t *c_th, uint32_t *c_P, int common)
 {
     const uint32_t n = CANRLS_N;
     const canrls_plan_q31 *p = S->plan;
-    const int mode = P_s >= 33 ? PM_HIGH : P_s == 32 ? PM_32 : PM_LOW;
-    const int32_t pa = P_s == 33 ? 1 : 0;
+    int mode = common || P_s >= 33 ? PM_HIGH : P_s == 32 ? PM_32 : PM_LOW;
+    const int32_t pa = !common && P_s == 33 ? 1 : 0;
     const int32_t mp = mode == PM_HIGH ? (int32_t)1 << (64 - P_s - pa) : 0;
     /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = (ph 2^ta) mt */
-    const int32_t ta = th_s == 33 ? 1 : 0;
-    const int32_t mt = th_s >= 33 ? (int32_t)1 << (64 - th_s - ta) : 0;
-    int32_t hn[CANRLS_N], K[CANRLS_N];
+    const int32_t ta = !common && th_s == 33 ? 1 : 0;
+    const int32_t mt = common || th_s >= 33 ? (int32_t)1 << (64 - th_s - ta) : 0;
+    const int32_t tr_ps = p->trace_ps;
+    int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N];
+    const int32_t *KP = K; /* K as the P update takes it: K, or K 2^(32 - P_s) (PM_LOWK) */
     canrls_P64 *const P = S->P;
+    canrls_P64 *Pw;
+    uint32_t mK = 0;
     int32_t e = *e_io, c = *c_io, sh = 0;
     int64_t tr = 0;
-    uint32_t i, nz = 0, trw32 = 0;
-    if (mode == PM_HIGH && pa == 0 && th_s >= 34) {
-        /* the common case: the diagonal's words after the step, not stored, tell whether
-         * the block exponent moves; if not, the step in one piece */
-        const canrls_P64 *Pii = P;
-        int32_t cn = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, c_P);
-        int32_t en = e;
-        UNROLL
-        for (i = 0; i < n; i++) {
-            const int32_t hi_ = (int32_t)((uint32_t)S->h[i] << kn);
-            const int32_t ph = mul_rsh32(mul_rsh32(hi_, gcn), hi_);
-            const int64_t t = (int64_t)(((uint64_t)(uint32_t)Pii->word << 32) | Pii->lo);
-            int64_t x;
-            if (UNLIKELY(__builtin_sub_overflow(t, mul_ww(ph, mp), &x))) {
-                x = ph < 0 ? INT64_MAX : INT64_MIN;
-            }
-            tr += (int32_t)(x >> 32);
-            Pii += n - i;
-        }
-        if (cn > p->one_lam && en > 0) {
-            cn = rsh32(cn, 1);
-            en -= 1;
-        }
-        if (cn > p->one_lam || tr <= 0 || tr > (p->trace_hi >> 1) || en >= p->e_max) {
-            /* no shift (or a fold, left to the caller): the step in one piece */
-            const int32_t tr_ps = p->trace_ps;
-            const int low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, c_th, c_P);
-            Pii = P;
-            UNROLL
-            for (i = 0; i < n; i++) {
-                const int32_t w = Pii->word;
-                trw32 += (uint32_t)(tr_ps > 0 ? ((w >> (tr_ps - 1)) + 1) >> 1 : w);
-                Pii += n - i;
-            }
-            *e_io = en;
-            *c_io = cn;
-            *trw_io = (int32_t)trw32;
-            return low;
-        }
-        tr = 0;
-    }
+    uint32_t i, j, nz = 0, trw32 = 0;
     UNROLL
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
@@ -1030,16 +975,24 @@ NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, 
         /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
         K[i] = mul_rsh32(hn[i], gcn);
         S->K[i] = K[i];
+        mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
     }
-    /* the diagonal: P~_ii <- P~_ii - K_i h~_i (the information K_i h~_i: low excitation) */
-    {
-        canrls_P64 *Pii = P;
+    if (!common && mode == PM_LOW && (mK >> (P_s - 1)) == 0u) {
+        /* |K_i| < 2^(P_s - 1): K_i 2^(32 - P_s) is a word */
         UNROLL
         for (i = 0; i < n; i++) {
-            P_elem(Pii, K[i], hn[i], mode, mp, pa, P_s, 0, 0, c_P, &nz);
-            tr += Pii->word;
-            Pii += n - i;
+            Kk[i] = (int32_t)((uint32_t)K[i] << (32 - P_s));
         }
+        KP = Kk;
+        mode = PM_LOWK;
+    }
+    /* the diagonal: P~_ii <- P~_ii - K_i h~_i (the information K_i h~_i: low excitation) */
+    Pw = P;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        P_elem(Pw, KP[i], hn[i], mode, mp, pa, P_s, 0, 0u, 0u, c_P, &nz);
+        tr += Pw->word;
+        Pw += n - i;
     }
     /* c <- c / lambda_k ; c > 1 and e > 0: c/2 and 2^-e x 2 (the words do not move) */
     c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, c_P);
@@ -1049,43 +1002,53 @@ NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, 
     }
     /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh (not
      * with a c to fold: the caller folds, then shifts) */
-    if (c <= p->one_lam && tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max) {
+    if (UNLIKELY(c <= p->one_lam && tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max)) {
         sh = 1;
         while ((tr << (sh + 1)) <= p->trace_hi && e + sh < p->e_max) {
             sh += 1;
         }
     }
     /* the rest of P~ <- (P~ - K h~') 2^sh */
-    if (mode == PM_HIGH && pa == 0 && sh == 0) {
-        P_off_high(P, K, hn, mp, P_s, c_P);
-    } else {
-        P_off_any(P, K, hn, mode, mp, pa, P_s, sh, c_P);
-    }
-    {
-        canrls_P64 *Pii = P;
-        const int64_t C = (int64_t)(((uint64_t)1 << sh) - 1u) << 31;
-        const int32_t tr_ps = p->trace_ps;
+    if (common && LIKELY(sh == 0)) {
+        Pw = P;
         UNROLL
         for (i = 0; i < n; i++) {
-            int32_t x;
-            if (sh > 0) {
-                P_shl(Pii, (int64_t)(((uint64_t)(uint32_t)Pii->word << 32) | Pii->lo), sh, C,
-                      c_P);
+            UNROLL
+            for (j = i + 1; j < n; j++) {
+                /* u = rsh(K_i h~_j, 32) 2^(64 - P_s) */
+                P_sub_full(&Pw[j - i], mul_rsh32(K[i], hn[j]), mp, P_s, c_P);
             }
-            /* trw = sum_i rsh(Pw_ii, trace_ps) (modulo 2^32: a word) */
-            x = Pii->word;
-            trw32 += (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
-            Pii += n - i;
+            Pw += n - i;
         }
+    } else {
+        P_off_any(P, KP, hn, mode, mp, pa, P_s, sh, c_P);
+    }
+    Pw = P;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        int32_t x;
+        if (sh > 0) {
+            P_shl(Pw, (int64_t)(((uint64_t)(uint32_t)Pw->word << 32) | Pw->lo), sh,
+                  ((uint32_t)1 << (sh - 1)) - 1u, (uint32_t)1 << (30 - sh), c_P);
+        }
+        /* trw = sum_i rsh(Pw_ii, trace_ps) (modulo 2^32: a word) */
+        x = Pw->word;
+        trw32 += (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
+        Pw += n - i;
     }
     UNROLL
     for (i = 0; i < n; i++) {
         /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB; K carries
-         * the exponent e + kn: shifted out here) */
-        if (th_s >= 33) {
+         * the exponent e + kn: shifted out here; one LDRD, one STRD) */
+        if (common || th_s >= 33) {
             theta_add_full(&S->theta_q[i],
                            (int32_t)((uint32_t)(int32_t)(mul_ww(K[i], epn) >> 32) << ta), mt,
                            th_s - ta, c_th);
+#if defined(__GNUC__)
+        } else if (th_s <= 31 && th_s >= 1 && (mK >> (th_s - 1)) == 0u) {
+            /* K eps 2^(32 - th_s) exactly: (K 2^(32 - th_s)) eps, one product */
+            theta_add_prod(&S->theta_q[i], (int32_t)((uint32_t)K[i] << (32 - th_s)), epn, c_th);
+#endif
         } else {
             theta_add(&S->theta_q[i], mul_ww(K[i], epn), th_s, INT32_MIN, INT32_MAX, c_th);
         }
@@ -1094,6 +1057,21 @@ NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, 
     *c_io = c;
     *trw_io = (int32_t)trw32;
     return nz == 0u;
+}
+
+/* the two instances, out of line: the steady state (P_s, th_s >= 34) and any other step */
+NOINLINE int KP_step_common(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
+                            int32_t th_s, int32_t P_s, int32_t il, int32_t *e_io,
+                            int32_t *c_io, int32_t *trw_io, uint32_t *c_th, uint32_t *c_P)
+{
+    return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 1);
+}
+
+NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                       int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
+                       uint32_t *c_th, uint32_t *c_P)
+{
+    return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 0);
 }
 #endif
 
@@ -1304,7 +1282,12 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         if ((~S->wide & (WIDE_THETA | WIDE_P)) == 0u && P_s >= 1) {
             /* 32-bit words at a fixed n: the step, the forgetting scale and the block
              * exponent in one pass over P (a c to fold is left to the code below) */
-            low = KP_step_n(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
+            if (P_s >= 34 && th_s >= 34) {
+                low = KP_step_common(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th,
+                                     &c_P);
+            } else {
+                low = KP_step_n(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
+            }
             tail = c > p->one_lam;
             fixed_step = 1;
         } else
