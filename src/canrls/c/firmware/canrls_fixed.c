@@ -778,17 +778,17 @@ enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 
 /* V <- V 2^sh exactly (1 <= sh <= 29), in the pair: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31
  * = X 2^sh - (chi 2^32 + 2^31), chi = 2^(sh-1) - 1, when the word leaves room
- * (|X| < 2^(62 - sh): the high word within +-room, room = 2^(30 - sh)); else P_shift
- * (saturated, counted). */
-INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, uint32_t chi, uint32_t room,
-                  uint32_t *c_P)
+ * (|X| < 2^(62 - sh): the high word within +-room, room = 2^(30 - sh)); X 2^sh is the
+ * low word times m2 = 2^sh (one UMULL) plus the high word times m2 (one MLA). Else
+ * P_shift (saturated, counted). */
+INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, uint32_t m2, uint32_t chi,
+                  uint32_t room, uint32_t *c_P)
 {
     const int32_t hi = (int32_t)(x >> 32);
-    if (LIKELY((uint32_t)hi + room < 2u * room)) {
-        const uint32_t lo = (uint32_t)x;
-        const uint64_t y = ((uint64_t)(((uint32_t)hi << sh) | (lo >> (32 - sh))) << 32)
-                           | (uint32_t)(lo << sh);
-        x = (int64_t)(y - (((uint64_t)chi << 32) | 0x80000000u));
+    if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < room)) {
+        const uint64_t y = (uint64_t)(uint32_t)x * m2;
+        const uint32_t yh = (uint32_t)(y >> 32) + (uint32_t)hi * m2;
+        x = (int64_t)((((uint64_t)yh << 32) | (uint32_t)y) - (((uint64_t)chi << 32) | 0x80000000u));
         q->lo = (uint32_t)x;
         q->word = (int32_t)(x >> 32);
         return;
@@ -838,8 +838,8 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, i
         }
         P_sub(q, ph, 0u, INT32_MIN, INT32_MAX, c_P);
         if (sh > 0) {
-            P_shl(q, (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo), sh, chi, room,
-                  c_P);
+            P_shl(q, (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo), sh,
+                  (uint32_t)1 << sh, chi, room, c_P);
         }
         return;
     } else if (mode == PM_LOWK) {
@@ -883,7 +883,7 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, i
         }
     }
     if (sh > 0) {
-        P_shl(q, x, sh, chi, room, c_P);
+        P_shl(q, x, sh, (uint32_t)1 << sh, chi, room, c_P);
         return;
     }
     q->lo = (uint32_t)x;
@@ -899,13 +899,19 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
     const uint32_t n = CANRLS_N;
     const uint32_t chi = shifted ? ((uint32_t)1 << (sh - 1)) - 1u : 0u;
     const uint32_t room = shifted ? (uint32_t)1 << (30 - sh) : 0u;
+    int32_t h[CANRLS_N]; /* h~ in a local array: the stores to P cannot change it */
     canrls_P64 *Pw = P;
     uint32_t i, j;
     UNROLL
+    for (j = 0; j < n; j++) {
+        h[j] = hn[j];
+    }
+    UNROLL
     for (i = 0; i < n; i++) {
+        const int32_t Ki = K[i];
         UNROLL
         for (j = i + 1; j < n; j++) {
-            P_elem(&Pw[j - i], K[i], hn[j], mode, m, pa, P_s, shifted ? sh : 0, chi, room, c_P,
+            P_elem(&Pw[j - i], Ki, h[j], mode, m, pa, P_s, shifted ? sh : 0, chi, room, c_P,
                    NULL);
         }
         Pw += n - i;
@@ -916,8 +922,10 @@ NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int 
                         int32_t m, int32_t pa, int32_t P_s, int32_t sh, uint32_t *c_P)
 {
     if (sh > 0) {
-        if (mode == PM_HIGH) {
-            P_off(P, K, hn, PM_HIGH, m, pa, P_s, sh, 1, c_P);
+        if (mode == PM_HIGH && pa == 0) {
+            P_off(P, K, hn, PM_HIGH, m, 0, P_s, sh, 1, c_P);
+        } else if (mode == PM_HIGH) {
+            P_off(P, K, hn, PM_HIGH, m, 1, P_s, sh, 1, c_P);
         } else if (mode == PM_32) {
             P_off(P, K, hn, PM_32, m, pa, P_s, sh, 1, c_P);
         } else if (mode == PM_LOWK) {
@@ -1003,10 +1011,12 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh (not
      * with a c to fold: the caller folds, then shifts) */
     if (UNLIKELY(c <= p->one_lam && tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max)) {
-        sh = 1;
-        while ((tr << (sh + 1)) <= p->trace_hi && e + sh < p->e_max) {
-            sh += 1;
+        /* the largest sh with tr 2^sh <= tr_hi (at least 1 here) and e + sh <= e_max */
+        sh = nlz((uint32_t)tr) - nlz((uint32_t)p->trace_hi);
+        if ((tr << sh) > p->trace_hi) {
+            sh -= 1;
         }
+        sh = sh < p->e_max - e ? sh : p->e_max - e;
     }
     /* the rest of P~ <- (P~ - K h~') 2^sh */
     if (common && LIKELY(sh == 0)) {
@@ -1029,7 +1039,8 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         int32_t x;
         if (sh > 0) {
             P_shl(Pw, (int64_t)(((uint64_t)(uint32_t)Pw->word << 32) | Pw->lo), sh,
-                  ((uint32_t)1 << (sh - 1)) - 1u, (uint32_t)1 << (30 - sh), c_P);
+                  (uint32_t)1 << sh, ((uint32_t)1 << (sh - 1)) - 1u, (uint32_t)1 << (30 - sh),
+                  c_P);
         }
         /* trw = sum_i rsh(Pw_ii, trace_ps) (modulo 2^32: a word) */
         x = Pw->word;
