@@ -773,7 +773,8 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
  *                     m = 2^(64 - P_s - pa) <= 2^30 (pa = 1 at P_s = 33: |ph| <= 2^29);
  *          PM_32    P_s = 32: u = ph 2^32, the word alone;
  *          PM_LOW   P_s <= 31: u = K_i h~_j 2^(32 - P_s) exactly;
- *          PM_LOWK  the same with K_i 2^(32 - P_s) a word (passed as K): u = one product. */
+ *          PM_LOWK  the same as (K_i 2^a)(h~_j 2^b), a + b = 32 - P_s, both words (passed
+ *                   as K and h~): u = one product. */
 enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 
 /* V <- V 2^sh exactly (1 <= sh <= 29), in the pair: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31
@@ -968,8 +969,10 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     const int32_t ta = !common && th_s == 33 ? 1 : 0;
     const int32_t mt = common || th_s >= 33 ? (int32_t)1 << (64 - th_s - ta) : 0;
     const int32_t tr_ps = p->trace_ps;
-    int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N];
-    const int32_t *KP = K; /* K as the P update takes it: K, or K 2^(32 - P_s) (PM_LOWK) */
+    int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
+    /* K and h~ as the P update takes them: K and h~, or K 2^a and h~ 2^b with
+     * a + b = 32 - P_s (PM_LOWK) */
+    const int32_t *KP = K, *hP = hn;
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
     uint32_t mK = 0;
@@ -985,20 +988,35 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         S->K[i] = K[i];
         mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
     }
-    if (!common && mode == PM_LOW && (mK >> (P_s - 1)) == 0u) {
-        /* |K_i| < 2^(P_s - 1): K_i 2^(32 - P_s) is a word */
+    if (!common && mode == PM_LOW) {
+        /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a that keeps K 2^a a
+         * word, the rest b on h~ if it keeps h~ 2^b a word */
+        uint32_t mh = 0;
+        int32_t a = 32 - P_s, b;
+        while (a > 0 && (mK >> (31 - a)) != 0u) {
+            a -= 1;
+        }
+        b = 32 - P_s - a;
         UNROLL
         for (i = 0; i < n; i++) {
-            Kk[i] = (int32_t)((uint32_t)K[i] << (32 - P_s));
+            mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
         }
-        KP = Kk;
-        mode = PM_LOWK;
+        if (b <= 31 && (mh >> (31 - b)) == 0u) {
+            UNROLL
+            for (i = 0; i < n; i++) {
+                Kk[i] = (int32_t)((uint32_t)K[i] << a);
+                hk[i] = (int32_t)((uint32_t)hn[i] << b);
+            }
+            KP = Kk;
+            hP = hk;
+            mode = PM_LOWK;
+        }
     }
     /* the diagonal: P~_ii <- P~_ii - K_i h~_i (the information K_i h~_i: low excitation) */
     Pw = P;
     UNROLL
     for (i = 0; i < n; i++) {
-        P_elem(Pw, KP[i], hn[i], mode, mp, pa, P_s, 0, 0u, 0u, c_P, &nz);
+        P_elem(Pw, KP[i], hP[i], mode, mp, pa, P_s, 0, 0u, 0u, c_P, &nz);
         tr += Pw->word;
         Pw += n - i;
     }
@@ -1031,7 +1049,7 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
             Pw += n - i;
         }
     } else {
-        P_off_any(P, KP, hn, mode, mp, pa, P_s, sh, c_P);
+        P_off_any(P, KP, hP, mode, mp, pa, P_s, sh, c_P);
     }
     Pw = P;
     UNROLL
