@@ -768,6 +768,9 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 }
 
 #ifdef CANRLS_N
+/* 2^sh: the multiplier of a pair's shift */
+#define m2_of(sh) ((uint32_t)1 << (sh))
+
 /* How the fixed-n step computes u, the decrement of V (P_step's shift classes, the same
  * integers): PM_HIGH  P_s >= 33: u = ph 2^(64 - P_s) = (ph 2^pa) m, ph = rsh(K_i h~_j, 32),
  *                     m = 2^(64 - P_s - pa) <= 2^30 (pa = 1 at P_s = 33: |ph| <= 2^29);
@@ -776,6 +779,44 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
  *          PM_LOWK  the same as (K_i 2^a)(h~_j 2^b), a + b = 32 - P_s, both words (passed
  *                   as K and h~): u = one product. */
 enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
+
+/* The exact general element, out of line (rare: a word that saturates, or a start-up
+ * product too wide for the fast paths): V <- sat(V - u) as P_step, then V <- sat(V 2^sh)
+ * as the block exponent's P_shift. Ki, hj as P_elem takes them. */
+NOINLINE void P_elem_slow(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t pa,
+                          int32_t P_s, int32_t sh, uint32_t *c_P)
+{
+    if (mode == PM_HIGH || mode == PM_32) {
+        /* u = ph 2^(64 - P_s), ph = rsh(K_i h~_j, 32) */
+        const int32_t ph = mul_rsh32(Ki, hj);
+        (void)pa;
+        if (P_s == 32) {
+            P_sub(q, ph, 0u, INT32_MIN, INT32_MAX, c_P);
+        } else {
+            P_sub(q, ph >> (P_s - 32), (uint32_t)ph << (64 - P_s), INT32_MIN, INT32_MAX, c_P);
+        }
+    } else {
+        /* u = K_i h~_j 2^(32 - P_s) (PM_LOWK: the product of the two shifted words) */
+        const int64_t pr = mul_ww(Ki, hj);
+        if (mode == PM_LOWK) {
+            P_sub(q, pr >> 32, (uint32_t)pr, INT32_MIN, INT32_MAX, c_P);
+        } else {
+            P_sub(q, pr >> P_s, (uint32_t)((uint64_t)pr << (32 - P_s)), INT32_MIN, INT32_MAX,
+                  c_P);
+        }
+    }
+    if (sh > 0) {
+        P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
+    }
+}
+
+/* V <- V 2^sh, saturated, out of line (a word without room for the shift) */
+NOINLINE void P_shl_slow(canrls_P64 *q, int64_t x, int32_t sh, uint32_t *c_P)
+{
+    q->lo = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
+    P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
+}
 
 /* V <- V 2^sh exactly (1 <= sh <= 29), in the pair: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31
  * = X 2^sh - (chi 2^32 + 2^31), chi = 2^(sh-1) - 1, when the word leaves room
@@ -794,112 +835,77 @@ INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, uint32_t m2, uint32_t ch
         q->word = (int32_t)(x >> 32);
         return;
     }
-    q->lo = (uint32_t)x;
-    q->word = hi;
-    P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
+    P_shl_slow(q, x, sh, c_P);
 }
 
 /* One element of the fixed-n step (32-bit P words): V <- sat(V - u) and, sh > 0, then
  * V <- sat(V 2^sh), the block exponent's shift folded into the same pass over P (the
- * integers of P_step followed by P_shift). ``nz``: the diagonal's low-excitation test. */
+ * integers of P_step followed by P_shift); the fast paths below, anything else (a
+ * saturation, a product too wide) in P_elem_slow. ``nz``: the diagonal's low-excitation
+ * test. */
 INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, int32_t pa,
                    int32_t P_s, int32_t sh, uint32_t chi, uint32_t room, uint32_t *c_P,
                    uint32_t *nz)
 {
-    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
-    int64_t x;
-    if (mode == PM_HIGH) {
-        const int32_t ph = mul_rsh32(Ki, hj);
-        if (nz != NULL) {
-            *nz |= (uint32_t)ph;
-        }
 #if defined(__GNUC__)
-        if (UNLIKELY(__builtin_sub_overflow(t, mul_ww((int32_t)((uint32_t)ph << pa), m), &x))) {
-            *c_P += 1u;
-            q->lo = ph < 0 ? 0xFFFFFFFFu : 0u;
-            q->word = ph < 0 ? INT32_MAX : INT32_MIN;
-            if (sh > 0) {
-                P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
-            }
-            return;
-        }
-#else
-        P_sub(q, ph >> (P_s - 32), (uint32_t)ph << (64 - P_s), INT32_MIN, INT32_MAX, c_P);
-        if (sh > 0) {
-            P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
-        }
-        (void)t, (void)x, (void)m, (void)pa, (void)chi, (void)room;
-        return;
-#endif
-    } else if (mode == PM_32) {
-        /* u = ph 2^32: the word alone */
+    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
+    int64_t x, u;
+    if (mode == PM_HIGH || mode == PM_32) {
+        /* u = (ph 2^pa) m, or ph 2^32 = (4 ph) 2^30 (|ph| <= 2^29 but for a saturated h) */
         const int32_t ph = mul_rsh32(Ki, hj);
         if (nz != NULL) {
             *nz |= (uint32_t)ph;
         }
-        P_sub(q, ph, 0u, INT32_MIN, INT32_MAX, c_P);
-        if (sh > 0) {
-            P_shl(q, (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo), sh,
-                  (uint32_t)1 << sh, chi, room, c_P);
+        if (mode == PM_32) {
+            u = (int64_t)((uint64_t)(int64_t)ph << 32);
+        } else {
+            u = mul_ww((int32_t)((uint32_t)ph << pa), m);
         }
-        return;
     } else if (mode == PM_LOWK) {
-        /* u = (K_i 2^(32 - P_s)) h~_j: one exact product (Ki is K_i 2^(32 - P_s)) */
-        const int64_t u = mul_ww(Ki, hj);
+        /* u = (K_i 2^a)(h~_j 2^b): one exact product */
+        u = mul_ww(Ki, hj);
         if (nz != NULL) {
             *nz |= (uint32_t)(u != 0);
         }
-#if defined(__GNUC__)
-        if (UNLIKELY(__builtin_sub_overflow(t, u, &x)))
-#endif
-        {
-            P_sub(q, u >> 32, (uint32_t)u, INT32_MIN, INT32_MAX, c_P);
-            if (sh > 0) {
-                P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
-            }
-            return;
-        }
     } else {
-        /* u = K_i h~_j 2^(32 - P_s), exact: one 64-bit subtraction when u fits 64 bits */
-        const int64_t pr = mul_ww(Ki, hj);
-        const int32_t k2 = 32 - P_s;
+        /* u = K_i h~_j 2^(32 - P_s), 1 <= 32 - P_s <= 31: in P_elem_slow */
         if (nz != NULL) {
-            *nz |= (uint32_t)(pr != 0);
+            *nz |= (uint32_t)(mul_ww(Ki, hj) != 0);
         }
-#if defined(__GNUC__)
-        const uint32_t plo = (uint32_t)pr;
-        const int32_t phi_ = (int32_t)(pr >> 32);
-        /* u = pr 2^k2 (1 <= k2 <= 31) on two words, when it fits 64 bits */
-        const int64_t u = (int64_t)(((uint64_t)(((uint32_t)phi_ << k2) | (plo >> (32 - k2))) << 32)
-                                    | (uint32_t)(plo << k2));
-        if (UNLIKELY((uint32_t)((phi_ >> (31 - k2)) + 1) > 1u)
-            || UNLIKELY(__builtin_sub_overflow(t, u, &x)))
-#endif
-        {
-            P_sub(q, pr >> P_s, (uint32_t)((uint64_t)pr << k2), INT32_MIN, INT32_MAX, c_P);
-            if (sh > 0) {
-                P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
-            }
-            return;
-        }
+        P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
+        return;
+    }
+    if (UNLIKELY(__builtin_sub_overflow(t, u, &x))) {
+        P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
+        return;
     }
     if (sh > 0) {
-        P_shl(q, x, sh, (uint32_t)1 << sh, chi, room, c_P);
+        P_shl(q, x, sh, m2_of(sh), chi, room, c_P);
         return;
     }
     q->lo = (uint32_t)x;
     q->word = (int32_t)(x >> 32);
+#else
+    if (nz != NULL) {
+        *nz |= mode == PM_HIGH || mode == PM_32 ? (uint32_t)mul_rsh32(Ki, hj)
+                                                : (uint32_t)(mul_ww(Ki, hj) != 0);
+    }
+    (void)m, (void)chi, (void)room;
+    P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
+#endif
 }
 
 /* The off-diagonal elements in any other case: the shift class ``mode`` and whether the
  * block exponent's shift sh is folded in (V <- sat(sat(V - u) 2^sh)) are constants at
- * each call, so that each instance is one straight run. */
+ * each call. ``unroll`` (a constant): one straight run (the steady state's shift), else a
+ * loop over the packed rows (the start-up classes: less code). */
 INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t m,
-                  int32_t pa, int32_t P_s, int32_t sh, int shifted, uint32_t *c_P)
+                  int32_t pa, int32_t P_s, int32_t sh, int shifted, int unroll, uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
     const uint32_t chi = shifted ? ((uint32_t)1 << (sh - 1)) - 1u : 0u;
     const uint32_t room = shifted ? (uint32_t)1 << (30 - sh) : 0u;
+    const int32_t s = shifted ? sh : 0;
     int32_t h[CANRLS_N]; /* h~ in a local array: the stores to P cannot change it */
     canrls_P64 *Pw = P;
     uint32_t i, j;
@@ -907,41 +913,36 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
     for (j = 0; j < n; j++) {
         h[j] = hn[j];
     }
-    UNROLL
-    for (i = 0; i < n; i++) {
-        const int32_t Ki = K[i];
+    if (unroll) {
         UNROLL
-        for (j = i + 1; j < n; j++) {
-            P_elem(&Pw[j - i], Ki, h[j], mode, m, pa, P_s, shifted ? sh : 0, chi, room, c_P,
-                   NULL);
+        for (i = 0; i < n; i++) {
+            const int32_t Ki = K[i];
+            UNROLL
+            for (j = i + 1; j < n; j++) {
+                P_elem(&Pw[j - i], Ki, h[j], mode, m, pa, P_s, s, chi, room, c_P, NULL);
+            }
+            Pw += n - i;
         }
-        Pw += n - i;
+    } else {
+        for (i = 0; i < n; i++) {
+            const int32_t Ki = K[i];
+            for (j = i + 1; j < n; j++) {
+                P_elem(&Pw[j - i], Ki, h[j], mode, m, pa, P_s, s, chi, room, c_P, NULL);
+            }
+            Pw += n - i;
+        }
     }
 }
 
 NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
                         int32_t m, int32_t pa, int32_t P_s, int32_t sh, uint32_t *c_P)
 {
-    if (sh > 0) {
-        if (mode == PM_HIGH && pa == 0) {
-            P_off(P, K, hn, PM_HIGH, m, 0, P_s, sh, 1, c_P);
-        } else if (mode == PM_HIGH) {
-            P_off(P, K, hn, PM_HIGH, m, 1, P_s, sh, 1, c_P);
-        } else if (mode == PM_32) {
-            P_off(P, K, hn, PM_32, m, pa, P_s, sh, 1, c_P);
-        } else if (mode == PM_LOWK) {
-            P_off(P, K, hn, PM_LOWK, m, pa, P_s, sh, 1, c_P);
-        } else {
-            P_off(P, K, hn, PM_LOW, m, pa, P_s, sh, 1, c_P);
-        }
-    } else if (mode == PM_HIGH) {
-        P_off(P, K, hn, PM_HIGH, m, pa, P_s, 0, 0, c_P);
-    } else if (mode == PM_32) {
-        P_off(P, K, hn, PM_32, m, pa, P_s, 0, 0, c_P);
-    } else if (mode == PM_LOWK) {
-        P_off(P, K, hn, PM_LOWK, m, pa, P_s, 0, 0, c_P);
+    if (sh > 0 && mode == PM_HIGH && pa == 0) {
+        P_off(P, K, hn, PM_HIGH, m, 0, P_s, sh, 1, 1, c_P); /* the steady state's shift */
+    } else if (sh > 0) {
+        P_off(P, K, hn, mode, m, pa, P_s, sh, 1, 0, c_P);
     } else {
-        P_off(P, K, hn, PM_LOW, m, pa, P_s, 0, 0, c_P);
+        P_off(P, K, hn, mode, m, pa, P_s, 0, 0, 0, c_P);
     }
 }
 
