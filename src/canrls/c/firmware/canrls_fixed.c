@@ -937,12 +937,18 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
 NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
                         int32_t m, int32_t pa, int32_t P_s, int32_t sh, uint32_t *c_P)
 {
-    if (sh > 0 && mode == PM_HIGH && pa == 0) {
-        P_off(P, K, hn, PM_HIGH, m, 0, P_s, sh, 1, 1, c_P); /* the steady state's shift */
-    } else if (sh > 0) {
-        P_off(P, K, hn, mode, m, pa, P_s, sh, 1, 0, c_P);
+    /* one straight run for each class of the steady state and the start-up (ph 2^pa m,
+     * or one product), with and without the shift; a loop for the rest (rare) */
+    if (mode == PM_HIGH && sh > 0) {
+        P_off(P, K, hn, PM_HIGH, m, pa, P_s, sh, 1, 1, c_P);
+    } else if (mode == PM_HIGH) {
+        P_off(P, K, hn, PM_HIGH, m, pa, P_s, 0, 0, 1, c_P);
+    } else if (mode == PM_LOWK && sh > 0) {
+        P_off(P, K, hn, PM_LOWK, m, pa, P_s, sh, 1, 1, c_P);
+    } else if (mode == PM_LOWK) {
+        P_off(P, K, hn, PM_LOWK, m, pa, P_s, 0, 0, 1, c_P);
     } else {
-        P_off(P, K, hn, mode, m, pa, P_s, 0, 0, 0, c_P);
+        P_off(P, K, hn, mode, m, pa, P_s, sh, sh > 0, 0, c_P);
     }
 }
 
@@ -964,8 +970,8 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     const uint32_t n = CANRLS_N;
     const canrls_plan_q31 *p = S->plan;
     int mode = common || P_s >= 33 ? PM_HIGH : P_s == 32 ? PM_32 : PM_LOW;
-    const int32_t pa = !common && P_s == 33 ? 1 : 0;
-    const int32_t mp = mode == PM_HIGH ? (int32_t)1 << (64 - P_s - pa) : 0;
+    int32_t pa = !common && P_s == 33 ? 1 : 0;
+    int32_t mp = mode == PM_HIGH ? (int32_t)1 << (64 - P_s - pa) : 0;
     /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = (ph 2^ta) mt */
     const int32_t ta = !common && th_s == 33 ? 1 : 0;
     const int32_t mt = common || th_s >= 33 ? (int32_t)1 << (64 - th_s - ta) : 0;
@@ -988,6 +994,19 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         K[i] = mul_rsh32(hn[i], gcn);
         S->K[i] = K[i];
         mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
+    }
+    if (!common && mode == PM_32) {
+        /* u = ph 2^32 = (ph 2^2) 2^30 where every |h~| < 2^30 (then |ph| <= 2^27) */
+        uint32_t mh = 0;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
+        }
+        if ((mh >> 30) == 0u) {
+            mode = PM_HIGH;
+            pa = 2;
+            mp = (int32_t)1 << 30;
+        }
     }
     if (!common && mode == PM_LOW) {
         /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a that keeps K 2^a a
