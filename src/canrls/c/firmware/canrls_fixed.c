@@ -868,12 +868,21 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, i
             *nz |= (uint32_t)(u != 0);
         }
     } else {
-        /* u = K_i h~_j 2^(32 - P_s), 1 <= 32 - P_s <= 31: in P_elem_slow */
+        /* u = K_i h~_j 2^k2, k2 = 32 - P_s (1..31), shifted on two words where it fits
+         * 64 bits (else in P_elem_slow) */
+        const int64_t pr = mul_ww(Ki, hj);
+        const int32_t k2 = 32 - P_s;
+        const uint32_t plo = (uint32_t)pr;
+        const int32_t phw = (int32_t)(pr >> 32);
         if (nz != NULL) {
-            *nz |= (uint32_t)(mul_ww(Ki, hj) != 0);
+            *nz |= (uint32_t)(pr != 0);
         }
-        P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
-        return;
+        if (UNLIKELY((uint32_t)((phw >> (31 - k2)) + 1) > 1u)) {
+            P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
+            return;
+        }
+        u = (int64_t)(((uint64_t)(((uint32_t)phw << k2) | (plo >> (32 - k2))) << 32)
+                      | (uint32_t)(plo << k2));
     }
     if (UNLIKELY(__builtin_sub_overflow(t, u, &x))) {
         P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
