@@ -768,6 +768,15 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 }
 
 #ifdef CANRLS_N
+/* Built for size (-Os, GCC's __OPTIMIZE_SIZE__): the start-up steps take the general loops
+ * and the block exponent's shift of a steady step one loop over P, not a straight run (the
+ * same integers; the bounded worst case is that of the -O2 build, docs/target.md). */
+#if defined(__OPTIMIZE_SIZE__)
+#define CANRLS_SMALL 1
+#else
+#define CANRLS_SMALL 0
+#endif
+
 /* 2^sh: the multiplier of a pair's shift */
 #define m2_of(sh) ((uint32_t)1 << (sh))
 
@@ -948,7 +957,9 @@ NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int 
 {
     /* one straight run for each class of the steady state and the start-up (ph 2^pa m,
      * or one product), with and without the shift; a loop for the rest (rare) */
-    if (mode == PM_HIGH && sh > 0) {
+    if (CANRLS_SMALL) {
+        P_off(P, K, hn, mode, m, pa, P_s, sh, sh > 0, 0, c_P);
+    } else if (mode == PM_HIGH && sh > 0) {
         P_off(P, K, hn, PM_HIGH, m, pa, P_s, sh, 1, 1, c_P);
     } else if (mode == PM_HIGH) {
         P_off(P, K, hn, PM_HIGH, m, pa, P_s, 0, 0, 1, c_P);
@@ -1337,7 +1348,8 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         }
         il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
 #ifdef CANRLS_N
-        if ((~S->wide & (WIDE_THETA | WIDE_P)) == 0u && P_s >= 1) {
+        if ((~S->wide & (WIDE_THETA | WIDE_P)) == 0u && P_s >= 1
+            && (!CANRLS_SMALL || (P_s >= 34 && th_s >= 34))) {
             /* 32-bit words at a fixed n: the step, the forgetting scale and the block
              * exponent in one pass over P (a c to fold is left to the code below) */
             if (P_s >= 34 && th_s >= 34) {
