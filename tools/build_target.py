@@ -110,7 +110,8 @@ class KernelSize:
                  f"  .text {self.text} B   .data {self.data} B   .bss {self.bss} B"]
         for fn, (b, kind) in sorted(self.stack.items()):
             lines.append(f"  stack {fn:<27} {b:>4} B ({kind})")
-        lines.append(f"  stack worst case (bound: the update and all its helpers) {self.worst_stack} B")
+        lines.append("  stack worst case (bound: the update and all its helpers) "
+                     f"{self.worst_stack} B")
         return "\n".join(lines)
 
 
