@@ -16,7 +16,8 @@ only if every state record and every published frame equals the specification's.
   -DCANRLS_FRONT`` (the generated front end, ``canrls_front.c``);
 * **sizes**: ``.text`` and ``.rodata`` of ``canrls_target.o``, ``canrls_front.o``,
   ``canrls_model.o`` and ``canrls_fixed.o`` at ``-O2`` and ``-Os``;
-* **goals** of issues 24 and 34 at n = 6, each met or missed (docs/target.md says why);
+* **goals** of issues 24 and 34 at n = 6 (the sample's worst / mean included), each met or
+  missed (docs/target.md says why);
 * the ODrive-style drive, whose signals are float32, bit for bit on the M4;
 * with the HSM150 runs beside the repository (``../shared/data/hsm150``), one run in its
   own DBC (``tools/hsm150_to_can.py``, into a temporary directory) bit for bit on the M4.
@@ -281,12 +282,14 @@ def main(work: Path, sizes_n: tuple[int, ...] = (4, 6, 8), duration: float = 5.0
         # issue 24's goals at n = 6 (docs/target.md says why they are missed)
         c = counts[6]
         worst, ratio = max(c.samples), max(c.updates) / (sum(c.updates) / len(c.updates))
+        sratio = worst / (sum(c.samples) / len(c.samples))
         print("\ngoals at n = 6 (docs/target.md):")
         print(f"  (the front end alone, a sample less its updates: worst {max(c.front)}, "
               f"mean {sum(c.front) / len(c.front):.0f} instructions)")
         for what, got, goal, ok in (
                 ("whole path, worst sample", f"{worst} instructions", "<= 1500", worst <= 1500),
                 ("update, worst / mean", f"{ratio:.2f}", "<= 1.2", ratio <= 1.2),
+                ("sample, worst / mean", f"{sratio:.2f}", "<= 1.3", sratio <= 1.3),
                 ("-Os .text + .rodata", f"{text[6, '-Os']} B", "< 12288 B",
                  text[6, "-Os"] < 12288)):
             print(f"  {what:<26} {got:>18}  goal {goal:<9} {'met' if ok else 'missed'}")
