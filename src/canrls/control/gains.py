@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -37,6 +38,11 @@ def _bisect_log(lo: float, hi: float, above: Callable[[float], bool]) -> float:
     return math.sqrt(lo * hi)
 
 
+#: the scan of a loop's frequency response: GRID_POINTS from GRID_LOW [rad/s] to Nyquist
+GRID_LOW = 1e-2
+GRID_POINTS = 4000
+
+
 @dataclass(frozen=True)
 class Loop:
     """What the loop is assumed to be: inertia ``J`` (target unit s²/rad) with ``sigma``,
@@ -55,9 +61,15 @@ class Loop:
         return (kp + ki / s) * np.exp(-s * self.Td) / ((self.J if J is None else J) * s
                                                        * (1.0 + s * self.Ti))
 
+    @cached_property
+    def grid(self) -> np.ndarray:
+        """The frequencies [rad/s] the loop is scanned at, up to Nyquist: built once per loop
+        (the tuning's bisection asks the bandwidth and the margin many times)."""
+        return np.geomspace(GRID_LOW, math.pi / self.dt, GRID_POINTS)
+
     def bandwidth(self, kp: float, ki: float, J: float | None = None) -> float:
         """The closed loop's -3 dB bandwidth [rad/s]: the lowest w with |L/(1+L)| <= 1/sqrt 2."""
-        w = np.geomspace(1e-2, math.pi / self.dt, 4000)
+        w = self.grid
         L = self.open_loop(kp, ki, w, J)
         T = np.abs(L / (1.0 + L))
         below = np.nonzero(T <= _HALF_POWER)[0]
@@ -75,7 +87,7 @@ class Loop:
 
     def margin(self, kp: float, ki: float) -> tuple[float, float]:
         """(crossover [rad/s], phase margin [deg]) where |L| = 1."""
-        w = np.geomspace(1e-2, math.pi / self.dt, 4000)
+        w = self.grid
         mag = np.abs(self.open_loop(kp, ki, w))
         k = int(np.nonzero(mag <= 1.0)[0][0]) if np.any(mag <= 1.0) else len(w) - 1
         wc = _bisect_log(float(w[max(k - 1, 0)]), float(w[k]),  # |L(j wc)| = 1
