@@ -11,8 +11,10 @@ passed the monitor and the frame decoder, then the daemon refused it.
 
 from __future__ import annotations
 
+import ast
 import math
 import re
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -114,3 +116,30 @@ def test_no_module_writes_the_number_check_by_hand() -> None:
            for p in sorted(src.rglob("*.py")) if p.name != "checks.py"
            for s in [p.read_text()] for rx in HAND_WRITTEN for m in rx.finditer(s)]
     assert not bad, "ask canrls.core.checks.is_real / is_positive:\n" + "\n".join(bad)
+
+
+# -- matplotlib, an optional extra: one import and one message ------------------------------
+def definitions(name: str) -> list[str]:
+    """The modules of src/canrls that define a function ``name``."""
+    src = Path(checks.__file__).resolve().parents[1]
+    return sorted(str(p.relative_to(src)) for p in src.rglob("*.py")
+                  for node in ast.walk(ast.parse(p.read_text()))
+                  if isinstance(node, ast.FunctionDef) and node.name == name)
+
+
+def test_one_require_matplotlib_names_each_page_and_its_extra(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from canrls.core import webpage
+    from canrls.diagnosis import figures
+    from canrls.fleet import fleet_report
+
+    assert definitions("require_matplotlib") == ["core/webpage.py"]
+    for mod in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, mod)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    with pytest.raises(CanrlsError, match=r"^the HTML report needs matplotlib, which is not "
+                                          r"installed: pip install 'canrls\[report\]'"):
+        figures.figures_in(tmp_path)
+    with pytest.raises(CanrlsError, match=r"^the fleet report needs matplotlib, .*"
+                                          r"'canrls\[fleet\]'"):
+        webpage.require_matplotlib(*fleet_report.MATPLOTLIB)

@@ -222,9 +222,10 @@ def run_report(args: argparse.Namespace) -> int:
         raise ConfigError(f"--db {where.shown}: no such history (canrls fleet ingest "
                           f"makes it)")
     if args.out:
-        from canrls.fleet.fleet_report import require_matplotlib
+        from canrls.core.webpage import require_matplotlib
+        from canrls.fleet.fleet_report import MATPLOTLIB
 
-        require_matplotlib()  # before the long part
+        require_matplotlib(*MATPLOTLIB)  # before the long part
     with History.open(args.db, upgrade=False, read_only=True) as history:
         models = history.models()
         key = None
