@@ -110,6 +110,33 @@ HAND_WRITTEN = [re.compile(r"math\.isfinite\((\w[\w.]*)\)\s+and\s+\1 > 0"),
                            r"int \| float\)\s+or\s+not\s+math\.isfinite\(\1\)")]
 
 
+#: "a finite float, else None" for JSON, as five modules wrote it before asking
+#: core.checks.finite_or_none / json_safe
+HAND_WRITTEN_JSON = [re.compile(r"if math\.isfinite\((\w[\w.]*)\) else None"),
+                     re.compile(r"None if \w[\w.]* is None or not math\.isfinite"),
+                     re.compile(r"isinstance\((\w+), float\) and not math\.isfinite\(\1\):"
+                                r"\s+return None")]
+
+
+def hand_written(patterns: list[re.Pattern[str]]) -> list[str]:
+    src = Path(checks.__file__).resolve().parents[1]
+    return [f"{p.relative_to(src)}:{s.count(chr(10), 0, m.start()) + 1}"
+            for p in sorted(src.rglob("*.py")) if p.name != "checks.py"
+            for s in [p.read_text()] for rx in patterns for m in rx.finditer(s)]
+
+
+def test_no_module_writes_finite_or_none_by_hand() -> None:
+    bad = hand_written(HAND_WRITTEN_JSON)
+    assert not bad, "ask canrls.core.checks.finite_or_none / json_safe:\n" + "\n".join(bad)
+
+
+def test_json_safe_values() -> None:
+    assert checks.finite_or_none(None) is None and checks.finite_or_none(math.nan) is None
+    assert checks.finite_or_none(-math.inf) is None and checks.finite_or_none(2) == 2.0
+    assert checks.json_safe({1: (math.inf, [np.float64(0.5), math.nan]), "s": "x"}) == {
+        "1": [None, [0.5, None]], "s": "x"}
+
+
 def test_no_module_writes_the_number_check_by_hand() -> None:
     src = Path(checks.__file__).resolve().parents[1]
     bad = [f"{p.relative_to(src)}:{s.count(chr(10), 0, m.start()) + 1}"

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import math
 import numbers
-from typing import TYPE_CHECKING
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from canrls.core.errors import ConfigError
 
@@ -14,8 +15,8 @@ if TYPE_CHECKING:  # numpy loads with the first array: the command line's --help
     import numpy as np
     import numpy.typing as npt
 
-__all__ = ["LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "describe_time", "is_positive",
-           "is_real", "is_time", "not_times", "positive_period"]
+__all__ = ["LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "describe_time", "finite_or_none",
+           "is_positive", "is_real", "is_time", "json_safe", "not_times", "positive_period"]
 
 def is_real(value: object) -> bool:
     """``value`` is a finite real number: an int or a float (numpy's too), not a bool,
@@ -27,6 +28,24 @@ def is_real(value: object) -> bool:
 def is_positive(value: object) -> bool:
     """``value`` is a finite real number above zero (:func:`is_real`)."""
     return is_real(value) and float(value) > 0  # type: ignore[arg-type]
+
+
+def finite_or_none(x: float | None) -> float | None:
+    """``x`` as a float for JSON, None where it is None or not finite: JSON has no NaN nor
+    infinity, and canrls writes ``null`` for them."""
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def json_safe(x: Any) -> Any:
+    """``x`` for JSON: floats that are not finite as None (:func:`finite_or_none`), tuples
+    as lists and mapping keys as strings, all the way down."""
+    if isinstance(x, float):
+        return finite_or_none(x)
+    if isinstance(x, Mapping):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [json_safe(v) for v in x]
+    return x
 
 
 #: Largest receive time [s] a frame may carry (about the year 2286): beyond it (or not
