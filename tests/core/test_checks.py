@@ -130,6 +130,45 @@ def test_no_module_writes_finite_or_none_by_hand() -> None:
     assert not bad, "ask canrls.core.checks.finite_or_none / json_safe:\n" + "\n".join(bad)
 
 
+#: a user's number checked against a range by hand (finite, then lo < x < hi), as a dozen
+#: places did before asking core.checks.in_range
+HAND_WRITTEN_RANGE = [
+    re.compile(r"math\.isfinite\((\w[\w.]*)\)\s+and\s+[-\w.]+\s*<=?\s*\1\s*<"),
+    re.compile(r"isinstance\((\w[\w.]*), \(?int(, | \| )float\)?\)\s+(and|or not)\s+"
+               r"\(?[-\w.]+\s*<=?\s*\1\s*<"),
+    re.compile(r"isinstance\((\w[\w.]*), int \| float\)\s+and\s+\1 > 0 and"),
+    re.compile(r"not\s+\(?0\s*<\s*[\w.]+\s*<\s*(float\(\"inf\"\)|math\.inf)"),
+    re.compile(r"not \w[\w.]* <= [\w.]+ <= \w+_RANGE\[1\]"),
+    re.compile(r"1e8 < \w+ < 1e11|_EPOCH\[0\] < "),  # the epoch window, three times before
+]
+
+
+def test_no_module_writes_a_range_check_by_hand() -> None:
+    bad = hand_written(HAND_WRITTEN_RANGE)
+    assert not bad, "ask canrls.core.checks.in_range / is_positive:\n" + "\n".join(bad)
+
+
+@pytest.mark.parametrize("value, lo, hi, lo_open, hi_open, inside", [
+    (0.5, 0, 1, True, True, True), (0, 0, 1, True, False, False),
+    (0, 0, 1, False, False, True), (1, 0, 1, True, True, False), (1, 0, 1, True, False, True),
+    (math.nan, 0, 1, False, False, False),
+    (1e300, 0, math.inf, True, True, True), (math.inf, 0, math.inf, False, False, False),
+    (True, 0, 2, False, False, False), ("0.5", 0, 1, False, False, False),
+])
+def test_in_range(value: object, lo: float, hi: float, lo_open: bool, hi_open: bool,
+                  inside: bool) -> None:
+    assert checks.in_range(value, lo, hi, lo_open=lo_open, hi_open=hi_open) is inside
+
+
+def test_estimator_settings_refuse_a_bad_alpha_by_the_one_rule() -> None:
+    for alpha in (True, math.nan, math.inf, -1.0, 0.0, "0.1"):
+        with pytest.raises(CanrlsError, match="estimator.alpha"):
+            EstimatorSettings(alpha=alpha)  # type: ignore[arg-type]
+    for key, bad in (("warmup_s", True), ("calibration_s", math.inf)):
+        with pytest.raises(CanrlsError, match=f"estimator.{key}"):
+            EstimatorSettings(**{key: bad})
+
+
 def test_json_safe_values() -> None:
     assert checks.finite_or_none(None) is None and checks.finite_or_none(math.nan) is None
     assert checks.finite_or_none(-math.inf) is None and checks.finite_or_none(2) == 2.0

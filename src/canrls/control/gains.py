@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from canrls.control.tune_limits import DEFAULT_MARGIN
+from canrls.core.checks import in_range
 from canrls.core.errors import ConfigError
 
 __all__ = ["Loop", "SpeedGains", "for_bandwidth", "symmetric_optimum", "check_bandwidth"]
@@ -148,7 +149,7 @@ def _finish(method: str, kp: float, ki: float, unit: str, loop: Loop,
 def check_bandwidth(hz: float, dt: float) -> None:
     """A bandwidth is positive and below the sample rate's Nyquist frequency."""
     nyquist = 0.5 / dt
-    if not (math.isfinite(hz) and 0 < hz < nyquist):
+    if not in_range(hz, 0, nyquist, lo_open=True, hi_open=True):
         raise ConfigError(f"--bandwidth {hz!r}: must be a positive number of Hz below "
                           f"the Nyquist frequency {nyquist:g} Hz of the control period "
                           f"{dt:g} s")
@@ -165,7 +166,7 @@ def for_bandwidth(loop: Loop, hz: float, margin: float = DEFAULT_MARGIN,
     :math:`2 \pi` ``hz``.
     """
     check_bandwidth(hz, loop.dt)
-    if not (math.isfinite(margin) and 0 < margin < 90):
+    if not in_range(margin, 0, 90, lo_open=True, hi_open=True):
         raise ConfigError(f"--phase-margin {margin!r}: must be between 0 and 90 degrees")
     pm = math.radians(margin)
 

@@ -1,6 +1,7 @@
-"""The one check of each kind of value a user hands canrls: a receive time, a control
-period, a forgetting factor. Every layer asks here, so a value is refused by the same
-rule and in the same words wherever it enters."""
+"""The one check of each kind of value a user hands canrls: a finite number, a range, a
+receive time, an epoch date, a control period, a forgetting factor, a number for JSON.
+Every layer asks here, so a value is refused by the same rule and in the same words
+wherever it enters."""
 
 from __future__ import annotations
 
@@ -15,8 +16,10 @@ if TYPE_CHECKING:  # numpy loads with the first array: the command line's --help
     import numpy as np
     import numpy.typing as npt
 
-__all__ = ["LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "describe_time", "finite_or_none",
-           "is_positive", "is_real", "is_time", "json_safe", "not_times", "positive_period"]
+__all__ = ["EPOCH_WINDOW", "LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "describe_time",
+           "finite_or_none", "in_range", "is_epoch", "is_positive", "is_real", "is_time",
+           "json_safe", "not_times", "positive_period"]
+
 
 def is_real(value: object) -> bool:
     """``value`` is a finite real number: an int or a float (numpy's too), not a bool,
@@ -46,6 +49,27 @@ def json_safe(x: Any) -> Any:
     if isinstance(x, list | tuple):
         return [json_safe(v) for v in x]
     return x
+
+
+def in_range(value: object, lo: float, hi: float, *, lo_open: bool = False,
+             hi_open: bool = False) -> bool:
+    """``value`` is a finite real number (:func:`is_real`) from ``lo`` to ``hi``, each end
+    included unless said open: the one range check of a number a user gives (``hi`` may
+    be ``math.inf``, open: any finite number above ``lo``)."""
+    if not is_real(value):
+        return False
+    v = float(value)  # type: ignore[arg-type]
+    return (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi)
+
+
+#: Times in this open window [s] are epoch seconds (1973 to 5138: a date); others are a
+#: log's own clock (a timestamp from zero)
+EPOCH_WINDOW = (1e8, 1e11)
+
+
+def is_epoch(t: object) -> bool:
+    """``t`` is an epoch time, a date (within :data:`EPOCH_WINDOW`), not a log's own clock."""
+    return in_range(t, *EPOCH_WINDOW, lo_open=True, hi_open=True)
 
 
 #: Largest receive time [s] a frame may carry (about the year 2286): beyond it (or not

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from canrls.core.checks import is_epoch
 from canrls.core.errors import ConfigError
 from canrls.core.figtext import plain
 from canrls.core.webpage import environment, num, relative_href, require_matplotlib, save_svg
@@ -40,7 +41,7 @@ def report_dict(fleet: FleetAssessment, models: Sequence[tuple[str, str, int]] =
 
 
 def _date(t: float) -> str:
-    if not (isinstance(t, int | float) and 1e8 < t < 1e11):
+    if not is_epoch(t):
         return num(t, ".6g")
     return datetime.datetime.fromtimestamp(t, tz=datetime.UTC).strftime("%Y-%m-%d %H:%M")
 
