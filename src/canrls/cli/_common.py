@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import math
 import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -216,19 +215,12 @@ def setup(args: argparse.Namespace, *, every_axis: bool = False) -> AppConfig:
     return cfg if every_axis else cfg.one_axis()
 
 
-def _clean(x: Any) -> Any:
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_clean(v) for v in x]
-    return x
-
 
 def print_json(obj: Any) -> None:
     """JSON on stdout (non-finite numbers become null: JSON has no NaN)."""
-    json.dump(_clean(obj), sys.stdout, indent=2, ensure_ascii=False)
+    from canrls.core.checks import json_safe
+
+    json.dump(json_safe(obj), sys.stdout, indent=2, ensure_ascii=False)
     sys.stdout.write("\n")
 
 

@@ -85,7 +85,7 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
     import can
 
     from canrls.can.estimator_frames import CommandCode, encode_command, parse_effect
-    from canrls.live.bus_link import COMMAND_ID, moved
+    from canrls.live.bus_link import command_id, moved
     from canrls.live.daemon import Daemon
     from canrls.live.daemon_settings import DaemonSettings
     from canrls.live.machine_daemon import MachineDaemon
@@ -165,7 +165,7 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
             k, a = max(named, key=lambda ka: before[ka[1].name])
             fixed_axis, added = a.name, diagnosed[a.name]
             eid, order = parse_effect(added)
-            own = COMMAND_ID + k * OWN_STEP
+            own = command_id(k * OWN_STEP)
             say(f"3. RlsCommand add_effect {added} to {a.name} only (ID {own:#x}):")
             feed.send(moved(encode_command(CommandCode.ADD_EFFECT, eid, order), k * OWN_STEP))
             d = daemons[a.name]

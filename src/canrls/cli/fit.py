@@ -44,7 +44,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
                         "the daemon runs it by default, or the target's whole "
                         "integer path from the frames on, as the C of 'canrls export-c' "
                         "and the daemon with [daemon] fixed = \"target\" run it (bit for "
-                        "bit; about 2x the time of the fit; docs/target.md)")
+                        "bit; slower in Python: docs/target.md says how much)")
     add_progress_option(p)
     p.set_defaults(func=run)
     return p

@@ -44,6 +44,7 @@ from canrls.live.bus_link import (
     BusLink,
     FrameQueue,
     SharedBus,
+    command_id,
     command_rows,
     messages_to_block,
     open_bus,
@@ -243,7 +244,7 @@ class Daemon:
         self._queue = FrameQueue(cfg.queue_size, backpressure, self._stopping,
                                  on_error=self._recv_failed, full=cfg.max_block)
         # an axis's RlsCommand: the shipped ID + its own offset ([daemon] own_ids)
-        self._command_id = self._queue.command_id = COMMAND_ID + cfg.own_offset
+        self._command_id = self._queue.command_id = command_id(cfg.own_offset)
         # an axis of a machine takes its own frames only (the bus's filters; the
         # others never reach its queue)
         own = [(m.frame_id, m.is_extended) for m in protocol.messages] + [

@@ -9,6 +9,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from canrls.core.checks import is_epoch
 from canrls.core.units import Ratings
 from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
@@ -287,7 +288,7 @@ class MachineFit:
 def epoch_date(t: float | None) -> str | None:
     """``"2023-11-14 22:13:20.123456 UTC"`` for a timestamp that is an epoch time (after
     1973), else None (a log whose times start near zero)."""
-    if t is None or not (1e8 < t < 1e11):
+    if t is None or not is_epoch(t):
         return None
     d = datetime.datetime.fromtimestamp(t, tz=datetime.UTC)
     return d.strftime("%Y-%m-%d %H:%M:%S.%f UTC")
