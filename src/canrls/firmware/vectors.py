@@ -16,13 +16,16 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+import numpy.typing as npt
+
 from canrls.can.frameblock import FrameBlock
+from canrls.core.errors import DecodeError
 from canrls.firmware.model import TargetModel
-from canrls.firmware.qmath import MASK32
 from canrls.firmware.spec import PUBLISH, SAMPLE, TargetEstimator
 
-__all__ = ["Frame", "Vectors", "block_frames", "log_frames", "record", "state_record",
-           "vectors_header"]
+__all__ = ["Frame", "Vectors", "block_frames", "block_ticks", "log_frames", "record",
+           "state_record", "vectors_header"]
 
 #: a frame in: (receive time in ticks mod 2^32, id, extended, payload)
 Frame = tuple[int, int, bool, bytes]
@@ -67,14 +70,28 @@ def block_frames(b: FrameBlock, t0: list[float], tick_s: float = 1e-6) -> Iterat
     its CAN controller filters them)."""
     if not len(b):
         return
-    if not t0:
-        t0.append(float(b.t[0]))
+    ticks = block_ticks(b, t0, tick_s).tolist()
     for k in range(len(b)):
         if b.is_error[k] or b.is_remote[k]:
             continue
-        t = round((float(b.t[k]) - t0[0]) / tick_s) & MASK32
-        yield (t, int(b.arbitration_id[k]), bool(b.is_extended[k]),
+        yield (ticks[k], int(b.arbitration_id[k]), bool(b.is_extended[k]),
                bytes(b.data[k, :b.dlc[k]]))
+
+
+def block_ticks(b: FrameBlock, t0: list[float], tick_s: float = 1e-6) -> npt.NDArray[np.uint32]:
+    """The receive times of a block's frames in ticks from the first frame of the stream,
+    ``round((t - t0) / tick_s)`` (half to even) modulo 2^32 (``t0`` holds the first
+    frame's time once known)."""
+    if not t0:
+        t0.append(float(b.t[0]))
+    x = np.rint((b.t - t0[0]) / tick_s)
+    if not np.isfinite(x).all():
+        k = int(np.flatnonzero(~np.isfinite(x))[0])
+        raise DecodeError(f"frame {k} of a block: receive time {float(b.t[k])!r} s has no "
+                          f"tick", reason="time")
+    # modulo 2^32, exactly (fmod of a whole double is exact)
+    x = np.fmod(x, 4294967296.0)
+    return np.where(x < 0, x + 4294967296.0, x).astype(np.uint32)
 
 
 def state_record(est: TargetEstimator) -> list[int]:
