@@ -268,13 +268,11 @@ class OutFrame:
 
 
 def out_frames(dbc: Any = None) -> dict[str, OutFrame]:
-    """The layout of the estimator frames in canrls' DBC (default: the shipped one)."""
-    import cantools
+    """The layout of the estimator frames in canrls' DBC (default: the shipped one; read
+    once, :func:`canrls.can.estimator_frames.database`)."""
+    from canrls.can.estimator_frames import database
 
-    from canrls.can.protocol import DEFAULT_DBC
-
-    db = cantools.database.load_file(str(dbc or DEFAULT_DBC), database_format="dbc",
-                                     strict=True)
+    db = database(dbc)
     out = {}
     for name, sigs in OUT_FRAMES.items():
         msg = db.get_message_by_name(name)

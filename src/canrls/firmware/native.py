@@ -137,9 +137,11 @@ class NativeTarget:
             publications: list[Any] | None = None) -> int:
         """Every frame of ``block`` (receive times ``ticks``) through
         ``canrls_target_frame``, publishing where due; the samples it completed."""
+        c = np.ascontiguousarray
         skip = block.is_error | block.is_remote
-        return int(self._c.run(ticks, block.arbitration_id, block.is_extended, skip,
-                               block.dlc, block.data, publications))
+        return int(self._c.run(c(ticks, np.uint32), c(block.arbitration_id, np.uint32),
+                               c(block.is_extended, np.bool_), c(skip, np.bool_),
+                               c(block.dlc, np.uint8), c(block.data, np.uint8), publications))
 
     def theta_si(self) -> list[float]:
         """Every parameter in SI (``theta 2^(s_y - s_j - f_theta)``)."""

@@ -24,8 +24,8 @@ from canrls.core.errors import DecodeError
 from canrls.firmware.model import TargetModel
 from canrls.firmware.spec import PUBLISH, SAMPLE, TargetEstimator
 
-__all__ = ["Frame", "Vectors", "block_frames", "block_ticks", "log_frames", "record",
-           "state_record", "vectors_header"]
+__all__ = ["Frame", "Vectors", "block_frames", "block_ticks", "log_blocks", "log_frames",
+           "record", "state_record", "vectors_header"]
 
 #: a frame in: (receive time in ticks mod 2^32, id, extended, payload)
 Frame = tuple[int, int, bool, bytes]
@@ -51,16 +51,25 @@ class Vectors:
 def log_frames(paths: Iterable[str | Path], tick_s: float = 1e-6) -> Iterator[Frame]:
     """The frames of logs, times in ticks from the first frame (:func:`block_frames`); a
     log without a frame is refused as ``canrls fit`` refuses it."""
-    from canrls.can.logs import empty_log_error, read_frames
-
     t0: list[float] = []
+    for b in log_blocks(paths):
+        yield from block_frames(b, t0, tick_s)
+
+
+def log_blocks(paths: Iterable[str | Path], *, skip_bad_lines: bool = False
+               ) -> Iterator[FrameBlock]:
+    """The frame blocks of logs, one after the other; a log without a frame is refused
+    as ``canrls fit`` refuses it."""
+    from canrls.can.logs import LogReadStats, empty_log_error, read_frames
+
     for path in paths:
         read = 0
-        for b in read_frames(path):
+        stats = LogReadStats()
+        for b in read_frames(path, skip_bad_lines=skip_bad_lines, stats=stats):
             read += len(b)
-            yield from block_frames(b, t0, tick_s)
+            yield b
         if not read:  # refused as canrls fit refuses it
-            raise empty_log_error(path)
+            raise empty_log_error(path, stats.bad_lines)
 
 
 def block_frames(b: FrameBlock, t0: list[float], tick_s: float = 1e-6) -> Iterator[Frame]:

@@ -253,10 +253,18 @@ class Daemon:
         self._configuration = configuration or AppConfig(source="<canrls run>")
         self._journal = Journal()
         self._commands = CommandHandler(
-            proc, cfg.commands, self._link.send, self._set_model, self._publisher.clear_rms,
+            proc, cfg.commands, self._link.send, self._set_model, self._reset_done,
             max_parameters=cfg.max_parameters, check_model=self._check_model,
             bucket=TokenBucket(cfg.command_rate, cfg.command_burst),
             save_model=None if cfg.saved_model is None else self._save_model)
+
+    def _reset_done(self) -> None:
+        """After the command ``reset``: no online RMS yet, and the target's integer path
+        (the fixed column) starts again from its prior, as the estimators did."""
+        self._publisher.clear_rms()
+        if self._fixed_path is not None:
+            self._fixed_path.restart()
+            self._journal.fixed_restarted("reset")
 
     def _save_model(self) -> Path:
         """The command ``save_model``: the running model and its estimates written to
@@ -414,6 +422,8 @@ class Daemon:
         self._heartbeat = time.monotonic()
         interpreter.tune(self.config.switch_interval)
         self._tuned = True
+        if self.resumed_from is not None and self._fixed_path is not None:
+            self._journal.fixed_restarted(f"resumed from {self.resumed_from}")
         for target, name in ((self._estimator_loop, "canrls estimator"),
                              (self._supervisor_loop, "canrls supervisor")):
             t = threading.Thread(target=target, name=name, daemon=True)
@@ -641,7 +651,7 @@ class Daemon:
     def _set_model(self, model: Model, why: str) -> None:
         self._proc.with_model(model)
         if self._fixed_path is not None:
-            self._fixed_path.restart()
+            self._fixed_path.restart()  # the journal's model line says estimation restarts
         self._publisher.model_changed()
         self._journal.model_changed(model, why)
 
