@@ -157,6 +157,9 @@ def test_a_vector_beyond_the_c_s_bounds_is_refused_by_name(tmp_path: Path) -> No
         _target.Target(v[:-1])
     with pytest.raises(ValueError, match="values beyond the model's end"):
         _target.Target(np.append(v, 0))
+    # an object never given a model runs nothing
+    with pytest.raises(ValueError, match="no model"):
+        _target.Target.__new__(_target.Target).record()
 
 
 def test_a_model_the_c_cannot_hold_is_a_target_error(tmp_path: Path,

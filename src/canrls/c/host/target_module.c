@@ -187,7 +187,17 @@ typedef struct {
     uint8_t info[PARAMS_MAX][4];
     uint16_t order[PARAMS_MAX];
     canrls_target S;
+    int ready; /* canrls_target_init() took the model */
 } TargetObject;
+
+/* whether the object holds a model (ValueError otherwise: Target.__new__ alone) */
+static int ready(const TargetObject *o)
+{
+    if (!o->ready) {
+        PyErr_SetString(PyExc_ValueError, "Target: no model (call Target(vector))");
+    }
+    return o->ready;
+}
 
 static int bad(const char *what)
 {
@@ -356,6 +366,7 @@ static int Target_init(TargetObject *self, PyObject *args, PyObject *kwds)
     c.n = vb.len / 8;
     c.k = 0;
     c.section = "model";
+    self->ready = 0;
     ok = build(self, &c);
     PyBuffer_Release(&vb);
     if (!ok) {
@@ -367,6 +378,7 @@ static int Target_init(TargetObject *self, PyObject *args, PyObject *kwds)
                         "bounds, or a prior outside its words)");
         return -1;
     }
+    self->ready = 1;
     return 0;
 }
 
@@ -412,7 +424,7 @@ static PyObject *Target_run(TargetObject *self, PyObject *const *args, Py_ssize_
     PyObject *pubs, *res = NULL;
     Py_ssize_t N, width, k, samples = 0;
     int bad_row = 0;
-    if (!start(&a, nargs, 7)) {
+    if (!ready(self) || !start(&a, nargs, 7)) {
         return NULL;
     }
     pubs = args[6];
@@ -486,7 +498,8 @@ static PyObject *Target_record(TargetObject *self, PyObject *unused)
     PyObject *list = PyList_New(0);
     uint32_t i, j;
     (void)unused;
-    if (list == NULL) {
+    if (list == NULL || !ready(self)) {
+        Py_XDECREF(list);
         return NULL;
     }
 #define PUT(v)                                                                           \
@@ -547,10 +560,10 @@ PyDoc_STRVAR(theta_doc,
 
 static PyObject *Target_theta(TargetObject *self, PyObject *unused)
 {
-    PyObject *list = PyList_New(self->M.nparams);
+    PyObject *list;
     uint32_t i;
     (void)unused;
-    if (list == NULL) {
+    if (!ready(self) || (list = PyList_New(self->M.nparams)) == NULL) {
         return NULL;
     }
     for (i = 0; i < self->M.nparams; i++) {
@@ -575,10 +588,16 @@ PyDoc_STRVAR(counts_doc,
 static PyObject *Target_counts(TargetObject *self, PyObject *unused)
 {
     const canrls_target *S = &self->S;
-    PyObject *rej = PyTuple_New(CANRLS_NREJECTS), *upd = PyTuple_New(self->M.neq),
-             *res = PyTuple_New(self->M.neq), *sat = PyTuple_New(self->M.neq);
+    PyObject *rej, *upd, *res, *sat;
     uint32_t i, j;
     (void)unused;
+    if (!ready(self)) {
+        return NULL;
+    }
+    rej = PyTuple_New(CANRLS_NREJECTS);
+    upd = PyTuple_New(self->M.neq);
+    res = PyTuple_New(self->M.neq);
+    sat = PyTuple_New(self->M.neq);
     if (rej == NULL || upd == NULL || res == NULL || sat == NULL) {
         goto fail;
     }
