@@ -13,12 +13,10 @@ these fixed values and every parameter frame bit for bit from the same frames
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 from collections.abc import Sequence
 
 from canrls.can.protocol import Protocol
-from canrls.estimation.estimates import divergence
 from canrls.estimation.settings import EstimatorSettings
 from canrls.firmware.model import TargetModel, build
 from canrls.firmware.native import TargetFeed
@@ -61,18 +59,5 @@ def target_fixed(res: FitResult, paths: Sequence[str | os.PathLike[str]],
     for block in log_blocks(paths, skip_bad_lines=skip_bad_lines):
         feed.feed(block)
     fixed = {name: v for name, (v, _) in feed.fixed().items()}
-    params = tuple(dataclasses.replace(p, fixed=fixed[p.name]) if p.name in fixed else p
-                   for p in res.estimates.parameters)
-    saturations = feed.saturations()
-    fits = []
-    for fit in res.estimates.equations:
-        if fit.equation not in saturations:  # pragma: no cover - every equation is the target's
-            fits.append(fit)
-            continue
-        mine = [p for p in params if p.equation == fit.equation]
-        div = divergence([p.value for p in mine], [p.fixed for p in mine],
-                         [p.sigma if math.isfinite(p.sigma) else 0.0 for p in mine])
-        fits.append(dataclasses.replace(fit, divergence=div,
-                                        saturations=saturations[fit.equation]))
-    estimates = dataclasses.replace(res.estimates, parameters=params, equations=tuple(fits))
+    estimates = res.estimates.with_fixed(fixed, feed.saturations())
     return dataclasses.replace(res, estimates=estimates, fixed=feed.run_info())

@@ -277,7 +277,7 @@ class Daemon:
         if proc.calibration is None:
             raise CommandError("the calibration window has not ended: nothing is "
                                "estimated yet")
-        saved = SavedModel.from_parts(proc.model, proc.pipeline.estimates(), proc.calibration,
+        saved = SavedModel.from_parts(proc.model, self.estimates(), proc.calibration,
                                       self._configuration, ["<canrls run>"])
         period = proc.period_info().value
         if saved.calibration is not None and period:
@@ -335,9 +335,14 @@ class Daemon:
         return self._publisher.last_status
 
     def estimates(self) -> Estimates:
-        """The current estimates (taken under the estimator's lock)."""
+        """The current estimates (taken under the estimator's lock), the fixed column as
+        published: the target's integer path's where it runs (NaN until it does)."""
         with self._lock:
-            return self._proc.pipeline.estimates()
+            est = self._proc.pipeline.estimates()
+            path = self._fixed_path.fixed() if self._fixed_path is not None else None
+        if path is None:
+            return est
+        return est.with_fixed({name: v for name, (v, _) in path.items()})
 
     def _wire_counters(self) -> dict[str, int]:
         fr = self._proc.frame_counts()
@@ -600,7 +605,7 @@ class Daemon:
                     pub.publish(now)
                     self._journal.published(self._link.info(), self.model, pub.last_status)
                     if self._history is not None:
-                        self._history.offer(now, self._proc.pipeline.estimates, final=last)
+                        self._history.offer(now, self.estimates, final=last)
                 if ckpt.due(now):
                     self.checkpoint()
                     ckpt.next_at = now + cfg.checkpoint_interval
