@@ -7,7 +7,7 @@ Prints figures; it is not a test. On a simulated log (``--seconds``, 1 kHz, seed
   ``--fixed kernel`` and with the default (the target's path), ``--runs`` times each,
   alternating; the best and the median wall time of each, and their ratio. Then, in one
   process, the parts the target's path adds: the model's integers
-  (:func:`canrls.firmware.fit.fit_model`) and the log read again and run through the C.
+  (:func:`canrls.firmware.target_fit.fit_model`) and the log read again and run through the C.
 * **daemon**: a daemon built as ``canrls run`` builds it (``[daemon] fixed = "kernel"``
   and the default), fed the log's frames in blocks of ``--block`` frames through
   ``Daemon.process`` (what its estimator thread does with a block); the thread CPU time
@@ -65,8 +65,8 @@ def bench_fit(log: Path, runs: int) -> None:
 def _fit_parts(log: Path, runs: int) -> None:
     from canrls.cli._common import setup
     from canrls.cli.main import build_parser
-    from canrls.firmware.fit import fit_model
     from canrls.firmware.native import TargetFeed
+    from canrls.firmware.target_fit import fit_model
     from canrls.firmware.vectors import log_blocks
     from canrls.processor.config import prepare
     from canrls.processor.replay import fit_logs

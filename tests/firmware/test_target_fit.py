@@ -209,8 +209,8 @@ def test_fit_the_daemon_and_the_exported_c_agree_bit_for_bit(tmp_path: Path) -> 
 def _after(d: Any, log: Path, frames: Any) -> dict[str, float]:
     """What the target's path computes from ``frames`` alone, with the daemon's
     calibration and period as they are now (its path started again there)."""
-    from canrls.firmware.fit import fit_model
     from canrls.firmware.native import TargetFeed
+    from canrls.firmware.target_fit import fit_model
 
     feed = TargetFeed(fit_model(d.processor.result("canrls run"), d.protocol, d.settings))
     feed.feed(frames)

@@ -26,8 +26,8 @@ from test_target_c import CIA_MAP, DRIVES, ODRIVE_MAP, _cia402, _motorola, _odri
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import read_frames
 from canrls.firmware.load import load, target_model
-from canrls.firmware.model import TargetError, TargetModel
 from canrls.firmware.native import NativeTarget, TargetFeed, pack
+from canrls.firmware.target_model import TargetError, TargetModel
 from canrls.firmware.vectors import block_frames, block_ticks, log_frames, record
 
 ROOT = Path(__file__).resolve().parents[2]

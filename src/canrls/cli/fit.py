@@ -4,7 +4,7 @@ Several logs identify one model from all of them (no segment is bridged; the
 calibration window is the start of the first log); ``--save-model FILE`` writes the
 model as JSON for ``canrls validate`` (docs/model_file.md); ``--json`` prints one object
 (README.md, "Command line"). The fixed column is the target's integer path
-(:mod:`canrls.firmware.fit`, docs/target.md): the frames decoded, filtered and estimated
+(:mod:`canrls.firmware.target_fit`, docs/target.md): the frames decoded, filtered and estimated
 in integers by the C ``canrls export-c`` writes, as the daemon runs it, bit for bit;
 ``--fixed kernel`` takes the fixed-point kernel fed by the float front end instead.
 """
@@ -101,8 +101,8 @@ def _fixed_column(res: Any, args: argparse.Namespace, protocol: Any, settings: A
     pipeline's kernel gave it (``--fixed kernel``)."""
     if args.fixed == "kernel":
         return res
-    from canrls.firmware.fit import target_fixed
-    from canrls.firmware.model import TargetError
+    from canrls.firmware.target_fit import target_fixed
+    from canrls.firmware.target_model import TargetError
     from canrls.processor import KernelFallback
 
     try:

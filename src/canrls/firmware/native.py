@@ -2,10 +2,10 @@
 
 :class:`NativeTarget` runs the C that ``canrls export-c`` writes (``canrls_target.c``,
 ``canrls_fixed.c``, built into the extension ``canrls._target``) on the integers of a
-:class:`~canrls.firmware.model.TargetModel`, handed to it as data (:func:`pack`: the
+:class:`~canrls.firmware.target_model.TargetModel`, handed to it as data (:func:`pack`: the
 tables of ``canrls_model.c``, nothing compiled for a model). :class:`TargetFeed` is the
 one loop that takes a stream's frame blocks to it (``canrls fit``:
-:mod:`canrls.firmware.fit`; the daemon: :mod:`canrls.firmware.live`), or to the Python
+:mod:`canrls.firmware.target_fit`; the daemon: :mod:`canrls.firmware.target_live`), or to the Python
 specification :class:`~canrls.firmware.spec.TargetEstimator` against which the C is
 tested bit for bit.
 """
@@ -22,9 +22,9 @@ from canrls import _target
 from canrls.can.frameblock import FrameBlock
 from canrls.core.samples import ROLES
 from canrls.estimation.fixed import SaturationCounts
-from canrls.firmware.model import Column, EquationSpec, Field, TargetError, TargetModel
 from canrls.firmware.qmath import dyadic
 from canrls.firmware.spec import PUBLISH, REJECTS, TargetEstimator
+from canrls.firmware.target_model import Column, EquationSpec, Field, TargetError, TargetModel
 from canrls.firmware.vectors import block_frames, block_ticks, state_record
 from canrls.processor import TargetRun
 

@@ -21,8 +21,8 @@ import numpy.typing as npt
 
 from canrls.can.frameblock import FrameBlock
 from canrls.core.errors import DecodeError
-from canrls.firmware.model import TargetModel
 from canrls.firmware.spec import PUBLISH, SAMPLE, TargetEstimator
+from canrls.firmware.target_model import TargetModel
 
 __all__ = ["Frame", "Vectors", "block_frames", "block_ticks", "log_blocks", "log_frames",
            "record", "state_record", "vectors_header"]

@@ -17,9 +17,9 @@ import numpy as np
 from canrls.can.frameblock import FrameBlock
 from canrls.can.protocol import Protocol
 from canrls.estimation.settings import EstimatorSettings
-from canrls.firmware.fit import fit_model
-from canrls.firmware.model import TargetError
 from canrls.firmware.native import TargetFeed
+from canrls.firmware.target_fit import fit_model
+from canrls.firmware.target_model import TargetError
 from canrls.processor import FrameProcessor
 
 __all__ = ["LiveTarget", "HOLD_MAX"]
