@@ -212,7 +212,8 @@ def _after(d: Any, log: Path, frames: Any) -> dict[str, float]:
     from canrls.firmware.native import TargetFeed
     from canrls.firmware.target_fit import fit_model
 
-    feed = TargetFeed(fit_model(d.processor.result("canrls run"), d.protocol, d.settings))
+    feed = TargetFeed(fit_model(d.processor.result("canrls run"), d.protocol,
+                                d.pipeline.settings))
     feed.feed(frames)
     return {name: v for name, (v, _) in feed.fixed().items()}
 
@@ -240,6 +241,40 @@ def test_a_reset_command_starts_the_target_path_again_and_says_so(
         d.process(rest)
         after = _published(d)
         assert after == _after(d, log, rest) and after != before
+    finally:
+        d.stop()
+
+
+def test_freeze_and_set_lambda_reach_the_target_path(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The command freeze holds the published fixed column as it holds the kernel's,
+    resume lets it move again; set_lambda starts the path again with the new forgetting
+    factor (a new kernel plan), said in the log."""
+    from canrls.can.estimator_frames import CommandCode, encode_command
+    from canrls.can.frameblock import FrameBlock
+    from canrls.can.logs import read_frames
+
+    log = tmp_path / "drive.log"
+    _canrls(["sim", "--out", str(log), "--duration", "8", "--seed", "13"])
+    frames = FrameBlock.concat(list(read_frames(log)))
+    q = len(frames) // 4
+    d = _daemon(["--kt", "0.1", "--commands"], [])
+    try:
+        d.process(frames.take(slice(0, q)))
+        d.process([encode_command(CommandCode.FREEZE)])
+        held = _published(d)
+        d.process(frames.take(slice(q, 2 * q)))
+        assert _published(d) == held
+        d.process([encode_command(CommandCode.RESUME)])
+        d.process(frames.take(slice(2 * q, 3 * q)))
+        assert _published(d) != held
+        with caplog.at_level("WARNING"):
+            d.process([encode_command(CommandCode.SET_LAMBDA, lam=0.999)])
+            rest = frames.take(slice(3 * q, None))
+            d.process(rest)
+        assert "starts again from its prior (lambda 0.999" in caplog.text
+        assert d.pipeline.settings.lam == pytest.approx(0.999)
+        assert _published(d) == _after(d, log, rest)
     finally:
         d.stop()
 

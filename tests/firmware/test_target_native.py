@@ -122,6 +122,27 @@ def test_the_c_agrees_on_an_hsm150_run_in_its_own_dbc(tmp_path: Path) -> None:
     assert feed.run_info().samples > 1000
 
 
+def test_a_frozen_kernel_keeps_its_estimate_in_the_c_and_the_specification(
+        tmp_path: Path) -> None:
+    make, fit_args, _ = DRIVES["own"]
+    log = make(tmp_path)
+    tm = _model(tmp_path, log, fit_args)
+    blocks = _blocks(log, 7)
+    c, spec = TargetFeed(tm), TargetFeed(tm, native=False)
+    third = len(blocks) // 3
+    for k, b in enumerate(blocks):
+        if k in (third, 2 * third):  # frozen for the middle third, then running again
+            for f in (c, spec):
+                f.freeze(k == third)
+            held = c.theta_si()
+        c.feed(b)
+        spec.feed(b)
+        assert c.state_record() == spec.state_record(), f"block {k}"
+        if third <= k < 2 * third:
+            assert c.theta_si() == held
+    assert c.theta_si() != held
+
+
 def test_error_and_remote_frames_never_reach_the_target(tmp_path: Path) -> None:
     make, fit_args, _ = DRIVES["own"]
     log = make(tmp_path)

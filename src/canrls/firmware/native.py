@@ -147,6 +147,10 @@ class NativeTarget:
         """Every parameter in SI (``theta 2^(s_y - s_j - f_theta)``)."""
         return list(self._c.theta())
 
+    def freeze(self, on: bool) -> None:
+        """Every equation's kernel frozen (the estimate kept, ``eps`` computed) or not."""
+        self._c.freeze(on)
+
     def state_record(self) -> list[int]:
         """The integer state as :func:`canrls.firmware.vectors.state_record` lays it out."""
         return list(self._c.record())
@@ -177,6 +181,8 @@ class TargetFeed:
     def __init__(self, model: TargetModel, native: bool = True) -> None:
         self.model = model
         self._t0: list[float] = []
+        #: the kernels frozen (:meth:`freeze`)
+        self.frozen = False
         self.estimator: NativeTarget | TargetEstimator = (
             NativeTarget(model) if native else TargetEstimator(model))
 
@@ -194,6 +200,20 @@ class TargetFeed:
 
     def theta_si(self) -> list[float]:
         return self.estimator.theta_si()
+
+    def freeze(self, on: bool) -> None:
+        """Every equation's kernel frozen (as the command ``freeze`` freezes the daemon's
+        estimators: the estimate kept) or running again."""
+        self.frozen = on
+        est = self.estimator
+        if isinstance(est, NativeTarget):
+            est.freeze(on)
+            return
+        for es in est.eqs:
+            if on:
+                es.rls.freeze()
+            else:
+                es.rls.resume()
 
     def state_record(self) -> list[int]:
         """The integer state (the test vectors' record)."""

@@ -46,6 +46,8 @@ class LiveTarget:
         self.running: TargetFeed | None = None
         #: why the target does not run this model (None: it does)
         self.refused: str | None = None
+        #: the forgetting factor the running path was built with
+        self._lam = settings.lam
 
     def feed(self, block: FrameBlock, proc: FrameProcessor) -> None:
         """The frames of a block the processor has processed."""
@@ -60,15 +62,29 @@ class LiveTarget:
                     self._refuse(f"no calibration after {HOLD_MAX} frames")
                 return
             try:
+                # the pipeline's settings: its forgetting factor, a command's included
+                self._lam = proc.pipeline.settings.lam
                 self.running = TargetFeed(fit_model(proc.result("canrls run"), self.protocol,
-                                                 self.settings))
+                                                 proc.pipeline.settings))
             except TargetError as e:
                 self._refuse(str(e))
                 return
+            if proc.pipeline.frozen:  # a checkpoint's, or a command's during the window
+                self.running.freeze(True)
             held, self._held, self._n_held = self._held, [], 0
             for b in held:
                 self.running.feed(b)
             return
+        if proc.pipeline.settings.lam != self._lam:
+            # a new forgetting factor (the command set_lambda) is a new kernel plan: the
+            # path starts again from its prior with it, at these frames
+            log.warning("fixed point: the target's integer path starts again from its prior "
+                        "(lambda %r)", proc.pipeline.settings.lam)
+            self.restart()
+            self.feed(block, proc)
+            return
+        if proc.pipeline.frozen != self.running.frozen:  # the commands freeze and resume
+            self.running.freeze(proc.pipeline.frozen)
         self.running.feed(block)
 
     def _refuse(self, why: str) -> None:

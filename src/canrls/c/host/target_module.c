@@ -628,11 +628,30 @@ fail:
     return NULL;
 }
 
+PyDoc_STRVAR(freeze_doc,
+"freeze(on) -> None\n\n"
+"Every equation's kernel frozen (updates compute eps only, the flag FROZEN) or not: the\n"
+"field `frozen` of canrls_rls_q31, which the firmware writes as a plain field.");
+
+static PyObject *Target_freeze(TargetObject *self, PyObject *arg)
+{
+    const int on = PyObject_IsTrue(arg);
+    uint32_t i;
+    if (on < 0 || !ready(self)) {
+        return NULL;
+    }
+    for (i = 0; i < self->M.neq; i++) {
+        self->S.eq[i].rls.frozen = (uint32_t)on;
+    }
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef Target_methods[] = {
     {"run", (PyCFunction)(void (*)(void))Target_run, METH_FASTCALL, run_doc},
     {"record", (PyCFunction)Target_record, METH_NOARGS, record_doc},
     {"theta", (PyCFunction)Target_theta, METH_NOARGS, theta_doc},
     {"counts", (PyCFunction)Target_counts, METH_NOARGS, counts_doc},
+    {"freeze", (PyCFunction)Target_freeze, METH_O, freeze_doc},
     {NULL, NULL, 0, NULL},
 };
 
