@@ -218,16 +218,22 @@ def _after(d: Any, log: Path, frames: Any) -> dict[str, float]:
     return {name: v for name, (v, _) in feed.fixed().items()}
 
 
+def _sim_frames(tmp_path: Path, seed: int) -> tuple[Path, Any]:
+    """An 8 s simulated log and its frames in one block."""
+    from canrls.can.frameblock import FrameBlock
+    from canrls.can.logs import read_frames
+
+    log = tmp_path / "drive.log"
+    _canrls(["sim", "--out", str(log), "--duration", "8", "--seed", str(seed)])
+    return log, FrameBlock.concat(list(read_frames(log)))
+
+
 def test_a_reset_command_starts_the_target_path_again_and_says_so(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     from canrls.can.estimator_frames import CommandCode, encode_command
-    from canrls.can.frameblock import FrameBlock
-    from canrls.can.logs import read_frames
     from canrls.live.journal import JOURNAL
 
-    log = tmp_path / "drive.log"
-    _canrls(["sim", "--out", str(log), "--duration", "8", "--seed", "11"])
-    frames = FrameBlock.concat(list(read_frames(log)))
+    log, frames = _sim_frames(tmp_path, 11)
     half = len(frames) // 2
     d = _daemon(["--kt", "0.1", "--commands"], [])
     try:
@@ -251,12 +257,8 @@ def test_freeze_and_set_lambda_reach_the_target_path(
     resume lets it move again; set_lambda starts the path again with the new forgetting
     factor (a new kernel plan), said in the log."""
     from canrls.can.estimator_frames import CommandCode, encode_command
-    from canrls.can.frameblock import FrameBlock
-    from canrls.can.logs import read_frames
 
-    log = tmp_path / "drive.log"
-    _canrls(["sim", "--out", str(log), "--duration", "8", "--seed", "13"])
-    frames = FrameBlock.concat(list(read_frames(log)))
+    log, frames = _sim_frames(tmp_path, 13)
     q = len(frames) // 4
     d = _daemon(["--kt", "0.1", "--commands"], [])
     try:
@@ -281,13 +283,9 @@ def test_freeze_and_set_lambda_reach_the_target_path(
 
 def test_a_resume_from_a_checkpoint_starts_the_target_path_again_and_says_so(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    from canrls.can.frameblock import FrameBlock
-    from canrls.can.logs import read_frames
     from canrls.live.journal import JOURNAL
 
-    log = tmp_path / "drive.log"
-    _canrls(["sim", "--out", str(log), "--duration", "8", "--seed", "12"])
-    frames = FrameBlock.concat(list(read_frames(log)))
+    log, frames = _sim_frames(tmp_path, 12)
     half = len(frames) // 2
     cfg = tmp_path / "daemon.toml"
     cfg.write_text(f'[daemon]\ncheckpoint = "{tmp_path / "ckpt.bin"}"\n')
