@@ -27,9 +27,11 @@ from canrls.processor.period import control_period
 __all__ = ["fit_model", "target_fixed"]
 
 
-def fit_model(res: FitResult, protocol: Protocol, settings: EstimatorSettings) -> TargetModel:
+def fit_model(res: FitResult, protocol: Protocol, settings: EstimatorSettings, *,
+              frames: bool = True) -> TargetModel:
     """The target's integers for the model and calibration of a fit (what ``canrls
-    export-c`` builds from the model that fit saves)."""
+    export-c`` builds from the model that fit saves; ``frames``: with canrls' estimator
+    frames, as the daemon sends them, or without, ``export-c --frames none``)."""
     model = res.model
     cal = res.calibration
     energy = pending = None
@@ -39,7 +41,7 @@ def fit_model(res: FitResult, protocol: Protocol, settings: EstimatorSettings) -
         pending = {k: list(v) for k, v in cal.pending.items()}
     period = control_period(measured=res.period.value, dbc=protocol.period).value
     return build(model, protocol, settings, period, energy=energy, pending=pending,
-                 source="canrls fit")
+                 frames=frames, source="canrls fit")
 
 
 def target_fixed(res: FitResult, paths: Sequence[str | os.PathLike[str]],
@@ -54,7 +56,10 @@ def target_fixed(res: FitResult, paths: Sequence[str | os.PathLike[str]],
     :raises canrls.firmware.target_model.TargetError: the model cannot run on the target (a user
         term).
     """
-    tm = fit_model(res, protocol, settings)
+    # without canrls' frames: a fit keeps the estimate, never the frames, and a
+    # publication only reads the estimate (the same integers as with them), so the fit
+    # need not read canrls' DBC for their layout (about 0.1 s)
+    tm = fit_model(res, protocol, settings, frames=False)
     feed = TargetFeed(tm)
     for block in log_blocks(paths, skip_bad_lines=skip_bad_lines):
         feed.feed(block)
