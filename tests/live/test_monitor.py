@@ -51,7 +51,7 @@ def test_library_units() -> None:
     assert u.get("nonsense.x") is None and "nonsense.x" not in u
     assert LibraryUnits({"axis": "rotary"}, kt_known=False)["coulomb.Tc"] == "A"
     assert LibraryUnits({"axis": "linear"})["viscous.B"] == "N·s/m"
-    assert u.target_unit() == "N·m"
+    assert u.output_unit() == "N·m"
 
 
 def test_snapshot_of_a_publication() -> None:

@@ -119,7 +119,6 @@ def _per_axis(table: dict[str, Any], axis: str) -> dict[str, Any]:
 def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started);
     of the machine's axis ``axis`` (its files its own), else of the one axis."""
-    from canrls.fleet.ingest import JobConfig
     from canrls.live.bus_link import bus_config
     from canrls.live.daemon import Daemon
     from canrls.live.daemon_settings import DaemonSettings
@@ -181,8 +180,11 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
                         ", ".join(changed))
         return reloaded
 
-    history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over)) \
-        if cfg.history else None
+    history = None
+    if cfg.history:  # the fleet's code only for a [history]
+        from canrls.fleet.ingest import JobConfig
+
+        history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over))
     try:
         fixed_path = None
         if dset.fixed == "target":
@@ -217,10 +219,10 @@ _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 @contextmanager
-def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
+def _signals_for_life(served: list[Any], process_exits: bool) -> Iterator[None]:
     """SIGTERM/SIGINT/SIGHUP for the whole command, not only while the daemon serves.
 
-    Before the daemon exists a stop is remembered (``target[1]``) and a SIGHUP ignored;
+    Before the daemon exists a stop is remembered (``served[1]``) and a SIGHUP ignored;
     while it runs, :meth:`Daemon.run` has its own handlers; after it stopped, further
     signals only log. At the end, when the command is the process's own
     (``process_exits``), SIGTERM and SIGHUP are left ignored if they had their default
@@ -234,9 +236,9 @@ def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
         return
 
     def stop(signum: int, frame: Any) -> None:
-        d = target[0]
+        d = served[0]
         if d is None:
-            target[1] = True
+            served[1] = True
         else:
             d.request_stop()
         log.info("signal %d: stopping", signum)
@@ -263,11 +265,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.duration is not None and not is_positive(args.duration):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
-    target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
-    with _signals_for_life(target, getattr(args, "process_exits", False)):
+    served: list[Any] = [None, False]  # the daemon, a stop requested before it existed
+    with _signals_for_life(served, getattr(args, "process_exits", False)):
         daemon = _build(args)
-        target[0] = daemon
-        if target[1]:
+        served[0] = daemon
+        if served[1]:
             daemon.request_stop()  # run() starts, sees the request and stops cleanly
         with contextlib.nullcontext() if args.json else to_stream(sys.stdout):
             status = daemon.run(duration=args.duration)
