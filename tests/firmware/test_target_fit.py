@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -331,3 +332,10 @@ def test_a_model_the_target_cannot_run_is_refused_by_name(tmp_path: Path) -> Non
     with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
         assert main(["fit", str(log), "--config", str(cfg), "--fixed", "target"]) == 1
     assert "error:" in buf.getvalue() and "user term" in buf.getvalue()
+    # by default the fit takes the kernel's column and says why, in text and in JSON
+    text = _canrls(["fit", str(log), "--config", str(cfg), "--quiet"])
+    assert "fixed point: the kernel on the float front end (the target's integer path " \
+           "does not run this model: " in text and "user term" in text
+    fit = json.loads(_canrls(["fit", str(log), "--config", str(cfg), "--quiet", "--json"]))
+    assert fit["fixed"]["path"] == "kernel" and "user term" in fit["fixed"]["why"]
+    assert all(math.isfinite(p["fixed"]) for p in fit["parameters"].values())
