@@ -17,6 +17,7 @@ from cli_tool import cli_error
 from canrls.can.estimator_frames import CommandCode, CommandResult, FrameDecoder, encode_command
 from canrls.can.logs import read_frames, write_log
 from canrls.cli.main import main
+from canrls.firmware.target_live import LiveTarget
 from canrls.live.bus_link import messages_to_block, moved
 from canrls.live.daemon import Daemon
 from canrls.live.daemon_settings import DaemonSettings
@@ -124,7 +125,8 @@ def test_own_frames_that_collide_are_refused_naming_both(
 def test_live_equals_fit_axis_on_the_recorded_bus(tmp_path: Path,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     """One process serving both axes of a machine: each axis's estimates equal canrls fit
-    --axis NAME of the machine's log within 1e-6 relative."""
+    --axis NAME of the machine's log within 1e-6 relative, the fixed column (each axis's
+    own target path) to the bit."""
     log = tmp_path / "machine.log"
     assert main(["sim", "--out", str(log), "--duration", "4", "--axes", "2", "--seed", "5"]) == 0
     cfg_path = tmp_path / "machine.toml"
@@ -138,7 +140,8 @@ def test_live_equals_fit_axis_on_the_recorded_bus(tmp_path: Path,
         dset = dataclasses.replace(DaemonSettings.from_config(cfg), block_interval=0.002,
                                    rx_filter=True)
         daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
-                               bus={"interface": "virtual", "channel": ch}, backpressure=True)
+                               bus={"interface": "virtual", "channel": ch}, backpressure=True,
+                               fixed_path=LiveTarget(protocol, cfg.settings()))
     machine_d = MachineDaemon(daemons)
     feed = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
                    ignore_config=True)
@@ -184,7 +187,7 @@ def test_live_equals_fit_axis_on_the_recorded_bus(tmp_path: Path,
         assert [p.name for p in live.parameters] == list(off)
         for p in live.parameters:
             assert p.value == pytest.approx(off[p.name]["value"], rel=1e-6), (name, p.name)
-            assert p.fixed == pytest.approx(off[p.name]["fixed"], rel=1e-6), (name, p.name)
+            assert p.fixed == off[p.name]["fixed"], (name, p.name)
 
 
 def test_canrls_run_serves_every_axis_with_its_own_checkpoint(
