@@ -79,8 +79,9 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                    help="a CiA 402 drive's EDS instead of a DBC: its default TPDO mapping "
                         "(node 1; --axes cia402:N moves it) and the roles of the 402 objects "
                         "torque, current, velocity and position actual value, the ratings "
-                        "from its defaults (needs pip install 'canrls[cia402]'; "
-                        "docs/cia402.md)")
+                        "from its defaults; canrls run reads the mapping and ratings from "
+                        "each node over SDO first, never writing (needs pip install "
+                        "'canrls[cia402]'; docs/cia402.md)")
     g.add_argument("--signal", action="append", metavar="ROLE=MESSAGE.SIGNAL[:UNIT]",
                    help="which signal carries a role: current, speed, position, voltage, "
                         "torque (the torque a drive reports, N·m; linear axis: N; the "

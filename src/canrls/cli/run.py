@@ -116,9 +116,11 @@ def _per_axis(table: dict[str, Any], axis: str) -> dict[str, Any]:
     return out
 
 
-def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
+def build_daemon(args: argparse.Namespace, axis: str | None = None,
+                 nodes: Any = None) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started);
-    of the machine's axis ``axis`` (its files its own), else of the one axis."""
+    of the machine's axis ``axis`` (its files its own), else of the one axis. ``nodes``:
+    the :class:`~canrls.can.eds.NodeReader` an EDS drive's values are read with."""
     from canrls.fleet.ingest import JobConfig
     from canrls.live.bus import bus_config
     from canrls.live.daemon import Daemon
@@ -129,6 +131,7 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
 
     def load() -> AppConfig:
         c = load_config(getattr(args, "config", None), over)
+        c.nodes = nodes
         return c.one_axis() if axis is None else c.axis(axis)
 
     def table(c: AppConfig) -> dict[str, Any]:
@@ -259,17 +262,19 @@ def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.live.journal import to_stream
+    from canrls.live.journal import JOURNAL, to_stream
 
     if args.duration is not None and not is_positive(args.duration):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
     target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
     with _signals_for_life(target, getattr(args, "process_exits", False)):
-        daemon = _build(args)
+        daemon, said = _build(args)
         target[0] = daemon
         if target[1]:
             daemon.request_stop()  # run() starts, sees the request and stops cleanly
         with contextlib.nullcontext() if args.json else to_stream(sys.stdout):
+            for line in said:
+                JOURNAL.info("%s", line)
             status = daemon.run(duration=args.duration)
         if hasattr(daemon, "daemons"):
             _report_machine(daemon, args)
@@ -281,13 +286,40 @@ def run(args: argparse.Namespace) -> int:
     return status
 
 
-def _build(args: argparse.Namespace) -> Any:
+def _node_reader(cfg: Any) -> Any:
+    """With an EDS (``--eds``), what reads its nodes' mapping and ratings over SDO on
+    the bus the daemon opens (another handle of it, closed after each upload)."""
+    if cfg.can.get("eds") is None:
+        return None
+    from canrls.can.eds import NodeReader
+    from canrls.live.bus import bus_config, open_bus
+
+    conf = bus_config(cfg)
+    return NodeReader(lambda: open_bus(conf))
+
+
+def _said(nodes: Any) -> list[str]:
+    """What the node reader said of each node's values (the journal's first lines)."""
+    return [] if nodes is None else [x for n in sorted(nodes.said) for x in nodes.said[n]]
+
+
+def _build(args: argparse.Namespace) -> tuple[Any, list[str]]:
     """The daemon of one axis, or of every axis of a machine (no ``--axis``): each axis
     its own :class:`~canrls.live.daemon.Daemon` in one
-    :class:`~canrls.live.machine.MachineDaemon`, the whole machine checked first."""
+    :class:`~canrls.live.machine.MachineDaemon`, the whole machine checked first; and
+    where an EDS drive's values came from (:func:`_said`)."""
     cfg = setup(args, every_axis=True)
+    nodes = cfg.nodes = _node_reader(cfg)
+    try:
+        return _build_axes(args, cfg, nodes), _said(nodes)
+    finally:
+        if nodes is not None:
+            nodes.close()
+
+
+def _build_axes(args: argparse.Namespace, cfg: Any, nodes: Any) -> Any:
     if len(cfg.axes) < 2 or cfg.axis_name is not None:
-        return build_daemon(args)
+        return build_daemon(args, nodes=nodes)
     from canrls.live.machine import MachineDaemon
 
     if cfg.history:
@@ -297,12 +329,20 @@ def _build(args: argparse.Namespace) -> Any:
     daemons: dict[str, Any] = {}
     try:
         for name in names:
-            daemons[name] = build_daemon(args, name)
+            daemons[name] = build_daemon(args, name, nodes)
     except BaseException:
         for d in daemons.values():
             d.stop()
         raise
-    return MachineDaemon(daemons, build=lambda name: build_daemon(args, name),
+
+    def build(name: str) -> Any:
+        try:
+            return build_daemon(args, name, nodes)
+        finally:
+            if nodes is not None:
+                nodes.close()
+
+    return MachineDaemon(daemons, build=build,
                          axes=lambda: list(setup(args, every_axis=True).axis_configs()))
 
 
