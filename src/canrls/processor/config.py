@@ -31,6 +31,7 @@ from canrls.processor.axes import (
     AxisSpec,
     check_own,
     check_shared,
+    group_tables,
     own_offset,
     parse_axes,
     short_form,
@@ -100,6 +101,10 @@ class Overrides:
     axes: str | None = None
     #: ``--axis NAME``: the one axis a command works on
     axis_name: str | None = None
+    #: ``--axis NAME --signal ... --axis NAME ...``: the axes declared on the command line,
+    #: each (name, ((option, value), ...)) with option ``signal`` (a tuple), ``dbc``,
+    #: ``eds`` or ``ids``; over ``[[axes]]``
+    groups: tuple[tuple[str, tuple[tuple[str, Any], ...]], ...] = ()
 
 
 class Prepared(NamedTuple):
@@ -201,6 +206,8 @@ class AppConfig:
     axes: list[Any] = field(default_factory=list)
     #: ``--axis NAME``: the axis :meth:`one_axis` picks
     axis_name: str | None = None
+    #: the ``--signal`` options of each axis's ``--axis NAME`` group (after the others)
+    axis_signals: dict[str, list[str]] = field(default_factory=dict)
     #: on the bus (``canrls run``): reads an EDS drive's mapping and ratings from its
     #: node over SDO (None: the EDS's defaults)
     nodes: NodeReader | None = None
@@ -273,6 +280,9 @@ class AppConfig:
         if over.axes is not None:
             self.axes = short_form(over.axes)
             self.flags["axes"] = f"--axes {over.axes}"
+        if over.groups:  # the command line never gives both (--axes: --axis picks)
+            self.axes, self.axis_signals = group_tables(over.groups)
+            self.flags["axes"] = "--axis groups"
         if over.axis_name is not None:
             self.axis_name = over.axis_name
         return self
@@ -294,13 +304,20 @@ class AppConfig:
             c = dataclasses.replace(
                 self, model={**self.model, **spec.model}, can=dict(self.can),
                 signals={**self.signals, **spec.signals}, axes=[], axis_name=None,
-                flags=dict(self.flags), source=f"{self.source} [axis {spec.name}]")
+                flags=dict(self.flags), source=f"{self.source} [axis {spec.name}]",
+                signal_overrides=[*self.signal_overrides,
+                                  *self.axis_signals.get(spec.name, ())], axis_signals={})
             if spec.rule is not None:
                 c.can["ids"] = str(spec.rule)
+            for k, other in (("dbc", "eds"), ("eds", "dbc")):  # the axis's own DBC or EDS
+                if getattr(spec, k) is not None:
+                    c.can[k] = getattr(spec, k)
+                    c.can.pop(other, None)
             c.daemon = {**self.daemon, "own_ids": f"offset:{spec.own:#x}"}
             # an EDS read from each node: its own mapping, no rule to move it
             live = self.nodes is not None and self.can.get("eds") is not None
-            key = repr((c.signals, {k: v for k, v in c.can.items() if k != "ids" or live},
+            key = repr((c.signals, c.signal_overrides,
+                        {k: v for k, v in c.can.items() if k != "ids" or live},
                         c.model.get("axis")))
             try:
                 proto = base.get(key)
@@ -308,7 +325,8 @@ class AppConfig:
                     proto = base[key] = c.protocol(with_rule=live)
                 protocols[spec.name] = proto if live else c._moved(proto)
             except ConfigError as e:
-                raise type(e)(f"axis {spec.name}: {e}") from e
+                group = self.flags.get("axes") == "--axis groups"
+                raise type(e)(f"{'--axis' if group else 'axis'} {spec.name}: {e}") from e
             configs[spec.name] = c
         check_shared(protocols)
         check_own({f"axis {n}": p for n, p in protocols.items()},
