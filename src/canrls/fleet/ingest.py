@@ -135,6 +135,8 @@ def model_key_of(app: AppConfig) -> tuple[str, str]:
     effects = model.get("effects") or ["inertia", "viscous", "coulomb"]
     can = {k: v for k, v in app.can.items()
            if k not in ("interface", "channel", "bitrate", "fd", "data_bitrate", "dbc")}
+    if "ids" in can and _moves_nothing(app):
+        del can["ids"]  # one [[axes]] table of the DBC's own IDs: the key of no rule
     dbc = app.dbc_path()
     doc = {"model": model, "estimator": app.estimator, "fixed": app.fixed, "can": can,
            "signals": app.signals, "signal_overrides": list(app.signal_overrides),
@@ -146,6 +148,14 @@ def model_key_of(app: AppConfig) -> tuple[str, str]:
     if dbc is not None:
         desc += f" dbc={Path(dbc).name}"
     return key, desc
+
+
+def _moves_nothing(app: AppConfig) -> bool:
+    """The ID rule ``[can] ids`` leaves every mapped message on its DBC's ID
+    (``offset:0``, ``cia402:1`` on a DBC written for node 1)."""
+    moved = app.protocol().messages
+    return [m.frame_id for m in moved] == [m.frame_id for m in
+                                           app.protocol(with_rule=False).messages]
 
 
 def content_hash(path: str | Path) -> str:
