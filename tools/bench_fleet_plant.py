@@ -16,7 +16,7 @@ of its frames per second).
 * **The report**: ``canrls fleet report --db URL --json`` and ``--out DIR`` as commands,
   each in its own process: wall time and the process's peak resident memory.
 * **Ingest** (``--logs N``, 0 to skip): N simulated logs of ``--duration`` s
-  (``canrls.sim.fleet``), ``fit_logs`` of each one after another in this process against
+  (``canrls.sim.fleet_plan``), ``fit_logs`` of each one after another in this process against
   ``canrls fleet ingest`` on a LocalCluster of one worker, side by side ``--repeat``
   times (the machine may be shared): frames per second of each, their ratio each time
   and the median ratio. ``--drives 0`` measures the ingest only.
@@ -82,7 +82,7 @@ def ingest_throughput(n: int, duration: float, out: Path, repeat: int) -> None:
     from canrls.fleet.ingest import JobConfig, ingest
     from canrls.fleet.sources import LogSource
     from canrls.processor.replay import fit_logs
-    from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
+    from canrls.sim.fleet_plan import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
 
     plan = make_fleet(max(1, n // 10), 10, duration, seed=52)
     jobs = [(d, r) for d in plan.drives for r in d.recordings][:n]

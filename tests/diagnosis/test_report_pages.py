@@ -24,7 +24,7 @@ def _fleet_page(out: Path, logs: Path) -> Path:
     from fleet_records import pump_fleet
 
     from canrls.fleet.detect import assess
-    from canrls.fleet.report import write_html
+    from canrls.fleet.fleet_report import write_html
 
     return write_html(assess(pump_fleet(logs, drift=True)), out)
 

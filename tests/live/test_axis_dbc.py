@@ -13,7 +13,7 @@ from cli_tool import cli_error
 
 from canrls.cli.main import main
 from canrls.live.daemon import Daemon
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.processor.config import load_config
 from canrls.sim.machine import machine, machine_frames
 

@@ -14,7 +14,7 @@ import pytest
 
 from canrls.can.eds import NodeReader, read_eds
 from canrls.cli.main import main
-from canrls.live.bus import open_bus
+from canrls.live.bus_link import open_bus
 from canrls.processor.config import Overrides, load_config
 
 canopen = pytest.importorskip("canopen")

@@ -26,8 +26,8 @@ from canrls.cli.main import main
 from canrls.core.effect_names import EffectId, EquationId
 from canrls.core.errors import ConfigError
 from canrls.live.daemon import Daemon
-from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
+from canrls.live.monitor_listener import LibraryUnits, Monitor, parse_command_text
 from canrls.processor.config import AppConfig
 
 _ids = itertools.count()
@@ -51,7 +51,7 @@ def test_library_units() -> None:
     assert u.get("nonsense.x") is None and "nonsense.x" not in u
     assert LibraryUnits({"axis": "rotary"}, kt_known=False)["coulomb.Tc"] == "A"
     assert LibraryUnits({"axis": "linear"})["viscous.B"] == "N·s/m"
-    assert u.target_unit() == "N·m"
+    assert u.output_unit() == "N·m"
 
 
 def test_snapshot_of_a_publication() -> None:

@@ -234,7 +234,7 @@ def test_remote_over_loopback() -> None:
 def test_a_machine_bus_hides_the_effects_it_is_given() -> None:
     """``hidden=`` of a machine: one effect per axis; a wrong count or one drive's
     ``hidden`` is refused with the key named."""
-    from canrls.sim.bus import SimBus
+    from canrls.sim.interface import SimBus
 
     bus = SimBus(channel=f"hidden-{os.getpid()}", axes=3, hidden=",cogging:6,",
                  realtime=False, duration=1.0)

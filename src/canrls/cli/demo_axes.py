@@ -4,7 +4,7 @@ One axis, picked by the seed, has an effect its model lacks; the others have non
 machine is the simulated one on a bus of its own (python-can interface ``canrls-sim`` with
 ``axes=N``, faster than real time: :func:`canrls.sim.machine.machine`, axis k on the
 default DBC's IDs + k x 0x10), one daemon per axis serving it
-(:class:`~canrls.live.machine.MachineDaemon`, each axis its own frames and own IDs,
+(:class:`~canrls.live.machine_daemon.MachineDaemon`, each axis its own frames and own IDs,
 + k x 0x40), and a listener on a ``virtual`` bus of the same channel reading what they
 publish as any tool would. After 40 % of the time the drives are held, each axis's
 feedback recorded from the bus is diagnosed, the effect the diagnosis names is added
@@ -89,11 +89,11 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
         frame_ids,
         parse_effect,
     )
-    from canrls.live.bus import COMMAND_ID, moved
+    from canrls.live.bus_link import COMMAND_ID, moved
     from canrls.live.daemon import Daemon
-    from canrls.live.machine import MachineDaemon
-    from canrls.live.monitor import LibraryUnits
-    from canrls.live.settings import DaemonSettings
+    from canrls.live.daemon_settings import DaemonSettings
+    from canrls.live.machine_daemon import MachineDaemon
+    from canrls.live.monitor_listener import LibraryUnits
     from canrls.processor.axes import OWN_STEP
     from canrls.processor.config import AppConfig, prepare
     from canrls.sim.machine import MAX_SIM_AXES, kind_protocol, machine
@@ -115,7 +115,7 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
     cfg = AppConfig()
     cfg.model = {"effects": list(_BASE), "kt": axes[0].scenario.truth.kt}
     _, model, settings = prepare(cfg)
-    unit = LibraryUnits.for_model(model).target_unit()
+    unit = LibraryUnits.for_model(model).output_unit()
     channel = f"canrls-demo-axes-{os.getpid()}-{time.monotonic_ns()}"
     bus = {"interface": "canrls-sim", "channel": channel, "axes": n, "seed": seed,
            "duration": duration, "hidden": ",".join(hides), "realtime": False,

@@ -153,7 +153,7 @@ class Configuration:
         a machine's logs); None without the table."""
         if not cfg.history:
             return None
-        from canrls.fleet.live import HistorySettings
+        from canrls.fleet.live_appender import HistorySettings
 
         settings = HistorySettings.from_table(cfg.history, cfg.source)
         if name is None:
@@ -170,10 +170,9 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None,
     of the machine's axis ``axis`` (its files its own), else of the one axis. ``current``:
     the configuration as read (a machine's: read again once per SIGHUP by the machine,
     not by each axis); None: read here, and again on each SIGHUP."""
-    from canrls.fleet.ingest import model_key_of
-    from canrls.live.bus import bus_config
+    from canrls.live.bus_link import bus_config
     from canrls.live.daemon import Daemon
-    from canrls.live.settings import DaemonSettings
+    from canrls.live.daemon_settings import DaemonSettings
     from canrls.processor.config import AppConfig, prepare, read_toml
 
     own_reads = current is None
@@ -197,7 +196,11 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None,
         return c
 
     hist = conf.history(cfg, axis)
-    key = model_key_of(cfg) if hist is not None else None
+    key = None
+    if hist is not None:  # the fleet's code only for a [history]
+        from canrls.fleet.ingest import model_key_of
+
+        key = model_key_of(cfg)
     protocol, model, settings = prepare(with_model_file(cfg))
     if dset.own_offset:
         from canrls.processor.axes import check_own
@@ -239,7 +242,7 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None,
     try:
         fixed_path = None
         if dset.fixed == "target":
-            from canrls.firmware.live import LiveTarget
+            from canrls.firmware.target_live import LiveTarget
 
             fixed_path = LiveTarget(protocol, settings)
         return Daemon(protocol, model, settings, dset, bus=bus,
@@ -253,10 +256,10 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None,
 
 def _history_hook(settings: Any, key: tuple[str, str]) -> Any:
     """``[history]``: the fleet history the daemon appends its parameters to (its
-    :class:`~canrls.fleet.live.HistorySettings`), under the model ``key`` (key and
+    :class:`~canrls.fleet.live_appender.HistorySettings`), under the model ``key`` (key and
     description, :func:`~canrls.fleet.ingest.model_key_of`)."""
-    from canrls.fleet.live import LiveAppender
-    from canrls.live.history import HistoryHook
+    from canrls.fleet.live_appender import LiveAppender
+    from canrls.live.history_hook import HistoryHook
 
     appender = LiveAppender.open(settings, *key)
     return HistoryHook(appender.append, settings.interval, close=appender.close)
@@ -268,10 +271,10 @@ _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 @contextmanager
-def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
+def _signals_for_life(served: list[Any], process_exits: bool) -> Iterator[None]:
     """SIGTERM/SIGINT/SIGHUP for the whole command, not only while the daemon serves.
 
-    Before the daemon exists a stop is remembered (``target[1]``) and a SIGHUP ignored;
+    Before the daemon exists a stop is remembered (``served[1]``) and a SIGHUP ignored;
     while it runs, :meth:`Daemon.run` has its own handlers; after it stopped, further
     signals only log. At the end, when the command is the process's own
     (``process_exits``), SIGTERM and SIGHUP are left ignored if they had their default
@@ -285,9 +288,9 @@ def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
         return
 
     def stop(signum: int, frame: Any) -> None:
-        d = target[0]
+        d = served[0]
         if d is None:
-            target[1] = True
+            served[1] = True
         else:
             d.request_stop()
         log.info("signal %d: stopping", signum)
@@ -314,11 +317,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.duration is not None and not is_positive(args.duration):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
-    target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
-    with _signals_for_life(target, getattr(args, "process_exits", False)):
+    served: list[Any] = [None, False]  # the daemon, a stop requested before it existed
+    with _signals_for_life(served, getattr(args, "process_exits", False)):
         daemon, said = _build(args)
-        target[0] = daemon
-        if target[1]:
+        served[0] = daemon
+        if served[1]:
             daemon.request_stop()  # run() starts, sees the request and stops cleanly
         with contextlib.nullcontext() if args.json else to_stream(sys.stdout):
             for line in said:
@@ -340,7 +343,7 @@ def _node_reader(cfg: Any) -> Any:
     if cfg.can.get("eds") is None:
         return None
     from canrls.can.eds import NodeReader
-    from canrls.live.bus import bus_config, open_bus
+    from canrls.live.bus_link import bus_config, open_bus
 
     conf = bus_config(cfg)
     return NodeReader(lambda: open_bus(conf))
@@ -354,7 +357,7 @@ def _said(nodes: Any) -> list[str]:
 def _build(args: argparse.Namespace) -> tuple[Any, list[str]]:
     """The daemon of one axis, or of every axis of a machine (no ``--axis``): each axis
     its own :class:`~canrls.live.daemon.Daemon` in one
-    :class:`~canrls.live.machine.MachineDaemon`, the whole machine checked first; and
+    :class:`~canrls.live.machine_daemon.MachineDaemon`, the whole machine checked first; and
     where an EDS drive's values came from (:func:`_said`). The configuration is read
     once here, and once per SIGHUP."""
     conf = Configuration(args)
@@ -370,7 +373,7 @@ def _build_axes(args: argparse.Namespace, conf: Configuration) -> Any:
     cfg = conf.machine
     if len(cfg.axes) < 2 or cfg.axis_name is not None:
         return build_daemon(args, current=conf)
-    from canrls.live.machine import MachineDaemon
+    from canrls.live.machine_daemon import MachineDaemon
 
     names = list(cfg.axis_configs())
     daemons: dict[str, Any] = {}

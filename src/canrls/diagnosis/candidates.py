@@ -110,7 +110,7 @@ def _eval_rows(ctx: RecordSamples, model: Model, eq: Equation, names: Sequence[s
 class ResidualSummary:
     """What the analysis knows of one equation's residual, for :func:`rank_candidates`.
 
-    ``r`` the residual of the final estimate (target unit), ``used`` the rows the
+    ``r`` the residual of the final estimate (output unit), ``used`` the rows the
     pipeline used for the equation, ``h2`` the squared norm of the filter's impulse
     response, ``bins`` and ``spectrum`` the residual binned and by rotation order,
     ``exc`` what the record excites, ``configured`` the model's options set in the
@@ -171,7 +171,7 @@ class _Comparison:
 
     @property
     def rms_ls(self) -> float:
-        """Residual RMS of the model's least squares (target unit)."""
+        """Residual RMS of the model's least squares (output unit)."""
         return self.rms_of(self.rss0)
 
     def rms_of(self, rss: float) -> float:
@@ -359,7 +359,7 @@ def _compare(ctx: RecordSamples, model: Model, eq: Equation,
     col_rms = np.sqrt(np.maximum(np.diag(A)[:-1], 0.0) / max(N, 1)) \
         * np.ldexp(1.0, np.array(aug.scaling.columns))
     return _Comparison(names, na, used, N, aug_model, aug, A, G, C, cur_names, groups,
-                       math.ldexp(1.0, aug.scaling.target), rss0, th0, Ne, col_rms,
+                       math.ldexp(1.0, aug.scaling.output), rss0, th0, Ne, col_rms,
                        model, search)
 
 
@@ -493,7 +493,7 @@ def _what_is_left(ctx: RecordSamples, model: Model, eq: Equation, res: ResidualS
             suggestion = Suggestion(suggestion.steps, suggestion.rms_before,
                                     math.sqrt(e2 / n2))
         structure = residual_structure(ctx, r_left, rows2, res.unit, res.h2, None,
-                                       eq.target.signal)
+                                       eq.output.signal)
         total = 1.0 - sel.rss / cmp.rss0 if cmp.rss0 > 0 else 0.0
         if structure and total < MIN_TOTAL:
             # the best candidates explain part of the structure and leave the rest: they
@@ -513,7 +513,7 @@ def _what_is_left(ctx: RecordSamples, model: Model, eq: Equation, res: ResidualS
             el += float(np.dot(x, x))
         same = dd <= 0.01 * el and cmp.N == res.used.count()
         structure = residual_structure(ctx, r_ls, cmp.used, res.unit, res.h2,
-                                       res.spectrum if same else None, eq.target.signal)
+                                       res.spectrum if same else None, eq.output.signal)
     return _Outcome(suggestion, structure, partial, chosen)
 
 

@@ -1,8 +1,8 @@
 r"""Where the model fails: statistics of the residual over the used samples.
 
 Everything is computed on the *filtered* equation the estimators see (the state-variable
-filter applied to target and columns, :mod:`canrls.estimation.svf`), over the samples the
-estimators used (:class:`~canrls.diagnosis.record.RecordSamples`), in the target's unit:
+filter applied to output and columns, :mod:`canrls.estimation.svf`), over the samples the
+estimators used (:class:`~canrls.diagnosis.record.RecordSamples`), in the output's unit:
 
 * :func:`whiteness`: whiteness of the residual and its cross-correlation with the
   inputs (:class:`~canrls.diagnosis.results.Whiteness`);
@@ -633,7 +633,7 @@ def _harmonic_blocks(ctx: RecordSamples, r: F64, filled_used: B, orders: F64,
 def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64, F64]:
     """Per order q: LS fit of r by a constant, F[sin q a] and F[cos q a].
 
-    Returns the amplitude of the sine/cosine pair (target unit) and the share of the
+    Returns the amplitude of the sine/cosine pair (output unit) and the share of the
     residual's variance (about its mean) it explains. The columns are built and filtered
     in blocks of rows (:func:`_harmonic_blocks`), so memory does not grow with the
     record; only sums over the used rows are kept.
@@ -813,11 +813,11 @@ def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationS
 # ------------------------------------------------------------------------- structure
 def residual_structure(ctx: RecordSamples, r: F64, used: B, unit: str, h2: float,
                spectrum: OrderSpectrum | None,
-               target: str = "current") -> tuple[StructureItem, ...]:
+               output: str = "current") -> tuple[StructureItem, ...]:
     """Structure of the residual ``r`` (``spectrum``: its order spectrum, if computed).
 
-    The residual is not tested against the equation's own target signal (``target``):
-    it holds the target's noise, so its bin means follow the target trivially.
+    The residual is not tested against the equation's own output signal (``output``):
+    it holds the output's noise, so its bin means follow the output trivially.
     """
     out: list[StructureItem] = []
     n, mu, energy, ss = moments(r, used)
@@ -837,7 +837,7 @@ def residual_structure(ctx: RecordSamples, r: F64, used: B, unit: str, h2: float
              "acceleration": "acceleration-dependent",
              "time": "drifting in time"}
     for qn, b in bins.items():
-        if b.share < MIN_STRUCTURE or qn == target:
+        if b.share < MIN_STRUCTURE or qn == output:
             continue
         ok = b.count >= MIN_BIN
         c = b.centers[ok]
