@@ -18,8 +18,8 @@ from cli_tool import cli_error
 from canrls.can.logs import read_frames, write_log
 from canrls.cli.main import main
 from canrls.live.daemon import Daemon
-from canrls.live.machine_daemon import MachineDaemon
 from canrls.live.daemon_settings import DaemonSettings
+from canrls.live.machine_daemon import MachineDaemon
 from canrls.processor.config import load_config
 from canrls.sim.machine import kind_dbc, machine, machine_frames
 

@@ -168,14 +168,14 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None,
                  nodes: Any = None, current: Configuration | None = None) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started);
     of the machine's axis ``axis`` (its files its own), else of the one axis. ``current``:
-    the configuration as read (a machine's: read again once per SIGHUP by the machine,
-    not by each axis); None: read here, and again on each SIGHUP."""
+    the configuration as read (None: read here). On SIGHUP the one axis reads the file
+    again; a machine's axis takes what the machine read, once for all its axes."""
     from canrls.live.bus_link import bus_config
     from canrls.live.daemon import Daemon
     from canrls.live.daemon_settings import DaemonSettings
     from canrls.processor.config import AppConfig, prepare, read_toml
 
-    own_reads = current is None
+    own_reads = axis is None  # a machine's axis: the machine reads the file on SIGHUP
     conf = Configuration(args, nodes) if current is None else current
 
     def table(c: AppConfig) -> dict[str, Any]:
