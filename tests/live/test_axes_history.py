@@ -94,3 +94,26 @@ def test_a_machine_stores_each_axis_and_a_sighup_adds_and_removes_one(
         key = model_key(job)[0]
         assert key == model_key_of(load_config(p).axis(name))[0]
         assert {r.model_key for r in drives[f"press.{name}"]} == {key}
+
+
+def test_one_axis_of_a_machine_is_stored_as_fleet_ingest_stores_it(tmp_path: Path) -> None:
+    """``canrls run --axis b`` of a machine (and a machine of one table) appends under
+    ``DRIVE.AXIS``, the drive ``fleet ingest`` gives that axis's recordings."""
+    from canrls.cli.main import build_parser
+    from canrls.cli.run import build_daemon
+
+    db = tmp_path / "fleet.db"
+    for axes, pick, drive in (({"a": 0, "b": 1}, ["--axis", "b"], "press.b"),
+                              ({"a": 0}, [], "press.a")):
+        conf = tmp_path / "machine.toml"
+        conf.write_text(_machine(db, axes))
+        args = build_parser("run").parse_args(
+            ["run", "-C", str(conf), "-i", "virtual", "-c", f"one-{os.getpid()}", *pick])
+        d = build_daemon(args)
+        try:
+            assert d._history is not None
+            appender = d._history.append.__self__
+            assert appender.settings.drive == drive
+        finally:
+            d.stop()
+            d._history.close()

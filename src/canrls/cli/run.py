@@ -149,13 +149,16 @@ class Configuration:
 
     def history(self, cfg: Any, name: str | None) -> Any:
         """``[history]`` of axis ``name``'s configuration ``cfg`` checked: its settings,
-        the drive ``DRIVE.AXIS`` for a machine's axis (as ``canrls fleet ingest`` stores
-        a machine's logs); None without the table."""
+        the drive ``DRIVE.AXIS`` for an axis of ``[[axes]]`` or ``--axes`` (also the one
+        ``--axis NAME`` picks, or the only one), as ``canrls fleet ingest`` stores a
+        machine's logs; None without the table."""
         if not cfg.history:
             return None
         from canrls.fleet.live_appender import HistorySettings
 
         settings = HistorySettings.from_table(cfg.history, cfg.source)
+        if name is None and self.machine.axes:  # the axis --axis picks, or the only one
+            name = self.machine.axis_name or self.machine.axis_specs()[0].name
         if name is None:
             return settings
         from canrls.fleet.sources import check_name
