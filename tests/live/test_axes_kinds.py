@@ -14,13 +14,11 @@ from pathlib import Path
 import can
 import pytest
 from cli_tool import cli_error
+from daemon_tool import axis_daemons
 
 from canrls.can.logs import read_frames, write_log
 from canrls.cli.main import main
-from canrls.live.daemon import Daemon
-from canrls.live.daemon_settings import DaemonSettings
 from canrls.live.machine_daemon import MachineDaemon
-from canrls.processor.config import load_config
 from canrls.sim.machine import kind_dbc, machine, machine_frames
 
 CIA = str(kind_dbc("cia402"))
@@ -112,13 +110,8 @@ def test_one_daemon_serves_and_the_monitor_shows_both_kinds(
     cfg_path = tmp_path / "machine.toml"
     cfg_path.write_text(MACHINE)
     ch = f"axes-kinds-{os.getpid()}"
-    daemons = {}
-    for name, cfg in load_config(cfg_path).axis_configs().items():
-        protocol = cfg.protocol()
-        dset = dataclasses.replace(DaemonSettings.from_config(cfg), block_interval=0.002,
-                                   rx_filter=True)
-        daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
-                               bus={"interface": "virtual", "channel": ch}, backpressure=True)
+    daemons = axis_daemons(cfg_path, {"interface": "virtual", "channel": ch},
+                           backpressure=True, block_interval=0.002, rx_filter=True)
     md = MachineDaemon(daemons)
     feed = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
                    ignore_config=True)

@@ -10,11 +10,9 @@ import can
 import cantools
 import pytest
 from cli_tool import cli_error
+from daemon_tool import axis_daemons
 
 from canrls.cli.main import main
-from canrls.live.daemon import Daemon
-from canrls.live.daemon_settings import DaemonSettings
-from canrls.processor.config import load_config
 from canrls.sim.machine import machine, machine_frames
 
 MACHINE = ('[model]\nkt = 0.1\n[daemon]\npublish_interval = 0.05\n'
@@ -38,15 +36,10 @@ def test_cantools_decodes_each_axis_of_a_daemon_run(
     tool = can.Bus(interface="virtual", channel=ch, ignore_config=True)
     reader = can.BufferedReader()
     notifier = can.Notifier(tool, [reader], timeout=0.05)
-    daemons = {}
+    daemons = axis_daemons(cfg_path, {"interface": "virtual", "channel": ch})
     try:
-        for name, cfg in load_config(cfg_path).axis_configs().items():
-            protocol = cfg.protocol()
-            d = Daemon(protocol, cfg.model_for(protocol), cfg.settings(),
-                       DaemonSettings.from_config(cfg), bus={"interface": "virtual",
-                                                            "channel": ch})
+        for d in daemons.values():
             d.start()
-            daemons[name] = d
         n = 0
         for block in machine_frames(machine(2, duration=4.0, seed=4)):
             for m in block.to_messages("ch"):
