@@ -38,6 +38,7 @@ from canrls.diagnosis.residual import (
     whiteness,
 )
 from canrls.diagnosis.results import Analysis, EquationDiagnosis, Traces, decimation
+from canrls.diagnosis.search import known_stribeck_speed
 from canrls.estimation.effects import ELECTRICAL
 from canrls.estimation.estimates import EquationFit, PipelineBlock
 from canrls.estimation.fixed.estimator import FixedRLS
@@ -263,7 +264,7 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
     bins = all_bins(ctx, r, used, unit)
     regions = find_regions(bins, r, tau, unit, ctx, rows=used)
     spectrum = order_spectrum(ctx, r, used, unit) if ctx.angle_raw is not None else None
-    exc = excitation_summary(ctx, model, used)
+    exc = excitation_summary(ctx, model, used, known_stribeck_speed(model, configured))
     cand = rank_candidates(ctx, model, eq,
                            ResidualSummary(r, used, h2, unit, bins, spectrum, exc, configured))
     traces = _traces(ctx, est, r, used)
@@ -272,7 +273,7 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
         residual_rms_ls=cand.rms_ls, residual_rms_fixed=rms_fixed, whiteness=wht,
         bins=bins, regions=regions, spectrum=spectrum, candidates=cand.candidates,
         not_applicable=cand.not_applicable, suggestion=cand.suggestion,
-        structure=cand.structure, excitation=exc, identifiable=cand.identifiable,
+        structure=cand.structure, excitation=cand.excitation, identifiable=cand.identifiable,
         identifiability=cand.identifiability, verdict=cand.verdict, traces=traces)
 
 

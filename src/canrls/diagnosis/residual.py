@@ -742,13 +742,17 @@ def spectrum_peaks(orders: F64, expl: F64, limit: int = 5) -> tuple[float, ...]:
 
 
 # ------------------------------------------------------------------------- excitation
-def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationSummary:
+def excitation_summary(ctx: RecordSamples, model: Model, used: B,
+                       stribeck_speed: float | None) -> ExcitationSummary:
     """How the ``used`` rows excite the model, block by block (exact order statistics:
-    :func:`percentiles`, :func:`median`; sums block by block)."""
+    :func:`percentiles`, :func:`median`; sums block by block); the time at low speed
+    below twice ``stribeck_speed`` (None: not said)."""
     N = _true_rows(used)
+    ws = stribeck_speed
     if not N:
         return ExcitationSummary(0.0, 0.0, 0, math.nan, math.nan, math.nan, math.nan,
-                                 math.nan, math.nan, None, None, ctx.speed_unit, ctx.per)
+                                 math.nan, None if ws is None else math.nan, None, None,
+                                 ctx.speed_unit, ctx.per, ws)
     speed = ctx.speed
     vmax = percentiles(_Mapped(speed, np.abs), used, [99.0])[0]  # type: ignore[arg-type]
     eps = max(model.coulomb_band, 0.01 * vmax)
@@ -770,7 +774,8 @@ def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationS
                 last_sign != 0.0 and sg[0] != last_sign)
             last_sign = float(sg[-1])
         # samples where the Stribeck shape exp(-(w/ws)^2) is more than e^-4
-        n_low += int(np.count_nonzero(np.abs(sp) < 2.0 * model.stribeck_speed))
+        if ws is not None:
+            n_low += int(np.count_nonzero(np.abs(sp) < 2.0 * ws))
         s_sp += float(np.sum(sp))
         sp_max = max(sp_max, float(np.max(np.abs(sp))))
         acc = ctx.acceleration[a:a + BLOCK][u]
@@ -806,8 +811,9 @@ def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationS
         forward=n_fwd / N, backward=n_bwd / N, reversals=rev, speed_mean=mean,
         speed_std=math.sqrt(ss / N), speed_max=sp_max,
         acceleration_rms=math.sqrt(s_acc2 / N),
-        acceleration_noise=acc_noise, low_speed=n_low / N, revolutions=revs, coverage=cov,
-        speed_unit=ctx.speed_unit, per=ctx.per)
+        acceleration_noise=acc_noise, low_speed=None if ws is None else n_low / N,
+        revolutions=revs, coverage=cov, speed_unit=ctx.speed_unit, per=ctx.per,
+        stribeck_speed=ws)
 
 
 # ------------------------------------------------------------------------- structure

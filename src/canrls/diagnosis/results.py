@@ -388,11 +388,15 @@ class ExcitationSummary:
     speed_max: float
     acceleration_rms: float
     acceleration_noise: float
-    low_speed: float
+    #: the share of the samples below twice :attr:`stribeck_speed` (None: no speed known)
+    low_speed: float | None
     revolutions: float | None
     coverage: float | None
     speed_unit: str
     per: str
+    #: the Stribeck speed ``low_speed`` refers to: the model's, or the one the search
+    #: found (None: neither)
+    stribeck_speed: float | None = None
 
     @property
     def accelerating(self) -> bool:
@@ -432,7 +436,8 @@ class ExcitationSummary:
                 "speed_std": self.speed_std, "speed_max": self.speed_max,
                 "acceleration_rms": self.acceleration_rms,
                 "acceleration_noise": self.acceleration_noise, "low_speed": self.low_speed,
-                "revolutions": self.revolutions, "coverage": self.coverage,
+                "stribeck_speed": self.stribeck_speed, "revolutions": self.revolutions,
+                "coverage": self.coverage,
                 "speed_unit": self.speed_unit, "per": self.per, "facts": self.facts()}
 
 

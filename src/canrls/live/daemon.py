@@ -56,6 +56,7 @@ from canrls.live.journal import JOURNAL, Journal
 from canrls.live.publisher import FixedPath, Publisher, check_publishable
 from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
+from canrls.live.signals import SignalRelay
 from canrls.live.tuning import interpreter
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig
@@ -131,29 +132,29 @@ def serve(served: Any, stopping: threading.Event, duration: float | None,
     ``stopping`` is set (SIGTERM/SIGINT request it), ``duration`` s have passed or
     ``served.failure`` is set, then stop it; SIGHUP requests a reload; ``each`` is called
     at every wake-up (at least every 0.2 s). Signal handlers only from the main thread,
-    restored after. Returns the exit status (0, or 1 after a failure)."""
-    handlers: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig, fn in ((signal.SIGTERM, lambda *_: served.request_stop()),
-                        (signal.SIGINT, lambda *_: served.request_stop()),
-                        (signal.SIGHUP, lambda *_: served.request_reload())):
-            handlers[sig] = signal.signal(sig, fn)
-    try:
-        served.start()
-        if ready is not None:
-            ready()
-        end = None if duration is None else time.monotonic() + duration
-        while not stopping.is_set() and served.failure is None:
-            left = 0.2 if end is None else min(0.2, end - time.monotonic())
-            if left <= 0:
-                break
-            stopping.wait(left)
-            if each is not None:
-                each()
-    finally:
-        served.stop()
-        for sig, old in handlers.items():
-            signal.signal(sig, old)
+    restored after; they act from a thread of their own (:class:`SignalRelay`), never
+    inside the code a signal interrupts. Returns the exit status (0, or 1 after a failure)."""
+    def stop(_: int) -> None:
+        served.request_stop()
+
+    def reload(_: int) -> None:
+        served.request_reload()
+
+    with SignalRelay({signal.SIGTERM: stop, signal.SIGINT: stop, signal.SIGHUP: reload}):
+        try:
+            served.start()
+            if ready is not None:
+                ready()
+            end = None if duration is None else time.monotonic() + duration
+            while not stopping.is_set() and served.failure is None:
+                left = 0.2 if end is None else min(0.2, end - time.monotonic())
+                if left <= 0:
+                    break
+                stopping.wait(left)
+                if each is not None:
+                    each()
+        finally:
+            served.stop()
     return 0 if served.failure is None else 1
 
 
