@@ -13,11 +13,11 @@ import can
 import numpy as np
 import pytest
 from cli_tool import cli_error
+from daemon_tool import axis_daemons
 
 from canrls.can.estimator_frames import CommandCode, CommandResult, FrameDecoder, encode_command
 from canrls.can.logs import read_frames, write_log
 from canrls.cli.main import main
-from canrls.firmware.target_live import LiveTarget
 from canrls.live.bus_link import messages_to_block, moved
 from canrls.live.daemon import Daemon
 from canrls.live.daemon_settings import DaemonSettings
@@ -133,15 +133,9 @@ def test_live_equals_fit_axis_on_the_recorded_bus(tmp_path: Path,
     cfg_path.write_text('[model]\nkt = 0.1\n[[axes]]\nname = "a"\n'
                         '[[axes]]\nname = "b"\nids = "offset:0x10"\n')
     ch = f"axes-live-eq-{os.getpid()}"
-    daemons = {}
-    for name, cfg in load_config(cfg_path).axis_configs().items():
-        protocol = cfg.protocol()
-        # each axis its own frames only, as canrls run of a machine takes them
-        dset = dataclasses.replace(DaemonSettings.from_config(cfg), block_interval=0.002,
-                                   rx_filter=True)
-        daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
-                               bus={"interface": "virtual", "channel": ch}, backpressure=True,
-                               fixed_path=LiveTarget(protocol, cfg.settings()))
+    # each axis its own frames only, as canrls run of a machine takes them
+    daemons = axis_daemons(cfg_path, {"interface": "virtual", "channel": ch},
+                           backpressure=True, block_interval=0.002, rx_filter=True)
     machine_d = MachineDaemon(daemons)
     feed = can.Bus(interface="virtual", channel=ch, preserve_timestamps=True,
                    ignore_config=True)
@@ -213,12 +207,7 @@ def test_monitor_shows_one_row_per_axis(tmp_path: Path,
                         '[[axes]]\nname = "b"\nids = "offset:0x10"\n'
                         '[axes.model]\neffects = ["inertia", "viscous"]\n')
     ch = f"axes-mon-{os.getpid()}"
-    daemons = {}
-    for name, cfg in load_config(cfg_path).axis_configs().items():
-        protocol = cfg.protocol()
-        daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(),
-                               DaemonSettings.from_config(cfg),
-                               bus={"interface": "virtual", "channel": ch})
+    daemons = axis_daemons(cfg_path, {"interface": "virtual", "channel": ch})
     machine_d = MachineDaemon(daemons)
     argv = ["monitor", "--config", str(cfg_path), "-i", "virtual", "-c", ch, "--once",
             "--timeout", "10"]
@@ -292,12 +281,7 @@ def test_the_simulated_machine_as_a_bus_feeds_every_axis(tmp_path: Path) -> None
     ch = f"axes-simbus-{os.getpid()}"
     # in real time: every axis's bus joins the drive before it has sent much
     bus = {"interface": "canrls-sim", "channel": ch, "axes": 3, "seed": 2, "duration": 4.0}
-    daemons = {}
-    for name, cfg in load_config(cfg_path).axis_configs().items():
-        protocol = cfg.protocol()
-        dset = dataclasses.replace(DaemonSettings.from_config(cfg), rx_filter=True)
-        daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
-                               bus=bus)
+    daemons = axis_daemons(cfg_path, bus, rx_filter=True)
     md = MachineDaemon(daemons)
     try:
         md.start()
