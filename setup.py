@@ -61,7 +61,21 @@ EXTENSIONS: list[Extension] = [
               sources=["src/canrls/c/host/fixed_module.c",
                        "src/canrls/c/firmware/canrls_fixed.c"],
               include_dirs=["src/canrls/c/firmware"],
-              depends=["src/canrls/c/firmware/canrls_fixed.h"],
+              depends=["src/canrls/c/firmware/canrls_fixed.h",
+                       "src/canrls/c/host/plan_fields.h"],
+              extra_compile_args=_CFLAGS),
+    # the target's whole integer path (canrls_target.c and canrls_fixed.c, the C that
+    # export-c writes, its tables given at run time as data) for canrls.firmware.native:
+    # canrls fit's and the daemon's fixed column
+    Extension("canrls._target",
+              sources=["src/canrls/c/host/target_module.c",
+                       "src/canrls/c/firmware/canrls_target.c",
+                       "src/canrls/c/firmware/canrls_fixed.c"],
+              include_dirs=["src/canrls/c/firmware"],
+              depends=["src/canrls/c/firmware/canrls_target.h",
+                       "src/canrls/c/firmware/canrls_target_tables.h",
+                       "src/canrls/c/firmware/canrls_fixed.h",
+                       "src/canrls/c/host/plan_fields.h", "src/canrls/c/host/pyargs.h"],
               extra_compile_args=_CFLAGS),
     # the fixed-point RLS as specified (every update form, any n) for
     # canrls.estimation.fixed.kernels: where the target's kernel does not apply

@@ -64,6 +64,8 @@ def test_demo_of_four_axes_fixes_the_one_axis_that_hides_an_effect(
                for n in ("axis1", "axis2", "axis4"))
     assert axes["axis3"]["change"] < -0.5, cap.err
     assert "3. RlsCommand add_effect cogging:6 to axis3 only (ID 0x3a0):" in story
+    # the machine is the simulated one on its own bus, as canrls run -i canrls-sim sees it
+    assert story[1].startswith("4 simulated drives on one bus (canrls-sim), seed 4")
 
 
 @pytest.mark.parametrize("axes", ["0", "33"])

@@ -71,9 +71,14 @@ def test_json_before_after_and_candidates(log: Path, capsys: pytest.CaptureFixtu
 
 
 def test_before_has_the_parameters_of_fit(log: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    fit = _json(capsys, ["fit", str(log), *MODEL, "--json"])
+    # diagnose's fixed column is the kernel's (docs/diagnose.md): fit --fixed kernel's
+    fit = _json(capsys, ["fit", str(log), *MODEL, "--json", "--fixed", "kernel"])
     d = _json(capsys, ["diagnose", str(log), *MODEL, *QUICK, "--json"])
     assert d["before"]["parameters"] == fit["parameters"]
+    # ... and every float value and sigma is plain fit's (whose fixed column is the target's)
+    plain = _json(capsys, ["fit", str(log), *MODEL, "--json"])
+    assert {n: (p["value"], p["sigma"]) for n, p in plain["parameters"].items()} == {
+        n: (p["value"], p["sigma"]) for n, p in d["before"]["parameters"].items()}
     assert d["before"]["residual_rms"] == fit["residual_rms"]
     assert d["before"]["fit_percent"] == fit["fit_percent"]
     assert d["after"] is None and d["added"] == []

@@ -4,6 +4,7 @@ exception in a command is one ``internal error:`` line and exit status 3."""
 
 from __future__ import annotations
 
+import argparse
 import re
 import subprocess
 import sys
@@ -17,7 +18,7 @@ import pytest
 from cli_tool import cli_error
 
 from canrls.can.frameblock import MAX_DATA_LENGTH, FrameBlock
-from canrls.cli.main import INTERNAL_ERROR, main
+from canrls.cli.main import INTERNAL_ERROR, build_parser, main
 from canrls.core.errors import ConfigError, DecodeError, ExpressionError
 from canrls.estimation.expr import compile_expression
 from canrls.estimation.svf import MAX_TIME_CONSTANT, SVF, ZETA_RANGE
@@ -99,7 +100,7 @@ def test_a_kt_whose_torque_overflows_is_one_error_line_naming_kt(
     """--kt 1e308 printed numpy's overflow warnings, then "cannot quantize NaN to Q1.30":
     now the one line names model.kt and what overflowed (no warning: one line)."""
     line = cli_error(capsys, ["fit", "--kt", "1e308", "-e", "inertia,viscous", str(log)])
-    assert line.startswith("error: model.kt = 1e+308: the target motor torque"), line
+    assert line.startswith("error: model.kt = 1e+308: the output motor torque"), line
     assert "overflows a double" in line
 
 
@@ -307,3 +308,17 @@ def test_a_reader_that_leaves_ends_the_command_quietly(log: Path, argv: list[str
         err = p.stderr.read().decode()
         assert p.wait(timeout=120) == PIPE_CLOSED, err
     assert err == ""
+
+
+#: a figure measured on some machine: a factor of time, a time per sample or frame, a
+#: comparison of speed (help says what an option does; docs/ say how much it costs)
+MEASUREMENT = re.compile(r"\d+(\.\d+)?\s*x the time|\d+(\.\d+)?\s*(µs|us|ms) (a|per|of CPU)\b"
+                         r"|\b(faster|slower) than\b")
+
+
+def test_no_help_quotes_a_measurement() -> None:
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    found = [f"{name}: ...{m.group(0)}..." for name, p in sub.choices.items()
+             for m in MEASUREMENT.finditer(" ".join(p.format_help().split()))]
+    assert not found, "measurements in --help (they belong in docs/):\n" + "\n".join(found)

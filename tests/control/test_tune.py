@@ -497,6 +497,23 @@ def test_the_c_friction_is_the_specification_bit_for_bit(tmp_path: Path) -> None
     assert np.all(err <= 0.03 * 2e-4 + 4 * 2.0**-fr.frac + np.abs(w) * 2.0**-(fr.frac + 1))
 
 
+def test_a_loop_scans_its_frequency_grid_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The tuning's bisection asks a loop's bandwidth and margin dozens of times; the
+    4,000 frequencies they scan are built once per loop, and the gains are those of a
+    grid built every time."""
+    from canrls.control import gains as g
+
+    loop = g.Loop(J=2e-4, J_sigma=1e-5, dt=1e-3, Td=1.5e-3, Ti=0.0)
+    fresh = g.for_bandwidth(g.Loop(J=2e-4, J_sigma=1e-5, dt=1e-3, Td=1.5e-3, Ti=0.0), 20.0)
+    made = []
+    real = np.geomspace
+    monkeypatch.setattr(np, "geomspace", lambda *a, **k: made.append(a) or real(*a, **k))
+    got = g.for_bandwidth(loop, 20.0)
+    g.symmetric_optimum(loop)
+    assert len(made) == 1, f"the grid was built {len(made)} times"
+    assert (got.kp, got.ki, got.bandwidth_hz) == (fresh.kp, fresh.ki, fresh.bandwidth_hz)
+
+
 @pytest.mark.parametrize("form", ["table", "harmonics"])
 def test_export_c_feedforward_reads_the_model_once_and_declares_in_one_guard(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,

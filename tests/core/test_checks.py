@@ -11,8 +11,10 @@ passed the monitor and the frame decoder, then the daemon refused it.
 
 from __future__ import annotations
 
+import ast
 import math
 import re
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -108,9 +110,102 @@ HAND_WRITTEN = [re.compile(r"math\.isfinite\((\w[\w.]*)\)\s+and\s+\1 > 0"),
                            r"int \| float\)\s+or\s+not\s+math\.isfinite\(\1\)")]
 
 
+#: "a finite float, else None" for JSON, as five modules wrote it before asking
+#: core.checks.finite_or_none / json_safe
+HAND_WRITTEN_JSON = [re.compile(r"if math\.isfinite\((\w[\w.]*)\) else None"),
+                     re.compile(r"None if \w[\w.]* is None or not math\.isfinite"),
+                     re.compile(r"isinstance\((\w+), float\) and not math\.isfinite\(\1\):"
+                                r"\s+return None")]
+
+
+def hand_written(patterns: list[re.Pattern[str]]) -> list[str]:
+    src = Path(checks.__file__).resolve().parents[1]
+    return [f"{p.relative_to(src)}:{s.count(chr(10), 0, m.start()) + 1}"
+            for p in sorted(src.rglob("*.py")) if p.name != "checks.py"
+            for s in [p.read_text()] for rx in patterns for m in rx.finditer(s)]
+
+
+def test_no_module_writes_finite_or_none_by_hand() -> None:
+    bad = hand_written(HAND_WRITTEN_JSON)
+    assert not bad, "ask canrls.core.checks.finite_or_none / json_safe:\n" + "\n".join(bad)
+
+
+#: a user's number checked against a range by hand (finite, then lo < x < hi), as a dozen
+#: places did before asking core.checks.in_range
+HAND_WRITTEN_RANGE = [
+    re.compile(r"math\.isfinite\((\w[\w.]*)\)\s+and\s+[-\w.]+\s*<=?\s*\1\s*<"),
+    re.compile(r"isinstance\((\w[\w.]*), \(?int(, | \| )float\)?\)\s+(and|or not)\s+"
+               r"\(?[-\w.]+\s*<=?\s*\1\s*<"),
+    re.compile(r"isinstance\((\w[\w.]*), int \| float\)\s+and\s+\1 > 0 and"),
+    re.compile(r"not\s+\(?0\s*<\s*[\w.]+\s*<\s*(float\(\"inf\"\)|math\.inf)"),
+    re.compile(r"not \w[\w.]* <= [\w.]+ <= \w+_RANGE\[1\]"),
+    re.compile(r"1e8 < \w+ < 1e11|_EPOCH\[0\] < "),  # the epoch window, three times before
+]
+
+
+def test_no_module_writes_a_range_check_by_hand() -> None:
+    bad = hand_written(HAND_WRITTEN_RANGE)
+    assert not bad, "ask canrls.core.checks.in_range / is_positive:\n" + "\n".join(bad)
+
+
+@pytest.mark.parametrize("value, lo, hi, lo_open, hi_open, inside", [
+    (0.5, 0, 1, True, True, True), (0, 0, 1, True, False, False),
+    (0, 0, 1, False, False, True), (1, 0, 1, True, True, False), (1, 0, 1, True, False, True),
+    (math.nan, 0, 1, False, False, False),
+    (1e300, 0, math.inf, True, True, True), (math.inf, 0, math.inf, False, False, False),
+    (True, 0, 2, False, False, False), ("0.5", 0, 1, False, False, False),
+])
+def test_in_range(value: object, lo: float, hi: float, lo_open: bool, hi_open: bool,
+                  inside: bool) -> None:
+    assert checks.in_range(value, lo, hi, lo_open=lo_open, hi_open=hi_open) is inside
+
+
+def test_estimator_settings_refuse_a_bad_alpha_by_the_one_rule() -> None:
+    for alpha in (True, math.nan, math.inf, -1.0, 0.0, "0.1"):
+        with pytest.raises(CanrlsError, match="estimator.alpha"):
+            EstimatorSettings(alpha=alpha)  # type: ignore[arg-type]
+    for key, bad in (("warmup_s", True), ("calibration_s", math.inf)):
+        with pytest.raises(CanrlsError, match=f"estimator.{key}"):
+            EstimatorSettings(**{key: bad})
+
+
+def test_json_safe_values() -> None:
+    assert checks.finite_or_none(None) is None and checks.finite_or_none(math.nan) is None
+    assert checks.finite_or_none(-math.inf) is None and checks.finite_or_none(2) == 2.0
+    assert checks.json_safe({1: (math.inf, [np.float64(0.5), math.nan]), "s": "x"}) == {
+        "1": [None, [0.5, None]], "s": "x"}
+
+
 def test_no_module_writes_the_number_check_by_hand() -> None:
     src = Path(checks.__file__).resolve().parents[1]
     bad = [f"{p.relative_to(src)}:{s.count(chr(10), 0, m.start()) + 1}"
            for p in sorted(src.rglob("*.py")) if p.name != "checks.py"
            for s in [p.read_text()] for rx in HAND_WRITTEN for m in rx.finditer(s)]
     assert not bad, "ask canrls.core.checks.is_real / is_positive:\n" + "\n".join(bad)
+
+
+# -- matplotlib, an optional extra: one import and one message ------------------------------
+def definitions(name: str) -> list[str]:
+    """The modules of src/canrls that define a function ``name``."""
+    src = Path(checks.__file__).resolve().parents[1]
+    return sorted(str(p.relative_to(src)) for p in src.rglob("*.py")
+                  for node in ast.walk(ast.parse(p.read_text()))
+                  if isinstance(node, ast.FunctionDef) and node.name == name)
+
+
+def test_one_require_matplotlib_names_each_page_and_its_extra(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from canrls.core import webpage
+    from canrls.diagnosis import figures
+    from canrls.fleet import fleet_report
+
+    assert definitions("require_matplotlib") == ["core/webpage.py"]
+    for mod in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+        monkeypatch.delitem(sys.modules, mod)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    with pytest.raises(CanrlsError, match=r"^the HTML report needs matplotlib, which is not "
+                                          r"installed: pip install 'canrls\[report\]'"):
+        figures.figures_in(tmp_path)
+    with pytest.raises(CanrlsError, match=r"^the fleet report needs matplotlib, .*"
+                                          r"'canrls\[fleet\]'"):
+        webpage.require_matplotlib(*fleet_report.MATPLOTLIB)

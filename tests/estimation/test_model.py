@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from canrls.core.errors import ConfigError, EffectError, ExpressionError, SignalError
 from canrls.core.samples import Signals
-from canrls.estimation.equation import PositionUnwrapper, RegressorBlock
+from canrls.estimation.equation import ModelView, PositionUnwrapper, RegressorBlock
 from canrls.estimation.model import Model
 from canrls.processor.config import load_model
 
@@ -664,3 +664,25 @@ def test_the_old_name_of_the_output_is_read_with_a_warning(
     with pytest.raises(ConfigError, match="model.target = 'torque': is the old name of "
                                           "model.output: give one of them"):
         Model.from_dict({**d, "output": "torque"}, source="both.json")
+
+
+def test_what_an_equation_reads_of_its_model_is_in_model_view() -> None:
+    """``Equation.model`` is typed :class:`ModelView` (the model imports its equations, so
+    they cannot import it back): every attribute the estimation layer reads through an
+    equation's model is declared there, so the types are true (mypy agrees)."""
+    import ast
+    import inspect
+
+    from canrls.estimation import equation as equation_mod
+
+    declared = set(ModelView.__annotations__) | {
+        n for n, _ in inspect.getmembers(ModelView) if not n.startswith("_")}
+    src = Path(equation_mod.__file__).parent
+    read = {(p.name, node.attr) for p in sorted(src.glob("*.py"))
+            for node in ast.walk(ast.parse(p.read_text()))
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Attribute)
+            and node.value.attr == "model" and isinstance(node.value.value, ast.Name)
+            and node.value.value.id in ("eq", "equation", "e")}
+    missing = sorted(f"{f}: .model.{a}" for f, a in read if a not in declared)
+    assert read and not missing, missing
+    assert {"with_cutoff", "with_scaling", "equation"} <= declared

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -159,40 +160,154 @@ def test_the_readme_walks_from_a_log_to_a_passing_target_test(tmp_path: Path) ->
     assert said is not None and said.group(1) in out, (said, out)
 
 
-def test_fit_the_daemon_and_the_exported_c_agree_bit_for_bit(tmp_path: Path) -> None:
-    """One integer path: ``canrls fit --fixed target`` prints the target's fixed column,
-    the daemon with ``[daemon] fixed = "target"`` publishes the same values from the same
-    frames, and the exported C of the saved model reproduces them (``make test``)."""
-    from canrls.can.logs import read_frames
+def _daemon(log_args: list[str], extra: list[str]) -> Any:
+    """The daemon as 'canrls run' builds it (not started; frames given to process())."""
     from canrls.cli.main import build_parser
     from canrls.cli.run import build_daemon
+
+    return build_daemon(build_parser("run").parse_args(
+        ["run", "-i", "virtual", "-c", "unused-one-path", *log_args, *extra]))
+
+
+def _published(d: Any) -> dict[str, float]:
+    return {p.name: p.fixed_value for p in d.parameter_reports()}
+
+
+def test_fit_the_daemon_and_the_exported_c_agree_bit_for_bit(tmp_path: Path) -> None:
+    """One integer path, by default: plain ``canrls fit`` prints the target's fixed
+    column, the daemon as ``canrls run`` builds it publishes the same values from the
+    same frames, and the exported C of the saved model reproduces them (``make test``).
+    By name, the kernel's column is the same in both too."""
+    from canrls.can.logs import read_frames
 
     log = tmp_path / "drive.log"
     effects = "inertia,viscous,coulomb,offset,unbalance"
     _canrls(["sim", "--out", str(log), "--duration", "6", "--effects", effects, "--seed", "9"])
-    fit = _check(log, ["--kt", "0.1", "-e", effects], tmp_path)
+    fit = _check(log, ["--kt", "0.1", "-e", effects], tmp_path, fixed=None)
     cfg = tmp_path / "daemon.toml"
-    cfg.write_text('[daemon]\nfixed = "target"\n')
 
     def published(extra: list[str]) -> dict[str, float]:
-        # the daemon as 'canrls run' builds it, fed the log's frames in blocks of its own
-        d = build_daemon(build_parser("run").parse_args(
-            ["run", "-i", "virtual", "-c", "unused-one-path", "--kt", "0.1", "-e", effects,
-             *extra]))
+        # fed the log's frames in blocks of its own
+        d = _daemon(["--kt", "0.1", "-e", effects], extra)
         try:
             for b in read_frames(log):
                 d.process(b)
-            return {p.name: p.fixed_value for p in d.parameter_reports()}
+            return _published(d)
         finally:
             d.stop()
 
-    assert published(["--config", str(cfg)]) == {n: p["fixed"]
-                                                  for n, p in fit["parameters"].items()}
-    # by default the daemon publishes the kernel's column, as plain 'canrls fit' prints it
+    assert published([]) == {n: p["fixed"] for n, p in fit["parameters"].items()}
+    # the kernel's column, by name, in both
+    cfg.write_text('[daemon]\nfixed = "kernel"\n')
     kernel = json.loads(_canrls(["fit", str(log), "--kt", "0.1", "-e", effects, "--json",
-                                 "--quiet"]))
+                                 "--quiet", "--fixed", "kernel"]))
     assert kernel.get("fixed") is None
-    assert published([]) == {n: p["fixed"] for n, p in kernel["parameters"].items()}
+    assert published(["--config", str(cfg)]) == {n: p["fixed"]
+                                                  for n, p in kernel["parameters"].items()}
+    assert kernel["parameters"] != fit["parameters"]
+
+
+def _after(d: Any, log: Path, frames: Any) -> dict[str, float]:
+    """What the target's path computes from ``frames`` alone, with the daemon's
+    calibration and period as they are now (its path started again there)."""
+    from canrls.firmware.native import TargetFeed
+    from canrls.firmware.target_fit import fit_model
+
+    feed = TargetFeed(fit_model(d.processor.result("canrls run"), d.protocol,
+                                d.pipeline.settings))
+    feed.feed(frames)
+    return {name: v for name, (v, _) in feed.fixed().items()}
+
+
+def _sim_frames(tmp_path: Path, seed: int) -> tuple[Path, Any]:
+    """An 8 s simulated log and its frames in one block."""
+    from canrls.can.frameblock import FrameBlock
+    from canrls.can.logs import read_frames
+
+    log = tmp_path / "drive.log"
+    _canrls(["sim", "--out", str(log), "--duration", "8", "--seed", str(seed)])
+    return log, FrameBlock.concat(list(read_frames(log)))
+
+
+def test_a_reset_command_starts_the_target_path_again_and_says_so(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from canrls.can.estimator_frames import CommandCode, encode_command
+    from canrls.live.journal import JOURNAL
+
+    log, frames = _sim_frames(tmp_path, 11)
+    half = len(frames) // 2
+    d = _daemon(["--kt", "0.1", "--commands"], [])
+    try:
+        d.process(frames.take(slice(0, half)))
+        before = _published(d)
+        with caplog.at_level("INFO", logger=JOURNAL.name):
+            d.process([encode_command(CommandCode.RESET)])
+        assert "reset: the fixed point's integer path starts again from its prior" \
+            in caplog.text
+        rest = frames.take(slice(half, None))
+        d.process(rest)
+        after = _published(d)
+        assert after == _after(d, log, rest) and after != before
+    finally:
+        d.stop()
+
+
+def test_freeze_and_set_lambda_reach_the_target_path(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The command freeze holds the published fixed column as it holds the kernel's,
+    resume lets it move again; set_lambda starts the path again with the new forgetting
+    factor (a new kernel plan), said in the log."""
+    from canrls.can.estimator_frames import CommandCode, encode_command
+
+    log, frames = _sim_frames(tmp_path, 13)
+    q = len(frames) // 4
+    d = _daemon(["--kt", "0.1", "--commands"], [])
+    try:
+        d.process(frames.take(slice(0, q)))
+        d.process([encode_command(CommandCode.FREEZE)])
+        held = _published(d)
+        d.process(frames.take(slice(q, 2 * q)))
+        assert _published(d) == held
+        d.process([encode_command(CommandCode.RESUME)])
+        d.process(frames.take(slice(2 * q, 3 * q)))
+        assert _published(d) != held
+        with caplog.at_level("WARNING"):
+            d.process([encode_command(CommandCode.SET_LAMBDA, lam=0.999)])
+            rest = frames.take(slice(3 * q, None))
+            d.process(rest)
+        assert "starts again from its prior (lambda 0.999" in caplog.text
+        assert d.pipeline.settings.lam == pytest.approx(0.999)
+        assert _published(d) == _after(d, log, rest)
+    finally:
+        d.stop()
+
+
+def test_a_resume_from_a_checkpoint_starts_the_target_path_again_and_says_so(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from canrls.live.journal import JOURNAL
+
+    log, frames = _sim_frames(tmp_path, 12)
+    half = len(frames) // 2
+    cfg = tmp_path / "daemon.toml"
+    cfg.write_text(f'[daemon]\ncheckpoint = "{tmp_path / "ckpt.bin"}"\n')
+    d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
+    try:
+        d.process(frames.take(slice(0, half)))
+        assert d.checkpoint() is not None
+    finally:
+        d.stop()
+    d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
+    try:
+        assert d.resumed_from is not None
+        with caplog.at_level("INFO", logger=JOURNAL.name):
+            d.start()
+        assert (f"resumed from {d.resumed_from}: the fixed point's integer path starts again "
+                f"from its prior") in caplog.text
+        rest = frames.take(slice(half, None))
+        d.process(rest)
+        assert _published(d) == _after(d, log, rest)
+    finally:
+        d.stop()
 
 
 def test_the_daemon_takes_the_target_path_only_by_name(tmp_path: Path) -> None:
@@ -217,3 +332,10 @@ def test_a_model_the_target_cannot_run_is_refused_by_name(tmp_path: Path) -> Non
     with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
         assert main(["fit", str(log), "--config", str(cfg), "--fixed", "target"]) == 1
     assert "error:" in buf.getvalue() and "user term" in buf.getvalue()
+    # by default the fit takes the kernel's column and says why, in text and in JSON
+    text = _canrls(["fit", str(log), "--config", str(cfg), "--quiet"])
+    assert "fixed point: the kernel on the float front end (the target's integer path " \
+           "does not run this model: " in text and "user term" in text
+    fit = json.loads(_canrls(["fit", str(log), "--config", str(cfg), "--quiet", "--json"]))
+    assert fit["fixed"]["path"] == "kernel" and "user term" in fit["fixed"]["why"]
+    assert all(math.isfinite(p["fixed"]) for p in fit["parameters"].values())

@@ -871,3 +871,34 @@ def test_ingest_of_a_machine_stores_one_recording_per_axis(
     assert main(argv) == 0
     assert capsys.readouterr().out.startswith(
         "2 logs (4 recordings, one per axis): 0 stored, 4 already in the history")
+
+
+def test_one_axes_table_of_the_dbcs_own_ids_keeps_the_model_key(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A drive's configuration given one [[axes]] table whose rule moves no ID (or the
+    short form --axes offset:0) fits the same model: its logs are not fitted again under
+    another key."""
+    logs = tmp_path / "logs" / "press1"
+    logs.mkdir(parents=True)
+    assert main(["sim", "--out", str(logs / "r1.log"), "--duration", "2", "--seed", "1"]) == 0
+    plain = tmp_path / "plain.toml"
+    plain.write_text('[model]\nkt = 0.1\n')
+    table = tmp_path / "table.toml"
+    table.write_text('[model]\nkt = 0.1\n[[axes]]\nname = "a"\nids = "offset:0"\n')
+    db = tmp_path / "k.db"
+    base = ["fleet", "ingest", str(tmp_path / "logs" / "{drive}" / "*.log"), "--db", str(db),
+            "--workers", "0", "--quiet"]
+    capsys.readouterr()
+    assert main([*base, "--config", str(plain)]) == 0
+    assert capsys.readouterr().out.startswith("1 logs: 1 stored")
+    for extra in (["--config", str(table)], ["--config", str(plain), "--axes", "offset:0"]):
+        assert main([*base, *extra]) == 0
+        out = capsys.readouterr().out
+        assert "0 stored, 1 already in the history" in out, (extra, out)
+    with History.open(db) as h:
+        assert len(h.models()) == 1
+    # a rule that moves the IDs is another model (another drive's frames)
+    assert main([*base, "--config", str(plain), "--axes", "offset:0x20"]) == 0
+    capsys.readouterr()
+    with History.open(db) as h:
+        assert len(h.models()) == 2

@@ -9,6 +9,7 @@ place (:func:`daemon_process`).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import os
 import signal
@@ -26,11 +27,14 @@ from canrls.can.estimator_frames import CommandResult
 from canrls.can.protocol import Protocol
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
+from canrls.firmware.target_live import LiveTarget
 from canrls.live.daemon import Daemon
 from canrls.live.daemon_settings import DaemonSettings
+from canrls.processor.config import load_config
 
-__all__ = ["DaemonProcess", "DaemonTool", "collect", "daemon_fed", "daemon_process", "datagrams",
-           "notify_socket", "reloaded_daemon", "remote_sim_server"]
+__all__ = ["DaemonProcess", "DaemonTool", "axis_daemons", "collect", "daemon_fed",
+           "daemon_process", "datagrams", "notify_socket", "reloaded_daemon",
+           "remote_sim_server"]
 
 #: RlsCommandAck
 ACK_ID = 0x321
@@ -45,6 +49,22 @@ def collect(reader: can.BufferedReader) -> list[can.Message]:
 
 
 _channels = itertools.count()
+
+
+def axis_daemons(config: Path, bus: dict[str, Any], *, backpressure: bool = False,
+                 **settings: Any) -> dict[str, Daemon]:
+    """Each axis's daemon of the machine ``config`` on ``bus`` (not started), by name:
+    its ``[daemon]`` settings with ``settings`` over them."""
+    out = {}
+    for name, cfg in load_config(config).axis_configs().items():
+        protocol = cfg.protocol()
+        dset = dataclasses.replace(DaemonSettings.from_config(cfg), **settings)
+        # the fixed column as canrls run builds it
+        fixed_path = (LiveTarget(protocol, cfg.settings()) if dset.fixed == "target"
+                      else None)
+        out[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset, bus=bus,
+                           backpressure=backpressure, fixed_path=fixed_path)
+    return out
 
 
 @contextlib.contextmanager

@@ -223,3 +223,22 @@ def test_the_monitor_section_is_read_and_checked(tmp_path: Path) -> None:
         bad.write_text(f"[monitor]\n{body}\n")
         with pytest.raises(ConfigError, match=what):
             AppConfig.load(bad)
+
+
+def test_an_axis_command_id_is_computed_in_one_place() -> None:
+    """The daemon's command ID, its bulk receiver's and the demo's were each
+    ``COMMAND_ID + own_offset`` written out; :func:`~canrls.live.bus_link.command_id` is
+    the one sum, and moving a frame by the offset (``moved``) lands on it."""
+    import re as _re
+    from pathlib import Path as _Path
+
+    from canrls.can.estimator_frames import CommandCode, encode_command
+    from canrls.live import bus_link
+
+    src = _Path(bus_link.__file__).resolve().parents[1]
+    sums = [f"{p.relative_to(src)}:{s.count(chr(10), 0, m.start()) + 1}"
+            for p in sorted(src.rglob("*.py")) for s in [p.read_text()]
+            for m in _re.finditer(r"COMMAND_ID \+", s)]
+    assert len(sums) == 1 and sums[0].startswith("live/bus_link.py:"), sums
+    frame = bus_link.moved(encode_command(CommandCode.RESET), 0x40)
+    assert frame.arbitration_id == bus_link.command_id(0x40) == bus_link.COMMAND_ID + 0x40

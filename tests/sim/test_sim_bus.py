@@ -229,3 +229,22 @@ def test_remote_over_loopback() -> None:
     dec = Decoder(Protocol.load())
     dec.decode(FrameBlock.from_messages([m for m in msgs if m is not None]))
     assert dec.rejected.total == 0
+
+
+def test_a_machine_bus_hides_the_effects_it_is_given() -> None:
+    """``hidden=`` of a machine: one effect per axis; a wrong count or one drive's
+    ``hidden`` is refused with the key named."""
+    from canrls.sim.interface import SimBus
+
+    bus = SimBus(channel=f"hidden-{os.getpid()}", axes=3, hidden=",cogging:6,",
+                 realtime=False, duration=1.0)
+    try:
+        assert bus._drive.config.hidden == ("", "cogging:6", "")
+        assert [any(k.startswith("cogging:6.") for k in s.scenario.truth.params)
+                for s in bus._drive.sims] == [False, True, False]
+    finally:
+        bus.shutdown()
+    with pytest.raises(ConfigError, match="hidden: ',unbalance' gives 2 effects for 3 axes"):
+        SimBus(channel=f"hidden2-{os.getpid()}", axes=3, hidden=",unbalance")
+    with pytest.raises(ConfigError, match="canrls-sim: hidden: of a machine's drives"):
+        SimBus(channel=f"hidden3-{os.getpid()}", hidden="unbalance")

@@ -33,7 +33,7 @@ __all__ = ["CommandCode", "CommandResult", "COMPONENTS", "FLAG_NAMES", "REJECT_F
            "REJECT_WRAP", "ParameterReport", "StatusReport", "Command", "CommandAck",
            "CommandFrameError", "parameter_name", "parse_effect", "encode_parameters",
            "encode_param_info", "encode_status", "encode_command", "encode_ack", "decode_command",
-           "FrameDecoder", "FrameIds", "frame_ids"]
+           "FrameDecoder", "FrameIds", "database", "frame_ids"]
 
 
 class CommandCode(IntEnum):
@@ -290,6 +290,13 @@ def _database(path: str) -> Any:
 
 def _db(dbc: str | Path | None = None) -> Any:
     return _database(str(DEFAULT_DBC if dbc is None else dbc))
+
+
+def database(dbc: str | Path | None = None) -> Any:
+    """canrls' DBC (default: the shipped one) as cantools reads it, strictly
+    (:func:`~canrls.can.protocol.load_dbc`), read once per file: every user of its
+    frames' layout shares it."""
+    return _db(dbc)
 
 
 #: DBC message names of the frames canrls publishes, in the order of :class:`FrameIds`.

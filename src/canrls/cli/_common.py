@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import math
 import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from canrls.core.checks import LAMBDA_MIN
+from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:  # numpy and cantools load with the configuration: not for --help
     from canrls.processor.config import AppConfig, Overrides
@@ -73,44 +73,55 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("model and protocol (each also settable in --config)")
     g.add_argument("--config", "-C", metavar="FILE",
                    help="TOML configuration ([model], [estimator], [fixed], [can], [signals])")
-    g.add_argument("--dbc", metavar="FILE",
-                   help="DBC of the drive (default: the DBC shipped with canrls)")
-    g.add_argument("--eds", metavar="FILE",
+    g.add_argument("--dbc", metavar="FILE", action=_GroupOption,
+                   help="DBC of the drive (default: the DBC shipped with canrls); after "
+                        "--axis NAME, that axis's")
+    g.add_argument("--eds", metavar="FILE", action=_GroupOption,
                    help="a CiA 402 drive's EDS instead of a DBC: its default TPDO mapping "
                         "(node 1; --axes cia402:N moves it) and the roles of the 402 objects "
                         "torque, current, velocity and position actual value, the ratings "
-                        "from its defaults (needs pip install 'canrls[cia402]'; "
-                        "docs/cia402.md)")
-    g.add_argument("--signal", action="append", metavar="ROLE=MESSAGE.SIGNAL[:UNIT]",
+                        "from its defaults; canrls run reads the mapping and ratings from "
+                        "each node over SDO first, never writing (needs pip install "
+                        "'canrls[cia402]'; docs/cia402.md); after --axis NAME, that axis's")
+    g.add_argument("--signal", action=_GroupOption, metavar="ROLE=MESSAGE.SIGNAL[:UNIT]",
                    help="which signal carries a role: current, speed, position, voltage, "
                         "torque (the torque a drive reports, N·m; linear axis: N; the "
                         "mechanical output then, no --kt) (repeatable; also "
-                        "counter=MESSAGE.SIGNAL, crc=MESSAGE.SIGNAL)")
-    g.add_argument("--rated-torque", type=number, metavar="VALUE",
+                        "counter=MESSAGE.SIGNAL, crc=MESSAGE.SIGNAL); after --axis NAME, "
+                        "that axis's only")
+    g.add_argument("--rated-torque", type=number, action=_GroupOption, metavar="VALUE",
                    help="rated torque [N·m] (linear axis: rated force [N]) that a torque "
                         "signal in per mille (‰) or per cent refers to (CiA 402: 0x6076)")
-    g.add_argument("--rated-current", type=number, metavar="VALUE",
+    g.add_argument("--rated-current", type=number, action=_GroupOption, metavar="VALUE",
                    help="rated current [A] that a current signal in per mille (‰) or per "
                         "cent refers to (CiA 402: 0x6075)")
-    g.add_argument("--increments-per-rev", type=number, metavar="N",
+    g.add_argument("--increments-per-rev", type=number, action=_GroupOption, metavar="N",
                    help="encoder increments per revolution (linear axis: per metre) of a "
                         "position in increments (inc) and a speed in increments/s (inc/s)")
     g.add_argument("--effects", "-e", metavar="NAME,...",
                    help="effects of the model: inertia, viscous, coulomb, stribeck, offset, "
                         "unbalance, cogging:K, electrical, user:NAME "
                         "(default: inertia,viscous,coulomb)")
-    g.add_argument("--kt", type=number, metavar="VALUE",
+    g.add_argument("--kt", type=number, metavar="VALUE", action=_GroupOption,
                    help="torque constant Kt [N·m/A] (linear: N/A); without it the output is "
                         "the current and parameters are per ampere; refused with a torque "
-                        "signal, whose torque is the output")
+                        "signal, whose torque is the output; after --axis NAME, that axis's")
     g.add_argument("--period", type=number, metavar="SECONDS",
                    help="control period [s] (default: the DBC's GenMsgCycleTime, else measured "
                         "on the log's timestamps; a stated period must agree with them within "
                         "10 %%)")
     g.add_argument("--axis", type=axis_value, metavar="rotary|linear|NAME",
+                   action=_AxisGroup,
                    help="rotary (rad, rad/s, N·m) or linear (m, m/s, N) axis (default: from "
                         "the DBC units of the speed and position signals); any other name "
-                        "picks that axis of a machine's (--axes or [[axes]] of --config)")
+                        "picks that axis of a machine's (--axes or [[axes]] of --config); "
+                        "followed by --signal, --dbc, --eds, --ids, --kt or a rating, it "
+                        "declares that axis instead, one group per axis: --axis a --ids "
+                        "cia402:1 --signal ... --axis b --dbc odrive.dbc --signal ... "
+                        "(replaces [[axes]]); --axis NAME again, alone, picks one of them")
+    g.add_argument("--ids", metavar="RULE:N", action=_GroupOption,
+                   help="after --axis NAME: that axis's ID rule (cia402:N, cansimple:N, "
+                        "offset:N)")
     g.add_argument("--axes", metavar="RULE:LIST",
                    help="the axes of a machine on one bus, the DBC's frames moved by an ID "
                         "rule: cia402:1-6 (nodes 1..6: node1 .. node6), cansimple:0,1 "
@@ -129,6 +140,89 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                         "30 below lambda 1; the error names the smallest for the model) "
                         "(default 0.01)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+
+class _AxisGroup(argparse.Action):
+    """``--axis``: the kind or axis name (``args.axis``), and a new group the options
+    after it belong to (``args.axis_groups``: [(name, {option: value})])."""
+
+    def __call__(self, parser: argparse.ArgumentParser, ns: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        setattr(ns, self.dest, values)
+        ns.axis_groups = [*(getattr(ns, "axis_groups", None) or []), (values, {})]
+
+
+class _GroupOption(argparse.Action):
+    """``--signal``, ``--dbc``, ``--eds``, ``--kt``, ``--ids`` and the ratings: of the
+    ``--axis NAME`` group open
+    (the last ``--axis`` given, unless a kind), else of every axis."""
+
+    def __call__(self, parser: argparse.ArgumentParser, ns: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        from canrls.processor.axes import AXIS_KINDS
+
+        groups = getattr(ns, "axis_groups", None) or []
+        if groups and groups[-1][0] not in AXIS_KINDS:
+            name, opts = groups[-1]
+            if self.dest == "signal":
+                opts.setdefault("signal", []).append(values)
+            elif self.dest in opts:
+                parser.error(f"--axis {name}: {option_string} given twice in the group")
+            else:
+                opts[self.dest] = values
+        elif self.dest == "ids":
+            parser.error(f"{option_string} {values}: belongs to an --axis NAME group "
+                         f"(--axis NAME --ids RULE:N ...)")
+        elif self.dest == "signal":
+            ns.signal = [*(getattr(ns, "signal", None) or []), values]
+        else:
+            setattr(ns, self.dest, values)
+
+
+#: options after ``--axis NAME`` that declare that axis (its frames): with one of them
+#: and no ``--axes``, every ``--axis NAME`` is a group of its own options
+_DECLARING = ("signal", "dbc", "eds", "ids")
+
+
+def axis_groups(args: argparse.Namespace) -> tuple[
+        tuple[tuple[str, tuple[tuple[str, Any], ...]], ...], str | None, dict[str, Any]]:
+    """The ``--axis NAME ...`` groups: (groups, pick, loose).
+
+    Without ``--axes`` and with an ``--axis NAME`` followed by ``--signal``, ``--dbc``,
+    ``--eds`` or ``--ids``, every ``--axis NAME`` declares an axis: ``groups`` holds each
+    (name, ((option, value), ...)), paths made absolute, and ``pick`` the axis named by a
+    later ``--axis NAME`` alone. Otherwise ``--axis NAME`` picks an axis of ``--axes`` or
+    ``[[axes]]`` and the options after it are every axis's (``loose``)."""
+    from pathlib import Path
+
+    from canrls.processor.axes import AXIS_KINDS
+
+    given = [(n, o) for n, o in getattr(args, "axis_groups", None) or []
+             if n not in AXIS_KINDS]
+    declaring = any(k in o for _, o in given for k in _DECLARING)
+    if getattr(args, "axes", None) is not None or not declaring:
+        loose: dict[str, Any] = {}
+        for name, opts in given:
+            if "ids" in opts:
+                raise ConfigError(f"--axis {name} --ids {opts['ids']}: with --axes "
+                                  f"{args.axes} the rule gives each axis's IDs")
+            for k, v in opts.items():
+                loose[k] = [*loose.get(k, ()), *v] if k == "signal" else v
+        return (), None, loose
+    out: list[tuple[str, tuple[tuple[str, Any], ...]]] = []
+    pick = None
+    for name, opts in given:
+        if not opts and any(n == name for n, _ in out):
+            pick = name  # --axis NAME again, alone: the axis a command works on
+            continue
+        d = dict(opts)
+        for k in ("dbc", "eds"):
+            if k in d:
+                d[k] = str(Path(d[k]).absolute())
+        if "signal" in d:
+            d["signal"] = tuple(d["signal"])
+        out.append((name, tuple(d.items())))
+    return tuple(out), pick, {}
 
 
 def axis_value(text: str) -> str:
@@ -176,11 +270,14 @@ def overrides(args: argparse.Namespace) -> Overrides:
     from canrls.processor.axes import AXIS_KINDS
     from canrls.processor.config import Overrides
 
-    def num(name: str) -> float | None:
-        return getattr(args, name, None)  # a number as typed (errors quote it so)
+    groups, pick, loose = axis_groups(args)
 
-    dbc = getattr(args, "dbc", None)
-    eds = getattr(args, "eds", None)
+    def opt(name: str) -> Any:
+        """An option, given before any --axis NAME or after one that picks."""
+        return loose.get(name, getattr(args, name, None))
+
+    dbc = opt("dbc")
+    eds = opt("eds")
     axis = getattr(args, "axis", None)
     bus = {k: getattr(args, k) for k in ("interface", "channel", "bitrate", "fd",
                                          "data_bitrate", "timing")
@@ -189,13 +286,14 @@ def overrides(args: argparse.Namespace) -> Overrides:
     return Overrides(
         dbc=None if dbc is None else str(Path(dbc).absolute()),
         eds=None if eds is None else str(Path(eds).absolute()),
-        signals=tuple(getattr(args, "signal", None) or ()),
-        effects=getattr(args, "effects", None), kt=num("kt"),
+        signals=(*(getattr(args, "signal", None) or ()), *loose.get("signal", ())),
+        effects=getattr(args, "effects", None), kt=opt("kt"),
         axis=axis if axis in AXIS_KINDS else None,
-        axis_name=None if axis in AXIS_KINDS else axis, axes=getattr(args, "axes", None),
-        lam=num("lam"), alpha=num("alpha"), period=num("period"),
-        rated_torque=num("rated_torque"), rated_current=num("rated_current"),
-        increments_per_rev=num("increments_per_rev"), bus=tuple(bus.items()))
+        axis_name=pick if groups else None if axis in AXIS_KINDS else axis,
+        axes=getattr(args, "axes", None), groups=groups,
+        lam=opt("lam"), alpha=opt("alpha"), period=opt("period"),
+        rated_torque=opt("rated_torque"), rated_current=opt("rated_current"),
+        increments_per_rev=opt("increments_per_rev"), bus=tuple(bus.items()))
 
 
 def config_path(args: argparse.Namespace) -> str | None:
@@ -216,19 +314,12 @@ def setup(args: argparse.Namespace, *, every_axis: bool = False) -> AppConfig:
     return cfg if every_axis else cfg.one_axis()
 
 
-def _clean(x: Any) -> Any:
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_clean(v) for v in x]
-    return x
-
 
 def print_json(obj: Any) -> None:
     """JSON on stdout (non-finite numbers become null: JSON has no NaN)."""
-    json.dump(_clean(obj), sys.stdout, indent=2, ensure_ascii=False)
+    from canrls.core.checks import json_safe
+
+    json.dump(json_safe(obj), sys.stdout, indent=2, ensure_ascii=False)
     sys.stdout.write("\n")
 
 

@@ -77,9 +77,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.report:
         # fail before the long part when the figures cannot be drawn
-        from canrls.diagnosis.figures import require_matplotlib
+        from canrls.core.webpage import require_matplotlib
+        from canrls.diagnosis.figures import MATPLOTLIB
 
-        require_matplotlib()
+        require_matplotlib(*MATPLOTLIB)
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
     rep = diagnose_log(args.log, protocol, model, settings, add=args.add,

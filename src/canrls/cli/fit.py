@@ -3,15 +3,16 @@
 Several logs identify one model from all of them (no segment is bridged; the
 calibration window is the start of the first log); ``--save-model FILE`` writes the
 model as JSON for ``canrls validate`` (docs/model_file.md); ``--json`` prints one object
-(README.md, "Command line"). ``--fixed target`` takes the fixed column from the target's
-integer path instead (:mod:`canrls.firmware.target_fit`, docs/target.md): the frames decoded,
-filtered and estimated in integers as ``canrls export-c``'s C (and the daemon with
-``[daemon] fixed = "target"``) do, bit for bit.
+(README.md, "Command line"). The fixed column is the target's integer path
+(:mod:`canrls.firmware.target_fit`, docs/target.md): the frames decoded, filtered and estimated
+in integers by the C ``canrls export-c`` writes, as the daemon runs it, bit for bit;
+``--fixed kernel`` takes the fixed-point kernel fed by the float front end instead.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from typing import Any
 
@@ -39,12 +40,13 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--save-model", metavar="FILE",
                    help="write the identified model (effects, parameters with sigma and "
                         "unit, configuration, calibration) as JSON for 'canrls validate'")
-    p.add_argument("--fixed", choices=("kernel", "target"), default="kernel",
-                   help="the fixed-point column: the kernel fed by the float front end, as "
-                        "the daemon runs it by default, or the target's whole "
-                        "integer path from the frames on, as the C of 'canrls export-c' "
-                        "and the daemon with [daemon] fixed = \"target\" run it (bit for "
-                        "bit; about 2x the time of the fit; docs/target.md)")
+    p.add_argument("--fixed", choices=("kernel", "target"), default=None,
+                   help="the fixed-point column: 'target' (default) the target's whole "
+                        "integer path from the frames on, as the C of 'canrls export-c' and "
+                        "the daemon run it (bit for bit; by default a model the target "
+                        "cannot run takes the kernel's column, and the output says why); "
+                        "'kernel' the fixed-point kernel fed by the float front end "
+                        "(docs/target.md)")
     add_progress_option(p)
     p.set_defaults(func=run)
     return p
@@ -69,10 +71,7 @@ def run(args: argparse.Namespace) -> int:
     res = fit_logs(args.log, protocol, model, settings,
                    progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
-    if args.fixed == "target":
-        from canrls.firmware.target_fit import target_fixed
-
-        res = target_fixed(res, args.log, protocol, settings)
+    res = _fixed_column(res, args, protocol, settings)
     saved = None
     if args.save_model:
         from canrls.processor.modelfile import SavedModel
@@ -96,19 +95,41 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fixed_column(res: Any, args: argparse.Namespace, protocol: Any, settings: Any) -> Any:
+    """``res`` with its fixed column from the target's integer path (the default, or
+    ``--fixed target``: then a model the target cannot run is an error), or as the
+    pipeline's kernel gave it (``--fixed kernel``)."""
+    if args.fixed == "kernel":
+        return res
+    from canrls.firmware.target_fit import target_fixed
+    from canrls.firmware.target_model import TargetError
+    from canrls.processor import KernelFallback
+
+    try:
+        return target_fixed(res, args.log, protocol, settings,
+                            skip_bad_lines=args.skip_bad_lines)
+    except TargetError as e:
+        if args.fixed == "target":
+            raise
+        return dataclasses.replace(res, fixed=KernelFallback(str(e)))
+
+
 def _fit_machine(args: argparse.Namespace, cfg: Any) -> int:
     """``canrls fit LOG --axes ...`` without ``--axis``: every axis in one pass."""
     from canrls.core.errors import ConfigError, EstimatorError
     from canrls.processor.config import prepare
     from canrls.processor.replay import fit_axes
 
-    for flag, on in (("--save-model", args.save_model), ("--fixed target",
-                                                         args.fixed == "target")):
-        if on:
-            raise ConfigError(f"{flag}: one axis at a time with several (--axis NAME)")
+    if args.save_model:
+        raise ConfigError("--save-model: one axis at a time with several (--axis NAME)")
     axes = {name: tuple(prepare(c)) for name, c in cfg.axis_configs().items()}
     res = fit_axes(args.log, axes, progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
+    # each axis's fixed column from its own target path (the frames of the others are
+    # not its messages: the target passes them by)
+    res = dataclasses.replace(res, fits={
+        name: fit if name in res.errors else _fixed_column(fit, args, axes[name][0], axes[name][2])
+        for name, fit in res.fits.items()})
     if args.json:
         print_json(res.to_dict())
     else:

@@ -37,6 +37,7 @@ from canrls.cli._common import (
     overrides,
     print_json,
 )
+from canrls.core.checks import in_range, is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["add_subparser", "run_ingest", "run_report", "rank_candidates", "text_summary"]
@@ -58,7 +59,7 @@ def _nonnegative(text: str) -> int:
 
 def _positive_seconds(text: str) -> float:
     s = number(text)
-    if not 0 < s < float("inf"):
+    if not is_positive(s):
         raise argparse.ArgumentTypeError(f"{text!r} must be a positive number of seconds")
     return s
 
@@ -214,7 +215,7 @@ def run_report(args: argparse.Namespace) -> int:
         raise ConfigError("fleet report: give --out DIR (HTML) or --json (or both)")
     settings = DetectionSettings.from_file(args.config)
     if args.alpha is not None:
-        if not 0 < args.alpha < 1:
+        if not in_range(args.alpha, 0, 1, lo_open=True, hi_open=True):
             raise ConfigError(f"--alpha {args.alpha}: must be between 0 and 1")
         settings = dataclasses.replace(settings, alpha=args.alpha)
     where = HistoryURL.parse(args.db)
@@ -222,9 +223,10 @@ def run_report(args: argparse.Namespace) -> int:
         raise ConfigError(f"--db {where.shown}: no such history (canrls fleet ingest "
                           f"makes it)")
     if args.out:
-        from canrls.fleet.fleet_report import require_matplotlib
+        from canrls.core.webpage import require_matplotlib
+        from canrls.fleet.fleet_report import MATPLOTLIB
 
-        require_matplotlib()  # before the long part
+        require_matplotlib(*MATPLOTLIB)  # before the long part
     with History.open(args.db, upgrade=False, read_only=True) as history:
         models = history.models()
         key = None

@@ -23,6 +23,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "validate",
     "fixed_sweep",
     "export_c",
+    "export_dbc",
     "tune",
     "run",
     "monitor",

@@ -14,7 +14,9 @@ next start (said in the log); a file a start would refuse is refused. On exit it
 estimates (``--json``: one object with the estimates, the daemon's counters, the frames
 rejected by reason as ``canrls fit --json`` has them, and the last status). A machine's
 axes (``--axes`` or ``[[axes]]``, no ``--axis NAME``) run one daemon each, reported
-under ``== axis NAME ==`` (``--json``: ``{"axes": {NAME: ...}}``). In text mode the
+under ``== axis NAME ==`` (``--json``: ``{"axes": {NAME: ...}}``); the configuration
+is read once at start and once per SIGHUP for all of them (:class:`Configuration`),
+``[history]`` storing each axis as the drive ``DRIVE.AXIS``. In text mode the
 journal's lines (publishing, model changes, faults) go to stdout; logging goes to
 stderr (journald under systemd).
 
@@ -42,10 +44,8 @@ from canrls.cli import early_signals
 from canrls.cli._common import (
     add_bus_options,
     add_model_options,
-    config_path,
     overrides,
     print_json,
-    setup,
 )
 from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
@@ -117,29 +117,80 @@ def _per_axis(table: dict[str, Any], axis: str) -> dict[str, Any]:
     return out
 
 
-def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
+class Configuration:
+    """The configuration ``canrls run`` serves: read once at start and once per SIGHUP
+    (:meth:`reread`); every axis's daemon takes its own from it (:meth:`axis`).
+
+    :param nodes: the :class:`~canrls.can.eds.NodeReader` an EDS drive's values are read
+        with on the bus (None: the EDS's defaults).
+    """
+
+    def __init__(self, args: argparse.Namespace, nodes: Any = None) -> None:
+        self.args = args
+        self.over = overrides(args)
+        self.nodes = nodes
+        self.machine = self._read()
+
+    def _read(self) -> Any:
+        from canrls.processor.config import load_config
+
+        c = load_config(getattr(self.args, "config", None), self.over)
+        c.nodes = self.nodes
+        return c
+
+    def reread(self) -> Any:
+        """Read the file again (a :class:`ConfigError` keeps the last one); the machine's."""
+        self.machine = self._read()
+        return self.machine
+
+    def axis(self, name: str | None) -> Any:
+        """The configuration of axis ``name`` (None: of the one axis) as last read."""
+        c = self.machine.one_axis() if name is None else self.machine.axis(name)
+        return dataclasses.replace(c, model=dict(c.model))  # [daemon] model_file: its own
+
+    def history(self, cfg: Any, name: str | None) -> Any:
+        """``[history]`` of axis ``name``'s configuration ``cfg`` checked: its settings,
+        the drive ``DRIVE.AXIS`` for an axis of ``[[axes]]`` or ``--axes`` (also the one
+        ``--axis NAME`` picks, or the only one), as ``canrls fleet ingest`` stores a
+        machine's logs; None without the table."""
+        if not cfg.history:
+            return None
+        from canrls.fleet.live_appender import HistorySettings
+
+        settings = HistorySettings.from_table(cfg.history, cfg.source)
+        if name is None and self.machine.axes:  # the axis --axis picks, or the only one
+            name = self.machine.axis_name or self.machine.axis_specs()[0].name
+        if name is None:
+            return settings
+        from canrls.fleet.sources import check_name
+
+        drive = check_name(f"{settings.drive}.{name}", "drive", f"{cfg.source}: history")
+        return dataclasses.replace(settings, drive=drive)
+
+
+def build_daemon(args: argparse.Namespace, axis: str | None = None,
+                 nodes: Any = None, current: Configuration | None = None) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started);
-    of the machine's axis ``axis`` (its files its own), else of the one axis."""
+    of the machine's axis ``axis`` (its files its own), else of the one axis. ``current``:
+    the configuration as read (None: read here). On SIGHUP the one axis reads the file
+    again; a machine's axis takes what the machine read, once for all its axes."""
     from canrls.live.bus_link import bus_config
     from canrls.live.daemon import Daemon
     from canrls.live.daemon_settings import DaemonSettings
-    from canrls.processor.config import AppConfig, load_config, prepare, read_toml
+    from canrls.processor.config import AppConfig, prepare, read_toml
 
-    over = overrides(args)
-
-    def load() -> AppConfig:
-        c = load_config(getattr(args, "config", None), over)
-        return c.one_axis() if axis is None else c.axis(axis)
+    own_reads = axis is None  # a machine's axis: the machine reads the file on SIGHUP
+    conf = Configuration(args, nodes) if current is None else current
 
     def table(c: AppConfig) -> dict[str, Any]:
         t = _daemon_table(c, args)
         return t if axis is None else _per_axis(t, axis)
 
-    cfg = load()
+    cfg = conf.axis(axis)
     dset = DaemonSettings.from_table(table(cfg), cfg.source, cfg.base_dir)
     if axis is not None and dset.record is None:  # a machine's axis: its own frames only
         dset = dataclasses.replace(dset, rx_filter=True)
-    model_over = dataclasses.replace(over, axes=None, axis_name=None)
+    model_over = dataclasses.replace(conf.over, axes=None, axis_name=None, groups=())
 
     def with_model_file(c: AppConfig) -> AppConfig:
         """``c`` with ``[daemon] model_file``'s model (the command line still over it)."""
@@ -148,6 +199,12 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
             c.apply(model_over)
         return c
 
+    hist = conf.history(cfg, axis)
+    key = None
+    if hist is not None:  # the fleet's code only for a [history]
+        from canrls.fleet.ingest import model_key_of
+
+        key = model_key_of(cfg)
     protocol, model, settings = prepare(with_model_file(cfg))
     from canrls.processor.axes import check_own
 
@@ -158,14 +215,17 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
 
     def reloaded_model() -> Any:
         """SIGHUP: the model again, from a file a start would accept (the whole
-        configuration is prepared as at a start: a DBC that does not exist, a mapping
-        or a ``[daemon]`` table a restart would refuse is said at once, and the reload
-        refused, the running configuration kept). What else changed (the DBC, the
-        mapping, the bus, ``[estimator]``, ``[fixed]``, ``[daemon]``) is logged: it
-        applies at the next start; the model applies now."""
+        configuration is prepared as at a start: a DBC that does not exist, a mapping,
+        a ``[daemon]`` or ``[history]`` table a restart would refuse is said at once, and
+        the reload refused, the running configuration kept). What else changed (the DBC,
+        the mapping, the bus, ``[estimator]``, ``[fixed]``, ``[daemon]``, ``[history]``)
+        is logged: it applies at the next start; the model applies now."""
         try:
-            c = load()
+            if own_reads:
+                conf.reread()
+            c = conf.axis(axis)
             new = DaemonSettings.from_table(table(c), c.source, c.base_dir)
+            new_hist = conf.history(c, axis)
             new_protocol, _, new_settings = prepare(with_model_file(c))
             new_bus = bus_config(c)
             reloaded = c.model_for(protocol)  # the model on the frames being decoded
@@ -177,16 +237,13 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
         changed += ["[estimator] or [fixed]"] if new_settings != settings else []
         changed += [f"[daemon] {f.name}" for f in dataclasses.fields(new)
                     if getattr(new, f.name) != getattr(dset, f.name)]
+        changed += ["[history]"] if new_hist != hist else []
         if changed:
-            log.warning("reload: %s changed: applied at the next start, not now",
-                        ", ".join(changed))
+            log.warning("reload: %s%s changed: applied at the next start, not now",
+                        "" if axis is None else f"axis {axis}: ", ", ".join(changed))
         return reloaded
 
-    history = None
-    if cfg.history:  # the fleet's code only for a [history]
-        from canrls.fleet.ingest import JobConfig
-
-        history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over))
+    history = None if hist is None else _history_hook(hist, key)
     try:
         fixed_path = None
         if dset.fixed == "target":
@@ -202,16 +259,14 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
         raise
 
 
-def _history_hook(cfg: Any, job: Any) -> Any:
-    """``[history]``: the fleet history the daemon appends its parameters to, under the
-    key of the model ``job`` (a :class:`~canrls.fleet.ingest.JobConfig`) fits."""
-    from canrls.fleet.ingest import model_key
-    from canrls.fleet.live_appender import HistorySettings, LiveAppender
+def _history_hook(settings: Any, key: tuple[str, str]) -> Any:
+    """``[history]``: the fleet history the daemon appends its parameters to (its
+    :class:`~canrls.fleet.live_appender.HistorySettings`), under the model ``key`` (key and
+    description, :func:`~canrls.fleet.ingest.model_key_of`)."""
+    from canrls.fleet.live_appender import LiveAppender
     from canrls.live.history_hook import HistoryHook
 
-    settings = HistorySettings.from_table(cfg.history, cfg.source)
-    key, desc = model_key(job)
-    appender = LiveAppender.open(settings, key, desc)
+    appender = LiveAppender.open(settings, *key)
     return HistoryHook(appender.append, settings.interval, close=appender.close)
 
 
@@ -284,15 +339,17 @@ def _signals_for_life(stop: _Stop, process_exits: bool) -> Iterator[None]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.live.journal import to_stream
+    from canrls.live.journal import JOURNAL, to_stream
 
     if args.duration is not None and not is_positive(args.duration):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
     stop = _Stop()
     with _signals_for_life(stop, getattr(args, "process_exits", False)):
-        daemon = _build(args)
+        daemon, said = _build(args)
         stop.attach(daemon)
         with contextlib.nullcontext() if args.json else to_stream(sys.stdout):
+            for line in said:
+                JOURNAL.info("%s", line)
             status = daemon.run(duration=args.duration)
         if hasattr(daemon, "daemons"):
             _report_machine(daemon, args)
@@ -304,29 +361,70 @@ def run(args: argparse.Namespace) -> int:
     return status
 
 
-def _build(args: argparse.Namespace) -> Any:
+def _node_reader(cfg: Any) -> Any:
+    """With an EDS (``--eds``), what reads its nodes' mapping and ratings over SDO on
+    the bus the daemon opens (another handle of it, closed after each upload)."""
+    if cfg.can.get("eds") is None:
+        return None
+    from canrls.can.eds import NodeReader
+    from canrls.live.bus_link import bus_config, open_bus
+
+    conf = bus_config(cfg)
+    return NodeReader(lambda: open_bus(conf))
+
+
+def _said(nodes: Any) -> list[str]:
+    """What the node reader said of each node's values (the journal's first lines)."""
+    return [] if nodes is None else [x for n in sorted(nodes.said) for x in nodes.said[n]]
+
+
+def _build(args: argparse.Namespace) -> tuple[Any, list[str]]:
     """The daemon of one axis, or of every axis of a machine (no ``--axis``): each axis
     its own :class:`~canrls.live.daemon.Daemon` in one
-    :class:`~canrls.live.machine_daemon.MachineDaemon`, the whole machine checked first."""
-    cfg = setup(args, every_axis=True)
+    :class:`~canrls.live.machine_daemon.MachineDaemon`, the whole machine checked first; and
+    where an EDS drive's values came from (:func:`_said`). The configuration is read
+    once here, and once per SIGHUP."""
+    conf = Configuration(args)
+    nodes = conf.nodes = conf.machine.nodes = _node_reader(conf.machine)
+    try:
+        return _build_axes(args, conf), _said(nodes)
+    finally:
+        if nodes is not None:
+            nodes.close()
+
+
+def _build_axes(args: argparse.Namespace, conf: Configuration) -> Any:
+    cfg = conf.machine
     if len(cfg.axes) < 2 or cfg.axis_name is not None:
-        return build_daemon(args)
+        return build_daemon(args, current=conf)
     from canrls.live.machine_daemon import MachineDaemon
 
-    if cfg.history:
-        raise ConfigError(f"{cfg.source}: [history] takes one axis (--axis NAME); a machine's "
-                          f"daemon does not append to a history yet")
     names = list(cfg.axis_configs())
     daemons: dict[str, Any] = {}
     try:
         for name in names:
-            daemons[name] = build_daemon(args, name)
+            daemons[name] = build_daemon(args, name, current=conf)
     except BaseException:
         for d in daemons.values():
             d.stop()
         raise
-    return MachineDaemon(daemons, build=lambda name: build_daemon(args, name),
-                         axes=lambda: list(setup(args, every_axis=True).axis_configs()))
+
+    def build(name: str) -> Any:
+        try:
+            return build_daemon(args, name, current=conf)
+        finally:
+            if conf.nodes is not None:
+                conf.nodes.close()
+
+    def axes() -> list[str]:
+        """SIGHUP: the file read again, once for the machine; its axes, each checked
+        as at a start (its ``[history]`` too)."""
+        names = list(conf.reread().axis_configs())
+        for n in names:
+            conf.history(conf.axis(n), n)
+        return names
+
+    return MachineDaemon(daemons, build=build, axes=axes)
 
 
 def _report_machine(machine: Any, args: argparse.Namespace) -> None:

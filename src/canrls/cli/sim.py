@@ -123,11 +123,11 @@ def check_args(args: argparse.Namespace) -> None:
     """The options' values, before anything is simulated or written."""
     from canrls.can.logs import check_channel
     from canrls.can.writers import RECORD_SUFFIXES
-    from canrls.core.checks import MAX_TIMESTAMP
+    from canrls.core.checks import MAX_TIMESTAMP, in_range
     from canrls.core.errors import LogFormatError
     from canrls.core.files import check_writable
 
-    if not (math.isfinite(args.duration) and 0 < args.duration <= MAX_DURATION):
+    if not in_range(args.duration, 0, MAX_DURATION, lo_open=True):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of "
                           f"seconds, at most {MAX_DURATION:g} (a day of the drive, some "
                           f"7 GB of candump at 1 kHz; for more, several runs with "

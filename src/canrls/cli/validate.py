@@ -51,9 +51,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.report:
         # fail before the long part when the figures cannot be drawn
-        from canrls.diagnosis.figures import require_matplotlib
+        from canrls.core.webpage import require_matplotlib
+        from canrls.diagnosis.figures import MATPLOTLIB
 
-        require_matplotlib()
+        require_matplotlib(*MATPLOTLIB)
     from canrls.core.errors import ConfigError
 
     saved = SavedModel.load(args.model)

@@ -18,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.control.tune_limits import DEFAULT_SHARE, MAX_POINTS
-from canrls.core.checks import is_real
+from canrls.core.checks import in_range, is_real
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Effect, Frame
 from canrls.estimation.model import Model
@@ -316,7 +316,7 @@ def feedforward(model: Model, parameters: Mapping[str, Mapping[str, Any]], *,
     """The feedforward a model's parameters (name -> ``value``, ``sigma``,
     ``identifiable``, as a saved model holds them) support; ``share`` the largest
     sigma of a compensated term as a share of its size."""
-    if not (math.isfinite(share) and 0 < share <= 1):
+    if not in_range(share, 0, 1, lo_open=True):
         raise ConfigError(f"--share {share!r}: must be a number in (0, 1]")
     for name, p in parameters.items():
         for key in ("value", "sigma"):

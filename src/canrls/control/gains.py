@@ -13,11 +13,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
 from canrls.control.tune_limits import DEFAULT_MARGIN
+from canrls.core.checks import in_range
 from canrls.core.errors import ConfigError
 
 __all__ = ["Loop", "SpeedGains", "for_bandwidth", "symmetric_optimum", "check_bandwidth"]
@@ -35,6 +37,11 @@ def _bisect_log(lo: float, hi: float, above: Callable[[float], bool]) -> float:
         else:
             hi = mid
     return math.sqrt(lo * hi)
+
+
+#: the scan of a loop's frequency response: GRID_POINTS from GRID_LOW [rad/s] to Nyquist
+GRID_LOW = 1e-2
+GRID_POINTS = 4000
 
 
 @dataclass(frozen=True)
@@ -55,9 +62,15 @@ class Loop:
         return (kp + ki / s) * np.exp(-s * self.Td) / ((self.J if J is None else J) * s
                                                        * (1.0 + s * self.Ti))
 
+    @cached_property
+    def grid(self) -> np.ndarray:
+        """The frequencies [rad/s] the loop is scanned at, up to Nyquist: built once per loop
+        (the tuning's bisection asks the bandwidth and the margin many times)."""
+        return np.geomspace(GRID_LOW, math.pi / self.dt, GRID_POINTS)
+
     def bandwidth(self, kp: float, ki: float, J: float | None = None) -> float:
         """The closed loop's -3 dB bandwidth [rad/s]: the lowest w with |L/(1+L)| <= 1/sqrt 2."""
-        w = np.geomspace(1e-2, math.pi / self.dt, 4000)
+        w = self.grid
         L = self.open_loop(kp, ki, w, J)
         T = np.abs(L / (1.0 + L))
         below = np.nonzero(T <= _HALF_POWER)[0]
@@ -75,7 +88,7 @@ class Loop:
 
     def margin(self, kp: float, ki: float) -> tuple[float, float]:
         """(crossover [rad/s], phase margin [deg]) where |L| = 1."""
-        w = np.geomspace(1e-2, math.pi / self.dt, 4000)
+        w = self.grid
         mag = np.abs(self.open_loop(kp, ki, w))
         k = int(np.nonzero(mag <= 1.0)[0][0]) if np.any(mag <= 1.0) else len(w) - 1
         wc = _bisect_log(float(w[max(k - 1, 0)]), float(w[k]),  # |L(j wc)| = 1
@@ -136,7 +149,7 @@ def _finish(method: str, kp: float, ki: float, unit: str, loop: Loop,
 def check_bandwidth(hz: float, dt: float) -> None:
     """A bandwidth is positive and below the sample rate's Nyquist frequency."""
     nyquist = 0.5 / dt
-    if not (math.isfinite(hz) and 0 < hz < nyquist):
+    if not in_range(hz, 0, nyquist, lo_open=True, hi_open=True):
         raise ConfigError(f"--bandwidth {hz!r}: must be a positive number of Hz below "
                           f"the Nyquist frequency {nyquist:g} Hz of the control period "
                           f"{dt:g} s")
@@ -153,7 +166,7 @@ def for_bandwidth(loop: Loop, hz: float, margin: float = DEFAULT_MARGIN,
     :math:`2 \pi` ``hz``.
     """
     check_bandwidth(hz, loop.dt)
-    if not (math.isfinite(margin) and 0 < margin < 90):
+    if not in_range(margin, 0, 90, lo_open=True, hi_open=True):
         raise ConfigError(f"--phase-margin {margin!r}: must be between 0 and 90 degrees")
     pm = math.radians(margin)
 

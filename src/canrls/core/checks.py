@@ -1,12 +1,14 @@
-"""The one check of each kind of value a user hands canrls: a receive time, a control
-period, a forgetting factor. Every layer asks here, so a value is refused by the same
-rule and in the same words wherever it enters."""
+"""The one check of each kind of value a user hands canrls: a finite number, a range, a
+receive time, an epoch date, a control period, a forgetting factor, a number for JSON.
+Every layer asks here, so a value is refused by the same rule and in the same words
+wherever it enters."""
 
 from __future__ import annotations
 
 import math
 import numbers
-from typing import TYPE_CHECKING
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 from canrls.core.errors import ConfigError
 
@@ -14,8 +16,10 @@ if TYPE_CHECKING:  # numpy loads with the first array: the command line's --help
     import numpy as np
     import numpy.typing as npt
 
-__all__ = ["LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "describe_time", "is_positive",
-           "is_real", "is_time", "not_times", "positive_period"]
+__all__ = ["EPOCH_WINDOW", "LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "describe_time",
+           "finite_or_none", "in_range", "is_epoch", "is_positive", "is_real", "is_time",
+           "json_safe", "not_times", "positive_period"]
+
 
 def is_real(value: object) -> bool:
     """``value`` is a finite real number: an int or a float (numpy's too), not a bool,
@@ -27,6 +31,45 @@ def is_real(value: object) -> bool:
 def is_positive(value: object) -> bool:
     """``value`` is a finite real number above zero (:func:`is_real`)."""
     return is_real(value) and float(value) > 0  # type: ignore[arg-type]
+
+
+def finite_or_none(x: float | None) -> float | None:
+    """``x`` as a float for JSON, None where it is None or not finite: JSON has no NaN nor
+    infinity, and canrls writes ``null`` for them."""
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def json_safe(x: Any) -> Any:
+    """``x`` for JSON: floats that are not finite as None (:func:`finite_or_none`), tuples
+    as lists and mapping keys as strings, all the way down."""
+    if isinstance(x, float):
+        return finite_or_none(x)
+    if isinstance(x, Mapping):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [json_safe(v) for v in x]
+    return x
+
+
+def in_range(value: object, lo: float, hi: float, *, lo_open: bool = False,
+             hi_open: bool = False) -> bool:
+    """``value`` is a finite real number (:func:`is_real`) from ``lo`` to ``hi``, each end
+    included unless said open: the one range check of a number a user gives (``hi`` may
+    be ``math.inf``, open: any finite number above ``lo``)."""
+    if not is_real(value):
+        return False
+    v = float(value)  # type: ignore[arg-type]
+    return (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi)
+
+
+#: Times in this open window [s] are epoch seconds (1973 to 5138: a date); others are a
+#: log's own clock (a timestamp from zero)
+EPOCH_WINDOW = (1e8, 1e11)
+
+
+def is_epoch(t: object) -> bool:
+    """``t`` is an epoch time, a date (within :data:`EPOCH_WINDOW`), not a log's own clock."""
+    return in_range(t, *EPOCH_WINDOW, lo_open=True, hi_open=True)
 
 
 #: Largest receive time [s] a frame may carry (about the year 2286): beyond it (or not

@@ -17,12 +17,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import quote
 
+from canrls.core.errors import ConfigError
 from canrls.core.files import atomic_writer
 
 if TYPE_CHECKING:
     import jinja2
 
-__all__ = ["HEAD", "RASTER_DPI", "environment", "num", "relative_href", "save_svg"]
+__all__ = ["HEAD", "RASTER_DPI", "environment", "num", "relative_href", "require_matplotlib",
+           "save_svg"]
 
 #: resolution of the rasterised point clouds inside an SVG figure (2x the 1x screen's)
 RASTER_DPI = 200
@@ -104,6 +106,21 @@ def environment(package: str, **filters: Any) -> jinja2.Environment:
     env.globals["head"] = Markup(HEAD)
     env.globals["sort_script"] = Markup(f"<script>{_SCRIPT}</script>")
     return env
+
+
+def require_matplotlib(report: str, extra: str) -> tuple[Any, Any]:
+    """matplotlib's ``(Figure, FigureCanvasAgg)`` for the figures of ``report`` (a page's
+    name in the error: "the HTML report").
+
+    :raises ConfigError: matplotlib (the optional ``extra`` of canrls) is not installed.
+    """
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError as e:
+        raise ConfigError(f"{report} needs matplotlib, which is not installed: "
+                          f"pip install 'canrls[{extra}]' (or pip install matplotlib)") from e
+    return Figure, FigureCanvasAgg
 
 
 def save_svg(fig: Any, canvas: Any, path: Path, what: str) -> str:

@@ -3,8 +3,9 @@
 :class:`Figures` draws each figure of a diagnosis (timeline, speed, position,
 candidates, orders, convergence, fixed point; docs/diagnose.md, "The figures") into a
 directory as SVG with matplotlib's object API (no pyplot, no global state). matplotlib
-is the optional ``report`` extra: :func:`require_matplotlib` imports it when a report is
-written, and its absence is a :class:`~canrls.core.errors.ConfigError` naming the package.
+is the optional ``report`` extra: :func:`~canrls.core.webpage.require_matplotlib`
+imports it when a report is written, and its absence is a
+:class:`~canrls.core.errors.ConfigError` naming the package.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy.typing as npt
 
 from canrls.core.errors import ConfigError
 from canrls.core.figtext import plain
-from canrls.core.webpage import save_svg
+from canrls.core.webpage import require_matplotlib, save_svg
 from canrls.diagnosis.residual import PEAK_SHARE
 from canrls.diagnosis.results import (
     EquationDiagnosis,
@@ -30,7 +31,7 @@ from canrls.diagnosis.results import (
 )
 
 __all__ = ["FIGURES", "UNUSED_REASONS", "UNUSED_SLOW", "UNUSED_WARMUP", "Figures",
-           "figures_in", "integer_orders", "require_matplotlib", "unused_spans"]
+           "MATPLOTLIB", "figures_in", "integer_orders", "unused_spans"]
 
 #: The figures a report holds (without an ``after`` some show ``before`` only).
 FIGURES: tuple[str, ...] = ("timeline.svg", "speed.svg", "position.svg", "candidates.svg",
@@ -41,18 +42,8 @@ _AFTER = "#1f6fb4"
 _GREY = "#9a9a9a"
 
 
-def require_matplotlib() -> tuple[Any, Any]:
-    """matplotlib's ``(Figure, FigureCanvasAgg)``.
-
-    :raises ConfigError: matplotlib (the ``report`` extra) is not installed.
-    """
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError as e:
-        raise ConfigError("the HTML report needs matplotlib, which is not installed: "
-                          "pip install 'canrls[report]' (or pip install matplotlib)") from e
-    return Figure, FigureCanvasAgg
+#: the page and extra the diagnosis and validation name when matplotlib is missing
+MATPLOTLIB = ("the HTML report", "report")
 
 
 def figures_in(directory: str | os.PathLike[str]) -> Figures:
@@ -60,7 +51,7 @@ def figures_in(directory: str | os.PathLike[str]) -> Figures:
 
     :raises ConfigError: matplotlib is missing, or the directory cannot be created.
     """
-    Figure, Canvas = require_matplotlib()
+    Figure, Canvas = require_matplotlib(*MATPLOTLIB)
     out = Path(directory)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -79,7 +70,8 @@ def _timeline(tr: Traces) -> slice | npt.NDArray[np.bool_]:
 
 class Figures:
     """Draws the figures into ``out`` with matplotlib's ``Figure`` and canvas classes
-    (:func:`require_matplotlib`); each method returns the file name it wrote."""
+    (:func:`~canrls.core.webpage.require_matplotlib`); each method returns the file name it
+    wrote."""
 
     def __init__(self, Figure: Any, Canvas: Any, out: Path) -> None:
         self.Figure = Figure

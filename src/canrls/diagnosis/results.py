@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.checks import finite_or_none
 from canrls.core.spill import PackedMask
 from canrls.estimation.estimates import EquationFit, Estimates
 from canrls.estimation.model import Model
@@ -49,7 +50,8 @@ B = npt.NDArray[np.bool_]
 
 
 def _floats(a: Iterable[float]) -> list[float | None]:
-    return [float(x) if math.isfinite(x) else None for x in np.asarray(a, dtype=float).ravel()]
+    """An array for JSON (:func:`~canrls.core.checks.finite_or_none` of each entry)."""
+    return [finite_or_none(x) for x in np.asarray(a, dtype=float).ravel().tolist()]
 
 
 def share_text(x: float) -> str:

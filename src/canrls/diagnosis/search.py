@@ -216,8 +216,8 @@ def search_model(paths: Sequence[str | os.PathLike[str]], protocol: Any, model: 
     try:
         found: list[SearchResult] = []
         base = log.model.with_effects(remove=names)
+        ctx = RecordSamples(base, log.signals, log.dt, settings, 1)  # the record, once
         for eq_name in sorted({e.equation for e in model.effects if e.name in names}):
-            ctx = RecordSamples(base, log.signals, log.dt, settings, 1)
             eq = base.equation(eq_name)
             full = model.equation(eq_name)
             used = ctx.used(full)

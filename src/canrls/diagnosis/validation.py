@@ -35,6 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.can.protocol import Protocol
+from canrls.core.checks import finite_or_none
 from canrls.core.errors import ConfigError, EstimatorError
 from canrls.core.files import atomic_writer
 from canrls.core.samples import ROLES, Signals
@@ -71,8 +72,9 @@ class FileFit:
 
     def to_dict(self) -> dict[str, Any]:
         return {"source": self.source, "samples": self.samples,
-                "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent),
-                "output_sd": _num(self.output_sd)}
+                "residual_rms": finite_or_none(self.residual_rms),
+                "fit_percent": finite_or_none(self.fit_percent),
+                "output_sd": finite_or_none(self.output_sd)}
 
 
 @dataclass(frozen=True)
@@ -123,9 +125,10 @@ class EquationValidation:
 
     def to_dict(self) -> dict[str, Any]:
         return {"equation": self.equation, "unit": self.unit, "samples": self.samples,
-                "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent),
-                "r2": _num(self.r2), "identified_rms": _num(self.identified_rms),
-                "output_sd": _num(self.output_sd),
+                "residual_rms": finite_or_none(self.residual_rms),
+                "fit_percent": finite_or_none(self.fit_percent), "r2": finite_or_none(self.r2),
+                "identified_rms": finite_or_none(self.identified_rms),
+                "output_sd": finite_or_none(self.output_sd),
                 "files": [f.to_dict() for f in self.files],
                 "regions": [r.to_dict() for r in self.regions]}
 
@@ -158,7 +161,8 @@ class ValidationReport:
         return {"model_file": self.model_file, "sources": list(self.sources),
                 "identified_on": list(self.identified_on),
                 "parameters": self.parameters,
-                "fit_percent": _num(self.fit_percent), "residual_rms": _num(self.residual_rms),
+                "fit_percent": finite_or_none(self.fit_percent),
+                "residual_rms": finite_or_none(self.residual_rms),
                 "equations": {e.equation: e.to_dict() for e in self.equations},
                 "frames": {} if self.frames is None else self.frames.to_dict(True, self.period,
                                                                              self.start),
@@ -208,9 +212,6 @@ class ValidationReport:
         """
         return write_html(self, directory)
 
-
-def _num(x: float | None) -> float | None:
-    return None if x is None or not math.isfinite(x) else float(x)
 
 
 def _fit(r: F64, y: F64) -> tuple[float, float, float, float]:

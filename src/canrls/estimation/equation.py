@@ -146,11 +146,25 @@ class ModelView(Protocol):
     cutoff_hz: float
     zeta: float
     held: frozenset[str]
-    ranges: Mapping[str, tuple[float, float]]
-    exponents: Mapping[str, Mapping[str, int]]
+    coulomb_band: float
+
+    @property
+    def ranges(self) -> Mapping[str, tuple[float, float]]: ...
+
+    @property
+    def exponents(self) -> Mapping[str, Mapping[str, int]]: ...
 
     @property
     def torque_known(self) -> bool: ...
+
+    def with_cutoff(self, cutoff_hz: float) -> ModelView:
+        """The same model with the filter's cutoff at ``cutoff_hz``."""
+
+    def with_scaling(self, exponents: Mapping[str, Mapping[str, int]]) -> ModelView:
+        """The same model with these normalisation exponents."""
+
+    def equation(self, name: str) -> Equation:
+        """The model's equation called ``name``."""
 
 
 class Equation:

@@ -3,6 +3,7 @@ equation (:class:`Estimates`), and what one block did (:class:`PipelineBlock`)."
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -190,6 +191,24 @@ class Estimates:
     @property
     def samples(self) -> int:
         return self.equations[0].samples if self.equations else 0
+
+    def with_fixed(self, fixed: Mapping[str, float],
+                   saturations: Mapping[str, Mapping[str, int]] | None = None) -> Estimates:
+        """These estimates with another fixed-point column (``fixed``: by parameter name,
+        NaN for one it lacks; ``canrls fit``'s and the daemon's from the target's integer
+        path): each equation's divergence from the float again, and its ``saturations``
+        where given (by equation)."""
+        params = tuple(dataclasses.replace(p, fixed=fixed.get(p.name, math.nan))
+                       for p in self.parameters)
+        fits = []
+        for fit in self.equations:
+            mine = [p for p in params if p.equation == fit.equation]
+            div = divergence([p.value for p in mine], [p.fixed for p in mine],
+                             [p.sigma if math.isfinite(p.sigma) else 0.0 for p in mine])
+            sat = fit.saturations if saturations is None else saturations.get(
+                fit.equation, fit.saturations)
+            fits.append(dataclasses.replace(fit, divergence=div, saturations=sat))
+        return dataclasses.replace(self, parameters=params, equations=tuple(fits))
 
     def __getitem__(self, name: str) -> ParameterEstimate:
         for p in self.parameters:

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.checks import in_range
 from canrls.core.errors import ConfigError, EffectError
 from canrls.estimation.effects import (
     DEFAULT_BAND,
@@ -185,7 +186,7 @@ class Model:
                                    "only for a linear axis (rotary positions wrap at 2 pi)"))
         self.cutoff_hz = _number(source, "model.filter.cutoff_hz", cutoff_hz, positive=True)
         self.zeta = _number(source, "model.filter.zeta", zeta, positive=True)
-        if not ZETA_RANGE[0] <= self.zeta <= ZETA_RANGE[1]:
+        if not in_range(self.zeta, *ZETA_RANGE):
             raise ConfigError(_fmt(source, "model.filter.zeta", zeta,
                                    f"the damping ratio must be in [{ZETA_RANGE[0]:g}, "
                                    f"{ZETA_RANGE[1]:g}]"))

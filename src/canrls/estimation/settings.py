@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from canrls.core.checks import check_lambda
+from canrls.core.checks import check_lambda, in_range, is_positive
 from canrls.core.errors import ConfigError, FixedPointError
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import FixedConfig, QFormat
@@ -121,17 +121,16 @@ class EstimatorSettings:
 
     def __post_init__(self) -> None:
         check_lambda(self.lam, "estimator.lambda")
-        if not (isinstance(self.alpha, int | float) and self.alpha > 0 and
-                math.isfinite(self.alpha)):
+        if not is_positive(self.alpha):
             raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be > 0")
-        if not ALPHA_MIN <= self.alpha <= ALPHA_MAX:
+        if not in_range(self.alpha, ALPHA_MIN, ALPHA_MAX):
             # P0 = diag(1 / (alpha e_j)), 2**-10 <= e_j <= 1: beyond these the fixed-point
             # format of P has no exponent for P0 (and the prior means nothing or all)
             raise ConfigError(f"estimator.alpha = {self.alpha!r}: must be from {ALPHA_MIN:g} "
                               f"to {ALPHA_MAX:g} (the prior weighs like alpha samples of "
                               f"each column)")
-        if self.warmup_s is not None and not (isinstance(self.warmup_s, int | float)
-                                              and 0.0 <= self.warmup_s < math.inf):
+        if self.warmup_s is not None and not in_range(self.warmup_s, 0.0, math.inf,
+                                                      hi_open=True):
             raise ConfigError(f"estimator.warmup_s = {self.warmup_s!r}: must be >= 0 seconds")
         if self.gap_periods <= 1.0:
             raise ConfigError(f"estimator.gap_periods = {self.gap_periods!r}: must be > 1")
@@ -139,7 +138,7 @@ class EstimatorSettings:
             raise ConfigError(f"estimator.max_phase_step = {self.max_phase_step!r}: must be > 0")
         if self.rms_time_s <= 0:
             raise ConfigError(f"estimator.rms_time_s = {self.rms_time_s!r}: must be > 0")
-        if not (self.calibration_s > 0 and math.isfinite(self.calibration_s)):
+        if not is_positive(self.calibration_s):
             raise ConfigError(
                 f"estimator.calibration_s = {self.calibration_s!r}: must be > 0 seconds")
 

@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
+from canrls.core.checks import in_range
 from canrls.core.errors import ConfigError
 
 __all__ = ["SVF", "gain_bounds", "DEFAULT_CUTOFF_HZ", "DEFAULT_ZETA", "ZETA_RANGE",
@@ -55,7 +56,7 @@ def _check_positive(name: str, value: float) -> float:
 
 def _check_zeta(zeta: float) -> float:
     z = _check_positive("zeta", zeta)
-    if not ZETA_RANGE[0] <= z <= ZETA_RANGE[1]:
+    if not in_range(z, *ZETA_RANGE):
         raise ConfigError(f"SVF zeta = {zeta!r}: the damping ratio must be in "
                           f"[{ZETA_RANGE[0]:g}, {ZETA_RANGE[1]:g}]")
     return z

@@ -1,23 +1,25 @@
 """The target's integer path in the daemon: the fixed column ``canrls run`` publishes.
 
-:class:`LiveTarget` runs :class:`~canrls.firmware.spec.TargetEstimator` on the frames
-the daemon's processor sees, from the first one on: held until the processor's
-calibration froze (the integers need its exponents, energies and period), then replayed
-and run frame by frame. The daemon's fixed column is then what ``canrls fit`` prints
-and the C of ``canrls export-c`` computes from the same frames, bit for bit.
+:class:`LiveTarget` runs the target's C (:class:`~canrls.firmware.native.TargetFeed`) on
+the frames the daemon's processor sees, from the first one on: held until the
+processor's calibration froze (the integers need its exponents, energies and period),
+then replayed and run block by block. The daemon's fixed column is then what ``canrls
+fit`` prints and the C of ``canrls export-c`` computes from the same frames, bit for
+bit.
 """
 
 from __future__ import annotations
 
 import logging
 
+import numpy as np
+
 from canrls.can.frameblock import FrameBlock
 from canrls.can.protocol import Protocol
 from canrls.estimation.settings import EstimatorSettings
-from canrls.firmware.spec import PUBLISH, TargetEstimator
+from canrls.firmware.native import TargetFeed
 from canrls.firmware.target_fit import fit_model
 from canrls.firmware.target_model import TargetError
-from canrls.firmware.vectors import Frame, block_frames
 from canrls.processor import FrameProcessor
 
 __all__ = ["LiveTarget", "HOLD_MAX"]
@@ -33,62 +35,74 @@ class LiveTarget:
 
     :param protocol: the drive's DBC and mapping (the processor's).
     :param settings: the estimator settings (the processor's).
-    :param tick_s: the unit of the target's timestamps [s] (as ``canrls export-c``).
     """
 
-    def __init__(self, protocol: Protocol, settings: EstimatorSettings,
-                 tick_s: float = 1e-6) -> None:
+    def __init__(self, protocol: Protocol, settings: EstimatorSettings) -> None:
         self.protocol = protocol
         self.settings = settings
-        self.tick_s = tick_s
-        self._t0: list[float] = []
-        self._held: list[Frame] = []
-        #: the running estimator (None until the calibration froze)
-        self.estimator: TargetEstimator | None = None
+        self._held: list[FrameBlock] = []
+        self._n_held = 0
+        #: the running path (None until the calibration froze)
+        self.running: TargetFeed | None = None
         #: why the target does not run this model (None: it does)
         self.refused: str | None = None
+        #: the forgetting factor the running path was built with
+        self._lam = settings.lam
 
     def feed(self, block: FrameBlock, proc: FrameProcessor) -> None:
         """The frames of a block the processor has processed."""
         if self.refused is not None:
             return
-        frames = list(block_frames(block, self._t0, self.tick_s))
-        if self.estimator is None:
-            self._held += frames
+        if self.running is None:
+            # a copy: the daemon's blocks may be views of its receive buffers
+            self._held.append(block.take(np.arange(len(block))))
+            self._n_held += len(block)
             if proc.calibration is None:
-                if len(self._held) > HOLD_MAX:
+                if self._n_held > HOLD_MAX:
                     self._refuse(f"no calibration after {HOLD_MAX} frames")
                 return
             try:
-                tm = fit_model(proc.result("canrls run"), self.protocol, self.settings)
+                # the pipeline's settings: its forgetting factor, a command's included
+                self._lam = proc.pipeline.settings.lam
+                self.running = TargetFeed(fit_model(proc.result("canrls run"), self.protocol,
+                                                 proc.pipeline.settings))
             except TargetError as e:
                 self._refuse(str(e))
                 return
-            self.estimator = TargetEstimator(tm)
-            frames, self._held = self._held, []
-        est = self.estimator
-        for t, fid, ext, data in frames:
-            if est.frame(fid, ext, data, t) & PUBLISH:
-                est.publish()
+            if proc.pipeline.frozen:  # a checkpoint's, or a command's during the window
+                self.running.freeze(True)
+            held, self._held, self._n_held = self._held, [], 0
+            for b in held:
+                self.running.feed(b)
+            return
+        if proc.pipeline.settings.lam != self._lam:
+            # a new forgetting factor (the command set_lambda) is a new kernel plan: the
+            # path starts again from its prior with it, at these frames
+            log.warning("fixed point: the target's integer path starts again from its prior "
+                        "(lambda %r)", proc.pipeline.settings.lam)
+            self.restart()
+            self.feed(block, proc)
+            return
+        if proc.pipeline.frozen != self.running.frozen:  # the commands freeze and resume
+            self.running.freeze(proc.pipeline.frozen)
+        self.running.feed(block)
 
     def _refuse(self, why: str) -> None:
         self.refused = why
-        self._held = []
+        self._held, self._n_held = [], 0
         log.warning("fixed point: the kernel on the float front end (the target's integer "
                     "path does not run: %s)", why)
 
     def restart(self) -> None:
-        """A new model runs: the estimator starts again at the next frames."""
-        self.estimator = None
+        """A new model runs, or the estimators were reset: the target's path starts again
+        at the next frames (its calibration is the processor's then)."""
+        self.running = None
         self.refused = None
-        self._held = []
+        self._held, self._n_held = [], 0
 
     def fixed(self) -> dict[str, tuple[float, bool]] | None:
         """Every parameter's fixed value in SI and whether its equation has updated (None:
         not running, the kernel's column stands)."""
-        est = self.estimator
-        if est is None:
+        if self.running is None:
             return None if self.refused is not None else {}
-        theta = iter(est.theta_si())
-        return {p.name: (next(theta), es.updates > 0) for es in est.eqs
-                for p in es.spec.parameters}
+        return self.running.fixed()

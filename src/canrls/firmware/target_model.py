@@ -61,6 +61,9 @@ SOURCE_NAMES = ("raw", "tanh", "stribeck", "sin", "cos", "const")
 FX_MAX = 40
 #: the filter states stay below 2^X_BITS in magnitude (the C splits them at bit 31)
 X_BITS = 60
+#: the bound of a raw input of the filter bank: every raw value is an int32 (a DBC's
+#: declared range only rejects frames, docs/target.md)
+RAW_BOUND = 1 << 31
 #: the constant column's state: 1.0 in Q30 with this many bits more (2^59)
 CONST_FX = 29
 #: Q24: the format of the arguments of tanh and of the Stribeck exponential
@@ -268,13 +271,11 @@ class OutFrame:
 
 
 def out_frames(dbc: Any = None) -> dict[str, OutFrame]:
-    """The layout of the estimator frames in canrls' DBC (default: the shipped one)."""
-    import cantools
+    """The layout of the estimator frames in canrls' DBC (default: the shipped one; read
+    once, :func:`canrls.can.estimator_frames.database`)."""
+    from canrls.can.estimator_frames import database
 
-    from canrls.can.protocol import DEFAULT_DBC
-
-    db = cantools.database.load_file(str(dbc or DEFAULT_DBC), database_format="dbc",
-                                     strict=True)
+    db = database(dbc)
     out = {}
     for name, sigs in OUT_FRAMES.items():
         msg = db.get_message_by_name(name)
@@ -559,8 +560,9 @@ class _Columns:
             if role not in self.roles:
                 raise TargetError(f"the model needs the {role} signal, which the mapping of "
                                   f"{self.protocol.dbc_path.name} does not give")
-            f = self.roles[role]
-            bound = max(abs(f.lo), abs(f.hi)) if kind == SRC_RAW else 1 << 30
+            # a raw input's bound is that of every raw word (2^31), never its DBC range:
+            # a DBC's declared limits must not change the fraction bits, and so the answer
+            bound = RAW_BOUND if kind == SRC_RAW else 1 << 30
             key = Filter(kind, role, order, hold, _fx(bound, self.gamma))
         for i, f_ in enumerate(self.filters):
             if f_ == key:

@@ -16,13 +16,16 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+import numpy.typing as npt
+
 from canrls.can.frameblock import FrameBlock
-from canrls.firmware.qmath import MASK32
+from canrls.core.errors import DecodeError
 from canrls.firmware.spec import PUBLISH, SAMPLE, TargetEstimator
 from canrls.firmware.target_model import TargetModel
 
-__all__ = ["Frame", "Vectors", "block_frames", "log_frames", "record", "state_record",
-           "vectors_header"]
+__all__ = ["Frame", "Vectors", "block_frames", "block_ticks", "log_blocks", "log_frames",
+           "record", "state_record", "vectors_header"]
 
 #: a frame in: (receive time in ticks mod 2^32, id, extended, payload)
 Frame = tuple[int, int, bool, bytes]
@@ -48,16 +51,25 @@ class Vectors:
 def log_frames(paths: Iterable[str | Path], tick_s: float = 1e-6) -> Iterator[Frame]:
     """The frames of logs, times in ticks from the first frame (:func:`block_frames`); a
     log without a frame is refused as ``canrls fit`` refuses it."""
-    from canrls.can.logs import empty_log_error, read_frames
-
     t0: list[float] = []
+    for b in log_blocks(paths):
+        yield from block_frames(b, t0, tick_s)
+
+
+def log_blocks(paths: Iterable[str | Path], *, skip_bad_lines: bool = False
+               ) -> Iterator[FrameBlock]:
+    """The frame blocks of logs, one after the other; a log without a frame is refused
+    as ``canrls fit`` refuses it."""
+    from canrls.can.logs import LogReadStats, empty_log_error, read_frames
+
     for path in paths:
         read = 0
-        for b in read_frames(path):
+        stats = LogReadStats()
+        for b in read_frames(path, skip_bad_lines=skip_bad_lines, stats=stats):
             read += len(b)
-            yield from block_frames(b, t0, tick_s)
+            yield b
         if not read:  # refused as canrls fit refuses it
-            raise empty_log_error(path)
+            raise empty_log_error(path, stats.bad_lines)
 
 
 def block_frames(b: FrameBlock, t0: list[float], tick_s: float = 1e-6) -> Iterator[Frame]:
@@ -67,14 +79,28 @@ def block_frames(b: FrameBlock, t0: list[float], tick_s: float = 1e-6) -> Iterat
     its CAN controller filters them)."""
     if not len(b):
         return
-    if not t0:
-        t0.append(float(b.t[0]))
+    ticks = block_ticks(b, t0, tick_s).tolist()
     for k in range(len(b)):
         if b.is_error[k] or b.is_remote[k]:
             continue
-        t = round((float(b.t[k]) - t0[0]) / tick_s) & MASK32
-        yield (t, int(b.arbitration_id[k]), bool(b.is_extended[k]),
+        yield (ticks[k], int(b.arbitration_id[k]), bool(b.is_extended[k]),
                bytes(b.data[k, :b.dlc[k]]))
+
+
+def block_ticks(b: FrameBlock, t0: list[float], tick_s: float = 1e-6) -> npt.NDArray[np.uint32]:
+    """The receive times of a block's frames in ticks from the first frame of the stream,
+    ``round((t - t0) / tick_s)`` (half to even) modulo 2^32 (``t0`` holds the first
+    frame's time once known)."""
+    if not t0:
+        t0.append(float(b.t[0]))
+    x = np.rint((b.t - t0[0]) / tick_s)
+    if not np.isfinite(x).all():
+        k = int(np.flatnonzero(~np.isfinite(x))[0])
+        raise DecodeError(f"frame {k} of a block: receive time {float(b.t[k])!r} s has no "
+                          f"tick", reason="time")
+    # modulo 2^32, exactly (fmod of a whole double is exact)
+    x = np.fmod(x, 4294967296.0)
+    return np.where(x < 0, x + 4294967296.0, x).astype(np.uint32)
 
 
 def state_record(est: TargetEstimator) -> list[int]:

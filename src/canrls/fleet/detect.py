@@ -22,7 +22,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from canrls.core.checks import is_positive
+from canrls.core.checks import in_range, is_epoch, is_positive
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import library
 from canrls.fleet.records import SOURCE_LIVE, Recording
@@ -74,8 +74,6 @@ POORLY_PINNED = 10.0
 #: a recording starts this many typical intervals before the fleet's latest: the drive
 #: stopped recording (renamed in the manifest, or retired)
 STALE_INTERVALS = 3.0
-#: times between 1973 and 5138 are epoch seconds (a date); others are a log's own clock
-_EPOCH = (1e8, 1e11)
 
 
 @functools.lru_cache(maxsize=64)
@@ -110,7 +108,7 @@ def _t_tail(t: float, dof: float) -> float:
 
 def when(t: float) -> str | None:
     """The date of an epoch time (``2026-03-02``), None for a log's own clock."""
-    if not (math.isfinite(t) and _EPOCH[0] < t < _EPOCH[1]):
+    if not is_epoch(t):
         return None
     return datetime.datetime.fromtimestamp(t, tz=datetime.UTC).strftime("%Y-%m-%d")
 
@@ -153,8 +151,7 @@ class DetectionSettings:
                 kw[k] = v
             else:
                 hi = 1.0 if k == "alpha" else math.inf
-                if (isinstance(v, bool) or not isinstance(v, int | float)
-                        or not (0 < v < hi)):
+                if not in_range(v, 0, hi, lo_open=True, hi_open=True):
                     want = "between 0 and 1" if k == "alpha" else "a number > 0"
                     raise ConfigError(f"{source}: fleet.{k} = {v!r}: must be {want}")
                 kw[k] = float(v)
@@ -199,7 +196,7 @@ def _min_change(v: Any, source: str) -> dict[str, float]:
         if base not in known and name != RESIDUAL:
             raise ConfigError(f"{source}: fleet.min_change.{name}: unknown effect {base!r} "
                               f"(valid: {', '.join(sorted(known))}, {RESIDUAL})")
-        if isinstance(x, bool) or not isinstance(x, int | float) or not 0 <= x < 100:
+        if not in_range(x, 0, 100, hi_open=True):
             raise ConfigError(f"{source}: fleet.min_change.{name} = {x!r}: must be a "
                               f"fraction >= 0 (0.1 for 10 %)")
         out[str(name)] = float(x)

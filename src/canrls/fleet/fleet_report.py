@@ -16,25 +16,20 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from canrls.core.checks import is_epoch
 from canrls.core.errors import ConfigError
 from canrls.core.figtext import plain
-from canrls.core.webpage import environment, num, relative_href, save_svg
+from canrls.core.webpage import environment, num, relative_href, require_matplotlib, save_svg
 from canrls.fleet.detect import RESIDUAL, DriveAssessment, FleetAssessment
 
-__all__ = ["write_html", "report_dict", "require_matplotlib", "DEFAULT_FIGURES"]
+__all__ = ["write_html", "report_dict", "MATPLOTLIB", "DEFAULT_FIGURES"]
 
 #: drives with a figure of their trends (the first ones with alerts in the ranking)
 DEFAULT_FIGURES = 20
 
 
-def require_matplotlib() -> tuple[Any, Any]:
-    try:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-    except ImportError as e:
-        raise ConfigError("the fleet report needs matplotlib, which is not installed: "
-                          "pip install 'canrls[fleet]' (or pip install matplotlib)") from e
-    return Figure, FigureCanvasAgg
+#: the page and extra the fleet report names when matplotlib is missing
+MATPLOTLIB = ("the fleet report", "fleet")
 
 
 def report_dict(fleet: FleetAssessment, models: Sequence[tuple[str, str, int]] = ()
@@ -46,7 +41,7 @@ def report_dict(fleet: FleetAssessment, models: Sequence[tuple[str, str, int]] =
 
 
 def _date(t: float) -> str:
-    if not (isinstance(t, int | float) and 1e8 < t < 1e11):
+    if not is_epoch(t):
         return num(t, ".6g")
     return datetime.datetime.fromtimestamp(t, tz=datetime.UTC).strftime("%Y-%m-%d %H:%M")
 
@@ -72,7 +67,7 @@ def _trend_figure(d: DriveAssessment, fleet: FleetAssessment, path: Path) -> str
     """Each parameter of ``d`` per recording; returns the figure's alt text."""
     import numpy as np
 
-    Figure, Canvas = require_matplotlib()
+    Figure, Canvas = require_matplotlib(*MATPLOTLIB)
     names = [n for n in d.series if n != RESIDUAL] + ([RESIDUAL] if RESIDUAL in d.series else [])
     fig = Figure(figsize=(11.0, 2.2 * len(names) + 0.6))
     Canvas(fig)
@@ -124,7 +119,7 @@ def _spread_figure(fleet: FleetAssessment, key: str, name: str, path: Path) -> s
     import numpy as np
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-    Figure, Canvas = require_matplotlib()
+    Figure, Canvas = require_matplotlib(*MATPLOTLIB)
     levels = fleet.spread[key][name]
     types = sorted({t for t, _ in levels.values()})
     out = {a.drive for a in fleet.alerts if a.kind == "outlier" and a.series == name}
@@ -169,7 +164,7 @@ def write_html(fleet: FleetAssessment, directory: str | os.PathLike[str], *,
 
     :raises ConfigError: matplotlib or jinja2 missing, or the directory not writable.
     """
-    require_matplotlib()
+    require_matplotlib(*MATPLOTLIB)
     out = Path(directory)
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+from canrls.core.checks import finite_or_none, json_safe
 from canrls.core.errors import ConfigError
 from canrls.fleet.records import (
     STATUS_OK,
@@ -255,22 +256,8 @@ def _guarded(method: Callable[..., T]) -> Callable[..., T]:
     return guarded
 
 
-def _num(x: float | None) -> float | None:
-    return None if x is None or not math.isfinite(x) else float(x)
-
-
 def _nan(x: float | None) -> float:
     return math.nan if x is None else float(x)
-
-
-def _json_safe(x: Any) -> Any:
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_json_safe(v) for v in x]
-    return x
 
 
 class History:
@@ -513,10 +500,12 @@ class History:
                                  {"description": r.model}, self._model_ids)
                 stmt = (self._insert(t["recordings"]).values(
                     drive_id=drive, model_id=model, content_hash=r.content_hash,
-                    status=r.status, source=r.source, path=r.path, t_start=_num(r.t_start),
-                    t_end=_num(r.t_end), samples=int(r.samples), frames=int(r.frames),
-                    residual_rms=_num(r.residual_rms), fit_percent=_num(r.fit_percent),
-                    unit=r.unit, verdicts=_json_safe(r.verdicts), error=r.error,
+                    status=r.status, source=r.source, path=r.path,
+                    t_start=finite_or_none(r.t_start), t_end=finite_or_none(r.t_end),
+                    samples=int(r.samples), frames=int(r.frames),
+                    residual_rms=finite_or_none(r.residual_rms),
+                    fit_percent=finite_or_none(r.fit_percent), unit=r.unit,
+                    verdicts=json_safe(r.verdicts), error=r.error,
                     session=r.session, canrls_version=r.canrls_version, ingested_at=now)
                     .on_conflict_do_nothing(index_elements=["content_hash", "model_id"])
                     .returning(t["recordings"].c.id))
@@ -526,15 +515,18 @@ class History:
                     continue
                 if r.parameters:
                     conn.execute(t["parameters"].insert(), [
-                        {"recording_id": rid, "name": p.name, "value": _num(p.value),
-                         "sigma": _num(p.sigma), "unit": p.unit, "fixed": _num(p.fixed),
+                        {"recording_id": rid, "name": p.name,
+                         "value": finite_or_none(p.value), "sigma": finite_or_none(p.sigma),
+                         "unit": p.unit, "fixed": finite_or_none(p.fixed),
                          "identifiable": bool(p.identifiable),
-                         "prior_share": _num(p.prior_share)} for p in r.parameters])
+                         "prior_share": finite_or_none(p.prior_share)} for p in r.parameters])
                 if r.candidates:
                     conn.execute(t["candidates"].insert(), [
                         {"recording_id": rid, "rank": c.rank, "effect": c.effect,
-                         "explained": _num(c.explained), "delta_bic": _num(c.delta_bic),
-                         "rms_after": _num(c.rms_after), "identifiable": bool(c.identifiable),
+                         "explained": finite_or_none(c.explained),
+                         "delta_bic": finite_or_none(c.delta_bic),
+                         "rms_after": finite_or_none(c.rms_after),
+                         "identifiable": bool(c.identifiable),
                          "suggested": bool(c.suggested)} for c in r.candidates])
         return out
 
@@ -547,8 +539,9 @@ class History:
             for c in candidates:
                 conn.execute(self._insert(t).values(
                     recording_id=recording_id, rank=c.rank, effect=c.effect,
-                    explained=_num(c.explained), delta_bic=_num(c.delta_bic),
-                    rms_after=_num(c.rms_after), identifiable=bool(c.identifiable),
+                    explained=finite_or_none(c.explained),
+                    delta_bic=finite_or_none(c.delta_bic),
+                    rms_after=finite_or_none(c.rms_after), identifiable=bool(c.identifiable),
                     suggested=bool(c.suggested))
                     .on_conflict_do_nothing(index_elements=["recording_id", "rank"]))
 

@@ -46,7 +46,7 @@ from canrls.fleet.sources import LogSource, check_name
 from canrls.processor.config import AppConfig, Overrides, load_config, prepare
 
 __all__ = ["JobConfig", "IngestJob", "IngestSummary", "Duplicate", "Ranker", "content_hash",
-           "ingest", "ingest_one", "hash_or_none", "model_key", "RANK_MODES"]
+           "ingest", "ingest_one", "hash_or_none", "model_key", "model_key_of", "RANK_MODES"]
 
 log = logging.getLogger(__name__)
 
@@ -120,16 +120,23 @@ def hash_or_none(path: str) -> str | None:
 
 
 def model_key(cfg: JobConfig) -> tuple[str, str]:
-    """``(key, description)`` of the model a configuration fits: the key is a SHA-256
-    (hex, 64) of everything that changes the parameters (the model and estimator tables,
-    the fixed-point settings, the decoding options, the signal mapping and the DBC's
-    bytes); the description is what a reader needs (``inertia,viscous,coulomb kt=0.1``).
-    """
-    app = cfg.app_config().one_axis()
+    """``(key, description)`` of the model a configuration fits (of the axis it picks):
+    :func:`model_key_of` its configuration."""
+    return model_key_of(cfg.app_config().one_axis())
+
+
+def model_key_of(app: AppConfig) -> tuple[str, str]:
+    """``(key, description)`` of the model the configuration of one axis fits: the key is
+    a SHA-256 (hex, 64) of everything that changes the parameters (the model and
+    estimator tables, the fixed-point settings, the decoding options, the signal mapping
+    and the DBC's bytes); the description is what a reader needs
+    (``inertia,viscous,coulomb kt=0.1``)."""
     model = dict(app.model)
     effects = model.get("effects") or ["inertia", "viscous", "coulomb"]
     can = {k: v for k, v in app.can.items()
            if k not in ("interface", "channel", "bitrate", "fd", "data_bitrate", "dbc")}
+    if "ids" in can and _moves_nothing(app):
+        del can["ids"]  # one [[axes]] table of the DBC's own IDs: the key of no rule
     dbc = app.dbc_path()
     doc = {"model": model, "estimator": app.estimator, "fixed": app.fixed, "can": can,
            "signals": app.signals, "signal_overrides": list(app.signal_overrides),
@@ -141,6 +148,14 @@ def model_key(cfg: JobConfig) -> tuple[str, str]:
     if dbc is not None:
         desc += f" dbc={Path(dbc).name}"
     return key, desc
+
+
+def _moves_nothing(app: AppConfig) -> bool:
+    """The ID rule ``[can] ids`` leaves every mapped message on its DBC's ID
+    (``offset:0``, ``cia402:1`` on a DBC written for node 1)."""
+    moved = app.protocol().messages
+    return [m.frame_id for m in moved] == [m.frame_id for m in
+                                           app.protocol(with_rule=False).messages]
 
 
 def content_hash(path: str | Path) -> str:

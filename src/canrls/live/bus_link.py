@@ -46,13 +46,20 @@ from canrls.live.socketcan import (
 from canrls.processor.config import AppConfig
 
 __all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "QueuedFrames", "RX_BATCH",
-           "SharedBus", "bus_config", "command_rows", "is_command", "messages_to_block", "open_bus",
-           "shutdown_bus", "COMMAND_ID"]
+           "SharedBus", "bus_config", "command_rows", "is_command", "messages_to_block",
+           "open_bus", "shutdown_bus", "COMMAND_ID", "command_id"]
 
 log = logging.getLogger(__name__)
 
 #: Arbitration ID of ``RlsCommand`` in the default DBC.
 COMMAND_ID = frame_ids().command
+
+
+def command_id(own_offset: int) -> int:
+    """The ``RlsCommand`` ID of an axis whose own frames are moved by ``own_offset``
+    (``[daemon] own_ids``): where its daemon listens and its monitor sends."""
+    return COMMAND_ID + own_offset
+
 # SocketCAN error classes (linux/can/error.h) in an error frame's arbitration ID
 _CAN_ERR_BUSOFF = 0x40
 _CAN_ERR_RESTARTED = 0x100
@@ -648,7 +655,7 @@ class BusLink:
             self.queue.accept = frozenset(self.rx_ids)  # first other frame: the queue's
         if sock is not None and cfg.rx_buffer:
             set_receive_buffer(sock, cfg.rx_buffer, self.info())
-        rx = bulk_receiver(bus, COMMAND_ID + cfg.own_offset) if cfg.rx_bulk else None
+        rx = bulk_receiver(bus, command_id(cfg.own_offset)) if cfg.rx_bulk else None
         if rx is not None:
             self._reader = BlockReader(rx, self.queue, cfg.rx_s)
         else:

@@ -35,7 +35,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from canrls import __version__
-from canrls.core.checks import is_real
+from canrls.core.checks import is_positive, is_real
 from canrls.core.errors import CheckpointError, ConfigError
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
@@ -613,8 +613,7 @@ def _check_state(state: Mapping[str, Any], model: Model, written_by: Mapping[str
     """The structure of :meth:`canrls.processor.SampleProcessor.state` for ``model``:
     types, the shapes of theta, P and the statistics, and the model that wrote it."""
     dt = state.get("dt")
-    if dt is not None and (isinstance(dt, bool) or not isinstance(dt, int | float)
-                           or not (0 < dt < math.inf)):
+    if dt is not None and not is_positive(dt):
         raise CheckpointError(f"state/dt = {dt!r} is not a period")
     window = _field(state, "window", "state", dict)
     lengths = set()

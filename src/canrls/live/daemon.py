@@ -44,6 +44,7 @@ from canrls.live.bus_link import (
     BusLink,
     FrameQueue,
     SharedBus,
+    command_id,
     command_rows,
     messages_to_block,
     open_bus,
@@ -243,7 +244,7 @@ class Daemon:
         self._queue = FrameQueue(cfg.queue_size, backpressure, self._stopping,
                                  on_error=self._recv_failed, full=cfg.max_block)
         # an axis's RlsCommand: the shipped ID + its own offset ([daemon] own_ids)
-        self._command_id = self._queue.command_id = COMMAND_ID + cfg.own_offset
+        self._command_id = self._queue.command_id = command_id(cfg.own_offset)
         # an axis of a machine takes its own frames only (the bus's filters; the
         # others never reach its queue)
         own = [(m.frame_id, m.is_extended) for m in protocol.messages] + [
@@ -258,10 +259,18 @@ class Daemon:
         self._configuration = configuration or AppConfig(source="<canrls run>")
         self._journal = Journal()
         self._commands = CommandHandler(
-            proc, cfg.commands, self._link.send, self._set_model, self._publisher.clear_rms,
+            proc, cfg.commands, self._link.send, self._set_model, self._reset_done,
             max_parameters=cfg.max_parameters, check_model=self._check_model,
             bucket=TokenBucket(cfg.command_rate, cfg.command_burst),
             save_model=None if cfg.saved_model is None else self._save_model)
+
+    def _reset_done(self) -> None:
+        """After the command ``reset``: no online RMS yet, and the target's integer path
+        (the fixed column) starts again from its prior, as the estimators did."""
+        self._publisher.clear_rms()
+        if self._fixed_path is not None:
+            self._fixed_path.restart()
+            self._journal.fixed_restarted("reset")
 
     def shared_bus(self) -> dict[str, Any] | None:
         """The bus arguments with which this axis may take a machine's one bus
@@ -289,7 +298,7 @@ class Daemon:
         if proc.calibration is None:
             raise CommandError("the calibration window has not ended: nothing is "
                                "estimated yet")
-        saved = SavedModel.from_parts(proc.model, proc.pipeline.estimates(), proc.calibration,
+        saved = SavedModel.from_parts(proc.model, self.estimates(), proc.calibration,
                                       self._configuration, ["<canrls run>"])
         period = proc.period_info().value
         if saved.calibration is not None and period:
@@ -347,9 +356,14 @@ class Daemon:
         return self._publisher.last_status
 
     def estimates(self) -> Estimates:
-        """The current estimates (taken under the estimator's lock)."""
+        """The current estimates (taken under the estimator's lock), the fixed column as
+        published: the target's integer path's where it runs (NaN until it does)."""
         with self._lock:
-            return self._proc.pipeline.estimates()
+            est = self._proc.pipeline.estimates()
+            path = self._fixed_path.fixed() if self._fixed_path is not None else None
+        if path is None:
+            return est
+        return est.with_fixed({name: v for name, (v, _) in path.items()})
 
     def _wire_counters(self) -> dict[str, int]:
         p, b = self._proc, self._base
@@ -432,6 +446,8 @@ class Daemon:
         self._heartbeat = time.monotonic()
         interpreter.tune(self.config.switch_interval)
         self._tuned = True
+        if self.resumed_from is not None and self._fixed_path is not None:
+            self._journal.fixed_restarted(f"resumed from {self.resumed_from}")
         for loop, name in ((self._estimator_loop, "canrls estimator"),
                              (self._supervisor_loop, "canrls supervisor")):
             t = threading.Thread(target=loop, name=name, daemon=True)
@@ -608,7 +624,7 @@ class Daemon:
                     pub.publish(now)
                     self._journal.published(self._link.info(), self.model, pub.last_status)
                     if self._history is not None:
-                        self._history.offer(now, self._proc.pipeline.estimates, final=last)
+                        self._history.offer(now, self.estimates, final=last)
                 if ckpt.due(now):
                     self.checkpoint()
                     ckpt.next_at = now + cfg.checkpoint_interval
@@ -659,7 +675,7 @@ class Daemon:
     def _set_model(self, model: Model, why: str) -> None:
         self._proc.with_model(model)
         if self._fixed_path is not None:
-            self._fixed_path.restart()
+            self._fixed_path.restart()  # the journal's model line says estimation restarts
         self._publisher.model_changed()
         self._journal.model_changed(model, why)
 

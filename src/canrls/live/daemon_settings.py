@@ -65,10 +65,10 @@ DAEMON_KEYS: dict[str, str] = {
     "saved_model": "file the command save_model writes the running model to, as canrls fit "
                    "--save-model does (canrls tune --model reads it; '' or absent: none)",
     "switch_interval": "Python's thread switch interval while running, seconds (0: leave it)",
-    "fixed": "the published fixed-point column: 'kernel' (default: the fixed-point kernel "
-             "on the float front end) or 'target' (the target's whole integer path from the "
-             "frames, bit for bit with export-c's C and canrls fit --fixed target; about "
-             "25 us of CPU a frame more, docs/daemon.md)",
+    "fixed": "the published fixed-point column: 'target' (default: the target's whole "
+             "integer path from the frames, the C of export-c, bit for bit with canrls fit; "
+             "a model the target cannot run takes the kernel's, logged) or 'kernel' (the "
+             "fixed-point kernel on the float front end; docs/daemon.md)",
     "own_ids": "canrls' own frames (parameters, status, command, ack) moved by \"offset:N\" "
                "from the shipped DBC's IDs (default: none; an axis of [[axes]]: its own, "
                "by default its index x 0x40)",
@@ -113,7 +113,7 @@ class DaemonSettings:
     model_file: Path | None = None
     saved_model: Path | None = None
     switch_interval: float = 0.001
-    fixed: str = "kernel"
+    fixed: str = "target"
     #: ``own_ids``: what canrls' own frames are moved by on the bus
     own_offset: int = 0
     #: take only the axis's feedback and command frames (the bus's filters): an axis of

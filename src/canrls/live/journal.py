@@ -64,6 +64,12 @@ class Journal:
         """The running model changed (a command, a reload)."""
         JOURNAL.info("%s: model is now %s; estimation restarts", why, model_line(model))
 
+    @staticmethod
+    def fixed_restarted(why: str) -> None:
+        """The target's integer path (the fixed column) starts again from its prior: its
+        state is neither reset in place nor kept in a checkpoint."""
+        JOURNAL.info("%s: the fixed point's integer path starts again from its prior", why)
+
 
 @contextmanager
 def to_stream(stream: IO[str]) -> Iterator[None]:

@@ -30,8 +30,9 @@ class MachineDaemon:
     bus of its own.
 
     :param build: ``build(name)``: a new axis's daemon (not started), for a reload.
-    :param axes: the axes the configuration declares now (its file read again on SIGHUP:
-        the machine is checked as at a start, :meth:`AppConfig.axis_configs`).
+    :param axes: the axes the configuration declares now (its file read again, once, on
+        SIGHUP: the machine is checked as at a start, :meth:`AppConfig.axis_configs`;
+        the axes' own reloads then take their configuration from that reading).
     """
 
     def __init__(self, daemons: Mapping[str, Daemon],
@@ -98,16 +99,19 @@ class MachineDaemon:
         self._stopping.set()
 
     def request_reload(self) -> None:
-        """SIGHUP: every axis reloads its model; axes added to or removed from the
-        configuration start or stop at the next wake-up (:meth:`reconcile`)."""
-        for d in self.daemons.values():
-            d.request_reload()
+        """SIGHUP: at the next wake-up (:meth:`reconcile`) the configuration is read, the
+        axes it added or removed start or stop and every other axis reloads its model
+        (without ``axes``: every axis reloads at once)."""
+        if self._axes is None or self._build is None:
+            for d in self.daemons.values():
+                d.request_reload()
         self._reload.set()
 
     def reconcile(self) -> None:
         """After a reload request: start the axes the configuration added, stop those it
         removed; the others run on untouched. A configuration a start would refuse, or
-        a new axis whose frames would meet a running one's, changes nothing (logged)."""
+        a new axis whose frames would meet a running one's, changes nothing (logged):
+        no axis reloads."""
         if not self._reload.is_set() or self._axes is None or self._build is None:
             return
         self._reload.clear()
@@ -123,6 +127,8 @@ class MachineDaemon:
         for n in [n for n in self.daemons if n not in want]:
             self.daemons.pop(n).stop()
             log.info("reload: axis %s removed", n)
+        for d in self.daemons.values():  # the kept axes: their model from this reading
+            d.request_reload()
         for n, d in added.items():
             self._join(d)
             if self._running:

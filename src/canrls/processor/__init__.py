@@ -26,6 +26,7 @@ from canrls.processor.fit_result import (
     FileShift,
     FitResult,
     FrameCounts,
+    KernelFallback,
     PeriodInfo,
     StartInfo,
     TargetRun,
@@ -34,7 +35,7 @@ from canrls.processor.fit_result import (
 from canrls.processor.frames import SEEN_IDS, FrameProcessor
 
 __all__ = ["AxisInfo", "Calibration", "FileShift", "FitResult", "FrameCounts", "FrameProcessor",
-           "MIN_ENERGY", "PeriodInfo", "RESTORE_PERIOD_TOLERANCE", "RMS_HEADROOM", "RangeScanner",
-           "SEEN_IDS", "SampleProcessor", "StartInfo", "TargetRun", "WindowScaling", "calibrate",
-           "data_defaults", "dbc_ranges", "epoch_date", "measure_noise",
-           "sample_period", "scan_ranges"]
+           "KernelFallback", "MIN_ENERGY", "PeriodInfo", "RESTORE_PERIOD_TOLERANCE",
+           "RMS_HEADROOM", "RangeScanner", "SEEN_IDS", "SampleProcessor", "StartInfo",
+           "TargetRun", "WindowScaling", "calibrate", "data_defaults", "dbc_ranges", "epoch_date",
+           "measure_noise", "sample_period", "scan_ranges"]

@@ -16,14 +16,15 @@ from canrls.can.estimator_frames import frame_ids
 from canrls.can.idrules import MAX_AXES, MAX_STANDARD_ID, IdRule, parse_rule, parse_rules
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError
+from canrls.core.units import RATING_OPTIONS
 
 __all__ = ["AXIS_KINDS", "AXIS_KEYS", "OWN_STEP", "AxisSpec", "check_name", "check_own",
-           "check_shared", "own_offset", "parse_axes", "short_form"]
+           "check_shared", "group_tables", "own_offset", "parse_axes", "short_form"]
 
 #: values of ``--axis`` that name the kind of axis, not an axis: no axis may be called so
 AXIS_KINDS = ("rotary", "linear")
 #: keys of one ``[[axes]]`` table
-AXIS_KEYS = ("name", "ids", "own", "signals", "model")
+AXIS_KEYS = ("name", "ids", "own", "dbc", "eds", "signals", "model")
 #: IDs between two axes' own frames by default: axis k (0-based) publishes on the shipped
 #: DBC's IDs + k * 0x40 (``[daemon] own_ids = "offset:..."``)
 OWN_STEP = 0x40
@@ -40,6 +41,9 @@ class AxisSpec:
     own: int = 0
     signals: Mapping[str, Any] = field(default_factory=dict)
     model: Mapping[str, Any] = field(default_factory=dict)
+    #: the axis's own DBC or EDS (relative to the configuration file), over ``[can]``'s
+    dbc: str | None = None
+    eds: str | None = None
 
 
 def check_name(name: object, where: str) -> str:
@@ -86,8 +90,51 @@ def parse_axes(tables: object, source: str) -> tuple[AxisSpec, ...]:
             if not isinstance(v, Mapping):
                 raise ConfigError(f"{where}.{k} must be a table, got {v!r}")
             tabs[k] = dict(v)
-        specs.append(AxisSpec(name, rule, own, tabs["signals"], tabs["model"]))
+        files: dict[str, str] = {}
+        for k in ("dbc", "eds"):
+            v = t.get(k)
+            if v is not None and (not isinstance(v, str) or not v or "\0" in v):
+                raise ConfigError(f"{where}.{k} = {v!r}: must be a file path")
+            if v is not None:
+                files[k] = v
+        if len(files) == 2:
+            raise ConfigError(f"{where}: give the axis a DBC (dbc) or an EDS (eds), not both")
+        specs.append(AxisSpec(name, rule, own, tabs["signals"], tabs["model"], **files))
     return tuple(specs)
+
+
+def group_tables(groups: Sequence[tuple[str, Sequence[tuple[str, Any]]]]
+                 ) -> tuple[list[dict[str, Any]], dict[str, list[str]]]:
+    """The ``--axis NAME --signal ... --ids ... --dbc ... --kt ...`` groups of the command line as
+    ``[[axes]]`` tables and each axis's ``--signal`` options; errors name the group."""
+    tables: list[dict[str, Any]] = []
+    signals: dict[str, list[str]] = {}
+    if len(groups) > MAX_AXES:
+        raise ConfigError(f"{len(groups)} --axis groups; canrls serves at most {MAX_AXES} "
+                          f"axes on one bus")
+    for name, opts in groups:
+        where = f"--axis {name}"
+        check_name(name, "--axis")
+        if name in signals:
+            raise ConfigError(f"{where}: two --axis groups of that name")
+        d = dict(opts)
+        t: dict[str, Any] = {"name": name}
+        if "ids" in d:
+            t["ids"] = str(parse_rule(d["ids"], f"{where} --ids"))
+        if "dbc" in d and "eds" in d:
+            raise ConfigError(f"{where}: give the axis a DBC (--dbc) or an EDS (--eds), "
+                              f"not both")
+        for k in ("dbc", "eds"):
+            if k in d:
+                t[k] = d[k]
+        if "kt" in d:
+            t["model"] = {"kt": d["kt"]}
+        ratings = {k: d[k] for k in RATING_OPTIONS if k in d}
+        if ratings:
+            t["signals"] = ratings
+        tables.append(t)
+        signals[name] = list(d.get("signal", ()))
+    return tables, signals
 
 
 def short_form(text: str) -> list[dict[str, Any]]:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from canrls.can.eds import EdsDrive, read_eds
+from canrls.can.eds import EdsDrive, NodeReader, read_eds
 from canrls.can.idrules import parse_rule
 from canrls.can.mapping import SignalMapping
 from canrls.can.protocol import Protocol
@@ -31,6 +31,7 @@ from canrls.processor.axes import (
     AxisSpec,
     check_own,
     check_shared,
+    group_tables,
     own_offset,
     parse_axes,
     short_form,
@@ -100,6 +101,10 @@ class Overrides:
     axes: str | None = None
     #: ``--axis NAME``: the one axis a command works on
     axis_name: str | None = None
+    #: ``--axis NAME --signal ... --axis NAME ...``: the axes declared on the command line,
+    #: each (name, ((option, value), ...)) with option ``signal`` (a tuple), ``dbc``,
+    #: ``eds`` or ``ids``; over ``[[axes]]``
+    groups: tuple[tuple[str, tuple[tuple[str, Any], ...]], ...] = ()
 
 
 class Prepared(NamedTuple):
@@ -201,6 +206,11 @@ class AppConfig:
     axes: list[Any] = field(default_factory=list)
     #: ``--axis NAME``: the axis :meth:`one_axis` picks
     axis_name: str | None = None
+    #: the ``--signal`` options of each axis's ``--axis NAME`` group (after the others)
+    axis_signals: dict[str, list[str]] = field(default_factory=dict)
+    #: on the bus (``canrls run``): reads an EDS drive's mapping and ratings from its
+    #: node over SDO (None: the EDS's defaults)
+    nodes: NodeReader | None = None
 
     # -- loading ----------------------------------------------------------------------
     @classmethod
@@ -270,6 +280,9 @@ class AppConfig:
         if over.axes is not None:
             self.axes = short_form(over.axes)
             self.flags["axes"] = f"--axes {over.axes}"
+        if over.groups:  # the command line never gives both (--axes: --axis picks)
+            self.axes, self.axis_signals = group_tables(over.groups)
+            self.flags["axes"] = "--axis groups"
         if over.axis_name is not None:
             self.axis_name = over.axis_name
         return self
@@ -291,19 +304,29 @@ class AppConfig:
             c = dataclasses.replace(
                 self, model={**self.model, **spec.model}, can=dict(self.can),
                 signals={**self.signals, **spec.signals}, axes=[], axis_name=None,
-                flags=dict(self.flags), source=f"{self.source} [axis {spec.name}]")
+                flags=dict(self.flags), source=f"{self.source} [axis {spec.name}]",
+                signal_overrides=[*self.signal_overrides,
+                                  *self.axis_signals.get(spec.name, ())], axis_signals={})
             if spec.rule is not None:
                 c.can["ids"] = str(spec.rule)
+            for k, other in (("dbc", "eds"), ("eds", "dbc")):  # the axis's own DBC or EDS
+                if getattr(spec, k) is not None:
+                    c.can[k] = getattr(spec, k)
+                    c.can.pop(other, None)
             c.daemon = {**self.daemon, "own_ids": f"offset:{spec.own:#x}"}
-            key = repr((c.signals, {k: v for k, v in c.can.items() if k != "ids"},
+            # an EDS read from each node: its own mapping, no rule to move it
+            live = self.nodes is not None and self.can.get("eds") is not None
+            key = repr((c.signals, c.signal_overrides,
+                        {k: v for k, v in c.can.items() if k != "ids" or live},
                         c.model.get("axis")))
             try:
                 proto = base.get(key)
                 if proto is None:
-                    proto = base[key] = c.protocol(with_rule=False)
-                protocols[spec.name] = c._moved(proto)
+                    proto = base[key] = c.protocol(with_rule=live)
+                protocols[spec.name] = proto if live else c._moved(proto)
             except ConfigError as e:
-                raise type(e)(f"axis {spec.name}: {e}") from e
+                group = self.flags.get("axes") == "--axis groups"
+                raise type(e)(f"{'--axis' if group else 'axis'} {spec.name}: {e}") from e
             configs[spec.name] = c
         check_shared(protocols)
         check_own({f"axis {n}": p for n, p in protocols.items()},
@@ -376,7 +399,9 @@ class AppConfig:
         return Ratings(**given)
 
     def _eds(self) -> tuple[Path, EdsDrive] | None:
-        """``[can] eds`` (``--eds``): the path and what the EDS tells; None without one."""
+        """``[can] eds`` (``--eds``): the path and what the EDS tells (on the bus, with
+        :attr:`nodes`, read from the node of ``[can] ids = "cia402:N"``, node 1 without
+        a rule); None without one."""
         eds = self.can.get("eds")
         if eds is None:
             return None
@@ -386,7 +411,12 @@ class AppConfig:
             raise ConfigError(f"{self._where('can.eds')} = {eds}: give a DBC (can.dbc, "
                               f"--dbc) or an EDS (can.eds, --eds), not both")
         p = Path(eds) if Path(eds).is_absolute() else self.base_dir / eds
-        return p, read_eds(p)
+        node = None
+        if self.nodes is not None:
+            ids = self.can.get("ids")
+            rule = None if ids is None else parse_rule(ids, self._where("can.ids"))
+            node = 1 if rule is None else rule.node if rule.kind == "cia402" else None
+        return p, read_eds(p, node=node, reader=self.nodes)
 
     def protocol(self, *, with_rule: bool = True) -> Protocol:
         """The DBC and signal mapping (``--signal`` options replace roles of ``[signals]``),
@@ -397,7 +427,9 @@ class AppConfig:
         ratings = self.ratings()
         eds = self._eds()
         if eds is not None:
-            ratings = Ratings(**{**eds[1].ratings.as_dict(), **ratings.as_dict()})
+            # the node's own values, else the flags, else the EDS's defaults
+            node = {k: v for k, v in eds[1].ratings.as_dict().items() if k in eds[1].from_node}
+            ratings = Ratings(**{**eds[1].ratings.as_dict(), **ratings.as_dict(), **node})
             mapping = SignalMapping.from_strings(eds[1].signals)
         table = {k: v for k, v in self.signals.items() if k not in RATING_OPTIONS}
         if table:
@@ -422,6 +454,8 @@ class AppConfig:
                               period_source=where, axis=axis if isinstance(axis, str) else None,
                               dbc_bytes=eds[1].dbc_text.encode("cp1252") if eds else None,
                               **opts)
+        if eds is not None and eds[1].node is not None:
+            return proto  # the TPDOs on the IDs the node itself reported
         return self._moved(proto) if with_rule else proto
 
     def _moved(self, proto: Protocol) -> Protocol:

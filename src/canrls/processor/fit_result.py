@@ -9,13 +9,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from canrls.core.checks import is_epoch
 from canrls.core.units import Ratings
 from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
 from canrls.processor.calibration import Calibration
 
 __all__ = ["FrameCounts", "PeriodInfo", "StartInfo", "AxisInfo", "FileShift", "FitResult",
-           "MachineFit", "TargetRun", "epoch_date"]
+           "KernelFallback", "MachineFit", "TargetRun", "epoch_date"]
 
 
 @dataclass(frozen=True)
@@ -162,7 +163,7 @@ class FileShift:
 @dataclass(frozen=True)
 class TargetRun:
     """What the target's integer path ran when it gave a fit's fixed column
-    (``canrls fit --fixed target``, :mod:`canrls.firmware.target_fit`)."""
+    (``canrls fit`` by default, :mod:`canrls.firmware.target_fit`)."""
 
     samples: int
     #: updates and rescales of each equation's estimator
@@ -182,6 +183,21 @@ class TargetRun:
 
 
 @dataclass(frozen=True)
+class KernelFallback:
+    """The fit's fixed column is the kernel's on the float front end: the target's
+    integer path, the default, does not run this model (``why``)."""
+
+    why: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"path": "kernel", "why": self.why}
+
+    def format(self) -> str:
+        return (f"fixed point: the kernel on the float front end (the target's integer path "
+                f"does not run this model: {self.why})")
+
+
+@dataclass(frozen=True)
 class FitResult:
     """What a replay produced: the estimates and what happened to the frames."""
 
@@ -195,8 +211,9 @@ class FitResult:
     calibration: Calibration | None = None
     #: the logs of a fit of several, each with its time shift
     files: tuple[FileShift, ...] = ()
-    #: the target's run, when it gave the fixed column (None: the kernel's)
-    fixed: TargetRun | None = None
+    #: the target's run, when it gave the fixed column; why not, when it could not (None:
+    #: the kernel's, asked for by name)
+    fixed: TargetRun | KernelFallback | None = None
 
     @property
     def parameters(self) -> Any:
@@ -281,13 +298,15 @@ class MachineFit:
         for n, f in self.fits.items():
             lines += ["", f"== axis {n} ==",
                       f"error: {self.errors[n]}" if n in self.errors else f.format()]
+            if n not in self.errors and f.fixed is not None:
+                lines.append(f.fixed.format())
         return "\n".join(lines)
 
 
 def epoch_date(t: float | None) -> str | None:
     """``"2023-11-14 22:13:20.123456 UTC"`` for a timestamp that is an epoch time (after
     1973), else None (a log whose times start near zero)."""
-    if t is None or not (1e8 < t < 1e11):
+    if t is None or not is_epoch(t):
         return None
     d = datetime.datetime.fromtimestamp(t, tz=datetime.UTC)
     return d.strftime("%Y-%m-%d %H:%M:%S.%f UTC")

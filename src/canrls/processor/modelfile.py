@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from canrls import __version__
+from canrls.core.checks import json_safe
 from canrls.core.errors import ConfigError
 from canrls.core.files import MAX_MODEL_BYTES, atomic_writer, read_text
 from canrls.estimation.model import Model
@@ -32,16 +33,6 @@ __all__ = ["FORMAT", "VERSION", "SavedModel"]
 FORMAT = "canrls-model"
 VERSION = 1
 
-
-def _clean(x: Any) -> Any:
-    """JSON-safe: non-finite floats become null, tuples lists."""
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, Mapping):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_clean(v) for v in x]
-    return x
 
 
 def _short(v: Any) -> str:
@@ -139,7 +130,7 @@ class SavedModel:
             created=_dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
 
     def to_dict(self) -> dict[str, Any]:
-        return _clean({"format": FORMAT, "version": VERSION, "created": self.created,
+        return json_safe({"format": FORMAT, "version": VERSION, "created": self.created,
                        "canrls": self.canrls, "sources": self.sources, "model": self.model,
                        "effects": self.effects, "parameters": self.parameters,
                        "fit": self.fit, "configuration": self.configuration,

@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from canrls.can.e2e import CRC8_TABLE
 from canrls.can.frameblock import FrameBlock
-from canrls.core.checks import is_positive
+from canrls.core.checks import in_range, is_positive
 from canrls.core.errors import ConfigError
 
 __all__ = ["Silence", "FaultSpec", "FaultLog", "FaultInjector", "inject", "ERROR_CLASSES",
@@ -107,7 +107,7 @@ class FaultSpec:
     def __post_init__(self) -> None:
         for key in _PROBS:
             v = getattr(self, key)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 1.0):
+            if not in_range(v, 0.0, 1.0):
                 raise ConfigError(f"fault spec: {key}: probability {v!r} is not in [0, 1]")
         if not is_positive(self.tstep_max):
             raise ConfigError(f"fault spec: tstep_max: {self.tstep_max!r} is not a time > 0")
@@ -157,7 +157,7 @@ class FaultSpec:
                 except ValueError as e:
                     raise ConfigError(f"fault spec {text!r}: {key}: {val!r} is not a "
                                       "probability") from e
-                if not (math.isfinite(p) and 0.0 <= p <= 1.0):
+                if not in_range(p, 0.0, 1.0):
                     raise ConfigError(f"fault spec {text!r}: {key}: probability {val} is not "
                                       "in [0, 1]")
                 values[key] = p

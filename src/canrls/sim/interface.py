@@ -70,9 +70,12 @@ def _parse_int(key: str, v: Any) -> int:
     return iv
 
 
-def _machine_given(axes: Any, ids: Any, given: dict[str, Any]) -> dict[str, Any]:
-    """``axes`` and ``ids`` of a machine, checked (one drive's options refused)."""
+def _machine_given(axes: Any, ids: Any, hidden: Any, given: dict[str, Any]
+                   ) -> dict[str, Any]:
+    """``axes``, ``ids`` and ``hidden`` of a machine, checked (one drive's options
+    refused)."""
     from canrls.sim.machine import KINDS, MAX_SIM_AXES
+    from canrls.sim.plant import parse_effects
 
     n = _parse_int("axes", axes)
     if not 1 <= n <= MAX_SIM_AXES:
@@ -84,7 +87,14 @@ def _machine_given(axes: Any, ids: Any, given: dict[str, Any]) -> dict[str, Any]
     if one:
         raise ConfigError(f"canrls-sim: {one[0]}: a machine's drives have their own "
                           f"(axes={n})")
-    return {"axes": n, "ids": kind}
+    out: dict[str, Any] = {"axes": n, "ids": kind}
+    if hidden is not None:
+        each = str(hidden).split(",")
+        if len(each) != n:
+            raise ConfigError(f"canrls-sim: hidden: {hidden!r} gives {len(each)} effects "
+                              f"for {n} axes (one per axis, comma-separated, empty: none)")
+        out["hidden"] = tuple(",".join(parse_effects(e)) if e.strip() else "" for e in each)
+    return out
 
 
 def _scenario_of_channel(channel: Any) -> str:
@@ -109,6 +119,8 @@ class _DriveConfig:
     #: a machine of this many drives (0: one drive), of kind ``ids``
     axes: int = 0
     ids: str = "offset"
+    #: the effect each axis hides ("" none; empty: the machine's default turn)
+    hidden: tuple[str, ...] = ()
 
 
 class _Drive:
@@ -129,7 +141,8 @@ class _Drive:
 
             self.sims = simulators(machine(
                 config.axes, duration=config.duration, seed=config.seed,
-                scenario_name=config.scenario, kind=config.ids), start_time)
+                scenario_name=config.scenario, kind=config.ids,
+                hidden=config.hidden or None), start_time)
             self.sim = self.sims[0]
         self.start_time = start_time
         self.realtime = config.realtime
@@ -246,6 +259,8 @@ class SimBus(VirtualBus):
         each its own parameters, hidden effect and IDs), of kind ``ids``: ``offset``
         (default), ``cia402`` or ``cansimple``; ``effects``, ``faults``, ``axis``,
         ``excitation`` and ``params`` are the machine's then.
+    :param hidden: with ``axes=N``, the effect each axis hides, comma-separated, one per
+        axis, empty for none (``",,cogging:6,"``; default: the machine's turn).
 
     Other keyword arguments (``bitrate``, ``fd``, ...) are accepted and ignored.
     """
@@ -258,7 +273,7 @@ class SimBus(VirtualBus):
                  params: Mapping[str, float] | str | None = None,
                  start_time: float | None = None, rx_queue_size: int = 0,
                  axes: int | str | None = None, ids: str | None = None,
-                 **kwargs: Any) -> None:
+                 hidden: str | None = None, **kwargs: Any) -> None:
         if channel is None or channel == "":
             channel = "standard"
         for k in ("bitrate", "data_bitrate", "fd", "timing", "app_name", "serial"):
@@ -266,9 +281,10 @@ class SimBus(VirtualBus):
         given = self._given(channel, effects, seed, faults, duration, realtime, scenario, axis,
                             excitation, params)
         if axes is not None:
-            given.update(_machine_given(axes, ids, given))
-        elif ids is not None:
-            raise ConfigError("canrls-sim: ids: the kind of a machine's drives, with axes=N")
+            given.update(_machine_given(axes, ids, hidden, given))
+        elif ids is not None or hidden is not None:
+            raise ConfigError(f"canrls-sim: {'ids' if ids is not None else 'hidden'}: "
+                              f"of a machine's drives, with axes=N")
         super().__init__(channel=channel, receive_own_messages=_parse_bool(
             "receive_own_messages", receive_own_messages), rx_queue_size=rx_queue_size,
             preserve_timestamps=False, **kwargs)
@@ -348,6 +364,7 @@ class SimBus(VirtualBus):
                     params=given.get("params", ()),
                     axes=given.get("axes", 0),
                     ids=given.get("ids", "offset"),
+                    hidden=given.get("hidden", ()),
                 )
                 drive = _Drive(channel, cfg, time.time() if start_time is None
                                else _parse_float("start_time", start_time))

@@ -255,6 +255,26 @@ INLINE void theta_add_full(canrls_theta64 *q, int32_t ph, int32_t m, int32_t s, 
 #endif
 }
 
+#if defined(__GNUC__)
+/* theta_q + a b at 2^-32 LSB (the product exact in 64 bits), saturated where the sum leaves
+ * the whole int32_t word (counted): the update K eps 2^(32 - s) of a shift s <= 31 with
+ * a = K 2^(32 - s) a word (theta_add's integers). */
+INLINE void theta_add_prod(canrls_theta64 *q, int32_t a, int32_t b, uint32_t *n)
+{
+    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->frac);
+    const int64_t u = mul_ww(a, b);
+    int64_t x;
+    if (UNLIKELY(__builtin_add_overflow(t, u, &x))) {
+        *n += 1u;
+        q->frac = u > 0 ? 0xFFFFFFFFu : 0u;
+        q->word = u > 0 ? INT32_MAX : INT32_MIN;
+        return;
+    }
+    q->frac = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
+}
+#endif
+
 /* The 64-bit P (canrls_P64: word and lo, the pair X = V + 2^31 with V = P~ 2^32) minus
  * u = whole 2^32 + part (0 <= part < 2^32), saturated: X clamped to [lo 2^32,
  * hi 2^32 + 2^32 - 1], i.e. the word to [lo, hi] (counted). The general case (Python
@@ -748,20 +768,244 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 }
 
 #ifdef CANRLS_N
-/* K_step then P_step for the common case at a fixed n (32-bit theta and P words,
- * th_s >= 34, P_s >= 34), out of line: h~ 2^kn and K stay in registers from one to the
- * other (the same integers; S->h keeps h~ without the normalisation, it is scratch).
- * theta is updated last, when the P loop has freed the registers (the order of the two
- * updates changes no integer: neither reads what the other writes).
- * Returns the low-excitation test, as P_step. */
-NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
-                               int32_t th_s, int32_t P_s, uint32_t *c_th, uint32_t *c_P)
+/* Built for size (-Os, GCC's __OPTIMIZE_SIZE__): the start-up steps take the general loops
+ * and the block exponent's shift of a steady step one loop over P, not a straight run (the
+ * same integers; the bounded worst case is that of the -O2 build, docs/target.md). */
+#if defined(__OPTIMIZE_SIZE__)
+#define CANRLS_SMALL 1
+#else
+#define CANRLS_SMALL 0
+#endif
+
+/* 2^sh: the multiplier of a pair's shift */
+#define m2_of(sh) ((uint32_t)1 << (sh))
+
+/* How the fixed-n step computes u, the decrement of V (P_step's shift classes, the same
+ * integers): PM_HIGH  P_s >= 33: u = ph 2^(64 - P_s) = (ph 2^pa) m, ph = rsh(K_i h~_j, 32),
+ *                     m = 2^(64 - P_s - pa) <= 2^30 (pa = 1 at P_s = 33: |ph| <= 2^29);
+ *          PM_32    P_s = 32: u = ph 2^32, the word alone;
+ *          PM_LOW   P_s <= 31: u = K_i h~_j 2^(32 - P_s) exactly;
+ *          PM_LOWK  the same as (K_i 2^a)(h~_j 2^b), a + b = 32 - P_s, both words (passed
+ *                   as K and h~): u = one product. */
+enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
+
+/* The exact general element, out of line (rare: a word that saturates, or a start-up
+ * product too wide for the fast paths): V <- sat(V - u) as P_step, then V <- sat(V 2^sh)
+ * as the block exponent's P_shift. Ki, hj as P_elem takes them. */
+NOINLINE void P_elem_slow(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t pa,
+                          int32_t P_s, int32_t sh, uint32_t *c_P)
+{
+    if (mode == PM_HIGH || mode == PM_32) {
+        /* u = ph 2^(64 - P_s), ph = rsh(K_i h~_j, 32) */
+        const int32_t ph = mul_rsh32(Ki, hj);
+        (void)pa;
+        if (P_s == 32) {
+            P_sub(q, ph, 0u, INT32_MIN, INT32_MAX, c_P);
+        } else {
+            P_sub(q, ph >> (P_s - 32), (uint32_t)ph << (64 - P_s), INT32_MIN, INT32_MAX, c_P);
+        }
+    } else {
+        /* u = K_i h~_j 2^(32 - P_s) (PM_LOWK: the product of the two shifted words) */
+        const int64_t pr = mul_ww(Ki, hj);
+        if (mode == PM_LOWK) {
+            P_sub(q, pr >> 32, (uint32_t)pr, INT32_MIN, INT32_MAX, c_P);
+        } else {
+            P_sub(q, pr >> P_s, (uint32_t)((uint64_t)pr << (32 - P_s)), INT32_MIN, INT32_MAX,
+                  c_P);
+        }
+    }
+    if (sh > 0) {
+        P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
+    }
+}
+
+/* V <- V 2^sh, saturated, out of line (a word without room for the shift) */
+NOINLINE void P_shl_slow(canrls_P64 *q, int64_t x, int32_t sh, uint32_t *c_P)
+{
+    q->lo = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
+    P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
+}
+
+/* V <- V 2^sh exactly (1 <= sh <= 29), in the pair: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31
+ * = X 2^sh - (chi 2^32 + 2^31), chi = 2^(sh-1) - 1, when the word leaves room
+ * (|X| < 2^(62 - sh): the high word within +-room, room = 2^(30 - sh)); X 2^sh is the
+ * low word times m2 = 2^sh (one UMULL) plus the high word times m2 (one MLA). Else
+ * P_shift (saturated, counted). */
+INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, uint32_t m2, uint32_t chi,
+                  uint32_t room, uint32_t *c_P)
+{
+    const int32_t hi = (int32_t)(x >> 32);
+    if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < room)) {
+        const uint64_t y = (uint64_t)(uint32_t)x * m2;
+        const uint32_t yh = (uint32_t)(y >> 32) + (uint32_t)hi * m2;
+        x = (int64_t)((((uint64_t)yh << 32) | (uint32_t)y) - (((uint64_t)chi << 32) | 0x80000000u));
+        q->lo = (uint32_t)x;
+        q->word = (int32_t)(x >> 32);
+        return;
+    }
+    P_shl_slow(q, x, sh, c_P);
+}
+
+/* One element of the fixed-n step (32-bit P words): V <- sat(V - u) and, sh > 0, then
+ * V <- sat(V 2^sh), the block exponent's shift folded into the same pass over P (the
+ * integers of P_step followed by P_shift); the fast paths below, anything else (a
+ * saturation, a product too wide) in P_elem_slow. ``nz``: the diagonal's low-excitation
+ * test. */
+INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, int32_t pa,
+                   int32_t P_s, int32_t sh, uint32_t chi, uint32_t room, uint32_t *c_P,
+                   uint32_t *nz)
+{
+#if defined(__GNUC__)
+    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
+    int64_t x, u;
+    if (mode == PM_HIGH || mode == PM_32) {
+        /* u = (ph 2^pa) m, or ph 2^32 = (4 ph) 2^30 (|ph| <= 2^29 but for a saturated h) */
+        const int32_t ph = mul_rsh32(Ki, hj);
+        if (nz != NULL) {
+            *nz |= (uint32_t)ph;
+        }
+        if (mode == PM_32) {
+            u = (int64_t)((uint64_t)(int64_t)ph << 32);
+        } else {
+            u = mul_ww((int32_t)((uint32_t)ph << pa), m);
+        }
+    } else if (mode == PM_LOWK) {
+        /* u = (K_i 2^a)(h~_j 2^b): one exact product */
+        u = mul_ww(Ki, hj);
+        if (nz != NULL) {
+            *nz |= (uint32_t)(u != 0);
+        }
+    } else {
+        /* u = K_i h~_j 2^k2, k2 = 32 - P_s (1..31), shifted on two words where it fits
+         * 64 bits (else in P_elem_slow) */
+        const int64_t pr = mul_ww(Ki, hj);
+        const int32_t k2 = 32 - P_s;
+        const uint32_t plo = (uint32_t)pr;
+        const int32_t phw = (int32_t)(pr >> 32);
+        if (nz != NULL) {
+            *nz |= (uint32_t)(pr != 0);
+        }
+        if (UNLIKELY((uint32_t)((phw >> (31 - k2)) + 1) > 1u)) {
+            P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
+            return;
+        }
+        u = (int64_t)(((uint64_t)(((uint32_t)phw << k2) | (plo >> (32 - k2))) << 32)
+                      | (uint32_t)(plo << k2));
+    }
+    if (UNLIKELY(__builtin_sub_overflow(t, u, &x))) {
+        P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
+        return;
+    }
+    if (sh > 0) {
+        P_shl(q, x, sh, m2_of(sh), chi, room, c_P);
+        return;
+    }
+    q->lo = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
+#else
+    if (nz != NULL) {
+        *nz |= mode == PM_HIGH || mode == PM_32 ? (uint32_t)mul_rsh32(Ki, hj)
+                                                : (uint32_t)(mul_ww(Ki, hj) != 0);
+    }
+    (void)m, (void)chi, (void)room;
+    P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
+#endif
+}
+
+/* The off-diagonal elements in any other case: the shift class ``mode`` and whether the
+ * block exponent's shift sh is folded in (V <- sat(sat(V - u) 2^sh)) are constants at
+ * each call. ``unroll`` (a constant): one straight run (the steady state's shift), else a
+ * loop over the packed rows (the start-up classes: less code). */
+INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t m,
+                  int32_t pa, int32_t P_s, int32_t sh, int shifted, int unroll, uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const int32_t mt = (int32_t)1 << (64 - th_s), mp = (int32_t)1 << (64 - P_s);
-    int32_t hn[CANRLS_N], K[CANRLS_N];
-    canrls_P64 *Pw = S->P; /* row i of the packed upper triangle */
-    uint32_t i, j, nz = 0;
+    const uint32_t chi = shifted ? ((uint32_t)1 << (sh - 1)) - 1u : 0u;
+    const uint32_t room = shifted ? (uint32_t)1 << (30 - sh) : 0u;
+    const int32_t s = shifted ? sh : 0;
+    int32_t h[CANRLS_N]; /* h~ in a local array: the stores to P cannot change it */
+    canrls_P64 *Pw = P;
+    uint32_t i, j;
+    UNROLL
+    for (j = 0; j < n; j++) {
+        h[j] = hn[j];
+    }
+    if (unroll) {
+        UNROLL
+        for (i = 0; i < n; i++) {
+            const int32_t Ki = K[i];
+            UNROLL
+            for (j = i + 1; j < n; j++) {
+                P_elem(&Pw[j - i], Ki, h[j], mode, m, pa, P_s, s, chi, room, c_P, NULL);
+            }
+            Pw += n - i;
+        }
+    } else {
+        for (i = 0; i < n; i++) {
+            const int32_t Ki = K[i];
+            for (j = i + 1; j < n; j++) {
+                P_elem(&Pw[j - i], Ki, h[j], mode, m, pa, P_s, s, chi, room, c_P, NULL);
+            }
+            Pw += n - i;
+        }
+    }
+}
+
+NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
+                        int32_t m, int32_t pa, int32_t P_s, int32_t sh, uint32_t *c_P)
+{
+    /* one straight run for each class of the steady state and the start-up (ph 2^pa m,
+     * or one product), with and without the shift; a loop for the rest (rare) */
+    if (CANRLS_SMALL) {
+        P_off(P, K, hn, mode, m, pa, P_s, sh, sh > 0, 0, c_P);
+    } else if (mode == PM_HIGH && sh > 0) {
+        P_off(P, K, hn, PM_HIGH, m, pa, P_s, sh, 1, 1, c_P);
+    } else if (mode == PM_HIGH) {
+        P_off(P, K, hn, PM_HIGH, m, pa, P_s, 0, 0, 1, c_P);
+    } else if (mode == PM_LOWK && sh > 0) {
+        P_off(P, K, hn, PM_LOWK, m, pa, P_s, sh, 1, 1, c_P);
+    } else if (mode == PM_LOWK) {
+        P_off(P, K, hn, PM_LOWK, m, pa, P_s, 0, 0, 1, c_P);
+    } else {
+        P_off(P, K, hn, mode, m, pa, P_s, sh, sh > 0, 0, c_P);
+    }
+}
+
+/* The step after g at a fixed n (32-bit theta and P words): K; the diagonal of
+ * P~ - K h~' first, so that c <- c / lambda_k and the block exponent's shift sh are known
+ * before the rest of P is touched; then the off-diagonal elements with the shift folded
+ * in (one pass over P: the shift's cost spread over the elements the update writes
+ * anyway), the diagonal shifted, theta updated. The same integers as K_step, P_step, the
+ * forgetting scale and the block exponent of canrls_update_q31 one after the other (the
+ * order changes no integer: the theta and P updates read nothing the other writes, and
+ * the shift of each element follows its own update). ``common`` (a constant at each
+ * call): P_s >= 34 and th_s >= 34, the steady state, one straight run. A c to fold into
+ * P~ (e = 0) is left to the caller (c > one_lam on return, no shift). Returns the
+ * low-excitation test, as P_step. */
+INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                   int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
+                   uint32_t *c_th, uint32_t *c_P, int common)
+{
+    const uint32_t n = CANRLS_N;
+    const canrls_plan_q31 *p = S->plan;
+    int mode = common || P_s >= 33 ? PM_HIGH : P_s == 32 ? PM_32 : PM_LOW;
+    int32_t pa = !common && P_s == 33 ? 1 : 0;
+    int32_t mp = mode == PM_HIGH ? (int32_t)1 << (64 - P_s - pa) : 0;
+    /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = (ph 2^ta) mt */
+    const int32_t ta = !common && th_s == 33 ? 1 : 0;
+    const int32_t mt = common || th_s >= 33 ? (int32_t)1 << (64 - th_s - ta) : 0;
+    const int32_t tr_ps = p->trace_ps;
+    int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
+    /* K and h~ as the P update takes them: K and h~, or K 2^a and h~ 2^b with
+     * a + b = 32 - P_s (PM_LOWK) */
+    const int32_t *KP = K, *hP = hn;
+    canrls_P64 *const P = S->P;
+    canrls_P64 *Pw;
+    uint32_t mK = 0;
+    int32_t e = *e_io, c = *c_io, sh = 0;
+    int64_t tr = 0;
+    uint32_t i, j, nz = 0, trw32 = 0;
     UNROLL
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
@@ -769,27 +1013,134 @@ NOINLINE int KP_step_high_full(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32
         /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
         K[i] = mul_rsh32(hn[i], gcn);
         S->K[i] = K[i];
+        mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
     }
+    if (!common && mode == PM_32) {
+        /* u = ph 2^32 = (ph 2^2) 2^30 where every |h~| < 2^30 (then |ph| <= 2^27) */
+        uint32_t mh = 0;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
+        }
+        if ((mh >> 30) == 0u) {
+            mode = PM_HIGH;
+            pa = 2;
+            mp = (int32_t)1 << 30;
+        }
+    }
+    if (!common && mode == PM_LOW) {
+        /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a that keeps K 2^a a
+         * word, the rest b on h~ if it keeps h~ 2^b a word */
+        uint32_t mh = 0;
+        int32_t a = 32 - P_s, b;
+        while (a > 0 && (mK >> (31 - a)) != 0u) {
+            a -= 1;
+        }
+        b = 32 - P_s - a;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
+        }
+        if (b <= 31 && (mh >> (31 - b)) == 0u) {
+            UNROLL
+            for (i = 0; i < n; i++) {
+                Kk[i] = (int32_t)((uint32_t)K[i] << a);
+                hk[i] = (int32_t)((uint32_t)hn[i] << b);
+            }
+            KP = Kk;
+            hP = hk;
+            mode = PM_LOWK;
+        }
+    }
+    /* the diagonal: P~_ii <- P~_ii - K_i h~_i (the information K_i h~_i: low excitation) */
+    Pw = P;
     UNROLL
     for (i = 0; i < n; i++) {
-        /* P~ <- P~ - K h~'  (upper triangle, 64 bits: u = rsh(K_i h~_j, 32) 2^(64 - P_s));
-         * the diagonal: information K_i h~_i */
-        const int32_t r = mul_rsh32(K[i], hn[i]);
-        nz |= (uint32_t)r;
-        P_sub_full(&Pw[0], r, mp, P_s, c_P);
-        UNROLL
-        for (j = i + 1; j < n; j++) {
-            P_sub_full(&Pw[j - i], mul_rsh32(K[i], hn[j]), mp, P_s, c_P);
+        P_elem(Pw, KP[i], hP[i], mode, mp, pa, P_s, 0, 0u, 0u, c_P, &nz);
+        tr += Pw->word;
+        Pw += n - i;
+    }
+    /* c <- c / lambda_k ; c > 1 and e > 0: c/2 and 2^-e x 2 (the words do not move) */
+    c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, c_P);
+    if (c > p->one_lam && e > 0) {
+        c = rsh32(c, 1);
+        e -= 1;
+    }
+    /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh (not
+     * with a c to fold: the caller folds, then shifts) */
+    if (UNLIKELY(c <= p->one_lam && tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max)) {
+        /* the largest sh with tr 2^sh <= tr_hi (at least 1 here) and e + sh <= e_max */
+        sh = nlz((uint32_t)tr) - nlz((uint32_t)p->trace_hi);
+        if ((tr << sh) > p->trace_hi) {
+            sh -= 1;
         }
+        sh = sh < p->e_max - e ? sh : p->e_max - e;
+    }
+    /* the rest of P~ <- (P~ - K h~') 2^sh */
+    if (common && LIKELY(sh == 0)) {
+        Pw = P;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            UNROLL
+            for (j = i + 1; j < n; j++) {
+                /* u = rsh(K_i h~_j, 32) 2^(64 - P_s) */
+                P_sub_full(&Pw[j - i], mul_rsh32(K[i], hn[j]), mp, P_s, c_P);
+            }
+            Pw += n - i;
+        }
+    } else {
+        P_off_any(P, KP, hP, mode, mp, pa, P_s, sh, c_P);
+    }
+    Pw = P;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        int32_t x;
+        if (sh > 0) {
+            P_shl(Pw, (int64_t)(((uint64_t)(uint32_t)Pw->word << 32) | Pw->lo), sh,
+                  (uint32_t)1 << sh, ((uint32_t)1 << (sh - 1)) - 1u, (uint32_t)1 << (30 - sh),
+                  c_P);
+        }
+        /* trw = sum_i rsh(Pw_ii, trace_ps) (modulo 2^32: a word) */
+        x = Pw->word;
+        trw32 += (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
         Pw += n - i;
     }
     UNROLL
     for (i = 0; i < n; i++) {
         /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB; K carries
          * the exponent e + kn: shifted out here; one LDRD, one STRD) */
-        theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), mt, th_s, c_th);
+        if (common || th_s >= 33) {
+            theta_add_full(&S->theta_q[i],
+                           (int32_t)((uint32_t)(int32_t)(mul_ww(K[i], epn) >> 32) << ta), mt,
+                           th_s - ta, c_th);
+#if defined(__GNUC__)
+        } else if (th_s <= 31 && th_s >= 1 && (mK >> (th_s - 1)) == 0u) {
+            /* K eps 2^(32 - th_s) exactly: (K 2^(32 - th_s)) eps, one product */
+            theta_add_prod(&S->theta_q[i], (int32_t)((uint32_t)K[i] << (32 - th_s)), epn, c_th);
+#endif
+        } else {
+            theta_add(&S->theta_q[i], mul_ww(K[i], epn), th_s, INT32_MIN, INT32_MAX, c_th);
+        }
     }
+    *e_io = e + sh;
+    *c_io = c;
+    *trw_io = (int32_t)trw32;
     return nz == 0u;
+}
+
+/* the two instances, out of line: the steady state (P_s, th_s >= 34) and any other step */
+NOINLINE int KP_step_common(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
+                            int32_t th_s, int32_t P_s, int32_t il, int32_t *e_io,
+                            int32_t *c_io, int32_t *trw_io, uint32_t *c_th, uint32_t *c_P)
+{
+    return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 1);
+}
+
+NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                       int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
+                       uint32_t *c_th, uint32_t *c_P)
+{
+    return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 0);
 }
 #endif
 
@@ -863,6 +1214,8 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         int32_t st, sv, lam_k, d, g, gc, gcn, epn, th_s, P_s, kn, kg = 0;
         int32_t il;
         int low;
+        int tail = 1;       /* the forgetting scale and the block exponent still to do */
+        int fixed_step = 0; /* KP_step_n took c <- c / lambda_k */
 
         /* h~ = P~ phi, rounded and stored; m = OR of |h~_i| (one's complement) for the
          * normalisation below; s~ = phi' h~ (a) summed as h~ is stored */
@@ -993,10 +1346,20 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             /* K h~' has exponent 2e, P~ exponent e; K and h~ carry 2^kn each, g 2^kg */
             P_s = p->P_s + e + 2 * kn + kg;
         }
+        il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
 #ifdef CANRLS_N
-        if (th_s >= 34 && P_s >= 34 && (~S->wide & (WIDE_THETA | WIDE_P)) == 0u) {
-            /* the common case in one piece */
-            low = KP_step_high_full(S, kn, gcn, epn, th_s, P_s, &c_th, &c_P);
+        if ((~S->wide & (WIDE_THETA | WIDE_P)) == 0u && P_s >= 1
+            && (!CANRLS_SMALL || (P_s >= 34 && th_s >= 34))) {
+            /* 32-bit words at a fixed n: the step, the forgetting scale and the block
+             * exponent in one pass over P (a c to fold is left to the code below) */
+            if (P_s >= 34 && th_s >= 34) {
+                low = KP_step_common(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th,
+                                     &c_P);
+            } else {
+                low = KP_step_n(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
+            }
+            tail = c > p->one_lam;
+            fixed_step = 1;
         } else
 #endif
         {
@@ -1048,10 +1411,11 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             flag |= CANRLS_FLAG_LOW_EXCITATION;
         }
 
-        /* c <- c / lambda_k */
-        il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
-        c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, &c_P);
-        if (c > p->one_lam) {
+        /* c <- c / lambda_k (KP_step_n: done) */
+        if (tail && !fixed_step) {
+            c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, &c_P);
+        }
+        if (tail && c > p->one_lam) {
             if (e > 0) {
                 /* c/2 and 2^-e x 2: the words do not move */
                 c = rsh32(c, 1);
@@ -1066,7 +1430,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         }
 
         /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh */
-        {
+        if (tail) {
             int64_t tr = 0;
             uint32_t trw32 = 0; /* the sum modulo 2^32: trw is a word */
             const canrls_P64 *Pii = P;

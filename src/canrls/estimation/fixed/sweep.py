@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from canrls.core.checks import finite_or_none
 from canrls.core.errors import EstimatorError, FixedPointError
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import FixedConfig, SaturationCounts
@@ -65,17 +66,15 @@ class SweepRow:
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict (``inf``/``nan`` as ``None``)."""
 
-        def num(x: float) -> float | None:
-            return x if math.isfinite(x) else None
 
         return {
             "label": self.label,
             "word_bits": self.config.word_bits if self.config else None,
             "acc_bits": self.config.acc_bits if self.config else None,
             "input_bits": self.config.input_bits if self.config else None,
-            "max_rel_error": num(self.max_rel_error),
-            "rel_errors": [num(x) for x in self.rel_errors],
-            "theta": [num(x) for x in self.theta],
+            "max_rel_error": finite_or_none(self.max_rel_error),
+            "rel_errors": [finite_or_none(x) for x in self.rel_errors],
+            "theta": [finite_or_none(x) for x in self.theta],
             "saturations": dict(self.saturations),
             "ok": self.ok,
             "error": self.error,
