@@ -23,6 +23,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import time
 import traceback
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -32,6 +33,7 @@ from typing import Any
 
 from canrls import __version__
 from canrls.core.errors import CanrlsError, ConfigError, StallError
+from canrls.core.files import ContentHash
 from canrls.fleet import cluster
 from canrls.fleet.detect import DetectionSettings, assess, to_rank
 from canrls.fleet.history import History
@@ -145,10 +147,9 @@ def model_key(cfg: JobConfig) -> tuple[str, str]:
 
 def content_hash(path: str | Path) -> str:
     """SHA-256 of a file's bytes (hex)."""
-    h = hashlib.sha256()
+    h = ContentHash()
     with open(path, "rb") as f:
-        while chunk := f.read(1 << 20):
-            h.update(chunk)
+        h.finish(f.fileno())
     return h.hexdigest()
 
 
@@ -215,33 +216,33 @@ def ingest_one(job: IngestJob, known: frozenset[str] | set[str] | None = None,
                ) -> Recording | None:
     """One log (a worker's task): None when the history holds its hash for this model
     (``known``), else a :class:`Recording` (an error row when it cannot be fitted).
-    ``digest``: the log's :func:`content_hash` when the caller has taken it already."""
+    ``digest``: the log's :func:`content_hash` when the caller has taken it already.
+    Without it the log is read once, its hash taken as the fit reads it; only when
+    ``known`` holds hashes (a rerun) is it hashed before, so a stored log is not fitted.
+    """
     from canrls.processor.replay import fit_logs
 
     path = job.source.path
-    try:
-        if digest is None:
+    if digest is None and known:
+        try:
             digest = content_hash(path)
-    except OSError as e:
-        # no content to hash: the row is keyed by the path, so a rerun does not repeat it
-        digest = hashlib.sha256(f"unreadable:{path}".encode()).hexdigest()
-        if known is not None and digest in known:
-            return None
-        return _error(job, digest, f"{path}: cannot read the log ({e.strerror or e})")
+        except OSError as e:
+            return _unreadable(job, known, e)
     if known is not None and digest in known:
         return None
+    stream = ContentHash() if digest is None else None
     try:
         protocol, model, settings = job.config.prepared()
-        res = fit_logs([path], protocol, model, settings)
-    except CanrlsError as e:
-        msg = str(e)
-        return _error(job, digest, msg if path in msg else f"{path}: {msg}")
-    except (OSError, MemoryError) as e:
-        return _error(job, digest, f"{path}: {type(e).__name__}: {e}")
+        res = fit_logs([path], protocol, model, settings,
+                       digests=None if stream is None else [stream])
+    except (CanrlsError, OSError, MemoryError) as e:
+        return _failed(job, digest, known, e)
     except Exception as e:  # a bug: the row says so, the fleet goes on
         log.debug("internal error on %s", path, exc_info=True)
-        return _error(job, digest, f"{path}: internal error: {type(e).__name__}: {e} "
-                                   f"({traceback.extract_tb(e.__traceback__)[-1].name})")
+        return _failed(job, digest, known, e)
+    if stream is not None:
+        digest = stream.hexdigest()
+    assert digest is not None
     candidates: tuple[CandidateValue, ...] | None = None
     rank_error = None
     if job.rank and ranker is not None:
@@ -250,6 +251,43 @@ def ingest_one(job: IngestJob, known: frozenset[str] | set[str] | None = None,
         except Exception as e:  # the fit stands without its ranking
             rank_error = f"{type(e).__name__}: {e}"
     return _recording(job, digest, res, candidates, rank_error)
+
+
+def _unreadable_key(path: str) -> str:
+    """The hash under which the error row of a log without content to hash is stored
+    (keyed by the path, so a rerun does not repeat it)."""
+    return hashlib.sha256(f"unreadable:{path}".encode()).hexdigest()
+
+
+def _unreadable(job: IngestJob, known: frozenset[str] | set[str] | None,
+                e: OSError) -> Recording | None:
+    """The error row of a log that cannot be read; None when the history holds it."""
+    digest = _unreadable_key(job.source.path)
+    if known is not None and digest in known:
+        return None
+    return _error(job, digest, f"{job.source.path}: cannot read the log ({e.strerror or e})")
+
+
+def _failed(job: IngestJob, digest: str | None, known: frozenset[str] | set[str] | None,
+            e: BaseException) -> Recording | None:
+    """The error row of a log whose fit failed with ``e``, under its hash (taken now
+    when the fit did not read the log to its end; a file that is not a regular one is
+    never opened again); None when the history holds that row."""
+    path = job.source.path
+    if digest is None:
+        try:
+            digest = content_hash(path) if os.path.isfile(path) else _unreadable_key(path)
+        except OSError as oe:
+            return _unreadable(job, known, oe)
+        if known is not None and digest in known:
+            return None
+    if isinstance(e, CanrlsError):
+        msg = str(e)
+        return _error(job, digest, msg if path in msg else f"{path}: {msg}")
+    if isinstance(e, (OSError, MemoryError)):
+        return _error(job, digest, f"{path}: {type(e).__name__}: {e}")
+    return _error(job, digest, f"{path}: internal error: {type(e).__name__}: {e} "
+                               f"({traceback.extract_tb(e.__traceback__)[-1].name})")
 
 
 def _error(job: IngestJob, digest: str, message: str) -> Recording:
