@@ -498,20 +498,22 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                 if first != i:
                     again.setdefault(first, []).append(i)
             shared = {k: _scatter(client, v, stall) if v else None for k, v in known.items()}
-            futures = {client.submit(ingest_one, jobs[i], shared[jobs[i].key], use_ranker,
-                                     pure=False): i for i in sent.values()}
+            # one graph per model, not a message per log
+            by_key: dict[str, list[int]] = {}
+            for i in sent.values():
+                by_key.setdefault(jobs[i].key, []).append(i)
+            futures = {fut: i for key, idx in by_key.items()
+                       for fut, i in zip(client.map(ingest_one, [jobs[i] for i in idx],
+                                                    known=shared[key], ranker=use_ranker,
+                                                    pure=False), idx, strict=True)}
             try:
-                for fut in cluster.finished(futures, _address(client), stall):
+                for fut, got in cluster.finished(futures, _address(client), stall):
                     i = futures[fut]
-                    got: Recording | None | object
-                    if fut.status == "error":
-                        exc = cluster.exception(fut, _address(client), stall)
-                        why = f"{type(exc).__name__}: {exc}"
+                    if fut.status != "finished":
+                        why = f"{type(got).__name__}: {got}"
                         failed.extend((jobs[k].source.path, why)
                                       for k in (i, *again.get(i, ())))
                         got = _LOST
-                    else:
-                        got = cluster.result(fut, _address(client), stall)
                     fut.release()
                     for k in (i, *again.get(i, ())):
                         order.arrive(k, got)
@@ -696,11 +698,10 @@ def _rank_changes(history: History, model_keys: Iterable[str],
     else:
         futs = [client.submit(rank_one, p, c, max_order, ranker, pure=False)
                 for _, p, c in todo]
-        for _ in cluster.finished(futs, _address(client), stall):
-            pass
         # a task lost: those go without a ranking
-        results = [cluster.result(f, _address(client), stall) if f.status == "finished"
-                   else () for f in futs]
+        got = {f: v if f.status == "finished" else ()
+               for f, v in cluster.finished(futs, _address(client), stall)}
+        results = [got[f] for f in futs]
     n = 0
     for (rid, _, _), cands in zip(todo, results, strict=True):
         if cands:
