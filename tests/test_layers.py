@@ -428,3 +428,29 @@ def test_the_tree_check_sees_a_missing_module(tmp_path: Path) -> None:
     doc = ("## The tree, in layers\n\n| folder | what | modules |\n|---|---|---|\n"
            "| `can/` | the bus | `logs` |\n\n## Next\n| `sim/` | x | `bus` |\n")
     assert documented_folders(doc) == {"can/": {"logs"}}
+
+
+# -- names: a file name says which module it is ---------------------------------------------
+def repeated_file_names(pkg: Path = PKG) -> dict[str, list[str]]:
+    """File names (``results.py``) that more than one module of ``pkg`` has, ``__init__``
+    aside, each with its modules' paths: a name of ``cli/`` (a subcommand's) counts too, so
+    ``cli/monitor.py`` and the module it drives cannot both be ``monitor.py``."""
+    seen: dict[str, list[str]] = {}
+    for f in sorted(pkg.rglob("*.py")):
+        if f.name != "__init__.py" and "__pycache__" not in f.parts:
+            seen.setdefault(f.name, []).append(f.relative_to(pkg).as_posix())
+    return {name: paths for name, paths in seen.items() if len(paths) > 1}
+
+
+def test_no_two_modules_share_a_file_name() -> None:
+    bad = repeated_file_names()
+    assert not bad, ("file names repeated across folders (name each module for what it "
+                     "is):\n" + "\n".join(f"{n}: {', '.join(p)}" for n, p in sorted(bad.items())))
+
+
+def test_the_name_check_sees_a_repeated_name(tmp_path: Path) -> None:
+    for rel in ("live/monitor.py", "cli/monitor.py", "live/__init__.py", "cli/__init__.py",
+                "sim/interface.py"):
+        (tmp_path / rel).parent.mkdir(exist_ok=True)
+        (tmp_path / rel).write_text("")
+    assert repeated_file_names(tmp_path) == {"monitor.py": ["cli/monitor.py", "live/monitor.py"]}

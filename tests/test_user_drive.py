@@ -498,7 +498,7 @@ def test_the_daemon_measures_the_period_as_the_replay_does(tmp_path: Path) -> No
     from canrls.can.mapping import SignalMapping
     from canrls.can.protocol import DEFAULT_DBC
     from canrls.live.daemon import Daemon
-    from canrls.live.settings import DaemonSettings
+    from canrls.live.daemon_settings import DaemonSettings
     from canrls.processor import FrameProcessor
     from canrls.processor.config import AppConfig
 

@@ -4,7 +4,7 @@ Prints figures; it is not a test. For each number of axes N: a simulated machine
 drives at 1 kHz (``canrls.sim.machine``, 2 feedback frames per axis and period, 2000 N
 frames/s) is simulated and encoded first, then put on python-can's virtual channel at
 its own rate by a feeder thread (as in ``tools/bench_daemon.py``) for ``--seconds``; the
-N daemons of a :class:`~canrls.live.machine.MachineDaemon` (each its own virtual bus
+N daemons of a :class:`~canrls.live.machine_daemon.MachineDaemon` (each its own virtual bus
 connection, taking only its own feedback and command frames through the bus's filters
 as ``canrls run`` of a machine sets them; ``--no-filter``: every frame) estimate and
 publish.
@@ -34,8 +34,8 @@ from pathlib import Path
 
 from bench_daemon import _feed  # the feeder of the one-drive benchmark, at a fixed rate
 from canrls.live.daemon import Daemon
-from canrls.live.machine import MachineDaemon
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
+from canrls.live.machine_daemon import MachineDaemon
 from canrls.processor.config import load_config
 from canrls.sim.machine import AXIS_ID_STEP, machine, machine_frames
 

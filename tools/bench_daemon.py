@@ -42,7 +42,7 @@ import numpy as np
 from can.interfaces import virtual as _virtual
 
 from canrls.live.daemon import Daemon
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.processor.config import AppConfig
 from canrls.sim.scenario import Simulator, scenario
 

@@ -4,7 +4,7 @@ each worker's peak memory, beside fitting the same logs one after another.
     .venv/bin/python tools/bench_fleet.py                    # 50 drives x 20 recordings of 60 s
     .venv/bin/python tools/bench_fleet.py --drives 10 --recordings 5 --duration 10   # a quick look
 
-Writes the simulated fleet (``canrls.sim.fleet``, on the cluster's workers) once into
+Writes the simulated fleet (``canrls.sim.fleet_plan``, on the cluster's workers) once into
 ``--out`` (reused when it is there with the same settings), then prints:
 
 * ``fit_logs`` of every log in one process, one after another (the pipeline of
@@ -33,7 +33,7 @@ from canrls.fleet.history import History
 from canrls.fleet.ingest import JobConfig, ingest
 from canrls.fleet.sources import from_manifest
 from canrls.processor.replay import fit_logs
-from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
+from canrls.sim.fleet_plan import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
 
 
 def write(out: Path, drives: int, recordings: int, duration: float, seed: int) -> None:

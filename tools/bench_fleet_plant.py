@@ -16,7 +16,7 @@ on the same logs (aim ≥ 70 % of its frames per second).
   :meth:`canrls.fleet.history.History.store`, 1,000 recordings a transaction.
 * **The report**: ``canrls fleet report --db URL --json`` and ``--out DIR`` as commands,
   each in its own process: wall time and the command's peak resident memory.
-* **The plant's ingest** (``--plant-drives D``, 0 to skip): ``canrls.sim.fleet`` plans D
+* **The plant's ingest** (``--plant-drives D``, 0 to skip): ``canrls.sim.fleet_plan`` plans D
   drives × ``--plant-weeks`` weekly logs of ``--plant-duration`` s (3 s by default:
   short logs, so that the cost is the pipeline's per log rather than the frames'),
   written into a temporary directory (a process pool of ``--workers``) and ingested by
@@ -122,7 +122,7 @@ def ingest_throughput(n: int, duration: float, out: Path, repeat: int) -> None:
     from canrls.fleet.ingest import JobConfig, ingest
     from canrls.fleet.sources import LogSource
     from canrls.processor.replay import fit_logs
-    from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
+    from canrls.sim.fleet_plan import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
 
     plan = make_fleet(max(1, n // 10), 10, duration, seed=52)
     jobs = [(d, r) for d in plan.drives for r in d.recordings][:n]
@@ -178,7 +178,7 @@ def ingest_throughput(n: int, duration: float, out: Path, repeat: int) -> None:
 
 def _write(job: tuple[str, Any, Any, float]) -> int:
     """One simulated log (a process pool's task): its frames."""
-    from canrls.sim.fleet import write_recording
+    from canrls.sim.fleet_plan import write_recording
 
     path, drive, rec, duration = job
     Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -198,7 +198,7 @@ def _generate(plan: Any, weeks: range, root: Path, pool: Any) -> tuple[int, floa
 def _ingest_cli(url: str, root: Path, workers: int) -> tuple[float, float, dict[str, Any]]:
     """``canrls fleet ingest 'ROOT/{type}/{drive}/*.log' --db URL --workers N --json``
     as a command: wall time [s], the client's peak RSS [MiB] and its summary."""
-    from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT
+    from canrls.sim.fleet_plan import FLEET_EFFECTS, FLEET_KT
 
     wall, rss, out = _measured("fleet", "ingest", str(root / "{type}" / "{drive}" / "*.log"),
                                "--kt", str(FLEET_KT), "-e", FLEET_EFFECTS, "--db", url,
@@ -215,7 +215,7 @@ def plant_ingest(url: str, drives: int, weeks: int, duration: float, workers: in
     ingesting it project to at most ``budget`` s, else the most weeks that do."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from canrls.sim.fleet import make_fleet
+    from canrls.sim.fleet_plan import make_fleet
 
     t = time.monotonic()
     plan = make_fleet(drives, weeks, duration, seed=2026)

@@ -14,7 +14,7 @@ CAN socket: the datagrams are the 16-byte ``struct can_frame`` of python-can's
 and the bus's constructor, which would open ``AF_CAN`` (:func:`udp_socketcan_bus` sets
 the attributes it sets; in the daemon's process python-can's ``socketcan`` interface
 name is pointed at it). The daemon reads it as it reads a SocketCAN bus: by default with
-its block reader (``canrls.live.bus.BlockReader``: ``recvmmsg`` on python-can's socket
+its block reader (``canrls.live.bus_link.BlockReader``: ``recvmmsg`` on python-can's socket
 into the arrays of a frame block, ``canrls._rx``, no ``can.Message`` per frame), and,
 for comparison, with ``[daemon] rx_bulk = false`` (python-can's ``recv`` frame by frame,
 ``BusReader``; skipped with ``--skip-message-path``); the receive buffer it was granted

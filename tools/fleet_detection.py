@@ -3,7 +3,7 @@
     .venv/bin/python tools/fleet_detection.py --seeds 1-5            # 50 drives x 10 x 3 s each
     .venv/bin/python tools/fleet_detection.py --seeds 1-3 --duration 6 --workers 2
 
-For each seed: ``canrls.sim.fleet`` writes the fleet, :func:`canrls.fleet.ingest.ingest`
+For each seed: ``canrls.sim.fleet_plan`` writes the fleet, :func:`canrls.fleet.ingest.ingest`
 fits it into a SQLite history (in this process, or on a LocalCluster with
 ``--workers``) with the candidate ranking around residual changes (``rank="auto"``),
 :func:`canrls.fleet.detect.assess` assesses it, and the alerts are held against the
@@ -27,7 +27,7 @@ from canrls.fleet.cluster import dask_client
 from canrls.fleet.history import History
 from canrls.fleet.ingest import JobConfig, ingest
 from canrls.fleet.sources import from_manifest
-from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_fleet
+from canrls.sim.fleet_plan import FLEET_EFFECTS, FLEET_KT, make_fleet, write_fleet
 
 
 def seeds(text: str) -> list[int]:

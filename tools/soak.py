@@ -70,7 +70,7 @@ from can.interfaces import virtual as _virtual
 from canrls.can.estimator_frames import FrameDecoder, ParameterReport, frame_ids
 from canrls.core.errors import CanrlsError
 from canrls.live.daemon import Daemon
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.processor.config import AppConfig, prepare
 from canrls.sim.faults import FaultLog, FaultSpec
 from canrls.sim.scenario import Simulator, scenario

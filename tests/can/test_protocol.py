@@ -915,7 +915,7 @@ def test_scale_times_unit_factor_is_taken_from_the_role(monkeypatch: pytest.Monk
     encoder's full-turn test read it (before, each multiplied the two itself)."""
     from canrls.can.codec import RoleInfo
     from canrls.can.encoder import FeedbackEncoder
-    from canrls.firmware import model as target_model
+    from canrls.firmware import target_model
     from canrls.processor.config import read_toml
 
     # an integer field as it stands in the frame (no bias, no fraction bits)

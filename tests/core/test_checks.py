@@ -27,7 +27,7 @@ from canrls.core.errors import CanrlsError
 from canrls.estimation.fixed.formats import check_lam as fixed_check_lam
 from canrls.estimation.rls import RLS
 from canrls.estimation.settings import EstimatorSettings
-from canrls.live.monitor import parse_command_text
+from canrls.live.monitor_listener import parse_command_text
 from canrls.processor.config import AppConfig
 
 #: every place a forgetting factor enters, each taking ``lam`` or raising a CanrlsError

@@ -24,7 +24,7 @@ def _fleet_page(out: Path, logs: Path) -> Path:
     from fleet_records import pump_fleet
 
     from canrls.fleet.detect import assess
-    from canrls.fleet.report import write_html
+    from canrls.fleet.fleet_report import write_html
 
     return write_html(assess(pump_fleet(logs, drift=True)), out)
 
@@ -79,7 +79,7 @@ def test_the_fleet_page_shows_the_bookkeeping_notes(tmp_path: Path) -> None:
     from fleet_histories import bookkeeping_fleet
 
     from canrls.fleet.detect import assess
-    from canrls.fleet.report import write_html
+    from canrls.fleet.fleet_report import write_html
 
     recs, said = bookkeeping_fleet()
     fa = assess(recs)

@@ -282,7 +282,7 @@ def test_validate_refuses_options_that_would_change_the_model(
 
 
 def test_validation_verdict_says_whether_the_model_holds() -> None:
-    from canrls.diagnosis.validate import HOLDS_WITHIN, EquationValidation
+    from canrls.diagnosis.validation import HOLDS_WITHIN, EquationValidation
 
     def eq(rms: float, ident: float | None) -> EquationValidation:
         return EquationValidation("mechanical", "N·m", 1000, rms, 90.0, 0.999999, ident,

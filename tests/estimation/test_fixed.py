@@ -23,8 +23,8 @@ from canrls.core.errors import CheckpointError, EstimatorError, FixedPointError
 from canrls.estimation.fixed import kernels as K
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import SITES, FixedConfig, FixedFlag, QFormat, SaturationCounts
-from canrls.estimation.fixed.results import FixedStep, FixedTrace
 from canrls.estimation.fixed.sweep import SweepResult, sweep
+from canrls.estimation.fixed.trace import FixedStep, FixedTrace
 
 F64 = npt.NDArray[np.float64]
 UPDATES = ["symmetric", "literal", "naive"]

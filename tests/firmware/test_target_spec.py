@@ -20,8 +20,8 @@ from canrls.can.protocol import Protocol
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
 from canrls.estimation.settings import EstimatorSettings
-from canrls.firmware.model import TargetError, build
 from canrls.firmware.spec import REJECTS, TargetEstimator
+from canrls.firmware.target_model import TargetError, build
 from canrls.processor.config import AppConfig
 from canrls.sim.scenario import scenario, simulate
 
@@ -192,7 +192,7 @@ SIG_VALTYPE_ 257 Speed : 2;
     assert f.extract(struct.pack(">d", float("nan"))) is None
     assert f.extract(struct.pack(">d", float("-inf"))) is None
     # and the signal's scale and offset go to the columns: k = 2 2^-22, o = 0.5 2^22
-    from canrls.firmware.model import _scale
+    from canrls.firmware.target_model import _scale
 
     assert _scale(p, "speed", f) == (Fraction(2, 2 ** 22), Fraction(2 ** 21))
 

@@ -41,7 +41,7 @@ from canrls.fleet.history import NOT_A_HISTORY, History, HistoryURL  # noqa: E40
 from canrls.fleet.ingest import JobConfig, ingest  # noqa: E402
 from canrls.fleet.records import ParameterValue, Recording  # noqa: E402
 from canrls.fleet.sources import MAX_CELL, LogSource, from_manifest, from_pattern  # noqa: E402
-from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
+from canrls.sim.fleet_plan import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
 
 _STORE_ADD = ingest_module._Store.add
 CONFIG = JobConfig(effects=FLEET_EFFECTS, kt=FLEET_KT)

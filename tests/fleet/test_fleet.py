@@ -1,7 +1,7 @@
 """``canrls fleet``: a simulated fleet ingested on a real Dask LocalCluster into a real
 SQLite file and a real PostgreSQL server, wear found, every recording stored once.
 
-One simulated fleet (50 drives x 10 recordings of 3 s, seed 1; ``canrls.sim.fleet``)
+One simulated fleet (50 drives x 10 recordings of 3 s, seed 1; ``canrls.sim.fleet_plan``)
 and one LocalCluster of two worker processes serve the whole module: the fleet is
 written and ingested on the cluster (the path ``canrls fleet ingest`` takes), the
 smaller tests take a few of its drives.
@@ -45,7 +45,7 @@ from canrls.fleet.history import History, HistoryURL  # noqa: E402
 from canrls.fleet.ingest import JobConfig, ingest, model_key  # noqa: E402
 from canrls.fleet.records import STATUS_ERROR, STATUS_OK  # noqa: E402
 from canrls.fleet.sources import LogSource, from_manifest, from_pattern  # noqa: E402
-from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
+from canrls.sim.fleet_plan import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording  # noqa: E402
 
 DRIVES, RECORDINGS, DURATION, SEED = 50, 10, 3.0, 1
 CONFIG = JobConfig(effects=FLEET_EFFECTS, kt=FLEET_KT)
@@ -481,8 +481,8 @@ def test_report_html_and_json(fleet: dict[str, Any], tmp_path: Path,
 
 def test_report_escapes_the_history_strings(tmp_path: Path) -> None:
     """A path with markup in it reaches the page as text."""
+    from canrls.fleet.fleet_report import write_html
     from canrls.fleet.records import ParameterValue, Recording
-    from canrls.fleet.report import write_html
 
     recs = [Recording(drive="d1", content_hash=f"{k:064x}", model_key="m" * 64,
                       model="inertia", path=f"<script>alert({k})</script>.log",
@@ -497,7 +497,7 @@ def test_report_shows_an_outlier_against_its_siblings(tmp_path: Path) -> None:
     """Six drives of one type, one with twice the inertia: its section draws the
     siblings' level, its table names the parameter and links the recordings; the
     healthy drives are rows of one table."""
-    from canrls.fleet.report import _siblings, write_html
+    from canrls.fleet.fleet_report import _siblings, write_html
 
     logs = tmp_path / "logs"
     logs.mkdir()
@@ -522,8 +522,8 @@ def test_report_figures_draw_the_history_strings_as_text(tmp_path: Path) -> None
     (matplotlib's mathtext parser): a drive, type, parameter and unit with `$` are now
     drawn as the characters they hold (canrls.figtext.plain)."""
     pytest.importorskip("matplotlib")
+    from canrls.fleet.fleet_report import write_html
     from canrls.fleet.records import ParameterValue, Recording
-    from canrls.fleet.report import write_html
 
     recs = [Recording(drive=f"$d{d}^$", drive_type="$t^$", content_hash=f"{d}{k:063x}",
                       model_key="m" * 64, model="user:drag", path=f"{d}-{k}.log",
@@ -757,7 +757,7 @@ def test_the_daemon_appends_to_the_history_it_shares_with_ingest(
 
 def test_history_settings_errors() -> None:
     from canrls.core.errors import ConfigError
-    from canrls.fleet.live import HistorySettings
+    from canrls.fleet.live_appender import HistorySettings
 
     with pytest.raises(ConfigError, match=r"c.toml: history.drive = None: must be"):
         HistorySettings.from_table({"url": "x.db"}, "c.toml")

@@ -230,7 +230,7 @@ def test_changes_are_named_in_the_words_of_the_effect_library() -> None:
 # ------------------------------------------------------------------ real fits
 def test_wear_and_weather_on_real_fits(tmp_path: Path) -> None:
     """The same conclusion on estimates of the real pipeline: 8 simulated drives x 8
-    weekly logs (``canrls.sim.fleet``: friction jittering ±3 % / ±2 % a week), each
+    weekly logs (``canrls.sim.fleet_plan``: friction jittering ±3 % / ±2 % a week), each
     log with its own excitation (standard, steps, prbs, chirp) and length (5 or 10 s),
     fitted through ``canrls.fleet.ingest`` into a SQLite history: the drive whose load
     changes (inertia x1.3) and the drive whose Coulomb friction rises 8 % a week are
@@ -243,7 +243,7 @@ def test_wear_and_weather_on_real_fits(tmp_path: Path) -> None:
     from canrls.fleet.ingest import JobConfig, ingest
     from canrls.fleet.sources import LogSource
     from canrls.sim.excitation import excitation
-    from canrls.sim.fleet import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
+    from canrls.sim.fleet_plan import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
 
     rng = np.random.default_rng(33)
     plan = make_fleet(8, 8, 5.0, seed=33)

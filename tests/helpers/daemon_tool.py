@@ -27,7 +27,7 @@ from canrls.can.protocol import Protocol
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
 from canrls.live.daemon import Daemon
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
 
 __all__ = ["DaemonProcess", "DaemonTool", "collect", "daemon_fed", "daemon_process", "datagrams",
            "notify_socket", "reloaded_daemon", "remote_sim_server"]

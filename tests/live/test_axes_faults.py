@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 
 from canrls.can.estimator_frames import CommandCode, FrameDecoder, encode_command
-from canrls.live.bus import COMMAND_ID, moved
+from canrls.live.bus_link import COMMAND_ID, moved
 from canrls.live.daemon import Daemon
-from canrls.live.machine import MachineDaemon
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
+from canrls.live.machine_daemon import MachineDaemon
 from canrls.processor.axes import OWN_STEP
 from canrls.processor.config import AppConfig
 from canrls.sim.machine import kind_protocol, machine, machine_frames

@@ -17,11 +17,11 @@ from cli_tool import cli_error
 from canrls.can.estimator_frames import CommandCode, CommandResult, FrameDecoder, encode_command
 from canrls.can.logs import read_frames, write_log
 from canrls.cli.main import main
-from canrls.live.bus import messages_to_block, moved
+from canrls.live.bus_link import messages_to_block, moved
 from canrls.live.daemon import Daemon
-from canrls.live.machine import MachineDaemon
-from canrls.live.monitor import Monitor
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
+from canrls.live.machine_daemon import MachineDaemon
+from canrls.live.monitor_listener import Monitor
 from canrls.processor.config import load_config
 from canrls.sim.machine import machine, machine_frames
 

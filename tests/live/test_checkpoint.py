@@ -25,7 +25,7 @@ from canrls.live.checkpoint import (
     set_aside,
 )
 from canrls.live.daemon import Daemon
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig
 from canrls.sim import scenario

@@ -28,7 +28,7 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import read_frames
 from canrls.core.effect_names import EffectId
 from canrls.core.errors import BusError, ConfigError
-from canrls.live.bus import (
+from canrls.live.bus_link import (
     RX_BATCH,
     BusLink,
     BusReader,
@@ -38,9 +38,9 @@ from canrls.live.bus import (
     open_bus,
 )
 from canrls.live.daemon import Daemon
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.live.publisher import Publisher
 from canrls.live.sdnotify import SystemdNotifier
-from canrls.live.settings import DaemonSettings
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig
 
@@ -699,7 +699,7 @@ def test_the_obsolete_cache_dir_is_ignored_with_a_warning(
     """``[daemon] cache_dir`` (the directory of the compiled kernels' cache, when canrls
     compiled them at run time) still loads: ignored, with a warning naming the file and
     saying why; a configuration file of an earlier version keeps working."""
-    with caplog.at_level(logging.WARNING, logger="canrls.live.settings"):
+    with caplog.at_level(logging.WARNING, logger="canrls.live.daemon_settings"):
         s = DaemonSettings.from_table({"cache_dir": "kernels", "commands": True}, "f.toml")
     assert s.commands and not hasattr(s, "cache_dir")
     assert [r.getMessage() for r in caplog.records] == [

@@ -47,7 +47,7 @@ from canrls.live.checkpoint import (
     save_checkpoint,
 )
 from canrls.live.daemon import Daemon
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.processor import FrameProcessor, SampleProcessor
 from canrls.processor.config import AppConfig
 from canrls.sim import scenario

@@ -33,7 +33,7 @@ from canrls.core.effect_names import EffectId
 from canrls.core.errors import CheckpointError, ConfigError
 from canrls.live.checkpoint import Checkpoint, fingerprint, load_checkpoint, save_checkpoint
 from canrls.live.daemon import Daemon
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig
 

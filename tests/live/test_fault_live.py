@@ -25,8 +25,8 @@ from canrls.can.estimator_frames import FrameDecoder
 from canrls.can.frameblock import FrameBlock
 from canrls.core.checks import MAX_TIMESTAMP, is_time
 from canrls.live.daemon import Daemon
-from canrls.live.monitor import Monitor
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
+from canrls.live.monitor_listener import Monitor
 from canrls.processor import SEEN_IDS, FrameProcessor
 from canrls.processor.config import AppConfig, prepare
 from canrls.processor.replay import fit_frames

@@ -26,8 +26,8 @@ from canrls.cli.main import main
 from canrls.core.effect_names import EffectId, EquationId
 from canrls.core.errors import ConfigError
 from canrls.live.daemon import Daemon
-from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
+from canrls.live.monitor_listener import LibraryUnits, Monitor, parse_command_text
 from canrls.processor.config import AppConfig
 
 _ids = itertools.count()

@@ -1,5 +1,5 @@
 """The bulk receive of a SocketCAN bus (canrls._rx, canrls.live.socketcan) and the
-daemon's block reader (canrls.live.bus.BlockReader).
+daemon's block reader (canrls.live.bus_link.BlockReader).
 
 This kernel has no AF_CAN: the SocketCAN socket is stood in by a UDP socket on
 127.0.0.1 with ``SO_TIMESTAMPNS``, carrying the datagrams python-can's
@@ -31,9 +31,9 @@ from can.interfaces.socketcan.socketcan import SocketcanBus, build_can_frame
 from canrls.can.estimator_frames import CommandCode, encode_command
 from canrls.can.frameblock import FrameBlock
 from canrls.core.errors import ConfigError
-from canrls.live.bus import RX_BATCH, BlockReader, BusLink, FrameQueue, messages_to_block
+from canrls.live.bus_link import RX_BATCH, BlockReader, BusLink, FrameQueue, messages_to_block
 from canrls.live.daemon import Daemon
-from canrls.live.settings import DaemonSettings
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.live.socketcan import SocketcanReceiver, bulk_receiver, set_receive_buffer
 from canrls.processor.config import AppConfig
 
@@ -432,7 +432,7 @@ def test_the_daemon_reads_a_socketcan_bus_in_blocks(
     """Feedback, an error frame and a command through the block reader: every frame
     processed, the error frame counted, the command answered, the recorder given
     python-can's messages; the socket closed under it: a bus failure, reopened."""
-    caplog.set_level(logging.DEBUG, logger="canrls.live.bus")
+    caplog.set_level(logging.DEBUG, logger="canrls.live.bus_link")
     peer = _Peer()
     rec = tmp_path / "seen.log"
     d = _daemon(peer, commands=True, record=rec)
@@ -473,7 +473,7 @@ def test_the_daemon_reads_a_socketcan_bus_in_blocks(
 
 def test_rx_bulk_false_reads_a_socketcan_bus_through_python_can(
         caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.DEBUG, logger="canrls.live.bus")
+    caplog.set_level(logging.DEBUG, logger="canrls.live.bus_link")
     peer = _Peer()
     d = _daemon(peer, rx_bulk=False)
     try:

@@ -17,8 +17,7 @@ import pytest
 from user_drives import SIGNALS, user_dbc
 
 from canrls.core.errors import ConfigError
-from canrls.firmware import fit as target_fit
-from canrls.firmware import kernel_export
+from canrls.firmware import kernel_export, target_fit
 from canrls.firmware.load import load
 from canrls.processor import period
 from canrls.processor.config import AppConfig

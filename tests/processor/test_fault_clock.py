@@ -212,7 +212,7 @@ def test_daemon_on_a_bus_with_a_clock_step_keeps_estimating_and_says_so(
     from daemon_tool import daemon_fed
 
     from canrls.can.estimator_frames import FrameDecoder
-    from canrls.live.monitor import Monitor
+    from canrls.live.monitor_listener import Monitor
     from canrls.processor import FrameProcessor
 
     frames = _stepped(sim, 0.5, -60.0)

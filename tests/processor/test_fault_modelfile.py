@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 from canrls.can.logs import write_candump
 from canrls.cli.main import main
 from canrls.core.errors import CanrlsError, ConfigError
-from canrls.live.settings import DAEMON_KEYS, DaemonSettings
+from canrls.live.daemon_settings import DAEMON_KEYS, DaemonSettings
 from canrls.processor.config import AppConfig
 from canrls.processor.modelfile import SavedModel
 from canrls.sim.scenario import scenario, simulate

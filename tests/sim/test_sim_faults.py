@@ -233,7 +233,7 @@ def test_injected_commands_leave_the_estimates_as_they_were(frames: FrameBlock) 
     from canrls.can.estimator_frames import CommandCode, decode_command
     from canrls.core.errors import CommandError
     from canrls.live.daemon import Daemon
-    from canrls.live.settings import DaemonSettings
+    from canrls.live.daemon_settings import DaemonSettings
     from canrls.processor.config import AppConfig
 
     out, log = inject(frames, "cmd=0.002,cmd_burst=6", seed=15)

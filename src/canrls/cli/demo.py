@@ -157,8 +157,8 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
 
     from canrls.can.estimator_frames import encode_command, parse_effect
     from canrls.live.daemon import Daemon
-    from canrls.live.monitor import LibraryUnits, Monitor
-    from canrls.live.settings import DaemonSettings
+    from canrls.live.daemon_settings import DaemonSettings
+    from canrls.live.monitor_listener import LibraryUnits, Monitor
     from canrls.processor.config import AppConfig, prepare
     from canrls.sim.plant import parse_effects
     from canrls.sim.scenario import scenario

@@ -3,7 +3,7 @@
 One axis, picked by the seed, has an effect its model lacks; the others have none. The
 machine's frames (:func:`canrls.sim.machine.machine`, axis k on the default DBC's IDs +
 k x 0x10) are sent on a ``virtual`` bus in steps of half a simulated second, one daemon per
-axis serving them (:class:`~canrls.live.machine.MachineDaemon`, each axis its own frames
+axis serving them (:class:`~canrls.live.machine_daemon.MachineDaemon`, each axis its own frames
 and own IDs, + k x 0x40). After 40 % of the time each axis's feedback is diagnosed, the
 effect the diagnosis names is added with an ``RlsCommand`` on that axis's command ID only,
 and each axis's residual RMS (its ``RlsStatus``) is compared before and after. The first
@@ -29,7 +29,7 @@ from canrls.core.errors import ConfigError
 if TYPE_CHECKING:
     from canrls.can.frameblock import FrameBlock
     from canrls.live.daemon import Daemon
-    from canrls.live.machine import MachineDaemon
+    from canrls.live.machine_daemon import MachineDaemon
 
 __all__ = ["AxisStory", "MachineDemoResult", "run_machine_demo"]
 
@@ -85,11 +85,11 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
     import can
 
     from canrls.can.estimator_frames import CommandCode, encode_command, parse_effect
-    from canrls.live.bus import COMMAND_ID, moved
+    from canrls.live.bus_link import COMMAND_ID, moved
     from canrls.live.daemon import Daemon
-    from canrls.live.machine import MachineDaemon
-    from canrls.live.monitor import LibraryUnits
-    from canrls.live.settings import DaemonSettings
+    from canrls.live.daemon_settings import DaemonSettings
+    from canrls.live.machine_daemon import MachineDaemon
+    from canrls.live.monitor_listener import LibraryUnits
     from canrls.processor.axes import OWN_STEP
     from canrls.processor.config import AppConfig, prepare
     from canrls.sim.machine import MAX_SIM_AXES, kind_protocol, machine, simulators

@@ -57,7 +57,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 def _compensation(analysis: Any, found: Any) -> tuple[str, dict[str, Any]] | None:
     """What compensating the model's position terms would leave of their ripple; for
     position effects found but not added (``found``: their candidates), their ripple."""
-    from canrls.control.tune import compensation, found_ripple
+    from canrls.control.tuner import compensation, found_ripple
 
     if found:
         line = found_ripple(analysis.model, {c.effect: {k: v for k, (v, _) in

@@ -81,8 +81,8 @@ def run(args: argparse.Namespace) -> int:
     tm = texts = None
     if not args.kernel_only:
         from canrls.firmware.load import target_model
-        from canrls.firmware.model import TargetError
         from canrls.firmware.target_export import target_texts
+        from canrls.firmware.target_model import TargetError
 
         # generated (or refused: a model the target cannot run, a log that cannot be
         # read) before anything is written

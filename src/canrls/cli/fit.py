@@ -4,7 +4,7 @@ Several logs identify one model from all of them (no segment is bridged; the
 calibration window is the start of the first log); ``--save-model FILE`` writes the
 model as JSON for ``canrls validate`` (docs/model_file.md); ``--json`` prints one object
 (README.md, "Command line"). ``--fixed target`` takes the fixed column from the target's
-integer path instead (:mod:`canrls.firmware.fit`, docs/target.md): the frames decoded,
+integer path instead (:mod:`canrls.firmware.target_fit`, docs/target.md): the frames decoded,
 filtered and estimated in integers as ``canrls export-c``'s C (and the daemon with
 ``[daemon] fixed = "target"``) do, bit for bit.
 """
@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
                    progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
     if args.fixed == "target":
-        from canrls.firmware.fit import target_fixed
+        from canrls.firmware.target_fit import target_fixed
 
         res = target_fixed(res, args.log, protocol, settings)
     saved = None

@@ -206,9 +206,9 @@ def run_report(args: argparse.Namespace) -> int:
     import dataclasses
 
     from canrls.fleet.detect import DetectionSettings, assess
+    from canrls.fleet.fleet_report import report_dict, write_html
     from canrls.fleet.history import History, HistoryURL
     from canrls.fleet.records import STATUS_OK
-    from canrls.fleet.report import report_dict, write_html
 
     if not args.out and not args.json:
         raise ConfigError("fleet report: give --out DIR (HTML) or --json (or both)")
@@ -222,7 +222,7 @@ def run_report(args: argparse.Namespace) -> int:
         raise ConfigError(f"--db {where.shown}: no such history (canrls fleet ingest "
                           f"makes it)")
     if args.out:
-        from canrls.fleet.report import require_matplotlib
+        from canrls.fleet.fleet_report import require_matplotlib
 
         require_matplotlib()  # before the long part
     with History.open(args.db, upgrade=False, read_only=True) as history:

@@ -74,9 +74,9 @@ def run(args: argparse.Namespace) -> int:
     import can
 
     from canrls.can.estimator_frames import encode_command, frame_ids
-    from canrls.live.bus import bus_config, moved, open_bus
-    from canrls.live.monitor import LibraryUnits, Monitor, parse_command_text
-    from canrls.live.settings import DaemonSettings
+    from canrls.live.bus_link import bus_config, moved, open_bus
+    from canrls.live.daemon_settings import DaemonSettings
+    from canrls.live.monitor_listener import LibraryUnits, Monitor, parse_command_text
     from canrls.processor.config import prepare
 
     for name in ("duration", "interval", "timeout"):
@@ -130,9 +130,9 @@ def _run_axes(args: argparse.Namespace, cfg: Any) -> int:
     """``canrls monitor`` of a machine without ``--axis``: one row per axis."""
     import can
 
-    from canrls.live.bus import bus_config, open_bus
-    from canrls.live.monitor import AxesMonitor, LibraryUnits, Monitor
-    from canrls.live.settings import DaemonSettings
+    from canrls.live.bus_link import bus_config, open_bus
+    from canrls.live.daemon_settings import DaemonSettings
+    from canrls.live.monitor_listener import AxesMonitor, LibraryUnits, Monitor
     from canrls.processor.config import prepare
 
     if args.command:

@@ -120,9 +120,9 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started);
     of the machine's axis ``axis`` (its files its own), else of the one axis."""
     from canrls.fleet.ingest import JobConfig
-    from canrls.live.bus import bus_config
+    from canrls.live.bus_link import bus_config
     from canrls.live.daemon import Daemon
-    from canrls.live.settings import DaemonSettings
+    from canrls.live.daemon_settings import DaemonSettings
     from canrls.processor.config import AppConfig, load_config, prepare, read_toml
 
     over = overrides(args)
@@ -186,7 +186,7 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
     try:
         fixed_path = None
         if dset.fixed == "target":
-            from canrls.firmware.live import LiveTarget
+            from canrls.firmware.target_live import LiveTarget
 
             fixed_path = LiveTarget(protocol, settings)
         return Daemon(protocol, model, settings, dset, bus=bus,
@@ -202,8 +202,8 @@ def _history_hook(cfg: Any, job: Any) -> Any:
     """``[history]``: the fleet history the daemon appends its parameters to, under the
     key of the model ``job`` (a :class:`~canrls.fleet.ingest.JobConfig`) fits."""
     from canrls.fleet.ingest import model_key
-    from canrls.fleet.live import HistorySettings, LiveAppender
-    from canrls.live.history import HistoryHook
+    from canrls.fleet.live_appender import HistorySettings, LiveAppender
+    from canrls.live.history_hook import HistoryHook
 
     settings = HistorySettings.from_table(cfg.history, cfg.source)
     key, desc = model_key(job)
@@ -284,11 +284,11 @@ def run(args: argparse.Namespace) -> int:
 def _build(args: argparse.Namespace) -> Any:
     """The daemon of one axis, or of every axis of a machine (no ``--axis``): each axis
     its own :class:`~canrls.live.daemon.Daemon` in one
-    :class:`~canrls.live.machine.MachineDaemon`, the whole machine checked first."""
+    :class:`~canrls.live.machine_daemon.MachineDaemon`, the whole machine checked first."""
     cfg = setup(args, every_axis=True)
     if len(cfg.axes) < 2 or cfg.axis_name is not None:
         return build_daemon(args)
-    from canrls.live.machine import MachineDaemon
+    from canrls.live.machine_daemon import MachineDaemon
 
     if cfg.history:
         raise ConfigError(f"{cfg.source}: [history] takes one axis (--axis NAME); a machine's "

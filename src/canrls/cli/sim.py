@@ -13,7 +13,7 @@ truth and faults.
 
 ``canrls sim fleet`` writes ``DIR/<drive>/<drive>-<k>.log`` for every drive and
 recording (``--duration`` seconds each, default 6), ``DIR/manifest.csv`` and
-``DIR/truth.json`` (:mod:`canrls.sim.fleet`; docs/fleet.md): a spread of drive types,
+``DIR/truth.json`` (:mod:`canrls.sim.fleet_plan`; docs/fleet.md): a spread of drive types,
 physics, noise and excitation, a few drives wearing.
 """
 
@@ -200,7 +200,7 @@ def with_tuning(sc: Any, feedforward: str | None, gains: str | None) -> Any:
     of a file in N·m (N) become current through the simulated drive's Kt."""
     from dataclasses import replace
 
-    from canrls.control.tune import read_feedforward, read_gains
+    from canrls.control.tuner import read_feedforward, read_gains
     from canrls.sim.plant import Compensation
 
     ctl = sc.controller
@@ -273,7 +273,7 @@ def _fit_options(axes: Any, kind: str) -> str:
 def run_fleet(args: argparse.Namespace) -> int:
     """``canrls sim fleet``."""
     from canrls.cli._common import Progress
-    from canrls.sim.fleet import make_fleet, write_fleet
+    from canrls.sim.fleet_plan import make_fleet, write_fleet
 
     _refuse_drive_options(args, "canrls sim fleet",
                           "each drive's physics, faults and excitation are drawn")

@@ -5,7 +5,7 @@
 
 The first line printed is the answer (what is compensated, the ripple before and after,
 the gains); ``--out DIR`` writes ``feedforward.json``, ``anticogging.csv`` and
-``gains.json`` (:mod:`canrls.control.tune`; docs/tune.md).
+``gains.json`` (:mod:`canrls.control.tuner`; docs/tune.md).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ __all__ = ["add_subparser", "run"]
 
 
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
-    from canrls.control.settings import (
+    from canrls.control.tune_limits import (
         DEFAULT_DELAY,
         DEFAULT_MARGIN,
         DEFAULT_POINTS,
@@ -99,7 +99,7 @@ def _saved(args: argparse.Namespace) -> Any:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.control.tune import TuneRequest, tune
+    from canrls.control.tuner import TuneRequest, tune
     from canrls.core.files import check_path, output_dir
 
     if args.out is not None:

@@ -1,7 +1,7 @@
 """``canrls validate LOG [LOG ...] --model FILE``: a saved model against other recordings.
 
 Predicts the logs with the parameters of a model saved by ``canrls fit --save-model``
-without re-estimating anything (:mod:`canrls.diagnosis.validate`) and reports fit %,
+without re-estimating anything (:mod:`canrls.diagnosis.validation`) and reports fit %,
 residual RMS (overall and per log) and where the model fails. The DBC and mapping
 default to the file's; options that would change the model are refused. ``--report``
 and ``--json``: docs/model_file.md, "``canrls validate``".
@@ -44,7 +44,7 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canrls.diagnosis.validate import validate_logs
+    from canrls.diagnosis.validation import validate_logs
     from canrls.processor.axes import AXIS_KINDS
     from canrls.processor.config import AppConfig
     from canrls.processor.modelfile import SavedModel

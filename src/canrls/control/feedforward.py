@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from canrls.control.settings import DEFAULT_SHARE, MAX_POINTS
+from canrls.control.tune_limits import DEFAULT_SHARE, MAX_POINTS
 from canrls.core.checks import is_real
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import MECHANICAL, Effect, Frame

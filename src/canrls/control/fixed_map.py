@@ -16,7 +16,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from canrls.control.settings import MAX_POINTS
+from canrls.control.tune_limits import MAX_POINTS
 from canrls.core.c_escape import c_comment, c_int
 from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError

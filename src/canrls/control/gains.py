@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from canrls.control.settings import DEFAULT_MARGIN
+from canrls.control.tune_limits import DEFAULT_MARGIN
 from canrls.core.errors import ConfigError
 
 __all__ = ["Loop", "SpeedGains", "for_bandwidth", "symmetric_optimum", "check_bandwidth"]

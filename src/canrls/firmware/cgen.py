@@ -1,6 +1,6 @@
 """The C of one model for the target: ``canrls_model.h`` and ``canrls_model.c``.
 
-:func:`model_files` renders a :class:`~canrls.firmware.model.TargetModel` as the constant
+:func:`model_files` renders a :class:`~canrls.firmware.target_model.TargetModel` as the constant
 ``canrls_model`` that ``src/canrls/c/firmware/canrls_target.c`` runs on. Every number goes
 through :mod:`canrls.core.c_escape` (integers in the range of their C type), every name and
 unit of the user's model or DBC as comment text or a string literal; nothing else
@@ -12,7 +12,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from canrls.core.c_escape import c_comment, c_int, c_name_part, c_string, c_uint
-from canrls.firmware.model import (
+from canrls.firmware.qmath import dyadic
+from canrls.firmware.target_model import (
     OUT_FRAMES,
     SOURCE_NAMES,
     Column,
@@ -20,7 +21,6 @@ from canrls.firmware.model import (
     Field,
     TargetModel,
 )
-from canrls.firmware.qmath import dyadic
 
 __all__ = ["model_files", "plan_text"]
 

@@ -20,7 +20,7 @@ from typing import Any
 from canrls.can.protocol import Protocol
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
-from canrls.firmware.model import TargetModel, build
+from canrls.firmware.target_model import TargetModel, build
 from canrls.processor.config import AppConfig
 from canrls.processor.period import control_period
 
@@ -76,6 +76,6 @@ def load(path: str | Path, dt: float | None = None, axis: str | None = None) -> 
 
 
 def target_model(src: Source, *, frames: bool = True, tick_s: float = 1e-6) -> TargetModel:
-    """The integers of ``src`` on the target (:func:`canrls.firmware.model.build`)."""
+    """The integers of ``src`` on the target (:func:`canrls.firmware.target_model.build`)."""
     return build(src.model, src.protocol, src.settings, src.dt, energy=src.energy,
                  pending=src.pending, tick_s=tick_s, frames=frames, source=src.label)

@@ -2,7 +2,8 @@
 
 :class:`TargetEstimator` takes the drive's CAN frames one at a time (ID, payload bytes,
 receive time in ticks) and runs, for the integers of a
-:class:`~canrls.firmware.model.TargetModel`, what ``src/canrls/c/firmware/canrls_target.c`` runs:
+:class:`~canrls.firmware.target_model.TargetModel`, what
+``src/canrls/c/firmware/canrls_target.c`` runs:
 the same names, the same order of operations, each line with its equation beside it.
 Python integers do not overflow; where the C needs a split or a bound to stay in
 ``int64_t``, :mod:`canrls.firmware.qmath` says how and the bound is built into the model.
@@ -23,18 +24,6 @@ import numpy as np
 
 from canrls.can.e2e import CRC8_TABLE
 from canrls.estimation.fixed.estimator import FixedRLS
-from canrls.firmware.model import (
-    SRC_CONST,
-    SRC_COS,
-    SRC_RAW,
-    SRC_SIN,
-    SRC_STRIBECK,
-    SRC_TANH,
-    W_FRAC,
-    Column,
-    EquationSpec,
-    TargetModel,
-)
 from canrls.firmware.qmath import (
     MASK32,
     MASK64,
@@ -52,6 +41,18 @@ from canrls.firmware.qmath import (
     scale_p64,
     sincos_q64,
     tanh_q24,
+)
+from canrls.firmware.target_model import (
+    SRC_CONST,
+    SRC_COS,
+    SRC_RAW,
+    SRC_SIN,
+    SRC_STRIBECK,
+    SRC_TANH,
+    W_FRAC,
+    Column,
+    EquationSpec,
+    TargetModel,
 )
 
 __all__ = ["TargetEstimator", "EquationState", "REJECTS", "SAMPLE", "PUBLISH", "trace_max_float"]

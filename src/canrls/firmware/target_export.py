@@ -25,7 +25,7 @@ from canrls.core.c_escape import check_text
 from canrls.core.files import write_texts
 from canrls.firmware.cgen import model_files
 from canrls.firmware.load import Source
-from canrls.firmware.model import SOURCE_NAMES, TargetModel
+from canrls.firmware.target_model import SOURCE_NAMES, TargetModel
 from canrls.firmware.vectors import Vectors, log_frames, record, vectors_header
 
 __all__ = ["TARGET_FILES", "TEST_FILES", "TargetExport", "export_target", "readme",

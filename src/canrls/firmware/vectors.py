@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from canrls.can.frameblock import FrameBlock
-from canrls.firmware.model import TargetModel
 from canrls.firmware.qmath import MASK32
 from canrls.firmware.spec import PUBLISH, SAMPLE, TargetEstimator
+from canrls.firmware.target_model import TargetModel
 
 __all__ = ["Frame", "Vectors", "block_frames", "log_frames", "record", "state_record",
            "vectors_header"]

@@ -7,7 +7,7 @@
 * :mod:`canrls.fleet.history`: the history (SQLAlchemy; SQLite or PostgreSQL), its
   schema versioned by the Alembic migrations in ``migrations/``;
 * :mod:`canrls.fleet.detect`: change, drift and outlier detection that respects each
-  recording's sigma; :mod:`canrls.fleet.report`: the HTML page and the JSON.
+  recording's sigma; :mod:`canrls.fleet.fleet_report`: the HTML page and the JSON.
 
 ``docs/fleet.md`` has the commands, the schema and the statistics.
 """

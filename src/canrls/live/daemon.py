@@ -39,7 +39,7 @@ from canrls.estimation.estimates import Estimates
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
 from canrls.estimation.settings import EstimatorSettings
-from canrls.live.bus import (
+from canrls.live.bus_link import (
     COMMAND_ID,
     BusLink,
     FrameQueue,
@@ -49,12 +49,12 @@ from canrls.live.bus import (
 )
 from canrls.live.checkpoint import Checkpointer
 from canrls.live.commands import CommandHandler, TokenBucket
-from canrls.live.history import HistoryHook
+from canrls.live.daemon_settings import DaemonSettings
+from canrls.live.history_hook import HistoryHook
 from canrls.live.journal import JOURNAL, Journal
 from canrls.live.publisher import FixedPath, Publisher, check_publishable
 from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
-from canrls.live.settings import DaemonSettings
 from canrls.live.tuning import interpreter
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig
@@ -161,8 +161,8 @@ class Daemon:
     :param model: the configured model (a checkpoint may resume with effects added to it).
     :param settings: estimator settings (as ``canrls fit``).
     :param daemon: the ``[daemon]`` settings.
-    :param bus: bus arguments for :func:`~canrls.live.bus.open_bus` (from
-        :func:`~canrls.live.bus.bus_config`).
+    :param bus: bus arguments for :func:`~canrls.live.bus_link.open_bus` (from
+        :func:`~canrls.live.bus_link.bus_config`).
     :param bus_factory: opens the bus instead (tests: a faulty bus); called again to reopen.
     :param reload: returns the configured model again (SIGHUP); None: reload does nothing.
     :param notifier: systemd notifications (default: from ``$NOTIFY_SOCKET``).
@@ -172,7 +172,7 @@ class Daemon:
         ``(frames processed so far, time.monotonic() when its parameter frames had
         been sent)`` (benchmarks).
     :param history: offered the estimates after each publication, closed at stop
-        (``[history]``: :class:`~canrls.live.history.HistoryHook`).
+        (``[history]``: :class:`~canrls.live.history_hook.HistoryHook`).
     :param configuration: what produced the model, kept in the file the command
         ``save_model`` writes to ``[daemon] saved_model`` (default: none recorded).
     :param fixed_path: computes the published fixed column from the frames (``canrls

@@ -6,7 +6,7 @@ Every ``publish_interval`` (0: after every block): ``RlsEstimate``/``RlsSigma``/
 ``RlsParamInfo``, ``RlsCounters`` and ``RlsRejects``. Everything comes from the public
 results of the pipeline (:meth:`~canrls.estimation.pipeline.Pipeline.estimates`) and of each block
 (:class:`~canrls.estimation.pipeline.PipelineBlock`); the frames go out through
-:meth:`canrls.live.bus.BusLink.send`, which never blocks.
+:meth:`canrls.live.bus_link.BusLink.send`, which never blocks.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ from canrls.estimation.model import Model
 from canrls.estimation.physics import check_physics
 from canrls.estimation.pipeline import Pipeline
 from canrls.estimation.rls import RLSFlag
-from canrls.live.bus import BusLink
-from canrls.live.settings import DaemonSettings
+from canrls.live.bus_link import BusLink
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.processor import FrameProcessor
 
 __all__ = ["Publisher", "FixedPath", "check_publishable", "model_layout", "parameter_layout"]
@@ -50,7 +50,7 @@ _IDLE_S = 0.25
 
 class FixedPath(typing.Protocol):
     """The fixed-point column computed from the frames themselves (``canrls run``: the
-    target's integer path, :class:`canrls.firmware.live.LiveTarget`)."""
+    target's integer path, :class:`canrls.firmware.target_live.LiveTarget`)."""
 
     def feed(self, block: FrameBlock, proc: FrameProcessor) -> None:
         """The frames of a block the processor has processed."""

@@ -6,7 +6,7 @@ socket (``bus.socket``): :class:`SocketcanReceiver` waits on it with the interpr
 lock released and takes every frame waiting in one ``recvmmsg`` (the C extension
 ``canrls._rx``), straight into the arrays of a :class:`~canrls.can.frameblock.FrameBlock`.
 The block is, field for field, what python-can's ``recv`` and
-:func:`canrls.live.bus.messages_to_block` make of the same datagrams (the timestamp of
+:func:`canrls.live.bus_link.messages_to_block` make of the same datagrams (the timestamp of
 ``SO_TIMESTAMPNS``, the id and its EFF/RTR/ERR flags, the data length and bytes of a
 classic 16-byte ``struct can_frame`` and a 72-byte ``canfd_frame``), without a
 ``can.Message`` per frame: ``docs/daemon.md``, *The reader*.
@@ -93,7 +93,7 @@ class Span:
 def to_block(spans: list[Span]) -> FrameBlock:
     """One block of the frames of ``spans`` (in order; spans that follow each other in
     an arena are copied in one piece): field for field what python-can's ``recv`` and
-    :func:`canrls.live.bus.messages_to_block` give, the data as wide as the longest (at
+    :func:`canrls.live.bus_link.messages_to_block` give, the data as wide as the longest (at
     least 8)."""
     runs: list[Span] = []
     for s in spans:

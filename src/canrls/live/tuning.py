@@ -12,7 +12,7 @@ __all__ = ["InterpreterTuning", "interpreter"]
 class InterpreterTuning:
     """Process-wide settings for latency while at least one daemon runs.
 
-    * The bus reader (:class:`canrls.live.bus.BusReader`) and the estimator share the GIL.
+    * The bus reader (:class:`canrls.live.bus_link.BusReader`) and the estimator share the GIL.
       With CPython's default switch interval (5 ms) a thread that is ready waits up
       to 5 ms while another runs Python code without blocking, e.g. the reader
       taking frames already queued by python-can's virtual bus. ``switch_interval``

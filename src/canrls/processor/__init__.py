@@ -21,8 +21,7 @@ from canrls.processor.calibration import (
     sample_period,
     scan_ranges,
 )
-from canrls.processor.frames import SEEN_IDS, FrameProcessor
-from canrls.processor.results import (
+from canrls.processor.fit_result import (
     AxisInfo,
     FileShift,
     FitResult,
@@ -32,6 +31,7 @@ from canrls.processor.results import (
     TargetRun,
     epoch_date,
 )
+from canrls.processor.frames import SEEN_IDS, FrameProcessor
 
 __all__ = ["AxisInfo", "Calibration", "FileShift", "FitResult", "FrameCounts", "FrameProcessor",
            "MIN_ENERGY", "PeriodInfo", "RESTORE_PERIOD_TOLERANCE", "RMS_HEADROOM", "RangeScanner",

@@ -187,7 +187,7 @@ class AppConfig:
     signals: dict[str, Any] = field(default_factory=dict)
     daemon: dict[str, Any] = field(default_factory=dict)
     monitor: dict[str, Any] = field(default_factory=dict)
-    #: ``[history]``: where ``canrls run`` appends its parameters (canrls.fleet.live)
+    #: ``[history]``: where ``canrls run`` appends its parameters (canrls.fleet.live_appender)
     history: dict[str, Any] = field(default_factory=dict)
     #: ``[fleet]``: what ``canrls fleet report`` alerts on (canrls.fleet.detect)
     fleet: dict[str, Any] = field(default_factory=dict)

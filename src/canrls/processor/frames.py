@@ -22,6 +22,14 @@ from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
 from canrls.estimation.settings import EstimatorSettings
 from canrls.processor.calibration import Calibration, SampleProcessor, dbc_ranges
+from canrls.processor.fit_result import (
+    AxisInfo,
+    FitResult,
+    FrameCounts,
+    PeriodInfo,
+    StartInfo,
+    epoch_date,
+)
 from canrls.processor.pairing import Pairer, PairingCounts
 from canrls.processor.period import (
     MIN_INTERVALS,
@@ -30,14 +38,6 @@ from canrls.processor.period import (
     check_period,
 )
 from canrls.processor.reorder import Reorderer
-from canrls.processor.results import (
-    AxisInfo,
-    FitResult,
-    FrameCounts,
-    PeriodInfo,
-    StartInfo,
-    epoch_date,
-)
 from canrls.processor.times import TimeJudge
 
 __all__ = ["SEEN_IDS", "FrameProcessor", "unmapped_error"]

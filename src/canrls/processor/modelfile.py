@@ -25,7 +25,7 @@ from canrls.processor.config import AppConfig
 if TYPE_CHECKING:
     from canrls.estimation.estimates import Estimates
     from canrls.processor.calibration import Calibration
-    from canrls.processor.results import FitResult
+    from canrls.processor.fit_result import FitResult
 
 __all__ = ["FORMAT", "VERSION", "SavedModel"]
 

@@ -29,8 +29,7 @@ from canrls.estimation.estimates import Estimates, PipelineBlock
 from canrls.estimation.model import Model
 from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.settings import EstimatorSettings
-from canrls.processor.frames import FrameProcessor
-from canrls.processor.results import (
+from canrls.processor.fit_result import (
     FileShift,
     FitResult,
     FrameCounts,
@@ -38,6 +37,7 @@ from canrls.processor.results import (
     PeriodInfo,
     StartInfo,
 )
+from canrls.processor.frames import FrameProcessor
 
 __all__ = ["FILE_GAP_S", "LogFiles", "LogsSamples", "MIN_SAMPLES_PER_PARAMETER", "fit_axes",
            "fit_frames", "fit_log", "fit_logs", "read_logs", "too_few_samples"]

@@ -3,9 +3,9 @@
 * :func:`simulate` runs a :class:`Scenario` (from :func:`scenario`) and returns a
   :class:`SimResult`: true and measured :class:`~canrls.core.samples.Signals`, the
   :class:`Truth`, the noise floor and the feedback frames.
-* :class:`~canrls.sim.bus.SimBus` is the same drive as a python-can interface
+* :class:`~canrls.sim.interface.SimBus` is the same drive as a python-can interface
   (``can.Bus(interface="canrls-sim", channel="standard")``); it is imported lazily
-  (``canrls.sim.bus``) so that the physics do not pull in the bus machinery.
+  (``canrls.sim.interface``) so that the physics do not pull in the bus machinery.
 * :mod:`canrls.sim.faults` injects drops, duplicates, reordering, corruption and silence.
 
 The physics follow ``docs/architecture.md``; see ``docs/simulator.md``.

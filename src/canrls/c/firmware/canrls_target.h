@@ -69,7 +69,7 @@ extern "C" {
 enum canrls_role { CANRLS_CURRENT = 0, CANRLS_SPEED, CANRLS_POSITION, CANRLS_VOLTAGE,
                    CANRLS_TORQUE };
 
-/** Filter inputs (canrls.firmware.model SRC_*). */
+/** Filter inputs (canrls.firmware.target_model SRC_*). */
 enum canrls_source { CANRLS_SRC_RAW = 0, CANRLS_SRC_TANH, CANRLS_SRC_STRIBECK,
                      CANRLS_SRC_SIN, CANRLS_SRC_COS, CANRLS_SRC_CONST };
 
@@ -140,7 +140,7 @@ typedef struct {
     int32_t e;
 } canrls_dyadic;
 
-/** The integers of one equation (canrls.firmware.model.EquationSpec). */
+/** The integers of one equation (canrls.firmware.target_model.EquationSpec). */
 typedef struct {
     uint32_t n;
     uint8_t index;       /**< DBC Equation: 0 mechanical, 1 electrical */

@@ -6,7 +6,7 @@
  * can.Message for every frame. recv() here waits on the same socket with the GIL
  * released (ppoll with a timeout), then takes every frame waiting with recvmmsg
  * (MSG_DONTWAIT) and writes them into the arrays of a canrls FrameBlock, field for
- * field as python-can's capture_message + canrls.live.bus.messages_to_block:
+ * field as python-can's capture_message + canrls.live.bus_link.messages_to_block:
  *
  *   t               seconds + nanoseconds * 1e-9 of the SO_TIMESTAMPNS control message
  *                   (python-can's "@ll" timespec, the same two double operations)

@@ -2,7 +2,7 @@
 
 The modules, lowest first: ``layout`` (the C kernel's enums and sites), ``formats`` (Q
 formats, :class:`FixedConfig`, :class:`SaturationCounts`), ``kernels`` (the integer
-arithmetic, in C or in Python), ``plan`` (the shifts of one update), ``results`` (per-step
+arithmetic, in C or in Python), ``plan`` (the shifts of one update), ``trace`` (per-step
 and per-run results), ``estimator`` (:class:`FixedRLS`) and ``sweep`` (the word-length
 sweep of ``canrls fixed-sweep``). The names a user needs are imported here.
 """
@@ -15,7 +15,7 @@ from canrls.estimation.fixed.formats import (
     QFormat,
     SaturationCounts,
 )
-from canrls.estimation.fixed.results import FixedStep, FixedTrace
+from canrls.estimation.fixed.trace import FixedStep, FixedTrace
 
 __all__ = ["QFormat", "FixedConfig", "FixedFlag", "SaturationCounts", "FixedStep",
            "FixedTrace", "FixedRLS", "SITES"]

@@ -13,7 +13,7 @@ specification in detail*.
 
 The Q formats and the configuration are in :mod:`canrls.estimation.fixed.formats`,
 the plan of shifts in :mod:`canrls.estimation.fixed.plan`, the result objects in
-:mod:`canrls.estimation.fixed.results` and the word-length sweep in
+:mod:`canrls.estimation.fixed.trace` and the word-length sweep in
 :mod:`canrls.estimation.fixed.sweep`; the package (:mod:`canrls.estimation.fixed`)
 imports the names a user needs.
 """
@@ -46,7 +46,7 @@ from canrls.estimation.fixed.formats import (
     round_inputs,
 )
 from canrls.estimation.fixed.plan import build_plan
-from canrls.estimation.fixed.results import FixedStep, FixedTrace
+from canrls.estimation.fixed.trace import FixedStep, FixedTrace
 from canrls.estimation.rls import ridge_value
 
 IntArray = npt.NDArray[np.int64]

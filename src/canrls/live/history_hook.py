@@ -4,7 +4,7 @@
 thread: a clock check, nothing more, unless a snapshot is due) and passes one snapshot
 every ``interval`` seconds, and the last one at stop, to a writer thread that calls
 ``append`` (``canrls run`` hands in the fleet history's
-:class:`~canrls.fleet.live.LiveAppender`). A slow or failing database never holds the
+:class:`~canrls.fleet.live_appender.LiveAppender`). A slow or failing database never holds the
 estimator: snapshots wait in a short queue, the oldest dropped (counted) when it is
 full, and a failed append is logged and counted.
 """

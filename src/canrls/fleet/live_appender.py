@@ -76,7 +76,7 @@ class HistorySettings:
 
 
 class LiveAppender:
-    """Stores a daemon's snapshots (:class:`canrls.live.history.Snapshot`) as recordings."""
+    """Stores a daemon's snapshots (:class:`canrls.live.history_hook.Snapshot`) as recordings."""
 
     def __init__(self, history: History, settings: HistorySettings, model_key: str,
                  model: str) -> None:

@@ -29,8 +29,8 @@ import numpy as np
 from canrls.can.estimator_frames import frame_ids
 from canrls.can.frameblock import FrameBlock
 from canrls.core.errors import BusError, ConfigError
+from canrls.live.daemon_settings import DaemonSettings
 from canrls.live.journal import JOURNAL
-from canrls.live.settings import DaemonSettings
 from canrls.live.socketcan import (
     SocketcanReceiver,
     Span,

@@ -162,7 +162,7 @@ class FileShift:
 @dataclass(frozen=True)
 class TargetRun:
     """What the target's integer path ran when it gave a fit's fixed column
-    (``canrls fit --fixed target``, :mod:`canrls.firmware.fit`)."""
+    (``canrls fit --fixed target``, :mod:`canrls.firmware.target_fit`)."""
 
     samples: int
     #: updates and rescales of each equation's estimator

@@ -1,9 +1,9 @@
 """``canrls fit``'s fixed-point column from the target's integers.
 
-``canrls fit``'s fixed column (and the daemon's, :mod:`canrls.firmware.live`) is
+``canrls fit``'s fixed column (and the daemon's, :mod:`canrls.firmware.target_live`) is
 :class:`~canrls.firmware.spec.TargetEstimator` run over
 the same logs' frames with the fit's own calibration (its exponents, column energies,
-pending columns and period; :func:`canrls.firmware.model.build`): the frames decoded,
+pending columns and period; :func:`canrls.firmware.target_model.build`): the frames decoded,
 paired, filtered, selected and rescaled in integers, as the C of ``canrls export-c``
 runs them. A model saved by that fit (``--save-model``) exports to C that reproduces
 these fixed values and every parameter frame bit for bit from the same frames
@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from canrls.can.protocol import Protocol
 from canrls.estimation.estimates import divergence
 from canrls.estimation.settings import EstimatorSettings
-from canrls.firmware.model import TargetModel, build
 from canrls.firmware.spec import PUBLISH, TargetEstimator
+from canrls.firmware.target_model import TargetModel, build
 from canrls.firmware.vectors import log_frames
 from canrls.processor import FitResult, TargetRun
 from canrls.processor.period import control_period
@@ -51,7 +51,7 @@ def target_fixed(res: FitResult, paths: Sequence[str | os.PathLike[str]],
     target's, and ``fixed`` (a :class:`~canrls.processor.TargetRun`) says what it ran
     (samples, updates, rescales, the frames it rejected or dropped and why).
 
-    :raises canrls.firmware.model.TargetError: the model cannot run on the target (a user
+    :raises canrls.firmware.target_model.TargetError: the model cannot run on the target (a user
         term).
     """
     tm = fit_model(res, protocol, settings)

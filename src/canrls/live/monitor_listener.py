@@ -45,7 +45,7 @@ from canrls.core.effect_names import EffectId
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import parse_effect, target_unit
 from canrls.estimation.model import Model
-from canrls.live.bus import moved
+from canrls.live.bus_link import moved
 
 __all__ = ["AxesMonitor", "AxesView", "LibraryUnits", "Monitor", "MonitorView", "axis_rows",
            "parse_command_text"]

@@ -18,7 +18,7 @@ from typing import Any
 
 from canrls.control.feedforward import Feedforward, check_points, feedforward
 from canrls.control.gains import Loop, SpeedGains, for_bandwidth, symmetric_optimum
-from canrls.control.settings import DEFAULT_DELAY, DEFAULT_MARGIN, DEFAULT_POINTS, DEFAULT_SHARE
+from canrls.control.tune_limits import DEFAULT_DELAY, DEFAULT_MARGIN, DEFAULT_POINTS, DEFAULT_SHARE
 from canrls.core.checks import is_positive, is_real
 from canrls.core.errors import ConfigError
 from canrls.core.files import MAX_MODEL_BYTES, atomic_writer, check_writable, read_text

@@ -14,9 +14,9 @@ import logging
 from canrls.can.frameblock import FrameBlock
 from canrls.can.protocol import Protocol
 from canrls.estimation.settings import EstimatorSettings
-from canrls.firmware.fit import fit_model
-from canrls.firmware.model import TargetError
 from canrls.firmware.spec import PUBLISH, TargetEstimator
+from canrls.firmware.target_fit import fit_model
+from canrls.firmware.target_model import TargetError
 from canrls.firmware.vectors import Frame, block_frames
 from canrls.processor import FrameProcessor
 
