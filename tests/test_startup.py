@@ -1,12 +1,13 @@
 """What a command loads: one kernel language, and nothing a command does not use.
 
 The kernels are C extensions built at installation (``setup.py``): no module of canrls
-imports a JIT compiler. ``canrls run`` loads neither the simulator nor the diagnosis,
-``canrls fit`` none of matplotlib, scipy, jinja2 and tqdm (a progress bar loads tqdm when
-it is drawn), and ``canrls fit --help`` neither numpy nor cantools: what a process does
-not import costs it no start-up time (docs/architecture.md, *Start-up*); a command's
-process runs numpy's BLAS in one thread unless told otherwise. Each command runs in a
-fresh interpreter, so other tests' imports do not count.
+imports a JIT compiler. ``canrls run`` loads neither the simulator nor the diagnosis (nor,
+of one axis or a machine's, the fleet without a ``[history]``), ``canrls fit`` none of
+matplotlib, scipy, jinja2 and tqdm (a progress bar loads tqdm when it is drawn), and
+``canrls fit --help`` neither numpy nor cantools: what a process does not import costs it
+no start-up time (docs/architecture.md, *Start-up*); a command's process runs numpy's
+BLAS in one thread unless told otherwise. Each command runs in a fresh interpreter, so
+other tests' imports do not count.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ with contextlib.redirect_stdout(io.StringIO()):
         code = e.code
 assert code == 0, code
 WATCH = {"numba", "llvmlite", "numpy", "cantools", "matplotlib", "scipy", "jinja2", "tqdm",
-         "canrls.sim", "canrls.diagnosis"}
+         "canrls.sim", "canrls.diagnosis", "canrls.fleet"}
 names = {".".join(m.split(".")[:2]) if m.startswith("canrls.") else m.split(".")[0]
          for m in sys.modules}
 print(json.dumps(sorted(names & WATCH)))
@@ -59,6 +60,15 @@ def test_no_module_imports_a_jit_compiler() -> None:
 def test_the_daemon_loads_neither_the_simulator_nor_the_diagnosis(tmp_path: Path) -> None:
     loaded = _loaded(["run", "-i", "virtual", "-c", f"canrls-startup-{os.getpid()}",
                       "--duration", "0.5"], tmp_path)
+    assert loaded == {"numpy", "cantools"}
+
+
+def test_a_machine_daemon_loads_neither_the_fleet_nor_the_simulator(tmp_path: Path) -> None:
+    cfg = tmp_path / "machine.toml"
+    cfg.write_text('[model]\nkt = 0.1\n[[axes]]\nname = "a"\n'
+                   '[[axes]]\nname = "b"\nids = "offset:0x10"\n')
+    loaded = _loaded(["run", "--config", str(cfg), "-i", "virtual", "-c",
+                      f"canrls-startup-m-{os.getpid()}", "--duration", "0.2"], tmp_path)
     assert loaded == {"numpy", "cantools"}
 
 

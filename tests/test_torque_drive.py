@@ -136,7 +136,7 @@ def test_fit_finds_the_drive_in_newton_metres_without_kt(
     got = _json(capsys, ["fit", str(drive["cia"]), *MAP, "-e", EFFECTS])
     own = _json(capsys, ["fit", str(drive["own"]), "--kt", str(drive["kt"]), "-e", EFFECTS])
     assert got["unit"] == "N·m" and got["equations"]["mechanical"]["unit"] == "N·m"
-    assert got["axis"]["target"] == "the torque the drive reports, TPDO1.TorqueActual [N·m], " \
+    assert got["axis"]["output"] == "the torque the drive reports, TPDO1.TorqueActual [N·m], " \
                                     "no Kt"
     assert got["axis"]["ratings"] == {"rated_torque": RATED_TORQUE,
                                       "increments_per_rev": INCREMENTS}
@@ -152,13 +152,13 @@ def test_fit_finds_the_drive_in_newton_metres_without_kt(
     assert got["fit_percent"] > 99
 
 
-def test_the_text_names_the_target_and_the_ratings(
+def test_the_text_names_the_output_and_the_ratings(
         drive: dict[str, Any], capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["fit", str(drive["cia"]), *MAP, "-e", EFFECTS, "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "axis rotary (DBC units: speed inc/s, position inc, torque ‰)" in out
     assert "ratings: rated torque 0.32 N·m, 131072 increments per revolution" in out
-    assert "mechanical target: the torque the drive reports, TPDO1.TorqueActual [N·m], " \
+    assert "mechanical output: the torque the drive reports, TPDO1.TorqueActual [N·m], " \
            "no Kt" in out
 
 
@@ -180,7 +180,7 @@ def test_a_missing_rating_names_the_signal_and_the_flag(
 
 @pytest.mark.parametrize("args, message", [
     (["--kt", "0.1"], "--kt 0.1: the drive reports its torque (TPDO1.TorqueActual), the "
-                      "mechanical target: the parameters come out in N·m (linear axis: N) "
+                      "mechanical output: the parameters come out in N·m (linear axis: N) "
                       "without Kt; leave Kt out"),
     (["--rated-torque", "-0.32"], "--rated-torque -0.32: must be a positive number "
                                   "(N·m; linear axis: N)"),
@@ -198,7 +198,7 @@ def test_mistakes_with_a_torque_signal_name_the_flag(
 def test_the_configuration_file_gives_the_same_mapping_and_ratings(
         drive: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     flags = _json(capsys, ["fit", str(drive["cia"]), *MAP, "-e", EFFECTS])
-    # current and torque both mapped: the torque stays the mechanical target, so the
+    # current and torque both mapped: the torque stays the mechanical output, so the
     # mechanical parameters are the same bit for bit
     toml = tmp_path / "servo.toml"
     toml.write_text(f"""\
@@ -219,11 +219,11 @@ increments_per_rev = {INCREMENTS}
     assert both["parameters"] == flags["parameters"]
     assert both["axis"]["units"]["current"] == "‰"
     # ... unless the file says to identify on the current, with Kt
-    text = toml.read_text().replace("[model]\n", f"[model]\ntarget = \"current\"\n"
+    text = toml.read_text().replace("[model]\n", f"[model]\noutput = \"current\"\n"
                                                  f"kt = {drive['kt']}\n")
     toml.write_text(text)
     on_current = _json(capsys, ["fit", str(drive["cia"]), "--config", str(toml)])
-    assert "target" not in on_current["axis"]
+    assert "output" not in on_current["axis"]
     for name, p in on_current["parameters"].items():
         q = flags["parameters"][name]
         assert abs(p["value"] - q["value"]) <= p["sigma"] + q["sigma"], (name, p, q)
@@ -241,7 +241,7 @@ def test_diagnose_names_the_missing_friction_in_newton_metres(
     assert c["parameters"]["coulomb.Tc"]["unit"] == "N·m"
     assert c["parameters"]["coulomb.Tc"]["value"] == pytest.approx(
         drive["truth"]["coulomb.Tc"], rel=0.01)
-    # where it fails is binned by the torque (the target's signal), not by a current
+    # where it fails is binned by the torque (the output's signal), not by a current
     quantities = {r["quantity"] for r in d["regions"]}
     assert "current" not in quantities and quantities <= {
         "speed", "position", "torque", "acceleration", "time"}
@@ -250,7 +250,7 @@ def test_diagnose_names_the_missing_friction_in_newton_metres(
 def test_validate_reuses_the_saved_torque_mapping_and_ratings(
         drive: dict[str, Any], saved: Path, capsys: pytest.CaptureFixture[str]) -> None:
     model = json.loads(saved.read_text())
-    assert model["model"]["target"] == "torque" and "kt" not in model["model"]
+    assert model["model"]["output"] == "torque" and "kt" not in model["model"]
     assert model["configuration"]["signals"] == {"rated_torque": RATED_TORQUE,
                                                  "increments_per_rev": INCREMENTS}
     assert model["configuration"]["signal_overrides"] == TORQUE
@@ -305,7 +305,7 @@ def test_a_checkpoint_of_the_daemon_keeps_the_torque(drive: dict[str, Any],
                     saved_at=0.0)
     save_checkpoint(tmp_path / "cp.bin", cp)
     cp = load_checkpoint(tmp_path / "cp.bin")
-    assert cp.model["target"] == "torque" and "torque" in cp.state["window"]
+    assert cp.model["output"] == "torque" and "torque" in cp.state["window"]
     assert "current" not in cp.state["window"]
     b = FrameProcessor(protocol, model, settings)
     b.restore(cp.state, Model.from_dict(cp.model))
@@ -317,7 +317,7 @@ def test_a_checkpoint_of_the_daemon_keeps_the_torque(drive: dict[str, Any],
         assert p.unit == q.unit and abs(p.value - q.value) <= q.sigma, (p, q)
 
 
-def test_export_c_states_the_torque_target_and_its_scaling(saved: Path, tmp_path: Path) -> None:
+def test_export_c_states_the_torque_output_and_its_scaling(saved: Path, tmp_path: Path) -> None:
     out = tmp_path / "c"
     with contextlib.redirect_stdout(io.StringIO()):
         assert main(["export-c", "--model", str(saved), "--out", str(out)]) == 0

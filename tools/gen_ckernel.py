@@ -177,7 +177,7 @@ def log_stream(log: Path | None = None, effects: str = "inertia,viscous,coulomb,
             b = block.equations[0]  # type: ignore[attr-defined]
             if b.phi is not None and len(b.used):
                 rows.append(b.phi[b.used])
-                ys.append(np.ldexp(b.y[b.used], -eq.scaling.target))
+                ys.append(np.ldexp(b.y[b.used], -eq.scaling.output))
 
         for frames in read_frames(log):
             keep(proc.process(frames, True))

@@ -59,6 +59,22 @@ def test_faults_and_linear_axis(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert not np.any((t >= 1.0) & (t < 1.5))
 
 
+def test_a_machine_says_what_it_wrote_on_stdout(tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """canrls sim --axes N as plain canrls sim: the summary, then each axis's truth, on
+    stdout (the first line the answer), nothing on stderr."""
+    out = tmp_path / "machine.log"
+    assert main(["sim", "--out", str(out), "--duration", "0.2", "--axes", "2",
+                 "--seed", "4"]) == 0
+    out_err = capsys.readouterr()
+    assert out_err.err == ""
+    lines = out_err.out.splitlines()
+    n = len(list(can.LogReader(str(out))))
+    assert lines[0].startswith(f"canrls sim: wrote {n} frames of 2 axes to {out} (0.2 s, "
+                               f"scenario standard, seed 4; canrls fit --axes offset:")
+    assert len(lines) == 3 and all(" truth: inertia.J=" in x for x in lines[1:])
+
+
 def test_other_log_formats(tmp_path: Path) -> None:
     out = tmp_path / "drive.asc"
     assert main(["sim", "--out", str(out), "--duration", "0.1", "--scenario", "poor"]) == 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -494,3 +495,42 @@ def test_the_c_friction_is_the_specification_bit_for_bit(tmp_path: Path) -> None
     exact = 1e-4 * w + (0.02 + 0.01 * np.exp(-w**2)) * sg
     err = np.abs(np.array(want) * 2.0**-fr.frac - exact)
     assert np.all(err <= 0.03 * 2e-4 + 4 * 2.0**-fr.frac + np.abs(w) * 2.0**-(fr.frac + 1))
+
+
+@pytest.mark.parametrize("form", ["table", "harmonics"])
+def test_export_c_feedforward_reads_the_model_once_and_declares_in_one_guard(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+        form: str) -> None:
+    """export-c --feedforward read the saved model twice (once for the map, once for the
+    export) and put the friction's declaration into the map's header by replacing its
+    #endif. One read; the header is generated whole: one include guard around the
+    declarations of every function the .c defines, each declared once."""
+    model = saved_model(tmp_path, lambda d: (
+        d.update(effects=d["effects"] + ["viscous", "coulomb"]),
+        d["model"].update(effects=d["effects"]),
+        d["parameters"].update({"viscous.B": {"value": 1e-4, "sigma": 1e-7},
+                                "coulomb.Tc": {"value": 0.02, "sigma": 1e-5}})))
+    reads: list[Path] = []
+    real = SavedModel.load
+
+    def counted(path: Any) -> SavedModel:
+        reads.append(Path(path))
+        return real(path)
+
+    monkeypatch.setattr(SavedModel, "load", staticmethod(counted))
+    out = tmp_path / "c"
+    assert main(["export-c", "--model", str(model), "--out", str(out), "--kernel-only",
+                 "--feedforward", "64", "--feedforward-form", form]) == 0
+    assert reads == [model]
+    assert "; the friction at the speed reference in Q" in capsys.readouterr().out
+    head = (out / "canrls_feedforward.h").read_text()
+    c_src = (out / "canrls_feedforward.c").read_text()
+    body = head[head.index("#define CANRLS_FEEDFORWARD_H\n"):]
+    assert head.count("#ifndef CANRLS_FEEDFORWARD_H") == 1 and body.endswith("\n#endif\n")
+    defined = re.findall(r"^int32_t (canrls_ff_\w+)\(", c_src, re.M)
+    mapped = "canrls_ff_map_q" if form == "table" else "canrls_ff_harmonics_q"
+    assert defined == [mapped, "canrls_ff_friction_q"]
+    assert re.findall(r"^int32_t (canrls_ff_\w+)\(.*\);$", body, re.M) == defined
+    assert c_src.count("#include") == 1
+    driver = DRIVER if form == "table" else HARMONICS_DRIVER
+    assert len(c_outputs(out, driver, [0, 1 << 31])) == 2  # it builds with -Werror

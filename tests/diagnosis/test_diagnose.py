@@ -22,6 +22,7 @@ from canrls.core.samples import Signals
 from canrls.diagnosis.analysis import diagnose
 from canrls.diagnosis.report import DiagnosisReport
 from canrls.diagnosis.residual import bin_residual, chi2_sf, nice_magnitudes, whiteness
+from canrls.estimation.effects import DEFAULT_STRIBECK_SPEED
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
 from canrls.processor import SampleProcessor, scan_ranges
@@ -212,6 +213,31 @@ def test_complete_model_suggests_nothing(plain: SimResult) -> None:
     assert rep.suggestion == ()
     assert "complete" in rep.verdict
     assert rep.before.primary.structure == ()
+
+
+def test_the_low_speed_share_is_below_the_stribeck_speed_the_search_found() -> None:
+    """A model without Stribeck friction and without a configured speed: the excitation's
+    low_speed is the share below twice the Stribeck speed the search found (it was the
+    library's default, 1 rad/s), the same share a model configured with that speed
+    gets; an equation without a Stribeck speed found says none."""
+    res = simulate(scenario("standard", effects="inertia,viscous,coulomb,stribeck,electrical",
+                            seed=3, duration=10.0))
+    s = res.measured
+    model = _model(s, [*BASE, "electrical"], options_given=())
+    rep = diagnose(s, model, dt=1e-3, max_order=8)
+    mech, elec = rep.before.equations
+    ws = next(r.value for r in mech.candidate("stribeck").search if r.key == "stribeck_speed")
+    assert ws != DEFAULT_STRIBECK_SPEED
+    exc = rep.to_dict()["before"]["equations"]["mechanical"]["excitation"]
+    assert exc["stribeck_speed"] == ws == mech.excitation.stribeck_speed
+    given = _model(s, [*BASE, "electrical"], stribeck_speed=ws, options_given=("stribeck_speed",))
+    again = diagnose(s, given, dt=1e-3, max_order=8).before.primary.excitation
+    assert again.stribeck_speed == ws and exc["low_speed"] == again.low_speed
+    default = _model(s, [*BASE, "electrical"], stribeck_speed=DEFAULT_STRIBECK_SPEED,
+                     options_given=("stribeck_speed",))
+    assert exc["low_speed"] != diagnose(s, default, dt=1e-3, max_order=8
+                                        ).before.primary.excitation.low_speed
+    assert elec.excitation.stribeck_speed is None and elec.excitation.low_speed is None
 
 
 # ------------------------------------------------------------- other equations, signals

@@ -145,7 +145,7 @@ def _floor(out: Outcome) -> float:
     eq = out.after.model.equations[0]
     theta = eq.to_normalised([out.res.params[p.name] for p in eq.parameters])
     rb = eq.builder(out.res.scenario.dt).process(out.res.measured)
-    r = eq.target_to_physical(rb.y - rb.phi @ theta)
+    r = eq.output_to_physical(rb.y - rb.phi @ theta)
     used = out.after.primary.traces.record_used
     assert used is not None
     return float(np.sqrt(np.mean(r[used] ** 2)))

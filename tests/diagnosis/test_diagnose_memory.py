@@ -226,7 +226,7 @@ def test_residual_read_in_blocks_is_one_pass(tmp_path: Path,
     ctx = RecordSamples(log.model, log.signals, log.dt, settings, 8)
     eq = log.model.equations[0]
     theta = np.linspace(0.1, 0.4, eq.n)
-    want = np.concatenate([eq.target_to_physical(y - phi @ theta)
+    want = np.concatenate([eq.output_to_physical(y - phi @ theta)
                            for _, phi, y in ctx.measured_blocks(eq)])
     r = ctx.residual(eq, theta)
     assert np.array_equal(np.asarray(r), want)

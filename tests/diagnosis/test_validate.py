@@ -105,7 +105,7 @@ def test_fit_several_logs_save_and_validate(logs: dict[str, Path], tmp_path: Pat
         assert saved.parameters[name]["value"] == p["value"]
         assert saved.parameters[name]["sigma"] == p["sigma"]
         assert saved.parameters[name]["unit"] == p["unit"]
-    # the calibration, and the period the fit ran at with it (the target's exponents
+    # the calibration, and the period the fit ran at with it (the output's exponents
     # and filters are the calibration's, at that period)
     cal = dict(saved.calibration)
     assert cal.pop("period") == fit["period"]["value"]
@@ -138,7 +138,7 @@ def test_fit_several_logs_save_and_validate(logs: dict[str, Path], tmp_path: Pat
 
 def test_per_log_fit_says_what_it_is_measured_against(
         logs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Per log, fit % compares the residual with that log's own spread of the target: the
+    """Per log, fit % compares the residual with that log's own spread of the output: the
     text says so and gives each spread, which the figures follow."""
     m = tmp_path / "m.json"
     assert main(["fit", str(logs["s1"]), *MODEL, "--quiet", "--save-model", str(m)]) == 0
@@ -147,19 +147,19 @@ def test_per_log_fit_says_what_it_is_measured_against(
     eq = val["equations"]["mechanical"]
     for f in [eq, *eq["files"]]:
         # fit = 100 (1 - rms / sd): the spread is what the fit is measured against
-        assert f["fit_percent"] == pytest.approx(100 * (1 - f["residual_rms"] / f["target_sd"]))
+        assert f["fit_percent"] == pytest.approx(100 * (1 - f["residual_rms"] / f["output_sd"]))
     capsys.readouterr()
     assert main(["validate", str(logs["s2"]), str(logs["s3"]), "--model", str(m),
                  "--quiet"]) == 0
     lines = capsys.readouterr().out.splitlines()
     k = next(i for i, ln in enumerate(lines) if ln.startswith("mechanical: fit"))
     assert lines[k + 1] == (
-        f"  per log, fit % is against that log's own spread of the target (SD); a log that "
-        f"spreads less than all of them together (SD {eq['target_sd']:.4g} N·m) fits less "
+        f"  per log, fit % is against that log's own spread of the output (SD); a log that "
+        f"spreads less than all of them together (SD {eq['output_sd']:.4g} N·m) fits less "
         f"at the same residual RMS:")
     f = eq["files"][0]
     assert lines[k + 2] == (f"  {logs['s2']}: fit {f['fit_percent']:.2f} %, residual RMS "
-                            f"{f['residual_rms']:.4g} N·m, target SD {f['target_sd']:.4g} "
+                            f"{f['residual_rms']:.4g} N·m, output SD {f['output_sd']:.4g} "
                             f"N·m, {f['samples']} samples")
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -130,7 +131,7 @@ def test_electrical_and_mechanical_equations_with_voltage() -> None:
                   available_signals=["voltage"], held=[])
     assert [e.name for e in model.equations] == ["mechanical", "electrical"]
     elec = model.equation("electrical")
-    assert elec.target.unit == "V" and elec.index == 1
+    assert elec.output.unit == "V" and elec.index == 1
     assert [p.unit for p in elec.parameters] == ["Ohm", "H", "V·s/rad", "V/A²"]
     assert_params(fit(model, s), {"inertia.J": J, "viscous.B": B, "offset.T0": T0})
     assert_params(fit(model, s, "electrical"),
@@ -342,11 +343,11 @@ def test_scaling_keeps_regressors_within_one_and_maps_back_exactly() -> None:
         assert b <= 2.0**s < 2 * b or (b <= 1 and s == 0)
     theta = np.random.default_rng(0).normal(size=eq.n)
     phys = eq.to_physical(theta)
-    assert np.array_equal(phys, theta * 2.0 ** (sc.target - np.array(sc.columns)))
+    assert np.array_equal(phys, theta * 2.0 ** (sc.output - np.array(sc.columns)))
     assert np.array_equal(eq.to_normalised(phys), theta)
     assert np.array_equal(eq.sigma_to_physical(np.abs(theta)), np.abs(phys))
     assert eq.to_physical(np.tile(theta, (3, 1))).shape == (3, eq.n)
-    assert eq.target_to_physical(0.5) == 0.5 * 2.0**sc.target
+    assert eq.output_to_physical(0.5) == 0.5 * 2.0**sc.output
     # the inertia column (sF of speed) is bounded by the documented SF gain
     from canrls.estimation.svf import gain_bounds
     assert sc.column_bounds[0] == pytest.approx(gain_bounds(25.0)[1] * 40.0)
@@ -419,7 +420,7 @@ def test_from_toml_builds_the_documented_schema(tmp_path: Path) -> None:
     assert m.ranges["speed"] == (-300.0, 300.0)
     assert m.source.endswith("drive.toml")
     eq = m.equations[0]
-    assert eq.target.unit == "N·m" and eq.target.gain == 0.12
+    assert eq.output.unit == "N·m" and eq.output.gain == 0.12
     assert [p.name for p in eq.parameters] == ["inertia.J", "viscous.B", "coulomb.Tc",
                                                "cogging:24.sin", "cogging:24.cos", "user:drag.c"]
     assert [p.effect_id for p in eq.parameters] == [1, 2, 3, 7, 7, 9]
@@ -432,7 +433,7 @@ def test_programmatic_model_defaults() -> None:
     m = Model(["offset"])
     assert m.kt is None and m.axis == "rotary"
     eq = m.equations[0]
-    assert eq.target.unit == "A" and eq.parameters[0].unit == "A"
+    assert eq.output.unit == "A" and eq.parameters[0].unit == "A"
     lin = Model(["viscous"], axis="linear")
     assert lin.ranges["speed"] == (-1.0, 1.0)
     assert lin.parameters[0].description == "viscous friction coefficient"
@@ -473,8 +474,8 @@ BAD_CASES = [
      ["model.ranges.current", "[5, -5]"]),
     ('effects = ["inertia"]\n[model.ranges]\npressure = [0, 1]', ConfigError,
      ["model.ranges.pressure"]),
-    ('effects = ["inertia"]\ntarget = "force"', ConfigError, ["model.target", "'force'"]),
-    ('effects = ["inertia"]\ntarget = "torque"\nkt = 0.1', ConfigError,
+    ('effects = ["inertia"]\noutput = "force"', ConfigError, ["model.output", "'force'"]),
+    ('effects = ["inertia"]\noutput = "torque"\nkt = 0.1', ConfigError,
      ["model.kt", "the torque the drive reports", "Kt is not used"]),
     ('effects = ["inertia"]\n[model.ranges]\nspeed = 100', ConfigError,
      ["model.ranges.speed", "100"]),
@@ -522,20 +523,20 @@ def test_missing_signals_are_reported_at_build_time(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="'pressure'"):
         Model(["inertia"], available_signals=["pressure"])
     # a drive that reports its torque: the current only when it says so
-    with pytest.raises(ConfigError, match="model.target = 'current': the drive sends no "
+    with pytest.raises(ConfigError, match="model.output = 'current': the drive sends no "
                                           "current signal"):
         Model(["inertia"], available_signals=["torque"])
     with pytest.raises(EffectError, match=r"electrical.*needs signal\(s\) \['current'\]"):
-        Model(["inertia", "electrical"], target="torque", available_signals=["torque",
+        Model(["inertia", "electrical"], output="torque", available_signals=["torque",
                                                                             "voltage"])
-    with pytest.raises(ConfigError, match="model.target = 'torque': the drive sends no "
+    with pytest.raises(ConfigError, match="model.output = 'torque': the drive sends no "
                                           "torque signal"):
-        Model(["inertia"], target="torque", available_signals=["position"])
-    m = Model(["inertia", "coulomb"], target="torque", available_signals=["torque"])
+        Model(["inertia"], output="torque", available_signals=["position"])
+    m = Model(["inertia", "coulomb"], output="torque", available_signals=["torque"])
     eq = m.equations[0]
-    assert (eq.target.signal, eq.target.unit, eq.target.gain) == ("torque", "N·m", 1.0)
+    assert (eq.output.signal, eq.output.unit, eq.output.gain) == ("torque", "N·m", 1.0)
     assert [p.unit for p in m.parameters] == ["kg·m²", "N·m"] and m.torque_known
-    assert Model.from_dict(m.to_dict()) == m and m.to_dict()["target"] == "torque"
+    assert Model.from_dict(m.to_dict()) == m and m.to_dict()["output"] == "torque"
     assert load_model(path, available_signals=["position", "voltage"]).equations
 
 
@@ -609,7 +610,7 @@ def test_parameter_specs_carry_the_param_info_fields() -> None:
     assert mech.n == 4 and elec.n == 3
     assert m.parameters == mech.parameters + elec.parameters
     assert mech.derivative_mask == (False,) * 4 and elec.derivative_mask == (False, True, False)
-    assert math.isclose(mech.scaling.target_bound, 0.1 * 10.0 * 1.0903370996826590)
+    assert math.isclose(mech.scaling.output_bound, 0.1 * 10.0 * 1.0903370996826590)
 
 
 def test_unwrapper_gives_what_the_numpy_formulation_gives() -> None:
@@ -639,3 +640,27 @@ def test_unwrapper_gives_what_the_numpy_formulation_gives() -> None:
             last = float(p[-1]) if math.isfinite(p[-1]) else last
             assert got.tobytes() == (p + tn.astype(np.float64) * period).tobytes()
             assert (u.turns, u._last) == (turns, last)
+
+
+def test_the_old_name_of_the_output_is_read_with_a_warning(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """``model.target`` (and ``"target"`` among the exponents of ``model.scaling``) is the
+    old name of ``model.output``: read for one release, with one warning line each."""
+    d = {"effects": ["inertia", "coulomb"], "target": "torque",
+         "scaling": {"mechanical": {"target": 3, "inertia.J": 2}}}
+    with caplog.at_level(logging.WARNING, logger="canrls.estimation.model"):
+        m = Model.from_dict(d, source="old.json", available_signals=["torque"])
+        Model.from_dict(d, source="old.json", available_signals=["torque"])
+    assert m.output == "torque" and m.equations[0].scaling.output == 3
+    assert m.to_dict()["output"] == "torque" and "target" not in m.to_dict()
+    assert m.to_dict()["scaling"] == {"mechanical": {"output": 3, "inertia.J": 2}}
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == ["old.json: model.target is now called output; the old name goes in the "
+                     "next release",
+                     "old.json: model.scaling.mechanical.target is now called output; the "
+                     "old name goes in the next release"]
+    with pytest.warns(DeprecationWarning, match="Model.target is now Model.output"):
+        assert m.target == "torque"
+    with pytest.raises(ConfigError, match="model.target = 'torque': is the old name of "
+                                          "model.output: give one of them"):
+        Model.from_dict({**d, "output": "torque"}, source="both.json")

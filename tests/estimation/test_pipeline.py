@@ -283,7 +283,7 @@ def test_restored_state_keeps_its_own_fixed_point_formats(standard: object) -> N
     assert b.estimators[0].fixed_config == a.estimators[0].fixed_config
     assert np.array_equal(ea.eps_fixed, eb.eps_fixed)
     # on the coarse grid of the restored format (lsb 2**-8 in normalised units)
-    lsb = math.ldexp(2.0**-8, model.equations[0].scaling.target)
+    lsb = math.ldexp(2.0**-8, model.equations[0].scaling.output)
     assert np.allclose(eb.eps_fixed[eb.used] / lsb, np.round(eb.eps_fixed[eb.used] / lsb))
 
 

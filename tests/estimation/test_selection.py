@@ -284,7 +284,7 @@ def test_diagnosis_uses_the_pipeline_samples_and_columns_with_dropped_frames(
         np.testing.assert_array_equal(used, eb.used)
         phi, y = ctx.columns(eq)
         np.testing.assert_array_equal(phi, eb.phi)
-        np.testing.assert_array_equal(np.ldexp(y, eq.scaling.target), eb.y)
+        np.testing.assert_array_equal(np.ldexp(y, eq.scaling.output), eb.y)
     # the analysis works on those rows
     rep = diagnose(log.signals, model, settings, dt=log.dt, max_order=8)
     eb = Pipeline(model, log.dt, settings).process(log.signals, record=True).equations[0]

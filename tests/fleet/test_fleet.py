@@ -707,9 +707,10 @@ def test_sim_fleet_writes_logs_manifest_and_truth(tmp_path: Path,
     out = tmp_path / "f"
     assert main(["sim", "fleet", "--drives", "3", "--recordings", "2", "--duration", "3",
                  "--out", str(out), "--seed", "5"]) == 0
-    err = capsys.readouterr().err
-    assert err.startswith(f"canrls sim fleet: wrote 6 logs of 3 drives (3 s each, seed 5) "
-                          f"to {out}")
+    out_err = capsys.readouterr()
+    # the summary on stdout, as plain canrls sim's: its first line the answer
+    assert out_err.out.startswith(f"canrls sim fleet: wrote 6 logs of 3 drives (3 s each, "
+                                  f"seed 5) to {out}") and out_err.err == ""
     truth = json.loads((out / "truth.json").read_text())
     srcs = from_manifest(out / "manifest.csv")
     assert len(srcs) == 6 and {s.drive for s in srcs} == set(truth["drives"])

@@ -21,11 +21,13 @@ import cantools
 import numpy as np
 import pytest
 from can.interfaces.virtual import VirtualBus
+from cli_tool import cli_error
 from daemon_tool import DaemonTool, daemon_process, notify_socket
 
 from canrls.can.estimator_frames import CommandCode, CommandResult, FrameDecoder, encode_command
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import read_frames
+from canrls.cli.main import main
 from canrls.core.effect_names import EffectId
 from canrls.core.errors import BusError, ConfigError
 from canrls.live.bus_link import (
@@ -849,3 +851,27 @@ def test_a_term_outside_its_domain_is_logged_once_and_the_estimator_goes_on(
     d.publisher.model_changed()  # the parameter info is due: the fit is looked at again
     d.publisher.publish(time.monotonic())
     assert len([r for r in caplog.records if "non-finite term value" in r.message]) == 1
+
+
+@pytest.mark.parametrize(("own", "name"), [(768, "RlsEstimate"), (800, "RlsCommand")])
+def test_canrls_run_refuses_a_drive_frame_on_an_id_of_canrls_unless_moved(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], own: int, name: str) -> None:
+    """A drive DBC with the current on one of canrls' own IDs: canrls run would take its
+    own publications (or a command) as feedback. One error line naming both frames, as
+    export-c refuses it; with canrls' frames moved ([daemon] own_ids) it runs."""
+    text = DBC.read_text()
+    dbc = tmp_path / "drive.dbc"
+    dbc.write_text(text[:text.index("BO_ 768 ")].replace("BO_ 257 DriveCurrent",
+                                                         f"BO_ {own} DriveCurrent"))
+    cfg = tmp_path / "drive.toml"
+    cfg.write_text(f'[model]\neffects = ["inertia", "viscous", "coulomb"]\nkt = 0.1\n'
+                   f'[can]\ndbc = "{dbc}"\n')
+    args = ["run", "-i", "virtual", "-c", f"own-id-{os.getpid()}-{own}", "--config",
+            str(cfg), "--duration", "0.2", "--json"]
+    assert cli_error(capsys, args) == (
+        f"error: the drive's {name} and the drive's feedback DriveCurrent would both be on "
+        f"ID 0x{own:X}: give the drive's message another ID, or move canrls' frames with "
+        f"[daemon] own_ids = \"offset:N\"")
+    cfg.write_text(cfg.read_text() + '[daemon]\nown_ids = "offset:0x40"\n')
+    assert main(args) == 0
+    assert json.loads(capsys.readouterr().out)["daemon"]["frames"] == 0

@@ -51,7 +51,7 @@ def test_library_units() -> None:
     assert u.get("nonsense.x") is None and "nonsense.x" not in u
     assert LibraryUnits({"axis": "rotary"}, kt_known=False)["coulomb.Tc"] == "A"
     assert LibraryUnits({"axis": "linear"})["viscous.B"] == "N·s/m"
-    assert u.target_unit() == "N·m"
+    assert u.output_unit() == "N·m"
 
 
 def test_snapshot_of_a_publication() -> None:
@@ -168,6 +168,29 @@ def test_cli_on_a_bus_of_its_own_says_so(capsys: pytest.CaptureFixture[str]) -> 
                               "freeze", "--timeout", "0.3"])
     assert line.startswith("error: no acknowledgement of 'freeze' within 0.3 s: each "
                            "process gets its own virtual bus")
+
+
+def test_the_continuous_view_on_a_bus_of_its_own_says_so(
+        capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The continuous view on ``canrls-sim``: after --timeout without a publication it
+    says, once on stderr beside the printed views or under each redrawn one, that the
+    bus is the process's own and what works instead (it waited silently)."""
+    args = ["monitor", "-i", "canrls-sim", "-c", "standard", "--duration", "0.9",
+            "--interval", "0.2", "--timeout", "0.3"]
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith("canrls monitor  canrls-sim:standard")
+    assert err.startswith("canrls monitor: no complete publication from a canrls daemon "
+                          "within 0.3 s on canrls-sim:standard: each process gets its own "
+                          "canrls-sim bus, so a daemon in another process is not on it; ")
+    assert err.count("\n") == 1 and "canrls demo" in err
+    monkeypatch.setattr(sys.stdout, "isatty", lambda: True)
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    views = out.split("\x1b[H")[1:]
+    assert err == "" and len(views) >= 3
+    assert "each process gets its own canrls-sim bus" not in views[0]  # before --timeout
+    assert "each process gets its own canrls-sim bus" in views[-1]
 
 
 def test_cli_on_a_terminal_redraws_in_place(running_daemon: tuple[Daemon, str],

@@ -179,7 +179,7 @@ def _recorded_fit(path: Path, model_cfg: dict) -> tuple:
     eq = proc.pipeline.estimators[0].equation
     used = [b.equations[0] for b in blocks if len(b.equations[0].t)]
     phi = np.concatenate([e.phi[e.used] for e in used])
-    y = np.concatenate([np.ldexp(e.y[e.used], -eq.scaling.target) for e in used])
+    y = np.concatenate([np.ldexp(e.y[e.used], -eq.scaling.output) for e in used])
     return proc.pipeline.estimates(), (phi, y), eq
 
 
@@ -203,7 +203,7 @@ def test_ridge_does_not_bias_and_scaling_changes_rounding_only(
     # 2**3): the float parameters agree to the rounding of the worse-scaled problem,
     # far inside 0.1 sigma (the fixed-point ones saturate: the exponents leave no room)
     s = eq.scaling
-    far = {"mechanical": {"target": s.target + 3,
+    far = {"mechanical": {"output": s.output + 3,
                           **{p.name: c + (5 if j % 2 else -5) for j, (p, c) in
                              enumerate(zip(eq.parameters, s.columns, strict=True))}}}
     other, _, eq2 = _recorded_fit(path, {"scaling": far})

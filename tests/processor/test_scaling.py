@@ -97,10 +97,10 @@ def test_a_column_that_outgrows_its_exponent_is_rescaled_exactly() -> None:
     blocks.append(proc.finish(record=True).equations[0])
     est = proc.pipeline.estimators[0]
     grew = {r.name for r in est.rescales if r.why == "grew"}
-    assert {"inertia.J", "viscous.B", "target"} <= grew
+    assert {"inertia.J", "viscous.B", "output"} <= grew
     # every rescale exact and every raised prior information added: the recursive
     # estimate is the ridge regression of all the rows in the final normalisation
-    phi, y = used_rows(blocks, est.equation.scaling.target)
+    phi, y = used_rows(blocks, est.equation.scaling.output)
     batch = np.linalg.solve(phi.T @ phi + np.diag(est.ridge), phi.T @ y)
     assert np.allclose(est.rls.theta, batch, rtol=1e-9, atol=0.0)
     # and the fixed point follows, unsaturated

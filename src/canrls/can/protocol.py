@@ -47,6 +47,9 @@ DEFAULT_DBC: Path = Path(str(resources.files("canrls") / "data" / "canrls.dbc"))
 
 #: Longest message a DBC may declare [bytes]: a CAN FD frame's payload.
 MAX_MESSAGE_BYTES = 64
+#: DBCs kept parsed, by the SHA-256 of their bytes (:func:`parse_dbc`)
+_PARSED_KEPT = 8
+_parsed: dict[bytes, Any] = {}
 
 
 def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
@@ -68,7 +71,20 @@ def load_dbc(path: str | Path, what: str | None = None) -> tuple[Any, bytes]:
 
 def parse_dbc(raw: bytes, where: str) -> Any:
     """The cantools database of a DBC's bytes, checked as :func:`load_dbc` says (errors
-    name ``where``)."""
+    name ``where``). The same bytes are parsed once: the database is kept (the last
+    :data:`_PARSED_KEPT` DBCs) and shared, never changed by canrls; a DBC that fails is
+    checked again each time, so every caller gets its own error."""
+    key = hashlib.sha256(raw).digest()
+    db = _parsed.get(key)
+    if db is None:
+        db = _parse_dbc(raw, where)
+        while len(_parsed) >= _PARSED_KEPT:
+            del _parsed[next(iter(_parsed))]
+        _parsed[key] = db
+    return db
+
+
+def _parse_dbc(raw: bytes, where: str) -> Any:
     text = _dbc_text(raw, where)
     from cantools.database.can.formats.dbc.dbc_loader import DbcParser
 

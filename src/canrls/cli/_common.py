@@ -84,7 +84,7 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--signal", action="append", metavar="ROLE=MESSAGE.SIGNAL[:UNIT]",
                    help="which signal carries a role: current, speed, position, voltage, "
                         "torque (the torque a drive reports, N·m; linear axis: N; the "
-                        "mechanical target then, no --kt) (repeatable; also "
+                        "mechanical output then, no --kt) (repeatable; also "
                         "counter=MESSAGE.SIGNAL, crc=MESSAGE.SIGNAL)")
     g.add_argument("--rated-torque", type=number, metavar="VALUE",
                    help="rated torque [N·m] (linear axis: rated force [N]) that a torque "
@@ -100,9 +100,9 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
                         "unbalance, cogging:K, electrical, user:NAME "
                         "(default: inertia,viscous,coulomb)")
     g.add_argument("--kt", type=number, metavar="VALUE",
-                   help="torque constant Kt [N·m/A] (linear: N/A); without it the target is "
+                   help="torque constant Kt [N·m/A] (linear: N/A); without it the output is "
                         "the current and parameters are per ampere; refused with a torque "
-                        "signal, whose torque is the target")
+                        "signal, whose torque is the output")
     g.add_argument("--period", type=number, metavar="SECONDS",
                    help="control period [s] (default: the DBC's GenMsgCycleTime, else measured "
                         "on the log's timestamps; a stated period must agree with them within "

@@ -182,7 +182,7 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     cfg.model = {"effects": list(_BASE), "kt": kt}
     protocol, model, settings = prepare(cfg)
     units = LibraryUnits.for_model(model)
-    unit = units.target_unit()
+    unit = units.output_unit()
     global _counter
     with _counter_lock:
         _counter += 1

@@ -111,7 +111,7 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
     cfg = AppConfig()
     cfg.model = {"effects": list(_BASE), "kt": axes[0].scenario.truth.kt}
     _, model, settings = prepare(cfg)
-    unit = LibraryUnits.for_model(model).target_unit()
+    unit = LibraryUnits.for_model(model).output_unit()
     channel = f"canrls-demo-axes-{os.getpid()}-{time.monotonic_ns()}"
     bus = {"interface": "virtual", "channel": channel}
     daemons: dict[str, Daemon] = {}

@@ -15,7 +15,10 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from canrls.firmware.load import Source
 
 __all__ = ["add_subparser", "run"]
 
@@ -74,10 +77,10 @@ def run(args: argparse.Namespace) -> int:
     if args.kernel_only and args.vectors:
         raise ConfigError("--vectors: the test vectors need the whole estimator "
                           "(not --kernel-only)")
-    ff_texts = (_feedforward(args.model, args.feedforward, args.feedforward_form)
-                if args.feedforward is not None else None)
     # the model, its calibration and its control period: one loader, one decision
     src = load(args.model, args.dt, args.axis)
+    ff_texts = (_feedforward(src, args.model, args.feedforward, args.feedforward_form)
+                if args.feedforward is not None else None)
     tm = texts = None
     if not args.kernel_only:
         from canrls.firmware.load import target_model
@@ -112,10 +115,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _feedforward(path: str, points: int, form: str) -> tuple[list[tuple[str, str]], str]:
-    """The anticogging map's C (before anything is written) and the line that says it."""
+def _feedforward(src: Source, path: str, points: int, form: str
+                 ) -> tuple[list[tuple[str, str]], str]:
+    """The anticogging map's C of the saved model ``src`` read from ``path`` (before
+    anything is written) and the line that says it."""
     from canrls.control.feedforward import check_points, feedforward
     from canrls.control.fixed_map import (
+        feedforward_c,
         fixed_friction,
         fixed_harmonics,
         fixed_map,
@@ -124,24 +130,22 @@ def _feedforward(path: str, points: int, form: str) -> tuple[list[tuple[str, str
         map_c,
     )
     from canrls.core.errors import ConfigError
-    from canrls.processor.modelfile import SavedModel
 
     check_points(points, "--feedforward")
-    if not path.endswith(".json"):
+    if src.saved is None:
         raise ConfigError(f"--feedforward: needs a saved model (.json), not {path}")
-    saved = SavedModel.load(path)
-    ff = feedforward(saved.build_model(), saved.parameters, source=path)
+    ff = feedforward(src.saved.build_model(), src.saved.parameters, source=path)
     if not ff.has_map:
         raise ConfigError(f"--feedforward: no anticogging map: {ff.no_map_reason()}")
     if form == "harmonics":
         fh = fixed_harmonics([(h.order, h.cos if h.order == 0 else h.amplitude, h.phase)
                               for h in ff.harmonics()], ff.unit)
-        head, src = harmonics_c(fh, path)
+        parts = [harmonics_c(fh)]
         what = (f"the anticogging map as {len(fh.orders)} harmonics in Q{fh.frac} "
                 f"{ff.unit} (orders {', '.join(map(str, fh.orders)) or 'none'})")
     else:
         fm = fixed_map(ff.position_map(points)[1], ff.unit)
-        head, src = map_c(fm, path)
+        parts = [map_c(fm)]
         what = (f"the anticogging map, {points} points in Q{fm.frac} {ff.unit}, table "
                 f"{fm.flash} bytes of flash")
     sp = ff.to_dict()["speed"]
@@ -150,9 +154,8 @@ def _feedforward(path: str, points: int, form: str) -> tuple[list[tuple[str, str
         fr = fixed_friction(par.get("viscous.B", 0.0), par.get("coulomb.Tc", 0.0),
                             par.get("stribeck.Ts", 0.0), sp["coulomb_band"],
                             sp["stribeck_speed"], ff.unit)
-        fh_, fc_ = friction_c(fr)
-        head = head.replace("\n#endif\n", fh_ + "\n#endif\n")
-        src += fc_
+        parts.append(friction_c(fr))
         what += f"; the friction at the speed reference in Q{fr.frac}"
-    return ([("canrls_feedforward.h", head), ("canrls_feedforward.c", src)],
+    head, c_src = feedforward_c(parts, path)
+    return ([("canrls_feedforward.h", head), ("canrls_feedforward.c", c_src)],
             f"canrls_feedforward.c: {what}")

@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     text = [f"{source}"]
     for k, est in enumerate(pipe.estimators):
         eq = est.equation
-        phi, y = used_rows([b.equations[k] for b in blocks], eq.scaling.target)
+        phi, y = used_rows([b.equations[k] for b in blocks], eq.scaling.output)
         phi, y = phi[: args.max_samples], y[: args.max_samples]
         if len(y) == 0:
             raise ConfigError(f"{source}: no samples to sweep")

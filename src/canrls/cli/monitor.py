@@ -52,8 +52,9 @@ def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
     g.add_argument("--interval", type=float, metavar="S",
                    help="seconds between refreshes (default: [monitor] interval, else 1)")
     g.add_argument("--timeout", type=float, metavar="S",
-                   help="--once/--command: give up after S seconds (default: [monitor] "
-                        "timeout, else 10)")
+                   help="--once/--command: give up after S seconds; the continuous view "
+                        "on a bus of its own (virtual, canrls-sim) says after S seconds why "
+                        "nothing comes (default: [monitor] timeout, else 10)")
     g.add_argument("--plain", action="store_true", default=None,
                    help="plain text even on a terminal (no redraw, no colour; default: "
                         "[monitor] plain)")
@@ -174,8 +175,13 @@ def _own_bus_hint(conf: dict[str, Any]) -> str:
 
 
 def _watch(args: argparse.Namespace, mon: Any, tty: bool, hint: str = "") -> int:
+    """The views until ``--duration`` (or one with ``--once``); ``hint``: why nothing
+    comes on a bus of the process's own (:func:`_own_bus_hint`), said after
+    ``--timeout`` seconds without a complete publication."""
     start = time.monotonic()
     end = None if args.duration is None else start + args.duration
+    nothing = f"no complete publication from a canrls daemon within {args.timeout:g} s " \
+              f"on {mon.source}"
     if args.once:
         deadline = start + args.timeout
         while time.monotonic() < deadline:
@@ -187,16 +193,24 @@ def _watch(args: argparse.Namespace, mon: Any, tty: bool, hint: str = "") -> int
             if mon.error is not None:
                 break
             time.sleep(0.05)
-        print(f"error: no complete publication from a canrls daemon within {args.timeout:g} s "
-              f"on {mon.source}" + (f" ({mon.error})" if mon.error else hint), file=sys.stderr)
+        print(f"error: {nothing}" + (f" ({mon.error})" if mon.error else hint),
+              file=sys.stderr)
         return 1
+    said = False
     try:
         while end is None or time.monotonic() < end:
             nxt = time.monotonic() + args.interval
             if end is not None:
                 nxt = min(nxt, end)
             time.sleep(max(0.0, nxt - time.monotonic()))
-            _emit(args, mon.snapshot(), tty)
+            view = mon.snapshot()
+            # a bus of its own never carries a daemon: said under each redrawn view, or
+            # once on stderr beside the printed ones
+            note = bool(hint) and not view.complete and time.monotonic() - start >= args.timeout
+            _emit(args, view, tty, f"canrls monitor: {nothing}{hint}" if note and tty else "")
+            if note and not tty and not said:
+                print(f"canrls monitor: {nothing}{hint}", file=sys.stderr)
+                said = True
             if mon.error is not None:
                 print(f"error: bus failed: {mon.error}", file=sys.stderr)
                 return 1
@@ -205,13 +219,14 @@ def _watch(args: argparse.Namespace, mon: Any, tty: bool, hint: str = "") -> int
     return 0
 
 
-def _emit(args: argparse.Namespace, view: Any, tty: bool) -> None:
+def _emit(args: argparse.Namespace, view: Any, tty: bool, note: str = "") -> None:
+    """One view on stdout (``note``: a line under the redrawn view)."""
     if args.json:
         print_json(view.to_dict())
     elif tty:
         # cursor home, every line cleared to its end, then the rest of the screen: the
         # view is redrawn in place without the flicker of clearing the screen first
-        text = view.format(color=True).replace("\n", _EOL)
+        text = (view.format(color=True) + (f"\n\n{note}" if note else "")).replace("\n", _EOL)
         sys.stdout.write(f"\x1b[H{text}{_EOL}\x1b[J")
     else:
         sys.stdout.write(view.format() + "\n\n")

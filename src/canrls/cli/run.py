@@ -49,6 +49,7 @@ from canrls.cli._common import (
 )
 from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
+from canrls.live.signals import SignalRelay
 
 __all__ = ["add_subparser", "run", "build_daemon"]
 
@@ -119,7 +120,6 @@ def _per_axis(table: dict[str, Any], axis: str) -> dict[str, Any]:
 def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
     """The :class:`~canrls.live.daemon.Daemon` the command line describes (not started);
     of the machine's axis ``axis`` (its files its own), else of the one axis."""
-    from canrls.fleet.ingest import JobConfig
     from canrls.live.bus_link import bus_config
     from canrls.live.daemon import Daemon
     from canrls.live.daemon_settings import DaemonSettings
@@ -149,10 +149,11 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
         return c
 
     protocol, model, settings = prepare(with_model_file(cfg))
-    if dset.own_offset:
-        from canrls.processor.axes import check_own
+    from canrls.processor.axes import check_own
 
-        check_own({"the drive": protocol}, {"the drive": dset.own_offset})
+    # a drive frame on one of canrls' own IDs: the daemon would take its own
+    # publications (or a command) as the drive's
+    check_own({"the drive": protocol}, {"the drive": dset.own_offset}, _OWN_HINT)
     bus = bus_config(cfg)
 
     def reloaded_model() -> Any:
@@ -181,8 +182,11 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None) -> Any:
                         ", ".join(changed))
         return reloaded
 
-    history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over)) \
-        if cfg.history else None
+    history = None
+    if cfg.history:  # the fleet's code only for a [history]
+        from canrls.fleet.ingest import JobConfig
+
+        history = _history_hook(cfg, JobConfig.from_overrides(config_path(args), over))
     try:
         fixed_path = None
         if dset.fixed == "target":
@@ -214,48 +218,69 @@ def _history_hook(cfg: Any, job: Any) -> Any:
 log = logging.getLogger(__name__)
 
 _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+#: what a drive frame on one of canrls' own IDs asks for
+_OWN_HINT = ("give the drive's message another ID, or move canrls' frames with [daemon] "
+             "own_ids = \"offset:N\"")
 
 
-@contextmanager
-def _signals_for_life(target: list[Any], process_exits: bool) -> Iterator[None]:
-    """SIGTERM/SIGINT/SIGHUP for the whole command, not only while the daemon serves.
+class _Stop:
+    """What a SIGTERM/SIGINT stops: remembered until the daemon exists, then its
+    :meth:`request_stop` (called from the signal relay's thread, under a lock that only
+    threads take, never a signal handler)."""
 
-    Before the daemon exists a stop is remembered (``target[1]``) and a SIGHUP ignored;
-    while it runs, :meth:`Daemon.run` has its own handlers; after it stopped, further
-    signals only log. At the end, when the command is the process's own
-    (``process_exits``), SIGTERM and SIGHUP are left ignored if they had their default
-    action (the process is exiting: a late SIGTERM must not turn a clean stop into death
-    by signal, exit status -15; a Python handler would not do, Python resets it to the
-    default while it finalises); otherwise, and for the other signals, the handlers are
-    restored: ``SIG_IGN`` passes to every process started afterwards.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._daemon: Any = None
+        self._requested = False
 
-    def stop(signum: int, frame: Any) -> None:
-        d = target[0]
-        if d is None:
-            target[1] = True
-        else:
+    def signal(self, signum: int) -> None:
+        with self._lock:
+            self._requested = True
+            d = self._daemon
+        if d is not None:
             d.request_stop()
         log.info("signal %d: stopping", signum)
 
-    def hup(signum: int, frame: Any) -> None:
+    def attach(self, daemon: Any) -> None:
+        """``daemon`` now exists: a stop requested before is passed on (its run then
+        starts, sees the request and stops cleanly)."""
+        with self._lock:
+            self._daemon = daemon
+            requested = self._requested
+        if requested:
+            daemon.request_stop()
+
+
+@contextmanager
+def _signals_for_life(stop: _Stop, process_exits: bool) -> Iterator[None]:
+    """SIGTERM/SIGINT/SIGHUP for the whole command, not only while the daemon serves.
+
+    Before the daemon exists a stop is remembered (:class:`_Stop`) and a SIGHUP ignored;
+    while it runs, :meth:`Daemon.run` has its own handlers; after it stopped, further
+    signals only log. At the end, when the command is the process's own
+    (``process_exits``), SIGTERM, SIGINT and SIGHUP are left ignored if they had their
+    default action or Python's (the process is exiting: a late SIGTERM or SIGINT must not
+    turn a clean stop into death by signal, exit status -15 or -2, or 130; a Python
+    handler would not do, Python resets it to the default while it finalises);
+    otherwise the handlers are restored: ``SIG_IGN`` passes to every process started
+    afterwards.
+    """
+    def hup(signum: int) -> None:
         log.info("SIGHUP: nothing to reload now")
 
-    old = {sig: signal.signal(sig, stop) for sig in _STOP_SIGNALS}
-    old[signal.SIGHUP] = signal.signal(signal.SIGHUP, hup)
-    old.update(early_signals.previous_handlers())  # those before canrls.cli.main's
-    early = early_signals.stop_requested()
-    if early is not None:  # before these handlers, even before the imports
-        stop(early, None)
-    try:
-        yield
-    finally:
-        for sig, h in old.items():
-            quiet = process_exits and h is signal.SIG_DFL and sig != signal.SIGINT
-            signal.signal(sig, signal.SIG_IGN if quiet else h)
+    relay = SignalRelay({**{sig: stop.signal for sig in _STOP_SIGNALS}, signal.SIGHUP: hup})
+    with relay:
+        old = {**relay.previous, **early_signals.previous_handlers()}  # before main's
+        early = early_signals.stop_requested()
+        if early is not None:  # before these handlers, even before the imports
+            stop.signal(early)
+        try:
+            yield
+        finally:
+            for sig, h in old.items():
+                # Python's own SIGINT handler raises KeyboardInterrupt: exit status 130
+                quiet = process_exits and h in (signal.SIG_DFL, signal.default_int_handler)
+                relay.leave(sig, signal.SIG_IGN if quiet else h)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -263,12 +288,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.duration is not None and not is_positive(args.duration):
         raise ConfigError(f"--duration: {args.duration!r} must be a positive number of seconds")
-    target: list[Any] = [None, False]  # the daemon, a stop requested before it existed
-    with _signals_for_life(target, getattr(args, "process_exits", False)):
+    stop = _Stop()
+    with _signals_for_life(stop, getattr(args, "process_exits", False)):
         daemon = _build(args)
-        target[0] = daemon
-        if target[1]:
-            daemon.request_stop()  # run() starts, sees the request and stops cleanly
+        stop.attach(daemon)
         with contextlib.nullcontext() if args.json else to_stream(sys.stdout):
             status = daemon.run(duration=args.duration)
         if hasattr(daemon, "daemons"):

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import math
 import signal
-import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -250,10 +249,10 @@ def run_machine(args: argparse.Namespace) -> int:
                       channel=args.channel, what=f"--out {args.out}")
     print(f"canrls sim: wrote {n} frames of {len(axes)} axes to {args.out} "
           f"({args.duration:g} s, scenario {args.scenario}, seed {args.seed}; canrls fit "
-          f"{_fit_options(axes, args.ids)})", file=sys.stderr)
+          f"{_fit_options(axes, args.ids)})")
     for a in axes:
         print(f"  {a.name} ({a.rule}, hidden: {a.hidden or 'none'}): truth: "
-              f"{a.scenario.truth.summary()}", file=sys.stderr)
+              f"{a.scenario.truth.summary()}")
     return 0
 
 
@@ -292,6 +291,5 @@ def run_fleet(args: argparse.Namespace) -> int:
     print(f"canrls sim fleet: wrote {args.drives * args.recordings} logs of {args.drives} "
           f"drives ({duration:g} s each, seed {args.seed}) to {out}: "
           + ", ".join(f"{n} {c}" for c, n in sorted(classes.items()))
-          + f"; truth in {out / 'truth.json'}, manifest {out / 'manifest.csv'}",
-          file=sys.stderr)
+          + f"; truth in {out / 'truth.json'}, manifest {out / 'manifest.csv'}")
     return 0

@@ -38,6 +38,7 @@ from canrls.diagnosis.residual import (
     whiteness,
 )
 from canrls.diagnosis.results import Analysis, EquationDiagnosis, Traces, decimation
+from canrls.diagnosis.search import known_stribeck_speed
 from canrls.estimation.effects import ELECTRICAL
 from canrls.estimation.estimates import EquationFit, PipelineBlock
 from canrls.estimation.fixed.estimator import FixedRLS
@@ -242,10 +243,10 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
     """``used``: the rows the pipeline used for the equation (packed, read in blocks)."""
     eq = est.equation
     N = used.count()
-    unit = eq.target.unit
+    unit = eq.output.unit
     th = np.array(est.rls.theta, dtype=np.float64)
     th_fx = np.asarray(est.frls.theta_float, dtype=np.float64)
-    # r = y - Phi theta (final float estimate), in the target unit; Phi and y built
+    # r = y - Phi theta (final float estimate), in the output unit; Phi and y built
     # again block by block (the pipeline's, bit for bit), not kept from the run
     r = ctx.residual(eq, th)
     # the fixed-point estimate's residual: only its mean square over the used rows
@@ -263,16 +264,16 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
     bins = all_bins(ctx, r, used, unit)
     regions = find_regions(bins, r, tau, unit, ctx, rows=used)
     spectrum = order_spectrum(ctx, r, used, unit) if ctx.angle_raw is not None else None
-    exc = excitation_summary(ctx, model, used)
+    exc = excitation_summary(ctx, model, used, known_stribeck_speed(model, configured))
     cand = rank_candidates(ctx, model, eq,
                            ResidualSummary(r, used, h2, unit, bins, spectrum, exc, configured))
     traces = _traces(ctx, est, r, used)
     return EquationDiagnosis(
-        equation=eq.name, target=eq.target.description, unit=unit, fit=fit,
+        equation=eq.name, output=eq.output.description, unit=unit, fit=fit,
         residual_rms_ls=cand.rms_ls, residual_rms_fixed=rms_fixed, whiteness=wht,
         bins=bins, regions=regions, spectrum=spectrum, candidates=cand.candidates,
         not_applicable=cand.not_applicable, suggestion=cand.suggestion,
-        structure=cand.structure, excitation=exc, identifiable=cand.identifiable,
+        structure=cand.structure, excitation=cand.excitation, identifiable=cand.identifiable,
         identifiability=cand.identifiability, verdict=cand.verdict, traces=traces)
 
 
@@ -354,7 +355,7 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, r: F64,
     pts = np.concatenate([np.zeros(0, np.intp), *parts])
     timeline = np.concatenate([np.zeros(0, np.bool_), *tl_parts])
     scatter = np.concatenate([np.zeros(0, np.bool_), *sc_parts])
-    y = ctx.target_at(eq, pts)
+    y = ctx.output_at(eq, pts)
     res = r[pts]
 
     def at(x: F64 | None) -> F64 | None:

@@ -41,7 +41,7 @@ from canrls.diagnosis.results import (
     share_text,
     value_text,
 )
-from canrls.diagnosis.search import Gram, delta_bic, search_parameters
+from canrls.diagnosis.search import Gram, delta_bic, known_stribeck_speed, search_parameters
 from canrls.estimation.effects import MECHANICAL, Cogging, Effect, UserTerm, library
 from canrls.estimation.equation import Equation
 from canrls.estimation.model import Model
@@ -110,7 +110,7 @@ def _eval_rows(ctx: RecordSamples, model: Model, eq: Equation, names: Sequence[s
 class ResidualSummary:
     """What the analysis knows of one equation's residual, for :func:`rank_candidates`.
 
-    ``r`` the residual of the final estimate (target unit), ``used`` the rows the
+    ``r`` the residual of the final estimate (output unit), ``used`` the rows the
     pipeline used for the equation, ``h2`` the squared norm of the filter's impulse
     response, ``bins`` and ``spectrum`` the residual binned and by rotation order,
     ``exc`` what the record excites, ``configured`` the model's options set in the
@@ -139,6 +139,9 @@ class CandidateResult:
     identifiability: tuple[str, ...]
     verdict: str
     rms_ls: float
+    #: the excitation the candidates were judged by (its low speed below the Stribeck
+    #: speed the search found)
+    excitation: ExcitationSummary
 
 
 @dataclass
@@ -171,7 +174,7 @@ class _Comparison:
 
     @property
     def rms_ls(self) -> float:
-        """Residual RMS of the model's least squares (target unit)."""
+        """Residual RMS of the model's least squares (output unit)."""
         return self.rms_of(self.rss0)
 
     def rms_of(self, rss: float) -> float:
@@ -300,9 +303,10 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation,
     and write the verdict.
     """
     cmp = _compare(ctx, model, eq, res)
-    if cmp.model.stribeck_speed != model.stribeck_speed:
-        # the time below the Stribeck speed found, not below the one the model had
-        res = dataclasses.replace(res, exc=excitation_summary(ctx, cmp.model, res.used))
+    ws = known_stribeck_speed(cmp.model, res.configured, cmp.search)
+    if ws != res.exc.stribeck_speed:
+        # the time below the Stribeck speed found, not below the library's default
+        res = dataclasses.replace(res, exc=excitation_summary(ctx, cmp.model, res.used, ws))
     model = cmp.model  # with the values the search found
     model_issues = _model_issues(cmp, res.exc, model)
     evaluated = _evaluate(cmp, ctx, model, res.exc)
@@ -328,7 +332,7 @@ def rank_candidates(ctx: RecordSamples, model: Model, eq: Equation,
     verdict += _convergence_note(res, cmp.rms_ls)
     return CandidateResult(tuple(cands), tuple(cmp.not_applicable), out.suggestion,
                            out.structure, not model_issues and not not_ident, tuple(reasons),
-                           verdict, cmp.rms_ls)
+                           verdict, cmp.rms_ls, res.exc)
 
 
 def _compare(ctx: RecordSamples, model: Model, eq: Equation,
@@ -359,7 +363,7 @@ def _compare(ctx: RecordSamples, model: Model, eq: Equation,
     col_rms = np.sqrt(np.maximum(np.diag(A)[:-1], 0.0) / max(N, 1)) \
         * np.ldexp(1.0, np.array(aug.scaling.columns))
     return _Comparison(names, na, used, N, aug_model, aug, A, G, C, cur_names, groups,
-                       math.ldexp(1.0, aug.scaling.target), rss0, th0, Ne, col_rms,
+                       math.ldexp(1.0, aug.scaling.output), rss0, th0, Ne, col_rms,
                        model, search)
 
 
@@ -370,7 +374,7 @@ def _model_issues(cmp: _Comparison, exc: ExcitationSummary, model: Model) -> lis
     for j in C:
         others = [i for i in C if i != j]
         ind = G.independence([j], others) if others else 1.0
-        why = _unexcited_reason(cur_names[j], exc, model)
+        why = _unexcited_reason(cur_names[j], exc)
         if G.zero[j] or why:
             issues.append(f"{cur_names[j]} is "
                           + (why or "not excited: its column is practically zero"))
@@ -415,7 +419,7 @@ def _evaluate(cmp: _Comparison, ctx: RecordSamples, model: Model,
         expl = min(max(expl, 0.0), 1.0)
         reason = ""
         order = aug.parameters[cols[0]].order
-        unexcited = _unexcited_reason(name, exc, model)
+        unexcited = _unexcited_reason(name, exc)
         if all(G.zero[j] for j in cols):
             reason = unexcited or "not excited: its column is zero over the record"
         elif unexcited:
@@ -493,7 +497,7 @@ def _what_is_left(ctx: RecordSamples, model: Model, eq: Equation, res: ResidualS
             suggestion = Suggestion(suggestion.steps, suggestion.rms_before,
                                     math.sqrt(e2 / n2))
         structure = residual_structure(ctx, r_left, rows2, res.unit, res.h2, None,
-                                       eq.target.signal)
+                                       eq.output.signal)
         total = 1.0 - sel.rss / cmp.rss0 if cmp.rss0 > 0 else 0.0
         if structure and total < MIN_TOTAL:
             # the best candidates explain part of the structure and leave the rest: they
@@ -513,7 +517,7 @@ def _what_is_left(ctx: RecordSamples, model: Model, eq: Equation, res: ResidualS
             el += float(np.dot(x, x))
         same = dd <= 0.01 * el and cmp.N == res.used.count()
         structure = residual_structure(ctx, r_ls, cmp.used, res.unit, res.h2,
-                                       res.spectrum if same else None, eq.target.signal)
+                                       res.spectrum if same else None, eq.output.signal)
     return _Outcome(suggestion, structure, partial, chosen)
 
 
@@ -621,14 +625,18 @@ def _description(eff: Effect) -> str:
     return f"{first} ({type(eff).EQUATION_TEXT})"
 
 
-def _unexcited_reason(name: str, exc: ExcitationSummary, model: Model) -> str:
+def _unexcited_reason(name: str, exc: ExcitationSummary) -> str:
     """Why an effect's column is not excited by these data ("" when it is)."""
     u = exc.speed_unit
     base = name.split(":")[0].split(".")[0]
-    if base == "stribeck" and exc.low_speed < 0.005:
-        return (f"not excited: the speed is below twice the Stribeck speed "
-                f"({2 * model.stribeck_speed:g} {u}) in only {share_text(exc.low_speed)} of "
-                f"the samples")
+    if base == "stribeck":
+        ws, low = exc.stribeck_speed, exc.low_speed
+        if ws is None or low is None:  # no speed set and none searched: no room for one
+            return ("not excited: no speed of the record lies where a Stribeck speed could "
+                    "be searched (above the Coulomb band, below a third of the median speed)")
+        if low < 0.005:
+            return (f"not excited: the speed is below twice the Stribeck speed "
+                    f"({2 * ws:g} {u}) in only {share_text(low)} of the samples")
     if base == "inertia" and not exc.accelerating:
         return (f"not excited: the acceleration is at the level of the speed-sensor noise "
                 f"(RMS {exc.acceleration_rms:.3g} {u}/s against {exc.acceleration_noise:.3g} "

@@ -113,7 +113,7 @@ class Figures:
                      rasterized=True)
         # the measurement above the model: drawn last, thin and black
         ax1.plot(tr.t[s], np.where(tr.used, tr.y, np.nan)[s], color="black", lw=0.7,
-                 label="measured (filtered target)", rasterized=True)
+                 label="measured (filtered output)", rasterized=True)
         spans = unused_spans(tr.t[s], tr.used[s])
         for ax in (ax1, ax2):
             for k, (t0, t1) in enumerate(spans):
@@ -123,7 +123,7 @@ class Figures:
         if spans:
             self.notes[name] = (f"Shaded: {len(spans)} spans the estimator does not use "
                                 f"({UNUSED_REASONS}).")
-        ax1.set_ylabel(plain(f"{b.target} [{u}]"))
+        ax1.set_ylabel(plain(f"{b.output} [{u}]"))
         ax1.set_title(plain(f"{b.equation} equation: measured against model "
                             f"(fit {b.fit_percent:.1f} %"
                             + (f" {label}, {a.fit_percent:.1f} % after)" if a is not None

@@ -163,7 +163,7 @@ class RecordSamples:
     """What both analyses (before and after) share: samples, restarts, filtered signals.
 
     Attributes (measured rows): ``signals`` (as given), ``speed``, ``acceleration``,
-    ``current`` (through the filter; on a drive whose mechanical target is the torque it
+    ``current`` (through the filter; on a drive whose mechanical output is the torque it
     reports, that torque: :attr:`effort` names which, :attr:`effort_unit` its unit),
     ``position`` (unwrapped, filtered), ``angle``
     (phase of periodic terms, filtered) and ``angle_raw`` (unfiltered), ``None``
@@ -193,7 +193,7 @@ class RecordSamples:
         self.per = "revolution" if model.axis == "rotary" else "pitch"
         held = model.held
         #: the drive's effort the residual is binned by: ``"current"`` or ``"torque"``
-        self.effort = "torque" if model.target == "torque" else "current"
+        self.effort = "torque" if model.output == "torque" else "current"
         self.effort_unit = ("A" if self.effort == "current" else
                             "N·m" if model.axis == "rotary" else "N")
         effort = self.effort
@@ -419,7 +419,7 @@ class RecordSamples:
             m += len(y)
 
     def residual(self, eq: Equation, theta: F64) -> Filtered:
-        """``r = y - Phi theta`` on every measured row, in the target unit (``theta``
+        """``r = y - Phi theta`` on every measured row, in the output unit (``theta``
         normalised): not kept, computed block by block from the equation's columns
         when read (:class:`Filtered`: the builder runs forward block by block)."""
         builder = eq.builder(self.dt)
@@ -431,39 +431,39 @@ class RecordSamples:
             phi, y = rb.phi, rb.y
             out = np.empty((c1 - c0, 1))
             if real is None:
-                out[:, 0] = eq.target_to_physical(y - phi @ theta)
+                out[:, 0] = eq.output_to_physical(y - phi @ theta)
             else:
                 # on the measured rows only, as the pipeline's rows are
                 rr = real[c0:c1]
-                out[rr, 0] = eq.target_to_physical(y[rr] - phi[rr] @ theta)
+                out[rr, 0] = eq.output_to_physical(y[rr] - phi[rr] @ theta)
             return out
 
         return Filtered(_FilterSource(self, builder, compute, len(self.signals)), 0)
 
-    def target_at(self, eq: Equation, rows: npt.NDArray[np.intp]) -> F64:
-        """The target ``y`` of an equation on the measured ``rows`` (sorted), in the
-        target unit (as the pipeline's :class:`~canrls.estimation.pipeline.EquationBlock`
+    def output_at(self, eq: Equation, rows: npt.NDArray[np.intp]) -> F64:
+        """The output ``y`` of an equation on the measured ``rows`` (sorted), in the
+        output unit (as the pipeline's :class:`~canrls.estimation.pipeline.EquationBlock`
         holds it)."""
         out = np.empty(len(rows))
         for m, _, y in self.measured_blocks(eq):
             a, b = np.searchsorted(rows, [m, m + len(y)])
             out[a:b] = y[rows[a:b] - m]
-        return eq.target_to_physical(out)
+        return eq.output_to_physical(out)
 
     def mean_square(self, eq: Equation, theta: F64, rows: B | PackedMask) -> float:
-        """Mean square of ``r = y - Phi theta`` (target unit) over the measured
+        """Mean square of ``r = y - Phi theta`` (output unit) over the measured
         ``rows``, block by block: nothing record-long."""
         s = 0.0
         for m, phi, y in self.measured_blocks(eq):
             u = rows[m:m + len(y)]
             if u.any():
-                r = eq.target_to_physical(y[u] - phi[u] @ theta)
+                r = eq.output_to_physical(y[u] - phi[u] @ theta)
                 s += float(np.dot(r, r))
         return s / max(int(rows.sum()), 1)  # PackedMask.sum counts block by block
 
     def fit_residual(self, eq: Equation, rows: B | PackedMask) -> Filtered:
         """Least-squares fit of ``eq`` on the measured ``rows`` and its residual on every
-        measured row, in the target unit: ``r = y - Phi theta``, ``theta`` the
+        measured row, in the output unit: ``r = y - Phi theta``, ``theta`` the
         minimum-norm least-squares solution of ``Phi[rows] theta = y[rows]``, without the
         record's ``Phi`` or its rows: ``[Phi y]`` is reduced block by block to a
         triangular factor (``R`` of a QR decomposition, the previous one stacked on each

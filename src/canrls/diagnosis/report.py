@@ -189,7 +189,7 @@ class DiagnosisReport:
 # ------------------------------------------------------------------------------ HTML
 #: What each figure shows, under it on the page.
 CAPTIONS = {
-    "timeline.svg": "Measured against model over time: the filtered target (black, drawn "
+    "timeline.svg": "Measured against model over time: the filtered output (black, drawn "
                     "above the model) and the model's value with the final float estimate; "
                     "below, the residual.",
     "speed.svg": "Residual against speed, both directions (symmetric-log axis, negative: "
@@ -302,7 +302,7 @@ def alt_text(name: str, report: DiagnosisReport) -> str:
     if name == "timeline.svg":
         if a is not None:
             after = f", {a.fit_percent:.1f} % after adding {', '.join(report.added)}"
-        return (f"{b.target} measured against the model over {report.duration:.0f} s: fit "
+        return (f"{b.output} measured against the model over {report.duration:.0f} s: fit "
                 f"{b.fit_percent:.1f} % before{after}; the residual below")
     if name in ("speed.svg", "position.svg"):
         q = name.split(".")[0]
@@ -404,7 +404,7 @@ def white_caveat(q: EquationDiagnosis) -> str:
 def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
     u = q.unit
     f = q.fit
-    out = ["", f"== {q.equation} equation: {q.target} [{u}]", "",
+    out = ["", f"== {q.equation} equation: {q.output} [{u}]", "",
            "Compare (final float estimate over the whole record, filtered equation)",
            f"  residual RMS {value_text(f.residual_rms, u)}, fit {f.fit_percent:.2f} %, "
            f"R² {f.r2:.5f}, {f.samples} samples"

@@ -1,8 +1,8 @@
 r"""Where the model fails: statistics of the residual over the used samples.
 
 Everything is computed on the *filtered* equation the estimators see (the state-variable
-filter applied to target and columns, :mod:`canrls.estimation.svf`), over the samples the
-estimators used (:class:`~canrls.diagnosis.record.RecordSamples`), in the target's unit:
+filter applied to output and columns, :mod:`canrls.estimation.svf`), over the samples the
+estimators used (:class:`~canrls.diagnosis.record.RecordSamples`), in the output's unit:
 
 * :func:`whiteness`: whiteness of the residual and its cross-correlation with the
   inputs (:class:`~canrls.diagnosis.results.Whiteness`);
@@ -633,7 +633,7 @@ def _harmonic_blocks(ctx: RecordSamples, r: F64, filled_used: B, orders: F64,
 def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64, F64]:
     """Per order q: LS fit of r by a constant, F[sin q a] and F[cos q a].
 
-    Returns the amplitude of the sine/cosine pair (target unit) and the share of the
+    Returns the amplitude of the sine/cosine pair (output unit) and the share of the
     residual's variance (about its mean) it explains. The columns are built and filtered
     in blocks of rows (:func:`_harmonic_blocks`), so memory does not grow with the
     record; only sums over the used rows are kept.
@@ -742,13 +742,17 @@ def spectrum_peaks(orders: F64, expl: F64, limit: int = 5) -> tuple[float, ...]:
 
 
 # ------------------------------------------------------------------------- excitation
-def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationSummary:
+def excitation_summary(ctx: RecordSamples, model: Model, used: B,
+                       stribeck_speed: float | None) -> ExcitationSummary:
     """How the ``used`` rows excite the model, block by block (exact order statistics:
-    :func:`percentiles`, :func:`median`; sums block by block)."""
+    :func:`percentiles`, :func:`median`; sums block by block); the time at low speed
+    below twice ``stribeck_speed`` (None: not said)."""
     N = _true_rows(used)
+    ws = stribeck_speed
     if not N:
         return ExcitationSummary(0.0, 0.0, 0, math.nan, math.nan, math.nan, math.nan,
-                                 math.nan, math.nan, None, None, ctx.speed_unit, ctx.per)
+                                 math.nan, None if ws is None else math.nan, None, None,
+                                 ctx.speed_unit, ctx.per, ws)
     speed = ctx.speed
     vmax = percentiles(_Mapped(speed, np.abs), used, [99.0])[0]  # type: ignore[arg-type]
     eps = max(model.coulomb_band, 0.01 * vmax)
@@ -770,7 +774,8 @@ def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationS
                 last_sign != 0.0 and sg[0] != last_sign)
             last_sign = float(sg[-1])
         # samples where the Stribeck shape exp(-(w/ws)^2) is more than e^-4
-        n_low += int(np.count_nonzero(np.abs(sp) < 2.0 * model.stribeck_speed))
+        if ws is not None:
+            n_low += int(np.count_nonzero(np.abs(sp) < 2.0 * ws))
         s_sp += float(np.sum(sp))
         sp_max = max(sp_max, float(np.max(np.abs(sp))))
         acc = ctx.acceleration[a:a + BLOCK][u]
@@ -806,18 +811,19 @@ def excitation_summary(ctx: RecordSamples, model: Model, used: B) -> ExcitationS
         forward=n_fwd / N, backward=n_bwd / N, reversals=rev, speed_mean=mean,
         speed_std=math.sqrt(ss / N), speed_max=sp_max,
         acceleration_rms=math.sqrt(s_acc2 / N),
-        acceleration_noise=acc_noise, low_speed=n_low / N, revolutions=revs, coverage=cov,
-        speed_unit=ctx.speed_unit, per=ctx.per)
+        acceleration_noise=acc_noise, low_speed=None if ws is None else n_low / N,
+        revolutions=revs, coverage=cov, speed_unit=ctx.speed_unit, per=ctx.per,
+        stribeck_speed=ws)
 
 
 # ------------------------------------------------------------------------- structure
 def residual_structure(ctx: RecordSamples, r: F64, used: B, unit: str, h2: float,
                spectrum: OrderSpectrum | None,
-               target: str = "current") -> tuple[StructureItem, ...]:
+               output: str = "current") -> tuple[StructureItem, ...]:
     """Structure of the residual ``r`` (``spectrum``: its order spectrum, if computed).
 
-    The residual is not tested against the equation's own target signal (``target``):
-    it holds the target's noise, so its bin means follow the target trivially.
+    The residual is not tested against the equation's own output signal (``output``):
+    it holds the output's noise, so its bin means follow the output trivially.
     """
     out: list[StructureItem] = []
     n, mu, energy, ss = moments(r, used)
@@ -837,7 +843,7 @@ def residual_structure(ctx: RecordSamples, r: F64, used: B, unit: str, h2: float
              "acceleration": "acceleration-dependent",
              "time": "drifting in time"}
     for qn, b in bins.items():
-        if b.share < MIN_STRUCTURE or qn == target:
+        if b.share < MIN_STRUCTURE or qn == output:
             continue
         ok = b.count >= MIN_BIN
         c = b.centers[ok]

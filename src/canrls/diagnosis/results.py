@@ -200,7 +200,7 @@ class OrderSpectrum:
     For every order ``q`` (steps of 1/4 up to the maximum order) the residual is fitted
     by least squares with :math:`F[\sin q\vartheta]` and :math:`F[\cos q\vartheta]`
     (the same filter as the equation, so periodic terms are seen at every speed):
-    ``amplitude`` is the fitted amplitude in the target unit, ``explained`` the share of
+    ``amplitude`` is the fitted amplitude in the output unit, ``explained`` the share of
     the residual variance the pair explains. ``per`` says what one period of order 1 is
     (a revolution, or the pitch of a linear axis). ``peaks`` lists the orders that stand
     out (local maxima explaining at least 1 % and 5 times the median), strongest first;
@@ -364,7 +364,7 @@ class StructureItem:
     ``kind`` is ``offset`` (a constant mean), ``speed``, ``position``, ``current``,
     ``acceleration`` (the bin means of that quantity explain ``share`` of the residual
     variance; ``time``: a drift) or ``periodic`` (an order of the rotation-order
-    spectrum explains ``share``). The equation's own target signal is not tested: the
+    spectrum explains ``share``). The equation's own output signal is not tested: the
     residual carries its noise.
     """
 
@@ -388,11 +388,15 @@ class ExcitationSummary:
     speed_max: float
     acceleration_rms: float
     acceleration_noise: float
-    low_speed: float
+    #: the share of the samples below twice :attr:`stribeck_speed` (None: no speed known)
+    low_speed: float | None
     revolutions: float | None
     coverage: float | None
     speed_unit: str
     per: str
+    #: the Stribeck speed ``low_speed`` refers to: the model's, or the one the search
+    #: found (None: neither)
+    stribeck_speed: float | None = None
 
     @property
     def accelerating(self) -> bool:
@@ -432,7 +436,8 @@ class ExcitationSummary:
                 "speed_std": self.speed_std, "speed_max": self.speed_max,
                 "acceleration_rms": self.acceleration_rms,
                 "acceleration_noise": self.acceleration_noise, "low_speed": self.low_speed,
-                "revolutions": self.revolutions, "coverage": self.coverage,
+                "stribeck_speed": self.stribeck_speed, "revolutions": self.revolutions,
+                "coverage": self.coverage,
                 "speed_unit": self.speed_unit, "per": self.per, "facts": self.facts()}
 
 
@@ -455,8 +460,8 @@ class Traces:
     mask of used samples over the whole record, packed (one bit a sample: slice it, or
     ``np.asarray``; ``None``: not kept).
 
-    ``y``, ``yhat`` and ``residual`` are the filtered target, its model value with the
-    final float estimate, and their difference, in the target unit. ``speed``,
+    ``y``, ``yhat`` and ``residual`` are the filtered output, its model value with the
+    final float estimate, and their difference, in the output unit. ``speed``,
     ``acceleration``, ``current`` and ``position`` are the measured signals through the
     same filter (aligned with the residual), ``angle`` the phase of periodic terms
     (``None`` without position). ``conv_t``, ``theta``, ``sigma`` and ``theta_fixed``
@@ -489,7 +494,7 @@ class EquationDiagnosis:
     """The diagnosis of one equation of the model (mechanical or electrical)."""
 
     equation: str
-    target: str
+    output: str
     unit: str
     fit: EquationFit
     residual_rms_ls: float
@@ -524,7 +529,7 @@ class EquationDiagnosis:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "equation": self.equation, "target": self.target, "unit": self.unit,
+            "equation": self.equation, "output": self.output, "unit": self.unit,
             "residual_rms": self.fit.residual_rms, "fit_percent": self.fit.fit_percent,
             "r2": self.fit.r2, "samples": self.fit.samples,
             "residual_rms_ls": self.residual_rms_ls,

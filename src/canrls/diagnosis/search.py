@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,7 @@ from canrls.estimation.nonlinear import RecordSpan, minimise_on_grid, record_spa
 from canrls.estimation.pipeline import EstimatorSettings
 from canrls.processor import measure_noise
 
-__all__ = ["Gram", "delta_bic", "search_parameters", "search_model"]
+__all__ = ["Gram", "delta_bic", "known_stribeck_speed", "search_parameters", "search_model"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -115,6 +115,21 @@ def _reads(model: Model, key: str, value: float) -> bool:
     if key not in DATA_OPTIONS:
         return False
     return model.with_search_value(key, 2.0 * value).effects != model.effects
+
+
+def known_stribeck_speed(model: Model, configured: frozenset[str],
+                         search: Mapping[str, Sequence[SearchResult]] | None = None
+                         ) -> float | None:
+    """The Stribeck speed ``ws`` the data are judged by: the model's when set in the
+    configuration (``configured``) or read by one of its effects, else the value the
+    search found (``search``: :func:`search_parameters`' results, ``model`` the model it
+    returned), else None (the library's default is no finding)."""
+    key = "stribeck_speed"
+    if key in configured or _reads(model, key, model.stribeck_speed):
+        return model.stribeck_speed
+    if search is not None and any(r.key == key for rs in search.values() for r in rs):
+        return model.stribeck_speed
+    return None
 
 
 def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Sequence[str],

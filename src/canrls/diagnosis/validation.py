@@ -4,7 +4,7 @@
 decoded and paired as ``canrls fit`` does (:class:`canrls.processor.replay.LogFiles`: one record,
 no segment bridged across files), the model's filtered columns are built with the
 saved ranges and scaling (the same columns the estimator saw), and the saved physical
-parameters predict the filtered target:
+parameters predict the filtered output:
 
 .. math::
 
@@ -66,13 +66,13 @@ class FileFit:
     samples: int
     residual_rms: float
     fit_percent: float
-    #: the target's standard deviation on this log: what its fit % is measured against
-    target_sd: float = math.nan
+    #: the output's standard deviation on this log: what its fit % is measured against
+    output_sd: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         return {"source": self.source, "samples": self.samples,
                 "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent),
-                "target_sd": _num(self.target_sd)}
+                "output_sd": _num(self.output_sd)}
 
 
 @dataclass(frozen=True)
@@ -89,14 +89,14 @@ class EquationValidation:
     identified_rms: float | None
     files: tuple[FileFit, ...]
     regions: tuple[Region, ...]
-    #: the filtered target's name, and the arrays and bins the figures draw (not in JSON)
-    target: str = ""
+    #: the filtered output's name, and the arrays and bins the figures draw (not in JSON)
+    output: str = ""
     traces: Traces | None = field(default=None, repr=False, compare=False)
     bins: Mapping[str, Binned] = field(default_factory=dict, repr=False, compare=False)
     #: first row of each file in ``traces`` (and the end)
     bounds: tuple[int, ...] = ()
-    #: the target's standard deviation over all the logs (what fit % is measured against)
-    target_sd: float = math.nan
+    #: the output's standard deviation over all the logs (what fit % is measured against)
+    output_sd: float = math.nan
 
     @property
     def holds(self) -> bool | None:
@@ -125,7 +125,7 @@ class EquationValidation:
         return {"equation": self.equation, "unit": self.unit, "samples": self.samples,
                 "residual_rms": _num(self.residual_rms), "fit_percent": _num(self.fit_percent),
                 "r2": _num(self.r2), "identified_rms": _num(self.identified_rms),
-                "target_sd": _num(self.target_sd),
+                "output_sd": _num(self.output_sd),
                 "files": [f.to_dict() for f in self.files],
                 "regions": [r.to_dict() for r in self.regions]}
 
@@ -183,12 +183,12 @@ class ValidationReport:
                          f"{e.samples} samples")
             if len(e.files) > 1:
                 lines.append(f"  per log, fit % is against that log's own spread of the "
-                             f"target (SD); a log that spreads less than all of them together "
-                             f"(SD {e.target_sd:.4g} {e.unit}) fits less at the same residual "
+                             f"output (SD); a log that spreads less than all of them together "
+                             f"(SD {e.output_sd:.4g} {e.unit}) fits less at the same residual "
                              f"RMS:")
                 for f in e.files:
                     lines.append(f"  {f.source}: fit {f.fit_percent:.2f} %, residual RMS "
-                                 f"{f.residual_rms:.4g} {e.unit}, target SD {f.target_sd:.4g} "
+                                 f"{f.residual_rms:.4g} {e.unit}, output SD {f.output_sd:.4g} "
                                  f"{e.unit}, {f.samples} samples")
             if e.regions:
                 lines.append("  where it fails:")
@@ -214,7 +214,7 @@ def _num(x: float | None) -> float | None:
 
 
 def _fit(r: F64, y: F64) -> tuple[float, float, float, float]:
-    """(rms, fit %, R², the target's standard deviation) of residual ``r`` against target
+    """(rms, fit %, R², the output's standard deviation) of residual ``r`` against output
     ``y``."""
     if not len(r):
         return math.nan, math.nan, math.nan, math.nan
@@ -261,16 +261,16 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
                 f"equation ({len(signals)} samples, every one left out: the filter's "
                 f"warm-up after the start and after each gap, the speed limits of the "
                 f"model, non-finite values); nothing to validate")
-        # r = y - Phi theta, normalised columns and parameters, then in the target unit
+        # r = y - Phi theta, normalised columns and parameters, then in the output unit
         with np.errstate(over="ignore", invalid="ignore"):
-            r = eq.target_to_physical(y - phi @ eq.to_normalised(theta))
-        yt = eq.target_to_physical(y)
+            r = eq.output_to_physical(y - phi @ eq.to_normalised(theta))
+        yt = eq.output_to_physical(y)
         with np.errstate(over="ignore"):
             energy = float(np.dot(r[used], r[used]))
         if not math.isfinite(energy):  # a value or its square beyond a double
             raise EstimatorError(
                 f"{model_file}: the saved parameters predict values of the {eq.name} "
-                f"equation's target too large for a double (parameters of absurd size?)")
+                f"equation's output too large for a double (parameters of absurd size?)")
         rms, fit, r2, sd = _fit(r[used], yt[used])
         files = []
         for k, name in enumerate(names):
@@ -278,7 +278,7 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
             u = used[a:b]
             f_rms, f_fit, _, f_sd = _fit(r[a:b][u], yt[a:b][u])
             files.append(FileFit(name, int(u.sum()), f_rms, f_fit, f_sd))
-        unit = eq.target.unit
+        unit = eq.output.unit
         regions: tuple[Region, ...] = ()
         if used.any():
             bins = all_bins(ctx, r, used, unit)
@@ -298,8 +298,8 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
         out.append(EquationValidation(
             equation=eq.name, unit=unit, samples=int(used.sum()), residual_rms=rms,
             fit_percent=fit, r2=r2, identified_rms=None if ident is None else float(ident),
-            files=tuple(files), regions=tuple(regions), target=eq.target.description,
-            traces=traces, bins=bins, bounds=tuple(int(b) for b in bounds), target_sd=sd))
+            files=tuple(files), regions=tuple(regions), output=eq.output.description,
+            traces=traces, bins=bins, bounds=tuple(int(b) for b in bounds), output_sd=sd))
     return ValidationReport(model_file=model_file, sources=tuple(names),
                             identified_on=tuple(saved.sources), parameters=saved.parameters,
                             equations=tuple(out), frames=frames, period=period, start=start,
@@ -347,7 +347,7 @@ class _Panel:
     diagnosis's figures take any object with these attributes)."""
 
     equation: str
-    target: str
+    output: str
     unit: str
     fit_percent: float
     residual_rms: float
@@ -371,7 +371,7 @@ def _slice(tr: Traces, a: int, b: int) -> Traces:
 #: What each figure of the validation page shows.
 VALIDATE_CAPTIONS = {
     "timeline": "Measured against the saved model's prediction over time (no "
-                "re-estimation): the filtered target (black) and the prediction; below, the "
+                "re-estimation): the filtered output (black) and the prediction; below, the "
                 "residual. Time from the log's first sample.",
     "speed": CAPTIONS["speed.svg"],
     "position": CAPTIONS["position.svg"],
@@ -380,7 +380,7 @@ VALIDATE_CAPTIONS = {
 
 def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> Path:
     """Write ``index.html`` and the SVG figures of ``report`` into ``directory``: per
-    equation, per log the measured target against the prediction and the residual over
+    equation, per log the measured output against the prediction and the residual over
     time, and over all logs the residual binned by speed and (where logged) by position.
 
     :raises ConfigError: matplotlib is missing, or the directory cannot be written.
@@ -401,15 +401,15 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
             a, b = e.bounds[k], e.bounds[k + 1]
             if not f.samples:
                 continue
-            p = _Panel(e.equation, e.target, e.unit, f.fit_percent, f.residual_rms,
+            p = _Panel(e.equation, e.output, e.unit, f.fit_percent, f.residual_rms,
                        _slice(e.traces, a, b), e.bins)
             name = figs.timeline(p, None, name=f"{e.equation}-timeline-{k + 1}.svg",  # type: ignore[arg-type]
                                  label="saved, not re-estimated")
             add(figures, name, f"{f.source}: {VALIDATE_CAPTIONS['timeline']}",
-                f"{e.target} measured against the saved model's prediction over "
+                f"{e.output} measured against the saved model's prediction over "
                 f"{f.source}: fit {f.fit_percent:.1f} %, residual RMS "
                 f"{value_text(f.residual_rms, e.unit)}; the residual below")
-        whole = _Panel(e.equation, e.target, e.unit, e.fit_percent, e.residual_rms,
+        whole = _Panel(e.equation, e.output, e.unit, e.fit_percent, e.residual_rms,
                        e.traces, e.bins)
         for q in ("speed", "position"):
             if q not in e.bins or (q == "position" and e.traces.position is None):

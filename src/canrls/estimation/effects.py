@@ -17,13 +17,13 @@ with the simulated drive:
 with :math:`\mathrm{sgn}_\epsilon(\omega) = \tanh(\omega/\epsilon)`. On a linear axis
 ``omega`` is the speed ``v`` [m/s], the torque a force [N], and the angle of the
 periodic terms is :math:`2\pi x / p` with ``p`` the pitch [m]. Without ``kt`` the
-mechanical target is the raw current and every mechanical parameter is divided by
+mechanical output is the raw current and every mechanical parameter is divided by
 ``Kt`` (units read ``A`` instead of ``N·m`` or ``N``); a drive that reports its torque
 (``torque`` signal) gives the left-hand side itself, :math:`T = J\dot\omega + ...`,
 in N·m (N) without ``Kt``.
 
 Every effect class documents its equation, its parameters with units for both axes
-and both targets, the signals it needs, its DBC ``EFFECT_ID`` and its
+and both outputs, the signals it needs, its DBC ``EFFECT_ID`` and its
 ``RESIDUAL_SIGNATURE``: how its absence shows in the residual, which
 :mod:`canrls.diagnosis.analysis` looks for.
 
@@ -78,7 +78,7 @@ __all__ = [
     "library",
     "parse_effect",
     "effect_spec",
-    "target_unit",
+    "output_unit",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -99,8 +99,8 @@ OPTION_KEYS = frozenset({"axis", "pitch", "band", "speed", "terms"})
 TERM_KEYS = frozenset({"expr", "unit", "equation", "range", "search"})
 
 
-def target_unit(equation: str, axis: Axis = "rotary", kt_known: bool = True) -> str:
-    """Unit of an equation's target: ``N·m``/``N`` (torque/force), ``A`` (no Kt), ``V``."""
+def output_unit(equation: str, axis: Axis = "rotary", kt_known: bool = True) -> str:
+    """Unit of an equation's output: ``N·m``/``N`` (torque/force), ``A`` (no Kt), ``V``."""
     if equation == ELECTRICAL:
         return "V"
     if not kt_known:
@@ -311,7 +311,7 @@ class Effect:
 
     @property
     def requires(self) -> frozenset[str]:
-        """Signal roles this effect needs (beyond the target's)."""
+        """Signal roles this effect needs (beyond the output's)."""
         return self.REQUIRES
 
     @property
@@ -355,7 +355,7 @@ class Effect:
         return tuple(out)
 
     def evaluate(self, params: Mapping[str, float], signals: Any) -> F64:
-        """This effect's contribution to its equation's target for given parameters.
+        """This effect's contribution to its equation's output for given parameters.
 
         ``params`` maps parameter names (``"coulomb.Tc"``; a bare symbol ``"Tc"`` is
         accepted too) to values in the units of :meth:`parameters`. ``signals`` is a
@@ -395,7 +395,7 @@ class Effect:
                    if u.rotary_current else "")
             lines.append(f"  {c.symbol}: {c.description} [{u.rotary}] "
                          f"(linear: {c.linear_description} [{u.linear}]{cur})")
-        req = ", ".join(sorted(cls.REQUIRES)) or "none beyond the target"
+        req = ", ".join(sorted(cls.REQUIRES)) or "none beyond the output"
         lines.append(f"  needs: {req}")
         lines.append(f"  missing shows as: {cls.RESIDUAL_SIGNATURE}")
         return "\n".join(lines)
@@ -680,7 +680,7 @@ class Electrical(Effect):
     .. math:: u = R i + L \frac{di}{dt} + K_e \omega
 
     Needs the voltage signal. Parameters ``electrical.R`` [Ohm], ``electrical.L`` [H],
-    ``electrical.Ke`` [V·s/rad] (linear [V·s/m]); the target is the voltage whatever
+    ``electrical.Ke`` [V·s/rad] (linear [V·s/m]); the output is the voltage whatever
     Kt is.
     """
 
@@ -728,7 +728,7 @@ class UserTerm(Effect):
     ``f_u`` for normalisation (default: derived from the signal ranges by interval
     arithmetic), ``search = {PARAM: [lo, hi]}`` (or ``{PARAM: value}``, kept): one free
     parameter of ``expr`` that the regression cannot estimate linearly, searched by the
-    diagnosis. Parameter ``user:NAME.c`` in the target unit divided by ``unit``.
+    diagnosis. Parameter ``user:NAME.c`` in the output unit divided by ``unit``.
     """
 
     NAME = "user"
@@ -819,7 +819,7 @@ class UserTerm(Effect):
         return frozenset(self.expression.signals) - {"t"}
 
     def parameters(self, kt_known: bool = True) -> tuple[ParameterSpec, ...]:
-        tu = target_unit(self._equation, self.axis, kt_known)
+        tu = output_unit(self._equation, self.axis, kt_known)
         if self.unit == "1":
             unit = tu
         elif _SIMPLE_UNIT.match(self.unit):

@@ -1,4 +1,4 @@
-"""An equation of the model (:class:`Equation`): its target, parameters and scaling,
+"""An equation of the model (:class:`Equation`): its output, parameters and scaling,
 and the :class:`RegressorBuilder` that filters and normalises its regressors block by
 block (docs/effects.md: "Regressors", "Normalisation" and the filter's holds)."""
 
@@ -23,13 +23,13 @@ from canrls.estimation.effects import (
     Effect,
     Frame,
     ParameterSpec,
-    target_unit,
+    output_unit,
 )
 from canrls.estimation.svf import SVF, gain_bounds, impulse_response
 
 __all__ = [
     "Equation",
-    "TargetSpec",
+    "OutputSpec",
     "Scaling",
     "RegressorBlock",
     "RegressorBuilder",
@@ -50,7 +50,7 @@ def _exponent(bound: float) -> int:
 
 # ------------------------------------------------------------------------- results
 @dataclass(frozen=True)
-class TargetSpec:
+class OutputSpec:
     """The left-hand side of an equation: ``gain * signal``."""
 
     equation: str
@@ -62,22 +62,22 @@ class TargetSpec:
 
 @dataclass(frozen=True)
 class Scaling:
-    """Power-of-two normalisation: ``phi_j = F[.] * 2**-columns[j]``, ``y = F[.] * 2**-target``.
+    """Power-of-two normalisation: ``phi_j = F[.] * 2**-columns[j]``, ``y = F[.] * 2**-output``.
 
-    ``column_bounds`` / ``target_bound`` are the worst-case magnitudes of the filtered
+    ``column_bounds`` / ``output_bound`` are the worst-case magnitudes of the filtered
     signals the exponents were chosen from.
     """
 
     columns: tuple[int, ...]
-    target: int
+    output: int
     column_bounds: tuple[float, ...]
-    target_bound: float
+    output_bound: float
 
     @property
     def factors(self) -> F64:
         """``2**(s_y - s_j)``: multiply normalised parameters by these."""
         return np.ldexp(np.ones(len(self.columns)),
-                        np.array([self.target - s for s in self.columns], dtype=np.int64))
+                        np.array([self.output - s for s in self.columns], dtype=np.int64))
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,7 @@ class RegressorBlock:
     """Normalised regressors of one block: ``y[k] ~ phi[k] @ theta``.
 
     ``phi`` is ``(N, n)`` float64, ``y`` is ``(N,)`` float64, ``t`` the sample times.
-    ``nonfinite`` marks the rows where the target or a column was not finite before
+    ``nonfinite`` marks the rows where the output or a column was not finite before
     the filter (``None``: none was); see :class:`RegressorBuilder`.
     """
 
@@ -139,7 +139,7 @@ class ModelView(Protocol):
 
     source: str
     axis: Axis
-    target: str
+    output: str
     kt: float | None
     pitch: float
     wrap: float | None
@@ -154,7 +154,7 @@ class ModelView(Protocol):
 
 
 class Equation:
-    """One regression equation of a model: its target, columns and parameters."""
+    """One regression equation of a model: its output, columns and parameters."""
 
     def __init__(self, model: ModelView, name: str, effects: tuple[Effect, ...]) -> None:
         self.model = model
@@ -165,16 +165,16 @@ class Equation:
         self.effects = effects
         axis = model.axis
         if name == ELECTRICAL:
-            self.target = TargetSpec(name, "q-axis voltage u", "V", "voltage", 1.0)
-        elif model.target == "torque":
+            self.output = OutputSpec(name, "q-axis voltage u", "V", "voltage", 1.0)
+        elif model.output == "torque":
             what = ("motor torque T reported by the drive" if axis == "rotary" else
                     "motor force F reported by the drive")
-            self.target = TargetSpec(name, what, target_unit(name, axis, True), "torque", 1.0)
+            self.output = OutputSpec(name, what, output_unit(name, axis, True), "torque", 1.0)
         elif model.kt is None:
-            self.target = TargetSpec(name, "q-axis current i (Kt unknown)", "A", "current", 1.0)
+            self.output = OutputSpec(name, "q-axis current i (Kt unknown)", "A", "current", 1.0)
         else:
             what = "motor torque Kt*i" if axis == "rotary" else "motor force Kf*i"
-            self.target = TargetSpec(name, what, target_unit(name, axis, True), "current",
+            self.output = OutputSpec(name, what, output_unit(name, axis, True), "current",
                                      model.kt)
         cols: list[Column] = []
         params: list[ParameterSpec] = []
@@ -184,7 +184,7 @@ class Equation:
         self.columns: tuple[Column, ...] = tuple(cols)
         self.parameters: tuple[ParameterSpec, ...] = tuple(params)
         self.n = len(self.columns)
-        req = {self.target.signal}
+        req = {self.output.signal}
         for e in effects:
             req |= e.requires
         #: Signal roles this equation reads.
@@ -194,14 +194,14 @@ class Equation:
         self._factors = self.scaling.factors
 
     def __repr__(self) -> str:
-        return (f"Equation({self.name!r}, target={self.target.description!r}, "
+        return (f"Equation({self.name!r}, output={self.output.description!r}, "
                 f"parameters={[p.name for p in self.parameters]})")
 
     @property
     def holds(self) -> tuple[str, ...]:
-        """SVF hold of the target and of every column: ``"zoh"`` when it reads a held signal."""
+        """SVF hold of the output and of every column: ``"zoh"`` when it reads a held signal."""
         held = self.model.held
-        out = ["zoh" if self.target.signal in held else "foh"]
+        out = ["zoh" if self.output.signal in held else "foh"]
         out += ["zoh" if c.reads & held else "foh" for c in self.columns]
         return tuple(out)
 
@@ -225,8 +225,8 @@ class Equation:
         m = self.model
         f_gain, sf_gain = gain_bounds(m.cutoff_hz, m.zeta)
         r = m.ranges
-        lo, hi = r[self.target.signal]
-        g = self.target.gain
+        lo, hi = r[self.output.signal]
+        g = self.output.gain
         ty = self._filtered_bound(g * lo, g * hi, False, f_gain, sf_gain)
         bounds = []
         for col, p in zip(self.columns, self.parameters, strict=True):
@@ -242,13 +242,13 @@ class Equation:
                     f" or set the ranges of the signals it reads in [model.ranges]")
             bounds.append(b)
         # exponents given (frozen by a calibration, canrls.processor, or configured) win
-        # over those of the bounds, column by column: {"target": s_y, parameter: s_j}
+        # over those of the bounds, column by column: {"output": s_y, parameter: s_j}
         given = m.exponents.get(self.name, {})
         return Scaling(
             columns=tuple(given.get(p.name, _exponent(b))
                           for p, b in zip(self.parameters, bounds, strict=True)),
-            target=given.get("target", _exponent(ty)),
-            column_bounds=tuple(bounds), target_bound=ty)
+            output=given.get("output", _exponent(ty)),
+            column_bounds=tuple(bounds), output_bound=ty)
 
     @staticmethod
     def _filtered_bound(lo: float, hi: float, derivative: bool, f_gain: float,
@@ -280,9 +280,9 @@ class Equation:
         th = np.asarray(theta_phys, dtype=np.float64)
         return th / self._factors  # type: ignore[no-any-return]
 
-    def target_to_physical(self, y_norm: npt.ArrayLike) -> F64:
-        """A normalised target or residual in the target unit: ``y * 2**s_y``."""
-        s = self.scaling.target
+    def output_to_physical(self, y_norm: npt.ArrayLike) -> F64:
+        """A normalised output or residual in the output unit: ``y * 2**s_y``."""
+        s = self.scaling.output
         if -1074 <= s <= 1023:
             # multiplying by the exact power of two rounds once, as ldexp does (and faster)
             return np.asarray(y_norm, dtype=np.float64) * math.ldexp(1.0, s)
@@ -316,7 +316,7 @@ class RegressorBuilder:
         period = 2.0 * math.pi if m.axis == "rotary" else m.wrap
         self.unwrapper = PositionUnwrapper(period)
         self._deriv_idx = np.flatnonzero([False, *equation.derivative_mask])
-        self._neg_exp = -np.array([equation.scaling.target, *equation.scaling.columns],
+        self._neg_exp = -np.array([equation.scaling.output, *equation.scaling.columns],
                                   dtype=np.int64)
         # the same normalisation as factors: x * 2**-s is x scaled exactly as ldexp does
         # (one rounding of the exact product), as long as 2**-s is a double
@@ -339,7 +339,7 @@ class RegressorBuilder:
 
     def normalise_as(self, scaling: Scaling) -> None:
         """Normalise from now on with ``scaling``'s exponents (of the same columns)."""
-        self._neg_exp = -np.array([scaling.target, *scaling.columns], dtype=np.int64)
+        self._neg_exp = -np.array([scaling.output, *scaling.columns], dtype=np.int64)
         self._scale = None
         if np.all((self._neg_exp >= -1074) & (self._neg_exp <= 1023)):
             self._scale = np.ldexp(np.ones(len(self._neg_exp)), self._neg_exp)
@@ -384,8 +384,8 @@ class RegressorBuilder:
                 continue
             at = f"t = {float(t[int(np.argmax(bad))]):.6g} s"
             if j < 0:
-                gain = (f"model.kt = {eq.target.gain:g}: " if eq.target.gain != 1.0 else "")
-                what = f"the target {eq.target.description} ({eq.target.unit})"
+                gain = (f"model.kt = {eq.output.gain:g}: " if eq.output.gain != 1.0 else "")
+                what = f"the output {eq.output.description} ({eq.output.unit})"
             else:
                 gain, what = "", f"the column of {eq.parameters[j].name}"
             raise ConfigError(f"{gain}{what} overflows a double once filtered (from {at}): "
@@ -395,7 +395,7 @@ class RegressorBuilder:
         eq = self.equation
         for role in eq.requires:
             if getattr(signals, role, None) is None:
-                users = [e.name for e in eq.effects if role in e.requires] or ["target"]
+                users = [e.name for e in eq.effects if role in e.requires] or ["output"]
                 raise SignalError(
                     f"{eq.model.source}: the {eq.name} equation needs signal {role!r} "
                     f"(for {', '.join(users)}), which this block does not carry")
@@ -475,16 +475,16 @@ class RegressorBuilder:
         eq = self.equation
         frame = self._frame(signals)
         n = len(frame.t)
-        # unfiltered target and columns, in a buffer kept between blocks (it never leaves
+        # unfiltered output and columns, in a buffer kept between blocks (it never leaves
         # here; a fresh one per block would cost page faults)
         if self._raw.shape[0] < n:
             self._raw = np.empty((max(n, (self._raw.shape[0] * 3) // 2), eq.n + 1))
         raw = self._raw[:n]
-        tgt = frame.get(eq.target.signal)
-        # target: Kt * i (torque), i, the reported torque T, or u
-        if eq.target.gain != 1.0:
+        tgt = frame.get(eq.output.signal)
+        # output: Kt * i (torque), i, the reported torque T, or u
+        if eq.output.gain != 1.0:
             with np.errstate(over="ignore"):  # an overflow is refused below, by name
-                np.multiply(tgt, eq.target.gain, out=raw[:, 0])
+                np.multiply(tgt, eq.output.gain, out=raw[:, 0])
         else:
             raw[:, 0] = tgt
         for j, col in enumerate(eq.columns):
@@ -497,7 +497,7 @@ class RegressorBuilder:
             self.svf.process_scaled(raw, self._deriv, self._scale, y, phi)
         else:
             f, sf = self.svf.process(raw)
-            # value columns and target through F, derivative columns through sF
+            # value columns and output through F, derivative columns through sF
             if self._deriv_idx.size:
                 f[:, self._deriv_idx] = sf[:, self._deriv_idx]
             # exact power-of-two normalisation

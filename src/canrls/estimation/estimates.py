@@ -101,7 +101,7 @@ class ParameterEstimate:
 
 @dataclass(frozen=True)
 class Rescale:
-    """One change of an equation's normalisation during a run: a column or the target
+    """One change of an equation's normalisation during a run: a column or the output
     outgrew its exponent (``grew``), or a pending one showed its first value (``first``)."""
 
     t: float
@@ -120,40 +120,40 @@ class EquationFit:
     """How well one equation fits, with the final estimate over all used samples."""
 
     equation: str
-    target: str
+    output: str
     unit: str
     samples: int
     residual_rms: float
     fit_percent: float
     r2: float
-    target_rms: float
+    output_rms: float
     online_rms: float
     divergence: float
     saturations: Mapping[str, int]
     windup_steps: int
     low_excitation: bool
     condition: float
-    #: samples whose target or a column was not finite: left out, with the filter's
+    #: samples whose output or a column was not finite: left out, with the filter's
     #: warm-up after each (see :class:`~canrls.estimation.model.RegressorBuilder`)
     nonfinite_rows: int = 0
     #: factor the residual's colour puts on the variances (kappa >= 1; the sigmas
     #: reported are multiplied by its square root; :mod:`canrls.estimation.sigma_inflation`)
     sigma_inflation: float = 1.0
-    #: the normalisation's exponents at the end (``{"target": s_y, parameter: s_j}``)
+    #: the normalisation's exponents at the end (``{"output": s_y, parameter: s_j}``)
     exponents: Mapping[str, int] = field(default_factory=dict)
     #: how often the normalisation changed during the run, and the first changes
     rescale_count: int = 0
     rescales: tuple[Rescale, ...] = ()
-    #: the target and columns the data have not shown yet (exponent and prior provisional)
+    #: the output and columns the data have not shown yet (exponent and prior provisional)
     pending: tuple[str, ...] = ()
     #: the fixed point's word lengths (``W32/A64/I32``)
     fixed_config: str = ""
 
     def to_dict(self) -> dict[str, Any]:
-        return {"equation": self.equation, "target": self.target, "unit": self.unit,
+        return {"equation": self.equation, "output": self.output, "unit": self.unit,
                 "samples": self.samples, "residual_rms": self.residual_rms,
                 "fit_percent": self.fit_percent, "r2": self.r2,
-                "target_rms": self.target_rms, "online_rms": self.online_rms,
+                "output_rms": self.output_rms, "online_rms": self.online_rms,
                 "divergence": self.divergence, "saturations": dict(self.saturations),
                 "windup_steps": self.windup_steps, "low_excitation": self.low_excitation,
                 "condition": self.condition, "nonfinite_rows": self.nonfinite_rows,
@@ -180,7 +180,7 @@ class Estimates:
 
     @property
     def residual_rms(self) -> float:
-        """Residual RMS of the first (mechanical) equation, in its target unit."""
+        """Residual RMS of the first (mechanical) equation, in its output unit."""
         return self.equations[0].residual_rms if self.equations else math.nan
 
     @property
@@ -258,7 +258,7 @@ class Estimates:
 class EquationBlock:
     """What one block did to one equation (recorded with ``record=True``).
 
-    ``y`` and ``eps``/``eps_fixed`` are in the target unit; ``theta``/``theta_fixed``
+    ``y`` and ``eps``/``eps_fixed`` are in the output unit; ``theta``/``theta_fixed``
     are physical parameters after each sample; ``used`` marks the rows that updated
     the estimators (not in a warm-up).
     """
@@ -279,9 +279,9 @@ class EquationBlock:
     changes: tuple[tuple[int, tuple[int, ...], int], ...] = ()
 
 
-def used_rows(blocks: Sequence[EquationBlock], target: int) -> tuple[F64, F64]:
+def used_rows(blocks: Sequence[EquationBlock], output: int) -> tuple[F64, F64]:
     """The used rows ``(phi, y)`` of one equation's recorded blocks, normalised as at
-    the end of the last block (``target``: the target's exponent then)."""
+    the end of the last block (``output``: the output's exponent then)."""
     n = next((b.phi.shape[1] for b in blocks if b.phi is not None), 0)
     later = np.zeros(n, np.int64)  # the column exponents' change after a row
     parts = []
@@ -295,7 +295,7 @@ def used_rows(blocks: Sequence[EquationBlock], target: int) -> tuple[F64, F64]:
             later = later + np.asarray(d, np.int64)
             end = row
         np.ldexp(phi[:end], -later, out=phi[:end])
-        parts.append((phi[b.used], np.ldexp(b.y[b.used], -target)))
+        parts.append((phi[b.used], np.ldexp(b.y[b.used], -output)))
     parts.reverse()
     if not parts:
         return np.zeros((0, n)), np.zeros(0)

@@ -1,6 +1,6 @@
 r"""The identification model: which effects, which equations, which regressors.
 
-A :class:`Model` holds the axis, the target, the effects and their options, the
+A :class:`Model` holds the axis, the output, the effects and their options, the
 state-variable filter settings, the user terms and the signal ranges. It is validated
 once, when built, and then yields its :class:`~canrls.estimation.equation.Equation`\ s:
 the mechanical one (whenever a mechanical effect is present) and the electrical one
@@ -11,7 +11,9 @@ regressors, their normalisation and the holds are described in docs/effects.md.
 
 from __future__ import annotations
 
+import logging
 import math
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -41,7 +43,7 @@ from canrls.estimation.svf import (
     ZETA_RANGE,
 )
 
-__all__ = ["DATA_OPTIONS", "Model", "DEFAULT_RANGES", "TARGETS"]
+__all__ = ["DATA_OPTIONS", "Model", "DEFAULT_RANGES", "OUTPUTS"]
 
 F64 = npt.NDArray[np.float64]
 Range = tuple[float, float]
@@ -62,12 +64,17 @@ _LINEAR_SPEED: Range = (-1.0, 1.0)
 _RANGE_KEYS = ("current", "speed", "voltage", "position", "acceleration", "current_rate",
                "torque")
 _ALWAYS = frozenset({"t", "current", "speed"})
-_MODEL_KEYS = ("axis", "pitch", "wrap", "kt", "target", "effects", "filter", "coulomb",
+_MODEL_KEYS = ("axis", "pitch", "wrap", "kt", "output", "target", "effects", "filter", "coulomb",
                "stribeck", "terms", "ranges", "scaling")
 _HELD_ROLES = ("current", "speed", "position", "voltage", "torque")
-#: The mechanical targets: the current (``Kt*i``, or ``i`` without ``kt``) or the torque
+#: The mechanical outputs: the current (``Kt*i``, or ``i`` without ``kt``) or the torque
 #: (force) the drive reports.
-TARGETS = ("current", "torque")
+OUTPUTS = ("current", "torque")
+#: the key that named the output before ``output`` did (``model.target``, ``{"target": s_y}``
+#: in ``model.scaling``): read, with a warning, until the next release
+OLD_OUTPUT_KEY = "target"
+
+log = logging.getLogger(__name__)
 _SUBKEYS: Mapping[str, tuple[str, ...]] = {
     "filter": ("cutoff_hz", "zeta", "held"),
     "coulomb": ("band",),
@@ -109,13 +116,13 @@ def _canonical(spec: Any) -> str:
 
 # ---------------------------------------------------------------------------- model
 class Model:
-    """Effects, target and filter settings; validated once when built.
+    """Effects, output and filter settings; validated once when built.
 
     :param effects: effect names (``"inertia"``, ``"cogging:24"``, ``"user:NAME"``) or
         :class:`~canrls.estimation.effects.Effect` objects, in column order.
     :param axis: ``"rotary"`` or ``"linear"``.
-    :param kt: torque (force) constant; ``None``: the mechanical target is the current.
-    :param target: the mechanical target, ``"current"`` (``Kt*i``, or ``i`` without
+    :param kt: torque (force) constant; ``None``: the mechanical output is the current.
+    :param output: the mechanical output, ``"current"`` (``Kt*i``, or ``i`` without
         ``kt``) or ``"torque"`` (the torque the drive reports, N·m; linear axis: force,
         N; no ``kt``).
     :param pitch: linear axis: metres per period of the periodic terms.
@@ -136,7 +143,7 @@ class Model:
     """
 
     def __init__(self, effects: Iterable[str | Effect] = (), *, axis: str = "rotary",
-                 kt: float | None = None, target: str = "current",
+                 kt: float | None = None, output: str = "current",
                  pitch: float = DEFAULT_PITCH,
                  wrap: float | None = None, cutoff_hz: float = DEFAULT_CUTOFF_HZ,
                  zeta: float = DEFAULT_ZETA, held: Iterable[str] = ("voltage",),
@@ -160,16 +167,16 @@ class Model:
             raise ConfigError(_fmt(source, "model.axis", axis, "must be 'rotary' or 'linear'"))
         self.axis: Axis = axis  # type: ignore[assignment]
         self.kt = None if kt is None else _number(source, "model.kt", kt, nonzero=True)
-        if target not in TARGETS:
-            raise ConfigError(_fmt(source, "model.target", target,
-                                   f"must be one of {', '.join(map(repr, TARGETS))}"))
-        #: The mechanical target: ``"current"`` or ``"torque"`` (reported by the drive).
-        self.target: str = target
-        if target == "torque" and self.kt is not None:
+        if output not in OUTPUTS:
+            raise ConfigError(_fmt(source, "model.output", output,
+                                   f"must be one of {', '.join(map(repr, OUTPUTS))}"))
+        #: The mechanical output: ``"current"`` or ``"torque"`` (reported by the drive).
+        self.output: str = output
+        if output == "torque" and self.kt is not None:
             raise ConfigError(_fmt(source, "model.kt", kt,
-                                   "the mechanical target is the torque the drive reports "
+                                   "the mechanical output is the torque the drive reports "
                                    "(parameters in N·m, or N on a linear axis): Kt is not "
-                                   "used; leave it out (or set model.target = \"current\" to "
+                                   "used; leave it out (or set model.output = \"current\" to "
                                    "identify on the current)"))
         self.pitch = _number(source, "model.pitch", pitch, positive=True)
         self.wrap = None if wrap is None else _number(source, "model.wrap", wrap, positive=True)
@@ -214,29 +221,36 @@ class Model:
             # a drive reporting its torque sends the current only when it says so
             self.available_signals = av | (_ALWAYS - {"current"} if "torque" in av
                                            else _ALWAYS)
-            if target == "torque" and "torque" not in av:
-                raise ConfigError(_fmt(source, "model.target", target,
+            if output == "torque" and "torque" not in av:
+                raise ConfigError(_fmt(source, "model.output", output,
                                        "the drive sends no torque signal (map one: "
                                        "torque=MESSAGE.SIGNAL)"))
         self.effects: tuple[Effect, ...] = self._build_effects(effects)
         self.equations: tuple[Equation, ...] = self._build_equations()
         av = self.available_signals
         for eq in self.equations:
-            if av is not None and eq.name == MECHANICAL and eq.target.signal not in av:
-                raise ConfigError(_fmt(source, "model.target", self.target,
-                                       f"the drive sends no {eq.target.signal} signal "
+            if av is not None and eq.name == MECHANICAL and eq.output.signal not in av:
+                raise ConfigError(_fmt(source, "model.output", self.output,
+                                       f"the drive sends no {eq.output.signal} signal "
                                        f"(it sends {', '.join(sorted(av - {'t'}))})"))
+
+    @property
+    def target(self) -> str:
+        """The old name of :attr:`output`, for one release."""
+        warnings.warn("Model.target is now Model.output; the old name goes in the next release",
+                      DeprecationWarning, stacklevel=2)
+        return self.output
 
     # -- validation -------------------------------------------------------------------
     @property
     def torque_known(self) -> bool:
-        """True when the mechanical target is a torque (``Kt*i`` or the drive's own):
+        """True when the mechanical output is a torque (``Kt*i`` or the drive's own):
         parameters in N·m (N), not per ampere."""
-        return self.kt is not None or self.target == "torque"
+        return self.kt is not None or self.output == "torque"
 
     @property
     def per_ampere(self) -> bool:
-        """True when the model has a mechanical equation whose target is the raw current
+        """True when the model has a mechanical equation whose output is the raw current
         (no Kt, no torque signal): its mechanical parameters are per ampere."""
         return not self.torque_known and any(e.name == MECHANICAL for e in self.equations)
 
@@ -311,12 +325,13 @@ class Model:
                                                             f"mechanical, {ELECTRICAL})"))
             if not isinstance(v, Mapping):
                 raise ConfigError(_fmt(self.source, key, v, 'must be a table of exponents '
-                                                            '{"target" = s_y, PARAMETER = s}'))
+                                                            '{"output" = s_y, PARAMETER = s}'))
             for name, s in v.items():
                 if isinstance(s, bool) or not isinstance(s, int) or not -1000 <= s <= 1000:
                     raise ConfigError(_fmt(self.source, f"{key}.{name}", s,
                                            "must be an integer exponent in [-1000, 1000]"))
-            out[k] = {str(name): int(s) for name, s in v.items()}
+            out[k] = {_new_output_key(self.source, f"{key}.{name}", str(name)): int(s)
+                      for name, s in v.items()}
         return out
 
     def _check_ranges(self, ranges: Any) -> dict[str, Range]:
@@ -407,9 +422,9 @@ class Model:
 
     # -- views ------------------------------------------------------------------------
     def __repr__(self) -> str:
-        target = "" if self.target == "current" else f", target={self.target!r}"
+        output = "" if self.output == "current" else f", output={self.output!r}"
         return (f"Model(effects={[e.name for e in self.effects]}, axis={self.axis!r}, "
-                f"kt={self.kt!r}{target}, source={self.source!r})")
+                f"kt={self.kt!r}{output}, source={self.source!r})")
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, Model) and other.to_dict() == self.to_dict()
@@ -448,7 +463,7 @@ class Model:
 
     # -- derivation -------------------------------------------------------------------
     def _kwargs(self) -> dict[str, Any]:
-        return dict(axis=self.axis, kt=self.kt, target=self.target, pitch=self.pitch,
+        return dict(axis=self.axis, kt=self.kt, output=self.output, pitch=self.pitch,
                     wrap=self.wrap,
                     cutoff_hz=self.cutoff_hz, zeta=self.zeta, held=self.held_list,
                     coulomb_band=self.coulomb_band, stribeck_speed=self.stribeck_speed,
@@ -490,7 +505,7 @@ class Model:
 
     def with_scaling(self, exponents: Mapping[str, Mapping[str, int]]) -> Model:
         """A new model whose equations use the given power-of-two exponents,
-        ``{equation: {"target": s_y, parameter name: s_j}}`` (:attr:`Equation.scaling`),
+        ``{equation: {"output": s_y, parameter name: s_j}}`` (:attr:`Equation.scaling`),
         instead of the ones its ranges give; a column not named keeps its bound's."""
         kw = self._kwargs()
         kw["scaling"] = exponents
@@ -541,8 +556,8 @@ class Model:
             d["wrap"] = self.wrap
         if self.kt is not None:
             d["kt"] = self.kt
-        if self.target != "current":
-            d["target"] = self.target
+        if self.output != "current":
+            d["output"] = self.output
         d["effects"] = [e.name for e in self.effects]
         d["filter"] = {"cutoff_hz": self.cutoff_hz, "zeta": self.zeta, "held": self.held_list}
         d["coulomb"] = {"band": self.coulomb_band}
@@ -565,7 +580,13 @@ class Model:
                 raise ConfigError(_fmt(source, f"model.{k}", d[k],
                                        f"unknown key (valid: {', '.join(_MODEL_KEYS)})"))
         kw: dict[str, Any] = {}
-        for k in ("axis", "pitch", "wrap", "kt", "target"):
+        if OLD_OUTPUT_KEY in d:
+            if "output" in d:
+                raise ConfigError(_fmt(source, "model.target", d[OLD_OUTPUT_KEY],
+                                       "is the old name of model.output: give one of them"))
+            kw["output"] = d[OLD_OUTPUT_KEY]
+            _new_output_key(source, "model.target", OLD_OUTPUT_KEY)
+        for k in ("axis", "pitch", "wrap", "kt", "output"):
             if k in d:
                 kw[k] = d[k]
         for sub, keys in _SUBKEYS.items():
@@ -600,3 +621,17 @@ class Model:
         given = {k for k in ("coulomb_band", "stribeck_speed", "pitch") if k in kw}
         return cls(**kw, available_signals=available_signals, source=source,
                    options_given=given)
+
+
+def _new_output_key(source: str, where: str, name: str) -> str:
+    """``name``, or ``"output"`` for :data:`OLD_OUTPUT_KEY` (with the one-line warning)."""
+    if name != OLD_OUTPUT_KEY:
+        return name
+    if (source, where) not in _WARNED:  # once per file and key: a model is built many times
+        _WARNED.add((source, where))
+        log.warning("%s: %s is now called output; the old name goes in the next release",
+                    source, where)
+    return "output"
+
+
+_WARNED: set[tuple[str, str]] = set()

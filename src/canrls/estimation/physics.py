@@ -31,7 +31,7 @@ KT_KE_FACTOR = 3.0
 _POSITIVE = ("inertia.J", "electrical.R", "electrical.L")
 _NOT_NEGATIVE = ("viscous.B", "coulomb.Tc", "electrical.Ke")
 
-_SIGN = ("the target's sign is opposite to the speed's: flip the sign of the current "
+_SIGN = ("the output's sign is opposite to the speed's: flip the sign of the current "
          "(or torque) signal with --signal current=MESSAGE.SIGNAL:-1, or of the speed")
 
 

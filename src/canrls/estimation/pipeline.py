@@ -9,7 +9,7 @@ sizes (the replay reads 64 k frames at a time, the daemon whatever has arrived).
 
 Per equation of the model (mechanical, and electrical when present):
 
-1. the :class:`~canrls.estimation.model.RegressorBuilder` filters target and columns with the
+1. the :class:`~canrls.estimation.model.RegressorBuilder` filters output and columns with the
    state-variable filter and normalises them by powers of two;
 2. samples inside the filter's warm-up (after the start, a reset or a gap in the
    sample times) are not used: the filter's zero initial state does not match the
@@ -30,7 +30,7 @@ Goodness of fit, as MATLAB's ``compare``:
                                     {\lVert y - \bar y\rVert}\Big), \qquad
     R^2 = 1 - \frac{\lVert y - \Phi\hat\theta\rVert^2}{\lVert y - \bar y\rVert^2}
 
-computed on the filtered target, in the target's unit.
+computed on the filtered output, in the output's unit.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ from canrls.estimation.estimates import (
 )
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import SaturationCounts
-from canrls.estimation.model import Model
+from canrls.estimation.model import OLD_OUTPUT_KEY, Model
 from canrls.estimation.rls import RLS
 from canrls.estimation.selection import SamplePolicy, SampleSelector
 from canrls.estimation.settings import (
@@ -151,12 +151,12 @@ class EquationEstimator:
         #: whether the normalisation follows the data (:meth:`_adapt`): off for a probe
         self.adapt = bool(adapt)
         #: columns whose exponent follows the data (all but those bounded by their own
-        #: function, which no value can outgrow); the target's always does
+        #: function, which no value can outgrow); the output's always does
         self._adaptive = ~np.array(equation.intrinsic, np.bool_)
         self._adaptive_y = True
-        #: columns (and the target) no used row has shown a value of yet
+        #: columns (and the output) no used row has shown a value of yet
         self._pending = np.array([nm in pending for nm in names], np.bool_)
-        self._pending_y = "target" in pending
+        self._pending_y = "output" in pending
         self.rescale_count = 0
         self.rescales: list[Rescale] = []
         #: ridge weight of each column, alpha_j = alpha * e_j (EstimatorSettings.ridge)
@@ -393,12 +393,12 @@ class EquationEstimator:
         # after the estimators, row by row in C (canrls._kernels.bookkeeping): spread the
         # used rows' errors (the fixed-point one is epsq * lsb, exact) and flags over the
         # rows, 0 elsewhere; the residual mean square r <- r + beta (eps^2 - r) on used
-        # rows; y, the errors and sqrt(r) in the target unit (x 2**s_y, one rounding);
+        # rows; y, the errors and sqrt(r) in the output unit (x 2**s_y, one rounding);
         # the sums M += phi phi' (upper triangle), v += phi y, s += [1, y, y^2]
         self.windup_steps += _kernels.bookkeeping(
             phi_ab, y_ab, use_ab, eps_u, epsq_u, self.fixed_config.eps.lsb, flags_u,
             flagsq_u, self._M, self._v, self._s, self.beta, self._rms_state,
-            eq.scaling.target, out.y[a:b], out.eps[a:b], out.eps_fixed[a:b],
+            eq.scaling.output, out.y[a:b], out.eps[a:b], out.eps_fixed[a:b],
             out.flags[a:b], out.rms[a:b])
         if out.check is not None and out.check_use is not None:
             # the check filter's sums, row by row in C (the same bits in any blocks):
@@ -414,7 +414,7 @@ class EquationEstimator:
 
     # -- the normalisation follows the data -----------------------------------------------
     def _next_change(self, phi: F64, y: F64, use: npt.NDArray[np.bool_], a: int) -> int:
-        """The first used row from ``a`` on where a data-scaled column or the target
+        """The first used row from ``a`` on where a data-scaled column or the output
         exceeds :data:`RESCALE_LIMIT`, or a pending one is not zero; ``len(y)``: none."""
         N = len(y)
         grow, first = self._adaptive & ~self._pending, self._pending
@@ -438,12 +438,12 @@ class EquationEstimator:
     def _adapt(self, phi: F64, y: F64, k: int, t: float
                ) -> tuple[npt.NDArray[np.int64], int]:
         """Change the normalisation at row ``k`` (:meth:`_next_change`): every column and
-        the target that outgrew its exponent get one that puts row ``k`` at most
+        the output that outgrew its exponent get one that puts row ``k`` at most
         1/:data:`RESCALE_HEADROOM` of full scale, and a pending one the exponent of the
         calibration's rule for its first value, with its prior (``alpha`` times that
         value's square, as the window's energy would give); everything the estimators
         and the sums hold is rescaled exactly, and so are the rows from ``k`` on.
-        Returns the change of every column's exponent and of the target's."""
+        Returns the change of every column's exponent and of the output's."""
         n = self.equation.n
         d = np.zeros(n, np.int64)
         first: list[tuple[int, float]] = []
@@ -461,8 +461,8 @@ class EquationEstimator:
             dy = exponent_for(vy, RMS_HEADROOM)
         elif self._adaptive_y and not self._pending_y and vy > RESCALE_LIMIT:
             dy = exponent_for(vy, RESCALE_HEADROOM)
-        # theta_j takes 2**(d_j - d_y): the target moves with the columns where that
-        # would take an estimate beyond half its bound (a column and the target growing
+        # theta_j takes 2**(d_j - d_y): the output moves with the columns where that
+        # would take an estimate beyond half its bound (a column and the output growing
         # together, one row apart, would otherwise saturate it for a moment)
         th = np.abs(np.ldexp(np.asarray(self.rls.theta, dtype=np.float64), d - dy))
         big = float(np.max(th)) if len(th) else 0.0
@@ -502,7 +502,7 @@ class EquationEstimator:
             self._note(t, names[j], sc.columns[j], sc.columns[j] + int(d[j]),
                        "first" if self._pending[j] else "grew")
         if dy:
-            self._note(t, "target", sc.target, sc.target + dy,
+            self._note(t, "output", sc.output, sc.output + dy,
                        "first" if self._pending_y else "grew")
         self.rls.rescale(d, dy, prior)
         self.frls.rescale(d, dy, prior)
@@ -518,7 +518,7 @@ class EquationEstimator:
         self._s[1:] = np.ldexp(self._s[1:], [-dy, -2 * dy])
         self._rms_state = np.ldexp(self._rms_state, -2 * dy)
         self.tail.rescale(d, dy)
-        exps = {"target": sc.target + dy,
+        exps = {"output": sc.output + dy,
                 **{nm: s_j + int(d_j) for nm, s_j, d_j in zip(names, sc.columns, d, strict=True)}}
         model = eq.model.with_scaling({**eq.model.exponents, eq.name: exps})
         self.equation = model.equation(eq.name)
@@ -531,10 +531,10 @@ class EquationEstimator:
 
     @property
     def pending(self) -> tuple[str, ...]:
-        """The target and the columns no used row has shown a value of yet."""
+        """The output and the columns no used row has shown a value of yet."""
         names = [p.name for p, w in zip(self.equation.parameters, self._pending, strict=True)
                  if w]
-        return (("target",) if self._pending_y else ()) + tuple(names)
+        return (("output",) if self._pending_y else ()) + tuple(names)
 
     # -- results ----------------------------------------------------------------------
     @property
@@ -542,7 +542,7 @@ class EquationEstimator:
         return int(self._s[0])
 
     def residual_stats(self, theta_norm: F64 | None = None) -> tuple[float, float, float, float]:
-        """(residual RMS, fit %, R², target RMS) of ``theta_norm`` (default: the float estimate)."""
+        """(residual RMS, fit %, R², output RMS) of ``theta_norm`` (default: the float estimate)."""
         eq = self.equation
         th = self.rls.theta if theta_norm is None else theta_norm
         N, sy, syy = self._s
@@ -553,7 +553,7 @@ class EquationEstimator:
         rss = max(0.0, float(syy - 2.0 * th @ self._v + th @ M @ th))
         # TSS = sum (y - mean y)^2
         tss = max(0.0, float(syy - sy * sy / N))
-        scale = math.ldexp(1.0, eq.scaling.target)
+        scale = math.ldexp(1.0, eq.scaling.output)
         rms = math.sqrt(rss / N) * scale
         fit = 100.0 * (1.0 - math.sqrt(rss / tss)) if tss > 0 else math.nan
         r2 = 1.0 - rss / tss if tss > 0 else math.nan
@@ -638,10 +638,10 @@ class EquationEstimator:
         rms, fit, r2, trms = self.residual_stats()
         exc = self.rls.excitation()
         fit_obj = EquationFit(
-            equation=eq.name, target=eq.target.description, unit=eq.target.unit,
+            equation=eq.name, output=eq.output.description, unit=eq.output.unit,
             samples=self.samples, residual_rms=rms, fit_percent=fit, r2=r2,
-            target_rms=trms,
-            online_rms=math.sqrt(self._rms_state[0]) * math.ldexp(1.0, eq.scaling.target),
+            output_rms=trms,
+            online_rms=math.sqrt(self._rms_state[0]) * math.ldexp(1.0, eq.scaling.output),
             divergence=self.divergence(), saturations=self.frls.saturations.nonzero(),
             windup_steps=self.windup_steps, low_excitation=bool(exc.low),
             condition=float(exc.cond), nonfinite_rows=self.nonfinite_rows,
@@ -652,9 +652,9 @@ class EquationEstimator:
 
     @property
     def exponents(self) -> dict[str, int]:
-        """The normalisation's exponents now, ``{"target": s_y, parameter: s_j}``."""
+        """The normalisation's exponents now, ``{"output": s_y, parameter: s_j}``."""
         sc = self.equation.scaling
-        return {"target": sc.target, **{p.name: s for p, s in
+        return {"output": sc.output, **{p.name: s for p, s in
                                         zip(self.equation.parameters, sc.columns, strict=True)}}
 
     def sigma_inflation(self) -> float:
@@ -681,7 +681,7 @@ class EquationEstimator:
             pend = set(d["pending"])
             self._pending = np.array([p.name in pend for p in self.equation.parameters],
                                      np.bool_)
-            self._pending_y = "target" in pend
+            self._pending_y = "output" in pend or OLD_OUTPUT_KEY in pend  # an older checkpoint
         self.rescale_count = int(d.get("rescale_count", 0))
         noise = d.get("noise")
         n = self.equation.n
@@ -723,7 +723,7 @@ class Pipeline:
         is scaled with it (:meth:`EstimatorSettings.ridge`). ``None``:
         :math:`P_0 = I/\alpha` in normalised units, which weighs on the parameters of
         weakly scaled columns and so depends on the ranges.
-    pending : ``{equation name: names}`` of the target and columns the calibration
+    pending : ``{equation name: names}`` of the output and columns the calibration
         window showed nothing of (:class:`~canrls.processor.WindowScaling`)
     noise : ``{equation name: noise covariance of the filtered columns}`` (unnormalised;
         :meth:`EquationEstimator.bias`)

@@ -470,8 +470,8 @@ class RLS:
 
     def rescale(self, d: npt.ArrayLike, dy: int = 0,
                 prior: Mapping[int, float] | None = None) -> None:
-        r"""New units for the columns and the target, by powers of two: column ``j``
-        multiplied by :math:`2^{-d_j}`, the target by :math:`2^{-d_y}`. Then
+        r"""New units for the columns and the output, by powers of two: column ``j``
+        multiplied by :math:`2^{-d_j}`, the output by :math:`2^{-d_y}`. Then
         :math:`\theta_j \leftarrow \theta_j 2^{d_j - d_y}`,
         :math:`P_{jk} \leftarrow P_{jk} 2^{d_j + d_k}`, :math:`\alpha_j \leftarrow
         \alpha_j 2^{-2 d_j}` and the error sum :math:`\times 2^{-2 d_y}`: exact, so
@@ -480,7 +480,7 @@ class RLS:
         ``prior`` (``{j: alpha}``) then raises the ridge weight of parameter ``j`` to
         ``alpha`` (in the new units): the difference :math:`\delta` is information
         added, :math:`P^{-1} \leftarrow P^{-1} + \delta e_j e_j^\top`, taken as one
-        update with the regressor :math:`\sqrt\delta e_j` and target 0 (the prior's
+        update with the regressor :math:`\sqrt\delta e_j` and output 0 (the prior's
         mean): :math:`g = P_{:j}/(1 + \delta P_{jj})`,
         :math:`\theta \leftarrow \theta - \delta\theta_j g`,
         :math:`P \leftarrow P - \delta g P_{j:}`.
@@ -534,7 +534,7 @@ class RLS:
         phi : array_like, shape (n,)
             Regressor :math:`\varphi`.
         y : float
-            Target.
+            Output.
 
         Returns
         -------
@@ -748,7 +748,7 @@ class RLS:
         except EstimatorError as e:
             raise CheckpointError(f"RLS checkpoint is invalid: {e}") from e
         n = rls.n
-        for key, target, shape in (
+        for key, output, shape in (
             ("theta", rls._theta, (n,)),
             ("P", rls._P, (n, n)),
             ("acc", rls._acc, (2,)),
@@ -767,7 +767,7 @@ class RLS:
                 raise CheckpointError(
                     f"RLS checkpoint key {key!r} ({src.dtype}) is not exact in {rls.dtype}"
                 )
-            target[...] = cast
+            output[...] = cast
         count = get("count")
         if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
             raise CheckpointError(

@@ -44,7 +44,7 @@ MIN_ENERGY = 2.0 ** -10
 #: of a pending one) at most 1/RMS_HEADROOM of full scale (:func:`exponent_for`): room
 #: for crest factors and growth, normalised energies in (2**-10, 2**-8].
 RMS_HEADROOM = 16.0
-#: A used row whose normalised value of a data-scaled column (or of the target) exceeds
+#: A used row whose normalised value of a data-scaled column (or of the output) exceeds
 #: this in magnitude has outgrown its exponent: the estimator rescales it first, exactly.
 RESCALE_LIMIT = 1.0
 #: After a rescale, the value that asked for it is at most 1/RESCALE_HEADROOM of full scale.

@@ -1,7 +1,7 @@
 r"""How much the residual's colour inflates the parameters' standard deviations.
 
 The RLS covariance :math:`\hat\sigma^2 P` assumes independent residuals. After the
-state-variable filter they are not: noise on the target and on the columns leaves the
+state-variable filter they are not: noise on the output and on the columns leaves the
 filter low-passed, so neighbouring residuals are correlated and ``N`` samples carry the
 information of fewer. With the residual's autocorrelation :math:`\rho_l`, the variance of
 a least-squares estimate grows by about
@@ -87,7 +87,7 @@ class ResidualTail:
         self.rows = min(self.window, self.rows + k)
 
     def rescale(self, d: npt.NDArray[np.int64], dy: int) -> None:
-        """The rows held in new units: column ``j`` times ``2**-d_j``, the target
+        """The rows held in new units: column ``j`` times ``2**-d_j``, the output
         ``2**-dy`` (exact)."""
         self._phi = np.ldexp(self._phi, -d)
         self._y = np.ldexp(self._y, -int(dy))

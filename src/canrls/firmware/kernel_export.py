@@ -6,10 +6,10 @@ A firmware engineer gets one directory that compiles as it is (``-std=c99 -Wall 
 * ``canrls_fixed.h``, ``canrls_fixed.c`` -- the fixed-point RLS kernel (a copy of
   ``canrls/c/firmware``), bit-exact with :class:`canrls.estimation.fixed.estimator.FixedRLS`;
 * ``canrls_config.h``, ``canrls_config.c`` -- per equation of the model: its parameters
-  (names, units), its target (what it is, the DBC signal it comes from and that
-  signal's scaling to SI: a torque-reporting drive's torque is the mechanical target,
+  (names, units), its output y (what it is, the DBC signal it comes from and that
+  signal's scaling to SI: a torque-reporting drive's torque is the mechanical output,
   ``CANRLS_MECHANICAL_TARGET_TORQUE 1``, with no Kt), the power-of-two scaling of its
-  columns and target, the Q formats,
+  columns and output, the Q formats,
   the kernel's plan (``canrls_plan_q31``, the integers ``FixedRLS.constants`` holds) and
   an ``init`` function that starts an instance from the prior ``FixedRLS`` starts from;
 * ``canrls_frames.h``, ``canrls_frames.c`` -- the C codecs of canrls' parameter and
@@ -74,28 +74,28 @@ class Export:
                 f"(equations: {', '.join(self.equations)})")
 
 
-def _target_lines(eq: Any, protocol: Protocol | None) -> tuple[str, str]:
-    """What the header and the source say of ``eq``'s target: the quantity, the DBC
+def _output_lines(eq: Any, protocol: Protocol | None) -> tuple[str, str]:
+    """What the header and the source say of ``eq``'s output: the quantity, the DBC
     signal it is decoded from (its names in C strings: a user's text) and that signal's
     scaling to SI. Text as comment text or string literals, numbers only finite ones."""
     P = c_name_part(eq.name, "equation")
     lo = P.lower()
-    role = c_comment(eq.target.signal, f"equation {eq.name}: target signal")
-    info = None if protocol is None else protocol.roles.get(eq.target.signal)
-    torque = int(eq.target.signal == "torque")
-    unit = c_comment(eq.target.unit, f"equation {eq.name}: target unit")
-    si_unit = {"current": "A", "voltage": "V"}.get(eq.target.signal, unit)
-    gain = eq.target.gain
+    role = c_comment(eq.output.signal, f"equation {eq.name}: output signal")
+    info = None if protocol is None else protocol.roles.get(eq.output.signal)
+    torque = int(eq.output.signal == "torque")
+    unit = c_comment(eq.output.unit, f"equation {eq.name}: output unit")
+    si_unit = {"current": "A", "voltage": "V"}.get(eq.output.signal, unit)
+    gain = eq.output.gain
     g = c_float(gain, f"equation {eq.name}: Kt")
     value = role if gain == 1.0 else f"{g} * {role}"
-    h = [f"/* target y: {c_comment(eq.target.description, f'equation {eq.name}: target')} "
+    h = [f"/* target y: {c_comment(eq.output.description, f'equation {eq.name}: output')} "
          f"[{unit}]" + (", no Kt" if torque else "" if gain == 1.0 else f", Kt = {g}")]
     c = ""
     if info is not None:
-        where = f"the {eq.target.signal} signal {info.message}.{info.signal}"
+        where = f"the {eq.output.signal} signal {info.message}.{info.signal}"
         per_raw = c_float(info.si_per_raw, f"{where}: scale")
         off = info.si_offset
-        rating = rating_of(eq.target.signal, info.unit)
+        rating = rating_of(eq.output.signal, info.unit)
         of = ""
         if rating is not None and protocol is not None:
             r = c_float(getattr(protocol.mapping.ratings, rating), f"{where}: {rating}")
@@ -174,8 +174,8 @@ def _config_files(pipeline: Pipeline, source: str,
         st = frls.state()
         n = c_int(eq.n, what=f"equation {eq.name}: the number of parameters")
         h.append(f"/* ---- equation {c_comment(eq.name, 'equation')}: "
-                 f"{c_comment(eq.target.description, f'equation {eq.name}: target')} "
-                 f"[{c_comment(eq.target.unit, f'equation {eq.name}: unit')}], {n} "
+                 f"{c_comment(eq.output.description, f'equation {eq.name}: output')} "
+                 f"[{c_comment(eq.output.unit, f'equation {eq.name}: unit')}], {n} "
                  f"parameters, lam = {c_float(frls.lam, 'lambda')} */\n")
         h.append(f"#define {names(pre + '_N', f'equation {eq.name}: n')} {n}\n")
         # the kernel's buffers hold CANRLS_N_MAX parameters (12 unless the build says
@@ -192,11 +192,11 @@ def _config_files(pipeline: Pipeline, source: str,
                      f"[{c_comment(prm.unit, f'{origin}: unit')}] */\n")
         cols = [c_int(x, what=f"equation {eq.name}: column exponent")
                 for x in eq.scaling.columns]
-        target = c_int(eq.scaling.target, what=f"equation {eq.name}: target exponent")
+        target = c_int(eq.scaling.output, what=f"equation {eq.name}: output exponent")
         h.append(f"/* scaling: column exponents [{', '.join(cols)}], "
                  f"target exponent {target} */\n")
         h.append(f"#define {names(pre + '_TARGET_EXP', 'target exponent')} {target}\n")
-        th, tc = _target_lines(eq, protocol)
+        th, tc = _output_lines(eq, protocol)
         h.append(th)
         c.append(tc)
         for q in _QUANTITIES:

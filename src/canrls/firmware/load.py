@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from canrls.can.protocol import Protocol
 from canrls.estimation.model import Model
@@ -23,6 +23,9 @@ from canrls.estimation.settings import EstimatorSettings
 from canrls.firmware.target_model import TargetModel, build
 from canrls.processor.config import AppConfig
 from canrls.processor.period import control_period
+
+if TYPE_CHECKING:
+    from canrls.processor.modelfile import SavedModel
 
 __all__ = ["Source", "load", "target_model"]
 
@@ -42,6 +45,8 @@ class Source:
     label: str
     #: where the period came from
     period_source: str
+    #: the saved model read (None: a configuration)
+    saved: SavedModel | None = None
 
 
 def load(path: str | Path, dt: float | None = None, axis: str | None = None) -> Source:
@@ -53,6 +58,7 @@ def load(path: str | Path, dt: float | None = None, axis: str | None = None) -> 
 
     path = Path(path)
     cal: dict[str, Any] = {}
+    saved = None
     if path.suffix.lower() == ".json":
         saved = SavedModel.load(path)
         cfg = saved.config()
@@ -72,7 +78,7 @@ def load(path: str | Path, dt: float | None = None, axis: str | None = None) -> 
         model = cfg.model_for(protocol)
     period = control_period(given=dt, measured=cal.get("period"), dbc=protocol.period)
     return Source(cfg, protocol, model, cfg.settings(), period.value, cal.get("energy"),
-                  cal.get("pending"), label, period.source)
+                  cal.get("pending"), label, period.source, saved)
 
 
 def target_model(src: Source, *, frames: bool = True, tick_s: float = 1e-6) -> TargetModel:

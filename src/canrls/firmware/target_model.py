@@ -631,12 +631,12 @@ def _equation(est: EquationEstimator, model: Model, settings: EstimatorSettings,
                                    sc.columns[j], not own[j], p.name in pend))
         param_info.append((int(p.effect_id), int(p.component), int(p.order),
                            int(eq.index)))
-    trole = eq.target.signal
+    trole = eq.output.signal
     if trole not in ("current", "torque", "voltage"):
-        raise TargetError(f"the {eq.name} target {trole} is not a signal")
+        raise TargetError(f"the {eq.name} output {trole} is not a signal")
     target = columns.column("target", SRC_RAW, trole, 0, int(holds[0] == "zoh"), False,
-                            Fraction(eq.target.gain), cfg.y.frac, sc.target, True,
-                            "target" in pend)
+                            Fraction(eq.output.gain), cfg.y.frac, sc.output, True,
+                            "output" in pend)
     sel = _selection(est, columns.scales)
     # the kernel: its plan with the trace bound of the target's rule
     named = frls.constants
@@ -667,7 +667,7 @@ def _equation(est: EquationEstimator, model: Model, settings: EstimatorSettings,
         trace_terms=terms, trace_cap=cap, prior_floor=floor,
         floor_term=math.floor(ktr / floor), first_ridge=first,
         first_term=math.floor(ktr / first), theta_half=half, rms_shift=rms_shift,
-        exponents=tuple(sc.columns) + (sc.target,), parameters=eq.parameters)
+        exponents=tuple(sc.columns) + (sc.output,), parameters=eq.parameters)
 
 
 def _argument(roles: Mapping[str, Field], role_scale: tuple[Fraction, Fraction],

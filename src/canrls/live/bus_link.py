@@ -6,7 +6,9 @@
         (SocketCAN:         | take(): a FrameBlock
          BlockReader)
     BusLink: opens the bus (and its reader), reopens it with backoff when recv
-             raises, sends without blocking, pauses transmission on error frames
+             raises, sends without blocking, pauses transmission on error frames;
+             an axis of a machine: on the machine's one bus (SharedBus,
+             canrls.live.hub) instead of its own
 
 The bus is opened from the ``[can]`` table and the command line only
 (``ignore_config=True``). The batched and bulk readers, the fault handling and their
@@ -21,7 +23,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, Protocol
 
 import can
 import numpy as np
@@ -41,9 +43,9 @@ from canrls.live.socketcan import (
 )
 from canrls.processor.config import AppConfig
 
-__all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "RX_BATCH", "bus_config",
-           "command_rows", "is_command", "messages_to_block", "open_bus", "shutdown_bus",
-           "COMMAND_ID"]
+__all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "RX_BATCH", "SharedBus",
+           "bus_config", "command_rows", "is_command", "messages_to_block", "open_bus",
+           "shutdown_bus", "COMMAND_ID"]
 
 log = logging.getLogger(__name__)
 
@@ -198,6 +200,9 @@ class FrameQueue(can.Listener):
         self._cpu0: float | None = None
         #: thread CPU time of the reader's thread since the first frame [s]
         self.cpu = 0.0
+        #: whether :attr:`cpu` is kept (False: a machine's one reader feeds this queue
+        #: and keeps its own, :class:`canrls.live.hub.BusHub`)
+        self.clock_cpu = True
         #: open while set (:meth:`hold`)
         self.gate = threading.Event()
         self.gate.set()
@@ -263,7 +268,7 @@ class FrameQueue(can.Listener):
             for m in messages(block, n):
                 self.recorder.on_message_received(m)
         self.received += n
-        self._queued(True)
+        self._queued(self.clock_cpu)
 
     def _queued(self, clock: bool) -> None:
         """After frames were queued: the reader's CPU time (when ``clock``: its clock is
@@ -277,8 +282,12 @@ class FrameQueue(can.Listener):
             self.wake.set()
 
     def on_error(self, exc: Exception) -> None:
-        self._on_error(exc)
+        self.report(exc)
         time.sleep(0.05)  # the reader retries recv at once: do not spin
+
+    def report(self, exc: BaseException) -> None:
+        """The bus's ``recv`` raised: tell the daemon (a shared reader tells every axis)."""
+        self._on_error(exc)
 
     def stop(self) -> None:
         """The reader stops (bus reopened or daemon stopping): the queue stays."""
@@ -357,6 +366,8 @@ class FrameQueue(can.Listener):
 #: not sleep: wake-ups fill by themselves, and a sleep would use up the interface's
 #: buffer (a SocketCAN socket's default holds some 270 frames)
 RX_BATCH = 64
+#: most frames a batched :class:`BusReader` hands on in one block
+RX_BATCH_MAX = 4096
 
 
 class _Reader:
@@ -399,17 +410,23 @@ class BusReader(_Reader):
         ``Notifier`` does).
     :param timeout: seconds one ``recv`` waits on an idle bus before the loop looks
         whether it should stop.
+    :param batched: hand the frames of a wake-up to ``listener.on_block`` as one
+        :class:`~canrls.can.frameblock.FrameBlock` (at most :data:`RX_BATCH_MAX`)
+        instead of one by one (a machine's one reader, :class:`canrls.live.hub.BusHub`).
     """
 
-    def __init__(self, bus: can.BusABC, listener: FrameQueue, interval: float,
-                 timeout: float = 0.1) -> None:
+    def __init__(self, bus: can.BusABC, listener: Any, interval: float,
+                 timeout: float = 0.1, batched: bool = False) -> None:
         self.bus = bus
+        self.batched = batched
         super().__init__(listener, interval, timeout)
 
     def _run(self) -> None:
         recv = self.bus.recv
-        on_message = self.listener.on_message_received
         stop, interval = self._stop, self.interval
+        batch: list[can.Message] = []
+        on_block: Callable[[FrameBlock], None] = self.listener.on_block
+        on_message = batch.append if self.batched else self.listener.on_message_received
         mark, taken = time.monotonic(), 0  # frames taken since mark
         while not stop.is_set():
             try:
@@ -419,14 +436,22 @@ class BusReader(_Reader):
                 while True:  # every frame already waiting, without waiting
                     on_message(msg)
                     taken += 1
-                    if stop.is_set():  # a source that never runs dry (a simulated drive)
-                        return
+                    if stop.is_set() or len(batch) >= RX_BATCH_MAX:
+                        break  # a source that never runs dry (a simulated drive)
                     msg = recv(0.0)
                     if msg is None:
                         break
             except Exception as exc:  # noqa: BLE001 -- as python-can's Notifier
+                if batch:  # the frames taken before it, first
+                    on_block(messages_to_block(batch))
+                    batch.clear()
                 self.listener.on_error(exc)
                 continue
+            if batch:
+                on_block(messages_to_block(batch))
+                batch.clear()
+            if stop.is_set():
+                return
             if interval > 0.0:
                 now = time.monotonic()
                 # frames per interval at the rate since mark: rate * interval < RX_BATCH
@@ -487,6 +512,24 @@ class BlockReader(_Reader):
                 mark, taken = now, 0
 
 
+class SharedBus(Protocol):
+    """The one bus of a machine's axes (:class:`canrls.live.hub.BusHub`): an axis's
+    :class:`BusLink` attaches to it instead of opening a bus of its own."""
+
+    #: held while one axis sends (python-can's buses are not all thread-safe)
+    tx_lock: threading.Lock
+
+    def attach(self, link: BusLink) -> can.BusABC:
+        """Route the frames of ``link.rx_ids`` to ``link.queue``; the bus (opened at the
+        first axis)."""
+
+    def detach(self, link: BusLink) -> None:
+        """No more frames to ``link.queue`` (the bus closes with the last axis)."""
+
+    def reopen(self, link: BusLink, stopping: threading.Event) -> can.BusABC | None:
+        """After a failure: the bus reopened (once for all axes); None if ``stopping``."""
+
+
 class BusLink:
     """The bus and its reader: open, reopen, send, and the transmit pause of faults.
 
@@ -495,12 +538,18 @@ class BusLink:
     :param config: ``send_timeout``, ``fault_hold_s``, ``reopen_min_s``/``reopen_max_s``.
     :param describe: what the bus is called in log lines when it has no ``channel_info``.
     :param rx_ids: (ID, extended) of the only frames to take (empty: every frame).
+    :param batched: a reader through python-can hands ``queue`` blocks of frames
+        (:meth:`BusReader` ``batched``), not frames one by one.
     """
 
-    def __init__(self, queue: FrameQueue, factory: Callable[[], can.BusABC],
+    def __init__(self, queue: Any, factory: Callable[[], can.BusABC],
                  config: DaemonSettings, describe: str = "bus",
-                 rx_ids: Sequence[tuple[int, bool]] = ()) -> None:
+                 rx_ids: Sequence[tuple[int, bool]] = (), batched: bool = False) -> None:
         self.queue = queue
+        self.batched = batched
+        #: the machine's one bus this link takes its frames from and sends on (None: a
+        #: bus of its own); set before :meth:`open`
+        self.hub: SharedBus | None = None
         #: (ID, extended) of the only frames to receive (empty: every frame)
         self.rx_ids = tuple(rx_ids)
         self.factory = factory
@@ -524,7 +573,12 @@ class BusLink:
     def open(self) -> None:
         """Open the bus and start its reader (``BusError`` if it cannot be opened): a
         SocketCAN bus gets ``[daemon] rx_buffer`` and, with ``rx_bulk``, the
-        :class:`BlockReader`; any other bus python-can's loop, :class:`BusReader`."""
+        :class:`BlockReader`; any other bus python-can's loop, :class:`BusReader`. On a
+        machine's one bus (:attr:`hub`): attached to it, no reader of its own."""
+        if self.hub is not None:
+            self.bus = self.hub.attach(self)
+            self.failed.clear()
+            return
         bus = self.factory()
         self.bus = bus
         self.failed.clear()
@@ -541,19 +595,22 @@ class BusLink:
         if rx is not None:
             self._reader = BlockReader(rx, self.queue, cfg.rx_s)
         else:
-            self._reader = BusReader(bus, self.queue, cfg.rx_s)
+            self._reader = BusReader(bus, self.queue, cfg.rx_s, batched=self.batched)
         log.info("CAN bus %s read by %s", self.info(), type(self._reader).__name__)
 
     def close_reader(self) -> None:
+        if self.hub is not None:
+            self.hub.detach(self)
         r, self._reader = self._reader, None
         if r is not None:
             r.stop(timeout=5.0)
 
     def close(self) -> None:
-        """Stop the reader and shut the bus down."""
+        """Stop the reader and shut the bus down (a machine's one bus: the last axis
+        detached shuts it down)."""
         self.close_reader()
         b, self.bus = self.bus, None
-        if b is not None:
+        if b is not None and self.hub is None:
             shutdown_bus(b)
 
     def recv_failed(self, exc: BaseException) -> None:
@@ -564,7 +621,14 @@ class BusLink:
 
     def reopen(self, stopping: threading.Event) -> None:
         """Close the failed bus and open it again, with backoff, until it opens or
-        ``stopping`` is set."""
+        ``stopping`` is set (a machine's one bus: once for every axis)."""
+        if self.hub is not None:
+            bus = self.hub.reopen(self, stopping)
+            if bus is not None:
+                self.bus = bus
+                self.failed.clear()
+                self.counts["bus_reopens"] += 1
+            return
         JOURNAL.warning("fault: CAN bus %s failed (%s): reopening", self.info(), self._fail_exc)
         self.close()
         delay = self.config.reopen_min_s
@@ -590,10 +654,17 @@ class BusLink:
         if bus is None or now < self._fault_until or self.failed.is_set():
             c["tx_paused"] += len(msgs)  # not attempted: the bus is faulty
             return 0
-        sent = 0
-        timeout = self.config.send_timeout
         if off := self.config.own_offset:  # an axis's own IDs: moved copies
             msgs = [moved(m, off) for m in msgs]
+        if self.hub is not None:
+            with self.hub.tx_lock:  # the machine's other axes send on this bus too
+                return self._send(bus, msgs, now)
+        return self._send(bus, msgs, now)
+
+    def _send(self, bus: can.BusABC, msgs: Sequence[can.Message], now: float) -> int:
+        c = self.counts
+        sent = 0
+        timeout = self.config.send_timeout
         for i, m in enumerate(msgs):
             try:
                 bus.send(m, timeout=timeout)

@@ -559,12 +559,12 @@ def set_aside(path: str | os.PathLike[str], st: os.stat_result | None = None) ->
             raise _refuse(p, now.st_mode)
         if st is not None and (now.st_dev, now.st_ino) != (st.st_dev, st.st_ino):
             raise CheckpointError(f"{p}: the checkpoint was replaced while it was checked")
-        target, k = f"{p.name}.bad-{stamp}", 1
-        while _lstat(dfd, target) is not None:
-            target, k = f"{p.name}.bad-{stamp}-{k}", k + 1
-        os.rename(p.name, target, src_dir_fd=dfd, dst_dir_fd=dfd)
+        aside, k = f"{p.name}.bad-{stamp}", 1
+        while _lstat(dfd, aside) is not None:
+            aside, k = f"{p.name}.bad-{stamp}-{k}", k + 1
+        os.rename(p.name, aside, src_dir_fd=dfd, dst_dir_fd=dfd)
         os.fsync(dfd)
-    return p.with_name(target)
+    return p.with_name(aside)
 
 
 def clean_temporaries(path: str | os.PathLike[str]) -> list[Path]:

@@ -43,6 +43,7 @@ from canrls.live.bus_link import (
     COMMAND_ID,
     BusLink,
     FrameQueue,
+    SharedBus,
     command_rows,
     messages_to_block,
     open_bus,
@@ -55,6 +56,7 @@ from canrls.live.journal import JOURNAL, Journal
 from canrls.live.publisher import FixedPath, Publisher, check_publishable
 from canrls.live.recorder import Recorder
 from canrls.live.sdnotify import SystemdNotifier
+from canrls.live.signals import SignalRelay
 from canrls.live.tuning import interpreter
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig
@@ -100,6 +102,8 @@ class DaemonStats:
     checkpoints: int = 0
     backlog: int = 0
     estimator_cpu_s: float = 0.0
+    #: the bus reader's thread CPU time (0 for an axis on a machine's one bus: the
+    #: machine's :attr:`~canrls.live.machine_daemon.MachineDaemon.reader_cpu_s`)
     listener_cpu_s: float = 0.0
     resumed_from: str | None = None
     counters: dict[str, int] = field(default_factory=dict)
@@ -121,37 +125,37 @@ def wait_until(check: Callable[[], bool], timeout: float) -> bool:
     return check()
 
 
-def serve(target: Any, stopping: threading.Event, duration: float | None,
+def serve(served: Any, stopping: threading.Event, duration: float | None,
           ready: Callable[[], None] | None = None,
           each: Callable[[], None] | None = None) -> int:
-    """Start ``target`` (a :class:`Daemon` or a machine's), call ``ready``, serve until
+    """Start ``served`` (a :class:`Daemon` or a machine's), call ``ready``, serve until
     ``stopping`` is set (SIGTERM/SIGINT request it), ``duration`` s have passed or
-    ``target.failure`` is set, then stop it; SIGHUP requests a reload; ``each`` is called
+    ``served.failure`` is set, then stop it; SIGHUP requests a reload; ``each`` is called
     at every wake-up (at least every 0.2 s). Signal handlers only from the main thread,
-    restored after. Returns the exit status (0, or 1 after a failure)."""
-    handlers: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig, fn in ((signal.SIGTERM, lambda *_: target.request_stop()),
-                        (signal.SIGINT, lambda *_: target.request_stop()),
-                        (signal.SIGHUP, lambda *_: target.request_reload())):
-            handlers[sig] = signal.signal(sig, fn)
-    try:
-        target.start()
-        if ready is not None:
-            ready()
-        end = None if duration is None else time.monotonic() + duration
-        while not stopping.is_set() and target.failure is None:
-            left = 0.2 if end is None else min(0.2, end - time.monotonic())
-            if left <= 0:
-                break
-            stopping.wait(left)
-            if each is not None:
-                each()
-    finally:
-        target.stop()
-        for sig, old in handlers.items():
-            signal.signal(sig, old)
-    return 0 if target.failure is None else 1
+    restored after; they act from a thread of their own (:class:`SignalRelay`), never
+    inside the code a signal interrupts. Returns the exit status (0, or 1 after a failure)."""
+    def stop(_: int) -> None:
+        served.request_stop()
+
+    def reload(_: int) -> None:
+        served.request_reload()
+
+    with SignalRelay({signal.SIGTERM: stop, signal.SIGINT: stop, signal.SIGHUP: reload}):
+        try:
+            served.start()
+            if ready is not None:
+                ready()
+            end = None if duration is None else time.monotonic() + duration
+            while not stopping.is_set() and served.failure is None:
+                left = 0.2 if end is None else min(0.2, end - time.monotonic())
+                if left <= 0:
+                    break
+                stopping.wait(left)
+                if each is not None:
+                    each()
+        finally:
+            served.stop()
+    return 0 if served.failure is None else 1
 
 
 class Daemon:
@@ -197,6 +201,7 @@ class Daemon:
         self.settings = settings or EstimatorSettings()
         self.config = cfg = daemon or DaemonSettings()
         bus_args = dict(bus or {})
+        self._bus_args = bus_args if bus_factory is None else None
         self._reload_fn = reload
         self.sd = notifier if notifier is not None else SystemdNotifier()
         # a model the frames cannot carry never runs (nor is it checkpointed)
@@ -257,6 +262,21 @@ class Daemon:
             max_parameters=cfg.max_parameters, check_model=self._check_model,
             bucket=TokenBucket(cfg.command_rate, cfg.command_burst),
             save_model=None if cfg.saved_model is None else self._save_model)
+
+    def shared_bus(self) -> dict[str, Any] | None:
+        """The bus arguments with which this axis may take a machine's one bus
+        (:meth:`join`): its own frames only, nothing recorded, no factory of its own;
+        None: it opens its own."""
+        cfg = self.config
+        if self._bus_args is None or not cfg.rx_filter or cfg.record is not None:
+            return None
+        return dict(self._bus_args)
+
+    def join(self, hub: SharedBus) -> None:
+        """Take frames from, and send on, a machine's one bus (before :meth:`start`)."""
+        if self._started:
+            raise RuntimeError("a running daemon cannot change its bus")
+        self._link.hub = hub
 
     def _save_model(self) -> Path:
         """The command ``save_model``: the running model and its estimates written to
@@ -414,9 +434,9 @@ class Daemon:
         self._heartbeat = time.monotonic()
         interpreter.tune(self.config.switch_interval)
         self._tuned = True
-        for target, name in ((self._estimator_loop, "canrls estimator"),
+        for loop, name in ((self._estimator_loop, "canrls estimator"),
                              (self._supervisor_loop, "canrls supervisor")):
-            t = threading.Thread(target=target, name=name, daemon=True)
+            t = threading.Thread(target=loop, name=name, daemon=True)
             t.start()
             self._threads.append(t)
         log.info("canrls daemon running on %s: effects %s, %d parameters", self._link.info(),

@@ -1,6 +1,7 @@
 """Every axis of a machine in one process: one :class:`~canrls.live.daemon.Daemon` per
-axis, each with its own bus reader, estimator, checkpoint, counters and own frames, started,
-stopped and reported together (:class:`MachineDaemon`)."""
+axis, each with its own estimator, checkpoint, counters and own frames, on the machine's
+one bus (:class:`~canrls.live.hub.BusHub`), started, stopped and reported together
+(:class:`MachineDaemon`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 
 from canrls.core.errors import CanrlsError
+from canrls.live.bus_link import open_bus
 from canrls.live.daemon import Daemon, serve, wait_until
+from canrls.live.hub import BusHub
 from canrls.processor.axes import check_own
 
 __all__ = ["MachineDaemon"]
@@ -18,9 +21,13 @@ log = logging.getLogger(__name__)
 
 
 class MachineDaemon:
-    """The daemons of a machine's axes, by axis name. Nothing is shared between them but
-    the process: a fault on one axis (garbage, silence, a flood, a bad command) reaches
-    its own reader, estimator and frames only.
+    """The daemons of a machine's axes, by axis name. They share the process and the
+    bus: the axes on the same bus arguments take their frames from one
+    :class:`~canrls.live.hub.BusHub` (one connection, one reader, each frame routed by
+    its ID to its axis's queue) and send on it; nothing else. A fault on one axis
+    (garbage, silence, a flood, a bad command) reaches its own queue, estimator and
+    frames only. An axis that records the bus, or whose bus a factory opens, keeps a
+    bus of its own.
 
     :param build: ``build(name)``: a new axis's daemon (not started), for a reload.
     :param axes: the axes the configuration declares now (its file read again on SIGHUP:
@@ -31,11 +38,38 @@ class MachineDaemon:
                  build: Callable[[str], Daemon] | None = None,
                  axes: Callable[[], Sequence[str]] | None = None) -> None:
         self.daemons = dict(daemons)
+        #: the machine's buses, by their arguments
+        self._hubs: dict[str, BusHub] = {}
+        for d in self.daemons.values():
+            self._join(d)
         self._build = build
         self._axes = axes
         self._stopping = threading.Event()
         self._reload = threading.Event()
         self._running = False
+
+    def _join(self, d: Daemon) -> None:
+        """Put ``d`` on the machine's bus of its arguments (if it may share one)."""
+        args = d.shared_bus()
+        if args is None:
+            return
+        key = repr(sorted(args.items()))
+        hub = self._hubs.get(key)
+        if hub is None:
+            hub = self._hubs[key] = BusHub(lambda: open_bus(args), d.config,
+                                           describe=str(args))
+        d.join(hub)
+
+    @property
+    def reader_cpu_s(self) -> float:
+        """Thread CPU time of the machine's bus readers [s] (the axes' own
+        ``listener_cpu_s`` counts only a bus of their own)."""
+        return sum(h.cpu for h in self._hubs.values())
+
+    @property
+    def foreign_frames(self) -> int:
+        """Frames on the machine's buses that no axis takes (error frames aside)."""
+        return sum(h.foreign for h in self._hubs.values())
 
     @property
     def failure(self) -> BaseException | None:
@@ -90,6 +124,7 @@ class MachineDaemon:
             self.daemons.pop(n).stop()
             log.info("reload: axis %s removed", n)
         for n, d in added.items():
+            self._join(d)
             if self._running:
                 d.start()
             self.daemons[n] = d

@@ -43,7 +43,7 @@ from canrls.can.estimator_frames import (
 from canrls.core.checks import check_lambda
 from canrls.core.effect_names import EffectId
 from canrls.core.errors import ConfigError
-from canrls.estimation.effects import parse_effect, target_unit
+from canrls.estimation.effects import output_unit, parse_effect
 from canrls.estimation.model import Model
 from canrls.live.bus_link import moved
 
@@ -58,7 +58,7 @@ _KINDS = ("feedback", "estimator", "command", "error", "other")
 
 
 class LibraryUnits(Mapping[str, str]):
-    """Parameter name -> unit, from the effect library, for one axis, target and terms.
+    """Parameter name -> unit, from the effect library, for one axis, output and terms.
 
     ``units["cogging:24.sin"] == "N·m"`` (rotary, kt known); any effect the library
     can build is answered, so a monitor started before an effect is added still knows
@@ -101,8 +101,8 @@ class LibraryUnits(Mapping[str, str]):
     def __len__(self) -> int:
         return sum(1 for v in self._cache.values() if v is not None)
 
-    def target_unit(self) -> str:
-        return target_unit("mechanical", self.options.get("axis", "rotary"), self.kt_known)
+    def output_unit(self) -> str:
+        return output_unit("mechanical", self.options.get("axis", "rotary"), self.kt_known)
 
 
 @dataclass(frozen=True)
@@ -322,7 +322,7 @@ class Monitor(can.Listener):
         self.window_s = window_s
         self.trend_s = trend_s
         if rms_unit is None:
-            rms_unit = units.target_unit() if isinstance(units, LibraryUnits) else ""
+            rms_unit = units.output_unit() if isinstance(units, LibraryUnits) else ""
         self.rms_unit = rms_unit
         self.source = source
         self._lock = threading.Lock()

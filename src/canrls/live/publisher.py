@@ -28,7 +28,12 @@ from canrls.can.estimator_frames import (
 from canrls.can.frameblock import FrameBlock
 from canrls.core.effect_names import EffectId, EquationId
 from canrls.core.errors import CanrlsError, ConfigError
-from canrls.estimation.estimates import Estimates, PipelineBlock, divergence
+from canrls.estimation.estimates import (
+    Estimates,
+    ParameterEstimate,
+    PipelineBlock,
+    divergence,
+)
 from canrls.estimation.model import Model
 from canrls.estimation.physics import check_physics
 from canrls.estimation.pipeline import Pipeline
@@ -202,31 +207,39 @@ class Publisher:
             self._layout = layout
         return layout
 
-    def reports(self) -> tuple[list[ParameterReport], float]:
-        """The parameters as published, and the largest float-vs-fixed divergence."""
+    def reports(self, params: tuple[tuple[ParameterEstimate, ...], ...] | None = None
+                ) -> tuple[list[ParameterReport], float]:
+        """The parameters as published, and the largest float-vs-fixed divergence;
+        ``params``: the pipeline's :meth:`~canrls.estimation.pipeline.Pipeline.parameters`
+        if known (a publication computes them once)."""
         pipe = self.processor.pipeline
+        if params is None:
+            params = pipe.parameters()
         out: list[ParameterReport] = []
         divs: list[float] = []
         path = self.fixed_path.fixed() if self.fixed_path is not None else None
-        for blanks, params, (_, fixed_updates) in zip(
-                self._layout_of(pipe)[1], pipe.parameters(), pipe.update_counts(), strict=True):
+        for blanks, eq, (_, fixed_updates) in zip(
+                self._layout_of(pipe)[1], params, pipe.update_counts(), strict=True):
             fixed = [(p.fixed, fixed_updates > 0) if path is None
-                     else path.get(p.name, (math.nan, False)) for p in params]
+                     else path.get(p.name, (math.nan, False)) for p in eq]
             out += [b.with_estimates(f, p.sigma, p.value, ok and math.isfinite(f))
-                    for b, p, (f, ok) in zip(blanks, params, fixed, strict=True)]
+                    for b, p, (f, ok) in zip(blanks, eq, fixed, strict=True)]
             # in physical units: the same as in normalised ones (powers of two apart)
-            divs.append(divergence([p.value for p in params], [f for f, _ in fixed],
-                                   [p.sigma for p in params]))
+            divs.append(divergence([p.value for p in eq], [f for f, _ in fixed],
+                                   [p.sigma for p in eq]))
         return out, max(divs, default=0.0)
 
-    def status(self, now: float, div: float | None = None) -> StatusReport:
+    def status(self, now: float, div: float | None = None,
+               params: tuple[tuple[ParameterEstimate, ...], ...] | None = None) -> StatusReport:
         """The status as the next publication would carry it (no side effect);
-        ``div``: the divergence if known (:meth:`reports`)."""
+        ``div``: the divergence if known (:meth:`reports`), ``params`` the parameters."""
         pipe = self.processor.pipeline
         counters = self.counters()
         rejects = self.processor.reject_counts()
+        if params is None:
+            params = pipe.parameters()
         if div is None:
-            div = self.reports()[1]
+            div = self.reports(params)[1]
         return StatusReport(
             residual_rms=self._online_rms[0],
             update_count=pipe.update_counts()[0][0],
@@ -239,8 +252,7 @@ class Publisher:
             bus_fault=self.link.paused(now),
             # since the last RlsRejects: a clock step, or a frame rejected for its time
             clock_fault=rejects["clock_steps"] + rejects["time"] > self._last_clock,
-            implausible=bool(check_physics(
-                [p for eq in pipe.parameters() for p in eq], pipe.model.kt)),
+            implausible=bool(check_physics([p for eq in params for p in eq], pipe.model.kt)),
             active_effects=self._layout_of(pipe)[2],
             divergence=div if math.isfinite(div) else 0.0,
             rejects=rejects, **counters)
@@ -263,7 +275,8 @@ class Publisher:
         ``info_interval``, RlsParamInfo, RlsCounters and RlsRejects)."""
         info = now >= self.info_due
         self.link.settle(now)
-        reports, div = self.reports()
+        params = self.processor.pipeline.parameters()
+        reports, div = self.reports(params)
         ts = time.time()
         self._counter = (self._counter + 1) % 16
         self.link.send(encode_parameters(reports, self._counter, timestamp=ts))
@@ -272,7 +285,7 @@ class Publisher:
             est = self.processor.pipeline.estimates()  # the fit statistics, once in a while
             self._low_excitation = any(f.low_excitation for f in est.equations)
             self._warn_nonfinite(est)
-        status = self.status(now, div)
+        status = self.status(now, div, params)
         self._window_windup = False
         self._last_lost = status.frames_lost
         self._last_sat = status.saturations

@@ -105,11 +105,17 @@ def own_offset(text: object, where: str) -> int:
     return rule.node
 
 
-def check_own(protocols: Mapping[str, Protocol], offsets: Mapping[str, int]) -> None:
+#: what :func:`check_own` tells an axis of ``[[axes]]`` to do
+AXIS_OWN_HINT = 'give the axis another own = "offset:N"'
+
+
+def check_own(protocols: Mapping[str, Protocol], offsets: Mapping[str, int],
+              hint: str = AXIS_OWN_HINT) -> None:
     """Refuse an axis's own frame (parameters, status, command, ack: the shipped DBC's
     IDs + its offset) beyond the standard IDs or on the ID of another own frame or of
-    any axis's feedback frame (one ``ConfigError`` naming both frames); the keys of
-    ``protocols`` and ``offsets`` name the axes (``"axis a"``, ``"the drive"``)."""
+    any axis's feedback frame (one ``ConfigError`` naming both frames and ending in
+    ``hint``); the keys of ``protocols`` and ``offsets`` name the axes (``"axis a"``,
+    ``"the drive"``)."""
     owner: dict[int, str] = {}
     for name, proto in protocols.items():
         for m in proto.messages:
@@ -121,11 +127,10 @@ def check_own(protocols: Mapping[str, Protocol], offsets: Mapping[str, int]) -> 
             what = f"{name}'s {msg}"
             if not 0 <= new <= MAX_STANDARD_ID:
                 raise ConfigError(f"{what} would be on ID {new:#x}, outside the standard IDs "
-                                  f"0x0..0x7FF: give the axis another own = \"offset:N\"")
+                                  f"0x0..0x7FF: {hint}")
             other = owner.setdefault(new, what)
             if other != what:
-                raise ConfigError(f"{what} and {other} would both be on ID 0x{new:X}: give "
-                                  f"the axis another own = \"offset:N\"")
+                raise ConfigError(f"{what} and {other} would both be on ID 0x{new:X}: {hint}")
 
 
 def check_shared(protocols: Mapping[str, Protocol]) -> None:

@@ -122,7 +122,7 @@ class Calibration:
     samples : samples in the window
     ranges : the signal ranges that bound the signals, ``{role: (lo, hi)}``
     sources : where each range comes from: ``"config"``, ``"dbc"`` or ``"default"``
-    scaling : ``{equation: {"target": s_y, parameter: s_j}}``, the normalisation's
+    scaling : ``{equation: {"output": s_y, parameter: s_j}}``, the normalisation's
         exponents
     energy : ``{equation: mean square of each normalised column}`` on the window
     alpha : the ridge weight ``alpha`` (samples' worth of each column in the prior)
@@ -311,7 +311,7 @@ class WindowScaling:
     ----------
     model : the model with the exponents (:meth:`Model.with_scaling`)
     energy : ``{equation: mean square of each normalised column}`` (the prior's scale)
-    pending : ``{equation: names}`` of the target (``"target"``) and the columns the
+    pending : ``{equation: names}`` of the output (``"output"``) and the columns the
         window shows nothing of (no value other than zero): their exponents and prior
         are provisional, set by the pipeline when the data first show them
     """
@@ -328,7 +328,7 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
               noise: Mapping[str, float] | None = None) -> WindowScaling:
     r"""The normalisation and the column energies of ``model`` on ``window``.
 
-    The columns and the target are filtered as the pipeline does (same gap filling and
+    The columns and the output are filtered as the pipeline does (same gap filling and
     sample selection) and measured over the rows it uses (all rows where it uses none).
     The exponent of each (``phi_j = F[.] 2**-s_j``), unless the model gives it
     (``[model.scaling]``, or frozen by an earlier calibration):
@@ -336,7 +336,7 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
     * a column bounded by its own function (``tanh``, ``sin``, a constant, a user term
       with a configured range; :attr:`Equation.intrinsic`): the exponent of its bound, so that
       no value can saturate, whatever the window showed;
-    * the target and every other column: the smallest exponent that puts the window's
+    * the output and every other column: the smallest exponent that puts the window's
       RMS at most 1/:data:`RMS_HEADROOM` of full scale, from the data alone (a declared
       range never enters); one the window shows nothing of (only zeros) is *pending*:
       the pipeline sets its exponent and prior where it first sees a value
@@ -359,19 +359,19 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
         sc = eq.scaling
         phi = b.phi if b.phi is not None else np.zeros((0, eq.n))
         rows = b.used if np.any(b.used) else np.ones(len(phi), np.bool_)
-        # the target and every column in physical units, on the rows used
+        # the output and every column in physical units, on the rows used
         y = b.y[rows]
         cols = np.ldexp(phi[rows], np.array(sc.columns, dtype=np.int64))
         # exponents the model gives (configured, or frozen by an earlier calibration) stay
         given = model.exponents.get(eq.name, {})
         waiting: list[str] = []
-        if "target" in given:
-            s_y = sc.target
+        if "output" in given:
+            s_y = sc.output
         else:
             s = _scale_exponent(y)
-            s_y = sc.target if s is None else s
+            s_y = sc.output if s is None else s
             if s is None:
-                waiting.append("target")
+                waiting.append("output")
         own = eq.intrinsic
         s_cols, e_cols = [], []
         for j, par in enumerate(eq.parameters):
@@ -390,7 +390,7 @@ def calibrate(window: Signals, model: Model, dt: float, settings: EstimatorSetti
             e = float(np.mean(np.ldexp(c, -s) ** 2)) if len(c) else 0.0
             s_cols.append(s)
             e_cols.append(max(e, floor))
-        exponents[eq.name] = {"target": s_y,
+        exponents[eq.name] = {"output": s_y,
                               **{p.name: s for p, s in zip(eq.parameters, s_cols, strict=True)}}
         energy[eq.name] = tuple(e_cols)
         pending[eq.name] = tuple(waiting)

@@ -25,7 +25,7 @@ from canrls.core.files import MAX_CONFIG_BYTES, check_path, read_bytes
 from canrls.core.samples import ROLES
 from canrls.core.units import RATING_OPTIONS, Ratings
 from canrls.estimation.fixed.formats import QFormat
-from canrls.estimation.model import Model
+from canrls.estimation.model import OLD_OUTPUT_KEY, Model
 from canrls.estimation.settings import EstimatorSettings
 from canrls.processor.axes import (
     AxisSpec,
@@ -452,16 +452,17 @@ class AppConfig:
             d["axis"] = protocol.axis  # from the DBC units of speed and position
         torque = protocol is not None and protocol.has("torque")
         if torque:
-            # the torque the drive reports is the mechanical target: no Kt
-            d.setdefault("target", "torque")
-            if d["target"] == "torque" and d.get("kt") is not None:
+            # the torque the drive reports is the mechanical output: no Kt
+            key = OLD_OUTPUT_KEY if OLD_OUTPUT_KEY in d else "output"
+            d.setdefault(key, "torque")
+            if d[key] == "torque" and d.get("kt") is not None:
                 assert protocol is not None
                 where = self.flags.get("model.kt") or f"{self._where('model.kt')} = {kt!r}"
                 sig = protocol.roles["torque"]
                 raise ConfigError(
                     f"{where}: the drive reports its torque ({sig.message}.{sig.signal}), "
-                    f"the mechanical target: the parameters come out in N·m (linear axis: "
-                    f"N) without Kt; leave Kt out, or set [model] target = \"current\" to "
+                    f"the mechanical output: the parameters come out in N·m (linear axis: "
+                    f"N) without Kt; leave Kt out, or set [model] output = \"current\" to "
                     f"identify on the current with Kt")
         filt = d.get("filter", {})
         if isinstance(filt, Mapping):

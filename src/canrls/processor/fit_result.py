@@ -122,21 +122,21 @@ class StartInfo:
 @dataclass(frozen=True)
 class AxisInfo:
     """The model's axis, the DBC units it was read from, the ratings relative units refer
-    to and, on a drive that reports its torque, the target."""
+    to and, on a drive that reports its torque, the mechanical output."""
 
     axis: str
     dbc_axis: str | None = None
     units: dict[str, str | None] = field(default_factory=dict)
     ratings: dict[str, float] = field(default_factory=dict)
-    target: str | None = None
+    output: str | None = None
     #: :attr:`~canrls.estimation.model.Model.per_ampere_text` when the mechanical
     #: parameters are per ampere, else None
     per_ampere: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
-        if self.target is None:
-            del d["target"]
+        if self.output is None:
+            del d["output"]
         return d
 
     def format(self) -> list[str]:
@@ -144,8 +144,8 @@ class AxisInfo:
         lines = [f"axis {self.axis}" + (f" (DBC units: {units})" if units else "")]
         if self.ratings:
             lines.append("ratings: " + Ratings(**self.ratings).describe(self.axis))
-        if self.target:
-            lines.append(f"mechanical target: {self.target}")
+        if self.output:
+            lines.append(f"mechanical output: {self.output}")
         if self.per_ampere:
             lines.append(self.per_ampere)
         return lines

@@ -445,16 +445,16 @@ class FrameProcessor:
 
     def axis_info(self) -> AxisInfo:
         """The model's axis, the DBC units of the signals it was read from, the ratings
-        relative units refer to and, on a torque-reporting drive, the target."""
-        target = None
-        if self.model.target == "torque":
+        relative units refer to and, on a torque-reporting drive, the output."""
+        output = None
+        if self.model.output == "torque":
             t = self.protocol.roles["torque"]
             lin = self.model.axis == "linear"
-            target = (f"the {'force' if lin else 'torque'} the drive reports, "
+            output = (f"the {'force' if lin else 'torque'} the drive reports, "
                       f"{t.message}.{t.signal} [{'N' if lin else 'N·m'}], no Kt")
         return AxisInfo(self.model.axis, self.protocol.axis,
                         {r: i.unit for r, i in self.protocol.roles.items()},
-                        self.protocol.mapping.ratings.as_dict(), target,
+                        self.protocol.mapping.ratings.as_dict(), output,
                         self.model.per_ampere_text if self.model.per_ampere else None)
 
     def start_info(self) -> StartInfo:
