@@ -5,9 +5,9 @@ is exported with vectors and replayed on QEMU ``mps2-an386`` under its execution
 (``-singlestep -d exec,nochain``: one line per instruction); each executed address is
 given to its innermost function, inlined ones included (``addr2line -i``), and the
 functions are summed by the stage of the path they belong to (:data:`STAGES`).
-Prints instructions per sample by stage and by function; the figures of
-docs/target.md. Needs ``arm-none-eabi-gcc`` and ``qemu-system-arm`` (``make target``
-installs them)::
+Prints instructions per sample by stage (mean, and the worst sample of each stage)
+and by function; the figures of docs/target.md. Needs ``arm-none-eabi-gcc`` and
+``qemu-system-arm`` (``make target`` installs them)::
 
     .venv/bin/python tools/target_profile.py [--n 6] [--duration 3]
 """
@@ -29,8 +29,9 @@ import target_whole as tw  # noqa: E402
 #: the stage of each function of canrls_target.c (the rest: the kernel, canrls_fixed.c,
 #: or the replay that feeds the frames and compares the records)
 STAGES = {
-    "decode and pair": ("canrls_target_frame", "cr_frame", "cr_extract", "cr_bswap32",
-                        "cr_popcount"),
+    "decode and pair": ("canrls_target_frame", "cr_extract", "cr_bswap32",
+                        "cr_popcount", "cr_float", "cr_float_word", "canrls_target_pair",
+                        "canrls_target_reject"),
     "filters (SVF, tanh, exp, sin/cos)": (
         "cr_filter", "cr_svf_row", "cr_split_input", "cr_inputs", "cr_table_eval",
         "cr_quarter", "cr_tanh_q24", "cr_exp2_neg_q24", "cr_exp_neg_q24", "cr_sincos_q64"),
@@ -38,31 +39,25 @@ STAGES = {
         "cr_sample", "cr_update", "cr_values", "cr_changes", "cr_state", "cr_mul_rsh",
         "cr_sat", "cr_rsh", "cr_shl", "cr_bitlen64", "cr_clog2", "cr_clog2_mul", "cr_adapt",
         "cr_restore", "cr_P_scale", "cr_isqrt", "cr_restart", "cr_trace_bound",
-        "cr_floor_scaled", "cr_ceil_scaled"),
-    "publication": ("canrls_target_publish", "cr_f32_bits", "cr_put"),
+        "cr_floor_scaled", "cr_ceil_scaled", "fr_sample", "fr_update_0", "fr_update_1",
+        "fr_values_0", "fr_values_1", "fr_changes_0", "fr_changes_1", "canrls_target_step",
+        "canrls_target_adapt", "canrls_target_restart", "canrls_target_sampled"),
+    "publication": ("canrls_target_publish", "cr_f32_bits", "cr_put", "cr_frame"),
     "replay (the test harness)": ("canrls_replay_frames", "canrls_replay", "record", "memcmp",
                                   "canrls_mark", "main"),
 }
 
 
-def profile(n: int, duration: float, work: Path) -> tuple[collections.Counter[str], int]:
-    """Instructions by innermost function over the replay, and the samples."""
-    src = tw.export_case(work, n, duration)
-    elf = work / "profile.elf"
-    tw.build_example(src, elf, defines=(f"-DCANRLS_N={n}",))
-    q = subprocess.Popen([*tw.QEMU, "-singlestep", "-d", "exec,nochain", "-kernel", str(elf)],
-                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    assert q.stderr is not None
-    pcs: collections.Counter[int] = collections.Counter()
-    pat = re.compile(r"\[[0-9a-f]+/([0-9a-f]+)/")
-    for line in q.stderr:
-        m = pat.search(line)
-        if m:
-            pcs[int(m.group(1), 16)] += 1
-    if q.wait() != 0:
-        raise SystemExit("the replay on QEMU is not bit-exact")
+KERNEL_STAGE = "kernel (canrls_fixed.c, memset, memcpy)"
+
+
+def _functions(elf: Path) -> dict[int, str]:
+    """The innermost function (inlined ones included) of every instruction of ``elf``."""
+    dis = subprocess.run(["arm-none-eabi-objdump", "-d", "--no-show-raw-insn", str(elf)],
+                         capture_output=True, text=True, check=True).stdout
+    addrs = [m.group(1) for m in re.finditer(r"^\s+([0-9a-f]+):", dis, re.M)]
     r = subprocess.run(["arm-none-eabi-addr2line", "-a", "-f", "-i", "-e", str(elf)],
-                       input="".join(f"{p:#x}\n" for p in pcs), capture_output=True,
+                       input="".join(f"0x{p}\n" for p in addrs), capture_output=True,
                        text=True, check=True)
     func: dict[int, str] = {}
     addr = None
@@ -76,11 +71,50 @@ def profile(n: int, duration: float, work: Path) -> tuple[collections.Counter[st
         if addr is not None and addr not in func:
             func[addr] = lines[i]  # the innermost (inlined) function comes first
         i += 2
+    return func
+
+
+def profile(n: int, duration: float, work: Path
+            ) -> tuple[collections.Counter[str], list[dict[str, int]]]:
+    """Instructions by innermost function over the replay, and each sample's by stage
+    (a sample: the instructions from the first frame or the replay's last mark to its
+    next one: its frames' calls, the replay around them, a publication it asked for)."""
+    src = tw.export_case(work, n, duration)
+    elf = work / "profile.elf"
+    tw.build_example(src, elf, defines=(f"-DCANRLS_N={n}",))
+    func = _functions(elf)
+    stage_of = {f: s for s, fs in STAGES.items() for f in fs}
+    stage = {a: stage_of.get(f, KERNEL_STAGE) for a, f in func.items()}
+    syms = tw._symbols(elf)
+    mark, first = syms["canrls_mark"][0], syms["canrls_target_frame"][0]
+    q = subprocess.Popen([*tw.QEMU, "-singlestep", "-d", "exec,nochain", "-kernel", str(elf)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    assert q.stderr is not None
+    pcs: collections.Counter[int] = collections.Counter()
+    samples: list[dict[str, int]] = []
+    cur: collections.Counter[str] = collections.Counter()
+    started = False
+    pat = re.compile(r"\[[0-9a-f]+/([0-9a-f]+)/")
+    for line in q.stderr:
+        m = pat.search(line)
+        if m:
+            pc = int(m.group(1), 16)
+            pcs[pc] += 1
+            if not started:
+                # the samples begin with the first frame (not the initialisation)
+                started = pc == first
+                if not started:
+                    continue
+            if pc == mark:
+                samples.append(dict(cur))
+                cur = collections.Counter()
+            else:
+                cur[stage.get(pc, "?")] += 1
+    if q.wait() != 0:
+        raise SystemExit("the replay on QEMU is not bit-exact")
     by = collections.Counter[str]()
     for p, c in pcs.items():
         by[func.get(p, "?")] += c
-    text = (src / "canrls_vectors.h").read_text()
-    samples = int(re.search(r"#define VEC_SAMPLES (\d+)u", text).group(1))  # type: ignore[union-attr]
     return by, samples
 
 
@@ -92,16 +126,20 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         by, samples = profile(a.n, a.duration, Path(tmp))
     stage_of = {f: s for s, fs in STAGES.items() for f in fs}
-    stages = collections.Counter[str]()
-    for f, c in by.items():
-        stages[stage_of.get(f, "kernel (canrls_fixed.c, memset, memcpy)")] += c
-    print(f"instructions per sample, n = {a.n}, {samples} samples of {a.duration:g} s "
-          f"(start-up included), -O2 -DCANRLS_N={a.n}:")
-    for s, c in stages.most_common():
-        print(f"  {c / samples:>8.0f}  {s}")
+    total = collections.Counter[str]()
+    worst = collections.Counter[str]()
+    for smp in samples:
+        for s, c in smp.items():
+            total[s] += c
+            worst[s] = max(worst[s], c)
+    k = len(samples)
+    print(f"instructions per sample, n = {a.n}, {k} samples of {a.duration:g} s "
+          f"(start-up included), -O2 -DCANRLS_N={a.n}: mean, worst sample of the stage")
+    for s, c in total.most_common():
+        print(f"  {c / k:>8.0f} {worst[s]:>8}  {s}")
     print("by function (innermost, inlined included):")
     for f, c in by.most_common(30):
-        print(f"  {c / samples:>8.1f}  {f}  [{stage_of.get(f, 'kernel')}]")
+        print(f"  {c / k:>8.1f}  {f}  [{stage_of.get(f, 'kernel')}]")
 
 
 if __name__ == "__main__":

@@ -11,11 +11,12 @@ only if every state record and every published frame equals the specification's.
   instruction per translation block without chaining (``-singlestep -d exec,nochain``)
   and its log, streamed through ``src/canrls/c/firmware/drivers/count_exec.c``, gives each sample's
   instructions (every ``canrls_target_frame`` call since the last sample: decode, pair,
-  filter, select, rescale, update) and each ``canrls_update_q31``'s; mean and the
-  worst sample, at ``-O2`` with ``-DCANRLS_N=n``;
-* **sizes**: ``.text`` of ``canrls_target.o``, ``canrls_model.o`` and ``canrls_fixed.o``
-  at ``-O2`` and ``-Os``;
-* **goals** of issue 24 at n = 6, each met or missed (docs/target.md says why);
+  filter, select, rescale, update), each ``canrls_update_q31``'s and the front end's (a
+  sample less its updates); mean and the worst sample, at ``-O2`` with ``-DCANRLS_N=n
+  -DCANRLS_FRONT`` (the generated front end, ``canrls_front.c``);
+* **sizes**: ``.text`` and ``.rodata`` of ``canrls_target.o``, ``canrls_front.o``,
+  ``canrls_model.o`` and ``canrls_fixed.o`` at ``-O2`` and ``-Os``;
+* **goals** of issues 24 and 34 at n = 6, each met or missed (docs/target.md says why);
 * the ODrive-style drive, whose signals are float32, bit for bit on the M4;
 * with the HSM150 runs beside the repository (``../shared/data/hsm150``), one run in its
   own DBC (``tools/hsm150_to_can.py``, into a temporary directory) bit for bit on the M4.
@@ -46,7 +47,9 @@ QEMU = ["qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none",
 CASES = {4: "inertia,viscous,coulomb,offset", 6: "inertia,viscous,coulomb,offset,unbalance",
          8: "inertia,viscous,coulomb,offset,unbalance,cogging:6"}
 #: what the exported library is made of
-LIBRARY = ("canrls_target.c", "canrls_model.c", "canrls_fixed.c")
+LIBRARY = ("canrls_target.c", "canrls_front.c", "canrls_model.c", "canrls_fixed.c")
+#: the generated front end (canrls_front.c) instead of the table-driven one
+FRONT = "-DCANRLS_FRONT"
 
 
 class WholeError(RuntimeError):
@@ -89,7 +92,7 @@ def export_case(work: Path, n: int, duration: float = 5.0, seed: int = 1) -> Pat
 
 def build_example(src: Path, elf: Path, opt: str = "-O2", defines: tuple[str, ...] = ()) -> None:
     """The bare-metal example on the export in ``src``."""
-    _run([CC, *M4, opt, *defines, "-DCANRLS_REPLAY_MARK=canrls_mark", "-g",
+    _run([CC, *M4, opt, FRONT, *defines, "-DCANRLS_REPLAY_MARK=canrls_mark", "-g",
           "-ffunction-sections", "-I", str(src), "-I", str(EXAMPLE), "-nostartfiles",
           "--specs=nano.specs", "-T", str(EXAMPLE / "mps2_an386.ld"), "-Wl,--gc-sections",
           str(EXAMPLE / "startup.c"), str(EXAMPLE / "target_main.c"),
@@ -119,14 +122,16 @@ class Counts:
     samples: list[int]
     updates: list[int]
     publish: list[int]
+    #: per sample, its instructions outside the kernel's updates (the front end's share)
+    front: list[int]
 
     def line(self, n: int) -> str:
-        s, u, p = self.samples, self.updates, self.publish
+        s, u, p, f = self.samples, self.updates, self.publish, self.front
         ms, mu = sum(s) / len(s), sum(u) / len(u)
         # start-up: the first second (the filter's warm-up, P falling from the prior)
         return (f"  {n:>3} {ms:>10.0f} {max(s):>8} {s.index(max(s)):>8} {mu:>10.0f} "
                 f"{max(u):>7} {max(u) / mu:>8.2f} {max(s[1000:]) if len(s) > 1000 else 0:>10} "
-                f"{max(p) if p else 0:>8}")
+                f"{max(p) if p else 0:>8} {sum(f) / len(f):>8.0f} {max(f):>8}")
 
 
 def count(elf: Path, work: Path, kernel_obj: Path, timeout: float = 1800.0) -> Counts:
@@ -152,12 +157,19 @@ def count(elf: Path, work: Path, kernel_obj: Path, timeout: float = 1800.0) -> C
     c = subprocess.run(args, stdin=q.stderr, capture_output=True, text=True, timeout=timeout)
     q.wait(timeout=timeout)
     out: dict[str, list[int]] = {"sample": [], "update": [], "publish": []}
+    front, in_sample = [], 0
     for line in c.stdout.splitlines():
         k, v = line.split()
         out[k].append(int(v))
+        # the counter prints a sample's updates before the sample
+        if k == "update":
+            in_sample += int(v)
+        elif k == "sample":
+            front.append(int(v) - in_sample)
+            in_sample = 0
     if not out["sample"] or not out["update"]:
         raise WholeError("no sample or update found in QEMU's execution log")
-    return Counts(out["sample"], out["update"], out["publish"])
+    return Counts(out["sample"], out["update"], out["publish"], front)
 
 
 def sizes(src: Path, work: Path, opt: str, defines: tuple[str, ...]) -> dict[str, int]:
@@ -165,7 +177,8 @@ def sizes(src: Path, work: Path, opt: str, defines: tuple[str, ...]) -> dict[str
     out = {}
     for f in LIBRARY:
         obj = work / (Path(f).stem + opt.replace("-", "_") + ".o")
-        _run([CC, *M4, opt, *defines, "-I", str(src), "-c", str(src / f), "-o", str(obj)])
+        _run([CC, *M4, opt, FRONT, *defines, "-I", str(src), "-c", str(src / f), "-o",
+              str(obj)])
         text = _run(["arm-none-eabi-size", "-A", str(obj)]).stdout
         out[f] = sum(int(m.group(2)) for m in re.finditer(r"^(\.text\S*|\.rodata\S*)\s+(\d+)",
                                                             text, re.M))
@@ -243,9 +256,10 @@ def main(work: Path, sizes_n: tuple[int, ...] = (4, 6, 8), duration: float = 5.0
         print(f"  {h}")
     print(f"\ninstructions per sample over the whole log ({duration:g} s of the simulated drive "
           f"at 1 kHz, start-up included;\n-O2, -DCANRLS_N=n; a sample is its frames' "
-          f"canrls_target_frame calls, the update canrls_update_q31):")
+          f"canrls_target_frame calls, the update canrls_update_q31, the front end a sample\n"
+          f"less its updates):")
     print(f"  {'n':>3} {'mean':>10} {'max':>8} {'at':>8} {'update':>10} {'max':>7} "
-          f"{'max/mean':>8} {'max >1 s':>10} {'publish':>8}")
+          f"{'max/mean':>8} {'max >1 s':>10} {'publish':>8} {'front':>8} {'max':>8}")
     counts: dict[int, Counts] = {}
     for n, src in exports.items():
         elf = work / f"whole_n{n}.elf"
@@ -254,8 +268,8 @@ def main(work: Path, sizes_n: tuple[int, ...] = (4, 6, 8), duration: float = 5.0
               str(kobj)])
         counts[n] = count(elf, work, kobj)
         print(counts[n].line(n))
-    print("\n.text (with .rodata) of the library, -DCANRLS_N=n (canrls_target.o + "
-          "canrls_model.o + canrls_fixed.o):")
+    print("\n.text (with .rodata) of the library, -DCANRLS_N=n -DCANRLS_FRONT "
+          "(canrls_target.o + canrls_front.o + canrls_model.o + canrls_fixed.o):")
     text: dict[tuple[int, str], int] = {}
     for n, src in exports.items():
         for opt in ("-O2", "-Os"):
@@ -268,8 +282,11 @@ def main(work: Path, sizes_n: tuple[int, ...] = (4, 6, 8), duration: float = 5.0
         c = counts[6]
         worst, ratio = max(c.samples), max(c.updates) / (sum(c.updates) / len(c.updates))
         print("\ngoals at n = 6 (docs/target.md):")
+        print(f"  (the front end alone, a sample less its updates: worst {max(c.front)}, "
+              f"mean {sum(c.front) / len(c.front):.0f} instructions)")
         for what, got, goal, ok in (
                 ("whole path, worst sample", f"{worst} instructions", "<= 1500", worst <= 1500),
                 ("update, worst / mean", f"{ratio:.2f}", "<= 1.2", ratio <= 1.2),
-                ("-Os .text", f"{text[6, '-Os']} B", "< 8192 B", text[6, "-Os"] < 8192)):
+                ("-Os .text + .rodata", f"{text[6, '-Os']} B", "< 12288 B",
+                 text[6, "-Os"] < 12288)):
             print(f"  {what:<26} {got:>18}  goal {goal:<9} {'met' if ok else 'missed'}")

@@ -99,7 +99,7 @@ def test_a_kt_whose_torque_overflows_is_one_error_line_naming_kt(
     """--kt 1e308 printed numpy's overflow warnings, then "cannot quantize NaN to Q1.30":
     now the one line names model.kt and what overflowed (no warning: one line)."""
     line = cli_error(capsys, ["fit", "--kt", "1e308", "-e", "inertia,viscous", str(log)])
-    assert line.startswith("error: model.kt = 1e+308: the target motor torque"), line
+    assert line.startswith("error: model.kt = 1e+308: the output motor torque"), line
     assert "overflows a double" in line
 
 

@@ -12,64 +12,13 @@
 
 #include <string.h>
 
-#include "canrls_target_tables.h"
+#include "canrls_target_math.h"
 
 /* an arithmetic right shift of negative values (every compiler for these targets has one) */
 typedef char canrls_target_needs_arithmetic_shift[((-8) >> 1) == -4 ? 1 : -1];
 
-#define ONE_Q30 ((int64_t)1 << 30)
-#define I62 ((int64_t)1 << 62)
-#define W_FRAC 16
-#define Z_FRAC 24
-
-/* ------------------------------------------------------------------ arithmetic */
-
-/* rsh(x, s) = (x + 2^(s-1)) >> s for s >= 0, as ((x >> (s-1)) + 1) >> 1: no overflow. */
-static int64_t cr_rsh(int64_t x, int32_t s)
-{
-    if (s <= 0) {
-        return x;
-    }
-    if (s >= 64) {
-        return 0;
-    }
-    return ((x >> (s - 1)) + 1) >> 1;
-}
-
-static int64_t cr_sat(int64_t x, int64_t lo, int64_t hi)
-{
-    return x < lo ? lo : x > hi ? hi : x;
-}
-
-/* x 2^s for s >= 0 without shifting a negative value (the caller bounds the result) */
-static int64_t cr_shl(int64_t x, int32_t s)
-{
-    return x * ((int64_t)1 << s);
-}
-
-/* rsh(x m, s) saturated to +-2^62 (qmath.mul_rsh), |x| < 2^61, x = h 2^31 + l */
-static inline int64_t cr_mul_rsh(int64_t x, int32_t m, int32_t s)
-{
-    /* h < 2^30 and l < 2^31: both words, each product one SMULL */
-    const int64_t a = (int64_t)(int32_t)(x >> 31) * m;
-    const int64_t b = (int64_t)(int32_t)(x & 0x7FFFFFFF) * m;
-    if (s > 31) {
-        if (s >= 93) {
-            return 0;
-        }
-        /* (h m + 2^(s-32) + (l m >> 31)) >> (s - 31) */
-        return (a + ((int64_t)1 << (s - 32)) + (b >> 31)) >> (s - 31);
-    }
-    if (s == 31) {
-        /* h m + ((l m + 2^30) >> 31) */
-        return a + ((b + ((int64_t)1 << 30)) >> 31);
-    }
-    /* s < 31: h m 2^(31-s) + rsh(l m, s), saturated */
-    if (a >= ((int64_t)1 << (31 + s)) || -a >= ((int64_t)1 << (31 + s))) {
-        return a >= 0 ? I62 : -I62;
-    }
-    return cr_sat(cr_shl(a, 31 - s) + cr_rsh(b, s), -I62, I62);
-}
+/* ------------------------------------------------------------------ arithmetic
+ * (the per-frame path's: canrls_target_math.h) */
 
 static int32_t cr_bitlen64(uint64_t v)
 {
@@ -125,62 +74,6 @@ static int64_t cr_isqrt(int64_t n)
     return (int64_t)r;
 }
 
-/* the piecewise cubic of a table at u / 2^32, Q30: p = c3; p = c_i + rsh(p t, 31) */
-static int32_t cr_table_eval(const int32_t (*table)[4], int32_t k, uint32_t u)
-{
-    const int32_t *c = table[u >> (32 - k)];
-    /* t = position in the segment, Q31 */
-    const int32_t t = (int32_t)((uint32_t)(u << k) >> 1);
-    /* p = c3; p = c_i + rsh(p t, 31): the words of the tables keep p within int32 */
-    int32_t p = c[3];
-    p = c[2] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
-    p = c[1] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
-    p = c[0] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
-    return p;
-}
-
-/* tanh(z 2^-24), Q30: odd, 1 from |z| >= 8 */
-static int32_t cr_tanh_q24(int32_t z)
-{
-    const uint32_t a = z < 0 ? 0u - (uint32_t)z : (uint32_t)z;
-    const int32_t v = a >= (8u << 24) ? (int32_t)ONE_Q30
-                                      : cr_table_eval(cr_tanh, CR_TANH_LOG2, a << 5);
-    return z < 0 ? -v : v;
-}
-
-/* 2^(-x 2^-24), Q30, x >= 0 */
-static int32_t cr_exp2_neg_q24(int64_t x)
-{
-    const int64_t n = x >> 24;
-    if (n >= 31) {
-        return 0;
-    }
-    return (int32_t)cr_rsh(cr_table_eval(cr_exp2, CR_EXP2_LOG2,
-                                         (uint32_t)(x & 0xFFFFFF) << 8), (int32_t)n);
-}
-
-/* exp(-x 2^-24) = 2^(-x log2 e), Q30 */
-static int32_t cr_exp_neg_q24(int64_t x)
-{
-    return cr_exp2_neg_q24(cr_rsh(x * 1549082005, 30));
-}
-
-/* S(x) or S(~x) of the quadrant q, signed by it */
-static int32_t cr_quarter(uint32_t q, uint32_t x)
-{
-    const int32_t v = cr_table_eval(cr_sin, CR_SIN_LOG2, (q & 1u) == 0u ? x : ~x);
-    return q < 2u ? v : -v;
-}
-
-/* sin and cos of 2 pi phase / 2^64, Q30 */
-static void cr_sincos_q64(uint64_t phase, int32_t *s, int32_t *c)
-{
-    const uint32_t q = (uint32_t)(phase >> 62);
-    const uint32_t x = (uint32_t)(phase >> 30);
-    *s = cr_quarter(q, x);
-    *c = cr_quarter((q + 1u) & 3u, x);
-}
-
 /* the binary32 bits of v 2^e, round half to even, saturated at 3.4e38; |v| < 2^32 */
 static uint32_t cr_f32_bits(int64_t v, int32_t e)
 {
@@ -228,12 +121,7 @@ static uint32_t cr_f32_bits(int64_t v, int32_t e)
 
 /* ------------------------------------------------------------------ frames in */
 
-/* the bytes of a word in the other order (one REV where the compiler sees it) */
-static uint32_t cr_bswap32(uint32_t w)
-{
-    return (w >> 24) | ((w >> 8) & 0xFF00u) | ((w << 8) & 0xFF0000u) | (w << 24);
-}
-
+#ifndef CANRLS_FRONT
 /* the raw value of a field (sign-extended, less its bias) from the payload's words */
 static int32_t cr_extract(const canrls_field *f, uint64_t le, uint64_t be)
 {
@@ -247,63 +135,12 @@ static int32_t cr_extract(const canrls_field *f, uint64_t le, uint64_t be)
     return f->biased ? (int32_t)(acc ^ 0x80000000u) : (int32_t)acc;
 }
 
-/* a float field's value times 2^frac, rounded half away from zero, in *v (qmath.float_fixed):
- * 0 for NaN, infinity and a value beyond +-(2^31 - 1) (outside every float field's lo..hi) */
+/* a float field's value in fixed point (cr_float_word) */
 static int cr_float(const canrls_field *f, uint64_t le, uint64_t be, int32_t *v)
 {
-    const uint64_t word = (f->big_endian ? be : le) >> f->shift;
-    const int wide = f->length == 64u;
-    const uint64_t bits = wide ? word : word & 0xFFFFFFFFu;
-    const int32_t mb = wide ? 52 : 23;                 /* stored mantissa bits */
-    const int32_t emax = wide ? 2047 : 255;            /* NaN and infinity */
-    const int32_t e = (int32_t)(bits >> mb) & emax;
-    uint64_t M = bits & ((UINT64_C(1) << mb) - 1u);
-    uint64_t mag;
-    int32_t s;
-    if (e == emax) {
-        return 0;
-    }
-    /* v 2^frac = M 2^s: M with its hidden bit, s = max(e, 1) - bias - mb + frac */
-    if (e != 0) {
-        M |= UINT64_C(1) << mb;
-    }
-    s = (e != 0 ? e : 1) - (emax >> 1) - mb + f->frac;
-    if (s >= 0) {
-        /* |raw| = M 2^s: beyond 2^62 (then beyond 32 bits) when s > 62 - mb, M != 0 */
-        if (M != 0u && s > 62 - mb) {
-            return 0;
-        }
-        mag = M << s;
-    } else {
-        /* |raw| = rsh(M, -s), round half up; 0 when -s > mb + 1 > log2 M + 1 */
-        mag = -s > mb + 1 ? 0u : (M + (UINT64_C(1) << (-s - 1))) >> -s;
-    }
-    if (mag > 0x7FFFFFFFu) {
-        return 0;
-    }
-    *v = ((bits >> (wide ? 63 : 31)) & 1u) != 0u ? -(int32_t)mag : (int32_t)mag;
-    return 1;
+    return cr_float_word((f->big_endian ? be : le) >> f->shift, f->length == 64u, f->frac, v);
 }
-
-/* the E2E CRC-8 table (polynomial 0x1D, canrls.can.e2e.CRC8_TABLE) */
-static const uint8_t cr_crc8[256] = {
-    0x00, 0x1D, 0x3A, 0x27, 0x74, 0x69, 0x4E, 0x53, 0xE8, 0xF5, 0xD2, 0xCF, 0x9C, 0x81, 0xA6, 0xBB,
-    0xCD, 0xD0, 0xF7, 0xEA, 0xB9, 0xA4, 0x83, 0x9E, 0x25, 0x38, 0x1F, 0x02, 0x51, 0x4C, 0x6B, 0x76,
-    0x87, 0x9A, 0xBD, 0xA0, 0xF3, 0xEE, 0xC9, 0xD4, 0x6F, 0x72, 0x55, 0x48, 0x1B, 0x06, 0x21, 0x3C,
-    0x4A, 0x57, 0x70, 0x6D, 0x3E, 0x23, 0x04, 0x19, 0xA2, 0xBF, 0x98, 0x85, 0xD6, 0xCB, 0xEC, 0xF1,
-    0x13, 0x0E, 0x29, 0x34, 0x67, 0x7A, 0x5D, 0x40, 0xFB, 0xE6, 0xC1, 0xDC, 0x8F, 0x92, 0xB5, 0xA8,
-    0xDE, 0xC3, 0xE4, 0xF9, 0xAA, 0xB7, 0x90, 0x8D, 0x36, 0x2B, 0x0C, 0x11, 0x42, 0x5F, 0x78, 0x65,
-    0x94, 0x89, 0xAE, 0xB3, 0xE0, 0xFD, 0xDA, 0xC7, 0x7C, 0x61, 0x46, 0x5B, 0x08, 0x15, 0x32, 0x2F,
-    0x59, 0x44, 0x63, 0x7E, 0x2D, 0x30, 0x17, 0x0A, 0xB1, 0xAC, 0x8B, 0x96, 0xC5, 0xD8, 0xFF, 0xE2,
-    0x26, 0x3B, 0x1C, 0x01, 0x52, 0x4F, 0x68, 0x75, 0xCE, 0xD3, 0xF4, 0xE9, 0xBA, 0xA7, 0x80, 0x9D,
-    0xEB, 0xF6, 0xD1, 0xCC, 0x9F, 0x82, 0xA5, 0xB8, 0x03, 0x1E, 0x39, 0x24, 0x77, 0x6A, 0x4D, 0x50,
-    0xA1, 0xBC, 0x9B, 0x86, 0xD5, 0xC8, 0xEF, 0xF2, 0x49, 0x54, 0x73, 0x6E, 0x3D, 0x20, 0x07, 0x1A,
-    0x6C, 0x71, 0x56, 0x4B, 0x18, 0x05, 0x22, 0x3F, 0x84, 0x99, 0xBE, 0xA3, 0xF0, 0xED, 0xCA, 0xD7,
-    0x35, 0x28, 0x0F, 0x12, 0x41, 0x5C, 0x7B, 0x66, 0xDD, 0xC0, 0xE7, 0xFA, 0xA9, 0xB4, 0x93, 0x8E,
-    0xF8, 0xE5, 0xC2, 0xDF, 0x8C, 0x91, 0xB6, 0xAB, 0x10, 0x0D, 0x2A, 0x37, 0x64, 0x79, 0x5E, 0x43,
-    0xB2, 0xAF, 0x88, 0x95, 0xC6, 0xDB, 0xFC, 0xE1, 0x5A, 0x47, 0x60, 0x7D, 0x2E, 0x33, 0x14, 0x09,
-    0x7F, 0x62, 0x45, 0x58, 0x0B, 0x16, 0x31, 0x2C, 0x97, 0x8A, 0xAD, 0xB0, 0xE3, 0xFE, 0xD9, 0xC4,
-};
+#endif /* CANRLS_FRONT */
 
 /* ------------------------------------------------------------------ set-up */
 
@@ -375,6 +212,7 @@ static int64_t cr_state(const canrls_target *S, const canrls_column *c)
     return (c->derivative ? S->x2[c->filter] : S->x1[c->filter]) + c->offset;
 }
 
+#ifndef CANRLS_FRONT
 /* the input u of every filter of the bank */
 static void cr_inputs(const canrls_target *S, int32_t *u)
 {
@@ -428,33 +266,6 @@ static void cr_inputs(const canrls_target *S, int32_t *u)
     }
 }
 
-/* an input u 2^fx as h 2^31 + l (0 <= l < 2^31): the C's form of the input term */
-static void cr_split_input(int32_t u, int32_t fx, int32_t *h, int32_t *l)
-{
-    if (fx >= 31) {
-        /* |u| 2^fx < 2^59 (the model's fx): h = u 2^(fx-31) is a word, l = 0 */
-        *h = u * (int32_t)((uint32_t)1 << (fx - 31));
-        *l = 0;
-    } else {
-        *h = u >> (31 - fx);
-        *l = (int32_t)(((uint32_t)u & ((1u << (31 - fx)) - 1u)) << fx);
-    }
-}
-
-/* rsh(a0 x1 + a1 x2 + (g0 u[k-1] + g1 u[k]) 2^fx, 30) with |x| < 2^60: every term as
- * h 2^31 + l, summed as H 2^31 + L (each product one SMULL or SMLAL; the model bounds
- * |a0| + |a1| + |g0| + |g1| below 2^31, so L < 2^62), so the result is 2 H + rsh(L, 30) */
-static int64_t cr_svf_row(const int32_t *a, int32_t g0, int32_t g1, int64_t x1, int64_t x2,
-                          int32_t uph, int32_t upl, int32_t uh, int32_t ul)
-{
-    const int64_t H = (int64_t)a[0] * (int32_t)(x1 >> 31) + (int64_t)a[1] * (int32_t)(x2 >> 31)
-                      + (int64_t)g0 * uph + (int64_t)g1 * uh;
-    const int64_t L = (int64_t)a[0] * (int32_t)(x1 & 0x7FFFFFFF)
-                      + (int64_t)a[1] * (int32_t)(x2 & 0x7FFFFFFF)
-                      + (int64_t)g0 * upl + (int64_t)g1 * ul;
-    return 2 * H + ((L + ((int64_t)1 << 29)) >> 30);
-}
-
 /* advance every filter of the bank by one sample */
 static void cr_filter(canrls_target *S, const int32_t *u)
 {
@@ -481,15 +292,16 @@ static void cr_filter(canrls_target *S, const int32_t *u)
         x1 = S->x1[i];
         x2 = S->x2[i];
         /* x1 = A00 x1 + A01 x2 + (G0_1 u[k-1] + G1_1 u[k]) 2^FX, Q30 coefficients */
-        S->x1[i] = cr_svf_row(&M->A[0], g[0], g[2], x1, x2, S->uph[i], S->upl[i], uh, ul);
+        S->x1[i] = cr_svf_row(M->A[0], M->A[1], g[0], g[2], x1, x2, S->uph[i], S->upl[i], uh, ul);
         /* x2 = A10 x1 + A11 x2 + (G0_2 u[k-1] + G1_2 u[k]) 2^FX   (x2 = sF[u] T 2^FX) */
-        S->x2[i] = cr_svf_row(&M->A[2], g[1], g[3], x1, x2, S->uph[i], S->upl[i], uh, ul);
+        S->x2[i] = cr_svf_row(M->A[2], M->A[3], g[1], g[3], x1, x2, S->uph[i], S->upl[i], uh, ul);
         S->uph[i] = uh;
         S->upl[i] = ul;
     }
 }
+#endif /* CANRLS_FRONT */
 
-static void cr_restart(canrls_target *S)
+void canrls_target_restart(canrls_target *S)
 {
     const canrls_target_model *M = S->model;
     uint32_t i;
@@ -599,9 +411,10 @@ static int64_t cr_ceil_scaled(uint64_t m, int32_t e)
 }
 
 /* the exponents change before this sample (spec TargetEstimator._adapt) */
-static void cr_adapt(canrls_target *S, const canrls_equation *e, canrls_target_eq *q,
-                     const int64_t *phi, int64_t y)
+void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64_t y)
 {
+    const canrls_equation *e = &S->model->equations[i];
+    canrls_target_eq *q = &S->eq[i];
     const uint32_t n = e->n;
     int32_t d[CANRLS_N_MAX];
     uint8_t first[CANRLS_N_MAX];
@@ -614,6 +427,9 @@ static void cr_adapt(canrls_target *S, const canrls_equation *e, canrls_target_e
     uint32_t j, k, idx;
     uint64_t big;
     const int64_t lim = (int64_t)1 << e->f_phi;
+    if (n == 0u) {
+        return; /* an equation has columns: every array below then has its first word */
+    }
     for (j = 0; j < n; j++) {
         const canrls_column *c = &e->columns[j];
         const int64_t x = cr_state(S, c);
@@ -766,6 +582,83 @@ static void cr_adapt(canrls_target *S, const canrls_equation *e, canrls_target_e
     }
 }
 
+/* ------------------------------------------------------------------ shared steps */
+
+void canrls_target_step(canrls_target *S, uint32_t i, const int64_t *phi, int64_t y)
+{
+    const canrls_equation *e = &S->model->equations[i];
+    canrls_target_eq *q = &S->eq[i];
+    int32_t phq[CANRLS_N_MAX];
+    canrls_step_q31 st;
+    uint32_t j;
+    for (j = 0; j < e->n; j++) {
+        phq[j] = (int32_t)cr_sat(phi[j], INT32_MIN, INT32_MAX);
+    }
+    (void)canrls_update_q31(&q->rls, phq, (int32_t)cr_sat(y, INT32_MIN, INT32_MAX), &st);
+    q->updates++;
+    q->flags |= st.flags;
+    /* the residual's mean square: ms <- ms + (eps^2 - ms) >> rms_shift */
+    q->ms += ((int64_t)st.eps * st.eps - q->ms) >> e->rms_shift;
+}
+
+uint32_t canrls_target_sampled(canrls_target *S)
+{
+    S->samples++;
+    S->since_publish++;
+    if (S->since_publish >= S->model->publish_every) {
+        S->since_publish = 0u;
+        return CANRLS_SAMPLE | CANRLS_PUBLISH;
+    }
+    return CANRLS_SAMPLE;
+}
+
+uint32_t canrls_target_reject(canrls_target *S, uint32_t reason)
+{
+    S->rejects[reason]++;
+    S->frame_loss = 1u;
+    return 0u;
+}
+
+static uint32_t cr_popcount(uint32_t v)
+{
+    uint32_t n = 0u;
+    while (v != 0u) {
+        n += v & 1u;
+        v >>= 1;
+    }
+    return n;
+}
+
+int canrls_target_pair(canrls_target *S, uint32_t mi, int32_t counter, uint32_t t)
+{
+    const canrls_target_model *M = S->model;
+    const uint32_t bit = 1u << mi;
+    const int32_t key = M->match_counters ? counter : -1;
+    if (S->open_mask != 0u) {
+        const int same = (int32_t)(t - S->open_t) <= M->tol_ticks && key == S->open_counter;
+        if (same && (S->open_mask & bit) != 0u) {
+            /* a second frame of this message in the period: dropped */
+            (void)canrls_target_reject(S, CANRLS_R_DUPLICATED);
+            return 0;
+        }
+        if (!same) {
+            /* another period began: the open one stays incomplete */
+            S->rejects[CANRLS_R_UNPAIRED] += cr_popcount(S->open_mask);
+            S->frame_loss = 1u;
+            S->open_mask = 0u;
+        }
+    }
+    if (S->open_mask == 0u) {
+        S->open_t = t;
+        S->open_counter = key;
+    }
+    S->open_mask |= bit;
+    return 1;
+}
+
+#ifndef CANRLS_FRONT
+/* ------------------------------------------------------------------ the table-driven path */
+
 /* the columns and the target of a used sample: rsh((X + O) m, sh) */
 static void cr_values(const canrls_target *S, const canrls_equation *e,
                       const canrls_target_eq *q, int64_t *phi, int64_t *y)
@@ -799,25 +692,17 @@ static int cr_changes(const canrls_target *S, const canrls_equation *e,
     return y > lim_y || -y > lim_y;
 }
 
-static void cr_update(canrls_target *S, const canrls_equation *e, canrls_target_eq *q)
+static void cr_update(canrls_target *S, uint32_t i)
 {
+    const canrls_equation *e = &S->model->equations[i];
+    canrls_target_eq *q = &S->eq[i];
     int64_t phi[CANRLS_N_MAX], y;
-    int32_t phq[CANRLS_N_MAX];
-    canrls_step_q31 st;
-    uint32_t j;
     cr_values(S, e, q, phi, &y);
     if (cr_changes(S, e, q, phi, y)) {
-        cr_adapt(S, e, q, phi, y);
+        canrls_target_adapt(S, i, phi, y);
         cr_values(S, e, q, phi, &y);
     }
-    for (j = 0; j < e->n; j++) {
-        phq[j] = (int32_t)cr_sat(phi[j], INT32_MIN, INT32_MAX);
-    }
-    (void)canrls_update_q31(&q->rls, phq, (int32_t)cr_sat(y, INT32_MIN, INT32_MAX), &st);
-    q->updates++;
-    q->flags |= st.flags;
-    /* the residual's mean square: ms <- ms + (eps^2 - ms) >> rms_shift */
-    q->ms += ((int64_t)st.eps * st.eps - q->ms) >> e->rms_shift;
+    canrls_target_step(S, i, phi, y);
 }
 
 /* one sample, complete in S->raw, at time t */
@@ -833,7 +718,7 @@ static uint32_t cr_sample(canrls_target *S, uint32_t t)
         if (S->has_t) {
             S->rejects[CANRLS_R_RESTARTS]++;
         }
-        cr_restart(S);
+        canrls_target_restart(S);
     }
     S->has_t = 1u;
     S->last_t = t;
@@ -855,27 +740,9 @@ static uint32_t cr_sample(canrls_target *S, uint32_t t)
             q->left--;
             continue;
         }
-        cr_update(S, e, q);
+        cr_update(S, i);
     }
-    S->samples++;
-    S->since_publish++;
-    if (S->since_publish >= M->publish_every) {
-        S->since_publish = 0u;
-        return CANRLS_SAMPLE | CANRLS_PUBLISH;
-    }
-    return CANRLS_SAMPLE;
-}
-
-/* ------------------------------------------------------------------ frames in */
-
-static uint32_t cr_popcount(uint32_t v)
-{
-    uint32_t n = 0u;
-    while (v != 0u) {
-        n += v & 1u;
-        v >>= 1;
-    }
-    return n;
+    return canrls_target_sampled(S);
 }
 
 uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
@@ -884,8 +751,8 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
     const canrls_target_model *M = S->model;
     const canrls_message *msg = NULL;
     int32_t raws[CANRLS_TARGET_ROLES];
-    uint32_t mi, bit, k;
-    int32_t counter = -1, key;
+    uint32_t mi, k;
+    int32_t counter = -1;
     uint64_t le = 0u, be = 0u;
     for (mi = 0; mi < M->nmsg; mi++) {
         if (M->messages[mi].id == id && M->messages[mi].extended == (extended != 0u)) {
@@ -898,9 +765,7 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
     }
     /* length: the DBC's */
     if (len != msg->dlc) {
-        S->rejects[CANRLS_R_LENGTH]++;
-        S->frame_loss = 1u;
-        return 0u;
+        return canrls_target_reject(S, CANRLS_R_LENGTH);
     }
     /* E2E CRC-8: over the ID (2 bytes, little endian), then bytes 1..dlc-1 */
     if (msg->crc) {
@@ -911,9 +776,7 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
             c = cr_crc8[c ^ data[k]];
         }
         if ((c ^ 0xFFu) != data[0]) {
-            S->rejects[CANRLS_R_CRC]++;
-            S->frame_loss = 1u;
-            return 0u;
+            return canrls_target_reject(S, CANRLS_R_CRC);
         }
     }
     /* the payload as one word, little and big endian (bytes after its end are 0) */
@@ -932,9 +795,7 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
     if (msg->has_counter) {
         counter = cr_extract(&msg->counter, le, be);
         if (counter == S->last_counter[mi]) {
-            S->rejects[CANRLS_R_REPEATED]++;
-            S->frame_loss = 1u;
-            return 0u;
+            return canrls_target_reject(S, CANRLS_R_REPEATED);
         }
         S->last_counter[mi] = counter;
     }
@@ -944,35 +805,14 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
         int32_t v = 0;
         const int ok = f->is_float ? cr_float(f, le, be, &v) : (v = cr_extract(f, le, be), 1);
         if (!ok || v < f->lo || v > f->hi) {
-            S->rejects[CANRLS_R_RANGE]++;
-            S->frame_loss = 1u;
-            return 0u;
+            return canrls_target_reject(S, CANRLS_R_RANGE);
         }
         raws[k] = v;
     }
     /* pair: the frames of one period */
-    bit = 1u << mi;
-    key = M->match_counters ? counter : -1;
-    if (S->open_mask != 0u) {
-        const int same = (int32_t)(t - S->open_t) <= M->tol_ticks && key == S->open_counter;
-        if (same && (S->open_mask & bit) != 0u) {
-            /* a second frame of this message in the period: dropped */
-            S->rejects[CANRLS_R_DUPLICATED]++;
-            S->frame_loss = 1u;
-            return 0u;
-        }
-        if (!same) {
-            /* another period began: the open one stays incomplete */
-            S->rejects[CANRLS_R_UNPAIRED] += cr_popcount(S->open_mask);
-            S->frame_loss = 1u;
-            S->open_mask = 0u;
-        }
+    if (!canrls_target_pair(S, mi, counter, t)) {
+        return 0u;
     }
-    if (S->open_mask == 0u) {
-        S->open_t = t;
-        S->open_counter = key;
-    }
-    S->open_mask |= bit;
     for (k = 0; k < msg->nroles; k++) {
         S->raw[msg->roles[k]] = raws[k];
     }
@@ -982,6 +822,8 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
     S->open_mask = 0u;
     return cr_sample(S, t);
 }
+#endif /* CANRLS_FRONT */
+
 
 /* ------------------------------------------------------------------ frames out */
 

@@ -11,6 +11,11 @@
  * is the kernel of canrls_fixed.h. No malloc, no floating point, no libc beyond
  * <stdint.h>, <stddef.h>, <string.h>.
  *
+ * canrls_target_frame() comes in two builds that compute the same integers: the one of
+ * canrls_target.c, which reads the model's tables at run time, and the straight-line one
+ * that `canrls export-c` generates for one model and DBC (canrls_front.c; build every
+ * file with -DCANRLS_FRONT). The steps below the frame function are shared.
+ *
  * Call order
  * ----------
  *   static canrls_target S;                      the caller owns the state
@@ -273,6 +278,33 @@ uint32_t canrls_target_publish(canrls_target *S, canrls_can_frame *out, uint32_t
  * kernel's theta word and the exponent s_y - s_j - f_theta.
  */
 void canrls_target_theta(const canrls_target *S, uint32_t i, int32_t *word, int32_t *exp);
+
+/* ---- The steps that the generated front end shares with the table-driven path.
+ * `canrls export-c` writes canrls_front.c: canrls_target_frame() in straight-line code for
+ * one model and DBC (each field's shifts and masks, each filter's coefficients and the
+ * model's columns as constants); canrls_target.c built with -DCANRLS_FRONT leaves its
+ * table-driven canrls_target_frame() out and keeps these. A firmware calls none of them. */
+
+/** Count a rejected frame (enum canrls_reject) and the frame loss; returns 0. */
+uint32_t canrls_target_reject(canrls_target *S, uint32_t reason);
+
+/** Pair a decoded frame of message mi (its alive counter, -1: none) into the open
+ * period; 0: dropped as a second frame of that message in the period. */
+int canrls_target_pair(canrls_target *S, uint32_t mi, int32_t counter, uint32_t t);
+
+/** Restart the filters and the warm-ups (a missing period or the first sample). */
+void canrls_target_restart(canrls_target *S);
+
+/** Change the exponents of equation i before this used sample (phi, y: its columns and
+ * target in the old exponents, int64). */
+void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64_t y);
+
+/** Update the kernel of equation i with phi and y (saturated to int32), the flags and
+ * the residual's mean square. */
+void canrls_target_step(canrls_target *S, uint32_t i, const int64_t *phi, int64_t y);
+
+/** Count a processed sample; CANRLS_SAMPLE, with CANRLS_PUBLISH when one is due. */
+uint32_t canrls_target_sampled(canrls_target *S);
 
 #ifdef __cplusplus
 }

@@ -4,9 +4,10 @@
  *
  * SPDX-License-Identifier: MIT
  *
- * cc -std=c99 -O2 -Wall -Wextra -Werror canrls_test.c canrls_replay.c canrls_target.c \
- *    canrls_model.c canrls_fixed.c -o canrls_test && ./canrls_test
- * Exit status 0 when bit-exact.
+ * cc -std=c99 -O2 -Wall -Wextra -Werror -DCANRLS_FRONT canrls_test.c canrls_replay.c \
+ *    canrls_target.c canrls_front.c canrls_model.c canrls_fixed.c -o canrls_test && ./canrls_test
+ * (`make test`; without -DCANRLS_FRONT and canrls_front.c, the table-driven front end:
+ * `make test-tables`). Exit status 0 when bit-exact.
  */
 #include <stdio.h>
 

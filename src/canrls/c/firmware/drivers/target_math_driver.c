@@ -79,7 +79,7 @@ int main(void)
                       &a[0], &a[1], &g0, &g1, &x1, &x2, &up, &u, &fx) != 9) return 2;
             cr_split_input(up, fx, &uph, &upl);
             cr_split_input(u, fx, &uh, &ul);
-            printf("%" PRId64 "\n", cr_svf_row(a, g0, g1, x1, x2, uph, upl, uh, ul));
+            printf("%" PRId64 "\n", cr_svf_row(a[0], a[1], g0, g1, x1, x2, uph, upl, uh, ul));
         } else if (strcmp(op, "floor") == 0 || strcmp(op, "ceil") == 0) {
             uint64_t m;
             int32_t e;

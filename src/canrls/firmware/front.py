@@ -1,0 +1,375 @@
+"""The straight-line front end of one model for the target: ``canrls_front.c``.
+
+:func:`front_file` writes ``canrls_target_frame`` for one
+:class:`~canrls.firmware.target_model.TargetModel` as code without tables: each message's ID,
+length and CRC-8 (its ID's part folded into a constant), each field's bytes, shifts and
+masks (integer or float32/float64), each filter's input and coefficients, and exactly
+the columns of each equation, as constants.
+It computes what the table-driven ``canrls_target_frame`` of ``canrls_target.c`` computes
+from the same constants (``canrls_target_math.h`` holds the arithmetic of both), and
+shares its rare steps (pairing, restart, rescale, the kernel's update, publication).
+Numbers reach the C through :mod:`canrls.core.c_escape`, names only as comment text.
+"""
+
+from __future__ import annotations
+
+from canrls.can.e2e import crc8
+from canrls.core.c_escape import c_comment, c_int, c_uint
+from canrls.firmware.target_model import (
+    SRC_CONST,
+    SRC_COS,
+    SRC_RAW,
+    SRC_SIN,
+    SRC_STRIBECK,
+    SRC_TANH,
+    W_FRAC,
+    Column,
+    EquationSpec,
+    Field,
+    Message,
+    TargetModel,
+)
+
+__all__ = ["front_file"]
+
+_ROLES = ("current", "speed", "position", "voltage", "torque")
+_ROLE_ENUM = ("CANRLS_CURRENT", "CANRLS_SPEED", "CANRLS_POSITION", "CANRLS_VOLTAGE",
+              "CANRLS_TORQUE")
+
+
+def _i(v: int, what: str, bits: int = 32) -> str:
+    return c_int(v, bits, what)
+
+
+def _u(v: int, what: str, bits: int = 32) -> str:
+    return c_uint(v, bits, what)
+
+
+def _plus(v: int, what: str) -> str:
+    """`` + v`` as a 64-bit constant ("" for 0)."""
+    return f" + {_i(v, what, 64)}" if v else ""
+
+
+def _bytes_of(f: Field, dlc: int) -> tuple[list[tuple[int, int]], int]:
+    """The payload bytes that hold field ``f`` (those before ``dlc``; the others are 0),
+    each with its left shift in a word that starts at the byte of the field's lowest bit,
+    and the field's shift in that word."""
+    lo_byte, hi_byte = f.shift // 8, (f.shift + f.length - 1) // 8
+    if f.big_endian:
+        # word bit p is in byte 7 - p // 8 (byte 0 the most significant)
+        first, last = 7 - hi_byte, 7 - lo_byte
+        parts = [(k, 8 * (last - k)) for k in range(first, last + 1)]
+    else:
+        parts = [(k, 8 * (k - lo_byte)) for k in range(lo_byte, hi_byte + 1)]
+    return [(k, s) for k, s in parts if k < dlc], f.shift % 8
+
+
+def _word(f: Field, dlc: int, name: str) -> tuple[list[str], str]:
+    """Lines that read field ``f``'s bits into ``name`` (unsigned, masked to its length)
+    and the C type of ``name``."""
+    parts, low = _bytes_of(f, dlc)
+    wide = low + f.length > 32
+    t, cast = ("uint64_t", "(uint64_t)") if wide else ("uint32_t", "(uint32_t)")
+    terms = [f"{cast}data[{k}]" + (f" << {s}" if s else "") for k, s in parts] or ["0u"]
+    expr = " | ".join(terms)
+    if low:
+        expr = f"({expr}) >> {low}"
+    bits = 64 if wide else 32
+    if f.length < bits:
+        expr = f"({expr}) & {_u((1 << f.length) - 1, 'mask', bits)}"
+    return [f"const {t} {name} = {expr};"], t
+
+
+def _int_field(f: Field, dlc: int, name: str) -> list[str]:
+    """Lines that set ``int32_t name`` to an integer field's raw value (sign-extended,
+    less its bias)."""
+    lines, t = _word(f, dlc, name + "_bits")
+    acc = name + "_bits" if t == "uint32_t" else f"(uint32_t){name}_bits"
+    if f.signed and f.length < 32:
+        half = 1 << (f.length - 1)
+        # two's complement: (acc ^ 2^(L-1)) - 2^(L-1)
+        lines.append(f"const int32_t {name} = (int32_t)({acc} ^ {_u(half, 'sign')}) - "
+                     f"{_i(half, 'sign')};")
+    elif f.biased:
+        lines.append(f"const int32_t {name} = (int32_t)({acc} ^ 0x80000000u);")
+    else:
+        lines.append(f"const int32_t {name} = (int32_t){acc};")
+    return lines
+
+
+def _limits(f: Field) -> tuple[int, int]:
+    """The raw values a field can hold (its range check is vacuous beyond them)."""
+    if f.is_float:
+        return -(2**31 - 1), 2**31 - 1
+    if f.signed or f.biased:
+        return -(1 << (f.length - 1)) if f.signed else -(1 << 31), (1 << (f.length - 1)) - 1
+    return 0, (1 << f.length) - 1
+
+
+def _field(f: Field, dlc: int, name: str, role: str) -> list[str]:
+    """Lines that decode field ``f`` into ``int32_t name`` and reject it out of range."""
+    rng = f"field {role}"
+    if f.is_float:
+        lines, t = _word(f, dlc, name + "_bits")
+        word = name + "_bits" if t == "uint64_t" else f"(uint64_t){name}_bits"
+        lines += [f"int32_t {name} = 0;",
+                  f"/* float{f.length}: v 2^{f.frac}, half away from zero; NaN, infinity "
+                  f"and beyond 31 bits rejected */",
+                  f"if (!cr_float_word({word}, {int(f.length == 64)}, {_i(f.frac, rng)}, "
+                  f"&{name})) {{", "    return canrls_target_reject(S, CANRLS_R_RANGE);", "}"]
+    else:
+        lines = _int_field(f, dlc, name)
+    lo, hi = _limits(f)
+    tests = ([f"{name} < {_i(f.lo, rng)}"] if f.lo > lo else []) + \
+            ([f"{name} > {_i(f.hi, rng)}"] if f.hi < hi else [])
+    if tests:
+        lines += [f"if ({' || '.join(tests)}) {{",
+                  "    return canrls_target_reject(S, CANRLS_R_RANGE);", "}"]
+    return lines
+
+
+def _message(tm: TargetModel, mi: int, m: Message) -> list[str]:
+    """The body of the branch of message ``mi``: decode, pair, and the sample it completes."""
+    what = f"message {mi}"
+    out = [f"/* {c_comment(m.name, 'message')}: length {m.dlc} */",
+           f"if (len != {_u(m.dlc, what)}) {{",
+           "    return canrls_target_reject(S, CANRLS_R_LENGTH);", "}"]
+    if m.crc:
+        # E2E CRC-8 over the ID (2 bytes, little endian), then bytes 1..dlc-1: the ID's
+        # part is a constant
+        c0 = crc8(bytes([m.id & 0xFF, (m.id >> 8) & 0xFF]), xorout=0)
+        out.append(f"/* E2E CRC-8: the ID's two bytes folded into {c0:#04x} */")
+        out.append(f"uint32_t c = {_u(c0, 'crc')};")
+        out += [f"c = cr_crc8[c ^ data[{k}]];" for k in range(1, m.dlc)]
+        out += ["if ((c ^ 0xFFu) != data[0]) {",
+                "    return canrls_target_reject(S, CANRLS_R_CRC);", "}"]
+    counter = "-1"
+    if m.counter is not None:
+        out.append("/* alive counter: one equal to the last accepted is a repeat */")
+        out += _int_field(m.counter, m.dlc, "counter")
+        out += [f"if (counter == S->last_counter[{mi}]) {{",
+                "    return canrls_target_reject(S, CANRLS_R_REPEATED);", "}",
+                f"S->last_counter[{mi}] = counter;"]
+        counter = "counter"
+    carried = [r for r in _ROLES if r in tm.roles and tm.roles[r].msg == mi]
+    for r in carried:
+        out.append(f"/* {r}: strict range */")
+        out += _field(tm.roles[r], m.dlc, f"raw_{r}", r)
+    out += ["/* pair: the frames of one period */",
+            f"if (!canrls_target_pair(S, {mi}u, {counter}, t)) {{", "    return 0u;", "}"]
+    out += [f"S->raw[{_ROLE_ENUM[_ROLES.index(r)]}] = raw_{r};" for r in carried]
+    full = (1 << len(tm.messages)) - 1
+    out += [f"if (S->open_mask != {_u(full, 'messages')}) {{", "    return 0u;", "}",
+            "S->open_mask = 0u;", "return fr_sample(S, t);"]
+    return out
+
+
+def _q24_arg(name: str, ctype: str, arg: tuple[int, int, int] | None, what: str,
+             eq: str) -> list[str]:
+    """Lines setting the Q24 argument ``name = rsh(speed m + b, sh)`` (saturated to 32
+    bits; 0 without one)."""
+    if arg is None or arg[0] == 0:
+        return [f"const {ctype} {name} = 0;"]
+    cast = "(int32_t)" if ctype == "int32_t" else ""
+    return [f"/* {eq} */",
+            f"const {ctype} {name} = {cast}cr_sat(cr_rsh((int64_t)S->raw[CANRLS_SPEED] * "
+            f"{_i(arg[0], what)}{_plus(arg[1], what)}, {_i(arg[2], what)}), "
+            f"INT32_MIN, INT32_MAX);"]
+
+
+def _inputs(tm: TargetModel) -> list[str]:
+    """Lines computing what the filters' inputs share: the Q24 arguments and the phase."""
+    kinds = {f.kind for f in tm.filters}
+    out = []
+    if kinds & {SRC_TANH, SRC_STRIBECK}:
+        out += _q24_arg("z", "int32_t", tm.tanh_arg, "tanh", "z = w / band, Q24")
+    if SRC_STRIBECK in kinds:
+        out += _q24_arg("r", "int64_t", tm.stribeck_arg, "stribeck", "r = w / ws, Q24")
+    if kinds & {SRC_SIN, SRC_COS}:
+        ph = tm.phase
+        if ph is None or ph[0] == 0:
+            out.append("const uint64_t ph = 0u;")
+        else:
+            po = f" + (uint64_t){c_uint(ph[1], 64, 'phase')}" if ph[1] else ""
+            out += ["/* phase = raw PM + PO, turns in Q64 (modulo one turn) */",
+                    f"const uint64_t ph = (uint64_t)(int64_t)S->raw[CANRLS_POSITION] * "
+                    f"(uint64_t){c_uint(ph[0], 64, 'phase')}{po};"]
+    return out
+
+
+def _input(tm: TargetModel, i: int) -> list[str]:
+    """Lines setting ``u``, the input of filter ``i``."""
+    f = tm.filters[i]
+    if f.kind == SRC_RAW:
+        return [f"const int32_t u = S->raw[{_ROLE_ENUM[_ROLES.index(f.role)]}];"]
+    if f.kind == SRC_TANH:
+        return ["/* tanh(w / band) */", "const int32_t u = cr_tanh_q24(z);"]
+    if f.kind == SRC_STRIBECK:
+        return ["/* x = (w / ws)^2, Q24, at most 32 ; tanh(w / band) exp(-(w / ws)^2) */",
+                "int64_t x = cr_rsh(r * r, 24);",
+                "x = x < ((int64_t)32 << 24) ? x : (int64_t)32 << 24;",
+                "const int32_t u = (int32_t)cr_rsh((int64_t)cr_tanh_q24(z) * "
+                "cr_exp_neg_q24(x), 30);"]
+    # sin, cos of k theta: the phase times k (modulo one turn); its quadrant and place
+    order = f"(uint64_t){_u(f.order, 'harmonic', 64)}"
+    quadrant = "(uint32_t)(p >> 62)" if f.kind == SRC_SIN else "((uint32_t)(p >> 62) + 1u) & 3u"
+    return [f"const uint64_t p = {order} * ph;",
+            f"const int32_t u = cr_quarter({quadrant}, (uint32_t)(p >> 30));"]
+
+
+def _filters(tm: TargetModel) -> list[str]:
+    """Lines advancing every filter of the bank by one sample, its coefficients constants."""
+    a = [_i(v, "A") for v in tm.A]
+    out = _inputs(tm)
+    for i, f in enumerate(tm.filters):
+        if f.kind == SRC_CONST:
+            continue
+        g = [_i(v, "G") for v in tm.G[f.hold]]
+        fx = _i(f.fx, "fx")
+        out += [f"{{ /* filter {i}: {c_comment(f.label, 'filter')}, FX {f.fx} */"]
+        body = _input(tm, i) + [
+            "int32_t uh, ul;",
+            f"cr_split_input(u, {fx}, &uh, &ul);",
+            f"if (!S->primed[{i}]) {{",
+            "    /* at rest on the first sample: x = [u 2^FX, 0] */",
+            f"    S->x1[{i}] = cr_shl(u, {fx});",
+            f"    S->x2[{i}] = 0;",
+            f"    S->primed[{i}] = 1u;",
+            "} else {",
+            f"    const int64_t x1 = S->x1[{i}], x2 = S->x2[{i}];",
+            "    /* x1 = A00 x1 + A01 x2 + (G0_1 u[k-1] + G1_1 u[k]) 2^FX */",
+            f"    S->x1[{i}] = cr_svf_row({a[0]}, {a[1]}, {g[0]}, {g[2]}, x1, x2, "
+            f"S->uph[{i}], S->upl[{i}], uh, ul);",
+            "    /* x2 = A10 x1 + A11 x2 + (G0_2 u[k-1] + G1_2 u[k]) 2^FX */",
+            f"    S->x2[{i}] = cr_svf_row({a[2]}, {a[3]}, {g[1]}, {g[3]}, x1, x2, "
+            f"S->uph[{i}], S->upl[{i}], uh, ul);",
+            "}",
+            f"S->uph[{i}] = uh;",
+            f"S->upl[{i}] = ul;"]
+        out += ["    " + s for s in body] + ["}"]
+    return out
+
+
+def _state(c: Column) -> str:
+    """X + O of a column."""
+    x = f"S->{'x2' if c.derivative else 'x1'}[{c.filter}]"
+    return f"({x} + {_i(c.offset, 'offset', 64)})" if c.offset else x
+
+
+def _equation(e: EquationSpec, k: int) -> list[str]:
+    """The columns, the check of the normalisation and the update of equation ``k``."""
+    name = c_comment(e.name, "equation")
+    vals = [f"/* equation {name}: its columns and target, rsh((X + O) m, sh) */",
+            f"static void fr_values_{k}(const canrls_target *S, const canrls_target_eq *q, "
+            f"int64_t *phi, int64_t *y)", "{"]
+    for j, c in enumerate(e.columns):
+        vals.append(f"    phi[{j}] = cr_mul_rsh({_state(c)}, {_i(c.m, 'm')}, q->sh[{j}]); "
+                    f"/* {c_comment(c.name, 'parameter')} */")
+    vals += [f"    *y = cr_mul_rsh({_state(e.target)}, {_i(e.target.m, 'm')}, q->sh_y);", "}",
+             ""]
+    lim = _i(1 << e.f_phi, "f_phi", 64)
+    ch = ["/* whether this used sample changes the normalisation */",
+          f"static int fr_changes_{k}(const canrls_target *S, const canrls_target_eq *q, "
+          f"const int64_t *phi, int64_t y)", "{"]
+    if not e.columns:
+        ch.append("    (void)phi;")
+    for j, c in enumerate(e.columns):
+        if c.adaptive:
+            ch += [f"    if (q->pending[{j}] ? {_state(c)} != 0 : "
+                   f"(phi[{j}] > {lim} || -phi[{j}] > {lim})) {{", "        return 1;", "    }"]
+        else:
+            ch += [f"    if (q->pending[{j}] && {_state(c)} != 0) {{", "        return 1;",
+                   "    }"]
+    lim_y = _i(1 << e.f_y, "f_y", 64)
+    ch += ["    if (q->pending_y) {", f"        return {_state(e.target)} != 0;", "    }",
+           f"    return y > {lim_y} || -y > {lim_y};", "}", ""]
+    n = max(e.n, 1)
+    up = [f"static void fr_update_{k}(canrls_target *S)", "{",
+          f"    const canrls_target_eq *q = &S->eq[{k}];",
+          f"    int64_t phi[{n}], y;",
+          f"    fr_values_{k}(S, q, phi, &y);",
+          f"    if (fr_changes_{k}(S, q, phi, y)) {{",
+          f"        canrls_target_adapt(S, {k}u, phi, y);",
+          f"        fr_values_{k}(S, q, phi, &y);", "    }",
+          f"    canrls_target_step(S, {k}u, phi, y);", "}", ""]
+    return vals + ch + up
+
+
+def _selection(e: EquationSpec, k: int) -> list[str]:
+    """Lines of the sample's selection for equation ``k`` and its update."""
+    s = e.selection
+    what = f"equation {e.name}"
+    tests = []
+    if s.min_w > 0:
+        tests.append(f"aw < {_i(s.min_w, what, 64)}")
+    if s.max_w >= 0:
+        tests.append(f"aw > {_i(s.max_w, what, 64)}")
+    if s.cross:
+        tests.append("(q->w_last < 0 && w > 0) || (w < 0 && q->w_last > 0)")
+    out = [f"{{ /* equation {c_comment(e.name, 'equation')}: the selection */",
+           f"    canrls_target_eq *q = &S->eq[{k}];"]
+    if s.min_w > 0 or s.max_w >= 0:
+        out.append("    const int64_t aw = w < 0 ? -w : w;")
+    if tests:
+        out += [f"    if ({' || '.join(tests)}) {{",
+                f"        q->left = {_i(s.warmup + 1, what)};", "    }"]
+    out += ["    q->w_last = w;", "    if (q->left > 0) {", "        q->left--;", "    } else {",
+            f"        fr_update_{k}(S);", "    }", "}"]
+    return out
+
+
+def _indent(lines: list[str], by: str = "    ") -> str:
+    return "\n".join(by + s if s else s for s in lines)
+
+
+def front_file(tm: TargetModel, source: str) -> str:
+    """``canrls_front.c`` of ``tm`` (``source``: what it was exported from, for the
+    comment)."""
+    src = c_comment(source, "the model's source")
+    head = f"""/* canrls_front.c -- generated by `canrls export-c` from {src}: do not edit.
+ *
+ * canrls_target_frame() for this model and DBC in straight-line code: the same integers
+ * as the table-driven one of canrls_target.c (canrls_target_math.h holds the arithmetic
+ * of both), without reading the model's tables at run time. Build every file with
+ * -DCANRLS_FRONT (canrls_target.c then leaves its own canrls_target_frame out).
+ */
+#include "canrls_target.h"
+#include "canrls_target_math.h"
+
+#ifndef CANRLS_FRONT
+#error "canrls: build every file with -DCANRLS_FRONT when canrls_front.c is linked"
+#endif
+
+"""
+    parts = [head]
+    for k, e in enumerate(tm.equations):
+        parts.append(_indent(_equation(e, k), "") + "\n")
+    sample = [
+        "const int32_t dt = (int32_t)(t - S->last_t);",
+        "int64_t w;",
+        f"if (!S->has_t || dt < 0 || dt > {_i(tm.gap_ticks, 'gap')}) {{",
+        "    /* the first sample, time going back, or a period missing: restart */",
+        "    if (S->has_t) {", "        S->rejects[CANRLS_R_RESTARTS]++;", "    }",
+        "    canrls_target_restart(S);", "}",
+        "S->has_t = 1u;", "S->last_t = t;",
+        *_filters(tm),
+        f"/* the speed of the selection: W = raw 2^{W_FRAC} + offset */",
+        f"w = (int64_t)S->raw[CANRLS_SPEED] * ((int64_t)1 << {W_FRAC})"
+        f"{_plus(tm.w_offset, 'speed offset')};"]
+    for k, e in enumerate(tm.equations):
+        sample += _selection(e, k)
+    sample.append("return canrls_target_sampled(S);")
+    parts.append("/* one sample, complete in S->raw, at time t: filters, selection, updates */\n"
+                 "static uint32_t fr_sample(canrls_target *S, uint32_t t)\n{\n"
+                 + _indent(sample) + "\n}\n\n")
+    frame = [] if tm.messages else ["(void)id;", "(void)extended;", "(void)data;", "(void)len;",
+                                    "(void)t;", "(void)S;"]
+    for mi, m in enumerate(tm.messages):
+        ext = "extended != 0u" if m.extended else "extended == 0u"
+        frame += [f"if (id == {_u(m.id, f'message {mi}')} && {ext}) {{",
+                  *["    " + s for s in _message(tm, mi, m)], "}"]
+    frame.append("return 0u;")
+    parts.append("uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,\n"
+                 "                             const uint8_t *data, uint32_t len, uint32_t t)\n"
+                 "{\n" + _indent(frame) + "\n}\n")
+    return "".join(parts)
