@@ -14,6 +14,7 @@ from canrls.can import candump
 from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, read_frames, write_candump, write_log
 from canrls.core.errors import LogFormatError
+from canrls.core.files import ContentHash
 
 
 def random_block(n: int, seed: int = 0) -> FrameBlock:
@@ -349,3 +350,25 @@ def test_reading_ahead_gives_the_blocks_and_counts_of_reading_in_turn(
     reader = read_frames(path, 64, skip_bad_lines=True)
     next(reader)
     reader.close()  # the thread making the next block is joined (no leaked thread)
+
+
+@pytest.mark.parametrize(("suffix", "chunk"), [(".log", 100), (".log", 65536), (".asc", 500),
+                                               (".blf", 500)])
+def test_a_digest_taken_while_reading_is_the_files_hash(tmp_path: Path, suffix: str,
+                                                         chunk: int) -> None:
+    """``digest=`` hashes every byte of the file as the frames are read (a candump log
+    through the parser's reads, in turn or read ahead in a thread; another format after
+    its frames): the SHA-256 of the file, complete only once the last block is read."""
+    path = tmp_path / f"x{suffix}"
+    write_log(path, [random_block(3000, seed=5)])
+    with open(path, "ab") as f:
+        f.write(b"\n" if suffix == ".log" else b"")  # a trailing line without a frame
+    whole = hashlib.sha256(path.read_bytes()).hexdigest()
+    d = ContentHash()
+    blocks = read_frames(path, chunk, digest=d)
+    frames = len(next(blocks))
+    with pytest.raises(RuntimeError, match="not read to its end"):
+        d.hexdigest()
+    frames += sum(len(b) for b in blocks)
+    assert frames == 3000
+    assert d.hexdigest() == whole

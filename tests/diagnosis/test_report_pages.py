@@ -69,3 +69,25 @@ def test_page_renders_in_chromium(pages: dict[str, Path], name: str, width: int)
                                                                   strict=True))
     assert len(set(alts)) == len(alts)
     assert check.overflow == () and check.scroll_width <= width, check.overflow
+
+
+def test_the_fleet_page_shows_the_bookkeeping_notes(tmp_path: Path) -> None:
+    """Every note the JSON has (one recording, two models, equal start times, out of
+    time order, a renamed drive) is shown on the page, beside its drive, never as an
+    alert."""
+    pytest.importorskip("sqlalchemy")
+    from fleet_histories import bookkeeping_fleet
+
+    from canrls.fleet.detect import assess
+    from canrls.fleet.fleet_report import write_html
+
+    recs, said = bookkeeping_fleet()
+    fa = assess(recs)
+    assert not [d.drive for d in fa.drives if d.drive in said and d.alerts]
+    notes = [n for d in fa.drives for n in d.to_dict()["notes"]]
+    check = open_page(write_html(fa, tmp_path / "fleet"), 1400)
+    assert check.errors == () and check.overflow == (), check.overflow
+    assert sorted(check.notes) == sorted(notes)
+    for drive, phrase in said.items():
+        assert any(phrase in n for n in fa.drive(drive).notes), (drive, phrase)
+        assert any(phrase in n for n in check.notes), (drive, phrase)

@@ -539,21 +539,30 @@ def thread_cluster() -> Iterator[Any]:
 def test_on_a_cluster_each_log_is_read_once_and_the_first_listed_owns_it(
         tmp_path: Path, logs: list[Path], monkeypatch: pytest.MonkeyPatch,
         thread_cluster: Any) -> None:
-    """On Dask each log is hashed once, by the task that fits it (no pass over the logs
-    before the fits); duplicates, a path listed twice and a rerun are decided by the
-    hashes the fits return, the first listed owning each content (a cluster of threads
-    in this process, so the hashes can be counted)."""
+    """On Dask each log is opened once, by the task that fits it: its hash is taken as
+    the fit reads it (a rerun, whose history holds hashes, hashes first and fits
+    nothing); duplicates, a path listed twice and a rerun are decided by the hashes
+    the tasks return, the first listed owning each content (a cluster of threads in
+    this process, so the reads can be counted)."""
+    import canrls.can.logs as logs_module
+
     shutil.copy(logs[0], tmp_path / "a.log")
     shutil.copy(logs[0], tmp_path / "copy.log")
     shutil.copy(logs[1], tmp_path / "b.log")
     reads: list[str] = []
     hash_file = ingest_module.content_hash
+    open_log = logs_module.open_regular
 
     def counted(path: str | Path) -> str:
         reads.append(Path(path).name)
         return hash_file(path)
 
+    def opened(path: Any, *args: Any, **kw: Any) -> Any:
+        reads.append(Path(path).name)
+        return open_log(path, *args, **kw)
+
     monkeypatch.setattr(ingest_module, "content_hash", counted)
+    monkeypatch.setattr(logs_module, "open_regular", opened)
     m = tmp_path / "m.csv"
     m.write_text("path,drive\ncopy.log,d3\nb.log,d2\na.log,d2\ncopy.log,d3\n")
     for run in range(2):
@@ -564,6 +573,8 @@ def test_on_a_cluster_each_log_is_read_once_and_the_first_listed_owns_it(
         assert sorted(reads) == ["a.log", "b.log", "copy.log"]  # once each
         assert sorted((r.drive, Path(r.path).name) for r in recs) == [
             ("d2", "b.log"), ("d3", "copy.log")]
+        assert {r.content_hash for r in recs} == {hash_file(tmp_path / "copy.log"),
+                                                  hash_file(tmp_path / "b.log")}
         assert (s.stored, s.skipped, s.failed) == ((2, 0, ()) if run == 0 else
                                                    (0, 4, ()))
         assert [(Path(d.path).name, d.drive, Path(d.owner_path).name, d.owner)

@@ -34,16 +34,27 @@ def _right(fa: detect.FleetAssessment, drive: str, what: str) -> bool:
     return a.series == what
 
 
-@pytest.mark.parametrize("jitter", [0.0, 0.01, 0.02, 0.05])
-def test_wear_is_told_from_weather(jitter: float) -> None:
+#: a normal jitter of standard deviation 5 %: the Coulomb friction of the most exposed
+#: drives moving 7.5 % a week (a third of the weeks by more) against a wear of 3 % a
+#: week; even a test told each drive's scatter and the wear's onset would miss some of
+#: those drifts at alpha (docs/fleet.md)
+_BEYOND = pytest.mark.xfail(strict=True, reason="a 3 % a week drift under a normal "
+                            "weather of up to 7.5 % a week: beyond 10 recordings")
+
+
+@pytest.mark.parametrize(("jitter", "gaussian"), [
+    (0.0, False), (0.01, False), (0.02, False), (0.05, False),
+    (0.0, True), (0.01, True), (0.02, True), pytest.param(0.05, True, marks=_BEYOND)])
+def test_wear_is_told_from_weather(jitter: float, gaussian: bool) -> None:
     """Over 10 simulated fleets (40 drives x 10 weekly recordings, each recording with
-    its own excitation and length, friction jittering ±``jitter`` week to week): every
-    changing drive but at most 5 % is alerted with the right parameter or effect, and
-    at most 1 % of the healthy drives is alerted at all."""
+    its own excitation and length, friction jittering week to week: within ±``jitter``
+    uniformly, or ``gaussian`` a normal of that standard deviation): every changing
+    drive but at most 5 % is alerted with the right parameter or effect, and at most
+    1 % of the healthy drives is alerted at all."""
     found = changing = false = healthy = 0
     missed, wrong = [], []
     for seed in SEEDS:
-        f = simulated_fleet(seed, jitter)
+        f = simulated_fleet(seed, jitter, gaussian=gaussian)
         fa = assess(f.recordings)
         for d, (what, _) in f.changing.items():
             changing += 1
@@ -56,7 +67,8 @@ def test_wear_is_told_from_weather(jitter: float) -> None:
             if fa.drive(d).alerts:
                 false += 1
                 wrong.append((seed, d, fa.drive(d).alerts[0].message))
-    print(f"\njitter ±{100 * jitter:.0f} %: {found}/{changing} changing drives alerted "
+    print(f"\njitter {'sd ' if gaussian else '±'}{100 * jitter:.0f} %: {found}/{changing} "
+          f"changing drives alerted "
           f"right, {false}/{healthy} healthy drives alerted")
     assert changing == 5 * len(SEEDS) and healthy == 35 * len(SEEDS)
     assert found >= 0.95 * changing, missed

@@ -57,10 +57,14 @@ window.addEventListener('load', function () {
     return {src: i.getAttribute('src'), alt: i.alt, loaded: i.complete && i.naturalWidth > 0,
             width: i.getBoundingClientRect().width};
   });
+  // the text a reader sees in each element of class 'note' (none when hidden)
+  var notes = Array.prototype.map.call(document.querySelectorAll('.note'),
+                                       function (el) { return el.innerText; });
   var pre = document.createElement('pre');
   pre.id = 'canrls-check';
   pre.textContent = JSON.stringify({
     errors: window.__errors, images: images, overflow: over.slice(0, 20), width: W,
+    notes: notes,
     scroll_width: document.documentElement.scrollWidth,
     viewport: !!document.querySelector('meta[name=viewport]')});
   document.body.appendChild(pre);
@@ -78,6 +82,8 @@ class PageCheck:
     overflow: tuple[str, ...]
     scroll_width: int
     viewport: bool
+    #: the text shown in each element of class ``note``, in the page's order
+    notes: tuple[str, ...] = ()
 
 
 def open_page(page: Path, width: int, height: int = 1200) -> PageCheck:
@@ -110,4 +116,5 @@ def open_page(page: Path, width: int, height: int = 1200) -> PageCheck:
                if "CONSOLE" in line and ("Uncaught" in line or "rror" in line)]
     return PageCheck(width=width, errors=tuple(d["errors"]) + tuple(console),
                      images=tuple(d["images"]), overflow=tuple(d["overflow"]),
-                     scroll_width=int(d["scroll_width"]), viewport=bool(d["viewport"]))
+                     scroll_width=int(d["scroll_width"]), viewport=bool(d["viewport"]),
+                     notes=tuple(d["notes"]))

@@ -33,6 +33,7 @@ Every number is drawn from ``numpy.random.default_rng(seed)``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -40,7 +41,8 @@ import numpy as np
 
 from canrls.fleet.records import CandidateValue, ParameterValue, Recording
 
-__all__ = ["simulated_fleet", "SimulatedFleet", "CHANGES", "EXCITATIONS", "LENGTHS"]
+__all__ = ["simulated_fleet", "SimulatedFleet", "CHANGES", "EXCITATIONS", "LENGTHS",
+           "bookkeeping_fleet"]
 
 EXCITATIONS = ("standard", "steps", "prbs", "chirp")
 LENGTHS = (10.0, 20.0, 40.0)
@@ -163,6 +165,30 @@ def simulated_fleet(seed: int, jitter: float, drives: int = 40, recordings: int 
                 candidates=cands, id=rid))
             rid += 1
     return SimulatedFleet(tuple(recs), changing, tuple(healthy))
+
+
+def bookkeeping_fleet(seed: int = 102) -> tuple[list[Recording], dict[str, str]]:
+    """A fleet (:func:`simulated_fleet`, jitter 2 %) with the bookkeeping's cases on five
+    healthy drives: one recording, recordings under two models, two at the same start
+    time, recordings stored out of time order, and a drive renamed half-way (its later
+    recordings under ``NAME-new``). Returns the recordings and, per drive, a phrase
+    its note says."""
+    f = simulated_fleet(seed, 0.02)
+    mine = {d: sorted((r for r in f.recordings if r.drive == d), key=lambda r: r.t_start)
+            for d in f.healthy[:5]}
+    one, models, same, order, renamed = mine
+    rest = [r for r in f.recordings if r.drive not in mine]
+    rest.append(mine[one][0])
+    rest += mine[models][:5] + [dataclasses.replace(
+        r, model_key="e" * 64, model="inertia,viscous,coulomb") for r in mine[models][5:]]
+    rest += mine[same] + [dataclasses.replace(mine[same][4], id=10 ** 7,
+                                              content_hash="c" * 64)]
+    rest += [dataclasses.replace(r, id=10 ** 6 - k) for k, r in enumerate(mine[order])]
+    rest += mine[renamed][:5] + [dataclasses.replace(r, drive=renamed + "-new")
+                                 for r in mine[renamed][5:]]
+    return rest, {one: "1 recording of this model", models: "under 2 models",
+                  same: "share a start time", order: "out of time order",
+                  renamed: "no recording since", renamed + "-new": "recorded since"}
 
 
 def _unit(p: str) -> str:

@@ -114,7 +114,7 @@ def test_a_machine_of_cia402_or_cansimple_nodes_reads_back_as_sim_says(
     capsys.readouterr()
     assert main(["sim", "--out", str(log), "--duration", "4", "--axes", "3", "--ids", kind,
                  "--seed", "3"]) == 0
-    first = capsys.readouterr().err.splitlines()[0]
+    first = capsys.readouterr().out.splitlines()[0]
     # the first line says how to read the log back: those very options
     options = first.split("; canrls fit ", 1)[1].rstrip(")").split()
     # a CiA 402 node reports its torque (no Kt then), an ODrive its current

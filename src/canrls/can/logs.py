@@ -46,7 +46,14 @@ from canrls.can.writers import writer_on
 from canrls.core.background import Background
 from canrls.core.checks import MAX_TIMESTAMP, describe_time, is_time
 from canrls.core.errors import ConfigError, LogFormatError
-from canrls.core.files import MAX_LINE, LineBound, atomic_writer, check_path, open_regular
+from canrls.core.files import (
+    MAX_LINE,
+    ContentHash,
+    LineBound,
+    atomic_writer,
+    check_path,
+    open_regular,
+)
 
 __all__ = ["LogReadStats", "read_frames", "write_candump", "write_log", "check_channel",
            "empty_log_error", "CAN_ERR_FLAG", "MAX_CHANNEL"]
@@ -91,6 +98,7 @@ def read_frames(
     skip_bad_lines: bool = False,
     stats: LogReadStats | None = None,
     progress: Callable[[int, int], None] | None = None,
+    digest: ContentHash | None = None,
 ) -> Iterator[FrameBlock]:
     """Yield the frames of a log file in blocks of at most about ``chunk_size`` frames.
 
@@ -101,6 +109,8 @@ def read_frames(
     skip_bad_lines : count unparsable candump lines instead of raising
     stats : filled in while reading
     progress : called as ``progress(bytes_done, bytes_total)`` after each block
+    digest : fed the file's bytes as they are read (a candump log is read once for both;
+        other formats are hashed after their frames), complete after the last block
     """
     p = check_path(path, "log file", LogFormatError)
     if not p.exists():
@@ -109,16 +119,39 @@ def read_frames(
     # a regular file only: a FIFO, device or directory is refused before it is opened
     with open_regular(p, str(p), LogFormatError) as f:
         st.total_bytes = os.fstat(f.fileno()).st_size
-        if p.suffix.lower() == ".log":
-            yield from _read_candump(f, p, chunk_size, skip_bad_lines, st, progress)
-        else:
-            yield from _read_python_can(f, p, chunk_size, st, progress)
+        # python-can's readers close the file they read: the digest reads its own copy
+        fd = os.dup(f.fileno()) if digest is not None else -1
+        try:
+            if p.suffix.lower() == ".log":
+                src = f if digest is None else _Hashed(f, digest)
+                yield from _read_candump(src, p, chunk_size, skip_bad_lines, st, progress)
+            else:
+                yield from _read_python_can(f, p, chunk_size, st, progress)
+            if digest is not None:
+                digest.finish(fd)
+        finally:
+            if fd >= 0:
+                os.close(fd)
+
+
+class _Hashed:
+    """A file read with ``readinto`` from its start, each byte read fed to ``digest``."""
+
+    def __init__(self, f: BinaryIO, digest: ContentHash) -> None:
+        self.f = f
+        self.digest = digest
+
+    def readinto(self, b: memoryview) -> int:
+        n = self.f.readinto(b) or 0
+        if n:
+            self.digest.update(b[:n])
+        return n
 
 
 # --------------------------------------------------------------------------- candump
 
 
-def _read_candump(f: BinaryIO, path: Path, chunk_size: int, skip_bad: bool,
+def _read_candump(f: BinaryIO | _Hashed, path: Path, chunk_size: int, skip_bad: bool,
                   st: LogReadStats, progress: Callable[[int, int], None] | None
                   ) -> Iterator[FrameBlock]:
     """Blocks of at most ``chunk_size`` frames (:func:`_parse_candump`); from
@@ -156,7 +189,7 @@ def _read_ahead(it: Generator[_T, None, None]) -> Iterator[_T]:
         it.close()
 
 
-def _parse_candump(f: BinaryIO, path: Path, chunk_size: int, skip_bad: bool,
+def _parse_candump(f: BinaryIO | _Hashed, path: Path, chunk_size: int, skip_bad: bool,
                    st: LogReadStats) -> Generator[tuple[FrameBlock, LogReadStats], None, None]:
     """Each parse step's block (possibly empty) and a copy of ``st`` after it, reading
     ``f`` into one reusable buffer.

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import io
 import os
 import secrets
@@ -35,7 +36,8 @@ from canrls.core.errors import CanrlsError, ConfigError
 
 __all__ = ["MAX_LINE", "MAX_CONFIG_BYTES", "MAX_DBC_BYTES", "MAX_MODEL_BYTES", "check_path",
            "kind", "open_regular", "read_bytes", "read_text", "LineBound", "atomic_writer",
-           "check_writable", "open_for_writing", "temporary_name", "output_dir", "write_texts"]
+           "check_writable", "open_for_writing", "temporary_name", "output_dir", "write_texts",
+           "ContentHash"]
 
 #: Longest line of a log [bytes]: a CAN FD frame in any text format takes some 200.
 MAX_LINE = 64 * 1024
@@ -105,6 +107,39 @@ def open_regular(path: str | os.PathLike[str], what: str, error: ErrorType = Con
     except BaseException:
         os.close(fd)
         raise
+
+
+class ContentHash:
+    """The SHA-256 of a file's bytes, fed by a reader as it reads the file from its start
+    (:func:`canrls.can.logs.read_frames` ``digest=``), so that the file is read once for
+    its frames and its hash; :meth:`finish` hashes what the reader left unread."""
+
+    def __init__(self) -> None:
+        self._h = hashlib.sha256()
+        #: bytes hashed so far, from the file's start
+        self.offset = 0
+        self.complete = False
+
+    def update(self, data: bytes | memoryview) -> None:
+        """The next bytes of the file, in order."""
+        self._h.update(data)
+        self.offset += len(data)
+
+    def finish(self, fd: int) -> None:
+        """Hash the file open at ``fd`` from :attr:`offset` to its end (``pread``: the
+        descriptor's position is left alone)."""
+        while chunk := os.pread(fd, 1 << 20, self.offset):
+            self.update(chunk)
+        self.complete = True
+
+    def hexdigest(self) -> str:
+        """The hash (hex, 64 characters) of the whole file.
+
+        :raises RuntimeError: the file was not read to its end (:meth:`finish`).
+        """
+        if not self.complete:
+            raise RuntimeError("ContentHash: the file was not read to its end")
+        return self._h.hexdigest()
 
 
 def read_bytes(path: str | os.PathLike[str], what: str, *, limit: int,

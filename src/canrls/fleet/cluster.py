@@ -25,7 +25,7 @@ from typing import Any
 from canrls.core.errors import ConfigError, StallError
 
 __all__ = ["dask_client", "require_dask", "scheduler_address", "max_workers",
-           "local_workers", "finished", "result", "exception", "SCHEDULER_TIMEOUT", "STALL_TIMEOUT",
+           "local_workers", "finished", "SCHEDULER_TIMEOUT", "STALL_TIMEOUT",
            "WORKERS_PER_CORE", "FILES_PER_WORKER"]
 
 log = logging.getLogger(__name__)
@@ -39,7 +39,7 @@ STALL_TIMEOUT = 300.0
 #: more than a few per core only adds memory and start-up)
 WORKERS_PER_CORE = 4
 #: how often a wait for results looks for one [s]
-_POLL = 0.05
+_POLL = 0.01
 #: files this process holds open per worker of a local cluster (its nanny, the comms
 #: to the worker and the scheduler, their pipes; about 10 measured)
 FILES_PER_WORKER = 16
@@ -206,50 +206,31 @@ def _close(client: Any, timeout: float) -> None:
         log.debug("client not closed cleanly: %s", e)
 
 
-def finished(futures: Iterable[Any], address: str, stall: float) -> Iterator[Any]:
-    """``futures`` as each finishes (a result, an error or cancelled), in that order.
+def finished(futures: Iterable[Any], address: str, stall: float
+             ) -> Iterator[tuple[Any, Any]]:
+    """``(future, value)`` of each of ``futures`` as it finishes, in that order: its
+    result, or for a task that failed or was cancelled its exception. The results are
+    fetched by the client's event loop as the tasks end, not one round trip at a time
+    from this thread.
 
     :raises StallError: ``stall`` seconds without any of them finishing, naming the
         scheduler's ``address``.
     """
     from distributed import as_completed
 
-    pending = as_completed(futures)
+    pending = as_completed(futures, with_results=True, raise_errors=False)
     since = time.monotonic()
     while not pending.is_empty():
         ready = pending.next_batch(block=False)
-        yield from ready
+        for fut, value in ready:
+            # an erred task's value is Dask's (type, exception, traceback)
+            yield fut, value[1] if fut.status == "error" else value
         if ready:
             since = time.monotonic()
         elif time.monotonic() - since > stall:
             raise _stalled(address, stall)
         else:
             time.sleep(_POLL)
-
-
-def result(future: Any, address: str, stall: float) -> Any:
-    """The result of a finished ``future``, fetched from its worker within ``stall``
-    seconds (the task's own error raised).
-
-    :raises StallError: the worker holding it does not answer.
-    """
-    try:
-        return future.result(timeout=stall)
-    except TimeoutError:
-        if future.status != "finished":
-            raise
-        raise _stalled(address, stall) from None
-
-
-def exception(future: Any, address: str, stall: float) -> BaseException | None:
-    """The error of an erred ``future``, fetched within ``stall`` seconds.
-
-    :raises StallError: the scheduler does not answer.
-    """
-    try:
-        return future.exception(timeout=stall)
-    except TimeoutError:
-        raise _stalled(address, stall) from None
 
 
 def _stalled(address: str, stall: float) -> StallError:

@@ -193,6 +193,7 @@ def write_html(fleet: FleetAssessment, directory: str | os.PathLike[str], *,
                       href=lambda p: relative_href(p, out))
     page = env.get_template("fleet.html.j2").render(
         f=fleet, drives=drives, healthy=healthy, spread=spread, title=title,
+        noted=[d for d in fleet.drives if d.notes],
         models=list(models), recordings=recordings, errors=errors,
         generated=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"))
     path = out / "index.html"

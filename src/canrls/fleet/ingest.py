@@ -23,6 +23,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import time
 import traceback
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -32,6 +33,7 @@ from typing import Any
 
 from canrls import __version__
 from canrls.core.errors import CanrlsError, ConfigError, StallError
+from canrls.core.files import ContentHash
 from canrls.fleet import cluster
 from canrls.fleet.detect import DetectionSettings, assess, to_rank
 from canrls.fleet.history import History
@@ -160,10 +162,9 @@ def _moves_nothing(app: AppConfig) -> bool:
 
 def content_hash(path: str | Path) -> str:
     """SHA-256 of a file's bytes (hex)."""
-    h = hashlib.sha256()
+    h = ContentHash()
     with open(path, "rb") as f:
-        while chunk := f.read(1 << 20):
-            h.update(chunk)
+        h.finish(f.fileno())
     return h.hexdigest()
 
 
@@ -230,33 +231,33 @@ def ingest_one(job: IngestJob, known: frozenset[str] | set[str] | None = None,
                ) -> Recording | None:
     """One log (a worker's task): None when the history holds its hash for this model
     (``known``), else a :class:`Recording` (an error row when it cannot be fitted).
-    ``digest``: the log's :func:`content_hash` when the caller has taken it already."""
+    ``digest``: the log's :func:`content_hash` when the caller has taken it already.
+    Without it the log is read once, its hash taken as the fit reads it; only when
+    ``known`` holds hashes (a rerun) is it hashed before, so a stored log is not fitted.
+    """
     from canrls.processor.replay import fit_logs
 
     path = job.source.path
-    try:
-        if digest is None:
+    if digest is None and known:
+        try:
             digest = content_hash(path)
-    except OSError as e:
-        # no content to hash: the row is keyed by the path, so a rerun does not repeat it
-        digest = hashlib.sha256(f"unreadable:{path}".encode()).hexdigest()
-        if known is not None and digest in known:
-            return None
-        return _error(job, digest, f"{path}: cannot read the log ({e.strerror or e})")
+        except OSError as e:
+            return _unreadable(job, known, e)
     if known is not None and digest in known:
         return None
+    stream = ContentHash() if digest is None else None
     try:
         protocol, model, settings = job.config.prepared()
-        res = fit_logs([path], protocol, model, settings)
-    except CanrlsError as e:
-        msg = str(e)
-        return _error(job, digest, msg if path in msg else f"{path}: {msg}")
-    except (OSError, MemoryError) as e:
-        return _error(job, digest, f"{path}: {type(e).__name__}: {e}")
+        res = fit_logs([path], protocol, model, settings,
+                       digests=None if stream is None else [stream])
+    except (CanrlsError, OSError, MemoryError) as e:
+        return _failed(job, digest, known, e)
     except Exception as e:  # a bug: the row says so, the fleet goes on
         log.debug("internal error on %s", path, exc_info=True)
-        return _error(job, digest, f"{path}: internal error: {type(e).__name__}: {e} "
-                                   f"({traceback.extract_tb(e.__traceback__)[-1].name})")
+        return _failed(job, digest, known, e)
+    if stream is not None:
+        digest = stream.hexdigest()
+    assert digest is not None
     candidates: tuple[CandidateValue, ...] | None = None
     rank_error = None
     if job.rank and ranker is not None:
@@ -265,6 +266,43 @@ def ingest_one(job: IngestJob, known: frozenset[str] | set[str] | None = None,
         except Exception as e:  # the fit stands without its ranking
             rank_error = f"{type(e).__name__}: {e}"
     return _recording(job, digest, res, candidates, rank_error)
+
+
+def _unreadable_key(path: str) -> str:
+    """The hash under which the error row of a log without content to hash is stored
+    (keyed by the path, so a rerun does not repeat it)."""
+    return hashlib.sha256(f"unreadable:{path}".encode()).hexdigest()
+
+
+def _unreadable(job: IngestJob, known: frozenset[str] | set[str] | None,
+                e: OSError) -> Recording | None:
+    """The error row of a log that cannot be read; None when the history holds it."""
+    digest = _unreadable_key(job.source.path)
+    if known is not None and digest in known:
+        return None
+    return _error(job, digest, f"{job.source.path}: cannot read the log ({e.strerror or e})")
+
+
+def _failed(job: IngestJob, digest: str | None, known: frozenset[str] | set[str] | None,
+            e: BaseException) -> Recording | None:
+    """The error row of a log whose fit failed with ``e``, under its hash (taken now
+    when the fit did not read the log to its end; a file that is not a regular one is
+    never opened again); None when the history holds that row."""
+    path = job.source.path
+    if digest is None:
+        try:
+            digest = content_hash(path) if os.path.isfile(path) else _unreadable_key(path)
+        except OSError as oe:
+            return _unreadable(job, known, oe)
+        if known is not None and digest in known:
+            return None
+    if isinstance(e, CanrlsError):
+        msg = str(e)
+        return _error(job, digest, msg if path in msg else f"{path}: {msg}")
+    if isinstance(e, (OSError, MemoryError)):
+        return _error(job, digest, f"{path}: {type(e).__name__}: {e}")
+    return _error(job, digest, f"{path}: internal error: {type(e).__name__}: {e} "
+                               f"({traceback.extract_tb(e.__traceback__)[-1].name})")
 
 
 def _error(job: IngestJob, digest: str, message: str) -> Recording:
@@ -475,20 +513,22 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                 if first != i:
                     again.setdefault(first, []).append(i)
             shared = {k: _scatter(client, v, stall) if v else None for k, v in known.items()}
-            futures = {client.submit(ingest_one, jobs[i], shared[jobs[i].key], use_ranker,
-                                     pure=False): i for i in sent.values()}
+            # one graph per model, not a message per log
+            by_key: dict[str, list[int]] = {}
+            for i in sent.values():
+                by_key.setdefault(jobs[i].key, []).append(i)
+            futures = {fut: i for key, idx in by_key.items()
+                       for fut, i in zip(client.map(ingest_one, [jobs[i] for i in idx],
+                                                    known=shared[key], ranker=use_ranker,
+                                                    pure=False), idx, strict=True)}
             try:
-                for fut in cluster.finished(futures, _address(client), stall):
+                for fut, got in cluster.finished(futures, _address(client), stall):
                     i = futures[fut]
-                    got: Recording | None | object
-                    if fut.status == "error":
-                        exc = cluster.exception(fut, _address(client), stall)
-                        why = f"{type(exc).__name__}: {exc}"
+                    if fut.status != "finished":
+                        why = f"{type(got).__name__}: {got}"
                         failed.extend((jobs[k].source.path, why)
                                       for k in (i, *again.get(i, ())))
                         got = _LOST
-                    else:
-                        got = cluster.result(fut, _address(client), stall)
                     fut.release()
                     for k in (i, *again.get(i, ())):
                         order.arrive(k, got)
@@ -673,11 +713,10 @@ def _rank_changes(history: History, model_keys: Iterable[str],
     else:
         futs = [client.submit(rank_one, p, c, max_order, ranker, pure=False)
                 for _, p, c in todo]
-        for _ in cluster.finished(futs, _address(client), stall):
-            pass
         # a task lost: those go without a ranking
-        results = [cluster.result(f, _address(client), stall) if f.status == "finished"
-                   else () for f in futs]
+        got = {f: v if f.status == "finished" else ()
+               for f, v in cluster.finished(futs, _address(client), stall)}
+        results = [got[f] for f in futs]
     n = 0
     for (rid, _, _), cands in zip(todo, results, strict=True):
         if cands:

@@ -22,6 +22,7 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.logs import LogReadStats, empty_log_error, read_frames
 from canrls.can.protocol import Protocol
 from canrls.core.errors import ConfigError, EstimatorError
+from canrls.core.files import ContentHash
 from canrls.core.samples import Signals
 from canrls.core.spill import SpilledSignals, join_blocks, spill_blocks
 from canrls.estimation.estimates import Estimates, PipelineBlock
@@ -141,8 +142,12 @@ class LogFiles:
 
     def __init__(self, paths: Sequence[str | os.PathLike[str]], proc: FrameProcessor, *,
                  chunk_size: int = 65536, progress: Callable[[int, int], None] | None = None,
-                 skip_bad_lines: bool = False) -> None:
+                 skip_bad_lines: bool = False,
+                 digests: Sequence[ContentHash] | None = None) -> None:
         self.paths = [str(p) for p in paths]
+        if digests is not None and len(digests) != len(self.paths):
+            raise ValueError(f"LogFiles: {len(digests)} digests for {len(self.paths)} logs")
+        self.digests = digests
         self.proc = proc
         self.chunk_size = chunk_size
         self.progress = progress
@@ -182,7 +187,8 @@ class LogFiles:
     def blocks(self, k: int) -> Iterator[FrameBlock]:
         """The frames of file ``k``, read in blocks."""
         return read_frames(self.paths[k], self.chunk_size, skip_bad_lines=self.skip_bad_lines,
-                           stats=self.stats, progress=self.progress)
+                           stats=self.stats, progress=self.progress,
+                           digest=None if self.digests is None else self.digests[k])
 
     def start_file(self, k: int) -> None:
         """File ``k`` begins: the processor restarts (from the second file on)."""
@@ -275,11 +281,13 @@ def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model:
              settings: EstimatorSettings | None = None, *, chunk_size: int = 65536,
              progress: Callable[[int, int], None] | None = None,
              on_block: Callable[[PipelineBlock], None] | None = None,
-             record: bool = False, skip_bad_lines: bool = False) -> FitResult:
+             record: bool = False, skip_bad_lines: bool = False,
+             digests: Sequence[ContentHash] | None = None) -> FitResult:
     """One model from several logs (:class:`LogFiles`: no segment bridged across files).
 
     The result's ``source`` is the logs joined by ``", "``; its ``files`` list each log
-    with its time shift.
+    with its time shift. ``digests``: one per log, each fed that log's bytes as they are
+    read (the hash without a second read: :class:`~canrls.core.files.ContentHash`).
 
     :raises LogFormatError: a log without any CAN frame.
     :raises EstimatorError: too few usable samples (:func:`too_few_samples`).
@@ -288,7 +296,7 @@ def fit_logs(paths: Sequence[str | os.PathLike[str]], protocol: Protocol, model:
         raise ValueError("fit_logs: no log given")
     proc = FrameProcessor(protocol, model, settings, relative_time=True)
     files = LogFiles(paths, proc, chunk_size=chunk_size, progress=progress,
-                     skip_bad_lines=skip_bad_lines)
+                     skip_bad_lines=skip_bad_lines, digests=digests)
     _estimate(proc, files.samples(), on_block, record)
     res = _result(files, settings)
     if res.error is not None:
