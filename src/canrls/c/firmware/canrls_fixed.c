@@ -255,10 +255,10 @@ INLINE void theta_add_full(canrls_theta64 *q, int32_t ph, int32_t m, int32_t s, 
 #endif
 }
 
-#if defined(__GNUC__)
+#if defined(__GNUC__) && defined(CANRLS_N)
 /* theta_q + a b at 2^-32 LSB (the product exact in 64 bits), saturated where the sum leaves
  * the whole int32_t word (counted): the update K eps 2^(32 - s) of a shift s <= 31 with
- * a = K 2^(32 - s) a word (theta_add's integers). */
+ * a = K 2^(32 - s) a word (theta_add's integers); only the fixed-n step uses it. */
 INLINE void theta_add_prod(canrls_theta64 *q, int32_t a, int32_t b, uint32_t *n)
 {
     const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->frac);
