@@ -355,7 +355,8 @@ def test_the_outputs_old_c_names_stay_one_release_as_aliases(saved: Path, tmp_pa
                     "    printf(\"%d %d %d %s %s\\n\", CANRLS_MECHANICAL_TARGET_EXP,\n"
                     "           CANRLS_MECHANICAL_TARGET_EXP == CANRLS_MECHANICAL_OUTPUT_EXP,\n"
                     "           CANRLS_MECHANICAL_TARGET_TORQUE, canrls_mechanical_target_signal,\n"
-                    "           &canrls_mechanical_target_unit[0] == &canrls_mechanical_output_unit[0]\n"
+                    "           &canrls_mechanical_target_unit[0]\n"
+                    "           == &canrls_mechanical_output_unit[0]\n"
                     "           ? \"same\" : \"other\");\n    return 0;\n}\n")
     exe = tmp_path / "old"
     subprocess.run([gcc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-I", str(out),
