@@ -146,7 +146,7 @@ class _Names:
 def _config_files(pipeline: Pipeline, source: str,
                   protocol: Protocol | None = None) -> tuple[str, str]:
     """``canrls_config.h`` and ``canrls_config.c`` for the estimators of ``pipeline``
-    (``protocol``: the DBC signals of the targets).
+    (``protocol``: the DBC signals of the outputs).
 
     Every name, unit and number goes through :mod:`canrls.core.c_escape`: names as validated
     identifiers, text as comment text, numbers from validated integers and finite floats.
