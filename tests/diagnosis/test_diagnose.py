@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from markupsafe import escape
 
-from canrls.cli._common import _clean
+from canrls.core.checks import json_safe
 from canrls.core.errors import ConfigError, EffectError
 from canrls.core.samples import Signals
 from canrls.diagnosis.analysis import diagnose
@@ -80,7 +80,7 @@ def test_text_has_every_section(offset_run: Any) -> None:
 def test_json_is_plain_and_has_the_documented_keys(offset_run: Any) -> None:
     _, _, rep = offset_run
     d = rep.to_dict()
-    json.dumps(_clean(d), allow_nan=False, ensure_ascii=False)
+    json.dumps(json_safe(d), allow_nan=False, ensure_ascii=False)
     for key in ("source", "samples", "duration", "dt", "axis", "unit", "before", "after",
                 "added", "candidates", "suggestion", "regions", "orders", "structure",
                 "excitation", "identifiable", "identifiability", "verdict",

@@ -35,6 +35,7 @@ from canrls.live.bus_link import (
     BusLink,
     BusReader,
     FrameQueue,
+    QueuedFrames,
     bus_config,
     messages_to_block,
     open_bus,
@@ -373,6 +374,85 @@ def test_the_bus_reader_takes_every_frame_waiting_at_one_wake_up() -> None:
         tx.shutdown()
 
 
+def test_the_bus_reader_takes_a_virtual_bus_s_waiting_frames_in_one_go() -> None:
+    """On python-can's own VirtualBus the frames waiting after the one ``recv`` are taken
+    from its queue at once (:class:`QueuedFrames`), in order, none lost or repeated;
+    with a batched reader as one block."""
+    ch = _chan("reader-bulk")
+    stopping = threading.Event()
+    q = FrameQueue(1000, False, stopping, lambda e: None)
+    blocks: list[int] = []
+    on_block = q.on_block
+    q.on_block = lambda b, *a: (blocks.append(len(b)), on_block(b, *a))  # type: ignore
+    bus = VirtualBus(channel=ch)
+    calls = []
+    recv = bus.recv
+    bus.recv = lambda timeout=None: (calls.append(timeout), recv(timeout))[1]  # type: ignore
+    tx = VirtualBus(channel=ch)
+    for i in range(300):
+        tx.send(can.Message(arbitration_id=0x100 + i % 3, data=[i % 256, i // 256]))
+    reader = BusReader(bus, q, 0.0, batched=True)
+    try:
+        assert _received_within(q, 300, 5)
+        got = q.take(1000)
+        assert (got.data[:, :2].astype(int) @ [1, 256]).tolist() == list(range(300))
+        assert got.arbitration_id.tolist() == [0x100 + i % 3 for i in range(300)]
+        assert blocks == [300]
+        assert len(calls) <= 2  # the wait for the first frame (and for the next one)
+    finally:
+        stopping.set()
+        reader.stop()
+        bus.shutdown()
+        tx.shutdown()
+
+
+def test_queued_frames_only_for_python_can_s_own_virtual_bus() -> None:
+    """The queue is read directly only where it holds exactly what ``recv`` returns:
+    a subclass (it may make frames in ``recv``) and a bus with software filters keep
+    ``recv``; a bounded queue is said to be (the reader must not sleep it full)."""
+    ch = _chan("queued")
+    buses = [VirtualBus(channel=ch), _CountingBus(channel=ch),
+             VirtualBus(channel=ch, can_filters=[{"can_id": 1, "can_mask": 0x7FF}]),
+             VirtualBus(channel=ch, rx_queue_size=5)]
+    try:
+        plain, sub, filtered, bounded = (QueuedFrames.of(b) for b in buses)
+        assert sub is None and filtered is None
+        assert plain is not None and not plain.bounded
+        assert bounded is not None and bounded.bounded
+        for i in range(5):
+            buses[0].send(can.Message(arbitration_id=i))
+        assert [m.arbitration_id for m in bounded.take(3)] == [0, 1, 2]
+        assert [m.arbitration_id for m in bounded.take(10)] == [3, 4]
+        assert bounded.take(10) == []
+        buses[0].send(can.Message(arbitration_id=9), timeout=0)  # room again: no Full
+    finally:
+        for b in buses:
+            b.shutdown()
+
+
+def test_the_bus_reader_sleeps_on_an_unbounded_virtual_bus_however_fast() -> None:
+    """An unbounded virtual queue drops nothing: the reader sleeps ``interval`` after
+    every wake-up, fast bus or slow, and takes what gathered meanwhile at once."""
+    ch = _chan("reader-unbounded")
+    stopping = threading.Event()
+    q = FrameQueue(10000, False, stopping, lambda e: None)
+    bus = VirtualBus(channel=ch)
+    tx = VirtualBus(channel=ch)
+    reader = BusReader(bus, q, 2.0)
+    try:
+        for i in range(4 * RX_BATCH):  # a fast bus: far more than RX_BATCH in 2 s
+            tx.send(can.Message(arbitration_id=0x100, data=[i % 256]))
+        assert _received_within(q, 4 * RX_BATCH, 5)
+        tx.send(can.Message(arbitration_id=0x100, data=[0]))
+        assert not _received_within(q, 1 + 4 * RX_BATCH, 0.8)  # asleep all the same
+        assert _received_within(q, 1 + 4 * RX_BATCH, 5)
+    finally:
+        stopping.set()
+        reader.stop()
+        bus.shutdown()
+        tx.shutdown()
+
+
 def _received_within(q: FrameQueue, n: int, seconds: float) -> bool:
     deadline = time.monotonic() + seconds
     while q.received < n and time.monotonic() < deadline:
@@ -387,7 +467,7 @@ def test_the_bus_reader_sleeps_on_a_slow_bus_not_on_a_fast_one() -> None:
     ch = _chan("reader-sleep")
     stopping = threading.Event()
     q = FrameQueue(10000, False, stopping, lambda e: None)
-    bus = VirtualBus(channel=ch)
+    bus = VirtualBus(channel=ch, rx_queue_size=10000)  # a buffer that a sleep could fill
     tx = VirtualBus(channel=ch)
     reader = BusReader(bus, q, 2.0)
     try:

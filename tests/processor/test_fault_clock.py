@@ -261,3 +261,20 @@ def test_a_frame_without_a_time_is_dropped_and_pairing_goes_on() -> None:
     pr.flush()
     c = pr.counts
     assert c.samples == 38 and c.late == 2 and c.clock["step_forward"] == 0
+
+
+def test_the_published_totals_are_those_of_the_frame_counts(sim: FrameBlock) -> None:
+    """:meth:`FrameProcessor.frames_rejected` and ``frames_lost`` (what every
+    publication sends) are the sums of :meth:`frame_counts`, restarts included."""
+    from canrls.processor import FrameProcessor
+
+    faulty, _ = inject(sim, "drop=0.01,corrupt=0.01,counter=0.01,dlc=0.01", seed=7)
+    proc = FrameProcessor(*_setup())
+    half = len(faulty) // 2
+    for part in (faulty.take(slice(0, half)), faulty.take(slice(half, None))):
+        proc.process(part)
+        counts = proc.frame_counts()
+        assert sum(counts.rejected.values()) > 0 and sum(counts.lost.values()) > 0
+        assert proc.frames_rejected() == sum(counts.rejected.values())
+        assert proc.frames_lost() == sum(counts.lost.values())
+        proc.restart()

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import queue
 import socket
 import threading
 import time
@@ -27,6 +28,7 @@ from typing import Any, Protocol
 
 import can
 import numpy as np
+from can.interfaces.virtual import VirtualBus
 
 from canrls.can.estimator_frames import frame_ids
 from canrls.can.frameblock import FrameBlock
@@ -43,9 +45,9 @@ from canrls.live.socketcan import (
 )
 from canrls.processor.config import AppConfig
 
-__all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "RX_BATCH", "SharedBus",
-           "bus_config", "command_rows", "is_command", "messages_to_block", "open_bus",
-           "shutdown_bus", "COMMAND_ID", "command_id"]
+__all__ = ["BlockReader", "BusLink", "BusReader", "FrameQueue", "QueuedFrames", "RX_BATCH",
+           "SharedBus", "bus_config", "command_rows", "is_command", "messages_to_block",
+           "open_bus", "shutdown_bus", "COMMAND_ID", "command_id"]
 
 log = logging.getLogger(__name__)
 
@@ -405,6 +407,48 @@ class _Reader:
         self.listener.stop()
 
 
+class QueuedFrames:
+    """The frames already waiting in python-can's :class:`~can.interfaces.virtual.VirtualBus`,
+    taken in one go (:meth:`take`) rather than by one ``recv(0)`` each (a lock, a
+    condition and a log call per frame). The one place that reads the bus's receive
+    queue (``bus.queue``, a :class:`queue.Queue` of the messages ``recv`` would return,
+    in order): :meth:`of` gives None, and the reader keeps ``recv``, for any other bus.
+    """
+
+    def __init__(self, q: queue.Queue[can.Message]) -> None:
+        self._q = q
+        #: whether the queue has a size (python-can's ``rx_queue_size``): a full one
+        #: drops frames, so the reader must not sleep while it fills
+        self.bounded = q.maxsize > 0
+
+    @staticmethod
+    def of(bus: can.BusABC) -> QueuedFrames | None:
+        """The waiting frames of ``bus``, if it is python-can's own VirtualBus (not a
+        subclass: a subclass may make frames in ``recv``) without software filters."""
+        if type(bus) is not VirtualBus or bus.filters:
+            return None
+        q = getattr(bus, "queue", None)
+        if not isinstance(q, queue.Queue) or not isinstance(getattr(q, "queue", None),
+                                                            collections.deque):
+            return None
+        return QueuedFrames(q)
+
+    def take(self, most: int) -> list[can.Message]:
+        """Up to ``most`` frames waiting, oldest first, without waiting (as that many
+        ``recv(0)``)."""
+        q = self._q
+        with q.mutex:
+            d = q.queue
+            if len(d) <= most:
+                out = list(d)
+                d.clear()
+            else:
+                out = [d.popleft() for _ in range(most)]
+            if out and self.bounded:
+                q.not_full.notify(len(out))
+        return out
+
+
 class BusReader(_Reader):
     """The thread that reads the bus into ``listener``: python-can's ``Notifier`` loop,
     taking every frame waiting at a wake-up, then sleeping ``interval`` seconds.
@@ -430,6 +474,10 @@ class BusReader(_Reader):
 
     def _run(self) -> None:
         recv = self.bus.recv
+        queued = QueuedFrames.of(self.bus)
+        # an unbounded queue (python-can's virtual bus by default) never drops a frame:
+        # the reader sleeps after every wake-up, so a wake-up takes rx_interval's frames
+        always = queued is not None and not queued.bounded
         stop, interval = self._stop, self.interval
         batch: list[can.Message] = []
         on_block: Callable[[FrameBlock], None] = self.listener.on_block
@@ -440,7 +488,16 @@ class BusReader(_Reader):
                 msg = recv(self.timeout)  # an idle bus: wait here
                 if msg is None:
                     continue
-                while True:  # every frame already waiting, without waiting
+                if queued is not None:  # every frame already waiting, in one go
+                    on_message(msg)
+                    more = queued.take(RX_BATCH_MAX - 1)
+                    if self.batched:
+                        batch += more
+                    else:
+                        for msg in more:
+                            on_message(msg)
+                    taken += 1 + len(more)
+                while queued is None:  # every frame already waiting, without waiting
                     on_message(msg)
                     taken += 1
                     if stop.is_set() or len(batch) >= RX_BATCH_MAX:
@@ -462,7 +519,7 @@ class BusReader(_Reader):
             if interval > 0.0:
                 now = time.monotonic()
                 # frames per interval at the rate since mark: rate * interval < RX_BATCH
-                slow = taken * interval < RX_BATCH * (now - mark)
+                slow = always or taken * interval < RX_BATCH * (now - mark)
                 mark, taken = now, 0
                 if slow:
                     # a slow bus: let frames gather in the interface (they count against

@@ -366,12 +366,10 @@ class Daemon:
         return est.with_fixed({name: v for name, (v, _) in path.items()})
 
     def _wire_counters(self) -> dict[str, int]:
-        fr = self._proc.frame_counts()
-        b = self._base
+        p, b = self._proc, self._base
         return {
-            "frames_rejected": sum(fr.rejected.values()) + b.get("frames_rejected", 0),
-            "frames_lost": sum(fr.lost.values()) + self._queue.overflow
-            + b.get("frames_lost", 0),
+            "frames_rejected": p.frames_rejected() + b.get("frames_rejected", 0),
+            "frames_lost": p.frames_lost() + self._queue.overflow + b.get("frames_lost", 0),
             "saturations": int(self._proc.pipeline.saturations.total) + b.get("saturations", 0),
             "tx_dropped": self._link.counts["tx_dropped"] + b.get("tx_dropped", 0),
         }

@@ -424,6 +424,15 @@ class FrameProcessor:
         return dataclasses.replace(counts, messages=dict(self.message_frames),
                                    missing=self.missing_messages())
 
+    def frames_rejected(self) -> int:
+        """Frames rejected so far, every reason: the sum of :meth:`frame_counts`'s
+        ``rejected``, without building the counts (each publication asks)."""
+        return sum(self._past.rejected.values()) + sum(int(v) for v in self.rejected.values())
+
+    def frames_lost(self) -> int:
+        """Frames lost so far (counter gaps): the sum of :meth:`frame_counts`'s ``lost``."""
+        return sum(self._past.lost.values()) + sum(int(v) for v in self.decoder.lost.values())
+
     def restart(self) -> None:
         """A new stream (the next log): time judge, reorderer, decoder and pairer start
         afresh, none of their state carried over; the period stays decided, and the
