@@ -322,16 +322,46 @@ def test_export_c_states_the_torque_output_and_its_scaling(saved: Path, tmp_path
     with contextlib.redirect_stdout(io.StringIO()):
         assert main(["export-c", "--model", str(saved), "--out", str(out)]) == 0
     h = (out / "canrls_config.h").read_text()
-    assert "/* target y: motor torque T reported by the drive [N·m], no Kt" in h
-    assert "#define CANRLS_MECHANICAL_TARGET_TORQUE 1" in h
+    assert "/* output y: motor torque T reported by the drive [N·m], no Kt" in h
+    assert "#define CANRLS_MECHANICAL_OUTPUT_TORQUE 1" in h
     assert f"relative to rated_torque = {RATED_TORQUE!r} N·m" in h
     assert f"torque [N·m] = raw * {RATED_TORQUE / 1000!r};" in h
     c = (out / "canrls_config.c").read_text()
-    assert 'canrls_mechanical_target_signal[] = "TPDO1.TorqueActual";' in c
-    assert 'canrls_mechanical_target_unit[] = "\\342\\200\\260";' in c  # ‰ in UTF-8
+    assert 'canrls_mechanical_output_signal[] = "TPDO1.TorqueActual";' in c
+    assert 'canrls_mechanical_output_unit[] = "\\342\\200\\260";' in c  # ‰ in UTF-8
     gcc = shutil.which("gcc")
     if gcc is None:
         pytest.skip("gcc not installed")
     f = out / "canrls_config.c"  # the kernel and the frame codecs: tests/firmware/test_c_export.py
     subprocess.run([gcc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-c",
                     str(f), "-o", str(f.with_suffix(".o"))], check=True, capture_output=True)
+
+
+def test_the_outputs_old_c_names_stay_one_release_as_aliases(saved: Path, tmp_path: Path) -> None:
+    """The exported header called the output y "target"; firmware that uses those names
+    still compiles (deprecated aliases of the new ones), to the same values."""
+    gcc = shutil.which("gcc")
+    if gcc is None:
+        pytest.skip("gcc not installed")
+    out = tmp_path / "c"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["export-c", "--model", str(saved), "--out", str(out)]) == 0
+    h = (out / "canrls_config.h").read_text()
+    old = h.index("#define CANRLS_MECHANICAL_TARGET_EXP")
+    assert h.index("Deprecated: the names of the output y") < old
+    prog = tmp_path / "old.c"
+    prog.write_text('#include <stdio.h>\n#include "canrls_config.h"\n'
+                    "int main(void) {\n"
+                    "    printf(\"%d %d %d %s %s\\n\", CANRLS_MECHANICAL_TARGET_EXP,\n"
+                    "           CANRLS_MECHANICAL_TARGET_EXP == CANRLS_MECHANICAL_OUTPUT_EXP,\n"
+                    "           CANRLS_MECHANICAL_TARGET_TORQUE, canrls_mechanical_target_signal,\n"
+                    "           &canrls_mechanical_target_unit[0]\n"
+                    "           == &canrls_mechanical_output_unit[0]\n"
+                    "           ? \"same\" : \"other\");\n    return 0;\n}\n")
+    exe = tmp_path / "old"
+    subprocess.run([gcc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-I", str(out),
+                    str(prog), str(out / "canrls_config.c"), str(out / "canrls_fixed.c"),
+                    "-o", str(exe)], check=True, capture_output=True)
+    s_y = h.split("#define CANRLS_MECHANICAL_OUTPUT_EXP ")[1].split()[0]
+    run = subprocess.run([str(exe)], check=True, capture_output=True, text=True)
+    assert run.stdout.split() == [s_y, "1", "1", "TPDO1.TorqueActual", "same"]

@@ -102,7 +102,7 @@ def _cases() -> list[Case]:
     Y = np.round(Phi @ rng.uniform(-0.3, 0.3, n) * 2.0)
     out.append(_case("n5_w16_inputs", n, 0.99, 1e-1, Phi, Y, raw=True,
                      word_bits=16, acc_bits=32, input_bits=16))
-    # theta and eps saturate (a too small theta range, a target far off the model)
+    # theta and eps saturate (a too small theta range, an output far off the model)
     n = 6
     Phi = _rows(rng, 400, n)
     Y = Phi @ np.full(n, 0.6) + 0.9 * np.sign(rng.standard_normal(400))

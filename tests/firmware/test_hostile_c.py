@@ -247,9 +247,9 @@ def test_a_dbc_without_canrls_frames_is_one_error(tmp_path: Path) -> None:
         frames_c(dbc)
 
 
-def test_the_target_signals_dbc_names_and_unit_go_into_c_as_escaped_strings(
+def test_the_output_signals_dbc_names_and_unit_go_into_c_as_escaped_strings(
         tmp_path: Path, fixed_o: Path) -> None:
-    """The export names the DBC signal the target is decoded from, and its unit, in C
+    """The export names the DBC signal the output is decoded from, and its unit, in C
     strings: the user's DBC text, escaped byte by byte."""
     unit = "A */ ??/ #error x"
     dbc = _dbc(tmp_path, ('SG_ Current : 16|24@1- (0.0001,0) [-800|800] "A"',

@@ -93,7 +93,7 @@ def _equation_c(e: EquationSpec, tm: TargetModel) -> tuple[str, str]:
     what = f"equation {e.name}"
     init = [f".n = {_u(e.n, what)}", f".index = {_u(e.index, what)}",
             f".cross = {int(s.cross)}u", f".trace_follows = {int(e.trace_follows)}u",
-            f".columns = cols_{lo}", f".target = {_column(e.target, 'target')}",
+            f".columns = cols_{lo}", f".output = {_column(e.output, 'output')}",
             f".warmup = {_i(s.warmup, what)}", f".min_w = {_i(s.min_w, what, 64)}",
             f".max_w = {_i(s.max_w, what, 64)}", f".plan = &plan_{lo}", f".p0 = p0_{lo}",
             f".e0 = {_i(e.e0, what)}", f".f_phi = {_i(e.f_phi, what)}",

@@ -259,13 +259,13 @@ def _state(c: Column) -> str:
 def _equation(e: EquationSpec, k: int) -> list[str]:
     """The columns, the check of the normalisation and the update of equation ``k``."""
     name = c_comment(e.name, "equation")
-    vals = [f"/* equation {name}: its columns and target, rsh((X + O) m, sh) */",
+    vals = [f"/* equation {name}: its columns and output, rsh((X + O) m, sh) */",
             f"static void fr_values_{k}(const canrls_target *S, const canrls_target_eq *q, "
             f"int64_t *phi, int64_t *y)", "{"]
     for j, c in enumerate(e.columns):
         vals.append(f"    phi[{j}] = cr_mul_rsh({_state(c)}, {_i(c.m, 'm')}, q->sh[{j}]); "
                     f"/* {c_comment(c.name, 'parameter')} */")
-    vals += [f"    *y = cr_mul_rsh({_state(e.target)}, {_i(e.target.m, 'm')}, q->sh_y);", "}",
+    vals += [f"    *y = cr_mul_rsh({_state(e.output)}, {_i(e.output.m, 'm')}, q->sh_y);", "}",
              ""]
     lim = _i(1 << e.f_phi, "f_phi", 64)
     ch = ["/* whether this used sample changes the normalisation */",
@@ -281,7 +281,7 @@ def _equation(e: EquationSpec, k: int) -> list[str]:
             ch += [f"    if (q->pending[{j}] && {_state(c)} != 0) {{", "        return 1;",
                    "    }"]
     lim_y = _i(1 << e.f_y, "f_y", 64)
-    ch += ["    if (q->pending_y) {", f"        return {_state(e.target)} != 0;", "    }",
+    ch += ["    if (q->pending_y) {", f"        return {_state(e.output)} != 0;", "    }",
            f"    return y > {lim_y} || -y > {lim_y};", "}", ""]
     n = max(e.n, 1)
     up = [f"static void fr_update_{k}(canrls_target *S)", "{",

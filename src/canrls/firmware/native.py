@@ -74,7 +74,7 @@ def _equation(out: list[int], e: EquationSpec) -> None:
     _put(out, "priors", {"floor_m": _s64(fm), "floor_e": fe, "first_m": _s64(im),
                          "first_e": ie})
     _put(out, "plan", e.plan)
-    _put(out, "column", _column(e.target))
+    _put(out, "column", _column(e.output))
     for c, p0, term, ridge in zip(e.columns, e.p0, e.trace_terms, e.ridge, strict=True):
         m, x = dyadic(ridge)
         _put(out, "column", _column(c))

@@ -145,10 +145,10 @@ class TargetEstimator:
         terms = list(e.trace_terms)
         rls = self._kernel(e, None, terms)
         return EquationState(
-            spec=e, rls=rls, sh=[c.sh for c in e.columns], sh_y=e.target.sh,
-            pending=[c.pending for c in e.columns], pending_y=e.target.pending,
+            spec=e, rls=rls, sh=[c.sh for c in e.columns], sh_y=e.output.sh,
+            pending=[c.pending for c in e.columns], pending_y=e.output.pending,
             ridge=[dyadic(r) for r in e.ridge], terms=terms,
-            exponents=[c.exponent for c in e.columns] + [e.target.exponent])
+            exponents=[c.exponent for c in e.columns] + [e.output.exponent])
 
     def _trace_bound(self, e: EquationSpec, terms: Sequence[int]) -> int:
         """The plan's ``trace_max_lam``: the sum of the columns' terms (the prior's
@@ -351,11 +351,11 @@ class TargetEstimator:
 
     # ------------------------------------------------------------------ estimation
     def _values(self, es: EquationState) -> tuple[list[int], int]:
-        """The columns and the target of a used sample in their formats (before the
+        """The columns and the output of a used sample in their formats (before the
         kernel's clamp): ``rsh((X + O) m, sh)``."""
         e = es.spec
         phi = [mul_rsh(self._state(c), c.m, es.sh[j]) for j, c in enumerate(e.columns)]
-        y = mul_rsh(self._state(e.target), e.target.m, es.sh_y)
+        y = mul_rsh(self._state(e.output), e.output.m, es.sh_y)
         return phi, y
 
     def _update(self, es: EquationState) -> None:
@@ -381,7 +381,7 @@ class TargetEstimator:
             elif c.adaptive and abs(phi[j]) > lim:
                 return True
         if es.pending_y:
-            return self._state(e.target) != 0
+            return self._state(e.output) != 0
         return abs(y) > (1 << e.f_y)
 
     def _adapt(self, es: EquationState, phi: Sequence[int], y: int) -> None:
@@ -392,7 +392,7 @@ class TargetEstimator:
         * a pending column at its first value: ``d`` with it at most 1/16 of full scale
           (``+ 4``), and the prior of the calibration's rule at the top of the window's
           range (``alpha 2^-8``: ``P_jj`` a quarter of its rescaled word);
-        * the target likewise, and it moves along where an estimate would leave half its
+        * the output likewise, and it moves along where an estimate would leave half its
           bound (:math:`|\theta_j| 2^{d_j - d_y}` above ``theta_half``, rounded down to
           a power of two);
         * the kernel's state in the new units (:meth:`_rescale`); a column that grew
@@ -412,7 +412,7 @@ class TargetEstimator:
             elif c.adaptive and abs(phi[j]) > (1 << e.f_phi):
                 # 4 |phi| <= 2^(f + d)
                 d[j] = clog2(big) - es.sh[j] - e.f_phi + 2
-        big_y = abs(self._state(e.target)) * abs(e.target.m)
+        big_y = abs(self._state(e.output)) * abs(e.output.m)
         first_y = False
         dy = 0
         if es.pending_y:
@@ -421,7 +421,7 @@ class TargetEstimator:
                 first_y = True
         elif abs(y) > (1 << e.f_y):
             dy = clog2(big_y) - es.sh_y - e.f_y + 2
-        # theta_j takes 2^(d_j - d_y): the target moves where an estimate would leave
+        # theta_j takes 2^(d_j - d_y): the output moves where an estimate would leave
         # half its bound, |theta_j| 2^(d_j - dy) <= 2^h 2^s
         h = clog2(e.theta_half + 1) - 1
         s = 0
@@ -498,7 +498,7 @@ class TargetEstimator:
         r"""Column ``j`` grew by ``2^dj``: its prior, rescaled, weighs :math:`2^{2 d_j}`
         less; it is raised to the weakest prior of the start, :math:`\delta = \alpha_f -
         \alpha_j 2^{-2 d_j}`, as one kernel update with the regressor
-        :math:`\sqrt\delta\,e_j` and the target 0 (exact information :math:`\delta`,
+        :math:`\sqrt\delta\,e_j` and the output 0 (exact information :math:`\delta`,
         less the rounding of the root)."""
         e = es.spec
         m, ex = es.ridge[j]

@@ -24,7 +24,7 @@ The numbers (``docs/target.md`` has the same with the reasons):
   sin or cos; ``FX`` as large as keeps ``|X| < 2^60``;
 * a column ``phi_j = rsh((X + O_j) m_j, sh_j)`` in the ``phi`` format, with ``m_j
   2^-sh_j = K_j 2^(f_phi - s_j - FX)`` (``K_j`` the SI value of one input unit, over
-  ``T`` for a derivative; ``O_j = o 2^FX`` for a value column of a raw field); the target
+  ``T`` for a derivative; ``O_j = o 2^FX`` for a value column of a raw field); the output
   ``y`` likewise; a rescale adds to ``sh_j`` what it adds to ``s_j``.
 """
 
@@ -159,7 +159,7 @@ class Filter:
 
 @dataclass(frozen=True)
 class Column:
-    """A regressor column (or the target) from the filter bank: ``phi = rsh((X + offset)
+    """A regressor column (or the output) from the filter bank: ``phi = rsh((X + offset)
     m, sh)`` where ``X`` is state 1 (value, ``F``) or 2 (``derivative``: ``sF T``) of
     filter ``filter``. ``adaptive``: its exponent follows the data (a rescale when a used
     row exceeds full scale); ``pending``: the calibration window showed nothing of it."""
@@ -192,13 +192,13 @@ class Selection:
 
 @dataclass(frozen=True)
 class EquationSpec:
-    """The integers of one equation: columns, target, selection, the kernel's plan and
+    """The integers of one equation: columns, output, selection, the kernel's plan and
     prior, and what a rescale needs."""
 
     name: str
     index: int
     columns: tuple[Column, ...]
-    target: Column
+    output: Column
     selection: Selection
     plan: dict[str, int]
     p0: tuple[int, ...]
@@ -227,7 +227,7 @@ class EquationSpec:
     #: the prior of a pending column at its first value (alpha 2^-8) and its trace term
     first_ridge: Fraction
     first_term: int
-    #: |theta_j| 2^(d_j - d_y) above this (theta words) moves the target's exponent
+    #: |theta_j| 2^(d_j - d_y) above this (theta words) moves the output's exponent
     theta_half: int
     #: the ResidualRms: r <- r + (eps^2 - r) >> rms_shift
     rms_shift: int
@@ -572,7 +572,7 @@ class _Columns:
 
     def column(self, name: str, kind: int, role: str, order: int, hold: int, deriv: bool,
                gain: Fraction, frac: int, s: int, adaptive: bool, pend: bool) -> Column:
-        """A column (or target) read from its filter's state into ``frac`` bits at ``2**-s``."""
+        """A column (or the output) read from its filter's state into ``frac`` bits at ``2**-s``."""
         fi = self.filter_of(kind, role, order, hold)
         flt = self.filters[fi]
         if kind == SRC_RAW:
@@ -616,7 +616,7 @@ def _selection(est: EquationEstimator, scales: Mapping[str, tuple[Fraction, Frac
 def _equation(est: EquationEstimator, model: Model, settings: EstimatorSettings, dt: float,
               columns: _Columns, pending: Mapping[str, Sequence[str]] | None,
               param_info: list[tuple[int, int, int, int]]) -> EquationSpec:
-    """One equation's integers: its columns and target, selection, plan and prior
+    """One equation's integers: its columns and output, selection, plan and prior
     (``param_info`` gets a row per parameter)."""
     eq = est.equation
     frls = est.frls
@@ -636,7 +636,7 @@ def _equation(est: EquationEstimator, model: Model, settings: EstimatorSettings,
     trole = eq.output.signal
     if trole not in ("current", "torque", "voltage"):
         raise TargetError(f"the {eq.name} output {trole} is not a signal")
-    target = columns.column("target", SRC_RAW, trole, 0, int(holds[0] == "zoh"), False,
+    output = columns.column("output", SRC_RAW, trole, 0, int(holds[0] == "zoh"), False,
                             Fraction(eq.output.gain), cfg.y.frac, sc.output, True,
                             "output" in pend)
     sel = _selection(est, columns.scales)
@@ -661,7 +661,7 @@ def _equation(est: EquationEstimator, model: Model, settings: EstimatorSettings,
     beta = min(1.0, dt / settings.rms_time_s)
     rms_shift = max(0, round(-math.log2(beta)))
     return EquationSpec(
-        name=eq.name, index=int(eq.index), columns=tuple(cols), target=target,
+        name=eq.name, index=int(eq.index), columns=tuple(cols), output=output,
         selection=sel, plan=plan, p0=p0, e0=int(st["P_exp"]), f_phi=cfg.phi.frac,
         f_y=cfg.y.frac, f_theta=cfg.theta.frac, f_eps=cfg.eps.frac,
         theta_lo=cfg.theta.lo, theta_hi=cfg.theta.hi, P_lo=cfg.P.lo, P_hi=cfg.P.hi,

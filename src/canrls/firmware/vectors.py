@@ -107,7 +107,7 @@ def state_record(est: TargetEstimator) -> list[int]:
     """The integer state as the C's ``record()`` lays it out: samples, the rejection
     counters, the filters' states, then per equation theta, its fractions, the upper
     triangle of P, its fractions, e, c, the kernel's counters, the shifts (columns,
-    target), updates, the residual's mean square and the rescales."""
+    output), updates, the residual's mean square and the rescales."""
     s = est.snapshot()
     out = [s["samples"], *s["rejects"], *s["x1"], *s["x2"]]
     for e in s["equations"]:

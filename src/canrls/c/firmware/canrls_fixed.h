@@ -76,7 +76,7 @@ extern "C" {
 /** Saturation sites, in the order of canrls_rls_q31.counts (Python SITES). */
 enum canrls_site {
     CANRLS_S_PHI_IN = 0, /**< an input phi_j outside its word */
-    CANRLS_S_Y_IN,       /**< the target y outside its word */
+    CANRLS_S_Y_IN,       /**< the output y outside its word */
     CANRLS_S_EPS,        /**< a-priori error */
     CANRLS_S_H,          /**< h = Pw phi */
     CANRLS_S_DEN,        /**< phi' h and d = lambda_k + phi' P phi */
@@ -108,7 +108,7 @@ enum canrls_site {
  */
 typedef struct {
     int32_t phi_lo, phi_hi;     /**< regressor word */
-    int32_t y_lo, y_hi;         /**< target word */
+    int32_t y_lo, y_hi;         /**< output word */
     int32_t eps_lo, eps_hi;     /**< a-priori error word */
     int32_t h_lo, h_hi;         /**< h = Pw phi word */
     int32_t den_lo, den_hi;     /**< phi' P phi and d word */
@@ -264,7 +264,7 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *
  *
  * @param S     instance (state updated unless S->frozen)
  * @param phi   n regressor words, phi format (clamped to [phi_lo, phi_hi], counted phi_in)
- * @param y     target word, y format (clamped to [y_lo, y_hi], counted y_in)
+ * @param y     output word, y format (clamped to [y_lo, y_hi], counted y_in)
  * @param step  optional result (eps, trace, e, flags); NULL to skip
  * @return 1 if the state was updated, 0 if frozen
  *

@@ -192,9 +192,9 @@ int canrls_target_init(canrls_target *S, const canrls_target_model *M)
             q->ridge[j] = e->ridge[j];
             q->terms[j] = e->trace_terms[j];
         }
-        q->sh_y = e->target.sh;
-        q->exponents[e->n] = e->target.exponent;
-        q->pending_y = e->target.pending;
+        q->sh_y = e->output.sh;
+        q->exponents[e->n] = e->output.exponent;
+        q->pending_y = e->output.pending;
         q->plan = *e->plan;
         q->plan.trace_max_lam = cr_trace_bound(e, q);
         if (canrls_init_q31(&q->rls, &q->plan, e->n, e->p0, e->e0) != CANRLS_OK) {
@@ -448,8 +448,8 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
         }
     }
     {
-        const int64_t x = cr_state(S, &e->target);
-        const uint32_t am = (uint32_t)(e->target.m < 0 ? -e->target.m : e->target.m);
+        const int64_t x = cr_state(S, &e->output);
+        const uint32_t am = (uint32_t)(e->output.m < 0 ? -e->output.m : e->output.m);
         big = (uint64_t)(x < 0 ? -x : x);
         if (q->pending_y) {
             if (big != 0u) {
@@ -460,7 +460,7 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
             dy = cr_clog2_mul(big, am) - q->sh_y - e->f_y + 2;
         }
     }
-    /* theta_j takes 2^(d_j - d_y): the target moves where an estimate would leave half its
+    /* theta_j takes 2^(d_j - d_y): the output moves where an estimate would leave half its
      * bound, |theta_j| 2^(d_j - dy) <= 2^h 2^s */
     for (j = 0; j < n; j++) {
         const int32_t w = canrls_theta_q31(&q->rls, j);
@@ -659,7 +659,7 @@ int canrls_target_pair(canrls_target *S, uint32_t mi, int32_t counter, uint32_t 
 #ifndef CANRLS_FRONT
 /* ------------------------------------------------------------------ the table-driven path */
 
-/* the columns and the target of a used sample: rsh((X + O) m, sh) */
+/* the columns and the output of a used sample: rsh((X + O) m, sh) */
 static void cr_values(const canrls_target *S, const canrls_equation *e,
                       const canrls_target_eq *q, int64_t *phi, int64_t *y)
 {
@@ -667,7 +667,7 @@ static void cr_values(const canrls_target *S, const canrls_equation *e,
     for (j = 0; j < e->n; j++) {
         phi[j] = cr_mul_rsh(cr_state(S, &e->columns[j]), e->columns[j].m, q->sh[j]);
     }
-    *y = cr_mul_rsh(cr_state(S, &e->target), e->target.m, q->sh_y);
+    *y = cr_mul_rsh(cr_state(S, &e->output), e->output.m, q->sh_y);
 }
 
 /* whether this used sample changes the normalisation */
@@ -687,7 +687,7 @@ static int cr_changes(const canrls_target *S, const canrls_equation *e,
         }
     }
     if (q->pending_y) {
-        return cr_state(S, &e->target) != 0;
+        return cr_state(S, &e->output) != 0;
     }
     return y > lim_y || -y > lim_y;
 }

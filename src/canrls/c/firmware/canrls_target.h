@@ -38,7 +38,7 @@
  *   3. per sample: restart the filters after a missing period; the state-variable
  *      filter of every input (Q30 coefficients, 64-bit states x = F[u] 2^FX); the
  *      sample selection (warm-up, speed limits, reversal); on a used sample the
- *      columns and the target in the kernel's Q formats, rescaled exactly (powers of
+ *      columns and the output in the kernel's Q formats, rescaled exactly (powers of
  *      two) when one outgrows its exponent or a pending one shows its first value;
  *      canrls_update_q31().
  *
@@ -126,7 +126,7 @@ typedef struct {
     int32_t fx;    /**< fraction bits of the state below the input's unit */
 } canrls_filter;
 
-/** A column (or the target): phi = rsh((X + offset) m, sh), X the filter's state 1 (F)
+/** A column (or the output y): phi = rsh((X + offset) m, sh), X the filter's state 1 (F)
  * or 2 (derivative: sF T). */
 typedef struct {
     int64_t offset;      /**< O, the DBC offset in state units (value columns of raw inputs) */
@@ -152,7 +152,7 @@ typedef struct {
     uint8_t cross;       /**< a reversal between two samples counts as a low speed */
     uint8_t trace_follows; /**< the trace bound is the prior's trace (follows rescales) */
     const canrls_column *columns;
-    canrls_column target;
+    canrls_column output; /**< the output y of y = phi^T theta (was .target) */
     int32_t warmup;      /**< samples not used after a restart or a speed out of limits */
     int64_t min_w, max_w; /**< speed limits in W units (max_w < 0: none) */
     const canrls_plan_q31 *plan;
@@ -296,7 +296,7 @@ int canrls_target_pair(canrls_target *S, uint32_t mi, int32_t counter, uint32_t 
 void canrls_target_restart(canrls_target *S);
 
 /** Change the exponents of equation i before this used sample (phi, y: its columns and
- * target in the old exponents, int64). */
+ * output in the old exponents, int64). */
 void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64_t y);
 
 /** Update the kernel of equation i with phi and y (saturated to int32), the flags and

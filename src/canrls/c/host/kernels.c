@@ -217,7 +217,7 @@ static void accumulate(Py_ssize_t N, Py_ssize_t n, const double *phi, const doub
 
 /* After the estimators, row by row: spread the used rows' errors and flags over the
  * block (0 elsewhere), run the residual RMS, write y, the errors and the RMS in the
- * target unit (x 2**s_y); accumulate the sums. Returns the float WINDUP count.
+ * output unit (x 2**s_y); accumulate the sums. Returns the float WINDUP count.
  * eps_u, flags_u (float) and epsq_u, flagsq_u (fixed point) hold the used rows only;
  * the fixed-point error is epsq * lsb with lsb = 2**-frac, exact. */
 static Py_ssize_t bookkeeping(Py_ssize_t N, Py_ssize_t n, const double *phi,
@@ -464,7 +464,7 @@ static PyObject *py_svf_scaled(PyObject *self, PyObject *const *args, Py_ssize_t
         && take(&a, args, out_spec, COUNT(out_spec), o, F64) && svf_shapes(&a, b)) {
         const Py_ssize_t N = dim(b[0], 0), m = dim(b[0], 1);
         if (m < 1)
-            PyErr_Format(PyExc_ValueError, "svf_scaled: u must have a column (the target)");
+            PyErr_Format(PyExc_ValueError, "svf_scaled: u must have a column (the output)");
         else if (need(&a, o[0], "deriv", m, -1) && need(&a, o[1], "scale", m, -1)
                  && need(&a, o[2], "y", N, -1) && need(&a, o[3], "phi", N, m - 1)) {
             Py_BEGIN_ALLOW_THREADS
@@ -603,8 +603,8 @@ PyDoc_STRVAR(bookkeeping_doc,
 "bookkeeping(phi, y, use, eps_u, epsq_u, lsb, flags_u, flagsq_u, M, v, s, beta,\n"
 "            rms_state, s_y, y_out, eps, eps_fixed, flags, rms) -> int\n\n"
 "After the estimators: spread the used rows' errors and flags over the block, run\n"
-"the residual RMS, write the outputs in the target unit (x 2**s_y), accumulate the\n"
-"sums; the float WINDUP count. See canrls.estimation.pipeline.");
+"the residual RMS, write y, the errors and the RMS in the output unit (x 2**s_y),\n"
+"accumulate the sums; the float WINDUP count. See canrls.estimation.pipeline.");
 
 static PyObject *py_bookkeeping(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {

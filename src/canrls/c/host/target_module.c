@@ -54,7 +54,7 @@
 #define FILTER_F(XS, XA)                                                                   \
     XS(kind, CANRLS_SRC_RAW, CANRLS_SRC_CONST) XS(role, 0, CANRLS_TARGET_ROLES - 1)         \
     XS(order, 0, UINT8_MAX) XS(hold, FLAG) XS(fx, 0, 40)
-/* an equation's scalars (canrls_equation); then its plan, its target and its columns */
+/* an equation's scalars (canrls_equation); then its plan, its output and its columns */
 #define EQUATION_F(XS, XA)                                                                 \
     XS(n, 1, CANRLS_N_MAX) XS(index, 0, UINT8_MAX) XS(cross, FLAG) XS(trace_follows, FLAG)   \
     XS(warmup, 0, INT32_MAX) XS(min_w, R64) XS(max_w, R64) XS(e0, R32) XS(f_phi, 0, 62)       \
@@ -62,7 +62,7 @@
     XS(trace_cap, R64) XS(floor_term, R64) XS(first_term, R64)
 /* the dyadic ridges of an equation (canrls_dyadic: m as its int64 bits) */
 #define PRIORS_F(XS, XA) XS(floor_m, R64) XS(floor_e, R32) XS(first_m, R64) XS(first_e, R32)
-/* a column or the target (canrls_column) */
+/* a column or the output (canrls_column) */
 #define COLUMN_F(XS, XA)                                                                   \
     XS(offset, R64) XS(m, R32) XS(sh, R32) XS(exponent, R32) XS(filter, 0, CANRLS_TARGET_FILTER_MAX - 1) \
     XS(derivative, FLAG) XS(adaptive, FLAG) XS(pending, FLAG)
@@ -289,7 +289,7 @@ static int build(TargetObject *o, Cursor *c)
         canrls_equation *e = &o->eqs[i];
         priors_t pr;
         if (!read_equation(c, e) || !read_priors(c, &pr) || !read_plan(c, &o->plans[i])
-            || !read_column(c, &e->target)) {
+            || !read_column(c, &e->output)) {
             return 0;
         }
         e->floor_ridge.m = (uint64_t)pr.floor_m;
@@ -314,8 +314,8 @@ static int build(TargetObject *o, Cursor *c)
                 return bad("a column reads a filter the bank does not have");
             }
         }
-        if (e->target.filter >= M->nfilters) {
-            return bad("the target reads a filter the bank does not have");
+        if (e->output.filter >= M->nfilters) {
+            return bad("the output reads a filter the bank does not have");
         }
         params += e->n;
     }
