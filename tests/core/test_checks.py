@@ -169,6 +169,20 @@ def test_estimator_settings_refuse_a_bad_alpha_by_the_one_rule() -> None:
             EstimatorSettings(**{key: bad})
 
 
+@pytest.mark.parametrize("key,bad", [("gap_periods", math.nan), ("gap_periods", math.inf),
+                                     ("gap_periods", 1.0), ("rms_time_s", math.nan),
+                                     ("rms_time_s", math.inf), ("rms_time_s", 0.0),
+                                     ("max_phase_step", math.nan),
+                                     ("max_phase_step", 0.0)])
+def test_estimator_settings_refuse_what_is_no_number_of_their_range(key: str,
+                                                                   bad: float) -> None:
+    """NaN passed ``x <= lo`` checks before: each setting is a finite number of its range
+    (``max_phase_step`` may be infinite: no limit, the default)."""
+    with pytest.raises(CanrlsError, match=f"estimator.{key}"):
+        EstimatorSettings(**{key: bad})
+    assert EstimatorSettings(max_phase_step=math.inf).max_phase_step == math.inf
+
+
 def test_json_safe_values() -> None:
     assert checks.finite_or_none(None) is None and checks.finite_or_none(math.nan) is None
     assert checks.finite_or_none(-math.inf) is None and checks.finite_or_none(2) == 2.0

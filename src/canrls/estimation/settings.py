@@ -132,12 +132,15 @@ class EstimatorSettings:
         if self.warmup_s is not None and not in_range(self.warmup_s, 0.0, math.inf,
                                                       hi_open=True):
             raise ConfigError(f"estimator.warmup_s = {self.warmup_s!r}: must be >= 0 seconds")
-        if self.gap_periods <= 1.0:
-            raise ConfigError(f"estimator.gap_periods = {self.gap_periods!r}: must be > 1")
-        if not self.max_phase_step > 0:
-            raise ConfigError(f"estimator.max_phase_step = {self.max_phase_step!r}: must be > 0")
-        if self.rms_time_s <= 0:
-            raise ConfigError(f"estimator.rms_time_s = {self.rms_time_s!r}: must be > 0")
+        if not in_range(self.gap_periods, 1.0, math.inf, lo_open=True, hi_open=True):
+            raise ConfigError(f"estimator.gap_periods = {self.gap_periods!r}: must be a "
+                              f"finite number > 1")
+        if not (self.max_phase_step == math.inf or is_positive(self.max_phase_step)):
+            raise ConfigError(f"estimator.max_phase_step = {self.max_phase_step!r}: must be > 0 "
+                              f"(inf: no limit)")
+        if not is_positive(self.rms_time_s):
+            raise ConfigError(f"estimator.rms_time_s = {self.rms_time_s!r}: must be a finite "
+                              f"number > 0 seconds")
         if not is_positive(self.calibration_s):
             raise ConfigError(
                 f"estimator.calibration_s = {self.calibration_s!r}: must be > 0 seconds")
