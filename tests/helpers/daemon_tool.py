@@ -25,9 +25,9 @@ import can
 
 from canrls.can.estimator_frames import CommandResult
 from canrls.can.protocol import Protocol
+from canrls.cli.run import fixed_path_for
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
-from canrls.firmware.target_live import LiveTarget
 from canrls.live.daemon import Daemon
 from canrls.live.daemon_settings import DaemonSettings
 from canrls.processor.config import load_config
@@ -59,11 +59,9 @@ def axis_daemons(config: Path, bus: dict[str, Any], *, backpressure: bool = Fals
     for name, cfg in load_config(config).axis_configs().items():
         protocol = cfg.protocol()
         dset = dataclasses.replace(DaemonSettings.from_config(cfg), **settings)
-        # the fixed column as canrls run builds it
-        fixed_path = (LiveTarget(protocol, cfg.settings()) if dset.fixed == "target"
-                      else None)
         out[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset, bus=bus,
-                           backpressure=backpressure, fixed_path=fixed_path)
+                           backpressure=backpressure,
+                           fixed_path=fixed_path_for(protocol, cfg.settings(), dset))
     return out
 
 

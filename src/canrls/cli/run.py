@@ -38,7 +38,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from canrls.cli import early_signals
 from canrls.cli._common import (
@@ -50,6 +50,11 @@ from canrls.cli._common import (
 from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
 from canrls.live.signals import SignalRelay
+
+if TYPE_CHECKING:
+    from canrls.can.protocol import Protocol
+    from canrls.estimation.settings import EstimatorSettings
+    from canrls.live.daemon_settings import DaemonSettings
 
 __all__ = ["add_subparser", "run", "build_daemon"]
 
@@ -245,18 +250,24 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None,
 
     history = None if hist is None else _history_hook(hist, key)
     try:
-        fixed_path = None
-        if dset.fixed == "target":
-            from canrls.firmware.target_live import LiveTarget
-
-            fixed_path = LiveTarget(protocol, settings)
         return Daemon(protocol, model, settings, dset, bus=bus,
                       reload=reloaded_model, history=history, configuration=cfg,
-                      fixed_path=fixed_path)
+                      fixed_path=fixed_path_for(protocol, settings, dset))
     except BaseException:
         if history is not None:
             history.close()
         raise
+
+
+def fixed_path_for(protocol: Protocol, settings: EstimatorSettings,
+                   dset: DaemonSettings) -> Any:
+    """Where a daemon's published fixed column comes from, as ``[daemon] fixed`` says:
+    the target's integer path (``"target"``), or None, the kernel on the float front end."""
+    if dset.fixed != "target":
+        return None
+    from canrls.firmware.target_live import LiveTarget
+
+    return LiveTarget(protocol, settings)
 
 
 def _history_hook(settings: Any, key: tuple[str, str]) -> Any:
