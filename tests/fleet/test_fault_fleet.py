@@ -607,6 +607,25 @@ def test_results_out_of_listed_order_keep_the_first_listed_as_owner() -> None:
     assert [(d.drive, d.owner) for d in order.duplicates] == [("d3", "d1")]
 
 
+def test_a_task_takes_short_logs_up_to_its_bytes_in_the_listed_order() -> None:
+    """Consecutive logs until a task holds TASK_BYTES; a log of that size alone; never
+    so many a task that a worker is left without TASKS_PER_WORKER tasks."""
+    mb = 1 << 20
+    groups = ingest_module.task_groups
+    assert ingest_module.TASK_BYTES == 2 * mb and ingest_module.TASKS_PER_WORKER == 4
+    # 0.3 MB logs: six to a task (1.8 MB, a seventh would pass 2 MB)
+    assert groups([300_000] * 800, 2) == [range(k, min(k + 6, 800))
+                                          for k in range(0, 800, 6)]
+    assert groups([3 * mb, 100, 100, 3 * mb] + [100] * 36, 1) == [
+        range(0, 1), range(1, 3), range(3, 4), range(4, 14), range(14, 24), range(24, 34),
+        range(34, 40)]
+    # few logs: at most len / (4 x workers) to a task, at least one
+    assert groups([100] * 30, 2) == [range(k, min(k + 3, 30)) for k in range(0, 30, 3)]
+    assert groups([100] * 5, 2) == [range(k, k + 1) for k in range(5)]
+    assert groups([], 2) == []
+    assert groups([0] * 64, 0) == [range(k, k + 16) for k in range(0, 64, 16)]  # as one
+
+
 # ------------------------------------------------------------------ the history
 def _recording(k: int) -> Recording:
     return Recording(drive=f"d{k % 7}", drive_type="servo", content_hash=f"{k:064x}",
