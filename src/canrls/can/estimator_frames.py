@@ -536,7 +536,7 @@ class _Codec:
                 return None
             k = values.get(self._mux)
             # the layout checks k again (type, range) among its plain integers
-            layout = self._by_mux.get(k) if type(k) is int else None  # type: ignore[arg-type]
+            layout = self._by_mux.get(k) if type(k) is int else None
             if layout is None:
                 return None
         if len(values) != layout.count:

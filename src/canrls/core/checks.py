@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 from canrls.core.errors import ConfigError
 
@@ -21,16 +21,16 @@ __all__ = ["EPOCH_WINDOW", "LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "descr
            "json_safe", "not_times", "positive_period"]
 
 
-def is_real(value: object) -> bool:
+def is_real(value: object) -> TypeGuard[numbers.Real]:
     """``value`` is a finite real number: an int or a float (numpy's too), not a bool,
     not NaN nor infinite. The one definition of "a number" of every check that asks."""
     return (not isinstance(value, bool) and isinstance(value, numbers.Real)
             and math.isfinite(value))
 
 
-def is_positive(value: object) -> bool:
+def is_positive(value: object) -> TypeGuard[numbers.Real]:
     """``value`` is a finite real number above zero (:func:`is_real`)."""
-    return is_real(value) and float(value) > 0  # type: ignore[arg-type]
+    return is_real(value) and float(value) > 0
 
 
 def finite_or_none(x: float | None) -> float | None:
@@ -58,7 +58,7 @@ def in_range(value: object, lo: float, hi: float, *, lo_open: bool = False,
     be ``math.inf``, open: any finite number above ``lo``)."""
     if not is_real(value):
         return False
-    v = float(value)  # type: ignore[arg-type]
+    v = float(value)
     return (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi)
 
 
@@ -116,6 +116,6 @@ LAMBDA_MIN = 0.5
 def check_lambda(value: object, where: str, error: type[Exception] = ConfigError) -> float:
     """``value`` as the forgetting factor, or ``error`` naming ``where`` (the key, flag,
     command or class) unless it is a real number in (:data:`LAMBDA_MIN`, 1]."""
-    if not (is_real(value) and LAMBDA_MIN < float(value) <= 1.0):  # type: ignore[arg-type]
+    if not (is_real(value) and LAMBDA_MIN < float(value) <= 1.0):
         raise error(f"{where} = {value!r}: must be in ({LAMBDA_MIN:g}, 1]")
     return float(value)

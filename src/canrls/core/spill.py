@@ -122,7 +122,7 @@ class SpilledSignals:
     def _write_chunk(self) -> None:
         assert self._buf is not None
         off = self._chunks * self._buf.nbytes
-        data = memoryview(self._buf).cast("B")
+        data = self._buf.data.cast("B")
         done = 0
         while done < len(data):
             done += os.pwrite(self._fd, data[done:], off + done)
@@ -175,7 +175,7 @@ class SpilledSignals:
                 dst[:] = self._buf[col, a - k * rows:e - k * rows]
             else:
                 off = (k * len(self._roles) + col) * rows * 8 + (a - k * rows) * 8
-                _pread(self._fd, memoryview(dst).cast("B"), off, "sample")
+                _pread(self._fd, dst.data.cast("B"), off, "sample")
             out = out[e - a:]
             a = e
 
@@ -285,7 +285,7 @@ class SpilledBytes:
         """Add ``data`` at the end."""
         if not self._close.alive:
             raise ValueError("the mask's temporary file is closed")
-        view = memoryview(np.ascontiguousarray(data, dtype=np.uint8)).cast("B")
+        view = np.ascontiguousarray(data, dtype=np.uint8).data.cast("B")
         done = 0
         while done < len(view):
             done += os.pwrite(self._fd, view[done:], self._n + done)
@@ -303,7 +303,7 @@ class SpilledBytes:
         if not self._close.alive:
             raise ValueError("the mask's temporary file is closed")
         out = np.empty(max(b - a, 0), np.uint8)
-        _pread(self._fd, memoryview(out).cast("B"), a, "mask")
+        _pread(self._fd, out.data.cast("B"), a, "mask")
         return out
 
     def __getitem__(self, key: int | slice) -> Any:
@@ -573,8 +573,9 @@ def join_blocks(blocks: Iterable[Signals]) -> Signals:
     out: dict[str, F64 | None] = {}
     for r in list(cols):
         parts = cols.pop(r)
-        out[r] = None if any(v is None for v in parts) else np.concatenate(parts)
-        del parts
+        whole = [v for v in parts if v is not None]
+        out[r] = np.concatenate(whole) if len(whole) == len(parts) else None
+        del parts, whole
     return Signals.from_roles(out)
 
 

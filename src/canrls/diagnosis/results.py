@@ -158,7 +158,7 @@ class Binned:
 
     @property
     def centers(self) -> F64:
-        return 0.5 * (self.edges[1:] + self.edges[:-1])  # type: ignore[no-any-return]
+        return 0.5 * (self.edges[1:] + self.edges[:-1])
 
     def to_dict(self) -> dict[str, Any]:
         return {"quantity": self.quantity, "unit": self.unit, "edges": _floats(self.edges),

@@ -283,7 +283,7 @@ class Equation:
         Works on ``(n,)`` and on ``(..., n)`` traces; exact (powers of two).
         """
         th = np.asarray(theta_norm, dtype=np.float64)
-        return th * self._factors  # type: ignore[no-any-return]
+        return th * self._factors
 
     def sigma_to_physical(self, std_norm: npt.ArrayLike) -> F64:
         """Standard deviations of the parameters in physical units (same factors)."""
@@ -292,7 +292,7 @@ class Equation:
     def to_normalised(self, theta_phys: npt.ArrayLike) -> F64:
         """Inverse of :meth:`to_physical` (e.g. to start an estimator from known values)."""
         th = np.asarray(theta_phys, dtype=np.float64)
-        return th / self._factors  # type: ignore[no-any-return]
+        return th / self._factors
 
     def output_to_physical(self, y_norm: npt.ArrayLike) -> F64:
         """A normalised output or residual in the output unit: ``y * 2**s_y``."""
