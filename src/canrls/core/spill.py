@@ -11,14 +11,14 @@ import os
 import tempfile
 import weakref
 from collections.abc import Iterable, Iterator
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from canrls.core.samples import ROLES, Signals
 
-__all__ = ["SpilledSignals", "SpilledColumn", "SpilledBytes", "PackedMask", "MaskPacker",
+__all__ = ["ColumnLike", "Sliced", "SpilledSignals", "SpilledColumn", "SpilledBytes", "PackedMask", "MaskPacker",
            "as_packed", "join_blocks", "spill_blocks"]
 
 _log = logging.getLogger(__name__)
@@ -196,6 +196,27 @@ class SpilledSignals:
     def in_memory(self) -> Signals:
         """The whole record as :class:`Signals`."""
         return self.slice(0, self._n)
+
+
+class Sliced(Protocol):
+    """A float64 channel read in slices (step 1), block by block: an array, or one
+    computed or read back only where sliced (:class:`ColumnLike`)."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, key: slice, /) -> F64: ...
+
+
+class ColumnLike(Protocol):
+    """A float64 channel as the diagnosis reads it: an array, or a column read back or
+    computed where indexed (:class:`SpilledColumn`, the diagnosis's ``Filtered``):
+    index it by a slice or sorted rows; ``np.asarray`` makes the whole array."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, key: Any, /) -> Any: ...
+
+    def __array__(self, dtype: None = None, /, *, copy: bool | None = None) -> F64: ...
 
 
 class SpilledColumn:

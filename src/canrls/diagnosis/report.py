@@ -457,8 +457,8 @@ def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
                 out.append(f"        evidence: {e}")
     else:
         out.append("  no candidate: every effect of the library is in the model")
-    for e, r in q.not_applicable:
-        out.append(f"  ({e}: {r})")
+    for e, why in q.not_applicable:
+        out.append(f"  ({e}: {why})")
     if q.structure:
         out += ["", "Structure left " + ("after the suggestion" if q.suggestion else "")]
         for s in q.structure:

@@ -209,12 +209,15 @@ class Frame:
     def from_signals(cls, signals: Any, axis: Axis = "rotary",
                      pitch: float = DEFAULT_PITCH) -> Frame:
         """Wrap a :class:`~canrls.core.samples.Signals` block (its position taken as given)."""
+        def col(v: Any) -> F64:
+            return np.ascontiguousarray(v, dtype=np.float64)
+
         def arr(v: Any) -> F64 | None:
-            return None if v is None else np.ascontiguousarray(v, dtype=np.float64)
+            return None if v is None else col(v)
 
         pos = arr(getattr(signals, "position", None))
-        return cls(t=arr(signals.t), current=arr(getattr(signals, "current", None)),
-                   speed=arr(signals.speed), position=pos,  # type: ignore[arg-type]
+        return cls(t=col(signals.t), current=arr(getattr(signals, "current", None)),
+                   speed=col(signals.speed), position=pos,
                    voltage=arr(getattr(signals, "voltage", None)),
                    angle=None if pos is None else cls.phase(pos, axis, pitch),
                    torque=arr(getattr(signals, "torque", None)))
