@@ -38,7 +38,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -242,7 +242,7 @@ class EquationEstimator:
             return None if a is None else a[real]
 
         # changes happen on used rows, which are real: their index among the real rows
-        before = np.cumsum(real) - real
+        before: npt.NDArray[np.intp] = np.cumsum(real) - real
         changes = tuple((int(before[k]), d, dy) for k, d, dy in out.changes)
         return EquationBlock(
             equation=out.equation, t=out.t[real], y=out.y[real], eps=out.eps[real],
@@ -378,7 +378,8 @@ class EquationEstimator:
             fixed = Background(self._fixed_block, phi_u, y_u, record,
                                name="canrls fixed point") if used >= OVERLAP_ROWS else None
             try:
-                eps_u, theta_u, _, flags_u, _ = self.rls.run_block(phi_u, y_u, record)
+                eps_run, theta_u, _, flags_u, _ = self.rls.run_block(phi_u, y_u, record)
+                eps_u = cast(F64, eps_run)  # the pipeline's RLS runs in float64 (its default)
                 self.tail.push(phi_u, y_u)
             finally:
                 if fixed is not None:
@@ -507,8 +508,8 @@ class EquationEstimator:
         self.rls.rescale(d, dy, prior)
         self.frls.rescale(d, dy, prior)
         self.ridge = np.ldexp(self.ridge, -2 * d)
-        for j, a in prior.items():
-            self.ridge[j] = a
+        for k, a in prior.items():
+            self.ridge[k] = a
         # M = sum phi phi', v = sum phi y, s = [N, sum y, sum y^2], r: mean square of eps
         self._M = np.ldexp(self._M, -(d[:, None] + d[None, :]))
         self._v = np.ldexp(self._v, -(d + dy))
