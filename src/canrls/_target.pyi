@@ -1,6 +1,8 @@
 """Types of the C extension ``canrls._target`` (src/canrls/c/host/target_module.c): the
 C of ``canrls export-c`` on the host, for :mod:`canrls.firmware.native`."""
 
+from typing import final
+
 import numpy as np
 import numpy.typing as npt
 
@@ -8,6 +10,7 @@ import numpy.typing as npt
 LAYOUT: dict[str, tuple[tuple[str, int], ...]]
 N_MAX: int
 
+@final
 class Target:
     def __init__(self, vector: npt.NDArray[np.int64]) -> None: ...
     def run(self, ticks: npt.NDArray[np.uint32], arbitration_id: npt.NDArray[np.uint32],

@@ -18,8 +18,8 @@ import numpy.typing as npt
 
 from canrls.core.samples import ROLES, Signals
 
-__all__ = ["ColumnLike", "Sliced", "SpilledSignals", "SpilledColumn", "SpilledBytes", "PackedMask", "MaskPacker",
-           "as_packed", "join_blocks", "spill_blocks"]
+__all__ = ["ColumnLike", "Sliced", "SpilledSignals", "SpilledColumn", "SpilledBytes",
+           "PackedMask", "MaskPacker", "as_packed", "join_blocks", "spill_blocks"]
 
 _log = logging.getLogger(__name__)
 #: the warning that a mask cannot go to a temporary file was given (once per process)

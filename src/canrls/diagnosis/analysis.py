@@ -199,11 +199,11 @@ def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
 
 
 def _run_in_chunks(proc: SampleProcessor, ctx: RecordSamples) -> list[PackedMask]:
-    """Run the record (``ctx.signals``) through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
-    each equation's recorded block, what the diagnosis reads: the used rows, packed as
-    they come (:class:`~canrls.core.spill.MaskPacker`: one bit a row, in a temporary file
-    past a few hundred thousand rows); the times are the samples' own, ``ctx.t``
-    (checked block by block).
+    """Run the record (``ctx.signals``) through ``proc`` in blocks of :data:`CHUNK`
+    samples and keep, of each equation's recorded block, what the diagnosis reads: the
+    used rows, packed as they come (:class:`~canrls.core.spill.MaskPacker`: one bit a
+    row, in a temporary file past a few hundred thousand rows); the times are the
+    samples' own, ``ctx.t`` (checked block by block).
 
     The pipeline carries its state from block to block bit for bit (``canrls fit``
     replays a log in blocks too), so the result is the one of a single run; but the
