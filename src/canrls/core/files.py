@@ -194,6 +194,7 @@ class LineBound(io.RawIOBase):
     def readable(self) -> bool:
         return True
 
+    # narrower than RawIOBase's buffer: the buffered readers above hand it these
     def readinto(self, b: bytearray | memoryview) -> int:  # type: ignore[override]
         view = memoryview(b).cast("B")[:self.max_line]
         n = self.raw.readinto(view) or 0

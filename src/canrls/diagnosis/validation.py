@@ -405,6 +405,7 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
                 continue
             p = _Panel(e.equation, e.output, e.unit, f.fit_percent, f.residual_rms,
                        _slice(e.traces, a, b), e.bins)
+            # a _Panel, not an EquationDiagnosis: it has what the figures read of it
             name = figs.timeline(p, None, name=f"{e.equation}-timeline-{k + 1}.svg",  # type: ignore[arg-type]
                                  label="saved, not re-estimated")
             add(figures, name, f"{f.source}: {VALIDATE_CAPTIONS['timeline']}",
@@ -416,6 +417,7 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
         for q in ("speed", "position"):
             if q not in e.bins or (q == "position" and e.traces.position is None):
                 continue
+            # a _Panel (no excitation: its traces are not decimated, so none is read)
             name = figs.binned(whole, None, q, name=f"{e.equation}-{q}.svg",  # type: ignore[arg-type]
                                label="saved model")
             mean = e.bins[q].mean

@@ -166,7 +166,7 @@ class Model:
             DATA_OPTIONS if options_given is None else options_given) & frozenset(DATA_OPTIONS)
         if axis not in ("rotary", "linear"):
             raise ConfigError(_fmt(source, "model.axis", axis, "must be 'rotary' or 'linear'"))
-        self.axis: Axis = axis  # type: ignore[assignment]
+        self.axis: Axis = axis  # type: ignore[assignment]  # one of Axis: checked above
         self.kt = None if kt is None else _number(source, "model.kt", kt, nonzero=True)
         if output not in OUTPUTS:
             raise ConfigError(_fmt(source, "model.output", output,
@@ -432,7 +432,7 @@ class Model:
     def __eq__(self, other: object) -> bool:
         return isinstance(other, Model) and other.to_dict() == self.to_dict()
 
-    __hash__ = None  # type: ignore[assignment]
+    __hash__ = None  # type: ignore[assignment]  # equal by value: no hash, as Python sets it
 
     @property
     def held_list(self) -> list[str]:

@@ -406,12 +406,12 @@ class EquationEstimator:
             # M2 += phi2 phi2' (upper triangle), v2 += phi2 y2, s2 += [1, y2, y2^2]
             _kernels.accumulate(out.check[0][a:b], out.check[1][a:b], out.check_use[a:b],
                                 self._M2, self._v2, self._s2)
-        if record and theta_u is not None and thetaq_u is not None:
+        if (out.theta is not None and out.theta_fixed is not None  # record
+                and theta_u is not None and thetaq_u is not None):
             # rows in a warm-up did not update: they stay nan
             at = slice(a, b) if rows is None else rows + a
-            out.theta[at] = eq.to_physical(theta_u)  # type: ignore[index]
-            out.theta_fixed[at] = eq.to_physical(  # type: ignore[index]
-                self.frls.config.theta.to_float(thetaq_u))
+            out.theta[at] = eq.to_physical(theta_u)
+            out.theta_fixed[at] = eq.to_physical(self.frls.config.theta.to_float(thetaq_u))
 
     # -- the normalisation follows the data -----------------------------------------------
     def _next_change(self, phi: F64, y: F64, use: npt.NDArray[np.bool_], a: int) -> int:
