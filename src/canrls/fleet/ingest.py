@@ -8,12 +8,12 @@ whose hash the history already holds for this model is skipped), then
 cannot be fitted becomes an error :class:`~canrls.fleet.records.Recording` naming the
 file and the reason. On a cluster :func:`ingest` sends every log once (a path listed
 twice once), short logs several to a task (:func:`task_groups`), each task hashing its
-logs and fitting them, and takes the results in the listed order (:class:`_InOrder`): the first listed log of each content is stored, the
-others are named as duplicates. In this process it hashes each log first, so a log
-listed again is not fitted again, and hands that hash to the fit. Results are stored
-in batches with the history's insert-or-ignore: a worker killed mid-log (Dask runs its
-task again elsewhere), a run interrupted, or two runs at once still leave every
-recording stored exactly once.
+logs and fitting them, and takes the results in the listed order (:class:`_InOrder`):
+the first listed log of each content is stored, the others are named as duplicates.
+In this process it hashes each log first, so a log listed again is not fitted again,
+and hands that hash to the fit. Results are stored in batches with the history's
+insert-or-ignore: a worker killed mid-log (Dask runs its task again elsewhere), a run
+interrupted, or two runs at once still leave every recording stored exactly once.
 """
 
 from __future__ import annotations
