@@ -600,6 +600,23 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *
 
 /* ------------------------------------------------------------------- kernel */
 
+/* sum_i rsh(h_i w_i, vw_ps) with h_i = w_i = rsh(h~_i c, hc_s) (the windup test's
+ * h'w): h_i^2 one SMULL where h_i is a word; ``cls`` (a constant at each call):
+ * SHIFT_LOW where both shifts are 1..31 (two-word shifts), else SHIFT_ANY. */
+INLINE int64_t windup_vw(const int32_t *h, uint32_t n, int32_t c, int32_t hc_s, int32_t vw_ps,
+                         int cls)
+{
+    int64_t a_vw = 0;
+    uint32_t i;
+    for (i = 0; i < n; i++) {
+        const int64_t hi_ = rsh_c(mul_ww(h[i], c), hc_s, cls);
+        const int64_t hw = (int64_t)(int32_t)hi_ == hi_
+                               ? mul_ww((int32_t)hi_, (int32_t)hi_) : hi_ * hi_;
+        a_vw += rsh_c(hw, vw_ps, cls);
+    }
+    return a_vw;
+}
+
 /* h~_i from its sum u = acc_i + 2^(h_os-1) (the rounding half already added), for
  * 1 <= h_os <= 31: u >> h_os fits a word iff the high word of u lies in
  * [-2^(h_os-1), 2^(h_os-1)); then it is the two words shifted. ``full``: the h word is
@@ -1293,18 +1310,17 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             if (T > 0) {
                 uint32_t none = 0; /* d_lam is not counted */
                 int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
-                int64_t a_vw = 0, lhs;
+                int64_t a_vw, lhs;
                 int32_t df;
                 int up;
-                for (i = 0; i < n; i++) {
-                    /* h = c h~ ; w = c w~ = h: h_i w_i = h_i^2 (one SMULL where h_i is a
-                     * word) */
-                    const int64_t hi_ = rsh_w(mul_ww(h[i], c), p->hc_s);
-                    const int64_t hw = (int64_t)(int32_t)hi_ == hi_
-                                           ? mul_ww((int32_t)hi_, (int32_t)hi_) : hi_ * hi_;
-                    a_vw += rsh_w(hw, p->vw_ps);
+                /* h = c h~ ; w = c w~ = h:  a_vw = sum_i rsh(h_i w_i, vw_ps) */
+                if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
+                    a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_LOW);
+                } else {
+                    a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_ANY);
                 }
-                lhs = rsh((T < p->P_hi ? T : p->P_hi) * d_lam, p->lhs_ps);
+                /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
+                lhs = rsh_w(mul_ww((int32_t)(T < p->P_hi ? T : p->P_hi), d_lam), p->lhs_ps);
                 /* the two sides differ in scale by cmp_df - e bits */
                 df = p->cmp_scale_diff - e;
                 if (df >= 0) {
