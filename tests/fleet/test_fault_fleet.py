@@ -265,6 +265,34 @@ def test_a_scheduler_that_freezes_after_its_identity_is_named_within_the_timeout
                    f"(a scheduler that answered, then stopped)\n")
 
 
+def test_a_scheduler_that_freezes_before_the_first_log_is_named_within_the_timeout(
+        tmp_path: Path, remote_cluster: _RemoteCluster, eight_logs: Path,
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Connected, then frozen before any log is sent: the question of how many tasks its
+    workers run at once is bounded too."""
+    real = ingest_module.ingest
+
+    def freeze_then_ingest(*args: Any, **kw: Any) -> Any:
+        os.kill(remote_cluster.scheduler.pid, signal.SIGSTOP)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(ingest_module, "ingest", freeze_then_ingest)
+    monkeypatch.setattr(cluster, "SCHEDULER_TIMEOUT", 2.0)
+    monkeypatch.setattr(cluster, "STALL_TIMEOUT", 2.0)
+    try:
+        t0 = time.monotonic()
+        rc = _bounded_main(_ingest_argv(eight_logs, tmp_path / "h.db",
+                                        remote_cluster.address), bound=30.0)
+        err = capsys.readouterr().err
+        assert rc == 1 and time.monotonic() - t0 < 20, err
+        assert err.startswith(f"error: the Dask scheduler at {remote_cluster.address}: no "
+                              f"answer within 2 s when asked for its workers (")
+        assert err.endswith("0 of the 8 logs to fit stored, each kept: run again for the "
+                            "rest\n") and err.count("\n") == 1
+    finally:
+        os.kill(remote_cluster.scheduler.pid, signal.SIGCONT)
+
+
 def _freeze_after_first_store(monkeypatch: pytest.MonkeyPatch, pid: int) -> None:
     """SIGSTOP process ``pid`` as the ingest stores its first result."""
     add = ingest_module._Store.add

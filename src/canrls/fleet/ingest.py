@@ -286,7 +286,8 @@ def ingest_many(jobs: Sequence[IngestJob], known: frozenset[str] | set[str] | No
 def task_groups(sizes: Sequence[int], workers: int) -> list[range]:
     """The logs of a cluster's tasks, in the listed order: consecutive logs (their
     ``sizes`` in bytes) until a task holds :data:`TASK_BYTES`, and no more logs than
-    leave :data:`TASKS_PER_WORKER` tasks to each of ``workers``."""
+    leave :data:`TASKS_PER_WORKER` tasks to each of ``workers`` (a worker: one thread).
+    """
     most = max(1, len(sizes) // (TASKS_PER_WORKER * max(1, workers)))
     groups: list[range] = []
     start = total = 0
@@ -557,11 +558,11 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
             by_key: dict[str, list[int]] = {}
             for i in sent.values():
                 by_key.setdefault(jobs[i].key, []).append(i)
-            workers = len(client.scheduler_info().get("workers", ())) or 1
+            slots = _slots(client, stall)
             futures: dict[Any, list[int]] = {}
             for key, idx in by_key.items():
                 tasks = [[idx[k] for k in g] for g in
-                         task_groups([_size(jobs[i].source.path) for i in idx], workers)]
+                         task_groups([_size(jobs[i].source.path) for i in idx], slots)]
                 futures.update(zip(client.map(ingest_many, [[jobs[i] for i in t] for t in tasks],
                                               known=shared[key], ranker=use_ranker,
                                               pure=False), tasks, strict=True))
@@ -685,6 +686,17 @@ def _scatter(client: Any, data: Any, stall: float) -> Any:
     except (TimeoutError, OSError) as e:
         raise StallError(f"the cluster at {_address(client)} did not take the history's "
                          f"hashes within {stall:g} s ({e})") from None
+
+
+def _slots(client: Any, stall: float) -> int:
+    """How many tasks the cluster runs at once (its workers' threads), asked within
+    ``stall`` s."""
+    try:
+        return max(1, sum(client.nthreads(callback_timeout=stall).values()))
+    except (TimeoutError, OSError) as e:
+        raise StallError(f"the Dask scheduler at {_address(client)}: no answer within "
+                         f"{stall:g} s when asked for its workers ({e or type(e).__name__})"
+                         ) from None
 
 
 def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],
