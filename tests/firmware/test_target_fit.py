@@ -282,27 +282,78 @@ def test_freeze_and_set_lambda_reach_the_target_path(
         d.stop()
 
 
-def test_a_resume_from_a_checkpoint_starts_the_target_path_again_and_says_so(
+def _checkpointed(tmp_path: Path, frames: Any, name: str) -> Path:
+    """The configuration of a daemon checkpointing to ``name``, after a daemon ran
+    ``frames``, checkpointed and stopped."""
+    cfg = tmp_path / f"{name}.toml"
+    cfg.write_text(f'[daemon]\ncheckpoint = "{tmp_path / name}"\n')
+    d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
+    try:
+        d.process(frames)
+        assert d.checkpoint() is not None
+    finally:
+        d.stop()
+    return cfg
+
+
+def _target_state(d: Any) -> Any:
+    """The target's C state as a checkpoint of ``d`` holds it (every byte)."""
+    from canrls.live.checkpoint import load_checkpoint
+
+    path = d.checkpoint()
+    assert path is not None
+    return load_checkpoint(path).state["target"]["state"]
+
+
+def test_a_resume_from_a_checkpoint_continues_the_target_path_bit_for_bit(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Run, checkpoint, stop, resume: the daemon publishes the fixed column of one that
+    never stopped on the same frames, its C state the same to the byte."""
     from canrls.live.journal import JOURNAL
 
     log, frames = _sim_frames(tmp_path, 12)
     half = len(frames) // 2
-    cfg = tmp_path / "daemon.toml"
-    cfg.write_text(f'[daemon]\ncheckpoint = "{tmp_path / "ckpt.bin"}"\n')
+    cfg = _checkpointed(tmp_path, frames.take(slice(0, half)), "ckpt.bin")
     d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
+    whole = tmp_path / "whole.toml"  # the daemon that never stops
+    whole.write_text(f'[daemon]\ncheckpoint = "{tmp_path / "whole.ckpt"}"\n')
+    w = _daemon(["--kt", "0.1", "--config", str(whole)], [])
     try:
-        d.process(frames.take(slice(0, half)))
-        assert d.checkpoint() is not None
+        w.process(frames)
+        assert d.resumed_from is not None
+        with caplog.at_level("INFO", logger=JOURNAL.name):
+            d.start()
+        assert (f"resumed from {d.resumed_from}: the fixed point's integer path continues "
+                f"from the checkpoint") in caplog.text
+        rest = frames.take(slice(half, None))
+        d.process(rest)
+        assert _published(d) == _published(w) != _after(d, log, rest)
+        assert bytes(_target_state(d)) == bytes(_target_state(w))
     finally:
         d.stop()
+        w.stop()
+
+
+def test_a_checkpoint_without_the_target_state_starts_the_path_again_and_says_so(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A checkpoint of the older schema (no target state) still resumes: the target's
+    path starts again from its prior, said in the journal."""
+    from canrls.live.checkpoint import load_checkpoint, save_checkpoint
+    from canrls.live.journal import JOURNAL
+
+    log, frames = _sim_frames(tmp_path, 12)
+    half = len(frames) // 2
+    cfg = _checkpointed(tmp_path, frames.take(slice(0, half)), "ckpt.bin")
+    cp = load_checkpoint(tmp_path / "ckpt.bin")
+    del cp.state["target"]
+    save_checkpoint(tmp_path / "ckpt.bin", cp)
     d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
     try:
         assert d.resumed_from is not None
         with caplog.at_level("INFO", logger=JOURNAL.name):
             d.start()
         assert (f"resumed from {d.resumed_from}: the fixed point's integer path starts again "
-                f"from its prior") in caplog.text
+                f"from its prior (the checkpoint holds no target state)") in caplog.text
         rest = frames.take(slice(half, None))
         d.process(rest)
         assert _published(d) == _after(d, log, rest)

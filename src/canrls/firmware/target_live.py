@@ -5,19 +5,22 @@ the frames the daemon's processor sees, from the first one on: held until the
 processor's calibration froze (the integers need its exponents, energies and period),
 then replayed and run block by block. The daemon's fixed column is then what ``canrls
 fit`` prints and the C of ``canrls export-c`` computes from the same frames, bit for
-bit.
+bit. A checkpoint keeps its state (:meth:`LiveTarget.state`), from which a resumed daemon
+continues (:meth:`LiveTarget.resume`).
 """
 
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numpy as np
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.protocol import Protocol
+from canrls.core.checks import is_real
 from canrls.estimation.settings import EstimatorSettings
-from canrls.firmware.native import TargetFeed
+from canrls.firmware.native import TargetFeed, TargetSnapshot, state_layout
 from canrls.firmware.target_fit import fit_model
 from canrls.firmware.target_model import TargetError
 from canrls.processor import FrameProcessor
@@ -28,6 +31,8 @@ log = logging.getLogger(__name__)
 
 #: the most frames held while the calibration collects (beyond: the kernel's column)
 HOLD_MAX = 1_000_000
+#: the fields of :meth:`LiveTarget.state`
+_SAVED = frozenset({"layout", "model", "state", "t0", "frozen"})
 
 
 class LiveTarget:
@@ -48,6 +53,8 @@ class LiveTarget:
         self.refused: str | None = None
         #: the forgetting factor the running path was built with
         self._lam = settings.lam
+        #: a checkpoint's path, continued when the path is built (None: none)
+        self._resume: TargetSnapshot | None = None
 
     def feed(self, block: FrameBlock, proc: FrameProcessor) -> None:
         """The frames of a block the processor has processed."""
@@ -71,6 +78,9 @@ class LiveTarget:
                 return
             if proc.pipeline.frozen:  # a checkpoint's, or a command's during the window
                 self.running.freeze(True)
+            if self._resume is not None:
+                self._continue(self.running, self._resume)
+                self._resume = None
             held, self._held, self._n_held = self._held, [], 0
             for b in held:
                 self.running.feed(b)
@@ -87,6 +97,49 @@ class LiveTarget:
             self.running.freeze(proc.pipeline.frozen)
         self.running.feed(block)
 
+    def state(self) -> dict[str, Any] | None:
+        """What a checkpoint keeps of the path, integers only (None: it does not run:
+        a resume starts it again from its prior)."""
+        if self.running is None:
+            return None
+        snap = self.running.snapshot()
+        return {"layout": state_layout(), "model": snap.model,
+                "state": np.frombuffer(snap.state, np.uint8).copy(),
+                "t0": snap.t0, "frozen": snap.frozen}
+
+    def resume(self, saved: Any) -> str | None:
+        """Continue from a checkpoint's :meth:`state` when the path is built at the next
+        frames; why it starts again from its prior instead (None: it continues)."""
+        self.restart()
+        if saved is None:
+            return "the checkpoint holds no target state"
+        try:
+            if not isinstance(saved, dict) or set(saved) != _SAVED:
+                raise TargetError(f"fields {sorted(saved) if isinstance(saved, dict) else saved!r}")
+            if saved["layout"] != state_layout():
+                raise TargetError("it was saved by a build with other C headers")
+            model, state, t0 = saved["model"], saved["state"], saved["t0"]
+            if not (isinstance(model, np.ndarray) and model.dtype == np.int64
+                    and model.ndim == 1 and isinstance(state, np.ndarray)
+                    and state.dtype == np.uint8 and state.ndim == 1
+                    and (t0 is None or is_real(t0)) and isinstance(saved["frozen"], bool)):
+                raise TargetError("a field of the wrong type")
+        except TargetError as e:
+            return f"the checkpoint's target state does not fit ({e})"
+        self._resume = TargetSnapshot(model=model, state=state.tobytes(),
+                                      t0=None if t0 is None else float(t0),
+                                      frozen=saved["frozen"])
+        return None
+
+    def _continue(self, feed: TargetFeed, snap: TargetSnapshot) -> None:
+        """The checkpoint's state into the path just built (left at its prior, and said,
+        when the calibration now is not the one the state ran on)."""
+        try:
+            feed.restore(snap)
+        except TargetError as e:
+            log.warning("fixed point: the target's integer path starts again from its "
+                        "prior (the checkpoint's target state: %s)", e)
+
     def _refuse(self, why: str) -> None:
         self.refused = why
         self._held, self._n_held = [], 0
@@ -99,6 +152,7 @@ class LiveTarget:
         self.running = None
         self.refused = None
         self._held, self._n_held = [], 0
+        self._resume = None
 
     def fixed(self) -> dict[str, tuple[float, bool]] | None:
         """Every parameter's fixed value in SI and whether its equation has updated (None:

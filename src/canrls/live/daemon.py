@@ -253,6 +253,10 @@ class Daemon:
                              describe=str(bus_args or "bus"),
                              rx_ids=own if cfg.rx_filter else ())
         self._fixed_path = fixed_path
+        #: why the target's path starts again after the resume (None: it continues)
+        self._fixed_resume: str | None = None
+        if resumed is not None and fixed_path is not None:
+            self._fixed_resume = fixed_path.resume(resumed[1].state.get("target"))
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish,
                                     fixed_path)
         self._history = history
@@ -425,6 +429,8 @@ class Daemon:
             counters = self._wire_counters()
             counters["frames"] = self._proc.frames + self._base.get("frames", 0)
             model, state = self.model, self._proc.state()
+            if self._fixed_path is not None:
+                state["target"] = self._fixed_path.state()
         return self._checkpoints.save(model, state, counters)
 
     # ------------------------------------------------------------------ life cycle
@@ -447,7 +453,7 @@ class Daemon:
         interpreter.tune(self.config.switch_interval)
         self._tuned = True
         if self.resumed_from is not None and self._fixed_path is not None:
-            self._journal.fixed_restarted(f"resumed from {self.resumed_from}")
+            self._journal.fixed_resumed(self.resumed_from, self._fixed_resume)
         for loop, name in ((self._estimator_loop, "canrls estimator"),
                              (self._supervisor_loop, "canrls supervisor")):
             t = threading.Thread(target=loop, name=name, daemon=True)
