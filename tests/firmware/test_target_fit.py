@@ -252,6 +252,28 @@ def test_a_reset_command_starts_the_target_path_again_and_says_so(
         d.stop()
 
 
+def test_an_added_effect_starts_the_target_path_again_on_the_new_model(
+        tmp_path: Path) -> None:
+    """The command add_effect: the target's path starts again on the completed model, its
+    calibration the processor's for that model (before: the old model's column energies
+    stopped the estimator thread)."""
+    from canrls.can.estimator_frames import CommandCode, EffectId, encode_command
+
+    log, frames = _sim_frames(tmp_path, 14)
+    half = len(frames) // 2
+    d = _daemon(["--kt", "0.1", "--commands"], [])
+    try:
+        d.process(frames.take(slice(0, half)))
+        d.process([encode_command(CommandCode.ADD_EFFECT, EffectId.OFFSET)])
+        assert "offset" in d.model.effect_names
+        rest = frames.take(slice(half, None))
+        d.process(rest)
+        after = _published(d)
+        assert "offset.T0" in after and after == _after(d, log, rest)
+    finally:
+        d.stop()
+
+
 def test_freeze_and_set_lambda_reach_the_target_path(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """The command freeze holds the published fixed column as it holds the kernel's,
