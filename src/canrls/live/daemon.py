@@ -181,7 +181,9 @@ class Daemon:
     :param configuration: what produced the model, kept in the file the command
         ``save_model`` writes to ``[daemon] saved_model`` (default: none recorded).
     :param fixed_path: computes the published fixed column from the frames (``canrls
-        run``: the target's integer path); None: the pipeline's kernel.
+        run`` and ``canrls demo``: the target's integer path, where ``[daemon] fixed``
+        says so: :func:`canrls.cli.run.fixed_path_for`); None: the pipeline's kernel
+        (with a warning when ``fixed = "target"`` asked for the target's path).
     """
 
     def __init__(self, protocol: Protocol, model: Model,
@@ -252,6 +254,10 @@ class Daemon:
         self._link = BusLink(self._queue, bus_factory or (lambda: open_bus(bus_args)), cfg,
                              describe=str(bus_args or "bus"),
                              rx_ids=own if cfg.rx_filter else ())
+        if fixed_path is None and cfg.fixed == "target":
+            log.warning("daemon.fixed = 'target' but no target path was given "
+                        "(canrls.cli.run.fixed_path_for builds it): the published fixed "
+                        "column is the kernel's on the float front end")
         self._fixed_path = fixed_path
         #: why the target's path starts again after the resume (None: it continues)
         self._fixed_resume: str | None = None
