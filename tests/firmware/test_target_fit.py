@@ -327,12 +327,22 @@ def _target_state(d: Any) -> Any:
     return load_checkpoint(path).state["target"]["state"]
 
 
+def _start_resumed(d: Any, caplog: pytest.LogCaptureFixture, says: str) -> None:
+    """Start ``d``, resumed from its checkpoint; its journal ``says`` what of the target's
+    integer path."""
+    from canrls.live.journal import JOURNAL
+
+    assert d.resumed_from is not None
+    with caplog.at_level("INFO", logger=JOURNAL.name):
+        d.start()
+    assert f"resumed from {d.resumed_from}: the fixed point's integer path {says}" \
+        in caplog.text
+
+
 def test_a_resume_from_a_checkpoint_continues_the_target_path_bit_for_bit(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """Run, checkpoint, stop, resume: the daemon publishes the fixed column of one that
     never stopped on the same frames, its C state the same to the byte."""
-    from canrls.live.journal import JOURNAL
-
     log, frames = _sim_frames(tmp_path, 12)
     half = len(frames) // 2
     cfg = _checkpointed(tmp_path, frames.take(slice(0, half)), "ckpt.bin")
@@ -342,11 +352,7 @@ def test_a_resume_from_a_checkpoint_continues_the_target_path_bit_for_bit(
     w = _daemon(["--kt", "0.1", "--config", str(whole)], [])
     try:
         w.process(frames)
-        assert d.resumed_from is not None
-        with caplog.at_level("INFO", logger=JOURNAL.name):
-            d.start()
-        assert (f"resumed from {d.resumed_from}: the fixed point's integer path continues "
-                f"from the checkpoint") in caplog.text
+        _start_resumed(d, caplog, "continues from the checkpoint")
         rest = frames.take(slice(half, None))
         d.process(rest)
         assert _published(d) == _published(w) != _after(d, log, rest)
@@ -361,7 +367,6 @@ def test_a_checkpoint_without_the_target_state_starts_the_path_again_and_says_so
     """A checkpoint of the older schema (no target state) still resumes: the target's
     path starts again from its prior, said in the journal."""
     from canrls.live.checkpoint import load_checkpoint, save_checkpoint
-    from canrls.live.journal import JOURNAL
 
     log, frames = _sim_frames(tmp_path, 12)
     half = len(frames) // 2
@@ -371,11 +376,8 @@ def test_a_checkpoint_without_the_target_state_starts_the_path_again_and_says_so
     save_checkpoint(tmp_path / "ckpt.bin", cp)
     d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
     try:
-        assert d.resumed_from is not None
-        with caplog.at_level("INFO", logger=JOURNAL.name):
-            d.start()
-        assert (f"resumed from {d.resumed_from}: the fixed point's integer path starts again "
-                f"from its prior (the checkpoint holds no target state)") in caplog.text
+        _start_resumed(d, caplog, "starts again from its prior (the checkpoint holds no "
+                                  "target state)")
         rest = frames.take(slice(half, None))
         d.process(rest)
         assert _published(d) == _after(d, log, rest)
