@@ -385,6 +385,33 @@ def test_a_checkpoint_without_the_target_state_starts_the_path_again_and_says_so
         d.stop()
 
 
+@pytest.mark.parametrize(("field", "value"), [
+    ("layout", "0" * 64), ("layout", [1, 2]), ("state", b"short"), ("t0", "soon"),
+    ("model", None)], ids=["other-headers", "layout-array", "short-state", "t0-text",
+                           "no-model"])
+def test_a_damaged_target_state_starts_the_path_again_and_says_so(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture, field: str, value: Any) -> None:
+    """A checkpoint's target state of other C headers or with a field of the wrong type
+    or size: the estimators resume, the target's path starts again and the journal says
+    why; nothing is fatal."""
+    import numpy as np
+
+    from canrls.live.checkpoint import load_checkpoint, save_checkpoint
+
+    log, frames = _sim_frames(tmp_path, 12)
+    cfg = _checkpointed(tmp_path, frames.take(slice(0, len(frames) // 2)), "ckpt.bin")
+    cp = load_checkpoint(tmp_path / "ckpt.bin")
+    cp.state["target"][field] = (np.frombuffer(value, np.uint8) if isinstance(value, bytes)
+                                 else np.array(value) if isinstance(value, list) else value)
+    save_checkpoint(tmp_path / "ckpt.bin", cp)
+    d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
+    try:
+        _start_resumed(d, caplog, "starts again from its prior (the checkpoint's target "
+                                  "state does not fit (")
+    finally:
+        d.stop()
+
+
 def test_the_daemon_takes_the_target_path_only_by_name(tmp_path: Path) -> None:
     cfg = tmp_path / "daemon.toml"
     cfg.write_text('[daemon]\nfixed = "float"\n')

@@ -31,7 +31,8 @@ from canrls.firmware.target_model import Column, EquationSpec, Field, TargetErro
 from canrls.firmware.vectors import block_frames, block_ticks, state_record
 from canrls.processor import TargetRun
 
-__all__ = ["NativeTarget", "TargetFeed", "TargetSnapshot", "pack", "state_layout"]
+__all__ = ["STATE_BYTES", "NativeTarget", "TargetFeed", "TargetSnapshot", "pack",
+           "state_layout"]
 
 _U64 = 1 << 64
 #: the estimator frames in the order of the C's model (estimate, info, status, health)
@@ -124,6 +125,10 @@ def pack(tm: TargetModel) -> npt.NDArray[np.int64]:
     for eff, comp, order, eq in tm.param_info:
         _put(out, "param", {"effect": eff, "component": comp, "equation": eq, "order": order})
     return np.array(out, np.int64)
+
+
+#: the bytes of a C state (:meth:`NativeTarget.state`) in this build
+STATE_BYTES: int = _target.STATE_BYTES
 
 
 def state_layout() -> str:

@@ -20,7 +20,7 @@ from canrls.can.frameblock import FrameBlock
 from canrls.can.protocol import Protocol
 from canrls.core.checks import is_real
 from canrls.estimation.settings import EstimatorSettings
-from canrls.firmware.native import TargetFeed, TargetSnapshot, state_layout
+from canrls.firmware.native import STATE_BYTES, TargetFeed, TargetSnapshot, state_layout
 from canrls.firmware.target_fit import fit_model
 from canrls.firmware.target_model import TargetError
 from canrls.processor import FrameProcessor
@@ -115,15 +115,16 @@ class LiveTarget:
             return "the checkpoint holds no target state"
         try:
             if not isinstance(saved, dict) or set(saved) != _SAVED:
-                raise TargetError(f"fields {sorted(saved) if isinstance(saved, dict) else saved!r}")
+                raise TargetError(f"fields {sorted(saved) if isinstance(saved, dict) else []}")
+            model, state, t0 = saved["model"], saved["state"], saved["t0"]
+            if not (isinstance(saved["layout"], str) and isinstance(model, np.ndarray)
+                    and model.dtype == np.int64 and model.ndim == 1
+                    and isinstance(state, np.ndarray) and state.dtype == np.uint8
+                    and state.shape == (STATE_BYTES,) and (t0 is None or is_real(t0))
+                    and isinstance(saved["frozen"], bool)):
+                raise TargetError("a field of the wrong type or size")
             if saved["layout"] != state_layout():
                 raise TargetError("it was saved by a build with other C headers")
-            model, state, t0 = saved["model"], saved["state"], saved["t0"]
-            if not (isinstance(model, np.ndarray) and model.dtype == np.int64
-                    and model.ndim == 1 and isinstance(state, np.ndarray)
-                    and state.dtype == np.uint8 and state.ndim == 1
-                    and (t0 is None or is_real(t0)) and isinstance(saved["frozen"], bool)):
-                raise TargetError("a field of the wrong type")
         except TargetError as e:
             return f"the checkpoint's target state does not fit ({e})"
         self._resume = TargetSnapshot(model=model, state=state.tobytes(),

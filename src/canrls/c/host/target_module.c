@@ -816,7 +816,8 @@ PyMODINIT_FUNC PyInit__target(void)
     Py_INCREF(&TargetType);
     if (lay == NULL || PyModule_AddObject(mod, "LAYOUT", lay) != 0
         || PyModule_AddObject(mod, "Target", (PyObject *)&TargetType) != 0
-        || PyModule_AddIntConstant(mod, "N_MAX", CANRLS_N_MAX) != 0) {
+        || PyModule_AddIntConstant(mod, "N_MAX", CANRLS_N_MAX) != 0
+        || PyModule_AddIntConstant(mod, "STATE_BYTES", (long)sizeof(canrls_target)) != 0) {
         Py_XDECREF(lay);
         Py_DECREF(&TargetType);
         Py_DECREF(mod);
