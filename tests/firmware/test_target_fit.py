@@ -387,13 +387,14 @@ def test_a_checkpoint_without_the_target_state_starts_the_path_again_and_says_so
 
 @pytest.mark.parametrize(("field", "value"), [
     ("layout", "0" * 64), ("layout", [1, 2]), ("state", b"short"), ("t0", "soon"),
-    ("model", None)], ids=["other-headers", "layout-array", "short-state", "t0-text",
-                           "no-model"])
+    ("model", None), ("model", "+1")], ids=["other-headers", "layout-array",
+                                              "short-state", "t0-text", "no-model",
+                                              "other-model"])
 def test_a_damaged_target_state_starts_the_path_again_and_says_so(
         tmp_path: Path, caplog: pytest.LogCaptureFixture, field: str, value: Any) -> None:
-    """A checkpoint's target state of other C headers or with a field of the wrong type
-    or size: the estimators resume, the target's path starts again and the journal says
-    why; nothing is fatal."""
+    """A checkpoint's target state of other C headers, of another target model or with a
+    field of the wrong type or size: the estimators resume, the target's path starts
+    again and the journal says why; nothing is fatal."""
     import numpy as np
 
     from canrls.live.checkpoint import load_checkpoint, save_checkpoint
@@ -401,8 +402,10 @@ def test_a_damaged_target_state_starts_the_path_again_and_says_so(
     log, frames = _sim_frames(tmp_path, 12)
     cfg = _checkpointed(tmp_path, frames.take(slice(0, len(frames) // 2)), "ckpt.bin")
     cp = load_checkpoint(tmp_path / "ckpt.bin")
-    cp.state["target"][field] = (np.frombuffer(value, np.uint8) if isinstance(value, bytes)
-                                 else np.array(value) if isinstance(value, list) else value)
+    target = cp.state["target"]
+    target[field] = (np.frombuffer(value, np.uint8) if isinstance(value, bytes)
+                     else np.array(value) if isinstance(value, list)
+                     else target[field] + 1 if value == "+1" else value)
     save_checkpoint(tmp_path / "ckpt.bin", cp)
     d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
     try:

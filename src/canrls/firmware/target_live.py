@@ -68,22 +68,19 @@ class LiveTarget:
                 if self._n_held > HOLD_MAX:
                     self._refuse(f"no calibration after {HOLD_MAX} frames")
                 return
-            try:
-                # the pipeline's settings: its forgetting factor, a command's included
-                self._lam = proc.pipeline.settings.lam
-                self.running = TargetFeed(fit_model(proc.result("canrls run"), self.protocol,
-                                                 proc.pipeline.settings))
-            except TargetError as e:
-                self._refuse(str(e))
+            running = self._build(proc)
+            if running is None:
                 return
-            if proc.pipeline.frozen:  # a checkpoint's, or a command's during the window
-                self.running.freeze(True)
             if self._resume is not None:
-                self._continue(self.running, self._resume)
+                try:
+                    running.restore(self._resume)
+                except TargetError as e:
+                    log.warning("fixed point: the target's integer path starts again from "
+                                "its prior (the checkpoint's target state: %s)", e)
                 self._resume = None
             held, self._held, self._n_held = self._held, [], 0
             for b in held:
-                self.running.feed(b)
+                running.feed(b)
             return
         if proc.pipeline.settings.lam != self._lam:
             # a new forgetting factor (the command set_lambda) is a new kernel plan: the
@@ -107,9 +104,11 @@ class LiveTarget:
                 "state": np.frombuffer(snap.state, np.uint8).copy(),
                 "t0": snap.t0, "frozen": snap.frozen}
 
-    def resume(self, saved: Any) -> str | None:
-        """Continue from a checkpoint's :meth:`state` when the path is built at the next
-        frames; why it starts again from its prior instead (None: it continues)."""
+    def resume(self, saved: Any, proc: FrameProcessor) -> str | None:
+        """Continue from a checkpoint's :meth:`state` on ``proc``, the processor restored
+        from it: at once where its calibration and period are known, else when the path
+        is built at the next frames; why it starts again from its prior instead (None:
+        it continues)."""
         self.restart()
         if saved is None:
             return "the checkpoint holds no target state"
@@ -127,19 +126,36 @@ class LiveTarget:
                 raise TargetError("it was saved by a build with other C headers")
         except TargetError as e:
             return f"the checkpoint's target state does not fit ({e})"
-        self._resume = TargetSnapshot(model=model, state=state.tobytes(),
-                                      t0=None if t0 is None else float(t0),
-                                      frozen=saved["frozen"])
+        snap = TargetSnapshot(model=model, state=state.tobytes(),
+                              t0=None if t0 is None else float(t0), frozen=saved["frozen"])
+        if proc.calibration is None or proc.period is None:
+            self._resume = snap
+            return None
+        running = self._build(proc)
+        if running is None:
+            return f"the target's integer path does not run this model: {self.refused}"
+        try:
+            running.restore(snap)
+        except TargetError as e:
+            self.restart()
+            return f"the checkpoint's target state does not fit ({e})"
         return None
 
-    def _continue(self, feed: TargetFeed, snap: TargetSnapshot) -> None:
-        """The checkpoint's state into the path just built (left at its prior, and said,
-        when the calibration now is not the one the state ran on)."""
+    def _build(self, proc: FrameProcessor) -> TargetFeed | None:
+        """The path built on the processor's calibration, model and settings, now
+        :attr:`running` (None: the target does not run this model: :attr:`refused`)."""
         try:
-            feed.restore(snap)
+            # the pipeline's settings: its forgetting factor, a command's included
+            self._lam = proc.pipeline.settings.lam
+            running = TargetFeed(fit_model(proc.result("canrls run"), self.protocol,
+                                           proc.pipeline.settings))
         except TargetError as e:
-            log.warning("fixed point: the target's integer path starts again from its "
-                        "prior (the checkpoint's target state: %s)", e)
+            self._refuse(str(e))
+            return None
+        if proc.pipeline.frozen:  # a checkpoint's, or a command's during the window
+            running.freeze(True)
+        self.running = running
+        return running
 
     def _refuse(self, why: str) -> None:
         self.refused = why

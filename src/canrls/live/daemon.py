@@ -262,7 +262,7 @@ class Daemon:
         #: why the target's path starts again after the resume (None: it continues)
         self._fixed_resume: str | None = None
         if resumed is not None and fixed_path is not None:
-            self._fixed_resume = fixed_path.resume(resumed[1].state.get("target"))
+            self._fixed_resume = fixed_path.resume(resumed[1].state.get("target"), proc)
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish,
                                     fixed_path)
         self._history = history
