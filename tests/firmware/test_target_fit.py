@@ -274,6 +274,33 @@ def test_an_added_effect_starts_the_target_path_again_on_the_new_model(
         d.stop()
 
 
+def test_a_checkpoint_after_an_added_effect_resumes_with_it(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A checkpoint taken after add_effect resumes with the effect and the target's path
+    (before: its calibration held the old model's column energies, and the file was set
+    aside at the next start, the effect lost)."""
+    from canrls.can.estimator_frames import CommandCode, EffectId, encode_command
+
+    _, frames = _sim_frames(tmp_path, 14)
+    half = len(frames) // 2
+    cfg = tmp_path / "daemon.toml"
+    cfg.write_text(f'[daemon]\ncheckpoint = "{tmp_path / "ckpt.bin"}"\n')
+    d = _daemon(["--kt", "0.1", "--commands", "--config", str(cfg)], [])
+    try:
+        d.process(frames.take(slice(0, half)))
+        d.process([encode_command(CommandCode.ADD_EFFECT, EffectId.OFFSET)])
+        d.process(frames.take(slice(half, None)))
+        assert d.checkpoint() is not None
+    finally:
+        d.stop()
+    d = _daemon(["--kt", "0.1", "--commands", "--config", str(cfg)], [])
+    try:
+        _start_resumed(d, caplog, "continues from the checkpoint")
+        assert "offset" in d.model.effect_names
+    finally:
+        d.stop()
+
+
 def test_freeze_and_set_lambda_reach_the_target_path(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """The command freeze holds the published fixed column as it holds the kernel's,
