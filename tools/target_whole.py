@@ -174,15 +174,30 @@ def count(elf: Path, work: Path, kernel_obj: Path, timeout: float = 1800.0) -> C
 
 
 def sizes(src: Path, work: Path, opt: str, defines: tuple[str, ...]) -> dict[str, int]:
-    """``.text`` of each object of the library (``-c``, ``opt``)."""
-    out = {}
-    for f in LIBRARY:
+    """``.text`` + ``.rodata`` that a firmware links, by object: the library's four files
+    and the least program that calls the API (``example/size_main.c`` and ``startup.c``,
+    with the C library's ``memcpy`` and ``memset``: "the rest"), compiled with ``opt``,
+    ``-ffunction-sections -fdata-sections`` and linked with ``--gc-sections``, read from
+    the linker's map."""
+    objs = []
+    for f in (*LIBRARY, "size_main.c", "startup.c"):
+        path = src / f if (src / f).exists() else EXAMPLE / f
         obj = work / (Path(f).stem + opt.replace("-", "_") + ".o")
-        _run([CC, *M4, opt, FRONT, *defines, "-I", str(src), "-c", str(src / f), "-o",
-              str(obj)])
-        text = _run(["arm-none-eabi-size", "-A", str(obj)]).stdout
-        out[f] = sum(int(m.group(2)) for m in re.finditer(r"^(\.text\S*|\.rodata\S*)\s+(\d+)",
-                                                            text, re.M))
+        _run([CC, *M4, opt, FRONT, *defines, "-ffunction-sections", "-fdata-sections",
+              "-I", str(src), "-I", str(EXAMPLE), "-c", str(path), "-o", str(obj)])
+        objs.append(obj)
+    elf, mp = work / f"size{opt}.elf", work / f"size{opt}.map"
+    _run([CC, *M4, opt, "-nostartfiles", "--specs=nano.specs", "-T",
+          str(EXAMPLE / "mps2_an386.ld"), "-Wl,--gc-sections", f"-Wl,-Map={mp}",
+          *map(str, objs), "-o", str(elf)])
+    out = dict.fromkeys([*LIBRARY, "the rest"], 0)
+    kept = mp.read_text().split("Linker script and memory map", 1)[1]
+    for m in re.finditer(r"^ (?:\.text|\.rodata)\S*\s+0x[0-9a-f]+\s+0x([0-9a-f]+)\s+(\S+)$",
+                         kept, re.M):
+        name = Path(m.group(2)).name
+        stem = name.rsplit(opt.replace("-", "_"), 1)[0]
+        key = next((f for f in LIBRARY if Path(f).stem == stem), "the rest")
+        out[key] += int(m.group(1), 16)
     return out
 
 

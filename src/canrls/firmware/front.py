@@ -155,8 +155,11 @@ def _message(tm: TargetModel, mi: int, m: Message) -> list[str]:
     for r in carried:
         out.append(f"/* {r}: strict range */")
         out += _field(tm.roles[r], m.dlc, f"raw_{r}", r)
-    out += ["/* pair: the frames of one period */",
-            f"if (!canrls_target_pair(S, {mi}u, {counter}, t)) {{", "    return 0u;", "}"]
+    key = counter if tm.match_counters else "-1"
+    out += [f"/* pair: the frames of one period (within {tm.tol_ticks} ticks"
+            f"{', the same alive counter' if tm.match_counters else ''}) */",
+            f"if (!cr_pair(S, {_u(1 << mi, what)}, {key}, {_i(tm.tol_ticks, 'tolerance')}, t)) {{",
+            "    return 0u;", "}"]
     out += [f"S->raw[{_ROLE_ENUM[_ROLES.index(r)]}] = raw_{r};" for r in carried]
     full = (1 << len(tm.messages)) - 1
     out += [f"if (S->open_mask != {_u(full, 'messages')}) {{", "    return 0u;", "}",
@@ -285,13 +288,16 @@ def _equation(e: EquationSpec, k: int) -> list[str]:
            f"    return y > {lim_y} || -y > {lim_y};", "}", ""]
     n = max(e.n, 1)
     up = [f"static void fr_update_{k}(canrls_target *S)", "{",
-          f"    const canrls_target_eq *q = &S->eq[{k}];",
+          f"    canrls_target_eq *q = &S->eq[{k}];",
           f"    int64_t phi[{n}], y;",
           f"    fr_values_{k}(S, q, phi, &y);",
           f"    if (fr_changes_{k}(S, q, phi, y)) {{",
           f"        canrls_target_adapt(S, {k}u, phi, y);",
           f"        fr_values_{k}(S, q, phi, &y);", "    }",
-          f"    canrls_target_step(S, {k}u, phi, y);", "}", ""]
+          "    /* the kernel's update, phi and y saturated to int32; ms <- ms + (eps^2 - ms) >> "
+          f"{e.rms_shift} */",
+          f"    cr_step(q, phi, y, {_u(e.n, 'columns')}, {_i(e.rms_shift, 'rms shift')});", "}",
+          ""]
     return vals + ch + up
 
 
@@ -358,7 +364,7 @@ def front_file(tm: TargetModel, source: str) -> str:
         f"{_plus(tm.w_offset, 'speed offset')};"]
     for k, e in enumerate(tm.equations):
         sample += _selection(e, k)
-    sample.append("return canrls_target_sampled(S);")
+    sample.append(f"return cr_sampled(S, {_u(tm.publish_every, 'publication')});")
     parts.append("/* one sample, complete in S->raw, at time t: filters, selection, updates */\n"
                  "static uint32_t fr_sample(canrls_target *S, uint32_t t)\n{\n"
                  + _indent(sample) + "\n}\n\n")

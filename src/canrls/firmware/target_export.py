@@ -180,9 +180,7 @@ def readme(tm: TargetModel, label: str, vectors: Vectors | None, single_n: int |
     nflag = f" -DCANRLS_N={single_n}" if single_n else ""
     rows, msgs, filters, fmts = _tables(tm)
     use = _use(tm)
-    widths = {None if m.counter is None else m.counter.length for m in tm.messages}
-    pairing = (" and carry its alive counter" if None not in widths and len(widths) == 1
-               else "")
+    pairing = " and carry its alive counter" if tm.match_counters else ""
     test = _test_section(vectors)
     return f"""# The whole estimator on the target
 
