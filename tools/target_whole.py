@@ -177,20 +177,20 @@ def count(elf: Path, work: Path, kernel_obj: Path, timeout: float = 1800.0) -> C
 
 def sizes(src: Path, work: Path, opt: str, defines: tuple[str, ...]) -> dict[str, int]:
     """``.text`` + ``.rodata`` that a firmware links, by object: the library's four files
-    and the least program that calls the API (``example/size_main.c`` and ``startup.c``,
-    with the C library's ``memcpy`` and ``memset``: "the rest"), compiled with ``opt``,
-    ``-ffunction-sections -fdata-sections`` and linked with ``--gc-sections``, read from
-    the linker's map."""
+    and the least program that calls the API (``example/size_main.c``, with the C library's
+    ``memcpy`` and ``memset`` and the alignment: "the rest"), compiled with ``opt``,
+    ``-ffunction-sections -fdata-sections`` and linked from ``main`` with ``--gc-sections``
+    as the export's ``make size-m4`` links it, read from the linker's map."""
     objs = []
-    for f in (*LIBRARY, "size_main.c", "startup.c"):
-        path = src / f if (src / f).exists() else EXAMPLE / f
+    for f in (*LIBRARY, "size_main.c"):
+        path = src / f
         obj = work / (Path(f).stem + opt.replace("-", "_") + ".o")
         _run([CC, *M4, opt, FRONT, *defines, "-ffunction-sections", "-fdata-sections",
               "-I", str(src), "-I", str(EXAMPLE), "-c", str(path), "-o", str(obj)])
         objs.append(obj)
     elf, mp = work / f"size{opt}.elf", work / f"size{opt}.map"
-    _run([CC, *M4, opt, "-nostartfiles", "--specs=nano.specs", "-T",
-          str(EXAMPLE / "mps2_an386.ld"), "-Wl,--gc-sections", f"-Wl,-Map={mp}",
+    _run([CC, *M4, opt, "-nostartfiles", "--specs=nano.specs", "-Wl,--entry=main",
+          "-Wl,--gc-sections", f"-Wl,-Map={mp}",
           *map(str, objs), "-o", str(elf)])
     out = dict.fromkeys([*LIBRARY, "the rest"], 0)
     kept = mp.read_text().split("Linker script and memory map", 1)[1]
@@ -200,6 +200,10 @@ def sizes(src: Path, work: Path, opt: str, defines: tuple[str, ...]) -> dict[str
         stem = name.rsplit(opt.replace("-", "_"), 1)[0]
         key = next((f for f in LIBRARY if Path(f).stem == stem), "the rest")
         out[key] += int(m.group(1), 16)
+    # the rest: the image's .text + .rodata less the library's (alignment included)
+    size = _run(["arm-none-eabi-size", "-A", str(elf)]).stdout
+    total = sum(int(m.group(2)) for m in re.finditer(r"^(\.text|\.rodata)\s+(\d+)", size, re.M))
+    out["the rest"] = total - sum(out[f] for f in LIBRARY)
     return out
 
 
@@ -297,8 +301,7 @@ def main(work: Path, sizes_n: tuple[int, ...] = (4, 6, 8), duration: float = 5.0
             print(f"  HSM150, whole run (20 s):\n{logs['HSM150'].line(6)}")
     print("\n.text + .rodata linked (-DCANRLS_N=n -DCANRLS_FRONT, -ffunction-sections "
           "-fdata-sections,\n--gc-sections; size_main.c calls init, frame, publish, theta): "
-          + " + ".join(Path(f).stem for f in LIBRARY) + " + the rest (startup, main, memcpy, "
-          "memset)")
+          + " + ".join(Path(f).stem for f in LIBRARY) + " + the rest (main, memcpy, memset)")
     text: dict[tuple[int, str], int] = {}
     for n, src in exports.items():
         for opt in ("-O2", "-Os"):
