@@ -26,6 +26,15 @@
 
 /* ------------------------------------------------------------------ arithmetic */
 
+/* hides what GCC knows of v's range (nothing is emitted): knowing a factor non-negative,
+ * GCC multiplies it as unsigned (UMULL, MLA and a shift for the other's sign) where one
+ * SMLAL does */
+#if defined(__GNUC__)
+#define CR_OPAQUE(v) __asm__("" : "+r"(v))
+#else
+#define CR_OPAQUE(v) ((void)0)
+#endif
+
 /* rsh(x, s) = (x + 2^(s-1)) >> s for s >= 0, as ((x >> (s-1)) + 1) >> 1: no overflow. */
 static inline int64_t cr_rsh(int64_t x, int32_t s)
 {
@@ -90,9 +99,10 @@ static inline int32_t cr_table_eval(const int32_t (*table)[4], int32_t k, uint32
 {
     const int32_t *c = table[u >> (32 - k)];
     /* t = position in the segment, Q31 */
-    const int32_t t = (int32_t)((uint32_t)(u << k) >> 1);
+    int32_t t = (int32_t)((uint32_t)(u << k) >> 1);
     /* p = c3; p = c_i + rsh(p t, 31): the words of the tables keep p within int32 */
     int32_t p = c[3];
+    CR_OPAQUE(t);
     p = c[2] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
     p = c[1] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
     p = c[0] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
