@@ -290,15 +290,35 @@ def _equation(e: EquationSpec, k: int) -> list[str]:
     up = [f"static void fr_update_{k}(canrls_target *S)", "{",
           f"    canrls_target_eq *q = &S->eq[{k}];",
           f"    int64_t phi[{n}], y;",
+          f"    int32_t phq[{n}];",
           f"    fr_values_{k}(S, q, phi, &y);",
           f"    if (fr_changes_{k}(S, q, phi, y)) {{",
           f"        canrls_target_adapt(S, {k}u, phi, y);",
           f"        fr_values_{k}(S, q, phi, &y);", "    }",
-          "    /* the kernel's update, phi and y saturated to int32; ms <- ms + (eps^2 - ms) >> "
-          f"{e.rms_shift} */",
-          f"    cr_step(q, phi, y, {_u(e.n, 'columns')}, {_i(e.rms_shift, 'rms shift')});", "}",
-          ""]
+          "    /* the words of the kernel: saturated to int32 where the value can leave it */"]
+    if not e.columns:
+        up.append("    phq[0] = 0;")
+    for j, c in enumerate(e.columns):
+        up.append(f"    phq[{j}] = {_word32(f'phi[{j}]', c.adaptive, e.f_phi)};")
+    up += ["    /* the update; ms <- ms + (eps^2 - ms) >> rms_shift */",
+           f"    cr_step(q, phq, {_word32('y', True, e.f_y)}, {_i(e.rms_shift, 'rms shift')});",
+           "}", ""]
     return vals + ch + up
+
+
+def _word32(v: str, bounded: bool, frac: int) -> str:
+    """The int32 word of the int64 value ``v`` for the kernel: ``v`` itself where the range
+    analysis bounds it, else saturated (``cr_sat32``, as the specification saturates).
+
+    A data-scaled column (and the output) is bounded by ``2^frac <= 2^30``: a used
+    sample's value above it changes the normalisation first (``fr_changes_k``), and
+    ``canrls_target_adapt`` raises the exponent until ``4 |v| <= 2^frac`` (``16 |v|`` for
+    a first value), while a pending one is 0 until its first value. Any other column
+    (tanh, sin, cos, the constant: a fixed exponent) is saturated.
+    """
+    if bounded and frac <= 30:
+        return f"(int32_t){v} /* |{v}| <= 2^{frac}: fr_changes, canrls_target_adapt */"
+    return f"cr_sat32({v})"
 
 
 def _selection(e: EquationSpec, k: int) -> list[str]:

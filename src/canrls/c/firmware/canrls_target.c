@@ -587,7 +587,12 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
 void canrls_target_step(canrls_target *S, uint32_t i, const int64_t *phi, int64_t y)
 {
     const canrls_equation *e = &S->model->equations[i];
-    cr_step(&S->eq[i], phi, y, e->n, e->rms_shift);
+    int32_t phq[CANRLS_N_MAX];
+    uint32_t j;
+    for (j = 0; j < e->n; j++) {
+        phq[j] = cr_sat32(phi[j]);
+    }
+    cr_step(&S->eq[i], phq, cr_sat32(y), e->rms_shift);
 }
 
 uint32_t canrls_target_sampled(canrls_target *S)

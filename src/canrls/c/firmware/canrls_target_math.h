@@ -283,18 +283,13 @@ static inline int cr_pair(canrls_target *S, uint32_t bit, int32_t key, int32_t t
     return 1;
 }
 
-/* the kernel's update of one equation of n columns: phi and y saturated to int32, its flags
- * and the residual's running mean square */
-static inline void cr_step(canrls_target_eq *q, const int64_t *phi, int64_t y, uint32_t n,
+/* the kernel's update of one equation with its columns and output as int32 words (saturated
+ * by the caller), its flags and the residual's running mean square */
+static inline void cr_step(canrls_target_eq *q, const int32_t *phq, int32_t yq,
                            int32_t rms_shift)
 {
-    int32_t phq[CANRLS_N_MAX];
     canrls_step_q31 st;
-    uint32_t j;
-    for (j = 0; j < n; j++) {
-        phq[j] = cr_sat32(phi[j]);
-    }
-    (void)canrls_update_q31(&q->rls, phq, cr_sat32(y), &st);
+    (void)canrls_update_q31(&q->rls, phq, yq, &st);
     q->updates++;
     q->flags |= st.flags;
     /* the residual's mean square: ms <- ms + (eps^2 - ms) >> rms_shift */
