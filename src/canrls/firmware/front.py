@@ -140,7 +140,9 @@ def _message(tm: TargetModel, mi: int, m: Message) -> list[str]:
         c0 = crc8(bytes([m.id & 0xFF, (m.id >> 8) & 0xFF]), xorout=0)
         out.append(f"/* E2E CRC-8: the ID's two bytes folded into {c0:#04x} */")
         out.append(f"uint32_t c = {_u(c0, 'crc')};")
-        out += [f"c = cr_crc8[c ^ data[{k}]];" for k in range(1, m.dlc)]
+        # the table's address in a register: each byte one load indexed by it
+        out += ["const uint8_t *crc = cr_crc8;", "CR_OPAQUE(crc);"]
+        out += [f"c = crc[c ^ data[{k}]];" for k in range(1, m.dlc)]
         out += ["if ((c ^ 0xFFu) != data[0]) {",
                 "    return canrls_target_reject(S, CANRLS_R_CRC);", "}"]
     counter = "-1"
@@ -274,18 +276,27 @@ def _equation(e: EquationSpec, k: int) -> list[str]:
     ch = ["/* whether this used sample changes the normalisation */",
           f"static int fr_changes_{k}(const canrls_target *S, const canrls_target_eq *q, "
           f"const int64_t *phi, int64_t y)", "{"]
-    if not e.columns:
+    # a pending column's value is 0 while its state is (rsh(0 m, sh) = 0), so its rule
+    # "pending ? X + O != 0 : |phi| > 2^f" is "(pending and X + O != 0) or |phi| > 2^f":
+    # the pending flags, all read as one word, first, then the limits
+    words = (e.n + 7) // 8
+    ch += [f"    uint64_t pending[{max(words, 1)}] = {{0u}};",
+           f"    memcpy(pending, q->pending, {_u(e.n, 'columns')});",
+           "    if (" + "".join(f"pending[{w}] != 0u || " for w in range(words))
+           + "q->pending_y) {"]
+    for j, c in enumerate(e.columns):
+        ch += [f"        if (q->pending[{j}] && {_state(c)} != 0) {{", "            return 1;",
+               "        }"]
+    ch += [f"        if (q->pending_y && {_state(e.output)} != 0) {{", "            return 1;",
+           "        }", "    }"]
+    if not any(c.adaptive for c in e.columns):
         ch.append("    (void)phi;")
     for j, c in enumerate(e.columns):
         if c.adaptive:
-            ch += [f"    if (q->pending[{j}] ? {_state(c)} != 0 : "
-                   f"(phi[{j}] > {lim} || -phi[{j}] > {lim})) {{", "        return 1;", "    }"]
-        else:
-            ch += [f"    if (q->pending[{j}] && {_state(c)} != 0) {{", "        return 1;",
+            ch += [f"    if (phi[{j}] > {lim} || -phi[{j}] > {lim}) {{", "        return 1;",
                    "    }"]
     lim_y = _i(1 << e.f_y, "f_y", 64)
-    ch += ["    if (q->pending_y) {", f"        return {_state(e.output)} != 0;", "    }",
-           f"    return y > {lim_y} || -y > {lim_y};", "}", ""]
+    ch += [f"    return y > {lim_y} || -y > {lim_y};", "}", ""]
     n = max(e.n, 1)
     up = [f"static void fr_update_{k}(canrls_target *S)", "{",
           f"    canrls_target_eq *q = &S->eq[{k}];",
@@ -359,6 +370,8 @@ def front_file(tm: TargetModel, source: str) -> str:
  * of both), without reading the model's tables at run time. Build every file with
  * -DCANRLS_FRONT (canrls_target.c then leaves its own canrls_target_frame out).
  */
+#include <string.h>
+
 #include "canrls_target.h"
 #include "canrls_target_math.h"
 
