@@ -267,6 +267,30 @@ def test_c_kernel_with_a_fixed_n_is_bit_exact_on_32_bit_arm(vectors: list, tmp_p
     _run_fixed_n(cc, [qemu], vectors, tmp_path, ["-static"])
 
 
+@pytest.mark.parametrize("fixed_n", [False, True], ids=["any-n", "fixed-n"])
+def test_c_kernel_built_for_size_is_bit_exact_on_x86_64(vectors: list, tmp_path: Path,
+                                                        fixed_n: bool) -> None:
+    """-Os (CANRLS_SMALL: loops and one general instance of each step, no straight runs):
+    the same integers as the specification."""
+    cc = need_tool("gcc", ["gcc"])
+    if fixed_n:
+        _run_fixed_n(cc, [], vectors, tmp_path, ["-Os"])
+        return
+    exe = tmp_path / "vector_driver_os"
+    subprocess.run([cc, *CFLAGS, "-Os", "-I", str(KERNEL), str(DRIVER),
+                    str(KERNEL / "canrls_fixed.c"), "-o", str(exe)], check=True,
+                   capture_output=True)
+    _run_all(lambda i, o: subprocess.run([str(exe), str(i), str(o)], check=True, timeout=60),
+             vectors, tmp_path)
+
+
+def test_c_kernel_built_for_size_with_a_fixed_n_is_bit_exact_on_32_bit_arm(
+        vectors: list, tmp_path: Path) -> None:
+    cc = need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    qemu = need_tool("qemu-arm", ["qemu-user"])
+    _run_fixed_n(cc, [qemu], vectors, tmp_path, ["-static", "-Os"])
+
+
 def test_driver_refuses_a_plan_without_a_constant(host_driver: Path, vectors: list,
                                                   tmp_path: Path) -> None:
     """The driver maps constants by name: a constant the spec drops or adds is an error."""

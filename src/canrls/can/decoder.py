@@ -372,10 +372,9 @@ class _FastPlan:
         else:
             self.sig_f[s, _F_SCALE], self.sig_f[s, _F_OFFSET] = scale, offset
         # the bounds SignalCodec.out_of_range compares with
-        on_min = strict_range and c.minimum is not None
-        on_max = strict_range and c.maximum is not None
-        self.sig_f[s, _F_LO] = c.minimum - c.tol if on_min else -np.inf
-        self.sig_f[s, _F_HI] = c.maximum + c.tol if on_max else np.inf
+        lo, hi = (c.minimum, c.maximum) if strict_range else (None, None)
+        self.sig_f[s, _F_LO] = lo - c.tol if lo is not None else -np.inf
+        self.sig_f[s, _F_HI] = hi + c.tol if hi is not None else np.inf
         self.sig_f[s, _F_SI] = r.si_scale
 
     @staticmethod

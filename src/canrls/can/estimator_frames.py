@@ -350,9 +350,12 @@ def _frame_ids(path: str) -> FrameIds:
         raise ConfigError(f"DBC file {path}: no message {', '.join(missing)}: canrls' own "
                           f"frames (those of the shipped DBC, canrls/data/canrls.dbc) are "
                           f"needed to publish estimates or export their codecs")
-    ids = [present[n] for n in wanted]
+    (estimate, sigma, reference, param_info, status, health, counters, rejects, command,
+     ack) = (present[n] for n in wanted)
     names = dict.fromkeys(r.message for r in SignalMapping.default().roles.values())
-    return FrameIds(*ids, feedback=tuple(present[n] for n in names if n in present))
+    return FrameIds(estimate, sigma, reference, param_info, status, health, counters,
+                    rejects, command, ack,
+                    feedback=tuple(present[n] for n in names if n in present))
 
 
 def frame_ids(dbc: str | Path | None = None) -> FrameIds:
@@ -414,9 +417,9 @@ class _Layout:
         not of the fast path. Raises KeyError for a missing signal, OverflowError when
         inf meets a conversion or a value is beyond float32."""
         word = 0
-        for name, shift, mask, lo, hi in self.plain:
+        for name, shift, mask, raw_lo, raw_hi in self.plain:
             v = values[name]
-            if type(v) is not int or v < lo or v > hi:
+            if type(v) is not int or v < raw_lo or v > raw_hi:
                 return None
             word |= (v & mask) << shift
         for name, shift, mask, lo, hi, to_raw, raw_lo, raw_hi in self.scaled:
@@ -536,7 +539,7 @@ class _Codec:
                 return None
             k = values.get(self._mux)
             # the layout checks k again (type, range) among its plain integers
-            layout = self._by_mux.get(k) if type(k) is int else None  # type: ignore[arg-type]
+            layout = self._by_mux.get(k) if type(k) is int else None
             if layout is None:
                 return None
         if len(values) != layout.count:
@@ -609,7 +612,7 @@ def encode_parameters(reports: Iterable[ParameterReport], counter: int, *,
     c = counter % 16
     estimate, sigma, reference = (_codec(dbc, "RlsEstimate"), _codec(dbc, "RlsSigma"),
                                   _codec(dbc, "RlsReference"))
-    out = []
+    out: list[can.Message] = []
     for r in reports:
         i = _index(r)
         fixed = r.fixed_value

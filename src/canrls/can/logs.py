@@ -34,7 +34,7 @@ import os
 from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO, TypeVar
+from typing import Any, TypeVar
 
 import can
 import numpy as np
@@ -69,6 +69,7 @@ MAX_CHANNEL = 64
 READ_AHEAD = 4096
 
 _T = TypeVar("_T")
+_G = TypeVar("_G", bound=np.generic)
 
 
 @dataclass
@@ -137,7 +138,7 @@ def read_frames(
 class _Hashed:
     """A file read with ``readinto`` from its start, each byte read fed to ``digest``."""
 
-    def __init__(self, f: BinaryIO, digest: ContentHash) -> None:
+    def __init__(self, f: io.FileIO, digest: ContentHash) -> None:
         self.f = f
         self.digest = digest
 
@@ -151,7 +152,7 @@ class _Hashed:
 # --------------------------------------------------------------------------- candump
 
 
-def _read_candump(f: BinaryIO | _Hashed, path: Path, chunk_size: int, skip_bad: bool,
+def _read_candump(f: io.FileIO | _Hashed, path: Path, chunk_size: int, skip_bad: bool,
                   st: LogReadStats, progress: Callable[[int, int], None] | None
                   ) -> Iterator[FrameBlock]:
     """Blocks of at most ``chunk_size`` frames (:func:`_parse_candump`); from
@@ -189,7 +190,7 @@ def _read_ahead(it: Generator[_T, None, None]) -> Iterator[_T]:
         it.close()
 
 
-def _parse_candump(f: BinaryIO | _Hashed, path: Path, chunk_size: int, skip_bad: bool,
+def _parse_candump(f: io.FileIO | _Hashed, path: Path, chunk_size: int, skip_bad: bool,
                    st: LogReadStats) -> Generator[tuple[FrameBlock, LogReadStats], None, None]:
     """Each parse step's block (possibly empty) and a copy of ``st`` after it, reading
     ``f`` into one reusable buffer.
@@ -224,7 +225,7 @@ def _parse_candump(f: BinaryIO | _Hashed, path: Path, chunk_size: int, skip_bad:
                                          f"{MAX_LINE} bytes: not a candump line")
                 skipping, fill = "comment" if comment else "bad", 0
                 st.bytes_read += len(buf)
-            got = f.readinto(memoryview(buf)[fill:])
+            got = f.readinto(buf.data[fill:])
             if got:
                 fill += got
             else:
@@ -300,10 +301,16 @@ def _with_slow_lines(block: FrameBlock, buf: npt.NDArray[np.uint8],
     def pad(d: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
         return d if d.shape[1] == width else np.pad(d, ((0, 0), (0, width - d.shape[1])))
 
-    return FrameBlock(*(np.insert(getattr(block, name), pos, getattr(extra, name), axis=0)
-                        for name in ("t", "arbitration_id", "is_extended", "is_remote",
-                                     "is_error", "dlc")),
-                      np.insert(pad(block.data), pos, pad(extra.data), axis=0))
+    def merged(a: npt.NDArray[_G], b: npt.NDArray[_G]) -> npt.NDArray[_G]:
+        return np.insert(a, pos, b, axis=0)
+
+    return FrameBlock(merged(block.t, extra.t),
+                      merged(block.arbitration_id, extra.arbitration_id),
+                      merged(block.is_extended, extra.is_extended),
+                      merged(block.is_remote, extra.is_remote),
+                      merged(block.is_error, extra.is_error),
+                      merged(block.dlc, extra.dlc),
+                      merged(pad(block.data), pad(extra.data)))
 
 
 def _parse_candump_line(text: str) -> can.Message:
@@ -343,7 +350,7 @@ def _parse_candump_line(text: str) -> can.Message:
 # --------------------------------------------------------------------------- python-can readers
 
 
-def _python_can_reader(f: BinaryIO, path: Path) -> can.io.generic.MessageReader:
+def _python_can_reader(f: io.FileIO, path: Path) -> can.io.generic.MessageReader:
     """python-can's reader for the suffix of ``path``, reading ``f``: a text format
     through :class:`~canrls.core.files.LineBound` (no line longer than
     :data:`~canrls.core.files.MAX_LINE` is buffered), a binary one straight."""
@@ -358,7 +365,7 @@ def _python_can_reader(f: BinaryIO, path: Path) -> can.io.generic.MessageReader:
             text = io.TextIOWrapper(raw, encoding=locale.getpreferredencoding(False))
             return cls(file=text)
         if cls is not None and issubclass(cls, BinaryIOMessageReader):
-            return cls(file=io.BufferedReader(f))  # type: ignore[arg-type]
+            return cls(file=io.BufferedReader(f))
         # formats python-can opens by name (.db, .mf4, compressed): the file was checked
         return can.LogReader(str(path))
     except LogFormatError:
@@ -367,7 +374,7 @@ def _python_can_reader(f: BinaryIO, path: Path) -> can.io.generic.MessageReader:
         raise LogFormatError(f"{path}: cannot read this log format ({e})") from e
 
 
-def _read_python_can(f: BinaryIO, path: Path, chunk_size: int, st: LogReadStats,
+def _read_python_can(f: io.FileIO, path: Path, chunk_size: int, st: LogReadStats,
                      progress: Callable[[int, int], None] | None) -> Iterator[FrameBlock]:
     reader = _python_can_reader(f, path)
     buf: list[can.Message] = []

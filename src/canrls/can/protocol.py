@@ -97,6 +97,8 @@ def _parse_dbc(raw: bytes, where: str) -> Any:
         db = cantools.database.load_string(text, database_format="dbc", strict=True)
     except Exception as e:  # cantools raises several parse error types
         raise ConfigError(f"cannot parse {where}: {e}") from e
+    if not isinstance(db, cantools.database.can.Database):  # what format "dbc" gives
+        raise ConfigError(f"cannot parse {where}: not a CAN database")
     for m in db.messages:
         for sig in m.signals:
             _check_numbers(sig, f"{where}: message {m.name}: signal {sig.name}")

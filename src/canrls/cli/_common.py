@@ -329,7 +329,7 @@ def _bar_class() -> Any:
     only when a bar is drawn."""
     from tqdm import tqdm
 
-    class Bar(tqdm):  # type: ignore[type-arg]
+    class Bar(tqdm):
         monitor_interval = 0
 
     return Bar

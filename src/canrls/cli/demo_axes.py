@@ -165,12 +165,13 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
             diagnosed[a.name] = sugg
             say(f"  {a.name}: " + (f"{sugg} is missing" if sugg else "nothing missing"))
         del everything
-        named = [(k, a) for k, a in enumerate(axes) if diagnosed[a.name]]
+        found = {name: s for name, s in diagnosed.items() if s}
+        named = [(k, a) for k, a in enumerate(axes) if a.name in found]
         say("")
         if named:
             k, a = max(named, key=lambda ka: before[ka[1].name])
-            fixed_axis, added = a.name, diagnosed[a.name]
-            eid, order = parse_effect(added)
+            fixed_axis, added = a.name, found[a.name]
+            eid, order = parse_effect(found[a.name])
             own = command_id(k * OWN_STEP)
             say(f"3. RlsCommand add_effect {added} to {a.name} only (ID {own:#x}):")
             tool.send(moved(encode_command(CommandCode.ADD_EFFECT, eid, order), k * OWN_STEP))

@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
                        progress=Progress("diagnose", quiet=args.quiet).callback,
                        max_order=args.max_order, skip_bad_lines=args.skip_bad_lines)
     few = rep.frames and too_few_samples(rep.before.model, rep.before.estimates, rep.frames,
-                                         rep.period and rep.period.value, settings)
+                                         rep.period.value if rep.period is not None
+                                         else None, settings)
     if few:
         raise EstimatorError(f"{', '.join(args.log)}: {few}")
     final = rep.after if rep.after is not None else rep.before

@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from canrls.cli._common import (
     Progress,
@@ -24,6 +24,9 @@ from canrls.cli._common import (
     print_json,
     setup,
 )
+
+if TYPE_CHECKING:
+    from canrls.diagnosis.results import SearchResult
 
 __all__ = ["add_subparser", "run"]
 
@@ -61,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
         return _fit_machine(args, cfg)
     cfg = cfg.one_axis()
     protocol, model, settings = prepare(cfg)
-    searched = ()
+    searched: tuple[SearchResult, ...] = ()
     if "stribeck" in model.effect_names and "stribeck_speed" not in model.options_given:
         # the Stribeck speed searched on the record, as the diagnosis searches it
         from canrls.diagnosis.search import search_model
@@ -122,7 +125,7 @@ def _fit_machine(args: argparse.Namespace, cfg: Any) -> int:
 
     if args.save_model:
         raise ConfigError("--save-model: one axis at a time with several (--axis NAME)")
-    axes = {name: tuple(prepare(c)) for name, c in cfg.axis_configs().items()}
+    axes = {name: prepare(c) for name, c in cfg.axis_configs().items()}
     res = fit_axes(args.log, axes, progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
     # each axis's fixed column from its own target path (the frames of the others are

@@ -248,7 +248,7 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None,
                         "" if axis is None else f"axis {axis}: ", ", ".join(changed))
         return reloaded
 
-    history = None if hist is None else _history_hook(hist, key)
+    history = None if hist is None or key is None else _history_hook(hist, key)
     try:
         return Daemon(protocol, model, settings, dset, bus=bus,
                       reload=reloaded_model, history=history, configuration=cfg,

@@ -145,12 +145,12 @@ class Feedforward:
         """The position of one turn of the map: 2 pi rad, or the pitch [m] (linear)."""
         return 2.0 * math.pi if self.model.axis == "rotary" else float(self.model.pitch)
 
-    def _signals_at(self, position: F64, speed: F64) -> Frame:
+    def _signals_at(self, position: npt.ArrayLike, speed: F64) -> Frame:
         pos = np.ascontiguousarray(position, dtype=np.float64)
         return Frame(t=np.zeros(len(pos)), current=None, speed=speed, position=pos,
                      angle=Frame.phase(pos, self.model.axis, self.model.pitch))
 
-    def _sum(self, terms: tuple[Term, ...], position: F64, speed: F64) -> F64:
+    def _sum(self, terms: tuple[Term, ...], position: npt.ArrayLike, speed: F64) -> F64:
         frame = self._signals_at(position, speed)
         out = np.zeros(len(frame.t))
         for t in terms:

@@ -15,11 +15,16 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from canrls.control.tune_limits import MAX_POINTS
 from canrls.core.c_escape import c_comment, c_int
 from canrls.core.checks import is_positive
 from canrls.core.errors import ConfigError
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
 
 __all__ = ["CFunction", "FixedMap", "fixed_map", "map_q", "map_c", "FixedHarmonics",
            "fixed_harmonics", "sin_q15", "harmonics_q", "harmonics_c", "FixedFriction",
@@ -72,7 +77,7 @@ class FixedMap:
         return 2 * len(self.table)
 
 
-def fixed_map(torque: Sequence[float], unit: str) -> FixedMap:
+def fixed_map(torque: Sequence[float] | npt.NDArray[np.float64], unit: str) -> FixedMap:
     """The table of a map: each torque times 2**frac, rounded half up, frac the largest
     (at most 30) with every entry within int16_t."""
     n = len(torque)

@@ -119,7 +119,7 @@ def _integer(v: object, what: str, error: _ErrorType) -> int:
     if isinstance(v, int):
         return v
     try:
-        iv = int(v)  # type: ignore[call-overload]
+        iv = int(v)  # type: ignore[call-overload]  # any object: the errors refuse it
         same = iv == v
     except (TypeError, ValueError, OverflowError):
         same = False

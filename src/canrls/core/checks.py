@@ -18,19 +18,28 @@ if TYPE_CHECKING:  # numpy loads with the first array: the command line's --help
 
 __all__ = ["EPOCH_WINDOW", "LAMBDA_MIN", "MAX_TIMESTAMP", "check_lambda", "describe_time",
            "finite_or_none", "in_range", "is_epoch", "is_positive", "is_real", "is_time",
-           "json_safe", "not_times", "positive_period"]
+           "json_safe", "not_times", "positive_period", "real_value"]
+
+
+def real_value(value: object) -> float | None:
+    """``value`` as a float when it is a finite real number: an int or a float (numpy's
+    too), not a bool, not NaN nor infinite; else None. The one definition of "a number"
+    of every check that asks."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return None
+    v = float(value)
+    return v if math.isfinite(v) else None
 
 
 def is_real(value: object) -> bool:
-    """``value`` is a finite real number: an int or a float (numpy's too), not a bool,
-    not NaN nor infinite. The one definition of "a number" of every check that asks."""
-    return (not isinstance(value, bool) and isinstance(value, numbers.Real)
-            and math.isfinite(value))
+    """``value`` is a finite real number (:func:`real_value`)."""
+    return real_value(value) is not None
 
 
 def is_positive(value: object) -> bool:
-    """``value`` is a finite real number above zero (:func:`is_real`)."""
-    return is_real(value) and float(value) > 0  # type: ignore[arg-type]
+    """``value`` is a finite real number above zero (:func:`real_value`)."""
+    v = real_value(value)
+    return v is not None and v > 0
 
 
 def finite_or_none(x: float | None) -> float | None:
@@ -56,9 +65,9 @@ def in_range(value: object, lo: float, hi: float, *, lo_open: bool = False,
     """``value`` is a finite real number (:func:`is_real`) from ``lo`` to ``hi``, each end
     included unless said open: the one range check of a number a user gives (``hi`` may
     be ``math.inf``, open: any finite number above ``lo``)."""
-    if not is_real(value):
+    v = real_value(value)
+    if v is None:
         return False
-    v = float(value)  # type: ignore[arg-type]
     return (lo < v if lo_open else lo <= v) and (v < hi if hi_open else v <= hi)
 
 
@@ -100,10 +109,11 @@ def positive_period(value: object, where: str) -> float:
     flag, key or file that stated it) unless it is a finite positive number. The one
     check of a period's value: a stated period (:meth:`Protocol.load
     <canrls.can.protocol.Protocol.load>`) and the processor's go through it."""
-    if not is_positive(value):
+    v = real_value(value)
+    if v is None or not v > 0:
         raise ConfigError(f"{where}: the control period must be a positive number of "
                           f"seconds, got {value!r}")
-    return float(value)
+    return v
 
 
 #: The forgetting factor of canrls's estimators lies in (LAMBDA_MIN, 1]: the fixed-point
@@ -116,6 +126,7 @@ LAMBDA_MIN = 0.5
 def check_lambda(value: object, where: str, error: type[Exception] = ConfigError) -> float:
     """``value`` as the forgetting factor, or ``error`` naming ``where`` (the key, flag,
     command or class) unless it is a real number in (:data:`LAMBDA_MIN`, 1]."""
-    if not (is_real(value) and LAMBDA_MIN < float(value) <= 1.0):  # type: ignore[arg-type]
+    v = real_value(value)
+    if v is None or not LAMBDA_MIN < v <= 1.0:
         raise error(f"{where} = {value!r}: must be in ({LAMBDA_MIN:g}, 1]")
-    return float(value)
+    return v

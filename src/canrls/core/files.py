@@ -83,7 +83,7 @@ def _oserror(e: OSError) -> str:
 
 
 def open_regular(path: str | os.PathLike[str], what: str, error: ErrorType = ConfigError
-                 ) -> BinaryIO:
+                 ) -> io.FileIO:
     """An unbuffered binary file object of the regular file at ``path`` (links followed),
     refused without reading when it is anything else; see the module docstring."""
     p = check_path(path, what, error)
@@ -181,7 +181,7 @@ class LineBound(io.RawIOBase):
     most ``max_line`` bytes, so a run inside one read is shorter than the bound and only
     the runs that cross reads need counting."""
 
-    def __init__(self, raw: BinaryIO, what: str, *, max_line: int = MAX_LINE,
+    def __init__(self, raw: io.RawIOBase, what: str, *, max_line: int = MAX_LINE,
                  error: ErrorType = ConfigError) -> None:
         super().__init__()
         self.raw = raw
@@ -194,6 +194,7 @@ class LineBound(io.RawIOBase):
     def readable(self) -> bool:
         return True
 
+    # narrower than RawIOBase's buffer: the buffered readers above hand it these
     def readinto(self, b: bytearray | memoryview) -> int:  # type: ignore[override]
         view = memoryview(b).cast("B")[:self.max_line]
         n = self.raw.readinto(view) or 0
@@ -263,7 +264,7 @@ def atomic_writer(path: str | os.PathLike[str], what: str, error: ErrorType = Co
     try:
         keep = os.dup(fd)  # to sync the file even when the caller's writer closed it
         with os.fdopen(fd, "wb") as f:
-            yield f  # type: ignore[misc]
+            yield f
         os.fsync(keep)
         _check_target(p, what, error, replace)
         os.rename(tmp, p)

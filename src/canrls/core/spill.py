@@ -11,15 +11,15 @@ import os
 import tempfile
 import weakref
 from collections.abc import Iterable, Iterator
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
 from canrls.core.samples import ROLES, Signals
 
-__all__ = ["SpilledSignals", "SpilledColumn", "SpilledBytes", "PackedMask", "MaskPacker",
-           "as_packed", "join_blocks", "spill_blocks"]
+__all__ = ["ColumnLike", "Sliced", "SpilledSignals", "SpilledColumn", "SpilledBytes",
+           "PackedMask", "MaskPacker", "as_packed", "join_blocks", "spill_blocks"]
 
 _log = logging.getLogger(__name__)
 #: the warning that a mask cannot go to a temporary file was given (once per process)
@@ -122,7 +122,7 @@ class SpilledSignals:
     def _write_chunk(self) -> None:
         assert self._buf is not None
         off = self._chunks * self._buf.nbytes
-        data = memoryview(self._buf).cast("B")
+        data = self._buf.data.cast("B")
         done = 0
         while done < len(data):
             done += os.pwrite(self._fd, data[done:], off + done)
@@ -175,7 +175,7 @@ class SpilledSignals:
                 dst[:] = self._buf[col, a - k * rows:e - k * rows]
             else:
                 off = (k * len(self._roles) + col) * rows * 8 + (a - k * rows) * 8
-                _pread(self._fd, memoryview(dst).cast("B"), off, "sample")
+                _pread(self._fd, dst.data.cast("B"), off, "sample")
             out = out[e - a:]
             a = e
 
@@ -196,6 +196,27 @@ class SpilledSignals:
     def in_memory(self) -> Signals:
         """The whole record as :class:`Signals`."""
         return self.slice(0, self._n)
+
+
+class Sliced(Protocol):
+    """A float64 channel read in slices (step 1), block by block: an array, or one
+    computed or read back only where sliced (:class:`ColumnLike`)."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, key: slice, /) -> F64: ...
+
+
+class ColumnLike(Protocol):
+    """A float64 channel as the diagnosis reads it: an array, or a column read back or
+    computed where indexed (:class:`SpilledColumn`, the diagnosis's ``Filtered``):
+    index it by a slice or sorted rows; ``np.asarray`` makes the whole array."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, key: Any, /) -> Any: ...
+
+    def __array__(self, dtype: None = None, /, *, copy: bool | None = None) -> F64: ...
 
 
 class SpilledColumn:
@@ -285,7 +306,7 @@ class SpilledBytes:
         """Add ``data`` at the end."""
         if not self._close.alive:
             raise ValueError("the mask's temporary file is closed")
-        view = memoryview(np.ascontiguousarray(data, dtype=np.uint8)).cast("B")
+        view = np.ascontiguousarray(data, dtype=np.uint8).data.cast("B")
         done = 0
         while done < len(view):
             done += os.pwrite(self._fd, view[done:], self._n + done)
@@ -303,7 +324,7 @@ class SpilledBytes:
         if not self._close.alive:
             raise ValueError("the mask's temporary file is closed")
         out = np.empty(max(b - a, 0), np.uint8)
-        _pread(self._fd, memoryview(out).cast("B"), a, "mask")
+        _pread(self._fd, out.data.cast("B"), a, "mask")
         return out
 
     def __getitem__(self, key: int | slice) -> Any:
@@ -573,8 +594,9 @@ def join_blocks(blocks: Iterable[Signals]) -> Signals:
     out: dict[str, F64 | None] = {}
     for r in list(cols):
         parts = cols.pop(r)
-        out[r] = None if any(v is None for v in parts) else np.concatenate(parts)
-        del parts
+        whole = [v for v in parts if v is not None]
+        out[r] = np.concatenate(whole) if len(whole) == len(parts) else None
+        del parts, whole
     return Signals.from_roles(out)
 
 

@@ -20,7 +20,7 @@ import numpy.typing as npt
 from canrls.core.checks import positive_period
 from canrls.core.errors import ConfigError, EffectError
 from canrls.core.samples import Signals
-from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals
+from canrls.core.spill import ColumnLike, MaskPacker, PackedMask, SpilledSignals
 from canrls.diagnosis.candidates import (
     DEFAULT_MAX_ORDER,
     MAX_ORDER_LIMIT,
@@ -93,7 +93,9 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
     n = len(signals)
     if n < 2:
         raise ConfigError(f"diagnose: {source}: {n} samples; need at least a few seconds")
-    dt = (sample_period(signals.t, f"diagnose: {source}") if dt is None
+    t = signals.t
+    assert t is not None, "a record without rows"  # n >= 2
+    dt = (sample_period(t, f"diagnose: {source}") if dt is None
           else positive_period(dt, "diagnose: dt"))
     if (isinstance(max_order, bool) or not isinstance(max_order, int)
             or not 1 <= max_order <= MAX_ORDER_LIMIT):
@@ -111,7 +113,6 @@ def diagnose(data: Signals | SpilledSignals | Iterable[Signals], model: Model,
     added = tuple(_resolve_add(a, before) for a in add)
     after = _analyse(ctx, _with_found(model.with_effects(add=added), added, before)) \
         if added else None
-    t = signals.t
     duration = float(t[-1] - t[0]) + float(dt) if n else 0.0
     return DiagnosisReport(source=source, dt=float(dt), samples=n, duration=duration,
                            before=before, after=after, added=added, settings=settings,
@@ -186,7 +187,7 @@ def _with_found(model: Model, added: Sequence[str], before: Analysis) -> Model:
 def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
     # the front end's calibration rule, as canrls fit and the daemon follow it
     proc = SampleProcessor(model, ctx.dt, ctx.settings)
-    blocks = _run_in_chunks(proc, ctx.signals)
+    blocks = _run_in_chunks(proc, ctx)
     configured = model.options_given  # before the calibration scales the others
     pipe, model = proc.pipeline, proc.model
     est = pipe.estimates()
@@ -197,13 +198,12 @@ def _analyse(ctx: RecordSamples, model: Model) -> Analysis:
     return Analysis(model=model, estimates=est, equations=tuple(eqs))
 
 
-def _run_in_chunks(proc: SampleProcessor,
-                   signals: Signals | SpilledSignals) -> list[PackedMask]:
-    """Run the record through ``proc`` in blocks of :data:`CHUNK` samples and keep, of
-    each equation's recorded block, what the diagnosis reads: the used rows, packed as
-    they come (:class:`~canrls.core.spill.MaskPacker`: one bit a row, in a temporary file
-    past a few hundred thousand rows); the times are the samples' own, ``signals.t``
-    (checked block by block).
+def _run_in_chunks(proc: SampleProcessor, ctx: RecordSamples) -> list[PackedMask]:
+    """Run the record (``ctx.signals``) through ``proc`` in blocks of :data:`CHUNK`
+    samples and keep, of each equation's recorded block, what the diagnosis reads: the
+    used rows, packed as they come (:class:`~canrls.core.spill.MaskPacker`: one bit a
+    row, in a temporary file past a few hundred thousand rows); the times are the
+    samples' own, ``ctx.t`` (checked block by block).
 
     The pipeline carries its state from block to block bit for bit (``canrls fit``
     replays a log in blocks too), so the result is the one of a single run; but the
@@ -211,6 +211,7 @@ def _run_in_chunks(proc: SampleProcessor,
     sample, the regressor buffer) stay the size of one block instead of the record's
     (:func:`_traces` re-runs the estimators for the convergence figure).
     """
+    signals, t = ctx.signals, ctx.t
     kept: list[MaskPacker] = []
     rows: list[int] = []  # rows of each equation so far
 
@@ -219,9 +220,9 @@ def _run_in_chunks(proc: SampleProcessor,
             kept.extend(MaskPacker() for _ in block.equations)
             rows.extend(0 for _ in block.equations)
         for j, (packer, eb) in enumerate(zip(kept, block.equations, strict=True)):
-            # the pipeline's rows are the samples given (their times: signals.t, not kept)
+            # the pipeline's rows are the samples given (their times: ctx.t, not kept)
             a = rows[j]
-            if not np.array_equal(eb.t, signals.t[a:a + len(eb.t)]):  # pragma: no cover
+            if not np.array_equal(eb.t, t[a:a + len(eb.t)]):  # pragma: no cover
                 raise AssertionError(f"{eb.equation}: the pipeline's rows {a}.. are not "
                                      f"the samples")
             rows[j] += len(eb.t)
@@ -278,7 +279,7 @@ def _analyse_equation(ctx: RecordSamples, model: Model, est: EquationEstimator,
 
 
 # -------------------------------------------------------------------------- traces
-def _traces(ctx: RecordSamples, est: EquationEstimator, r: F64,
+def _traces(ctx: RecordSamples, est: EquationEstimator, r: ColumnLike,
             used: PackedMask) -> Traces:
     eq = est.equation
     n_used = used.count()
@@ -327,7 +328,7 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, r: F64,
                     th_l.append(eq.to_physical(np.array(rls.theta)))
                     sd_l.append(np.hypot(eq.sigma_to_physical(rls.std() * root_kappa), bias))
                     fx_l.append(eq.to_physical(frls.theta_float))
-                    t_l.append(ctx.signals.t[m + int(at[c - 1])])
+                    t_l.append(ctx.t[m + int(at[c - 1])])
                     ci += 1
         conv_t = np.array(t_l)
         theta = np.array(th_l)
@@ -358,13 +359,13 @@ def _traces(ctx: RecordSamples, est: EquationEstimator, r: F64,
     y = ctx.output_at(eq, pts)
     res = r[pts]
 
-    def at(x: F64 | None) -> F64 | None:
+    def at_points(x: ColumnLike | None) -> F64 | None:
         return None if x is None else x[pts]
 
     return Traces(
-        t=ctx.signals.t[pts], used=used[pts], y=y, yhat=y - res, residual=res, speed=ctx.speed[pts],
+        t=ctx.t[pts], used=used[pts], y=y, yhat=y - res, residual=res, speed=ctx.speed[pts],
         acceleration=ctx.acceleration[pts], current=ctx.current[pts],
-        position=at(ctx.position), angle=at(ctx.angle), conv_t=conv_t, theta=theta,
+        position=at_points(ctx.position), angle=at_points(ctx.angle), conv_t=conv_t, theta=theta,
         sigma=sigma, theta_fixed=tfx, names=tuple(p.name for p in eq.parameters),
         units=tuple(p.unit for p in eq.parameters), timeline=timeline,
         scatter=scatter, record_used=used)

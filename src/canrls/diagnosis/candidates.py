@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from canrls.core.errors import ConfigError
 from canrls.core.samples import Signals
-from canrls.core.spill import PackedMask, SpilledSignals
+from canrls.core.spill import PackedMask, Sliced, SpilledSignals
 from canrls.diagnosis.record import BLOCK, RecordSamples
 from canrls.diagnosis.residual import (
     MIN_BIN,
@@ -117,7 +117,7 @@ class ResidualSummary:
     configuration (kept, not searched).
     """
 
-    r: F64
+    r: Sliced
     used: PackedMask
     h2: float
     unit: str

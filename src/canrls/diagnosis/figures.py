@@ -142,7 +142,7 @@ class Figures:
         if quantity != "speed" or not b.traces.used.any():
             vmax = 1.0
         elif b.traces.scatter is not None:  # the points are decimated: the record's max
-            vmax = float(b.excitation.speed_max)  # type: ignore[attr-defined]
+            vmax = float(b.excitation.speed_max)
         else:
             vmax = float(np.nanmax(np.abs(b.traces.speed[b.traces.used])))
         u = b.unit

@@ -20,12 +20,12 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.core.samples import Signals
-from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals, as_packed
+from canrls.core.spill import ColumnLike, MaskPacker, PackedMask, SpilledSignals, as_packed
 from canrls.estimation.equation import Equation, PositionUnwrapper
 from canrls.estimation.model import Model
 from canrls.estimation.selection import SamplePolicy
 from canrls.estimation.settings import EstimatorSettings
-from canrls.estimation.svf import SVF, impulse_response
+from canrls.estimation.svf import SVF, Hold, impulse_response
 
 __all__ = ["BLOCK", "RecordSamples"]
 
@@ -178,6 +178,10 @@ class RecordSamples:
     def __init__(self, model: Model, signals: Signals | SpilledSignals, dt: float,
                  settings: EstimatorSettings, max_order: int) -> None:
         self.signals = signals
+        t = signals.t
+        assert t is not None, "a spilled record has its times from its first row on"
+        #: the receive times of the measured rows (``signals.t``)
+        self.t: ColumnLike = t
         self.dt = dt
         self.settings = settings
         self.max_order = max_order
@@ -197,7 +201,8 @@ class RecordSamples:
         self.effort_unit = ("A" if self.effort == "current" else
                             "N·m" if model.axis == "rotary" else "N")
         effort = self.effort
-        hold = {r: ("zoh" if r in held else "foh") for r in ("speed", "position")}
+        hold: dict[str, Hold] = {r: ("zoh" if r in held else "foh")
+                                 for r in ("speed", "position")}
         hold["current"] = "zoh" if effort in held else "foh"
         self.speed_hold = hold["speed"]
         self.position_hold = hold["position"]
@@ -418,7 +423,7 @@ class RecordSamples:
             yield m, phi, y
             m += len(y)
 
-    def residual(self, eq: Equation, theta: F64) -> Filtered:
+    def residual(self, eq: Equation, theta: npt.NDArray[np.floating[Any]]) -> Filtered:
         """``r = y - Phi theta`` on every measured row, in the output unit (``theta``
         normalised): not kept, computed block by block from the equation's columns
         when read (:class:`Filtered`: the builder runs forward block by block)."""
@@ -478,8 +483,9 @@ class RecordSamples:
                 continue
             n_rows += int(np.count_nonzero(sel))
             # [R_prev z_prev; Phi_b y_b] = Q [R z]
-            Rz = np.linalg.qr(np.vstack([Rz, np.column_stack([phi[sel], y[sel]])]),
-                              mode="r")
+            stacked = np.vstack([Rz, np.column_stack([phi[sel], y[sel]])])
+            # numpy's stubs give every mode a QRResult: mode "r" returns R alone
+            Rz = np.linalg.qr(stacked, mode="r")  # type: ignore[assignment]
         if len(Rz) < eq.n:
             Rz = np.vstack([Rz, np.zeros((eq.n - len(Rz), m))])
         # the rank cut-off lstsq takes for Phi[rows] (eps x its larger dimension)
@@ -487,12 +493,12 @@ class RecordSamples:
         theta = np.linalg.lstsq(Rz[:eq.n, :eq.n], Rz[:eq.n, eq.n], rcond=rcond)[0]
         return self.residual(eq, theta)
 
-    def impulse(self, hold: str, derivative: bool = False) -> F64:
+    def impulse(self, hold: Hold, derivative: bool = False) -> F64:
         """Impulse response of F (DC gain 1), or of sF, for a hold, long enough to decay."""
         key = hold + ("/s" if derivative else "")
         if key not in self._h:
             self._h[hold], self._h[hold + "/s"] = impulse_response(
-                self.cutoff_hz, self.dt, self.zeta, hold)  # type: ignore[arg-type]
+                self.cutoff_hz, self.dt, self.zeta, hold)
         return self._h[key]
 
     def coherence(self, order: int, used: B | PackedMask) -> tuple[float, float]:
@@ -509,7 +515,7 @@ class RecordSamples:
         if key not in self._coh:
             # block by block: the means of t and the angle, the slope from the centred
             # sums, then the mean of exp(ik(a - w t)) per order (nothing record-long)
-            ang, t = self.angle_raw, self.signals.t
+            ang, t = self.angle_raw, self.t
             n = int(used.sum())
             c = np.ones(self.max_order + 1)
             w = 0.0

@@ -229,7 +229,7 @@ def _parameter_rows(before: Analysis, after: Analysis | None
     rows = []
     for n in list(pb) + [n for n in pa if n not in pb]:
         b, a = pb.get(n), pa.get(n)
-        unit = (a or b).unit  # type: ignore[union-attr]
+        unit = next(p.unit for p in (a, b) if p is not None)  # n is in one of them
         rows.append((n, [b, a] if after is not None else [b], unit))
     return rows
 
@@ -457,8 +457,8 @@ def _format_equation(q: EquationDiagnosis, axis: str) -> list[str]:
                 out.append(f"        evidence: {e}")
     else:
         out.append("  no candidate: every effect of the library is in the model")
-    for e, r in q.not_applicable:
-        out.append(f"  ({e}: {r})")
+    for e, why in q.not_applicable:
+        out.append(f"  ({e}: {why})")
     if q.structure:
         out += ["", "Structure left " + ("after the suggestion" if q.suggestion else "")]
         for s in q.structure:
@@ -501,7 +501,7 @@ def _format_before_after(before: Analysis, after: Analysis,
         bs = f"{b.value:.6g} ± {b.sigma:.2g}" if b else "—"
         as_ = f"{a.value:.6g} ± {a.sigma:.2g}" if a else "—"
         fx = f"{a.fixed:.6g}" if a else "—"
-        unit = (a or b).unit  # type: ignore[union-attr]
+        unit = next(p.unit for p in (a, b) if p is not None)  # n is in one of them
         out.append(f"  {n:<{w}}  {bs:>26}  {as_:>26}  {fx:>12}  {unit}")
     out += ["", "After: " + " ".join(e.verdict for e in after.equations)]
     return out

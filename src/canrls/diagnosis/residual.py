@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls import _kernels
-from canrls.core.spill import PackedMask
+from canrls.core.spill import PackedMask, Sliced
 from canrls.diagnosis.record import BLOCK, RecordSamples
 from canrls.diagnosis.results import (
     Binned,
@@ -100,7 +100,7 @@ def chi2_sf(q: float, k: int) -> float:
     return 0.5 * math.erfc(z / math.sqrt(2.0))
 
 
-def _every(x: F64, rows: B, D: int) -> F64:
+def _every(x: Sliced, rows: B, D: int) -> F64:
     """``x[rows][::D]``, gathered block by block (no copy of ``x[rows]``)."""
     parts = []
     seen = 0  # rows passed so far
@@ -112,7 +112,7 @@ def _every(x: F64, rows: B, D: int) -> F64:
     return np.concatenate(parts) if parts else np.zeros(0)
 
 
-def whiteness(r: F64, used: B, inputs: Mapping[str, F64], h: F64,
+def whiteness(r: Sliced, used: B, inputs: Mapping[str, Sliced], h: F64,
                lags: int) -> Whiteness | None:
     # decimation: the lag after which |rho_h| stays below 0.02
     hh = float(np.dot(h, h))
@@ -167,7 +167,7 @@ def _spans(n: int) -> range:
     return range(0, n, BLOCK)
 
 
-def _kth(x: F64, rows: B | None, ks: list[int]) -> list[float]:
+def _kth(x: Sliced, rows: B | None, ks: list[int]) -> list[float]:
     """The ``k``-th smallest (0-based) of ``x[rows]`` for each ``k`` (finite values),
     exactly, without the copy of ``x[rows]``: a count on a fixed grid of bins finds the
     bin that holds the ``k``-th value, the search goes on inside it (its own values'
@@ -217,7 +217,7 @@ def _kth(x: F64, rows: B | None, ks: list[int]) -> list[float]:
     return out
 
 
-def _finite(x: F64, rows: B | None) -> bool:
+def _finite(x: Sliced, rows: B | None) -> bool:
     for a in _spans(len(x)):
         v = x[a:a + BLOCK] if rows is None else x[a:a + BLOCK][rows[a:a + BLOCK]]
         if not np.isfinite(v).all():
@@ -225,12 +225,12 @@ def _finite(x: F64, rows: B | None) -> bool:
     return True
 
 
-def _copy(x: F64, rows: B | None) -> F64:
+def _copy(x: Sliced, rows: B | None) -> F64:
     return np.concatenate([x[a:a + BLOCK] if rows is None else
                            x[a:a + BLOCK][rows[a:a + BLOCK]] for a in _spans(len(x))])
 
 
-def percentiles(x: F64, rows: B | None, qs: list[float]) -> list[float]:
+def percentiles(x: Sliced, rows: B | None, qs: list[float]) -> list[float]:
     """``np.percentile(x[rows], qs)`` (its default, linear interpolation), bit for bit,
     from :func:`_kth` (no record-long copy unless a value is not finite). ``x[rows]``
     must not be empty."""
@@ -257,7 +257,7 @@ def percentiles(x: F64, rows: B | None, qs: list[float]) -> list[float]:
     return out
 
 
-def median(x: F64, rows: B | None = None) -> float:
+def median(x: Sliced, rows: B | None = None) -> float:
     """``np.median(x[rows])``, bit for bit, without the copy (unless a value is not
     finite)."""
     if not _finite(x, rows):
@@ -288,7 +288,7 @@ def nice_magnitudes(vmax: float) -> F64:
         e += 1
 
 
-def bin_residual(values: F64, r: F64, edges: F64, quantity: str, label: str,
+def bin_residual(values: Sliced, r: Sliced, edges: F64, quantity: str, label: str,
                  unit: str, rows: B | None = None) -> Binned:
     """Mean and RMS of ``r[rows]`` in the bins ``edges`` of ``values[rows]`` (every row
     when ``rows`` is None), block by block: the sums of each bin run in the order of
@@ -328,7 +328,7 @@ def bin_residual(values: F64, r: F64, edges: F64, quantity: str, label: str,
     return Binned(quantity, label, unit, edges, cnt, mean, rms, min(max(share, 0.0), 1.0))
 
 
-def _extremes(x: F64, rows: B) -> tuple[float, float]:
+def _extremes(x: Sliced, rows: B) -> tuple[float, float]:
     """(min, max) of ``x[rows]``, block by block."""
     lo, hi = math.inf, -math.inf
     for a in _spans(len(x)):
@@ -338,7 +338,7 @@ def _extremes(x: F64, rows: B) -> tuple[float, float]:
     return lo, hi
 
 
-def moments(r: F64, rows: B) -> tuple[int, float, float, float]:
+def moments(r: Sliced, rows: B) -> tuple[int, float, float, float]:
     """(N, mean, sum of squares, sum of squares about the mean) of ``r[rows]``, block by
     block (the deviations in a second pass, as ``np.std`` takes them)."""
     n = _true_rows(rows)
@@ -357,7 +357,7 @@ def moments(r: F64, rows: B) -> tuple[int, float, float, float]:
     return n, mu, s2, ss
 
 
-def _edges_linear(v: F64, rows: B, nb: int) -> F64:
+def _edges_linear(v: Sliced, rows: B, nb: int) -> F64:
     """``nb`` bins from the 0.5 to the 99.5 percentile of ``v[rows]`` (exact:
     :func:`percentiles`), the end bins stretched to the extremes."""
     if _finite(v, rows):
@@ -379,7 +379,7 @@ class _Mapped:
     """``f(x)`` elementwise, computed on the slices taken (a record-long array's
     stand-in for :func:`bin_residual` and :func:`percentiles`, which take only slices)."""
 
-    def __init__(self, x: F64, f: Callable[[F64], F64]) -> None:
+    def __init__(self, x: Sliced, f: Callable[[F64], F64]) -> None:
         self.x = x
         self.f = f
 
@@ -393,7 +393,7 @@ class _Mapped:
 class _SecondDifference:
     """``|w[k+2] - 2 w[k+1] + w[k]|``, computed on the slices taken."""
 
-    def __init__(self, w: F64) -> None:
+    def __init__(self, w: Sliced) -> None:
         self.w = w
 
     def __len__(self) -> int:
@@ -405,7 +405,7 @@ class _SecondDifference:
         return np.abs(w[a + 2:b + 2] - 2.0 * w[a + 1:b + 1] + w[a:b])
 
 
-def all_bins(ctx: RecordSamples, r: F64, used: B, unit: str) -> dict[str, Binned]:
+def all_bins(ctx: RecordSamples, r: Sliced, used: B, unit: str) -> dict[str, Binned]:
     """The residual binned by speed, position, current, acceleration and time over the
     ``used`` rows, block by block (bin edges from exact extremes and percentiles)."""
     out: dict[str, Binned] = {}
@@ -420,7 +420,7 @@ def all_bins(ctx: RecordSamples, r: F64, used: B, unit: str) -> dict[str, Binned
         if ctx.axis == "rotary":
             pos = _Mapped(ctx.position, lambda x: np.mod(x, 2.0 * math.pi))
             pe = np.linspace(0.0, 2.0 * math.pi, 37)
-            out["position"] = bin_residual(pos, r, pe, "position",  # type: ignore[arg-type]
+            out["position"] = bin_residual(pos, r, pe, "position",
                                            "position in the revolution", "rad", used)
         else:
             out["position"] = bin_residual(ctx.position, r,
@@ -432,7 +432,7 @@ def all_bins(ctx: RecordSamples, r: F64, used: B, unit: str) -> dict[str, Binned
     out["acceleration"] = bin_residual(ctx.acceleration, r,
                                        _edges_linear(ctx.acceleration, used, 20),
                                        "acceleration", "acceleration", ctx.acc_unit, used)
-    t = ctx.signals.t
+    t = ctx.t
     first = int(np.argmax(used))
     last = len(used) - 1 - int(np.argmax(used[::-1]))
     te = (np.linspace(float(t[first]), float(t[last]), 21) if last > first
@@ -478,7 +478,7 @@ def _notable(mean: float, n: int, sd: float, rms: float, tau: float) -> bool:
     return abs(mean) >= 0.2 * rms and abs(mean) >= 4.0 * se
 
 
-def find_regions(bins: Mapping[str, Binned], ru: F64, tau: float, unit: str,
+def find_regions(bins: Mapping[str, Binned], ru: Sliced, tau: float, unit: str,
                  ctx: RecordSamples, rows: B | None = None) -> tuple[Region, ...]:
     """The worst regions in words; ``ru`` the residual on the used rows, or with
     ``rows`` the residual on every row and the used ones (read block by block)."""
@@ -575,7 +575,7 @@ def find_regions(bins: Mapping[str, Binned], ru: F64, tau: float, unit: str,
 
 
 # --------------------------------------------------------------------- order spectrum
-def order_spectrum(ctx: RecordSamples, r: F64, used: B, unit: str) -> OrderSpectrum:
+def order_spectrum(ctx: RecordSamples, r: Sliced, used: B, unit: str) -> OrderSpectrum:
     assert ctx.angle_raw is not None
     K = ctx.max_order
     orders = spectrum_orders(K)
@@ -592,7 +592,7 @@ def spectrum_orders(max_order: int) -> F64:
     return np.concatenate([fine, coarse])
 
 
-def _harmonic_blocks(ctx: RecordSamples, r: F64, filled_used: B, orders: F64,
+def _harmonic_blocks(ctx: RecordSamples, r: Sliced, filled_used: B, orders: F64,
                      mean_r: float) -> Iterator[tuple[F64, F64]]:
     """Per block of rows: the filtered columns ``F[sin q a]``, ``F[cos q a]`` of every
     order ``q`` (interleaved) on the used rows (``filled_used``: the used rows spread
@@ -630,7 +630,7 @@ def _harmonic_blocks(ctx: RecordSamples, r: F64, filled_used: B, orders: F64,
         del raw, f, _
 
 
-def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64, F64]:
+def harmonic_fit(ctx: RecordSamples, r: Sliced, used: B, orders: F64) -> tuple[F64, F64]:
     """Per order q: LS fit of r by a constant, F[sin q a] and F[cos q a].
 
     Returns the amplitude of the sine/cosine pair (output unit) and the share of the
@@ -684,7 +684,7 @@ def harmonic_fit(ctx: RecordSamples, r: F64, used: B, orders: F64) -> tuple[F64,
     return amp, expl
 
 
-def joint_shares(ctx: RecordSamples, r: F64, used: B, peaks: Sequence[float]
+def joint_shares(ctx: RecordSamples, r: Sliced, used: B, peaks: Sequence[float]
                  ) -> tuple[float, ...]:
     """The share of the residual variance each of ``peaks`` explains beyond the peaks
     before it (fitted together: sequential, so the shares add up to the joint fit's,
@@ -754,7 +754,7 @@ def excitation_summary(ctx: RecordSamples, model: Model, used: B,
                                  math.nan, None if ws is None else math.nan, None, None,
                                  ctx.speed_unit, ctx.per, ws)
     speed = ctx.speed
-    vmax = percentiles(_Mapped(speed, np.abs), used, [99.0])[0]  # type: ignore[arg-type]
+    vmax = percentiles(_Mapped(speed, np.abs), used, [99.0])[0]
     eps = max(model.coulomb_band, 0.01 * vmax)
     n_fwd = n_bwd = n_low = rev = 0
     last_sign = 0.0  # sign of the last sample beyond eps (0: none yet)
@@ -787,8 +787,10 @@ def excitation_summary(ctx: RecordSamples, model: Model, used: B,
         ss += float(np.dot(d, d))
     # speed-sensor noise from the second differences of the measured speed (robust:
     # var(w[k+1] - 2 w[k] + w[k-1]) = 6 sigma^2 for white noise), through sF
-    d2 = _SecondDifference(ctx.signals.speed)  # read in slices
-    sigma_w = 1.4826 * median(d2) / math.sqrt(6.0) if len(d2) else 0.0  # type: ignore[arg-type]
+    w = ctx.signals.speed
+    assert w is not None, "a record without rows"  # the speed is every record's
+    d2 = _SecondDifference(w)  # read in slices
+    sigma_w = 1.4826 * median(d2) / math.sqrt(6.0) if len(d2) else 0.0
     h_sf = ctx.impulse(ctx.speed_hold, derivative=True)
     acc_noise = sigma_w * float(np.sqrt(np.dot(h_sf, h_sf)))
     revs = cov = None
@@ -817,7 +819,7 @@ def excitation_summary(ctx: RecordSamples, model: Model, used: B,
 
 
 # ------------------------------------------------------------------------- structure
-def residual_structure(ctx: RecordSamples, r: F64, used: B, unit: str, h2: float,
+def residual_structure(ctx: RecordSamples, r: Sliced, used: B, unit: str, h2: float,
                spectrum: OrderSpectrum | None,
                output: str = "current") -> tuple[StructureItem, ...]:
     """Structure of the residual ``r`` (``spectrum``: its order spectrum, if computed).

@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from canrls.core.checks import finite_or_none
-from canrls.core.spill import PackedMask
+from canrls.core.spill import ColumnLike, PackedMask
 from canrls.estimation.estimates import EquationFit, Estimates
 from canrls.estimation.model import Model
 
@@ -158,7 +158,7 @@ class Binned:
 
     @property
     def centers(self) -> F64:
-        return 0.5 * (self.edges[1:] + self.edges[:-1])  # type: ignore[no-any-return]
+        return 0.5 * (self.edges[1:] + self.edges[:-1])
 
     def to_dict(self) -> dict[str, Any]:
         return {"quantity": self.quantity, "unit": self.unit, "edges": _floats(self.edges),
@@ -470,16 +470,16 @@ class Traces:
     sample the parameter convergence (physical units) at up to 400 instants.
     """
 
-    t: F64
+    t: ColumnLike
     used: B
     y: F64
     yhat: F64
     residual: F64
-    speed: F64
-    acceleration: F64
-    current: F64
-    position: F64 | None
-    angle: F64 | None
+    speed: ColumnLike
+    acceleration: ColumnLike
+    current: ColumnLike
+    position: ColumnLike | None
+    angle: ColumnLike | None
     conv_t: F64
     theta: F64
     sigma: F64

@@ -11,6 +11,7 @@ parameters".
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from collections.abc import Callable, Mapping, Sequence
@@ -183,7 +184,8 @@ def search_parameters(ctx: RecordSamples, model: Model, eq: Equation, names: Seq
             if not math.isfinite(r_best):
                 # no value these data tell from the model: the best of all, said so by
                 # the candidate's identifiability
-                best, r_best = minimise_on_grid(lambda v, f=rss: f(v, tellable=False), sp.grid)
+                best, r_best = minimise_on_grid(functools.partial(rss, tellable=False),
+                                                sp.grid)
             if rss_model is None:
                 G0 = Gram(ctx.gram(eq, used, eq.n))
                 rss_model = G0.solve(range(G0.m))[0]
@@ -226,8 +228,7 @@ def search_model(paths: Sequence[str | os.PathLike[str]], protocol: Any, model: 
             # independence 0: the model's own column, whose identifiability is the
             # estimator's to judge (prior share, noise), not the search's
             _, out = search_parameters(ctx, base, eq, names, used, model.options_given,
-                                       lambda new, old, p, ne=Ne: delta_bic(ne, new, old, p),
-                                       0.0)
+                                       functools.partial(delta_bic, Ne), 0.0)
             found += [r for rs in out.values() for r in rs if r.key == "stribeck_speed"]
         for r in found:
             model = model.with_search_value(r.key, r.value)

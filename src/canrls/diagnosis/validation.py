@@ -39,6 +39,7 @@ from canrls.core.checks import finite_or_none
 from canrls.core.errors import ConfigError, EstimatorError
 from canrls.core.files import atomic_writer
 from canrls.core.samples import ROLES, Signals
+from canrls.core.spill import ColumnLike, SpilledSignals
 from canrls.diagnosis.figures import figures_in
 from canrls.diagnosis.record import RecordSamples
 from canrls.diagnosis.report import CAPTIONS, page_template
@@ -228,7 +229,7 @@ def _fit(r: F64, y: F64) -> tuple[float, float, float, float]:
     return rms, fit, r2, nd / math.sqrt(len(r))
 
 
-def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
+def validate_signals(signals: Signals | SpilledSignals, saved: SavedModel, dt: float, *,
                      sizes: Sequence[int] = (), sources: Sequence[str] = (),
                      model_file: str = "<model>", frames: FrameCounts | None = None,
                      period: PeriodInfo | None = None, start: StartInfo | None = None
@@ -290,7 +291,7 @@ def validate_signals(signals: Signals, saved: SavedModel, dt: float, *,
             bins = {}
         ident = saved.fit.get(eq.name, {}).get("residual_rms")
         traces = Traces(
-            t=ctx.signals.t, used=used, y=yt, yhat=yt - r, residual=r, speed=ctx.speed,
+            t=ctx.t, used=used, y=yt, yhat=yt - r, residual=r, speed=ctx.speed,
             acceleration=ctx.acceleration, current=ctx.current, position=ctx.position,
             angle=ctx.angle, conv_t=np.zeros(0), theta=np.zeros((0, 0)),
             sigma=np.zeros((0, 0)), theta_fixed=np.zeros((0, 0)),
@@ -358,7 +359,7 @@ class _Panel:
 
 def _slice(tr: Traces, a: int, b: int) -> Traces:
     """The rows ``a:b`` (one log), its time counted from the log's first sample."""
-    def cut(x: F64 | None) -> F64 | None:
+    def cut(x: ColumnLike | None) -> F64 | None:
         return None if x is None else x[a:b]
     t = tr.t[a:b]
     return Traces(t=t - (t[0] if len(t) else 0.0), used=tr.used[a:b], y=tr.y[a:b],
@@ -404,6 +405,7 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
                 continue
             p = _Panel(e.equation, e.output, e.unit, f.fit_percent, f.residual_rms,
                        _slice(e.traces, a, b), e.bins)
+            # a _Panel, not an EquationDiagnosis: it has what the figures read of it
             name = figs.timeline(p, None, name=f"{e.equation}-timeline-{k + 1}.svg",  # type: ignore[arg-type]
                                  label="saved, not re-estimated")
             add(figures, name, f"{f.source}: {VALIDATE_CAPTIONS['timeline']}",
@@ -415,6 +417,7 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
         for q in ("speed", "position"):
             if q not in e.bins or (q == "position" and e.traces.position is None):
                 continue
+            # a _Panel (no excitation: its traces are not decimated, so none is read)
             name = figs.binned(whole, None, q, name=f"{e.equation}-{q}.svg",  # type: ignore[arg-type]
                                label="saved model")
             mean = e.bins[q].mean
@@ -425,7 +428,7 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
                 f"{value_text(e.residual_rms, e.unit)})")
         sections.append((e, figures))
     page = out / "index.html"
-    with atomic_writer(page, f"--report {out}: index.html") as f:
-        f.write(page_template("validate.html.j2").render(r=report, sections=sections)
-                .encode("utf-8"))
+    with atomic_writer(page, f"--report {out}: index.html") as fh:
+        fh.write(page_template("validate.html.j2").render(r=report, sections=sections)
+                 .encode("utf-8"))
     return page

@@ -209,12 +209,15 @@ class Frame:
     def from_signals(cls, signals: Any, axis: Axis = "rotary",
                      pitch: float = DEFAULT_PITCH) -> Frame:
         """Wrap a :class:`~canrls.core.samples.Signals` block (its position taken as given)."""
+        def col(v: Any) -> F64:
+            return np.ascontiguousarray(v, dtype=np.float64)
+
         def arr(v: Any) -> F64 | None:
-            return None if v is None else np.ascontiguousarray(v, dtype=np.float64)
+            return None if v is None else col(v)
 
         pos = arr(getattr(signals, "position", None))
-        return cls(t=arr(signals.t), current=arr(getattr(signals, "current", None)),
-                   speed=arr(signals.speed), position=pos,  # type: ignore[arg-type]
+        return cls(t=col(signals.t), current=arr(getattr(signals, "current", None)),
+                   speed=col(signals.speed), position=pos,
                    voltage=arr(getattr(signals, "voltage", None)),
                    angle=None if pos is None else cls.phase(pos, axis, pitch),
                    torque=arr(getattr(signals, "torque", None)))
@@ -223,14 +226,14 @@ class Frame:
         v = getattr(self, role, None)
         if v is None:
             raise EffectError(f"signal {role!r} is not available in this block")
-        return v  # type: ignore[no-any-return]
+        return v
 
 
 def _need(frame: Frame, role: str, effect: str) -> F64:
     v = getattr(frame, role, None)
     if v is None:
         raise EffectError(f"effect {effect!r} needs signal {role!r}, which is not available")
-    return v  # type: ignore[no-any-return]
+    return v
 
 
 def _role_range(role: str) -> Callable[[Mapping[str, Range]], Range]:
@@ -486,7 +489,7 @@ class Coulomb(Effect):
 
     def sgn(self, w: F64) -> F64:
         """The smoothed sign ``tanh(omega / band)``."""
-        return np.tanh(w / self.band)  # type: ignore[no-any-return]
+        return np.tanh(w / self.band)
 
     def search_space(self, span: RecordSpan) -> tuple[SearchSpace, ...]:
         """The band, from half the speed noise to 16 times it (at most half the lowest
@@ -548,7 +551,7 @@ class Stribeck(Effect):
     def shape(self, w: F64) -> F64:
         """``tanh(omega / band) * exp(-(omega / speed)^2)``."""
         r = w / self.speed
-        return np.tanh(w / self.band) * np.exp(-(r * r))  # type: ignore[no-any-return]
+        return np.tanh(w / self.band) * np.exp(-(r * r))
 
     def columns(self) -> tuple[Column, ...]:
         return (Column("Ts", False, lambda f: self.shape(_need(f, "speed", self.name)),

@@ -25,7 +25,7 @@ from canrls.estimation.effects import (
     ParameterSpec,
     output_unit,
 )
-from canrls.estimation.svf import SVF, gain_bounds, impulse_response
+from canrls.estimation.svf import SVF, Hold, gain_bounds, impulse_response
 
 __all__ = [
     "Equation",
@@ -212,10 +212,10 @@ class Equation:
                 f"parameters={[p.name for p in self.parameters]})")
 
     @property
-    def holds(self) -> tuple[str, ...]:
+    def holds(self) -> tuple[Hold, ...]:
         """SVF hold of the output and of every column: ``"zoh"`` when it reads a held signal."""
         held = self.model.held
-        out = ["zoh" if self.output.signal in held else "foh"]
+        out: list[Hold] = ["zoh" if self.output.signal in held else "foh"]
         out += ["zoh" if c.reads & held else "foh" for c in self.columns]
         return tuple(out)
 
@@ -283,7 +283,7 @@ class Equation:
         Works on ``(n,)`` and on ``(..., n)`` traces; exact (powers of two).
         """
         th = np.asarray(theta_norm, dtype=np.float64)
-        return th * self._factors  # type: ignore[no-any-return]
+        return th * self._factors
 
     def sigma_to_physical(self, std_norm: npt.ArrayLike) -> F64:
         """Standard deviations of the parameters in physical units (same factors)."""
@@ -292,7 +292,7 @@ class Equation:
     def to_normalised(self, theta_phys: npt.ArrayLike) -> F64:
         """Inverse of :meth:`to_physical` (e.g. to start an estimator from known values)."""
         th = np.asarray(theta_phys, dtype=np.float64)
-        return th / self._factors  # type: ignore[no-any-return]
+        return th / self._factors
 
     def output_to_physical(self, y_norm: npt.ArrayLike) -> F64:
         """A normalised output or residual in the output unit: ``y * 2**s_y``."""
@@ -384,7 +384,7 @@ class RegressorBuilder:
             at = np.maximum.accumulate(np.where(finite[:, j], rows, -1))
             raw[:, j] = np.where(at >= 0, raw[np.maximum(at, 0), j], self._last_finite[j])
         self._last_finite = raw[-1].copy()
-        return ~finite.all(axis=1)
+        return ~np.all(finite, axis=1)
 
     def _check_finite(self, phi: F64, y: F64, t: F64) -> None:
         """Refuse filtered values beyond a double (finite inputs whose filtered values
@@ -414,8 +414,11 @@ class RegressorBuilder:
                     f"{eq.model.source}: the {eq.name} equation needs signal {role!r} "
                     f"(for {', '.join(users)}), which this block does not carry")
 
+        def col(v: Any) -> F64:
+            return np.ascontiguousarray(v, dtype=np.float64)
+
         def arr(v: Any) -> F64 | None:
-            return None if v is None else np.ascontiguousarray(v, dtype=np.float64)
+            return None if v is None else col(v)
 
         pos = arr(getattr(signals, "position", None))
         angle = None
@@ -424,8 +427,8 @@ class RegressorBuilder:
             pos = self.unwrapper.process(raw)
             m = eq.model
             angle = raw if m.axis == "rotary" else Frame.phase(pos, m.axis, m.pitch)
-        return Frame(t=arr(signals.t), current=arr(getattr(signals, "current", None)),
-                     speed=arr(signals.speed), position=pos,  # type: ignore[arg-type]
+        return Frame(t=col(signals.t), current=arr(getattr(signals, "current", None)),
+                     speed=col(signals.speed), position=pos,
                      voltage=arr(getattr(signals, "voltage", None)), angle=angle,
                      torque=arr(getattr(signals, "torque", None)))
 
@@ -455,7 +458,7 @@ class RegressorBuilder:
             return cov
         m = eq.model
         holds = eq.holds[1:]
-        h = {(hold, d): impulse_response(m.cutoff_hz, self.dt, m.zeta, hold)[int(d)]  # type: ignore[arg-type]
+        h = {(hold, d): impulse_response(m.cutoff_hz, self.dt, m.zeta, hold)[int(d)]
              for hold, d in {(hd, c.derivative) for hd, c in zip(holds, eq.columns, strict=True)}}
         H = np.array([[float(h[holds[j], eq.columns[j].derivative]
                              @ h[holds[k], eq.columns[k].derivative]) for k in range(n)]

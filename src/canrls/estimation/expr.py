@@ -161,19 +161,19 @@ FUNCTIONS: Mapping[str, _Fn] = {
     "sin": _Fn(np.sin, 1, 1, lambda x: _TRIG),
     "cos": _Fn(np.cos, 1, 1, lambda x: _TRIG),
     "tan": _Fn(np.tan, 1, 1, lambda x: _FULL),
-    "asin": _Fn(np.arcsin, 1, 1, lambda x: _mono(np.arcsin, *x, dom=(-1.0, 1.0))),
+    "asin": _Fn(np.arcsin, 1, 1, lambda x: _mono(np.arcsin, x[0], x[1], dom=(-1.0, 1.0))),
     "acos": _Fn(np.arccos, 1, 1,
                 lambda x: (0.0, math.pi) if x[0] < -1 or x[1] > 1 else
                 _iv(math.acos(x[1]), math.acos(x[0]))),
-    "atan": _Fn(np.arctan, 1, 1, lambda x: _mono(np.arctan, *x)),
+    "atan": _Fn(np.arctan, 1, 1, lambda x: _mono(np.arctan, x[0], x[1])),
     "atan2": _Fn(np.arctan2, 2, 2, lambda y, x: (-math.pi, math.pi)),
-    "sinh": _Fn(np.sinh, 1, 1, lambda x: _mono(np.sinh, *x)),
+    "sinh": _Fn(np.sinh, 1, 1, lambda x: _mono(np.sinh, x[0], x[1])),
     "cosh": _Fn(np.cosh, 1, 1, _icosh),
-    "tanh": _Fn(np.tanh, 1, 1, lambda x: _mono(np.tanh, *x)),
-    "exp": _Fn(np.exp, 1, 1, lambda x: _mono(np.exp, *x)),
-    "log": _Fn(np.log, 1, 1, lambda x: _mono(np.log, *x, dom=(0.0, _INF))),
-    "log10": _Fn(np.log10, 1, 1, lambda x: _mono(np.log10, *x, dom=(0.0, _INF))),
-    "sqrt": _Fn(np.sqrt, 1, 1, lambda x: _mono(np.sqrt, *x, dom=(0.0, _INF))),
+    "tanh": _Fn(np.tanh, 1, 1, lambda x: _mono(np.tanh, x[0], x[1])),
+    "exp": _Fn(np.exp, 1, 1, lambda x: _mono(np.exp, x[0], x[1])),
+    "log": _Fn(np.log, 1, 1, lambda x: _mono(np.log, x[0], x[1], dom=(0.0, _INF))),
+    "log10": _Fn(np.log10, 1, 1, lambda x: _mono(np.log10, x[0], x[1], dom=(0.0, _INF))),
+    "sqrt": _Fn(np.sqrt, 1, 1, lambda x: _mono(np.sqrt, x[0], x[1], dom=(0.0, _INF))),
     "abs": _Fn(np.abs, 1, 1, _iabs),
     "sign": _Fn(np.sign, 1, 1, _isign),
     "min": _Fn(np.minimum, 2, -1,
@@ -236,7 +236,7 @@ class CompiledExpression:
             for role in _ROLE_ORDER:
                 v = data.get(role) if isinstance(data, Mapping) else getattr(data, role, None)
                 if v is not None:
-                    n = len(v)
+                    n = len(np.asarray(v))
                     break
             else:
                 raise ExpressionError(
@@ -279,10 +279,16 @@ class _Compiler:
             return f"line {lineno}, column {col_chars}"
         return f"column {col_chars}"
 
+    def at(self, node: ast.AST | None) -> str | None:
+        """:meth:`where` ``node`` is, or None for a node without a place (an operator)."""
+        lineno, col = getattr(node, "lineno", None), getattr(node, "col_offset", None)
+        return None if lineno is None or col is None else self.where(lineno, col)
+
     def fail(self, what: str, token: str, node: ast.AST | None, hint: str = "") -> ExpressionError:
         pos = ""
-        if node is not None and hasattr(node, "lineno"):
-            pos = f" at {self.where(node.lineno, node.col_offset)}"
+        at = self.at(node)
+        if at is not None:
+            pos = f" at {at}"
         msg = f"term {self.name!r}: {what} {token!r}{pos} is not allowed"
         if hint:
             msg += f" ({hint})"
@@ -295,7 +301,7 @@ class _Compiler:
     def compile(self, node: ast.AST, depth: int = 0) -> tuple[_Eval, _Bound, float | None]:
         """Return (eval, bound, constant value or None)."""
         if depth > _MAX_DEPTH:
-            where = self.where(node.lineno, node.col_offset) if hasattr(node, "lineno") else "?"
+            where = self.at(node) or "?"
             raise ExpressionError(f"term {self.name!r}: expression nested deeper than "
                                   f"{_MAX_DEPTH} levels at {where}")
         if isinstance(node, ast.Constant):
@@ -312,7 +318,7 @@ class _Compiler:
             return self.compile_name(node)
         if isinstance(node, ast.UnaryOp):
             if isinstance(node.op, ast.USub):
-                f, b, c = self.compile(node.operand, depth + 1)
+                f, b, cu = self.compile(node.operand, depth + 1)
 
                 def neg_bound(rs: Mapping[str, Interval]) -> Interval:
                     # -[lo, hi] = [-hi, -lo]; the operand's bound is evaluated once, so
@@ -321,7 +327,7 @@ class _Compiler:
                     lo, hi = b(rs)
                     return -hi, -lo
 
-                return (lambda env: np.negative(f(env))), neg_bound, None if c is None else -c
+                return (lambda env: np.negative(f(env))), neg_bound, None if cu is None else -cu
             if isinstance(node.op, ast.UAdd):
                 return self.compile(node.operand, depth + 1)
             raise self.fail("operator", _OP_SYMBOL.get(type(node.op), type(node.op).__name__),

@@ -166,7 +166,7 @@ class Model:
             DATA_OPTIONS if options_given is None else options_given) & frozenset(DATA_OPTIONS)
         if axis not in ("rotary", "linear"):
             raise ConfigError(_fmt(source, "model.axis", axis, "must be 'rotary' or 'linear'"))
-        self.axis: Axis = axis  # type: ignore[assignment]
+        self.axis: Axis = axis  # type: ignore[assignment]  # one of Axis: checked above
         self.kt = None if kt is None else _number(source, "model.kt", kt, nonzero=True)
         if output not in OUTPUTS:
             raise ConfigError(_fmt(source, "model.output", output,
@@ -228,12 +228,12 @@ class Model:
                                        "torque=MESSAGE.SIGNAL)"))
         self.effects: tuple[Effect, ...] = self._build_effects(effects)
         self.equations: tuple[Equation, ...] = self._build_equations()
-        av = self.available_signals
+        sent = self.available_signals
         for eq in self.equations:
-            if av is not None and eq.name == MECHANICAL and eq.output.signal not in av:
+            if sent is not None and eq.name == MECHANICAL and eq.output.signal not in sent:
                 raise ConfigError(_fmt(source, "model.output", self.output,
                                        f"the drive sends no {eq.output.signal} signal "
-                                       f"(it sends {', '.join(sorted(av - {'t'}))})"))
+                                       f"(it sends {', '.join(sorted(sent - {'t'}))})"))
 
     @property
     def target(self) -> str:
@@ -304,10 +304,12 @@ class Model:
             if not isinstance(t.get("expr"), str):
                 raise ConfigError(_fmt(src, f"{key}.expr", t.get("expr"),
                                        "required, a string expression"))
+            # the table's values as the user wrote them: UserTerm checks each
+            options: dict[str, Any] = {
+                k: (tuple(v) if k == "range" and isinstance(v, list) else v)
+                for k, v in t.items()}
             try:  # compile now so that a bad term fails at load time, even if unused
-                UserTerm(name, axis=self.axis, pitch=self.pitch,
-                         **{k: (tuple(v) if k == "range" and isinstance(v, list) else v)
-                            for k, v in t.items()})
+                UserTerm(name, axis=self.axis, pitch=self.pitch, **options)
             except ConfigError as e:
                 raise type(e)(f"{src}: {key} ({name}): {e}") from e
             out[name] = dict(t)
@@ -404,9 +406,9 @@ class Model:
             raise ConfigError(_fmt(src, "model.effects", [], "no effects: give at least one"))
         names = {e.name for e in out}
         if "electrical" not in names:
-            for i, e in enumerate(out):
-                if e.equation == ELECTRICAL:
-                    raise EffectError(_fmt(src, f"model.effects[{i}]", e.name,
+            for i, eff in enumerate(out):
+                if eff.equation == ELECTRICAL:
+                    raise EffectError(_fmt(src, f"model.effects[{i}]", eff.name,
                                            "belongs to the electrical equation; add "
                                            "'electrical' to the effects"))
         return tuple(out)
@@ -430,7 +432,7 @@ class Model:
     def __eq__(self, other: object) -> bool:
         return isinstance(other, Model) and other.to_dict() == self.to_dict()
 
-    __hash__ = None  # type: ignore[assignment]
+    __hash__ = None  # type: ignore[assignment]  # equal by value: no hash, as Python sets it
 
     @property
     def held_list(self) -> list[str]:

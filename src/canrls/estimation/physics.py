@@ -36,10 +36,15 @@ _SIGN = ("the output's sign is opposite to the speed's: flip the sign of the cur
 
 
 class _Estimate(Protocol):
-    name: str
-    value: float
-    sigma: float
+    """A parameter as :func:`check_physics` reads it (read only: result objects are
+    frozen)."""
 
+    @property
+    def name(self) -> str: ...
+    @property
+    def value(self) -> float: ...
+    @property
+    def sigma(self) -> float: ...
     @property
     def identifiable(self) -> bool: ...
 

@@ -38,7 +38,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -242,7 +242,7 @@ class EquationEstimator:
             return None if a is None else a[real]
 
         # changes happen on used rows, which are real: their index among the real rows
-        before = np.cumsum(real) - real
+        before: npt.NDArray[np.intp] = np.cumsum(real) - real
         changes = tuple((int(before[k]), d, dy) for k, d, dy in out.changes)
         return EquationBlock(
             equation=out.equation, t=out.t[real], y=out.y[real], eps=out.eps[real],
@@ -378,7 +378,8 @@ class EquationEstimator:
             fixed = Background(self._fixed_block, phi_u, y_u, record,
                                name="canrls fixed point") if used >= OVERLAP_ROWS else None
             try:
-                eps_u, theta_u, _, flags_u, _ = self.rls.run_block(phi_u, y_u, record)
+                eps_run, theta_u, _, flags_u, _ = self.rls.run_block(phi_u, y_u, record)
+                eps_u = cast(F64, eps_run)  # the pipeline's RLS runs in float64 (its default)
                 self.tail.push(phi_u, y_u)
             finally:
                 if fixed is not None:
@@ -405,12 +406,12 @@ class EquationEstimator:
             # M2 += phi2 phi2' (upper triangle), v2 += phi2 y2, s2 += [1, y2, y2^2]
             _kernels.accumulate(out.check[0][a:b], out.check[1][a:b], out.check_use[a:b],
                                 self._M2, self._v2, self._s2)
-        if record and theta_u is not None and thetaq_u is not None:
+        if (out.theta is not None and out.theta_fixed is not None  # record
+                and theta_u is not None and thetaq_u is not None):
             # rows in a warm-up did not update: they stay nan
             at = slice(a, b) if rows is None else rows + a
-            out.theta[at] = eq.to_physical(theta_u)  # type: ignore[index]
-            out.theta_fixed[at] = eq.to_physical(  # type: ignore[index]
-                self.frls.config.theta.to_float(thetaq_u))
+            out.theta[at] = eq.to_physical(theta_u)
+            out.theta_fixed[at] = eq.to_physical(self.frls.config.theta.to_float(thetaq_u))
 
     # -- the normalisation follows the data -----------------------------------------------
     def _next_change(self, phi: F64, y: F64, use: npt.NDArray[np.bool_], a: int) -> int:
@@ -507,8 +508,8 @@ class EquationEstimator:
         self.rls.rescale(d, dy, prior)
         self.frls.rescale(d, dy, prior)
         self.ridge = np.ldexp(self.ridge, -2 * d)
-        for j, a in prior.items():
-            self.ridge[j] = a
+        for k, a in prior.items():
+            self.ridge[k] = a
         # M = sum phi phi', v = sum phi y, s = [N, sum y, sum y^2], r: mean square of eps
         self._M = np.ldexp(self._M, -(d[:, None] + d[None, :]))
         self._v = np.ldexp(self._v, -(d + dy))

@@ -173,7 +173,7 @@ def check_n(n: object, who: str = "RLS") -> int:
     if isinstance(n, bool):
         raise EstimatorError(f"{who} n must be a positive integer, got {n!r}")
     try:
-        v = operator.index(n)  # type: ignore[arg-type]
+        v = operator.index(n)  # type: ignore[arg-type]  # any object: TypeError refuses it
     except TypeError as e:
         raise EstimatorError(f"{who} n must be a positive integer, got {n!r}") from e
     if v < 1:
@@ -186,7 +186,7 @@ def check_real(name: str, value: object, who: str = "RLS") -> float:
     if isinstance(value, bool):
         raise EstimatorError(f"{who} {name} must be a real number, got {value!r}")
     try:
-        return float(value)  # type: ignore[arg-type]
+        return float(value)  # type: ignore[arg-type]  # any object: the errors refuse it
     except (TypeError, ValueError) as e:
         raise EstimatorError(f"{who} {name} must be a real number, got {value!r}") from e
 

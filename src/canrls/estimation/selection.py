@@ -40,7 +40,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, TypeVar, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -48,7 +48,7 @@ import numpy.typing as npt
 from canrls import _kernels
 from canrls.core.errors import ConfigError
 from canrls.core.samples import ROLES, Signals
-from canrls.core.spill import MaskPacker, PackedMask, SpilledSignals
+from canrls.core.spill import ColumnLike, MaskPacker, PackedMask, SpilledSignals
 from canrls.estimation.equation import Equation
 from canrls.estimation.svf import MAX_TIME_CONSTANT
 
@@ -62,6 +62,7 @@ __all__ = ["MAX_WARMUP", "SelectionSettings", "SamplePolicy", "GapFiller", "Samp
 
 F64 = npt.NDArray[np.float64]
 B = npt.NDArray[np.bool_]
+_G = TypeVar("_G", bound=np.generic)
 
 #: A filled gap is doubtful when the straight line across it departs from the slope
 #: before it by more than this many times the signal's noise (:meth:`GapFiller.settling`):
@@ -481,7 +482,7 @@ class FilledRecord:
         return self._n
 
     @property
-    def position(self) -> F64 | None:
+    def position(self) -> ColumnLike | None:
         """The measured position (None without one): tells whether there is one."""
         return self.measured.position
 
@@ -543,7 +544,13 @@ class SelectedSamples:
         ends = starts[1:] + [len(self.restart)]
         return [(a, b) for a, b in zip(starts, ends, strict=True) if b > a]
 
-    def measured(self, a: npt.NDArray[np.generic] | PackedMask) -> npt.NDArray[np.generic]:
+    @overload
+    def measured(self, a: PackedMask) -> npt.NDArray[np.bool_]: ...
+    @overload
+    def measured(self, a: npt.NDArray[_G]) -> npt.NDArray[_G]: ...
+
+    def measured(self, a: npt.NDArray[_G] | PackedMask
+                 ) -> npt.NDArray[_G] | npt.NDArray[np.bool_]:
         """The measured rows of ``a`` (rows of the filled record), block by block."""
         if self.real is None:
             return np.asarray(a)
@@ -551,7 +558,7 @@ class SelectedSamples:
                               + [np.asarray(a[c0:c0 + len(r)])[r]
                                  for c0, r in self.real.blocks(self.BLOCK)])
 
-    def filled(self, mask: B) -> B | PackedMask:
+    def filled(self, mask: B | PackedMask) -> B | PackedMask:
         """A mask over the measured rows spread over the filled record (filled rows
         False): packed, unless nothing was filled (``mask`` itself)."""
         if self.real is None:

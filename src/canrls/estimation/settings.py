@@ -202,7 +202,9 @@ class EstimatorSettings:
         cfg = FixedConfig.auto(n, ridge, self.lam, theta_max=self.theta_max,
                                word_bits=self.word_bits, acc_bits=self.acc_bits,
                                input_bits=self.input_bits, trace_max=self.trace_max,
-                               **dict(self.fixed_overrides))
+                               # mypy cannot tell these keys (format names: P, theta,
+                               # ...) from auto's named arguments
+                               **dict(self.fixed_overrides))  # type: ignore[arg-type]
         FixedRLS(cfg, n, lam=self.lam, alpha=ridge, trace_max=self.trace_max)
         return cfg
 

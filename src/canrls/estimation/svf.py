@@ -265,34 +265,37 @@ class SVF:
         if a.ndim != 2:
             raise ValueError(f"SVF.process: expected a 1-D or 2-D array, got shape {a.shape}")
         a = np.ascontiguousarray(a)
-        self._prepare(a.shape[1])
+        G0, G1, x1, x2, up = self._prepare(a.shape[1])
         f = np.empty_like(a)
         sf = np.empty_like(a)
-        _kernels.svf(a, self.Ad, self._G0, self._G1, self._x1, self._x2, self._up,
-                     self._primed, f, sf)
+        _kernels.svf(a, self.Ad, G0, G1, x1, x2, up, self._primed, f, sf)
         if one_d:
             return f[:, 0], sf[:, 0]
         return f, sf
 
-    def _prepare(self, m: int) -> None:
-        """Coefficients and state for ``m`` columns (created on the first call)."""
-        if self._G0 is None or self._G1 is None:
+    def _prepare(self, m: int) -> tuple[F64, F64, F64, F64, F64]:
+        """Coefficients and state for ``m`` columns (created on the first call): the
+        kernel's ``G0, G1, x1, x2, up``."""
+        G0, G1 = self._G0, self._G1
+        if G0 is None or G1 is None:
             holds = [self.hold] * m if isinstance(self.hold, str) else list(self.hold)
             if len(holds) != m:
                 raise ValueError(f"SVF.process: got {m} columns, the filter has "
                                  f"{len(holds)} holds")
-            self._G0 = np.ascontiguousarray([self._coef[h][0] for h in holds])
-            self._G1 = np.ascontiguousarray([self._coef[h][1] for h in holds])
-        if self._x1 is None:
-            if self._G0.shape[0] != m:
+            self._G0 = G0 = np.ascontiguousarray([self._coef[h][0] for h in holds])
+            self._G1 = G1 = np.ascontiguousarray([self._coef[h][1] for h in holds])
+        x1, x2, up = self._x1, self._x2, self._up
+        if x1 is None or x2 is None or up is None:
+            if G0.shape[0] != m:
                 raise ValueError(f"SVF.process: got {m} columns, the filter has "
-                                 f"{self._G0.shape[0]}")
-            self._x1 = np.zeros(m)
-            self._x2 = np.zeros(m)
-            self._up = np.zeros(m)
-        elif self._x1.shape[0] != m:
+                                 f"{G0.shape[0]}")
+            self._x1 = x1 = np.zeros(m)
+            self._x2 = x2 = np.zeros(m)
+            self._up = up = np.zeros(m)
+        elif x1.shape[0] != m:
             raise ValueError(
-                f"SVF.process: got {m} columns, the filter state has {self._x1.shape[0]}")
+                f"SVF.process: got {m} columns, the filter state has {x1.shape[0]}")
+        return G0, G1, x1, x2, up
 
     def process_scaled(self, u: F64, derivative: npt.NDArray[np.bool_], scale: F64,
                         y: F64, phi: F64) -> None:
@@ -302,6 +305,6 @@ class SVF:
         as :meth:`process` (``scale`` holds exact powers of two).
         """
         a = np.ascontiguousarray(u, dtype=np.float64)
-        self._prepare(a.shape[1])
-        _kernels.svf_scaled(a, self.Ad, self._G0, self._G1, self._x1, self._x2, self._up,
-                            self._primed, derivative, scale, y, phi)
+        G0, G1, x1, x2, up = self._prepare(a.shape[1])
+        _kernels.svf_scaled(a, self.Ad, G0, G1, x1, x2, up, self._primed, derivative, scale,
+                            y, phi)

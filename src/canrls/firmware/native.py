@@ -112,9 +112,9 @@ def pack(tm: TargetModel) -> npt.NDArray[np.int64]:
                               "crc": int(m.crc), "has_counter": int(m.counter is not None),
                               "nroles": len(roles), "roles": roles + [0] * (5 - len(roles))})
         _put(out, "field", _field(m.counter))
-    for f in tm.filters:
-        _put(out, "filter", {"kind": f.kind, "role": ROLES.index(f.role) if f.role else 0,
-                             "order": f.order, "hold": f.hold, "fx": f.fx})
+    for flt in tm.filters:
+        _put(out, "filter", {"kind": flt.kind, "role": ROLES.index(flt.role) if flt.role else 0,
+                             "order": flt.order, "hold": flt.hold, "fx": flt.fx})
     for e in tm.equations:
         _equation(out, e)
     for eff, comp, order, eq in tm.param_info:

@@ -520,7 +520,7 @@ def _coefficients(model: Model, dt: float) -> tuple[tuple[int, ...], tuple[tuple
     gu = ((1 << 30) - A[0], -A[2])
     G = []
     for hold in ("foh", "zoh"):
-        _, g1 = svf.coefficients(hold)  # type: ignore[arg-type]
+        _, g1 = svf.coefficients(hold)
         g1q = (int(round(g1[0] * (1 << 30))), int(round(g1[1] * dt * (1 << 30))))
         g0q = (gu[0] - g1q[0], gu[1] - g1q[1])
         for v in (*g0q, *g1q):

@@ -12,6 +12,7 @@ replays through ``canrls_target_frame`` and compares word for word: the host tes
 from __future__ import annotations
 
 import collections
+import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -56,7 +57,7 @@ def log_frames(paths: Iterable[str | Path], tick_s: float = 1e-6) -> Iterator[Fr
         yield from block_frames(b, t0, tick_s)
 
 
-def log_blocks(paths: Iterable[str | Path], *, skip_bad_lines: bool = False
+def log_blocks(paths: Iterable[str | os.PathLike[str]], *, skip_bad_lines: bool = False
                ) -> Iterator[FrameBlock]:
     """The frame blocks of logs, one after the other; a log without a frame is refused
     as ``canrls fit`` refuses it."""

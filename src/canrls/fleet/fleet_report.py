@@ -181,7 +181,7 @@ def write_html(fleet: FleetAssessment, directory: str | os.PathLike[str], *,
             fig = f"drive-{k + 1:04d}.svg"
             alt = _trend_figure(d, fleet, out / fig)
         drives.append((d, fig, alt))
-    spread = []
+    spread: list[tuple[str, str, str]] = []
     for key, per in fleet.spread.items():
         for name in per:
             if not per[name]:

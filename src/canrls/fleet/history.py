@@ -468,9 +468,11 @@ class History:
     # ------------------------------------------------------------------ writing
     def _insert(self, table: Any) -> Any:
         if self.engine.dialect.name == "postgresql":
-            from sqlalchemy.dialects.postgresql import insert
-        else:
-            from sqlalchemy.dialects.sqlite import insert
+            from sqlalchemy.dialects.postgresql import insert as pg_insert
+
+            return pg_insert(table)
+        from sqlalchemy.dialects.sqlite import insert
+
         return insert(table)
 
     def _id(self, conn: Any, table: str, key_col: str, key: str, values: dict[str, Any],

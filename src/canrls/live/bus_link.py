@@ -327,7 +327,8 @@ class FrameQueue(can.Listener):
                 if spans:
                     parts.append(to_block(spans))
                     spans = []
-                msgs.append(q.popleft())
+                q.popleft()  # item
+                msgs.append(item)
                 k += 1
                 continue
             if msgs:
@@ -340,7 +341,8 @@ class FrameQueue(can.Listener):
                     q[0] = item.tail(room)
                     k = most
                     break
-                spans.append(q.popleft())
+                q.popleft()  # item
+                spans.append(item)
                 k += len(item)
                 continue
             if spans:
@@ -351,7 +353,8 @@ class FrameQueue(can.Listener):
                 q[0] = item.take(slice(room, None))
                 k = most
                 break
-            parts.append(q.popleft())
+            q.popleft()  # item
+            parts.append(item)
             k += len(item)
         if msgs:
             parts.append(messages_to_block(msgs))

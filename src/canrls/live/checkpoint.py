@@ -334,7 +334,8 @@ def _encode(cp: Checkpoint) -> bytes:
                     "version": cp.version}, arrays, "")
     meta = json.dumps(doc, sort_keys=True, allow_nan=True).encode()
     buf = io.BytesIO()
-    np.savez(buf, __meta__=np.frombuffer(meta, np.uint8), **arrays)
+    # numpy's stub lets ** fill savez's allow_pickle: these keys are the state's names
+    np.savez(buf, __meta__=np.frombuffer(meta, np.uint8), **arrays)  # type: ignore[arg-type]
     payload = buf.getvalue()
     header = json.dumps({"format": FORMAT, "canrls": cp.version, "size": len(payload),
                          "sha256": hashlib.sha256(payload).hexdigest()}, sort_keys=True)

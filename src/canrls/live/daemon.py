@@ -127,7 +127,7 @@ def wait_until(check: Callable[[], bool], timeout: float) -> bool:
 
 
 def serve(served: Any, stopping: threading.Event, duration: float | None,
-          ready: Callable[[], None] | None = None,
+          ready: Callable[[], object] | None = None,
           each: Callable[[], None] | None = None) -> int:
     """Start ``served`` (a :class:`Daemon` or a machine's), call ``ready``, serve until
     ``stopping`` is set (SIGTERM/SIGINT request it), ``duration`` s have passed or

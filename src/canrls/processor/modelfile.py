@@ -134,7 +134,7 @@ class SavedModel:
                        "canrls": self.canrls, "sources": self.sources, "model": self.model,
                        "effects": self.effects, "parameters": self.parameters,
                        "fit": self.fit, "configuration": self.configuration,
-                       "calibration": self.calibration})  # type: ignore[no-any-return]
+                       "calibration": self.calibration})
 
     def save(self, path: str | Path) -> Path:
         p = Path(path)

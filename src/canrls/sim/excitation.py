@@ -119,7 +119,7 @@ class Chirp(Excitation):
             raise ConfigError(f"excitation {name}: need sweep_time > 0 and f0, f1 >= 0")
         self.amplitude, self.f0, self.f1, self.sweep_time, self.offset = (
             float(amplitude), float(f0), float(f1), float(sweep_time), float(offset))
-        self.period = self.sweep_time
+        self.period: float = self.sweep_time
         self.name = name
 
     def reference(self, t: npt.ArrayLike) -> tuple[F64, F64]:
@@ -147,7 +147,7 @@ class Sequence(Excitation):
         if not self.parts:
             raise ConfigError(f"excitation {name}: empty sequence")
         self.starts = np.cumsum([0.0] + [d for _, d in self.parts])
-        self.period = float(self.starts[-1])
+        self.period: float = float(self.starts[-1])
         self.name = name
 
     def reference(self, t: npt.ArrayLike) -> tuple[F64, F64]:

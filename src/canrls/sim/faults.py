@@ -169,11 +169,11 @@ class FaultSpec:
                                           "DURATION@START[/EVERY] (e.g. 0.5s@10s)")
                     d = _seconds(m.group(1), "silence", text)
                     s = _seconds(m.group(2), "silence", text)
-                    e = _seconds(m.group(3), "silence", text) if m.group(3) else None
-                    if d <= 0 or (e is not None and e <= d):
+                    every = _seconds(m.group(3), "silence", text) if m.group(3) else None
+                    if d <= 0 or (every is not None and every <= d):
                         raise ConfigError(f"fault spec {text!r}: silence: {part!r} needs a "
                                           "duration > 0 (and EVERY longer than it)")
-                    silences.append(Silence(d, s, e))
+                    silences.append(Silence(d, s, every))
             else:
                 raise ConfigError(f"fault spec {text!r}: unknown fault {key!r}; known: "
                                   f"{', '.join(_PROBS)}, silence, tstep_max, cmd_burst")
@@ -267,7 +267,7 @@ class FaultInjector:
     ``command_id``: the ID of the inserted command frames.
     """
 
-    def __init__(self, spec: FaultSpec | str | None, seed: int | None = 0,
+    def __init__(self, spec: FaultSpec | str | None, seed: int | tuple[int, ...] | None = 0,
                  t0: float | None = None, *,
                  protected: frozenset[int] = DEFAULT_PROTECTED,
                  command_id: int = DEFAULT_COMMAND_ID) -> None:

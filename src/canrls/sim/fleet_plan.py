@@ -195,14 +195,15 @@ def make_fleet(drives: int = 50, recordings: int = 10, duration: float = 6.0,
         detail = ""
         change: Callable[[int, dict[str, float]], str] | None = None
         if cls in ("friction", "load", "harmonic"):
-            onset = int(rng.integers(max(1, recordings // 3), max(2, recordings - 2)))
+            # the recording the change starts at
+            onset = k_on = int(rng.integers(max(1, recordings // 3), max(2, recordings - 2)))
         if cls == "friction":
             parameter = str(rng.choice(["coulomb.Tc", "viscous.B"]))
             rate = rng.uniform(0.06, 0.12)
             detail = f"{parameter} rises {100 * rate:.1f} % of its value per recording"
 
             def change(k: int, p: dict[str, float], par: str = parameter,
-                       r: float = rate, k0: int = onset) -> str:
+                       r: float = rate, k0: int = k_on) -> str:
                 p[par] *= 1.0 + r * max(0, k - k0 + 1)
                 return FLEET_EFFECTS
         elif cls == "load":
@@ -211,7 +212,7 @@ def make_fleet(drives: int = 50, recordings: int = 10, duration: float = 6.0,
             detail = f"the load changes: inertia x{factor:.2f}"
 
             def change(k: int, p: dict[str, float], f: float = factor,
-                       k0: int = onset) -> str:
+                       k0: int = k_on) -> str:
                 if k >= k0:
                     p["inertia.J"] *= f
                 return FLEET_EFFECTS
@@ -224,7 +225,7 @@ def make_fleet(drives: int = 50, recordings: int = 10, duration: float = 6.0,
                          f"(order {effect.split(':')[1]}, a bearing)"))
 
             def change(k: int, p: dict[str, float], e: str = effect, a: float = amp_h,
-                       ph: float = phase, k0: int = onset) -> str:
+                       ph: float = phase, k0: int = k_on) -> str:
                 if k < k0:
                     return FLEET_EFFECTS
                 p[f"{e}.sin"] = a * math.cos(ph)

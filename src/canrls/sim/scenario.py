@@ -346,6 +346,7 @@ class Simulator:
             proto = self._protocol or _default_protocol()
             self._encoder = FeedbackEncoder(proto, clip=True, stagger=FRAME_STAGGER)
         m = chunk.measured
+        assert m.current is not None  # the simulated drive measures its current
         # a drive that reports its torque (CiA 402) reports Kt times its current
         torque = m.current * self.scenario.truth.kt if self._encoder.protocol.has("torque") \
             else None
@@ -397,7 +398,9 @@ class SimResult:
 
     @property
     def noise_floor_measured(self) -> float:
-        d = self.measured.current - self.true.current
+        measured, true = self.measured.current, self.true.current
+        assert measured is not None and true is not None  # the simulation has both
+        d = measured - true
         return float(self.truth.kt * np.sqrt(np.mean(d * d))) if len(d) else 0.0
 
     @property

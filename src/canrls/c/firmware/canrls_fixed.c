@@ -17,10 +17,25 @@
 typedef char canrls_needs_arithmetic_shift[((-8 >> 1) == -4) ? 1 : -1];
 typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1];
 
+/* Built for size: CANRLS_SMALL = 1 (by default where the compiler optimises for size,
+ * GCC's and Clang's __OPTIMIZE_SIZE__ at -Os), see below. */
+#ifndef CANRLS_SMALL
+#if defined(__OPTIMIZE_SIZE__)
+#define CANRLS_SMALL 1
+#else
+#define CANRLS_SMALL 0
+#endif
+#endif
+
 /* The helpers below are meant to disappear into their callers (the shift class of
- * mul_rsh must be a constant there); GCC and Clang are told so. */
+ * mul_rsh must be a constant there); GCC and Clang are told so, except when built for
+ * size (the compiler then keeps a helper called from several places out of line). */
 #if defined(__GNUC__)
+#if CANRLS_SMALL
+#define INLINE static inline
+#else
 #define INLINE static inline __attribute__((always_inline))
+#endif
 #define NOINLINE static __attribute__((noinline))
 #define LIKELY(x) __builtin_expect(!!(x), 1)
 #define UNLIKELY(x) __builtin_expect(!!(x), 0)
@@ -41,10 +56,19 @@ typedef char canrls_n_within_n_max[(CANRLS_N >= 1 && CANRLS_N <= CANRLS_N_MAX) ?
 #define NPAR(S) ((S)->n)
 #endif
 
-/* loops over n unrolled completely where n is a constant (CANRLS_N) */
-#if defined(CANRLS_N) && defined(__GNUC__) && !defined(__clang__)
+/* Built for size (CANRLS_SMALL): loops, one general instance of each step, no
+ * straight-line code (the same integers). Else, at a fixed n, CANRLS_FAST: the steps
+ * unrolled for that n (docs/fixed_point.md, "A fixed n"). */
+#if defined(CANRLS_N) && !CANRLS_SMALL
+#define CANRLS_FAST 1
+#else
+#define CANRLS_FAST 0
+#endif
+
+/* loops over n unrolled completely where n is a constant and speed is asked (CANRLS_FAST) */
+#if CANRLS_FAST && defined(__GNUC__) && !defined(__clang__)
 #define UNROLL _Pragma("GCC unroll 16")
-#elif defined(CANRLS_N) && defined(__clang__)
+#elif CANRLS_FAST && defined(__clang__)
 #define UNROLL _Pragma("unroll")
 #else
 #define UNROLL
@@ -73,6 +97,8 @@ INLINE int32_t rsh32(int32_t x, int32_t s)
  * Where the class is a constant (an inline loop called once per class), the compiler
  * makes one loop per class and the choice is made once per step, not per element. */
 enum { SHIFT_ANY = 0, SHIFT_LOW = 1, SHIFT_HIGH = 2, SHIFT_32 = 3 };
+/* P_step only: the class of the step's P_s decided in the loop (one instance, CANRLS_SMALL) */
+enum { SHIFT_VAR = 4 };
 
 /* SHIFT_32: s = 32 exactly (rounded in the low word); SHIFT_HIGH: 33 <= s <= 62 */
 INLINE int shift_class(int32_t s)
@@ -255,7 +281,7 @@ INLINE void theta_add_full(canrls_theta64 *q, int32_t ph, int32_t m, int32_t s, 
 #endif
 }
 
-#if defined(__GNUC__) && defined(CANRLS_N)
+#if defined(__GNUC__) && CANRLS_FAST
 /* theta_q + a b at 2^-32 LSB (the product exact in 64 bits), saturated where the sum leaves
  * the whole int32_t word (counted): the update K eps 2^(32 - s) of a shift s <= 31 with
  * a = K 2^(32 - s) a word (theta_add's integers); only the fixed-n step uses it. */
@@ -574,6 +600,23 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *
 
 /* ------------------------------------------------------------------- kernel */
 
+/* sum_i rsh(h_i w_i, vw_ps) with h_i = w_i = rsh(h~_i c, hc_s) (the windup test's
+ * h'w): h_i^2 one SMULL where h_i is a word; ``cls`` (a constant at each call):
+ * SHIFT_LOW where both shifts are 1..31 (two-word shifts), else SHIFT_ANY. */
+INLINE int64_t windup_vw(const int32_t *h, uint32_t n, int32_t c, int32_t hc_s, int32_t vw_ps,
+                         int cls)
+{
+    int64_t a_vw = 0;
+    uint32_t i;
+    for (i = 0; i < n; i++) {
+        const int64_t hi_ = rsh_c(mul_ww(h[i], c), hc_s, cls);
+        const int64_t hw = (int64_t)(int32_t)hi_ == hi_
+                               ? mul_ww((int32_t)hi_, (int32_t)hi_) : hi_ * hi_;
+        a_vw += rsh_c(hw, vw_ps, cls);
+    }
+    return a_vw;
+}
+
 /* h~_i from its sum u = acc_i + 2^(h_os-1) (the rounding half already added), for
  * 1 <= h_os <= 31: u >> h_os fits a word iff the high word of u lies in
  * [-2^(h_os-1), 2^(h_os-1)); then it is the two words shifted. ``full``: the h word is
@@ -622,7 +665,7 @@ INLINE void h_sums(const canrls_P64 *Pr, const int32_t *phg, uint32_t n, int64_t
     }
 }
 
-#ifdef CANRLS_N
+#if CANRLS_FAST
 /* n a constant (CANRLS_N): h~ = P~ phi row by row, each P~_ij at a constant index of
  * the packed upper triangle (the same exact sums as h_sums), stored as it is summed;
  * returns s~ = phi' h~ and m = OR of |h~_i| (one's complement). 1 <= h_os <= 31. */
@@ -731,7 +774,15 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int fu
     for (i = 0; i < n; i++) {
         const int32_t Ki = K[i];
         for (j = i; j < n; j++) {
-            if (cls == SHIFT_HIGH || cls == SHIFT_32) {
+            if (cls == SHIFT_VAR && P_s >= 32) {
+                /* u = ph 2^(64 - P_s), ph = rsh(K_i h~_j, 32) (P_s = 32: the word alone) */
+                const int32_t ph = mul_rsh32(Ki, h[j]);
+                if (j == i) {
+                    nz |= (uint32_t)ph;
+                }
+                P_sub(&Pw[j - i], ph >> (P_s - 32), P_s > 32 ? (uint32_t)ph << (64 - P_s) : 0u,
+                      P_lo, P_hi, c_P);
+            } else if (cls == SHIFT_HIGH || cls == SHIFT_32) {
                 /* ph = rsh(K_i h~_j, 32): the high word, rounded (one SMMULR) */
                 const int32_t ph = mul_rsh32(Ki, h[j]);
                 if (j == i) {
@@ -767,15 +818,7 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
     return P_step(S, P_s, c_P, SHIFT_HIGH, 1);
 }
 
-#ifdef CANRLS_N
-/* Built for size (-Os, GCC's __OPTIMIZE_SIZE__): the start-up steps take the general loops
- * and the block exponent's shift of a steady step one loop over P, not a straight run (the
- * same integers; the bounded worst case is that of the -O2 build, docs/target.md). */
-#if defined(__OPTIMIZE_SIZE__)
-#define CANRLS_SMALL 1
-#else
-#define CANRLS_SMALL 0
-#endif
+#if CANRLS_FAST
 
 /* 2^sh: the multiplier of a pair's shift */
 #define m2_of(sh) ((uint32_t)1 << (sh))
@@ -957,9 +1000,7 @@ NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int 
 {
     /* one straight run for each class of the steady state and the start-up (ph 2^pa m,
      * or one product), with and without the shift; a loop for the rest (rare) */
-    if (CANRLS_SMALL) {
-        P_off(P, K, hn, mode, m, pa, P_s, sh, sh > 0, 0, c_P);
-    } else if (mode == PM_HIGH && sh > 0) {
+    if (mode == PM_HIGH && sh > 0) {
         P_off(P, K, hn, PM_HIGH, m, pa, P_s, sh, 1, 1, c_P);
     } else if (mode == PM_HIGH) {
         P_off(P, K, hn, PM_HIGH, m, pa, P_s, 0, 0, 1, c_P);
@@ -1222,7 +1263,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         a = 0;
         if ((uint32_t)(h_os - 1) < 31u) {
             /* 1 <= h_os <= 31 (the common case): each sum rounded in two words */
-#ifdef CANRLS_N
+#if CANRLS_FAST
             if (S->wide & WIDE_H) {
                 a = h_rows_full(P, phg, h, h_os, &c_h, &m);
             } else {
@@ -1269,16 +1310,17 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             if (T > 0) {
                 uint32_t none = 0; /* d_lam is not counted */
                 int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
-                int64_t a_vw = 0, lhs;
+                int64_t a_vw, lhs;
                 int32_t df;
                 int up;
-                for (i = 0; i < n; i++) {
-                    /* h = c h~ ; w = c w~ = h */
-                    int64_t hi_ = rsh((int64_t)h[i] * c, p->hc_s);
-                    int64_t wi_ = rsh((int64_t)h[i] * c, p->hc_s);
-                    a_vw += rsh(hi_ * wi_, p->vw_ps);
+                /* h = c h~ ; w = c w~ = h:  a_vw = sum_i rsh(h_i w_i, vw_ps) */
+                if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
+                    a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_LOW);
+                } else {
+                    a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_ANY);
                 }
-                lhs = rsh((T < p->P_hi ? T : p->P_hi) * d_lam, p->lhs_ps);
+                /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
+                lhs = rsh_w(mul_ww((int32_t)(T < p->P_hi ? T : p->P_hi), d_lam), p->lhs_ps);
                 /* the two sides differ in scale by cmp_df - e bits */
                 df = p->cmp_scale_diff - e;
                 if (df >= 0) {
@@ -1347,9 +1389,8 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             P_s = p->P_s + e + 2 * kn + kg;
         }
         il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
-#ifdef CANRLS_N
-        if ((~S->wide & (WIDE_THETA | WIDE_P)) == 0u && P_s >= 1
-            && (!CANRLS_SMALL || (P_s >= 34 && th_s >= 34))) {
+#if CANRLS_FAST
+        if ((~S->wide & (WIDE_THETA | WIDE_P)) == 0u && P_s >= 1) {
             /* 32-bit words at a fixed n: the step, the forgetting scale and the block
              * exponent in one pass over P (a c to fold is left to the code below) */
             if (P_s >= 34 && th_s >= 34) {
@@ -1362,7 +1403,11 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             fixed_step = 1;
         } else
 #endif
-        {
+        if (CANRLS_SMALL) {
+            /* one instance of each (any shift: the same integers as the classes below) */
+            K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_ANY, 0);
+            low = P_step(S, P_s, &c_P, SHIFT_VAR, 0);
+        } else {
         switch (shift_class(th_s)) {
         case SHIFT_HIGH:
             /* words of 32 bits: the overflow test is the clamp (th_s >= 34: the high word

@@ -15,6 +15,9 @@
  * Built with -DCANRLS_N=n (1 <= n <= CANRLS_N_MAX), the kernel is made for that one n:
  * its loops over n unrolled for the common case, the same integers, and
  * canrls_init_q31() accepting only n = CANRLS_N (docs/fixed_point.md, "A fixed n").
+ * Built for size (CANRLS_SMALL: 1 by default under -Os, __OPTIMIZE_SIZE__; or
+ * -DCANRLS_SMALL=1), it keeps its loops and one general instance of each step, the
+ * same integers again: -O2 for speed, -Os for size.
  *
  * Numbers
  * -------

@@ -764,14 +764,14 @@ class FixedRLS:
                     f"FixedRLS checkpoint key {key!r} has values outside [{lo}, {hi}]"
                 )
             target[...] = src
-        e = get("P_exp")
+        p_exp = get("P_exp")
         if (
-            isinstance(e, bool)
-            or not isinstance(e, int | np.integer)
-            or not (0 <= int(e) <= rls._named["e_max"])
+            isinstance(p_exp, bool)
+            or not isinstance(p_exp, int | np.integer)
+            or not (0 <= int(p_exp) <= rls._named["e_max"])
         ):
             raise CheckpointError(
-                f"FixedRLS checkpoint key 'P_exp' = {e!r} is not an integer in "
+                f"FixedRLS checkpoint key 'P_exp' = {p_exp!r} is not an integer in "
                 f"0..{rls._named['e_max']}"
             )
         c = get("P_scale")
@@ -784,7 +784,7 @@ class FixedRLS:
                 f"FixedRLS checkpoint key 'P_scale' = {c!r} is not an integer in "
                 f"1..{rls._named['one_lam']}"
             )
-        rls._scale[0] = int(e)
+        rls._scale[0] = int(p_exp)
         rls._scale[1] = int(c)
         rls._frozen = bool(get("frozen"))
         rls.count = int(get("count"))

@@ -347,9 +347,9 @@ class FixedConfig:
         if not is_positive(ym):
             raise FixedPointError(f"y_max must be finite and > 0, got {y_max!r}")
         tm = 4.0 * ym / float(pm.min()) if theta_max is None else float(theta_max)
-        finite = trace_max is not None and math.isfinite(trace_max)
         p0_sum = float(np.sum(1.0 / ridge))
-        tr = float(trace_max) if finite else p0_sum  # type: ignore[arg-type]
+        tr = (float(trace_max) if trace_max is not None and math.isfinite(trace_max)
+              else p0_sum)
         # bound on every |P_ij| (and on the largest eigenvalue of P)
         P_bar = float(np.max(1.0 / ridge)) if lam_f == 1.0 else max(p0_sum, tr)
         phi_norm = float(np.sqrt(np.sum(pm * pm)))

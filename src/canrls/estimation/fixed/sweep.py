@@ -238,11 +238,11 @@ def sweep(
                 for In in input_bits:
                     label = f"W{W}/A{A}/I{In}"
                     try:
-                        cfg = FixedConfig.auto(
+                        auto = FixedConfig.auto(
                             n, alpha, lam, phi_max=phi_max, y_max=y_max, theta_max=theta_max,
                             word_bits=W, acc_bits=A, input_bits=In, trace_max=trace_max,
                         )  # fmt: skip
-                        todo.append((label, cfg, None))
+                        todo.append((label, auto, None))
                     except FixedPointError as e:
                         todo.append((label, None, str(e)))
     elif isinstance(configs, Mapping):
