@@ -9,6 +9,8 @@ import numpy.typing as npt
 #: LAYOUT[section] = ((name, count), ...): the integer vector :class:`Target` reads
 LAYOUT: dict[str, tuple[tuple[str, int], ...]]
 N_MAX: int
+#: sizeof(canrls_target): the bytes of Target.state()
+STATE_BYTES: int
 
 @final
 class Target:
@@ -22,3 +24,5 @@ class Target:
     def counts(self) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...],
                               tuple[tuple[int, ...], ...]]: ...
     def freeze(self, on: bool, /) -> None: ...
+    def state(self) -> bytes: ...
+    def set_state(self, state: bytes, /) -> None: ...

@@ -150,11 +150,11 @@ def test_invalid_estimates() -> None:
     tx_dropped=st.integers(0, 10**6),
     rejects=st.fixed_dictionaries({k: st.integers(0, 10**6) for k in REJECT_FIELDS})),
     st.integers(0, 1000))
-def test_status_round_trip(status: StatusReport, counter: int) -> None:
+def test_status_round_trip(db: cantools.database.can.Database, status: StatusReport,
+                           counter: int) -> None:
     msgs = encode_status(status, counter)
     assert [m.arbitration_id for m in msgs] == [IDS.status, IDS.health, IDS.counters,
                                                 IDS.rejects]
-    db = cantools.database.load_file(str(REPO_DBC))
     for m in msgs:
         db.decode_message(m.arbitration_id, m.data)
     assert db.decode_message(IDS.health, msgs[1].data)["Counter"] == counter % 16

@@ -12,9 +12,12 @@ from canrls.cli.main import main
 from canrls.core.errors import ConfigError
 
 
-def test_demo_finds_and_fixes_the_hidden_effect() -> None:
+def test_demo_finds_and_fixes_the_hidden_effect(caplog: pytest.LogCaptureFixture) -> None:
     out = io.StringIO()
-    res = run_demo(duration=40.0, seed=2, hidden="unbalance", out=out)
+    with caplog.at_level("WARNING"):
+        res = run_demo(duration=40.0, seed=2, hidden="unbalance", out=out)
+    # its fixed column is the target's integer path, as canrls run publishes by default
+    assert "no target path" not in caplog.text and "thread failed" not in caplog.text
     text = out.getvalue()
     for piece in ("1. Estimating with the incomplete model", "2. Diagnosis",
                   "3. Sending RlsCommand add_effect", "RlsCommandAck: ok",
@@ -25,6 +28,7 @@ def test_demo_finds_and_fixes_the_hidden_effect() -> None:
     assert res.improvement > 0.4, text
     assert res.parameters["unbalance.sin"]["truth"] == 0.008
     assert res.parameters["unbalance.sin"]["float"] == pytest.approx(0.008, rel=0.25)
+    assert res.parameters["unbalance.sin"]["fixed"] == pytest.approx(0.008, rel=0.25)
 
 
 def test_demo_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
@@ -64,6 +68,9 @@ def test_demo_of_four_axes_fixes_the_one_axis_that_hides_an_effect(
                for n in ("axis1", "axis2", "axis4"))
     assert axes["axis3"]["change"] < -0.5, cap.err
     assert "3. RlsCommand add_effect cogging:6 to axis3 only (ID 0x3a0):" in story
+    # the command is taken at once, not after the other axes were let go
+    assert ("  axis3 now estimates inertia, viscous, coulomb, cogging:6; the others "
+            "inertia, viscous, coulomb") in story
     # the machine is the simulated one on its own bus, as canrls run -i canrls-sim sees it
     assert story[1].startswith("4 simulated drives on one bus (canrls-sim), seed 4")
 

@@ -152,3 +152,23 @@ def test_a_mapped_message_that_never_occurs_is_named(
     err = capsys.readouterr().err
     assert "Angle (0x282: position) never occurs" in err
     assert "Feedback" in err and "frames" in err and "too few usable samples" not in err
+
+
+def test_a_message_whose_frames_all_decode_out_of_range_is_not_said_to_never_occur(
+        drive: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A huge scale factor on the current: its frames arrive, every one outside the
+    signal's range; the error says so, with their number and the signal, not "never
+    occurs"."""
+    dbc = tmp_path / "huge.dbc"
+    dbc.write_text(DBC.replace("(0.001,0) [-100|100]", "(1e+30,0) [-100|100]"))
+    n = drive["log"].read_text().count("281#")
+    assert n > 0
+    capsys.readouterr()
+    flags = ["--dbc", str(dbc), *_flags(drive, "")[2:]]
+    assert main(["fit", str(drive["log"]), *flags, "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    assert (f"mapped message Feedback (0x281: current, speed) arrives but decodes no frame: "
+            f"every one of its {n} frames is rejected (range {n}; e.g. Feedback.Current = "
+            in err), err
+    assert "A outside [-100, 100]" in err and "never occur" not in err

@@ -252,6 +252,55 @@ def test_a_reset_command_starts_the_target_path_again_and_says_so(
         d.stop()
 
 
+def test_an_added_effect_starts_the_target_path_again_on_the_new_model(
+        tmp_path: Path) -> None:
+    """The command add_effect: the target's path starts again on the completed model, its
+    calibration the processor's for that model (before: the old model's column energies
+    stopped the estimator thread)."""
+    from canrls.can.estimator_frames import CommandCode, EffectId, encode_command
+
+    log, frames = _sim_frames(tmp_path, 14)
+    half = len(frames) // 2
+    d = _daemon(["--kt", "0.1", "--commands"], [])
+    try:
+        d.process(frames.take(slice(0, half)))
+        d.process([encode_command(CommandCode.ADD_EFFECT, EffectId.OFFSET)])
+        assert "offset" in d.model.effect_names
+        rest = frames.take(slice(half, None))
+        d.process(rest)
+        after = _published(d)
+        assert "offset.T0" in after and after == _after(d, log, rest)
+    finally:
+        d.stop()
+
+
+def test_a_checkpoint_after_an_added_effect_resumes_with_it(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A checkpoint taken after add_effect resumes with the effect and the target's path
+    (before: its calibration held the old model's column energies, and the file was set
+    aside at the next start, the effect lost)."""
+    from canrls.can.estimator_frames import CommandCode, EffectId, encode_command
+
+    _, frames = _sim_frames(tmp_path, 14)
+    half = len(frames) // 2
+    cfg = tmp_path / "daemon.toml"
+    cfg.write_text(f'[daemon]\ncheckpoint = "{tmp_path / "ckpt.bin"}"\n')
+    d = _daemon(["--kt", "0.1", "--commands", "--config", str(cfg)], [])
+    try:
+        d.process(frames.take(slice(0, half)))
+        d.process([encode_command(CommandCode.ADD_EFFECT, EffectId.OFFSET)])
+        d.process(frames.take(slice(half, None)))
+        assert d.checkpoint() is not None
+    finally:
+        d.stop()
+    d = _daemon(["--kt", "0.1", "--commands", "--config", str(cfg)], [])
+    try:
+        _start_resumed(d, caplog, "continues from the checkpoint")
+        assert "offset" in d.model.effect_names
+    finally:
+        d.stop()
+
+
 def test_freeze_and_set_lambda_reach_the_target_path(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """The command freeze holds the published fixed column as it holds the kernel's,
@@ -282,30 +331,113 @@ def test_freeze_and_set_lambda_reach_the_target_path(
         d.stop()
 
 
-def test_a_resume_from_a_checkpoint_starts_the_target_path_again_and_says_so(
-        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    from canrls.live.journal import JOURNAL
-
-    log, frames = _sim_frames(tmp_path, 12)
-    half = len(frames) // 2
-    cfg = tmp_path / "daemon.toml"
-    cfg.write_text(f'[daemon]\ncheckpoint = "{tmp_path / "ckpt.bin"}"\n')
+def _checkpointed(tmp_path: Path, frames: Any, name: str) -> Path:
+    """The configuration of a daemon checkpointing to ``name``, after a daemon ran
+    ``frames``, checkpointed and stopped."""
+    cfg = tmp_path / f"{name}.toml"
+    cfg.write_text(f'[daemon]\ncheckpoint = "{tmp_path / name}"\n')
     d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
     try:
-        d.process(frames.take(slice(0, half)))
+        d.process(frames)
         assert d.checkpoint() is not None
     finally:
         d.stop()
+    return cfg
+
+
+def _target_state(d: Any) -> Any:
+    """The target's C state as a checkpoint of ``d`` holds it (every byte)."""
+    from canrls.live.checkpoint import load_checkpoint
+
+    path = d.checkpoint()
+    assert path is not None
+    return load_checkpoint(path).state["target"]["state"]
+
+
+def _start_resumed(d: Any, caplog: pytest.LogCaptureFixture, says: str) -> None:
+    """Start ``d``, resumed from its checkpoint; its journal ``says`` what of the target's
+    integer path."""
+    from canrls.live.journal import JOURNAL
+
+    assert d.resumed_from is not None
+    with caplog.at_level("INFO", logger=JOURNAL.name):
+        d.start()
+    assert f"resumed from {d.resumed_from}: the fixed point's integer path {says}" \
+        in caplog.text
+
+
+def test_a_resume_from_a_checkpoint_continues_the_target_path_bit_for_bit(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Run, checkpoint, stop, resume: the daemon publishes the fixed column of one that
+    never stopped on the same frames, its C state the same to the byte."""
+    log, frames = _sim_frames(tmp_path, 12)
+    half = len(frames) // 2
+    cfg = _checkpointed(tmp_path, frames.take(slice(0, half)), "ckpt.bin")
+    d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
+    whole = tmp_path / "whole.toml"  # the daemon that never stops
+    whole.write_text(f'[daemon]\ncheckpoint = "{tmp_path / "whole.ckpt"}"\n')
+    w = _daemon(["--kt", "0.1", "--config", str(whole)], [])
+    try:
+        w.process(frames)
+        _start_resumed(d, caplog, "continues from the checkpoint")
+        rest = frames.take(slice(half, None))
+        d.process(rest)
+        assert _published(d) == _published(w) != _after(d, log, rest)
+        assert bytes(_target_state(d)) == bytes(_target_state(w))
+    finally:
+        d.stop()
+        w.stop()
+
+
+def test_a_checkpoint_without_the_target_state_starts_the_path_again_and_says_so(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A checkpoint of the older schema (no target state) still resumes: the target's
+    path starts again from its prior, said in the journal."""
+    from canrls.live.checkpoint import load_checkpoint, save_checkpoint
+
+    log, frames = _sim_frames(tmp_path, 12)
+    half = len(frames) // 2
+    cfg = _checkpointed(tmp_path, frames.take(slice(0, half)), "ckpt.bin")
+    cp = load_checkpoint(tmp_path / "ckpt.bin")
+    del cp.state["target"]
+    save_checkpoint(tmp_path / "ckpt.bin", cp)
     d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
     try:
-        assert d.resumed_from is not None
-        with caplog.at_level("INFO", logger=JOURNAL.name):
-            d.start()
-        assert (f"resumed from {d.resumed_from}: the fixed point's integer path starts again "
-                f"from its prior") in caplog.text
+        _start_resumed(d, caplog, "starts again from its prior (the checkpoint holds no "
+                                  "target state)")
         rest = frames.take(slice(half, None))
         d.process(rest)
         assert _published(d) == _after(d, log, rest)
+    finally:
+        d.stop()
+
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("layout", "0" * 64), ("layout", [1, 2]), ("state", b"short"), ("t0", "soon"),
+    ("model", None), ("model", "+1")], ids=["other-headers", "layout-array",
+                                              "short-state", "t0-text", "no-model",
+                                              "other-model"])
+def test_a_damaged_target_state_starts_the_path_again_and_says_so(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture, field: str, value: Any) -> None:
+    """A checkpoint's target state of other C headers, of another target model or with a
+    field of the wrong type or size: the estimators resume, the target's path starts
+    again and the journal says why; nothing is fatal."""
+    import numpy as np
+
+    from canrls.live.checkpoint import load_checkpoint, save_checkpoint
+
+    log, frames = _sim_frames(tmp_path, 12)
+    cfg = _checkpointed(tmp_path, frames.take(slice(0, len(frames) // 2)), "ckpt.bin")
+    cp = load_checkpoint(tmp_path / "ckpt.bin")
+    target = cp.state["target"]
+    target[field] = (np.frombuffer(value, np.uint8) if isinstance(value, bytes)
+                     else np.array(value) if isinstance(value, list)
+                     else target[field] + 1 if value == "+1" else value)
+    save_checkpoint(tmp_path / "ckpt.bin", cp)
+    d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
+    try:
+        _start_resumed(d, caplog, "starts again from its prior (the checkpoint's target "
+                                  "state does not fit (")
     finally:
         d.stop()
 

@@ -955,3 +955,19 @@ def test_canrls_run_refuses_a_drive_frame_on_an_id_of_canrls_unless_moved(
     cfg.write_text(cfg.read_text() + '[daemon]\nown_ids = "offset:0x40"\n')
     assert main(args) == 0
     assert json.loads(capsys.readouterr().out)["daemon"]["frames"] == 0
+
+
+def test_a_daemon_asked_for_the_target_path_without_one_says_so(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """``fixed = "target"`` (the default) with no path given: the kernel's column is
+    published, and a warning says so; asked for the kernel's column, nothing is said."""
+    protocol, model, settings = _setup()
+    bus = {"interface": "virtual", "channel": f"test-fixed-{os.getpid()}"}
+    with caplog.at_level(logging.WARNING, logger="canrls.live.daemon"):
+        Daemon(protocol, model, settings, DaemonSettings(fixed="kernel"), bus=bus).stop()
+        assert not caplog.records
+        Daemon(protocol, model, settings, DaemonSettings(), bus=bus).stop()
+    assert [r.getMessage() for r in caplog.records] == [
+        "daemon.fixed = 'target' but no target path was given (canrls.cli.run."
+        "fixed_path_for builds it): the published fixed column is the kernel's on the "
+        "float front end"]

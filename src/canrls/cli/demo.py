@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from canrls.cli.demo_common import BASE as _BASE
 from canrls.cli.demo_common import diagnosis
+from canrls.cli.run import fixed_path_for
 from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -195,10 +196,10 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
         "faster than real time.")
     say(f"The model knows only {', '.join(_BASE)}: the drive's {hidden} is hidden from it.")
     say()
-    daemon = Daemon(protocol, model, settings,
-                    DaemonSettings(publish_interval=0.05, queue_size=20000, block_interval=0.005,
-                                   commands=True),
-                    bus=sim, backpressure=True)
+    dset = DaemonSettings(publish_interval=0.05, queue_size=20000, block_interval=0.005,
+                          commands=True)
+    daemon = Daemon(protocol, model, settings, dset, bus=sim, backpressure=True,
+                    fixed_path=fixed_path_for(protocol, settings, dset))
     mon = Monitor(units=units, feedback_ids=[m.frame_id for m in protocol.messages],
                   source=f"virtual:{channel}")
     tl = _Timeline(frozenset(m.frame_id for m in protocol.messages))

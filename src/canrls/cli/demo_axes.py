@@ -29,6 +29,7 @@ import numpy as np
 
 from canrls.cli.demo_common import BASE as _BASE
 from canrls.cli.demo_common import diagnosis
+from canrls.cli.run import fixed_path_for
 from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -124,8 +125,9 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
     for k, a in enumerate(axes):
         dset = DaemonSettings(publish_interval=0.05, block_interval=0.005, commands=True,
                               own_offset=k * OWN_STEP, rx_filter=True, queue_size=20000)
-        daemons[a.name] = Daemon(base.with_ids(a.rule), model, settings, dset, bus=bus,
-                                 backpressure=True)
+        protocol = base.with_ids(a.rule)
+        daemons[a.name] = Daemon(protocol, model, settings, dset, bus=bus, backpressure=True,
+                                 fixed_path=fixed_path_for(protocol, settings, dset))
     md = MachineDaemon(daemons)
     say(f"{n} simulated drives on one bus (canrls-sim), seed {seed}, {duration:g} s "
         f"simulated; each axis's model knows only {', '.join(_BASE)}:")
@@ -176,7 +178,10 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
             say(f"3. RlsCommand add_effect {added} to {a.name} only (ID {own:#x}):")
             tool.send(moved(encode_command(CommandCode.ADD_EFFECT, eid, order), k * OWN_STEP))
             d = daemons[a.name]
-            d.hold_input(False)  # its commands come through its input
+            # its command comes through the machine's one bus, which every held axis holds
+            # up: all drives go on
+            for x in daemons.values():
+                x.hold_input(False)
             if not d.wait_for(lambda x: added in x.model.effect_names, 30.0):
                 say(f"  {a.name} did not add {added} within 30 s")
             say(f"  {a.name} now estimates {', '.join(d.model.effect_names)}; the others "

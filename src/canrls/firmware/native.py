@@ -12,7 +12,10 @@ tested bit for bit.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from importlib import resources
 from typing import Any
 
 import numpy as np
@@ -28,7 +31,8 @@ from canrls.firmware.target_model import Column, EquationSpec, Field, TargetErro
 from canrls.firmware.vectors import block_frames, block_ticks, state_record
 from canrls.processor import TargetRun
 
-__all__ = ["NativeTarget", "TargetFeed", "pack"]
+__all__ = ["STATE_BYTES", "NativeTarget", "TargetFeed", "TargetSnapshot", "pack",
+           "state_layout"]
 
 _U64 = 1 << 64
 #: the estimator frames in the order of the C's model (estimate, info, status, health)
@@ -122,6 +126,20 @@ def pack(tm: TargetModel) -> npt.NDArray[np.int64]:
     return np.array(out, np.int64)
 
 
+#: the bytes of a C state (:meth:`NativeTarget.state`) in this build
+STATE_BYTES: int = _target.STATE_BYTES
+
+
+def state_layout() -> str:
+    """What the bytes of a C state (:meth:`NativeTarget.state`) mean: the SHA-256 of
+    the headers that declare ``canrls_target`` (a state of other headers is not taken)."""
+    c = resources.files("canrls") / "c" / "firmware"
+    h = hashlib.sha256()
+    for name in ("canrls_target.h", "canrls_fixed.h"):
+        h.update((c / name).read_bytes())
+    return h.hexdigest()
+
+
 class NativeTarget:
     """The target's estimator in C (``canrls_target``) on ``model``'s integers."""
 
@@ -154,6 +172,18 @@ class NativeTarget:
         """The integer state as :func:`canrls.firmware.vectors.state_record` lays it out."""
         return list(self._c.record())
 
+    def state(self) -> bytes:
+        """The whole integer state (``canrls_target``) as its bytes, for :meth:`set_state`."""
+        return bytes(self._c.state())
+
+    def set_state(self, state: bytes) -> None:
+        """Continue from a :meth:`state` of the same model's C in the same build
+        (:class:`TargetError` for a state of another size)."""
+        try:
+            self._c.set_state(state)
+        except ValueError as e:
+            raise TargetError(f"the target's C does not take this state: {e}") from e
+
     def counts(self) -> tuple[int, dict[str, int], list[int], list[int], list[SaturationCounts]]:
         """Samples, rejections by reason, and per equation updates, rescales and the
         kernel's saturations."""
@@ -166,6 +196,18 @@ def _spec_counts(est: TargetEstimator) -> tuple[int, dict[str, int], list[int], 
                                                 list[SaturationCounts]]:
     return (est.samples, dict(est.rejects), [es.updates for es in est.eqs],
             [es.rescales for es in est.eqs], [es.rls.saturations for es in est.eqs])
+
+
+@dataclass(frozen=True)
+class TargetSnapshot:
+    """A :class:`TargetFeed` at one moment: ``model`` the integers of its target model
+    (:func:`pack`), ``state`` the C's bytes, ``t0`` the stream's first receive time [s]
+    (None: no frame yet), ``frozen`` whether its kernels were frozen."""
+
+    model: npt.NDArray[np.int64]
+    state: bytes
+    t0: float | None
+    frozen: bool
 
 
 class TargetFeed:
@@ -213,6 +255,27 @@ class TargetFeed:
                 es.rls.freeze()
             else:
                 es.rls.resume()
+
+    def snapshot(self) -> TargetSnapshot:
+        """Everything the path needs to continue later on the same stream (a daemon's
+        checkpoint): the model's integers, the C's state, the stream's first time.
+        Only the C's state can be taken (:class:`TargetError` on the specification)."""
+        est = self.estimator
+        if not isinstance(est, NativeTarget):
+            raise TargetError("the specification's state is not kept: only the C's is")
+        return TargetSnapshot(model=pack(self.model), state=est.state(),
+                              t0=self._t0[0] if self._t0 else None, frozen=self.frozen)
+
+    def restore(self, snap: TargetSnapshot) -> None:
+        """Continue from :meth:`snapshot` (:class:`TargetError`: taken on another model)."""
+        est = self.estimator
+        if not isinstance(est, NativeTarget):
+            raise TargetError("the specification's state is not kept: only the C's is")
+        if not np.array_equal(snap.model, pack(self.model)):
+            raise TargetError("the state was taken on another target model")
+        est.set_state(snap.state)
+        self._t0 = [] if snap.t0 is None else [snap.t0]
+        self.frozen = snap.frozen
 
     def state_record(self) -> list[int]:
         """The integer state (the test vectors' record)."""

@@ -5,19 +5,22 @@ the frames the daemon's processor sees, from the first one on: held until the
 processor's calibration froze (the integers need its exponents, energies and period),
 then replayed and run block by block. The daemon's fixed column is then what ``canrls
 fit`` prints and the C of ``canrls export-c`` computes from the same frames, bit for
-bit.
+bit. A checkpoint keeps its state (:meth:`LiveTarget.state`), from which a resumed daemon
+continues (:meth:`LiveTarget.resume`).
 """
 
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numpy as np
 
 from canrls.can.frameblock import FrameBlock
 from canrls.can.protocol import Protocol
+from canrls.core.checks import is_real
 from canrls.estimation.settings import EstimatorSettings
-from canrls.firmware.native import TargetFeed
+from canrls.firmware.native import STATE_BYTES, TargetFeed, TargetSnapshot, state_layout
 from canrls.firmware.target_fit import fit_model
 from canrls.firmware.target_model import TargetError
 from canrls.processor import FrameProcessor
@@ -28,6 +31,8 @@ log = logging.getLogger(__name__)
 
 #: the most frames held while the calibration collects (beyond: the kernel's column)
 HOLD_MAX = 1_000_000
+#: the fields of :meth:`LiveTarget.state`
+_SAVED = frozenset({"layout", "model", "state", "t0", "frozen"})
 
 
 class LiveTarget:
@@ -48,6 +53,8 @@ class LiveTarget:
         self.refused: str | None = None
         #: the forgetting factor the running path was built with
         self._lam = settings.lam
+        #: a checkpoint's path, continued when the path is built (None: none)
+        self._resume: TargetSnapshot | None = None
 
     def feed(self, block: FrameBlock, proc: FrameProcessor) -> None:
         """The frames of a block the processor has processed."""
@@ -61,19 +68,19 @@ class LiveTarget:
                 if self._n_held > HOLD_MAX:
                     self._refuse(f"no calibration after {HOLD_MAX} frames")
                 return
-            try:
-                # the pipeline's settings: its forgetting factor, a command's included
-                self._lam = proc.pipeline.settings.lam
-                self.running = TargetFeed(fit_model(proc.result("canrls run"), self.protocol,
-                                                 proc.pipeline.settings))
-            except TargetError as e:
-                self._refuse(str(e))
+            running = self._build(proc)
+            if running is None:
                 return
-            if proc.pipeline.frozen:  # a checkpoint's, or a command's during the window
-                self.running.freeze(True)
+            if self._resume is not None:
+                try:
+                    running.restore(self._resume)
+                except TargetError as e:
+                    log.warning("fixed point: the target's integer path starts again from "
+                                "its prior (the checkpoint's target state: %s)", e)
+                self._resume = None
             held, self._held, self._n_held = self._held, [], 0
             for b in held:
-                self.running.feed(b)
+                running.feed(b)
             return
         if proc.pipeline.settings.lam != self._lam:
             # a new forgetting factor (the command set_lambda) is a new kernel plan: the
@@ -87,6 +94,69 @@ class LiveTarget:
             self.running.freeze(proc.pipeline.frozen)
         self.running.feed(block)
 
+    def state(self) -> dict[str, Any] | None:
+        """What a checkpoint keeps of the path, integers only (None: it does not run:
+        a resume starts it again from its prior)."""
+        if self.running is None:
+            return None
+        snap = self.running.snapshot()
+        return {"layout": state_layout(), "model": snap.model,
+                "state": np.frombuffer(snap.state, np.uint8).copy(),
+                "t0": snap.t0, "frozen": snap.frozen}
+
+    def resume(self, saved: Any, proc: FrameProcessor) -> str | None:
+        """Continue from a checkpoint's :meth:`state` on ``proc``, the processor restored
+        from it: at once where its calibration and period are known, else when the path
+        is built at the next frames; why it starts again from its prior instead (None:
+        it continues)."""
+        self.restart()
+        if saved is None:
+            return "the checkpoint holds no target state"
+        try:
+            if not isinstance(saved, dict) or set(saved) != _SAVED:
+                raise TargetError(f"fields {sorted(saved) if isinstance(saved, dict) else []}")
+            model, state, t0 = saved["model"], saved["state"], saved["t0"]
+            if not (isinstance(saved["layout"], str) and isinstance(model, np.ndarray)
+                    and model.dtype == np.int64 and model.ndim == 1
+                    and isinstance(state, np.ndarray) and state.dtype == np.uint8
+                    and state.shape == (STATE_BYTES,) and (t0 is None or is_real(t0))
+                    and isinstance(saved["frozen"], bool)):
+                raise TargetError("a field of the wrong type or size")
+            if saved["layout"] != state_layout():
+                raise TargetError("it was saved by a build with other C headers")
+        except TargetError as e:
+            return f"the checkpoint's target state does not fit ({e})"
+        snap = TargetSnapshot(model=model, state=state.tobytes(),
+                              t0=None if t0 is None else float(t0), frozen=saved["frozen"])
+        if proc.calibration is None or proc.period is None:
+            self._resume = snap
+            return None
+        running = self._build(proc)
+        if running is None:
+            return f"the target's integer path does not run this model: {self.refused}"
+        try:
+            running.restore(snap)
+        except TargetError as e:
+            self.restart()
+            return f"the checkpoint's target state does not fit ({e})"
+        return None
+
+    def _build(self, proc: FrameProcessor) -> TargetFeed | None:
+        """The path built on the processor's calibration, model and settings, now
+        :attr:`running` (None: the target does not run this model: :attr:`refused`)."""
+        try:
+            # the pipeline's settings: its forgetting factor, a command's included
+            self._lam = proc.pipeline.settings.lam
+            running = TargetFeed(fit_model(proc.result("canrls run"), self.protocol,
+                                           proc.pipeline.settings))
+        except TargetError as e:
+            self._refuse(str(e))
+            return None
+        if proc.pipeline.frozen:  # a checkpoint's, or a command's during the window
+            running.freeze(True)
+        self.running = running
+        return running
+
     def _refuse(self, why: str) -> None:
         self.refused = why
         self._held, self._n_held = [], 0
@@ -99,6 +169,7 @@ class LiveTarget:
         self.running = None
         self.refused = None
         self._held, self._n_held = [], 0
+        self._resume = None
 
     def fixed(self) -> dict[str, tuple[float, bool]] | None:
         """Every parameter's fixed value in SI and whether its equation has updated (None:

@@ -181,7 +181,9 @@ class Daemon:
     :param configuration: what produced the model, kept in the file the command
         ``save_model`` writes to ``[daemon] saved_model`` (default: none recorded).
     :param fixed_path: computes the published fixed column from the frames (``canrls
-        run``: the target's integer path); None: the pipeline's kernel.
+        run`` and ``canrls demo``: the target's integer path, where ``[daemon] fixed``
+        says so: :func:`canrls.cli.run.fixed_path_for`); None: the pipeline's kernel
+        (with a warning when ``fixed = "target"`` asked for the target's path).
     """
 
     def __init__(self, protocol: Protocol, model: Model,
@@ -252,7 +254,15 @@ class Daemon:
         self._link = BusLink(self._queue, bus_factory or (lambda: open_bus(bus_args)), cfg,
                              describe=str(bus_args or "bus"),
                              rx_ids=own if cfg.rx_filter else ())
+        if fixed_path is None and cfg.fixed == "target":
+            log.warning("daemon.fixed = 'target' but no target path was given "
+                        "(canrls.cli.run.fixed_path_for builds it): the published fixed "
+                        "column is the kernel's on the float front end")
         self._fixed_path = fixed_path
+        #: why the target's path starts again after the resume (None: it continues)
+        self._fixed_resume: str | None = None
+        if resumed is not None and fixed_path is not None:
+            self._fixed_resume = fixed_path.resume(resumed[1].state.get("target"), proc)
         self._publisher = Publisher(proc, cfg, self._link, self._wire_counters, on_publish,
                                     fixed_path)
         self._history = history
@@ -425,6 +435,8 @@ class Daemon:
             counters = self._wire_counters()
             counters["frames"] = self._proc.frames + self._base.get("frames", 0)
             model, state = self.model, self._proc.state()
+            if self._fixed_path is not None:
+                state["target"] = self._fixed_path.state()
         return self._checkpoints.save(model, state, counters)
 
     # ------------------------------------------------------------------ life cycle
@@ -447,7 +459,7 @@ class Daemon:
         interpreter.tune(self.config.switch_interval)
         self._tuned = True
         if self.resumed_from is not None and self._fixed_path is not None:
-            self._journal.fixed_restarted(f"resumed from {self.resumed_from}")
+            self._journal.fixed_resumed(self.resumed_from, self._fixed_resume)
         for loop, name in ((self._estimator_loop, "canrls estimator"),
                              (self._supervisor_loop, "canrls supervisor")):
             t = threading.Thread(target=loop, name=name, daemon=True)

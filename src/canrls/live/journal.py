@@ -66,9 +66,19 @@ class Journal:
 
     @staticmethod
     def fixed_restarted(why: str) -> None:
-        """The target's integer path (the fixed column) starts again from its prior: its
-        state is neither reset in place nor kept in a checkpoint."""
+        """The target's integer path (the fixed column) starts again from its prior."""
         JOURNAL.info("%s: the fixed point's integer path starts again from its prior", why)
+
+    @staticmethod
+    def fixed_resumed(path: str, restarts: str | None) -> None:
+        """After a resume from the checkpoint ``path``: the target's integer path continues
+        from it, or starts again from its prior because of ``restarts``."""
+        if restarts is None:
+            JOURNAL.info("resumed from %s: the fixed point's integer path continues from "
+                         "the checkpoint", path)
+        else:
+            JOURNAL.info("resumed from %s: the fixed point's integer path starts again from "
+                         "its prior (%s)", path, restarts)
 
 
 @contextmanager

@@ -63,6 +63,13 @@ class FixedPath(typing.Protocol):
     def restart(self) -> None:
         """A new model runs."""
 
+    def state(self) -> dict[str, typing.Any] | None:
+        """What a checkpoint keeps to continue the path (None: nothing to keep)."""
+
+    def resume(self, saved: typing.Any, proc: FrameProcessor) -> str | None:
+        """Continue from a checkpoint's :meth:`state` on ``proc``, the processor restored
+        from it; why it starts again instead (None: it continues)."""
+
     def fixed(self) -> dict[str, tuple[float, bool]] | None:
         """``{parameter: (fixed value in SI, valid)}``; None: the kernel's column stands."""
 

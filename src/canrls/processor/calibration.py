@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -483,6 +483,11 @@ class SampleProcessor:
         model = _frozen_defaults(model, self.calibration)
         ws = calibrate(self._window, model.with_ranges(self.calibration.ranges),
                        self.dt, self.settings, self.calibration.noise)
+        # the ranges stay frozen; the scaling, energies and pending columns are the new
+        # model's (what the target's path and a checkpoint take from the calibration)
+        self.calibration = replace(
+            self.calibration, scaling={k: dict(v) for k, v in ws.model.exponents.items()},
+            energy=ws.energy, pending=ws.pending)
         self.pipeline = self.pipeline.with_model(ws.model, energy=ws.energy,
                                                  pending=ws.pending, noise=ws.noise)
         return self.pipeline

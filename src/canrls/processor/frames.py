@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from canrls.can.codec import MessageCodec
 from canrls.can.decoder import DecodedFrames, Decoder, RejectCounts
 from canrls.can.frameblock import FrameBlock
 from canrls.can.protocol import Protocol
@@ -130,6 +131,8 @@ class FrameProcessor:
         self._seen_ids: dict[int, int] = {}
         #: the counts of the parts before the last :meth:`restart`
         self._past = FrameCounts()
+        #: the rejections of the streams before this one, by message (:meth:`restart`)
+        self._past_rejects = RejectCounts()
         self._restore: tuple[Mapping[str, Any], Model, Model] | None = None
         #: why a state restored before the period was measured was dropped once it was
         #: (it ran at another period); None: none was
@@ -194,23 +197,47 @@ class FrameProcessor:
 
     def missing_messages(self) -> str | None:
         """What to say when some mapped messages decoded frames and others none (a
-        sample needs them all): each missing one with its ID and roles, and the frames
-        of the others; None when every mapped message occurred (or none did)."""
+        sample needs them all): each missing one with its ID and roles, whether it never
+        came or came and was rejected (its frames by reason, an example naming the
+        signal), and the frames of the others; None when every mapped message decoded
+        frames (or none did)."""
         counts = self.message_frames
         if not any(counts.values()):
             return None
         missing = [m for m in self.protocol.messages if counts[m.name] == 0]
         if not missing:
             return None
-        roles = {m.name: [r for r, i in self.protocol.roles.items() if i.message == m.name]
-                 for m in missing}
-        what = ", ".join(f"{m.name} (0x{m.frame_id:X}: {', '.join(roles[m.name])})"
-                         for m in missing)
+        rej = RejectCounts()
+        rej.merge(self._past_rejects)
+        rej.merge(self.decoder.rejected)
+
+        def named(m: MessageCodec) -> str:
+            roles = [r for r, i in self.protocol.roles.items() if i.message == m.name]
+            return f"{m.name} (0x{m.frame_id:X}: {', '.join(roles)})"
+
+        never = [m for m in missing if not sum(rej.per_message.get(m.name, {}).values())]
+        said = []
+        if never:
+            said.append(f"mapped message{'s' if len(never) > 1 else ''} "
+                        f"{', '.join(named(m) for m in never)} never "
+                        f"occur{'' if len(never) > 1 else 's'}")
+        for m in missing:
+            if m in never:
+                continue
+            per = {r: n for r, n in rej.per_message[m.name].items() if n}
+            # the earliest example of its first reason, where it is this message's
+            ex = rej.examples.get(next(iter(per)), "")
+            said.append(f"mapped message {named(m)} arrives but decodes no frame: every "
+                        f"one of its {sum(per.values())} frames is rejected ("
+                        + ", ".join(f"{r} {n}" for r, n in per.items())
+                        + (f"; e.g. {ex}" if ex.startswith(f"{m.name}.") else "") + ")")
         seen = ", ".join(f"{n} {c} frames" for n, c in counts.items() if c)
-        return (f"mapped message{'s' if len(missing) > 1 else ''} {what} never "
-                f"occur{'' if len(missing) > 1 else 's'} in the {self.frames} frames read "
-                f"(seen: {seen}): a sample needs every mapped message; map the signal to "
-                f"a message the drive sends, or leave its role out")
+        fix = (["map the signal to a message the drive sends, or leave its role out"]
+               if never else [])
+        if len(never) < len(missing):
+            fix.append("check the DBC's scale and range of its signals against the drive's")
+        return (f"{'; '.join(said)} in the {self.frames} frames read (seen: {seen}): a "
+                f"sample needs every mapped message; {'; '.join(fix)}")
 
     def _count_ids(self, block: FrameBlock) -> None:
         """Frames of each ID, while no mapped message has come; at most :data:`SEEN_IDS`
@@ -438,6 +465,7 @@ class FrameProcessor:
         afresh, none of their state carried over; the period stays decided, and the
         frame counts go on (:meth:`frame_counts`)."""
         self._past = dataclasses.replace(self.frame_counts(), messages={}, missing=None)
+        self._past_rejects.merge(self.decoder.rejected)
         self.decoder = Decoder(self.protocol)
         self.reorder = Reorderer(self.protocol.messages)
         self.times = TimeJudge()

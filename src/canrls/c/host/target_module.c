@@ -10,7 +10,8 @@
  * Target.run() takes a block of frames (receive ticks, IDs, payloads) through
  * canrls_target_frame(), with canrls_target_publish() when a publication is due, as
  * the firmware calls them; record() gives the state as the specification's
- * state_record() lays it out (canrls.firmware.vectors), theta() each parameter in SI.
+ * state_record() lays it out (canrls.firmware.vectors), theta() each parameter in SI;
+ * state() and set_state() save and restore the state (a daemon's checkpoint).
  *
  * The vector's layout is named here once, in X-macros (S: one value, A: an array), and
  * exported as LAYOUT: {section: ((name, count), ...)}; canrls.firmware.native fills it
@@ -646,12 +647,77 @@ static PyObject *Target_freeze(TargetObject *self, PyObject *arg)
     Py_RETURN_NONE;
 }
 
+PyDoc_STRVAR(state_doc,
+"state() -> bytes\n\n"
+"The whole canrls_target state as its bytes (the pointers into the model written as 0):\n"
+"what set_state() takes back on an object built from the same vector by the same build.");
+
+/* the state with its pointers (the model, each kernel's plan) cleared */
+static PyObject *Target_state(TargetObject *self, PyObject *unused)
+{
+    PyObject *out;
+    canrls_target *S;
+    uint32_t i;
+    (void)unused;
+    if (!ready(self)) {
+        return NULL;
+    }
+    out = PyBytes_FromStringAndSize((const char *)&self->S, (Py_ssize_t)sizeof self->S);
+    if (out == NULL) {
+        return NULL;
+    }
+    S = (canrls_target *)(void *)PyBytes_AS_STRING(out);
+    S->model = NULL;
+    for (i = 0; i < CANRLS_TARGET_EQ_MAX; i++) {
+        S->eq[i].rls.plan = NULL;
+    }
+    return out;
+}
+
+PyDoc_STRVAR(set_state_doc,
+"set_state(state: bytes) -> None\n\n"
+"Continue from a state() of an object built from the same vector by the same build:\n"
+"its bytes taken, the pointers and each kernel's size kept (ValueError: another size,\n"
+"or kernels of another size).");
+
+static PyObject *Target_set_state(TargetObject *self, PyObject *arg)
+{
+    Py_buffer b;
+    canrls_target next;
+    uint32_t i;
+    if (!ready(self) || PyObject_GetBuffer(arg, &b, PyBUF_SIMPLE) != 0) {
+        return NULL;
+    }
+    if (b.len != (Py_ssize_t)sizeof next) {
+        PyBuffer_Release(&b);
+        PyErr_Format(PyExc_ValueError, "Target: a state of %zd bytes, this build's has %zu",
+                     b.len, sizeof next);
+        return NULL;
+    }
+    memcpy(&next, b.buf, sizeof next);
+    PyBuffer_Release(&b);
+    for (i = 0; i < CANRLS_TARGET_EQ_MAX; i++) {
+        if (next.eq[i].rls.n != self->S.eq[i].rls.n) {
+            PyErr_Format(PyExc_ValueError, "Target: the state's equation %u has %u "
+                         "parameters, the model's %u", i, next.eq[i].rls.n,
+                         self->S.eq[i].rls.n);
+            return NULL;
+        }
+        next.eq[i].rls.plan = self->S.eq[i].rls.plan;
+    }
+    next.model = self->S.model;
+    self->S = next;
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef Target_methods[] = {
     {"run", (PyCFunction)(void (*)(void))Target_run, METH_FASTCALL, run_doc},
     {"record", (PyCFunction)Target_record, METH_NOARGS, record_doc},
     {"theta", (PyCFunction)Target_theta, METH_NOARGS, theta_doc},
     {"counts", (PyCFunction)Target_counts, METH_NOARGS, counts_doc},
     {"freeze", (PyCFunction)Target_freeze, METH_O, freeze_doc},
+    {"state", (PyCFunction)Target_state, METH_NOARGS, state_doc},
+    {"set_state", (PyCFunction)Target_set_state, METH_O, set_state_doc},
     {NULL, NULL, 0, NULL},
 };
 
@@ -750,7 +816,8 @@ PyMODINIT_FUNC PyInit__target(void)
     Py_INCREF(&TargetType);
     if (lay == NULL || PyModule_AddObject(mod, "LAYOUT", lay) != 0
         || PyModule_AddObject(mod, "Target", (PyObject *)&TargetType) != 0
-        || PyModule_AddIntConstant(mod, "N_MAX", CANRLS_N_MAX) != 0) {
+        || PyModule_AddIntConstant(mod, "N_MAX", CANRLS_N_MAX) != 0
+        || PyModule_AddIntConstant(mod, "STATE_BYTES", (long)sizeof(canrls_target)) != 0) {
         Py_XDECREF(lay);
         Py_DECREF(&TargetType);
         Py_DECREF(mod);
