@@ -95,15 +95,19 @@ def _phi_tail(z: float) -> float:
     return math.erfc(abs(z) / math.sqrt(2.0))
 
 
-def _t_tail(t: float, dof: float) -> float:
-    r"""2 P(T > |t|) of a Student t with ``dof`` degrees of freedom, through Wallace's
-    normal equivalent :math:`z = \sqrt{\nu \ln(1 + t^2/\nu)}\,(8\nu + 1)/(8\nu + 3)`
-    (a z whose scale is itself estimated from few pairs has heavier tails)."""
+def _t_equivalent(t: float, dof: float) -> float:
+    r"""Wallace's normal equivalent of a Student t with ``dof`` degrees of freedom,
+    :math:`z = \sqrt{\nu \ln(1 + t^2/\nu)}\,(8\nu + 1)/(8\nu + 3)` (a z whose scale
+    is itself estimated from few pairs has heavier tails)."""
     if not math.isfinite(dof):
-        return _phi_tail(t)
+        return abs(t)
     # z = sqrt(nu ln(1 + t^2 / nu)) (8 nu + 1) / (8 nu + 3)
-    z = math.sqrt(dof * math.log1p(t * t / dof)) * (8 * dof + 1) / (8 * dof + 3)
-    return _phi_tail(z)
+    return math.sqrt(dof * math.log1p(t * t / dof)) * (8 * dof + 1) / (8 * dof + 3)
+
+
+def _t_tail(t: float, dof: float) -> float:
+    """2 P(T > |t|) of a Student t with ``dof`` degrees of freedom (:func:`_t_equivalent`)."""
+    return _phi_tail(_t_equivalent(t, dof))
 
 
 def when(t: float) -> str | None:
@@ -545,28 +549,42 @@ def _weighted_mean(y: F64, w: F64) -> tuple[float, float]:
     return float((w * y).sum() / W), W
 
 
-def _tests(se: Series, tau: float) -> list[_Found]:
+@dataclass(frozen=True)
+class _Family:
+    """Every change and drift tested on a series, and the correlations that hold them
+    together (:func:`_tree_links`)."""
+
+    found: list[_Found]
+    links: F64
+
+
+def _tests(se: Series, tau: float) -> _Family:
     """Every change (a split with two or more recordings on each side) and drift (flat
     to an onset, then a slope with three or more recordings on it) of a series, never
-    between two recordings of the same time."""
+    between two recordings of the same time, and the correlations that hold them
+    together."""
     n = len(se.y)
     if n < MIN_RECORDINGS:
-        return []
+        return _Family([], np.empty(0))
     v = se.s ** 2 + tau ** 2
     if not np.all(v > 0):  # no scatter at all (a series with neither sigma nor tau)
-        return []
+        return _Family([], np.empty(0))
     w = 1.0 / v
     y = se.y
     out: list[_Found] = []
+    rows: list[F64] = []  # each z = a^T y, one row a per test
     cw, cwy = np.cumsum(w), np.cumsum(w * y)
     W, Wy = float(cw[-1]), float(cwy[-1])
+    idx = np.arange(n)
     for m in range(2, n - 1):
         if se.t[m] == se.t[m - 1]:
             continue
         Wb, Wa = float(cw[m - 1]), W - float(cw[m - 1])
         mb, ma = float(cwy[m - 1]) / Wb, (Wy - float(cwy[m - 1])) / Wa
-        # z_m = (ybar_{>=m} - ybar_{<m}) / sqrt(1/W_{<m} + 1/W_{>=m})
-        out.append(_Found("change", (ma - mb) / math.sqrt(1.0 / Wb + 1.0 / Wa), m, mb, ma))
+        # z_m = (ybar_{>=m} - ybar_{<m}) / sqrt(1/W_{<m} + 1/W_{>=m}) = a_m^T y
+        a = np.where(idx >= m, w / Wa, -w / Wb) / math.sqrt(1.0 / Wb + 1.0 / Wa)
+        rows.append(a)
+        out.append(_Found("change", float(a @ y), m, mb, ma))
     days = (se.t - se.t[0]) / 86400.0
     ybar = Wy / W
     for c in range(0, n - 2):
@@ -577,11 +595,71 @@ def _tests(se: Series, tau: float) -> list[_Found]:
         sgg = float((w * (g - gbar) ** 2).sum())
         if sgg <= 0:
             continue
-        # b = sum w (g - gbar)(y - ybar) / S_gg,  z_c = b / se(b) = b sqrt(S_gg)
-        b = float((w * (g - gbar) * (y - ybar)).sum()) / sgg
-        a = ybar - b * gbar
-        out.append(_Found("drift", b * math.sqrt(sgg), c, a, a + b * float(g[-1])))
+        # z_c = b / se(b) = b sqrt(S_gg) = a_c^T y,  a_c = w (g - gbar) / sqrt(S_gg)
+        a = w * (g - gbar) / math.sqrt(sgg)
+        z = float(a @ y)
+        # b = sum w (g - gbar)(y - ybar) / S_gg
+        b = z / math.sqrt(sgg)
+        lvl = ybar - b * gbar
+        rows.append(a)
+        out.append(_Found("drift", z, c, lvl, lvl + b * float(g[-1])))
+    return _Family(out, _tree_links(np.array(rows), v) if rows else np.empty(0))
+
+
+def _tree_links(A: F64, v: F64) -> F64:
+    r"""The correlations, in absolute value, that hold the tests ``z = A y`` of one
+    series together: the edges of the maximum spanning tree of :math:`|R|`,
+    :math:`R = A \operatorname{diag}(v) A^T` (each z has variance 1 for a healthy
+    drive, :math:`\operatorname{Var} y = \operatorname{diag}(v)`; Prim's algorithm)."""
+    # R = A diag(v) A^T
+    R = np.abs((A * v) @ A.T)
+    k = len(R)
+    used = np.zeros(k, dtype=bool)
+    used[0] = True
+    key = R[0].copy()
+    links = np.empty(k - 1)
+    for e in range(k - 1):
+        j = int(np.argmax(np.where(used, -1.0, key)))
+        links[e] = key[j]
+        used[j] = True
+        key = np.maximum(key, R[j])
+    return np.minimum(links, 1.0)
+
+
+#: Gauss-Legendre nodes and weights on [-1, 1] for :func:`_both_beyond`
+_GL = np.polynomial.legendre.leggauss(32)
+
+
+def _both_beyond(c: float, rho: F64) -> F64:
+    r""":math:`P(|Z_1| \ge c, |Z_2| \ge c)` of two standard normals of correlation
+    ``rho``: :math:`2[U(\rho) + U(-\rho)]`, with Plackett's
+    :math:`U(\rho) = P(Z_1 \ge c, Z_2 \ge c) = Q(c)^2 + \frac{1}{2\pi}
+    \int_0^{\arcsin\rho} e^{-c^2/(1 + \sin\theta)}\,d\theta` (Gauss-Legendre)."""
+    q = 0.5 * math.erfc(c / math.sqrt(2.0))
+    x, wt = _GL
+    out = np.zeros_like(rho)
+    for sign in (1.0, -1.0):
+        h = np.arcsin(sign * rho)[:, None] / 2.0  # half the interval [0, asin rho]
+        theta = h * (x + 1.0)
+        # U = Q^2 + 1/(2 pi) int_0^asin(rho) exp(-c^2 / (1 + sin theta)) dtheta
+        u = q * q + (h * wt * np.exp(-c * c / (1.0 + np.sin(theta)))).sum(axis=1) \
+            / (2.0 * math.pi)
+        out += 2.0 * np.maximum(u, 0.0)
     return out
+
+
+def _beyond(c: float, fam: _Family) -> float:
+    r"""An upper bound of the probability that any test of a healthy series reaches
+    :math:`|z| \ge c`: Hunter and Worsley's
+    :math:`\sum_i P(|z_i| \ge c) - \sum_{(i, j) \in T} P(|z_i| \ge c, |z_j| \ge c)`,
+    T the maximum spanning tree of the tests' correlations (:func:`_tree_links`)."""
+    k = len(fam.found)
+    if k == 0:
+        return 0.0
+    q = _phi_tail(c)
+    # P(max |z| >= c) <= k q - sum_T P(|z_i| >= c, |z_j| >= c)
+    bound = k * q - float(_both_beyond(c, fam.links).sum())
+    return min(1.0, max(q, bound))
 
 
 def _phys(se: Series, y: float) -> float:
@@ -670,10 +748,10 @@ def _drive_alerts(drive: str, recs: Sequence[Recording], series: Mapping[str, Se
                   scale: Mapping[str, _Scale], cfg: DetectionSettings
                   ) -> tuple[list[Alert], float]:
     """A drive's alerts: per series the most significant change or drift that is large
-    enough to matter, when it is unlikely for a healthy drive (Bonferroni over every
-    test of the drive)."""
-    found = {name: _tests(se, scale[name].tau) for name, se in series.items()}
-    total = sum(len(fs) for fs in found.values())
+    enough to matter, when it is unlikely for a healthy drive: the family-wise p of
+    its z over every test of every series of the drive (:func:`_family_p`)."""
+    families = {name: _tests(se, scale[name].tau) for name, se in series.items()}
+    found = {name: fam.found for name, fam in families.items()}
     max_z = max((abs(f.z) for fs in found.values() for f in fs), default=0.0)
     alerts = []
     for name, fs in found.items():
@@ -692,10 +770,23 @@ def _drive_alerts(drive: str, recs: Sequence[Recording], series: Mapping[str, Se
         if best is None:
             continue
         f, rel, times = best
-        p = min(1.0, _t_tail(f.z, scale[name].dof) * total)
+        # the family's p is never below the test's own: most need no more
+        if _t_tail(f.z, scale[name].dof) >= cfg.alpha:
+            continue
+        p = _family_p(_t_equivalent(f.z, scale[name].dof), families.values())
         if p < cfg.alpha:
             alerts.append(_alert(drive, recs, se, f, p, tau, rel, times))
     return alerts, max_z
+
+
+def _family_p(c: float, families: Iterable[_Family]) -> float:
+    r"""The family-wise p of a normal-equivalent :math:`|z| = c` over every test of a
+    drive's series: :math:`1 - \prod_s (1 - P_s)`, :math:`P_s` each series' bound
+    (:func:`_beyond`; the product holds for correlated series too, by the Gaussian
+    correlation inequality)."""
+    # p = 1 - prod_s (1 - P_s(max |z| >= c))
+    return -math.expm1(sum(math.log1p(-min(_beyond(c, fam), 1.0 - 1e-16))
+                           for fam in families))
 
 
 def _alert(drive: str, recs: Sequence[Recording], se: Series, f: _Found, p: float,
