@@ -3,8 +3,8 @@ r"""Change, drift, new-effect and outlier detection on a fleet's history.
 Each series (per model, parameter and drive) is tested against the drive's own normal
 week-to-week scatter, learned robustly from its history and shrunk toward its type's
 (:math:`\tau`), with each recording's sigma. A drive is alerted when a change or drift
-is both unlikely for a healthy drive (Bonferroni over its splits, onsets and series)
-and large enough to matter (:class:`DetectionSettings`, the ``[fleet]`` table), and it
+is both unlikely for a healthy drive (over its splits, onsets and series, under their
+own correlation) and large enough to matter (:class:`DetectionSettings`, the ``[fleet]`` table), and it
 is compared with its siblings. The statistics, the defaults and the figures:
 docs/fleet.md, "Finding what changes".
 """
