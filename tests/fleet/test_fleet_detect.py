@@ -11,7 +11,6 @@ the real pipeline.
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +18,7 @@ import pytest
 from fleet_histories import CHANGES, simulated_fleet
 
 from canrls.core.errors import ConfigError
-from canrls.fleet import detect
+from canrls.fleet import detect, multiplicity
 from canrls.fleet.detect import DetectionSettings, assess
 from canrls.fleet.records import Recording
 
@@ -177,21 +176,12 @@ def test_a_drives_p_is_the_chance_that_a_healthy_drive_reaches_its_z() -> None:
         zmax = np.maximum(zmax, np.abs(y @ A.T).max(axis=1))
     c = 3.5
     chance = float(np.mean(zmax >= c))
-    p = detect._family_p(c, families)
+    p = multiplicity.family_p(c, [(len(fam.found), fam.links) for fam in families])
     tests = sum(len(fam.found) for fam in families)
     assert tests >= 5 * 15
     assert chance <= p <= 1.25 * chance, (p, chance)
-    assert tests * detect._phi_tail(c) > 1.5 * chance
+    assert tests * multiplicity.phi_tail(c) > 1.5 * chance
 
-
-def test_two_tests_reach_a_z_together_as_the_bivariate_normal_says() -> None:
-    """P(|z1| >= c, |z2| >= c) of two correlated tests against scipy's bivariate normal."""
-    stats = pytest.importorskip("scipy.stats")
-    rho = np.array([0.0, 0.5, 0.9, 0.999])
-    for c in (2.0, 4.0):
-        ref = [sum(stats.multivariate_normal([0, 0], [[1, s * r], [s * r, 1]]).cdf([-c, -c])
-                   for s in (1, 1, -1, -1)) for r in rho]
-        assert detect._both_beyond(c, rho) == pytest.approx(ref, rel=1e-5)
 
 # ------------------------------------------------------------------ the bookkeeping
 def _healthy(jitter: float = 0.02) -> tuple[list[Recording], str]:
@@ -265,8 +255,6 @@ def test_changes_are_named_in_the_words_of_the_effect_library() -> None:
         assert cause == cls.CHANGE_CAUSE[0] and check == cls.CHANGE_CHECK
     assert detect._cause("coulomb.Tc", False)[0].startswith("less Coulomb friction")
     assert set(CHANGES) >= {"coulomb.Tc", "inertia.J", "viscous.B"}
-    assert math.isfinite(detect._t_tail(4.0, 20.0)) and \
-        detect._t_tail(4.0, 20.0) > detect._phi_tail(4.0)
 
 
 # ------------------------------------------------------------------ real fits

@@ -4,9 +4,9 @@ Each series (per model, parameter and drive) is tested against the drive's own n
 week-to-week scatter, learned robustly from its history and shrunk toward its type's
 (:math:`\tau`), with each recording's sigma. A drive is alerted when a change or drift
 is both unlikely for a healthy drive (over its splits, onsets and series, under their
-own correlation) and large enough to matter (:class:`DetectionSettings`, the ``[fleet]`` table), and it
-is compared with its siblings. The statistics, the defaults and the figures:
-docs/fleet.md, "Finding what changes".
+own correlation) and large enough to matter (:class:`DetectionSettings`, the
+``[fleet]`` table), and it is compared with its siblings. The statistics, the defaults
+and the figures: docs/fleet.md, "Finding what changes".
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy.typing as npt
 from canrls.core.checks import in_range, is_epoch, is_positive
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import library
+from canrls.fleet.multiplicity import family_p, phi_tail, t_equivalent, t_tail, tree_links
 from canrls.fleet.records import SOURCE_LIVE, Recording
 
 __all__ = ["ALPHA", "OUTLIER_Z", "MIN_RECORDINGS", "MIN_SIBLINGS", "RESIDUAL", "Alert",
@@ -88,26 +89,6 @@ def _chi2_1_quantile(q: float) -> float:
         else:
             hi = mid
     return hi
-
-
-def _phi_tail(z: float) -> float:
-    """2 Phi(-|z|)."""
-    return math.erfc(abs(z) / math.sqrt(2.0))
-
-
-def _t_equivalent(t: float, dof: float) -> float:
-    r"""Wallace's normal equivalent of a Student t with ``dof`` degrees of freedom,
-    :math:`z = \sqrt{\nu \ln(1 + t^2/\nu)}\,(8\nu + 1)/(8\nu + 3)` (a z whose scale
-    is itself estimated from few pairs has heavier tails)."""
-    if not math.isfinite(dof):
-        return abs(t)
-    # z = sqrt(nu ln(1 + t^2 / nu)) (8 nu + 1) / (8 nu + 3)
-    return math.sqrt(dof * math.log1p(t * t / dof)) * (8 * dof + 1) / (8 * dof + 3)
-
-
-def _t_tail(t: float, dof: float) -> float:
-    """2 P(T > |t|) of a Student t with ``dof`` degrees of freedom (:func:`_t_equivalent`)."""
-    return _phi_tail(_t_equivalent(t, dof))
 
 
 def when(t: float) -> str | None:
@@ -552,7 +533,7 @@ def _weighted_mean(y: F64, w: F64) -> tuple[float, float]:
 @dataclass(frozen=True)
 class _Family:
     """Every change and drift tested on a series, and the correlations that hold them
-    together (:func:`_tree_links`)."""
+    together (:func:`~canrls.fleet.multiplicity.tree_links`)."""
 
     found: list[_Found]
     links: F64
@@ -603,63 +584,7 @@ def _tests(se: Series, tau: float) -> _Family:
         lvl = ybar - b * gbar
         rows.append(a)
         out.append(_Found("drift", z, c, lvl, lvl + b * float(g[-1])))
-    return _Family(out, _tree_links(np.array(rows), v) if rows else np.empty(0))
-
-
-def _tree_links(A: F64, v: F64) -> F64:
-    r"""The correlations, in absolute value, that hold the tests ``z = A y`` of one
-    series together: the edges of the maximum spanning tree of :math:`|R|`,
-    :math:`R = A \operatorname{diag}(v) A^T` (each z has variance 1 for a healthy
-    drive, :math:`\operatorname{Var} y = \operatorname{diag}(v)`; Prim's algorithm)."""
-    # R = A diag(v) A^T
-    R = np.abs((A * v) @ A.T)
-    k = len(R)
-    used = np.zeros(k, dtype=bool)
-    used[0] = True
-    key = R[0].copy()
-    links = np.empty(k - 1)
-    for e in range(k - 1):
-        j = int(np.argmax(np.where(used, -1.0, key)))
-        links[e] = key[j]
-        used[j] = True
-        key = np.maximum(key, R[j])
-    return np.minimum(links, 1.0)
-
-
-#: Gauss-Legendre nodes and weights on [-1, 1] for :func:`_both_beyond`
-_GL = np.polynomial.legendre.leggauss(32)
-
-
-def _both_beyond(c: float, rho: F64) -> F64:
-    r""":math:`P(|Z_1| \ge c, |Z_2| \ge c)` of two standard normals of correlation
-    ``rho``: :math:`2[U(\rho) + U(-\rho)]`, with Plackett's
-    :math:`U(\rho) = P(Z_1 \ge c, Z_2 \ge c) = Q(c)^2 + \frac{1}{2\pi}
-    \int_0^{\arcsin\rho} e^{-c^2/(1 + \sin\theta)}\,d\theta` (Gauss-Legendre)."""
-    q = 0.5 * math.erfc(c / math.sqrt(2.0))
-    x, wt = _GL
-    out = np.zeros_like(rho)
-    for sign in (1.0, -1.0):
-        h = np.arcsin(sign * rho)[:, None] / 2.0  # half the interval [0, asin rho]
-        theta = h * (x + 1.0)
-        # U = Q^2 + 1/(2 pi) int_0^asin(rho) exp(-c^2 / (1 + sin theta)) dtheta
-        u = q * q + (h * wt * np.exp(-c * c / (1.0 + np.sin(theta)))).sum(axis=1) \
-            / (2.0 * math.pi)
-        out += 2.0 * np.maximum(u, 0.0)
-    return out
-
-
-def _beyond(c: float, fam: _Family) -> float:
-    r"""An upper bound of the probability that any test of a healthy series reaches
-    :math:`|z| \ge c`: Hunter and Worsley's
-    :math:`\sum_i P(|z_i| \ge c) - \sum_{(i, j) \in T} P(|z_i| \ge c, |z_j| \ge c)`,
-    T the maximum spanning tree of the tests' correlations (:func:`_tree_links`)."""
-    k = len(fam.found)
-    if k == 0:
-        return 0.0
-    q = _phi_tail(c)
-    # P(max |z| >= c) <= k q - sum_T P(|z_i| >= c, |z_j| >= c)
-    bound = k * q - float(_both_beyond(c, fam.links).sum())
-    return min(1.0, max(q, bound))
+    return _Family(out, tree_links(np.array(rows), v) if rows else np.empty(0))
 
 
 def _phys(se: Series, y: float) -> float:
@@ -749,7 +674,8 @@ def _drive_alerts(drive: str, recs: Sequence[Recording], series: Mapping[str, Se
                   ) -> tuple[list[Alert], float]:
     """A drive's alerts: per series the most significant change or drift that is large
     enough to matter, when it is unlikely for a healthy drive: the family-wise p of
-    its z over every test of every series of the drive (:func:`_family_p`)."""
+    its z over every test of every series of the drive
+    (:func:`~canrls.fleet.multiplicity.family_p`)."""
     families = {name: _tests(se, scale[name].tau) for name, se in series.items()}
     found = {name: fam.found for name, fam in families.items()}
     max_z = max((abs(f.z) for fs in found.values() for f in fs), default=0.0)
@@ -771,22 +697,13 @@ def _drive_alerts(drive: str, recs: Sequence[Recording], series: Mapping[str, Se
             continue
         f, rel, times = best
         # the family's p is never below the test's own: most need no more
-        if _t_tail(f.z, scale[name].dof) >= cfg.alpha:
+        if t_tail(f.z, scale[name].dof) >= cfg.alpha:
             continue
-        p = _family_p(_t_equivalent(f.z, scale[name].dof), families.values())
+        p = family_p(t_equivalent(f.z, scale[name].dof),
+                     [(len(fam.found), fam.links) for fam in families.values()])
         if p < cfg.alpha:
             alerts.append(_alert(drive, recs, se, f, p, tau, rel, times))
     return alerts, max_z
-
-
-def _family_p(c: float, families: Iterable[_Family]) -> float:
-    r"""The family-wise p of a normal-equivalent :math:`|z| = c` over every test of a
-    drive's series: :math:`1 - \prod_s (1 - P_s)`, :math:`P_s` each series' bound
-    (:func:`_beyond`; the product holds for correlated series too, by the Gaussian
-    correlation inequality)."""
-    # p = 1 - prod_s (1 - P_s(max |z| >= c))
-    return -math.expm1(sum(math.log1p(-min(_beyond(c, fam), 1.0 - 1e-16))
-                           for fam in families))
 
 
 def _alert(drive: str, recs: Sequence[Recording], se: Series, f: _Found, p: float,
@@ -928,7 +845,7 @@ def _outliers(names: Sequence[str], per_drive: Mapping[str, Sequence[Recording]]
             lvl, sib = math.exp(levels[d][0]), math.exp(levels[d][0] - x)
             _, check = _cause(n, lvl > sib)
             assessed[d][0].append(Alert(
-                drive=d, kind="outlier", series=n, z=z, p=min(1.0, _phi_tail(z)),
+                drive=d, kind="outlier", series=n, z=z, p=min(1.0, phi_tail(z)),
                 message=(f"{n} = {_fmt(lvl, se.unit)} against {_fmt(sib, se.unit)} of its "
                          f"{len(groups[types[d]]) - 1} siblings ({types[d] or 'no type'}) "
                          f"({lvl / sib:.2f} x), z = {z:.1f}, since its first recording"
