@@ -414,9 +414,9 @@ def test_a_checkpoint_without_the_target_state_starts_the_path_again_and_says_so
 
 @pytest.mark.parametrize(("field", "value"), [
     ("layout", "0" * 64), ("layout", [1, 2]), ("state", b"short"), ("t0", "soon"),
-    ("model", None), ("model", "+1")], ids=["other-headers", "layout-array",
-                                              "short-state", "t0-text", "no-model",
-                                              "other-model"])
+    ("model", None), ("model", "+1"), ("state", "frame_loss")],
+    ids=["other-headers", "layout-array", "short-state", "t0-text", "no-model", "other-model",
+         "a-field-out-of-range"])
 def test_a_damaged_target_state_starts_the_path_again_and_says_so(
         tmp_path: Path, caplog: pytest.LogCaptureFixture, field: str, value: Any) -> None:
     """A checkpoint's target state of other C headers, of another target model or with a
@@ -430,14 +430,21 @@ def test_a_damaged_target_state_starts_the_path_again_and_says_so(
     cfg = _checkpointed(tmp_path, frames.take(slice(0, len(frames) // 2)), "ckpt.bin")
     cp = load_checkpoint(tmp_path / "ckpt.bin")
     target = cp.state["target"]
-    target[field] = (np.frombuffer(value, np.uint8) if isinstance(value, bytes)
-                     else np.array(value) if isinstance(value, list)
-                     else target[field] + 1 if value == "+1" else value)
+    if value == "frame_loss":
+        # the state's size and layout kept, its flag frame_loss (the last word of
+        # canrls_target before its 4 bytes of padding) 7: refused by the state's check
+        target[field][-8] = 7
+    else:
+        target[field] = (np.frombuffer(value, np.uint8) if isinstance(value, bytes)
+                         else np.array(value) if isinstance(value, list)
+                         else target[field] + 1 if value == "+1" else value)
     save_checkpoint(tmp_path / "ckpt.bin", cp)
     d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
     try:
         _start_resumed(d, caplog, "starts again from its prior (the checkpoint's target "
-                                  "state does not fit (")
+                                  "state does not fit (" + ("the target's C does not take "
+                                  "this state: Target: the state's a flag (0 or 1)"
+                                  if value == "frame_loss" else ""))
     finally:
         d.stop()
 
