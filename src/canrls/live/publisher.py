@@ -229,8 +229,10 @@ class Publisher:
             params = pipe.parameters()
         out: list[ParameterReport] = []
         divs: list[float] = []
-        path = self.fixed_path.fixed() if self.fixed_path is not None else None
-        settling = self.fixed_path.settling() if path is not None else frozenset()
+        path, settling = None, frozenset[str]()
+        if self.fixed_path is not None:
+            path = self.fixed_path.fixed()
+            settling = self.fixed_path.settling() if path is not None else settling
         for equation, blanks, eq, (_, fixed_updates) in zip(
                 pipe.model.equations, self._layout_of(pipe)[1], params, pipe.update_counts(),
                 strict=True):
