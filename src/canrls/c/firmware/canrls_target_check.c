@@ -28,17 +28,6 @@ static int ck_zero(const void *p, size_t n)
     return 1;
 }
 
-/* bit length of v; clog2(v) = bit length of v - 1 (v >= 1) */
-static int32_t ck_bitlen(uint64_t v)
-{
-    int32_t n = 0;
-    while (v != 0u) {
-        v >>= 1;
-        n++;
-    }
-    return n;
-}
-
 /* the values cr_extract() gives for an integer field (lo..hi, int64) */
 static void ck_field_range(const canrls_field *f, int64_t *lo, int64_t *hi)
 {
@@ -66,20 +55,6 @@ static int ck_counter(const canrls_target_model *M, uint32_t mi, int32_t v)
     }
     ck_field_range(&M->messages[mi].counter, &lo, &hi);
     return v >= lo && v <= hi;
-}
-
-/* the trace bound of the plan copy: cr_trace_bound() of canrls_target.c */
-static int32_t ck_trace_bound(const canrls_equation *e, const canrls_target_eq *q)
-{
-    int64_t sum = 0;
-    uint32_t j;
-    if (!e->trace_follows) {
-        return e->plan->trace_max_lam;
-    }
-    for (j = 0; j < e->n; j++) {
-        sum = sum > CK_I62 - q->terms[j] ? CK_I62 : sum + q->terms[j];
-    }
-    return (int32_t)(sum < e->trace_cap ? sum : e->trace_cap);
 }
 
 /* the kernel of equation e: its words in range, trw and the derived fields as
@@ -124,8 +99,12 @@ static int ck_kernel(const canrls_target_eq *q, const canrls_equation *e)
 static void ck_shift_range(const canrls_column *c, int32_t f, int32_t *lo, int32_t *hi)
 {
     const uint32_t am = (uint32_t)(c->m < 0 ? -(int64_t)c->m : c->m);
-    const int32_t first = ck_bitlen(am - 1u) - f + 4;
     const int32_t top = 92 - f + 4;
+    int32_t first = 0; /* clog2(|m|) = the bit length of |m| - 1 */
+    while (first < 32 && ((am - 1u) >> first) != 0u) {
+        first++;
+    }
+    first += 4 - f;
     *lo = c->pending && first < c->sh ? first : c->sh;
     *hi = top > c->sh ? top : c->sh;
 }
@@ -237,7 +216,7 @@ static int ck_equation(const canrls_target *S, uint32_t i)
     }
     /* the plan copy: the model's, its trace bound the one the terms give */
     memcpy(&plan, e->plan, sizeof plan);
-    plan.trace_max_lam = ck_trace_bound(e, q);
+    plan.trace_max_lam = canrls_target_trace_bound(e, q);
     if (memcmp(&plan, &q->plan, sizeof plan) != 0) {
         return CANRLS_SF_PLAN;
     }

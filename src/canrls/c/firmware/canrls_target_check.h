@@ -52,6 +52,11 @@ enum canrls_state_field {
  */
 int canrls_target_check_state(const canrls_target *S, const canrls_target_model *model);
 
+/** The trace bound of equation e's plan copy at the state q (canrls_target.c): with
+ * trace_follows the sum of q's trace terms (saturated), at most trace_cap; else the
+ * model plan's. */
+int32_t canrls_target_trace_bound(const canrls_equation *e, const canrls_target_eq *q);
+
 /** The name of an enum canrls_state_field ("?" for another value). */
 const char *canrls_target_state_field(int field);
 
