@@ -94,13 +94,16 @@ def _gcc() -> str:
     return gcc
 
 
-@pytest.fixture(scope="module")
-def driver(tmp_path_factory: pytest.TempPathFactory,
-           faults: tuple[Path, Path, TargetModel]) -> tuple[Path, Path, int]:
-    """The state driver on the exported C of the faults drive, under AddressSanitizer and
+_DRIVERS: dict[str, tuple[Path, Path, int]] = {}
+
+
+def _driver(name: str, tmp: pytest.TempPathFactory) -> tuple[Path, Path, int]:
+    """The state driver on the exported C of a drive, under AddressSanitizer and
     UndefinedBehaviorSanitizer; its frames file and the frame after which it saves."""
-    log, saved, tm = faults
-    d = tmp_path_factory.mktemp("driver")
+    if name in _DRIVERS:
+        return _DRIVERS[name]
+    log, saved, tm = _drive(name, tmp)
+    d = tmp.mktemp("driver")
     out = d / "c"
     _quiet(["export-c", "--model", str(saved), "--out", str(out)])
     rec = bytearray()
@@ -122,7 +125,14 @@ def driver(tmp_path_factory: pytest.TempPathFactory,
                                                           "canrls_fixed.c",
                                                           "canrls_target_check.c")),
                     "-o", str(exe)], check=True)
-    return exe, frames, len(rec) // 20 // 2
+    _DRIVERS[name] = (exe, frames, len(rec) // 20 // 2)
+    return _DRIVERS[name]
+
+
+@pytest.fixture(scope="module")
+def driver(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, int]:
+    """The state driver of the faults drive."""
+    return _driver("faults", tmp_path_factory)
 
 
 def test_the_drivers_state_is_the_extensions(driver: Any, faults: Any, tmp_path: Path) -> None:
@@ -172,12 +182,14 @@ def test_a_field_outside_its_invariant_is_refused_by_name(driver: Any, faults: A
             NativeTarget(faults[2]).set_state((tmp_path / "s").read_bytes())
 
 
+@pytest.mark.parametrize("name", ["faults", "motorola"])
 def test_random_bytes_flipped_are_refused_or_run_without_undefined_behaviour(
-        driver: Any) -> None:
+        tmp_path_factory: pytest.TempPathFactory, name: str) -> None:
     """4000 copies of a state with 1..8 random bytes flipped (seeded): each refused by the
     check or run over 2000 frames, under the sanitizers (any finding stops the driver
-    with a nonzero status)."""
-    exe, frames, k = driver
+    with a nonzero status). Both equations through faulty frames; a Motorola DBC through
+    rescales."""
+    exe, frames, k = _driver(name, tmp_path_factory)
     r = subprocess.run([str(exe), str(frames), str(k), "fuzz", "4000", "7"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-3000:]
