@@ -384,6 +384,7 @@ def test_a_resume_from_a_checkpoint_continues_the_target_path_bit_for_bit(
         d.process(rest)
         assert _published(d) == _published(w) != _after(d, log, rest)
         assert bytes(_target_state(d)) == bytes(_target_state(w))
+        assert not d._fixed_path.settling()  # it continued: judged as the float at once
     finally:
         d.stop()
         w.stop()
@@ -445,6 +446,10 @@ def test_a_damaged_target_state_starts_the_path_again_and_says_so(
                                   "state does not fit (" + ("the target's C does not take "
                                   "this state: Target: the state's a flag (0 or 1)"
                                   if value == "frame_loss" else ""))
+        if value == "frame_loss":
+            # from its prior against the float restored: not judged until it caught up
+            d.process(frames.take(slice(len(frames) // 2, len(frames) // 2 + 2000)))
+            assert d._fixed_path.settling() == {"mechanical"}
     finally:
         d.stop()
 

@@ -99,6 +99,7 @@ class LiveTarget:
             if self._resume is not None:
                 try:
                     running.restore(self._resume)
+                    self._settle = {}  # it continues: as far as the float
                 except TargetError as e:
                     log.warning("fixed point: the target's integer path starts again from "
                                 "its prior (the checkpoint's target state: %s)", e)
@@ -172,7 +173,7 @@ class LiveTarget:
         except TargetError as e:
             self.restart(float_kept=True)
             return f"the checkpoint's target state does not fit ({e})"
-        self._kept = None  # it continues: as far as the float
+        self._settle = {}  # it continues: as far as the float
         return None
 
     def _build(self, proc: FrameProcessor) -> TargetFeed | None:
