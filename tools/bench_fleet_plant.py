@@ -47,6 +47,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -84,6 +85,34 @@ def fill(url: str, drives: int, recordings: int, jitter: float) -> int:
 _PEAK = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[1:]); "
          "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, file=sys.stderr); "
          "sys.exit(r.returncode)")
+
+
+class _Load:
+    """The 1-minute load average sampled every ``every`` s while a ``with`` block runs:
+    ``str()`` gives its range."""
+
+    def __init__(self, every: float = 10.0) -> None:
+        self.every = every
+        self.seen = [os.getloadavg()[0]]
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._sample, daemon=True)
+
+    def _sample(self) -> None:
+        while not self.stop.wait(self.every):
+            self.seen.append(os.getloadavg()[0])
+
+    def __enter__(self) -> _Load:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join()
+        self.seen.append(os.getloadavg()[0])
+
+    def __str__(self) -> str:
+        return (f"load {min(self.seen):.1f}-{max(self.seen):.1f} "
+                f"(median {statistics.median(self.seen):.1f})")
 
 
 def _measured(*args: str) -> tuple[float, float, str]:
@@ -245,20 +274,27 @@ def plant_ingest(url: str, drives: int, weeks: int, duration: float, workers: in
         n, gen = _generate(plan, range(0, fit), tmp / "plant", pool)
     print(f"  {n} logs written in {gen:.0f} s ({1e3 * gen / n:.0f} ms a log), load "
           f"{os.getloadavg()[0]:.1f}", flush=True)
-    wall, rss, summary = _ingest_cli(url, tmp / "plant", workers)
+    with _Load() as load:
+        wall, rss, summary = _ingest_cli(url, tmp / "plant", workers)
+    peaks = ", ".join(f"{v / 2**20:.0f}" for v in summary["worker_peak_rss"].values())
     print(f"  fleet ingest of {n} logs into PostgreSQL, {workers} workers: {wall:.0f} s "
-          f"({1e3 * wall / n:.0f} ms a log; the ingest itself {summary['elapsed_s']:.0f} s), "
-          f"{summary['stored']} stored, {summary['errors']} errors, client peak RSS "
-          f"{rss:.0f} MiB, load {os.getloadavg()[0]:.1f}", flush=True)
+          f"({1e3 * wall / n:.0f} ms a log; the ingest itself {summary['elapsed_s']:.0f} s, "
+          f"{1e3 * summary['elapsed_s'] / n:.1f} ms a log), {summary['stored']} stored, "
+          f"{summary['errors']} errors, {len(summary['failed'])} failed, client peak RSS "
+          f"{rss:.0f} MiB, workers' {peaks} MiB, {load}", flush=True)
     shutil.rmtree(tmp / "plant")
 
 
 def reports(url: str, tmp: Path, figures: int) -> None:
     """``fleet report --json`` and the HTML report of the history at ``url``."""
-    wall, rss = report(url, "--json")
-    print(f"fleet report --json:         {wall:7.1f} s, peak RSS {rss:6.0f} MiB", flush=True)
-    wall, rss = report(url, "--out", str(tmp / "report"), "--figures", str(figures))
-    print(f"fleet report --out (HTML):   {wall:7.1f} s, peak RSS {rss:6.0f} MiB", flush=True)
+    with _Load(2.0) as load:
+        wall, rss = report(url, "--json")
+    print(f"fleet report --json:         {wall:7.1f} s, peak RSS {rss:6.0f} MiB, {load}",
+          flush=True)
+    with _Load(2.0) as load:
+        wall, rss = report(url, "--out", str(tmp / "report"), "--figures", str(figures))
+    print(f"fleet report --out (HTML):   {wall:7.1f} s, peak RSS {rss:6.0f} MiB, {load}",
+          flush=True)
     shutil.rmtree(tmp / "report", ignore_errors=True)
 
 

@@ -31,7 +31,7 @@ import target_whole as tw  # noqa: E402
 STAGES = {
     "decode and pair": ("canrls_target_frame", "cr_extract", "cr_bswap32",
                         "cr_popcount", "cr_float", "cr_float_word", "canrls_target_pair",
-                        "canrls_target_reject"),
+                        "canrls_target_reject", "cr_pair"),
     "filters (SVF, tanh, exp, sin/cos)": (
         "cr_filter", "cr_svf_row", "cr_split_input", "cr_inputs", "cr_table_eval",
         "cr_quarter", "cr_tanh_q24", "cr_exp2_neg_q24", "cr_exp_neg_q24", "cr_sincos_q64"),
@@ -41,6 +41,7 @@ STAGES = {
         "cr_restore", "cr_P_scale", "cr_isqrt", "cr_restart", "cr_trace_bound",
         "cr_floor_scaled", "cr_ceil_scaled", "fr_sample", "fr_update_0", "fr_update_1",
         "fr_values_0", "fr_values_1", "fr_changes_0", "fr_changes_1", "canrls_target_step",
+        "cr_step", "cr_sat32", "cr_sampled",
         "canrls_target_adapt", "canrls_target_restart", "canrls_target_sampled"),
     "publication": ("canrls_target_publish", "cr_f32_bits", "cr_put", "cr_frame"),
     "replay (the test harness)": ("canrls_replay_frames", "canrls_replay", "record", "memcmp",

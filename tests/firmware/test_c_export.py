@@ -7,6 +7,7 @@ the pipeline's and compares the final estimate); the frame codecs are cantools'.
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -46,7 +47,7 @@ def test_export_writes_kernel_config_and_frames(exported: Path) -> None:
                      "canrls_fixed.c", "canrls_fixed.h", "canrls_frames.c", "canrls_frames.h",
                      "canrls_front.c", "canrls_model.c", "canrls_model.h", "canrls_target.c",
                      "canrls_target.h", "canrls_target_check.c", "canrls_target_check.h",
-                     "canrls_target_math.h", "canrls_target_tables.h"]
+                     "canrls_target_math.h", "canrls_target_tables.h", "size_main.c"]
     h = (exported / "canrls_config.h").read_text()
     assert "#define CANRLS_MECHANICAL_N 4" in h
     assert "CANRLS_MECHANICAL_INERTIA_J 0" in h and "int canrls_mechanical_init(" in h
@@ -136,3 +137,27 @@ def test_header_says_the_models_n_and_refuses_another(exported: Path) -> None:
     r = subprocess.run([gcc, *CFLAGS, "-DCANRLS_N=5", "-c", str(c), "-o",
                         str(c.with_suffix(".o"))], capture_output=True, text=True)
     assert r.returncode != 0 and "CANRLS_N other than this model's n" in r.stderr
+
+
+def test_make_size_m4_measures_what_a_firmware_links(exported: Path) -> None:
+    """``make size-m4`` links the least program that calls the API (``size_main.c``) with
+    ``--gc-sections`` and prints the image's ``.text`` + ``.rodata``: the table-driven
+    front end's functions, which the generated one does not call, are not in it."""
+    need_tool("arm-none-eabi-gcc", ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"])
+    r = subprocess.run(["make", "-s", "-C", str(exported), "size-m4"], capture_output=True,
+                       text=True, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    m = re.search(r"-Os \.text \+ \.rodata linked: (\d+) B \(the goal of under 12288 B: "
+                  r"(met|missed)\)", r.stdout)
+    assert m is not None, r.stdout
+    elf = exported / "canrls_size.elf"
+    size = subprocess.run(["arm-none-eabi-size", "-A", str(elf)], capture_output=True,
+                          text=True, check=True).stdout
+    total = sum(int(s.group(2)) for s in re.finditer(r"^(\.text|\.rodata)\s+(\d+)", size, re.M))
+    assert int(m.group(1)) == total and (m.group(2) == "met") == (total < 12288)
+    nm = subprocess.run(["arm-none-eabi-nm", str(elf)], capture_output=True, text=True,
+                        check=True).stdout
+    names = {line.split()[-1] for line in nm.splitlines()}
+    assert {"canrls_target_frame", "canrls_target_publish", "canrls_target_adapt",
+            "canrls_update_q31"} <= names
+    assert not {"canrls_target_pair", "canrls_target_step", "canrls_target_sampled"} & names

@@ -401,3 +401,49 @@ def test_the_whole_estimator_is_written_only_into_a_directory(
     (out / "README.md").symlink_to(precious)
     export_target(src, out, tm)
     assert precious.read_text() == "precious" and not (out / "README.md").is_symlink()
+
+
+def test_only_the_words_that_can_leave_int32_are_saturated_in_the_generated_step(
+        drives: dict[str, dict[str, Any]], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The generated front end hands a data-scaled column and the output to the kernel
+    without saturating them, since they are within 2^f by then (f <= 30): a larger value
+    changes the normalisation first and the rescale leaves them within it. Checked on the
+    specification's values over the drives with rescales, pending columns and frame
+    faults, and in the generated C: every other column saturated."""
+    from canrls.firmware.load import load, target_model
+    from canrls.firmware.spec import TargetEstimator
+    from canrls.firmware.vectors import log_frames, record
+
+    used: list[tuple[Any, list[int], int]] = []
+    last: dict[int, tuple[list[int], int]] = {}
+    values, update = TargetEstimator._values, TargetEstimator._update
+
+    def _values(self: TargetEstimator, es: Any) -> tuple[list[int], int]:
+        last[id(es)] = values(self, es)
+        return last[id(es)]
+
+    def _update(self: TargetEstimator, es: Any) -> None:
+        update(self, es)
+        used.append((es.spec, *last[id(es)]))
+
+    monkeypatch.setattr(TargetEstimator, "_values", _values)
+    monkeypatch.setattr(TargetEstimator, "_update", _update)
+    for name in ("own", "motorola", "pending", "faults"):
+        used.clear()
+        tm = target_model(load(drives[name]["saved"]))
+        record(tm, log_frames([drives[name]["log"]]))
+        assert used, name
+        for e, phi, y in used:
+            assert e.f_phi <= 30 and e.f_y <= 30
+            assert abs(y) <= 1 << e.f_y, (name, e.name, y)
+            for c, v in zip(e.columns, phi, strict=True):
+                assert not c.adaptive or abs(v) <= 1 << e.f_phi, (name, c.name, v)
+        front = (drives[name]["out"] / "canrls_front.c").read_text()
+        for k, e in enumerate(tm.equations):
+            body = front[front.index(f"static void fr_update_{k}("):]
+            body = body[:body.index("\n}\n")]
+            for j, c in enumerate(e.columns):
+                word = f"phq[{j}] = (int32_t)phi[{j}]" if c.adaptive \
+                    else f"phq[{j}] = cr_sat32(phi[{j}])"
+                assert word in body, (name, c.name, body)
+            assert "(int32_t)y" in body, body

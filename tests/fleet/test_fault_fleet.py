@@ -265,6 +265,34 @@ def test_a_scheduler_that_freezes_after_its_identity_is_named_within_the_timeout
                    f"(a scheduler that answered, then stopped)\n")
 
 
+def test_a_scheduler_that_freezes_before_the_first_log_is_named_within_the_timeout(
+        tmp_path: Path, remote_cluster: _RemoteCluster, eight_logs: Path,
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Connected, then frozen before any log is sent: the question of how many tasks its
+    workers run at once is bounded too."""
+    real = ingest_module.ingest
+
+    def freeze_then_ingest(*args: Any, **kw: Any) -> Any:
+        os.kill(remote_cluster.scheduler.pid, signal.SIGSTOP)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(ingest_module, "ingest", freeze_then_ingest)
+    monkeypatch.setattr(cluster, "SCHEDULER_TIMEOUT", 2.0)
+    monkeypatch.setattr(cluster, "STALL_TIMEOUT", 2.0)
+    try:
+        t0 = time.monotonic()
+        rc = _bounded_main(_ingest_argv(eight_logs, tmp_path / "h.db",
+                                        remote_cluster.address), bound=30.0)
+        err = capsys.readouterr().err
+        assert rc == 1 and time.monotonic() - t0 < 20, err
+        assert err.startswith(f"error: the Dask scheduler at {remote_cluster.address}: no "
+                              f"answer within 2 s when asked for its workers (")
+        assert err.endswith("0 of the 8 logs to fit stored, each kept: run again for the "
+                            "rest\n") and err.count("\n") == 1
+    finally:
+        os.kill(remote_cluster.scheduler.pid, signal.SIGCONT)
+
+
 def _freeze_after_first_store(monkeypatch: pytest.MonkeyPatch, pid: int) -> None:
     """SIGSTOP process ``pid`` as the ingest stores its first result."""
     add = ingest_module._Store.add
@@ -605,6 +633,25 @@ def test_results_out_of_listed_order_keep_the_first_listed_as_owner() -> None:
     order.arrive(0, recs[0])
     assert stored == ["d1", "d2"]
     assert [(d.drive, d.owner) for d in order.duplicates] == [("d3", "d1")]
+
+
+def test_a_task_takes_short_logs_up_to_its_bytes_in_the_listed_order() -> None:
+    """Consecutive logs until a task holds TASK_BYTES; a log of that size alone; never
+    so many a task that a worker is left without TASKS_PER_WORKER tasks."""
+    mb = 1 << 20
+    groups = ingest_module.task_groups
+    assert ingest_module.TASK_BYTES == 2 * mb and ingest_module.TASKS_PER_WORKER == 4
+    # 0.3 MB logs: six to a task (1.8 MB, a seventh would pass 2 MB)
+    assert groups([300_000] * 800, 2) == [range(k, min(k + 6, 800))
+                                          for k in range(0, 800, 6)]
+    assert groups([3 * mb, 100, 100, 3 * mb] + [100] * 36, 1) == [
+        range(0, 1), range(1, 3), range(3, 4), range(4, 14), range(14, 24), range(24, 34),
+        range(34, 40)]
+    # few logs: at most len / (4 x workers) to a task, at least one
+    assert groups([100] * 30, 2) == [range(k, min(k + 3, 30)) for k in range(0, 30, 3)]
+    assert groups([100] * 5, 2) == [range(k, k + 1) for k in range(5)]
+    assert groups([], 2) == []
+    assert groups([0] * 64, 0) == [range(k, k + 16) for k in range(0, 64, 16)]  # as one
 
 
 # ------------------------------------------------------------------ the history

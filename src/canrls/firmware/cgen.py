@@ -215,8 +215,7 @@ def model_files(tm: TargetModel, source: str) -> tuple[str, str]:
     ta = tm.tanh_arg or (0, 0, 0)
     sa = tm.stribeck_arg or (0, 0, 0)
     ph = tm.phase or (0, 0)
-    widths = {None if mm.counter is None else mm.counter.length for mm in tm.messages}
-    match = int(None not in widths and len(widths) == 1)
+    match = int(tm.match_counters)
     g = ", ".join("{" + ", ".join(_i(v, "G") for v in row) + "}" for row in tm.G)
     init = [f".nmsg = {_u(len(tm.messages), 'messages')}",
             f".nfilters = {_u(len(tm.filters), 'filters')}",

@@ -140,7 +140,9 @@ def _message(tm: TargetModel, mi: int, m: Message) -> list[str]:
         c0 = crc8(bytes([m.id & 0xFF, (m.id >> 8) & 0xFF]), xorout=0)
         out.append(f"/* E2E CRC-8: the ID's two bytes folded into {c0:#04x} */")
         out.append(f"uint32_t c = {_u(c0, 'crc')};")
-        out += [f"c = cr_crc8[c ^ data[{k}]];" for k in range(1, m.dlc)]
+        # the table's address in a register: each byte one load indexed by it
+        out += ["const uint8_t *crc = cr_crc8;", "CR_OPAQUE(crc);"]
+        out += [f"c = crc[c ^ data[{k}]];" for k in range(1, m.dlc)]
         out += ["if ((c ^ 0xFFu) != data[0]) {",
                 "    return canrls_target_reject(S, CANRLS_R_CRC);", "}"]
     counter = "-1"
@@ -155,8 +157,11 @@ def _message(tm: TargetModel, mi: int, m: Message) -> list[str]:
     for r in carried:
         out.append(f"/* {r}: strict range */")
         out += _field(tm.roles[r], m.dlc, f"raw_{r}", r)
-    out += ["/* pair: the frames of one period */",
-            f"if (!canrls_target_pair(S, {mi}u, {counter}, t)) {{", "    return 0u;", "}"]
+    key = counter if tm.match_counters else "-1"
+    out += [f"/* pair: the frames of one period (within {tm.tol_ticks} ticks"
+            f"{', the same alive counter' if tm.match_counters else ''}) */",
+            f"if (!cr_pair(S, {_u(1 << mi, what)}, {key}, {_i(tm.tol_ticks, 'tolerance')}, t)) {{",
+            "    return 0u;", "}"]
     out += [f"S->raw[{_ROLE_ENUM[_ROLES.index(r)]}] = raw_{r};" for r in carried]
     full = (1 << len(tm.messages)) - 1
     out += [f"if (S->open_mask != {_u(full, 'messages')}) {{", "    return 0u;", "}",
@@ -271,28 +276,60 @@ def _equation(e: EquationSpec, k: int) -> list[str]:
     ch = ["/* whether this used sample changes the normalisation */",
           f"static int fr_changes_{k}(const canrls_target *S, const canrls_target_eq *q, "
           f"const int64_t *phi, int64_t y)", "{"]
-    if not e.columns:
+    # a pending column's value is 0 while its state is (rsh(0 m, sh) = 0), so its rule
+    # "pending ? X + O != 0 : |phi| > 2^f" is "(pending and X + O != 0) or |phi| > 2^f":
+    # the pending flags, all read as one word, first, then the limits
+    words = (e.n + 7) // 8
+    ch += [f"    uint64_t pending[{max(words, 1)}] = {{0u}};",
+           f"    memcpy(pending, q->pending, {_u(e.n, 'columns')});",
+           "    if (" + "".join(f"pending[{w}] != 0u || " for w in range(words))
+           + "q->pending_y) {"]
+    for j, c in enumerate(e.columns):
+        ch += [f"        if (q->pending[{j}] && {_state(c)} != 0) {{", "            return 1;",
+               "        }"]
+    ch += [f"        if (q->pending_y && {_state(e.output)} != 0) {{", "            return 1;",
+           "        }", "    }"]
+    if not any(c.adaptive for c in e.columns):
         ch.append("    (void)phi;")
     for j, c in enumerate(e.columns):
         if c.adaptive:
-            ch += [f"    if (q->pending[{j}] ? {_state(c)} != 0 : "
-                   f"(phi[{j}] > {lim} || -phi[{j}] > {lim})) {{", "        return 1;", "    }"]
-        else:
-            ch += [f"    if (q->pending[{j}] && {_state(c)} != 0) {{", "        return 1;",
+            ch += [f"    if (phi[{j}] > {lim} || -phi[{j}] > {lim}) {{", "        return 1;",
                    "    }"]
     lim_y = _i(1 << e.f_y, "f_y", 64)
-    ch += ["    if (q->pending_y) {", f"        return {_state(e.output)} != 0;", "    }",
-           f"    return y > {lim_y} || -y > {lim_y};", "}", ""]
+    ch += [f"    return y > {lim_y} || -y > {lim_y};", "}", ""]
     n = max(e.n, 1)
     up = [f"static void fr_update_{k}(canrls_target *S)", "{",
-          f"    const canrls_target_eq *q = &S->eq[{k}];",
+          f"    canrls_target_eq *q = &S->eq[{k}];",
           f"    int64_t phi[{n}], y;",
+          f"    int32_t phq[{n}];",
           f"    fr_values_{k}(S, q, phi, &y);",
           f"    if (fr_changes_{k}(S, q, phi, y)) {{",
           f"        canrls_target_adapt(S, {k}u, phi, y);",
           f"        fr_values_{k}(S, q, phi, &y);", "    }",
-          f"    canrls_target_step(S, {k}u, phi, y);", "}", ""]
+          "    /* the words of the kernel: saturated to int32 where the value can leave it */"]
+    if not e.columns:
+        up.append("    phq[0] = 0;")
+    for j, c in enumerate(e.columns):
+        up.append(f"    phq[{j}] = {_word32(f'phi[{j}]', c.adaptive, e.f_phi)};")
+    up += ["    /* the update; ms <- ms + (eps^2 - ms) >> rms_shift */",
+           f"    cr_step(q, phq, {_word32('y', True, e.f_y)}, {_i(e.rms_shift, 'rms shift')});",
+           "}", ""]
     return vals + ch + up
+
+
+def _word32(v: str, bounded: bool, frac: int) -> str:
+    """The int32 word of the int64 value ``v`` for the kernel: ``v`` itself where the range
+    analysis bounds it, else saturated (``cr_sat32``, as the specification saturates).
+
+    A data-scaled column (and the output) is bounded by ``2^frac <= 2^30``: a used
+    sample's value above it changes the normalisation first (``fr_changes_k``), and
+    ``canrls_target_adapt`` raises the exponent until ``4 |v| <= 2^frac`` (``16 |v|`` for
+    a first value), while a pending one is 0 until its first value. Any other column
+    (tanh, sin, cos, the constant: a fixed exponent) is saturated.
+    """
+    if bounded and frac <= 30:
+        return f"(int32_t){v} /* |{v}| <= 2^{frac}: fr_changes, canrls_target_adapt */"
+    return f"cr_sat32({v})"
 
 
 def _selection(e: EquationSpec, k: int) -> list[str]:
@@ -333,6 +370,8 @@ def front_file(tm: TargetModel, source: str) -> str:
  * of both), without reading the model's tables at run time. Build every file with
  * -DCANRLS_FRONT (canrls_target.c then leaves its own canrls_target_frame out).
  */
+#include <string.h>
+
 #include "canrls_target.h"
 #include "canrls_target_math.h"
 
@@ -358,7 +397,7 @@ def front_file(tm: TargetModel, source: str) -> str:
         f"{_plus(tm.w_offset, 'speed offset')};"]
     for k, e in enumerate(tm.equations):
         sample += _selection(e, k)
-    sample.append("return canrls_target_sampled(S);")
+    sample.append(f"return cr_sampled(S, {_u(tm.publish_every, 'publication')});")
     parts.append("/* one sample, complete in S->raw, at time t: filters, selection, updates */\n"
                  "static uint32_t fr_sample(canrls_target *S, uint32_t t)\n{\n"
                  + _indent(sample) + "\n}\n\n")

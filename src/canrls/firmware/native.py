@@ -93,10 +93,9 @@ def pack(tm: TargetModel) -> npt.NDArray[np.int64]:
     ta = tm.tanh_arg or (0, 0, 0)
     sa = tm.stribeck_arg or (0, 0, 0)
     pm, po = tm.phase or (0, 0)
-    widths = {None if m.counter is None else m.counter.length for m in tm.messages}
     _put(out, "model", {
         "nmsg": len(tm.messages), "nfilters": len(tm.filters), "neq": len(tm.equations),
-        "nparams": tm.n_params, "match_counters": int(None not in widths and len(widths) == 1),
+        "nparams": tm.n_params, "match_counters": int(tm.match_counters),
         "dt_ticks": tm.dt_ticks, "gap_ticks": tm.gap_ticks, "tol_ticks": tm.tol_ticks,
         "tanh_m": ta[0], "tanh_sh": ta[2], "tanh_b": ta[1], "strib_m": sa[0],
         "strib_sh": sa[2], "strib_b": sa[1], "phase_m": _s64(pm), "phase_o": _s64(po),

@@ -118,9 +118,8 @@ class TargetEstimator:
         self.open_counter = -1
         self.raw = dict.fromkeys(model.roles, 0)
         self.all_mask = (1 << nm) - 1
-        widths = {None if mm.counter is None else mm.counter.length for mm in model.messages}
         #: counters pair frames when every message has one, all of one width
-        self.match_counters = None not in widths and len(widths) == 1
+        self.match_counters = model.match_counters
         # the sample clock
         self.has_t = False
         self.last_t = 0

@@ -331,6 +331,13 @@ class TargetModel:
     def n_params(self) -> int:
         return sum(e.n for e in self.equations)
 
+    @property
+    def match_counters(self) -> bool:
+        """Whether the frames of one period are paired by their alive counters: every
+        message has one, all of one width."""
+        widths = {None if m.counter is None else m.counter.length for m in self.messages}
+        return None not in widths and len(widths) == 1
+
 
 # ------------------------------------------------------------------ building
 def _mantissa(x: Fraction) -> tuple[int, int]:

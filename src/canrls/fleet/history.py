@@ -490,46 +490,46 @@ class History:
     @_guarded
     def store(self, recordings: Iterable[Recording]) -> list[int | None]:
         """Insert ``recordings`` in one transaction, each unless its (content hash, model)
-        is there already; returns each one's new row id, or None where it was there."""
+        is there already (or earlier in ``recordings``); returns each one's new row id, or
+        None where it was there. A batch takes one statement per table (the drivers send
+        many rows a statement), not one per recording."""
         t = self._md.tables
-        out: list[int | None] = []
+        recs = list(recordings)
         now = datetime.datetime.now(datetime.UTC)
         with self.engine.begin() as conn:
-            for r in recordings:
-                drive = self._id(conn, "drives", "name", r.drive, {"type": r.drive_type},
-                                 self._drive_ids)
-                model = self._id(conn, "models", "key", r.model_key,
-                                 {"description": r.model}, self._model_ids)
-                stmt = (self._insert(t["recordings"]).values(
-                    drive_id=drive, model_id=model, content_hash=r.content_hash,
-                    status=r.status, source=r.source, path=r.path,
-                    t_start=finite_or_none(r.t_start), t_end=finite_or_none(r.t_end),
-                    samples=int(r.samples), frames=int(r.frames),
-                    residual_rms=finite_or_none(r.residual_rms),
-                    fit_percent=finite_or_none(r.fit_percent), unit=r.unit,
-                    verdicts=json_safe(r.verdicts), error=r.error,
-                    session=r.session, canrls_version=r.canrls_version, ingested_at=now)
+            rows = [{
+                "drive_id": self._id(conn, "drives", "name", r.drive, {"type": r.drive_type},
+                                     self._drive_ids),
+                "model_id": self._id(conn, "models", "key", r.model_key,
+                                     {"description": r.model}, self._model_ids),
+                "content_hash": r.content_hash, "status": r.status, "source": r.source,
+                "path": r.path, "t_start": finite_or_none(r.t_start),
+                "t_end": finite_or_none(r.t_end), "samples": int(r.samples),
+                "frames": int(r.frames), "residual_rms": finite_or_none(r.residual_rms),
+                "fit_percent": finite_or_none(r.fit_percent), "unit": r.unit,
+                "verdicts": json_safe(r.verdicts), "error": r.error, "session": r.session,
+                "canrls_version": r.canrls_version, "ingested_at": now} for r in recs]
+            if not rows:
+                return []
+            rt = t["recordings"]
+            stmt = (self._insert(rt)
                     .on_conflict_do_nothing(index_elements=["content_hash", "model_id"])
-                    .returning(t["recordings"].c.id))
-                rid = conn.execute(stmt).scalar_one_or_none()
-                out.append(None if rid is None else int(rid))
-                if rid is None:
-                    continue
-                if r.parameters:
-                    conn.execute(t["parameters"].insert(), [
-                        {"recording_id": rid, "name": p.name,
-                         "value": finite_or_none(p.value), "sigma": finite_or_none(p.sigma),
-                         "unit": p.unit, "fixed": finite_or_none(p.fixed),
-                         "identifiable": bool(p.identifiable),
-                         "prior_share": finite_or_none(p.prior_share)} for p in r.parameters])
-                if r.candidates:
-                    conn.execute(t["candidates"].insert(), [
-                        {"recording_id": rid, "rank": c.rank, "effect": c.effect,
-                         "explained": finite_or_none(c.explained),
-                         "delta_bic": finite_or_none(c.delta_bic),
-                         "rms_after": finite_or_none(c.rms_after),
-                         "identifiable": bool(c.identifiable),
-                         "suggested": bool(c.suggested)} for c in r.candidates])
+                    .returning(rt.c.id, rt.c.content_hash, rt.c.model_id))
+            # the rows a conflict skipped return nothing: each new id found by its key
+            new = {(h, m): int(rid) for rid, h, m in conn.execute(stmt, rows)}
+            out = [new.pop((row["content_hash"], row["model_id"]), None) for row in rows]
+            params = [{"recording_id": rid, "name": p.name, "value": finite_or_none(p.value),
+                       "sigma": finite_or_none(p.sigma), "unit": p.unit,
+                       "fixed": finite_or_none(p.fixed), "identifiable": bool(p.identifiable),
+                       "prior_share": finite_or_none(p.prior_share)}
+                      for r, rid in zip(recs, out, strict=True) if rid is not None
+                      for p in r.parameters]
+            if params:
+                conn.execute(t["parameters"].insert(), params)
+            cands = [_candidate_row(rid, c) for r, rid in zip(recs, out, strict=True)
+                     if rid is not None and r.candidates for c in r.candidates]
+            if cands:
+                conn.execute(t["candidates"].insert(), cands)
         return out
 
     @_guarded
@@ -539,13 +539,8 @@ class History:
         t = self._md.tables["candidates"]
         with self.engine.begin() as conn:
             for c in candidates:
-                conn.execute(self._insert(t).values(
-                    recording_id=recording_id, rank=c.rank, effect=c.effect,
-                    explained=finite_or_none(c.explained),
-                    delta_bic=finite_or_none(c.delta_bic),
-                    rms_after=finite_or_none(c.rms_after), identifiable=bool(c.identifiable),
-                    suggested=bool(c.suggested))
-                    .on_conflict_do_nothing(index_elements=["recording_id", "rank"]))
+                conn.execute(self._insert(t).values(_candidate_row(recording_id, c))
+                             .on_conflict_do_nothing(index_elements=["recording_id", "rank"]))
 
     @_guarded
     def forget_errors(self, model_key: str) -> int:
@@ -657,6 +652,14 @@ class History:
         """A connection for one's own queries (bound parameters only)."""
         with self.engine.connect() as conn:
             yield conn
+
+
+def _candidate_row(recording_id: int, c: CandidateValue) -> dict[str, Any]:
+    """The row of the candidates table that holds ``c`` of a recording."""
+    return {"recording_id": recording_id, "rank": c.rank, "effect": c.effect,
+            "explained": finite_or_none(c.explained), "delta_bic": finite_or_none(c.delta_bic),
+            "rms_after": finite_or_none(c.rms_after), "identifiable": bool(c.identifiable),
+            "suggested": bool(c.suggested)}
 
 
 def _chunks(xs: Sequence[int], n: int) -> Iterator[Sequence[int]]:

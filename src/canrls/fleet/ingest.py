@@ -7,13 +7,13 @@ whose hash the history already holds for this model is skipped), then
 (handed in as a ``ranker``: this layer does not import the diagnosis). A log that
 cannot be fitted becomes an error :class:`~canrls.fleet.records.Recording` naming the
 file and the reason. On a cluster :func:`ingest` sends every log once (a path listed
-twice once), each task hashing its log and fitting it, and takes the results in the
-listed order (:class:`_InOrder`): the first listed log of each content is stored, the
-others are named as duplicates. In this process it hashes each log first, so a log
-listed again is not fitted again, and hands that hash to the fit. Results are stored
-in batches with the history's insert-or-ignore: a worker killed mid-log (Dask runs its
-task again elsewhere), a run interrupted, or two runs at once still leave every
-recording stored exactly once.
+twice once), short logs several to a task (:func:`task_groups`), each task hashing its
+logs and fitting them, and takes the results in the listed order (:class:`_InOrder`):
+the first listed log of each content is stored, the others are named as duplicates.
+In this process it hashes each log first, so a log listed again is not fitted again,
+and hands that hash to the fit. Results are stored in batches with the history's
+insert-or-ignore: a worker killed mid-log (Dask runs its task again elsewhere), a run
+interrupted, or two runs at once still leave every recording stored exactly once.
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ from canrls.fleet.sources import LogSource, check_name
 from canrls.processor.config import AppConfig, Overrides, load_config, prepare
 
 __all__ = ["JobConfig", "IngestJob", "IngestSummary", "Duplicate", "Ranker", "content_hash",
-           "ingest", "ingest_one", "hash_or_none", "model_key", "model_key_of", "RANK_MODES"]
+           "ingest", "ingest_one", "ingest_many", "task_groups", "hash_or_none", "model_key",
+           "model_key_of", "RANK_MODES"]
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +64,13 @@ Ranker = Callable[[str, Any, Any, Any, int], Sequence[CandidateValue]]
 #: results stored per transaction at most, and the longest a result waits to be stored [s]
 BATCH = 64
 BATCH_S = 1.0
+#: bytes of logs a task takes on a cluster: short logs go several to a task (a task
+#: costs the scheduler, the client and the worker some milliseconds beside its fits);
+#: a log of this size or more goes alone
+TASK_BYTES = 2 * 1024 * 1024
+#: tasks per worker at least, where there are logs enough: a small ingest still spreads
+#: over every worker, and its progress still moves
+TASKS_PER_WORKER = 4
 
 
 @dataclass(frozen=True)
@@ -266,6 +274,39 @@ def ingest_one(job: IngestJob, known: frozenset[str] | set[str] | None = None,
         except Exception as e:  # the fit stands without its ranking
             rank_error = f"{type(e).__name__}: {e}"
     return _recording(job, digest, res, candidates, rank_error)
+
+
+def ingest_many(jobs: Sequence[IngestJob], known: frozenset[str] | set[str] | None = None,
+                ranker: Ranker | None = None) -> list[Recording | None]:
+    """Several short logs (a worker's task, :func:`task_groups`): :func:`ingest_one` of
+    each, in order."""
+    return [ingest_one(job, known, ranker) for job in jobs]
+
+
+def task_groups(sizes: Sequence[int], workers: int) -> list[range]:
+    """The logs of a cluster's tasks, in the listed order: consecutive logs (their
+    ``sizes`` in bytes) until a task holds :data:`TASK_BYTES`, and no more logs than
+    leave :data:`TASKS_PER_WORKER` tasks to each of ``workers`` (a worker: one thread).
+    """
+    most = max(1, len(sizes) // (TASKS_PER_WORKER * max(1, workers)))
+    groups: list[range] = []
+    start = total = 0
+    for i, size in enumerate(sizes):
+        if i > start and (total + size > TASK_BYTES or i - start >= most):
+            groups.append(range(start, i))
+            start, total = i, 0
+        total += size
+    if start < len(sizes):
+        groups.append(range(start, len(sizes)))
+    return groups
+
+
+def _size(path: str) -> int:
+    """A log's size in bytes (0 when it cannot be read: its task says why)."""
+    try:
+        return os.stat(path).st_size
+    except OSError:
+        return 0
 
 
 def _unreadable_key(path: str) -> str:
@@ -513,28 +554,33 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
                 if first != i:
                     again.setdefault(first, []).append(i)
             shared = {k: _scatter(client, v, stall) if v else None for k, v in known.items()}
-            # one graph per model, not a message per log
+            # one graph per model, not a message per log; short logs several to a task
             by_key: dict[str, list[int]] = {}
             for i in sent.values():
                 by_key.setdefault(jobs[i].key, []).append(i)
-            futures = {fut: i for key, idx in by_key.items()
-                       for fut, i in zip(client.map(ingest_one, [jobs[i] for i in idx],
-                                                    known=shared[key], ranker=use_ranker,
-                                                    pure=False), idx, strict=True)}
+            slots = _slots(client, stall)
+            futures: dict[Any, list[int]] = {}
+            for key, idx in by_key.items():
+                tasks = [[idx[k] for k in g] for g in
+                         task_groups([_size(jobs[i].source.path) for i in idx], slots)]
+                futures.update(zip(client.map(ingest_many, [[jobs[i] for i in t] for t in tasks],
+                                              known=shared[key], ranker=use_ranker,
+                                              pure=False), tasks, strict=True))
             try:
                 for fut, got in cluster.finished(futures, _address(client), stall):
-                    i = futures[fut]
+                    task = futures[fut]
                     if fut.status != "finished":
                         why = f"{type(got).__name__}: {got}"
-                        failed.extend((jobs[k].source.path, why)
+                        failed.extend((jobs[k].source.path, why) for i in task
                                       for k in (i, *again.get(i, ())))
-                        got = _LOST
+                        got = [_LOST] * len(task)
                     fut.release()
-                    for k in (i, *again.get(i, ())):
-                        order.arrive(k, got)
-                        done += 1
-                        if progress is not None:
-                            progress(done, len(jobs))
+                    for i, rec in zip(task, got, strict=True):
+                        for k in (i, *again.get(i, ())):
+                            order.arrive(k, rec)
+                            done += 1
+                            if progress is not None:
+                                progress(done, len(jobs))
             finally:
                 client.cancel(list(futures))  # sent, not awaited: never blocks
             skipped = order.skipped
@@ -640,6 +686,17 @@ def _scatter(client: Any, data: Any, stall: float) -> Any:
     except (TimeoutError, OSError) as e:
         raise StallError(f"the cluster at {_address(client)} did not take the history's "
                          f"hashes within {stall:g} s ({e})") from None
+
+
+def _slots(client: Any, stall: float) -> int:
+    """How many tasks the cluster runs at once (its workers' threads), asked within
+    ``stall`` s."""
+    try:
+        return max(1, sum(client.nthreads(callback_timeout=stall).values()))
+    except (TimeoutError, OSError) as e:
+        raise StallError(f"the Dask scheduler at {_address(client)}: no answer within "
+                         f"{stall:g} s when asked for its workers ({e or type(e).__name__})"
+                         ) from None
 
 
 def _plan(jobs: Sequence[IngestJob], hashes: Sequence[str | None],

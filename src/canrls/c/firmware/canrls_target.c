@@ -594,29 +594,17 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
 void canrls_target_step(canrls_target *S, uint32_t i, const int64_t *phi, int64_t y)
 {
     const canrls_equation *e = &S->model->equations[i];
-    canrls_target_eq *q = &S->eq[i];
     int32_t phq[CANRLS_N_MAX];
-    canrls_step_q31 st;
     uint32_t j;
     for (j = 0; j < e->n; j++) {
-        phq[j] = (int32_t)cr_sat(phi[j], INT32_MIN, INT32_MAX);
+        phq[j] = cr_sat32(phi[j]);
     }
-    (void)canrls_update_q31(&q->rls, phq, (int32_t)cr_sat(y, INT32_MIN, INT32_MAX), &st);
-    q->updates++;
-    q->flags |= st.flags;
-    /* the residual's mean square: ms <- ms + (eps^2 - ms) >> rms_shift */
-    q->ms += ((int64_t)st.eps * st.eps - q->ms) >> e->rms_shift;
+    cr_step(&S->eq[i], phq, cr_sat32(y), e->rms_shift);
 }
 
 uint32_t canrls_target_sampled(canrls_target *S)
 {
-    S->samples++;
-    S->since_publish++;
-    if (S->since_publish >= S->model->publish_every) {
-        S->since_publish = 0u;
-        return CANRLS_SAMPLE | CANRLS_PUBLISH;
-    }
-    return CANRLS_SAMPLE;
+    return cr_sampled(S, S->model->publish_every);
 }
 
 uint32_t canrls_target_reject(canrls_target *S, uint32_t reason)
@@ -626,41 +614,10 @@ uint32_t canrls_target_reject(canrls_target *S, uint32_t reason)
     return 0u;
 }
 
-static uint32_t cr_popcount(uint32_t v)
-{
-    uint32_t n = 0u;
-    while (v != 0u) {
-        n += v & 1u;
-        v >>= 1;
-    }
-    return n;
-}
-
 int canrls_target_pair(canrls_target *S, uint32_t mi, int32_t counter, uint32_t t)
 {
     const canrls_target_model *M = S->model;
-    const uint32_t bit = 1u << mi;
-    const int32_t key = M->match_counters ? counter : -1;
-    if (S->open_mask != 0u) {
-        const int same = (int32_t)(t - S->open_t) <= M->tol_ticks && key == S->open_counter;
-        if (same && (S->open_mask & bit) != 0u) {
-            /* a second frame of this message in the period: dropped */
-            (void)canrls_target_reject(S, CANRLS_R_DUPLICATED);
-            return 0;
-        }
-        if (!same) {
-            /* another period began: the open one stays incomplete */
-            S->rejects[CANRLS_R_UNPAIRED] += cr_popcount(S->open_mask);
-            S->frame_loss = 1u;
-            S->open_mask = 0u;
-        }
-    }
-    if (S->open_mask == 0u) {
-        S->open_t = t;
-        S->open_counter = key;
-    }
-    S->open_mask |= bit;
-    return 1;
+    return cr_pair(S, 1u << mi, M->match_counters ? counter : -1, M->tol_ticks, t);
 }
 
 #ifndef CANRLS_FRONT

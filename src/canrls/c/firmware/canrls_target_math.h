@@ -15,6 +15,8 @@
 
 #include <stdint.h>
 
+#include "canrls_fixed.h"
+#include "canrls_target.h"
 #include "canrls_target_tables.h"
 
 #define ONE_Q30 ((int64_t)1 << 30)
@@ -23,6 +25,15 @@
 #define Z_FRAC 24
 
 /* ------------------------------------------------------------------ arithmetic */
+
+/* hides what GCC knows of v's range (nothing is emitted): knowing a factor non-negative,
+ * GCC multiplies it as unsigned (UMULL, MLA and a shift for the other's sign) where one
+ * SMLAL does */
+#if defined(__GNUC__)
+#define CR_OPAQUE(v) __asm__("" : "+r"(v))
+#else
+#define CR_OPAQUE(v) ((void)0)
+#endif
 
 /* rsh(x, s) = (x + 2^(s-1)) >> s for s >= 0, as ((x >> (s-1)) + 1) >> 1: no overflow. */
 static inline int64_t cr_rsh(int64_t x, int32_t s)
@@ -41,6 +52,17 @@ static inline int64_t cr_sat(int64_t x, int64_t lo, int64_t hi)
     return x < lo ? lo : x > hi ? hi : x;
 }
 
+/* x saturated to int32: the low word when x is its sign extension (one compare of the high
+ * word), else the bound of x's sign */
+static inline int32_t cr_sat32(int64_t x)
+{
+    const int32_t lo = (int32_t)x;
+    if ((int64_t)lo == x) {
+        return lo;
+    }
+    return x < 0 ? INT32_MIN : INT32_MAX;
+}
+
 /* x 2^s for s >= 0 without shifting a negative value (the caller bounds the result) */
 static inline int64_t cr_shl(int64_t x, int32_t s)
 {
@@ -57,8 +79,9 @@ static inline int64_t cr_mul_rsh(int64_t x, int32_t m, int32_t s)
         if (s >= 93) {
             return 0;
         }
-        /* (h m + 2^(s-32) + (l m >> 31)) >> (s - 31) */
-        return (a + ((int64_t)1 << (s - 32)) + (b >> 31)) >> (s - 31);
+        /* (T + 2^(s-32)) >> (s - 31) with T = h m + (l m >> 31), as ((T >> (s - 32)) + 1) >> 1:
+         * one variable shift, no 64-bit constant */
+        return (((a + (b >> 31)) >> (s - 32)) + 1) >> 1;
     }
     if (s == 31) {
         /* h m + ((l m + 2^30) >> 31) */
@@ -76,9 +99,10 @@ static inline int32_t cr_table_eval(const int32_t (*table)[4], int32_t k, uint32
 {
     const int32_t *c = table[u >> (32 - k)];
     /* t = position in the segment, Q31 */
-    const int32_t t = (int32_t)((uint32_t)(u << k) >> 1);
+    int32_t t = (int32_t)((uint32_t)(u << k) >> 1);
     /* p = c3; p = c_i + rsh(p t, 31): the words of the tables keep p within int32 */
     int32_t p = c[3];
+    CR_OPAQUE(t);
     p = c[2] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
     p = c[1] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
     p = c[0] + (int32_t)(((int64_t)p * t + ((int64_t)1 << 30)) >> 31);
@@ -216,6 +240,72 @@ static inline int64_t cr_svf_row(int32_t a0, int32_t a1, int32_t g0, int32_t g1,
                       + (int64_t)a1 * (int32_t)(x2 & 0x7FFFFFFF)
                       + (int64_t)g0 * upl + (int64_t)g1 * ul;
     return 2 * H + ((L + ((int64_t)1 << 29)) >> 30);
+}
+
+/* ------------------------------------------------------------------ the per-sample steps
+ * (the table-driven canrls_target.c calls them with the model's values, the generated
+ * canrls_front.c with constants, so the compiler unrolls and folds them) */
+
+static inline uint32_t cr_popcount(uint32_t v)
+{
+    uint32_t n = 0u;
+    while (v != 0u) {
+        n += v & 1u;
+        v >>= 1;
+    }
+    return n;
+}
+
+/* pair a decoded frame (its message's bit, its key: the alive counter or -1) into the open
+ * period of at most tol ticks; 0: dropped as a second frame of its message in the period */
+static inline int cr_pair(canrls_target *S, uint32_t bit, int32_t key, int32_t tol, uint32_t t)
+{
+    if (S->open_mask != 0u) {
+        const int same = (int32_t)(t - S->open_t) <= tol && key == S->open_counter;
+        if (same && (S->open_mask & bit) != 0u) {
+            /* a second frame of this message in the period: dropped */
+            S->rejects[CANRLS_R_DUPLICATED]++;
+            S->frame_loss = 1u;
+            return 0;
+        }
+        if (!same) {
+            /* another period began: the open one stays incomplete */
+            S->rejects[CANRLS_R_UNPAIRED] += cr_popcount(S->open_mask);
+            S->frame_loss = 1u;
+            S->open_mask = 0u;
+        }
+    }
+    if (S->open_mask == 0u) {
+        S->open_t = t;
+        S->open_counter = key;
+    }
+    S->open_mask |= bit;
+    return 1;
+}
+
+/* the kernel's update of one equation with its columns and output as int32 words (saturated
+ * by the caller), its flags and the residual's running mean square */
+static inline void cr_step(canrls_target_eq *q, const int32_t *phq, int32_t yq,
+                           int32_t rms_shift)
+{
+    canrls_step_q31 st;
+    (void)canrls_update_q31(&q->rls, phq, yq, &st);
+    q->updates++;
+    q->flags |= st.flags;
+    /* the residual's mean square: ms <- ms + (eps^2 - ms) >> rms_shift */
+    q->ms += ((int64_t)st.eps * st.eps - q->ms) >> rms_shift;
+}
+
+/* count a processed sample; CANRLS_SAMPLE, with CANRLS_PUBLISH every `every` samples */
+static inline uint32_t cr_sampled(canrls_target *S, uint32_t every)
+{
+    S->samples++;
+    S->since_publish++;
+    if (S->since_publish >= every) {
+        S->since_publish = 0u;
+        return CANRLS_SAMPLE | CANRLS_PUBLISH;
+    }
+    return CANRLS_SAMPLE;
 }
 
 #endif /* CANRLS_TARGET_MATH_H */
