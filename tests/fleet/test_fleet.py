@@ -414,6 +414,22 @@ def test_a_batch_is_stored_in_one_statement_per_table(tmp_path: Path) -> None:
                         assert [c.effect for c in r.candidates] == [f"cogging{k}"]
 
 
+def test_a_batch_that_rolls_back_leaves_no_id_of_a_row_it_did_not_keep(
+        tmp_path: Path) -> None:
+    """A batch that fails (two candidates of one rank) stores nothing, and the ids of
+    the drive and model it had inserted are not kept: the next batch of that drive is
+    stored, not refused for a drive row that was rolled back."""
+    bad = dataclasses.replace(_batch_recording(1, "new"), candidates=(
+        CandidateValue(1, "a", 0.5, -3.0, 0.1, True, False),
+        CandidateValue(1, "b", 0.5, -3.0, 0.1, True, False)))
+    with History.open(str(tmp_path / "s.db")) as h:
+        with pytest.raises(ConfigError):
+            h.store([bad])
+        assert h.recordings() == []
+        assert h.store([_batch_recording(2, "new")]) == [1]
+        assert [r.drive for r in h.recordings()] == ["new"]
+
+
 def test_the_migrations_build_the_schema_the_code_uses(tmp_path: Path) -> None:
     from alembic.autogenerate import compare_metadata
     from alembic.migration import MigrationContext

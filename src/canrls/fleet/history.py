@@ -476,16 +476,21 @@ class History:
         return insert(table)
 
     def _id(self, conn: Any, table: str, key_col: str, key: str, values: dict[str, Any],
-            cache: dict[str, int]) -> int:
+            cache: dict[str, int], learned: dict[str, int]) -> int:
+        """The row id of ``key`` in ``table``, inserted if missing; an id read inside the
+        open transaction goes to ``learned``, kept in ``cache`` only once it commits (a
+        rolled-back insert must not leave an id of a row that does not exist)."""
         if key in cache:
             return cache[key]
+        if key in learned:
+            return learned[key]
         t = self._md.tables[table]
         conn.execute(self._insert(t).values({key_col: key, **values})
                      .on_conflict_do_nothing(index_elements=[key_col]))
         got = conn.execute(t.select().with_only_columns(t.c.id)
                            .where(t.c[key_col] == key)).scalar_one()
-        cache[key] = int(got)
-        return cache[key]
+        learned[key] = int(got)
+        return learned[key]
 
     @_guarded
     def store(self, recordings: Iterable[Recording]) -> list[int | None]:
@@ -496,12 +501,14 @@ class History:
         t = self._md.tables
         recs = list(recordings)
         now = datetime.datetime.now(datetime.UTC)
+        drives: dict[str, int] = {}
+        models: dict[str, int] = {}
         with self.engine.begin() as conn:
             rows = [{
                 "drive_id": self._id(conn, "drives", "name", r.drive, {"type": r.drive_type},
-                                     self._drive_ids),
+                                     self._drive_ids, drives),
                 "model_id": self._id(conn, "models", "key", r.model_key,
-                                     {"description": r.model}, self._model_ids),
+                                     {"description": r.model}, self._model_ids, models),
                 "content_hash": r.content_hash, "status": r.status, "source": r.source,
                 "path": r.path, "t_start": finite_or_none(r.t_start),
                 "t_end": finite_or_none(r.t_end), "samples": int(r.samples),
@@ -530,6 +537,8 @@ class History:
                      if rid is not None and r.candidates for c in r.candidates]
             if cands:
                 conn.execute(t["candidates"].insert(), cands)
+        self._drive_ids.update(drives)  # committed: the rows exist
+        self._model_ids.update(models)
         return out
 
     @_guarded
