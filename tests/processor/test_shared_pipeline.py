@@ -1,6 +1,7 @@
-"""What a worker builds once per configuration (the fixed-point plans and formats) and
-the short log read without a reader thread: fits of logs one after another equal each
-log's fit alone, in a fresh configuration, bit for bit and field by field."""
+"""What a worker builds once per configuration (the fixed-point plans and formats, the
+front end's start) and the short log read without a reader thread: fits of logs one
+after another equal each log's fit alone, in a fresh configuration, bit for bit and
+field by field."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import pytest
 from canrls.can.logs import read_frames
 from canrls.estimation.fixed import plan
 from canrls.estimation.model import Model
+from canrls.estimation.pipeline import Pipeline
 from canrls.processor.config import AppConfig, prepare
 from canrls.processor.replay import fit_logs
 from canrls.sim.fleet_plan import FLEET_EFFECTS, FLEET_KT, make_fleet, write_recording
@@ -80,6 +82,36 @@ def test_fits_in_turn_equal_each_fit_alone(short_logs: list[Path]) -> None:
     for k in order:
         _same(fit_logs([short_logs[k]], protocol, model, settings), alone[k],
               f"fit of {short_logs[k].name}")
+
+
+def test_fits_in_small_blocks_in_turn_equal_each_fit_alone(short_logs: list[Path]) -> None:
+    # blocks shorter than the calibration window: each stream runs its own pipeline
+    # from the shared start while the window fills
+    alone = []
+    for p in short_logs[:2]:
+        protocol, model, settings = _fresh()
+        alone.append(fit_logs([p], protocol, model, settings, chunk_size=500))
+    protocol, model, settings = _fresh()
+    for k in (0, 1, 0):
+        _same(fit_logs([short_logs[k]], protocol, model, settings, chunk_size=500),
+              alone[k], f"fit of {short_logs[k].name} in blocks of 500 frames")
+
+
+def test_a_configuration_builds_its_start_once(short_logs: list[Path],
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    protocol, model, settings = _fresh()
+    fit_logs([short_logs[0]], protocol, model, settings)
+    built: list[int] = []
+    init = Pipeline.__init__
+
+    def counted(self: Pipeline, *a: Any, **kw: Any) -> None:
+        built.append(1)
+        init(self, *a, **kw)
+
+    monkeypatch.setattr(Pipeline, "__init__", counted)
+    fit_logs([short_logs[1]], protocol, model, settings)
+    # the calibration's probe and the calibrated pipeline; the start is the first log's
+    assert len(built) == 2
 
 
 def test_fit_result_is_the_same_whatever_the_plan_cache(short_logs: list[Path]) -> None:
