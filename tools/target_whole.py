@@ -326,11 +326,14 @@ def _goals(logs: dict[str, Counts], size: int) -> None:
     ratio = max(max(c.updates) / (sum(c.updates) / len(c.updates)) for c in logs.values())
     sratio = max(max(c.samples) / (sum(c.samples) / len(c.samples)) for c in logs.values())
     front = max(max(c.front) for c in logs.values())
-    rows = [("whole path, worst sample", f"{worst} instructions", "<= 1500", worst <= 1500),
-            # the front end's share of the 1,500 beside an update of about 1,000 at worst
-            ("front end, worst sample", f"{front} instructions", "<= 450", front <= 450),
-            ("update, worst / mean", f"{ratio:.2f}", "<= 1.2", ratio <= 1.2),
-            ("sample, worst / mean", f"{sratio:.2f}", "<= 1.3", sratio <= 1.3),
-            ("-Os .text + .rodata", f"{size} B", "< 12288 B", size < 12288)]
-    for what, got, goal, ok in rows:
-        print(f"  {what:<26} {got:>18}  goal {goal:<9} {'met' if ok else 'missed'}")
+    rows = [("whole path, worst sample", f"{worst} instructions", "goal", "<= 1500",
+             worst <= 1500),
+            # not the issue's: the front end's share of the 1,500 beside an update of
+            # about 1,000 at worst
+            ("front end, worst sample", f"{front} instructions", "budget", "<= 450",
+             front <= 450),
+            ("update, worst / mean", f"{ratio:.2f}", "goal", "<= 1.2", ratio <= 1.2),
+            ("sample, worst / mean", f"{sratio:.2f}", "goal", "<= 1.3", sratio <= 1.3),
+            ("-Os .text + .rodata", f"{size} B", "goal", "< 12288 B", size < 12288)]
+    for what, got, kind, goal, ok in rows:
+        print(f"  {what:<26} {got:>18}  {kind:<6} {goal:<9} {'met' if ok else 'missed'}")

@@ -46,8 +46,8 @@ def test_export_writes_kernel_config_and_frames(exported: Path) -> None:
     assert names == ["Makefile", "README.md", "canrls_config.c", "canrls_config.h",
                      "canrls_fixed.c", "canrls_fixed.h", "canrls_frames.c", "canrls_frames.h",
                      "canrls_front.c", "canrls_model.c", "canrls_model.h", "canrls_target.c",
-                     "canrls_target.h", "canrls_target_math.h", "canrls_target_tables.h",
-                     "size_main.c"]
+                     "canrls_target.h", "canrls_target_check.c", "canrls_target_check.h",
+                     "canrls_target_math.h", "canrls_target_tables.h", "size_main.c"]
     h = (exported / "canrls_config.h").read_text()
     assert "#define CANRLS_MECHANICAL_N 4" in h
     assert "CANRLS_MECHANICAL_INERTIA_J 0" in h and "int canrls_mechanical_init(" in h

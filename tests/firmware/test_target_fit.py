@@ -384,6 +384,7 @@ def test_a_resume_from_a_checkpoint_continues_the_target_path_bit_for_bit(
         d.process(rest)
         assert _published(d) == _published(w) != _after(d, log, rest)
         assert bytes(_target_state(d)) == bytes(_target_state(w))
+        assert not d._fixed_path.settling()  # it continued: judged as the float at once
     finally:
         d.stop()
         w.stop()
@@ -414,9 +415,9 @@ def test_a_checkpoint_without_the_target_state_starts_the_path_again_and_says_so
 
 @pytest.mark.parametrize(("field", "value"), [
     ("layout", "0" * 64), ("layout", [1, 2]), ("state", b"short"), ("t0", "soon"),
-    ("model", None), ("model", "+1")], ids=["other-headers", "layout-array",
-                                              "short-state", "t0-text", "no-model",
-                                              "other-model"])
+    ("model", None), ("model", "+1"), ("state", "frame_loss")],
+    ids=["other-headers", "layout-array", "short-state", "t0-text", "no-model", "other-model",
+         "a-field-out-of-range"])
 def test_a_damaged_target_state_starts_the_path_again_and_says_so(
         tmp_path: Path, caplog: pytest.LogCaptureFixture, field: str, value: Any) -> None:
     """A checkpoint's target state of other C headers, of another target model or with a
@@ -430,14 +431,25 @@ def test_a_damaged_target_state_starts_the_path_again_and_says_so(
     cfg = _checkpointed(tmp_path, frames.take(slice(0, len(frames) // 2)), "ckpt.bin")
     cp = load_checkpoint(tmp_path / "ckpt.bin")
     target = cp.state["target"]
-    target[field] = (np.frombuffer(value, np.uint8) if isinstance(value, bytes)
-                     else np.array(value) if isinstance(value, list)
-                     else target[field] + 1 if value == "+1" else value)
+    if value == "frame_loss":
+        # the state's size and layout kept, its flag frame_loss (the last word of
+        # canrls_target before its 4 bytes of padding) 7: refused by the state's check
+        target[field][-8] = 7
+    else:
+        target[field] = (np.frombuffer(value, np.uint8) if isinstance(value, bytes)
+                         else np.array(value) if isinstance(value, list)
+                         else target[field] + 1 if value == "+1" else value)
     save_checkpoint(tmp_path / "ckpt.bin", cp)
     d = _daemon(["--kt", "0.1", "--config", str(cfg)], [])
     try:
         _start_resumed(d, caplog, "starts again from its prior (the checkpoint's target "
-                                  "state does not fit (")
+                                  "state does not fit (" + ("the target's C does not take "
+                                  "this state: Target: the state's a flag (0 or 1)"
+                                  if value == "frame_loss" else ""))
+        if value == "frame_loss":
+            # from its prior against the float restored: not judged until it caught up
+            d.process(frames.take(slice(len(frames) // 2, len(frames) // 2 + 2000)))
+            assert d._fixed_path.settling() == {"mechanical"}
     finally:
         d.stop()
 
@@ -471,3 +483,67 @@ def test_a_model_the_target_cannot_run_is_refused_by_name(tmp_path: Path) -> Non
     fit = json.loads(_canrls(["fit", str(log), "--config", str(cfg), "--quiet", "--json"]))
     assert fit["fixed"]["path"] == "kernel" and "user term" in fit["fixed"]["why"]
     assert all(math.isfinite(p["fixed"]) for p in fit["parameters"].values())
+
+
+def _diverged_after_add(tmp_path: Path, skew: float = 1.0) -> tuple[bool, list[bool], Any]:
+    """A daemon without the drive's unbalance, the effect added by a command half way,
+    frames fed in blocks of 50; whether the status says Diverged before the command and
+    after each block after it, and the daemon's path. ``skew``: the path's fixed values
+    multiplied by it wherever they are judged (a real divergence)."""
+    import time
+
+    from canrls.can.estimator_frames import CommandCode, EffectId, encode_command
+    from canrls.can.frameblock import FrameBlock
+    from canrls.can.logs import read_frames
+
+    log = tmp_path / "drive.log"
+    _canrls(["sim", "--out", str(log), "--duration", "16", "--seed", "5", "--effects",
+             "inertia,viscous,coulomb,offset,unbalance"])
+    frames = FrameBlock.concat(list(read_frames(log)))
+    d = _daemon(["--kt", "0.1", "-e", "inertia,viscous,coulomb,offset", "--commands"], [])
+    path = d._fixed_path
+    fixed = path.fixed
+    if skew != 1.0:
+        def skewed() -> Any:
+            out = fixed()
+            if out and not path.settling():
+                out = {k: (v * skew, ok) for k, (v, ok) in out.items()}
+            return out
+        path.fixed = skewed
+    half, n = len(frames) // 2, len(frames)
+    try:
+        d.process(frames.take(slice(0, half)))
+        before = d.publisher.status(time.monotonic()).diverged
+        d.process([encode_command(CommandCode.ADD_EFFECT, EffectId.UNBALANCE)])
+        flags = []
+        for a in range(half, n, 50):
+            d.process(frames.take(slice(a, min(a + 50, n))))
+            flags.append(d.publisher.status(time.monotonic()).diverged)
+        return before, flags, path
+    finally:
+        d.stop()
+
+
+def test_a_path_restarted_by_add_effect_is_not_judged_diverged_until_it_caught_up(
+        tmp_path: Path) -> None:
+    """add_effect starts the target's path again from its prior while the float keeps its
+    values: until the path has had as many updates as the float had then, their
+    difference is no divergence (it was flagged for 36 of 320 blocks, 0.8 s of data)."""
+    before, flags, path = _diverged_after_add(tmp_path)
+    assert not before and not any(flags)
+    assert not path.settling() and path.running.run_info().updates["mechanical"] > 7000
+
+
+def test_a_real_divergence_is_still_flagged_after_add_effect(tmp_path: Path) -> None:
+    """The same, the path's values off by half where it is judged: Diverged, at once on
+    a path that never started again, and once the restarted one caught up."""
+    before, flags, _ = _diverged_after_add(tmp_path, skew=1.5)
+    assert before and flags[-1] and not flags[0]
+
+
+def test_the_updates_a_restarted_path_needs() -> None:
+    from canrls.firmware.target_live import settle_updates
+
+    assert settle_updates({"mechanical": 7805}, 1.0) == {"mechanical": 7805}
+    assert settle_updates({"mechanical": 7805, "electrical": 100}, 0.999) == {
+        "mechanical": 3000, "electrical": 100}

@@ -178,7 +178,8 @@ class NativeTarget:
 
     def set_state(self, state: bytes) -> None:
         """Continue from a :meth:`state` of the same model's C in the same build
-        (:class:`TargetError` for a state of another size)."""
+        (:class:`TargetError` for a state of another size, or one with a field
+        ``canrls_target_check_state`` refuses: docs/target.md, "Restoring a state")."""
         try:
             self._c.set_state(state)
         except ValueError as e:

@@ -5,6 +5,7 @@
 
 * ``canrls_target.h``, ``canrls_target.c``, ``canrls_target_math.h``,
   ``canrls_target_tables.h`` -- the whole per-frame path (a copy of ``canrls/c/firmware``);
+  ``canrls_target_check.h``, ``canrls_target_check.c`` -- the check of a restored state;
 * ``canrls_front.c`` -- its front end (decode, pair, filters, columns, selection) in
   straight-line code for this model and DBC (:mod:`canrls.firmware.front`);
 * ``canrls_model.h``, ``canrls_model.c`` -- the constant ``canrls_model`` of this model
@@ -36,7 +37,7 @@ __all__ = ["TARGET_FILES", "TEST_FILES", "TargetExport", "export_target", "readm
 
 #: the whole path's files, copied from the package (``canrls/c/firmware``)
 TARGET_FILES = ("canrls_target.h", "canrls_target.c", "canrls_target_math.h",
-                "canrls_target_tables.h")
+                "canrls_target_tables.h", "canrls_target_check.h", "canrls_target_check.c")
 #: the replay of test vectors and its host program
 TEST_FILES = ("canrls_replay.h", "canrls_replay.c", "canrls_test.c")
 #: the least firmware, linked for its size (``make size-m4``)
@@ -204,6 +205,7 @@ cc -std=c99 -O2{nflag} -DCANRLS_FRONT -c canrls_target.c canrls_front.c canrls_m
 |---|---|
 | `canrls_front.c` | `canrls_target_frame()` for this model and DBC in straight-line code: each message's ID, length and CRC, each field's bytes, shifts and masks, each filter's coefficients and the model's columns as constants |
 | `canrls_target.h`, `canrls_target.c`, `canrls_target_math.h`, `canrls_target_tables.h` | the rest of the path (pairing, restart, rescale, update, publish) and the arithmetic; built without `-DCANRLS_FRONT` (and without `canrls_front.c`) it is the whole path, driven by the tables of `canrls_model` (`make test-tables`: the same integers) |
+| `canrls_target_check.h`, `canrls_target_check.c` | `canrls_target_check_state()`: whether a state restored from flash is one the estimator can reach on this model (every field against its invariant); for a firmware that keeps its state across a reset (add `canrls_target_check.c` to the build) |
 | `canrls_model.h`, `canrls_model.c` | `canrls_model`: every constant of this model and DBC |
 | `canrls_fixed.h`, `canrls_fixed.c` | the recursive least squares kernel |
 | `canrls_config.h`, `canrls_config.c` | the kernel's plan and prior alone (for a firmware that builds its own regressors) |
@@ -293,7 +295,9 @@ def _makefile(single_n: int | None, vectors: bool) -> str:
     if vectors:
         lines += ["test: canrls_test", "\t./canrls_test", "",
                   "canrls_test: $(SRC) canrls_replay.c canrls_test.c $(wildcard *.h)",
-                  "\t$(CC) $(CFLAGS) $(DEFS) -o $@ canrls_test.c canrls_replay.c $(SRC)", "",
+                  "\t$(CC) $(CFLAGS) $(DEFS) -o $@ canrls_test.c canrls_replay.c $(SRC)",
+                  "\t$(CC) $(CFLAGS) $(DEFS) -c -o canrls_target_check.o canrls_target_check.c",
+                  "",
                   "# the same vectors through the table-driven front end: both paths give the "
                   "same integers",
                   "test-tables: canrls_test_tables", "\t./canrls_test_tables", "",
@@ -338,8 +342,10 @@ def _makefile(single_n: int | None, vectors: bool) -> str:
               "",
               "# no floating-point routine (soft-float calls: __aeabi_d*, __aeabi_f*, ...)",
               "check-float:",
-              "\t$(ARM_CC) $(ARM_FLAGS) $(DEFS) -std=c99 -Wall -Wextra -Werror -c $(SRC)",
-              "\t! $(ARM_NM) canrls_target.o canrls_front.o canrls_model.o canrls_fixed.o | "
+              "\t$(ARM_CC) $(ARM_FLAGS) $(DEFS) -std=c99 -Wall -Wextra -Werror -c $(SRC) "
+              "canrls_target_check.c",
+              "\t! $(ARM_NM) canrls_target.o canrls_front.o canrls_model.o canrls_fixed.o "
+              "canrls_target_check.o | "
               "grep -E '__aeabi_[df]|__(add|sub|mul|div)[sd]f3|__(float|fix)'",
               "\t@echo 'no floating point in the fixed build'", ""]
     return "\n".join(lines)

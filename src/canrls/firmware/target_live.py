@@ -6,12 +6,15 @@ processor's calibration froze (the integers need its exponents, energies and per
 then replayed and run block by block. The daemon's fixed column is then what ``canrls
 fit`` prints and the C of ``canrls export-c`` computes from the same frames, bit for
 bit. A checkpoint keeps its state (:meth:`LiveTarget.state`), from which a resumed daemon
-continues (:meth:`LiveTarget.resume`).
+continues (:meth:`LiveTarget.resume`). A path started again from its prior while the float
+estimate kept its values is not compared with it until it has caught up
+(:meth:`LiveTarget.settling`).
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import numpy as np
@@ -25,14 +28,28 @@ from canrls.firmware.target_fit import fit_model
 from canrls.firmware.target_model import TargetError
 from canrls.processor import FrameProcessor
 
-__all__ = ["LiveTarget", "HOLD_MAX"]
+__all__ = ["LiveTarget", "HOLD_MAX", "SETTLE_MEMORIES", "settle_updates"]
 
 log = logging.getLogger(__name__)
 
 #: the most frames held while the calibration collects (beyond: the kernel's column)
 HOLD_MAX = 1_000_000
+#: a path that starts again while the float keeps its values catches up, at most, in this
+#: many memories 1/(1 - lambda) of the forgetting factor
+SETTLE_MEMORIES = 3
 #: the fields of :meth:`LiveTarget.state`
 _SAVED = frozenset({"layout", "model", "state", "t0", "frozen"})
+
+
+def settle_updates(kept: dict[str, int], lam: float) -> dict[str, int]:
+    """Per equation, the updates a path started again from its prior needs before it is
+    compared with a float estimate that kept its values: as many as the float had then
+    (``kept``: what its estimate rests on), at most :data:`SETTLE_MEMORIES` memories
+    ``1/(1 - lambda)`` (what a forgetting float still remembers; none with lambda = 1)."""
+    if lam >= 1.0:
+        return dict(kept)
+    cap = math.ceil(SETTLE_MEMORIES / (1.0 - lam))
+    return {name: min(n, cap) for name, n in kept.items()}
 
 
 class LiveTarget:
@@ -55,9 +72,17 @@ class LiveTarget:
         self._lam = settings.lam
         #: a checkpoint's path, continued when the path is built (None: none)
         self._resume: TargetSnapshot | None = None
+        #: the float's updates per equation at the last block (what it kept at a restart)
+        self._float_updates: dict[str, int] = {}
+        #: per equation, the float's updates when the path started again from its prior
+        #: while the float kept its values (None: it did not: nothing to catch up)
+        self._kept: dict[str, int] | None = None
+        #: per equation, the path's updates before its divergence is judged
+        self._settle: dict[str, int] = {}
 
     def feed(self, block: FrameBlock, proc: FrameProcessor) -> None:
         """The frames of a block the processor has processed."""
+        self._seen(proc)
         if self.refused is not None:
             return
         if self.running is None:
@@ -74,6 +99,7 @@ class LiveTarget:
             if self._resume is not None:
                 try:
                     running.restore(self._resume)
+                    self._settle = {}  # it continues: as far as the float
                 except TargetError as e:
                     log.warning("fixed point: the target's integer path starts again from "
                                 "its prior (the checkpoint's target state: %s)", e)
@@ -87,12 +113,19 @@ class LiveTarget:
             # path starts again from its prior with it, at these frames
             log.warning("fixed point: the target's integer path starts again from its prior "
                         "(lambda %r)", proc.pipeline.settings.lam)
-            self.restart()
+            self.restart(float_kept=True)
             self.feed(block, proc)
             return
         if proc.pipeline.frozen != self.running.frozen:  # the commands freeze and resume
             self.running.freeze(proc.pipeline.frozen)
         self.running.feed(block)
+
+    def _seen(self, proc: FrameProcessor) -> None:
+        """Keep the float's updates per equation (what it rests on, should the path
+        start again)."""
+        pipe = proc.pipeline
+        self._float_updates = {e.name: fl for e, (fl, _) in
+                               zip(pipe.model.equations, pipe.update_counts(), strict=True)}
 
     def state(self) -> dict[str, Any] | None:
         """What a checkpoint keeps of the path, integers only (None: it does not run:
@@ -109,7 +142,8 @@ class LiveTarget:
         from it: at once where its calibration and period are known, else when the path
         is built at the next frames; why it starts again from its prior instead (None:
         it continues)."""
-        self.restart()
+        self._seen(proc)
+        self.restart(float_kept=True)
         if saved is None:
             return "the checkpoint holds no target state"
         try:
@@ -137,8 +171,9 @@ class LiveTarget:
         try:
             running.restore(snap)
         except TargetError as e:
-            self.restart()
+            self.restart(float_kept=True)
             return f"the checkpoint's target state does not fit ({e})"
+        self._settle = {}  # it continues: as far as the float
         return None
 
     def _build(self, proc: FrameProcessor) -> TargetFeed | None:
@@ -155,6 +190,8 @@ class LiveTarget:
         if proc.pipeline.frozen:  # a checkpoint's, or a command's during the window
             running.freeze(True)
         self.running = running
+        self._settle = {} if self._kept is None else settle_updates(self._kept, self._lam)
+        self._kept = None
         return running
 
     def _refuse(self, why: str) -> None:
@@ -163,13 +200,30 @@ class LiveTarget:
         log.warning("fixed point: the kernel on the float front end (the target's integer "
                     "path does not run: %s)", why)
 
-    def restart(self) -> None:
+    def restart(self, float_kept: bool = False) -> None:
         """A new model runs, or the estimators were reset: the target's path starts again
-        at the next frames (its calibration is the processor's then)."""
+        at the next frames (its calibration is the processor's then).
+
+        :param float_kept: the float estimate keeps its values (a model change, a new
+            forgetting factor, a resume): the path, from its prior, is compared with it
+            only once it has caught up (:meth:`settling`); False: both start again.
+        """
         self.running = None
         self.refused = None
         self._held, self._n_held = [], 0
         self._resume = None
+        self._kept = dict(self._float_updates) if float_kept else None
+        self._settle = {}
+
+    def settling(self) -> frozenset[str]:
+        """The equations whose path, started again from its prior while the float kept
+        its values, has not caught up yet: their divergence from the float says nothing
+        (:func:`settle_updates`)."""
+        if self.running is None or not self._settle:
+            return frozenset()
+        updates = self.running.run_info().updates
+        return frozenset(name for name, n in self._settle.items()
+                         if updates.get(name, 0) < n)
 
     def fixed(self) -> dict[str, tuple[float, bool]] | None:
         """Every parameter's fixed value in SI and whether its equation has updated (None:

@@ -3,10 +3,10 @@ r"""Change, drift, new-effect and outlier detection on a fleet's history.
 Each series (per model, parameter and drive) is tested against the drive's own normal
 week-to-week scatter, learned robustly from its history and shrunk toward its type's
 (:math:`\tau`), with each recording's sigma. A drive is alerted when a change or drift
-is both unlikely for a healthy drive (Bonferroni over its splits, onsets and series)
-and large enough to matter (:class:`DetectionSettings`, the ``[fleet]`` table), and it
-is compared with its siblings. The statistics, the defaults and the figures:
-docs/fleet.md, "Finding what changes".
+is both unlikely for a healthy drive (over its splits, onsets and series, under their
+own correlation) and large enough to matter (:class:`DetectionSettings`, the
+``[fleet]`` table), and it is compared with its siblings. The statistics, the defaults
+and the figures: docs/fleet.md, "Finding what changes".
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy.typing as npt
 from canrls.core.checks import in_range, is_epoch, is_positive
 from canrls.core.errors import ConfigError
 from canrls.estimation.effects import library
+from canrls.fleet.multiplicity import family_p, phi_tail, t_equivalent, t_tail, tree_links
 from canrls.fleet.records import SOURCE_LIVE, Recording
 
 __all__ = ["ALPHA", "OUTLIER_Z", "MIN_RECORDINGS", "MIN_SIBLINGS", "RESIDUAL", "Alert",
@@ -88,22 +89,6 @@ def _chi2_1_quantile(q: float) -> float:
         else:
             hi = mid
     return hi
-
-
-def _phi_tail(z: float) -> float:
-    """2 Phi(-|z|)."""
-    return math.erfc(abs(z) / math.sqrt(2.0))
-
-
-def _t_tail(t: float, dof: float) -> float:
-    r"""2 P(T > |t|) of a Student t with ``dof`` degrees of freedom, through Wallace's
-    normal equivalent :math:`z = \sqrt{\nu \ln(1 + t^2/\nu)}\,(8\nu + 1)/(8\nu + 3)`
-    (a z whose scale is itself estimated from few pairs has heavier tails)."""
-    if not math.isfinite(dof):
-        return _phi_tail(t)
-    # z = sqrt(nu ln(1 + t^2 / nu)) (8 nu + 1) / (8 nu + 3)
-    z = math.sqrt(dof * math.log1p(t * t / dof)) * (8 * dof + 1) / (8 * dof + 3)
-    return _phi_tail(z)
 
 
 def when(t: float) -> str | None:
@@ -545,28 +530,42 @@ def _weighted_mean(y: F64, w: F64) -> tuple[float, float]:
     return float((w * y).sum() / W), W
 
 
-def _tests(se: Series, tau: float) -> list[_Found]:
+@dataclass(frozen=True)
+class _Family:
+    """Every change and drift tested on a series, and the correlations that hold them
+    together (:func:`~canrls.fleet.multiplicity.tree_links`)."""
+
+    found: list[_Found]
+    links: F64
+
+
+def _tests(se: Series, tau: float) -> _Family:
     """Every change (a split with two or more recordings on each side) and drift (flat
     to an onset, then a slope with three or more recordings on it) of a series, never
-    between two recordings of the same time."""
+    between two recordings of the same time, and the correlations that hold them
+    together."""
     n = len(se.y)
     if n < MIN_RECORDINGS:
-        return []
+        return _Family([], np.empty(0))
     v = se.s ** 2 + tau ** 2
     if not np.all(v > 0):  # no scatter at all (a series with neither sigma nor tau)
-        return []
+        return _Family([], np.empty(0))
     w = 1.0 / v
     y = se.y
     out: list[_Found] = []
+    rows: list[F64] = []  # each z = a^T y, one row a per test
     cw, cwy = np.cumsum(w), np.cumsum(w * y)
     W, Wy = float(cw[-1]), float(cwy[-1])
+    idx = np.arange(n)
     for m in range(2, n - 1):
         if se.t[m] == se.t[m - 1]:
             continue
         Wb, Wa = float(cw[m - 1]), W - float(cw[m - 1])
         mb, ma = float(cwy[m - 1]) / Wb, (Wy - float(cwy[m - 1])) / Wa
-        # z_m = (ybar_{>=m} - ybar_{<m}) / sqrt(1/W_{<m} + 1/W_{>=m})
-        out.append(_Found("change", (ma - mb) / math.sqrt(1.0 / Wb + 1.0 / Wa), m, mb, ma))
+        # z_m = (ybar_{>=m} - ybar_{<m}) / sqrt(1/W_{<m} + 1/W_{>=m}) = a_m^T y
+        a = np.where(idx >= m, w / Wa, -w / Wb) / math.sqrt(1.0 / Wb + 1.0 / Wa)
+        rows.append(a)
+        out.append(_Found("change", float(a @ y), m, mb, ma))
     days = (se.t - se.t[0]) / 86400.0
     ybar = Wy / W
     for c in range(0, n - 2):
@@ -577,11 +576,15 @@ def _tests(se: Series, tau: float) -> list[_Found]:
         sgg = float((w * (g - gbar) ** 2).sum())
         if sgg <= 0:
             continue
-        # b = sum w (g - gbar)(y - ybar) / S_gg,  z_c = b / se(b) = b sqrt(S_gg)
-        b = float((w * (g - gbar) * (y - ybar)).sum()) / sgg
-        a = ybar - b * gbar
-        out.append(_Found("drift", b * math.sqrt(sgg), c, a, a + b * float(g[-1])))
-    return out
+        # z_c = b / se(b) = b sqrt(S_gg) = a_c^T y,  a_c = w (g - gbar) / sqrt(S_gg)
+        a = w * (g - gbar) / math.sqrt(sgg)
+        z = float(a @ y)
+        # b = sum w (g - gbar)(y - ybar) / S_gg
+        b = z / math.sqrt(sgg)
+        lvl = ybar - b * gbar
+        rows.append(a)
+        out.append(_Found("drift", z, c, lvl, lvl + b * float(g[-1])))
+    return _Family(out, tree_links(np.array(rows), v) if rows else np.empty(0))
 
 
 def _phys(se: Series, y: float) -> float:
@@ -670,10 +673,11 @@ def _drive_alerts(drive: str, recs: Sequence[Recording], series: Mapping[str, Se
                   scale: Mapping[str, _Scale], cfg: DetectionSettings
                   ) -> tuple[list[Alert], float]:
     """A drive's alerts: per series the most significant change or drift that is large
-    enough to matter, when it is unlikely for a healthy drive (Bonferroni over every
-    test of the drive)."""
-    found = {name: _tests(se, scale[name].tau) for name, se in series.items()}
-    total = sum(len(fs) for fs in found.values())
+    enough to matter, when it is unlikely for a healthy drive: the family-wise p of
+    its z over every test of every series of the drive
+    (:func:`~canrls.fleet.multiplicity.family_p`)."""
+    families = {name: _tests(se, scale[name].tau) for name, se in series.items()}
+    found = {name: fam.found for name, fam in families.items()}
     max_z = max((abs(f.z) for fs in found.values() for f in fs), default=0.0)
     alerts = []
     for name, fs in found.items():
@@ -692,7 +696,11 @@ def _drive_alerts(drive: str, recs: Sequence[Recording], series: Mapping[str, Se
         if best is None:
             continue
         f, rel, times = best
-        p = min(1.0, _t_tail(f.z, scale[name].dof) * total)
+        # the family's p is never below the test's own: most need no more
+        if t_tail(f.z, scale[name].dof) >= cfg.alpha:
+            continue
+        p = family_p(t_equivalent(f.z, scale[name].dof),
+                     [(len(fam.found), fam.links) for fam in families.values()])
         if p < cfg.alpha:
             alerts.append(_alert(drive, recs, se, f, p, tau, rel, times))
     return alerts, max_z
@@ -837,7 +845,7 @@ def _outliers(names: Sequence[str], per_drive: Mapping[str, Sequence[Recording]]
             lvl, sib = math.exp(levels[d][0]), math.exp(levels[d][0] - x)
             _, check = _cause(n, lvl > sib)
             assessed[d][0].append(Alert(
-                drive=d, kind="outlier", series=n, z=z, p=min(1.0, _phi_tail(z)),
+                drive=d, kind="outlier", series=n, z=z, p=min(1.0, phi_tail(z)),
                 message=(f"{n} = {_fmt(lvl, se.unit)} against {_fmt(sib, se.unit)} of its "
                          f"{len(groups[types[d]]) - 1} siblings ({types[d] or 'no type'}) "
                          f"({lvl / sib:.2f} x), z = {z:.1f}, since its first recording"

@@ -687,7 +687,8 @@ class Daemon:
     def _set_model(self, model: Model, why: str) -> None:
         self._proc.with_model(model)
         if self._fixed_path is not None:
-            self._fixed_path.restart()  # the journal's model line says estimation restarts
+            # the journal's model line says estimation restarts; the float keeps its values
+            self._fixed_path.restart(float_kept=True)
         self._publisher.model_changed()
         self._journal.model_changed(model, why)
 

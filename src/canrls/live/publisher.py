@@ -60,8 +60,13 @@ class FixedPath(typing.Protocol):
     def feed(self, block: FrameBlock, proc: FrameProcessor) -> None:
         """The frames of a block the processor has processed."""
 
-    def restart(self) -> None:
-        """A new model runs."""
+    def restart(self, float_kept: bool = False) -> None:
+        """A new model runs (``float_kept``: the float estimate keeps its values), or
+        the estimators were reset."""
+
+    def settling(self) -> frozenset[str]:
+        """The equations whose path, started again while the float kept its values, has
+        not caught up yet: their float-vs-fixed divergence is not judged."""
 
     def state(self) -> dict[str, typing.Any] | None:
         """What a checkpoint keeps to continue the path (None: nothing to keep)."""
@@ -224,13 +229,19 @@ class Publisher:
             params = pipe.parameters()
         out: list[ParameterReport] = []
         divs: list[float] = []
-        path = self.fixed_path.fixed() if self.fixed_path is not None else None
-        for blanks, eq, (_, fixed_updates) in zip(
-                self._layout_of(pipe)[1], params, pipe.update_counts(), strict=True):
+        path, settling = None, frozenset[str]()
+        if self.fixed_path is not None:
+            path = self.fixed_path.fixed()
+            settling = self.fixed_path.settling() if path is not None else settling
+        for equation, blanks, eq, (_, fixed_updates) in zip(
+                pipe.model.equations, self._layout_of(pipe)[1], params, pipe.update_counts(),
+                strict=True):
             fixed = [(p.fixed, fixed_updates > 0) if path is None
                      else path.get(p.name, (math.nan, False)) for p in eq]
             out += [b.with_estimates(f, p.sigma, p.value, ok and math.isfinite(f))
                     for b, p, (f, ok) in zip(blanks, eq, fixed, strict=True)]
+            if equation.name in settling:
+                continue  # the path started again from its prior: not caught up yet
             # in physical units: the same as in normalised ones (powers of two apart)
             divs.append(divergence([p.value for p in eq], [f for f, _ in fixed],
                                    [p.sigma for p in eq]))

@@ -12,6 +12,8 @@
 
 #include <string.h>
 
+#include "canrls_target_check.h"
+
 #include "canrls_target_math.h"
 
 /* an arithmetic right shift of negative values (every compiler for these targets has one) */
@@ -156,6 +158,11 @@ static int32_t cr_trace_bound(const canrls_equation *e, const canrls_target_eq *
         sum = sum > I62 - q->terms[j] ? I62 : sum + q->terms[j];
     }
     return (int32_t)(sum < e->trace_cap ? sum : e->trace_cap);
+}
+
+int32_t canrls_target_trace_bound(const canrls_equation *e, const canrls_target_eq *q)
+{
+    return cr_trace_bound(e, q);
 }
 
 int canrls_target_init(canrls_target *S, const canrls_target_model *M)

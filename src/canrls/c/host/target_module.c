@@ -24,6 +24,7 @@
 #include <string.h>
 
 #include "canrls_target.h"
+#include "canrls_target_check.h"
 #include "plan_fields.h"
 #include "pyargs.h"
 
@@ -677,14 +678,15 @@ static PyObject *Target_state(TargetObject *self, PyObject *unused)
 PyDoc_STRVAR(set_state_doc,
 "set_state(state: bytes) -> None\n\n"
 "Continue from a state() of an object built from the same vector by the same build:\n"
-"its bytes taken, the pointers and each kernel's size kept (ValueError: another size,\n"
-"or kernels of another size).");
+"its bytes taken, the pointers and each kernel's size kept. ValueError: another size,\n"
+"kernels of another size, or a field canrls_target_check_state() refuses (named).");
 
 static PyObject *Target_set_state(TargetObject *self, PyObject *arg)
 {
     Py_buffer b;
     canrls_target next;
     uint32_t i;
+    int field;
     if (!ready(self) || PyObject_GetBuffer(arg, &b, PyBUF_SIMPLE) != 0) {
         return NULL;
     }
@@ -703,10 +705,21 @@ static PyObject *Target_set_state(TargetObject *self, PyObject *arg)
                          self->S.eq[i].rls.n);
             return NULL;
         }
-        next.eq[i].rls.plan = self->S.eq[i].rls.plan;
+        /* the pointers of this object: to the model and to the state's own plan copy */
+        next.eq[i].rls.plan = i < self->M.neq ? &next.eq[i].plan : NULL;
     }
     next.model = self->S.model;
+    field = canrls_target_check_state(&next, next.model);
+    if (field != CANRLS_OK) {
+        PyErr_Format(PyExc_ValueError, "Target: the state's %s is not one the estimator "
+                     "reaches on this model (canrls_target_check_state)",
+                     canrls_target_state_field(field));
+        return NULL;
+    }
     self->S = next;
+    for (i = 0; i < self->M.neq; i++) {
+        self->S.eq[i].rls.plan = &self->S.eq[i].plan;
+    }
     Py_RETURN_NONE;
 }
 
