@@ -157,3 +157,11 @@ def test_a_short_log_is_read_without_a_thread(short_logs: list[Path],
     # a log of several blocks still reads the next block ahead in a thread
     assert len(list(read_frames(short_logs[0], chunk_size=4096))) == 2
     assert "canrls log reader" in started
+
+
+def test_the_calibration_probe_runs_no_check_filter() -> None:
+    _, model, settings = _fresh()
+    probe = Pipeline(model, 1e-3, settings, adapt=False)
+    assert all(e.check_builder is None for e in probe.estimators)
+    assert all(e.check_builder is not None
+               for e in Pipeline(model, 1e-3, settings).estimators)
