@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import itertools
 import locale
 import os
 from collections.abc import Callable, Generator, Iterable, Iterator
@@ -161,7 +162,14 @@ def _read_candump(f: io.FileIO | _Hashed, path: Path, chunk_size: int, skip_bad:
     ``st`` counts what the caller was given."""
     own = LogReadStats(total_bytes=st.total_bytes)  # the parser's, a block ahead
     steps = _parse_candump(f, path, chunk_size, skip_bad, own)
-    for block, seen in _read_ahead(steps) if chunk_size >= READ_AHEAD else steps:
+    # the first block is the caller's to wait for; a log it holds whole (a short log)
+    # leaves nothing to read ahead, so no thread is started for it
+    first = next(steps, None)
+    if first is None:
+        return
+    whole = first[1].bytes_read >= st.total_bytes
+    rest = steps if whole or chunk_size < READ_AHEAD else _read_ahead(steps)
+    for block, seen in itertools.chain((first,), rest):
         for name in ("frames", "lines", "bad_lines", "slow_lines", "bytes_read"):
             setattr(st, name, getattr(seen, name))
         if len(block):

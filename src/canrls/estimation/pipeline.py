@@ -172,16 +172,18 @@ class EquationEstimator:
         #: the same equation through the filter at half the cutoff (None where that
         #: filter cannot run at this period): its least-squares estimate, on the rows
         #: both filters have settled on, bounds the bias of the model's errors that the
-        #: filter weighs (:meth:`bias`)
+        #: filter weighs (:meth:`bias`); a probe, whose estimates nobody reads, runs none
         self.check_builder: RegressorBuilder | None = None
         self.check_selector: SampleSelector | None = None
-        try:
-            check = equation.model.with_cutoff(CHECK_CUTOFF * equation.model.cutoff_hz)
-            check_eq = check.equation(equation.name)
-            self.check_builder = check_eq.builder(dt)
-            self.check_selector = SamplePolicy.for_equation(check_eq, self.dt, s).selector()
-        except ConfigError:
-            pass
+        if self.adapt:
+            try:
+                check = equation.model.with_cutoff(CHECK_CUTOFF * equation.model.cutoff_hz)
+                check_eq = check.equation(equation.name)
+                self.check_builder = check_eq.builder(dt)
+                self.check_selector = SamplePolicy.for_equation(check_eq, self.dt,
+                                                                s).selector()
+            except ConfigError:
+                pass
         #: which samples update the estimators (warm-up, gaps, speed limits)
         self.policy = SamplePolicy.for_equation(equation, self.dt, s)
         self.filler = self.policy.filler()
@@ -728,7 +730,8 @@ class Pipeline:
         window showed nothing of (:class:`~canrls.processor.WindowScaling`)
     noise : ``{equation name: noise covariance of the filtered columns}`` (unnormalised;
         :meth:`EquationEstimator.bias`)
-    adapt : whether the normalisation follows the data (off: a probe of the window)
+    adapt : whether the normalisation follows the data (off: a probe of the window,
+        without the check filter of :meth:`EquationEstimator.bias`)
     """
 
     def __init__(self, model: Model, dt: float, settings: EstimatorSettings | None = None,

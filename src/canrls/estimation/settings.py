@@ -3,6 +3,7 @@ normalisation and of the ridge prior that the pipeline and the front end share."
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -175,12 +176,21 @@ class EstimatorSettings:
         :raises FixedPointError: no Q formats; when a larger ``alpha`` would give them,
             the message names the smallest.
         """
-        if ridge is None:
-            flat = np.full(n, float(self.alpha))
-            if not self.fixed_overrides:  # formats a user set are checked as they are
-                self._formats(n, flat * MIN_ENERGY)  # the calibrated prior at its largest
-            return self._formats(n, flat)
+        if ridge is None:  # a function of these settings and n alone: found once
+            got = self._uncalibrated.get(n)
+            if got is None:
+                flat = np.full(n, float(self.alpha))
+                if not self.fixed_overrides:  # formats a user set are checked as they are
+                    self._formats(n, flat * MIN_ENERGY)  # the calibrated prior at its largest
+                got = self._uncalibrated[n] = self._formats(n, flat)
+            return got
         return self._formats(n, np.asarray(ridge, dtype=np.float64))
+
+    @functools.cached_property
+    def _uncalibrated(self) -> dict[int, FixedConfig]:
+        """:meth:`fixed_config` before the calibration, by ``n`` (every stream's first
+        pipelines ask for it again)."""
+        return {}
 
     def _formats(self, n: int, ridge: F64) -> FixedConfig:
         """:meth:`_auto`, its error naming the smallest alpha when alpha is the cause."""

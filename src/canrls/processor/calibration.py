@@ -436,24 +436,52 @@ class SampleProcessor:
     model, dt, settings : the model (its ranges not in
         :attr:`~canrls.estimation.model.Model.ranges_given` are measured on the window),
         the control period [s] and the estimator settings
+    start : ``Pipeline(model, dt, settings)`` as built for an earlier stream and never
+        run, shared (:meth:`FrameProcessor._sampler`): this processor builds its own
+        only when it first runs one (a stream whose first block fills the window never
+        does: the calibration builds the pipeline it runs)
     """
 
     def __init__(self, model: Model, dt: float, settings: EstimatorSettings | None = None,
-                 sources: Mapping[str, str] | None = None) -> None:
+                 sources: Mapping[str, str] | None = None, *,
+                 start: Pipeline | None = None) -> None:
         self._sources = dict(sources) if sources is not None else {
             k: ("config" if k in model.ranges_given else "default") for k in model.ranges}
-        self.pipeline = Pipeline(model, dt, settings or EstimatorSettings())
+        self._start = start
+        self._pipeline = Pipeline(model, dt, settings or EstimatorSettings()) \
+            if start is None else None
         #: the frozen calibration (None while the window is being collected)
         self.calibration: Calibration | None = None
         self._held: list[Signals] = []
         self._held_n = 0
         self._window: Signals | None = None
-        self._calibrate_n = max(1, int(round(self.settings.calibration_s / self.pipeline.dt)))
+        self._calibrate_n = max(1, int(round(self.settings.calibration_s / self.dt)))
+
+    @property
+    def pipeline(self) -> Pipeline:
+        """The pipeline samples run through (built from the shared start when first
+        asked for)."""
+        if self._pipeline is None:
+            s = self._start
+            assert s is not None
+            self._pipeline = Pipeline(s.model, s.dt, s.settings)
+        return self._pipeline
+
+    @pipeline.setter
+    def pipeline(self, pipeline: Pipeline) -> None:
+        self._pipeline = pipeline
+
+    @property
+    def _current(self) -> Pipeline:
+        """The pipeline, or the shared start it would be built from (read only)."""
+        p = self._pipeline if self._pipeline is not None else self._start
+        assert p is not None
+        return p
 
     @property
     def settings(self) -> EstimatorSettings:
         """The estimator settings: the pipeline's, which a command may change (lambda)."""
-        return self.pipeline.settings
+        return self._current.settings
 
     @property
     def calibrating(self) -> bool:
@@ -462,11 +490,11 @@ class SampleProcessor:
 
     @property
     def dt(self) -> float:
-        return self.pipeline.dt
+        return self._current.dt
 
     @property
     def model(self) -> Model:
-        return self.pipeline.model
+        return self._current.model
 
     @property
     def window(self) -> Signals | None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 from collections.abc import Mapping
 from typing import Any
 
@@ -71,6 +72,24 @@ def unmapped_error(protocol: Protocol, frames: int, seen: list[tuple[int, int]],
         f"{want} (DBC {protocol.dbc_path.name}); most frequent IDs seen "
         f"(frames): {seen_text}{why}. Map the right messages with --signal "
         f"ROLE=MESSAGE.SIGNAL or give the drive's DBC with --dbc")
+
+
+#: configurations whose start (:meth:`FrameProcessor._sampler`) is kept per process
+STARTS_KEPT = 16
+
+
+@dataclasses.dataclass(frozen=True)
+class _Start:
+    """What a configuration's sample processor starts from (:meth:`FrameProcessor._sampler`)."""
+
+    #: the protocol, model and settings it was built for (held: their ids are the key)
+    config: tuple[Protocol, Model, EstimatorSettings | None]
+    sources: Mapping[str, str]
+    pipeline: Pipeline
+
+
+_STARTS: dict[tuple[int, int, int, float], _Start] = {}
+_STARTS_LOCK = threading.Lock()
 
 
 class FrameProcessor:
@@ -146,11 +165,27 @@ class FrameProcessor:
             self.sampler = SampleProcessor(model, _PLACEHOLDER_DT, settings)
 
     def _sampler(self, model: Model, period: float) -> SampleProcessor:
-        dbc = dbc_ranges(model, self.protocol)
-        sources = {k: ("config" if k in model.ranges_given else "dbc" if k in dbc else
-                       "default") for k in model.ranges}
-        return SampleProcessor(model.with_ranges(dbc) if dbc else model, period,
-                               self._settings0, sources)
+        """The sample processor of ``model`` at ``period``: its model with the DBC's
+        ranges, where they come from, and its pipeline before any sample depend on the
+        configuration alone, so they are built once for it (:data:`STARTS_KEPT`) and
+        shared, never run (:class:`SampleProcessor`'s ``start``)."""
+        config = (self.protocol, model, self._settings0)
+        key = (id(self.protocol), id(model), id(self._settings0), period)
+        got = _STARTS.get(key)
+        if got is None or any(a is not b for a, b in zip(got.config, config, strict=True)):
+            dbc = dbc_ranges(model, self.protocol)
+            sources = {k: ("config" if k in model.ranges_given else "dbc" if k in dbc else
+                           "default") for k in model.ranges}
+            start = Pipeline(model.with_ranges(dbc) if dbc else model, period,
+                             self._settings0 or EstimatorSettings())
+            got = _Start(config, sources, start)
+            with _STARTS_LOCK:
+                _STARTS.pop(key, None)
+                while len(_STARTS) >= STARTS_KEPT:
+                    del _STARTS[next(iter(_STARTS))]
+                _STARTS[key] = got
+        return SampleProcessor(got.pipeline.model, period, got.pipeline.settings,
+                               got.sources, start=got.pipeline)
 
     def _start(self, period: float) -> None:
         """Pairer and sample processor for the decided period."""

@@ -32,6 +32,7 @@ floating point) when the estimator is built (:attr:`FixedRLS.constants`).
 
 from __future__ import annotations
 
+import functools
 import math
 from fractions import Fraction
 
@@ -95,14 +96,29 @@ def _pre(acc_bits: int, a: QFormat, b: QFormat, m: int) -> int:
     raise FixedPointError("no pre-shift fits the accumulator")  # pragma: no cover
 
 
+#: plans kept per process (:func:`build_plan`): every estimator of a configuration, and
+#: each stream's (log's) estimators before their calibration, share one
+PLANS_KEPT = 256
+
+
 def build_plan(
     cfg: FixedConfig, n: int, lam: float, trace_max: float
 ) -> tuple[IntArray, dict[str, int]]:
-    """The kernel's integer constants (``fixed.layout.I_*`` layout) and a named copy.
+    """The kernel's integer constants (``fixed.layout.I_*`` layout, read-only) and a
+    named copy.
 
     Every constant is an exact function of the config, ``n``, the rational value of
-    ``lam`` and ``trace_max``: Python integers and fractions, no floating point.
+    ``lam`` and ``trace_max``: Python integers and fractions, no floating point. So a
+    plan is made once for its arguments (the last :data:`PLANS_KEPT`) and shared.
     """
+    p, named = _plan(cfg, n, lam, trace_max)
+    return p, dict(named)
+
+
+@functools.lru_cache(maxsize=PLANS_KEPT)
+def _plan(cfg: FixedConfig, n: int, lam: float, trace_max: float
+          ) -> tuple[IntArray, dict[str, int]]:
+    """:func:`build_plan`, made."""
     A = cfg.acc_bits
     p = np.zeros(kernels.NPARAM, dtype=np.int64)
     named: dict[str, int] = {}
@@ -225,6 +241,7 @@ def build_plan(
             raise FixedPointError(f"shift {name} = {v} exceeds 62 bits")
     if e_max < 0:  # pragma: no cover - only absurd formats
         raise FixedPointError(f"no room for the block exponent of P {cfg.P}")
+    p.setflags(write=False)  # shared by every estimator of these arguments
     return p, named
 
 
