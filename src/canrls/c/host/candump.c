@@ -375,10 +375,10 @@ static Py_ssize_t format_lines(Py_ssize_t n, const Block *b, uint8_t *out, Py_ss
 
 /* ================================================================= Python glue */
 PyDoc_STRVAR(parse_doc,
-"parse(buf, stop, final, t, aid, ext, err, dlc, data, slow) -> (used, rows, slow, lines)\n"
+"parse(buf, stop, final, t, aid, ext, err, dlc, data, slow, /)\n"
 "--\n\n"
 "Parse whole lines of buf[:stop] into the rows of the output arrays\n"
-"(canrls.can.candump.parse).");
+"(canrls.can.candump.parse); returns (used, rows, slow, lines).");
 
 static PyObject *py_parse(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {

@@ -237,7 +237,7 @@ static Py_ssize_t plant_run(Py_ssize_t k0, Py_ssize_t n, int64_t budget, double 
 /* ================================================================= Python glue */
 PyDoc_STRVAR(plant_run_doc,
 "plant_run(dt, nsub, h_stiff, st, p, ck, cs, cc, gains, quant, ffv, ffmap, w_ref, a_ref,\n"
-"          noise, out)\n"
+"          noise, out, /)\n"
 "--\n\n"
 "Advance len(w_ref) control periods of the simulated drive (canrls.sim.plant), in place.\n\n"
 "st (5,): [theta, omega, i, integ_w, integ_i], updated; p (15,): the physics;\n"
