@@ -10,6 +10,7 @@ reaches the C.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from fractions import Fraction
 
 from canrls.core.c_escape import c_comment, c_int, c_name_part, c_string, c_uint
 from canrls.firmware.qmath import dyadic
@@ -64,8 +65,8 @@ def _column(c: Column, what: str) -> str:
             f".adaptive = {int(c.adaptive)}u, .pending = {int(c.pending)}u}}")
 
 
-def _dy(x: object, what: str) -> str:
-    m, e = dyadic(x)  # type: ignore[arg-type]
+def _dy(x: Fraction, what: str) -> str:
+    m, e = dyadic(x)
     return f"{{.m = {_u(m, what, 64)}, .e = {_i(e, what)}}}"
 
 

@@ -45,10 +45,15 @@ def _s64(v: int) -> int:
 
 
 def _put(out: list[int], section: str, values: Mapping[str, int | Sequence[int]]) -> None:
-    """The values of one section of the C's layout (``canrls._target.LAYOUT``), by name."""
+    """The values of one section of the C's layout (``canrls._target.LAYOUT``), by name,
+    each with as many words as the layout gives it."""
     for name, count in _target.LAYOUT[section]:
         v = values[name]
-        out.extend(v if count > 1 else [v])  # type: ignore[arg-type, list-item]
+        words = [v] if isinstance(v, int) else list(v)
+        if len(words) != count:
+            raise TargetError(f"the target's layout: {section}.{name} has {count} words, "
+                              f"{len(words)} given")
+        out.extend(words)
 
 
 def _field(f: Field | None) -> dict[str, int]:

@@ -79,6 +79,10 @@ class TargetError(ConfigError):
 
 
 # ----------------------------------------------------------------- frames in
+
+#: four Q30 coefficients (a 2 x 2 matrix by rows, or a hold's G0 and G1)
+Quad = tuple[int, int, int, int]
+
 @dataclass(frozen=True)
 class Field:
     """A signal's bit field in its message (classic CAN, at most 8 bytes): the payload
@@ -313,8 +317,8 @@ class TargetModel:
     #: the speed of the selection: W = raw 2^W_FRAC + w_offset
     w_offset: int
     #: the filter's coefficients, Q30: A (2 x 2) and per hold (foh, zoh) G0, G1 (2 each)
-    A: tuple[int, int, int, int]
-    G: tuple[tuple[int, int, int, int], tuple[int, int, int, int]]
+    A: Quad
+    G: tuple[Quad, Quad]
     filters: tuple[Filter, ...]
     equations: tuple[EquationSpec, ...]
     #: the parameter frames: samples per publication
@@ -502,7 +506,7 @@ def _source(eq: Equation, j: int, model: Model) -> tuple[int, str, int]:
                       f"whole estimator, or export the kernel alone with --kernel-only")
 
 
-def _coefficients(model: Model, dt: float) -> tuple[tuple[int, ...], tuple[tuple[int, ...], ...]]:
+def _coefficients(model: Model, dt: float) -> tuple[Quad, tuple[Quad, Quad]]:
     """The filter's Q30 coefficients with the derivative state scaled by ``dt``: ``A`` and
     ``(G0, G1)`` of each hold. ``G0 + G1 = (I - A) e1`` exactly, so a constant input stays
     exactly constant."""
@@ -510,7 +514,8 @@ def _coefficients(model: Model, dt: float) -> tuple[tuple[int, ...], tuple[tuple
     Ad = svf.Ad
     # z = D x, D = diag(1, dt): A' = D A D^-1, G' = D G
     a = [Ad[0, 0], Ad[0, 1] / dt, Ad[1, 0] * dt, Ad[1, 1]]
-    A = tuple(int(round(v * (1 << 30))) for v in a)
+    q = [int(round(v * (1 << 30))) for v in a]
+    A: Quad = (q[0], q[1], q[2], q[3])
     for v in A:
         if not -(1 << 31) < v < (1 << 31):
             raise TargetError(f"the filter's coefficients do not fit Q30 at cutoff "
@@ -518,7 +523,7 @@ def _coefficients(model: Model, dt: float) -> tuple[tuple[int, ...], tuple[tuple
                               f"well below the sample rate")
     # Gu = (I - A) e1
     gu = ((1 << 30) - A[0], -A[2])
-    G = []
+    G: list[Quad] = []
     for hold in ("foh", "zoh"):
         _, g1 = svf.coefficients(hold)
         g1q = (int(round(g1[0] * (1 << 30))), int(round(g1[1] * dt * (1 << 30))))
@@ -535,7 +540,7 @@ def _coefficients(model: Model, dt: float) -> tuple[tuple[int, ...], tuple[tuple
                 raise TargetError(f"the filter's coefficients at cutoff {model.cutoff_hz} Hz "
                                   f"and period {dt} s are too large for the integer path: "
                                   f"the cutoff must be well below the sample rate")
-    return A, tuple(G)
+    return A, (G[0], G[1])
 
 
 def _fx(bound: int, gamma: float) -> int:
@@ -755,7 +760,7 @@ def build(model: Model, protocol: Protocol, settings: EstimatorSettings, dt: flo
         source=source, dt=float(dt), tick_s=float(tick_s), dt_ticks=int(dt_ticks),
         gap_ticks=int(dt_ticks + dt_ticks // 2), tol_ticks=int(dt_ticks // 2),
         messages=messages, roles=roles, tanh_arg=tanh_arg, stribeck_arg=stribeck_arg,
-        phase=phase, w_offset=w_offset, A=A, G=G, filters=tuple(filters),  # type: ignore[arg-type]
+        phase=phase, w_offset=w_offset, A=A, G=G, filters=tuple(filters),
         equations=tuple(eqs), publish_every=publish_every,
         active_effects=int(model.active_effects), param_info=tuple(param_info),
         out=out_frames() if frames else None, model=model, protocol=protocol)
