@@ -167,14 +167,24 @@ def remote_sim_server(directory: Path, channel: str) -> Iterator[str]:
         assert proc.stdout is not None
         yield f"ws://127.0.0.1:{int(proc.stdout.readline())}/"
     finally:
+        reap(proc, terminate=True)
+
+
+def reap(proc: subprocess.Popen[str], *, terminate: bool = False,
+         timeout: float = 10.0) -> None:
+    """End a test's subprocess if it still runs (SIGTERM first with ``terminate``,
+    SIGKILL when it has not ended within ``timeout``), wait for it and close its stdout."""
+    if proc.poll() is None and terminate:
         proc.terminate()
         try:
-            proc.wait(10)
+            proc.wait(timeout)
         except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
-        if proc.stdout is not None:
-            proc.stdout.close()
+            pass
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait(timeout)
+    if proc.stdout is not None:
+        proc.stdout.close()
 
 
 def notify_socket(directory: Path, name: str) -> tuple[socket.socket, str]:

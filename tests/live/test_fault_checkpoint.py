@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import pytest
 from blocking import in_thread, unblock_fifo
+from daemon_tool import reap
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -511,11 +512,7 @@ def test_kill_9_during_a_write_leaves_no_usable_damage(tmp_path: Path,
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if proc.stdout is not None:
-            proc.stdout.close()
+        reap(proc)
     assert proc.returncode == -signal.SIGKILL
     temps = [p for p in tmp_path.iterdir() if p.name.startswith(".cp.bin.tmp.")]
     assert len(temps) == 1  # the write cut short

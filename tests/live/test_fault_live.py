@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from daemon_tool import daemon_fed, daemon_process, reloaded_daemon, remote_sim_server
+from daemon_tool import daemon_fed, daemon_process, reap, reloaded_daemon, remote_sim_server
 
 from canrls.can.estimator_frames import FrameDecoder
 from canrls.can.frameblock import FrameBlock
@@ -309,17 +309,6 @@ def _server(port: int) -> subprocess.Popen[str]:
     return proc
 
 
-def _stop(proc: subprocess.Popen[str]) -> None:
-    proc.terminate()
-    try:
-        proc.wait(10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(10)
-    if proc.stdout is not None:
-        proc.stdout.close()
-
-
 @pytest.mark.slow
 def test_a_remote_bus_lost_and_reconnected_leaves_no_traceback_at_exit(tmp_path: Path) -> None:
     """``canrls run -i remote``: the python-can-remote server goes away and comes back
@@ -358,14 +347,14 @@ def test_a_remote_bus_lost_and_reconnected_leaves_no_traceback_at_exit(tmp_path:
 
         try:
             wait_for("daemon running")
-            _stop(server)
+            reap(server, terminate=True)
             wait_for("reopening")
             server = _server(port)
             wait_for("CAN bus reopened")
         finally:
             out, _ = d.stop()
             reader.join(10)
-            _stop(server)
+            reap(server, terminate=True)
     while (line := lines.get_nowait()) is not None:
         seen.append(line)
     err = "".join(seen)

@@ -14,6 +14,7 @@ import can
 import cantools
 import numpy as np
 import pytest
+from daemon_tool import reap
 
 from canrls.can.decoder import Decoder
 from canrls.can.e2e import e2e_crc
@@ -181,11 +182,7 @@ def test_python_can_logger_runs_against_it(tmp_path: Path) -> None:
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=30)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if proc.stdout is not None:
-            proc.stdout.close()
+        reap(proc)
     msgs = list(can.LogReader(str(out)))
     assert len(msgs) == 400
     assert {m.arbitration_id for m in msgs} == {0x101, 0x102}
