@@ -823,25 +823,34 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
 /* ------------------------------------------------------------------ frames out */
 
 /* frame f of the signals v[0..k) into out[*nf] (while *nf < max): each signal's value mod
- * 2^length at its start bit, the payload's 8 bytes little endian */
+ * 2^length at its start bit of the 64-bit payload (its words lo and hi), the payload's 8
+ * bytes little endian */
 static void cr_emit(canrls_can_frame *out, uint32_t *nf, uint32_t max,
                     const canrls_out_frame *f, const uint32_t *v, uint32_t k)
 {
-    uint64_t word = 0u;
-    uint32_t j;
+    uint32_t lo = 0u, hi = 0u, j;
     if (*nf >= max) {
         return;
     }
     for (j = 0; j < k; j++) {
-        const uint32_t len = f->length[j];
-        const uint64_t mask = len >= 64u ? ~(uint64_t)0 : (((uint64_t)1 << len) - 1u);
-        word |= ((uint64_t)v[j] & mask) << f->start[j];
+        /* (a value is a word: a length of 32 or more keeps it whole) */
+        const uint32_t len = f->length[j], s = f->start[j];
+        const uint32_t x = len >= 32u ? v[j] : v[j] & ((1u << len) - 1u);
+        if (s >= 32u) {
+            hi |= x << (s - 32u);
+        } else if (s > 0u) {
+            lo |= x << s;
+            hi |= x >> (32u - s);
+        } else {
+            lo |= x;
+        }
     }
     out += (*nf)++;
     out->id = f->id;
     out->dlc = 8u;
-    for (j = 0; j < 8u; j++) {
-        out->data[j] = (uint8_t)(word >> (8u * j));
+    for (j = 0; j < 4u; j++) {
+        out->data[j] = (uint8_t)(lo >> (8u * j));
+        out->data[j + 4u] = (uint8_t)(hi >> (8u * j));
     }
 }
 
