@@ -204,8 +204,16 @@ typedef struct {
     canrls_out_frame estimate, info, status, health;
 } canrls_target_model;
 
-/** The state of one equation. */
+/** The state of one equation: the words every sample reads and writes first (their
+ * offsets from the estimator's state stay within one load or store's reach, LDRD/STRD's
+ * 1020 B on the M4, whatever the bounds), then the kernel and its buffers. */
 typedef struct {
+    int32_t left;            /**< warm-up samples left */
+    int64_t w_last;          /**< the last speed W (0 after a restart) */
+    uint32_t updates;        /**< updates of the kernel (used samples) */
+    uint32_t rescales;
+    uint32_t flags;          /**< the kernel's flags since the last publication (OR) */
+    int64_t ms;              /**< the residual's running mean square (eps format squared) */
     canrls_rls_q31 rls;      /**< the kernel */
     canrls_plan_q31 plan;    /**< its plan (a copy: the trace bound follows the prior) */
     int32_t sh[CANRLS_N_MAX];
@@ -215,12 +223,6 @@ typedef struct {
     uint8_t pending_y;
     canrls_dyadic ridge[CANRLS_N_MAX];
     int64_t terms[CANRLS_N_MAX];
-    int32_t left;            /**< warm-up samples left */
-    int64_t w_last;          /**< the last speed W (0 after a restart) */
-    uint32_t updates;        /**< updates of the kernel (used samples) */
-    uint32_t rescales;
-    uint32_t flags;          /**< the kernel's flags since the last publication (OR) */
-    int64_t ms;              /**< the residual's running mean square (eps format squared) */
 } canrls_target_eq;
 
 /** The estimator: owned by the caller, filled by canrls_target_init(). */
