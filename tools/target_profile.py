@@ -34,13 +34,14 @@ STAGES = {
                         "canrls_target_reject", "cr_pair"),
     "filters (SVF, tanh, exp, sin/cos)": (
         "cr_filter", "cr_svf_row", "cr_split_input", "cr_inputs", "cr_table_eval",
-        "cr_quarter", "cr_tanh_q24", "cr_exp2_neg_q24", "cr_exp_neg_q24", "cr_sincos_q64"),
+        "cr_quarter", "cr_tanh_q24", "cr_tanh_q24_wide", "cr_exp2_neg_q24", "cr_exp_neg_q24",
+        "cr_sincos_q64"),
     "columns, selection, rescale": (
         "cr_sample", "cr_update", "cr_values", "cr_changes", "cr_state", "cr_mul_rsh",
         "cr_sat", "cr_rsh", "cr_shl", "cr_bitlen64", "cr_clog2", "cr_clog2_mul", "cr_adapt",
         "cr_restore", "cr_P_scale", "cr_isqrt", "cr_restart", "cr_trace_bound",
         "cr_floor_scaled", "cr_ceil_scaled", "fr_sample", "fr_update_0", "fr_update_1",
-        "fr_values_0", "fr_values_1", "fr_changes_0", "fr_changes_1", "canrls_target_step",
+        "fr_changes_0", "fr_changes_1", "canrls_target_step",
         "cr_step", "cr_sat32", "cr_sampled",
         "canrls_target_adapt", "canrls_target_restart", "canrls_target_sampled"),
     "publication": ("canrls_target_publish", "cr_f32_bits", "cr_put", "cr_frame"),

@@ -166,6 +166,9 @@ def _ops() -> list[tuple[str, list[int], str]]:
         # the filter's row: rsh(a0 x1 + a1 x2 + (g0 up + g1 u) 2^fx, 30), |x| < 2^60,
         # |u| 2^fx < 2^59, the row's coefficients summing below 2^31
         a0, a1, g0, g1 = (int(v) for v in rng.integers(-(1 << 29), 1 << 29, 4))
+        if rng.random() < 0.1:
+            # an input's coefficient at the model's bound 2^30 (2g no int32)
+            g0, a0, a1 = int(rng.choice([1 << 30, -(1 << 30)])), a0 >> 2, a1 >> 2
         fx = int(rng.integers(0, 41))
         x1, x2 = (int(v) >> int(rng.integers(0, 60)) for v in
                   rng.integers(-(1 << 59), 1 << 59, 2))
@@ -179,6 +182,11 @@ def _ops() -> list[tuple[str, list[int], str]]:
         add("ceil", [mm, e], ceil_scaled(mm, e))
         z = int(rng.integers(-(1 << 31), 1 << 31))
         add("tanh", [z], tanh_q24(z))
+        # not saturated: the generated front end's argument, around +-8 and int32's ends
+        zw = int(rng.choice([8 << 24, (8 << 24) - 1, (1 << 31), -(1 << 31) - 1, 1 << 62])) * \
+            int(rng.choice([1, -1])) if rng.random() < 0.3 else \
+            int(rng.integers(-(1 << 62), 1 << 62)) >> int(rng.integers(0, 62))
+        add("tanh_wide", [zw], tanh_q24(sat(zw, -(1 << 31), (1 << 31) - 1)))
         xe = int(rng.integers(0, 33 << 24))
         add("exp", [xe], exp_neg_q24(xe))
         ph = int(rng.integers(0, 1 << 63)) * 2 + int(rng.integers(0, 2))

@@ -6,7 +6,8 @@
  *
  * It includes canrls_target.c to reach its static functions. stdin: one operation per
  * line, "name arg..." (decimal integers); stdout: one line of results per operation:
- *   mul_rsh x m s  |  clog2_mul a m  |  isqrt n  |  tanh z  |  exp x  |  sincos phase
+ *   mul_rsh x m s  |  clog2_mul a m  |  isqrt n  |  tanh z  |  tanh_wide z  |  exp x
+ *   sincos phase
  *   f32 v e  |  svf a0 a1 g0 g1 x1 x2 up u fx  |  floor m e  |  ceil m e  |  rsh x s
  *   p64 word frac s lo hi  |  float bits width frac shift big_endian ("reject": not passed)
  */
@@ -38,6 +39,10 @@ int main(void)
             int32_t z;
             if (scanf("%" SCNd32, &z) != 1) return 2;
             printf("%" PRId32 "\n", cr_tanh_q24(z));
+        } else if (strcmp(op, "tanh_wide") == 0) {
+            int64_t z;
+            if (scanf("%" SCNd64, &z) != 1) return 2;
+            printf("%" PRId32 "\n", cr_tanh_q24_wide(z));
         } else if (strcmp(op, "exp") == 0) {
             int64_t x;
             if (scanf("%" SCNd64, &x) != 1) return 2;
