@@ -33,12 +33,14 @@ STAGES = {
                         "cr_popcount", "cr_float", "cr_float_word", "canrls_target_pair",
                         "canrls_target_reject", "cr_pair"),
     "filters (SVF, tanh, exp, sin/cos)": (
-        "cr_filter", "cr_svf_row", "cr_split_input", "cr_inputs", "cr_table_eval",
+        "cr_filter", "cr_svf_row", "cr_svf_row32", "cr_split_input", "cr_inputs",
+        "cr_table_eval",
         "cr_quarter", "cr_tanh_q24", "cr_tanh_q24_wide", "cr_exp2_neg_q24", "cr_exp_neg_q24",
         "cr_sincos_q64"),
     "columns, selection, rescale": (
         "cr_sample", "cr_update", "cr_values", "cr_changes", "cr_state", "cr_mul_rsh",
-        "cr_sat", "cr_rsh", "cr_shl", "cr_bitlen64", "cr_clog2", "cr_clog2_mul", "cr_adapt",
+        "cr_sat", "cr_rsh", "cr_rsh32", "cr_shl", "cr_bitlen64", "cr_clog2", "cr_clog2_mul",
+        "cr_adapt",
         "cr_restore", "cr_P_scale", "cr_isqrt", "cr_restart", "cr_trace_bound",
         "cr_floor_scaled", "cr_ceil_scaled", "fr_sample", "fr_update_0", "fr_update_1",
         "fr_changes_0", "fr_changes_1", "canrls_target_step",

@@ -242,6 +242,9 @@ def _filters(tm: TargetModel) -> list[str]:
         g = [_i(v, "G") for v in tm.G[f.hold]]
         fx = _i(f.fx, "fx")
         out += [f"{{ /* filter {i}: {c_comment(f.label, 'filter')}, FX {f.fx} */"]
+        if f.narrow:
+            out += ["    " + s for s in _input(tm, i) + _narrow_rows(i, a, g)] + ["}"]
+            continue
         body = _input(tm, i) + [
             "int32_t uh, ul;",
             f"cr_split_input(u, {fx}, &uh, &ul);",
@@ -265,6 +268,30 @@ def _filters(tm: TargetModel) -> list[str]:
     return out
 
 
+def _narrow_rows(i: int, a: list[str], g: list[str]) -> list[str]:
+    """Lines advancing narrow filter ``i`` (32-bit states, ``fx`` 0: the last input is
+    ``uph 2^31 + upl``) from its input ``u``."""
+    return ["int32_t uh, ul;",
+            "cr_split_input(u, 0, &uh, &ul);",
+            f"if (!S->primed[{i}]) {{",
+            "    /* at rest on the first sample: x = [u, 0] */",
+            f"    S->x1[{i}] = u;",
+            f"    S->x2[{i}] = 0;",
+            f"    S->primed[{i}] = 1u;",
+            "} else {",
+            "    /* 32-bit states (an input bounded by 1), each row saturated to int32 */",
+            f"    const int32_t x1 = (int32_t)S->x1[{i}], x2 = (int32_t)S->x2[{i}];",
+            f"    const int32_t up = (int32_t)(((uint32_t)S->uph[{i}] << 31) | "
+            f"(uint32_t)S->upl[{i}]);",
+            "    /* x1 = A00 x1 + A01 x2 + G0_1 u[k-1] + G1_1 u[k] */",
+            f"    S->x1[{i}] = cr_svf_row32({a[0]}, {a[1]}, {g[0]}, {g[2]}, x1, x2, up, u);",
+            "    /* x2 = A10 x1 + A11 x2 + G0_2 u[k-1] + G1_2 u[k] */",
+            f"    S->x2[{i}] = cr_svf_row32({a[2]}, {a[3]}, {g[1]}, {g[3]}, x1, x2, up, u);",
+            "}",
+            f"S->uph[{i}] = uh;",
+            f"S->upl[{i}] = ul;"]
+
+
 def _state(c: Column) -> str:
     """X + O of a column."""
     x = f"S->{'x2' if c.derivative else 'x1'}[{c.filter}]"
@@ -280,25 +307,29 @@ def _const_state(tm: TargetModel, c: Column) -> int | None:
     return (0 if c.derivative else 1 << (30 + f.fx)) + c.offset
 
 
-def _value(tm: TargetModel, c: Column, j: int) -> str:
-    """The expression of column ``c``'s value ``rsh((X + O) m, sh)`` (``j``: its index).
+def _value(tm: TargetModel, c: Column, j: int) -> tuple[str, bool]:
+    """The expression of column ``c``'s value ``rsh((X + O) m, sh)`` (``j``: its index),
+    and whether it is an int32 by its arithmetic (then not saturated).
 
     A fixed column (neither adaptive nor pending) keeps its model's shift (a rescale moves
     only the others; the state check holds a loaded one to it), so its shift is a constant:
     of the constant's filter the value is one; with ``m = 2^k`` and ``sh > k``, ``sh >= 31``
-    it is ``rsh(X + O, sh - k)`` (exactly ``rsh((X + O) 2^k, sh)``), without the products.
+    it is ``rsh(X + O, sh - k)`` (exactly ``rsh((X + O) 2^k, sh)``), without the products,
+    and of a narrow filter's int32 state (no offset) a 32-bit shift, an int32.
     """
     fixed = not c.adaptive and not c.pending
     const = _const_state(tm, c)
     if fixed and const is not None:
-        return _i(mul_rsh(const, c.m, c.sh), "column", 64)
+        return _i(mul_rsh(const, c.m, c.sh), "column", 64), False
     x = _state(c) if const is None else _i(const, "column", 64)
     if not fixed:
-        return f"cr_mul_rsh({x}, {_i(c.m, 'm')}, q->sh[{j}])"
+        return f"cr_mul_rsh({x}, {_i(c.m, 'm')}, q->sh[{j}])", False
     k = c.m.bit_length() - 1
     if c.m > 0 and c.m == 1 << k and c.sh >= 31 and c.sh > k:
-        return f"cr_rsh({x}, {_i(c.sh - k, 'sh')})"
-    return f"cr_mul_rsh({x}, {_i(c.m, 'm')}, {_i(c.sh, 'sh')})"
+        if tm.filters[c.filter].narrow and not c.offset and c.sh - k <= 31:
+            return f"cr_rsh32((int32_t){x}, {_i(c.sh - k, 'sh')})", True
+        return f"cr_rsh({x}, {_i(c.sh - k, 'sh')})", False
+    return f"cr_mul_rsh({x}, {_i(c.m, 'm')}, {_i(c.sh, 'sh')})", False
 
 
 def _equation(tm: TargetModel, e: EquationSpec, k: int) -> list[str]:
@@ -347,8 +378,9 @@ def _equation(tm: TargetModel, e: EquationSpec, k: int) -> list[str]:
            "    int rescaled = 0;",
            "    for (;;) {",
            "        /* the columns and output, rsh((X + O) m, sh) */"]
+    values = [_value(tm, c, j) for j, c in enumerate(e.columns)]
     for j, c in enumerate(e.columns):
-        up.append(f"        v{j} = {_value(tm, c, j)}; /* {c_comment(c.name, 'parameter')} */")
+        up.append(f"        v{j} = {values[j][0]}; /* {c_comment(c.name, 'parameter')} */")
     up += [f"        y = cr_mul_rsh({_state(e.output)}, {_i(e.output.m, 'm')}, q->sh_y);",
            f"        if (rescaled || !fr_changes_{k}(S, q, {''.join(v + ', ' for v in vs)}y)) {{",
            "            break;", "        }",
@@ -360,7 +392,8 @@ def _equation(tm: TargetModel, e: EquationSpec, k: int) -> list[str]:
     if not e.columns:
         up.append("    phq[0] = 0;")
     for j, c in enumerate(e.columns):
-        up.append(f"    phq[{j}] = {_word32(f'v{j}', c.adaptive, e.f_phi)};")
+        up.append(f"    phq[{j}] = (int32_t)v{j}; /* an int32: a narrow state's shift */"
+                  if values[j][1] else f"    phq[{j}] = {_word32(f'v{j}', c.adaptive, e.f_phi)};")
     up += ["    /* the update; ms <- ms + (eps^2 - ms) >> rms_shift */",
            f"    cr_step(q, phq, {_word32('y', True, e.f_y)}, {_i(e.rms_shift, 'rms shift')});",
            "}", ""]

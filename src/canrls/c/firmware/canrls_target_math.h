@@ -54,6 +54,12 @@ static inline int64_t cr_rsh(int64_t x, int32_t s)
     return ((x >> (s - 1)) + 1) >> 1;
 }
 
+/* rsh(x, s) of an int32 for 1 <= s <= 31: floor(x 2^-s) and the bit below it (half up) */
+static inline int32_t cr_rsh32(int32_t x, int32_t s)
+{
+    return (x >> s) + ((x >> (s - 1)) & 1);
+}
+
 static inline int64_t cr_sat(int64_t x, int64_t lo, int64_t hi)
 {
     return x < lo ? lo : x > hi ? hi : x;
@@ -263,6 +269,25 @@ static inline int64_t cr_svf_row(int32_t a0, int32_t a1, int32_t g0, int32_t g1,
                       + (int64_t)a1 * (int32_t)(x2 & 0x3FFFFFFF)
                       + (int64_t)g0 * upl + (int64_t)g1 * ul;
     return H + ((L + ((int64_t)1 << 29)) >> 30);
+}
+
+/* a filter with 32-bit states (target_model.Filter.narrow): an input bounded by 1 (Q30)
+ * with no fraction bit more (fx 0); each row's result is saturated to int32 */
+static inline int cr_narrow(const canrls_filter *f)
+{
+    return (f->kind == CANRLS_SRC_TANH || f->kind == CANRLS_SRC_STRIBECK
+            || f->kind == CANRLS_SRC_SIN || f->kind == CANRLS_SRC_COS) && f->fx == 0;
+}
+
+/* the row of a narrow filter, cr_svf_row at fx 0 on int32 words (states, the last input
+ * and this one): rsh(a0 x1 + a1 x2 + g0 up + g1 u, 30) saturated to int32, four SMULL or
+ * SMLAL (|sum| < 2^31 2^31, the model's row bound) */
+static inline int32_t cr_svf_row32(int32_t a0, int32_t a1, int32_t g0, int32_t g1, int32_t x1,
+                                   int32_t x2, int32_t up, int32_t u)
+{
+    const int64_t sum = (int64_t)a0 * x1 + (int64_t)a1 * x2 + (int64_t)g0 * up
+                        + (int64_t)g1 * u;
+    return cr_sat32((sum + ((int64_t)1 << 29)) >> 30);
 }
 
 /* ------------------------------------------------------------------ the per-sample steps

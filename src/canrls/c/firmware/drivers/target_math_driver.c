@@ -8,7 +8,8 @@
  * line, "name arg..." (decimal integers); stdout: one line of results per operation:
  *   mul_rsh x m s  |  clog2_mul a m  |  isqrt n  |  tanh z  |  tanh_wide z  |  exp x
  *   sincos phase
- *   f32 v e  |  svf a0 a1 g0 g1 x1 x2 up u fx  |  floor m e  |  ceil m e  |  rsh x s
+ *   f32 v e  |  svf a0 a1 g0 g1 x1 x2 up u fx  |  svf32 a0 a1 g0 g1 x1 x2 up u
+ *   floor m e  |  ceil m e  |  rsh x s
  *   p64 word frac s lo hi  |  float bits width frac shift big_endian ("reject": not passed)
  */
 #include <inttypes.h>
@@ -76,6 +77,13 @@ int main(void)
             } else {
                 printf("reject\n");
             }
+        } else if (strcmp(op, "svf32") == 0) {
+            int32_t a0, a1, g0, g1, x1, x2, up, u;
+            if (scanf("%" SCNd32 " %" SCNd32 " %" SCNd32 " %" SCNd32 " %" SCNd32 " %" SCNd32
+                      " %" SCNd32 " %" SCNd32, &a0, &a1, &g0, &g1, &x1, &x2, &up, &u) != 8) {
+                return 2;
+            }
+            printf("%" PRId32 "\n", cr_svf_row32(a0, a1, g0, g1, x1, x2, up, u));
         } else if (strcmp(op, "svf") == 0) {
             int32_t a[2], g0, g1, up, u, fx, uph, upl, uh, ul;
             int64_t x1, x2;
