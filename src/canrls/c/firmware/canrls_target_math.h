@@ -88,13 +88,14 @@ static inline int64_t cr_mul_rsh(int64_t x, int32_t m, int32_t s)
     /* h < 2^30 and l < 2^31: both words, each product one SMULL */
     const int64_t a = (int64_t)(int32_t)(x >> 31) * m;
     const int64_t b = (int64_t)(int32_t)(x & 0x7FFFFFFF) * m;
+    if ((uint32_t)s - 32u <= 60u) {
+        /* 32 <= s <= 92 (one unsigned compare): (T + 2^(s-32)) >> (s - 31) with
+         * T = h m + (l m >> 31), as ((T >> (s - 32)) + 1) >> 1: one variable shift, no
+         * 64-bit constant */
+        return (((a + (b >> 31)) >> ((uint32_t)s - 32u)) + 1) >> 1;
+    }
     if (s > 31) {
-        if (s >= 93) {
-            return 0;
-        }
-        /* (T + 2^(s-32)) >> (s - 31) with T = h m + (l m >> 31), as ((T >> (s - 32)) + 1) >> 1:
-         * one variable shift, no 64-bit constant */
-        return (((a + (b >> 31)) >> (s - 32)) + 1) >> 1;
+        return 0; /* s >= 93 */
     }
     if (s == 31) {
         /* h m + ((l m + 2^30) >> 31) */
