@@ -155,6 +155,25 @@ def test_the_c_is_bit_exact_on_x86_64(drives: dict[str, dict[str, Any]], name: s
     assert int(m.group(4)) > 10
 
 
+@pytest.mark.parametrize("name", ["own", "motorola", "faults", "pending"])
+def test_the_c_built_for_size_is_bit_exact(drives: dict[str, dict[str, Any]], name: str,
+                                           tmp_path: Path) -> None:
+    """-Os (CANRLS_SMALL: the kernel's loops and helpers out of line, the rescale's and the
+    publication's shifts out of line, the CRC-8 by nibbles) replays the same integers: the
+    drives with rescales, pending columns, lambda < 1 and rejected frames."""
+    import shutil
+
+    need_tool("make", ["make"])
+    need_tool("cc", ["gcc"])
+    out = tmp_path / "c"
+    shutil.copytree(drives[name]["out"], out)
+    flags = "-std=c99 -Os -Wall -Wextra -Wconversion -Wpedantic -Werror"
+    r = subprocess.run(["make", "-s", "-B", "-C", str(out), "test", f"CFLAGS={flags}"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and "bit-exact with the specification" in r.stdout, (
+        r.stdout + r.stderr)
+
+
 @pytest.mark.parametrize("name", list(DRIVES))
 def test_the_generated_front_end_and_the_tables_agree_after_every_frame(
         drives: dict[str, dict[str, Any]], name: str) -> None:

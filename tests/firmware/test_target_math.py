@@ -257,6 +257,14 @@ def test_the_c_arithmetic_is_the_specification_on_32_bit_arm(tmp_path: Path) -> 
     _check([qemu, str(_build(cc, tmp_path, ["-static"]))], _ops())
 
 
+def test_the_c_arithmetic_built_for_size_is_the_specification(tmp_path: Path) -> None:
+    """-Os (CANRLS_SMALL): the rare steps' shifts, bit lengths and square root out of line."""
+    cc = need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    qemu = need_tool("qemu-arm", ["qemu-user"])
+    _check([str(_build(need_tool("gcc", ["gcc"]), tmp_path, ["-Os"]))], _ops())
+    _check([qemu, str(_build(cc, tmp_path, ["-static", "-Os"]))], _ops())
+
+
 def test_a_difference_would_show(tmp_path: Path) -> None:
     # the check can fail: one wrong expectation is found
     ops = _ops()[:50]

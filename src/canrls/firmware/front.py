@@ -148,9 +148,12 @@ def _message(tm: TargetModel, mi: int, m: Message) -> list[str]:
         c0 = crc8(bytes([m.id & 0xFF, (m.id >> 8) & 0xFF]), xorout=0)
         out.append(f"/* E2E CRC-8: the ID's two bytes folded into {c0:#04x} */")
         out.append(f"uint32_t c = {_u(c0, 'crc')};")
-        # the table's address in a register: each byte one load indexed by it
-        out += ["const uint8_t *crc = cr_crc8;", "CR_OPAQUE(crc);"]
+        # built for size: by nibbles in a loop (fr_crc8); else the table's address in a
+        # register, each byte one load indexed by it
+        out += ["#if CANRLS_SMALL", f"c = fr_crc8(c, data, {_u(m.dlc, what)});", "#else",
+                "const uint8_t *crc = cr_crc8;", "CR_OPAQUE(crc);"]
         out += [f"c = crc[c ^ data[{k}]];" for k in range(1, m.dlc)]
+        out.append("#endif")
         out += ["if ((c ^ 0xFFu) != data[0]) {",
                 "    return canrls_target_reject(S, CANRLS_R_CRC);", "}"]
     counter = "-1"
@@ -438,8 +441,32 @@ def _selection(e: EquationSpec, k: int) -> list[str]:
     return out
 
 
+def _crc_small() -> str:
+    """``fr_crc8``: the E2E CRC-8 by nibbles, for the build for size (``CANRLS_SMALL``)."""
+    # one nibble's remainder: the byte table's first 16 entries, T[v] for v < 16
+    nib = ", ".join(str(crc8(bytes([v]), init=0, xorout=0)) for v in range(16))
+    return f"""#if CANRLS_SMALL
+/* built for size: the E2E CRC-8 (SAE J1850) from c over bytes 1..len-1 by nibbles, the
+ * same integers as cr_crc8 with 16 bytes of table (two lookups a byte, in a loop) */
+static uint32_t fr_crc8(uint32_t c, const uint8_t *data, uint32_t len)
+{{
+    static const uint8_t nib[16] = {{{nib}}};
+    uint32_t k;
+    for (k = 1u; k < len; k++) {{
+        c ^= data[k];
+        c = ((c << 4) & 0xF0u) ^ nib[c >> 4];
+        c = ((c << 4) & 0xF0u) ^ nib[c >> 4];
+    }}
+    return c;
+}}
+#endif
+
+"""
+
+
 def _indent(lines: list[str], by: str = "    ") -> str:
-    return "\n".join(by + s if s else s for s in lines)
+    # the preprocessor's lines (#if CANRLS_SMALL) at the left margin
+    return "\n".join(by + s if s and not s.startswith("#") else s for s in lines)
 
 
 def front_file(tm: TargetModel, source: str) -> str:
@@ -464,6 +491,8 @@ def front_file(tm: TargetModel, source: str) -> str:
 
 """
     parts = [head]
+    if any(m.crc for m in tm.messages):
+        parts.append(_crc_small())
     for k, e in enumerate(tm.equations):
         parts.append(_indent(_equation(tm, e, k), "") + "\n")
     sample = [

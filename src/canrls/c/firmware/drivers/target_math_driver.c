@@ -97,7 +97,7 @@ int main(void)
             uint64_t m;
             int32_t e;
             if (scanf("%" SCNu64 " %" SCNd32, &m, &e) != 2) return 2;
-            printf("%" PRId64 "\n", op[0] == 'f' ? cr_floor_scaled(m, e) : cr_ceil_scaled(m, e));
+            printf("%" PRId64 "\n", cr_scaled(m, e, op[0] != 'f'));
         } else if (strcmp(op, "rsh") == 0) {
             int64_t x;
             int32_t s;
