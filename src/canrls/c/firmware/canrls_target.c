@@ -346,6 +346,11 @@ static void cr_filter(canrls_target *S, const int32_t *u)
         S->x1[i] = cr_svf_row(M->A[0], M->A[1], g[0], g[2], x1, x2, S->uph[i], S->upl[i], uh, ul);
         /* x2 = A10 x1 + A11 x2 + (G0_2 u[k-1] + G1_2 u[k]) 2^FX   (x2 = sF[u] T 2^FX) */
         S->x2[i] = cr_svf_row(M->A[2], M->A[3], g[1], g[3], x1, x2, S->uph[i], S->upl[i], uh, ul);
+        if (cr_narrow(f)) {
+            /* 32-bit states: saturated to int32 */
+            S->x1[i] = cr_sat32(S->x1[i]);
+            S->x2[i] = cr_sat32(S->x2[i]);
+        }
         S->uph[i] = uh;
         S->upl[i] = ul;
     }
