@@ -11,7 +11,8 @@
  * Shape (CMSIS-DSP): the caller owns an instance struct (canrls_rls_q31), fills it
  * with canrls_init_q31() (or canrls_restore_q31() from a checkpoint) and calls
  * canrls_update_q31() once per sample. No malloc, no floating point, no libc beyond
- * <stdint.h>, <stddef.h>; the model size is bounded at compile time by CANRLS_N_MAX.
+ * <stdint.h>, <stddef.h> and memset (none built for size); the model size is bounded at
+ * compile time by CANRLS_N_MAX (canrls_bounds.h).
  * Built with -DCANRLS_N=n (1 <= n <= CANRLS_N_MAX), the kernel is made for that one n:
  * its loops over n unrolled for the common case, the same integers, and
  * canrls_init_q31() accepting only n = CANRLS_N (docs/fixed_point.md, "A fixed n").
