@@ -62,6 +62,7 @@ EXTENSIONS: list[Extension] = [
                        "src/canrls/c/firmware/canrls_fixed.c"],
               include_dirs=["src/canrls/c/firmware"],
               depends=["src/canrls/c/firmware/canrls_fixed.h",
+                       "src/canrls/c/firmware/canrls_bounds.h",
                        "src/canrls/c/host/plan_fields.h"],
               extra_compile_args=_CFLAGS),
     # the target's whole integer path (canrls_target.c and canrls_fixed.c, the C that
@@ -77,6 +78,7 @@ EXTENSIONS: list[Extension] = [
                        "src/canrls/c/firmware/canrls_target_check.h",
                        "src/canrls/c/firmware/canrls_target_tables.h",
                        "src/canrls/c/firmware/canrls_fixed.h",
+                       "src/canrls/c/firmware/canrls_bounds.h",
                        "src/canrls/c/host/plan_fields.h", "src/canrls/c/host/pyargs.h"],
               extra_compile_args=_CFLAGS),
     # the fixed-point RLS as specified (every update form, any n) for

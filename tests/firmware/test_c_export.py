@@ -43,8 +43,9 @@ def exported(tmp_path: Path) -> Path:
 def test_export_writes_kernel_config_and_frames(exported: Path) -> None:
     names = sorted(p.name for p in exported.iterdir())
     # and the whole estimator (tests/firmware/test_target_c.py)
-    assert names == ["Makefile", "README.md", "canrls_config.c", "canrls_config.h",
-                     "canrls_fixed.c", "canrls_fixed.h", "canrls_frames.c", "canrls_frames.h",
+    assert names == ["Makefile", "README.md", "canrls_bounds.h", "canrls_config.c",
+                     "canrls_config.h", "canrls_fixed.c", "canrls_fixed.h", "canrls_frames.c",
+                     "canrls_frames.h",
                      "canrls_front.c", "canrls_model.c", "canrls_model.h", "canrls_target.c",
                      "canrls_target.h", "canrls_target_check.c", "canrls_target_check.h",
                      "canrls_target_math.h", "canrls_target_tables.h", "size_main.c"]
@@ -123,7 +124,7 @@ def test_export_c_api_names_the_equations(tmp_path: Path) -> None:
     cfg = AppConfig()
     cfg.model = {"effects": ["inertia", "viscous"], "kt": 0.1}
     r = export_c(cfg, tmp_path / "out")
-    assert r.equations == ("mechanical",) and len(r.files) == 6
+    assert r.equations == ("mechanical",) and len(r.files) == 7
     assert "mechanical" in str(r)
 
 

@@ -267,7 +267,9 @@ def test_more_parameters_than_the_kernel_holds_stops_the_build(tmp_path: Path,
                                                                fixed_o: Path) -> None:
     """Item 12: a model of 13 parameters built with default flags (only a comment named
     -DCANRLS_N_MAX); its init failed at run time and an update segfaulted. Now the
-    build stops with #error, and builds with the flag it names."""
+    export's own bounds (canrls_bounds.h) hold its 13 parameters, a build with fewer
+    (-DCANRLS_N_MAX=12, the package's maxima; or the kernel alone) stops with #error, and
+    builds with the flag it names."""
     gcc = _gcc()
     cfg = tmp_path / "big.toml"
     cfg.write_text('[model]\neffects = ["inertia", "viscous", "coulomb", "offset", '
@@ -275,10 +277,21 @@ def test_more_parameters_than_the_kernel_holds_stops_the_build(tmp_path: Path,
                    "kt = 0.1\n")
     out = tmp_path / "c"
     assert main(["export-c", "--model", str(cfg), "--out", str(out)]) == 0
-    r = subprocess.run([gcc, *CFLAGS, "-c", str(out / "canrls_config.c"), "-o",
+    assert "#define CANRLS_N_MAX 13" in (out / "canrls_bounds.h").read_text()
+    for defs in (["-DCANRLS_N_MAX=12"], ["-DCANRLS_N_MAX=12", "-DCANRLS_FRONT"]):
+        for f in ("canrls_config.c", "canrls_model.c"):
+            r = subprocess.run([gcc, *CFLAGS, *defs, "-c", str(out / f), "-o",
+                                str(tmp_path / "x.o")], capture_output=True, text=True)
+            assert r.returncode != 0, f
+            assert "#error" in r.stderr and "-DCANRLS_N_MAX=" in r.stderr, f
+    kernel = tmp_path / "k"
+    assert main(["export-c", "--model", str(cfg), "--out", str(kernel), "--kernel-only"]) == 0
+    r = subprocess.run([gcc, *CFLAGS, "-c", str(kernel / "canrls_config.c"), "-o",
                         str(tmp_path / "x.o")], capture_output=True, text=True)
     assert r.returncode != 0
     assert "#error" in r.stderr and "-DCANRLS_N_MAX=13" in r.stderr
+    subprocess.run([gcc, *CFLAGS, "-c", str(out / "canrls_config.c"), "-o",
+                    str(tmp_path / "x.o")], check=True, capture_output=True)
     prog = tmp_path / "main.c"
     prog.write_text('#include "canrls_config.h"\nint main(void) {\n'
                     "  static canrls_rls_q31 S;\n"

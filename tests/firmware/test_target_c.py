@@ -33,6 +33,8 @@ from canrls.cli.main import main
 from canrls.sim.excitation import Sequence, constant, standard
 from canrls.sim.scenario import Simulator, scenario
 
+#: the target's C (the repository's bounds: canrls_bounds.h, the maxima)
+C_DIR = Path(__file__).resolve().parents[2] / "src" / "canrls" / "c" / "firmware"
 CIA_MAP = ["--dbc", str(Path(__file__).resolve().parents[1] / "data" / "cia402_drive.dbc"),
            "--signal", "torque=TPDO1.TorqueActual", "--signal", "speed=TPDO2.VelocityActual",
            "--signal", "position=TPDO2.PositionActual", "--rated-torque", "0.32",
@@ -230,7 +232,17 @@ def test_the_export_replays_on_the_cortex_m4_with_its_stack_and_state(
         assert "bit-exact with the specification" in out, out
         got = re.search(r"stack: (\d+) bytes; state \(canrls_target\): (\d+) bytes", out)
         assert got is not None, out
-        assert 0 < int(got.group(1)) < stack_max and int(got.group(2)) == state, out
+        # the export's bounds are its model's (canrls_bounds.h): less than the maxima's
+        assert 0 < int(got.group(1)) < stack_max and 0 < int(got.group(2)) < state, out
+    # the repository's bounds, the maxima (the extension's state), on the Cortex-M4
+    src = drives["own"]["out"]
+    (src / "state_size.c").write_text(
+        '#include "canrls_target.h"\n'
+        f"typedef char state_size[sizeof(canrls_target) == {state} ? 1 : -1];\n")
+    maxima = re.findall(r"#define (CANRLS_\w+) (\d+)", (C_DIR / "canrls_bounds.h").read_text())
+    subprocess.run(["arm-none-eabi-gcc", "-mcpu=cortex-m4", "-mthumb", "-std=c99", "-Werror",
+                    *(f"-D{k}={v}" for k, v in maxima), "-c", str(src / "state_size.c"),
+                    "-o", str(src / "state_size.o")], check=True)
 
 
 def test_a_difference_fails_the_test(drives: dict[str, dict[str, Any]], tmp_path: Path) -> None:

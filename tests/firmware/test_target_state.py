@@ -94,14 +94,21 @@ def _gcc() -> str:
     return gcc
 
 
-_DRIVERS: dict[str, tuple[Path, Path, int]] = {}
+_DRIVERS: dict[tuple[str, bool], tuple[Path, Path, int]] = {}
+#: the repository's bounds (canrls_bounds.h: the maxima, the extension's state); an export
+#: writes its model's own, which these override
+MAXIMA = [f"-D{k}={v}" for k, v in re.findall(r"#define (CANRLS_\w+) (\d+)",
+                                               (KERNEL / "canrls_bounds.h").read_text())]
 
 
-def _driver(name: str, tmp: pytest.TempPathFactory) -> tuple[Path, Path, int]:
+def _driver(name: str, tmp: pytest.TempPathFactory, own: bool = False
+            ) -> tuple[Path, Path, int]:
     """The state driver on the exported C of a drive, under AddressSanitizer and
-    UndefinedBehaviorSanitizer; its frames file and the frame after which it saves."""
-    if name in _DRIVERS:
-        return _DRIVERS[name]
+    UndefinedBehaviorSanitizer, built with the repository's bounds (the state the
+    extension takes) or, ``own``, the export's (its model's); its frames file and the
+    frame after which it saves."""
+    if (name, own) in _DRIVERS:
+        return _DRIVERS[name, own]
     log, saved, tm = _drive(name, tmp)
     d = tmp.mktemp("driver")
     out = d / "c"
@@ -120,13 +127,14 @@ def _driver(name: str, tmp: pytest.TempPathFactory) -> tuple[Path, Path, int]:
     frames.write_bytes(bytes(rec))
     exe = d / "state_driver"
     subprocess.run([_gcc(), "-std=c99", "-O1", "-g", "-Wall", "-Wextra", "-Werror",
+                    *([] if own else MAXIMA),
                     "-fsanitize=address,undefined", "-fno-sanitize-recover=all", "-I", str(out),
                     str(DRIVER), *(str(out / f) for f in ("canrls_model.c", "canrls_target.c",
                                                           "canrls_fixed.c",
                                                           "canrls_target_check.c")),
                     "-o", str(exe)], check=True)
-    _DRIVERS[name] = (exe, frames, len(rec) // 20 // 2)
-    return _DRIVERS[name]
+    _DRIVERS[name, own] = (exe, frames, len(rec) // 20 // 2)
+    return _DRIVERS[name, own]
 
 
 @pytest.fixture(scope="module")
@@ -183,14 +191,17 @@ def test_a_field_outside_its_invariant_is_refused_by_name(driver: Any, faults: A
             NativeTarget(faults[2]).set_state((tmp_path / "s").read_bytes())
 
 
-@pytest.mark.parametrize("name", ["faults", "motorola"])
+@pytest.mark.parametrize(("name", "own"), [("faults", False), ("motorola", False),
+                                           ("faults", True)],
+                         ids=["faults", "motorola", "faults-own-bounds"])
 def test_random_bytes_flipped_are_refused_or_run_without_undefined_behaviour(
-        tmp_path_factory: pytest.TempPathFactory, name: str) -> None:
+        tmp_path_factory: pytest.TempPathFactory, name: str, own: bool) -> None:
     """4000 copies of a state with 1..8 random bytes flipped (seeded): each refused by the
     check or run over 2000 frames, under the sanitizers (any finding stops the driver
     with a nonzero status). Both equations through faulty frames; a Motorola DBC through
-    rescales."""
-    exe, frames, k = _driver(name, tmp_path_factory)
+    rescales; with the repository's bounds and with the export's own (its state holds the
+    model alone)."""
+    exe, frames, k = _driver(name, tmp_path_factory, own)
     r = subprocess.run([str(exe), str(frames), str(k), "fuzz", "4000", "7"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-3000:]

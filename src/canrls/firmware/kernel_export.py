@@ -3,8 +3,10 @@
 A firmware engineer gets one directory that compiles as it is (``-std=c99 -Wall -Wextra
 -Werror``, for the host or ``arm-none-eabi-gcc``):
 
-* ``canrls_fixed.h``, ``canrls_fixed.c`` -- the fixed-point RLS kernel (a copy of
-  ``canrls/c/firmware``), bit-exact with :class:`canrls.estimation.fixed.estimator.FixedRLS`;
+* ``canrls_fixed.h``, ``canrls_fixed.c``, ``canrls_bounds.h`` -- the fixed-point RLS kernel
+  and its compile-time bounds (a copy of ``canrls/c/firmware``; the whole estimator's
+  export writes its own ``canrls_bounds.h``), bit-exact with
+  :class:`canrls.estimation.fixed.estimator.FixedRLS`;
 * ``canrls_config.h``, ``canrls_config.c`` -- per equation of the model: its parameters
   (names, units), its output y (what it is, the DBC signal it comes from and that
   signal's scaling to SI: a torque-reporting drive's torque is the mechanical output,
@@ -46,7 +48,7 @@ from canrls.processor.period import control_period
 __all__ = ["KERNEL_FILES", "PLAN_64", "Export", "plan_c", "export_c", "frames_c"]
 
 #: The kernel's files, copied from the package (``canrls/c/firmware``).
-KERNEL_FILES = ("canrls_fixed.h", "canrls_fixed.c")
+KERNEL_FILES = ("canrls_bounds.h", "canrls_fixed.h", "canrls_fixed.c")
 #: Constants of the plan held in 64 bits in ``canrls_plan_q31`` (all others: int32_t).
 PLAN_64 = frozenset({"dividend", "trace_max_lim"})
 _QUANTITIES = ("phi", "y", "theta", "P", "K", "eps", "h", "den", "g", "lam")

@@ -140,7 +140,7 @@ def state_layout() -> str:
     the headers that declare ``canrls_target`` (a state of other headers is not taken)."""
     c = resources.files("canrls") / "c" / "firmware"
     h = hashlib.sha256()
-    for name in ("canrls_target.h", "canrls_fixed.h"):
+    for name in ("canrls_target.h", "canrls_fixed.h", "canrls_bounds.h"):
         h.update((c / name).read_bytes())
     return h.hexdigest()
 

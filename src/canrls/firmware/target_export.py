@@ -26,7 +26,7 @@ from pathlib import Path
 
 from canrls.core.c_escape import check_text
 from canrls.core.files import write_texts
-from canrls.firmware.cgen import model_files
+from canrls.firmware.cgen import bounds_file, model_files
 from canrls.firmware.front import front_file
 from canrls.firmware.load import Source
 from canrls.firmware.target_model import SOURCE_NAMES, TargetModel
@@ -207,6 +207,7 @@ cc -std=c99 -O2{nflag} -DCANRLS_FRONT -c canrls_target.c canrls_front.c canrls_m
 | `canrls_target.h`, `canrls_target.c`, `canrls_target_math.h`, `canrls_target_tables.h` | the rest of the path (pairing, restart, rescale, update, publish) and the arithmetic; built without `-DCANRLS_FRONT` (and without `canrls_front.c`) it is the whole path, driven by the tables of `canrls_model` (`make test-tables`: the same integers) |
 | `canrls_target_check.h`, `canrls_target_check.c` | `canrls_target_check_state()`: whether a state restored from flash is one the estimator can reach on this model (every field against its invariant); for a firmware that keeps its state across a reset (add `canrls_target_check.c` to the build) |
 | `canrls_model.h`, `canrls_model.c` | `canrls_model`: every constant of this model and DBC |
+| `canrls_bounds.h` | the build's bounds, this model's own (parameters, messages, filters, equations): the state `canrls_target` holds this model alone; each is `#ifndef`-overridable, for every file alike (the state's layout depends on them) |
 | `canrls_fixed.h`, `canrls_fixed.c` | the recursive least squares kernel |
 | `canrls_config.h`, `canrls_config.c` | the kernel's plan and prior alone (for a firmware that builds its own regressors) |
 | `canrls_frames.h`, `canrls_frames.c` | cantools' codecs of canrls' frames: they use `double`, and the estimator does not need them (it packs its frames in integers) |
@@ -360,7 +361,8 @@ def target_texts(src: Source, tm: TargetModel, *, vectors: Sequence[str | Path] 
     names = TARGET_FILES + SIZE_FILES + (TEST_FILES + M4_FILES if vectors else ())
     texts = [(name.rpartition("/")[2], (kernel / name).read_text()) for name in names]
     h, c = model_files(tm, src.label)
-    texts += [("canrls_model.h", h), ("canrls_model.c", c),
+    texts += [("canrls_bounds.h", bounds_file(tm, src.label)),
+              ("canrls_model.h", h), ("canrls_model.c", c),
               ("canrls_front.c", front_file(tm, src.label))]
     v = None
     if vectors:

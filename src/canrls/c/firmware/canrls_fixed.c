@@ -527,7 +527,7 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
             return CANRLS_EINVAL;
         }
     }
-    memset(S, 0, sizeof *S);
+    canrls_fill(S, 0u, sizeof *S);
     S->plan = plan;
     S->n = n;
     /* P0 = diag(p0) 2^-(f_P + e0), c = 1, the fractions 0 (lo = 2^31) ; theta0 = 0 with
@@ -1249,7 +1249,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
     if (S->frozen) {
         flag = CANRLS_FLAG_FROZEN;
-        memset(K, 0, n * sizeof *K);
+        canrls_fill(K, 0u, n * sizeof *K);
     } else {
         int64_t acc[CANRLS_N_MAX]; /* the scattered column sums of h~ */
         uint32_t m = 0;

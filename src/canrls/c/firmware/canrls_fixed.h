@@ -11,7 +11,8 @@
  * Shape (CMSIS-DSP): the caller owns an instance struct (canrls_rls_q31), fills it
  * with canrls_init_q31() (or canrls_restore_q31() from a checkpoint) and calls
  * canrls_update_q31() once per sample. No malloc, no floating point, no libc beyond
- * <stdint.h>, <stddef.h>; the model size is bounded at compile time by CANRLS_N_MAX.
+ * <stdint.h>, <stddef.h> and memset (none built for size); the model size is bounded at
+ * compile time by CANRLS_N_MAX (canrls_bounds.h).
  * Built with -DCANRLS_N=n (1 <= n <= CANRLS_N_MAX), the kernel is made for that one n:
  * its loops over n unrolled for the common case, the same integers, and
  * canrls_init_q31() accepting only n = CANRLS_N (docs/fixed_point.md, "A fixed n").
@@ -63,15 +64,15 @@
 
 #include <stddef.h>
 #include <stdint.h>
+#include <string.h>
 
 #ifdef __cplusplus
 extern "C" {
 #endif
 
-/** Largest number of parameters (compile-time bound of the instance arrays). */
-#ifndef CANRLS_N_MAX
-#define CANRLS_N_MAX 12
-#endif
+/* CANRLS_N_MAX, the largest number of parameters (compile-time bound of the instance
+ * arrays): the build's bounds, canrls_bounds.h */
+#include "canrls_bounds.h"
 
 /** Built for size: 1 by default where the compiler optimises for size (GCC's and Clang's
  * __OPTIMIZE_SIZE__ at -Os), or -DCANRLS_SMALL=1 / =0: loops and one instance of each step
@@ -326,6 +327,24 @@ static inline int32_t canrls_P_q31(const canrls_rls_q31 *S, size_t k)
 static inline int32_t canrls_P_frac_q31(const canrls_rls_q31 *S, size_t k)
 {
     return (int32_t)(S->P[k].lo ^ 0x80000000u);
+}
+
+/** Set `size` bytes at p to the byte c (a state, a scratch array): libc's memset, or a
+ * loop of byte stores (a char may alias any object) when built for size, so that the
+ * estimator links no memset (164 B at -Os in newlib-nano). */
+static inline void canrls_fill(void *p, unsigned char c, size_t size)
+{
+#if CANRLS_SMALL
+    unsigned char *b = (unsigned char *)p;
+    while (size-- != 0u) {
+#if defined(__GNUC__)
+        __asm__("" : "+r"(b)); /* keeps GCC from turning the loop back into memset */
+#endif
+        *b++ = c;
+    }
+#else
+    memset(p, c, size);
+#endif
 }
 
 /** Index of Pw_ij (i <= j) in the packed upper triangle of an n x n matrix. */

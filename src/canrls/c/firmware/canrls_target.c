@@ -19,6 +19,11 @@
 /* an arithmetic right shift of negative values (every compiler for these targets has one) */
 typedef char canrls_target_needs_arithmetic_shift[((-8) >> 1) == -4 ? 1 : -1];
 
+/* The model's equations: with room for one (an export's own bounds, canrls_bounds.h) the
+ * model has exactly one (canrls_target_init refuses 0), and the loops over them are one
+ * pass the compiler sees. */
+#define CR_NEQ(M) (CANRLS_TARGET_EQ_MAX == 1 ? 1u : (M)->neq)
+
 /* ------------------------------------------------------------------ arithmetic
  * (the per-frame path's: canrls_target_math.h) */
 
@@ -206,11 +211,9 @@ int canrls_target_init(canrls_target *S, const canrls_target_model *M)
         || M->neq < 1u) {
         return CANRLS_EINVAL;
     }
-    memset(S, 0, sizeof *S);
+    canrls_fill(S, 0u, sizeof *S);
     S->model = M;
-    for (i = 0; i < M->nmsg; i++) {
-        S->last_counter[i] = -1;
-    }
+    canrls_fill(S->last_counter, 0xFFu, M->nmsg * sizeof *S->last_counter); /* -1: none yet */
     S->open_counter = -1;
     for (i = 0; i < M->nfilters; i++) {
         if (M->filters[i].kind == CANRLS_SRC_CONST) {
@@ -219,7 +222,7 @@ int canrls_target_init(canrls_target *S, const canrls_target_model *M)
             S->primed[i] = 1u;
         }
     }
-    for (i = 0; i < M->neq; i++) {
+    for (i = 0; i < CR_NEQ(M); i++) {
         const canrls_equation *e = &M->equations[i];
         canrls_target_eq *q = &S->eq[i];
         if (e->n > CANRLS_N_MAX) {
@@ -363,7 +366,7 @@ void canrls_target_restart(canrls_target *S)
             S->primed[i] = 0u;
         }
     }
-    for (i = 0; i < M->neq; i++) {
+    for (i = 0; i < CR_NEQ(M); i++) {
         S->eq[i].left = M->equations[i].warmup;
         S->eq[i].w_last = 0;
     }
@@ -593,7 +596,7 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
                 qv = qv < e->plan->phi_hi ? qv : e->plan->phi_hi;
                 if (qv != 0) {
                     int32_t ph[CANRLS_N_MAX];
-                    memset(ph, 0, sizeof ph);
+                    canrls_fill(ph, 0u, sizeof ph);
                     ph[j] = (int32_t)qv;
                     (void)canrls_update_q31(&q->rls, ph, 0, NULL);
                 }
@@ -739,7 +742,7 @@ static uint32_t cr_sample(canrls_target *S, uint32_t t)
     cr_filter(S, u);
     /* the speed of the selection: W = raw 2^16 + offset */
     w = (int64_t)S->raw[CANRLS_SPEED] * ((int64_t)1 << W_FRAC) + M->w_offset;
-    for (i = 0; i < M->neq; i++) {
+    for (i = 0; i < CR_NEQ(M); i++) {
         const canrls_equation *e = &M->equations[i];
         canrls_target_eq *q = &S->eq[i];
         const int64_t aw = w < 0 ? -w : w;
@@ -876,7 +879,7 @@ void canrls_target_theta(const canrls_target *S, uint32_t i, int32_t *word, int3
 {
     const canrls_target_model *M = S->model;
     uint32_t k;
-    for (k = 0; k < M->neq; k++) {
+    for (k = 0; k < CR_NEQ(M); k++) {
         const canrls_equation *e = &M->equations[k];
         if (i < e->n) {
             const canrls_target_eq *q = &S->eq[k];
@@ -899,7 +902,7 @@ uint32_t canrls_target_publish(canrls_target *S, canrls_can_frame *out, uint32_t
     if (!M->has_frames) {
         return 0u;
     }
-    for (i = 0; i < M->neq; i++) {
+    for (i = 0; i < CR_NEQ(M); i++) {
         const canrls_equation *e = &M->equations[i];
         const canrls_target_eq *q = &S->eq[i];
         for (j = 0; j < e->n; j++, idx++) {
@@ -933,7 +936,7 @@ uint32_t canrls_target_publish(canrls_target *S, canrls_can_frame *out, uint32_t
         v[1] = q->updates;
         cr_emit(out, &nf, max, &M->status, v, 2u);
     }
-    for (i = 0; i < M->neq; i++) {
+    for (i = 0; i < CR_NEQ(M); i++) {
         flags |= S->eq[i].flags;
         S->eq[i].flags = 0u;
     }

@@ -50,7 +50,8 @@
  * rsh(x, s) = (x + 2^(s-1)) >> s, round half up; every clamp counted.
  *
  * Memory: canrls_target holds one canrls_rls_q31 and one plan per equation (3.7 KB at
- * CANRLS_N_MAX = 12 on a 32-bit target, room for two equations); .data and .bss: none.
+ * the maxima of canrls_bounds.h on a 32-bit target: CANRLS_N_MAX = 12, room for two
+ * equations; an export's own bounds hold its model alone); .data and .bss: none.
  */
 #ifndef CANRLS_TARGET_H
 #define CANRLS_TARGET_H
@@ -64,10 +65,10 @@
 extern "C" {
 #endif
 
-/** Compile-time bounds of the model (the generated canrls_model.h checks its own). */
-#define CANRLS_TARGET_MSG_MAX 4    /**< mapped feedback messages */
-#define CANRLS_TARGET_FILTER_MAX 16 /**< filters of the bank */
-#define CANRLS_TARGET_EQ_MAX 2     /**< equations (mechanical, electrical) */
+/* Compile-time bounds of the model, CANRLS_TARGET_MSG_MAX (mapped feedback messages),
+ * CANRLS_TARGET_FILTER_MAX (filters of the bank), CANRLS_TARGET_EQ_MAX (equations) and
+ * CANRLS_N_MAX: canrls_bounds.h (through canrls_fixed.h), the maxima here, an export's own
+ * model there; the generated canrls_model.h checks its model against them. */
 #define CANRLS_TARGET_ROLES 5      /**< current, speed, position, voltage, torque */
 
 /** Roles (the order of canrls.core.samples.ROLES). */
@@ -183,12 +184,16 @@ typedef struct {
     canrls_field roles[CANRLS_TARGET_ROLES]; /**< length 0: not mapped */
     uint8_t match_counters; /**< pair by alive counters (every message has one, one width) */
     int32_t dt_ticks, gap_ticks, tol_ticks; /**< period, restart beyond, pairing tolerance */
+#ifndef CANRLS_FRONT
+    /* the filters' inputs and coefficients: the generated front end (canrls_front.c) has
+     * them as constants of its code, so a build with it (-DCANRLS_FRONT) leaves them out */
     int32_t tanh_m, tanh_sh; int64_t tanh_b;  /**< z = rsh(speed m + b, sh), Q24 */
     int32_t strib_m, strib_sh; int64_t strib_b;
     uint64_t phase_m, phase_o; /**< phase = position m + o mod 2^64: turns, Q64 */
-    int64_t w_offset;        /**< W = speed 2^16 + w_offset */
     int32_t A[4];            /**< Q30, derivative state scaled by the period */
     int32_t G[2][4];         /**< per hold: G0_1, G0_2, G1_1, G1_2 */
+#endif
+    int64_t w_offset;        /**< W = speed 2^16 + w_offset */
     const canrls_filter *filters;
     const canrls_equation *equations;
     uint32_t publish_every;  /**< samples per publication */
@@ -199,8 +204,16 @@ typedef struct {
     canrls_out_frame estimate, info, status, health;
 } canrls_target_model;
 
-/** The state of one equation. */
+/** The state of one equation: the words every sample reads and writes first (their
+ * offsets from the estimator's state stay within one load or store's reach, LDRD/STRD's
+ * 1020 B on the M4, whatever the bounds), then the kernel and its buffers. */
 typedef struct {
+    int32_t left;            /**< warm-up samples left */
+    int64_t w_last;          /**< the last speed W (0 after a restart) */
+    uint32_t updates;        /**< updates of the kernel (used samples) */
+    uint32_t rescales;
+    uint32_t flags;          /**< the kernel's flags since the last publication (OR) */
+    int64_t ms;              /**< the residual's running mean square (eps format squared) */
     canrls_rls_q31 rls;      /**< the kernel */
     canrls_plan_q31 plan;    /**< its plan (a copy: the trace bound follows the prior) */
     int32_t sh[CANRLS_N_MAX];
@@ -210,12 +223,6 @@ typedef struct {
     uint8_t pending_y;
     canrls_dyadic ridge[CANRLS_N_MAX];
     int64_t terms[CANRLS_N_MAX];
-    int32_t left;            /**< warm-up samples left */
-    int64_t w_last;          /**< the last speed W (0 after a restart) */
-    uint32_t updates;        /**< updates of the kernel (used samples) */
-    uint32_t rescales;
-    uint32_t flags;          /**< the kernel's flags since the last publication (OR) */
-    int64_t ms;              /**< the residual's running mean square (eps format squared) */
 } canrls_target_eq;
 
 /** The estimator: owned by the caller, filled by canrls_target_init(). */
