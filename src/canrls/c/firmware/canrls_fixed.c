@@ -258,7 +258,7 @@ INLINE void theta_add(canrls_theta64 *q, int64_t p, int32_t s, int32_t lo, int32
 /* -2^(64-s) for 33 <= s <= 62: a word (-2^31 at s = 33, where 2^(64-s) is not one) */
 INLINE int32_t neg_pow2(int32_t s)
 {
-    return (int32_t)(0u - ((uint32_t)1 << (64 - s)));
+    return (int32_t)(0xFFFFFFFFu << (64 - s));
 }
 
 /* theta_add for 33 <= s <= 62 and the whole int32_t word: q as one int64_t plus the high
@@ -623,6 +623,25 @@ INLINE int64_t windup_vw(const int32_t *h, uint32_t n, int32_t c, int32_t hc_s, 
     return a_vw;
 }
 
+/* windup_vw where c = 2^k, k <= hc_s (the forgetting scale at its one, as after
+ * canrls_init_q31, and with lambda = 1 always): h_i = rsh(h~_i 2^k, hc_s) = rsh(h~_i, s),
+ * s = hc_s - k, a shift of the word; then h_i^2 (one SMULL) rounded by 1 <= vw_ps <= 31
+ * bits on two words (h_i^2 >= 0). The same integers. */
+INLINE int64_t windup_vw_pow2(const int32_t *h, uint32_t n, int32_t s, int32_t vw_ps)
+{
+    const int32_t t0 = s > 0, t1 = s - t0; /* rsh(x, s) = ((x >> t1) + t0) >> t0 */
+    const uint32_t half = (uint32_t)1 << (vw_ps - 1);
+    uint64_t a_vw = 0;
+    uint32_t i;
+    for (i = 0; i < n; i++) {
+        const int32_t hi_ = ((h[i] >> t1) + t0) >> t0;
+        const uint64_t u = (uint64_t)mul_ww(hi_, hi_) + half;
+        const uint32_t ulo = (uint32_t)u, uhi = (uint32_t)(u >> 32);
+        a_vw += ((uint64_t)(uhi >> vw_ps) << 32) | ((ulo >> vw_ps) | (uhi << (32 - vw_ps)));
+    }
+    return (int64_t)a_vw;
+}
+
 /* h~_i from its sum u = acc_i + 2^(h_os-1) (the rounding half already added), for
  * 1 <= h_os <= 31: u >> h_os fits a word iff the high word of u lies in
  * [-2^(h_os-1), 2^(h_os-1)); then it is the two words shifted. ``full``: the h word is
@@ -848,6 +867,17 @@ typedef struct {
     int32_t nm2;
 } P_shc;
 
+INLINE P_shc shc_of(int32_t sh, int mode, int32_t P_s)
+{
+    P_shc k;
+    k.m2 = (uint32_t)1 << sh;
+    k.chi = ((uint32_t)1 << (sh - 1)) - 1u;
+    k.room = (uint32_t)1 << (30 - sh);
+    k.room2 = k.room >> 1;
+    k.nm2 = mode == PM_HIGH && P_s >= 33 + sh ? neg_pow2(P_s - sh) : 0;
+    return k;
+}
+
 /* the pair of a canrls_P64 (X = V + 2^31) as one int64_t */
 INLINE int64_t P_pair(const canrls_P64 *q)
 {
@@ -863,6 +893,40 @@ INLINE uint64_t mla_ww(uint64_t acc, int32_t a, int32_t b)
     return ((uint64_t)hi << 32) | lo;
 #else
     return acc + (uint64_t)((int64_t)a * b);
+#endif
+}
+
+/* X 2^sh - (chi 2^32 + 2^31) + ph nm2 modulo 2^64, X the pair (lo, hi): the shift of a
+ * pair (ph = 0, P_shl) or the fused element (SH_FUSED); one UMULL, one MLA, one SMLAL, a
+ * subtraction in two words (written out on Thumb-2: GCC otherwise zeroes an accumulator
+ * for UMLAL and moves it) */
+INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, int32_t ph, const P_shc *k, int fused)
+{
+#if defined(__GNUC__) && defined(__thumb2__)
+    uint32_t rl, rh;
+    if (fused) {
+        __asm__("umull %0, %1, %2, %4\n\t"
+                "mla %1, %3, %4, %1\n\t"
+                "smlal %0, %1, %5, %6\n\t"
+                "subs %0, %0, #0x80000000\n\t"
+                "sbc %1, %1, %7"
+                : "=&r"(rl), "=&r"(rh)
+                : "r"(lo), "r"(hi), "r"(k->m2), "r"(ph), "r"(k->nm2), "r"(k->chi)
+                : "cc");
+    } else {
+        __asm__("umull %0, %1, %2, %4\n\t"
+                "mla %1, %3, %4, %1\n\t"
+                "subs %0, %0, #0x80000000\n\t"
+                "sbc %1, %1, %5"
+                : "=&r"(rl), "=&r"(rh)
+                : "r"(lo), "r"(hi), "r"(k->m2), "r"(k->chi)
+                : "cc");
+    }
+    return ((uint64_t)rh << 32) | rl;
+#else
+    const uint64_t y = (uint64_t)lo * k->m2 + ((uint64_t)((uint32_t)hi * k->m2) << 32)
+                       - (((uint64_t)k->chi << 32) | 0x80000000u);
+    return fused ? mla_ww(y, ph, k->nm2) : y;
 #endif
 }
 
@@ -911,12 +975,9 @@ INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t
 {
     const int32_t hi = (int32_t)(x >> 32);
     if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
-        const uint64_t y = (uint64_t)(uint32_t)x * k->m2;
-        const uint32_t yh = (uint32_t)(y >> 32) + (uint32_t)hi * k->m2;
-        x = (int64_t)((((uint64_t)yh << 32) | (uint32_t)y)
-                      - (((uint64_t)k->chi << 32) | 0x80000000u));
-        q->lo = (uint32_t)x;
-        q->word = (int32_t)(x >> 32);
+        const uint64_t y = P_shl_sum((uint32_t)x, hi, 0, k, 0);
+        q->lo = (uint32_t)y;
+        q->word = (int32_t)(uint32_t)(y >> 32);
         return;
     }
     P_shl_slow(q, x, sh, c_P);
@@ -939,9 +1000,7 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
         const int32_t ph = mul_rsh32(Ki, hj);
         const int32_t hi = q->word;
         if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room2)) {
-            const uint64_t y = (uint64_t)q->lo * k->m2;
-            const uint64_t z = mla_ww(y + ((uint64_t)((uint32_t)hi * k->m2) << 32), ph, k->nm2)
-                               - (((uint64_t)k->chi << 32) | 0x80000000u);
+            const uint64_t z = P_shl_sum(q->lo, hi, ph, k, 1);
             q->lo = (uint32_t)z;
             q->word = (int32_t)(uint32_t)(z >> 32);
             return;
@@ -1061,8 +1120,10 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
 }
 
 NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
-                        int32_t nm, int32_t P_s, int32_t sh, const P_shc *k, uint32_t *c_P)
+                        int32_t nm, int32_t P_s, int32_t sh, uint32_t *c_P)
 {
+    const P_shc kc = sh > 0 ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
+    const P_shc *const k = &kc;
     /* one straight run for each class of the steady state and the start-up, with and
      * without the shift; a loop for the rest (rare) */
     if (mode == PM_HIGH && sh > 0 && P_s >= 33 + sh) {
@@ -1121,14 +1182,16 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     const int32_t nm = mode == PM_HIGH ? neg_pow2(P_s) : 0;
     /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = -(ph nt) */
     const int32_t nt = common || th_s >= 33 ? neg_pow2(th_s) : 0;
-    const int32_t tr_ps = p->trace_ps;
+    /* rsh(x, trace_ps) = ((x >> t1) + t0) >> t0: t1 = trace_ps - 1 and t0 = 1 for a shift,
+     * else 0 and 0 */
+    const int32_t t0 = p->trace_ps > 0, t1 = p->trace_ps - t0;
     int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
     /* K and h~ as the P update takes them: K and h~, or K 2^a and h~ 2^b with
      * a + b = 32 - P_s (PM_LOWK) */
     const int32_t *KP = K, *hP = hn;
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
-    P_shc k = {0u, 0u, 0u, 0u, 0};
+    const P_shc k0 = {0u, 0u, 0u, 0u, 0}; /* (no shift) */
     uint32_t mK = 0;
     int32_t e = *e_io, c = *c_io, sh = 0;
     int64_t tr = 0;
@@ -1170,7 +1233,7 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     Pw = P;
     UNROLL
     for (i = 0; i < n; i++) {
-        P_elem(Pw, KP[i], hP[i], mode, nm, P_s, 0, SH_NONE, &k, c_P, &nz);
+        P_elem(Pw, KP[i], hP[i], mode, nm, P_s, 0, SH_NONE, &k0, c_P, &nz);
         tr += Pw->word;
         Pw += n - i;
     }
@@ -1189,11 +1252,6 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
             sh -= 1;
         }
         sh = sh < p->e_max - e ? sh : p->e_max - e;
-        k.m2 = (uint32_t)1 << sh;
-        k.chi = ((uint32_t)1 << (sh - 1)) - 1u;
-        k.room = (uint32_t)1 << (30 - sh);
-        k.room2 = k.room >> 1;
-        k.nm2 = mode == PM_HIGH && P_s >= 33 + sh ? neg_pow2(P_s - sh) : 0;
     }
     /* the rest of P~ <- (P~ - K h~') 2^sh */
     if (common && LIKELY(sh == 0)) {
@@ -1208,18 +1266,25 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
             Pw += n - i;
         }
     } else {
-        P_off_any(P, KP, hP, mode, nm, P_s, sh, &k, c_P);
+        P_off_any(P, KP, hP, mode, nm, P_s, sh, c_P);
+    }
+    if (sh > 0) {
+        /* the diagonal shifted */
+        const P_shc k = shc_of(sh, mode, P_s);
+        Pw = P;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            P_shl(Pw, P_pair(Pw), sh, &k, c_P);
+            Pw += n - i;
+        }
     }
     Pw = P;
     UNROLL
     for (i = 0; i < n; i++) {
         int32_t x;
-        if (sh > 0) {
-            P_shl(Pw, P_pair(Pw), sh, &k, c_P);
-        }
         /* trw = sum_i rsh(Pw_ii, trace_ps) (modulo 2^32: a word) */
         x = Pw->word;
-        trw32 += (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
+        trw32 += (uint32_t)(((x >> t1) + t0) >> t0);
         Pw += n - i;
     }
     UNROLL
@@ -1390,7 +1455,10 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                 int32_t df;
                 int up;
                 /* h = c h~ ; w = c w~ = h:  a_vw = sum_i rsh(h_i w_i, vw_ps) */
-                if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
+                if ((c & (c - 1)) == 0 && 31 - nlz((uint32_t)c) <= p->hc_s
+                    && (uint32_t)(p->vw_ps - 1) < 31u) {
+                    a_vw = windup_vw_pow2(h, n, p->hc_s - (31 - nlz((uint32_t)c)), p->vw_ps);
+                } else if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
                     a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_LOW);
                 } else {
                     a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_ANY);
