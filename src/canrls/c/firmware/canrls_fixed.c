@@ -1455,7 +1455,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                 int32_t df;
                 int up;
                 /* h = c h~ ; w = c w~ = h:  a_vw = sum_i rsh(h_i w_i, vw_ps) */
-                if ((c & (c - 1)) == 0 && 31 - nlz((uint32_t)c) <= p->hc_s
+                if (!CANRLS_SMALL && (c & (c - 1)) == 0 && 31 - nlz((uint32_t)c) <= p->hc_s
                     && (uint32_t)(p->vw_ps - 1) < 31u) {
                     a_vw = windup_vw_pow2(h, n, p->hc_s - (31 - nlz((uint32_t)c)), p->vw_ps);
                 } else if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
