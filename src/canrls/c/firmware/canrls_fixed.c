@@ -1119,29 +1119,47 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
     }
 }
 
-NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
-                        int32_t nm, int32_t P_s, int32_t sh, uint32_t *c_P)
+/* each class of the step its own function: its registers and its stack frame to itself */
+#define P_OFF_CLASS(name, mode_, how_, unroll_)                                           \
+    NOINLINE void name(canrls_P64 *P, const int32_t *K, const int32_t *hn, int32_t nm,      \
+                       int32_t P_s, int32_t sh, const P_shc *k, uint32_t *c_P)               \
+    {                                                                                       \
+        P_off(P, K, hn, mode_, nm, P_s, how_ == SH_NONE ? 0 : sh, how_, k, unroll_, c_P);   \
+    }
+P_OFF_CLASS(P_off_high_fused, PM_HIGH, SH_FUSED, 1)
+P_OFF_CLASS(P_off_high_after, PM_HIGH, SH_AFTER, 1)
+P_OFF_CLASS(P_off_high, PM_HIGH, SH_NONE, 1)
+P_OFF_CLASS(P_off_32_after, PM_32, SH_AFTER, 1)
+P_OFF_CLASS(P_off_32, PM_32, SH_NONE, 1)
+P_OFF_CLASS(P_off_lowk_after, PM_LOWK, SH_AFTER, 1)
+P_OFF_CLASS(P_off_lowk, PM_LOWK, SH_NONE, 1)
+P_OFF_CLASS(P_off_low_after, PM_LOW, SH_AFTER, 0)
+P_OFF_CLASS(P_off_low, PM_LOW, SH_NONE, 0)
+
+INLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
+                      int32_t nm, int32_t P_s, int32_t sh, uint32_t *c_P)
 {
-    const P_shc kc = sh > 0 ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
-    const P_shc *const k = &kc;
     /* one straight run for each class of the steady state and the start-up, with and
      * without the shift; a loop for the rest (rare) */
+    const P_shc kc = sh > 0 ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
     if (mode == PM_HIGH && sh > 0 && P_s >= 33 + sh) {
-        P_off(P, K, hn, PM_HIGH, nm, P_s, sh, SH_FUSED, k, 1, c_P);
+        P_off_high_fused(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_HIGH && sh > 0) {
-        P_off(P, K, hn, PM_HIGH, nm, P_s, sh, SH_AFTER, k, 1, c_P);
+        P_off_high_after(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_HIGH) {
-        P_off(P, K, hn, PM_HIGH, nm, P_s, 0, SH_NONE, k, 1, c_P);
+        P_off_high(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_32 && sh > 0) {
-        P_off(P, K, hn, PM_32, nm, P_s, sh, SH_AFTER, k, 1, c_P);
+        P_off_32_after(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_32) {
-        P_off(P, K, hn, PM_32, nm, P_s, 0, SH_NONE, k, 1, c_P);
+        P_off_32(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_LOWK && sh > 0) {
-        P_off(P, K, hn, PM_LOWK, nm, P_s, sh, SH_AFTER, k, 1, c_P);
+        P_off_lowk_after(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_LOWK) {
-        P_off(P, K, hn, PM_LOWK, nm, P_s, 0, SH_NONE, k, 1, c_P);
+        P_off_lowk(P, K, hn, nm, P_s, sh, &kc, c_P);
+    } else if (sh > 0) {
+        P_off_low_after(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else {
-        P_off(P, K, hn, mode, nm, P_s, sh, sh > 0 ? SH_AFTER : SH_NONE, k, 0, c_P);
+        P_off_low(P, K, hn, nm, P_s, sh, &kc, c_P);
     }
 }
 
