@@ -855,8 +855,9 @@ enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 
 /* How an element takes the block exponent's shift sh (a constant at each call): SH_NONE
  * sh = 0; SH_AFTER V - u, then (V - u) 2^sh; SH_FUSED (PM_HIGH, P_s >= 33 + sh) V 2^sh
- * - u 2^sh as one sum of products, -u 2^sh = ph (nm 2^sh). */
-enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2 };
+ * - u 2^sh as one sum of products, -u 2^sh = ph (nm 2^sh); SH_FUSED32 (PM_HIGH,
+ * P_s = 32 + sh) the same with u 2^sh = ph 2^32: ph subtracted from the high word. */
+enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2, SH_FUSED32 = 3 };
 
 /* The constants of a shift 1 <= sh <= 30: m2 = 2^sh; chi = 2^(sh-1) - 1, the pair's 2^31
  * carried through the shift ((2^sh - 1) 2^31 = chi 2^32 + 2^31); room = 2^(30 - sh), the
@@ -1008,6 +1009,19 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
         P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
         return;
     }
+    if (how == SH_FUSED32) {
+        /* as SH_FUSED with |u 2^sh| = |ph| 2^32 <= 2^62: X 2^sh - (chi 2^32 + 2^31) - ph 2^32 */
+        const int32_t ph = mul_rsh32(Ki, hj);
+        const int32_t hi = q->word;
+        if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room2)) {
+            const uint64_t z = P_shl_sum(q->lo, hi, 0, k, 0) - ((uint64_t)(uint32_t)ph << 32);
+            q->lo = (uint32_t)z;
+            q->word = (int32_t)(uint32_t)(z >> 32);
+            return;
+        }
+        P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
+        return;
+    }
     if (mode == PM_32) {
         /* u = ph 2^32: the word alone, saturated where it overflows */
         const int32_t ph = mul_rsh32(Ki, hj);
@@ -1042,7 +1056,7 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
             /* u = (K_i 2^a)(h~_j 2^b): one exact product */
             u = mul_ww(Ki, hj);
             if (nz != NULL) {
-                *nz |= (uint32_t)(u != 0);
+                *nz |= (uint32_t)u | (uint32_t)((uint64_t)u >> 32);
             }
         } else {
             /* u = K_i h~_j 2^k2, k2 = 32 - P_s (1..31), shifted on two words where it
@@ -1128,6 +1142,7 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
     }
 P_OFF_CLASS(P_off_high_fused, PM_HIGH, SH_FUSED, 1)
 P_OFF_CLASS(P_off_high_after, PM_HIGH, SH_AFTER, 1)
+P_OFF_CLASS(P_off_high_fused32, PM_HIGH, SH_FUSED32, 1)
 P_OFF_CLASS(P_off_high, PM_HIGH, SH_NONE, 1)
 P_OFF_CLASS(P_off_32_after, PM_32, SH_AFTER, 1)
 P_OFF_CLASS(P_off_32, PM_32, SH_NONE, 1)
@@ -1144,6 +1159,8 @@ INLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mo
     const P_shc kc = sh > 0 ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
     if (mode == PM_HIGH && sh > 0 && P_s >= 33 + sh) {
         P_off_high_fused(P, K, hn, nm, P_s, sh, &kc, c_P);
+    } else if (mode == PM_HIGH && sh > 0 && P_s == 32 + sh) {
+        P_off_high_fused32(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_HIGH && sh > 0) {
         P_off_high_after(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_HIGH) {
@@ -1187,16 +1204,17 @@ INLINE void theta_add_hi(canrls_theta64 *q, int32_t ph, uint32_t *n)
  * forgetting scale and the block exponent of canrls_update_q31 one after the other (the
  * order changes no integer: the theta and P updates read nothing the other writes, and
  * the shift of each element follows its own update). ``common`` (a constant at each
- * call): P_s >= 33 and th_s >= 33, the steady state, one straight run. A c to fold into
+ * call): P_s >= 33 and th_s >= 33, the steady state, one straight run; ``cls`` (a
+ * constant) the class of P_s: PM_HIGH, PM_32 or PM_LOW. A c to fold into
  * P~ (e = 0) is left to the caller (c > one_lam on return, no shift). Returns the
  * low-excitation test, as P_step. */
 INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
                    int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
-                   uint32_t *c_th, uint32_t *c_P, int common)
+                   uint32_t *c_th, uint32_t *c_P, int common, int cls)
 {
     const uint32_t n = CANRLS_N;
     const canrls_plan_q31 *p = S->plan;
-    int mode = common || P_s >= 33 ? PM_HIGH : P_s == 32 ? PM_32 : PM_LOW;
+    int mode = cls; /* PM_HIGH (P_s >= 33), PM_32 or PM_LOW (P_s <= 31) */
     const int32_t nm = mode == PM_HIGH ? neg_pow2(P_s) : 0;
     /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = -(ph nt) */
     const int32_t nt = common || th_s >= 33 ? neg_pow2(th_s) : 0;
@@ -1328,19 +1346,33 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     return nz == 0u;
 }
 
-/* the two instances, out of line: the steady state (P_s, th_s >= 33) and any other step */
-NOINLINE int KP_step_common(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
-                            int32_t th_s, int32_t P_s, int32_t il, int32_t *e_io,
-                            int32_t *c_io, int32_t *trw_io, uint32_t *c_th, uint32_t *c_P)
-{
-    return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 1);
-}
+/* the instances, out of line: the steady state (P_s, th_s >= 33) and any other step by
+ * the class of P_s (each its registers and its stack frame) */
+#define KP_STEP(name, common_, cls_)                                                       \
+    NOINLINE int name(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s, \
+                      int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io, \
+                      uint32_t *c_th, uint32_t *c_P)                                         \
+    {                                                                                        \
+        return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P,        \
+                       common_, cls_);                                                       \
+    }
+KP_STEP(KP_step_common, 1, PM_HIGH)
+KP_STEP(KP_step_high, 0, PM_HIGH)
+KP_STEP(KP_step_32, 0, PM_32)
+KP_STEP(KP_step_low, 0, PM_LOW)
 
+/* any step but the steady state's, by the class of P_s */
 NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
                        int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
                        uint32_t *c_th, uint32_t *c_P)
 {
-    return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 0);
+    if (P_s >= 33) {
+        return KP_step_high(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
+    }
+    if (P_s == 32) {
+        return KP_step_32(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
+    }
+    return KP_step_low(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
 }
 #endif
 
