@@ -46,6 +46,14 @@ typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1
 #define UNLIKELY(x) (x)
 #endif
 
+/* a rare part of the update: out of line where speed is asked (its own registers, out of
+ * the common path's), inline in the build for size */
+#if CANRLS_SMALL
+#define RARE INLINE
+#else
+#define RARE NOINLINE
+#endif
+
 /* n: the instance's, or the constant CANRLS_N where the build fixes it (-DCANRLS_N=6:
  * the loops over n unrolled, h~ summed row by row; canrls_init_q31 then takes only
  * n = CANRLS_N) */
@@ -633,6 +641,7 @@ INLINE int64_t windup_vw_pow2(const int32_t *h, uint32_t n, int32_t s, int32_t v
     const uint32_t half = (uint32_t)1 << (vw_ps - 1);
     uint64_t a_vw = 0;
     uint32_t i;
+    UNROLL
     for (i = 0; i < n; i++) {
         const int32_t hi_ = ((h[i] >> t1) + t0) >> t0;
         const uint64_t u = (uint64_t)mul_ww(hi_, hi_) + half;
@@ -640,6 +649,35 @@ INLINE int64_t windup_vw_pow2(const int32_t *h, uint32_t n, int32_t s, int32_t v
         a_vw += ((uint64_t)(uhi >> vw_ps) << 32) | ((ulo >> vw_ps) | (uhi << (32 - vw_ps)));
     }
     return (int64_t)a_vw;
+}
+
+/* The windup test once T = tr P - lambda trace_max > 0 (rare: while P falls from the
+ * prior), out of line: (tr P - lambda trace_max) (lambda + phi'P phi) > h'h, the two
+ * sides at their scales (docs/fixed_point.md) */
+RARE int windup_up(const canrls_plan_q31 *p, const int32_t *h, uint32_t n, int32_t c,
+                   int32_t e, int64_t T, int32_t sv)
+{
+    uint32_t none = 0; /* d_lam is not counted */
+    const int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
+    int64_t a_vw, lhs;
+    int32_t df;
+    /* h = c h~ ; w = c w~ = h:  a_vw = sum_i rsh(h_i w_i, vw_ps) */
+    if (!CANRLS_SMALL && (c & (c - 1)) == 0 && 31 - nlz((uint32_t)c) <= p->hc_s
+        && (uint32_t)(p->vw_ps - 1) < 31u) {
+        a_vw = windup_vw_pow2(h, n, p->hc_s - (31 - nlz((uint32_t)c)), p->vw_ps);
+    } else if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
+        a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_LOW);
+    } else {
+        a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_ANY);
+    }
+    /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
+    lhs = rsh_w(mul_ww((int32_t)(T < p->P_hi ? T : p->P_hi), d_lam), p->lhs_ps);
+    /* the two sides differ in scale by cmp_df - e bits */
+    df = p->cmp_scale_diff - e;
+    if (df >= 0) {
+        return (lhs >> (df < 63 ? df : 63)) > a_vw;
+    }
+    return lhs > (a_vw >> (-df < 63 ? -df : 63));
 }
 
 /* h~_i from its sum u = acc_i + 2^(h_os-1) (the rounding half already added), for
@@ -1498,34 +1536,9 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
              * the product) */
             int64_t T = rsh_w(mul_ww(trw, c), p->tc_s)
                         - (int64_t)((uint64_t)(int64_t)p->trace_max_lam << e);
-            if (T > 0) {
-                uint32_t none = 0; /* d_lam is not counted */
-                int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
-                int64_t a_vw, lhs;
-                int32_t df;
-                int up;
-                /* h = c h~ ; w = c w~ = h:  a_vw = sum_i rsh(h_i w_i, vw_ps) */
-                if (!CANRLS_SMALL && (c & (c - 1)) == 0 && 31 - nlz((uint32_t)c) <= p->hc_s
-                    && (uint32_t)(p->vw_ps - 1) < 31u) {
-                    a_vw = windup_vw_pow2(h, n, p->hc_s - (31 - nlz((uint32_t)c)), p->vw_ps);
-                } else if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
-                    a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_LOW);
-                } else {
-                    a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_ANY);
-                }
-                /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
-                lhs = rsh_w(mul_ww((int32_t)(T < p->P_hi ? T : p->P_hi), d_lam), p->lhs_ps);
-                /* the two sides differ in scale by cmp_df - e bits */
-                df = p->cmp_scale_diff - e;
-                if (df >= 0) {
-                    up = (lhs >> (df < 63 ? df : 63)) > a_vw;
-                } else {
-                    up = lhs > (a_vw >> (-df < 63 ? -df : 63));
-                }
-                if (up) {
-                    lam_k = p->one_den;
-                    flag = CANRLS_FLAG_WINDUP;
-                }
+            if (T > 0 && windup_up(p, h, n, c, e, T, sv)) {
+                lam_k = p->one_den;
+                flag = CANRLS_FLAG_WINDUP;
             }
         }
 
