@@ -1256,9 +1256,7 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     const int32_t nm = mode == PM_HIGH ? neg_pow2(P_s) : 0;
     /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = -(ph nt) */
     const int32_t nt = common || th_s >= 33 ? neg_pow2(th_s) : 0;
-    /* rsh(x, trace_ps) = ((x >> t1) + t0) >> t0: t1 = trace_ps - 1 and t0 = 1 for a shift,
-     * else 0 and 0 */
-    const int32_t t0 = p->trace_ps > 0, t1 = p->trace_ps - t0;
+    const int32_t tr_ps = p->trace_ps;
     int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
     /* K and h~ as the P update takes them: K and h~, or K 2^a and h~ 2^b with
      * a + b = 32 - P_s (PM_LOWK) */
@@ -1358,7 +1356,7 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         int32_t x;
         /* trw = sum_i rsh(Pw_ii, trace_ps) (modulo 2^32: a word) */
         x = Pw->word;
-        trw32 += (uint32_t)(((x >> t1) + t0) >> t0);
+        trw32 += (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
         Pw += n - i;
     }
     UNROLL
