@@ -155,6 +155,25 @@ def test_the_c_is_bit_exact_on_x86_64(drives: dict[str, dict[str, Any]], name: s
     assert int(m.group(4)) > 10
 
 
+@pytest.mark.parametrize("name", ["own", "motorola", "faults", "pending"])
+def test_the_c_built_for_size_is_bit_exact(drives: dict[str, dict[str, Any]], name: str,
+                                           tmp_path: Path) -> None:
+    """-Os (CANRLS_SMALL: the kernel's loops and helpers out of line, the rescale's and the
+    publication's shifts out of line, the CRC-8 by nibbles) replays the same integers: the
+    drives with rescales, pending columns, lambda < 1 and rejected frames."""
+    import shutil
+
+    need_tool("make", ["make"])
+    need_tool("cc", ["gcc"])
+    out = tmp_path / "c"
+    shutil.copytree(drives[name]["out"], out)
+    flags = "-std=c99 -Os -Wall -Wextra -Wconversion -Wpedantic -Werror"
+    r = subprocess.run(["make", "-s", "-B", "-C", str(out), "test", f"CFLAGS={flags}"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and "bit-exact with the specification" in r.stdout, (
+        r.stdout + r.stderr)
+
+
 @pytest.mark.parametrize("name", list(DRIVES))
 def test_the_generated_front_end_and_the_tables_agree_after_every_frame(
         drives: dict[str, dict[str, Any]], name: str) -> None:
@@ -409,7 +428,9 @@ def test_only_the_words_that_can_leave_int32_are_saturated_in_the_generated_step
     without saturating them, since they are within 2^f by then (f <= 30): a larger value
     changes the normalisation first and the rescale leaves them within it. Checked on the
     specification's values over the drives with rescales, pending columns and frame
-    faults, and in the generated C: every other column saturated."""
+    faults, and in the generated C: every other column saturated but a narrow filter's
+    (an int32 by its arithmetic), and the shift of a fixed column (neither adaptive nor
+    pending) a constant."""
     from canrls.firmware.load import load, target_model
     from canrls.firmware.spec import TargetEstimator
     from canrls.firmware.vectors import log_frames, record
@@ -438,12 +459,20 @@ def test_only_the_words_that_can_leave_int32_are_saturated_in_the_generated_step
             assert abs(y) <= 1 << e.f_y, (name, e.name, y)
             for c, v in zip(e.columns, phi, strict=True):
                 assert not c.adaptive or abs(v) <= 1 << e.f_phi, (name, c.name, v)
+                # a narrow filter's column: an int32 by its arithmetic
+                assert not tm.filters[c.filter].narrow or -(1 << 31) <= v < 1 << 31, \
+                    (name, c.name, v)
         front = (drives[name]["out"] / "canrls_front.c").read_text()
         for k, e in enumerate(tm.equations):
-            body = front[front.index(f"static void fr_update_{k}("):]
+            body = front[front.index(f"static CR_NOINLINE void fr_update_{k}("):]
             body = body[:body.index("\n}\n")]
             for j, c in enumerate(e.columns):
-                word = f"phq[{j}] = (int32_t)phi[{j}]" if c.adaptive \
-                    else f"phq[{j}] = cr_sat32(phi[{j}])"
-                assert word in body, (name, c.name, body)
+                word = f"phq[{j}] = (int32_t)v{j}" if c.adaptive \
+                    else f"phq[{j}] = cr_sat32(v{j})"
+                narrow = f"phq[{j}] = (int32_t)v{j}; /* an int32: a narrow state's shift */"
+                assert word in body or (tm.filters[c.filter].narrow and narrow in body), \
+                    (name, c.name, body)
+                # a fixed column's shift is its model's (a rescale moves only the others)
+                fixed = not c.adaptive and not c.pending
+                assert (f"q->sh[{j}]" in body) != fixed, (name, c.name, body)
             assert "(int32_t)y" in body, body

@@ -166,6 +166,9 @@ def _ops() -> list[tuple[str, list[int], str]]:
         # the filter's row: rsh(a0 x1 + a1 x2 + (g0 up + g1 u) 2^fx, 30), |x| < 2^60,
         # |u| 2^fx < 2^59, the row's coefficients summing below 2^31
         a0, a1, g0, g1 = (int(v) for v in rng.integers(-(1 << 29), 1 << 29, 4))
+        if rng.random() < 0.1:
+            # an input's coefficient at the model's bound 2^30 (2g no int32)
+            g0, a0, a1 = int(rng.choice([1 << 30, -(1 << 30)])), a0 >> 2, a1 >> 2
         fx = int(rng.integers(0, 41))
         x1, x2 = (int(v) >> int(rng.integers(0, 60)) for v in
                   rng.integers(-(1 << 59), 1 << 59, 2))
@@ -173,12 +176,24 @@ def _ops() -> list[tuple[str, list[int], str]]:
         up, u = (int(v) >> int(rng.integers(0, 20)) for v in rng.integers(-ub, ub, 2))
         add("svf", [a0, a1, g0, g1, x1, x2, up, u, fx],
             rsh(a0 * x1 + a1 * x2 + ((g0 * up + g1 * u) << fx), 30))
+        # a narrow filter's row: int32 words, fx 0, saturated to int32 (some at its ends)
+        w32 = [int(rng.choice([(1 << 31) - 1, -(1 << 31)])) if rng.random() < 0.3 else
+               int(rng.integers(-(1 << 31), 1 << 31)) >> int(rng.integers(0, 31))
+               for _ in range(4)]
+        add("svf32", [a0, a1, g0, g1, *w32],
+            sat(rsh(a0 * w32[0] + a1 * w32[1] + g0 * w32[2] + g1 * w32[3], 30),
+                -(1 << 31), (1 << 31) - 1))
         mm = int(rng.integers(0, 1 << 53))
         e = int(rng.integers(-80, 70))
         add("floor", [mm, e], floor_scaled(mm, e))
         add("ceil", [mm, e], ceil_scaled(mm, e))
         z = int(rng.integers(-(1 << 31), 1 << 31))
         add("tanh", [z], tanh_q24(z))
+        # not saturated: the generated front end's argument, around +-8 and int32's ends
+        zw = int(rng.choice([8 << 24, (8 << 24) - 1, (1 << 31), -(1 << 31) - 1, 1 << 62])) * \
+            int(rng.choice([1, -1])) if rng.random() < 0.3 else \
+            int(rng.integers(-(1 << 62), 1 << 62)) >> int(rng.integers(0, 62))
+        add("tanh_wide", [zw], tanh_q24(sat(zw, -(1 << 31), (1 << 31) - 1)))
         xe = int(rng.integers(0, 33 << 24))
         add("exp", [xe], exp_neg_q24(xe))
         ph = int(rng.integers(0, 1 << 63)) * 2 + int(rng.integers(0, 2))
@@ -201,6 +216,10 @@ def _ops() -> list[tuple[str, list[int], str]]:
             pw = sat(pw, plo, phi)
         w2, f2, clamped = scale_p64(pw, pf, ps, plo, phi)
         add("p64", [pw, pf, ps, plo, phi], (w2, f2, int(clamped)))
+    for sign in (1, -1):
+        # a narrow row beyond int32 either way: saturated
+        w = sign * ((1 << 31) - 1)
+        add("svf32", [1 << 29] * 4 + [w] * 4, sign * (1 << 31) - (sign > 0))
     for bits, width in _float_words(rng):
         frac = int(rng.integers(-60, 61)) if rng.random() < 0.5 else int(rng.integers(0, 40))
         shift = int(rng.integers(0, 33)) if width == 32 else 0
@@ -236,6 +255,14 @@ def test_the_c_arithmetic_is_the_specification_on_32_bit_arm(tmp_path: Path) -> 
     cc = need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
     qemu = need_tool("qemu-arm", ["qemu-user"])
     _check([qemu, str(_build(cc, tmp_path, ["-static"]))], _ops())
+
+
+def test_the_c_arithmetic_built_for_size_is_the_specification(tmp_path: Path) -> None:
+    """-Os (CANRLS_SMALL): the rare steps' shifts, bit lengths and square root out of line."""
+    cc = need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    qemu = need_tool("qemu-arm", ["qemu-user"])
+    _check([str(_build(need_tool("gcc", ["gcc"]), tmp_path, ["-Os"]))], _ops())
+    _check([qemu, str(_build(cc, tmp_path, ["-static", "-Os"]))], _ops())
 
 
 def test_a_difference_would_show(tmp_path: Path) -> None:

@@ -127,6 +127,43 @@ def test_the_filter_bank_follows_the_float_filter() -> None:
     assert np.max(np.abs(x2 - sf)) < 1e-7 * np.ptp(sf)
 
 
+def test_a_bounded_input_is_filtered_in_32_bits_near_the_float_filter() -> None:
+    """tanh of the speed (an input bounded by 1) through its narrow filter: int32 states
+    in Q30 that follow the float filter of the same input within 1e-7 of its range (8e-9
+    and 1.2e-8 measured); a filter whose gain would leave int32 (zeta 0.2: an L1 gain
+    above 2) keeps 64-bit states."""
+    from canrls.estimation.svf import SVF
+    from canrls.firmware.target_model import SRC_TANH
+
+    proto = Protocol.load()
+    model = _model("inertia,viscous,coulomb")
+    tm = build(model, proto, EstimatorSettings(), 1e-3)
+    fi = [i for i, fl in enumerate(tm.filters) if fl.kind == SRC_TANH][0]
+    assert tm.filters[fi].narrow
+    est = TargetEstimator(tm)
+    rng = np.random.default_rng(23)
+    w = np.clip(np.cumsum(rng.normal(0, 2000, 5000)), -400_000, 400_000).astype(np.int64)
+    us, xs, vs = [], [], []
+    for v in w.tolist():
+        est.raw = {"current": 0, "speed": v}
+        u = est._inputs()
+        est._filter(u)  # one sample through the bank (no estimator)
+        us.append(u[fi])
+        xs.append(est.x1[fi])
+        vs.append(est.x2[fi])
+    assert all(-(1 << 31) <= x < 1 << 31 for x in xs + vs)
+    f, sf = SVF(model.cutoff_hz, 1e-3, model.zeta).process(np.ldexp(np.array(us, float), -30))
+    x1 = np.ldexp(np.array(xs, float), -30)
+    x2 = np.ldexp(np.array(vs, float), -30) / 1e-3
+    assert np.max(np.abs(x1 - f)) < 1e-7 * np.ptp(f)
+    assert np.max(np.abs(x2 - sf)) < 1e-7 * np.ptp(sf)
+    low = Model(["inertia", "viscous", "coulomb"], kt=0.1, held=("current", "voltage"),
+                zeta=0.2)
+    tm2 = build(low, proto, EstimatorSettings(), 1e-3)
+    wide = [fl for fl in tm2.filters if fl.kind == SRC_TANH][0]
+    assert not wide.narrow and wide.fx > 0
+
+
 def test_the_same_rows_are_used_as_in_the_pipeline() -> None:
     """On a clean run the selection (warm-up, the speed band, reversals) uses the
     pipeline's rows: the same count of updates."""

@@ -164,6 +164,7 @@ SPOILED = {
     "left.negative": "left or w_last", "w_last": "left or w_last", "flags": "ms or flags",
     "ms": "ms or flags", "last_counter.unused": "beyond the model",
     "x1.unused": "beyond the model", "sh.unused": "beyond the model",
+    "x1.narrow": "a filter's state",
 }
 #: fields a restore sets itself (the pointers) or checks first (n): the driver's check only
 C_ONLY = {"model": "model", "rls.plan": "an equation's kernel", "rls.n": "an equation's kernel"}

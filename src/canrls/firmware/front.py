@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from canrls.can.e2e import crc8
 from canrls.core.c_escape import c_comment, c_int, c_uint
+from canrls.firmware.qmath import mul_rsh
 from canrls.firmware.target_model import (
     SRC_CONST,
     SRC_COS,
@@ -51,9 +52,10 @@ def _plus(v: int, what: str) -> str:
 
 
 def _bytes_of(f: Field, dlc: int) -> tuple[list[tuple[int, int]], int]:
-    """The payload bytes that hold field ``f`` (those before ``dlc``; the others are 0),
-    each with its left shift in a word that starts at the byte of the field's lowest bit,
-    and the field's shift in that word."""
+    """The payload bytes that hold field ``f`` (those before ``dlc``; the others are 0;
+    a field of three bytes takes a fourth where there is one), each with its left shift in
+    a word that starts at the byte of the field's lowest bit, and the field's shift in that
+    word."""
     lo_byte, hi_byte = f.shift // 8, (f.shift + f.length - 1) // 8
     if f.big_endian:
         # word bit p is in byte 7 - p // 8 (byte 0 the most significant)
@@ -61,6 +63,12 @@ def _bytes_of(f: Field, dlc: int) -> tuple[list[tuple[int, int]], int]:
         parts = [(k, 8 * (last - k)) for k in range(first, last + 1)]
     else:
         parts = [(k, 8 * (k - lo_byte)) for k in range(lo_byte, hi_byte + 1)]
+    # three bytes read as four where the fourth is in the frame (masked off after): one
+    # word the compiler loads at once
+    if len(parts) == 3 and f.shift % 8 + f.length <= 32:
+        k = parts[0][0] - 1 if f.big_endian else parts[-1][0] + 1
+        if 0 <= k < dlc:
+            parts = [(k, 24)] + parts if f.big_endian else parts + [(k, 24)]
     return [(k, s) for k, s in parts if k < dlc], f.shift % 8
 
 
@@ -140,9 +148,12 @@ def _message(tm: TargetModel, mi: int, m: Message) -> list[str]:
         c0 = crc8(bytes([m.id & 0xFF, (m.id >> 8) & 0xFF]), xorout=0)
         out.append(f"/* E2E CRC-8: the ID's two bytes folded into {c0:#04x} */")
         out.append(f"uint32_t c = {_u(c0, 'crc')};")
-        # the table's address in a register: each byte one load indexed by it
-        out += ["const uint8_t *crc = cr_crc8;", "CR_OPAQUE(crc);"]
+        # built for size: by nibbles in a loop (fr_crc8); else the table's address in a
+        # register, each byte one load indexed by it
+        out += ["#if CANRLS_SMALL", f"c = fr_crc8(c, data, {_u(m.dlc, what)});", "#else",
+                "const uint8_t *crc = cr_crc8;", "CR_OPAQUE(crc);"]
         out += [f"c = crc[c ^ data[{k}]];" for k in range(1, m.dlc)]
+        out.append("#endif")
         out += ["if ((c ^ 0xFFu) != data[0]) {",
                 "    return canrls_target_reject(S, CANRLS_R_CRC);", "}"]
     counter = "-1"
@@ -170,16 +181,17 @@ def _message(tm: TargetModel, mi: int, m: Message) -> list[str]:
 
 
 def _q24_arg(name: str, ctype: str, arg: tuple[int, int, int] | None, what: str,
-             eq: str) -> list[str]:
+             eq: str, sat: bool = True) -> list[str]:
     """Lines setting the Q24 argument ``name = rsh(speed m + b, sh)`` (saturated to 32
-    bits; 0 without one)."""
+    bits unless ``sat`` is false; 0 without one)."""
     if arg is None or arg[0] == 0:
         return [f"const {ctype} {name} = 0;"]
     cast = "(int32_t)" if ctype == "int32_t" else ""
+    v = (f"cr_rsh((int64_t)S->raw[CANRLS_SPEED] * {_i(arg[0], what)}{_plus(arg[1], what)}, "
+         f"{_i(arg[2], what)})")
     return [f"/* {eq} */",
-            f"const {ctype} {name} = {cast}cr_sat(cr_rsh((int64_t)S->raw[CANRLS_SPEED] * "
-            f"{_i(arg[0], what)}{_plus(arg[1], what)}, {_i(arg[2], what)}), "
-            f"INT32_MIN, INT32_MAX);"]
+            f"const {ctype} {name} = {cast}cr_sat({v}, INT32_MIN, INT32_MAX);" if sat else
+            f"const {ctype} {name} = {v};"]
 
 
 def _inputs(tm: TargetModel) -> list[str]:
@@ -187,7 +199,8 @@ def _inputs(tm: TargetModel) -> list[str]:
     kinds = {f.kind for f in tm.filters}
     out = []
     if kinds & {SRC_TANH, SRC_STRIBECK}:
-        out += _q24_arg("z", "int32_t", tm.tanh_arg, "tanh", "z = w / band, Q24")
+        # z reaches only tanh: cr_tanh_q24_wide(z) = cr_tanh_q24(z saturated)
+        out += _q24_arg("z", "int64_t", tm.tanh_arg, "tanh", "z = w / band, Q24", sat=False)
     if SRC_STRIBECK in kinds:
         out += _q24_arg("r", "int64_t", tm.stribeck_arg, "stribeck", "r = w / ws, Q24")
     if kinds & {SRC_SIN, SRC_COS}:
@@ -208,12 +221,12 @@ def _input(tm: TargetModel, i: int) -> list[str]:
     if f.kind == SRC_RAW:
         return [f"const int32_t u = S->raw[{_ROLE_ENUM[_ROLES.index(f.role)]}];"]
     if f.kind == SRC_TANH:
-        return ["/* tanh(w / band) */", "const int32_t u = cr_tanh_q24(z);"]
+        return ["/* tanh(w / band) */", "const int32_t u = cr_tanh_q24_wide(z);"]
     if f.kind == SRC_STRIBECK:
         return ["/* x = (w / ws)^2, Q24, at most 32 ; tanh(w / band) exp(-(w / ws)^2) */",
                 "int64_t x = cr_rsh(r * r, 24);",
                 "x = x < ((int64_t)32 << 24) ? x : (int64_t)32 << 24;",
-                "const int32_t u = (int32_t)cr_rsh((int64_t)cr_tanh_q24(z) * "
+                "const int32_t u = (int32_t)cr_rsh((int64_t)cr_tanh_q24_wide(z) * "
                 "cr_exp_neg_q24(x), 30);"]
     # sin, cos of k theta: the phase times k (modulo one turn); its quadrant and place
     order = f"(uint64_t){_u(f.order, 'harmonic', 64)}"
@@ -232,6 +245,9 @@ def _filters(tm: TargetModel) -> list[str]:
         g = [_i(v, "G") for v in tm.G[f.hold]]
         fx = _i(f.fx, "fx")
         out += [f"{{ /* filter {i}: {c_comment(f.label, 'filter')}, FX {f.fx} */"]
+        if f.narrow:
+            out += ["    " + s for s in _input(tm, i) + _narrow_rows(i, a, g)] + ["}"]
+            continue
         body = _input(tm, i) + [
             "int32_t uh, ul;",
             f"cr_split_input(u, {fx}, &uh, &ul);",
@@ -255,66 +271,136 @@ def _filters(tm: TargetModel) -> list[str]:
     return out
 
 
+def _narrow_rows(i: int, a: list[str], g: list[str]) -> list[str]:
+    """Lines advancing narrow filter ``i`` (32-bit states, ``fx`` 0: the last input is
+    ``uph 2^31 + upl``) from its input ``u``."""
+    return ["int32_t uh, ul;",
+            "cr_split_input(u, 0, &uh, &ul);",
+            f"if (!S->primed[{i}]) {{",
+            "    /* at rest on the first sample: x = [u, 0] */",
+            f"    S->x1[{i}] = u;",
+            f"    S->x2[{i}] = 0;",
+            f"    S->primed[{i}] = 1u;",
+            "} else {",
+            "    /* 32-bit states (an input bounded by 1), each row saturated to int32 */",
+            f"    const int32_t x1 = (int32_t)S->x1[{i}], x2 = (int32_t)S->x2[{i}];",
+            f"    const int32_t up = (int32_t)(((uint32_t)S->uph[{i}] << 31) | "
+            f"(uint32_t)S->upl[{i}]);",
+            "    /* x1 = A00 x1 + A01 x2 + G0_1 u[k-1] + G1_1 u[k] */",
+            f"    S->x1[{i}] = cr_svf_row32({a[0]}, {a[1]}, {g[0]}, {g[2]}, x1, x2, up, u);",
+            "    /* x2 = A10 x1 + A11 x2 + G0_2 u[k-1] + G1_2 u[k] */",
+            f"    S->x2[{i}] = cr_svf_row32({a[2]}, {a[3]}, {g[1]}, {g[3]}, x1, x2, up, u);",
+            "}",
+            f"S->uph[{i}] = uh;",
+            f"S->upl[{i}] = ul;"]
+
+
 def _state(c: Column) -> str:
     """X + O of a column."""
     x = f"S->{'x2' if c.derivative else 'x1'}[{c.filter}]"
     return f"({x} + {_i(c.offset, 'offset', 64)})" if c.offset else x
 
 
-def _equation(e: EquationSpec, k: int) -> list[str]:
-    """The columns, the check of the normalisation and the update of equation ``k``."""
+def _const_state(tm: TargetModel, c: Column) -> int | None:
+    """X + O of a column of the constant's filter (its state never moves: x1 = 2^(30 + FX),
+    x2 = 0, as the state check holds a loaded one), else None."""
+    f = tm.filters[c.filter]
+    if f.kind != SRC_CONST:
+        return None
+    return (0 if c.derivative else 1 << (30 + f.fx)) + c.offset
+
+
+def _value(tm: TargetModel, c: Column, j: int) -> tuple[str, bool]:
+    """The expression of column ``c``'s value ``rsh((X + O) m, sh)`` (``j``: its index),
+    and whether it is an int32 by its arithmetic (then not saturated).
+
+    A fixed column (neither adaptive nor pending) keeps its model's shift (a rescale moves
+    only the others; the state check holds a loaded one to it), so its shift is a constant:
+    of the constant's filter the value is one; with ``m = 2^k`` and ``sh > k``, ``sh >= 31``
+    it is ``rsh(X + O, sh - k)`` (exactly ``rsh((X + O) 2^k, sh)``), without the products,
+    and of a narrow filter's int32 state (no offset) a 32-bit shift, an int32.
+    """
+    fixed = not c.adaptive and not c.pending
+    const = _const_state(tm, c)
+    if fixed and const is not None:
+        return _i(mul_rsh(const, c.m, c.sh), "column", 64), False
+    x = _state(c) if const is None else _i(const, "column", 64)
+    if not fixed:
+        return f"cr_mul_rsh({x}, {_i(c.m, 'm')}, q->sh[{j}])", False
+    k = c.m.bit_length() - 1
+    if c.m > 0 and c.m == 1 << k and c.sh >= 31 and c.sh > k:
+        if tm.filters[c.filter].narrow and not c.offset and c.sh - k <= 31:
+            return f"cr_rsh32((int32_t){x}, {_i(c.sh - k, 'sh')})", True
+        return f"cr_rsh({x}, {_i(c.sh - k, 'sh')})", False
+    return f"cr_mul_rsh({x}, {_i(c.m, 'm')}, {_i(c.sh, 'sh')})", False
+
+
+def _equation(tm: TargetModel, e: EquationSpec, k: int) -> list[str]:
+    """The check of the normalisation and the update of equation ``k``: its columns in
+    locals (``v0``.. and ``y``), in memory only for a rescale."""
     name = c_comment(e.name, "equation")
-    vals = [f"/* equation {name}: its columns and output, rsh((X + O) m, sh) */",
-            f"static void fr_values_{k}(const canrls_target *S, const canrls_target_eq *q, "
-            f"int64_t *phi, int64_t *y)", "{"]
-    for j, c in enumerate(e.columns):
-        vals.append(f"    phi[{j}] = cr_mul_rsh({_state(c)}, {_i(c.m, 'm')}, q->sh[{j}]); "
-                    f"/* {c_comment(c.name, 'parameter')} */")
-    vals += [f"    *y = cr_mul_rsh({_state(e.output)}, {_i(e.output.m, 'm')}, q->sh_y);", "}",
-             ""]
+    vs = [f"v{j}" for j in range(e.n)]
+    args = "".join(f"int64_t {v}, " for v in vs)
     lim = _i(1 << e.f_phi, "f_phi", 64)
-    ch = ["/* whether this used sample changes the normalisation */",
+    ch = [f"/* equation {name}: whether this used sample changes the normalisation */",
           f"static int fr_changes_{k}(const canrls_target *S, const canrls_target_eq *q, "
-          f"const int64_t *phi, int64_t y)", "{"]
+          f"{args}int64_t y)", "{"]
     # a pending column's value is 0 while its state is (rsh(0 m, sh) = 0), so its rule
     # "pending ? X + O != 0 : |phi| > 2^f" is "(pending and X + O != 0) or |phi| > 2^f":
     # the pending flags, all read as one word, first, then the limits
-    words = (e.n + 7) // 8
-    ch += [f"    uint64_t pending[{max(words, 1)}] = {{0u}};",
-           f"    memcpy(pending, q->pending, {_u(e.n, 'columns')});",
-           "    if (" + "".join(f"pending[{w}] != 0u || " for w in range(words))
-           + "q->pending_y) {"]
-    for j, c in enumerate(e.columns):
-        ch += [f"        if (q->pending[{j}] && {_state(c)} != 0) {{", "            return 1;",
-               "        }"]
-    ch += [f"        if (q->pending_y && {_state(e.output)} != 0) {{", "            return 1;",
-           "        }", "    }"]
-    if not any(c.adaptive for c in e.columns):
-        ch.append("    (void)phi;")
+    # (only a column pending in the model can be: the state check holds a loaded one to it)
+    pend = [(f"q->pending[{j}]", c) for j, c in enumerate(e.columns) if c.pending]
+    pend += [("q->pending_y", e.output)] if e.output.pending else []
+    if pend:
+        words = (e.n + 7) // 8
+        ch += [f"    uint64_t pending[{max(words, 1)}] = {{0u}};",
+               f"    memcpy(pending, q->pending, {_u(e.n, 'columns')});",
+               "    if (" + "".join(f"pending[{w}] != 0u || " for w in range(words))
+               + "q->pending_y) {"]
+        for flag, c in pend:
+            ch += [f"        if ({flag} && {_state(c)} != 0) {{", "            return 1;",
+                   "        }"]
+        ch.append("    }")
+    else:
+        ch += ["    (void)S;", "    (void)q;"]
     for j, c in enumerate(e.columns):
         if c.adaptive:
-            ch += [f"    if (phi[{j}] > {lim} || -phi[{j}] > {lim}) {{", "        return 1;",
-                   "    }"]
+            ch += [f"    if (v{j} > {lim} || -v{j} > {lim}) {{", "        return 1;", "    }"]
+        else:
+            ch.append(f"    (void)v{j};")
     lim_y = _i(1 << e.f_y, "f_y", 64)
     ch += [f"    return y > {lim_y} || -y > {lim_y};", "}", ""]
     n = max(e.n, 1)
-    up = [f"static void fr_update_{k}(canrls_target *S)", "{",
-          f"    canrls_target_eq *q = &S->eq[{k}];",
-          f"    int64_t phi[{n}], y;",
-          f"    int32_t phq[{n}];",
-          f"    fr_values_{k}(S, q, phi, &y);",
-          f"    if (fr_changes_{k}(S, q, phi, y)) {{",
-          f"        canrls_target_adapt(S, {k}u, phi, y);",
-          f"        fr_values_{k}(S, q, phi, &y);", "    }",
-          "    /* the words of the kernel: saturated to int32 where the value can leave it */"]
+    up = [f"static CR_NOINLINE void fr_update_{k}(canrls_target *S)", "{",
+          f"    canrls_target_eq *q = &S->eq[{k}];"]
+    if vs:
+        up.append(f"    int64_t {', '.join(vs)}, y;")
+    else:
+        up.append("    int64_t y;")
+    up += [f"    int32_t phq[{n}];",
+           "    int rescaled = 0;",
+           "    for (;;) {",
+           "        /* the columns and output, rsh((X + O) m, sh) */"]
+    values = [_value(tm, c, j) for j, c in enumerate(e.columns)]
+    for j, c in enumerate(e.columns):
+        up.append(f"        v{j} = {values[j][0]}; /* {c_comment(c.name, 'parameter')} */")
+    up += [f"        y = cr_mul_rsh({_state(e.output)}, {_i(e.output.m, 'm')}, q->sh_y);",
+           f"        if (rescaled || !fr_changes_{k}(S, q, {''.join(v + ', ' for v in vs)}y)) {{",
+           "            break;", "        }",
+           "        { /* a rescale, then the values again */",
+           f"            int64_t phi[{n}] = {{{', '.join(vs) or '0'}}};",
+           f"            canrls_target_adapt(S, {_u(k, 'equation')}, phi, y);", "        }",
+           "        rescaled = 1;", "    }",
+           "    /* the words of the kernel: saturated to int32 where the value can leave it */"]
     if not e.columns:
         up.append("    phq[0] = 0;")
     for j, c in enumerate(e.columns):
-        up.append(f"    phq[{j}] = {_word32(f'phi[{j}]', c.adaptive, e.f_phi)};")
+        up.append(f"    phq[{j}] = (int32_t)v{j}; /* an int32: a narrow state's shift */"
+                  if values[j][1] else f"    phq[{j}] = {_word32(f'v{j}', c.adaptive, e.f_phi)};")
     up += ["    /* the update; ms <- ms + (eps^2 - ms) >> rms_shift */",
            f"    cr_step(q, phq, {_word32('y', True, e.f_y)}, {_i(e.rms_shift, 'rms shift')});",
            "}", ""]
-    return vals + ch + up
+    return ch + up
 
 
 def _word32(v: str, bounded: bool, frac: int) -> str:
@@ -355,8 +441,32 @@ def _selection(e: EquationSpec, k: int) -> list[str]:
     return out
 
 
+def _crc_small() -> str:
+    """``fr_crc8``: the E2E CRC-8 by nibbles, for the build for size (``CANRLS_SMALL``)."""
+    # one nibble's remainder: the byte table's first 16 entries, T[v] for v < 16
+    nib = ", ".join(str(crc8(bytes([v]), init=0, xorout=0)) for v in range(16))
+    return f"""#if CANRLS_SMALL
+/* built for size: the E2E CRC-8 (SAE J1850) from c over bytes 1..len-1 by nibbles, the
+ * same integers as cr_crc8 with 16 bytes of table (two lookups a byte, in a loop) */
+static uint32_t fr_crc8(uint32_t c, const uint8_t *data, uint32_t len)
+{{
+    static const uint8_t nib[16] = {{{nib}}};
+    uint32_t k;
+    for (k = 1u; k < len; k++) {{
+        c ^= data[k];
+        c = ((c << 4) & 0xF0u) ^ nib[c >> 4];
+        c = ((c << 4) & 0xF0u) ^ nib[c >> 4];
+    }}
+    return c;
+}}
+#endif
+
+"""
+
+
 def _indent(lines: list[str], by: str = "    ") -> str:
-    return "\n".join(by + s if s else s for s in lines)
+    # the preprocessor's lines (#if CANRLS_SMALL) at the left margin
+    return "\n".join(by + s if s and not s.startswith("#") else s for s in lines)
 
 
 def front_file(tm: TargetModel, source: str) -> str:
@@ -381,8 +491,10 @@ def front_file(tm: TargetModel, source: str) -> str:
 
 """
     parts = [head]
+    if any(m.crc for m in tm.messages):
+        parts.append(_crc_small())
     for k, e in enumerate(tm.equations):
-        parts.append(_indent(_equation(e, k), "") + "\n")
+        parts.append(_indent(_equation(tm, e, k), "") + "\n")
     sample = [
         "const int32_t dt = (int32_t)(t - S->last_t);",
         "int64_t w;",

@@ -300,10 +300,13 @@ class TargetEstimator:
             g00, g02, g10, g12 = self.m.G[f.hold]
             x1, x2 = self.x1[i], self.x2[i]
             # x1 = A00 x1 + A01 x2 + (G0_1 u[k-1] + G1_1 u[k]) 2^FX, Q30 coefficients
-            self.x1[i] = rsh(a00 * x1 + a01 * x2 + ((g00 * self.up[i] + g10 * u[i]) << f.fx), 30)
+            y1 = rsh(a00 * x1 + a01 * x2 + ((g00 * self.up[i] + g10 * u[i]) << f.fx), 30)
             # x2 = A10 x1 + A11 x2 + (G0_2 u[k-1] + G1_2 u[k]) 2^FX   (x2 = sF[u] T 2^FX)
-            self.x2[i] = rsh(a10 * x1 + a11 * x2 + ((g02 * self.up[i] + g12 * u[i]) << f.fx), 30)
-            self.up[i] = u[i]
+            y2 = rsh(a10 * x1 + a11 * x2 + ((g02 * self.up[i] + g12 * u[i]) << f.fx), 30)
+            if f.narrow:
+                # 32-bit states (an input bounded by 1): saturated to int32
+                y1, y2 = sat(y1, *_I32), sat(y2, *_I32)
+            self.x1[i], self.x2[i], self.up[i] = y1, y2, u[i]
 
     def _state(self, c: Column) -> int:
         """``X + O`` of a column: the filter state it reads and its offset."""

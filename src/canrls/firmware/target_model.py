@@ -52,7 +52,7 @@ from canrls.firmware.qmath import MASK64, clog2, float_fixed
 __all__ = ["SRC_RAW", "SRC_TANH", "SRC_STRIBECK", "SRC_SIN", "SRC_COS", "SRC_CONST",
            "SOURCE_NAMES", "Field", "Message", "Filter", "OutFrame", "OUT_FRAMES", "out_frames",
            "Column", "Selection", "EquationSpec", "TargetModel", "build", "FX_MAX", "X_BITS",
-           "TargetError"]
+           "BOUNDED", "TargetError"]
 
 #: filter inputs (sources)
 SRC_RAW, SRC_TANH, SRC_STRIBECK, SRC_SIN, SRC_COS, SRC_CONST = range(6)
@@ -66,6 +66,10 @@ X_BITS = 60
 RAW_BOUND = 1 << 31
 #: the constant column's state: 1.0 in Q30 with this many bits more (2^59)
 CONST_FX = 29
+#: the inputs bounded by 1 (Q30): their filters keep 32-bit states (``Filter.narrow``)
+BOUNDED = (SRC_TANH, SRC_STRIBECK, SRC_SIN, SRC_COS)
+#: a narrow state's headroom below 2^31 beyond the filter's gain (the rounding's drift)
+NARROW_MARGIN = 1 << 24
 #: Q24: the format of the arguments of tanh and of the Stribeck exponential
 Z_FRAC = 24
 #: the speed of the selection: raw 2^W_FRAC
@@ -153,6 +157,12 @@ class Filter:
     order: int
     hold: int
     fx: int
+
+    @property
+    def narrow(self) -> bool:
+        """32-bit states: an input bounded by 1 (Q30) with no fraction bit more (``fx``
+        0), each row's result saturated to int32 (the C: ``cr_narrow``)."""
+        return self.kind in BOUNDED and self.fx == 0
 
     @property
     def label(self) -> str:
@@ -552,6 +562,12 @@ def _fx(bound: int, gamma: float) -> int:
     return min(fx, FX_MAX)
 
 
+def _narrow_fits(gamma: float) -> bool:
+    """Whether a Q30 state of an input bounded by 1 (2^30) stays within int32 with the
+    filter's gain ``gamma`` and ``NARROW_MARGIN`` for the rounding."""
+    return math.ceil((1 << 30) * gamma) + NARROW_MARGIN < 1 << 31
+
+
 class _Columns:
     """The filters and columns of one build: a filter is made once and shared by every
     column that reads it."""
@@ -575,7 +591,10 @@ class _Columns:
             # a raw input's bound is that of every raw word (2^31), never its DBC range:
             # a DBC's declared limits must not change the fraction bits, and so the answer
             bound = RAW_BOUND if kind == SRC_RAW else 1 << 30
-            key = Filter(kind, role, order, hold, _fx(bound, self.gamma))
+            # an input bounded by 1 in Q30 whose filter's gain leaves it within int32 is
+            # filtered in 32 bits (fx 0), else in 64
+            fx = 0 if kind in BOUNDED and _narrow_fits(self.gamma) else _fx(bound, self.gamma)
+            key = Filter(kind, role, order, hold, fx)
         for i, f_ in enumerate(self.filters):
             if f_ == key:
                 return i

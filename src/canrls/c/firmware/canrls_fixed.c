@@ -17,22 +17,15 @@
 typedef char canrls_needs_arithmetic_shift[((-8 >> 1) == -4) ? 1 : -1];
 typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1];
 
-/* Built for size: CANRLS_SMALL = 1 (by default where the compiler optimises for size,
- * GCC's and Clang's __OPTIMIZE_SIZE__ at -Os), see below. */
-#ifndef CANRLS_SMALL
-#if defined(__OPTIMIZE_SIZE__)
-#define CANRLS_SMALL 1
-#else
-#define CANRLS_SMALL 0
-#endif
-#endif
+/* Built for size: CANRLS_SMALL (canrls_fixed.h), see below. */
 
 /* The helpers below are meant to disappear into their callers (the shift class of
  * mul_rsh must be a constant there); GCC and Clang are told so, except when built for
- * size (the compiler then keeps a helper called from several places out of line). */
+ * size: each helper is then one function out of line, called (less code than GCC's own
+ * choice at -Os: 4574 B against 4868 B of canrls_fixed.o at n = 6). */
 #if defined(__GNUC__)
 #if CANRLS_SMALL
-#define INLINE static inline
+#define INLINE static __attribute__((noinline))
 #else
 #define INLINE static inline __attribute__((always_inline))
 #endif
@@ -46,10 +39,17 @@ typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1
 #define UNLIKELY(x) (x)
 #endif
 
-/* a rare part of the update: out of line where speed is asked (its own registers, out of
- * the common path's), inline in the build for size */
+/* out of line when built for size, else the compiler's choice */
+#if CANRLS_SMALL && defined(__GNUC__)
+#define SMALL_NOINLINE static __attribute__((noinline))
+#else
+#define SMALL_NOINLINE static
+#endif
+
+/* a rare part of the update: out of line where speed is asked (its registers kept off the
+ * common path's), in its caller when built for size */
 #if CANRLS_SMALL
-#define RARE INLINE
+#define RARE static inline
 #else
 #define RARE NOINLINE
 #endif
@@ -366,7 +366,7 @@ INLINE void P_sub_full(canrls_P64 *q, int32_t ph, int32_t nm, int32_t s, uint32_
 
 /* The 64-bit P from a word w (any int64_t) and a pair's low part t (0 <= t < 2^32 + 2^31:
  * the fraction plus 2^31, carry included), saturated as P_sub. */
-static void P_put(canrls_P64 *q, int64_t w, uint64_t t, int32_t lo, int32_t hi, uint32_t *n)
+SMALL_NOINLINE void P_put(canrls_P64 *q, int64_t w, uint64_t t, int32_t lo, int32_t hi, uint32_t *n)
 {
     w += (int64_t)(t >> 32);
     if (w > hi) {
@@ -463,7 +463,7 @@ static inline int32_t norm_shift(uint32_t m)
 
 /* One 16-bit digit of a long division: num / (vn1 b + vn0) with b = 2^16, ``next`` the
  * next 16-bit digit of the dividend; the estimate num / vn1 corrected (at most twice). */
-static uint32_t div_digit(uint32_t num, uint32_t next, uint32_t vn1, uint32_t vn0)
+SMALL_NOINLINE uint32_t div_digit(uint32_t num, uint32_t next, uint32_t vn1, uint32_t vn0)
 {
     const uint32_t b = 65536u;
     uint32_t q = num / vn1;
@@ -1440,16 +1440,17 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
     /* phi, y <- sat(phi), sat(y)       inputs clamped to their words;
      * phi >> ps: the guard bits of the multiply-accumulates */
-    if (phi_ps > 0 && (S->wide & WIDE_PHI)) {
+    if (!CANRLS_SMALL && phi_ps > 0 && (S->wide & WIDE_PHI)) {
         /* 32-bit words: nothing to clamp */
         UNROLL
         for (j = 0; j < n; j++) {
             phg[j] = ((phi[j] >> (phi_ps - 1)) + 1) >> 1;
         }
-    } else if (phi_ps > 0) {
+    } else if (CANRLS_SMALL || phi_ps > 0) {
+        /* (built for size: every case in this loop, rsh32 by 0 the word itself) */
         for (j = 0; j < n; j++) {
             const int32_t v = clamp32(phi[j], phi_lo, phi_hi, &c_phi);
-            phg[j] = ((v >> (phi_ps - 1)) + 1) >> 1;
+            phg[j] = rsh32(v, phi_ps);
         }
     } else {
         for (j = 0; j < n; j++) {
@@ -1460,7 +1461,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
     /* eps = y - phi' theta */
     /* (summed as phi' theta - y, multiply-accumulates, then negated: the same integer) */
-    if ((uint32_t)p->eps_ts <= 30u) {
+    if (!CANRLS_SMALL && (uint32_t)p->eps_ts <= 30u) {
         a = (int64_t)yk * ((int32_t)1 << p->eps_ts); /* y 2^ts: one multiply */
     } else {
         a = p->eps_ts >= 0 ? (int64_t)yk * ((int64_t)1 << p->eps_ts) : rsh(yk, -p->eps_ts);
@@ -1488,8 +1489,9 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         /* h~ = P~ phi, rounded and stored; m = OR of |h~_i| (one's complement) for the
          * normalisation below; s~ = phi' h~ (a) summed as h~ is stored */
         a = 0;
-        if ((uint32_t)(h_os - 1) < 31u) {
-            /* 1 <= h_os <= 31 (the common case): each sum rounded in two words */
+        if (!CANRLS_SMALL && (uint32_t)(h_os - 1) < 31u) {
+            /* 1 <= h_os <= 31 (the common case): each sum rounded in two words (built for
+             * size: store below, the same integers) */
 #if CANRLS_FAST
             if (S->wide & WIDE_H) {
                 a = h_rows_full(P, phg, h, h_os, &c_h, &m);
@@ -1520,7 +1522,8 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
         /* s~ = phi' h~ (a, summed above), brought from the scale of P (exponent e) to
          * that of lambda */
-        st = store((uint32_t)(e - 1) < 31u ? rsh_c(a, e, SHIFT_LOW) : rsh_c(a, e, shift_class(e)),
+        st = store(!CANRLS_SMALL && (uint32_t)(e - 1) < 31u ? rsh_c(a, e, SHIFT_LOW)
+                                                            : rsh_c(a, e, shift_class(e)),
                    p->s_os, p->den_lo, p->den_hi, &c_den);
         /* s = phi' P phi = c s~ */
         sv = store(mul_ww(st, c), p->sc_s, p->den_lo, p->den_hi, &c_den);
@@ -1684,7 +1687,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             int64_t tr = 0;
             uint32_t trw32 = 0; /* the sum modulo 2^32: trw is a word */
             const canrls_P64 *Pii = P;
-            if (tr_ps > 0) {
+            if (!CANRLS_SMALL && tr_ps > 0) {
                 UNROLL
                 for (i = 0; i < n; i++) {
                     const int32_t x = Pii->word;
@@ -1695,7 +1698,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             } else {
                 for (i = 0; i < n; i++) {
                     tr += Pii->word;
-                    trw32 += (uint32_t)Pii->word;
+                    trw32 += (uint32_t)rsh32(Pii->word, tr_ps); /* the word for tr_ps <= 0 */
                     Pii += n - i;
                 }
             }

@@ -73,6 +73,17 @@ extern "C" {
 #define CANRLS_N_MAX 12
 #endif
 
+/** Built for size: 1 by default where the compiler optimises for size (GCC's and Clang's
+ * __OPTIMIZE_SIZE__ at -Os), or -DCANRLS_SMALL=1 / =0: loops and one instance of each step
+ * in the kernel, the rare steps of canrls_target.c out of line (the same integers). */
+#ifndef CANRLS_SMALL
+#if defined(__OPTIMIZE_SIZE__)
+#define CANRLS_SMALL 1
+#else
+#define CANRLS_SMALL 0
+#endif
+#endif
+
 /** Packed upper triangle of an n x n matrix: n (n + 1) / 2 words. */
 #define CANRLS_TRI(n) ((n) * ((n) + 1) / 2)
 

@@ -22,14 +22,47 @@ typedef char canrls_target_needs_arithmetic_shift[((-8) >> 1) == -4 ? 1 : -1];
 /* ------------------------------------------------------------------ arithmetic
  * (the per-frame path's: canrls_target_math.h) */
 
-static int32_t cr_bitlen64(uint64_t v)
+/* The rare steps' helpers and 64-bit shifts (the rescale, the publication): out of line
+ * when built for size (CANRLS_SMALL: a call is shorter than a two-word shift), else the
+ * compiler's choice. */
+#if CANRLS_SMALL && defined(__GNUC__)
+#define CR_RARE static __attribute__((noinline))
+#else
+#define CR_RARE static
+#endif
+
+/* x 2^s, 0 <= s <= 63 (the caller bounds the result) */
+CR_RARE int64_t cr_lsl64(int64_t x, int32_t s)
 {
+    return (int64_t)((uint64_t)x << s);
+}
+
+/* floor(x / 2^s), 0 <= s <= 63 */
+CR_RARE int64_t cr_asr64(int64_t x, int32_t s)
+{
+    return x >> s;
+}
+
+/* floor(x / 2^s) of an unsigned x, 0 <= s <= 63 */
+CR_RARE uint64_t cr_lsr64(uint64_t x, int32_t s)
+{
+    return x >> s;
+}
+
+CR_RARE int32_t cr_bitlen64(uint64_t v)
+{
+#if defined(__GNUC__)
+    /* one CLZ of the high word, or of the low word */
+    const uint32_t hi = (uint32_t)(v >> 32), lo = (uint32_t)v;
+    return hi != 0u ? 64 - __builtin_clz(hi) : lo != 0u ? 32 - __builtin_clz(lo) : 0;
+#else
     int32_t n = 0;
     while (v != 0u) {
         v >>= 1;
         n++;
     }
     return n;
+#endif
 }
 
 /* clog2(n) = bit length of n - 1 (n >= 1) */
@@ -58,7 +91,7 @@ static int32_t cr_clog2_mul(uint64_t a, uint32_t m)
 }
 
 /* floor(sqrt(n)), n >= 0, bit by bit */
-static int64_t cr_isqrt(int64_t n)
+CR_RARE int64_t cr_isqrt(int64_t n)
 {
     uint64_t v = (uint64_t)n, r = 0u, bit = (uint64_t)1 << 62;
     while (bit > v) {
@@ -95,15 +128,15 @@ static uint32_t cr_f32_bits(int64_t v, int32_t e)
         if (s > 33) {
             m = 0u;
         } else {
-            const uint64_t rem = a & (((uint64_t)1 << s) - 1u);
-            const uint64_t half = (uint64_t)1 << (s - 1);
-            m = a >> s;
+            const uint64_t rem = a & ((uint64_t)cr_lsl64(1, s) - 1u);
+            const uint64_t half = (uint64_t)cr_lsl64(1, s - 1);
+            m = cr_lsr64(a, s);
             if (rem > half || (rem == half && (m & 1u) != 0u)) {
                 m += 1u;
             }
         }
     } else {
-        m = a << (-s);
+        m = (uint64_t)cr_lsl64((int64_t)a, -s);
     }
     if ((m >> 24) != 0u) {
         m >>= 1;
@@ -202,7 +235,15 @@ int canrls_target_init(canrls_target *S, const canrls_target_model *M)
         q->sh_y = e->output.sh;
         q->exponents[e->n] = e->output.exponent;
         q->pending_y = e->output.pending;
-        q->plan = *e->plan;
+        {
+            /* q->plan = *e->plan, byte by byte: the estimator calls no memcpy (libc's
+             * takes 308 B at -Os, for one copy at the start) */
+            const unsigned char *from = (const unsigned char *)e->plan;
+            unsigned char *to = (unsigned char *)&q->plan;
+            for (j = 0; j < sizeof q->plan; j++) {
+                to[j] = from[j];
+            }
+        }
         q->plan.trace_max_lam = cr_trace_bound(e, q);
         if (canrls_init_q31(&q->rls, &q->plan, e->n, e->p0, e->e0) != CANRLS_OK) {
             return CANRLS_EINVAL;
@@ -302,6 +343,11 @@ static void cr_filter(canrls_target *S, const int32_t *u)
         S->x1[i] = cr_svf_row(M->A[0], M->A[1], g[0], g[2], x1, x2, S->uph[i], S->upl[i], uh, ul);
         /* x2 = A10 x1 + A11 x2 + (G0_2 u[k-1] + G1_2 u[k]) 2^FX   (x2 = sF[u] T 2^FX) */
         S->x2[i] = cr_svf_row(M->A[2], M->A[3], g[1], g[3], x1, x2, S->uph[i], S->upl[i], uh, ul);
+        if (cr_narrow(f)) {
+            /* 32-bit states: saturated to int32 */
+            S->x1[i] = cr_sat32(S->x1[i]);
+            S->x2[i] = cr_sat32(S->x2[i]);
+        }
         S->uph[i] = uh;
         S->upl[i] = ul;
     }
@@ -320,6 +366,30 @@ void canrls_target_restart(canrls_target *S)
     for (i = 0; i < M->neq; i++) {
         S->eq[i].left = M->equations[i].warmup;
         S->eq[i].w_last = 0;
+    }
+}
+
+/* cr_rsh of the rare steps */
+static int64_t cr_rsh64(int64_t x, int32_t s)
+{
+    if (s <= 0) {
+        return x;
+    }
+    return s >= 64 ? 0 : (cr_asr64(x, s - 1) + 1) >> 1;
+}
+
+/* the kernel's state: theta (words, fractions) and P (words, fractions) */
+static void cr_read(const canrls_target_eq *q, uint32_t n, int32_t *theta, uint32_t *frac,
+                    int32_t *P, int32_t *P_frac)
+{
+    uint32_t k;
+    for (k = 0; k < n; k++) {
+        theta[k] = canrls_theta_q31(&q->rls, k);
+        frac[k] = canrls_theta_frac_q31(&q->rls, k);
+    }
+    for (k = 0; k < CANRLS_TRI(n); k++) {
+        P[k] = canrls_P_q31(&q->rls, k);
+        P_frac[k] = canrls_P_frac_q31(&q->rls, k);
     }
 }
 
@@ -359,8 +429,8 @@ static void cr_P_scale(int32_t *word, int32_t *frac, int32_t s, int32_t lo, int3
     if (s > 0) {
         if (s <= 31) {
             /* V 2^s + 2^31 = (w 2^s + (t >> 32)) 2^32 + (t mod 2^32), t = f 2^s + 2^31 */
-            const int64_t t = f * ((int64_t)1 << s) + ((int64_t)1 << 31);
-            nw = w * ((int64_t)1 << s) + (t >> 32);
+            const int64_t t = cr_lsl64(f, s) + ((int64_t)1 << 31);
+            nw = cr_lsl64(w, s) + (t >> 32);
             nl = (uint32_t)t;
         } else if (w != 0) {
             /* |V 2^s| >= 2^31 2^32: outside every word */
@@ -368,7 +438,7 @@ static void cr_P_scale(int32_t *word, int32_t *frac, int32_t s, int32_t lo, int3
             nl = 0u;
         } else {
             /* V = f: the word f 2^(s-32) exactly, no fraction */
-            nw = s - 32 <= 31 ? f * ((int64_t)1 << (s - 32)) : (f > 0 ? I62 : f < 0 ? -I62 : 0);
+            nw = s - 32 <= 31 ? cr_lsl64(f, s - 32) : (f > 0 ? I62 : f < 0 ? -I62 : 0);
             nl = 0x80000000u;
         }
     } else {
@@ -379,9 +449,9 @@ static void cr_P_scale(int32_t *word, int32_t *frac, int32_t s, int32_t lo, int3
         if (a == 0) {
             v = w * ((int64_t)1 << 31) + ((f + 1) >> 1);
         } else if (a <= 31) {
-            v = ((w * ((int64_t)1 << (32 - a)) + (f >> a)) + 1) >> 1;
+            v = ((cr_lsl64(w, 32 - a) + cr_asr64(f, a)) + 1) >> 1;
         } else {
-            v = (((w - (f < 0 ? 1 : 0)) >> (a - 32 < 63 ? a - 32 : 63)) + 1) >> 1;
+            v = (cr_asr64(w - (f < 0 ? 1 : 0), a - 32 < 63 ? a - 32 : 63) + 1) >> 1;
         }
         /* the word rounded half up, the fraction + 2^31 its low word */
         nw = (v + ((int64_t)1 << 31)) >> 32;
@@ -400,21 +470,31 @@ static void cr_P_scale(int32_t *word, int32_t *frac, int32_t s, int32_t lo, int3
     *frac = (int32_t)(nl ^ 0x80000000u);
 }
 
-/* floor(m 2^e) and ceil(m 2^e), saturated at 2^62 */
-static int64_t cr_floor_scaled(uint64_t m, int32_t e)
+/* floor(m 2^e), or ceil(m 2^e) where ``up``, saturated at 2^62 */
+static int64_t cr_scaled(uint64_t m, int32_t e, int up)
 {
     if (e >= 0) {
-        return (e >= 62 || m >= ((uint64_t)I62 >> e)) ? I62 : (int64_t)(m << e);
+        return (e >= 62 || m >= (uint64_t)cr_asr64(I62, e)) ? I62 : cr_lsl64((int64_t)m, e);
     }
-    return -e < 64 ? (int64_t)(m >> -e) : 0;
+    if (-e >= 64) {
+        return up && m != 0u ? 1 : 0;
+    }
+    return (int64_t)cr_lsr64(m + (up ? (uint64_t)cr_lsl64(1, -e) - 1u : 0u), -e);
 }
 
-static int64_t cr_ceil_scaled(uint64_t m, int32_t e)
+/* the growth d of a column (or of the output: ``c``, its word's shift sh and fraction bits
+ * f) at this sample: 2^(f + d) >= 16 |(X + O) m| 2^-sh for the first value of a pending
+ * one (*first set), 4 |...| for a value beyond 2^f (``over``), else 0 */
+static int32_t cr_growth(const canrls_target *S, const canrls_column *c, int pending,
+                         int over, int32_t sh, int32_t f, uint8_t *first)
 {
-    if (e >= 0) {
-        return cr_floor_scaled(m, e);
+    const int64_t x = cr_state(S, c);
+    const uint64_t big = (uint64_t)(x < 0 ? -x : x);
+    *first = (uint8_t)(pending && big != 0u);
+    if (pending ? big == 0u : !over) {
+        return 0;
     }
-    return -e < 64 ? (int64_t)((m + ((uint64_t)1 << -e) - 1u) >> -e) : (m != 0u ? 1 : 0);
+    return cr_clog2_mul(big, (uint32_t)(c->m < 0 ? -c->m : c->m)) - sh - f + (pending ? 4 : 2);
 }
 
 /* the exponents change before this sample (spec TargetEstimator._adapt) */
@@ -423,50 +503,30 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
     const canrls_equation *e = &S->model->equations[i];
     canrls_target_eq *q = &S->eq[i];
     const uint32_t n = e->n;
-    int32_t d[CANRLS_N_MAX];
-    uint8_t first[CANRLS_N_MAX];
+    int32_t d[CANRLS_N_MAX + 1];    /* the columns', then the output's growth */
+    uint8_t first[CANRLS_N_MAX + 1];
     int32_t theta[CANRLS_N_MAX];
     uint32_t frac[CANRLS_N_MAX];
     int32_t P[CANRLS_TRI(CANRLS_N_MAX)];
     int32_t Pf[CANRLS_TRI(CANRLS_N_MAX)];
-    int32_t dy = 0, dmax = 0, s = 0, ex, e_new;
-    int first_y = 0;
+    int32_t dy, dmax = 0, s = 0, ex, e_new;
     uint32_t j, k, idx;
-    uint64_t big;
-    const int64_t lim = (int64_t)1 << e->f_phi;
     if (n == 0u) {
         return; /* an equation has columns: every array below then has its first word */
     }
-    for (j = 0; j < n; j++) {
-        const canrls_column *c = &e->columns[j];
-        const int64_t x = cr_state(S, c);
-        big = (uint64_t)(x < 0 ? -x : x);
-        d[j] = 0;
-        first[j] = 0u;
-        if (q->pending[j]) {
-            if (big != 0u) {
-                /* 16 |phi| <= 2^(f + d): the first value at most 1/16 of full scale */
-                d[j] = cr_clog2_mul(big, (uint32_t)(c->m < 0 ? -c->m : c->m)) - q->sh[j] - e->f_phi + 4;
-                first[j] = 1u;
-            }
-        } else if (c->adaptive && (phi[j] > lim || -phi[j] > lim)) {
-            /* 4 |phi| <= 2^(f + d) */
-            d[j] = cr_clog2_mul(big, (uint32_t)(c->m < 0 ? -c->m : c->m)) - q->sh[j] - e->f_phi + 2;
-        }
+    for (j = 0; j <= n; j++) {
+        /* a column: 16 |phi| <= 2^(f + d) at its first value, 4 |phi| <= 2^(f + d) beyond
+         * 2^f where adaptive; the output likewise */
+        const int col = j < n;
+        const canrls_column *c = col ? &e->columns[j] : &e->output;
+        const int32_t f = col ? e->f_phi : e->f_y;
+        const int64_t v = col ? phi[j] : y;
+        const int over = (!col || c->adaptive)
+                         && (uint64_t)(v < 0 ? -v : v) > (uint64_t)cr_lsl64(1, f);
+        d[j] = cr_growth(S, c, col ? q->pending[j] : q->pending_y, over,
+                         col ? q->sh[j] : q->sh_y, f, &first[j]);
     }
-    {
-        const int64_t x = cr_state(S, &e->output);
-        const uint32_t am = (uint32_t)(e->output.m < 0 ? -e->output.m : e->output.m);
-        big = (uint64_t)(x < 0 ? -x : x);
-        if (q->pending_y) {
-            if (big != 0u) {
-                dy = cr_clog2_mul(big, am) - q->sh_y - e->f_y + 4;
-                first_y = 1;
-            }
-        } else if (y > ((int64_t)1 << e->f_y) || -y > ((int64_t)1 << e->f_y)) {
-            dy = cr_clog2_mul(big, am) - q->sh_y - e->f_y + 2;
-        }
-    }
+    dy = d[n];
     /* theta_j takes 2^(d_j - d_y): the output moves where an estimate would leave half its
      * bound, |theta_j| 2^(d_j - dy) <= 2^h 2^s */
     for (j = 0; j < n; j++) {
@@ -479,23 +539,23 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
     dy += s;
     /* the kernel's state in the new units: theta_j 2^(d_j - d_y) in its 64 bits; P_jk
      * 2^(d_j + d_k) with the block exponent lowered by twice the largest growth */
+    cr_read(q, n, theta, frac, P, Pf);
     {
         const int64_t lo = cr_shl(e->plan->theta_lo, 32);
         const int64_t hi = cr_shl(e->plan->theta_hi, 32) + 0xFFFFFFFF;
         for (j = 0; j < n; j++) {
-            int64_t v = cr_shl(canrls_theta_q31(&q->rls, j), 32)
-                        + (int64_t)canrls_theta_frac_q31(&q->rls, j);
+            int64_t v = cr_shl(theta[j], 32) + (int64_t)frac[j];
             const int32_t sj = d[j] - dy;
             if (sj >= 0) {
                 /* v 2^s, saturated */
-                if (v != 0 && (sj >= 63 || v > (hi >> sj) || v < (lo >> sj))) {
+                if (v != 0 && (sj >= 63 || v > cr_asr64(hi, sj) || v < cr_asr64(lo, sj))) {
                     q->rls.counts[CANRLS_S_THETA]++;
                     v = v > 0 ? hi : lo;
                 } else if (v != 0) {
-                    v = cr_shl(v, sj);
+                    v = cr_lsl64(v, sj);
                 }
             } else {
-                v = cr_rsh(v, -sj);
+                v = cr_rsh64(v, -sj);
             }
             theta[j] = (int32_t)(v >> 32);
             frac[j] = (uint32_t)(v & 0xFFFFFFFF);
@@ -515,8 +575,6 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
             /* P_jj / 4 for a first value (the prior alpha 2^-8 for alpha 2^-10), else
              * P_jk 2^(d_j + d_k), at e_new, in 64 bits */
             const int32_t sjk = (j == k && first[j]) ? e_new - ex - 2 : d[j] + d[k] + e_new - ex;
-            P[idx] = canrls_P_q31(&q->rls, idx);
-            Pf[idx] = canrls_P_frac_q31(&q->rls, idx);
             cr_P_scale(&P[idx], &Pf[idx], sjk, e->plan->P_lo, e->plan->P_hi,
                        &q->rls.counts[CANRLS_S_P]);
         }
@@ -528,8 +586,8 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
         if (d[j] != 0 && !q->pending[j]) {
             const canrls_dyadic r = {q->ridge[j].m, q->ridge[j].e - 2 * d[j]};
             /* D = floor(alpha_f 2^(2 f)) - ceil(alpha_j 2^(2 f)) */
-            const int64_t D = cr_floor_scaled(e->floor_ridge.m, e->floor_ridge.e + 2 * e->f_phi)
-                              - cr_ceil_scaled(r.m, r.e + 2 * e->f_phi);
+            const int64_t D = cr_scaled(e->floor_ridge.m, e->floor_ridge.e + 2 * e->f_phi, 0)
+                              - cr_scaled(r.m, r.e + 2 * e->f_phi, 1);
             if (D > 0) {
                 int64_t qv = cr_isqrt(D);
                 qv = qv < e->plan->phi_hi ? qv : e->plan->phi_hi;
@@ -545,10 +603,10 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
                 q->ridge[j] = r;
                 /* terms_j 2^(2 d_j), saturated at 2^62 */
                 if (q->terms[j] != 0
-                    && (d[j] >= 31 || q->terms[j] > (I62 >> (2 * d[j])))) {
+                    && (d[j] >= 31 || q->terms[j] > cr_asr64(I62, 2 * d[j]))) {
                     q->terms[j] = I62;
                 } else if (q->terms[j] != 0) {
-                    q->terms[j] = q->terms[j] << (2 * d[j]);
+                    q->terms[j] = cr_lsl64(q->terms[j], 2 * d[j]);
                 }
             }
         } else if (d[j] != 0) {
@@ -564,7 +622,7 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
             q->terms[j] = e->first_term;
         }
     }
-    if (first_y) {
+    if (first[n]) {
         q->pending_y = 0u;
     }
     for (j = 0; j < n; j++) {
@@ -575,17 +633,8 @@ void canrls_target_adapt(canrls_target *S, uint32_t i, const int64_t *phi, int64
     q->exponents[n] += dy;
     q->rescales++;
     if (e->trace_follows) {
-        int32_t th[CANRLS_N_MAX];
-        uint32_t fr[CANRLS_N_MAX];
-        for (k = 0; k < n; k++) {
-            th[k] = canrls_theta_q31(&q->rls, k);
-            fr[k] = canrls_theta_frac_q31(&q->rls, k);
-        }
-        for (k = 0; k < CANRLS_TRI(n); k++) {
-            P[k] = canrls_P_q31(&q->rls, k);
-            Pf[k] = canrls_P_frac_q31(&q->rls, k);
-        }
-        cr_restore(q, e, th, fr, P, Pf, q->rls.e, 1);
+        cr_read(q, n, theta, frac, P, Pf);
+        cr_restore(q, e, theta, frac, P, Pf, q->rls.e, 1);
     }
 }
 
@@ -791,21 +840,35 @@ uint32_t canrls_target_frame(canrls_target *S, uint32_t id, uint32_t extended,
 
 /* ------------------------------------------------------------------ frames out */
 
-static void cr_put(uint64_t *word, const canrls_out_frame *f, uint32_t k, uint64_t v)
+/* frame f of the signals v[0..k) into out[*nf] (while *nf < max): each signal's value mod
+ * 2^length at its start bit of the 64-bit payload (its words lo and hi), the payload's 8
+ * bytes little endian */
+static void cr_emit(canrls_can_frame *out, uint32_t *nf, uint32_t max,
+                    const canrls_out_frame *f, const uint32_t *v, uint32_t k)
 {
-    const uint32_t len = f->length[k];
-    const uint64_t mask = len >= 64u ? ~(uint64_t)0 : (((uint64_t)1 << len) - 1u);
-    /* word |= (v mod 2^length) << start */
-    *word |= (v & mask) << f->start[k];
-}
-
-static void cr_frame(canrls_can_frame *out, const canrls_out_frame *f, uint64_t word)
-{
-    uint32_t k;
+    uint32_t lo = 0u, hi = 0u, j;
+    if (*nf >= max) {
+        return;
+    }
+    for (j = 0; j < k; j++) {
+        /* (a value is a word: a length of 32 or more keeps it whole) */
+        const uint32_t len = f->length[j], s = f->start[j];
+        const uint32_t x = len >= 32u ? v[j] : v[j] & ((1u << len) - 1u);
+        if (s >= 32u) {
+            hi |= x << (s - 32u);
+        } else if (s > 0u) {
+            lo |= x << s;
+            hi |= x >> (32u - s);
+        } else {
+            lo |= x;
+        }
+    }
+    out += (*nf)++;
     out->id = f->id;
     out->dlc = 8u;
-    for (k = 0; k < 8u; k++) {
-        out->data[k] = (uint8_t)(word >> (8u * k));
+    for (j = 0; j < 4u; j++) {
+        out->data[j] = (uint8_t)(lo >> (8u * j));
+        out->data[j + 4u] = (uint8_t)(hi >> (8u * j));
     }
 }
 
@@ -830,9 +893,9 @@ void canrls_target_theta(const canrls_target *S, uint32_t i, int32_t *word, int3
 uint32_t canrls_target_publish(canrls_target *S, canrls_can_frame *out, uint32_t max)
 {
     const canrls_target_model *M = S->model;
-    const uint64_t cnt = S->publications & 0xFu;
+    const uint32_t cnt = S->publications & 0xFu;
     uint32_t nf = 0u, idx = 0u, i, j, flags = 0u;
-    uint64_t word;
+    uint32_t v[8];
     if (!M->has_frames) {
         return 0u;
     }
@@ -842,61 +905,47 @@ uint32_t canrls_target_publish(canrls_target *S, canrls_can_frame *out, uint32_t
         for (j = 0; j < e->n; j++, idx++) {
             const uint32_t valid = q->updates > 0u;
             /* FixedValue = theta_j 2^(s_y - s_j - f_theta), float32 from the integers */
-            const uint32_t bits = valid ? cr_f32_bits(canrls_theta_q31(&q->rls, j),
-                                                      q->exponents[e->n] - q->exponents[j] - e->f_theta)
-                                        : 0u;
-            if (nf < max) {
-                word = 0u;
-                cr_put(&word, &M->estimate, 0, idx);
-                cr_put(&word, &M->estimate, 1, cnt);
-                cr_put(&word, &M->estimate, 2, valid);
-                cr_put(&word, &M->estimate, 3, bits);
-                cr_frame(&out[nf++], &M->estimate, word);
-            }
+            v[0] = idx;
+            v[1] = cnt;
+            v[2] = valid;
+            v[3] = valid ? cr_f32_bits(canrls_theta_q31(&q->rls, j),
+                                       q->exponents[e->n] - q->exponents[j] - e->f_theta)
+                         : 0u;
+            cr_emit(out, &nf, max, &M->estimate, v, 4u);
         }
     }
     if (S->publications % 10u == 0u) {
         for (i = 0; i < M->nparams; i++) {
-            if (nf < max) {
-                word = 0u;
-                cr_put(&word, &M->info, 0, i);
-                cr_put(&word, &M->info, 1, idx);
-                cr_put(&word, &M->info, 2, M->param_info[i][0]);
-                cr_put(&word, &M->info, 3, M->param_info[i][1]);
-                cr_put(&word, &M->info, 4, M->param_order[i]);
-                cr_put(&word, &M->info, 5, M->param_info[i][2]);
-                cr_frame(&out[nf++], &M->info, word);
-            }
+            v[0] = i;
+            v[1] = idx;
+            v[2] = M->param_info[i][0];
+            v[3] = M->param_info[i][1];
+            v[4] = M->param_order[i];
+            v[5] = M->param_info[i][2];
+            cr_emit(out, &nf, max, &M->info, v, 6u);
         }
     }
     {
         const canrls_equation *e = &M->equations[0];
         const canrls_target_eq *q = &S->eq[0];
         /* ResidualRms = sqrt(ms) 2^(s_y - f_eps) */
-        const uint32_t rms = cr_f32_bits(cr_isqrt(q->ms), q->exponents[e->n] - e->f_eps);
-        if (nf < max) {
-            word = 0u;
-            cr_put(&word, &M->status, 0, rms);
-            cr_put(&word, &M->status, 1, q->updates);
-            cr_frame(&out[nf++], &M->status, word);
-        }
+        v[0] = cr_f32_bits(cr_isqrt(q->ms), q->exponents[e->n] - e->f_eps);
+        v[1] = q->updates;
+        cr_emit(out, &nf, max, &M->status, v, 2u);
     }
     for (i = 0; i < M->neq; i++) {
         flags |= S->eq[i].flags;
         S->eq[i].flags = 0u;
     }
-    if (nf < max) {
-        word = 0u;
-        cr_put(&word, &M->health, 0, flags & 1u);
-        cr_put(&word, &M->health, 1, (flags >> 1) & 1u);
-        cr_put(&word, &M->health, 2, (flags >> 2) & 1u);
-        cr_put(&word, &M->health, 3, S->frame_loss);
-        cr_put(&word, &M->health, 4, (flags >> 3) & 1u);
-        cr_put(&word, &M->health, 5, cnt);
-        cr_put(&word, &M->health, 6, M->active_effects);
-        cr_put(&word, &M->health, 7, 0u);
-        cr_frame(&out[nf++], &M->health, word);
+    for (j = 0; j < 5u; j++) {
+        /* the flags' bits 0, 1, 2 and 3 at 0, 1, 2 and 4; frame loss at 3 */
+        v[j] = (flags >> (j - (j > 3u))) & 1u;
     }
+    v[3] = S->frame_loss;
+    v[5] = cnt;
+    v[6] = M->active_effects;
+    v[7] = 0u;
+    cr_emit(out, &nf, max, &M->health, v, 8u);
     S->frame_loss = 0u;
     S->publications++;
     return nf;

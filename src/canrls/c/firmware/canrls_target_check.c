@@ -10,6 +10,8 @@
 
 #include <string.h>
 
+#include "canrls_target_math.h"
+
 /* the plan is compared as bytes: no padding in it (46 words of 32 bits, 2 of 64) */
 typedef char canrls_plan_has_no_padding[sizeof(canrls_plan_q31) == 46 * 4 + 2 * 8 ? 1 : -1];
 
@@ -239,8 +241,8 @@ static int ck_equation(const canrls_target *S, uint32_t i)
     return CANRLS_OK;
 }
 
-/* filter i's state: a constant's is fixed; else |x| < 2^60 and the last input split as
- * cr_split_input() splits one */
+/* filter i's state: a constant's is fixed; else |x| < 2^60 (a narrow filter's int32) and
+ * the last input split as cr_split_input() splits one */
 static int ck_filter(const canrls_target *S, uint32_t i)
 {
     const canrls_filter *f = &S->model->filters[i];
@@ -252,6 +254,9 @@ static int ck_filter(const canrls_target *S, uint32_t i)
     if (S->primed[i] > 1u || S->x1[i] <= -CK_X_MAX || S->x1[i] >= CK_X_MAX
         || S->x2[i] <= -CK_X_MAX || S->x2[i] >= CK_X_MAX || fx < 0 || fx > 40) {
         return 0;
+    }
+    if (cr_narrow(f) && (S->x1[i] != (int32_t)S->x1[i] || S->x2[i] != (int32_t)S->x2[i])) {
+        return 0; /* a narrow filter's states are int32 */
     }
     if (fx >= 31) {
         return S->upl[i] == 0 && S->uph[i] % ((int32_t)1 << (fx - 31)) == 0;

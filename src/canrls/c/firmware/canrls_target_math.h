@@ -35,6 +35,13 @@
 #define CR_OPAQUE(v) ((void)0)
 #endif
 
+/* a function kept out of its caller: the caller's registers stay its own */
+#if defined(__GNUC__)
+#define CR_NOINLINE __attribute__((noinline))
+#else
+#define CR_NOINLINE
+#endif
+
 /* rsh(x, s) = (x + 2^(s-1)) >> s for s >= 0, as ((x >> (s-1)) + 1) >> 1: no overflow. */
 static inline int64_t cr_rsh(int64_t x, int32_t s)
 {
@@ -45,6 +52,12 @@ static inline int64_t cr_rsh(int64_t x, int32_t s)
         return 0;
     }
     return ((x >> (s - 1)) + 1) >> 1;
+}
+
+/* rsh(x, s) of an int32 for 1 <= s <= 31: floor(x 2^-s) and the bit below it (half up) */
+static inline int32_t cr_rsh32(int32_t x, int32_t s)
+{
+    return (x >> s) + ((x >> (s - 1)) & 1);
 }
 
 static inline int64_t cr_sat(int64_t x, int64_t lo, int64_t hi)
@@ -75,13 +88,14 @@ static inline int64_t cr_mul_rsh(int64_t x, int32_t m, int32_t s)
     /* h < 2^30 and l < 2^31: both words, each product one SMULL */
     const int64_t a = (int64_t)(int32_t)(x >> 31) * m;
     const int64_t b = (int64_t)(int32_t)(x & 0x7FFFFFFF) * m;
+    if ((uint32_t)s - 32u <= 60u) {
+        /* 32 <= s <= 92 (one unsigned compare): (T + 2^(s-32)) >> (s - 31) with
+         * T = h m + (l m >> 31), as ((T >> (s - 32)) + 1) >> 1: one variable shift, no
+         * 64-bit constant */
+        return (((a + (b >> 31)) >> ((uint32_t)s - 32u)) + 1) >> 1;
+    }
     if (s > 31) {
-        if (s >= 93) {
-            return 0;
-        }
-        /* (T + 2^(s-32)) >> (s - 31) with T = h m + (l m >> 31), as ((T >> (s - 32)) + 1) >> 1:
-         * one variable shift, no 64-bit constant */
-        return (((a + (b >> 31)) >> (s - 32)) + 1) >> 1;
+        return 0; /* s >= 93 */
     }
     if (s == 31) {
         /* h m + ((l m + 2^30) >> 31) */
@@ -116,6 +130,19 @@ static inline int32_t cr_tanh_q24(int32_t z)
     const int32_t v = a >= (8u << 24) ? (int32_t)ONE_Q30
                                       : cr_table_eval(cr_tanh, CR_TANH_LOG2, a << 5);
     return z < 0 ? -v : v;
+}
+
+/* tanh(z 2^-24), Q30, of z not saturated: cr_tanh_q24 of z saturated to int32 (both +-1
+ * from |z| >= 8), without the saturation */
+static inline int32_t cr_tanh_q24_wide(int64_t z)
+{
+    if (z >= ((int64_t)8 << 24)) {
+        return (int32_t)ONE_Q30;
+    }
+    if (z <= -((int64_t)8 << 24)) {
+        return -(int32_t)ONE_Q30;
+    }
+    return cr_tanh_q24((int32_t)z);
 }
 
 /* 2^(-x 2^-24), Q30, x >= 0 */
@@ -229,17 +256,39 @@ static inline void cr_split_input(int32_t u, int32_t fx, int32_t *h, int32_t *l)
 }
 
 /* rsh(a0 x1 + a1 x2 + (g0 u[k-1] + g1 u[k]) 2^fx, 30) with |x| < 2^60: every term as
- * h 2^31 + l, summed as H 2^31 + L (each product one SMULL or SMLAL; the model bounds
- * |a0| + |a1| + |g0| + |g1| below 2^31, so L < 2^62), so the result is 2 H + rsh(L, 30) */
+ * h 2^30 + l, summed as H 2^30 + L (each product one SMULL or SMLAL), so the result is
+ * H + rsh(L, 30). A state splits as x = (x >> 30) 2^30 + l (0 <= l < 2^30), an input's
+ * words as h 2^31 + l = 2h 2^30 + l: 2g h in H (|2g| <= 2^31, the model's |g| <= 2^30;
+ * one SMLAL where the compiler sees 2g a word). The model bounds |a0| + |a1| + |g0| + |g1|
+ * below 2^31, so |L| < 2^62 and |H| < 2^62. */
 static inline int64_t cr_svf_row(int32_t a0, int32_t a1, int32_t g0, int32_t g1, int64_t x1,
                                  int64_t x2, int32_t uph, int32_t upl, int32_t uh, int32_t ul)
 {
-    const int64_t H = (int64_t)a0 * (int32_t)(x1 >> 31) + (int64_t)a1 * (int32_t)(x2 >> 31)
-                      + (int64_t)g0 * uph + (int64_t)g1 * uh;
-    const int64_t L = (int64_t)a0 * (int32_t)(x1 & 0x7FFFFFFF)
-                      + (int64_t)a1 * (int32_t)(x2 & 0x7FFFFFFF)
+    const int64_t H = (int64_t)a0 * (int32_t)(x1 >> 30) + (int64_t)a1 * (int32_t)(x2 >> 30)
+                      + 2 * (int64_t)g0 * uph + 2 * (int64_t)g1 * uh;
+    const int64_t L = (int64_t)a0 * (int32_t)(x1 & 0x3FFFFFFF)
+                      + (int64_t)a1 * (int32_t)(x2 & 0x3FFFFFFF)
                       + (int64_t)g0 * upl + (int64_t)g1 * ul;
-    return 2 * H + ((L + ((int64_t)1 << 29)) >> 30);
+    return H + ((L + ((int64_t)1 << 29)) >> 30);
+}
+
+/* a filter with 32-bit states (target_model.Filter.narrow): an input bounded by 1 (Q30)
+ * with no fraction bit more (fx 0); each row's result is saturated to int32 */
+static inline int cr_narrow(const canrls_filter *f)
+{
+    return (f->kind == CANRLS_SRC_TANH || f->kind == CANRLS_SRC_STRIBECK
+            || f->kind == CANRLS_SRC_SIN || f->kind == CANRLS_SRC_COS) && f->fx == 0;
+}
+
+/* the row of a narrow filter, cr_svf_row at fx 0 on int32 words (states, the last input
+ * and this one): rsh(a0 x1 + a1 x2 + g0 up + g1 u, 30) saturated to int32, four SMULL or
+ * SMLAL (|sum| < 2^31 2^31, the model's row bound) */
+static inline int32_t cr_svf_row32(int32_t a0, int32_t a1, int32_t g0, int32_t g1, int32_t x1,
+                                   int32_t x2, int32_t up, int32_t u)
+{
+    const int64_t sum = (int64_t)a0 * x1 + (int64_t)a1 * x2 + (int64_t)g0 * up
+                        + (int64_t)g1 * u;
+    return cr_sat32((sum + ((int64_t)1 << 29)) >> 30);
 }
 
 /* ------------------------------------------------------------------ the per-sample steps

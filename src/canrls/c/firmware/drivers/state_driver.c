@@ -28,6 +28,7 @@
 #include "canrls_model.h"
 #include "canrls_target.h"
 #include "canrls_target_check.h"
+#include "canrls_target_math.h"
 
 #define REC 20
 
@@ -97,9 +98,12 @@ static int spoil(canrls_target *S, const char *name)
     canrls_target_eq *q = &S->eq[0];
     const uint32_t n = canrls_model.equations[0].n;
     const canrls_filter *fl = canrls_model.filters;
-    uint32_t i = 0;
+    uint32_t i = 0, w = 0;
     while (i < canrls_model.nfilters && fl[i].kind == CANRLS_SRC_CONST) {
         i++; /* the first filter with a state */
+    }
+    while (w < canrls_model.nfilters && !cr_narrow(&fl[w])) {
+        w++; /* the first narrow filter (32-bit states) */
     }
 #define CASE(s, stmt)                                                                        \
     if (strcmp(name, s) == 0) {                                                              \
@@ -121,6 +125,7 @@ static int spoil(canrls_target *S, const char *name)
     CASE("uph", S->uph[i] = fl[i].fx < 31 ? (int32_t)1 << fl[i].fx : 1)
     CASE("upl", S->upl[i] = fl[i].fx < 31 && fl[i].fx > 0 ? 1 : -1)
     CASE("x1.unused", S->x1[CANRLS_TARGET_FILTER_MAX - 1] = 1)
+    CASE("x1.narrow", S->x1[w < canrls_model.nfilters ? w : 0] = (int64_t)1 << 31)
     CASE("plan.e_max", q->plan.e_max += 1)
     CASE("plan.phi_ps", q->plan.phi_ps = 99)
     CASE("plan.trace_max_lam", q->plan.trace_max_lam -= 1)

@@ -6,8 +6,10 @@
  *
  * It includes canrls_target.c to reach its static functions. stdin: one operation per
  * line, "name arg..." (decimal integers); stdout: one line of results per operation:
- *   mul_rsh x m s  |  clog2_mul a m  |  isqrt n  |  tanh z  |  exp x  |  sincos phase
- *   f32 v e  |  svf a0 a1 g0 g1 x1 x2 up u fx  |  floor m e  |  ceil m e  |  rsh x s
+ *   mul_rsh x m s  |  clog2_mul a m  |  isqrt n  |  tanh z  |  tanh_wide z  |  exp x
+ *   sincos phase
+ *   f32 v e  |  svf a0 a1 g0 g1 x1 x2 up u fx  |  svf32 a0 a1 g0 g1 x1 x2 up u
+ *   floor m e  |  ceil m e  |  rsh x s
  *   p64 word frac s lo hi  |  float bits width frac shift big_endian ("reject": not passed)
  */
 #include <inttypes.h>
@@ -38,6 +40,10 @@ int main(void)
             int32_t z;
             if (scanf("%" SCNd32, &z) != 1) return 2;
             printf("%" PRId32 "\n", cr_tanh_q24(z));
+        } else if (strcmp(op, "tanh_wide") == 0) {
+            int64_t z;
+            if (scanf("%" SCNd64, &z) != 1) return 2;
+            printf("%" PRId32 "\n", cr_tanh_q24_wide(z));
         } else if (strcmp(op, "exp") == 0) {
             int64_t x;
             if (scanf("%" SCNd64, &x) != 1) return 2;
@@ -71,6 +77,13 @@ int main(void)
             } else {
                 printf("reject\n");
             }
+        } else if (strcmp(op, "svf32") == 0) {
+            int32_t a0, a1, g0, g1, x1, x2, up, u;
+            if (scanf("%" SCNd32 " %" SCNd32 " %" SCNd32 " %" SCNd32 " %" SCNd32 " %" SCNd32
+                      " %" SCNd32 " %" SCNd32, &a0, &a1, &g0, &g1, &x1, &x2, &up, &u) != 8) {
+                return 2;
+            }
+            printf("%" PRId32 "\n", cr_svf_row32(a0, a1, g0, g1, x1, x2, up, u));
         } else if (strcmp(op, "svf") == 0) {
             int32_t a[2], g0, g1, up, u, fx, uph, upl, uh, ul;
             int64_t x1, x2;
@@ -84,7 +97,7 @@ int main(void)
             uint64_t m;
             int32_t e;
             if (scanf("%" SCNu64 " %" SCNd32, &m, &e) != 2) return 2;
-            printf("%" PRId64 "\n", op[0] == 'f' ? cr_floor_scaled(m, e) : cr_ceil_scaled(m, e));
+            printf("%" PRId64 "\n", cr_scaled(m, e, op[0] != 'f'));
         } else if (strcmp(op, "rsh") == 0) {
             int64_t x;
             int32_t s;
