@@ -1032,27 +1032,17 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
 {
 #if defined(__GNUC__)
     int64_t x;
-    if (how == SH_FUSED) {
+    if (how == SH_FUSED || how == SH_FUSED32) {
         /* |X| < 2^(61 - sh) (the high word within +-room2) and |u| <= 2^30 2^(64 - P_s)
-         * <= 2^(61 - sh): neither V - u nor (V - u) 2^sh leaves the pair, and
-         * X 2^sh - u 2^sh - (chi 2^32 + 2^31) is exact modulo 2^64 */
+         * <= 2^(61 - sh) (SH_FUSED), |u 2^sh| = |ph| 2^32 <= 2^62 (SH_FUSED32): neither
+         * V - u nor (V - u) 2^sh leaves the pair, and X 2^sh - u 2^sh - (chi 2^32 + 2^31)
+         * is exact modulo 2^64 */
         const int32_t ph = mul_rsh32(Ki, hj);
         const int32_t hi = q->word;
         if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room2)) {
-            const uint64_t z = P_shl_sum(q->lo, hi, ph, k, 1);
-            q->lo = (uint32_t)z;
-            q->word = (int32_t)(uint32_t)(z >> 32);
-            return;
-        }
-        P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
-        return;
-    }
-    if (how == SH_FUSED32) {
-        /* as SH_FUSED with |u 2^sh| = |ph| 2^32 <= 2^62: X 2^sh - (chi 2^32 + 2^31) - ph 2^32 */
-        const int32_t ph = mul_rsh32(Ki, hj);
-        const int32_t hi = q->word;
-        if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room2)) {
-            const uint64_t z = P_shl_sum(q->lo, hi, 0, k, 0) - ((uint64_t)(uint32_t)ph << 32);
+            const uint64_t z = how == SH_FUSED
+                                   ? P_shl_sum(q->lo, hi, ph, k, 1)
+                                   : P_shl_sum(q->lo, hi, 0, k, 0) - ((uint64_t)(uint32_t)ph << 32);
             q->lo = (uint32_t)z;
             q->word = (int32_t)(uint32_t)(z >> 32);
             return;
