@@ -46,6 +46,14 @@ typedef char canrls_needs_arithmetic_shift64[(((int64_t)-8 >> 1) == -4) ? 1 : -1
 #define SMALL_NOINLINE static
 #endif
 
+/* a rare part of the update: out of line where speed is asked (its registers kept off the
+ * common path's), in its caller when built for size */
+#if CANRLS_SMALL
+#define RARE static inline
+#else
+#define RARE NOINLINE
+#endif
+
 /* n: the instance's, or the constant CANRLS_N where the build fixes it (-DCANRLS_N=6:
  * the loops over n unrolled, h~ summed row by row; canrls_init_q31 then takes only
  * n = CANRLS_N) */
@@ -255,18 +263,24 @@ INLINE void theta_add(canrls_theta64 *q, int64_t p, int32_t s, int32_t lo, int32
     q->word = (int32_t)x;
 }
 
-/* theta_add for 34 <= s <= 62 and the whole int32_t word: q as one int64_t plus the high
- * word ph of the product at 2^-32 LSB, ph 2^(64-s) = ph m (m = 2^(64-s) <= 2^30: one SMULL),
- * saturated where the 64-bit sum overflows, which is exactly where the word leaves the
- * int32_t. (Written on the two words, not on an int64_t array: GCC then branches on the
- * overflow flag of ADCS instead of materialising it, and loads and stores the pair with
- * LDRD/STRD.) */
-INLINE void theta_add_full(canrls_theta64 *q, int32_t ph, int32_t m, int32_t s, uint32_t *n)
+/* -2^(64-s) for 33 <= s <= 62: a word (-2^31 at s = 33, where 2^(64-s) is not one) */
+INLINE int32_t neg_pow2(int32_t s)
+{
+    return (int32_t)(0xFFFFFFFFu << (64 - s));
+}
+
+/* theta_add for 33 <= s <= 62 and the whole int32_t word: q as one int64_t plus the high
+ * word ph of the product at 2^-32 LSB, ph 2^(64-s) = -(ph nm) (nm = neg_pow2(s): one
+ * SMULL), saturated where the 64-bit sum overflows, which is exactly where the word leaves
+ * the int32_t. (Written on the two words, not on an int64_t array: GCC then branches on
+ * the overflow flag of SBCS instead of materialising it, and loads and stores the pair
+ * with LDRD/STRD.) */
+INLINE void theta_add_full(canrls_theta64 *q, int32_t ph, int32_t nm, int32_t s, uint32_t *n)
 {
 #if defined(__GNUC__)
     const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->frac);
     int64_t x;
-    if (UNLIKELY(__builtin_add_overflow(t, mul_ww(ph, m), &x))) {
+    if (UNLIKELY(__builtin_sub_overflow(t, mul_ww(ph, nm), &x))) {
         *n += 1u;
         q->frac = ph > 0 ? 0xFFFFFFFFu : 0u;
         q->word = ph > 0 ? INT32_MAX : INT32_MIN;
@@ -276,7 +290,7 @@ INLINE void theta_add_full(canrls_theta64 *q, int32_t ph, int32_t m, int32_t s, 
     q->frac = (uint32_t)x;
     q->word = (int32_t)(x >> 32);
 #else
-    (void)m;
+    (void)nm;
     theta_add(q, (int64_t)ph * 4294967296LL, s, INT32_MIN, INT32_MAX, n);
 #endif
 }
@@ -326,16 +340,16 @@ INLINE void P_sub(canrls_P64 *q, int64_t whole, uint32_t part, int32_t lo, int32
     q->word = (int32_t)w;
 }
 
-/* P_sub for the common case: 34 <= s <= 62 and the whole int32_t word, u = ph 2^(64-s)
- * with ph the rounded high word of K_i h_j and m = 2^(64-s) <= 2^30 (one SMULL): the pair
- * as one int64_t minus ph m, saturated where the 64-bit difference overflows, which is
+/* P_sub for the common case: 33 <= s <= 62 and the whole int32_t word, u = ph 2^(64-s)
+ * with ph the rounded high word of K_i h_j, -u = ph nm (nm = neg_pow2(s): one SMULL): the
+ * pair as one int64_t plus ph nm, saturated where the 64-bit sum overflows, which is
  * exactly where the word leaves the int32_t (as theta_add_full). */
-INLINE void P_sub_full(canrls_P64 *q, int32_t ph, int32_t m, int32_t s, uint32_t *n)
+INLINE void P_sub_full(canrls_P64 *q, int32_t ph, int32_t nm, int32_t s, uint32_t *n)
 {
 #if defined(__GNUC__)
     const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
     int64_t x;
-    if (UNLIKELY(__builtin_sub_overflow(t, mul_ww(ph, m), &x))) {
+    if (UNLIKELY(__builtin_add_overflow(t, mul_ww(ph, nm), &x))) {
         *n += 1u;
         q->lo = ph < 0 ? 0xFFFFFFFFu : 0u;
         q->word = ph < 0 ? INT32_MAX : INT32_MIN;
@@ -345,7 +359,7 @@ INLINE void P_sub_full(canrls_P64 *q, int32_t ph, int32_t m, int32_t s, uint32_t
     q->lo = (uint32_t)x;
     q->word = (int32_t)(x >> 32);
 #else
-    (void)m;
+    (void)nm;
     P_sub(q, ph >> (s - 32), (uint32_t)ph << (64 - s), INT32_MIN, INT32_MAX, n);
 #endif
 }
@@ -617,6 +631,55 @@ INLINE int64_t windup_vw(const int32_t *h, uint32_t n, int32_t c, int32_t hc_s, 
     return a_vw;
 }
 
+/* windup_vw where c = 2^k, k <= hc_s (the forgetting scale at its one, as after
+ * canrls_init_q31, and with lambda = 1 always): h_i = rsh(h~_i 2^k, hc_s) = rsh(h~_i, s),
+ * s = hc_s - k, a shift of the word; then h_i^2 (one SMULL) rounded by 1 <= vw_ps <= 31
+ * bits on two words (h_i^2 >= 0). The same integers. */
+INLINE int64_t windup_vw_pow2(const int32_t *h, uint32_t n, int32_t s, int32_t vw_ps)
+{
+    const int32_t t0 = s > 0, t1 = s - t0; /* rsh(x, s) = ((x >> t1) + t0) >> t0 */
+    const uint32_t half = (uint32_t)1 << (vw_ps - 1);
+    uint64_t a_vw = 0;
+    uint32_t i;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        const int32_t hi_ = ((h[i] >> t1) + t0) >> t0;
+        const uint64_t u = (uint64_t)mul_ww(hi_, hi_) + half;
+        const uint32_t ulo = (uint32_t)u, uhi = (uint32_t)(u >> 32);
+        a_vw += ((uint64_t)(uhi >> vw_ps) << 32) | ((ulo >> vw_ps) | (uhi << (32 - vw_ps)));
+    }
+    return (int64_t)a_vw;
+}
+
+/* The windup test once T = tr P - lambda trace_max > 0 (rare: while P falls from the
+ * prior), out of line: (tr P - lambda trace_max) (lambda + phi'P phi) > h'h, the two
+ * sides at their scales (docs/fixed_point.md) */
+RARE int windup_up(const canrls_plan_q31 *p, const int32_t *h, uint32_t n, int32_t c,
+                   int32_t e, int64_t T, int32_t sv)
+{
+    uint32_t none = 0; /* d_lam is not counted */
+    const int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
+    int64_t a_vw, lhs;
+    int32_t df;
+    /* h = c h~ ; w = c w~ = h:  a_vw = sum_i rsh(h_i w_i, vw_ps) */
+    if (!CANRLS_SMALL && (c & (c - 1)) == 0 && 31 - nlz((uint32_t)c) <= p->hc_s
+        && (uint32_t)(p->vw_ps - 1) < 31u) {
+        a_vw = windup_vw_pow2(h, n, p->hc_s - (31 - nlz((uint32_t)c)), p->vw_ps);
+    } else if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
+        a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_LOW);
+    } else {
+        a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_ANY);
+    }
+    /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
+    lhs = rsh_w(mul_ww((int32_t)(T < p->P_hi ? T : p->P_hi), d_lam), p->lhs_ps);
+    /* the two sides differ in scale by cmp_df - e bits */
+    df = p->cmp_scale_diff - e;
+    if (df >= 0) {
+        return (lhs >> (df < 63 ? df : 63)) > a_vw;
+    }
+    return lhs > (a_vw >> (-df < 63 ? -df : 63));
+}
+
 /* h~_i from its sum u = acc_i + 2^(h_os-1) (the rounding half already added), for
  * 1 <= h_os <= 31: u >> h_os fits a word iff the high word of u lies in
  * [-2^(h_os-1), 2^(h_os-1)); then it is the two words shifted. ``full``: the h word is
@@ -728,9 +791,9 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     int32_t *const K = S->K;
     canrls_theta64 *const theta_q = S->theta_q;
     const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
-    /* 2^(64 - th_s): the high word of K eps at 2^-32 LSB (``full`` with SHIFT_HIGH: the
+    /* -2^(64 - th_s): the high word of K eps at 2^-32 LSB (``full`` with SHIFT_HIGH: the
      * caller guarantees th_s >= 34 and the whole int32_t theta word) */
-    const int32_t m = cls == SHIFT_HIGH && full ? (int32_t)1 << (64 - th_s) : 0;
+    const int32_t m = cls == SHIFT_HIGH && full ? neg_pow2(th_s) : 0;
     uint32_t i;
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
@@ -764,8 +827,8 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int fu
     const int32_t *const K = S->K;
     /* the plan, as locals (a store to P~ cannot change them) */
     const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
-    /* 2^(64 - P_s) (``full``), and the shifts of ph 2^(64 - P_s) as whole and part */
-    const int32_t m = cls == SHIFT_HIGH && full ? (int32_t)1 << (64 - P_s) : 0;
+    /* -2^(64 - P_s) (``full``), and the shifts of ph 2^(64 - P_s) as whole and part */
+    const int32_t m = cls == SHIFT_HIGH && full ? neg_pow2(P_s) : 0;
     const int32_t hs = cls == SHIFT_HIGH ? P_s - 32 : 0;
     const int32_t ls = cls == SHIFT_HIGH ? 64 - P_s : 0;
     canrls_P64 *Pw = S->P; /* row i of the packed upper triangle */
@@ -820,28 +883,101 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 
 #if CANRLS_FAST
 
-/* 2^sh: the multiplier of a pair's shift */
-#define m2_of(sh) ((uint32_t)1 << (sh))
-
 /* How the fixed-n step computes u, the decrement of V (P_step's shift classes, the same
- * integers): PM_HIGH  P_s >= 33: u = ph 2^(64 - P_s) = (ph 2^pa) m, ph = rsh(K_i h~_j, 32),
- *                     m = 2^(64 - P_s - pa) <= 2^30 (pa = 1 at P_s = 33: |ph| <= 2^29);
+ * integers): PM_HIGH  P_s >= 33: -u = ph nm, ph = rsh(K_i h~_j, 32), nm = neg_pow2(P_s);
  *          PM_32    P_s = 32: u = ph 2^32, the word alone;
  *          PM_LOW   P_s <= 31: u = K_i h~_j 2^(32 - P_s) exactly;
  *          PM_LOWK  the same as (K_i 2^a)(h~_j 2^b), a + b = 32 - P_s, both words (passed
  *                   as K and h~): u = one product. */
 enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 
+/* How an element takes the block exponent's shift sh (a constant at each call): SH_NONE
+ * sh = 0; SH_AFTER V - u, then (V - u) 2^sh; SH_FUSED (PM_HIGH, P_s >= 33 + sh) V 2^sh
+ * - u 2^sh as one sum of products, -u 2^sh = ph (nm 2^sh); SH_FUSED32 (PM_HIGH,
+ * P_s = 32 + sh) the same with u 2^sh = ph 2^32: ph subtracted from the high word. */
+enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2, SH_FUSED32 = 3 };
+
+/* The constants of a shift 1 <= sh <= 30: m2 = 2^sh; chi = 2^(sh-1) - 1, the pair's 2^31
+ * carried through the shift ((2^sh - 1) 2^31 = chi 2^32 + 2^31); room = 2^(30 - sh), the
+ * bound of the high word below which V 2^sh stays in the pair; room2 = room / 2 and
+ * nm2 = nm 2^sh = neg_pow2(P_s - sh) for SH_FUSED. */
+typedef struct {
+    uint32_t m2, chi, room, room2;
+    int32_t nm2;
+} P_shc;
+
+INLINE P_shc shc_of(int32_t sh, int mode, int32_t P_s)
+{
+    P_shc k;
+    k.m2 = (uint32_t)1 << sh;
+    k.chi = ((uint32_t)1 << (sh - 1)) - 1u;
+    k.room = (uint32_t)1 << (30 - sh);
+    k.room2 = k.room >> 1;
+    k.nm2 = mode == PM_HIGH && P_s >= 33 + sh ? neg_pow2(P_s - sh) : 0;
+    return k;
+}
+
+/* the pair of a canrls_P64 (X = V + 2^31) as one int64_t */
+INLINE int64_t P_pair(const canrls_P64 *q)
+{
+    return (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
+}
+
+/* acc + a b (one SMLAL) */
+INLINE uint64_t mla_ww(uint64_t acc, int32_t a, int32_t b)
+{
+#if defined(__GNUC__) && defined(__thumb2__)
+    uint32_t lo = (uint32_t)acc, hi = (uint32_t)(acc >> 32);
+    __asm__("smlal %0, %1, %2, %3" : "+r"(lo), "+r"(hi) : "r"(a), "r"(b));
+    return ((uint64_t)hi << 32) | lo;
+#else
+    return acc + (uint64_t)((int64_t)a * b);
+#endif
+}
+
+/* X 2^sh - (chi 2^32 + 2^31) + ph nm2 modulo 2^64, X the pair (lo, hi): the shift of a
+ * pair (ph = 0, P_shl) or the fused element (SH_FUSED); one UMULL, one MLA, one SMLAL, a
+ * subtraction in two words (written out on Thumb-2: GCC otherwise zeroes an accumulator
+ * for UMLAL and moves it) */
+INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, int32_t ph, const P_shc *k, int fused)
+{
+#if defined(__GNUC__) && defined(__thumb2__)
+    uint32_t rl, rh;
+    if (fused) {
+        __asm__("umull %0, %1, %2, %4\n\t"
+                "mla %1, %3, %4, %1\n\t"
+                "smlal %0, %1, %5, %6\n\t"
+                "subs %0, %0, #0x80000000\n\t"
+                "sbc %1, %1, %7"
+                : "=&r"(rl), "=&r"(rh)
+                : "r"(lo), "r"(hi), "r"(k->m2), "r"(ph), "r"(k->nm2), "r"(k->chi)
+                : "cc");
+    } else {
+        __asm__("umull %0, %1, %2, %4\n\t"
+                "mla %1, %3, %4, %1\n\t"
+                "subs %0, %0, #0x80000000\n\t"
+                "sbc %1, %1, %5"
+                : "=&r"(rl), "=&r"(rh)
+                : "r"(lo), "r"(hi), "r"(k->m2), "r"(k->chi)
+                : "cc");
+    }
+    return ((uint64_t)rh << 32) | rl;
+#else
+    const uint64_t y = (uint64_t)lo * k->m2 + ((uint64_t)((uint32_t)hi * k->m2) << 32)
+                       - (((uint64_t)k->chi << 32) | 0x80000000u);
+    return fused ? mla_ww(y, ph, k->nm2) : y;
+#endif
+}
+
 /* The exact general element, out of line (rare: a word that saturates, or a start-up
  * product too wide for the fast paths): V <- sat(V - u) as P_step, then V <- sat(V 2^sh)
  * as the block exponent's P_shift. Ki, hj as P_elem takes them. */
-NOINLINE void P_elem_slow(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t pa,
-                          int32_t P_s, int32_t sh, uint32_t *c_P)
+NOINLINE void P_elem_slow(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t P_s,
+                          int32_t sh, uint32_t *c_P)
 {
     if (mode == PM_HIGH || mode == PM_32) {
         /* u = ph 2^(64 - P_s), ph = rsh(K_i h~_j, 32) */
         const int32_t ph = mul_rsh32(Ki, hj);
-        (void)pa;
         if (P_s == 32) {
             P_sub(q, ph, 0u, INT32_MIN, INT32_MAX, c_P);
         } else {
@@ -870,21 +1006,17 @@ NOINLINE void P_shl_slow(canrls_P64 *q, int64_t x, int32_t sh, uint32_t *c_P)
     P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
 }
 
-/* V <- V 2^sh exactly (1 <= sh <= 29), in the pair: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31
- * = X 2^sh - (chi 2^32 + 2^31), chi = 2^(sh-1) - 1, when the word leaves room
- * (|X| < 2^(62 - sh): the high word within +-room, room = 2^(30 - sh)); X 2^sh is the
- * low word times m2 = 2^sh (one UMULL) plus the high word times m2 (one MLA). Else
- * P_shift (saturated, counted). */
-INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, uint32_t m2, uint32_t chi,
-                  uint32_t room, uint32_t *c_P)
+/* V <- V 2^sh exactly, in the pair x: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31
+ * = X 2^sh - (chi 2^32 + 2^31) when the word leaves room (|X| < 2^(62 - sh): the high word
+ * within +-room); X 2^sh is the low word times m2 (one UMULL) plus the high word times m2
+ * (one MLA). Else P_shift (saturated, counted). */
+INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t *c_P)
 {
     const int32_t hi = (int32_t)(x >> 32);
-    if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < room)) {
-        const uint64_t y = (uint64_t)(uint32_t)x * m2;
-        const uint32_t yh = (uint32_t)(y >> 32) + (uint32_t)hi * m2;
-        x = (int64_t)((((uint64_t)yh << 32) | (uint32_t)y) - (((uint64_t)chi << 32) | 0x80000000u));
-        q->lo = (uint32_t)x;
-        q->word = (int32_t)(x >> 32);
+    if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
+        const uint64_t y = P_shl_sum((uint32_t)x, hi, 0, k, 0);
+        q->lo = (uint32_t)y;
+        q->word = (int32_t)(uint32_t)(y >> 32);
         return;
     }
     P_shl_slow(q, x, sh, c_P);
@@ -894,54 +1026,90 @@ INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, uint32_t m2, uint32_t ch
  * V <- sat(V 2^sh), the block exponent's shift folded into the same pass over P (the
  * integers of P_step followed by P_shift); the fast paths below, anything else (a
  * saturation, a product too wide) in P_elem_slow. ``nz``: the diagonal's low-excitation
- * test. */
-INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, int32_t pa,
-                   int32_t P_s, int32_t sh, uint32_t chi, uint32_t room, uint32_t *c_P,
-                   uint32_t *nz)
+ * test (SH_NONE only). */
+INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, int32_t P_s,
+                   int32_t sh, int how, const P_shc *k, uint32_t *c_P, uint32_t *nz)
 {
 #if defined(__GNUC__)
-    const int64_t t = (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
-    int64_t x, u;
-    if (mode == PM_HIGH || mode == PM_32) {
-        /* u = (ph 2^pa) m, or ph 2^32 = (4 ph) 2^30 (|ph| <= 2^29 but for a saturated h) */
+    int64_t x;
+    if (how == SH_FUSED || how == SH_FUSED32) {
+        /* |X| < 2^(61 - sh) (the high word within +-room2) and |u| <= 2^30 2^(64 - P_s)
+         * <= 2^(61 - sh) (SH_FUSED), |u 2^sh| = |ph| 2^32 <= 2^62 (SH_FUSED32): neither
+         * V - u nor (V - u) 2^sh leaves the pair, and X 2^sh - u 2^sh - (chi 2^32 + 2^31)
+         * is exact modulo 2^64 */
+        const int32_t ph = mul_rsh32(Ki, hj);
+        const int32_t hi = q->word;
+        if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room2)) {
+            const uint64_t z = how == SH_FUSED
+                                   ? P_shl_sum(q->lo, hi, ph, k, 1)
+                                   : P_shl_sum(q->lo, hi, 0, k, 0) - ((uint64_t)(uint32_t)ph << 32);
+            q->lo = (uint32_t)z;
+            q->word = (int32_t)(uint32_t)(z >> 32);
+            return;
+        }
+        P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
+        return;
+    }
+    if (mode == PM_32) {
+        /* u = ph 2^32: the word alone, saturated where it overflows */
+        const int32_t ph = mul_rsh32(Ki, hj);
+        int32_t w;
+        if (nz != NULL) {
+            *nz |= (uint32_t)ph;
+        }
+        if (UNLIKELY(__builtin_sub_overflow(q->word, ph, &w))) {
+            P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
+            return;
+        }
+        if (how == SH_AFTER) {
+            P_shl(q, (int64_t)(((uint64_t)(uint32_t)w << 32) | q->lo), sh, k, c_P);
+            return;
+        }
+        q->word = w;
+        return;
+    }
+    if (mode == PM_HIGH) {
+        /* -u = ph nm */
         const int32_t ph = mul_rsh32(Ki, hj);
         if (nz != NULL) {
             *nz |= (uint32_t)ph;
         }
-        if (mode == PM_32) {
-            u = (int64_t)((uint64_t)(int64_t)ph << 32);
-        } else {
-            u = mul_ww((int32_t)((uint32_t)ph << pa), m);
-        }
-    } else if (mode == PM_LOWK) {
-        /* u = (K_i 2^a)(h~_j 2^b): one exact product */
-        u = mul_ww(Ki, hj);
-        if (nz != NULL) {
-            *nz |= (uint32_t)(u != 0);
-        }
-    } else {
-        /* u = K_i h~_j 2^k2, k2 = 32 - P_s (1..31), shifted on two words where it fits
-         * 64 bits (else in P_elem_slow) */
-        const int64_t pr = mul_ww(Ki, hj);
-        const int32_t k2 = 32 - P_s;
-        const uint32_t plo = (uint32_t)pr;
-        const int32_t phw = (int32_t)(pr >> 32);
-        if (nz != NULL) {
-            *nz |= (uint32_t)(pr != 0);
-        }
-        if (UNLIKELY((uint32_t)((phw >> (31 - k2)) + 1) > 1u)) {
-            P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
+        if (UNLIKELY(__builtin_add_overflow(P_pair(q), mul_ww(ph, nm), &x))) {
+            P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
             return;
         }
-        u = (int64_t)(((uint64_t)(((uint32_t)phw << k2) | (plo >> (32 - k2))) << 32)
-                      | (uint32_t)(plo << k2));
+    } else {
+        int64_t u;
+        if (mode == PM_LOWK) {
+            /* u = (K_i 2^a)(h~_j 2^b): one exact product */
+            u = mul_ww(Ki, hj);
+            if (nz != NULL) {
+                *nz |= (uint32_t)u | (uint32_t)((uint64_t)u >> 32);
+            }
+        } else {
+            /* u = K_i h~_j 2^k2, k2 = 32 - P_s (1..31), shifted on two words where it
+             * fits 64 bits (else in P_elem_slow) */
+            const int64_t pr = mul_ww(Ki, hj);
+            const int32_t k2 = 32 - P_s;
+            const uint32_t plo = (uint32_t)pr;
+            const int32_t phw = (int32_t)(pr >> 32);
+            if (nz != NULL) {
+                *nz |= (uint32_t)(pr != 0);
+            }
+            if (UNLIKELY((uint32_t)((phw >> (31 - k2)) + 1) > 1u)) {
+                P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
+                return;
+            }
+            u = (int64_t)(((uint64_t)(((uint32_t)phw << k2) | (plo >> (32 - k2))) << 32)
+                          | (uint32_t)(plo << k2));
+        }
+        if (UNLIKELY(__builtin_sub_overflow(P_pair(q), u, &x))) {
+            P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
+            return;
+        }
     }
-    if (UNLIKELY(__builtin_sub_overflow(t, u, &x))) {
-        P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
-        return;
-    }
-    if (sh > 0) {
-        P_shl(q, x, sh, m2_of(sh), chi, room, c_P);
+    if (how == SH_AFTER) {
+        P_shl(q, x, sh, k, c_P);
         return;
     }
     q->lo = (uint32_t)x;
@@ -951,23 +1119,21 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t m, i
         *nz |= mode == PM_HIGH || mode == PM_32 ? (uint32_t)mul_rsh32(Ki, hj)
                                                 : (uint32_t)(mul_ww(Ki, hj) != 0);
     }
-    (void)m, (void)chi, (void)room;
-    P_elem_slow(q, Ki, hj, mode, pa, P_s, sh, c_P);
+    (void)nm, (void)how, (void)k;
+    P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
 #endif
 }
 
-/* The off-diagonal elements in any other case: the shift class ``mode`` and whether the
- * block exponent's shift sh is folded in (V <- sat(sat(V - u) 2^sh)) are constants at
- * each call. ``unroll`` (a constant): one straight run (the steady state's shift), else a
- * loop over the packed rows (the start-up classes: less code). */
-INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t m,
-                  int32_t pa, int32_t P_s, int32_t sh, int shifted, int unroll, uint32_t *c_P)
+/* The off-diagonal elements: the shift class ``mode`` and how the block exponent's shift
+ * sh is taken (``how``) are constants at each call. ``unroll`` (a constant): one straight
+ * run, else a loop over the packed rows (the rare classes: less code). */
+INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t nm,
+                  int32_t P_s, int32_t sh, int how, const P_shc *kc, int unroll,
+                  uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const uint32_t chi = shifted ? ((uint32_t)1 << (sh - 1)) - 1u : 0u;
-    const uint32_t room = shifted ? (uint32_t)1 << (30 - sh) : 0u;
-    const int32_t s = shifted ? sh : 0;
-    int32_t h[CANRLS_N]; /* h~ in a local array: the stores to P cannot change it */
+    const P_shc k = *kc; /* the constants as locals: the stores to P cannot change them */
+    int32_t h[CANRLS_N]; /* h~ in a local array, likewise */
     canrls_P64 *Pw = P;
     uint32_t i, j;
     UNROLL
@@ -980,7 +1146,7 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
             const int32_t Ki = K[i];
             UNROLL
             for (j = i + 1; j < n; j++) {
-                P_elem(&Pw[j - i], Ki, h[j], mode, m, pa, P_s, s, chi, room, c_P, NULL);
+                P_elem(&Pw[j - i], Ki, h[j], mode, nm, P_s, sh, how, &k, c_P, NULL);
             }
             Pw += n - i;
         }
@@ -988,30 +1154,75 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
         for (i = 0; i < n; i++) {
             const int32_t Ki = K[i];
             for (j = i + 1; j < n; j++) {
-                P_elem(&Pw[j - i], Ki, h[j], mode, m, pa, P_s, s, chi, room, c_P, NULL);
+                P_elem(&Pw[j - i], Ki, h[j], mode, nm, P_s, sh, how, &k, c_P, NULL);
             }
             Pw += n - i;
         }
     }
 }
 
-NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
-                        int32_t m, int32_t pa, int32_t P_s, int32_t sh, uint32_t *c_P)
+/* each class of the step its own function: its registers and its stack frame to itself */
+#define P_OFF_CLASS(name, mode_, how_, unroll_)                                           \
+    NOINLINE void name(canrls_P64 *P, const int32_t *K, const int32_t *hn, int32_t nm,      \
+                       int32_t P_s, int32_t sh, const P_shc *k, uint32_t *c_P)               \
+    {                                                                                       \
+        P_off(P, K, hn, mode_, nm, P_s, how_ == SH_NONE ? 0 : sh, how_, k, unroll_, c_P);   \
+    }
+P_OFF_CLASS(P_off_high_fused, PM_HIGH, SH_FUSED, 1)
+P_OFF_CLASS(P_off_high_after, PM_HIGH, SH_AFTER, 1)
+P_OFF_CLASS(P_off_high_fused32, PM_HIGH, SH_FUSED32, 1)
+P_OFF_CLASS(P_off_high, PM_HIGH, SH_NONE, 1)
+P_OFF_CLASS(P_off_32_after, PM_32, SH_AFTER, 1)
+P_OFF_CLASS(P_off_32, PM_32, SH_NONE, 1)
+P_OFF_CLASS(P_off_lowk_after, PM_LOWK, SH_AFTER, 1)
+P_OFF_CLASS(P_off_lowk, PM_LOWK, SH_NONE, 1)
+P_OFF_CLASS(P_off_low_after, PM_LOW, SH_AFTER, 0)
+P_OFF_CLASS(P_off_low, PM_LOW, SH_NONE, 0)
+
+INLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
+                      int32_t nm, int32_t P_s, int32_t sh, uint32_t *c_P)
 {
-    /* one straight run for each class of the steady state and the start-up (ph 2^pa m,
-     * or one product), with and without the shift; a loop for the rest (rare) */
-    if (mode == PM_HIGH && sh > 0) {
-        P_off(P, K, hn, PM_HIGH, m, pa, P_s, sh, 1, 1, c_P);
+    /* one straight run for each class of the steady state and the start-up, with and
+     * without the shift; a loop for the rest (rare) */
+    const P_shc kc = sh > 0 ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
+    if (mode == PM_HIGH && sh > 0 && P_s >= 33 + sh) {
+        P_off_high_fused(P, K, hn, nm, P_s, sh, &kc, c_P);
+    } else if (mode == PM_HIGH && sh > 0 && P_s == 32 + sh) {
+        P_off_high_fused32(P, K, hn, nm, P_s, sh, &kc, c_P);
+    } else if (mode == PM_HIGH && sh > 0) {
+        P_off_high_after(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_HIGH) {
-        P_off(P, K, hn, PM_HIGH, m, pa, P_s, 0, 0, 1, c_P);
+        P_off_high(P, K, hn, nm, P_s, sh, &kc, c_P);
+    } else if (mode == PM_32 && sh > 0) {
+        P_off_32_after(P, K, hn, nm, P_s, sh, &kc, c_P);
+    } else if (mode == PM_32) {
+        P_off_32(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_LOWK && sh > 0) {
-        P_off(P, K, hn, PM_LOWK, m, pa, P_s, sh, 1, 1, c_P);
+        P_off_lowk_after(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_LOWK) {
-        P_off(P, K, hn, PM_LOWK, m, pa, P_s, 0, 0, 1, c_P);
+        P_off_lowk(P, K, hn, nm, P_s, sh, &kc, c_P);
+    } else if (sh > 0) {
+        P_off_low_after(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else {
-        P_off(P, K, hn, mode, m, pa, P_s, sh, sh > 0, 0, c_P);
+        P_off_low(P, K, hn, nm, P_s, sh, &kc, c_P);
     }
 }
+
+#if defined(__GNUC__)
+/* theta_add at s = 32 and the whole int32_t word: the word plus ph, the high word of the
+ * product (floor(p / 2^32) 2^32: the fraction unchanged), saturated where it overflows */
+INLINE void theta_add_hi(canrls_theta64 *q, int32_t ph, uint32_t *n)
+{
+    int32_t w;
+    if (UNLIKELY(__builtin_add_overflow(q->word, ph, &w))) {
+        *n += 1u;
+        q->frac = ph > 0 ? 0xFFFFFFFFu : 0u;
+        q->word = ph > 0 ? INT32_MAX : INT32_MIN;
+        return;
+    }
+    q->word = w;
+}
+#endif
 
 /* The step after g at a fixed n (32-bit theta and P words): K; the diagonal of
  * P~ - K h~' first, so that c <- c / lambda_k and the block exponent's shift sh are known
@@ -1021,21 +1232,20 @@ NOINLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int 
  * forgetting scale and the block exponent of canrls_update_q31 one after the other (the
  * order changes no integer: the theta and P updates read nothing the other writes, and
  * the shift of each element follows its own update). ``common`` (a constant at each
- * call): P_s >= 34 and th_s >= 34, the steady state, one straight run. A c to fold into
+ * call): P_s >= 33 and th_s >= 33, the steady state, one straight run; ``cls`` (a
+ * constant) the class of P_s: PM_HIGH, PM_32 or PM_LOW. A c to fold into
  * P~ (e = 0) is left to the caller (c > one_lam on return, no shift). Returns the
  * low-excitation test, as P_step. */
 INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
                    int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
-                   uint32_t *c_th, uint32_t *c_P, int common)
+                   uint32_t *c_th, uint32_t *c_P, int common, int cls)
 {
     const uint32_t n = CANRLS_N;
     const canrls_plan_q31 *p = S->plan;
-    int mode = common || P_s >= 33 ? PM_HIGH : P_s == 32 ? PM_32 : PM_LOW;
-    int32_t pa = !common && P_s == 33 ? 1 : 0;
-    int32_t mp = mode == PM_HIGH ? (int32_t)1 << (64 - P_s - pa) : 0;
-    /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = (ph 2^ta) mt */
-    const int32_t ta = !common && th_s == 33 ? 1 : 0;
-    const int32_t mt = common || th_s >= 33 ? (int32_t)1 << (64 - th_s - ta) : 0;
+    int mode = cls; /* PM_HIGH (P_s >= 33), PM_32 or PM_LOW (P_s <= 31) */
+    const int32_t nm = mode == PM_HIGH ? neg_pow2(P_s) : 0;
+    /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = -(ph nt) */
+    const int32_t nt = common || th_s >= 33 ? neg_pow2(th_s) : 0;
     const int32_t tr_ps = p->trace_ps;
     int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
     /* K and h~ as the P update takes them: K and h~, or K 2^a and h~ 2^b with
@@ -1043,6 +1253,7 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     const int32_t *KP = K, *hP = hn;
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
+    const P_shc k0 = {0u, 0u, 0u, 0u, 0}; /* (no shift) */
     uint32_t mK = 0;
     int32_t e = *e_io, c = *c_io, sh = 0;
     int64_t tr = 0;
@@ -1055,19 +1266,6 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         K[i] = mul_rsh32(hn[i], gcn);
         S->K[i] = K[i];
         mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
-    }
-    if (!common && mode == PM_32) {
-        /* u = ph 2^32 = (ph 2^2) 2^30 where every |h~| < 2^30 (then |ph| <= 2^27) */
-        uint32_t mh = 0;
-        UNROLL
-        for (i = 0; i < n; i++) {
-            mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
-        }
-        if ((mh >> 30) == 0u) {
-            mode = PM_HIGH;
-            pa = 2;
-            mp = (int32_t)1 << 30;
-        }
     }
     if (!common && mode == PM_LOW) {
         /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a that keeps K 2^a a
@@ -1097,7 +1295,7 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     Pw = P;
     UNROLL
     for (i = 0; i < n; i++) {
-        P_elem(Pw, KP[i], hP[i], mode, mp, pa, P_s, 0, 0u, 0u, c_P, &nz);
+        P_elem(Pw, KP[i], hP[i], mode, nm, P_s, 0, SH_NONE, &k0, c_P, &nz);
         tr += Pw->word;
         Pw += n - i;
     }
@@ -1124,23 +1322,28 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         for (i = 0; i < n; i++) {
             UNROLL
             for (j = i + 1; j < n; j++) {
-                /* u = rsh(K_i h~_j, 32) 2^(64 - P_s) */
-                P_sub_full(&Pw[j - i], mul_rsh32(K[i], hn[j]), mp, P_s, c_P);
+                /* -u = rsh(K_i h~_j, 32) nm */
+                P_sub_full(&Pw[j - i], mul_rsh32(K[i], hn[j]), nm, P_s, c_P);
             }
             Pw += n - i;
         }
     } else {
-        P_off_any(P, KP, hP, mode, mp, pa, P_s, sh, c_P);
+        P_off_any(P, KP, hP, mode, nm, P_s, sh, c_P);
+    }
+    if (sh > 0) {
+        /* the diagonal shifted */
+        const P_shc k = shc_of(sh, mode, P_s);
+        Pw = P;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            P_shl(Pw, P_pair(Pw), sh, &k, c_P);
+            Pw += n - i;
+        }
     }
     Pw = P;
     UNROLL
     for (i = 0; i < n; i++) {
         int32_t x;
-        if (sh > 0) {
-            P_shl(Pw, (int64_t)(((uint64_t)(uint32_t)Pw->word << 32) | Pw->lo), sh,
-                  (uint32_t)1 << sh, ((uint32_t)1 << (sh - 1)) - 1u, (uint32_t)1 << (30 - sh),
-                  c_P);
-        }
         /* trw = sum_i rsh(Pw_ii, trace_ps) (modulo 2^32: a word) */
         x = Pw->word;
         trw32 += (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
@@ -1151,10 +1354,10 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB; K carries
          * the exponent e + kn: shifted out here; one LDRD, one STRD) */
         if (common || th_s >= 33) {
-            theta_add_full(&S->theta_q[i],
-                           (int32_t)((uint32_t)(int32_t)(mul_ww(K[i], epn) >> 32) << ta), mt,
-                           th_s - ta, c_th);
+            theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), nt, th_s, c_th);
 #if defined(__GNUC__)
+        } else if (th_s == 32) {
+            theta_add_hi(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), c_th);
         } else if (th_s <= 31 && th_s >= 1 && (mK >> (th_s - 1)) == 0u) {
             /* K eps 2^(32 - th_s) exactly: (K 2^(32 - th_s)) eps, one product */
             theta_add_prod(&S->theta_q[i], (int32_t)((uint32_t)K[i] << (32 - th_s)), epn, c_th);
@@ -1169,19 +1372,33 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     return nz == 0u;
 }
 
-/* the two instances, out of line: the steady state (P_s, th_s >= 34) and any other step */
-NOINLINE int KP_step_common(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn,
-                            int32_t th_s, int32_t P_s, int32_t il, int32_t *e_io,
-                            int32_t *c_io, int32_t *trw_io, uint32_t *c_th, uint32_t *c_P)
-{
-    return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 1);
-}
+/* the instances, out of line: the steady state (P_s, th_s >= 33) and any other step by
+ * the class of P_s (each its registers and its stack frame) */
+#define KP_STEP(name, common_, cls_)                                                       \
+    NOINLINE int name(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s, \
+                      int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io, \
+                      uint32_t *c_th, uint32_t *c_P)                                         \
+    {                                                                                        \
+        return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P,        \
+                       common_, cls_);                                                       \
+    }
+KP_STEP(KP_step_common, 1, PM_HIGH)
+KP_STEP(KP_step_high, 0, PM_HIGH)
+KP_STEP(KP_step_32, 0, PM_32)
+KP_STEP(KP_step_low, 0, PM_LOW)
 
+/* any step but the steady state's, by the class of P_s */
 NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
                        int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
                        uint32_t *c_th, uint32_t *c_P)
 {
-    return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 0);
+    if (P_s >= 33) {
+        return KP_step_high(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
+    }
+    if (P_s == 32) {
+        return KP_step_32(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
+    }
+    return KP_step_low(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
 }
 #endif
 
@@ -1310,31 +1527,9 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
              * the product) */
             int64_t T = rsh_w(mul_ww(trw, c), p->tc_s)
                         - (int64_t)((uint64_t)(int64_t)p->trace_max_lam << e);
-            if (T > 0) {
-                uint32_t none = 0; /* d_lam is not counted */
-                int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
-                int64_t a_vw, lhs;
-                int32_t df;
-                int up;
-                /* h = c h~ ; w = c w~ = h:  a_vw = sum_i rsh(h_i w_i, vw_ps) */
-                if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
-                    a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_LOW);
-                } else {
-                    a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_ANY);
-                }
-                /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
-                lhs = rsh_w(mul_ww((int32_t)(T < p->P_hi ? T : p->P_hi), d_lam), p->lhs_ps);
-                /* the two sides differ in scale by cmp_df - e bits */
-                df = p->cmp_scale_diff - e;
-                if (df >= 0) {
-                    up = (lhs >> (df < 63 ? df : 63)) > a_vw;
-                } else {
-                    up = lhs > (a_vw >> (-df < 63 ? -df : 63));
-                }
-                if (up) {
-                    lam_k = p->one_den;
-                    flag = CANRLS_FLAG_WINDUP;
-                }
+            if (T > 0 && windup_up(p, h, n, c, e, T, sv)) {
+                lam_k = p->one_den;
+                flag = CANRLS_FLAG_WINDUP;
             }
         }
 
@@ -1396,7 +1591,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         if ((~S->wide & (WIDE_THETA | WIDE_P)) == 0u && P_s >= 1) {
             /* 32-bit words at a fixed n: the step, the forgetting scale and the block
              * exponent in one pass over P (a c to fold is left to the code below) */
-            if (P_s >= 34 && th_s >= 34) {
+            if (P_s >= 33 && th_s >= 33) {
                 low = KP_step_common(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th,
                                      &c_P);
             } else {
