@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import os
 import subprocess
 import sys
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -237,18 +239,32 @@ def _run_fixed_n(cc: str, wrap: list[str], vectors: list, tmp_path: Path,
                  extra: Sequence[str] = ()) -> None:
     """Each case through a driver built with -DCANRLS_N = its n (loops unrolled, h~ summed
     by rows, the SMMULR path on ARM): bit for bit the same lines; a driver built for
-    another n refuses the state (canrls_init_q31 takes only n = CANRLS_N)."""
+    another n refuses the state (canrls_init_q31 takes only n = CANRLS_N). The drivers
+    build, and the cases run, on every core at once."""
     n_of = {c.name: c.est.n for c in _all_cases()}
     by_n: dict[int, list] = {}
     for v in vectors:
         by_n.setdefault(n_of[v[0]], []).append(v)
-    for n, vs in sorted(by_n.items()):
+
+    def build(n: int) -> Path:
         exe = tmp_path / f"vector_driver_n{n}"
         subprocess.run([cc, *CFLAGS, *extra, f"-DCANRLS_N={n}", "-I", str(KERNEL),
                         str(DRIVER), str(KERNEL / "canrls_fixed.c"), "-o", str(exe)],
                        check=True, capture_output=True)
-        _run_all(lambda i, o, exe=exe: subprocess.run([*wrap, str(exe), str(i), str(o)], check=True,
-                                             timeout=120), vs, tmp_path)
+        return exe
+
+    def run(case: tuple[str, Path, list[str]]) -> list[str]:
+        name, path, _ = case
+        out = tmp_path / f"{name}.out"
+        subprocess.run([*wrap, str(exes[n_of[name]]), str(path), str(out)], check=True,
+                       timeout=120)
+        return out.read_text().splitlines()
+
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        exes = dict(zip(sorted(by_n), pool.map(build, sorted(by_n)), strict=True))
+        for (name, _, expected), got in zip(vectors, pool.map(run, vectors), strict=True):
+            _compare(name, got, expected, len(expected[0].split()))
+    for n, exe in exes.items():
         other = next(v for m, w in by_n.items() if m != n for v in w)
         r = subprocess.run([*wrap, str(exe), str(other[1]), str(tmp_path / "o")],
                            capture_output=True, text=True)
