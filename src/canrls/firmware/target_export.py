@@ -207,7 +207,7 @@ cc -std=c99 -O2{nflag} -DCANRLS_FRONT -c canrls_target.c canrls_front.c canrls_m
 | `canrls_target.h`, `canrls_target.c`, `canrls_target_math.h`, `canrls_target_tables.h` | the rest of the path (pairing, restart, rescale, update, publish) and the arithmetic; built without `-DCANRLS_FRONT` (and without `canrls_front.c`) it is the whole path, driven by the tables of `canrls_model` (`make test-tables`: the same integers) |
 | `canrls_target_check.h`, `canrls_target_check.c` | `canrls_target_check_state()`: whether a state restored from flash is one the estimator can reach on this model (every field against its invariant); for a firmware that keeps its state across a reset (add `canrls_target_check.c` to the build) |
 | `canrls_model.h`, `canrls_model.c` | `canrls_model`: every constant of this model and DBC |
-| `canrls_bounds.h` | the build's bounds, this model's own (parameters, messages, filters, equations): the state `canrls_target` holds this model alone; each is `#ifndef`-overridable, for every file alike (the state's layout depends on them) |
+| `canrls_bounds.h` | the build's bounds, this model's own (parameters, messages, filters, equations): the state `canrls_target` holds this model alone; each is `#ifndef`-overridable, for every file alike (the state's layout depends on them); a model of one equation also gives its plan, `CANRLS_PLAN_CONST`, which the kernel folds into its code (`canrls_init_q31` then refuses any other plan; `-DCANRLS_PLAN_RUNTIME` reads it at run time, as `make test-tables` does: the same integers) |
 | `canrls_fixed.h`, `canrls_fixed.c` | the recursive least squares kernel |
 | `canrls_config.h`, `canrls_config.c` | the kernel's plan and prior alone (for a firmware that builds its own regressors) |
 | `canrls_frames.h`, `canrls_frames.c` | cantools' codecs of canrls' frames: they use `double`, and the estimator does not need them (it packs its frames in integers) |
@@ -285,8 +285,9 @@ def _makefile(single_n: int | None, vectors: bool) -> str:
              "CC ?= cc", "CFLAGS ?= -std=c99 -O2 -Wall -Wextra -Wconversion -Wpedantic -Werror",
              f"DEFS ?={n} -DCANRLS_FRONT",
              "SRC = canrls_target.c canrls_front.c canrls_model.c canrls_fixed.c",
-             "# the table-driven front end of canrls_target.c instead of canrls_front.c",
-             f"TABLE_DEFS ?={n}", "TABLE_SRC = canrls_target.c canrls_model.c canrls_fixed.c",
+             "# the table-driven front end of canrls_target.c instead of canrls_front.c, and the",
+             "# kernel's plan read at run time, not the constant of canrls_bounds.h",
+             f"TABLE_DEFS ?={n} -DCANRLS_PLAN_RUNTIME", "TABLE_SRC = canrls_target.c canrls_model.c canrls_fixed.c",
              "ARM_CC ?= arm-none-eabi-gcc", "ARM_NM ?= arm-none-eabi-nm",
              "ARM_SIZE ?= arm-none-eabi-size",
              "ARM_FLAGS ?= -mcpu=cortex-m4 -mthumb -mfloat-abi=soft -Os", "",
