@@ -126,6 +126,7 @@ def test_a_signal_inside_the_c_loop_stops_sim_within_a_second(
     proc = subprocess.Popen([sys.executable, "-m", "canrls", "sim", "--out", str(out),
                              "--duration", "3600", "-p", "inertia.J=5e-7"],
                             stderr=subprocess.PIPE, text=True)
+    err = ""
     try:
         deadline = time.monotonic() + 120
         while not any(p.name.endswith(".part") for p in tmp_path.iterdir()):
@@ -137,12 +138,12 @@ def test_a_signal_inside_the_c_loop_stops_sim_within_a_second(
         try:
             _, err = proc.communicate(timeout=30)
         except subprocess.TimeoutExpired:
-            err = ""
+            err = f"still running 30 s after {sig.name}, killed; its stderr:\n"
         took = time.monotonic() - sent
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.communicate()
+            err += proc.communicate()[1]  # where the signal went, if it went missing
     assert proc.returncode == status, err
     assert took < 1.0, f"{took:.1f} s"
     assert list(tmp_path.iterdir()) == []
