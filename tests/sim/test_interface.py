@@ -6,7 +6,6 @@ import os
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -14,6 +13,7 @@ import can
 import cantools
 import numpy as np
 import pytest
+from cli_tool import python_module
 from daemon_tool import reap
 
 from canrls.can.decoder import Decoder
@@ -152,20 +152,11 @@ def test_detect_available_configs() -> None:
 # --------------------------------------------------------------------------- other processes
 
 
-def _python_module(module: str) -> list[str]:
-    """``python -m module`` with Ctrl-C restored: a shell without job control starts
-    background jobs with SIGINT ignored, and a child inherits that."""
-    code = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-            f"sys.argv[0] = {module!r}; runpy.run_module({module!r}, run_name='__main__', "
-            "alter_sys=True)")
-    return [sys.executable, "-c", code]
-
-
 @pytest.mark.slow
 def test_python_can_logger_runs_against_it(tmp_path: Path) -> None:
     out = tmp_path / "sim.log"
     proc = subprocess.Popen(
-        _python_module("can.logger") + ["-i", "canrls-sim", "-c", "standard", "-f", str(out),
+        python_module("can.logger") + ["-i", "canrls-sim", "-c", "standard", "-f", str(out),
                      "--bus-kwargs", "realtime=False", "duration=0.2", "seed=1"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -205,7 +196,7 @@ def test_remote_over_loopback() -> None:
     port = _free_port()
     env = dict(os.environ)
     proc = subprocess.Popen(
-        _python_module("can_remote") + ["-i", "canrls-sim", "-c", "standard", "-H", "127.0.0.1",
+        python_module("can_remote") + ["-i", "canrls-sim", "-c", "standard", "-H", "127.0.0.1",
                      "-p", str(port)],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     try:
