@@ -894,8 +894,10 @@ enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 /* How an element takes the block exponent's shift sh (a constant at each call): SH_NONE
  * sh = 0; SH_AFTER V - u, then (V - u) 2^sh; SH_FUSED (PM_HIGH, P_s >= 33 + sh) V 2^sh
  * - u 2^sh as one sum of products, -u 2^sh = ph (nm 2^sh); SH_FUSED32 (PM_HIGH,
- * P_s = 32 + sh) the same with u 2^sh = ph 2^32: ph subtracted from the high word. */
-enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2, SH_FUSED32 = 3 };
+ * P_s = 32 + sh) the same with u 2^sh = ph 2^32: ph subtracted from the high word;
+ * SH_NEGK (PM_LOWK, the K words passed negated) X - u as one SMLAL, X + (-K_i 2^a)(h~_j 2^b)
+ * modulo 2^64, then (V - u) 2^sh where the room test of its high word passes. */
+enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2, SH_FUSED32 = 3, SH_NEGK = 4 };
 
 /* The constants of a shift 1 <= sh <= 30: m2 = 2^sh; chi = 2^(sh-1) - 1, the pair's 2^31
  * carried through the shift ((2^sh - 1) 2^31 = chi 2^32 + 2^31); room = 2^(30 - sh), the
@@ -1032,6 +1034,26 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
 {
 #if defined(__GNUC__)
     int64_t x;
+#endif
+    if (how == SH_NEGK) {
+        /* Ki = -(K_i 2^a), a word: D = X - u = X + Ki hj modulo 2^64 (one SMLAL). With
+         * X in [-2^63, 2^63) and |u| <= 2^62, an X - u outside int64 leaves D = X - u -+ 2^64
+         * with |D| >= 2^62: its high word fails the room test (room <= 2^29). A D that
+         * passes is X - u, exact and within +-2^(62 - sh): no saturation in V - u nor in
+         * its 2^sh, and P_shl's sum is exact. Else the general element (Ki negated back:
+         * K_i 2^a is a word). */
+        const uint64_t d = mla_ww((uint64_t)P_pair(q), Ki, hj);
+        const int32_t hi = (int32_t)(uint32_t)(d >> 32);
+        if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
+            const uint64_t z = P_shl_sum((uint32_t)d, hi, 0, k, 0);
+            q->lo = (uint32_t)z;
+            q->word = (int32_t)(uint32_t)(z >> 32);
+            return;
+        }
+        P_elem_slow(q, (int32_t)(0u - (uint32_t)Ki), hj, PM_LOWK, P_s, sh, c_P);
+        return;
+    }
+#if defined(__GNUC__)
     if (how == SH_FUSED || how == SH_FUSED32) {
         /* |X| < 2^(61 - sh) (the high word within +-room2) and |u| <= 2^30 2^(64 - P_s)
          * <= 2^(61 - sh) (SH_FUSED), |u 2^sh| = |ph| 2^32 <= 2^62 (SH_FUSED32): neither
@@ -1124,6 +1146,17 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
 #endif
 }
 
+/* Row i of the off-diagonal elements (j > i), each the exact general element, out of line
+ * (SH_NEGK: a K_i 2^a of -2^31, whose negation is not a word) */
+NOINLINE void P_row_slow(canrls_P64 *Pw, int32_t Ki, const int32_t *h, uint32_t i, int mode,
+                         int32_t P_s, int32_t sh, uint32_t *c_P)
+{
+    uint32_t j;
+    for (j = i + 1; j < CANRLS_N; j++) {
+        P_elem_slow(&Pw[j - i], Ki, h[j], mode, P_s, sh, c_P);
+    }
+}
+
 /* The off-diagonal elements: the shift class ``mode`` and how the block exponent's shift
  * sh is taken (``how``) are constants at each call. ``unroll`` (a constant): one straight
  * run, else a loop over the packed rows (the rare classes: less code). */
@@ -1140,10 +1173,21 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
     for (j = 0; j < n; j++) {
         h[j] = hn[j];
     }
+#define P_OFF_ROW                                                                          \
+    int32_t Ki = K[i];                                                                     \
+    if (how == SH_NEGK) {                                                                  \
+        /* the row's K word negated (-2^31: the row in the general element) */             \
+        if (UNLIKELY(Ki == INT32_MIN)) {                                                   \
+            P_row_slow(Pw, Ki, h, i, mode, P_s, sh, c_P);                                  \
+            Pw += n - i;                                                                   \
+            continue;                                                                      \
+        }                                                                                  \
+        Ki = -Ki;                                                                          \
+    }
     if (unroll) {
         UNROLL
         for (i = 0; i < n; i++) {
-            const int32_t Ki = K[i];
+            P_OFF_ROW
             UNROLL
             for (j = i + 1; j < n; j++) {
                 P_elem(&Pw[j - i], Ki, h[j], mode, nm, P_s, sh, how, &k, c_P, NULL);
@@ -1152,13 +1196,14 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
         }
     } else {
         for (i = 0; i < n; i++) {
-            const int32_t Ki = K[i];
+            P_OFF_ROW
             for (j = i + 1; j < n; j++) {
                 P_elem(&Pw[j - i], Ki, h[j], mode, nm, P_s, sh, how, &k, c_P, NULL);
             }
             Pw += n - i;
         }
     }
+#undef P_OFF_ROW
 }
 
 /* each class of the step its own function: its registers and its stack frame to itself */
@@ -1174,7 +1219,7 @@ P_OFF_CLASS(P_off_high_fused32, PM_HIGH, SH_FUSED32, 1)
 P_OFF_CLASS(P_off_high, PM_HIGH, SH_NONE, 1)
 P_OFF_CLASS(P_off_32_after, PM_32, SH_AFTER, 1)
 P_OFF_CLASS(P_off_32, PM_32, SH_NONE, 1)
-P_OFF_CLASS(P_off_lowk_after, PM_LOWK, SH_AFTER, 1)
+P_OFF_CLASS(P_off_lowk_neg, PM_LOWK, SH_NEGK, 1)
 P_OFF_CLASS(P_off_lowk, PM_LOWK, SH_NONE, 1)
 P_OFF_CLASS(P_off_low_after, PM_LOW, SH_AFTER, 0)
 P_OFF_CLASS(P_off_low, PM_LOW, SH_NONE, 0)
@@ -1198,7 +1243,7 @@ INLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mo
     } else if (mode == PM_32) {
         P_off_32(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_LOWK && sh > 0) {
-        P_off_lowk_after(P, K, hn, nm, P_s, sh, &kc, c_P);
+        P_off_lowk_neg(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_LOWK) {
         P_off_lowk(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (sh > 0) {
@@ -1224,7 +1269,7 @@ INLINE void theta_add_hi(canrls_theta64 *q, int32_t ph, uint32_t *n)
 }
 #endif
 
-/* The step after g at a fixed n (32-bit theta and P words): K; the diagonal of
+/* The step after g and K at a fixed n (32-bit theta and P words): the diagonal of
  * P~ - K h~' first, so that c <- c / lambda_k and the block exponent's shift sh are known
  * before the rest of P is touched; then the off-diagonal elements with the shift folded
  * in (one pass over P: the shift's cost spread over the elements the update writes
@@ -1232,65 +1277,28 @@ INLINE void theta_add_hi(canrls_theta64 *q, int32_t ph, uint32_t *n)
  * forgetting scale and the block exponent of canrls_update_q31 one after the other (the
  * order changes no integer: the theta and P updates read nothing the other writes, and
  * the shift of each element follows its own update). ``common`` (a constant at each
- * call): P_s >= 33 and th_s >= 33, the steady state, one straight run; ``cls`` (a
- * constant) the class of P_s: PM_HIGH, PM_32 or PM_LOW. A c to fold into
+ * call): P_s >= 33 and th_s >= 33, the steady state, one straight run; ``mode`` (a
+ * constant) the class of P_s: PM_HIGH, PM_32, PM_LOW or PM_LOWK (KP, hP: K 2^a, h~ 2^b;
+ * else K, h~). A c to fold into
  * P~ (e = 0) is left to the caller (c > one_lam on return, no shift). Returns the
  * low-excitation test, as P_step. */
-INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
-                   int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
-                   uint32_t *c_th, uint32_t *c_P, int common, int cls)
+INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const int32_t *KP,
+                   const int32_t *hP, uint32_t mK, int32_t epn, int32_t th_s, int32_t P_s,
+                   int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io, uint32_t *c_th,
+                   uint32_t *c_P, int common, int mode)
 {
     const uint32_t n = CANRLS_N;
     const canrls_plan_q31 *p = S->plan;
-    int mode = cls; /* PM_HIGH (P_s >= 33), PM_32 or PM_LOW (P_s <= 31) */
     const int32_t nm = mode == PM_HIGH ? neg_pow2(P_s) : 0;
     /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = -(ph nt) */
     const int32_t nt = common || th_s >= 33 ? neg_pow2(th_s) : 0;
     const int32_t tr_ps = p->trace_ps;
-    int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
-    /* K and h~ as the P update takes them: K and h~, or K 2^a and h~ 2^b with
-     * a + b = 32 - P_s (PM_LOWK) */
-    const int32_t *KP = K, *hP = hn;
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
     const P_shc k0 = {0u, 0u, 0u, 0u, 0}; /* (no shift) */
-    uint32_t mK = 0;
     int32_t e = *e_io, c = *c_io, sh = 0;
     int64_t tr = 0;
     uint32_t i, j, nz = 0, trw32 = 0;
-    UNROLL
-    for (i = 0; i < n; i++) {
-        /* h~ <- h~ 2^kn (exact: the normalisation) */
-        hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
-        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
-        K[i] = mul_rsh32(hn[i], gcn);
-        S->K[i] = K[i];
-        mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
-    }
-    if (!common && mode == PM_LOW) {
-        /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a that keeps K 2^a a
-         * word, the rest b on h~ if it keeps h~ 2^b a word */
-        uint32_t mh = 0;
-        int32_t a = 32 - P_s, b;
-        while (a > 0 && (mK >> (31 - a)) != 0u) {
-            a -= 1;
-        }
-        b = 32 - P_s - a;
-        UNROLL
-        for (i = 0; i < n; i++) {
-            mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
-        }
-        if (b <= 31 && (mh >> (31 - b)) == 0u) {
-            UNROLL
-            for (i = 0; i < n; i++) {
-                Kk[i] = (int32_t)((uint32_t)K[i] << a);
-                hk[i] = (int32_t)((uint32_t)hn[i] << b);
-            }
-            KP = Kk;
-            hP = hk;
-            mode = PM_LOWK;
-        }
-    }
     /* the diagonal: P~_ii <- P~_ii - K_i h~_i (the information K_i h~_i: low excitation) */
     Pw = P;
     UNROLL
@@ -1370,6 +1378,55 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     *c_io = c;
     *trw_io = (int32_t)trw32;
     return nz == 0u;
+}
+
+
+/* K and h~ as the P update takes them, then KP_tail: K = (g c) h~ 2^kn and h~ 2^kn, or, for
+ * P_s <= 31 where both words keep room, K 2^a and h~ 2^b (PM_LOWK: each class of the tail
+ * its own straight run) */
+INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                   int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
+                   uint32_t *c_th, uint32_t *c_P, int common, int cls)
+{
+    const uint32_t n = CANRLS_N;
+    int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
+    uint32_t mK = 0;
+    uint32_t i;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* h~ <- h~ 2^kn (exact: the normalisation) */
+        hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
+        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
+        K[i] = mul_rsh32(hn[i], gcn);
+        S->K[i] = K[i];
+        mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
+    }
+    if (!common && cls == PM_LOW) {
+        /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a that keeps K 2^a a
+         * word, the rest b on h~ if it keeps h~ 2^b a word */
+        uint32_t mh = 0;
+        int32_t a = 32 - P_s, b;
+        while (a > 0 && (mK >> (31 - a)) != 0u) {
+            a -= 1;
+        }
+        b = 32 - P_s - a;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
+        }
+        if (b <= 31 && (mh >> (31 - b)) == 0u) {
+            UNROLL
+            for (i = 0; i < n; i++) {
+                Kk[i] = (int32_t)((uint32_t)K[i] << a);
+                hk[i] = (int32_t)((uint32_t)hn[i] << b);
+            }
+            /* K and h~ as the P update takes them: K 2^a and h~ 2^b */
+            return KP_tail(S, K, hn, Kk, hk, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th,
+                           c_P, 0, PM_LOWK);
+        }
+    }
+    return KP_tail(S, K, hn, K, hn, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P,
+                   common, cls);
 }
 
 /* the instances, out of line: the steady state (P_s, th_s >= 33) and any other step by
