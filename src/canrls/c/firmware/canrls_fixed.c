@@ -899,23 +899,28 @@ enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
  * modulo 2^64, then (V - u) 2^sh where the room test of its high word passes. */
 enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2, SH_FUSED32 = 3, SH_NEGK = 4 };
 
-/* The constants of a shift 1 <= sh <= 30: m2 = 2^sh; chi = 2^(sh-1) - 1, the pair's 2^31
- * carried through the shift ((2^sh - 1) 2^31 = chi 2^32 + 2^31); room = 2^(30 - sh), the
- * bound of the high word below which V 2^sh stays in the pair; room2 = room / 2 and
- * nm2 = nm 2^sh = neg_pow2(P_s - sh) for SH_FUSED. */
+/* The constants of a shift 1 <= sh <= 30: m2 = 2^sh; chi = 2^(sh-1) - 1 and
+ * cp = 2^(31 - sh) - 2^31 = room cq, cq = 2 - 2^(sh + 1), the pair's 2^31 carried through
+ * the shift ((2^sh - 1) 2^31 = chi 2^32 + 2^31 = -cp 2^sh); room = 2^(30 - sh), the bound
+ * of the high word below which V 2^sh stays in the pair; room2 = room / 2, nm2 = nm 2^sh =
+ * neg_pow2(P_s - sh) and t = (2^sh - 1) 2^(P_s - 33 - sh) (t nm2 = -(2^sh - 1) 2^31) for
+ * SH_FUSED. */
 typedef struct {
     uint32_t m2, chi, room, room2;
-    int32_t nm2;
+    int32_t cq, nm2, t;
 } P_shc;
 
 INLINE P_shc shc_of(int32_t sh, int mode, int32_t P_s)
 {
+    const int fused = mode == PM_HIGH && P_s >= 33 + sh;
     P_shc k;
     k.m2 = (uint32_t)1 << sh;
     k.chi = ((uint32_t)1 << (sh - 1)) - 1u;
+    k.cq = (int32_t)(2u - (k.m2 << 1));
     k.room = (uint32_t)1 << (30 - sh);
     k.room2 = k.room >> 1;
-    k.nm2 = mode == PM_HIGH && P_s >= 33 + sh ? neg_pow2(P_s - sh) : 0;
+    k.nm2 = fused ? neg_pow2(P_s - sh) : 0;
+    k.t = fused ? (int32_t)((k.m2 - 1u) << (P_s - 33 - sh)) : 0;
     return k;
 }
 
@@ -937,37 +942,58 @@ INLINE uint64_t mla_ww(uint64_t acc, int32_t a, int32_t b)
 #endif
 }
 
-/* X 2^sh - (chi 2^32 + 2^31) + ph nm2 modulo 2^64, X the pair (lo, hi): the shift of a
- * pair (ph = 0, P_shl) or the fused element (SH_FUSED); one UMULL, one MLA, one SMLAL, a
- * subtraction in two words (written out on Thumb-2: GCC otherwise zeroes an accumulator
- * for UMLAL and moves it) */
-INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, int32_t ph, const P_shc *k, int fused)
+/* t + rsh(a b, 32) (one SMMLAR on a core with the DSP extension; no overflow where
+ * the caller calls it) */
+INLINE int32_t mul_rsh32_add(int32_t a, int32_t b, int32_t t)
+{
+#if defined(__GNUC__) && defined(__ARM_FEATURE_DSP) && defined(__thumb2__)
+    int32_t r;
+    __asm__("smmlar %0, %1, %2, %3" : "=r"(r) : "r"(a), "r"(b), "r"(t));
+    return r;
+#else
+    return (int32_t)((uint32_t)t + (uint32_t)mul_rsh32(a, b));
+#endif
+}
+
+/* How P_shl_sum ends: SUM_0 X 2^sh; SUM_P X 2^sh + ph nm2; SUM_C X 2^sh - (c 2^32 + 2^31) */
+enum { SUM_0 = 0, SUM_P = 1, SUM_C = 2 };
+
+/* X 2^sh modulo 2^64, X the pair (lo, hi), m2 = 2^sh: the low word times m2 (one UMULL)
+ * plus the high word times m2 (one MLA); then ``form`` (a constant at each call) adds
+ * a b (one SMLAL) or subtracts a 2^32 + 2^31 (two words). Written out on Thumb-2: GCC
+ * otherwise zeroes an accumulator for UMLAL and moves it. */
+INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, uint32_t m2, int32_t a, int32_t b,
+                          int form)
 {
 #if defined(__GNUC__) && defined(__thumb2__)
     uint32_t rl, rh;
-    if (fused) {
+    if (form == SUM_P) {
         __asm__("umull %0, %1, %2, %4\n\t"
                 "mla %1, %3, %4, %1\n\t"
-                "smlal %0, %1, %5, %6\n\t"
-                "subs %0, %0, #0x80000000\n\t"
-                "sbc %1, %1, %7"
+                "smlal %0, %1, %5, %6"
                 : "=&r"(rl), "=&r"(rh)
-                : "r"(lo), "r"(hi), "r"(k->m2), "r"(ph), "r"(k->nm2), "r"(k->chi)
-                : "cc");
-    } else {
+                : "r"(lo), "r"(hi), "r"(m2), "r"(a), "r"(b));
+    } else if (form == SUM_C) {
         __asm__("umull %0, %1, %2, %4\n\t"
                 "mla %1, %3, %4, %1\n\t"
                 "subs %0, %0, #0x80000000\n\t"
                 "sbc %1, %1, %5"
                 : "=&r"(rl), "=&r"(rh)
-                : "r"(lo), "r"(hi), "r"(k->m2), "r"(k->chi)
+                : "r"(lo), "r"(hi), "r"(m2), "r"(a)
                 : "cc");
+    } else {
+        __asm__("umull %0, %1, %2, %4\n\t"
+                "mla %1, %3, %4, %1"
+                : "=&r"(rl), "=&r"(rh)
+                : "r"(lo), "r"(hi), "r"(m2));
     }
     return ((uint64_t)rh << 32) | rl;
 #else
-    const uint64_t y = (uint64_t)lo * k->m2 + ((uint64_t)((uint32_t)hi * k->m2) << 32)
-                       - (((uint64_t)k->chi << 32) | 0x80000000u);
-    return fused ? mla_ww(y, ph, k->nm2) : y;
+    const uint64_t y = (uint64_t)lo * m2 + ((uint64_t)((uint32_t)hi * m2) << 32);
+    if (form == SUM_P) {
+        return mla_ww(y, a, b);
+    }
+    return form == SUM_C ? y - (((uint64_t)(uint32_t)a << 32) | 0x80000000u) : y;
 #endif
 }
 
@@ -1000,28 +1026,31 @@ NOINLINE void P_elem_slow(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32
     }
 }
 
-/* V <- V 2^sh, saturated, out of line (a word without room for the shift) */
-NOINLINE void P_shl_slow(canrls_P64 *q, int64_t x, int32_t sh, uint32_t *c_P)
+/* V <- V 2^sh, saturated, out of line (a word without room for the shift), from P_shl's D */
+NOINLINE void P_shl_slow(canrls_P64 *q, uint64_t d, int32_t sh, uint32_t *c_P)
 {
+    /* the pair X = D - cp (modulo 2^64: exact) */
+    const int64_t x = (int64_t)(d + (0x80000000u - ((uint32_t)1 << (31 - sh))));
     q->lo = (uint32_t)x;
     q->word = (int32_t)(x >> 32);
     P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
 }
 
 /* V <- V 2^sh exactly, in the pair x: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31
- * = X 2^sh - (chi 2^32 + 2^31) when the word leaves room (|X| < 2^(62 - sh): the high word
- * within +-room); X 2^sh is the low word times m2 (one UMULL) plus the high word times m2
- * (one MLA). Else P_shift (saturated, counted). */
+ * = (X + cp) 2^sh, D = X + cp one SMLAL (room times cq), when D leaves room (the high word
+ * within +-room: |D 2^sh| < 2^62; an X + cp below -2^63 wraps to a D that fails the
+ * test). Else P_shift (saturated, counted). */
 INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t *c_P)
 {
-    const int32_t hi = (int32_t)(x >> 32);
+    const uint64_t d = mla_ww((uint64_t)x, (int32_t)k->room, k->cq);
+    const int32_t hi = (int32_t)(uint32_t)(d >> 32);
     if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
-        const uint64_t y = P_shl_sum((uint32_t)x, hi, 0, k, 0);
+        const uint64_t y = P_shl_sum((uint32_t)d, hi, k->m2, 0, 0, SUM_0);
         q->lo = (uint32_t)y;
         q->word = (int32_t)(uint32_t)(y >> 32);
         return;
     }
-    P_shl_slow(q, x, sh, c_P);
+    P_shl_slow(q, d, sh, c_P);
 }
 
 /* One element of the fixed-n step (32-bit P words): V <- sat(V - u) and, sh > 0, then
@@ -1035,22 +1064,35 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
 #if defined(__GNUC__)
     int64_t x;
 #endif
-    if (how == SH_NEGK) {
-        /* Ki = -(K_i 2^a), a word: D = X - u = X + Ki hj modulo 2^64 (one SMLAL). With
-         * X in [-2^63, 2^63) and |u| <= 2^62, an X - u outside int64 leaves D = X - u -+ 2^64
-         * with |D| >= 2^62: its high word fails the room test (room <= 2^29). A D that
-         * passes is X - u, exact and within +-2^(62 - sh): no saturation in V - u nor in
-         * its 2^sh, and P_shl's sum is exact. Else the general element (Ki negated back:
+    if (how == SH_NEGK || (how == SH_AFTER && (mode == PM_HIGH || mode == PM_32))) {
+        /* D = X - u + cp modulo 2^64, and (V - u) 2^sh in the pair is D 2^sh (P_shl):
+         * -u = ph nm (PM_HIGH, |u| <= 2^60), u = ph 2^32 (PM_32, the high word alone,
+         * |u| <= 2^61), -u = Ki hj (SH_NEGK: PM_LOWK with Ki = -(K_i 2^a), a word,
+         * |u| <= 2^62), each one SMLAL or a subtraction, cp = room cq one SMLAL. With X in
+         * [-2^63, 2^63), |u| <= 2^62 and -2^31 <= cp < 0, an X - u + cp outside int64
+         * leaves D = X - u + cp -+ 2^64 with |D| >= 2^62 - 2^31: its high word fails the
+         * room test (room <= 2^29). A D that passes is exact and within +-2^(62 - sh): no
+         * saturation in V - u nor in its 2^sh. Else the general element (Ki negated back:
          * K_i 2^a is a word). */
-        const uint64_t d = mla_ww((uint64_t)P_pair(q), Ki, hj);
-        const int32_t hi = (int32_t)(uint32_t)(d >> 32);
+        uint64_t d = (uint64_t)P_pair(q);
+        int32_t hi;
+        if (mode == PM_LOWK) {
+            d = mla_ww(d, Ki, hj);
+        } else if (mode == PM_32) {
+            d -= (uint64_t)(uint32_t)mul_rsh32(Ki, hj) << 32;
+        } else {
+            d = mla_ww(d, mul_rsh32(Ki, hj), nm);
+        }
+        d = mla_ww(d, (int32_t)k->room, k->cq);
+        hi = (int32_t)(uint32_t)(d >> 32);
         if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
-            const uint64_t z = P_shl_sum((uint32_t)d, hi, 0, k, 0);
+            const uint64_t z = P_shl_sum((uint32_t)d, hi, k->m2, 0, 0, SUM_0);
             q->lo = (uint32_t)z;
             q->word = (int32_t)(uint32_t)(z >> 32);
             return;
         }
-        P_elem_slow(q, (int32_t)(0u - (uint32_t)Ki), hj, PM_LOWK, P_s, sh, c_P);
+        P_elem_slow(q, how == SH_NEGK ? (int32_t)(0u - (uint32_t)Ki) : Ki, hj, mode, P_s, sh,
+                    c_P);
         return;
     }
 #if defined(__GNUC__)
@@ -1058,13 +1100,15 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
         /* |X| < 2^(61 - sh) (the high word within +-room2) and |u| <= 2^30 2^(64 - P_s)
          * <= 2^(61 - sh) (SH_FUSED), |u 2^sh| = |ph| 2^32 <= 2^62 (SH_FUSED32): neither
          * V - u nor (V - u) 2^sh leaves the pair, and X 2^sh - u 2^sh - (chi 2^32 + 2^31)
-         * is exact modulo 2^64 */
-        const int32_t ph = mul_rsh32(Ki, hj);
+         * is exact modulo 2^64: X 2^sh + (ph + t) nm2 (SH_FUSED; |ph| <= 2^29 and
+         * t < 2^(P_s - 33) <= 2^29), X 2^sh - ((ph + chi) 2^32 + 2^31) (SH_FUSED32), the
+         * sum ph + t or ph + chi a word in the one SMMLAR with the product */
+        const int32_t pht = mul_rsh32_add(Ki, hj, how == SH_FUSED ? k->t : (int32_t)k->chi);
         const int32_t hi = q->word;
         if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room2)) {
             const uint64_t z = how == SH_FUSED
-                                   ? P_shl_sum(q->lo, hi, ph, k, 1)
-                                   : P_shl_sum(q->lo, hi, 0, k, 0) - ((uint64_t)(uint32_t)ph << 32);
+                                   ? P_shl_sum(q->lo, hi, k->m2, pht, k->nm2, SUM_P)
+                                   : P_shl_sum(q->lo, hi, k->m2, pht, 0, SUM_C);
             q->lo = (uint32_t)z;
             q->word = (int32_t)(uint32_t)(z >> 32);
             return;
@@ -1295,7 +1339,7 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
     const int32_t tr_ps = p->trace_ps;
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
-    const P_shc k0 = {0u, 0u, 0u, 0u, 0}; /* (no shift) */
+    const P_shc k0 = {0u, 0u, 0u, 0u, 0, 0, 0}; /* (no shift) */
     int32_t e = *e_io, c = *c_io, sh = 0;
     int64_t tr = 0;
     uint32_t i, j, nz = 0, trw32 = 0;
