@@ -1201,8 +1201,9 @@ NOINLINE void P_row_slow(canrls_P64 *Pw, int32_t Ki, const int32_t *h, uint32_t 
     }
 }
 
-/* The off-diagonal elements: the shift class ``mode`` and how the block exponent's shift
- * sh is taken (``how``) are constants at each call. ``unroll`` (a constant): one straight
+/* The off-diagonal elements and, with a shift, the diagonal's shift (its elements
+ * updated before): the shift class ``mode`` and how the block exponent's shift sh is
+ * taken (``how``) are constants at each call. ``unroll`` (a constant): one straight
  * run, else a loop over the packed rows (the rare classes: less code). */
 INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t nm,
                   int32_t P_s, int32_t sh, int how, const P_shc *kc, int unroll,
@@ -1248,6 +1249,15 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
         }
     }
 #undef P_OFF_ROW
+    if (how != SH_NONE) {
+        /* the diagonal (its elements updated before this pass) shifted */
+        Pw = P;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            P_shl(Pw, P_pair(Pw), sh, &k, c_P);
+            Pw += n - i;
+        }
+    }
 }
 
 /* each class of the step its own function: its registers and its stack frame to itself */
@@ -1367,7 +1377,7 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
         }
         sh = sh < p->e_max - e ? sh : p->e_max - e;
     }
-    /* the rest of P~ <- (P~ - K h~') 2^sh */
+    /* the rest of P~ <- (P~ - K h~') 2^sh, the diagonal's 2^sh */
     if (common && LIKELY(sh == 0)) {
         Pw = P;
         UNROLL
@@ -1381,16 +1391,6 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
         }
     } else {
         P_off_any(P, KP, hP, mode, nm, P_s, sh, c_P);
-    }
-    if (sh > 0) {
-        /* the diagonal shifted */
-        const P_shc k = shc_of(sh, mode, P_s);
-        Pw = P;
-        UNROLL
-        for (i = 0; i < n; i++) {
-            P_shl(Pw, P_pair(Pw), sh, &k, c_P);
-            Pw += n - i;
-        }
     }
     Pw = P;
     UNROLL
@@ -1488,19 +1488,6 @@ KP_STEP(KP_step_high, 0, PM_HIGH)
 KP_STEP(KP_step_32, 0, PM_32)
 KP_STEP(KP_step_low, 0, PM_LOW)
 
-/* any step but the steady state's, by the class of P_s */
-NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
-                       int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
-                       uint32_t *c_th, uint32_t *c_P)
-{
-    if (P_s >= 33) {
-        return KP_step_high(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
-    }
-    if (P_s == 32) {
-        return KP_step_32(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
-    }
-    return KP_step_low(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
-}
 #endif
 
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
@@ -1695,8 +1682,12 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             if (P_s >= 33 && th_s >= 33) {
                 low = KP_step_common(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th,
                                      &c_P);
+            } else if (P_s >= 33) {
+                low = KP_step_high(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
+            } else if (P_s == 32) {
+                low = KP_step_32(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
             } else {
-                low = KP_step_n(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
+                low = KP_step_low(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
             }
             tail = c > p->one_lam;
             fixed_step = 1;
