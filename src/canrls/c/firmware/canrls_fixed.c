@@ -219,6 +219,18 @@ INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
 #endif
 }
 
+/* acc + a b (one SMLAL) */
+INLINE uint64_t mla_ww(uint64_t acc, int32_t a, int32_t b)
+{
+#if defined(__GNUC__) && defined(__thumb2__)
+    uint32_t lo = (uint32_t)acc, hi = (uint32_t)(acc >> 32);
+    __asm__("smlal %0, %1, %2, %3" : "+r"(lo), "+r"(hi) : "r"(a), "r"(b));
+    return ((uint64_t)hi << 32) | lo;
+#else
+    return acc + (uint64_t)((int64_t)a * b);
+#endif
+}
+
 /* rsh(a b, 32): the high word of a b + 2^31 (one SMMULR on a core with the DSP
  * extension) */
 INLINE int32_t mul_rsh32(int32_t a, int32_t b)
@@ -651,6 +663,34 @@ INLINE int64_t windup_vw_pow2(const int32_t *h, uint32_t n, int32_t s, int32_t v
     return (int64_t)a_vw;
 }
 
+/* A = sum_i h_i^2 with h_i = rsh(h~_i, s), one SMLAL an element (s = 0, ``s0`` a
+ * constant at each call: h_i = h~_i), and the OR of |h_i| (one's complement) in *mm: A is
+ * exact where *mm < 2^29 and n < 64 (each term at most 2^58) */
+INLINE uint64_t windup_sq(const int32_t *h, uint32_t n, int32_t s, int s0, uint32_t *mm)
+{
+    const int32_t t0 = s > 0, t1 = s - t0; /* rsh(x, s) = ((x >> t1) + t0) >> t0 */
+    uint64_t a = 0;
+    uint32_t i, o = 0;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        const int32_t hi_ = s0 ? h[i] : ((h[i] >> t1) + t0) >> t0;
+        o |= (uint32_t)(hi_ ^ (hi_ >> 31));
+        a = mla_ww(a, hi_, hi_);
+    }
+    *mm = o;
+    return a;
+}
+
+/* the windup test's comparison of its two sides, lhs and a_vw, whose scales differ by
+ * df bits (non-increasing in a_vw) */
+INLINE int windup_cmp(int64_t lhs, int64_t a_vw, int32_t df)
+{
+    if (df >= 0) {
+        return (lhs >> (df < 63 ? df : 63)) > a_vw;
+    }
+    return lhs > (a_vw >> (-df < 63 ? -df : 63));
+}
+
 /* The windup test once T = tr P - lambda trace_max > 0 (rare: while P falls from the
  * prior), out of line: (tr P - lambda trace_max) (lambda + phi'P phi) > h'h, the two
  * sides at their scales (docs/fixed_point.md) */
@@ -659,25 +699,37 @@ RARE int windup_up(const canrls_plan_q31 *p, const int32_t *h, uint32_t n, int32
 {
     uint32_t none = 0; /* d_lam is not counted */
     const int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
-    int64_t a_vw, lhs;
-    int32_t df;
+    /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
+    const int64_t lhs = rsh_w(mul_ww((int32_t)(T < p->P_hi ? T : p->P_hi), d_lam), p->lhs_ps);
+    /* the two sides differ in scale by cmp_df - e bits */
+    const int32_t df = p->cmp_scale_diff - e;
+    int64_t a_vw;
     /* h = c h~ ; w = c w~ = h:  a_vw = sum_i rsh(h_i w_i, vw_ps) */
     if (!CANRLS_SMALL && (c & (c - 1)) == 0 && 31 - nlz((uint32_t)c) <= p->hc_s
         && (uint32_t)(p->vw_ps - 1) < 31u) {
-        a_vw = windup_vw_pow2(h, n, p->hc_s - (31 - nlz((uint32_t)c)), p->vw_ps);
+        const int32_t s = p->hc_s - (31 - nlz((uint32_t)c));
+        uint32_t mm;
+        const uint64_t A = s == 0 ? windup_sq(h, n, 0, 1, &mm) : windup_sq(h, n, s, 0, &mm);
+        if ((mm >> 29) == 0u && n < 64u) {
+            /* A = sum_i h_i^2 exact: the rounded terms' sum a_vw lies in [Q - (n - 1), Q],
+             * Q = floor((A + n 2^(vw_ps - 1)) / 2^vw_ps) (a sum of n floors is within
+             * n - 1 of the floor of the sum): the test is decided by these bounds unless
+             * lhs falls between them */
+            const int64_t Q = (int64_t)((A + ((uint64_t)n << (p->vw_ps - 1))) >> p->vw_ps);
+            if (windup_cmp(lhs, Q, df)) {
+                return 1;
+            }
+            if (!windup_cmp(lhs, Q - (int64_t)(n - 1u), df)) {
+                return 0;
+            }
+        }
+        a_vw = windup_vw_pow2(h, n, s, p->vw_ps);
     } else if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
         a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_LOW);
     } else {
         a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_ANY);
     }
-    /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
-    lhs = rsh_w(mul_ww((int32_t)(T < p->P_hi ? T : p->P_hi), d_lam), p->lhs_ps);
-    /* the two sides differ in scale by cmp_df - e bits */
-    df = p->cmp_scale_diff - e;
-    if (df >= 0) {
-        return (lhs >> (df < 63 ? df : 63)) > a_vw;
-    }
-    return lhs > (a_vw >> (-df < 63 ? -df : 63));
+    return windup_cmp(lhs, a_vw, df);
 }
 
 /* h~_i from its sum u = acc_i + 2^(h_os-1) (the rounding half already added), for
@@ -928,18 +980,6 @@ INLINE P_shc shc_of(int32_t sh, int mode, int32_t P_s)
 INLINE int64_t P_pair(const canrls_P64 *q)
 {
     return (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
-}
-
-/* acc + a b (one SMLAL) */
-INLINE uint64_t mla_ww(uint64_t acc, int32_t a, int32_t b)
-{
-#if defined(__GNUC__) && defined(__thumb2__)
-    uint32_t lo = (uint32_t)acc, hi = (uint32_t)(acc >> 32);
-    __asm__("smlal %0, %1, %2, %3" : "+r"(lo), "+r"(hi) : "r"(a), "r"(b));
-    return ((uint64_t)hi << 32) | lo;
-#else
-    return acc + (uint64_t)((int64_t)a * b);
-#endif
 }
 
 /* t + rsh(a b, 32) (one SMMLAR on a core with the DSP extension; no overflow where
