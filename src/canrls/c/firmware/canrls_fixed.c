@@ -1410,9 +1410,11 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
     /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh (not
      * with a c to fold: the caller folds, then shifts) */
     if (UNLIKELY(c <= p->one_lam && tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max)) {
-        /* the largest sh with tr 2^sh <= tr_hi (at least 1 here) and e + sh <= e_max */
-        sh = nlz((uint32_t)tr) - nlz((uint32_t)p->trace_hi);
-        if ((tr << sh) > p->trace_hi) {
+        /* the largest sh with tr 2^sh <= tr_hi (at least 1 here) and e + sh <= e_max (tr
+         * and tr 2^sh below 2^31 here: words) */
+        const uint32_t t = (uint32_t)tr;
+        sh = nlz(t) - nlz((uint32_t)p->trace_hi);
+        if ((t << sh) > (uint32_t)p->trace_hi) {
             sh -= 1;
         }
         sh = sh < p->e_max - e ? sh : p->e_max - e;
