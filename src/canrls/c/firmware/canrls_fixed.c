@@ -1488,27 +1488,26 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
     }
     if (!common && cls == PM_LOW) {
-        /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a that keeps K 2^a a
-         * word, the rest b on h~ if it keeps h~ 2^b a word */
+        /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a <= 32 - P_s that
+         * keeps K 2^a a word (mK < 2^(31 - a)), the rest b on h~ if it keeps h~ 2^b a word */
+        const int32_t a0 = nlz(mK | 1u) - 1;
+        const int32_t a = a0 < 32 - P_s ? a0 : 32 - P_s, b = 32 - P_s - a;
         uint32_t mh = 0;
-        int32_t a = 32 - P_s, b;
-        while (a > 0 && (mK >> (31 - a)) != 0u) {
-            a -= 1;
+        if (b > 0) {
+            UNROLL
+            for (i = 0; i < n; i++) {
+                mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
+            }
         }
-        b = 32 - P_s - a;
-        UNROLL
-        for (i = 0; i < n; i++) {
-            mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
-        }
-        if (b <= 31 && (mh >> (31 - b)) == 0u) {
+        if (b == 0 || (b <= 31 && (mh >> (31 - b)) == 0u)) {
             UNROLL
             for (i = 0; i < n; i++) {
                 Kk[i] = (int32_t)((uint32_t)K[i] << a);
                 hk[i] = (int32_t)((uint32_t)hn[i] << b);
             }
             /* K and h~ as the P update takes them: K 2^a and h~ 2^b */
-            return KP_tail(S, K, hn, Kk, hk, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th,
-                           c_P, 0, PM_LOWK);
+            return KP_tail(S, K, hn, Kk, b == 0 ? hn : hk, mK, epn, th_s, P_s, il, e_io, c_io,
+                           trw_io, c_th, c_P, 0, PM_LOWK);
         }
     }
     return KP_tail(S, K, hn, K, hn, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P,
