@@ -223,9 +223,9 @@ INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
 INLINE uint64_t mla_ww(uint64_t acc, int32_t a, int32_t b)
 {
 #if defined(__GNUC__) && defined(__thumb2__)
-    uint32_t lo = (uint32_t)acc, hi = (uint32_t)(acc >> 32);
-    __asm__("smlal %0, %1, %2, %3" : "+r"(lo), "+r"(hi) : "r"(a), "r"(b));
-    return ((uint64_t)hi << 32) | lo;
+    /* (the accumulator one 64-bit operand: a register pair, as LDRD and STRD take it) */
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
 #else
     return acc + (uint64_t)((int64_t)a * b);
 #endif
@@ -944,22 +944,22 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 
 /* How an element takes the block exponent's shift sh (a constant at each call): SH_NONE
- * sh = 0; SH_AFTER V - u, then (V - u) 2^sh; SH_FUSED (PM_HIGH, P_s >= 33 + sh) V 2^sh
- * - u 2^sh as one sum of products, -u 2^sh = ph (nm 2^sh); SH_FUSED32 (PM_HIGH,
- * P_s = 32 + sh) the same with u 2^sh = ph 2^32: ph subtracted from the high word;
- * SH_NEGK (PM_LOWK, the K words passed negated) X - u as one SMLAL, X + (-K_i 2^a)(h~_j 2^b)
- * modulo 2^64, then (V - u) 2^sh where the room test of its high word passes. */
+ * sh = 0; SH_AFTER V - u, then (V - u) 2^sh; SH_FUSED (PM_HIGH, P_s >= 33 + sh) the same
+ * with the pair's carried constant folded into the decrement, (ph + t) nm; SH_FUSED32
+ * (PM_HIGH, P_s = 32 + sh) V 2^sh - u 2^sh, u 2^sh = ph 2^32: ph subtracted from the high
+ * word; SH_NEGK (PM_LOWK, the K words passed negated) X - u as one SMLAL,
+ * X + (-K_i 2^a)(h~_j 2^b) modulo 2^64, then (V - u) 2^sh where the room test of its high
+ * word passes. */
 enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2, SH_FUSED32 = 3, SH_NEGK = 4 };
 
 /* The constants of a shift 1 <= sh <= 30: m2 = 2^sh; chi = 2^(sh-1) - 1 and
  * cp = 2^(31 - sh) - 2^31 = room cq, cq = 2 - 2^(sh + 1), the pair's 2^31 carried through
  * the shift ((2^sh - 1) 2^31 = chi 2^32 + 2^31 = -cp 2^sh); room = 2^(30 - sh), the bound
- * of the high word below which V 2^sh stays in the pair; room2 = room / 2, nm2 = nm 2^sh =
- * neg_pow2(P_s - sh) and t = (2^sh - 1) 2^(P_s - 33 - sh) (t nm2 = -(2^sh - 1) 2^31) for
- * SH_FUSED. */
+ * of the high word below which V 2^sh stays in the pair; room2 = room / 2; for SH_FUSED
+ * t = (2^sh - 1) 2^(P_s - 33 - sh), t nm = cp. */
 typedef struct {
     uint32_t m2, chi, room, room2;
-    int32_t cq, nm2, t;
+    int32_t cq, t;
 } P_shc;
 
 INLINE P_shc shc_of(int32_t sh, int mode, int32_t P_s)
@@ -971,9 +971,20 @@ INLINE P_shc shc_of(int32_t sh, int mode, int32_t P_s)
     k.cq = (int32_t)(2u - (k.m2 << 1));
     k.room = (uint32_t)1 << (30 - sh);
     k.room2 = k.room >> 1;
-    k.nm2 = fused ? neg_pow2(P_s - sh) : 0;
     k.t = fused ? (int32_t)((k.m2 - 1u) << (P_s - 33 - sh)) : 0;
     return k;
+}
+
+/* acc - a 2^32 modulo 2^64: a subtracted from the high word (the pair one 64-bit
+ * operand on Thumb-2, so that it stays where LDRD put it) */
+INLINE uint64_t sub_hi(uint64_t acc, int32_t a)
+{
+#if defined(__GNUC__) && defined(__thumb2__)
+    __asm__("sub %R0, %R0, %1" : "+r"(acc) : "r"(a));
+    return acc;
+#else
+    return acc - ((uint64_t)(uint32_t)a << 32);
+#endif
 }
 
 /* the pair of a canrls_P64 (X = V + 2^31) as one int64_t */
@@ -995,31 +1006,24 @@ INLINE int32_t mul_rsh32_add(int32_t a, int32_t b, int32_t t)
 #endif
 }
 
-/* How P_shl_sum ends: SUM_0 X 2^sh; SUM_P X 2^sh + ph nm2; SUM_C X 2^sh - (c 2^32 + 2^31) */
-enum { SUM_0 = 0, SUM_P = 1, SUM_C = 2 };
+/* How P_shl_sum ends: SUM_0 X 2^sh; SUM_C X 2^sh - (c 2^32 + 2^31) */
+enum { SUM_0 = 0, SUM_C = 1 };
 
 /* X 2^sh modulo 2^64, X the pair (lo, hi), m2 = 2^sh: the low word times m2 (one UMULL)
- * plus the high word times m2 (one MLA); then ``form`` (a constant at each call) adds
- * a b (one SMLAL) or subtracts a 2^32 + 2^31 (two words). Written out on Thumb-2: GCC
- * otherwise zeroes an accumulator for UMLAL and moves it. */
-INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, uint32_t m2, int32_t a, int32_t b,
-                          int form)
+ * plus the high word times m2 (one MLA); then ``form`` (a constant at each call)
+ * subtracts c 2^32 + 2^31 (two words). Written out on Thumb-2: GCC otherwise zeroes an
+ * accumulator for UMLAL and moves it. */
+INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, uint32_t m2, int32_t c, int form)
 {
 #if defined(__GNUC__) && defined(__thumb2__)
     uint32_t rl, rh;
-    if (form == SUM_P) {
-        __asm__("umull %0, %1, %2, %4\n\t"
-                "mla %1, %3, %4, %1\n\t"
-                "smlal %0, %1, %5, %6"
-                : "=&r"(rl), "=&r"(rh)
-                : "r"(lo), "r"(hi), "r"(m2), "r"(a), "r"(b));
-    } else if (form == SUM_C) {
+    if (form == SUM_C) {
         __asm__("umull %0, %1, %2, %4\n\t"
                 "mla %1, %3, %4, %1\n\t"
                 "subs %0, %0, #0x80000000\n\t"
                 "sbc %1, %1, %5"
                 : "=&r"(rl), "=&r"(rh)
-                : "r"(lo), "r"(hi), "r"(m2), "r"(a)
+                : "r"(lo), "r"(hi), "r"(m2), "r"(c)
                 : "cc");
     } else {
         __asm__("umull %0, %1, %2, %4\n\t"
@@ -1030,10 +1034,7 @@ INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, uint32_t m2, int32_t a, int32
     return ((uint64_t)rh << 32) | rl;
 #else
     const uint64_t y = (uint64_t)lo * m2 + ((uint64_t)((uint32_t)hi * m2) << 32);
-    if (form == SUM_P) {
-        return mla_ww(y, a, b);
-    }
-    return form == SUM_C ? y - (((uint64_t)(uint32_t)a << 32) | 0x80000000u) : y;
+    return form == SUM_C ? y - (((uint64_t)(uint32_t)c << 32) | 0x80000000u) : y;
 #endif
 }
 
@@ -1085,7 +1086,7 @@ INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t
     const uint64_t d = mla_ww((uint64_t)x, (int32_t)k->room, k->cq);
     const int32_t hi = (int32_t)(uint32_t)(d >> 32);
     if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
-        const uint64_t y = P_shl_sum((uint32_t)d, hi, k->m2, 0, 0, SUM_0);
+        const uint64_t y = P_shl_sum((uint32_t)d, hi, k->m2, 0, SUM_0);
         q->lo = (uint32_t)y;
         q->word = (int32_t)(uint32_t)(y >> 32);
         return;
@@ -1104,11 +1105,14 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
 #if defined(__GNUC__)
     int64_t x;
 #endif
-    if (how == SH_NEGK || (how == SH_AFTER && (mode == PM_HIGH || mode == PM_32))) {
+    if (how == SH_NEGK || how == SH_FUSED
+        || (how == SH_AFTER && (mode == PM_HIGH || mode == PM_32))) {
         /* D = X - u + cp modulo 2^64, and (V - u) 2^sh in the pair is D 2^sh (P_shl):
          * -u = ph nm (PM_HIGH, |u| <= 2^60), u = ph 2^32 (PM_32, the high word alone,
          * |u| <= 2^61), -u = Ki hj (SH_NEGK: PM_LOWK with Ki = -(K_i 2^a), a word,
-         * |u| <= 2^62), each one SMLAL or a subtraction, cp = room cq one SMLAL. With X in
+         * |u| <= 2^62), each one SMLAL or a subtraction, cp = room cq one SMLAL; SH_FUSED
+         * (P_s >= 33 + sh) -u + cp = (ph + t) nm, ph + t one SMMLAR (|ph| <= 2^29,
+         * t < 2^(P_s - 33) <= 2^29: a word), one SMLAL. With X in
          * [-2^63, 2^63), |u| <= 2^62 and -2^31 <= cp < 0, an X - u + cp outside int64
          * leaves D = X - u + cp -+ 2^64 with |D| >= 2^62 - 2^31: its high word fails the
          * room test (room <= 2^29). A D that passes is exact and within +-2^(62 - sh): no
@@ -1116,17 +1120,21 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
          * K_i 2^a is a word). */
         uint64_t d = (uint64_t)P_pair(q);
         int32_t hi;
-        if (mode == PM_LOWK) {
-            d = mla_ww(d, Ki, hj);
-        } else if (mode == PM_32) {
-            d -= (uint64_t)(uint32_t)mul_rsh32(Ki, hj) << 32;
+        if (how == SH_FUSED) {
+            d = mla_ww(d, mul_rsh32_add(Ki, hj, k->t), nm);
         } else {
-            d = mla_ww(d, mul_rsh32(Ki, hj), nm);
+            if (mode == PM_LOWK) {
+                d = mla_ww(d, Ki, hj);
+            } else if (mode == PM_32) {
+                d = sub_hi(d, mul_rsh32(Ki, hj));
+            } else {
+                d = mla_ww(d, mul_rsh32(Ki, hj), nm);
+            }
+            d = mla_ww(d, (int32_t)k->room, k->cq);
         }
-        d = mla_ww(d, (int32_t)k->room, k->cq);
         hi = (int32_t)(uint32_t)(d >> 32);
         if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
-            const uint64_t z = P_shl_sum((uint32_t)d, hi, k->m2, 0, 0, SUM_0);
+            const uint64_t z = P_shl_sum((uint32_t)d, hi, k->m2, 0, SUM_0);
             q->lo = (uint32_t)z;
             q->word = (int32_t)(uint32_t)(z >> 32);
             return;
@@ -1136,19 +1144,15 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
         return;
     }
 #if defined(__GNUC__)
-    if (how == SH_FUSED || how == SH_FUSED32) {
-        /* |X| < 2^(61 - sh) (the high word within +-room2) and |u| <= 2^30 2^(64 - P_s)
-         * <= 2^(61 - sh) (SH_FUSED), |u 2^sh| = |ph| 2^32 <= 2^62 (SH_FUSED32): neither
-         * V - u nor (V - u) 2^sh leaves the pair, and X 2^sh - u 2^sh - (chi 2^32 + 2^31)
-         * is exact modulo 2^64: X 2^sh + (ph + t) nm2 (SH_FUSED; |ph| <= 2^29 and
-         * t < 2^(P_s - 33) <= 2^29), X 2^sh - ((ph + chi) 2^32 + 2^31) (SH_FUSED32), the
-         * sum ph + t or ph + chi a word in the one SMMLAR with the product */
-        const int32_t pht = mul_rsh32_add(Ki, hj, how == SH_FUSED ? k->t : (int32_t)k->chi);
+    if (how == SH_FUSED32) {
+        /* |X| < 2^(61 - sh) (the high word within +-room2) and |u 2^sh| = |ph| 2^32
+         * <= 2^62: neither V - u nor (V - u) 2^sh leaves the pair, and
+         * X 2^sh - u 2^sh - (chi 2^32 + 2^31) = X 2^sh - ((ph + chi) 2^32 + 2^31) is exact
+         * modulo 2^64, ph + chi a word in the one SMMLAR with the product */
+        const int32_t pht = mul_rsh32_add(Ki, hj, (int32_t)k->chi);
         const int32_t hi = q->word;
         if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room2)) {
-            const uint64_t z = how == SH_FUSED
-                                   ? P_shl_sum(q->lo, hi, k->m2, pht, k->nm2, SUM_P)
-                                   : P_shl_sum(q->lo, hi, k->m2, pht, 0, SUM_C);
+            const uint64_t z = P_shl_sum(q->lo, hi, k->m2, pht, SUM_C);
             q->lo = (uint32_t)z;
             q->word = (int32_t)(uint32_t)(z >> 32);
             return;
@@ -1389,7 +1393,7 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
     const int32_t tr_ps = p->trace_ps;
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
-    const P_shc k0 = {0u, 0u, 0u, 0u, 0, 0, 0}; /* (no shift) */
+    const P_shc k0 = {0u, 0u, 0u, 0u, 0, 0}; /* (no shift) */
     int32_t e = *e_io, c = *c_io, sh = 0;
     int64_t tr = 0;
     uint32_t i, j, nz = 0, trw32 = 0;
