@@ -464,7 +464,7 @@ def _spec_pass(P_s: int, sh: int, K: list[int], h: list[int], P: list[list[int]]
 def _pass_cases(rng: np.random.Generator) -> list[tuple[int, int, list[int], list[int],
                                                         list[list[int]], list[list[int]]]]:
     """Passes of every class of P_s (PM_LOWK, the loop of PM_LOW, PM_32, PM_HIGH with the
-    shift after the step, fused, fused at P_s = 32 + sh) with and without a shift, on
+    shift after the step, P_s = 32 + sh among them, and fused) with and without a shift, on
     words of every size (elements that saturate, differences that leave 64 bits), and
     the corners the recorded vectors do not reach: a K 2^a of -2^31 (its row in the
     general element), a D that fails the room test, a diagonal without room."""

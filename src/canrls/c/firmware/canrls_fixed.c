@@ -945,33 +945,28 @@ enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 
 /* How an element takes the block exponent's shift sh (a constant at each call): SH_NONE
  * sh = 0; SH_AFTER V - u, then (V - u) 2^sh; SH_FUSED (PM_HIGH, P_s >= 33 + sh) the same
- * with the pair's carried constant folded into the decrement, (ph + t) nm; SH_FUSED32
- * (PM_HIGH, P_s = 32 + sh) V 2^sh - u 2^sh, u 2^sh = ph 2^32: ph subtracted from the high
- * word; SH_NEGK (PM_LOWK, the K words passed negated) X - u as one SMLAL,
- * X + (-K_i 2^a)(h~_j 2^b) modulo 2^64, then (V - u) 2^sh where the room test of its high
- * word passes. */
-enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2, SH_FUSED32 = 3, SH_NEGK = 4 };
+ * with the pair's carried constant folded into the decrement, (ph + t) nm; SH_NEGK
+ * (PM_LOWK, the K words passed negated) X - u as one SMLAL, X + (-K_i 2^a)(h~_j 2^b)
+ * modulo 2^64. Each shifted form tests the room of V - u's high word, then shifts. */
+enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2, SH_NEGK = 3 };
 
-/* The constants of a shift 1 <= sh <= 30: m2 = 2^sh; chi = 2^(sh-1) - 1 and
- * cp = 2^(31 - sh) - 2^31 = room cq, cq = 2 - 2^(sh + 1), the pair's 2^31 carried through
- * the shift ((2^sh - 1) 2^31 = chi 2^32 + 2^31 = -cp 2^sh); room = 2^(30 - sh), the bound
- * of the high word below which V 2^sh stays in the pair; room2 = room / 2; for SH_FUSED
+/* The constants of a shift 1 <= sh <= 30: m2 = 2^sh; cp = 2^(31 - sh) - 2^31 = room cq,
+ * cq = 2 - 2^(sh + 1), the pair's 2^31 carried through the shift
+ * ((2^sh - 1) 2^31 = -cp 2^sh: X 2^sh - (2^sh - 1) 2^31 = (X + cp) 2^sh); room = 2^(30 - sh),
+ * the bound of the high word below which V 2^sh stays in the pair; for SH_FUSED
  * t = (2^sh - 1) 2^(P_s - 33 - sh), t nm = cp. */
 typedef struct {
-    uint32_t m2, chi, room, room2;
+    uint32_t m2, room;
     int32_t cq, t;
 } P_shc;
 
 INLINE P_shc shc_of(int32_t sh, int mode, int32_t P_s)
 {
-    const int fused = mode == PM_HIGH && P_s >= 33 + sh;
     P_shc k;
     k.m2 = (uint32_t)1 << sh;
-    k.chi = ((uint32_t)1 << (sh - 1)) - 1u;
     k.cq = (int32_t)(2u - (k.m2 << 1));
     k.room = (uint32_t)1 << (30 - sh);
-    k.room2 = k.room >> 1;
-    k.t = fused ? (int32_t)((k.m2 - 1u) << (P_s - 33 - sh)) : 0;
+    k.t = mode == PM_HIGH && P_s >= 33 + sh ? (int32_t)((k.m2 - 1u) << (P_s - 33 - sh)) : 0;
     return k;
 }
 
@@ -1006,35 +1001,20 @@ INLINE int32_t mul_rsh32_add(int32_t a, int32_t b, int32_t t)
 #endif
 }
 
-/* How P_shl_sum ends: SUM_0 X 2^sh; SUM_C X 2^sh - (c 2^32 + 2^31) */
-enum { SUM_0 = 0, SUM_C = 1 };
-
 /* X 2^sh modulo 2^64, X the pair (lo, hi), m2 = 2^sh: the low word times m2 (one UMULL)
- * plus the high word times m2 (one MLA); then ``form`` (a constant at each call)
- * subtracts c 2^32 + 2^31 (two words). Written out on Thumb-2: GCC otherwise zeroes an
+ * plus the high word times m2 (one MLA). Written out on Thumb-2: GCC otherwise zeroes an
  * accumulator for UMLAL and moves it. */
-INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, uint32_t m2, int32_t c, int form)
+INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, uint32_t m2)
 {
 #if defined(__GNUC__) && defined(__thumb2__)
     uint32_t rl, rh;
-    if (form == SUM_C) {
-        __asm__("umull %0, %1, %2, %4\n\t"
-                "mla %1, %3, %4, %1\n\t"
-                "subs %0, %0, #0x80000000\n\t"
-                "sbc %1, %1, %5"
-                : "=&r"(rl), "=&r"(rh)
-                : "r"(lo), "r"(hi), "r"(m2), "r"(c)
-                : "cc");
-    } else {
-        __asm__("umull %0, %1, %2, %4\n\t"
-                "mla %1, %3, %4, %1"
-                : "=&r"(rl), "=&r"(rh)
-                : "r"(lo), "r"(hi), "r"(m2));
-    }
+    __asm__("umull %0, %1, %2, %4\n\t"
+            "mla %1, %3, %4, %1"
+            : "=&r"(rl), "=&r"(rh)
+            : "r"(lo), "r"(hi), "r"(m2));
     return ((uint64_t)rh << 32) | rl;
 #else
-    const uint64_t y = (uint64_t)lo * m2 + ((uint64_t)((uint32_t)hi * m2) << 32);
-    return form == SUM_C ? y - (((uint64_t)(uint32_t)c << 32) | 0x80000000u) : y;
+    return (uint64_t)lo * m2 + ((uint64_t)((uint32_t)hi * m2) << 32);
 #endif
 }
 
@@ -1086,7 +1066,7 @@ INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t
     const uint64_t d = mla_ww((uint64_t)x, (int32_t)k->room, k->cq);
     const int32_t hi = (int32_t)(uint32_t)(d >> 32);
     if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
-        const uint64_t y = P_shl_sum((uint32_t)d, hi, k->m2, 0, SUM_0);
+        const uint64_t y = P_shl_sum((uint32_t)d, hi, k->m2);
         q->lo = (uint32_t)y;
         q->word = (int32_t)(uint32_t)(y >> 32);
         return;
@@ -1134,7 +1114,7 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
         }
         hi = (int32_t)(uint32_t)(d >> 32);
         if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
-            const uint64_t z = P_shl_sum((uint32_t)d, hi, k->m2, 0, SUM_0);
+            const uint64_t z = P_shl_sum((uint32_t)d, hi, k->m2);
             q->lo = (uint32_t)z;
             q->word = (int32_t)(uint32_t)(z >> 32);
             return;
@@ -1144,22 +1124,6 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
         return;
     }
 #if defined(__GNUC__)
-    if (how == SH_FUSED32) {
-        /* |X| < 2^(61 - sh) (the high word within +-room2) and |u 2^sh| = |ph| 2^32
-         * <= 2^62: neither V - u nor (V - u) 2^sh leaves the pair, and
-         * X 2^sh - u 2^sh - (chi 2^32 + 2^31) = X 2^sh - ((ph + chi) 2^32 + 2^31) is exact
-         * modulo 2^64, ph + chi a word in the one SMMLAR with the product */
-        const int32_t pht = mul_rsh32_add(Ki, hj, (int32_t)k->chi);
-        const int32_t hi = q->word;
-        if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room2)) {
-            const uint64_t z = P_shl_sum(q->lo, hi, k->m2, pht, SUM_C);
-            q->lo = (uint32_t)z;
-            q->word = (int32_t)(uint32_t)(z >> 32);
-            return;
-        }
-        P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
-        return;
-    }
     if (mode == PM_32) {
         /* u = ph 2^32: the word alone, saturated where it overflows */
         const int32_t ph = mul_rsh32(Ki, hj);
@@ -1313,7 +1277,6 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
     }
 P_OFF_CLASS(P_off_high_fused, PM_HIGH, SH_FUSED, 1)
 P_OFF_CLASS(P_off_high_after, PM_HIGH, SH_AFTER, 1)
-P_OFF_CLASS(P_off_high_fused32, PM_HIGH, SH_FUSED32, 1)
 P_OFF_CLASS(P_off_high, PM_HIGH, SH_NONE, 1)
 P_OFF_CLASS(P_off_32_after, PM_32, SH_AFTER, 1)
 P_OFF_CLASS(P_off_32, PM_32, SH_NONE, 1)
@@ -1330,8 +1293,6 @@ INLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mo
     const P_shc kc = sh > 0 ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
     if (mode == PM_HIGH && sh > 0 && P_s >= 33 + sh) {
         P_off_high_fused(P, K, hn, nm, P_s, sh, &kc, c_P);
-    } else if (mode == PM_HIGH && sh > 0 && P_s == 32 + sh) {
-        P_off_high_fused32(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_HIGH && sh > 0) {
         P_off_high_after(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_HIGH) {
@@ -1393,7 +1354,7 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
     const int32_t tr_ps = p->trace_ps;
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
-    const P_shc k0 = {0u, 0u, 0u, 0u, 0, 0}; /* (no shift) */
+    const P_shc k0 = {0u, 0u, 0, 0}; /* (no shift) */
     int32_t e = *e_io, c = *c_io, sh = 0;
     int64_t tr = 0;
     uint32_t i, j, nz = 0, trw32 = 0;
