@@ -62,8 +62,7 @@ EXTENSIONS: list[Extension] = [
                        "src/canrls/c/firmware/canrls_fixed.c"],
               include_dirs=["src/canrls/c/firmware"],
               depends=["src/canrls/c/firmware/canrls_fixed.h",
-                       "src/canrls/c/firmware/canrls_bounds.h",
-                       "src/canrls/c/host/plan_fields.h"],
+                       "src/canrls/c/firmware/canrls_bounds.h"],
               extra_compile_args=_CFLAGS),
     # the target's whole integer path (canrls_target.c and canrls_fixed.c, the C that
     # export-c writes, its tables given at run time as data) for canrls.firmware.native:
@@ -79,7 +78,7 @@ EXTENSIONS: list[Extension] = [
                        "src/canrls/c/firmware/canrls_target_tables.h",
                        "src/canrls/c/firmware/canrls_fixed.h",
                        "src/canrls/c/firmware/canrls_bounds.h",
-                       "src/canrls/c/host/plan_fields.h", "src/canrls/c/host/pyargs.h"],
+                       "src/canrls/c/host/pyargs.h"],
               extra_compile_args=_CFLAGS),
     # the fixed-point RLS as specified (every update form, any n) for
     # canrls.estimation.fixed.kernels: where the target's kernel does not apply

@@ -202,6 +202,51 @@ def test_the_c_is_bit_exact_on_32_bit_arm(drives: dict[str, dict[str, Any]], nam
     assert "bit-exact with the specification" in _make(drives[name]["out"], "test-arm")
 
 
+#: a driver of the exported kernel: init with the model's plan, then with each field of it
+#: changed (its low bit flipped); prints each field and what canrls_init_q31 returned
+_PLAN_DRIVER = """#include <stdio.h>
+#include "canrls_model.h"
+int main(void)
+{
+    static canrls_rls_q31 S;
+    const canrls_equation *e = &canrls_model.equations[0];
+    printf("model %d\\n", canrls_init_q31(&S, e->plan, e->n, e->p0, e->e0));
+#define TRY(f) { canrls_plan_q31 q = *e->plan; q.f ^= 1; \\
+        printf(#f " %d\\n", canrls_init_q31(&S, &q, e->n, e->p0, e->e0)); }
+    CANRLS_PLAN_FIELDS(TRY)
+    return 0;
+}
+"""
+
+
+def test_the_kernel_of_a_one_equation_export_takes_its_own_plan_alone(
+        drives: dict[str, dict[str, Any]]) -> None:
+    """An export of one equation makes its plan a constant of the kernel
+    (``CANRLS_PLAN_CONST`` in its canrls_bounds.h): ``canrls_init_q31`` then refuses a
+    plan that differs in any field but ``trace_max_lam`` (the target moves it with the
+    prior); built with ``-DCANRLS_PLAN_RUNTIME`` it takes any plan. A model of two
+    equations has no constant plan."""
+    need_tool("cc", ["gcc"])
+    out = drives["own"]["out"]
+    assert "#define CANRLS_PLAN_CONST {" in (out / "canrls_bounds.h").read_text()
+    assert "CANRLS_PLAN_CONST" not in (drives["faults"]["out"] / "canrls_bounds.h").read_text()
+    (out / "plan_driver.c").write_text(_PLAN_DRIVER)
+    got = {}
+    for name, defs in (("const", []), ("runtime", ["-DCANRLS_PLAN_RUNTIME"])):
+        exe = out / f"plan_driver_{name}"
+        subprocess.run(["cc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-DCANRLS_N=6",
+                        *defs, "-I", str(out), str(out / "plan_driver.c"),
+                        str(out / "canrls_model.c"), str(out / "canrls_fixed.c"), "-o",
+                        str(exe)], check=True)
+        run = subprocess.run([str(exe)], capture_output=True, text=True, check=True)
+        got[name] = dict(line.split() for line in run.stdout.splitlines())
+    const, runtime = got["const"], got["runtime"]
+    assert len(const) == 49 and const.pop("model") == "0" and const.pop("trace_max_lam") == "0"
+    assert set(const.values()) == {"-1"}, const
+    # read at run time: a plan of other shifts is taken (the kernel checks its ranges only)
+    assert runtime["model"] == runtime["h_os"] == runtime["s_os"] == runtime["eps_os"] == "0"
+
+
 def test_the_cortex_m4_objects_hold_no_floating_point(drives: dict[str, dict[str, Any]]) -> None:
     need_tool("arm-none-eabi-gcc", ["gcc-arm-none-eabi", "libnewlib-arm-none-eabi"])
     out = drives["faults"]["out"]

@@ -9,10 +9,10 @@ reaches the C.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from fractions import Fraction
 
-from canrls.core.c_escape import c_comment, c_int, c_name_part, c_string, c_uint
+from canrls.core.c_escape import c_comment, c_identifier, c_int, c_name_part, c_string, c_uint
 from canrls.firmware.qmath import dyadic
 from canrls.firmware.target_model import (
     OUT_FRAMES,
@@ -23,10 +23,10 @@ from canrls.firmware.target_model import (
     TargetModel,
 )
 
-__all__ = ["bounds_file", "model_files", "plan_text"]
+__all__ = ["PLAN_64", "bounds_file", "model_files", "plan_initializer", "plan_text"]
 
 #: constants of canrls_plan_q31 held in 64 bits (the others: int32_t)
-_PLAN_64 = frozenset({"dividend", "trace_max_lim"})
+PLAN_64 = frozenset({"dividend", "trace_max_lim"})
 _ROLE_ENUM = ("CANRLS_CURRENT", "CANRLS_SPEED", "CANRLS_POSITION", "CANRLS_VOLTAGE",
               "CANRLS_TORQUE")
 _SRC_ENUM = ("CANRLS_SRC_RAW", "CANRLS_SRC_TANH", "CANRLS_SRC_STRIBECK", "CANRLS_SRC_SIN",
@@ -41,11 +41,19 @@ def _u(v: int, what: str, bits: int = 32) -> str:
     return c_uint(v, bits, what)
 
 
-def plan_text(plan: dict[str, int], name: str) -> str:
-    """The kernel's plan as a ``static const canrls_plan_q31 NAME`` initialiser."""
-    body = ",\n".join(f"    .{k} = {_i(v, f'plan constant {k}', 64 if k in _PLAN_64 else 32)}"
-                      for k, v in plan.items())
-    return f"static const canrls_plan_q31 {name} = {{\n{body},\n}};\n"
+def plan_initializer(plan: Mapping[str, int], line_end: str = "\n") -> str:
+    """The kernel's plan as a C initialiser ``{.field = value, ...}``, a field a line
+    (``line_end``: what ends each line, `` \\`` and a newline inside a macro)."""
+    body = f",{line_end}".join(
+        f"    .{c_identifier(k, 'plan constant')} = "
+        f"{_i(v, f'plan constant {k}', 64 if k in PLAN_64 else 32)}" for k, v in plan.items())
+    return f"{{{line_end}{body},{line_end}}}"
+
+
+def plan_text(plan: Mapping[str, int], name: str, storage: str = "static const") -> str:
+    """The kernel's plan as ``STORAGE canrls_plan_q31 NAME = {...};``."""
+    return (f"{storage} canrls_plan_q31 {c_identifier(name, 'plan name')} = "
+            f"{plan_initializer(plan)};\n")
 
 
 def _field(f: Field | None, what: str) -> str:
@@ -141,6 +149,13 @@ def bounds_file(tm: TargetModel, source: str) -> str:
          "#ifndef CANRLS_BOUNDS_H\n#define CANRLS_BOUNDS_H\n"]
     for name, v in _bounds(tm).items():
         t.append(f"\n#ifndef {name}\n#define {name} {int(v)}\n#endif\n")
+    if len(tm.equations) == 1:
+        t.append("\n/* The plan of the model's one equation, a constant of the kernel\n"
+                 " * (canrls_fixed.c): its shifts, ranges and constants folded into the code;\n"
+                 " * canrls_init_q31 refuses any other plan. -DCANRLS_PLAN_RUNTIME reads it from\n"
+                 " * the instance instead (the same integers). */\n"
+                 "#define CANRLS_PLAN_CONST "
+                 + plan_initializer(tm.equations[0].plan, " \\\n") + "\n")
     t.append("\n#endif /* CANRLS_BOUNDS_H */\n")
     return "".join(t)
 

@@ -42,6 +42,7 @@ from canrls.core.units import rating_of
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
+from canrls.firmware.cgen import PLAN_64, plan_text
 from canrls.processor.config import AppConfig
 from canrls.processor.period import control_period
 
@@ -49,18 +50,13 @@ __all__ = ["KERNEL_FILES", "PLAN_64", "Export", "plan_c", "export_c", "frames_c"
 
 #: The kernel's files, copied from the package (``canrls/c/firmware``).
 KERNEL_FILES = ("canrls_bounds.h", "canrls_fixed.h", "canrls_fixed.c")
-#: Constants of the plan held in 64 bits in ``canrls_plan_q31`` (all others: int32_t).
-PLAN_64 = frozenset({"dividend", "trace_max_lim"})
 _QUANTITIES = ("phi", "y", "theta", "P", "K", "eps", "h", "den", "g", "lam")
 
 
 def plan_c(constants: dict[str, int], name: str = "canrls_plan",
            storage: str = "static const") -> str:
     """The plan as ``STORAGE canrls_plan_q31 NAME = {.field = value, ...};``."""
-    body = ",\n".join(f"    .{c_identifier(k, 'plan constant')} = "
-                      f"{c_int(v, 64 if k in PLAN_64 else 32, f'plan constant {k}')}"
-                      for k, v in constants.items())
-    return f"{storage} canrls_plan_q31 {c_identifier(name, 'plan name')} = {{\n{body},\n}};\n"
+    return plan_text(constants, name, storage)
 
 
 @dataclass(frozen=True)

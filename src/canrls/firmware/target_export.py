@@ -207,7 +207,7 @@ cc -std=c99 -O2{nflag} -DCANRLS_FRONT -c canrls_target.c canrls_front.c canrls_m
 | `canrls_target.h`, `canrls_target.c`, `canrls_target_math.h`, `canrls_target_tables.h` | the rest of the path (pairing, restart, rescale, update, publish) and the arithmetic; built without `-DCANRLS_FRONT` (and without `canrls_front.c`) it is the whole path, driven by the tables of `canrls_model` (`make test-tables`: the same integers) |
 | `canrls_target_check.h`, `canrls_target_check.c` | `canrls_target_check_state()`: whether a state restored from flash is one the estimator can reach on this model (every field against its invariant); for a firmware that keeps its state across a reset (add `canrls_target_check.c` to the build) |
 | `canrls_model.h`, `canrls_model.c` | `canrls_model`: every constant of this model and DBC |
-| `canrls_bounds.h` | the build's bounds, this model's own (parameters, messages, filters, equations): the state `canrls_target` holds this model alone; each is `#ifndef`-overridable, for every file alike (the state's layout depends on them) |
+| `canrls_bounds.h` | the build's bounds, this model's own (parameters, messages, filters, equations): the state `canrls_target` holds this model alone; each is `#ifndef`-overridable, for every file alike (the state's layout depends on them); a model of one equation also gives its plan, `CANRLS_PLAN_CONST`, which the kernel folds into its code (`canrls_init_q31` then refuses any other plan; `-DCANRLS_PLAN_RUNTIME` reads it at run time, as `make test-tables` does: the same integers) |
 | `canrls_fixed.h`, `canrls_fixed.c` | the recursive least squares kernel |
 | `canrls_config.h`, `canrls_config.c` | the kernel's plan and prior alone (for a firmware that builds its own regressors) |
 | `canrls_frames.h`, `canrls_frames.c` | cantools' codecs of canrls' frames: they use `double`, and the estimator does not need them (it packs its frames in integers) |
@@ -270,10 +270,11 @@ Two goals of canrls for the whole path on a Cortex-M4, each for its own build: s
 `-O2` (a worst sample of at most 1,500 instructions, start-up included) and size at `-Os`
 (`.text` + `.rodata` of what a firmware links under 12 KB). Measured at n = 6 on canrls'
 simulated drive and an HSM150 run (`make target`, `docs/target.md`), this code gives
-**neither**: at `-O2` the worst sample is about 2,600 to 2,650 instructions (the kernel's
-update alone up to 1,700, the generated front end under 1,000), at `-Os` the linked
-library is about 16 KB (the kernel, built for size with its loops, about 5 KB of it). The `-Os` build is
-smaller and slower (at n = 6 about 3,900 instructions a sample on average, 5,300 at worst). {"`make count-m4` (at `M4_OPT`, `-O2`) and " if vectors else ""}`make size-m4` (at `-Os`, linked with
+**the size, not the speed**: at `-O2` the worst sample is about 1,800 to 2,000
+instructions (the kernel's update alone up to about 1,270 with its plan a constant, the
+generated front end under 750), at `-Os` the linked library is about 11.9 KB (the kernel,
+built for size with its loops, about 3.9 KB of it). The `-Os` build is smaller and slower
+(at n = 6 about 4,100 instructions a sample on average, 5,300 at worst). {"`make count-m4` (at `M4_OPT`, `-O2`) and " if vectors else ""}`make size-m4` (at `-Os`, linked with
 `size_main.c`, the least program that calls the API, and `--gc-sections`)
 measure{"" if vectors else "s"} this export and say met or missed.
 {test}"""
@@ -285,8 +286,9 @@ def _makefile(single_n: int | None, vectors: bool) -> str:
              "CC ?= cc", "CFLAGS ?= -std=c99 -O2 -Wall -Wextra -Wconversion -Wpedantic -Werror",
              f"DEFS ?={n} -DCANRLS_FRONT",
              "SRC = canrls_target.c canrls_front.c canrls_model.c canrls_fixed.c",
-             "# the table-driven front end of canrls_target.c instead of canrls_front.c",
-             f"TABLE_DEFS ?={n}", "TABLE_SRC = canrls_target.c canrls_model.c canrls_fixed.c",
+             "# the table-driven front end of canrls_target.c instead of canrls_front.c, and the",
+             "# kernel's plan read at run time, not the constant of canrls_bounds.h",
+             f"TABLE_DEFS ?={n} -DCANRLS_PLAN_RUNTIME", "TABLE_SRC = canrls_target.c canrls_model.c canrls_fixed.c",
              "ARM_CC ?= arm-none-eabi-gcc", "ARM_NM ?= arm-none-eabi-nm",
              "ARM_SIZE ?= arm-none-eabi-size",
              "ARM_FLAGS ?= -mcpu=cortex-m4 -mthumb -mfloat-abi=soft -Os", "",

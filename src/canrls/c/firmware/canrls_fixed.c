@@ -82,6 +82,24 @@ typedef char canrls_n_within_n_max[(CANRLS_N >= 1 && CANRLS_N <= CANRLS_N_MAX) ?
 #define UNROLL
 #endif
 
+/* ------------------------------------------------------------------ the plan */
+
+/* The constant plan. An export whose model has one equation defines CANRLS_PLAN_CONST
+ * (in its canrls_bounds.h) as that equation's plan: the kernel then reads the plan from
+ * this copy, which the compiler folds into the code (each shift, range and constant an
+ * immediate), and canrls_init_q31 refuses any other plan. trace_max_lam alone is read
+ * from the instance's plan: the target moves it with the prior (canrls_target.c). A
+ * build without it (the package's extensions), or with -DCANRLS_PLAN_RUNTIME, reads
+ * every constant from the instance's plan: any plan, the same integers. */
+#if defined(CANRLS_PLAN_CONST) && !defined(CANRLS_PLAN_RUNTIME)
+#define PLAN_IS_CONST 1
+static const canrls_plan_q31 plan_const = CANRLS_PLAN_CONST;
+#define PLAN(S) (&plan_const)
+#else
+#define PLAN_IS_CONST 0
+#define PLAN(S) ((S)->plan)
+#endif
+
 /* ------------------------------------------------------- Q-format arithmetic */
 
 /* rsh(x, s) = x / 2^s rounded half up, (x + 2^(s-1)) >> s, for 0 <= s <= 62
@@ -522,6 +540,36 @@ INLINE uint32_t wide_bit(int32_t lo, int32_t hi, uint32_t bit)
     return lo == INT32_MIN && hi == INT32_MAX ? bit : 0u;
 }
 
+/* canrls_rls_q31.wide of a plan */
+INLINE uint32_t plan_wide(const canrls_plan_q31 *plan)
+{
+    return wide_bit(plan->phi_lo, plan->phi_hi, WIDE_PHI)
+           | wide_bit(plan->h_lo, plan->h_hi, WIDE_H)
+           | wide_bit(plan->theta_lo, plan->theta_hi, WIDE_THETA)
+           | wide_bit(plan->P_lo, plan->P_hi, WIDE_P);
+}
+
+/* the wide bits of the step: constants with the constant plan */
+#if PLAN_IS_CONST
+#define WIDE(S) plan_wide(&plan_const)
+#else
+#define WIDE(S) ((S)->wide)
+#endif
+
+#if PLAN_IS_CONST
+/* a plan other than the constant one (trace_max_lam, which the target moves, aside) */
+static int plan_differs(const canrls_plan_q31 *plan)
+{
+    return 0
+#define CANRLS_PLAN_DIFFERS(f)                                                             \
+    || (offsetof(canrls_plan_q31, f) != offsetof(canrls_plan_q31, trace_max_lam)           \
+        && plan->f != plan_const.f)
+        CANRLS_PLAN_FIELDS(CANRLS_PLAN_DIFFERS)
+#undef CANRLS_PLAN_DIFFERS
+        ;
+}
+#endif
+
 /* trw = sum_i rsh(Pw_ii, trace_ps): the trace at the windup test's scale */
 static int32_t trace_words(const canrls_rls_q31 *S)
 {
@@ -529,7 +577,7 @@ static int32_t trace_words(const canrls_rls_q31 *S)
     int64_t trw = 0;
     uint32_t i;
     for (i = 0; i < S->n; i++) {
-        trw += rsh32(Pii->word, S->plan->trace_ps);
+        trw += rsh32(Pii->word, PLAN(S)->trace_ps);
         Pii += S->n - i; /* the next diagonal word of the packed rows */
     }
     return (int32_t)trw;
@@ -545,6 +593,11 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
     }
 #ifdef CANRLS_N
     if (n != (uint32_t)CANRLS_N) {
+        return CANRLS_EINVAL;
+    }
+#endif
+#if PLAN_IS_CONST
+    if (plan_differs(plan)) {
         return CANRLS_EINVAL;
     }
 #endif
@@ -577,10 +630,7 @@ int canrls_init_q31(canrls_rls_q31 *S, const canrls_plan_q31 *plan, uint32_t n,
             S->wu_hi = (int32_t)i;
         }
     }
-    S->wide = wide_bit(plan->phi_lo, plan->phi_hi, WIDE_PHI)
-              | wide_bit(plan->h_lo, plan->h_hi, WIDE_H)
-              | wide_bit(plan->theta_lo, plan->theta_hi, WIDE_THETA)
-              | wide_bit(plan->P_lo, plan->P_hi, WIDE_P);
+    S->wide = plan_wide(plan);
     return CANRLS_OK;
 }
 
@@ -592,7 +642,7 @@ int canrls_restore_q31(canrls_rls_q31 *S, const int32_t *theta, const uint32_t *
     if (S == NULL || S->plan == NULL || theta == NULL || P_up == NULL) {
         return CANRLS_EINVAL;
     }
-    p = S->plan;
+    p = PLAN(S);
     m = CANRLS_TRI(S->n);
     if (e < 0 || e > p->e_max || c < 1 || c > p->one_lam) {
         return CANRLS_EINVAL;
@@ -842,7 +892,7 @@ INLINE void K_step(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     int32_t *const h = S->h;
     int32_t *const K = S->K;
     canrls_theta64 *const theta_q = S->theta_q;
-    const int32_t th_lo = S->plan->theta_lo, th_hi = S->plan->theta_hi;
+    const int32_t th_lo = PLAN(S)->theta_lo, th_hi = PLAN(S)->theta_hi;
     /* -2^(64 - th_s): the high word of K eps at 2^-32 LSB (``full`` with SHIFT_HIGH: the
      * caller guarantees th_s >= 34 and the whole int32_t theta word) */
     const int32_t m = cls == SHIFT_HIGH && full ? neg_pow2(th_s) : 0;
@@ -878,7 +928,7 @@ INLINE int P_step(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P, int cls, int fu
     const int32_t *const h = S->h;
     const int32_t *const K = S->K;
     /* the plan, as locals (a store to P~ cannot change them) */
-    const int32_t P_lo = S->plan->P_lo, P_hi = S->plan->P_hi;
+    const int32_t P_lo = PLAN(S)->P_lo, P_hi = PLAN(S)->P_hi;
     /* -2^(64 - P_s) (``full``), and the shifts of ph 2^(64 - P_s) as whole and part */
     const int32_t m = cls == SHIFT_HIGH && full ? neg_pow2(P_s) : 0;
     const int32_t hs = cls == SHIFT_HIGH ? P_s - 32 : 0;
@@ -1347,7 +1397,7 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
                    uint32_t *c_P, int common, int mode)
 {
     const uint32_t n = CANRLS_N;
-    const canrls_plan_q31 *p = S->plan;
+    const canrls_plan_q31 *p = PLAN(S);
     const int32_t nm = mode == PM_HIGH ? neg_pow2(P_s) : 0;
     /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = -(ph nt) */
     const int32_t nt = common || th_s >= 33 ? neg_pow2(th_s) : 0;
@@ -1499,7 +1549,7 @@ KP_STEP(KP_step_low, 0, PM_LOW)
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
                       canrls_step_q31 *step)
 {
-    const canrls_plan_q31 *p = S->plan;
+    const canrls_plan_q31 *p = PLAN(S);
     const uint32_t n = NPAR(S);
     const canrls_theta64 *const theta_q = S->theta_q;
     canrls_P64 *const P = S->P;
@@ -1524,7 +1574,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
 
     /* phi, y <- sat(phi), sat(y)       inputs clamped to their words;
      * phi >> ps: the guard bits of the multiply-accumulates */
-    if (!CANRLS_SMALL && phi_ps > 0 && (S->wide & WIDE_PHI)) {
+    if (!CANRLS_SMALL && phi_ps > 0 && (WIDE(S) & WIDE_PHI)) {
         /* 32-bit words: nothing to clamp */
         UNROLL
         for (j = 0; j < n; j++) {
@@ -1577,7 +1627,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             /* 1 <= h_os <= 31 (the common case): each sum rounded in two words (built for
              * size: store below, the same integers) */
 #if CANRLS_FAST
-            if (S->wide & WIDE_H) {
+            if (WIDE(S) & WIDE_H) {
                 a = h_rows_full(P, phg, h, h_os, &c_h, &m);
             } else {
                 a = h_rows_word(P, phg, h, h_os, h_lo, h_hi, &c_h, &m);
@@ -1620,7 +1670,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             /* (lambda trace_max 2^e: within trace_max_lim for these e, so the shift is
              * the product) */
             int64_t T = rsh_w(mul_ww(trw, c), p->tc_s)
-                        - (int64_t)((uint64_t)(int64_t)p->trace_max_lam << e);
+                        - (int64_t)((uint64_t)(int64_t)S->plan->trace_max_lam << e);
             if (T > 0 && windup_up(p, h, n, c, e, T, sv)) {
                 lam_k = p->one_den;
                 flag = CANRLS_FLAG_WINDUP;
@@ -1682,7 +1732,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         }
         il = (flag & CANRLS_FLAG_WINDUP) ? p->one_lam : p->inv_lam;
 #if CANRLS_FAST
-        if ((~S->wide & (WIDE_THETA | WIDE_P)) == 0u && P_s >= 1) {
+        if ((~WIDE(S) & (WIDE_THETA | WIDE_P)) == 0u && P_s >= 1) {
             /* 32-bit words at a fixed n: the step, the forgetting scale and the block
              * exponent in one pass over P (a c to fold is left to the code below) */
             if (P_s >= 33 && th_s >= 33) {
@@ -1708,7 +1758,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         case SHIFT_HIGH:
             /* words of 32 bits: the overflow test is the clamp (th_s >= 34: the high word
              * of K eps times 2^(64 - th_s) is one SMULL) */
-            if ((S->wide & WIDE_THETA) && th_s >= 34) {
+            if ((WIDE(S) & WIDE_THETA) && th_s >= 34) {
                 K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 1);
             } else {
                 K_step(S, kn, gcn, epn, th_s, &c_th, SHIFT_HIGH, 0);
@@ -1731,7 +1781,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         case SHIFT_HIGH:
             /* words of 32 bits: the overflow test is the clamp (P_s >= 34: 2^(64 - P_s)
              * is a word, one SMULL) */
-            if ((S->wide & WIDE_P) && P_s >= 34) {
+            if ((WIDE(S) & WIDE_P) && P_s >= 34) {
                 low = P_step_high_full(S, P_s, &c_P);
             } else {
                 low = P_step(S, P_s, &c_P, SHIFT_HIGH, 0);

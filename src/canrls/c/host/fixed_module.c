@@ -20,7 +20,6 @@
 #include <string.h>
 
 #include "canrls_fixed.h"
-#include "plan_fields.h"
 
 #define COUNT_FIELD(name) +1
 enum { NPLAN = 0 CANRLS_PLAN_FIELDS(COUNT_FIELD) };

@@ -25,7 +25,6 @@
 
 #include "canrls_target.h"
 #include "canrls_target_check.h"
-#include "plan_fields.h"
 #include "pyargs.h"
 
 #define R32 INT32_MIN, INT32_MAX
