@@ -733,7 +733,7 @@ INLINE uint64_t windup_sq(const int32_t *h, uint32_t n, int32_t s, int s0, uint3
 
 /* the windup test's comparison of its two sides, lhs and a_vw, whose scales differ by
  * df bits (non-increasing in a_vw) */
-INLINE int windup_cmp(int64_t lhs, int64_t a_vw, int32_t df)
+static inline int windup_cmp(int64_t lhs, int64_t a_vw, int32_t df)
 {
     if (df >= 0) {
         return (lhs >> (df < 63 ? df : 63)) > a_vw;
