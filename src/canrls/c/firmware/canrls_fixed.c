@@ -1618,7 +1618,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         int32_t il;
         int low;
         int tail = 1;       /* the forgetting scale and the block exponent still to do */
-        int fixed_step = 0; /* KP_step_n took c <- c / lambda_k */
+        int fixed_step = 0; /* the fixed-n step took c <- c / lambda_k */
 
         /* h~ = P~ phi, rounded and stored; m = OR of |h~_i| (one's complement) for the
          * normalisation below; s~ = phi' h~ (a) summed as h~ is stored */
@@ -1802,7 +1802,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             flag |= CANRLS_FLAG_LOW_EXCITATION;
         }
 
-        /* c <- c / lambda_k (KP_step_n: done) */
+        /* c <- c / lambda_k (the fixed-n step: done) */
         if (tail && !fixed_step) {
             c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, &c_P);
         }
