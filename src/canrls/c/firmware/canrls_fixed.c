@@ -766,11 +766,18 @@ RARE int windup_up(const canrls_plan_q31 *p, const int32_t *h, uint32_t n, int32
              * n - 1 of the floor of the sum): the test is decided by these bounds unless
              * lhs falls between them */
             const int64_t Q = (int64_t)((A + ((uint64_t)n << (p->vw_ps - 1))) >> p->vw_ps);
-            if (windup_cmp(lhs, Q, df)) {
-                return 1;
-            }
-            if (!windup_cmp(lhs, Q - (int64_t)(n - 1u), df)) {
-                return 0;
+            if (df >= 0) {
+                const int64_t L = lhs >> (df < 63 ? df : 63);
+                if (L > Q || L <= Q - (int64_t)(n - 1u)) {
+                    return L > Q;
+                }
+            } else {
+                /* the other side shifted by r = -df: (Q - (n - 1)) >> r is at least
+                 * (Q >> r) - (n - 1), a lower bound enough to decide */
+                const int64_t Qs = Q >> (-df < 63 ? -df : 63);
+                if (lhs > Qs || lhs <= Qs - (int64_t)(n - 1u)) {
+                    return lhs > Qs;
+                }
             }
         }
         a_vw = windup_vw_pow2(h, n, s, p->vw_ps);
