@@ -532,6 +532,10 @@ def _windup_cases(rng: np.random.Generator) -> list[tuple[dict[int, int], int, i
             for d in range(-2 * PASS_N, 2 * PASS_N + 1):
                 if 0 < est + d <= W_MAX:
                     out.append((prm, 1 << k, 0, est + d, 0, h))
+    # the squares' sum reaches 2^64 (h~_i = -2^31): the terms rounded one by one
+    prm = {**prm, layout.I_VW_PS: 30, layout.I_CMP_DF: 0, layout.I_TC_S: 30}
+    for trw in (1, 2, 3, 4, 5):
+        out.append((prm, 1 << 30, 0, trw, 0, [W_MIN] * PASS_N))
     return out
 
 

@@ -744,9 +744,13 @@ static inline int windup_cmp(int64_t lhs, int64_t a_vw, int32_t df)
 /* The windup test once T = tr P - lambda trace_max > 0 (rare: while P falls from the
  * prior), out of line: (tr P - lambda trace_max) (lambda + phi'P phi) > h'h, the two
  * sides at their scales (docs/fixed_point.md) */
-RARE int windup_up(const canrls_plan_q31 *p, const int32_t *h, uint32_t n, int32_t c,
-                   int32_t e, int64_t T, int32_t sv)
+RARE int windup_up(const canrls_rls_q31 *S, int64_t T, int32_t sv)
 {
+    /* the plan, h~, c and e of the step (c and e not yet moved) */
+    const canrls_plan_q31 *p = PLAN(S);
+    const int32_t *h = S->h;
+    const uint32_t n = NPAR(S);
+    const int32_t c = S->c, e = S->e;
     uint32_t none = 0; /* d_lam is not counted */
     const int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
     /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
@@ -760,12 +764,13 @@ RARE int windup_up(const canrls_plan_q31 *p, const int32_t *h, uint32_t n, int32
         const int32_t s = p->hc_s - (31 - nlz((uint32_t)c));
         uint32_t mm;
         const uint64_t A = s == 0 ? windup_sq(h, n, 0, 1, &mm) : windup_sq(h, n, s, 0, &mm);
+        const uint64_t An = A + ((uint64_t)n << (p->vw_ps - 1));
         if ((mm >> 29) == 0u && n < 64u) {
             /* A = sum_i h_i^2 exact: the rounded terms' sum a_vw lies in [Q - (n - 1), Q],
              * Q = floor((A + n 2^(vw_ps - 1)) / 2^vw_ps) (a sum of n floors is within
              * n - 1 of the floor of the sum): the test is decided by these bounds unless
              * lhs falls between them */
-            const int64_t Q = (int64_t)((A + ((uint64_t)n << (p->vw_ps - 1))) >> p->vw_ps);
+            const int64_t Q = (int64_t)(An >> p->vw_ps);
             if (df >= 0) {
                 const int64_t L = lhs >> (df < 63 ? df : 63);
                 if (L > Q || L <= Q - (int64_t)(n - 1u)) {
@@ -1678,7 +1683,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
              * the product) */
             int64_t T = rsh_w(mul_ww(trw, c), p->tc_s)
                         - (int64_t)((uint64_t)(int64_t)S->plan->trace_max_lam << e);
-            if (T > 0 && windup_up(p, h, n, c, e, T, sv)) {
+            if (T > 0 && windup_up(S, T, sv)) {
                 lam_k = p->one_den;
                 flag = CANRLS_FLAG_WINDUP;
             }

@@ -86,11 +86,13 @@ static int op_pass(void)
 static int op_windup(void)
 {
     canrls_plan_q31 p;
-    int32_t v[10], h[CANRLS_N], c, e, sv;
+    canrls_rls_q31 S;
+    int32_t v[10], sv;
     int64_t T;
     memset(&p, 0, sizeof p);
-    if (!read_i32(v, 8) || scanf("%" SCNd32 " %" SCNd32 " %" SCNd64 " %" SCNd32, &c, &e, &T,
-                                 &sv) != 4 || !read_i32(h, CANRLS_N) || T <= 0) {
+    memset(&S, 0, sizeof S);
+    if (!read_i32(v, 8) || scanf("%" SCNd32 " %" SCNd32 " %" SCNd64 " %" SCNd32, &S.c, &S.e,
+                                 &T, &sv) != 4 || !read_i32(S.h, CANRLS_N) || T <= 0) {
         return 0;
     }
     p.lam_den = v[0];
@@ -101,7 +103,9 @@ static int op_windup(void)
     p.cmp_scale_diff = v[5];
     p.hc_s = v[6];
     p.vw_ps = v[7];
-    printf("%d\n", windup_up(&p, h, CANRLS_N, c, e, T, sv));
+    S.plan = &p;
+    S.n = CANRLS_N;
+    printf("%d\n", windup_up(&S, T, sv));
     return 1;
 }
 
