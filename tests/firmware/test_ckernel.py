@@ -27,6 +27,7 @@ import pytest
 from debian import need_tool
 
 from canrls.core.c_escape import c_int
+from canrls.estimation.fixed import kernels, layout
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import SITES, FixedConfig, FixedFlag, QFormat
 from canrls.firmware.kernel_export import plan_c
@@ -421,6 +422,165 @@ def test_firmware_reads_the_state_through_its_accessors(tmp_path: Path) -> None:
     assert got == [*zip(P_up, zero, strict=True),
                    *zip(th, tf, strict=True), *zip(P_up, Pf, strict=True),
                    *zip(th, [0, 0, 0], strict=True), *zip(P_up, zero, strict=True)]
+
+
+# ------------------------------------------------------------------ the pass over P
+PASS_DRIVER = KERNEL / "drivers" / "pass_driver.c"
+PASS_N = 4
+W_MIN, W_MAX = -2**31, 2**31 - 1
+
+
+def _reference(P: list[list[int]], F: list[list[int]], prm: dict[int, int]
+               ) -> kernels._Reference:
+    """The specification's arithmetic on one state (P words, P fractions), the plan's
+    constants ``prm`` by index, every word 32 bits wide."""
+    p = [0] * 48
+    p[layout.I_P_LO], p[layout.I_P_HI] = W_MIN, W_MAX
+    for k, v in prm.items():
+        p[k] = v
+    return kernels._Reference(P, F, [0] * len(SITES), p, 128, layout.MODE_SYMMETRIC)
+
+
+def _spec_pass(P_s: int, sh: int, K: list[int], h: list[int], P: list[list[int]],
+               F: list[list[int]]) -> list[int]:
+    """What the step does to P around its diagonal (the specification's P update and block
+    exponent, kernels._Reference): V_ij <- V_ij - u off the diagonal, u = K_i h~_j
+    2^(32 - P_s) or rsh(K_i h~_j, 32) 2^(64 - P_s), then every V <- V 2^sh, each
+    saturated and counted. The words, fractions and count, as the driver prints them."""
+    ref = _reference(P, F, {})
+    n = len(K)
+    for i in range(n):
+        for j in range(i + 1, n):
+            x = ref.mul(K[i], h[j])
+            u = x * 2**(32 - P_s) if P_s < 32 else ref.rsh(x, 32) * 2**(64 - P_s)
+            ref.Vput(i, j, ref.Vget(i, j) - u)
+    for i, j in ref.stored():
+        if sh:
+            ref.Vput(i, j, ref.Vget(i, j) * 2**sh)
+    return [v for i, j in ref.stored() for v in (ref.P[i][j], ref.Pf[i][j])] + [
+        ref.counts[layout.S_P]]
+
+
+def _pass_cases(rng: np.random.Generator) -> list[tuple[int, int, list[int], list[int],
+                                                        list[list[int]], list[list[int]]]]:
+    """Passes of every class of P_s (PM_LOWK, the loop of PM_LOW, PM_32, PM_HIGH with the
+    shift after the step, P_s = 32 + sh among them, and fused) with and without a shift, on
+    words of every size (elements that saturate, differences that leave 64 bits), and
+    the corners the recorded vectors do not reach: a K 2^a of -2^31 (its row in the
+    general element), a D that fails the room test, a diagonal without room."""
+    n, out = PASS_N, []
+
+    def sym(w: np.ndarray) -> list[list[int]]:
+        m = np.triu(w) + np.triu(w, 1).T
+        return [[int(x) for x in r] for r in m]
+
+    for P_s, sh in [(27, 0), (27, 5), (29, 1), (31, 2), (22, 3), (32, 0), (32, 4),
+                    (34, 3), (40, 3), (35, 3), (45, 1), (50, 0), (60, 7)]:
+        for size in (12, 24, 29, 31):
+            for _ in range(12):
+                K = [int(x) for x in rng.integers(-2**30, 2**30, n)]
+                h = [int(x) for x in rng.integers(-2**31, 2**31, n)]
+                if P_s <= 31 and rng.random() < 0.7:
+                    # small enough for K 2^a and h~ 2^b to be words (PM_LOWK)
+                    K = [k >> (32 - P_s) for k in K]
+                P = sym(rng.integers(-2**size, 2**size, (n, n)))
+                F = sym(rng.integers(W_MIN, W_MAX, (n, n), endpoint=True))
+                out.append((P_s, sh, K, h, P, F))
+    # K_0 2^a = -2^31 (a = 32 - P_s = 5): the row's negation is not a word
+    for sh in (1, 5):
+        K = [-2**26, 3 << 20, -(5 << 19), 7]
+        h = [int(x) for x in rng.integers(-2**30, 2**30, n)]
+        P = sym(rng.integers(-2**20, 2**20, (n, n)))
+        out.append((27, sh, K, h, P, sym(np.zeros((n, n), np.int64))))
+    # words at the ends of the range: V - u leaves 64 bits, V 2^sh saturates
+    for P_s, sh in [(27, 2), (32, 2), (34, 3), (40, 2)]:
+        K = [2**30 - 1, -2**30, 2**29, -(2**29)]
+        if P_s < 32:
+            K = [k >> 5 for k in K]
+        h = [-2**31, 2**31 - 1, -2**31, 2**31 - 1]
+        P = sym(np.array([[W_MAX, W_MAX, W_MIN, W_MAX]] * n))
+        out.append((P_s, sh, K, h, P, sym(np.full((n, n), W_MAX))))
+    return out
+
+
+def _spec_windup(prm: dict[int, int], c: int, e: int, trw: int, sv: int, h: list[int]
+                 ) -> bool:
+    """The specification's windup test (kernels._Reference.forgetting) with T = trw."""
+    n = len(h)
+    P = [[trw if i == j == 0 else 0 for j in range(n)] for i in range(n)]
+    ref = _reference(P, [[0] * n for _ in range(n)], prm)
+    return ref.forgetting(h, h, sv, e, c)[1] != 0
+
+
+def _windup_cases(rng: np.random.Generator) -> list[tuple[dict[int, int], int, int, int,
+                                                          int, list[int]]]:
+    """Windup tests with c = 2^k (the path that rounds h' h only where its bounds do not
+    decide): T swept across the point where the answer turns, so that the other side
+    falls below, within and above the bounds; |h_i| below and above 2^29."""
+    out = []
+    for k, vw_ps, df, top in [(30, 14, 0, 21), (27, 12, 0, 24), (30, 30, 0, 31),
+                              (30, 16, 2, 21), (29, 10, -3, 22)]:
+        for _ in range(6):
+            h = [int(x) for x in rng.integers(-2**top, 2**top, PASS_N)]
+            s = 30 - k
+            est = sum(((x + (1 << s >> 1)) >> s) ** 2 for x in h) >> vw_ps
+            est = est << df if df >= 0 else est >> -df
+            prm = {layout.I_LAM_D: 1, layout.I_DEN_LO: W_MIN, layout.I_DEN_HI: W_MAX,
+                   layout.I_HC_S: 30, layout.I_VW_PS: vw_ps, layout.I_LHS_PS: 0,
+                   layout.I_CMP_DF: df, layout.I_TC_S: k, layout.I_TMAX: 0,
+                   layout.I_TMAX_LIM: 0, layout.I_P_HI: W_MAX, layout.I_ONE_D: 1}
+            for d in range(-2 * PASS_N, 2 * PASS_N + 1):
+                if 0 < est + d <= W_MAX:
+                    out.append((prm, 1 << k, 0, est + d, 0, h))
+    # the squares' sum reaches 2^64 (h~_i = -2^31): the terms rounded one by one
+    prm = {**prm, layout.I_VW_PS: 30, layout.I_CMP_DF: 0, layout.I_TC_S: 30}
+    for trw in (1, 2, 3, 4, 5):
+        out.append((prm, 1 << 30, 0, trw, 0, [W_MIN] * PASS_N))
+    return out
+
+
+def _run_pass_driver(cc: str, wrap: list[str], tmp_path: Path, extra: Sequence[str] = ()
+                     ) -> None:
+    exe = tmp_path / "pass_driver"
+    subprocess.run([cc, *CFLAGS, *extra, f"-DCANRLS_N={PASS_N}", "-I", str(KERNEL),
+                    str(PASS_DRIVER), "-o", str(exe)], check=True, capture_output=True)
+    rng = np.random.default_rng(20261207)
+    passes, windups = _pass_cases(rng), _windup_cases(rng)
+    lines = []
+    for P_s, sh, K, h, P, F in passes:
+        up = [v for i in range(PASS_N) for j in range(i, PASS_N) for v in (P[i][j], F[i][j])]
+        lines.append(" ".join(map(str, ["pass", P_s, sh, *K, *h, *up])))
+    for prm, c, e, trw, sv, h in windups:
+        plan = [prm[k] for k in (layout.I_LAM_D, layout.I_DEN_LO, layout.I_DEN_HI,
+                                 layout.I_P_HI, layout.I_LHS_PS, layout.I_CMP_DF,
+                                 layout.I_HC_S, layout.I_VW_PS)]
+        # T = rsh(trw c, tc_s) - trace_max 2^e = trw (tc_s = log2 c, trace_max = 0)
+        lines.append(" ".join(map(str, ["windup", *plan, c, e, trw, sv, *h])))
+    r = subprocess.run([*wrap, str(exe)], input="\n".join(lines) + "\n", capture_output=True,
+                       text=True, check=True, timeout=120)
+    got = r.stdout.splitlines()
+    assert len(got) == len(lines)
+    for k, case in enumerate(passes):
+        assert [int(x) for x in got[k].split()] == _spec_pass(*case), f"pass {k}: {lines[k]}"
+    flips = set()
+    for k, (prm, c, e, trw, sv, h) in enumerate(windups, start=len(passes)):
+        want = _spec_windup(prm, c, e, trw, sv, h)
+        assert got[k] == str(int(want)), f"windup: {lines[k]}"
+        flips.add(want)
+    assert flips == {False, True}
+
+
+def test_fixed_n_pass_over_P_is_the_specification_on_x86_64(tmp_path: Path) -> None:
+    """Each class of the fixed-n pass over P (the shift folded in) and the windup test's
+    bounds, on inputs the recorded vectors do not reach, against the specification."""
+    _run_pass_driver(need_tool("gcc", ["gcc"]), [], tmp_path)
+
+
+def test_fixed_n_pass_over_P_is_the_specification_on_32_bit_arm(tmp_path: Path) -> None:
+    """The same on 32-bit ARM (Thumb-2: the SMLAL, SMMLAR and UMULL forms of the pass)."""
+    cc = need_tool("arm-linux-gnueabihf-gcc", ["gcc-arm-linux-gnueabihf"])
+    qemu = need_tool("qemu-arm", ["qemu-user"])
+    _run_pass_driver(cc, [qemu], tmp_path, ["-static"])
 
 
 # ------------------------------------------------------------------ Cortex-M4

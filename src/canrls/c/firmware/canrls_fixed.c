@@ -237,6 +237,18 @@ INLINE int32_t add_sat(int32_t a, int32_t b, int32_t lo, int32_t hi, uint32_t *n
 #endif
 }
 
+/* acc + a b (one SMLAL) */
+INLINE uint64_t mla_ww(uint64_t acc, int32_t a, int32_t b)
+{
+#if defined(__GNUC__) && defined(__thumb2__)
+    /* (the accumulator one 64-bit operand: a register pair, as LDRD and STRD take it) */
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (uint64_t)((int64_t)a * b);
+#endif
+}
+
 /* rsh(a b, 32): the high word of a b + 2^31 (one SMMULR on a core with the DSP
  * extension) */
 INLINE int32_t mul_rsh32(int32_t a, int32_t b)
@@ -701,33 +713,85 @@ INLINE int64_t windup_vw_pow2(const int32_t *h, uint32_t n, int32_t s, int32_t v
     return (int64_t)a_vw;
 }
 
+/* A = sum_i h_i^2 with h_i = rsh(h~_i, s), one SMLAL an element (s = 0, ``s0`` a
+ * constant at each call: h_i = h~_i), and the OR of |h_i| (one's complement) in *mm: A is
+ * exact where *mm < 2^29 and n < 64 (each term at most 2^58) */
+INLINE uint64_t windup_sq(const int32_t *h, uint32_t n, int32_t s, int s0, uint32_t *mm)
+{
+    const int32_t t0 = s > 0, t1 = s - t0; /* rsh(x, s) = ((x >> t1) + t0) >> t0 */
+    uint64_t a = 0;
+    uint32_t i, o = 0;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        const int32_t hi_ = s0 ? h[i] : ((h[i] >> t1) + t0) >> t0;
+        o |= (uint32_t)(hi_ ^ (hi_ >> 31));
+        a = mla_ww(a, hi_, hi_);
+    }
+    *mm = o;
+    return a;
+}
+
+/* the windup test's comparison of its two sides, lhs and a_vw, whose scales differ by
+ * df bits (non-increasing in a_vw) */
+static inline int windup_cmp(int64_t lhs, int64_t a_vw, int32_t df)
+{
+    if (df >= 0) {
+        return (lhs >> (df < 63 ? df : 63)) > a_vw;
+    }
+    return lhs > (a_vw >> (-df < 63 ? -df : 63));
+}
+
 /* The windup test once T = tr P - lambda trace_max > 0 (rare: while P falls from the
  * prior), out of line: (tr P - lambda trace_max) (lambda + phi'P phi) > h'h, the two
  * sides at their scales (docs/fixed_point.md) */
-RARE int windup_up(const canrls_plan_q31 *p, const int32_t *h, uint32_t n, int32_t c,
-                   int32_t e, int64_t T, int32_t sv)
+RARE int windup_up(const canrls_rls_q31 *S, int64_t T, int32_t sv)
 {
+    /* the plan, h~, c and e of the step (c and e not yet moved) */
+    const canrls_plan_q31 *p = PLAN(S);
+    const int32_t *h = S->h;
+    const uint32_t n = NPAR(S);
+    const int32_t c = S->c, e = S->e;
     uint32_t none = 0; /* d_lam is not counted */
     const int32_t d_lam = sat((int64_t)p->lam_den + sv, p->den_lo, p->den_hi, &none);
-    int64_t a_vw, lhs;
-    int32_t df;
+    /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
+    const int64_t lhs = rsh_w(mul_ww((int32_t)(T < p->P_hi ? T : p->P_hi), d_lam), p->lhs_ps);
+    /* the two sides differ in scale by cmp_df - e bits */
+    const int32_t df = p->cmp_scale_diff - e;
+    int64_t a_vw;
     /* h = c h~ ; w = c w~ = h:  a_vw = sum_i rsh(h_i w_i, vw_ps) */
     if (!CANRLS_SMALL && (c & (c - 1)) == 0 && 31 - nlz((uint32_t)c) <= p->hc_s
         && (uint32_t)(p->vw_ps - 1) < 31u) {
-        a_vw = windup_vw_pow2(h, n, p->hc_s - (31 - nlz((uint32_t)c)), p->vw_ps);
+        const int32_t s = p->hc_s - (31 - nlz((uint32_t)c));
+        uint32_t mm;
+        const uint64_t A = s == 0 ? windup_sq(h, n, 0, 1, &mm) : windup_sq(h, n, s, 0, &mm);
+        const uint64_t An = A + ((uint64_t)n << (p->vw_ps - 1));
+        if ((mm >> 29) == 0u && n < 64u) {
+            /* A = sum_i h_i^2 exact: the rounded terms' sum a_vw lies in [Q - (n - 1), Q],
+             * Q = floor((A + n 2^(vw_ps - 1)) / 2^vw_ps) (a sum of n floors is within
+             * n - 1 of the floor of the sum): the test is decided by these bounds unless
+             * lhs falls between them */
+            const int64_t Q = (int64_t)(An >> p->vw_ps);
+            if (df >= 0) {
+                const int64_t L = lhs >> (df < 63 ? df : 63);
+                if (L > Q || L <= Q - (int64_t)(n - 1u)) {
+                    return L > Q;
+                }
+            } else {
+                /* the other side shifted by r = -df: (Q - (n - 1)) >> r is at least
+                 * (Q >> r) - (n - 1), a lower bound enough to decide */
+                const int64_t Qs = Q >> (-df < 63 ? -df : 63);
+                if (lhs > Qs || lhs <= Qs - (int64_t)(n - 1u)) {
+                    return lhs > Qs;
+                }
+            }
+        }
+        a_vw = windup_vw_pow2(h, n, s, p->vw_ps);
     } else if ((uint32_t)(p->hc_s - 1) < 31u && (uint32_t)(p->vw_ps - 1) < 31u) {
         a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_LOW);
     } else {
         a_vw = windup_vw(h, n, c, p->hc_s, p->vw_ps, SHIFT_ANY);
     }
-    /* 0 < min(T, P_hi) <= P_hi: a word, one SMULL */
-    lhs = rsh_w(mul_ww((int32_t)(T < p->P_hi ? T : p->P_hi), d_lam), p->lhs_ps);
-    /* the two sides differ in scale by cmp_df - e bits */
-    df = p->cmp_scale_diff - e;
-    if (df >= 0) {
-        return (lhs >> (df < 63 ? df : 63)) > a_vw;
-    }
-    return lhs > (a_vw >> (-df < 63 ? -df : 63));
+    return windup_cmp(lhs, a_vw, df);
 }
 
 /* h~_i from its sum u = acc_i + 2^(h_os-1) (the rounding half already added), for
@@ -942,29 +1006,42 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
 enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 
 /* How an element takes the block exponent's shift sh (a constant at each call): SH_NONE
- * sh = 0; SH_AFTER V - u, then (V - u) 2^sh; SH_FUSED (PM_HIGH, P_s >= 33 + sh) V 2^sh
- * - u 2^sh as one sum of products, -u 2^sh = ph (nm 2^sh); SH_FUSED32 (PM_HIGH,
- * P_s = 32 + sh) the same with u 2^sh = ph 2^32: ph subtracted from the high word. */
-enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2, SH_FUSED32 = 3 };
+ * sh = 0; SH_AFTER V - u, then (V - u) 2^sh; SH_FUSED (PM_HIGH, P_s >= 33 + sh) the same
+ * with the pair's carried constant folded into the decrement, (ph + t) nm; SH_NEGK
+ * (PM_LOWK, the K words passed negated) X - u as one SMLAL, X + (-K_i 2^a)(h~_j 2^b)
+ * modulo 2^64. Each shifted form tests the room of V - u's high word, then shifts. */
+enum { SH_NONE = 0, SH_AFTER = 1, SH_FUSED = 2, SH_NEGK = 3 };
 
-/* The constants of a shift 1 <= sh <= 30: m2 = 2^sh; chi = 2^(sh-1) - 1, the pair's 2^31
- * carried through the shift ((2^sh - 1) 2^31 = chi 2^32 + 2^31); room = 2^(30 - sh), the
- * bound of the high word below which V 2^sh stays in the pair; room2 = room / 2 and
- * nm2 = nm 2^sh = neg_pow2(P_s - sh) for SH_FUSED. */
+/* The constants of a shift 1 <= sh <= 30: m2 = 2^sh; cp = 2^(31 - sh) - 2^31 = room cq,
+ * cq = 2 - 2^(sh + 1), the pair's 2^31 carried through the shift
+ * ((2^sh - 1) 2^31 = -cp 2^sh: X 2^sh - (2^sh - 1) 2^31 = (X + cp) 2^sh); room = 2^(30 - sh),
+ * the bound of the high word below which V 2^sh stays in the pair; for SH_FUSED
+ * t = (2^sh - 1) 2^(P_s - 33 - sh), t nm = cp. */
 typedef struct {
-    uint32_t m2, chi, room, room2;
-    int32_t nm2;
+    uint32_t m2, room;
+    int32_t cq, t;
 } P_shc;
 
 INLINE P_shc shc_of(int32_t sh, int mode, int32_t P_s)
 {
     P_shc k;
     k.m2 = (uint32_t)1 << sh;
-    k.chi = ((uint32_t)1 << (sh - 1)) - 1u;
+    k.cq = (int32_t)(2u - (k.m2 << 1));
     k.room = (uint32_t)1 << (30 - sh);
-    k.room2 = k.room >> 1;
-    k.nm2 = mode == PM_HIGH && P_s >= 33 + sh ? neg_pow2(P_s - sh) : 0;
+    k.t = mode == PM_HIGH && P_s >= 33 + sh ? (int32_t)((k.m2 - 1u) << (P_s - 33 - sh)) : 0;
     return k;
+}
+
+/* acc - a 2^32 modulo 2^64: a subtracted from the high word (the pair one 64-bit
+ * operand on Thumb-2, so that it stays where LDRD put it) */
+INLINE uint64_t sub_hi(uint64_t acc, int32_t a)
+{
+#if defined(__GNUC__) && defined(__thumb2__)
+    __asm__("sub %R0, %R0, %1" : "+r"(acc) : "r"(a));
+    return acc;
+#else
+    return acc - ((uint64_t)(uint32_t)a << 32);
+#endif
 }
 
 /* the pair of a canrls_P64 (X = V + 2^31) as one int64_t */
@@ -973,49 +1050,33 @@ INLINE int64_t P_pair(const canrls_P64 *q)
     return (int64_t)(((uint64_t)(uint32_t)q->word << 32) | q->lo);
 }
 
-/* acc + a b (one SMLAL) */
-INLINE uint64_t mla_ww(uint64_t acc, int32_t a, int32_t b)
+/* t + rsh(a b, 32) (one SMMLAR on a core with the DSP extension; no overflow where
+ * the caller calls it) */
+INLINE int32_t mul_rsh32_add(int32_t a, int32_t b, int32_t t)
 {
-#if defined(__GNUC__) && defined(__thumb2__)
-    uint32_t lo = (uint32_t)acc, hi = (uint32_t)(acc >> 32);
-    __asm__("smlal %0, %1, %2, %3" : "+r"(lo), "+r"(hi) : "r"(a), "r"(b));
-    return ((uint64_t)hi << 32) | lo;
+#if defined(__GNUC__) && defined(__ARM_FEATURE_DSP) && defined(__thumb2__)
+    int32_t r;
+    __asm__("smmlar %0, %1, %2, %3" : "=r"(r) : "r"(a), "r"(b), "r"(t));
+    return r;
 #else
-    return acc + (uint64_t)((int64_t)a * b);
+    return (int32_t)((uint32_t)t + (uint32_t)mul_rsh32(a, b));
 #endif
 }
 
-/* X 2^sh - (chi 2^32 + 2^31) + ph nm2 modulo 2^64, X the pair (lo, hi): the shift of a
- * pair (ph = 0, P_shl) or the fused element (SH_FUSED); one UMULL, one MLA, one SMLAL, a
- * subtraction in two words (written out on Thumb-2: GCC otherwise zeroes an accumulator
- * for UMLAL and moves it) */
-INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, int32_t ph, const P_shc *k, int fused)
+/* X 2^sh modulo 2^64, X the pair (lo, hi), m2 = 2^sh: the low word times m2 (one UMULL)
+ * plus the high word times m2 (one MLA). Written out on Thumb-2: GCC otherwise zeroes an
+ * accumulator for UMLAL and moves it. */
+INLINE uint64_t P_shl_sum(uint32_t lo, int32_t hi, uint32_t m2)
 {
 #if defined(__GNUC__) && defined(__thumb2__)
     uint32_t rl, rh;
-    if (fused) {
-        __asm__("umull %0, %1, %2, %4\n\t"
-                "mla %1, %3, %4, %1\n\t"
-                "smlal %0, %1, %5, %6\n\t"
-                "subs %0, %0, #0x80000000\n\t"
-                "sbc %1, %1, %7"
-                : "=&r"(rl), "=&r"(rh)
-                : "r"(lo), "r"(hi), "r"(k->m2), "r"(ph), "r"(k->nm2), "r"(k->chi)
-                : "cc");
-    } else {
-        __asm__("umull %0, %1, %2, %4\n\t"
-                "mla %1, %3, %4, %1\n\t"
-                "subs %0, %0, #0x80000000\n\t"
-                "sbc %1, %1, %5"
-                : "=&r"(rl), "=&r"(rh)
-                : "r"(lo), "r"(hi), "r"(k->m2), "r"(k->chi)
-                : "cc");
-    }
+    __asm__("umull %0, %1, %2, %4\n\t"
+            "mla %1, %3, %4, %1"
+            : "=&r"(rl), "=&r"(rh)
+            : "r"(lo), "r"(hi), "r"(m2));
     return ((uint64_t)rh << 32) | rl;
 #else
-    const uint64_t y = (uint64_t)lo * k->m2 + ((uint64_t)((uint32_t)hi * k->m2) << 32)
-                       - (((uint64_t)k->chi << 32) | 0x80000000u);
-    return fused ? mla_ww(y, ph, k->nm2) : y;
+    return (uint64_t)lo * m2 + ((uint64_t)((uint32_t)hi * m2) << 32);
 #endif
 }
 
@@ -1048,28 +1109,31 @@ NOINLINE void P_elem_slow(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32
     }
 }
 
-/* V <- V 2^sh, saturated, out of line (a word without room for the shift) */
-NOINLINE void P_shl_slow(canrls_P64 *q, int64_t x, int32_t sh, uint32_t *c_P)
+/* V <- V 2^sh, saturated, out of line (a word without room for the shift), from P_shl's D */
+NOINLINE void P_shl_slow(canrls_P64 *q, uint64_t d, int32_t sh, uint32_t *c_P)
 {
+    /* the pair X = D - cp (modulo 2^64: exact) */
+    const int64_t x = (int64_t)(d + (0x80000000u - ((uint32_t)1 << (31 - sh))));
     q->lo = (uint32_t)x;
     q->word = (int32_t)(x >> 32);
     P_shift(q, sh, INT32_MIN, INT32_MAX, c_P);
 }
 
 /* V <- V 2^sh exactly, in the pair x: X = V + 2^31 -> X 2^sh - (2^sh - 1) 2^31
- * = X 2^sh - (chi 2^32 + 2^31) when the word leaves room (|X| < 2^(62 - sh): the high word
- * within +-room); X 2^sh is the low word times m2 (one UMULL) plus the high word times m2
- * (one MLA). Else P_shift (saturated, counted). */
+ * = (X + cp) 2^sh, D = X + cp one SMLAL (room times cq), when D leaves room (the high word
+ * within +-room: |D 2^sh| < 2^62; an X + cp below -2^63 wraps to a D that fails the
+ * test). Else P_shift (saturated, counted). */
 INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t *c_P)
 {
-    const int32_t hi = (int32_t)(x >> 32);
+    const uint64_t d = mla_ww((uint64_t)x, (int32_t)k->room, k->cq);
+    const int32_t hi = (int32_t)(uint32_t)(d >> 32);
     if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
-        const uint64_t y = P_shl_sum((uint32_t)x, hi, 0, k, 0);
+        const uint64_t y = P_shl_sum((uint32_t)d, hi, k->m2);
         q->lo = (uint32_t)y;
         q->word = (int32_t)(uint32_t)(y >> 32);
         return;
     }
-    P_shl_slow(q, x, sh, c_P);
+    P_shl_slow(q, d, sh, c_P);
 }
 
 /* One element of the fixed-n step (32-bit P words): V <- sat(V - u) and, sh > 0, then
@@ -1082,24 +1146,46 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
 {
 #if defined(__GNUC__)
     int64_t x;
-    if (how == SH_FUSED || how == SH_FUSED32) {
-        /* |X| < 2^(61 - sh) (the high word within +-room2) and |u| <= 2^30 2^(64 - P_s)
-         * <= 2^(61 - sh) (SH_FUSED), |u 2^sh| = |ph| 2^32 <= 2^62 (SH_FUSED32): neither
-         * V - u nor (V - u) 2^sh leaves the pair, and X 2^sh - u 2^sh - (chi 2^32 + 2^31)
-         * is exact modulo 2^64 */
-        const int32_t ph = mul_rsh32(Ki, hj);
-        const int32_t hi = q->word;
-        if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room2)) {
-            const uint64_t z = how == SH_FUSED
-                                   ? P_shl_sum(q->lo, hi, ph, k, 1)
-                                   : P_shl_sum(q->lo, hi, 0, k, 0) - ((uint64_t)(uint32_t)ph << 32);
+#endif
+    if (how == SH_NEGK || how == SH_FUSED
+        || (how == SH_AFTER && (mode == PM_HIGH || mode == PM_32))) {
+        /* D = X - u + cp modulo 2^64, and (V - u) 2^sh in the pair is D 2^sh (P_shl):
+         * -u = ph nm (PM_HIGH, |u| <= 2^60), u = ph 2^32 (PM_32, the high word alone,
+         * |u| <= 2^61), -u = Ki hj (SH_NEGK: PM_LOWK with Ki = -(K_i 2^a), a word,
+         * |u| <= 2^62), each one SMLAL or a subtraction, cp = room cq one SMLAL; SH_FUSED
+         * (P_s >= 33 + sh) -u + cp = (ph + t) nm, ph + t one SMMLAR (|ph| <= 2^29,
+         * t < 2^(P_s - 33) <= 2^29: a word), one SMLAL. With X in
+         * [-2^63, 2^63), |u| <= 2^62 and -2^31 <= cp < 0, an X - u + cp outside int64
+         * leaves D = X - u + cp -+ 2^64 with |D| >= 2^62 - 2^31: its high word fails the
+         * room test (room <= 2^29). A D that passes is exact and within +-2^(62 - sh): no
+         * saturation in V - u nor in its 2^sh. Else the general element (Ki negated back:
+         * K_i 2^a is a word). */
+        uint64_t d = (uint64_t)P_pair(q);
+        int32_t hi;
+        if (how == SH_FUSED) {
+            d = mla_ww(d, mul_rsh32_add(Ki, hj, k->t), nm);
+        } else {
+            if (mode == PM_LOWK) {
+                d = mla_ww(d, Ki, hj);
+            } else if (mode == PM_32) {
+                d = sub_hi(d, mul_rsh32(Ki, hj));
+            } else {
+                d = mla_ww(d, mul_rsh32(Ki, hj), nm);
+            }
+            d = mla_ww(d, (int32_t)k->room, k->cq);
+        }
+        hi = (int32_t)(uint32_t)(d >> 32);
+        if (LIKELY((uint32_t)(hi ^ (hi >> 31)) < k->room)) {
+            const uint64_t z = P_shl_sum((uint32_t)d, hi, k->m2);
             q->lo = (uint32_t)z;
             q->word = (int32_t)(uint32_t)(z >> 32);
             return;
         }
-        P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
+        P_elem_slow(q, how == SH_NEGK ? (int32_t)(0u - (uint32_t)Ki) : Ki, hj, mode, P_s, sh,
+                    c_P);
         return;
     }
+#if defined(__GNUC__)
     if (mode == PM_32) {
         /* u = ph 2^32: the word alone, saturated where it overflows */
         const int32_t ph = mul_rsh32(Ki, hj);
@@ -1174,8 +1260,20 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
 #endif
 }
 
-/* The off-diagonal elements: the shift class ``mode`` and how the block exponent's shift
- * sh is taken (``how``) are constants at each call. ``unroll`` (a constant): one straight
+/* Row i of the off-diagonal elements (j > i), each the exact general element, out of line
+ * (SH_NEGK: a K_i 2^a of -2^31, whose negation is not a word) */
+NOINLINE void P_row_slow(canrls_P64 *Pw, int32_t Ki, const int32_t *h, uint32_t i, int mode,
+                         int32_t P_s, int32_t sh, uint32_t *c_P)
+{
+    uint32_t j;
+    for (j = i + 1; j < CANRLS_N; j++) {
+        P_elem_slow(&Pw[j - i], Ki, h[j], mode, P_s, sh, c_P);
+    }
+}
+
+/* The off-diagonal elements and, with a shift, the diagonal's shift (its elements
+ * updated before): the shift class ``mode`` and how the block exponent's shift sh is
+ * taken (``how``) are constants at each call. ``unroll`` (a constant): one straight
  * run, else a loop over the packed rows (the rare classes: less code). */
 INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t nm,
                   int32_t P_s, int32_t sh, int how, const P_shc *kc, int unroll,
@@ -1190,10 +1288,21 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
     for (j = 0; j < n; j++) {
         h[j] = hn[j];
     }
+#define P_OFF_ROW                                                                          \
+    int32_t Ki = K[i];                                                                     \
+    if (how == SH_NEGK) {                                                                  \
+        /* the row's K word negated (-2^31: the row in the general element) */             \
+        if (UNLIKELY(Ki == INT32_MIN)) {                                                   \
+            P_row_slow(Pw, Ki, h, i, mode, P_s, sh, c_P);                                  \
+            Pw += n - i;                                                                   \
+            continue;                                                                      \
+        }                                                                                  \
+        Ki = -Ki;                                                                          \
+    }
     if (unroll) {
         UNROLL
         for (i = 0; i < n; i++) {
-            const int32_t Ki = K[i];
+            P_OFF_ROW
             UNROLL
             for (j = i + 1; j < n; j++) {
                 P_elem(&Pw[j - i], Ki, h[j], mode, nm, P_s, sh, how, &k, c_P, NULL);
@@ -1202,10 +1311,20 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
         }
     } else {
         for (i = 0; i < n; i++) {
-            const int32_t Ki = K[i];
+            P_OFF_ROW
             for (j = i + 1; j < n; j++) {
                 P_elem(&Pw[j - i], Ki, h[j], mode, nm, P_s, sh, how, &k, c_P, NULL);
             }
+            Pw += n - i;
+        }
+    }
+#undef P_OFF_ROW
+    if (how != SH_NONE) {
+        /* the diagonal (its elements updated before this pass) shifted */
+        Pw = P;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            P_shl(Pw, P_pair(Pw), sh, &k, c_P);
             Pw += n - i;
         }
     }
@@ -1220,11 +1339,10 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
     }
 P_OFF_CLASS(P_off_high_fused, PM_HIGH, SH_FUSED, 1)
 P_OFF_CLASS(P_off_high_after, PM_HIGH, SH_AFTER, 1)
-P_OFF_CLASS(P_off_high_fused32, PM_HIGH, SH_FUSED32, 1)
 P_OFF_CLASS(P_off_high, PM_HIGH, SH_NONE, 1)
 P_OFF_CLASS(P_off_32_after, PM_32, SH_AFTER, 1)
 P_OFF_CLASS(P_off_32, PM_32, SH_NONE, 1)
-P_OFF_CLASS(P_off_lowk_after, PM_LOWK, SH_AFTER, 1)
+P_OFF_CLASS(P_off_lowk_neg, PM_LOWK, SH_NEGK, 1)
 P_OFF_CLASS(P_off_lowk, PM_LOWK, SH_NONE, 1)
 P_OFF_CLASS(P_off_low_after, PM_LOW, SH_AFTER, 0)
 P_OFF_CLASS(P_off_low, PM_LOW, SH_NONE, 0)
@@ -1237,8 +1355,6 @@ INLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mo
     const P_shc kc = sh > 0 ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
     if (mode == PM_HIGH && sh > 0 && P_s >= 33 + sh) {
         P_off_high_fused(P, K, hn, nm, P_s, sh, &kc, c_P);
-    } else if (mode == PM_HIGH && sh > 0 && P_s == 32 + sh) {
-        P_off_high_fused32(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_HIGH && sh > 0) {
         P_off_high_after(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_HIGH) {
@@ -1248,7 +1364,7 @@ INLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mo
     } else if (mode == PM_32) {
         P_off_32(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_LOWK && sh > 0) {
-        P_off_lowk_after(P, K, hn, nm, P_s, sh, &kc, c_P);
+        P_off_lowk_neg(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (mode == PM_LOWK) {
         P_off_lowk(P, K, hn, nm, P_s, sh, &kc, c_P);
     } else if (sh > 0) {
@@ -1274,7 +1390,7 @@ INLINE void theta_add_hi(canrls_theta64 *q, int32_t ph, uint32_t *n)
 }
 #endif
 
-/* The step after g at a fixed n (32-bit theta and P words): K; the diagonal of
+/* The step after g and K at a fixed n (32-bit theta and P words): the diagonal of
  * P~ - K h~' first, so that c <- c / lambda_k and the block exponent's shift sh are known
  * before the rest of P is touched; then the off-diagonal elements with the shift folded
  * in (one pass over P: the shift's cost spread over the elements the update writes
@@ -1282,65 +1398,28 @@ INLINE void theta_add_hi(canrls_theta64 *q, int32_t ph, uint32_t *n)
  * forgetting scale and the block exponent of canrls_update_q31 one after the other (the
  * order changes no integer: the theta and P updates read nothing the other writes, and
  * the shift of each element follows its own update). ``common`` (a constant at each
- * call): P_s >= 33 and th_s >= 33, the steady state, one straight run; ``cls`` (a
- * constant) the class of P_s: PM_HIGH, PM_32 or PM_LOW. A c to fold into
+ * call): P_s >= 33 and th_s >= 33, the steady state, one straight run; ``mode`` (a
+ * constant) the class of P_s: PM_HIGH, PM_32, PM_LOW or PM_LOWK (KP, hP: K 2^a, h~ 2^b;
+ * else K, h~). A c to fold into
  * P~ (e = 0) is left to the caller (c > one_lam on return, no shift). Returns the
  * low-excitation test, as P_step. */
-INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
-                   int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
-                   uint32_t *c_th, uint32_t *c_P, int common, int cls)
+INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const int32_t *KP,
+                   const int32_t *hP, uint32_t mK, int32_t epn, int32_t th_s, int32_t P_s,
+                   int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io, uint32_t *c_th,
+                   uint32_t *c_P, int common, int mode)
 {
     const uint32_t n = CANRLS_N;
     const canrls_plan_q31 *p = PLAN(S);
-    int mode = cls; /* PM_HIGH (P_s >= 33), PM_32 or PM_LOW (P_s <= 31) */
     const int32_t nm = mode == PM_HIGH ? neg_pow2(P_s) : 0;
     /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = -(ph nt) */
     const int32_t nt = common || th_s >= 33 ? neg_pow2(th_s) : 0;
     const int32_t tr_ps = p->trace_ps;
-    int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
-    /* K and h~ as the P update takes them: K and h~, or K 2^a and h~ 2^b with
-     * a + b = 32 - P_s (PM_LOWK) */
-    const int32_t *KP = K, *hP = hn;
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
-    const P_shc k0 = {0u, 0u, 0u, 0u, 0}; /* (no shift) */
-    uint32_t mK = 0;
+    const P_shc k0 = {0u, 0u, 0, 0}; /* (no shift) */
     int32_t e = *e_io, c = *c_io, sh = 0;
     int64_t tr = 0;
     uint32_t i, j, nz = 0, trw32 = 0;
-    UNROLL
-    for (i = 0; i < n; i++) {
-        /* h~ <- h~ 2^kn (exact: the normalisation) */
-        hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
-        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
-        K[i] = mul_rsh32(hn[i], gcn);
-        S->K[i] = K[i];
-        mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
-    }
-    if (!common && mode == PM_LOW) {
-        /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a that keeps K 2^a a
-         * word, the rest b on h~ if it keeps h~ 2^b a word */
-        uint32_t mh = 0;
-        int32_t a = 32 - P_s, b;
-        while (a > 0 && (mK >> (31 - a)) != 0u) {
-            a -= 1;
-        }
-        b = 32 - P_s - a;
-        UNROLL
-        for (i = 0; i < n; i++) {
-            mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
-        }
-        if (b <= 31 && (mh >> (31 - b)) == 0u) {
-            UNROLL
-            for (i = 0; i < n; i++) {
-                Kk[i] = (int32_t)((uint32_t)K[i] << a);
-                hk[i] = (int32_t)((uint32_t)hn[i] << b);
-            }
-            KP = Kk;
-            hP = hk;
-            mode = PM_LOWK;
-        }
-    }
     /* the diagonal: P~_ii <- P~_ii - K_i h~_i (the information K_i h~_i: low excitation) */
     Pw = P;
     UNROLL
@@ -1358,14 +1437,16 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     /* block exponent: tr P~ fell to tr_hi/2 or below -> shift left by sh, e += sh (not
      * with a c to fold: the caller folds, then shifts) */
     if (UNLIKELY(c <= p->one_lam && tr > 0 && tr <= (p->trace_hi >> 1) && e < p->e_max)) {
-        /* the largest sh with tr 2^sh <= tr_hi (at least 1 here) and e + sh <= e_max */
-        sh = nlz((uint32_t)tr) - nlz((uint32_t)p->trace_hi);
-        if ((tr << sh) > p->trace_hi) {
+        /* the largest sh with tr 2^sh <= tr_hi (at least 1 here) and e + sh <= e_max (tr
+         * and tr 2^sh below 2^31 here: words) */
+        const uint32_t t = (uint32_t)tr;
+        sh = nlz(t) - nlz((uint32_t)p->trace_hi);
+        if ((t << sh) > (uint32_t)p->trace_hi) {
             sh -= 1;
         }
         sh = sh < p->e_max - e ? sh : p->e_max - e;
     }
-    /* the rest of P~ <- (P~ - K h~') 2^sh */
+    /* the rest of P~ <- (P~ - K h~') 2^sh, the diagonal's 2^sh */
     if (common && LIKELY(sh == 0)) {
         Pw = P;
         UNROLL
@@ -1379,16 +1460,6 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         }
     } else {
         P_off_any(P, KP, hP, mode, nm, P_s, sh, c_P);
-    }
-    if (sh > 0) {
-        /* the diagonal shifted */
-        const P_shc k = shc_of(sh, mode, P_s);
-        Pw = P;
-        UNROLL
-        for (i = 0; i < n; i++) {
-            P_shl(Pw, P_pair(Pw), sh, &k, c_P);
-            Pw += n - i;
-        }
     }
     Pw = P;
     UNROLL
@@ -1422,6 +1493,54 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
     return nz == 0u;
 }
 
+
+/* K and h~ as the P update takes them, then KP_tail: K = (g c) h~ 2^kn and h~ 2^kn, or, for
+ * P_s <= 31 where both words keep room, K 2^a and h~ 2^b (PM_LOWK: each class of the tail
+ * its own straight run) */
+INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                   int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
+                   uint32_t *c_th, uint32_t *c_P, int common, int cls)
+{
+    const uint32_t n = CANRLS_N;
+    int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
+    uint32_t mK = 0;
+    uint32_t i;
+    UNROLL
+    for (i = 0; i < n; i++) {
+        /* h~ <- h~ 2^kn (exact: the normalisation) */
+        hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
+        /* K = P phi / (lambda + phi' P phi) = (g c) h~: the high word, rounded */
+        K[i] = mul_rsh32(hn[i], gcn);
+        S->K[i] = K[i];
+        mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
+    }
+    if (!common && cls == PM_LOW) {
+        /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a <= 32 - P_s that
+         * keeps K 2^a a word (mK < 2^(31 - a)), the rest b on h~ if it keeps h~ 2^b a word */
+        const int32_t a0 = nlz(mK | 1u) - 1;
+        const int32_t a = a0 < 32 - P_s ? a0 : 32 - P_s, b = 32 - P_s - a;
+        uint32_t mh = 0;
+        if (b > 0) {
+            UNROLL
+            for (i = 0; i < n; i++) {
+                mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
+            }
+        }
+        if (b == 0 || (b <= 31 && (mh >> (31 - b)) == 0u)) {
+            UNROLL
+            for (i = 0; i < n; i++) {
+                Kk[i] = (int32_t)((uint32_t)K[i] << a);
+                hk[i] = (int32_t)((uint32_t)hn[i] << b);
+            }
+            /* K and h~ as the P update takes them: K 2^a and h~ 2^b */
+            return KP_tail(S, K, hn, Kk, b == 0 ? hn : hk, mK, epn, th_s, P_s, il, e_io, c_io,
+                           trw_io, c_th, c_P, 0, PM_LOWK);
+        }
+    }
+    return KP_tail(S, K, hn, K, hn, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P,
+                   common, cls);
+}
+
 /* the instances, out of line: the steady state (P_s, th_s >= 33) and any other step by
  * the class of P_s (each its registers and its stack frame) */
 #define KP_STEP(name, common_, cls_)                                                       \
@@ -1437,19 +1556,6 @@ KP_STEP(KP_step_high, 0, PM_HIGH)
 KP_STEP(KP_step_32, 0, PM_32)
 KP_STEP(KP_step_low, 0, PM_LOW)
 
-/* any step but the steady state's, by the class of P_s */
-NOINLINE int KP_step_n(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
-                       int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
-                       uint32_t *c_th, uint32_t *c_P)
-{
-    if (P_s >= 33) {
-        return KP_step_high(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
-    }
-    if (P_s == 32) {
-        return KP_step_32(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
-    }
-    return KP_step_low(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
-}
 #endif
 
 int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
@@ -1524,7 +1630,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
         int32_t il;
         int low;
         int tail = 1;       /* the forgetting scale and the block exponent still to do */
-        int fixed_step = 0; /* KP_step_n took c <- c / lambda_k */
+        int fixed_step = 0; /* the fixed-n step took c <- c / lambda_k */
 
         /* h~ = P~ phi, rounded and stored; m = OR of |h~_i| (one's complement) for the
          * normalisation below; s~ = phi' h~ (a) summed as h~ is stored */
@@ -1577,7 +1683,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
              * the product) */
             int64_t T = rsh_w(mul_ww(trw, c), p->tc_s)
                         - (int64_t)((uint64_t)(int64_t)S->plan->trace_max_lam << e);
-            if (T > 0 && windup_up(p, h, n, c, e, T, sv)) {
+            if (T > 0 && windup_up(S, T, sv)) {
                 lam_k = p->one_den;
                 flag = CANRLS_FLAG_WINDUP;
             }
@@ -1644,8 +1750,12 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             if (P_s >= 33 && th_s >= 33) {
                 low = KP_step_common(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th,
                                      &c_P);
+            } else if (P_s >= 33) {
+                low = KP_step_high(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
+            } else if (P_s == 32) {
+                low = KP_step_32(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
             } else {
-                low = KP_step_n(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
+                low = KP_step_low(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
             }
             tail = c > p->one_lam;
             fixed_step = 1;
@@ -1704,7 +1814,7 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             flag |= CANRLS_FLAG_LOW_EXCITATION;
         }
 
-        /* c <- c / lambda_k (KP_step_n: done) */
+        /* c <- c / lambda_k (the fixed-n step: done) */
         if (tail && !fixed_step) {
             c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, &c_P);
         }
