@@ -18,8 +18,10 @@ $(BIN)/.installed: pyproject.toml setup.py $(wildcard src/canrls/c/*/*.c src/can
 demo: $(BIN)/.installed
 	$(BIN)/canrls demo
 
+# two processes (pytest-xdist), each test file whole in one of them: its module fixtures
+# built once, its tests in order
 test: $(BIN)/.installed
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 bench: $(BIN)/.installed
 	$(BIN)/python -m pip install --quiet -e '.[bench]'

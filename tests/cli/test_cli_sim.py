@@ -5,13 +5,13 @@ from __future__ import annotations
 import re
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import can
 import numpy as np
 import pytest
+from cli_tool import python_module
 
 from canrls.can.decoder import Decoder
 from canrls.can.frameblock import FrameBlock
@@ -123,9 +123,11 @@ def test_a_signal_inside_the_c_loop_stops_sim_within_a_second(
     periods: about a minute at the smallest J). The loop looks at the signals every
     100,000 sub-steps now."""
     out = tmp_path / "long.log"
-    proc = subprocess.Popen([sys.executable, "-m", "canrls", "sim", "--out", str(out),
-                             "--duration", "3600", "-p", "inertia.J=5e-7"],
-                            stderr=subprocess.PIPE, text=True)
+    # Ctrl-C restored in the child: a background job's SIGINT is ignored, and inherited
+    proc = subprocess.Popen(python_module("canrls") + [
+        "sim", "--out", str(out), "--duration", "3600", "-p", "inertia.J=5e-7"],
+        stderr=subprocess.PIPE, text=True)
+    err = ""
     try:
         deadline = time.monotonic() + 120
         while not any(p.name.endswith(".part") for p in tmp_path.iterdir()):
@@ -137,12 +139,12 @@ def test_a_signal_inside_the_c_loop_stops_sim_within_a_second(
         try:
             _, err = proc.communicate(timeout=30)
         except subprocess.TimeoutExpired:
-            err = ""
+            err = f"still running 30 s after {sig.name}, killed; its stderr:\n"
         took = time.monotonic() - sent
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.communicate()
+            err += proc.communicate()[1]  # where the signal went, if it went missing
     assert proc.returncode == status, err
     assert took < 1.0, f"{took:.1f} s"
     assert list(tmp_path.iterdir()) == []

@@ -1,10 +1,12 @@
 """What the CLI tests share: run ``canrls`` in-process and expect one clear error; write
-any value as inline TOML for the configurations they hand it."""
+any value as inline TOML for the configurations they hand it; start a module as a
+process that Ctrl-C stops."""
 
 from __future__ import annotations
 
 import json
 import math
+import sys
 from typing import Any
 
 import pytest
@@ -23,6 +25,16 @@ def cli_error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
     assert len(lines) == 1 and lines[0].startswith("error: "), err
     assert "Traceback" not in err
     return lines[0]
+
+
+def python_module(module: str) -> list[str]:
+    """``python -m module`` with Ctrl-C restored: a shell without job control starts
+    background jobs with SIGINT ignored (``make test &`` too), and a child inherits
+    that."""
+    code = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+            f"sys.argv[0] = {module!r}; runpy.run_module({module!r}, run_name='__main__', "
+            "alter_sys=True)")
+    return [sys.executable, "-c", code]
 
 
 def inline_toml(v: Any) -> str:

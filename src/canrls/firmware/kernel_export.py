@@ -42,11 +42,11 @@ from canrls.core.units import rating_of
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
-from canrls.firmware.cgen import PLAN_64, plan_text
+from canrls.firmware.cgen import plan_text
 from canrls.processor.config import AppConfig
 from canrls.processor.period import control_period
 
-__all__ = ["KERNEL_FILES", "PLAN_64", "Export", "plan_c", "export_c", "frames_c"]
+__all__ = ["KERNEL_FILES", "Export", "plan_c", "export_c", "frames_c"]
 
 #: The kernel's files, copied from the package (``canrls/c/firmware``).
 KERNEL_FILES = ("canrls_bounds.h", "canrls_fixed.h", "canrls_fixed.c")
