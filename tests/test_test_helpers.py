@@ -71,7 +71,9 @@ def test_two_processes_needing_a_tool_run_one_apt_get_at_a_time(
         return "/usr/bin/apt-get" if name == "apt-get" else (
             "/usr/bin/made-up-tool" if installed.is_set() else None)
 
-    monkeypatch.setattr(debian, "_APT_LOCK", tmp_path / "apt.lock", raising=False)
+    lock = tmp_path / "apt.lock"
+    lock.touch()
+    monkeypatch.setattr(debian, "_APT_LOCK", lock)
     monkeypatch.setattr(debian, "_apt_updated", False)
     monkeypatch.setattr(debian.os, "geteuid", lambda: 0)
     monkeypatch.setattr(debian.shutil, "which", which)

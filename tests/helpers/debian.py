@@ -2,7 +2,7 @@
 
 :func:`need_tool` installs a missing tool with ``apt-get`` when the tests run as root
 (as CI does on a fresh machine), otherwise the test that needs it skips. ``make test``
-runs the tests in two processes (pytest-xdist): one lock file around every ``apt-get``
+runs the tests in two processes (pytest-xdist): a lock on this file around every ``apt-get``
 lets one process install at a time (dpkg's lock would fail the other's), and a tool the
 other process installed meanwhile is found, not installed again.
 """
@@ -13,7 +13,6 @@ import fcntl
 import os
 import shutil
 import subprocess
-import tempfile
 from pathlib import Path
 
 import pytest
@@ -21,8 +20,9 @@ import pytest
 __all__ = ["need_tool"]
 
 _apt_updated = False
-#: the lock the test processes take around apt-get (one per machine)
-_APT_LOCK = Path(tempfile.gettempdir()) / "canrls-tests-apt.lock"
+#: the file the test processes lock around apt-get: this module's own (it exists wherever
+#: the tests run, and a lock leaves no file behind)
+_APT_LOCK = Path(__file__)
 
 
 def need_tool(tool: str, packages: list[str]) -> str:
@@ -34,7 +34,7 @@ def need_tool(tool: str, packages: list[str]) -> str:
         env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
         # dpkg's own lock held by anything else (an unattended upgrade): wait for it
         wait = ["-o", "DPkg::Lock::Timeout=600"]
-        with open(_APT_LOCK, "a") as lock:
+        with open(_APT_LOCK, "rb") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             try:
                 path = shutil.which(tool)  # installed by the other process meanwhile
