@@ -39,7 +39,6 @@ import numpy.typing as npt
 from canrls.core.c_escape import c_comment, c_float, c_identifier, c_int, c_uint
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import SITES, FixedConfig
-from canrls.firmware.cgen import PLAN_64  # noqa: F401 - for the tests (gen.PLAN_64)
 from canrls.firmware.kernel_export import plan_c
 
 IntArray = npt.NDArray[np.int64]

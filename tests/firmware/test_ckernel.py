@@ -30,6 +30,7 @@ from canrls.core.c_escape import c_int
 from canrls.estimation.fixed import kernels, layout
 from canrls.estimation.fixed.estimator import FixedRLS
 from canrls.estimation.fixed.formats import SITES, FixedConfig, FixedFlag, QFormat
+from canrls.firmware.cgen import PLAN_64
 from canrls.firmware.kernel_export import plan_c
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -331,7 +332,7 @@ def test_plan_names_are_the_python_constants() -> None:
               for f in (x.strip() for x in decl.split(","))]
     est = FixedRLS(FixedConfig.auto(3, 1e-2, 0.99), 3, 0.99, 1e-2)
     assert fields == list(est.constants)
-    assert {k for k, v in est.constants.items() if not -2**31 <= v < 2**31} <= gen.PLAN_64
+    assert {k for k, v in est.constants.items() if not -2**31 <= v < 2**31} <= PLAN_64
 
 
 _ACCESSORS_C = r"""
