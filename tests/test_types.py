@@ -1,8 +1,9 @@
 """The package's type hints hold: mypy finds no error in it, and the stubs of the C
-extensions (``src/canrls/_*.pyi``) name what the extensions hold.
+extensions (``src/canrls/_*.pyi``) name what the extensions hold; ruff finds nothing in
+the package, the tests and the tools.
 
-Both run where mypy is installed (``make test`` installs it with the ``test`` extra) and
-are skipped elsewhere. mypy takes its settings from ``[tool.mypy]`` in pyproject.toml and
+They run where mypy and ruff are installed (``make test`` installs both with the ``test``
+extra) and are skipped elsewhere. mypy takes its settings from ``[tool.mypy]`` in pyproject.toml and
 keeps its cache in ``build/mypy``: a run after a change re-checks only what it touches.
 """
 
@@ -29,6 +30,13 @@ def test_mypy_finds_no_error() -> None:
     r = _run("mypy")
     assert r.returncode == 0, r.stdout + r.stderr
     assert r.stdout.startswith("Success: no issues found"), r.stdout
+
+
+def test_ruff_finds_nothing() -> None:
+    # the rules and the line length of [tool.ruff] in pyproject.toml
+    pytest.importorskip("ruff")
+    r = _run("ruff", "check", "--no-cache", "src", "tests", "tools")
+    assert r.returncode == 0, r.stdout + r.stderr
 
 
 def test_stubs_match_the_extensions() -> None:

@@ -100,6 +100,10 @@ def test_the_text_says_where_the_fixed_column_comes_from(tmp_path: Path) -> None
     _canrls(["sim", "--out", str(log), "--duration", "4", "--seed", "8"])
     text = _canrls(["fit", str(log), "--kt", "0.1", "--fixed", "target", "--quiet"])
     assert "fixed point: the target's integer path from the frames on" in text
+    # each equation's counts by name, not a Python dict
+    line = next(x for x in text.splitlines() if x.startswith("fixed point:"))
+    assert "updates: mechanical " in line and "rescales: mechanical 0" in line, line
+    assert "{" not in line, line
 
 
 @pytest.mark.skipif(not HSM.is_dir(), reason=f"HSM150 data not found at {HSM} (real "

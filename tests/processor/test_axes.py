@@ -129,7 +129,8 @@ _BAD_AXES = [
     ('[[axes]]\nname = "a"\n[[axes]]\nname = "a"\nids = "cia402:2"\n',
      "error: {cfg}: axes[1].name = 'a': also the name of axes[0]"),
     ('[[axes]]\nname = "a"\nnode = 3\n',
-     "error: {cfg}: axes[0]: unknown key node = 3 (valid: name, ids, own, dbc, eds, signals, model)"),
+     "error: {cfg}: axes[0]: unknown key node = 3 "
+     "(valid: name, ids, own, dbc, eds, signals, model)"),
     ("".join(f'[[axes]]\nname = "a{i}"\nids = "offset:{i}"\n' for i in range(10_000)),
      "error: {cfg}: 10000 [[axes]] tables; canrls serves at most 127 axes on one bus"),
 ]

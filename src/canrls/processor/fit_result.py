@@ -176,10 +176,16 @@ class TargetRun:
         return {"path": "target", **dataclasses.asdict(self)}
 
     def format(self) -> str:
-        return (f"fixed point: the target's integer path from the frames on ({self.samples} "
-                f"samples; updates {self.updates}, rescales {self.rescales}"
-                + (f", frames rejected or dropped {self.rejected}" if self.rejected else "")
-                + ")")
+        parts = [f"{self.samples} samples", f"updates: {_by_name(self.updates)}",
+                 f"rescales: {_by_name(self.rescales)}"]
+        if self.rejected:
+            parts.append(f"frames rejected or dropped: {_by_name(self.rejected)}")
+        return f"fixed point: the target's integer path from the frames on ({'; '.join(parts)})"
+
+
+def _by_name(counts: dict[str, int]) -> str:
+    """``counts`` as a person reads them: "mechanical 19935, electrical 19935"."""
+    return ", ".join(f"{name} {count}" for name, count in counts.items()) or "none"
 
 
 @dataclass(frozen=True)
