@@ -1260,17 +1260,6 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
 #endif
 }
 
-/* Row i of the off-diagonal elements (j > i), each the exact general element, out of line
- * (SH_NEGK: a K_i 2^a of -2^31, whose negation is not a word) */
-NOINLINE void P_row_slow(canrls_P64 *Pw, int32_t Ki, const int32_t *h, uint32_t i, int mode,
-                         int32_t P_s, int32_t sh, uint32_t *c_P)
-{
-    uint32_t j;
-    for (j = i + 1; j < CANRLS_N; j++) {
-        P_elem_slow(&Pw[j - i], Ki, h[j], mode, P_s, sh, c_P);
-    }
-}
-
 /* The off-diagonal elements and, with a shift, the diagonal's shift (its elements
  * updated before): the shift class ``mode`` and how the block exponent's shift sh is
  * taken (``how``) are constants at each call. ``unroll`` (a constant): one straight
@@ -1289,16 +1278,8 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
         h[j] = hn[j];
     }
 #define P_OFF_ROW                                                                          \
-    int32_t Ki = K[i];                                                                     \
-    if (how == SH_NEGK) {                                                                  \
-        /* the row's K word negated (-2^31: the row in the general element) */             \
-        if (UNLIKELY(Ki == INT32_MIN)) {                                                   \
-            P_row_slow(Pw, Ki, h, i, mode, P_s, sh, c_P);                                  \
-            Pw += n - i;                                                                   \
-            continue;                                                                      \
-        }                                                                                  \
-        Ki = -Ki;                                                                          \
-    }
+    /* SH_NEGK: the row's K word negated (K 2^a > -2^31: lowk_split) */                    \
+    const int32_t Ki = how == SH_NEGK ? -K[i] : K[i];
     if (unroll) {
         UNROLL
         for (i = 0; i < n; i++) {
@@ -1494,17 +1475,71 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
 }
 
 
+/* the tail of a step with P_s <= 31 whose K 2^a or h~ 2^b is not a word (rare: the loop
+ * of PM_LOW), out of line: the PM_LOWK instance keeps its registers to itself */
+NOINLINE int KP_tail_low(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, uint32_t mK,
+                         int32_t epn, int32_t th_s, int32_t P_s, int32_t il, int32_t *e_io,
+                         int32_t *c_io, int32_t *trw_io, uint32_t *c_th, uint32_t *c_P)
+{
+    return KP_tail(S, K, hn, K, hn, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 0,
+                   PM_LOW);
+}
+
+/* PM_LOWK's split u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b), a + b = 32 - P_s: the
+ * largest a that keeps every K_i 2^a a word above -2^31, so that its negation is one too
+ * (|K_i| < 2^(31 - a), mA the OR of |K_i|), the rest b on h~ where h~ 2^b stays a word (mh
+ * the OR of |h~_i| in one's complement). Returns 0 where no split fits (the loop of
+ * PM_LOW). */
+INLINE int lowk_split(uint32_t mA, uint32_t mh, int32_t P_s, int32_t *a_out, int32_t *b_out)
+{
+    const int32_t a0 = nlz(mA | 1u) - 1; /* mA <= 2^31: a0 >= -1 */
+    const int32_t a = a0 < 32 - P_s ? a0 : 32 - P_s, b = 32 - P_s - a;
+    *a_out = a;
+    *b_out = b;
+    return a >= 0 && b <= 31 && (mh >> (31 - b)) == 0u;
+}
+
 /* K and h~ as the P update takes them, then KP_tail: K = (g c) h~ 2^kn and h~ 2^kn, or, for
  * P_s <= 31 where both words keep room, K 2^a and h~ 2^b (PM_LOWK: each class of the tail
- * its own straight run) */
+ * its own straight run). ``mh`` (PM_LOW): OR of |h~_i 2^kn| (one's complement). */
 INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
                    int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
-                   uint32_t *c_th, uint32_t *c_P, int common, int cls)
+                   uint32_t *c_th, uint32_t *c_P, uint32_t mh, int common, int cls)
 {
     const uint32_t n = CANRLS_N;
-    int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
+    int32_t hn[CANRLS_N], K[CANRLS_N];
     uint32_t mK = 0;
     uint32_t i;
+    if (!common && cls == PM_LOW) {
+        /* K into S->K alone (the tail's theta reads it there), K 2^a and h~ 2^b from
+         * S->K and S->h: nothing else kept */
+        int32_t Kk[CANRLS_N], hk[CANRLS_N];
+        int32_t a, b;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            const int32_t Ki = mul_rsh32((int32_t)((uint32_t)S->h[i] << kn), gcn);
+            S->K[i] = Ki;
+            Kk[i] = Ki;
+            /* |K_i| (the theta step's test of mK holds with it: |K_i| >= one's complement) */
+            mK |= (uint32_t)(Ki ^ (Ki >> 31)) - (uint32_t)(Ki >> 31);
+        }
+        if (lowk_split(mK, mh, P_s, &a, &b)) {
+            /* h~ 2^(kn + b): kn + b <= 30 unless every h~_i is 0 (then any shift is) */
+            const uint32_t sb = (uint32_t)(kn + b) & 31u;
+            UNROLL
+            for (i = 0; i < n; i++) {
+                Kk[i] = (int32_t)((uint32_t)Kk[i] << a);
+                hk[i] = (int32_t)((uint32_t)S->h[i] << sb);
+            }
+            return KP_tail(S, S->K, hk, Kk, hk, mK, epn, th_s, P_s, il, e_io, c_io, trw_io,
+                           c_th, c_P, 0, PM_LOWK);
+        }
+        UNROLL
+        for (i = 0; i < n; i++) {
+            hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
+        }
+        return KP_tail_low(S, S->K, hn, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
+    }
     UNROLL
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
@@ -1513,29 +1548,6 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         K[i] = mul_rsh32(hn[i], gcn);
         S->K[i] = K[i];
         mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
-    }
-    if (!common && cls == PM_LOW) {
-        /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a <= 32 - P_s that
-         * keeps K 2^a a word (mK < 2^(31 - a)), the rest b on h~ if it keeps h~ 2^b a word */
-        const int32_t a0 = nlz(mK | 1u) - 1;
-        const int32_t a = a0 < 32 - P_s ? a0 : 32 - P_s, b = 32 - P_s - a;
-        uint32_t mh = 0;
-        if (b > 0) {
-            UNROLL
-            for (i = 0; i < n; i++) {
-                mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
-            }
-        }
-        if (b == 0 || (b <= 31 && (mh >> (31 - b)) == 0u)) {
-            UNROLL
-            for (i = 0; i < n; i++) {
-                Kk[i] = (int32_t)((uint32_t)K[i] << a);
-                hk[i] = (int32_t)((uint32_t)hn[i] << b);
-            }
-            /* K and h~ as the P update takes them: K 2^a and h~ 2^b */
-            return KP_tail(S, K, hn, Kk, b == 0 ? hn : hk, mK, epn, th_s, P_s, il, e_io, c_io,
-                           trw_io, c_th, c_P, 0, PM_LOWK);
-        }
     }
     return KP_tail(S, K, hn, K, hn, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P,
                    common, cls);
@@ -1548,13 +1560,21 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
                       int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io, \
                       uint32_t *c_th, uint32_t *c_P)                                         \
     {                                                                                        \
-        return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P,        \
+        return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 0u,    \
                        common_, cls_);                                                       \
     }
 KP_STEP(KP_step_common, 1, PM_HIGH)
 KP_STEP(KP_step_high, 0, PM_HIGH)
 KP_STEP(KP_step_32, 0, PM_32)
-KP_STEP(KP_step_low, 0, PM_LOW)
+
+/* P_s <= 31; mh = OR of |h~_i 2^kn| (one's complement: m 2^kn, the shift exact) */
+NOINLINE int KP_step_low(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                         int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
+                         uint32_t *c_th, uint32_t *c_P, uint32_t mh)
+{
+    return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, mh, 0,
+                   PM_LOW);
+}
 
 #endif
 
@@ -1755,7 +1775,8 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             } else if (P_s == 32) {
                 low = KP_step_32(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
             } else {
-                low = KP_step_low(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
+                low = KP_step_low(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P,
+                                  m << kn);
             }
             tail = c > p->one_lam;
             fixed_step = 1;
