@@ -1123,7 +1123,7 @@ NOINLINE void P_shl_slow(canrls_P64 *q, uint64_t d, int32_t sh, uint32_t *c_P)
  * = (X + cp) 2^sh, D = X + cp one SMLAL (room times cq), when D leaves room (the high word
  * within +-room: |D 2^sh| < 2^62; an X + cp below -2^63 wraps to a D that fails the
  * test). Else P_shift (saturated, counted). */
-INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t *c_P)
+INLINE int32_t P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t *c_P)
 {
     const uint64_t d = mla_ww((uint64_t)x, (int32_t)k->room, k->cq);
     const int32_t hi = (int32_t)(uint32_t)(d >> 32);
@@ -1131,9 +1131,10 @@ INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t
         const uint64_t y = P_shl_sum((uint32_t)d, hi, k->m2);
         q->lo = (uint32_t)y;
         q->word = (int32_t)(uint32_t)(y >> 32);
-        return;
+        return q->word;
     }
     P_shl_slow(q, d, sh, c_P);
+    return q->word;
 }
 
 /* One element of the fixed-n step (32-bit P words): V <- sat(V - u) and, sh > 0, then
@@ -1198,7 +1199,7 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
             return;
         }
         if (how == SH_AFTER) {
-            P_shl(q, (int64_t)(((uint64_t)(uint32_t)w << 32) | q->lo), sh, k, c_P);
+            (void)P_shl(q, (int64_t)(((uint64_t)(uint32_t)w << 32) | q->lo), sh, k, c_P);
             return;
         }
         q->word = w;
@@ -1245,7 +1246,7 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
         }
     }
     if (how == SH_AFTER) {
-        P_shl(q, x, sh, k, c_P);
+        (void)P_shl(q, x, sh, k, c_P);
         return;
     }
     q->lo = (uint32_t)x;
@@ -1260,19 +1261,28 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
 #endif
 }
 
+/* trw's term of a diagonal word x: rsh(x, trace_ps) (the word for trace_ps <= 0) */
+INLINE uint32_t trw_term(int32_t x, int32_t tr_ps)
+{
+    return (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
+}
+
 /* The off-diagonal elements and, with a shift, the diagonal's shift (its elements
- * updated before): the shift class ``mode`` and how the block exponent's shift sh is
- * taken (``how``) are constants at each call. ``unroll`` (a constant): one straight
- * run, else a loop over the packed rows (the rare classes: less code). */
-INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t nm,
-                  int32_t P_s, int32_t sh, int how, const P_shc *kc, int unroll,
-                  uint32_t *c_P)
+ * updated before this pass), its constants made here from sh: the shift class ``mode`` and
+ * how the block exponent's shift sh is taken (``how``) are constants at each call.
+ * ``unroll`` (a constant): one straight run, else a loop over the packed rows (the rare
+ * classes: less code). Returns, with a shift, trw = sum_i rsh(P~_ii, tr_ps) of the
+ * shifted diagonal (modulo 2^32), else 0. */
+INLINE uint32_t P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t nm,
+                      int32_t P_s, int32_t sh, int32_t tr_ps, int how, int unroll,
+                      uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const P_shc k = *kc; /* the constants as locals: the stores to P cannot change them */
+    /* the constants as locals: the stores to P cannot change them */
+    const P_shc k = how != SH_NONE ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
     int32_t h[CANRLS_N]; /* h~ in a local array, likewise */
     canrls_P64 *Pw = P;
-    uint32_t i, j;
+    uint32_t i, j, trw32 = 0;
     UNROLL
     for (j = 0; j < n; j++) {
         h[j] = hn[j];
@@ -1301,22 +1311,24 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
     }
 #undef P_OFF_ROW
     if (how != SH_NONE) {
-        /* the diagonal (its elements updated before this pass) shifted */
+        /* the diagonal (its elements updated before this pass) shifted, trw summed */
         Pw = P;
         UNROLL
         for (i = 0; i < n; i++) {
-            P_shl(Pw, P_pair(Pw), sh, &k, c_P);
+            trw32 += trw_term(P_shl(Pw, P_pair(Pw), sh, &k, c_P), tr_ps);
             Pw += n - i;
         }
     }
+    return trw32;
 }
 
 /* each class of the step its own function: its registers and its stack frame to itself */
 #define P_OFF_CLASS(name, mode_, how_, unroll_)                                           \
-    NOINLINE void name(canrls_P64 *P, const int32_t *K, const int32_t *hn, int32_t nm,      \
-                       int32_t P_s, int32_t sh, const P_shc *k, uint32_t *c_P)               \
+    NOINLINE uint32_t name(canrls_P64 *P, const int32_t *K, const int32_t *hn, int32_t nm,  \
+                           int32_t P_s, int32_t sh, int32_t tr_ps, uint32_t *c_P)           \
     {                                                                                       \
-        P_off(P, K, hn, mode_, nm, P_s, how_ == SH_NONE ? 0 : sh, how_, k, unroll_, c_P);   \
+        return P_off(P, K, hn, mode_, nm, P_s, how_ == SH_NONE ? 0 : sh, tr_ps, how_,       \
+                     unroll_, c_P);                                                         \
     }
 P_OFF_CLASS(P_off_high_fused, PM_HIGH, SH_FUSED, 1)
 P_OFF_CLASS(P_off_high_after, PM_HIGH, SH_AFTER, 1)
@@ -1328,31 +1340,31 @@ P_OFF_CLASS(P_off_lowk, PM_LOWK, SH_NONE, 1)
 P_OFF_CLASS(P_off_low_after, PM_LOW, SH_AFTER, 0)
 P_OFF_CLASS(P_off_low, PM_LOW, SH_NONE, 0)
 
-INLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
-                      int32_t nm, int32_t P_s, int32_t sh, uint32_t *c_P)
+/* The pass of the class (mode, sh > 0 or not); with a shift, returns the shifted
+ * diagonal's trw (P_off), else 0 */
+INLINE uint32_t P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
+                          int32_t nm, int32_t P_s, int32_t sh, int32_t tr_ps, uint32_t *c_P)
 {
     /* one straight run for each class of the steady state and the start-up, with and
      * without the shift; a loop for the rest (rare) */
-    const P_shc kc = sh > 0 ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
     if (mode == PM_HIGH && sh > 0 && P_s >= 33 + sh) {
-        P_off_high_fused(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_high_fused(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_HIGH && sh > 0) {
-        P_off_high_after(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_high_after(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_HIGH) {
-        P_off_high(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_high(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_32 && sh > 0) {
-        P_off_32_after(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_32_after(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_32) {
-        P_off_32(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_32(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_LOWK && sh > 0) {
-        P_off_lowk_neg(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_lowk_neg(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_LOWK) {
-        P_off_lowk(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_lowk(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (sh > 0) {
-        P_off_low_after(P, K, hn, nm, P_s, sh, &kc, c_P);
-    } else {
-        P_off_low(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_low_after(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     }
+    return P_off_low(P, K, hn, nm, P_s, sh, tr_ps, c_P);
 }
 
 #if defined(__GNUC__)
@@ -1440,16 +1452,17 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
             Pw += n - i;
         }
     } else {
-        P_off_any(P, KP, hP, mode, nm, P_s, sh, c_P);
+        /* (with a shift, the pass sums trw) */
+        trw32 = P_off_any(P, KP, hP, mode, nm, P_s, sh, tr_ps, c_P);
     }
-    Pw = P;
-    UNROLL
-    for (i = 0; i < n; i++) {
-        int32_t x;
+    if (sh == 0) {
         /* trw = sum_i rsh(Pw_ii, trace_ps) (modulo 2^32: a word) */
-        x = Pw->word;
-        trw32 += (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
-        Pw += n - i;
+        Pw = P;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            trw32 += trw_term(Pw->word, tr_ps);
+            Pw += n - i;
+        }
     }
     UNROLL
     for (i = 0; i < n; i++) {
@@ -1485,6 +1498,15 @@ NOINLINE int KP_tail_low(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn,
                    PM_LOW);
 }
 
+/* A compiler barrier (GCC): words kept in memory are read from it again after it, not
+ * held in registers (and spilled) across a stretch that does not need them */
+#if defined(__GNUC__)
+#define MEM_BARRIER() __asm__ volatile("" ::: "memory")
+#else
+#define MEM_BARRIER() ((void)0)
+#endif
+#define MEM_BARRIER2() MEM_BARRIER()
+
 /* PM_LOWK's split u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b), a + b = 32 - P_s: the
  * largest a that keeps every K_i 2^a a word above -2^31, so that its negation is one too
  * (|K_i| < 2^(31 - a), mA the OR of |K_i|), the rest b on h~ where h~ 2^b stays a word (mh
@@ -1519,18 +1541,19 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         for (i = 0; i < n; i++) {
             const int32_t Ki = mul_rsh32((int32_t)((uint32_t)S->h[i] << kn), gcn);
             S->K[i] = Ki;
-            Kk[i] = Ki;
             /* |K_i| (the theta step's test of mK holds with it: |K_i| >= one's complement) */
             mK |= (uint32_t)(Ki ^ (Ki >> 31)) - (uint32_t)(Ki >> 31);
         }
+        MEM_BARRIER();
         if (lowk_split(mK, mh, P_s, &a, &b)) {
             /* h~ 2^(kn + b): kn + b <= 30 unless every h~_i is 0 (then any shift is) */
             const uint32_t sb = (uint32_t)(kn + b) & 31u;
             UNROLL
             for (i = 0; i < n; i++) {
-                Kk[i] = (int32_t)((uint32_t)Kk[i] << a);
+                Kk[i] = (int32_t)((uint32_t)S->K[i] << a);
                 hk[i] = (int32_t)((uint32_t)S->h[i] << sb);
             }
+            MEM_BARRIER2();
             return KP_tail(S, S->K, hk, Kk, hk, mK, epn, th_s, P_s, il, e_io, c_io, trw_io,
                            c_th, c_P, 0, PM_LOWK);
         }

@@ -71,7 +71,7 @@ static int op_pass(void)
             mode = PM_LOWK;
         }
     }
-    P_off_any(P, KP, hP, mode, mode == PM_HIGH ? neg_pow2(P_s) : 0, P_s, sh, &c_P);
+    (void)P_off_any(P, KP, hP, mode, mode == PM_HIGH ? neg_pow2(P_s) : 0, P_s, sh, 0, &c_P);
     for (i = 0; i < M; i++) {
         printf("%" PRId32 " %" PRId32 " ", P[i].word, (int32_t)(P[i].lo ^ 0x80000000u));
     }
