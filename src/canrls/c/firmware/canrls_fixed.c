@@ -82,6 +82,22 @@ typedef char canrls_n_within_n_max[(CANRLS_N >= 1 && CANRLS_N <= CANRLS_N_MAX) ?
 #define UNROLL
 #endif
 
+/* A compiler barrier (GCC): words kept in memory are read from it again after it, not
+ * held in registers (and spilled) across a stretch that does not need them */
+#if defined(__GNUC__)
+#define MEM_BARRIER() __asm__ volatile("" ::: "memory")
+#else
+#define MEM_BARRIER() ((void)0)
+#endif
+#define MEM_BARRIER2() MEM_BARRIER()
+
+/* x computed here, in registers (GCC): its operations not moved past this point */
+#if defined(__GNUC__)
+#define KEEP_REG(x) __asm__("" : "+r"(x))
+#else
+#define KEEP_REG(x) ((void)0)
+#endif
+
 /* ------------------------------------------------------------------ the plan */
 
 /* The constant plan. An export whose model has one equation defines CANRLS_PLAN_CONST
@@ -1419,6 +1435,9 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
     for (i = 0; i < n; i++) {
         P_elem(Pw, KP[i], hP[i], mode, nm, P_s, 0, SH_NONE, &k0, c_P, &nz);
         tr += Pw->word;
+        if (mode == PM_LOWK) {
+            KEEP_REG(tr); /* summed here (GCC had kept each word on the stack for it) */
+        }
         Pw += n - i;
     }
     /* c <- c / lambda_k ; c > 1 and e > 0: c/2 and 2^-e x 2 (the words do not move) */
@@ -1497,15 +1516,6 @@ NOINLINE int KP_tail_low(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn,
     return KP_tail(S, K, hn, K, hn, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 0,
                    PM_LOW);
 }
-
-/* A compiler barrier (GCC): words kept in memory are read from it again after it, not
- * held in registers (and spilled) across a stretch that does not need them */
-#if defined(__GNUC__)
-#define MEM_BARRIER() __asm__ volatile("" ::: "memory")
-#else
-#define MEM_BARRIER() ((void)0)
-#endif
-#define MEM_BARRIER2() MEM_BARRIER()
 
 /* PM_LOWK's split u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b), a + b = 32 - P_s: the
  * largest a that keeps every K_i 2^a a word above -2^31, so that its negation is one too
