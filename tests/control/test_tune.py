@@ -267,11 +267,11 @@ def test_the_diagnosis_says_what_compensation_would_leave(
                  "cogging:6"]) == 0
     line = capsys.readouterr().out.splitlines()[-1]
     assert line.startswith("with this compensation (cogging:6; canrls tune), the torque "
-                           "ripple would fall: 0.00238 ± ")
+                           "ripple would fall: 0.00237 ± ")
     # found, not added: its ripple, no claim on what compensation leaves (no sigma yet)
     assert main(["diagnose", str(log), "--kt", "0.1", "-e", FRICTION]) == 0
     line = capsys.readouterr().out.splitlines()[-1]
-    assert line == ("cogging:6 (found): a torque ripple of 0.00238 N·m RMS; add it (--add "
+    assert line == ("cogging:6 (found): a torque ripple of 0.00237 N·m RMS; add it (--add "
                     "cogging:6) to learn what compensation (canrls tune) would leave")
 
 
