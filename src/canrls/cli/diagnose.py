@@ -20,6 +20,7 @@ from canrls.cli._common import (
     add_model_options,
     add_progress_option,
     add_report_option,
+    fit_model,
     print_json,
     setup,
 )
@@ -72,7 +73,6 @@ def _compensation(analysis: Any, found: Any) -> tuple[str, dict[str, Any]] | Non
 def run(args: argparse.Namespace) -> int:
     from canrls.core.errors import EstimatorError
     from canrls.diagnosis.analysis import diagnose_log
-    from canrls.diagnosis.search import search_model
     from canrls.processor.config import prepare
     from canrls.processor.replay import too_few_samples
 
@@ -84,9 +84,8 @@ def run(args: argparse.Namespace) -> int:
         require_matplotlib(*MATPLOTLIB)
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
-    # the model as canrls fit identifies it: a Stribeck speed left open searched first
-    model, _ = search_model(args.log, protocol, model, settings,
-                            skip_bad_lines=args.skip_bad_lines)
+    model, _ = fit_model(args.log, protocol, model, settings,
+                         skip_bad_lines=args.skip_bad_lines)
     rep = diagnose_log(args.log, protocol, model, settings, add=args.add,
                        progress=Progress("diagnose", quiet=args.quiet).callback,
                        max_order=args.max_order, skip_bad_lines=args.skip_bad_lines)

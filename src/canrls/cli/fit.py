@@ -21,6 +21,7 @@ from canrls.cli._common import (
     add_log_arguments,
     add_model_options,
     add_progress_option,
+    fit_model,
     print_json,
     setup,
 )
@@ -64,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
         return _fit_machine(args, cfg)
     cfg = cfg.one_axis()
     protocol, model, settings = prepare(cfg)
-    model, searched = _searched(args, protocol, model, settings)
+    model, searched = fit_model(args.log, protocol, model, settings,
+                                skip_bad_lines=args.skip_bad_lines)
     res = fit_logs(args.log, protocol, model, settings,
                    progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
@@ -89,18 +91,6 @@ def run(args: argparse.Namespace) -> int:
         if saved is not None:
             sys.stdout.write(f"model saved: {saved}\n")
     return 0
-
-
-def _searched(args: argparse.Namespace, protocol: Any, model: Any, settings: Any
-              ) -> tuple[Any, tuple[SearchResult, ...]]:
-    """The model with the Stribeck speed its configuration leaves open searched on the
-    record, as the diagnosis searches it, and what was found."""
-    if "stribeck" not in model.effect_names or "stribeck_speed" in model.options_given:
-        return model, ()
-    from canrls.diagnosis.search import search_model
-
-    return search_model(args.log, protocol, model, settings,
-                        skip_bad_lines=args.skip_bad_lines)
 
 
 def _found(searched: tuple[SearchResult, ...]) -> list[str]:
@@ -140,7 +130,8 @@ def _fit_machine(args: argparse.Namespace, cfg: Any) -> int:
     # each axis's Stribeck speed searched on its own frames, as canrls fit --axis NAME does
     searched: dict[str, tuple[SearchResult, ...]] = {}
     for name, (protocol, model, settings) in axes.items():
-        model, searched[name] = _searched(args, protocol, model, settings)
+        model, searched[name] = fit_model(args.log, protocol, model, settings,
+                                          skip_bad_lines=args.skip_bad_lines)
         axes[name] = (protocol, model, settings)
     res = fit_axes(args.log, axes, progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)

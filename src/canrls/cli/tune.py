@@ -14,7 +14,7 @@ import argparse
 import sys
 from typing import Any
 
-from canrls.cli._common import add_model_options, number, print_json, setup
+from canrls.cli._common import add_model_options, fit_model, number, print_json, setup
 
 __all__ = ["add_subparser", "run"]
 
@@ -89,15 +89,12 @@ def _saved(args: argparse.Namespace) -> Any:
                               f"({args.model}); to change it, fit again (or tune on the "
                               f"logs)")
         return SavedModel.load(args.model), str(args.model)
-    from canrls.diagnosis.search import search_model
     from canrls.processor.config import prepare
     from canrls.processor.replay import fit_logs
 
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
-    # identified as canrls fit identifies it: a Stribeck speed the configuration leaves
-    # open is searched on the record
-    model, _ = search_model(args.log, protocol, model, settings)
+    model, _ = fit_model(args.log, protocol, model, settings)
     res = fit_logs(args.log, protocol, model, settings)
     return SavedModel.from_fit(res, cfg, list(args.log)), "the fit of " + ", ".join(args.log)
 
