@@ -89,7 +89,6 @@ typedef char canrls_n_within_n_max[(CANRLS_N >= 1 && CANRLS_N <= CANRLS_N_MAX) ?
 #else
 #define MEM_BARRIER() ((void)0)
 #endif
-#define MEM_BARRIER2() MEM_BARRIER()
 
 /* x computed here, in registers (GCC): its operations not moved past this point */
 #if defined(__GNUC__)
@@ -1563,7 +1562,7 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
                 Kk[i] = (int32_t)((uint32_t)S->K[i] << a);
                 hk[i] = (int32_t)((uint32_t)S->h[i] << sb);
             }
-            MEM_BARRIER2();
+            MEM_BARRIER();
             return KP_tail(S, S->K, hk, Kk, hk, mK, epn, th_s, P_s, il, e_io, c_io, trw_io,
                            c_th, c_P, 0, PM_LOWK);
         }
