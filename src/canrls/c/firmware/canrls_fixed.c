@@ -1420,7 +1420,7 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
     const canrls_plan_q31 *p = PLAN(S);
     const int32_t nm = mode == PM_HIGH ? neg_pow2(P_s) : 0;
     /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = -(ph nt) */
-    const int32_t nt = common || th_s >= 33 ? neg_pow2(th_s) : 0;
+    const int32_t nt = common ? neg_pow2(th_s) : 0;
     const int32_t tr_ps = p->trace_ps;
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
@@ -1487,7 +1487,8 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
         /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB; K carries
          * the exponent e + kn: shifted out here; one LDRD, one STRD) */
         if (common || th_s >= 33) {
-            theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), nt, th_s, c_th);
+            theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32),
+                           common ? nt : neg_pow2(th_s), th_s, c_th);
 #if defined(__GNUC__)
         } else if (th_s == 32) {
             theta_add_hi(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), c_th);
