@@ -1425,7 +1425,9 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
     const P_shc k0 = {0u, 0u, 0, 0}; /* (no shift) */
-    int32_t e = *e_io, c = *c_io, sh = 0;
+    /* e and c: the steady step reads them here, the others after the diagonal (GCC had
+     * kept them on the stack across it) */
+    int32_t e = common ? *e_io : 0, c = common ? *c_io : 0, sh = 0;
     int64_t tr = 0;
     uint32_t i, j, nz = 0, trw32 = 0;
     /* the diagonal: P~_ii <- P~_ii - K_i h~_i (the information K_i h~_i: low excitation) */
@@ -1438,6 +1440,10 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
             KEEP_REG(tr); /* summed here (GCC had kept each word on the stack for it) */
         }
         Pw += n - i;
+    }
+    if (!common) {
+        e = *e_io;
+        c = *c_io;
     }
     /* c <- c / lambda_k ; c > 1 and e > 0: c/2 and 2^-e x 2 (the words do not move) */
     c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, c_P);
