@@ -1569,7 +1569,6 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
                 Kk[i] = (int32_t)((uint32_t)S->K[i] << a);
                 hk[i] = (int32_t)((uint32_t)S->h[i] << sb);
             }
-            MEM_BARRIER();
             return KP_tail(S, S->K, hk, Kk, hk, mK, epn, th_s, P_s, il, e_io, c_io, trw_io,
                            c_th, c_P, 0, PM_LOWK);
         }
@@ -1764,9 +1763,10 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             uint64_t dvd;
             kg = 32 - nlz((uint32_t)d) - p->kg_bl;
             if (UNLIKELY(kg > 0)) {
-                int32_t lim = p->kg_max;
-                lim = lim < 62 - p->P_s - e ? lim : 62 - p->P_s - e;
-                lim = lim < 62 - p->theta_s - e ? lim : 62 - p->theta_s - e;
+                /* kg <= min(kg_max, 62 - max(P_s, theta_s) - e) */
+                const int32_t ps = p->P_s > p->theta_s ? p->P_s : p->theta_s;
+                int32_t lim = 62 - ps - e;
+                lim = lim < p->kg_max ? lim : p->kg_max;
                 kg = kg < lim ? kg : lim;
             } else {
                 kg = 0;
