@@ -1326,11 +1326,16 @@ INLINE uint32_t P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mo
     }
 #undef P_OFF_ROW
     if (how != SH_NONE) {
-        /* the diagonal (its elements updated before this pass) shifted, trw summed */
+        /* the diagonal (its elements updated before this pass) shifted, trw summed (the
+         * rounding's 1 held in a register: 1 + (x >> (tr_ps - 1)) one ADD with a shifted
+         * operand on Thumb-2) */
+        int32_t one = 1;
+        KEEP_REG(one);
         Pw = P;
         UNROLL
         for (i = 0; i < n; i++) {
-            trw32 += trw_term(P_shl(Pw, P_pair(Pw), sh, &k, c_P), tr_ps);
+            const int32_t x = P_shl(Pw, P_pair(Pw), sh, &k, c_P);
+            trw32 += (uint32_t)(tr_ps > 0 ? (one + (x >> (tr_ps - 1))) >> 1 : x);
             Pw += n - i;
         }
     }
