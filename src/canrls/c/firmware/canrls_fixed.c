@@ -1770,8 +1770,8 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             if (UNLIKELY(kg > 0)) {
                 /* kg <= min(kg_max, 62 - max(P_s, theta_s) - e) */
                 const int32_t ps = p->P_s > p->theta_s ? p->P_s : p->theta_s;
-                int32_t lim = 62 - ps - e;
-                lim = lim < p->kg_max ? lim : p->kg_max;
+                const int32_t lim = 62 - ps - e;
+                kg = kg < p->kg_max ? kg : p->kg_max;
                 kg = kg < lim ? kg : lim;
             } else {
                 kg = 0;
