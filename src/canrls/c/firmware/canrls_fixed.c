@@ -1017,7 +1017,7 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
  *          PM_32    P_s = 32: u = ph 2^32, the word alone;
  *          PM_LOW   P_s <= 31: u = K_i h~_j 2^(32 - P_s) exactly;
  *          PM_LOWK  the same as (K_i 2^a)(h~_j 2^b), a + b = 32 - P_s, both words (passed
- *                   as K and h~): u = one product. */
+ *                   as -(K_i 2^a), lowk_kword, and h~_j 2^b): -u = one product. */
 enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 
 /* How an element takes the block exponent's shift sh (a constant at each call): SH_NONE
@@ -1152,6 +1152,18 @@ INLINE int32_t P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint3
     return q->word;
 }
 
+/* The pair x = V - u into q: then (SH_AFTER) V <- V 2^sh (P_shl) */
+INLINE void P_put_x(canrls_P64 *q, int64_t x, int32_t sh, int how, const P_shc *k,
+                    uint32_t *c_P)
+{
+    if (how == SH_AFTER) {
+        (void)P_shl(q, x, sh, k, c_P);
+        return;
+    }
+    q->lo = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
+}
+
 /* One element of the fixed-n step (32-bit P words): V <- sat(V - u) and, sh > 0, then
  * V <- sat(V 2^sh), the block exponent's shift folded into the same pass over P (the
  * integers of P_step followed by P_shift); the fast paths below, anything else (a
@@ -1197,7 +1209,7 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
             q->word = (int32_t)(uint32_t)(z >> 32);
             return;
         }
-        P_elem_slow(q, how == SH_NEGK ? (int32_t)(0u - (uint32_t)Ki) : Ki, hj, mode, P_s, sh,
+        P_elem_slow(q, mode == PM_LOWK ? (int32_t)(0u - (uint32_t)Ki) : Ki, hj, mode, P_s, sh,
                     c_P);
         return;
     }
@@ -1233,11 +1245,17 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
     } else {
         int64_t u;
         if (mode == PM_LOWK) {
-            /* u = (K_i 2^a)(h~_j 2^b): one exact product */
-            u = mul_ww(Ki, hj);
+            /* -u = (-K_i 2^a)(h~_j 2^b): one exact product (Ki negated, lowk_kword) */
+            const int64_t nu = mul_ww(Ki, hj);
             if (nz != NULL) {
-                *nz |= (uint32_t)u | (uint32_t)((uint64_t)u >> 32);
+                *nz |= (uint32_t)nu | (uint32_t)((uint64_t)nu >> 32);
             }
+            if (UNLIKELY(__builtin_add_overflow(P_pair(q), nu, &x))) {
+                P_elem_slow(q, (int32_t)(0u - (uint32_t)Ki), hj, mode, P_s, sh, c_P);
+                return;
+            }
+            P_put_x(q, x, sh, how, k, c_P);
+            return;
         } else {
             /* u = K_i h~_j 2^k2, k2 = 32 - P_s (1..31), shifted on two words where it
              * fits 64 bits (else in P_elem_slow) */
@@ -1260,19 +1278,14 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
             return;
         }
     }
-    if (how == SH_AFTER) {
-        (void)P_shl(q, x, sh, k, c_P);
-        return;
-    }
-    q->lo = (uint32_t)x;
-    q->word = (int32_t)(x >> 32);
+    P_put_x(q, x, sh, how, k, c_P);
 #else
     if (nz != NULL) {
         *nz |= mode == PM_HIGH || mode == PM_32 ? (uint32_t)mul_rsh32(Ki, hj)
                                                 : (uint32_t)(mul_ww(Ki, hj) != 0);
     }
     (void)nm, (void)how, (void)k;
-    P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
+    P_elem_slow(q, mode == PM_LOWK ? (int32_t)(0u - (uint32_t)Ki) : Ki, hj, mode, P_s, sh, c_P);
 #endif
 }
 
@@ -1303,8 +1316,8 @@ INLINE uint32_t P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mo
         h[j] = hn[j];
     }
 #define P_OFF_ROW                                                                          \
-    /* SH_NEGK: the row's K word negated (K 2^a > -2^31: lowk_split) */                    \
-    const int32_t Ki = how == SH_NEGK ? -K[i] : K[i];
+    /* (PM_LOWK: the K words come negated, lowk_kword) */                                 \
+    const int32_t Ki = K[i];
     if (unroll) {
         UNROLL
         for (i = 0; i < n; i++) {
@@ -1542,6 +1555,13 @@ INLINE int lowk_split(uint32_t mA, uint32_t mh, int32_t P_s, int32_t *a_out, int
     return a >= 0 && b <= 31 && (mh >> (31 - b)) == 0u;
 }
 
+/* PM_LOWK's K word: -(K_i 2^a), one MUL by -2^a (a word where lowk_split took a: the
+ * pass and the diagonal add (-K_i 2^a)(h~_j 2^b), one SMLAL) */
+INLINE int32_t lowk_kword(int32_t K, int32_t a)
+{
+    return (int32_t)((uint32_t)K * (0u - ((uint32_t)1 << a)));
+}
+
 /* K and h~ as the P update takes them, then KP_tail: K = (g c) h~ 2^kn and h~ 2^kn, or, for
  * P_s <= 31 where both words keep room, K 2^a and h~ 2^b (PM_LOWK: each class of the tail
  * its own straight run). ``mh`` (PM_LOW): OR of |h~_i 2^kn| (one's complement). */
@@ -1571,7 +1591,7 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
             const uint32_t sb = (uint32_t)(kn + b) & 31u;
             UNROLL
             for (i = 0; i < n; i++) {
-                Kk[i] = (int32_t)((uint32_t)S->K[i] << a);
+                Kk[i] = lowk_kword(S->K[i], a);
                 hk[i] = (int32_t)((uint32_t)S->h[i] << sb);
             }
             return KP_tail(S, S->K, hk, Kk, hk, mK, epn, th_s, P_s, il, e_io, c_io, trw_io,

@@ -63,7 +63,7 @@ static int op_pass(void)
         }
         if (lowk_split(mK, mh, P_s, &a, &b)) {
             for (i = 0; i < CANRLS_N; i++) {
-                Kk[i] = (int32_t)((uint32_t)K[i] << a);
+                Kk[i] = lowk_kword(K[i], a);
                 hk[i] = (int32_t)((uint32_t)h[i] << b);
             }
             KP = Kk;
