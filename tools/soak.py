@@ -23,11 +23,13 @@ seed (``--seed`` + 1000 k), parameters (inertia scaled by 1 + 0.5 k, friction by
 + k x 0x10, the ``offset:`` ID rule) and own frames (+ k x 0x40), all on one virtual bus
 served by one :class:`~canrls.live.machine_daemon.MachineDaemon` (one daemon per axis,
 one bus connection, one reader routing each frame by its ID); each drive's frames get
-their own faults (its seed), its commands on its axis's ``RlsCommand`` ID; the drives'
-frames are interleaved chunk by chunk, each drive's in its own order (its clock steps
-are its own). Each axis is judged against the same axis of a fault-free twin machine;
-an error frame reaches every axis (it is the bus's), so each axis must have taken its
-own frames and every error frame on the bus.
+their own faults (its seed), its commands on its axis's ``RlsCommand`` ID, except the
+receive-clock steps: the machine's one receiver stamps every frame, so its clock steps
+(seeded by ``--seed``, as many a second as one drive's) hit the interleaved frames of
+all axes at once (each axis counts those on its frames and on the error frames). The drives' frames are interleaved chunk
+by chunk, each drive's in its own order. Each axis is judged against the same axis of a
+fault-free twin machine; an error frame reaches every axis (it is the bus's), so each
+axis must have taken its own frames and every error frame on the bus.
 
 Then a fault-free twin runs: the same drive, the same seed, no faults, another
 daemon. Printed (per axis with ``--axes N``):
@@ -94,7 +96,7 @@ from canrls.live.daemon_settings import DaemonSettings
 from canrls.live.machine_daemon import MachineDaemon
 from canrls.processor.axes import OWN_STEP, check_own
 from canrls.processor.config import AppConfig, prepare
-from canrls.sim.faults import FaultLog, FaultSpec
+from canrls.sim.faults import ERROR_CLASSES, FaultInjector, FaultLog, FaultSpec
 from canrls.sim.machine import AXIS_ID_STEP, MAX_SIM_AXES, axis_params
 from canrls.sim.scenario import Simulator, scenario
 
@@ -206,6 +208,8 @@ class MachineRun:
     threads: int = 0
     #: frames on the machine's bus that no axis took (a machine of axes only)
     foreign: int = 0
+    #: the steps of the bus's receive clock (a machine of axes only)
+    clock: FaultLog | None = None
 
 
 @dataclass(frozen=True)
@@ -260,13 +264,18 @@ def make_daemon(channel: str, effects: str, max_block: int = MAX_BLOCK,
 
 class _Axis:
     """One axis while it runs: its drive, its daemon, what it published, the frames
-    offered to it and the faults so far at each chunk it has not processed past."""
+    offered to it and the faults so far at each chunk it has not processed past.
+    ``clock``: the bus's receive clock (a machine's: its steps hit every axis's frames
+    at once), None: the drive's own (one drive)."""
 
-    def __init__(self, p: AxisPlan, duration: float, faults: str, effects: str,
-                 channel: str, machine: bool) -> None:
+    def __init__(self, p: AxisPlan, duration: float, faults: FaultSpec, effects: str,
+                 channel: str, clock: FaultInjector | None) -> None:
+        machine = clock is not None
         self.plan = p
+        self.clock = clock
         self.scenario = scenario("standard", effects=effects, seed=p.seed, duration=duration,
-                                 excitation="standard", faults=faults, params=p.params)
+                                 excitation="standard", params=p.params, faults=faults if
+                                 clock is None else dataclasses.replace(faults, tstep=0.0))
         self.daemon = make_daemon(channel, effects, axis=p if machine else None)
         proto = self.daemon.protocol
         self.sim = Simulator(self.scenario, t0=0.0, protocol=proto if machine else None,
@@ -289,7 +298,18 @@ class _Axis:
             self.offered += int(np.count_nonzero(
                 block.is_error | (~block.is_extended & np.isin(block.arbitration_id,
                                                                 self.ids))))
-        self.marks.append((self.offered, self.sim.fault_log.counts()))
+        self.marks.append((self.offered, self.fault_log().counts()))
+
+    def fault_log(self) -> FaultLog:
+        """The drive's faults, and the bus's clock steps on this axis's frames."""
+        log = self.sim.fault_log
+        if self.clock is None:
+            return log
+        assert self.ids is not None  # an axis of a machine takes its own IDs
+        on = self.clock.log.per_id["clock_steps"]
+        mine = {*self.ids.tolist(), *ERROR_CLASSES}
+        return dataclasses.replace(log, clock_steps=sum(c for i, c in on.items() if i in mine),
+                                   clock_offset=self.clock.log.clock_offset)
 
     def processed_past(self, frames: int) -> None:
         """Drop the marks the daemon processed past: only the last of them can still be
@@ -307,7 +327,7 @@ class _Axis:
         fr = d.processor.frame_counts()
         res.rejected = {k: v for k, v in fr.rejected.items() if v}
         res.lost = sum(fr.lost.values())
-        res.faults = self.sim.fault_log
+        res.faults = self.fault_log()
         res.survived = {}
         if published_after_end:  # faults in the frames the daemon processed
             for n, counts in self.marks:
@@ -338,9 +358,14 @@ def run(label: str, duration: float, seed: int, faults: str, effects: str,
     res = MachineRun(label)
     ch = f"soak-{os.getpid()}-{next(_ch)}"
     many = axes > 1
+    spec = FaultSpec.parse(faults)
+    # a machine's receive clock is the bus's: one injector of clock steps for all axes,
+    # as many steps a second as on one drive's frames (the bus carries N times the frames)
+    clock = FaultInjector(FaultSpec(tstep=spec.tstep / axes, tstep_max=spec.tstep_max),
+                          seed=(seed, 2), t0=0.0) if many else None
     counter = _LogCount()
     logging.getLogger("canrls").addHandler(counter)
-    live = [_Axis(p, duration, faults, effects, ch, many) for p in plan(axes, seed, effects)]
+    live = [_Axis(p, duration, spec, effects, ch, clock) for p in plan(axes, seed, effects)]
     daemons = [a.daemon for a in live]
     server: Daemon | MachineDaemon = (MachineDaemon({a.plan.name: a.daemon for a in live})
                                       if many else daemons[0])
@@ -365,6 +390,8 @@ def run(label: str, duration: float, seed: int, faults: str, effects: str,
         chunk = int(max(50, min(5000, duration / dt / 20)))
         for blocks in zip(*(a.sim.frames(chunk) for a in live), strict=True):
             bus_block = interleave(blocks)
+            if clock is not None:
+                bus_block = clock.apply(bus_block)
             msgs = bus_block.to_messages()
             for q in queues:
                 for m in msgs:
@@ -428,6 +455,8 @@ def run(label: str, duration: float, seed: int, faults: str, effects: str,
         res.rss_peak = rss_mb("VmHWM")
         if isinstance(server, MachineDaemon):
             res.foreign = server.foreign_frames
+        if clock is not None:
+            res.clock = clock.log
     finally:
         if notifier is not None:
             notifier.stop()
@@ -639,8 +668,11 @@ def report(args: argparse.Namespace, a: MachineRun, b: MachineRun, proc: Process
         for line in (*axis_figures(args, ax, tw), *axis_criteria(args, ax, tw)):
             print("  " + line)
     if many:
-        print(f"the machine: frames of no axis {a.foreign} (twin {b.foreign}); log records "
-              f"{a.log_records or '{}'}")
+        steps = a.clock.clock_steps if a.clock is not None else 0
+        off = a.clock.clock_offset if a.clock is not None else 0.0
+        print(f"the machine: frames of no axis {a.foreign} (twin {b.foreign}); steps of the "
+              f"bus's receive clock {steps} (offset at the end {off:+.3f} s; each axis counts "
+              f"those on its frames and on error frames); log records {a.log_records or '{}'}")
     rss = a.rss
     half = [m for t, m in rss if t >= args.duration / 2 - 1e-9]
     growth = (rss[-1][1] - half[0]) if half else float("nan")
