@@ -22,14 +22,15 @@ seed (``--seed`` + 1000 k), parameters (inertia scaled by 1 + 0.5 k, friction by
 1 + 0.25 k: :func:`canrls.sim.machine.axis_params`), feedback IDs (the default DBC's
 + k x 0x10, the ``offset:`` ID rule) and own frames (+ k x 0x40), all on one virtual bus
 served by one :class:`~canrls.live.machine_daemon.MachineDaemon` (one daemon per axis,
-one bus connection, one reader routing each frame by its ID); each drive's frames get
-their own faults (its seed), its commands on its axis's ``RlsCommand`` ID, except the
-receive-clock steps: the machine's one receiver stamps every frame, so its clock steps
-(seeded by ``--seed``, as many a second as one drive's) hit the interleaved frames of
-all axes at once (each axis counts those on its frames and on the error frames). The drives' frames are interleaved chunk
-by chunk, each drive's in its own order. Each axis is judged against the same axis of a
-fault-free twin machine; an error frame reaches every axis (it is the bus's), so each
-axis must have taken its own frames and every error frame on the bus.
+one bus connection, one reader routing each frame by its ID). Each drive's frames get
+faults of their own (its seed; its commands on its axis's ``RlsCommand`` ID), but for
+the receive-clock steps: the machine's one receiver stamps every frame, so its clock
+steps (seeded by ``--seed``, as many a second as on one drive's frames) hit the
+frames of all axes at once; each axis counts those on its frames and on the error
+frames. The drives' frames are interleaved chunk by chunk, each drive's in its own
+order. Each axis is judged against the same axis of a fault-free twin machine; an
+error frame reaches every axis (it is the bus's), so each axis must have taken its own
+frames and every error frame on the bus.
 
 Then a fault-free twin runs: the same drive, the same seed, no faults, another
 daemon. Printed (per axis with ``--axes N``):
@@ -342,8 +343,8 @@ class _Axis:
 
 def interleave(blocks: Sequence[FrameBlock]) -> FrameBlock:
     """The drives' blocks of one chunk on one bus: frame i of a block of n at i / n of
-    the chunk, each drive's frames in their own order (its reordered frames and clock
-    steps kept), the first drive's first at equal places."""
+    the chunk, each drive's frames in their own order (its reordered frames kept), the
+    first drive's first at equal places."""
     if len(blocks) == 1:
         return blocks[0]
     key = np.concatenate([np.arange(len(b)) / max(len(b), 1) for b in blocks])
