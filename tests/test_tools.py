@@ -231,6 +231,16 @@ def test_soak_bad_fault_spec_is_one_line(tmp_path: Path) -> None:
     assert "drop" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.parametrize(("axes", "why"), [("0", "1 to 32 simulated drives"),
+                                           ("21", "outside the standard IDs")])
+def test_soak_bad_axes_is_one_line(tmp_path: Path, axes: str, why: str) -> None:
+    r = _soak(tmp_path, "--duration", "1", "--axes", axes)
+    assert r.returncode == 2
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"soak.py: error: --axes {axes}: ") and why in last, r.stderr
+    assert "Traceback" not in r.stderr and r.stdout == ""
+
+
 def _soak_module():  # type: ignore[no-untyped-def]
     import importlib.util
     spec = importlib.util.spec_from_file_location("_soak_tool", SOAK)

@@ -724,8 +724,10 @@ def main(argv: list[str] | None = None) -> int:
                          "--axes: seed + 1000 k)")
     ap.add_argument("--axes", type=int, default=1, metavar="N",
                     help="simulated drives, each its own seed, parameters, feedback IDs "
-                         "(+ k x 0x10) and faults, served by one daemon per axis on one bus "
-                         "(default 1: one drive, one daemon)")
+                         "(+ k x 0x10) and faults (the receive clock's steps: the bus's), "
+                         "served by one daemon per axis on one bus "
+                         "(default 1: one drive, one daemon; at most 20, axis k's own "
+                         "frames moved by k x 0x40)")
     ap.add_argument("--faults", default=FAULTS,
                     help=f"fault spec (canrls.sim.faults; default {FAULTS})")
     ap.add_argument("--effects", default=EFFECTS, help=f"drive and model (default {EFFECTS})")
@@ -753,7 +755,8 @@ def main(argv: list[str] | None = None) -> int:
     try:  # every axis's own frames on free IDs, as `canrls run` checks a machine
         protocol = prepare(AppConfig())[0]
         check_own({p.name: protocol.with_ids(p.rule) for p in axes},
-                  {p.name: p.own_offset for p in axes})
+                  {p.name: p.own_offset for p in axes},
+                  "the soak moves axis k's own frames by k x 0x40: fewer axes")
     except CanrlsError as e:
         ap.error(f"--axes {args.axes}: {e}")
 
