@@ -251,8 +251,8 @@ class _LogCount(logging.Handler):
             sys.stderr.write(f"  [daemon log] {record.levelname} {record.getMessage()}\n")
 
 
-def make_daemon(channel: str, effects: str, fixed: str, max_block: int = MAX_BLOCK,
-                axis: AxisPlan | None = None) -> Daemon:
+def make_daemon(channel: str, effects: str, fixed: str = DaemonSettings().fixed,
+                max_block: int = MAX_BLOCK, axis: AxisPlan | None = None) -> Daemon:
     """The daemon of the drive (``axis`` None), or of one axis of a machine (its own
     feedback IDs and own frames, taking only its frames from the machine's bus), built
     as ``canrls run`` builds it, its published fixed column ``fixed`` (``[daemon] fixed``)."""
