@@ -167,6 +167,24 @@ def test_validate_refuses_parameters_whose_prediction_overflows(files: dict[str,
     _one_error(code, err)
 
 
+@pytest.mark.parametrize("command", [["export-c", "--out", "c"], ["tune"]])
+@pytest.mark.parametrize("value", [1e308, 0, "x"])
+def test_a_saved_period_that_is_no_period_names_the_file_and_the_key(
+        files: dict[str, Path], command: list[str], value: Any) -> None:
+    """``calibration.period`` of 1e308: ``export-c`` ended in an internal error (its
+    timestamp ticks overflowed), and 0 or ``"x"`` said "the fit's: the control period
+    ...", naming neither the model file nor the key."""
+    bad = files["dir"] / "period.json"
+    bad.write_text(json.dumps(_mutated(files, _set("calibration/period", value))))
+    argv = [command[0], "--model", str(bad)] + [
+        str(files["dir"] / a) if a == "c" else a for a in command[1:]]
+    code, _, err = _cli(argv)
+    assert code == 1, err
+    _one_error(code, err)
+    assert f"{bad}: calibration.period: the control period must be" in err, err
+    assert not (files["dir"] / "c").exists()
+
+
 def test_validate_on_a_log_without_a_usable_sample_is_an_error(files: dict[str, Path]) -> None:
     """A log whose every sample falls in the filter's warm-up (60 frames): before, exit
     0 with "fit nan %, 0 samples" and numpy's "Mean of empty slice" warning."""

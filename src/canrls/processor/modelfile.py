@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from canrls import __version__
-from canrls.core.checks import json_safe
+from canrls.core.checks import json_safe, positive_period
 from canrls.core.errors import ConfigError
 from canrls.core.files import MAX_MODEL_BYTES, atomic_writer, read_text
 from canrls.estimation.model import Model
@@ -198,6 +198,8 @@ class SavedModel:
                                       f"must be a list of numbers")
                 for k, x in enumerate(e):
                     _number(x, f"calibration.energy.{eq}[{k}]", source)
+            if calibration.get("period") is not None:  # what export-c and tune run at
+                positive_period(calibration["period"], f"{source}: calibration.period")
         saved = cls(model=model, parameters={k: dict(v) for k, v in params.items()},
                     effects=effects, fit={k: dict(v) for k, v in fit.items()},
                     configuration=configuration, calibration=calibration,
