@@ -39,6 +39,18 @@ SITES: tuple[str, ...] = kernels.SITES
 _QUANTITIES = ("phi", "y", "theta", "P", "K", "eps", "h", "den", "g", "lam")
 _MAX_WORD = 32  # products of two words must be exact in int64
 
+#: The word lengths [bits] a :class:`FixedConfig` takes: (least, most) of each.
+WORD_LIMITS = {"word_bits": (8, _MAX_WORD), "acc_bits": (16, 64), "input_bits": (2, _MAX_WORD)}
+
+
+def word_problem(name: str, v: object) -> str | None:
+    """Why ``v`` cannot be the word length ``name`` (a key of :data:`WORD_LIMITS`), or
+    None: the one check of a word length, for the configuration and the kernel alike."""
+    lo, hi = WORD_LIMITS[name]
+    if isinstance(v, bool) or not isinstance(v, int | np.integer) or not lo <= v <= hi:
+        return f"must be an integer in {lo}..{hi}"
+    return None
+
 
 # ---------------------------------------------------------------- Q formats
 def _round_saturate(x: npt.NDArray[np.float64], scale: float, lo: float, hi: float,
@@ -261,12 +273,10 @@ class FixedConfig:
     lam: QFormat
 
     def __post_init__(self) -> None:
-        for name, lo, hi in (("word_bits", 8, 32), ("acc_bits", 16, 64), ("input_bits", 2, 32)):
+        for name in WORD_LIMITS:
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or not lo <= v <= hi:
-                raise FixedPointError(
-                    f"FixedConfig {name} must be an integer in {lo}..{hi}, got {v!r}"
-                )
+            if (why := word_problem(name, v)) is not None:
+                raise FixedPointError(f"FixedConfig {name} {why}, got {v!r}")
             object.__setattr__(self, name, int(v))
         for name in _QUANTITIES:
             q = _as_qformat(name, getattr(self, name))
