@@ -336,17 +336,20 @@ def test_a_term_outside_its_domain_skips_those_samples_and_the_filter_recovers(
     ("input_bits", 1, r"fixed\.input_bits = 1: must be an integer in 2\.\.32"),
     ("calibration_s", 1e308, r"estimator\.calibration_s = 1e\+308: must be > 0 seconds, "
                              r"at most 1e\+10"),
+    ("theta_max", 1e300, r"fixed\.theta_max = 1e\+300: no Q format of 32-bit words holds "
+                         r"it"),
 ])
 def test_settings_refuse_words_and_windows_no_estimator_can_run_naming_the_key(
         key: str, value: object, message: str) -> None:
     """``[fixed] word_bits = -32`` was refused only when the Q formats were built, as
-    "range of P: QFormat bits must be in 2..64", naming neither the key nor the file;
+    "range of P: QFormat bits must be in 2..64", naming neither the key nor the file
+    (``theta_max = 1e300`` alike, as "range of theta");
     ``[estimator] calibration_s = 1e308`` made the window's sample count infinite, an
     internal error (exit 3) of ``canrls fit``. Through the configuration, the file is
     named too."""
     with pytest.raises(ConfigError, match=message):
         EstimatorSettings(**{key: value})
-    section = "fixed" if key.endswith("_bits") else "estimator"
+    section = "fixed" if key.endswith("_bits") or key == "theta_max" else "estimator"
     cfg = AppConfig(source="drive.toml")
     setattr(cfg, section, {key: value})
     with pytest.raises(ConfigError, match="drive.toml: " + message):

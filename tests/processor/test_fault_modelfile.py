@@ -209,6 +209,21 @@ def test_the_estimator_warmup_is_bounded_before_anything_is_allocated(
         AppConfig(estimator={"warmup_s": -1.0}).settings()
 
 
+@pytest.mark.parametrize("formats, message", [
+    ({"P": [1000, -5]}, r"fixed\.formats\.P = \[1000, -5\]: QFormat bits must be in 2\.\.64"),
+    ({"P": [32, 200]}, r"fixed\.formats\.P = \[32, 200\]: QFormat frac must be in"),
+    ({"WARP": [32, 20]}, r"fixed\.formats\.WARP: no such quantity \(valid: phi, y,"),
+])
+def test_a_q_format_of_the_configuration_that_cannot_be_names_file_and_key(
+        formats: dict[str, list[int]], message: str) -> None:
+    """``[fixed.formats] P = [1000, -5]`` was "QFormat bits must be in 2..64, got 1000",
+    an unknown name "FixedConfig.auto got unknown override(s)", naming neither the
+    configuration file nor the key."""
+    cfg = AppConfig(source="drive.toml", fixed={"formats": formats})
+    with pytest.raises(ConfigError, match="^drive.toml: " + message):
+        cfg.settings()
+
+
 # --------------------------------------------------------------------------- fuzz: model file
 json_values = st.recursive(
     st.one_of(st.none(), st.booleans(), st.integers(-(10 ** 400), 10 ** 400),

@@ -150,6 +150,14 @@ class EstimatorSettings:
             v = getattr(self, name)
             if v is not None and (why := word_problem(name, v)) is not None:
                 raise ConfigError(f"fixed.{name} = {v!r}: {why}")
+        if not is_positive(self.theta_max):
+            raise ConfigError(f"fixed.theta_max = {self.theta_max!r}: must be a positive "
+                              f"number")
+        try:  # the Q format of theta, as FixedConfig.auto makes it
+            QFormat.for_range(self.theta_max, self.word_bits)
+        except FixedPointError as e:
+            raise ConfigError(f"fixed.theta_max = {self.theta_max!r}: no Q format of "
+                              f"{self.word_bits}-bit words holds it ({e})") from e
 
     def ridge(self, n: int, energy: npt.ArrayLike | None = None) -> F64:
         r"""The ridge weight of each of ``n`` columns: :math:`\alpha_j = \alpha\,\bar e_j`.
