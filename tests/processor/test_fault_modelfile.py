@@ -209,6 +209,27 @@ def test_the_estimator_warmup_is_bounded_before_anything_is_allocated(
         AppConfig(estimator={"warmup_s": -1.0}).settings()
 
 
+@pytest.mark.parametrize("command", [["validate", "LOG"], ["export-c", "--out", "c"]])
+@pytest.mark.parametrize("key, value, message", [
+    ("estimator/lambda", 5, "estimator.lambda = 5: must be in (0.5, 1]"),
+    ("can/dbc", 5, "can.dbc = 5: must be a file path"),
+    ("signals/current", 5, "[signals]: current must be \"MESSAGE.SIGNAL\" or a table"),
+])
+def test_an_error_of_the_saved_configuration_names_the_model_file(
+        files: dict[str, Path], command: list[str], key: str, value: Any,
+        message: str) -> None:
+    """A model file's configuration that cannot be was blamed on where the fit had read
+    it ("<defaults>: estimator.lambda = 5"): the user's file was not named."""
+    bad = files["dir"] / "conf.json"
+    bad.write_text(json.dumps(_mutated(files, _set(f"configuration/{key}", value))))
+    rest = [str(files["log"]) if a == "LOG" else str(files["dir"] / a) if a == "c" else a
+            for a in command[1:]]
+    code, _, err = _cli([command[0], "--model", str(bad), *rest])
+    _one_error(code, err)
+    assert code == 1 and err.startswith(f"error: {bad}: configuration"), err
+    assert message in err and "<defaults>" not in err, err
+
+
 @pytest.mark.parametrize("formats, message", [
     ({"P": [1000, -5]}, r"fixed\.formats\.P = \[1000, -5\]: QFormat bits must be in 2\.\.64"),
     ({"P": [32, 200]}, r"fixed\.formats\.P = \[32, 200\]: QFormat frac must be in"),

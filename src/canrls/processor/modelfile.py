@@ -92,6 +92,9 @@ class SavedModel:
     sources: list[str] = field(default_factory=list)
     created: str = ""
     canrls: str = __version__
+    #: the file (or ``from_dict``'s source) it was read from, which an error of its
+    #: configuration names; empty for a model built in memory (not saved in the file)
+    origin: str = field(default="", compare=False)
 
     # -- building ---------------------------------------------------------------------
     @classmethod
@@ -204,11 +207,9 @@ class SavedModel:
                     effects=effects, fit={k: dict(v) for k, v in fit.items()},
                     configuration=configuration, calibration=calibration,
                     sources=_strings(d, "sources", source, null=True),
-                    created=str(d.get("created", "")), canrls=str(d.get("canrls", "")))
-        try:
-            saved.config().check()  # the configuration's keys, as a TOML file's
-        except ConfigError as e:
-            raise ConfigError(f"{source}: configuration: {e}") from e
+                    created=str(d.get("created", "")), canrls=str(d.get("canrls", "")),
+                    origin=source)
+        saved.config().check()  # the configuration's keys, as a TOML file's
         return saved
 
     @classmethod
@@ -240,7 +241,9 @@ class SavedModel:
     def config(self) -> AppConfig:
         """The configuration that produced the model (estimator settings, DBC, signals)."""
         c = self.configuration
-        cfg = AppConfig(source=str(c.get("source", "<saved model>")))
+        # an error of a read file's configuration names the file, not where the fit read it
+        cfg = AppConfig(source=f"{self.origin}: configuration" if self.origin
+                        else str(c.get("source", "<saved model>")))
         for key in ("model", "estimator", "fixed", "can", "signals"):
             setattr(cfg, key, dict(c.get(key) or {}))
         cfg.signal_overrides = list(c.get("signal_overrides") or [])
