@@ -116,6 +116,10 @@ CASES = {
     "effects a string": (_set("effects", "inertia"), "effects = 'inertia': must be a list"),
     "warmup_s 1e300": (_set("configuration/estimator/warmup_s", 1e300),
                        "estimator.warmup_s = 1e\\+300: .* at most 25000"),
+    # export-c said "column energies [1]: need 3 finite values", naming no file nor key
+    "energies of one column": (_set("calibration/energy/mechanical", [1.0]),
+                               "calibration.energy.mechanical has 1 values, the mechanical "
+                               "equation 3 parameters"),
 }
 
 

@@ -227,9 +227,16 @@ class SavedModel:
             raise ConfigError(f"--model {p}: invalid JSON: {e}") from e
         saved = cls.from_dict(d, source=str(p))
         try:  # the model checked where the file is read: names, units, expressions
-            saved.build_model()
+            model = saved.build_model()
         except ConfigError as e:
             raise type(e)(f"--model {p}: {str(e).removeprefix('saved model: ')}") from e
+        energy = (saved.calibration or {}).get("energy") or {}
+        for eq in model.equations:  # one energy per column, as the ridge takes them
+            got = energy.get(eq.name)
+            if got is not None and len(got) != len(eq.parameters):
+                raise ConfigError(f"--model {p}: calibration.energy.{eq.name} has "
+                                  f"{len(got)} values, the {eq.name} equation "
+                                  f"{len(eq.parameters)} parameters")
         return saved
 
     # -- use --------------------------------------------------------------------------
