@@ -1,4 +1,5 @@
-"""Every ```sh block of README.md runs as pasted in a fresh clone.
+"""Every ```sh block of README.md, and of the pages of docs/ in ``PAGES``, runs as pasted
+in a fresh clone.
 
 The repository's tracked files as they stand (``git stash create``: the working tree,
 nothing of it changed) are checked out in a clone under ``tmp_path``; the clone gets the
@@ -9,6 +10,12 @@ clone's folder, ``set -e``, with no ``canrls`` on ``PATH``. A block whose first 
 ``# needs: WHAT, ...`` runs only where WHAT is a path that exists for the clone as for
 the repository (``../shared/data/hsm150``: the clone's ``../shared`` links to the
 repository's); otherwise it is skipped, and the skip says what it needs.
+
+A page of docs/ calls ``canrls`` and ``python`` as on the ``PATH`` after ``source
+.venv/bin/activate`` (each page says so), and its blocks build on each other (a ``cd``, a
+variable, a file): each page runs in a clone of its own, its blocks in order in one
+shell with the clone's ``.venv/bin`` first on ``PATH``, up to the first block whose
+``# needs:`` the clone lacks (the blocks after it may use what it would have made).
 """
 
 from __future__ import annotations
@@ -54,6 +61,10 @@ def readme_blocks(text: str) -> list[Block]:
 
 BLOCKS = readme_blocks((ROOT / "README.md").read_text(encoding="utf-8"))
 
+#: the pages of docs/ whose blocks run without hardware in seconds (the others need a CAN
+#: interface, systemd or a drive's log, or take minutes)
+PAGES = ("diagnose.md", "model_file.md", "tune.md", "hsm150.md")
+
 
 def _git(*args: str, cwd: Path) -> str:
     return subprocess.run(["git", *args], cwd=cwd, check=True, capture_output=True,
@@ -64,12 +75,17 @@ def _git(*args: str, cwd: Path) -> str:
 def clone(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A clone of the repository's tracked files as they stand, with the test's
     environment as its ``.venv``."""
+    return make_clone(tmp_path_factory.mktemp("readme"))
+
+
+def make_clone(base: Path) -> Path:
+    """A clone in ``base`` of the repository's tracked files as they stand, with the
+    test's environment as its ``.venv`` (skips where there is no git checkout or venv)."""
     if shutil.which("git") is None or not (ROOT / ".git").exists():
         pytest.skip("not a git checkout: no clone to make")
     venv = Path(sys.prefix)
     if not (venv / "pyvenv.cfg").is_file() or not (venv / "bin" / "canrls").exists():
         pytest.skip(f"the tests do not run in an installed venv ({venv}): make test does")
-    base = tmp_path_factory.mktemp("readme")
     commit = _git("stash", "create", cwd=ROOT) or _git("rev-parse", "HEAD", cwd=ROOT)
     dest = base / "canrls"
     _git("clone", "--quiet", "--shared", "--no-checkout", str(ROOT), str(dest), cwd=base)
@@ -97,6 +113,13 @@ def _env() -> dict[str, str]:
     return {**env, "PATH": os.pathsep.join(path), "MPLBACKEND": "Agg"}
 
 
+def _activated(clone: Path) -> dict[str, str]:
+    """The environment of a page's blocks: as after ``source .venv/bin/activate``."""
+    env = _env()
+    return {**env, "PATH": os.pathsep.join([str(clone / ".venv" / "bin"), env["PATH"]]),
+            "VIRTUAL_ENV": str(clone / ".venv")}
+
+
 def test_readme_has_blocks_to_run() -> None:
     assert [b for b in BLOCKS if b.needs is None], "no ```sh block of the README runs"
 
@@ -113,4 +136,29 @@ def test_readme_block_runs_as_pasted(block: Block, clone: Path) -> None:
     r = subprocess.run(["bash", "-e", "-o", "pipefail", "-c", block.text], cwd=clone,
                        env=_env(), capture_output=True, text=True, timeout=600, check=False)
     assert r.returncode == 0, (f"README line {block.line}: exit {r.returncode}\n{block.text}\n"
+                               f"--- stdout\n{r.stdout[-3000:]}\n--- stderr\n{r.stderr[-3000:]}")
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_docs_page_blocks_run_as_pasted(page: str, tmp_path: Path) -> None:
+    blocks = readme_blocks((ROOT / "docs" / page).read_text(encoding="utf-8"))
+    assert blocks, f"docs/{page} has no ```sh block to run"
+    where = make_clone(tmp_path)
+    run, left = [], []
+    for b in blocks:
+        if left or (b.needs is not None
+                    and not (where / b.needs.split(",")[0].strip()).exists()):
+            left.append(b)
+        else:
+            run.append(b)
+    if not run:
+        pytest.skip(f"docs/{page} line {left[0].line} needs {left[0].needs}")
+    for b in run:
+        assert not re.search(r"^\s*make test\b", b.text, re.MULTILINE), (
+            f"docs/{page} line {b.line}: 'make test' in a shell block: name it in the prose")
+    script = "".join(f"echo '--- docs/{page} line {b.line}'\n{b.text}" for b in run)
+    r = subprocess.run(["bash", "-e", "-o", "pipefail", "-c", script], cwd=where,
+                       env=_activated(where), capture_output=True, text=True, timeout=600,
+                       check=False)
+    assert r.returncode == 0, (f"docs/{page}: exit {r.returncode}\n"
                                f"--- stdout\n{r.stdout[-3000:]}\n--- stderr\n{r.stderr[-3000:]}")

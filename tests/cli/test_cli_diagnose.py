@@ -84,6 +84,18 @@ def test_before_has_the_parameters_of_fit(log: Path, capsys: pytest.CaptureFixtu
     assert d["after"] is None and d["added"] == []
 
 
+def test_before_is_fit_with_the_stribeck_speed_fit_searches(
+        log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # a model with Stribeck friction and no speed configured: canrls fit searches the
+    # speed on the record, and the diagnosis's "before" is still fit's, bit for bit
+    model = ["--kt", "0.1", "--effects", "inertia,viscous,coulomb,stribeck"]
+    fit = _json(capsys, ["fit", str(log), *model, "--json", "--fixed", "kernel"])
+    assert [s["key"] for s in fit["search"]] == ["stribeck_speed"]
+    d = _json(capsys, ["diagnose", str(log), *model, *QUICK, "--json"])
+    assert d["before"]["parameters"] == fit["parameters"]
+    assert d["before"]["residual_rms"] == fit["residual_rms"]
+
+
 def test_text_and_report(log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip("matplotlib")
     out_dir = tmp_path / "report"

@@ -77,3 +77,22 @@ def test_several_logs_and_the_note_of_fit(tmp_path: Path,
     assert main(["fit", *args, "-C", str(cfg), "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "the fixed point (W24/A64/I8) is" in out and "'canrls fixed-sweep'" in out
+
+
+def test_a_stribeck_speed_left_open_is_searched_as_fit_searches_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A model with Stribeck friction and no speed configured: the sweep's row of fit's
+    words is still fit's divergence (the model fit identifies, its speed searched)."""
+    effects = "inertia,viscous,coulomb,stribeck"
+    res = simulate(scenario("standard", effects=effects, seed=2, duration=20.0))
+    log = tmp_path / "drive.log"
+    write_candump(log, [res.frames])
+    args = [str(log), "--kt", "0.1", "--effects", effects]
+    assert main(["fit", *args, "--fixed", "kernel", "--json", "--quiet"]) == 0
+    fit = json.loads(capsys.readouterr().out)
+    assert [s["key"] for s in fit["search"]] == ["stribeck_speed"]
+    assert main(["fixed-sweep", *args, "--word", "32", "--acc", "64", "--input", "32",
+                 "--json", "--quiet"]) == 0
+    mech = json.loads(capsys.readouterr().out)["equations"]["mechanical"]
+    assert mech["rows"][0]["max_rel_error"] == pytest.approx(
+        fit["equations"]["mechanical"]["divergence"], rel=1e-6)

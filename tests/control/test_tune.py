@@ -210,6 +210,25 @@ def test_bad_model_files_are_one_error_and_nothing_written(
     assert not out.exists() or not any(out.iterdir())
 
 
+def test_tuning_on_the_logs_is_tuning_the_model_fit_saves(tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]
+                                                         ) -> None:
+    """``canrls tune LOG [fit options]`` identifies the model as ``canrls fit`` does (the
+    Stribeck speed searched on the record): the same answer as ``canrls fit --save-model``
+    then ``canrls tune --model`` (docs/tune.md's first block)."""
+    log = tmp_path / "drive.log"
+    assert main(["sim", "--out", str(log), "--duration", "10", "--effects", COGGING,
+                 "--seed", "1"]) == 0
+    model = tmp_path / "drive.json"
+    assert main(["fit", str(log), "--kt", "0.1", "-e", COGGING, "--save-model",
+                 str(model)]) == 0
+    capsys.readouterr()
+    assert main(["tune", "--model", str(model), "--bandwidth", "20"]) == 0
+    from_file = capsys.readouterr().out
+    assert main(["tune", str(log), "--kt", "0.1", "-e", COGGING, "--bandwidth", "20"]) == 0
+    assert capsys.readouterr().out == from_file
+
+
 def test_a_model_without_position_asks_for_no_map(tmp_path: Path,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     model = saved_model(tmp_path, lambda d: (
@@ -248,11 +267,11 @@ def test_the_diagnosis_says_what_compensation_would_leave(
                  "cogging:6"]) == 0
     line = capsys.readouterr().out.splitlines()[-1]
     assert line.startswith("with this compensation (cogging:6; canrls tune), the torque "
-                           "ripple would fall: 0.00238 ± ")
+                           "ripple would fall: 0.00237 ± ")
     # found, not added: its ripple, no claim on what compensation leaves (no sigma yet)
     assert main(["diagnose", str(log), "--kt", "0.1", "-e", FRICTION]) == 0
     line = capsys.readouterr().out.splitlines()[-1]
-    assert line == ("cogging:6 (found): a torque ripple of 0.00238 N·m RMS; add it (--add "
+    assert line == ("cogging:6 (found): a torque ripple of 0.00237 N·m RMS; add it (--add "
                     "cogging:6) to learn what compensation (canrls tune) would leave")
 
 

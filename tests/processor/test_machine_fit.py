@@ -55,6 +55,19 @@ def test_fit_of_all_axes_in_one_pass_equals_each_axis_alone(
         assert one["frames"]["foreign"] == 36000  # the other three axes', counted
 
 
+def test_each_axis_searches_its_stribeck_speed_as_alone(
+        machine_log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Stribeck friction without a speed configured: fit searches the speed on the record,
+    # each axis on its own frames, in one pass as alone
+    fit = ["--kt", "0.1", "-e", "inertia,viscous,coulomb,stribeck", "--json"]
+    every = _json(capsys, ["fit", str(machine_log), "--axes", AXES, *fit])
+    for name in ("axis1", "axis3"):
+        one = _json(capsys, ["fit", str(machine_log), "--axes", AXES, "--axis", name, *fit])
+        assert [s["key"] for s in one["search"]] == ["stribeck_speed"]
+        assert every["axes"][name]["search"] == one["search"]
+        assert every["axes"][name]["parameters"] == one["parameters"]
+
+
 def test_frames_of_other_axes_are_never_decoded_into_one(
         machine_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # axis 2 alone: its frames only, on its own IDs

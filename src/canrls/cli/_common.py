@@ -16,7 +16,8 @@ if TYPE_CHECKING:  # numpy and cantools load with the configuration: not for --h
     from canrls.processor.config import AppConfig, Overrides
 
 __all__ = ["add_max_order_option", "add_model_options", "add_bus_options",
-           "add_progress_option", "config_path", "overrides", "setup", "print_json", "Progress"]
+           "add_progress_option", "config_path", "fit_model", "overrides", "setup", "print_json",
+           "Progress"]
 
 
 class _Typed(float):
@@ -313,6 +314,18 @@ def setup(args: argparse.Namespace, *, every_axis: bool = False) -> AppConfig:
     cfg = load_config(getattr(args, "config", None), overrides(args))
     return cfg if every_axis else cfg.one_axis()
 
+
+
+def fit_model(logs: Any, protocol: Any, model: Any, settings: Any, *,
+              skip_bad_lines: bool = False) -> tuple[Any, tuple[Any, ...]]:
+    """The model as ``canrls fit`` identifies it on ``logs``: a Stribeck speed its
+    configuration leaves open searched on the record (the diagnosis's search, loaded only
+    then), and the :class:`~canrls.diagnosis.results.SearchResult` of each value found."""
+    if "stribeck" not in model.effect_names or "stribeck_speed" in model.options_given:
+        return model, ()
+    from canrls.diagnosis.search import search_model
+
+    return search_model(logs, protocol, model, settings, skip_bad_lines=skip_bad_lines)
 
 
 def print_json(obj: Any) -> None:

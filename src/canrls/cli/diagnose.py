@@ -20,6 +20,7 @@ from canrls.cli._common import (
     add_model_options,
     add_progress_option,
     add_report_option,
+    fit_model,
     print_json,
     setup,
 )
@@ -83,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
         require_matplotlib(*MATPLOTLIB)
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
+    model, _ = fit_model(args.log, protocol, model, settings,
+                         skip_bad_lines=args.skip_bad_lines)
     rep = diagnose_log(args.log, protocol, model, settings, add=args.add,
                        progress=Progress("diagnose", quiet=args.quiet).callback,
                        max_order=args.max_order, skip_bad_lines=args.skip_bad_lines)

@@ -21,6 +21,7 @@ from canrls.cli._common import (
     add_log_arguments,
     add_model_options,
     add_progress_option,
+    fit_model,
     print_json,
     setup,
 )
@@ -64,13 +65,8 @@ def run(args: argparse.Namespace) -> int:
         return _fit_machine(args, cfg)
     cfg = cfg.one_axis()
     protocol, model, settings = prepare(cfg)
-    searched: tuple[SearchResult, ...] = ()
-    if "stribeck" in model.effect_names and "stribeck_speed" not in model.options_given:
-        # the Stribeck speed searched on the record, as the diagnosis searches it
-        from canrls.diagnosis.search import search_model
-
-        model, searched = search_model(args.log, protocol, model, settings,
-                                       skip_bad_lines=args.skip_bad_lines)
+    model, searched = fit_model(args.log, protocol, model, settings,
+                                skip_bad_lines=args.skip_bad_lines)
     res = fit_logs(args.log, protocol, model, settings,
                    progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
@@ -80,8 +76,7 @@ def run(args: argparse.Namespace) -> int:
         from canrls.processor.modelfile import SavedModel
 
         saved = SavedModel.from_fit(res, cfg, list(args.log)).save(args.save_model)
-    found = [f"{r.text()}: searched on the record; set [model.stribeck] speed = "
-             f"{r.value:.4g} for 'canrls run', which cannot search" for r in searched]
+    found = _found(searched)
     if args.json:
         d = res.to_dict()
         d["search"] = [r.to_dict() for r in searched]
@@ -96,6 +91,12 @@ def run(args: argparse.Namespace) -> int:
         if saved is not None:
             sys.stdout.write(f"model saved: {saved}\n")
     return 0
+
+
+def _found(searched: tuple[SearchResult, ...]) -> list[str]:
+    """A line for each value searched, with how to set it for the daemon."""
+    return [f"{r.text()}: searched on the record; set [model.stribeck] speed = "
+            f"{r.value:.4g} for 'canrls run', which cannot search" for r in searched]
 
 
 def _fixed_column(res: Any, args: argparse.Namespace, protocol: Any, settings: Any) -> Any:
@@ -126,6 +127,12 @@ def _fit_machine(args: argparse.Namespace, cfg: Any) -> int:
     if args.save_model:
         raise ConfigError("--save-model: one axis at a time with several (--axis NAME)")
     axes = {name: prepare(c) for name, c in cfg.axis_configs().items()}
+    # each axis's Stribeck speed searched on its own frames, as canrls fit --axis NAME does
+    searched: dict[str, tuple[SearchResult, ...]] = {}
+    for name, (protocol, model, settings) in axes.items():
+        model, searched[name] = fit_model(args.log, protocol, model, settings,
+                                          skip_bad_lines=args.skip_bad_lines)
+        axes[name] = (protocol, model, settings)
     res = fit_axes(args.log, axes, progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
     # each axis's fixed column from its own target path (the frames of the others are
@@ -134,9 +141,15 @@ def _fit_machine(args: argparse.Namespace, cfg: Any) -> int:
         name: fit if name in res.errors else _fixed_column(fit, args, axes[name][0], axes[name][2])
         for name, fit in res.fits.items()})
     if args.json:
-        print_json(res.to_dict())
+        d = res.to_dict()
+        for name, found in searched.items():
+            if name not in res.errors:
+                d["axes"][name]["search"] = [r.to_dict() for r in found]
+        print_json(d)
     else:
         sys.stdout.write(res.format() + "\n")
+        sys.stdout.write("".join(f"axis {name}: {line}\n" for name, found in searched.items()
+                                 for line in _found(found)))
     if res.errors:
         name, why = next(iter(res.errors.items()))
         raise EstimatorError(f"axis {name}: {why}"

@@ -20,6 +20,7 @@ from canrls.cli._common import (
     Progress,
     add_model_options,
     add_progress_option,
+    fit_model,
     print_json,
     setup,
 )
@@ -77,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
+    if not args.scenario:
+        model, _ = fit_model(args.log, protocol, model, settings)
     proc = FrameProcessor(protocol, model, settings)
     blocks = []
     if args.scenario:

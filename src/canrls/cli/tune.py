@@ -14,7 +14,7 @@ import argparse
 import sys
 from typing import Any
 
-from canrls.cli._common import add_model_options, number, print_json, setup
+from canrls.cli._common import add_model_options, fit_model, number, print_json, setup
 
 __all__ = ["add_subparser", "run"]
 
@@ -94,6 +94,7 @@ def _saved(args: argparse.Namespace) -> Any:
 
     cfg = setup(args)
     protocol, model, settings = prepare(cfg)
+    model, _ = fit_model(args.log, protocol, model, settings)
     res = fit_logs(args.log, protocol, model, settings)
     return SavedModel.from_fit(res, cfg, list(args.log)), "the fit of " + ", ".join(args.log)
 
