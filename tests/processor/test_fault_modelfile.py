@@ -110,6 +110,9 @@ CASES = {
                               "unknown key estimator.bogus"),
     "string sigma": (_set("parameters/inertia.J/sigma", "big"),
                      "parameters.inertia.J.sigma = 'big': must be a number"),
+    # validate printed "± -1e+308" and tune took it as a sigma
+    "negative sigma": (_set("parameters/inertia.J/sigma", -1e308),
+                       "parameters.inertia.J.sigma = -1e\\+308: must be >= 0"),
     "value 10**400": (_set("parameters/inertia.J/value", 10 ** 400),
                       "parameters.inertia.J.value = an integer of about 401 digits"),
     "fit entry a number": (_set("fit/mechanical", 3), "fit.mechanical = 3: must be a table"),

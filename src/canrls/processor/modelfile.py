@@ -170,6 +170,9 @@ class SavedModel:
             for key in ("sigma", "fixed", "prior_share"):
                 if p.get(key) is not None:
                     _number(p[key], f"{where}.{key}", source)
+            if p.get("sigma") is not None and p["sigma"] < 0:  # a standard deviation
+                raise ConfigError(f"{source}: {where}.sigma = {_short(p['sigma'])}: must be "
+                                  f">= 0")
             for key in ("unit", "effect", "equation", "description"):
                 if p.get(key) is not None and not isinstance(p[key], str):
                     raise ConfigError(f"{source}: {where}.{key} = {_short(p[key])}: must be "
