@@ -322,6 +322,7 @@ def test_a_staged_directory_is_renamed_in_whole_or_not_at_all(tmp_path: Path) ->
     (out / "index.html").symlink_to(outside)
     (out / "old.svg").write_text("kept")
     with staged_dir(out, "--report", last="index.html") as stage:
+        assert stage.parent == out  # an existing directory: on its own file system
         for name in ("index.html", "a.svg"):
             (stage / name).write_text(name)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["outside", "report"]

@@ -353,16 +353,18 @@ def write_texts(path: str | os.PathLike[str], texts: Iterable[tuple[str, str]], 
 @contextlib.contextmanager
 def staged_dir(path: str | os.PathLike[str], what: str, error: ErrorType = ConfigError,
                *, last: str | None = None) -> Iterator[Path]:
-    """Write a directory's files as a whole: yields a fresh temporary directory beside
-    ``path`` (``NAME.XXXXXXXX.part``); when the block ends without an exception, each
-    file in it is renamed into ``path`` (:func:`output_dir`: made if missing), ``last``
-    after the others (a page after its figures). On an exception (``KeyboardInterrupt``
-    too) ``path`` is left as it was. The temporary is removed either way."""
+    """Write a directory's files as a whole: yields a fresh temporary directory
+    (``.NAME.XXXXXXXX.part``) inside ``path`` if it is a directory, else beside it (on
+    the file system of ``path`` either way, so its files can be renamed); when the block
+    ends without an exception, each file in it is renamed into ``path``
+    (:func:`output_dir`: made if missing), ``last`` after the others (a page after its
+    figures). On an exception (``KeyboardInterrupt`` too) ``path`` is left as it was.
+    The temporary is removed either way."""
     final = check_path(path, what, error)
+    where = final if final.is_dir() else final.parent  # a link to a directory: followed
     try:
-        final.parent.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(prefix=f"{final.name}.", suffix=".part",
-                                      dir=final.parent))
+        where.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".part", dir=where))
     except OSError as e:
         raise error(f"{what}: cannot create the directory: {_oserror(e)}") from e
     try:
