@@ -249,6 +249,14 @@ def test_a_model_without_position_asks_for_no_map(tmp_path: Path,
     assert ff["speed"]["parameters"] == {"viscous.B": 1e-4, "offset.T0": 0.004}
     sc = with_tuning(scenario("standard"), str(out / "feedforward.json"), None)
     assert sc.controller.compensation.T0 == 0.004 and sc.controller.compensation.map == ()
+    # again without --bandwidth: no gains this time (no current loop's time constant); the
+    # gains.json of the run before is kept, and said not to be of this run
+    gains = (out / "gains.json").read_bytes()
+    assert main(["tune", "--model", str(model), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"kept {out / 'gains.json'}: an earlier tune's, not of this one" in text, text
+    assert f"wrote {out / 'gains.json'}" not in text
+    assert (out / "gains.json").read_bytes() == gains
 
 
 def test_the_diagnosis_says_what_compensation_would_leave(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -105,11 +106,27 @@ def test_cli_fit_text_and_config_file(sim_log: tuple[Path, object], tmp_path: Pa
     out = capsys.readouterr().out
     for name in ("inertia.J", "viscous.B", "coulomb.Tc", "offset.T0", "residual RMS", "fit"):
         assert name in out
+    # the answer first: the parameters and the fit, then what the replay read
+    lines = out.splitlines()
+    assert lines[0].startswith("parameter "), lines[:2]
+    fit_line = next(i for i, x in enumerate(lines) if x.startswith("mechanical: residual RMS"))
+    read = next(i for i, x in enumerate(lines) if x.startswith(f"{path}: "))
+    assert fit_line < read, out
     # the command line overrides the file
     assert main(["fit", str(path), "--config", str(cfg), "--effects", "inertia,viscous",
                  "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert set(d["parameters"]) == {"inertia.J", "viscous.B"}
+
+
+def test_the_saturations_are_named_not_a_dict(sim_log: tuple[Path, object]) -> None:
+    path, _ = sim_log
+    prot, model, settings = _setup(log=path)
+    est = fit_log(path, prot, model, settings).estimates
+    eq = dataclasses.replace(est.equations[0], saturations={"phi": 3, "P": 1})
+    line = next(x for x in dataclasses.replace(est, equations=(eq,)).format().splitlines()
+                if x.startswith("mechanical: residual RMS"))
+    assert "saturations phi 3, P 1" in line and "{" not in line, line
 
 
 def test_without_kt_parameters_are_per_ampere(sim_log: tuple[Path, object]) -> None:

@@ -13,6 +13,12 @@ from canrls.core.checks import LAMBDA_MIN
 from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:  # numpy and cantools load with the configuration: not for --help
+    import os
+    from collections.abc import Sequence
+
+    from canrls.diagnosis.results import SearchResult
+    from canrls.estimation.model import Model
+    from canrls.estimation.settings import EstimatorSettings
     from canrls.processor.config import AppConfig, Overrides
 
 __all__ = ["add_max_order_option", "add_model_options", "add_bus_options",
@@ -316,8 +322,9 @@ def setup(args: argparse.Namespace, *, every_axis: bool = False) -> AppConfig:
 
 
 
-def fit_model(logs: Any, protocol: Any, model: Any, settings: Any, *,
-              skip_bad_lines: bool = False) -> tuple[Any, tuple[Any, ...]]:
+def fit_model(logs: Sequence[str | os.PathLike[str]], protocol: Any, model: Model,
+              settings: EstimatorSettings, *,
+              skip_bad_lines: bool = False) -> tuple[Model, tuple[SearchResult, ...]]:
     """The model as ``canrls fit`` identifies it on ``logs``: a Stribeck speed its
     configuration leaves open searched on the record (the diagnosis's search, loaded only
     then), and the :class:`~canrls.diagnosis.results.SearchResult` of each value found."""

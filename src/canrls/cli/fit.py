@@ -132,7 +132,7 @@ def _fit_machine(args: argparse.Namespace, cfg: Any) -> int:
     for name, (protocol, model, settings) in axes.items():
         model, searched[name] = fit_model(args.log, protocol, model, settings,
                                           skip_bad_lines=args.skip_bad_lines)
-        axes[name] = (protocol, model, settings)
+        axes[name] = axes[name]._replace(model=model)
     res = fit_axes(args.log, axes, progress=Progress("replay", quiet=args.quiet).callback,
                    skip_bad_lines=args.skip_bad_lines)
     # each axis's fixed column from its own target path (the frames of the others are

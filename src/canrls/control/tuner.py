@@ -144,6 +144,13 @@ class TuneResult:
             out[GAINS_FILE] = _json(self.to_dict()["gains"])
         return out
 
+    def earlier(self, directory: str | Path) -> list[Path]:
+        """Files of a tune in ``directory`` that this result does not write (an earlier
+        run's, kept: a ``gains.json`` left from a run with ``--bandwidth``)."""
+        d = Path(directory)
+        return [d / name for name in (FEEDFORWARD_FILE, MAP_FILE, GAINS_FILE)
+                if name not in self.files() and (d / name).is_file()]
+
     def write(self, directory: str | Path) -> list[Path]:
         """Write :meth:`files` into ``directory`` (each whole, never through a link)."""
         files = self.files()

@@ -154,9 +154,24 @@ class DiagnosisReport:
         return d
 
     # -- text ---------------------------------------------------------------------------
-    def format(self) -> str:
-        """The report as text: compare, where it fails, candidates, verdict, before/after."""
-        out: list[str] = []
+    @property
+    def answer(self) -> str:
+        """The report's answer in one line, what its text opens with: the verdict, or with
+        ``--add`` how far the residual fell and what the model still misses."""
+        if self.after is None:
+            return "Verdict: " + self.verdict
+        bq, aq = self.before.primary, self.after.primary
+        rb, ra = bq.residual_rms, aq.residual_rms
+        fall = f" ({100 * (ra - rb) / rb:+.0f} %)" if rb > 0 else ""
+        return (f"After --add {' --add '.join(self.added)}: residual RMS "
+                f"{value_text(rb, bq.unit)} -> {value_text(ra, aq.unit)}{fall}; "
+                + " ".join(e.verdict for e in self.after.equations))
+
+    def format(self, notes: Sequence[str] = ()) -> str:
+        """The report as text: the answer first, ``notes`` (what the command read: the
+        control period, the values used) under it, then the evidence: compare, where it
+        fails, candidates, verdict, before/after."""
+        out: list[str] = [self.answer, *notes]
         b = self.before
         out.append(f"{self.source}: {self.samples} samples ({self.duration:.1f} s), "
                    f"model {', '.join(b.effects)}")
