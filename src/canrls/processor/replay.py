@@ -196,6 +196,7 @@ class LogFiles:
         self.sizes.append(0)
         if k:
             self.proc.restart()
+        self.proc.source = self.paths[k]
         self._frames_before = self.proc.frames
 
     def block(self, block: FrameBlock) -> Signals:
