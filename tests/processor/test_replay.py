@@ -294,3 +294,18 @@ def test_what_a_logs_frames_say_is_an_error_naming_the_log(
     prot, model, settings = _setup()
     with pytest.raises(ConfigError, match="^" + re.escape(str(bad)) + ": " + message):
         fit_logs([bad, path], prot, model, settings)
+
+
+def test_a_later_log_without_a_mapped_message_is_an_error_naming_it(
+        sim_log: tuple[Path, object], tmp_path: Path) -> None:
+    """The first log's frames measure the period and its error names the IDs seen; a later
+    log with frames but none of a mapped message was passed over in silence (it added no
+    sample), as if it had been fitted."""
+    path, _ = sim_log
+    other = _edited(path, tmp_path / "other.log",
+                    lambda line: line.replace(" 101#", " 00000101#").replace(" 102#",
+                                                                             " 00000102#"))
+    prot, model, settings = _setup()
+    with pytest.raises(ConfigError, match="^" + re.escape(str(other)) + ": none of the "
+                       "mapped messages occurs in its [0-9]+ frames .*it would add no sample"):
+        fit_logs([path, other], prot, model, settings)
