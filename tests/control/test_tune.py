@@ -198,7 +198,8 @@ def saved_model(tmp: Path, edit: Any = None) -> Path:
      "parameters.cogging:6.sin.value = nan: must be a finite number"),
     (lambda d: d["parameters"]["cogging:6.cos"].update(sigma=math.inf),
      "parameters.cogging:6.cos.sigma = inf"),
-    (lambda d: d.update(calibration=None), "--period"),
+    (lambda d: d.update(calibration=None), "--period: the model file {model} holds no "
+                                           "control period (calibration.period)"),
 ])
 def test_bad_model_files_are_one_error_and_nothing_written(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], edit: Any, says: str) -> None:
@@ -206,7 +207,7 @@ def test_bad_model_files_are_one_error_and_nothing_written(
     out = tmp_path / "out"
     line = cli_error(capsys, ["tune", "--model", str(model), "--out", str(out),
                               "--bandwidth", "20"])
-    assert says in line
+    assert says.format(model=model) in line, line
     assert not out.exists() or not any(out.iterdir())
 
 

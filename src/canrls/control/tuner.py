@@ -197,8 +197,9 @@ def _period(saved: SavedModel, req: TuneRequest) -> float:
     for a period nobody said is no answer)."""
     measured = (saved.calibration or {}).get("period")
     if req.period is None and measured is None:
-        raise ConfigError("--period: the model file holds no control period "
-                          "(calibration.period); state it with --period SECONDS")
+        named = f"the model file {saved.origin}" if saved.origin else "the model file"
+        raise ConfigError(f"--period: {named} holds no control period (calibration.period); "
+                          f"state it with --period SECONDS")
     dt = control_period(given=req.period, given_by="--period", measured=measured).value
     if not (math.isfinite(req.delay) and req.delay >= 0):
         raise ConfigError(f"--delay {req.delay!r}: must be a number of periods >= 0")

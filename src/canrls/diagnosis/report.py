@@ -21,13 +21,14 @@ import numpy.typing as npt
 
 from canrls.core.effect_names import EffectId, parse_effect_name
 from canrls.core.errors import CanrlsError
-from canrls.core.files import atomic_writer
+from canrls.core.files import atomic_writer, staged_dir
 from canrls.core.webpage import environment
 from canrls.diagnosis.candidates import MENTION_EXPLAINED
 from canrls.diagnosis.figures import (
     FIGURES,
     UNUSED_SLOW,
     UNUSED_WARMUP,
+    Figures,
     figures_in,
     integer_orders,
 )
@@ -377,8 +378,12 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
     :raises ConfigError: matplotlib is missing, or the directory cannot be written.
     :returns: the path of ``index.html``.
     """
-    figs = figures_in(directory)
-    out = figs.out
+    # staged: a report that fails leaves the directory as it was
+    with staged_dir(directory, f"--report {directory}", last="index.html") as stage:
+        return _write_html(report, figures_in(stage, directory), Path(directory))
+
+
+def _write_html(report: DiagnosisReport, figs: Figures, dest: Path) -> Path:
     b = report.before.primary
     a = report.after.primary if report.after is not None else None
     written: dict[str, str] = {}
@@ -393,10 +398,9 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
     final = report.after if report.after is not None else report.before
     written["convergence.svg"] = figs.convergence(final.primary, final is report.after)
     written["fixed.svg"] = figs.fixed(final.primary)
-    page = out / "index.html"
-    with atomic_writer(page, f"--report {out}: index.html") as f:
+    with atomic_writer(figs.out / "index.html", f"--report {dest}: index.html") as f:
         f.write(render_html(report, written, figs.notes).encode("utf-8"))
-    return page
+    return dest / "index.html"
 
 
 # ------------------------------------------------------------------------------ text
