@@ -10,6 +10,7 @@ hour-long soak is not part of the test run).
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import shutil
@@ -252,6 +253,41 @@ def _soak_module():  # type: ignore[no-untyped-def]
     finally:
         del sys.modules[spec.name]
     return mod
+
+
+# ------------------------------------------------- the daemon the benchmarks measure
+
+#: what a daemon built without the target's path logs (canrls.live.daemon): its fixed
+#: column is then not the one ``canrls run`` publishes
+_NO_TARGET = "no target path was given"
+#: the shortest runs of the benchmarks: one rate, one latency run, no memory; one axis
+_SHORT = {"bench_daemon.py": ("--rates", "2000", "--seconds", "0.3", "--latency-rate", "2000",
+                              "--latency-runs", "1", "--skip-memory"),
+          "bench_axes.py": ("--axes", "1", "--seconds", "0.3")}
+
+
+@pytest.mark.parametrize("tool", sorted(_SHORT))
+def test_benchmark_measures_the_daemon_canrls_run_builds(tmp_path: Path, tool: str) -> None:
+    """The benchmarks build their daemons as ``canrls run`` does (the target's integer path
+    publishes the fixed column, ``[daemon] fixed`` by default), so their figures are the
+    daemon's: no warning that the target's path is missing."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        p for p in (str(SRC), os.environ.get("PYTHONPATH", "")) if p)}
+    r = subprocess.run([sys.executable, str(TOOLS / tool), *_SHORT[tool]], env=env,
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert _NO_TARGET not in r.stderr, r.stderr
+    assert r.stdout.strip(), r.stderr
+
+
+def test_soak_builds_the_daemon_canrls_run_builds(caplog: pytest.LogCaptureFixture) -> None:
+    """The soak's daemons (the faulted run's and the twin's) are built as ``canrls run``
+    builds them: the target's path publishes the fixed column, no warning that it is
+    missing (the soak counts the daemon's warnings rather than printing them)."""
+    soak = _soak_module()
+    with caplog.at_level(logging.WARNING, logger="canrls"):
+        soak.make_daemon("soak-fixed-path", soak.EFFECTS)  # [daemon] fixed by default
+    assert [r.getMessage() for r in caplog.records] == []
 
 
 def test_soak_judges_a_parameter_by_the_accuracy_the_faults_cost() -> None:

@@ -3,7 +3,9 @@
 
 Prints figures and a verdict; it is not a unit test (``tests/test_tools.py`` runs a
 few simulated seconds of it). One process: the real :class:`~canrls.live.daemon.Daemon`
-on a python-can ``virtual`` bus, fed by the simulated drive (``canrls.sim``; two
+as ``canrls run`` builds it (:func:`canrls.cli.run.daemon_for`; its published fixed
+column the target's integer path, ``--fixed kernel`` the kernel's) on a python-can
+``virtual`` bus, fed by the simulated drive (``canrls.sim``; two
 feedback frames per 1 ms control period) as fast as the daemon takes the frames, the
 frames keeping their simulated timestamps (they go straight into the daemon's receive
 queue of the virtual channel, as ``tools/bench_daemon.py`` does; the feeder waits
@@ -65,6 +67,7 @@ Usage::
 
     nice python tools/soak.py [--duration 3600] [--seed 1] [--faults SPEC] [--axes N]
                               [--effects inertia,viscous,coulomb,offset,unbalance,cogging:6]
+                              [--fixed target]
 """
 
 from __future__ import annotations
@@ -90,10 +93,11 @@ from can.interfaces import virtual as _virtual
 from canrls.can.estimator_frames import FrameDecoder, ParameterReport, frame_ids
 from canrls.can.frameblock import FrameBlock
 from canrls.can.idrules import IdRule
+from canrls.cli.run import daemon_for
 from canrls.core.errors import CanrlsError
 from canrls.live.bus_link import command_id, moved
 from canrls.live.daemon import Daemon, wait_until
-from canrls.live.daemon_settings import DaemonSettings
+from canrls.live.daemon_settings import FIXED_PATHS, DaemonSettings
 from canrls.live.machine_daemon import MachineDaemon
 from canrls.processor.axes import OWN_STEP, check_own
 from canrls.processor.config import AppConfig, prepare
@@ -247,20 +251,22 @@ class _LogCount(logging.Handler):
             sys.stderr.write(f"  [daemon log] {record.levelname} {record.getMessage()}\n")
 
 
-def make_daemon(channel: str, effects: str, max_block: int = MAX_BLOCK,
-                axis: AxisPlan | None = None) -> Daemon:
+def make_daemon(channel: str, effects: str, fixed: str = DaemonSettings().fixed,
+                max_block: int = MAX_BLOCK, axis: AxisPlan | None = None) -> Daemon:
     """The daemon of the drive (``axis`` None), or of one axis of a machine (its own
-    feedback IDs and own frames, taking only its frames from the machine's bus)."""
+    feedback IDs and own frames, taking only its frames from the machine's bus), built
+    as ``canrls run`` builds it, its published fixed column ``fixed`` (``[daemon] fixed``)."""
     cfg = AppConfig()
     cfg.model = {"effects": effects.split(","), "kt": 0.1}
     protocol, model, est = prepare(cfg)
     # commands on explicitly: the soak floods them (the default may be off)
-    settings = DaemonSettings(commands=True, queue_size=200_000, max_block=max_block)
+    settings = DaemonSettings(commands=True, queue_size=200_000, max_block=max_block,
+                              fixed=fixed)
     if axis is not None:
         protocol = protocol.with_ids(axis.rule)
         settings = dataclasses.replace(settings, own_offset=axis.own_offset, rx_filter=True)
-    return Daemon(protocol, model, est, settings,
-                  bus={"interface": "virtual", "channel": channel}, backpressure=True)
+    return daemon_for(protocol, model, est, settings,
+                      bus={"interface": "virtual", "channel": channel}, backpressure=True)
 
 
 class _Axis:
@@ -270,14 +276,14 @@ class _Axis:
     at once), None: the drive's own (one drive)."""
 
     def __init__(self, p: AxisPlan, duration: float, faults: FaultSpec, effects: str,
-                 channel: str, clock: FaultInjector | None) -> None:
+                 fixed: str, channel: str, clock: FaultInjector | None) -> None:
         machine = clock is not None
         self.plan = p
         self.clock = clock
         self.scenario = scenario("standard", effects=effects, seed=p.seed, duration=duration,
                                  excitation="standard", params=p.params, faults=faults if
                                  clock is None else dataclasses.replace(faults, tstep=0.0))
-        self.daemon = make_daemon(channel, effects, axis=p if machine else None)
+        self.daemon = make_daemon(channel, effects, fixed, axis=p if machine else None)
         proto = self.daemon.protocol
         self.sim = Simulator(self.scenario, t0=0.0, protocol=proto if machine else None,
                              command_id=command_id(p.own_offset))
@@ -353,9 +359,11 @@ def interleave(blocks: Sequence[FrameBlock]) -> FrameBlock:
 
 def run(label: str, duration: float, seed: int, faults: str, effects: str,
         backlog: int = 40_000, tenths: int = 10, stall_s: float = 120.0,
-        progress: Callable[[str], None] | None = None, axes: int = 1) -> MachineRun:
+        progress: Callable[[str], None] | None = None, axes: int = 1,
+        fixed: str = DaemonSettings().fixed) -> MachineRun:
     """Feed ``duration`` simulated seconds of ``axes`` drives, with ``faults``, to a
-    daemon (one axis) or to a machine's daemons on one bus (``axes`` > 1)."""
+    daemon (one axis) or to a machine's daemons on one bus (``axes`` > 1), each
+    publishing the fixed column ``fixed`` (``[daemon] fixed``)."""
     res = MachineRun(label)
     ch = f"soak-{os.getpid()}-{next(_ch)}"
     many = axes > 1
@@ -366,7 +374,8 @@ def run(label: str, duration: float, seed: int, faults: str, effects: str,
                           seed=(seed, 2), t0=0.0) if many else None
     counter = _LogCount()
     logging.getLogger("canrls").addHandler(counter)
-    live = [_Axis(p, duration, spec, effects, ch, clock) for p in plan(axes, seed, effects)]
+    live = [_Axis(p, duration, spec, effects, fixed, ch, clock)
+            for p in plan(axes, seed, effects)]
     daemons = [a.daemon for a in live]
     server: Daemon | MachineDaemon = (MachineDaemon({a.plan.name: a.daemon for a in live})
                                       if many else daemons[0])
@@ -647,7 +656,8 @@ def report(args: argparse.Namespace, a: MachineRun, b: MachineRun, proc: Process
     print("soak: " + (f"{len(a.axes)} axes on one bus (a daemon each, one machine), "
                        if many else "")
           + f"{args.duration:g} s of simulated 1 kHz traffic (2 frames per period"
-          + (" and axis" if many else "") + f"), seed {args.seed}, model {args.effects}; "
+          + (" and axis" if many else "") + f"), seed {args.seed}, model {args.effects}, "
+          f"the fixed column the {args.fixed}'s; "
           f"{a.wall_s:.0f} s wall (twin {b.wall_s:.0f} s); {os.cpu_count()} CPUs, load "
           f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(("faults (each drive's own): " if many else "faults: ")
@@ -738,6 +748,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--criterion", choices=tuple(CRITERIA), default=CRITERION,
                     help=f"what loses a parameter in the verdict (default {CRITERION}; both "
                          f"are printed): " + "; ".join(f"{k}: {v}" for k, v in CRITERIA.items()))
+    ap.add_argument("--fixed", choices=FIXED_PATHS, default=DaemonSettings().fixed,
+                    help="[daemon] fixed: the published fixed column (default: the daemon's "
+                         "default, the target's integer path; 'kernel' for comparison)")
     ap.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.duration) and args.duration > 0):
@@ -766,9 +779,9 @@ def main(argv: list[str] | None = None) -> int:
 
     peak, threads = rss_mb("VmHWM"), threading.active_count()
     a = run("faulted", args.duration, args.seed, args.faults, args.effects, args.backlog,
-            progress=progress, axes=args.axes)
+            progress=progress, axes=args.axes, fixed=args.fixed)
     b = run("fault-free", args.duration, args.seed, "none", args.effects, args.backlog,
-            progress=progress, axes=args.axes)
+            progress=progress, axes=args.axes, fixed=args.fixed)
     proc = Process(peak, rss_mb("VmHWM"), threads, threading.active_count())
     return 0 if report(args, a, b, proc) else 1
 
