@@ -10,6 +10,7 @@ hour-long soak is not part of the test run).
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import shutil
@@ -161,9 +162,66 @@ def test_soak_smoke_run_counts_every_fault_and_judges(tmp_path: Path) -> None:
                           r"(kept|lost)\]$", out, re.M)) == len(params)
     verdicts = re.findall(r"^criterion (\w+) .*; the verdict's$", out, re.M)
     assert len(verdicts) == 1, out
+    assert re.search(r"^process: peak RSS [\d.]+ MB at the start, [\d.]+ MB at the end; "
+                     r"threads \d+ at the start, \d+ while the faulted run served \(twin \d+\), "
+                     r"\d+ at the end$", out, re.M), out
     last = out.strip().splitlines()[-1]
     assert last.startswith("PASSED: " if r.returncode == 0 else "FAILED: not met: ")
     assert r.returncode == 1 or f"no parameter lost ({verdicts[0]})" in last
+    assert r.returncode == 1 or last.endswith("; threads back to 1 at the end")
+    assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+def test_soak_of_two_axes_judges_each_axis_and_the_machine(tmp_path: Path) -> None:
+    """A few simulated seconds of two drives on one bus, one daemon per axis: each axis
+    takes its own frames and every error frame on the bus (no more, no fewer), answers
+    its own drive's commands, survives its own faults and is judged against its twin;
+    the machine's verdict is the first line of the verdict block, each axis's after it,
+    and the threads are back to the start's."""
+    r = _soak(tmp_path, "--duration", "3", "--seed", "3", "--axes", "2",
+              "--faults", _SMOKE_FAULTS)
+    out = r.stdout
+    assert r.returncode in (0, 1), r.stderr
+    assert out.startswith("soak: 2 axes on one bus"), out
+    heads = re.findall(r"^(axis\d): feedback IDs (0x\w+), (0x\w+), own frames (0x\w+)\.\., "
+                       r"command (0x\w+);", out, re.M)
+    assert heads == [("axis1", "0x101", "0x102", "0x300", "0x320"),
+                     ("axis2", "0x111", "0x112", "0x340", "0x360")], out
+    parts = re.split(r"^axis\d: ", out, flags=re.M)[1:]
+    parts[-1] = parts[-1].split("\nthe machine:")[0]
+    counts = [dict(re.findall(r"^    (\w+) +(\d+)$", p, re.M)) for p in parts]
+    errors = sum(int(c["error_frames"]) for c in counts)
+    for p, c in zip(parts, counts, strict=True):
+        m = re.search(r"^  frames processed: (\d+) of (\d+) offered \(twin: (\d+) of (\d+)\)",
+                      p, re.M)
+        assert m is not None, p
+        assert m.group(1) == m.group(2) and m.group(3) == m.group(4) == "6000"
+        for kind in ("dropped", "corrupted", "miscounted", "resized", "duplicated",
+                     "reordered", "commands"):
+            assert int(c[kind]) > 0, (kind, p)
+        total = sum(int(v) for v in c.values())
+        assert re.search(rf"^  faults injected: {total} ", p, re.M), p
+        assert re.search(rf"^  faults survived: {total} of {total}$", p, re.M), p
+        # its own drive's commands, none of the other's; every error frame of the bus
+        assert re.search(rf"commands {c['commands']} \(rejected \d+\), acknowledgements", p), p
+        assert f"error frames {errors};" in p, (errors, p)
+        assert len(re.findall(r"\[literal: (kept|lost)/(kept|lost), accuracy: (kept|lost)/"
+                              r"(kept|lost)\]$", p, re.M)) == 8
+    # the receive clock is the bus's: its steps hit the axes' frames, and error frames
+    m = re.search(r"^the machine: frames of no axis 0 \(twin 0\); steps of the bus's receive "
+                  r"clock (\d+) ", out, re.M)
+    assert m is not None and int(m.group(1)) > 0, out
+    steps = [int(c["clock_steps"]) for c in counts]
+    assert max(steps) <= int(m.group(1)) <= sum(steps), (steps, out)
+    m = re.search(r"^process: peak RSS [\d.]+ MB at the start, [\d.]+ MB at the end; threads "
+                  r"(\d+) at the start, (\d+) while the faulted run served \(twin \d+\), (\d+) "
+                  r"at the end$", out, re.M)
+    assert m is not None and int(m.group(2)) > int(m.group(1)) == int(m.group(3)), out
+    verdict = out.strip().splitlines()[-3:]
+    assert verdict[0].startswith("PASSED: " if r.returncode == 0 else "FAILED: not met: ")
+    for line, name in zip(verdict[1:], ("axis1", "axis2"), strict=True):
+        assert re.fullmatch(rf"  {name}: (passed|failed: .+)", line), verdict
+    assert r.returncode == 1 or verdict[1:] == ["  axis1: passed", "  axis2: passed"]
     assert list(tmp_path.iterdir()) == []  # nothing written
 
 
@@ -172,6 +230,16 @@ def test_soak_bad_fault_spec_is_one_line(tmp_path: Path) -> None:
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1].startswith("soak.py: error: --faults:")
     assert "drop" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize(("axes", "why"), [("0", "1 to 32 simulated drives"),
+                                           ("21", "outside the standard IDs")])
+def test_soak_bad_axes_is_one_line(tmp_path: Path, axes: str, why: str) -> None:
+    r = _soak(tmp_path, "--duration", "1", "--axes", axes)
+    assert r.returncode == 2
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"soak.py: error: --axes {axes}: ") and why in last, r.stderr
+    assert "Traceback" not in r.stderr and r.stdout == ""
 
 
 def _soak_module():  # type: ignore[no-untyped-def]
@@ -185,6 +253,41 @@ def _soak_module():  # type: ignore[no-untyped-def]
     finally:
         del sys.modules[spec.name]
     return mod
+
+
+# ------------------------------------------------- the daemon the benchmarks measure
+
+#: what a daemon built without the target's path logs (canrls.live.daemon): its fixed
+#: column is then not the one ``canrls run`` publishes
+_NO_TARGET = "no target path was given"
+#: the shortest runs of the benchmarks: one rate, one latency run, no memory; one axis
+_SHORT = {"bench_daemon.py": ("--rates", "2000", "--seconds", "0.3", "--latency-rate", "2000",
+                              "--latency-runs", "1", "--skip-memory"),
+          "bench_axes.py": ("--axes", "1", "--seconds", "0.3")}
+
+
+@pytest.mark.parametrize("tool", sorted(_SHORT))
+def test_benchmark_measures_the_daemon_canrls_run_builds(tmp_path: Path, tool: str) -> None:
+    """The benchmarks build their daemons as ``canrls run`` does (the target's integer path
+    publishes the fixed column, ``[daemon] fixed`` by default), so their figures are the
+    daemon's: no warning that the target's path is missing."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        p for p in (str(SRC), os.environ.get("PYTHONPATH", "")) if p)}
+    r = subprocess.run([sys.executable, str(TOOLS / tool), *_SHORT[tool]], env=env,
+                       cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert _NO_TARGET not in r.stderr, r.stderr
+    assert r.stdout.strip(), r.stderr
+
+
+def test_soak_builds_the_daemon_canrls_run_builds(caplog: pytest.LogCaptureFixture) -> None:
+    """The soak's daemons (the faulted run's and the twin's) are built as ``canrls run``
+    builds them: the target's path publishes the fixed column, no warning that it is
+    missing (the soak counts the daemon's warnings rather than printing them)."""
+    soak = _soak_module()
+    with caplog.at_level(logging.WARNING, logger="canrls"):
+        soak.make_daemon("soak-fixed-path", soak.EFFECTS)  # [daemon] fixed by default
+    assert [r.getMessage() for r in caplog.records] == []
 
 
 def test_soak_judges_a_parameter_by_the_accuracy_the_faults_cost() -> None:

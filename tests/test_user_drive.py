@@ -396,8 +396,9 @@ def test_the_dbc_cycle_time_is_checked_against_the_timestamps(
         assert json.loads(out)["period"]["source"] == "the GenMsgCycleTime of DBC cycle.dbc"
     else:
         assert code == 1
-        assert err.startswith("error: the GenMsgCycleTime of DBC cycle.dbc gives a control "
-                              "period of 2 ms but the log's timestamps say 1 ms"), err
+        assert err.startswith(f"error: {rotary['epoch']}: the GenMsgCycleTime of DBC "
+                              f"cycle.dbc gives a control period of 2 ms but the log's "
+                              f"timestamps say 1 ms"), err
 
 
 @pytest.mark.parametrize(("unit", "axis", "factor"), [

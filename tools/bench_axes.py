@@ -8,7 +8,9 @@ own rate by a feeder thread (as in ``tools/bench_daemon.py``) for ``--seconds``;
 daemons of a :class:`~canrls.live.machine_daemon.MachineDaemon` (one bus connection and
 reader for all, each axis taking its own feedback and command frames, as ``canrls run``
 of a machine; ``--no-filter``: each axis a connection of its own, taking every frame)
-estimate and publish.
+estimate and publish. Each axis is built as ``canrls run`` builds it
+(:func:`canrls.cli.run.daemon_for`): its fixed column the target's integer path by
+default, ``--fixed kernel`` the kernel's on the float front end.
 
 * **lost**: frames an axis should have taken and had not 2 s after the feed ended
   (dropped, or still waiting), summed over the axes; 0 means the process kept up.
@@ -32,6 +34,7 @@ estimate and publish.
 Usage::
 
     python tools/bench_axes.py [--axes 1,2,4,8] [--seconds 5] [--no-filter] [--flood 0]
+                               [--fixed target]
 """
 
 from __future__ import annotations
@@ -52,8 +55,8 @@ import numpy as np
 from can.interfaces import virtual as _virtual
 
 from canrls.can.frameblock import FrameBlock
-from canrls.live.daemon import Daemon
-from canrls.live.daemon_settings import DaemonSettings
+from canrls.cli.run import daemon_for
+from canrls.live.daemon_settings import FIXED_PATHS, DaemonSettings
 from canrls.live.machine_daemon import MachineDaemon
 from canrls.processor.config import load_config
 from canrls.sim.machine import AXIS_ID_STEP, machine, machine_frames
@@ -76,10 +79,11 @@ def _rss_mb() -> float:
     return float("nan")
 
 
-def _config(n: int, directory: Path) -> Path:
-    """A configuration of ``n`` axes on the simulated machine's IDs."""
+def _config(n: int, directory: Path, fixed: str) -> Path:
+    """A configuration of ``n`` axes on the simulated machine's IDs, ``[daemon] fixed``
+    the published fixed column."""
     p = directory / f"machine{n}.toml"
-    p.write_text("[model]\nkt = 0.1\n" + "".join(
+    p.write_text(f'[model]\nkt = 0.1\n[daemon]\nfixed = "{fixed}"\n' + "".join(
         f'[[axes]]\nname = "axis{k + 1}"\nids = "offset:{k * AXIS_ID_STEP:#x}"\n'
         for k in range(n)))
     return p
@@ -145,10 +149,10 @@ def _gaps(times: list[float]) -> tuple[float, float]:
 
 
 def bench(n: int, seconds: float, directory: Path, filtered: bool = True,
-          flood: float = 0.0) -> dict[str, float]:
+          flood: float = 0.0, fixed: str = DaemonSettings().fixed) -> dict[str, float]:
     """N axes fed ``seconds`` of the machine's frames at 1 kHz (``filtered``: each axis
     takes its own frames only, as ``canrls run`` does; ``flood``: frames/s of garbage on
-    the first axis's feedback ID)."""
+    the first axis's feedback ID; ``fixed``: ``[daemon] fixed``, the published column)."""
     # a run longer than SEGMENT_S: the machine's first SEGMENT_S again and again, later
     # each time (the alive counters go round whole: 10,000 periods of 16)
     segment_s = min(seconds, SEGMENT_S)
@@ -162,17 +166,17 @@ def bench(n: int, seconds: float, directory: Path, filtered: bool = True,
     def on_publish(name: str) -> Callable[[int, float], None]:
         return lambda frames, at: sent[name].append(at)
 
-    for name, cfg in load_config(_config(n, directory)).axis_configs().items():
+    for name, cfg in load_config(_config(n, directory, fixed)).axis_configs().items():
         protocol = cfg.protocol()
         if flood and not daemons:
             segment = _flooded(segment, protocol.messages[0].frame_id, flood, segment_s)
         dset = DaemonSettings(queue_size=max(1000, int(2000.0 * n * 0.5)),
                               own_offset=DaemonSettings.from_config(cfg).own_offset,
-                              rx_filter=filtered)
+                              rx_filter=filtered, fixed=fixed)
         sent[name] = []
-        daemons[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset,
-                               bus={"interface": "virtual", "channel": ch},
-                               on_publish=on_publish(name))
+        daemons[name] = daemon_for(protocol, cfg.model_for(protocol), cfg.settings(), dset,
+                                   bus={"interface": "virtual", "channel": ch},
+                                   on_publish=on_publish(name))
     total = len(segment) * repeats
     rate = len(segment) / segment_s
     md = MachineDaemon(daemons)
@@ -205,7 +209,8 @@ def bench(n: int, seconds: float, directory: Path, filtered: bool = True,
             "gap_max": max(g[0] for g in gaps), "gap_p99": max(g[1] for g in gaps)}
 
 
-def cold_start(n: int, directory: Path, compiled: bool = True) -> tuple[float, float]:
+def cold_start(n: int, directory: Path, fixed: str,
+               compiled: bool = True) -> tuple[float, float]:
     """Seconds of a fresh ``canrls run`` of ``n`` axes, start to exit, and its peak RSS
     [MB]. ``compiled``: with Python's bytecode of canrls written and read (as an
     installed package has it; one run first writes it even where
@@ -213,7 +218,7 @@ def cold_start(n: int, directory: Path, compiled: bool = True) -> tuple[float, f
     env = dict(os.environ)
     if compiled:
         env.pop("PYTHONDONTWRITEBYTECODE", None)
-    argv = [sys.executable, "-c", _PEAK, "run", "--config", str(_config(n, directory)),
+    argv = [sys.executable, "-c", _PEAK, "run", "--config", str(_config(n, directory, fixed)),
             "-i", "virtual", "-c", f"cold-{n}", "--duration", "0.01"]
     for _ in range(2 if compiled else 1):
         t0 = time.perf_counter()
@@ -234,6 +239,10 @@ def main() -> None:
                     help="every axis takes every frame of the bus (no filters)")
     ap.add_argument("--flood", type=float, default=0.0,
                     help="frames/s of garbage on the first axis's feedback ID (default 0)")
+    ap.add_argument("--fixed", choices=FIXED_PATHS, default=DaemonSettings().fixed,
+                    help="[daemon] fixed of every axis: the published fixed column (default: "
+                         "the daemon's default, the target's integer path; 'kernel' for "
+                         "comparison)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         print(f"{'axes':>4}  {'frames/s':>9}  {'lost':>7}  {'CPU µs/frame':>12}  "
@@ -241,9 +250,9 @@ def main() -> None:
               f"{'RSS MB':>7}  {'cold start s':>12}  {'(RSS MB)':>8}  {'no .pyc s':>9}")
         for n in (int(x) for x in args.axes.split(",")):
             r = bench(n, args.seconds, Path(tmp), filtered=not args.no_filter,
-                      flood=args.flood)
-            c, c_rss = cold_start(n, Path(tmp))
-            c_src = cold_start(n, Path(tmp), compiled=False)[0]
+                      flood=args.flood, fixed=args.fixed)
+            c, c_rss = cold_start(n, Path(tmp), args.fixed)
+            c_src = cold_start(n, Path(tmp), args.fixed, compiled=False)[0]
             print(f"{n:>4}  {r['offered']:>9.0f}  {r['lost']:>7.0f}  {r['cpu_us']:>12.1f}  "
                   f"{r['rx_us']:>7.1f}  {r['est_us']:>7.1f}  {r['gap_max']:>10.1f}  "
                   f"{r['gap_p99']:>6.1f}  {r['rss_mb']:>7.0f}  {c:>12.2f}  {c_rss:>8.0f}  "

@@ -3,6 +3,9 @@
 Prints figures; it is not a test. The drive's frames are simulated and encoded before
 the timed part (or in the feeder thread for the memory run) and put on the virtual
 channel by a feeder thread at a fixed rate, so the simulator's CPU is not the daemon's.
+The daemon is the one ``canrls run`` builds (:func:`canrls.cli.run.daemon_for`): its
+published fixed column the target's integer path, as ``[daemon] fixed`` has it by
+default; ``--fixed kernel`` measures the kernel's column on the float front end instead.
 
 * **throughput**: for each offered rate (frames/s), ``--seconds`` of traffic; a rate
   is sustained when no frame is lost (the daemon's queue holds at most half a second
@@ -24,7 +27,7 @@ Usage::
 
     python tools/bench_daemon.py [--rates 9000,18000,27000,54000,90000] [--seconds 5] [--tick 0.001]
                                  [--latency-rate 9000] [--latency-runs 3]
-                                 [--memory-sim-s 3600] [--skip-memory]
+                                 [--memory-sim-s 3600] [--skip-memory] [--fixed target]
 """
 
 from __future__ import annotations
@@ -41,8 +44,9 @@ import can
 import numpy as np
 from can.interfaces import virtual as _virtual
 
+from canrls.cli.run import daemon_for
 from canrls.live.daemon import Daemon
-from canrls.live.daemon_settings import DaemonSettings
+from canrls.live.daemon_settings import FIXED_PATHS, DaemonSettings
 from canrls.processor.config import AppConfig
 from canrls.sim.scenario import Simulator, scenario
 
@@ -70,15 +74,18 @@ def _messages(seconds: float, seed: int = 1) -> list[can.Message]:
     return out
 
 
-def _daemon(channel: str, settings: DaemonSettings,
+def _daemon(channel: str, settings: DaemonSettings, fixed: str,
             on_publish: Callable[[int, float], None] | None = None) -> Daemon:
+    """The daemon ``canrls run`` builds of these ``settings``, its fixed column ``fixed``
+    (``[daemon] fixed``: the target's integer path or the kernel's)."""
     cfg = AppConfig()
     cfg.model = {"effects": EFFECTS.split(","), "kt": 0.1}
     protocol = cfg.protocol()
     model = cfg.model_for(protocol)
     assert len(model.parameters) == 8
-    return Daemon(protocol, model, cfg.settings(), settings,
-                  bus={"interface": "virtual", "channel": channel}, on_publish=on_publish)
+    return daemon_for(protocol, model, cfg.settings(),
+                      dataclasses.replace(settings, fixed=fixed),
+                      bus={"interface": "virtual", "channel": channel}, on_publish=on_publish)
 
 
 def _feed(channel: str, msgs: list[can.Message], rate: float,
@@ -111,13 +118,13 @@ def _feed(channel: str, msgs: list[can.Message], rate: float,
     return time.perf_counter() - t0
 
 
-def bench_rate(msgs: list[can.Message], rate: float, tick: float = 1e-3,
+def bench_rate(msgs: list[can.Message], rate: float, fixed: str, tick: float = 1e-3,
                block_interval: float | None = None) -> dict[str, float]:
     ch = f"bench-{next(_ch)}"
     settings = DaemonSettings(queue_size=max(1000, int(rate * 0.5)))
     if block_interval is not None:
         settings = dataclasses.replace(settings, block_interval=block_interval)
-    d = _daemon(ch, settings)
+    d = _daemon(ch, settings, fixed)
     d.start()
     try:
         time.sleep(0.3)
@@ -137,12 +144,12 @@ def bench_rate(msgs: list[can.Message], rate: float, tick: float = 1e-3,
             "blocks": s.blocks}
 
 
-def bench_latency(msgs: list[can.Message], rate: float,
+def bench_latency(msgs: list[can.Message], rate: float, fixed: str,
                   tick: float = 1e-3) -> tuple[float, float, int]:
     ch = f"bench-lat-{next(_ch)}"
     sent_at = np.full(len(msgs), np.nan)
     pubs: list[tuple[int, float]] = []
-    d = _daemon(ch, DaemonSettings(publish_interval=0.0, block_interval=0.0),
+    d = _daemon(ch, DaemonSettings(publish_interval=0.0, block_interval=0.0), fixed,
                 on_publish=lambda n, t: pubs.append((n, t)))
     d.start()
     try:
@@ -169,30 +176,31 @@ def rss(field="VmRSS"):
     return int([l for l in open("/proc/self/status") if l.startswith(field)][0].split()[1])
 a = rss()
 from canrls.processor.config import AppConfig
-from canrls.live.daemon import Daemon, DaemonSettings
+from canrls.live.daemon import DaemonSettings
+from canrls.cli.run import daemon_for
 c = rss()
 cfg = AppConfig()
 cfg.model = {"effects": %r, "kt": 0.1}
 protocol = cfg.protocol()
-Daemon(protocol, cfg.model_for(protocol), cfg.settings(), DaemonSettings(),
-       bus={"interface": "virtual", "channel": "floor"})
+daemon_for(protocol, cfg.model_for(protocol), cfg.settings(), DaemonSettings(fixed=%r),
+           bus={"interface": "virtual", "channel": "floor"})
 print(a, c, rss(), rss("RssAnon"), rss("RssFile"))
 """
 
 
-def memory_floor() -> tuple[float, ...]:
+def memory_floor(fixed: str) -> tuple[float, ...]:
     """RSS [MB] of a fresh process: numpy + python-can + cantools imported, then
     canrls' daemon modules, then one daemon built (then also split into private and
     file-backed pages); no simulator and no frame yet."""
-    out = subprocess.run([sys.executable, "-c", _FLOOR % EFFECTS.split(",")],
+    out = subprocess.run([sys.executable, "-c", _FLOOR % (EFFECTS.split(","), fixed)],
                          capture_output=True, text=True, check=True).stdout.split()
     return tuple(int(x) / 1024.0 for x in out)
 
 
-def bench_memory(sim_seconds: float, report_every: float
+def bench_memory(sim_seconds: float, report_every: float, fixed: str
                  ) -> list[tuple[float, float, float]]:
     ch = f"bench-mem-{next(_ch)}"
-    d = _daemon(ch, DaemonSettings(queue_size=200000))
+    d = _daemon(ch, DaemonSettings(queue_size=200000), fixed)
     sc = scenario("standard", effects=EFFECTS, seed=2, duration=sim_seconds,
                   excitation="standard")
     sim = Simulator(sc, t0=0.0)
@@ -232,14 +240,17 @@ def main() -> None:
                     help="[daemon] block_interval of the throughput runs (default: its default)")
     ap.add_argument("--tick", type=float, default=1e-3,
                     help="seconds between the feeder's hand-overs (default 1 ms, as USB)")
+    ap.add_argument("--fixed", choices=FIXED_PATHS, default=DaemonSettings().fixed,
+                    help="[daemon] fixed: the published fixed column (default: the daemon's "
+                         "default, the target's integer path; 'kernel' for comparison)")
     args = ap.parse_args()
     rates = [float(r) for r in args.rates.split(",")]
-    print(f"daemon on the virtual bus, n = 8 ({EFFECTS}), float + fixed RLS; "
-          f"frames handed over every {args.tick * 1e3:g} ms")
+    print(f"daemon on the virtual bus, n = 8 ({EFFECTS}), float + fixed RLS, the fixed "
+          f"column the {args.fixed}'s; frames handed over every {args.tick * 1e3:g} ms")
     print(f"RSS at start {_rss_mb():.0f} MB")
     for rate in rates:
         msgs = _messages(args.seconds * rate / 2000.0)
-        r = bench_rate(msgs, rate, args.tick, args.block_interval)
+        r = bench_rate(msgs, rate, args.fixed, args.tick, args.block_interval)
         ok = "sustained" if r["lost"] == 0 and r["drained"] else "NOT sustained"
         print(f"offered {r['offered']:8.0f} frames/s: {ok:13s} lost {r['lost']:.0f}, "
               f"daemon CPU {r['cpu_us']:.1f} us/frame (listener {r['rx_us']:.1f}, "
@@ -247,19 +258,19 @@ def main() -> None:
     runs = []
     for k in range(args.latency_runs):
         msgs = _messages(args.seconds * args.latency_rate / 2000.0, seed=3 + k)
-        runs.append(bench_latency(msgs, args.latency_rate, args.tick))
+        runs.append(bench_latency(msgs, args.latency_rate, args.fixed, args.tick))
     print(f"latency feedback frame -> parameter frame at {args.latency_rate:.0f} frames/s "
           f"(publish after every block), p50 / p99 of each run: "
           + ", ".join(f"{p50:.2f} / {p99:.2f} ms" for p50, p99, _ in runs)
           + f" ({runs[0][2]} frames a run)")
     if not args.skip_memory:
-        a, c, d, anon, file = memory_floor()
+        a, c, d, anon, file = memory_floor(args.fixed)
         print(f"memory floor of the daemon alone (fresh process, before any frame): "
               f"numpy + python-can + cantools {a:.0f} MB, "
               f"+ canrls {c:.0f} MB, one daemon built {d:.0f} MB "
               f"({anon:.0f} MB private, {file:.0f} MB of mapped files)")
         t0 = time.perf_counter()
-        rows = bench_memory(args.memory_sim_s, args.memory_sim_s / 6)
+        rows = bench_memory(args.memory_sim_s, args.memory_sim_s / 6, args.fixed)
         wall = time.perf_counter() - t0
         print(f"memory over {args.memory_sim_s:g} s of simulated traffic ({wall:.0f} s wall; "
               f"the simulated drive runs in the same process), "

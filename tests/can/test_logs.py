@@ -372,3 +372,19 @@ def test_a_digest_taken_while_reading_is_the_files_hash(tmp_path: Path, suffix: 
     frames += sum(len(b) for b in blocks)
     assert frames == 3000
     assert d.hexdigest() == whole
+
+
+@pytest.mark.parametrize("can_id", ["1000000101", "FFFFFFFFF", "0" * 40 + "101"])
+def test_a_candump_id_of_more_than_8_digits_is_a_bad_line(tmp_path: Path,
+                                                           can_id: str) -> None:
+    """candump writes 3 or 8 hex digits; a longer ID was masked to 29 bits and read as
+    another frame ("1000000101" as the extended 0x101), where the other formats refuse
+    an ID beyond 29 bits (docs/reliability.md)."""
+    path = tmp_path / "long_id.log"
+    path.write_text(f"(1.0) can0 101#0102\n(1.1) can0 {can_id}#0102\n")
+    with pytest.raises(LogFormatError, match=rf"long_id\.log:2: not a candump line \(the "
+                                             rf"ID '.*' has {len(can_id)} hex digits"):
+        list(read_frames(path))
+    stats = LogReadStats()
+    frames = FrameBlock.concat(read_frames(path, skip_bad_lines=True, stats=stats))
+    assert len(frames) == 1 and stats.bad_lines == 1

@@ -936,3 +936,22 @@ def test_scale_times_unit_factor_is_taken_from_the_role(monkeypatch: pytest.Monk
     speed = proto.roles["speed"]
     assert target_model._scale(proto, "speed", int_field)[0] == 2 * Fraction(speed.codec.scale)
     assert FeedbackEncoder(proto).wrapping == frozenset()  # two turns now: no wrapping
+
+
+@pytest.mark.parametrize("old, new, message", [
+    ("BO_ 258 DriveSpeed", "BO_ 258 DriveCurrent",
+     r"2 messages are named DriveCurrent \(0x101, 0x102; mapped to current\)"),
+    ("BO_ 258 DriveSpeed", "BO_ 257 DriveSpeed",
+     r"messages DriveCurrent \(mapped to current\) and DriveSpeed share the ID 0x101"),
+])
+def test_a_mapped_message_whose_name_or_id_is_given_twice_is_refused(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture, old: str, new: str,
+        message: str) -> None:
+    """Two messages of one name or one ID: cantools logged "Overwriting message ..." (a
+    second, time-stamped line on stderr) and kept one, so the error blamed something
+    else ("message DriveCurrent has no signal 'Current'", "DriveSpeed never occurs")."""
+    dbc = tmp_path / "twice.dbc"
+    dbc.write_text(DEFAULT_DBC.read_text().replace(old, new))
+    with pytest.raises(SignalError, match=rf"^DBC {dbc}: {message}"):
+        Protocol.load(dbc, SignalMapping.default())
+    assert not [r for r in caplog.records if "Overwriting" in r.getMessage()]

@@ -102,6 +102,10 @@ def test_text_and_report(log: Path, tmp_path: Path, capsys: pytest.CaptureFixtur
     assert main(["diagnose", str(log), *MODEL, *QUICK, "--add", "offset",
                  "--report", str(out_dir)]) == 0
     text = capsys.readouterr().out
+    # the answer first: how far the residual fell with the effect added, and what is left
+    first = text.splitlines()[0]
+    assert first.startswith("After --add offset: residual RMS "), text[:400]
+    assert "mechanical: the model is complete for this data" in first, first
     assert "Which effect is missing" in text
     assert "Verdict: mechanical: missing offset" in text
     assert "Before and after --add offset" in text
@@ -110,6 +114,15 @@ def test_text_and_report(log: Path, tmp_path: Path, capsys: pytest.CaptureFixtur
     for svg in ("timeline.svg", "speed.svg", "position.svg", "candidates.svg", "orders.svg",
                 "convergence.svg", "fixed.svg"):
         assert (out_dir / svg).stat().st_size > 1000, svg
+
+
+def test_the_first_line_is_the_verdict(log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # what the command read (the control period, the values used) comes under the answer
+    assert main(["diagnose", str(log), *MODEL, *QUICK]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("Verdict: mechanical: missing offset; "), lines[:3]
+    assert lines[0].endswith(")."), lines[0]
+    assert any(x.startswith("control period ") for x in lines[1:4]), lines[:4]
 
 
 def test_report_without_matplotlib_is_a_clear_error(log: Path, tmp_path: Path,

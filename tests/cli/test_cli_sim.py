@@ -73,6 +73,9 @@ def test_a_machine_says_what_it_wrote_on_stdout(tmp_path: Path,
     assert lines[0].startswith(f"canrls sim: wrote {n} frames of 2 axes to {out} (0.2 s, "
                                f"scenario standard, seed 4; canrls fit --axes offset:")
     assert len(lines) == 3 and all(" truth: inertia.J=" in x for x in lines[1:])
+    # one axis is an axis, not "1 axes"
+    assert main(["sim", "--out", str(out), "--duration", "0.2", "--axes", "1"]) == 0
+    assert " frames of 1 axis to " in capsys.readouterr().out
 
 
 def test_other_log_formats(tmp_path: Path) -> None:

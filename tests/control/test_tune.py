@@ -198,7 +198,8 @@ def saved_model(tmp: Path, edit: Any = None) -> Path:
      "parameters.cogging:6.sin.value = nan: must be a finite number"),
     (lambda d: d["parameters"]["cogging:6.cos"].update(sigma=math.inf),
      "parameters.cogging:6.cos.sigma = inf"),
-    (lambda d: d.update(calibration=None), "--period"),
+    (lambda d: d.update(calibration=None), "--period: the model file {model} holds no "
+                                           "control period (calibration.period)"),
 ])
 def test_bad_model_files_are_one_error_and_nothing_written(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], edit: Any, says: str) -> None:
@@ -206,7 +207,7 @@ def test_bad_model_files_are_one_error_and_nothing_written(
     out = tmp_path / "out"
     line = cli_error(capsys, ["tune", "--model", str(model), "--out", str(out),
                               "--bandwidth", "20"])
-    assert says in line
+    assert says.format(model=model) in line, line
     assert not out.exists() or not any(out.iterdir())
 
 
@@ -248,6 +249,14 @@ def test_a_model_without_position_asks_for_no_map(tmp_path: Path,
     assert ff["speed"]["parameters"] == {"viscous.B": 1e-4, "offset.T0": 0.004}
     sc = with_tuning(scenario("standard"), str(out / "feedforward.json"), None)
     assert sc.controller.compensation.T0 == 0.004 and sc.controller.compensation.map == ()
+    # again without --bandwidth: no gains this time (no current loop's time constant); the
+    # gains.json of the run before is kept, and said not to be of this run
+    gains = (out / "gains.json").read_bytes()
+    assert main(["tune", "--model", str(model), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"kept {out / 'gains.json'}: an earlier tune's, not of this one" in text, text
+    assert f"wrote {out / 'gains.json'}" not in text
+    assert (out / "gains.json").read_bytes() == gains
 
 
 def test_the_diagnosis_says_what_compensation_would_leave(

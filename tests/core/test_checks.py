@@ -25,7 +25,7 @@ from canrls.can.estimator_frames import CommandCode, decode_command, encode_comm
 from canrls.cli._common import overrides
 from canrls.cli.main import build_parser
 from canrls.core import checks
-from canrls.core.errors import CanrlsError
+from canrls.core.errors import CanrlsError, ConfigError
 from canrls.estimation.fixed.formats import check_lam as fixed_check_lam
 from canrls.estimation.rls import RLS
 from canrls.estimation.settings import EstimatorSettings
@@ -223,3 +223,22 @@ def test_one_require_matplotlib_names_each_page_and_its_extra(
     with pytest.raises(CanrlsError, match=r"^the fleet report needs matplotlib, .*"
                                           r"'canrls\[fleet\]'"):
         webpage.require_matplotlib(*fleet_report.MATPLOTLIB)
+
+
+@pytest.mark.parametrize("value", [1e308, 1e10 * 1.001, pytest.param(10 ** 400, id="10**400"),
+                                   0, -1e-3, math.nan, "1"])
+def test_a_period_is_a_positive_number_no_larger_than_a_receive_time(value: object) -> None:
+    """``--dt 1e308`` (or ``calibration.period`` of a model file) passed as a period: the
+    export's timestamp ticks then overflowed, an internal error (exit 3); ``--period
+    1e308`` failed later naming the pairing's clock-step bound instead of the flag."""
+    with pytest.raises(ConfigError, match=r"--dt: the control period must be a positive "
+                                          r"number of seconds, at most 1e\+10"):
+        checks.positive_period(value, "--dt")
+    assert checks.positive_period(1e-3, "--dt") == 1e-3
+    assert checks.positive_period(checks.MAX_TIMESTAMP, "--dt") == checks.MAX_TIMESTAMP
+
+
+def test_an_integer_beyond_a_double_is_no_real_number() -> None:
+    """``float(10**400)`` raises OverflowError: the one definition of a number says no."""
+    assert checks.real_value(10 ** 400) is None and not checks.is_real(-(10 ** 400))
+

@@ -28,7 +28,14 @@ from cli_tool import cli_error
 from canrls.can.logs import LogReadStats, read_frames
 from canrls.cli.main import main
 from canrls.core.errors import ConfigError, LogFormatError
-from canrls.core.files import MAX_LINE, LineBound, atomic_writer, open_regular, read_bytes
+from canrls.core.files import (
+    MAX_LINE,
+    LineBound,
+    atomic_writer,
+    open_regular,
+    read_bytes,
+    staged_dir,
+)
 from canrls.processor.config import read_toml
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -299,6 +306,29 @@ def test_atomic_writer_leaves_nothing_on_an_exception(tmp_path: Path) -> None:
         f.write(b"half")
         raise KeyboardInterrupt
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_staged_directory_is_renamed_in_whole_or_not_at_all(tmp_path: Path) -> None:
+    """A report's directory: its files appear when the block ends, the page last, a link
+    at a name replaced, never written through; an exception leaves it as it was."""
+    out = tmp_path / "report"
+    with pytest.raises(KeyboardInterrupt), staged_dir(out, "--report") as stage:
+        (stage / "a.svg").write_text("figure")
+        raise KeyboardInterrupt
+    assert list(tmp_path.iterdir()) == []
+    outside = tmp_path / "outside"
+    outside.write_bytes(PRECIOUS)
+    out.mkdir()
+    (out / "index.html").symlink_to(outside)
+    (out / "old.svg").write_text("kept")
+    with staged_dir(out, "--report", last="index.html") as stage:
+        assert stage.parent == out  # an existing directory: on its own file system
+        for name in ("index.html", "a.svg"):
+            (stage / name).write_text(name)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["outside", "report"]
+    assert sorted(p.name for p in out.iterdir()) == ["a.svg", "index.html", "old.svg"]
+    assert not (out / "index.html").is_symlink() and outside.read_bytes() == PRECIOUS
+    assert (out / "index.html").read_text() == "index.html"
 
 
 def test_sigterm_during_sim_leaves_no_temporary(tmp_path: Path) -> None:

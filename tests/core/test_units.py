@@ -69,6 +69,17 @@ def test_explicit_scale_wins() -> None:
             si_factor("speed", "rpm", scale=bad, message="M", signal="S")
 
 
+@pytest.mark.parametrize("role, unit", [("speed", "1e999 rpm"), ("current", "1e306 kA"),
+                                        ("position", "1e-323 mrad")])
+def test_a_scaled_unit_whose_factor_is_not_a_number_names_the_signal(role: str,
+                                                                     unit: str) -> None:
+    """A DBC unit "1e999 rpm" made the factor infinite: the error came later, blaming
+    "<defaults>: model.ranges.speed = -inf" instead of the signal and its unit."""
+    with pytest.raises(SignalError, match=rf"Fb\.Sig: unit {unit!r} of the {role} signal: "
+                                          rf"its number makes the factor"):
+        si_factor(role, unit, message="Fb", signal="Sig")
+
+
 def test_unknown_role() -> None:
     with pytest.raises(SignalError, match="unknown signal role 'pressure'"):
         si_factor("pressure", "bar")

@@ -27,6 +27,7 @@ from canrls.cli.main import main
 from canrls.core.errors import ConfigError
 from canrls.diagnosis.analysis import diagnose_log
 from canrls.diagnosis.report import DiagnosisReport
+from canrls.diagnosis.results import SearchResult
 from canrls.estimation.model import Model
 from canrls.sim.excitation import Sequence, chirp, phases
 from canrls.sim.scenario import SimResult, scenario, simulate
@@ -256,3 +257,10 @@ def test_a_missing_coulomb_friction_has_its_band_searched_or_kept(
     else:
         assert r.value == band
         assert "Coulomb band 0.02 rad/s (set in the configuration: kept)" in rep.format()
+
+
+def test_a_value_found_at_the_grid_s_end_reads_inside_the_range_searched() -> None:
+    # the value and the range at the same precision: 9.859 was shown "searched 9.86..13.4"
+    r = SearchResult("stribeck_speed", "Stribeck speed", "rad/s", 9.85942, False, 9.85942,
+                     13.3449, 16, 10.27)
+    assert "Stribeck speed 9.859 rad/s (searched 9.859..13.34 rad/s, 16 values" in r.text()

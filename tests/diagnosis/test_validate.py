@@ -8,6 +8,7 @@ log with the saved parameters, without estimating.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -259,6 +260,59 @@ def test_validate_report_without_matplotlib_is_a_clear_error(
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "matplotlib" in err
     assert not (tmp_path / "r").exists()
+
+
+def test_validate_report_of_a_model_without_sigma_or_unit(
+        logs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A model file may leave a parameter's sigma and unit out: ``validate --report``
+    ended in an internal error (exit 3, the page's template asked for ``p.sigma``) and
+    left the figures in the directory; the text printed the missing sigma as ``± 0``."""
+    pytest.importorskip("matplotlib")
+    m = tmp_path / "m.json"
+    _json(capsys, ["fit", str(logs["s1"]), *MODEL, "--quiet", "--json", "--save-model",
+                   str(m)])
+    doc = json.loads(m.read_text())
+    del doc["parameters"]["viscous.B"]["sigma"], doc["parameters"]["inertia.J"]["unit"]
+    m.write_text(json.dumps(doc))
+    out = tmp_path / "report"
+    capsys.readouterr()
+    assert main(["validate", str(logs["s2"]), "--model", str(m), "--quiet", "--report",
+                 str(out)]) == 0
+    text = capsys.readouterr().out
+    assert re.search(r"viscous\.B +\S+ ± +— N·m·s/rad", text), text
+    html = (out / "index.html").read_text(encoding="utf-8")
+    assert re.search(r"<td>viscous\.B</td><td>[^<]+</td><td>—</td>", html)
+    assert re.search(r"<td>inertia\.J</td><td>[^<]+</td><td>[^<]+</td><td></td>", html)
+
+
+def test_a_report_that_fails_leaves_its_directory_as_it_was(
+        logs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The page failing after its figures were drawn left the figures behind, a report
+    directory half written. Now the figures and the page are written beside it first and
+    renamed in when whole: a new directory is not made, an old report is untouched."""
+    pytest.importorskip("matplotlib")
+    import canrls.diagnosis.validation as validation
+
+    m = tmp_path / "m.json"
+    _json(capsys, ["fit", str(logs["s1"]), *MODEL, "--quiet", "--json", "--save-model",
+                   str(m)])
+
+    def broken(name: str) -> Any:
+        raise ConfigError(f"--report: the page {name} cannot be drawn")
+    monkeypatch.setattr(validation, "page_template", broken)
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "index.html").write_text("the last report")
+    for out in (tmp_path / "new", old):
+        capsys.readouterr()
+        assert main(["validate", str(logs["s2"]), "--model", str(m), "--quiet", "--report",
+                     str(out)]) == 1
+        assert "cannot be drawn" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    assert [p.name for p in old.iterdir()] == ["index.html"]
+    assert (old / "index.html").read_text() == "the last report"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.json", "old"]
 
 
 def test_validate_refuses_options_that_would_change_the_model(

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from canrls.core.errors import ConfigError
 from canrls.core.samples import Signals
 from canrls.estimation.estimates import divergence
 from canrls.estimation.fixed.formats import QFormat
@@ -326,3 +327,30 @@ def test_a_term_outside_its_domain_skips_those_samples_and_the_filter_recovers(
     for k in range(0, len(sig), 777):
         b.process(sig.slice(k, k + 777))
     assert b.estimates().parameters == fit.parameters
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("word_bits", -32, r"fixed\.word_bits = -32: must be an integer in 8\.\.32"),
+    ("word_bits", 2 ** 63 - 1, r"fixed\.word_bits = 9223372036854775807: must be an integer"),
+    ("acc_bits", 100_000, r"fixed\.acc_bits = 100000: must be an integer in 16\.\.64"),
+    ("input_bits", 1, r"fixed\.input_bits = 1: must be an integer in 2\.\.32"),
+    ("calibration_s", 1e308, r"estimator\.calibration_s = 1e\+308: must be > 0 seconds, "
+                             r"at most 1e\+10"),
+    ("theta_max", 1e300, r"fixed\.theta_max = 1e\+300: no Q format of 32-bit words holds "
+                         r"it"),
+])
+def test_settings_refuse_words_and_windows_no_estimator_can_run_naming_the_key(
+        key: str, value: object, message: str) -> None:
+    """``[fixed] word_bits = -32`` was refused only when the Q formats were built, as
+    "range of P: QFormat bits must be in 2..64", naming neither the key nor the file
+    (``theta_max = 1e300`` alike, as "range of theta");
+    ``[estimator] calibration_s = 1e308`` made the window's sample count infinite, an
+    internal error (exit 3) of ``canrls fit``. Through the configuration, the file is
+    named too."""
+    with pytest.raises(ConfigError, match=message):
+        EstimatorSettings(**{key: value})
+    section = "fixed" if key.endswith("_bits") or key == "theta_max" else "estimator"
+    cfg = AppConfig(source="drive.toml")
+    setattr(cfg, section, {key: value})
+    with pytest.raises(ConfigError, match="drive.toml: " + message):
+        cfg.settings()

@@ -769,6 +769,26 @@ def test_manifest_errors_name_the_line_and_field(tmp_path: Path, text: str,
     assert str(e.value).startswith(f"{m}: {message}")
 
 
+@pytest.mark.parametrize(("column", "cell", "message"), [
+    ("effects", "warp", "--effects warp: unknown effect 'warp'"),
+    ("signals", "warp", "--signal warp: expected ROLE=MESSAGE.SIGNAL"),
+    ("signals", "current=Nope.Nope", "has no message 'Nope' (mapped to current"),
+])
+def test_a_manifest_rows_bad_override_names_the_row(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], column: str, cell: str,
+        message: str) -> None:
+    """A manifest row's effects or signals that cannot be: the error named "--effects
+    warp", a flag nobody typed, and not the manifest nor its line."""
+    (tmp_path / "x.log").write_text("")
+    m = tmp_path / "m.csv"
+    m.write_text(f"path,drive,{column}\nx.log,d1,\nx.log,d2,{cell}\n")
+    assert main(["fleet", "ingest", "--manifest", str(m), "--db", str(tmp_path / "h.db"),
+                 "--workers", "0", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {m}: line 3: ") and message in err, err
+    assert err.count("\n") == 1
+
+
 def test_a_missing_dependency_disables_only_its_command(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         capsys: pytest.CaptureFixture[str]) -> None:

@@ -110,12 +110,19 @@ CASES = {
                               "unknown key estimator.bogus"),
     "string sigma": (_set("parameters/inertia.J/sigma", "big"),
                      "parameters.inertia.J.sigma = 'big': must be a number"),
+    # validate printed "± -1e+308" and tune took it as a sigma
+    "negative sigma": (_set("parameters/inertia.J/sigma", -1e308),
+                       "parameters.inertia.J.sigma = -1e\\+308: must be >= 0"),
     "value 10**400": (_set("parameters/inertia.J/value", 10 ** 400),
                       "parameters.inertia.J.value = an integer of about 401 digits"),
     "fit entry a number": (_set("fit/mechanical", 3), "fit.mechanical = 3: must be a table"),
     "effects a string": (_set("effects", "inertia"), "effects = 'inertia': must be a list"),
     "warmup_s 1e300": (_set("configuration/estimator/warmup_s", 1e300),
                        "estimator.warmup_s = 1e\\+300: .* at most 25000"),
+    # export-c said "column energies [1]: need 3 finite values", naming no file nor key
+    "energies of one column": (_set("calibration/energy/mechanical", [1.0]),
+                               "calibration.energy.mechanical has 1 values, the mechanical "
+                               "equation 3 parameters"),
 }
 
 
@@ -167,6 +174,24 @@ def test_validate_refuses_parameters_whose_prediction_overflows(files: dict[str,
     _one_error(code, err)
 
 
+@pytest.mark.parametrize("command", [["export-c", "--out", "c"], ["tune"]])
+@pytest.mark.parametrize("value", [1e308, 0, "x"])
+def test_a_saved_period_that_is_no_period_names_the_file_and_the_key(
+        files: dict[str, Path], command: list[str], value: Any) -> None:
+    """``calibration.period`` of 1e308: ``export-c`` ended in an internal error (its
+    timestamp ticks overflowed), and 0 or ``"x"`` said "the fit's: the control period
+    ...", naming neither the model file nor the key."""
+    bad = files["dir"] / "period.json"
+    bad.write_text(json.dumps(_mutated(files, _set("calibration/period", value))))
+    argv = [command[0], "--model", str(bad)] + [
+        str(files["dir"] / a) if a == "c" else a for a in command[1:]]
+    code, _, err = _cli(argv)
+    assert code == 1, err
+    _one_error(code, err)
+    assert f"{bad}: calibration.period: the control period must be" in err, err
+    assert not (files["dir"] / "c").exists()
+
+
 def test_validate_on_a_log_without_a_usable_sample_is_an_error(files: dict[str, Path]) -> None:
     """A log whose every sample falls in the filter's warm-up (60 frames): before, exit
     0 with "fit nan %, 0 samples" and numpy's "Mean of empty slice" warning."""
@@ -189,6 +214,42 @@ def test_the_estimator_warmup_is_bounded_before_anything_is_allocated(
     _one_error(code, err)
     with pytest.raises(ConfigError, match="warmup_s"):
         AppConfig(estimator={"warmup_s": -1.0}).settings()
+
+
+@pytest.mark.parametrize("command", [["validate", "LOG"], ["export-c", "--out", "c"]])
+@pytest.mark.parametrize("key, value, message", [
+    ("estimator/lambda", 5, "estimator.lambda = 5: must be in (0.5, 1]"),
+    ("can/dbc", 5, "can.dbc = 5: must be a file path"),
+    ("signals/current", 5, "[signals]: current must be \"MESSAGE.SIGNAL\" or a table"),
+])
+def test_an_error_of_the_saved_configuration_names_the_model_file(
+        files: dict[str, Path], command: list[str], key: str, value: Any,
+        message: str) -> None:
+    """A model file's configuration that cannot be was blamed on where the fit had read
+    it ("<defaults>: estimator.lambda = 5"): the user's file was not named."""
+    bad = files["dir"] / "conf.json"
+    bad.write_text(json.dumps(_mutated(files, _set(f"configuration/{key}", value))))
+    rest = [str(files["log"]) if a == "LOG" else str(files["dir"] / a) if a == "c" else a
+            for a in command[1:]]
+    code, _, err = _cli([command[0], "--model", str(bad), *rest])
+    _one_error(code, err)
+    assert code == 1 and err.startswith(f"error: {bad}: configuration"), err
+    assert message in err and "<defaults>" not in err, err
+
+
+@pytest.mark.parametrize("formats, message", [
+    ({"P": [1000, -5]}, r"fixed\.formats\.P = \[1000, -5\]: QFormat bits must be in 2\.\.64"),
+    ({"P": [32, 200]}, r"fixed\.formats\.P = \[32, 200\]: QFormat frac must be in"),
+    ({"WARP": [32, 20]}, r"fixed\.formats\.WARP: no such quantity \(valid: phi, y,"),
+])
+def test_a_q_format_of_the_configuration_that_cannot_be_names_file_and_key(
+        formats: dict[str, list[int]], message: str) -> None:
+    """``[fixed.formats] P = [1000, -5]`` was "QFormat bits must be in 2..64, got 1000",
+    an unknown name "FixedConfig.auto got unknown override(s)", naming neither the
+    configuration file nor the key."""
+    cfg = AppConfig(source="drive.toml", fixed={"formats": formats})
+    with pytest.raises(ConfigError, match="^drive.toml: " + message):
+        cfg.settings()
 
 
 # --------------------------------------------------------------------------- fuzz: model file

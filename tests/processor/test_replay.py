@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +18,7 @@ from canrls.core.samples import Signals
 from canrls.estimation.pipeline import Pipeline
 from canrls.processor import FrameProcessor
 from canrls.processor.config import AppConfig, prepare
-from canrls.processor.replay import fit_frames, fit_log
+from canrls.processor.replay import fit_frames, fit_log, fit_logs
 from canrls.sim.scenario import scenario, simulate
 
 EFFECTS = "inertia,viscous,coulomb,offset"
@@ -104,11 +106,27 @@ def test_cli_fit_text_and_config_file(sim_log: tuple[Path, object], tmp_path: Pa
     out = capsys.readouterr().out
     for name in ("inertia.J", "viscous.B", "coulomb.Tc", "offset.T0", "residual RMS", "fit"):
         assert name in out
+    # the answer first: the parameters and the fit, then what the replay read
+    lines = out.splitlines()
+    assert lines[0].startswith("parameter "), lines[:2]
+    fit_line = next(i for i, x in enumerate(lines) if x.startswith("mechanical: residual RMS"))
+    read = next(i for i, x in enumerate(lines) if x.startswith(f"{path}: "))
+    assert fit_line < read, out
     # the command line overrides the file
     assert main(["fit", str(path), "--config", str(cfg), "--effects", "inertia,viscous",
                  "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert set(d["parameters"]) == {"inertia.J", "viscous.B"}
+
+
+def test_the_saturations_are_named_not_a_dict(sim_log: tuple[Path, object]) -> None:
+    path, _ = sim_log
+    prot, model, settings = _setup(log=path)
+    est = fit_log(path, prot, model, settings).estimates
+    eq = dataclasses.replace(est.equations[0], saturations={"phi": 3, "P": 1})
+    line = next(x for x in dataclasses.replace(est, equations=(eq,)).format().splitlines()
+                if x.startswith("mechanical: residual RMS"))
+    assert "saturations phi 3, P 1" in line and "{" not in line, line
 
 
 def test_without_kt_parameters_are_per_ampere(sim_log: tuple[Path, object]) -> None:
@@ -240,3 +258,54 @@ def test_faulty_frames_are_rejected_and_lost_samples_do_not_bias(tmp_path: Path)
     for p in fit.parameters:
         assert p.value == pytest.approx(res.truth.params[p.name], rel=0.01), p
         assert p.fixed == pytest.approx(p.value, rel=1e-3), p
+
+
+def _edited(src: Path, dst: Path, edit: object) -> Path:
+    """``src``'s lines, each through ``edit`` (a line or None to drop it), into ``dst``."""
+    lines = [edit(line) for line in src.read_text().splitlines()]  # type: ignore[operator]
+    dst.write_text("".join(line + "\n" for line in lines if line is not None))
+    return dst
+
+
+def _times8(line: str) -> str:
+    close = line.index(")")
+    return f"({float(line[1:close]) * 8:.6f}{line[close:]}"
+
+
+def _every_other_speed(line: str) -> str | None:
+    # the speed frames come 0.1 ms after the current's: drop those of odd milliseconds
+    t = float(line[1:line.index(")")])
+    return None if " 102#" in line and round(t * 1e4) % 20 == 11 else line
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda line: line.replace(" 101#", " 00000101#").replace(" 102#", " 00000102#"),
+     "none of the mapped messages occurs"),
+    (_every_other_speed, "the mapped messages come at different periods"),
+    (_times8, "the GenMsgCycleTime of DBC canrls.dbc gives a control period of 1 ms"),
+])
+def test_what_a_logs_frames_say_is_an_error_naming_the_log(
+        sim_log: tuple[Path, object], tmp_path: Path, edit: object, message: str) -> None:
+    """A log whose frames cannot be paired (no mapped ID, messages at two periods, times
+    that disagree with the DBC's cycle time) said so without naming the log: with
+    several logs the user could not tell which. The period is measured on the first."""
+    path, _ = sim_log
+    bad = _edited(path, tmp_path / "bad.log", edit)
+    prot, model, settings = _setup()
+    with pytest.raises(ConfigError, match="^" + re.escape(str(bad)) + ": " + message):
+        fit_logs([bad, path], prot, model, settings)
+
+
+def test_a_later_log_without_a_mapped_message_is_an_error_naming_it(
+        sim_log: tuple[Path, object], tmp_path: Path) -> None:
+    """The first log's frames measure the period and its error names the IDs seen; a later
+    log with frames but none of a mapped message was passed over in silence (it added no
+    sample), as if it had been fitted."""
+    path, _ = sim_log
+    other = _edited(path, tmp_path / "other.log",
+                    lambda line: line.replace(" 101#", " 00000101#").replace(" 102#",
+                                                                             " 00000102#"))
+    prot, model, settings = _setup()
+    with pytest.raises(ConfigError, match="^" + re.escape(str(other)) + ": none of the "
+                       "mapped messages occurs in its [0-9]+ frames .*it would add no sample"):
+        fit_logs([path, other], prot, model, settings)

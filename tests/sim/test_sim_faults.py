@@ -265,3 +265,26 @@ def test_injected_commands_leave_the_estimates_as_they_were(frames: FrameBlock) 
     without, none = run(frames.to_messages())
     assert answered == log.commands > 0 and none == 0
     assert np.array_equal(with_cmds, without)
+
+
+def test_a_moved_drive_gets_counter_faults_and_its_own_commands() -> None:
+    """A drive on another axis's IDs (the default DBC's + 0x10): its alive-counter faults
+    hit its own protected frames (not the default DBC's IDs, where it sends nothing), and
+    its inserted commands go to the command ID it is given, as the soak of a machine
+    needs (``tools/soak.py --axes``)."""
+    from canrls.can.idrules import IdRule
+    from canrls.sim.scenario import Simulator, scenario
+
+    moved = Protocol.load().with_ids(IdRule("offset", 0x10))
+    sc = scenario("standard", duration=5.0, seed=8, faults="counter=0.01,cmd=0.001,cmd_burst=3")
+    sim = Simulator(sc, protocol=moved, command_id=0x360)
+    out = FrameBlock.concat(list(sim.frames(1000)))
+    log = sim.fault_log
+    assert log.miscounted > 50  # ~1 % of 10000 frames
+    assert set(log.per_id["miscounted"]) == {DRIVE_CURRENT + 0x10, DRIVE_SPEED + 0x10}
+    assert 0 < log.commands == int(np.count_nonzero(out.arbitration_id == 0x360))
+    assert not np.isin(out.arbitration_id, [0x320, DRIVE_CURRENT, DRIVE_SPEED]).any()
+    dec = Decoder(moved)
+    dec.decode(out)
+    assert dec.rejected["crc"] == 0  # each CRC computed over the moved ID
+    assert dec.rejected["stale"] + dec.rejected["repeated"] + sum(dec.lost.values()) > 0

@@ -334,6 +334,9 @@ def _parse_candump_line(text: str) -> can.Message:
     if "#" not in frame:
         raise ValueError("frame has no '#'")
     can_id_s, rest = frame.split("#", 1)
+    if len(can_id_s) > 8:  # masked to 29 bits, "1000000101" would read as 0x101
+        raise ValueError(f"the ID {can_id_s[:20]!r} has {len(can_id_s)} hex digits: not a "
+                         f"CAN ID (at most 8 digits, 29 bits and candump's flags)")
     can_id = int(can_id_s, 16)
     is_fd = rest.startswith("#")
     is_remote = False

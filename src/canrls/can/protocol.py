@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import logging
 import math
 from collections.abc import Mapping, Sequence
 from importlib import resources
@@ -93,16 +94,28 @@ def _parse_dbc(raw: bytes, where: str) -> Any:
     except Exception as e:  # textparser's errors say where
         raise ConfigError(f"cannot parse {where}: {e}") from e
     _check_layout(tokens, where)
+    # cantools logs "Overwriting message ..." for two messages of one name or ID, a line
+    # with a time stamp on stderr beside canrls' one error line: a mapped message that
+    # shares its name or ID is refused where the mapping is resolved (_resolve)
+    log = logging.getLogger("cantools.database.can.database")
+    log.addFilter(_no_overwriting)
     try:
         db = cantools.database.load_string(text, database_format="dbc", strict=True)
     except Exception as e:  # cantools raises several parse error types
         raise ConfigError(f"cannot parse {where}: {e}") from e
+    finally:
+        log.removeFilter(_no_overwriting)
     if not isinstance(db, cantools.database.can.Database):  # what format "dbc" gives
         raise ConfigError(f"cannot parse {where}: not a CAN database")
     for m in db.messages:
         for sig in m.signals:
             _check_numbers(sig, f"{where}: message {m.name}: signal {sig.name}")
     return db
+
+
+def _no_overwriting(record: logging.LogRecord) -> bool:
+    """A log filter: False for cantools' warning of a message name or ID given twice."""
+    return not str(record.msg).startswith("Overwriting message")
 
 
 def _dbc_text(raw: bytes, where: str) -> str:
@@ -381,6 +394,20 @@ def _resolve(db: Any, path: Path, is_default: bool, mp: SignalMapping,
             raise SignalError(f"{where} has no message {spec.message!r} (mapped to {role} = "
                               f"{spec}); its messages are {', '.join(sorted(names))}")
         msg = db.get_message_by_name(spec.message)
+        # two messages of one name or ID: cantools keeps one, the DBC does not say which
+        named = [m for m in db.messages if m.name == msg.name]
+        if len(named) > 1:
+            raise SignalError(
+                f"{where}: {len(named)} messages are named {msg.name} ("
+                + ", ".join(f"0x{m.frame_id:X}" for m in named) + f"; mapped to {role}): "
+                f"which one is meant is not said; a DBC gives each message its own name")
+        same_id = [m.name for m in db.messages if m is not msg and (
+            m.frame_id, m.is_extended_frame) == (msg.frame_id, msg.is_extended_frame)]
+        if same_id:
+            raise SignalError(
+                f"{where}: messages {msg.name} (mapped to {role}) and {', '.join(same_id)} "
+                f"share the ID 0x{msg.frame_id:X}: a frame of one cannot be told from the "
+                f"other's; a DBC gives each message its own ID")
         sigs = {s.name: s for s in msg.signals}
         if spec.signal not in sigs:
             if spec.optional:

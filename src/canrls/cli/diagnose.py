@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
                         + (f", Stribeck speed {m.stribeck_speed:.4g} {u}"
                            if "stribeck" in m.effect_names else "")
                         + (f", pitch {m.pitch:.4g} m" if m.axis == "linear" else ""))
-        sys.stdout.write("".join(h + "\n" for h in head) + rep.format() + "\n")
+        sys.stdout.write(rep.format(head) + "\n")
         if page is not None:
             sys.stdout.write(f"\nreport: {page}\n")
         if saved is not None:

@@ -53,10 +53,12 @@ from canrls.live.signals import SignalRelay
 
 if TYPE_CHECKING:
     from canrls.can.protocol import Protocol
+    from canrls.estimation.model import Model
     from canrls.estimation.settings import EstimatorSettings
+    from canrls.live.daemon import Daemon
     from canrls.live.daemon_settings import DaemonSettings
 
-__all__ = ["add_subparser", "run", "build_daemon"]
+__all__ = ["add_subparser", "run", "build_daemon", "daemon_for", "fixed_path_for"]
 
 
 def add_subparser(subparsers: Any) -> argparse.ArgumentParser:
@@ -180,7 +182,6 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None,
     the configuration as read (None: read here). On SIGHUP the one axis reads the file
     again; a machine's axis takes what the machine read, once for all its axes."""
     from canrls.live.bus_link import bus_config
-    from canrls.live.daemon import Daemon
     from canrls.live.daemon_settings import DaemonSettings
     from canrls.processor.config import AppConfig, prepare, read_toml
 
@@ -250,13 +251,24 @@ def build_daemon(args: argparse.Namespace, axis: str | None = None,
 
     history = None if hist is None or key is None else _history_hook(hist, key)
     try:
-        return Daemon(protocol, model, settings, dset, bus=bus,
-                      reload=reloaded_model, history=history, configuration=cfg,
-                      fixed_path=fixed_path_for(protocol, settings, dset))
+        return daemon_for(protocol, model, settings, dset, bus=bus,
+                          reload=reloaded_model, history=history, configuration=cfg)
     except BaseException:
         if history is not None:
             history.close()
         raise
+
+
+def daemon_for(protocol: Protocol, model: Model, settings: EstimatorSettings,
+               dset: DaemonSettings, **kwargs: Any) -> Daemon:
+    """A daemon built as ``canrls run`` builds it (not started): its published fixed column
+    from where ``[daemon] fixed`` says (:func:`fixed_path_for`); ``kwargs`` (the bus, the
+    hooks) go to :class:`~canrls.live.daemon.Daemon` as they are. The benchmarks and the
+    soak under tools/ build theirs here, so that they measure the daemon users run."""
+    from canrls.live.daemon import Daemon
+
+    return Daemon(protocol, model, settings, dset,
+                  fixed_path=fixed_path_for(protocol, settings, dset), **kwargs)
 
 
 def fixed_path_for(protocol: Protocol, settings: EstimatorSettings,

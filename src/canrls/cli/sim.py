@@ -247,7 +247,8 @@ def run_machine(args: argparse.Namespace) -> int:
     with _terminated_as_exit():
         n = write_log(args.out, machine_frames(axes, t0=args.start_time),
                       channel=args.channel, what=f"--out {args.out}")
-    print(f"canrls sim: wrote {n} frames of {len(axes)} axes to {args.out} "
+    print(f"canrls sim: wrote {n} frames of {len(axes)} {'axes' if len(axes) > 1 else 'axis'} "
+          f"to {args.out} "
           f"({args.duration:g} s, scenario {args.scenario}, seed {args.seed}; canrls fit "
           f"{_fit_options(axes, args.ids)})")
     for a in axes:

@@ -117,12 +117,16 @@ def run(args: argparse.Namespace) -> int:
                       else float(args.rated_torque))
     res = tune(saved, req, source=source)
     written = res.write(output_dir(args.out, f"--out {args.out}")) if args.out else []
+    earlier = res.earlier(args.out) if args.out else []
     if args.json:
         d = res.to_dict()
         d["written"] = [str(p) for p in written]
+        d["earlier"] = [str(p) for p in earlier]
         print_json(d)
     else:
         sys.stdout.write(res.format() + "\n")
         for p in written:
             sys.stdout.write(f"wrote {p}\n")
+        for p in earlier:
+            sys.stdout.write(f"kept {p}: an earlier tune's, not of this one\n")
     return 0

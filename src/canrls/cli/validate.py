@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
                           f"settings are the saved file's ({args.model}); to change them, "
                           f"fit again with 'canrls fit ... --save-model'")
     base = saved.config()
-    cfg = AppConfig.load(args.config) if args.config else AppConfig()
+    cfg = AppConfig.load(args.config) if args.config else AppConfig(source=base.source)
     # the protocol: the saved one, unless the command line or --config gives another
     if not args.config:
         cfg.can = dict(base.can)

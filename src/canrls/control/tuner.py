@@ -144,6 +144,13 @@ class TuneResult:
             out[GAINS_FILE] = _json(self.to_dict()["gains"])
         return out
 
+    def earlier(self, directory: str | Path) -> list[Path]:
+        """Files of a tune in ``directory`` that this result does not write (an earlier
+        run's, kept: a ``gains.json`` left from a run with ``--bandwidth``)."""
+        d = Path(directory)
+        return [d / name for name in (FEEDFORWARD_FILE, MAP_FILE, GAINS_FILE)
+                if name not in self.files() and (d / name).is_file()]
+
     def write(self, directory: str | Path) -> list[Path]:
         """Write :meth:`files` into ``directory`` (each whole, never through a link)."""
         files = self.files()
@@ -190,8 +197,9 @@ def _period(saved: SavedModel, req: TuneRequest) -> float:
     for a period nobody said is no answer)."""
     measured = (saved.calibration or {}).get("period")
     if req.period is None and measured is None:
-        raise ConfigError("--period: the model file holds no control period "
-                          "(calibration.period); state it with --period SECONDS")
+        named = f"the model file {saved.origin}" if saved.origin else "the model file"
+        raise ConfigError(f"--period: {named} holds no control period (calibration.period); "
+                          f"state it with --period SECONDS")
     dt = control_period(given=req.period, given_by="--period", measured=measured).value
     if not (math.isfinite(req.delay) and req.delay >= 0):
         raise ConfigError(f"--delay {req.delay!r}: must be a number of periods >= 0")

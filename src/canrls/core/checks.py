@@ -27,7 +27,10 @@ def real_value(value: object) -> float | None:
     of every check that asks."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         return None
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # an integer beyond a double (a JSON 10**400)
+        return None
     return v if math.isfinite(v) else None
 
 
@@ -106,13 +109,14 @@ def describe_time(t: float) -> str:
 
 def positive_period(value: object, where: str) -> float:
     """``value`` as a control period [s]; a :class:`ConfigError` naming ``where`` (the
-    flag, key or file that stated it) unless it is a finite positive number. The one
-    check of a period's value: a stated period (:meth:`Protocol.load
+    flag, key or file that stated it) unless it is a finite positive number, at most
+    :data:`MAX_TIMESTAMP` (no stream of receive times has a longer one). The one check of
+    a period's value: a stated period (:meth:`Protocol.load
     <canrls.can.protocol.Protocol.load>`) and the processor's go through it."""
     v = real_value(value)
-    if v is None or not v > 0:
+    if v is None or not in_range(v, 0.0, MAX_TIMESTAMP, lo_open=True):
         raise ConfigError(f"{where}: the control period must be a positive number of "
-                          f"seconds, got {value!r}")
+                          f"seconds, at most {MAX_TIMESTAMP:g}, got {value!r}")
     return v
 
 

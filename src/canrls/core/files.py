@@ -27,7 +27,9 @@ import hashlib
 import io
 import os
 import secrets
+import shutil
 import stat
+import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -37,7 +39,7 @@ from canrls.core.errors import CanrlsError, ConfigError
 __all__ = ["MAX_LINE", "MAX_CONFIG_BYTES", "MAX_DBC_BYTES", "MAX_MODEL_BYTES", "check_path",
            "kind", "open_regular", "read_bytes", "read_text", "LineBound", "atomic_writer",
            "check_writable", "open_for_writing", "temporary_name", "output_dir", "write_texts",
-           "ContentHash"]
+           "staged_dir", "ContentHash"]
 
 #: Longest line of a log [bytes]: a CAN FD frame in any text format takes some 200.
 MAX_LINE = 64 * 1024
@@ -346,6 +348,36 @@ def write_texts(path: str | os.PathLike[str], texts: Iterable[tuple[str, str]], 
             f.write(text.encode("utf-8"))
         files.append(p)
     return files
+
+
+@contextlib.contextmanager
+def staged_dir(path: str | os.PathLike[str], what: str, error: ErrorType = ConfigError,
+               *, last: str | None = None) -> Iterator[Path]:
+    """Write a directory's files as a whole: yields a fresh temporary directory
+    (``.NAME.XXXXXXXX.part``) inside ``path`` if it is a directory, else beside it (on
+    the file system of ``path`` either way, so its files can be renamed); when the block
+    ends without an exception, each file in it is renamed into ``path``
+    (:func:`output_dir`: made if missing), ``last`` after the others (a page after its
+    figures). On an exception (``KeyboardInterrupt`` too) ``path`` is left as it was.
+    The temporary is removed either way."""
+    final = check_path(path, what, error)
+    where = final if final.is_dir() else final.parent  # a link to a directory: followed
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".part", dir=where))
+    except OSError as e:
+        raise error(f"{what}: cannot create the directory: {_oserror(e)}") from e
+    try:
+        yield stage
+        out = output_dir(final, what, error)
+        for name in sorted(os.listdir(stage), key=lambda n: n == last):
+            _check_target(out / name, f"{what}: {name}", error, True)
+            try:  # a link at the name is replaced, never written through
+                os.replace(stage / name, out / name)
+            except OSError as e:
+                raise error(f"{what}: {name}: cannot write: {_oserror(e)}") from e
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def _unlink(p: Path) -> None:

@@ -216,7 +216,12 @@ def si_factor(role: str, unit: str | None, *, message: str | None = None,
         if m and float(m["k"]) > 0:
             inner = si_factor(role, m["unit"], message=message, signal=signal,
                               ratings=ratings, axis=axis)
-            return float(m["k"]) * inner
+            factor = float(m["k"]) * inner
+            if not (math.isfinite(factor) and factor != 0.0):  # "1e999 rpm", "1e306 kA"
+                raise SignalError(f"{where}: unit {unit!r} of the {role} signal: its number "
+                                  f"makes the factor to {SI_UNITS[role]} {factor!r}, not a "
+                                  f"finite non-zero number")
+            return factor
     r = ratings or Ratings()
     if u in RELATIVE and role in _RELATIVE_ROLES:
         rating = _RELATIVE_ROLES[role]

@@ -46,8 +46,11 @@ _GREY = "#9a9a9a"
 MATPLOTLIB = ("the HTML report", "report")
 
 
-def figures_in(directory: str | os.PathLike[str]) -> Figures:
-    """:class:`Figures` drawing into ``directory`` (created), for a report's page.
+def figures_in(directory: str | os.PathLike[str],
+               shown: str | os.PathLike[str] | None = None) -> Figures:
+    """:class:`Figures` drawing into ``directory`` (created), for a report's page;
+    ``shown`` is the directory an error names (the report's, when ``directory`` is its
+    staging: :func:`~canrls.core.files.staged_dir`).
 
     :raises ConfigError: matplotlib is missing, or the directory cannot be created.
     """
@@ -56,8 +59,8 @@ def figures_in(directory: str | os.PathLike[str]) -> Figures:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise ConfigError(f"--report {out}: cannot create the directory: {e}") from e
-    return Figures(Figure, Canvas, out)
+        raise ConfigError(f"--report {shown or out}: cannot create the directory: {e}") from e
+    return Figures(Figure, Canvas, out, Path(shown) if shown is not None else out)
 
 
 def _decimate(n: int) -> slice:
@@ -73,15 +76,18 @@ class Figures:
     (:func:`~canrls.core.webpage.require_matplotlib`); each method returns the file name it
     wrote."""
 
-    def __init__(self, Figure: Any, Canvas: Any, out: Path) -> None:
+    def __init__(self, Figure: Any, Canvas: Any, out: Path, shown: Path | None = None
+                 ) -> None:
         self.Figure = Figure
         self.Canvas = Canvas
         self.out = out
+        #: the directory an error names
+        self.shown = shown if shown is not None else out
         #: what a figure's caption must add, by file name (clipped axes, shaded spans)
         self.notes: dict[str, str] = {}
 
     def _save(self, fig: Any, name: str) -> str:
-        return save_svg(fig, self.Canvas, self.out / name, f"--report {self.out}: {name}")
+        return save_svg(fig, self.Canvas, self.out / name, f"--report {self.shown}: {name}")
 
     def timeline(self, b: EquationDiagnosis, a: EquationDiagnosis | None, *,
                  name: str = "timeline.svg", label: str = "before") -> str:

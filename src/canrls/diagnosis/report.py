@@ -21,13 +21,14 @@ import numpy.typing as npt
 
 from canrls.core.effect_names import EffectId, parse_effect_name
 from canrls.core.errors import CanrlsError
-from canrls.core.files import atomic_writer
+from canrls.core.files import atomic_writer, staged_dir
 from canrls.core.webpage import environment
 from canrls.diagnosis.candidates import MENTION_EXPLAINED
 from canrls.diagnosis.figures import (
     FIGURES,
     UNUSED_SLOW,
     UNUSED_WARMUP,
+    Figures,
     figures_in,
     integer_orders,
 )
@@ -153,9 +154,24 @@ class DiagnosisReport:
         return d
 
     # -- text ---------------------------------------------------------------------------
-    def format(self) -> str:
-        """The report as text: compare, where it fails, candidates, verdict, before/after."""
-        out: list[str] = []
+    @property
+    def answer(self) -> str:
+        """The report's answer in one line, what its text opens with: the verdict, or with
+        ``--add`` how far the residual fell and what the model still misses."""
+        if self.after is None:
+            return "Verdict: " + self.verdict
+        bq, aq = self.before.primary, self.after.primary
+        rb, ra = bq.residual_rms, aq.residual_rms
+        fall = f" ({100 * (ra - rb) / rb:+.0f} %)" if rb > 0 else ""
+        return (f"After --add {' --add '.join(self.added)}: residual RMS "
+                f"{value_text(rb, bq.unit)} -> {value_text(ra, aq.unit)}{fall}; "
+                + " ".join(e.verdict for e in self.after.equations))
+
+    def format(self, notes: Sequence[str] = ()) -> str:
+        """The report as text: the answer first, ``notes`` (what the command read: the
+        control period, the values used) under it, then the evidence: compare, where it
+        fails, candidates, verdict, before/after."""
+        out: list[str] = [self.answer, *notes]
         b = self.before
         out.append(f"{self.source}: {self.samples} samples ({self.duration:.1f} s), "
                    f"model {', '.join(b.effects)}")
@@ -362,8 +378,12 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
     :raises ConfigError: matplotlib is missing, or the directory cannot be written.
     :returns: the path of ``index.html``.
     """
-    figs = figures_in(directory)
-    out = figs.out
+    # staged: a report that fails leaves the directory as it was
+    with staged_dir(directory, f"--report {directory}", last="index.html") as stage:
+        return _write_html(report, figures_in(stage, directory), Path(directory))
+
+
+def _write_html(report: DiagnosisReport, figs: Figures, dest: Path) -> Path:
     b = report.before.primary
     a = report.after.primary if report.after is not None else None
     written: dict[str, str] = {}
@@ -378,10 +398,9 @@ def write_html(report: DiagnosisReport, directory: str | os.PathLike[str]) -> Pa
     final = report.after if report.after is not None else report.before
     written["convergence.svg"] = figs.convergence(final.primary, final is report.after)
     written["fixed.svg"] = figs.fixed(final.primary)
-    page = out / "index.html"
-    with atomic_writer(page, f"--report {out}: index.html") as f:
+    with atomic_writer(figs.out / "index.html", f"--report {dest}: index.html") as f:
         f.write(render_html(report, written, figs.notes).encode("utf-8"))
-    return page
+    return dest / "index.html"
 
 
 # ------------------------------------------------------------------------------ text

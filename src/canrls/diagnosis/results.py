@@ -260,7 +260,7 @@ class SearchResult:
         u = f" {self.unit}" if self.unit else ""
         if self.kept:
             return f"{self.label} {self.value:.4g}{u} (set in the configuration: kept)"
-        return (f"{self.label} {self.value:.4g}{u} (searched {self.lo:.3g}..{self.hi:.3g}{u}, "
+        return (f"{self.label} {self.value:.4g}{u} (searched {self.lo:.4g}..{self.hi:.4g}{u}, "
                 f"{self.points} values: ΔBIC {self.delta_bic:.4g})")
 
     def to_dict(self) -> dict[str, Any]:

@@ -37,10 +37,10 @@ import numpy.typing as npt
 from canrls.can.protocol import Protocol
 from canrls.core.checks import finite_or_none
 from canrls.core.errors import ConfigError, EstimatorError
-from canrls.core.files import atomic_writer
+from canrls.core.files import atomic_writer, staged_dir
 from canrls.core.samples import ROLES, Signals
 from canrls.core.spill import ColumnLike, SpilledSignals
-from canrls.diagnosis.figures import figures_in
+from canrls.diagnosis.figures import Figures, figures_in
 from canrls.diagnosis.record import RecordSamples
 from canrls.diagnosis.report import CAPTIONS, page_template
 from canrls.diagnosis.residual import all_bins, find_regions
@@ -175,7 +175,9 @@ class ValidationReport:
         lines += [f"model {self.model_file} (identified on {', '.join(self.identified_on) or '?'})",
                   f"validated on {', '.join(self.sources)} without re-estimating:"]
         for name, p in self.parameters.items():
-            lines.append(f"  {name:<14} {p['value']:12.6g} ± {p.get('sigma') or 0:9.3g} "
+            sigma = p.get("sigma")  # a model file may leave it out: unknown, not 0
+            sd = f"{'—':>9}" if sigma is None else f"{sigma:9.3g}"
+            lines.append(f"  {name:<14} {p['value']:12.6g} ± {sd} "
                          f"{p.get('unit', '')}"
                          + ("  NOT IDENTIFIABLE from the logs it was identified on"
                             if p.get("identifiable") is False else ""))
@@ -388,8 +390,12 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
     :raises ConfigError: matplotlib is missing, or the directory cannot be written.
     :returns: the path of ``index.html``.
     """
-    figs = figures_in(directory)
-    out = figs.out
+    # staged: a report that fails leaves the directory as it was
+    with staged_dir(directory, f"--report {directory}", last="index.html") as stage:
+        return _write_html(report, figures_in(stage, directory), Path(directory))
+
+
+def _write_html(report: ValidationReport, figs: Figures, dest: Path) -> Path:
     sections = []
 
     def add(figures: list[tuple[str, str, str]], name: str, caption: str, alt: str) -> None:
@@ -427,8 +433,7 @@ def write_html(report: ValidationReport, directory: str | os.PathLike[str]) -> P
                 f"reach {value_text(swing, e.unit)} (residual RMS "
                 f"{value_text(e.residual_rms, e.unit)})")
         sections.append((e, figures))
-    page = out / "index.html"
-    with atomic_writer(page, f"--report {out}: index.html") as fh:
+    with atomic_writer(figs.out / "index.html", f"--report {dest}: index.html") as fh:
         fh.write(page_template("validate.html.j2").render(r=report, sections=sections)
                  .encode("utf-8"))
-    return page
+    return dest / "index.html"

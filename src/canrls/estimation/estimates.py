@@ -257,7 +257,8 @@ class Estimates:
                 f"fit {e.fit_percent:.2f} %,"
                 f" R² {e.r2:.5f}, {e.samples} samples, fixed-vs-float divergence "
                 f"{e.divergence:.2e}"
-                + (f", saturations {dict(e.saturations)}" if e.saturations else "")
+                + (", saturations " + ", ".join(f"{k} {v}" for k, v in e.saturations.items())
+                   if e.saturations else "")
                 + (", LOW EXCITATION" if e.low_excitation else "")
                 + (f", {e.nonfinite_rows} samples with a non-finite term left out "
                    f"(with the filter's warm-up after each)" if e.nonfinite_rows else ""))

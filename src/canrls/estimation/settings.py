@@ -11,10 +11,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from canrls.core.checks import check_lambda, in_range, is_positive
+from canrls.core.checks import MAX_TIMESTAMP, check_lambda, in_range, is_positive
 from canrls.core.errors import ConfigError, FixedPointError
 from canrls.estimation.fixed.estimator import FixedRLS
-from canrls.estimation.fixed.formats import FixedConfig, QFormat
+from canrls.estimation.fixed.formats import WORD_LIMITS, FixedConfig, QFormat, word_problem
 
 __all__ = [
     "ALPHA_MAX",
@@ -142,9 +142,22 @@ class EstimatorSettings:
         if not is_positive(self.rms_time_s):
             raise ConfigError(f"estimator.rms_time_s = {self.rms_time_s!r}: must be a finite "
                               f"number > 0 seconds")
-        if not is_positive(self.calibration_s):
-            raise ConfigError(
-                f"estimator.calibration_s = {self.calibration_s!r}: must be > 0 seconds")
+        if not in_range(self.calibration_s, 0.0, MAX_TIMESTAMP, lo_open=True):
+            # a window longer than any log's times calibrates on the whole log already
+            raise ConfigError(f"estimator.calibration_s = {self.calibration_s!r}: must be "
+                              f"> 0 seconds, at most {MAX_TIMESTAMP:g}")
+        for name in WORD_LIMITS:
+            v = getattr(self, name)
+            if v is not None and (why := word_problem(name, v)) is not None:
+                raise ConfigError(f"fixed.{name} = {v!r}: {why}")
+        if not is_positive(self.theta_max):
+            raise ConfigError(f"fixed.theta_max = {self.theta_max!r}: must be a positive "
+                              f"number")
+        try:  # the Q format of theta, as FixedConfig.auto makes it
+            QFormat.for_range(self.theta_max, self.word_bits)
+        except FixedPointError as e:
+            raise ConfigError(f"fixed.theta_max = {self.theta_max!r}: no Q format of "
+                              f"{self.word_bits}-bit words holds it ({e})") from e
 
     def ridge(self, n: int, energy: npt.ArrayLike | None = None) -> F64:
         r"""The ridge weight of each of ``n`` columns: :math:`\alpha_j = \alpha\,\bar e_j`.

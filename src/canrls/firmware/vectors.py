@@ -139,7 +139,8 @@ def record(model: TargetModel, frames: Iterable[Frame], every: int = 1000,
     if mapped:  # none of the frames is a mapped message: refused as canrls fit refuses it
         from canrls.processor.frames import unmapped_error
 
-        raise unmapped_error(model.protocol, len(v.frames), seen.most_common(8))
+        raise unmapped_error(model.protocol, len(v.frames), seen.most_common(8),
+                             source=source or None)
     if v.frames and (not v.checkpoints or v.checkpoints[-1][0] != len(v.frames) - 1):
         v.checkpoints.append((len(v.frames) - 1, state_record(est)))
     v.samples = est.samples

@@ -504,17 +504,24 @@ def ingest(sources: Sequence[LogSource], config: JobConfig, history: History, *,
         if whole.error:
             recordings += 1
             continue
-        for src, cfg in per_axis(whole, config.for_source(whole), axes):
-            recordings += 1
-            if src.error:
-                rejected.append((src.path, src.error))
-                continue
-            if cfg not in keys:
-                keys[cfg] = model_key(cfg)
-                cfg.prepared()  # a bad configuration fails here, once, before any log
-            key, desc = keys[cfg]
-            jobs.append(IngestJob(source=src, config=cfg, key=key, model=desc,
-                                  rank=rank == "all", max_order=max_order))
+        own = config.for_source(whole)
+        try:
+            for src, cfg in per_axis(whole, own, axes):
+                recordings += 1
+                if src.error:
+                    rejected.append((src.path, src.error))
+                    continue
+                if cfg not in keys:
+                    keys[cfg] = model_key(cfg)
+                    cfg.prepared()  # a bad configuration fails here, once, before any log
+                key, desc = keys[cfg]
+                jobs.append(IngestJob(source=src, config=cfg, key=key, model=desc,
+                                      rank=rank == "all", max_order=max_order))
+        except ConfigError as e:
+            if own is config or not whole.row:
+                raise
+            # the manifest row's dbc, config, kt, effects or signals: name the row
+            raise type(e)(f"{whole.row}: {e}") from e
     if retry_errors:
         for key, _ in set(keys.values()):
             history.forget_errors(key)

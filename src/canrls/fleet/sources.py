@@ -53,6 +53,9 @@ class LogSource:
     #: why this log cannot be ingested (a drive or type name a pattern found that is not
     #: a valid name): an error row of the ingest's summary, never stored
     error: str | None = None
+    #: the manifest row that lists it (``"fleet.csv: line 3"``), for an error its
+    #: overrides cause; empty for a pattern's log
+    row: str = ""
 
 
 def check_name(value: str, what: str, where: str) -> str:
@@ -282,7 +285,7 @@ def from_manifest(path: str | os.PathLike[str]) -> list[LogSource]:
                     drive_type=check_name(cells["type"], "type", where)
                     if cells.get("type") else "",
                     dbc=rel("dbc"), config=rel("config"), kt=kt,
-                    effects=cells.get("effects") or None, signals=signals))
+                    effects=cells.get("effects") or None, signals=signals, row=where))
         except csv.Error as e:
             raise ConfigError(f"{p}: line {reader.line_num}: {e}") from e
         except UnicodeDecodeError as e:

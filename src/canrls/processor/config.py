@@ -20,11 +20,11 @@ from canrls.can.idrules import parse_rule
 from canrls.can.mapping import SignalMapping
 from canrls.can.protocol import Protocol
 from canrls.core.checks import is_positive, is_real
-from canrls.core.errors import ConfigError
+from canrls.core.errors import ConfigError, FixedPointError
 from canrls.core.files import MAX_CONFIG_BYTES, check_path, read_bytes
 from canrls.core.samples import ROLES
 from canrls.core.units import RATING_OPTIONS, Ratings
-from canrls.estimation.fixed.formats import QFormat
+from canrls.estimation.fixed.formats import QUANTITIES, QFormat
 from canrls.estimation.model import OLD_OUTPUT_KEY, Model
 from canrls.estimation.settings import EstimatorSettings
 from canrls.processor.axes import (
@@ -542,11 +542,16 @@ class AppConfig:
             raise ConfigError(f"{self._where('fixed.formats')} = {formats!r}: must be a table")
         overrides = {}
         for name, v in formats.items():
+            where = self._where('fixed.formats.' + name)
+            if name not in QUANTITIES:
+                raise ConfigError(f"{where}: no such quantity (valid: {', '.join(QUANTITIES)})")
             if (not isinstance(v, list) or len(v) != 2
                     or not all(isinstance(x, int) and not isinstance(x, bool) for x in v)):
-                raise ConfigError(f"{self._where('fixed.formats.' + name)} = {v!r}: "
-                                  f"must be [bits, frac]")
-            overrides[name] = QFormat(v[0], v[1])
+                raise ConfigError(f"{where} = {v!r}: must be [bits, frac]")
+            try:
+                overrides[name] = QFormat(v[0], v[1])
+            except FixedPointError as e:  # the one rule of a Q format's bits and frac
+                raise ConfigError(f"{where} = {v!r}: {e}") from e
         kw["fixed_overrides"] = overrides
         try:
             return EstimatorSettings(**kw)

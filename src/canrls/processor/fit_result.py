@@ -252,8 +252,11 @@ class FitResult:
         return d
 
     def format(self) -> str:
+        """The answer first (every parameter with sigma, then each equation's fit), then
+        what the replay read: the frames, the axis and units, the period, the calibration."""
         fr = self.frames
-        lines = [f"{self.source}: {fr.total} frames, {self.estimates.samples} samples used"]
+        lines = [self.estimates.format(),
+                 f"{self.source}: {fr.total} frames, {self.estimates.samples} samples used"]
         lines += [x for x in (self.start.format(),) if x]
         lines += self.axis.format()
         lines += [x for x in (self.period.format(),) if x]
@@ -271,7 +274,6 @@ class FitResult:
             lines.append("pairing: " + ", ".join(f"{k} {v}" for k, v in odd.items()))
         if self.calibration is not None:
             lines.append(self.calibration.format())
-        lines.append(self.estimates.format())
         return "\n".join(lines)
 
     __str__ = format

@@ -59,16 +59,19 @@ SEEN_IDS = 1024
 
 
 def unmapped_error(protocol: Protocol, frames: int, seen: list[tuple[int, int]],
-                   rejected: Mapping[str, int] | None = None) -> ConfigError:
+                   rejected: Mapping[str, int] | None = None, source: str | None = None
+                   ) -> ConfigError:
     """The error of frames none of which is a mapped message (``canrls fit`` and
     ``export-c --vectors`` alike): what was expected, the most frequent IDs ``seen``
-    (``[(id, frames)]``) and the ``rejected`` frames by reason."""
+    (``[(id, frames)]``) and the ``rejected`` frames by reason; ``source`` names the log
+    they came from (None: a bus)."""
     want = ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in protocol.messages)
     seen_text = ", ".join(f"0x{i:X} ({n})" for i, n in seen) if seen else "none"
     rej = {k: v for k, v in (rejected or {}).items() if v}
     why = ("; rejected: " + ", ".join(f"{k} {v}" for k, v in rej.items())) if rej else ""
     return ConfigError(
-        f"none of the mapped messages occurs in the {frames} frames read: expected "
+        (f"{source}: " if source else "")
+        + f"none of the mapped messages occurs in the {frames} frames read: expected "
         f"{want} (DBC {protocol.dbc_path.name}); most frequent IDs seen "
         f"(frames): {seen_text}{why}. Map the right messages with --signal "
         f"ROLE=MESSAGE.SIGNAL or give the drive's DBC with --dbc")
@@ -133,6 +136,8 @@ class FrameProcessor:
         #: (:mod:`canrls.processor.reorder`; ``reorder.moved`` counts them)
         self.reorder = Reorderer(protocol.messages)
         self.frames = 0
+        #: the log being read, which an error of its frames names (None: a bus)
+        self.source: str | None = None
         #: frames of each mapped message that decoded, so far
         self.message_frames: dict[str, int] = {m.name: 0 for m in protocol.messages}
         stated = period if period is not None else protocol.period
@@ -212,23 +217,30 @@ class FrameProcessor:
     def _measured(self) -> None:
         """The meter has its frames (or the stream ended): check or adopt the period."""
         assert self._meter is not None
-        est = self._meter.estimate()
-        counts = self._meter.counts()
-        self._meter = None
-        self.period_estimate = est
-        if self.pairer is not None:
-            if est is not None:
+        try:  # what the frames' times say, of the log being read
+            est = self._meter.estimate()
+            counts = self._meter.counts()
+            self._meter = None
+            self.period_estimate = est
+            if est is not None and self.pairer is not None:
                 check_period(self.pairer.period, self.period_source or "the period", est)
+        except ConfigError as e:
+            raise self._of_source(e) from e
+        if self.pairer is not None:
             return
         if est is None:
             if not any(counts.values()):
                 raise self._foreign_error()
-            raise ConfigError(
+            raise self._of_source(ConfigError(
                 "cannot measure the control period: the log has only "
                 + ", ".join(f"{n} frames of {m}" for m, n in counts.items())
                 + f" (at least {MIN_INTERVALS + 1} of one message are needed); "
-                  "state it with --period SECONDS")
+                  "state it with --period SECONDS"))
         self._start(est.period)
+
+    def _of_source(self, e: ConfigError) -> ConfigError:
+        """``e`` naming the log being read (:attr:`source`), if any."""
+        return e if self.source is None else type(e)(f"{self.source}: {e}")
 
     def missing_messages(self) -> str | None:
         """What to say when some mapped messages decoded frames and others none (a
@@ -294,7 +306,7 @@ class FrameProcessor:
     def _foreign_error(self) -> ConfigError:
         """None of the mapped messages was decoded: name what was expected and seen."""
         rej = {k: int(v) for k, v in self.decoder.rejected.items() if v}
-        return unmapped_error(self.protocol, self.frames, self.seen_ids(), rej)
+        return unmapped_error(self.protocol, self.frames, self.seen_ids(), rej, self.source)
 
     @property
     def pipeline(self) -> Pipeline:

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from canrls import __version__
-from canrls.core.checks import json_safe
+from canrls.core.checks import json_safe, positive_period
 from canrls.core.errors import ConfigError
 from canrls.core.files import MAX_MODEL_BYTES, atomic_writer, read_text
 from canrls.estimation.model import Model
@@ -92,6 +92,9 @@ class SavedModel:
     sources: list[str] = field(default_factory=list)
     created: str = ""
     canrls: str = __version__
+    #: the file (or ``from_dict``'s source) it was read from, which an error of its
+    #: configuration names; empty for a model built in memory (not saved in the file)
+    origin: str = field(default="", compare=False)
 
     # -- building ---------------------------------------------------------------------
     @classmethod
@@ -167,6 +170,9 @@ class SavedModel:
             for key in ("sigma", "fixed", "prior_share"):
                 if p.get(key) is not None:
                     _number(p[key], f"{where}.{key}", source)
+            if p.get("sigma") is not None and p["sigma"] < 0:  # a standard deviation
+                raise ConfigError(f"{source}: {where}.sigma = {_short(p['sigma'])}: must be "
+                                  f">= 0")
             for key in ("unit", "effect", "equation", "description"):
                 if p.get(key) is not None and not isinstance(p[key], str):
                     raise ConfigError(f"{source}: {where}.{key} = {_short(p[key])}: must be "
@@ -198,15 +204,15 @@ class SavedModel:
                                       f"must be a list of numbers")
                 for k, x in enumerate(e):
                     _number(x, f"calibration.energy.{eq}[{k}]", source)
+            if calibration.get("period") is not None:  # what export-c and tune run at
+                positive_period(calibration["period"], f"{source}: calibration.period")
         saved = cls(model=model, parameters={k: dict(v) for k, v in params.items()},
                     effects=effects, fit={k: dict(v) for k, v in fit.items()},
                     configuration=configuration, calibration=calibration,
                     sources=_strings(d, "sources", source, null=True),
-                    created=str(d.get("created", "")), canrls=str(d.get("canrls", "")))
-        try:
-            saved.config().check()  # the configuration's keys, as a TOML file's
-        except ConfigError as e:
-            raise ConfigError(f"{source}: configuration: {e}") from e
+                    created=str(d.get("created", "")), canrls=str(d.get("canrls", "")),
+                    origin=source)
+        saved.config().check()  # the configuration's keys, as a TOML file's
         return saved
 
     @classmethod
@@ -224,9 +230,16 @@ class SavedModel:
             raise ConfigError(f"--model {p}: invalid JSON: {e}") from e
         saved = cls.from_dict(d, source=str(p))
         try:  # the model checked where the file is read: names, units, expressions
-            saved.build_model()
+            model = saved.build_model()
         except ConfigError as e:
             raise type(e)(f"--model {p}: {str(e).removeprefix('saved model: ')}") from e
+        energy = (saved.calibration or {}).get("energy") or {}
+        for eq in model.equations:  # one energy per column, as the ridge takes them
+            got = energy.get(eq.name)
+            if got is not None and len(got) != len(eq.parameters):
+                raise ConfigError(f"--model {p}: calibration.energy.{eq.name} has "
+                                  f"{len(got)} values, the {eq.name} equation "
+                                  f"{len(eq.parameters)} parameters")
         return saved
 
     # -- use --------------------------------------------------------------------------
@@ -238,7 +251,9 @@ class SavedModel:
     def config(self) -> AppConfig:
         """The configuration that produced the model (estimator settings, DBC, signals)."""
         c = self.configuration
-        cfg = AppConfig(source=str(c.get("source", "<saved model>")))
+        # an error of a read file's configuration names the file, not where the fit read it
+        cfg = AppConfig(source=f"{self.origin}: configuration" if self.origin
+                        else str(c.get("source", "<saved model>")))
         for key in ("model", "estimator", "fixed", "can", "signals"):
             setattr(cfg, key, dict(c.get(key) or {}))
         cfg.signal_overrides = list(c.get("signal_overrides") or [])

@@ -160,6 +160,7 @@ class LogFiles:
         self._end: float | None = None
         self._file = 0
         self._frames_before = 0
+        self._mapped_before = 0
 
     def _shifted(self, s: Signals) -> Signals:
         self.sizes[-1] += len(s)
@@ -196,7 +197,9 @@ class LogFiles:
         self.sizes.append(0)
         if k:
             self.proc.restart()
+        self.proc.source = self.paths[k]
         self._frames_before = self.proc.frames
+        self._mapped_before = sum(self.proc.message_frames.values())
 
     def block(self, block: FrameBlock) -> Signals:
         """The samples of one block of the current file."""
@@ -208,9 +211,22 @@ class LogFiles:
         if self.proc.frames == self._frames_before:
             raise empty_log_error(self.paths[k], self.stats.bad_lines)
         out = self._shifted(self.proc.flush_samples())
+        if sum(self.proc.message_frames.values()) == self._mapped_before:
+            # (the first log's own error names the IDs seen; a later one would add nothing)
+            raise self._unmapped(k)
         if len(self.shifts) < self._file:
             self.shifts.append(0.0)  # a file without samples
         return out
+
+    def _unmapped(self, k: int) -> ConfigError:
+        """Log ``k`` holds frames but none of a mapped message: it would add nothing."""
+        pr = self.proc.protocol
+        want = ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in pr.messages)
+        return ConfigError(
+            f"{self.paths[k]}: none of the mapped messages occurs in its "
+            f"{self.proc.frames - self._frames_before} frames (expected {want}, DBC "
+            f"{pr.dbc_path.name}): it would add no sample; leave it out, or fit it with "
+            f"its own DBC and --signal mapping")
 
     def frames(self) -> FrameCounts:
         """The frame counts over the files, with the log lines skipped."""

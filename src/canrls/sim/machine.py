@@ -23,7 +23,8 @@ from canrls.core.units import Ratings
 from canrls.sim.scenario import DEFAULT_EFFECTS, Scenario, Simulator, default_params, scenario
 
 __all__ = ["AXIS_ID_STEP", "CIA402_RATINGS", "HIDDEN", "KINDS", "MAX_SIM_AXES", "MachineAxis",
-           "kind_dbc", "kind_protocol", "machine", "machine_frames", "simulators", "step_all"]
+           "axis_params", "kind_dbc", "kind_protocol", "machine", "machine_frames", "simulators",
+           "step_all"]
 
 #: IDs between two simulated axes: axis k's frames are the default DBC's + k * 0x10
 #: (``--axes offset:0,0x10,...``), below canrls' own frames at 0x300
@@ -83,7 +84,7 @@ def machine(n: int, *, duration: float, seed: int = 0, scenario_name: str = "sta
             kind: str = "offset", hidden: Sequence[str] | None = None
             ) -> tuple[MachineAxis, ...]:
     """``n`` drives of ``kind``: axis k (0-based) has inertia and friction scaled by
-    ``1 + 0.5 k`` and ``1 + 0.25 k``, the hidden effect ``hidden[k]`` (default
+    ``1 + 0.5 k`` and ``1 + 0.25 k`` (:func:`axis_params`), the hidden effect ``hidden[k]`` (default
     ``HIDDEN[k % 4]``), seed ``seed * 1000 + k`` and the rule ``offset:k * 0x10``
     (``cia402``: node k + 1; ``cansimple``: node k)."""
     if not 1 <= n <= MAX_SIM_AXES:
@@ -97,12 +98,7 @@ def machine(n: int, *, duration: float, seed: int = 0, scenario_name: str = "sta
     for k in range(n):
         extra = HIDDEN[k % len(HIDDEN)] if hidden is None else hidden[k]
         effects = base + ((extra,) if extra else ())
-        params = default_params(",".join(effects))
-        for key in params:
-            if key.startswith("inertia."):
-                params[key] *= 1.0 + 0.5 * k
-            elif key.startswith(("viscous.", "coulomb.")):
-                params[key] *= 1.0 + 0.25 * k
+        params = axis_params(",".join(effects), k)
         sc = scenario(scenario_name, effects=",".join(effects), params=params,
                       duration=duration, seed=seed * 1000 + k)
         rule = (IdRule("offset", k * AXIS_ID_STEP) if kind == "offset" else
@@ -110,6 +106,19 @@ def machine(n: int, *, duration: float, seed: int = 0, scenario_name: str = "sta
         name = f"axis{k + 1}" if kind == "offset" else f"node{rule.node}"
         axes.append(MachineAxis(name, rule, extra, sc))
     return tuple(axes)
+
+
+def axis_params(effects: str, k: int) -> dict[str, float]:
+    """The true values of axis ``k`` (0-based) of a simulated machine: the defaults of
+    ``effects``, inertia scaled by ``1 + 0.5 k``, viscous and Coulomb friction by
+    ``1 + 0.25 k``."""
+    params = default_params(effects)
+    for key in params:
+        if key.startswith("inertia."):
+            params[key] *= 1.0 + 0.5 * k
+        elif key.startswith(("viscous.", "coulomb.")):
+            params[key] *= 1.0 + 0.25 * k
+    return params
 
 
 def machine_frames(axes: tuple[MachineAxis, ...], t0: float = 0.0, size: int = 65536

@@ -27,7 +27,13 @@ from canrls.core.errors import ConfigError, EffectError
 from canrls.core.samples import Signals
 from canrls.sim.excitation import Excitation
 from canrls.sim.excitation import excitation as make_excitation
-from canrls.sim.faults import FaultInjector, FaultLog, FaultSpec
+from canrls.sim.faults import (
+    DEFAULT_COMMAND_ID,
+    DEFAULT_PROTECTED,
+    FaultInjector,
+    FaultLog,
+    FaultSpec,
+)
 from canrls.sim.plant import (
     EFFECT_PARAMS,
     Controller,
@@ -294,17 +300,22 @@ class Simulator:
     encodes the measured samples into the feedback frames of the default DBC
     (``canrls.can.protocol.FeedbackEncoder``) and applies the scenario's faults
     (``fault_log`` counts them). ``t0`` offsets the frame timestamps (the samples
-    keep ``t = k*dt``).
+    keep ``t = k*dt``). The alive-counter faults hit the ``protocol``'s frames that
+    carry a CRC and a counter (the default DBC's without one); the inserted commands
+    go to ``command_id`` (an axis's ``RlsCommand``, :func:`canrls.live.bus_link.command_id`).
     """
 
-    def __init__(self, sc: Scenario, t0: float = 0.0, protocol: Any = None) -> None:
+    def __init__(self, sc: Scenario, t0: float = 0.0, protocol: Any = None, *,
+                 command_id: int = DEFAULT_COMMAND_ID) -> None:
         self.scenario = sc
         self.t0 = float(t0)
         self.plant = Plant(sc.truth, sc.dt, sc.controller, sc.sensors, sc.seed, sc.nsub)
         self._protocol = protocol
         self._encoder: Any = None
+        protected = DEFAULT_PROTECTED if protocol is None else frozenset(
+            m.frame_id for m in protocol.messages if m.crc is not None and m.counter is not None)
         self._faults = FaultInjector(sc.faults, seed=None if sc.seed is None else (sc.seed, 1),
-                                     t0=self.t0)
+                                     t0=self.t0, protected=protected, command_id=command_id)
         self.clipped = 0
 
     @property

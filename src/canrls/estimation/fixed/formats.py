@@ -36,8 +36,20 @@ FloatArray = npt.NDArray[np.float64]
 SITES: tuple[str, ...] = kernels.SITES
 
 #: Quantities that have a Q format in :class:`FixedConfig`, in table order.
-_QUANTITIES = ("phi", "y", "theta", "P", "K", "eps", "h", "den", "g", "lam")
+QUANTITIES = ("phi", "y", "theta", "P", "K", "eps", "h", "den", "g", "lam")
 _MAX_WORD = 32  # products of two words must be exact in int64
+
+#: The word lengths [bits] a :class:`FixedConfig` takes: (least, most) of each.
+WORD_LIMITS = {"word_bits": (8, _MAX_WORD), "acc_bits": (16, 64), "input_bits": (2, _MAX_WORD)}
+
+
+def word_problem(name: str, v: object) -> str | None:
+    """Why ``v`` cannot be the word length ``name`` (a key of :data:`WORD_LIMITS`), or
+    None: the one check of a word length, for the configuration and the kernel alike."""
+    lo, hi = WORD_LIMITS[name]
+    if isinstance(v, bool) or not isinstance(v, int | np.integer) or not lo <= v <= hi:
+        return f"must be an integer in {lo}..{hi}"
+    return None
 
 
 # ---------------------------------------------------------------- Q formats
@@ -261,14 +273,12 @@ class FixedConfig:
     lam: QFormat
 
     def __post_init__(self) -> None:
-        for name, lo, hi in (("word_bits", 8, 32), ("acc_bits", 16, 64), ("input_bits", 2, 32)):
+        for name in WORD_LIMITS:
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or not lo <= v <= hi:
-                raise FixedPointError(
-                    f"FixedConfig {name} must be an integer in {lo}..{hi}, got {v!r}"
-                )
+            if (why := word_problem(name, v)) is not None:
+                raise FixedPointError(f"FixedConfig {name} {why}, got {v!r}")
             object.__setattr__(self, name, int(v))
-        for name in _QUANTITIES:
+        for name in QUANTITIES:
             q = _as_qformat(name, getattr(self, name))
             object.__setattr__(self, name, q)
             if q.bits > _MAX_WORD:
@@ -393,11 +403,11 @@ class FixedConfig:
                 den_q = QFormat(W, min(den_q.frac, acc_bits - 2 - fg))
                 formats["den"] = den_q
         formats["g"] = QFormat(W, min(W - 2, acc_bits - 2 - den_q.frac))
-        unknown = set(overrides) - set(_QUANTITIES)
+        unknown = set(overrides) - set(QUANTITIES)
         if unknown:
             raise FixedPointError(
                 f"FixedConfig.auto got unknown override(s) {sorted(unknown)}; "
-                f"formats are {list(_QUANTITIES)}"
+                f"formats are {list(QUANTITIES)}"
             )
         formats.update({k: _as_qformat(k, v) for k, v in overrides.items()})
         try:
@@ -410,7 +420,7 @@ class FixedConfig:
 
     def formats(self) -> dict[str, QFormat]:
         """The Q format of every quantity, in table order."""
-        return {name: getattr(self, name) for name in _QUANTITIES}
+        return {name: getattr(self, name) for name in QUANTITIES}
 
     def quantize_inputs(
         self, Phi: npt.ArrayLike, Y: npt.ArrayLike
@@ -448,7 +458,7 @@ class FixedConfig:
     def from_dict(cls, d: Mapping[str, Any]) -> FixedConfig:
         """Rebuild a config from :meth:`to_dict`."""
         try:
-            kw = {name: _as_qformat(name, d[name]) for name in _QUANTITIES}
+            kw = {name: _as_qformat(name, d[name]) for name in QUANTITIES}
             return cls(
                 word_bits=d["word_bits"], acc_bits=d["acc_bits"], input_bits=d["input_bits"], **kw
             )
