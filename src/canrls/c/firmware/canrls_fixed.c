@@ -82,6 +82,21 @@ typedef char canrls_n_within_n_max[(CANRLS_N >= 1 && CANRLS_N <= CANRLS_N_MAX) ?
 #define UNROLL
 #endif
 
+/* A compiler barrier (GCC): words kept in memory are read from it again after it, not
+ * held in registers (and spilled) across a stretch that does not need them */
+#if defined(__GNUC__)
+#define MEM_BARRIER() __asm__ volatile("" ::: "memory")
+#else
+#define MEM_BARRIER() ((void)0)
+#endif
+
+/* x computed here, in registers (GCC): its operations not moved past this point */
+#if defined(__GNUC__)
+#define KEEP_REG(x) __asm__("" : "+r"(x))
+#else
+#define KEEP_REG(x) ((void)0)
+#endif
+
 /* ------------------------------------------------------------------ the plan */
 
 /* The constant plan. An export whose model has one equation defines CANRLS_PLAN_CONST
@@ -1002,7 +1017,7 @@ NOINLINE int P_step_high_full(canrls_rls_q31 *S, int32_t P_s, uint32_t *c_P)
  *          PM_32    P_s = 32: u = ph 2^32, the word alone;
  *          PM_LOW   P_s <= 31: u = K_i h~_j 2^(32 - P_s) exactly;
  *          PM_LOWK  the same as (K_i 2^a)(h~_j 2^b), a + b = 32 - P_s, both words (passed
- *                   as K and h~): u = one product. */
+ *                   as -(K_i 2^a), lowk_kword, and h~_j 2^b): -u = one product. */
 enum { PM_HIGH = 0, PM_32 = 1, PM_LOW = 2, PM_LOWK = 3 };
 
 /* How an element takes the block exponent's shift sh (a constant at each call): SH_NONE
@@ -1123,7 +1138,7 @@ NOINLINE void P_shl_slow(canrls_P64 *q, uint64_t d, int32_t sh, uint32_t *c_P)
  * = (X + cp) 2^sh, D = X + cp one SMLAL (room times cq), when D leaves room (the high word
  * within +-room: |D 2^sh| < 2^62; an X + cp below -2^63 wraps to a D that fails the
  * test). Else P_shift (saturated, counted). */
-INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t *c_P)
+INLINE int32_t P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t *c_P)
 {
     const uint64_t d = mla_ww((uint64_t)x, (int32_t)k->room, k->cq);
     const int32_t hi = (int32_t)(uint32_t)(d >> 32);
@@ -1131,9 +1146,22 @@ INLINE void P_shl(canrls_P64 *q, int64_t x, int32_t sh, const P_shc *k, uint32_t
         const uint64_t y = P_shl_sum((uint32_t)d, hi, k->m2);
         q->lo = (uint32_t)y;
         q->word = (int32_t)(uint32_t)(y >> 32);
-        return;
+        return q->word;
     }
     P_shl_slow(q, d, sh, c_P);
+    return q->word;
+}
+
+/* The pair x = V - u into q: then (SH_AFTER) V <- V 2^sh (P_shl) */
+INLINE void P_put_x(canrls_P64 *q, int64_t x, int32_t sh, int how, const P_shc *k,
+                    uint32_t *c_P)
+{
+    if (how == SH_AFTER) {
+        (void)P_shl(q, x, sh, k, c_P);
+        return;
+    }
+    q->lo = (uint32_t)x;
+    q->word = (int32_t)(x >> 32);
 }
 
 /* One element of the fixed-n step (32-bit P words): V <- sat(V - u) and, sh > 0, then
@@ -1181,7 +1209,7 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
             q->word = (int32_t)(uint32_t)(z >> 32);
             return;
         }
-        P_elem_slow(q, how == SH_NEGK ? (int32_t)(0u - (uint32_t)Ki) : Ki, hj, mode, P_s, sh,
+        P_elem_slow(q, mode == PM_LOWK ? (int32_t)(0u - (uint32_t)Ki) : Ki, hj, mode, P_s, sh,
                     c_P);
         return;
     }
@@ -1198,7 +1226,7 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
             return;
         }
         if (how == SH_AFTER) {
-            P_shl(q, (int64_t)(((uint64_t)(uint32_t)w << 32) | q->lo), sh, k, c_P);
+            (void)P_shl(q, (int64_t)(((uint64_t)(uint32_t)w << 32) | q->lo), sh, k, c_P);
             return;
         }
         q->word = w;
@@ -1217,11 +1245,17 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
     } else {
         int64_t u;
         if (mode == PM_LOWK) {
-            /* u = (K_i 2^a)(h~_j 2^b): one exact product */
-            u = mul_ww(Ki, hj);
+            /* -u = (-K_i 2^a)(h~_j 2^b): one exact product (Ki negated, lowk_kword) */
+            const int64_t nu = mul_ww(Ki, hj);
             if (nz != NULL) {
-                *nz |= (uint32_t)u | (uint32_t)((uint64_t)u >> 32);
+                *nz |= (uint32_t)nu | (uint32_t)((uint64_t)nu >> 32);
             }
+            if (UNLIKELY(__builtin_add_overflow(P_pair(q), nu, &x))) {
+                P_elem_slow(q, (int32_t)(0u - (uint32_t)Ki), hj, mode, P_s, sh, c_P);
+                return;
+            }
+            P_put_x(q, x, sh, how, k, c_P);
+            return;
         } else {
             /* u = K_i h~_j 2^k2, k2 = 32 - P_s (1..31), shifted on two words where it
              * fits 64 bits (else in P_elem_slow) */
@@ -1244,61 +1278,46 @@ INLINE void P_elem(canrls_P64 *q, int32_t Ki, int32_t hj, int mode, int32_t nm, 
             return;
         }
     }
-    if (how == SH_AFTER) {
-        P_shl(q, x, sh, k, c_P);
-        return;
-    }
-    q->lo = (uint32_t)x;
-    q->word = (int32_t)(x >> 32);
+    P_put_x(q, x, sh, how, k, c_P);
 #else
     if (nz != NULL) {
         *nz |= mode == PM_HIGH || mode == PM_32 ? (uint32_t)mul_rsh32(Ki, hj)
                                                 : (uint32_t)(mul_ww(Ki, hj) != 0);
     }
     (void)nm, (void)how, (void)k;
-    P_elem_slow(q, Ki, hj, mode, P_s, sh, c_P);
+    P_elem_slow(q, mode == PM_LOWK ? (int32_t)(0u - (uint32_t)Ki) : Ki, hj, mode, P_s, sh, c_P);
 #endif
 }
 
-/* Row i of the off-diagonal elements (j > i), each the exact general element, out of line
- * (SH_NEGK: a K_i 2^a of -2^31, whose negation is not a word) */
-NOINLINE void P_row_slow(canrls_P64 *Pw, int32_t Ki, const int32_t *h, uint32_t i, int mode,
-                         int32_t P_s, int32_t sh, uint32_t *c_P)
+/* trw's term of a diagonal word x: rsh(x, trace_ps) (the word for trace_ps <= 0) */
+INLINE uint32_t trw_term(int32_t x, int32_t tr_ps)
 {
-    uint32_t j;
-    for (j = i + 1; j < CANRLS_N; j++) {
-        P_elem_slow(&Pw[j - i], Ki, h[j], mode, P_s, sh, c_P);
-    }
+    return (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
 }
 
 /* The off-diagonal elements and, with a shift, the diagonal's shift (its elements
- * updated before): the shift class ``mode`` and how the block exponent's shift sh is
- * taken (``how``) are constants at each call. ``unroll`` (a constant): one straight
- * run, else a loop over the packed rows (the rare classes: less code). */
-INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t nm,
-                  int32_t P_s, int32_t sh, int how, const P_shc *kc, int unroll,
-                  uint32_t *c_P)
+ * updated before this pass), its constants made here from sh: the shift class ``mode`` and
+ * how the block exponent's shift sh is taken (``how``) are constants at each call.
+ * ``unroll`` (a constant): one straight run, else a loop over the packed rows (the rare
+ * classes: less code). Returns, with a shift, trw = sum_i rsh(P~_ii, tr_ps) of the
+ * shifted diagonal (modulo 2^32), else 0. */
+INLINE uint32_t P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, int32_t nm,
+                      int32_t P_s, int32_t sh, int32_t tr_ps, int how, int unroll,
+                      uint32_t *c_P)
 {
     const uint32_t n = CANRLS_N;
-    const P_shc k = *kc; /* the constants as locals: the stores to P cannot change them */
+    /* the constants as locals: the stores to P cannot change them */
+    const P_shc k = how != SH_NONE ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
     int32_t h[CANRLS_N]; /* h~ in a local array, likewise */
     canrls_P64 *Pw = P;
-    uint32_t i, j;
+    uint32_t i, j, trw32 = 0;
     UNROLL
     for (j = 0; j < n; j++) {
         h[j] = hn[j];
     }
 #define P_OFF_ROW                                                                          \
-    int32_t Ki = K[i];                                                                     \
-    if (how == SH_NEGK) {                                                                  \
-        /* the row's K word negated (-2^31: the row in the general element) */             \
-        if (UNLIKELY(Ki == INT32_MIN)) {                                                   \
-            P_row_slow(Pw, Ki, h, i, mode, P_s, sh, c_P);                                  \
-            Pw += n - i;                                                                   \
-            continue;                                                                      \
-        }                                                                                  \
-        Ki = -Ki;                                                                          \
-    }
+    /* (PM_LOWK: the K words come negated, lowk_kword) */                                 \
+    const int32_t Ki = K[i];
     if (unroll) {
         UNROLL
         for (i = 0; i < n; i++) {
@@ -1320,22 +1339,29 @@ INLINE void P_off(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode, 
     }
 #undef P_OFF_ROW
     if (how != SH_NONE) {
-        /* the diagonal (its elements updated before this pass) shifted */
+        /* the diagonal (its elements updated before this pass) shifted, trw summed (the
+         * rounding's 1 held in a register: 1 + (x >> (tr_ps - 1)) one ADD with a shifted
+         * operand on Thumb-2) */
+        int32_t one = 1;
+        KEEP_REG(one);
         Pw = P;
         UNROLL
         for (i = 0; i < n; i++) {
-            P_shl(Pw, P_pair(Pw), sh, &k, c_P);
+            const int32_t x = P_shl(Pw, P_pair(Pw), sh, &k, c_P);
+            trw32 += (uint32_t)(tr_ps > 0 ? (one + (x >> (tr_ps - 1))) >> 1 : x);
             Pw += n - i;
         }
     }
+    return trw32;
 }
 
 /* each class of the step its own function: its registers and its stack frame to itself */
 #define P_OFF_CLASS(name, mode_, how_, unroll_)                                           \
-    NOINLINE void name(canrls_P64 *P, const int32_t *K, const int32_t *hn, int32_t nm,      \
-                       int32_t P_s, int32_t sh, const P_shc *k, uint32_t *c_P)               \
+    NOINLINE uint32_t name(canrls_P64 *P, const int32_t *K, const int32_t *hn, int32_t nm,  \
+                           int32_t P_s, int32_t sh, int32_t tr_ps, uint32_t *c_P)           \
     {                                                                                       \
-        P_off(P, K, hn, mode_, nm, P_s, how_ == SH_NONE ? 0 : sh, how_, k, unroll_, c_P);   \
+        return P_off(P, K, hn, mode_, nm, P_s, how_ == SH_NONE ? 0 : sh, tr_ps, how_,       \
+                     unroll_, c_P);                                                         \
     }
 P_OFF_CLASS(P_off_high_fused, PM_HIGH, SH_FUSED, 1)
 P_OFF_CLASS(P_off_high_after, PM_HIGH, SH_AFTER, 1)
@@ -1347,31 +1373,31 @@ P_OFF_CLASS(P_off_lowk, PM_LOWK, SH_NONE, 1)
 P_OFF_CLASS(P_off_low_after, PM_LOW, SH_AFTER, 0)
 P_OFF_CLASS(P_off_low, PM_LOW, SH_NONE, 0)
 
-INLINE void P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
-                      int32_t nm, int32_t P_s, int32_t sh, uint32_t *c_P)
+/* The pass of the class (mode, sh > 0 or not); with a shift, returns the shifted
+ * diagonal's trw (P_off), else 0 */
+INLINE uint32_t P_off_any(canrls_P64 *P, const int32_t *K, const int32_t *hn, int mode,
+                          int32_t nm, int32_t P_s, int32_t sh, int32_t tr_ps, uint32_t *c_P)
 {
     /* one straight run for each class of the steady state and the start-up, with and
      * without the shift; a loop for the rest (rare) */
-    const P_shc kc = sh > 0 ? shc_of(sh, mode, P_s) : shc_of(1, PM_LOW, 0);
     if (mode == PM_HIGH && sh > 0 && P_s >= 33 + sh) {
-        P_off_high_fused(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_high_fused(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_HIGH && sh > 0) {
-        P_off_high_after(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_high_after(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_HIGH) {
-        P_off_high(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_high(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_32 && sh > 0) {
-        P_off_32_after(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_32_after(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_32) {
-        P_off_32(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_32(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_LOWK && sh > 0) {
-        P_off_lowk_neg(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_lowk_neg(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (mode == PM_LOWK) {
-        P_off_lowk(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_lowk(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     } else if (sh > 0) {
-        P_off_low_after(P, K, hn, nm, P_s, sh, &kc, c_P);
-    } else {
-        P_off_low(P, K, hn, nm, P_s, sh, &kc, c_P);
+        return P_off_low_after(P, K, hn, nm, P_s, sh, tr_ps, c_P);
     }
+    return P_off_low(P, K, hn, nm, P_s, sh, tr_ps, c_P);
 }
 
 #if defined(__GNUC__)
@@ -1412,12 +1438,14 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
     const canrls_plan_q31 *p = PLAN(S);
     const int32_t nm = mode == PM_HIGH ? neg_pow2(P_s) : 0;
     /* theta: th_s >= 33, the high word of K eps times 2^(64 - th_s) = -(ph nt) */
-    const int32_t nt = common || th_s >= 33 ? neg_pow2(th_s) : 0;
+    const int32_t nt = common ? neg_pow2(th_s) : 0;
     const int32_t tr_ps = p->trace_ps;
     canrls_P64 *const P = S->P;
     canrls_P64 *Pw;
     const P_shc k0 = {0u, 0u, 0, 0}; /* (no shift) */
-    int32_t e = *e_io, c = *c_io, sh = 0;
+    /* e and c: the steady step reads them here, the others after the diagonal (GCC had
+     * kept them on the stack across it) */
+    int32_t e = common ? *e_io : 0, c = common ? *c_io : 0, sh = 0;
     int64_t tr = 0;
     uint32_t i, j, nz = 0, trw32 = 0;
     /* the diagonal: P~_ii <- P~_ii - K_i h~_i (the information K_i h~_i: low excitation) */
@@ -1426,7 +1454,14 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
     for (i = 0; i < n; i++) {
         P_elem(Pw, KP[i], hP[i], mode, nm, P_s, 0, SH_NONE, &k0, c_P, &nz);
         tr += Pw->word;
+        if (mode == PM_LOWK) {
+            KEEP_REG(tr); /* summed here (GCC had kept each word on the stack for it) */
+        }
         Pw += n - i;
+    }
+    if (!common) {
+        e = *e_io;
+        c = *c_io;
     }
     /* c <- c / lambda_k ; c > 1 and e > 0: c/2 and 2^-e x 2 (the words do not move) */
     c = store(mul_ww(c, il), p->c_s, 0, p->lam_hi, c_P);
@@ -1459,23 +1494,25 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
             Pw += n - i;
         }
     } else {
-        P_off_any(P, KP, hP, mode, nm, P_s, sh, c_P);
+        /* (with a shift, the pass sums trw) */
+        trw32 = P_off_any(P, KP, hP, mode, nm, P_s, sh, tr_ps, c_P);
     }
-    Pw = P;
-    UNROLL
-    for (i = 0; i < n; i++) {
-        int32_t x;
+    if (sh == 0) {
         /* trw = sum_i rsh(Pw_ii, trace_ps) (modulo 2^32: a word) */
-        x = Pw->word;
-        trw32 += (uint32_t)(tr_ps > 0 ? ((x >> (tr_ps - 1)) + 1) >> 1 : x);
-        Pw += n - i;
+        Pw = P;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            trw32 += trw_term(Pw->word, tr_ps);
+            Pw += n - i;
+        }
     }
     UNROLL
     for (i = 0; i < n; i++) {
         /* theta_q <- theta_q + K eps   (64 bits: K eps floored to 2^-32 LSB; K carries
          * the exponent e + kn: shifted out here; one LDRD, one STRD) */
         if (common || th_s >= 33) {
-            theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), nt, th_s, c_th);
+            theta_add_full(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32),
+                           common ? nt : neg_pow2(th_s), th_s, c_th);
 #if defined(__GNUC__)
         } else if (th_s == 32) {
             theta_add_hi(&S->theta_q[i], (int32_t)(mul_ww(K[i], epn) >> 32), c_th);
@@ -1494,17 +1531,78 @@ INLINE int KP_tail(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, const
 }
 
 
+/* the tail of a step with P_s <= 31 whose K 2^a or h~ 2^b is not a word (rare: the loop
+ * of PM_LOW), out of line: the PM_LOWK instance keeps its registers to itself */
+NOINLINE int KP_tail_low(canrls_rls_q31 *S, const int32_t *K, const int32_t *hn, uint32_t mK,
+                         int32_t epn, int32_t th_s, int32_t P_s, int32_t il, int32_t *e_io,
+                         int32_t *c_io, int32_t *trw_io, uint32_t *c_th, uint32_t *c_P)
+{
+    return KP_tail(S, K, hn, K, hn, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 0,
+                   PM_LOW);
+}
+
+/* PM_LOWK's split u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b), a + b = 32 - P_s: the
+ * largest a that keeps every K_i 2^a a word above -2^31, so that its negation is one too
+ * (|K_i| < 2^(31 - a), mA the OR of |K_i|), the rest b on h~ where h~ 2^b stays a word (mh
+ * the OR of |h~_i| in one's complement). Returns 0 where no split fits (the loop of
+ * PM_LOW). */
+INLINE int lowk_split(uint32_t mA, uint32_t mh, int32_t P_s, int32_t *a_out, int32_t *b_out)
+{
+    const int32_t a0 = nlz(mA | 1u) - 1; /* mA <= 2^31: a0 >= -1 */
+    const int32_t a = a0 < 32 - P_s ? a0 : 32 - P_s, b = 32 - P_s - a;
+    *a_out = a;
+    *b_out = b;
+    return a >= 0 && b <= 31 && (mh >> (31 - b)) == 0u;
+}
+
+/* PM_LOWK's K word: -(K_i 2^a), one MUL by -2^a (a word where lowk_split took a: the
+ * pass and the diagonal add (-K_i 2^a)(h~_j 2^b), one SMLAL) */
+INLINE int32_t lowk_kword(int32_t K, int32_t a)
+{
+    return (int32_t)((uint32_t)K * (0u - ((uint32_t)1 << a)));
+}
+
 /* K and h~ as the P update takes them, then KP_tail: K = (g c) h~ 2^kn and h~ 2^kn, or, for
  * P_s <= 31 where both words keep room, K 2^a and h~ 2^b (PM_LOWK: each class of the tail
- * its own straight run) */
+ * its own straight run). ``mh`` (PM_LOW): OR of |h~_i 2^kn| (one's complement). */
 INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
                    int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
-                   uint32_t *c_th, uint32_t *c_P, int common, int cls)
+                   uint32_t *c_th, uint32_t *c_P, uint32_t mh, int common, int cls)
 {
     const uint32_t n = CANRLS_N;
-    int32_t hn[CANRLS_N], K[CANRLS_N], Kk[CANRLS_N], hk[CANRLS_N];
+    int32_t hn[CANRLS_N], K[CANRLS_N];
     uint32_t mK = 0;
     uint32_t i;
+    if (!common && cls == PM_LOW) {
+        /* K into S->K alone (the tail's theta reads it there), K 2^a and h~ 2^b from
+         * S->K and S->h: nothing else kept */
+        int32_t Kk[CANRLS_N], hk[CANRLS_N];
+        int32_t a, b;
+        UNROLL
+        for (i = 0; i < n; i++) {
+            const int32_t Ki = mul_rsh32((int32_t)((uint32_t)S->h[i] << kn), gcn);
+            S->K[i] = Ki;
+            /* |K_i| (the theta step's test of mK holds with it: |K_i| >= one's complement) */
+            mK |= (uint32_t)(Ki ^ (Ki >> 31)) - (uint32_t)(Ki >> 31);
+        }
+        MEM_BARRIER();
+        if (lowk_split(mK, mh, P_s, &a, &b)) {
+            /* h~ 2^(kn + b): kn + b <= 30 unless every h~_i is 0 (then any shift is) */
+            const uint32_t sb = (uint32_t)(kn + b) & 31u;
+            UNROLL
+            for (i = 0; i < n; i++) {
+                Kk[i] = lowk_kword(S->K[i], a);
+                hk[i] = (int32_t)((uint32_t)S->h[i] << sb);
+            }
+            return KP_tail(S, S->K, hk, Kk, hk, mK, epn, th_s, P_s, il, e_io, c_io, trw_io,
+                           c_th, c_P, 0, PM_LOWK);
+        }
+        UNROLL
+        for (i = 0; i < n; i++) {
+            hn[i] = (int32_t)((uint32_t)S->h[i] << kn);
+        }
+        return KP_tail_low(S, S->K, hn, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P);
+    }
     UNROLL
     for (i = 0; i < n; i++) {
         /* h~ <- h~ 2^kn (exact: the normalisation) */
@@ -1513,29 +1611,6 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
         K[i] = mul_rsh32(hn[i], gcn);
         S->K[i] = K[i];
         mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
-    }
-    if (!common && cls == PM_LOW) {
-        /* u = K_i h~_j 2^(32 - P_s) = (K_i 2^a)(h~_j 2^b): the largest a <= 32 - P_s that
-         * keeps K 2^a a word (mK < 2^(31 - a)), the rest b on h~ if it keeps h~ 2^b a word */
-        const int32_t a0 = nlz(mK | 1u) - 1;
-        const int32_t a = a0 < 32 - P_s ? a0 : 32 - P_s, b = 32 - P_s - a;
-        uint32_t mh = 0;
-        if (b > 0) {
-            UNROLL
-            for (i = 0; i < n; i++) {
-                mh |= (uint32_t)(hn[i] ^ (hn[i] >> 31));
-            }
-        }
-        if (b == 0 || (b <= 31 && (mh >> (31 - b)) == 0u)) {
-            UNROLL
-            for (i = 0; i < n; i++) {
-                Kk[i] = (int32_t)((uint32_t)K[i] << a);
-                hk[i] = (int32_t)((uint32_t)hn[i] << b);
-            }
-            /* K and h~ as the P update takes them: K 2^a and h~ 2^b */
-            return KP_tail(S, K, hn, Kk, b == 0 ? hn : hk, mK, epn, th_s, P_s, il, e_io, c_io,
-                           trw_io, c_th, c_P, 0, PM_LOWK);
-        }
     }
     return KP_tail(S, K, hn, K, hn, mK, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P,
                    common, cls);
@@ -1548,13 +1623,21 @@ INLINE int KP_core(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int3
                       int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io, \
                       uint32_t *c_th, uint32_t *c_P)                                         \
     {                                                                                        \
-        return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P,        \
+        return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, 0u,    \
                        common_, cls_);                                                       \
     }
 KP_STEP(KP_step_common, 1, PM_HIGH)
 KP_STEP(KP_step_high, 0, PM_HIGH)
 KP_STEP(KP_step_32, 0, PM_32)
-KP_STEP(KP_step_low, 0, PM_LOW)
+
+/* P_s <= 31; mh = OR of |h~_i 2^kn| (one's complement: m 2^kn, the shift exact) */
+NOINLINE int KP_step_low(canrls_rls_q31 *S, int32_t kn, int32_t gcn, int32_t epn, int32_t th_s,
+                         int32_t P_s, int32_t il, int32_t *e_io, int32_t *c_io, int32_t *trw_io,
+                         uint32_t *c_th, uint32_t *c_P, uint32_t mh)
+{
+    return KP_core(S, kn, gcn, epn, th_s, P_s, il, e_io, c_io, trw_io, c_th, c_P, mh, 0,
+                   PM_LOW);
+}
 
 #endif
 
@@ -1705,9 +1788,10 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             uint64_t dvd;
             kg = 32 - nlz((uint32_t)d) - p->kg_bl;
             if (UNLIKELY(kg > 0)) {
-                int32_t lim = p->kg_max;
-                lim = lim < 62 - p->P_s - e ? lim : 62 - p->P_s - e;
-                lim = lim < 62 - p->theta_s - e ? lim : 62 - p->theta_s - e;
+                /* kg <= min(kg_max, 62 - max(P_s, theta_s) - e) */
+                const int32_t ps = p->P_s > p->theta_s ? p->P_s : p->theta_s;
+                const int32_t lim = 62 - ps - e;
+                kg = kg < p->kg_max ? kg : p->kg_max;
                 kg = kg < lim ? kg : lim;
             } else {
                 kg = 0;
@@ -1755,7 +1839,8 @@ int canrls_update_q31(canrls_rls_q31 *S, const int32_t *phi, int32_t y,
             } else if (P_s == 32) {
                 low = KP_step_32(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
             } else {
-                low = KP_step_low(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P);
+                low = KP_step_low(S, kn, gcn, epn, th_s, P_s, il, &e, &c, &trw, &c_th, &c_P,
+                                  m << kn);
             }
             tail = c > p->one_lam;
             fixed_step = 1;

@@ -56,18 +56,14 @@ static int op_pass(void)
     /* the class of P_s, as KP_core takes it */
     mode = P_s >= 33 ? PM_HIGH : P_s == 32 ? PM_32 : PM_LOW;
     if (mode == PM_LOW) {
-        int32_t a = 32 - P_s, b;
+        int32_t a, b;
         for (i = 0; i < CANRLS_N; i++) {
-            mK |= (uint32_t)(K[i] ^ (K[i] >> 31));
+            mK |= (uint32_t)(K[i] ^ (K[i] >> 31)) - (uint32_t)(K[i] >> 31);
             mh |= (uint32_t)(h[i] ^ (h[i] >> 31));
         }
-        while (a > 0 && (mK >> (31 - a)) != 0u) {
-            a -= 1;
-        }
-        b = 32 - P_s - a;
-        if (b <= 31 && (mh >> (31 - b)) == 0u) {
+        if (lowk_split(mK, mh, P_s, &a, &b)) {
             for (i = 0; i < CANRLS_N; i++) {
-                Kk[i] = (int32_t)((uint32_t)K[i] << a);
+                Kk[i] = lowk_kword(K[i], a);
                 hk[i] = (int32_t)((uint32_t)h[i] << b);
             }
             KP = Kk;
@@ -75,7 +71,7 @@ static int op_pass(void)
             mode = PM_LOWK;
         }
     }
-    P_off_any(P, KP, hP, mode, mode == PM_HIGH ? neg_pow2(P_s) : 0, P_s, sh, &c_P);
+    (void)P_off_any(P, KP, hP, mode, mode == PM_HIGH ? neg_pow2(P_s) : 0, P_s, sh, 0, &c_P);
     for (i = 0; i < M; i++) {
         printf("%" PRId32 " %" PRId32 " ", P[i].word, (int32_t)(P[i].lo ^ 0x80000000u));
     }
