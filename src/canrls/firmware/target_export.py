@@ -270,9 +270,10 @@ Two goals of canrls for the whole path on a Cortex-M4, each for its own build: s
 `-O2` (a worst sample of at most 1,500 instructions, start-up included) and size at `-Os`
 (`.text` + `.rodata` of what a firmware links under 12 KB). Measured at n = 6 on canrls'
 simulated drive and an HSM150 run (`make target`, `docs/target.md`), this code gives
-**the size, not the speed**: at `-O2` the worst sample is about 1,700 to 1,900
-instructions (the kernel's update alone up to about 1,140 with its plan a constant, the
-generated front end under 750), at `-Os` the linked library is about 11.9 KB (the kernel,
+**the size, not the speed**: at `-O2` the worst sample is about 1,650 to 1,800
+instructions (the kernel's update alone up to about 1,020 with its plan a constant, within
+1.2 times its mean; the generated front end under 750), at `-Os` the linked library is
+about 11.8 KB (the kernel,
 built for size with its loops, about 3.9 KB of it). The `-Os` build is smaller and slower
 (at n = 6 about 4,100 instructions a sample on average, 5,300 at worst). {"`make count-m4` (at `M4_OPT`, `-O2`) and " if vectors else ""}`make size-m4` (at `-Os`, linked with
 `size_main.c`, the least program that calls the API, and `--gc-sections`)
