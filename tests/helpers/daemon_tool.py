@@ -25,7 +25,7 @@ import can
 
 from canrls.can.estimator_frames import CommandResult
 from canrls.can.protocol import Protocol
-from canrls.cli.run import fixed_path_for
+from canrls.cli.run import daemon_for
 from canrls.estimation.model import Model
 from canrls.estimation.settings import EstimatorSettings
 from canrls.live.daemon import Daemon
@@ -59,9 +59,8 @@ def axis_daemons(config: Path, bus: dict[str, Any], *, backpressure: bool = Fals
     for name, cfg in load_config(config).axis_configs().items():
         protocol = cfg.protocol()
         dset = dataclasses.replace(DaemonSettings.from_config(cfg), **settings)
-        out[name] = Daemon(protocol, cfg.model_for(protocol), cfg.settings(), dset, bus=bus,
-                           backpressure=backpressure,
-                           fixed_path=fixed_path_for(protocol, cfg.settings(), dset))
+        out[name] = daemon_for(protocol, cfg.model_for(protocol), cfg.settings(), dset,
+                               bus=bus, backpressure=backpressure)
     return out
 
 

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from canrls.cli.demo_common import BASE as _BASE
 from canrls.cli.demo_common import diagnosis
-from canrls.cli.run import fixed_path_for
+from canrls.cli.run import daemon_for
 from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -157,7 +157,6 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     import can
 
     from canrls.can.estimator_frames import encode_command, parse_effect
-    from canrls.live.daemon import Daemon
     from canrls.live.daemon_settings import DaemonSettings
     from canrls.live.monitor_listener import LibraryUnits, Monitor
     from canrls.processor.config import AppConfig, prepare
@@ -198,8 +197,7 @@ def run_demo(duration: float = 60.0, seed: int = 1, hidden: str = "unbalance",
     say()
     dset = DaemonSettings(publish_interval=0.05, queue_size=20000, block_interval=0.005,
                           commands=True)
-    daemon = Daemon(protocol, model, settings, dset, bus=sim, backpressure=True,
-                    fixed_path=fixed_path_for(protocol, settings, dset))
+    daemon = daemon_for(protocol, model, settings, dset, bus=sim, backpressure=True)
     mon = Monitor(units=units, feedback_ids=[m.frame_id for m in protocol.messages],
                   source=f"virtual:{channel}")
     tl = _Timeline(frozenset(m.frame_id for m in protocol.messages))

@@ -29,7 +29,7 @@ import numpy as np
 
 from canrls.cli.demo_common import BASE as _BASE
 from canrls.cli.demo_common import diagnosis
-from canrls.cli.run import fixed_path_for
+from canrls.cli.run import daemon_for
 from canrls.core.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -91,7 +91,6 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
         parse_effect,
     )
     from canrls.live.bus_link import command_id, moved
-    from canrls.live.daemon import Daemon
     from canrls.live.daemon_settings import DaemonSettings
     from canrls.live.machine_daemon import MachineDaemon
     from canrls.live.monitor_listener import LibraryUnits
@@ -126,8 +125,8 @@ def run_machine_demo(n: int = 4, duration: float = 30.0, seed: int = 1,
         dset = DaemonSettings(publish_interval=0.05, block_interval=0.005, commands=True,
                               own_offset=k * OWN_STEP, rx_filter=True, queue_size=20000)
         protocol = base.with_ids(a.rule)
-        daemons[a.name] = Daemon(protocol, model, settings, dset, bus=bus, backpressure=True,
-                                 fixed_path=fixed_path_for(protocol, settings, dset))
+        daemons[a.name] = daemon_for(protocol, model, settings, dset, bus=bus,
+                                     backpressure=True)
     md = MachineDaemon(daemons)
     say(f"{n} simulated drives on one bus (canrls-sim), seed {seed}, {duration:g} s "
         f"simulated; each axis's model knows only {', '.join(_BASE)}:")
