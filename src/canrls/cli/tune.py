@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
                       else float(args.rated_torque))
     res = tune(saved, req, source=source)
     written = res.write(output_dir(args.out, f"--out {args.out}")) if args.out else []
-    earlier = res.earlier(args.out) if args.out else []
+    earlier = res.earlier(args.out, written) if args.out else []
     if args.json:
         d = res.to_dict()
         d["written"] = [str(p) for p in written]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -144,12 +144,14 @@ class TuneResult:
             out[GAINS_FILE] = _json(self.to_dict()["gains"])
         return out
 
-    def earlier(self, directory: str | Path) -> list[Path]:
-        """Files of a tune in ``directory`` that this result does not write (an earlier
-        run's, kept: a ``gains.json`` left from a run with ``--bandwidth``)."""
-        d = Path(directory)
-        return [d / name for name in (FEEDFORWARD_FILE, MAP_FILE, GAINS_FILE)
-                if name not in self.files() and (d / name).is_file()]
+    @staticmethod
+    def earlier(directory: str | Path, written: Sequence[Path]) -> list[Path]:
+        """Files of a tune in ``directory`` that this run did not write (``written``: what
+        :meth:`write` returned): an earlier run's, kept, such as a ``gains.json`` left from
+        a run with ``--bandwidth``."""
+        d, names = Path(directory), {p.name for p in written}
+        return [d / n for n in (FEEDFORWARD_FILE, MAP_FILE, GAINS_FILE)
+                if n not in names and (d / n).is_file()]
 
     def write(self, directory: str | Path) -> list[Path]:
         """Write :meth:`files` into ``directory`` (each whole, never through a link)."""

@@ -40,6 +40,7 @@ from canrls.core.errors import ConfigError
 from canrls.core.files import write_texts
 from canrls.core.units import rating_of
 from canrls.estimation.fixed.estimator import FixedRLS
+from canrls.estimation.fixed.formats import QUANTITIES
 from canrls.estimation.model import Model
 from canrls.estimation.pipeline import Pipeline
 from canrls.firmware.cgen import plan_text
@@ -50,7 +51,6 @@ __all__ = ["KERNEL_FILES", "Export", "plan_c", "export_c", "frames_c"]
 
 #: The kernel's files, copied from the package (``canrls/c/firmware``).
 KERNEL_FILES = ("canrls_bounds.h", "canrls_fixed.h", "canrls_fixed.c")
-_QUANTITIES = ("phi", "y", "theta", "P", "K", "eps", "h", "den", "g", "lam")
 
 
 def plan_c(constants: dict[str, int], name: str = "canrls_plan",
@@ -212,7 +212,7 @@ def _config_files(pipeline: Pipeline, source: str,
         th, tc = _output_lines(eq, protocol)
         h.append(th)
         c.append(tc)
-        for q in _QUANTITIES:
+        for q in QUANTITIES:
             fmt = getattr(cfg, q)
             Q = c_name_part(q, "quantity")
             h.append(f"#define {names(f'{pre}_{Q}_BITS', f'the format of {q}')} "

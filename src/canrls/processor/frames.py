@@ -42,7 +42,7 @@ from canrls.processor.period import (
 from canrls.processor.reorder import Reorderer
 from canrls.processor.times import TimeJudge
 
-__all__ = ["SEEN_IDS", "FrameProcessor", "unmapped_error"]
+__all__ = ["SEEN_IDS", "FrameProcessor", "expected_messages", "unmapped_error"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,11 @@ _PLACEHOLDER_DT = 1e-3
 SEEN_IDS = 1024
 
 
+def expected_messages(protocol: Protocol) -> str:
+    """The mapped messages as an error names them: ``0x101 (DriveCurrent), ...``."""
+    return ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in protocol.messages)
+
+
 def unmapped_error(protocol: Protocol, frames: int, seen: list[tuple[int, int]],
                    rejected: Mapping[str, int] | None = None, source: str | None = None
                    ) -> ConfigError:
@@ -65,7 +70,7 @@ def unmapped_error(protocol: Protocol, frames: int, seen: list[tuple[int, int]],
     ``export-c --vectors`` alike): what was expected, the most frequent IDs ``seen``
     (``[(id, frames)]``) and the ``rejected`` frames by reason; ``source`` names the log
     they came from (None: a bus)."""
-    want = ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in protocol.messages)
+    want = expected_messages(protocol)
     seen_text = ", ".join(f"0x{i:X} ({n})" for i, n in seen) if seen else "none"
     rej = {k: v for k, v in (rejected or {}).items() if v}
     why = ("; rejected: " + ", ".join(f"{k} {v}" for k, v in rej.items())) if rej else ""

@@ -37,7 +37,7 @@ from canrls.processor.fit_result import (
     PeriodInfo,
     StartInfo,
 )
-from canrls.processor.frames import FrameProcessor
+from canrls.processor.frames import FrameProcessor, expected_messages
 
 __all__ = ["FILE_GAP_S", "LogFiles", "LogsSamples", "MIN_SAMPLES_PER_PARAMETER", "fit_axes",
            "fit_frames", "fit_log", "fit_logs", "read_logs", "too_few_samples"]
@@ -221,12 +221,11 @@ class LogFiles:
     def _unmapped(self, k: int) -> ConfigError:
         """Log ``k`` holds frames but none of a mapped message: it would add nothing."""
         pr = self.proc.protocol
-        want = ", ".join(f"0x{m.frame_id:X} ({m.name})" for m in pr.messages)
         return ConfigError(
             f"{self.paths[k]}: none of the mapped messages occurs in its "
-            f"{self.proc.frames - self._frames_before} frames (expected {want}, DBC "
-            f"{pr.dbc_path.name}): it would add no sample; leave it out, or fit it with "
-            f"its own DBC and --signal mapping")
+            f"{self.proc.frames - self._frames_before} frames (expected "
+            f"{expected_messages(pr)}, DBC {pr.dbc_path.name}): it would add no sample; "
+            f"leave it out, or fit it with its own DBC and --signal mapping")
 
     def frames(self) -> FrameCounts:
         """The frame counts over the files, with the log lines skipped."""
